@@ -1,0 +1,438 @@
+"""The event container: four contiguous columns plus the sensor size.
+
+An event camera reports, for each pixel whose log intensity changed by a
+contrast threshold, a tuple ``(x, y, t, p)``. :class:`Events` holds N such
+events as four numpy columns with fixed dtypes:
+
+==========  =========  ==========================================
+column      dtype      meaning
+==========  =========  ==========================================
+``x``       uint16     column, ``0 <= x < width``
+``y``       uint16     row, ``0 <= y < height``
+``t``       int64      time stamp in microseconds, non-decreasing
+``p``       int8       polarity, 0 = OFF (darker), 1 = ON (brighter)
+==========  =========  ==========================================
+
+The signed polarity of the paper (-1/+1) is derived on demand with
+:meth:`Events.signed_polarity`; it is never stored. Every constructor
+validates its input and raises :class:`ValueError` or :class:`TypeError`
+naming the offending argument; nothing is clipped, reordered or dropped
+silently.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import TYPE_CHECKING, Iterator, NamedTuple, Sequence
+
+import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    import torch
+
+__all__ = ["Events", "EventTensors", "STRUCTURED_DTYPE", "concatenate"]
+
+#: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
+STRUCTURED_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("p", "i1")])
+
+_MAX_SENSOR_SIZE = 65535
+
+
+class EventTensors(NamedTuple):
+    """Events as torch tensors, as returned by :meth:`Events.to_torch`.
+
+    ``x``, ``y`` and ``t`` are int64 tensors of shape (N,) (pixels and
+    microseconds); ``p`` is int8 in {0, 1}, or float32 in {-1, +1} when
+    signed polarity was asked for. ``width`` and ``height`` give the sensor.
+    """
+
+    x: "torch.Tensor"
+    y: "torch.Tensor"
+    t: "torch.Tensor"
+    p: "torch.Tensor"
+    width: int
+    height: int
+
+
+def _check_sensor_size(width: object, height: object) -> tuple[int, int]:
+    for name, value in (("width", width), ("height", height)):
+        if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+            raise TypeError(f"{name} must be an integer number of pixels, got {value!r}")
+        if not 0 < int(value) <= _MAX_SENSOR_SIZE:
+            raise ValueError(f"{name} must be in [1, {_MAX_SENSOR_SIZE}] pixels, got {value}")
+    return int(width), int(height)
+
+
+def _as_column(name: str, values: object) -> np.ndarray:
+    """A 1-D numpy array from ``values``, with NaN/inf and shape checks."""
+    if hasattr(values, "detach") and hasattr(values, "cpu"):  # a torch tensor
+        values = values.detach().cpu().numpy()
+    array = np.asarray(values)
+    if array.ndim != 1:
+        raise ValueError(f"{name} must be one-dimensional (N,), got shape {array.shape}")
+    if array.dtype.kind not in "biuf":
+        raise TypeError(f"{name} must hold numbers, got dtype {array.dtype}")
+    if array.dtype.kind == "f":
+        finite = np.isfinite(array)
+        if not finite.all():
+            bad = int(np.flatnonzero(~finite)[0])
+            raise ValueError(f"{name} contains a non-finite value ({array[bad]}) at index {bad}")
+        if array.size and not np.array_equal(array, np.round(array)):
+            bad = int(np.flatnonzero(array != np.round(array))[0])
+            raise ValueError(
+                f"{name} must hold whole numbers, got {array[bad]} at index {bad}"
+                + (" (times are integer microseconds)" if name == "t" else "")
+            )
+    return array
+
+
+def _coordinates(name: str, values: object, size: int, size_name: str) -> np.ndarray:
+    array = _as_column(name, values)
+    if array.size:
+        low, high = array.min(), array.max()
+        if low < 0 or high >= size:
+            bad = int(np.flatnonzero((array < 0) | (array >= size))[0])
+            raise ValueError(
+                f"{name} must lie in [0, {size_name}={size}), got {array[bad]} at index {bad}"
+            )
+    return array.astype(np.uint16, copy=False)
+
+
+def _timestamps(values: object) -> np.ndarray:
+    array = _as_column("t", values)
+    if array.dtype.kind == "u" and array.size and array.max() > np.iinfo(np.int64).max:
+        raise ValueError("t does not fit into int64 microseconds")
+    if array.dtype.kind == "f" and array.size and np.abs(array).max() > 2**62:
+        raise ValueError("t does not fit into int64 microseconds")
+    array = array.astype(np.int64, copy=False)
+    if array.size > 1:
+        decreasing = np.flatnonzero(array[1:] < array[:-1])
+        if decreasing.size:
+            i = int(decreasing[0])
+            raise ValueError(
+                f"t must be sorted in non-decreasing order; t[{i + 1}]={array[i + 1]} µs comes "
+                f"after t[{i}]={array[i]} µs (pass sort=True to sort by time explicitly)"
+            )
+    return array
+
+
+def _polarities(values: object) -> np.ndarray:
+    """Polarity as int8 {0,1} from {0,1}, {-1,+1} or bool input."""
+    array = _as_column("p", values)
+    if array.dtype.kind == "b":
+        return array.astype(np.int8)
+    if not array.size:
+        return array.astype(np.int8)
+    present = np.unique(array)
+    if np.isin(present, (0, 1)).all():
+        return array.astype(np.int8, copy=False)
+    if np.isin(present, (-1, 1)).all():
+        return (array > 0).astype(np.int8)
+    raise ValueError(
+        "p must hold polarities as {0, 1}, {-1, +1} or bool; got the values "
+        f"{present[:6].tolist()}{' ...' if present.size > 6 else ''}"
+    )
+
+
+@dataclass(frozen=True, eq=False, repr=False)
+class Events:
+    """N events of a ``width`` x ``height`` sensor, sorted by time.
+
+    Parameters
+    ----------
+    x, y : array_like, shape (N,)
+        Pixel column and row, integers (any integer dtype, or floats holding
+        whole numbers) with ``0 <= x < width`` and ``0 <= y < height``.
+    t : array_like, shape (N,)
+        Time stamps in microseconds (integers), non-decreasing.
+    p : array_like, shape (N,)
+        Polarity as {0, 1}, {-1, +1} or bool; stored as int8 {0, 1}.
+    width, height : int
+        Sensor size in pixels.
+    sort : bool, keyword-only
+        Sort the events by time (stable) instead of raising on unsorted ``t``.
+
+    Examples
+    --------
+    >>> ev = Events([0, 1, 2], [0, 0, 1], [10, 20, 30], [1, -1, 1], width=4, height=3)
+    >>> len(ev), ev.p.tolist(), ev.signed_polarity().tolist()
+    (3, [1, 0, 1], [1.0, -1.0, 1.0])
+    >>> ev.slice_time(15, 30).t.tolist()
+    [20]
+    """
+
+    x: np.ndarray
+    y: np.ndarray
+    t: np.ndarray
+    p: np.ndarray
+    width: int
+    height: int
+
+    def __init__(
+        self,
+        x: object,
+        y: object,
+        t: object,
+        p: object,
+        width: int,
+        height: int,
+        *,
+        sort: bool = False,
+    ) -> None:
+        width, height = _check_sensor_size(width, height)
+        x = _coordinates("x", x, width, "width")
+        y = _coordinates("y", y, height, "height")
+        p = _polarities(p)
+        t_checked = _as_column("t", t)
+        lengths = {"x": x.size, "y": y.size, "t": t_checked.size, "p": p.size}
+        if len(set(lengths.values())) != 1:
+            raise ValueError(f"x, y, t and p must have the same length, got {lengths}")
+        if sort:
+            order = np.argsort(t_checked, kind="stable")
+            x, y, p, t_checked = x[order], y[order], p[order], t_checked[order]
+        t = _timestamps(t_checked)
+        self._set(x, y, t, p, width, height)
+
+    # -- construction -----------------------------------------------------------------
+    def _set(self, x, y, t, p, width, height) -> None:
+        for name, value in (("x", x), ("y", y), ("t", t), ("p", p)):
+            object.__setattr__(self, name, np.ascontiguousarray(value))
+        object.__setattr__(self, "width", width)
+        object.__setattr__(self, "height", height)
+
+    @classmethod
+    def _trusted(cls, x, y, t, p, width: int, height: int) -> "Events":
+        """Build without validation from columns already of the right dtypes and order."""
+        events = cls.__new__(cls)
+        events._set(x, y, t, p, width, height)
+        return events
+
+    @classmethod
+    def empty(cls, width: int, height: int) -> "Events":
+        """No events on a ``width`` x ``height`` sensor."""
+        width, height = _check_sensor_size(width, height)
+        return cls._trusted(
+            np.empty(0, np.uint16), np.empty(0, np.uint16), np.empty(0, np.int64),
+            np.empty(0, np.int8), width, height,
+        )
+
+    @classmethod
+    def from_structured(
+        cls, array: np.ndarray, width: int, height: int, *, sort: bool = False
+    ) -> "Events":
+        """Events from a structured array with fields ``x, y, t, p`` (any order).
+
+        Fields may have any integer or bool dtype (``t`` in microseconds);
+        polarity may be {0, 1}, {-1, +1} or bool. Extra fields are ignored.
+        """
+        array = np.asarray(array)
+        names = array.dtype.names
+        if names is None:
+            raise TypeError(
+                f"array must be a structured array with fields x, y, t, p; got dtype {array.dtype}"
+            )
+        missing = [name for name in "xytp" if name not in names]
+        if missing:
+            raise ValueError(f"array lacks the field(s) {missing}; it has {list(names)}")
+        if array.ndim != 1:
+            raise ValueError(f"array must be one-dimensional (N,), got shape {array.shape}")
+        return cls(array["x"], array["y"], array["t"], array["p"], width, height, sort=sort)
+
+    @classmethod
+    def from_array(
+        cls, array: object, width: int, height: int, *, order: str = "xytp", sort: bool = False
+    ) -> "Events":
+        """Events from an (N, 4) array whose columns are named by ``order``.
+
+        ``order`` is a permutation of ``"xytp"``, e.g. ``"txyp"`` for the ECD
+        text layout. Time must already be in integer microseconds.
+        """
+        if sorted(order) != sorted("xytp") or len(order) != 4:
+            raise ValueError(f"order must be a permutation of 'xytp', got {order!r}")
+        if hasattr(array, "detach"):
+            array = array.detach().cpu().numpy()
+        array = np.asarray(array)
+        if array.ndim != 2 or array.shape[1] != 4:
+            raise ValueError(f"array must have shape (N, 4), got {array.shape}")
+        columns = {name: array[:, i] for i, name in enumerate(order)}
+        return cls(columns["x"], columns["y"], columns["t"], columns["p"], width, height, sort=sort)
+
+    # -- conversion -------------------------------------------------------------------
+    def to_structured(self) -> np.ndarray:
+        """A structured array of dtype :data:`STRUCTURED_DTYPE` (fields x, y, t, p)."""
+        out = np.empty(len(self), STRUCTURED_DTYPE)
+        out["x"], out["y"], out["t"], out["p"] = self.x, self.y, self.t, self.p
+        return out
+
+    def to_array(self, order: str = "xytp") -> np.ndarray:
+        """An (N, 4) int64 array with columns in ``order`` (a permutation of 'xytp')."""
+        if sorted(order) != sorted("xytp") or len(order) != 4:
+            raise ValueError(f"order must be a permutation of 'xytp', got {order!r}")
+        return np.stack([getattr(self, name).astype(np.int64) for name in order], axis=1)
+
+    def signed_polarity(self, dtype: np.dtype | type = np.float32) -> np.ndarray:
+        """Polarity as -1 (OFF) / +1 (ON), shape (N,), the paper's ``p_i``."""
+        return (2 * self.p.astype(dtype) - 1).astype(dtype, copy=False)
+
+    def to_torch(self, device: object = None, *, signed_polarity: bool = False) -> EventTensors:
+        """The columns as torch tensors (x, y, t int64; p int8, or float32 ±1 if signed)."""
+        import torch
+
+        p = (
+            torch.from_numpy(self.signed_polarity(np.float32))
+            if signed_polarity
+            else torch.from_numpy(self.p)
+        )
+        return EventTensors(
+            torch.from_numpy(self.x.astype(np.int64)).to(device),
+            torch.from_numpy(self.y.astype(np.int64)).to(device),
+            torch.from_numpy(self.t).to(device),
+            p.to(device),
+            self.width,
+            self.height,
+        )
+
+    # -- properties -------------------------------------------------------------------
+    @property
+    def sensor_size(self) -> tuple[int, int]:
+        """``(width, height)`` in pixels."""
+        return self.width, self.height
+
+    @property
+    def t_start(self) -> int:
+        """Time of the first event in µs (raises on empty events)."""
+        self._require_events("t_start")
+        return int(self.t[0])
+
+    @property
+    def t_end(self) -> int:
+        """Time of the last event in µs (raises on empty events)."""
+        self._require_events("t_end")
+        return int(self.t[-1])
+
+    @property
+    def duration_us(self) -> int:
+        """``t_end - t_start`` in µs; 0 for fewer than two events."""
+        return int(self.t[-1] - self.t[0]) if len(self) > 1 else 0
+
+    def _require_events(self, what: str) -> None:
+        if not len(self):
+            raise ValueError(f"{what} is undefined for empty events")
+
+    # -- container protocol -----------------------------------------------------------
+    def __len__(self) -> int:
+        return int(self.t.size)
+
+    def __getitem__(self, index: object) -> "Events | tuple[int, int, int, int]":
+        """An int gives one event ``(x, y, t, p)``; a slice, boolean mask or
+        increasing index array gives :class:`Events`."""
+        if isinstance(index, (int, np.integer)):
+            i = int(index)
+            return int(self.x[i]), int(self.y[i]), int(self.t[i]), int(self.p[i])
+        if isinstance(index, slice):
+            if index.step is not None and index.step < 0:
+                raise IndexError("events cannot be indexed with a negative step (time order)")
+            return Events._trusted(
+                self.x[index], self.y[index], self.t[index], self.p[index],
+                self.width, self.height,
+            )
+        selection = np.asarray(index)
+        if selection.dtype == bool:
+            if selection.shape != self.t.shape:
+                raise IndexError(
+                    f"boolean mask must have shape {self.t.shape}, got {selection.shape}"
+                )
+        elif selection.dtype.kind in "iu" and selection.ndim == 1:
+            if selection.size > 1 and np.any(np.diff(selection) < 0):
+                raise IndexError("an index array must be non-decreasing to keep events in time order")
+        else:
+            raise IndexError(f"events cannot be indexed with {type(index).__name__}")
+        return Events._trusted(
+            self.x[selection], self.y[selection], self.t[selection], self.p[selection],
+            self.width, self.height,
+        )
+
+    def __eq__(self, other: object) -> bool:
+        if not isinstance(other, Events):
+            return NotImplemented
+        return self.sensor_size == other.sensor_size and all(
+            np.array_equal(getattr(self, name), getattr(other, name)) for name in "xytp"
+        )
+
+    __hash__ = None  # type: ignore[assignment]
+
+    def __repr__(self) -> str:
+        span = f", t=[{self.t[0]}, {self.t[-1]}] µs" if len(self) else ""
+        return f"Events(n={len(self)}, sensor={self.width}x{self.height}{span})"
+
+    # -- time slicing -----------------------------------------------------------------
+    def index_at(self, t_us: int) -> int:
+        """Index of the first event with ``t >= t_us`` (binary search)."""
+        return int(np.searchsorted(self.t, np.int64(t_us), side="left"))
+
+    def slice_time(self, t0_us: int, t1_us: int) -> "Events":
+        """Events with ``t0_us <= t < t1_us`` (a view, found by binary search)."""
+        if t1_us < t0_us:
+            raise ValueError(f"t1_us ({t1_us}) must not be smaller than t0_us ({t0_us})")
+        return self[self.index_at(t0_us): self.index_at(t1_us)]
+
+    def windows(
+        self,
+        *,
+        duration_us: int | None = None,
+        count: int | None = None,
+        step_us: int | None = None,
+        t_start_us: int | None = None,
+    ) -> Iterator["Events"]:
+        """Iterate over windows of fixed duration or of a fixed number of events.
+
+        Give exactly one of ``duration_us`` (windows ``[t0 + k*step, t0 + k*step + duration)``,
+        ``step_us`` defaulting to ``duration_us``, ``t0`` to the first event) or
+        ``count`` (consecutive windows of ``count`` events; the last may be shorter).
+        """
+        if (duration_us is None) == (count is None):
+            raise ValueError("give exactly one of duration_us and count")
+        if count is not None:
+            if step_us is not None or t_start_us is not None:
+                raise ValueError("step_us and t_start_us apply to windows by duration only")
+            if int(count) <= 0:
+                raise ValueError(f"count must be positive, got {count}")
+            for start in range(0, len(self), int(count)):
+                yield self[start: start + int(count)]
+            return
+        if int(duration_us) <= 0:
+            raise ValueError(f"duration_us must be positive, got {duration_us}")
+        step = int(duration_us) if step_us is None else int(step_us)
+        if step <= 0:
+            raise ValueError(f"step_us must be positive, got {step_us}")
+        if not len(self):
+            return
+        start = self.t_start if t_start_us is None else int(t_start_us)
+        while start <= self.t_end:
+            yield self.slice_time(start, start + int(duration_us))
+            start += step
+
+
+def concatenate(parts: Sequence[Events]) -> Events:
+    """Join events of the same sensor, in order; raises if time would decrease."""
+    parts = list(parts)
+    if not parts:
+        raise ValueError("parts must hold at least one Events object")
+    for i, part in enumerate(parts):
+        if not isinstance(part, Events):
+            raise TypeError(f"parts[{i}] must be Events, got {type(part).__name__}")
+        if part.sensor_size != parts[0].sensor_size:
+            raise ValueError(
+                f"parts[{i}] has sensor {part.sensor_size}, parts[0] has {parts[0].sensor_size}"
+            )
+    non_empty = [part for part in parts if len(part)]
+    for i in range(1, len(non_empty)):
+        if non_empty[i].t[0] < non_empty[i - 1].t[-1]:
+            raise ValueError(
+                f"events would go back in time: a part starts at {non_empty[i].t[0]} µs after "
+                f"one that ends at {non_empty[i - 1].t[-1]} µs"
+            )
+    width, height = parts[0].sensor_size
+    return Events._trusted(
+        *(np.concatenate([getattr(part, name) for part in parts]) for name in "xytp"),
+        width, height,
+    )

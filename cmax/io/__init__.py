@@ -1,0 +1,4 @@
+"""Event file formats."""
+from cmax.io.errors import FormatError
+
+__all__ = ["FormatError"]

@@ -1,0 +1,1 @@
+"""Simulation of event cameras: the ESIM event model, adaptive sampling and video sources."""
