@@ -1,4 +1,131 @@
-"""Event file formats."""
-from cmax.io.errors import FormatError
+"""Event file formats: one :func:`read` that detects the format, and one writer layout.
 
-__all__ = ["FormatError"]
+==================  ==========================  =====================================
+format              detected by                 reader
+==================  ==========================  =====================================
+DSEC HDF5           ``events/{x,y,t,p}``        :func:`read_h5`, :class:`H5Reader`
+MVSEC HDF5          ``davis/<cam>/events``      :func:`read_mvsec`
+ECD text            ``.txt``                    :func:`read_txt` (needs width/height)
+AEDAT 4.0           ``#!AER-DAT4.0`` magic      :func:`read_aedat4`, :func:`read_aedat4_imu`
+Prophesee EVT2/3    ``%`` header, ``.raw``      :func:`read_raw`, :func:`read_evt2`, :func:`read_evt3`
+NumPy               ``.npy`` structured x,y,t,p :meth:`Events.from_structured`
+==================  ==========================  =====================================
+
+Every reader raises :class:`FormatError` (a :class:`ValueError`) on bytes it
+cannot decode. Files are written in the DSEC layout only (:func:`write_h5`,
+:class:`H5Writer`).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+import h5py
+import numpy as np
+
+from cmax.events import Events
+from cmax.io.aedat4 import read_aedat4, read_aedat4_imu
+from cmax.io.errors import FormatError
+from cmax.io.h5 import H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
+from cmax.io.mvsec import read_mvsec
+from cmax.io.prophesee import read_evt2, read_evt3, read_raw, write_evt2, write_evt3
+from cmax.io.text import read_txt, write_txt
+
+__all__ = [
+    "FormatError", "detect_format", "read",
+    "H5Reader", "H5Writer", "read_h5", "write_h5",
+    "read_mvsec", "read_txt", "write_txt", "read_aedat4", "read_aedat4_imu",
+    "read_raw", "read_evt2", "read_evt3", "write_evt2", "write_evt3",
+]
+
+FORMATS = ("dsec", "mvsec", "txt", "aedat4", "raw", "npy")
+
+
+def detect_format(path: str | os.PathLike) -> str:
+    """Name of the event format of ``path`` (one of :data:`FORMATS`), from its bytes.
+
+    Magic bytes decide first (HDF5, AEDAT4, NumPy, Prophesee ``%`` header), the
+    suffix ``.txt`` second.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such event file: {path}")
+    with open(path, "rb") as handle:
+        head = handle.read(16)
+    if head.startswith(b"\x89HDF\r\n\x1a\n"):
+        with h5py.File(path, "r") as file:
+            if is_dsec_h5(file):
+                return "dsec"
+            if "davis" in file:
+                return "mvsec"
+        raise FormatError(f"{path} is HDF5 but neither DSEC (events/x..p) nor MVSEC (davis/...)")
+    if head.startswith(b"#!AER-DAT4"):
+        return "aedat4"
+    if head.startswith(b"\x93NUMPY"):
+        return "npy"
+    if head.startswith(b"% ") or path.suffix.lower() == ".raw":
+        return "raw"
+    if path.suffix.lower() in (".txt", ".csv"):
+        return "txt"
+    raise FormatError(
+        f"cannot tell the event format of {path}: expected DSEC/MVSEC HDF5, AEDAT4, "
+        "Prophesee .raw, ECD .txt or a structured .npy"
+    )
+
+
+def read(
+    path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
+    t0_us: int | None = None, t1_us: int | None = None, **options: Any,
+) -> Events:
+    """Read events from any supported file, detecting its format.
+
+    Parameters
+    ----------
+    path : str or Path
+    width, height : int, optional
+        Sensor size, needed where the file does not store it (ECD text, NumPy,
+        original DSEC files); it overrides nothing a file states.
+    t0_us, t1_us : int, optional
+        Keep only ``t0_us <= t < t1_us`` (absolute µs). HDF5 files read only
+        that slice from disk; other formats are decoded whole, then cut.
+    **options
+        Passed to the format's reader (e.g. ``camera='right'`` for MVSEC).
+
+    Returns
+    -------
+    Events
+    """
+    path = Path(path)
+    kind = detect_format(path)
+    if kind == "dsec":
+        return read_h5(path, width=width, height=height, t0_us=t0_us, t1_us=t1_us)
+    if kind == "mvsec":
+        return read_mvsec(path, t0_us=t0_us, t1_us=t1_us, **options)
+    if kind == "aedat4":
+        events = read_aedat4(path, **options)
+    elif kind == "raw":
+        events = read_raw(path, width=width, height=height, **options)
+    else:
+        if width is None or height is None:
+            raise ValueError(f"{path} ({kind}) stores no sensor size: pass width= and height=")
+        if kind == "txt":
+            events = read_txt(path, width=width, height=height)
+        else:
+            events = _read_npy(path, width, height)
+    if t0_us is None and t1_us is None:
+        return events
+    return events.slice_time(
+        -(2**62) if t0_us is None else t0_us, 2**62 if t1_us is None else t1_us
+    )
+
+
+def _read_npy(path: Path, width: int, height: int) -> Events:
+    try:
+        array = np.load(path, allow_pickle=False)
+    except ValueError as error:
+        raise FormatError(f"{path} is not a readable .npy file ({error})") from None
+    try:
+        return Events.from_structured(array, width, height)
+    except (TypeError, ValueError) as error:
+        raise FormatError(f"{path}: {error}") from None

@@ -1,0 +1,190 @@
+"""Pinhole camera with OpenCV distortion, and undistortion of event coordinates."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from functools import cached_property
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from cmax.events import Events, _check_sensor_size
+
+__all__ = ["Camera", "check_intrinsics"]
+
+_DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+
+
+def check_intrinsics(K: object, name: str = "K") -> np.ndarray:
+    """Validate a pinhole matrix; returns it as a (3, 3) float64 array.
+
+    Expects ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with finite entries and
+    positive focal lengths (pixels).
+    """
+    matrix = np.asarray(K, dtype=np.float64)
+    if matrix.shape != (3, 3):
+        raise ValueError(f"{name} must be a 3x3 matrix, got shape {matrix.shape}")
+    if not np.isfinite(matrix).all():
+        raise ValueError(f"{name} must be finite, got {matrix.tolist()}")
+    if not (matrix[0, 0] > 0 and matrix[1, 1] > 0):
+        raise ValueError(f"{name} must have positive focal lengths fx, fy; got {matrix[0, 0]}, {matrix[1, 1]}")
+    if not np.allclose(matrix[2], [0, 0, 1]) or matrix[1, 0] != 0:
+        raise ValueError(f"{name} must have the form [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {matrix.tolist()}")
+    return matrix
+
+
+@dataclass(frozen=True, eq=False)
+class Camera:
+    """A pinhole camera of ``width`` x ``height`` pixels with optional OpenCV distortion.
+
+    Parameters
+    ----------
+    K : array_like, shape (3, 3)
+        Intrinsic matrix in pixels.
+    width, height : int
+        Image size in pixels.
+    distortion : array_like, shape (4,), (5,), (8,), (12,) or (14,), optional
+        OpenCV coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, ...]]])``;
+        ``None`` for an ideal pinhole.
+
+    Examples
+    --------
+    >>> cam = Camera.from_intrinsics(200.0, 200.0, 120.0, 90.0, 240, 180)
+    >>> cam.project(np.array([[0.0, 0.0, 2.0]])).tolist()
+    [[120.0, 90.0]]
+    """
+
+    K: np.ndarray
+    width: int
+    height: int
+    distortion: np.ndarray | None = field(default=None)
+
+    def __post_init__(self) -> None:
+        object.__setattr__(self, "K", check_intrinsics(self.K))
+        width, height = _check_sensor_size(self.width, self.height)
+        object.__setattr__(self, "width", width)
+        object.__setattr__(self, "height", height)
+        if self.distortion is not None:
+            coefficients = np.asarray(self.distortion, dtype=np.float64).ravel()
+            if coefficients.size not in _DISTORTION_LENGTHS:
+                raise ValueError(
+                    f"distortion must have {_DISTORTION_LENGTHS} coefficients, got {coefficients.size}"
+                )
+            if not np.isfinite(coefficients).all():
+                raise ValueError(f"distortion must be finite, got {coefficients.tolist()}")
+            object.__setattr__(
+                self, "distortion", None if not coefficients.any() else coefficients
+            )
+
+    # -- constructors -----------------------------------------------------------------
+    @classmethod
+    def from_intrinsics(
+        cls, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
+        distortion: object = None,
+    ) -> "Camera":
+        """Camera from focal lengths and principal point (pixels)."""
+        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        return cls(K, width, height, None if distortion is None else np.asarray(distortion))
+
+    @classmethod
+    def from_ecd_calib(cls, path: str | os.PathLike, width: int = 240, height: int = 180) -> "Camera":
+        """Camera from an ECD ``calib.txt`` (``fx fy cx cy k1 k2 p1 p2 k3``)."""
+        values = np.loadtxt(Path(path), dtype=np.float64).ravel()
+        if values.size not in (4, 8, 9):
+            raise ValueError(f"{path}: expected 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got {values.size} numbers")
+        return cls.from_intrinsics(*values[:4], width, height, values[4:] if values.size > 4 else None)
+
+    # -- properties -------------------------------------------------------------------
+    @property
+    def fx(self) -> float:
+        return float(self.K[0, 0])
+
+    @property
+    def fy(self) -> float:
+        return float(self.K[1, 1])
+
+    @property
+    def cx(self) -> float:
+        return float(self.K[0, 2])
+
+    @property
+    def cy(self) -> float:
+        return float(self.K[1, 2])
+
+    @property
+    def is_distorted(self) -> bool:
+        return self.distortion is not None
+
+    # -- geometry ---------------------------------------------------------------------
+    def project(self, points_c: np.ndarray) -> np.ndarray:
+        """Pinhole projection of camera-frame points (N, 3) [m] to pixels (N, 2) (no distortion)."""
+        points_c = np.asarray(points_c, dtype=np.float64)
+        if points_c.ndim != 2 or points_c.shape[1] != 3:
+            raise ValueError(f"points_c must have shape (N, 3), got {points_c.shape}")
+        homogeneous = points_c @ self.K.T
+        return homogeneous[:, :2] / homogeneous[:, 2:3]
+
+    def backproject(self, pixels: np.ndarray, depth: np.ndarray) -> np.ndarray:
+        """Camera-frame points (N, 3) [m] of undistorted pixels (N, 2) at z-depth (N,) [m]."""
+        pixels = np.asarray(pixels, dtype=np.float64)
+        depth = np.asarray(depth, dtype=np.float64)
+        if pixels.ndim != 2 or pixels.shape[1] != 2:
+            raise ValueError(f"pixels must have shape (N, 2), got {pixels.shape}")
+        if depth.shape != pixels.shape[:1]:
+            raise ValueError(f"depth must have shape {pixels.shape[:1]}, got {depth.shape}")
+        homogeneous = np.column_stack([pixels, np.ones(len(pixels))])
+        rays = homogeneous @ np.linalg.inv(self.K).T
+        return rays * depth[:, None]
+
+    def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
+        """Undistorted pixel coordinates (N, 2) float64 of distorted pixels (N, 2) (same K)."""
+        pixels = np.asarray(pixels, dtype=np.float64)
+        if pixels.ndim != 2 or pixels.shape[1] != 2:
+            raise ValueError(f"pixels must have shape (N, 2), got {pixels.shape}")
+        if not self.is_distorted or not len(pixels):
+            return pixels.copy()
+        undistorted = cv2.undistortPoints(
+            pixels.reshape(-1, 1, 2), self.K, self.distortion, R=None, P=self.K,
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9),
+        )
+        return undistorted.reshape(-1, 2)
+
+    @cached_property
+    def undistortion_map(self) -> np.ndarray:
+        """(H, W, 2) float32: the undistorted coordinates of every integer pixel.
+
+        Computed once per camera (OpenCV's iterative ``undistortPoints``);
+        :meth:`undistort` then looks events up in it.
+        """
+        ys, xs = np.mgrid[0: self.height, 0: self.width]
+        pixels = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+        return self.undistort_points(pixels).reshape(self.height, self.width, 2).astype(np.float32)
+
+    def undistort(self, events: Events) -> np.ndarray:
+        """Undistorted, sub-pixel coordinates (N, 2) float32 ``(x, y)`` of the events.
+
+        A table lookup in :attr:`undistortion_map` (no per-event solve). The
+        result may fall outside the image for strongly distorted borders.
+        """
+        if not isinstance(events, Events):
+            raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+        if events.sensor_size != (self.width, self.height):
+            raise ValueError(
+                f"events come from a {events.width}x{events.height} sensor, "
+                f"the camera is {self.width}x{self.height}"
+            )
+        if not self.is_distorted:
+            return np.column_stack([events.x, events.y]).astype(np.float32)
+        return self.undistortion_map[events.y, events.x]
+
+    def scaled(self, width: int, height: int) -> "Camera":
+        """The same camera resampled to ``width`` x ``height`` pixels (distortion kept)."""
+        sx, sy = width / self.width, height / self.height
+        K = self.K.copy()
+        K[0] *= sx
+        K[1] *= sy
+        # Pixel centres: x' + 0.5 = sx * (x + 0.5).
+        K[0, 2] = sx * (self.cx + 0.5) - 0.5
+        K[1, 2] = sy * (self.cy + 0.5) - 0.5
+        return Camera(K, width, height, self.distortion)

@@ -1,0 +1,442 @@
+"""Event files in the DSEC HDF5 layout: streaming writer, windowed reader.
+
+Layout (Gehrig et al., "DSEC", RA-L 2021), one group per file::
+
+    events/x   (N,) uint16     pixel column
+    events/y   (N,) uint16     pixel row
+    events/t   (N,) int64      µs, relative to t_offset (DSEC uses uint32; int64 here
+                               so that recordings longer than 71 minutes do not wrap)
+    events/p   (N,) uint8      0 = OFF, 1 = ON
+    ms_to_idx  (M,) uint64     ms_to_idx[k] = index of the first event with t >= 1000*k
+    t_offset   ()   int64      µs added to events/t to give absolute time
+
+plus file attributes ``width``, ``height`` and whatever the writer was given
+(simulator settings, source). Files written here are chunked and compressed
+(Blosc/LZ4 with byte shuffle through ``hdf5plugin`` by default, gzip on request)
+and are readable by any DSEC loader that imports ``hdf5plugin``.
+"""
+from __future__ import annotations
+
+import json
+import os
+from pathlib import Path
+from typing import Any, Iterator
+
+import h5py
+import hdf5plugin
+import numpy as np
+
+from cmax.events import Events, _check_sensor_size
+from cmax.io.errors import FormatError
+
+__all__ = ["H5Writer", "H5Reader", "write_h5", "read_h5", "is_dsec_h5"]
+
+_COLUMNS = {"x": np.uint16, "y": np.uint16, "t": np.int64, "p": np.uint8}
+_DEFAULT_CHUNK = 1 << 18
+
+
+def _compression(name: str) -> dict[str, Any]:
+    if name == "blosc":
+        return dict(hdf5plugin.Blosc(cname="lz4", clevel=5, shuffle=hdf5plugin.Blosc.SHUFFLE))
+    if name == "gzip":
+        return {"compression": "gzip", "compression_opts": 4, "shuffle": True}
+    if name == "none":
+        return {}
+    raise ValueError(f"compression must be 'blosc', 'gzip' or 'none', got {name!r}")
+
+
+def _attr_value(value: Any) -> Any:
+    """An HDF5-storable form of an attribute (dicts and lists become JSON)."""
+    if isinstance(value, (dict, list, tuple)) and not isinstance(value, np.ndarray):
+        return json.dumps(value)
+    if isinstance(value, Path):
+        return str(value)
+    if value is None:
+        return "null"
+    return value
+
+
+def partial_path(path: Path) -> Path:
+    """Temporary name under which a file is written before the final rename."""
+    return path.with_name(path.name + ".partial")
+
+
+class H5Writer:
+    """Write events to a DSEC-layout HDF5 file chunk by chunk, with bounded memory.
+
+    The file is written under ``<path>.partial`` and renamed to ``path`` only
+    when the writer closes without an exception; an interrupted write never
+    leaves a file at the final name. ``ms_to_idx`` is built on the fly.
+
+    Parameters
+    ----------
+    path : str or Path
+        Output file; its folder must exist.
+    width, height : int
+        Sensor size in pixels (stored as attributes).
+    t_offset_us : int, optional
+        Absolute time (µs) subtracted from every event; default: the time of
+        the first event appended.
+    chunk_size : int
+        Events buffered in memory before a write, and the HDF5 chunk length.
+    compression : {'blosc', 'gzip', 'none'}
+    overwrite : bool
+        Replace an existing file at ``path`` (only when the write succeeds).
+    **attrs
+        File attributes (numbers, strings, arrays; dicts and lists as JSON).
+
+    Examples
+    --------
+    >>> with H5Writer("out.h5", 346, 260, source="demo") as writer:  # doctest: +SKIP
+    ...     for chunk in chunks:
+    ...         writer.append(chunk)
+    """
+
+    def __init__(
+        self,
+        path: str | os.PathLike,
+        width: int,
+        height: int,
+        *,
+        t_offset_us: int | None = None,
+        chunk_size: int = _DEFAULT_CHUNK,
+        compression: str = "blosc",
+        overwrite: bool = False,
+        **attrs: Any,
+    ) -> None:
+        self.path = Path(path)
+        self.width, self.height = _check_sensor_size(width, height)
+        if int(chunk_size) <= 0:
+            raise ValueError(f"chunk_size must be positive, got {chunk_size}")
+        if self.path.exists() and not overwrite:
+            raise FileExistsError(f"{self.path} exists (pass overwrite=True to replace it)")
+        if not self.path.parent.is_dir():
+            raise FileNotFoundError(f"folder of path does not exist: {self.path.parent}")
+        self._filters = _compression(compression)
+        self._chunk_size = int(chunk_size)
+        self._t_offset = None if t_offset_us is None else int(t_offset_us)
+        self._buffer: list[Events] = []
+        self._buffered = 0
+        self._count = 0
+        self._last_t: int | None = None
+        self._ms_to_idx: list[np.ndarray] = []
+        self._ms_filled = 0  # entries of ms_to_idx already known
+        self._partial = partial_path(self.path)
+        self._file = h5py.File(self._partial, "w")
+        self._file.attrs["width"] = self.width
+        self._file.attrs["height"] = self.height
+        self._file.attrs["layout"] = "dsec"
+        for key, value in attrs.items():
+            self._file.attrs[key] = _attr_value(value)
+        group = self._file.create_group("events")
+        self._datasets = {
+            name: group.create_dataset(
+                name, shape=(0,), maxshape=(None,), dtype=dtype,
+                chunks=(self._chunk_size,), **self._filters,
+            )
+            for name, dtype in _COLUMNS.items()
+        }
+        self._closed = False
+
+    # -- appending --------------------------------------------------------------------
+    def append(self, events: Events) -> None:
+        """Append events later than (or at the time of) everything written so far."""
+        if self._closed:
+            raise ValueError(f"the writer of {self.path} is closed")
+        if not isinstance(events, Events):
+            raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+        if events.sensor_size != (self.width, self.height):
+            raise ValueError(
+                f"events have sensor {events.sensor_size}, the file has {(self.width, self.height)}"
+            )
+        if not len(events):
+            return
+        if self._last_t is not None and events.t_start < self._last_t:
+            raise ValueError(
+                f"events must be appended in time order: they start at {events.t_start} µs, "
+                f"the file already holds events up to {self._last_t} µs"
+            )
+        if self._t_offset is None:
+            self._t_offset = events.t_start
+        if events.t_start < self._t_offset:
+            raise ValueError(
+                f"events start at {events.t_start} µs, before t_offset_us={self._t_offset}"
+            )
+        self._last_t = events.t_end
+        self._buffer.append(events)
+        self._buffered += len(events)
+        if self._buffered >= self._chunk_size:
+            self._flush()
+
+    def _flush(self) -> None:
+        if not self._buffered:
+            return
+        columns = {
+            name: np.concatenate([getattr(part, name) for part in self._buffer])
+            for name in "xytp"
+        }
+        columns["t"] = columns["t"] - self._t_offset
+        start, stop = self._count, self._count + self._buffered
+        for name, dataset in self._datasets.items():
+            dataset.resize((stop,))
+            dataset[start:stop] = columns[name].astype(_COLUMNS[name], copy=False)
+        self._extend_ms_to_idx(columns["t"], start)
+        self._count = stop
+        self._buffer, self._buffered = [], 0
+
+    def _extend_ms_to_idx(self, t_rel: np.ndarray, first_index: int) -> None:
+        """Fill ms_to_idx for every millisecond boundary at or before the last time seen."""
+        last_ms = int(t_rel[-1]) // 1000  # boundaries 1000*k <= t_last are now determined
+        if last_ms < self._ms_filled:
+            return
+        boundaries = np.arange(self._ms_filled, last_ms + 1, dtype=np.int64) * 1000
+        indices = first_index + np.searchsorted(t_rel, boundaries, side="left")
+        self._ms_to_idx.append(indices.astype(np.uint64))
+        self._ms_filled = last_ms + 1
+
+    # -- closing ----------------------------------------------------------------------
+    def close(self) -> Path:
+        """Flush, write ``ms_to_idx`` and ``t_offset``, and rename to the final path."""
+        if self._closed:
+            return self.path
+        self._flush()
+        # One closing entry pointing past the last event: windows ending after it resolve.
+        closing = np.array([self._count], dtype=np.uint64)
+        ms_to_idx = np.concatenate(self._ms_to_idx + [closing])
+        self._file.create_dataset("ms_to_idx", data=ms_to_idx, **self._filters)
+        self._file.create_dataset("t_offset", data=np.int64(self._t_offset or 0))
+        self._file.close()
+        self._closed = True
+        os.replace(self._partial, self.path)
+        return self.path
+
+    def abort(self) -> None:
+        """Close and delete the partial file; nothing appears at the final path."""
+        if not self._closed:
+            self._closed = True
+            self._file.close()
+        self._partial.unlink(missing_ok=True)
+
+    @property
+    def count(self) -> int:
+        """Events appended so far (written or buffered)."""
+        return self._count + self._buffered
+
+    def __enter__(self) -> "H5Writer":
+        return self
+
+    def __exit__(self, exc_type, exc, traceback) -> None:
+        if exc_type is None:
+            self.close()
+        else:
+            self.abort()
+
+
+def write_h5(
+    path: str | os.PathLike, events: Events, *, overwrite: bool = False,
+    compression: str = "blosc", **attrs: Any,
+) -> Path:
+    """Write ``events`` to a DSEC-layout HDF5 file (atomically); returns the path."""
+    if not isinstance(events, Events):
+        raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+    t_offset = events.t_start if len(events) else 0
+    with H5Writer(
+        path, events.width, events.height, t_offset_us=t_offset, overwrite=overwrite,
+        compression=compression, **attrs,
+    ) as writer:
+        for start in range(0, len(events), writer._chunk_size):
+            writer.append(events[start: start + writer._chunk_size])
+    return Path(path)
+
+
+def is_dsec_h5(file: h5py.File) -> bool:
+    """Whether an open HDF5 file has the DSEC event layout."""
+    return "events" in file and isinstance(file["events"], h5py.Group) and all(
+        name in file["events"] for name in "xytp"
+    )
+
+
+class H5Reader:
+    """Random access to a DSEC-layout HDF5 event file.
+
+    ``window(t0_us, t1_us)`` reads only the rows between the two times, found
+    through ``ms_to_idx`` (or a binary search of ``events/t`` on disk when the
+    file has no index). Times are absolute µs (``t_offset`` added).
+
+    Parameters
+    ----------
+    path : str or Path
+    width, height : int, optional
+        Sensor size, for files without ``width``/``height`` attributes (original
+        DSEC files are 640x480 and carry none).
+    """
+
+    def __init__(
+        self, path: str | os.PathLike, *, width: int | None = None, height: int | None = None
+    ) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"no such event file: {self.path}")
+        try:
+            self._file = h5py.File(self.path, "r")
+        except OSError as error:
+            raise FormatError(f"{self.path} is not a readable HDF5 file ({error})") from None
+        try:
+            self._open(width, height)
+        except BaseException:
+            self._file.close()
+            raise
+
+    def _open(self, width: int | None, height: int | None) -> None:
+        if not is_dsec_h5(self._file):
+            raise FormatError(
+                f"{self.path} lacks the DSEC datasets events/x, events/y, events/t, events/p"
+            )
+        self._columns = {name: self._file["events"][name] for name in "xytp"}
+        lengths = {name: column.shape for name, column in self._columns.items()}
+        if len(set(lengths.values())) != 1 or len(lengths["t"]) != 1:
+            raise FormatError(f"{self.path}: events/* must be 1-D of equal length, got {lengths}")
+        attrs = self._file.attrs
+        if width is None and height is None and "width" in attrs and "height" in attrs:
+            width, height = int(attrs["width"]), int(attrs["height"])
+        if width is None or height is None:
+            raise ValueError(
+                f"{self.path} stores no sensor size; pass width= and height= (DSEC: 640, 480)"
+            )
+        self.width, self.height = _check_sensor_size(width, height)
+        self.t_offset_us = int(self._file["t_offset"][()]) if "t_offset" in self._file else 0
+        self._ms_to_idx = self._file["ms_to_idx"][:] if "ms_to_idx" in self._file else None
+
+    # -- metadata ---------------------------------------------------------------------
+    def __len__(self) -> int:
+        return int(self._columns["t"].shape[0])
+
+    @property
+    def attrs(self) -> dict[str, Any]:
+        """File attributes as a dict (JSON strings decoded)."""
+        out: dict[str, Any] = {}
+        for key, value in self._file.attrs.items():
+            if isinstance(value, bytes):
+                value = value.decode()
+            if isinstance(value, str) and value[:1] in "[{":
+                try:
+                    value = json.loads(value)
+                except json.JSONDecodeError:
+                    pass
+            out[key] = value
+        return out
+
+    @property
+    def file(self) -> h5py.File:
+        """The open :class:`h5py.File` (for groups beyond the events, e.g. ``gt/``)."""
+        return self._file
+
+    @property
+    def t_start(self) -> int:
+        """Time of the first event (µs)."""
+        self._require_events()
+        return int(self._columns["t"][0]) + self.t_offset_us
+
+    @property
+    def t_end(self) -> int:
+        """Time of the last event (µs)."""
+        self._require_events()
+        return int(self._columns["t"][len(self) - 1]) + self.t_offset_us
+
+    def _require_events(self) -> None:
+        if not len(self):
+            raise ValueError(f"{self.path} holds no events")
+
+    # -- reading ----------------------------------------------------------------------
+    def _bounds(self, t_rel: int) -> tuple[int, int]:
+        """Row range that surely contains the first event with relative time >= t_rel."""
+        n = len(self)
+        if t_rel < 0:
+            return 0, 0
+        ms = t_rel // 1000
+        if ms >= len(self._ms_to_idx):
+            return n, n
+        lo = int(self._ms_to_idx[ms])
+        hi = int(self._ms_to_idx[ms + 1]) if ms + 1 < len(self._ms_to_idx) else n
+        return lo, min(max(hi, lo), n)
+
+    def _index_at(self, t_us: int) -> int:
+        """Index of the first event with t >= t_us, reading at most one ms of rows."""
+        t_rel = int(t_us) - self.t_offset_us
+        if self._ms_to_idx is None:
+            return self._bisect_on_disk(t_rel)
+        lo, hi = self._bounds(t_rel)
+        if hi <= lo:
+            return lo
+        return lo + int(np.searchsorted(self._columns["t"][lo:hi], t_rel, side="left"))
+
+    def _bisect_on_disk(self, t_rel: int) -> int:
+        lo, hi = 0, len(self)
+        column = self._columns["t"]
+        while hi - lo > 4096:
+            mid = (lo + hi) // 2
+            if column[mid] < t_rel:
+                lo = mid + 1
+            else:
+                hi = mid
+        return lo + int(np.searchsorted(column[lo:hi], t_rel, side="left"))
+
+    def read_rows(self, start: int, stop: int) -> Events:
+        """Events ``start:stop`` by row index."""
+        start, stop = max(0, int(start)), min(len(self), int(stop))
+        stop = max(start, stop)
+        columns = {name: self._columns[name][start:stop] for name in "xytp"}
+        return Events(
+            columns["x"], columns["y"], columns["t"].astype(np.int64) + self.t_offset_us,
+            columns["p"], self.width, self.height,
+        )
+
+    def window(self, t0_us: int, t1_us: int) -> Events:
+        """Events with ``t0_us <= t < t1_us`` (absolute µs), reading only that slice."""
+        if t1_us < t0_us:
+            raise ValueError(f"t1_us ({t1_us}) must not be smaller than t0_us ({t0_us})")
+        return self.read_rows(self._index_at(t0_us), self._index_at(t1_us))
+
+    def read(self) -> Events:
+        """All events (loads the whole file)."""
+        return self.read_rows(0, len(self))
+
+    def windows(self, duration_us: int, *, step_us: int | None = None) -> Iterator[Events]:
+        """Consecutive windows of ``duration_us`` from the first event (step defaults to it)."""
+        if int(duration_us) <= 0:
+            raise ValueError(f"duration_us must be positive, got {duration_us}")
+        step = int(duration_us) if step_us is None else int(step_us)
+        if step <= 0:
+            raise ValueError(f"step_us must be positive, got {step_us}")
+        if not len(self):
+            return
+        start, end = self.t_start, self.t_end
+        while start <= end:
+            yield self.window(start, start + int(duration_us))
+            start += step
+
+    def close(self) -> None:
+        self._file.close()
+
+    def __enter__(self) -> "H5Reader":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.close()
+
+    def __repr__(self) -> str:
+        return f"H5Reader({str(self.path)!r}, n={len(self)}, sensor={self.width}x{self.height})"
+
+
+def read_h5(
+    path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
+    t0_us: int | None = None, t1_us: int | None = None,
+) -> Events:
+    """Read a DSEC-layout file, whole or the window ``[t0_us, t1_us)``."""
+    with H5Reader(path, width=width, height=height) as reader:
+        if t0_us is None and t1_us is None:
+            return reader.read()
+        return reader.window(
+            -(2**62) if t0_us is None else t0_us, 2**62 if t1_us is None else t1_us
+        )
+

@@ -1,0 +1,80 @@
+"""MVSEC HDF5 files (Zhu et al., "The Multivehicle Stereo Event Camera Dataset", RA-L 2018).
+
+Events are stored per camera as ``davis/<left|right>/events``, an (N, 4)
+float64 array with columns ``x, y, t [s], p in {-1, +1}`` from a DAVIS346
+(346 x 260). Ground-truth depth and poses live in separate ``*_gt.hdf5`` files.
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import h5py
+import numpy as np
+
+from cmax.events import Events
+from cmax.io.errors import FormatError
+
+__all__ = ["read_mvsec", "MVSEC_WIDTH", "MVSEC_HEIGHT"]
+
+MVSEC_WIDTH, MVSEC_HEIGHT = 346, 260
+
+
+def _events_dataset(file: h5py.File, path: Path, camera: str) -> h5py.Dataset:
+    key = f"davis/{camera}/events"
+    if key not in file:
+        raise FormatError(f"{path} has no dataset {key!r} (not an MVSEC data file?)")
+    dataset = file[key]
+    if dataset.ndim != 2 or dataset.shape[1] != 4:
+        raise FormatError(f"{path}:{key} must have shape (N, 4), got {dataset.shape}")
+    return dataset
+
+
+def read_mvsec(
+    path: str | os.PathLike, *, camera: str = "left",
+    t0_us: int | None = None, t1_us: int | None = None,
+) -> Events:
+    """Read the events of one MVSEC camera, optionally only ``[t0_us, t1_us)``.
+
+    Time stamps (seconds since the epoch) become integer microseconds by
+    rounding; polarity -1/+1 becomes 0/1. A time window is located by binary
+    search on the time column on disk, so only that slice is read.
+    """
+    if camera not in ("left", "right"):
+        raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
+    path = Path(path)
+    with h5py.File(path, "r") as file:
+        dataset = _events_dataset(file, path, camera)
+        # Read with a 2 µs margin, then cut exactly on the rounded integer times.
+        start, stop = 0, dataset.shape[0]
+        if t0_us is not None:
+            start = _first_at_or_after(dataset, (t0_us - 2) / 1e6)
+        if t1_us is not None:
+            stop = _first_at_or_after(dataset, (t1_us + 2) / 1e6)
+        table = dataset[start:max(start, stop)]
+    if not np.isfinite(table).all():
+        raise FormatError(f"{path}: davis/{camera}/events contains non-finite values")
+    try:
+        events = Events(
+            table[:, 0], table[:, 1], np.rint(table[:, 2] * 1e6).astype(np.int64), table[:, 3],
+            MVSEC_WIDTH, MVSEC_HEIGHT,
+        )
+    except ValueError as error:
+        raise FormatError(f"{path}: {error}") from None
+    if t0_us is None and t1_us is None:
+        return events
+    return events.slice_time(
+        -(2**62) if t0_us is None else t0_us, 2**62 if t1_us is None else t1_us
+    )
+
+
+def _first_at_or_after(dataset: h5py.Dataset, t_s: float) -> int:
+    """Row of the first event with time >= t_s, by bisection on disk."""
+    lo, hi = 0, dataset.shape[0]
+    while hi - lo > 65536:
+        mid = (lo + hi) // 2
+        if dataset[mid, 2] < t_s:
+            lo = mid + 1
+        else:
+            hi = mid
+    return lo + int(np.searchsorted(dataset[lo:hi, 2], t_s, side="left"))

@@ -1,0 +1,55 @@
+"""Plain-text event files as used by the Event Camera Dataset (ECD).
+
+One event per line, ``t x y p``: time in seconds (float), pixel column and row,
+polarity 0/1 (Mueggler et al., "The event-camera dataset and simulator",
+IJRR 2017, doi:10.1177/0278364917691115).
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+
+import numpy as np
+
+from cmax.events import Events
+from cmax.io.errors import FormatError
+
+__all__ = ["read_txt", "write_txt"]
+
+
+def read_txt(path: str | os.PathLike, *, width: int, height: int) -> Events:
+    """Read an ECD ``events.txt`` (``t[s] x y p`` per line) into :class:`Events`.
+
+    Time stamps are converted to integer microseconds by rounding. The file
+    stores no sensor size, so ``width`` and ``height`` are required (ECD's
+    DAVIS240C: 240 x 180). Lines starting with ``#`` are comments.
+    """
+    path = Path(path)
+    try:
+        table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
+    except (ValueError, UnicodeDecodeError) as error:
+        raise FormatError(f"{path} is not an ECD text file of 't x y p' lines ({error})") from None
+    if table.size == 0:
+        return Events.empty(width, height)
+    if table.shape[1] != 4:
+        raise FormatError(f"{path}: expected 4 columns 't x y p', found {table.shape[1]}")
+    if not np.isfinite(table).all():
+        raise FormatError(f"{path} contains non-finite numbers")
+    t_us = np.rint(table[:, 0] * 1e6).astype(np.int64)
+    try:
+        return Events(table[:, 1], table[:, 2], t_us, table[:, 3], width, height)
+    except ValueError as error:
+        raise FormatError(f"{path}: {error}") from None
+
+
+def write_txt(path: str | os.PathLike, events: Events) -> Path:
+    """Write events as ECD text (``t[s] x y p``, 9 decimals), atomically."""
+    path = Path(path)
+    partial = path.with_name(path.name + ".partial")
+    table = np.column_stack([events.t / 1e6, events.x, events.y, events.p])
+    try:
+        np.savetxt(partial, table, fmt=["%.9f", "%d", "%d", "%d"])
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
+    return path

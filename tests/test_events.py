@@ -1,0 +1,171 @@
+"""Events: constructors, conversions, validation, slicing, windows, concatenation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cmax import STRUCTURED_DTYPE, Events, concatenate
+from conftest import random_events
+
+
+def test_columns_get_the_fixed_dtypes():
+    ev = Events(np.array([1, 2], np.int32), [3.0, 4.0], np.array([5, 6], np.uint32), [True, False], 8, 8)
+    assert (ev.x.dtype, ev.y.dtype, ev.t.dtype, ev.p.dtype) == (np.uint16, np.uint16, np.int64, np.int8)
+    assert ev.p.tolist() == [1, 0]
+    assert all(getattr(ev, name).flags.c_contiguous for name in "xytp")
+
+
+@pytest.mark.parametrize("polarity, expected", [
+    ([0, 1, 1], [0, 1, 1]), ([-1, 1, 1], [0, 1, 1]), ([False, True, True], [0, 1, 1]),
+    (np.array([-1, 1, -1], np.int8), [0, 1, 0]),
+])
+def test_polarity_conventions(polarity, expected):
+    ev = Events([0, 1, 2], [0, 0, 0], [1, 2, 3], polarity, 4, 4)
+    assert ev.p.tolist() == expected
+    assert ev.signed_polarity().tolist() == [2 * v - 1 for v in expected]
+
+
+def test_structured_round_trip_from_other_dtypes():
+    source = np.zeros(5, dtype=[("t", "<i8"), ("x", "<i2"), ("y", "<i2"), ("p", "u1"), ("extra", "f4")])
+    source["t"] = [1, 2, 2, 7, 9]
+    source["x"] = [0, 5, 9, 3, 1]
+    source["y"] = [1, 1, 2, 3, 4]
+    source["p"] = [1, 0, 1, 1, 0]
+    ev = Events.from_structured(source, 10, 5)
+    back = ev.to_structured()
+    assert back.dtype == STRUCTURED_DTYPE
+    for name in "xytp":
+        np.testing.assert_array_equal(back[name], source[name])
+    assert Events.from_structured(back, 10, 5) == ev
+
+
+def test_array_round_trip_with_column_order():
+    ev = random_events(300)
+    for order in ("xytp", "txyp", "ptyx"):
+        table = ev.to_array(order)
+        assert table.shape == (300, 4)
+        np.testing.assert_array_equal(table[:, order.index("t")], ev.t)
+        assert Events.from_array(table, ev.width, ev.height, order=order) == ev
+
+
+def test_to_torch_matches_columns():
+    ev = random_events(100)
+    tensors = ev.to_torch()
+    assert tensors.x.dtype == torch.int64 and tensors.t.dtype == torch.int64
+    np.testing.assert_array_equal(tensors.x.numpy(), ev.x)
+    np.testing.assert_array_equal(tensors.t.numpy(), ev.t)
+    signed = ev.to_torch(signed_polarity=True).p
+    assert signed.dtype == torch.float32
+    np.testing.assert_array_equal(signed.numpy(), 2.0 * ev.p - 1)
+    assert (tensors.width, tensors.height) == (ev.width, ev.height)
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(t=[3, 2, 4]), ValueError, r"t must be sorted.*t\[1\]=2"),
+    (dict(x=[0, 9, 1]), ValueError, r"x must lie in \[0, width=4\)"),
+    (dict(y=[0, -1, 1]), ValueError, r"y must lie in \[0, height=3\)"),
+    (dict(x=[0.0, np.nan, 1.0]), ValueError, "x contains a non-finite value"),
+    (dict(t=[0.0, np.inf, 1.0]), ValueError, "t contains a non-finite value"),
+    (dict(t=[0.5, 1.0, 2.0]), ValueError, "t must hold whole numbers"),
+    (dict(p=[0, 2, 1]), ValueError, r"p must hold polarities"),
+    (dict(p=[-1, 0, 1]), ValueError, r"p must hold polarities"),
+    (dict(x=[[0, 1, 2]]), ValueError, r"x must be one-dimensional"),
+    (dict(y=[0, 1]), ValueError, "same length"),
+    (dict(x=["a", "b", "c"]), TypeError, "x must hold numbers"),
+    (dict(width=0), ValueError, "width must be in"),
+    (dict(height=2.5), TypeError, "height must be an integer"),
+])
+def test_bad_input_raises_clear_errors(kwargs, error, match):
+    args = dict(x=[0, 1, 2], y=[0, 1, 2], t=[1, 2, 3], p=[0, 1, 1], width=4, height=3)
+    args.update(kwargs)
+    with pytest.raises(error, match=match):
+        Events(**args)
+
+
+def test_sort_is_explicit_and_stable():
+    ev = Events([0, 1, 2, 3], [0, 0, 0, 0], [5, 1, 5, 0], [1, 0, 0, 1], 4, 1, sort=True)
+    assert ev.t.tolist() == [0, 1, 5, 5]
+    assert ev.x.tolist() == [3, 1, 0, 2]
+
+
+def test_structured_and_array_constructor_errors():
+    with pytest.raises(TypeError, match="structured array"):
+        Events.from_structured(np.zeros(3), 4, 4)
+    with pytest.raises(ValueError, match=r"lacks the field\(s\) \['p'\]"):
+        Events.from_structured(np.zeros(3, dtype=[("x", "u2"), ("y", "u2"), ("t", "i8")]), 4, 4)
+    with pytest.raises(ValueError, match=r"shape \(N, 4\)"):
+        Events.from_array(np.zeros((3, 3)), 4, 4)
+    with pytest.raises(ValueError, match="permutation"):
+        Events.from_array(np.zeros((3, 4)), 4, 4, order="xyzp")
+
+
+def test_slice_time_is_half_open_and_matches_mask(small_events):
+    ev = small_events
+    t0, t1 = 20_000, 61_234
+    window = ev.slice_time(t0, t1)
+    mask = (ev.t >= t0) & (ev.t < t1)
+    assert window == ev[mask]
+    assert ev.slice_time(t0, t0).t.size == 0
+    with pytest.raises(ValueError, match="t1_us"):
+        ev.slice_time(10, 5)
+
+
+def test_windows_by_duration_partition_all_events(small_events):
+    ev = small_events
+    windows = list(ev.windows(duration_us=7_000))
+    assert sum(len(w) for w in windows) == len(ev)
+    assert concatenate(windows) == ev
+    for k, w in enumerate(windows):
+        start = ev.t_start + 7_000 * k
+        assert np.all((w.t >= start) & (w.t < start + 7_000))
+    overlapping = list(ev.windows(duration_us=10_000, step_us=5_000))
+    assert len(overlapping) in (len(windows) * 7 // 5, len(windows) * 7 // 5 + 1, len(windows) * 7 // 5 - 1)
+
+
+def test_windows_by_count(small_events):
+    sizes = [len(w) for w in small_events.windows(count=300)]
+    assert sizes == [300] * 6 + [200]
+    with pytest.raises(ValueError, match="exactly one"):
+        next(small_events.windows(count=3, duration_us=5))
+    with pytest.raises(ValueError, match="count must be positive"):
+        next(small_events.windows(count=0))
+
+
+def test_indexing_and_len(small_events):
+    ev = small_events
+    assert len(ev) == 2000
+    assert ev[3] == (int(ev.x[3]), int(ev.y[3]), int(ev.t[3]), int(ev.p[3]))
+    assert len(ev[10:20]) == 10
+    assert ev[np.array([1, 5, 9])].t.tolist() == ev.t[[1, 5, 9]].tolist()
+    with pytest.raises(IndexError, match="non-decreasing"):
+        ev[np.array([5, 1])]
+    with pytest.raises(IndexError, match="negative step"):
+        ev[::-1]
+
+
+def test_concatenate_checks_sensor_and_order():
+    a = Events([0], [0], [10], [1], 4, 4)
+    b = Events([1], [1], [20], [0], 4, 4)
+    assert concatenate([a, b]).t.tolist() == [10, 20]
+    with pytest.raises(ValueError, match="back in time"):
+        concatenate([b, a])
+    with pytest.raises(ValueError, match="sensor"):
+        concatenate([a, Events([0], [0], [30], [1], 5, 4)])
+    with pytest.raises(ValueError, match="at least one"):
+        concatenate([])
+
+
+def test_empty_events():
+    ev = Events.empty(10, 10)
+    assert len(ev) == 0 and ev.duration_us == 0
+    assert list(ev.windows(duration_us=5)) == []
+    with pytest.raises(ValueError, match="empty"):
+        ev.t_start
+
+
+def test_input_arrays_are_not_modified():
+    p = np.array([-1, 1, -1])
+    x = np.array([0, 1, 2])
+    Events(x, x, [1, 2, 3], p, 4, 4)
+    assert p.tolist() == [-1, 1, -1] and x.tolist() == [0, 1, 2]

@@ -1,0 +1,85 @@
+"""ECD text, MVSEC HDF5, NumPy files and format detection."""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from cmax import Events
+from cmax.io import FormatError, detect_format, read, read_mvsec, read_txt, write_txt
+from conftest import random_events
+
+
+def test_ecd_text_hand_written(tmp_path):
+    path = tmp_path / "events.txt"
+    path.write_text("0.000100000 10 20 1\n0.000150000 11 21 0\n1.5 0 0 1\n")
+    ev = read(path, width=240, height=180)
+    assert ev.t.tolist() == [100, 150, 1_500_000]
+    assert ev.x.tolist() == [10, 11, 0] and ev.y.tolist() == [20, 21, 0] and ev.p.tolist() == [1, 0, 1]
+    assert detect_format(path) == "txt"
+
+
+def test_ecd_text_round_trip(tmp_path):
+    ev = random_events(1000, width=240, height=180)
+    assert read_txt(write_txt(tmp_path / "e.txt", ev), width=240, height=180) == ev
+
+
+def test_ecd_text_errors(tmp_path):
+    path = tmp_path / "bad.txt"
+    path.write_text("0.1 1 2\n0.2 1 2\n")
+    with pytest.raises(FormatError, match="4 columns"):
+        read_txt(path, width=240, height=180)
+    path.write_text("0.1 1 2 1\nabc 1 2 1\n")
+    with pytest.raises(FormatError):
+        read_txt(path, width=240, height=180)
+    path.write_text("0.2 1 2 1\n0.1 1 2 1\n")
+    with pytest.raises(FormatError, match="sorted"):
+        read_txt(path, width=240, height=180)
+    with pytest.raises(ValueError, match="width= and height="):
+        read(path)
+
+
+def _write_mvsec(path, table):
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+        file.create_dataset("davis/left/image_raw", data=np.zeros((1, 260, 346), np.uint8))
+
+
+def test_mvsec_layout(tmp_path):
+    ev = random_events(4000, width=346, height=260, t_span_us=500_000)
+    t0 = 1_504_645_177_000_000  # MVSEC stores seconds since the epoch
+    table = np.column_stack([ev.x, ev.y, (ev.t + t0) / 1e6, ev.signed_polarity(np.float64)])
+    _write_mvsec(tmp_path / "flying.hdf5", table)
+    assert detect_format(tmp_path / "flying.hdf5") == "mvsec"
+    back = read(tmp_path / "flying.hdf5")
+    shifted = Events(ev.x, ev.y, ev.t + t0, ev.p, 346, 260)
+    assert back == shifted
+    window = read_mvsec(tmp_path / "flying.hdf5", t0_us=t0 + 100_000, t1_us=t0 + 200_000)
+    assert window == shifted.slice_time(t0 + 100_000, t0 + 200_000)
+    with pytest.raises(ValueError, match="camera"):
+        read_mvsec(tmp_path / "flying.hdf5", camera="middle")
+    with pytest.raises(FormatError, match="davis/right/events"):
+        read_mvsec(tmp_path / "flying.hdf5", camera="right")
+
+
+def test_structured_npy(tmp_path):
+    ev = random_events(500)
+    np.save(tmp_path / "ev.npy", ev.to_structured())
+    assert read(tmp_path / "ev.npy", width=ev.width, height=ev.height) == ev
+    np.save(tmp_path / "plain.npy", np.zeros((3, 4)))
+    with pytest.raises(FormatError, match="structured"):
+        read(tmp_path / "plain.npy", width=4, height=4)
+
+
+def test_unknown_format(tmp_path):
+    (tmp_path / "x.bin").write_bytes(b"\x00\x01garbage")
+    with pytest.raises(FormatError, match="cannot tell"):
+        read(tmp_path / "x.bin")
+    with pytest.raises(FileNotFoundError):
+        read(tmp_path / "missing.h5")
+
+
+def test_time_window_on_formats_without_index(tmp_path):
+    ev = random_events(800, width=240, height=180)
+    write_txt(tmp_path / "e.txt", ev)
+    assert read(tmp_path / "e.txt", width=240, height=180, t0_us=20_000, t1_us=40_000) == ev.slice_time(20_000, 40_000)

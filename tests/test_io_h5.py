@@ -1,0 +1,167 @@
+"""DSEC-layout HDF5: round trips, windowed reads, ms_to_idx, atomic writes."""
+from __future__ import annotations
+
+import h5py
+import numpy as np
+import pytest
+
+from cmax import Events
+from cmax.io import FormatError, H5Reader, H5Writer, read, read_h5, write_h5
+from conftest import random_events
+
+
+def test_round_trip_keeps_every_column(tmp_path):
+    ev = random_events(5000, width=346, height=260, t_span_us=2_500_000)
+    path = write_h5(tmp_path / "ev.h5", ev, source="test", settings={"cp": 0.2})
+    back = read_h5(path)
+    assert back == ev
+    with H5Reader(path) as reader:
+        assert reader.attrs["source"] == "test" and reader.attrs["settings"] == {"cp": 0.2}
+        assert (reader.width, reader.height) == (346, 260)
+        assert reader.t_start == ev.t_start and reader.t_end == ev.t_end
+
+
+def test_layout_is_dsec(tmp_path):
+    ev = random_events(3000, t_span_us=10_000)
+    ev = Events(ev.x, ev.y, ev.t + 1_000_000_123, ev.p, ev.width, ev.height)
+    path = write_h5(tmp_path / "ev.h5", ev)
+    with h5py.File(path, "r") as file:
+        assert set(file["events"]) == {"x", "y", "t", "p"}
+        t_offset = int(file["t_offset"][()])
+        t_rel = file["events/t"][:]
+        ms_to_idx = file["ms_to_idx"][:]
+    assert t_offset == ev.t_start
+    np.testing.assert_array_equal(t_rel + t_offset, ev.t)
+    # ms_to_idx[k] is the first index with relative time >= 1000*k (independent recomputation).
+    expected = np.searchsorted(t_rel, 1000 * np.arange(len(ms_to_idx)), side="left")
+    np.testing.assert_array_equal(ms_to_idx, expected)
+    assert ms_to_idx[-1] == len(ev)
+
+
+@pytest.mark.parametrize("chunk_size", [7, 256, 100_000])
+def test_windowed_read_equals_slicing_in_memory(tmp_path, chunk_size):
+    ev = random_events(20_000, t_span_us=1_000_000, seed=3)
+    with H5Writer(tmp_path / "ev.h5", ev.width, ev.height, chunk_size=chunk_size) as writer:
+        for part in ev.windows(count=1234):
+            writer.append(part)
+    rng = np.random.default_rng(1)
+    with H5Reader(tmp_path / "ev.h5") as reader:
+        assert len(reader) == len(ev)
+        bounds = [(-5, 10), (0, 1), (999, 1001), (ev.t_end, ev.t_end + 1), (ev.t_end + 1, ev.t_end + 5000)]
+        bounds += [tuple(sorted(rng.integers(-1000, 1_001_000, 2))) for _ in range(30)]
+        for t0, t1 in bounds:
+            assert reader.window(t0, t1) == ev.slice_time(t0, t1), (t0, t1)
+        windows = list(reader.windows(50_000))
+    assert sum(len(w) for w in windows) == len(ev)
+
+
+def test_window_reads_only_its_slice(tmp_path, monkeypatch):
+    ev = random_events(50_000, t_span_us=5_000_000, seed=2)
+    path = write_h5(tmp_path / "ev.h5", ev)
+    reader = H5Reader(path)
+    requested = []
+    original = reader.read_rows
+
+    def spy(start, stop):
+        requested.append((start, stop))
+        return original(start, stop)
+
+    monkeypatch.setattr(reader, "read_rows", spy)
+    window = reader.window(2_000_000, 2_010_000)
+    assert requested == [(ev.index_at(2_000_000), ev.index_at(2_010_000))]
+    assert len(window) < 200
+    reader.close()
+
+
+def test_interrupted_writer_leaves_no_file(tmp_path):
+    target = tmp_path / "ev.h5"
+    ev = random_events(1000)
+    with pytest.raises(RuntimeError, match="boom"):
+        with H5Writer(target, ev.width, ev.height, chunk_size=100) as writer:
+            writer.append(ev[:500])
+            raise RuntimeError("boom")
+    assert not target.exists()
+    assert list(tmp_path.iterdir()) == []
+
+
+def test_partial_file_has_other_name_while_writing(tmp_path):
+    target = tmp_path / "ev.h5"
+    ev = random_events(1000)
+    writer = H5Writer(target, ev.width, ev.height, chunk_size=100)
+    writer.append(ev)
+    assert not target.exists() and (tmp_path / "ev.h5.partial").exists()
+    writer.close()
+    assert target.exists() and not (tmp_path / "ev.h5.partial").exists()
+    assert read(target) == ev
+
+
+def test_writer_memory_is_bounded_by_chunk_size(tmp_path):
+    ev = random_events(10_000)
+    with H5Writer(tmp_path / "ev.h5", ev.width, ev.height, chunk_size=1000) as writer:
+        for part in ev.windows(count=300):
+            writer.append(part)
+            assert writer._buffered < 1000 + 300
+    assert read_h5(tmp_path / "ev.h5") == ev
+
+
+def test_writer_rejects_bad_appends(tmp_path):
+    ev = random_events(100)
+    with H5Writer(tmp_path / "a.h5", ev.width, ev.height) as writer:
+        writer.append(ev[50:])
+        with pytest.raises(ValueError, match="time order"):
+            writer.append(ev[:50])
+        with pytest.raises(ValueError, match="sensor"):
+            writer.append(Events([0], [0], [ev.t_end], [1], 5, 5))
+        with pytest.raises(TypeError, match="cmax.Events"):
+            writer.append(ev.to_structured())
+    with pytest.raises(FileExistsError, match="overwrite"):
+        H5Writer(tmp_path / "a.h5", ev.width, ev.height)
+    with pytest.raises(FileNotFoundError, match="folder"):
+        H5Writer(tmp_path / "missing" / "a.h5", 4, 4)
+    with pytest.raises(ValueError, match="compression"):
+        H5Writer(tmp_path / "b.h5", 4, 4, compression="zip")
+
+
+def test_empty_file_round_trip(tmp_path):
+    path = write_h5(tmp_path / "empty.h5", Events.empty(32, 24))
+    back = read_h5(path)
+    assert len(back) == 0 and back.sensor_size == (32, 24)
+    with H5Reader(path) as reader:
+        assert len(reader.window(0, 10)) == 0
+
+
+def test_gzip_compression_round_trip(tmp_path):
+    ev = random_events(2000)
+    assert read_h5(write_h5(tmp_path / "g.h5", ev, compression="gzip")) == ev
+
+
+def test_original_dsec_file_without_sensor_size(tmp_path):
+    """A file written like DSEC's own (uint32 t, no attributes) reads with a given size."""
+    ev = random_events(1000, width=640, height=480, t_span_us=20_000)
+    path = tmp_path / "dsec.h5"
+    with h5py.File(path, "w") as file:
+        file["events/x"], file["events/y"] = ev.x, ev.y
+        file["events/t"] = (ev.t - 5).astype(np.uint32)
+        file["events/p"] = ev.p.astype(np.uint8)
+        file["t_offset"] = np.int64(5)
+        file["ms_to_idx"] = np.searchsorted(ev.t - 5, 1000 * np.arange(21)).astype(np.uint64)
+    with pytest.raises(ValueError, match="pass width= and height="):
+        read(path)
+    assert read(path, width=640, height=480) == ev
+    assert read(path, width=640, height=480, t0_us=3000, t1_us=9000) == ev.slice_time(3000, 9000)
+
+
+def test_corrupt_files_raise_format_error(tmp_path):
+    path = write_h5(tmp_path / "ev.h5", random_events(5000))
+    data = path.read_bytes()
+    (tmp_path / "cut.h5").write_bytes(data[: len(data) // 3])
+    with pytest.raises(FormatError):
+        H5Reader(tmp_path / "cut.h5")
+    with h5py.File(tmp_path / "other.h5", "w") as file:
+        file["something"] = np.zeros(3)
+    with pytest.raises(FormatError, match="neither DSEC"):
+        read(tmp_path / "other.h5")
+    with pytest.raises(FormatError, match="lacks the DSEC"):
+        H5Reader(tmp_path / "other.h5")
+    with pytest.raises(FileNotFoundError):
+        H5Reader(tmp_path / "nothing.h5")
