@@ -1,0 +1,101 @@
+"""Summary statistics of an event file, read with bounded memory."""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cmax.events import Events
+
+__all__ = ["EventFileInfo", "file_info", "events_info"]
+
+_CHUNK = 1 << 22
+
+
+@dataclass(frozen=True)
+class EventFileInfo:
+    """What ``cmax info`` prints about an event file.
+
+    Times in µs; ``rate_hz`` in events per second; ``on_fraction`` is the
+    share of ON events (0.5 = balanced).
+    """
+
+    path: str
+    format: str
+    count: int
+    width: int
+    height: int
+    t_start_us: int | None
+    t_end_us: int | None
+    on_count: int
+    attrs: dict[str, Any] = field(default_factory=dict)
+
+    @property
+    def duration_s(self) -> float:
+        if self.t_start_us is None or self.t_end_us is None:
+            return 0.0
+        return (self.t_end_us - self.t_start_us) / 1e6
+
+    @property
+    def rate_hz(self) -> float:
+        return self.count / self.duration_s if self.duration_s > 0 else float("nan")
+
+    @property
+    def on_fraction(self) -> float:
+        return self.on_count / self.count if self.count else float("nan")
+
+    def lines(self) -> list[str]:
+        """Human-readable lines, one fact each."""
+        out = [
+            f"file        {self.path}",
+            f"format      {self.format}",
+            f"sensor      {self.width} x {self.height}",
+            f"events      {self.count:,}",
+        ]
+        if self.count:
+            out += [
+                f"time        {self.t_start_us} .. {self.t_end_us} µs",
+                f"duration    {self.duration_s:.6f} s",
+                f"rate        {self.rate_hz / 1e6:.3f} Mev/s",
+                f"polarity    {self.on_count:,} ON / {self.count - self.on_count:,} OFF "
+                f"({100 * self.on_fraction:.1f}% ON)",
+            ]
+        for key, value in sorted(self.attrs.items()):
+            if key not in ("width", "height"):
+                out.append(f"attr        {key} = {value}")
+        return out
+
+
+def events_info(events: Events, *, path: str = "", format: str = "") -> EventFileInfo:
+    """Summary of events already in memory."""
+    return EventFileInfo(
+        path=path, format=format, count=len(events), width=events.width, height=events.height,
+        t_start_us=events.t_start if len(events) else None,
+        t_end_us=events.t_end if len(events) else None,
+        on_count=int(np.count_nonzero(events.p)),
+    )
+
+
+def file_info(path: str | os.PathLike, *, width: int | None = None, height: int | None = None) -> EventFileInfo:
+    """Summary of an event file; DSEC files are scanned in chunks (bounded memory)."""
+    from cmax.io import H5Reader, detect_format, read
+
+    path = Path(path)
+    kind = detect_format(path)
+    if kind != "dsec":
+        return events_info(read(path, width=width, height=height), path=str(path), format=kind)
+    with H5Reader(path, width=width, height=height) as reader:
+        polarity = reader.file["events/p"]
+        on_count = sum(
+            int(np.count_nonzero(polarity[start: start + _CHUNK]))
+            for start in range(0, len(reader), _CHUNK)
+        )
+        return EventFileInfo(
+            path=str(path), format="dsec", count=len(reader), width=reader.width,
+            height=reader.height, t_start_us=reader.t_start if len(reader) else None,
+            t_end_us=reader.t_end if len(reader) else None, on_count=on_count,
+            attrs=reader.attrs,
+        )
