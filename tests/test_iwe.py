@@ -1,0 +1,76 @@
+"""Image of warped events: closed-form votes, conservation, blur, gradients, numpy entry."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cmax.iwe import image_of_warped_events, iwe_numpy
+
+
+def test_bilinear_votes_closed_form():
+    x = torch.tensor([1.25, 3.0])
+    y = torch.tensor([2.5, 0.0])
+    image = image_of_warped_events(x, y, height=4, width=5, sigma=0)
+    expected = np.zeros((4, 5), np.float32)
+    expected[2, 1], expected[2, 2], expected[3, 1], expected[3, 2] = 0.375, 0.125, 0.375, 0.125
+    expected[0, 3] = 1.0
+    np.testing.assert_allclose(image.numpy(), expected, atol=1e-6)
+
+
+def test_integer_coordinates_give_the_event_count_image():
+    rng = np.random.default_rng(0)
+    x, y = rng.integers(0, 20, 500), rng.integers(0, 10, 500)
+    counts = np.bincount(y * 20 + x, minlength=200).reshape(10, 20)
+    image = iwe_numpy(x.astype(float), y.astype(float), height=10, width=20, sigma=0)
+    np.testing.assert_allclose(image, counts)
+
+
+def test_votes_are_conserved_inside_and_dropped_outside():
+    rng = np.random.default_rng(1)
+    x = torch.from_numpy(rng.uniform(2, 28, 1000))
+    y = torch.from_numpy(rng.uniform(2, 18, 1000))
+    weights = torch.from_numpy(rng.choice([-1.0, 1.0], 1000))
+    image = image_of_warped_events(x, y, height=20, width=30, weights=weights, sigma=1.0)
+    # The blur loses a little mass at the border only; events are >= 2 px inside.
+    assert float(image.sum()) == pytest.approx(float(weights.sum()), abs=0.05 * 1000 ** 0.5)
+    outside = image_of_warped_events(torch.tensor([-5.0, 40.0]), torch.tensor([3.0, 3.0]), height=20, width=30, sigma=0)
+    assert float(outside.abs().sum()) == 0.0
+    half = image_of_warped_events(torch.tensor([-0.5]), torch.tensor([3.0]), height=20, width=30, sigma=0)
+    assert float(half.sum()) == pytest.approx(0.5)
+
+
+def test_batched_equals_one_by_one():
+    rng = np.random.default_rng(2)
+    x = torch.from_numpy(rng.uniform(0, 15, (3, 200)))
+    y = torch.from_numpy(rng.uniform(0, 11, (3, 200)))
+    batch = image_of_warped_events(x, y, height=12, width=16)
+    for b in range(3):
+        torch.testing.assert_close(batch[b], image_of_warped_events(x[b], y[b], height=12, width=16))
+
+
+def test_gradcheck_coordinates_and_weights():
+    torch.manual_seed(0)
+    x = (torch.rand(40, dtype=torch.float64) * 10).requires_grad_()
+    y = (torch.rand(40, dtype=torch.float64) * 8).requires_grad_()
+    w = torch.randn(40, dtype=torch.float64, requires_grad=True)
+
+    def image(x, y, w):
+        return image_of_warped_events(x, y, weights=w, height=8, width=10, sigma=0.8)
+
+    assert torch.autograd.gradcheck(image, (x, y, w))
+
+
+@pytest.mark.parametrize("kwargs, error, match", [
+    (dict(x=torch.zeros(3), y=torch.zeros(4)), ValueError, "same shape"),
+    (dict(x=torch.zeros(1, 1, 3), y=torch.zeros(1, 1, 3)), ValueError, r"\(N,\) or \(B, N\)"),
+    (dict(x=torch.zeros(3, dtype=torch.long), y=torch.zeros(3, dtype=torch.long)), TypeError, "floating-point"),
+    (dict(sigma=-1.0), ValueError, "sigma"),
+    (dict(height=0), ValueError, "positive"),
+    (dict(weights=torch.ones(2)), ValueError, "weights"),
+])
+def test_bad_input(kwargs, error, match):
+    args = dict(x=torch.zeros(3), y=torch.zeros(3), height=4, width=4)
+    args.update(kwargs)
+    with pytest.raises(error, match=match):
+        image_of_warped_events(**args)
