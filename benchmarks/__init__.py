@@ -1,0 +1,1 @@
+"""Benchmarks of evtslowtv; run ``python -m benchmarks.speed --help``."""

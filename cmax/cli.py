@@ -1,0 +1,146 @@
+"""The ``cmax`` command line: one entry point, one sub-command per task.
+
+``cmax info FILE``            counts, duration, rate, resolution, polarity balance
+``cmax show FILE -o out.png`` event frame or event-volume bins of a time window
+``cmax demo``                 the end-to-end demo on data it makes itself
+
+Each sub-command parses its arguments, calls the library, and prints or
+writes the result; no numerical code lives here.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Callable, Sequence
+
+__all__ = ["main", "build_parser"]
+
+
+def _sensor_size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 346x260, got {text!r}") from None
+    return width, height
+
+
+def _add_size_option(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument(
+        "--size", type=_sensor_size, default=None, metavar="WxH",
+        help="sensor size, for files that do not store it (ECD text, .npy, original DSEC)",
+    )
+
+
+def _size_kwargs(args: argparse.Namespace) -> dict[str, int | None]:
+    width, height = args.size if args.size else (None, None)
+    return {"width": width, "height": height}
+
+
+# -- info ------------------------------------------------------------------------------
+def _cmd_info(args: argparse.Namespace) -> int:
+    from cmax.io.info import file_info
+
+    for path in args.files:
+        print("\n".join(file_info(path, **_size_kwargs(args)).lines()))
+    return 0
+
+
+def _add_info(subparsers) -> None:
+    parser = subparsers.add_parser("info", help="summary of event files", description=_cmd_info.__doc__)
+    parser.add_argument("files", nargs="+", type=Path, help="event files (any supported format)")
+    _add_size_option(parser)
+    parser.set_defaults(run=_cmd_info)
+
+
+# -- show ------------------------------------------------------------------------------
+def _cmd_show(args: argparse.Namespace) -> int:
+    from cmax.show import render_window
+
+    image = render_window(
+        args.file, t0_s=args.t0, dt_s=args.dt, mode=args.mode, bins=args.bins, **_size_kwargs(args)
+    )
+    from cmax.viz import save_png
+
+    output = args.output or args.file.with_suffix(".png")
+    save_png(output, image)
+    print(f"wrote {output}")
+    return 0
+
+
+def _add_show(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "show", help="draw a time window of an event file as a PNG",
+        description="Draw the events of [t0, t0 + dt) as an event frame (ON blue, OFF red) "
+        "or as the bins of the event volume; ground-truth depth is drawn beside them when the file has it.",
+    )
+    parser.add_argument("file", type=Path)
+    parser.add_argument("--t0", type=float, default=0.0, help="window start in seconds after the first event (default 0)")
+    parser.add_argument("--dt", type=float, default=0.05, help="window length in seconds (default 0.05)")
+    parser.add_argument("--mode", choices=("frame", "voxel", "both"), default="both")
+    parser.add_argument("--bins", type=int, default=5, help="bins of the event volume (default 5)")
+    parser.add_argument("-o", "--output", type=Path, default=None, help="PNG path (default: FILE with .png)")
+    _add_size_option(parser)
+    parser.set_defaults(run=_cmd_show)
+
+
+# -- demo ------------------------------------------------------------------------------
+def _cmd_demo(args: argparse.Namespace) -> int:
+    from cmax.demo import run_demo
+
+    report = run_demo(args.output, seed=args.seed, duration_s=args.duration)
+    print(f"demo report: {report}")
+    return 0
+
+
+def _add_demo(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "demo", help="end-to-end demo on data it makes itself",
+        description="Render a synthetic scene, simulate its events, write them to a DSEC h5 file, "
+        "and draw the pictures of the report.",
+    )
+    parser.add_argument("-o", "--output", type=Path, default=Path("demo_output"))
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--duration", type=float, default=0.5, help="seconds of scene to simulate")
+    parser.set_defaults(run=_cmd_demo)
+
+
+_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_demo)
+
+
+def build_parser() -> argparse.ArgumentParser:
+    """The ``cmax`` argument parser with all sub-commands."""
+    from cmax import __version__
+
+    parser = argparse.ArgumentParser(
+        prog="cmax", description="Event cameras: simulation, file formats, contrast maximization."
+    )
+    parser.add_argument("--version", action="version", version=f"evtslowtv {__version__}")
+    subparsers = parser.add_subparsers(dest="command", metavar="COMMAND")
+    for add in _COMMANDS:
+        add(subparsers)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """Entry point of the ``cmax`` console script; returns the exit status.
+
+    Errors a user can fix (bad files, bad arguments) print one line on stderr
+    and exit with status 2 instead of a traceback.
+    """
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    if not getattr(args, "run", None):
+        parser.print_help()
+        return 2
+    from cmax.io import FormatError
+
+    try:
+        return int(args.run(args) or 0)
+    except (FormatError, ValueError, TypeError, FileNotFoundError, FileExistsError) as error:
+        print(f"cmax {args.command}: error: {error}", file=sys.stderr)
+        return 2
+
+
+if __name__ == "__main__":  # pragma: no cover
+    sys.exit(main())

@@ -1,0 +1,82 @@
+"""The cmax command line: info and show on files, clear errors on bad input."""
+from __future__ import annotations
+
+import subprocess
+import sys
+
+import cv2
+import numpy as np
+import pytest
+
+from cmax import Events
+from cmax.cli import main
+from cmax.io import write_h5, write_txt
+from conftest import random_events
+
+
+@pytest.fixture
+def h5_file(tmp_path):
+    ev = random_events(4000, width=64, height=48, t_span_us=200_000, seed=5)
+    return write_h5(tmp_path / "ev.h5", ev, source="unit test"), ev
+
+
+def test_info_reports_counts_rate_and_balance(h5_file, capsys):
+    path, ev = h5_file
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    on = int(ev.p.sum())
+    assert f"events      {len(ev):,}" in out
+    assert "sensor      64 x 48" in out
+    assert f"{on:,} ON / {len(ev) - on:,} OFF" in out
+    rate = len(ev) / (ev.duration_us / 1e6) / 1e6
+    assert f"rate        {rate:.3f} Mev/s" in out
+    assert "source = unit test" in out
+
+
+def test_info_on_text_needs_size(tmp_path, capsys):
+    ev = random_events(100, width=240, height=180)
+    path = write_txt(tmp_path / "events.txt", ev)
+    assert main(["info", str(path)]) == 2
+    assert "width= and height=" in capsys.readouterr().err
+    assert main(["info", str(path), "--size", "240x180"]) == 0
+    assert "events      100" in capsys.readouterr().out
+
+
+def test_show_writes_picture_of_the_window(h5_file, tmp_path):
+    path, ev = h5_file
+    out = tmp_path / "frame.png"
+    assert main(["show", str(path), "--t0", "0.05", "--dt", "0.02", "--mode", "frame", "-o", str(out)]) == 0
+    image = cv2.imread(str(out))
+    assert image.shape[1] == 64 and image.shape[0] > 48
+    # Pixels with events are coloured, the others white: count them against the window.
+    window = ev.slice_time(ev.t_start + 50_000, ev.t_start + 70_000)
+    picture = image[-48:]
+    coloured = np.count_nonzero((picture != 255).any(axis=2))
+    assert coloured == np.unique(window.y.astype(int) * 64 + window.x).size
+
+
+def test_show_voxel_mode(h5_file, tmp_path):
+    path, _ = h5_file
+    out = tmp_path / "voxel.png"
+    assert main(["show", str(path), "--mode", "voxel", "--bins", "3", "-o", str(out)]) == 0
+    assert cv2.imread(str(out)).shape[1] == 3 * 64 + 2 * 4
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["show", "MISSING.h5"], "no such event file"),
+    (["show", "FILE", "--dt", "0"], "dt must be positive"),
+    (["show", "FILE", "--t0", "-1"], "t0 must be >= 0"),
+    (["info", "BAD"], "cannot tell the event format"),
+])
+def test_cli_errors_are_one_line(h5_file, tmp_path, capsys, argv, message):
+    path, _ = h5_file
+    (tmp_path / "bad.bin").write_bytes(b"nonsense")
+    argv = [str(path) if a == "FILE" else str(tmp_path / "bad.bin") if a == "BAD" else a for a in argv]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "Traceback" not in err
+
+
+def test_console_script_entry_point():
+    result = subprocess.run([sys.executable, "-m", "cmax.cli", "--version"], capture_output=True, text=True)
+    assert result.returncode == 0 and "evtslowtv" in result.stdout
