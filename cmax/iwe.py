@@ -19,9 +19,8 @@ import math
 
 import numpy as np
 import torch
-from kornia.filters import gaussian_blur2d
 
-__all__ = ["accumulate_bilinear", "blur", "image_of_warped_events", "iwe_numpy"]
+__all__ = ["accumulate_bilinear", "accumulate_bilinear_indexed", "blur", "image_of_warped_events", "iwe_numpy"]
 
 
 def accumulate_bilinear(
@@ -48,35 +47,108 @@ def accumulate_bilinear(
     if not batched:
         x, y = x[None], y[None]
         weights = None if weights is None else weights[None]
-    batch, count = x.shape
-    x0 = torch.floor(x.detach())
-    y0 = torch.floor(y.detach())
-    fx, fy = x - x0, y - y0
-    x0, y0 = x0.long(), y0.long()
-    base = torch.arange(batch, device=x.device).view(-1, 1) * (height * width)
-    image = torch.zeros(batch * height * width, dtype=x.dtype, device=x.device)
-    for dx, dy, area in (
-        (0, 0, (1 - fx) * (1 - fy)), (1, 0, fx * (1 - fy)),
-        (0, 1, (1 - fx) * fy), (1, 1, fx * fy),
-    ):
-        xi, yi = x0 + dx, y0 + dy
-        inside = (xi >= 0) & (xi < width) & (yi >= 0) & (yi < height)
-        vote = area if weights is None else area * weights
-        index = base + yi.clamp(0, height - 1) * width + xi.clamp(0, width - 1)
-        image = image.index_add(0, index.reshape(-1), (vote * inside).reshape(-1))
-    image = image.view(batch, height, width)
+    batch = x.shape[0]
+    index = torch.zeros_like(x, dtype=torch.long) + torch.arange(batch, device=x.device).view(-1, 1)
+    image = _splat(x.reshape(-1), y.reshape(-1), None if weights is None else weights.reshape(-1),
+                   index.reshape(-1), batch, height, width)
     return image if batched else image[0]
 
 
+def _splat(x: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None, image_index: torch.Tensor,
+           count: int, height: int, width: int) -> torch.Tensor:
+    """Bilinear votes (N,) into ``count`` images (H, W), one ``index_add`` on a padded canvas.
+
+    The canvas has one extra row and column on each side, so the four corners of
+    a point are ``i, i + 1, i + Wp, i + Wp + 1``; a point whose corners leave the
+    padded canvas votes nothing (its corners would all be outside the image).
+    """
+    Hp, Wp = height + 2, width + 2
+    x0 = torch.floor(x.detach())
+    y0 = torch.floor(y.detach())
+    fx, fy = x - x0, y - y0
+    valid = (x0 >= -1) & (x0 <= width - 1) & (y0 >= -1) & (y0 <= height - 1)
+    x0 = x0.clamp(-1, width - 1).long() + 1
+    y0 = y0.clamp(-1, height - 1).long() + 1
+    corner = image_index * (Hp * Wp) + y0 * Wp + x0
+    gx, gy = 1 - fx, 1 - fy
+    votes = torch.stack([gx * gy, fx * gy, gx * fy, fx * fy])
+    scale = valid.to(x.dtype) if weights is None else valid.to(x.dtype) * weights
+    votes = votes * scale
+    index = torch.stack([corner, corner + 1, corner + Wp, corner + Wp + 1])
+    canvas = torch.zeros(count * Hp * Wp, dtype=x.dtype, device=x.device)
+    canvas = canvas.index_add(0, index.reshape(-1), votes.reshape(-1))
+    return canvas.view(count, Hp, Wp)[:, 1:-1, 1:-1]
+
+
+def accumulate_bilinear_indexed(
+    x: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None, image_index: torch.Tensor,
+    count: int, height: int, width: int,
+) -> torch.Tensor:
+    """Bilinear votes of points into ``count`` small images, each point into its own one.
+
+    Parameters
+    ----------
+    x, y : Tensor, shape (N,)
+        Sub-pixel coordinates in the frame of each point's image.
+    weights : Tensor (N,) or None
+    image_index : Tensor, shape (N,), int64
+        Which image (0 <= i < count) each point votes into.
+    count, height, width : int
+
+    Returns
+    -------
+    Tensor, shape (count, H, W)
+        Differentiable with respect to ``x``, ``y`` and ``weights``. Used for
+        the per-cell images of the local contrast (:func:`cmax.objectives.local_contrast`).
+    """
+    return _splat(x, y, weights, image_index, count, height, width)
+
+
+def _gaussian_kernel(sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:
+    radius = max(1, math.ceil(3 * sigma))
+    offsets = torch.arange(-radius, radius + 1, dtype=dtype, device=device)
+    kernel = torch.exp(-offsets * offsets / (2.0 * sigma * sigma))
+    return kernel / kernel.sum()
+
+
+def _separable(stack: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
+    """Zero-padded separable convolution of (B, 1, H, W) with a symmetric 1-D kernel."""
+    radius = (kernel.numel() - 1) // 2
+    out = torch.nn.functional.conv2d(stack, kernel.view(1, 1, 1, -1), padding=(0, radius))
+    return torch.nn.functional.conv2d(out, kernel.view(1, 1, -1, 1), padding=(radius, 0))
+
+
+class _SymmetricBlur(torch.autograd.Function):
+    """Gaussian blur whose backward is the same blur.
+
+    With zero padding the adjoint of a convolution is the correlation with the
+    same kernel, which equals the convolution for a symmetric kernel; this
+    replaces conv2d's generic backward (several times slower on CPU).
+    """
+
+    @staticmethod
+    def forward(ctx, stack: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:  # type: ignore[override]
+        ctx.save_for_backward(kernel)
+        return _separable(stack, kernel)
+
+    @staticmethod
+    def backward(ctx, grad: torch.Tensor):  # type: ignore[override]
+        (kernel,) = ctx.saved_tensors
+        return _SymmetricBlur.apply(grad.contiguous(), kernel), None
+
+
 def blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
-    """Gaussian blur of (H, W) or (B, H, W) images with standard deviation ``sigma`` px (kornia)."""
+    """Gaussian blur of (H, W) or (B, H, W) images with standard deviation ``sigma`` px.
+
+    Separable, zero padding (mass near the border leaks out, as kornia's
+    ``border_type="constant"``), kernel radius ``ceil(3 sigma)``; differentiable.
+    """
     if sigma <= 0:
         return image
-    radius = max(1, math.ceil(3 * sigma))
-    size = 2 * radius + 1
+    kernel = _gaussian_kernel(sigma, image.dtype, image.device)
     batched = image.dim() == 3
     stack = image[:, None] if batched else image[None, None]
-    out = gaussian_blur2d(stack, (size, size), (sigma, sigma), border_type="constant")
+    out = _SymmetricBlur.apply(stack.contiguous(), kernel)
     return out[:, 0] if batched else out[0, 0]
 
 

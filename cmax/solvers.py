@@ -1,0 +1,229 @@
+"""Solver backends of :func:`cmax.fit`: small strategy objects around one :class:`Problem`.
+
+A :class:`Problem` is a smooth function of a parameter vector with its
+gradient (from torch autograd), box bounds, and optionally the scale
+constraint ``|x[v]| = speed`` on a slice ``v`` of the parameters. Backends:
+
+* :class:`ScipySolver` — L-BFGS-B with bounds (scipy). It cannot take equality
+  constraints, so the driver parameterises ``v = speed * u / |u|`` for it
+  (:attr:`Solver.takes_equality` is False).
+* :class:`CasadiSolver` — IPOPT with a limited-memory Hessian (casadi), the
+  scale as the equality constraint ``|v|^2 = speed^2``; the objective and its
+  gradient enter as casadi callbacks.
+* :class:`TorchSolver` — Adam steps with projection onto the bounds (torch), a
+  baseline and the optimizer the learned package uses.
+
+Every backend returns a :class:`SolveResult`.
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from typing import Callable
+
+import numpy as np
+
+__all__ = ["Problem", "SolveResult", "Solver", "ScipySolver", "CasadiSolver", "TorchSolver", "make_solver"]
+
+
+@dataclass(frozen=True, eq=False)
+class Problem:
+    """Minimise ``fun_and_grad(x) -> (f, df/dx)`` over ``lower <= x <= upper``.
+
+    ``speed`` with ``v_slice`` asks for ``|x[v_slice]| = speed`` (solvers with
+    :attr:`Solver.takes_equality`); ``x0`` must satisfy the bounds.
+    """
+
+    fun_and_grad: Callable[[np.ndarray], tuple[float, np.ndarray]]
+    x0: np.ndarray
+    lower: np.ndarray
+    upper: np.ndarray
+    speed: float | None = None
+    v_slice: slice | None = None
+
+
+@dataclass(frozen=True)
+class SolveResult:
+    x: np.ndarray
+    fun: float
+    iterations: int
+    evaluations: int
+    message: str
+    success: bool
+    seconds: float
+
+
+class _Counted:
+    """Caches the last evaluation (IPOPT asks for f and grad separately) and counts calls."""
+
+    def __init__(self, fun_and_grad: Callable[[np.ndarray], tuple[float, np.ndarray]]) -> None:
+        self.fun_and_grad, self.calls, self._x, self._value = fun_and_grad, 0, None, None
+
+    def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:
+        x = np.asarray(x, dtype=np.float64).ravel()
+        if self._x is None or not np.array_equal(x, self._x):
+            self.calls += 1
+            f, g = self.fun_and_grad(x)
+            self._x, self._value = x.copy(), (float(f), np.asarray(g, dtype=np.float64).ravel())
+        return self._value
+
+
+class Solver:
+    """Base of the backends: ``solve(problem) -> SolveResult``."""
+
+    takes_equality = False
+    max_iterations: int = 100
+
+    def solve(self, problem: Problem) -> SolveResult:  # pragma: no cover - interface
+        raise NotImplementedError
+
+    def with_iterations(self, n: int) -> "Solver":
+        """A copy limited to ``n`` iterations."""
+        copy = type(self).__new__(type(self))
+        copy.__dict__.update(self.__dict__)
+        copy.max_iterations = int(n)
+        return copy
+
+
+class ScipySolver(Solver):
+    """L-BFGS-B (scipy.optimize.minimize) with torch gradients.
+
+    Tolerances are set for a normalised objective (about -1 at the start) and
+    parameters in pixels of displacement: ``ftol`` relative decrease,
+    ``gtol`` projected gradient.
+    """
+
+    def __init__(self, *, max_iterations: int = 100, ftol: float = 1e-7, gtol: float = 1e-6, memory: int = 10) -> None:
+        self.max_iterations, self.ftol, self.gtol, self.memory = max_iterations, ftol, gtol, memory
+
+    def solve(self, problem: Problem) -> SolveResult:
+        from scipy.optimize import minimize
+
+        start = time.perf_counter()
+        f = _Counted(problem.fun_and_grad)
+        result = minimize(f, problem.x0, jac=True, method="L-BFGS-B",
+                          bounds=list(zip(problem.lower, problem.upper)),
+                          options={"maxiter": self.max_iterations, "ftol": self.ftol, "gtol": self.gtol,
+                                   "maxcor": self.memory})
+        return SolveResult(np.asarray(result.x), float(result.fun), int(result.nit), f.calls,
+                           str(result.message), bool(result.success), time.perf_counter() - start)
+
+
+class TorchSolver(Solver):
+    """Adam on the parameter vector with projection onto the bounds; step ``lr`` in parameter units."""
+
+    def __init__(self, *, max_iterations: int = 100, lr: float = 0.3) -> None:
+        self.max_iterations, self.lr = max_iterations, lr
+
+    def solve(self, problem: Problem) -> SolveResult:
+        import torch
+
+        start = time.perf_counter()
+        f = _Counted(problem.fun_and_grad)
+        x = torch.tensor(problem.x0, dtype=torch.float64, requires_grad=True)
+        optimizer = torch.optim.Adam([x], lr=self.lr)
+        lower, upper = torch.from_numpy(problem.lower), torch.from_numpy(problem.upper)
+        best_x, best_f = problem.x0.copy(), f(problem.x0)[0]
+        for _ in range(self.max_iterations):
+            value, grad = f(x.detach().numpy())
+            if value < best_f:
+                best_x, best_f = x.detach().numpy().copy(), value
+            optimizer.zero_grad()
+            x.grad = torch.from_numpy(grad)
+            optimizer.step()
+            with torch.no_grad():
+                x.copy_(torch.maximum(torch.minimum(x, upper), lower))
+        value, _ = f(x.detach().numpy())
+        if value < best_f:
+            best_x, best_f = x.detach().numpy().copy(), value
+        return SolveResult(best_x, float(best_f), self.max_iterations, f.calls,
+                           f"Adam: {self.max_iterations} steps", True, time.perf_counter() - start)
+
+
+class CasadiSolver(Solver):
+    """IPOPT (casadi) with a limited-memory Hessian; the scale as an equality constraint on |v|."""
+
+    takes_equality = True
+
+    def __init__(self, *, max_iterations: int = 100, tol: float = 1e-6) -> None:
+        self.max_iterations, self.tol = max_iterations, tol
+
+    def solve(self, problem: Problem) -> SolveResult:
+        import casadi as ca
+
+        start = time.perf_counter()
+        f = _Counted(problem.fun_and_grad)
+        n = len(problem.x0)
+        objective = _objective_callback(ca, f, n)
+        X = ca.MX.sym("x", n)
+        nlp = {"x": X, "f": objective(X)}
+        lbg = ubg = None
+        if problem.speed is not None and problem.v_slice is not None:
+            v = X[problem.v_slice.start:problem.v_slice.stop]
+            nlp["g"] = ca.sumsqr(v) - problem.speed ** 2
+            lbg = ubg = 0.0
+        options = {"ipopt.hessian_approximation": "limited-memory", "ipopt.max_iter": self.max_iterations,
+                   "ipopt.tol": self.tol, "ipopt.print_level": 0, "print_time": False,
+                   "ipopt.sb": "yes"}
+        solver = ca.nlpsol("cmax_fit", "ipopt", nlp, options)
+        arguments = {"x0": problem.x0, "lbx": problem.lower, "ubx": problem.upper}
+        if lbg is not None:
+            arguments.update(lbg=lbg, ubg=ubg)
+        solution = solver(**arguments)
+        stats = solver.stats()
+        x = np.asarray(solution["x"]).ravel()
+        return SolveResult(x, float(solution["f"]), int(stats.get("iter_count", 0)), f.calls,
+                           str(stats.get("return_status", "")), bool(stats.get("success", False)),
+                           time.perf_counter() - start)
+
+
+def _objective_callback(ca, f: _Counted, n: int):
+    """A casadi function of x (n,) with a callback gradient (the object is kept alive on the result)."""
+
+    class Gradient(ca.Callback):
+        def __init__(self, name, opts=None):
+            ca.Callback.__init__(self)
+            self.construct(name, opts or {})
+
+        def get_n_in(self): return 2
+        def get_n_out(self): return 1
+
+        def get_sparsity_in(self, i):
+            return ca.Sparsity.dense(n, 1) if i == 0 else ca.Sparsity.dense(1, 1)
+
+        def get_sparsity_out(self, i):
+            return ca.Sparsity.dense(1, n)
+
+        def eval(self, arg):
+            return [ca.DM(f(np.asarray(arg[0]).ravel())[1]).T]
+
+    class Objective(ca.Callback):
+        def __init__(self, name, opts=None):
+            ca.Callback.__init__(self)
+            self.construct(name, opts or {})
+
+        def get_n_in(self): return 1
+        def get_n_out(self): return 1
+        def get_sparsity_in(self, i): return ca.Sparsity.dense(n, 1)
+        def get_sparsity_out(self, i): return ca.Sparsity.dense(1, 1)
+
+        def eval(self, arg):
+            return [f(np.asarray(arg[0]).ravel())[0]]
+
+        def has_jacobian(self): return True
+
+        def get_jacobian(self, name, inames, onames, opts):
+            self._gradient = Gradient(name, opts)
+            return self._gradient
+
+    return Objective("cmax_objective")
+
+
+def make_solver(solver: "str | Solver") -> Solver:
+    """A backend from its name (``"scipy"``, ``"casadi"``, ``"torch"``) or an instance (returned as is)."""
+    if isinstance(solver, Solver):
+        return solver
+    table = {"scipy": ScipySolver, "casadi": CasadiSolver, "torch": TorchSolver}
+    if solver not in table:
+        raise ValueError(f"solver must be one of {sorted(table)} or a cmax.solvers.Solver, got {solver!r}")
+    return table[solver]()
