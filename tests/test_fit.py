@@ -41,7 +41,7 @@ def test_rotation_fit_and_casadi_agree(rotation):
 
 @pytest.mark.xfail(strict=True, reason="known failure: on small 120x90 windows of 60 ms the normalised multi-reference "
                    "contrast + deformation guard does not yet rank the truth above zoom / no-motion "
-                   "perturbations; see the report of issue 5", strict=False)
+                   "perturbations; see the report of issue 5")
 @pytest.mark.parametrize("preset", ["slider", "rotation", "indoor_flying", "two_planes"])
 def test_objective_sanity_truth_beats_perturbations(preset):
     """Normalised multi-reference contrast + guard: ground truth beats zoom, swaps, constant depth."""
