@@ -2,6 +2,7 @@
 
 ``cmax info FILE``            counts, duration, rate, resolution, polarity balance
 ``cmax show FILE -o out.png`` event frame or event-volume bins of a time window
+``cmax fit FILE --K ...``     depth and motion per window by contrast maximization
 ``cmax demo``                 the end-to-end demo on data it makes itself
 
 Each sub-command parses its arguments, calls the library, and prints or
@@ -105,7 +106,13 @@ def _add_demo(subparsers) -> None:
     parser.set_defaults(run=_cmd_demo)
 
 
-_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_demo)
+def _add_fit(subparsers) -> None:
+    from cmax.fit_cli import add_fit_command
+
+    add_fit_command(subparsers)
+
+
+_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_fit, _add_demo)
 
 
 def build_parser() -> argparse.ArgumentParser:

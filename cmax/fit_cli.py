@@ -40,7 +40,7 @@ def add_fit_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--speed", type=float, default=None, help="known speed [m/s] (metric depth)")
     parser.add_argument("--solver", choices=("scipy", "casadi", "torch"), default="scipy")
     parser.add_argument("--max-events", type=int, default=40_000)
-    parser.set_defaults(handler=run_fit)
+    parser.set_defaults(run=run_fit)
     return parser
 
 
