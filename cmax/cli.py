@@ -2,6 +2,7 @@
 
 ``cmax info FILE``            counts, duration, rate, resolution, polarity balance
 ``cmax show FILE -o out.png`` event frame or event-volume bins of a time window
+``cmax scene PRESET -o F.h5``  synthetic scene: events plus ground-truth depth and poses
 ``cmax fit FILE --K ...``     depth and motion per window by contrast maximization
 ``cmax demo``                 the end-to-end demo on data it makes itself
 
@@ -106,13 +107,57 @@ def _add_demo(subparsers) -> None:
     parser.set_defaults(run=_cmd_demo)
 
 
+# -- scene -----------------------------------------------------------------------------
+def _cmd_scene(args: argparse.Namespace) -> int:
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+
+    width, height = args.size
+    scene = make_scene(args.preset, seed=args.seed, width=width, height=height,
+                       duration_s=max(args.duration, 1.0))
+    settings = dict(scene.recommended_simulator)
+    settings["seed"] = args.seed
+    for name in ("cp", "cn"):
+        if getattr(args, name) is not None:
+            settings[name] = getattr(args, name)
+    sequence = simulate_scene(
+        scene, args.duration, EventSimulator(**settings), depth_rate_hz=args.depth_rate, progress=True,
+    )
+    path = sequence.save(args.output, overwrite=args.overwrite)
+    print(f"wrote {path}: {len(sequence.events):,} events, {len(sequence.depth_t_us)} depth maps, "
+          f"{len(sequence.poses_t_us)} poses, {len(sequence.frame_t_us)} rendered frames")
+    return 0
+
+
+def _add_scene(subparsers) -> None:
+    from cmax.sim.presets import PRESETS
+
+    parser = subparsers.add_parser(
+        "scene", help="simulate a synthetic scene with ground-truth depth and poses",
+        description="Render a preset scene at adaptive times, simulate its events (ESIM) and write "
+        "one DSEC-layout h5 file with the ground truth in gt/ (depth, depth_t, poses, poses_t, K).",
+    )
+    parser.add_argument("preset", choices=sorted(PRESETS))
+    parser.add_argument("-o", "--output", type=Path, required=True, help="output .h5 file")
+    parser.add_argument("--duration", type=float, default=2.0, help="seconds to simulate (default 2)")
+    parser.add_argument("--seed", type=int, default=0)
+    parser.add_argument("--size", type=_sensor_size, default=(346, 260), metavar="WxH",
+                        help="sensor size (default 346x260, a DAVIS346)")
+    parser.add_argument("--cp", type=float, default=None, help="ON threshold (default: the preset's)")
+    parser.add_argument("--cn", type=float, default=None, help="OFF threshold (default: the preset's)")
+    parser.add_argument("--depth-rate", type=float, default=20.0, help="ground-truth depth maps per second")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    parser.set_defaults(run=_cmd_scene)
+
+
 def _add_fit(subparsers) -> None:
     from cmax.fit_cli import add_fit_command
 
     add_fit_command(subparsers)
 
 
-_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_fit, _add_demo)
+_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_scene, _add_fit, _add_demo)
 
 
 def build_parser() -> argparse.ArgumentParser:

@@ -70,5 +70,5 @@ def render_window(
 ) -> np.ndarray:
     """Picture of ``[t0, t0 + dt)`` seconds after the first event of a file."""
     events, depth = read_window(path, t0_s, dt_s, width=width, height=height)
-    title = f"t0={t0_s:g}s dt={dt_s * 1e3:g}ms: "
+    title = f"{dt_s * 1e3:g} ms: "
     return render_events(events, mode=mode, bins=bins, depth=depth, title=title)

@@ -80,3 +80,19 @@ def test_cli_errors_are_one_line(h5_file, tmp_path, capsys, argv, message):
 def test_console_script_entry_point():
     result = subprocess.run([sys.executable, "-m", "cmax.cli", "--version"], capture_output=True, text=True)
     assert result.returncode == 0 and "evtslowtv" in result.stdout
+
+
+def test_scene_command_writes_events_and_ground_truth(tmp_path, capsys):
+    from cmax.sim.synthetic import load_sequence
+
+    out = tmp_path / "slider.h5"
+    argv = ["scene", "slider", "-o", str(out), "--duration", "0.1", "--size", "96x72", "--seed", "3", "--depth-rate", "20"]
+    assert main(argv) == 0
+    sequence = load_sequence(out)
+    assert len(sequence.events) > 1000 and sequence.events.sensor_size == (96, 72)
+    assert sequence.depth.shape == (3, 72, 96)  # depth maps at 0, 50 and 100 ms
+    # Slider: pure translation along x, depth within the preset's stated 0.4-3 m.
+    valid = np.isfinite(sequence.depth)
+    assert 0.4 <= sequence.depth[valid].min() and sequence.depth[valid].max() <= 3.0
+    np.testing.assert_allclose(sequence.twists[:, 1:], 0.0, atol=1e-9)
+    assert main(argv) == 2 and "overwrite" in capsys.readouterr().err

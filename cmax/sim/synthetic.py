@@ -35,6 +35,7 @@ from typing import Any
 
 import h5py
 import numpy as np
+from tqdm.auto import tqdm
 
 from cmax.events import Events, concatenate
 from cmax.io.h5 import H5Writer, read_h5
@@ -210,6 +211,7 @@ def simulate_scene(
     t_offset_us: int = 0,
     min_step_s: float = 1e-4,
     max_step_s: float = 1e-2,
+    progress: bool = False,
 ) -> SyntheticSequence:
     """Simulate an event camera moving through ``scene`` for ``duration_s`` seconds.
 
@@ -234,6 +236,8 @@ def simulate_scene(
         Absolute time (µs) of scene time 0 in the output.
     min_step_s, max_step_s : float
         Clamp of the adaptive step [s] (``min_step_s >= 1e-5``: times are whole µs).
+    progress : bool
+        Show a progress bar (tqdm, on stderr) over simulated milliseconds.
 
     Returns
     -------
@@ -270,6 +274,7 @@ def simulate_scene(
     required = list(depth_times_s) + [t_end]
     events, depths, frame_times = [], [], []
     t, next_required = float(t0_s), 0
+    bar = tqdm(total=round(duration_s * 1e3), unit="ms", desc="simulating", disable=not progress)
     while True:
         intensity, depth = scene.render(t)
         t_us = to_us(t)
@@ -287,7 +292,9 @@ def simulate_scene(
         t_next = t + (remaining if remaining <= step else remaining / 2 if remaining < step + min_step_s else step)
         if to_us(t_next) <= t_us:  # whole microseconds must increase
             t_next = (t_us + 1 - int(t_offset_us)) * 1e-6
+        bar.update(round((t_next - t0_s) * 1e3) - bar.n)
         t = t_next
+    bar.close()
     poses_t = np.arange(t0_s, t_end + 1e-9, 1.0 / pose_rate_hz)
     settings = {name: value for name, value in dataclasses.asdict(simulator.settings).items()}
     attrs: dict[str, Any] = {
