@@ -64,6 +64,22 @@ def time_renders(scene, times: np.ndarray, repeats: int) -> tuple[float, float]:
     return statistics.median(fps), 1e3 * statistics.median(per_frame)
 
 
+def time_sequence(duration_s: float) -> tuple[float, int, int]:
+    """Seconds to make and save ``duration_s`` of indoor_flying with events and ground truth."""
+    import tempfile
+
+    from cmax.sim import EventSimulator, simulate_scene
+
+    start = time.perf_counter()
+    scene = make_scene("indoor_flying", seed=0, width=346, height=260)
+    sequence = simulate_scene(scene, duration_s, EventSimulator(**{**scene.recommended_simulator, "seed": 0}))
+    with tempfile.TemporaryDirectory() as folder:
+        sequence.save(Path(folder) / "sequence.h5")
+    seconds = time.perf_counter() - start
+    print(f"{duration_s:g} s of indoor_flying with ground truth: {seconds:.1f} s")
+    return seconds, len(sequence.frame_t_us), len(sequence.events)
+
+
 def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--repeats", type=int, default=5)
@@ -71,6 +87,8 @@ def main() -> None:
     parser.add_argument("--threads", type=int, default=None, help="torch threads (default: torch's choice)")
     parser.add_argument("--presets", nargs="*", default=list(PRESETS))
     parser.add_argument("--output", type=Path, default=RESULTS / "speed_scenes.md")
+    parser.add_argument("--sequence-seconds", type=float, default=2.0,
+                        help="length of the indoor_flying sequence timed end to end (0 to skip)")
     args = parser.parse_args()
     if args.threads:
         torch.set_num_threads(args.threads)
@@ -99,6 +117,7 @@ def main() -> None:
         single = time_renders(scene, times, args.repeats)
         torch.set_num_threads(threads)
         print(f"indoor_flying with 1 torch thread: {single[0]:.1f} frames/s ({single[1]:.2f} ms median)")
+    sequence = time_sequence(args.sequence_seconds) if args.sequence_seconds > 0 else None
     load_after = os.getloadavg()
     lines = [
         "# Rendering speed of the synthetic scenes",
@@ -121,6 +140,12 @@ def main() -> None:
         lines += ["", f"`indoor_flying` with 1 torch thread (other processes hurt it less): {single[0]:.0f} frames/s "
                       f"({single[1]:.2f} ms median)."]
     lines += ["", "Target: at least 200 frames/s for `indoor_flying` on 2 cores."]
+    if sequence is not None:
+        seconds, frames, events = sequence
+        lines += ["", "## A whole sequence", "",
+                  f"`simulate_scene` + `save` of {args.sequence_seconds:g} s of `indoor_flying` (seed 0, 346x260, "
+                  f"adaptive sampling lam=0.5, ESIM C=0.2, depth maps at 20 Hz): **{seconds:.1f} s** for "
+                  f"{frames} rendered frames and {events:,} events (target: under 60 s for 2 s)."]
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text("\n".join(lines) + "\n")
     print(f"wrote {args.output}")
