@@ -246,7 +246,7 @@ def test_round_trip_in_small_encoder_blocks(
     tmp_path: Path, monkeypatch: pytest.MonkeyPatch, codec: str
 ) -> None:
     """The encoders work block by block; state (time high, y) carries across blocks."""
-    import cmax.io.prophesee as prophesee
+    import cmax.io.prophesee.writer as prophesee
 
     write, read = (write_evt3, read_evt3) if codec == "evt3" else (write_evt2, read_evt2)
     for case in _round_trip_cases():

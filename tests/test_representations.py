@@ -311,7 +311,7 @@ def test_settings_objects_call_the_functions():
 
 
 def test_chunked_passes_give_the_same_results(monkeypatch):
-    import cmax.representations as representations
+    import cmax.representations._common as representations
 
     ev = random_events(3000, width=16, height=12, seed=4)
     tensors = ev.to_torch()

@@ -1,139 +1,35 @@
-"""Dense event representations: voxel grid (event volume), event frame, time surface.
+"""The voxel grid (event volume) of Zhu et al. (2019): numpy or torch, one window or a batch.
 
-Each representation is a pure function of a window of events, given either as
-:class:`~cmax.events.Events` (numpy in, numpy out) or as
-:class:`~cmax.events.EventTensors` (torch in, torch out on the tensors'
-device). Outputs are float32 and channel-first:
-
-=====================  ===============  ==============================================
-function               shape            value
-=====================  ===============  ==============================================
-:func:`voxel_grid`     (B, H, W)        signed polarity spread linearly over B bins
-:func:`event_frame`    (2, H, W)        event counts, channel 0 = OFF, 1 = ON
-                       (H, W)           ``signed=True``: sum of signed polarities
-:func:`time_surface`   (2, H, W)        ``exp(-(t_ref - t_last) / tau)``, 0 if no event
-=====================  ===============  ==============================================
-
-:func:`voxel_grid_batch` stacks voxel grids of several windows, (K, B, H, W),
-in one torch pass. Sums never use ``np.add.at``: numpy goes through
-``np.bincount`` (and exploits the time order of :class:`Events`), torch through
-``index_add_``; the time surface's per-pixel maximum uses ``np.maximum.at`` /
-``scatter_reduce_``. Inputs are never modified.
+Numpy input takes one of three equivalent methods (per-event weights, or two
+``np.bincount`` per bin interval of the time-sorted events, signed or split
+by polarity), picked from the number of events per pixel; torch input goes
+through ``index_add_``, and :func:`voxel_grid_batch` builds the grids of
+several windows in one pass.
 
 Reference: A. Z. Zhu, L. Yuan, K. Chaney, K. Daniilidis, "Unsupervised
 event-based learning of optical flow, depth, and egomotion", CVPR 2019,
-doi:10.1109/CVPR.2019.00108 (the event volume of EvtSlowTV section 4.1).
+doi:10.1109/CVPR.2019.00108.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
-from typing import TYPE_CHECKING, Iterator, Sequence, Union
+from typing import TYPE_CHECKING, Sequence
 
 import numpy as np
 
 from cmax.events import Events, EventTensors
+from cmax.representations import _common
+from cmax.representations._common import (
+    Array, EventsLike, _check_int, _check_optional_time, _chunks, _index_numpy, _inspect,
+    _on_torch, _pixel_counts, _stats_torch,
+)
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
 
-__all__ = [
-    "voxel_grid",
-    "voxel_grid_batch",
-    "event_frame",
-    "time_surface",
-    "VoxelGrid",
-    "EventFrame",
-    "TimeSurface",
-]
-
-EventsLike = Union[Events, EventTensors]
-Array = Union[np.ndarray, "torch.Tensor"]
+__all__ = ["voxel_grid", "voxel_grid_batch", "VoxelGrid"]
 
 _FLOAT64_EXACT = 2**53  # integers below this are exact in float64
-#: Events per vectorised pass (numpy, and torch on the CPU): temporaries of a few MB stay in
-#: cache and are reused, where each (N,) temporary would be a fresh, page-faulting allocation.
-_CHUNK = 1 << 20
-
-
-# -- validation ----------------------------------------------------------------------------
-def _check_int(name: str, value: object, *, minimum: int | None = None) -> int:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
-        raise TypeError(f"{name} must be an integer, got {value!r} ({type(value).__name__})")
-    if minimum is not None and int(value) < minimum:
-        raise ValueError(f"{name} must be >= {minimum}, got {value}")
-    return int(value)
-
-
-def _check_optional_time(name: str, value: object) -> int | None:
-    if value is None:
-        return None
-    if isinstance(value, (float, np.floating)) and float(value).is_integer():
-        value = int(value)
-    return _check_int(f"{name} (integer microseconds)", value)
-
-
-def _check_bool(name: str, value: object) -> bool:
-    if not isinstance(value, (bool, np.bool_)):
-        raise TypeError(f"{name} must be a bool, got {value!r}")
-    return bool(value)
-
-
-def _check_tau(tau_us: object) -> float:
-    if isinstance(tau_us, (bool, np.bool_)) or not isinstance(tau_us, (int, float, np.number)):
-        raise TypeError(f"tau_us must be a number of microseconds, got {tau_us!r}")
-    tau = float(tau_us)
-    if not np.isfinite(tau) or tau <= 0:
-        raise ValueError(f"tau_us must be positive and finite, got {tau_us}")
-    return tau
-
-
-def _stats_torch(events: EventTensors) -> tuple[int, int] | None:
-    """Validate tensors; return (t_min, t_max) in µs, or None when there are no events.
-
-    Costs one device synchronisation (bounds of x, y, t read back at once).
-    """
-    import torch
-
-    for name in "xytp":
-        column = getattr(events, name)
-        if not isinstance(column, torch.Tensor):
-            raise TypeError(f"events.{name} must be a torch.Tensor, got {type(column).__name__}")
-        if column.ndim != 1:
-            raise ValueError(f"events.{name} must have shape (N,), got {tuple(column.shape)}")
-    for name in "xyt":
-        dtype = getattr(events, name).dtype
-        if dtype.is_floating_point or dtype.is_complex or dtype == torch.bool:
-            raise TypeError(f"events.{name} must be an integer tensor, got {dtype}")
-    if events.p.dtype.is_complex:
-        raise TypeError(f"events.p must be integer, bool or real, got {events.p.dtype}")
-    lengths = {name: getattr(events, name).shape[0] for name in "xytp"}
-    if len(set(lengths.values())) != 1:
-        raise ValueError(f"events.x, y, t and p must have the same length, got {lengths}")
-    devices = {str(getattr(events, name).device) for name in "xytp"}
-    if len(devices) != 1:
-        raise ValueError(f"events.x, y, t and p must be on one device, got {sorted(devices)}")
-    _check_int("events.width", events.width, minimum=1)
-    _check_int("events.height", events.height, minimum=1)
-    if lengths["t"] == 0:
-        return None
-    bounds = [b.to(torch.int64) for name in "xyt" for b in torch.aminmax(getattr(events, name))]
-    x_lo, x_hi, y_lo, y_hi, t_lo, t_hi = torch.stack(bounds).tolist()
-    for name, low, high, size in (("x", x_lo, x_hi, events.width), ("y", y_lo, y_hi, events.height)):
-        if low < 0 or high >= size:
-            raise ValueError(f"events.{name} must lie in [0, {size}), got values in [{low}, {high}]")
-    return t_lo, t_hi
-
-
-def _inspect(events: object) -> tuple[str, tuple[int, int] | None]:
-    """('numpy' | 'torch', (t_min, t_max) or None if empty) for validated events."""
-    if isinstance(events, Events):
-        return "numpy", ((int(events.t[0]), int(events.t[-1])) if len(events) else None)
-    if isinstance(events, EventTensors):
-        return "torch", _stats_torch(events)
-    raise TypeError(
-        "events must be cmax.Events (numpy) or cmax.EventTensors (torch, from "
-        f"Events.to_torch()), got {type(events).__name__}"
-    )
 
 
 def _window(
@@ -155,47 +51,6 @@ def _window(
     if t1 < t0:
         raise ValueError(f"the window [{t0}, {t1}] µs is empty (t1 < t0)")
     return t0, t1 - t0
-
-
-# -- flat indices ----------------------------------------------------------------------------
-def _chunks(start: int, stop: int) -> Iterator[slice]:
-    """Consecutive slices of at most ``_CHUNK`` events covering ``[start, stop)``."""
-    return (slice(i, min(i + _CHUNK, stop)) for i in range(start, stop, _CHUNK))
-
-
-def _index_numpy(events: Events, run: slice, out: np.ndarray) -> np.ndarray:
-    """``(p*H + y)*W + x`` of ``events[run]``, the flat index into (2, H, W), written into ``out``."""
-    index = out[: run.stop - run.start]
-    np.multiply(events.p[run], events.height, out=index, dtype=np.intp)
-    index += events.y[run]
-    index *= events.width
-    index += events.x[run]
-    return index
-
-
-def _pixel_counts(events: Events) -> np.ndarray:
-    """Events per (polarity, pixel): int64, shape (2 * H * W,)."""
-    size, n = 2 * events.width * events.height, len(events)
-    counts = np.zeros(size, np.int64)
-    buffer = np.empty(min(n, _CHUNK), np.intp)
-    for run in _chunks(0, n):
-        counts += np.bincount(_index_numpy(events, run, buffer), minlength=size)
-    return counts
-
-
-def _on_torch(p: "torch.Tensor") -> "torch.Tensor":
-    """ON mask (bool) from int {0, 1}, bool, or signed float {-1, +1} polarity."""
-    import torch
-
-    return p if p.dtype == torch.bool else p > 0
-
-
-def _index_torch(events: EventTensors) -> "torch.Tensor":
-    """``(on*H + y)*W + x`` as int64, shape (N,): the flat index into (2, H, W)."""
-    import torch
-
-    index = _on_torch(events.p).to(torch.int64).mul_(events.height).add_(events.y)
-    return index.mul_(events.width).add_(events.x)
 
 
 # -- voxel grid ------------------------------------------------------------------------------
@@ -303,7 +158,7 @@ def _elapsed(t: np.ndarray, t0: int, out: np.ndarray) -> np.ndarray:
 def _voxel_grid_weights(events: Events, bins: int, t0: int, span: int) -> np.ndarray:
     """(B, H*W) float32 from per-event linear weights, binned with ``np.bincount``."""
     n, plane = len(events), events.width * events.height
-    chunk = min(n, _CHUNK)
+    chunk = min(n, _common._CHUNK)
     fraction, lower = np.empty(chunk, np.float64), np.empty(chunk, np.intp)
     index, weights = np.empty(2 * chunk, np.intp), np.empty(2 * chunk, np.float64)
     signs = np.array([-1.0, 1.0])
@@ -353,7 +208,7 @@ def _voxel_grid_runs(
     starts = [t0 + -(-k * span // (bins - 1)) for k in range(1, bins - 1)]
     edges = [0, *np.searchsorted(t, np.array(starts, np.int64), side="left").tolist(), n]
     size = 2 * plane if split_polarity else plane
-    chunk = min(n, _CHUNK)
+    chunk = min(n, _common._CHUNK)
     index_buffer, time_buffer = np.empty(chunk, np.intp), np.empty(chunk, np.float64)
     sign_buffer = None if split_polarity else np.empty(chunk, np.float64)
     signs = np.array([-1.0, 1.0])
@@ -422,7 +277,7 @@ def _voxel_grid_flat_torch(
 
     out = torch.zeros(size, dtype=torch.float32, device=t.device)
     n = t.shape[0]
-    chunk = _CHUNK if t.device.type == "cpu" else max(n, 1)
+    chunk = _common._CHUNK if t.device.type == "cpu" else max(n, 1)
     for start in range(0, n, chunk):
         run = slice(start, min(start + chunk, n))
         part = [
@@ -526,117 +381,6 @@ def voxel_grid_batch(samples: Sequence[EventTensors], bins: int = 5) -> "torch.T
     return flat.view(count, bins, height, width)
 
 
-# -- event frame -----------------------------------------------------------------------------
-def event_frame(events: EventsLike, *, signed: bool = False) -> Array:
-    """Events counted per pixel and polarity.
-
-    Parameters
-    ----------
-    events : Events or EventTensors
-        N events (numpy in, numpy out; torch in, torch out on the same device).
-    signed : bool, keyword-only
-        Return the (H, W) sum of signed polarities (ON - OFF counts) instead.
-
-    Returns
-    -------
-    ndarray or Tensor, float32
-        Shape (2, H, W): channel 0 counts OFF events, channel 1 ON events, so
-        ``frame.sum() == N``. With ``signed=True``, shape (H, W). Counts are
-        exact up to 2**24 events per pixel.
-
-    Examples
-    --------
-    >>> ev = Events([0, 0, 1], [0, 0, 0], [0, 1, 2], [1, 0, 1], width=2, height=1)
-    >>> event_frame(ev)[:, 0].tolist(), event_frame(ev, signed=True).tolist()
-    ([[1.0, 0.0], [1.0, 1.0]], [[0.0, 1.0]])
-    """
-    signed = _check_bool("signed", signed)
-    kind, _ = _inspect(events)
-    height, width = events.height, events.width
-    if kind == "numpy":
-        frame = _pixel_counts(events).reshape(2, height, width)
-        return (frame[1] - frame[0]).astype(np.float32) if signed else frame.astype(np.float32)
-    import torch
-
-    index = _index_torch(events)
-    ones = torch.ones(1, dtype=torch.float32, device=index.device).expand(index.shape[0])
-    frame = torch.zeros(2 * height * width, dtype=torch.float32, device=index.device)
-    frame = frame.index_add_(0, index, ones).view(2, height, width)
-    return frame[1] - frame[0] if signed else frame
-
-
-# -- time surface ----------------------------------------------------------------------------
-def time_surface(
-    events: EventsLike, *, tau_us: float = 50_000.0, t_ref_us: int | None = None
-) -> Array:
-    """Exponentially decayed time of each pixel's latest event, per polarity.
-
-    ``S(c, y, x) = exp(-(t_ref - t_last(c, y, x)) / tau)`` where ``t_last`` is
-    the time of the latest event of polarity ``c`` (0 = OFF, 1 = ON) at the
-    pixel, and ``S = 0`` where the pixel has no such event.
-
-    Parameters
-    ----------
-    events : Events or EventTensors
-        N events (numpy in, numpy out; torch in, torch out on the same device).
-    tau_us : float, keyword-only
-        Decay constant in microseconds, > 0.
-    t_ref_us : int, optional, keyword-only
-        Reference time in microseconds, default the last event time. It must
-        not precede any event (slice with :meth:`Events.slice_time` first).
-
-    Returns
-    -------
-    ndarray or Tensor, shape (2, H, W), float32, values in [0, 1]
-
-    References
-    ----------
-    X. Lagorce et al., "HOTS: a hierarchy of event-based time-surfaces for
-    pattern recognition", TPAMI 2017, doi:10.1109/TPAMI.2016.2574707.
-
-    Examples
-    --------
-    >>> ev = Events([0, 0], [0, 0], [0, 1000], [1, 1], width=1, height=1)
-    >>> round(float(time_surface(ev, tau_us=1000.0, t_ref_us=2000)[1, 0, 0]), 4)
-    0.3679
-    """
-    tau = _check_tau(tau_us)
-    t_ref = _check_optional_time("t_ref_us", t_ref_us)
-    kind, t_range = _inspect(events)
-    height, width = events.height, events.width
-    size = 2 * height * width
-    if t_range is None:
-        zeros = np.zeros((2, height, width), np.float32)
-        if kind == "numpy":
-            return zeros
-        import torch
-
-        return torch.zeros((2, height, width), dtype=torch.float32, device=events.t.device)
-    t_min, t_max = t_range
-    t_ref = t_max if t_ref is None else t_ref
-    if t_ref < t_max:
-        raise ValueError(f"t_ref_us={t_ref} precedes the last event at t={t_max} µs")
-    age_origin = t_ref - t_min  # latest times are kept relative to t_min, so never negative
-    if kind == "numpy":
-        latest = np.full(size, -1, np.int64)
-        index_buffer = np.empty(min(len(events), _CHUNK), np.intp)
-        for run in _chunks(0, len(events)):  # np.maximum.at: an order-free running maximum
-            np.maximum.at(latest, _index_numpy(events, run, index_buffer), events.t[run] - t_min)
-        seen = latest >= 0
-        surface = np.zeros(size, np.float64)
-        surface[seen] = np.exp(-(age_origin - latest[seen]).astype(np.float64) / tau)
-        return surface.astype(np.float32).reshape(2, height, width)
-    import torch
-
-    t = events.t.to(torch.int64)
-    latest = torch.full((size,), -1, dtype=torch.int64, device=t.device)
-    latest.scatter_reduce_(0, _index_torch(events), t - t_min, "amax", include_self=True)
-    decay = torch.exp(-(age_origin - latest).to(torch.float64) / tau)
-    surface = torch.where(latest >= 0, decay, torch.zeros((), dtype=torch.float64, device=t.device))
-    return surface.to(torch.float32).view(2, height, width)
-
-
-# -- settings objects ------------------------------------------------------------------------
 @dataclass(frozen=True)
 class VoxelGrid:
     """Stored settings for :func:`voxel_grid`; calling it on events returns (B, H, W)."""
@@ -648,29 +392,3 @@ class VoxelGrid:
 
     def __call__(self, events: EventsLike) -> Array:
         return voxel_grid(events, self.bins)
-
-
-@dataclass(frozen=True)
-class EventFrame:
-    """Stored settings for :func:`event_frame`; (2, H, W), or (H, W) when signed."""
-
-    signed: bool = False
-
-    def __post_init__(self) -> None:
-        _check_bool("signed", self.signed)
-
-    def __call__(self, events: EventsLike) -> Array:
-        return event_frame(events, signed=self.signed)
-
-
-@dataclass(frozen=True)
-class TimeSurface:
-    """Stored settings for :func:`time_surface` (reference time: the last event)."""
-
-    tau_us: float = 50_000.0
-
-    def __post_init__(self) -> None:
-        _check_tau(self.tau_us)
-
-    def __call__(self, events: EventsLike) -> Array:
-        return time_surface(events, tau_us=self.tau_us)

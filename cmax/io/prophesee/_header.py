@@ -1,0 +1,117 @@
+"""The ASCII header of a Prophesee RAW file: ``%`` lines, event format and sensor size.
+
+A RAW file opens with lines starting with ``%`` (``% key value``), optionally
+closed by ``% end``; the little-endian event words follow. The header names
+the event format (``% evt 3.0`` or ``% format EVT3;width=W;height=H``) and the
+sensor size (in the ``format`` line, a ``geometry WxH`` line, or implied by a
+known ``plugin_name`` or ``sensor_generation``).
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Union
+
+from cmax.events import _check_sensor_size
+from cmax.io.errors import FormatError
+
+PathLike = Union[str, "os.PathLike[str]"]
+
+_MAX_HEADER_BYTES = 1 << 20
+
+#: Sensor sizes of HAL plugins, matched as substrings of ``plugin_name``, in order.
+_PLUGIN_SIZES = (
+    ("genx320", (320, 320)),
+    ("gen41", (1280, 720)),
+    ("imx636", (1280, 720)),
+    ("gen4", (1280, 720)),
+    ("gen31", (640, 480)),
+    ("gen3", (640, 480)),
+)
+
+
+@dataclass(frozen=True)
+class _Header:
+    """The ``%`` lines of a RAW file as ``key -> value`` and where the words start."""
+
+    fields: dict[str, str]
+    data_offset: int
+
+    def event_format(self) -> str | None:
+        """``"evt3"``, ``"evt2"``, another lower-case name, or None if undeclared."""
+        fmt = self.fields.get("format")
+        if fmt:
+            name = fmt.split(";")[0].strip().lower()
+            return {"evt3": "evt3", "evt2": "evt2"}.get(name, name)
+        evt = self.fields.get("evt")
+        if evt:
+            version = evt.strip()
+            return {"3.0": "evt3", "3": "evt3", "2.0": "evt2", "2": "evt2"}.get(
+                version, f"evt {version}"
+            )
+        return None
+
+    def sensor_size(self) -> tuple[int, int] | None:
+        """(width, height) from the ``format``, ``geometry`` or ``plugin_name`` lines."""
+        options = dict(
+            part.split("=", 1) for part in self.fields.get("format", "").split(";") if "=" in part
+        )
+        options = {key.strip().lower(): value.strip() for key, value in options.items()}
+        if "width" in options and "height" in options:
+            return int(options["width"]), int(options["height"])
+        geometry = self.fields.get("geometry", "").lower().split("x")
+        if len(geometry) == 2:
+            return int(geometry[0]), int(geometry[1])
+        plugin = self.fields.get("plugin_name", "").lower()
+        for pattern, size in _PLUGIN_SIZES:
+            if pattern in plugin:
+                return size
+        generation = self.fields.get("sensor_generation", "").split(".")[0].strip()
+        return {"3": (640, 480), "4": (1280, 720)}.get(generation)
+
+
+def _read_header(path: Path) -> _Header:
+    with open(path, "rb") as f:
+        head = f.read(_MAX_HEADER_BYTES + 1)
+    fields: dict[str, str] = {}
+    pos = 0
+    while pos < len(head) and head[pos:pos + 1] == b"%":
+        end = head.find(b"\n", pos)
+        if end < 0:
+            raise FormatError(
+                f"{path}: header line at byte {pos} has no end of line "
+                "(truncated file, or not a Prophesee RAW file)"
+            )
+        line = head[pos + 1:end].decode("utf-8", "replace").strip()
+        pos = end + 1
+        if line.lower() == "end":
+            break
+        key, _, value = line.partition(" ")
+        if key:
+            fields[key.lower()] = value.strip()
+        if pos > _MAX_HEADER_BYTES:
+            raise FormatError(f"{path}: header longer than {_MAX_HEADER_BYTES} bytes")
+    return _Header(fields, pos)
+
+
+def _sensor_size(
+    header: _Header, width: int | None, height: int | None, path: Path
+) -> tuple[int, int]:
+    if (width is None) != (height is None):
+        raise ValueError("give both width and height, or neither")
+    if width is not None:
+        return _check_sensor_size(width, height)
+    try:
+        size = header.sensor_size()
+    except ValueError:
+        raise FormatError(f"{path}: unreadable sensor size in the header {header.fields}") from None
+    if size is None:
+        raise FormatError(
+            f"{path}: the header gives no sensor size (no 'format ...;width=;height=', "
+            "'geometry WxH' or known plugin_name line); pass width= and height="
+        )
+    try:
+        return _check_sensor_size(*size)
+    except (TypeError, ValueError) as error:
+        raise FormatError(f"{path}: bad sensor size in the header: {error}") from None

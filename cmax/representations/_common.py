@@ -1,0 +1,133 @@
+"""What the representations share: input checks, windows, flat indices, chunking.
+
+Events come as :class:`~cmax.events.Events` (numpy) or
+:class:`~cmax.events.EventTensors` (torch); :func:`_inspect` validates them and
+tells which. Sums over pixels go through the flat index ``(p*H + y)*W + x``
+into a (2, H, W) array, computed in passes of at most ``_CHUNK`` events: the
+one setting that every representation's chunked loop reads (from this module,
+at call time).
+"""
+from __future__ import annotations
+
+from typing import TYPE_CHECKING, Iterator, Union
+
+import numpy as np
+
+from cmax.events import Events, EventTensors
+
+if TYPE_CHECKING:  # pragma: no cover
+    import torch
+
+EventsLike = Union[Events, EventTensors]
+Array = Union[np.ndarray, "torch.Tensor"]
+
+#: Events per vectorised pass (numpy, and torch on the CPU): temporaries of a few MB stay in
+#: cache and are reused, where each (N,) temporary would be a fresh, page-faulting allocation.
+_CHUNK = 1 << 20
+
+
+# -- validation ----------------------------------------------------------------------------
+def _check_int(name: str, value: object, *, minimum: int | None = None) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
+        raise TypeError(f"{name} must be an integer, got {value!r} ({type(value).__name__})")
+    if minimum is not None and int(value) < minimum:
+        raise ValueError(f"{name} must be >= {minimum}, got {value}")
+    return int(value)
+
+
+def _check_optional_time(name: str, value: object) -> int | None:
+    if value is None:
+        return None
+    if isinstance(value, (float, np.floating)) and float(value).is_integer():
+        value = int(value)
+    return _check_int(f"{name} (integer microseconds)", value)
+
+
+def _stats_torch(events: EventTensors) -> tuple[int, int] | None:
+    """Validate tensors; return (t_min, t_max) in µs, or None when there are no events.
+
+    Costs one device synchronisation (bounds of x, y, t read back at once).
+    """
+    import torch
+
+    for name in "xytp":
+        column = getattr(events, name)
+        if not isinstance(column, torch.Tensor):
+            raise TypeError(f"events.{name} must be a torch.Tensor, got {type(column).__name__}")
+        if column.ndim != 1:
+            raise ValueError(f"events.{name} must have shape (N,), got {tuple(column.shape)}")
+    for name in "xyt":
+        dtype = getattr(events, name).dtype
+        if dtype.is_floating_point or dtype.is_complex or dtype == torch.bool:
+            raise TypeError(f"events.{name} must be an integer tensor, got {dtype}")
+    if events.p.dtype.is_complex:
+        raise TypeError(f"events.p must be integer, bool or real, got {events.p.dtype}")
+    lengths = {name: getattr(events, name).shape[0] for name in "xytp"}
+    if len(set(lengths.values())) != 1:
+        raise ValueError(f"events.x, y, t and p must have the same length, got {lengths}")
+    devices = {str(getattr(events, name).device) for name in "xytp"}
+    if len(devices) != 1:
+        raise ValueError(f"events.x, y, t and p must be on one device, got {sorted(devices)}")
+    _check_int("events.width", events.width, minimum=1)
+    _check_int("events.height", events.height, minimum=1)
+    if lengths["t"] == 0:
+        return None
+    bounds = [b.to(torch.int64) for name in "xyt" for b in torch.aminmax(getattr(events, name))]
+    x_lo, x_hi, y_lo, y_hi, t_lo, t_hi = torch.stack(bounds).tolist()
+    for name, low, high, size in (("x", x_lo, x_hi, events.width), ("y", y_lo, y_hi, events.height)):
+        if low < 0 or high >= size:
+            raise ValueError(f"events.{name} must lie in [0, {size}), got values in [{low}, {high}]")
+    return t_lo, t_hi
+
+
+def _inspect(events: object) -> tuple[str, tuple[int, int] | None]:
+    """('numpy' | 'torch', (t_min, t_max) or None if empty) for validated events."""
+    if isinstance(events, Events):
+        return "numpy", ((int(events.t[0]), int(events.t[-1])) if len(events) else None)
+    if isinstance(events, EventTensors):
+        return "torch", _stats_torch(events)
+    raise TypeError(
+        "events must be cmax.Events (numpy) or cmax.EventTensors (torch, from "
+        f"Events.to_torch()), got {type(events).__name__}"
+    )
+
+
+# -- flat indices ----------------------------------------------------------------------------
+def _chunks(start: int, stop: int) -> Iterator[slice]:
+    """Consecutive slices of at most ``_CHUNK`` events covering ``[start, stop)``."""
+    return (slice(i, min(i + _CHUNK, stop)) for i in range(start, stop, _CHUNK))
+
+
+def _index_numpy(events: Events, run: slice, out: np.ndarray) -> np.ndarray:
+    """``(p*H + y)*W + x`` of ``events[run]``, the flat index into (2, H, W), written into ``out``."""
+    index = out[: run.stop - run.start]
+    np.multiply(events.p[run], events.height, out=index, dtype=np.intp)
+    index += events.y[run]
+    index *= events.width
+    index += events.x[run]
+    return index
+
+
+def _pixel_counts(events: Events) -> np.ndarray:
+    """Events per (polarity, pixel): int64, shape (2 * H * W,)."""
+    size, n = 2 * events.width * events.height, len(events)
+    counts = np.zeros(size, np.int64)
+    buffer = np.empty(min(n, _CHUNK), np.intp)
+    for run in _chunks(0, n):
+        counts += np.bincount(_index_numpy(events, run, buffer), minlength=size)
+    return counts
+
+
+def _on_torch(p: "torch.Tensor") -> "torch.Tensor":
+    """ON mask (bool) from int {0, 1}, bool, or signed float {-1, +1} polarity."""
+    import torch
+
+    return p if p.dtype == torch.bool else p > 0
+
+
+def _index_torch(events: EventTensors) -> "torch.Tensor":
+    """``(on*H + y)*W + x`` as int64, shape (N,): the flat index into (2, H, W)."""
+    import torch
+
+    index = _on_torch(events.p).to(torch.int64).mul_(events.height).add_(events.y)
+    return index.mul_(events.width).add_(events.x)
