@@ -399,17 +399,23 @@ class Events:
             for start in range(0, len(self), int(count)):
                 yield self[start: start + int(count)]
             return
-        if int(duration_us) <= 0:
-            raise ValueError(f"duration_us must be positive, got {duration_us}")
-        step = int(duration_us) if step_us is None else int(step_us)
-        if step <= 0:
-            raise ValueError(f"step_us must be positive, got {step_us}")
+        duration, step = window_steps(duration_us, step_us)
         if not len(self):
             return
         start = self.t_start if t_start_us is None else int(t_start_us)
         while start <= self.t_end:
-            yield self.slice_time(start, start + int(duration_us))
+            yield self.slice_time(start, start + duration)
             start += step
+
+
+def window_steps(duration_us: int, step_us: int | None) -> tuple[int, int]:
+    """Validated ``(duration, step)`` in µs of sliding windows; the step defaults to the duration."""
+    if int(duration_us) <= 0:
+        raise ValueError(f"duration_us must be positive, got {duration_us}")
+    step = int(duration_us) if step_us is None else int(step_us)
+    if step <= 0:
+        raise ValueError(f"step_us must be positive, got {step_us}")
+    return int(duration_us), step
 
 
 def concatenate(parts: Sequence[Events]) -> Events:

@@ -26,7 +26,7 @@ import h5py
 import hdf5plugin
 import numpy as np
 
-from cmax.events import Events, _check_sensor_size
+from cmax.events import Events, _check_sensor_size, window_steps
 from cmax.io.errors import FormatError
 
 __all__ = ["H5Writer", "H5Reader", "write_h5", "read_h5", "is_dsec_h5"]
@@ -54,6 +54,21 @@ def _attr_value(value: Any) -> Any:
     if value is None:
         return "null"
     return value
+
+
+def decode_attrs(attrs: Any) -> dict[str, Any]:
+    """HDF5 attributes as plain Python: bytes decoded, JSON strings parsed, numpy scalars unwrapped."""
+    out: dict[str, Any] = {}
+    for key, value in attrs.items():
+        if isinstance(value, bytes):
+            value = value.decode()
+        if isinstance(value, str) and value[:1] in "[{":
+            try:
+                value = json.loads(value)
+            except json.JSONDecodeError:
+                pass
+        out[key] = value.item() if isinstance(value, np.generic) else value
+    return out
 
 
 def partial_path(path: Path) -> Path:
@@ -314,17 +329,7 @@ class H5Reader:
     @property
     def attrs(self) -> dict[str, Any]:
         """File attributes as a dict (JSON strings decoded)."""
-        out: dict[str, Any] = {}
-        for key, value in self._file.attrs.items():
-            if isinstance(value, bytes):
-                value = value.decode()
-            if isinstance(value, str) and value[:1] in "[{":
-                try:
-                    value = json.loads(value)
-                except json.JSONDecodeError:
-                    pass
-            out[key] = value
-        return out
+        return decode_attrs(self._file.attrs)
 
     @property
     def file(self) -> h5py.File:
@@ -403,16 +408,12 @@ class H5Reader:
 
     def windows(self, duration_us: int, *, step_us: int | None = None) -> Iterator[Events]:
         """Consecutive windows of ``duration_us`` from the first event (step defaults to it)."""
-        if int(duration_us) <= 0:
-            raise ValueError(f"duration_us must be positive, got {duration_us}")
-        step = int(duration_us) if step_us is None else int(step_us)
-        if step <= 0:
-            raise ValueError(f"step_us must be positive, got {step_us}")
+        duration, step = window_steps(duration_us, step_us)
         if not len(self):
             return
         start, end = self.t_start, self.t_end
         while start <= end:
-            yield self.window(start, start + int(duration_us))
+            yield self.window(start, start + duration)
             start += step
 
     def close(self) -> None:

@@ -27,7 +27,6 @@ exactly on every ``depth_times_s`` (those frames give the depth maps).
 from __future__ import annotations
 
 import dataclasses
-import json
 import os
 from dataclasses import dataclass
 from pathlib import Path
@@ -38,7 +37,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cmax.events import Events, concatenate
-from cmax.io.h5 import H5Writer, read_h5
+from cmax.io.h5 import H5Writer, decode_attrs, read_h5
 from cmax.sim.esim import EventSimulator
 from cmax.sim.scenes import Scene
 
@@ -141,16 +140,7 @@ def load_sequence(path: str | os.PathLike) -> SyntheticSequence:
         if "gt" not in file:
             raise ValueError(f"{path} has no gt/ group: not a synthetic sequence")
         gt = file["gt"]
-        attrs = {}
-        for key, value in file.attrs.items():
-            if isinstance(value, bytes):
-                value = value.decode()
-            if isinstance(value, str) and value[:1] in "[{":
-                try:
-                    value = json.loads(value)
-                except json.JSONDecodeError:
-                    pass
-            attrs[key] = value.item() if isinstance(value, np.generic) else value
+        attrs = decode_attrs(file.attrs)
         return SyntheticSequence(
             events, gt["depth"][:], gt["depth_t"][:], gt["poses"][:], gt["poses_t"][:],
             gt["twists"][:] if "twists" in gt else np.zeros((len(gt["poses_t"]), 6)),
