@@ -5,6 +5,8 @@
 ``cmax scene PRESET -o F.h5``  synthetic scene: events plus ground-truth depth and poses
 ``cmax fit FILE --K ...``     depth and motion per window by contrast maximization
 ``cmax demo``                 the end-to-end demo on data it makes itself
+``cmax simulate IN -o OUT``   videos to event files (ESIM), with a resumable manifest
+``cmax manifest merge ...``   join the manifests of several machines or shards
 
 Each sub-command parses its arguments, calls the library, and prints or
 writes the result; no numerical code lives here.
@@ -157,7 +159,90 @@ def _add_fit(subparsers) -> None:
     add_fit_command(subparsers)
 
 
-_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_scene, _add_fit, _add_demo)
+# -- simulate / manifest ---------------------------------------------------------------
+def _cmd_simulate(args: argparse.Namespace) -> int:
+    from cmax.sim.catalogue import parse_shard
+    from cmax.sim.convert import ConvertSettings, collect_jobs, convert_collection, convert_video
+    from cmax.sim.esim import EsimSettings
+
+    esim = EsimSettings(args.cp, args.cn, args.threshold_sigma, args.refractory_us, seed=args.seed,
+                        shot_noise_rate_hz=args.shot_noise, leak_rate_hz=args.leak)
+    settings = ConvertSettings(esim, size=args.size, adaptive=args.adaptive, lam=args.lam,
+                               method=args.method, t0_s=args.t0, t1_s=args.t1)
+    shard = parse_shard(args.shard) if args.shard else None
+    if args.input.is_file() and args.output.suffix == ".h5" and not args.catalogue:
+        result = convert_video(args.input, args.output, settings, overwrite=args.overwrite)
+        print(f"wrote {result.output}: {result.events:,} events from {result.frames} frames "
+              f"({result.samples} samples), {result.duration_s:.2f} s of video")
+        return 0
+    jobs, missing = collect_jobs(args.input, catalogue=args.catalogue, shard=shard)
+    manifest = convert_collection(jobs, args.output, settings, workers=args.workers, missing=missing,
+                                  catalogue=args.catalogue, shard=shard, progress=not args.quiet)
+    totals = manifest["totals"]
+    print(f"{args.output / 'manifest.json'}: {totals['ok']} videos ok, {totals['failed']} failed, "
+          f"{totals['events']:,} events")
+    for name, entry in manifest["videos"].items():
+        if entry["status"] != "ok":
+            print(f"  failed {name}: {entry['error']}", file=sys.stderr)
+    if missing:
+        print(f"  missing from {args.input}: {', '.join(missing)}", file=sys.stderr)
+    return 1 if totals["failed"] else 0
+
+
+def _add_simulate(subparsers) -> None:
+    parser = subparsers.add_parser(
+        "simulate", help="convert videos to event files (ESIM), one or a whole collection",
+        description="Convert a video file (-o F.h5), a folder of videos, a list file (one video per "
+        "line, optional tab and category) or a catalogue's folder (--catalogue slowtv) to DSEC-layout "
+        "h5 files in the folder -o, with manifest.json; resumable, in --workers processes.",
+    )
+    parser.add_argument("input", type=Path, help="video file, folder of videos, or list file")
+    parser.add_argument("-o", "--output", type=Path, required=True, help="output .h5 file or folder")
+    parser.add_argument("--cp", type=float, default=0.2, help="ON threshold (default 0.2)")
+    parser.add_argument("--cn", type=float, default=0.2, help="OFF threshold (default 0.2)")
+    parser.add_argument("--threshold-sigma", type=float, default=0.0, help="per-pixel threshold mismatch")
+    parser.add_argument("--refractory-us", type=int, default=0, help="refractory period in µs")
+    parser.add_argument("--shot-noise", type=float, default=0.0, help="shot-noise rate per pixel (Hz)")
+    parser.add_argument("--leak", type=float, default=0.0, help="leak-event rate per pixel (Hz)")
+    parser.add_argument("--seed", type=int, default=0, help="seed of mismatch and noise (default 0)")
+    parser.add_argument("--size", type=_sensor_size, default=None, metavar="WxH", help="resize frames")
+    parser.add_argument("--adaptive", action=argparse.BooleanOptionalAction, default=True,
+                        help="insert interpolated frames (adaptive sampling, default on)")
+    parser.add_argument("--lam", type=float, default=0.5, help="lambda of adaptive sampling (default 0.5)")
+    parser.add_argument("--method", choices=("flow", "linear"), default="flow", help="interpolation")
+    parser.add_argument("--t0", type=float, default=None, help="start, seconds into each video")
+    parser.add_argument("--t1", type=float, default=None, help="end, seconds into each video")
+    parser.add_argument("--workers", type=int, default=1, help="parallel processes (default 1)")
+    parser.add_argument("--catalogue", choices=("slowtv",), default=None,
+                        help="INPUT is the folder of a catalogue's videos named by index (00000.mp4)")
+    parser.add_argument("--shard", default=None, metavar="i/n", help="convert shard i of n (0-based)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output .h5")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.set_defaults(run=_cmd_simulate)
+
+
+def _cmd_manifest(args: argparse.Namespace) -> int:
+    from cmax.sim.convert import load_manifest, merge_manifests, write_manifest
+
+    merged = merge_manifests([load_manifest(path) for path in args.manifests])
+    write_manifest(args.output, merged)
+    totals = merged["totals"]
+    print(f"wrote {args.output}: {totals['videos']} videos ({totals['failed']} failed), "
+          f"{len(merged['missing'])} missing")
+    return 0
+
+
+def _add_manifest(subparsers) -> None:
+    parser = subparsers.add_parser("manifest", help="join the manifests of several conversions")
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    merge = actions.add_parser("merge", help="merge manifest.json files (shards, machines)")
+    merge.add_argument("manifests", nargs="+", type=Path)
+    merge.add_argument("-o", "--output", type=Path, required=True)
+    merge.set_defaults(run=_cmd_manifest)
+
+
+_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_scene, _add_fit, _add_demo,
+                                   _add_simulate, _add_manifest)
 
 
 def build_parser() -> argparse.ArgumentParser:

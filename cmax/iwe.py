@@ -20,7 +20,10 @@ import math
 import numpy as np
 import torch
 
-__all__ = ["accumulate_bilinear", "accumulate_bilinear_indexed", "blur", "image_of_warped_events", "iwe_numpy"]
+__all__ = [
+    "accumulate_bilinear", "accumulate_bilinear_indexed", "blur", "image_of_warped_events", "iwe_numpy",
+    "sample_bilinear",
+]
 
 
 def accumulate_bilinear(
@@ -102,6 +105,42 @@ def accumulate_bilinear_indexed(
         the per-cell images of the local contrast (:func:`cmax.objectives.local_contrast`).
     """
     return _splat(x, y, weights, image_index, count, height, width)
+
+
+def sample_bilinear(images: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Values of images at sub-pixel points, bilinear, zero outside (the adjoint of the voting).
+
+    Parameters
+    ----------
+    images : Tensor, shape (B, H, W)
+    x, y : Tensor, shape (B, N)
+        Coordinates (column, row) [px] of the points read from image b.
+
+    Returns
+    -------
+    Tensor, shape (B, N)
+        ``sum_u I_b(u) b(u - x_k)``: for a point that voted into an image with
+        :func:`accumulate_bilinear`, the image it "sees" through its own kernel.
+
+    Examples
+    --------
+    >>> image = torch.tensor([[[0.0, 2.0], [4.0, 6.0]]])
+    >>> sample_bilinear(image, torch.tensor([[0.5]]), torch.tensor([[0.5]])).tolist()
+    [[3.0]]
+    """
+    if images.dim() != 3 or x.dim() != 2 or x.shape != y.shape or x.shape[0] != images.shape[0]:
+        raise ValueError(f"need images (B, H, W) and x, y (B, N), got {tuple(images.shape)}, "
+                         f"{tuple(x.shape)}, {tuple(y.shape)}")
+    B, H, W = images.shape
+    canvas = torch.nn.functional.pad(images, (1, 1, 1, 1)).reshape(B, -1)
+    Wp = W + 2
+    x0, y0 = torch.floor(x.detach()), torch.floor(y.detach())
+    fx, fy = x - x0, y - y0
+    valid = ((x0 >= -1) & (x0 <= W - 1) & (y0 >= -1) & (y0 <= H - 1)).to(images.dtype)
+    corner = (y0.clamp(-1, H - 1).long() + 1) * Wp + x0.clamp(-1, W - 1).long() + 1
+    value = ((1 - fx) * (1 - fy) * canvas.gather(1, corner) + fx * (1 - fy) * canvas.gather(1, corner + 1)
+             + (1 - fx) * fy * canvas.gather(1, corner + Wp) + fx * fy * canvas.gather(1, corner + Wp + 1))
+    return value * valid
 
 
 def _gaussian_kernel(sigma: float, dtype: torch.dtype, device: torch.device) -> torch.Tensor:

@@ -16,8 +16,11 @@ Presets (346x260 by default, like a DAVIS346 / MVSEC):
 ``driving``         a street with facades and a road; 6-12 m/s forward, a small yaw rate
 ``two_planes``      two walls at different depths (1.2-2 m and 3-5 m), sliding motion
 
-This module exists until the scene presets of :mod:`cmax.sim` land; it uses
-only their public building blocks.
+These constant-twist windows make the warp models exact (the flow and rotation
+tests need that). :func:`preset_window` cuts a window out of the real scene
+presets of :mod:`cmax.sim.presets` (smooth, slowly varying trajectories), with
+the window's motion ``T01`` and the depth at its middle: what the depth and
+se3 benchmarks and the objective-sanity test use.
 """
 from __future__ import annotations
 
@@ -33,7 +36,7 @@ from cmax.sim.render import PlanarRenderer
 from cmax.sim.trajectories import look_at_rotation
 from cmax.sim.world import WorldBuilder
 
-__all__ = ["SyntheticWindow", "PRESETS", "make_window", "davis_camera"]
+__all__ = ["SyntheticWindow", "PresetWindow", "PRESETS", "make_window", "preset_window", "davis_camera"]
 
 PRESETS = ("slider", "rotation", "indoor_flying", "driving", "two_planes")
 
@@ -189,3 +192,57 @@ def make_window(preset: str, seed: int, *, width: int = 346, height: int = 260, 
     t_ref_us = int(round(duration_s * 0.5e6))
     _, depth = renderer.render(T_w_c0 @ se3_exp(twist * t_ref_us * 1e-6))
     return SyntheticWindow(events, camera.K.copy(), np.asarray(twist, float), depth, t_ref_us, T_w_c0, preset, seed)
+
+
+@dataclass(frozen=True, eq=False)
+class PresetWindow:
+    """One window of a :mod:`cmax.sim.presets` scene and its ground truth.
+
+    Attributes
+    ----------
+    events : Events
+        Times in µs of scene time.
+    K : ndarray (3, 3)
+    T01 : ndarray (4, 4)
+        The camera at the last event in the frame of the camera at the first
+        (what :func:`cmax.fit.fit` takes as ``pose``).
+    twist : ndarray (6,)
+        ``se3_log(T01) / duration``: the window's mean body twist ``(v, omega)``.
+    depth : ndarray (H, W) float32
+        z-depth [m] at ``t_ref_us`` (NaN: sky).
+    t_ref_us : int
+        Middle of the window (first and last event).
+    preset : str
+    seed : int
+    """
+
+    events: Events
+    K: np.ndarray
+    T01: np.ndarray
+    twist: np.ndarray
+    depth: np.ndarray
+    t_ref_us: int
+    preset: str
+    seed: int
+
+
+def preset_window(preset: str, seed: int, *, width: int = 346, height: int = 260, duration_s: float = 0.1665,
+                  t0_s: float = 0.5, texture_size: int = 256) -> PresetWindow:
+    """Simulate ``[t0_s, t0_s + duration_s]`` of the preset scene ``preset`` (seed) with its recommended simulator."""
+    from cmax.geometry import se3_log
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+
+    scene = make_scene(preset, seed, width, height, duration_s=t0_s + duration_s + 0.1, texture_size=texture_size)
+    simulator = EventSimulator(**scene.recommended_simulator, seed=seed)
+    mid_guess = t0_s + duration_s / 2
+    sequence = simulate_scene(scene, duration_s, simulator, t0_s=t0_s, depth_times_s=[mid_guess])
+    events = sequence.events
+    if len(events) < 2:
+        raise ValueError(f"{preset} seed {seed}: the window has {len(events)} events")
+    t0_us, t1_us = int(events.t[0]), int(events.t[-1])
+    t_ref_us = (t0_us + t1_us) // 2
+    _, depth = scene.render(t_ref_us * 1e-6)
+    T01 = np.linalg.inv(scene.pose(t0_us * 1e-6)) @ scene.pose(t1_us * 1e-6)
+    twist = se3_log(T01) / ((t1_us - t0_us) * 1e-6)
+    return PresetWindow(events, sequence.K.copy(), T01, twist, depth.astype(np.float32), t_ref_us, preset, seed)

@@ -74,3 +74,24 @@ def test_bad_input(kwargs, error, match):
     args.update(kwargs)
     with pytest.raises(error, match=match):
         image_of_warped_events(**args)
+
+
+def test_sample_bilinear_is_the_adjoint_of_voting_and_differentiable():
+    from cmax.iwe import accumulate_bilinear, sample_bilinear
+
+    g = torch.Generator().manual_seed(0)
+    images = torch.rand(2, 5, 7, dtype=torch.float64, generator=g)
+    x = torch.rand(2, 9, dtype=torch.float64, generator=g) * 9 - 1.5  # some points outside
+    y = torch.rand(2, 9, dtype=torch.float64, generator=g) * 7 - 1.5
+    w = torch.rand(2, 9, dtype=torch.float64, generator=g)
+    lhs = (accumulate_bilinear(x, y, w, 5, 7) * images).sum()
+    rhs = (w * sample_bilinear(images, x, y)).sum()
+    assert float(lhs) == pytest.approx(float(rhs), rel=1e-12)
+    assert sample_bilinear(images, torch.tensor([[1.0, -5.0]] * 2, dtype=torch.float64),
+                           torch.tensor([[2.0, 2.0]] * 2, dtype=torch.float64))[:, 1].abs().max() == 0
+    inside_x = torch.rand(1, 6, dtype=torch.float64, generator=g) * 4 + 1.2
+    inside_y = torch.rand(1, 6, dtype=torch.float64, generator=g) * 2 + 1.2
+    torch.autograd.gradcheck(lambda im, a, b: sample_bilinear(im, a, b),
+                             (images[:1].clone().requires_grad_(), inside_x.requires_grad_(), inside_y.requires_grad_()))
+    with pytest.raises(ValueError, match="images"):
+        sample_bilinear(images[0], x, y)

@@ -311,3 +311,22 @@ def test_bad_frames_and_times_raise():
 def test_single_frame_gives_no_events():
     events = EventSimulator().simulate(np.zeros((1, 3, 4), np.uint8), np.array([5]))
     assert len(events) == 0 and events.sensor_size == (4, 3)
+
+
+def test_reversing_the_video_flips_polarities():
+    rng = np.random.default_rng(3)
+    start = rng.uniform(-5.0, -0.5, (6, 7))
+    change = rng.uniform(-6.0, -0.1, (6, 7)) - start  # a monotonic ramp per pixel, either way
+    log = start + change * np.linspace(0.0, 1.0, 9)[:, None, None]
+    frames, times = grey_for_log(log), 1000 * np.arange(9)
+    forward = EventSimulator(cp=0.2, cn=0.2).simulate(frames, times)
+    backward = EventSimulator(cp=0.2, cn=0.2).simulate(frames[::-1], times)
+    assert len(forward) > 100
+    for events, sign in ((forward, 1), (backward, -1)):
+        pixel = events.y.astype(np.int64) * 7 + events.x
+        signed = np.bincount(pixel, 2 * events.p.astype(np.int64) - 1, minlength=42)
+        counts = np.bincount(pixel, minlength=42)
+        np.testing.assert_array_equal(np.abs(signed), counts)  # one polarity per pixel
+        np.testing.assert_array_equal(np.sign(signed) * sign, np.sign(change.ravel()) * (counts > 0))
+    np.testing.assert_array_equal(np.bincount(forward.y.astype(int) * 7 + forward.x, minlength=42),
+                                  np.bincount(backward.y.astype(int) * 7 + backward.x, minlength=42))

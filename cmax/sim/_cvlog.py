@@ -30,14 +30,37 @@ def _log_table() -> np.ndarray:
 _LOG_TABLE = _log_table()
 
 
+_HALF_LOW = np.uint64(1 << 28)  # float64 bits of a value half-way between two float32 ...
+_LOW_MASK = np.uint64((1 << 29) - 1)  # ... : the 29 dropped mantissa bits are 1000...0
+_EXP_MASK = np.uint64(0x7FF << 52)
+_MIN_NORMAL32 = np.uint64((1023 - 126) << 52)  # float64 exponent bits of 2**-126
+
+
 def _fma32(a: np.ndarray, b: np.ndarray | np.float32, c: np.ndarray | np.float32) -> np.ndarray:
     """``fma(a, b, c)`` of float32 values rounded once to float32 (exact, in float64).
 
     ``a*b`` is exact in float64; the sum is rounded to float64 and then to
-    float32. That double rounding is wrong only when the float64 sum lies
-    exactly half-way between two float32 values while the exact sum does not;
-    those cases are detected with the TwoSum error term and resolved.
+    float32. That double rounding can be wrong only when the float64 sum lies
+    exactly half-way between two float32 values (its 29 low mantissa bits are
+    ``100...0``) or below the float32 normal range; those few elements are
+    resolved exactly by :func:`_fma32_exact`, the rest are rounded directly.
     """
+    product = np.asarray(a, np.float64) * np.asarray(b, np.float64)
+    total = product + np.asarray(c, np.float64)
+    rounded = total.astype(np.float32)
+    bits = total.view(np.uint64)
+    suspect = (bits & _LOW_MASK) == _HALF_LOW
+    suspect |= (bits & _EXP_MASK) < _MIN_NORMAL32
+    if suspect.any():
+        where = np.nonzero(suspect)
+        pick = lambda v: np.broadcast_to(np.asarray(v, np.float32), total.shape)[where]  # noqa: E731
+        rounded = np.array(rounded, np.float32, ndmin=1) if rounded.ndim == 0 else rounded
+        rounded[where] = _fma32_exact(pick(a), pick(b), pick(c))
+    return rounded
+
+
+def _fma32_exact(a: np.ndarray, b: np.ndarray, c: np.ndarray) -> np.ndarray:
+    """:func:`_fma32` with every element resolved by the TwoSum error term (slow, exact)."""
     product = np.asarray(a, np.float64) * np.asarray(b, np.float64)
     addend = np.asarray(c, np.float64)
     total = product + addend

@@ -214,10 +214,14 @@ def _log_float32(grey: np.ndarray, log_eps: float) -> np.ndarray:
 
 
 def _log_grey(grey: np.ndarray, log_eps: float, table: np.ndarray | None = None) -> np.ndarray:
-    if grey.dtype == np.uint8:
-        table = _log_float32(np.arange(256, dtype=np.float32), log_eps) if table is None else table
-        return table[grey]
-    return _log_float32(grey, log_eps)
+    """Log of checked grey values: a 256-entry table for uint8 and whole-numbered floats."""
+    table = _log_float32(np.arange(256, dtype=np.float32), log_eps) if table is None else table
+    if grey.dtype != np.uint8:
+        whole = grey.astype(np.uint8)  # the same float32 values give the same logs
+        if not np.array_equal(whole, grey):
+            return _log_float32(grey, log_eps)
+        grey = whole
+    return cv2.LUT(grey, table)  # = table[grey], 8x faster
 
 
 def log_intensity(frame: object, log_eps: float = 1e-3) -> np.ndarray:
@@ -264,16 +268,31 @@ class Crossings(NamedTuple):
 
 
 def _bucket_levels(ref, log0, log1, step, up, count):
-    """Sequential float32 levels ``ref + k*step`` (k = 1..width) and the leading valid ones."""
+    """Sequential float32 levels ``ref + k*step`` (k = 1..width), (m, width), and how
+    many of each row are crossed (the leading ``lo < level <= hi`` ones, sign-flipped down).
+
+    Levels are strictly monotonic along a row, so the crossed ones are a prefix
+    once the first lies beyond ``log0``.
+    """
     width = int(count.max())
-    levels = np.empty((ref.size, width), np.float32)
-    levels[:, 0] = ref + step
-    levels[:, 1:] = step[:, None]
-    levels = np.add.accumulate(levels, axis=1, dtype=np.float32)  # sequential, like L_ref += C
-    lo, hi = log0[:, None], log1[:, None]
-    valid = np.where(up[:, None], (levels > lo) & (levels <= hi), (levels < lo) & (levels >= hi))
-    valid = np.logical_and.accumulate(valid, axis=1)
-    return levels, valid
+    sign = np.where(up, np.float32(1), np.float32(-1))
+    if width <= 16:  # column by column: cheaper than accumulate along short rows
+        columns = [ref + step]
+        for _ in range(width - 1):
+            columns.append(columns[-1] + step)  # sequential, like L_ref += C
+        levels = np.stack(columns, axis=1)
+    else:
+        levels = np.empty((ref.size, width), np.float32)
+        levels[:, 0] = ref + step
+        levels[:, 1:] = step[:, None]
+        np.add.accumulate(levels, axis=1, dtype=np.float32, out=levels)
+        columns = levels.T
+    high = log1 * sign
+    crossed = np.zeros(ref.size, np.int64)
+    for column in columns:
+        crossed += column * sign <= high
+    crossed[levels[:, 0] * sign <= log0 * sign] = 0
+    return levels, crossed
 
 
 def threshold_crossings(
@@ -324,40 +343,65 @@ def threshold_crossings(
             )
     if ref.ndim != 1:
         raise ValueError(f"ref must be one-dimensional (N,), got shape {ref.shape}")
-    up = log1 > log0
-    beyond = log1 - ref  # only pixels within 10 % of a threshold from a level can fire
-    near_off = (log1 < log0) & (beyond < np.float32(-0.9) * c_off)
-    near = np.where(up, beyond > np.float32(0.9) * c_on, near_off)
-    rows = np.flatnonzero(near)
+    near_on, near_off = np.float32(0.9) * c_on, np.float32(-0.9) * c_off
+    rows = _near_rows(ref, log0, log1, near_on, near_off)
     ref_out = ref.copy()
+    pixel, level, polarity = _crossings(rows, ref_out, log0, log1, c_on, c_off, by_pixel=True)
+    return Crossings(pixel, level, polarity, ref_out)
+
+
+def _near_rows(ref, log0, log1, near_on, near_off) -> np.ndarray:
+    """Pixels within 10 % of a threshold from their next level in the direction of change.
+
+    ``near_on = 0.9 * c_on`` and ``near_off = -0.9 * c_off`` (float32).
+    """
+    beyond = log1 - ref
+    near = beyond > near_on
+    near |= beyond < near_off
+    rows = np.flatnonzero(near)
+    beyond, log0_r, log1_r = beyond[rows], log0[rows], log1[rows]
+    return rows[np.where(beyond > 0, log1_r > log0_r, log1_r < log0_r)]
+
+
+def _crossings(rows, ref, log0, log1, c_on, c_off, *, by_pixel):
+    """(pixel, level, polarity) of the crossings of ``rows``; moves ``ref`` in place.
+
+    Each pixel's crossings are contiguous and in order; the pixels are sorted
+    when ``by_pixel`` (otherwise grouped by the number of candidate levels).
+    """
     if not rows.size:
         none = np.empty(0, np.int64)
-        return Crossings(none, none.astype(np.float32), none.astype(np.int8), ref_out)
-    up = up[rows]
+        return none, none.astype(np.float32), none.astype(np.int8)
+    ref_r, log0_r, log1_r = ref[rows], log0[rows], log1[rows]
+    up = log1_r > log0_r
     c_on_r = c_on[rows] if np.ndim(c_on) else c_on
     c_off_r = c_off[rows] if np.ndim(c_off) else c_off
     step = np.where(up, c_on_r, -c_off_r).astype(np.float32)
-    ref_r, log0_r, log1_r = ref[rows], log0[rows], log1[rows]
     exact = (log1_r.astype(np.float64) - ref_r) / step  # levels reached, in exact arithmetic
     count = np.floor(exact).astype(np.int64) + 2  # candidates, >= 2
     bucket = np.frexp(count.astype(np.float64))[1]  # 2**(b-1) <= count < 2**b
+    present = np.flatnonzero(np.bincount(bucket))
     parts = []
-    for b in np.flatnonzero(np.bincount(bucket)):
-        sel = np.flatnonzero(bucket == b)
-        levels, valid = _bucket_levels(
+    for b in present:
+        sel = np.flatnonzero(bucket == b) if present.size > 1 else slice(None)
+        levels, n = _bucket_levels(
             ref_r[sel], log0_r[sel], log1_r[sel], step[sel], up[sel], count[sel]
         )
-        n = valid.sum(axis=1)
+        valid = np.arange(levels.shape[1]) < n[:, None]
         fired = np.flatnonzero(n)
-        ref_out[rows[sel[fired]]] = levels[fired, n[fired] - 1]
-        parts.append((np.repeat(rows[sel], n), levels[valid], np.repeat(up[sel], n)))
+        rows_b = rows[sel]
+        ref[rows_b[fired]] = levels[fired, n[fired] - 1]
+        parts.append((np.repeat(rows_b, n), levels[valid], np.repeat(up[sel], n)))
+    if len(parts) == 1:
+        pixel, level, polarity = parts[0]
+        return pixel, level, polarity.view(np.int8)
     pixel = np.concatenate([part[0] for part in parts])
     level = np.concatenate([part[1] for part in parts])
-    polarity = np.concatenate([part[2] for part in parts]).astype(np.int8)
-    if len(parts) > 1:
+    polarity = np.concatenate([part[2] for part in parts]).view(np.int8)
+    if by_pixel:
         order = np.argsort(pixel, kind="stable")
         pixel, level, polarity = pixel[order], level[order], polarity[order]
-    return Crossings(pixel, level, polarity, ref_out)
+    return pixel, level, polarity
 
 
 def _refractory_keep(
@@ -488,6 +532,8 @@ class EventSimulator:
             phase = self._rng.random(n, dtype=np.float32)
             self._ref = (self._ref - phase * self._c_on).astype(np.float32)
         self._last_t = np.full(n, _NEVER, np.int64) if s.refractory_us > 0 else None
+        self._near_on = np.float32(0.9) * self._c_on
+        self._near_off = np.float32(-0.9) * self._c_off
 
     # -- one interval ---------------------------------------------------------------------
     def _advance(self, log: np.ndarray, t_us: int) -> Events:
@@ -499,29 +545,36 @@ class EventSimulator:
         if s.leak_rate_hz > 0:  # crossings of L + drift against a fixed L_ref, then L_ref -= drift
             drift = (np.float32(s.leak_rate_hz * dt * 1e-6) * self._c_on).astype(np.float32)
             log1 = (log1 + drift).astype(np.float32)
-        cross = threshold_crossings(self._ref, self._log, log1, self._c_on, self._c_off)
-        log0_e, log1_e = self._log[cross.pixel], log1[cross.pixel]
-        tau = (cross.level - log0_e).astype(np.float64) * dt / (log1_e - log0_e).astype(np.float64)
-        t_rel = np.clip(np.floor(tau + 0.5), 0, dt).astype(np.int64)
-        pixel, polarity = cross.pixel, cross.polarity
+        log0, ref = self._log, self._ref  # ref (owned) moves in place
+        rows = _near_rows(ref, log0, log1, self._near_on, self._near_off)
+        pixel, level, polarity = _crossings(
+            rows, ref, log0, log1, self._c_on, self._c_off, by_pixel=self._last_t is not None
+        )
+        log0_e = log0[pixel]
+        tau = (level - log0_e).astype(np.float64) * dt / (log1[pixel] - log0_e).astype(np.float64)
+        tau += 0.5
+        t_rel = np.clip(np.floor(tau, out=tau), 0, dt, out=tau).astype(np.int64)
         if self._last_t is not None:
             keep = _refractory_keep(pixel, self._t_us + t_rel, self._last_t, s.refractory_us)
             pixel, polarity, t_rel = pixel[keep], polarity[keep], t_rel[keep]
-        self._ref = cross.ref if drift is None else (cross.ref - drift).astype(np.float32)
-        if s.shot_noise_rate_hz > 0:
+        if drift is not None:
+            self._ref = (ref - drift).astype(np.float32)
+        noise = s.shot_noise_rate_hz > 0
+        if noise:
             count = self._rng.poisson(s.shot_noise_rate_hz * n_pixels * dt * 1e-6)
             pixel = np.r_[pixel, self._rng.integers(0, n_pixels, count)]
             t_rel = np.r_[t_rel, self._rng.integers(1, dt + 1, count)]
             polarity = np.r_[polarity, self._rng.integers(0, 2, count).astype(np.int8)]
-        self._log, self._t_us = log.ravel().copy(), t_us
-        if dt * n_pixels < 2**62:
-            order = np.argsort(t_rel * n_pixels + pixel, kind="stable")
+        self._log, self._t_us = log.ravel(), t_us  # log is a fresh array, owned
+        if dt * n_pixels < 2**62:  # equal keys of signal events are identical events
+            order = np.argsort(t_rel * n_pixels + pixel, kind="stable" if noise else None)
         else:  # pragma: no cover - intervals of years on big sensors
             order = np.lexsort((pixel, t_rel))
-        pixel = pixel[order]
+        y, x = np.divmod(pixel[order], width)
+        t_rel = t_rel[order]
+        t_rel += t_us - dt
         return Events._trusted(
-            (pixel % width).astype(np.uint16), (pixel // width).astype(np.uint16),
-            t_rel[order] + (t_us - dt), polarity[order], width, height,
+            x.astype(np.uint16), y.astype(np.uint16), t_rel, polarity[order], width, height
         )
 
     # -- public ---------------------------------------------------------------------------

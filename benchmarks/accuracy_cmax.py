@@ -1,0 +1,172 @@
+"""Accuracy of ``cmax.fit`` on held-out synthetic windows, written to ``benchmarks/results/accuracy_cmax.md``.
+
+Windows (346x260, held-out seeds, default 100-119):
+
+* ``depth (pose=)`` and ``se3 (speed=)``: ``indoor_flying`` preset scenes of
+  :mod:`cmax.sim.presets`, windows of 0.1665 s (the paper's) starting at 0.5 s;
+  ``fit(events, K, pose=T01)`` and ``fit(events, K, speed=|v|)``. abs_rel on
+  event pixels (``FitResult.mask`` and finite ground truth), the translation
+  direction error [deg] and the RMS of the omega error over its axes [deg/s]
+  against the window's mean twist ``se3_log(T01) / T``.
+* ``flow``: the constant-flow ``slider`` windows of :mod:`cmax.synthetic_windows`
+  (a wall parallel to the image), the first 30k events of 0.1 s windows; the average endpoint error
+  over the window [px] = ``|flow error| * T``.
+* ``rotation``: the constant-rotation windows of :mod:`cmax.synthetic_windows`
+  (inside a textured room, 20-60 deg/s), 0.05 s of which a uniform 30k events
+  are used; ``|omega error| / |omega|``.
+
+Every figure is reported with its target, met or not: median and 90th
+percentile over the windows.
+
+Usage::
+
+    python benchmarks/accuracy_cmax.py [--seeds 100-119] [--cache DIR] [--models depth,se3,flow,rotation]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import pickle
+import platform
+import time
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from cmax.fit import fit
+from cmax.synthetic_windows import make_window, preset_window
+
+RESULTS = Path(__file__).resolve().parent / "results"
+#: Rotation windows of 0.05 s hold about 150k events; the fit uses a uniform 30k of them.
+ROTATION_EVENTS = 30_000
+#: Flow windows: the first 30k events of a 0.1 s slider window.
+FLOW_EVENTS = 30_000
+
+TARGETS = {
+    ("depth", "abs_rel"): 0.10, ("depth", "seconds"): 2.0,
+    ("se3", "abs_rel"): 0.20, ("se3", "direction_deg"): 10.0, ("se3", "omega_rms_deg_s"): 3.0, ("se3", "seconds"): 5.0,
+    ("flow", "epe_px"): 0.2, ("flow", "seconds"): 0.4,
+    ("rotation", "omega_rel_error"): 0.02,
+}
+
+
+def cached(cache: Path | None, key: str, make):
+    if cache is None:
+        return make()
+    path = cache / f"{key}.pkl"
+    if path.exists():
+        with open(path, "rb") as f:
+            return pickle.load(f)
+    value = make()
+    cache.mkdir(parents=True, exist_ok=True)
+    with open(path, "wb") as f:
+        pickle.dump(value, f)
+    return value
+
+
+def abs_rel(result, depth: np.ndarray) -> float:
+    valid = result.mask & np.isfinite(depth)
+    return float(np.mean(np.abs(result.depth[valid] - depth[valid]) / depth[valid])) if valid.any() else float("nan")
+
+
+def run_depth(window) -> dict:
+    start = time.perf_counter()
+    r = fit(window.events, window.K, pose=window.T01)
+    return {"abs_rel": abs_rel(r, window.depth), "seconds": time.perf_counter() - start,
+            "coverage": float((r.mask & np.isfinite(window.depth)).mean())}
+
+
+def run_se3(window) -> dict:
+    v, omega = window.twist[:3], window.twist[3:]
+    speed = float(np.linalg.norm(v))
+    start = time.perf_counter()
+    r = fit(window.events, window.K, speed=speed)
+    seconds = time.perf_counter() - start
+    cos = float(r.v @ v / (np.linalg.norm(r.v) * speed))
+    return {"abs_rel": abs_rel(r, window.depth), "direction_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
+            "omega_rms_deg_s": float(np.degrees(np.sqrt(np.mean((r.omega - omega) ** 2)))), "seconds": seconds}
+
+
+def run_flow(window) -> dict:
+    start = time.perf_counter()
+    r = fit(window.events, window.K, model="flow")
+    seconds = time.perf_counter() - start
+    T = (r.t1_us - r.t0_us) * 1e-6
+    return {"epe_px": float(np.linalg.norm(r.flow - window.flow) * T), "seconds": seconds, "events": len(window.events)}
+
+
+def run_rotation(window) -> dict:
+    start = time.perf_counter()
+    r = fit(window.events, window.K, model="rotation", max_events=ROTATION_EVENTS)
+    seconds = time.perf_counter() - start
+    truth = window.twist[3:]
+    return {"omega_rel_error": float(np.linalg.norm(r.omega - truth) / np.linalg.norm(truth)), "seconds": seconds,
+            "events": r.events_used}
+
+
+def windows(model: str, seed: int, cache: Path | None):
+    if model in ("depth", "se3"):
+        return cached(cache, f"indoor_flying_{seed}", lambda: preset_window("indoor_flying", seed))
+    if model == "flow":
+        return cached(cache, f"slider30k_{seed}", lambda: _first_events(make_window("slider", seed, duration_s=0.1), FLOW_EVENTS))
+    return cached(cache, f"rotation_{seed}", lambda: make_window("rotation", seed, duration_s=0.05))
+
+
+def _first_events(window, count: int):
+    """The window cut to its first ``count`` events (the flow is constant, so any part is exact)."""
+    from dataclasses import replace
+
+    return replace(window, events=window.events[:count])
+
+
+RUNS = {"depth": run_depth, "se3": run_se3, "flow": run_flow, "rotation": run_rotation}
+
+
+def summarise(rows: dict[str, list[dict]], seeds: list[int], seconds: float) -> str:
+    lines = ["# cmax.fit accuracy on held-out synthetic windows", "",
+             f"Seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} windows per model), 346x260. "
+             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1 "
+             f"(fit's default). Written by `benchmarks/accuracy_cmax.py` in {seconds:.0f} s.", "",
+             "| model | figure | median | p90 | target | met (median / p90) |", "|---|---|---|---|---|---|"]
+    for model, results in rows.items():
+        if not results:
+            continue
+        for key in results[0]:
+            values = np.array([r[key] for r in results], float)
+            med, p90 = float(np.nanmedian(values)), float(np.nanpercentile(values, 90))
+            target = TARGETS.get((model, key))
+            met = "" if target is None else f"{'yes' if med <= target else 'no'} / {'yes' if p90 <= target else 'no'}"
+            lines.append(f"| {model} | {key} | {med:.3f} | {p90:.3f} | {'' if target is None else f'<= {target}'} | {met} |")
+    lines += ["", "Per window:", ""]
+    for model, results in rows.items():
+        for seed, r in zip(seeds, results):
+            lines.append(f"- {model} seed {seed}: " + ", ".join(f"{k} {v:.3f}" for k, v in r.items()))
+    return "\n".join(lines) + "\n"
+
+
+def main() -> None:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--seeds", default="100-119")
+    parser.add_argument("--cache", type=Path, default=None, help="folder to keep simulated windows between runs")
+    parser.add_argument("--models", default="depth,se3,flow,rotation")
+    args = parser.parse_args()
+    lo, hi = (int(a) for a in args.seeds.split("-"))
+    seeds = list(range(lo, hi + 1))
+    torch.set_num_threads(1)
+    start = time.perf_counter()
+    rows: dict[str, list[dict]] = {}
+    for model in args.models.split(","):
+        RUNS[model](windows(model, seeds[0], args.cache))  # warm-up (torch's first calls), not counted
+        rows[model] = []
+        for seed in seeds:
+            rows[model].append(RUNS[model](windows(model, seed, args.cache)))
+            print(model, seed, {k: round(v, 3) for k, v in rows[model][-1].items()}, flush=True)
+    RESULTS.mkdir(exist_ok=True)
+    text = summarise(rows, seeds, time.perf_counter() - start)
+    (RESULTS / "accuracy_cmax.md").write_text(text)
+    print(text)
+
+
+if __name__ == "__main__":
+    main()

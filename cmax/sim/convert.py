@@ -1,0 +1,560 @@
+"""Conversion of videos to event files: one video, or a whole collection with a manifest.
+
+One video (:func:`convert_video`) streams in constant memory::
+
+    frames (cmax.sim.video source)  ->  [iter_upsample: adaptive sampling]
+        ->  EventSimulator.step  ->  H5Writer.append  ->  <name>.h5 (DSEC layout)
+
+The output is written as ``<name>.h5.partial`` and renamed when complete, so a
+crashed conversion never leaves a file that looks finished. A collection
+(:func:`convert_collection`) runs one job per video in ``workers`` processes
+and keeps ``manifest.json`` in the output folder, rewritten atomically after
+each video: per video the frames, samples, events, duration, events/s,
+category, status and error; globally the settings and the simulator version.
+A second run skips the videos whose manifest status is ``ok`` and whose file
+exists, and redoes the others (failed, crashed, missing output). A failing
+video is recorded and does not stop the others.
+
+Jobs come from :func:`collect_jobs`: a video file, a folder of videos, a list
+file (one video per line, optionally a tab or spaces and a category), or a
+catalogue (:mod:`cmax.sim.catalogue`) resolved in a folder of videos named by
+index, optionally one ``shard`` ``(i, n)`` of it.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+import time
+from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
+from dataclasses import asdict, dataclass, field, replace
+from pathlib import Path
+from typing import Any, Callable, Iterable, Iterator, Sequence
+
+import numpy as np
+
+from cmax.sim.catalogue import load_catalogue, shard as take_shard
+from cmax.sim.esim import EsimSettings, EventSimulator
+
+__all__ = [
+    "ConvertSettings", "VideoJob", "VideoResult", "VIDEO_SUFFIXES", "collect_jobs",
+    "convert_video", "convert_collection", "load_manifest", "merge_manifests", "write_manifest",
+]
+
+#: File suffixes taken as videos when INPUT is a folder.
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
+MANIFEST = "manifest.json"
+_FORMAT = "evtslowtv-manifest/1"
+
+
+# -- settings and records ---------------------------------------------------------------
+@dataclass(frozen=True)
+class ConvertSettings:
+    """Settings of a conversion: the simulator, the resolution, sampling and time range.
+
+    Attributes
+    ----------
+    esim : EsimSettings
+        Event model (thresholds, mismatch, refractory period, noise, seed).
+    size : (int, int) or None
+        Output resolution ``(width, height)``; None keeps the video's.
+    adaptive : bool
+        Insert interpolated frames (:func:`cmax.sim.sampling.iter_upsample`) so
+        that no pixel changes by more than ``lam * min(cp, cn)`` between samples.
+    lam : float
+        ``lambda`` of the adaptive sampling (> 0).
+    method : {"flow", "linear"}
+        Interpolation of the adaptive sampling.
+    t0_s, t1_s : float or None
+        Time range of the video to convert, seconds from its start (inclusive).
+    """
+
+    esim: EsimSettings = field(default_factory=EsimSettings)
+    size: tuple[int, int] | None = None
+    adaptive: bool = True
+    lam: float = 0.5
+    method: str = "flow"
+    t0_s: float | None = None
+    t1_s: float | None = None
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.esim, EsimSettings):
+            raise TypeError(f"esim must be EsimSettings, got {type(self.esim).__name__}")
+        if self.size is not None:
+            width, height = (int(v) for v in self.size)
+            if width <= 0 or height <= 0:
+                raise ValueError(f"size must be positive (width, height), got {self.size}")
+            object.__setattr__(self, "size", (width, height))
+        if not (isinstance(self.lam, (int, float)) and math.isfinite(self.lam) and self.lam > 0):
+            raise ValueError(f"lam must be a positive number, got {self.lam!r}")
+        if self.method not in ("flow", "linear"):
+            raise ValueError(f"method must be 'flow' or 'linear', got {self.method!r}")
+        for name in ("t0_s", "t1_s"):
+            value = getattr(self, name)
+            if value is not None and not (math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a non-negative number of seconds, got {value}")
+        if self.t0_s is not None and self.t1_s is not None and self.t1_s <= self.t0_s:
+            raise ValueError(f"t1_s ({self.t1_s}) must be larger than t0_s ({self.t0_s})")
+
+    def to_dict(self) -> dict[str, Any]:
+        """JSON-ready settings (as stored in the manifest and the h5 attributes)."""
+        out = asdict(self)
+        out["size"] = list(self.size) if self.size else None
+        return out
+
+
+@dataclass(frozen=True)
+class VideoJob:
+    """One video to convert: its ``source`` path, output stem ``name`` and ``category``."""
+
+    name: str
+    source: Path
+    category: str | None = None
+
+
+@dataclass(frozen=True)
+class VideoResult:
+    """Outcome of one conversion (one manifest entry).
+
+    ``frames``: video frames read; ``samples``: frames fed to the simulator
+    (with inserted ones); ``duration_s``: last minus first frame time;
+    ``status``: ``"ok"`` or ``"failed"`` (then ``error`` says why, and no output exists).
+    """
+
+    name: str
+    source: str
+    output: str
+    category: str | None
+    status: str
+    frames: int = 0
+    samples: int = 0
+    events: int = 0
+    duration_s: float = 0.0
+    events_per_s: float = 0.0
+    wall_s: float = 0.0
+    error: str | None = None
+
+
+# -- one video --------------------------------------------------------------------------
+def _time_range_us(settings: ConvertSettings) -> tuple[int | None, int | None]:
+    to_us = lambda s: None if s is None else int(round(s * 1e6))  # noqa: E731
+    return to_us(settings.t0_s), to_us(settings.t1_s)
+
+
+def open_frames(source: str | os.PathLike, settings: ConvertSettings) -> Iterator[tuple[np.ndarray, int]]:
+    """(grey uint8 frame, t_us) of a video in the settings' size and time range, streamed.
+
+    Times are the container's presentation times (µs from the start).
+    Raises ``ValueError`` for a file OpenCV cannot open (corrupt, not a video).
+    """
+    t0_us, t1_us = _time_range_us(settings)
+    return _read_video(Path(source), settings.size, t0_us, t1_us)
+
+
+def _read_video(path: Path, size, t0_us: int | None, t1_us: int | None):
+    import cv2
+
+    capture = cv2.VideoCapture(str(path))
+    if not capture.isOpened():
+        raise ValueError(f"cannot open video {path} (corrupt, or not a video OpenCV reads)")
+    fps = capture.get(cv2.CAP_PROP_FPS)
+    return _decode(capture, path, size, t0_us, t1_us, fps if fps > 0 else None)
+
+
+def _decode(capture, path, size, t0_us, t1_us, fps):
+    import cv2
+
+    previous, index = None, 0
+    try:
+        while True:
+            ok, frame = capture.read()
+            if not ok:
+                return
+            t_us = int(round(capture.get(cv2.CAP_PROP_POS_MSEC) * 1000))
+            if previous is not None and t_us <= previous and fps:  # containers without times
+                t_us = int(round(index * 1e6 / fps))
+            if previous is not None and t_us <= previous:
+                raise ValueError(f"{path}: frame {index} has time {t_us} µs after {previous} µs")
+            previous, index = t_us, index + 1
+            if t0_us is not None and t_us < t0_us:
+                continue
+            if t1_us is not None and t_us > t1_us:
+                return
+            grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
+            if size is not None and (grey.shape[1], grey.shape[0]) != tuple(size):
+                grey = cv2.resize(grey, tuple(size), interpolation=cv2.INTER_AREA)
+            yield grey, t_us
+    finally:
+        capture.release()
+
+
+def _counted(frames: Iterable[tuple[np.ndarray, int]], counter: list[int]):
+    for frame, t_us in frames:
+        if not counter[0]:
+            counter[1] = t_us
+        counter[0] += 1
+        counter[2] = t_us
+        yield frame, t_us
+
+
+def convert_video(
+    source: str | os.PathLike,
+    output: str | os.PathLike,
+    settings: ConvertSettings | None = None,
+    *,
+    category: str | None = None,
+    frames: Iterable[tuple[np.ndarray, int]] | None = None,
+    progress: Callable[[int], None] | None = None,
+    overwrite: bool = True,
+) -> VideoResult:
+    """Convert one video to a DSEC-layout event file, streaming (constant memory).
+
+    Parameters
+    ----------
+    source : path
+        Video file (anything :mod:`cmax.sim.video` reads); recorded in the file.
+    output : path
+        The ``.h5`` file; written as ``output.partial`` and renamed when complete.
+    settings : ConvertSettings
+    category : str, optional
+        Stored in the file attributes and the result.
+    frames : iterable of (frame, t_us), optional
+        Frames to use instead of reading ``source`` (grey or BGR, µs).
+    progress : callable, optional
+        Called with the number of new video frames read, now and then.
+
+    Returns
+    -------
+    VideoResult
+        With ``status="ok"``. Errors raise (the partial file is removed):
+        ``FileNotFoundError``, ``ValueError`` for a video without frames in the
+        range, unreadable or inconsistent frames.
+    """
+    from cmax import __version__
+    from cmax.io.h5 import H5Writer
+
+    settings = ConvertSettings() if settings is None else settings
+    started = time.perf_counter()
+    source, output = Path(source), Path(output)
+    if frames is None:
+        if not source.exists():
+            raise FileNotFoundError(f"video not found: {source}")
+        frames = open_frames(source, settings)
+    counter = [0, 0, 0]  # frames read, first and last time
+    stream: Iterable = _counted(frames, counter)
+    if settings.adaptive:
+        from cmax.sim.sampling import iter_upsample
+
+        threshold = min(settings.esim.cp, settings.esim.cn)
+        stream = iter_upsample(stream, threshold, lam=settings.lam, method=settings.method)
+    simulator = EventSimulator.from_settings(settings.esim)
+    writer, samples, reported = None, 0, 0
+    try:
+        for frame, t_us in stream:
+            events = simulator.step(frame, t_us)
+            if writer is None:
+                writer = H5Writer(
+                    output, events.width, events.height, t_offset_us=int(t_us), overwrite=overwrite,
+                    source=str(source), category=category or "", simulator=f"cmax {__version__}",
+                    settings=settings.to_dict(),
+                )
+            writer.append(events)
+            samples += 1
+            if progress is not None and counter[0] > reported:
+                progress(counter[0] - reported)
+                reported = counter[0]
+        if writer is None:
+            raise ValueError(f"{source}: no frames" + _range_note(settings))
+        writer.close()
+    except BaseException:
+        if writer is not None:
+            writer.abort()
+        raise
+    duration = (counter[2] - counter[1]) * 1e-6
+    return VideoResult(
+        name=output.stem, source=str(source), output=str(output), category=category, status="ok",
+        frames=counter[0], samples=samples, events=writer.count, duration_s=duration,
+        events_per_s=writer.count / duration if duration > 0 else 0.0,
+        wall_s=time.perf_counter() - started,
+    )
+
+
+def _range_note(settings: ConvertSettings) -> str:
+    if settings.t0_s is None and settings.t1_s is None:
+        return ""
+    return f" in the time range [{settings.t0_s or 0} s, {settings.t1_s or 'end'} s]"
+
+
+# -- jobs -------------------------------------------------------------------------------
+def _read_list_file(path: Path) -> list[VideoJob]:
+    jobs = []
+    for number, line in enumerate(path.read_text("utf-8").splitlines(), start=1):
+        line = line.strip()
+        if not line or line.startswith("#"):
+            continue
+        parts = line.split("\t") if "\t" in line else line.rsplit(None, 1)
+        video = Path(parts[0].strip())
+        category = parts[1].strip() if len(parts) > 1 else None
+        if len(parts) > 1 and video.suffix.lower() not in VIDEO_SUFFIXES and " " in line and "\t" not in line:
+            video, category = Path(line), None  # a path with spaces and no category
+        if not video.is_absolute():
+            video = path.parent / video
+        jobs.append(VideoJob(video.stem, video, category))
+    if not jobs:
+        raise ValueError(f"list file {path} names no videos")
+    return jobs
+
+
+def collect_jobs(
+    source: str | os.PathLike,
+    *,
+    catalogue: str | None = None,
+    shard: tuple[int, int] | None = None,
+) -> tuple[list[VideoJob], list[str]]:
+    """The videos to convert, and the catalogue entries whose video is missing.
+
+    Parameters
+    ----------
+    source : path
+        A video file, a folder of videos (suffixes :data:`VIDEO_SUFFIXES`, sorted
+        by name), or a list file (``.txt``/``.tsv``/``.list``: one video per
+        line, relative to the list's folder, optionally a tab and a category).
+        With ``catalogue``, the folder holding the catalogue's videos named by
+        index (``00000.mp4``, ...).
+    catalogue : str, optional
+        A catalogue of :mod:`cmax.sim.catalogue` (``"slowtv"``).
+    shard : (i, n), optional
+        Keep shard ``i`` of ``n`` (every n-th job from the i-th): disjoint shards
+        that together cover all jobs (of the catalogue, when one is given).
+
+    Raises
+    ------
+    FileNotFoundError, ValueError
+        A missing source, a folder without videos, repeated output names.
+    """
+    source = Path(source)
+    if not source.exists():
+        raise FileNotFoundError(f"input not found: {source}")
+    missing: list[str] = []
+    if catalogue is not None:
+        if not source.is_dir():
+            raise ValueError(f"with a catalogue, INPUT must be the folder of its videos, got {source}")
+        entries = load_catalogue(catalogue)
+        entries = take_shard(entries, *shard) if shard else entries
+        jobs = []
+        for entry in entries:
+            found = [source / f"{entry.name}{suffix}" for suffix in VIDEO_SUFFIXES]
+            found = [path for path in found if path.is_file()]
+            if found:
+                jobs.append(VideoJob(entry.name, found[0], entry.category))
+            else:
+                missing.append(entry.name)
+        return jobs, missing
+    if source.is_dir():
+        videos = sorted(p for p in source.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES and p.is_file())
+        if not videos:
+            raise ValueError(f"folder {source} holds no videos ({', '.join(VIDEO_SUFFIXES)})")
+        jobs = [VideoJob(path.stem, path) for path in videos]
+    elif source.suffix.lower() in (".txt", ".tsv", ".list", ".lst"):
+        jobs = _read_list_file(source)
+    else:
+        jobs = [VideoJob(source.stem, source)]
+    names = [job.name for job in jobs]
+    repeated = sorted({name for name in names if names.count(name) > 1})
+    if repeated:
+        raise ValueError(f"several videos would write the same output name: {', '.join(repeated)}")
+    return (take_shard(jobs, *shard) if shard else jobs), missing
+
+
+# -- manifests --------------------------------------------------------------------------
+def write_manifest(path: str | os.PathLike, manifest: dict[str, Any]) -> None:
+    """Write ``manifest`` as JSON atomically (a temporary file, then a rename)."""
+    path = Path(path)
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(json.dumps(manifest, indent=2, sort_keys=False) + "\n", "utf-8")
+    os.replace(partial, path)
+
+
+def load_manifest(path: str | os.PathLike) -> dict[str, Any]:
+    """A manifest written by :func:`convert_collection` (checked for its format)."""
+    path = Path(path)
+    try:
+        manifest = json.loads(Path(path).read_text("utf-8"))
+    except json.JSONDecodeError as error:
+        raise ValueError(f"{path} is not a JSON manifest: {error}") from None
+    if not isinstance(manifest, dict) or manifest.get("format") != _FORMAT:
+        raise ValueError(f"{path} is not a conversion manifest (format {_FORMAT})")
+    return manifest
+
+
+def _new_manifest(settings: ConvertSettings, catalogue: str | None, shard, missing) -> dict[str, Any]:
+    from cmax import __version__
+
+    return {
+        "format": _FORMAT, "simulator": f"cmax {__version__}", "simulator_version": __version__,
+        "settings": settings.to_dict(), "catalogue": catalogue,
+        "shard": None if shard is None else f"{shard[0]}/{shard[1]}",
+        "missing": list(missing), "videos": {}, "totals": {},
+    }
+
+
+def _totals(videos: dict[str, dict]) -> dict[str, Any]:
+    ok = [v for v in videos.values() if v["status"] == "ok"]
+    return {
+        "videos": len(videos), "ok": len(ok), "failed": len(videos) - len(ok),
+        "frames": sum(v["frames"] for v in ok), "events": sum(v["events"] for v in ok),
+        "duration_s": sum(v["duration_s"] for v in ok),
+    }
+
+
+def merge_manifests(manifests: Sequence[dict[str, Any]]) -> dict[str, Any]:
+    """Join the manifests of several shards or machines into one.
+
+    Settings and simulator version must agree. A video present in several
+    manifests keeps its ``ok`` entry (else the last one); an entry missing in one
+    manifest but converted in another is not missing.
+    """
+    if not manifests:
+        raise ValueError("merge_manifests needs at least one manifest")
+    first = manifests[0]
+    for other in manifests[1:]:
+        for key in ("settings", "simulator", "catalogue"):
+            if other.get(key) != first.get(key):
+                raise ValueError(f"manifests differ in {key!r}: {first.get(key)} vs {other.get(key)}")
+    videos: dict[str, dict] = {}
+    missing: set[str] = set()
+    for manifest in manifests:
+        missing.update(manifest.get("missing", []))
+        for name, entry in manifest["videos"].items():
+            if name not in videos or entry["status"] == "ok":
+                videos[name] = entry
+    merged = dict(first, shard=None, videos=dict(sorted(videos.items())))
+    merged["missing"] = sorted(missing - set(videos))
+    merged["totals"] = _totals(merged["videos"])
+    return merged
+
+
+# -- a collection -----------------------------------------------------------------------
+def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: int | None) -> VideoResult:
+    """Worker: convert one job, turning an error into a failed result."""
+    started = time.perf_counter()
+    bar = None
+    try:
+        if position is not None:
+            from tqdm.auto import tqdm
+
+            bar = tqdm(desc=job.name, unit="frame", position=position, leave=False, mininterval=1.0)
+        result = convert_video(job.source, output, settings, category=job.category,
+                               progress=None if bar is None else bar.update)
+    except Exception as error:  # reported in the manifest; the other videos go on
+        return VideoResult(job.name, str(job.source), str(output), job.category, "failed",
+                           wall_s=time.perf_counter() - started,
+                           error=f"{type(error).__name__}: {error}")
+    finally:
+        if bar is not None:
+            bar.close()
+    return replace(result, name=job.name)
+
+
+def _finished(entry: dict | None, output: Path) -> bool:
+    return bool(entry) and entry.get("status") == "ok" and output.is_file()
+
+
+def convert_collection(
+    jobs: Sequence[VideoJob],
+    output_dir: str | os.PathLike,
+    settings: ConvertSettings | None = None,
+    *,
+    workers: int = 1,
+    missing: Sequence[str] = (),
+    catalogue: str | None = None,
+    shard: tuple[int, int] | None = None,
+    progress: bool = True,
+    on_result: Callable[[VideoResult], None] | None = None,
+) -> dict[str, Any]:
+    """Convert many videos to ``output_dir/<name>.h5`` with a resumable manifest.
+
+    Parameters
+    ----------
+    jobs : sequence of VideoJob
+        From :func:`collect_jobs`.
+    output_dir : path
+        Created if needed; holds the event files and ``manifest.json``.
+    settings : ConvertSettings
+        Must equal those of an existing manifest in ``output_dir`` (resume).
+    workers : int
+        Processes (>= 1); 1 converts in this process.
+    missing : sequence of str
+        Catalogue entries without a video, recorded in the manifest.
+    progress : bool
+        tqdm bars: videos, and frames of each running video.
+    on_result : callable, optional
+        Called with each finished :class:`VideoResult` (in this process).
+
+    Returns
+    -------
+    dict
+        The manifest, also written to ``output_dir/manifest.json`` after every video.
+    """
+    settings = ConvertSettings() if settings is None else settings
+    if int(workers) < 1:
+        raise ValueError(f"workers must be >= 1, got {workers}")
+    output_dir = Path(output_dir)
+    output_dir.mkdir(parents=True, exist_ok=True)
+    path = output_dir / MANIFEST
+    manifest = _new_manifest(settings, catalogue, shard, missing)
+    if path.exists():
+        previous = load_manifest(path)
+        if previous["settings"] != manifest["settings"]:
+            raise ValueError(
+                f"{path} was written with other settings ({previous['settings']}); "
+                "convert into another folder or remove it"
+            )
+        manifest["videos"] = previous["videos"]
+    todo = [job for job in jobs
+            if not _finished(manifest["videos"].get(job.name), output_dir / f"{job.name}.h5")]
+    manifest["totals"] = _totals(manifest["videos"])
+    write_manifest(path, manifest)
+    from tqdm.auto import tqdm
+
+    bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="videos", unit="video",
+               disable=not progress, position=0)
+
+    def record(result: VideoResult) -> None:
+        manifest["videos"][result.name] = asdict(result)
+        manifest["videos"] = dict(sorted(manifest["videos"].items()))
+        manifest["totals"] = _totals(manifest["videos"])
+        write_manifest(path, manifest)
+        bar.update(1)
+        bar.set_postfix_str(f"{result.name} {result.status}")
+        if on_result is not None:
+            on_result(result)
+
+    try:
+        if int(workers) == 1 or len(todo) <= 1:
+            for job in todo:
+                record(_run_job(job, output_dir / f"{job.name}.h5", settings, 1 if progress else None))
+        else:
+            _run_parallel(todo, output_dir, settings, int(workers), progress, record)
+    finally:
+        bar.close()
+    return manifest
+
+
+def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None:
+    with ProcessPoolExecutor(max_workers=workers) as pool:
+        running = {}
+        for number, job in enumerate(todo):
+            position = 1 + number % workers if progress else None
+            future = pool.submit(_run_job, job, output_dir / f"{job.name}.h5", settings, position)
+            running[future] = job
+        while running:
+            done, _ = wait(running, return_when=FIRST_COMPLETED)
+            for future in done:
+                job = running.pop(future)
+                try:
+                    result = future.result()
+                except Exception as error:  # a worker died (killed, out of memory)
+                    result = VideoResult(job.name, str(job.source), str(output_dir / f"{job.name}.h5"),
+                                         job.category, "failed", error=f"{type(error).__name__}: {error}")
+                record(result)

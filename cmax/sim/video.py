@@ -1,0 +1,478 @@
+"""Frame sources: videos, image folders and arrays as streams of grey frames.
+
+A *frame source* is an iterable of ``(frame, t_us)`` pairs, ``frame`` a
+float32 (H, W) grey image with values in [0, 255], ``t_us`` an int time in
+microseconds, strictly increasing, with attributes ``width``, ``height``
+(pixels, after resizing), ``fps`` (frames per second, or None) and
+``frame_count`` (int, or None when unknown). Sources are re-iterable: every
+``iter()`` starts from the beginning and reads lazily, one frame at a time,
+so hours of video stream in constant memory (see
+:func:`cmax.sim.sampling.iter_upsample`).
+
+Colour is converted to grey with OpenCV's ``BGR2GRAY`` on the 8-bit values
+(as the reference ESIM does); 16-bit images are scaled by ``255 / 65535``.
+Resizing to ``size = (W, H)`` uses ``cv2.INTER_AREA`` on the float grey
+frame, so the result is not re-quantised to 8 bits.
+
+Errors: a missing path raises :class:`FileNotFoundError`; a file OpenCV
+cannot decode (no frames, an unreadable image, a video that ends well before
+its container says) raises :class:`DecodeError` naming the file; zero frames,
+frames of different sizes in a folder and non-increasing times raise
+:class:`ValueError`.
+"""
+from __future__ import annotations
+
+import math
+import re
+from pathlib import Path
+from typing import Iterator, Protocol, Union, runtime_checkable
+
+import cv2
+import numpy as np
+
+__all__ = [
+    "IMAGE_SUFFIXES",
+    "ArraySource",
+    "DecodeError",
+    "FrameSource",
+    "ImageFolderSource",
+    "VideoFileSource",
+    "open_source",
+    "read_timestamps",
+]
+
+#: Image files an :class:`ImageFolderSource` lists (lower-case suffixes).
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
+#: Timestamp files looked for, in this order, in the folder and then its parent.
+_TIMESTAMP_FILES = ("images.txt", "timestamps.txt")
+
+PathLike = Union[str, Path]
+Size = tuple[int, int]
+
+
+class DecodeError(ValueError):
+    """OpenCV could not decode a video or image file (named in the message)."""
+
+
+@runtime_checkable
+class FrameSource(Protocol):
+    """Iterable of ``(frame (H, W) float32 in [0, 255], t_us int)``; see the module docstring."""
+
+    width: int
+    height: int
+    fps: float | None
+    frame_count: int | None
+
+    def __iter__(self) -> Iterator[tuple[np.ndarray, int]]: ...
+
+
+# -- helpers ------------------------------------------------------------------------------
+def _check_size(size: object) -> Size | None:
+    if size is None:
+        return None
+    if (not isinstance(size, (tuple, list)) or len(size) != 2
+            or not all(isinstance(v, (int, np.integer)) and not isinstance(v, bool) for v in size)):
+        raise TypeError(f"size must be a (width, height) pair of integers, got {size!r}")
+    if min(size) <= 0:
+        raise ValueError(f"size must be positive (width, height) pixels, got {tuple(size)}")
+    return int(size[0]), int(size[1])
+
+
+def _to_grey(image: np.ndarray, size: Size | None, name: str) -> np.ndarray:
+    """(H, W) float32 grey in [0, 255] from a grey, BGR or BGRA image, resized to ``size``."""
+    if image.ndim == 3 and image.shape[2] == 1:
+        image = image[..., 0]
+    if image.ndim == 3 and image.shape[2] in (3, 4):
+        code = cv2.COLOR_BGR2GRAY if image.shape[2] == 3 else cv2.COLOR_BGRA2GRAY
+        image = cv2.cvtColor(image, code)
+    if image.ndim != 2:
+        raise DecodeError(f"{name}: unsupported image layout {image.shape}")
+    if image.dtype == np.uint16:
+        grey = image.astype(np.float32) * np.float32(255 / 65535)
+    elif image.dtype == np.uint8:
+        grey = image.astype(np.float32)
+    else:
+        raise DecodeError(f"{name}: unsupported pixel type {image.dtype} (expected 8 or 16 bit)")
+    if size is not None and (grey.shape[1], grey.shape[0]) != size:
+        grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+    return grey
+
+
+def _strictly_increasing(t_us: np.ndarray, what: str) -> None:
+    steps = np.diff(t_us)
+    if np.any(steps <= 0):
+        i = int(np.flatnonzero(steps <= 0)[0])
+        raise ValueError(f"{what}: timestamps must be strictly increasing; time {i + 1} "
+                         f"({t_us[i + 1]} µs) follows time {i} ({t_us[i]} µs)")
+
+
+def _mean_fps(t_us: np.ndarray) -> float | None:
+    return None if t_us.size < 2 else (t_us.size - 1) * 1e6 / float(t_us[-1] - t_us[0])
+
+
+def _seconds_to_us(seconds: np.ndarray) -> np.ndarray:
+    return np.rint(np.asarray(seconds, dtype=np.float64) * 1e6).astype(np.int64)
+
+
+# -- arrays -------------------------------------------------------------------------------
+class ArraySource:
+    """Frames held in memory.
+
+    Parameters
+    ----------
+    frames : array_like, shape (T, H, W)
+        Grey values in [0, 255] (any real dtype), T >= 1.
+    timestamps_us : array_like of int, shape (T,)
+        Strictly increasing times in µs.
+    size : (int, int), optional
+        Output (width, height); frames are resized with ``INTER_AREA``.
+    """
+
+    def __init__(self, frames: np.ndarray, timestamps_us: np.ndarray, *,
+                 size: Size | None = None) -> None:
+        frames = np.asarray(frames)
+        if frames.ndim != 3 or 0 in frames.shape:
+            raise ValueError(f"frames must have shape (T, H, W) with T >= 1, got {frames.shape}")
+        if frames.dtype.kind not in "uif":
+            raise TypeError(f"frames must hold grey values, got dtype {frames.dtype}")
+        low, high = float(frames.min()), float(frames.max())
+        if not (0 <= low and high <= 255):
+            raise ValueError(f"frames must hold grey values in [0, 255], got [{low}, {high}]")
+        times = np.asarray(timestamps_us)
+        if times.shape != (frames.shape[0],):
+            raise ValueError(f"timestamps_us must have shape ({frames.shape[0]},), got {times.shape}")
+        if times.dtype.kind not in "iu":
+            raise TypeError(f"timestamps_us must hold integer µs, got dtype {times.dtype}")
+        times = times.astype(np.int64)
+        _strictly_increasing(times, "ArraySource")
+        self._frames, self.timestamps_us, self._size = frames, times, _check_size(size)
+        self.width, self.height = self._size or (frames.shape[2], frames.shape[1])
+        self.fps, self.frame_count = _mean_fps(times), int(frames.shape[0])
+
+    def __len__(self) -> int:
+        return self.frame_count
+
+    def __iter__(self) -> Iterator[tuple[np.ndarray, int]]:
+        for frame, t in zip(self._frames, self.timestamps_us.tolist()):
+            grey = np.array(frame, dtype=np.float32)
+            if self._size is not None and (grey.shape[1], grey.shape[0]) != self._size:
+                grey = cv2.resize(grey, self._size, interpolation=cv2.INTER_AREA)
+            yield grey, t
+
+
+# -- image folders ------------------------------------------------------------------------
+def _natural_key(path: Path) -> list[object]:
+    return [int(part) if part.isdigit() else part for part in re.split(r"(\d+)", path.name)]
+
+
+def _list_images(folder: Path) -> list[Path]:
+    return sorted((p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES and p.is_file()),
+                  key=_natural_key)
+
+
+def _is_number(token: str) -> bool:
+    try:
+        float(token)
+    except ValueError:
+        return False
+    return True
+
+
+def read_timestamps(path: PathLike, folder: PathLike | None = None) -> tuple[np.ndarray, list[Path]]:
+    """Times and image paths from an ESIM- or ECD-style timestamp file.
+
+    Accepted line formats (blank lines and ``#`` comments are skipped; one
+    format per file):
+
+    * ``t`` -- time in seconds; line ``i`` belongs to the ``i``-th image of
+      ``folder`` in natural name order (ESIM ``timestamps.txt``);
+    * ``index t`` -- image index into that order and time in seconds;
+    * ``t path`` -- time in seconds and the image path, relative to the
+      timestamp file's directory or else to ``folder`` (ECD ``images.txt``).
+
+    Parameters
+    ----------
+    path : str or Path
+        The timestamp file.
+    folder : str or Path, optional
+        The image folder (default: the file's directory).
+
+    Returns
+    -------
+    t_us : ndarray, int64, shape (T,)
+        Times in µs (seconds rounded to whole µs), strictly increasing.
+    images : list of Path, length T
+    """
+    path = Path(path)
+    folder = path.parent if folder is None else Path(folder)
+    if not path.is_file():
+        raise FileNotFoundError(f"timestamp file not found: {path}")
+    rows = [line.split() for line in path.read_text().splitlines()]
+    rows = [row for row in rows if row and not row[0].startswith("#")]
+    if not rows:
+        raise ValueError(f"{path}: no timestamps (zero frames)")
+    kinds = {("t" if len(r) == 1 else "index t" if _is_number(r[1]) else "t path")
+             if len(r) in (1, 2) and _is_number(r[0]) else "bad" for r in rows}
+    if len(kinds) != 1 or "bad" in kinds:
+        raise ValueError(f"{path}: expected lines 't', 'index t' or 't path' (one format per file)")
+    kind = kinds.pop()
+    if kind == "t path":
+        seconds = [float(r[0]) for r in rows]
+        images = []
+        for row in rows:
+            image = path.parent / row[1]
+            images.append(image if image.is_file() else folder / row[1])
+        missing = [p for p in images if not p.is_file()]
+        if missing:
+            raise FileNotFoundError(f"{path}: image {missing[0]} not found ({len(missing)} missing)")
+    else:
+        listed = _list_images(folder)
+        if kind == "t":
+            seconds, indices = [float(r[0]) for r in rows], list(range(len(rows)))
+        else:
+            if not all(float(r[0]).is_integer() for r in rows):
+                raise ValueError(f"{path}: the index column must hold whole numbers")
+            seconds, indices = [float(r[1]) for r in rows], [int(float(r[0])) for r in rows]
+        if kind == "t" and len(rows) != len(listed):
+            raise ValueError(f"{path} lists {len(rows)} times but {folder} holds {len(listed)} images")
+        if min(indices) < 0 or max(indices) >= len(listed):
+            raise ValueError(f"{path}: image index out of range [0, {len(listed)}) of {folder}")
+        images = [listed[i] for i in indices]
+    t_us = _seconds_to_us(np.array(seconds))
+    _strictly_increasing(t_us, str(path))
+    return t_us, images
+
+
+def _find_timestamps(folder: Path) -> Path:
+    for directory in (folder, folder.parent):
+        for name in _TIMESTAMP_FILES:
+            if (directory / name).is_file():
+                return directory / name
+    raise FileNotFoundError(f"no timestamps for {folder}: pass timestamps= or put one of "
+                            f"{', '.join(_TIMESTAMP_FILES)} in the folder or its parent")
+
+
+def _read_image(path: Path, size: Size | None) -> np.ndarray:
+    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    if image is None:
+        raise DecodeError(f"OpenCV cannot decode the image {path}")
+    return _to_grey(image, size, str(path))
+
+
+class ImageFolderSource:
+    """A folder of images with their times.
+
+    Parameters
+    ----------
+    folder : str or Path
+        Folder of images (``IMAGE_SUFFIXES``).
+    timestamps : str, Path or array_like of int, optional
+        A timestamp file (see :func:`read_timestamps`: ESIM ``timestamps.txt``,
+        ``index t`` pairs, ECD ``images.txt``), or the times in **integer µs**
+        of the folder's images in natural name order. Default: ``images.txt``
+        or ``timestamps.txt`` in the folder, else in its parent.
+    size : (int, int), optional
+        Output (width, height); frames are resized with ``INTER_AREA``.
+
+    The first image is read at construction (for ``width``/``height``); the
+    others when iterated, where an image of another size raises ValueError.
+    """
+
+    def __init__(self, folder: PathLike, *, timestamps: PathLike | np.ndarray | None = None,
+                 size: Size | None = None) -> None:
+        folder = Path(folder)
+        if not folder.is_dir():
+            raise FileNotFoundError(f"image folder not found: {folder}")
+        self._size = _check_size(size)
+        if timestamps is None or isinstance(timestamps, (str, Path)):
+            file = _find_timestamps(folder) if timestamps is None else Path(timestamps)
+            self.timestamps_us, self.images = read_timestamps(file, folder)
+        else:
+            times = np.asarray(timestamps)
+            if times.dtype.kind not in "iu" or times.ndim != 1:
+                raise TypeError("timestamps must be a path or a 1-D array of integer µs, got "
+                                f"dtype {times.dtype} shape {times.shape} (for seconds pass "
+                                "np.rint(t_s * 1e6).astype(np.int64))")
+            self.images = _list_images(folder)
+            if times.size != len(self.images):
+                raise ValueError(f"{times.size} timestamps for {len(self.images)} images in {folder}")
+            self.timestamps_us = times.astype(np.int64)
+            _strictly_increasing(self.timestamps_us, str(folder))
+        if not self.images:
+            raise ValueError(f"no images in {folder} (zero frames)")
+        first = _read_image(self.images[0], None)
+        self._shape = first.shape
+        self.width, self.height = self._size or (first.shape[1], first.shape[0])
+        self.fps, self.frame_count = _mean_fps(self.timestamps_us), len(self.images)
+
+    def __len__(self) -> int:
+        return self.frame_count
+
+    def __iter__(self) -> Iterator[tuple[np.ndarray, int]]:
+        for path, t in zip(self.images, self.timestamps_us.tolist()):
+            grey = _read_image(path, None)
+            if grey.shape != self._shape:
+                raise ValueError(f"{path} is {grey.shape[1]}x{grey.shape[0]} pixels, the first image "
+                                 f"{self.images[0].name} {self._shape[1]}x{self._shape[0]}")
+            if self._size is not None and (grey.shape[1], grey.shape[0]) != self._size:
+                grey = cv2.resize(grey, self._size, interpolation=cv2.INTER_AREA)
+            yield grey, t
+
+
+# -- video files --------------------------------------------------------------------------
+class VideoFileSource:
+    """Frames of a video file (mp4, avi, mkv, ... whatever OpenCV's FFmpeg reads).
+
+    Parameters
+    ----------
+    path : str or Path
+        The video file.
+    size : (int, int), optional
+        Output (width, height); frames are resized with ``INTER_AREA``.
+    t0_s, t1_s : float, optional
+        Keep the frames with ``t0_s <= t < t1_s`` (seconds, container time);
+        the reader seeks near ``t0_s`` first. Times are not shifted to start
+        at zero.
+
+    Times: each frame's presentation time from the container
+    (``CAP_PROP_POS_MSEC`` after reading it), rounded to whole µs. When the
+    container gives none (not finite, negative, or 0 after the first frame)
+    the time is ``frame_index * 1e6 / fps`` (30 fps when the rate is unknown
+    too). A time not after the previous one (duplicated or reordered
+    timestamps) becomes the previous time + 1 µs, so times are always
+    strictly increasing.
+
+    Decoding errors: a file OpenCV cannot open or that yields no frame raises
+    :class:`DecodeError` at construction. When the decoder stops more than
+    ``max(1, 1%)`` frames before the container's frame count, iteration raises
+    :class:`DecodeError` after the frames it could decode (a truncated or
+    corrupt stream). ``frame_count`` is the container's count (None when
+    unknown or when ``t0_s``/``t1_s`` cut the video).
+    """
+
+    def __init__(self, path: PathLike, *, size: Size | None = None,
+                 t0_s: float | None = None, t1_s: float | None = None) -> None:
+        self.path = Path(path)
+        if not self.path.is_file():
+            raise FileNotFoundError(f"video file not found: {self.path}")
+        self._size = _check_size(size)
+        for name, value in (("t0_s", t0_s), ("t1_s", t1_s)):
+            if value is not None and not (isinstance(value, (int, float, np.integer, np.floating))
+                                          and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite time >= 0 in seconds, got {value!r}")
+        if t0_s is not None and t1_s is not None and t1_s <= t0_s:
+            raise ValueError(f"t1_s ({t1_s}) must be after t0_s ({t0_s})")
+        self.t0_s, self.t1_s = t0_s, t1_s
+        capture = self._open()
+        try:
+            fps = capture.get(cv2.CAP_PROP_FPS)
+            count = capture.get(cv2.CAP_PROP_FRAME_COUNT)
+            ok, image = capture.read()
+        finally:
+            capture.release()
+        if not ok or image is None:
+            raise DecodeError(f"OpenCV opened {self.path} but decoded no frame from it")
+        self.fps = float(fps) if math.isfinite(fps) and fps > 0 else None
+        self._container_count = int(count) if math.isfinite(count) and count > 0 else None
+        self.frame_count = self._container_count if t0_s is None and t1_s is None else None
+        first = _to_grey(image, self._size, str(self.path))
+        self.height, self.width = first.shape
+
+    def _open(self) -> cv2.VideoCapture:
+        capture = cv2.VideoCapture(str(self.path))
+        if not capture.isOpened():
+            capture.release()
+            raise DecodeError(f"OpenCV cannot decode the video {self.path} "
+                              "(not a video, an unsupported codec, or a truncated/corrupt file)")
+        return capture
+
+    def __len__(self) -> int:
+        if self.frame_count is None:
+            raise TypeError("the frame count of this video is unknown")
+        return self.frame_count
+
+    def _time_us(self, capture: cv2.VideoCapture, first: bool) -> int:
+        msec = capture.get(cv2.CAP_PROP_POS_MSEC)
+        if math.isfinite(msec) and msec >= 0 and (msec > 0 or first):
+            return int(round(msec * 1000))
+        index = max(0, int(capture.get(cv2.CAP_PROP_POS_FRAMES)) - 1)
+        return int(round(index * 1e6 / (self.fps or 30.0)))
+
+    def __iter__(self) -> Iterator[tuple[np.ndarray, int]]:
+        capture = self._open()
+        t0_us = None if self.t0_s is None else int(round(self.t0_s * 1e6))
+        t1_us = None if self.t1_s is None else int(round(self.t1_s * 1e6))
+        try:
+            if t0_us:
+                capture.set(cv2.CAP_PROP_POS_MSEC, t0_us / 1000)
+            previous, decoded, yielded = None, 0, 0
+            while True:
+                ok, image = capture.read()
+                if not ok or image is None:
+                    break
+                decoded = max(decoded, int(capture.get(cv2.CAP_PROP_POS_FRAMES)))
+                t = self._time_us(capture, first=previous is None and not t0_us)
+                t = t if previous is None or t > previous else previous + 1
+                previous = t
+                if t0_us is not None and t < t0_us:
+                    continue
+                if t1_us is not None and t >= t1_us:
+                    break
+                yielded += 1
+                yield _to_grey(image, self._size, str(self.path)), t
+            count = self._container_count
+            finished = t1_us is None or (previous is not None and previous < t1_us)
+            seek_past_end = bool(t0_us) and decoded == 0
+            if (finished and not seek_past_end and count is not None
+                    and decoded < count - max(1, round(0.01 * count))):
+                raise DecodeError(f"{self.path}: decoding stopped after frame {decoded} of the "
+                                  f"{count} the container lists (truncated or corrupt video)")
+            if yielded == 0:
+                raise ValueError(f"{self.path}: no frames in [{self.t0_s}, {self.t1_s}) s (zero frames)")
+        finally:
+            capture.release()
+
+
+def open_source(source: PathLike | np.ndarray | FrameSource, *,
+                timestamps: PathLike | np.ndarray | None = None, size: Size | None = None,
+                t0_s: float | None = None, t1_s: float | None = None) -> FrameSource:
+    """A frame source for a path, an array or an existing source.
+
+    * an array (T, H, W): :class:`ArraySource`, ``timestamps`` in integer µs required;
+    * a folder: :class:`ImageFolderSource` (``timestamps`` optional);
+    * a ``.txt`` file: :class:`ImageFolderSource` of the file's folder with
+      the file as timestamps (ECD ``images.txt``, ESIM ``timestamps.txt``);
+    * any other file: :class:`VideoFileSource` (``t0_s``, ``t1_s`` apply only here);
+    * a frame source: returned unchanged (no other argument allowed).
+
+    Raises
+    ------
+    FileNotFoundError
+        The path does not exist.
+    ValueError, TypeError
+        Arguments that do not apply to the kind of source.
+    """
+    if isinstance(source, np.ndarray):
+        if timestamps is None:
+            raise ValueError("an array source needs timestamps= (integer µs)")
+        if t0_s is not None or t1_s is not None:
+            raise ValueError("t0_s/t1_s apply to video files only")
+        return ArraySource(source, np.asarray(timestamps), size=size)
+    if isinstance(source, (str, Path)):
+        path = Path(source)
+        if not path.exists():
+            raise FileNotFoundError(f"no such file or folder: {path}")
+        if path.is_dir() or path.suffix.lower() == ".txt":
+            if t0_s is not None or t1_s is not None:
+                raise ValueError("t0_s/t1_s apply to video files only")
+            if path.is_dir():
+                return ImageFolderSource(path, timestamps=timestamps, size=size)
+            return ImageFolderSource(path.parent, timestamps=path, size=size)
+        if timestamps is not None:
+            raise ValueError("timestamps= does not apply to a video file (it has its own times)")
+        return VideoFileSource(path, size=size, t0_s=t0_s, t1_s=t1_s)
+    if isinstance(source, FrameSource):
+        if any(v is not None for v in (timestamps, size, t0_s, t1_s)):
+            raise ValueError("an existing frame source takes no timestamps/size/t0_s/t1_s")
+        return source
+    raise TypeError(f"cannot make a frame source from {type(source).__name__}")

@@ -1,0 +1,174 @@
+"""Tests of video conversion (cmax/sim/convert.py), catalogues (cmax/sim/catalogue.py) and the CLI."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cmax.cli import main
+from cmax.io.h5 import read_h5
+from cmax.sim.catalogue import load_catalogue, parse_catalogue, parse_shard, shard
+from cmax.sim.convert import (
+    ConvertSettings,
+    VideoJob,
+    collect_jobs,
+    convert_collection,
+    convert_video,
+    load_manifest,
+    merge_manifests,
+)
+from cmax.sim.esim import EsimSettings, EventSimulator
+
+cv2 = pytest.importorskip("cv2")
+FPS = 25
+
+
+def write_video(path, n_frames=8, width=48, height=32, shift=0):
+    """A small MJPG video of a moving smooth pattern; returns the decoded grey frames."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (width, height))
+    assert writer.isOpened()
+    y, x = np.mgrid[0:height, 0:width]
+    for k in range(n_frames):
+        value = 128 + 90 * np.sin(0.3 * (x - 2 * k - shift)) * np.cos(0.2 * y)
+        writer.write(cv2.cvtColor(value.astype(np.uint8), cv2.COLOR_GRAY2BGR))
+    writer.release()
+    capture, frames = cv2.VideoCapture(str(path)), []
+    while True:
+        ok, frame = capture.read()
+        if not ok:
+            return np.stack(frames)
+        frames.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
+
+
+FAST = ConvertSettings(adaptive=False)
+
+
+def test_converted_video_equals_simulate_on_the_same_frames(tmp_path):
+    frames = write_video(tmp_path / "a.avi")
+    times = np.arange(len(frames)) * (1_000_000 // FPS)
+    result = convert_video(tmp_path / "a.avi", tmp_path / "a.h5", FAST, category="test")
+    expected = EventSimulator().simulate(frames, times)
+    events = read_h5(tmp_path / "a.h5")
+    assert len(expected) > 100 and result.events == len(expected) and result.frames == len(frames)
+    for name in "xytp":
+        np.testing.assert_array_equal(getattr(events, name), getattr(expected, name))
+    assert result.status == "ok" and result.duration_s == pytest.approx(times[-1] * 1e-6)
+    assert not (tmp_path / "a.h5.partial").exists()
+
+
+def test_adaptive_conversion_and_time_range(tmp_path):
+    write_video(tmp_path / "a.avi", n_frames=6)
+    settings = ConvertSettings(adaptive=True, method="linear", t0_s=0.04, t1_s=0.12)
+    result = convert_video(tmp_path / "a.avi", tmp_path / "a.h5", settings)
+    assert result.frames == 3 and result.samples > result.frames and result.events > 0
+    events = read_h5(tmp_path / "a.h5")
+    assert 40_000 <= events.t[0] and events.t[-1] <= 120_000
+
+
+def test_collection_with_a_corrupt_video_and_resume(tmp_path):
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    write_video(videos / "a.avi")
+    write_video(videos / "b.avi", shift=3)
+    (videos / "c.mp4").write_bytes(b"not a video at all")
+    jobs, missing = collect_jobs(videos)
+    assert [job.name for job in jobs] == ["a", "b", "c"] and missing == []
+    out = tmp_path / "out"
+    manifest = convert_collection(jobs, out, FAST, progress=False)
+    assert {n: v["status"] for n, v in manifest["videos"].items()} == {"a": "ok", "b": "ok", "c": "failed"}
+    assert "cannot open video" in manifest["videos"]["c"]["error"]
+    assert load_manifest(out / "manifest.json") == manifest
+    assert manifest["totals"]["ok"] == 2 and not (out / "c.h5").exists()
+    stat_a, bytes_a = (out / "a.h5").stat().st_mtime_ns, (out / "a.h5").read_bytes()
+    (out / "b.h5").unlink()  # a crash: the output is missing
+    (out / "b.h5.partial").write_bytes(b"half")
+    seen = []
+    convert_collection(jobs, out, FAST, progress=False, on_result=lambda r: seen.append(r.name))
+    assert seen == ["b", "c"]  # a skipped, b redone, c retried
+    assert (out / "a.h5").stat().st_mtime_ns == stat_a and (out / "a.h5").read_bytes() == bytes_a
+    assert (out / "b.h5").is_file() and not (out / "b.h5.partial").exists()
+    with pytest.raises(ValueError, match="other settings"):
+        convert_collection(jobs, out, ConvertSettings(adaptive=False, lam=0.3), progress=False)
+
+
+def test_parallel_workers_and_list_file(tmp_path):
+    write_video(tmp_path / "a.avi")
+    write_video(tmp_path / "b.avi", shift=5)
+    (tmp_path / "list.txt").write_text("a.avi\tNatural\n# comment\nb.avi\tDriving\n")
+    jobs, _ = collect_jobs(tmp_path / "list.txt")
+    assert [(j.name, j.category) for j in jobs] == [("a", "Natural"), ("b", "Driving")]
+    manifest = convert_collection(jobs, tmp_path / "out", FAST, workers=2, progress=False)
+    assert [v["category"] for v in manifest["videos"].values()] == ["Natural", "Driving"]
+    single = convert_video(tmp_path / "a.avi", tmp_path / "single.h5", FAST)
+    assert manifest["videos"]["a"]["events"] == single.events
+
+
+def test_catalogue_parsing_and_shards(tmp_path):
+    entries = load_catalogue("slowtv")
+    assert len(entries) == 40 and entries[0].name == "00000"
+    assert {e.category.split("-")[0] for e in entries} == {"Natural", "Underwater", "Driving"}
+    shards = [shard(entries, i, 3) for i in range(3)]
+    names = [e.name for part in shards for e in part]
+    assert sorted(names) == [e.name for e in entries] and len(set(names)) == 40
+    assert parse_shard("2/4") == (2, 4)
+    for bad in ("4/4", "-1/2", "1", "a/b", "0/0"):
+        with pytest.raises(ValueError):
+            parse_shard(bad)
+    with pytest.raises(ValueError, match="header"):
+        parse_catalogue("0\turl\tNatural\n")
+    with pytest.raises(ValueError, match="repeated"):
+        parse_catalogue("index\turl\tcategory\n0\tu\tA\n0\tv\tB\n")
+    with pytest.raises(ValueError, match="unknown catalogue"):
+        load_catalogue("nope")
+    write_video(tmp_path / "00001.avi")
+    jobs, missing = collect_jobs(tmp_path, catalogue="slowtv", shard=(1, 2))
+    assert [(j.name, j.category) for j in jobs] == [("00001", entries[1].category)]
+    assert len(missing) == 19 and "00003" in missing and "00000" not in missing
+
+
+def test_manifest_merge_and_cli(tmp_path, capsys):
+    write_video(tmp_path / "00000.avi")
+    write_video(tmp_path / "00001.avi", shift=2)
+    outs = []
+    for i in range(2):
+        out = tmp_path / f"shard{i}"
+        status = main(["simulate", str(tmp_path), "-o", str(out), "--catalogue", "slowtv",
+                       "--shard", f"{i}/2", "--no-adaptive", "--quiet"])
+        assert status == 0
+        outs.append(out / "manifest.json")
+    assert list(load_manifest(outs[1])["videos"]) == ["00001"]
+    assert main(["manifest", "merge", *map(str, outs), "-o", str(tmp_path / "all.json")]) == 0
+    merged = json.loads((tmp_path / "all.json").read_text())
+    assert list(merged["videos"]) == ["00000", "00001"] and len(merged["missing"]) == 38
+    assert merged["totals"]["ok"] == 2 and merged["simulator_version"]
+    other = dict(load_manifest(outs[0]), settings={"different": True})
+    with pytest.raises(ValueError, match="settings"):
+        merge_manifests([other, load_manifest(outs[1])])
+    assert main(["simulate", str(tmp_path / "00000.avi"), "-o", str(tmp_path / "one.h5"),
+                 "--no-adaptive"]) == 0
+    assert "events from 8 frames" in capsys.readouterr().out
+
+
+def test_bad_inputs_give_clear_errors(tmp_path, capsys):
+    with pytest.raises(FileNotFoundError, match="input not found"):
+        collect_jobs(tmp_path / "missing")
+    with pytest.raises(FileNotFoundError, match="video not found"):
+        convert_video(tmp_path / "missing.mp4", tmp_path / "x.h5", FAST)
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="holds no videos"):
+        collect_jobs(tmp_path / "empty")
+    write_video(tmp_path / "a.avi")
+    with pytest.raises(ValueError, match="no frames in the time range"):
+        convert_video(tmp_path / "a.avi", tmp_path / "x.h5", ConvertSettings(adaptive=False, t0_s=50.0))
+    assert not (tmp_path / "x.h5").exists() and not (tmp_path / "x.h5.partial").exists()
+    with pytest.raises(ValueError, match="no frames"):
+        convert_video("none.mp4", tmp_path / "x.h5", FAST, frames=iter(()))
+    with pytest.raises(ValueError, match="cp must be"):
+        EsimSettings(cp=0.0)
+    with pytest.raises(ValueError, match="t1_s"):
+        ConvertSettings(t0_s=2.0, t1_s=1.0)
+    assert main(["simulate", str(tmp_path / "a.avi"), "-o", str(tmp_path / "x.h5"), "--cn", "-1"]) == 2
+    assert "cn must be" in capsys.readouterr().err
+    with pytest.raises(ValueError, match="workers"):
+        convert_collection([VideoJob("a", tmp_path / "a.avi")], tmp_path / "o", FAST, workers=0)

@@ -1,0 +1,256 @@
+"""Frame sources (cmax.sim.video): video files, image folders with timestamps, arrays."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from cmax.sim.video import (
+    ArraySource,
+    DecodeError,
+    FrameSource,
+    ImageFolderSource,
+    VideoFileSource,
+    open_source,
+    read_timestamps,
+)
+
+
+@pytest.fixture(scope="module")
+def bikes(shared_data) -> Path:
+    return shared_data / "videos" / "bikes.mp4"
+
+
+def write_images(folder: Path, count: int, size=(40, 30)) -> list[np.ndarray]:
+    folder.mkdir(parents=True, exist_ok=True)
+    rng = np.random.default_rng(0)
+    images = [rng.integers(0, 256, (size[1], size[0]), dtype=np.uint8) for _ in range(count)]
+    for i, image in enumerate(images):
+        cv2.imwrite(str(folder / f"frame_{i}.png"), image)  # natural order: 0, 1, ..., 10
+    return images
+
+
+def write_avi(path: Path, count: int = 30, fps: float = 20.0) -> None:
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), fps, (64, 48))
+    assert writer.isOpened()
+    for i in range(count):
+        frame = np.zeros((48, 64, 3), np.uint8)
+        frame[:, : 2 * i + 2] = (30, 120, 220)
+        writer.write(frame)
+    writer.release()
+
+
+# -- video files --------------------------------------------------------------------------
+def test_bikes_video_frames_and_times(bikes):
+    source = VideoFileSource(bikes)
+    assert isinstance(source, FrameSource)
+    assert (source.width, source.height, source.fps, source.frame_count) == (640, 272, 25.0, 250)
+    items = list(source)
+    assert len(items) == 250
+    frame, _ = items[0]
+    assert frame.dtype == np.float32 and frame.shape == (272, 640)
+    assert 0 <= frame.min() and frame.max() <= 255
+    times = np.array([t for _, t in items])
+    assert times[0] == 0 and np.all(np.diff(times) > 0)
+    np.testing.assert_allclose(np.diff(times), 40_000, atol=1_000)
+
+
+def test_bikes_grey_conversion_and_resize(bikes):
+    capture = cv2.VideoCapture(str(bikes))
+    ok, bgr = capture.read()
+    capture.release()
+    grey = cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY).astype(np.float32)
+    frame, _ = next(iter(VideoFileSource(bikes)))
+    np.testing.assert_array_equal(frame, grey)
+    small = VideoFileSource(bikes, size=(320, 136))
+    assert (small.width, small.height) == (320, 136)
+    frame, _ = next(iter(small))
+    assert frame.shape == (136, 320) and frame.dtype == np.float32
+    np.testing.assert_allclose(frame, cv2.resize(grey, (320, 136), interpolation=cv2.INTER_AREA))
+
+
+def test_bikes_time_window(bikes):
+    source = VideoFileSource(bikes, t0_s=2.0, t1_s=3.0)
+    times = [t for _, t in source]
+    assert times[0] == 2_000_000 and times[-1] == 2_960_000 and len(times) == 25
+    assert source.frame_count is None
+
+
+def test_written_avi_and_its_truncated_copy(tmp_path):
+    path = tmp_path / "clip.avi"
+    write_avi(path)
+    source = open_source(path)
+    assert isinstance(source, VideoFileSource) and source.frame_count == 30
+    items = list(source)
+    assert len(items) == 30 and [t for _, t in items[:3]] == [0, 50_000, 100_000]
+    truncated = tmp_path / "clip_truncated.avi"
+    truncated.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(DecodeError, match="clip_truncated.avi"):
+        list(VideoFileSource(truncated))
+
+
+def test_random_bytes_are_not_a_video(tmp_path):
+    noise = tmp_path / "noise.mp4"
+    noise.write_bytes(np.random.default_rng(0).integers(0, 256, 20_000, dtype=np.uint8).tobytes())
+    with pytest.raises(DecodeError, match="noise.mp4"):
+        VideoFileSource(noise)
+    with pytest.raises(DecodeError, match="noise.mp4"):
+        open_source(noise)
+
+
+def test_corrupt_videos_raise(tmp_path, bikes):
+    truncated = tmp_path / "bikes_truncated.mp4"
+    truncated.write_bytes(bikes.read_bytes()[:250_000])
+    with pytest.raises(DecodeError, match="bikes_truncated.mp4"):
+        list(open_source(truncated))
+    damaged = bytearray(bikes.read_bytes())  # index kept, half the stream zeroed
+    damaged[200_000:500_000] = bytes(300_000)
+    (tmp_path / "bikes_damaged.mp4").write_bytes(bytes(damaged))
+    with pytest.raises(DecodeError, match="bikes_damaged.mp4"):
+        list(VideoFileSource(tmp_path / "bikes_damaged.mp4"))
+
+
+def test_video_errors(tmp_path):
+    with pytest.raises(FileNotFoundError):
+        VideoFileSource(tmp_path / "missing.mp4")
+    with pytest.raises(FileNotFoundError):
+        open_source(tmp_path / "missing.mp4")
+    path = tmp_path / "clip.avi"
+    write_avi(path, count=5)
+    with pytest.raises(ValueError, match="t1_s"):
+        VideoFileSource(path, t0_s=2.0, t1_s=1.0)
+    with pytest.raises(ValueError, match="zero frames"):
+        list(VideoFileSource(path, t0_s=10.0))
+    with pytest.raises(TypeError, match="size"):
+        VideoFileSource(path, size=(64.0, 48))
+
+
+# -- image folders ------------------------------------------------------------------------
+def test_esim_truck_folder(shared_data):
+    folder = shared_data / "esim_truck_pan" / "images"
+    source = ImageFolderSource(folder)  # finds ../timestamps.txt
+    assert (source.width, source.height, source.frame_count) == (240, 180, 161)
+    items = list(source)
+    times = [t for _, t in items]
+    assert times[:2] == [0, 1866] and times[-1] == 298_507 and len(items) == 161
+    assert items[0][0].dtype == np.float32 and items[0][0].shape == (180, 240)
+    explicit = ImageFolderSource(folder, timestamps=shared_data / "esim_truck_pan" / "timestamps.txt",
+                                 size=(120, 90))
+    frame, _ = next(iter(explicit))
+    assert frame.shape == (90, 120) and (explicit.width, explicit.height) == (120, 90)
+
+
+def test_ecd_images_txt(shared_data):
+    source = open_source(shared_data / "ecd_slider_depth" / "images.txt")
+    assert isinstance(source, ImageFolderSource) and source.frame_count == 87
+    times = [t for _, t in source]
+    assert times[:3] == [0, 38_766, 77_531] and np.all(np.diff(times) > 0)
+    same = open_source(shared_data / "ecd_slider_depth" / "images")  # images.txt in the parent
+    np.testing.assert_array_equal(same.timestamps_us, times)
+
+
+def test_timestamp_file_formats(tmp_path):
+    images = write_images(tmp_path / "imgs", 11)
+    (tmp_path / "imgs" / "timestamps.txt").write_text("".join(f"{0.01 * i:.6f}\n" for i in range(11)))
+    source = ImageFolderSource(tmp_path / "imgs")
+    assert source.timestamps_us.tolist() == [10_000 * i for i in range(11)]
+    frames = [f for f, _ in source]
+    np.testing.assert_array_equal(frames[10], images[10])  # natural order, not frame_1, frame_10
+    pairs = tmp_path / "pairs.txt"
+    pairs.write_text("# index time\n0 0.5\n\n2 0.75\n10 1.0\n")
+    t_us, paths = read_timestamps(pairs, tmp_path / "imgs")
+    assert t_us.tolist() == [500_000, 750_000, 1_000_000]
+    assert [p.name for p in paths] == ["frame_0.png", "frame_2.png", "frame_10.png"]
+    ecd = tmp_path / "images.txt"
+    ecd.write_text("1.5 imgs/frame_3.png\n1.6 imgs/frame_4.png\n")
+    source = open_source(ecd)
+    assert source.timestamps_us.tolist() == [1_500_000, 1_600_000]
+    np.testing.assert_array_equal(next(iter(source))[0], images[3])
+    source = ImageFolderSource(tmp_path / "imgs", timestamps=np.arange(11) * 7)
+    assert source.timestamps_us[-1] == 70
+
+
+def test_image_folder_errors(tmp_path):
+    write_images(tmp_path / "a", 3)
+    with pytest.raises(FileNotFoundError, match="no timestamps"):
+        ImageFolderSource(tmp_path / "a")
+    with pytest.raises(TypeError, match="integer µs"):
+        ImageFolderSource(tmp_path / "a", timestamps=np.array([0.0, 0.1, 0.2]))
+    with pytest.raises(ValueError, match="3 images"):
+        ImageFolderSource(tmp_path / "a", timestamps=np.array([0, 1]))
+    with pytest.raises(ValueError, match="strictly increasing"):
+        ImageFolderSource(tmp_path / "a", timestamps=np.array([0, 5, 5]))
+    (tmp_path / "a" / "timestamps.txt").write_text("0.0\n0.1\n")
+    with pytest.raises(ValueError, match="lists 2 times"):
+        ImageFolderSource(tmp_path / "a")
+    (tmp_path / "a" / "timestamps.txt").write_text("0.0\n0.2\n0.1\n")
+    with pytest.raises(ValueError, match="strictly increasing"):
+        ImageFolderSource(tmp_path / "a")
+    (tmp_path / "a" / "timestamps.txt").write_text("0.0 x y\n")
+    with pytest.raises(ValueError, match="format"):
+        ImageFolderSource(tmp_path / "a")
+    (tmp_path / "empty").mkdir()
+    with pytest.raises(ValueError, match="zero frames"):
+        ImageFolderSource(tmp_path / "empty", timestamps=np.array([], dtype=np.int64))
+    with pytest.raises(FileNotFoundError):
+        ImageFolderSource(tmp_path / "nowhere", timestamps=np.array([0]))
+
+
+def test_mismatched_and_undecodable_images(tmp_path):
+    write_images(tmp_path / "b", 2)
+    cv2.imwrite(str(tmp_path / "b" / "frame_2.png"), np.zeros((31, 40), np.uint8))
+    source = ImageFolderSource(tmp_path / "b", timestamps=np.array([0, 1, 2]))
+    with pytest.raises(ValueError, match="frame_2.png is 40x31"):
+        list(source)
+    write_images(tmp_path / "c", 2)
+    (tmp_path / "c" / "frame_2.png").write_bytes(b"not a png at all")
+    with pytest.raises(DecodeError, match="frame_2.png"):
+        list(ImageFolderSource(tmp_path / "c", timestamps=np.array([0, 1, 2])))
+
+
+def test_colour_images_become_grey(tmp_path):
+    folder = tmp_path / "colour"
+    folder.mkdir()
+    bgr = np.zeros((30, 40, 3), np.uint8)
+    bgr[..., 2] = 200
+    cv2.imwrite(str(folder / "0.png"), bgr)
+    frame, _ = next(iter(ImageFolderSource(folder, timestamps=np.array([0]))))
+    np.testing.assert_array_equal(frame, cv2.cvtColor(bgr, cv2.COLOR_BGR2GRAY))
+
+
+# -- arrays and dispatch -------------------------------------------------------------------
+def test_array_source():
+    frames = np.arange(2 * 4 * 6, dtype=np.uint8).reshape(2, 4, 6)
+    source = ArraySource(frames, np.array([5, 9]))
+    assert (source.width, source.height, source.frame_count, len(source)) == (6, 4, 2, 2)
+    assert source.fps == pytest.approx(1e6 / 4)
+    items = list(source)
+    assert [t for _, t in items] == [5, 9] and items[1][0].dtype == np.float32
+    np.testing.assert_array_equal(items[1][0], frames[1])
+    assert next(iter(ArraySource(frames, np.array([5, 9]), size=(3, 2))))[0].shape == (2, 3)
+    with pytest.raises(ValueError, match="strictly increasing"):
+        ArraySource(frames, np.array([9, 5]))
+    with pytest.raises(TypeError, match="integer"):
+        ArraySource(frames, np.array([0.0, 1.0]))
+    with pytest.raises(ValueError, match=r"\(T, H, W\)"):
+        ArraySource(frames[0], np.array([0]))
+    with pytest.raises(ValueError, match=r"\[0, 255\]"):
+        ArraySource(frames.astype(float) - 1, np.array([5, 9]))
+
+
+def test_open_source_dispatch(tmp_path):
+    frames = np.zeros((2, 4, 6), np.uint8)
+    source = open_source(frames, timestamps=np.array([0, 1]))
+    assert isinstance(source, ArraySource)
+    assert open_source(source) is source
+    with pytest.raises(ValueError, match="timestamps"):
+        open_source(frames)
+    with pytest.raises(ValueError, match="video files only"):
+        open_source(frames, timestamps=np.array([0, 1]), t0_s=1.0)
+    with pytest.raises(TypeError):
+        open_source(42)  # type: ignore[arg-type]
+    write_avi(tmp_path / "v.avi", count=3)
+    with pytest.raises(ValueError, match="timestamps"):
+        open_source(tmp_path / "v.avi", timestamps=np.array([0, 1, 2]))
