@@ -203,15 +203,20 @@ def _random_events(n: int, width: int, height: int, seed: int = 0):
     )
 
 
-def _voxel_grid_add_at(events, bins: int) -> np.ndarray:
-    """The paper's voxel grid written the usual way: per-event weights and ``np.add.at``."""
+def _per_event_weights(events, bins: int):
+    """Lower bin, left and right signed weights, pixel index and plane size of every event."""
     t = events.t
     t_star = (bins - 1) * (t - t[0]).astype(np.float64) / max(int(t[-1] - t[0]), 1)
     lower = np.minimum(t_star.astype(np.intp), max(bins - 2, 0))
     right = events.signed_polarity(np.float64) * (t_star - lower)
     left = events.signed_polarity(np.float64) - right
     base = events.y.astype(np.intp) * events.width + events.x
-    plane = events.width * events.height
+    return lower, left, right, base, events.width * events.height
+
+
+def _voxel_grid_add_at(events, bins: int) -> np.ndarray:
+    """The paper's voxel grid written the usual way: per-event weights and ``np.add.at``."""
+    lower, left, right, base, plane = _per_event_weights(events, bins)
     grid = np.zeros(bins * plane)
     np.add.at(grid, lower * plane + base, left)
     np.add.at(grid, np.minimum(lower + 1, bins - 1) * plane + base, right)
@@ -220,13 +225,7 @@ def _voxel_grid_add_at(events, bins: int) -> np.ndarray:
 
 def _voxel_grid_bincount_naive(events, bins: int) -> np.ndarray:
     """As :func:`_voxel_grid_add_at` with ``np.bincount`` (no use of the time order)."""
-    t = events.t
-    t_star = (bins - 1) * (t - t[0]).astype(np.float64) / max(int(t[-1] - t[0]), 1)
-    lower = np.minimum(t_star.astype(np.intp), max(bins - 2, 0))
-    right = events.signed_polarity(np.float64) * (t_star - lower)
-    left = events.signed_polarity(np.float64) - right
-    base = events.y.astype(np.intp) * events.width + events.x
-    plane = events.width * events.height
+    lower, left, right, base, plane = _per_event_weights(events, bins)
     index = lower * plane + base
     grid = np.bincount(index, weights=left, minlength=bins * plane)
     grid += np.bincount(np.minimum(index + plane, bins * plane - 1), weights=right,
