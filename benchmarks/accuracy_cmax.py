@@ -34,7 +34,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from cmax.fit import fit
+from cmax.fitting import fit
 from cmax.synthetic_windows import make_window, preset_window
 
 RESULTS = Path(__file__).resolve().parent / "results"

@@ -1,6 +1,35 @@
-"""evtslowtv's core: events, file formats, representations, simulation and contrast maximization."""
+"""evtslowtv's core: events, file formats, representations, simulation and contrast maximization.
+
+>>> import cmax
+>>> result = cmax.fit(events, K, model="se3", speed=1.0)      # doctest: +SKIP
+>>> sequence = cmax.fit_sequence(events, K, window_us=100_000)  # doctest: +SKIP
+
+The solvers (``fit``, ``fit_sequence``, ``EMVS``) import torch; they load on first use so that
+``import cmax`` and the file tools stay fast.
+"""
+from importlib import import_module
+
+from cmax.camera import Camera
 from cmax.events import STRUCTURED_DTYPE, Events, EventTensors, concatenate
 
 __version__ = "0.1.0"
 
-__all__ = ["Events", "EventTensors", "STRUCTURED_DTYPE", "concatenate", "__version__"]
+#: Public names loaded on first access: name -> module.
+_LAZY = {
+    "fit": "cmax.fitting", "fit_sequence": "cmax.fitting", "FitResult": "cmax.fitting",
+    "FitSettings": "cmax.fitting", "SequenceResult": "cmax.fitting",
+}
+
+__all__ = ["Camera", "Events", "EventTensors", "STRUCTURED_DTYPE", "concatenate", "__version__", *_LAZY]
+
+
+def __getattr__(name: str):
+    if name in _LAZY:
+        value = getattr(import_module(_LAZY[name]), name)
+        globals()[name] = value
+        return value
+    raise AttributeError(f"module 'cmax' has no attribute {name!r}")
+
+
+def __dir__() -> list[str]:
+    return sorted(set(globals()) | set(_LAZY))

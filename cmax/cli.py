@@ -154,7 +154,7 @@ def _add_scene(subparsers) -> None:
 
 
 def _add_fit(subparsers) -> None:
-    from cmax.fit_cli import add_fit_command
+    from cmax.fitting.cli import add_fit_command
 
     add_fit_command(subparsers)
 

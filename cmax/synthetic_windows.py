@@ -205,7 +205,7 @@ class PresetWindow:
     K : ndarray (3, 3)
     T01 : ndarray (4, 4)
         The camera at the last event in the frame of the camera at the first
-        (what :func:`cmax.fit.fit` takes as ``pose``).
+        (what :func:`cmax.fit` takes as ``pose``).
     twist : ndarray (6,)
         ``se3_log(T01) / duration``: the window's mean body twist ``(v, omega)``.
     depth : ndarray (H, W) float32

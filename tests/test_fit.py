@@ -7,7 +7,7 @@ import numpy as np
 import pytest
 
 from cmax.events import Events
-from cmax.fit import FitResult, fit, fit_sequence
+from cmax import FitResult, fit, fit_sequence
 from cmax.synthetic_windows import make_window, preset_window
 
 SMALL = dict(width=120, height=90, focal=90.0)
@@ -54,9 +54,9 @@ def _sanity(preset: str, width: int, height: int) -> None:
     translation (or a translation in place of the rotation), a constant depth and no motion."""
     import torch
 
-    from cmax.fit import FitSettings
-    from cmax.fit_stages import SE3Model, Window
-    from cmax.solvers import ScipySolver
+    from cmax.fitting import FitSettings
+    from cmax.fitting.stages import SE3Model, Window
+    from cmax.fitting.solvers import ScipySolver
     from cmax.warp import DepthGrid, WarpEvents
 
     w = _preset(preset, width, height)
@@ -192,7 +192,7 @@ def test_sweep_finds_the_depth_of_a_fronto_parallel_plane():
     """Events of a textured plane at 2 m seen by a sliding camera: every node's sweep peaks near 0.5 1/m."""
     import torch
 
-    from cmax.fit_depth import sweep_inverse_depth
+    from cmax.fitting.depth_sweep import sweep_inverse_depth
     from cmax.warp import DepthGrid
 
     rng = np.random.default_rng(0)
@@ -214,7 +214,7 @@ def test_sweep_finds_the_depth_of_a_fronto_parallel_plane():
 
 
 def test_motion_field_fit_recovers_the_twist_from_exact_patch_flows():
-    from cmax.fit_patches import _field_matrices, motion_from_flows
+    from cmax.fitting.patch_flow import _field_matrices, motion_from_flows
 
     K = np.array([[226.0, 0, 173.0], [0, 226.0, 130.0], [0, 0, 1]])
     rng = np.random.default_rng(1)

@@ -56,7 +56,7 @@ def tum_lines(times_us: np.ndarray, poses: np.ndarray) -> list[str]:
 def run_fit(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status."""
     from cmax import viz
-    from cmax.fit import fit_sequence
+    from cmax.fitting import fit_sequence
     from cmax.io import read
 
     events = read(args.file)

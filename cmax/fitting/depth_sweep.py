@@ -1,7 +1,7 @@
 """Depth of a window with a known motion: a plane sweep of the contrast, aggregated on the depth grid.
 
 For every candidate inverse depth ``rho_k`` (uniform in inverse depth over the
-``depth_range`` of :class:`cmax.fit.FitSettings`) all events are warped to the
+``depth_range`` of :class:`cmax.FitSettings`) all events are warped to the
 window's middle with that one depth, and the images of warped events (one per
 polarity, blurred) are read back **at each event's own warped position**
 (:func:`cmax.iwe.sample_bilinear`, the adjoint of the voting). That value is

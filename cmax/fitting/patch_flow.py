@@ -15,7 +15,7 @@ candidate direction ``t`` (``v = speed t``) the patch flows are linear in
 solved for a few thousand directions on the sphere at once; the direction
 with the smallest residual whose inverse depths are mostly positive wins.
 This is the initialiser the issue asks for ("patch flows fitted to the
-motion-field equations"); :func:`cmax.fit_stages.fit_se3` refines it.
+motion-field equations"); :func:`cmax.fitting.stages.fit_se3` refines it.
 """
 from __future__ import annotations
 

@@ -1,4 +1,4 @@
-"""The stages of :func:`cmax.fit.fit`: the shared window, the coarse-to-fine driver, flow, rotation, se3.
+"""The stages of :func:`cmax.fit`: the shared window, the coarse-to-fine driver, flow, rotation, se3.
 
 Parameters are optimised in **pixels of displacement over the window** (a flow
 ``u`` as ``u T``, an angular rate as ``omega T f``, an inverse depth as
@@ -8,7 +8,7 @@ events, so one set of solver tolerances fits every window.
 Stages of se3 without a known pose: (1) a rotation-only fit; (2) the
 translation direction from several starts with one constant depth, on the
 normalised multi-reference contrast plus the deformation guard; (3) the depth
-grid by the plane sweep of :mod:`cmax.fit_depth`; (4) the motion again with
+grid by the plane sweep of :mod:`cmax.fitting.depth_sweep`; (4) the motion again with
 that depth held; (5) the sweep again. The depth is never a free parameter of
 the global contrast: that is how a free depth collapses (issue 5).
 """
@@ -21,14 +21,14 @@ from typing import TYPE_CHECKING, Callable
 import numpy as np
 import torch
 
-from cmax.fit_depth import sweep_inverse_depth
-from cmax.fit_patches import motion_from_flows, patch_flows
+from cmax.fitting.depth_sweep import sweep_inverse_depth
+from cmax.fitting.patch_flow import motion_from_flows, patch_flows
 from cmax.objectives import deformation, multi_reference_contrast
-from cmax.solvers import Problem, Solver, SolveResult
+from cmax.fitting.solvers import Problem, Solver, SolveResult
 from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
 
 if TYPE_CHECKING:  # pragma: no cover
-    from cmax.fit import FitResult, FitSettings
+    from cmax.fitting import FitResult, FitSettings
 
 __all__ = ["Window", "SE3Model", "coarse_to_fine", "fit_flow", "fit_rotation", "fit_se3", "directions"]
 
@@ -223,7 +223,7 @@ def directions(count: int) -> list[np.ndarray]:
 
 
 def sweep(w: Window, v: np.ndarray, omega: np.ndarray) -> np.ndarray:
-    """Inverse-depth grid (G,) [1/m] by the plane sweep of :mod:`cmax.fit_depth`."""
+    """Inverse-depth grid (G,) [1/m] by the plane sweep of :mod:`cmax.fitting.depth_sweep`."""
     s, ev = w.settings, w.ev
     lo, hi = s.depth_range
     result = sweep_inverse_depth(

@@ -236,5 +236,5 @@ def make_solver(solver: "str | Solver") -> Solver:
         return solver
     table = {"scipy": ScipySolver, "casadi": CasadiSolver, "torch": TorchSolver}
     if solver not in table:
-        raise ValueError(f"solver must be one of {sorted(table)} or a cmax.solvers.Solver, got {solver!r}")
+        raise ValueError(f"solver must be one of {sorted(table)} or a cmax.fitting.solvers.Solver, got {solver!r}")
     return table[solver]()

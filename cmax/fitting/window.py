@@ -6,12 +6,12 @@ The pieces (Gallego et al., CVPR 2018; the paper's section 4):
 * the objectives of :mod:`cmax.objectives`: the multi-reference, normalised
   contrast for the motion, the per-cell local contrast plus total variation
   for the depth, the deformation guard against event collapse;
-* a solver backend of :mod:`cmax.solvers` (scipy L-BFGS-B, casadi IPOPT, torch Adam);
-* :mod:`cmax.fit_stages`: the stages (rotation first, translation direction from
-  several starts, depth by the plane sweep of :mod:`cmax.fit_depth`, motion
+* a solver backend of :mod:`cmax.fitting.solvers` (scipy L-BFGS-B, casadi IPOPT, torch Adam);
+* :mod:`cmax.fitting.stages`: the stages (rotation first, translation direction from
+  several starts, depth by the plane sweep of :mod:`cmax.fitting.depth_sweep`, motion
   and depth alternated) and the coarse-to-fine driver;
-* this module: the public :func:`fit`, :func:`fit_sequence`, their settings and
-  the frozen :class:`FitResult`.
+* this module: the public :func:`fit`, its settings and the frozen
+  :class:`FitResult`; :mod:`cmax.fitting.sequence` walks a recording.
 """
 from __future__ import annotations
 
@@ -23,12 +23,12 @@ import torch
 from cmax.camera import check_intrinsics
 from cmax.events import Events
 from cmax.geometry import se3_exp, se3_log
-from cmax.fit_stages import Window, fit_flow, fit_rotation, fit_se3
+from cmax.fitting.stages import Window, fit_flow, fit_rotation, fit_se3
 from cmax.iwe import accumulate_bilinear, blur
-from cmax.solvers import Solver, make_solver
+from cmax.fitting.solvers import Solver, make_solver
 from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
 
-__all__ = ["FitResult", "FitSettings", "SequenceResult", "fit", "fit_sequence"]
+__all__ = ["FitResult", "FitSettings", "fit"]
 
 MODELS = ("flow", "rotation", "se3")
 
@@ -58,7 +58,7 @@ class FitSettings:
         Half-widths (log of a factor) of the relative sweeps that follow the first one.
     motion_init : {"patches", "starts"}
         Initial se3 motion: patch flows fitted to the motion-field equations
-        (:mod:`cmax.fit_patches`), or a rotation fit then translation directions from several starts.
+        (:mod:`cmax.fitting.patch_flow`), or a rotation fit then translation directions from several starts.
     alternations : int
         Rounds of (motion with the depth held, depth sweep) after the first depth (se3 without pose).
     collapse_weight : float
@@ -238,7 +238,7 @@ def fit(
         the camera at the last; only the depth is optimised.
     depth_grid : (rows, cols)
         Size of the inverse-depth grid (se3).
-    solver : {"scipy", "casadi", "torch"} or cmax.solvers.Solver
+    solver : {"scipy", "casadi", "torch"} or cmax.fitting.solvers.Solver
     init : FitResult, optional
         Warm start (e.g. the previous window of a sequence).
     settings : FitSettings
@@ -265,7 +265,7 @@ def fit(
     Stages for se3 (without ``pose``): a rotation-only fit; the translation
     direction from several starts with a constant depth (normalised
     multi-reference contrast plus the deformation guard); the depth grid by a
-    plane sweep of the contrast aggregated on the grid (:mod:`cmax.fit_depth`);
+    plane sweep of the contrast aggregated on the grid (:mod:`cmax.fitting.depth_sweep`);
     then ``alternations`` rounds of motion (depth held) and sweep. With
     ``pose`` only the sweep runs. The depth belongs to ``t_ref_us`` (the
     window's middle), where the events are warped to.
@@ -375,74 +375,3 @@ def _result(w: Window, model, flow, v, omega, grid, *, scale_known: bool, second
         iterations=w.iterations, evaluations=w.evaluations, seconds=seconds, message=w.message,
         success=w.success, iwe_before=before, iwe_after=after, events_used=len(ev),
     )
-
-
-@dataclass(frozen=True, eq=False)
-class SequenceResult:
-    """Window-by-window fits and the integrated trajectory.
-
-    Attributes
-    ----------
-    results : tuple of FitResult
-    times_us : ndarray (M + 1,)
-        Start of every window, then the end of the last.
-    poses : ndarray (M + 1, 4, 4)
-        ``T_w_c`` at ``times_us``, the first the identity; between two starts the
-        camera moves with the window's constant twist (metric only when every
-        window's ``scale_known``).
-    """
-
-    results: tuple
-    times_us: np.ndarray
-    poses: np.ndarray
-
-
-def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_500, step_us: int | None = None,
-                 speed: float | None = None, min_events: int = 1000, **fit_options) -> SequenceResult:
-    """Fit consecutive windows of a recording, warm-starting each from the previous.
-
-    Parameters
-    ----------
-    source : Events or cmax.io.H5Reader
-        Anything with ``window(t0_us, t1_us)`` (a reader) or an :class:`Events`.
-    K : array_like (3, 3)
-    model : str
-    window_us, step_us : int
-        Window length and the step between window starts [µs] (``step_us`` defaults to ``window_us``).
-    speed : float, optional
-        Known speed [m/s] of every window.
-    min_events : int
-        Windows with fewer events are skipped (the pose is held by the last twist).
-    **fit_options
-        Passed to :func:`fit`.
-    """
-    step_us = window_us if step_us is None else int(step_us)
-    if window_us <= 0 or step_us <= 0:
-        raise ValueError(f"window_us and step_us must be positive, got {window_us}, {step_us}")
-    if isinstance(source, Events):
-        t_start, t_end = int(source.t[0]), int(source.t[-1])
-        take = lambda a, b: source.slice_time(a, b) if hasattr(source, "slice_time") else _slice(source, a, b)  # noqa: E731
-    elif hasattr(source, "window"):
-        t_start, t_end = int(source.t_start), int(source.t_end)
-        take = source.window
-    else:
-        raise TypeError(f"source must be Events or a reader with window(t0_us, t1_us), got {type(source).__name__}")
-    results, times, poses = [], [t_start], [np.eye(4)]
-    previous: FitResult | None = None
-    t0 = t_start
-    while t0 + window_us <= t_end + 1:
-        events = take(t0, t0 + window_us)
-        twist = previous.twist if previous is not None else np.zeros(6)
-        if len(events) >= min_events and events.t[-1] > events.t[0]:
-            previous = fit(events, K, model, speed=speed if model == "se3" else None, init=previous, **fit_options)
-            results.append(previous)
-            twist = previous.twist
-        poses.append(poses[-1] @ se3_exp(twist * step_us * 1e-6))
-        times.append(t0 + step_us)
-        t0 += step_us
-    return SequenceResult(tuple(results), np.asarray(times, np.int64), np.stack(poses))
-
-
-def _slice(events: Events, t0_us: int, t1_us: int) -> Events:
-    i, j = np.searchsorted(events.t, [t0_us, t1_us])
-    return events[int(i):int(j)]
