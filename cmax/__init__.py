@@ -18,6 +18,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "fit": "cmax.fitting", "fit_sequence": "cmax.fitting", "FitResult": "cmax.fitting",
     "FitSettings": "cmax.fitting", "SequenceResult": "cmax.fitting",
+    "EMVS": "cmax.emvs", "SemiDenseDepth": "cmax.emvs",
 }
 
 __all__ = ["Camera", "Events", "EventTensors", "STRUCTURED_DTYPE", "concatenate", "__version__", *_LAZY]

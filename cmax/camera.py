@@ -22,7 +22,10 @@ def check_intrinsics(K: object, name: str = "K") -> np.ndarray:
     Expects ``[[fx, s, cx], [0, fy, cy], [0, 0, 1]]`` with finite entries and
     positive focal lengths (pixels).
     """
-    matrix = np.asarray(K, dtype=np.float64)
+    try:
+        matrix = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a 3x3 matrix of numbers, got {K!r}") from None
     if matrix.shape != (3, 3):
         raise ValueError(f"{name} must be a 3x3 matrix, got shape {matrix.shape}")
     if not np.isfinite(matrix).all():
@@ -118,21 +121,41 @@ class Camera:
 
     # -- geometry ---------------------------------------------------------------------
     def project(self, points_c: np.ndarray) -> np.ndarray:
-        """Pinhole projection of camera-frame points (N, 3) [m] to pixels (N, 2) (no distortion)."""
+        """Pinhole projection of camera-frame points (N, 3) [m] to pixels (N, 2) (no distortion).
+
+        Points must be finite and in front of the camera (z > 0); others have no
+        image and raise :class:`ValueError`.
+        """
         points_c = np.asarray(points_c, dtype=np.float64)
         if points_c.ndim != 2 or points_c.shape[1] != 3:
             raise ValueError(f"points_c must have shape (N, 3), got {points_c.shape}")
+        if not np.isfinite(points_c).all():
+            raise ValueError("points_c must be finite (no NaN or infinite coordinates)")
+        if (points_c[:, 2] <= 0).any():
+            bad = int(np.flatnonzero(points_c[:, 2] <= 0)[0])
+            raise ValueError(
+                f"points_c must lie in front of the camera (z > 0); point {bad} has z={points_c[bad, 2]}"
+            )
         homogeneous = points_c @ self.K.T
         return homogeneous[:, :2] / homogeneous[:, 2:3]
 
     def backproject(self, pixels: np.ndarray, depth: np.ndarray) -> np.ndarray:
-        """Camera-frame points (N, 3) [m] of undistorted pixels (N, 2) at z-depth (N,) [m]."""
+        """Camera-frame points (N, 3) [m] of undistorted pixels (N, 2) at z-depth (N,) [m].
+
+        Depth ``NaN`` means unknown (the project's convention) and gives a NaN
+        point; depth must otherwise be positive and finite, pixels finite.
+        """
         pixels = np.asarray(pixels, dtype=np.float64)
         depth = np.asarray(depth, dtype=np.float64)
         if pixels.ndim != 2 or pixels.shape[1] != 2:
             raise ValueError(f"pixels must have shape (N, 2), got {pixels.shape}")
         if depth.shape != pixels.shape[:1]:
             raise ValueError(f"depth must have shape {pixels.shape[:1]}, got {depth.shape}")
+        if not np.isfinite(pixels).all():
+            raise ValueError("pixels must be finite (no NaN or infinite coordinates)")
+        known = depth[~np.isnan(depth)]
+        if not (np.isfinite(known) & (known > 0)).all():
+            raise ValueError("depth must be positive and finite metres (NaN where unknown)")
         homogeneous = np.column_stack([pixels, np.ones(len(pixels))])
         rays = homogeneous @ np.linalg.inv(self.K).T
         return rays * depth[:, None]

@@ -26,6 +26,8 @@ def _sensor_size(text: str) -> tuple[int, int]:
         width, height = (int(part) for part in text.lower().split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 346x260, got {text!r}") from None
+    if not (0 < width <= 65535 and 0 < height <= 65535):
+        raise argparse.ArgumentTypeError(f"width and height must be in [1, 65535] pixels, got {text!r}")
     return width, height
 
 
@@ -92,20 +94,25 @@ def _add_show(subparsers) -> None:
 def _cmd_demo(args: argparse.Namespace) -> int:
     from cmax.demo import run_demo
 
-    report = run_demo(args.output, seed=args.seed, duration_s=args.duration)
-    print(f"demo report: {report}")
+    width, height = args.size
+    report = run_demo(args.output, seed=args.seed, duration_s=args.duration, window_s=args.window,
+                      width=width, height=height)
+    print(f"demo report: {report.report_png}")
     return 0
 
 
 def _add_demo(subparsers) -> None:
     parser = subparsers.add_parser(
         "demo", help="end-to-end demo on data it makes itself",
-        description="Render a synthetic scene, simulate its events, write them to a DSEC h5 file, "
-        "and draw the pictures of the report.",
+        description="Render a synthetic scene, simulate its events, fit depth and motion with cmax.fit, run "
+        "EMVS with the true poses, score both against ground truth, and write report.png, report.md and "
+        "summary.txt.",
     )
     parser.add_argument("-o", "--output", type=Path, default=Path("demo_output"))
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--duration", type=float, default=0.5, help="seconds of scene to simulate")
+    parser.add_argument("--window", type=float, default=0.1665, help="seconds of the window cmax.fit fits")
+    parser.add_argument("--size", type=_sensor_size, default=(240, 180), help="sensor WIDTHxHEIGHT")
     parser.set_defaults(run=_cmd_demo)
 
 
@@ -157,6 +164,12 @@ def _add_fit(subparsers) -> None:
     from cmax.fitting.cli import add_fit_command
 
     add_fit_command(subparsers)
+
+
+def _add_emvs(subparsers) -> None:
+    from cmax.emvs_cli import add_emvs_command
+
+    add_emvs_command(subparsers)
 
 
 # -- simulate / manifest ---------------------------------------------------------------
@@ -241,7 +254,7 @@ def _add_manifest(subparsers) -> None:
     merge.set_defaults(run=_cmd_manifest)
 
 
-_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_scene, _add_fit, _add_demo,
+_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_scene, _add_fit, _add_emvs, _add_demo,
                                    _add_simulate, _add_manifest)
 
 
@@ -274,8 +287,9 @@ def main(argv: Sequence[str] | None = None) -> int:
 
     try:
         return int(args.run(args) or 0)
-    except (FormatError, ValueError, TypeError, FileNotFoundError, FileExistsError) as error:
-        print(f"cmax {args.command}: error: {error}", file=sys.stderr)
+    except (FormatError, ValueError, TypeError, OSError) as error:  # OSError: missing, exists, denied
+        message = " ".join(str(error).split())  # one line
+        print(f"cmax {args.command}: error: {message}", file=sys.stderr)
         return 2
 
 

@@ -29,12 +29,63 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     import torch
 
-__all__ = ["Events", "EventTensors", "STRUCTURED_DTYPE", "concatenate"]
+__all__ = [
+    "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "concatenate",
+    "check_event_count",
+]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
 STRUCTURED_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("p", "i1")])
 
 _MAX_SENSOR_SIZE = 65535
+
+#: Most events one in-memory :class:`Events` may hold (2**28, about 3.5 GB of columns).
+#: Larger requests (a whole long recording, a huge window) raise :class:`EventLimitError`
+#: before anything is allocated; stream them instead (``H5Reader.windows``,
+#: ``iter_evt3``/``iter_evt2``, ``H5Writer``), or raise this module attribute deliberately.
+MAX_EVENTS = 1 << 28
+
+_INT64_MAX = int(np.iinfo(np.int64).max)
+_INT64_MIN = int(np.iinfo(np.int64).min)
+
+
+class EventLimitError(ValueError):
+    """More events were asked for than :data:`MAX_EVENTS` allows in memory at once."""
+
+
+def check_event_count(count: int, what: str) -> int:
+    """Raise :class:`EventLimitError` when ``count`` exceeds :data:`MAX_EVENTS`; returns ``count``.
+
+    ``what`` names the request in the message (e.g. ``"the window [t0, t1)"``).
+    """
+    limit = int(MAX_EVENTS)
+    if int(count) > limit:
+        raise EventLimitError(
+            f"{what} holds {int(count):,} events, more than cmax.events.MAX_EVENTS={limit:,} "
+            "that fit in memory at once; read it in windows (H5Reader.windows, iter_evt3, "
+            "iter_evt2) or raise cmax.events.MAX_EVENTS deliberately"
+        )
+    return int(count)
+
+
+def check_time_us(name: str, value: object) -> int:
+    """A time in integer microseconds: an int, or a float holding a whole finite number.
+
+    Raises :class:`TypeError` (not a number) or :class:`ValueError` (NaN,
+    infinite, or a fraction of a microsecond) naming ``name``. Python integers
+    of any size are accepted (times beyond int64 lie after every event).
+    """
+    if isinstance(value, (bool, np.bool_)):
+        raise TypeError(f"{name} must be integer microseconds, got {value!r}")
+    if isinstance(value, (int, np.integer)):
+        return int(value)
+    if isinstance(value, (float, np.floating)):
+        if not np.isfinite(value):
+            raise ValueError(f"{name} must be a finite time in microseconds, got {value}")
+        if not float(value).is_integer():
+            raise ValueError(f"{name} must be whole microseconds, got {value}")
+        return int(value)
+    raise TypeError(f"{name} must be integer microseconds, got {value!r} ({type(value).__name__})")
 
 
 class EventTensors(NamedTuple):
@@ -179,6 +230,10 @@ class Events:
         sort: bool = False,
     ) -> None:
         width, height = _check_sensor_size(width, height)
+        for name, values in (("x", x), ("y", y), ("t", t), ("p", p)):
+            shape = np.shape(values)  # no conversion for arrays and views
+            if len(shape) == 1:
+                check_event_count(shape[0], f"the column {name}")
         x = _coordinates("x", x, width, "width")
         y = _coordinates("y", y, height, "height")
         p = _polarities(p)
@@ -366,11 +421,26 @@ class Events:
 
     # -- time slicing -----------------------------------------------------------------
     def index_at(self, t_us: int) -> int:
-        """Index of the first event with ``t >= t_us`` (binary search)."""
+        """Index of the first event with ``t >= t_us`` (binary search).
+
+        ``t_us``: integer microseconds (a float must hold a whole number); times
+        beyond the int64 range give 0 or ``len(self)``.
+        """
+        t_us = check_time_us("t_us", t_us)
+        if t_us > _INT64_MAX:
+            return len(self)
+        if t_us < _INT64_MIN:
+            return 0
         return int(np.searchsorted(self.t, np.int64(t_us), side="left"))
 
     def slice_time(self, t0_us: int, t1_us: int) -> "Events":
-        """Events with ``t0_us <= t < t1_us`` (a view, found by binary search)."""
+        """Events with ``t0_us <= t < t1_us`` (a view, found by binary search).
+
+        Times are integer microseconds (floats must hold whole numbers: a
+        fraction of a µs is refused, not rounded); ``t0_us == t1_us`` gives no
+        events; ``t1_us < t0_us`` raises :class:`ValueError`.
+        """
+        t0_us, t1_us = check_time_us("t0_us", t0_us), check_time_us("t1_us", t1_us)
         if t1_us < t0_us:
             raise ValueError(f"t1_us ({t1_us}) must not be smaller than t0_us ({t0_us})")
         return self[self.index_at(t0_us): self.index_at(t1_us)]
@@ -394,6 +464,8 @@ class Events:
         if count is not None:
             if step_us is not None or t_start_us is not None:
                 raise ValueError("step_us and t_start_us apply to windows by duration only")
+            if isinstance(count, (bool, np.bool_)) or not isinstance(count, (int, np.integer)):
+                raise TypeError(f"count must be an integer number of events, got {count!r}")
             if int(count) <= 0:
                 raise ValueError(f"count must be positive, got {count}")
             for start in range(0, len(self), int(count)):
@@ -402,7 +474,7 @@ class Events:
         duration, step = window_steps(duration_us, step_us)
         if not len(self):
             return
-        start = self.t_start if t_start_us is None else int(t_start_us)
+        start = self.t_start if t_start_us is None else check_time_us("t_start_us", t_start_us)
         while start <= self.t_end:
             yield self.slice_time(start, start + duration)
             start += step
@@ -410,12 +482,13 @@ class Events:
 
 def window_steps(duration_us: int, step_us: int | None) -> tuple[int, int]:
     """Validated ``(duration, step)`` in µs of sliding windows; the step defaults to the duration."""
-    if int(duration_us) <= 0:
+    duration = check_time_us("duration_us", duration_us)
+    if duration <= 0:
         raise ValueError(f"duration_us must be positive, got {duration_us}")
-    step = int(duration_us) if step_us is None else int(step_us)
+    step = duration if step_us is None else check_time_us("step_us", step_us)
     if step <= 0:
         raise ValueError(f"step_us must be positive, got {step_us}")
-    return int(duration_us), step
+    return duration, step
 
 
 def concatenate(parts: Sequence[Events]) -> Events:

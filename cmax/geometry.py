@@ -28,18 +28,42 @@ __all__ = [
 _SMALL_ANGLE = 1e-4
 
 
+# A rotation's ``R^T R`` may differ from the identity by this much (float32 round trips).
+_ROTATION_TOLERANCE = 1e-3
+
+
+def _floats(x: object, name: str) -> np.ndarray:
+    try:
+        array = np.asarray(x, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be an array of numbers, got {x!r}") from None
+    if not np.isfinite(array).all():
+        raise ValueError(f"{name} must be finite (it holds NaN or infinite values)")
+    return array
+
+
 def _vectors(x: object, size: int, name: str) -> np.ndarray:
-    array = np.asarray(x, dtype=np.float64)
+    array = _floats(x, name)
     if array.ndim < 1 or array.shape[-1] != size:
         raise ValueError(f"{name} must have shape (..., {size}), got {array.shape}")
     return array
 
 
 def _matrices(x: object, size: int, name: str) -> np.ndarray:
-    array = np.asarray(x, dtype=np.float64)
+    array = _floats(x, name)
     if array.ndim < 2 or array.shape[-2:] != (size, size):
         raise ValueError(f"{name} must have shape (..., {size}, {size}), got {array.shape}")
     return array
+
+
+def _check_rotations(R: np.ndarray, name: str) -> None:
+    """Raise :class:`ValueError` unless every (3, 3) block is a rotation (orthonormal, det +1)."""
+    error = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(initial=0.0)
+    if error > _ROTATION_TOLERANCE or (np.linalg.det(R) <= 0).any():
+        raise ValueError(
+            f"{name} must be a rotation matrix (orthonormal, determinant +1); "
+            f"max |R^T R - I| = {error:.3g}"
+        )
 
 
 def hat(x: object) -> np.ndarray:
@@ -122,6 +146,7 @@ def so3_log(R: object) -> np.ndarray:
     ``t = pi`` the axis from the diagonal of ``(R + I)/2 = a a^T``.
     """
     R = _matrices(R, 3, "R")
+    _check_rotations(R, "R")
     skew = vee(R - np.swapaxes(R, -1, -2))  # = 2 sin(t) a
     # atan2 keeps full precision at small angles, where arccos does not.
     theta = np.arctan2(np.linalg.norm(skew, axis=-1) / 2.0, (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0)
@@ -214,6 +239,9 @@ def se3_log(T: object) -> np.ndarray:
     ``omega = so3_log(R)``, ``v = J(omega)^-1 t``.
     """
     T = _matrices(T, 4, "T")
+    if np.abs(T[..., 3, :] - [0.0, 0.0, 0.0, 1.0]).max(initial=0.0) > 1e-9:
+        raise ValueError("T must be a rigid transform with last row (0, 0, 0, 1)")
+    _check_rotations(T[..., :3, :3], "T[:3, :3]")
     omega = so3_log(T[..., :3, :3])
     v = (so3_left_jacobian_inv(omega) @ T[..., :3, 3, None])[..., 0]
     return np.concatenate([v, omega], axis=-1)
@@ -286,6 +314,9 @@ def interpolate_poses(
         raise ValueError(f"poses must have shape ({len(times)}, 4, 4), got {poses.shape}")
     if query.ndim != 1:
         raise ValueError(f"query_times_us must have shape (Q,), got {query.shape}")
+    for name, values in (("times_us", times), ("query_times_us", query)):
+        if values.dtype.kind not in "iuf" or (values.dtype.kind == "f" and not np.isfinite(values).all()):
+            raise ValueError(f"{name} must hold finite numbers, got dtype {values.dtype}")
     if len(times) > 1 and not np.all(np.diff(times) > 0):
         raise ValueError("times_us must be strictly increasing")
     if query.size and (query.min() < times[0] or query.max() > times[-1]):

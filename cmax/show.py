@@ -12,6 +12,10 @@ from cmax.viz import depth_image, event_frame_image, hstack, titled, vstack, vox
 
 __all__ = ["read_window", "render_window", "render_events"]
 
+#: Longest time (s) accepted for ``t0``/``dt``: about 31,700 years, far beyond any recording,
+#: yet small enough that microseconds stay exact integers.
+_MAX_SECONDS = 1e12
+
 
 def read_window(
     path: str | os.PathLike, t0_s: float, dt_s: float, *,
@@ -21,6 +25,13 @@ def read_window(
     depth (H, W) nearest to the window's middle when the file has a ``gt/`` group."""
     from cmax.io import H5Reader, detect_format, read
 
+    for name, value in (("dt", dt_s), ("t0", t0_s)):
+        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+            raise TypeError(f"{name} must be a number of seconds, got {value!r}")
+        if not np.isfinite(value) or abs(value) > _MAX_SECONDS:
+            raise ValueError(
+                f"{name} must be a finite number of seconds (at most {_MAX_SECONDS:g}), got {value}"
+            )
     if dt_s <= 0:
         raise ValueError(f"dt must be positive seconds, got {dt_s}")
     if t0_s < 0:

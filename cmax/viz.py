@@ -23,6 +23,21 @@ _WHITE = 255
 _TITLE_HEIGHT = 22
 
 
+def _check_finite(values: np.ndarray, name: str) -> None:
+    if not np.isfinite(values).all():
+        raise ValueError(f"{name} must be finite (it holds NaN or infinite values)")
+
+
+def _check_picture(image: object, name: str = "image") -> np.ndarray:
+    """A BGR picture: a non-empty (H, W, 3) uint8 array."""
+    image = np.asarray(image)
+    if image.ndim != 3 or image.shape[2] != 3 or not image.shape[0] or not image.shape[1]:
+        raise ValueError(f"{name} must be a non-empty (H, W, 3) BGR picture, got shape {image.shape}")
+    if image.dtype != np.uint8:
+        raise TypeError(f"{name} must be uint8, got {image.dtype}")
+    return image
+
+
 def _robust_max(values: np.ndarray, percentile: float = 99.0) -> float:
     nonzero = np.abs(values[values != 0])
     if not nonzero.size:
@@ -39,6 +54,7 @@ def event_frame_image(counts: np.ndarray, *, percentile: float = 99.0) -> np.nda
     counts = np.asarray(counts, dtype=np.float32)
     if counts.ndim != 3 or counts.shape[0] != 2:
         raise ValueError(f"counts must have shape (2, H, W), got {counts.shape}")
+    _check_finite(counts, "counts")
     scale = _robust_max(counts.sum(axis=0), percentile)
     off = np.clip(counts[0] / scale, 0, 1)
     on = np.clip(counts[1] / scale, 0, 1)
@@ -55,7 +71,10 @@ def signed_image(values: np.ndarray, *, scale: float | None = None) -> np.ndarra
     values = np.asarray(values, dtype=np.float32)
     if values.ndim != 2:
         raise ValueError(f"values must have shape (H, W), got {values.shape}")
+    _check_finite(values, "values")
     scale = _robust_max(values) if scale is None else float(scale)
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive finite number, got {scale}")
     level = np.clip(values / scale, -1, 1)
     image = np.full(values.shape + (3,), float(_WHITE), np.float32)
     positive, negative = np.clip(level, 0, 1), np.clip(-level, 0, 1)
@@ -70,6 +89,9 @@ def voxel_grid_image(volume: np.ndarray, *, gap: int = 4) -> np.ndarray:
     volume = np.asarray(volume, dtype=np.float32)
     if volume.ndim != 3:
         raise ValueError(f"volume must have shape (B, H, W), got {volume.shape}")
+    if not volume.shape[0]:
+        raise ValueError("volume must have at least one bin, got shape (0, H, W)")
+    _check_finite(volume, "volume")
     scale = _robust_max(volume)
     tiles = [titled(signed_image(b, scale=scale), f"bin {i}") for i, b in enumerate(volume)]
     return hstack(tiles, gap=gap)
@@ -101,6 +123,7 @@ def depth_image(
 
 def titled(image: np.ndarray, title: str) -> np.ndarray:
     """``image`` with a white strip above it holding ``title``."""
+    image = _check_picture(image)
     strip = np.full((_TITLE_HEIGHT, image.shape[1], 3), _WHITE, np.uint8)
     cv2.putText(strip, title, (4, _TITLE_HEIGHT - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
     return np.vstack([strip, image])
@@ -112,8 +135,16 @@ def _pad_to(image: np.ndarray, height: int, width: int) -> np.ndarray:
     return out
 
 
+def _check_pictures(images: list[np.ndarray]) -> list[np.ndarray]:
+    images = list(images)
+    if not images:
+        raise ValueError("images must hold at least one picture")
+    return [_check_picture(image, f"images[{i}]") for i, image in enumerate(images)]
+
+
 def hstack(images: list[np.ndarray], *, gap: int = 4) -> np.ndarray:
     """Images side by side, top-aligned, separated by ``gap`` white pixels."""
+    images = _check_pictures(images)
     height = max(image.shape[0] for image in images)
     parts: list[np.ndarray] = []
     for i, image in enumerate(images):
@@ -125,6 +156,7 @@ def hstack(images: list[np.ndarray], *, gap: int = 4) -> np.ndarray:
 
 def vstack(images: list[np.ndarray], *, gap: int = 4) -> np.ndarray:
     """Images one above the other, left-aligned, separated by ``gap`` white pixels."""
+    images = _check_pictures(images)
     width = max(image.shape[1] for image in images)
     parts: list[np.ndarray] = []
     for i, image in enumerate(images):
@@ -137,10 +169,17 @@ def vstack(images: list[np.ndarray], *, gap: int = 4) -> np.ndarray:
 def save_png(path: str | os.PathLike, image: np.ndarray) -> Path:
     """Write a BGR or grey uint8 image as PNG atomically (temporary name, then rename)."""
     path = Path(path)
+    image = np.asarray(image)
+    if image.ndim == 2:
+        image = image[..., None].repeat(3, axis=2)
+    image = _check_picture(image)
     ok, encoded = cv2.imencode(".png", np.ascontiguousarray(image))
     if not ok:
         raise ValueError(f"OpenCV could not encode an image of shape {image.shape} as PNG")
     partial = path.with_name(path.name + ".partial")
-    partial.write_bytes(encoded.tobytes())
-    os.replace(partial, path)
+    try:
+        partial.write_bytes(encoded.tobytes())
+        os.replace(partial, path)
+    finally:
+        partial.unlink(missing_ok=True)
     return path

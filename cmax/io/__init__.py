@@ -27,7 +27,7 @@ import numpy as np
 from cmax.events import Events
 from cmax.io.aedat4 import read_aedat4, read_aedat4_imu
 from cmax.io.errors import FormatError
-from cmax.io.h5 import H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
+from cmax.io.h5 import H5_ERRORS, H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
 from cmax.io.mvsec import read_mvsec
 from cmax.io.prophesee import read_evt2, read_evt3, read_raw, write_evt2, write_evt3
 from cmax.io.text import read_txt, write_txt
@@ -54,11 +54,14 @@ def detect_format(path: str | os.PathLike) -> str:
     with open(path, "rb") as handle:
         head = handle.read(16)
     if head.startswith(b"\x89HDF\r\n\x1a\n"):
-        with h5py.File(path, "r") as file:
-            if is_dsec_h5(file):
-                return "dsec"
-            if "davis" in file:
-                return "mvsec"
+        try:
+            with h5py.File(path, "r") as file:
+                if is_dsec_h5(file):
+                    return "dsec"
+                if "davis" in file:
+                    return "mvsec"
+        except H5_ERRORS as error:  # truncated or corrupt HDF5 (h5py raises OSError, KeyError, ...)
+            raise FormatError(f"{path} is not a readable HDF5 file ({error})") from None
         raise FormatError(f"{path} is HDF5 but neither DSEC (events/x..p) nor MVSEC (davis/...)")
     if head.startswith(b"#!AER-DAT4"):
         return "aedat4"

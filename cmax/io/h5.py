@@ -26,13 +26,18 @@ import h5py
 import hdf5plugin
 import numpy as np
 
-from cmax.events import Events, _check_sensor_size, window_steps
+from cmax.events import Events, _check_sensor_size, check_event_count, check_time_us, window_steps
 from cmax.io.errors import FormatError
 
 __all__ = ["H5Writer", "H5Reader", "write_h5", "read_h5", "is_dsec_h5"]
 
 _COLUMNS = {"x": np.uint16, "y": np.uint16, "t": np.int64, "p": np.uint8}
 _DEFAULT_CHUNK = 1 << 18
+
+#: What h5py raises on corrupt files (its errors map HDF5 failures onto these built-ins).
+H5_ERRORS = (OSError, KeyError, RuntimeError, TypeError, ValueError, IndexError)
+_INT64_MAX = int(np.iinfo(np.int64).max)
+_INT64_MIN = int(np.iinfo(np.int64).min)
 
 
 def _compression(name: str) -> dict[str, Any]:
@@ -296,8 +301,16 @@ class H5Reader:
             self._file = h5py.File(self.path, "r")
         except OSError as error:
             raise FormatError(f"{self.path} is not a readable HDF5 file ({error})") from None
+        if width is not None and height is not None:  # the caller's own values: errors stay theirs
+            _check_sensor_size(width, height)
         try:
             self._open(width, height)
+        except FormatError:
+            self._file.close()
+            raise
+        except H5_ERRORS as error:  # corrupt metadata surfaces as any of these from h5py
+            self._file.close()
+            raise FormatError(f"{self.path}: corrupt HDF5 file ({type(error).__name__}: {error})") from None
         except BaseException:
             self._file.close()
             raise
@@ -315,12 +328,17 @@ class H5Reader:
         if width is None and height is None and "width" in attrs and "height" in attrs:
             width, height = int(attrs["width"]), int(attrs["height"])
         if width is None or height is None:
-            raise ValueError(
+            raise FormatError(
                 f"{self.path} stores no sensor size; pass width= and height= (DSEC: 640, 480)"
             )
         self.width, self.height = _check_sensor_size(width, height)
-        self.t_offset_us = int(self._file["t_offset"][()]) if "t_offset" in self._file else 0
-        self._ms_to_idx = self._file["ms_to_idx"][:] if "ms_to_idx" in self._file else None
+        try:
+            self.t_offset_us = int(self._file["t_offset"][()]) if "t_offset" in self._file else 0
+            self._ms_to_idx = self._file["ms_to_idx"][:] if "ms_to_idx" in self._file else None
+        except H5_ERRORS as error:
+            raise FormatError(f"{self.path}: unreadable t_offset or ms_to_idx ({error})") from None
+        if self._ms_to_idx is not None:
+            self._ms_to_idx = _checked_ms_to_idx(self._ms_to_idx, len(self), self.path)
 
     # -- metadata ---------------------------------------------------------------------
     def __len__(self) -> int:
@@ -340,13 +358,19 @@ class H5Reader:
     def t_start(self) -> int:
         """Time of the first event (µs)."""
         self._require_events()
-        return int(self._columns["t"][0]) + self.t_offset_us
+        return self._time_at(0)
 
     @property
     def t_end(self) -> int:
         """Time of the last event (µs)."""
         self._require_events()
-        return int(self._columns["t"][len(self) - 1]) + self.t_offset_us
+        return self._time_at(len(self) - 1)
+
+    def _time_at(self, row: int) -> int:
+        try:
+            return int(self._columns["t"][row]) + self.t_offset_us
+        except H5_ERRORS as error:
+            raise FormatError(f"{self.path}: cannot read events/t[{row}] ({error})") from None
 
     def _require_events(self) -> None:
         if not len(self):
@@ -366,17 +390,21 @@ class H5Reader:
         return lo, min(max(hi, lo), n)
 
     def _index_at(self, t_us: int) -> int:
-        """Index of the first event with t >= t_us, reading at most one ms of rows."""
+        """Index of the first event with t >= t_us: one ms of rows through ``ms_to_idx``,
+        bisected on disk when that ms holds many rows (or the file has no index)."""
         t_rel = int(t_us) - self.t_offset_us
+        if t_rel > _INT64_MAX:
+            return len(self)
+        t_rel = max(t_rel, _INT64_MIN)
         if self._ms_to_idx is None:
-            return self._bisect_on_disk(t_rel)
+            return self._bisect_on_disk(t_rel, 0, len(self))
         lo, hi = self._bounds(t_rel)
         if hi <= lo:
             return lo
-        return lo + int(np.searchsorted(self._columns["t"][lo:hi], t_rel, side="left"))
+        return self._bisect_on_disk(t_rel, lo, hi)
 
-    def _bisect_on_disk(self, t_rel: int) -> int:
-        lo, hi = 0, len(self)
+    def _bisect_on_disk(self, t_rel: int, lo: int, hi: int) -> int:
+        """First row in ``[lo, hi)`` with t >= t_rel, reading single rows until 4096 remain."""
         column = self._columns["t"]
         while hi - lo > 4096:
             mid = (lo + hi) // 2
@@ -387,20 +415,44 @@ class H5Reader:
         return lo + int(np.searchsorted(column[lo:hi], t_rel, side="left"))
 
     def read_rows(self, start: int, stop: int) -> Events:
-        """Events ``start:stop`` by row index."""
+        """Events ``start:stop`` by row index (clipped to the file's rows).
+
+        Raises :class:`~cmax.events.EventLimitError` before reading when the
+        rows exceed :data:`cmax.events.MAX_EVENTS`, and :class:`FormatError`
+        when the stored rows are corrupt (undecodable chunks, coordinates
+        outside the sensor, time going back).
+        """
         start, stop = max(0, int(start)), min(len(self), int(stop))
         stop = max(start, stop)
-        columns = {name: self._columns[name][start:stop] for name in "xytp"}
-        return Events(
-            columns["x"], columns["y"], columns["t"].astype(np.int64) + self.t_offset_us,
-            columns["p"], self.width, self.height,
-        )
+        check_event_count(stop - start, f"{self.path}: rows [{start}, {stop})")
+        try:
+            columns = {name: self._columns[name][start:stop] for name in "xytp"}
+        except H5_ERRORS as error:
+            raise FormatError(f"{self.path}: cannot read rows [{start}, {stop}) ({error})") from None
+        try:
+            return Events(
+                columns["x"], columns["y"], columns["t"].astype(np.int64) + self.t_offset_us,
+                columns["p"], self.width, self.height,
+            )
+        except (TypeError, ValueError) as error:
+            raise FormatError(f"{self.path}: corrupt events in rows [{start}, {stop}): {error}") from None
 
     def window(self, t0_us: int, t1_us: int) -> Events:
-        """Events with ``t0_us <= t < t1_us`` (absolute µs), reading only that slice."""
+        """Events with ``t0_us <= t < t1_us`` (absolute µs), reading only that slice.
+
+        Times are integer µs (floats must be whole). A window holding more than
+        :data:`cmax.events.MAX_EVENTS` events raises
+        :class:`~cmax.events.EventLimitError` before anything is read; iterate
+        over :meth:`windows` of a shorter duration instead.
+        """
+        t0_us, t1_us = check_time_us("t0_us", t0_us), check_time_us("t1_us", t1_us)
         if t1_us < t0_us:
             raise ValueError(f"t1_us ({t1_us}) must not be smaller than t0_us ({t0_us})")
-        return self.read_rows(self._index_at(t0_us), self._index_at(t1_us))
+        try:
+            start, stop = self._index_at(t0_us), self._index_at(t1_us)
+        except H5_ERRORS as error:
+            raise FormatError(f"{self.path}: cannot search events/t ({error})") from None
+        return self.read_rows(start, stop)
 
     def read(self) -> Events:
         """All events (loads the whole file)."""
@@ -427,6 +479,19 @@ class H5Reader:
 
     def __repr__(self) -> str:
         return f"H5Reader({str(self.path)!r}, n={len(self)}, sensor={self.width}x{self.height})"
+
+
+def _checked_ms_to_idx(ms_to_idx: np.ndarray, count: int, path: Path) -> np.ndarray:
+    """``ms_to_idx`` as int64 after checking it: 1-D, non-decreasing, within ``[0, count]``."""
+    if ms_to_idx.ndim != 1 or ms_to_idx.dtype.kind not in "iu":
+        raise FormatError(f"{path}: ms_to_idx must be a 1-D integer array, got {ms_to_idx.dtype} {ms_to_idx.shape}")
+    if ms_to_idx.size and (
+        int(ms_to_idx.min()) < 0 or int(ms_to_idx.max()) > count or np.any(np.diff(ms_to_idx.astype(np.int64)) < 0)
+    ):
+        raise FormatError(
+            f"{path}: corrupt ms_to_idx (entries must be non-decreasing row indices in [0, {count}])"
+        )
+    return ms_to_idx.astype(np.int64)
 
 
 def read_h5(

@@ -12,8 +12,9 @@ from pathlib import Path
 import h5py
 import numpy as np
 
-from cmax.events import Events
+from cmax.events import EventLimitError, Events, check_event_count, check_time_us
 from cmax.io.errors import FormatError
+from cmax.io.h5 import H5_ERRORS
 
 __all__ = ["read_mvsec", "MVSEC_WIDTH", "MVSEC_HEIGHT"]
 
@@ -43,15 +44,27 @@ def read_mvsec(
     if camera not in ("left", "right"):
         raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
     path = Path(path)
-    with h5py.File(path, "r") as file:
-        dataset = _events_dataset(file, path, camera)
-        # Read with a 2 µs margin, then cut exactly on the rounded integer times.
-        start, stop = 0, dataset.shape[0]
-        if t0_us is not None:
-            start = _first_at_or_after(dataset, (t0_us - 2) / 1e6)
-        if t1_us is not None:
-            stop = _first_at_or_after(dataset, (t1_us + 2) / 1e6)
-        table = dataset[start:max(start, stop)]
+    t0_us = None if t0_us is None else check_time_us("t0_us", t0_us)
+    t1_us = None if t1_us is None else check_time_us("t1_us", t1_us)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such event file: {path}")
+    try:
+        with h5py.File(path, "r") as file:
+            dataset = _events_dataset(file, path, camera)
+            # Read with a 2 µs margin, then cut exactly on the rounded integer times.
+            start, stop = 0, dataset.shape[0]
+            if t0_us is not None:
+                start = _first_at_or_after(dataset, (t0_us - 2) / 1e6)
+            if t1_us is not None:
+                stop = _first_at_or_after(dataset, (t1_us + 2) / 1e6)
+            check_event_count(stop - start, f"{path}: rows [{start}, {stop})")
+            table = dataset[start:max(start, stop)]
+    except (FormatError, EventLimitError):
+        raise
+    except H5_ERRORS as error:  # truncated or corrupt HDF5
+        raise FormatError(
+            f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})"
+        ) from None
     if not np.isfinite(table).all():
         raise FormatError(f"{path}: davis/{camera}/events contains non-finite values")
     try:

@@ -7,6 +7,7 @@ IJRR 2017, doi:10.1177/0278364917691115).
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -26,7 +27,9 @@ def read_txt(path: str | os.PathLike, *, width: int, height: int) -> Events:
     """
     path = Path(path)
     try:
-        table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
+        with warnings.catch_warnings():  # an empty file is no events, not a warning
+            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
+            table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
     except (ValueError, UnicodeDecodeError) as error:
         raise FormatError(f"{path} is not an ECD text file of 't x y p' lines ({error})") from None
     if table.size == 0:

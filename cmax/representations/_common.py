@@ -26,7 +26,24 @@ Array = Union[np.ndarray, "torch.Tensor"]
 _CHUNK = 1 << 20
 
 
+#: Most elements of one output (4 GiB of float32): larger grids (absurd ``bins`` or sensor
+#: sizes) raise :class:`ValueError` before anything is allocated.
+MAX_OUTPUT_ELEMENTS = 1 << 30
+
+
 # -- validation ----------------------------------------------------------------------------
+def _check_output_size(shape: tuple[int, ...], what: str) -> None:
+    """Raise :class:`ValueError` naming ``what`` when an output of ``shape`` would be absurd."""
+    elements = 1
+    for size in shape:
+        elements *= int(size)
+    if elements > MAX_OUTPUT_ELEMENTS:
+        raise ValueError(
+            f"{what}: an output of shape {tuple(int(v) for v in shape)} ({elements:,} values) exceeds "
+            f"cmax.representations._common.MAX_OUTPUT_ELEMENTS={MAX_OUTPUT_ELEMENTS:,}"
+        )
+
+
 def _check_int(name: str, value: object, *, minimum: int | None = None) -> int:
     if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)):
         raise TypeError(f"{name} must be an integer, got {value!r} ({type(value).__name__})")

@@ -14,8 +14,8 @@ import numpy as np
 from cmax.events import Events  # noqa: F401  (the doctests' namespace)
 from cmax.representations import _common
 from cmax.representations._common import (
-    Array, EventsLike, _check_optional_time, _chunks, _index_numpy, _index_torch, _inspect,
-    _pixel_counts,
+    Array, EventsLike, _check_optional_time, _check_output_size, _chunks, _index_numpy,
+    _index_torch, _inspect, _pixel_counts,
 )
 
 __all__ = ["event_frame", "time_surface", "EventFrame", "TimeSurface"]
@@ -63,6 +63,7 @@ def event_frame(events: EventsLike, *, signed: bool = False) -> Array:
     signed = _check_bool("signed", signed)
     kind, _ = _inspect(events)
     height, width = events.height, events.width
+    _check_output_size((2, height, width), f"event frame of a {width}x{height} sensor")
     if kind == "numpy":
         frame = _pixel_counts(events).reshape(2, height, width)
         return (frame[1] - frame[0]).astype(np.float32) if signed else frame.astype(np.float32)
@@ -114,6 +115,7 @@ def time_surface(
     t_ref = _check_optional_time("t_ref_us", t_ref_us)
     kind, t_range = _inspect(events)
     height, width = events.height, events.width
+    _check_output_size((2, height, width), f"time surface of a {width}x{height} sensor")
     size = 2 * height * width
     if t_range is None:
         zeros = np.zeros((2, height, width), np.float32)

@@ -20,8 +20,8 @@ import numpy as np
 from cmax.events import Events, EventTensors
 from cmax.representations import _common
 from cmax.representations._common import (
-    Array, EventsLike, _check_int, _check_optional_time, _chunks, _index_numpy, _inspect,
-    _on_torch, _pixel_counts, _stats_torch,
+    Array, EventsLike, _check_int, _check_optional_time, _check_output_size, _chunks,
+    _index_numpy, _inspect, _on_torch, _pixel_counts, _stats_torch,
 )
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -112,6 +112,9 @@ def voxel_grid(
     t0_us = _check_optional_time("t0_us", t0_us)
     t1_us = _check_optional_time("t1_us", t1_us)
     kind, t_range = _inspect(events)
+    _check_output_size(
+        (bins, events.height, events.width), f"bins={bins} on a {events.width}x{events.height} sensor"
+    )
     t0, span = _window(t_range, t0_us, t1_us)
     if kind == "numpy":
         return _voxel_grid_numpy(events, bins, t0, span)
@@ -356,6 +359,10 @@ def voxel_grid_batch(samples: Sequence[EventTensors], bins: int = 5) -> "torch.T
                 f"samples[{i}] has sensor {sample.width}x{sample.height}, "
                 f"samples[0] has {samples[0].width}x{samples[0].height}"
             )
+    _check_output_size(
+        (len(samples), bins, samples[0].height, samples[0].width),
+        f"{len(samples)} samples of bins={bins} on a {samples[0].width}x{samples[0].height} sensor",
+    )
     joined = EventTensors(
         *(torch.cat([getattr(s, name).to(getattr(samples[0], name).dtype) for s in samples])
           for name in "xytp"),

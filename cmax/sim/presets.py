@@ -31,6 +31,7 @@ from typing import Callable
 import numpy as np
 
 from cmax.camera import Camera
+from cmax.events import _check_sensor_size
 from cmax.sim.render import Sky
 from cmax.sim.scenes import PlanarScene, SceneInfo
 from cmax.sim.textures import Texture, make_texture, night_version
@@ -427,6 +428,7 @@ def make_scene(name: str, seed: int = 0, width: int = 346, height: int = 260, *,
         raise ValueError(f"seed must be a non-negative integer, got {seed!r}")
     if not (isinstance(duration_s, (int, float, np.integer, np.floating)) and 0 < duration_s <= 600):
         raise ValueError(f"duration_s must be in (0, 600] seconds, got {duration_s!r}")
+    width, height = _check_sensor_size(width, height)
     camera = davis346_camera(width, height)
     rng = np.random.default_rng([int(seed), sorted(PRESETS).index(name)])
     return PRESETS[name](rng, camera, float(duration_s), int(texture_size))

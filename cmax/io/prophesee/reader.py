@@ -13,7 +13,7 @@ from typing import Iterator
 
 import numpy as np
 
-from cmax.events import Events
+from cmax.events import Events, check_event_count
 from cmax.io.errors import FormatError
 from cmax.io.prophesee._decode import _EVT2, _EVT3, _Codec, _Limits, _WordError
 from cmax.io.prophesee._header import PathLike, _read_header, _sensor_size
@@ -107,7 +107,11 @@ def _iter_events(path, chunks, width, height, sort) -> Iterator[Events]:
 
 def _read(path, codec, width, height, chunk_bytes, sort) -> Events:
     (w, h), chunks = _decode_file(path, codec, width, height, chunk_bytes, not sort)
-    parts = list(chunks)
+    parts, total = [], 0
+    for part in chunks:
+        total += part[0].size
+        check_event_count(total, f"{path} (read whole; iter_{codec.name} streams it)")
+        parts.append(part)
     if not parts:
         return Events.empty(w, h)
     columns = [part[0] if len(parts) == 1 else np.concatenate(part) for part in zip(*parts)]

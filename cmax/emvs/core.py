@@ -1,0 +1,245 @@
+"""``cmax.EMVS``: event-based multi-view stereo by space-sweep voting (the EMVS baseline).
+
+Rebecq, Gallego, Mueggler, Scaramuzza, "EMVS: Event-based multi-view stereo -
+3D reconstruction with an event camera in real-time", IJCV 126, 2018,
+doi:10.1007/s11263-018-1106-2.
+
+>>> emvs = EMVS(camera, depth_range=(0.5, 5.0), n_planes=100)   # doctest: +SKIP
+>>> result = emvs.run(events, (times_us, T_w_c))                  # doctest: +SKIP
+>>> result.depth.shape, result.points.shape                       # doctest: +SKIP
+((180, 240), (P, 3))
+"""
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass
+from functools import partial
+
+import numpy as np
+from tqdm.auto import tqdm
+
+from cmax.camera import Camera
+from cmax.emvs.dsi import (base_plane_homographies, gather_votes, plane_depths, plane_transfer, project_packets,
+                           splat_votes)
+from cmax.emvs.poses import as_trajectory, check_coverage
+from cmax.emvs.result import DSI, SemiDenseDepth, semi_dense_depth
+from cmax.events import Events
+from cmax.geometry import interpolate_poses, invert_pose
+
+__all__ = ["EMVS"]
+
+_VOTING = ("gather", "splat")
+
+
+def _positive_int(name: str, value: object, minimum: int = 1) -> int:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, np.integer)) or value < minimum:
+        raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+    return int(value)
+
+
+def _odd_size(name: str, value: object) -> int:
+    size = _positive_int(name, value)
+    if size % 2 == 0:
+        raise ValueError(f"{name} must be odd, got {size}")
+    return size
+
+
+def _positive_float(name: str, value: object) -> float:
+    if isinstance(value, (bool, np.bool_)) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name} must be a number, got {value!r}")
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"{name} must be positive and finite, got {value}")
+    return float(value)
+
+
+def _packets(t_us: np.ndarray, size: int) -> tuple[np.ndarray, np.ndarray]:
+    """Start indices (K + 1,) of packets of ``size`` events and each packet's mid time (K,) [µs]."""
+    starts = np.append(np.arange(0, len(t_us), size), len(t_us))
+    mid = (t_us[starts[:-1]] + t_us[starts[1:] - 1]) // 2
+    return starts, mid
+
+
+def _groups(centres: np.ndarray, sizes: np.ndarray, max_events: int, max_travel: float) -> list[tuple[int, int]]:
+    """Consecutive packets ``[j, m)`` with at most ``max_events`` events (or one packet) whose
+    camera centres stay within ``max_travel`` [m] of the first one's."""
+    groups, j, n = [], 0, len(sizes)
+    look = max_events // max(int(sizes.min()), 1) + 2  # no group holds more packets
+    while j < n:
+        travel = np.linalg.norm(centres[j: j + look] - centres[j], axis=1)
+        count = np.cumsum(sizes[j: j + look])
+        fits = (travel <= max_travel) & (count <= max_events)
+        m = j + max(1, int(np.argmin(fits)) if not fits.all() else len(fits))
+        groups.append((j, m))
+        j = m
+    return groups
+
+
+@dataclass(frozen=True, eq=False)
+class EMVS:
+    """EMVS: semi-dense depth from events and known camera poses by voting in a Disparity Space Image.
+
+    Parameters
+    ----------
+    camera : Camera
+        Intrinsics, sensor size and optional distortion; event coordinates are
+        undistorted with the camera's lookup table, and the DSI lives on an
+        ideal pinhole view with the same ``K`` and size.
+    depth_range : (float, float)
+        ``(near, far)`` [m] of the planes, ``0 < near < far``.
+    n_planes : int
+        Planes of the DSI, uniform in inverse depth (>= 2).
+    events_per_pose : int
+        Events of one packet, sharing one camera pose interpolated on SE(3)
+        at the packet's middle time; each packet is mapped to the base plane
+        with its own plane-induced homography.
+    events_per_transfer : int
+        Most events of consecutive packets that share one affine transfer to
+        the other planes (one splat and ``n_planes`` resamplings in the
+        ``gather`` voting).
+    transfer_tolerance_px : float
+        Packets share a transfer only while their camera centres stay within
+        ``2 * tol / (f * dr)`` metres of the group's first one, ``f`` the largest of
+        ``fx, fy`` and the principal point's distances to the image border,
+        ``dr`` half the inverse-depth range: a bound of about ``tol`` pixels on the
+        displacement of a vote against its packet's own transfer.
+    voting : {"gather", "splat"}
+        ``gather`` (default, fast): one bilinear splat per group on the base
+        plane resampled into every plane with ``cv2.warpAffine``; ``splat``:
+        the exact bilinear votes of every event on every plane.
+    subpixel : int
+        ``gather`` voting: plane offsets are rounded to ``1/subpixel`` px (the
+        votes move by at most ``1/(2 subpixel)`` px against ``splat``).
+    threshold_kernel, threshold_c : int, float
+        Adaptive Gaussian threshold of the confidence map (window [px] and
+        offset on the 0-255 scale) that makes the semi-dense mask.
+    median_size : int
+        Median filter window of the depth (masked pixels only; 1 disables it).
+    progress : bool
+        Show a progress bar over the packet groups.
+    """
+
+    camera: Camera
+    depth_range: tuple[float, float] = (0.5, 5.0)
+    n_planes: int = 100
+    events_per_pose: int = 256
+    events_per_transfer: int = 32768
+    transfer_tolerance_px: float = 0.5
+    voting: str = "gather"
+    subpixel: int = 4
+    threshold_kernel: int = 5
+    threshold_c: float = 5.0
+    median_size: int = 5
+    progress: bool = False
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.camera, Camera):
+            raise TypeError(f"camera must be a cmax.Camera, got {type(self.camera).__name__}")
+        try:
+            near, far = (float(v) for v in self.depth_range)
+        except (TypeError, ValueError):
+            raise ValueError(f"depth_range must be (near, far) in metres, got {self.depth_range!r}") from None
+        if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+            raise ValueError(f"depth_range must satisfy 0 < near < far (metres), got {self.depth_range!r}")
+        object.__setattr__(self, "depth_range", (near, far))
+        _positive_int("n_planes", self.n_planes, minimum=2)
+        _positive_int("events_per_pose", self.events_per_pose)
+        _positive_int("events_per_transfer", self.events_per_transfer)
+        _positive_float("transfer_tolerance_px", self.transfer_tolerance_px)
+        _positive_int("subpixel", self.subpixel)
+        if self.voting not in _VOTING:
+            raise ValueError(f"voting must be one of {sorted(_VOTING)}, got {self.voting!r}")
+        _odd_size("threshold_kernel", self.threshold_kernel)
+        if self.threshold_kernel < 3:
+            raise ValueError(f"threshold_kernel must be >= 3, got {self.threshold_kernel}")
+        if not np.isfinite(float(self.threshold_c)):
+            raise ValueError(f"threshold_c must be finite, got {self.threshold_c}")
+        _odd_size("median_size", self.median_size)
+
+    @property
+    def depths(self) -> np.ndarray:
+        """Plane depths (n_planes,) [m], nearest first, uniform in inverse depth."""
+        return plane_depths(self.depth_range, self.n_planes)
+
+    def _check_events(self, events: object) -> Events:
+        if not isinstance(events, Events):
+            raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+        if len(events) == 0:
+            raise ValueError("events must not be empty")
+        if events.sensor_size != (self.camera.width, self.camera.height):
+            raise ValueError(f"events come from a {events.width}x{events.height} sensor, "
+                             f"the camera is {self.camera.width}x{self.camera.height}")
+        return events
+
+    def dsi(self, events: Events, poses: object, *, t_ref_us: int | None = None) -> DSI:
+        """Vote the events into the Disparity Space Image of the reference view.
+
+        Parameters
+        ----------
+        events : Events
+            Non-empty, from the camera's sensor.
+        poses : (times_us (M,), T_w_c (M, 4, 4)) or object with ``times_us`` and ``poses``
+            Camera-to-world trajectory covering the events' time span [µs].
+        t_ref_us : int, optional
+            Time of the reference view; default the middle of the events' span,
+            ``(t_first + t_last) // 2``.
+
+        Returns
+        -------
+        DSI
+        """
+        start = time.perf_counter()
+        events = self._check_events(events)
+        times, T_w_c = as_trajectory(poses)
+        t = events.t
+        check_coverage(times, int(t[0]), int(t[-1]))
+        t_ref_us = (int(t[0]) + int(t[-1])) // 2 if t_ref_us is None else int(t_ref_us)
+        T_w_ref = interpolate_poses(times, T_w_c, np.array([t_ref_us]))[0]
+        K = self.camera.K
+        depths = self.depths
+        starts, packet_t = _packets(t, self.events_per_pose)
+        T_ref_c = invert_pose(T_w_ref) @ interpolate_poses(times, T_w_c, packet_t)
+        centres = T_ref_c[:, :3, 3]
+        inverse = 1.0 / depths
+        reach = max(K[0, 0], K[1, 1], K[0, 2], self.camera.width - K[0, 2], K[1, 2], self.camera.height - K[1, 2])
+        max_travel = 2.0 * self.transfer_tolerance_px / (reach * 0.5 * (inverse[0] - inverse[-1]))
+        groups = _groups(centres, np.diff(starts), self.events_per_transfer, max_travel)
+        pixels = self.camera.undistort(events)
+        sizes = np.diff(starts)
+        votes = np.zeros((len(depths), self.camera.height, self.camera.width), np.float32)
+        vote = partial(gather_votes, subpixel=self.subpixel) if self.voting == "gather" else splat_votes
+        voted = 0
+        for j, m in tqdm(groups, desc="EMVS", unit="group", disable=not self.progress):
+            centre = np.average(centres[j:m], axis=0, weights=sizes[j:m])
+            transfer = plane_transfer(centre, depths, K)
+            if transfer is None:
+                continue
+            homographies = base_plane_homographies(T_ref_c[j:m], depths[transfer.base], K)
+            positions, hits = project_packets(pixels[starts[j]: starts[m]], homographies, sizes[j:m])
+            if not hits.all():
+                positions = positions[hits]
+            voted += len(positions)
+            vote(votes, positions, transfer)
+        return DSI(votes, depths, K.copy(), t_ref_us, T_w_ref, voted, time.perf_counter() - start)
+
+    def run(self, events: Events, poses: object, *, t_ref_us: int | None = None) -> SemiDenseDepth:
+        """Semi-dense depth of the reference view from events and camera poses.
+
+        Parameters
+        ----------
+        events : Events
+            Non-empty, from the camera's sensor.
+        poses : (times_us (M,), T_w_c (M, 4, 4)) or object with ``times_us`` and ``poses``
+            Camera-to-world trajectory covering the events' time span [µs]
+            (e.g. ground truth, :func:`cmax.emvs.read_tum_trajectory`, or
+            :func:`cmax.fit_sequence`'s result).
+        t_ref_us : int, optional
+            Time of the reference view; default ``(t_first + t_last) // 2``.
+
+        Returns
+        -------
+        SemiDenseDepth
+        """
+        start = time.perf_counter()
+        dsi = self.dsi(events, poses, t_ref_us=t_ref_us)
+        return semi_dense_depth(dsi, threshold_kernel=self.threshold_kernel, threshold_c=self.threshold_c,
+                                median_size=self.median_size, seconds=time.perf_counter() - start)

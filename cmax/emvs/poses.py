@@ -1,0 +1,145 @@
+"""Camera trajectories for EMVS: the accepted pose inputs and TUM trajectory files.
+
+A trajectory is a pair ``(times_us (M,) int64, T_w_c (M, 4, 4) float64)`` of
+strictly increasing times [µs] and camera-to-world poses. :func:`as_trajectory`
+accepts that pair or any object with attributes ``times_us`` and ``poses``
+(such as :class:`cmax.fitting.SequenceResult`, what :func:`cmax.fit_sequence`
+returns). :func:`read_tum_trajectory` reads the TUM text format
+``t tx ty tz qx qy qz qw`` (``t`` in seconds) that ``cmax fit`` writes
+(``trajectory.txt``) and that the Event Camera Dataset ships as
+``groundtruth.txt``.
+"""
+from __future__ import annotations
+
+import os
+from decimal import Decimal, InvalidOperation
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["as_trajectory", "read_tum_trajectory", "check_coverage"]
+
+#: Largest tolerated deviation of R^T R from the identity in a pose.
+_ROTATION_TOLERANCE = 1e-4
+
+
+def as_trajectory(poses: object, name: str = "poses") -> tuple[np.ndarray, np.ndarray]:
+    """Validate a trajectory given as ``(times_us, T_w_c)`` or an object with ``times_us`` and ``poses``.
+
+    Parameters
+    ----------
+    poses : tuple or object
+        ``(times_us (M,), T_w_c (M, 4, 4))``, or anything with attributes
+        ``times_us`` and ``poses`` of those shapes (e.g. ``cmax.fit_sequence``'s result).
+    name : str
+        Name used in error messages.
+
+    Returns
+    -------
+    times_us : ndarray, shape (M,), int64
+        Strictly increasing times [µs].
+    T_w_c : ndarray, shape (M, 4, 4), float64
+        Camera-to-world poses (a fresh copy).
+
+    Examples
+    --------
+    >>> times, T = as_trajectory(([0, 10], np.stack([np.eye(4)] * 2)))
+    >>> times.dtype.name, T.shape
+    ('int64', (2, 4, 4))
+    """
+    if isinstance(poses, (tuple, list)):
+        if len(poses) != 2:
+            raise ValueError(f"{name} must be a pair (times_us (M,), T_w_c (M, 4, 4)), got {len(poses)} items")
+        times, matrices = poses
+    elif hasattr(poses, "times_us") and hasattr(poses, "poses"):
+        times, matrices = poses.times_us, poses.poses
+    else:
+        raise TypeError(
+            f"{name} must be (times_us, T_w_c) or an object with attributes times_us and poses "
+            f"(e.g. cmax.fit_sequence's result), got {type(poses).__name__}"
+        )
+    times = np.asarray(times)
+    if times.ndim != 1 or times.size < 1:
+        raise ValueError(f"{name}: times_us must have shape (M,) with M >= 1, got {times.shape}")
+    if times.dtype.kind not in "iu":
+        if times.dtype.kind != "f" or not np.all(np.isfinite(times)) or np.any(times != np.round(times)):
+            raise ValueError(f"{name}: times_us must be whole microseconds (integers), got dtype {times.dtype}")
+    times = times.astype(np.int64)
+    if np.any(np.diff(times) <= 0):
+        raise ValueError(f"{name}: times_us must be strictly increasing")
+    matrices = np.array(matrices, dtype=np.float64)
+    if matrices.shape != (times.size, 4, 4):
+        raise ValueError(f"{name}: T_w_c must have shape ({times.size}, 4, 4), got {matrices.shape}")
+    if not np.isfinite(matrices).all():
+        raise ValueError(f"{name}: T_w_c must be finite")
+    if not np.allclose(matrices[:, 3], [0.0, 0.0, 0.0, 1.0]):
+        raise ValueError(f"{name}: T_w_c must be homogeneous (last row 0 0 0 1)")
+    R = matrices[:, :3, :3]
+    error = np.abs(np.swapaxes(R, 1, 2) @ R - np.eye(3)).max()
+    if error > _ROTATION_TOLERANCE or np.any(np.linalg.det(R) <= 0):
+        raise ValueError(f"{name}: the rotation part of T_w_c must be a rotation matrix (|R^T R - I| = {error:.2g})")
+    return times, matrices
+
+
+def check_coverage(times_us: np.ndarray, t_first_us: int, t_last_us: int, name: str = "poses") -> None:
+    """Raise ``ValueError`` unless ``[times_us[0], times_us[-1]]`` covers ``[t_first_us, t_last_us]``."""
+    if times_us[0] > t_first_us or times_us[-1] < t_last_us:
+        raise ValueError(
+            f"{name} cover [{int(times_us[0])}, {int(times_us[-1])}] µs but the events span "
+            f"[{int(t_first_us)}, {int(t_last_us)}] µs; give poses over the whole span "
+            "(or cut the events to the poses' span)"
+        )
+
+
+def _seconds_to_us(token: str, path: Path, line_number: int) -> int:
+    try:
+        return int((Decimal(token) * 1_000_000).to_integral_value())
+    except InvalidOperation:
+        raise ValueError(f"{path}:{line_number}: the time {token!r} is not a number") from None
+
+
+def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
+    """Read a TUM trajectory file: one pose per line, ``t tx ty tz qx qy qz qw``.
+
+    ``t`` is in seconds (read as a decimal, so absolute times keep their
+    microseconds), the translation in metres, the unit quaternion in
+    ``x y z w`` order (as ``cmax fit`` writes it and as the Event Camera
+    Dataset's ``groundtruth.txt``); the pose is camera-to-world. Blank lines
+    and lines starting with ``#`` are skipped.
+
+    Returns
+    -------
+    times_us : ndarray, shape (M,), int64
+    T_w_c : ndarray, shape (M, 4, 4), float64
+    """
+    from scipy.spatial.transform import Rotation
+
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"trajectory file not found: {path}")
+    times, values = [], []
+    for number, line in enumerate(path.read_text().splitlines(), start=1):
+        text = line.strip()
+        if not text or text.startswith("#"):
+            continue
+        tokens = text.replace(",", " ").split()
+        if len(tokens) != 8:
+            raise ValueError(f"{path}:{number}: expected 't tx ty tz qx qy qz qw' (8 numbers), got {len(tokens)}")
+        times.append(_seconds_to_us(tokens[0], path, number))
+        try:
+            values.append([float(v) for v in tokens[1:]])
+        except ValueError:
+            raise ValueError(f"{path}:{number}: expected numbers, got {text!r}") from None
+    if not times:
+        raise ValueError(f"{path}: no poses in the file")
+    values = np.asarray(values)
+    if not np.isfinite(values).all():
+        raise ValueError(f"{path}: non-finite numbers in the trajectory")
+    norms = np.linalg.norm(values[:, 3:], axis=1)
+    if np.any(np.abs(norms - 1.0) > 1e-3):
+        bad = int(np.argmax(np.abs(norms - 1.0)))
+        raise ValueError(f"{path}: quaternion of pose {bad} has norm {norms[bad]:.6f}, expected 1")
+    T = np.tile(np.eye(4), (len(times), 1, 1))
+    T[:, :3, :3] = Rotation.from_quat(values[:, 3:] / norms[:, None]).as_matrix()
+    T[:, :3, 3] = values[:, :3]
+    return as_trajectory((np.asarray(times, dtype=np.int64), T), name=str(path))

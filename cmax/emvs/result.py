@@ -1,0 +1,220 @@
+"""Results of EMVS: the vote volume (:class:`DSI`) and the semi-dense depth map (:class:`SemiDenseDepth`).
+
+:func:`semi_dense_depth` turns a DSI into a depth map as EMVS does (Rebecq et
+al., IJCV 2018, section 4.3): depth = the plane of most votes along each
+pixel's ray, confidence = that maximum, a semi-dense mask by adaptive Gaussian
+thresholding of the confidence map, and a median filter of the depth.
+"""
+from __future__ import annotations
+
+import os
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+__all__ = ["DSI", "SemiDenseDepth", "semi_dense_depth", "depth_scale_bar", "write_ply"]
+
+
+@dataclass(frozen=True, eq=False)
+class DSI:
+    """Disparity Space Image: ray votes on planes of the reference view.
+
+    Attributes
+    ----------
+    votes : ndarray, shape (n_planes, H, W), float32
+        Votes per plane (nearest plane first) and reference pixel.
+    depths : ndarray, shape (n_planes,), float64
+        z-depth of each plane in the reference view [m], uniform in inverse depth.
+    K : ndarray, shape (3, 3)
+        Pinhole of the reference view (undistorted pixels).
+    t_ref_us : int
+        Time of the reference view [µs].
+    T_w_ref : ndarray, shape (4, 4)
+        Pose of the reference view (camera-to-world).
+    n_events : int
+        Events that voted (rays that meet the planes in front of their camera).
+    seconds : float
+        Wall time of the voting [s].
+    """
+
+    votes: np.ndarray
+    depths: np.ndarray
+    K: np.ndarray
+    t_ref_us: int
+    T_w_ref: np.ndarray
+    n_events: int
+    seconds: float
+
+
+@dataclass(frozen=True, eq=False)
+class SemiDenseDepth:
+    """Semi-dense depth map of EMVS in the reference view, and its point cloud.
+
+    Attributes
+    ----------
+    depth : ndarray, shape (H, W), float32
+        z-depth [m] in the reference view; NaN outside ``mask``.
+    confidence : ndarray, shape (H, W), float32
+        Maximum of the DSI along each pixel's ray (votes).
+    mask : ndarray, shape (H, W), bool
+        Semi-dense mask (adaptive Gaussian threshold of the confidence).
+    points : ndarray, shape (P, 3), float64
+        The masked pixels back-projected with their depth, in the world frame [m]
+        (row-major order of the mask).
+    t_ref_us : int
+        Time of the reference view [µs].
+    T_w_ref : ndarray, shape (4, 4)
+        Pose of the reference view (camera-to-world).
+    depth_range : tuple of float
+        ``(near, far)`` of the planes [m].
+    n_planes : int
+    seconds : float
+        Wall time of the whole run [s].
+    K : ndarray, shape (3, 3)
+        Pinhole of the reference view.
+    n_events : int
+        Events that voted.
+    """
+
+    depth: np.ndarray
+    confidence: np.ndarray
+    mask: np.ndarray
+    points: np.ndarray
+    t_ref_us: int
+    T_w_ref: np.ndarray
+    depth_range: tuple[float, float]
+    n_planes: int
+    seconds: float
+    K: np.ndarray
+    n_events: int
+
+    def image(self) -> np.ndarray:
+        """Picture (BGR uint8): the confidence map beside the coloured depth and its scale bar [m]."""
+        from cmax import viz
+
+        confidence = self.confidence
+        top = float(np.percentile(confidence[confidence > 0], 99)) if np.any(confidence > 0) else 1.0
+        grey = (255 * (1.0 - np.clip(confidence / top, 0, 1))).astype(np.uint8)
+        height = self.depth.shape[0]
+        depth = viz.depth_image(self.depth, depth_range=self.depth_range)
+        depth[~self.mask] = 255  # white outside the mask
+        return viz.hstack([
+            viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), "confidence (DSI max)"),
+            viz.titled(depth, f"semi-dense depth, {int(self.mask.sum())} px"),
+            viz.titled(depth_scale_bar(height, self.depth_range), "m"),
+        ])
+
+    def plot(self, path: str | os.PathLike) -> Path:
+        """Write :meth:`image` as a PNG (atomically); returns the path."""
+        from cmax import viz
+
+        return viz.save_png(path, self.image())
+
+    def save_ply(self, path: str | os.PathLike, *, binary: bool = True) -> Path:
+        """Write :attr:`points` (world frame, metres) as a PLY point cloud (atomically); returns the path."""
+        return write_ply(path, self.points, binary=binary)
+
+
+def _masked_median(depth: np.ndarray, mask: np.ndarray, size: int) -> np.ndarray:
+    """Median of the masked depths in the ``size`` x ``size`` window of every masked pixel (H, W) float32."""
+    radius = size // 2
+    values = np.where(mask, depth, np.nan).astype(np.float32)
+    padded = np.pad(values, radius, constant_values=np.nan)
+    windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size))
+    rows, cols = np.nonzero(mask)
+    out = np.full(depth.shape, np.nan, np.float32)
+    out[rows, cols] = np.nanmedian(windows[rows, cols].reshape(len(rows), -1), axis=1)
+    return out
+
+
+def semi_dense_depth(dsi: DSI, *, threshold_kernel: int = 5, threshold_c: float = 5.0,
+                     median_size: int = 5, seconds: float | None = None) -> SemiDenseDepth:
+    """Depth map of a DSI: argmax along depth, confidence, adaptive Gaussian mask, median filter.
+
+    Parameters
+    ----------
+    dsi : DSI
+    threshold_kernel : int
+        Odd window of ``cv2.adaptiveThreshold`` (Gaussian weights) [px].
+    threshold_c : float
+        A pixel is kept when its confidence, scaled to 0-255 by the map's
+        maximum, exceeds the Gaussian-weighted local mean by more than this.
+    median_size : int
+        Odd window of the median filter of the depth [px]; the median is taken
+        over the masked pixels of the window (1 disables it).
+    seconds : float, optional
+        Wall time to record (default: the DSI's).
+
+    Returns
+    -------
+    SemiDenseDepth
+    """
+    votes = dsi.votes
+    index = np.argmax(votes, axis=0)
+    confidence = np.take_along_axis(votes, index[None], axis=0)[0].astype(np.float32)
+    peak = float(confidence.max())
+    if peak > 0:
+        scaled = np.round(255.0 * confidence / peak).astype(np.uint8)
+        mask = cv2.adaptiveThreshold(scaled, 1, cv2.ADAPTIVE_THRESH_GAUSSIAN_C, cv2.THRESH_BINARY,
+                                     threshold_kernel, -threshold_c).astype(bool) & (confidence > 0)
+    else:
+        mask = np.zeros(confidence.shape, bool)
+    depth = dsi.depths[index].astype(np.float32)
+    depth = _masked_median(depth, mask, median_size) if median_size > 1 else np.where(mask, depth, np.nan)
+    rows, cols = np.nonzero(mask)
+    pixels = np.column_stack([cols, rows, np.ones(len(rows))]).astype(np.float64)
+    points_ref = (pixels @ np.linalg.inv(dsi.K).T) * depth[rows, cols, None].astype(np.float64)
+    points_w = points_ref @ dsi.T_w_ref[:3, :3].T + dsi.T_w_ref[:3, 3]
+    return SemiDenseDepth(
+        depth=depth.astype(np.float32), confidence=confidence, mask=mask, points=points_w,
+        t_ref_us=int(dsi.t_ref_us), T_w_ref=dsi.T_w_ref.copy(),
+        depth_range=(float(dsi.depths[0]), float(dsi.depths[-1])), n_planes=len(dsi.depths),
+        seconds=float(dsi.seconds if seconds is None else seconds), K=dsi.K.copy(), n_events=int(dsi.n_events),
+    )
+
+
+def depth_scale_bar(height: int, depth_range: tuple[float, float], *, width: int = 56,
+                    ticks: int = 5) -> np.ndarray:
+    """Vertical colour bar (height, width, 3) BGR of :func:`cmax.viz.depth_image`'s scale, labelled in metres.
+
+    Near (bright) at the top; ``ticks`` labels evenly spaced in inverse depth.
+    """
+    from cmax import viz
+
+    near, far = depth_range
+    inverse = np.linspace(1.0 / near, 1.0 / far, height)
+    bar = viz.depth_image(np.repeat((1.0 / inverse)[:, None], 14, axis=1).astype(np.float32),
+                          depth_range=depth_range)
+    image = np.full((height, width, 3), 255, np.uint8)
+    image[:, :14] = bar
+    for k in range(ticks):
+        row = int(round(k * (height - 1) / (ticks - 1)))
+        label = f"{1.0 / inverse[row]:.2f}"
+        image[row, 14:18] = 0
+        y = min(max(row + 4, 10), height - 2)
+        cv2.putText(image, label, (19, y), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
+    return image
+
+
+def write_ply(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -> Path:
+    """Write points (P, 3) [m] as a PLY file (binary little-endian float32 or ASCII), atomically."""
+    points = np.asarray(points, dtype=np.float64)
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (P, 3), got {points.shape}")
+    if not np.isfinite(points).all():
+        raise ValueError("points must be finite")
+    path = Path(path)
+    kind = "binary_little_endian" if binary else "ascii"
+    header = (f"ply\nformat {kind} 1.0\ncomment written by cmax.emvs (EMVS semi-dense depth)\n"
+              f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
+    partial = path.with_name(path.name + ".partial")
+    with open(partial, "wb") as file:
+        file.write(header.encode("ascii"))
+        if binary:
+            file.write(points.astype("<f4").tobytes())
+        else:
+            np.savetxt(file, points, fmt="%.6f")
+    os.replace(partial, path)
+    return path

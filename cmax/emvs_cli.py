@@ -1,0 +1,136 @@
+"""The ``cmax emvs`` command: semi-dense depth of a recording from known poses (EMVS).
+
+Register with ``add_emvs_command(subparsers)`` in :mod:`cmax.cli`.
+
+Outputs in ``-o outdir/``: ``depth.npz`` (``depth``, ``confidence``, ``mask``,
+``t_ref_us``, ``T_w_ref``, ``K``, ``depth_range``), ``depth.png`` (confidence
+and coloured depth with a scale bar in metres) and ``points.ply`` (the
+semi-dense point cloud in the world frame); one summary line on stdout.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+from pathlib import Path
+
+import numpy as np
+
+__all__ = ["add_emvs_command", "run_emvs", "camera_for"]
+
+
+def _numbers(text: str, counts: tuple[int, ...], what: str) -> np.ndarray:
+    try:
+        values = np.array([float(v) for v in text.split(",")])
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"{what} must be comma-separated numbers, got {text!r}") from None
+    if values.size not in counts or not np.isfinite(values).all():
+        raise argparse.ArgumentTypeError(f"{what} must be {' or '.join(map(str, counts))} finite numbers, got {text!r}")
+    return values
+
+
+def _intrinsics(text: str) -> np.ndarray:
+    return _numbers(text, (4,), "--K (fx,fy,cx,cy)")
+
+
+def _distortion(text: str) -> np.ndarray:
+    return _numbers(text, (4, 5), "--distortion (k1,k2,p1,p2[,k3])")
+
+
+def _depth_range(text: str) -> tuple[float, float]:
+    near, far = _numbers(text, (2,), "--depth-range (near,far)")
+    return float(near), float(far)
+
+
+def _size(text: str) -> tuple[int, int]:
+    try:
+        width, height = (int(part) for part in text.lower().split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 240x180, got {text!r}") from None
+    return width, height
+
+
+def add_emvs_command(subparsers) -> argparse.ArgumentParser:
+    """Add ``emvs`` to an ``argparse`` sub-parser collection; returns the new parser."""
+    parser = subparsers.add_parser(
+        "emvs", help="semi-dense depth from events and known poses (EMVS space sweep)",
+        description="EMVS (Rebecq et al., IJCV 2018): vote the events into a Disparity Space Image on the "
+        "reference view at the middle of their time span, using the poses of a TUM trajectory file "
+        "(t[s] tx ty tz qx qy qz qw, camera-to-world, on the events' clock: what `cmax fit` writes, or "
+        "ground truth); write depth.npz, depth.png and points.ply to the output folder.")
+    parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
+    parser.add_argument("--poses", required=True, type=Path, help="TUM trajectory file")
+    parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
+    parser.add_argument("--K", type=_intrinsics, default=None,
+                        help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file)")
+    parser.add_argument("--distortion", type=_distortion, default=None, help="OpenCV k1,k2,p1,p2[,k3]")
+    parser.add_argument("--depth-range", type=_depth_range, default=(0.5, 5.0), metavar="NEAR,FAR",
+                        help="depth range of the planes [m] (default 0.5,5)")
+    parser.add_argument("--planes", type=int, default=100, help="number of depth planes (default 100)")
+    parser.add_argument("--t0", type=float, default=None, help="start, seconds after the first event")
+    parser.add_argument("--t1", type=float, default=None, help="end, seconds after the first event")
+    parser.add_argument("--size", type=_size, default=None, metavar="WxH",
+                        help="sensor size, for files that do not store it (ECD text, .npy)")
+    parser.set_defaults(run=run_emvs)
+    return parser
+
+
+def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distortion: np.ndarray | None):
+    """The :class:`cmax.Camera` of a recording: ``--K`` or, for an h5 file, its ``gt/K``."""
+    from cmax.camera import Camera
+
+    if K is None:
+        import h5py
+
+        try:
+            with h5py.File(path, "r") as file:
+                matrix = np.asarray(file["gt/K"]) if "gt/K" in file else None
+        except OSError:
+            matrix = None
+        if matrix is None:
+            raise ValueError(f"{path} holds no gt/K; give the intrinsics with --K fx,fy,cx,cy")
+        return Camera(matrix, width, height, distortion)
+    fx, fy, cx, cy = K
+    return Camera.from_intrinsics(fx, fy, cx, cy, width, height, distortion)
+
+
+def _save_npz(path: Path, **arrays: np.ndarray) -> None:
+    partial = path.with_name(path.name + ".partial")
+    with open(partial, "wb") as file:
+        np.savez_compressed(file, **arrays)
+    os.replace(partial, path)
+
+
+def run_emvs(args: argparse.Namespace) -> int:
+    """Run the command; returns the exit status."""
+    from cmax.emvs import EMVS, read_tum_trajectory
+    from cmax.io import read
+
+    width, height = args.size if args.size else (None, None)
+    events = read(args.file, width=width, height=height)
+    if len(events) == 0:
+        raise ValueError(f"{args.file} holds no events")
+    if args.t0 is not None or args.t1 is not None:
+        start = int(events.t[0])
+        t0 = start + int(round((args.t0 or 0.0) * 1e6))
+        t1 = int(events.t[-1]) + 1 if args.t1 is None else start + int(round(args.t1 * 1e6))
+        if t1 <= t0:
+            raise ValueError(f"--t1 must be after --t0, got {args.t0} and {args.t1}")
+        events = events.slice_time(t0, t1)
+        if len(events) == 0:
+            raise ValueError(f"no events between --t0 {args.t0} s and --t1 {args.t1} s")
+    camera = camera_for(args.file, events.width, events.height, args.K, args.distortion)
+    trajectory = read_tum_trajectory(args.poses)
+    result = EMVS(camera, depth_range=args.depth_range, n_planes=args.planes).run(events, trajectory)
+    out = Path(args.output)
+    out.mkdir(parents=True, exist_ok=True)
+    _save_npz(out / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
+              t_ref_us=np.int64(result.t_ref_us), T_w_ref=result.T_w_ref, K=result.K,
+              depth_range=np.array(result.depth_range))
+    result.plot(out / "depth.png")
+    result.save_ply(out / "points.ply")
+    depths = result.depth[result.mask]
+    median = f"{np.median(depths):.3f} m" if depths.size else "n/a"
+    print(f"emvs: {len(events):,} events, {result.n_planes} planes, {int(result.mask.sum()):,} px in the mask "
+          f"({result.mask.mean():.1%}), median depth {median}, {result.seconds:.2f} s "
+          f"({len(events) / max(result.seconds, 1e-9) / 1e6:.2f} Mev/s); results in {out}")
+    return 0

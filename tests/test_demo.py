@@ -1,0 +1,105 @@
+"""The end-to-end demo: a reduced run (seconds) checks its files and its errors; the full run is slow."""
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from cmax.demo import DemoReport, DemoSettings, run_demo
+
+#: Reduced settings: 160x120, 0.4 s, one 0.1665 s window (about 3-10 s on 2 busy cores).
+SMALL = DemoSettings(seed=2, width=160, height=120, duration_s=0.4, n_planes=64, texture_size=128)
+
+
+@pytest.fixture(scope="module")
+def small_demo(tmp_path_factory: pytest.TempPathFactory) -> tuple[DemoReport, list[str]]:
+    lines: list[str] = []
+    report = run_demo(tmp_path_factory.mktemp("demo"), settings=SMALL, log=lines.append)
+    return report, lines
+
+
+def test_demo_writes_its_files(small_demo: tuple[DemoReport, list[str]]) -> None:
+    report, lines = small_demo
+    for path in (report.report_png, report.report_md, report.summary_txt, report.events_h5):
+        assert path.is_file() and path.stat().st_size > 0
+        assert not path.with_name(path.name + ".partial").exists()
+    picture = cv2.imread(str(report.report_png))
+    # two rows of 160x120 tiles (4 and 3 wide) plus titles and the text lines
+    assert picture.shape[1] == 4 * 160 + 3 * 4 and picture.shape[0] > 2 * 120
+    assert [line[:5] for line in lines if line.startswith("[")] == ["[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"]
+    assert set(report.seconds) == {"simulation", "write", "cmax.fit", "EMVS", "report", "total"}
+    assert report.seconds["total"] >= sum(v for k, v in report.seconds.items() if k != "total") * 0.99
+
+
+def test_demo_text_files_hold_the_measured_numbers(small_demo: tuple[DemoReport, list[str]]) -> None:
+    report, _ = small_demo
+    summary = report.summary_txt.read_text()
+    markdown = report.report_md.read_text()
+    for text in (summary, markdown):
+        assert f"abs_rel {report.fit_depth['abs_rel']:.3f}" in text
+        assert f"Abs mean {report.emvs_depth['abs_mean']:.3f} m" in text
+        assert f"omega RMS error {report.motion['omega_rms_deg_s']:.2f} deg/s" in text
+        assert f"direction error {report.motion['direction_error_deg']:.1f} deg" in text
+    assert "events" in summary  # cmax info lines of the written file
+
+
+def test_demo_errors_are_finite_and_small(small_demo: tuple[DemoReport, list[str]]) -> None:
+    report, _ = small_demo
+    fit, emvs, motion = report.fit_depth, report.emvs_depth, report.motion
+    for value in (fit["abs_rel"], fit["abs_mean"], emvs["abs_rel"], emvs["abs_mean"],
+                  motion["omega_rms_deg_s"], motion["direction_error_deg"]):
+        assert math.isfinite(value)
+    # generous bounds (measured: fit abs_rel ~0.34, EMVS ~0.42, omega ~1.2 deg/s, direction ~19 deg)
+    assert fit["abs_rel"] < 0.8 and emvs["abs_rel"] < 0.7
+    assert motion["omega_rms_deg_s"] < 10.0 and motion["direction_error_deg"] < 60.0
+    # EMVS is semi-dense, the fit's event mask covers more of the image; both cover something
+    assert 0 < emvs["coverage"] < fit["coverage"] <= 1
+    assert report.n_events > 10_000
+
+
+def test_demo_h5_holds_events_and_ground_truth(small_demo: tuple[DemoReport, list[str]]) -> None:
+    from cmax.sim import load_sequence
+
+    report, _ = small_demo
+    sequence = load_sequence(report.events_h5)
+    assert len(sequence.events) == report.n_events
+    assert sequence.depth.shape == (1, 120, 160) and np.isfinite(sequence.depth).any()
+
+
+@pytest.mark.parametrize("field, value, message", [
+    ("width", 8, "width must be an integer >= 16"),
+    ("n_planes", 1, "n_planes must be an integer >= 2"),
+    ("window_s", 1.0, "window_s must be in"),
+    ("start_s", -1.0, "start_s must be >= 0"),
+])
+def test_demo_settings_validate(field: str, value: object, message: str) -> None:
+    with pytest.raises(ValueError, match=message):
+        DemoSettings(**{field: value})
+
+
+def test_run_demo_rejects_unknown_settings(tmp_path: Path) -> None:
+    with pytest.raises(TypeError):
+        run_demo(tmp_path, colour="red")
+
+
+def test_cli_demo_runs_with_small_settings(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    from cmax.cli import main
+
+    code = main(["demo", "-o", str(tmp_path), "--size", "96x72", "--duration", "0.25", "--window", "0.1",
+                 "--seed", "3"])
+    out = capsys.readouterr().out
+    assert code == 0 and (tmp_path / "report.png").is_file()
+    assert f"demo report: {tmp_path / 'report.png'}" in out and "[5/5]" in out
+    assert "96x72" in (tmp_path / "summary.txt").read_text()
+
+
+@pytest.mark.slow
+def test_full_default_demo(tmp_path: Path) -> None:
+    report = run_demo(tmp_path)
+    assert report.report_png.is_file()
+    for value in (report.fit_depth["abs_rel"], report.emvs_depth["abs_rel"], report.motion["omega_rms_deg_s"]):
+        assert math.isfinite(value)
+    assert report.emvs_depth["abs_rel"] < 0.7

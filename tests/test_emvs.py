@@ -1,0 +1,370 @@
+"""EMVS: geometry of the transfer, voting paths, depth of a known plane, pose inputs, bad input, CLI."""
+from __future__ import annotations
+
+import types
+
+import cv2
+import h5py
+import numpy as np
+import pytest
+
+from cmax import Camera, Events
+from cmax.emvs import EMVS, DSI, SemiDenseDepth, as_trajectory, read_tum_trajectory, semi_dense_depth
+from cmax.emvs.dsi import (base_plane_homographies, bilinear_splat, gather_votes, plane_depths, plane_transfer,
+                           project_packets, splat_votes)
+from cmax.geometry import se3_exp
+from cmax.sim.esim import EventSimulator
+
+PLANE_DEPTH = 2.0
+
+
+def _plane_sequence(width=120, height=90, focal=150.0, depth=PLANE_DEPTH, travel=0.6, frames=241, seed=0):
+    """Events of a fronto-parallel textured plane at ``depth`` seen by a camera sliding along x.
+
+    A point X on the plane projects to ``u = f (X - tx) / Z + cx``, so the frame at camera
+    position ``tx`` is the texture shifted by ``f tx / Z`` pixels (exact, by construction).
+    """
+    rng = np.random.default_rng(seed)
+    margin = int(np.ceil(focal * travel / depth)) + 8
+    noise = rng.random((height + 2 * margin, width + 2 * margin)).astype(np.float32)
+    texture = cv2.GaussianBlur(noise, (0, 0), 2.0)
+    texture = 30 + 200 * (texture - texture.min()) / (texture.max() - texture.min())
+    times_us = np.linspace(0, 300_000, frames).round().astype(np.int64)
+    tx = np.linspace(-travel / 2, travel / 2, frames)
+    images = [cv2.warpAffine(texture, np.array([[1.0, 0, focal * x / depth + margin], [0, 1.0, margin]]),
+                             (width, height), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP) for x in tx]
+    events = EventSimulator(cp=0.15, cn=0.15).simulate(np.stack(images), times_us)
+    poses = np.tile(np.eye(4), (frames, 1, 1))
+    poses[:, 0, 3] = tx
+    camera = Camera.from_intrinsics(focal, focal, (width - 1) / 2, (height - 1) / 2, width, height)
+    return events, camera, (times_us, poses)
+
+
+@pytest.fixture(scope="module")
+def plane():
+    return _plane_sequence()
+
+
+@pytest.fixture(scope="module")
+def plane_result(plane):
+    events, camera, poses = plane
+    return EMVS(camera, depth_range=(1.0, 4.0), n_planes=100).run(events, poses)
+
+
+# -- geometry --------------------------------------------------------------------------------
+def test_plane_depths_uniform_in_inverse_depth():
+    depths = plane_depths((0.5, 5.0), 10)
+    assert depths[0] == pytest.approx(0.5) and depths[-1] == pytest.approx(5.0)
+    np.testing.assert_allclose(np.diff(1.0 / depths), (1 / 5.0 - 1 / 0.5) / 9)
+
+
+def _intersect(K, R, C, pixel, z):
+    """Reference pixel where the ray of ``pixel`` from camera (R, C) meets Z_ref = z (direct 3D solve)."""
+    d = R @ np.linalg.solve(K, [pixel[0], pixel[1], 1.0])
+    point = C + (z - C[2]) / d[2] * d
+    p = K @ (point / point[2])
+    return p[:2]
+
+
+def test_base_positions_and_affine_transfer_match_ray_plane_intersections():
+    rng = np.random.default_rng(3)
+    K = np.array([[200.0, 0.5, 118.0], [0.0, 190.0, 92.0], [0.0, 0.0, 1.0]])
+    depths = plane_depths((0.8, 6.0), 12)
+    for _ in range(5):
+        T = se3_exp(np.r_[rng.normal(0, 0.15, 3), rng.normal(0, 0.1, 3)])
+        R, C = T[:3, :3], T[:3, 3]
+        transfer = plane_transfer(C, depths, K)
+        pixels = rng.uniform([0, 0], [240, 180], (20, 2))
+        H = base_plane_homographies(np.stack([T, T]), depths[transfer.base], K)
+        base, hits = project_packets(pixels, H, np.array([12, 8]))
+        assert hits.all()
+        for pixel, x_b in zip(pixels, base):
+            np.testing.assert_allclose(x_b, _intersect(K, R, C, pixel, depths[transfer.base]), atol=1e-8)
+            for i in np.flatnonzero(transfer.valid):
+                expected = _intersect(K, R, C, pixel, depths[i])
+                np.testing.assert_allclose(transfer.scales[i] * x_b + transfer.offsets[i], expected, atol=1e-7)
+
+
+def test_transfer_skips_planes_behind_the_camera():
+    K = np.array([[100.0, 0, 50], [0, 100, 50], [0, 0, 1]])
+    depths = plane_depths((1.0, 4.0), 8)
+    transfer = plane_transfer(np.array([0.0, 0.0, 1.5]), depths, K)
+    np.testing.assert_array_equal(transfer.valid, depths > 1.5)
+    assert transfer.valid[transfer.base] and np.all(transfer.scales[transfer.valid] > 0)
+    assert plane_transfer(np.array([0.0, 0.0, 5.0]), depths, K) is None
+
+
+def test_bilinear_splat_matches_per_point_weights():
+    x = np.array([[1.25, 3.0, 0.5, 4.9]])
+    y = np.array([[2.5, 0.0, 3.75, 1.0]])
+    out = bilinear_splat(x, y, np.array([1.0, 2.0, 1.0, 1.0]), 5, 4)[0]
+    expected = np.zeros((4, 5))
+    for xi, yi, w in zip(x[0], y[0], [1.0, 2.0, 1.0, 1.0]):
+        for X in range(5):
+            for Y in range(4):
+                expected[Y, X] += w * max(0, 1 - abs(xi - X)) * max(0, 1 - abs(yi - Y))
+    np.testing.assert_allclose(out, expected, atol=1e-12)
+    assert out.sum() == pytest.approx(1.0 + 2.0 + 0.25 + 0.1)  # y = 3.75 keeps 0.25, x = 4.9 keeps 0.1
+
+
+# -- the two voting paths ----------------------------------------------------------------------
+def _random_case(centre, n=3000, seed=0):
+    K = np.array([[100.0, 0, 60], [0, 100, 45], [0, 0, 1]])
+    depths = plane_depths((1.0, 4.0), 20)
+    rng = np.random.default_rng(seed)
+    positions = np.column_stack([rng.uniform(10, 110, n), rng.uniform(10, 80, n)])
+    return positions, plane_transfer(np.asarray(centre, float), depths, K)
+
+
+@pytest.mark.parametrize("subpixel", [4, 32])
+def test_gather_equals_splat_to_the_rounding_bound_for_translations(subpixel):
+    positions, transfer = _random_case([0.2, 0.05, 0.0])
+    fast = np.zeros((20, 90, 120), np.float32)
+    exact = np.zeros_like(fast)
+    gather_votes(fast, positions, transfer, subpixel=subpixel)
+    splat_votes(exact, positions, transfer)
+    # Offsets rounded to 1/S px: every vote moves by <= 1/(2S) px per axis, so the L1
+    # change of one event's bilinear weights is <= 2 (|dx| + |dy|) <= 2 / S.
+    l1 = np.abs(fast - exact).sum(axis=(1, 2))
+    assert np.all(l1 <= 2 * len(positions) / subpixel)
+    np.testing.assert_allclose(fast.sum(axis=(1, 2)), exact.sum(axis=(1, 2)), rtol=1e-5)
+
+
+def test_gather_with_scaled_planes_keeps_votes_and_matches_smoothed_splat():
+    positions, transfer = _random_case([0.05, 0.02, 0.3])  # moving along the optical axis: a_i != 1
+    assert np.ptp(transfer.scales[transfer.valid]) > 0.2
+    fast = np.zeros((20, 90, 120), np.float32)
+    exact = np.zeros_like(fast)
+    gather_votes(fast, positions, transfer)
+    splat_votes(exact, positions, transfer)
+    # Each event keeps one vote per plane (the 1/a^2 of the resampling), up to border effects.
+    np.testing.assert_allclose(fast.sum(axis=(1, 2)), exact.sum(axis=(1, 2)), rtol=0.01)
+    # The bilinear gather adds one bilinear blur: both agree once smoothed.
+    blur = lambda v: np.stack([cv2.GaussianBlur(p, (0, 0), 1.5) for p in v])  # noqa: E731
+    assert np.abs(blur(fast) - blur(exact)).max() <= 0.08 * blur(exact).max()
+
+
+# -- depth of a known plane --------------------------------------------------------------------
+def test_plane_depth_recovered_within_two_percent(plane, plane_result):
+    result = plane_result
+    assert isinstance(result, SemiDenseDepth)
+    assert result.depth.shape == (90, 120) and result.depth.dtype == np.float32
+    assert 0.05 < result.mask.mean() < 0.6  # semi-dense: neither empty nor everything
+    assert np.isnan(result.depth[~result.mask]).all() and np.isfinite(result.depth[result.mask]).all()
+    assert abs(np.median(result.depth[result.mask]) / PLANE_DEPTH - 1) < 0.02
+    assert np.mean(np.abs(result.depth[result.mask] / PLANE_DEPTH - 1) < 0.05) > 0.75
+    events = plane[0]
+    assert result.t_ref_us == (int(events.t[0]) + int(events.t[-1])) // 2
+    assert result.n_planes == 100 and result.depth_range == pytest.approx((1.0, 4.0))
+
+
+def test_exact_splat_voting_recovers_the_plane_too(plane):
+    events, camera, poses = plane
+    result = EMVS(camera, depth_range=(1.0, 4.0), n_planes=40, voting="splat").run(events, poses)
+    assert abs(np.median(result.depth[result.mask]) / PLANE_DEPTH - 1) < 0.02
+
+
+def test_reference_pose_and_points_in_the_world_frame(plane, plane_result):
+    result = plane_result
+    times, poses = plane[2]
+    x_ref = np.interp(result.t_ref_us, times, poses[:, 0, 3])
+    np.testing.assert_allclose(result.T_w_ref[:3, 3], [x_ref, 0, 0], atol=1e-9)
+    assert result.points.shape == (int(result.mask.sum()), 3)
+    # Back in the reference camera, every point projects onto its pixel with its depth.
+    points_ref = result.points - result.T_w_ref[:3, 3]
+    rows, cols = np.nonzero(result.mask)
+    pixels = points_ref @ result.K.T
+    np.testing.assert_allclose(pixels[:, 0] / pixels[:, 2], cols, atol=1e-6)
+    np.testing.assert_allclose(pixels[:, 1] / pixels[:, 2], rows, atol=1e-6)
+    np.testing.assert_allclose(points_ref[:, 2], result.depth[rows, cols], rtol=1e-6)
+
+
+def test_depth_from_a_synthetic_dsi():
+    votes = np.zeros((5, 20, 30), np.float32)
+    depths = plane_depths((1.0, 5.0), 5)
+    votes[3, 5:15, 10] = 10.0  # a vertical line at plane 3
+    votes[1, 8, 20] = 6.0      # one point at plane 1
+    votes += 0.1
+    dsi = DSI(votes, depths, np.array([[50.0, 0, 15], [0, 50, 10], [0, 0, 1]]), 0, np.eye(4), 1, 0.0)
+    result = semi_dense_depth(dsi, median_size=1)
+    assert result.mask[5:15, 10].all() and result.mask[8, 20]
+    assert result.mask.sum() == 11
+    np.testing.assert_allclose(result.depth[5:15, 10], depths[3], rtol=1e-6)
+    assert result.depth[8, 20] == pytest.approx(depths[1])
+    np.testing.assert_allclose(result.confidence[5:15, 10], 10.1, rtol=1e-6)
+
+
+def test_plot_and_ply(plane_result, tmp_path):
+    png = plane_result.plot(tmp_path / "depth.png")
+    image = cv2.imread(str(png))
+    assert image is not None and image.shape[0] >= 90 and image.shape[1] > 2 * 120
+    ply = plane_result.save_ply(tmp_path / "points.ply")
+    data = ply.read_bytes()
+    header, body = data.split(b"end_header\n", 1)
+    assert f"element vertex {len(plane_result.points)}".encode() in header
+    np.testing.assert_allclose(np.frombuffer(body, "<f4").reshape(-1, 3), plane_result.points, rtol=1e-6)
+    text = plane_result.save_ply(tmp_path / "points_ascii.ply", binary=False).read_text()
+    values = np.loadtxt(text.split("end_header\n", 1)[1].splitlines())
+    np.testing.assert_allclose(values, plane_result.points, atol=1e-6)
+    assert not list(tmp_path.glob("*.partial"))
+
+
+# -- pose inputs -------------------------------------------------------------------------------
+def test_pose_input_forms_give_the_same_depth(plane, plane_result):
+    events, camera, (times, poses) = plane
+    emvs = EMVS(camera, depth_range=(1.0, 4.0), n_planes=100)
+    from cmax.fitting.sequence import SequenceResult
+
+    for form in ([times, poses], SequenceResult((), times, poses), types.SimpleNamespace(times_us=times, poses=poses)):
+        result = emvs.run(events, form)
+        np.testing.assert_array_equal(result.mask, plane_result.mask)
+        np.testing.assert_array_equal(result.depth, plane_result.depth)
+
+
+def test_tum_trajectory_round_trip(tmp_path):
+    from cmax.fitting.cli import tum_lines
+
+    rng = np.random.default_rng(0)
+    times = np.array([1_700_000_000_123_456, 1_700_000_000_223_457, 1_700_000_000_323_458])
+    poses = se3_exp(rng.normal(0, 0.3, (3, 6)))
+    path = tmp_path / "trajectory.txt"
+    path.write_text("# t tx ty tz qx qy qz qw\n" + "\n".join(tum_lines(times, poses)) + "\n\n")
+    read_times, read_poses = read_tum_trajectory(path)
+    np.testing.assert_array_equal(read_times, times)  # seconds parsed as decimals: no lost microseconds
+    np.testing.assert_allclose(read_poses, poses, atol=1e-8)
+
+
+def test_ecd_groundtruth_reads(shared_data):
+    times, poses = read_tum_trajectory(shared_data / "ecd_slider_depth" / "groundtruth.txt")
+    assert len(times) == 339 and times[0] == 22292  # 0.022291582 s, rounded to µs
+    assert poses[0, 0, 3] == pytest.approx(0.1116875) and poses[-1, 0, 3] == pytest.approx(1.092, abs=1e-3)
+
+
+# -- bad input ---------------------------------------------------------------------------------
+@pytest.mark.parametrize("kwargs, match", [
+    ({"depth_range": (2.0, 1.0)}, "depth_range"), ({"depth_range": (0.0, 1.0)}, "depth_range"),
+    ({"depth_range": (-1.0, 1.0)}, "depth_range"), ({"depth_range": (1.0, 1.0)}, "depth_range"),
+    ({"depth_range": (1.0, np.inf)}, "depth_range"), ({"depth_range": "far"}, "depth_range"),
+    ({"n_planes": 1}, "n_planes"), ({"n_planes": 2.5}, "n_planes"), ({"voting": "nearest"}, "voting"),
+    ({"events_per_pose": 0}, "events_per_pose"), ({"median_size": 4}, "median_size"),
+    ({"threshold_kernel": 1}, "threshold_kernel"), ({"subpixel": 0}, "subpixel"),
+])
+def test_bad_settings_raise(kwargs, match):
+    camera = Camera.from_intrinsics(100, 100, 60, 45, 120, 90)
+    with pytest.raises(ValueError, match=match):
+        EMVS(camera, **kwargs)
+
+
+def test_camera_must_be_a_camera():
+    with pytest.raises(TypeError, match="camera"):
+        EMVS(np.eye(3))
+
+
+def test_bad_events_and_poses_raise(plane):
+    events, camera, (times, poses) = plane
+    emvs = EMVS(camera, depth_range=(1.0, 4.0))
+    with pytest.raises(ValueError, match="empty"):
+        emvs.run(events[:0], (times, poses))
+    with pytest.raises(TypeError, match="events"):
+        emvs.run(np.zeros((10, 4)), (times, poses))
+    other = Events(events.x[:10], events.y[:10], events.t[:10], events.p[:10], 240, 180)
+    with pytest.raises(ValueError, match="sensor"):
+        emvs.run(other, (times, poses))
+    with pytest.raises(ValueError, match="cover"):
+        emvs.run(events, (times[10:], poses[10:]))
+    with pytest.raises(ValueError, match="shape"):
+        emvs.run(events, (times, poses[:, :3]))
+    with pytest.raises(ValueError, match="increasing"):
+        emvs.run(events, (times[::-1], poses))
+    with pytest.raises(ValueError, match="rotation"):
+        emvs.run(events, (times, poses * 2.0 + np.diag([0, 0, 0, -1.0])))
+    with pytest.raises(TypeError, match="times_us"):
+        emvs.run(events, {"times": times})
+    with pytest.raises(ValueError, match="pair"):
+        emvs.run(events, (times, poses, poses))
+
+
+def test_bad_tum_files_raise(tmp_path):
+    path = tmp_path / "bad.txt"
+    path.write_text("0.0 1 2 3 0 0 0\n")
+    with pytest.raises(ValueError, match="8 numbers"):
+        read_tum_trajectory(path)
+    path.write_text("0.0 1 2 3 0 0 0 2\n")
+    with pytest.raises(ValueError, match="norm"):
+        read_tum_trajectory(path)
+    path.write_text("0.1 0 0 0 0 0 0 1\n0.1 0 0 0 0 0 0 1\n")
+    with pytest.raises(ValueError, match="increasing"):
+        read_tum_trajectory(path)
+    with pytest.raises(FileNotFoundError):
+        read_tum_trajectory(tmp_path / "missing.txt")
+
+
+def test_as_trajectory_rejects_fractional_microseconds():
+    with pytest.raises(ValueError, match="whole microseconds"):
+        as_trajectory((np.array([0.5, 1.0]), np.stack([np.eye(4)] * 2)))
+
+
+# -- command line -------------------------------------------------------------------------------
+def test_cli_round_trip(plane, tmp_path, capsys):
+    from cmax.cli import main
+    from cmax.fitting.cli import tum_lines
+    from cmax.io import write_h5
+
+    events, camera, (times, poses) = plane
+    path = write_h5(tmp_path / "plane.h5", events, source="test_emvs")
+    with h5py.File(path, "a") as file:
+        file["gt/K"] = camera.K
+    (tmp_path / "traj.txt").write_text("\n".join(tum_lines(times, poses)) + "\n")
+    out = tmp_path / "out"
+    code = main(["emvs", str(path), "--poses", str(tmp_path / "traj.txt"), "-o", str(out),
+                 "--depth-range", "1,4", "--planes", "100"])
+    assert code == 0
+    summary = capsys.readouterr().out.strip()
+    assert summary.count("\n") == 0 and "median depth" in summary
+    saved = np.load(out / "depth.npz")
+    assert abs(np.nanmedian(saved["depth"]) / PLANE_DEPTH - 1) < 0.02
+    np.testing.assert_array_equal(np.isfinite(saved["depth"]), saved["mask"])
+    assert int(saved["t_ref_us"]) == (int(events.t[0]) + int(events.t[-1])) // 2
+    assert cv2.imread(str(out / "depth.png")) is not None
+    assert (out / "points.ply").read_bytes().startswith(b"ply\n")
+    # --K overrides, --t0/--t1 cut the events (seconds after the first event).
+    code = main(["emvs", str(path), "--poses", str(tmp_path / "traj.txt"), "-o", str(out), "--depth-range",
+                 "1,4", "--K", f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}", "--t0", "0.05", "--t1", "0.25"])
+    assert code == 0 and "median depth" in capsys.readouterr().out
+
+
+def test_cli_errors_exit_2(plane, tmp_path, capsys):
+    from cmax.cli import main
+    from cmax.io import write_h5
+
+    events, _, (times, poses) = plane
+    path = write_h5(tmp_path / "plane.h5", events)
+    traj = tmp_path / "traj.txt"
+    traj.write_text("0.0 0 0 0 0 0 0 1\n0.01 0 0 0 0 0 0 1\n")
+    assert main(["emvs", str(path), "--poses", str(traj), "-o", str(tmp_path / "o")]) == 2
+    assert "gt/K" in capsys.readouterr().err
+    assert main(["emvs", str(path), "--poses", str(traj), "-o", str(tmp_path / "o"), "--K", "150,150,60,45"]) == 2
+    assert "cover" in capsys.readouterr().err
+    assert main(["emvs", str(path), "--poses", str(tmp_path / "none.txt"), "-o", str(tmp_path / "o"),
+                 "--K", "150,150,60,45"]) == 2
+    with pytest.raises(SystemExit):
+        main(["emvs", str(path), "--poses", str(traj), "-o", "o", "--depth-range", "1"])
+
+
+# -- real frames (slow) ---------------------------------------------------------------------------
+@pytest.mark.slow
+def test_ecd_slider_depth_structures(shared_data, tmp_path):
+    from benchmarks.ecd_slider_emvs import run_slider
+
+    report = run_slider(shared_data / "ecd_slider_depth", tmp_path / "ecd_slider_emvs.png", method="linear")
+    assert (tmp_path / "ecd_slider_emvs.png").is_file()
+    assert report.mask_fraction > 0.02
+    depths = report.depths[report.mask]
+    assert 0.47 <= np.median(depths) <= 2.4
+    # The scene has structures at several depths: a far wall with a dartboard at the top of the image
+    # and nearer objects on the table below it.
+    structures = report.structures
+    assert len(structures) >= 2
+    near, far = structures[0], structures[-1]
+    assert near.median_depth_m < 0.7 * far.median_depth_m
+    assert far.centroid_xy[1] < near.centroid_xy[1]
