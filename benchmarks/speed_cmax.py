@@ -1,25 +1,29 @@
-"""Speed of the contrast-maximization core, written to ``benchmarks/results/speed_cmax.md``.
+"""Speed of the contrast-maximization core: section ``cmax`` of :mod:`benchmarks.speed`.
 
-1. One forward + backward pass of warp + IWE (bilinear votes, Gaussian blur
-   sigma 1) + objective for 30k events on 346x260, per warp model (se3 with an
-   inverse-depth grid of 12x16 and three reference times, as ``cmax.fit`` uses
-   it), float32, one thread. Baseline in the same process: the *forward pass
-   alone* in plain numpy (``np.add.at`` votes, ``scipy.ndimage.gaussian_filter``,
-   variance), i.e. what a numpy implementation pays before any gradient.
-2. ``cmax.fit`` seconds per window for each model on a few synthetic windows
-   (the accuracy benchmark's windows; see ``accuracy_cmax.md`` for all 20).
+Writes ``benchmarks/results/speed_cmax.md`` and ``.json`` (through ``benchmarks.speed``'s report writer).
+
+1. **kernels** — one forward + backward pass of warp + IWE (bilinear votes,
+   Gaussian blur sigma 1) + objective for 30k events on 346x260, per warp model
+   (se3 with an inverse-depth grid of 12x16 and three reference times, as
+   ``cmax.fit`` uses it), float32, one thread. Baseline in the same run,
+   interleaved: the *forward pass alone* in plain numpy (``np.add.at`` votes,
+   ``scipy.ndimage.gaussian_filter``, variance), i.e. what a numpy
+   implementation pays before any gradient.
+2. **fit** — ``cmax.fit`` seconds per window for each model on the first
+   windows of the accuracy benchmark (held-out seeds 100, 101, ...; see
+   ``accuracy_cmax.md`` for all 20), one warm-up fit first. Ratios are against
+   the flow fit of the same run.
 
 Usage::
 
-    python benchmarks/speed_cmax.py [--repeats 20] [--windows 3] [--cache DIR]
+    python -m benchmarks.speed --section cmax [--repeats 5]
+    python -m benchmarks.speed_cmax [--repeats 5]        # the same
 """
 from __future__ import annotations
 
 import argparse
 import os
-import platform
-import statistics
-import time
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -30,18 +34,10 @@ from cmax.iwe import accumulate_bilinear, blur
 from cmax.objectives import multi_reference_contrast
 from cmax.warp import DepthGrid, warp_flow, warp_rotation, warp_se3
 
-RESULTS = Path(__file__).resolve().parent / "results"
 H, W, N = 260, 346, 30_000
-
-
-def _timed(fn, repeats: int) -> float:
-    fn()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - start)
-    return statistics.median(times)
+#: Windows per model of the fit group (held-out seeds 100, 101, ...).
+FIT_WINDOWS = 3
+FIT_TARGETS_S = {"flow": 0.4, "depth": 2.0, "se3": 5.0}
 
 
 def numpy_forward(x: np.ndarray, y: np.ndarray) -> float:
@@ -56,7 +52,8 @@ def numpy_forward(x: np.ndarray, y: np.ndarray) -> float:
     return float(gaussian_filter(image[1:-1, 1:-1], 1.0, mode="constant").var())
 
 
-def kernel_rows(repeats: int) -> list[tuple[str, float, float]]:
+def kernel_methods() -> list[tuple[str, object, str]]:
+    """``(name, function, note)`` of the kernel group; the numpy forward pass first (the baseline)."""
     rng = np.random.default_rng(0)
     x = torch.from_numpy(rng.uniform(0, W, N).astype(np.float32))
     y = torch.from_numpy(rng.uniform(0, H, N).astype(np.float32))
@@ -79,63 +76,61 @@ def kernel_rows(repeats: int) -> list[tuple[str, float, float]]:
             p = torch.full((12 * 16,), 0.3, requires_grad=True)
             rho = DepthGrid.sample(p, index, weight)
             xw, yw = warp_se3(rays, dt3, torch.tensor([0.3, 0.1, 0.5]), torch.tensor([0.1, -0.2, 0.3]), rho, K)
-        value = -multi_reference_contrast(xw, yw, height=H, width=W, sigma=1.0)
-        value.backward()
+        (-multi_reference_contrast(xw, yw, height=H, width=W, sigma=1.0)).backward()
+
+    def forward_only() -> None:
+        with torch.no_grad():
+            blur(accumulate_bilinear(x, y, None, H, W), 1.0).var()
 
     xn, yn = x.double().numpy(), y.double().numpy()
-    baseline = _timed(lambda: numpy_forward(xn, yn), repeats)
-    rows = []
-    for model in ("flow", "rotation", "se3"):
-        seconds = _timed(lambda m=model: run(m), repeats)
-        rows.append((model, seconds, baseline))
-    with torch.no_grad():
-        forward_only = _timed(lambda: blur(accumulate_bilinear(x, y, None, H, W), 1.0).var(), repeats)
-    rows.append(("IWE forward only (torch)", forward_only, baseline))
-    return rows
+    return [("numpy forward only (np.add.at, scipy blur)", lambda: numpy_forward(xn, yn), "baseline, float64"),
+            ("torch flow fwd+bwd", lambda: run("flow"), "1 reference time"),
+            ("torch rotation fwd+bwd", lambda: run("rotation"), "1 reference time"),
+            ("torch se3 fwd+bwd", lambda: run("se3"), "3 reference times, 12x16 depth grid"),
+            ("torch IWE forward only", forward_only, "votes + blur + variance")]
 
 
-def fit_rows(windows: int, cache: Path | None) -> list[tuple[str, float, float, int]]:
-    import sys
-
-    sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
+def fit_seconds(windows: int, cache: Path | None = None) -> dict[str, list[float]]:
+    """``cmax.fit`` seconds per window of each model on the accuracy benchmark's first windows."""
     from benchmarks.accuracy_cmax import RUNS
     from benchmarks.accuracy_cmax import windows as make_windows
 
-    rows = []
+    seconds = {}
     for model in ("flow", "rotation", "depth", "se3"):
         RUNS[model](make_windows(model, 100, cache))  # warm-up
-        seconds = [RUNS[model](make_windows(model, 100 + i, cache))["seconds"] for i in range(windows)]
-        rows.append((model, statistics.median(seconds), max(seconds), windows))
-    return rows
+        seconds[model] = [RUNS[model](make_windows(model, 100 + i, cache))["seconds"] for i in range(windows)]
+    return seconds
 
 
-def main() -> None:
-    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
-    parser.add_argument("--repeats", type=int, default=20)
-    parser.add_argument("--windows", type=int, default=3)
-    parser.add_argument("--cache", type=Path, default=None)
-    args = parser.parse_args()
+def cmax_section(args: argparse.Namespace, report, run_group, add_row) -> None:
+    """Fill ``report`` (a ``benchmarks.speed.Report``) with the kernel and fit groups."""
     torch.set_num_threads(1)
-    kernels = kernel_rows(args.repeats)
-    fits = fit_rows(args.windows, args.cache)
-    lines = ["# cmax speed", "",
-             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores (shared), torch "
-             f"{torch.__version__}, one thread. Written by `benchmarks/speed_cmax.py`.", "",
-             f"## Forward + backward of warp + IWE + objective, {N} events, {W}x{H}, sigma 1", "",
-             "| model | ms (median) | numpy forward-only baseline ms | speed-up |", "|---|---|---|---|"]
-    for name, seconds, baseline in kernels:
-        lines.append(f"| {name} | {seconds * 1e3:.1f} | {baseline * 1e3:.1f} | {baseline / seconds:.1f}x |")
-    lines += ["", "flow and rotation warp to one reference time, se3 to three (as `cmax.fit`).", "",
-              "## `cmax.fit` seconds per window", "",
-              "| model | median s | max s | windows | target |", "|---|---|---|---|---|"]
-    targets = {"flow": "<= 0.4 s (30k events)", "depth": "<= 2 s", "se3": "<= 5 s", "rotation": ""}
-    for model, med, worst, count in fits:
-        lines.append(f"| {model} | {med:.2f} | {worst:.2f} | {count} | {targets[model]} |")
-    RESULTS.mkdir(exist_ok=True)
-    text = "\n".join(lines) + "\n"
-    (RESULTS / "speed_cmax.md").write_text(text)
-    print(text)
+    load_start = os.getloadavg()[0]
+    run_group(report, f"warp+IWE+objective, {N} events, {W}x{H}", kernel_methods(), N, args.repeats)
+    windows = getattr(args, "cmax_windows", FIT_WINDOWS)
+    seconds = fit_seconds(windows, getattr(args, "cmax_cache", None))
+    for i, (model, times) in enumerate(seconds.items()):
+        target = FIT_TARGETS_S.get(model)
+        add_row(report, "cmax.fit seconds per window", f"fit {model}", times, 0, baseline=i == 0,
+                note=f"{len(times)} windows" + (f"; target <= {target} s" if target else ""))
+        if target:
+            report.checks[f"fit {model} median <= {target} s"] = bool(np.median(times) <= target)
+    report.config.update(torch_threads=1, fit_windows=windows)
+    report.notes += [
+        "Kernel rows: one forward + backward pass (the gradient a solver needs); the numpy baseline is the "
+        "forward pass alone, so a speed-up below 1 still means the torch pass with its gradient is cheap.",
+        "Fit rows: held-out seeds 100.. of benchmarks/accuracy_cmax.py (depth = fit with pose=, se3 = fit with "
+        "speed=, flow = 30k events, rotation = 30k of about 150k events); the 'Mev/s' column is meaningless there.",
+        f"Load average (1 min): {load_start:.2f} at the start, {os.getloadavg()[0]:.2f} at the end (2 shared cores).",
+    ]
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run section ``cmax`` of :mod:`benchmarks.speed` (arguments as ``benchmarks.speed``)."""
+    from benchmarks import speed
+
+    return speed.main(["--section", "cmax", *(sys.argv[1:] if argv is None else argv)])
 
 
 if __name__ == "__main__":
-    main()
+    sys.exit(main())

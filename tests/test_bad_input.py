@@ -194,6 +194,12 @@ API_CASES = [
     ("fit-unknown-option", lambda: cmax.fit(_events(), K_GOOD, foo=1), TypeError, r"unexpected keyword"),
     ("fit-depth-grid-zero", lambda: cmax.fit(_events(), K_GOOD, depth_grid=(0, 0)), ValueError,
      r"depth_grid must be two positive"),
+    ("fit-negative-depth-range", lambda: cmax.fit(_events(), K_GOOD, depth_range=(-1.0, 5.0)), ValueError,
+     r"depth_range must satisfy 0 < near < far"),
+    ("fit-reversed-depth-range", lambda: cmax.fit(_events(), K_GOOD, depth_range=(5.0, 1.0)), ValueError,
+     r"depth_range must satisfy 0 < near < far"),
+    ("fit-zero-max-events", lambda: cmax.fit(_events(), K_GOOD, "flow", max_events=0), ValueError,
+     r"max_events must be >= 10"),
     ("fit-sequence-zero-window", lambda: cmax.fit_sequence(_events(), K_GOOD, window_us=0), ValueError,
      r"window_us and step_us must be positive"),
     # EMVS (the cases: negative depth range, empty window, singular K via Camera)
@@ -551,6 +557,7 @@ CLI_CASES = [
      r"argument --method: invalid choice"),
     ("manifest-not-json", ["manifest", "merge", "{dir}/notes.txt", "-o", "{dir}/m.json"], r"not a JSON manifest"),
     ("fit-K-three-numbers", ["fit", "{file}", "--K", "1,2,3"], r"argument --K"),
+    ("fit-K-nan", ["fit", "{file}", "--K", "nan,50,32,24"], r"--K: K must be finite"),
     ("fit-missing-file", ["fit", "{dir}/nope.h5", "--K", "50,50,32,24", "-o", "{dir}/fit"],
      r"cmax fit: error: no such event file"),
 ]

@@ -16,6 +16,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax.camera import check_intrinsics
+
 __all__ = ["add_fit_command", "run_fit", "tum_lines"]
 
 
@@ -24,7 +26,11 @@ def _intrinsics(text: str) -> np.ndarray:
         fx, fy, cx, cy = (float(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"--K must be fx,fy,cx,cy (four numbers), got {text!r}") from None
-    return np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    try:
+        return check_intrinsics(K)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"--K: {error}") from None
 
 
 def add_fit_command(subparsers) -> argparse.ArgumentParser:

@@ -64,12 +64,13 @@ class Window:
     def contrast(self, x: torch.Tensor, y: torch.Tensor, scale: int = 1) -> torch.Tensor:
         """Normalised multi-reference contrast of warped coordinates (B, N) at an image scale."""
         H, W = math.ceil(self.ev.height / scale), math.ceil(self.ev.width / scale)
+        kind, sigma = self.settings.contrast or "variance", self.settings.sigma
         if scale not in self._baselines:
             x0, y0 = self.ev.x[None] / scale, self.ev.y[None] / scale
             self._baselines[scale] = multi_reference_contrast(
-                x0, y0, height=H, width=W, sigma=self.settings.sigma, kind=self.settings.contrast).detach()
-        return multi_reference_contrast(x / scale, y / scale, height=H, width=W, sigma=self.settings.sigma,
-                                        kind=self.settings.contrast, baseline=self._baselines[scale])
+                x0, y0, height=H, width=W, sigma=sigma, kind=kind).detach()
+        return multi_reference_contrast(x / scale, y / scale, height=H, width=W, sigma=sigma, kind=kind,
+                                        baseline=self._baselines[scale])
 
     def run(self, loss: Callable[[torch.Tensor], torch.Tensor], x0: np.ndarray, lower: np.ndarray,
             upper: np.ndarray, *, iterations: int | None = None, speed_slice: slice | None = None,

@@ -31,6 +31,8 @@ from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
 __all__ = ["FitResult", "FitSettings", "fit"]
 
 MODELS = ("flow", "rotation", "se3")
+#: The contrast of each model when ``FitSettings.contrast`` is None.
+DEFAULT_CONTRAST = {"flow": "variance", "rotation": "gradient", "se3": "variance"}
 
 
 @dataclass(frozen=True)
@@ -39,8 +41,11 @@ class FitSettings:
 
     Attributes
     ----------
-    contrast : {"variance", "gradient"}
-        Contrast of the IWEs.
+    contrast : {"variance", "gradient"} or None
+        Contrast of the IWEs; None picks per model: ``"gradient"`` for
+        ``rotation`` (on the tuning seeds 1-12 its omega error was 1.1% median,
+        1.8% p90 against 1.5% / 3.9% with the variance), ``"variance"`` for
+        ``flow`` and ``se3``.
     references : tuple of float
         Reference times of the multi-reference motion objective, as fractions
         of the window (0 = first event, 1 = last).
@@ -73,7 +78,7 @@ class FitSettings:
         Seed of the subsampling.
     """
 
-    contrast: str = "variance"
+    contrast: str | None = None
     references: tuple[float, ...] = (0.0, 0.5, 1.0)
     sigma: float = 1.0
     max_events: int = 60_000
@@ -289,6 +294,15 @@ def fit(
         if unknown:
             raise TypeError(f"fit() got unexpected keyword arguments {sorted(unknown)}")
         settings = replace(settings, **options)
+    if settings.contrast is None:
+        settings = replace(settings, contrast=DEFAULT_CONTRAST[model])
+    near, far = (float(value) for value in settings.depth_range)
+    if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+        raise ValueError(f"depth_range must satisfy 0 < near < far (metres), got {settings.depth_range}")
+    if int(settings.max_events) < 10:
+        raise ValueError(f"max_events must be >= 10, got {settings.max_events}")
+    if settings.contrast not in ("variance", "gradient"):
+        raise ValueError(f"contrast must be 'variance', 'gradient' or None, got {settings.contrast!r}")
     if settings.motion_init not in ("patches", "starts"):
         raise ValueError(f"motion_init must be 'patches' or 'starts', got {settings.motion_init!r}")
     if speed is not None and not (np.isfinite(speed) and speed > 0):

@@ -1,0 +1,225 @@
+"""``cmax.fit`` on real events: a DAVIS346 recording against its IMU and APS frames, a Prophesee drive.
+
+Writes ``benchmarks/results/real_cmax.md`` and the pictures ``real_cmax_pegboard.png``,
+``real_cmax_driving.png``. Inputs (``../shared/data``, not shipped):
+
+* ``davis346_pegboard/davis.aedat4`` (346x260, 117,667 events over 130 ms, 130
+  IMU samples, 3 APS frames). The file has no calibration: we assume the
+  DAVIS346 intrinsics of MVSEC's left camera (fx 226.38, fy 226.15, cx 173.64,
+  cy 133.73 px; distortion ignored) and IMU axes equal to the camera axes
+  (x right, y down, z forward; the accelerometer's (-0.06, -0.99, -0.11) g at
+  rest, with the APS picture upright, puts gravity along +y as for a camera
+  whose y points down). Rotation is fitted on windows of 50-130 ms and compared
+  per axis with the gyro's mean over the window, and with an independent
+  reference: the rotation between the APS frames (ECC homography
+  ``H = K R^T K^-1`` between frames 0 and 2, 80 ms apart).
+* ``prophesee_gen4_driving/evt3_sample.raw`` (1280x720, 8.8 ms, a car driving
+  forward). No calibration: we assume f = 1000 px and the principal point at
+  the image centre. se3 without a known speed (direction only); the fitted
+  translation direction should point forward (+z dominant).
+
+Usage::
+
+    python -m benchmarks.real_cmax [--data ../shared/data]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import time
+from pathlib import Path
+
+import cv2
+import numpy as np
+import torch
+
+from cmax import fit, viz
+from cmax.geometry import so3_log
+from cmax.objectives import multi_reference_contrast
+from cmax.warp import WarpEvents, warp_rotation
+
+RESULTS = Path(__file__).resolve().parent / "results"
+DATA = Path(__file__).resolve().parents[2] / "shared" / "data"
+#: MVSEC's DAVIS346 left camera (indoor_flying calibration), our assumption for the pegboard file.
+K_DAVIS346 = np.array([[226.38, 0, 173.64], [0, 226.15, 133.73], [0, 0, 1]])
+#: Prophesee Gen4 1280x720 with an assumed 1000 px focal length, principal point at the centre.
+K_GEN4 = np.array([[1000.0, 0, 639.5], [0, 1000.0, 359.5], [0, 0, 1]])
+#: Pegboard windows [ms from the first event]: 50 ms windows, the APS intervals (frames 0-1, 1-2, 0-2),
+#: the whole recording.
+PEGBOARD_WINDOWS_MS = ((0, 50), (40, 90), (80, 130), (3, 43), (43, 83), (3, 83), (0, 130))
+
+
+def rotation_contrast(events, K: np.ndarray, omega: np.ndarray, sigma: float = 1.0) -> float:
+    """Variance of the IWE at the window's middle warped with ``omega`` [rad/s], over the unwarped one's."""
+    ev = WarpEvents.from_events(events, K, max_events=60_000)
+    dt = ev.dt((0.5,))
+    x, y = warp_rotation(ev.rays, dt, torch.as_tensor(omega, dtype=ev.x.dtype), ev.K)
+    base = multi_reference_contrast(ev.x[None], ev.y[None], height=ev.height, width=ev.width, sigma=sigma)
+    return float(multi_reference_contrast(x, y, height=ev.height, width=ev.width, sigma=sigma) / base)
+
+
+def aps_rotation(frame0: np.ndarray, frame1: np.ndarray, K: np.ndarray, dt_s: float) -> np.ndarray:
+    """Angular velocity [rad/s] between two grey frames of a rotating camera (ECC homography).
+
+    ECC finds ``H`` with ``frame1(H x) ~ frame0(x)``; a camera rotating by ``R``
+    (camera 1 in the frame of camera 0) maps pixels as ``x1 ~ K R^T K^-1 x0``, so
+    ``R = (K^-1 H K)^T`` (projected onto SO(3)) and ``omega = log(R) / dt``.
+    """
+    H = np.eye(3, dtype=np.float32)
+    criteria = (cv2.TERM_CRITERIA_EPS | cv2.TERM_CRITERIA_COUNT, 300, 1e-7)
+    _, H = cv2.findTransformECC(frame0.astype(np.float32), frame1.astype(np.float32), H,
+                                cv2.MOTION_HOMOGRAPHY, criteria, None, 5)
+    M = (np.linalg.inv(K) @ H.astype(np.float64) @ K).T
+    U, _, Vt = np.linalg.svd(M)
+    R = U @ np.diag([1, 1, np.linalg.det(U @ Vt)]) @ Vt
+    return so3_log(R) / dt_s
+
+
+def flicker_share(events) -> tuple[float, float]:
+    """Main frequency [Hz] of the event rate (1 ms bins) and its share of the rate's spectral energy."""
+    counts = np.bincount(((events.t - events.t[0]) // 1000).astype(np.int64)).astype(float)
+    spectrum = np.abs(np.fft.rfft(counts - counts.mean())) ** 2
+    freqs = np.fft.rfftfreq(len(counts), 1e-3)
+    k = int(np.argmax(spectrum[1:])) + 1
+    return float(freqs[k]), float(spectrum[k] / spectrum[1:].sum())
+
+
+def pegboard(data: Path) -> tuple[list[str], np.ndarray]:
+    """Rotation windows against the gyro and the APS frames; returns markdown lines and a picture."""
+    from cmax.io import read, read_aedat4_imu
+    from cmax.io.aedat4 import read_aedat4_frames
+
+    path = data / "davis346_pegboard" / "davis.aedat4"
+    events, imu, frames = read(path), read_aedat4_imu(path), read_aedat4_frames(path)
+    t0 = int(events.t[0])
+    mid = (frames.t_exposure_start + frames.t_exposure_end) // 2
+    aps_windows = {(3, 43): (0, 1), (43, 83): (1, 2), (3, 83): (0, 2)}  # APS exposure midpoints at 3, 43, 83 ms
+    aps = {pair: aps_rotation(frames.images[pair[0]], frames.images[pair[1]], K_DAVIS346,
+                              (mid[pair[1]] - mid[pair[0]]) * 1e-6) for pair in aps_windows.values()}
+    freq, share = flicker_share(events)
+    deg = np.degrees
+    lines = ["## DAVIS346 pegboard (rotation against gyro and APS frames)", "",
+             f"{len(events)} events, {(events.t[-1] - t0) / 1e3:.0f} ms. Assumed K = MVSEC DAVIS346 left "
+             "(fx 226.38, fy 226.15, cx 173.64, cy 133.73), IMU axes = camera axes. Gyro mean over the recording "
+             f"{np.round(imu.gyroscope.mean(0).astype(float), 2).tolist()} deg/s "
+             f"(std {np.round(imu.gyroscope.std(0).astype(float), 2).tolist()}).",
+             "",
+             f"APS exposure midpoints at {np.round((mid - t0) / 1e3, 1).tolist()} ms. "
+             f"APS frames 0 -> 2 ({(mid[2] - mid[0]) / 1e3:.0f} ms apart, ECC homography): omega = "
+             f"{np.round(deg(aps[(0, 2)]), 2).tolist()} deg/s, i.e. the picture moves by less than half a pixel "
+             "while the gyro's mean rate would move it by about 2 px.", "",
+             f"The event rate (1 ms bins) peaks at {freq:.0f} Hz ({100 * share:.0f}% of its spectral energy): "
+             "mains flicker of the two lamps and the screen, not motion, makes most events.", "",
+             "| window [ms] | events | gyro mean [deg/s] | fit omega [deg/s] | fit - gyro [deg/s] | APS [deg/s] "
+             "| fit - APS [deg/s] | contrast fit | contrast gyro | s |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
+    picture_result = None
+    for a, b in PEGBOARD_WINDOWS_MS:
+        window = events.slice_time(t0 + a * 1000, t0 + b * 1000 + 1)
+        inside = (imu.t >= window.t[0]) & (imu.t <= window.t[-1])
+        gyro = imu.gyroscope[inside].mean(0).astype(float)
+        start = time.perf_counter()
+        r = fit(window, K_DAVIS346, model="rotation")
+        seconds = time.perf_counter() - start
+        fitted = deg(r.omega)
+        reference = deg(aps[aps_windows[(a, b)]]) if (a, b) in aps_windows else None
+        c_fit = rotation_contrast(window, K_DAVIS346, r.omega)
+        c_gyro = rotation_contrast(window, K_DAVIS346, np.radians(gyro))
+        fmt = lambda v: "" if v is None else str(np.round(v, 2).tolist())  # noqa: E731
+        lines.append(f"| {a}-{b} | {len(window)} | {fmt(gyro)} | {fmt(fitted)} | {fmt(fitted - gyro)} | "
+                     f"{fmt(reference)} | {fmt(None if reference is None else fitted - reference)} | "
+                     f"{c_fit:.4f} | {c_gyro:.4f} | {seconds:.2f} |")
+        if (a, b) == (0, 130):
+            picture_result = r
+            se3 = fit(window, K_DAVIS346, model="se3")
+    lines += ["", "contrast = IWE variance at the window's middle over the unwarped events' (1 = no change; "
+              "sharper > 1), sigma 1 px.", "",
+              f"se3 on 0-130 ms (scale unknown): v direction {np.round(se3.v, 2).tolist()}, omega "
+              f"{np.round(deg(se3.omega), 2).tolist()} deg/s, objective {se3.objective_after:.4f}.", ""]
+    picture = viz.hstack([viz.titled(np.repeat(frames.images[0][..., None], 3, 2), "APS frame 0"),
+                          viz.titled(_iwe_picture(picture_result.iwe_before), "events 0-130 ms"),
+                          viz.titled(_iwe_picture(picture_result.iwe_after), "IWE, fitted rotation")])
+    return lines, picture
+
+
+def driving(data: Path) -> tuple[list[str], np.ndarray]:
+    """se3 direction of the Prophesee drive; returns markdown lines and a picture."""
+    from cmax.io import read
+
+    from cmax.events import Events
+
+    full = read(data / "prophesee_gen4_driving" / "evt3_sample.raw")
+    # 2x2 binning to 640x360 (K halved): 4x fewer pixels per IWE; fit's dithering restores sub-pixel spread.
+    events = Events(full.x // 2, full.y // 2, full.t, full.p, full.width // 2, full.height // 2)
+    K = K_GEN4 * np.array([[0.5], [0.5], [1.0]])
+    K[:2, 2] = (K_GEN4[:2, 2] + 0.5) / 2 - 0.5
+    start = time.perf_counter()
+    r = fit(events, K, model="se3", depth_range=(0.05, 50.0), max_events=30_000)
+    seconds = time.perf_counter() - start
+    forward = fit(events, K, model="se3", pose=np.r_[0.0, 0.0, 1.0, 0.0, 0.0, 0.0], depth_range=(0.05, 50.0),
+                  max_events=30_000)  # the hypothesis "straight forward, no rotation", depth swept
+    direction = r.v / np.linalg.norm(r.v)
+    angle = float(np.degrees(np.arccos(np.clip(direction[2], -1, 1))))
+    is_forward = bool(direction[2] > 0 and abs(direction[2]) == np.abs(direction).max())
+    lines = ["## Prophesee Gen4 drive (se3, scale unknown)", "",
+             f"{len(full)} events, {(full.t[-1] - full.t[0]) / 1e3:.1f} ms, 1280x720. Assumed K: f = 1000 px, "
+             "principal point at the centre (no calibration in the file). Events binned 2x2 to 640x360 (K halved); "
+             "fit(model='se3') with depth range 0.05-50 (in units of |v| x 1 s: a 10 m/s car sees 0.5-500 m), "
+             "30k events.", "",
+             "| figure | value |", "|---|---|",
+             f"| translation direction v / norm(v) | {np.round(direction, 3).tolist()} |",
+             f"| angle to the optical axis +z [deg] | {angle:.1f} |",
+             f"| forward (z dominant and positive) | {'yes' if is_forward else 'no'} |",
+             f"| omega [deg/s] | {np.round(np.degrees(r.omega), 2).tolist()} |",
+             f"| contrast after / before (normalised multi-reference) | {r.objective_after:.4f} / 1 |",
+             f"| contrast of straight forward motion (v = +z, omega = 0, depth swept) "
+             f"| {forward.objective_after:.4f} |",
+             f"| seconds | {seconds:.1f} |", "",
+             "When the two contrasts are within a fraction of a percent, the 8.8 ms window's parallax does not "
+             "tell the fitted motion from driving straight ahead: the objective is flat, not the optimiser stuck.",
+             ""]
+    picture = viz.hstack([viz.titled(_iwe_picture(r.iwe_before), "events (8.8 ms)"),
+                          viz.titled(_iwe_picture(r.iwe_after), "IWE, fitted se3"),
+                          viz.titled(viz.depth_image(np.where(r.mask, r.depth, np.nan)), "depth (up to scale)")])
+    return lines, picture
+
+
+def _iwe_picture(image: np.ndarray) -> np.ndarray:
+    scale = max(float(np.percentile(image[image > 0], 99)) if (image > 0).any() else 1.0, 1e-6)
+    grey = (255 - np.clip(image / scale, 0, 1) * 255).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
+def _write(path: Path, text: str) -> None:
+    partial = path.with_name(path.name + ".partial")
+    partial.write_text(text)
+    os.replace(partial, path)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--data", type=Path, default=DATA, help="the shared data folder")
+    parser.add_argument("--only", choices=("pegboard", "driving"), default=None)
+    args = parser.parse_args(argv)
+    if not args.data.is_dir():
+        parser.error(f"--data: no folder {args.data}")
+    torch.set_num_threads(1)
+    lines = ["# cmax.fit on real events", "",
+             f"Written by `python -m benchmarks.real_cmax`; load average (1 min) at the start "
+             f"{os.getloadavg()[0]:.2f} (2 shared cores).", ""]
+    RESULTS.mkdir(exist_ok=True)
+    parts = {"pegboard": pegboard, "driving": driving}
+    for name, function in parts.items():
+        if args.only not in (None, name):
+            continue
+        section, picture = function(args.data)
+        lines += section + [f"![{name}](real_cmax_{name}.png)", ""]
+        viz.save_png(RESULTS / f"real_cmax_{name}.png", picture)
+    text = "\n".join(lines) + "\n"
+    _write(RESULTS / ("real_cmax.md" if args.only is None else f"real_cmax_{args.only}.md"), text)
+    print(text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
