@@ -370,6 +370,27 @@ def simulator_section(args: argparse.Namespace) -> Report:
     return report
 
 
+# -- section: cmax ----------------------------------------------------------------------------
+@section("cmax")
+def cmax_section(args: argparse.Namespace) -> Report:
+    """Warp + IWE + objective forward/backward for 30k events; cmax.fit seconds per window per model."""
+    from benchmarks import speed_cmax
+
+    report = Report("cmax", "Contrast maximization speed (warp, IWE, objective, cmax.fit)",
+                    {"repeats": args.repeats})
+    speed_cmax.cmax_section(args, report, run_group, add_row)
+    return report
+
+
+# -- section: emvs ----------------------------------------------------------------------------
+@section("emvs")
+def emvs_section(args: argparse.Namespace) -> Report:
+    """EMVS events/s at 240x180 with 100 planes (slider scene): numpy port, exact splat, default gather."""
+    from benchmarks import speed_emvs
+
+    return speed_emvs.emvs_report(args)
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.speed", description=__doc__.split("\n")[0])

@@ -1,19 +1,25 @@
-"""Section "simulator" of ``benchmarks/speed.py``: ESIM throughput and conversion memory.
+"""Section "simulator" of ``benchmarks/speed.py``: ESIM throughput, adaptive sampling, conversion memory.
 
-Run with ``python -m benchmarks.speed --section simulator`` (writes
-``benchmarks/results/speed_simulator.md`` and ``.json``). Measures, in one run:
+Run with ``python -m benchmarks.speed --section simulator`` or, with more
+options, ``python -m benchmarks.speed_simulator [--quick] [--full-adaptive]``
+(both write ``benchmarks/results/speed_simulator.md`` and ``.json``).
+Measures, in one run, against the code of the last commit (``git show
+HEAD:cmax/sim/esim.py`` and ``sampling.py``, loaded as modules and timed
+interleaved in the same process):
 
-* events/s and frames/s of :class:`cmax.sim.esim.EventSimulator` on the 161
-  real frames of ``../shared/data/esim_truck_pan`` **including PNG decoding**
-  (as the reference C++ ESIM's 3.6-4.2 M events/s was measured), against the
-  simulator of the last commit (``git show HEAD:cmax/sim/esim.py``) timed
-  interleaved in the same process, and without decoding;
+* events/s of :class:`cmax.sim.esim.EventSimulator` on the 161 real frames of
+  ``../shared/data/esim_truck_pan`` at several thresholds (the event-density
+  curve): PNG decoding + step in one thread (as the reference C++ ESIM's
+  3.6-4.2 M events/s was measured), the same with decoding in the background
+  thread of :class:`cmax.sim.video.ImageFolderSource` (pipelined), step alone
+  on decoded frames, and PNG decoding alone;
 * ``../shared/data/videos/bikes.mp4`` (640x272, 25 fps): decoding + simulation
   without adaptive sampling, and with adaptive sampling (linear, flow) on its
-  first second;
+  first second (``--quick``: 0.4 s), new against HEAD; ``--full-adaptive``
+  adds the whole video;
 * peak memory of a long conversion: bikes.mp4 looped to 10 minutes of video
-  through :func:`cmax.sim.convert.convert_video` in a child process, VmRSS at
-  1, 5 and 10 minutes of video.
+  through :func:`cmax.sim.convert.convert_video` in a child process, VmRSS
+  sampled every 20 ms (at 1, 5 and 10 minutes of video, the peak and when).
 """
 from __future__ import annotations
 
@@ -30,35 +36,52 @@ import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = Path(os.environ.get("EVTSLOWTV_SHARED_DATA", ROOT.parent / "shared" / "data"))
+THRESHOLDS = (0.2, 0.1, 0.05, 0.03, 0.02)
+REFERENCE_MEV_S = (3.6, 4.2)  # the reference C++ ESIM, issue 3
 
 
-def _head_esim():
-    """The EventSimulator of the last commit, or None outside a git checkout."""
+def _head_module(relative: str, name: str):
+    """A module of the last commit (``git show HEAD:<relative>``), or None outside git."""
     try:
-        text = subprocess.run(["git", "show", "HEAD:cmax/sim/esim.py"], cwd=ROOT, check=True,
+        text = subprocess.run(["git", "show", f"HEAD:{relative}"], cwd=ROOT, check=True,
                               capture_output=True, text=True).stdout
     except (OSError, subprocess.CalledProcessError):
         return None
-    path = Path(tempfile.mkdtemp()) / "esim_head.py"
+    path = Path(tempfile.mkdtemp()) / f"{name}.py"
     path.write_text(text)
-    spec = importlib.util.spec_from_file_location("esim_head", path)
+    spec = importlib.util.spec_from_file_location(name, path)
     module = importlib.util.module_from_spec(spec)
-    sys.modules["esim_head"] = module
-    spec.loader.exec_module(module)
-    return module.EventSimulator
+    sys.modules[name] = module
+    try:
+        spec.loader.exec_module(module)
+    except ImportError:  # the committed module needs siblings this checkout lacks
+        return None
+    return module
+
+
+def _head_esim():
+    module = _head_module("cmax/sim/esim.py", "esim_head")
+    return None if module is None else module.EventSimulator
 
 
 def _truck():
     folder = DATA / "esim_truck_pan"
     paths = [str(p) for p in sorted((folder / "images").glob("image_*.png"))]
     times = np.round(np.loadtxt(folder / "timestamps.txt") * 1e6).astype(np.int64)
-    return paths, times
+    return folder, paths, times
 
 
 def _run_pngs(simulator_class, paths, times, c):
     simulator, count = simulator_class(cp=c, cn=c), 0
     for path, t_us in zip(paths, times):
         count += len(simulator.step(cv2.imread(path, cv2.IMREAD_GRAYSCALE), int(t_us)))
+    return count
+
+
+def _run_source(simulator_class, source, c):
+    simulator, count = simulator_class(cp=c, cn=c), 0
+    for frame, t_us in source:
+        count += len(simulator.step(frame, t_us))
     return count
 
 
@@ -69,88 +92,171 @@ def _run_frames(simulator_class, frames, times, c):
     return count
 
 
-def truck_groups(report, run_group, repeats):
-    from cmax.sim.esim import EventSimulator
+def _same_events(a, b) -> bool:
+    return len(a) == len(b) and all(np.array_equal(getattr(a, k), getattr(b, k)) for k in "xytp")
 
-    paths, times = _truck()
+
+def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
+    """One group per threshold on truck-pan; the density curve goes to ``report.checks``."""
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.video import ImageFolderSource
+
+    folder, paths, times = _truck()
     frames = [cv2.imread(p, cv2.IMREAD_GRAYSCALE) for p in paths]
+    height, width = frames[0].shape
+    source = ImageFolderSource(folder / "images", timestamps=times, dtype=np.uint8)
     head = _head_esim()
-    for c in (0.2, 0.1, 0.05):
-        count = _run_pngs(EventSimulator, paths, times, c)
+    curve = []
+    for c in thresholds:
+        count = _run_frames(EventSimulator, frames, times, c)
         methods = []
         if head is not None:
-            methods.append(("HEAD EventSimulator, PNG decode + step", lambda: _run_pngs(head, paths, times, c), ""))
+            methods.append(("HEAD: PNG decode + step, one thread",
+                            lambda: _run_pngs(head, paths, times, c), ""))
         methods += [
-            ("EventSimulator, PNG decode + step", lambda: _run_pngs(EventSimulator, paths, times, c),
-             f"{len(paths) / 1:.0f} frames"),
-            ("EventSimulator.step, frames decoded", lambda: _run_frames(EventSimulator, frames, times, c), ""),
-            ("PNG decode only", lambda: [cv2.imread(p, cv2.IMREAD_GRAYSCALE) for p in paths], ""),
+            ("PNG decode + step, one thread", lambda: _run_pngs(EventSimulator, paths, times, c),
+             f"{len(paths)} frames"),
+            ("ImageFolderSource (decode thread) + step", lambda: _run_source(EventSimulator, source, c),
+             "pipelined, prefetch 4"),
+            ("step only, frames decoded", lambda: _run_frames(EventSimulator, frames, times, c), ""),
         ]
-        run_group(report, f"truck-pan 240x180, C={c}, {count:,} events", methods, count, repeats)
+        if head is not None:
+            methods.append(("HEAD: step only, frames decoded",
+                            lambda: _run_frames(head, frames, times, c), ""))
+        methods.append(("PNG decode only", lambda: [cv2.imread(p, cv2.IMREAD_GRAYSCALE) for p in paths], ""))
+        density = count / (len(paths) - 1) / (width * height)
+        group = f"truck-pan {width}x{height}, C={c}, {count:,} events ({density:.3f} per pixel per frame)"
+        run_group(report, group, methods, count, repeats)
+        rows = {row.method: row for row in report.rows if row.group == group}
+        curve.append((c, density, rows["PNG decode + step, one thread"].mev_per_s,
+                      rows["ImageFolderSource (decode thread) + step"].mev_per_s,
+                      rows["step only, frames decoded"].mev_per_s))
     report.checks["truck-pan frames"] = len(paths)
     if head is not None:
-        same = all(_run_pngs(head, paths, times, c) == _run_pngs(EventSimulator, paths, times, c)
-                   for c in (0.2, 0.1))
-        report.checks["same event counts as HEAD (C=0.2, 0.1)"] = same
+        same = all(_same_events(head(cp=c, cn=c).simulate(np.stack(frames), times),
+                                EventSimulator(cp=c, cn=c).simulate(np.stack(frames), times))
+                   for c in thresholds)
+        report.checks[f"events identical to HEAD (x, y, t, p; C={', '.join(map(str, thresholds))})"] = same
+    target = 2 * REFERENCE_MEV_S[1]
+    report.checks["density curve: C / events per pixel per frame / Mev/s one thread / pipelined / "
+                  "step only"] = "; ".join(
+        f"{c} / {d:.3f} / {a:.1f} / {b:.1f} / {s:.1f}" for c, d, a, b, s in curve)
+    reached = [(c, d) for c, d, _, b, _ in curve if b >= target]
+    report.checks[f"2x the reference ({target:.1f} Mev/s) pipelined reached at"] = (
+        f"C <= {max(c for c, _ in reached)} (>= {min(d for _, d in reached):.3f} events per pixel per frame)"
+        if reached else "no threshold measured")
 
 
-def bikes_groups(report, run_group, time_call, add_row):
-    from cmax.sim.convert import ConvertSettings, open_frames
+def _video_frames_cv2(video: Path):
+    """Grey uint8 frames and µs times decoded in this thread (as HEAD's convert did)."""
+    capture = cv2.VideoCapture(str(video))
+    try:
+        while True:
+            ok, image = capture.read()
+            if not ok:
+                return
+            t_us = int(round(capture.get(cv2.CAP_PROP_POS_MSEC) * 1000))
+            yield cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), t_us
+    finally:
+        capture.release()
+
+
+def _adaptive_run(upsample_module, simulator_class, video: Path, seconds: float, method: str):
+    from cmax.sim.video import VideoFileSource
+
+    simulator, events, samples, reports = simulator_class(), 0, 0, []
+    frames = VideoFileSource(video, t1_s=seconds)
+    kwargs = {"report": reports.append}
+    for frame, t_us in upsample_module.iter_upsample(frames, 0.2, lam=0.5, method=method, **kwargs):
+        events, samples = events + len(simulator.step(frame, t_us)), samples + 1
+    return {"events": events, "samples": samples, "intervals": len(reports),
+            "inserted": sum(r.inserted for r in reports),
+            "capped": sum(bool(r.capped) for r in reports),
+            "rejected": sum(getattr(r, "rejected", 0) for r in reports)}
+
+
+def bikes_groups(report, run_group, time_call, add_row, *, seconds: float = 1.0,
+                 full_adaptive: bool = False):
+    """bikes.mp4: decode + step without sampling; adaptive linear and flow against HEAD."""
+    from cmax.sim import sampling
     from cmax.sim.esim import EventSimulator
-    from cmax.sim.sampling import iter_upsample
+    from cmax.sim.video import VideoFileSource
 
     video = DATA / "videos" / "bikes.mp4"
+    head = _head_esim()
+    source = VideoFileSource(video, dtype=np.uint8)
 
-    def plain(t1_s=None):
-        simulator, count, n = EventSimulator(), 0, 0
-        for frame, t_us in open_frames(video, ConvertSettings(adaptive=False, t1_s=t1_s)):
-            count, n = count + len(simulator.step(frame, t_us)), n + 1
-        return count, n
+    def plain(simulator_class, frames):
+        simulator, count = simulator_class(), 0
+        for frame, t_us in frames():
+            count += len(simulator.step(frame, t_us))
+        return count
 
-    count, n = plain()
-    run_group(report, f"bikes.mp4 640x272, {n} frames, C=0.2, no adaptive sampling, {count:,} events",
-              [("decode + step", lambda: plain(), f"{n} frames")], count, 3)
-    for method in ("linear", "flow"):
-        stats = {}
-
-        def adaptive():
-            simulator, count, samples = EventSimulator(), 0, 0
-            frames = open_frames(video, ConvertSettings(adaptive=False, t1_s=1.0))
-            for frame, t_us in iter_upsample(frames, 0.2, lam=0.5, method=method):
-                count, samples = count + len(simulator.step(frame, t_us)), samples + 1
-            stats.update(events=count, samples=samples)
-
-        times = time_call(adaptive, 1) if method == "linear" else _once(adaptive)
-        add_row(report, f"bikes.mp4 first 1 s (26 frames), adaptive {method}", f"decode + iter_upsample({method}) + step",
-                times, stats["events"], baseline=True,
-                note=f"{stats['samples']} samples, {stats['samples'] / times[0]:.1f} samples/s, "
-                     f"{26 / times[0]:.2f} video frames/s")
-
-
-def _once(function):
-    start = time.perf_counter()
-    function()
-    return [time.perf_counter() - start]
+    count = plain(EventSimulator, lambda: source)
+    methods = [("HEAD: decode + step, one thread", lambda: plain(head, lambda: _video_frames_cv2(video)), "")
+               ] if head is not None else []
+    methods += [
+        ("decode + step, one thread", lambda: plain(EventSimulator, lambda: _video_frames_cv2(video)),
+         f"{source.frame_count} frames"),
+        ("VideoFileSource (decode thread) + step", lambda: plain(EventSimulator, lambda: source),
+         "pipelined, prefetch 4"),
+        ("decode only", lambda: sum(1 for _ in _video_frames_cv2(video)), ""),
+    ]
+    run_group(report, f"bikes.mp4 640x272, {source.frame_count} frames, C=0.2, no adaptive sampling, "
+              f"{count:,} events", methods, count, 3)
+    head_sampling = _head_module("cmax/sim/sampling.py", "sampling_head")
+    spans = [seconds] + ([source.frame_count / source.fps] if full_adaptive else [])
+    for span in spans:
+        frames = round(span * source.fps)
+        for method in ("linear", "flow"):
+            group = f"bikes.mp4 first {span:g} s ({frames} frames), adaptive {method}, C=0.2, lam=0.5"
+            with_head = head is not None and head_sampling is not None and span == seconds
+            variants = [("HEAD", head_sampling, head)] if with_head else []
+            variants.append(("new", sampling, EventSimulator))
+            for i, (label, module, simulator_class) in enumerate(variants):
+                start = time.perf_counter()
+                stats = _adaptive_run(module, simulator_class, video, span, method)
+                wall = time.perf_counter() - start
+                note = (f"{stats['samples']} samples ({stats['inserted']} inserted, {stats['rejected']} "
+                        f"rejected renders, {stats['capped']} capped intervals), "
+                        f"{stats['samples'] / wall:.0f} samples/s, {frames / wall:.2f} video frames/s")
+                add_row(report, group, f"{label}: decode + iter_upsample({method}) + step", [wall],
+                        stats["events"], baseline=i == 0, note=note)
+    for span in spans:
+        rows = {row.group.split(", adaptive ")[1].split(",")[0]: row for row in report.rows
+                if row.group.startswith(f"bikes.mp4 first {span:g} s") and row.method.startswith("new")}
+        if {"linear", "flow"} <= rows.keys():
+            report.checks[f"adaptive flow / linear wall time, first {span:g} s of bikes.mp4 (new)"] = (
+                f"{rows['flow'].median_s / rows['linear'].median_s:.2f}x")
 
 
 _RSS_CHILD = r"""
-import sys, resource, numpy as np
+import resource, sys, threading, time
 from pathlib import Path
-from cmax.sim.convert import ConvertSettings, convert_video, open_frames
-video, out, minutes = Path(sys.argv[1]), Path(sys.argv[2]), float(sys.argv[3])
-marks, seen = {1: None, 5: None, 10: None}, []
 def rss_mb():
     for line in open("/proc/self/status"):
         if line.startswith("VmRSS"):
             return int(line.split()[1]) / 1024
+at_start = rss_mb()
+from cmax.sim.convert import ConvertSettings, convert_video, open_frames
+video, out, minutes = Path(sys.argv[1]), Path(sys.argv[2]), float(sys.argv[3])
+marks, state = {1: None, 5: None, 10: None}, {"t": 0.0, "peak": 0.0, "peak_t": 0.0}
+def sample():
+    while True:
+        value = rss_mb()
+        if value > state["peak"]:
+            state["peak"], state["peak_t"] = value, state["t"]
+        time.sleep(0.02)
+threading.Thread(target=sample, daemon=True).start()
 def looped():
-    offset, period = 0, None
+    offset = 0
     while True:
         last = 0
         for frame, t_us in open_frames(video, ConvertSettings(adaptive=False)):
             t = offset + t_us
             if t > minutes * 60e6:
                 return
+            state["t"] = t / 60e6
             for m in marks:
                 if marks[m] is None and t >= m * 60e6:
                     marks[m] = rss_mb()
@@ -158,8 +264,11 @@ def looped():
             last = t_us
         offset += last + 40_000
 r = convert_video(video, out, ConvertSettings(adaptive=False), frames=looped())
+state["t"] = minutes + 1  # closed
+time.sleep(0.05)
 peak = resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 1024
-print(marks[1], marks[5], marks[10], peak, r.frames, r.events, r.wall_s, out.stat().st_size)
+print(marks[1], marks[5], marks[10], peak, r.frames, r.events, r.wall_s, out.stat().st_size,
+      at_start, state["peak"], state["peak_t"])
 """
 
 
@@ -167,11 +276,56 @@ def rss_rows(report, minutes=10.0):
     video = DATA / "videos" / "bikes.mp4"
     with tempfile.TemporaryDirectory() as folder:
         result = subprocess.run([sys.executable, "-c", _RSS_CHILD, str(video), str(Path(folder) / "long.h5"),
-                                 str(minutes)], capture_output=True, text=True, check=True)
-    at1, at5, at10, peak, frames, events, wall, size = result.stdout.split()
-    report.checks["10-minute conversion (bikes.mp4 looped, no adaptive)"] = (
+                                 str(minutes)], capture_output=True, text=True, check=True, cwd=ROOT)
+    at1, at5, at10, peak, frames, events, wall, size, start, sampled, when = result.stdout.split()
+    report.checks[f"{minutes:g}-minute conversion (bikes.mp4 looped, no adaptive)"] = (
         f"{int(frames):,} frames, {int(events):,} events, {float(wall):.0f} s wall, "
         f"{int(size) / 2**20:.0f} MiB h5")
     report.checks["VmRSS at 1 / 5 / 10 min of video (MiB)"] = (
         " / ".join("-" if v == "None" else f"{float(v):.0f}" for v in (at1, at5, at10))
-        + f"; peak (ru_maxrss) {float(peak):.0f}")
+        + f"; peak (ru_maxrss) {float(peak):.0f}; sampled peak {float(sampled):.0f} at "
+        f"{float(when):.1f} min of video; {float(start):.0f} at start, before imports")
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Run this section alone, with the options ``benchmarks/speed.py`` does not have."""
+    import argparse
+
+    from benchmarks import speed
+
+    parser = argparse.ArgumentParser(prog="python -m benchmarks.speed_simulator",
+                                     description=__doc__.split("\n")[0])
+    parser.add_argument("--quick", action="store_true",
+                        help="3 repeats, thresholds 0.2/0.05, 0.4 s of adaptive sampling, no 10-minute run")
+    parser.add_argument("--full-adaptive", action="store_true",
+                        help="also sample the whole bikes.mp4 adaptively (minutes)")
+    parser.add_argument("--repeats", type=int, default=5)
+    parser.add_argument("--long-minutes", type=float, default=10.0)
+    parser.add_argument("--no-write", action="store_true")
+    args = parser.parse_args(argv)
+    cv2.setNumThreads(1)  # single-threaded, as the reference C++ ESIM figure
+    machine = speed.machine_info()
+    repeats = 3 if args.quick else args.repeats
+    report = speed.Report("simulator", "Simulator speed (EventSimulator, adaptive sampling, conversion)",
+                          {"repeats": repeats, "opencv_threads": 1, "quick": args.quick})
+    truck_groups(report, speed.run_group, repeats, (0.2, 0.05) if args.quick else THRESHOLDS)
+    bikes_groups(report, speed.run_group, speed.time_call, speed.add_row,
+                 seconds=0.4 if args.quick else 1.0, full_adaptive=args.full_adaptive)
+    if not args.quick:
+        rss_rows(report, args.long_minutes)
+    report.notes += [
+        "Reference C++ ESIM (issue 3): 3.6-4.2 M events/s single-threaded on this machine, "
+        "240x320 frames including PNG decoding (its threshold is not stated); truck-pan is 240x180.",
+        "Mev/s counts events per wall second; rows of one group are timed interleaved.",
+        f"Load average (1 min) at the end: {os.getloadavg()[0]:.2f} (2 shared cores).",
+    ]
+    speed.finish_ratios(report)
+    speed.print_report(report)
+    if not args.no_write:
+        for path in speed.write_report(report, machine):
+            print(f"  wrote {path}")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

@@ -61,9 +61,10 @@ def test_adaptive_conversion_and_time_range(tmp_path):
     write_video(tmp_path / "a.avi", n_frames=6)
     settings = ConvertSettings(adaptive=True, method="linear", t0_s=0.04, t1_s=0.12)
     result = convert_video(tmp_path / "a.avi", tmp_path / "a.h5", settings)
-    assert result.frames == 3 and result.samples > result.frames and result.events > 0
+    assert result.frames == 2 and result.samples > result.frames and result.events > 0  # 40, 80 ms
+    assert result.capped_intervals == 0
     events = read_h5(tmp_path / "a.h5")
-    assert 40_000 <= events.t[0] and events.t[-1] <= 120_000
+    assert 40_000 <= events.t[0] and events.t[-1] <= 80_000
 
 
 def test_collection_with_a_corrupt_video_and_resume(tmp_path):
@@ -77,7 +78,7 @@ def test_collection_with_a_corrupt_video_and_resume(tmp_path):
     out = tmp_path / "out"
     manifest = convert_collection(jobs, out, FAST, progress=False)
     assert {n: v["status"] for n, v in manifest["videos"].items()} == {"a": "ok", "b": "ok", "c": "failed"}
-    assert "cannot open video" in manifest["videos"]["c"]["error"]
+    assert "DecodeError" in manifest["videos"]["c"]["error"] and "c.mp4" in manifest["videos"]["c"]["error"]
     assert load_manifest(out / "manifest.json") == manifest
     assert manifest["totals"]["ok"] == 2 and not (out / "c.h5").exists()
     stat_a, bytes_a = (out / "a.h5").stat().st_mtime_ns, (out / "a.h5").read_bytes()
@@ -159,7 +160,7 @@ def test_bad_inputs_give_clear_errors(tmp_path, capsys):
     with pytest.raises(ValueError, match="holds no videos"):
         collect_jobs(tmp_path / "empty")
     write_video(tmp_path / "a.avi")
-    with pytest.raises(ValueError, match="no frames in the time range"):
+    with pytest.raises(ValueError, match="zero frames"):
         convert_video(tmp_path / "a.avi", tmp_path / "x.h5", ConvertSettings(adaptive=False, t0_s=50.0))
     assert not (tmp_path / "x.h5").exists() and not (tmp_path / "x.h5.partial").exists()
     with pytest.raises(ValueError, match="no frames"):
@@ -172,3 +173,52 @@ def test_bad_inputs_give_clear_errors(tmp_path, capsys):
     assert "cn must be" in capsys.readouterr().err
     with pytest.raises(ValueError, match="workers"):
         convert_collection([VideoJob("a", tmp_path / "a.avi")], tmp_path / "o", FAST, workers=0)
+
+
+def test_every_bad_video_is_reported_and_the_others_convert(tmp_path):
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    write_video(videos / "a.avi")
+    writer = cv2.VideoWriter(str(videos / "empty.avi"), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (48, 32))
+    writer.release()  # a valid container with zero frames
+    write_video(videos / "long.avi", n_frames=40)
+    (videos / "cut.avi").write_bytes((videos / "long.avi").read_bytes()[:20_000])  # truncated
+    (videos / "long.avi").unlink()
+    (videos / "text.mp4").write_text("not a video")
+    jobs, _ = collect_jobs(videos)
+    out = tmp_path / "out"
+    manifest = convert_collection(jobs, out, FAST, progress=False, workers=2)
+    videos_ = manifest["videos"]
+    assert videos_["a"]["status"] == "ok" and (out / "a.h5").is_file()
+    for name, message in (("empty", "decoded no frame"), ("cut", "truncated or corrupt"),
+                          ("text", "cannot decode")):
+        assert videos_[name]["status"] == "failed", name
+        assert message in videos_[name]["error"] and name in videos_[name]["error"]
+        assert not (out / f"{name}.h5").exists()
+    assert manifest["totals"] == {**manifest["totals"], "ok": 1, "failed": 3}
+    assert sorted(p.name for p in out.iterdir()) == ["a.h5", "manifest.json"]  # nothing partial
+
+
+@pytest.mark.parametrize("adaptive", [False, True])
+def test_bad_frames_given_to_a_conversion_leave_no_file(tmp_path, adaptive):
+    frames = write_video(tmp_path / "a.avi", n_frames=3).astype(np.float32)
+    settings = ConvertSettings(adaptive=adaptive, method="linear")
+    cases = {
+        "increas": [(frames[0], 0), (frames[1], 40_000), (frames[2], 40_000)],  # non-increasing
+        "shape": [(frames[0], 0), (frames[1][:, :40], 40_000)],  # mismatched sizes
+        r"\[0, 255\]": [(frames[0], 0), (frames[1] * 3, 40_000)],
+    }
+    for message, items in cases.items():
+        with pytest.raises(ValueError, match=message):
+            convert_video(tmp_path / "a.avi", tmp_path / "x.h5", settings, frames=iter(items))
+        assert not (tmp_path / "x.h5").exists() and not (tmp_path / "x.h5.partial").exists()
+
+
+def test_settings_reject_bad_values():
+    for kwargs, name in (({"cp": 0.0}, "cp"), ({"cn": -0.2}, "cn"), ({"cp": float("nan")}, "cp")):
+        with pytest.raises(ValueError, match=name):
+            EsimSettings(**kwargs)
+    for kwargs, name in (({"lam": 0}, "lam"), ({"method": "cubic"}, "method"),
+                         ({"size": (0, 10)}, "size"), ({"t0_s": -1.0}, "t0_s")):
+        with pytest.raises(ValueError, match=name):
+            ConvertSettings(**kwargs)

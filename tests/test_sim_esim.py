@@ -160,6 +160,63 @@ def test_threshold_crossings_closed_form():
         threshold_crossings(ref, log0, log1, np.float32(-0.1), c)
 
 
+def naive_crossings(ref, log0, log1, c_on, c_off):
+    """Per-pixel Python loop over float32 levels ``L_ref += C``: the definition, one by one."""
+    pixel, level, polarity, ref_out = [], [], [], ref.copy()
+    for i in range(ref.size):
+        up = log1[i] > log0[i]
+        c = np.float32(c_on[i] if up else -c_off[i])
+        r, first = ref[i], True
+        while True:
+            candidate = np.float32(r + c)
+            beyond_start = candidate > log0[i] if up else candidate < log0[i]
+            within = candidate <= log1[i] if up else candidate >= log1[i]
+            if not within or (first and not beyond_start):
+                break
+            pixel.append(i), level.append(candidate), polarity.append(int(up))
+            r, first = candidate, False
+        ref_out[i] = r
+    return np.array(pixel, np.int64), np.array(level, np.float32), np.array(polarity, np.int8), ref_out
+
+
+@pytest.mark.parametrize("seed", [0, 1, 2])
+def test_threshold_crossings_equal_the_sequential_definition(seed):
+    """Random pixels with 0 to ~60 crossings (beyond the 16 ranks done one pass each), levels
+    landing exactly on the next sample, per-pixel thresholds: all equal the one-by-one loop."""
+    rng = np.random.default_rng(seed)
+    n = 400
+    c_on = rng.uniform(0.05, 0.3, n).astype(np.float32)
+    c_off = rng.uniform(0.05, 0.3, n).astype(np.float32)
+    ref = rng.uniform(-6.0, 0.0, n).astype(np.float32)
+    log0 = (ref + rng.uniform(-0.9, 0.9, n) * np.minimum(c_on, c_off)).astype(np.float32)
+    log1 = rng.uniform(-6.9, 0.0, n).astype(np.float32)
+    exact = rng.random(n) < 0.2  # land exactly on a float32 level: ref + C (+ C ...)
+    for i in np.flatnonzero(exact):
+        level = ref[i]
+        for _ in range(rng.integers(1, 4)):
+            level = np.float32(level + (c_on[i] if rng.random() < 0.5 else -c_off[i]))
+        log1[i] = level
+    expected = naive_crossings(ref, log0, log1, c_on, c_off)
+    for thresholds in ((c_on, c_off), (np.float32(0.1), np.float32(0.07))):
+        if not np.ndim(thresholds[0]):
+            expected = naive_crossings(ref, log0, log1, np.full(n, thresholds[0]), np.full(n, thresholds[1]))
+        got = threshold_crossings(ref, log0, log1, *thresholds)
+        np.testing.assert_array_equal(got.pixel, expected[0])
+        np.testing.assert_array_equal(got.level, expected[1])
+        np.testing.assert_array_equal(got.polarity, expected[2])
+        np.testing.assert_array_equal(got.ref, expected[3])
+    assert np.bincount(expected[0]).max() > 16  # the running-sum tail was exercised
+
+
+def test_fractional_grey_values_use_the_table_where_whole():
+    table = log_intensity(np.arange(256, dtype=np.uint8).reshape(16, 16)).ravel()
+    frame = np.array([[0.0, 0.5, 17.0, 17.25, 254.9, 255.0]], np.float32)
+    log = log_intensity(frame).ravel()
+    assert log[0] == table[0] and log[2] == table[17] and log[5] == table[255]
+    np.testing.assert_allclose(log, np.log(frame.ravel().astype(np.float64) / 255 + 1e-3), atol=2e-6)
+    assert table[0] < log[1] < table[1] and table[17] < log[3] < table[18]
+
+
 # -- time stamps and order ------------------------------------------------------------------
 def test_events_sorted_by_time_then_pixel():
     frames = smooth_video(n_frames=6)

@@ -1,6 +1,8 @@
 """Adaptive sampling of videos (cmax.sim.sampling): the lam*C bound, flow interpolation, streaming."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 
@@ -94,14 +96,29 @@ def test_bound_on_real_truck_frames(shared_data, method):
 
 
 def test_linear_count_is_tight():
-    """Linear blending between uniform frames: the exact count, no more than ~1 sample extra."""
+    """Linear blending of uniform frames: eq. 1 step by step gives the fewest samples possible,
+    ``ceil(|L1 - L0| / bound)``, each step (but the last) moving L by the bound."""
     frames = np.stack([np.full((8, 8), 50.0), np.full((8, 8), 100.0)]).astype(np.float32)
     result = upsample(frames, np.array([0, 1_000_000]), THRESHOLD, lam=LAM, method="linear")
-    n = result.inserted + 1
-    # Linear in intensity, the first (darkest) step is the largest: 50 -> 50 + 50/n.
-    first_step = lambda n: np.log((50 + 50 / n + 255 * LOG_EPS) / (50 + 255 * LOG_EPS))  # noqa: E731
-    assert first_step(n) <= BOUND < first_step(n - 1)
-    assert n == 10 and result.max_dlog_per_interval[0] <= BOUND
+    total = np.log((100 + 255 * LOG_EPS) / (50 + 255 * LOG_EPS))
+    assert result.inserted + 1 == int(np.ceil(total / BOUND)) == 7
+    steps = max_log_step(result.frames)
+    assert steps.max() <= BOUND and steps[:-1].min() > 0.99 * BOUND
+    assert result.max_dlog_per_interval[0] <= BOUND
+
+
+def test_steps_follow_eq1_near_black():
+    """A dark pixel brightening linearly: samples crowd where L changes fast (near black),
+    and their count follows the total log change, not the fastest rate."""
+    frames = np.stack([np.full((4, 4), 0.0), np.full((4, 4), 30.0)]).astype(np.float32)
+    result = upsample(frames, np.array([0, 1_000_000]), THRESHOLD, lam=LAM, method="linear")
+    total = np.log((30 + 255 * LOG_EPS) / (255 * LOG_EPS))  # 4.78 nepers
+    uniform = np.ceil((30 / (255 * LOG_EPS)) / np.expm1(BOUND))  # uniform steps sized at a = 0
+    assert np.ceil(total / BOUND) <= result.inserted + 1 <= np.ceil(total / BOUND) + 2
+    assert uniform > 20 * (result.inserted + 1)
+    gaps = np.diff(result.timestamps_us)
+    assert gaps[0] < gaps[-2] / 50  # dense at the dark start, sparse later
+    assert max_log_step(result.frames).max() <= BOUND
 
 
 # -- interpolation quality -------------------------------------------------------------------
@@ -116,6 +133,27 @@ def test_flow_beats_linear_on_translation():
         err_flow = np.sqrt(np.mean((flow - truth) ** 2))
         err_linear = np.sqrt(np.mean((linear - truth) ** 2))
         assert err_flow < 0.3 * err_linear, (alpha, err_flow, err_linear)
+
+
+def test_flow_key_frames_are_flow_frames_at_most_a_pixel_of_motion_apart():
+    """Flow sampling renders ceil(motion / 1 px) key frames by flow warping (exactly the frames
+    of interpolate_frames) and blends linearly between them."""
+    from cmax.sim.interpolation import make_pair
+
+    spectrum = texture(96, seed=1)
+    frame0, frame1 = render(spectrum, 0, 0), render(spectrum, 4.6, -2.1)
+    span = 1_000_000
+    result = upsample(np.stack([frame0, frame1]), np.array([0, span]), THRESHOLD, method="flow")
+    motion = make_pair(frame0, frame1, "flow", "medium", {}).motion_px
+    keys = math.ceil(motion)
+    assert 4.6 < motion < 6.5 and result.bound_met
+    times = result.timestamps_us.tolist()
+    for k in range(1, keys):
+        t = k * span // keys
+        assert t in times
+        expected = interpolate_frames(frame0, frame1, [t / span], method="flow")[0]
+        np.testing.assert_array_equal(result.frames[times.index(t)], expected)
+    assert result.inserted > keys - 1  # blended frames between the key frames too
 
 
 def test_interpolation_end_points_and_shapes():

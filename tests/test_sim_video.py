@@ -127,6 +127,54 @@ def test_video_errors(tmp_path):
         VideoFileSource(path, size=(64.0, 48))
 
 
+def test_prefetching_gives_the_same_frames_and_errors(tmp_path):
+    path = tmp_path / "clip.avi"
+    write_avi(path)
+    direct = list(VideoFileSource(path, prefetch=0))
+    threaded = list(VideoFileSource(path, prefetch=3))
+    assert [t for _, t in threaded] == [t for _, t in direct]
+    assert all(np.array_equal(a, b) for (a, _), (b, _) in zip(direct, threaded))
+    truncated = tmp_path / "cut.avi"
+    truncated.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    seen = []
+    with pytest.raises(DecodeError, match="cut.avi"):  # raised here, after the decodable frames
+        for frame, t in VideoFileSource(truncated, prefetch=2):
+            seen.append(t)
+    assert 0 < len(seen) < 30 and seen == [t for _, t in direct[: len(seen)]]
+
+
+def test_stopping_early_stops_the_decoding_thread(tmp_path):
+    import threading
+
+    path = tmp_path / "clip.avi"
+    write_avi(path)
+    before = threading.active_count()
+    frames = iter(VideoFileSource(path, prefetch=2))
+    next(frames)
+    assert threading.active_count() == before + 1
+    frames.close()  # what a for loop's break and garbage collection do
+    assert threading.active_count() == before
+
+
+def test_uint8_frames(tmp_path, bikes):
+    path = tmp_path / "clip.avi"
+    write_avi(path, count=4)
+    as_float = [f for f, _ in VideoFileSource(path)]
+    as_uint8 = [f for f, _ in VideoFileSource(path, dtype=np.uint8)]
+    assert all(f.dtype == np.uint8 for f in as_uint8)
+    assert all(np.array_equal(a, b) for a, b in zip(as_float, as_uint8))  # 8-bit values, exactly
+    small = next(iter(VideoFileSource(bikes, size=(160, 68), dtype=np.uint8)))[0]
+    small_float = next(iter(VideoFileSource(bikes, size=(160, 68))))[0]
+    assert small.dtype == np.uint8 and np.abs(small - small_float).max() <= 1.0
+    for bad in (np.int16, "float64", None):
+        with pytest.raises(ValueError, match="dtype"):
+            VideoFileSource(path, dtype=bad)
+    with pytest.raises(ValueError, match="prefetch"):
+        VideoFileSource(path, prefetch=-1)
+    with pytest.raises(TypeError, match="prefetch"):
+        VideoFileSource(path, prefetch=1.5)
+
+
 # -- image folders ------------------------------------------------------------------------
 def test_esim_truck_folder(shared_data):
     folder = shared_data / "esim_truck_pan" / "images"
@@ -140,6 +188,10 @@ def test_esim_truck_folder(shared_data):
                                  size=(120, 90))
     frame, _ = next(iter(explicit))
     assert frame.shape == (90, 120) and (explicit.width, explicit.height) == (120, 90)
+    as_uint8 = list(ImageFolderSource(folder, dtype=np.uint8, prefetch=2))
+    decoded = [cv2.imread(str(p), cv2.IMREAD_GRAYSCALE) for p in source.images]
+    assert all(f.dtype == np.uint8 and np.array_equal(f, d) for (f, _), d in zip(as_uint8, decoded))
+    assert [t for _, t in as_uint8] == times
 
 
 def test_ecd_images_txt(shared_data):
@@ -238,6 +290,10 @@ def test_array_source():
         ArraySource(frames[0], np.array([0]))
     with pytest.raises(ValueError, match=r"\[0, 255\]"):
         ArraySource(frames.astype(float) - 1, np.array([5, 9]))
+    as_uint8 = list(ArraySource(frames.astype(np.float64), np.array([5, 9]), dtype=np.uint8))
+    assert as_uint8[1][0].dtype == np.uint8 and np.array_equal(as_uint8[1][0], frames[1])
+    with pytest.raises(ValueError, match="whole grey values"):
+        ArraySource(frames + 0.5, np.array([5, 9]), dtype=np.uint8)
 
 
 def test_open_source_dispatch(tmp_path):

@@ -29,12 +29,13 @@ import time
 from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterable, Iterator, Sequence
+from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
 from cmax.sim.esim import EsimSettings, EventSimulator
+from cmax.sim.video import DEFAULT_PREFETCH, VideoFileSource
 
 __all__ = [
     "ConvertSettings", "VideoJob", "VideoResult", "VIDEO_SUFFIXES", "collect_jobs",
@@ -66,7 +67,8 @@ class ConvertSettings:
     method : {"flow", "linear"}
         Interpolation of the adaptive sampling.
     t0_s, t1_s : float or None
-        Time range of the video to convert, seconds from its start (inclusive).
+        Time range of the video to convert: frames with ``t0_s <= t < t1_s``
+        (seconds of container time, as :class:`cmax.sim.video.VideoFileSource`).
     """
 
     esim: EsimSettings = field(default_factory=EsimSettings)
@@ -117,7 +119,9 @@ class VideoResult:
     """Outcome of one conversion (one manifest entry).
 
     ``frames``: video frames read; ``samples``: frames fed to the simulator
-    (with inserted ones); ``duration_s``: last minus first frame time;
+    (with inserted ones); ``capped_intervals``: intervals between video frames
+    where adaptive sampling hit a cap (one sample per µs, ``max_insert``) and
+    the ``lam * C`` bound does not hold; ``duration_s``: last minus first frame time;
     ``status``: ``"ok"`` or ``"failed"`` (then ``error`` says why, and no output exists).
     """
 
@@ -128,6 +132,7 @@ class VideoResult:
     status: str
     frames: int = 0
     samples: int = 0
+    capped_intervals: int = 0
     events: int = 0
     duration_s: float = 0.0
     events_per_s: float = 0.0
@@ -136,56 +141,26 @@ class VideoResult:
 
 
 # -- one video --------------------------------------------------------------------------
-def _time_range_us(settings: ConvertSettings) -> tuple[int | None, int | None]:
-    to_us = lambda s: None if s is None else int(round(s * 1e6))  # noqa: E731
-    return to_us(settings.t0_s), to_us(settings.t1_s)
+def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
+                prefetch: int = DEFAULT_PREFETCH) -> VideoFileSource:
+    """The frames of a video in the settings' size and time range: a :mod:`cmax.sim.video` source.
 
+    Frames are uint8 grey (H, W) (the 8-bit values the reference ESIM works
+    on), decoded ``prefetch`` frames ahead in a background thread; times are
+    the container's presentation times in µs, ``t0_s <= t < t1_s``.
 
-def open_frames(source: str | os.PathLike, settings: ConvertSettings) -> Iterator[tuple[np.ndarray, int]]:
-    """(grey uint8 frame, t_us) of a video in the settings' size and time range, streamed.
-
-    Times are the container's presentation times (µs from the start).
-    Raises ``ValueError`` for a file OpenCV cannot open (corrupt, not a video).
+    Raises
+    ------
+    FileNotFoundError
+        No such file.
+    cmax.sim.video.DecodeError
+        OpenCV cannot decode the file (at once), or the stream ends early
+        (truncated or corrupt, while iterating).
+    ValueError
+        No frame in the time range (while iterating).
     """
-    t0_us, t1_us = _time_range_us(settings)
-    return _read_video(Path(source), settings.size, t0_us, t1_us)
-
-
-def _read_video(path: Path, size, t0_us: int | None, t1_us: int | None):
-    import cv2
-
-    capture = cv2.VideoCapture(str(path))
-    if not capture.isOpened():
-        raise ValueError(f"cannot open video {path} (corrupt, or not a video OpenCV reads)")
-    fps = capture.get(cv2.CAP_PROP_FPS)
-    return _decode(capture, path, size, t0_us, t1_us, fps if fps > 0 else None)
-
-
-def _decode(capture, path, size, t0_us, t1_us, fps):
-    import cv2
-
-    previous, index = None, 0
-    try:
-        while True:
-            ok, frame = capture.read()
-            if not ok:
-                return
-            t_us = int(round(capture.get(cv2.CAP_PROP_POS_MSEC) * 1000))
-            if previous is not None and t_us <= previous and fps:  # containers without times
-                t_us = int(round(index * 1e6 / fps))
-            if previous is not None and t_us <= previous:
-                raise ValueError(f"{path}: frame {index} has time {t_us} µs after {previous} µs")
-            previous, index = t_us, index + 1
-            if t0_us is not None and t_us < t0_us:
-                continue
-            if t1_us is not None and t_us > t1_us:
-                return
-            grey = cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY) if frame.ndim == 3 else frame
-            if size is not None and (grey.shape[1], grey.shape[0]) != tuple(size):
-                grey = cv2.resize(grey, tuple(size), interpolation=cv2.INTER_AREA)
-            yield grey, t_us
-    finally:
-        capture.release()
+    return VideoFileSource(source, size=settings.size, t0_s=settings.t0_s, t1_s=settings.t1_s,
+                           dtype=np.uint8, prefetch=prefetch)
 
 
 def _counted(frames: Iterable[tuple[np.ndarray, int]], counter: list[int]):
@@ -240,13 +215,18 @@ def convert_video(
         if not source.exists():
             raise FileNotFoundError(f"video not found: {source}")
         frames = open_frames(source, settings)
-    counter = [0, 0, 0]  # frames read, first and last time
+    counter = [0, 0, 0, 0]  # frames read, first and last time, capped intervals
     stream: Iterable = _counted(frames, counter)
     if settings.adaptive:
         from cmax.sim.sampling import iter_upsample
 
         threshold = min(settings.esim.cp, settings.esim.cn)
-        stream = iter_upsample(stream, threshold, lam=settings.lam, method=settings.method)
+
+        def count_capped(interval) -> None:
+            counter[3] += int(interval.capped)
+
+        stream = iter_upsample(stream, threshold, lam=settings.lam, method=settings.method,
+                               report=count_capped)
     simulator = EventSimulator.from_settings(settings.esim)
     writer, samples, reported = None, 0, 0
     try:
@@ -273,7 +253,8 @@ def convert_video(
     duration = (counter[2] - counter[1]) * 1e-6
     return VideoResult(
         name=output.stem, source=str(source), output=str(output), category=category, status="ok",
-        frames=counter[0], samples=samples, events=writer.count, duration_s=duration,
+        frames=counter[0], samples=samples, capped_intervals=counter[3],
+        events=writer.count, duration_s=duration,
         events_per_s=writer.count / duration if duration > 0 else 0.0,
         wall_s=time.perf_counter() - started,
     )

@@ -18,13 +18,16 @@ uzh-rpg/rpg_vid2e) so that both give the same events on the same frames:
   own ``cv::log`` algorithm, reimplemented bit for bit in
   :mod:`cmax.sim._cvlog` (the ``cv2`` wheels call Intel IPP instead, which
   rounds differently). For uint8 frames a 256-entry table of these values
-  is used; integer-valued float frames give the same values.
+  is used; integer-valued float frames give the same values. Fractional grey
+  values (frames interpolated by :mod:`cmax.sim.sampling`) use numpy's
+  float32 log of the same argument, within 1-2 ulp of ``cv::log``: a bit-exact
+  emulation costs 100x more and there is no reference to agree with.
 * ``L_ref`` is a float32 value that moves one float32 threshold at a time
   (``L_ref += C`` in float32, sequentially). This matters: a pixel that
   returns to the grey value it started from lands *exactly* on a crossing
   level, and whether it fires depends on the float32 rounding of that sum.
-  The sequential sums are computed by ``np.add.accumulate`` along rows of
-  candidate levels, vectorised over pixels.
+  The sequential sums are computed rank by rank over the crossing pixels
+  (:mod:`cmax.sim.crossings`).
 * Crossing times are ``t0 + (level - L0) / (L1 - L0) * (t1 - t0)``, with the
   two differences in float32 and the rest in float64, then rounded to whole
   microseconds, half up: ``floor(tau + 0.5)``. A crossing therefore lies in
@@ -36,9 +39,14 @@ version of the reference's ``std::sort`` by time. On the reference's own test
 frames (``esim_truck_pan``, Cp = Cn = 0.2 and 0.1) the events agree one to
 one with the C++ ESIM's, within 1 µs (``tests/test_sim_esim.py``).
 
-Everything is vectorised over pixels; Python loops run over frames, over
-the few power-of-two groups of crossings per pixel, and (with a refractory
-period only) over the rank of an event within its pixel in one interval.
+Cost per frame (:meth:`EventSimulator.step`): a table look-up for the log
+intensity and four vectorised passes over the sensor to find the pixels within
+10 % of a threshold of their next level (a few percent of them on real video);
+everything else -- the crossings, their times, the sort by time, the x/y
+columns (looked up, not divided) -- works on those pixels and on the events
+only. Python loops run over frames, over the rank of a crossing within its
+pixel in one interval (up to 16, then running sums for the rest), and (with a
+refractory period only) over the rank of an event within its pixel.
 
 References
 ----------
@@ -48,15 +56,28 @@ https://proceedings.mlr.press/v87/rebecq18a.html
 """
 from __future__ import annotations
 
-import math
-from dataclasses import dataclass
-from typing import NamedTuple
-
 import cv2
 import numpy as np
 
 from cmax.events import Events
 from cmax.sim._cvlog import _cv_log32f, _fma32  # noqa: F401  (_fma32: imported by the tests)
+from cmax.sim.crossings import (
+    Crossings,
+    crossing_times,
+    fire,
+    near_pixels,
+    refractory_keep,
+    sort_events,
+    threshold_crossings,
+)
+from cmax.sim.esim_noise import leak_drift, leak_phase, shot_noise, threshold_map
+from cmax.sim.esim_settings import (
+    MIN_THRESHOLD,
+    MIN_THRESHOLD_FRACTION,
+    EsimSettings,
+    _check_log_eps,
+    _whole,
+)
 
 __all__ = [
     "MIN_THRESHOLD",
@@ -68,118 +89,9 @@ __all__ = [
     "threshold_crossings",
 ]
 
-#: Per-pixel thresholds drawn with ``threshold_sigma > 0`` are clipped to at
-#: least this fraction of the nominal threshold (``0.1 * cp`` and ``0.1 * cn``).
-MIN_THRESHOLD_FRACTION = 0.1
-
-#: Smallest accepted ``cp`` / ``cn``: float32 log levels (resolution ~5e-7)
-#: must move by a threshold, and a full 0..255 change then gives at most
-#: about 7,000 events per pixel and interval.
-MIN_THRESHOLD = 1e-3
-
 _NEVER = np.iinfo(np.int64).min // 4  # last event time of a pixel that has not fired yet
 _MAX_SENSOR_SIZE = 65535
-_FLOAT32_TINY = float(np.finfo(np.float32).tiny)
-_REAL_TYPES = (int, float, np.integer, np.floating)
-
-
-# -- settings ---------------------------------------------------------------------------
-def _real(name: str, value: object, *, positive: bool) -> float:
-    if isinstance(value, (bool, np.bool_)) or not isinstance(value, _REAL_TYPES):
-        raise TypeError(f"{name} must be a real number, got {value!r}")
-    value = float(value)
-    if not math.isfinite(value) or value < 0 or (positive and value == 0):
-        kind = "positive" if positive else "non-negative"
-        raise ValueError(f"{name} must be a finite {kind} number, got {value}")
-    return value
-
-
-def _check_log_eps(value: object) -> float:
-    value = _real("log_eps", value, positive=True)
-    if not _FLOAT32_TINY <= value <= 1e30:
-        raise ValueError(
-            f"log_eps must lie in [{_FLOAT32_TINY:.3g}, 1e30] (a normal float32), got {value}"
-        )
-    return value
-
-
-def _whole(name: str, value: object) -> int:
-    """An integer from an int or a float holding a whole number."""
-    if isinstance(value, (bool, np.bool_)):
-        raise TypeError(f"{name} must be an integer, got {value!r}")
-    if isinstance(value, (int, np.integer)):
-        return int(value)
-    if isinstance(value, (float, np.floating)):
-        if math.isfinite(value) and float(value).is_integer():
-            return int(value)
-        raise ValueError(f"{name} must be a whole number of microseconds, got {value}")
-    raise TypeError(f"{name} must be an integer, got {value!r}")
-
-
-@dataclass(frozen=True)
-class EsimSettings:
-    """Settings of the ESIM event model; validated on construction.
-
-    Attributes
-    ----------
-    cp, cn : float
-        ON and OFF contrast thresholds in log-intensity units (> 0).
-    threshold_sigma : float
-        Relative standard deviation of the per-pixel threshold mismatch: a
-        fixed map ``C * (1 + threshold_sigma * N(0, 1))`` per polarity, drawn
-        once per sensor from ``seed`` and clipped to at least
-        ``MIN_THRESHOLD_FRACTION * C``. 0 (default) disables it.
-    refractory_us : int
-        Refractory period in µs (>= 0). An event of a pixel less than
-        ``refractory_us`` after that pixel's previous *emitted* event is
-        dropped, but ``L_ref`` still moves by its threshold: the pixel is
-        reset while blind, as in the reference ESIM.
-    log_eps : float
-        ``eps`` of ``L = log(I/255 + eps)`` (> 0).
-    seed : int or None
-        Seed of the threshold map and the noise (>= 0); None draws fresh
-        entropy once per simulator.
-    shot_noise_rate_hz : float
-        Rate of shot-noise events per pixel in Hz (>= 0): a Poisson process
-        per pixel, polarity ON or OFF with equal probability, uniform times.
-    leak_rate_hz : float
-        Rate of leak events per pixel in Hz on a static scene (>= 0): the
-        reference level of every pixel drifts down by ``leak_rate_hz * Cp``
-        per second, so that ON events appear at that rate (the v2e model),
-        with a random per-pixel phase drawn at the first frame.
-    """
-
-    cp: float = 0.2
-    cn: float = 0.2
-    threshold_sigma: float = 0.0
-    refractory_us: int = 0
-    log_eps: float = 1e-3
-    seed: int | None = None
-    shot_noise_rate_hz: float = 0.0
-    leak_rate_hz: float = 0.0
-
-    def __post_init__(self) -> None:
-        fix = lambda name, value: object.__setattr__(self, name, value)  # noqa: E731
-        for name in ("cp", "cn"):
-            value = _real(name, getattr(self, name), positive=True)
-            if value < MIN_THRESHOLD:
-                raise ValueError(f"{name} must be at least {MIN_THRESHOLD}, got {value}")
-            fix(name, value)
-        fix("threshold_sigma", _real("threshold_sigma", self.threshold_sigma, positive=False))
-        refractory = _whole("refractory_us", self.refractory_us)
-        if refractory < 0:
-            raise ValueError(f"refractory_us must be >= 0 µs, got {refractory}")
-        fix("refractory_us", refractory)
-        fix("log_eps", _check_log_eps(self.log_eps))
-        if self.seed is not None:
-            seed = self.seed
-            if isinstance(seed, (bool, np.bool_)) or not isinstance(seed, (int, np.integer)):
-                raise TypeError(f"seed must be a non-negative integer or None, got {self.seed!r}")
-            if self.seed < 0:
-                raise ValueError(f"seed must be a non-negative integer or None, got {self.seed}")
-            fix("seed", int(self.seed))
-        for name in ("shot_noise_rate_hz", "leak_rate_hz"):
-            fix(name, _real(name, getattr(self, name), positive=False))
+_NEAR = np.float32(0.9)
 
 
 # -- log intensity ----------------------------------------------------------------------
@@ -214,14 +126,23 @@ def _log_float32(grey: np.ndarray, log_eps: float) -> np.ndarray:
 
 
 def _log_grey(grey: np.ndarray, log_eps: float, table: np.ndarray | None = None) -> np.ndarray:
-    """Log of checked grey values: a 256-entry table for uint8 and whole-numbered floats."""
+    """Log of checked grey values (uint8 or float32), float32, same shape.
+
+    Whole grey values take the 256-entry table of ``cv::log`` values (exactly
+    the reference's); fractional ones (interpolated frames) numpy's float32
+    log of the same argument, within an ulp or two of ``cv::log`` and 100x
+    faster than its bit-exact emulation (:func:`_log_float32`).
+    """
     table = _log_float32(np.arange(256, dtype=np.float32), log_eps) if table is None else table
-    if grey.dtype != np.uint8:
-        whole = grey.astype(np.uint8)  # the same float32 values give the same logs
-        if not np.array_equal(whole, grey):
-            return _log_float32(grey, log_eps)
-        grey = whole
-    return cv2.LUT(grey, table)  # = table[grey], 8x faster
+    if grey.dtype == np.uint8:
+        return cv2.LUT(grey, table)  # = table[grey], 8x faster
+    whole = grey.astype(np.uint8)  # truncates; equal to grey where the value is whole
+    exact = whole == grey
+    if exact.all():
+        return cv2.LUT(whole, table)
+    out = np.log(grey * np.float32(1.0 / 255.0) + np.float32(log_eps), dtype=np.float32)
+    np.copyto(out, cv2.LUT(whole, table), where=exact)
+    return out
 
 
 def log_intensity(frame: object, log_eps: float = 1e-3) -> np.ndarray:
@@ -250,186 +171,6 @@ def log_intensity(frame: object, log_eps: float = 1e-3) -> np.ndarray:
     """
     log_eps = _check_log_eps(log_eps)
     return _log_grey(_grey_frame(frame, "frame"), log_eps)
-
-
-# -- the crossings of one interval ------------------------------------------------------
-class Crossings(NamedTuple):
-    """Threshold crossings of one interval, as returned by :func:`threshold_crossings`.
-
-    ``pixel`` (M,) int64 flat pixel indices, sorted, each pixel's crossings in
-    order; ``level`` (M,) float32 crossed levels; ``polarity`` (M,) int8
-    (1 ON, 0 OFF); ``ref`` (N,) float32 the reference levels after the interval.
-    """
-
-    pixel: np.ndarray
-    level: np.ndarray
-    polarity: np.ndarray
-    ref: np.ndarray
-
-
-def _bucket_levels(ref, log0, log1, step, up, count):
-    """Sequential float32 levels ``ref + k*step`` (k = 1..width), (m, width), and how
-    many of each row are crossed (the leading ``lo < level <= hi`` ones, sign-flipped down).
-
-    Levels are strictly monotonic along a row, so the crossed ones are a prefix
-    once the first lies beyond ``log0``.
-    """
-    width = int(count.max())
-    sign = np.where(up, np.float32(1), np.float32(-1))
-    if width <= 16:  # column by column: cheaper than accumulate along short rows
-        columns = [ref + step]
-        for _ in range(width - 1):
-            columns.append(columns[-1] + step)  # sequential, like L_ref += C
-        levels = np.stack(columns, axis=1)
-    else:
-        levels = np.empty((ref.size, width), np.float32)
-        levels[:, 0] = ref + step
-        levels[:, 1:] = step[:, None]
-        np.add.accumulate(levels, axis=1, dtype=np.float32, out=levels)
-        columns = levels.T
-    high = log1 * sign
-    crossed = np.zeros(ref.size, np.int64)
-    for column in columns:
-        crossed += column * sign <= high
-    crossed[levels[:, 0] * sign <= log0 * sign] = 0
-    return levels, crossed
-
-
-def threshold_crossings(
-    ref: np.ndarray,
-    log0: np.ndarray,
-    log1: np.ndarray,
-    c_on: np.ndarray | np.float32,
-    c_off: np.ndarray | np.float32,
-) -> Crossings:
-    """All crossings of ``ref + k*c_on`` / ``ref - k*c_off`` between two samples.
-
-    A pixel whose log intensity goes up from ``log0`` to ``log1`` crosses the
-    levels ``ref + k*c_on`` with ``log0 < level <= log1``, ``k = 1, 2, ...``
-    (down: ``ref - k*c_off`` with ``log1 <= level < log0``); its reference
-    ends on the last level crossed. Levels are float32 running sums, as in
-    the reference ESIM. No loop over pixels: each pixel within 10 % of a
-    threshold from its next level gets ``floor((log1 - ref)/C) + 2``
-    candidate levels (grouped by powers of two of that number), computed with
-    ``np.add.accumulate``; float32 rounding moves a level by far less than
-    that margin.
-
-    Parameters
-    ----------
-    ref, log0, log1 : ndarray, shape (N,), float32
-        Reference levels and the log intensity at the two samples.
-    c_on, c_off : float32 scalar or ndarray, shape (N,)
-        Positive ON and OFF thresholds.
-
-    Returns
-    -------
-    Crossings
-        Sorted by pixel, then in crossing (= time) order.
-    """
-    arrays = {"ref": ref, "log0": log0, "log1": log1}
-    for name, value in (("c_on", c_on), ("c_off", c_off)):
-        if np.ndim(value):
-            arrays[name] = value
-        elif not (isinstance(value, np.float32) and value > 0):
-            raise ValueError(
-                f"{name} must be a positive float32 or a (N,) float32 array, got {value!r}"
-            )
-    for name, value in arrays.items():
-        is_float32 = isinstance(value, np.ndarray) and value.dtype == np.float32
-        if not is_float32 or value.shape != ref.shape:
-            raise ValueError(
-                f"{name} must be a float32 array of the shape of ref {np.shape(ref)}, got "
-                f"{getattr(value, 'dtype', type(value).__name__)} {np.shape(value)}"
-            )
-    if ref.ndim != 1:
-        raise ValueError(f"ref must be one-dimensional (N,), got shape {ref.shape}")
-    near_on, near_off = np.float32(0.9) * c_on, np.float32(-0.9) * c_off
-    rows = _near_rows(ref, log0, log1, near_on, near_off)
-    ref_out = ref.copy()
-    pixel, level, polarity = _crossings(rows, ref_out, log0, log1, c_on, c_off, by_pixel=True)
-    return Crossings(pixel, level, polarity, ref_out)
-
-
-def _near_rows(ref, log0, log1, near_on, near_off) -> np.ndarray:
-    """Pixels within 10 % of a threshold from their next level in the direction of change.
-
-    ``near_on = 0.9 * c_on`` and ``near_off = -0.9 * c_off`` (float32).
-    """
-    beyond = log1 - ref
-    near = beyond > near_on
-    near |= beyond < near_off
-    rows = np.flatnonzero(near)
-    beyond, log0_r, log1_r = beyond[rows], log0[rows], log1[rows]
-    return rows[np.where(beyond > 0, log1_r > log0_r, log1_r < log0_r)]
-
-
-def _crossings(rows, ref, log0, log1, c_on, c_off, *, by_pixel):
-    """(pixel, level, polarity) of the crossings of ``rows``; moves ``ref`` in place.
-
-    Each pixel's crossings are contiguous and in order; the pixels are sorted
-    when ``by_pixel`` (otherwise grouped by the number of candidate levels).
-    """
-    if not rows.size:
-        none = np.empty(0, np.int64)
-        return none, none.astype(np.float32), none.astype(np.int8)
-    ref_r, log0_r, log1_r = ref[rows], log0[rows], log1[rows]
-    up = log1_r > log0_r
-    c_on_r = c_on[rows] if np.ndim(c_on) else c_on
-    c_off_r = c_off[rows] if np.ndim(c_off) else c_off
-    step = np.where(up, c_on_r, -c_off_r).astype(np.float32)
-    exact = (log1_r.astype(np.float64) - ref_r) / step  # levels reached, in exact arithmetic
-    count = np.floor(exact).astype(np.int64) + 2  # candidates, >= 2
-    bucket = np.frexp(count.astype(np.float64))[1]  # 2**(b-1) <= count < 2**b
-    present = np.flatnonzero(np.bincount(bucket))
-    parts = []
-    for b in present:
-        sel = np.flatnonzero(bucket == b) if present.size > 1 else slice(None)
-        levels, n = _bucket_levels(
-            ref_r[sel], log0_r[sel], log1_r[sel], step[sel], up[sel], count[sel]
-        )
-        valid = np.arange(levels.shape[1]) < n[:, None]
-        fired = np.flatnonzero(n)
-        rows_b = rows[sel]
-        ref[rows_b[fired]] = levels[fired, n[fired] - 1]
-        parts.append((np.repeat(rows_b, n), levels[valid], np.repeat(up[sel], n)))
-    if len(parts) == 1:
-        pixel, level, polarity = parts[0]
-        return pixel, level, polarity.view(np.int8)
-    pixel = np.concatenate([part[0] for part in parts])
-    level = np.concatenate([part[1] for part in parts])
-    polarity = np.concatenate([part[2] for part in parts]).view(np.int8)
-    if by_pixel:
-        order = np.argsort(pixel, kind="stable")
-        pixel, level, polarity = pixel[order], level[order], polarity[order]
-    return pixel, level, polarity
-
-
-def _refractory_keep(
-    pixel: np.ndarray, t: np.ndarray, last_t: np.ndarray, refractory_us: int
-) -> np.ndarray:
-    """Which events survive the refractory period; updates ``last_t`` (N,) in place.
-
-    ``pixel`` is grouped by pixel with times non-decreasing in each group.
-    Loops over the rank of an event in its pixel (a handful per interval),
-    vectorised over pixels: an event is kept when it comes at least
-    ``refractory_us`` after the pixel's last kept event.
-    """
-    keep = np.zeros(pixel.size, bool)
-    if not pixel.size:
-        return keep
-    starts = np.flatnonzero(np.r_[True, pixel[1:] != pixel[:-1]])
-    counts = np.diff(np.r_[starts, pixel.size])
-    order = np.argsort(-counts, kind="stable")
-    starts, counts = starts[order], counts[order]
-    last = last_t[pixel[starts]]
-    for rank in range(int(counts[0])):
-        groups = int(np.count_nonzero(counts > rank)) if rank else counts.size
-        index = starts[:groups] + rank
-        ok = t[index] - last[:groups] >= refractory_us
-        keep[index[ok]] = True
-        last[:groups] = np.where(ok, t[index], last[:groups])
-    last_t[pixel[starts]] = last
-    return keep
 
 
 # -- the simulator ----------------------------------------------------------------------
@@ -523,59 +264,53 @@ class EventSimulator:
         self._shape, self._t_us = log.shape, t_us
         self._log = log.ravel().copy()
         if s.threshold_sigma > 0:
-            for name, c in (("_c_on", s.cp), ("_c_off", s.cn)):
-                drawn = c * (1.0 + s.threshold_sigma * self._rng.standard_normal(n))
-                drawn = np.maximum(drawn, MIN_THRESHOLD_FRACTION * c)
-                setattr(self, name, drawn.astype(np.float32))
+            self._c_on = threshold_map(self._rng, s.cp, s.threshold_sigma, n)
+            self._c_off = threshold_map(self._rng, s.cn, s.threshold_sigma, n)
         self._ref = self._log.copy()
         if s.leak_rate_hz > 0:  # random phase of the leak: L_ref in (L - Cp, L]
-            phase = self._rng.random(n, dtype=np.float32)
-            self._ref = (self._ref - phase * self._c_on).astype(np.float32)
+            self._ref = leak_phase(self._rng, self._ref, self._c_on)
         self._last_t = np.full(n, _NEVER, np.int64) if s.refractory_us > 0 else None
-        self._near_on = np.float32(0.9) * self._c_on
-        self._near_off = np.float32(-0.9) * self._c_off
+        self._near_on = _NEAR * self._c_on
+        self._near_off = -_NEAR * self._c_off
+        height, width = log.shape  # pixel index -> (x, y), looked up instead of divmod
+        self._x_of = np.tile(np.arange(width, dtype=np.uint16), height)
+        self._y_of = np.repeat(np.arange(height, dtype=np.uint16), width)
 
     # -- one interval ---------------------------------------------------------------------
     def _advance(self, log: np.ndarray, t_us: int) -> Events:
+        """Events of the interval from the previous sample to ``log`` at ``t_us``.
+
+        A few passes over the whole sensor find the near pixels; everything
+        else works on those (see :mod:`cmax.sim.crossings`).
+        """
         s = self.settings
         height, width = self._shape
         n_pixels, dt = height * width, t_us - self._t_us
         log1 = log.ravel()
         drift = None
         if s.leak_rate_hz > 0:  # crossings of L + drift against a fixed L_ref, then L_ref -= drift
-            drift = (np.float32(s.leak_rate_hz * dt * 1e-6) * self._c_on).astype(np.float32)
+            drift = leak_drift(s.leak_rate_hz, dt, self._c_on)
             log1 = (log1 + drift).astype(np.float32)
         log0, ref = self._log, self._ref  # ref (owned) moves in place
-        rows = _near_rows(ref, log0, log1, self._near_on, self._near_off)
-        pixel, level, polarity = _crossings(
-            rows, ref, log0, log1, self._c_on, self._c_off, by_pixel=self._last_t is not None
-        )
-        log0_e = log0[pixel]
-        tau = (level - log0_e).astype(np.float64) * dt / (log1[pixel] - log0_e).astype(np.float64)
-        tau += 0.5
-        t_rel = np.clip(np.floor(tau, out=tau), 0, dt, out=tau).astype(np.int64)
-        if self._last_t is not None:
-            keep = _refractory_keep(pixel, self._t_us + t_rel, self._last_t, s.refractory_us)
+        rows = near_pixels(ref, log1, self._near_on, self._near_off)
+        refractory = self._last_t is not None
+        pixel, level, polarity = fire(rows, ref, log0, log1, self._c_on, self._c_off,
+                                      by_pixel=refractory)
+        t_rel = crossing_times(pixel, level, log0, log1, dt)
+        if refractory:
+            keep = refractory_keep(pixel, self._t_us + t_rel, self._last_t, s.refractory_us)
             pixel, polarity, t_rel = pixel[keep], polarity[keep], t_rel[keep]
         if drift is not None:
             self._ref = (ref - drift).astype(np.float32)
-        noise = s.shot_noise_rate_hz > 0
-        if noise:
-            count = self._rng.poisson(s.shot_noise_rate_hz * n_pixels * dt * 1e-6)
-            pixel = np.r_[pixel, self._rng.integers(0, n_pixels, count)]
-            t_rel = np.r_[t_rel, self._rng.integers(1, dt + 1, count)]
-            polarity = np.r_[polarity, self._rng.integers(0, 2, count).astype(np.int8)]
+        if s.shot_noise_rate_hz > 0:
+            noise_pixel, noise_t, noise_p = shot_noise(self._rng, s.shot_noise_rate_hz, n_pixels, dt)
+            pixel = np.concatenate([pixel, noise_pixel])
+            t_rel = np.concatenate([t_rel, noise_t])
+            polarity = np.concatenate([polarity, noise_p])
         self._log, self._t_us = log.ravel(), t_us  # log is a fresh array, owned
-        if dt * n_pixels < 2**62:  # equal keys of signal events are identical events
-            order = np.argsort(t_rel * n_pixels + pixel, kind="stable" if noise else None)
-        else:  # pragma: no cover - intervals of years on big sensors
-            order = np.lexsort((pixel, t_rel))
-        y, x = np.divmod(pixel[order], width)
-        t_rel = t_rel[order]
+        pixel, t_rel, polarity = sort_events(pixel, t_rel, polarity, n_pixels, dt)
         t_rel += t_us - dt
-        return Events._trusted(
-            x.astype(np.uint16), y.astype(np.uint16), t_rel, polarity[order], width, height
-        )
+        return Events._trusted(self._x_of[pixel], self._y_of[pixel], t_rel, polarity, width, height)
 
     # -- public ---------------------------------------------------------------------------
     def step(self, frame: object, t_us: int) -> Events:

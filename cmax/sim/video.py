@@ -1,7 +1,9 @@
 """Frame sources: videos, image folders and arrays as streams of grey frames.
 
 A *frame source* is an iterable of ``(frame, t_us)`` pairs, ``frame`` a
-float32 (H, W) grey image with values in [0, 255], ``t_us`` an int time in
+(H, W) grey image with values in [0, 255] -- float32 by default, or uint8 with
+``dtype=np.uint8`` (exact 8-bit values, the fastest input of
+:class:`cmax.sim.esim.EventSimulator`) -- ``t_us`` an int time in
 microseconds, strictly increasing, with attributes ``width``, ``height``
 (pixels, after resizing), ``fps`` (frames per second, or None) and
 ``frame_count`` (int, or None when unknown). Sources are re-iterable: every
@@ -9,10 +11,19 @@ microseconds, strictly increasing, with attributes ``width``, ``height``
 so hours of video stream in constant memory (see
 :func:`cmax.sim.sampling.iter_upsample`).
 
+Prefetching: :class:`VideoFileSource` and :class:`ImageFolderSource` decode in
+a background thread, at most ``prefetch`` frames (default 4) ahead of the
+consumer, in a bounded queue. OpenCV releases the GIL while it decodes, so
+decoding overlaps with the simulation of the previous frames; memory grows by
+at most ``prefetch`` frames. Errors of the decoder are raised in the consuming
+thread, at the frame where they happened; stopping the iteration early stops
+the thread. ``prefetch=0`` decodes in the consuming thread.
+
 Colour is converted to grey with OpenCV's ``BGR2GRAY`` on the 8-bit values
 (as the reference ESIM does); 16-bit images are scaled by ``255 / 65535``.
 Resizing to ``size = (W, H)`` uses ``cv2.INTER_AREA`` on the float grey
-frame, so the result is not re-quantised to 8 bits.
+frame, so the result is not re-quantised to 8 bits (with ``dtype=np.uint8``
+it is rounded to whole grey values).
 
 Errors: a missing path raises :class:`FileNotFoundError`; a file OpenCV
 cannot decode (no frames, an unreadable image, a video that ends well before
@@ -30,7 +41,10 @@ from typing import Iterator, Protocol, Union, runtime_checkable
 import cv2
 import numpy as np
 
+from cmax.sim.prefetch import DEFAULT_PREFETCH, _check_prefetch, prefetched
+
 __all__ = [
+    "DEFAULT_PREFETCH",
     "IMAGE_SUFFIXES",
     "ArraySource",
     "DecodeError",
@@ -38,6 +52,7 @@ __all__ = [
     "ImageFolderSource",
     "VideoFileSource",
     "open_source",
+    "prefetched",
     "read_timestamps",
 ]
 
@@ -78,8 +93,24 @@ def _check_size(size: object) -> Size | None:
     return int(size[0]), int(size[1])
 
 
-def _to_grey(image: np.ndarray, size: Size | None, name: str) -> np.ndarray:
-    """(H, W) float32 grey in [0, 255] from a grey, BGR or BGRA image, resized to ``size``."""
+def _check_dtype(dtype: object) -> type:
+    """np.float32 or np.uint8 (the two output types of a frame source)."""
+    try:
+        kind = np.dtype(dtype)
+    except TypeError:
+        kind = None
+    if kind not in (np.dtype(np.float32), np.dtype(np.uint8)):
+        raise ValueError(f"dtype must be np.float32 or np.uint8, got {dtype!r}")
+    return kind.type
+
+
+def _to_grey(image: np.ndarray, size: Size | None, name: str,
+             dtype: type = np.float32) -> np.ndarray:
+    """(H, W) grey in [0, 255] of ``dtype`` from a grey, BGR or BGRA image, resized to ``size``.
+
+    8-bit images stay 8-bit for ``dtype=np.uint8`` (no copy when grey and not
+    resized); 16-bit ones are scaled by ``255 / 65535`` (rounded for uint8).
+    """
     if image.ndim == 3 and image.shape[2] == 1:
         image = image[..., 0]
     if image.ndim == 3 and image.shape[2] in (3, 4):
@@ -90,11 +121,13 @@ def _to_grey(image: np.ndarray, size: Size | None, name: str) -> np.ndarray:
     if image.dtype == np.uint16:
         grey = image.astype(np.float32) * np.float32(255 / 65535)
     elif image.dtype == np.uint8:
-        grey = image.astype(np.float32)
+        grey = image if dtype is np.uint8 else image.astype(np.float32)
     else:
         raise DecodeError(f"{name}: unsupported pixel type {image.dtype} (expected 8 or 16 bit)")
     if size is not None and (grey.shape[1], grey.shape[0]) != size:
         grey = cv2.resize(grey, size, interpolation=cv2.INTER_AREA)
+    if grey.dtype != dtype:  # uint16 or float resized, to uint8
+        grey = np.rint(grey).astype(np.uint8)
     return grey
 
 
@@ -126,10 +159,12 @@ class ArraySource:
         Strictly increasing times in µs.
     size : (int, int), optional
         Output (width, height); frames are resized with ``INTER_AREA``.
+    dtype : np.float32 or np.uint8
+        Type of the yielded frames; uint8 needs whole grey values in ``frames``.
     """
 
     def __init__(self, frames: np.ndarray, timestamps_us: np.ndarray, *,
-                 size: Size | None = None) -> None:
+                 size: Size | None = None, dtype: type = np.float32) -> None:
         frames = np.asarray(frames)
         if frames.ndim != 3 or 0 in frames.shape:
             raise ValueError(f"frames must have shape (T, H, W) with T >= 1, got {frames.shape}")
@@ -138,6 +173,10 @@ class ArraySource:
         low, high = float(frames.min()), float(frames.max())
         if not (0 <= low and high <= 255):
             raise ValueError(f"frames must hold grey values in [0, 255], got [{low}, {high}]")
+        self.dtype = _check_dtype(dtype)
+        whole = frames.dtype.kind in "iu" or np.array_equal(frames, np.rint(frames))
+        if self.dtype is np.uint8 and not whole:
+            raise ValueError("dtype=np.uint8 needs frames of whole grey values")
         times = np.asarray(timestamps_us)
         if times.shape != (frames.shape[0],):
             raise ValueError(f"timestamps_us must have shape ({frames.shape[0]},), got {times.shape}")
@@ -157,7 +196,7 @@ class ArraySource:
             grey = np.array(frame, dtype=np.float32)
             if self._size is not None and (grey.shape[1], grey.shape[0]) != self._size:
                 grey = cv2.resize(grey, self._size, interpolation=cv2.INTER_AREA)
-            yield grey, t
+            yield (grey if self.dtype is np.float32 else np.rint(grey).astype(np.uint8)), t
 
 
 # -- image folders ------------------------------------------------------------------------
@@ -252,11 +291,11 @@ def _find_timestamps(folder: Path) -> Path:
                             f"{', '.join(_TIMESTAMP_FILES)} in the folder or its parent")
 
 
-def _read_image(path: Path, size: Size | None) -> np.ndarray:
+def _read_image(path: Path, size: Size | None, dtype: type = np.float32) -> np.ndarray:
     image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
     if image is None:
         raise DecodeError(f"OpenCV cannot decode the image {path}")
-    return _to_grey(image, size, str(path))
+    return _to_grey(image, size, str(path), dtype)
 
 
 class ImageFolderSource:
@@ -273,17 +312,23 @@ class ImageFolderSource:
         or ``timestamps.txt`` in the folder, else in its parent.
     size : (int, int), optional
         Output (width, height); frames are resized with ``INTER_AREA``.
+    dtype : np.float32 or np.uint8
+        Type of the yielded frames (see the module docstring).
+    prefetch : int
+        Frames decoded ahead in a background thread (0: none).
 
     The first image is read at construction (for ``width``/``height``); the
     others when iterated, where an image of another size raises ValueError.
     """
 
     def __init__(self, folder: PathLike, *, timestamps: PathLike | np.ndarray | None = None,
-                 size: Size | None = None) -> None:
+                 size: Size | None = None, dtype: type = np.float32,
+                 prefetch: int = DEFAULT_PREFETCH) -> None:
         folder = Path(folder)
         if not folder.is_dir():
             raise FileNotFoundError(f"image folder not found: {folder}")
         self._size = _check_size(size)
+        self.dtype, self.prefetch = _check_dtype(dtype), _check_prefetch(prefetch)
         if timestamps is None or isinstance(timestamps, (str, Path)):
             file = _find_timestamps(folder) if timestamps is None else Path(timestamps)
             self.timestamps_us, self.images = read_timestamps(file, folder)
@@ -309,14 +354,17 @@ class ImageFolderSource:
         return self.frame_count
 
     def __iter__(self) -> Iterator[tuple[np.ndarray, int]]:
+        return prefetched(self._frames, self.prefetch)
+
+    def _frames(self) -> Iterator[tuple[np.ndarray, int]]:
         for path, t in zip(self.images, self.timestamps_us.tolist()):
-            grey = _read_image(path, None)
-            if grey.shape != self._shape:
-                raise ValueError(f"{path} is {grey.shape[1]}x{grey.shape[0]} pixels, the first image "
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            if image is None:
+                raise DecodeError(f"OpenCV cannot decode the image {path}")
+            if image.shape[:2] != self._shape:
+                raise ValueError(f"{path} is {image.shape[1]}x{image.shape[0]} pixels, the first image "
                                  f"{self.images[0].name} {self._shape[1]}x{self._shape[0]}")
-            if self._size is not None and (grey.shape[1], grey.shape[0]) != self._size:
-                grey = cv2.resize(grey, self._size, interpolation=cv2.INTER_AREA)
-            yield grey, t
+            yield _to_grey(image, self._size, str(path), self.dtype), t
 
 
 # -- video files --------------------------------------------------------------------------
@@ -333,6 +381,10 @@ class VideoFileSource:
         Keep the frames with ``t0_s <= t < t1_s`` (seconds, container time);
         the reader seeks near ``t0_s`` first. Times are not shifted to start
         at zero.
+    dtype : np.float32 or np.uint8
+        Type of the yielded frames (see the module docstring).
+    prefetch : int
+        Frames decoded ahead in a background thread (0: none).
 
     Times: each frame's presentation time from the container
     (``CAP_PROP_POS_MSEC`` after reading it), rounded to whole µs. When the
@@ -351,11 +403,13 @@ class VideoFileSource:
     """
 
     def __init__(self, path: PathLike, *, size: Size | None = None,
-                 t0_s: float | None = None, t1_s: float | None = None) -> None:
+                 t0_s: float | None = None, t1_s: float | None = None,
+                 dtype: type = np.float32, prefetch: int = DEFAULT_PREFETCH) -> None:
         self.path = Path(path)
         if not self.path.is_file():
             raise FileNotFoundError(f"video file not found: {self.path}")
         self._size = _check_size(size)
+        self.dtype, self.prefetch = _check_dtype(dtype), _check_prefetch(prefetch)
         for name, value in (("t0_s", t0_s), ("t1_s", t1_s)):
             if value is not None and not (isinstance(value, (int, float, np.integer, np.floating))
                                           and math.isfinite(value) and value >= 0):
@@ -399,6 +453,9 @@ class VideoFileSource:
         return int(round(index * 1e6 / (self.fps or 30.0)))
 
     def __iter__(self) -> Iterator[tuple[np.ndarray, int]]:
+        return prefetched(self._frames, self.prefetch)
+
+    def _frames(self) -> Iterator[tuple[np.ndarray, int]]:
         capture = self._open()
         t0_us = None if self.t0_s is None else int(round(self.t0_s * 1e6))
         t1_us = None if self.t1_s is None else int(round(self.t1_s * 1e6))
@@ -419,7 +476,7 @@ class VideoFileSource:
                 if t1_us is not None and t >= t1_us:
                     break
                 yielded += 1
-                yield _to_grey(image, self._size, str(self.path)), t
+                yield _to_grey(image, self._size, str(self.path), self.dtype), t
             count = self._container_count
             finished = t1_us is None or (previous is not None and previous < t1_us)
             seek_past_end = bool(t0_us) and decoded == 0
@@ -435,7 +492,8 @@ class VideoFileSource:
 
 def open_source(source: PathLike | np.ndarray | FrameSource, *,
                 timestamps: PathLike | np.ndarray | None = None, size: Size | None = None,
-                t0_s: float | None = None, t1_s: float | None = None) -> FrameSource:
+                t0_s: float | None = None, t1_s: float | None = None,
+                dtype: type = np.float32, prefetch: int = DEFAULT_PREFETCH) -> FrameSource:
     """A frame source for a path, an array or an existing source.
 
     * an array (T, H, W): :class:`ArraySource`, ``timestamps`` in integer µs required;
@@ -444,6 +502,9 @@ def open_source(source: PathLike | np.ndarray | FrameSource, *,
       the file as timestamps (ECD ``images.txt``, ESIM ``timestamps.txt``);
     * any other file: :class:`VideoFileSource` (``t0_s``, ``t1_s`` apply only here);
     * a frame source: returned unchanged (no other argument allowed).
+
+    ``dtype`` (np.float32 or np.uint8) and ``prefetch`` (frames decoded ahead
+    in a background thread; files only) are passed on.
 
     Raises
     ------
@@ -457,7 +518,7 @@ def open_source(source: PathLike | np.ndarray | FrameSource, *,
             raise ValueError("an array source needs timestamps= (integer µs)")
         if t0_s is not None or t1_s is not None:
             raise ValueError("t0_s/t1_s apply to video files only")
-        return ArraySource(source, np.asarray(timestamps), size=size)
+        return ArraySource(source, np.asarray(timestamps), size=size, dtype=dtype)
     if isinstance(source, (str, Path)):
         path = Path(source)
         if not path.exists():
@@ -466,11 +527,14 @@ def open_source(source: PathLike | np.ndarray | FrameSource, *,
             if t0_s is not None or t1_s is not None:
                 raise ValueError("t0_s/t1_s apply to video files only")
             if path.is_dir():
-                return ImageFolderSource(path, timestamps=timestamps, size=size)
-            return ImageFolderSource(path.parent, timestamps=path, size=size)
+                return ImageFolderSource(path, timestamps=timestamps, size=size, dtype=dtype,
+                                         prefetch=prefetch)
+            return ImageFolderSource(path.parent, timestamps=path, size=size, dtype=dtype,
+                                     prefetch=prefetch)
         if timestamps is not None:
             raise ValueError("timestamps= does not apply to a video file (it has its own times)")
-        return VideoFileSource(path, size=size, t0_s=t0_s, t1_s=t1_s)
+        return VideoFileSource(path, size=size, t0_s=t0_s, t1_s=t1_s, dtype=dtype,
+                               prefetch=prefetch)
     if isinstance(source, FrameSource):
         if any(v is not None for v in (timestamps, size, t0_s, t1_s)):
             raise ValueError("an existing frame source takes no timestamps/size/t0_s/t1_s")
