@@ -175,7 +175,7 @@ def _add_emvs(subparsers) -> None:
 # -- simulate / manifest ---------------------------------------------------------------
 def _cmd_simulate(args: argparse.Namespace) -> int:
     from cmax.sim.catalogue import parse_shard
-    from cmax.sim.convert import ConvertSettings, collect_jobs, convert_collection, convert_video
+    from cmax.sim.convert import VIDEO_SUFFIXES, ConvertSettings, collect_jobs, convert_collection, convert_video
     from cmax.sim.esim import EsimSettings
 
     esim = EsimSettings(args.cp, args.cn, args.threshold_sigma, args.refractory_us, seed=args.seed,
@@ -184,6 +184,9 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
                                method=args.method, t0_s=args.t0, t1_s=args.t1)
     shard = parse_shard(args.shard) if args.shard else None
     if args.input.is_file() and args.output.suffix == ".h5" and not args.catalogue:
+        if args.input.suffix.lower() not in VIDEO_SUFFIXES:
+            raise ValueError(f"INPUT must be a video ({', '.join(VIDEO_SUFFIXES)}) when OUTPUT is one .h5 file, "
+                             f"got {args.input}")
         result = convert_video(args.input, args.output, settings, overwrite=args.overwrite)
         print(f"wrote {result.output}: {result.events:,} events from {result.frames} frames "
               f"({result.samples} samples), {result.duration_s:.2f} s of video")

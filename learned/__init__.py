@@ -1,1 +1,8 @@
-"""Learned depth and ego-motion from events, trained with the contrast loss of :mod:`cmax`."""
+"""The learned depth-pose network of EvtSlowTV (CVPRW 2025, sections 4.4-5).
+
+Modules: :mod:`learned.model` (encoder-decoder with skips, multi-scale bounded inverse depth,
+pose head), :mod:`learned.losses` (scale-invariant, gradient matching, teacher and student losses;
+the contrast loss is :mod:`cmax.loss`, the batched ``cmax.fit`` objective), :mod:`learned.data`
+(windows of h5 / MVSEC files, augmentations), :mod:`learned.config`, :mod:`learned.checkpoint`,
+and the commands ``python -m learned.train``, ``python -m learned.evaluate``, ``python -m learned.predict``.
+"""

@@ -555,6 +555,8 @@ CLI_CASES = [
     ("simulate-bad-shard", ["simulate", "{dir}", "-o", "{dir}/out", "--shard", "5/2"], r"shard i/n needs"),
     ("simulate-bad-method", ["simulate", "{file}", "-o", "{dir}/o.h5", "--method", "magic"],
      r"argument --method: invalid choice"),
+    ("simulate-not-a-video", ["simulate", "{dir}/notes.txt", "-o", "{dir}/o.h5"], r"INPUT must be a video"),
+    ("manifest-binary", ["manifest", "merge", "{dir}/half.h5", "-o", "{dir}/m.json"], r"not a JSON manifest"),
     ("manifest-not-json", ["manifest", "merge", "{dir}/notes.txt", "-o", "{dir}/m.json"], r"not a JSON manifest"),
     ("fit-K-three-numbers", ["fit", "{file}", "--K", "1,2,3"], r"argument --K"),
     ("fit-K-nan", ["fit", "{file}", "--K", "nan,50,32,24"], r"--K: K must be finite"),

@@ -43,7 +43,7 @@ __all__ = [
 ]
 
 #: File suffixes taken as videos when INPUT is a folder.
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm")
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".ts")
 MANIFEST = "manifest.json"
 _FORMAT = "evtslowtv-manifest/1"
 
@@ -338,8 +338,11 @@ def collect_jobs(
         jobs = [VideoJob(path.stem, path) for path in videos]
     elif source.suffix.lower() in (".txt", ".tsv", ".list", ".lst"):
         jobs = _read_list_file(source)
-    else:
+    elif source.suffix.lower() in VIDEO_SUFFIXES:
         jobs = [VideoJob(source.stem, source)]
+    else:
+        raise ValueError(f"INPUT must be a video ({', '.join(VIDEO_SUFFIXES)}), a folder of videos or a list file "
+                         f"(.txt, .tsv, .list, .lst), got {source}")
     names = [job.name for job in jobs]
     repeated = sorted({name for name in names if names.count(name) > 1})
     if repeated:
@@ -361,7 +364,7 @@ def load_manifest(path: str | os.PathLike) -> dict[str, Any]:
     path = Path(path)
     try:
         manifest = json.loads(Path(path).read_text("utf-8"))
-    except json.JSONDecodeError as error:
+    except (json.JSONDecodeError, UnicodeDecodeError) as error:
         raise ValueError(f"{path} is not a JSON manifest: {error}") from None
     if not isinstance(manifest, dict) or manifest.get("format") != _FORMAT:
         raise ValueError(f"{path} is not a conversion manifest (format {_FORMAT})")

@@ -1,0 +1,323 @@
+"""Training windows from event files: event volume, raw events for the contrast loss, ground truth, K.
+
+A window is a :class:`Sample` (numpy): its events (:class:`cmax.Events`), the
+intrinsics, and where known the z-depth at the window's middle and its twist.
+Augmentations are pure functions ``Sample -> Sample`` (horizontal flip with
+``cx`` mirrored and the twist mirrored, polarity flip, time reversal with the
+twist negated); :func:`to_item` turns a sample into the tensors of one batch
+entry (the event volume computed after augmentation). Datasets:
+
+* :class:`H5WindowDataset` — DSEC-layout files (:class:`cmax.io.H5Reader`). Files made by
+  ``cmax scene`` carry ``gt/``: windows are centred on the ground-truth depth times and
+  hold that depth and the twist at the middle; files without ``gt/`` (``cmax simulate``)
+  are cut into consecutive windows and need ``K`` from the caller.
+* :class:`MVSECDataset` — MVSEC ``*_data.hdf5`` files (:func:`cmax.io.mvsec.read_mvsec`),
+  optionally with the ``*_gt.hdf5`` depth (``davis/left/depth_image_rect`` and ``_ts``).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass, replace
+from pathlib import Path
+from typing import Sequence
+
+import h5py
+import numpy as np
+import torch
+
+from cmax.events import Events
+from cmax.io import H5Reader
+from cmax.representations import voxel_grid
+from cmax.warp import WarpEvents
+
+__all__ = ["Sample", "flip_horizontal", "flip_polarity", "reverse_time", "augment", "to_item", "collate",
+           "H5WindowDataset", "MVSECDataset", "FileSpec"]
+
+
+@dataclass(frozen=True, eq=False)
+class Sample:
+    """One window.
+
+    Attributes
+    ----------
+    events : Events
+        Sorted events; times in µs.
+    K : ndarray (3, 3)
+    depth : ndarray (H, W) float32 or None
+        z-depth [m] at the middle of ``[t0_us, t1_us]`` (NaN unknown).
+    twist : ndarray (6,) or None
+        ``(v [m/s], omega [rad/s])`` at the middle, camera frame.
+    t0_us, t1_us : int
+        Window bounds [µs].
+    """
+
+    events: Events
+    K: np.ndarray
+    depth: np.ndarray | None
+    twist: np.ndarray | None
+    t0_us: int
+    t1_us: int
+
+
+#: Reflection of the camera frame by x -> -x: v -> S v, omega -> det(S) S omega (a pseudo-vector).
+_MIRROR_V = np.array([-1.0, 1.0, 1.0])
+_MIRROR_OMEGA = np.array([1.0, -1.0, -1.0])
+
+
+def flip_horizontal(sample: Sample) -> Sample:
+    """Mirror left-right: ``x -> W-1-x``, ``cx -> W-1-cx``, depth flipped, twist mirrored (vx, wy, wz negated)."""
+    ev = sample.events
+    events = Events(ev.width - 1 - ev.x.astype(np.int64), ev.y, ev.t, ev.p, ev.width, ev.height)
+    K = sample.K.copy()
+    K[0, 2] = ev.width - 1 - K[0, 2]
+    K[0, 1] = -K[0, 1]
+    twist = None if sample.twist is None else sample.twist * np.r_[_MIRROR_V, _MIRROR_OMEGA]
+    depth = None if sample.depth is None else np.ascontiguousarray(sample.depth[:, ::-1])
+    return replace(sample, events=events, K=K, depth=depth, twist=twist)
+
+
+def flip_polarity(sample: Sample) -> Sample:
+    """Swap ON and OFF (geometry and ground truth unchanged)."""
+    ev = sample.events
+    return replace(sample, events=Events(ev.x, ev.y, ev.t, 1 - ev.p, ev.width, ev.height))
+
+
+def reverse_time(sample: Sample) -> Sample:
+    """Play the window backwards: ``t -> t0 + t1 - t``, order reversed, polarity swapped, twist negated.
+
+    Valid because the depth belongs to the window's middle, which stays in place.
+    """
+    ev = sample.events
+    t = (sample.t0_us + sample.t1_us) - ev.t[::-1]
+    events = Events(ev.x[::-1], ev.y[::-1], t, 1 - ev.p[::-1], ev.width, ev.height)
+    return replace(sample, events=events, twist=None if sample.twist is None else -sample.twist)
+
+
+def augment(sample: Sample, rng: np.random.Generator, *, flip: bool = True, polarity: bool = True,
+            time_reversal: bool = True) -> Sample:
+    """Each enabled augmentation with probability 1/2 (draws from ``rng`` in a fixed order)."""
+    draws = rng.random(3)
+    if flip and draws[0] < 0.5:
+        sample = flip_horizontal(sample)
+    if polarity and draws[1] < 0.5:
+        sample = flip_polarity(sample)
+    if time_reversal and draws[2] < 0.5:
+        sample = reverse_time(sample)
+    return sample
+
+
+def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0) -> dict[str, torch.Tensor]:
+    """Tensors of one batch entry.
+
+    Returns
+    -------
+    dict
+        ``volume`` (bins, H, W) float32; ``x, y, t, polarity`` (max_events,) float32 padded,
+        ``valid`` (max_events,) bool (the raw events for the contrast loss: a seeded uniform
+        subset of at most ``max_events``, dithered, t in seconds since the first event);
+        ``duration_s`` () float32; ``K`` (3, 3) float32; ``inverse_depth`` (1, H, W) float32
+        (0 where unknown), ``depth_mask`` (1, H, W) bool; ``twist`` (6,) float32 and
+        ``has_twist`` () bool.
+    """
+    ev = sample.events
+    if len(ev) < 2:
+        raise ValueError(f"the window [{sample.t0_us}, {sample.t1_us}) µs holds {len(ev)} events; need >= 2")
+    volume = torch.from_numpy(voxel_grid(ev, bins))
+    prepared = WarpEvents.from_events(ev, sample.K, max_events=max_events, seed=seed)
+    n = len(prepared)
+    pad = lambda a: torch.cat([a, a.new_zeros(max_events - n)])  # noqa: E731
+    H, W = ev.height, ev.width
+    if sample.depth is not None:
+        depth = np.asarray(sample.depth, np.float32)
+        mask = np.isfinite(depth) & (depth > 0)
+        inverse = np.where(mask, 1.0 / np.where(mask, depth, 1.0), 0.0).astype(np.float32)
+    else:
+        mask, inverse = np.zeros((H, W), bool), np.zeros((H, W), np.float32)
+    return {
+        "volume": volume, "x": pad(prepared.x), "y": pad(prepared.y), "t": pad(prepared.t),
+        "polarity": pad(prepared.polarity), "valid": torch.arange(max_events) < n,
+        "duration_s": torch.tensor(prepared.duration_s, dtype=torch.float32),
+        "K": torch.as_tensor(sample.K, dtype=torch.float32),
+        "inverse_depth": torch.from_numpy(inverse)[None], "depth_mask": torch.from_numpy(mask)[None],
+        "twist": torch.as_tensor(sample.twist if sample.twist is not None else np.zeros(6), dtype=torch.float32),
+        "has_twist": torch.tensor(sample.twist is not None),
+    }
+
+
+def collate(items: Sequence[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
+    """Stack the entries of :func:`to_item` (all of one sensor size and ``max_events``)."""
+    return {key: torch.stack([item[key] for item in items]) for key in items[0]}
+
+
+@dataclass(frozen=True)
+class FileSpec:
+    """An event file and how to read it: ``K`` (3, 3) for files without ``gt/K``.
+
+    ``use_gt`` False hides the ground truth (depth, poses) of ``gt/``; its ``gt/K`` (the
+    calibration) is still used when no ``K`` is given.
+    """
+
+    path: Path
+    K: np.ndarray | None = None
+    use_gt: bool = True
+
+
+def _as_spec(entry: object) -> FileSpec:
+    if isinstance(entry, FileSpec):
+        return entry
+    if isinstance(entry, (str, Path)):
+        return FileSpec(Path(entry))
+    if isinstance(entry, dict):
+        K = entry.get("K")
+        if K is not None:
+            K = np.asarray(K, float)
+            if K.shape == (4,):
+                K = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
+        return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)))
+    raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
+
+
+class H5WindowDataset(torch.utils.data.Dataset):
+    """Windows of DSEC-layout files (see the module docstring).
+
+    Parameters
+    ----------
+    files : sequence of path, dict or FileSpec
+        ``{"path": ..., "K": [fx, fy, cx, cy] or 3x3, "use_gt": bool}`` for files without ``gt/``.
+    window_us : int
+        Window length [µs].
+    max_events : int
+        Raw events kept per window for the contrast loss.
+    augment : bool
+        Random flips and time reversal (seeded per epoch and item: see :meth:`set_epoch`).
+    seed : int
+    min_events : int
+        Windows with fewer events are left out of the index (reported by ``skipped``).
+    """
+
+    def __init__(self, files: Sequence[object], *, window_us: int = 166_500, max_events: int = 20_000,
+                 bins: int = 5, augment: bool = False, seed: int = 0, min_events: int = 100) -> None:
+        if not files:
+            raise ValueError("files: need at least one event file")
+        if window_us <= 0 or max_events <= 0:
+            raise ValueError(f"window_us and max_events must be positive, got {window_us}, {max_events}")
+        self.specs = [_as_spec(f) for f in files]
+        self.window_us, self.max_events, self.bins = int(window_us), int(max_events), bins
+        self.augment, self.seed, self.epoch = augment, seed, 0
+        self.index: list[tuple[int, int]] = []
+        self._gt: list[dict | None] = []
+        self.skipped = 0
+        self._readers: dict[int, H5Reader] = {}
+        size = None
+        for i, spec in enumerate(self.specs):
+            with H5Reader(spec.path) as reader:
+                if size is None:
+                    size = (reader.width, reader.height)
+                elif size != (reader.width, reader.height):
+                    raise ValueError(f"{spec.path} is {reader.width}x{reader.height}, the first file {size[0]}x{size[1]}")
+                gt = self._load_gt(reader.file, spec)
+                if spec.K is None and gt is None and "gt/K" in reader.file:   # calibration, not ground truth
+                    spec = self.specs[i] = replace(spec, K=reader.file["gt/K"][:])
+                self._gt.append(gt)
+                if gt is not None:
+                    starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]
+                elif spec.K is None:
+                    raise ValueError(f"{spec.path} has no gt/K: give its intrinsics as {{'path': ..., 'K': ...}}")
+                else:
+                    starts = list(range(reader.t_start, reader.t_end - self.window_us + 1, self.window_us))
+                slack = self.window_us // 10   # windows may reach 10% beyond the recorded events
+                for t0 in starts:
+                    if t0 < reader.t_start - slack or t0 + self.window_us > reader.t_end + 1 + slack:
+                        continue
+                    if len(reader.window(t0, t0 + self.window_us)) < min_events:
+                        self.skipped += 1
+                        continue
+                    self.index.append((i, t0))
+        self.width, self.height = size
+
+    @staticmethod
+    def _load_gt(file: h5py.File, spec: FileSpec) -> dict | None:
+        if "gt" not in file or not spec.use_gt:
+            return None
+        gt = file["gt"]
+        return {"depth_t": gt["depth_t"][:], "poses_t": gt["poses_t"][:],
+                "twists": gt["twists"][:] if "twists" in gt else None, "K": gt["K"][:]}
+
+    def set_epoch(self, epoch: int) -> None:
+        """Change the augmentation draws (called by the trainer each epoch)."""
+        self.epoch = int(epoch)
+
+    def __len__(self) -> int:
+        return len(self.index)
+
+    def sample(self, i: int) -> Sample:
+        """The window ``i`` without augmentation."""
+        file_index, t0 = self.index[i]
+        spec, gt = self.specs[file_index], self._gt[file_index]
+        reader = self._readers.get(file_index)
+        if reader is None:
+            reader = self._readers[file_index] = H5Reader(spec.path)
+        events = reader.window(t0, t0 + self.window_us)
+        if gt is None:
+            return Sample(events, spec.K, None, None, t0, t0 + self.window_us)
+        middle = t0 + self.window_us // 2
+        k = int(np.argmin(np.abs(gt["depth_t"] - middle)))
+        depth = reader.file["gt/depth"][k]
+        twist = None
+        if gt["twists"] is not None:
+            twist = gt["twists"][int(np.argmin(np.abs(gt["poses_t"] - middle)))]
+        return Sample(events, gt["K"], depth, twist, t0, t0 + self.window_us)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        sample = self.sample(i)
+        if self.augment:
+            sample = augment(sample, np.random.default_rng([self.seed, self.epoch, i]))
+        return to_item(sample, max_events=self.max_events, bins=self.bins, seed=self.seed + i)
+
+    def __getstate__(self) -> dict:   # open h5 files do not cross process boundaries
+        state = dict(self.__dict__)
+        state["_readers"] = {}
+        return state
+
+
+class MVSECDataset(torch.utils.data.Dataset):
+    """Windows of an MVSEC data file, centred on its ground-truth depth times when a gt file is given.
+
+    Parameters
+    ----------
+    data_file : path
+        ``*_data.hdf5`` (events of ``davis/left``).
+    K : array_like (3, 3)
+        Intrinsics of the left DAVIS (rectified; from the data set's calibration).
+    gt_file : path, optional
+        ``*_gt.hdf5`` with ``davis/left/depth_image_rect`` (N, H, W) and ``..._ts`` [s].
+    window_us, max_events, bins : as :class:`H5WindowDataset`.
+    """
+
+    def __init__(self, data_file: str | Path, K: object, *, gt_file: str | Path | None = None,
+                 window_us: int = 166_500, max_events: int = 20_000, bins: int = 5) -> None:
+        from cmax.io.mvsec import read_mvsec
+
+        self.data_file, self.K = Path(data_file), np.asarray(K, float)
+        if self.K.shape != (3, 3):
+            raise ValueError(f"K must be (3, 3), got {self.K.shape}")
+        self.window_us, self.max_events, self.bins = int(window_us), int(max_events), bins
+        self._read = read_mvsec
+        self.depth = self.middles = None
+        if gt_file is not None:
+            with h5py.File(gt_file, "r") as f:
+                self.depth = f["davis/left/depth_image_rect"][:].astype(np.float32)
+                self.middles = np.rint(f["davis/left/depth_image_rect_ts"][:] * 1e6).astype(np.int64)
+        else:
+            events = read_mvsec(self.data_file)
+            self.middles = np.arange(int(events.t[0]) + self.window_us // 2, int(events.t[-1]) - self.window_us // 2,
+                                     self.window_us)
+
+    def __len__(self) -> int:
+        return len(self.middles)
+
+    def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
+        t0 = int(self.middles[i]) - self.window_us // 2
+        events = self._read(self.data_file, t0_us=t0, t1_us=t0 + self.window_us)
+        depth = None if self.depth is None else self.depth[i]
+        return to_item(Sample(events, self.K, depth, None, t0, t0 + self.window_us), max_events=self.max_events,
+                       bins=self.bins, seed=i)

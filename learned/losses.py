@@ -1,0 +1,121 @@
+"""Training losses: scale-invariant and gradient-matching (teacher), contrast + distillation (student).
+
+* ``L_si`` (Eigen et al., NeurIPS 2014): ``R = log d - log g`` on valid pixels,
+  ``mean(R^2) - mean(R)^2``.
+* ``L_grad`` (Li & Snavely, MegaDepth, CVPR 2018): at each scale ``s`` (the
+  network's output scales, the ground truth average-pooled with its mask),
+  ``mean(|Sobel_x R^s| + |Sobel_y R^s|)`` over pixels whose 3x3 neighbourhood is valid
+  (kornia's Sobel).
+* ``L_teacher = L_si + lambda L_grad``;
+* ``L_student = L_contrast + (1 - lambda) L1(rho_teacher, rho_student)``, lambda = 0.6,
+  with ``L_contrast`` the batched ``cmax.fit`` objective of :func:`cmax.loss.contrast_loss`
+  applied to the predicted inverse depth and twist (EvtSlowTV eqs. 12-15).
+"""
+from __future__ import annotations
+
+import kornia
+import torch
+from torch.nn import functional as F
+
+from cmax.loss import ContrastLoss, EventBatch
+
+__all__ = ["scale_invariant_loss", "gradient_matching_loss", "teacher_loss", "student_loss", "LAMBDA"]
+
+#: The paper's lambda.
+LAMBDA = 0.6
+
+
+def _check(pred: torch.Tensor, gt: torch.Tensor, mask: torch.Tensor) -> None:
+    if pred.dim() != 4 or pred.shape[1] != 1 or pred.shape != gt.shape or gt.shape != mask.shape:
+        raise ValueError(f"pred, gt and mask must share one shape (B, 1, H, W), got {tuple(pred.shape)}, "
+                         f"{tuple(gt.shape)}, {tuple(mask.shape)}")
+    if mask.dtype != torch.bool:
+        raise TypeError(f"mask must be a bool tensor, got {mask.dtype}")
+
+
+def _log_residual(pred_depth: torch.Tensor, gt_depth: torch.Tensor, mask: torch.Tensor) -> torch.Tensor:
+    safe_gt = torch.where(mask, gt_depth, torch.ones_like(gt_depth))
+    return torch.where(mask, torch.log(pred_depth) - torch.log(safe_gt), torch.zeros_like(pred_depth))
+
+
+def scale_invariant_loss(pred_depth: torch.Tensor, gt_depth: torch.Tensor, mask: torch.Tensor, *,
+                         variance_weight: float = 1.0) -> torch.Tensor:
+    """``mean(R^2) - w mean(R)^2`` per image over its valid pixels, averaged over the batch.
+
+    ``variance_weight`` w = 1 is the paper's fully scale-invariant form (eq. 13), which leaves
+    the absolute scale free; w < 1 (Eigen et al. used 0.5) also penalises a global scale error.
+
+    Parameters
+    ----------
+    pred_depth, gt_depth : Tensor (B, 1, H, W)
+        Depths [m] (> 0 where ``mask``).
+    mask : Tensor (B, 1, H, W) bool
+        Valid ground truth. Images without valid pixels contribute 0.
+    """
+    _check(pred_depth, gt_depth, mask)
+    R = _log_residual(pred_depth, gt_depth, mask).flatten(1)
+    n = mask.flatten(1).sum(1).clamp(min=1).to(R.dtype)
+    return (R.pow(2).sum(1) / n - variance_weight * (R.sum(1) / n).pow(2)).mean()
+
+
+def gradient_matching_loss(pred_depths: tuple[torch.Tensor, ...] | list[torch.Tensor], gt_depth: torch.Tensor,
+                           mask: torch.Tensor) -> torch.Tensor:
+    """Multi-scale gradient matching of the log-depth residual (Sobel), summed over scales.
+
+    ``pred_depths`` (B, 1, H_s, W_s) finest first; the ground truth is brought to
+    each scale by averaging its valid log depths in blocks (``avg_pool``).
+    """
+    _check(pred_depths[0], gt_depth, mask)
+    total = pred_depths[0].new_zeros(())
+    log_gt = torch.where(mask, torch.log(torch.where(mask, gt_depth, torch.ones_like(gt_depth))), 0.0)
+    valid = mask.to(gt_depth.dtype)
+    for pred in pred_depths:
+        factor = gt_depth.shape[-1] // pred.shape[-1]
+        if factor > 1:
+            weight = F.avg_pool2d(valid, factor, ceil_mode=True)
+            log_s = F.avg_pool2d(log_gt, factor, ceil_mode=True) / weight.clamp(min=1e-6)
+            mask_s = weight > 0.999
+        else:
+            log_s, mask_s = log_gt, mask
+        log_s, mask_s = log_s[..., : pred.shape[-2], : pred.shape[-1]], mask_s[..., : pred.shape[-2], : pred.shape[-1]]
+        R = torch.where(mask_s, torch.log(pred) - log_s, 0.0)
+        grad = kornia.filters.spatial_gradient(R, mode="sobel", normalized=True)   # (B, 1, 2, H, W)
+        inner = -F.max_pool2d(-mask_s.to(R.dtype), 3, 1, 1) > 0.5                   # all 3x3 neighbours valid
+        n = inner.flatten(1).sum(1).clamp(min=1)          # per image, so the loss is a mean over the batch
+        total = total + ((grad.abs().sum(2) * inner).flatten(1).sum(1) / n).mean()
+    return total
+
+
+def teacher_loss(pred_depths, gt_depth: torch.Tensor, mask: torch.Tensor, *, lam: float = LAMBDA,
+                 variance_weight: float = 1.0) -> torch.Tensor:
+    """``L_si + lam * L_grad`` (EvtSlowTV eq. 14) on the finest prediction and all scales."""
+    return (scale_invariant_loss(pred_depths[0], gt_depth, mask, variance_weight=variance_weight)
+            + lam * gradient_matching_loss(pred_depths, gt_depth, mask))
+
+
+def student_loss(inverse_depth: torch.Tensor, twist: torch.Tensor, events: EventBatch, K: torch.Tensor, *,
+                 teacher_inverse_depth: torch.Tensor | None, lam: float = LAMBDA,
+                 contrast: ContrastLoss = ContrastLoss()) -> tuple[torch.Tensor, dict[str, float]]:
+    """``L_contrast + (1 - lam) * L1(teacher, student)`` (EvtSlowTV eq. 15); without a teacher only ``L_contrast``.
+
+    Parameters
+    ----------
+    inverse_depth : Tensor (B, 1, H, W) [1/m]
+    twist : Tensor (B, 6) [m/s, rad/s]
+    events : EventBatch
+        The raw events of the B windows.
+    K : Tensor (B, 3, 3)
+    teacher_inverse_depth : Tensor (B, 1, H, W) or None
+        The frozen teacher's prediction (no gradient flows into it); None for fine-tuning.
+
+    Returns
+    -------
+    (loss, terms) : the scalar loss and its terms as floats (for logging).
+    """
+    l_contrast = contrast(events, inverse_depth, twist, K)
+    terms = {"contrast": float(l_contrast.detach())}
+    if teacher_inverse_depth is None:
+        return l_contrast, terms
+    l1 = (inverse_depth - teacher_inverse_depth.detach()).abs().mean()
+    terms["l1_teacher"] = float(l1.detach())
+    return l_contrast + (1.0 - lam) * l1, terms

@@ -1,0 +1,154 @@
+"""The depth-pose network: an encoder-decoder with skip connections on the event volume, and a pose head.
+
+Input: the 5-bin event volume (B, bins, H, W) of :func:`cmax.representations.voxel_grid`
+(EvtSlowTV section 4.1). The encoder halves the resolution ``levels`` times
+(channels ``width * 2**k``); the decoder upsamples back, concatenating the
+encoder feature of the same scale (U-Net skips), and predicts an inverse depth
+at every decoder scale, bounded to the configured depth range:
+
+    rho = 1/z_max + (1/z_min - 1/z_max) * sigmoid(logit)      [1/m]
+
+The pose head on the bottleneck (conv, global mean, linear) gives the twist
+``(v [m/s], omega [rad/s])`` of the window, each scaled by a configured
+typical magnitude (``tanh`` bounded). Inputs whose sides are not multiples of
+``2**levels`` are zero-padded and the outputs cropped back.
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import torch
+from torch import nn
+from torch.nn import functional as F
+
+__all__ = ["ModelConfig", "DepthPoseNet", "NetOutput"]
+
+
+@dataclass(frozen=True)
+class ModelConfig:
+    """Size and output ranges of :class:`DepthPoseNet`.
+
+    Attributes
+    ----------
+    bins : int
+        Time bins of the input event volume.
+    width : int
+        Channels of the first encoder level (doubled per level).
+    levels : int
+        Encoder levels (each halves the resolution).
+    min_depth, max_depth : float
+        Depth range [m] of the inverse-depth outputs.
+    max_speed : float
+        Bound of each component of ``v`` [m/s].
+    max_angular_speed : float
+        Bound of each component of ``omega`` [rad/s].
+    """
+
+    bins: int = 5
+    width: int = 16
+    levels: int = 4
+    min_depth: float = 0.5
+    max_depth: float = 60.0
+    max_speed: float = 15.0
+    max_angular_speed: float = 3.0
+
+    def __post_init__(self) -> None:
+        for name in ("bins", "width", "levels"):
+            if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
+                raise ValueError(f"model.{name} must be a positive integer, got {getattr(self, name)!r}")
+        if not (0 < self.min_depth < self.max_depth):
+            raise ValueError(f"need 0 < model.min_depth < model.max_depth, got {self.min_depth}, {self.max_depth}")
+        if self.max_speed <= 0 or self.max_angular_speed <= 0:
+            raise ValueError("model.max_speed and model.max_angular_speed must be positive")
+
+
+@dataclass(frozen=True, eq=False)
+class NetOutput:
+    """Outputs of :class:`DepthPoseNet`.
+
+    Attributes
+    ----------
+    inverse_depths : tuple of Tensor (B, 1, H/2**s, W/2**s)
+        Inverse depth [1/m] at each decoder scale, finest first (``[0]`` is full resolution).
+    twist : Tensor (B, 6)
+        ``(v [m/s], omega [rad/s])``.
+    """
+
+    inverse_depths: tuple[torch.Tensor, ...]
+    twist: torch.Tensor
+
+    @property
+    def inverse_depth(self) -> torch.Tensor:
+        """The full-resolution inverse depth (B, 1, H, W) [1/m]."""
+        return self.inverse_depths[0]
+
+    @property
+    def depth(self) -> torch.Tensor:
+        """Full-resolution z-depth (B, 1, H, W) [m]."""
+        return 1.0 / self.inverse_depths[0]
+
+
+def _block(cin: int, cout: int, stride: int) -> nn.Sequential:
+    """Two 3x3 convolutions with group norm (per sample: no batch statistics, so ranks agree with one process).
+
+    No conv bias before a norm: its gradient is zero up to rounding, which Adam would amplify into noise.
+    """
+    return nn.Sequential(nn.Conv2d(cin, cout, 3, stride, 1, bias=False), nn.GroupNorm(min(8, cout), cout),
+                         nn.LeakyReLU(0.1), nn.Conv2d(cout, cout, 3, 1, 1, bias=False),
+                         nn.GroupNorm(min(8, cout), cout), nn.LeakyReLU(0.1))
+
+
+class DepthPoseNet(nn.Module):
+    """U-Net depth decoder and bottleneck pose head (see the module docstring).
+
+    Examples
+    --------
+    >>> net = DepthPoseNet(ModelConfig(width=4, levels=2))
+    >>> out = net(torch.zeros(2, 5, 30, 41))
+    >>> out.inverse_depth.shape, out.twist.shape
+    (torch.Size([2, 1, 30, 41]), torch.Size([2, 6]))
+    """
+
+    def __init__(self, config: ModelConfig = ModelConfig()) -> None:
+        super().__init__()
+        self.config = config
+        c = [config.width * 2 ** k for k in range(config.levels + 1)]
+        self.stem = _block(config.bins, c[0], 1)
+        self.down = nn.ModuleList(_block(c[k], c[k + 1], 2) for k in range(config.levels))
+        self.up = nn.ModuleList(_block(c[k + 1] + c[k], c[k], 1) for k in reversed(range(config.levels)))
+        self.heads = nn.ModuleList(nn.Conv2d(c[k], 1, 3, 1, 1) for k in reversed(range(config.levels)))
+        self.pose = nn.Sequential(nn.Conv2d(c[-1], c[-1], 3, 1, 1), nn.LeakyReLU(0.1))
+        self.pose_out = nn.Linear(c[-1], 6)
+        nn.init.zeros_(self.pose_out.weight)
+        nn.init.zeros_(self.pose_out.bias)
+
+    def _bounded(self, logits: torch.Tensor) -> torch.Tensor:
+        lo, hi = 1.0 / self.config.max_depth, 1.0 / self.config.min_depth
+        return lo + (hi - lo) * torch.sigmoid(logits)
+
+    def forward(self, volume: torch.Tensor) -> NetOutput:
+        """Inverse depths and twist of event volumes (B, bins, H, W) float32."""
+        if volume.dim() != 4 or volume.shape[1] != self.config.bins:
+            raise ValueError(f"volume must have shape (B, {self.config.bins}, H, W), got {tuple(volume.shape)}")
+        H, W = volume.shape[-2:]
+        m = 2 ** self.config.levels
+        x = F.pad(volume, (0, (-W) % m, 0, (-H) % m))
+        skips = [self.stem(x)]
+        for down in self.down:
+            skips.append(down(skips[-1]))
+        feature = skips.pop()
+        pooled = self.pose(feature).mean(dim=(2, 3))
+        scale = torch.tensor([self.config.max_speed] * 3 + [self.config.max_angular_speed] * 3,
+                             dtype=pooled.dtype, device=pooled.device)
+        twist = torch.tanh(self.pose_out(pooled)) * scale
+        outputs = []
+        for up, head in zip(self.up, self.heads):
+            skip = skips.pop()
+            feature = up(torch.cat([F.interpolate(feature, size=skip.shape[-2:], mode="bilinear",
+                                                  align_corners=False), skip], 1))
+            outputs.append(self._bounded(head(feature)))
+        crops = []
+        for out in reversed(outputs):   # finest first, cropped to the input's extent at that scale
+            s = x.shape[-1] // out.shape[-1]
+            crops.append(out[..., : -(-H // s), : -(-W // s)])
+        return NetOutput(tuple(crops), twist)

@@ -1,0 +1,86 @@
+"""``python -m learned.predict --checkpoint CKPT FILE -o out/``: depth and twist of every window of an event file.
+
+Writes per window ``window_<k>.npz`` (``depth`` (H, W) float32 [m], ``inverse_depth``,
+``twist`` (6,) [m/s, rad/s], ``t0_us``, ``t1_us``) and ``window_<k>.png`` (a depth picture),
+and ``twists.csv`` (one line per window). Every file is written atomically.
+Files without ``gt/K`` need ``--K fx,fy,cx,cy``.
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import sys
+from pathlib import Path
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from learned.data import H5WindowDataset
+from learned.evaluate import load_model, predict_batches
+
+__all__ = ["predict_file", "main"]
+
+
+def _atomic_npz(path: Path, **arrays) -> None:
+    partial = path.with_name(path.name + ".partial.npz")
+    np.savez_compressed(partial, **arrays)
+    os.replace(partial, path)
+
+
+def predict_file(checkpoint: str | Path, path: str | Path, out: str | Path, *, K: np.ndarray | None = None,
+                 window_us: int | None = None, progress: bool = True) -> int:
+    """Predict every window of ``path`` into folder ``out``; returns the number of windows."""
+    from cmax import viz
+
+    model, config = load_model(checkpoint)
+    window_us = window_us or int(config["data"]["window_us"])
+    spec = {"path": str(path), "use_gt": False, **({"K": np.asarray(K, float).tolist()} if K is not None else {})}
+    try:
+        dataset = H5WindowDataset([spec], window_us=window_us, max_events=1000, bins=model.config.bins, min_events=10)
+    except ValueError:
+        if K is not None:
+            raise
+        dataset = H5WindowDataset([{"path": str(path)}], window_us=window_us, max_events=1000,
+                                  bins=model.config.bins, min_events=10)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    lines = ["window,t0_us,t1_us,vx,vy,vz,wx,wy,wz"]
+    k = 0
+    for batch, output in tqdm(predict_batches(model, dataset), total=-(-len(dataset) // 8), disable=not progress):
+        for b in range(output.twist.shape[0]):
+            _, t0 = dataset.index[k]
+            inverse = output.inverse_depth[b, 0].numpy()
+            twist = output.twist[b].numpy()
+            _atomic_npz(out / f"window_{k:05d}.npz", depth=(1.0 / inverse).astype(np.float32),
+                        inverse_depth=inverse, twist=twist, t0_us=t0, t1_us=t0 + window_us)
+            viz.save_png(out / f"window_{k:05d}.png", viz.depth_image((1.0 / inverse).astype(np.float32)))
+            lines.append(",".join([str(k), str(t0), str(t0 + window_us)] + [f"{v:.6g}" for v in twist]))
+            k += 1
+    partial = out / "twists.csv.partial"
+    partial.write_text("\n".join(lines) + "\n")
+    os.replace(partial, out / "twists.csv")
+    return k
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m learned.predict", description=__doc__.splitlines()[0])
+    parser.add_argument("file", type=Path, help="DSEC-layout h5 event file")
+    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("-o", "--output", type=Path, required=True, help="output folder")
+    parser.add_argument("--K", type=str, default=None, help="fx,fy,cx,cy for files without gt/K")
+    parser.add_argument("--window", type=float, default=None, help="window length [s] (default: the config's)")
+    args = parser.parse_args(argv)
+    K = None
+    if args.K:
+        fx, fy, cx, cy = (float(v) for v in args.K.split(","))
+        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+    with torch.no_grad():
+        n = predict_file(args.checkpoint, args.file, args.output, K=K,
+                         window_us=None if args.window is None else int(round(args.window * 1e6)))
+    print(f"{args.output}: {n} windows")
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,247 @@
+"""``python -m learned.train --mode teacher|finetune|student --config CONFIG [key=value ...] [--resume]``.
+
+Modes (EvtSlowTV section 5):
+
+* ``teacher`` (EvtSL): ``L_si + lambda L_grad`` on files with ground truth (plus, by
+  default, a twist term: ``train.twist_weight``);
+* ``finetune`` (EvtSL -> EvtSSL): the teacher's weights trained further with the contrast loss;
+* ``student`` (EvtSL -> EvtSSL-bar): a fresh network, ``L_contrast + (1 - lambda) L1`` to the frozen teacher.
+
+Data order: the global batch of step ``s`` is a fixed function of ``(seed, s)``
+(a seeded permutation per epoch), so a resumed run sees the same batches; in a
+``torchrun`` job rank ``r`` of ``R`` takes entries ``r, r + R, ...`` of each
+global batch (the role of a ``DistributedSampler``), gradients are averaged by
+``DistributedDataParallel`` (gloo on CPU, nccl on GPU), and only rank 0 writes.
+Checkpoints (``out/last.pt``) hold the model, optimiser, step, config and RNG
+states and are written atomically; ``--resume`` continues bit-for-bit on CPU.
+"""
+from __future__ import annotations
+
+import argparse
+import json
+import os
+import sys
+import warnings
+from dataclasses import replace
+from pathlib import Path
+from typing import Iterator
+
+import numpy as np
+import torch
+from tqdm import tqdm
+
+from cmax.loss import ContrastLoss, EventBatch
+from learned.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from learned.config import Config, config_from_dict, load_config
+from learned.data import H5WindowDataset, collate
+from learned.losses import student_loss, teacher_loss
+from learned.model import DepthPoseNet
+
+__all__ = ["batch_indices", "Trainer", "main"]
+
+
+def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[int]:
+    """Dataset indices of the global batch of ``step``: consecutive slices of per-epoch seeded permutations."""
+    if size < 1:
+        raise ValueError("the dataset is empty")
+    start = step * batch_size
+    out: list[int] = []
+    while len(out) < batch_size:
+        epoch, offset = divmod(start + len(out), size)
+        order = np.random.default_rng([seed, epoch]).permutation(size)
+        out.extend(order[offset: offset + batch_size - len(out)].tolist())
+    return out
+
+
+def _events(batch: dict[str, torch.Tensor], width: int, height: int) -> EventBatch:
+    return EventBatch.from_padded(batch["x"], batch["y"], batch["t"], batch["polarity"], batch["valid"],
+                                  batch["duration_s"], width=width, height=height)
+
+
+class Trainer:
+    """One training run (a rank of it under ``torchrun``); :meth:`run` trains to ``config.train.steps``."""
+
+    def __init__(self, config: Config, *, resume: bool = False, progress: bool = True) -> None:
+        self.config, self.progress = config, progress
+        self.world = int(os.environ.get("WORLD_SIZE", "1"))
+        self.rank = int(os.environ.get("RANK", "0"))
+        if self.world > 1 and not torch.distributed.is_initialized():
+            backend = "nccl" if torch.cuda.is_available() else "gloo"
+            torch.distributed.init_process_group(backend)
+        tc = config.train
+        if tc.batch_size % self.world:
+            raise ValueError(f"train.batch_size ({tc.batch_size}) must be a multiple of the {self.world} ranks")
+        self.out = Path(tc.out)
+        torch.manual_seed(tc.seed)
+        self.model = DepthPoseNet(config.model)
+        self.teacher = None
+        if config.mode in ("finetune", "student"):
+            teacher_ckpt = load_checkpoint(tc.teacher)
+            teacher = DepthPoseNet(config_from_dict(teacher_ckpt["config"]).model)
+            teacher.load_state_dict(teacher_ckpt["model"])
+            if config.mode == "finetune":
+                self.model.load_state_dict(teacher_ckpt["model"])
+            else:
+                self.teacher = teacher.eval().requires_grad_(False)
+        self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
+        self.step = 0
+        if resume and (self.out / "last.pt").is_file():
+            ckpt = load_checkpoint(self.out / "last.pt")
+            self.model.load_state_dict(ckpt["model"])
+            self.optimizer.load_state_dict(ckpt["optimizer"])
+            self.step = int(ckpt["step"])
+            set_rng_state(ckpt["rng"])
+        self.net = self.model
+        if self.world > 1:
+            self.net = torch.nn.parallel.DistributedDataParallel(self.model, find_unused_parameters=True)
+        dc = config.data
+        self.dataset = H5WindowDataset(dc.files, window_us=dc.window_us, max_events=dc.max_events,
+                                       bins=config.model.bins, augment=dc.augment, seed=tc.seed)
+        self.contrast = ContrastLoss(collapse_weight=tc.collapse_weight)
+        self.log = self._logger() if self.rank == 0 else None
+
+    # -- logging ------------------------------------------------------------------------------
+    def _logger(self):
+        try:
+            from torch.utils.tensorboard import SummaryWriter
+            return SummaryWriter(str(self.out / "tb"))
+        except ImportError:
+            warnings.warn("tensorboard is not installed: logging scalars to log.jsonl instead")
+            return None
+
+    def _scalars(self, values: dict[str, float]) -> None:
+        if self.rank != 0:
+            return
+        if self.log is not None:
+            for key, value in values.items():
+                self.log.add_scalar(key, value, self.step)
+        else:
+            self.out.mkdir(parents=True, exist_ok=True)
+            with open(self.out / "log.jsonl", "a") as f:
+                f.write(json.dumps({"step": self.step, **values}) + "\n")
+
+    def _images(self, batch: dict[str, torch.Tensor], output) -> None:
+        if self.rank != 0 or self.log is None:
+            return
+        def norm(image: torch.Tensor) -> torch.Tensor:
+            image = image - image.min()
+            return image / image.max().clamp(min=1e-9)
+        self.log.add_image("events/volume_sum", norm(batch["volume"][0].sum(0, keepdim=True)), self.step)
+        self.log.add_image("depth/predicted_inverse", norm(output.inverse_depth[0].detach()), self.step)
+        if bool(batch["depth_mask"][0].any()):
+            self.log.add_image("depth/true_inverse", norm(batch["inverse_depth"][0]), self.step)
+        if self.config.mode != "teacher":
+            from cmax.iwe import image_of_warped_events
+            from cmax.warp import warp_se3
+            with torch.no_grad():
+                keep = batch["valid"][0]
+                x, y = batch["x"][0][keep], batch["y"][0][keep]
+                K = batch["K"][0]
+                rays = torch.stack([x, y, torch.ones_like(x)], -1) @ torch.linalg.inv(K).T
+                rho = output.inverse_depth[0, 0][y.long().clamp(0, output.inverse_depth.shape[-2] - 1),
+                                                  x.long().clamp(0, output.inverse_depth.shape[-1] - 1)]
+                dt = batch["t"][0][keep] - 0.5 * batch["duration_s"][0]
+                xw, yw = warp_se3(rays, dt, output.twist[0, :3], output.twist[0, 3:], rho, K)
+                iwe = image_of_warped_events(xw, yw, height=self.dataset.height, width=self.dataset.width)
+            self.log.add_image("events/iwe", norm(iwe[None]), self.step)
+
+    # -- one step -----------------------------------------------------------------------------
+    def _batches(self) -> Iterator[dict[str, torch.Tensor]]:
+        tc = self.config.train
+        step = self.step
+        while True:
+            indices = batch_indices(step, size=len(self.dataset), batch_size=tc.batch_size, seed=tc.seed)
+            local = indices[self.rank::self.world]
+            self.dataset.set_epoch(step * tc.batch_size // len(self.dataset))
+            yield collate([self.dataset[i] for i in local])
+            step += 1
+
+    def loss(self, batch: dict[str, torch.Tensor]):
+        tc, mode = self.config.train, self.config.mode
+        output = self.net(batch["volume"])
+        if mode == "teacher":
+            mask = batch["depth_mask"]
+            gt = torch.where(mask, 1.0 / torch.where(mask, batch["inverse_depth"], 1.0), 1.0)
+            loss = teacher_loss(tuple(1.0 / d for d in output.inverse_depths), gt, mask, lam=tc.lam,
+                                variance_weight=tc.si_variance_weight)
+            terms = {"teacher": float(loss.detach())}
+            if tc.twist_weight > 0:
+                m = self.config.model
+                scale = torch.tensor([m.max_speed] * 3 + [m.max_angular_speed] * 3) / 10
+                has = batch["has_twist"].to(output.twist.dtype)[:, None]
+                err = torch.nn.functional.smooth_l1_loss(output.twist / scale, batch["twist"] / scale, reduction="none")
+                twist_term = (err * has).mean()
+                terms["twist"] = float(twist_term.detach())
+                loss = loss + tc.twist_weight * twist_term
+            return loss, terms, output
+        teacher_rho = None
+        if self.teacher is not None:
+            with torch.no_grad():
+                teacher_rho = self.teacher(batch["volume"]).inverse_depth
+        events = _events(batch, self.dataset.width, self.dataset.height)
+        loss, terms = student_loss(output.inverse_depth, output.twist, events, batch["K"],
+                                   teacher_inverse_depth=teacher_rho, lam=tc.lam, contrast=self.contrast)
+        return loss, terms, output
+
+    def save(self) -> Path | None:
+        if self.rank != 0:
+            return None
+        payload = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "step": self.step,
+                   "config": self.config.to_dict(), "rng": rng_state(),
+                   "data_order": {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
+                                  "dataset_size": len(self.dataset)}}
+        return save_checkpoint(self.out / "last.pt", payload)
+
+    def run(self) -> list[float]:
+        """Train from the current step to ``train.steps``; returns the losses of the steps run."""
+        tc = self.config.train
+        if self.rank == 0:
+            self.out.mkdir(parents=True, exist_ok=True)
+            (self.out / "config.json").write_text(json.dumps(self.config.to_dict(), indent=2, default=str))
+        losses = []
+        batches = self._batches()
+        bar = tqdm(total=tc.steps, initial=self.step, desc=self.config.mode,
+                   disable=not self.progress or self.rank != 0)
+        self.model.train()
+        while self.step < tc.steps:
+            batch = next(batches)
+            loss, terms, output = self.loss(batch)
+            self.optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            self.optimizer.step()
+            self.step += 1
+            losses.append(float(loss.detach()))
+            bar.update(1)
+            bar.set_postfix(loss=f"{losses[-1]:.4f}")
+            if self.step % tc.log_every == 0:
+                self._scalars({f"loss/{k}": v for k, v in {"total": losses[-1], **terms}.items()})
+            if self.step % tc.image_every == 0:
+                self._images(batch, output)
+            if self.step % tc.checkpoint_every == 0 or self.step == tc.steps:
+                self.save()
+        bar.close()
+        if self.log is not None:
+            self.log.flush()
+        return losses
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(prog="python -m learned.train", description=__doc__.splitlines()[0])
+    parser.add_argument("--mode", choices=("teacher", "finetune", "student"), required=True)
+    parser.add_argument("--config", type=Path, default=None, help="a .json or .toml config")
+    parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt when it exists")
+    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("overrides", nargs="*", help="section.key=value (e.g. train.steps=100)")
+    args = parser.parse_args(argv)
+    config = load_config(args.config, args.overrides, mode=args.mode)
+    trainer = Trainer(config, resume=args.resume, progress=not args.no_progress)
+    losses = trainer.run()
+    if trainer.rank == 0 and losses:
+        print(f"{config.mode}: {len(losses)} steps, loss {losses[0]:.4f} -> {losses[-1]:.4f}; {trainer.out / 'last.pt'}")
+    if torch.distributed.is_initialized():
+        torch.distributed.destroy_process_group()
+    return 0
+
+
+if __name__ == "__main__":
+    sys.exit(main())

@@ -1,0 +1,147 @@
+"""learned.data: windows of h5 files with ground truth, and the consistency of each augmentation."""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+import torch
+
+from cmax.loss import ContrastLoss, EventBatch
+from cmax.representations import voxel_grid
+from cmax.synthetic_windows import make_window
+from learned.data import H5WindowDataset, Sample, collate, flip_horizontal, flip_polarity, reverse_time, to_item
+
+
+@pytest.fixture(scope="module")
+def window() -> Sample:
+    w = make_window("indoor_flying", 3, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    return Sample(w.events, w.K, w.depth, w.twist, 0, int(w.events.t[-1]) + 1)
+
+
+@pytest.fixture(scope="module")
+def scene_file(tmp_path_factory):
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+
+    scene = make_scene("slider", seed=2, width=48, height=36, duration_s=1.0, texture_size=64)
+    sequence = simulate_scene(scene, 0.5, EventSimulator(**{**scene.recommended_simulator, "seed": 2}),
+                              depth_rate_hz=20)
+    return sequence.save(tmp_path_factory.mktemp("data") / "slider.h5"), sequence, scene
+
+
+def _loss(sample: Sample, collapse_weight: float = 0.0) -> float:
+    item = collate([to_item(sample, max_events=5000)])
+    events = EventBatch.from_padded(item["x"].double(), item["y"].double(), item["t"].double(),
+                                    item["polarity"].double(), item["valid"], item["duration_s"].double(),
+                                    width=sample.events.width, height=sample.events.height)
+    rho = item["inverse_depth"].double()
+    return float(ContrastLoss(collapse_weight=collapse_weight)(events, rho, item["twist"].double()[:1] * 0
+                                                               + torch.as_tensor(sample.twist)[None], item["K"].double()))
+
+
+def test_flip_horizontal_is_consistent(window):
+    flipped = flip_horizontal(window)
+    np.testing.assert_array_equal(flipped.depth, window.depth[:, ::-1])
+    np.testing.assert_array_equal(voxel_grid(flipped.events, 5), voxel_grid(window.events, 5)[:, :, ::-1])
+    assert flipped.K[0, 2] == pytest.approx(window.events.width - 1 - window.K[0, 2])
+    np.testing.assert_allclose(flipped.twist, window.twist * [-1, 1, 1, 1, -1, -1])
+    twice = flip_horizontal(flipped)
+    np.testing.assert_array_equal(twice.events.x, window.events.x)
+    np.testing.assert_allclose(twice.twist, window.twist)
+
+
+def test_flipped_twist_explains_flipped_events_as_well(window):
+    """The mirrored twist with the mirrored depth and K sharpens the mirrored events exactly as much.
+
+    Both windows are prepared with the same dither only up to its sign, so compare
+    against the unflipped loss with a tolerance of the dither's effect, and check that the
+    unmirrored twist is clearly worse on the mirrored events.
+    """
+    flipped = flip_horizontal(window)
+    original, mirrored = _loss(window), _loss(flipped)
+    assert mirrored == pytest.approx(original, rel=0.01)
+    wrong = Sample(flipped.events, flipped.K, flipped.depth, window.twist, 0, flipped.t1_us)
+    assert _loss(wrong) > mirrored + 0.01
+
+
+def test_polarity_flip_negates_the_volume_and_keeps_the_rest(window):
+    flipped = flip_polarity(window)
+    np.testing.assert_array_equal(voxel_grid(flipped.events, 5), -voxel_grid(window.events, 5))
+    np.testing.assert_array_equal(flipped.depth, window.depth)
+    assert _loss(flipped) == pytest.approx(_loss(window), rel=1e-9)
+
+
+def test_time_reversal_reverses_bins_and_negates_twist(window):
+    reversed_ = reverse_time(window)
+    ev, rev = window.events, reversed_.events
+    assert np.all(np.diff(rev.t) >= 0)
+    # the volume's bins are normalised by the first and last event: reversed in time and negated in polarity
+    np.testing.assert_allclose(voxel_grid(rev, 5), -voxel_grid(ev, 5)[::-1], atol=1e-5)
+    np.testing.assert_allclose(reversed_.twist, -window.twist)
+    assert _loss(reversed_, 0.1) == pytest.approx(_loss(window, 0.1), rel=0.01)
+    assert _loss(Sample(rev, window.K, window.depth, window.twist, 0, window.t1_us)) > _loss(reversed_) + 0.01
+
+
+def test_dataset_windows_are_centred_on_ground_truth(scene_file):
+    path, sequence, scene = scene_file
+    ds = H5WindowDataset([path], window_us=100_000, max_events=500)
+    assert len(ds) > 0
+    for i in range(len(ds)):
+        sample = ds.sample(i)
+        middle = (sample.t0_us + sample.t1_us) // 2
+        k = int(np.argmin(np.abs(sequence.depth_t_us - middle)))
+        assert sequence.depth_t_us[k] == middle
+        np.testing.assert_array_equal(sample.depth, sequence.depth[k])
+        np.testing.assert_allclose(sample.twist, scene.twist(middle * 1e-6), atol=1e-9)
+    item = ds[0]
+    assert item["volume"].shape == (5, 36, 48) and item["x"].shape == (500,)
+    assert int(item["valid"].sum()) == min(500, len(ds.sample(0).events))
+    mask = item["depth_mask"][0].numpy()
+    np.testing.assert_allclose(item["inverse_depth"][0].numpy()[mask], 1.0 / ds.sample(0).depth[mask], rtol=1e-6)
+
+
+def test_dataset_rejects_bad_input(scene_file, tmp_path):
+    path, sequence, _ = scene_file
+    from cmax.io import write_h5
+
+    bare = write_h5(tmp_path / "bare.h5", sequence.events)
+    with pytest.raises(ValueError, match="K"):
+        H5WindowDataset([bare])
+    ok = H5WindowDataset([{"path": bare, "K": [40.0, 40.0, 23.5, 17.5]}], window_us=100_000, max_events=100)
+    assert ok.sample(0).depth is None and ok[0]["has_twist"].item() is False
+    with pytest.raises(ValueError, match="files"):
+        H5WindowDataset([])
+    with pytest.raises(TypeError, match="data file"):
+        H5WindowDataset([3])
+
+
+def test_mvsec_dataset_reads_events_and_depth(tmp_path):
+    import h5py
+
+    from learned.data import MVSECDataset
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    t = np.sort(rng.uniform(100.0, 100.5, n))
+    table = np.column_stack([rng.integers(0, 346, n), rng.integers(0, 260, n), t, rng.choice([-1.0, 1.0], n)])
+    with h5py.File(tmp_path / "x_data.hdf5", "w") as f:
+        f["davis/left/events"] = table
+    depth = rng.uniform(1, 5, (2, 260, 346)).astype(np.float32)
+    depth[:, :10] = np.nan
+    with h5py.File(tmp_path / "x_gt.hdf5", "w") as f:
+        f["davis/left/depth_image_rect"] = depth
+        f["davis/left/depth_image_rect_ts"] = np.array([100.2, 100.3])
+    K = np.array([[226.0, 0, 173.0], [0, 226.0, 130.0], [0, 0, 1]])
+    ds = MVSECDataset(tmp_path / "x_data.hdf5", K, gt_file=tmp_path / "x_gt.hdf5", window_us=100_000, max_events=5000)
+    assert len(ds) == 2
+    item = ds[1]
+    inside = (table[:, 2] * 1e6 >= 100.25e6 - 1) & (table[:, 2] * 1e6 < 100.35e6 + 1)
+    assert abs(int(item["valid"].sum()) - int(inside.sum())) <= 2
+    mask = item["depth_mask"][0].numpy()
+    assert not mask[:10].any() and mask[10:].all()
+    np.testing.assert_allclose(item["inverse_depth"][0].numpy()[mask], 1.0 / depth[1][mask], rtol=1e-6)
+    events = ds._read(tmp_path / "x_data.hdf5", t0_us=int(ds.middles[1]) - 50_000, t1_us=int(ds.middles[1]) + 50_000)
+    # each event's weight is split over the bins: the volume sums to the sum of signed polarities
+    assert item["volume"].sum().item() == pytest.approx(float((2 * events.p.astype(int) - 1).sum()), abs=1e-3)
+    with pytest.raises(ValueError, match="K"):
+        MVSECDataset(tmp_path / "x_data.hdf5", np.eye(2), gt_file=tmp_path / "x_gt.hdf5")
