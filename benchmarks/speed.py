@@ -183,6 +183,15 @@ def write_report(report: Report, machine: dict) -> tuple[Path, Path]:
     return stem.with_suffix(".md"), stem.with_suffix(".json")
 
 
+def publish_report(report: Report, machine: dict, *, write: bool = True) -> None:
+    """Fill in the ratios, print the report and (``write``) save its markdown and JSON."""
+    finish_ratios(report)
+    print_report(report)
+    if write:
+        for path in write_report(report, machine):
+            print(f"  wrote {path}")
+
+
 def print_report(report: Report) -> None:
     print(f"\n== {report.title}")
     for row in report.rows:
@@ -417,12 +426,7 @@ def main(argv: list[str] | None = None) -> int:
         torch.set_num_threads(args.torch_threads)
     machine = machine_info()
     for name in args.section or sorted(SECTIONS):
-        report = SECTIONS[name](args)
-        finish_ratios(report)
-        print_report(report)
-        if not args.no_write:
-            for path in write_report(report, machine):
-                print(f"  wrote {path}")
+        publish_report(SECTIONS[name](args), machine, write=not args.no_write)
     return 0
 
 

@@ -141,7 +141,7 @@ def emvs_report(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.speed import finish_ratios, machine_info, print_report, write_report
+    from benchmarks.speed import machine_info, publish_report
 
     parser = argparse.ArgumentParser(prog="python -m benchmarks.speed_emvs", description=__doc__.split("\n")[0])
     parser.add_argument("--duration", type=float, default=0.5, help="seconds of slider scene (default 0.5)")
@@ -150,12 +150,7 @@ def main(argv: list[str] | None = None) -> int:
     args = parser.parse_args(argv)
     args.emvs_duration = args.duration
     machine = machine_info()
-    report = emvs_report(args)
-    finish_ratios(report)
-    print_report(report)
-    if not args.no_write:
-        for path in write_report(report, machine):
-            print(f"  wrote {path}")
+    publish_report(emvs_report(args), machine, write=not args.no_write)
     return 0
 
 

@@ -319,11 +319,7 @@ def main(argv: list[str] | None = None) -> int:
         "Mev/s counts events per wall second; rows of one group are timed interleaved.",
         f"Load average (1 min) at the end: {os.getloadavg()[0]:.2f} (2 shared cores).",
     ]
-    speed.finish_ratios(report)
-    speed.print_report(report)
-    if not args.no_write:
-        for path in speed.write_report(report, machine):
-            print(f"  wrote {path}")
+    speed.publish_report(report, machine, write=not args.no_write)
     return 0
 
 
