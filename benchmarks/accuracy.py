@@ -41,6 +41,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax.io.atomic import write_text_atomic
 from cmax.metrics import DepthMetrics, MotionMetrics, depth_metrics, motion_metrics, window_twist
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -272,11 +273,6 @@ def read_learned_rows(path: Path) -> list[dict[str, object]]:
     return rows
 
 
-def write_atomic(path: Path, text: str) -> Path:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(text)
-    os.replace(partial, path)
-    return path
 
 
 def to_csv(rows: list[dict[str, object]]) -> str:
@@ -399,10 +395,10 @@ def run_tables(settings: TableSettings, *, quick: bool, results_dir: Path = RESU
     learned = results_dir / "accuracy_learned.csv"
     learned_rows = read_learned_rows(learned) if learned.exists() else []
     suffix = "_quick" if quick else ""
-    write_atomic(results_dir / f"accuracy_tables{suffix}.csv", to_csv(rows + learned_rows))
+    write_text_atomic(results_dir / f"accuracy_tables{suffix}.csv", to_csv(rows + learned_rows))
     text = report(rows + learned_rows, settings, timings, quick=quick, learned=bool(learned_rows),
                   seconds=time.perf_counter() - start, loads=(load_before, os.getloadavg()[0]))
-    return write_atomic(results_dir / f"accuracy_tables{suffix}.md", text)
+    return write_text_atomic(results_dir / f"accuracy_tables{suffix}.md", text)
 
 
 def report(rows, settings: TableSettings, timings: dict, *, quick: bool, learned: bool, seconds: float,

@@ -39,6 +39,7 @@ import numpy as np
 import torch
 
 from cmax.fitting import fit
+from cmax.io.atomic import write_text_atomic
 from cmax.synthetic_windows import make_window, preset_window
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -185,9 +186,7 @@ def main(argv: list[str] | None = None) -> int:
     RESULTS.mkdir(exist_ok=True)
     text = summarise(rows, seeds, time.perf_counter() - start)
     path = RESULTS / ("accuracy_cmax_quick.md" if args.quick else "accuracy_cmax.md")
-    partial = path.with_suffix(".md.partial")
-    partial.write_text(text)
-    os.replace(partial, path)
+    write_text_atomic(path, text)
     print(text)
     return 0
 

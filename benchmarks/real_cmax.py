@@ -35,6 +35,7 @@ import torch
 
 from cmax import fit, viz
 from cmax.geometry import so3_log
+from cmax.io.atomic import write_text_atomic
 from cmax.objectives import multi_reference_contrast
 from cmax.warp import WarpEvents, warp_rotation
 
@@ -190,10 +191,6 @@ def _iwe_picture(image: np.ndarray) -> np.ndarray:
     return np.repeat(grey[..., None], 3, axis=2)
 
 
-def _write(path: Path, text: str) -> None:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(text)
-    os.replace(partial, path)
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -216,7 +213,7 @@ def main(argv: list[str] | None = None) -> int:
         lines += section + [f"![{name}](real_cmax_{name}.png)", ""]
         viz.save_png(RESULTS / f"real_cmax_{name}.png", picture)
     text = "\n".join(lines) + "\n"
-    _write(RESULTS / ("real_cmax.md" if args.only is None else f"real_cmax_{args.only}.md"), text)
+    write_text_atomic(RESULTS / ("real_cmax.md" if args.only is None else f"real_cmax_{args.only}.md"), text)
     print(text)
     return 0
 

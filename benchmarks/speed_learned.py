@@ -27,6 +27,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from cmax.io.atomic import write_text_atomic
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -89,9 +91,7 @@ def main(argv: list[str] | None = None) -> int:
         lines.append(f"| {seed} | {n:,} | {forward_ms:.1f} | {full_ms:.1f} | {fit_s:.2f} | {fit_s * 1e3 / full_ms:.0f}x |")
     med = [statistics.median(c) for c in zip(*[r[2:] for r in rows])]
     lines += [f"| median | | {med[0]:.1f} | {med[1]:.1f} | {med[2]:.2f} | {med[2] * 1e3 / med[1]:.0f}x |", ""]
-    partial = args.output.with_name(args.output.name + ".partial")
-    partial.write_text("\n".join(lines))
-    os.replace(partial, args.output)
+    write_text_atomic(args.output, "\n".join(lines))
     print("\n".join(lines))
     return 0
 

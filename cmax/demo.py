@@ -24,6 +24,8 @@ from typing import Callable, Iterator
 
 import numpy as np
 
+from cmax.io.atomic import write_text_atomic
+
 __all__ = ["DemoSettings", "DemoReport", "run_demo"]
 
 
@@ -200,9 +202,9 @@ def _run(output_dir: Path, s: DemoSettings, log: Callable[[str], None]) -> DemoR
     png = _save_report_png(output_dir / "report.png", pictures, lines)
     lap("report")
     seconds["total"] = time.perf_counter() - start
-    summary = _write_text(output_dir / "summary.txt", "\n".join(info_lines + [""] + lines + [
+    summary = write_text_atomic(output_dir / "summary.txt", "\n".join(info_lines + [""] + lines + [
         "", "seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in seconds.items())]) + "\n")
-    report_md = _write_text(output_dir / "report.md", _markdown(s, lines, seconds, len(sequence.events)))
+    report_md = write_text_atomic(output_dir / "report.md", _markdown(s, lines, seconds, len(sequence.events)))
     log(f"done in {seconds['total']:.1f} s: {png}, {report_md}, {summary}")
     for line in lines:
         log("      " + line)
@@ -273,8 +275,3 @@ def _markdown(s: DemoSettings, lines: list[str], seconds: dict, n_events: int) -
         + ["", f"Settings: `{s}`", ""])
 
 
-def _write_text(path: Path, text: str) -> Path:
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(text)
-    os.replace(partial, path)
-    return path

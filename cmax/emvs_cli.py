@@ -10,10 +10,11 @@ semi-dense point cloud in the world frame); one summary line on stdout.
 from __future__ import annotations
 
 import argparse
-import os
 from pathlib import Path
 
 import numpy as np
+
+from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_emvs_command", "run_emvs", "camera_for"]
 
@@ -93,12 +94,6 @@ def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distor
     return Camera.from_intrinsics(fx, fy, cx, cy, width, height, distortion)
 
 
-def _save_npz(path: Path, **arrays: np.ndarray) -> None:
-    partial = path.with_name(path.name + ".partial")
-    with open(partial, "wb") as file:
-        np.savez_compressed(file, **arrays)
-    os.replace(partial, path)
-
 
 def run_emvs(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status."""
@@ -123,7 +118,7 @@ def run_emvs(args: argparse.Namespace) -> int:
     result = EMVS(camera, depth_range=args.depth_range, n_planes=args.planes).run(events, trajectory)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    _save_npz(out / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
+    save_npz_atomic(out / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
               t_ref_us=np.int64(result.t_ref_us), T_w_ref=result.T_w_ref, K=result.K,
               depth_range=np.array(result.depth_range))
     result.plot(out / "depth.png")

@@ -14,7 +14,6 @@ import argparse
 import csv
 import io
 import json
-import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -25,6 +24,7 @@ import numpy as np
 import torch
 
 from cmax.metrics import DepthMetrics, MotionMetrics, depth_metrics, motion_metrics
+from cmax.io.atomic import write_text_atomic
 from learned.checkpoint import load_checkpoint
 from learned.config import config_from_dict
 from learned.data import H5WindowDataset, collate
@@ -114,11 +114,7 @@ def write_accuracy_csv(path: str | Path, rows: Sequence[tuple[str, FileReport]])
     writer.writeheader()
     for method, report in rows:
         writer.writerow({k: (f"{v:.6g}" if isinstance(v, float) else v) for k, v in csv_row(method, report).items()})
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(buffer.getvalue())
-    os.replace(partial, path)
-    return path
+    return write_text_atomic(path, buffer.getvalue())
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -8,7 +8,6 @@ Files without ``gt/K`` need ``--K fx,fy,cx,cy``.
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
@@ -16,16 +15,11 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from cmax.io.atomic import save_npz_atomic, write_text_atomic
 from learned.data import H5WindowDataset
 from learned.evaluate import load_model, predict_batches
 
 __all__ = ["predict_file", "main"]
-
-
-def _atomic_npz(path: Path, **arrays) -> None:
-    partial = path.with_name(path.name + ".partial.npz")
-    np.savez_compressed(partial, **arrays)
-    os.replace(partial, path)
 
 
 def predict_file(checkpoint: str | Path, path: str | Path, out: str | Path, *, K: np.ndarray | None = None,
@@ -52,14 +46,12 @@ def predict_file(checkpoint: str | Path, path: str | Path, out: str | Path, *, K
             _, t0 = dataset.index[k]
             inverse = output.inverse_depth[b, 0].numpy()
             twist = output.twist[b].numpy()
-            _atomic_npz(out / f"window_{k:05d}.npz", depth=(1.0 / inverse).astype(np.float32),
+            save_npz_atomic(out / f"window_{k:05d}.npz", depth=(1.0 / inverse).astype(np.float32),
                         inverse_depth=inverse, twist=twist, t0_us=t0, t1_us=t0 + window_us)
             viz.save_png(out / f"window_{k:05d}.png", viz.depth_image((1.0 / inverse).astype(np.float32)))
             lines.append(",".join([str(k), str(t0), str(t0 + window_us)] + [f"{v:.6g}" for v in twist]))
             k += 1
-    partial = out / "twists.csv.partial"
-    partial.write_text("\n".join(lines) + "\n")
-    os.replace(partial, out / "twists.csv")
+    write_text_atomic(out / "twists.csv", "\n".join(lines) + "\n")
     return k
 
 

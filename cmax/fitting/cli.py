@@ -17,6 +17,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax.camera import check_intrinsics
+from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 __all__ = ["add_fit_command", "run_fit", "tum_lines"]
 
@@ -74,16 +75,16 @@ def run_fit(args: argparse.Namespace) -> int:
     windows = []
     for i, r in enumerate(sequence.results):
         if r.depth is not None:
-            np.savez_compressed(out / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask,
-                                inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=args.K)
+            save_npz_atomic(out / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask,
+                            inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=args.K)
             viz.save_png(out / f"depth_{i:05d}.png", viz.depth_image(np.where(r.mask, r.depth, np.nan)))
         windows.append({"t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
                         "omega": r.omega.tolist(), "flow": None if r.flow is None else r.flow.tolist(),
                         "objective_after": r.objective_after, "seconds": r.seconds, "message": r.message,
                         "scale_known": r.scale_known})
-    (out / "trajectory.txt").write_text("\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
+    write_text_atomic(out / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
     summary = {"file": str(args.file), "model": args.model, "K": args.K.tolist(), "window_ms": args.window_ms,
                "speed": args.speed, "solver": args.solver, "windows": windows}
-    (out / "summary.json").write_text(json.dumps(summary, indent=2))
+    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
     print(f"{len(windows)} windows fitted; results in {out}")
     return 0

@@ -33,6 +33,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
+from cmax.io.atomic import write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
 from cmax.sim.esim import EsimSettings, EventSimulator
 from cmax.sim.video import DEFAULT_PREFETCH, VideoFileSource
@@ -354,9 +355,7 @@ def collect_jobs(
 def write_manifest(path: str | os.PathLike, manifest: dict[str, Any]) -> None:
     """Write ``manifest`` as JSON atomically (a temporary file, then a rename)."""
     path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    partial.write_text(json.dumps(manifest, indent=2, sort_keys=False) + "\n", "utf-8")
-    os.replace(partial, path)
+    write_text_atomic(path, json.dumps(manifest, indent=2, sort_keys=False) + "\n")
 
 
 def load_manifest(path: str | os.PathLike) -> dict[str, Any]:
