@@ -154,6 +154,17 @@ def summarise(rows: dict[str, list[dict]], seeds: list[int], seconds: float) -> 
     return "\n".join(lines) + "\n"
 
 
+def parse_seeds(parser: argparse.ArgumentParser, text: str) -> list[int]:
+    """Seeds of a ``FIRST-LAST`` argument (both included); a clear parser error otherwise."""
+    try:
+        lo, hi = (int(a) for a in text.split("-"))
+    except ValueError:
+        parser.error(f"--seeds must be FIRST-LAST, got {text!r}")
+    if hi < lo:
+        parser.error(f"--seeds must be FIRST-LAST with FIRST <= LAST, got {text!r}")
+    return list(range(lo, hi + 1))
+
+
 def main(argv: list[str] | None = None) -> int:
     """Fit every window, print one line per window, write the table; returns 0."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -163,16 +174,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--quick", action="store_true",
                         help="2 windows per model, written to accuracy_cmax_quick.md (a smoke run, not the figures)")
     args = parser.parse_args(argv)
-    seeds_text = args.seeds or ("100-101" if args.quick else "100-119")
-    try:
-        lo, hi = (int(a) for a in seeds_text.split("-"))
-    except ValueError:
-        parser.error(f"--seeds must be FIRST-LAST, got {seeds_text!r}")
-    seeds = list(range(lo, hi + 1))
+    seeds = parse_seeds(parser, args.seeds or ("100-101" if args.quick else "100-119"))
     models = args.models.split(",")
     unknown = sorted(set(models) - set(RUNS))
-    if unknown or not seeds:
-        parser.error(f"--models must be among {sorted(RUNS)} (got {unknown}) and --seeds non-empty")
+    if unknown:
+        parser.error(f"--models must be among {sorted(RUNS)}, got {unknown}")
     torch.set_num_threads(1)
     start = time.perf_counter()
     rows: dict[str, list[dict]] = {}

@@ -278,6 +278,36 @@ def test_sweep_finds_the_depth_of_a_fronto_parallel_plane():
     assert result.cost.shape == (48, 12) and np.all(result.confidence > 0)
 
 
+def test_relative_sweep_peaks_at_the_true_depth_of_each_plane():
+    """Left half at 1.5 m, right half at 4 m: scaling every event's true inverse depth by exp(step), each
+    node's curve peaks at step 0 (within half of the 0.05 spacing), and a 30% too near base peaks at
+    the step that undoes it (log 1/1.3 = -0.26)."""
+    import torch
+
+    from cmax.fitting.depth_sweep import _parabolic_argmax, node_cost_function, relative_sweep_cost
+    from cmax.warp import DepthGrid
+
+    rng = np.random.default_rng(3)
+    H, W, f, v = 60, 80, 60.0, np.array([0.5, 0.1, 0.0])
+    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]], dtype=torch.float64)
+    points = rng.uniform([6, 6], [W - 6, H - 6], (600, 2))
+    depth = np.where(points[:, 0] < W / 2, 1.5, 4.0)[:, None]
+    dt = rng.uniform(-0.1, 0.1, (600, 25))
+    xs, ys = points[:, :1] - f * v[0] * dt / depth, points[:, 1:] - f * v[1] * dt / depth
+    x, y, dt = (torch.from_numpy(a.ravel()) for a in (xs, ys, dt))
+    rho_true = torch.from_numpy(np.repeat(1.0 / depth[:, 0], 25))
+    rays = torch.stack([x, y, torch.ones_like(x)], -1) @ torch.linalg.inv(K).T
+    grid = DepthGrid((2, 2), W, H)
+    index, weight = grid.weights(x, y)
+    cost = node_cost_function(rays, dt[None], torch.ones_like(x), v, np.zeros(3), K, height=H, width=W,
+                              grid_shape=(2, 2), index=index, weight=weight, sigma=0.7)
+    steps = torch.linspace(-0.5, 0.5, 21, dtype=torch.float64)
+    at_truth = _parabolic_argmax(relative_sweep_cost(cost, rho_true, steps), steps)
+    np.testing.assert_allclose(at_truth.numpy(), 0.0, atol=0.025)
+    too_near = _parabolic_argmax(relative_sweep_cost(cost, rho_true * 1.3, steps), steps)
+    np.testing.assert_allclose(too_near.numpy(), -np.log(1.3), atol=0.025)
+
+
 def test_motion_field_fit_recovers_the_twist_from_exact_patch_flows():
     from cmax.fitting.patch_flow import _field_matrices, motion_from_flows
 

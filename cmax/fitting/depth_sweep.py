@@ -46,7 +46,7 @@ import torch
 from cmax.iwe import accumulate_bilinear, blur, sample_bilinear
 from cmax.warp import warp_se3
 
-__all__ = ["DepthSweep", "sweep_inverse_depth"]
+__all__ = ["DepthSweep", "sweep_inverse_depth", "relative_sweep_cost", "node_cost_function"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -132,14 +132,11 @@ def sweep_inverse_depth(
     DepthSweep
     """
     dtype = rays.dtype
-    gh, gw = grid_shape
-    G = gh * gw
-    on = (polarity > 0).to(dtype) if polarity_split else torch.ones_like(polarity, dtype=dtype)
-    v_t, om_t = torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype)
+    G = grid_shape[0] * grid_shape[1]
     rhos = torch.linspace(float(rho_range[0]), float(rho_range[1]), candidates, dtype=dtype)
     N = rays.shape[0]
-    score = lambda rho_events: _node_cost(  # noqa: E731
-        rays, dt, on, v_t, om_t, rho_events, K, height, width, sigma, index, weight, G, chunk)
+    score = node_cost_function(rays, dt, polarity, v, omega, K, height=height, width=width, grid_shape=grid_shape,
+                               index=index, weight=weight, sigma=sigma, polarity_split=polarity_split, chunk=chunk)
     with torch.no_grad():
         S = score(rhos[:, None].expand(-1, N))                                   # (C, G)
         node_events = torch.zeros(G, dtype=dtype).index_add_(0, index.reshape(-1), weight.reshape(-1))
@@ -147,11 +144,42 @@ def sweep_inverse_depth(
         for span in refinements:  # relative sweeps around the current grid: the other events stay in focus
             steps = torch.linspace(-span, span, refine_candidates, dtype=dtype)
             base = (rho[index] * weight).sum(-1)                                  # (N,)
-            S_rel = score(base[None] * torch.exp(steps)[:, None])
+            S_rel = relative_sweep_cost(score, base, steps)
             step, _ = _aggregate_argmax(S_rel, steps, node_events, grid_shape, aggregation)
             rho = (rho * torch.exp(step)).clamp(float(rhos[0]), float(rhos[-1]))
     return DepthSweep(rho.numpy().astype(np.float64), rhos.numpy().astype(np.float64),
                       S.numpy(), confidence.numpy())
+
+
+def relative_sweep_cost(node_cost, base_inverse_depth: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
+    """Node cost curves (C, G) when every event's inverse depth is scaled by ``exp(step)``.
+
+    ``node_cost`` maps per-event inverse depths (C, N) to (C, G) (the mean IWE
+    value at each node's events); ``base_inverse_depth`` (N,) [1/m] is the
+    current per-event inverse depth and ``steps`` (C,) the log factors. All
+    events move together, so a node's neighbours stay in focus around the
+    base: this is the refinement of :func:`sweep_inverse_depth`, and with the
+    true per-event depth as the base it measures where the objective itself
+    puts each node (``benchmarks/cmax_limits.py``).
+    """
+    return node_cost(base_inverse_depth[None] * torch.exp(steps)[:, None])
+
+
+def node_cost_function(rays: torch.Tensor, dt: torch.Tensor, polarity: torch.Tensor, v: np.ndarray,
+                       omega: np.ndarray, K: torch.Tensor, *, height: int, width: int, grid_shape: tuple[int, int],
+                       index: torch.Tensor, weight: torch.Tensor, sigma: float = 1.0, polarity_split: bool = True,
+                       chunk: int = 8):
+    """The sweep's cost as a function: per-event inverse depths (C, N) [1/m] -> node costs (C, G).
+
+    Arguments as in :func:`sweep_inverse_depth`; the result is the mean IWE
+    value (one image per polarity, blur ``sigma``) at each node's events.
+    """
+    dtype = rays.dtype
+    on = (polarity > 0).to(dtype) if polarity_split else torch.ones_like(polarity, dtype=dtype)
+    v_t, om_t = torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype)
+    G = grid_shape[0] * grid_shape[1]
+    return lambda rho_events: _node_cost(  # noqa: E731
+        rays, dt, on, v_t, om_t, rho_events, K, height, width, sigma, index, weight, G, chunk)
 
 
 def _node_cost(rays, dt, on, v, omega, rho_events, K, height, width, sigma, index, weight, G, chunk):

@@ -2,7 +2,11 @@
 
 The image is cut into patches; each patch gets a constant optical flow by
 contrast maximization of its own events (all patches in one solve: the
-objective is the sum of the patches' normalised IWE variances, separable).
+objective is the sum of the patches' normalised IWE variances, separable),
+first with a wide blur (a wide basin), then with the window's blur. The
+curvature of each patch's contrast at its peak (:func:`flow_information`)
+says how well its flow is known: a patch that sees one edge orientation
+knows only the flow across it (the aperture problem).
 The instantaneous motion field of a rigid scene is, at pixel ``x`` with
 inverse depth ``rho``,
 
@@ -12,14 +16,22 @@ with ``A`` and ``B`` (2 x 3) read off the se3 warp of :mod:`cmax.warp` by
 finite differences (so the sign conventions are the warp's own). For a
 candidate direction ``t`` (``v = speed t``) the patch flows are linear in
 ``omega`` and the patches' ``rho``: one least-squares problem per direction,
-solved for a few thousand directions on the sphere at once; the direction
-with the smallest residual whose inverse depths are mostly positive wins.
+each patch's residual weighted by its information matrix, solved for a few
+thousand directions on the sphere at once and then in a fine cap around the
+best; the direction with the smallest residual whose inverse depths are
+mostly positive wins.
+
+On the tuning windows (``indoor_flying`` presets, seeds 1-12, 0.1665 s) the
+two blurs, the wider margin and the information weights took the median
+direction error from 17 to 7.4 deg (p90 30 -> 12.5) and the omega RMS error
+from 1.9 to 0.85 deg/s (p90 14 -> 1.9: large flows had stopped at the margin).
 This is the initialiser the issue asks for ("patch flows fitted to the
 motion-field equations"); :func:`cmax.fitting.stages.fit_se3` refines it.
 """
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass
 
 import numpy as np
 import torch
@@ -28,67 +40,198 @@ from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import variance
 from cmax.warp import warp_se3
 
-__all__ = ["patch_flows", "motion_from_flows", "fibonacci_sphere"]
+__all__ = ["Patches", "make_patches", "patch_flows", "flow_information", "motion_from_flows", "spherical_cap",
+           "fibonacci_sphere"]
 
 
-def patch_flows(w, *, grid: tuple[int, int] = (4, 5), min_events: int = 200, max_events: int = 20_000
-                ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Constant flow [px/s] of each patch with enough events.
+@dataclass(frozen=True, eq=False)
+class Patches:
+    """Events of a window cut into a grid of patches, each imaged in its own small frame.
+
+    Attributes
+    ----------
+    x, y : Tensor (M,)
+        Pixels [px] of the kept events (a uniform subsample of the window).
+    dt : Tensor (M,)
+        ``t - t_mid`` [s] (the window's middle is the reference time).
+    patch : Tensor (M,) int64
+        The patch of each event (0 <= patch < P).
+    offset : Tensor (P, 2)
+        Top-left pixel ``(x, y)`` of each patch's frame (the patch plus ``margin``).
+    size : (int, int)
+        ``(H, W)`` of every patch frame [px].
+    margin : int
+        Pixels around a patch inside its frame (the largest displacement kept) [px].
+    centres : ndarray (P, 2)
+        Mean pixel of each patch's events.
+    counts : ndarray (P,)
+        Events per patch (of the subsample).
+    """
+
+    x: torch.Tensor
+    y: torch.Tensor
+    dt: torch.Tensor
+    patch: torch.Tensor
+    offset: torch.Tensor
+    size: tuple[int, int]
+    margin: int
+    centres: np.ndarray
+    counts: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.offset.shape[0])
+
+    def every(self, step: int) -> "Patches":
+        """The same patches with every ``step``-th event (centres and counts unchanged)."""
+        if step <= 1:
+            return self
+        return Patches(self.x[::step], self.y[::step], self.dt[::step], self.patch[::step], self.offset, self.size,
+                       self.margin, self.centres, self.counts)
+
+    def images(self, x: torch.Tensor, y: torch.Tensor, sigma: float) -> torch.Tensor:
+        """Blurred count images (P, H, W) of the events at full-image pixels ``x, y`` (M,)."""
+        H, W = self.size
+        ox, oy = self.offset[self.patch, 0], self.offset[self.patch, 1]
+        return blur(accumulate_bilinear_indexed(x - ox, y - oy, None, self.patch, self.count, H, W), sigma)
+
+
+def make_patches(w, *, grid: tuple[int, int], min_events: int, max_events: int, margin: float) -> Patches | None:
+    """Cut a window's events into a ``grid`` (rows, cols) of patches; None when no patch has ``min_events``.
+
+    ``margin`` is a fraction of the patch side (at least 8 px): how far an event
+    may move inside its patch's frame.
+    """
+    ev = w.ev
+    gh, gw = grid
+    step = max(1, len(ev) // max_events)
+    x, y, dt = ev.x[::step], ev.y[::step], w.dt_mid[0, ::step]
+    cell = ((y * gh / ev.height).long().clamp(0, gh - 1) * gw + (x * gw / ev.width).long().clamp(0, gw - 1))
+    counts = torch.bincount(cell, minlength=gh * gw)
+    keep = torch.nonzero(counts >= min_events).reshape(-1)
+    if keep.numel() == 0:
+        return None
+    remap = torch.full((gh * gw,), -1, dtype=torch.long)
+    remap[keep] = torch.arange(keep.numel())
+    patch = remap[cell]
+    sel = patch >= 0
+    x, y, dt, patch = x[sel], y[sel], dt[sel], patch[sel]
+    P = keep.numel()
+    ph, pw = math.ceil(ev.height / gh), math.ceil(ev.width / gw)
+    pad = max(8, int(margin * max(ph, pw)))
+    offset = torch.stack([(keep % gw).to(x.dtype) * ev.width / gw - pad,
+                          (keep // gw).to(x.dtype) * ev.height / gh - pad], 1)
+    n = counts[keep].to(x.dtype)
+    centres = torch.stack([torch.zeros(P, dtype=x.dtype).index_add_(0, patch, x),
+                           torch.zeros(P, dtype=x.dtype).index_add_(0, patch, y)], 1) / n[:, None]
+    return Patches(x, y, dt, patch, offset, (ph + 2 * pad, pw + 2 * pad), pad, centres.double().numpy(),
+                   n.double().numpy())
+
+
+def _flow_objective(w, patches: Patches, sigma: float):
+    """``fun_and_grad(q (2P,)) -> (value, gradient (2P,))``: minus the summed normalised IWE variances.
+
+    ``q`` holds each patch's displacement over the window [px] (flow times ``w.T``).
+    """
+    P, T = patches.count, w.T
+    x, y, dt, patch = patches.x, patches.y, patches.dt, patches.patch
+    with torch.no_grad():
+        base = variance(patches.images(x, y, sigma)).clamp(min=1e-12)
+
+    def fun_and_grad(p: np.ndarray) -> tuple[float, np.ndarray]:
+        q = torch.tensor(p.reshape(P, 2), dtype=x.dtype, requires_grad=True)
+        flow = q / T
+        images = patches.images(x - flow[patch, 0] * dt, y - flow[patch, 1] * dt, sigma)
+        value = -(variance(images) / base).sum()
+        (grad,) = torch.autograd.grad(value, q)
+        return float(value.detach()), grad.double().numpy().reshape(-1)
+
+    return fun_and_grad
+
+
+def _solve_flows(w, fun_and_grad, patches: Patches, q0: np.ndarray, iterations: int) -> np.ndarray:
+    """Displacements over the window (P, 2) [px] maximising each patch's normalised IWE variance."""
+    from scipy.optimize import minimize
+
+    bound = float(patches.margin)
+    result = minimize(fun_and_grad, np.clip(q0, -bound, bound).reshape(-1), jac=True, method="L-BFGS-B",
+                      bounds=[(-bound, bound)] * (2 * patches.count), options={"maxiter": iterations})
+    w.iterations += int(result.nit)
+    w.evaluations += int(result.nfev)
+    return result.x.reshape(patches.count, 2)
+
+
+def flow_information(fun_and_grad, q: np.ndarray, step: float = 0.25) -> np.ndarray:
+    """Curvature (P, 2, 2) [1/px^2] of each patch's contrast peak: how sharply its flow is determined.
+
+    Minus the Hessian of the normalised contrast with respect to the patch's
+    displacement ``q`` (P, 2) [px], by central differences of the gradient
+    (``step`` [px]), symmetrised, its eigenvalues clipped to at least 1e-3 of
+    the largest over all patches. An edge of one orientation gives a rank-one
+    matrix (the aperture problem): its flow along the edge is free.
+    """
+    P = q.shape[0]
+    H = np.zeros((P, 2, 2))
+    for j in range(2):
+        e = np.zeros((P, 2))
+        e[:, j] = step
+        plus, minus = fun_and_grad((q + e).reshape(-1))[1], fun_and_grad((q - e).reshape(-1))[1]
+        H[:, :, j] = (plus - minus).reshape(P, 2) / (2 * step)   # fun is minus the contrast
+    H = 0.5 * (H + H.transpose(0, 2, 1))
+    values, vectors = np.linalg.eigh(H)
+    values = np.clip(values, 1e-3 * max(float(values.max()), 1e-12), None)
+    return np.einsum("pij,pj,pkj->pik", vectors, values, vectors)
+
+
+def patch_flows(w, *, grid: tuple[int, int] = (4, 5), min_events: int = 200, max_events: int = 20_000,
+                margin: float = 0.4, sigmas: tuple[float | None, ...] = (3.0, None), iterations: int = 40,
+                coarse_step: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """Constant flow [px/s] of each patch with enough events, and how well it is determined.
+
+    Each patch's flow maximises the normalised variance of its own IWE (all
+    patches in one separable solve), once per blur of ``sigmas``, each from the
+    last: a wide blur first (a wide basin: from a zero start the sharp objective
+    stops at a wrong local peak for flows beyond ~10 px).
+
+    Parameters
+    ----------
+    w : cmax.fitting.stages.Window
+    grid : (rows, cols)
+        Patches over the image.
+    min_events : int
+        Patches with fewer (subsampled) events are left out.
+    max_events : int
+        Uniform subsample of the window's events.
+    margin : float
+        Largest displacement over the window, as a fraction of the patch side.
+    sigmas : tuple of (float or None)
+        Blur [px] of each stage; None: the window's ``settings.sigma``.
+    iterations : int
+        L-BFGS-B iterations of each stage.
+    coarse_step : int
+        Every stage but the last uses every ``coarse_step``-th event (a wide blur needs fewer).
 
     Returns
     -------
     centres : ndarray (P, 2)
         Mean pixel of each patch's events.
     flows : ndarray (P, 2)
+        [px/s].
     counts : ndarray (P,)
+    information : ndarray (P, 2, 2)
+        :func:`flow_information` of each flow at the last blur [1/px^2 of displacement over the window].
     """
-    ev = w.ev
-    gh, gw = grid
-    n = len(ev)
-    step = max(1, n // max_events)
-    x, y, dt = ev.x[::step], ev.y[::step], w.dt_mid[0, ::step]
-    cell = ((y * gh / ev.height).long().clamp(0, gh - 1) * gw + (x * gw / ev.width).long().clamp(0, gw - 1))
-    counts = torch.bincount(cell, minlength=gh * gw)
-    keep_cells = torch.nonzero(counts >= min_events).reshape(-1)
-    if keep_cells.numel() == 0:
-        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0)
-    remap = torch.full((gh * gw,), -1, dtype=torch.long)
-    remap[keep_cells] = torch.arange(keep_cells.numel())
-    patch = remap[cell]
-    sel = patch >= 0
-    x, y, dt, patch = x[sel], y[sel], dt[sel], patch[sel]
-    P = keep_cells.numel()
-    ph, pw = math.ceil(ev.height / gh), math.ceil(ev.width / gw)
-    margin = max(8, int(0.25 * max(ph, pw)))
-    ox = (keep_cells % gw).to(x.dtype) * ev.width / gw - margin
-    oy = (keep_cells // gw).to(x.dtype) * ev.height / gh - margin
-    H, W = ph + 2 * margin, pw + 2 * margin
-    lx, ly = x - ox[patch], y - oy[patch]
-    sigma = w.settings.sigma
-    with torch.no_grad():
-        base = variance(blur(accumulate_bilinear_indexed(lx, ly, None, patch, P, H, W), sigma)).clamp(min=1e-12)
-    T = w.T
-
-    def fun_and_grad(p: np.ndarray) -> tuple[float, np.ndarray]:
-        q = torch.tensor(p.reshape(P, 2), dtype=x.dtype, requires_grad=True)
-        flow = q / T
-        images = blur(accumulate_bilinear_indexed(lx - flow[patch, 0] * dt, ly - flow[patch, 1] * dt,
-                                                  None, patch, P, H, W), sigma)
-        value = -(variance(images) / base).sum()
-        (grad,) = torch.autograd.grad(value, q)
-        return float(value.detach()), grad.double().numpy().reshape(-1)
-
-    from scipy.optimize import minimize
-
-    bound = float(margin)
-    result = minimize(fun_and_grad, np.zeros(2 * P), jac=True, method="L-BFGS-B",
-                      bounds=[(-bound, bound)] * (2 * P), options={"maxiter": 40})
-    w.iterations += int(result.nit)
-    w.evaluations += int(result.nfev)
-    flows = result.x.reshape(P, 2) / T
-    centres = torch.stack([torch.zeros(P, dtype=x.dtype).index_add_(0, patch, x),
-                           torch.zeros(P, dtype=x.dtype).index_add_(0, patch, y)], 1) / counts[keep_cells, None]
-    return centres.double().numpy(), flows, counts[keep_cells].double().numpy()
+    if len(sigmas) == 0:
+        raise ValueError("sigmas must hold at least one blur (None: the window's sigma)")
+    patches = make_patches(w, grid=grid, min_events=min_events, max_events=max_events, margin=margin)
+    if patches is None:
+        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2, 2))
+    q = np.zeros((patches.count, 2))
+    for stage, sigma in enumerate(sigmas):
+        subset = patches.every(coarse_step if stage < len(sigmas) - 1 else 1)
+        fun_and_grad = _flow_objective(w, subset, w.settings.sigma if sigma is None else sigma)
+        q = _solve_flows(w, fun_and_grad, subset, q, iterations)
+    return patches.centres, q / w.T, patches.counts, flow_information(fun_and_grad, q)
 
 
 def _field_matrices(centres: np.ndarray, K: np.ndarray, dt: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
@@ -117,27 +260,92 @@ def fibonacci_sphere(count: int) -> np.ndarray:
     return np.column_stack([r * np.cos(phi), r * np.sin(phi), z])
 
 
-def motion_from_flows(centres: np.ndarray, flows: np.ndarray, counts: np.ndarray, K: np.ndarray, speed: float,
-                      *, directions: int = 3000) -> tuple[np.ndarray, np.ndarray, float]:
-    """Best ``v`` (3,) [m/s, norm ``speed``], ``omega`` (3,) [rad/s] and the residual [px/s] from patch flows."""
+def _row_transforms(weights: np.ndarray) -> np.ndarray:
+    """Square roots (P, 2, 2) of per-patch weights: counts (P,) or information matrices (P, 2, 2).
+
+    Normalised so that the median patch has unit weight.
+    """
+    weights = np.asarray(weights, dtype=np.float64)
+    if weights.ndim == 1:
+        return np.sqrt(weights / np.median(weights))[:, None, None] * np.eye(2)
+    values, vectors = np.linalg.eigh(0.5 * (weights + weights.transpose(0, 2, 1)))
+    roots = np.sqrt(np.clip(values, 0, None))
+    return np.einsum("pij,pj,pkj->pik", vectors, roots / max(float(np.median(roots)), 1e-12), vectors)
+
+
+def motion_from_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray, K: np.ndarray, speed: float,
+                      *, directions: int = 3000, refine: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
+    """Best ``v`` (3,) [m/s, norm ``speed``], ``omega`` (3,) [rad/s] and the weighted RMS residual [px/s].
+
+    Parameters
+    ----------
+    centres : ndarray (P, 2)
+        Pixels of the flows.
+    flows : ndarray (P, 2)
+        [px/s].
+    weights : ndarray (P,) or (P, 2, 2)
+        Per-patch weights: event counts, or the information matrices of
+        :func:`flow_information` (the residual ``r`` of a patch costs ``r^T I r``:
+        a flow along an edge counts for nothing). On the tuning windows the
+        information matrices gave a median direction error of 7 deg (p90 13)
+        against 10 deg (p90 27) with counts.
+    K : ndarray (3, 3)
+    speed : float
+        ``|v|`` [m/s].
+    directions : int
+        Candidate directions (Fibonacci sphere; 3000: ~3.7 deg apart).
+    refine : bool
+        Then 400 directions in a cap of 1.5 spacings around the best.
+    """
     P = len(centres)
     if P < 4:
         raise ValueError(f"need at least 4 patches with events to initialise the motion, got {P}")
     A, B = _field_matrices(centres, K)
-    sw = np.sqrt(counts / counts.mean())[:, None]                         # (P, 1) weights
+    L = _row_transforms(weights)                                           # (P, 2, 2)
+    LA, LB = np.einsum("pij,pjk->pik", L, A), np.einsum("pij,pjk->pik", L, B)
+    b = np.einsum("pij,pj->pi", L, flows).reshape(2 * P)
     t = fibonacci_sphere(directions)                                       # (D, 3)
-    a = np.einsum("pij,dj->dpi", A, t) * speed                             # (D, P, 2): rho_p multiplies it
+    score, omega, residual = _direction_scores(t, LA, LB, b, speed)
+    best = int(np.argmin(score))
+    if refine:  # a finer cap around the best: the sphere's points are ~3.7 deg apart for 3000
+        spacing = math.sqrt(4 * math.pi / directions)
+        t = np.vstack([t[best], spherical_cap(t[best], 1.5 * spacing, 400)])
+        score, omega, residual = _direction_scores(t, LA, LB, b, speed)
+        best = int(np.argmin(score))
+    return speed * t[best], omega[best], float(residual[best])
+
+
+def spherical_cap(axis: np.ndarray, radius: float, count: int) -> np.ndarray:
+    """``count`` nearly uniform unit vectors (count, 3) within ``radius`` [rad] of the unit vector ``axis``."""
+    i = np.arange(count) + 0.5
+    cos_t = 1 - (1 - math.cos(radius)) * i / count                         # uniform in area
+    sin_t = np.sqrt(1 - cos_t ** 2)
+    phi = i * math.pi * (3 - math.sqrt(5))
+    helper = np.array([1.0, 0, 0]) if abs(axis[0]) < 0.9 else np.array([0, 1.0, 0])
+    e1 = np.cross(axis, helper)
+    e1 /= np.linalg.norm(e1)
+    e2 = np.cross(axis, e1)
+    return (cos_t[:, None] * axis + sin_t[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2))
+
+
+def _direction_scores(t: np.ndarray, LA: np.ndarray, LB: np.ndarray, b: np.ndarray, speed: float
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Score (D,), omega (D, 3) [rad/s] and RMS residual (D,) of directions ``t`` (D, 3).
+
+    The weighted motion-field rows ``LA``, ``LB`` (P, 2, 3) and flows ``b`` (2P,);
+    per direction one least-squares problem in ``omega`` and the patches'
+    inverse depths. The score is the residual times ``1 + 4 x`` (x: the fraction of negative depths).
+    """
+    P = LA.shape[0]
     D = len(t)
+    a = np.einsum("pik,dk->dpi", LA, t) * speed                            # (D, P, 2): rho_p multiplies it
     M = np.zeros((D, 2 * P, 3 + P))
-    M[:, :, :3] = np.tile((B * sw[:, :, None]).reshape(2 * P, 3), (D, 1, 1))
+    M[:, :, :3] = LB.reshape(2 * P, 3)[None]
     rows = np.arange(2 * P)
-    M[:, rows, 3 + rows // 2] = (a * sw[None]).reshape(D, 2 * P)
-    b = (flows * sw).reshape(2 * P)
+    M[:, rows, 3 + rows // 2] = a.reshape(D, 2 * P)
     MtM = np.einsum("dki,dkj->dij", M, M) + 1e-9 * np.eye(3 + P)
     Mtb = np.einsum("dki,k->di", M, b)
     x = np.linalg.solve(MtM, Mtb[..., None])[..., 0]                      # (D, 3 + P)
     residual = np.sqrt(np.mean((np.einsum("dkj,dj->dk", M, x) - b) ** 2, axis=1))
     negative = (x[:, 3:] < 0).mean(1)
-    score = residual * (1 + 4 * negative)
-    best = int(np.argmin(score))
-    return speed * t[best], x[best, :3], float(residual[best])
+    return residual * (1 + 4 * negative), x[:, :3], residual

@@ -5,12 +5,15 @@ Parameters are optimised in **pixels of displacement over the window** (a flow
 ``rho |v| T f``) and objectives are normalised by their value for the unwarped
 events, so one set of solver tolerances fits every window.
 
-Stages of se3 without a known pose: (1) a rotation-only fit; (2) the
-translation direction from several starts with one constant depth, on the
-normalised multi-reference contrast plus the deformation guard; (3) the depth
-grid by the plane sweep of :mod:`cmax.fitting.depth_sweep`; (4) the motion again with
-that depth held; (5) the sweep again. The depth is never a free parameter of
-the global contrast: that is how a free depth collapses (issue 5).
+Stages of se3 without a known pose: (1) the twist from patch flows and the
+motion-field equations (:mod:`cmax.fitting.patch_flow`), or with
+``motion_init="starts"`` a rotation-only fit then translation directions
+from several starts on the normalised multi-reference contrast plus the
+deformation guard; (2) the twist refined on the patch-wise contrast
+(:mod:`cmax.fitting.motion`); (3) the depth grid by the plane sweep of
+:mod:`cmax.fitting.depth_sweep`; (4) ``alternations`` rounds of the motion
+with that depth held and the sweep again. The depth is never a free
+parameter of the global contrast: that is how a free depth collapses (issue 5).
 """
 from __future__ import annotations
 
@@ -23,6 +26,7 @@ import torch
 
 from cmax.fitting.depth_sweep import sweep_inverse_depth
 from cmax.fitting.patch_flow import motion_from_flows, patch_flows
+from cmax.fitting.motion import refine_motion_local
 from cmax.objectives import deformation, multi_reference_contrast
 from cmax.fitting.solvers import Problem, Solver, SolveResult
 from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
@@ -277,9 +281,11 @@ def fit_se3(w: Window, *, speed: float, pose_xi: np.ndarray | None, init: "FitRe
     se3 = SE3Model(w, speed)
     centres = None
     if w.settings.motion_init == "patches":
-        centres, flows, counts = patch_flows(w)
+        centres, flows, _, information = patch_flows(w)
     if centres is not None and len(centres) >= 4:
-        v, omega, _ = motion_from_flows(centres, flows, counts, w.ev.K.double().numpy(), speed)
+        v, omega, _ = motion_from_flows(centres, flows, information, w.ev.K.double().numpy(), speed)
+        if w.settings.motion_refinement == "local":
+            v, omega = refine_motion_local(w, v, omega, speed)
     else:  # "starts", or too few patches with events for the motion-field fit
         omega = fit_rotation(w, init.omega if init is not None else np.zeros(3))
         v, omega = _fit_motion(w, se3, omega, init)
