@@ -1,8 +1,9 @@
 """Where the remaining errors of ``cmax.fit`` come from, written to ``benchmarks/results/cmax_limits.md``.
 
-Section ``depth``: the depth with known motion. On the held-out ``indoor_flying`` windows of :mod:`benchmarks.accuracy_cmax`
-(0.1665 s, 346x260, known motion ``pose=T01``), four figures per window, all
-abs_rel on the same pixels (``FitResult.mask`` with finite ground truth):
+Section ``depth``: the depth with known motion. On the held-out ``indoor_flying``
+windows of :mod:`benchmarks.accuracy_cmax` (0.1665 s, 346x260, known motion
+``pose=T01``), four figures per window, all abs_rel on the same pixels
+(``FitResult.mask`` with finite ground truth):
 
 ``fit``
     ``cmax.fit(events, K, pose=T01)`` as the accuracy table measures it.
@@ -183,7 +184,8 @@ def summarise(section: str, rows: list[dict], seeds: list[int]) -> str:
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", default="100-119", help="first-last (default 100-119, the held-out seeds)")
-    parser.add_argument("--cache", type=Path, default=None, help="folder of simulated windows (benchmarks.accuracy_cmax)")
+    parser.add_argument("--cache", type=Path, default=None,
+                        help="folder of simulated windows (benchmarks.accuracy_cmax)")
     parser.add_argument("--sections", default="depth,rotation")
     args = parser.parse_args(argv)
     seeds = parse_seeds(parser, args.seeds)

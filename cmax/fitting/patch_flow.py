@@ -40,8 +40,8 @@ from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import variance
 from cmax.warp import warp_se3
 
-__all__ = ["Patches", "make_patches", "patch_flows", "flow_information", "motion_from_flows", "spherical_cap",
-           "fibonacci_sphere"]
+__all__ = ["Patches", "make_patches", "patch_flows", "flow_information", "motion_from_flows", "explain_flows",
+           "spherical_cap", "fibonacci_sphere"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -336,6 +336,14 @@ def _direction_scores(t: np.ndarray, LA: np.ndarray, LB: np.ndarray, b: np.ndarr
     per direction one least-squares problem in ``omega`` and the patches'
     inverse depths. The score is the residual times ``1 + 4 x`` (x: the fraction of negative depths).
     """
+    x, residual = _solve_directions(t, LA, LB, b, speed)
+    negative = (x[:, 3:] < 0).mean(1)
+    return residual * (1 + 4 * negative), x[:, :3], residual
+
+
+def _solve_directions(t: np.ndarray, LA: np.ndarray, LB: np.ndarray, b: np.ndarray, speed: float
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares ``(omega, rho_1..P)`` (D, 3 + P) and RMS residual (D,) for each direction of ``t`` (D, 3)."""
     P = LA.shape[0]
     D = len(t)
     a = np.einsum("pik,dk->dpi", LA, t) * speed                            # (D, P, 2): rho_p multiplies it
@@ -347,5 +355,30 @@ def _direction_scores(t: np.ndarray, LA: np.ndarray, LB: np.ndarray, b: np.ndarr
     Mtb = np.einsum("dki,k->di", M, b)
     x = np.linalg.solve(MtM, Mtb[..., None])[..., 0]                      # (D, 3 + P)
     residual = np.sqrt(np.mean((np.einsum("dkj,dj->dk", M, x) - b) ** 2, axis=1))
-    negative = (x[:, 3:] < 0).mean(1)
-    return residual * (1 + 4 * negative), x[:, :3], residual
+    return x, residual
+
+
+def explain_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray, K: np.ndarray,
+                  directions: np.ndarray, speed: float = 1.0) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """How well given translation directions explain the patch flows.
+
+    For each direction (D, 3) the rotation and the patches' inverse depths
+    are solved by weighted least squares, as in :func:`motion_from_flows`.
+
+    Returns
+    -------
+    residual : ndarray (D,)
+        Weighted RMS residual [px/s].
+    omega : ndarray (D, 3)
+        [rad/s].
+    inverse_depth : ndarray (D, P)
+        Per patch [1/m] for ``|v| = speed`` m/s.
+    """
+    directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
+    directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
+    A, B = _field_matrices(centres, K)
+    L = _row_transforms(weights)
+    LA, LB = np.einsum("pij,pjk->pik", L, A), np.einsum("pij,pjk->pik", L, B)
+    b = np.einsum("pij,pj->pi", L, flows).reshape(2 * len(centres))
+    x, residual = _solve_directions(directions, LA, LB, b, speed)
+    return residual, x[:, :3], x[:, 3:]

@@ -56,7 +56,9 @@ class FitSettings:
     depth_range : (float, float)
         Bounds of the depth [m] (in units of ``speed * 1 s`` when the scale is unknown).
     depth_candidates : int
-        Inverse depths of the plane sweep (uniform in inverse depth over ``depth_range``).
+        Inverse depths of the plane sweep (uniform in inverse depth over
+        ``depth_range``); the relative refinements recover the precision (36
+        and 48 gave the same abs_rel on the tuning seeds, 1.65 s against 2.11 s).
     depth_aggregation : float
         Weight of the 8 neighbours of a grid node when the sweep's cost curves
         are aggregated (0.25 and two refinements: abs_rel median 0.120 on the
@@ -96,7 +98,7 @@ class FitSettings:
     sigma: float = 1.0
     max_events: int = 60_000
     depth_range: tuple[float, float] = (0.5, 60.0)
-    depth_candidates: int = 48
+    depth_candidates: int = 36
     depth_aggregation: float = 0.25
     depth_refinements: tuple[float, ...] = (0.3, 0.1)
     alternations: int = 0
