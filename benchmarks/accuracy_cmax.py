@@ -7,7 +7,8 @@ Windows (346x260, held-out seeds, default 100-119):
   ``fit(events, K, pose=T01)`` and ``fit(events, K, speed=|v|)``. abs_rel on
   event pixels (``FitResult.mask`` and finite ground truth), the translation
   direction error [deg] and the RMS of the omega error over its axes [deg/s]
-  against the window's mean twist ``se3_log(T01) / T``.
+  against the window's mean twist ``se3_log(T01) / T``; ``parallax_px`` is the
+  fit's own ``FitResult.parallax_px`` (how far its translation moves the events).
 * ``flow``: the constant-flow ``slider`` windows of :mod:`cmax.synthetic_windows`
   (a wall parallel to the image), the first 30k events of 0.1 s windows; the average endpoint error
   over the window [px] = ``|flow error| * T``.
@@ -92,7 +93,8 @@ def run_se3(window) -> dict:
     seconds = time.perf_counter() - start
     cos = float(r.v @ v / (np.linalg.norm(r.v) * speed))
     return {"abs_rel": abs_rel(r, window.depth), "direction_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
-            "omega_rms_deg_s": float(np.degrees(np.sqrt(np.mean((r.omega - omega) ** 2)))), "seconds": seconds}
+            "omega_rms_deg_s": float(np.degrees(np.sqrt(np.mean((r.omega - omega) ** 2)))), "seconds": seconds,
+            "parallax_px": r.parallax_px}
 
 
 def run_flow(window) -> dict:

@@ -8,7 +8,6 @@ import cv2
 import numpy as np
 import pytest
 
-from cmax import Events
 from cmax.cli import main
 from cmax.io import write_h5, write_txt
 from conftest import random_events
@@ -96,3 +95,36 @@ def test_scene_command_writes_events_and_ground_truth(tmp_path, capsys):
     assert 0.4 <= sequence.depth[valid].min() and sequence.depth[valid].max() <= 3.0
     np.testing.assert_allclose(sequence.twists[:, 1:], 0.0, atol=1e-9)
     assert main(argv) == 2 and "overwrite" in capsys.readouterr().err
+
+
+def test_fit_writes_depth_trajectory_and_summary(tmp_path):
+    """`cmax fit` on two windows of a sliding camera (known speed): per-window depth npz + PNG, a TUM
+    trajectory whose path length is speed x time (whatever the fitted directions), and a summary with
+    the parallax of each window. (A slide along one wall is the plane ambiguity: the depth is not
+    checked against the truth here; benchmarks/accuracy_cmax.py measures it.)"""
+    import json
+
+    from cmax.synthetic_windows import make_window
+
+    w = make_window("slider", 7, width=120, height=90, focal=90.0, duration_s=0.2)
+    path = tmp_path / "slider.h5"
+    write_h5(path, w.events)
+    K = w.K
+    speed = float(np.linalg.norm(w.twist[:3]))
+    args = ["fit", str(path), "--K", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}", "-o", str(tmp_path / "out"),
+            "--window-ms", "90", "--speed", str(speed), "--max-events", "15000"]
+    assert main(args) == 0
+    out = tmp_path / "out"
+    depth = np.load(out / "depth_00000.npz")
+    assert depth["depth"].shape == (90, 120) and depth["mask"].any()
+    inside = depth["depth"][depth["mask"]]
+    assert np.all(np.isfinite(inside)) and inside.min() >= 0.5 * 0.999 and inside.max() <= 60.0 * 1.001
+    assert (out / "depth_00000.png").is_file()
+    rows = [line.split() for line in (out / "trajectory.txt").read_text().splitlines()]
+    times = np.array([float(r[0]) for r in rows])
+    positions = np.array([[float(v) for v in r[1:4]] for r in rows])
+    path_length = np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()
+    assert path_length == pytest.approx(speed * (times[-1] - times[0]), rel=0.02)
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["windows"]) == len(rows) - 1 >= 2
+    assert all(window["parallax_px"] > 0 and window["scale_known"] for window in summary["windows"])

@@ -34,6 +34,15 @@ def test_flow_fit_recovers_constant_flow(slider):
     assert r.iwe_after.shape == (90, 120) and r.t0_us <= r.t_ref_us <= r.t1_us
 
 
+def test_parallax_of_a_slide_along_a_wall(slider):
+    """Sliding parallel to a wall at depth Z: every event moves by f |v| T / Z through the translation."""
+    r = fit(slider.events, slider.K, pose=slider.twist, depth_grid=(3, 4))
+    T = (r.t1_us - r.t0_us) * 1e-6
+    expected = slider.K[0, 0] * np.linalg.norm(slider.twist[:3]) * T / float(np.nanmedian(slider.depth))
+    assert r.parallax_px == pytest.approx(expected, rel=0.1)
+    assert fit(slider.events, slider.K, model="flow").parallax_px is None
+
+
 def test_rotation_fit_and_casadi_agree(rotation):
     r = fit(rotation.events, rotation.K, model="rotation")
     truth = rotation.twist[3:]

@@ -6,7 +6,7 @@ Outputs in ``-o outdir/``: ``depth_XXXXX.npz`` (``depth``, ``mask``,
 ``inverse_depth_grid``, ``t_ref_us``, ``K``) and ``depth_XXXXX.png`` per
 window (se3), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
 camera-to-world, the first window's start as the origin) and
-``summary.json`` (settings, per-window twist, objective, seconds).
+``summary.json`` (settings, per-window twist, objective, parallax, seconds).
 """
 from __future__ import annotations
 
@@ -81,7 +81,7 @@ def run_fit(args: argparse.Namespace) -> int:
         windows.append({"t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
                         "omega": r.omega.tolist(), "flow": None if r.flow is None else r.flow.tolist(),
                         "objective_after": r.objective_after, "seconds": r.seconds, "message": r.message,
-                        "scale_known": r.scale_known})
+                        "scale_known": r.scale_known, "parallax_px": r.parallax_px})
     write_text_atomic(out / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
     summary = {"file": str(args.file), "model": args.model, "K": args.K.tolist(), "window_ms": args.window_ms,
                "speed": args.speed, "solver": args.solver, "windows": windows}
