@@ -41,6 +41,7 @@ import torch
 
 from cmax.fitting import fit
 from cmax.io.atomic import write_text_atomic
+from cmax.metrics import depth_metrics
 from cmax.synthetic_windows import make_window, preset_window
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -74,8 +75,9 @@ def cached(cache: Path | None, key: str, make):
 
 
 def abs_rel(result, depth: np.ndarray) -> float:
+    """abs_rel of a fit's depth on its mask (:func:`cmax.metrics.depth_metrics`); NaN when no pixel is valid."""
     valid = result.mask & np.isfinite(depth)
-    return float(np.mean(np.abs(result.depth[valid] - depth[valid]) / depth[valid])) if valid.any() else float("nan")
+    return depth_metrics(result.depth, depth, mask=valid).abs_rel if valid.any() else float("nan")
 
 
 def run_depth(window) -> dict:

@@ -51,6 +51,7 @@ from cmax.fitting.depth_sweep import _parabolic_argmax, node_cost_function, rela
 from cmax.geometry import se3_exp, se3_log
 from cmax.io.atomic import write_text_atomic
 from cmax.iwe import sample_bilinear
+from cmax.metrics import depth_metrics
 from cmax.warp import DepthGrid, WarpEvents, warp_se3
 
 #: Log steps of the relative sweep around the true per-event inverse depth.
@@ -60,7 +61,7 @@ MIN_NODE_WEIGHT = 100.0
 
 
 def abs_rel(depth: np.ndarray, truth: np.ndarray, mask: np.ndarray) -> float:
-    return float(np.mean(np.abs(depth[mask] - truth[mask]) / truth[mask]))
+    return depth_metrics(depth, truth, mask=mask).abs_rel
 
 
 def grid_floor(truth: np.ndarray, mask: np.ndarray, grid: DepthGrid) -> np.ndarray:

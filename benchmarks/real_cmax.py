@@ -189,15 +189,11 @@ def _flow_explanations(events, K: np.ndarray, fitted_direction: np.ndarray) -> l
     """Patch flows of the window and how forward motion and the fitted direction explain them (markdown)."""
     from cmax.fitting import FitSettings
     from cmax.fitting.patch_flow import explain_flows, patch_flows
-    from cmax.fitting.solvers import make_solver
     from cmax.fitting.stages import Window
-    from cmax.warp import DepthGrid, WarpEvents
 
-    settings = FitSettings(max_events=30_000)
-    ev = WarpEvents.from_events(events, K, max_events=settings.max_events, seed=settings.seed)
-    window = Window(ev, settings, make_solver("scipy"), DepthGrid((12, 16), ev.width, ev.height))
+    window = Window.from_events(events, K, FitSettings(max_events=30_000))
     centres, flows, _, information = patch_flows(window)
-    T = ev.duration_s
+    T = window.T
     directions = np.array([[0.0, 0.0, 1.0], fitted_direction])
     residual, omega, inverse_depth = explain_flows(centres, flows, information, K, directions)
     lines = ["Patch flows of the window (displacement over the 8.8 ms, px, at the patch's mean pixel):", "",

@@ -65,12 +65,9 @@ def _sanity(preset: str, width: int, height: int) -> None:
 
     from cmax.fitting import FitSettings
     from cmax.fitting.stages import SE3Model, Window
-    from cmax.fitting.solvers import ScipySolver
-    from cmax.warp import DepthGrid, WarpEvents
 
     w = _preset(preset, width, height)
-    ev = WarpEvents.from_events(w.events, w.K, max_events=60000)
-    win = Window(ev, FitSettings(), ScipySolver(), DepthGrid((6, 8), width, height))
+    win = Window.from_events(w.events, w.K, FitSettings(max_events=60000), depth_grid=(6, 8))
     v, omega = w.twist[:3], w.twist[3:]
     speed = float(np.linalg.norm(v))
     se3 = SE3Model(win, max(speed, 1e-6))
@@ -79,7 +76,7 @@ def _sanity(preset: str, width: int, height: int) -> None:
     def at(x, y):
         return inverse[y.round().long().clamp(0, height - 1), x.round().long().clamp(0, width - 1)].reshape(-1)
 
-    rho, rho_probes = at(ev.x, ev.y), at(se3.probes[0], se3.probes[1])
+    rho, rho_probes = at(win.ev.x, win.ev.y), at(se3.probes[0], se3.probes[1])
 
     def J(v, omega, r=rho, rp=rho_probes):
         return float(se3.objective(torch.as_tensor(v, dtype=torch.float64),
@@ -315,22 +312,6 @@ def test_relative_sweep_peaks_at_the_true_depth_of_each_plane():
     np.testing.assert_allclose(at_truth.numpy(), 0.0, atol=0.025)
     too_near = _parabolic_argmax(relative_sweep_cost(cost, rho_true * 1.3, steps), steps)
     np.testing.assert_allclose(too_near.numpy(), -np.log(1.3), atol=0.025)
-
-
-def test_motion_field_fit_recovers_the_twist_from_exact_patch_flows():
-    from cmax.fitting.patch_flow import _field_matrices, motion_from_flows
-
-    K = np.array([[226.0, 0, 173.0], [0, 226.0, 130.0], [0, 0, 1]])
-    rng = np.random.default_rng(1)
-    centres = np.column_stack([rng.uniform(20, 326, 20), rng.uniform(20, 240, 20)])
-    rho = rng.uniform(0.2, 1.0, 20)
-    v, omega = np.array([0.2, -0.1, 0.5]), np.radians([5.0, -10.0, 3.0])
-    A, B = _field_matrices(centres, K)
-    flows = rho[:, None] * (A @ v) + B @ omega
-    v_fit, omega_fit, residual = motion_from_flows(centres, flows, np.ones(20), K, float(np.linalg.norm(v)),
-                                                   directions=20000)
-    assert np.degrees(np.arccos(v_fit @ v / np.linalg.norm(v) ** 2)) < 2.0
-    np.testing.assert_allclose(omega_fit, omega, atol=np.radians(0.5))
 
 
 def test_pegboard_rotation_agrees_with_the_aps_frames(shared_data):

@@ -16,10 +16,9 @@ from cmax.fitting.motion import LocalMotionObjective, refine_motion_local
 from cmax.fitting.patch_flow import (
     _field_matrices, flow_information, make_patches, motion_from_flows, patch_flows, spherical_cap,
 )
-from cmax.fitting.solvers import make_solver
 from cmax.fitting.stages import Window
 from cmax.geometry import se3_exp
-from cmax.warp import DepthGrid, WarpEvents
+
 
 @pytest.fixture(autouse=True)
 def one_thread():
@@ -75,9 +74,7 @@ def point_scene(seed: int, *, width: int = 346, height: int = 260, duration_s: f
 
 
 def make_window(events: Events, K: np.ndarray) -> Window:
-    settings = FitSettings(contrast="variance")
-    ev = WarpEvents.from_events(events, K, max_events=settings.max_events, seed=0)
-    return Window(ev, settings, make_solver("scipy"), DepthGrid((12, 16), events.width, events.height))
+    return Window.from_events(events, K, FitSettings(contrast="variance"))
 
 
 def moving_pattern(flow_px, *, lines: bool = False, width: int = 200, height: int = 160, seed: int = 0) -> Events:
@@ -136,15 +133,31 @@ def test_flow_information_of_a_quadratic_is_its_curvature():
 # ----------------------------------------------------------------------------------------------------
 # The motion-field fit
 # ----------------------------------------------------------------------------------------------------
+def exact_patch_flows(rng: np.random.Generator, v: np.ndarray, omega: np.ndarray, patches: int = 20
+                      ) -> tuple[np.ndarray, np.ndarray]:
+    """Random patch centres (P, 2) on a 346x260 sensor and their exact motion-field flows (P, 2) [px/s]
+    for the twist ``(v, omega)`` and random inverse depths 0.2-1 1/m."""
+    centres = np.column_stack([rng.uniform(20, 326, patches), rng.uniform(20, 240, patches)])
+    rho = rng.uniform(0.2, 1.0, patches)
+    A, B = _field_matrices(centres, K346)
+    return centres, rho[:, None] * (A @ v) + B @ omega
+
+
+def test_motion_field_fit_recovers_the_twist_from_exact_patch_flows():
+    v, omega = np.array([0.2, -0.1, 0.5]), np.radians([5.0, -10.0, 3.0])
+    centres, flows = exact_patch_flows(np.random.default_rng(1), v, omega)
+    v_fit, omega_fit, residual = motion_from_flows(centres, flows, np.ones(20), K346, float(np.linalg.norm(v)),
+                                                   directions=20000)
+    assert angle_deg(v_fit, v) < 2.0
+    np.testing.assert_allclose(omega_fit, omega, atol=np.radians(0.5))
+
+
 def test_information_weights_ignore_flows_along_edges():
     """Eight of 20 patches see one edge each: their flow along the edge is garbage (+-40 px/s) and their
     information rank one. Weighted by information the twist comes back; weighted by counts it does not."""
     rng = np.random.default_rng(3)
-    centres = np.column_stack([rng.uniform(20, 326, 20), rng.uniform(20, 240, 20)])
-    rho = rng.uniform(0.2, 1.0, 20)
     v, omega = np.array([0.3, -0.1, 0.4]), np.radians([5.0, -10.0, 3.0])
-    A, B = _field_matrices(centres, K346)
-    flows = rho[:, None] * (A @ v) + B @ omega
+    centres, flows = exact_patch_flows(rng, v, omega)
     information = np.broadcast_to(np.eye(2), (20, 2, 2)).copy()
     for p in range(8):
         along = np.array([np.cos(p), np.sin(p)])

@@ -273,6 +273,16 @@ def _row_transforms(weights: np.ndarray) -> np.ndarray:
     return np.einsum("pij,pj,pkj->pik", vectors, roots / max(float(np.median(roots)), 1e-12), vectors)
 
 
+def _weighted_system(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray, K: np.ndarray
+                     ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Motion-field rows ``L A``, ``L B`` (P, 2, 3) and flows ``L u`` (2P,), each patch's rows times ``L``,
+    the square root of its weight (:func:`_row_transforms`)."""
+    A, B = _field_matrices(centres, K)
+    L = _row_transforms(weights)                                           # (P, 2, 2)
+    LA, LB = np.einsum("pij,pjk->pik", L, A), np.einsum("pij,pjk->pik", L, B)
+    return LA, LB, np.einsum("pij,pj->pi", L, flows).reshape(2 * len(centres))
+
+
 def motion_from_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray, K: np.ndarray, speed: float,
                       *, directions: int = 3000, refine: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
     """Best ``v`` (3,) [m/s, norm ``speed``], ``omega`` (3,) [rad/s] and the weighted RMS residual [px/s].
@@ -300,10 +310,7 @@ def motion_from_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarra
     P = len(centres)
     if P < 4:
         raise ValueError(f"need at least 4 patches with events to initialise the motion, got {P}")
-    A, B = _field_matrices(centres, K)
-    L = _row_transforms(weights)                                           # (P, 2, 2)
-    LA, LB = np.einsum("pij,pjk->pik", L, A), np.einsum("pij,pjk->pik", L, B)
-    b = np.einsum("pij,pj->pi", L, flows).reshape(2 * P)
+    LA, LB, b = _weighted_system(centres, flows, weights, K)
     t = fibonacci_sphere(directions)                                       # (D, 3)
     score, omega, residual = _direction_scores(t, LA, LB, b, speed)
     best = int(np.argmin(score))
@@ -376,9 +383,5 @@ def explain_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray, K
     """
     directions = np.asarray(directions, dtype=np.float64).reshape(-1, 3)
     directions = directions / np.linalg.norm(directions, axis=1, keepdims=True)
-    A, B = _field_matrices(centres, K)
-    L = _row_transforms(weights)
-    LA, LB = np.einsum("pij,pjk->pik", L, A), np.einsum("pij,pjk->pik", L, B)
-    b = np.einsum("pij,pj->pi", L, flows).reshape(2 * len(centres))
-    x, residual = _solve_directions(directions, LA, LB, b, speed)
+    x, residual = _solve_directions(directions, *_weighted_system(centres, flows, weights, K), speed)
     return residual, x[:, :3], x[:, 3:]

@@ -28,10 +28,11 @@ from cmax.fitting.depth_sweep import sweep_inverse_depth
 from cmax.fitting.patch_flow import motion_from_flows, patch_flows
 from cmax.fitting.motion import refine_motion_local
 from cmax.objectives import deformation, multi_reference_contrast
-from cmax.fitting.solvers import Problem, Solver, SolveResult
+from cmax.fitting.solvers import Problem, Solver, SolveResult, make_solver
 from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
 
 if TYPE_CHECKING:  # pragma: no cover
+    from cmax.events import Events
     from cmax.fitting import FitResult, FitSettings
 
 __all__ = ["Window", "SE3Model", "coarse_to_fine", "fit_flow", "fit_rotation", "fit_se3", "directions"]
@@ -60,6 +61,13 @@ class Window:
         self.index, self.weight = self.grid.weights(self.ev.x, self.ev.y)
         self.cell = self.grid.cell_of(self.ev.x, self.ev.y)
         self._baselines: dict = {}
+
+    @classmethod
+    def from_events(cls, events: "Events", K: np.ndarray, settings: "FitSettings", solver: "str | Solver" = "scipy",
+                    depth_grid: tuple[int, int] = (12, 16)) -> "Window":
+        """The window of ``events`` with intrinsics ``K`` (3, 3), subsampled and dithered as ``settings`` say."""
+        ev = WarpEvents.from_events(events, K, max_events=settings.max_events, seed=settings.seed)
+        return cls(ev, settings, make_solver(solver), DepthGrid(tuple(depth_grid), events.width, events.height))
 
     @property
     def T(self) -> float:

@@ -26,7 +26,7 @@ from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.stages import Window, fit_flow, fit_rotation, fit_se3
 from cmax.iwe import accumulate_bilinear, blur
 from cmax.fitting.solvers import Solver, make_solver
-from cmax.warp import DepthGrid, WarpEvents, project, warp_flow, warp_rotation, warp_se3
+from cmax.warp import DepthGrid, warp_flow, warp_rotation, warp_se3
 
 __all__ = ["FitResult", "FitSettings", "fit"]
 
@@ -351,8 +351,7 @@ def fit(
     if num_threads is not None:
         torch.set_num_threads(num_threads)
     try:
-        ev = WarpEvents.from_events(events, K, max_events=settings.max_events, seed=settings.seed)
-        w = Window(ev, settings, backend, DepthGrid(tuple(depth_grid), events.width, events.height))
+        w = Window.from_events(events, K, settings, backend, depth_grid)
         flow, v, omega, grid = None, np.zeros(3), np.zeros(3), None
         if model == "flow":
             flow = fit_flow(w, init.flow if init is not None and init.flow is not None else np.zeros(2))
@@ -431,6 +430,6 @@ def _parallax_px(w: Window, v: np.ndarray, grid: np.ndarray) -> float:
     ev = w.ev
     with torch.no_grad():
         rho = DepthGrid.sample(torch.as_tensor(grid, dtype=ev.x.dtype), w.index, w.weight)
-        moved = ev.rays + rho[:, None] * torch.as_tensor(v * ev.duration_s, dtype=ev.x.dtype)
-        x, y = project(moved, ev.K)
+        x, y = warp_se3(ev.rays, torch.full_like(ev.x, ev.duration_s), torch.as_tensor(v, dtype=ev.x.dtype),
+                        torch.zeros(3, dtype=ev.x.dtype), rho, ev.K)
         return float(torch.hypot(x - ev.x, y - ev.y).median())
