@@ -14,6 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax.fitting.cli import intrinsics_argument
 from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_emvs_command", "run_emvs", "camera_for"]
@@ -27,10 +28,6 @@ def _numbers(text: str, counts: tuple[int, ...], what: str) -> np.ndarray:
     if values.size not in counts or not np.isfinite(values).all():
         raise argparse.ArgumentTypeError(f"{what} must be {' or '.join(map(str, counts))} finite numbers, got {text!r}")
     return values
-
-
-def _intrinsics(text: str) -> np.ndarray:
-    return _numbers(text, (4,), "--K (fx,fy,cx,cy)")
 
 
 def _distortion(text: str) -> np.ndarray:
@@ -61,7 +58,7 @@ def add_emvs_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
     parser.add_argument("--poses", required=True, type=Path, help="TUM trajectory file")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
-    parser.add_argument("--K", type=_intrinsics, default=None,
+    parser.add_argument("--K", type=intrinsics_argument, default=None,
                         help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file)")
     parser.add_argument("--distortion", type=_distortion, default=None, help="OpenCV k1,k2,p1,p2[,k3]")
     parser.add_argument("--depth-range", type=_depth_range, default=(0.5, 5.0), metavar="NEAR,FAR",
@@ -76,7 +73,7 @@ def add_emvs_command(subparsers) -> argparse.ArgumentParser:
 
 
 def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distortion: np.ndarray | None):
-    """The :class:`cmax.Camera` of a recording: ``--K`` or, for an h5 file, its ``gt/K``."""
+    """The :class:`cmax.Camera` of a recording: ``--K`` (3, 3) or, for an h5 file, its ``gt/K``."""
     from cmax.camera import Camera
 
     if K is None:
@@ -90,8 +87,7 @@ def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distor
         if matrix is None:
             raise ValueError(f"{path} holds no gt/K; give the intrinsics with --K fx,fy,cx,cy")
         return Camera(matrix, width, height, distortion)
-    fx, fy, cx, cy = K
-    return Camera.from_intrinsics(fx, fy, cx, cy, width, height, distortion)
+    return Camera(K, width, height, distortion)
 
 
 

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from cmax.fitting.cli import intrinsics_argument
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 from learned.data import H5WindowDataset
 from learned.evaluate import load_model, predict_batches
@@ -60,15 +61,11 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("file", type=Path, help="DSEC-layout h5 event file")
     parser.add_argument("--checkpoint", type=Path, required=True)
     parser.add_argument("-o", "--output", type=Path, required=True, help="output folder")
-    parser.add_argument("--K", type=str, default=None, help="fx,fy,cx,cy for files without gt/K")
+    parser.add_argument("--K", type=intrinsics_argument, default=None, help="fx,fy,cx,cy for files without gt/K")
     parser.add_argument("--window", type=float, default=None, help="window length [s] (default: the config's)")
     args = parser.parse_args(argv)
-    K = None
-    if args.K:
-        fx, fy, cx, cy = (float(v) for v in args.K.split(","))
-        K = np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
     with torch.no_grad():
-        n = predict_file(args.checkpoint, args.file, args.output, K=K,
+        n = predict_file(args.checkpoint, args.file, args.output, K=args.K,
                          window_us=None if args.window is None else int(round(args.window * 1e6)))
     print(f"{args.output}: {n} windows")
     return 0

@@ -562,6 +562,10 @@ CLI_CASES = [
     ("fit-K-nan", ["fit", "{file}", "--K", "nan,50,32,24"], r"--K: K must be finite"),
     ("fit-missing-file", ["fit", "{dir}/nope.h5", "--K", "50,50,32,24", "-o", "{dir}/fit"],
      r"cmax fit: error: no such event file"),
+    ("emvs-K-three-numbers", ["emvs", "{file}", "--poses", "{dir}/t.txt", "-o", "{dir}/e", "--K", "1,2,3"],
+     r"argument --K: --K must be fx,fy,cx,cy"),
+    ("emvs-K-zero-focal", ["emvs", "{file}", "--poses", "{dir}/t.txt", "-o", "{dir}/e", "--K", "0,50,32,24"],
+     r"argument --K: --K: K must have positive focal lengths"),
 ]
 
 
@@ -581,6 +585,17 @@ def test_bad_command_line_exits_2_with_one_line(cli_file, argv, match, capsys):
     assert "Traceback" not in err
     if not err.startswith("usage:"):
         assert err.strip().count("\n") == 0, err  # one line
+
+
+@pytest.mark.parametrize("K, match", [("1,2,3", r"--K must be fx,fy,cx,cy"), ("50,nan,32,24", r"K must be finite")])
+def test_learned_predict_rejects_a_bad_K(cli_file, K, match, capsys):
+    """``python -m learned.predict --K`` shares ``cmax fit``'s parser: exit 2 and one line, no traceback."""
+    from learned.predict import main as predict_main
+
+    with pytest.raises(SystemExit) as exit_:
+        predict_main([str(cli_file), "--checkpoint", str(cli_file), "-o", str(cli_file.parent / "p"), "--K", K])
+    err = capsys.readouterr().err
+    assert exit_.value.code == 2 and re.search(match, err) and "Traceback" not in err, err
 
 
 def test_console_script_exit_status(cli_file):

@@ -19,10 +19,12 @@ import numpy as np
 from cmax.camera import check_intrinsics
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
-__all__ = ["add_fit_command", "run_fit", "tum_lines"]
+__all__ = ["add_fit_command", "run_fit", "tum_lines", "intrinsics_argument"]
 
 
-def _intrinsics(text: str) -> np.ndarray:
+def intrinsics_argument(text: str) -> np.ndarray:
+    """``argparse`` type of ``--K fx,fy,cx,cy`` [px]: the validated (3, 3) matrix (``cmax fit``, ``cmax emvs``,
+    ``python -m learned.predict``)."""
     try:
         fx, fy, cx, cy = (float(v) for v in text.split(","))
     except ValueError:
@@ -39,7 +41,7 @@ def add_fit_command(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser("fit", help="depth and motion per window by contrast maximization",
                                    description=__doc__.split("\n\n")[0])
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
-    parser.add_argument("--K", required=True, type=_intrinsics, help="intrinsics fx,fy,cx,cy [px]")
+    parser.add_argument("--K", required=True, type=intrinsics_argument, help="intrinsics fx,fy,cx,cy [px]")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
     parser.add_argument("--model", choices=("se3", "rotation", "flow"), default="se3")
     parser.add_argument("--window-ms", type=float, default=166.5, help="window length [ms]")
