@@ -138,8 +138,8 @@ def pegboard(data: Path) -> tuple[list[str], np.ndarray]:
               f"se3 on 0-130 ms (scale unknown): v direction {np.round(se3.v, 2).tolist()}, omega "
               f"{np.round(deg(se3.omega), 2).tolist()} deg/s, objective {se3.objective_after:.4f}.", ""]
     picture = viz.hstack([viz.titled(np.repeat(frames.images[0][..., None], 3, 2), "APS frame 0"),
-                          viz.titled(_iwe_picture(picture_result.iwe_before), "events 0-130 ms"),
-                          viz.titled(_iwe_picture(picture_result.iwe_after), "IWE, fitted rotation")])
+                          viz.titled(viz.iwe_image(picture_result.iwe_before), "events 0-130 ms"),
+                          viz.titled(viz.iwe_image(picture_result.iwe_after), "IWE, fitted rotation")])
     return lines, picture
 
 
@@ -179,8 +179,8 @@ def driving(data: Path) -> tuple[list[str], np.ndarray]:
              "When the two contrasts are within a fraction of a percent, the 8.8 ms window's parallax does not "
              "tell the fitted motion from driving straight ahead: the objective is flat, not the optimiser stuck.",
              ""] + _flow_explanations(events, K, direction)
-    picture = viz.hstack([viz.titled(_iwe_picture(r.iwe_before), "events (8.8 ms)"),
-                          viz.titled(_iwe_picture(r.iwe_after), "IWE, fitted se3"),
+    picture = viz.hstack([viz.titled(viz.iwe_image(r.iwe_before), "events (8.8 ms)"),
+                          viz.titled(viz.iwe_image(r.iwe_after), "IWE, fitted se3"),
                           viz.titled(viz.depth_image(np.where(r.mask, r.depth, np.nan)), "depth (up to scale)")])
     return lines, picture
 
@@ -213,12 +213,6 @@ def _flow_explanations(events, K: np.ndarray, fitted_direction: np.ndarray) -> l
               "baseline explains the flows of a translation with a rotation and another translation: the "
               "patch flows, like the contrast above, do not single out forward motion in these 8.8 ms.", ""]
     return lines
-
-
-def _iwe_picture(image: np.ndarray) -> np.ndarray:
-    scale = max(float(np.percentile(image[image > 0], 99)) if (image > 0).any() else 1.0, 1e-6)
-    grey = (255 - np.clip(image / scale, 0, 1) * 255).astype(np.uint8)
-    return np.repeat(grey[..., None], 3, axis=2)
 
 
 

@@ -244,16 +244,12 @@ def _save_report_png(path: Path, p: dict, lines: list[str]) -> Path:
     def grey(image: np.ndarray) -> np.ndarray:
         return np.repeat(np.clip(image, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
 
-    def iwe(image: np.ndarray, scale: float) -> np.ndarray:
-        return grey(255 - np.clip(image / scale, 0, 1) * 255)
-
-    positive = p["iwe_after"][p["iwe_after"] > 0]
-    scale = max(float(np.percentile(positive, 99)), 1e-6) if positive.size else 1.0
+    scale = viz.robust_max(p["iwe_after"])  # one scale for both IWEs: the sharper one sets it
     top = viz.hstack([
         viz.titled(grey(p["frame"]), "rendered frame"),
         viz.titled(viz.event_frame_image(event_frame(p["events"])), f"events ({len(p['events']):,})"),
-        viz.titled(iwe(p["iwe_before"], scale), "IWE before"),
-        viz.titled(iwe(p["iwe_after"], scale), "IWE after (cmax.fit)"),
+        viz.titled(viz.iwe_image(p["iwe_before"], scale=scale), "IWE before"),
+        viz.titled(viz.iwe_image(p["iwe_after"], scale=scale), "IWE after (cmax.fit)"),
     ])
     bottom = viz.hstack([
         viz.titled(viz.depth_image(np.where(valid, gt, np.nan), depth_range=depth_range),

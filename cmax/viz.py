@@ -15,7 +15,7 @@ import cv2
 import numpy as np
 
 __all__ = [
-    "event_frame_image", "signed_image", "voxel_grid_image", "depth_image",
+    "event_frame_image", "iwe_image", "signed_image", "voxel_grid_image", "depth_image", "robust_max",
     "titled", "hstack", "vstack", "save_png",
 ]
 
@@ -38,7 +38,8 @@ def _check_picture(image: object, name: str = "image") -> np.ndarray:
     return image
 
 
-def _robust_max(values: np.ndarray, percentile: float = 99.0) -> float:
+def robust_max(values: np.ndarray, percentile: float = 99.0) -> float:
+    """The ``percentile`` of the non-zero ``|values|`` (1 when all are zero): where a picture's colours saturate."""
     nonzero = np.abs(values[values != 0])
     if not nonzero.size:
         return 1.0
@@ -55,7 +56,7 @@ def event_frame_image(counts: np.ndarray, *, percentile: float = 99.0) -> np.nda
     if counts.ndim != 3 or counts.shape[0] != 2:
         raise ValueError(f"counts must have shape (2, H, W), got {counts.shape}")
     _check_finite(counts, "counts")
-    scale = _robust_max(counts.sum(axis=0), percentile)
+    scale = robust_max(counts.sum(axis=0), percentile)
     off = np.clip(counts[0] / scale, 0, 1)
     on = np.clip(counts[1] / scale, 0, 1)
     image = np.full(counts.shape[1:] + (3,), float(_WHITE), np.float32)
@@ -66,13 +67,30 @@ def event_frame_image(counts: np.ndarray, *, percentile: float = 99.0) -> np.nda
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
+def iwe_image(image: np.ndarray, *, scale: float | None = None, percentile: float = 99.0) -> np.ndarray:
+    """Picture (H, W, 3) uint8 of an image of warped events (H, W) (counts >= 0): dark ink on white.
+
+    The ink saturates at ``scale`` (default: the ``percentile`` of the
+    non-zero values); give one ``scale`` to draw several IWEs alike.
+    """
+    image = np.asarray(image, dtype=np.float32)
+    if image.ndim != 2:
+        raise ValueError(f"image must have shape (H, W), got {image.shape}")
+    _check_finite(image, "image")
+    scale = robust_max(image, percentile) if scale is None else float(scale)
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive number, got {scale}")
+    grey = (255 - np.clip(image / scale, 0, 1) * 255).astype(np.uint8)
+    return np.repeat(grey[..., None], 3, axis=2)
+
+
 def signed_image(values: np.ndarray, *, scale: float | None = None) -> np.ndarray:
     """Blue (positive) - white (zero) - red (negative) picture of an (H, W) array."""
     values = np.asarray(values, dtype=np.float32)
     if values.ndim != 2:
         raise ValueError(f"values must have shape (H, W), got {values.shape}")
     _check_finite(values, "values")
-    scale = _robust_max(values) if scale is None else float(scale)
+    scale = robust_max(values) if scale is None else float(scale)
     if not (np.isfinite(scale) and scale > 0):
         raise ValueError(f"scale must be a positive finite number, got {scale}")
     level = np.clip(values / scale, -1, 1)
@@ -92,7 +110,7 @@ def voxel_grid_image(volume: np.ndarray, *, gap: int = 4) -> np.ndarray:
     if not volume.shape[0]:
         raise ValueError("volume must have at least one bin, got shape (0, H, W)")
     _check_finite(volume, "volume")
-    scale = _robust_max(volume)
+    scale = robust_max(volume)
     tiles = [titled(signed_image(b, scale=scale), f"bin {i}") for i, b in enumerate(volume)]
     return hstack(tiles, gap=gap)
 

@@ -194,13 +194,8 @@ class FitResult:
         """Write a PNG: IWE before, after, and the depth map (when fitted); returns the path."""
         from cmax import viz
 
-        def iwe_picture(image: np.ndarray) -> np.ndarray:
-            scale = max(float(np.percentile(image[image > 0], 99)) if (image > 0).any() else 1.0, 1e-6)
-            grey = (255 - np.clip(image / scale, 0, 1) * 255).astype(np.uint8)
-            return np.repeat(grey[..., None], 3, axis=2)
-
-        tiles = [viz.titled(iwe_picture(self.iwe_before), "IWE before"),
-                 viz.titled(iwe_picture(self.iwe_after), "IWE after")]
+        tiles = [viz.titled(viz.iwe_image(self.iwe_before), "IWE before"),
+                 viz.titled(viz.iwe_image(self.iwe_after), "IWE after")]
         if self.depth is not None:
             depth = np.where(self.mask, self.depth, np.nan)
             tiles.append(viz.titled(viz.depth_image(depth), "depth" + ("" if self.scale_known else " (up to scale)")))
