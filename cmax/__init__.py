@@ -7,8 +7,7 @@
 The solvers (``fit``, ``fit_sequence``, ``EMVS``) import torch; they load on first use so that
 ``import cmax`` and the file tools stay fast.
 """
-from importlib import import_module
-
+from cmax._lazy import lazy_exports
 from cmax.camera import Camera
 from cmax.events import STRUCTURED_DTYPE, Events, EventTensors, concatenate
 
@@ -24,13 +23,4 @@ _LAZY = {
 __all__ = ["Camera", "Events", "EventTensors", "STRUCTURED_DTYPE", "concatenate", "__version__", *_LAZY]
 
 
-def __getattr__(name: str):
-    if name in _LAZY:
-        value = getattr(import_module(_LAZY[name]), name)
-        globals()[name] = value
-        return value
-    raise AttributeError(f"module 'cmax' has no attribute {name!r}")
-
-
-def __dir__() -> list[str]:
-    return sorted(set(globals()) | set(_LAZY))
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())

@@ -81,6 +81,16 @@ def test_console_script_entry_point():
     assert result.returncode == 0 and "evtslowtv" in result.stdout
 
 
+def test_parser_and_info_start_without_torch(h5_file):
+    """Every command's parser is built at start-up; none may load torch (about 1.2 s) to do it."""
+    path, ev = h5_file
+    code = ("import sys; from cmax.cli import main; main(['info', sys.argv[1]]); "
+            "assert 'torch' not in sys.modules, 'torch was imported'")
+    result = subprocess.run([sys.executable, "-c", code, str(path)], capture_output=True, text=True)
+    assert result.returncode == 0, result.stderr
+    assert f"{len(ev):,}" in result.stdout
+
+
 def test_scene_command_writes_events_and_ground_truth(tmp_path, capsys):
     from cmax.sim.synthetic import load_sequence
 

@@ -2,16 +2,21 @@
 adaptive sampling and video sources.
 
 >>> from cmax.sim import EventSimulator, make_scene, simulate_scene  # doctest: +SKIP
-"""
-from cmax.sim.esim import EsimSettings, EventSimulator
-from cmax.sim.presets import PRESETS, make_scene
-from cmax.sim.sampling import iter_upsample, upsample
-from cmax.sim.scenes import PlanarScene, RGBDScene, SceneInfo
-from cmax.sim.synthetic import SyntheticSequence, load_sequence, simulate_scene
-from cmax.sim.video import open_source
 
-__all__ = [
-    "EsimSettings", "EventSimulator", "PRESETS", "make_scene", "PlanarScene", "RGBDScene",
-    "SceneInfo", "SyntheticSequence", "iter_upsample", "load_sequence", "open_source",
-    "simulate_scene", "upsample",
-]
+The public names load on first use (the renderer imports torch), so that the
+command line's parser, which lists :data:`PRESETS`, starts fast.
+"""
+from cmax._lazy import lazy_exports
+
+_LAZY = {
+    "EsimSettings": "cmax.sim.esim", "EventSimulator": "cmax.sim.esim",
+    "PRESETS": "cmax.sim.presets", "make_scene": "cmax.sim.presets",
+    "iter_upsample": "cmax.sim.sampling", "upsample": "cmax.sim.sampling",
+    "PlanarScene": "cmax.sim.scenes", "RGBDScene": "cmax.sim.scenes", "SceneInfo": "cmax.sim.scenes",
+    "SyntheticSequence": "cmax.sim.synthetic", "load_sequence": "cmax.sim.synthetic",
+    "simulate_scene": "cmax.sim.synthetic", "open_source": "cmax.sim.video",
+}
+
+__all__ = sorted(_LAZY)
+
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())

@@ -26,19 +26,30 @@ pixels); the others ``threshold_sigma=0.03`` and thresholds 0.2.
 """
 from __future__ import annotations
 
-from typing import Callable
+from typing import TYPE_CHECKING, Callable
 
 import numpy as np
 
 from cmax.camera import Camera
 from cmax.events import _check_sensor_size
-from cmax.sim.render import Sky
-from cmax.sim.scenes import PlanarScene, SceneInfo
 from cmax.sim.textures import Texture, make_texture, night_version
 from cmax.sim.trajectories import SinusoidalTrajectory, look_at_rotation
 from cmax.sim.world import WorldBuilder
 
+if TYPE_CHECKING:  # pragma: no cover
+    from cmax.sim.scenes import PlanarScene
+
 __all__ = ["PRESETS", "make_scene", "davis346_camera"]
+
+
+def _scene_types():
+    """``PlanarScene``, ``SceneInfo`` and ``Sky``, imported when a scene is built: the renderer
+    imports torch, and the command line lists :data:`PRESETS` without it."""
+    from cmax.sim.render import Sky
+    from cmax.sim.scenes import PlanarScene, SceneInfo
+
+    return PlanarScene, SceneInfo, Sky
+
 
 _DAY_SIMULATOR = {"cp": 0.2, "cn": 0.2, "threshold_sigma": 0.03}
 _NIGHT_SIMULATOR = {"cp": 0.25, "cn": 0.25, "threshold_sigma": 0.05,
@@ -121,6 +132,7 @@ def _posters(b: WorldBuilder, rng: np.random.Generator, size: tuple[float, float
 
 # -- presets ------------------------------------------------------------------------------
 def _indoor_flying(rng: np.random.Generator, camera: Camera, duration_s: float, size: int) -> PlanarScene:
+    PlanarScene, SceneInfo, Sky = _scene_types()
     b = WorldBuilder(rng, size)
     room = (6.4, 6.0, 3.0)
     Lx, Ly, Lz = room
@@ -225,6 +237,7 @@ def _street(b: WorldBuilder, rng: np.random.Generator, length: float, night: boo
 
 
 def _driving(rng: np.random.Generator, camera: Camera, duration_s: float, size: int, night: bool) -> PlanarScene:
+    PlanarScene, SceneInfo, Sky = _scene_types()
     b = WorldBuilder(rng, size)
     speed = rng.uniform(8.0, 12.0)
     length = speed * duration_s + 40.0 + rng.uniform(100, 250)
@@ -246,6 +259,7 @@ def _driving(rng: np.random.Generator, camera: Camera, duration_s: float, size: 
 
 
 def _hiking(rng: np.random.Generator, camera: Camera, duration_s: float, size: int) -> PlanarScene:
+    PlanarScene, SceneInfo, Sky = _scene_types()
     b = WorldBuilder(rng, size)
     speed = rng.uniform(0.9, 1.3)
     length = speed * duration_s + 150.0
@@ -335,6 +349,7 @@ def _office(b: WorldBuilder, rng: np.random.Generator, room: tuple[float, float,
 
 
 def _rotation(rng: np.random.Generator, camera: Camera, duration_s: float, size: int) -> PlanarScene:
+    PlanarScene, SceneInfo, Sky = _scene_types()
     b = WorldBuilder(rng, size)
     room = (rng.uniform(4.5, 5.5), rng.uniform(4.0, 5.0), 2.8)
     _office(b, rng, room)
@@ -351,6 +366,7 @@ def _rotation(rng: np.random.Generator, camera: Camera, duration_s: float, size:
 
 
 def _slider(rng: np.random.Generator, camera: Camera, duration_s: float, size: int) -> PlanarScene:
+    PlanarScene, SceneInfo, Sky = _scene_types()
     b = WorldBuilder(rng, size)
     speed = rng.uniform(0.25, 0.35)
     travel = speed * duration_s
