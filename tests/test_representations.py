@@ -17,7 +17,7 @@ from cmax.representations import (
     voxel_grid,
     voxel_grid_batch,
 )
-from cmax.representations import _voxel_grid_numpy
+from cmax.representations.voxel import _voxel_grid_numpy
 from conftest import random_events
 
 

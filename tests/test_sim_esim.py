@@ -14,7 +14,7 @@ from cmax.sim.esim import (
     log_intensity,
     threshold_crossings,
 )
-from cmax.sim.esim import _cv_log32f, _fma32
+from cmax.sim._cvlog import _cv_log32f, _fma32
 
 cv2 = pytest.importorskip("cv2")
 

@@ -31,9 +31,7 @@ The modules: :mod:`~cmax.representations.voxel` (voxel grids),
 from __future__ import annotations
 
 from cmax.representations.frames import EventFrame, TimeSurface, event_frame, time_surface
-from cmax.representations.voxel import (  # noqa: F401  (_voxel_grid_numpy: imported by the tests)
-    VoxelGrid, _voxel_grid_numpy, voxel_grid, voxel_grid_batch,
-)
+from cmax.representations.voxel import VoxelGrid, voxel_grid, voxel_grid_batch
 
 __all__ = [
     "voxel_grid",

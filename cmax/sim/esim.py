@@ -60,7 +60,7 @@ import cv2
 import numpy as np
 
 from cmax.events import Events
-from cmax.sim._cvlog import _cv_log32f, _fma32  # noqa: F401  (_fma32: imported by the tests)
+from cmax.sim._cvlog import _cv_log32f
 from cmax.sim.crossings import (
     Crossings,
     crossing_times,
