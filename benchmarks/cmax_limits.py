@@ -29,9 +29,25 @@ over other random 30k-event subsets of the same window (seeds 1-3), and the
 error when all the window's events are used. When the error changes as much
 between subsets as it is large, the 30k events, not the optimiser, set it.
 
+Section ``se3``: the depth of ``fit(events, K, speed=|v|)`` on the same
+``indoor_flying`` windows, and how much of its error the rotation causes.
+``fit``, ``true_omega``, ``true_v``: abs_rel of the fit, and of the depth
+with a known pose made of the fit's direction and the TRUE angular velocity,
+or the TRUE velocity and the fit's angular velocity; ``omega_rms`` the fit's
+omega error [deg/s]. Then the rotation-translation ambiguity: motions on the
+line from the truth (``t = 0``) to the fit (``t = 1``), ``(v, omega) = truth +
+t (fit - truth)`` (``v`` renormalised), ``t`` in ``PROFILE_T``, scored by the
+patch-wise contrast of the fit's own motion refinement
+(:class:`cmax.fitting.motion.LocalMotionObjective`, 6 x 8 patches) with two
+depths: ``peak_t_true_structure`` is the ``t`` of the highest score when
+every event has its TRUE inverse depth times one free factor (the best of
+``STRUCTURE_SCALES``), ``peak_t_swept`` when the depth is swept for each
+motion as ``fit`` does (free per grid node). ``gap_percent`` is how much the
+score with swept depth changes between the truth and the fit, in percent.
+
 Usage::
 
-    python -m benchmarks.cmax_limits [--seeds 100-119] [--cache DIR] [--sections depth,rotation]
+    python -m benchmarks.cmax_limits [--seeds 100-119] [--cache DIR] [--sections depth,rotation,se3]
 """
 from __future__ import annotations
 
@@ -48,14 +64,22 @@ from cmax.camera import Camera
 from cmax.emvs import EMVS
 from cmax.fitting import FitSettings, fit
 from cmax.fitting.depth_sweep import _parabolic_argmax, node_cost_function, relative_sweep_cost
+from cmax.fitting.motion import LocalMotionObjective
+from cmax.fitting.patch_flow import make_patches
+from cmax.fitting.stages import Window, sweep
 from cmax.geometry import se3_exp, se3_log
 from cmax.io.atomic import write_text_atomic
 from cmax.iwe import sample_bilinear
 from cmax.metrics import depth_metrics
+from cmax.objectives import variance
 from cmax.warp import DepthGrid, WarpEvents, warp_se3
 
 #: Log steps of the relative sweep around the true per-event inverse depth.
 STEPS = torch.linspace(-0.5, 0.5, 21)
+#: Positions on the line from the true motion (0) to the fitted one (1) where the se3 section scores the motion.
+PROFILE_T = (-1.0, -0.5, 0.0, 0.5, 1.0, 1.5)
+#: Factors of the true inverse depth tried at each position (the structure is known, its scale is not).
+STRUCTURE_SCALES = np.exp(np.linspace(-0.5, 0.5, 11))
 #: Nodes with less event weight than this are left out of the objective floor's step statistics.
 MIN_NODE_WEIGHT = 100.0
 
@@ -81,11 +105,18 @@ def grid_floor(truth: np.ndarray, mask: np.ndarray, grid: DepthGrid) -> np.ndarr
 def true_event_inverse_depth(ev: WarpEvents, truth: np.ndarray, v: torch.Tensor, omega: torch.Tensor,
                              dt: torch.Tensor) -> torch.Tensor:
     """Inverse depth (N,) [1/m] of each event: the ground truth where the event lands at the reference time."""
-    truth_map = torch.as_tensor(np.nan_to_num(1.0 / truth, nan=0.0), dtype=ev.x.dtype)[None]
-    rho = sample_bilinear(truth_map, ev.x[None], ev.y[None])[0]
+    return true_inverse_depth(ev.x, ev.y, ev.rays, ev.K, truth, v, omega, dt)
+
+
+def true_inverse_depth(x: torch.Tensor, y: torch.Tensor, rays: torch.Tensor, K: torch.Tensor, truth: np.ndarray,
+                       v: torch.Tensor, omega: torch.Tensor, dt: torch.Tensor) -> torch.Tensor:
+    """Inverse depth (N,) [1/m] of events at pixels ``x, y`` (N,) with ``rays`` (N, 3), ``dt`` (1, N) or (N,) [s]:
+    the ground truth ``truth`` (H, W) [m] where each lands at the reference time under the motion ``v, omega``."""
+    truth_map = torch.as_tensor(np.nan_to_num(1.0 / truth, nan=0.0), dtype=x.dtype)[None]
+    rho = sample_bilinear(truth_map, x[None], y[None])[0]
     for _ in range(3):  # fixed point: the landing point depends on the depth
-        x, y = warp_se3(ev.rays, dt, v, omega, rho[None], ev.K)
-        rho = sample_bilinear(truth_map, x, y)[0]
+        x1, y1 = warp_se3(rays, dt, v, omega, rho[None] if dt.dim() == 2 else rho, K)
+        rho = sample_bilinear(truth_map, x1.reshape(1, -1), y1.reshape(1, -1))[0]
     return rho
 
 
@@ -154,16 +185,71 @@ def measure_rotation(window, subsets: int = 4) -> dict:
             "subset_std": float(np.std(errors)), "error_all_events": error(every), "events": float(len(window.events))}
 
 
-MEASURES = {"depth": ("depth", measure), "rotation": ("rotation", measure_rotation)}
+def _patch_score(objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray,
+                 rho_events: torch.Tensor) -> float:
+    """Sum over patches of the normalised patch contrast for a motion and per-event inverse depths (M,) [1/m]."""
+    patches, dtype = objective.patches, objective.rays.dtype
+    with torch.no_grad():
+        x, y = warp_se3(objective.rays, patches.dt, torch.as_tensor(v, dtype=dtype),
+                        torch.as_tensor(omega, dtype=dtype), rho_events, objective.K)
+        return float((variance(patches.images(x, y, objective.sigma)) / objective.base).sum())
+
+
+def measure_se3(window) -> dict:
+    """The se3 fit's depth error, with the true rotation or translation, and the ambiguity profile."""
+    truth = window.depth
+    v_true, omega_true = window.twist[:3], window.twist[3:]
+    speed = float(np.linalg.norm(v_true))
+    result = fit(window.events, window.K, speed=speed)
+    error = lambda r: abs_rel(r.depth, truth, r.mask & np.isfinite(truth))  # noqa: E731
+    row = {
+        "fit": error(result),
+        "true_omega": error(fit(window.events, window.K, pose=np.r_[result.v, omega_true])),
+        "true_v": error(fit(window.events, window.K, pose=np.r_[v_true, result.omega])),
+        "omega_rms": float(np.degrees(np.sqrt(np.mean((result.omega - omega_true) ** 2)))),
+    }
+    settings = FitSettings()
+    w = Window.from_events(window.events, window.K, settings)
+    patches = make_patches(w, grid=(6, 8), min_events=100, max_events=20_000, margin=0.3)
+    objective = LocalMotionObjective.build(w, patches, speed)
+    dtype = objective.rays.dtype
+    patch_index, patch_weight = w.grid.weights(patches.x, patches.y)
+    with torch.no_grad():  # each patch event's true inverse depth, where the true motion takes it
+        rho_true = true_inverse_depth(patches.x, patches.y, objective.rays, objective.K, truth,
+                                      torch.as_tensor(v_true, dtype=dtype), torch.as_tensor(omega_true, dtype=dtype),
+                                      patches.dt)
+    structure, swept = [], []
+    for t in PROFILE_T:
+        v = v_true + t * (result.v - v_true)
+        v = speed * v / np.linalg.norm(v)
+        omega = omega_true + t * (result.omega - omega_true)
+        structure.append(max(_patch_score(objective, v, omega, rho_true * float(k)) for k in STRUCTURE_SCALES))
+        grid = torch.as_tensor(sweep(w, v, omega), dtype=dtype)
+        swept.append(_patch_score(objective, v, omega, DepthGrid.sample(grid, patch_index, patch_weight)))
+    at = {t: i for i, t in enumerate(PROFILE_T)}
+    row.update({
+        "peak_t_true_structure": PROFILE_T[int(np.argmax(structure))],
+        "peak_t_swept": PROFILE_T[int(np.argmax(swept))],
+        "gap_percent": 100.0 * (swept[at[1.0]] - swept[at[0.0]]) / swept[at[0.0]],
+        "parallax_px": float(result.parallax_px),
+    })
+    return row
+
+
+MEASURES = {"depth": ("depth", measure), "rotation": ("rotation", measure_rotation), "se3": ("se3", measure_se3)}
 TITLES = {
     "depth": "Depth with known motion (`pose=`): the fit against its floors",
     "rotation": "Rotation: the error of 30k-event subsets against all events",
+    "se3": "se3 with known speed: the depth error the rotation causes, and the ambiguity behind it",
 }
 NOTES = {
     "depth": "`node_step_*`: log factor between the inverse depth a node's contrast peaks at and the truth "
              "(positive: the contrast prefers nearer depths).",
     "rotation": "Relative omega errors `|omega - truth| / |truth|`; `subset_*` over 4 random 30k-event subsets "
                 "(seeds 0-3) of the same window.",
+    "se3": "abs_rel of the fit, with the true omega, with the true v; `peak_t_*`: where on the line truth (0) -> "
+           "fit (1) the patch-wise contrast peaks, with the true depth structure (one free scale) or with the "
+           "depth swept per motion; `gap_percent`: score(fit) - score(truth) with swept depth, in percent.",
 }
 
 
@@ -187,7 +273,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", default="100-119", help="first-last (default 100-119, the held-out seeds)")
     parser.add_argument("--cache", type=Path, default=None,
                         help="folder of simulated windows (benchmarks.accuracy_cmax)")
-    parser.add_argument("--sections", default="depth,rotation")
+    parser.add_argument("--sections", default="depth,rotation,se3")
     args = parser.parse_args(argv)
     seeds = parse_seeds(parser, args.seeds)
     sections = args.sections.split(",")
