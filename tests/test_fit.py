@@ -149,6 +149,11 @@ def test_fit_sequence_integrates_windows(slider):
     (dict(speed=-1.0), ValueError, "speed"),
     (dict(model="flow", speed=1.0), ValueError, "se3"),
     (dict(pose=np.zeros(5)), ValueError, "pose"),
+    (dict(omega=np.zeros(2)), ValueError, "omega must be an angular velocity"),
+    (dict(omega=[0.0, np.nan, 0.0]), ValueError, "omega must be finite"),
+    (dict(omega="fast"), ValueError, "omega must be 3 numbers"),
+    (dict(pose=np.zeros(6), omega=np.zeros(3)), ValueError, "pose or omega"),
+    (dict(model="rotation", omega=np.zeros(3)), ValueError, "se3"),
     (dict(bogus=1), TypeError, "bogus"),
     (dict(motion_init="random"), ValueError, "motion_init"),
 ])

@@ -152,6 +152,23 @@ def test_motion_field_fit_recovers_the_twist_from_exact_patch_flows():
     np.testing.assert_allclose(omega_fit, omega, atol=np.radians(0.5))
 
 
+def test_a_known_rotation_is_held_and_only_the_direction_is_solved():
+    """With the gyro's omega the exact flows leave almost no residual at the best direction (the
+    sphere's spacing is all that is left), and a rotation 3 deg/s off on one axis leaves 10x more."""
+    v, omega = np.array([0.2, -0.1, 0.5]), np.radians([5.0, -10.0, 3.0])
+    centres, flows = exact_patch_flows(np.random.default_rng(1), v, omega)
+    speed = float(np.linalg.norm(v))
+    v_fit, omega_fit, residual = motion_from_flows(centres, flows, np.ones(20), K346, speed, omega=omega,
+                                                   directions=20000)
+    assert angle_deg(v_fit, v) < 1.0
+    np.testing.assert_array_equal(omega_fit, omega)
+    assert residual < 0.01 * np.abs(flows).mean()
+    wrong = omega + np.radians([3.0, 0.0, 0.0])
+    _, _, residual_wrong = motion_from_flows(centres, flows, np.ones(20), K346, speed, omega=wrong,
+                                             directions=20000)
+    assert residual_wrong > 10 * residual
+
+
 def test_information_weights_ignore_flows_along_edges():
     """Eight of 20 patches see one edge each: their flow along the edge is garbage (+-40 px/s) and their
     information rank one. Weighted by information the twist comes back; weighted by counts it does not."""
@@ -256,3 +273,13 @@ def test_fit_with_a_known_speed_recovers_the_motion_of_a_point_scene(seed, max_o
     assert angle_deg(r.v, v) < 4.0
     assert np.degrees(np.sqrt(np.mean((r.omega - omega) ** 2))) < 1.0
     np.testing.assert_allclose(np.linalg.norm(r.v), np.linalg.norm(v))
+
+
+@pytest.mark.parametrize("motion_init", ["patches", "starts"])
+def test_fit_with_a_known_rotation_holds_it_and_finds_the_direction(motion_init):
+    """``fit(..., omega=...)``: the gyro's rotation comes back bit for bit, through either initialiser."""
+    events, K, v, omega = point_scene(2, max_omega_deg=40.0)
+    r = fit(events, K, speed=float(np.linalg.norm(v)), omega=omega, motion_init=motion_init)
+    np.testing.assert_array_equal(r.omega, omega)
+    assert angle_deg(r.v, v) < 4.0
+    assert r.scale_known

@@ -47,6 +47,10 @@ def add_fit_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--window-ms", type=float, default=166.5, help="window length [ms]")
     parser.add_argument("--step-ms", type=float, default=None, help="step between windows [ms]")
     parser.add_argument("--speed", type=float, default=None, help="known speed [m/s] (metric depth)")
+    parser.add_argument("--gyro", type=Path, default=None,
+                        help="gyroscope samples (se3): an .aedat4 file (its IMU stream) or a text file of "
+                             "'t wx wy wz' lines [s, rad/s], camera axes, the events' clock; each window's "
+                             "rotation is held at their mean, only direction and depth are fitted")
     parser.add_argument("--solver", choices=("scipy", "casadi", "torch"), default="scipy")
     parser.add_argument("--max-events", type=int, default=40_000)
     parser.set_defaults(run=run_fit)
@@ -66,14 +70,15 @@ def run_fit(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status."""
     from cmax import viz
     from cmax.fitting import fit_sequence
-    from cmax.io import read
+    from cmax.io import read, read_gyro
 
     events = read(args.file)
+    gyro = None if args.gyro is None else read_gyro(args.gyro)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     step = None if args.step_ms is None else int(args.step_ms * 1000)
     sequence = fit_sequence(events, args.K, args.model, window_us=int(args.window_ms * 1000), step_us=step,
-                            speed=args.speed, solver=args.solver, max_events=args.max_events)
+                            speed=args.speed, gyro=gyro, solver=args.solver, max_events=args.max_events)
     windows = []
     for i, r in enumerate(sequence.results):
         if r.depth is not None:
@@ -86,7 +91,8 @@ def run_fit(args: argparse.Namespace) -> int:
                         "scale_known": r.scale_known, "parallax_px": r.parallax_px})
     write_text_atomic(out / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
     summary = {"file": str(args.file), "model": args.model, "K": args.K.tolist(), "window_ms": args.window_ms,
-               "speed": args.speed, "solver": args.solver, "windows": windows}
+               "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro), "solver": args.solver,
+               "windows": windows}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
     print(f"{len(windows)} windows fitted; results in {out}")
     return 0

@@ -119,7 +119,8 @@ class LocalMotionObjective:
 
 def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, *, grid: tuple[int, int] = (6, 8),
                         min_events: int = 100, max_events: int = 20_000, margin: float = 0.3,
-                        rho_candidates: int = 24, iterations: int = 60) -> tuple[np.ndarray, np.ndarray]:
+                        rho_candidates: int = 24, iterations: int = 60, hold_omega: bool = False
+                        ) -> tuple[np.ndarray, np.ndarray]:
     """Refine ``v`` (3,) [m/s] and ``omega`` (3,) [rad/s] on the patch-wise contrast; ``|v|`` stays ``speed``.
 
     Parameters
@@ -138,6 +139,8 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, *, gr
         Inverse depths of the per-patch start sweep, log-uniform over the window's ``depth_range``.
     iterations : int
         L-BFGS-B iterations.
+    hold_omega : bool
+        Keep ``omega`` as given (a known rotation): only the direction and the depths move.
 
     Returns
     -------
@@ -157,6 +160,8 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, *, gr
     P, s_o, s_r = patches.count, objective.omega_scale, objective.rho_scale
     lower = np.r_[np.full(3, -2 * DIRECTION_SCALE), np.full(3, -6 * s_o), np.full(P, s_r / far)]
     upper = np.r_[np.full(3, 2 * DIRECTION_SCALE), np.full(3, 6 * s_o), np.full(P, s_r / near)]
+    if hold_omega:  # equal bounds: L-BFGS-B keeps these parameters fixed
+        lower[3:6] = upper[3:6] = x0[3:6]
 
     def fun_and_grad(x: np.ndarray) -> tuple[float, np.ndarray]:
         p = torch.tensor(x, dtype=torch.float64, requires_grad=True)

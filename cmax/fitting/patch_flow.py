@@ -284,7 +284,8 @@ def _weighted_system(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray
 
 
 def motion_from_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray, K: np.ndarray, speed: float,
-                      *, directions: int = 3000, refine: bool = True) -> tuple[np.ndarray, np.ndarray, float]:
+                      *, directions: int = 3000, refine: bool = True, omega: np.ndarray | None = None
+                      ) -> tuple[np.ndarray, np.ndarray, float]:
     """Best ``v`` (3,) [m/s, norm ``speed``], ``omega`` (3,) [rad/s] and the weighted RMS residual [px/s].
 
     Parameters
@@ -306,20 +307,24 @@ def motion_from_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarra
         Candidate directions (Fibonacci sphere; 3000: ~3.7 deg apart).
     refine : bool
         Then 400 directions in a cap of 1.5 spacings around the best.
+    omega : ndarray (3,), optional
+        A known angular velocity [rad/s] (a gyroscope's): it is held, and each
+        direction's least squares solves the patches' inverse depths only.
     """
     P = len(centres)
     if P < 4:
         raise ValueError(f"need at least 4 patches with events to initialise the motion, got {P}")
     LA, LB, b = _weighted_system(centres, flows, weights, K)
+    known = None if omega is None else np.asarray(omega, dtype=np.float64).reshape(3)
     t = fibonacci_sphere(directions)                                       # (D, 3)
-    score, omega, residual = _direction_scores(t, LA, LB, b, speed)
+    score, omegas, residual = _direction_scores(t, LA, LB, b, speed, known)
     best = int(np.argmin(score))
     if refine:  # a finer cap around the best: the sphere's points are ~3.7 deg apart for 3000
         spacing = math.sqrt(4 * math.pi / directions)
         t = np.vstack([t[best], spherical_cap(t[best], 1.5 * spacing, 400)])
-        score, omega, residual = _direction_scores(t, LA, LB, b, speed)
+        score, omegas, residual = _direction_scores(t, LA, LB, b, speed, known)
         best = int(np.argmin(score))
-    return speed * t[best], omega[best], float(residual[best])
+    return speed * t[best], omegas[best], float(residual[best])
 
 
 def spherical_cap(axis: np.ndarray, radius: float, count: int) -> np.ndarray:
@@ -335,33 +340,43 @@ def spherical_cap(axis: np.ndarray, radius: float, count: int) -> np.ndarray:
     return (cos_t[:, None] * axis + sin_t[:, None] * (np.cos(phi)[:, None] * e1 + np.sin(phi)[:, None] * e2))
 
 
-def _direction_scores(t: np.ndarray, LA: np.ndarray, LB: np.ndarray, b: np.ndarray, speed: float
-                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+def _direction_scores(t: np.ndarray, LA: np.ndarray, LB: np.ndarray, b: np.ndarray, speed: float,
+                      omega: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Score (D,), omega (D, 3) [rad/s] and RMS residual (D,) of directions ``t`` (D, 3).
 
     The weighted motion-field rows ``LA``, ``LB`` (P, 2, 3) and flows ``b`` (2P,);
-    per direction one least-squares problem in ``omega`` and the patches'
-    inverse depths. The score is the residual times ``1 + 4 x`` (x: the fraction of negative depths).
+    per direction one least-squares problem in ``omega`` (unless it is known)
+    and the patches' inverse depths. The score is the residual times ``1 + 4 x``
+    (x: the fraction of negative depths).
     """
-    x, residual = _solve_directions(t, LA, LB, b, speed)
+    x, residual = _solve_directions(t, LA, LB, b, speed, omega)
     negative = (x[:, 3:] < 0).mean(1)
     return residual * (1 + 4 * negative), x[:, :3], residual
 
 
-def _solve_directions(t: np.ndarray, LA: np.ndarray, LB: np.ndarray, b: np.ndarray, speed: float
-                      ) -> tuple[np.ndarray, np.ndarray]:
-    """Least-squares ``(omega, rho_1..P)`` (D, 3 + P) and RMS residual (D,) for each direction of ``t`` (D, 3)."""
+def _solve_directions(t: np.ndarray, LA: np.ndarray, LB: np.ndarray, b: np.ndarray, speed: float,
+                      omega: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray]:
+    """Least-squares ``(omega, rho_1..P)`` (D, 3 + P) and RMS residual (D,) for each direction of ``t`` (D, 3).
+
+    With a known ``omega`` (3,) [rad/s] its flow is taken off ``b`` and only the
+    inverse depths are solved; the returned ``omega`` columns are that one.
+    """
     P = LA.shape[0]
     D = len(t)
+    unknowns = 3 if omega is None else 0
+    if omega is not None:
+        b = b - LB.reshape(2 * P, 3) @ omega
     a = np.einsum("pik,dk->dpi", LA, t) * speed                            # (D, P, 2): rho_p multiplies it
-    M = np.zeros((D, 2 * P, 3 + P))
-    M[:, :, :3] = LB.reshape(2 * P, 3)[None]
+    M = np.zeros((D, 2 * P, unknowns + P))
+    M[:, :, :unknowns] = LB.reshape(2 * P, 3)[None, :, :unknowns]
     rows = np.arange(2 * P)
-    M[:, rows, 3 + rows // 2] = a.reshape(D, 2 * P)
-    MtM = np.einsum("dki,dkj->dij", M, M) + 1e-9 * np.eye(3 + P)
+    M[:, rows, unknowns + rows // 2] = a.reshape(D, 2 * P)
+    MtM = np.einsum("dki,dkj->dij", M, M) + 1e-9 * np.eye(unknowns + P)
     Mtb = np.einsum("dki,k->di", M, b)
-    x = np.linalg.solve(MtM, Mtb[..., None])[..., 0]                      # (D, 3 + P)
+    x = np.linalg.solve(MtM, Mtb[..., None])[..., 0]                      # (D, unknowns + P)
     residual = np.sqrt(np.mean((np.einsum("dkj,dj->dk", M, x) - b) ** 2, axis=1))
+    if omega is not None:
+        x = np.concatenate([np.broadcast_to(omega, (D, 3)), x], axis=1)
     return x, residual
 
 

@@ -9,7 +9,7 @@ from cmax.events import Events
 from cmax.fitting.window import FitResult, fit
 from cmax.geometry import se3_exp
 
-__all__ = ["SequenceResult", "fit_sequence"]
+__all__ = ["SequenceResult", "fit_sequence", "check_gyro", "window_gyro"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -32,8 +32,40 @@ class SequenceResult:
     poses: np.ndarray
 
 
+def check_gyro(gyro: object) -> tuple[np.ndarray, np.ndarray]:
+    """Validated gyroscope samples: ``(times_us (N,) int64 increasing, omega (N, 3) float64 [rad/s])``, N >= 2."""
+    try:
+        times, omega = gyro
+        times = np.asarray(times)
+        omega = np.asarray(omega, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError("gyro must be (times_us (N,), omega (N, 3) [rad/s])") from None
+    if times.ndim != 1 or len(times) < 2 or omega.shape != (len(times), 3):
+        raise ValueError(f"gyro must be (times_us (N,), omega (N, 3) [rad/s]) with N >= 2, got shapes "
+                         f"{times.shape} and {omega.shape}")
+    if not np.issubdtype(times.dtype, np.number) or not np.isfinite(times).all() or np.any(np.diff(times) <= 0):
+        raise ValueError("gyro times_us must be finite and strictly increasing")
+    if not np.isfinite(omega).all():
+        raise ValueError("gyro omega must be finite")
+    return times.astype(np.int64), omega
+
+
+def window_gyro(gyro: tuple[np.ndarray, np.ndarray], t0_us: int, t1_us: int) -> np.ndarray:
+    """Mean angular velocity (3,) [rad/s] over ``[t0_us, t1_us]`` of the samples of :func:`check_gyro`,
+    linearly interpolated between them (the window's constant rotation of ``cmax.fit(..., omega=)``)."""
+    times, omega = gyro
+    if t0_us < times[0] or t1_us > times[-1]:
+        raise ValueError(f"gyro covers {int(times[0])}-{int(times[-1])} us, not the window {t0_us}-{t1_us} us")
+    inside = times[(times > t0_us) & (times < t1_us)]
+    t = np.concatenate([[t0_us], inside, [t1_us]]).astype(np.float64)
+    values = np.column_stack([np.interp(t, times, omega[:, axis]) for axis in range(3)])
+    areas = 0.5 * (values[1:] + values[:-1]) * np.diff(t)[:, None]          # trapezoids (numpy 1.x has no trapezoid)
+    return areas.sum(0) / (t[-1] - t[0])
+
+
 def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_500, step_us: int | None = None,
-                 speed: float | None = None, min_events: int = 1000, **fit_options) -> SequenceResult:
+                 speed: float | None = None, gyro: object = None, min_events: int = 1000,
+                 **fit_options) -> SequenceResult:
     """Fit consecutive windows of a recording, warm-starting each from the previous.
 
     Parameters
@@ -46,6 +78,12 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         Window length and the step between window starts [µs] (``step_us`` defaults to ``window_us``).
     speed : float, optional
         Known speed [m/s] of every window.
+    gyro : (times_us (N,), omega (N, 3)), optional
+        Gyroscope samples [µs, rad/s] in the camera's axes and on the events'
+        clock (se3): each window's rotation is held at their mean over the
+        window (:func:`window_gyro`, ``fit(..., omega=)``), and only the
+        translation direction and the depth are fitted. A gyroscope's
+        zero-rate offset goes straight into the depth: calibrate it first.
     min_events : int
         Windows with fewer events are skipped (the pose is held by the last twist).
     **fit_options
@@ -54,6 +92,10 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     step_us = window_us if step_us is None else int(step_us)
     if window_us <= 0 or step_us <= 0:
         raise ValueError(f"window_us and step_us must be positive, got {window_us}, {step_us}")
+    if gyro is not None:
+        if model != "se3":
+            raise ValueError(f"gyro applies to model='se3', not {model!r}")
+        gyro = check_gyro(gyro)
     if isinstance(source, Events):
         t_start, t_end = int(source.t[0]), int(source.t[-1])
         take = lambda a, b: source.slice_time(a, b) if hasattr(source, "slice_time") else _slice(source, a, b)  # noqa: E731
@@ -69,7 +111,9 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         events = take(t0, t0 + window_us)
         twist = previous.twist if previous is not None else np.zeros(6)
         if len(events) >= min_events and events.t[-1] > events.t[0]:
-            previous = fit(events, K, model, speed=speed if model == "se3" else None, init=previous, **fit_options)
+            omega = None if gyro is None else window_gyro(gyro, int(events.t[0]), int(events.t[-1]))
+            previous = fit(events, K, model, speed=speed if model == "se3" else None, omega=omega, init=previous,
+                           **fit_options)
             results.append(previous)
             twist = previous.twist
         poses.append(poses[-1] @ se3_exp(twist * step_us * 1e-6))

@@ -247,7 +247,17 @@ def sweep(w: Window, v: np.ndarray, omega: np.ndarray) -> np.ndarray:
     return result.inverse_depth
 
 
-def _fit_motion(w: Window, se3: SE3Model, omega: np.ndarray, init: "FitResult | None") -> tuple[np.ndarray, np.ndarray]:
+def _omega_bounds(se3: SE3Model, omega: np.ndarray, hold: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the angular-velocity parameters [px]: +-6 rad/s, or equal to ``omega`` when it is held."""
+    if hold:
+        value = np.asarray(omega, float) * se3.omega_scale
+        return value, value.copy()
+    bound = 6.0 * se3.omega_scale
+    return -np.full(3, bound), np.full(3, bound)
+
+
+def _fit_motion(w: Window, se3: SE3Model, omega: np.ndarray, init: "FitResult | None", hold_omega: bool = False
+                ) -> tuple[np.ndarray, np.ndarray]:
     """Translation direction from several starts (constant depth), then at full resolution."""
     s = w.settings
     lo_q, hi_q = se3.q_bounds
@@ -255,9 +265,9 @@ def _fit_motion(w: Window, se3: SE3Model, omega: np.ndarray, init: "FitResult | 
     if init is not None and np.linalg.norm(init.v) > 0:
         starts = [init.v / np.linalg.norm(init.v)] + starts
     q0 = math.sqrt(lo_q * hi_q)
-    bound_o = 6.0 * se3.omega_scale
-    lower = np.r_[-np.ones(3) * 2, -np.ones(3) * bound_o, lo_q]
-    upper = np.r_[np.ones(3) * 2, np.ones(3) * bound_o, hi_q]
+    lower_o, upper_o = _omega_bounds(se3, omega, hold_omega)
+    lower = np.r_[-np.ones(3) * 2, lower_o, lo_q]
+    upper = np.r_[np.ones(3) * 2, upper_o, hi_q]
     speed_slice = None if se3.unit_norm else slice(0, 3)
     best = None
     for u0 in starts:
@@ -269,36 +279,43 @@ def _fit_motion(w: Window, se3: SE3Model, omega: np.ndarray, init: "FitResult | 
     return se3.speed * x[:3] / np.linalg.norm(x[:3]), x[3:6] / se3.omega_scale
 
 
-def _refine_motion(w: Window, se3: SE3Model, v: np.ndarray, omega: np.ndarray, rho_grid: np.ndarray
-                   ) -> tuple[np.ndarray, np.ndarray]:
+def _refine_motion(w: Window, se3: SE3Model, v: np.ndarray, omega: np.ndarray, rho_grid: np.ndarray,
+                   hold_omega: bool = False) -> tuple[np.ndarray, np.ndarray]:
     """The motion with the depth grid held (one solve at full resolution)."""
-    bound_o = 6.0 * se3.omega_scale
+    lower_o, upper_o = _omega_bounds(se3, omega, hold_omega)
     q = torch.as_tensor(rho_grid * se3.q_scale, dtype=torch.float64)
-    lower, upper = np.r_[-np.ones(3) * 2, -np.ones(3) * bound_o], np.r_[np.ones(3) * 2, np.ones(3) * bound_o]
+    lower, upper = np.r_[-np.ones(3) * 2, lower_o], np.r_[np.ones(3) * 2, upper_o]
     x = w.run(lambda p: se3.motion_loss(p, 1, q_fixed=q), np.r_[v / se3.speed, omega * se3.omega_scale],
               lower, upper, speed_slice=None if se3.unit_norm else slice(0, 3)).x
     return se3.speed * x[:3] / np.linalg.norm(x[:3]), x[3:6] / se3.omega_scale
 
 
-def fit_se3(w: Window, *, speed: float, pose_xi: np.ndarray | None, init: "FitResult | None"
-            ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """Returns v [m/s], omega [rad/s], inverse-depth grid (gh, gw) [1/m]."""
+def fit_se3(w: Window, *, speed: float, pose_xi: np.ndarray | None, init: "FitResult | None",
+            omega: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Returns v [m/s], omega [rad/s], inverse-depth grid (gh, gw) [1/m].
+
+    A known ``omega`` (3,) [rad/s] (a gyroscope's) is held through every stage:
+    only the translation direction and the depth are fitted.
+    """
     if pose_xi is not None:
         v, omega = pose_xi[:3], pose_xi[3:]
         return v, omega, sweep(w, v, omega).reshape(w.grid.shape)
+    hold = omega is not None
+    known = None if omega is None else np.asarray(omega, dtype=np.float64).copy()
     se3 = SE3Model(w, speed)
     centres = None
     if w.settings.motion_init == "patches":
         centres, flows, _, information = patch_flows(w)
     if centres is not None and len(centres) >= 4:
-        v, omega, _ = motion_from_flows(centres, flows, information, w.ev.K.double().numpy(), speed)
+        v, omega, _ = motion_from_flows(centres, flows, information, w.ev.K.double().numpy(), speed, omega=omega)
         if w.settings.motion_refinement == "local":
-            v, omega = refine_motion_local(w, v, omega, speed)
+            v, omega = refine_motion_local(w, v, omega, speed, hold_omega=hold)
     else:  # "starts", or too few patches with events for the motion-field fit
-        omega = fit_rotation(w, init.omega if init is not None else np.zeros(3))
-        v, omega = _fit_motion(w, se3, omega, init)
+        if not hold:
+            omega = fit_rotation(w, init.omega if init is not None else np.zeros(3))
+        v, omega = _fit_motion(w, se3, omega, init, hold_omega=hold)
     rho = sweep(w, v, omega)
     for _ in range(w.settings.alternations):
-        v, omega = _refine_motion(w, se3, v, omega, rho)
+        v, omega = _refine_motion(w, se3, v, omega, rho, hold_omega=hold)
         rho = sweep(w, v, omega)
-    return v, omega, rho.reshape(w.grid.shape)
+    return v, (known if hold else omega), rho.reshape(w.grid.shape)

@@ -27,6 +27,7 @@ import numpy as np
 from cmax.events import Events
 from cmax.io.aedat4 import read_aedat4, read_aedat4_imu
 from cmax.io.errors import FormatError
+from cmax.io.gyro import read_gyro
 from cmax.io.h5 import H5_ERRORS, H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
 from cmax.io.mvsec import read_mvsec
 from cmax.io.prophesee import read_evt2, read_evt3, read_raw, write_evt2, write_evt3
@@ -35,7 +36,7 @@ from cmax.io.text import read_txt, write_txt
 __all__ = [
     "FormatError", "detect_format", "read",
     "H5Reader", "H5Writer", "read_h5", "write_h5",
-    "read_mvsec", "read_txt", "write_txt", "read_aedat4", "read_aedat4_imu",
+    "read_mvsec", "read_txt", "write_txt", "read_aedat4", "read_aedat4_imu", "read_gyro",
     "read_raw", "read_evt2", "read_evt3", "write_evt2", "write_evt3",
 ]
 

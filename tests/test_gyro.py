@@ -1,0 +1,102 @@
+"""A known rotation from a gyroscope: ``cmax.fit(..., omega=)``, ``fit_sequence(gyro=)``, ``cmax fit --gyro``."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cmax.cli import main
+from cmax.fitting import fit_sequence
+from cmax.fitting.sequence import check_gyro, window_gyro
+from cmax.io import FormatError, read_gyro, write_h5
+from test_fit_motion import angle_deg, point_scene
+
+
+def test_window_mean_of_a_ramp_is_its_value_at_the_middle():
+    """Samples of omega(t) = a + b t every 5 ms; windows whose edges fall between samples."""
+    times = np.arange(0, 1_000_001, 5_000)
+    a, b = np.array([0.1, -0.2, 0.3]), np.array([0.5, 1.0, -2.0])           # rad/s, rad/s^2
+    omega = a + b * times[:, None] * 1e-6
+    gyro = check_gyro((times, omega))
+    for t0, t1 in [(12_345, 178_901), (0, 1_000_000), (500_001, 500_002)]:
+        np.testing.assert_allclose(window_gyro(gyro, t0, t1), a + b * 0.5 * (t0 + t1) * 1e-6, rtol=1e-12)
+
+
+@pytest.mark.parametrize("gyro, match", [
+    ((np.array([0, 10]), np.zeros((3, 3))), "shapes"),
+    ((np.array([0]), np.zeros((1, 3))), "N >= 2"),
+    ((np.array([0, 10, 10]), np.zeros((3, 3))), "strictly increasing"),
+    ((np.array([0, 10]), np.array([[0, 0, 0], [0, np.nan, 0]])), "finite"),
+    ("gyro.txt", "gyro must be"),
+])
+def test_bad_gyro(gyro, match):
+    with pytest.raises(ValueError, match=match):
+        check_gyro(gyro)
+
+
+def test_window_outside_the_gyro_is_an_error():
+    gyro = check_gyro((np.array([100, 200]), np.zeros((2, 3))))
+    with pytest.raises(ValueError, match="gyro covers 100-200 us"):
+        window_gyro(gyro, 150, 250)
+
+
+def test_read_gyro_text_and_bad_columns(tmp_path):
+    path = tmp_path / "gyro.txt"
+    path.write_text("# t wx wy wz\n0.000100 0.1 0.2 0.3\n0.000200 -0.1 0 1e-3\n")
+    times, omega = read_gyro(path)
+    np.testing.assert_array_equal(times, [100, 200])
+    np.testing.assert_allclose(omega, [[0.1, 0.2, 0.3], [-0.1, 0.0, 1e-3]])
+    (tmp_path / "bad.txt").write_text("0.1 0.2 0.3\n")
+    with pytest.raises(FormatError, match="t wx wy wz"):
+        read_gyro(tmp_path / "bad.txt")
+
+
+def test_read_gyro_from_an_aedat4_file_is_in_radians(shared_data):
+    from cmax.io import read_aedat4_imu
+
+    path = shared_data / "davis346_pegboard" / "davis.aedat4"
+    times, omega = read_gyro(path)
+    imu = read_aedat4_imu(path, sort=True)
+    np.testing.assert_allclose(np.degrees(omega), imu.gyroscope, rtol=1e-6)
+    assert np.all(np.diff(times) > 0)
+
+
+@pytest.fixture(scope="module")
+def scene():
+    """Two 0.15 s windows of a point scene under a constant twist."""
+    return point_scene(2, duration_s=0.3, points=5000, max_omega_deg=30.0)
+
+
+def test_fit_sequence_holds_each_window_at_the_gyro_mean(scene):
+    events, K, v, omega = scene
+    times = np.arange(-10_000, 320_001, 2_500)
+    ramp = omega + np.radians(2.0) * (times[:, None] * 1e-6)                 # a slowly changing reading
+    result = fit_sequence(events, K, window_us=145_000, speed=float(np.linalg.norm(v)), gyro=(times, ramp))
+    assert len(result.results) == 2
+    for r in result.results:
+        np.testing.assert_allclose(r.omega, window_gyro((times, ramp), r.t0_us, r.t1_us), rtol=1e-12)
+        assert angle_deg(r.v, v) < 6.0
+
+
+def test_gyro_is_for_se3_only(scene):
+    events, K, _, omega = scene
+    with pytest.raises(ValueError, match="se3"):
+        fit_sequence(events, K, "rotation", gyro=(np.array([0, 400_000]), np.stack([omega, omega])))
+
+
+def test_cli_fit_with_a_gyro_file(scene, tmp_path):
+    """`cmax fit --gyro`: every window's rotation in summary.json is the gyro's, the rest is fitted."""
+    events, K, v, omega = scene
+    write_h5(tmp_path / "scene.h5", events)
+    lines = [f"{t:.6f} {omega[0]:.12g} {omega[1]:.12g} {omega[2]:.12g}" for t in np.arange(0.0, 0.31, 0.01)]
+    (tmp_path / "gyro.txt").write_text("\n".join(lines) + "\n")
+    args = ["fit", str(tmp_path / "scene.h5"), "--K", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}",
+            "-o", str(tmp_path / "out"), "--window-ms", "145", "--speed", str(float(np.linalg.norm(v))),
+            "--gyro", str(tmp_path / "gyro.txt")]
+    assert main(args) == 0
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert summary["gyro"].endswith("gyro.txt") and len(summary["windows"]) == 2
+    for window in summary["windows"]:
+        np.testing.assert_allclose(window["omega"], omega, rtol=1e-9)
+        assert angle_deg(np.array(window["v"]), v) < 6.0
