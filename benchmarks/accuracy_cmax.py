@@ -94,7 +94,8 @@ def run_depth(window) -> dict:
 
 
 def gyro_reading(window, seed: int, bias_deg_s: float) -> np.ndarray:
-    """The window's true angular velocity [rad/s] plus a bias of ``bias_deg_s`` on each axis, signs drawn from ``seed``."""
+    """A gyroscope's reading (3,) [rad/s]: the window's true angular velocity plus ``bias_deg_s`` on each
+    axis, the signs drawn from ``seed``."""
     signs = np.random.default_rng(seed).choice([-1.0, 1.0], 3)
     return window.twist[3:] + np.radians(bias_deg_s) * signs
 

@@ -156,6 +156,7 @@ def test_fit_sequence_integrates_windows(slider):
     (dict(model="rotation", omega=np.zeros(3)), ValueError, "se3"),
     (dict(bogus=1), TypeError, "bogus"),
     (dict(motion_init="random"), ValueError, "motion_init"),
+    (dict(zero_rotation_start="yes"), TypeError, "zero_rotation_start"),
 ])
 def test_bad_arguments(kwargs, error, match):
     events = Events(np.arange(20) % 10, np.arange(20) % 7, np.arange(20) * 100, np.ones(20), 12, 9)
@@ -342,3 +343,20 @@ def test_pegboard_rotation_agrees_with_the_aps_frames(shared_data):
     r = fit(events.slice_time(int(mid[0]), int(mid[2]) + 1), K, model="rotation")
     np.testing.assert_allclose(np.degrees(r.omega), aps, atol=1.5)  # 0.14, 0.2, 0.76 deg/s measured
     assert r.objective_after >= 1.0
+
+
+@pytest.mark.slow
+def test_prophesee_drive_points_forward_with_the_zero_rotation_start(shared_data):
+    """The Gen4 drive (8.8 ms, K assumed as in benchmarks/real_cmax.py): the second start of the local
+    refinement finds forward motion; the default fit alone ends at a pitching plane (benchmarks/results/
+    real_cmax.md)."""
+    from benchmarks.real_cmax import K_GEN4
+    from cmax.io import read
+
+    full = read(shared_data / "prophesee_gen4_driving" / "evt3_sample.raw")
+    events = Events(full.x // 2, full.y // 2, full.t, full.p, full.width // 2, full.height // 2)
+    K = K_GEN4 * np.array([[0.5], [0.5], [1.0]])
+    K[:2, 2] = (K_GEN4[:2, 2] + 0.5) / 2 - 0.5
+    r = fit(events, K, depth_range=(0.05, 50.0), max_events=30_000, zero_rotation_start=True)
+    direction = r.v / np.linalg.norm(r.v)
+    assert np.degrees(np.arccos(direction[2])) < 10.0

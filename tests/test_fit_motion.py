@@ -266,6 +266,22 @@ def test_local_refinement_recovers_from_a_tilted_start():
     np.testing.assert_allclose(omega1, omega, atol=np.radians(1.0))
 
 
+@pytest.mark.parametrize("good_first", [True, False])
+def test_refinement_keeps_the_best_of_several_starts(good_first):
+    """A start on the far side (a direction 90 deg off with a wrong rotation) next to a good one: the
+    better-scoring refinement wins, whichever order they come in."""
+    events, K, v, omega = point_scene(2)
+    w = make_window(events, K)
+    speed = float(np.linalg.norm(v))
+    bad = (np.cross(v, [0.0, 0.0, 1.0]) * speed / np.linalg.norm(np.cross(v, [0.0, 0.0, 1.0])),
+           omega + np.radians([20.0, -20.0, 10.0]))
+    good = (v, omega)
+    first, second = (good, bad) if good_first else (bad, good)
+    alone = refine_motion_local(w, *bad, speed)
+    v1, omega1 = refine_motion_local(w, *first, speed, more_starts=[second])
+    assert angle_deg(v1, v) < 4.0 < angle_deg(alone[0], v)
+
+
 @pytest.mark.parametrize("seed, max_omega_deg", [(1, 12.0), (2, 40.0)])
 def test_fit_with_a_known_speed_recovers_the_motion_of_a_point_scene(seed, max_omega_deg):
     events, K, v, omega = point_scene(seed, max_omega_deg=max_omega_deg)

@@ -29,6 +29,7 @@ contrast with a shared motion).
 from __future__ import annotations
 
 from dataclasses import dataclass
+from typing import Sequence
 
 import numpy as np
 import torch
@@ -119,8 +120,8 @@ class LocalMotionObjective:
 
 def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, *, grid: tuple[int, int] = (6, 8),
                         min_events: int = 100, max_events: int = 20_000, margin: float = 0.3,
-                        rho_candidates: int = 24, iterations: int = 60, hold_omega: bool = False
-                        ) -> tuple[np.ndarray, np.ndarray]:
+                        rho_candidates: int = 24, iterations: int = 60, hold_omega: bool = False,
+                        more_starts: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> tuple[np.ndarray, np.ndarray]:
     """Refine ``v`` (3,) [m/s] and ``omega`` (3,) [rad/s] on the patch-wise contrast; ``|v|`` stays ``speed``.
 
     Parameters
@@ -128,6 +129,10 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, *, gr
     w : cmax.fitting.stages.Window
     v, omega : ndarray (3,)
         The start (e.g. :func:`cmax.fitting.patch_flow.motion_from_flows`).
+    more_starts : sequence of (v, omega)
+        Further starts, each refined the same way; the refined motion with the
+        highest patch-wise contrast wins (the objective is the same for all, so
+        this is a multi-start of one optimisation).
     speed : float
         ``|v|`` [m/s].
     grid : (rows, cols)
@@ -147,17 +152,30 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, *, gr
     v, omega : ndarray (3,)
         The start itself when fewer than 4 patches hold ``min_events``.
     """
-    from scipy.optimize import minimize
-
     patches = make_patches(w, grid=grid, min_events=min_events, max_events=max_events, margin=margin)
     if patches is None or patches.count < 4:
         return np.asarray(v, float), np.asarray(omega, float)
     objective = LocalMotionObjective.build(w, patches, speed)
     near, far = w.settings.depth_range
     candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), rho_candidates))
+    best = None
+    for start_v, start_omega in [(v, omega), *more_starts]:
+        value, v1, omega1 = _refine_from(w, objective, np.asarray(start_v, float), np.asarray(start_omega, float),
+                                         candidates, iterations, hold_omega)
+        if best is None or value < best[0]:
+            best = (value, v1, omega1)
+    return best[1], best[2]
+
+
+def _refine_from(w, objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray, candidates: np.ndarray,
+                 iterations: int, hold_omega: bool) -> tuple[float, np.ndarray, np.ndarray]:
+    """One L-BFGS-B refinement from ``(v, omega)``: final ``-J``, ``v`` (3,), ``omega`` (3,)."""
+    from scipy.optimize import minimize
+
+    near, far = w.settings.depth_range
     rho0 = objective.sweep_rho(v, omega, candidates)
     x0 = objective.params(v, omega, rho0)
-    P, s_o, s_r = patches.count, objective.omega_scale, objective.rho_scale
+    P, s_o, s_r = objective.patches.count, objective.omega_scale, objective.rho_scale
     lower = np.r_[np.full(3, -2 * DIRECTION_SCALE), np.full(3, -6 * s_o), np.full(P, s_r / far)]
     upper = np.r_[np.full(3, 2 * DIRECTION_SCALE), np.full(3, 6 * s_o), np.full(P, s_r / near)]
     if hold_omega:  # equal bounds: L-BFGS-B keeps these parameters fixed
@@ -174,4 +192,4 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, *, gr
     w.iterations += int(result.nit)
     w.evaluations += int(result.nfev)
     v1, omega1, _ = objective.motion(result.x)
-    return v1, omega1
+    return float(result.fun), v1, omega1

@@ -307,9 +307,14 @@ def fit_se3(w: Window, *, speed: float, pose_xi: np.ndarray | None, init: "FitRe
     if w.settings.motion_init == "patches":
         centres, flows, _, information = patch_flows(w)
     if centres is not None and len(centres) >= 4:
-        v, omega, _ = motion_from_flows(centres, flows, information, w.ev.K.double().numpy(), speed, omega=omega)
+        K = w.ev.K.double().numpy()
+        v, omega, _ = motion_from_flows(centres, flows, information, K, speed, omega=omega)
         if w.settings.motion_refinement == "local":
-            v, omega = refine_motion_local(w, v, omega, speed, hold_omega=hold)
+            more_starts = []
+            if w.settings.zero_rotation_start and not hold:  # the flows explained without rotation
+                v_still, omega_still, _ = motion_from_flows(centres, flows, information, K, speed, omega=np.zeros(3))
+                more_starts.append((v_still, omega_still))
+            v, omega = refine_motion_local(w, v, omega, speed, hold_omega=hold, more_starts=more_starts)
     else:  # "starts", or too few patches with events for the motion-field fit
         if not hold:
             omega = fit_rotation(w, init.omega if init is not None else np.zeros(3))
