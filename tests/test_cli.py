@@ -138,3 +138,25 @@ def test_fit_writes_depth_trajectory_and_summary(tmp_path):
     summary = json.loads((out / "summary.json").read_text())
     assert len(summary["windows"]) == len(rows) - 1 >= 2
     assert all(window["parallax_px"] > 0 and window["scale_known"] for window in summary["windows"])
+    assert summary["zero_rotation_start"] is False
+
+
+def test_fit_with_the_zero_rotation_start(tmp_path):
+    """`cmax fit --zero-rotation-start` reaches the fit: a second refinement runs (more solver
+    iterations than without the flag), and the summary records it."""
+    import json
+
+    from cmax.synthetic_windows import make_window
+
+    w = make_window("slider", 7, width=120, height=90, focal=90.0, duration_s=0.1)
+    write_h5(tmp_path / "slider.h5", w.events)
+    K = w.K
+    args = ["fit", str(tmp_path / "slider.h5"), "--K", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}",
+            "--window-ms", "90", "--max-events", "15000"]
+    summaries = []
+    for name, flag in (("plain", []), ("both", ["--zero-rotation-start"])):
+        assert main(args + ["-o", str(tmp_path / name)] + flag) == 0
+        summaries.append(json.loads((tmp_path / name / "summary.json").read_text()))
+    plain, both = summaries
+    assert (plain["zero_rotation_start"], both["zero_rotation_start"]) == (False, True)
+    assert both["windows"][0]["iterations"] > plain["windows"][0]["iterations"]
