@@ -129,10 +129,6 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, *, gr
     w : cmax.fitting.stages.Window
     v, omega : ndarray (3,)
         The start (e.g. :func:`cmax.fitting.patch_flow.motion_from_flows`).
-    more_starts : sequence of (v, omega)
-        Further starts, each refined the same way; the refined motion with the
-        highest patch-wise contrast wins (the objective is the same for all, so
-        this is a multi-start of one optimisation).
     speed : float
         ``|v|`` [m/s].
     grid : (rows, cols)
@@ -146,6 +142,10 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, *, gr
         L-BFGS-B iterations.
     hold_omega : bool
         Keep ``omega`` as given (a known rotation): only the direction and the depths move.
+    more_starts : sequence of (v, omega)
+        Further starts, each refined the same way; the refined motion with the
+        highest patch-wise contrast wins (the objective is the same for all, so
+        this is a multi-start of one optimisation).
 
     Returns
     -------
