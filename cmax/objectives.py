@@ -96,6 +96,7 @@ def contrast_of_images(images: torch.Tensor, kind: str = "variance") -> torch.Te
 def multi_reference_contrast(
     x: torch.Tensor, y: torch.Tensor, *, height: int, width: int, weights: torch.Tensor | None = None,
     sigma: float = 1.0, kind: str = "variance", baseline: torch.Tensor | float = 1.0,
+    on: torch.Tensor | None = None,
 ) -> torch.Tensor:
     """Mean contrast of the IWEs of B sets of warped coordinates, divided by ``baseline``.
 
@@ -110,6 +111,11 @@ def multi_reference_contrast(
     kind : {"variance", "gradient"}
     baseline : Tensor or float
         The same quantity for the identity warp (normalisation), or 1.
+    on : Tensor (N,) or None
+        1 for ON events, 0 for OFF: one IWE per polarity and the sum of
+        their contrasts (an ON edge and the OFF edge that trails it stay
+        apart instead of blurring into one wider edge; with one polarity
+        only, the other image is empty and adds nothing).
 
     Returns
     -------
@@ -118,8 +124,14 @@ def multi_reference_contrast(
     if x.dim() != 2 or x.shape != y.shape:
         raise ValueError(f"x and y must have the same shape (B, N), got {tuple(x.shape)}, {tuple(y.shape)}")
     w = None if weights is None else weights.expand_as(x)
-    images = blur(accumulate_bilinear(x, y, w, height, width), sigma)
-    return contrast_of_images(images, kind).mean() / baseline
+    if on is None:
+        images = blur(accumulate_bilinear(x, y, w, height, width), sigma)
+        return contrast_of_images(images, kind).mean() / baseline
+    B = x.shape[0]
+    on = on.to(x.dtype).expand_as(x)
+    votes = torch.cat([on, 1 - on]) if w is None else torch.cat([on * w, (1 - on) * w])
+    images = blur(accumulate_bilinear(torch.cat([x, x]), torch.cat([y, y]), votes, height, width), sigma)
+    return contrast_of_images(images, kind).view(2, B).sum(0).mean() / baseline
 
 
 def deformation(x0: torch.Tensor, y0: torch.Tensor, x1: torch.Tensor, y1: torch.Tensor) -> torch.Tensor:

@@ -157,6 +157,7 @@ def test_fit_sequence_integrates_windows(slider):
     (dict(bogus=1), TypeError, "bogus"),
     (dict(motion_init="random"), ValueError, "motion_init"),
     (dict(zero_rotation_start="yes"), TypeError, "zero_rotation_start"),
+    (dict(polarity_split=1), TypeError, "polarity_split"),
 ])
 def test_bad_arguments(kwargs, error, match):
     events = Events(np.arange(20) % 10, np.arange(20) % 7, np.arange(20) * 100, np.ones(20), 12, 9)
@@ -250,6 +251,8 @@ def test_one_polarity_window_is_fine(slider):
     only_on = Events(events.x[keep], events.y[keep], events.t[keep], events.p[keep], events.width, events.height)
     r = fit(only_on, slider.K, model="flow")
     assert np.all(np.isfinite(r.flow))
+    split = fit(only_on, slider.K, model="flow", polarity_split=True)  # the OFF image is empty
+    np.testing.assert_allclose(split.flow, r.flow, rtol=1e-9)
 
 
 def test_pegboard_rotation_is_slow_and_does_not_blur(shared_data):

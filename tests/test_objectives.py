@@ -12,6 +12,22 @@ from cmax.objectives import (
 )
 
 
+@pytest.mark.parametrize("kind", ["variance", "gradient"])
+def test_polarity_split_contrast_is_the_sum_over_the_two_images(kind):
+    """``on=``: the contrast of the ON events' IWE plus that of the OFF events' (each built here on its
+    own), for every reference; with only ON events it is the contrast without the split."""
+    rng = np.random.default_rng(1)
+    x = torch.from_numpy(rng.uniform(2, 37, (3, 500)))
+    y = torch.from_numpy(rng.uniform(2, 27, (3, 500)))
+    on = torch.from_numpy(rng.integers(0, 2, 500))
+    split = multi_reference_contrast(x, y, height=30, width=40, kind=kind, on=on)
+    parts = [multi_reference_contrast(x[:, on == value], y[:, on == value], height=30, width=40, kind=kind)
+             for value in (1, 0)]
+    assert float(split) == pytest.approx(float(parts[0] + parts[1]), rel=1e-12)
+    all_on = multi_reference_contrast(x, y, height=30, width=40, kind=kind, on=torch.ones(500))
+    assert float(all_on) == pytest.approx(float(multi_reference_contrast(x, y, height=30, width=40, kind=kind)))
+
+
 def test_variance_and_gradient_closed_form_and_batch():
     image = torch.tensor([[0.0, 2.0], [0.0, 2.0]])
     assert float(variance(image)) == pytest.approx(1.0)

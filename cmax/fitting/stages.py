@@ -77,12 +77,13 @@ class Window:
         """Normalised multi-reference contrast of warped coordinates (B, N) at an image scale."""
         H, W = math.ceil(self.ev.height / scale), math.ceil(self.ev.width / scale)
         kind, sigma = self.settings.contrast or "variance", self.settings.sigma
+        on = (self.ev.polarity > 0) if self.settings.polarity_split else None
         if scale not in self._baselines:
             x0, y0 = self.ev.x[None] / scale, self.ev.y[None] / scale
             self._baselines[scale] = multi_reference_contrast(
-                x0, y0, height=H, width=W, sigma=sigma, kind=kind).detach()
+                x0, y0, height=H, width=W, sigma=sigma, kind=kind, on=on).detach()
         return multi_reference_contrast(x / scale, y / scale, height=H, width=W, sigma=sigma, kind=kind,
-                                        baseline=self._baselines[scale])
+                                        baseline=self._baselines[scale], on=on)
 
     def run(self, loss: Callable[[torch.Tensor], torch.Tensor], x0: np.ndarray, lower: np.ndarray,
             upper: np.ndarray, *, iterations: int | None = None, speed_slice: slice | None = None,
