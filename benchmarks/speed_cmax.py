@@ -97,8 +97,9 @@ def fit_seconds(windows: int, cache: Path | None = None) -> dict[str, list[float
 
     seconds = {}
     for model in ("flow", "rotation", "depth", "se3"):
-        RUNS[model](make_windows(model, 100, cache))  # warm-up
-        seconds[model] = [RUNS[model](make_windows(model, 100 + i, cache))["seconds"] for i in range(windows)]
+        RUNS[model](make_windows(model, 100, cache), 100)  # warm-up
+        seconds[model] = [RUNS[model](make_windows(model, 100 + i, cache), 100 + i)["seconds"]
+                          for i in range(windows)]
     return seconds
 
 
