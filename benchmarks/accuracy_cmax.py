@@ -192,6 +192,15 @@ def parse_seeds(parser: argparse.ArgumentParser, text: str) -> list[int]:
     return list(range(lo, hi + 1))
 
 
+def parse_names(parser: argparse.ArgumentParser, option: str, text: str, known) -> list[str]:
+    """The comma-separated names of ``option``; a clear parser error for any not in ``known``."""
+    names = text.split(",")
+    unknown = sorted(set(names) - set(known))
+    if unknown:
+        parser.error(f"{option} must be among {sorted(known)}, got {unknown}")
+    return names
+
+
 def main(argv: list[str] | None = None) -> int:
     """Fit every window, print one line per window, write the table; returns 0."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -202,10 +211,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="2 windows per model, written to accuracy_cmax_quick.md (a smoke run, not the figures)")
     args = parser.parse_args(argv)
     seeds = parse_seeds(parser, args.seeds or ("100-101" if args.quick else "100-119"))
-    models = args.models.split(",")
-    unknown = sorted(set(models) - set(RUNS))
-    if unknown:
-        parser.error(f"--models must be among {sorted(RUNS)}, got {unknown}")
+    models = parse_names(parser, "--models", args.models, RUNS)
     torch.set_num_threads(1)
     start = time.perf_counter()
     rows: dict[str, list[dict]] = {}

@@ -101,8 +101,12 @@ class LocalMotionObjective:
         u = p[:3] / DIRECTION_SCALE
         v = self.speed * u / torch.sqrt((u * u).sum() + 1e-12)
         rho = (p[6:] / self.rho_scale)[self.patches.patch]
-        x, y = warp_se3(self.rays, self.patches.dt, v.to(dtype), (p[3:6] / self.omega_scale).to(dtype),
-                        rho.to(dtype), self.K)
+        return self.contrast_at(v.to(dtype), (p[3:6] / self.omega_scale).to(dtype), rho.to(dtype))
+
+    def contrast_at(self, v: torch.Tensor, omega: torch.Tensor, rho_events: torch.Tensor) -> torch.Tensor:
+        """Normalised contrast (P,) of each patch for ``v`` (3,) [m/s], ``omega`` (3,) [rad/s] and any
+        per-event inverse depth (M,) [1/m] (e.g. the ground truth, in ``benchmarks/cmax_limits.py``)."""
+        x, y = warp_se3(self.rays, self.patches.dt, v, omega, rho_events, self.K)
         return variance(self.patches.images(x, y, self.sigma)) / self.base
 
     def sweep_rho(self, v: np.ndarray, omega: np.ndarray, candidates: np.ndarray) -> np.ndarray:

@@ -60,6 +60,7 @@ class Window:
         self.focal = float(self.ev.K[0, 0] + self.ev.K[1, 1]) / 2
         self.index, self.weight = self.grid.weights(self.ev.x, self.ev.y)
         self.cell = self.grid.cell_of(self.ev.x, self.ev.y)
+        self.on = (self.ev.polarity > 0) if self.settings.polarity_split else None  # None: polarities merged
         self._baselines: dict = {}
 
     @classmethod
@@ -77,13 +78,12 @@ class Window:
         """Normalised multi-reference contrast of warped coordinates (B, N) at an image scale."""
         H, W = math.ceil(self.ev.height / scale), math.ceil(self.ev.width / scale)
         kind, sigma = self.settings.contrast or "variance", self.settings.sigma
-        on = (self.ev.polarity > 0) if self.settings.polarity_split else None
         if scale not in self._baselines:
             x0, y0 = self.ev.x[None] / scale, self.ev.y[None] / scale
             self._baselines[scale] = multi_reference_contrast(
-                x0, y0, height=H, width=W, sigma=sigma, kind=kind, on=on).detach()
+                x0, y0, height=H, width=W, sigma=sigma, kind=kind, on=self.on).detach()
         return multi_reference_contrast(x / scale, y / scale, height=H, width=W, sigma=sigma, kind=kind,
-                                        baseline=self._baselines[scale], on=on)
+                                        baseline=self._baselines[scale], on=self.on)
 
     def run(self, loss: Callable[[torch.Tensor], torch.Tensor], x0: np.ndarray, lower: np.ndarray,
             upper: np.ndarray, *, iterations: int | None = None, speed_slice: slice | None = None,
