@@ -100,3 +100,25 @@ def test_cli_fit_with_a_gyro_file(scene, tmp_path):
     for window in summary["windows"]:
         np.testing.assert_allclose(window["omega"], omega, rtol=1e-9)
         assert angle_deg(np.array(window["v"]), v) < 6.0
+
+
+def test_fit_sequence_checks_the_gyro_span_before_fitting(scene, monkeypatch):
+    """An IMU that starts 5 ms after the events: a clear error before any window is fitted; the events cut
+    to the gyro's span are accepted."""
+    from types import SimpleNamespace
+
+    import cmax.fitting.sequence as sequence
+
+    events, K, v, omega = scene
+    fits = []
+    monkeypatch.setattr(sequence, "fit", lambda events, *a, **k: fits.append(k["omega"]) or
+                        SimpleNamespace(twist=np.zeros(6)))
+    t0, t1 = int(events.t[0]), int(events.t[-1])
+    late = (np.array([t0 + 5_000, t1 + 10_000]), np.stack([omega, omega]))
+    with pytest.raises(ValueError, match=f"gyro covers {t0 + 5_000}-{t1 + 10_000} us, but the windows span {t0}-"):
+        fit_sequence(events, K, window_us=145_000, speed=float(np.linalg.norm(v)), gyro=late)
+    assert fits == []
+    result = fit_sequence(events.slice_time(t0 + 5_000, t1 + 1), K, window_us=145_000,
+                          speed=float(np.linalg.norm(v)), gyro=late)
+    assert len(fits) == len(result.results) == 2
+    np.testing.assert_allclose(fits, [omega, omega])

@@ -84,6 +84,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         window (:func:`window_gyro`, ``fit(..., omega=)``), and only the
         translation direction and the depth are fitted. A gyroscope's
         zero-rate offset goes straight into the depth: calibrate it first.
+        The samples must span every window (checked before the first fit).
     min_events : int
         Windows with fewer events are skipped (the pose is held by the last twist).
     **fit_options
@@ -104,10 +105,12 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         take = source.window
     else:
         raise TypeError(f"source must be Events or a reader with window(t0_us, t1_us), got {type(source).__name__}")
+    starts = range(t_start, t_end + 2 - window_us, step_us)
+    if gyro is not None and len(starts):
+        _check_gyro_covers(gyro, t_start, starts[-1] + window_us - 1)
     results, times, poses = [], [t_start], [np.eye(4)]
     previous: FitResult | None = None
-    t0 = t_start
-    while t0 + window_us <= t_end + 1:
+    for t0 in starts:
         events = take(t0, t0 + window_us)
         twist = previous.twist if previous is not None else np.zeros(6)
         if len(events) >= min_events and events.t[-1] > events.t[0]:
@@ -118,8 +121,16 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
             twist = previous.twist
         poses.append(poses[-1] @ se3_exp(twist * step_us * 1e-6))
         times.append(t0 + step_us)
-        t0 += step_us
     return SequenceResult(tuple(results), np.asarray(times, np.int64), np.stack(poses))
+
+
+def _check_gyro_covers(gyro: tuple[np.ndarray, np.ndarray], first_us: int, last_us: int) -> None:
+    """Raise before any fit when the gyroscope samples do not span the windows' events ``[first_us, last_us]``."""
+    times = gyro[0]
+    if times[0] > first_us or times[-1] < last_us:
+        raise ValueError(
+            f"gyro covers {int(times[0])}-{int(times[-1])} us, but the windows span {first_us}-{last_us} us: "
+            "cut the events to the gyro's span (Events.slice_time) or pass samples over the whole recording")
 
 
 def _slice(events: Events, t0_us: int, t1_us: int) -> Events:
