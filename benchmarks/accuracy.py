@@ -21,7 +21,8 @@ Sections:
   Writes ``results/accuracy_tables{,_quick}.md|csv`` and
   ``results/accuracy_depth_<sequence>.png``; rows of
   ``results/accuracy_learned.csv`` (same columns, the learned models) are appended when present.
-* ``cmax``: runs ``benchmarks/accuracy_cmax.py`` (``cmax.fit`` against its targets).
+* ``cmax``: runs ``benchmarks/accuracy_cmax.py`` (``cmax.fit`` against its targets) and
+  ``benchmarks/accuracy_presets.py`` (``cmax.fit`` on held-out windows of every scene preset).
 
 Usage::
 
@@ -467,7 +468,10 @@ def main(argv: list[str] | None = None) -> int:
     if args.section in ("cmax", "all"):
         from benchmarks.accuracy_cmax import main as accuracy_cmax_main
 
+        from benchmarks.accuracy_presets import main as accuracy_presets_main
+
         accuracy_cmax_main(["--quick"] if args.quick else [])
+        accuracy_presets_main(["--quick"] if args.quick else [])
     return 0
 
 

@@ -80,17 +80,31 @@ def cached(cache: Path | None, key: str, make):
     return value
 
 
-def abs_rel(result, depth: np.ndarray) -> float:
-    """abs_rel of a fit's depth on its mask (:func:`cmax.metrics.depth_metrics`); NaN when no pixel is valid."""
+def scored_pixels(result, depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> np.ndarray:
+    """Pixels (H, W) bool a fit's depth is scored on: its mask, with finite ground truth ``depth`` [m]
+    (inside ``depth_range`` when given)."""
     valid = result.mask & np.isfinite(depth)
+    if depth_range is not None:
+        with np.errstate(invalid="ignore"):
+            valid &= (depth >= depth_range[0]) & (depth <= depth_range[1])
+    return valid
+
+
+def abs_rel(result, depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> float:
+    """abs_rel of a fit's depth on :func:`scored_pixels` (:func:`cmax.metrics.depth_metrics`); NaN when no
+    pixel is valid."""
+    valid = scored_pixels(result, depth, depth_range)
     return depth_metrics(result.depth, depth, mask=valid).abs_rel if valid.any() else float("nan")
 
 
-def run_depth(window) -> dict:
+def run_depth(window, **settings) -> dict:
+    """``fit(events, K, pose=T01, **settings)``: abs_rel, seconds and the share of pixels scored."""
     start = time.perf_counter()
-    r = fit(window.events, window.K, pose=window.T01)
-    return {"abs_rel": abs_rel(r, window.depth), "seconds": time.perf_counter() - start,
-            "coverage": float((r.mask & np.isfinite(window.depth)).mean())}
+    r = fit(window.events, window.K, pose=window.T01, **settings)
+    seconds = time.perf_counter() - start
+    depth_range = settings.get("depth_range")
+    return {"abs_rel": abs_rel(r, window.depth, depth_range), "seconds": seconds,
+            "coverage": float(scored_pixels(r, window.depth, depth_range).mean())}
 
 
 def gyro_reading(window, seed: int, bias_deg_s: float) -> np.ndarray:
@@ -100,14 +114,15 @@ def gyro_reading(window, seed: int, bias_deg_s: float) -> np.ndarray:
     return window.twist[3:] + np.radians(bias_deg_s) * signs
 
 
-def run_se3(window, omega_known: np.ndarray | None = None) -> dict:
+def run_se3(window, omega_known: np.ndarray | None = None, **settings) -> dict:
+    """``fit(events, K, speed=|v|, omega=omega_known, **settings)``: abs_rel, direction and omega errors."""
     v, omega = window.twist[:3], window.twist[3:]
     speed = float(np.linalg.norm(v))
     start = time.perf_counter()
-    r = fit(window.events, window.K, speed=speed, omega=omega_known)
+    r = fit(window.events, window.K, speed=speed, omega=omega_known, **settings)
     seconds = time.perf_counter() - start
     cos = float(r.v @ v / (np.linalg.norm(r.v) * speed))
-    return {"abs_rel": abs_rel(r, window.depth), "direction_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
+    return {"abs_rel": abs_rel(r, window.depth, settings.get("depth_range")), "direction_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
             "omega_rms_deg_s": float(np.degrees(np.sqrt(np.mean((r.omega - omega) ** 2)))), "seconds": seconds,
             "parallax_px": r.parallax_px}
 

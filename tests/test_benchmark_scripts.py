@@ -21,3 +21,42 @@ def test_speed_section_calls_the_accuracy_runs_with_window_and_seed(monkeypatch)
     assert seconds == {m: [100.0, 101.0] for m in ("flow", "rotation", "depth", "se3")}
     assert ("se3", "se3-101", 101) in calls and len(calls) == 4 * 3   # one warm-up + two windows per model
 
+
+
+def test_scored_pixels_keep_the_mask_with_ground_truth_inside_the_range():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    truth = np.array([[1.0, 5.0, np.nan], [90.0, 2.0, 3.0]], np.float32)
+    result = SimpleNamespace(mask=np.array([[True, True, True], [True, False, True]]),
+                             depth=np.array([[1.5, 5.0, 1.0], [1.0, 2.0, 6.0]], np.float32))
+    assert accuracy_cmax.scored_pixels(result, truth).tolist() == [[True, True, False], [True, False, True]]
+    in_range = accuracy_cmax.scored_pixels(result, truth, (1.5, 80.0))
+    assert in_range.tolist() == [[False, True, False], [False, False, True]]
+    # abs_rel over the two scored pixels: |5-5|/5 and |6-3|/3
+    assert abs(accuracy_cmax.abs_rel(result, truth, (1.5, 80.0)) - 0.5) < 1e-6
+
+
+def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, tmp_path):
+    import numpy as np
+
+    import benchmarks.accuracy_presets as presets
+
+    calls = []
+    monkeypatch.setattr(presets, "preset_window", lambda preset, seed, cache: (preset, seed))
+    monkeypatch.setattr(presets, "run_depth", lambda w, **s: calls.append(("depth", w, s)) or {"abs_rel": 0.1})
+    monkeypatch.setattr(presets, "run_se3", lambda w, **s: calls.append(("se3", w, s)) or {"abs_rel": 0.2})
+    monkeypatch.setattr(presets, "run_rotation",
+                        lambda w: calls.append(("rotation", w, {})) or {"omega_rel_error": 0.01})
+    monkeypatch.setattr(presets, "figure_row", lambda preset, window, depth_range: np.zeros((4, 4, 3), np.uint8))
+    monkeypatch.setattr(presets, "RESULTS", tmp_path)
+    assert presets.main(["--seeds", "100-101", "--presets", "rotation,driving_day"]) == 0
+    # the rotation preset does not translate: rotation model only; driving gets its stated range, clipped
+    assert [c[0] for c in calls if c[1][0] == "rotation"] == ["rotation", "rotation"]
+    assert ("se3", ("driving_day", 101), {"depth_range": (1.5, presets.FAR_CLIP_M)}) in calls
+    text = (tmp_path / "accuracy_presets.md").read_text()
+    assert "| driving_day | 1.5-80 | se3 | abs_rel | 0.200 | 0.200 |" in text
+    assert "| rotation | 0.8-6 | rotation | omega_rel_error | 0.010 | 0.010 |" in text
+    assert (tmp_path / "accuracy_presets.png").exists()
+
