@@ -45,9 +45,13 @@ every event has its TRUE inverse depth times one free factor (the best of
 motion as ``fit`` does (free per grid node). ``gap_percent`` is how much the
 score with swept depth changes between the truth and the fit, in percent.
 
+Section ``se3_slider``: the same measures on the ``slider`` preset windows of
+:mod:`benchmarks.accuracy_presets` (objects before a poster wall, the camera
+translates sideways on a slider and does not rotate).
+
 Usage::
 
-    python -m benchmarks.cmax_limits [--seeds 100-119] [--cache DIR] [--sections depth,rotation,se3]
+    python -m benchmarks.cmax_limits [--seeds 100-119] [--cache DIR] [--sections depth,rotation,se3,se3_slider]
 """
 from __future__ import annotations
 
@@ -60,6 +64,7 @@ import numpy as np
 import torch
 
 from benchmarks.accuracy_cmax import RESULTS, ROTATION_EVENTS, parse_names, parse_seeds, windows
+from benchmarks.accuracy_presets import preset_window
 from cmax.camera import Camera
 from cmax.emvs import EMVS
 from cmax.fitting import FitSettings, fit
@@ -234,11 +239,21 @@ def measure_se3(window) -> dict:
     return row
 
 
-MEASURES = {"depth": ("depth", measure), "rotation": ("rotation", measure_rotation), "se3": ("se3", measure_se3)}
+MEASURES = {"depth": ("depth", measure), "rotation": ("rotation", measure_rotation), "se3": ("se3", measure_se3),
+            "se3_slider": ("preset:slider", measure_se3)}
+
+
+def section_window(kind: str, seed: int, cache: Path | None):
+    """The window a section measures: ``preset:NAME`` windows of :mod:`benchmarks.accuracy_presets`, or the
+    windows of :func:`benchmarks.accuracy_cmax.windows` for the model ``kind``."""
+    if kind.startswith("preset:"):
+        return preset_window(kind.split(":", 1)[1], seed, cache)
+    return windows(kind, seed, cache)
 TITLES = {
     "depth": "Depth with known motion (`pose=`): the fit against its floors",
     "rotation": "Rotation: the error of 30k-event subsets against all events",
     "se3": "se3 with known speed: the depth error the rotation causes, and the ambiguity behind it",
+    "se3_slider": "se3 on the `slider` preset (a pure translation): the same measures",
 }
 NOTES = {
     "depth": "`node_step_*`: log factor between the inverse depth a node's contrast peaks at and the truth "
@@ -248,6 +263,8 @@ NOTES = {
     "se3": "abs_rel of the fit, with the true omega, with the true v; `peak_t_*`: where on the line truth (0) -> "
            "fit (1) the patch-wise contrast peaks, with the true depth structure (one free scale) or with the "
            "depth swept per motion; `gap_percent`: score(fit) - score(truth) with swept depth, in percent.",
+    "se3_slider": "As for se3. The slider's camera does not rotate (true omega = 0): every deg/s of `omega_rms` "
+                  "is a rotation the fit invented, and the per-node depth absorbed.",
 }
 
 
@@ -271,7 +288,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", default="100-119", help="first-last (default 100-119, the held-out seeds)")
     parser.add_argument("--cache", type=Path, default=None,
                         help="folder of simulated windows (benchmarks.accuracy_cmax)")
-    parser.add_argument("--sections", default="depth,rotation,se3")
+    parser.add_argument("--sections", default="depth,rotation,se3,se3_slider")
     args = parser.parse_args(argv)
     seeds = parse_seeds(parser, args.seeds)
     sections = parse_names(parser, "--sections", args.sections, MEASURES)
@@ -282,7 +299,7 @@ def main(argv: list[str] | None = None) -> int:
         kind, measure_window = MEASURES[section]
         rows = []
         for seed in seeds:
-            rows.append(measure_window(windows(kind, seed, args.cache)))
+            rows.append(measure_window(section_window(kind, seed, args.cache)))
             print(section, seed, {k: round(v, 3) for k, v in rows[-1].items()}, flush=True)
         parts.append(summarise(section, rows, seeds))
     header = ("# Where the remaining errors of cmax.fit come from\n\n"
