@@ -177,25 +177,48 @@ def driving(data: Path) -> tuple[list[str], np.ndarray]:
              "| fit | direction v / norm(v) | angle to +z [deg] | forward | omega [deg/s] | contrast after | s |",
              "|---|---|---|---|---|---|---|"]
     for label, (result, seconds) in fits.items():
-        unit = result.v / np.linalg.norm(result.v)
-        angle = float(np.degrees(np.arccos(np.clip(unit[2], -1, 1))))
-        is_forward = bool(unit[2] > 0 and abs(unit[2]) == np.abs(unit).max())
+        unit, angle, is_forward = _direction(result)
         lines.append(f"| {label} | {np.round(unit, 3).tolist()} | {angle:.1f} | {'yes' if is_forward else 'no'} | "
                      f"{np.round(np.degrees(result.omega), 1).tolist()} | {result.objective_after:.4f} | "
                      f"{seconds:.1f} |")
     default = fits["default"][0]
     direction = default.v / np.linalg.norm(default.v)
     lines += ["", f"contrast = normalised multi-reference contrast (1 = the unwarped events). Straight forward "
-              f"motion (v = +z, omega = 0, depth swept) scores {forward.objective_after:.4f}. The default fit "
-              "stops at a plane pitching fast: in 8.8 ms its patch flows are explained about as well by that as by "
-              "driving forward (below); the start at zero rotation, or a known rotation, finds forward motion "
-              "with a higher contrast.", ""] + _flow_explanations(events, K, direction)
+              f"motion (v = +z, omega = 0, depth swept) scores {forward.objective_after:.4f}. "
+              + _drive_summary({label: result for label, (result, _) in fits.items()}), ""]
+    lines += _flow_explanations(events, K, direction)
     chosen = fits["zero_rotation_start=True"][0]
     picture = viz.hstack([viz.titled(viz.iwe_image(chosen.iwe_before), "events (8.8 ms)"),
                           viz.titled(viz.iwe_image(chosen.iwe_after), "IWE, se3 (zero-rotation start)"),
                           viz.titled(viz.depth_image(np.where(chosen.mask, chosen.depth, np.nan)),
                                      "depth (up to scale)")])
     return lines, picture
+
+
+def _direction(result) -> tuple[np.ndarray, float, bool]:
+    """Unit translation (3,), its angle to +z [deg], and whether +z is its largest component (forward)."""
+    unit = result.v / np.linalg.norm(result.v)
+    angle = float(np.degrees(np.arccos(np.clip(unit[2], -1, 1))))
+    return unit, angle, bool(unit[2] > 0 and abs(unit[2]) == np.abs(unit).max())
+
+
+def _drive_summary(fits: dict) -> str:
+    """One sentence on the drive's fits (``label -> FitResult``, ``"default"`` among them), from their figures."""
+    default = fits["default"]
+    _, angle, is_forward = _direction(default)
+    rate = np.degrees(default.omega)
+    axis = int(np.argmax(np.abs(rate)))
+    text = (f"The default fit {'points forward' if is_forward else 'does not point forward'} ({angle:.0f} deg from "
+            f"+z, {('pitch', 'yaw', 'roll')[axis]} rate {rate[axis]:+.0f} deg/s).")
+    others = {label: r for label, r in fits.items() if label != "default"}
+    forward = [label for label, r in others.items() if _direction(r)[2]]
+    if forward:
+        higher = [label for label in forward if others[label].objective_after > default.objective_after]
+        text += (f" {len(forward)} of the other {len(others)} fits point forward, {len(higher)} of them with a "
+                 "higher contrast than the default.")
+    else:
+        text += f" None of the other {len(others)} fits points forward."
+    return text
 
 
 def _flow_explanations(events, K: np.ndarray, fitted_direction: np.ndarray) -> list[str]:

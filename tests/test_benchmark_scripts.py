@@ -60,3 +60,21 @@ def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, t
     assert "| rotation | 0.8-6 | rotation | omega_rel_error | 0.010 | 0.010 |" in text
     assert (tmp_path / "accuracy_presets.png").exists()
 
+
+def test_drive_summary_is_computed_from_the_fits():
+    from types import SimpleNamespace
+
+    import numpy as np
+
+    from benchmarks.real_cmax import _drive_summary
+
+    def result(v, omega_deg, contrast):
+        return SimpleNamespace(v=np.asarray(v, float), omega=np.radians(omega_deg), objective_after=contrast)
+
+    fits = {"default": result([0, 1, 0.2], [134, 2, 0], 1.0304), "a": result([0.1, 0, 1], [0, 0, 0], 1.0308),
+            "b": result([1, 0, 0.1], [0, 5, 0], 1.05), "c": result([0, 0.1, 1], [0, -3, 0], 1.0300)}
+    text = _drive_summary(fits)
+    assert text.startswith("The default fit does not point forward (79 deg from +z, pitch rate +134 deg/s).")
+    assert text.endswith("2 of the other 3 fits point forward, 1 of them with a higher contrast than the default.")
+    fits["default"] = result([0, 0, 1], [1, -2, 0], 1.0)
+    assert _drive_summary(fits).startswith("The default fit points forward (0 deg from +z, yaw rate -2 deg/s).")
