@@ -66,9 +66,11 @@ def translates(preset: str) -> bool:
 
 
 def preset_window(preset: str, seed: int, cache: Path | None):
+    """The held-out window of ``preset`` for ``seed`` (kept in ``cache`` under ``preset_<name>_<seed>``, apart from
+    the constant-twist windows of :mod:`benchmarks.accuracy_cmax`, some of which share a preset's name)."""
     from cmax.synthetic_windows import preset_window as make
 
-    return cached(cache, f"{preset}_{seed}", lambda: make(preset, seed))
+    return cached(cache, f"preset_{preset}_{seed}", lambda: make(preset, seed))
 
 
 def measure(preset: str, window, depth_range: tuple[float, float]) -> dict[str, dict]:

@@ -36,6 +36,10 @@ def test_scored_pixels_keep_the_mask_with_ground_truth_inside_the_range():
     assert in_range.tolist() == [[False, True, False], [False, False, True]]
     # abs_rel over the two scored pixels: |5-5|/5 and |6-3|/3
     assert abs(accuracy_cmax.abs_rel(result, truth, (1.5, 80.0)) - 0.5) < 1e-6
+    # the half with the smaller depth spread: of the 4 scored pixels (spreads 0.3, 0.1, 0.0, 0.2), the
+    # pixels (1, 0) and (0, 1), errors |1 - 90| / 90 and 0
+    result.depth_spread = np.array([[0.3, 0.1, 0.0], [0.0, 0.0, 0.2]], np.float32)
+    assert abs(accuracy_cmax.abs_rel_half(result, truth) - (89 / 90 + 0.0) / 2) < 1e-6
 
 
 def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, tmp_path):
@@ -78,3 +82,17 @@ def test_drive_summary_is_computed_from_the_fits():
     assert text.endswith("2 of the other 3 fits point forward, 1 of them with a higher contrast than the default.")
     fits["default"] = result([0, 0, 1], [1, -2, 0], 1.0)
     assert _drive_summary(fits).startswith("The default fit points forward (0 deg from +z, yaw rate -2 deg/s).")
+
+
+def test_preset_windows_and_constant_twist_windows_are_cached_apart(monkeypatch):
+    """accuracy_cmax's 'rotation' windows (constant twist, 0.05 s) are not the 'rotation' preset's windows."""
+    import benchmarks.accuracy_presets as presets
+
+    keys = []
+    monkeypatch.setattr(presets, "cached", lambda cache, key, make: keys.append(key))
+    monkeypatch.setattr(accuracy_cmax, "cached", lambda cache, key, make: keys.append(key))
+    for model in ("rotation", "depth"):
+        accuracy_cmax.windows(model, 100, None)
+    for preset in ("rotation", "indoor_flying", "slider"):
+        presets.preset_window(preset, 100, None)
+    assert len(set(keys)) == len(keys) == 5
