@@ -8,7 +8,9 @@ Windows (346x260, held-out seeds, default 100-119):
   event pixels (``FitResult.mask`` and finite ground truth), the translation
   direction error [deg] and the RMS of the omega error over its axes [deg/s]
   against the window's mean twist ``se3_log(T01) / T``; ``parallax_px`` is the
-  fit's own ``FitResult.parallax_px`` (how far its translation moves the events).
+  fit's own ``FitResult.parallax_px`` (how far its translation moves the events);
+  ``abs_rel_half`` the abs_rel on the half of those pixels with the smallest
+  ``FitResult.depth_spread`` (the fit's per-pixel confidence; no target).
 * ``se3_gyro`` and ``se3_gyro_bias``: the same windows with the rotation known
   (``fit(events, K, speed=|v|, omega=...)``), as a gyroscope would give it:
   exactly (the true mean angular velocity), or with a bias of
@@ -97,6 +99,20 @@ def abs_rel(result, depth: np.ndarray, depth_range: tuple[float, float] | None =
     return depth_metrics(result.depth, depth, mask=valid).abs_rel if valid.any() else float("nan")
 
 
+def abs_rel_half(result, depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> float:
+    """abs_rel on the half of :func:`scored_pixels` with the smallest ``FitResult.depth_spread`` (the fit's own
+    per-pixel confidence: the other half lies at estimated depth edges); NaN when no pixel is valid."""
+    valid = scored_pixels(result, depth, depth_range)
+    if not valid.any():
+        return float("nan")
+    order = np.argsort(result.depth_spread[valid], kind="stable")
+    kept = np.zeros(order.size, bool)
+    kept[order[: max(1, order.size // 2)]] = True
+    half = np.zeros_like(valid)
+    half[valid] = kept
+    return depth_metrics(result.depth, depth, mask=half).abs_rel
+
+
 def run_depth(window, **settings) -> dict:
     """``fit(events, K, pose=T01, **settings)``: abs_rel, seconds and the share of pixels scored."""
     start = time.perf_counter()
@@ -104,7 +120,8 @@ def run_depth(window, **settings) -> dict:
     seconds = time.perf_counter() - start
     depth_range = settings.get("depth_range")
     return {"abs_rel": abs_rel(r, window.depth, depth_range), "seconds": seconds,
-            "coverage": float(scored_pixels(r, window.depth, depth_range).mean())}
+            "coverage": float(scored_pixels(r, window.depth, depth_range).mean()),
+            "abs_rel_half": abs_rel_half(r, window.depth, depth_range)}
 
 
 def gyro_reading(window, seed: int, bias_deg_s: float) -> np.ndarray:
@@ -124,7 +141,7 @@ def run_se3(window, omega_known: np.ndarray | None = None, **settings) -> dict:
     cos = float(r.v @ v / (np.linalg.norm(r.v) * speed))
     return {"abs_rel": abs_rel(r, window.depth, settings.get("depth_range")), "direction_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
             "omega_rms_deg_s": float(np.degrees(np.sqrt(np.mean((r.omega - omega) ** 2)))), "seconds": seconds,
-            "parallax_px": r.parallax_px}
+            "parallax_px": r.parallax_px, "abs_rel_half": abs_rel_half(r, window.depth, settings.get("depth_range"))}
 
 
 def run_flow(window) -> dict:

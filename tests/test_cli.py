@@ -126,7 +126,7 @@ def test_fit_writes_depth_trajectory_and_summary(tmp_path):
     assert main(args) == 0
     out = tmp_path / "out"
     depth = np.load(out / "depth_00000.npz")
-    assert depth["depth"].shape == (90, 120) and depth["mask"].any()
+    assert depth["depth"].shape == depth["depth_spread"].shape == (90, 120) and depth["mask"].any()
     inside = depth["depth"][depth["mask"]]
     assert np.all(np.isfinite(inside)) and inside.min() >= 0.5 * 0.999 and inside.max() <= 60.0 * 1.001
     assert (out / "depth_00000.png").is_file()

@@ -27,7 +27,7 @@ def rotation():
 
 def test_flow_fit_recovers_constant_flow(slider):
     r = fit(slider.events, slider.K, model="flow")
-    assert isinstance(r, FitResult) and r.depth is None
+    assert isinstance(r, FitResult) and r.depth is None and r.depth_spread is None
     T = (r.t1_us - r.t0_us) * 1e-6
     assert np.linalg.norm((r.flow - slider.flow) * T) < 0.3  # endpoint error over the window [px]
     assert r.objective_after > r.objective_before
@@ -120,6 +120,26 @@ def test_depth_with_known_pose_indoor_flying():
     assert valid.sum() > 0.2 * valid.size and np.all(np.isfinite(r.depth))
     abs_rel = float(np.mean(np.abs(r.depth[valid] - w.depth[valid]) / w.depth[valid]))
     assert abs_rel < ABS_REL_SMALL, abs_rel
+    # the depth spread ranks the errors: the half of the mask with the smaller spread is the better half
+    assert r.depth_spread.shape == (90, 120) and np.all(r.depth_spread >= 0)
+    error = np.abs(r.depth[valid] - w.depth[valid]) / w.depth[valid]
+    order = np.argsort(r.depth_spread[valid], kind="stable")
+    low, high = error[order[: len(order) // 2]].mean(), error[order[len(order) // 2:]].mean()
+    assert low < 0.8 * high, (low, high)
+
+
+def test_depth_spread_of_a_step_is_its_log_ratio_next_to_it_and_zero_away():
+    from cmax.fitting.window import depth_spread
+    from cmax.warp import DepthGrid
+
+    grid = DepthGrid((4, 6), 60, 40)                     # nodes at x = 10 j + 4.5, y = 10 i + 4.5
+    rho = np.where(np.arange(6) < 3, 0.5, 0.25)[None].repeat(4, 0)      # 2 m | 4 m between columns 2 and 3
+    spread = depth_spread(rho, grid)
+    assert spread.shape == (40, 60) and spread.dtype == np.float32
+    np.testing.assert_allclose(spread[:, :15], 0.0, atol=1e-7)          # up to node column 1: one depth around
+    np.testing.assert_allclose(spread[:, 25:35], np.log(2.0), rtol=1e-6)  # between the nodes next to the step
+    np.testing.assert_allclose(spread[:, 45:], 0.0, atol=1e-7)
+    np.testing.assert_allclose(depth_spread(np.full((4, 6), 0.3), grid), 0.0, atol=1e-7)
 
 
 def test_se3_with_known_speed_indoor_flying():

@@ -183,6 +183,14 @@ class FitResult:
         two of them (0.8 and 0.9 px). A wrong motion can also claim a large
         parallax: a small value is a warning, a large one no guarantee. None
         for ``flow`` and ``rotation``.
+    depth_spread : ndarray (H, W) float32 or None
+        se3: the range of log inverse depth over the 3 x 3 grid nodes around
+        each pixel (:func:`depth_spread`): large at depth edges, where the
+        bilinear grid blends two surfaces and most of the depth error lies; 0
+        on a smooth surface. A per-pixel confidence for semi-dense use:
+        ``mask & (depth_spread < limit)``; ``abs_rel_half`` in
+        ``benchmarks/results/accuracy_cmax.md`` is the error on the half of the
+        mask with the smallest spread. None for ``flow`` and ``rotation``.
     """
 
     model: str
@@ -208,6 +216,7 @@ class FitResult:
     iwe_after: np.ndarray
     events_used: int
     parallax_px: float | None = None
+    depth_spread: np.ndarray | None = None
 
     @property
     def twist(self) -> np.ndarray:
@@ -472,10 +481,25 @@ def _result(w: Window, model, flow, v, omega, grid, *, scale_known: bool, second
         flow=None if flow is None else np.asarray(flow, float), v=np.asarray(v, float), omega=np.asarray(omega, float),
         T=se3_exp(xi * ev.duration_s), depth=depth, mask=mask,
         inverse_depth_grid=None if grid is None else np.asarray(grid, float), scale_known=scale_known,
+        depth_spread=None if grid is None else depth_spread(np.asarray(grid, float), w.grid),
         objective_before=1.0, objective_after=_objective(w, flow, v, omega, grid),
         iterations=w.iterations, evaluations=w.evaluations, seconds=seconds, message=w.message,
         success=w.success, iwe_before=before, iwe_after=after, events_used=len(ev), parallax_px=parallax,
     )
+
+
+def depth_spread(inverse_depth_grid: np.ndarray, grid: DepthGrid) -> np.ndarray:
+    """Range of log inverse depth over the 3 x 3 nodes around each node of ``inverse_depth_grid`` (gh, gw)
+    [1/m, > 0], interpolated to the pixels like the depth (:meth:`DepthGrid.upsample`): (H, W) float32, >= 0.
+
+    ``log(rho_max / rho_min)`` of the neighbourhood: 0.69 next to a step from 2 m to 4 m, 0 on a
+    constant depth. Nodes outside the grid repeat the edge (``mode="nearest"``).
+    """
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    log_rho = np.log(np.asarray(inverse_depth_grid, dtype=np.float64).reshape(grid.shape))
+    spread = maximum_filter(log_rho, size=3, mode="nearest") - minimum_filter(log_rho, size=3, mode="nearest")
+    return grid.upsample(spread).astype(np.float32)
 
 
 def _parallax_px(w: Window, v: np.ndarray, grid: np.ndarray) -> float:
