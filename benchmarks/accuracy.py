@@ -467,7 +467,6 @@ def main(argv: list[str] | None = None) -> int:
         print(path.read_text())
     if args.section in ("cmax", "all"):
         from benchmarks.accuracy_cmax import main as accuracy_cmax_main
-
         from benchmarks.accuracy_presets import main as accuracy_presets_main
 
         accuracy_cmax_main(["--quick"] if args.quick else [])

@@ -139,9 +139,11 @@ def run_se3(window, omega_known: np.ndarray | None = None, **settings) -> dict:
     r = fit(window.events, window.K, speed=speed, omega=omega_known, **settings)
     seconds = time.perf_counter() - start
     cos = float(r.v @ v / (np.linalg.norm(r.v) * speed))
-    return {"abs_rel": abs_rel(r, window.depth, settings.get("depth_range")), "direction_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
+    depth_range = settings.get("depth_range")
+    return {"abs_rel": abs_rel(r, window.depth, depth_range),
+            "direction_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))),
             "omega_rms_deg_s": float(np.degrees(np.sqrt(np.mean((r.omega - omega) ** 2)))), "seconds": seconds,
-            "parallax_px": r.parallax_px, "abs_rel_half": abs_rel_half(r, window.depth, settings.get("depth_range"))}
+            "parallax_px": r.parallax_px, "abs_rel_half": abs_rel_half(r, window.depth, depth_range)}
 
 
 def run_flow(window) -> dict:

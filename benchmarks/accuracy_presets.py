@@ -33,6 +33,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import platform
 import time
@@ -50,6 +51,7 @@ FAR_CLIP_M = 80.0
 PRESET_NAMES = ("indoor_flying", "driving_day", "driving_night", "hiking", "rotation", "slider")
 
 
+@functools.lru_cache(maxsize=None)
 def preset_depth_range(preset: str) -> tuple[float, float]:
     """The preset's stated depth range [m], the far end clipped to :data:`FAR_CLIP_M`."""
     from cmax.sim.presets import make_scene
@@ -58,6 +60,7 @@ def preset_depth_range(preset: str) -> tuple[float, float]:
     return float(near), float(min(far, FAR_CLIP_M))
 
 
+@functools.lru_cache(maxsize=None)
 def translates(preset: str) -> bool:
     """Whether the preset's camera moves (its stated speed range is not 0)."""
     from cmax.sim.presets import make_scene

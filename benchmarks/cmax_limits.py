@@ -249,6 +249,8 @@ def section_window(kind: str, seed: int, cache: Path | None):
     if kind.startswith("preset:"):
         return preset_window(kind.split(":", 1)[1], seed, cache)
     return windows(kind, seed, cache)
+
+
 TITLES = {
     "depth": "Depth with known motion (`pose=`): the fit against its floors",
     "rotation": "Rotation: the error of 30k-event subsets against all events",
