@@ -11,6 +11,9 @@ For every preset of :mod:`cmax.sim.presets` (``indoor_flying``, ``driving_day``,
   (``fit(events, K, speed=|v|)``), scored as in :mod:`benchmarks.accuracy_cmax`
   (abs_rel, translation-direction error [deg], RMS of the omega error [deg/s],
   the fit's own ``parallax_px``);
+* the driving presets: ``se3`` once more with ``zero_rotation_start=True``
+  (:class:`cmax.FitSettings`; the setting the README recommends for vehicles,
+  off by default), as ``se3_zero_rotation_start``;
 * ``rotation`` (the camera only rotates, so depth is unobservable):
   ``fit(events, K, model="rotation")`` on a uniform 30k of the window's events,
   the relative error of omega.
@@ -76,12 +79,19 @@ def preset_window(preset: str, seed: int, cache: Path | None):
     return cached(cache, f"preset_{preset}_{seed}", lambda: make(preset, seed))
 
 
+#: Presets of a vehicle: se3 is also run with ``zero_rotation_start=True``, the setting documented for vehicles.
+VEHICLES = ("driving_day", "driving_night")
+
+
 def measure(preset: str, window, depth_range: tuple[float, float]) -> dict[str, dict]:
-    """The runs of one window: ``{"depth": ..., "se3": ...}`` or ``{"rotation": ...}``."""
+    """The runs of one window: ``{"depth": ..., "se3": ...}`` (plus ``"se3_zero_rotation_start"`` for the
+    :data:`VEHICLES`) or ``{"rotation": ...}``."""
     if not translates(preset):
         return {"rotation": run_rotation(window)}
-    return {"depth": run_depth(window, depth_range=depth_range),
-            "se3": run_se3(window, depth_range=depth_range)}
+    runs = {"depth": run_depth(window, depth_range=depth_range), "se3": run_se3(window, depth_range=depth_range)}
+    if preset in VEHICLES:
+        runs["se3_zero_rotation_start"] = run_se3(window, depth_range=depth_range, zero_rotation_start=True)
+    return runs
 
 
 def figure_row(preset: str, window, depth_range: tuple[float, float]) -> np.ndarray:
