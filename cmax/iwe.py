@@ -22,7 +22,7 @@ import torch
 
 __all__ = [
     "accumulate_bilinear", "accumulate_bilinear_indexed", "blur", "image_of_warped_events", "iwe_numpy",
-    "sample_bilinear",
+    "polarity_images", "sample_bilinear",
 ]
 
 
@@ -189,6 +189,19 @@ def blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
     stack = image[:, None] if batched else image[None, None]
     out = _SymmetricBlur.apply(stack.contiguous(), kernel)
     return out[:, 0] if batched else out[0, 0]
+
+
+def polarity_images(x: torch.Tensor, y: torch.Tensor, on: torch.Tensor, height: int, width: int, sigma: float,
+                    weights: torch.Tensor | None = None) -> torch.Tensor:
+    """Blurred IWEs of the ON and of the OFF events apart: (2B, H, W), the B ON images first.
+
+    ``x, y`` (B, N) are warped coordinates [px]; ``on`` (N,) or (B, N) is 1 for
+    ON events and 0 for OFF (all ones: the OFF images are empty); ``weights``
+    (B, N) or None scale every vote. Differentiable like :func:`accumulate_bilinear`.
+    """
+    on = on.to(x.dtype).expand_as(x)
+    votes = torch.cat([on, 1 - on]) if weights is None else torch.cat([on * weights, (1 - on) * weights])
+    return blur(accumulate_bilinear(torch.cat([x, x]), torch.cat([y, y]), votes, height, width), sigma)
 
 
 def image_of_warped_events(

@@ -28,7 +28,7 @@ from typing import Callable
 
 import torch
 
-from cmax.iwe import accumulate_bilinear, accumulate_bilinear_indexed, blur
+from cmax.iwe import accumulate_bilinear, accumulate_bilinear_indexed, blur, polarity_images
 
 __all__ = [
     "variance", "gradient_magnitude", "CONTRASTS", "contrast_of_images", "multi_reference_contrast",
@@ -127,11 +127,8 @@ def multi_reference_contrast(
     if on is None:
         images = blur(accumulate_bilinear(x, y, w, height, width), sigma)
         return contrast_of_images(images, kind).mean() / baseline
-    B = x.shape[0]
-    on = on.to(x.dtype).expand_as(x)
-    votes = torch.cat([on, 1 - on]) if w is None else torch.cat([on * w, (1 - on) * w])
-    images = blur(accumulate_bilinear(torch.cat([x, x]), torch.cat([y, y]), votes, height, width), sigma)
-    return contrast_of_images(images, kind).view(2, B).sum(0).mean() / baseline
+    images = polarity_images(x, y, on, height, width, sigma, w)
+    return contrast_of_images(images, kind).view(2, x.shape[0]).sum(0).mean() / baseline
 
 
 def deformation(x0: torch.Tensor, y0: torch.Tensor, x1: torch.Tensor, y1: torch.Tensor) -> torch.Tensor:

@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from cmax.iwe import image_of_warped_events, iwe_numpy
+from cmax.iwe import image_of_warped_events, iwe_numpy, polarity_images
 
 
 def test_bilinear_votes_closed_form():
@@ -95,3 +95,20 @@ def test_sample_bilinear_is_the_adjoint_of_voting_and_differentiable():
                              (images[:1].clone().requires_grad_(), inside_x.requires_grad_(), inside_y.requires_grad_()))
     with pytest.raises(ValueError, match="images"):
         sample_bilinear(images[0], x, y)
+
+
+def test_polarity_images_are_the_iwes_of_each_polarity_alone():
+    g = torch.Generator().manual_seed(0)
+    x = torch.rand(2, 50, generator=g, dtype=torch.float64) * 20
+    y = torch.rand(2, 50, generator=g, dtype=torch.float64) * 15
+    on = (torch.rand(50, generator=g) > 0.4).to(torch.float64)
+    images = polarity_images(x, y, on, 16, 21, 1.0)
+    assert images.shape == (4, 16, 21)
+    for b in range(2):
+        keep_on, keep_off = on > 0, on == 0
+        expected_on = image_of_warped_events(x[b][keep_on], y[b][keep_on], height=16, width=21, sigma=1.0)
+        expected_off = image_of_warped_events(x[b][keep_off], y[b][keep_off], height=16, width=21, sigma=1.0)
+        torch.testing.assert_close(images[b], expected_on)
+        torch.testing.assert_close(images[2 + b], expected_off)
+    weights = torch.full_like(x, 2.0)
+    torch.testing.assert_close(polarity_images(x, y, on, 16, 21, 1.0, weights), 2 * images)

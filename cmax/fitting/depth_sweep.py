@@ -43,7 +43,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from cmax.iwe import accumulate_bilinear, blur, sample_bilinear
+from cmax.iwe import polarity_images, sample_bilinear
 from cmax.warp import warp_se3
 
 __all__ = ["DepthSweep", "sweep_inverse_depth", "relative_sweep_cost", "node_cost_function"]
@@ -75,11 +75,9 @@ def _event_scores(rays, dt, on, v, omega, rho, K, height, width, sigma):
     """IWE value at each event's warped position for inverse depths ``rho`` (B, N): (B, N) and inside."""
     B = rho.shape[0]
     x, y = warp_se3(rays, dt, v, omega, rho, K)
-    off = 1.0 - on
-    votes = torch.cat([on.expand(B, -1), off.expand(B, -1)])
-    images = blur(accumulate_bilinear(torch.cat([x, x]), torch.cat([y, y]), votes, height, width), sigma)
+    images = polarity_images(x, y, on, height, width, sigma)
     seen = sample_bilinear(images, torch.cat([x, x]), torch.cat([y, y]))
-    score = on * seen[:B] + off * seen[B:]
+    score = on * seen[:B] + (1.0 - on) * seen[B:]
     inside = ((x >= 1) & (x <= width - 2) & (y >= 1) & (y <= height - 2)).to(x.dtype)
     return score, inside
 
