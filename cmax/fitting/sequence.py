@@ -54,8 +54,7 @@ def window_gyro(gyro: tuple[np.ndarray, np.ndarray], t0_us: int, t1_us: int) -> 
     """Mean angular velocity (3,) [rad/s] over ``[t0_us, t1_us]`` of the samples of :func:`check_gyro`,
     linearly interpolated between them (the window's constant rotation of ``cmax.fit(..., omega=)``)."""
     times, omega = gyro
-    if t0_us < times[0] or t1_us > times[-1]:
-        raise ValueError(f"gyro covers {int(times[0])}-{int(times[-1])} us, not the window {t0_us}-{t1_us} us")
+    _check_gyro_covers(gyro, t0_us, t1_us)
     inside = times[(times > t0_us) & (times < t1_us)]
     t = np.concatenate([[t0_us], inside, [t1_us]]).astype(np.float64)
     values = np.column_stack([np.interp(t, times, omega[:, axis]) for axis in range(3)])
@@ -125,7 +124,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
 
 
 def _check_gyro_covers(gyro: tuple[np.ndarray, np.ndarray], first_us: int, last_us: int) -> None:
-    """Raise before any fit when the gyroscope samples do not span the windows' events ``[first_us, last_us]``."""
+    """Raise when the gyroscope samples do not span ``[first_us, last_us]`` (the windows' events)."""
     times = gyro[0]
     if times[0] > first_us or times[-1] < last_us:
         raise ValueError(
