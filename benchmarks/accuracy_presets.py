@@ -55,20 +55,22 @@ PRESET_NAMES = ("indoor_flying", "driving_day", "driving_night", "hiking", "rota
 
 
 @functools.lru_cache(maxsize=None)
-def preset_depth_range(preset: str) -> tuple[float, float]:
-    """The preset's stated depth range [m], the far end clipped to :data:`FAR_CLIP_M`."""
+def _scene_info(preset: str):
+    """What the preset promises (:class:`cmax.sim.scenes.SceneInfo`), from one small scene."""
     from cmax.sim.presets import make_scene
 
-    near, far = make_scene(preset, 0, duration_s=1.0, texture_size=16).info.depth_range_m
+    return make_scene(preset, 0, duration_s=1.0, texture_size=16).info
+
+
+def preset_depth_range(preset: str) -> tuple[float, float]:
+    """The preset's stated depth range [m], the far end clipped to :data:`FAR_CLIP_M`."""
+    near, far = _scene_info(preset).depth_range_m
     return float(near), float(min(far, FAR_CLIP_M))
 
 
-@functools.lru_cache(maxsize=None)
 def translates(preset: str) -> bool:
     """Whether the preset's camera moves (its stated speed range is not 0)."""
-    from cmax.sim.presets import make_scene
-
-    return make_scene(preset, 0, duration_s=1.0, texture_size=16).info.speed_range_mps[1] > 0
+    return _scene_info(preset).speed_range_mps[1] > 0
 
 
 def preset_window(preset: str, seed: int, cache: Path | None):
