@@ -2,7 +2,13 @@
 themselves are timed by the scripts, not here)."""
 from __future__ import annotations
 
+from types import SimpleNamespace
+
+import numpy as np
+
 import benchmarks.accuracy_cmax as accuracy_cmax
+import benchmarks.accuracy_presets as presets
+from benchmarks.real_cmax import _drive_summary
 from benchmarks.speed_cmax import fit_seconds
 
 
@@ -22,12 +28,7 @@ def test_speed_section_calls_the_accuracy_runs_with_window_and_seed(monkeypatch)
     assert ("se3", "se3-101", 101) in calls and len(calls) == 4 * 3   # one warm-up + two windows per model
 
 
-
 def test_scored_pixels_keep_the_mask_with_ground_truth_inside_the_range():
-    from types import SimpleNamespace
-
-    import numpy as np
-
     truth = np.array([[1.0, 5.0, np.nan], [90.0, 2.0, 3.0]], np.float32)
     result = SimpleNamespace(mask=np.array([[True, True, True], [True, False, True]]),
                              depth=np.array([[1.5, 5.0, 1.0], [1.0, 2.0, 6.0]], np.float32))
@@ -43,10 +44,6 @@ def test_scored_pixels_keep_the_mask_with_ground_truth_inside_the_range():
 
 
 def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, tmp_path):
-    import numpy as np
-
-    import benchmarks.accuracy_presets as presets
-
     calls = []
     monkeypatch.setattr(presets, "preset_window", lambda preset, seed, cache: (preset, seed))
     monkeypatch.setattr(presets, "run_depth", lambda w, **s: calls.append(("depth", w, s)) or {"abs_rel": 0.1})
@@ -68,12 +65,6 @@ def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, t
 
 
 def test_drive_summary_is_computed_from_the_fits():
-    from types import SimpleNamespace
-
-    import numpy as np
-
-    from benchmarks.real_cmax import _drive_summary
-
     def result(v, omega_deg, contrast):
         return SimpleNamespace(v=np.asarray(v, float), omega=np.radians(omega_deg), objective_after=contrast)
 
@@ -88,8 +79,6 @@ def test_drive_summary_is_computed_from_the_fits():
 
 def test_preset_windows_and_constant_twist_windows_are_cached_apart(monkeypatch):
     """accuracy_cmax's 'rotation' windows (constant twist, 0.05 s) are not the 'rotation' preset's windows."""
-    import benchmarks.accuracy_presets as presets
-
     keys = []
     monkeypatch.setattr(presets, "cached", lambda cache, key, make: keys.append(key))
     monkeypatch.setattr(accuracy_cmax, "cached", lambda cache, key, make: keys.append(key))
