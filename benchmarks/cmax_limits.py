@@ -8,8 +8,9 @@ windows of :mod:`benchmarks.accuracy_cmax` (0.1665 s, 346x260, known motion
 ``fit``
     ``cmax.fit(events, K, pose=T01)`` as the accuracy table measures it.
 ``grid floor``
-    The best the 12x16 inverse-depth grid can do: the grid fitted to the
-    ground-truth inverse depth of those pixels by least squares.
+    The best the fit's inverse-depth grid (``FitResult.inverse_depth_grid``,
+    24 x 32 by default) can do: the grid fitted to the ground-truth inverse
+    depth of those pixels by least squares.
 ``objective floor``
     Where the contrast itself puts each grid node when every event already
     has its TRUE inverse depth: the relative sweep of
@@ -160,7 +161,7 @@ def measure(window) -> dict:
     truth = window.depth
     result = fit(window.events, window.K, pose=window.T01)
     mask = result.mask & np.isfinite(truth)
-    grid = DepthGrid((12, 16), window.events.width, window.events.height)
+    grid = DepthGrid(result.inverse_depth_grid.shape, window.events.width, window.events.height)
     steps, node_weight, step_map = objective_floor(window, grid)
     used = node_weight >= MIN_NODE_WEIGHT
     floor_depth = truth / np.exp(step_map)      # a node's step scales the inverse depth

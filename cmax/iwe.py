@@ -151,7 +151,22 @@ def _gaussian_kernel(sigma: float, dtype: torch.dtype, device: torch.device) -> 
 
 
 def _separable(stack: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
-    """Zero-padded separable convolution of (B, 1, H, W) with a symmetric 1-D kernel."""
+    """Zero-padded separable convolution of (B, 1, H, W) with a symmetric 1-D kernel.
+
+    On the CPU, OpenCV's ``sepFilter2D`` (``BORDER_CONSTANT``): 16 images of
+    346 x 260 in 2 ms against 93 ms for ``conv2d`` with one torch thread
+    (``benchmarks/speed_cmax.py``); the two agree to float rounding. The
+    autograd of :class:`_SymmetricBlur` does not need torch ops here.
+    """
+    if stack.device.type == "cpu" and stack.dtype in (torch.float32, torch.float64) and stack.numel():
+        import cv2
+
+        images = stack.detach().numpy()
+        taps = kernel.detach().cpu().numpy().astype(images.dtype)
+        out = np.empty_like(images)
+        for i in range(images.shape[0]):
+            cv2.sepFilter2D(images[i, 0], -1, taps, taps, dst=out[i, 0], borderType=cv2.BORDER_CONSTANT)
+        return torch.from_numpy(out)
     radius = (kernel.numel() - 1) // 2
     out = torch.nn.functional.conv2d(stack, kernel.view(1, 1, 1, -1), padding=(0, radius))
     return torch.nn.functional.conv2d(out, kernel.view(1, 1, -1, 1), padding=(radius, 0))

@@ -310,7 +310,85 @@ def test_sweep_finds_the_depth_of_a_fronto_parallel_plane():
     result = sweep_inverse_depth(rays, dt[None], torch.ones_like(x), v, np.zeros(3), K, height=H, width=W,
                                  grid_shape=(3, 4), index=index, weight=weight, rho_range=(0.05, 2.0), sigma=0.7)
     np.testing.assert_allclose(result.inverse_depth, 1 / depth, rtol=0.06)
-    assert result.cost.shape == (48, 12) and np.all(result.confidence > 0)
+    assert result.coarse_shape == (2, 2) and result.cost.shape == (48, 4) and np.all(result.confidence > 0)
+
+
+def _plane_events(rng, points, depth, events_per_point, f, v, H, W):
+    """Events of edge points (P, 2) [px at t_ref] at depths (P,) [m] seen by a camera translating at ``v``
+    (no rotation): an event at time dt sits where its point is then, ``x - f v dt / Z``. Returns x, y, dt
+    (N,) float64 tensors and the per-event inverse depth (N,)."""
+    import torch
+
+    dt = rng.uniform(-0.1, 0.1, (len(points), events_per_point))
+    xs = points[:, :1] - f * v[0] * dt / depth[:, None]
+    ys = points[:, 1:] - f * v[1] * dt / depth[:, None]
+    rho = np.repeat(1.0 / depth, events_per_point)
+    return (*(torch.from_numpy(a.ravel()) for a in (xs, ys, dt)), torch.from_numpy(rho))
+
+
+def _sweep(x, y, dt, v, f, H, W, grid_shape, **options):
+    import torch
+
+    from cmax.fitting.depth_sweep import sweep_inverse_depth
+    from cmax.warp import DepthGrid
+
+    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]], dtype=torch.float64)
+    rays = torch.stack([x, y, torch.ones_like(x)], -1) @ torch.linalg.inv(K).T
+    index, weight = DepthGrid(grid_shape, W, H).weights(x, y)
+    return sweep_inverse_depth(rays, dt[None], torch.ones_like(x), v, np.zeros(3), K, height=H, width=W,
+                               grid_shape=grid_shape, index=index, weight=weight, sigma=0.7, **options)
+
+
+def test_every_event_has_one_vote_in_the_sweep():
+    """One node holds two planes: 40 points at 1.5 m with 30 events each (1200 events that pile up 30
+    deep when in focus) and 300 points at 4 m with 8 events each (2400 events). The node takes the
+    depth of the plane most events belong to (4 m), not of the one whose focused events pile up highest."""
+    rng = np.random.default_rng(5)
+    H, W, f, v = 60, 80, 60.0, np.array([2.0, 0.5, 0.0])
+    near = _plane_events(rng, rng.uniform([8, 8], [W - 8, H - 8], (40, 2)), np.full(40, 1.5), 30, f, v, H, W)
+    far = _plane_events(rng, rng.uniform([8, 8], [W - 8, H - 8], (300, 2)), np.full(300, 4.0), 8, f, v, H, W)
+    x, y, dt = (np.concatenate([a, b]) for a, b in zip(near[:3], far[:3]))
+    import torch
+
+    x, y, dt = (torch.from_numpy(a) for a in (x, y, dt))
+    result = _sweep(x, y, dt, v, f, H, W, (1, 1), rho_range=(0.05, 1.0), coarsening=1, refinements=())
+    np.testing.assert_allclose(result.inverse_depth, 1 / 4.0, rtol=0.08)
+
+
+def test_semi_global_matching_fills_a_flat_node_and_keeps_a_depth_step():
+    """Cost curves on a 3 x 6 grid peaking at candidate 8 on the left half and 30 on the right; one left
+    node has a flat curve (no information) and one right node no events. Semi-global matching gives the
+    flat and the empty node their side's value and keeps the step between the halves (no blend)."""
+    import torch
+
+    from cmax.fitting.depth_sweep import _regularised_argmax
+
+    C, gh, gw = 40, 3, 6
+    candidates = torch.arange(C, dtype=torch.float64)
+    peak = torch.tensor([8.0 if j < 3 else 30.0 for i in range(gh) for j in range(gw)], dtype=torch.float64)
+    S = 1.0 + 1.0 / (1.0 + (candidates[:, None] - peak[None]) ** 2)              # (C, G), symmetric peaks
+    S[:, 1 * gw + 1] = 1.0                                                       # flat curve
+    events = torch.full((gh * gw,), 100.0, dtype=torch.float64)
+    events[2 * gw + 4] = 0.0                                                     # a node without events
+    value, confidence = _regularised_argmax(S, candidates, events, (gh, gw), (0.1, 1.0))
+    np.testing.assert_allclose(value.numpy(), peak.numpy(), atol=0.05)
+    assert confidence[1 * gw + 1] == 0 and confidence[2 * gw + 4] == 0 and confidence[0] > 0
+
+
+def test_coarse_to_fine_sweep_keeps_two_planes_apart():
+    """Left half at 1.5 m, right half at 4 m: swept on a 2 x 4 grid and refined on a 4 x 8 one, the
+    nodes away from the step (not in the two columns next to it) are within 5% of their plane's
+    inverse depth."""
+    rng = np.random.default_rng(3)
+    H, W, f, v = 60, 80, 60.0, np.array([1.0, 0.2, 0.0])
+    points = rng.uniform([4, 4], [W - 4, H - 4], (900, 2))
+    depth = np.where(points[:, 0] < W / 2, 1.5, 4.0)
+    x, y, dt, _ = _plane_events(rng, points, depth, 20, f, v, H, W)
+    result = _sweep(x, y, dt, v, f, H, W, (4, 8), rho_range=(0.05, 2.0), coarsening=2, refinements=(0.3, 0.1))
+    assert result.coarse_shape == (2, 4)
+    rho = result.inverse_depth.reshape(4, 8)
+    np.testing.assert_allclose(rho[:, :3], 1 / 1.5, rtol=0.05)
+    np.testing.assert_allclose(rho[:, 5:], 1 / 4.0, rtol=0.05)
 
 
 def test_relative_sweep_peaks_at_the_true_depth_of_each_plane():

@@ -64,6 +64,22 @@ def test_gradcheck_contrasts():
             lambda a, b: multi_reference_contrast(a, b, height=12, width=16, sigma=0.8, kind=kind), (x, y))
 
 
+def test_blur_is_the_2d_gaussian_convolution_with_zero_padding():
+    """The OpenCV path on the CPU equals torch's conv2d with the outer-product kernel of
+    exp(-d^2 / 2 sigma^2) (radius ceil(3 sigma), normalised), zero padding, in float32 and float64."""
+    import math
+
+    for dtype, tolerance in ((torch.float32, 1e-6), (torch.float64, 1e-12)):
+        images = torch.rand(3, 23, 31, dtype=dtype, generator=torch.Generator().manual_seed(1))
+        sigma = 1.3
+        radius = math.ceil(3 * sigma)
+        taps = torch.exp(-torch.arange(-radius, radius + 1, dtype=dtype) ** 2 / (2 * sigma ** 2))
+        kernel = torch.outer(taps, taps) / taps.sum() ** 2
+        expected = torch.nn.functional.conv2d(images[:, None], kernel[None, None], padding=radius)[:, 0]
+        torch.testing.assert_close(blur(images, sigma), expected, atol=tolerance, rtol=0)
+        assert blur(images, sigma).dtype == dtype
+
+
 def test_blur_backward_is_exact():
     image = torch.rand(2, 9, 11, dtype=torch.float64, requires_grad=True)
     assert torch.autograd.gradcheck(lambda im: blur(im, 1.3), (image,))

@@ -17,36 +17,50 @@ What makes the sweep unbiased:
   node's mean (an event pushed out of the image says nothing about its depth;
   counting it as 0 biased nodes near the border toward depths that keep
   events inside, i.e. far ones);
+* each event's values are divided by its largest over the candidates, so every
+  event has one vote: otherwise a node that straddles a depth edge follows
+  the surface whose events pile up highest (a dense, fast edge), not the one
+  most of its events belong to;
 * the mean, not the sum, is taken per node, so a candidate that moves votes
   between nodes cannot win by the count of events it gathers;
 * polarities are imaged apart (an ON edge and the OFF edge behind it
   blur into each other when merged).
 
 Nodes with few events or flat curves borrow from their neighbours: each
-node's curve is normalised to [0, 1], weighted by its confidence (square root
-of its events times the relative height of its peak), and a 3x3 weighted sum
-of neighbouring curves is taken before the arg-max, refined by a parabola
-through the three samples around it. This is the depth initialiser of every
-se3 fit and, with a known pose, the depth itself.
+node's curve is normalised to [0, 1] and weighted by its confidence (square
+root of its events times the relative height of its peak), and the depths of
+all nodes are chosen together by semi-global matching on the grid
+(Hirschmüller 2008: four scan-line passes, a small penalty for a step of one
+candidate between neighbouring nodes and a large one for a jump), then
+refined by a parabola through the three samples around each node's minimum.
+
+Coarse to fine: the sweep over the whole depth range runs on a grid
+``coarsening`` times coarser than the depth grid (enough events per node to
+see a peak), its depths are interpolated onto the depth grid, and the
+relative refinements run there, so the depth grid resolves depth edges the
+coarse one blends. This is the depth initialiser of every se3 fit and, with a
+known pose, the depth itself.
 
 References
 ----------
 G. Gallego, H. Rebecq, D. Scaramuzza, "A unifying contrast maximization
 framework for event cameras", CVPR 2018. H. Rebecq, G. Gallego, E. Mueggler,
 D. Scaramuzza, "EMVS: Event-based multi-view stereo", IJCV 2018 (the space
-sweep and its ray-density argmax).
+sweep and its ray-density argmax). H. Hirschmüller, "Stereo processing by
+semiglobal matching and mutual information", IEEE TPAMI 30(2), 2008.
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
 from cmax.iwe import polarity_images, sample_bilinear
-from cmax.warp import warp_se3
+from cmax.warp import DepthGrid, warp_se3
 
-__all__ = ["DepthSweep", "sweep_inverse_depth", "relative_sweep_cost", "node_cost_function"]
+__all__ = ["DepthSweep", "sweep_inverse_depth", "relative_sweep_cost", "node_cost_function", "coarse_grid_shape"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -56,17 +70,20 @@ class DepthSweep:
     Attributes
     ----------
     inverse_depth : ndarray (G,)
-        Inverse depth [1/m] of each grid node (flat, row-major).
+        Inverse depth [1/m] of each node of the depth grid (flat, row-major).
     candidates : ndarray (C,)
         The swept inverse depths [1/m].
-    cost : ndarray (C, G)
-        Mean IWE value at the nodes' events, per candidate (before aggregation).
-    confidence : ndarray (G,)
-        ``sqrt(events) * (max - min) / max`` of each node's curve (0: no events).
+    coarse_shape : (int, int)
+        The grid the sweep over the whole range ran on.
+    cost : ndarray (C, Gc)
+        Mean normalised IWE value at the coarse nodes' events, per candidate.
+    confidence : ndarray (Gc,)
+        ``sqrt(events) * (max - min) / max`` of each coarse node's curve (0: no events).
     """
 
     inverse_depth: np.ndarray
     candidates: np.ndarray
+    coarse_shape: tuple[int, int]
     cost: np.ndarray
     confidence: np.ndarray
 
@@ -82,12 +99,17 @@ def _event_scores(rays, dt, on, v, omega, rho, K, height, width, sigma):
     return score, inside
 
 
+def coarse_grid_shape(grid_shape: tuple[int, int], coarsening: int) -> tuple[int, int]:
+    """The grid ``coarsening`` times coarser than ``grid_shape`` (rounded up, at least 1 x 1)."""
+    return tuple(max(1, math.ceil(n / coarsening)) for n in grid_shape)
+
+
 def sweep_inverse_depth(
     rays: torch.Tensor, dt: torch.Tensor, polarity: torch.Tensor, v: np.ndarray, omega: np.ndarray,
     K: torch.Tensor, *, height: int, width: int, grid_shape: tuple[int, int], index: torch.Tensor,
     weight: torch.Tensor, rho_range: tuple[float, float], candidates: int = 48, sigma: float = 1.0,
-    polarity_split: bool = True, aggregation: float = 0.5, refinements: tuple[float, ...] = (0.3,),
-    refine_candidates: int = 13, chunk: int = 8,
+    polarity_split: bool = True, smoothness: tuple[float, float] = (0.1, 1.0), coarsening: int = 2,
+    refinements: tuple[float, ...] = (0.3,), refine_candidates: int = 13, chunk: int = 8,
 ) -> DepthSweep:
     """Per-node inverse depth of a window with known twist, by a sweep of the contrast.
 
@@ -104,8 +126,9 @@ def sweep_inverse_depth(
     K : Tensor (3, 3)
     height, width : int
     grid_shape : (gh, gw)
+        The depth grid (:class:`cmax.warp.DepthGrid`).
     index, weight : Tensor (N, 4)
-        Grid nodes and bilinear weights of each event (:meth:`cmax.warp.DepthGrid.weights`).
+        Depth-grid nodes and bilinear weights of each event (:meth:`cmax.warp.DepthGrid.weights`).
     rho_range : (float, float)
         Smallest and largest inverse depth [1/m].
     candidates : int
@@ -114,12 +137,18 @@ def sweep_inverse_depth(
         IWE blur [px].
     polarity_split : bool
         One image per polarity (True) or one for all events.
-    aggregation : float
-        Weight of the 8 neighbours of a node in the 3x3 aggregation (0: none).
+    smoothness : (float, float)
+        Semi-global matching penalties ``(P1, P2)`` of a step of one candidate
+        and of a larger jump between neighbouring nodes, in units of the
+        median node confidence; ``(0, 0)``: every node on its own.
+    coarsening : int
+        The sweep over the whole range runs on a grid this many times coarser
+        than ``grid_shape`` (:func:`coarse_grid_shape`); 1: on the depth grid.
     refinements : tuple of float
-        Half-widths (log of a factor) of relative sweeps after the first:
-        every event's inverse depth is scaled by ``exp(step)``, steps in
-        ``[-span, span]``, so the events of the other nodes stay in focus.
+        Half-widths (log of a factor) of relative sweeps on the depth grid
+        after the first: every event's inverse depth is scaled by
+        ``exp(step)``, steps in ``[-span, span]``, so the events of the other
+        nodes stay in focus.
     refine_candidates : int
         Steps of each relative sweep.
     chunk : int
@@ -130,23 +159,47 @@ def sweep_inverse_depth(
     DepthSweep
     """
     dtype = rays.dtype
-    G = grid_shape[0] * grid_shape[1]
     rhos = torch.linspace(float(rho_range[0]), float(rho_range[1]), candidates, dtype=dtype)
     N = rays.shape[0]
-    score = node_cost_function(rays, dt, polarity, v, omega, K, height=height, width=width, grid_shape=grid_shape,
-                               index=index, weight=weight, sigma=sigma, polarity_split=polarity_split, chunk=chunk)
+    coarse = coarse_grid_shape(grid_shape, int(coarsening))
+    pixels = rays @ K.to(dtype).T                                             # (x, y, 1) of the events
+    coarse_grid = DepthGrid(coarse, width, height)
+    coarse_index, coarse_weight = coarse_grid.weights(pixels[:, 0], pixels[:, 1])
     with torch.no_grad():
-        S = score(rhos[:, None].expand(-1, N))                                   # (C, G)
-        node_events = torch.zeros(G, dtype=dtype).index_add_(0, index.reshape(-1), weight.reshape(-1))
-        rho, confidence = _aggregate_argmax(S, rhos, node_events, grid_shape, aggregation)
+        common = dict(height=height, width=width, sigma=sigma, polarity_split=polarity_split, chunk=chunk)
+        S = node_cost_function(rays, dt, polarity, v, omega, K, grid_shape=coarse, index=coarse_index,
+                               weight=coarse_weight, **common)(rhos[:, None].expand(-1, N))  # (C, Gc)
+        rho, confidence = _regularised_argmax(S, rhos, _node_events(coarse_index, coarse_weight, coarse),
+                                              coarse, smoothness)
+        rho = _interpolate_nodes(rho, coarse_grid, grid_shape)
+        node_events = _node_events(index, weight, grid_shape)
+        cost = node_cost_function(rays, dt, polarity, v, omega, K, grid_shape=grid_shape, index=index,
+                                  weight=weight, **common)
         for span in refinements:  # relative sweeps around the current grid: the other events stay in focus
             steps = torch.linspace(-span, span, refine_candidates, dtype=dtype)
             base = (rho[index] * weight).sum(-1)                                  # (N,)
-            S_rel = relative_sweep_cost(score, base, steps)
-            step, _ = _aggregate_argmax(S_rel, steps, node_events, grid_shape, aggregation)
+            S_rel = relative_sweep_cost(cost, base, steps)
+            step, _ = _regularised_argmax(S_rel, steps, node_events, grid_shape, smoothness)
             rho = (rho * torch.exp(step)).clamp(float(rhos[0]), float(rhos[-1]))
-    return DepthSweep(rho.numpy().astype(np.float64), rhos.numpy().astype(np.float64),
+    return DepthSweep(rho.numpy().astype(np.float64), rhos.numpy().astype(np.float64), coarse,
                       S.numpy(), confidence.numpy())
+
+
+def _node_events(index: torch.Tensor, weight: torch.Tensor, grid_shape: tuple[int, int]) -> torch.Tensor:
+    """Bilinear weight of the events at each node (G,)."""
+    G = grid_shape[0] * grid_shape[1]
+    return torch.zeros(G, dtype=weight.dtype).index_add_(0, index.reshape(-1), weight.reshape(-1))
+
+
+def _interpolate_nodes(values: torch.Tensor, grid: DepthGrid, shape: tuple[int, int]) -> torch.Tensor:
+    """Values (G',) of the nodes of a finer grid ``shape`` interpolated from ``values`` (G,) on ``grid``."""
+    if tuple(shape) == tuple(grid.shape):
+        return values
+    gh, gw = shape
+    ys, xs = torch.meshgrid((torch.arange(gh, dtype=values.dtype) + 0.5) * grid.height / gh - 0.5,
+                            (torch.arange(gw, dtype=values.dtype) + 0.5) * grid.width / gw - 0.5, indexing="ij")
+    index, weight = grid.weights(xs.reshape(-1), ys.reshape(-1))
+    return DepthGrid.sample(values, index, weight)
 
 
 def relative_sweep_cost(node_cost, base_inverse_depth: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
@@ -169,41 +222,79 @@ def node_cost_function(rays: torch.Tensor, dt: torch.Tensor, polarity: torch.Ten
                        chunk: int = 8):
     """The sweep's cost as a function: per-event inverse depths (C, N) [1/m] -> node costs (C, G).
 
-    Arguments as in :func:`sweep_inverse_depth`; the result is the mean IWE
-    value (one image per polarity, blur ``sigma``) at each node's events.
+    Arguments as in :func:`sweep_inverse_depth`; the result is the mean, over
+    each node's events, of the IWE value at the event (one image per
+    polarity, blur ``sigma``) divided by the event's largest value over the
+    C candidates (one vote per event: compare candidates within one call).
     """
+    return lambda rho_events: _node_cost(  # noqa: E731
+        rays, dt, polarity, v, omega, rho_events, K, height, width, sigma, polarity_split, index, weight,
+        grid_shape, chunk)
+
+
+def _node_cost(rays, dt, polarity, v, omega, rho_events, K, height, width, sigma, polarity_split, index, weight,
+               grid_shape, chunk):
+    """Mean normalised IWE value at each node's events (C, G) for per-event inverse depths (C, N)."""
     dtype = rays.dtype
     on = (polarity > 0).to(dtype) if polarity_split else torch.ones_like(polarity, dtype=dtype)
-    v_t, om_t = torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype)
-    G = grid_shape[0] * grid_shape[1]
-    return lambda rho_events: _node_cost(  # noqa: E731
-        rays, dt, on, v_t, om_t, rho_events, K, height, width, sigma, index, weight, G, chunk)
-
-
-def _node_cost(rays, dt, on, v, omega, rho_events, K, height, width, sigma, index, weight, G, chunk):
-    """Mean IWE value at each node's events (C, G) for per-event inverse depths (C, N)."""
+    v, omega = torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype)
+    parts = [_event_scores(rays, dt, on, v, omega, part, K, height, width, sigma) for part in rho_events.split(chunk)]
+    score = torch.cat([p[0] for p in parts])                                     # (C, N)
+    inside = torch.cat([p[1] for p in parts])
+    score = score / (score * inside).max(0, keepdim=True).values.clamp(min=1e-12)  # one vote per event
+    C, G = score.shape[0], grid_shape[0] * grid_shape[1]
     flat_index = index.reshape(-1)
-    sums, weights = [], []
-    for part in rho_events.split(chunk):
-        score, inside = _event_scores(rays, dt, on, v, omega, part, K, height, width, sigma)
-        B = part.shape[0]
-        w_in = inside[:, :, None] * weight[None]                                   # (B, N, 4)
-        sums.append(torch.zeros(B, G, dtype=rays.dtype).index_add_(
-            1, flat_index, (w_in * score[:, :, None]).reshape(B, -1)))
-        weights.append(torch.zeros(B, G, dtype=rays.dtype).index_add_(1, flat_index, w_in.reshape(B, -1)))
-    return torch.cat(sums) / torch.cat(weights).clamp(min=1e-6)
+    w_in = inside[:, :, None] * weight[None]                                       # (C, N, 4)
+    sums = torch.zeros(C, G, dtype=dtype).index_add_(1, flat_index, (w_in * score[:, :, None]).reshape(C, -1))
+    weights = torch.zeros(C, G, dtype=dtype).index_add_(1, flat_index, w_in.reshape(C, -1))
+    return sums / weights.clamp(min=1e-6)
 
 
-def _aggregate_argmax(S, values, node_events, grid_shape, aggregation):
-    """Confidence-weighted 3x3 aggregation of normalised node curves, then the parabolic arg-max."""
+def _regularised_argmax(S: torch.Tensor, values: torch.Tensor, node_events: torch.Tensor,
+                        grid_shape: tuple[int, int], smoothness: tuple[float, float]
+                        ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The value (G,) of each node from its cost curve in ``S`` (C, G) (higher is better), chosen by
+    semi-global matching over the node grid, and each node's confidence (G,).
+
+    Each curve is normalised to [0, 1] and weighted by its confidence; the
+    matching cost ``confidence (1 - normalised)`` is aggregated along four
+    scan-line directions with the penalties ``smoothness * median confidence``
+    (:func:`_scanline_costs`), and the minimum is refined by a parabola.
+    """
     gh, gw = grid_shape
     top, bottom = S.max(0).values, S.min(0).values
     confidence = node_events.sqrt() * (top - bottom) / top.clamp(min=1e-12)
-    normalised = (S - bottom) / (top - bottom).clamp(min=1e-12) * confidence
-    kernel = torch.full((3, 3), float(aggregation), dtype=S.dtype)
-    kernel[1, 1] = 1.0
-    A = torch.nn.functional.conv2d(normalised.view(-1, 1, gh, gw), kernel.view(1, 1, 3, 3), padding=1)
-    return _parabolic_argmax(A.view(-1, gh * gw), values), confidence
+    normalised = (S - bottom) / (top - bottom).clamp(min=1e-12)
+    cost = (1.0 - normalised) * confidence                                       # (C, G)
+    positive = confidence[confidence > 0]
+    unit = float(positive.median()) if positive.numel() else 1.0
+    p1, p2 = (float(p) * unit for p in smoothness)
+    C = S.shape[0]
+    volume = cost.view(C, gh, gw)
+    total = (_scanline_costs(volume, p1, p2)                                      # top to bottom
+             + _scanline_costs(volume.flip(1), p1, p2).flip(1)                   # bottom to top
+             + _scanline_costs(volume.transpose(1, 2), p1, p2).transpose(1, 2)   # left to right
+             + _scanline_costs(volume.transpose(1, 2).flip(1), p1, p2).flip(1).transpose(1, 2))
+    return _parabolic_argmax(-total.reshape(C, gh * gw), values), confidence
+
+
+def _scanline_costs(volume: torch.Tensor, p1: float, p2: float) -> torch.Tensor:
+    """Semi-global matching along dim 1 of a cost volume (C, L, M): (C, L, M).
+
+    ``L[:, i] = cost[:, i] + min(L[:, i-1], L[:, i-1] shifted by one candidate + p1, min L[:, i-1] + p2)
+    - min L[:, i-1]`` (Hirschmüller 2008). A loop over the L <= 64 grid rows or
+    columns, vectorised over candidates and the other axis; no library offers
+    this recursion for an arbitrary cost volume (OpenCV's is inside StereoSGBM).
+    """
+    out = [volume[:, 0]]
+    blocked = torch.full_like(volume[:1, 0], float("inf"))
+    for i in range(1, volume.shape[1]):
+        previous = out[-1]
+        lowest = previous.min(0, keepdim=True).values
+        neighbour = torch.minimum(torch.cat([previous[1:], blocked]), torch.cat([blocked, previous[:-1]])) + p1
+        best = torch.minimum(torch.minimum(previous, neighbour), lowest + p2)
+        out.append(volume[:, i] + best - lowest)
+    return torch.stack(out, 1)
 
 
 def _parabolic_argmax(A: torch.Tensor, rhos: torch.Tensor) -> torch.Tensor:

@@ -65,7 +65,7 @@ class Window:
 
     @classmethod
     def from_events(cls, events: "Events", K: np.ndarray, settings: "FitSettings", solver: "str | Solver" = "scipy",
-                    depth_grid: tuple[int, int] = (12, 16)) -> "Window":
+                    depth_grid: tuple[int, int] = (24, 32)) -> "Window":
         """The window of ``events`` with intrinsics ``K`` (3, 3), subsampled and dithered as ``settings`` say."""
         ev = WarpEvents.from_events(events, K, max_events=settings.max_events, seed=settings.seed)
         return cls(ev, settings, make_solver(solver), DepthGrid(tuple(depth_grid), events.width, events.height))
@@ -243,7 +243,8 @@ def sweep(w: Window, v: np.ndarray, omega: np.ndarray) -> np.ndarray:
     result = sweep_inverse_depth(
         ev.rays, w.dt_mid, ev.polarity, v, omega, ev.K, height=ev.height, width=ev.width,
         grid_shape=w.grid.shape, index=w.index, weight=w.weight, rho_range=(1.0 / hi, 1.0 / lo),
-        candidates=s.depth_candidates, sigma=s.sigma, aggregation=s.depth_aggregation,
+        candidates=s.depth_candidates, sigma=s.sigma, smoothness=tuple(s.depth_smoothness),
+        coarsening=s.depth_coarsening,
         refinements=tuple(s.depth_refinements))
     return result.inverse_depth
 
