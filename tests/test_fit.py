@@ -355,6 +355,19 @@ def test_every_event_has_one_vote_in_the_sweep():
     np.testing.assert_allclose(result.inverse_depth, 1 / 4.0, rtol=0.08)
 
 
+def test_an_event_pushed_out_of_the_image_gets_the_typical_vote_scale():
+    """Events always inside are scaled by their own largest value; an event that one candidate pushes
+    out of the image by the median largest value of the others (not by its largest over the candidates
+    that keep it inside)."""
+    import torch
+
+    from cmax.fitting.depth_sweep import _vote_scale
+
+    score = torch.tensor([[1.0, 4.0, 2.0, 0.0], [3.0, 2.0, 6.0, 5.0], [2.0, 1.0, 1.0, 1.0]])
+    inside = torch.tensor([[1.0, 1.0, 1.0, 0.0], [1.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]])
+    np.testing.assert_allclose(_vote_scale(score, inside).numpy(), [[3.0, 4.0, 6.0, 4.0]])
+
+
 def test_semi_global_matching_fills_a_flat_node_and_keeps_a_depth_step():
     """Cost curves on a 3 x 6 grid peaking at candidate 8 on the left half and 30 on the right; one left
     node has a flat curve (no information) and one right node no events. Semi-global matching gives the
