@@ -75,10 +75,11 @@ class FitSettings:
         one candidate, a larger jump between neighbouring grid nodes) in
         units of the median node confidence (:mod:`cmax.fitting.depth_sweep`).
         On the tuning seeds 1-12 with ``pose=`` (12 x 16 grid, one vote per
-        event), abs_rel median 0.107 with (0.1, 1.0), 0.105 with (0.1, 0.5),
-        0.110 with (0.15, 1.5), against 0.112 for the 3 x 3 aggregation of
-        neighbouring curves it replaced; on windows with little parallax, whose
-        curves are flat, it keeps nodes from running to the far bound.
+        event), abs_rel median / p90 0.107 / 0.126 with (0.1, 1.0), 0.105 /
+        0.135 with (0.1, 0.5), 0.110 / 0.131 with (0.15, 1.5), against 0.112 /
+        0.147 for the best 3 x 3 aggregation of neighbouring curves it
+        replaced (weight 0.1); on windows with little parallax, whose curves
+        are flat, it keeps nodes from running to the far bound.
     depth_coarsening : int
         The sweep over the whole ``depth_range`` runs on a grid this many
         times coarser than ``depth_grid``; the relative refinements run on
