@@ -109,7 +109,8 @@ class FitSettings:
         wins. For vehicles, whose rotation is small next to their forward
         speed: on the Prophesee drive the first start alone ends at a plane
         pitching at 134 deg/s, 74 deg from forward, and this one 2 deg from
-        forward with a higher contrast. Off by default: on the tuning seeds
+        forward with a higher patch-wise contrast (the image's global
+        contrast prefers the pitching plane). Off by default: on the tuning seeds
         1-12 it won on 2 windows (direction 6.5 -> 0.8 and 4.5 -> 6.0 deg) for
         about 1 s more per window (the se3 budget is 5 s); on the held-out
         windows it changed 4 of 20 (direction median 7.8 -> 8.3 deg).
