@@ -408,6 +408,11 @@ def fit(
         raise ValueError(f"depth_range must satisfy 0 < near < far (metres), got {settings.depth_range}")
     if int(settings.max_events) < 10:
         raise ValueError(f"max_events must be >= 10, got {settings.max_events}")
+    if not (isinstance(settings.depth_coarsening, (int, np.integer)) and settings.depth_coarsening >= 1):
+        raise ValueError(f"depth_coarsening must be an integer >= 1, got {settings.depth_coarsening!r}")
+    smoothness = np.asarray(settings.depth_smoothness, dtype=float).ravel()
+    if smoothness.size != 2 or not np.all(np.isfinite(smoothness)) or np.any(smoothness < 0):
+        raise ValueError(f"depth_smoothness must be two non-negative numbers (P1, P2), got {settings.depth_smoothness!r}")
     if settings.contrast not in ("variance", "gradient"):
         raise ValueError(f"contrast must be 'variance', 'gradient' or None, got {settings.contrast!r}")
     if settings.motion_init not in ("patches", "starts"):
