@@ -166,6 +166,19 @@ class DepthGrid:
         i = (y * gh / self.height).long().clamp(0, gh - 1)
         return i * gw + j
 
+    def resample(self, values: torch.Tensor, shape: tuple[int, int]) -> torch.Tensor:
+        """Grid ``values`` (G,) or (gh, gw) interpolated at the nodes of a grid ``shape`` over the same image:
+        flat (shape[0] * shape[1],), the same interpolation as :meth:`sample` (a finer grid's start from a
+        coarser one's values)."""
+        if tuple(shape) == tuple(self.shape):
+            return values.reshape(-1)
+        rows, cols = shape
+        dtype = values.dtype
+        ys, xs = torch.meshgrid((torch.arange(rows, dtype=dtype) + 0.5) * self.height / rows - 0.5,
+                                (torch.arange(cols, dtype=dtype) + 0.5) * self.width / cols - 0.5, indexing="ij")
+        index, weight = self.weights(xs.reshape(-1), ys.reshape(-1))
+        return self.sample(values, index, weight)
+
     def upsample(self, values: np.ndarray) -> np.ndarray:
         """Dense (H, W) float64 map of grid ``values`` (gh, gw), the same interpolation as :meth:`sample`."""
         values = np.asarray(values, dtype=np.float64).reshape(self.shape)

@@ -288,32 +288,7 @@ def test_pegboard_rotation_is_slow_and_does_not_blur(shared_data):
     assert r.objective_after >= 1.0
 
 
-def test_sweep_finds_the_depth_of_a_fronto_parallel_plane():
-    """Events of a textured plane at 2 m seen by a sliding camera: every node's sweep peaks near 0.5 1/m."""
-    import torch
-
-    from cmax.fitting.depth_sweep import sweep_inverse_depth
-    from cmax.warp import DepthGrid
-
-    rng = np.random.default_rng(0)
-    H, W, f, depth, v = 60, 80, 60.0, 2.0, np.array([0.6, 0.2, 0.0])
-    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]], dtype=torch.float64)
-    # Edges at random positions at t_ref; an event at time dt sits where the edge is then: x + f v dt / Z.
-    points = rng.uniform([5, 5], [W - 5, H - 5], (400, 2))
-    dt = rng.uniform(-0.1, 0.1, (400, 30))
-    xs = points[:, :1] - f * v[0] * dt / depth
-    ys = points[:, 1:] - f * v[1] * dt / depth
-    x, y, dt = (torch.from_numpy(a.ravel()) for a in (xs, ys, dt))
-    rays = torch.stack([x, y, torch.ones_like(x)], -1) @ torch.linalg.inv(K).T
-    grid = DepthGrid((3, 4), W, H)
-    index, weight = grid.weights(x, y)
-    result = sweep_inverse_depth(rays, dt[None], torch.ones_like(x), v, np.zeros(3), K, height=H, width=W,
-                                 grid_shape=(3, 4), index=index, weight=weight, rho_range=(0.05, 2.0), sigma=0.7)
-    np.testing.assert_allclose(result.inverse_depth, 1 / depth, rtol=0.06)
-    assert result.coarse_shape == (2, 2) and result.cost.shape == (48, 4) and np.all(result.confidence > 0)
-
-
-def _plane_events(rng, points, depth, events_per_point, f, v, H, W):
+def _plane_events(rng, points, depth, events_per_point, f, v):
     """Events of edge points (P, 2) [px at t_ref] at depths (P,) [m] seen by a camera translating at ``v``
     (no rotation): an event at time dt sits where its point is then, ``x - f v dt / Z``. Returns x, y, dt
     (N,) float64 tensors and the per-event inverse depth (N,)."""
@@ -326,17 +301,38 @@ def _plane_events(rng, points, depth, events_per_point, f, v, H, W):
     return (*(torch.from_numpy(a.ravel()) for a in (xs, ys, dt)), torch.from_numpy(rho))
 
 
-def _sweep(x, y, dt, v, f, H, W, grid_shape, **options):
+def _sweep_inputs(x, y, f, H, W, grid_shape):
+    """K (3, 3) with the principal point at the image centre, the events' rays (N, 3), and their grid nodes and
+    bilinear weights (N, 4) on a ``grid_shape`` depth grid."""
     import torch
 
-    from cmax.fitting.depth_sweep import sweep_inverse_depth
     from cmax.warp import DepthGrid
 
     K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]], dtype=torch.float64)
     rays = torch.stack([x, y, torch.ones_like(x)], -1) @ torch.linalg.inv(K).T
     index, weight = DepthGrid(grid_shape, W, H).weights(x, y)
+    return K, rays, index, weight
+
+
+def _sweep(x, y, dt, v, f, H, W, grid_shape, **options):
+    import torch
+
+    from cmax.fitting.depth_sweep import sweep_inverse_depth
+
+    K, rays, index, weight = _sweep_inputs(x, y, f, H, W, grid_shape)
     return sweep_inverse_depth(rays, dt[None], torch.ones_like(x), v, np.zeros(3), K, height=H, width=W,
                                grid_shape=grid_shape, index=index, weight=weight, sigma=0.7, **options)
+
+
+def test_sweep_finds_the_depth_of_a_fronto_parallel_plane():
+    """Events of a textured plane at 2 m seen by a sliding camera: every node's sweep peaks near 0.5 1/m."""
+    rng = np.random.default_rng(0)
+    H, W, f, depth, v = 60, 80, 60.0, 2.0, np.array([0.6, 0.2, 0.0])
+    points = rng.uniform([5, 5], [W - 5, H - 5], (400, 2))   # edges at random positions at t_ref
+    x, y, dt, _ = _plane_events(rng, points, np.full(400, depth), 30, f, v)
+    result = _sweep(x, y, dt, v, f, H, W, (3, 4), rho_range=(0.05, 2.0))
+    np.testing.assert_allclose(result.inverse_depth, 1 / depth, rtol=0.06)
+    assert result.coarse_shape == (2, 2) and result.cost.shape == (48, 4) and np.all(result.confidence > 0)
 
 
 def test_every_event_has_one_vote_in_the_sweep():
@@ -345,12 +341,11 @@ def test_every_event_has_one_vote_in_the_sweep():
     depth of the plane most events belong to (4 m), not of the one whose focused events pile up highest."""
     rng = np.random.default_rng(5)
     H, W, f, v = 60, 80, 60.0, np.array([2.0, 0.5, 0.0])
-    near = _plane_events(rng, rng.uniform([8, 8], [W - 8, H - 8], (40, 2)), np.full(40, 1.5), 30, f, v, H, W)
-    far = _plane_events(rng, rng.uniform([8, 8], [W - 8, H - 8], (300, 2)), np.full(300, 4.0), 8, f, v, H, W)
-    x, y, dt = (np.concatenate([a, b]) for a, b in zip(near[:3], far[:3]))
+    near = _plane_events(rng, rng.uniform([8, 8], [W - 8, H - 8], (40, 2)), np.full(40, 1.5), 30, f, v)
+    far = _plane_events(rng, rng.uniform([8, 8], [W - 8, H - 8], (300, 2)), np.full(300, 4.0), 8, f, v)
     import torch
 
-    x, y, dt = (torch.from_numpy(a) for a in (x, y, dt))
+    x, y, dt = (torch.cat([a, b]) for a, b in zip(near[:3], far[:3]))
     result = _sweep(x, y, dt, v, f, H, W, (1, 1), rho_range=(0.05, 1.0), coarsening=1, refinements=())
     np.testing.assert_allclose(result.inverse_depth, 1 / 4.0, rtol=0.08)
 
@@ -396,7 +391,7 @@ def test_coarse_to_fine_sweep_keeps_two_planes_apart():
     H, W, f, v = 60, 80, 60.0, np.array([1.0, 0.2, 0.0])
     points = rng.uniform([4, 4], [W - 4, H - 4], (900, 2))
     depth = np.where(points[:, 0] < W / 2, 1.5, 4.0)
-    x, y, dt, _ = _plane_events(rng, points, depth, 20, f, v, H, W)
+    x, y, dt, _ = _plane_events(rng, points, depth, 20, f, v)
     result = _sweep(x, y, dt, v, f, H, W, (4, 8), rho_range=(0.05, 2.0), coarsening=2, refinements=(0.3, 0.1))
     assert result.coarse_shape == (2, 4)
     rho = result.inverse_depth.reshape(4, 8)
@@ -411,20 +406,12 @@ def test_relative_sweep_peaks_at_the_true_depth_of_each_plane():
     import torch
 
     from cmax.fitting.depth_sweep import _parabolic_argmax, node_cost_function, relative_sweep_cost
-    from cmax.warp import DepthGrid
 
     rng = np.random.default_rng(3)
     H, W, f, v = 60, 80, 60.0, np.array([0.5, 0.1, 0.0])
-    K = torch.tensor([[f, 0, W / 2], [0, f, H / 2], [0, 0, 1.0]], dtype=torch.float64)
     points = rng.uniform([6, 6], [W - 6, H - 6], (600, 2))
-    depth = np.where(points[:, 0] < W / 2, 1.5, 4.0)[:, None]
-    dt = rng.uniform(-0.1, 0.1, (600, 25))
-    xs, ys = points[:, :1] - f * v[0] * dt / depth, points[:, 1:] - f * v[1] * dt / depth
-    x, y, dt = (torch.from_numpy(a.ravel()) for a in (xs, ys, dt))
-    rho_true = torch.from_numpy(np.repeat(1.0 / depth[:, 0], 25))
-    rays = torch.stack([x, y, torch.ones_like(x)], -1) @ torch.linalg.inv(K).T
-    grid = DepthGrid((2, 2), W, H)
-    index, weight = grid.weights(x, y)
+    x, y, dt, rho_true = _plane_events(rng, points, np.where(points[:, 0] < W / 2, 1.5, 4.0), 25, f, v)
+    K, rays, index, weight = _sweep_inputs(x, y, f, H, W, (2, 2))
     cost = node_cost_function(rays, dt[None], torch.ones_like(x), v, np.zeros(3), K, height=H, width=W,
                               grid_shape=(2, 2), index=index, weight=weight, sigma=0.7)
     steps = torch.linspace(-0.5, 0.5, 21, dtype=torch.float64)

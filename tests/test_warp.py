@@ -108,6 +108,11 @@ def test_depth_grid_interpolation_closed_form_and_upsample():
     dense = grid.upsample(values.numpy())
     import cv2
     np.testing.assert_allclose(dense, cv2.resize(values.numpy(), (4, 4), interpolation=cv2.INTER_LINEAR), atol=1e-12)
+    # Resampled at the nodes of a 4 x 4 grid (pixel centres 0..3): x = 0, 1, 2, 3 fall at node
+    # coordinates -0.25 (held at node 0), 0.25, 0.75 and 1.25 (held at node 1).
+    fine = grid.resample(torch.tensor([[0.0, 1.0], [0.0, 1.0]], dtype=torch.float64), (4, 4))
+    np.testing.assert_allclose(fine.numpy().reshape(4, 4), np.tile([0.0, 0.25, 0.75, 1.0], (4, 1)), atol=1e-12)
+    assert torch.equal(grid.resample(values, (2, 2)), values.reshape(-1))
     with pytest.raises(ValueError, match="depth_grid"):
         DepthGrid((0, 3), 4, 4)
     with pytest.raises(ValueError, match="finer"):

@@ -172,7 +172,7 @@ def sweep_inverse_depth(
                                weight=coarse_weight, **common)(rhos[:, None].expand(-1, N))  # (C, Gc)
         rho, confidence = _regularised_argmax(S, rhos, _node_events(coarse_index, coarse_weight, coarse),
                                               coarse, smoothness)
-        rho = _interpolate_nodes(rho, coarse_grid, grid_shape)
+        rho = coarse_grid.resample(rho, grid_shape)
         node_events = _node_events(index, weight, grid_shape)
         cost = node_cost_function(rays, dt, polarity, v, omega, K, grid_shape=grid_shape, index=index,
                                   weight=weight, **common)
@@ -190,17 +190,6 @@ def _node_events(index: torch.Tensor, weight: torch.Tensor, grid_shape: tuple[in
     """Bilinear weight of the events at each node (G,)."""
     G = grid_shape[0] * grid_shape[1]
     return torch.zeros(G, dtype=weight.dtype).index_add_(0, index.reshape(-1), weight.reshape(-1))
-
-
-def _interpolate_nodes(values: torch.Tensor, grid: DepthGrid, shape: tuple[int, int]) -> torch.Tensor:
-    """Values (G',) of the nodes of a finer grid ``shape`` interpolated from ``values`` (G,) on ``grid``."""
-    if tuple(shape) == tuple(grid.shape):
-        return values
-    gh, gw = shape
-    ys, xs = torch.meshgrid((torch.arange(gh, dtype=values.dtype) + 0.5) * grid.height / gh - 0.5,
-                            (torch.arange(gw, dtype=values.dtype) + 0.5) * grid.width / gw - 0.5, indexing="ij")
-    index, weight = grid.weights(xs.reshape(-1), ys.reshape(-1))
-    return DepthGrid.sample(values, index, weight)
 
 
 def relative_sweep_cost(node_cost, base_inverse_depth: torch.Tensor, steps: torch.Tensor) -> torch.Tensor:
