@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import functools
 
+import cv2
 import numpy as np
 import pytest
 
@@ -228,7 +229,15 @@ def test_depth_belongs_to_the_reference_time():
     events, K = _approaching_plane()
     r = fit(events, K, pose=np.r_[0, 0, 4.0, 0, 0, 0], depth_grid=(6, 8))
     assert r.t_ref_us == (r.t0_us + r.t1_us) // 2 == 100_000
-    assert r.mask.mean() > 0.5 and np.all(np.isfinite(r.depth))
+    assert np.all(np.isfinite(r.depth))
+    # the mask is the event pixels of the reference view: the edges where they are at t_ref
+    edges = np.random.default_rng(0).uniform([5, 5], [115, 85], (500, 2))  # _approaching_plane's edge points
+    at_ref = np.zeros_like(r.mask)
+    at_ref[np.rint(edges[:, 1]).astype(int), np.rint(edges[:, 0]).astype(int)] = True
+    near_ref = cv2.dilate(at_ref.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    # on the edges at t_ref (0.90 measured; 0.47 of the pixels the events were recorded at)...
+    assert (r.mask & near_ref).sum() > 0.8 * r.mask.sum()
+    assert (r.mask & at_ref).sum() > 0.9 * at_ref.sum()          # ...and on nearly all of them (1.0)
     median = float(np.median(r.depth[r.mask]))
     assert median == pytest.approx(2.0, rel=0.06), median  # 2.06 measured
     assert abs(median - 2.0) < 0.3 * min(abs(median - 2.4), abs(median - 1.6))

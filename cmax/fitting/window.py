@@ -26,7 +26,7 @@ from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.stages import Window, fit_flow, fit_rotation, fit_se3
 from cmax.iwe import accumulate_bilinear, blur
 from cmax.fitting.solvers import Solver, make_solver
-from cmax.warp import DepthGrid, warp_flow, warp_rotation, warp_se3
+from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
 
 __all__ = ["FitResult", "FitSettings", "fit"]
 
@@ -173,7 +173,11 @@ class FitResult:
     depth : ndarray (H, W) float32 or None
         z-depth [m] at ``t_ref_us``, dense (interpolated from the grid); see ``mask``.
     mask : ndarray (H, W) bool or None
-        Pixels supported by events (event pixels of cells with enough events).
+        The event pixels of the reference view: pixels that hold at least one
+        event once the events are warped to ``t_ref_us`` with the fitted
+        motion and depth (:func:`event_pixels`), in cells with at least
+        ``min_cell_events`` events. Like EMVS's semi-dense map, on the edges
+        seen at ``t_ref_us``.
     inverse_depth_grid : ndarray (gh, gw) or None
         The optimised inverse depths [1/m] at the grid nodes.
     scale_known : bool
@@ -445,10 +449,30 @@ def fit(
             if scale <= 0:
                 raise ValueError("pose has no translation: depth is unobservable under a pure rotation")
             v, omega, grid = fit_se3(w, speed=scale, pose_xi=pose_xi, init=init, omega=known_omega)
-        return _result(w, model, flow, v, omega, grid, scale_known=pose is not None or speed is not None,
+        return _result(w, events, K, model, flow, v, omega, grid, scale_known=pose is not None or speed is not None,
                        seconds=time.perf_counter() - start)
     finally:
         torch.set_num_threads(previous_threads)
+
+
+def event_pixels(x: np.ndarray, y: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Pixels (H, W) bool that hold at least one of the points ``x, y`` (N,) [px] (rounded to the nearest
+    pixel; points outside the image are left out).
+
+    With the events warped to ``t_ref`` by the fitted motion and depth these are
+    the event pixels *of the reference view*: where the window's edges are at
+    ``t_ref``, the support of ``iwe_after``. The pixels the events were
+    recorded at instead form the band each edge swept over the window, and at
+    ``t_ref`` half of a moving depth edge's band shows the surface behind it
+    (on the held-out ``indoor_flying`` windows of ``benchmarks/accuracy_cmax.py``,
+    ``pose=``: abs_rel 0.098 on these pixels, 0.102 on the recorded event
+    pixels, 0.110 on those dilated by 3 x 3, the mask before).
+    """
+    col, row = np.rint(x), np.rint(y)
+    inside = (col >= 0) & (col <= width - 1) & (row >= 0) & (row <= height - 1)
+    hits = np.zeros((height, width), bool)
+    hits[row[inside].astype(np.intp), col[inside].astype(np.intp)] = True
+    return hits
 
 
 def _warped_mid(w: Window, flow, v, omega, grid) -> tuple[torch.Tensor, torch.Tensor]:
@@ -461,6 +485,18 @@ def _warped_mid(w: Window, flow, v, omega, grid) -> tuple[torch.Tensor, torch.Te
         rho = DepthGrid.sample(torch.as_tensor(grid, dtype=ev.x.dtype), w.index, w.weight)
         return warp_se3(ev.rays, w.dt_mid, torch.as_tensor(v, dtype=ev.x.dtype),
                         torch.as_tensor(omega, dtype=ev.x.dtype), rho, ev.K)
+
+
+def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega, grid) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel centres of *all* the window's events (not the fit's subsample, not dithered) warped to ``t_ref``
+    by the fitted se3 motion and depth grid: x, y (N,) [px]."""
+    ev = WarpEvents.from_events(events, K, dither=False, dtype=torch.float64)
+    index, weight = w.grid.weights(ev.x, ev.y)
+    with torch.no_grad():
+        rho = DepthGrid.sample(torch.as_tensor(grid, dtype=torch.float64), index, weight)
+        x, y = warp_se3(ev.rays, ev.dt((0.5,))[0], torch.as_tensor(v, dtype=torch.float64),
+                        torch.as_tensor(omega, dtype=torch.float64), rho, ev.K)
+    return x.numpy(), y.numpy()
 
 
 def _objective(w: Window, flow, v, omega, grid) -> float:
@@ -477,7 +513,8 @@ def _objective(w: Window, flow, v, omega, grid) -> float:
         return float(w.contrast(x, y, 1))
 
 
-def _result(w: Window, model, flow, v, omega, grid, *, scale_known: bool, seconds: float) -> FitResult:
+def _result(w: Window, events: Events, K: np.ndarray, model, flow, v, omega, grid, *, scale_known: bool, seconds: float
+            ) -> FitResult:
     ev, s = w.ev, w.settings
     H, W = ev.height, ev.width
     with torch.no_grad():
@@ -489,12 +526,9 @@ def _result(w: Window, model, flow, v, omega, grid, *, scale_known: bool, second
         depth = (1.0 / w.grid.upsample(grid)).astype(np.float32)
         counts = np.bincount(w.cell.numpy(), minlength=grid.size)
         supported = counts.reshape(grid.shape) >= s.min_cell_events
-        import cv2
-        hits = np.zeros((H, W), np.uint8)
-        hits[ev.y.numpy().astype(int), ev.x.numpy().astype(int)] = 1
-        hits = cv2.dilate(hits, np.ones((3, 3), np.uint8)).astype(bool)
         cell_map = w.grid.cell_of(*[torch.from_numpy(a.ravel().astype(np.float64)) for a in np.mgrid[0:H, 0:W][::-1]])
-        mask = hits & supported.ravel()[cell_map.numpy()].reshape(H, W)
+        x_ref, y_ref = _all_events_at_reference(events, K, w, v, omega, grid)
+        mask = event_pixels(x_ref, y_ref, H, W) & supported.ravel()[cell_map.numpy()].reshape(H, W)
     xi = np.r_[v, omega]
     parallax = None if grid is None else _parallax_px(w, np.asarray(v, float), np.asarray(grid, float))
     return FitResult(
