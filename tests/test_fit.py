@@ -143,6 +143,17 @@ def test_depth_spread_of_a_step_is_its_log_ratio_next_to_it_and_zero_away():
     np.testing.assert_allclose(depth_spread(np.full((4, 6), 0.3), grid), 0.0, atol=1e-7)
 
 
+def test_event_pixels_rounds_to_the_nearest_pixel_and_leaves_out_points_outside():
+    from cmax.fitting.window import event_pixels
+
+    x = np.array([0.4, 2.6, 2.4, -0.6, 4.49, 1.0, 3.0])
+    y = np.array([0.0, 1.4, 1.6, 0.0, 2.0, 2.51, -0.51])
+    pixels = event_pixels(x, y, 3, 5)
+    expected = np.zeros((3, 5), bool)
+    expected[0, 0] = expected[1, 3] = expected[2, 2] = expected[2, 4] = True   # (-0.6, 0), (1, 2.51), (3, -0.51): out
+    np.testing.assert_array_equal(pixels, expected)
+
+
 def test_se3_with_known_speed_indoor_flying():
     """Motion and depth together (120x90: a coarse check; the 346x260 figures are in benchmarks/results)."""
     w = _preset("indoor_flying", 120, 90)
