@@ -10,7 +10,10 @@ Windows (346x260, held-out seeds, default 100-119):
   against the window's mean twist ``se3_log(T01) / T``; ``parallax_px`` is the
   fit's own ``FitResult.parallax_px`` (how far its translation moves the events);
   ``abs_rel_half`` the abs_rel on the half of those pixels with the smallest
-  ``FitResult.depth_spread`` (the fit's per-pixel confidence; no target).
+  ``FitResult.depth_spread`` (the fit's per-pixel confidence; no target);
+  ``abs_rel_recorded`` (depth only) the abs_rel on the pixels the events were
+  recorded at instead of the mask's pixels at ``t_ref`` (no target; for
+  comparison: until 2026-11 the mask was those pixels dilated by 3 x 3).
 * ``se3_gyro`` and ``se3_gyro_bias``: the same windows with the rotation known
   (``fit(events, K, speed=|v|, omega=...)``), as a gyroscope would give it:
   exactly (the true mean angular velocity), or with a bias of
@@ -48,6 +51,7 @@ import numpy as np
 import torch
 
 from cmax.fitting import fit
+from cmax.fitting.window import event_pixels
 from cmax.io.atomic import write_text_atomic
 from cmax.metrics import depth_metrics
 from cmax.synthetic_windows import make_window, preset_window
@@ -85,7 +89,12 @@ def cached(cache: Path | None, key: str, make):
 def scored_pixels(result, depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> np.ndarray:
     """Pixels (H, W) bool a fit's depth is scored on: its mask, with finite ground truth ``depth`` [m]
     (inside ``depth_range`` when given)."""
-    valid = result.mask & np.isfinite(depth)
+    return with_truth(result.mask, depth, depth_range)
+
+
+def with_truth(pixels: np.ndarray, depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> np.ndarray:
+    """``pixels`` (H, W) bool where the ground truth ``depth`` [m] is finite (and inside ``depth_range``)."""
+    valid = pixels & np.isfinite(depth)
     if depth_range is not None:
         with np.errstate(invalid="ignore"):
             valid &= (depth >= depth_range[0]) & (depth <= depth_range[1])
@@ -121,7 +130,18 @@ def run_depth(window, **settings) -> dict:
     depth_range = settings.get("depth_range")
     return {"abs_rel": abs_rel(r, window.depth, depth_range), "seconds": seconds,
             "coverage": float(scored_pixels(r, window.depth, depth_range).mean()),
-            "abs_rel_half": abs_rel_half(r, window.depth, depth_range)}
+            "abs_rel_half": abs_rel_half(r, window.depth, depth_range),
+            "abs_rel_recorded": abs_rel_recorded(r, window.events, window.depth, depth_range)}
+
+
+def abs_rel_recorded(result, events, depth: np.ndarray, depth_range: tuple[float, float] | None = None) -> float:
+    """abs_rel of a fit's depth on the pixels the events were *recorded* at (every pixel with an event in the
+    window, finite ground truth, inside ``depth_range``), not warped to ``t_ref`` as ``FitResult.mask`` is:
+    the band each edge swept over the window, which at ``t_ref`` partly shows the surface behind a moving
+    depth edge. Reported next to ``abs_rel`` so the two definitions of event pixels can be compared."""
+    recorded = event_pixels(events.x.astype(float), events.y.astype(float), events.height, events.width)
+    valid = with_truth(recorded, depth, depth_range)
+    return depth_metrics(result.depth, depth, mask=valid).abs_rel if valid.any() else float("nan")
 
 
 def gyro_reading(window, seed: int, bias_deg_s: float) -> np.ndarray:

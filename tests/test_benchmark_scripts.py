@@ -43,6 +43,18 @@ def test_scored_pixels_keep_the_mask_with_ground_truth_inside_the_range():
     assert abs(accuracy_cmax.abs_rel_half(result, truth) - (89 / 90 + 0.0) / 2) < 1e-6
 
 
+def test_abs_rel_recorded_scores_the_pixels_the_events_were_recorded_at():
+    from cmax.events import Events
+
+    truth = np.array([[1.0, 5.0, np.nan], [90.0, 2.0, 3.0]], np.float32)
+    result = SimpleNamespace(mask=np.zeros((2, 3), bool),   # the mask plays no part
+                             depth=np.array([[1.5, 5.0, 1.0], [1.0, 2.0, 6.0]], np.float32))
+    events = Events(np.array([0, 0, 2, 2, 1]), np.array([0, 0, 0, 1, 1]), np.arange(5), np.ones(5, int), 3, 2)
+    # recorded pixels (0, 0), (0, 2) (no truth), (1, 2), (1, 1): errors 0.5, 1.0 and 0
+    assert abs(accuracy_cmax.abs_rel_recorded(result, events, truth) - 0.5) < 1e-6
+    assert abs(accuracy_cmax.abs_rel_recorded(result, events, truth, (1.5, 80.0)) - 0.5) < 1e-6  # 1.0 and 0
+
+
 def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, tmp_path):
     calls = []
     monkeypatch.setattr(presets, "preset_window", lambda preset, seed, cache: (preset, seed))
