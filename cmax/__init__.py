@@ -16,7 +16,7 @@ __version__ = "0.1.0"
 #: Public names loaded on first access: name -> module.
 _LAZY = {
     "fit": "cmax.fitting", "fit_sequence": "cmax.fitting", "FitResult": "cmax.fitting",
-    "FitSettings": "cmax.fitting", "SequenceResult": "cmax.fitting",
+    "FitSettings": "cmax.fitting", "SequenceResult": "cmax.fitting", "LowParallaxWarning": "cmax.fitting",
     "EMVS": "cmax.emvs", "SemiDenseDepth": "cmax.emvs",
 }
 

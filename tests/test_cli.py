@@ -141,7 +141,7 @@ def test_fit_writes_depth_trajectory_and_summary(tmp_path):
     assert summary["zero_rotation_start"] is False
 
 
-def test_fit_with_the_zero_rotation_start(tmp_path):
+def test_fit_with_the_zero_rotation_start(tmp_path, capsys):
     """`cmax fit --zero-rotation-start` reaches the fit: a second refinement runs (more solver
     iterations than without the flag), and the summary records it."""
     import json
@@ -160,3 +160,6 @@ def test_fit_with_the_zero_rotation_start(tmp_path):
     plain, both = summaries
     assert (plain["zero_rotation_start"], both["zero_rotation_start"]) == (False, True)
     assert both["windows"][0]["iterations"] > plain["windows"][0]["iterations"]
+    # the printed summary counts the windows with under 1 px of parallax (this slow slide has them)
+    low = sum(w["parallax_px"] < 1.0 for w in both["windows"])
+    assert low >= 1 and f"({low} with under 1 px of parallax" in capsys.readouterr().out.splitlines()[-1]

@@ -254,6 +254,24 @@ def test_depth_belongs_to_the_reference_time():
     assert abs(median - 2.0) < 0.3 * min(abs(median - 2.4), abs(median - 1.6))
 
 
+def test_low_parallax_warns_and_enough_parallax_does_not():
+    """A window whose translation moves the events by a fraction of a pixel gets a LowParallaxWarning
+    (the depth is poorly constrained); the same scene flown through fast enough does not."""
+    import warnings
+
+    from cmax import LowParallaxWarning
+
+    events, K = _approaching_plane(vz=0.1)             # 2 cm over the window: edges move under 0.5 px
+    with pytest.warns(LowParallaxWarning, match="the depth is poorly constrained"):
+        slow = fit(events, K, pose=np.r_[0, 0, 0.1, 0, 0, 0], depth_grid=(6, 8))
+    assert slow.parallax_px < 1.0
+    events, K = _approaching_plane()                   # 4 m/s: the edges move by several px
+    with warnings.catch_warnings():
+        warnings.simplefilter("error", LowParallaxWarning)
+        fast = fit(events, K, pose=np.r_[0, 0, 4.0, 0, 0, 0], depth_grid=(6, 8))
+    assert fast.parallax_px > 1.0
+
+
 def test_one_polarity_se3_window_gives_finite_depth():
     """A window of ON events only (the IWE counts events, polarity is not needed): finite depth
     everywhere, the unsupported pixels outside the mask, never NaN."""

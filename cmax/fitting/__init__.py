@@ -11,9 +11,10 @@ from cmax._lazy import lazy_exports
 
 _LAZY = {
     "FitResult": "cmax.fitting.window", "FitSettings": "cmax.fitting.window", "fit": "cmax.fitting.window",
+    "LowParallaxWarning": "cmax.fitting.window",
     "SequenceResult": "cmax.fitting.sequence", "fit_sequence": "cmax.fitting.sequence",
 }
 
-__all__ = ["FitResult", "FitSettings", "SequenceResult", "fit", "fit_sequence"]
+__all__ = ["FitResult", "FitSettings", "LowParallaxWarning", "SequenceResult", "fit", "fit_sequence"]
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())

@@ -74,6 +74,7 @@ def run_fit(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status."""
     from cmax import viz
     from cmax.fitting import fit_sequence
+    from cmax.fitting.window import LOW_PARALLAX_PX
     from cmax.io import read, read_gyro
 
     events = read(args.file)
@@ -100,5 +101,7 @@ def run_fit(args: argparse.Namespace) -> int:
                "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro), "solver": args.solver,
                "zero_rotation_start": args.zero_rotation_start, "windows": windows}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
-    print(f"{len(windows)} windows fitted; results in {out}")
+    low = sum(w["parallax_px"] is not None and w["parallax_px"] < LOW_PARALLAX_PX for w in windows)
+    caveat = f" ({low} with under {LOW_PARALLAX_PX:g} px of parallax: their depth is poorly constrained)" if low else ""
+    print(f"{len(windows)} windows fitted{caveat}; results in {out}")
     return 0

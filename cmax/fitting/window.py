@@ -16,6 +16,7 @@ The pieces (Gallego et al., CVPR 2018; the paper's section 4):
 from __future__ import annotations
 
 import time
+import warnings
 from dataclasses import dataclass, replace
 import numpy as np
 import torch
@@ -28,7 +29,19 @@ from cmax.iwe import accumulate_bilinear, blur
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
 
-__all__ = ["FitResult", "FitSettings", "fit"]
+__all__ = ["FitResult", "FitSettings", "LowParallaxWarning", "fit"]
+
+LOW_PARALLAX_PX = 1.0
+"""Below this median displacement [px] of the events by the translation over the window,
+:func:`fit` warns (:class:`LowParallaxWarning`): on the held-out ``indoor_flying`` windows of
+``benchmarks/accuracy_cmax.py`` the two with 0.33 and 0.67 px (speeds of 0.04 and 0.07 m/s) are
+the two worst depths with the motion known (abs_rel 0.35 and 0.25)."""
+
+
+class LowParallaxWarning(UserWarning):
+    """The fitted translation barely moves the events over the window (``FitResult.parallax_px`` below
+    ``LOW_PARALLAX_PX``): the depth, and without ``pose`` the translation direction, are poorly
+    constrained. Filter it with ``warnings.simplefilter("ignore", LowParallaxWarning)``."""
 
 MODELS = ("flow", "rotation", "se3")
 #: The contrast of each model when ``FitSettings.contrast`` is None.
@@ -449,10 +462,16 @@ def fit(
             if scale <= 0:
                 raise ValueError("pose has no translation: depth is unobservable under a pure rotation")
             v, omega, grid = fit_se3(w, speed=scale, pose_xi=pose_xi, init=init, omega=known_omega)
-        return _result(w, events, K, model, flow, v, omega, grid, scale_known=pose is not None or speed is not None,
-                       seconds=time.perf_counter() - start)
+        result = _result(w, events, K, model, flow, v, omega, grid,
+                         scale_known=pose is not None or speed is not None, seconds=time.perf_counter() - start)
     finally:
         torch.set_num_threads(previous_threads)
+    if result.parallax_px is not None and result.parallax_px < LOW_PARALLAX_PX:
+        unknown = "the depth is" if pose is not None else "the depth and the translation direction are"
+        warnings.warn(f"cmax.fit: the translation moves the events by under {LOW_PARALLAX_PX:g} px over the window "
+                      f"(FitResult.parallax_px): {unknown} poorly constrained; a longer window or a faster "
+                      "motion gives more parallax", LowParallaxWarning, stacklevel=2)
+    return result
 
 
 def event_pixels(x: np.ndarray, y: np.ndarray, height: int, width: int) -> np.ndarray:
