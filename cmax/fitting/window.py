@@ -484,7 +484,7 @@ def event_pixels(x: np.ndarray, y: np.ndarray, height: int, width: int) -> np.nd
     recorded at instead form the band each edge swept over the window, and at
     ``t_ref`` half of a moving depth edge's band shows the surface behind it
     (on the held-out ``indoor_flying`` windows of ``benchmarks/accuracy_cmax.py``,
-    ``pose=``: abs_rel 0.098 on these pixels, 0.102 on the recorded event
+    ``pose=``: abs_rel 0.098 on these pixels, 0.105 on the recorded event
     pixels, 0.110 on those dilated by 3 x 3, the mask before).
     """
     col, row = np.rint(x), np.rint(y)
