@@ -36,7 +36,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import functools
 import os
 import platform
 import time
@@ -45,32 +44,17 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.accuracy_cmax import RESULTS, cached, parse_names, parse_seeds, run_depth, run_rotation, run_se3
+from benchmarks.accuracy_cmax import (RESULTS, cached, parse_names, parse_seeds, preset_depth_range,
+                                     run_depth, run_rotation, run_se3, scene_info)
 from cmax.io.atomic import write_text_atomic
 
-#: Far end [m] of the depth range the fits are given (the preset's own, clipped here).
-FAR_CLIP_M = 80.0
 #: The scene presets, in the order of :data:`cmax.sim.presets.PRESETS`.
 PRESET_NAMES = ("indoor_flying", "driving_day", "driving_night", "hiking", "rotation", "slider")
 
 
-@functools.lru_cache(maxsize=None)
-def _scene_info(preset: str):
-    """What the preset promises (:class:`cmax.sim.scenes.SceneInfo`), from one small scene."""
-    from cmax.sim.presets import make_scene
-
-    return make_scene(preset, 0, duration_s=1.0, texture_size=16).info
-
-
-def preset_depth_range(preset: str) -> tuple[float, float]:
-    """The preset's stated depth range [m], the far end clipped to :data:`FAR_CLIP_M`."""
-    near, far = _scene_info(preset).depth_range_m
-    return float(near), float(min(far, FAR_CLIP_M))
-
-
 def translates(preset: str) -> bool:
     """Whether the preset's camera moves (its stated speed range is not 0)."""
-    return _scene_info(preset).speed_range_mps[1] > 0
+    return scene_info(preset).speed_range_mps[1] > 0
 
 
 def preset_window(preset: str, seed: int, cache: Path | None):

@@ -121,7 +121,8 @@ def cmax_section(args: argparse.Namespace, report, run_group, add_row) -> None:
         "Kernel rows: one forward + backward pass (the gradient a solver needs); the numpy baseline is the "
         "forward pass alone, so a speed-up below 1 still means the torch pass with its gradient is cheap.",
         "Fit rows: held-out seeds 100.. of benchmarks/accuracy_cmax.py (depth = fit with pose=, se3 = fit with "
-        "speed=, flow = 30k events, rotation = 30k of about 150k events); the 'Mev/s' column is meaningless there.",
+        "speed=, both given the preset's depth range 1-6.5 m; flow = 30k events, rotation = 30k of about 150k "
+        "events); the 'Mev/s' column is meaningless there.",
         f"Load average (1 min): {load_start:.2f} at the start, {os.getloadavg()[0]:.2f} at the end (2 shared cores).",
     ]
 

@@ -67,8 +67,8 @@ def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, t
     assert presets.main(["--seeds", "100-101", "--presets", "rotation,driving_day"]) == 0
     # the rotation preset does not translate: rotation model only; driving gets its stated range, clipped
     assert [c[0] for c in calls if c[1][0] == "rotation"] == ["rotation", "rotation"]
-    assert ("se3", ("driving_day", 101), {"depth_range": (1.5, presets.FAR_CLIP_M)}) in calls
-    assert ("se3", ("driving_day", 101), {"depth_range": (1.5, presets.FAR_CLIP_M), "zero_rotation_start": True}) \
+    assert ("se3", ("driving_day", 101), {"depth_range": (1.5, accuracy_cmax.FAR_CLIP_M)}) in calls
+    assert ("se3", ("driving_day", 101), {"depth_range": (1.5, accuracy_cmax.FAR_CLIP_M), "zero_rotation_start": True}) \
         in calls
     text = (tmp_path / "accuracy_presets.md").read_text()
     assert "| driving_day | 1.5-80 | se3 | abs_rel | 0.200 | 0.200 |" in text
