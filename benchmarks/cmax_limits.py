@@ -32,6 +32,9 @@ between subsets as it is large, the 30k events, not the optimiser, set it.
 
 Section ``se3``: the depth of ``fit(events, K, speed=|v|)`` on the same
 ``indoor_flying`` windows, and how much of its error the rotation causes.
+Every fit here keeps ``FitSettings``' default depth range (0.5-60 m), where
+the ambiguity shows in full: ``se3_default_range`` of ``accuracy_cmax.md``
+(the room's range of 1-6.5 m stops part of it).
 ``fit``, ``true_omega``, ``true_v``: abs_rel of the fit, and of the depth
 with a known pose made of the fit's direction and the TRUE angular velocity,
 or the TRUE velocity and the fit's angular velocity; ``omega_rms`` the fit's
