@@ -55,6 +55,17 @@ def test_abs_rel_recorded_scores_the_pixels_the_events_were_recorded_at():
     assert abs(accuracy_cmax.abs_rel_recorded(result, events, truth, (1.5, 80.0)) - 0.5) < 1e-6  # 1.0 and 0
 
 
+def test_accuracy_fits_get_the_room_depth_range_and_the_default_range_rows_do_not(monkeypatch):
+    calls = []
+    monkeypatch.setattr(accuracy_cmax, "run_depth", lambda w, **s: calls.append(("depth", s)) or {})
+    monkeypatch.setattr(accuracy_cmax, "run_se3", lambda w, omega=None, **s: calls.append(("se3", s)) or {})
+    window = SimpleNamespace(twist=np.zeros(6))
+    for model in ("depth", "depth_default_range", "se3", "se3_default_range", "se3_gyro", "se3_gyro_bias"):
+        accuracy_cmax.RUNS[model](window, 100)
+    room = {"depth_range": (1.0, 6.5)}   # the indoor_flying preset's stated range
+    assert calls == [("depth", room), ("depth", {}), ("se3", room), ("se3", {}), ("se3", room), ("se3", room)]
+
+
 def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, tmp_path):
     calls = []
     monkeypatch.setattr(presets, "preset_window", lambda preset, seed, cache: (preset, seed))
