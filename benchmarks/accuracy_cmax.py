@@ -228,7 +228,6 @@ def _first_events(window, count: int):
 GYRO_BIAS_DEG_S = 0.5
 
 
-
 def _room() -> dict:
     """``depth_range=`` of the ``indoor_flying`` fits: the preset's stated range (1-6.5 m)."""
     return {"depth_range": preset_depth_range("indoor_flying")}
