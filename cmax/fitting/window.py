@@ -499,16 +499,24 @@ def event_pixels(x: np.ndarray, y: np.ndarray, height: int, width: int) -> np.nd
     return hits
 
 
-def _warped_mid(w: Window, flow, v, omega, grid) -> tuple[torch.Tensor, torch.Tensor]:
+def _warp_with_grid(ev: WarpEvents, index: torch.Tensor, weight: torch.Tensor, dt: torch.Tensor, v, omega,
+                    grid) -> tuple[torch.Tensor, torch.Tensor]:
+    """se3 warp of the events ``ev`` by ``dt`` (N,) or (B, N) [s] with twist ``v, omega`` and each event's
+    inverse depth interpolated from ``grid`` (gh, gw) [1/m] at its node ``index, weight`` (N, 4)."""
+    dtype = ev.x.dtype
+    rho = DepthGrid.sample(torch.as_tensor(grid, dtype=dtype), index, weight)
+    return warp_se3(ev.rays, dt, torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype), rho, ev.K)
+
+
+def _warped(w: Window, flow, v, omega, grid, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The fit's events warped by ``dt`` (B, N) [s] with the fitted model (flow, rotation or se3)."""
     ev = w.ev
     with torch.no_grad():
         if flow is not None:
-            return warp_flow(ev.x, ev.y, w.dt_mid, torch.as_tensor(flow, dtype=ev.x.dtype))
+            return warp_flow(ev.x, ev.y, dt, torch.as_tensor(flow, dtype=ev.x.dtype))
         if grid is None:
-            return warp_rotation(ev.rays, w.dt_mid, torch.as_tensor(omega, dtype=ev.x.dtype), ev.K)
-        rho = DepthGrid.sample(torch.as_tensor(grid, dtype=ev.x.dtype), w.index, w.weight)
-        return warp_se3(ev.rays, w.dt_mid, torch.as_tensor(v, dtype=ev.x.dtype),
-                        torch.as_tensor(omega, dtype=ev.x.dtype), rho, ev.K)
+            return warp_rotation(ev.rays, dt, torch.as_tensor(omega, dtype=ev.x.dtype), ev.K)
+        return _warp_with_grid(ev, w.index, w.weight, dt, v, omega, grid)
 
 
 def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega, grid) -> tuple[np.ndarray, np.ndarray]:
@@ -517,23 +525,13 @@ def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega,
     ev = WarpEvents.from_events(events, K, dither=False, dtype=torch.float64)
     index, weight = w.grid.weights(ev.x, ev.y)
     with torch.no_grad():
-        rho = DepthGrid.sample(torch.as_tensor(grid, dtype=torch.float64), index, weight)
-        x, y = warp_se3(ev.rays, ev.dt((0.5,))[0], torch.as_tensor(v, dtype=torch.float64),
-                        torch.as_tensor(omega, dtype=torch.float64), rho, ev.K)
+        x, y = _warp_with_grid(ev, index, weight, ev.dt((0.5,))[0], v, omega, grid)
     return x.numpy(), y.numpy()
 
 
 def _objective(w: Window, flow, v, omega, grid) -> float:
-    ev = w.ev
+    x, y = _warped(w, flow, v, omega, grid, w.dt)
     with torch.no_grad():
-        if flow is not None:
-            x, y = warp_flow(ev.x, ev.y, w.dt, torch.as_tensor(flow, dtype=ev.x.dtype))
-        elif grid is None:
-            x, y = warp_rotation(ev.rays, w.dt, torch.as_tensor(omega, dtype=ev.x.dtype), ev.K)
-        else:
-            rho = DepthGrid.sample(torch.as_tensor(grid, dtype=ev.x.dtype), w.index, w.weight)
-            x, y = warp_se3(ev.rays, w.dt, torch.as_tensor(v, dtype=ev.x.dtype),
-                            torch.as_tensor(omega, dtype=ev.x.dtype), rho, ev.K)
         return float(w.contrast(x, y, 1))
 
 
@@ -543,7 +541,7 @@ def _result(w: Window, events: Events, K: np.ndarray, model, flow, v, omega, gri
     H, W = ev.height, ev.width
     with torch.no_grad():
         before = blur(accumulate_bilinear(ev.x, ev.y, None, H, W), s.sigma).numpy()
-        x, y = _warped_mid(w, flow, v, omega, grid)
+        x, y = _warped(w, flow, v, omega, grid, w.dt_mid)
         after = blur(accumulate_bilinear(x[0], y[0], None, H, W), s.sigma).numpy()
     depth = mask = None
     if grid is not None:
@@ -585,7 +583,5 @@ def _parallax_px(w: Window, v: np.ndarray, grid: np.ndarray) -> float:
     """Median displacement [px] of the events by the translation ``v T`` alone, at their fitted inverse depth."""
     ev = w.ev
     with torch.no_grad():
-        rho = DepthGrid.sample(torch.as_tensor(grid, dtype=ev.x.dtype), w.index, w.weight)
-        x, y = warp_se3(ev.rays, torch.full_like(ev.x, ev.duration_s), torch.as_tensor(v, dtype=ev.x.dtype),
-                        torch.zeros(3, dtype=ev.x.dtype), rho, ev.K)
+        x, y = _warp_with_grid(ev, w.index, w.weight, torch.full_like(ev.x, ev.duration_s), v, np.zeros(3), grid)
         return float(torch.hypot(x - ev.x, y - ev.y).median())
