@@ -212,6 +212,11 @@ def test_bad_windows():
         fit(np.zeros((10, 4)), K)
 
 
+def _edge_points(rng, width, height, points):
+    """Pixel positions (points, 2) of the edges of :func:`_approaching_plane` at the window's middle."""
+    return rng.uniform([5, 5], [width - 5, height - 5], (points, 2))
+
+
 def _approaching_plane(depth_ref=2.0, vz=4.0, duration=0.2, width=120, height=90, f=90.0, points=500,
                        per_point=40, seed=0):
     """Events of edges on a fronto-parallel plane the camera flies toward at ``vz`` [m/s], ON only.
@@ -222,7 +227,7 @@ def _approaching_plane(depth_ref=2.0, vz=4.0, duration=0.2, width=120, height=90
     """
     rng = np.random.default_rng(seed)
     cx, cy = (width - 1) / 2, (height - 1) / 2
-    edges = rng.uniform([5, 5], [width - 5, height - 5], (points, 2))
+    edges = _edge_points(rng, width, height, points)
     t = np.sort(rng.uniform(0, duration, (points, per_point)), axis=1)
     t[0, 0], t[0, -1] = 0.0, duration
     scale = depth_ref / (depth_ref - vz * (t - duration / 2))
@@ -242,7 +247,7 @@ def test_depth_belongs_to_the_reference_time():
     assert r.t_ref_us == (r.t0_us + r.t1_us) // 2 == 100_000
     assert np.all(np.isfinite(r.depth))
     # the mask is the event pixels of the reference view: the edges where they are at t_ref
-    edges = np.random.default_rng(0).uniform([5, 5], [115, 85], (500, 2))  # _approaching_plane's edge points
+    edges = _edge_points(np.random.default_rng(0), 120, 90, 500)         # the first draw of _approaching_plane()
     at_ref = np.zeros_like(r.mask)
     at_ref[np.rint(edges[:, 1]).astype(int), np.rint(edges[:, 0]).astype(int)] = True
     near_ref = cv2.dilate(at_ref.astype(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
