@@ -20,7 +20,13 @@ _LAZY = {
     "EMVS": "cmax.emvs", "SemiDenseDepth": "cmax.emvs",
 }
 
+#: Sub-packages and modules reachable after a plain ``import cmax`` (``cmax.io.read(...)``), loaded on first use.
+_SUBMODULES = (
+    "io", "sim", "representations", "fitting", "emvs", "metrics", "viz", "geometry", "warp", "iwe",
+    "objectives", "loss", "synthetic_windows", "show", "demo",
+)
+
 __all__ = ["Camera", "Events", "EventTensors", "STRUCTURED_DTYPE", "concatenate", "__version__", *_LAZY]
 
 
-__getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())
+__getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals(), _SUBMODULES)

@@ -66,10 +66,10 @@ def _cmd_show(args: argparse.Namespace) -> int:
     image = render_window(
         args.file, t0_s=args.t0, dt_s=args.dt, mode=args.mode, bins=args.bins, **_size_kwargs(args)
     )
-    from cmax.viz import save_png
+    from cmax.viz import save_image
 
     output = args.output or args.file.with_suffix(".png")
-    save_png(output, image)
+    save_image(output, image)
     print(f"wrote {output}")
     return 0
 
@@ -85,7 +85,7 @@ def _add_show(subparsers) -> None:
     parser.add_argument("--dt", type=float, default=0.05, help="window length in seconds (default 0.05)")
     parser.add_argument("--mode", choices=("frame", "voxel", "both"), default="both")
     parser.add_argument("--bins", type=int, default=5, help="bins of the event volume (default 5)")
-    parser.add_argument("-o", "--output", type=Path, default=None, help="PNG path (default: FILE with .png)")
+    parser.add_argument("-o", "--output", type=Path, default=None, help="picture path, .png, .jpg or .jpeg (default: FILE with .png)")
     _add_size_option(parser)
     parser.set_defaults(run=_cmd_show)
 

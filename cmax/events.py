@@ -271,6 +271,11 @@ class Events:
         )
 
     @classmethod
+    def concatenate(cls, parts: Sequence["Events"]) -> "Events":
+        """Join events of the same sensor, in order (:func:`cmax.concatenate`); raises if time would decrease."""
+        return concatenate(parts)
+
+    @classmethod
     def from_structured(
         cls, array: np.ndarray, width: int, height: int, *, sort: bool = False
     ) -> "Events":

@@ -8,13 +8,38 @@ import numpy as np
 
 from cmax.events import Events
 from cmax.representations import event_frame, voxel_grid
-from cmax.viz import depth_image, event_frame_image, hstack, titled, vstack, voxel_grid_image
+from cmax.viz import depth_panel, event_panel, hstack, vstack, voxel_grid_image
 
-__all__ = ["read_window", "render_window", "render_events"]
+__all__ = ["read_window", "render_window", "render_events", "SHOW_PERCENTILE", "SHOW_GAMMA"]
 
 #: Longest time (s) accepted for ``t0``/``dt``: about 31,700 years, far beyond any recording,
 #: yet small enough that microseconds stay exact integers.
 _MAX_SECONDS = 1e12
+#: Contrast of ``cmax show``: colours saturate at this percentile of the non-zero pixels, and grow as
+#: ``(value / saturation) ** SHOW_GAMMA`` below it. A few very active pixels (a flickering lamp holds
+#: 1-5% of the active pixels of the DAVIS pegboard recording, at 5-10x the counts of the rest) then
+#: saturate instead of setting the scale for the whole picture.
+SHOW_PERCENTILE = 90.0
+SHOW_GAMMA = 0.5
+#: Widest picture [px] the panels are laid out to; sensors wider than _WIDE_SENSOR px draw the
+#: event-volume bins at half size, in rows.
+_LAYOUT_WIDTH = 1800
+_WIDE_SENSOR = 640
+
+
+def _check_seconds(name: str, value: object) -> None:
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name} must be a number of seconds, got {value!r}")
+    if not np.isfinite(value) or abs(value) > _MAX_SECONDS:
+        raise ValueError(f"{name} must be a finite number of seconds (at most {_MAX_SECONDS:g}), got {value}")
+
+
+def _check_start(path: Path, t0_s: float, t_start: int, t_end: int) -> None:
+    """Refuse a window that starts after the last event of the file."""
+    if t_start + round(t0_s * 1e6) > t_end:
+        raise ValueError(
+            f"t0 = {t0_s:g} s is past the end of {path.name}: its events span {(t_end - t_start) * 1e-6:.6g} s"
+        )
 
 
 def read_window(
@@ -22,16 +47,14 @@ def read_window(
     width: int | None = None, height: int | None = None,
 ) -> tuple[Events, np.ndarray | None]:
     """Events of ``[t0, t0 + dt)`` seconds after the first event, and the ground-truth
-    depth (H, W) nearest to the window's middle when the file has a ``gt/`` group."""
+    depth (H, W) nearest to the window's middle when the file has a ``gt/`` group.
+
+    Raises ``ValueError`` when ``t0`` lies after the file's last event.
+    """
     from cmax.io import H5Reader, detect_format, read
 
     for name, value in (("dt", dt_s), ("t0", t0_s)):
-        if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
-            raise TypeError(f"{name} must be a number of seconds, got {value!r}")
-        if not np.isfinite(value) or abs(value) > _MAX_SECONDS:
-            raise ValueError(
-                f"{name} must be a finite number of seconds (at most {_MAX_SECONDS:g}), got {value}"
-            )
+        _check_seconds(name, value)
     if dt_s <= 0:
         raise ValueError(f"dt must be positive seconds, got {dt_s}")
     if t0_s < 0:
@@ -41,11 +64,13 @@ def read_window(
         events = read(path, width=width, height=height)
         if not len(events):
             return events, None
+        _check_start(path, t0_s, events.t_start, events.t_end)
         start = events.t_start + round(t0_s * 1e6)
         return events.slice_time(start, start + round(dt_s * 1e6)), None
     with H5Reader(path, width=width, height=height) as reader:
         if not len(reader):
             return reader.read(), None
+        _check_start(path, t0_s, reader.t_start, reader.t_end)
         start = reader.t_start + round(t0_s * 1e6)
         stop = start + round(dt_s * 1e6)
         events = reader.window(start, stop)
@@ -61,17 +86,31 @@ def render_events(
     events: Events, *, mode: str = "both", bins: int = 5, depth: np.ndarray | None = None,
     title: str = "",
 ) -> np.ndarray:
-    """Picture (BGR uint8) of events: event frame, event-volume bins, or both; plus depth."""
+    """Picture (BGR uint8) of events: event frame (with its ON/OFF legend), event-volume bins,
+    or both; plus the depth with its colour bar in metres.
+
+    Contrast: :data:`SHOW_PERCENTILE` and :data:`SHOW_GAMMA`. Layout: the event frame
+    and the depth side by side when they fit in about 1800 px, else one above the other; the
+    bins in rows of up to 1800 px, at half size on sensors wider than 640 px.
+    """
     if mode not in ("frame", "voxel", "both"):
         raise ValueError(f"mode must be 'frame', 'voxel' or 'both', got {mode!r}")
+    width = events.width
+    wide = width > _WIDE_SENSOR
     top = []
     if mode in ("frame", "both"):
-        top.append(titled(event_frame_image(event_frame(events)), f"{title}{len(events):,} events"))
+        top.append(event_panel(event_frame(events), f"{title}{len(events):,} events",
+                               percentile=SHOW_PERCENTILE, gamma=SHOW_GAMMA))
     if depth is not None:
-        top.append(titled(depth_image(depth), "ground-truth depth"))
-    rows = [hstack(top)] if top else []
+        top.append(depth_panel(depth, None, "ground-truth depth"))
+    rows = []
+    if top:
+        rows.append(hstack(top) if sum(p.shape[1] for p in top) <= _LAYOUT_WIDTH else vstack(top))
     if mode in ("voxel", "both"):
-        rows.append(voxel_grid_image(voxel_grid(events, bins=bins)))
+        shrink = 2 if wide else 1
+        columns = max(1, min(bins, _LAYOUT_WIDTH // (width // shrink + 4)))
+        rows.append(voxel_grid_image(voxel_grid(events, bins=bins), columns=columns, shrink=shrink,
+                                     percentile=SHOW_PERCENTILE, gamma=SHOW_GAMMA))
     return vstack(rows)
 
 
@@ -79,7 +118,7 @@ def render_window(
     path: str | os.PathLike, *, t0_s: float = 0.0, dt_s: float = 0.05, mode: str = "both",
     bins: int = 5, width: int | None = None, height: int | None = None,
 ) -> np.ndarray:
-    """Picture of ``[t0, t0 + dt)`` seconds after the first event of a file."""
+    """Picture of ``[t0, t0 + dt)`` seconds after the first event of a file (see :func:`render_events`)."""
     events, depth = read_window(path, t0_s, dt_s, width=width, height=height)
-    title = f"{dt_s * 1e3:g} ms: "
+    title = f"{Path(path).name}, {t0_s:g} s + {dt_s * 1e3:g} ms: "
     return render_events(events, mode=mode, bins=bins, depth=depth, title=title)

@@ -2,25 +2,48 @@
 
 Every function returns an (H, W, 3) uint8 image in BGR order (OpenCV's), so
 that pictures can be tiled with :func:`hstack` / :func:`vstack` and written
-with :func:`save_png`. Conventions: ON events blue, OFF events red on white;
-signed quantities (event volumes) on a blue-white-red scale symmetric about
-zero; depth on the magma scale of inverse depth (near = bright), NaN black.
+with :func:`save_image` (PNG or JPEG, by the file's extension). Conventions:
+
+- events: ON blue, OFF red on white; :func:`event_panel` adds the ON/OFF legend;
+- signed quantities (event volumes): blue-white-red, symmetric about zero;
+- depth: the magma colour map of inverse depth (near = bright) on a
+  :class:`DepthScale` in metres, which :func:`depth_panel` draws as a colour bar
+  beside the map; give several maps one scale (``DepthScale.from_depths`` over
+  all of them) so that one depth has one colour in every picture. "No estimate"
+  (NaN, <= 0) is a grey hatch, :data:`NO_DEPTH_BGR` and :data:`NO_DEPTH_HATCH_BGR`,
+  colours far from every colour of the map, so it cannot be read as a depth.
+
+Colour bars and legends are drawn with OpenCV: matplotlib would add a
+dependency (it is not installed with the project) for what is a gradient, a few
+tick labels and two swatches.
 """
 from __future__ import annotations
 
 import os
+from dataclasses import dataclass
 from pathlib import Path
+from typing import Iterable, Sequence
 
 import cv2
 import numpy as np
 
 __all__ = [
     "event_frame_image", "iwe_image", "signed_image", "voxel_grid_image", "depth_image", "robust_max",
-    "titled", "hstack", "vstack", "save_png",
+    "titled", "hstack", "vstack", "save_png", "save_image", "DepthScale", "depth_colour_bar", "depth_panel",
+    "event_panel", "grid", "ON_BGR", "OFF_BGR", "NO_DEPTH_BGR", "NO_DEPTH_HATCH_BGR", "IMAGE_SUFFIXES",
 ]
 
 _WHITE = 255
 _TITLE_HEIGHT = 22
+_FONT = cv2.FONT_HERSHEY_SIMPLEX
+#: Colours (BGR) of ON and OFF events in :func:`event_frame_image`.
+ON_BGR = (255, 0, 0)
+OFF_BGR = (0, 0, 255)
+#: The two greys of the "no estimate" hatch: at least 50 levels (per channel) from every magma colour.
+NO_DEPTH_BGR = (128, 128, 128)
+NO_DEPTH_HATCH_BGR = (176, 176, 176)
+#: Extensions :func:`save_image` writes, and how: OpenCV's encoder of that name.
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
 
 def _check_finite(values: np.ndarray, name: str) -> None:
@@ -46,19 +69,30 @@ def robust_max(values: np.ndarray, percentile: float = 99.0) -> float:
     return float(max(np.percentile(nonzero, percentile), 1e-12))
 
 
-def event_frame_image(counts: np.ndarray, *, percentile: float = 99.0) -> np.ndarray:
+def _check_gamma(gamma: float) -> float:
+    if isinstance(gamma, bool) or not isinstance(gamma, (int, float, np.integer, np.floating)) or not 0 < gamma <= 1:
+        raise ValueError(f"gamma must be a number in (0, 1], got {gamma!r}")
+    return float(gamma)
+
+
+def event_frame_image(counts: np.ndarray, *, percentile: float = 99.0, gamma: float = 1.0) -> np.ndarray:
     """Picture of per-polarity event counts (2, H, W): ON blue, OFF red, white background.
 
-    Colour strength grows with the count and saturates at the given
-    percentile of the non-zero counts.
+    Colour strength grows with the count, as ``(count / scale) ** gamma``, and
+    saturates at ``scale``, the given percentile of the non-zero per-pixel
+    counts (a lower percentile and ``gamma < 1`` keep a few very active pixels,
+    a flickering lamp, from washing out the rest).
     """
     counts = np.asarray(counts, dtype=np.float32)
     if counts.ndim != 3 or counts.shape[0] != 2:
         raise ValueError(f"counts must have shape (2, H, W), got {counts.shape}")
     _check_finite(counts, "counts")
-    scale = robust_max(counts.sum(axis=0), percentile)
-    off = np.clip(counts[0] / scale, 0, 1)
-    on = np.clip(counts[1] / scale, 0, 1)
+    gamma = _check_gamma(gamma)
+    total = counts.sum(axis=0)
+    scale = robust_max(total, percentile)
+    strength = np.clip(total / scale, 0, 1) ** gamma
+    share = np.divide(counts, total, out=np.zeros_like(counts), where=total > 0)
+    off, on = strength * share[0], strength * share[1]
     image = np.full(counts.shape[1:] + (3,), float(_WHITE), np.float32)
     # Blue (BGR 255, 0, 0) for ON, red (0, 0, 255) for OFF; mixed pixels turn purple.
     image[..., 0] -= _WHITE * off
@@ -84,16 +118,21 @@ def iwe_image(image: np.ndarray, *, scale: float | None = None, percentile: floa
     return np.repeat(grey[..., None], 3, axis=2)
 
 
-def signed_image(values: np.ndarray, *, scale: float | None = None) -> np.ndarray:
-    """Blue (positive) - white (zero) - red (negative) picture of an (H, W) array."""
+def signed_image(values: np.ndarray, *, scale: float | None = None, gamma: float = 1.0) -> np.ndarray:
+    """Blue (positive) - white (zero) - red (negative) picture of an (H, W) array.
+
+    Colour strength is ``(|value| / scale) ** gamma``, saturating at ``scale``
+    (default: the 99th percentile of the non-zero ``|values|``).
+    """
     values = np.asarray(values, dtype=np.float32)
     if values.ndim != 2:
         raise ValueError(f"values must have shape (H, W), got {values.shape}")
     _check_finite(values, "values")
+    gamma = _check_gamma(gamma)
     scale = robust_max(values) if scale is None else float(scale)
     if not (np.isfinite(scale) and scale > 0):
         raise ValueError(f"scale must be a positive finite number, got {scale}")
-    level = np.clip(values / scale, -1, 1)
+    level = np.sign(values) * np.clip(np.abs(values) / scale, 0, 1) ** gamma
     image = np.full(values.shape + (3,), float(_WHITE), np.float32)
     positive, negative = np.clip(level, 0, 1), np.clip(-level, 0, 1)
     image[..., 0] -= _WHITE * negative
@@ -102,48 +141,218 @@ def signed_image(values: np.ndarray, *, scale: float | None = None) -> np.ndarra
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
-def voxel_grid_image(volume: np.ndarray, *, gap: int = 4) -> np.ndarray:
-    """The B bins of an event volume (B, H, W) side by side, on one symmetric colour scale."""
+def voxel_grid_image(volume: np.ndarray, *, gap: int = 4, columns: int | None = None,
+                     percentile: float = 99.0, gamma: float = 1.0, shrink: int = 1) -> np.ndarray:
+    """The B bins of an event volume (B, H, W) on one symmetric colour scale (the ``percentile`` of
+    the non-zero ``|values|`` of all bins), side by side or in rows of ``columns``, each bin
+    reduced ``shrink`` times (area average of the picture) for wide sensors."""
     volume = np.asarray(volume, dtype=np.float32)
     if volume.ndim != 3:
         raise ValueError(f"volume must have shape (B, H, W), got {volume.shape}")
     if not volume.shape[0]:
         raise ValueError("volume must have at least one bin, got shape (0, H, W)")
     _check_finite(volume, "volume")
-    scale = robust_max(volume)
-    tiles = [titled(signed_image(b, scale=scale), f"bin {i}") for i, b in enumerate(volume)]
-    return hstack(tiles, gap=gap)
+    if isinstance(shrink, bool) or not isinstance(shrink, (int, np.integer)) or shrink < 1:
+        raise ValueError(f"shrink must be an integer >= 1, got {shrink!r}")
+    scale = robust_max(volume, percentile)
+    tiles = []
+    for i, values in enumerate(volume):
+        tile = signed_image(values, scale=scale, gamma=gamma)
+        if shrink > 1:
+            size = (max(1, tile.shape[1] // shrink), max(1, tile.shape[0] // shrink))
+            tile = cv2.resize(tile, size, interpolation=cv2.INTER_AREA)
+        tiles.append(titled(tile, f"bin {i}"))
+    return grid(tiles, len(tiles) if columns is None else columns, gap=gap)
 
 
-def depth_image(
-    depth: np.ndarray, *, depth_range: tuple[float, float] | None = None
-) -> np.ndarray:
-    """Depth (H, W) in metres as magma-coloured inverse depth; NaN or <= 0 is black."""
-    depth = np.asarray(depth, dtype=np.float32)
-    if depth.ndim != 2:
-        raise ValueError(f"depth must have shape (H, W), got {depth.shape}")
-    valid = np.isfinite(depth) & (depth > 0)
-    if depth_range is None:
-        if valid.any():
-            depth_range = (float(np.percentile(depth[valid], 1)), float(np.percentile(depth[valid], 99)))
-        else:
-            depth_range = (1.0, 2.0)
-    near, far = depth_range
-    if not 0 < near < far:
-        raise ValueError(f"depth_range must satisfy 0 < near < far, got {depth_range}")
-    inverse = np.zeros_like(depth)
-    inverse[valid] = 1.0 / depth[valid]
-    level = np.clip((inverse - 1.0 / far) / (1.0 / near - 1.0 / far), 0, 1)
-    image = cv2.applyColorMap((255 * level).astype(np.uint8), cv2.COLORMAP_MAGMA)
-    image[~valid] = 0
+@dataclass(frozen=True)
+class DepthScale:
+    """The depths [m] at the two ends of the colour map: ``near`` brightest, ``far`` darkest.
+
+    Colours are spaced evenly in inverse depth. Build one scale for a whole run
+    (``DepthScale.from_depths([d0, d1, ...])``) and pass it to every picture, so
+    that the same depth has the same colour in every window.
+    """
+
+    near: float
+    far: float
+
+    def __post_init__(self) -> None:
+        near, far = self.near, self.far
+        if not all(isinstance(v, (int, float, np.integer, np.floating)) and not isinstance(v, bool)
+                   for v in (near, far)):
+            raise TypeError(f"near and far must be numbers of metres, got {near!r}, {far!r}")
+        if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+            raise ValueError(f"depth range must satisfy 0 < near < far (finite metres), got ({near}, {far})")
+        object.__setattr__(self, "near", float(near))
+        object.__setattr__(self, "far", float(far))
+
+    @classmethod
+    def from_depths(cls, depths: np.ndarray | Iterable[np.ndarray],
+                    percentiles: tuple[float, float] = (1.0, 99.0)) -> "DepthScale":
+        """The ``percentiles`` of the positive finite depths of one map or of several (all pooled).
+
+        Raises ``ValueError`` when no map holds a depth. A single depth value gives a
+        range 1% either side of it.
+        """
+        maps = [depths] if isinstance(depths, np.ndarray) else list(depths)
+        values = [np.asarray(d, np.float64).ravel() for d in maps if d is not None]
+        values = np.concatenate(values) if values else np.empty(0)
+        values = values[np.isfinite(values) & (values > 0)]
+        if not values.size:
+            raise ValueError("depths hold no positive finite depth to take a colour scale from")
+        low, high = (float(v) for v in np.percentile(values, percentiles))
+        if not low < high:
+            low, high = low / 1.01, high * 1.01
+        return cls(low, high)
+
+    @classmethod
+    def of(cls, scale: "DepthScale | tuple[float, float] | None", depth: np.ndarray) -> "DepthScale":
+        """``scale`` as a DepthScale: a DepthScale, ``(near, far)``, or None (the map's own 1-99%,
+        or 1-2 m when it holds no depth)."""
+        if isinstance(scale, DepthScale):
+            return scale
+        if scale is None:
+            try:
+                return cls.from_depths(depth)
+            except ValueError:
+                return cls(1.0, 2.0)
+        near, far = scale
+        return cls(near, far)
+
+    def level(self, depth: np.ndarray) -> np.ndarray:
+        """Position of each depth on the map, 0 (far) .. 1 (near), clipped; NaN where there is no depth."""
+        depth = np.asarray(depth, np.float64)
+        valid = np.isfinite(depth) & (depth > 0)
+        inverse = np.divide(1.0, depth, out=np.full(depth.shape, np.nan), where=valid)
+        level = (inverse - 1.0 / self.far) / (1.0 / self.near - 1.0 / self.far)
+        return np.clip(level, 0.0, 1.0)
+
+    def ticks(self, count: int = 5) -> np.ndarray:
+        """``count`` depths [m] from near to far, evenly spaced in inverse depth (as the colours)."""
+        return 1.0 / np.linspace(1.0 / self.near, 1.0 / self.far, count)
+
+
+def _no_depth_hatch(shape: tuple[int, int]) -> np.ndarray:
+    """(H, W, 3) diagonal grey stripes, the picture of "no estimate"."""
+    rows, cols = np.indices(shape)
+    stripes = (rows + cols) % 8 < 3
+    image = np.empty(shape + (3,), np.uint8)
+    image[...] = NO_DEPTH_BGR
+    image[stripes] = NO_DEPTH_HATCH_BGR
     return image
 
 
-def titled(image: np.ndarray, title: str) -> np.ndarray:
-    """``image`` with a white strip above it holding ``title``."""
+def depth_image(
+    depth: np.ndarray, scale: "DepthScale | tuple[float, float] | None" = None, *,
+    depth_range: tuple[float, float] | None = None,
+) -> np.ndarray:
+    """Depth (H, W) in metres as magma-coloured inverse depth on ``scale``; NaN or <= 0 is a grey hatch.
+
+    ``scale`` (or its older name ``depth_range``): a :class:`DepthScale`, ``(near, far)`` metres,
+    or None for the map's own 1st-99th percentiles (pass one scale to draw several maps alike).
+    """
+    depth = np.asarray(depth, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"depth must have shape (H, W), got {depth.shape}")
+    if scale is not None and depth_range is not None:
+        raise TypeError("give scale or depth_range, not both")
+    scale = DepthScale.of(scale if scale is not None else depth_range, depth)
+    level = scale.level(depth)
+    valid = np.isfinite(level)
+    image = cv2.applyColorMap((255 * np.where(valid, level, 0)).astype(np.uint8), cv2.COLORMAP_MAGMA)
+    image[~valid] = _no_depth_hatch(depth.shape)[~valid]
+    return image
+
+
+def _font_scale(width: int) -> float:
+    """Text size for a picture ``width`` px wide: 0.45 up to 640 px, growing with the width beyond."""
+    return 0.45 * max(1.0, width / 640.0)
+
+
+def _text_width(text: str, font_scale: float) -> int:
+    return cv2.getTextSize(text, _FONT, font_scale, 1)[0][0]
+
+
+def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_scale: float = 0.4) -> np.ndarray:
+    """Vertical colour bar (height, w, 3) of ``scale`` labelled in metres, near at the top, with the
+    "no estimate" swatch below it labelled ``n/a``."""
+    if isinstance(height, bool) or not isinstance(height, (int, np.integer)) or height < 40:
+        raise ValueError(f"height must be an integer >= 40 px, got {height!r}")
+    if not isinstance(scale, DepthScale):
+        raise TypeError(f"scale must be a DepthScale, got {type(scale).__name__}")
+    thickness = 1 if font_scale < 0.8 else 2
+    line = int(round(18 * font_scale / 0.4))
+    bar_width = max(12, line)
+    swatch = line + 2
+    bar_height = height - swatch - 6 - line // 2
+    depths = scale.ticks(ticks)
+    labels = [f"{d:.3g} m" for d in depths] + ["n/a"]
+    width = bar_width + 8 + max(_text_width(text, font_scale) for text in labels) + 4
+    image = np.full((height, width, 3), _WHITE, np.uint8)
+    top = line // 2
+    values = 1.0 / np.linspace(1.0 / scale.near, 1.0 / scale.far, bar_height)
+    image[top: top + bar_height, :bar_width] = depth_image(
+        np.repeat(values[:, None], bar_width, axis=1), scale)
+    for k, depth in enumerate(depths):
+        row = top + int(round(k * (bar_height - 1) / (ticks - 1)))
+        image[row, bar_width: bar_width + 4] = 0
+        cv2.putText(image, labels[k], (bar_width + 6, row + line // 3), _FONT, font_scale, (0, 0, 0), thickness,
+                    cv2.LINE_AA)
+    y0 = height - swatch
+    image[y0:, :bar_width] = _no_depth_hatch((swatch, bar_width))
+    cv2.putText(image, "n/a", (bar_width + 6, height - 3), _FONT, font_scale, (0, 0, 0), thickness, cv2.LINE_AA)
+    return image
+
+
+def depth_panel(depth: np.ndarray, scale: "DepthScale | tuple[float, float] | None" = None,
+                title: str = "depth") -> np.ndarray:
+    """A depth map with its title and a colour bar in metres (``scale`` as in :func:`depth_image`)."""
+    depth = np.asarray(depth, dtype=np.float32)
+    if depth.ndim != 2:
+        raise ValueError(f"depth must have shape (H, W), got {depth.shape}")
+    scale = DepthScale.of(scale, depth)
+    image = depth_image(depth, scale)
+    font = _font_scale(depth.shape[1]) * 0.9
+    bar = depth_colour_bar(max(depth.shape[0], 40), scale, font_scale=font)
+    return titled(hstack([image, bar], gap=4), title)
+
+
+def event_panel(counts: np.ndarray, title: str = "events", *, percentile: float = 99.0,
+                gamma: float = 1.0) -> np.ndarray:
+    """:func:`event_frame_image` of per-polarity counts (2, H, W) with its title and an ON/OFF legend."""
+    return titled(event_frame_image(counts, percentile=percentile, gamma=gamma), title,
+                  legend=(("ON", ON_BGR), ("OFF", OFF_BGR)))
+
+
+def _legend_width(legend: Sequence[tuple[str, tuple[int, int, int]]], font_scale: float, box: int) -> int:
+    return sum(box + 4 + _text_width(label, font_scale) + 10 for label, _ in legend)
+
+
+def titled(image: np.ndarray, title: str, *,
+           legend: Sequence[tuple[str, tuple[int, int, int]]] = ()) -> np.ndarray:
+    """``image`` with a white strip above it holding ``title`` and, right-aligned, a legend of
+    ``(label, BGR colour)`` swatches. The text grows with the picture's width (readable when a wide
+    picture is scaled down); a legend that does not fit beside the title goes on a second line."""
     image = _check_picture(image)
-    strip = np.full((_TITLE_HEIGHT, image.shape[1], 3), _WHITE, np.uint8)
-    cv2.putText(strip, title, (4, _TITLE_HEIGHT - 7), cv2.FONT_HERSHEY_SIMPLEX, 0.45, (0, 0, 0), 1, cv2.LINE_AA)
+    width = image.shape[1]
+    font = _font_scale(width)
+    thickness = 1 if font < 0.8 else 2
+    line = int(round(_TITLE_HEIGHT * font / 0.45))
+    box = int(round(10 * font / 0.45))
+    legend_width = _legend_width(legend, font, box) if legend else 0
+    two_lines = bool(legend) and 4 + _text_width(title, font) + 12 + legend_width > width
+    strip = np.full((line * (2 if two_lines else 1), width, 3), _WHITE, np.uint8)
+    baseline = line - int(round(7 * font / 0.45))
+    cv2.putText(strip, title, (4, baseline), _FONT, font, (0, 0, 0), thickness, cv2.LINE_AA)
+    if legend:
+        y = baseline + (line if two_lines else 0)
+        x = 4 if two_lines else width - legend_width
+        for label, colour in legend:
+            cv2.rectangle(strip, (x, y - box), (x + box, y), tuple(int(c) for c in colour), -1)
+            x += box + 4
+            cv2.putText(strip, label, (x, y), _FONT, font, (0, 0, 0), thickness, cv2.LINE_AA)
+            x += _text_width(label, font) + 10
     return np.vstack([strip, image])
 
 
@@ -184,16 +393,42 @@ def vstack(images: list[np.ndarray], *, gap: int = 4) -> np.ndarray:
     return np.vstack(parts)
 
 
-def save_png(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write a BGR or grey uint8 image as PNG atomically (temporary name, then rename)."""
+def grid(images: list[np.ndarray], columns: int, *, gap: int = 4) -> np.ndarray:
+    """Images in rows of ``columns``, left to right then top to bottom."""
+    images = _check_pictures(images)
+    if isinstance(columns, bool) or not isinstance(columns, (int, np.integer)) or columns < 1:
+        raise ValueError(f"columns must be an integer >= 1, got {columns!r}")
+    rows = [hstack(images[i: i + columns], gap=gap) for i in range(0, len(images), columns)]
+    return vstack(rows, gap=gap)
+
+
+def save_image(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write a BGR or grey uint8 image atomically in the format of ``path``'s extension
+    (``.png``, or JPEG for ``.jpg``/``.jpeg``); any other extension is refused with ``ValueError``."""
     path = Path(path)
+    suffix = path.suffix.lower()
+    if suffix not in IMAGE_SUFFIXES:
+        raise ValueError(f"cannot tell the picture format of {str(path)!r}: the file name must end in "
+                         f"{', '.join(IMAGE_SUFFIXES)}, got {suffix or 'no extension'!r}")
+    return _save_encoded(path, image, suffix)
+
+
+def save_png(path: str | os.PathLike, image: np.ndarray) -> Path:
+    """Write a BGR or grey uint8 image as PNG atomically (temporary name, then rename), whatever
+    ``path``'s extension; :func:`save_image` follows the extension."""
+    return _save_encoded(Path(path), image, ".png")
+
+
+def _save_encoded(path: Path, image: np.ndarray, suffix: str) -> Path:
+    """Encode ``image`` as ``suffix`` and write it under a temporary name, then rename."""
     image = np.asarray(image)
     if image.ndim == 2:
         image = image[..., None].repeat(3, axis=2)
     image = _check_picture(image)
-    ok, encoded = cv2.imencode(".png", np.ascontiguousarray(image))
+    params = [cv2.IMWRITE_JPEG_QUALITY, 95] if suffix in (".jpg", ".jpeg") else []
+    ok, encoded = cv2.imencode(suffix, np.ascontiguousarray(image), params)
     if not ok:
-        raise ValueError(f"OpenCV could not encode an image of shape {image.shape} as PNG")
+        raise ValueError(f"OpenCV could not encode an image of shape {image.shape} as {suffix}")
     partial = path.with_name(path.name + ".partial")
     try:
         partial.write_bytes(encoded.tobytes())

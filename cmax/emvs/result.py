@@ -10,9 +10,13 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING
 
 import cv2
 import numpy as np
+
+if TYPE_CHECKING:  # pragma: no cover
+    from cmax import viz
 
 __all__ = ["DSI", "SemiDenseDepth", "semi_dense_depth", "depth_scale_bar", "write_ply"]
 
@@ -90,20 +94,22 @@ class SemiDenseDepth:
     K: np.ndarray
     n_events: int
 
-    def image(self) -> np.ndarray:
-        """Picture (BGR uint8): the confidence map beside the coloured depth and its scale bar [m]."""
+    def image(self, scale: "viz.DepthScale | tuple[float, float] | None" = None) -> np.ndarray:
+        """Picture (BGR uint8): the confidence map beside the depth with its colour bar [m].
+
+        ``scale`` (a :class:`cmax.viz.DepthScale`, or ``(near, far)`` metres; default: the DSI's
+        depth range) gives several maps one colour scale; no estimate is drawn as a grey hatch.
+        """
         from cmax import viz
 
         confidence = self.confidence
         top = float(np.percentile(confidence[confidence > 0], 99)) if np.any(confidence > 0) else 1.0
         grey = (255 * (1.0 - np.clip(confidence / top, 0, 1))).astype(np.uint8)
-        height = self.depth.shape[0]
-        depth = viz.depth_image(self.depth, depth_range=self.depth_range)
-        depth[~self.mask] = 255  # white outside the mask
+        depth = np.where(self.mask, self.depth, np.nan)
         return viz.hstack([
             viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), "confidence (DSI max)"),
-            viz.titled(depth, f"semi-dense depth, {int(self.mask.sum())} px"),
-            viz.titled(depth_scale_bar(height, self.depth_range), "m"),
+            viz.depth_panel(depth, self.depth_range if scale is None else scale,
+                            f"semi-dense depth, {int(self.mask.sum())} px"),
         ])
 
     def plot(self, path: str | os.PathLike) -> Path:
@@ -175,27 +181,11 @@ def semi_dense_depth(dsi: DSI, *, threshold_kernel: int = 5, threshold_c: float 
     )
 
 
-def depth_scale_bar(height: int, depth_range: tuple[float, float], *, width: int = 56,
-                    ticks: int = 5) -> np.ndarray:
-    """Vertical colour bar (height, width, 3) BGR of :func:`cmax.viz.depth_image`'s scale, labelled in metres.
-
-    Near (bright) at the top; ``ticks`` labels evenly spaced in inverse depth.
-    """
+def depth_scale_bar(height: int, depth_range: tuple[float, float], *, ticks: int = 5) -> np.ndarray:
+    """Vertical colour bar (height, w, 3) BGR of ``depth_range`` [m]: :func:`cmax.viz.depth_colour_bar`."""
     from cmax import viz
 
-    near, far = depth_range
-    inverse = np.linspace(1.0 / near, 1.0 / far, height)
-    bar = viz.depth_image(np.repeat((1.0 / inverse)[:, None], 14, axis=1).astype(np.float32),
-                          depth_range=depth_range)
-    image = np.full((height, width, 3), 255, np.uint8)
-    image[:, :14] = bar
-    for k in range(ticks):
-        row = int(round(k * (height - 1) / (ticks - 1)))
-        label = f"{1.0 / inverse[row]:.2f}"
-        image[row, 14:18] = 0
-        y = min(max(row + 4, 10), height - 2)
-        cv2.putText(image, label, (19, y), cv2.FONT_HERSHEY_SIMPLEX, 0.33, (0, 0, 0), 1, cv2.LINE_AA)
-    return image
+    return viz.depth_colour_bar(height, viz.DepthScale(*depth_range), ticks=ticks)
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -> Path:

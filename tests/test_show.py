@@ -1,0 +1,71 @@
+"""``cmax show``: robust contrast, a readable layout of wide sensors, refusals of impossible windows and formats."""
+from __future__ import annotations
+
+import cv2
+import numpy as np
+import pytest
+
+from cmax.cli import main
+from cmax.events import Events
+from cmax.io import write_h5
+from cmax.show import SHOW_PERCENTILE, render_events
+from conftest import random_events
+
+
+def test_show_t0_past_the_end_is_an_error(tmp_path, capsys):
+    events = random_events(500, width=64, height=48, t_span_us=100_000, seed=1)
+    path = write_h5(tmp_path / "ev.h5", events)
+    out = tmp_path / "late.png"
+    assert main(["show", str(path), "--t0", "0.2", "-o", str(out)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    span = f"{(events.t_end - events.t_start) * 1e-6:.6g}"
+    assert err == [f"cmax show: error: t0 = 0.2 s is past the end of ev.h5: its events span {span} s"]
+    assert not out.exists()
+    # the last event's own time is still a window (it holds that event)
+    last = (events.t_end - events.t_start) * 1e-6
+    assert main(["show", str(path), "--t0", f"{last:.6f}", "--mode", "frame", "-o", str(out)]) == 0
+
+
+@pytest.mark.parametrize("name, magic", [("w.jpg", b"\xff\xd8\xff"), ("w.png", b"\x89PNG")])
+def test_show_writes_the_format_of_the_extension(tmp_path, name, magic):
+    path = write_h5(tmp_path / "ev.h5", random_events(500, width=64, height=48, seed=2))
+    assert main(["show", str(path), "-o", str(tmp_path / name)]) == 0
+    assert (tmp_path / name).read_bytes()[:3] == magic[:3]
+
+
+def test_show_refuses_an_unknown_extension(tmp_path, capsys):
+    path = write_h5(tmp_path / "ev.h5", random_events(500, width=64, height=48, seed=2))
+    assert main(["show", str(path), "-o", str(tmp_path / "w.bmp")]) == 2
+    assert "must end in .png, .jpg, .jpeg" in capsys.readouterr().err
+    assert not (tmp_path / "w.bmp").exists()
+
+
+def test_wide_sensor_is_laid_out_in_rows_with_a_large_title():
+    rng = np.random.default_rng(0)
+    n = 20_000
+    events = Events(rng.integers(0, 1280, n), rng.integers(0, 720, n), np.sort(rng.integers(0, 10_000, n)),
+                    rng.integers(0, 2, n), width=1280, height=720)
+    picture = render_events(events, bins=5, title="gen4: ")
+    # not a 6416 px strip: at most about 1800 px wide, the event frame at full size, bins at half size
+    assert 1280 <= picture.shape[1] <= 1800
+    assert picture.shape[0] > 720 + 3 * 360
+    small = render_events(Events(events.x // 4, events.y // 4, events.t, events.p, width=320, height=180), bins=5)
+    # the bins of a small sensor stay in one row beside one another
+    assert small.shape[1] == 5 * 320 + 4 * 4
+
+
+def test_contrast_follows_the_bulk_of_the_pixels_not_a_few_bright_ones():
+    """A flickering lamp (a few pixels, many events) no longer washes out the rest of the picture."""
+    x, y, t = [], [], []
+    for i in range(300):                        # the scene: 300 pixels with 2 events each
+        x += [i % 60, i % 60]
+        y += [i // 60, i // 60]
+    for i in range(16):                         # the lamp: 16 pixels with 60 events each
+        x += [i % 4 + 50] * 60
+        y += [i // 4 + 40] * 60
+    t = np.arange(len(x))
+    events = Events(x, y, t, np.ones(len(x), int), width=64, height=48)
+    frame = render_events(events, mode="frame")[-48:]
+    # the scene's pixels (2 events) are saturated blue: the scale is the 90th percentile of the non-zero pixels
+    assert SHOW_PERCENTILE == 90.0
+    assert tuple(frame[0, 0]) == (255, 0, 0) and tuple(frame[41, 51]) == (255, 0, 0)
