@@ -39,9 +39,10 @@ _FONT = cv2.FONT_HERSHEY_SIMPLEX
 #: Colours (BGR) of ON and OFF events in :func:`event_frame_image`.
 ON_BGR = (255, 0, 0)
 OFF_BGR = (0, 0, 255)
-#: The two greys of the "no estimate" hatch: at least 50 levels (per channel) from every magma colour.
-NO_DEPTH_BGR = (128, 128, 128)
-NO_DEPTH_HATCH_BGR = (176, 176, 176)
+#: The two greys of the "no estimate" hatch (a faint one, so that sparse maps stay readable): at least
+#: 65 levels (in some channel) from every magma colour.
+NO_DEPTH_BGR = (150, 150, 150)
+NO_DEPTH_HATCH_BGR = (170, 170, 170)
 #: Extensions :func:`save_image` writes, and how: OpenCV's encoder of that name.
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
 
@@ -236,7 +237,7 @@ class DepthScale:
 def _no_depth_hatch(shape: tuple[int, int]) -> np.ndarray:
     """(H, W, 3) diagonal grey stripes, the picture of "no estimate"."""
     rows, cols = np.indices(shape)
-    stripes = (rows + cols) % 8 < 3
+    stripes = (rows + cols) % 6 < 2
     image = np.empty(shape + (3,), np.uint8)
     image[...] = NO_DEPTH_BGR
     image[stripes] = NO_DEPTH_HATCH_BGR

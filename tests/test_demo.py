@@ -10,8 +10,8 @@ import pytest
 
 from cmax.demo import DemoReport, DemoSettings, run_demo
 
-#: Reduced settings: 160x120, 0.4 s, one 0.1665 s window (about 3-10 s on 2 busy cores).
-SMALL = DemoSettings(seed=2, width=160, height=120, duration_s=0.4, n_planes=64, texture_size=128)
+#: Reduced settings: 160x120, 0.4 s, three 0.1665 s windows (about 5-15 s on 2 busy cores).
+SMALL = DemoSettings(seed=2, width=160, height=120, duration_s=0.4, n_planes=64, texture_size=128, n_windows=3)
 
 
 @pytest.fixture(scope="module")
@@ -27,10 +27,11 @@ def test_demo_writes_its_files(small_demo: tuple[DemoReport, list[str]]) -> None
         assert path.is_file() and path.stat().st_size > 0
         assert not path.with_name(path.name + ".partial").exists()
     picture = cv2.imread(str(report.report_png))
-    # two rows of 160x120 tiles (4 and 3 wide) plus titles and the text lines
-    assert picture.shape[1] == 4 * 160 + 3 * 4 and picture.shape[0] > 2 * 120
+    # two rows of 160x120 tiles (4 wide; 3 depth maps with their colour bars, wider) plus titles and text
+    assert picture.shape[1] > 3 * (160 + 4 + 40) and picture.shape[0] > 2 * 120
     assert [line[:5] for line in lines if line.startswith("[")] == ["[1/5]", "[2/5]", "[3/5]", "[4/5]", "[5/5]"]
     assert set(report.seconds) == {"simulation", "write", "cmax.fit", "EMVS", "report", "total"}
+    assert sum(line.startswith("      window ") for line in lines) == 3
     assert report.seconds["total"] >= sum(v for k, v in report.seconds.items() if k != "total") * 0.99
 
 
@@ -62,6 +63,36 @@ def test_demo_errors_are_finite_and_small(small_demo: tuple[DemoReport, list[str
     assert report.n_events > 10_000
 
 
+def test_demo_shows_the_window_of_median_depth_error(small_demo: tuple[DemoReport, list[str]]) -> None:
+    report, _ = small_demo
+    errors = [w["abs_rel"] for w in report.windows]
+    assert len(errors) == 3 and sorted(errors)[1] == errors[report.chosen]
+    assert report.fit_depth["abs_rel"] == pytest.approx(errors[report.chosen])
+    times = [w["t_ref_us"] for w in report.windows]
+    assert times == sorted(times) and len(set(times)) == 3
+    summary = report.summary_txt.read_text()
+    assert f"shown: window {report.chosen + 1} of 3 fitted, by the rule 'median cmax.fit depth error' (rank 2 of 3)" \
+        in summary
+    assert f"abs_rel {min(errors):.3f}-{max(errors):.3f}" in summary
+
+
+def test_window_middles_keep_every_window_inside_the_simulated_time() -> None:
+    from cmax.demo import window_middles_us
+
+    s = DemoSettings(duration_s=0.5, start_s=0.2, window_s=0.1, n_windows=5)
+    np.testing.assert_array_equal(window_middles_us(s), [250_000, 350_000, 450_000, 550_000, 650_000])
+    one = DemoSettings(duration_s=0.5, start_s=0.2, window_s=0.1, n_windows=1)
+    np.testing.assert_array_equal(window_middles_us(one), [450_000])
+
+
+def test_median_window_rule() -> None:
+    from cmax.demo import _median_window
+
+    assert _median_window([0.5, 0.1, 0.3]) == 2
+    assert _median_window([0.4, float("nan"), 0.2, 0.1, 0.3]) == 4   # a failed window ranks last
+    assert _median_window([0.2, 0.1]) == 1                           # even count: the lower middle
+
+
 def test_demo_h5_holds_events_and_ground_truth(small_demo: tuple[DemoReport, list[str]]) -> None:
     from cmax.sim import load_sequence
 
@@ -76,6 +107,7 @@ def test_demo_h5_holds_events_and_ground_truth(small_demo: tuple[DemoReport, lis
     ("n_planes", 1, "n_planes must be an integer >= 2"),
     ("window_s", 1.0, "window_s must be in"),
     ("start_s", -1.0, "start_s must be >= 0"),
+    ("n_windows", 0, "n_windows must be an integer >= 1"),
 ])
 def test_demo_settings_validate(field: str, value: object, message: str) -> None:
     with pytest.raises(ValueError, match=message):
