@@ -27,7 +27,11 @@ from cmax.representations._common import (
 if TYPE_CHECKING:  # pragma: no cover
     import torch
 
-__all__ = ["voxel_grid", "voxel_grid_batch", "VoxelGrid"]
+__all__ = ["voxel_grid", "voxel_grid_batch", "VoxelGrid", "NORMALIZATIONS"]
+
+#: Time normalizations of :func:`voxel_grid`: ``"paper"`` (Zhu et al.: ``t*`` in ``[0, B-1]``) and
+#: ``"tonic"`` (tonic's ``ToVoxelGrid``: ``t*`` in ``[0, B]``, weight beyond bin B-1 dropped).
+NORMALIZATIONS = ("paper", "tonic")
 
 _FLOAT64_EXACT = 2**53  # integers below this are exact in float64
 
@@ -60,6 +64,7 @@ def voxel_grid(
     *,
     t0_us: int | None = None,
     t1_us: int | None = None,
+    normalization: str = "paper",
 ) -> Array:
     r"""The event volume of Zhu et al. (2019): signed polarities spread linearly over time bins.
 
@@ -84,6 +89,13 @@ def voxel_grid(
     t0_us, t1_us : int, optional, keyword-only
         The window ``[t_0, t_N]`` in microseconds; by default the first and last
         event times (the min and max of ``t``). Every event must lie inside.
+    normalization : {"paper", "tonic"}, keyword-only
+        ``"paper"`` (default): ``t*`` as above, in ``[0, B-1]``, so the first and
+        last events sit on the first and last bins. ``"tonic"``: the convention of
+        tonic's ``ToVoxelGrid``, ``t* = B (t_i - t_0) / (t_N - t_0)`` in ``[0, B]``,
+        whose weight above bin B-1 is dropped (the last event is lost): the first B
+        bins of the paper's volume with B+1 bins. When ``t_N == t_0`` both put every
+        event in bin 0 (tonic divides by zero there).
 
     Returns
     -------
@@ -109,6 +121,10 @@ def voxel_grid(
     torch.Size([3, 1, 2])
     """
     bins = _check_int("bins", bins, minimum=1)
+    if normalization not in NORMALIZATIONS:
+        raise ValueError(f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}")
+    if normalization == "tonic":
+        return voxel_grid(events, bins + 1, t0_us=t0_us, t1_us=t1_us)[:bins]
     t0_us = _check_optional_time("t0_us", t0_us)
     t1_us = _check_optional_time("t1_us", t1_us)
     kind, t_range = _inspect(events)
@@ -393,9 +409,12 @@ class VoxelGrid:
     """Stored settings for :func:`voxel_grid`; calling it on events returns (B, H, W)."""
 
     bins: int = 5
+    normalization: str = "paper"
 
     def __post_init__(self) -> None:
         _check_int("bins", self.bins, minimum=1)
+        if self.normalization not in NORMALIZATIONS:
+            raise ValueError(f"normalization must be one of {NORMALIZATIONS}, got {self.normalization!r}")
 
     def __call__(self, events: EventsLike) -> Array:
-        return voxel_grid(events, self.bins)
+        return voxel_grid(events, self.bins, normalization=self.normalization)
