@@ -330,25 +330,39 @@ def _legend_width(legend: Sequence[tuple[str, tuple[int, int, int]]], font_scale
     return sum(box + 4 + _text_width(label, font_scale) + 10 for label, _ in legend)
 
 
+def _wrap(text: str, font_scale: float, width: int) -> list[str]:
+    """``text`` broken at spaces into lines that fit ``width`` px (a word longer than that stays whole)."""
+    lines: list[str] = []
+    for word in text.split(" "):
+        if lines and _text_width(f"{lines[-1]} {word}", font_scale) <= width:
+            lines[-1] = f"{lines[-1]} {word}"
+        else:
+            lines.append(word)
+    return lines or [""]
+
+
 def titled(image: np.ndarray, title: str, *,
            legend: Sequence[tuple[str, tuple[int, int, int]]] = ()) -> np.ndarray:
     """``image`` with a white strip above it holding ``title`` and, right-aligned, a legend of
     ``(label, BGR colour)`` swatches. The text grows with the picture's width (readable when a wide
-    picture is scaled down); a legend that does not fit beside the title goes on a second line."""
+    picture is scaled down); a title wider than the picture is wrapped at spaces, and a legend that
+    does not fit beside the title's last line goes on a line of its own."""
     image = _check_picture(image)
     width = image.shape[1]
     font = _font_scale(width)
     thickness = 1 if font < 0.8 else 2
     line = int(round(_TITLE_HEIGHT * font / 0.45))
     box = int(round(10 * font / 0.45))
+    lines = _wrap(title, font, width - 8)
     legend_width = _legend_width(legend, font, box) if legend else 0
-    two_lines = bool(legend) and 4 + _text_width(title, font) + 12 + legend_width > width
-    strip = np.full((line * (2 if two_lines else 1), width, 3), _WHITE, np.uint8)
+    own_line = bool(legend) and 4 + _text_width(lines[-1], font) + 12 + legend_width > width
+    strip = np.full((line * (len(lines) + own_line), width, 3), _WHITE, np.uint8)
     baseline = line - int(round(7 * font / 0.45))
-    cv2.putText(strip, title, (4, baseline), _FONT, font, (0, 0, 0), thickness, cv2.LINE_AA)
+    for k, text in enumerate(lines):
+        cv2.putText(strip, text, (4, baseline + k * line), _FONT, font, (0, 0, 0), thickness, cv2.LINE_AA)
     if legend:
-        y = baseline + (line if two_lines else 0)
-        x = 4 if two_lines else width - legend_width
+        y = baseline + line * (len(lines) - 1 + own_line)
+        x = 4 if own_line else width - legend_width
         for label, colour in legend:
             cv2.rectangle(strip, (x, y - box), (x + box, y), tuple(int(c) for c in colour), -1)
             x += box + 4

@@ -144,3 +144,11 @@ def test_gamma_and_percentile_lift_faint_events_beside_a_bright_blob():
     robust = viz.event_frame_image(counts, percentile=90, gamma=0.5)
     assert plain[15, 5, 2] > 240                         # one event is almost white (1/50 of the ink)
     assert robust[15, 5, 2] == 0 and robust[0, 0, 2] == 0   # the scene's events and the lamp: full ink
+
+
+def test_long_titles_wrap_instead_of_running_off_the_picture():
+    short = viz.titled(np.zeros((10, 120, 3), np.uint8), "events")
+    long = viz.titled(np.zeros((10, 120, 3), np.uint8), "recording.h5, 0.1 s + 50 ms: 12,345 events")
+    assert long.shape[0] - 10 >= 2 * (short.shape[0] - 10)
+    strip = long[:-10]
+    assert (strip[:, -6:] == 255).all()                  # nothing drawn into the right margin
