@@ -85,7 +85,7 @@ def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
         finite = np.isfinite(scaled)
         if not finite.all():
             i = int(np.flatnonzero(~finite)[0])
-            raise FormatError(f"{where}[{i}] is {t[i]} (times must be finite)")
+            raise FormatError(f"{where}[{i}] is {t[i]}, a non-finite time (times must be finite)")
         if scaled.size and np.abs(scaled).max() > _FLOAT_US_LIMIT:
             i = int(np.argmax(np.abs(scaled)))
             raise FormatError(f"{where}[{i}] = {t[i]} {unit} does not fit into int64 microseconds")
