@@ -265,3 +265,32 @@ def test_formats_with_integer_microseconds_refuse_another_unit(tmp_path):
     assert read(tmp_path / "e.raw", time_unit="us") == events
     with pytest.raises(ValueError, match=r"stores integer microseconds; time_unit='s' does not apply"):
         read(tmp_path / "e.raw", time_unit="s")
+
+
+# -- the writer's index against the event count -------------------------------------------
+def test_one_time_stamp_off_by_2_to_40_us_is_refused_before_allocating_the_index(tmp_path):
+    t = np.arange(14_000, dtype=np.int64) * 10
+    t[-1] += 2**40  # one stamp ~12.7 days late: ms_to_idx would need 1.1e9 entries (8 GiB)
+    events = Events(np.zeros(14_000, int), np.zeros(14_000, int), t, np.ones(14_000, int), W, H)
+    tracemalloc.start()
+    try:
+        with pytest.raises(ValueError, match=r"ms_to_idx would need 1,099,511,\d{3} entries \(8\.2 GiB\) for "
+                                             r"14,000 events"):
+            write_h5(tmp_path / "off.h5", events)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 50_000_000, f"the refusal allocated {peak / 1e6:.0f} MB"
+    assert not (tmp_path / "off.h5").exists()
+
+
+def test_a_sparse_but_plausible_recording_is_written(tmp_path):
+    from cmax.io.h5 import MIN_INDEX_ENTRIES
+
+    # 5 events over 4 hours: within the index's floor of 2**24 ms whatever the count
+    t = np.array([0, 1, 2, 3, (MIN_INDEX_ENTRIES - 10) * 1000], np.int64)
+    events = Events(np.zeros(5, int), np.zeros(5, int), t, np.ones(5, int), W, H)
+    path = write_h5(tmp_path / "sparse.h5", events)
+    with H5Reader(path) as reader:
+        assert reader.read() == events
+        assert reader.window(int(t[-1]), int(t[-1]) + 1).t.tolist() == [int(t[-1])]

@@ -209,6 +209,7 @@ class H5Writer:
     def _extend_ms_to_idx(self, t_rel: np.ndarray, first_index: int) -> None:
         """Fill ms_to_idx for every millisecond boundary at or before the last time seen."""
         last_ms = int(t_rel[-1]) // 1000  # boundaries 1000*k <= t_last are now determined
+        check_index_span(last_ms + 2, first_index + len(t_rel), self.path)
         if last_ms < self._ms_filled:
             return
         boundaries = np.arange(self._ms_filled, last_ms + 1, dtype=np.int64) * 1000
@@ -252,6 +253,30 @@ class H5Writer:
             self.close()
         else:
             self.abort()
+
+
+#: ``ms_to_idx`` may hold up to this many entries whatever the event count (2**24 ms, 4.7 hours) ...
+MIN_INDEX_ENTRIES = 1 << 24
+#: ... and beyond that at most this many per event (a recording of fewer than one event per
+#: 64 ms on average over hours is a time stamp off by orders of magnitude, not a recording).
+INDEX_ENTRIES_PER_EVENT = 64
+
+
+def check_index_span(entries: int, events: int, path: Path) -> None:
+    """Refuse an ``ms_to_idx`` of ``entries`` (one per ms of the time span) for only ``events`` events.
+
+    The index costs 8 bytes per millisecond of the span, so one time stamp off by
+    2**40 µs would need 8 GiB for a handful of events; such a span is refused,
+    naming it, before anything is allocated.
+    """
+    limit = max(MIN_INDEX_ENTRIES, INDEX_ENTRIES_PER_EVENT * int(events))
+    if entries > limit:
+        raise ValueError(
+            f"{path}: the events span {(entries - 2) / 3.6e6:,.1f} hours after t_offset, so ms_to_idx would need "
+            f"{entries:,} entries ({8 * entries / 2**30:,.1f} GiB) for {events:,} events (at most "
+            f"max(2**24, {INDEX_ENTRIES_PER_EVENT} per event) are built); a time stamp is probably off "
+            "(a wrong unit or a corrupt value)"
+        )
 
 
 def write_h5(
