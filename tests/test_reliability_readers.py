@@ -294,3 +294,39 @@ def test_a_sparse_but_plausible_recording_is_written(tmp_path):
     with H5Reader(path) as reader:
         assert reader.read() == events
         assert reader.window(int(t[-1]), int(t[-1]) + 1).t.tolist() == [int(t[-1])]
+
+
+# -- the command line --------------------------------------------------------------------------
+def test_cmax_info_refuses_float_times_in_one_line_and_reads_them_with_time_unit(tmp_path, capsys):
+    from cmax.cli import main
+
+    path = _dsec(tmp_path / "seconds.h5", np.linspace(0.0, 0.5, 50_000))
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "--time-unit" in err and "float64 times" in err
+    assert main(["info", str(path), "--time-unit", "s"]) == 0
+    out = capsys.readouterr().out
+    assert "duration    0.500000 s" in out and "rate        0.100 Mev/s" in out
+
+
+def test_cmax_info_refuses_signed_polarity_in_one_line(tmp_path, capsys):
+    from cmax.cli import main
+
+    p = np.where(np.arange(100) % 2 == 0, 1, -1).astype(np.int8)
+    path = _dsec(tmp_path / "signed.h5", np.arange(100, dtype=np.int64), p=p)
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err.strip()
+    assert len(err.splitlines()) == 1 and "polarity values [-1, 1]" in err
+
+
+def test_cmax_show_and_fit_take_time_unit(tmp_path, capsys):
+    from cmax.cli import build_parser, main
+
+    rng = np.random.default_rng(3)
+    path = _dsec(tmp_path / "seconds.h5", np.sort(rng.random(5000)) * 0.1)
+    assert main(["show", str(path), "-o", str(tmp_path / "a.png")]) == 2
+    assert "time_unit" in capsys.readouterr().err
+    assert main(["show", str(path), "--time-unit", "s", "--dt", "0.05", "-o", str(tmp_path / "a.png")]) == 0
+    assert (tmp_path / "a.png").stat().st_size > 0
+    args = build_parser().parse_args(["fit", str(path), "--K", "100,100,32,24", "-o", str(tmp_path), "--time-unit", "s"])
+    assert args.time_unit == "s"
