@@ -330,3 +330,18 @@ def test_cmax_show_and_fit_take_time_unit(tmp_path, capsys):
     assert (tmp_path / "a.png").stat().st_size > 0
     args = build_parser().parse_args(["fit", str(path), "--K", "100,100,32,24", "-o", str(tmp_path), "--time-unit", "s"])
     assert args.time_unit == "s"
+
+
+def test_gyro_text_names_non_finite_samples_and_takes_a_unit(tmp_path):
+    from cmax.io import read_gyro
+
+    path = tmp_path / "gyro.txt"
+    path.write_text("0.001 0 0 0\nnan 0 0 0\n")
+    with pytest.raises(FormatError, match=r"gyro time\[1\] is nan, a non-finite time"):
+        read_gyro(path)  # was -2**63 µs
+    path.write_text("0.001 0 0 0\n0.002 0 inf 0\n")
+    with pytest.raises(FormatError, match=r"gyro sample 1 has a non-finite angular velocity"):
+        read_gyro(path)
+    path.write_text("1000 0 0 1\n2000 0 0 1\n")
+    times, omega = read_gyro(path, time_unit="us")
+    assert times.tolist() == [1000, 2000] and omega[:, 2].tolist() == [1.0, 1.0]
