@@ -328,7 +328,9 @@ def test_cmax_show_and_fit_take_time_unit(tmp_path, capsys):
     assert "time_unit" in capsys.readouterr().err
     assert main(["show", str(path), "--time-unit", "s", "--dt", "0.05", "-o", str(tmp_path / "a.png")]) == 0
     assert (tmp_path / "a.png").stat().st_size > 0
-    args = build_parser().parse_args(["fit", str(path), "--K", "100,100,32,24", "-o", str(tmp_path), "--time-unit", "s"])
+    args = build_parser().parse_args(
+        ["fit", str(path), "--K", "100,100,32,24", "-o", str(tmp_path), "--time-unit", "s"]
+    )
     assert args.time_unit == "s"
 
 

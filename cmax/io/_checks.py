@@ -18,7 +18,7 @@ from cmax.io.errors import FormatError
 
 __all__ = [
     "TIME_UNITS", "POLARITY_ENCODINGS", "check_time_unit", "unit_from_attrs", "times_to_us",
-    "scalar_to_us", "add_offset", "polarity_01", "check_allocated",
+    "scalar_to_us", "check_offset", "add_offset", "polarity_01", "check_allocated",
 ]
 
 #: Microseconds per unit of a stated time unit.
@@ -101,20 +101,23 @@ def scalar_to_us(value: Any, unit: str, where: str) -> int:
     return int(times_to_us(array.reshape(1), unit, where)[0])
 
 
-def add_offset(t_us: np.ndarray, offset_us: int, where: str) -> np.ndarray:
-    """``t_us + offset_us`` (in place when ``t_us`` is int64), refusing int64 overflow.
-
-    ``t_us`` must already be non-decreasing, so its first and last entries bound it.
-    """
+def check_offset(t_us: np.ndarray, offset_us: int, where: str) -> None:
+    """Refuse ``t_us + offset_us`` beyond int64 (``t_us`` non-decreasing: its ends bound it)."""
     if not offset_us or not t_us.size:
-        return t_us
+        return
     first, last = int(t_us[0]) + offset_us, int(t_us[-1]) + offset_us
     if last > _INT64_MAX or first < _INT64_MIN:
         i, value = (t_us.size - 1, int(t_us[-1])) if last > _INT64_MAX else (0, int(t_us[0]))
         raise FormatError(
             f"{where}[{i}] = {value} µs plus t_offset = {offset_us} µs overflows int64 microseconds"
         )
-    t_us += np.int64(offset_us)
+
+
+def add_offset(t_us: np.ndarray, offset_us: int, where: str) -> np.ndarray:
+    """``t_us + offset_us`` in place (``t_us`` int64, non-decreasing), refusing int64 overflow."""
+    check_offset(t_us, offset_us, where)
+    if offset_us and t_us.size:
+        t_us += np.int64(offset_us)
     return t_us
 
 
@@ -140,10 +143,10 @@ def polarity_01(p: np.ndarray, encoding: str, where: str) -> np.ndarray:
         raise FormatError(f"{where} must hold polarities as numbers, got dtype {p.dtype}")
     if not p.size:
         return np.empty(0, np.int8)
-    low, high = p.min(), p.max()
+    low, high = (0 if p.dtype.kind == "u" else p.min()), p.max()
     if encoding == "01":
         if low >= 0 and high <= 1 and (p.dtype.kind != "f" or np.all((p == 0) | (p == 1))):
-            return p if p.dtype == np.int8 else p.astype(np.int8)
+            return p.view(np.int8) if p.dtype.itemsize == 1 and p.dtype.kind in "iu" else p.astype(np.int8)
     elif low >= -1 and high <= 1 and np.count_nonzero(p) == p.size and (
         p.dtype.kind != "f" or np.all(np.abs(p) == 1)
     ):

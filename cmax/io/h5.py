@@ -27,8 +27,8 @@ import hdf5plugin
 import numpy as np
 
 from cmax.events import Events, _check_sensor_size, check_event_count, check_time_us, window_steps
-from cmax.io._checks import (add_offset, check_allocated, check_polarity_encoding, check_time_unit, polarity_01,
-                             scalar_to_us, times_to_us, unit_from_attrs)
+from cmax.io._checks import (add_offset, check_allocated, check_offset, check_polarity_encoding, check_time_unit,
+                             polarity_01, scalar_to_us, times_to_us, unit_from_attrs)
 from cmax.io.errors import FormatError
 
 __all__ = ["H5Writer", "H5Reader", "write_h5", "read_h5", "is_dsec_h5"]
@@ -609,8 +609,8 @@ def _checked_columns(
     y = _checked_coordinate(columns["y"], height, where, "y", "height", first_row)
     p = polarity_01(columns["p"], polarity, where + "p")
     t = times_to_us(columns["t"], time_unit, where + "t")
-    _check_sorted(t, where + "t", first_row)
-    t = add_offset(t, t_offset_us, where + "t")
+    check_offset(t, t_offset_us, where + "t")
+    _sorted_plus_offset(t, t_offset_us, where + "t", first_row)
     if not x.size == y.size == t.size == p.size:
         raise FormatError(f"{where}x/y/t/p differ in length")
     return Events._trusted(x, y, t, p, width, height)
@@ -624,8 +624,8 @@ def _checked_coordinate(
         raise FormatError(f"{where}{name} must hold integer pixels, got dtype {values.dtype}")
     if not values.size:
         return values.astype(np.uint16)
-    low, high = int(values.min()), int(values.max())
-    if low < 0 or high >= size:
+    low = 0 if values.dtype.kind == "u" else int(values.min())  # one pass for unsigned columns
+    if low < 0 or int(values.max()) >= size:
         bad = int(np.flatnonzero((values < 0) | (values >= size))[0])
         raise FormatError(
             f"{where}{name}: corrupt events at row {first_row + bad}: {name} must lie in [0, {size_name}={size}), "
@@ -637,17 +637,23 @@ def _checked_coordinate(
 _SORT_BLOCK = 1 << 16
 
 
-def _check_sorted(t: np.ndarray, where: str, first_row: int) -> None:
-    """Raise FormatError if ``t`` ever decreases (blockwise, so the comparison stays in cache)."""
-    n = t.size
-    for start in range(0, n - 1, _SORT_BLOCK):
-        stop = min(start + _SORT_BLOCK, n - 1)
-        if (t[start + 1: stop + 1] < t[start:stop]).any():
-            i = start + int(np.flatnonzero(t[start + 1: stop + 1] < t[start:stop])[0])
+def _sorted_plus_offset(t: np.ndarray, offset: int, where: str, first_row: int) -> None:
+    """Check that int64 ``t`` never decreases and add ``offset`` in place, block by block so that
+    each block is compared and shifted while in cache. The caller has checked that the first and
+    last times plus ``offset`` fit into int64 (enough once the order holds; on disorder this raises
+    before any out-of-order value escapes)."""
+    n, shift = t.size, np.int64(offset)
+    for start in range(0, n, _SORT_BLOCK):
+        stop = min(start + _SORT_BLOCK, n)
+        after = t[start + 1: stop + 1]  # one more than the block: the pair across the boundary
+        if (after < t[start: start + after.size]).any():
+            i = start + int(np.flatnonzero(after < t[start: start + after.size])[0])
             raise FormatError(
                 f"{where}: corrupt events at row {first_row + i + 1}: t must be sorted in non-decreasing order "
-                f"({int(t[i + 1])} µs comes after {int(t[i])} µs)"
+                f"({int(t[i + 1])} µs comes after {int(t[i])} µs, before t_offset)"
             )
+        if shift:
+            t[start:stop] += shift
 
 
 def _checked_ms_to_idx(ms_to_idx: np.ndarray, count: int, path: Path) -> np.ndarray:
