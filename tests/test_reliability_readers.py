@@ -347,3 +347,14 @@ def test_gyro_text_names_non_finite_samples_and_takes_a_unit(tmp_path):
     path.write_text("1000 0 0 1\n2000 0 0 1\n")
     times, omega = read_gyro(path, time_unit="us")
     assert times.tolist() == [1000, 2000] and omega[:, 2].tolist() == [1.0, 1.0]
+
+
+def test_an_mvsec_file_declaring_rows_it_does_not_store_is_refused(tmp_path):
+    path = tmp_path / "mvsec.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", shape=(200_000_000, 4), dtype="f8", chunks=(65536, 4))
+    assert path.stat().st_size < 20_000
+    with pytest.raises(FormatError, match=r"davis/left/events declares 800,000,000 entries .* stores only 0"):
+        read_mvsec(path)
+    with pytest.raises(FormatError, match=r"refusing to allocate"):
+        file_info(path)

@@ -13,7 +13,7 @@ import h5py
 import numpy as np
 
 from cmax.events import EventLimitError, Events, check_event_count, check_time_us
-from cmax.io._checks import TIME_UNITS, check_polarity_encoding, check_time_unit, polarity_01, times_to_us
+from cmax.io._checks import TIME_UNITS, check_allocated, check_polarity_encoding, check_time_unit, polarity_01, times_to_us
 from cmax.io.errors import FormatError
 from cmax.io.h5 import H5_ERRORS
 
@@ -27,8 +27,9 @@ def _events_dataset(file: h5py.File, path: Path, camera: str) -> h5py.Dataset:
     if key not in file:
         raise FormatError(f"{path} has no dataset {key!r} (not an MVSEC data file?)")
     dataset = file[key]
-    if dataset.ndim != 2 or dataset.shape[1] != 4:
-        raise FormatError(f"{path}:{key} must have shape (N, 4), got {dataset.shape}")
+    if not isinstance(dataset, h5py.Dataset) or dataset.ndim != 2 or dataset.shape[1] != 4:
+        raise FormatError(f"{path}:{key} must be a dataset of shape (N, 4), got {getattr(dataset, 'shape', dataset)}")
+    check_allocated(dataset, f"{path}: {key}")
     return dataset
 
 
