@@ -139,45 +139,43 @@ def test_an_index_shorter_than_the_recording_is_completed_on_disk(tmp_path):
 
 
 # -- declared sizes against stored data ----------------------------------------------------
-def test_a_declared_index_larger_than_the_file_is_refused_before_allocating(tmp_path):
-    path = tmp_path / "index.h5"
+def _declared_columns(path, rows, *, index_rows=None):
+    """Event columns (10 stored rows, or ``rows`` declared contiguous and never written) and an
+    optional chunked ``ms_to_idx`` declaring ``index_rows`` entries that are never written."""
     with h5py.File(path, "w") as file:
         group = file.create_group("events")
         for name, dtype in (("x", "u2"), ("y", "u2"), ("t", "i8"), ("p", "u1")):
-            group.create_dataset(name, data=np.zeros(10, dtype))
-        file.create_dataset("ms_to_idx", shape=(600_000_000,), dtype="u8", chunks=(1 << 20,))  # 4.8 GB declared
+            if rows is None:
+                group.create_dataset(name, data=np.zeros(10, dtype))
+            else:
+                group.create_dataset(name, shape=(rows,), dtype=dtype)
+        if index_rows is not None:
+            file.create_dataset("ms_to_idx", shape=(index_rows,), dtype="u8", chunks=(1 << 20,))
         file.attrs["width"], file.attrs["height"] = W, H
-    assert path.stat().st_size < 20_000
-    for call in (lambda: H5Reader(path), lambda: file_info(path)):
-        with pytest.raises(FormatError, match=r"ms_to_idx declares 600,000,000 entries in 573 chunks but the file "
-                                              r"stores only 0"):
-            call()
-    # contiguous layout, never written
-    with h5py.File(path, "w") as file:
-        group = file.create_group("events")
-        for name, dtype in (("x", "u2"), ("y", "u2"), ("t", "i8"), ("p", "u1")):
-            group.create_dataset(name, shape=(300_000_000,), dtype=dtype)
-        file.attrs["width"], file.attrs["height"] = W, H
-    with pytest.raises(FormatError, match=r"events/x declares 300,000,000 entries but the file stores only 0"):
-        file_info(path)
+    return path
 
 
-def test_refusal_of_a_declared_index_allocates_little(tmp_path):
-    path = tmp_path / "index.h5"
-    with h5py.File(path, "w") as file:
-        group = file.create_group("events")
-        for name, dtype in (("x", "u2"), ("y", "u2"), ("t", "i8"), ("p", "u1")):
-            group.create_dataset(name, data=np.zeros(10, dtype))
-        file.create_dataset("ms_to_idx", shape=(600_000_000,), dtype="u8", chunks=(1 << 20,))
-        file.attrs["width"], file.attrs["height"] = W, H
+def _refusal_peak(call, match, error=FormatError) -> int:
+    """Bytes allocated (tracemalloc peak) while ``call`` raises ``error`` matching ``match``."""
     tracemalloc.start()
     try:
-        with pytest.raises(FormatError, match=r"refusing to allocate"):
-            file_info(path)
-        peak = tracemalloc.get_traced_memory()[1]
+        with pytest.raises(error, match=match):
+            call()
+        return tracemalloc.get_traced_memory()[1]
     finally:
         tracemalloc.stop()
-    assert peak < 5_000_000, f"the refusal allocated {peak / 1e6:.0f} MB"
+
+
+def test_a_declared_index_larger_than_the_file_is_refused_before_allocating(tmp_path):
+    path = _declared_columns(tmp_path / "index.h5", None, index_rows=600_000_000)  # 4.8 GB declared
+    assert path.stat().st_size < 20_000
+    match = r"ms_to_idx declares 600,000,000 entries in 573 chunks but the file stores only 0"
+    for call in (lambda: H5Reader(path), lambda: file_info(path)):
+        peak = _refusal_peak(call, match)
+        assert peak < 5_000_000, f"the refusal allocated {peak / 1e6:.0f} MB"
+    path = _declared_columns(tmp_path / "columns.h5", 300_000_000)  # contiguous layout, never written
+    with pytest.raises(FormatError, match=r"events/x declares 300,000,000 entries but the file stores only 0"):
+        file_info(path)
 
 
 def test_a_column_that_is_a_group_is_a_format_error(tmp_path):
@@ -272,14 +270,8 @@ def test_one_time_stamp_off_by_2_to_40_us_is_refused_before_allocating_the_index
     t = np.arange(14_000, dtype=np.int64) * 10
     t[-1] += 2**40  # one stamp ~12.7 days late: ms_to_idx would need 1.1e9 entries (8 GiB)
     events = Events(np.zeros(14_000, int), np.zeros(14_000, int), t, np.ones(14_000, int), W, H)
-    tracemalloc.start()
-    try:
-        with pytest.raises(ValueError, match=r"ms_to_idx would need 1,099,511,\d{3} entries \(8\.2 GiB\) for "
-                                             r"14,000 events"):
-            write_h5(tmp_path / "off.h5", events)
-        peak = tracemalloc.get_traced_memory()[1]
-    finally:
-        tracemalloc.stop()
+    peak = _refusal_peak(lambda: write_h5(tmp_path / "off.h5", events),
+                         r"ms_to_idx would need 1,099,511,\d{3} entries \(8\.2 GiB\) for 14,000 events", ValueError)
     assert peak < 50_000_000, f"the refusal allocated {peak / 1e6:.0f} MB"
     assert not (tmp_path / "off.h5").exists()
 
