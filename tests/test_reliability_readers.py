@@ -66,6 +66,9 @@ def test_a_unit_attribute_in_the_file_is_used_and_a_contradiction_refused(tmp_pa
     assert read_h5(path).t.tolist() == [0, 7000, 9000]
     with pytest.raises(ValueError, match=r"time_unit must be one of 'us', 'ms', 's'"):
         read_h5(path, time_unit="minutes")
+    path = _dsec(tmp_path / "odd.h5", np.array([0, 7], np.int64), t_attrs={"units": "furlongs"})
+    with pytest.raises(FormatError, match=r"events/t attribute 'units' must be one of 'us', 'ms', 's'"):
+        read_h5(path)
 
 
 def test_fractional_microseconds_are_rounded_only_under_a_stated_unit(tmp_path):

@@ -47,9 +47,9 @@ def check_time_unit(time_unit: object, name: str = "time_unit") -> str | None:
     return _UNIT_ALIASES[time_unit.strip().lower()]
 
 
-def unit_from_attrs(attrs: Any, where: str) -> str | None:
-    """The time unit an HDF5 object's attributes state (``unit``, ``units`` or ``time_unit``), or None."""
-    for key in ("unit", "units", "time_unit"):
+def unit_from_attrs(attrs: Any, where: str, keys: tuple[str, ...] = ("unit", "units", "time_unit")) -> str | None:
+    """The time unit an HDF5 object's attributes state (the first of ``keys`` present), or None."""
+    for key in keys:
         if key in attrs:
             try:
                 return check_time_unit(attrs[key], f"{where} attribute {key!r}")

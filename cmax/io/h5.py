@@ -414,9 +414,8 @@ class H5Reader:
     def _time_unit(self, stated: str | None) -> str:
         """The unit of ``events/t``: the caller's and the file's must agree; float times need one."""
         column = self._columns["t"]
-        in_file = unit_from_attrs(column.attrs, f"{self.path}: events/t") or (
-            unit_from_attrs({"time_unit": self._file.attrs["time_unit"]}, f"{self.path}")
-            if "time_unit" in self._file.attrs else None
+        in_file = unit_from_attrs(column.attrs, f"{self.path}: events/t") or unit_from_attrs(
+            self._file.attrs, f"{self.path}", keys=("time_unit",)
         )
         if stated is not None and in_file is not None and stated != in_file:
             raise FormatError(
