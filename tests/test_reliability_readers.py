@@ -353,3 +353,16 @@ def test_an_mvsec_file_declaring_rows_it_does_not_store_is_refused(tmp_path):
         read_mvsec(path)
     with pytest.raises(FormatError, match=r"refusing to allocate"):
         file_info(path)
+
+
+@pytest.mark.parametrize("row", [1, 65_535, 65_536, 65_537, 139_999])
+def test_time_going_back_is_found_at_any_row_also_across_check_blocks(tmp_path, row):
+    t = np.arange(140_000, dtype=np.int64) * 3
+    t[row] = t[row - 1] - 1  # one step back at ``row``
+    path = _dsec(tmp_path / "back.h5", t, t_offset=np.int64(10**12))
+    with pytest.raises(FormatError, match=rf"corrupt events at row {row}: t must be sorted"):
+        read_h5(path)
+    with H5Reader(path) as reader:
+        with pytest.raises(FormatError, match=rf"corrupt events at row {row}:"):
+            reader.read_rows(row - 1, row + 1)
+        assert reader.read_rows(row + 1, row + 3).t.tolist() == (10**12 + t[row + 1: row + 3]).tolist()

@@ -642,11 +642,13 @@ def _sorted_plus_offset(t: np.ndarray, offset: int, where: str, first_row: int) 
     last times plus ``offset`` fit into int64 (enough once the order holds; on disorder this raises
     before any out-of-order value escapes)."""
     n, shift = t.size, np.int64(offset)
+    back = np.empty(min(n, _SORT_BLOCK), bool)
     for start in range(0, n, _SORT_BLOCK):
         stop = min(start + _SORT_BLOCK, n)
         after = t[start + 1: stop + 1]  # one more than the block: the pair across the boundary
-        if (after < t[start: start + after.size]).any():
-            i = start + int(np.flatnonzero(after < t[start: start + after.size])[0])
+        went_back = np.less(after, t[start: start + after.size], out=back[: after.size])
+        if went_back.any():
+            i = start + int(np.flatnonzero(went_back)[0])
             raise FormatError(
                 f"{where}: corrupt events at row {first_row + i + 1}: t must be sorted in non-decreasing order "
                 f"({int(t[i + 1])} µs comes after {int(t[i])} µs, before t_offset)"
