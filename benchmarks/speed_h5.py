@@ -20,7 +20,7 @@ CPU time):
 
 Usage::
 
-    python -m benchmarks.speed_h5 [--events 10000000] [--repeats 7] [--keep FILE]
+    python -m benchmarks.speed_h5 [--events 5000000 50000000] [--repeats 9] [--keep FOLDER]
 
 Writes ``benchmarks/results/speed_h5.md``.
 """
@@ -93,7 +93,7 @@ def time_pair(floor, ours, arguments: list, repeats: int) -> dict[str, list[floa
 
 
 def run(count: int, repeats: int, keep: Path | None) -> str:
-    folder = tempfile.mkdtemp(prefix="speed_h5_")
+    folder = None if keep is not None else tempfile.mkdtemp(prefix="speed_h5_")
     path = keep or Path(folder) / "synthetic.h5"
     if not path.exists():
         make_file(path, count)
@@ -136,7 +136,7 @@ def run(count: int, repeats: int, keep: Path | None) -> str:
                 f"| {min(ours) / min(floor):.2f}× | {min(ratios):.2f}–{max(ratios):.2f} | ≤ {target}× | {verdict} |")
 
     lines = [
-        "# DSEC h5 reading against the h5py floor",
+        f"## {count / 1e6:g} M events",
         "",
         f"Synthetic DSEC-layout file: {count:,} events ({size_mb:.0f} MB on disk, Blosc/LZ4 + shuffle, "
         f"{WIDTH}x{HEIGHT}, {RATE_HZ / 1e6:.0f} M ev/s so a 50 ms window holds ~{events_per_window:,} events). "
@@ -163,14 +163,20 @@ def run(count: int, repeats: int, keep: Path | None) -> str:
 
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--events", type=int, default=10_000_000, help="events in the synthetic file")
-    parser.add_argument("--repeats", type=int, default=7, help="interleaved repeats (>= 5)")
-    parser.add_argument("--keep", type=Path, default=None, help="reuse (or create and keep) this file")
+    parser.add_argument("--events", type=int, nargs="+", default=[5_000_000, 50_000_000],
+                        help="events in the synthetic file (one section per count)")
+    parser.add_argument("--repeats", type=int, default=9, help="interleaved repeats (>= 5)")
+    parser.add_argument("--keep", type=Path, default=None,
+                        help="folder where the synthetic files are reused (or created and kept)")
     parser.add_argument("--output", type=Path, default=RESULTS / "speed_h5.md")
     args = parser.parse_args(argv)
     if args.repeats < 5:
         parser.error("--repeats must be >= 5")
-    text = run(args.events, args.repeats, args.keep)
+    sections = []
+    for count in args.events:
+        keep = None if args.keep is None else args.keep / f"speed_h5_{count}.h5"
+        sections.append(run(count, args.repeats, keep))
+    text = "\n".join(["# DSEC h5 reading against the h5py floor", ""] + sections)
     args.output.parent.mkdir(parents=True, exist_ok=True)
     args.output.write_text(text)
     print(text)

@@ -366,3 +366,14 @@ def test_time_going_back_is_found_at_any_row_also_across_check_blocks(tmp_path, 
         with pytest.raises(FormatError, match=rf"corrupt events at row {row}:"):
             reader.read_rows(row - 1, row + 1)
         assert reader.read_rows(row + 1, row + 3).t.tolist() == (10**12 + t[row + 1: row + 3]).tolist()
+
+
+def test_the_h5_speed_benchmark_runs_on_a_small_file(tmp_path):
+    from benchmarks import speed_h5
+
+    path = speed_h5.make_file(tmp_path / "small.h5", 100_000)
+    events = read_h5(path)
+    assert len(events) == 100_000 and events.sensor_size == (speed_h5.WIDTH, speed_h5.HEIGHT)
+    assert events.duration_us == pytest.approx(100_000 / speed_h5.RATE_HZ * 1e6, rel=0.01)
+    text = speed_h5.run(100_000, 5, path)
+    assert text.count("| whole file (read_h5) |") == 2 and text.count("| one 50 ms window") == 2
