@@ -36,11 +36,13 @@ def _add_size_option(parser: argparse.ArgumentParser) -> None:
         "--size", type=_sensor_size, default=None, metavar="WxH",
         help="sensor size, for files that do not store it (ECD text, .npy, original DSEC)",
     )
+    parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
+                        help="unit of the file's time stamps where the file does not state it (never guessed)")
 
 
-def _size_kwargs(args: argparse.Namespace) -> dict[str, int | None]:
+def _size_kwargs(args: argparse.Namespace) -> dict[str, int | str | None]:
     width, height = args.size if args.size else (None, None)
-    return {"width": width, "height": height}
+    return {"width": width, "height": height, "time_unit": args.time_unit}
 
 
 # -- info ------------------------------------------------------------------------------

@@ -405,3 +405,43 @@ def test_real_corrupt_packet_raises(real_file: Path, tmp_path: Path) -> None:
     path.write_bytes(bytes(corrupt))
     with pytest.raises(FormatError):
         read_aedat4(path)
+
+
+# -- sizes against the file (issue 20) --------------------------------------------------
+def test_a_decompression_bomb_is_refused_before_its_output_is_allocated(tmp_path: Path, monkeypatch) -> None:
+    import tracemalloc
+
+    bomb = _event_packet(T, X, Y, P) + b"\0" * (200 << 20)  # 200 MB that LZ4 shrinks ~250x
+    path = tmp_path / "bomb.aedat4"
+    path.write_bytes(_aedat4(SYNTHETIC_STREAMS, [(0, bomb)]))
+    assert path.stat().st_size < 1_000_000
+    with pytest.raises(FormatError, match=r"packet at byte \d+\): a packet of [\d,]+ compressed bytes "
+                                          r"decompresses to more than [\d,]+ bytes \(over 64x"):
+        read_aedat4(path)
+    # the memory of the refusal follows the bound (about twice the limit), not the 200 MB claimed
+    monkeypatch.setattr("cmax.io.aedat4.MAX_EXPANSION", 8)
+    tracemalloc.start()
+    try:
+        with pytest.raises(FormatError, match=r"over 8x"):
+            read_aedat4(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 25_000_000, f"the refusal allocated {peak / 1e6:.0f} MB"
+
+
+def test_packet_limits_follow_the_packet_and_the_frame_size() -> None:
+    from cmax.io.aedat4 import MAX_EXPANSION, Aedat4Stream, _packet_limit
+
+    events = Aedat4Stream(0, "EVTS", "events", 346, 260, "lz4")
+    frames = Aedat4Stream(1, "FRME", "frames", 346, 260, "lz4")
+    assert _packet_limit(1000, events) == MAX_EXPANSION * 1000 + 1024
+    assert _packet_limit(1000, frames) == MAX_EXPANSION * 1000 + 1024 + 8 * 346 * 260  # one 16-bit BGRA frame
+
+
+def test_a_uniform_frame_that_compresses_far_below_its_size_is_read(tmp_path: Path) -> None:
+    image = np.zeros((120, 160), np.uint8)  # LZ4 shrinks it ~200x, beyond the 64x of event packets
+    path = tmp_path / "dark.aedat4"
+    path.write_bytes(_aedat4([(3, "FRME", "frames", (160, 120))], [(3, _frame_packet(200, image))]))
+    frames = read_aedat4_frames(path)
+    assert frames.images.shape == (1, 120, 160) and not frames.images.any()

@@ -60,15 +60,19 @@ def test_window_reads_only_its_slice(tmp_path, monkeypatch):
     path = write_h5(tmp_path / "ev.h5", ev)
     reader = H5Reader(path)
     requested = []
-    original = reader.read_rows
+    original = reader._read
 
     def spy(start, stop):
         requested.append((start, stop))
         return original(start, stop)
 
-    monkeypatch.setattr(reader, "read_rows", spy)
+    monkeypatch.setattr(reader, "_read", spy)
     window = reader.window(2_000_000, 2_010_000)
-    assert requested == [(ev.index_at(2_000_000), ev.index_at(2_010_000))]
+    # one read: the window's rows plus one row each side, to check the ms_to_idx entries used
+    offset = ev.t_start  # write_h5's t_offset: ms boundaries are counted from it
+    k0, k1 = (2_000_000 - offset) // 1000, -(-(2_010_000 - offset) // 1000)
+    assert requested == [(ev.index_at(offset + 1000 * k0) - 1, ev.index_at(offset + 1000 * k1) + 1)]
+    assert window == ev.slice_time(2_000_000, 2_010_000)
     assert len(window) < 200
     reader.close()
 

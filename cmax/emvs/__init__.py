@@ -10,7 +10,7 @@ semi-dense depth, pictures, PLY), :mod:`~cmax.emvs.poses` (pose inputs, TUM file
 """
 from cmax.emvs.core import EMVS
 from cmax.emvs.poses import as_trajectory, read_tum_trajectory
-from cmax.emvs.result import DSI, SemiDenseDepth, semi_dense_depth, write_ply
+from cmax.emvs.result import DSI, NoBaselineWarning, SemiDenseDepth, semi_dense_depth, write_ply
 
 __all__ = ["EMVS", "DSI", "SemiDenseDepth", "semi_dense_depth", "read_tum_trajectory", "as_trajectory",
-           "write_ply"]
+           "write_ply", "NoBaselineWarning"]

@@ -74,6 +74,18 @@ def _groups(centres: np.ndarray, sizes: np.ndarray, max_events: int, max_travel:
     return groups
 
 
+def _parallax_px(centres: np.ndarray, camera: Camera, depths: np.ndarray) -> float:
+    """Largest shift [px] of a ray's votes between the nearest and farthest plane (see ``DSI.parallax_px``).
+
+    ``centres`` (K, 3): camera centres of the packets in the reference frame [m].
+    """
+    K = camera.K
+    focal = max(K[0, 0], K[1, 1])
+    radius = max(K[0, 2], camera.width - K[0, 2], K[1, 2], camera.height - K[1, 2])
+    travel = focal * np.hypot(centres[:, 0], centres[:, 1]) + radius * np.abs(centres[:, 2])
+    return float((1.0 / depths[0] - 1.0 / depths[-1]) * travel.max()) if len(travel) else 0.0
+
+
 @dataclass(frozen=True, eq=False)
 class EMVS:
     """EMVS: semi-dense depth from events and known camera poses by voting in a Disparity Space Image.
@@ -199,6 +211,7 @@ class EMVS:
         starts, packet_t = _packets(t, self.events_per_pose)
         T_ref_c = invert_pose(T_w_ref) @ interpolate_poses(times, T_w_c, packet_t)
         centres = T_ref_c[:, :3, 3]
+        parallax_px = _parallax_px(centres, self.camera, depths)
         inverse = 1.0 / depths
         reach = max(K[0, 0], K[1, 1], K[0, 2], self.camera.width - K[0, 2], K[1, 2], self.camera.height - K[1, 2])
         max_travel = 2.0 * self.transfer_tolerance_px / (reach * 0.5 * (inverse[0] - inverse[-1]))
@@ -219,7 +232,8 @@ class EMVS:
                 positions = positions[hits]
             voted += len(positions)
             vote(votes, positions, transfer)
-        return DSI(votes, depths, K.copy(), t_ref_us, T_w_ref, voted, time.perf_counter() - start)
+        return DSI(votes, depths, K.copy(), t_ref_us, T_w_ref, voted, time.perf_counter() - start,
+                   parallax_px=parallax_px)
 
     def run(self, events: Events, poses: object, *, t_ref_us: int | None = None) -> SemiDenseDepth:
         """Semi-dense depth of the reference view from events and camera poses.

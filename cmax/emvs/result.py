@@ -8,6 +8,7 @@ thresholding of the confidence map, and a median filter of the depth.
 from __future__ import annotations
 
 import os
+import warnings
 from dataclasses import dataclass
 from pathlib import Path
 from typing import TYPE_CHECKING
@@ -18,7 +19,16 @@ import numpy as np
 if TYPE_CHECKING:  # pragma: no cover
     from cmax import viz
 
-__all__ = ["DSI", "SemiDenseDepth", "semi_dense_depth", "depth_scale_bar", "write_ply"]
+__all__ = ["DSI", "SemiDenseDepth", "semi_dense_depth", "depth_scale_bar", "write_ply", "NoBaselineWarning",
+           "MIN_PARALLAX_PX"]
+
+#: Below this parallax [px] between the nearest and the farthest plane, no depth is given.
+MIN_PARALLAX_PX = 1.0
+
+
+class NoBaselineWarning(UserWarning):
+    """The camera barely translated (``DSI.parallax_px`` below :data:`MIN_PARALLAX_PX`): the planes
+    cannot be told apart, so EMVS returns no depth (an empty mask) instead of the near plane."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -41,6 +51,12 @@ class DSI:
         Events that voted (rays that meet the planes in front of their camera).
     seconds : float
         Wall time of the voting [s].
+    parallax_px : float
+        Largest displacement [px] of a ray's votes between the nearest and the farthest
+        plane over the camera positions of the events: ``(1/near - 1/far)`` times the
+        largest ``f |t_xy| + r |t_z|`` of a camera centre ``t`` in the reference frame
+        (``f`` the focal length, ``r`` the largest distance of the principal point to
+        the border). NaN when unknown (a DSI built by hand).
     """
 
     votes: np.ndarray
@@ -50,6 +66,7 @@ class DSI:
     T_w_ref: np.ndarray
     n_events: int
     seconds: float
+    parallax_px: float = float("nan")
 
 
 @dataclass(frozen=True, eq=False)
@@ -125,6 +142,8 @@ class SemiDenseDepth:
 
 def _masked_median(depth: np.ndarray, mask: np.ndarray, size: int) -> np.ndarray:
     """Median of the masked depths in the ``size`` x ``size`` window of every masked pixel (H, W) float32."""
+    if not mask.any():
+        return np.full(depth.shape, np.nan, np.float32)
     radius = size // 2
     values = np.where(mask, depth, np.nan).astype(np.float32)
     padded = np.pad(values, radius, constant_values=np.nan)
@@ -156,12 +175,24 @@ def semi_dense_depth(dsi: DSI, *, threshold_kernel: int = 5, threshold_c: float 
     Returns
     -------
     SemiDenseDepth
+        With an empty mask (depth all NaN, no points) and a :class:`NoBaselineWarning`
+        when ``dsi.parallax_px`` is below :data:`MIN_PARALLAX_PX`: without camera
+        translation every plane gets the same votes, and the argmax would be the
+        near plane, a confident wrong answer.
     """
     votes = dsi.votes
     index = np.argmax(votes, axis=0)
     confidence = np.take_along_axis(votes, index[None], axis=0)[0].astype(np.float32)
     peak = float(confidence.max())
-    if peak > 0:
+    no_baseline = bool(dsi.parallax_px < MIN_PARALLAX_PX)  # False for NaN (unknown)
+    if no_baseline:
+        warnings.warn(
+            f"EMVS: the camera translation moves a ray's votes by only {dsi.parallax_px:.3g} px between the "
+            f"nearest and the farthest plane (under {MIN_PARALLAX_PX} px): depth cannot be resolved without "
+            "camera motion; no depth is returned (empty mask)", NoBaselineWarning, stacklevel=3,
+        )
+        mask = np.zeros(confidence.shape, bool)
+    elif peak > 0:
         scaled = np.round(255.0 * confidence / peak).astype(np.uint8)
         mask = cv2.adaptiveThreshold(scaled, 1, cv2.ADAPTIVE_THRESH_GAUSSIAN_C, cv2.THRESH_BINARY,
                                      threshold_kernel, -threshold_c).astype(bool) & (confidence > 0)

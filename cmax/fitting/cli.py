@@ -42,6 +42,8 @@ def add_fit_command(subparsers) -> argparse.ArgumentParser:
                                    description=__doc__.split("\n\n")[0])
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
     parser.add_argument("--K", required=True, type=intrinsics_argument, help="intrinsics fx,fy,cx,cy [px]")
+    parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
+                        help="unit of the file's time stamps where the file does not state it (never guessed)")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
     parser.add_argument("--model", choices=("se3", "rotation", "flow"), default="se3")
     parser.add_argument("--window-ms", type=float, default=166.5, help="window length [ms]")
@@ -77,7 +79,7 @@ def run_fit(args: argparse.Namespace) -> int:
     from cmax.fitting.window import LOW_PARALLAX_PX
     from cmax.io import read, read_gyro
 
-    events = read(args.file)
+    events = read(args.file, time_unit=args.time_unit)
     gyro = None if args.gyro is None else read_gyro(args.gyro)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)

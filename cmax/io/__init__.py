@@ -24,7 +24,8 @@ from typing import Any
 import h5py
 import numpy as np
 
-from cmax.events import Events
+from cmax.events import Events, check_event_count
+from cmax.io._checks import check_polarity_encoding, check_time_unit, polarity_01, times_to_us
 from cmax.io.aedat4 import read_aedat4, read_aedat4_imu
 from cmax.io.errors import FormatError
 from cmax.io.gyro import read_gyro
@@ -80,7 +81,8 @@ def detect_format(path: str | os.PathLike) -> str:
 
 def read(
     path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
-    t0_us: int | None = None, t1_us: int | None = None, **options: Any,
+    t0_us: int | None = None, t1_us: int | None = None, time_unit: str | None = None,
+    **options: Any,
 ) -> Events:
     """Read events from any supported file, detecting its format.
 
@@ -93,8 +95,14 @@ def read(
     t0_us, t1_us : int, optional
         Keep only ``t0_us <= t < t1_us`` (absolute µs). HDF5 files read only
         that slice from disk; other formats are decoded whole, then cut.
+    time_unit : {'us', 'ms', 's'}, optional
+        Unit of the file's time stamps where the format leaves it open (DSEC
+        HDF5 with float times, ECD text or MVSEC in another unit than seconds,
+        NumPy). Never guessed: float times without a stated unit are refused.
+        AEDAT4 and Prophesee files store integer µs; another unit is refused.
     **options
-        Passed to the format's reader (e.g. ``camera='right'`` for MVSEC).
+        Passed to the format's reader (e.g. ``camera='right'`` for MVSEC,
+        ``polarity='signed'`` for a DSEC, text or NumPy file storing -1/+1).
 
     Returns
     -------
@@ -102,10 +110,13 @@ def read(
     """
     path = Path(path)
     kind = detect_format(path)
+    time_unit = check_time_unit(time_unit)
     if kind == "dsec":
-        return read_h5(path, width=width, height=height, t0_us=t0_us, t1_us=t1_us)
+        return read_h5(path, width=width, height=height, t0_us=t0_us, t1_us=t1_us, time_unit=time_unit, **options)
     if kind == "mvsec":
-        return read_mvsec(path, t0_us=t0_us, t1_us=t1_us, **options)
+        return read_mvsec(path, t0_us=t0_us, t1_us=t1_us, time_unit=time_unit, **options)
+    if kind in ("aedat4", "raw") and time_unit not in (None, "us"):
+        raise ValueError(f"{path} ({kind}) stores integer microseconds; time_unit={time_unit!r} does not apply")
     if kind == "aedat4":
         events = read_aedat4(path, **options)
     elif kind == "raw":
@@ -114,9 +125,9 @@ def read(
         if width is None or height is None:
             raise ValueError(f"{path} ({kind}) stores no sensor size: pass width= and height=")
         if kind == "txt":
-            events = read_txt(path, width=width, height=height)
+            events = read_txt(path, width=width, height=height, time_unit=time_unit, **options)
         else:
-            events = _read_npy(path, width, height)
+            events = _read_npy(path, width, height, time_unit=time_unit, **options)
     if t0_us is None and t1_us is None:
         return events
     return events.slice_time(
@@ -124,12 +135,28 @@ def read(
     )
 
 
-def _read_npy(path: Path, width: int, height: int) -> Events:
+def _read_npy(
+    path: Path, width: int, height: int, *, time_unit: str | None = None, polarity: str = "01"
+) -> Events:
+    """A structured ``.npy`` (fields x, y, t, p): integer ``t`` is µs unless ``time_unit`` says
+    otherwise, float ``t`` needs ``time_unit``; ``p`` in the stated encoding (0/1 by default)."""
+    polarity = check_polarity_encoding(polarity)
     try:
-        array = np.load(path, allow_pickle=False)
+        array = np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as error:
         raise FormatError(f"{path} is not a readable .npy file ({error})") from None
+    names = array.dtype.names or ()
+    if array.ndim != 1 or any(name not in names for name in "xytp"):
+        raise FormatError(f"{path}: expected a 1-D structured array with fields x, y, t, p; "
+                          f"got dtype {array.dtype}, shape {array.shape}")
+    check_event_count(array.shape[0], f"{path}")
+    t = np.asarray(array["t"])
+    if t.dtype.kind == "f" and time_unit is None:
+        raise FormatError(f"{path}: field t holds {t.dtype} times; state their unit with time_unit='s', "
+                          "'ms' or 'us' (times are never guessed)")
+    t_us = times_to_us(t, time_unit or "us", f"{path}: field t")
+    p = polarity_01(np.asarray(array["p"]), polarity, f"{path}: field p")
     try:
-        return Events.from_structured(array, width, height)
+        return Events(array["x"], array["y"], t_us, p, width, height)
     except (TypeError, ValueError) as error:
         raise FormatError(f"{path}: {error}") from None

@@ -50,7 +50,7 @@ from typing import Iterator
 
 import numpy as np
 
-from cmax.events import Events
+from cmax.events import Events, check_event_count
 from cmax.io._flatbuffers import _Flatbuffer, _table_vector
 from cmax.io.errors import FormatError
 
@@ -173,18 +173,53 @@ class _File:
     packets: tuple[tuple[int, int, int], ...]  # (stream id, body start, body size)
 
 
-def _decompress(body: bytes | memoryview, compression: int, where: str) -> bytes:
+#: Most bytes a packet may decompress to per compressed byte. Event and IMU packets
+#: of real recordings expand 2-5 times (16-byte events with varying time stamps cannot
+#: shrink to a quarter of a byte); a packet claiming more is crafted or corrupt and is
+#: refused before its output is allocated.
+MAX_EXPANSION = 64
+_SLACK = 1024  # plus this many bytes, for tiny packets
+
+
+def _packet_limit(size: int, stream: Aedat4Stream | None = None) -> int:
+    """Largest decompressed size accepted for a packet of ``size`` compressed bytes.
+
+    Frame packets may also hold one uncompressed frame of the stream's sensor
+    (up to 4 channels of 16 bits), however well a uniform image compresses.
+    """
+    limit = MAX_EXPANSION * int(size) + _SLACK
+    if stream is not None and stream.type_identifier == "FRME":
+        limit += 8 * (stream.width or 0) * (stream.height or 0)
+    return limit
+
+
+def _too_large(where: str, size: int, limit: int) -> FormatError:
+    return FormatError(
+        f"{where}: a packet of {size:,} compressed bytes decompresses to more than {limit:,} bytes "
+        f"(over {MAX_EXPANSION}x; crafted or corrupt), refused before allocating"
+    )
+
+
+def _decompress(body: bytes | memoryview, compression: int, where: str, limit: int | None = None) -> bytes:
+    """The decompressed bytes of one packet, refusing output beyond ``limit`` (default
+    :func:`_packet_limit` of the body's size) without allocating it."""
+    limit = _packet_limit(len(body)) if limit is None else int(limit)
     if compression == 0:
         return bytes(body)
     if compression in (1, 2):
         import lz4.frame
 
+        decompressor = lz4.frame.LZ4FrameDecompressor()
         try:
-            out, used = lz4.frame.decompress(body, return_bytes_read=True)
+            out = decompressor.decompress(body, max_length=limit)
         except Exception as error:  # lz4 raises RuntimeError on bad input
             raise FormatError(f"{where}: LZ4 decompression failed ({error})") from error
-        if used != len(body):
-            raise FormatError(f"{where}: {len(body) - used} bytes follow the LZ4 frame")
+        if not decompressor.eof:
+            if not decompressor.needs_input:
+                raise _too_large(where, len(body), limit)
+            raise FormatError(f"{where}: the LZ4 frame ends early (truncated)")
+        if decompressor.unused_data:
+            raise FormatError(f"{where}: {len(decompressor.unused_data)} bytes follow the LZ4 frame")
         return out
     if compression in (3, 4):
         try:
@@ -194,7 +229,10 @@ def _decompress(body: bytes | memoryview, compression: int, where: str) -> bytes
                 f"{where}: the file is Zstd-compressed; install the 'zstandard' package to read it"
             ) from error
         try:
-            return zstandard.ZstdDecompressor().decompress(bytes(body), max_output_size=1 << 31)
+            declared = zstandard.frame_content_size(bytes(body))
+            if declared > limit:
+                raise _too_large(where, len(body), limit)
+            return zstandard.ZstdDecompressor().decompress(bytes(body), max_output_size=limit)
         except zstandard.ZstdError as error:
             raise FormatError(f"{where}: Zstd decompression failed ({error})") from error
     raise FormatError(f"{where}: unknown compression code {compression}")
@@ -329,7 +367,8 @@ def _bodies(file: _File, stream: Aedat4Stream) -> Iterator[tuple[int, _Flatbuffe
         if stream_id != stream.id:
             continue
         where = f"{file.where} (packet at byte {start - 8})"
-        body = _decompress(memoryview(file.data)[start: start + size], file.compression, where)
+        body = _decompress(memoryview(file.data)[start: start + size], file.compression, where,
+                           _packet_limit(size, stream))
         yield start - 8, _Flatbuffer(body, identifier, where)
 
 
@@ -416,10 +455,11 @@ def read_aedat4(
     chosen = _select(file, stream, "EVTS")
     if chosen.width is None or chosen.height is None:
         raise FormatError(f"{file.where}: event stream {chosen.id} has no sizeX/sizeY in its info")
-    parts = []
+    parts, total = [], 0
     for _, fb in _bodies(file, chosen):
         start, length = fb.vector(fb.root, 0)
         parts.append(np.frombuffer(fb.span(start, 16 * length), _EVENT_DTYPE))
+        total = check_event_count(total + length, f"{file.where}: event stream {chosen.id}")
     raw = np.concatenate(parts) if parts else np.empty(0, _EVENT_DTYPE)
     x, y, t, p = raw["x"], raw["y"], raw["t"], raw["p"]
     if raw.size:

@@ -27,6 +27,8 @@ import hdf5plugin
 import numpy as np
 
 from cmax.events import Events, _check_sensor_size, check_event_count, check_time_us, window_steps
+from cmax.io._checks import (add_offset, check_allocated, check_offset, check_polarity_encoding, check_time_unit,
+                             polarity_01, scalar_to_us, times_to_us, unit_from_attrs)
 from cmax.io.errors import FormatError
 
 __all__ = ["H5Writer", "H5Reader", "write_h5", "read_h5", "is_dsec_h5"]
@@ -207,6 +209,7 @@ class H5Writer:
     def _extend_ms_to_idx(self, t_rel: np.ndarray, first_index: int) -> None:
         """Fill ms_to_idx for every millisecond boundary at or before the last time seen."""
         last_ms = int(t_rel[-1]) // 1000  # boundaries 1000*k <= t_last are now determined
+        check_index_span(last_ms + 2, first_index + len(t_rel), self.path)
         if last_ms < self._ms_filled:
             return
         boundaries = np.arange(self._ms_filled, last_ms + 1, dtype=np.int64) * 1000
@@ -252,6 +255,30 @@ class H5Writer:
             self.abort()
 
 
+#: ``ms_to_idx`` may hold up to this many entries whatever the event count (2**24 ms, 4.7 hours) ...
+MIN_INDEX_ENTRIES = 1 << 24
+#: ... and beyond that at most this many per event (a recording of fewer than one event per
+#: 64 ms on average over hours is a time stamp off by orders of magnitude, not a recording).
+INDEX_ENTRIES_PER_EVENT = 64
+
+
+def check_index_span(entries: int, events: int, path: Path) -> None:
+    """Refuse an ``ms_to_idx`` of ``entries`` (one per ms of the time span) for only ``events`` events.
+
+    The index costs 8 bytes per millisecond of the span, so one time stamp off by
+    2**40 µs would need 8 GiB for a handful of events; such a span is refused,
+    naming it, before anything is allocated.
+    """
+    limit = max(MIN_INDEX_ENTRIES, INDEX_ENTRIES_PER_EVENT * int(events))
+    if entries > limit:
+        raise ValueError(
+            f"{path}: the events span {(entries - 2) / 3.6e6:,.1f} hours after t_offset, so ms_to_idx would need "
+            f"{entries:,} entries ({8 * entries / 2**30:,.1f} GiB) for {events:,} events (at most "
+            f"max(2**24, {INDEX_ENTRIES_PER_EVENT} per event) are built); a time stamp is probably off "
+            "(a wrong unit or a corrupt value)"
+        )
+
+
 def write_h5(
     path: str | os.PathLike, events: Events, *, overwrite: bool = False,
     compression: str = "blosc", **attrs: Any,
@@ -279,9 +306,19 @@ def is_dsec_h5(file: h5py.File) -> bool:
 class H5Reader:
     """Random access to a DSEC-layout HDF5 event file.
 
-    ``window(t0_us, t1_us)`` reads only the rows between the two times, found
-    through ``ms_to_idx`` (or a binary search of ``events/t`` on disk when the
-    file has no index). Times are absolute µs (``t_offset`` added).
+    ``window(t0_us, t1_us)`` reads only the rows between the two times, located
+    through ``ms_to_idx`` alone (or a binary search of ``events/t`` on disk
+    when the file has no index); the index entries a window uses are checked
+    against the times read, so an index that disagrees with ``events/t``
+    raises :class:`FormatError` instead of giving empty windows. Times are
+    absolute µs (``t_offset`` added; overflow of int64 is refused).
+
+    Nothing is guessed: integer ``events/t`` is µs (the layout's unit) unless
+    the file or the caller states another; float times are refused unless a
+    unit is stated, and then rounded to the nearest µs (half to even). NaN or
+    infinite times, coordinates outside the sensor, time going back and
+    polarities outside the stated encoding raise :class:`FormatError`. The
+    checks are min/max and order passes over the columns read (no sort).
 
     Parameters
     ----------
@@ -289,22 +326,32 @@ class H5Reader:
     width, height : int, optional
         Sensor size, for files without ``width``/``height`` attributes (original
         DSEC files are 640x480 and carry none).
+    time_unit : {'us', 'ms', 's'}, optional
+        Unit of ``events/t`` and ``t_offset``; default: the unit the file states
+        (attribute ``unit``/``units`` of ``events/t``, or ``time_unit`` of the
+        file), else µs for integer times. Must agree with a unit the file states.
+    polarity : {'01', 'signed'}
+        Encoding of ``events/p``: ``'01'`` (0 OFF, 1 ON, the layout's) or
+        ``'signed'`` (-1 OFF, +1 ON). Other values raise :class:`FormatError`.
     """
 
     def __init__(
-        self, path: str | os.PathLike, *, width: int | None = None, height: int | None = None
+        self, path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
+        time_unit: str | None = None, polarity: str = "01",
     ) -> None:
         self.path = Path(path)
+        time_unit = check_time_unit(time_unit)
+        self._polarity = check_polarity_encoding(polarity)
+        if width is not None and height is not None:  # the caller's own values: errors stay theirs
+            _check_sensor_size(width, height)
         if not self.path.is_file():
             raise FileNotFoundError(f"no such event file: {self.path}")
         try:
             self._file = h5py.File(self.path, "r")
         except OSError as error:
             raise FormatError(f"{self.path} is not a readable HDF5 file ({error})") from None
-        if width is not None and height is not None:  # the caller's own values: errors stay theirs
-            _check_sensor_size(width, height)
         try:
-            self._open(width, height)
+            self._open(width, height, time_unit)
         except FormatError:
             self._file.close()
             raise
@@ -315,15 +362,22 @@ class H5Reader:
             self._file.close()
             raise
 
-    def _open(self, width: int | None, height: int | None) -> None:
+    def _open(self, width: int | None, height: int | None, time_unit: str | None) -> None:
         if not is_dsec_h5(self._file):
             raise FormatError(
                 f"{self.path} lacks the DSEC datasets events/x, events/y, events/t, events/p"
             )
-        self._columns = {name: self._file["events"][name] for name in "xytp"}
+        self._columns = {}
+        for name in "xytp":
+            column = self._file["events"][name]
+            if not isinstance(column, h5py.Dataset):
+                raise FormatError(f"{self.path}: events/{name} must be a dataset, got a {type(column).__name__}")
+            self._columns[name] = column
         lengths = {name: column.shape for name, column in self._columns.items()}
         if len(set(lengths.values())) != 1 or len(lengths["t"]) != 1:
             raise FormatError(f"{self.path}: events/* must be 1-D of equal length, got {lengths}")
+        for name, column in self._columns.items():
+            check_allocated(column, f"{self.path}: events/{name}")
         attrs = self._file.attrs
         if width is None and height is None and "width" in attrs and "height" in attrs:
             width, height = int(attrs["width"]), int(attrs["height"])
@@ -332,13 +386,53 @@ class H5Reader:
                 f"{self.path} stores no sensor size; pass width= and height= (DSEC: 640, 480)"
             )
         self.width, self.height = _check_sensor_size(width, height)
+        self.time_unit = self._time_unit(time_unit)
+        self._ms_to_idx = None
+        self.t_offset_us = 0
         try:
-            self.t_offset_us = int(self._file["t_offset"][()]) if "t_offset" in self._file else 0
-            self._ms_to_idx = self._file["ms_to_idx"][:] if "ms_to_idx" in self._file else None
+            if "t_offset" in self._file:
+                offset = self._dataset("t_offset")
+                unit = unit_from_attrs(offset.attrs, f"{self.path}: t_offset") or self.time_unit
+                self.t_offset_us = scalar_to_us(offset[()], unit, f"{self.path}: t_offset")
+            if "ms_to_idx" in self._file:
+                self._ms_to_idx = self._dataset("ms_to_idx")[:]
         except H5_ERRORS as error:
             raise FormatError(f"{self.path}: unreadable t_offset or ms_to_idx ({error})") from None
         if self._ms_to_idx is not None:
             self._ms_to_idx = _checked_ms_to_idx(self._ms_to_idx, len(self), self.path)
+
+    def _dataset(self, name: str) -> h5py.Dataset:
+        """A top-level dataset, checked to be one and to store the data it declares."""
+        dataset = self._file[name]
+        if not isinstance(dataset, h5py.Dataset):
+            raise FormatError(f"{self.path}: {name} must be a dataset, got a {type(dataset).__name__}")
+        if dataset.size > 1 and name == "t_offset":
+            raise FormatError(f"{self.path}: t_offset must be a single number, got shape {dataset.shape}")
+        check_allocated(dataset, f"{self.path}: {name}")
+        return dataset
+
+    def _time_unit(self, stated: str | None) -> str:
+        """The unit of ``events/t``: the caller's and the file's must agree; float times need one."""
+        column = self._columns["t"]
+        in_file = unit_from_attrs(column.attrs, f"{self.path}: events/t") or unit_from_attrs(
+            self._file.attrs, f"{self.path}", keys=("time_unit",)
+        )
+        if stated is not None and in_file is not None and stated != in_file:
+            raise FormatError(
+                f"{self.path}: time_unit={stated!r} contradicts the unit the file states ({in_file!r})"
+            )
+        unit = stated or in_file
+        if unit is None:
+            if column.dtype.kind == "f":
+                raise FormatError(
+                    f"{self.path}: events/t holds {column.dtype} times and neither the file nor the caller "
+                    "states their unit; pass time_unit='s', 'ms' or 'us' (cmax: --time-unit); "
+                    "times are never guessed"
+                )
+            if column.dtype.kind not in "iu":
+                raise FormatError(f"{self.path}: events/t must hold numbers, got dtype {column.dtype}")
+            unit = "us"
+        return unit
 
     # -- metadata ---------------------------------------------------------------------
     def __len__(self) -> int:
@@ -368,51 +462,72 @@ class H5Reader:
 
     def _time_at(self, row: int) -> int:
         try:
-            return int(self._columns["t"][row]) + self.t_offset_us
+            raw = self._columns["t"][row: row + 1]
         except H5_ERRORS as error:
             raise FormatError(f"{self.path}: cannot read events/t[{row}] ({error})") from None
+        where = f"{self.path}: events/t"
+        return int(add_offset(self._t_us(raw, where), self.t_offset_us, where)[0])
+
+    def _t_us(self, raw: np.ndarray, where: str) -> np.ndarray:
+        return times_to_us(raw, self.time_unit, where)
 
     def _require_events(self) -> None:
         if not len(self):
             raise ValueError(f"{self.path} holds no events")
 
     # -- reading ----------------------------------------------------------------------
-    def _bounds(self, t_rel: int) -> tuple[int, int]:
-        """Row range that surely contains the first event with relative time >= t_rel."""
-        n = len(self)
-        if t_rel < 0:
-            return 0, 0
-        ms = t_rel // 1000
-        if ms >= len(self._ms_to_idx):
-            return n, n
-        lo = int(self._ms_to_idx[ms])
-        hi = int(self._ms_to_idx[ms + 1]) if ms + 1 < len(self._ms_to_idx) else n
-        return lo, min(max(hi, lo), n)
-
-    def _index_at(self, t_us: int) -> int:
-        """Index of the first event with t >= t_us: one ms of rows through ``ms_to_idx``,
-        bisected on disk when that ms holds many rows (or the file has no index)."""
-        t_rel = int(t_us) - self.t_offset_us
-        if t_rel > _INT64_MAX:
-            return len(self)
-        t_rel = max(t_rel, _INT64_MIN)
-        if self._ms_to_idx is None:
-            return self._bisect_on_disk(t_rel, 0, len(self))
-        lo, hi = self._bounds(t_rel)
-        if hi <= lo:
-            return lo
-        return self._bisect_on_disk(t_rel, lo, hi)
-
     def _bisect_on_disk(self, t_rel: int, lo: int, hi: int) -> int:
-        """First row in ``[lo, hi)`` with t >= t_rel, reading single rows until 4096 remain."""
-        column = self._columns["t"]
+        """First row in ``[lo, hi)`` with t >= t_rel (µs after t_offset), reading single rows until 4096 remain."""
+        column, where = self._columns["t"], f"{self.path}: events/t"
         while hi - lo > 4096:
             mid = (lo + hi) // 2
-            if column[mid] < t_rel:
+            if int(self._t_us(column[mid: mid + 1], where)[0]) < t_rel:
                 lo = mid + 1
             else:
                 hi = mid
-        return lo + int(np.searchsorted(column[lo:hi], t_rel, side="left"))
+        return lo + int(np.searchsorted(self._t_us(column[lo:hi], where), t_rel, side="left"))
+
+    def _index_row(self, t_rel: int, ceil: bool) -> tuple[int, int | None]:
+        """``(row, k)``: the row ``ms_to_idx[k]`` with ``k`` the ms boundary at or before
+        (``ceil``: at or after) ``t_rel``, so that every event before ``row`` is earlier than
+        ``t_rel`` (or, with ``ceil``, every event from ``row`` on is not earlier). Outside the
+        index's span the rows are bisected on disk and ``k`` is None (nothing to verify)."""
+        index, n = self._ms_to_idx, len(self)
+        if t_rel < 0:
+            return (0, None) if index[0] == 0 else (self._bisect_on_disk(t_rel, 0, int(index[0])), None)
+        k = -(-t_rel // 1000) if ceil else t_rel // 1000
+        if k >= len(index):
+            last = int(index[-1])
+            return (n, None) if last == n else (self._bisect_on_disk(t_rel, last, n), None)
+        return int(index[k]), k
+
+    def _check_index(self, t: np.ndarray, first_row: int, row: int, k: int | None) -> None:
+        """Check ``ms_to_idx[k] == row`` against the times ``t`` of rows from ``first_row``:
+        the event before ``row`` is earlier than ``k`` ms, the event at ``row`` is not."""
+        if k is None:
+            return
+        boundary = self.t_offset_us + 1000 * k
+        before, at = row - 1 - first_row, row - first_row
+        wrong = (0 <= before < t.size and t[before] >= boundary) or (0 <= at < t.size and t[at] < boundary)
+        if wrong:
+            shown = int(t[at]) if 0 <= at < t.size else int(t[before])
+            raise FormatError(
+                f"{self.path}: ms_to_idx disagrees with events/t: ms_to_idx[{k}] = {row}, but the first "
+                f"event at or after {k} ms is elsewhere (events/t near row {row}: {shown - self.t_offset_us} µs "
+                "after t_offset); the index is corrupt (read the file whole, or rewrite it)"
+            )
+
+    def _read(self, start: int, stop: int) -> Events:
+        """Validated events of rows ``[start, stop)`` (already clipped), one h5py read per column."""
+        check_event_count(stop - start, f"{self.path}: rows [{start}, {stop})")
+        try:
+            columns = {name: self._columns[name][start:stop] for name in "xytp"}
+        except H5_ERRORS as error:
+            raise FormatError(f"{self.path}: cannot read rows [{start}, {stop}) ({error})") from None
+        return _checked_columns(
+            columns, self.width, self.height, self.time_unit, self.t_offset_us, self._polarity,
+            f"{self.path}: events/", start,
+        )
 
     def read_rows(self, start: int, stop: int) -> Events:
         """Events ``start:stop`` by row index (clipped to the file's rows).
@@ -420,27 +535,18 @@ class H5Reader:
         Raises :class:`~cmax.events.EventLimitError` before reading when the
         rows exceed :data:`cmax.events.MAX_EVENTS`, and :class:`FormatError`
         when the stored rows are corrupt (undecodable chunks, coordinates
-        outside the sensor, time going back).
+        outside the sensor, time going back or non-finite, polarity outside
+        the stated encoding, int64 overflow with ``t_offset``).
         """
         start, stop = max(0, int(start)), min(len(self), int(stop))
-        stop = max(start, stop)
-        check_event_count(stop - start, f"{self.path}: rows [{start}, {stop})")
-        try:
-            columns = {name: self._columns[name][start:stop] for name in "xytp"}
-        except H5_ERRORS as error:
-            raise FormatError(f"{self.path}: cannot read rows [{start}, {stop}) ({error})") from None
-        try:
-            return Events(
-                columns["x"], columns["y"], columns["t"].astype(np.int64) + self.t_offset_us,
-                columns["p"], self.width, self.height,
-            )
-        except (TypeError, ValueError) as error:
-            raise FormatError(f"{self.path}: corrupt events in rows [{start}, {stop}): {error}") from None
+        return self._read(start, max(start, stop))
 
     def window(self, t0_us: int, t1_us: int) -> Events:
         """Events with ``t0_us <= t < t1_us`` (absolute µs), reading only that slice.
 
-        Times are integer µs (floats must be whole). A window holding more than
+        Times are integer µs (floats must be whole). The rows come from
+        ``ms_to_idx`` (one read, one row of margin each side to check the index
+        entries used). A window holding more than
         :data:`cmax.events.MAX_EVENTS` events raises
         :class:`~cmax.events.EventLimitError` before anything is read; iterate
         over :meth:`windows` of a shorter duration instead.
@@ -448,11 +554,22 @@ class H5Reader:
         t0_us, t1_us = check_time_us("t0_us", t0_us), check_time_us("t1_us", t1_us)
         if t1_us < t0_us:
             raise ValueError(f"t1_us ({t1_us}) must not be smaller than t0_us ({t0_us})")
+        t0_rel = min(max(t0_us - self.t_offset_us, _INT64_MIN), _INT64_MAX)
+        t1_rel = min(max(t1_us - self.t_offset_us, _INT64_MIN), _INT64_MAX)
+        n = len(self)
         try:
-            start, stop = self._index_at(t0_us), self._index_at(t1_us)
+            if self._ms_to_idx is None or not n:
+                return self.read_rows(self._bisect_on_disk(t0_rel, 0, n), self._bisect_on_disk(t1_rel, 0, n))
+            (lo, k0), (hi, k1) = self._index_row(t0_rel, False), self._index_row(t1_rel, True)
         except H5_ERRORS as error:
             raise FormatError(f"{self.path}: cannot search events/t ({error})") from None
-        return self.read_rows(start, stop)
+        hi = max(hi, lo)
+        check_event_count(hi - lo, f"{self.path}: the window [{t0_us}, {t1_us}) µs")
+        first = max(lo - 1, 0)
+        events = self._read(first, min(hi + 1, n))
+        self._check_index(events.t, first, lo, k0)
+        self._check_index(events.t, first, hi, k1)
+        return events.slice_time(t0_us, t1_us)
 
     def read(self) -> Events:
         """All events (loads the whole file)."""
@@ -481,12 +598,73 @@ class H5Reader:
         return f"H5Reader({str(self.path)!r}, n={len(self)}, sensor={self.width}x{self.height})"
 
 
+def _checked_columns(
+    columns: dict[str, np.ndarray], width: int, height: int, time_unit: str, t_offset_us: int,
+    polarity: str, where: str, first_row: int = 0,
+) -> Events:
+    """:class:`Events` from raw file columns, checked in min/max and order passes (no sort, no copy
+    of columns already of the container's dtypes; ``t`` converted once and offset in place)."""
+    x = _checked_coordinate(columns["x"], width, where, "x", "width", first_row)
+    y = _checked_coordinate(columns["y"], height, where, "y", "height", first_row)
+    p = polarity_01(columns["p"], polarity, where + "p")
+    t = times_to_us(columns["t"], time_unit, where + "t")
+    check_offset(t, t_offset_us, where + "t")
+    _sorted_plus_offset(t, t_offset_us, where + "t", first_row)
+    if not x.size == y.size == t.size == p.size:
+        raise FormatError(f"{where}x/y/t/p differ in length")
+    return Events._trusted(x, y, t, p, width, height)
+
+
+def _checked_coordinate(
+    values: np.ndarray, size: int, where: str, name: str, size_name: str, first_row: int
+) -> np.ndarray:
+    """A coordinate column as uint16 within ``[0, size)``; FormatError naming the first bad row."""
+    if values.dtype.kind not in "iu":
+        raise FormatError(f"{where}{name} must hold integer pixels, got dtype {values.dtype}")
+    if not values.size:
+        return values.astype(np.uint16)
+    low = 0 if values.dtype.kind == "u" else int(values.min())  # one pass for unsigned columns
+    if low < 0 or int(values.max()) >= size:
+        bad = int(np.flatnonzero((values < 0) | (values >= size))[0])
+        raise FormatError(
+            f"{where}{name}: corrupt events at row {first_row + bad}: {name} must lie in [0, {size_name}={size}), "
+            f"got {values[bad]}"
+        )
+    return values if values.dtype == np.uint16 else values.astype(np.uint16)
+
+
+_SORT_BLOCK = 1 << 16
+
+
+def _sorted_plus_offset(t: np.ndarray, offset: int, where: str, first_row: int) -> None:
+    """Check that int64 ``t`` never decreases and add ``offset`` in place, block by block so that
+    each block is compared and shifted while in cache. The caller has checked that the first and
+    last times plus ``offset`` fit into int64 (enough once the order holds; on disorder this raises
+    before any out-of-order value escapes)."""
+    n, shift = t.size, np.int64(offset)
+    back = np.empty(min(n, _SORT_BLOCK), bool)
+    for start in range(0, n, _SORT_BLOCK):
+        stop = min(start + _SORT_BLOCK, n)
+        after = t[start + 1: stop + 1]  # one more than the block: the pair across the boundary
+        went_back = np.less(after, t[start: start + after.size], out=back[: after.size])
+        if went_back.any():
+            i = start + int(np.flatnonzero(went_back)[0])
+            raise FormatError(
+                f"{where}: corrupt events at row {first_row + i + 1}: t must be sorted in non-decreasing order "
+                f"({int(t[i + 1])} µs comes after {int(t[i])} µs, before t_offset)"
+            )
+        if shift:
+            t[start:stop] += shift
+
+
 def _checked_ms_to_idx(ms_to_idx: np.ndarray, count: int, path: Path) -> np.ndarray:
     """``ms_to_idx`` as int64 after checking it: 1-D, non-decreasing, within ``[0, count]``."""
     if ms_to_idx.ndim != 1 or ms_to_idx.dtype.kind not in "iu":
         raise FormatError(f"{path}: ms_to_idx must be a 1-D integer array, got {ms_to_idx.dtype} {ms_to_idx.shape}")
-    if ms_to_idx.size and (
-        int(ms_to_idx.min()) < 0 or int(ms_to_idx.max()) > count or np.any(np.diff(ms_to_idx.astype(np.int64)) < 0)
+    if not ms_to_idx.size:
+        raise FormatError(f"{path}: ms_to_idx is empty (the layout has at least one entry)")
+    if int(ms_to_idx.min()) < 0 or int(ms_to_idx.max()) > count or np.any(
+        np.diff(ms_to_idx.astype(np.int64)) < 0
     ):
         raise FormatError(
             f"{path}: corrupt ms_to_idx (entries must be non-decreasing row indices in [0, {count}])"
@@ -496,13 +674,17 @@ def _checked_ms_to_idx(ms_to_idx: np.ndarray, count: int, path: Path) -> np.ndar
 
 def read_h5(
     path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
-    t0_us: int | None = None, t1_us: int | None = None,
+    t0_us: int | None = None, t1_us: int | None = None, time_unit: str | None = None,
+    polarity: str = "01",
 ) -> Events:
-    """Read a DSEC-layout file, whole or the window ``[t0_us, t1_us)``."""
-    with H5Reader(path, width=width, height=height) as reader:
+    """Read a DSEC-layout file, whole or the window ``[t0_us, t1_us)``.
+
+    ``time_unit`` and ``polarity`` as for :class:`H5Reader` (float times need a
+    stated unit; polarity is never mapped silently).
+    """
+    with H5Reader(path, width=width, height=height, time_unit=time_unit, polarity=polarity) as reader:
         if t0_us is None and t1_us is None:
             return reader.read()
         return reader.window(
             -(2**62) if t0_us is None else t0_us, 2**62 if t1_us is None else t1_us
         )
-

@@ -79,18 +79,28 @@ def events_info(events: Events, *, path: str = "", format: str = "") -> EventFil
     )
 
 
-def file_info(path: str | os.PathLike, *, width: int | None = None, height: int | None = None) -> EventFileInfo:
-    """Summary of an event file; DSEC files are scanned in chunks (bounded memory)."""
+def file_info(
+    path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
+    time_unit: str | None = None, **options: Any,
+) -> EventFileInfo:
+    """Summary of an event file; DSEC files are scanned in chunks (bounded memory).
+
+    ``time_unit`` and ``options`` (e.g. ``polarity='signed'``) go to the reader:
+    times are never guessed and polarities never mapped silently, so a file
+    whose ``events/p`` holds -1/+1 is refused unless ``polarity='signed'`` is given.
+    """
     from cmax.io import H5Reader, detect_format, read
+    from cmax.io._checks import polarity_01
 
     path = Path(path)
     kind = detect_format(path)
     if kind != "dsec":
-        return events_info(read(path, width=width, height=height), path=str(path), format=kind)
-    with H5Reader(path, width=width, height=height) as reader:
-        polarity = reader.file["events/p"]
+        events = read(path, width=width, height=height, time_unit=time_unit, **options)
+        return events_info(events, path=str(path), format=kind)
+    with H5Reader(path, width=width, height=height, time_unit=time_unit, **options) as reader:
+        column, encoding = reader.file["events/p"], options.get("polarity", "01")
         on_count = sum(
-            int(np.count_nonzero(polarity[start: start + _CHUNK]))
+            int(np.count_nonzero(polarity_01(column[start: start + _CHUNK], encoding, f"{path}: events/p")))
             for start in range(0, len(reader), _CHUNK)
         )
         return EventFileInfo(

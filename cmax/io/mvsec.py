@@ -13,6 +13,7 @@ import h5py
 import numpy as np
 
 from cmax.events import EventLimitError, Events, check_event_count, check_time_us
+from cmax.io._checks import TIME_UNITS, check_allocated, check_polarity_encoding, check_time_unit, polarity_01, times_to_us
 from cmax.io.errors import FormatError
 from cmax.io.h5 import H5_ERRORS
 
@@ -26,23 +27,30 @@ def _events_dataset(file: h5py.File, path: Path, camera: str) -> h5py.Dataset:
     if key not in file:
         raise FormatError(f"{path} has no dataset {key!r} (not an MVSEC data file?)")
     dataset = file[key]
-    if dataset.ndim != 2 or dataset.shape[1] != 4:
-        raise FormatError(f"{path}:{key} must have shape (N, 4), got {dataset.shape}")
+    if not isinstance(dataset, h5py.Dataset) or dataset.ndim != 2 or dataset.shape[1] != 4:
+        raise FormatError(f"{path}:{key} must be a dataset of shape (N, 4), got {getattr(dataset, 'shape', dataset)}")
+    check_allocated(dataset, f"{path}: {key}")
     return dataset
 
 
 def read_mvsec(
     path: str | os.PathLike, *, camera: str = "left",
-    t0_us: int | None = None, t1_us: int | None = None,
+    t0_us: int | None = None, t1_us: int | None = None, time_unit: str | None = None,
+    polarity: str = "signed",
 ) -> Events:
     """Read the events of one MVSEC camera, optionally only ``[t0_us, t1_us)``.
 
-    Time stamps (seconds since the epoch) become integer microseconds by
-    rounding; polarity -1/+1 becomes 0/1. A time window is located by binary
-    search on the time column on disk, so only that slice is read.
+    Time stamps (MVSEC: seconds since the epoch; ``time_unit`` states another
+    unit) become integer microseconds by rounding to the nearest µs (half to
+    even); polarity -1/+1 (MVSEC's encoding; ``polarity='01'`` states 0/1)
+    becomes 0/1, any other value raises :class:`FormatError`. A time window is
+    located by binary search on the time column on disk, so only that slice is read.
     """
     if camera not in ("left", "right"):
         raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
+    unit = check_time_unit(time_unit) or "s"
+    polarity = check_polarity_encoding(polarity)
+    per_us = 1.0 / TIME_UNITS[unit]
     path = Path(path)
     t0_us = None if t0_us is None else check_time_us("t0_us", t0_us)
     t1_us = None if t1_us is None else check_time_us("t1_us", t1_us)
@@ -54,9 +62,9 @@ def read_mvsec(
             # Read with a 2 µs margin, then cut exactly on the rounded integer times.
             start, stop = 0, dataset.shape[0]
             if t0_us is not None:
-                start = _first_at_or_after(dataset, (t0_us - 2) / 1e6)
+                start = _first_at_or_after(dataset, (t0_us - 2) * per_us)
             if t1_us is not None:
-                stop = _first_at_or_after(dataset, (t1_us + 2) / 1e6)
+                stop = _first_at_or_after(dataset, (t1_us + 2) * per_us)
             check_event_count(stop - start, f"{path}: rows [{start}, {stop})")
             table = dataset[start:max(start, stop)]
     except (FormatError, EventLimitError):
@@ -65,13 +73,13 @@ def read_mvsec(
         raise FormatError(
             f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})"
         ) from None
-    if not np.isfinite(table).all():
-        raise FormatError(f"{path}: davis/{camera}/events contains non-finite values")
+    where = f"{path}: davis/{camera}/events"
+    if not np.isfinite(table[:, [0, 1, 3]]).all():
+        raise FormatError(f"{where} contains non-finite values")
+    t_us = times_to_us(table[:, 2], unit, f"{where}[:, 2] (t)")
+    p = polarity_01(table[:, 3], polarity, f"{where}[:, 3] (p)")
     try:
-        events = Events(
-            table[:, 0], table[:, 1], np.rint(table[:, 2] * 1e6).astype(np.int64), table[:, 3],
-            MVSEC_WIDTH, MVSEC_HEIGHT,
-        )
+        events = Events(table[:, 0], table[:, 1], t_us, p, MVSEC_WIDTH, MVSEC_HEIGHT)
     except ValueError as error:
         raise FormatError(f"{path}: {error}") from None
     if t0_us is None and t1_us is None:

@@ -13,19 +13,28 @@ from pathlib import Path
 import numpy as np
 
 from cmax.events import Events
+from cmax.io._checks import check_polarity_encoding, check_time_unit, polarity_01, times_to_us
 from cmax.io.errors import FormatError
 
 __all__ = ["read_txt", "write_txt"]
 
 
-def read_txt(path: str | os.PathLike, *, width: int, height: int) -> Events:
+def read_txt(
+    path: str | os.PathLike, *, width: int, height: int, time_unit: str | None = None,
+    polarity: str = "01",
+) -> Events:
     """Read an ECD ``events.txt`` (``t[s] x y p`` per line) into :class:`Events`.
 
-    Time stamps are converted to integer microseconds by rounding. The file
-    stores no sensor size, so ``width`` and ``height`` are required (ECD's
-    DAVIS240C: 240 x 180). Lines starting with ``#`` are comments.
+    Time stamps are in seconds (ECD's unit) unless ``time_unit`` states another
+    (``'ms'``, ``'us'``), and are rounded to the nearest microsecond (half to
+    even). Polarity is 0/1 (ECD's encoding) unless ``polarity='signed'`` states
+    -1/+1; other values raise :class:`FormatError`. The file stores no sensor
+    size, so ``width`` and ``height`` are required (ECD's DAVIS240C: 240 x 180).
+    Lines starting with ``#`` are comments.
     """
     path = Path(path)
+    unit = check_time_unit(time_unit) or "s"
+    polarity = check_polarity_encoding(polarity)
     try:
         with warnings.catch_warnings():  # an empty file is no events, not a warning
             warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
@@ -36,11 +45,12 @@ def read_txt(path: str | os.PathLike, *, width: int, height: int) -> Events:
         return Events.empty(width, height)
     if table.shape[1] != 4:
         raise FormatError(f"{path}: expected 4 columns 't x y p', found {table.shape[1]}")
-    if not np.isfinite(table).all():
+    if not np.isfinite(table[:, 1:]).all():
         raise FormatError(f"{path} contains non-finite numbers")
-    t_us = np.rint(table[:, 0] * 1e6).astype(np.int64)
+    t_us = times_to_us(table[:, 0], unit, f"{path}: column t")
+    p = polarity_01(table[:, 3], polarity, f"{path}: column p")
     try:
-        return Events(table[:, 1], table[:, 2], t_us, table[:, 3], width, height)
+        return Events(table[:, 1], table[:, 2], t_us, p, width, height)
     except ValueError as error:
         raise FormatError(f"{path}: {error}") from None
 

@@ -1,0 +1,189 @@
+"""Checks every reader applies to raw columns: time units, time ranges, polarity encodings, sizes.
+
+Nothing here guesses. A time column becomes int64 microseconds only under a
+known unit (the format's own, a unit attribute in the file, or the caller's
+``time_unit=``); float times are rounded to the nearest microsecond only under
+such a unit; NaN, infinity and values outside int64 microseconds are named by
+index. A polarity column becomes int8 {0 OFF, 1 ON} only from the encoding
+the format (or the caller) states; any other value is refused, never mapped.
+"""
+from __future__ import annotations
+
+import math
+from typing import Any
+
+import numpy as np
+
+from cmax.io.errors import FormatError
+
+__all__ = [
+    "TIME_UNITS", "POLARITY_ENCODINGS", "check_time_unit", "unit_from_attrs", "times_to_us",
+    "scalar_to_us", "check_offset", "add_offset", "polarity_01", "check_allocated",
+]
+
+#: Microseconds per unit of a stated time unit.
+TIME_UNITS = {"us": 1, "ms": 1000, "s": 1_000_000}
+_UNIT_ALIASES = {
+    "us": "us", "µs": "us", "μs": "us", "usec": "us", "microsecond": "us", "microseconds": "us",
+    "ms": "ms", "msec": "ms", "millisecond": "ms", "milliseconds": "ms",
+    "s": "s", "sec": "s", "second": "s", "seconds": "s",
+}
+#: Polarity encodings a reader can be told: ``"01"`` (0 OFF, 1 ON) or ``"signed"`` (-1 OFF, +1 ON).
+POLARITY_ENCODINGS = ("01", "signed")
+_INT64_MAX = int(np.iinfo(np.int64).max)
+_INT64_MIN = int(np.iinfo(np.int64).min)
+#: Largest magnitude a float time may reach in µs (float64 holds integers exactly up to 2**53).
+_FLOAT_US_LIMIT = float(2**62)
+
+
+def check_time_unit(time_unit: object, name: str = "time_unit") -> str | None:
+    """``None`` or the canonical name (``'us'``, ``'ms'``, ``'s'``) of a stated time unit."""
+    if time_unit is None:
+        return None
+    if isinstance(time_unit, bytes):
+        time_unit = time_unit.decode("utf-8", "replace")
+    if not isinstance(time_unit, str) or time_unit.strip().lower() not in _UNIT_ALIASES:
+        raise ValueError(f"{name} must be one of 'us', 'ms', 's' (or None), got {time_unit!r}")
+    return _UNIT_ALIASES[time_unit.strip().lower()]
+
+
+def unit_from_attrs(attrs: Any, where: str, keys: tuple[str, ...] = ("unit", "units", "time_unit")) -> str | None:
+    """The time unit an HDF5 object's attributes state (the first of ``keys`` present), or None."""
+    for key in keys:
+        if key in attrs:
+            try:
+                return check_time_unit(attrs[key], f"{where} attribute {key!r}")
+            except ValueError as error:
+                raise FormatError(str(error)) from None
+    return None
+
+
+def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
+    """A raw time column as int64 µs under ``unit`` (canonical); may return ``t`` itself, modified.
+
+    Integers are scaled exactly (overflow refused); floats are checked for
+    NaN/infinity, scaled and rounded to the nearest microsecond (``np.rint``,
+    half to even). Raises :class:`FormatError` naming ``where`` and the index.
+    """
+    factor = TIME_UNITS[unit]
+    kind = t.dtype.kind
+    if kind in "iu":
+        if not t.size:
+            return t.astype(np.int64)
+        if kind == "u" and t.dtype.itemsize == 8 and int(t.max()) > _INT64_MAX // factor:
+            i = int(np.argmax(t))
+            raise FormatError(f"{where}[{i}] = {int(t[i])} {unit} does not fit into int64 microseconds")
+        if factor != 1:
+            low, high = int(t.min()), int(t.max())
+            if high * factor > _INT64_MAX or low * factor < _INT64_MIN:
+                i = int(np.argmax(t)) if high * factor > _INT64_MAX else int(np.argmin(t))
+                raise FormatError(f"{where}[{i}] = {int(t[i])} {unit} does not fit into int64 microseconds")
+            return t.astype(np.int64) * factor
+        return t if t.dtype == np.int64 else t.astype(np.int64)
+    if kind == "f":
+        scaled = np.multiply(t, float(factor), dtype=np.float64)
+        finite = np.isfinite(scaled)
+        if not finite.all():
+            i = int(np.flatnonzero(~finite)[0])
+            raise FormatError(f"{where}[{i}] is {t[i]}, a non-finite time (times must be finite)")
+        if scaled.size and np.abs(scaled).max() > _FLOAT_US_LIMIT:
+            i = int(np.argmax(np.abs(scaled)))
+            raise FormatError(f"{where}[{i}] = {t[i]} {unit} does not fit into int64 microseconds")
+        return np.rint(scaled, out=scaled).astype(np.int64)
+    raise FormatError(f"{where} must hold numbers (times), got dtype {t.dtype}")
+
+
+def scalar_to_us(value: Any, unit: str, where: str) -> int:
+    """One stored time (e.g. ``t_offset``) as int µs under ``unit``, with the checks of :func:`times_to_us`."""
+    array = np.asarray(value)
+    if array.shape not in ((), (1,)):
+        raise FormatError(f"{where} must be a single number, got shape {array.shape}")
+    return int(times_to_us(array.reshape(1), unit, where)[0])
+
+
+def check_offset(t_us: np.ndarray, offset_us: int, where: str) -> None:
+    """Refuse ``t_us + offset_us`` beyond int64 (``t_us`` non-decreasing: its ends bound it)."""
+    if not offset_us or not t_us.size:
+        return
+    first, last = int(t_us[0]) + offset_us, int(t_us[-1]) + offset_us
+    if last > _INT64_MAX or first < _INT64_MIN:
+        i, value = (t_us.size - 1, int(t_us[-1])) if last > _INT64_MAX else (0, int(t_us[0]))
+        raise FormatError(
+            f"{where}[{i}] = {value} µs plus t_offset = {offset_us} µs overflows int64 microseconds"
+        )
+
+
+def add_offset(t_us: np.ndarray, offset_us: int, where: str) -> np.ndarray:
+    """``t_us + offset_us`` in place (``t_us`` int64, non-decreasing), refusing int64 overflow."""
+    check_offset(t_us, offset_us, where)
+    if offset_us and t_us.size:
+        t_us += np.int64(offset_us)
+    return t_us
+
+
+def check_polarity_encoding(polarity: object) -> str:
+    """The validated polarity encoding name (one of :data:`POLARITY_ENCODINGS`)."""
+    if polarity not in POLARITY_ENCODINGS:
+        raise ValueError(f"polarity must be one of {POLARITY_ENCODINGS}, got {polarity!r}")
+    return str(polarity)
+
+
+def polarity_01(p: np.ndarray, encoding: str, where: str) -> np.ndarray:
+    """A raw polarity column as int8 {0 OFF, 1 ON}, from the stated ``encoding``.
+
+    ``"01"``: values must be 0 or 1 (bool allowed); ``"signed"``: values must be
+    -1 or +1. Anything else raises :class:`FormatError` listing the values found;
+    the cost is a min/max pass (plus a zero count for ``"signed"``).
+    """
+    if p.dtype.kind == "b":
+        if encoding == "signed":
+            raise FormatError(f"{where} holds booleans, not the stated -1/+1 polarity")
+        return p.view(np.int8)
+    if p.dtype.kind not in "iuf":
+        raise FormatError(f"{where} must hold polarities as numbers, got dtype {p.dtype}")
+    if not p.size:
+        return np.empty(0, np.int8)
+    low, high = (0 if p.dtype.kind == "u" else p.min()), p.max()
+    if encoding == "01":
+        if low >= 0 and high <= 1 and (p.dtype.kind != "f" or np.all((p == 0) | (p == 1))):
+            return p.view(np.int8) if p.dtype.itemsize == 1 and p.dtype.kind in "iu" else p.astype(np.int8)
+    elif low >= -1 and high <= 1 and np.count_nonzero(p) == p.size and (
+        p.dtype.kind != "f" or np.all(np.abs(p) == 1)
+    ):
+        return (p > 0).view(np.int8)
+    values = np.unique(p)
+    shown = values[:6].tolist()
+    stated = "0 (OFF) / 1 (ON)" if encoding == "01" else "-1 (OFF) / +1 (ON)"
+    other = "signed" if encoding == "01" else "01"
+    raise FormatError(
+        f"{where} holds the polarity values {shown}{' ...' if values.size > 6 else ''}, but the "
+        f"stated encoding is {stated}; pass polarity={other!r} if the file stores that encoding "
+        "(polarities are never mapped silently)"
+    )
+
+
+def check_allocated(dataset: Any, where: str) -> None:
+    """Refuse an HDF5 dataset whose declared length exceeds the data the file really stores.
+
+    A chunked dataset must have every chunk it declares written, a contiguous one
+    its whole extent; otherwise reading it would conjure fill values (and memory)
+    out of a few bytes of metadata. O(1): only the chunk count is asked.
+    """
+    shape = dataset.shape
+    if shape is None or not len(shape) or not dataset.size:
+        return
+    dsid = dataset.id
+    if dataset.chunks is not None:
+        needed = math.prod(-(-n // c) for n, c in zip(shape, dataset.chunks))
+        stored = dsid.get_num_chunks()
+        if stored < needed:
+            raise FormatError(
+                f"{where} declares {dataset.size:,} entries in {needed:,} chunks but the file stores "
+                f"only {stored:,} of them (truncated or crafted; refusing to allocate)"
+            )
+    elif dataset.external is None and dsid.get_storage_size() < dataset.size * dataset.dtype.itemsize:
+        raise FormatError(
+            f"{where} declares {dataset.size:,} entries but the file stores only "
+            f"{dsid.get_storage_size():,} of their {dataset.size * dataset.dtype.itemsize:,} bytes "
+            "(truncated or crafted; refusing to allocate)"
+        )
