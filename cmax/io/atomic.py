@@ -36,7 +36,7 @@ import numpy as np
 
 __all__ = [
     "AtomicOutput", "OutputLockedError", "write_with", "write_text_atomic", "save_npz_atomic", "write_bytes_atomic",
-    "ignore_file_size_signal",
+    "ignore_file_size_signal", "PathLock", "lock_path", "temporaries", "discard_leftovers", "write_error",
 ]
 
 _TEMP_SUFFIX = ".partial"
@@ -91,6 +91,24 @@ def temporaries(path: str | os.PathLike) -> list[Path]:
     return found
 
 
+def lock_path(path: str | os.PathLike) -> Path:
+    """The lock file of the output ``path``: ``<name>.lock`` beside it."""
+    path = Path(path)
+    return path.with_name(path.name + ".lock")
+
+
+def discard_leftovers(path: str | os.PathLike) -> list[Path]:
+    """Remove the temporaries a killed writer of ``path`` left (under its lock); returns them.
+
+    Raises :class:`OutputLockedError` while a writer of ``path`` is alive.
+    """
+    with PathLock(lock_path(path), path):
+        stale = temporaries(path)
+        for file in stale:
+            file.unlink(missing_ok=True)
+    return stale
+
+
 def _create_exclusive(path: Path) -> int:
     """A new file at ``path`` (read-write, 0644 less umask); never an existing file, never through a link."""
     return os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | _NOFOLLOW | _CLOEXEC, 0o644)
@@ -117,13 +135,20 @@ def write_error(error: OSError, path: Path, what: str = "writing") -> OSError:
     return OSError(code, f"{reason} while {what} (nothing was left under this name)", str(path))
 
 
-class _Lock:
-    """An exclusive ``flock`` on ``<path>.lock`` (created if needed, never through a link)."""
+class PathLock:
+    """An exclusive ``flock`` on the file ``lock_path`` (created if needed, never through a link).
 
-    def __init__(self, path: Path) -> None:
+    Taken at construction without waiting (:class:`OutputLockedError` when held
+    elsewhere, ``what`` names the thing protected); :meth:`release` removes the
+    lock file while still holding it, then lets go. A lock file left by a killed
+    process holds no lock and is reused.
+    """
+
+    def __init__(self, lock_path: str | os.PathLike, what: str | os.PathLike | None = None) -> None:
         import fcntl
 
-        self.path = path.with_name(path.name + ".lock")
+        self.path = Path(lock_path)
+        what = self.path if what is None else what
         for _ in range(8):  # the file may be unlinked by its last holder between open and lock
             try:
                 fd = os.open(self.path, os.O_RDWR | os.O_CREAT | _NOFOLLOW | _CLOEXEC | os.O_NONBLOCK, 0o644)
@@ -140,8 +165,8 @@ class _Lock:
                     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 except BlockingIOError:
                     raise OutputLockedError(
-                        errno.EWOULDBLOCK, f"{path} is being written by another writer "
-                        f"(lock {self.path.name} held); nothing was changed", str(path)) from None
+                        errno.EWOULDBLOCK, f"{what} is being written by another writer "
+                        f"(lock {self.path.name} held); nothing was changed", str(what)) from None
                 try:
                     now = os.lstat(self.path)
                 except FileNotFoundError:
@@ -154,6 +179,12 @@ class _Lock:
                 raise
             os.close(fd)  # locked a lock file that was just removed: take the new one
         raise OutputLockedError(errno.EWOULDBLOCK, "could not take the lock", str(self.path))
+
+    def __enter__(self) -> "PathLock":
+        return self
+
+    def __exit__(self, *exc_info) -> None:
+        self.release()
 
     def release(self) -> None:
         fd, self._fd = getattr(self, "_fd", None), None
@@ -202,7 +233,7 @@ class AtomicOutput:
         if not self.path.parent.is_dir():
             raise FileNotFoundError(f"folder of path does not exist: {self.path.parent}")
         ignore_file_size_signal()
-        self._lock = _Lock(self.path)
+        self._lock = PathLock(lock_path(self.path), self.path)
         self.fd: int | None = None
         try:
             self._check_target()
