@@ -83,10 +83,12 @@ def decode_attrs(attrs: Any) -> dict[str, Any]:
 class _FdFile:
     """A binary file object over a descriptor, for h5py's file-object driver.
 
-    It keeps the first OS error of a write (h5py re-raises it without the errno
-    it came with), and after :meth:`discard` ignores writes: an HDF5 file whose
-    disk is full can then be closed without a second failing flush (HDF5 closing
-    such a file at interpreter exit crashes the process with SIGSEGV).
+    A failing write (full disk, file-size limit) is never reported to HDF5: the
+    first OS error is kept in :attr:`error` and every later write is dropped
+    (as after :meth:`discard`), so the library always sees success and the
+    writer checks :attr:`error` after each step. HDF5 must not see the failure:
+    a failed flush leaves its objects half closed, and the next HDF5 call (or the
+    interpreter's exit) dies with SIGSEGV.
     """
 
     def __init__(self, fd: int) -> None:
@@ -124,8 +126,7 @@ class _FdFile:
                 while done < view.nbytes:
                     done += os.pwrite(self._fd, view[done:], self._position + done)
             except OSError as error:
-                self.error = self.error or error
-                raise
+                self.error, self._discard = error, True
         self._position += view.nbytes
         return view.nbytes
 
@@ -135,8 +136,7 @@ class _FdFile:
             try:
                 os.ftruncate(self._fd, size)
             except OSError as error:
-                self.error = self.error or error
-                raise
+                self.error, self._discard = error, True
         return size
 
     def flush(self) -> None:
@@ -235,7 +235,7 @@ class H5Writer:
     def _guarded(self, action, *args) -> Any:
         """Run a step that writes; on any failure remove the temporary file (a write error names ``path``)."""
         try:
-            return action(*args)
+            result = action(*args)
         except BaseException as error:
             self.abort()
             if self._raw.error is not None:
@@ -243,6 +243,10 @@ class H5Writer:
             if isinstance(error, OSError) and error.errno is not None:
                 raise write_error(error, self.path) from None
             raise
+        if self._raw.error is not None:
+            self.abort()
+            raise write_error(self._raw.error, self.path) from None
+        return result
 
     # -- appending --------------------------------------------------------------------
     def append(self, events: Events) -> None:
