@@ -107,7 +107,13 @@ class _FdFile:
         return self._position
 
     def readinto(self, buffer) -> int:
-        count = os.preadv(self._fd, [buffer], self._position)
+        view = memoryview(buffer).cast("B")
+        if hasattr(os, "preadv"):
+            count = os.preadv(self._fd, [view], self._position)
+        else:
+            data = os.pread(self._fd, view.nbytes, self._position)
+            count = len(data)
+            view[:count] = data
         self._position += count
         return count
 
