@@ -515,3 +515,22 @@ def test_a_killed_worker_fails_its_own_video_only(tmp_path):
     for name in "bc":
         assert verify_h5(out / f"{name}.h5", events=manifest["videos"][name]["events"]) > 0
     assert _listing(out) == ["b.h5", "c.h5", "manifest.json"]  # a's temporary removed, no lock left
+
+
+def test_one_wrong_timestamp_is_refused_before_the_index_is_allocated(tmp_path):
+    events = random_events(14_000, t_span_us=1_000_000)
+    t = events.t.copy()
+    t[-1] += 2**40  # one timestamp off by 2**40 µs: an ms_to_idx of 8 GiB
+    from cmax.events import Events
+
+    wrong = Events(events.x, events.y, t, events.p, events.width, events.height)
+    with pytest.raises(ValueError, match=r"timestamp is probably wrong") as caught:
+        write_h5(tmp_path / "ev.h5", wrong)
+    assert "GiB" in str(caught.value) and "\n" not in str(caught.value)
+    assert _listing(tmp_path) == []
+    with pytest.raises(ValueError, match="probably wrong"):  # an explicit offset far before the events
+        with H5Writer(tmp_path / "ev.h5", 64, 48, t_offset_us=0) as writer:
+            writer.append(Events(events.x, events.y, events.t + 2**50, events.p, 64, 48))
+    assert _listing(tmp_path) == []
+    long = Events(events.x[:2], events.y[:2], np.array([0, 2**24 * 1000 - 1]), events.p[:2], 64, 48)
+    assert verify_h5(write_h5(tmp_path / "long.h5", long)) == 2  # 4.6 hours: allowed whatever the count

@@ -37,6 +37,9 @@ _COLUMNS = {"x": np.uint16, "y": np.uint16, "t": np.int64, "p": np.uint8}
 _DEFAULT_CHUNK = 1 << 18
 #: Attributes of the completion record that H5Writer writes last (see verify_h5).
 _COMPLETION_ATTRS = ("event_count", "complete")
+#: ms_to_idx length (ms) a writer allows whatever the event count, and per event beyond it.
+_INDEX_FLOOR_MS = 1 << 24
+_INDEX_MS_PER_EVENT = 64
 
 #: What h5py raises on corrupt files (its errors map HDF5 failures onto these built-ins).
 H5_ERRORS = (OSError, KeyError, RuntimeError, TypeError, ValueError, IndexError)
@@ -278,11 +281,29 @@ class H5Writer:
             raise ValueError(
                 f"events start at {events.t_start} µs, before t_offset_us={self._t_offset}"
             )
+        self._check_index_span(events)
         self._last_t = events.t_end
         self._buffer.append(events)
         self._buffered += len(events)
         if self._buffered >= self._chunk_size:
             self._guarded(self._flush)
+
+    def _check_index_span(self, events: Events) -> None:
+        """Refuse events whose time would make ``ms_to_idx`` (8 bytes per ms) out of all proportion.
+
+        Allowed: ``max(2**24, 64 * events)`` ms after ``t_offset`` (4.6 hours
+        whatever the count; longer recordings with at least one event per 64 ms
+        on average). One wrong timestamp would otherwise allocate gigabytes.
+        """
+        span_ms = (events.t_end - self._t_offset) // 1000 + 1
+        count = self.count + len(events)
+        allowed = max(_INDEX_FLOOR_MS, _INDEX_MS_PER_EVENT * count)
+        if span_ms > allowed:
+            raise ValueError(
+                f"{self.path}: {count:,} events would span {span_ms:,} ms after t_offset={self._t_offset} µs "
+                f"(the last at t={events.t_end} µs), an ms_to_idx of {8 * span_ms / 2**30:.1f} GiB; "
+                f"a timestamp is probably wrong (allowed: max(2**24, {_INDEX_MS_PER_EVENT} per event) ms)"
+            )
 
     def _flush(self) -> None:
         if not self._buffered:
