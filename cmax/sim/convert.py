@@ -577,8 +577,10 @@ def convert_collection(
         Must equal those of an existing manifest in ``output_dir`` (resume).
     workers : int
         Processes (>= 1); 1 converts in this process. Otherwise each video runs
-        in its own process (at most ``workers`` at a time), killed if this
-        process dies; a worker that dies fails its own video only.
+        in its own freshly started (``spawn``) process, at most ``workers`` at a
+        time, killed if this process dies; a worker that dies fails its own
+        video only. As with any ``spawn`` start, a script calling this needs the
+        ``if __name__ == "__main__":`` guard.
     missing : sequence of str
         Catalogue entries without a video, recorded in the manifest.
     progress : bool
