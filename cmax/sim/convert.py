@@ -706,37 +706,42 @@ def _describe_exit(exitcode: int | None) -> str:
 
 
 def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None:
-    """Each job in its own spawned process, at most ``workers`` at once; all killed if this one stops."""
+    """Each job in its own spawned process, at most ``workers`` at once; all killed if this one stops.
+
+    The parent waits on each worker's pipe: it becomes readable with the result,
+    or at end-of-file when the worker died without one.
+    """
     import multiprocessing
     from multiprocessing.connection import wait
 
     context = multiprocessing.get_context("spawn")  # a fresh interpreter: no inherited threads or locks
     pending = list(enumerate(todo))[::-1]
-    running: dict[Any, tuple[Any, Any, VideoJob]] = {}
+    running: dict[Any, tuple[Any, VideoJob]] = {}  # receiving end of the pipe -> (process, job)
     try:
         while pending or running:
             while pending and len(running) < workers:
                 number, job = pending.pop()
-                output = output_dir / f"{job.name}.h5"
                 receive, send = context.Pipe(duplex=False)
                 process = context.Process(
                     target=_worker, name=f"cmax-simulate-{job.name}", daemon=True,
-                    args=(send, os.getpid(), job, output, settings, 1 + number % workers if progress else None),
+                    args=(send, os.getpid(), job, output_dir / f"{job.name}.h5", settings,
+                          1 + number % workers if progress else None),
                 )
                 process.start()
-                send.close()
-                running[process.sentinel] = (process, receive, job)
-            for sentinel in wait(list(running)):
-                process, receive, job = running.pop(sentinel)
-                result = None
+                send.close()  # the worker holds the only writing end: its death reads as end-of-file
+                running[receive] = (process, job)
+            for receive in wait(list(running)):
+                process, job = running.pop(receive)
                 try:
-                    if receive.poll():
-                        result = receive.recv()
-                except (EOFError, OSError):
+                    result = receive.recv()
+                except Exception:  # EOFError: died without a result; or a message cut short
                     result = None
                 finally:
                     receive.close()
-                process.join()
+                process.join(timeout=60)
+                if process.exitcode is None:  # sent its result but does not exit
+                    process.kill()
+                    process.join()
                 if not isinstance(result, VideoResult):
                     output = output_dir / f"{job.name}.h5"
                     try:
@@ -746,8 +751,8 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
                     result = _failed(job, output, f"worker process {_describe_exit(process.exitcode)}")
                 record(result)
     finally:
-        for process, receive, _ in running.values():
+        for process, _ in running.values():
             process.kill()
-        for process, receive, _ in running.values():
+        for receive, (process, _) in running.items():
             process.join()
             receive.close()
