@@ -383,7 +383,7 @@ LIMITED_SIMULATE = """
 
 
 @POSIX
-@pytest.mark.parametrize("workers", ["1", pytest.param("2", marks=pytest.mark.slow)])
+@pytest.mark.parametrize("workers", ["1", "2"])
 def test_simulate_under_a_file_size_limit_records_the_failure_and_goes_on(tmp_path, workers):
     videos, out = tmp_path / "videos", tmp_path / "out"
     videos.mkdir()
@@ -498,7 +498,7 @@ def test_a_killed_worker_fails_its_own_video_only(tmp_path):
     killed: list[int] = []
 
     def kill_the_worker_of_a() -> None:
-        worker = _wait_for(lambda: _holder_of(_children(os.getpid()), "a.h5.lock"), 120, "the worker of a")
+        worker = _wait_for(lambda: _holder_of(_descendants(os.getpid()), "a.h5.lock"), 120, "the worker of a")
         os.kill(worker, signal.SIGKILL)
         killed.append(worker)
 

@@ -577,9 +577,9 @@ def convert_collection(
         Must equal those of an existing manifest in ``output_dir`` (resume).
     workers : int
         Processes (>= 1); 1 converts in this process. Otherwise each video runs
-        in its own freshly started (``spawn``) process, at most ``workers`` at a
-        time, killed if this process dies; a worker that dies fails its own
-        video only. As with any ``spawn`` start, a script calling this needs the
+        in its own process (``forkserver``, else ``spawn``), at most ``workers``
+        at a time, killed if this process dies; a worker that dies fails its own
+        video only. As with any such start, a script calling this needs the
         ``if __name__ == "__main__":`` guard.
     missing : sequence of str
         Catalogue entries without a video, recorded in the manifest.
@@ -661,12 +661,14 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
 _PR_SET_PDEATHSIG = 1
 
 
-def _die_with_parent(parent_pid: int) -> None:
-    """Kill this process when ``parent_pid`` (its parent) dies.
+def _die_with_parent(main_pid: int) -> None:
+    """Kill this worker when its parent process dies, or when the process ``main_pid`` is gone.
 
-    Linux: ``prctl(PR_SET_PDEATHSIG, SIGKILL)``. Everywhere: a daemon thread
-    that checks every 0.2 s whether the parent changed (also covers a parent
-    that died before the ``prctl``).
+    The parent is the ``forkserver`` of ``main_pid`` (which exits when
+    ``main_pid`` dies) or ``main_pid`` itself (``spawn``). Linux:
+    ``prctl(PR_SET_PDEATHSIG, SIGKILL)``. Everywhere: a daemon thread that checks
+    every 0.2 s whether the parent changed or ``main_pid`` vanished (which also
+    covers a parent that died before the ``prctl``).
     """
     if sys.platform.startswith("linux"):
         try:
@@ -675,25 +677,50 @@ def _die_with_parent(parent_pid: int) -> None:
             ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
         except (OSError, AttributeError):  # no libc prctl: the thread below still watches
             pass
-    if os.getppid() != parent_pid:
+    parent = os.getppid()
+
+    def orphaned() -> bool:
+        if os.getppid() != parent:
+            return True
+        try:
+            os.kill(main_pid, 0)
+        except ProcessLookupError:
+            return True
+        except PermissionError:  # exists, another user's (a reused pid): not ours any more
+            return True
+        return False
+
+    if orphaned():
         os._exit(1)
 
     def watch() -> None:
-        while os.getppid() == parent_pid:
+        while not orphaned():
             time.sleep(0.2)
         os._exit(1)
 
     threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
 
 
-def _worker(connection, parent_pid: int, job: VideoJob, output: Path, settings: ConvertSettings,
+def _worker(connection, main_pid: int, job: VideoJob, output: Path, settings: ConvertSettings,
             position: int | None) -> None:
     """Entry point of a worker process: one video, the result sent back through ``connection``."""
-    _die_with_parent(parent_pid)
+    _die_with_parent(main_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the workers itself
     result = _run_job(job, output, settings, position)
     connection.send(result)
     connection.close()
+
+
+def _worker_context():
+    """``forkserver`` where there is one (workers forked from a clean server that has this module
+    imported: fast to start, no inherited threads), else ``spawn``."""
+    import multiprocessing
+
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload([__name__])
+        return context
+    return multiprocessing.get_context("spawn")
 
 
 def _describe_exit(exitcode: int | None) -> str:
@@ -706,15 +733,14 @@ def _describe_exit(exitcode: int | None) -> str:
 
 
 def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None:
-    """Each job in its own spawned process, at most ``workers`` at once; all killed if this one stops.
+    """Each job in its own worker process, at most ``workers`` at once; all killed if this one stops.
 
     The parent waits on each worker's pipe: it becomes readable with the result,
     or at end-of-file when the worker died without one.
     """
-    import multiprocessing
     from multiprocessing.connection import wait
 
-    context = multiprocessing.get_context("spawn")  # a fresh interpreter: no inherited threads or locks
+    context = _worker_context()
     pending = list(enumerate(todo))[::-1]
     running: dict[Any, tuple[Any, VideoJob]] = {}  # receiving end of the pipe -> (process, job)
     try:
