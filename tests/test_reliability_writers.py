@@ -10,7 +10,6 @@ written, the errno of the file system, ``/proc``.
 """
 from __future__ import annotations
 
-import errno
 import json
 import os
 import shutil
