@@ -132,7 +132,8 @@ def write_error(error: OSError, path: Path, what: str = "writing") -> OSError:
     """``error`` as an :class:`OSError` of the same errno whose message names ``path``."""
     code = error.errno
     reason = os.strerror(code) if code else str(error)
-    return OSError(code, f"{reason} while {what} (nothing was left under this name)", str(path))
+    return OSError(code, f"{reason} while {what}; nothing was written under this name "
+                         "(the temporary file was removed)", str(path))
 
 
 class PathLock:
