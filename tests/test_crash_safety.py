@@ -6,7 +6,7 @@ video's final file exists and the second one's ``.partial`` file appears, the
 process is killed with SIGKILL (no cleanup handlers run). Then:
 
 * no file has a final name unless it is complete (the interrupted video exists
-  only as ``.partial``, the unstarted one not at all);
+  only as its private temporary ``b.h5.<hex>.partial``, the unstarted one not at all);
 * the manifest on disk is valid JSON and lists exactly the finished video, with
   the event count of its file;
 * a rerun skips the finished video (same bytes and mtime), redoes the
@@ -64,7 +64,7 @@ def _digest(path: Path) -> tuple[str, int]:
 
 
 def _kill_during_second_video(videos: Path, output: Path, timeout_s: float = 120.0) -> bool:
-    """Run the conversion; SIGKILL it once a.h5 is final and b.h5.partial exists.
+    """Run the conversion; SIGKILL it once a.h5 is final and b's temporary file exists.
 
     Returns False when the process finished (or the moment was missed) before the kill.
     """
@@ -72,7 +72,7 @@ def _kill_during_second_video(videos: Path, output: Path, timeout_s: float = 120
     deadline = time.monotonic() + timeout_s
     try:
         while time.monotonic() < deadline:
-            if (output / "a.h5").exists() and (output / "b.h5.partial").exists():
+            if (output / "a.h5").exists() and list(output.glob("b.h5.*.partial")):
                 process.send_signal(signal.SIGKILL)
                 process.wait(timeout=30)
                 return True
@@ -116,8 +116,8 @@ def test_killed_conversion_resumes_without_damage(tmp_path):
 
     # After the kill: only complete files carry final names; the manifest lists a alone.
     names = sorted(path.name for path in output.iterdir())
-    assert "a.h5" in names and "b.h5.partial" in names
-    assert "b.h5" not in names and "c.h5" not in names and "c.h5.partial" not in names
+    assert "a.h5" in names and len(list(output.glob("b.h5.*.partial"))) == 1
+    assert "b.h5" not in names and "c.h5" not in names and not list(output.glob("c.h5*"))
     manifest = _manifest(output)
     assert list(manifest["videos"]) == ["a"] and manifest["videos"]["a"]["status"] == "ok"
     _check_manifest_matches_files(manifest, output)

@@ -29,3 +29,47 @@ def test_failed_write_leaves_the_old_file(tmp_path):
     with pytest.raises(RuntimeError, match="disk full"):
         save_npz_atomic(path, depth=_Unwritable())
     assert path.read_text() == "old"
+
+
+def test_output_appears_only_at_commit_and_leaves_no_lock(tmp_path):
+    from cmax.io.atomic import AtomicOutput
+
+    output = AtomicOutput(tmp_path / "a.bin")
+    output.write(b"abc")
+    names = sorted(p.name for p in tmp_path.iterdir())
+    assert names == sorted(["a.bin.lock", output.temp.name]) and output.temp.name.startswith("a.bin.")
+    assert output.commit().read_bytes() == b"abc"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"]
+    with pytest.raises(ValueError, match="committed"):
+        output.commit()
+
+
+def test_abort_keeps_the_old_file_and_a_target_made_meanwhile_is_not_replaced(tmp_path):
+    from cmax.io.atomic import AtomicOutput
+
+    (tmp_path / "a.bin").write_bytes(b"old")
+    output = AtomicOutput(tmp_path / "a.bin", overwrite=True)
+    output.write(b"new")
+    output.abort()
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin"] and (tmp_path / "a.bin").read_bytes() == b"old"
+    output = AtomicOutput(tmp_path / "b.bin")
+    output.write(b"mine")
+    (tmp_path / "b.bin").write_bytes(b"someone else's")  # appeared while writing
+    with pytest.raises(FileExistsError):
+        output.commit()
+    assert (tmp_path / "b.bin").read_bytes() == b"someone else's"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.bin"]
+
+
+def test_temporaries_of_a_killed_writer_are_removed_by_the_next_one_only(tmp_path):
+    from cmax.io.atomic import temporaries
+
+    stale = tmp_path / "a.bin.0123456789abcdef.partial"
+    stale.write_bytes(b"half")
+    other = tmp_path / "b.bin.0123456789abcdef.partial"  # another output's: not touched
+    other.write_bytes(b"half")
+    odd = tmp_path / "a.bin.backup.partial"  # not a name the writers draw: not touched
+    odd.write_bytes(b"keep")
+    assert temporaries(tmp_path / "a.bin") == [stale]
+    write_text_atomic(tmp_path / "a.bin", "done")
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "a.bin.backup.partial", other.name]

@@ -19,6 +19,7 @@ from __future__ import annotations
 
 import json
 import os
+import stat
 from pathlib import Path
 from typing import Any, Iterator
 
@@ -29,13 +30,15 @@ import numpy as np
 from cmax.events import Events, _check_sensor_size, check_event_count, check_time_us, window_steps
 from cmax.io._checks import (add_offset, check_allocated, check_offset, check_polarity_encoding, check_time_unit,
                              polarity_01, scalar_to_us, times_to_us, unit_from_attrs)
+from cmax.io.atomic import AtomicOutput, write_error
 from cmax.io.errors import FormatError
 
-__all__ = ["H5Writer", "H5Reader", "write_h5", "read_h5", "is_dsec_h5"]
+__all__ = ["H5Writer", "H5Reader", "write_h5", "read_h5", "is_dsec_h5", "verify_h5"]
 
 _COLUMNS = {"x": np.uint16, "y": np.uint16, "t": np.int64, "p": np.uint8}
 _DEFAULT_CHUNK = 1 << 18
-
+#: Attributes of the completion record that H5Writer writes last (see verify_h5).
+_COMPLETION_ATTRS = ("event_count", "complete")
 #: What h5py raises on corrupt files (its errors map HDF5 failures onto these built-ins).
 H5_ERRORS = (OSError, KeyError, RuntimeError, TypeError, ValueError, IndexError)
 _INT64_MAX = int(np.iinfo(np.int64).max)
@@ -78,17 +81,89 @@ def decode_attrs(attrs: Any) -> dict[str, Any]:
     return out
 
 
-def partial_path(path: Path) -> Path:
-    """Temporary name under which a file is written before the final rename."""
-    return path.with_name(path.name + ".partial")
+class _FdFile:
+    """A binary file object over a descriptor, for h5py's file-object driver.
+
+    A failing write (full disk, file-size limit) is never reported to HDF5: the
+    first OS error is kept in :attr:`error` and every later write is dropped
+    (as after :meth:`discard`), so the library always sees success and the
+    writer checks :attr:`error` after each step. HDF5 must not see the failure:
+    a failed flush leaves its objects half closed, and the next HDF5 call (or the
+    interpreter's exit) dies with SIGSEGV.
+    """
+
+    def __init__(self, fd: int) -> None:
+        self._fd, self._position, self._discard = fd, 0, False
+        self.error: OSError | None = None
+
+    def discard(self) -> None:
+        self._discard = True
+
+    def seek(self, offset: int, whence: int = os.SEEK_SET) -> int:
+        base = {os.SEEK_SET: 0, os.SEEK_CUR: self._position}.get(whence)
+        self._position = (os.fstat(self._fd).st_size if base is None else base) + offset
+        return self._position
+
+    def tell(self) -> int:
+        return self._position
+
+    def readinto(self, buffer) -> int:
+        view = memoryview(buffer).cast("B")
+        if hasattr(os, "preadv"):
+            count = os.preadv(self._fd, [view], self._position)
+        else:
+            data = os.pread(self._fd, view.nbytes, self._position)
+            count = len(data)
+            view[:count] = data
+        self._position += count
+        return count
+
+    def read(self, size: int = -1) -> bytes:
+        if size < 0:
+            size = max(os.fstat(self._fd).st_size - self._position, 0)
+        data = os.pread(self._fd, size, self._position)
+        self._position += len(data)
+        return data
+
+    def write(self, data) -> int:
+        view = memoryview(data).cast("B")
+        if not self._discard:
+            try:
+                done = 0
+                while done < view.nbytes:
+                    done += os.pwrite(self._fd, view[done:], self._position + done)
+            except OSError as error:
+                self.error, self._discard = error, True
+        self._position += view.nbytes
+        return view.nbytes
+
+    def truncate(self, size: int | None = None) -> int:
+        size = self._position if size is None else size
+        if not self._discard:
+            try:
+                os.ftruncate(self._fd, size)
+            except OSError as error:
+                self.error, self._discard = error, True
+        return size
+
+    def flush(self) -> None:
+        pass
 
 
 class H5Writer:
     """Write events to a DSEC-layout HDF5 file chunk by chunk, with bounded memory.
 
-    The file is written under ``<path>.partial`` and renamed to ``path`` only
-    when the writer closes without an exception; an interrupted write never
-    leaves a file at the final name. ``ms_to_idx`` is built on the fly.
+    The file is written by the protocol of :mod:`cmax.io.atomic`: an exclusive
+    lock on ``<path>.lock`` first (a second writer of the same path fails with
+    :class:`~cmax.io.atomic.OutputLockedError` and changes nothing), then a
+    private temporary ``<path>.<hex>.partial`` created without following links,
+    renamed to ``path`` only when the writer closes without an exception. The
+    last things written are the attributes ``event_count`` and ``complete``
+    (:func:`verify_h5` checks them), so a file cut short never passes as
+    complete. ``ms_to_idx`` is built on the fly.
+
+    A write error (full disk, file-size limit) raises :class:`OSError` naming
+    ``path`` with the errno kept, after removing the temporary file.
 
     Parameters
     ----------
@@ -130,10 +205,6 @@ class H5Writer:
         self.width, self.height = _check_sensor_size(width, height)
         if int(chunk_size) <= 0:
             raise ValueError(f"chunk_size must be positive, got {chunk_size}")
-        if self.path.exists() and not overwrite:
-            raise FileExistsError(f"{self.path} exists (pass overwrite=True to replace it)")
-        if not self.path.parent.is_dir():
-            raise FileNotFoundError(f"folder of path does not exist: {self.path.parent}")
         self._filters = _compression(compression)
         self._chunk_size = int(chunk_size)
         self._t_offset = None if t_offset_us is None else int(t_offset_us)
@@ -143,12 +214,21 @@ class H5Writer:
         self._last_t: int | None = None
         self._ms_to_idx: list[np.ndarray] = []
         self._ms_filled = 0  # entries of ms_to_idx already known
-        self._partial = partial_path(self.path)
-        self._file = h5py.File(self._partial, "w")
+        self._closed = True
+        self._output = AtomicOutput(self.path, overwrite=overwrite)
+        self._raw = _FdFile(self._output.fd)
+        self._file = None
+        self._closed = False
+        self._guarded(self._create, attrs)
+
+    def _create(self, attrs: dict[str, Any]) -> None:
+        self._file = h5py.File(self._raw, "w")
         self._file.attrs["width"] = self.width
         self._file.attrs["height"] = self.height
         self._file.attrs["layout"] = "dsec"
         for key, value in attrs.items():
+            if key in _COMPLETION_ATTRS:
+                raise ValueError(f"attribute {key!r} is reserved for the completion record")
             self._file.attrs[key] = _attr_value(value)
         group = self._file.create_group("events")
         self._datasets = {
@@ -158,7 +238,22 @@ class H5Writer:
             )
             for name, dtype in _COLUMNS.items()
         }
-        self._closed = False
+
+    def _guarded(self, action, *args) -> Any:
+        """Run a step that writes; on any failure remove the temporary file (a write error names ``path``)."""
+        try:
+            result = action(*args)
+        except BaseException as error:
+            self.abort()
+            if self._raw.error is not None:
+                raise write_error(self._raw.error, self.path) from None
+            if isinstance(error, OSError) and error.errno is not None:
+                raise write_error(error, self.path) from None
+            raise
+        if self._raw.error is not None:
+            self.abort()
+            raise write_error(self._raw.error, self.path) from None
+        return result
 
     # -- appending --------------------------------------------------------------------
     def append(self, events: Events) -> None:
@@ -184,11 +279,18 @@ class H5Writer:
             raise ValueError(
                 f"events start at {events.t_start} µs, before t_offset_us={self._t_offset}"
             )
+        self._check_index_span(events)
         self._last_t = events.t_end
         self._buffer.append(events)
         self._buffered += len(events)
         if self._buffered >= self._chunk_size:
-            self._flush()
+            self._guarded(self._flush)
+
+    def _check_index_span(self, events: Events) -> None:
+        """Refuse events whose span would make ``ms_to_idx`` (8 bytes per ms) out of all proportion,
+        before anything is buffered or allocated (see :func:`check_index_span`)."""
+        span_ms = (events.t_end - self._t_offset) // 1000
+        check_index_span(span_ms + 1, self.count + len(events), self.path)
 
     def _flush(self) -> None:
         if not self._buffered:
@@ -209,7 +311,6 @@ class H5Writer:
     def _extend_ms_to_idx(self, t_rel: np.ndarray, first_index: int) -> None:
         """Fill ms_to_idx for every millisecond boundary at or before the last time seen."""
         last_ms = int(t_rel[-1]) // 1000  # boundaries 1000*k <= t_last are now determined
-        check_index_span(last_ms + 2, first_index + len(t_rel), self.path)
         if last_ms < self._ms_filled:
             return
         boundaries = np.arange(self._ms_filled, last_ms + 1, dtype=np.int64) * 1000
@@ -219,26 +320,40 @@ class H5Writer:
 
     # -- closing ----------------------------------------------------------------------
     def close(self) -> Path:
-        """Flush, write ``ms_to_idx`` and ``t_offset``, and rename to the final path."""
+        """Flush, write ``ms_to_idx``, ``t_offset`` and the completion record, rename to the final path."""
         if self._closed:
             return self.path
+        self._guarded(self._finish)
+        self._closed = True
+        try:
+            return self._output.commit()
+        except OSError as error:
+            raise write_error(error, self.path) from None
+
+    def _finish(self) -> None:
         self._flush()
         # One closing entry pointing past the last event: windows ending after it resolve.
         closing = np.array([self._count], dtype=np.uint64)
         ms_to_idx = np.concatenate(self._ms_to_idx + [closing])
         self._file.create_dataset("ms_to_idx", data=ms_to_idx, **self._filters)
         self._file.create_dataset("t_offset", data=np.int64(self._t_offset or 0))
+        self._file.attrs["event_count"] = np.int64(self._count)
+        self._file.attrs["complete"] = True  # the last thing written
         self._file.close()
-        self._closed = True
-        os.replace(self._partial, self.path)
-        return self.path
 
     def abort(self) -> None:
-        """Close and delete the partial file; nothing appears at the final path."""
-        if not self._closed:
-            self._closed = True
-            self._file.close()
-        self._partial.unlink(missing_ok=True)
+        """Drop the temporary file and release the lock; nothing appears at the final path."""
+        if self._closed:
+            return
+        self._closed = True
+        self._raw.discard()  # closing cannot fail on a full disk any more
+        try:
+            if self._file is not None:
+                self._file.close()
+        except H5_ERRORS:
+            pass
+        finally:
+            self._output.abort()
 
     @property
     def count(self) -> int:
@@ -294,6 +409,45 @@ def write_h5(
         for start in range(0, len(events), writer._chunk_size):
             writer.append(events[start: start + writer._chunk_size])
     return Path(path)
+
+
+def verify_h5(path: str | os.PathLike, *, events: int | None = None) -> int:
+    """Check that ``path`` is a complete file of :class:`H5Writer`; returns its event count.
+
+    Complete means: a regular file (not a link), readable HDF5 with the DSEC
+    datasets, the completion record written last (``complete`` true and
+    ``event_count`` equal to the length of every ``events/*`` column and to the
+    last ``ms_to_idx`` entry), and ``events`` events when given. Raises
+    :class:`FormatError` naming what is missing, :class:`FileNotFoundError`.
+    """
+    path = Path(path)
+    try:
+        info = os.lstat(path)
+    except FileNotFoundError:
+        raise FileNotFoundError(f"no such event file: {path}") from None
+    if not stat.S_ISREG(info.st_mode):
+        raise FormatError(f"{path} is not a regular file")
+    try:
+        with h5py.File(path, "r") as file:
+            if not is_dsec_h5(file) or "ms_to_idx" not in file:
+                raise FormatError(f"{path} lacks the datasets of a DSEC event file")
+            attrs = file.attrs
+            if not bool(attrs.get("complete", False)) or "event_count" not in attrs:
+                raise FormatError(f"{path} has no completion record (not written to the end)")
+            count = int(attrs["event_count"])
+            lengths = {name: file["events"][name].shape for name in "xytp"}
+            ms_to_idx = file["ms_to_idx"]
+            last = int(ms_to_idx[-1]) if ms_to_idx.shape and ms_to_idx.shape[0] else -1
+    except FormatError:
+        raise
+    except H5_ERRORS as error:
+        raise FormatError(f"{path} is not a readable HDF5 file ({type(error).__name__}: {error})") from None
+    if any(shape != (count,) for shape in lengths.values()) or last != count:
+        raise FormatError(f"{path}: completion record says {count} events, the datasets hold {lengths}, "
+                          f"ms_to_idx ends at {last}")
+    if events is not None and count != int(events):
+        raise FormatError(f"{path} holds {count} events, expected {int(events)}")
+    return count
 
 
 def is_dsec_h5(file: h5py.File) -> bool:

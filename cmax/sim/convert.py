@@ -5,15 +5,22 @@ One video (:func:`convert_video`) streams in constant memory::
     frames (cmax.sim.video source)  ->  [iter_upsample: adaptive sampling]
         ->  EventSimulator.step  ->  H5Writer.append  ->  <name>.h5 (DSEC layout)
 
-The output is written as ``<name>.h5.partial`` and renamed when complete, so a
-crashed conversion never leaves a file that looks finished. A collection
-(:func:`convert_collection`) runs one job per video in ``workers`` processes
-and keeps ``manifest.json`` in the output folder, rewritten atomically after
-each video: per video the frames, samples, events, duration, events/s,
-category, status and error; globally the settings and the simulator version.
-A second run skips the videos whose manifest status is ``ok`` and whose file
-exists, and redoes the others (failed, crashed, missing output). A failing
-video is recorded and does not stop the others.
+The output is written by :class:`cmax.io.h5.H5Writer`: under an exclusive lock,
+to a private temporary ``<name>.h5.<hex>.partial`` renamed when complete, with a
+completion record written last, so a crashed conversion never leaves a file
+that looks finished. A collection (:func:`convert_collection`) holds the lock
+``.conversion.lock`` of its output folder (a second conversion into the same
+folder fails at once), runs each video in its own worker process (at most
+``workers`` at a time; a worker dies with its parent, and a worker's death fails
+only its own video) and keeps ``manifest.json`` in the output folder, rewritten
+atomically after each video: per video the frames, samples, events, duration,
+events/s, category, status, error, and the file's byte size and SHA-256; globally
+the settings and the simulator version. An entry is ``ok`` only once its file
+has been verified (:func:`cmax.io.h5.verify_h5`: completion record, event
+count). A second run skips the videos whose entry is ``ok`` and whose file still
+has the recorded size, completion record and event count, and redoes the others
+(failed, crashed, missing, truncated or foreign output). A failing video (full
+disk, file-size limit, bad video) is recorded and does not stop the others.
 
 Jobs come from :func:`collect_jobs`: a video file, a folder of videos, a list
 file (one video per line, optionally a tab or spaces and a category), or a
@@ -22,18 +29,22 @@ index, optionally one ``shard`` ``(i, n)`` of it.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
+import numbers
 import os
+import signal
+import sys
+import threading
 import time
-from concurrent.futures import FIRST_COMPLETED, ProcessPoolExecutor, wait
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
 from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
-from cmax.io.atomic import write_text_atomic
+from cmax.io.atomic import PathLock, discard_leftovers, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
 from cmax.sim.esim import EsimSettings, EventSimulator
 from cmax.sim.video import DEFAULT_PREFETCH, VideoFileSource
@@ -46,6 +57,8 @@ __all__ = [
 #: File suffixes taken as videos when INPUT is a folder.
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".ts")
 MANIFEST = "manifest.json"
+#: Lock file of an output folder, held by the conversion writing into it.
+FOLDER_LOCK = ".conversion.lock"
 _FORMAT = "evtslowtv-manifest/1"
 
 
@@ -123,7 +136,8 @@ class VideoResult:
     (with inserted ones); ``capped_intervals``: intervals between video frames
     where adaptive sampling hit a cap (one sample per µs, ``max_insert``) and
     the ``lam * C`` bound does not hold; ``duration_s``: last minus first frame time;
-    ``status``: ``"ok"`` or ``"failed"`` (then ``error`` says why, and no output exists).
+    ``status``: ``"ok"`` or ``"failed"`` (then ``error`` says why, and no output exists);
+    ``bytes``, ``sha256``: size and checksum of the verified output file.
     """
 
     name: str
@@ -139,6 +153,8 @@ class VideoResult:
     events_per_s: float = 0.0
     wall_s: float = 0.0
     error: str | None = None
+    bytes: int = 0
+    sha256: str | None = None
 
 
 # -- one video --------------------------------------------------------------------------
@@ -190,7 +206,8 @@ def convert_video(
     source : path
         Video file (anything :mod:`cmax.sim.video` reads); recorded in the file.
     output : path
-        The ``.h5`` file; written as ``output.partial`` and renamed when complete.
+        The ``.h5`` file; written by :class:`cmax.io.h5.H5Writer` (locked, a private
+        temporary file renamed when complete, completion record last).
     settings : ConvertSettings
     category : str, optional
         Stored in the file attributes and the result.
@@ -202,9 +219,11 @@ def convert_video(
     Returns
     -------
     VideoResult
-        With ``status="ok"``. Errors raise (the partial file is removed):
+        With ``status="ok"``. Errors raise (the temporary file is removed):
         ``FileNotFoundError``, ``ValueError`` for a video without frames in the
-        range, unreadable or inconsistent frames.
+        range, unreadable or inconsistent frames, ``OSError`` naming the output
+        for a full disk or file-size limit, :class:`cmax.io.atomic.OutputLockedError`
+        when another writer is writing ``output``.
     """
     from cmax import __version__
     from cmax.io.h5 import H5Writer
@@ -353,21 +372,61 @@ def collect_jobs(
 
 # -- manifests --------------------------------------------------------------------------
 def write_manifest(path: str | os.PathLike, manifest: dict[str, Any]) -> None:
-    """Write ``manifest`` as JSON atomically (a temporary file, then a rename)."""
+    """Write ``manifest`` as JSON atomically (lock, private temporary file, fsync, rename)."""
     path = Path(path)
     write_text_atomic(path, json.dumps(manifest, indent=2, sort_keys=False) + "\n")
 
 
+def _is_count(value: Any) -> bool:
+    return isinstance(value, int) and not isinstance(value, bool) and value >= 0
+
+
+def _is_seconds(value: Any) -> bool:
+    return isinstance(value, (int, float)) and not isinstance(value, bool) and math.isfinite(value) and value >= 0
+
+
+def check_manifest(manifest: Any, where: str) -> dict[str, Any]:
+    """``manifest`` if it has the structure :func:`convert_collection` writes, else a one-line ValueError.
+
+    Checked: the format tag, ``settings`` (an object), ``videos`` (an object of
+    entries, each with ``status`` ``"ok"`` or ``"failed"``; an ``ok`` entry with
+    non-negative integer ``frames``, ``events`` and ``bytes`` and finite
+    non-negative ``duration_s``), ``missing`` (a list of names). ``where`` names
+    the manifest in the message.
+    """
+    if not isinstance(manifest, dict) or manifest.get("format") != _FORMAT:
+        raise ValueError(f"{where} is not a conversion manifest (format {_FORMAT})")
+    if not isinstance(manifest.get("settings"), dict):
+        raise ValueError(f"{where}: malformed manifest: 'settings' must be an object")
+    videos = manifest.get("videos")
+    if not isinstance(videos, dict):
+        raise ValueError(f"{where}: malformed manifest: 'videos' must be an object of entries")
+    missing = manifest.get("missing", [])
+    if not isinstance(missing, list) or not all(isinstance(name, str) for name in missing):
+        raise ValueError(f"{where}: malformed manifest: 'missing' must be a list of names")
+    for name, entry in videos.items():
+        if not isinstance(entry, dict) or entry.get("status") not in ("ok", "failed"):
+            raise ValueError(f"{where}: malformed manifest: videos[{name!r}] needs a status 'ok' or 'failed'")
+        if entry["status"] != "ok":
+            continue
+        for key, valid in (("frames", _is_count), ("events", _is_count), ("duration_s", _is_seconds)):
+            if not valid(entry.get(key)):
+                raise ValueError(f"{where}: malformed manifest: videos[{name!r}][{key!r}] = {entry.get(key)!r}")
+    return manifest
+
+
 def load_manifest(path: str | os.PathLike) -> dict[str, Any]:
-    """A manifest written by :func:`convert_collection` (checked for its format)."""
+    """A manifest written by :func:`convert_collection` (checked by :func:`check_manifest`).
+
+    Raises ValueError (one line) for anything else, OSError for an unreadable path.
+    """
     path = Path(path)
     try:
         manifest = json.loads(Path(path).read_text("utf-8"))
-    except (json.JSONDecodeError, UnicodeDecodeError) as error:
-        raise ValueError(f"{path} is not a JSON manifest: {error}") from None
-    if not isinstance(manifest, dict) or manifest.get("format") != _FORMAT:
-        raise ValueError(f"{path} is not a conversion manifest (format {_FORMAT})")
-    return manifest
+    except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as error:
+        message = " ".join(str(error).split())
+        raise ValueError(f"{path} is not a JSON manifest: {message}") from None
+    return check_manifest(manifest, str(path))
 
 
 def _new_manifest(settings: ConvertSettings, catalogue: str | None, shard, missing) -> dict[str, Any]:
@@ -395,10 +454,13 @@ def merge_manifests(manifests: Sequence[dict[str, Any]]) -> dict[str, Any]:
 
     Settings and simulator version must agree. A video present in several
     manifests keeps its ``ok`` entry (else the last one); an entry missing in one
-    manifest but converted in another is not missing.
+    manifest but converted in another is not missing. Each manifest is checked
+    first (:func:`check_manifest`).
     """
     if not manifests:
         raise ValueError("merge_manifests needs at least one manifest")
+    for number, manifest in enumerate(manifests, start=1):
+        check_manifest(manifest, f"manifest {number} of {len(manifests)}")
     first = manifests[0]
     for other in manifests[1:]:
         for key in ("settings", "simulator", "catalogue"):
@@ -417,9 +479,59 @@ def merge_manifests(manifests: Sequence[dict[str, Any]]) -> dict[str, Any]:
     return merged
 
 
+# -- verification -----------------------------------------------------------------------
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 (hex) of a file's bytes, read in 4 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 22), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
+def _verified(result: VideoResult) -> VideoResult:
+    """``result`` with the byte size and SHA-256 of its output, after checking the file is complete."""
+    from cmax.io.h5 import verify_h5
+
+    verify_h5(result.output, events=result.events)
+    size = os.lstat(result.output).st_size
+    digest = file_sha256(result.output)
+    if os.lstat(result.output).st_size != size:
+        raise ValueError(f"{result.output} changed while it was verified")
+    return replace(result, bytes=size, sha256=digest)
+
+
+def output_problem(entry: dict | None, output: Path) -> str | None:
+    """Why the manifest ``entry`` of ``output`` is not a finished video (None when it is).
+
+    Finished: status ``ok``, and the file is a regular file of the recorded byte
+    size whose completion record holds the recorded event count (the checksum is
+    not re-read: see :func:`file_sha256` for a full check).
+    """
+    from cmax.io.h5 import verify_h5
+
+    if not entry or entry.get("status") != "ok":
+        return "not converted"
+    if not _is_count(entry.get("bytes")) or not entry.get("sha256"):
+        return "the manifest holds no size and checksum for it"
+    try:
+        size = os.lstat(output).st_size
+        if size != entry["bytes"]:
+            return f"{output.name} has {size} bytes, the manifest recorded {entry['bytes']}"
+        verify_h5(output, events=entry["events"])
+    except (OSError, ValueError) as error:
+        return " ".join(str(error).split())
+    return None
+
+
 # -- a collection -----------------------------------------------------------------------
+def _failed(job: VideoJob, output: Path, error: str, started: float | None = None) -> VideoResult:
+    wall = 0.0 if started is None else time.perf_counter() - started
+    return VideoResult(job.name, str(job.source), str(output), job.category, "failed", wall_s=wall, error=error)
+
+
 def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: int | None) -> VideoResult:
-    """Worker: convert one job, turning an error into a failed result."""
+    """Worker: convert one job and verify its file, turning an error into a failed result."""
     started = time.perf_counter()
     bar = None
     try:
@@ -429,18 +541,14 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
             bar = tqdm(desc=job.name, unit="frame", position=position, leave=False, mininterval=1.0)
         result = convert_video(job.source, output, settings, category=job.category,
                                progress=None if bar is None else bar.update)
+        result = _verified(replace(result, name=job.name))
     except Exception as error:  # reported in the manifest; the other videos go on
-        return VideoResult(job.name, str(job.source), str(output), job.category, "failed",
-                           wall_s=time.perf_counter() - started,
-                           error=f"{type(error).__name__}: {error}")
+        message = " ".join(f"{type(error).__name__}: {error}".split())
+        return _failed(job, output, message, started)
     finally:
         if bar is not None:
             bar.close()
-    return replace(result, name=job.name)
-
-
-def _finished(entry: dict | None, output: Path) -> bool:
-    return bool(entry) and entry.get("status") == "ok" and output.is_file()
+    return result
 
 
 def convert_collection(
@@ -462,11 +570,17 @@ def convert_collection(
     jobs : sequence of VideoJob
         From :func:`collect_jobs`.
     output_dir : path
-        Created if needed; holds the event files and ``manifest.json``.
+        Created if needed; holds the event files and ``manifest.json``. Locked
+        (``.conversion.lock``) while the conversion runs: a second conversion
+        into it raises :class:`cmax.io.atomic.OutputLockedError` and changes nothing.
     settings : ConvertSettings
         Must equal those of an existing manifest in ``output_dir`` (resume).
     workers : int
-        Processes (>= 1); 1 converts in this process.
+        Processes (>= 1); 1 converts in this process. Otherwise each video runs
+        in its own process (``forkserver``, else ``spawn``), at most ``workers``
+        at a time, killed if this process dies; a worker that dies fails its own
+        video only. As with any such start, a script calling this needs the
+        ``if __name__ == "__main__":`` guard.
     missing : sequence of str
         Catalogue entries without a video, recorded in the manifest.
     progress : bool
@@ -477,16 +591,23 @@ def convert_collection(
     Returns
     -------
     dict
-        The manifest, also written to ``output_dir/manifest.json`` after every video.
+        The manifest, also written to ``output_dir/manifest.json`` after every
+        video (when the disk is full, the next write retries; the last one raises).
     """
     settings = ConvertSettings() if settings is None else settings
-    if int(workers) < 1:
-        raise ValueError(f"workers must be >= 1, got {workers}")
+    if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 1:
+        raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
+    workers = int(workers)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
+    with PathLock(output_dir / FOLDER_LOCK, output_dir):
+        return _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, shard, progress, on_result)
+
+
+def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, shard, progress, on_result):
     path = output_dir / MANIFEST
     manifest = _new_manifest(settings, catalogue, shard, missing)
-    if path.exists():
+    if os.path.lexists(path):
         previous = load_manifest(path)
         if previous["settings"] != manifest["settings"]:
             raise ValueError(
@@ -494,50 +615,170 @@ def convert_collection(
                 "convert into another folder or remove it"
             )
         manifest["videos"] = previous["videos"]
-    todo = [job for job in jobs
-            if not _finished(manifest["videos"].get(job.name), output_dir / f"{job.name}.h5")]
+    for name, entry in manifest["videos"].items():  # never list a file that is not there as it was
+        if entry["status"] == "ok":
+            problem = output_problem(entry, output_dir / f"{name}.h5")
+            if problem is not None:
+                manifest["videos"][name] = dict(entry, status="failed", error=f"output not verified: {problem}")
+    todo = [job for job in jobs if manifest["videos"].get(job.name, {}).get("status") != "ok"]
     manifest["totals"] = _totals(manifest["videos"])
     write_manifest(path, manifest)
     from tqdm.auto import tqdm
 
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="videos", unit="video",
                disable=not progress, position=0)
+    unsaved: list[OSError] = []
 
     def record(result: VideoResult) -> None:
         manifest["videos"][result.name] = asdict(result)
         manifest["videos"] = dict(sorted(manifest["videos"].items()))
         manifest["totals"] = _totals(manifest["videos"])
-        write_manifest(path, manifest)
+        try:
+            write_manifest(path, manifest)
+            unsaved.clear()
+        except OSError as error:  # a full disk: go on, the next record retries
+            unsaved[:] = [error]
+            print(f"cmax: warning: could not write {path}: {error}", file=sys.stderr)
         bar.update(1)
         bar.set_postfix_str(f"{result.name} {result.status}")
         if on_result is not None:
             on_result(result)
 
     try:
-        if int(workers) == 1 or len(todo) <= 1:
+        if workers == 1 or len(todo) <= 1:
             for job in todo:
                 record(_run_job(job, output_dir / f"{job.name}.h5", settings, 1 if progress else None))
         else:
-            _run_parallel(todo, output_dir, settings, int(workers), progress, record)
+            _run_parallel(todo, output_dir, settings, workers, progress, record)
     finally:
         bar.close()
+    if unsaved:
+        write_manifest(path, manifest)  # a last try; raises when the disk is still full
     return manifest
 
 
+# -- worker processes -------------------------------------------------------------------
+_PR_SET_PDEATHSIG = 1
+
+
+def _die_with_parent(main_pid: int) -> None:
+    """Kill this worker when its parent process dies, or when the process ``main_pid`` is gone.
+
+    The parent is the ``forkserver`` of ``main_pid`` (which exits when
+    ``main_pid`` dies) or ``main_pid`` itself (``spawn``). Linux:
+    ``prctl(PR_SET_PDEATHSIG, SIGKILL)``. Everywhere: a daemon thread that checks
+    every 0.2 s whether the parent changed or ``main_pid`` vanished (which also
+    covers a parent that died before the ``prctl``).
+    """
+    if sys.platform.startswith("linux"):
+        try:
+            import ctypes
+
+            ctypes.CDLL(None, use_errno=True).prctl(_PR_SET_PDEATHSIG, int(signal.SIGKILL), 0, 0, 0)
+        except (OSError, AttributeError):  # no libc prctl: the thread below still watches
+            pass
+    parent = os.getppid()
+
+    def orphaned() -> bool:
+        if os.getppid() != parent:
+            return True
+        try:
+            os.kill(main_pid, 0)
+        except ProcessLookupError:
+            return True
+        except PermissionError:  # exists, another user's (a reused pid): not ours any more
+            return True
+        return False
+
+    if orphaned():
+        os._exit(1)
+
+    def watch() -> None:
+        while not orphaned():
+            time.sleep(0.2)
+        os._exit(1)
+
+    threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+
+
+def _worker(connection, main_pid: int, job: VideoJob, output: Path, settings: ConvertSettings,
+            position: int | None) -> None:
+    """Entry point of a worker process: one video, the result sent back through ``connection``."""
+    _die_with_parent(main_pid)
+    signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the workers itself
+    result = _run_job(job, output, settings, position)
+    connection.send(result)
+    connection.close()
+
+
+def _worker_context():
+    """``forkserver`` where there is one (workers forked from a clean server that has this module
+    imported: fast to start, no inherited threads), else ``spawn``."""
+    import multiprocessing
+
+    if "forkserver" in multiprocessing.get_all_start_methods():
+        context = multiprocessing.get_context("forkserver")
+        context.set_forkserver_preload([__name__])
+        return context
+    return multiprocessing.get_context("spawn")
+
+
+def _describe_exit(exitcode: int | None) -> str:
+    if exitcode is not None and exitcode < 0:
+        try:
+            return f"killed by signal {signal.Signals(-exitcode).name}"
+        except ValueError:
+            return f"killed by signal {-exitcode}"
+    return f"exited with status {exitcode} without a result"
+
+
 def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None:
-    with ProcessPoolExecutor(max_workers=workers) as pool:
-        running = {}
-        for number, job in enumerate(todo):
-            position = 1 + number % workers if progress else None
-            future = pool.submit(_run_job, job, output_dir / f"{job.name}.h5", settings, position)
-            running[future] = job
-        while running:
-            done, _ = wait(running, return_when=FIRST_COMPLETED)
-            for future in done:
-                job = running.pop(future)
+    """Each job in its own worker process, at most ``workers`` at once; all killed if this one stops.
+
+    The parent waits on each worker's pipe: it becomes readable with the result,
+    or at end-of-file when the worker died without one.
+    """
+    from multiprocessing.connection import wait
+
+    context = _worker_context()
+    pending = list(enumerate(todo))[::-1]
+    running: dict[Any, tuple[Any, VideoJob]] = {}  # receiving end of the pipe -> (process, job)
+    try:
+        while pending or running:
+            while pending and len(running) < workers:
+                number, job = pending.pop()
+                receive, send = context.Pipe(duplex=False)
+                process = context.Process(
+                    target=_worker, name=f"cmax-simulate-{job.name}", daemon=True,
+                    args=(send, os.getpid(), job, output_dir / f"{job.name}.h5", settings,
+                          1 + number % workers if progress else None),
+                )
+                process.start()
+                send.close()  # the worker holds the only writing end: its death reads as end-of-file
+                running[receive] = (process, job)
+            for receive in wait(list(running)):
+                process, job = running.pop(receive)
                 try:
-                    result = future.result()
-                except Exception as error:  # a worker died (killed, out of memory)
-                    result = VideoResult(job.name, str(job.source), str(output_dir / f"{job.name}.h5"),
-                                         job.category, "failed", error=f"{type(error).__name__}: {error}")
+                    result = receive.recv()
+                except Exception:  # EOFError: died without a result; or a message cut short
+                    result = None
+                finally:
+                    receive.close()
+                process.join(timeout=60)
+                if process.exitcode is None:  # sent its result but does not exit
+                    process.kill()
+                    process.join()
+                if not isinstance(result, VideoResult):
+                    output = output_dir / f"{job.name}.h5"
+                    try:
+                        discard_leftovers(output)
+                    except OSError:
+                        pass
+                    result = _failed(job, output, f"worker process {_describe_exit(process.exitcode)}")
                 record(result)
+    finally:
+        for process, _ in running.values():
+            process.kill()
+        for receive, (process, _) in running.items():
+            process.join()
+            receive.close()

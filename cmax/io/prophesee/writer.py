@@ -2,18 +2,19 @@
 
 The encoders are vectorized over events and run block by block
 (``_ENCODE_BLOCK`` events at a time), carrying the last event's time and row
-from one block to the next. A file is written to ``<path>.partial`` and
-renamed when complete.
+from one block to the next. A file is written by the protocol of
+:mod:`cmax.io.atomic` (a lock, a private ``<path>.<hex>.partial`` file never
+reached through a link, fsync and rename when complete); a write error (full
+disk, file-size limit) names the file and leaves nothing under its name.
 """
 from __future__ import annotations
 
-import os
-from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
 
 from cmax.events import Events
+from cmax.io.atomic import AtomicOutput, write_with
 from cmax.io.prophesee._header import PathLike
 
 __all__ = ["write_evt3", "write_evt2"]
@@ -147,24 +148,20 @@ def _write(path: PathLike, events: Events, version: str, encode, t_limit: int | 
         f"% evt {version}\n% format EVT{version[0]};height={height};width={width}\n"
         f"% geometry {width}x{height}\n% generator evtslowtv\n% end\n"
     ).encode("ascii")
-    path = Path(path)
-    partial = path.with_name(path.name + ".partial")
-    try:
-        with open(partial, "wb") as f:
-            f.write(header)
-            previous = None
-            for start in range(0, len(events), _ENCODE_BLOCK):
-                block = events[start:start + _ENCODE_BLOCK]
-                f.write(encode(block.x, block.y, block.t, block.p, previous).data)
-                previous = _Previous(int(block.t[-1]), int(block.y[-1]))
-        os.replace(partial, path)
-    except BaseException:
-        partial.unlink(missing_ok=True)
-        raise
+
+    def fill(output: AtomicOutput) -> None:
+        output.write(header)
+        previous = None
+        for start in range(0, len(events), _ENCODE_BLOCK):
+            block = events[start:start + _ENCODE_BLOCK]
+            output.write(encode(block.x, block.y, block.t, block.p, previous))
+            previous = _Previous(int(block.t[-1]), int(block.y[-1]))
+
+    write_with(path, fill)  # lock, private temporary file, fsync, rename (cmax.io.atomic)
 
 
 def write_evt3(path: PathLike, events: Events) -> None:
-    """Write events as a Prophesee EVT 3.0 RAW file (atomically: ``<path>.partial``, then rename).
+    """Write events as a Prophesee EVT 3.0 RAW file (atomically: a private temporary file, then rename).
 
     The header declares ``evt 3.0``, ``format EVT3;height=H;width=W`` and
     ``geometry WxH``. Runs of at least three events with equal (t, y, p) and
