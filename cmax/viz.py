@@ -444,10 +444,6 @@ def _save_encoded(path: Path, image: np.ndarray, suffix: str) -> Path:
     ok, encoded = cv2.imencode(suffix, np.ascontiguousarray(image), params)
     if not ok:
         raise ValueError(f"OpenCV could not encode an image of shape {image.shape} as {suffix}")
-    partial = path.with_name(path.name + ".partial")
-    try:
-        partial.write_bytes(encoded.tobytes())
-        os.replace(partial, path)
-    finally:
-        partial.unlink(missing_ok=True)
-    return path
+    from cmax.io.atomic import write_bytes_atomic  # a lock and a private temporary: no planted link followed
+
+    return write_bytes_atomic(path, encoded.tobytes())

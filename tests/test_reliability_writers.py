@@ -148,36 +148,43 @@ def _plant(tmp_path: Path) -> tuple[Path, Path, bytes]:
     return out, victim, victim.read_bytes()
 
 
+from cmax.emvs.result import write_ply  # noqa: E402
+from cmax.io.text import write_txt  # noqa: E402
+from cmax.viz import save_image  # noqa: E402
+
 WRITERS = {
     "h5": lambda path: write_h5(path, random_events(200), overwrite=True),
     "evt3": lambda path: write_evt3(path, random_events(200)),
     "text": lambda path: write_text_atomic(path, "new"),
     "npz": lambda path: save_npz_atomic(path, a=np.arange(3)),
+    "ecd_txt": lambda path: write_txt(path, random_events(50)),
+    "picture": lambda path: save_image(path, np.zeros((4, 4), np.uint8)),
+    "ply": lambda path: write_ply(path, np.ones((3, 3))),
 }
 
 
 @pytest.mark.parametrize("kind", sorted(WRITERS))
 def test_links_planted_at_the_temporary_and_lock_names_are_never_followed(tmp_path, monkeypatch, kind):
     out, victim, content = _plant(tmp_path)
-    target = out / "ev.out"
+    target = out / ("ev.png" if kind == "picture" else "ev.out")
     write = WRITERS[kind]
     # The old fixed temporary name: ignored (left as it is); the file is written.
-    (out / "ev.out.partial").symlink_to(victim)
+    (out / f"{target.name}.partial").symlink_to(victim)
     write(target)
     assert target.is_file() and not target.is_symlink() and victim.read_bytes() == content
-    assert os.readlink(out / "ev.out.partial") == str(victim)
+    assert os.readlink(out / f"{target.name}.partial") == str(victim)
     # A link at the exact private name the writer draws: O_EXCL refuses it.
     import cmax.io.atomic as atomic
 
     monkeypatch.setattr(atomic.secrets, "token_hex", lambda n: "0123456789abcdef")
-    (out / "ev.out.0123456789abcdef.partial").symlink_to(victim)
+    (out / f"{target.name}.0123456789abcdef.partial").symlink_to(victim)
     before = target.read_bytes()
     with pytest.raises(FileExistsError):
         write(target)
     assert victim.read_bytes() == content and target.read_bytes() == before
     monkeypatch.undo()
     # A link at the lock name: refused, nothing written.
-    (out / "ev.out.lock").symlink_to(victim)
+    (out / f"{target.name}.lock").symlink_to(victim)
     with pytest.raises(OSError, match="symbolic link"):
         write(target)
     assert victim.read_bytes() == content and target.read_bytes() == before

@@ -230,12 +230,14 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, *, binary: bool = Tru
     kind = "binary_little_endian" if binary else "ascii"
     header = (f"ply\nformat {kind} 1.0\ncomment written by cmax.emvs (EMVS semi-dense depth)\n"
               f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
-    partial = path.with_name(path.name + ".partial")
-    with open(partial, "wb") as file:
-        file.write(header.encode("ascii"))
-        if binary:
-            file.write(points.astype("<f4").tobytes())
-        else:
-            np.savetxt(file, points, fmt="%.6f")
-    os.replace(partial, path)
-    return path
+    from cmax.io.atomic import write_with  # a lock and a private temporary: no planted link followed
+
+    def fill(output) -> None:
+        with os.fdopen(os.dup(output.fd), "wb") as file:
+            file.write(header.encode("ascii"))
+            if binary:
+                file.write(points.astype("<f4").tobytes())
+            else:
+                np.savetxt(file, points, fmt="%.6f")
+
+    return write_with(path, fill)

@@ -14,6 +14,7 @@ import numpy as np
 
 from cmax.events import Events
 from cmax.io._checks import check_polarity_encoding, check_time_unit, polarity_01, times_to_us
+from cmax.io.atomic import AtomicOutput, write_with
 from cmax.io.errors import FormatError
 
 __all__ = ["read_txt", "write_txt"]
@@ -58,11 +59,10 @@ def read_txt(
 def write_txt(path: str | os.PathLike, events: Events) -> Path:
     """Write events as ECD text (``t[s] x y p``, 9 decimals), atomically."""
     path = Path(path)
-    partial = path.with_name(path.name + ".partial")
     table = np.column_stack([events.t / 1e6, events.x, events.y, events.p])
-    try:
-        np.savetxt(partial, table, fmt=["%.9f", "%d", "%d", "%d"])
-        os.replace(partial, path)
-    finally:
-        partial.unlink(missing_ok=True)
-    return path
+
+    def fill(output: AtomicOutput) -> None:
+        with os.fdopen(os.dup(output.fd), "wb") as file:
+            np.savetxt(file, table, fmt=["%.9f", "%d", "%d", "%d"])
+
+    return write_with(path, fill)
