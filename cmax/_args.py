@@ -23,7 +23,6 @@ import argparse
 import math
 import os
 import sys
-from pathlib import Path
 from typing import Any, Callable, Sequence
 
 __all__ = [
