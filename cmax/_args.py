@@ -86,9 +86,9 @@ def nonnegative_int(text: str) -> int:
 
 
 def sensor_size(text: str) -> tuple[int, int]:
-    """``WIDTHxHEIGHT`` in pixels, each in [1, 65535]."""
+    """``WIDTHxHEIGHT`` (or ``WIDTH,HEIGHT``) in pixels, each in [1, 65535]."""
     try:
-        width, height = (int(part) for part in text.lower().split("x"))
+        width, height = (int(part) for part in text.lower().replace(",", "x").split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 346x260, got {text!r}") from None
     if not (0 < width <= 65535 and 0 < height <= 65535):

@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, nonnegative_float, positive_int, sensor_size
-from cmax.fitting.cli import intrinsics_argument
+from cmax.fitting.cli import intrinsics_argument, time_slice
 from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_emvs_command", "run_emvs", "camera_for"]
@@ -90,15 +90,7 @@ def run_emvs(args: argparse.Namespace) -> int:
     events = read(args.file, width=width, height=height)
     if len(events) == 0:
         raise ValueError(f"{args.file} holds no events")
-    if args.t0 is not None or args.t1 is not None:
-        start = int(events.t[0])
-        t0 = start + int(round((args.t0 or 0.0) * 1e6))
-        t1 = int(events.t[-1]) + 1 if args.t1 is None else start + int(round(args.t1 * 1e6))
-        if t1 <= t0:
-            raise ValueError(f"--t1 must be after --t0, got {args.t0} and {args.t1}")
-        events = events.slice_time(t0, t1)
-        if len(events) == 0:
-            raise ValueError(f"no events between --t0 {args.t0} s and --t1 {args.t1} s")
+    events = time_slice(events, args.t0, args.t1)
     camera = camera_for(args.file, events.width, events.height, args.K, args.distortion)
     trajectory = read_tum_trajectory(args.poses)
     options = {key: value for key, value in (("depth_range", args.depth_range), ("n_planes", args.planes))

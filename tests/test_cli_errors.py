@@ -120,7 +120,7 @@ CMAX_CASES = [
     (["manifest", "merge", "BADVIDEOS", "-o", "OUT"], "'videos' must map names to entries"),
     (["manifest", "merge", "TMP/none.json", "-o", "OUT"], "cmax manifest: error:"),
     (["frobnicate"], "cmax: error: argument COMMAND: invalid choice"),
-    (["fit", "FILE", "-o", "OUT"], "the following arguments are required: --K"),
+    (["fit", "FILE", "-o", "OUT"], "one of the arguments --K --calib is required"),
 ]
 
 
