@@ -38,13 +38,17 @@ DEBUG_ENV = "CMAX_DEBUG"
 
 
 # -- argument types ---------------------------------------------------------------------
-def _number(text: str, kind: type, what: str) -> float | int:
+def _number(text: str, kind: type, what: str, *, above: float | None = None,
+            at_least: float | None = None) -> float | int:
+    """``kind(text)``, finite, ``> above`` / ``>= at_least``; else ArgumentTypeError ``expected WHAT, got TEXT``."""
     try:
         value = kind(text)
     except (TypeError, ValueError):
         raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
     if isinstance(value, float) and not math.isfinite(value):
         raise argparse.ArgumentTypeError(f"expected {what}, got {text!r} (not finite)")
+    if (above is not None and value <= above) or (at_least is not None and value < at_least):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
     return value
 
 
@@ -55,34 +59,22 @@ def finite_float(text: str) -> float:
 
 def positive_float(text: str) -> float:
     """A finite number > 0."""
-    value = _number(text, float, "a finite number > 0")
-    if value <= 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number > 0, got {text!r}")
-    return float(value)
+    return float(_number(text, float, "a finite number > 0", above=0))
 
 
 def nonnegative_float(text: str) -> float:
     """A finite number >= 0."""
-    value = _number(text, float, "a finite number >= 0")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a finite number >= 0, got {text!r}")
-    return float(value)
+    return float(_number(text, float, "a finite number >= 0", at_least=0))
 
 
 def positive_int(text: str) -> int:
     """A whole number >= 1."""
-    value = _number(text, int, "a whole number >= 1")
-    if value < 1:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 1, got {text!r}")
-    return int(value)
+    return int(_number(text, int, "a whole number >= 1", at_least=1))
 
 
 def nonnegative_int(text: str) -> int:
     """A whole number >= 0."""
-    value = _number(text, int, "a whole number >= 0")
-    if value < 0:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 0, got {text!r}")
-    return int(value)
+    return int(_number(text, int, "a whole number >= 0", at_least=0))
 
 
 def sensor_size(text: str) -> tuple[int, int]:
