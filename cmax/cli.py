@@ -291,16 +291,18 @@ def _image_folder(source: Path) -> Path | None:
 
 def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     """``cmax simulate SOURCE -o F.h5``: one conversion with progress and a manifest beside F.h5."""
-    from cmax.sim.convert import VideoJob, convert_collection, load_manifest
+    from cmax.sim.convert import VideoJob, convert_collection, write_manifest
 
     output = args.output
     manifest_path = output.parent / "manifest.json"
-    listed = manifest_path.is_file() and load_manifest(manifest_path)["videos"].get(output.stem, {})
+    manifest = _checked_manifest(manifest_path) if manifest_path.is_file() else None
+    listed = manifest["videos"].get(output.stem) if manifest else None
     if output.exists() and not args.overwrite and not (listed and listed.get("status") == "ok"):
         raise FileExistsError(f"{output} exists and is not a finished conversion of {manifest_path}; "
                               "pass --overwrite to replace it")
-    if output.exists() and args.overwrite:
-        output.unlink()
+    if args.overwrite and listed:   # forget the old entry: the video is redone, the old file replaced atomically
+        write_manifest(manifest_path, {**manifest, "videos": {k: v for k, v in manifest["videos"].items()
+                                                              if k != output.stem}})
     job = VideoJob(output.stem, source)
     manifest = convert_collection([job], output.parent, settings, workers=1, progress=not args.quiet)
     return _report_manifest(manifest_path, manifest, [job.name])

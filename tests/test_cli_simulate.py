@@ -130,3 +130,15 @@ def test_merge_refuses_two_different_conversions_of_one_video(tmp_path, capsys):
     assert not (tmp_path / "all.json").exists()
     # The same manifest twice (same entries) is not a conflict.
     assert main(["manifest", "merge", one, one, "-o", str(tmp_path / "all.json")]) == 0
+
+
+def test_overwrite_keeps_the_old_file_when_the_new_conversion_fails(tmp_path, capsys):
+    write_video(tmp_path / "clip.avi")
+    out = tmp_path / "clip.h5"
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(out), *FAST, "--quiet"]) == 0
+    before = out.read_bytes()
+    (tmp_path / "clip.avi").write_bytes(b"not a video any more")
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(out), *FAST, "--quiet", "--overwrite"]) == 1
+    assert "failed clip:" in capsys.readouterr().err
+    assert out.read_bytes() == before and not list(tmp_path.glob("*.partial"))
+    assert load_manifest(tmp_path / "manifest.json")["videos"]["clip"]["status"] == "failed"
