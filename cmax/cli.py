@@ -233,6 +233,8 @@ def _cmd_simulate(args: argparse.Namespace) -> int:
     if single is not None:
         return _simulate_one(args, single, settings)
     jobs, missing = collect_jobs(args.input, catalogue=args.catalogue, shard=shard)
+    if (args.output / "manifest.json").is_file():   # resuming: a malformed manifest is refused, named
+        _checked_manifest(args.output / "manifest.json")
     manifest = convert_collection(jobs, args.output, settings, workers=args.workers, missing=missing,
                                   catalogue=args.catalogue, shard=shard, progress=not args.quiet)
     status = _report_manifest(args.output / "manifest.json", manifest, [job.name for job in jobs])
@@ -418,6 +420,8 @@ def _checked_manifest(path: Path) -> dict:
     from cmax.sim.convert import load_manifest
 
     manifest = load_manifest(path)
+    if not isinstance(manifest.get("settings"), dict):
+        raise ValueError(f"{path}: 'settings' must be a table (the conversion's settings)")
     videos = manifest.get("videos")
     if not isinstance(videos, dict) or not all(isinstance(e, dict) and isinstance(e.get("status"), str)
                                                for e in videos.values()):

@@ -35,6 +35,12 @@ def files(tmp_path_factory) -> dict[str, Path]:
     out["MANIFEST"].write_text(json.dumps(manifest))
     out["BADVIDEOS"] = folder / "bad_videos.json"
     out["BADVIDEOS"].write_text(json.dumps({**manifest, "videos": 3}))
+    out["NOSETTINGS"] = folder / "no_settings.json"
+    out["NOSETTINGS"].write_text(json.dumps({"format": "evtslowtv-manifest/1", "videos": {}}))
+    out["RESUME"] = folder / "resume"
+    out["RESUME"].mkdir()
+    (out["RESUME"] / "manifest.json").write_text(out["NOSETTINGS"].read_text())
+    (folder / "a.avi").write_bytes(b"a video name is enough for collect_jobs")
     out["LIST"] = folder / "list.json"
     out["LIST"].write_text("[1, 2]")
     out["CKPT"] = _tiny_checkpoint(folder / "tiny.pt")
@@ -119,6 +125,8 @@ CMAX_CASES = [
     (["manifest", "merge", "LIST", "-o", "OUT"], "is not a conversion manifest"),
     (["manifest", "merge", "BADVIDEOS", "-o", "OUT"], "'videos' must map names to entries"),
     (["manifest", "merge", "TMP/none.json", "-o", "OUT"], "cmax manifest: error:"),
+    (["manifest", "merge", "NOSETTINGS", "-o", "OUT"], "'settings' must be a table"),
+    (["simulate", "DIR", "-o", "RESUME"], "'settings' must be a table"),
     (["frobnicate"], "cmax: error: argument COMMAND: invalid choice"),
     (["fit", "FILE", "-o", "OUT"], "one of the arguments --K --calib is required"),
 ]
