@@ -14,37 +14,23 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax.fitting.cli import intrinsics_argument
+from cmax._args import api_default, float_list, nonnegative_float, positive_int, sensor_size
+from cmax.fitting.cli import intrinsics_argument, time_slice
 from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_emvs_command", "run_emvs", "camera_for"]
 
 
-def _numbers(text: str, counts: tuple[int, ...], what: str) -> np.ndarray:
-    try:
-        values = np.array([float(v) for v in text.split(",")])
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"{what} must be comma-separated numbers, got {text!r}") from None
-    if values.size not in counts or not np.isfinite(values).all():
-        raise argparse.ArgumentTypeError(f"{what} must be {' or '.join(map(str, counts))} finite numbers, got {text!r}")
-    return values
+_distortion = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
+_depth_range = float_list((2,), "--depth-range (near,far)")
 
 
-def _distortion(text: str) -> np.ndarray:
-    return _numbers(text, (4, 5), "--distortion (k1,k2,p1,p2[,k3])")
+def _emvs_default(name: str):
+    def default():
+        from cmax.emvs import EMVS
 
-
-def _depth_range(text: str) -> tuple[float, float]:
-    near, far = _numbers(text, (2,), "--depth-range (near,far)")
-    return float(near), float(far)
-
-
-def _size(text: str) -> tuple[int, int]:
-    try:
-        width, height = (int(part) for part in text.lower().split("x"))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 240x180, got {text!r}") from None
-    return width, height
+        return EMVS.__dataclass_fields__[name].default
+    return default
 
 
 def add_emvs_command(subparsers) -> argparse.ArgumentParser:
@@ -60,13 +46,17 @@ def add_emvs_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
     parser.add_argument("--K", type=intrinsics_argument, default=None,
                         help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file)")
-    parser.add_argument("--distortion", type=_distortion, default=None, help="OpenCV k1,k2,p1,p2[,k3]")
-    parser.add_argument("--depth-range", type=_depth_range, default=(0.5, 5.0), metavar="NEAR,FAR",
-                        help="depth range of the planes [m] (default 0.5,5)")
-    parser.add_argument("--planes", type=int, default=100, help="number of depth planes (default 100)")
-    parser.add_argument("--t0", type=float, default=None, help="start, seconds after the first event")
-    parser.add_argument("--t1", type=float, default=None, help="end, seconds after the first event")
-    parser.add_argument("--size", type=_size, default=None, metavar="WxH",
+    parser.add_argument("--distortion", type=_distortion, default=None,
+                        help="OpenCV k1,k2,p1,p2[,k3] (default: none, a pinhole camera)")
+    api_default(parser.add_argument("--depth-range", type=_depth_range, default=None, metavar="NEAR,FAR",
+                                    help="depth range of the planes [m]"), _emvs_default("depth_range"))
+    api_default(parser.add_argument("--planes", type=positive_int, default=None, help="number of depth planes"),
+                _emvs_default("n_planes"))
+    parser.add_argument("--t0", type=nonnegative_float, default=None,
+                        help="start, seconds after the first event (default: the first event)")
+    parser.add_argument("--t1", type=nonnegative_float, default=None,
+                        help="end, seconds after the first event (default: the last event)")
+    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
                         help="sensor size, for files that do not store it (ECD text, .npy)")
     parser.set_defaults(run=run_emvs)
     return parser
@@ -100,18 +90,12 @@ def run_emvs(args: argparse.Namespace) -> int:
     events = read(args.file, width=width, height=height)
     if len(events) == 0:
         raise ValueError(f"{args.file} holds no events")
-    if args.t0 is not None or args.t1 is not None:
-        start = int(events.t[0])
-        t0 = start + int(round((args.t0 or 0.0) * 1e6))
-        t1 = int(events.t[-1]) + 1 if args.t1 is None else start + int(round(args.t1 * 1e6))
-        if t1 <= t0:
-            raise ValueError(f"--t1 must be after --t0, got {args.t0} and {args.t1}")
-        events = events.slice_time(t0, t1)
-        if len(events) == 0:
-            raise ValueError(f"no events between --t0 {args.t0} s and --t1 {args.t1} s")
+    events = time_slice(events, args.t0, args.t1)
     camera = camera_for(args.file, events.width, events.height, args.K, args.distortion)
     trajectory = read_tum_trajectory(args.poses)
-    result = EMVS(camera, depth_range=args.depth_range, n_planes=args.planes).run(events, trajectory)
+    options = {key: value for key, value in (("depth_range", args.depth_range), ("n_planes", args.planes))
+               if value is not None}   # None: EMVS's own default
+    result = EMVS(camera, **options).run(events, trajectory)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     save_npz_atomic(out / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,

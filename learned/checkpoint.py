@@ -1,30 +1,108 @@
-"""Checkpoints: model, optimiser, step, config and every RNG state, written atomically."""
+"""Checkpoints: model, optimiser, step, config and every RNG state, written atomically, read without running code.
+
+A checkpoint is a ``torch.save`` of plain data only: tensors, and dicts, lists
+and tuples of str, int, float, bool and None (the config as
+:meth:`learned.config.Config.to_dict` gives it, the RNG states as tensors and
+numbers). :func:`load_checkpoint` reads it with ``torch.load(weights_only=True)``,
+which refuses any pickled object that would need code to rebuild (a
+``__reduce__`` calling ``os.system``, a NumPy array, an arbitrary class): such
+a file raises :class:`CheckpointError` before anything in it runs.
+
+Checkpoints of earlier versions (format 1) stored NumPy's RNG state as a
+pickled array and are refused the same way. A checkpoint you wrote yourself and
+trust can be converted once, explicitly::
+
+    python -m learned.checkpoint upgrade OLD.pt NEW.pt --trust-this-file
+
+which is the one place that unpickles with ``weights_only=False`` (it runs any
+code the file holds: never use it on a file from elsewhere).
+"""
 from __future__ import annotations
 
+import argparse
 import os
+import pickle
 import random
+import re
+import sys
+import warnings
+import zipfile
 from pathlib import Path
-from typing import Any
+from typing import Any, Sequence
 
 import numpy as np
 import torch
 
-__all__ = ["rng_state", "set_rng_state", "save_checkpoint", "load_checkpoint"]
+__all__ = ["CheckpointError", "FORMAT", "rng_state", "set_rng_state", "plain_data", "save_checkpoint",
+           "load_checkpoint", "upgrade_checkpoint", "main"]
+
+#: Format of the checkpoints this version writes (stored under ``"format"``).
+FORMAT = 2
+_KEYS = {"model", "optimizer", "step", "config", "rng"}
+
+
+class CheckpointError(ValueError):
+    """A file is not a checkpoint this version can load safely (foreign, corrupt, old or crafted)."""
 
 
 def rng_state() -> dict[str, Any]:
-    """The states of Python's, NumPy's and torch's global generators."""
-    return {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    """The states of Python's, NumPy's and torch's global generators, as plain data (tensors, tuples, numbers)."""
+    numpy_state = np.random.get_state(legacy=False)
+    if numpy_state["bit_generator"] != "MT19937":  # np.random's global generator is always MT19937
+        raise ValueError(f"unexpected NumPy bit generator {numpy_state['bit_generator']!r}")
+    return {
+        "python": random.getstate(),
+        "numpy": {"bit_generator": "MT19937",
+                  "key": torch.from_numpy(numpy_state["state"]["key"].astype(np.int64)),
+                  "pos": int(numpy_state["state"]["pos"]), "has_gauss": int(numpy_state["has_gauss"]),
+                  "gauss": float(numpy_state["gauss"])},
+        "torch": torch.get_rng_state(),
+    }
 
 
 def set_rng_state(state: dict[str, Any]) -> None:
+    """Restore the generators from :func:`rng_state`."""
     random.setstate(state["python"])
-    np.random.set_state(state["numpy"])
+    saved = state["numpy"]
+    np.random.set_state({"bit_generator": saved["bit_generator"],
+                         "state": {"key": np.asarray(saved["key"], dtype=np.int64).astype(np.uint32),
+                                   "pos": int(saved["pos"])},
+                         "has_gauss": int(saved["has_gauss"]), "gauss": float(saved["gauss"])})
     torch.set_rng_state(state["torch"])
 
 
+def plain_data(value: Any, where: str = "config") -> Any:
+    """``value`` as plain data: dicts with str keys, lists, tuples, str, int, float, bool, None.
+
+    Paths become str and NumPy scalars Python numbers; anything else raises TypeError
+    naming where it sits (a checkpoint must load with ``weights_only=True``).
+    """
+    if value is None or isinstance(value, (bool, int, float, str)):
+        return value
+    if isinstance(value, np.generic) and value.ndim == 0 and value.dtype.kind in "biuf":
+        return value.item()
+    if isinstance(value, os.PathLike):
+        return os.fspath(value)
+    if isinstance(value, dict):
+        if not all(isinstance(key, str) for key in value):
+            raise TypeError(f"{where}: keys must be str, got {sorted(map(repr, value))}")
+        return {key: plain_data(item, f"{where}.{key}") for key, item in value.items()}
+    if isinstance(value, (list, tuple)):
+        items = [plain_data(item, f"{where}[{i}]") for i, item in enumerate(value)]
+        return items if isinstance(value, list) else tuple(items)
+    raise TypeError(f"{where}: {type(value).__name__} cannot be stored in a checkpoint (plain data only)")
+
+
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
-    """``torch.save`` to ``<path>.<pid>.partial``, flushed to disk, then ``os.replace``: never a partial file under ``path``."""
+    """``torch.save`` to ``<path>.<pid>.partial``, flushed to disk, then ``os.replace``: never a partial file under ``path``.
+
+    ``payload`` needs the keys ``model``, ``optimizer``, ``step``, ``config``, ``rng``; its
+    ``config`` is stored through :func:`plain_data` and ``format`` is set to :data:`FORMAT`.
+    """
+    missing = _KEYS - set(payload)
+    if missing:
+        raise ValueError(f"a checkpoint needs the keys {sorted(_KEYS)}, missing {sorted(missing)}")
+    payload = {**payload, "config": plain_data(payload["config"]), "format": FORMAT}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
     partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
@@ -39,13 +117,119 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     return path
 
 
+def _refused(path: Path, error: BaseException) -> CheckpointError:
+    detail = " ".join(str(error).split())
+    # torch names the offending global ("... unsupported GLOBAL posix.system whose module ...").
+    found = re.search(r"GLOBAL ([\w.]+)", detail) if isinstance(error, pickle.UnpicklingError) else None
+    if found:
+        return CheckpointError(
+            f"{path} was refused: loading it would run code (it calls {found.group(1)}); "
+            "a checkpoint of this version holds tensors and plain data only. If it is a checkpoint of an earlier "
+            "version that you wrote yourself, convert it once with 'python -m learned.checkpoint upgrade OLD NEW "
+            "--trust-this-file'")
+    if isinstance(error, pickle.UnpicklingError) and "WeightsUnpickler error:" in detail:
+        reason = detail.split("WeightsUnpickler error:", 1)[1].split(" Check the documentation")[0].strip()
+        return CheckpointError(f"{path} is not a learned checkpoint (refused by the safe loader: {reason[:200]})")
+    return CheckpointError(f"{path} is not a learned checkpoint (torch.load: {type(error).__name__}: {detail[:200]})")
+
+
+def _check_payload(path: Path, payload: object) -> dict[str, Any]:
+    if not isinstance(payload, dict):
+        raise CheckpointError(f"{path} is not a learned checkpoint (it holds a {type(payload).__name__}, not a dict)")
+    missing = _KEYS - set(payload)
+    if missing:
+        raise CheckpointError(f"{path} is not a learned checkpoint (missing {sorted(missing)})")
+    if payload.get("format") != FORMAT:
+        raise CheckpointError(f"{path} has checkpoint format {payload.get('format', 1)!r}, this version reads "
+                              f"{FORMAT}; convert a trusted one with 'python -m learned.checkpoint upgrade'")
+    model = payload["model"]
+    if not (isinstance(model, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor)
+                                            for k, v in model.items())):
+        raise CheckpointError(f"{path}: 'model' must map parameter names to tensors")
+    step = payload["step"]
+    if not (isinstance(step, int) and not isinstance(step, bool) and step >= 0):
+        raise CheckpointError(f"{path}: 'step' must be an integer >= 0, got {step!r}")
+    if not isinstance(payload["config"], dict):
+        raise CheckpointError(f"{path}: 'config' must be a dict, got {type(payload['config']).__name__}")
+    if not (isinstance(payload["optimizer"], dict) and isinstance(payload["rng"], dict)):
+        raise CheckpointError(f"{path}: 'optimizer' and 'rng' must be dicts")
+    return payload
+
+
 def load_checkpoint(path: str | Path) -> dict[str, Any]:
-    """Read a checkpoint written by :func:`save_checkpoint` (trusted files: it holds RNG states)."""
+    """Read a checkpoint written by :func:`save_checkpoint` without running any code it may hold.
+
+    Raises
+    ------
+    FileNotFoundError
+        No file at ``path``.
+    CheckpointError (a ValueError)
+        Not a ``torch.save`` file, a pickle that needs code to load (crafted, or
+        of format 1: see :func:`upgrade_checkpoint`), or keys of the wrong kind.
+    """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
-    payload = torch.load(path, map_location="cpu", weights_only=False)
-    missing = {"model", "optimizer", "step", "config", "rng"} - set(payload)
-    if missing:
-        raise ValueError(f"{path} is not a learned checkpoint (missing {sorted(missing)})")
-    return payload
+    try:
+        with warnings.catch_warnings():  # e.g. torch's note on an unusual pickle protocol
+            warnings.simplefilter("ignore")
+            payload = torch.load(path, map_location="cpu", weights_only=True)
+    except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, TypeError, AttributeError, KeyError,
+            ImportError, IndexError, zipfile.BadZipFile, UnicodeDecodeError, MemoryError, OverflowError) as error:
+        raise _refused(path, error) from None
+    return _check_payload(path, payload)
+
+
+def _upgraded_rng(rng: dict[str, Any]) -> dict[str, Any]:
+    numpy_state = rng["numpy"]
+    if isinstance(numpy_state, tuple):  # format 1: np.random.get_state()
+        name, key, pos, has_gauss, gauss = numpy_state
+        numpy_state = {"bit_generator": str(name), "key": torch.from_numpy(np.asarray(key).astype(np.int64)),
+                       "pos": int(pos), "has_gauss": int(has_gauss), "gauss": float(gauss)}
+    return {"python": rng["python"], "numpy": numpy_state, "torch": rng["torch"]}
+
+
+def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False) -> Path:
+    """Convert a TRUSTED checkpoint of format 1 to the current format (plain data, loads with ``weights_only=True``).
+
+    This unpickles ``old`` with ``weights_only=False``, which runs any code the file
+    holds: pass ``trust=True`` only for a file you wrote yourself.
+    """
+    if trust is not True:
+        raise ValueError("upgrade_checkpoint unpickles the file with weights_only=False, which runs any code it "
+                         "holds: pass trust=True (--trust-this-file) only for a checkpoint you wrote yourself")
+    old = Path(old)
+    if not old.is_file():
+        raise FileNotFoundError(f"no checkpoint at {old}")
+    payload = torch.load(old, map_location="cpu", weights_only=False)
+    if not isinstance(payload, dict) or _KEYS - set(payload):
+        raise CheckpointError(f"{old} is not a learned checkpoint")
+    payload = {**payload, "rng": _upgraded_rng(payload["rng"]), "step": int(payload["step"])}
+    written = save_checkpoint(new, payload)
+    load_checkpoint(written)  # proves it now loads safely
+    return written
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    """``python -m learned.checkpoint upgrade OLD NEW --trust-this-file``."""
+    from cmax._args import ArgumentParser, run_main
+
+    parser = ArgumentParser(prog="python -m learned.checkpoint",
+                            description="Convert a trusted checkpoint of an earlier version to the safe format.")
+    actions = parser.add_subparsers(dest="action", metavar="ACTION", required=True)
+    upgrade = actions.add_parser("upgrade", help="rewrite OLD (format 1) as NEW (format 2)")
+    upgrade.add_argument("old", type=Path, help="checkpoint of format 1 that you wrote yourself")
+    upgrade.add_argument("new", type=Path, help="output path")
+    upgrade.add_argument("--trust-this-file", action="store_true",
+                         help="required: OLD is unpickled with weights_only=False and can run code")
+
+    def run(args: argparse.Namespace) -> int:
+        written = upgrade_checkpoint(args.old, args.new, trust=args.trust_this_file)
+        print(f"wrote {written} (checkpoint format {FORMAT})")
+        return 0
+
+    return run_main(parser, run, argv)
+
+
+if __name__ == "__main__":
+    sys.exit(main())

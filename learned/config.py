@@ -8,6 +8,7 @@ as strings).
 from __future__ import annotations
 
 import json
+import math
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -15,9 +16,54 @@ from typing import Any
 
 from learned.model import ModelConfig
 
-__all__ = ["DataConfig", "TrainConfig", "Config", "load_config", "apply_overrides", "MODES"]
+__all__ = ["DataConfig", "TrainConfig", "Config", "load_config", "apply_overrides", "config_from_dict", "MODES"]
 
 MODES = ("teacher", "finetune", "student")
+
+# Field annotations (strings: ``from __future__ import annotations``) -> accepted Python types.
+_KINDS = {"int": ((int,), "a whole number"), "float": ((int, float), "a finite number"),
+          "bool": ((bool,), "true or false"), "str": ((str,), "a string"), "tuple": ((tuple, list), "a list")}
+
+
+def _check_types(cls: type, values: dict[str, Any], section: str) -> None:
+    """TypeError/ValueError naming ``section.key`` for a value of the wrong type or a non-finite float."""
+    for f in fields(cls):
+        if f.name not in values:
+            continue
+        kind = f.type if isinstance(f.type, str) else getattr(f.type, "__name__", "")
+        if kind not in _KINDS:
+            continue
+        allowed, what = _KINDS[kind]
+        value = values[f.name]
+        if (isinstance(value, bool) and kind != "bool") or not isinstance(value, allowed):
+            raise TypeError(f"{section}.{f.name} must be {what}, got {value!r} ({type(value).__name__})")
+        if kind == "float" and not math.isfinite(value):
+            raise ValueError(f"{section}.{f.name} must be {what}, got {value!r}")
+
+
+def _require(condition: bool, section: str, name: str, rule: str, value: object) -> None:
+    if not condition:
+        raise ValueError(f"{section}.{name} must be {rule}, got {value!r}")
+
+
+def _check_file_entry(entry: object, index: int) -> None:
+    where = f"data.files[{index}]"
+    if isinstance(entry, (str, Path)):
+        return
+    if not isinstance(entry, dict):
+        raise TypeError(f"{where} must be a path or {{\"path\", \"K\", \"use_gt\"}}, got {entry!r}")
+    unknown = set(entry) - {"path", "K", "use_gt"}
+    if unknown or not isinstance(entry.get("path"), (str, Path)):
+        raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\" and \"use_gt\" only, got {entry!r}")
+    K = entry.get("K")
+    if K is not None:
+        flat = [v for row in K for v in row] if K and isinstance(K[0], (list, tuple)) else list(K) \
+            if isinstance(K, (list, tuple)) else None
+        if (flat is None or len(flat) not in (4, 9) or
+                not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in flat)):
+            raise TypeError(f"{where}.K must be [fx, fy, cx, cy] or a 3x3 list of finite numbers, got {K!r}")
+    if not isinstance(entry.get("use_gt", True), bool):
+        raise TypeError(f"{where}.use_gt must be true or false, got {entry['use_gt']!r}")
 
 
 @dataclass(frozen=True)
@@ -42,6 +88,15 @@ class DataConfig:
     max_events: int = 20_000
     augment: bool = True
     workers: int = 0
+
+    def __post_init__(self) -> None:
+        _check_types(DataConfig, asdict(self), "data")
+        object.__setattr__(self, "files", tuple(self.files))
+        for i, entry in enumerate(self.files):
+            _check_file_entry(entry, i)
+        _require(self.window_us >= 1, "data", "window_us", "a whole number of µs >= 1", self.window_us)
+        _require(self.max_events >= 1, "data", "max_events", ">= 1", self.max_events)
+        _require(self.workers >= 0, "data", "workers", ">= 0", self.workers)
 
 
 @dataclass(frozen=True)
@@ -90,6 +145,18 @@ class TrainConfig:
     si_variance_weight: float = 0.85
     twist_weight: float = 1.0
 
+    def __post_init__(self) -> None:
+        _check_types(TrainConfig, asdict(self), "train")
+        for name in ("batch_size", "checkpoint_every", "log_every", "image_every"):
+            _require(getattr(self, name) >= 1, "train", name, "a whole number >= 1", getattr(self, name))
+        for name in ("steps", "seed"):
+            _require(getattr(self, name) >= 0, "train", name, "a whole number >= 0", getattr(self, name))
+        _require(self.lr > 0, "train", "lr", "> 0", self.lr)
+        for name in ("weight_decay", "lam", "collapse_weight", "twist_weight"):
+            _require(getattr(self, name) >= 0, "train", name, ">= 0", getattr(self, name))
+        _require(0 <= self.si_variance_weight <= 1, "train", "si_variance_weight", "in [0, 1]",
+                 self.si_variance_weight)
+
 
 @dataclass(frozen=True)
 class Config:
@@ -101,8 +168,6 @@ class Config:
     def __post_init__(self) -> None:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
-        if self.train.batch_size < 1 or self.train.steps < 0:
-            raise ValueError(f"train.batch_size must be >= 1 and train.steps >= 0, got {self.train}")
         if self.mode in ("finetune", "student") and not self.train.teacher:
             raise ValueError(f"mode {self.mode!r} needs train.teacher (a teacher checkpoint)")
 
@@ -111,19 +176,30 @@ class Config:
 
 
 def _section(cls, values: dict, name: str):
+    if not isinstance(values, dict):
+        raise TypeError(f"[{name}] must be a table of keys, got {values!r}")
     known = {f.name for f in fields(cls)}
     unknown = set(values) - known
     if unknown:
         raise ValueError(f"unknown keys in [{name}]: {sorted(unknown)} (known: {sorted(known)})")
+    _check_types(cls, values, name)
     values = {k: tuple(v) if isinstance(v, list) and k == "files" else v for k, v in values.items()}
     return cls(**values)
 
 
 def config_from_dict(values: dict[str, Any]) -> Config:
-    """A :class:`Config` from nested dicts (as written by :meth:`Config.to_dict`)."""
+    """A :class:`Config` from nested dicts (as written by :meth:`Config.to_dict`).
+
+    Raises ValueError / TypeError naming the key for unknown keys, values of the
+    wrong type, non-finite numbers and values out of range.
+    """
+    if not isinstance(values, dict):
+        raise TypeError(f"a config must be a table of sections, got {type(values).__name__}")
     unknown = set(values) - {"mode", "model", "data", "train"}
     if unknown:
         raise ValueError(f"unknown config sections: {sorted(unknown)}")
+    if not isinstance(values.get("mode", "teacher"), str):
+        raise TypeError(f"mode must be one of {MODES}, got {values['mode']!r}")
     return Config(mode=values.get("mode", "teacher"),
                   model=_section(ModelConfig, values.get("model", {}), "model"),
                   data=_section(DataConfig, values.get("data", {}), "data"),
@@ -146,8 +222,10 @@ def apply_overrides(values: dict[str, Any], overrides: list[str]) -> dict[str, A
             raise ValueError(f"overrides must look like section.key=value, got {item!r}")
         *path, last = key.split(".")
         target = values
-        for part in path:
+        for depth, part in enumerate(path):
             target = target.setdefault(part, {})
+            if not isinstance(target, dict):
+                raise ValueError(f"override {item!r}: {'.'.join(path[:depth + 1])} is a value, not a section")
         target[last] = _parse(raw)
     return values
 
@@ -157,12 +235,17 @@ def load_config(path: str | Path | None, overrides: list[str] = (), *, mode: str
     values: dict[str, Any] = {}
     if path is not None:
         path = Path(path)
-        if path.suffix == ".json":
-            values = json.loads(path.read_text())
-        elif path.suffix == ".toml":
-            values = tomllib.loads(path.read_text())
-        else:
+        if path.suffix not in (".json", ".toml"):
             raise ValueError(f"config must be a .json or .toml file, got {path}")
+        if not path.is_file():
+            raise FileNotFoundError(f"no config file at {path}")
+        try:
+            text = path.read_text("utf-8")
+            values = json.loads(text) if path.suffix == ".json" else tomllib.loads(text)
+        except (ValueError, UnicodeDecodeError) as error:  # JSONDecodeError, TOMLDecodeError
+            raise ValueError(f"{path} is not valid {path.suffix[1:].upper()}: {error}") from None
+        if not isinstance(values, dict):
+            raise TypeError(f"{path} must hold a table of sections, got {type(values).__name__}")
     values = apply_overrides(values, list(overrides))
     if mode is not None:
         values["mode"] = mode

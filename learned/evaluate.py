@@ -23,9 +23,10 @@ import h5py
 import numpy as np
 import torch
 
+from cmax._args import ArgumentParser, positive_float, run_main
 from cmax.metrics import DepthMetrics, MotionMetrics, depth_metrics, motion_metrics
 from cmax.io.atomic import write_text_atomic
-from learned.checkpoint import load_checkpoint
+from learned.checkpoint import CheckpointError, load_checkpoint
 from learned.config import config_from_dict
 from learned.data import H5WindowDataset, collate
 from learned.model import DepthPoseNet
@@ -48,11 +49,23 @@ class FileReport:
 
 
 def load_model(checkpoint: str | Path) -> tuple[DepthPoseNet, dict]:
-    """The network of a checkpoint (eval mode) and its config dict."""
+    """The network of a checkpoint (eval mode) and its config dict (validated).
+
+    Raises FileNotFoundError or :class:`learned.checkpoint.CheckpointError` (a ValueError) for a
+    missing, foreign, crafted or inconsistent checkpoint (see :func:`learned.checkpoint.load_checkpoint`).
+    """
     ckpt = load_checkpoint(checkpoint)
-    model = DepthPoseNet(config_from_dict(ckpt["config"]).model)
-    model.load_state_dict(ckpt["model"])
-    return model.eval(), ckpt["config"]
+    try:
+        config = config_from_dict(ckpt["config"])
+    except (TypeError, ValueError) as error:
+        raise CheckpointError(f"{checkpoint}: its config is not valid: {error}") from None
+    model = DepthPoseNet(config.model)
+    try:
+        model.load_state_dict(ckpt["model"])
+    except RuntimeError as error:  # missing / unexpected keys, shapes that do not match the config
+        raise CheckpointError(f"{checkpoint}: the weights do not match its model config "
+                              f"({' '.join(str(error).split())[:300]})") from None
+    return model.eval(), config.to_dict()
 
 
 @torch.no_grad()
@@ -78,12 +91,16 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
     """Metrics of ``checkpoint`` on each file with ground truth (window length from the checkpoint's config)."""
     model, config = load_model(checkpoint)
     window_us = int(round(window_s * 1e6)) if window_s is not None else int(config["data"]["window_us"])
+    if window_us < 1:
+        raise ValueError(f"the window must be at least 1 µs long, got {window_s} s")
     reports = []
     for path in map(Path, files):
         dataset = H5WindowDataset([path], window_us=window_us, max_events=1000, bins=model.config.bins,
                                   min_events=10)
         if dataset._gt[0] is None:
             raise ValueError(f"{path} has no gt/: evaluation needs ground truth")
+        if len(dataset) == 0:
+            raise ValueError(f"{path}: no window of {window_us} µs with ground truth and at least 10 events")
         preds, gts, v, w, v_gt, w_gt = [], [], [], [], [], []
         for batch, out in predict_batches(model, dataset, batch_size):
             preds.append(out.depth[:, 0].numpy())
@@ -118,11 +135,16 @@ def write_accuracy_csv(path: str | Path, rows: Sequence[tuple[str, FileReport]])
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m learned.evaluate", description=__doc__.splitlines()[0])
-    parser.add_argument("--checkpoint", type=Path, required=True)
+    """Entry point; returns the exit status (2 and one line for a bad argument or file)."""
+    parser = ArgumentParser(prog="python -m learned.evaluate", description=__doc__.splitlines()[0])
+    parser.add_argument("--checkpoint", type=Path, required=True, help="checkpoint of learned.train (last.pt)")
     parser.add_argument("--data", type=Path, nargs="+", required=True, help="h5 files with gt/")
-    parser.add_argument("--window", type=float, default=None, help="window length [s] (default: the config's)")
-    args = parser.parse_args(argv)
+    parser.add_argument("--window", type=positive_float, default=None,
+                        help="window length [s] (default: the checkpoint config's data.window_us)")
+    return run_main(parser, _run, argv)
+
+
+def _run(args: argparse.Namespace) -> int:
     for report in evaluate_files(args.checkpoint, args.data, window_s=args.window):
         m = report.depth
         line = (f"{report.sequence}: {report.windows} windows  abs_mean {m.abs_mean:.3f} m  abs_rel {m.abs_rel:.3f}  "

@@ -15,6 +15,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from cmax._args import ArgumentParser, positive_float, run_main
 from cmax.fitting.cli import intrinsics_argument
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 from learned.data import H5WindowDataset
@@ -29,7 +30,11 @@ def predict_file(checkpoint: str | Path, path: str | Path, out: str | Path, *, K
     from cmax import viz
 
     model, config = load_model(checkpoint)
-    window_us = window_us or int(config["data"]["window_us"])
+    window_us = int(config["data"]["window_us"]) if window_us is None else int(window_us)
+    if window_us < 1:
+        raise ValueError(f"the window must be at least 1 µs long, got {window_us} µs")
+    if not Path(path).is_file():
+        raise FileNotFoundError(f"no such event file: {path}")
     spec = {"path": str(path), "use_gt": False, **({"K": np.asarray(K, float).tolist()} if K is not None else {})}
     try:
         dataset = H5WindowDataset([spec], window_us=window_us, max_events=1000, bins=model.config.bins, min_events=10)
@@ -38,6 +43,8 @@ def predict_file(checkpoint: str | Path, path: str | Path, out: str | Path, *, K
             raise
         dataset = H5WindowDataset([{"path": str(path)}], window_us=window_us, max_events=1000,
                                   bins=model.config.bins, min_events=10)
+    if len(dataset) == 0:
+        raise ValueError(f"{path}: no window of {window_us} µs with at least 10 events")
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
     lines = ["window,t0_us,t1_us,vx,vy,vz,wx,wy,wz"]
@@ -57,13 +64,19 @@ def predict_file(checkpoint: str | Path, path: str | Path, out: str | Path, *, K
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m learned.predict", description=__doc__.splitlines()[0])
+    """Entry point; returns the exit status (2 and one line for a bad argument or file)."""
+    parser = ArgumentParser(prog="python -m learned.predict", description=__doc__.splitlines()[0])
     parser.add_argument("file", type=Path, help="DSEC-layout h5 event file")
-    parser.add_argument("--checkpoint", type=Path, required=True)
+    parser.add_argument("--checkpoint", type=Path, required=True, help="checkpoint of learned.train (last.pt)")
     parser.add_argument("-o", "--output", type=Path, required=True, help="output folder")
-    parser.add_argument("--K", type=intrinsics_argument, default=None, help="fx,fy,cx,cy for files without gt/K")
-    parser.add_argument("--window", type=float, default=None, help="window length [s] (default: the config's)")
-    args = parser.parse_args(argv)
+    parser.add_argument("--K", type=intrinsics_argument, default=None,
+                        help="fx,fy,cx,cy for files without gt/K (default: the file's gt/K)")
+    parser.add_argument("--window", type=positive_float, default=None,
+                        help="window length [s] (default: the checkpoint config's data.window_us)")
+    return run_main(parser, _run, argv)
+
+
+def _run(args: argparse.Namespace) -> int:
     with torch.no_grad():
         n = predict_file(args.checkpoint, args.file, args.output, K=args.K,
                          window_us=None if args.window is None else int(round(args.window * 1e6)))

@@ -29,9 +29,10 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
+from cmax._args import ArgumentParser, run_main
 from cmax.loss import ContrastLoss, EventBatch
-from learned.checkpoint import load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from learned.config import Config, config_from_dict, load_config
+from learned.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from learned.config import Config, load_config
 from learned.data import H5WindowDataset, collate
 from learned.losses import student_loss, teacher_loss
 from learned.model import DepthPoseNet
@@ -57,6 +58,15 @@ def _events(batch: dict[str, torch.Tensor], width: int, height: int) -> EventBat
                                   batch["duration_s"], width=width, height=height)
 
 
+def _load_weights(model: DepthPoseNet, state: dict[str, torch.Tensor], source: str) -> None:
+    """``model.load_state_dict(state)``; a mismatch raises :class:`CheckpointError` naming ``source``."""
+    try:
+        model.load_state_dict(state)
+    except RuntimeError as error:  # missing / unexpected keys, other shapes
+        raise CheckpointError(f"{source}: its weights do not fit the model of this config "
+                              f"({' '.join(str(error).split())[:300]})") from None
+
+
 class Trainer:
     """One training run (a rank of it under ``torchrun``); :meth:`run` trains to ``config.train.steps``."""
 
@@ -75,19 +85,23 @@ class Trainer:
         self.model = DepthPoseNet(config.model)
         self.teacher = None
         if config.mode in ("finetune", "student"):
-            teacher_ckpt = load_checkpoint(tc.teacher)
-            teacher = DepthPoseNet(config_from_dict(teacher_ckpt["config"]).model)
-            teacher.load_state_dict(teacher_ckpt["model"])
+            from learned.evaluate import load_model
+
+            teacher, _ = load_model(tc.teacher)
             if config.mode == "finetune":
-                self.model.load_state_dict(teacher_ckpt["model"])
+                _load_weights(self.model, teacher.state_dict(), f"the teacher {tc.teacher}")
             else:
                 self.teacher = teacher.eval().requires_grad_(False)
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
         self.step = 0
         if resume and (self.out / "last.pt").is_file():
             ckpt = load_checkpoint(self.out / "last.pt")
-            self.model.load_state_dict(ckpt["model"])
-            self.optimizer.load_state_dict(ckpt["optimizer"])
+            _load_weights(self.model, ckpt["model"], str(self.out / "last.pt"))
+            try:
+                self.optimizer.load_state_dict(ckpt["optimizer"])
+            except (ValueError, KeyError, TypeError) as error:
+                raise CheckpointError(f"{self.out / 'last.pt'}: its optimizer state does not fit this run "
+                                      f"({error})") from None
             self.step = int(ckpt["step"])
             set_rng_state(ckpt["rng"])
         self.net = self.model
@@ -225,13 +239,18 @@ class Trainer:
 
 
 def main(argv: list[str] | None = None) -> int:
-    parser = argparse.ArgumentParser(prog="python -m learned.train", description=__doc__.splitlines()[0])
-    parser.add_argument("--mode", choices=("teacher", "finetune", "student"), required=True)
-    parser.add_argument("--config", type=Path, default=None, help="a .json or .toml config")
+    """Entry point; returns the exit status (2 and one line for a bad argument, config or checkpoint)."""
+    parser = ArgumentParser(prog="python -m learned.train", description=__doc__.splitlines()[0])
+    parser.add_argument("--mode", choices=("teacher", "finetune", "student"), required=True, help="what to train")
+    parser.add_argument("--config", type=Path, default=None,
+                        help="a .json or .toml config (default: the defaults of learned.config)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt when it exists")
-    parser.add_argument("--no-progress", action="store_true")
+    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("overrides", nargs="*", help="section.key=value (e.g. train.steps=100)")
-    args = parser.parse_args(argv)
+    return run_main(parser, _run, argv)
+
+
+def _run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides, mode=args.mode)
     trainer = Trainer(config, resume=args.resume, progress=not args.no_progress)
     losses = trainer.run()

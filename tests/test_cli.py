@@ -162,4 +162,4 @@ def test_fit_with_the_zero_rotation_start(tmp_path, capsys):
     assert both["windows"][0]["iterations"] > plain["windows"][0]["iterations"]
     # the printed summary counts the windows with under 1 px of parallax (this slow slide has them)
     low = sum(w["parallax_px"] < 1.0 for w in both["windows"])
-    assert low >= 1 and f"({low} with under 1 px of parallax" in capsys.readouterr().out.splitlines()[-1]
+    assert low >= 1 and f", {low} with under 1 px of parallax" in capsys.readouterr().out.splitlines()[-1]

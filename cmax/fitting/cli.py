@@ -16,10 +16,11 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax._args import api_default, float_list, nonnegative_float, positive_float, positive_int, sensor_size
 from cmax.camera import check_intrinsics
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
-__all__ = ["add_fit_command", "run_fit", "tum_lines", "intrinsics_argument"]
+__all__ = ["add_fit_command", "run_fit", "tum_lines", "intrinsics_argument", "read_calibration", "time_slice"]
 
 
 def intrinsics_argument(text: str) -> np.ndarray:
@@ -41,14 +42,39 @@ def add_fit_command(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser("fit", help="depth and motion per window by contrast maximization",
                                    description=__doc__.split("\n\n")[0])
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
-    parser.add_argument("--K", required=True, type=intrinsics_argument, help="intrinsics fx,fy,cx,cy [px]")
+    camera = parser.add_mutually_exclusive_group(required=True)
+    camera.add_argument("--K", type=intrinsics_argument, help="intrinsics fx,fy,cx,cy [px]")
+    camera.add_argument("--calib", type=Path, default=None,
+                        help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
+                             "k3) or DSEC cam_to_cam.yaml (intrinsics of --calib-camera)")
+    parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
+                        help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
+                             "(rectified events)")
+    parser.add_argument("--distortion", type=_distortion, default=None,
+                        help="OpenCV k1,k2,p1,p2[,k3] of --K: events are undistorted to the nearest pixel "
+                             "before the fit (default: none, a pinhole camera)")
     parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
                         help="unit of the file's time stamps where the file does not state it (never guessed)")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
-    parser.add_argument("--model", choices=("se3", "rotation", "flow"), default="se3")
-    parser.add_argument("--window-ms", type=float, default=166.5, help="window length [ms]")
-    parser.add_argument("--step-ms", type=float, default=None, help="step between windows [ms]")
-    parser.add_argument("--speed", type=float, default=None, help="known speed [m/s] (metric depth)")
+    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
+                        help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
+                             "shipped)")
+    parser.add_argument("--t0", type=nonnegative_float, default=None,
+                        help="start, seconds after the first event (default: the first event)")
+    parser.add_argument("--t1", type=nonnegative_float, default=None,
+                        help="end, seconds after the first event (default: the last event)")
+    api_default(parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
+                                    metavar="NEAR,FAR", help="depth bounds [m] (in units of --speed x 1 s without "
+                                    "it); give the scene's own range when known: it matters for se3"),
+                _settings_default("depth_range"))
+    api_default(parser.add_argument("--model", choices=("se3", "rotation", "flow"), default=None,
+                                    help="motion model"), _sequence_default("model"))
+    api_default(parser.add_argument("--window-ms", type=positive_float, default=None, help="window length [ms]"),
+                lambda: _sequence_default("window_us")() / 1000)
+    parser.add_argument("--step-ms", type=positive_float, default=None,
+                        help="step between window starts [ms] (default: the window length)")
+    parser.add_argument("--speed", type=positive_float, default=None,
+                        help="known speed [m/s] (metric depth; default: unknown, depth up to scale)")
     parser.add_argument("--gyro", type=Path, default=None,
                         help="gyroscope samples (se3): an .aedat4 file (its IMU stream) or a text file of "
                              "'t wx wy wz' lines [s, rad/s], camera axes, the events' clock; each window's "
@@ -57,10 +83,139 @@ def add_fit_command(subparsers) -> argparse.ArgumentParser:
                         help="se3: also start the motion refinement from the flows explained without rotation "
                              "and keep the better (vehicles: on a forward drive it found forward motion where the "
                              "default ended at a pitching plane; about 1 s more per window)")
-    parser.add_argument("--solver", choices=("scipy", "casadi", "torch"), default="scipy")
-    parser.add_argument("--max-events", type=int, default=40_000)
+    api_default(parser.add_argument("--solver", choices=("scipy", "casadi", "torch"), default=None,
+                                    help="optimisation back end"), _fit_default("solver"))
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    api_default(parser.add_argument("--max-events", type=positive_int, default=None,
+                                    help="windows with more events are subsampled to this many "
+                                         "(cmax.FitSettings.max_events)"), _settings_default("max_events"))
     parser.set_defaults(run=run_fit)
     return parser
+
+
+_distortion = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
+
+
+def _numbers(text: str) -> list[float]:
+    return [float(v) for v in text.replace("[", " ").replace("]", " ").replace(",", " ").split()]
+
+
+def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray, np.ndarray | None,
+                                                                      tuple[int, int] | None]:
+    """``(K (3, 3), distortion (4,) or (5,) or None, (width, height) or None)`` of a calibration file.
+
+    * ECD ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or only ``fx fy cx cy``);
+    * DSEC ``cam_to_cam.yaml``: ``intrinsics/<camera>`` with ``camera_matrix: [fx, fy, cx, cy]``,
+      optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``.
+
+    Raises FileNotFoundError, or ValueError naming the file and what is missing.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no calibration file at {path}")
+    text = path.read_text("utf-8", errors="replace")
+    if path.suffix.lower() in (".yaml", ".yml"):
+        values = _yaml_intrinsics(path, text, camera)
+        try:
+            fx, fy, cx, cy = _numbers(values["camera_matrix"])
+            distortion = _numbers(values["distortion_coeffs"]) if "distortion_coeffs" in values else None
+            size = tuple(int(v) for v in _numbers(values["resolution"])) if "resolution" in values else None
+        except (KeyError, ValueError, TypeError):
+            raise ValueError(f"{path}: intrinsics/{camera} needs camera_matrix: [fx, fy, cx, cy] (and optionally "
+                             "distortion_coeffs, resolution: [w, h])") from None
+        if values.get("distortion_model", "radtan").strip() not in ("radtan", "plumb_bob"):
+            raise ValueError(f"{path}: distortion_model {values['distortion_model'].strip()!r} is not supported "
+                             "(radtan / plumb_bob)")
+        if size is not None and len(size) != 2:
+            raise ValueError(f"{path}: resolution must be [width, height]")
+    else:
+        lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+        try:
+            numbers = _numbers(lines[0]) if len(lines) == 1 else []
+        except ValueError:
+            numbers = []
+        if len(numbers) not in (4, 8, 9):
+            raise ValueError(f"{path}: expected one line 'fx fy cx cy [k1 k2 p1 p2 [k3]]' (ECD calib.txt)")
+        (fx, fy, cx, cy), distortion, size = numbers[:4], numbers[4:] or None, None
+    if distortion is not None and (len(distortion) not in (4, 5) or not np.isfinite(distortion).all()):
+        raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])")
+    K = check_intrinsics(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
+    return K, None if distortion is None else np.asarray(distortion, float), size
+
+
+def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
+    """The ``key: value`` lines under ``intrinsics:`` / ``<camera>:`` of a DSEC cam_to_cam.yaml (no YAML library)."""
+    section, current, indents, values = None, None, {}, {}
+    for raw in text.splitlines():
+        line = raw.split("#", 1)[0].rstrip()
+        if not line.strip() or line.lstrip().startswith("-"):
+            continue
+        indent = len(line) - len(line.lstrip())
+        key, _, value = line.strip().partition(":")
+        if indent == 0:
+            section, current = key, None
+        elif section == "intrinsics" and not value.strip():
+            current, indents[key] = key, indent
+        elif section == "intrinsics" and current == camera and indent > indents.get(camera, 0):
+            values[key] = value.strip()
+    if not values:
+        found = sorted(indents) or ["none"]
+        raise ValueError(f"{path}: no intrinsics/{camera} (cameras found: {', '.join(found)}); "
+                         "choose one with --calib-camera")
+    return values
+
+
+def time_slice(events, t0_s: float | None, t1_s: float | None):
+    """The events of ``[first + t0_s, first + t1_s)`` (seconds after the first event; None: no bound)."""
+    if t0_s is None and t1_s is None:
+        return events
+    start = int(events.t[0])
+    t0 = start + int(round((t0_s or 0.0) * 1e6))
+    t1 = int(events.t[-1]) + 1 if t1_s is None else start + int(round(t1_s * 1e6))
+    if t1 <= t0:
+        raise ValueError(f"--t1 must be after --t0, got {t0_s} and {t1_s}")
+    events = events.slice_time(t0, t1)
+    if len(events) == 0:
+        raise ValueError(f"no events between --t0 {t0_s} s and --t1 {t1_s} s")
+    return events
+
+
+def undistorted_events(events, K: np.ndarray, distortion: np.ndarray):
+    """The events at their undistorted pixel (nearest integer; events that land outside are dropped)."""
+    from cmax.camera import Camera
+    from cmax.events import Events
+
+    xy = np.rint(Camera(K, events.width, events.height, distortion).undistort(events)).astype(np.int64)
+    inside = (xy[:, 0] >= 0) & (xy[:, 0] < events.width) & (xy[:, 1] >= 0) & (xy[:, 1] < events.height)
+    return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], events.width, events.height)
+
+
+def _sequence_default(name: str):
+    def default():
+        import inspect
+
+        from cmax.fitting.sequence import fit_sequence
+
+        return inspect.signature(fit_sequence).parameters[name].default
+    return default
+
+
+def _fit_default(name: str):
+    def default():
+        import inspect
+
+        from cmax.fitting.window import fit
+
+        return inspect.signature(fit).parameters[name].default
+    return default
+
+
+def _settings_default(name: str):
+    def default():
+        from cmax.fitting.window import FitSettings
+
+        return getattr(FitSettings(), name)
+    return default
 
 
 def tum_lines(times_us: np.ndarray, poses: np.ndarray) -> list[str]:
@@ -72,26 +227,118 @@ def tum_lines(times_us: np.ndarray, poses: np.ndarray) -> list[str]:
             for t, T, q in zip(times_us, poses, quats)]
 
 
+def _microseconds(ms: float, option: str) -> int:
+    us = int(round(ms * 1000))
+    if us < 1:
+        raise ValueError(f"{option} must be at least 0.001 ms (1 µs), got {ms}")
+    return us
+
+
+class _CountedWindows:
+    """Events behind the reader protocol of :func:`fit_sequence` (``window(t0_us, t1_us)``, ``t_start``,
+    ``t_end``), advancing a progress bar by one each time a window is done (the next one is taken)."""
+
+    def __init__(self, events, bar) -> None:
+        self.events, self.bar, self.taken = events, bar, 0
+        self.t_start, self.t_end = int(events.t[0]), int(events.t[-1])
+
+    def window(self, t0_us: int, t1_us: int):
+        if self.taken and self.bar.n < self.bar.total:
+            self.bar.update(1)
+        self.taken += 1
+        return self.events.slice_time(t0_us, t1_us)
+
+    def finish(self) -> None:
+        self.bar.update(max(0, min(self.taken, self.bar.total) - self.bar.n))
+        self.bar.close()
+
+
+def _gyro_overlap(events, gyro, path: Path):
+    """The events inside the gyro's time span, and a note when some were cut (ValueError: no overlap)."""
+    times = gyro[0]
+    first, last = int(events.t[0]), int(events.t[-1])
+    lo, hi = max(first, int(times[0])), min(last, int(times[-1]))
+    if hi <= lo:
+        raise ValueError(f"the gyro samples of {path} ({times[0] * 1e-6:.6f}-{times[-1] * 1e-6:.6f} s) do not overlap "
+                         f"the events ({first * 1e-6:.6f}-{last * 1e-6:.6f} s): are they on the same clock?")
+    if lo == first and hi == last:
+        return events, None
+    note = (f"the gyro covers {(hi - lo) * 1e-3:.1f} ms of the {(last - first) * 1e-3:.1f} ms of events "
+            f"(cut {(lo - first) * 1e-3:.1f} ms at the start, {(last - hi) * 1e-3:.1f} ms at the end): "
+            "fitting the overlap")
+    return events.slice_time(lo, hi + 1), note
+
+
 def run_fit(args: argparse.Namespace) -> int:
-    """Run the command; returns the exit status."""
+    """Run the command; returns the exit status (1 when no window could be fitted)."""
+    import sys
+
+    from tqdm.auto import tqdm
+
     from cmax import viz
     from cmax.fitting import fit_sequence
+    from cmax.fitting.sequence import check_gyro
     from cmax.fitting.window import LOW_PARALLAX_PX
     from cmax.io import read, read_gyro
 
-    events = read(args.file, time_unit=args.time_unit)
-    gyro = None if args.gyro is None else read_gyro(args.gyro)
+    if args.calib is not None:
+        if args.distortion is not None:
+            raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
+        K, distortion, calib_size = read_calibration(args.calib, args.calib_camera)
+    else:
+        K, distortion, calib_size = args.K, args.distortion, None
+    width, height = args.size or (None, None)
+    try:
+        events = read(args.file, width=width, height=height, time_unit=args.time_unit)
+    except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
+        if calib_size is None or args.size is not None or "width=" not in str(error):
+            raise
+        events = read(args.file, width=calib_size[0], height=calib_size[1], time_unit=args.time_unit)
+    if len(events) == 0:
+        raise ValueError(f"{args.file} holds no events")
+    if calib_size is not None and (events.width, events.height) != calib_size:
+        raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
+                         f"the events come from a {events.width}x{events.height} sensor")
+    events = time_slice(events, args.t0, args.t1)
+    notes = []
+    if distortion is not None:
+        total = len(events)
+        events = undistorted_events(events, K, distortion)
+        if len(events) < total:
+            notes.append(f"{total - len(events):,} events fall outside the image once undistorted (dropped)")
+    gyro = None
+    if args.gyro is not None:
+        gyro = check_gyro(read_gyro(args.gyro))
+        events, note = _gyro_overlap(events, gyro, args.gyro)
+        notes += [note] if note else []
+    options = {key: value for key, value in (("solver", args.solver), ("max_events", args.max_events),
+                                             ("depth_range", args.depth_range)) if value is not None}
+    # None above: the library's default (one source: fit_sequence / fit / FitSettings).
+    sequence_model = args.model or _sequence_default("model")()
+    window_us = (_sequence_default("window_us")() if args.window_ms is None
+                 else _microseconds(args.window_ms, "--window-ms"))
+    step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
+    span_us = int(events.t[-1]) - int(events.t[0]) + 1
+    if window_us > span_us:
+        notes.append(f"the recording ({span_us * 1e-3:.1f} ms) is shorter than the window ({window_us * 1e-3:.1f} ms): "
+                     "fitting one window over the whole recording")
+        window_us = step_us = span_us
+    n_windows = len(range(int(events.t[0]), int(events.t[-1]) + 2 - window_us, step_us))
+    for note in notes:
+        print(f"cmax fit: note: {note}", file=sys.stderr)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    step = None if args.step_ms is None else int(args.step_ms * 1000)
-    sequence = fit_sequence(events, args.K, args.model, window_us=int(args.window_ms * 1000), step_us=step,
-                            speed=args.speed, gyro=gyro, solver=args.solver, max_events=args.max_events,
-                            zero_rotation_start=args.zero_rotation_start)
+    source = _CountedWindows(events, tqdm(total=n_windows, desc="windows", unit="window", disable=args.quiet))
+    try:
+        sequence = fit_sequence(source, K, sequence_model, window_us=window_us, step_us=step_us, speed=args.speed,
+                                gyro=gyro, zero_rotation_start=args.zero_rotation_start, **options)
+    finally:
+        source.finish()
     windows = []
     for i, r in enumerate(sequence.results):
         if r.depth is not None:
             save_npz_atomic(out / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask, depth_spread=r.depth_spread,
-                            inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=args.K)
+                            inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=K)
             viz.save_png(out / f"depth_{i:05d}.png", viz.depth_image(np.where(r.mask, r.depth, np.nan)))
         windows.append({"t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
                         "omega": r.omega.tolist(), "flow": None if r.flow is None else r.flow.tolist(),
@@ -99,11 +346,23 @@ def run_fit(args: argparse.Namespace) -> int:
                         "message": r.message,
                         "scale_known": r.scale_known, "parallax_px": r.parallax_px})
     write_text_atomic(out / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
-    summary = {"file": str(args.file), "model": args.model, "K": args.K.tolist(), "window_ms": args.window_ms,
-               "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro), "solver": args.solver,
-               "zero_rotation_start": args.zero_rotation_start, "windows": windows}
+    summary = {"file": str(args.file), "model": sequence_model, "K": K.tolist(),
+               "distortion": None if distortion is None else distortion.tolist(),
+               "calib": None if args.calib is None else str(args.calib),
+               "window_ms": window_us / 1000, "step_ms": step_us / 1000, "t0_s": args.t0, "t1_s": args.t1,
+               "depth_range": None if args.depth_range is None else list(args.depth_range),
+               "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro),
+               "solver": args.solver or _fit_default("solver")(),
+               "zero_rotation_start": args.zero_rotation_start, "notes": notes,
+               "windows_total": n_windows, "windows": windows}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
     low = sum(w["parallax_px"] is not None and w["parallax_px"] < LOW_PARALLAX_PX for w in windows)
-    caveat = f" ({low} with under {LOW_PARALLAX_PX:g} px of parallax: their depth is poorly constrained)" if low else ""
-    print(f"{len(windows)} windows fitted{caveat}; results in {out}")
+    caveat = f", {low} with under {LOW_PARALLAX_PX:g} px of parallax (depth poorly constrained)" if low else ""
+    min_events = _sequence_default("min_events")()
+    skipped = n_windows - len(windows)
+    skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""
+    print(f"{len(windows)} of {n_windows} windows fitted{skip}{caveat}; results in {out}")
+    if not windows:
+        print(f"cmax fit: no window was fitted: each has fewer than {min_events:,} events", file=sys.stderr)
+        return 1
     return 0

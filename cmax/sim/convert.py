@@ -47,7 +47,7 @@ import numpy as np
 from cmax.io.atomic import PathLock, discard_leftovers, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
 from cmax.sim.esim import EsimSettings, EventSimulator
-from cmax.sim.video import DEFAULT_PREFETCH, VideoFileSource
+from cmax.sim.video import DEFAULT_PREFETCH, VideoFileSource, open_source
 
 __all__ = [
     "ConvertSettings", "VideoJob", "VideoResult", "VIDEO_SUFFIXES", "collect_jobs",
@@ -160,7 +160,7 @@ class VideoResult:
 # -- one video --------------------------------------------------------------------------
 def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
                 prefetch: int = DEFAULT_PREFETCH) -> VideoFileSource:
-    """The frames of a video in the settings' size and time range: a :mod:`cmax.sim.video` source.
+    """The frames of a video (or of an image folder / timestamp file) in the settings' size and time range.
 
     Frames are uint8 grey (H, W) (the 8-bit values the reference ESIM works
     on), decoded ``prefetch`` frames ahead in a background thread; times are
@@ -176,8 +176,9 @@ def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
     ValueError
         No frame in the time range (while iterating).
     """
-    return VideoFileSource(source, size=settings.size, t0_s=settings.t0_s, t1_s=settings.t1_s,
-                           dtype=np.uint8, prefetch=prefetch)
+    # A folder or a .txt timestamp file is an image sequence (ECD images.txt, ESIM timestamps.txt).
+    return open_source(source, size=settings.size, t0_s=settings.t0_s, t1_s=settings.t1_s,
+                       dtype=np.uint8, prefetch=prefetch)
 
 
 def _counted(frames: Iterable[tuple[np.ndarray, int]], counter: list[int]):

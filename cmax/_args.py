@@ -1,0 +1,205 @@
+"""Command-line plumbing shared by ``cmax`` and ``python -m learned.*``: argument types, help, one-line errors.
+
+* ``type=`` validators (:func:`finite_float`, :func:`positive_float`, :func:`positive_int`, ...)
+  refuse ``nan``, ``inf`` and out-of-range values while arguments are parsed, with
+  a message naming the argument;
+* :class:`ArgumentParser` prints a bad argument as ONE line,
+  ``PROG: error: MESSAGE (see PROG --help)``, and exits with status 2;
+* :class:`HelpFormatter` appends every option's default to its help text, taking
+  it from the library (:func:`api_default`) where the library owns it, so that the
+  command line and the API share one source of defaults;
+* :func:`run_main` runs a command and turns the user errors of the public
+  boundaries (:data:`USER_ERRORS`: ``ValueError`` -- including
+  :class:`cmax.io.FormatError` and :class:`learned.checkpoint.CheckpointError` --,
+  ``TypeError``, ``OSError`` and ``MemoryError``) into ``PROG: error: MESSAGE`` on
+  one line and exit status 2, without a traceback. ``--debug`` or the
+  environment variable ``CMAX_DEBUG=1`` shows the traceback instead.
+
+No import here loads torch or OpenCV (the parsers are built at start-up).
+"""
+from __future__ import annotations
+
+import argparse
+import math
+import os
+import sys
+from typing import Any, Callable, Sequence
+
+__all__ = [
+    "ArgumentParser", "HelpFormatter", "USER_ERRORS", "DEBUG_ENV", "api_default", "run_main", "one_line",
+    "finite_float", "positive_float", "nonnegative_float", "positive_int", "nonnegative_int", "sensor_size",
+    "float_list",
+]
+
+#: Exceptions that mean "the user gave something wrong" at the library's public boundaries.
+USER_ERRORS: tuple[type[BaseException], ...] = (ValueError, TypeError, OSError, MemoryError)
+#: Environment variable that makes :func:`run_main` show tracebacks (like ``--debug``).
+DEBUG_ENV = "CMAX_DEBUG"
+
+
+# -- argument types ---------------------------------------------------------------------
+def _number(text: str, kind: type, what: str, *, above: float | None = None,
+            at_least: float | None = None) -> float | int:
+    """``kind(text)``, finite, ``> above`` / ``>= at_least``; else ArgumentTypeError ``expected WHAT, got TEXT``."""
+    try:
+        value = kind(text)
+    except (TypeError, ValueError):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}") from None
+    if isinstance(value, float) and not math.isfinite(value):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r} (not finite)")
+    if (above is not None and value <= above) or (at_least is not None and value < at_least):
+        raise argparse.ArgumentTypeError(f"expected {what}, got {text!r}")
+    return value
+
+
+def finite_float(text: str) -> float:
+    """A finite number (``nan``, ``inf`` refused)."""
+    return float(_number(text, float, "a finite number"))
+
+
+def positive_float(text: str) -> float:
+    """A finite number > 0."""
+    return float(_number(text, float, "a finite number > 0", above=0))
+
+
+def nonnegative_float(text: str) -> float:
+    """A finite number >= 0."""
+    return float(_number(text, float, "a finite number >= 0", at_least=0))
+
+
+def positive_int(text: str) -> int:
+    """A whole number >= 1."""
+    return int(_number(text, int, "a whole number >= 1", at_least=1))
+
+
+def nonnegative_int(text: str) -> int:
+    """A whole number >= 0."""
+    return int(_number(text, int, "a whole number >= 0", at_least=0))
+
+
+def sensor_size(text: str) -> tuple[int, int]:
+    """``WIDTHxHEIGHT`` (or ``WIDTH,HEIGHT``) in pixels, each in [1, 65535]."""
+    try:
+        width, height = (int(part) for part in text.lower().replace(",", "x").split("x"))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 346x260, got {text!r}") from None
+    if not (0 < width <= 65535 and 0 < height <= 65535):
+        raise argparse.ArgumentTypeError(f"width and height must be in [1, 65535] pixels, got {text!r}")
+    return width, height
+
+
+def float_list(counts: tuple[int, ...], what: str) -> Callable[[str], tuple[float, ...]]:
+    """A type of ``counts`` comma-separated finite numbers (``what`` names them in the message)."""
+
+    def parse(text: str) -> tuple[float, ...]:
+        try:
+            values = tuple(float(v) for v in text.split(","))
+        except ValueError:
+            raise argparse.ArgumentTypeError(f"{what} must be comma-separated numbers, got {text!r}") from None
+        if len(values) not in counts or not all(math.isfinite(v) for v in values):
+            raise argparse.ArgumentTypeError(
+                f"{what} must be {' or '.join(map(str, counts))} finite numbers, got {text!r}")
+        return values
+
+    parse.__name__ = what
+    return parse
+
+
+# -- parser and help ----------------------------------------------------------------------
+def api_default(action: argparse.Action, source: Callable[[], Any]) -> argparse.Action:
+    """Mark ``action`` (default None: "the library's") to show ``source()`` as its default in ``--help``.
+
+    ``source`` is called only when the help is printed, so a default owned by a
+    module that loads torch costs nothing at start-up.
+    """
+    action.api_default = source
+    return action
+
+
+def _shown(value: Any, metavar: object) -> str:
+    if isinstance(value, (tuple, list)):
+        return ("x" if metavar == "WxH" else ",").join(_shown(v, None) for v in value)
+    if isinstance(value, float):
+        return f"{value:g}"
+    if isinstance(value, int) and not isinstance(value, bool) and abs(value) >= 10_000:
+        return f"{value:,}"
+    return str(value)
+
+
+class HelpFormatter(argparse.HelpFormatter):
+    """Appends ``(default: VALUE)`` to each option's help, unless the help already names its default."""
+
+    def _get_help_string(self, action: argparse.Action) -> str:
+        text = action.help or ""
+        if not text or "default" in text.lower() or action.default is argparse.SUPPRESS:
+            return text
+        source = getattr(action, "api_default", None)
+        if source is not None:
+            value = source()
+        elif action.default is None or action.default is False or not action.option_strings:
+            return text
+        else:
+            value = action.default
+        return f"{text} (default: {_shown(value, action.metavar).replace('%', '%%')})"
+
+
+class ArgumentParser(argparse.ArgumentParser):
+    """An ``argparse`` parser whose errors are one line (``PROG: error: MESSAGE (see PROG --help)``), exit 2.
+
+    Shows the defaults in the help (:class:`HelpFormatter`) and accepts ``--debug`` (show tracebacks)
+    wherever it stands on the command line; sub-parsers are of the same class.
+    """
+
+    def __init__(self, *args: Any, **kwargs: Any) -> None:
+        kwargs.setdefault("formatter_class", HelpFormatter)
+        super().__init__(*args, **kwargs)
+        self.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
+                          help=f"show the traceback of an error (also: {DEBUG_ENV}=1)")
+
+    def error(self, message: str):  # noqa: D102 (argparse API)
+        self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
+
+
+def one_line(error: BaseException | str) -> str:
+    """The message of an error on one line (whitespace runs collapsed)."""
+    text = " ".join(str(error).split())
+    if isinstance(error, BaseException):
+        if isinstance(error, MemoryError):
+            return f"out of memory{': ' + text if text else ''}"
+        if isinstance(error, OSError) and error.filename is not None and error.strerror:
+            return f"{error.strerror}: {error.filename}"
+        if not text or (isinstance(error, KeyError) and len(error.args) == 1):
+            return f"{type(error).__name__}: {text}"
+    return text
+
+
+def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace], int | None] | None = None,
+             argv: Sequence[str] | None = None, *, prog: Callable[[argparse.Namespace], str] | None = None) -> int:
+    """Parse ``argv`` and run ``run(args)`` (or ``args.run``); returns the exit status.
+
+    Bad arguments exit with status 2 from the parser (one line). A
+    :data:`USER_ERRORS` exception of the command prints ``PROG: error: MESSAGE``
+    on one line and returns 2; with ``--debug`` or ``CMAX_DEBUG=1`` it is
+    raised instead (the full traceback). ``KeyboardInterrupt`` returns 130
+    with one line. Any other exception is a bug and keeps its traceback.
+    """
+    args = parser.parse_args(None if argv is None else [str(a) for a in argv])
+    command = run if run is not None else getattr(args, "run", None)
+    label = prog(args) if prog is not None else parser.prog
+    if command is None:
+        parser.print_help(sys.stderr)
+        return 2
+    debug = bool(getattr(args, "debug", False)) or os.environ.get(DEBUG_ENV, "") not in ("", "0")
+    try:
+        return int(command(args) or 0)
+    except USER_ERRORS as error:
+        if debug:
+            raise
+        print(f"{label}: error: {one_line(error)}", file=sys.stderr)
+        return 2
+    except KeyboardInterrupt:
+        if debug:
+            raise
+        print(f"{label}: interrupted", file=sys.stderr)
+        return 130
+

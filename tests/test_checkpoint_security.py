@@ -1,0 +1,198 @@
+"""Checkpoints load with ``weights_only=True``: a crafted pickle is refused by every entry point and never runs.
+
+The crafted file's ``__reduce__`` calls ``os.system`` to create a marker file. A control
+(``torch.load(weights_only=False)``) shows that the file really runs the command, so the
+refusals below are meaningful.
+"""
+from __future__ import annotations
+
+import os
+import pickle
+import random
+import subprocess
+import sys
+from pathlib import Path
+
+import numpy as np
+import pytest
+import torch
+
+from learned.checkpoint import (CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state,
+                                upgrade_checkpoint)
+from learned.config import Config
+from learned.model import DepthPoseNet, ModelConfig
+
+ROOT = Path(__file__).resolve().parents[1]
+
+
+class _RunsCommand:
+    def __init__(self, marker: Path) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch '{self.marker}'",)
+
+
+def _payload(marker: Path | None = None) -> dict:
+    model = DepthPoseNet(ModelConfig(width=2, levels=1))
+    optimizer = torch.optim.AdamW(model.parameters())
+    payload = {"model": model.state_dict(), "optimizer": optimizer.state_dict(), "step": 3,
+               "config": Config(model=ModelConfig(width=2, levels=1)).to_dict(), "rng": rng_state()}
+    if marker is not None:
+        payload["model"] = {"stem.0.weight": _RunsCommand(marker)}
+    return payload
+
+
+@pytest.fixture
+def crafted(tmp_path) -> tuple[Path, Path]:
+    """A torch.save file whose loading runs ``touch MARKER``; returns (file, marker)."""
+    marker = tmp_path / "MARKER"
+    path = tmp_path / "crafted" / "last.pt"
+    path.parent.mkdir()
+    torch.save(_payload(marker), path)
+    assert not marker.exists()
+    return path, marker
+
+
+def test_the_crafted_file_runs_code_when_unpickled_unsafely(crafted):
+    """Control: without weights_only the file does run its command."""
+    path, marker = crafted
+    torch.load(path, weights_only=False)
+    assert marker.exists()
+
+
+def test_load_checkpoint_refuses_a_crafted_pickle(crafted):
+    path, marker = crafted
+    with pytest.raises(CheckpointError, match="refused: loading it would run code.*system"):
+        load_checkpoint(path)
+    assert not marker.exists()
+
+
+@pytest.mark.parametrize("protocol, message", [(2, r"would run code .it calls \w+\.system"),
+                                               (4, "refused by the safe loader")])
+def test_a_plain_pickle_file_is_refused_too(tmp_path, protocol, message):
+    marker = tmp_path / "MARKER"
+    path = tmp_path / "raw.pt"
+    path.write_bytes(pickle.dumps(_RunsCommand(marker), protocol=protocol))
+    with pytest.raises(CheckpointError, match=message):
+        load_checkpoint(path)
+    assert not marker.exists()
+
+
+def _one_error_line(capsys) -> str:
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    return err
+
+
+def test_learned_predict_refuses_it(crafted, tmp_path, capsys):
+    from learned.predict import main
+
+    path, marker = crafted
+    assert main([str(tmp_path / "any.h5"), "--checkpoint", str(path), "-o", str(tmp_path / "out")]) == 2
+    assert "refused" in _one_error_line(capsys)
+    assert not marker.exists() and not (tmp_path / "out").exists()
+
+
+def test_learned_evaluate_refuses_it(crafted, tmp_path, capsys):
+    from learned.evaluate import main
+
+    path, marker = crafted
+    assert main(["--checkpoint", str(path), "--data", str(tmp_path / "any.h5")]) == 2
+    assert "refused" in _one_error_line(capsys)
+    assert not marker.exists()
+
+
+def test_learned_train_resume_and_teacher_refuse_it(crafted, tmp_path, capsys):
+    from learned.train import main
+
+    path, marker = crafted
+    base = ["--no-progress", f"data.files=[\"{tmp_path / 'any.h5'}\"]", "model.width=2", "model.levels=1"]
+    assert main(["--mode", "teacher", "--resume", *base, f"train.out={path.parent}"]) == 2
+    assert "refused" in _one_error_line(capsys)
+    assert main(["--mode", "student", *base, f"train.out={tmp_path / 'student'}", f"train.teacher={path}"]) == 2
+    assert "refused" in _one_error_line(capsys)
+    assert not marker.exists()
+
+
+def test_refused_through_a_real_process(crafted, tmp_path):
+    path, marker = crafted
+    result = subprocess.run([sys.executable, "-m", "learned.predict", str(tmp_path / "any.h5"), "--checkpoint",
+                             str(path), "-o", str(tmp_path / "out")], cwd=ROOT, capture_output=True, text=True,
+                            env={**os.environ, "PYTHONPATH": str(ROOT)}, timeout=120)
+    assert result.returncode == 2
+    assert result.stderr.startswith("python -m learned.predict: error: ") and "Traceback" not in result.stderr
+    assert not marker.exists()
+
+
+def test_a_saved_checkpoint_is_plain_data_and_restores_every_generator(tmp_path):
+    random.seed(1), np.random.seed(2), torch.manual_seed(3)
+    np.random.normal()  # a cached Gaussian is part of NumPy's state
+    payload = _payload()
+    config = payload["config"]
+    config["data"]["files"] = (Path("a.h5"), {"path": "b.h5", "K": [1.0, 2.0, 3.0, 4.0]})
+    path = save_checkpoint(tmp_path / "ok.pt", payload)
+    expected = (random.random(), np.random.normal(), np.random.rand(), torch.rand(2))
+    loaded = load_checkpoint(path)     # weights_only=True
+    assert loaded["format"] == 2 and loaded["config"]["data"]["files"] == ("a.h5", {"path": "b.h5",
+                                                                                     "K": [1.0, 2.0, 3.0, 4.0]})
+    set_rng_state(loaded["rng"])
+    again = (random.random(), np.random.normal(), np.random.rand(), torch.rand(2))
+    assert expected[:3] == again[:3] and torch.equal(expected[3], again[3])
+
+
+def test_objects_in_the_config_are_refused_at_save(tmp_path):
+    payload = _payload()
+    payload["config"]["train"]["out"] = object()
+    with pytest.raises(TypeError, match=r"config.train.out: object cannot be stored"):
+        save_checkpoint(tmp_path / "x.pt", payload)
+    assert not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("content, message", [
+    (b"not a checkpoint at all", "is not a learned checkpoint"),
+    (b"", "is not a learned checkpoint"),
+])
+def test_non_checkpoint_files_are_refused(tmp_path, content, message):
+    path = tmp_path / "x.pt"
+    path.write_bytes(content)
+    with pytest.raises(CheckpointError, match=message):
+        load_checkpoint(path)
+
+
+def test_wrong_contents_are_refused(tmp_path):
+    torch.save({"weights": torch.zeros(3)}, tmp_path / "a.pt")
+    with pytest.raises(CheckpointError, match=r"missing \['config', 'model', 'optimizer', 'rng', 'step'\]"):
+        load_checkpoint(tmp_path / "a.pt")
+    torch.save([1, 2], tmp_path / "b.pt")
+    with pytest.raises(CheckpointError, match="holds a list"):
+        load_checkpoint(tmp_path / "b.pt")
+    payload = {**_payload(), "format": 2, "step": -1}
+    torch.save(payload, tmp_path / "c.pt")
+    with pytest.raises(CheckpointError, match="'step' must be an integer >= 0"):
+        load_checkpoint(tmp_path / "c.pt")
+
+
+def test_an_old_format_checkpoint_is_refused_then_upgraded_only_when_trusted(tmp_path):
+    old = _payload()
+    old["rng"] = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    torch.save(old, tmp_path / "old.pt")   # format 1: NumPy's state as a pickled array
+    with pytest.raises(CheckpointError, match="refused.*learned.checkpoint upgrade"):
+        load_checkpoint(tmp_path / "old.pt")
+    with pytest.raises(ValueError, match="trust=True"):
+        upgrade_checkpoint(tmp_path / "old.pt", tmp_path / "new.pt")
+    assert not (tmp_path / "new.pt").exists()
+    upgrade_checkpoint(tmp_path / "old.pt", tmp_path / "new.pt", trust=True)
+    new = load_checkpoint(tmp_path / "new.pt")
+    assert all(torch.equal(new["model"][k], v) for k, v in old["model"].items())
+    assert np.array_equal(np.asarray(new["rng"]["numpy"]["key"]), old["rng"]["numpy"][1])
+
+
+def test_upgrade_command_needs_the_trust_flag(tmp_path, capsys):
+    from learned.checkpoint import main
+
+    torch.save(_payload(), tmp_path / "old.pt")
+    assert main(["upgrade", str(tmp_path / "old.pt"), str(tmp_path / "new.pt")]) == 2
+    assert "trust" in _one_error_line(capsys)
+    assert main(["upgrade", str(tmp_path / "old.pt"), str(tmp_path / "new.pt"), "--trust-this-file"]) == 0
+    assert load_checkpoint(tmp_path / "new.pt")["step"] == 3

@@ -1,0 +1,169 @@
+"""``cmax fit`` on real-recording needs: --size, --t0/--t1, --depth-range, --calib / --distortion, a recording
+shorter than the window, a gyro that covers only part of the events, the progress bar and the summary line."""
+from __future__ import annotations
+
+import json
+
+import numpy as np
+import pytest
+
+from cmax.cli import main
+from cmax.events import Events
+from cmax.fitting.cli import read_calibration, undistorted_events
+from cmax.io import write_h5, write_txt
+
+cv2 = pytest.importorskip("cv2")
+
+DSEC_YAML = """\
+disparity_to_depth:
+  cams_03:
+  - [1.0, 0.0, 0.0, -335.1]
+extrinsics:
+  R_rect0:
+  - [1.0, 0.0, 0.0]
+intrinsics:
+  cam0:
+    camera_matrix: [553.47, 553.40, 346.65, 216.52]
+    camera_model: pinhole
+    distortion_coeffs: [-0.0936, 0.1945, 7.6e-05, 0.00196]
+    distortion_model: radtan
+    resolution: [640, 480]
+  camRect0:
+    camera_matrix: [569.76, 569.76, 335.10, 221.24]
+    camera_model: pinhole
+    resolution: [640, 480]
+"""
+
+
+def test_calibration_files(tmp_path):
+    ecd = tmp_path / "calib.txt"
+    ecd.write_text("199.09 199.09 132.19 110.14 -0.368 0.150 -0.0003 -0.0002 0.0\n")
+    K, distortion, size = read_calibration(ecd)
+    assert K[0, 0] == 199.09 and K[1, 2] == 110.14 and size is None
+    np.testing.assert_array_equal(distortion, [-0.368, 0.150, -0.0003, -0.0002, 0.0])
+    yaml = tmp_path / "cam_to_cam.yaml"
+    yaml.write_text(DSEC_YAML)
+    K, distortion, size = read_calibration(yaml)
+    assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (553.47, 553.40, 346.65, 216.52) and size == (640, 480)
+    np.testing.assert_array_equal(distortion, [-0.0936, 0.1945, 7.6e-05, 0.00196])
+    K, distortion, size = read_calibration(yaml, "camRect0")
+    assert K[0, 0] == 569.76 and distortion is None
+    with pytest.raises(ValueError, match=r"no intrinsics/cam9 \(cameras found: cam0, camRect0\)"):
+        read_calibration(yaml, "cam9")
+    (tmp_path / "bad.txt").write_text("1 2 3\n")
+    with pytest.raises(ValueError, match="fx fy cx cy"):
+        read_calibration(tmp_path / "bad.txt")
+    with pytest.raises(FileNotFoundError):
+        read_calibration(tmp_path / "none.txt")
+
+
+def test_undistorted_events_match_opencv(tmp_path):
+    rng = np.random.default_rng(0)
+    K = np.array([[200.0, 0, 120], [0, 200.0, 90], [0, 0, 1]])
+    distortion = np.array([-0.3, 0.1, 0.001, -0.002])
+    x, y = rng.integers(0, 240, 500), rng.integers(0, 180, 500)
+    events = Events(x, y, np.arange(500), rng.integers(0, 2, 500), 240, 180)
+    out = undistorted_events(events, K, distortion)
+    expected = cv2.undistortPoints(np.column_stack([x, y]).astype(np.float64).reshape(-1, 1, 2), K, distortion,
+                                   P=K, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9))
+    expected = np.rint(expected.reshape(-1, 2))
+    inside = (expected[:, 0] >= 0) & (expected[:, 0] < 240) & (expected[:, 1] >= 0) & (expected[:, 1] < 180)
+    np.testing.assert_array_equal(out.x, expected[inside, 0])
+    np.testing.assert_array_equal(out.y, expected[inside, 1])
+    np.testing.assert_array_equal(out.t, events.t[inside])
+    assert 0 < len(out) <= 500 and np.abs(out.x.astype(int) - x[inside]).max() > 1   # it did move them
+
+
+@pytest.fixture(scope="module")
+def slider(tmp_path_factory):
+    from cmax.synthetic_windows import make_window
+
+    w = make_window("slider", 7, width=96, height=72, focal=72.0, duration_s=0.2)
+    folder = tmp_path_factory.mktemp("fit_cli")
+    return w, write_txt(folder / "slider.txt", w.events), folder
+
+
+@pytest.mark.slow   # one fit: about 10 s on 2 shared cores
+def test_fit_options_short_recording_and_gyro_overlap(slider, tmp_path, capsys):
+    """One run: a .txt file (--size W,H), --t0/--t1, an ECD calib.txt, --depth-range, a window longer than
+    the (cut) recording and a gyro that starts late: one window over the overlap, with two notes."""
+    w, path, _ = slider
+    first = int(w.events.t[0])
+    calib = tmp_path / "calib.txt"
+    calib.write_text(f"{w.K[0, 0]} {w.K[1, 1]} {w.K[0, 2]} {w.K[1, 2]} 0 0 0 0 0\n")
+    gyro = tmp_path / "gyro.txt"
+    times = np.arange(first + 80_000, first + 200_000, 1000)            # starts 30 ms after --t0
+    gyro.write_text("".join(f"{t * 1e-6:.6f} 0 0 0\n" for t in times))
+    out = tmp_path / "out"
+    argv = ["fit", str(path), "--size", "96,72", "--calib", str(calib), "-o", str(out), "--t0", "0.05",
+            "--t1", "0.15", "--depth-range", "1,3", "--window-ms", "500", "--gyro", str(gyro),
+            "--max-events", "4000"]
+    assert main(argv) == 0
+    captured = capsys.readouterr()
+    assert "the gyro covers" in captured.err and "fitting the overlap" in captured.err
+    assert "is shorter than the window (500.0 ms): fitting one window over the whole recording" in captured.err
+    assert "windows: 100%" in captured.err and "1/1" in captured.err           # the progress bar
+    assert "1 of 1 windows fitted" in captured.out
+    summary = json.loads((out / "summary.json").read_text())
+    (window,) = summary["windows"]
+    assert window["t0_us"] >= times[0] and window["t1_us"] <= first + 150_000     # the gyro overlap of [t0, t1)
+    assert window["t1_us"] - window["t0_us"] > 60_000                              # the whole overlap
+    np.testing.assert_allclose(window["omega"], 0.0)                               # held at the gyro's
+    assert summary["depth_range"] == [1.0, 3.0] and summary["calib"] == str(calib)
+    depth = np.load(out / "depth_00000.npz")
+    inside = depth["depth"][depth["mask"]]
+    assert inside.size and inside.min() >= 1.0 - 1e-6 and inside.max() <= 3.0 + 1e-6
+
+
+def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
+    rng = np.random.default_rng(1)
+    events = Events(rng.integers(0, 64, 300), rng.integers(0, 48, 300), np.sort(rng.integers(0, 50_000, 300)),
+                    rng.integers(0, 2, 300), 64, 48)
+    path = write_h5(tmp_path / "few.h5", events)
+    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet"]) == 1
+    captured = capsys.readouterr()
+    assert "0 of 1 windows fitted, 1 skipped (fewer than 1,000 events)" in captured.out
+    assert "no window was fitted" in captured.err
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--calib", "CALIB", "--distortion", "0,0,0,0"], "pass --calib or --K with --distortion, not both"),
+    (["--calib", "YAML"], "calibrates a 640x480 camera (cam0), the events come from a 64x48 sensor"),
+    (["--calib", "YAML", "--calib-camera", "left"], "no intrinsics/left"),
+    (["--K", "60,60,32,24", "--gyro", "GYRO"], "do not overlap the events"),
+    (["--K", "60,60,32,24", "--t0", "1", "--t1", "0.5"], "--t1 must be after --t0"),
+    (["--K", "60,60,32,24", "--depth-range", "3,nan"], "argument --depth-range"),
+    (["--K", "60,60,32,24", "--distortion", "1,2"], "argument --distortion"),
+    (["--K", "60,60,32,24", "--size", "64;48"], "argument --size"),
+])
+def test_fit_option_errors_are_one_line(tmp_path, capsys, extra, message):
+    rng = np.random.default_rng(1)
+    events = Events(rng.integers(0, 64, 300), rng.integers(0, 48, 300), np.sort(rng.integers(0, 50_000, 300)),
+                    rng.integers(0, 2, 300), 64, 48)
+    path = write_h5(tmp_path / "ev.h5", events)
+    (tmp_path / "calib.txt").write_text("60 60 32 24\n")
+    (tmp_path / "cam_to_cam.yaml").write_text(DSEC_YAML)
+    (tmp_path / "gyro.txt").write_text("10.0 0 0 0\n10.1 0 0 0\n")
+    names = {"CALIB": "calib.txt", "YAML": "cam_to_cam.yaml", "GYRO": "gyro.txt"}
+    extra = [str(tmp_path / names[a]) if a in names else a for a in extra]
+    try:
+        status = main(["fit", str(path), "-o", str(tmp_path / "o"), *extra])
+    except SystemExit as exit_:
+        status = exit_.code
+    err = capsys.readouterr().err
+    assert status == 2 and message in err and len(err.strip().splitlines()) == 1, err
+
+
+def test_a_text_file_takes_its_size_from_the_dsec_calibration(tmp_path, capsys):
+    """ECD .txt stores no sensor size: cam_to_cam.yaml's resolution (640x480) is used, so the file reads (no
+    'pass width= and height=' error); its 300 events are too few to fit, which the command says (exit 1)."""
+    rng = np.random.default_rng(2)
+    events = Events(rng.integers(0, 640, 300), rng.integers(0, 480, 300), np.sort(rng.integers(0, 50_000, 300)),
+                    rng.integers(0, 2, 300), 640, 480)
+    path = write_txt(tmp_path / "ev.txt", events)
+    (tmp_path / "cam_to_cam.yaml").write_text(DSEC_YAML)
+    assert main(["fit", str(path), "--calib", str(tmp_path / "cam_to_cam.yaml"), "--calib-camera", "camRect0",
+                 "-o", str(tmp_path / "o"), "--quiet"]) == 1
+    assert "0 of 1 windows fitted" in capsys.readouterr().out
+    assert main(["fit", str(path), "--K", "500,500,320,240", "-o", str(tmp_path / "o")]) == 2
+    assert "width= and height=" in capsys.readouterr().err

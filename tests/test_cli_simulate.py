@@ -1,0 +1,144 @@
+"""``cmax simulate`` of one input: manifest and progress like the folder mode, image folders, empty results;
+``cmax manifest merge`` of manifests that list a video twice."""
+from __future__ import annotations
+
+import json
+import os
+
+import numpy as np
+import pytest
+
+from cmax.cli import main
+from cmax.io import read
+from cmax.sim.convert import ConvertSettings, convert_video, load_manifest
+from cmax.sim.video import ArraySource
+from test_sim_convert import write_video
+
+cv2 = pytest.importorskip("cv2")
+FAST = ["--no-adaptive"]
+
+
+def test_one_video_writes_its_manifest_and_shows_progress(tmp_path, capsys):
+    write_video(tmp_path / "clip.avi")
+    out = tmp_path / "out" / "clip.h5"
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(out), *FAST]) == 0
+    captured = capsys.readouterr()
+    assert "frame" in captured.err                    # the per-video tqdm bar
+    manifest = load_manifest(out.parent / "manifest.json")
+    entry = manifest["videos"]["clip"]
+    expected = convert_video(tmp_path / "clip.avi", tmp_path / "ref.h5", ConvertSettings(adaptive=False))
+    assert entry["status"] == "ok" and entry["events"] == expected.events == len(read(out)) > 0
+    assert entry["frames"] == 8 and f"{expected.events:,} events from 8 frames" in captured.out
+    # A rerun resumes (the manifest says it is done): the file is left alone.
+    mtime = os.stat(out).st_mtime_ns
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(out), *FAST, "--quiet"]) == 0
+    assert os.stat(out).st_mtime_ns == mtime
+    # --overwrite redoes it.
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(out), *FAST, "--quiet", "--overwrite"]) == 0
+    assert os.stat(out).st_mtime_ns != mtime and len(read(out)) == expected.events
+
+
+def test_a_foreign_file_under_the_output_name_is_not_replaced(tmp_path, capsys):
+    write_video(tmp_path / "clip.avi")
+    (tmp_path / "clip.h5").write_bytes(b"precious")
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(tmp_path / "clip.h5"), *FAST]) == 2
+    assert "pass --overwrite" in capsys.readouterr().err
+    assert (tmp_path / "clip.h5").read_bytes() == b"precious"
+
+
+def test_a_video_without_events_says_so_and_exits_1(tmp_path, capsys):
+    write_video(tmp_path / "still.avi", n_frames=1)
+    assert main(["simulate", str(tmp_path / "still.avi"), "-o", str(tmp_path / "still.h5"), *FAST, "--quiet"]) == 1
+    captured = capsys.readouterr()
+    assert "no events from still: 1 frame(s)" in captured.err
+    assert "1 videos ok (1 of them with no events)" in captured.out
+    assert load_manifest(tmp_path / "manifest.json")["videos"]["still"]["events"] == 0
+
+
+def _frames(n: int = 6, width: int = 40, height: int = 30) -> np.ndarray:
+    y, x = np.mgrid[0:height, 0:width]
+    return np.stack([(128 + 90 * np.sin(0.3 * (x - 2 * k)) * np.cos(0.2 * y)).astype(np.uint8) for k in range(n)])
+
+
+def _expected_events(frames: np.ndarray, times_us: np.ndarray, tmp_path) -> int:
+    result = convert_video("frames", tmp_path / "expected.h5", ConvertSettings(adaptive=False),
+                           frames=ArraySource(frames, times_us, dtype=np.uint8))
+    return result.events
+
+
+@pytest.mark.parametrize("layout", ["ecd", "ecd-file", "rpg", "rpg-file"])
+def test_image_folders_are_accepted_as_input(tmp_path, capsys, layout):
+    frames = _frames()
+    times_us = np.arange(len(frames), dtype=np.int64) * 40_000 + 1_000_000
+    seq = tmp_path / "seq"
+    (seq / "images").mkdir(parents=True)
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(seq / "images" / f"frame_{k:08d}.png"), frame)
+    if layout.startswith("ecd"):   # ECD: images.txt with "t images/frame_XXXXXXXX.png"
+        (seq / "images.txt").write_text("".join(f"{t * 1e-6:.6f} images/frame_{k:08d}.png\n"
+                                                for k, t in enumerate(times_us)))
+        source = seq if layout == "ecd" else seq / "images.txt"
+    else:                          # rpg_vid2e / ESIM: images/ and timestamps.txt (seconds, one per image)
+        (seq / "timestamps.txt").write_text("".join(f"{t * 1e-6:.6f}\n" for t in times_us))
+        source = seq if layout == "rpg" else seq / "timestamps.txt"
+    out = tmp_path / "events" / "seq.h5"
+    assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet"]) == 0
+    events = read(out)
+    assert len(events) == _expected_events(frames, times_us, tmp_path) > 0
+    assert load_manifest(out.parent / "manifest.json")["videos"]["seq"]["frames"] == len(frames)
+    assert (events.width, events.height) == (40, 30)
+
+
+def test_an_image_folder_needs_an_h5_output(tmp_path, capsys):
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    cv2.imwrite(str(seq / "a.png"), _frames(1)[0])
+    (seq / "timestamps.txt").write_text("0.0\n")
+    assert main(["simulate", str(seq), "-o", str(tmp_path / "outdir")]) == 2
+    assert "image folder (one sequence)" in capsys.readouterr().err
+
+
+def _manifest(tmp_path, name: str, videos: dict) -> str:
+    base = {"format": "evtslowtv-manifest/1", "simulator": "cmax 1", "settings": {"s": 1}, "catalogue": None,
+            "missing": [], "videos": videos}
+    (tmp_path / name).write_text(json.dumps(base))
+    return str(tmp_path / name)
+
+
+def _entry(status: str, events: int = 0, output: str = "a.h5") -> dict:
+    return {"name": "a", "status": status, "events": events, "frames": 2, "duration_s": 0.1, "output": output,
+            "wall_s": 1.0, "error": None if status == "ok" else "boom"}
+
+
+def test_merge_reports_a_video_listed_twice_and_keeps_its_ok_entry(tmp_path, capsys):
+    one = _manifest(tmp_path, "one.json", {"a": _entry("failed")})
+    two = _manifest(tmp_path, "two.json", {"a": _entry("ok", 10), "b": _entry("ok", 5, "b.h5")})
+    assert main(["manifest", "merge", one, two, "-o", str(tmp_path / "all.json")]) == 0
+    captured = capsys.readouterr()
+    assert "listed more than once: a: failed in" in captured.err and "kept the entry of" in captured.err
+    assert "1 listed more than once" in captured.out
+    merged = json.loads((tmp_path / "all.json").read_text())
+    assert merged["videos"]["a"]["status"] == "ok" and merged["totals"]["events"] == 15
+
+
+def test_merge_refuses_two_different_conversions_of_one_video(tmp_path, capsys):
+    one = _manifest(tmp_path, "one.json", {"a": _entry("ok", 10)})
+    two = _manifest(tmp_path, "two.json", {"a": _entry("ok", 11)})
+    assert main(["manifest", "merge", one, two, "-o", str(tmp_path / "all.json")]) == 2
+    err = capsys.readouterr().err
+    assert "converted differently in several manifests: a (ok in" in err and len(err.strip().splitlines()) == 1
+    assert not (tmp_path / "all.json").exists()
+    # The same manifest twice (same entries) is not a conflict.
+    assert main(["manifest", "merge", one, one, "-o", str(tmp_path / "all.json")]) == 0
+
+
+def test_overwrite_keeps_the_old_file_when_the_new_conversion_fails(tmp_path, capsys):
+    write_video(tmp_path / "clip.avi")
+    out = tmp_path / "clip.h5"
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(out), *FAST, "--quiet"]) == 0
+    before = out.read_bytes()
+    (tmp_path / "clip.avi").write_bytes(b"not a video any more")
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(out), *FAST, "--quiet", "--overwrite"]) == 1
+    assert "failed clip:" in capsys.readouterr().err
+    assert out.read_bytes() == before and not list(tmp_path.glob("*.partial"))
+    assert load_manifest(tmp_path / "manifest.json")["videos"]["clip"]["status"] == "failed"
