@@ -134,9 +134,9 @@ def _count_pixels(x, y, p, width, height, counts):
         counts[(np.intp(p[i]) * height + y[i]) * width + x[i]] += 1
 
 
-def _pixel_counts(events: Events) -> np.ndarray:
-    """Events per (polarity, pixel): int64, shape (2 * H * W,)."""
-    counts = np.zeros(2 * events.width * events.height, np.int64)
+def _pixel_counts(events: Events, dtype: type = np.int64) -> np.ndarray:
+    """Events per (polarity, pixel): ``dtype`` (int64 or float32, exact to 2**24), shape (2 * H * W,)."""
+    counts = np.zeros(2 * events.width * events.height, dtype)
     _count_pixels(events.x, events.y, events.p, events.width, events.height, counts)
     return counts
 
