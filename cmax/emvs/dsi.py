@@ -46,6 +46,9 @@ __all__ = ["plane_depths", "PlaneTransfer", "plane_transfer", "base_plane_homogr
 _VOTES_PER_CHUNK = 1 << 21
 #: A gather canvas larger than this many reference images falls back to splatting.
 _MAX_CANVAS_IMAGES = 16
+#: Shifted images are splatted directly (not box-filtered from a fine grid) below this many
+#: event-shifts per fine-grid cell.
+_DIRECT_SPLATS_PER_CELL = 4
 
 
 def plane_depths(depth_range: tuple[float, float], n_planes: int) -> np.ndarray:
@@ -246,6 +249,15 @@ def _phase_images(positions: np.ndarray, x0: int, y0: int, width: int, height: i
     S = subpixel
     sx = S if len(x_phases) > 1 else 1
     sy = S if len(y_phases) > 1 else 1
+    layers = len(x_phases) * len(y_phases)
+    if len(positions) * layers <= _DIRECT_SPLATS_PER_CELL * sx * sy * width * height:
+        # Few events for the fine grid: splat each needed shift directly (one compiled pass).
+        shift_x = np.tile(x_phases / S, len(y_phases))[:, None]
+        shift_y = np.repeat(y_phases / S, len(x_phases))[:, None]
+        u = positions[None, :, 0] - x0 - shift_x
+        v = positions[None, :, 1] - y0 - shift_y
+        images = bilinear_splat(u, v, None, width, height).astype(np.float32)
+        return images.reshape(len(y_phases), len(x_phases), height, width)
     u = (positions[:, 0] - x0 - (x_phases[0] / S if sx == 1 else 0.0)) * sx
     v = (positions[:, 1] - y0 - (y_phases[0] / S if sy == 1 else 0.0)) * sy
     fine = bilinear_splat(u[None], v[None], None, sx * width, sy * height)[0].astype(np.float32)
