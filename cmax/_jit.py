@@ -4,15 +4,16 @@ numba is imported, and the function compiled (or loaded from numba's on-disk
 cache), at the first call, so importing a module that defines kernels costs
 nothing. Kernels are compiled with ``nopython`` mode, ``nogil`` (they can run
 in a worker thread alongside numpy and OpenCV) and ``cache=True``. A kernel
-may only call numba-compilable code: other kernels are reached through their
-``.compiled`` attribute inside the wrapper that calls them, never as globals.
+may call other kernels by their global names: those are compiled first and
+given to it in their compiled form.
 """
 from __future__ import annotations
 
 import threading
+import types
 from typing import Any, Callable
 
-_LOCK = threading.Lock()
+_LOCK = threading.RLock()  # re-entered when a kernel compiles the kernels it calls
 
 
 class _Kernel:
@@ -29,10 +30,21 @@ class _Kernel:
         if self._compiled is None:
             with _LOCK:
                 if self._compiled is None:
-                    import numba
-
-                    self._compiled = numba.njit(**self._options)(self._function)
+                    self._compiled = self._compile()
         return self._compiled
+
+    def _compile(self) -> Callable:
+        import numba
+
+        function = self._function
+        names, scope = function.__code__.co_names, function.__globals__
+        callees = {name: scope[name] for name in names if isinstance(scope.get(name), _Kernel)}
+        if callees:  # the same code, seeing the other kernels compiled
+            resolved = {name: callee.compiled for name, callee in callees.items()}
+            function = types.FunctionType(function.__code__, {**scope, **resolved},
+                                          function.__name__, function.__defaults__,
+                                          function.__closure__)
+        return numba.njit(**self._options)(function)
 
     def __call__(self, *args: Any) -> Any:
         return self.compiled(*args)

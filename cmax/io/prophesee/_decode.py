@@ -78,6 +78,18 @@ _HIGHEST_BIT = np.concatenate([[-1], np.floor(np.log2(np.arange(1, 4096)))]).ast
 
 
 @kernel
+def _event_error(column, row, time, last_t, width, height, check_order):
+    """(error code, two values) of an event word: its highest x, row and time; ``_OK`` if fine."""
+    if column >= width:
+        return _X_OUTSIDE, column, np.int64(0)
+    if row >= height:
+        return _Y_OUTSIDE, row, np.int64(0)
+    if check_order and time < last_t:
+        return _TIME_BACK, last_t, time
+    return _OK, np.int64(0), np.int64(0)
+
+
+@kernel
 def _count_evt3(words):
     """(upper bound of the events, index of the first reserved word or -1) of uint16 ``words``."""
     total = 0
@@ -135,14 +147,9 @@ def _decode_evt3_words(words, state, width, height, check_order, x, y, t, p, sta
             if time < 0 or row < 0:
                 continue
             column = payload & 0x7FF
-            if column >= width:
-                code, at, a = _X_OUTSIDE, i, column
-                break
-            if row >= height:
-                code, at, a = _Y_OUTSIDE, i, row
-                break
-            if check_order and time < last_t:
-                code, at, a, b = _TIME_BACK, i, last_t, time
+            code, a, b = _event_error(column, row, time, last_t, width, height, check_order)
+            if code != _OK:
+                at = i
                 break
             last_t = time
             x[n] = column
@@ -157,14 +164,9 @@ def _decode_evt3_words(words, state, width, height, check_order, x, y, t, p, sta
             if time < 0 or row < 0 or x0 < 0 or mask == 0:
                 continue
             top = _HIGHEST_BIT[mask]
-            if x0 + top >= width:
-                code, at, a = _X_OUTSIDE, i, x0 + top
-                break
-            if row >= height:
-                code, at, a = _Y_OUTSIDE, i, row
-                break
-            if check_order and time < last_t:
-                code, at, a, b = _TIME_BACK, i, last_t, time
+            code, a, b = _event_error(x0 + top, row, time, last_t, width, height, check_order)
+            if code != _OK:
+                at = i
                 break
             last_t = time
             for bit in range(top + 1):
@@ -198,14 +200,9 @@ def _decode_evt2_words(words, state, width, height, check_order, x, y, t, p, sta
             if time < 0:
                 continue
             column, row = (w >> 11) & 0x7FF, w & 0x7FF
-            if column >= width:
-                code, at, a = _X_OUTSIDE, i, column
-                break
-            if row >= height:
-                code, at, a = _Y_OUTSIDE, i, row
-                break
-            if check_order and time < last_t:
-                code, at, a, b = _TIME_BACK, i, last_t, time
+            code, a, b = _event_error(column, row, time, last_t, width, height, check_order)
+            if code != _OK:
+                at = i
                 break
             last_t = time
             x[n] = column
