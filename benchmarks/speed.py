@@ -67,6 +67,7 @@ class Report:
     rows: list[Row] = field(default_factory=list)
     checks: dict = field(default_factory=dict)
     notes: list[str] = field(default_factory=list)
+    summary: list[str] = field(default_factory=list)  # markdown lines shown first (e.g. a table)
 
 
 def time_call(function: Callable[[], object], repeats: int) -> list[float]:
@@ -84,13 +85,20 @@ def time_interleaved(
     """
     for function in functions.values():
         function()
+    clock = CLOCKS[CLOCK[0]]
     times: dict[str, list[float]] = {name: [] for name in functions}
     for _ in range(repeats):
         for name, function in functions.items():
-            start = time.perf_counter()
+            start = clock()
             function()
-            times[name].append(time.perf_counter() - start)
+            times[name].append(clock() - start)
     return times
+
+
+#: Clocks of :func:`time_interleaved`: wall seconds, or CPU seconds of this process (all its
+#: threads; steadier than wall time on a machine that other work keeps busy).
+CLOCKS = {"wall": time.perf_counter, "cpu": time.process_time}
+CLOCK = ["wall"]
 
 
 def run_group(report: "Report", group: str, methods: list[tuple[str, Callable[[], object], str]],
@@ -168,6 +176,8 @@ def write_report(report: Report, machine: dict) -> tuple[Path, Path]:
              f"{report.section}`; median of {report.config.get('repeats')} runs after a warm-up.", ""]
     lines += ["| | |", "|---|---|"] + [f"| {key} | {value} |" for key, value in machine.items()]
     lines += [f"| {key} | {value} |" for key, value in report.config.items()]
+    if report.summary:
+        lines += ["", "## Summary", ""] + report.summary
     for group in dict.fromkeys(row.group for row in report.rows):
         rows = [row for row in report.rows if row.group == group]
         lines += ["", f"## {group}", "",
@@ -194,6 +204,8 @@ def publish_report(report: Report, machine: dict, *, write: bool = True) -> None
 
 def print_report(report: Report) -> None:
     print(f"\n== {report.title}")
+    for line in report.summary:
+        print(f"  {line}")
     for row in report.rows:
         print(f"  {row.group:12s} {row.method:42s} {row.median_s * 1e3:9.1f} ms "
               f"{row.mev_per_s:8.1f} Mev/s  {row.speedup_vs_baseline:6.2f}x vs {row.baseline}")
@@ -400,6 +412,20 @@ def emvs_section(args: argparse.Namespace) -> Report:
     return speed_emvs.emvs_report(args)
 
 
+# -- section: peers ---------------------------------------------------------------------------
+@section("peers")
+def peers_section(args: argparse.Namespace) -> Report:
+    """Ours against every available peer (esim_py, expelliarmus, evlib, tonic) and C floors."""
+    from benchmarks import speed_peers
+
+    report = Report("peers", "Speed against the peers and the floors (one process)",
+                    {"repeats": args.repeats, "peer_events": args.peer_events,
+                     "frame_events": args.events, "groups": ",".join(args.peer_groups),
+                     "torch_threads": args.torch_threads})
+    speed_peers.peers_report(args, report, run_group)
+    return report
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(
         prog="python -m benchmarks.speed", description=__doc__.split("\n")[0])
@@ -413,6 +439,13 @@ def main(argv: list[str] | None = None) -> int:
                         help="events of the short-window voxel grid rows (default 100k)")
     parser.add_argument("--torch-threads", type=int, default=1,
                         help="torch intra-op threads (default 1, like numpy; 0 keeps torch's own)")
+    parser.add_argument("--peer-events", type=int, default=5_000_000,
+                        help="peers: events of the EVT read/write files (default 5M)")
+    parser.add_argument("--peer-groups", default="esim,evt,frame",
+                        type=lambda text: text.split(","),
+                        help="peers: comma-separated groups among esim, evt, frame (default all)")
+    parser.add_argument("--clock", choices=sorted(CLOCKS), default="wall",
+                        help="wall seconds (default) or CPU seconds of this process (all threads)")
     parser.add_argument("--no-write", action="store_true", help="print only, write no results")
     parser.add_argument("--skip-long", action="store_true", help="simulator: skip the 10-minute run")
     parser.add_argument("--long-minutes", type=float, default=10.0,
@@ -424,7 +457,9 @@ def main(argv: list[str] | None = None) -> int:
         import torch
 
         torch.set_num_threads(args.torch_threads)
+    CLOCK[0] = args.clock
     machine = machine_info()
+    machine["clock"] = args.clock
     for name in args.section or sorted(SECTIONS):
         publish_report(SECTIONS[name](args), machine, write=not args.no_write)
     return 0

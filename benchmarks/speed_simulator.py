@@ -40,10 +40,10 @@ THRESHOLDS = (0.2, 0.1, 0.05, 0.03, 0.02)
 REFERENCE_MEV_S = (3.6, 4.2)  # the reference C++ ESIM, issue 3
 
 
-def _head_module(relative: str, name: str):
-    """A module of the last commit (``git show HEAD:<relative>``), or None outside git."""
+def _head_module(relative: str, name: str, rev: str = "HEAD"):
+    """A module of commit ``rev`` (``git show <rev>:<relative>``), or None outside git."""
     try:
-        text = subprocess.run(["git", "show", f"HEAD:{relative}"], cwd=ROOT, check=True,
+        text = subprocess.run(["git", "show", f"{rev}:{relative}"], cwd=ROOT, check=True,
                               capture_output=True, text=True).stdout
     except (OSError, subprocess.CalledProcessError):
         return None
@@ -59,8 +59,8 @@ def _head_module(relative: str, name: str):
     return module
 
 
-def _head_esim():
-    module = _head_module("cmax/sim/esim.py", "esim_head")
+def _head_esim(rev: str = "HEAD"):
+    module = _head_module("cmax/sim/esim.py", f"esim_{rev}", rev)
     return None if module is None else module.EventSimulator
 
 

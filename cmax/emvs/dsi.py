@@ -17,7 +17,7 @@ projected into the reference view this is the **affine transfer**
 scale and one offset per plane, depending only on the camera centre ``C``.
 
 Voting. :func:`splat_votes` adds the exact bilinear votes of every event on
-every plane (4 weights per event and plane, ``np.bincount``): the reference.
+every plane (4 weights per event and plane, one compiled loop): the reference.
 :func:`gather_votes` is the fast path. Events of consecutive packets whose
 camera centres stay close share one transfer; they are splatted once
 (bilinear) on the base plane, on grids shifted by multiples of ``1/S`` px.
@@ -37,6 +37,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
+from cmax._jit import kernel
+
 __all__ = ["plane_depths", "PlaneTransfer", "plane_transfer", "base_plane_homographies", "project_packets",
            "splat_votes", "gather_votes", "bilinear_splat"]
 
@@ -44,6 +46,9 @@ __all__ = ["plane_depths", "PlaneTransfer", "plane_transfer", "base_plane_homogr
 _VOTES_PER_CHUNK = 1 << 21
 #: A gather canvas larger than this many reference images falls back to splatting.
 _MAX_CANVAS_IMAGES = 16
+#: Shifted images are splatted directly (not box-filtered from a fine grid) below this many
+#: event-shifts per fine-grid cell.
+_DIRECT_SPLATS_PER_CELL = 4
 
 
 def plane_depths(depth_range: tuple[float, float], n_planes: int) -> np.ndarray:
@@ -149,33 +154,51 @@ def project_packets(pixels: np.ndarray, homographies: np.ndarray, sizes: np.ndar
     return out[:, :2] / depth[:, None], hits
 
 
+@kernel
+def _splat_layers(x, y, weights, out):
+    """Add bilinear votes of points (m, N) to ``out`` (m, H, W) float64; corners outside are dropped.
+
+    ``weights`` is (m, N), or (0, 0) for unit weights.
+    """
+    layers, n = x.shape
+    height, width = out.shape[1], out.shape[2]
+    weighted = weights.size > 0
+    for k in range(layers):
+        for i in range(n):
+            xf, yf = np.floor(x[k, i]), np.floor(y[k, i])
+            if not (xf >= -1 and xf < width and yf >= -1 and yf < height):
+                continue
+            ix, iy = int(xf), int(yf)
+            fx, fy = x[k, i] - xf, y[k, i] - yf
+            w = weights[k, i] if weighted else 1.0
+            wy0, wy1 = (1.0 - fy) * w, fy * w
+            if iy >= 0:
+                if ix >= 0:
+                    out[k, iy, ix] += wy0 * (1.0 - fx)
+                if ix + 1 < width:
+                    out[k, iy, ix + 1] += wy0 * fx
+            if iy + 1 < height:
+                if ix >= 0:
+                    out[k, iy + 1, ix] += wy1 * (1.0 - fx)
+                if ix + 1 < width:
+                    out[k, iy + 1, ix + 1] += wy1 * fx
+
+
 def bilinear_splat(x: np.ndarray, y: np.ndarray, weights: np.ndarray | None, width: int,
                    height: int) -> np.ndarray:
     """Bilinear votes of points on ``m`` layers: ``x``, ``y`` (m, N) -> (m, height, width) float64.
 
     Each point adds ``weight * (1 - |x - X|) (1 - |y - Y|)`` to its four
     neighbouring pixels ``(X, Y)``; corners outside the image are not counted.
+    One compiled pass over the points (:func:`_splat_layers`).
     """
-    layers = x.shape[0]
-    x0 = np.floor(x)
-    y0 = np.floor(y)
-    fx = x - x0
-    fy = y - y0
-    # On a grid padded by one cell, a point's four corners are all inside or the point adds nothing.
-    near = (x0 >= -1) & (x0 < width) & (y0 >= -1) & (y0 < height)
-    padded_w, padded_h = width + 2, height + 2
-    base = (np.arange(layers)[:, None] * (padded_h * padded_w)
-            + (y0.astype(np.int64) + 1) * padded_w + (x0.astype(np.int64) + 1))[near]
-    fx, fy = fx[near], fy[near]
-    w = np.ones_like(fx) if weights is None else np.broadcast_to(weights, x.shape)[near]
-    wy0 = (1.0 - fy) * w
-    wy1 = fy * w
-    size = layers * padded_h * padded_w
-    counts = np.bincount(base, wy0 * (1.0 - fx), minlength=size)
-    counts[1:] += np.bincount(base, wy0 * fx, minlength=size)[:-1]
-    counts[padded_w:] += np.bincount(base, wy1 * (1.0 - fx), minlength=size)[:-padded_w]
-    counts[padded_w + 1:] += np.bincount(base, wy1 * fx, minlength=size)[:-padded_w - 1]
-    return counts.reshape(layers, padded_h, padded_w)[:, 1:-1, 1:-1]
+    x = np.ascontiguousarray(x, dtype=np.float64)
+    y = np.ascontiguousarray(y, dtype=np.float64)
+    w = (np.zeros((0, 0)) if weights is None
+         else np.ascontiguousarray(np.broadcast_to(weights, x.shape), dtype=np.float64))
+    out = np.zeros((x.shape[0], height, width))
+    _splat_layers(x, y, w, out)
+    return out
 
 
 def splat_votes(dsi: np.ndarray, positions: np.ndarray, transfer: PlaneTransfer) -> None:
@@ -226,6 +249,15 @@ def _phase_images(positions: np.ndarray, x0: int, y0: int, width: int, height: i
     S = subpixel
     sx = S if len(x_phases) > 1 else 1
     sy = S if len(y_phases) > 1 else 1
+    layers = len(x_phases) * len(y_phases)
+    if len(positions) * layers <= _DIRECT_SPLATS_PER_CELL * sx * sy * width * height:
+        # Few events for the fine grid: splat each needed shift directly (one compiled pass).
+        shift_x = np.tile(x_phases / S, len(y_phases))[:, None]
+        shift_y = np.repeat(y_phases / S, len(x_phases))[:, None]
+        u = positions[None, :, 0] - x0 - shift_x
+        v = positions[None, :, 1] - y0 - shift_y
+        images = bilinear_splat(u, v, None, width, height).astype(np.float32)
+        return images.reshape(len(y_phases), len(x_phases), height, width)
     u = (positions[:, 0] - x0 - (x_phases[0] / S if sx == 1 else 0.0)) * sx
     v = (positions[:, 1] - y0 - (y_phases[0] / S if sy == 1 else 0.0)) * sy
     fine = bilinear_splat(u[None], v[None], None, sx * width, sy * height)[0].astype(np.float32)

@@ -13,6 +13,8 @@ from typing import TYPE_CHECKING, Iterator, Union
 
 import numpy as np
 
+from cmax._jit import kernel
+
 from cmax.events import Events, EventTensors
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -125,13 +127,17 @@ def _index_numpy(events: Events, run: slice, out: np.ndarray) -> np.ndarray:
     return index
 
 
-def _pixel_counts(events: Events) -> np.ndarray:
-    """Events per (polarity, pixel): int64, shape (2 * H * W,)."""
-    size, n = 2 * events.width * events.height, len(events)
-    counts = np.zeros(size, np.int64)
-    buffer = np.empty(min(n, _CHUNK), np.intp)
-    for run in _chunks(0, n):
-        counts += np.bincount(_index_numpy(events, run, buffer), minlength=size)
+@kernel
+def _count_pixels(x, y, p, width, height, counts):
+    """Add one to ``counts[(p*H + y)*W + x]`` per event (a compiled loop, no index array)."""
+    for i in range(x.size):
+        counts[(np.intp(p[i]) * height + y[i]) * width + x[i]] += 1
+
+
+def _pixel_counts(events: Events, dtype: type = np.int64) -> np.ndarray:
+    """Events per (polarity, pixel): ``dtype`` (int64 or float32, exact to 2**24), shape (2 * H * W,)."""
+    counts = np.zeros(2 * events.width * events.height, dtype)
+    _count_pixels(events.x, events.y, events.p, events.width, events.height, counts)
     return counts
 
 

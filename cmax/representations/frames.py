@@ -1,9 +1,9 @@
 """Event frame (counts per pixel and polarity) and time surface (decayed latest time).
 
 Both go through the flat (polarity, pixel) index of
-:mod:`cmax.representations._common`: counts by ``np.bincount`` /
-``index_add_``, the per-pixel latest time by ``np.maximum.at`` /
-``scatter_reduce_``.
+:mod:`cmax.representations._common`: counts by a compiled loop into the
+float32 frame / ``index_add_``, the per-pixel latest time by ``np.maximum.at``
+/ ``scatter_reduce_``.
 """
 from __future__ import annotations
 
@@ -65,8 +65,8 @@ def event_frame(events: EventsLike, *, signed: bool = False) -> Array:
     height, width = events.height, events.width
     _check_output_size((2, height, width), f"event frame of a {width}x{height} sensor")
     if kind == "numpy":
-        frame = _pixel_counts(events).reshape(2, height, width)
-        return (frame[1] - frame[0]).astype(np.float32) if signed else frame.astype(np.float32)
+        frame = _pixel_counts(events, np.float32).reshape(2, height, width)
+        return frame[1] - frame[0] if signed else frame
     import torch
 
     index = _index_torch(events)

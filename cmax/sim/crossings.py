@@ -15,7 +15,10 @@ symmetric in sign, ``s * (ref + k*(s*C))`` summed sequentially equals
 ``s*ref + C + ... + C`` summed sequentially. One comparison ``s*level <=
 s*log1`` then serves both polarities.
 
-Cost: per interval a few vectorised passes over the pixels whose log
+:class:`~cmax.sim.esim.EventSimulator` runs the compiled kernels at the end
+of this module (:func:`_interval_crossings`, :func:`_sorted_by_time`: the same
+arithmetic, pixel by pixel) unless it needs the refractory period or shot
+noise, which use the vectorised functions. Cost of those: per interval a few vectorised passes over the pixels whose log
 intensity moved within 10 % of a threshold of their next level (the *near*
 pixels; on real video a few percent of the sensor), then one short pass per
 rank of crossing over the pixels still crossing (most pixels fire once or not
@@ -32,6 +35,8 @@ from __future__ import annotations
 from typing import NamedTuple
 
 import numpy as np
+
+from cmax._jit import kernel
 
 __all__ = ["Crossings", "crossing_times", "fire", "near_pixels", "refractory_keep", "sort_events",
            "threshold_crossings"]
@@ -333,3 +338,99 @@ def sort_events(pixel: np.ndarray, t_rel: np.ndarray, polarity: np.ndarray, n_pi
     pixel = key & ((1 << bits) - 1)
     key >>= bits
     return pixel, key, polarity
+
+
+# -- compiled interval kernel -----------------------------------------------------------------
+@kernel
+def _interval_crossings(ref, log0, log1, c_on, c_off, near_on, near_off, dt_us):
+    """Crossings of every pixel in one interval, pixel by pixel; moves ``ref`` in place.
+
+    ``c_on``, ``c_off``, ``near_on``, ``near_off`` are float32 arrays of length 1
+    (one threshold for all pixels) or N. A first pass finds the pixels within
+    10 % of a threshold of their next level (:func:`near_pixels`' test) and
+    bounds their crossings by ``floor(|log1 - ref| / C) + 2`` (the margin of
+    :func:`_bucketed`); the second computes, per such pixel, the levels as
+    the float32 running sums of :func:`fire` in signed space and the times as
+    :func:`crossing_times`. Returns (pixel int64, t_rel int64, polarity int8),
+    (M,) each, grouped by pixel in raster order, each pixel's crossings in
+    order, and whether the bound held (it always should; the caller raises if not).
+    """
+    n = ref.size
+    per_pixel = c_on.size > 1
+    rows = np.empty(n, np.int64)
+    n_rows, bound = 0, 0
+    for i in range(n):
+        k = i if per_pixel else 0
+        beyond = log1[i] - ref[i]
+        if beyond > near_on[k] or beyond < near_off[k]:
+            rows[n_rows] = i
+            n_rows += 1
+            step = c_on[k] if beyond > 0 else c_off[k]
+            bound += np.int64(abs(np.float64(beyond)) / np.float64(step)) + 2
+    pixel = np.empty(bound, np.int64)
+    t_rel = np.empty(bound, np.int64)
+    polarity = np.empty(bound, np.int8)
+    m, held = 0, True
+    for r in range(n_rows):
+        i = rows[r]
+        k = i if per_pixel else 0
+        l0, l1 = log0[i], log1[i]
+        up = l1 > l0
+        sign = np.float32(1.0) if up else np.float32(-1.0)
+        step = c_on[k] if up else c_off[k]
+        high = l1 * sign
+        level = ref[i] * sign + step
+        if not (level <= high and level > l0 * sign):
+            continue
+        span = np.float64(l1 - l0)
+        while True:
+            if m == bound:
+                held = False
+                break
+            pixel[m] = i
+            t_rel[m] = np.int64(np.floor(np.float64(level * sign - l0) * dt_us / span + 0.5))
+            polarity[m] = up
+            m += 1
+            following = level + step
+            if not following <= high:
+                break
+            level = following
+        ref[i] = level * sign
+    return pixel[:m], t_rel[:m], polarity[:m], held
+
+
+@kernel
+def _sorted_by_time(pixel, t_rel, polarity, dt_us, width, t_start, x, y, t, p, offset):
+    """Write events (grouped by pixel) into x, y, t, p from ``offset``, sorted by time.
+
+    A stable counting sort on ``t_rel`` in ``[0, dt_us]`` scatters each event
+    straight to its place (a stable merge sort when the interval is long
+    against the event count), keeping the pixel order, then the crossing
+    order, among equal times; x, y are ``pixel % width`` and ``pixel //
+    width``, t is ``t_start + t_rel``.
+    """
+    m = pixel.size
+    if dt_us + 1 <= 4 * m + 4096:
+        slot = np.zeros(dt_us + 2, np.int64)
+        for j in range(m):
+            slot[t_rel[j] + 1] += 1
+        slot[0] = offset
+        for b in range(1, dt_us + 2):
+            slot[b] += slot[b - 1]
+        for j in range(m):
+            at = slot[t_rel[j]]
+            slot[t_rel[j]] = at + 1
+            q = pixel[j]
+            x[at] = q % width
+            y[at] = q // width
+            t[at] = t_start + t_rel[j]
+            p[at] = polarity[j]
+    else:
+        order = np.argsort(t_rel, kind="mergesort")
+        for r in range(m):
+            j = order[r]
+            q = pixel[j]
+            x[offset + r] = q % width
+            y[offset + r] = q // width
+            t[offset + r] = t_start + t_rel[j]
+            p[offset + r] = polarity[j]

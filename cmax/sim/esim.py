@@ -40,13 +40,14 @@ frames (``esim_truck_pan``, Cp = Cn = 0.2 and 0.1) the events agree one to
 one with the C++ ESIM's, within 1 µs (``tests/test_sim_esim.py``).
 
 Cost per frame (:meth:`EventSimulator.step`): a table look-up for the log
-intensity and four vectorised passes over the sensor to find the pixels within
-10 % of a threshold of their next level (a few percent of them on real video);
-everything else -- the crossings, their times, the sort by time, the x/y
-columns (looked up, not divided) -- works on those pixels and on the events
-only. Python loops run over frames, over the rank of a crossing within its
-pixel in one interval (up to 16, then running sums for the rest), and (with a
-refractory period only) over the rank of an event within its pixel.
+intensity, then one compiled pass (numba, :func:`cmax.sim.crossings._interval_crossings`)
+over the sensor that finds the pixels within 10 % of a threshold of their next
+level (a few percent of them on real video) and computes their crossings and
+times, and a stable counting sort on time that writes the events, in order,
+straight into the output columns (:meth:`simulate` fills one set of columns
+frame after frame, with no concatenation at the end). With a refractory
+period or shot noise the vectorised numpy path of :mod:`cmax.sim.crossings`
+runs instead; both give the same events.
 
 References
 ----------
@@ -63,6 +64,8 @@ from cmax.events import Events
 from cmax.sim._cvlog import _cv_log32f
 from cmax.sim.crossings import (
     Crossings,
+    _interval_crossings,
+    _sorted_by_time,
     crossing_times,
     fire,
     near_pixels,
@@ -272,25 +275,57 @@ class EventSimulator:
         self._last_t = np.full(n, _NEVER, np.int64) if s.refractory_us > 0 else None
         self._near_on = _NEAR * self._c_on
         self._near_off = -_NEAR * self._c_off
+        # the compiled kernel's form: float32 arrays of length 1 (one value) or N
+        self._kernel_thresholds = tuple(
+            np.atleast_1d(np.asarray(value, np.float32))
+            for value in (self._c_on, self._c_off, self._near_on, self._near_off)
+        )
         height, width = log.shape  # pixel index -> (x, y), looked up instead of divmod
         self._x_of = np.tile(np.arange(width, dtype=np.uint16), height)
         self._y_of = np.repeat(np.arange(height, dtype=np.uint16), width)
 
     # -- one interval ---------------------------------------------------------------------
-    def _advance(self, log: np.ndarray, t_us: int) -> Events:
+    def _advance(self, log: np.ndarray, t_us: int, sink: "_Columns | None" = None) -> Events | None:
         """Events of the interval from the previous sample to ``log`` at ``t_us``.
 
-        A few passes over the whole sensor find the near pixels; everything
-        else works on those (see :mod:`cmax.sim.crossings`).
+        Without refractory period and shot noise one compiled pass over the
+        sensor finds the crossings pixel by pixel and a counting sort on time
+        writes them, in order, into ``sink`` (when given; returns None) or into
+        fresh columns. Otherwise a few passes over the whole sensor find the
+        near pixels and everything else works on those (see
+        :mod:`cmax.sim.crossings`).
         """
         s = self.settings
         height, width = self._shape
-        n_pixels, dt = height * width, t_us - self._t_us
+        dt = t_us - self._t_us
         log1 = log.ravel()
         drift = None
         if s.leak_rate_hz > 0:  # crossings of L + drift against a fixed L_ref, then L_ref -= drift
             drift = leak_drift(s.leak_rate_hz, dt, self._c_on)
             log1 = (log1 + drift).astype(np.float32)
+        if self._last_t is None and s.shot_noise_rate_hz <= 0:
+            pixel, t_rel, polarity, held = _interval_crossings(
+                self._ref, self._log, log1, *self._kernel_thresholds, dt)
+            if not held:  # pragma: no cover - the bound has a margin of two levels
+                raise RuntimeError("ESIM: more crossings than the bound allows (a bug)")
+            if drift is not None:
+                self._ref = (self._ref - drift).astype(np.float32)
+            self._log, self._t_us = log.ravel(), t_us  # log is a fresh array, owned
+            target = sink if sink is not None else _Columns(pixel.size)
+            offset = target.reserve(pixel.size)
+            _sorted_by_time(pixel, t_rel, polarity, dt, width, t_us - dt, *target.columns, offset)
+            return None if sink is not None else target.events(width, height)
+        events = self._advance_arrays(log, log1, t_us, dt, drift)
+        if sink is None:
+            return events
+        sink.append(events)
+        return None
+
+    def _advance_arrays(self, log: np.ndarray, log1: np.ndarray, t_us: int, dt: int,
+                        drift) -> Events:
+        """:meth:`_advance` with refractory period or shot noise, on the near pixels."""
+        s = self.settings
+        height, width = self._shape
         log0, ref = self._log, self._ref  # ref (owned) moves in place
         rows = near_pixels(ref, log1, self._near_on, self._near_off)
         refractory = self._last_t is not None
@@ -303,12 +338,13 @@ class EventSimulator:
         if drift is not None:
             self._ref = (ref - drift).astype(np.float32)
         if s.shot_noise_rate_hz > 0:
-            noise_pixel, noise_t, noise_p = shot_noise(self._rng, s.shot_noise_rate_hz, n_pixels, dt)
+            noise_pixel, noise_t, noise_p = shot_noise(self._rng, s.shot_noise_rate_hz,
+                                                       height * width, dt)
             pixel = np.concatenate([pixel, noise_pixel])
             t_rel = np.concatenate([t_rel, noise_t])
             polarity = np.concatenate([polarity, noise_p])
         self._log, self._t_us = log.ravel(), t_us  # log is a fresh array, owned
-        pixel, t_rel, polarity = sort_events(pixel, t_rel, polarity, n_pixels, dt)
+        pixel, t_rel, polarity = sort_events(pixel, t_rel, polarity, height * width, dt)
         t_rel += t_us - dt
         return Events._trusted(self._x_of[pixel], self._y_of[pixel], t_rel, polarity, width, height)
 
@@ -373,15 +409,46 @@ class EventSimulator:
             )
         self.reset()
         eps = self.settings.log_eps
-        parts = [
-            self._feed(_log_grey(_grey_frame(frame, f"frames[{i}]"), eps, self._table), int(t_us))
-            for i, (frame, t_us) in enumerate(zip(frames, times))
-        ]
-        if not parts:
+        sink = _Columns(0)
+        for i, (frame, t_us) in enumerate(zip(frames, times)):
+            log = _log_grey(_grey_frame(frame, f"frames[{i}]"), eps, self._table)
+            if self._shape is None:
+                self._initialize(log, int(t_us))
+            else:
+                self._advance(log, int(t_us), sink)
+        if self._shape is None:
             raise ValueError("frames must hold at least one frame")
         height, width = self._shape
-        columns = (np.concatenate([getattr(part, name) for part in parts]) for name in "xytp")
-        return Events._trusted(*columns, width, height)
+        return sink.events(width, height)
+
+
+class _Columns:
+    """x, y, t, p columns filled frame after frame; capacity doubles when it runs out."""
+
+    def __init__(self, capacity: int) -> None:
+        self.n = 0
+        self.columns = (np.empty(capacity, np.uint16), np.empty(capacity, np.uint16),
+                        np.empty(capacity, np.int64), np.empty(capacity, np.int8))
+
+    def reserve(self, m: int) -> int:
+        """Make room for ``m`` more events; returns where they start (and counts them)."""
+        if self.n + m > self.columns[0].size:
+            capacity = max(self.n + m, 2 * self.columns[0].size, 1 << 16)
+            grown = tuple(np.empty(capacity, c.dtype) for c in self.columns)
+            for old, new in zip(self.columns, grown):
+                new[:self.n] = old[:self.n]
+            self.columns = grown
+        offset, self.n = self.n, self.n + m
+        return offset
+
+    def append(self, events: Events) -> None:
+        offset = self.reserve(len(events))
+        for column, name in zip(self.columns, "xytp"):
+            column[offset:self.n] = getattr(events, name)
+
+    def events(self, width: int, height: int) -> Events:
+        """The columns filled so far (views), as Events."""
+        return Events._trusted(*(c[:self.n] for c in self.columns), width, height)
 
 
 def _timestamps(values: object) -> np.ndarray:

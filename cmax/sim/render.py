@@ -26,7 +26,9 @@ would make spurious events). Pixels that hit nothing see the sky, a smooth
 function of the ray's elevation, and get depth NaN.
 
 Depth is exact up to float32 rounding of ``w``; there is no anti-aliasing of
-geometric edges (a pixel shows the surface at its centre).
+geometric edges (a pixel shows the surface at its centre). Each frame runs
+with the torch thread count of :func:`cmax._threads.torch_threads` (one
+thread on a busy machine, where more would stall).
 """
 from __future__ import annotations
 
@@ -37,6 +39,7 @@ import cv2
 import numpy as np
 import torch
 
+from cmax._threads import torch_threads_scope
 from cmax.camera import Camera
 from cmax.sim.textures import TextureAtlas
 from cmax.sim.world import PlanarWorld
@@ -316,6 +319,10 @@ class PlanarRenderer:
         T_w_c = np.asarray(T_w_c, dtype=np.float64)
         if T_w_c.shape != (4, 4) or not np.isfinite(T_w_c).all():
             raise ValueError(f"T_w_c must be a finite (4, 4) pose, got shape {T_w_c.shape}")
+        with torch_threads_scope(self.camera.height * self.camera.width):
+            return self._render(T_w_c)
+
+    def _render(self, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         coef, usable = self._plane_coefficients(T_w_c)
         H, W = self.camera.height, self.camera.width
         keys = self._zbuffer(coef, usable, T_w_c).view(self._Hp, self._Wp)[:H, :W].reshape(-1)

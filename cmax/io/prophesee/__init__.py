@@ -1,4 +1,4 @@
-"""Prophesee RAW files: vectorized EVT 3.0 and EVT 2.0 decoders and encoders.
+"""Prophesee RAW files: compiled EVT 3.0 and EVT 2.0 decoders and encoders.
 
 A RAW file is an ASCII header of lines starting with ``%`` (optionally closed
 by ``% end``) followed by little-endian words. Layouts, from Prophesee's
@@ -33,10 +33,9 @@ Other word types are reserved by the format; meeting one raises
 as do a byte count that is not a whole number of words, an unterminated header
 and events outside the sensor.
 
-Decoding is vectorized: the state registers (time, y, base x, polarity) are
-forward-filled by cumulative counts of the words that set them, vector masks
-are expanded with ``np.unpackbits``, and the decoder state is carried from one
-chunk to the next, so :func:`iter_evt3` / :func:`iter_evt2` decode files of any
+Decoding is one compiled pass over the words (numba) into columns allocated
+once from a counted bound; the decoder state (time, y, base x, polarity) is
+carried from one chunk to the next, so :func:`iter_evt3` / :func:`iter_evt2` decode files of any
 size in bounded memory and give exactly what :func:`read_evt3` /
 :func:`read_evt2` give. Words before the first TIME_HIGH (and events before the
 first ADDR_Y / VECT_BASE_X that define them) have no defined time or address

@@ -1,13 +1,16 @@
-"""Vectorized decoders of EVT 3.0 and EVT 2.0 words, chunk by chunk.
+"""Compiled decoders of EVT 3.0 and EVT 2.0 words, into preallocated columns.
 
-Each decoder turns one chunk of words into event columns (x, y, t, p) and
-carries its state registers (time, y, base x, polarity) to the next chunk in
-a state object, so chunks of any size give the same events as the whole
-stream. The registers are forward-filled by cumulative counts of the words
-that set them and vector masks are expanded with ``np.unpackbits``: no Python
-loop over words. A word that cannot be decoded raises :class:`_WordError`
-with its index in the chunk; the file reader turns it into a
-:class:`~cmax.io.errors.FormatError` with the byte offset. The word layouts
+Decoding a run of words takes two passes: :func:`_count` checks that no word
+type is reserved and returns an upper bound of the events the words hold (for
+EVT 3.0 the set bits of the vector masks and one per ADDR_X word, from a table
+of all 65536 words; for EVT 2.0 one per word); the caller
+allocates the four columns once and :func:`_decode` fills them in one
+sequential pass over the words, carrying the state registers (time, y, base
+x, polarity, last time) in a small array, so runs of any size (one chunk or a
+whole file) give the same events as the whole stream. The loops are numba
+kernels (:mod:`cmax._jit`). A word that cannot be decoded raises
+:class:`_WordError` with its index in the run; the file reader turns it into
+a :class:`~cmax.io.errors.FormatError` with the byte offset. The word layouts
 are tabulated in :mod:`cmax.io.prophesee`.
 """
 from __future__ import annotations
@@ -17,6 +20,8 @@ from typing import Callable
 
 import numpy as np
 
+from cmax._jit import kernel
+
 _UNKNOWN = -(1 << 40)             # register value before the word that sets it
 
 #: Bit k set: word type k is reserved (EVT 3.0: 0x1, 0x9, 0xB-0xD; EVT 2.0: all but
@@ -24,9 +29,16 @@ _UNKNOWN = -(1 << 40)             # register value before the word that sets it
 _EVT3_RESERVED = 0x3A02
 _EVT2_RESERVED = 0x3AFC
 
+# State registers, int64 each: raw TIME_HIGH (-1: none yet), wraparounds so far,
+# unwrapped time high, time base (µs), y, base x, polarity, time of the last event.
+_TH_RAW, _LOOPS, _HIGH, _TIME, _Y, _BASE_X, _POL, _LAST_T = range(8)
+
+# Error codes of the kernels.
+_OK, _X_OUTSIDE, _Y_OUTSIDE, _TIME_BACK = 0, 2, 3, 4
+
 
 class _WordError(Exception):
-    """A word that cannot be decoded, at ``index`` in the chunk."""
+    """A word that cannot be decoded, at ``index`` in the run."""
 
     def __init__(self, index: int, reason: str) -> None:
         super().__init__(reason)
@@ -42,179 +54,164 @@ class _Limits:
     check_order: bool
 
 
-@dataclass
-class _Evt3State:
-    th_raw: int = -1        # last raw 12-bit TIME_HIGH (-1: none yet)
-    loops: int = 0          # 24-bit wraparounds so far
-    high: int = _UNKNOWN    # loops * 4096 + th_raw
-    time: int = _UNKNOWN    # current time base, µs
-    y: int = -1
-    base_x: int = _UNKNOWN  # current vector base x (after the vectors seen)
-    pol: int = 0
-    last_t: int = -1        # time of the last event decoded, µs
+def _new_state() -> np.ndarray:
+    """Registers before the first word: (8,) int64 (see ``_TH_RAW`` ... ``_LAST_T``)."""
+    return np.array([-1, 0, _UNKNOWN, _UNKNOWN, -1, _UNKNOWN, 0, -1], np.int64)
 
 
-@dataclass
-class _Evt2State:
-    th_raw: int = -1
-    loops: int = 0
-    high: int = _UNKNOWN    # loops * 2**28 + th_raw, in units of 64 µs
-    last_t: int = -1
+def _evt3_word_events() -> np.ndarray:
+    """Events each 16-bit EVT 3.0 word holds, (65536,) uint8; 255 for a reserved type."""
+    words = np.arange(1 << 16)
+    kind = words >> 12
+    set_bits = np.cumsum([(words >> bit) & 1 for bit in range(12)], axis=0)  # in bits 0..k
+    count = np.zeros(words.size, np.uint8)
+    count[kind == 0x2] = 1
+    count[kind == 0x4] = set_bits[11][kind == 0x4]
+    count[kind == 0x5] = set_bits[7][kind == 0x5]
+    count[(_EVT3_RESERVED >> kind) & 1 == 1] = 255
+    return count
 
 
-#: Highest set bit of a 12-bit vector mask (-1 for an empty mask).
-_HIGHEST_BIT = np.concatenate([[-1], np.floor(np.log2(np.arange(1, 4096))).astype(np.int16)])
+#: Events per EVT 3.0 word (255: reserved type), and the highest set bit of a 12-bit mask.
+_EVT3_WORD_EVENTS = _evt3_word_events()
+_HIGHEST_BIT = np.concatenate([[-1], np.floor(np.log2(np.arange(1, 4096)))]).astype(np.int64)
 
 
-def _unwrap_time_high(
-    th_raw: np.ndarray, state: "_Evt3State | _Evt2State", bits: int
-) -> np.ndarray:
-    """Absolute time-high values of raw ``bits``-bit TIME_HIGH words; updates ``state``.
+@kernel
+def _event_error(column, row, time, last_t, width, height, check_order):
+    """(error code, two values) of an event word: its highest x, row and time; ``_OK`` if fine."""
+    if column >= width:
+        return _X_OUTSIDE, column, np.int64(0)
+    if row >= height:
+        return _Y_OUTSIDE, row, np.int64(0)
+    if check_order and time < last_t:
+        return _TIME_BACK, last_t, time
+    return _OK, np.int64(0), np.int64(0)
 
-    A value that falls by more than half the range from the previous one is a
-    wraparound (one more loop); smaller falls are kept (and caught as time
-    going back).
+
+@kernel
+def _count_evt3(words):
+    """(upper bound of the events, index of the first reserved word or -1) of uint16 ``words``."""
+    total = 0
+    for i in range(words.size):
+        count = _EVT3_WORD_EVENTS[words[i]]
+        if count == 255:
+            return total, i
+        total += count
+    return total, -1
+
+
+@kernel
+def _count_evt2(words):
+    """(number of words, index of the first reserved word or -1) of uint32 ``words``.
+
+    Every word holds at most one event, so the bound is the word count.
     """
-    prev = np.empty_like(th_raw)
-    prev[0] = state.th_raw
-    prev[1:] = th_raw[:-1]
-    loops = state.loops + np.cumsum((prev - th_raw) > (1 << (bits - 1)))
-    state.th_raw, state.loops = int(th_raw[-1]), int(loops[-1])
-    return (loops << bits) + th_raw
+    bad = 0
+    for i in range(words.size):     # no early exit: the loop vectorizes
+        bad |= (_EVT2_RESERVED >> (words[i] >> 28)) & 1
+    if bad:
+        for i in range(words.size):
+            if (_EVT2_RESERVED >> (words[i] >> 28)) & 1:
+                return words.size, i
+    return words.size, -1
 
 
-def _check_reserved(types: np.ndarray, reserved: int, name: str) -> None:
-    bad = (types.dtype.type(reserved) >> types) & 1
-    if bad.any():
-        i = int(np.argmax(bad))
-        raise _WordError(i, f"reserved {name} word type {int(types[i]):#x}")
+@kernel
+def _decode_evt3_words(words, state, width, height, check_order, x, y, t, p, start):
+    """Decode EVT 3.0 ``words`` into the columns from index ``start``; updates ``state``.
 
-
-def _check_events(
-    pos: np.ndarray, x_max: np.ndarray, y: np.ndarray, t: np.ndarray,
-    state: "_Evt3State | _Evt2State", limits: _Limits,
-) -> None:
-    """Raise for event words (at ``pos``) outside the sensor or going back in time."""
-    if not pos.size:
-        return
-    for name, column, limit in (("x", x_max, limits.width), ("y", y, limits.height)):
-        if column.max() >= limit:
-            i = int(np.argmax(column >= limit))
-            raise _WordError(
-                pos[i], f"event with {name}={int(column[i])} outside the "
-                f"{limits.width}x{limits.height} sensor"
-            )
-    if limits.check_order:
-        if t[0] < state.last_t:
-            back, before = 0, state.last_t
-        else:
-            falls = np.flatnonzero(t[1:] < t[:-1])
-            back = int(falls[0]) + 1 if falls.size else None
-            before = None if back is None else int(t[back - 1])
-        if back is not None:
-            raise _WordError(
-                pos[back], f"time goes back from {before} µs to {int(t[back])} µs "
-                "(pass sort=True to sort the events by time)"
-            )
-    state.last_t = int(t[-1])
-
-
-def _decode_evt3(words: np.ndarray, state: _Evt3State, limits: _Limits) -> tuple[np.ndarray, ...]:
-    """Decode EVT 3.0 ``words`` (uint16, (n,)) from ``state``, which is updated in place.
-
-    Returns x, y (uint16), t (int64 µs), p (int8), each (N,), in stream order.
+    Returns (end index, error code, word index, two error values).
     """
-    types = words >> 12
-    _check_reserved(types, _EVT3_RESERVED, "EVT 3.0")
-    payload = (words & 0xFFF).astype(np.int32)
-
-    # Time base: TIME_HIGH sets high (low restarts at 0), TIME_LOW sets low.
-    is_time = (types == 0x8) | (types == 0x6)
-    time_pos = np.flatnonzero(is_time)
-    is_high = types[time_pos] == 0x8
-    time_payload = payload[time_pos].astype(np.int64)
-    high = np.empty(int(is_high.sum()) + 1, np.int64)
-    high[0] = state.high
-    if high.size > 1:
-        high[1:] = _unwrap_time_high(time_payload[is_high], state, 12)
-    time = np.empty(time_pos.size + 1, np.int64)
-    time[0] = state.time
-    time[1:] = high[np.cumsum(is_high)] * 4096 + np.where(is_high, 0, time_payload)
-    state.high, state.time = int(high[-1]), int(time[-1])
-
-    is_y = types == 0x0
-    y_values = np.empty(int(is_y.sum()) + 1, np.int32)
-    y_values[0] = state.y
-    y_values[1:] = payload[is_y] & 0x7FF
-    state.y = int(y_values[-1])
-
-    # Address words in order: VECT_BASE_X sets base x and polarity, VECT_12 /
-    # VECT_8 have events at base x + set bits and then add 12 / 8 to base x,
-    # ADDR_X has one event at its own x and polarity.
-    addr_pos = np.flatnonzero((types >= 0x2) & (types <= 0x5))
-    addr_types = types[addr_pos]
-    addr_payload = payload[addr_pos]
-    is_base = addr_types == 0x3
-    step = np.where(addr_types == 0x4, 12, np.where(addr_types == 0x5, 8, 0))
-    before = np.cumsum(step) - step
-    base_payload = addr_payload[is_base]
-    offset = np.empty(base_payload.size + 1, np.int64)
-    offset[0] = state.base_x
-    offset[1:] = (base_payload & 0x7FF) - before[is_base]
-    polarity = np.empty(base_payload.size + 1, np.int8)
-    polarity[0] = state.pol
-    polarity[1:] = base_payload >> 11
-    base_count = np.cumsum(is_base)
-    if addr_pos.size:
-        state.base_x = int(offset[-1] + before[-1] + step[-1])
-        state.pol = int(polarity[-1])
-
-    is_event = ~is_base
-    ev_pos = addr_pos[is_event]
-    ev_types = addr_types[is_event]
-    ev_payload = addr_payload[is_event]
-    base_count = base_count[is_event]
-    single = ev_types == 0x2
-    x0 = np.where(single, ev_payload & 0x7FF, offset[base_count] + before[is_event])
-    p = np.where(single, ev_payload >> 11, polarity[base_count]).astype(np.int8)
-    mask = np.where(single, 1, np.where(ev_types == 0x4, ev_payload, ev_payload & 0xFF))
-    t = time[np.cumsum(is_time, dtype=np.intp)[ev_pos]]
-    y = y_values[np.cumsum(is_y, dtype=np.intp)[ev_pos]]
-
-    known = (t >= 0) & (y >= 0) & (x0 >= 0) & (mask > 0)
-    if not known.all():
-        ev_pos, x0, y, t, p, mask = (a[known] for a in (ev_pos, x0, y, t, p, mask))
-    _check_events(ev_pos, x0 + _HIGHEST_BIT[mask], y, t, state, limits)
-
-    mask_bytes = mask.astype("<u2").view(np.uint8).reshape(-1, 2)
-    bits = np.unpackbits(mask_bytes, axis=1, bitorder="little")
-    flat = np.flatnonzero(bits.view(bool))
-    row = flat >> 4
-    x = x0.astype(np.uint16)[row]
-    x += (flat & 15).astype(np.uint16)
-    return x, y.astype(np.uint16)[row], t[row], p[row]
+    th_raw, loops, high, time = state[0], state[1], state[2], state[3]
+    row, base_x, pol, last_t = state[4], state[5], state[6], state[7]
+    n, code, at, a, b = start, _OK, -1, np.int64(0), np.int64(0)
+    for i in range(words.size):
+        w = np.int64(words[i])
+        kind = w >> 12
+        payload = w & 0xFFF
+        if kind == 0x0:
+            row = payload & 0x7FF
+        elif kind == 0x8:
+            if th_raw - payload > 2048:
+                loops += 1
+            th_raw = payload
+            high = (loops << 12) + payload
+            time = high * 4096
+        elif kind == 0x6:
+            time = high * 4096 + payload
+        elif kind == 0x3:
+            base_x = payload & 0x7FF
+            pol = payload >> 11
+        elif kind == 0x2:
+            if time < 0 or row < 0:
+                continue
+            column = payload & 0x7FF
+            code, a, b = _event_error(column, row, time, last_t, width, height, check_order)
+            if code != _OK:
+                at = i
+                break
+            last_t = time
+            x[n] = column
+            y[n] = row
+            t[n] = time
+            p[n] = payload >> 11
+            n += 1
+        elif kind == 0x4 or kind == 0x5:
+            x0 = base_x
+            mask = payload if kind == 0x4 else payload & 0xFF
+            base_x += 12 if kind == 0x4 else 8
+            if time < 0 or row < 0 or x0 < 0 or mask == 0:
+                continue
+            top = _HIGHEST_BIT[mask]
+            code, a, b = _event_error(x0 + top, row, time, last_t, width, height, check_order)
+            if code != _OK:
+                at = i
+                break
+            last_t = time
+            for bit in range(top + 1):
+                if (mask >> bit) & 1:
+                    x[n] = x0 + bit
+                    y[n] = row
+                    t[n] = time
+                    p[n] = pol
+                    n += 1
+    state[0], state[1], state[2], state[3] = th_raw, loops, high, time
+    state[4], state[5], state[6], state[7] = row, base_x, pol, last_t
+    return n, code, at, a, b
 
 
-def _decode_evt2(words: np.ndarray, state: _Evt2State, limits: _Limits) -> tuple[np.ndarray, ...]:
-    """Decode EVT 2.0 ``words`` (uint32, (n,)) from ``state``; as :func:`_decode_evt3`."""
-    types = words >> 28
-    _check_reserved(types, _EVT2_RESERVED, "EVT 2.0")
-    is_high = types == 0x8
-    high = np.empty(int(is_high.sum()) + 1, np.int64)
-    high[0] = state.high
-    if high.size > 1:
-        high[1:] = _unwrap_time_high((words[is_high] & 0x0FFFFFFF).astype(np.int64), state, 28)
-    state.high = int(high[-1])
-
-    cd_pos = np.flatnonzero(types <= 0x1)
-    cd = words[cd_pos]
-    t = high[np.cumsum(is_high, dtype=np.intp)[cd_pos]] * 64 + ((cd >> 22) & 0x3F)
-    known = t >= 0
-    if not known.all():
-        cd_pos, cd, t = cd_pos[known], cd[known], t[known]
-    x, y = (cd >> 11) & 0x7FF, cd & 0x7FF
-    _check_events(cd_pos, x, y, t, state, limits)
-    return x.astype(np.uint16), y.astype(np.uint16), t, (cd >> 28).astype(np.int8)
+@kernel
+def _decode_evt2_words(words, state, width, height, check_order, x, y, t, p, start):
+    """Decode EVT 2.0 ``words`` as :func:`_decode_evt3_words` (only TIME_HIGH and CD words matter)."""
+    th_raw, loops, high, last_t = state[0], state[1], state[2], state[7]
+    n, code, at, a, b = start, _OK, -1, np.int64(0), np.int64(0)
+    for i in range(words.size):
+        w = np.int64(words[i])
+        kind = w >> 28
+        if kind == 0x8:
+            payload = w & 0x0FFFFFFF
+            if th_raw - payload > (1 << 27):
+                loops += 1
+            th_raw = payload
+            high = (loops << 28) + payload
+        elif kind <= 0x1:
+            time = high * 64 + ((w >> 22) & 0x3F)
+            if time < 0:
+                continue
+            column, row = (w >> 11) & 0x7FF, w & 0x7FF
+            code, a, b = _event_error(column, row, time, last_t, width, height, check_order)
+            if code != _OK:
+                at = i
+                break
+            last_t = time
+            x[n] = column
+            y[n] = row
+            t[n] = time
+            p[n] = kind
+            n += 1
+    state[0], state[1], state[2], state[7] = th_raw, loops, high, last_t
+    return n, code, at, a, b
 
 
 @dataclass(frozen=True)
@@ -222,9 +219,48 @@ class _Codec:
     name: str               # "evt3" / "evt2"
     title: str              # "EVT 3.0"
     dtype: np.dtype
-    decode: Callable
-    new_state: Callable
+    count: Callable         # words -> (bound, first reserved word or -1)
+    decode_words: Callable
+
+    def new_state(self) -> np.ndarray:
+        return _new_state()
 
 
-_EVT3 = _Codec("evt3", "EVT 3.0", np.dtype("<u2"), _decode_evt3, _Evt3State)
-_EVT2 = _Codec("evt2", "EVT 2.0", np.dtype("<u4"), _decode_evt2, _Evt2State)
+def _count(codec: _Codec, words: np.ndarray) -> int:
+    """Upper bound of the events in ``words``; raises :class:`_WordError` at a reserved word."""
+    total, bad = codec.count(words)
+    if bad >= 0:
+        kind = int(words[bad]) >> (8 * codec.dtype.itemsize - 4)
+        raise _WordError(bad, f"reserved {codec.title} word type {kind:#x}")
+    return int(total)
+
+
+def _decode(
+    codec: _Codec, words: np.ndarray, state: np.ndarray, limits: _Limits,
+    columns: tuple[np.ndarray, ...], start: int,
+) -> int:
+    """Decode ``words`` into ``columns`` (x, y uint16, t int64, p int8) from index ``start``.
+
+    The columns must have room for :func:`_count`'s bound after ``start``.
+    Returns the index after the last event written; updates ``state``; raises
+    :class:`_WordError` for an event outside the sensor or going back in time.
+    """
+    end, code, index, a, b = codec.decode_words(
+        words, state, limits.width, limits.height, limits.check_order, *columns, start)
+    if code == _X_OUTSIDE or code == _Y_OUTSIDE:
+        name = "x" if code == _X_OUTSIDE else "y"
+        raise _WordError(index, f"event with {name}={a} outside the "
+                         f"{limits.width}x{limits.height} sensor")
+    if code == _TIME_BACK:
+        raise _WordError(index, f"time goes back from {a} µs to {b} µs "
+                         "(pass sort=True to sort the events by time)")
+    return int(end)
+
+
+def _empty_columns(n: int) -> tuple[np.ndarray, ...]:
+    """Uninitialised x, y (uint16), t (int64), p (int8) columns of length ``n``."""
+    return np.empty(n, np.uint16), np.empty(n, np.uint16), np.empty(n, np.int64), np.empty(n, np.int8)
+
+
+_EVT3 = _Codec("evt3", "EVT 3.0", np.dtype("<u2"), _count_evt3, _decode_evt3_words)
+_EVT2 = _Codec("evt2", "EVT 2.0", np.dtype("<u4"), _count_evt2, _decode_evt2_words)

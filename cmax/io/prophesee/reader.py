@@ -2,9 +2,11 @@
 :func:`read_raw`, which dispatches on the header) or chunk by chunk in bounded
 memory (:func:`iter_evt3`, :func:`iter_evt2`).
 
-The header and sensor size are checked before any word is decoded; the words
-are decoded chunk by chunk by :mod:`cmax.io.prophesee._decode`, and errors
-report the byte offset of the bad word.
+The header and sensor size are checked before any word is decoded. The
+readers of a whole file read all its words at once, bound the event count
+(:func:`~cmax.io.prophesee._decode._count`), allocate the four columns once and
+decode into them (:mod:`cmax.io.prophesee._decode`); the iterators do the same
+chunk by chunk. Errors report the byte offset of the bad word.
 """
 from __future__ import annotations
 
@@ -15,13 +17,14 @@ import numpy as np
 
 from cmax.events import Events, check_event_count
 from cmax.io.errors import FormatError
-from cmax.io.prophesee._decode import _EVT2, _EVT3, _Codec, _Limits, _WordError
+from cmax.io.prophesee._decode import (
+    _EVT2, _EVT3, _Codec, _count, _decode, _empty_columns, _Limits, _WordError,
+)
 from cmax.io.prophesee._header import PathLike, _read_header, _sensor_size
 
 __all__ = ["CHUNK_BYTES", "read_raw", "read_evt3", "read_evt2", "iter_evt3", "iter_evt2"]
 
-#: Default bytes of raw words decoded at a time; the working memory is about 50
-#: times this (small chunks also stay in cache: 256 KiB decodes faster than 16 MiB).
+#: Default bytes of raw words decoded at a time by the iterators.
 CHUNK_BYTES = 1 << 18
 
 
@@ -33,17 +36,16 @@ def _check_chunk_bytes(chunk_bytes: int) -> int:
     return int(chunk_bytes)
 
 
-def _decode_file(
+def _open_data(
     path: PathLike, codec: _Codec, width: int | None, height: int | None,
     chunk_bytes: int, check_order: bool,
-) -> tuple[tuple[int, int], Iterator[tuple[np.ndarray, ...]]]:
-    """Sensor size and an iterator of (x, y, t, p) columns of each chunk with events.
+) -> tuple[Path, _Limits, int, int]:
+    """Check header, sensor size and file length before anything is decoded.
 
-    Header, sensor size and file length are checked here, before anything is
-    decoded; the words are checked as they are decoded.
+    Returns the path, the limits, the data offset and the number of words.
     """
     path = Path(path)
-    chunk_bytes = _check_chunk_bytes(chunk_bytes)
+    _check_chunk_bytes(chunk_bytes)
     header = _read_header(path)
     declared = header.event_format()
     if declared is not None and declared != codec.name:
@@ -56,36 +58,50 @@ def _decode_file(
             f"{path}: {n_bytes} bytes of {codec.title} data is not a whole number of "
             f"{word}-byte words (truncated file?)"
         )
-    step = max(word, chunk_bytes - chunk_bytes % word)
-    limits = _Limits(size[0], size[1], check_order)
-    return size, _chunks(path, codec, limits, header.data_offset, step)
+    return path, _Limits(size[0], size[1], check_order), header.data_offset, n_bytes // word
+
+
+def _decode_words(
+    path: Path, codec: _Codec, words: np.ndarray, state: np.ndarray, limits: _Limits,
+    offset: int,
+) -> tuple[np.ndarray, ...]:
+    """The (x, y, t, p) columns of ``words`` (which start at byte ``offset`` of the file)."""
+    try:
+        bound = _count(codec, words)
+        check_event_count(bound, f"{path} (read whole; iter_{codec.name} streams it)")
+        columns = _empty_columns(bound)
+        end = _decode(codec, words, state, limits, columns, 0)
+    except _WordError as error:
+        at = offset + codec.dtype.itemsize * error.index
+        raise FormatError(
+            f"{path}: {error.reason}, at byte offset {at} ({codec.title} word)"
+        ) from None
+    return columns if end == bound else tuple(column[:end] for column in columns)
 
 
 def _chunks(
-    path: Path, codec: _Codec, limits: _Limits, data_offset: int, step: int
+    path: Path, codec: _Codec, limits: _Limits, data_offset: int, chunk_bytes: int
 ) -> Iterator[tuple[np.ndarray, ...]]:
+    word = codec.dtype.itemsize
+    step = max(word, chunk_bytes - chunk_bytes % word)
     state = codec.new_state()
     offset = data_offset
     with open(path, "rb") as f:
         f.seek(data_offset)
         while data := f.read(step):
-            if len(data) % codec.dtype.itemsize:
+            if len(data) % word:
                 raise FormatError(f"{path}: the file changed while it was read")
-            try:
-                columns = codec.decode(np.frombuffer(data, codec.dtype), state, limits)
-            except _WordError as error:
-                at = offset + codec.dtype.itemsize * error.index
-                raise FormatError(
-                    f"{path}: {error.reason}, at byte offset {at} ({codec.title} word)"
-                ) from None
+            columns = _decode_words(path, codec, np.frombuffer(data, codec.dtype), state,
+                                    limits, offset)
             offset += len(data)
             if columns[0].size:
                 yield columns
 
 
 def _iter(path, codec, width, height, chunk_bytes, sort) -> Iterator[Events]:
-    (w, h), chunks = _decode_file(path, codec, width, height, chunk_bytes, not sort)
-    return _iter_events(path, chunks, w, h, sort)
+    path, limits, data_offset, _ = _open_data(path, codec, width, height, chunk_bytes, not sort)
+    chunks = _chunks(path, codec, limits, data_offset, int(chunk_bytes))
+    return _iter_events(path, chunks, limits.width, limits.height, sort)
 
 
 def _iter_events(path, chunks, width, height, sort) -> Iterator[Events]:
@@ -106,21 +122,18 @@ def _iter_events(path, chunks, width, height, sort) -> Iterator[Events]:
 
 
 def _read(path, codec, width, height, chunk_bytes, sort) -> Events:
-    (w, h), chunks = _decode_file(path, codec, width, height, chunk_bytes, not sort)
-    parts, total = [], 0
-    for part in chunks:
-        total += part[0].size
-        check_event_count(total, f"{path} (read whole; iter_{codec.name} streams it)")
-        parts.append(part)
-    if not parts:
-        return Events.empty(w, h)
-    columns = [part[0] if len(parts) == 1 else np.concatenate(part) for part in zip(*parts)]
+    path, limits, data_offset, n_words = _open_data(
+        path, codec, width, height, chunk_bytes, not sort)
+    words = np.fromfile(path, codec.dtype, count=n_words, offset=data_offset)
+    if words.size != n_words:
+        raise FormatError(f"{path}: the file changed while it was read")
+    columns = _decode_words(path, codec, words, codec.new_state(), limits, data_offset)
     if sort:
         t = columns[2]
         if t.size > 1 and np.any(t[1:] < t[:-1]):
             order = np.argsort(t, kind="stable")
             columns = [column[order] for column in columns]
-    return Events._trusted(*columns, w, h)
+    return Events._trusted(*columns, limits.width, limits.height)
 
 
 # -- public readers -------------------------------------------------------------------
@@ -143,7 +156,8 @@ def read_evt3(
         a sign of corruption), sort the events stably by time instead of
         raising :class:`FormatError`.
     chunk_bytes : int, keyword-only
-        Bytes decoded at a time (bounds the working memory, not the result).
+        Checked only, for the iterators' sake: the whole file's words are
+        read at once (at most a third of the result's size).
 
     Returns
     -------

@@ -1,11 +1,12 @@
 """Writing Prophesee RAW files: EVT 3.0 (:func:`write_evt3`) and EVT 2.0 (:func:`write_evt2`).
 
-The encoders are vectorized over events and run block by block
-(``_ENCODE_BLOCK`` events at a time), carrying the last event's time and row
-from one block to the next. A file is written by the protocol of
-:mod:`cmax.io.atomic` (a lock, a private ``<path>.<hex>.partial`` file never
-reached through a link, fsync and rename when complete); a write error (full
-disk, file-size limit) names the file and leaves nothing under its name.
+The encoders are compiled loops (numba, :mod:`cmax._jit`) that run block by
+block (``_ENCODE_BLOCK`` events at a time) into a buffer sized by a bound,
+carrying the last event's time and row from one block to the next. A file is
+written by the protocol of :mod:`cmax.io.atomic` (a lock, a private
+``<path>.<hex>.partial`` file never reached through a link, fsync and rename
+when complete); a write error (full disk, file-size limit) names the file and
+leaves nothing under its name.
 """
 from __future__ import annotations
 
@@ -13,6 +14,7 @@ from typing import NamedTuple
 
 import numpy as np
 
+from cmax._jit import kernel
 from cmax.events import Events
 from cmax.io.atomic import AtomicOutput, write_with
 from cmax.io.prophesee._header import PathLike
@@ -31,41 +33,100 @@ class _Previous(NamedTuple):
     y: int
 
 
-def _time_high_words(
-    high: np.ndarray, max_step: int, previous_high: int | None
-) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-    """TIME_HIGH words to emit before each unit, so that no step exceeds ``max_step``.
+@kernel
+def _encode_evt3_words(x, y, t, p, has_previous, previous_t, previous_y, out):
+    """Fill ``out`` (uint16) with the EVT 3.0 words of sorted events; returns the word count.
 
-    ``high`` (U,) holds the absolute time-high of each unit (non-decreasing).
-    A unit gets one word per ``max_step`` of increase (none if unchanged); the
-    first unit of a file gets a ramp from 0, at least one word. Returns the
-    count (U,), the values, and each value's position within its unit.
+    Units: a run of >= 3 events with equal (t, y, p) and increasing x in one
+    12-pixel block is one vector unit, any other event a unit of its own.
+    Before each unit: TIME_HIGH words (one per 2047 of increase; the first
+    unit of a file ramps from 0, at least one word), TIME_LOW if the time
+    changed or a TIME_HIGH was written, ADDR_Y if the row changed, and
+    VECT_BASE_X before a vector unless the previous unit was a vector of the
+    block before with the same time, row and polarity.
     """
-    previous = np.empty_like(high)
-    previous[0] = 0 if previous_high is None else previous_high
-    previous[1:] = high[:-1]
-    count = (high - previous + max_step - 1) // max_step
-    if previous_high is None:
-        count[0] = max(int(count[0]), 1)
-    unit = np.repeat(np.arange(high.size), count)
-    k = np.arange(unit.size) - np.repeat(np.cumsum(count) - count, count)
-    values = np.where(k == count[unit] - 1, high[unit], previous[unit] + max_step * (k + 1))
-    return count, values, k
+    n, w = t.size, 0
+    high_before = (previous_t >> 12) if has_previous else 0
+    known = has_previous                  # whether last_t / last_y hold a unit's values
+    last_t, last_y = previous_t, previous_y
+    last_vector, last_p, last_block = False, -1, -1
+    i = 0
+    while i < n:
+        block = x[i] // 12
+        j = i + 1
+        while (j < n and t[j] == t[i] and y[j] == y[i] and p[j] == p[i]
+               and x[j] // 12 == block and x[j] > x[j - 1]):
+            j += 1
+        vector = j - i >= 3
+        for s in range(i, i + 1 if vector else j):
+            ut, uy, up, ux = t[s], np.int64(y[s]), np.int64(p[s]), np.int64(x[s])
+            high = ut >> 12
+            count = (high - high_before + 2046) // 2047
+            if not has_previous and w == 0:
+                count = max(count, 1)
+            for k in range(count):
+                value = high if k == count - 1 else high_before + 2047 * (k + 1)
+                out[w] = 0x8000 | (value & 0xFFF)
+                w += 1
+            has_low = count > 0 or not known or ut != last_t
+            has_y = not known or uy != last_y
+            if has_low:
+                out[w] = 0x6000 | (ut & 0xFFF)
+                w += 1
+            if has_y:
+                out[w] = uy
+                w += 1
+            ub = ux // 12
+            if vector:
+                chained = (last_vector and not has_low and not has_y and up == last_p
+                           and ub == last_block + 1)
+                if not chained:
+                    out[w] = 0x3000 | (up << 11) | (12 * ub)
+                    w += 1
+                mask = 0
+                for k in range(i, j):
+                    mask |= 1 << (np.int64(x[k]) - 12 * ub)
+                out[w] = 0x4000 | mask
+            else:
+                out[w] = 0x2000 | (up << 11) | ux
+            w += 1
+            high_before, last_t, last_y, known = high, ut, uy, True
+            last_vector, last_p, last_block = vector, up, ub
+        i = j
+    return w
 
 
-def _changed(values: np.ndarray, previous: int | None) -> np.ndarray:
-    """Whether each value differs from the one before it (the first from ``previous``)."""
-    changed = np.empty(values.size, bool)
-    changed[0] = previous is None or values[0] != previous
-    changed[1:] = values[1:] != values[:-1]
-    return changed
+@kernel
+def _encode_evt2_words(x, y, t, p, has_previous, previous_t, out):
+    """Fill ``out`` (uint32) with the EVT 2.0 words of sorted events; returns the word count.
+
+    A TIME_HIGH word (one per 2**27 - 1 of increase; the first event of a file
+    ramps from 0, at least one word) whenever ``t >> 6`` changes, then one CD word per event.
+    """
+    max_step = (1 << 27) - 1
+    high_before = (previous_t >> 6) if has_previous else 0
+    w = 0
+    for i in range(t.size):
+        high = t[i] >> 6
+        count = (high - high_before + max_step - 1) // max_step
+        if not has_previous and i == 0:
+            count = max(count, 1)
+        for k in range(count):
+            value = high if k == count - 1 else high_before + max_step * (k + 1)
+            out[w] = (0x8 << 28) | (value & 0x0FFFFFFF)
+            w += 1
+        out[w] = ((np.int64(p[i]) << 28) | ((t[i] & 0x3F) << 22)
+                  | (np.int64(x[i]) << 11) | np.int64(y[i]))
+        w += 1
+        high_before = high
+    return w
 
 
-def _scatter(n_words: int, dtype: str, parts) -> np.ndarray:
-    words = np.empty(n_words, dtype)
-    for positions, values in parts:
-        words[positions] = values
-    return words
+def _word_bound(t: np.ndarray, previous: _Previous | None, shift: int, max_step: int,
+                per_event: int) -> int:
+    """More words than the encoders can write for times ``t`` (non-decreasing)."""
+    before = 0 if previous is None else previous.t >> shift
+    return per_event * t.size + ((int(t[-1]) >> shift) - before) // max_step + 2
 
 
 def _encode_evt3(x, y, t, p, previous: _Previous | None) -> np.ndarray:
@@ -75,60 +136,22 @@ def _encode_evt3(x, y, t, p, previous: _Previous | None) -> np.ndarray:
     block become one VECT_12 word (after a VECT_BASE_X unless the previous
     vector ended where this one starts); other events become ADDR_X words.
     """
-    x, y, p = x.astype(np.int32), y.astype(np.int32), p.astype(np.int32)
-    block = x // 12
-    new_run = np.ones(t.size, bool)
-    new_run[1:] = (
-        (t[1:] != t[:-1]) | (y[1:] != y[:-1]) | (p[1:] != p[:-1])
-        | (block[1:] != block[:-1]) | (x[1:] <= x[:-1])
-    )
-    run_start = np.flatnonzero(new_run)
-    run_length = np.diff(np.append(run_start, t.size))
-    vector_run = run_length >= 3
-    unit_start = np.flatnonzero(new_run | ~np.repeat(vector_run, run_length))
-    vector = np.repeat(vector_run, np.where(vector_run, 1, run_length))
-    ut, uy, up, ux, ub = (a[unit_start] for a in (t, y, p, x, block))
-    mask = np.bitwise_or.reduceat(np.left_shift(1, x - 12 * block), unit_start)
-
-    n_high, high_values, k = _time_high_words(
-        ut >> 12, 2047, None if previous is None else previous.t >> 12
-    )
-    has_low = _changed(ut, None if previous is None else previous.t) | (n_high > 0)
-    has_y = _changed(uy, None if previous is None else previous.y)
-    chained = np.zeros(ut.size, bool)   # base x is already right: previous vector's block + 1
-    chained[1:] = (
-        vector[1:] & vector[:-1] & ~has_low[1:] & ~has_y[1:]
-        & (up[1:] == up[:-1]) & (ub[1:] == ub[:-1] + 1)
-    )
-    has_base = vector & ~chained
-    total = n_high + has_low + has_y + has_base + 1
-    first = np.cumsum(total) - total
-    low_pos = first + n_high
-    y_pos = low_pos + has_low
-    base_pos = y_pos + has_y
-    return _scatter(int(total.sum()), "<u2", (
-        (np.repeat(first, n_high) + k, 0x8000 | (high_values & 0xFFF)),
-        (low_pos[has_low], 0x6000 | (ut[has_low] & 0xFFF)),
-        (y_pos[has_y], uy[has_y]),
-        (base_pos[has_base], 0x3000 | (up[has_base] << 11) | (12 * ub[has_base])),
-        (first + total - 1, np.where(vector, 0x4000 | mask, 0x2000 | (up << 11) | ux)),
-    ))
+    if not t.size:
+        return np.empty(0, "<u2")
+    out = np.empty(_word_bound(t, previous, 12, 2047, 5), "<u2")
+    last = previous or _Previous(-1, -1)
+    n = _encode_evt3_words(x, y, t, p, previous is not None, last.t, last.y, out)
+    return out[:n]
 
 
 def _encode_evt2(x, y, t, p, previous: _Previous | None) -> np.ndarray:
     """EVT 2.0 words ('<u4'): TIME_HIGH when t >> 6 changes, one CD word per event."""
-    n_high, high_values, k = _time_high_words(
-        t >> 6, (1 << 27) - 1, None if previous is None else previous.t >> 6
-    )
-    first = np.cumsum(n_high + 1) - (n_high + 1)
-    cd = (
-        (p.astype(np.int64) << 28) | ((t & 0x3F) << 22)
-        | (x.astype(np.int64) << 11) | y.astype(np.int64)
-    )
-    return _scatter(int(n_high.sum()) + t.size, "<u4", (
-        (np.repeat(first, n_high) + k, (0x8 << 28) | (high_values & 0x0FFFFFFF)),
-        (first + n_high, cd),
-    ))
+    if not t.size:
+        return np.empty(0, "<u4")
+    out = np.empty(_word_bound(t, previous, 6, (1 << 27) - 1, 2), "<u4")
+    n = _encode_evt2_words(x, y, t, p, previous is not None,
+                           -1 if previous is None else previous.t, out)
+    return out[:n]
 
 
 def _write(path: PathLike, events: Events, version: str, encode, t_limit: int | None) -> None:
