@@ -41,7 +41,8 @@ class EventWindows:
     speed : Tensor (B,) or None
         Known ``|v|`` [m/s] of each window: objectives that take a twist
         rescale its ``v`` to this norm (the contrast fixes only depth x speed,
-        so this is the metric anchor); None leaves ``v`` as given.
+        so this is the metric anchor); NaN for a window of unknown speed and
+        None for all leave ``v`` as given.
     """
 
     x: torch.Tensor
@@ -69,8 +70,9 @@ class EventWindows:
             raise ValueError(f"K must have shape (B, 3, 3) with B >= 1, got {tuple(self.K.shape)}")
         if self.duration_s.shape != (B,) or not bool((self.duration_s > 0).all()):
             raise ValueError(f"duration_s must be ({B},) and > 0 s, got {self.duration_s.tolist()}")
-        if self.speed is not None and (self.speed.shape != (B,) or not bool((self.speed >= 0).all())):
-            raise ValueError(f"speed must be ({B},) and >= 0 m/s, got {self.speed}")
+        if self.speed is not None and (self.speed.shape != (B,)
+                                       or not bool((torch.isnan(self.speed) | (self.speed >= 0)).all())):
+            raise ValueError(f"speed must be ({B},) and >= 0 m/s (NaN: unknown), got {self.speed}")
         if n[0] and (int(self.window.min()) < 0 or int(self.window.max()) >= B):
             raise ValueError(f"window indices must lie in [0, {B}), got [{int(self.window.min())}, "
                              f"{int(self.window.max())}]")

@@ -19,6 +19,7 @@ own pixel (bilinear on the depth grid, :class:`cmax.warp.DepthGrid`).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 
 import torch
@@ -29,7 +30,7 @@ from cmax.objectives import contrast_of_images, deformation, total_variation
 from cmax.warp import DepthGrid, warp_se3
 
 __all__ = [
-    "DepthMotion", "twist_at_speed", "event_inverse_depth", "warp_windows",
+    "DepthMotion", "twist_at_speed", "event_inverse_depth", "warp_windows", "log_depth_variation",
     "AverageTimestamp", "SweepVote", "LocalContrast", "GlobalContrast", "CollapseGuard", "WeightedSum",
     "SHARED_OBJECTIVE",
 ]
@@ -77,7 +78,8 @@ def _check(batch: EventWindows, params: DepthMotion) -> None:
 
 
 def twist_at_speed(twist: torch.Tensor, speed: torch.Tensor | None) -> torch.Tensor:
-    """``twist`` (B, 6) with ``v`` rescaled to the norm ``speed`` (B,) [m/s]; unchanged when ``speed`` is None.
+    """``twist`` (B, 6) with ``v`` rescaled to the norm ``speed`` (B,) [m/s]; unchanged when ``speed`` is None,
+    and for the windows whose speed is NaN (unknown).
 
     Examples
     --------
@@ -87,8 +89,11 @@ def twist_at_speed(twist: torch.Tensor, speed: torch.Tensor | None) -> torch.Ten
     if speed is None:
         return twist
     v = twist[:, :3]
+    speed = speed.to(twist.dtype)[:, None]
+    known = ~torch.isnan(speed)
     norm = torch.sqrt((v * v).sum(-1, keepdim=True) + 1e-24)
-    return torch.cat([v * (speed.to(twist.dtype)[:, None] / norm), twist[:, 3:]], -1)
+    scaled = v * (torch.where(known, speed, 0.0) / norm)
+    return torch.cat([torch.where(known, scaled, v), twist[:, 3:]], -1)
 
 
 def event_inverse_depth(batch: EventWindows, inverse_depth: torch.Tensor) -> torch.Tensor:
@@ -112,6 +117,15 @@ def warp_windows(batch: EventWindows, params: DepthMotion, dt: torch.Tensor, ray
                       identity)
     K = batch.K.to(dtype)[b]
     return K[:, 0, 0] * xn + K[:, 0, 1] * yn + K[:, 0, 2], K[:, 1, 1] * yn + K[:, 1, 2]
+
+
+def log_depth_variation(inverse_depth: torch.Tensor, epsilon: float = 1e-3) -> torch.Tensor:
+    """Smoothed total variation of ``log(inverse depth)`` (B, 1, h, w) per window (B,), in units that do not
+    depend on the grid: the mean over nodes of ``sqrt(dx^2 + dy^2 + eps^2)`` times the grid's columns ``w``
+    (a map of one depth and its grid-interpolated twin on a finer grid score about alike)."""
+    log_rho = torch.log(inverse_depth.clamp(min=1e-6))[:, 0]
+    width = inverse_depth.shape[-1]
+    return torch.stack([total_variation(g, epsilon=epsilon) for g in log_rho]) * width
 
 
 def _inside(batch: EventWindows, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -142,16 +156,28 @@ class AverageTimestamp:
     reference leaves the image is dropped from both, so pushing events out of
     the image cannot lower the loss.
 
+    Zhu et al. and Hagenaars et al. add a smoothness term on the flow; here it is
+    ``smoothness`` times the total variation of the log inverse depth
+    (:func:`log_depth_variation`): without it a per-pixel map lets every pixel
+    place its few events wherever they score best.
+
     Attributes
     ----------
     purge : bool
         Drop events that either warp moves out of the image.
+    smoothness : float
+        Weight of :func:`log_depth_variation` (0: none).
     eps : float
         Added to the vote count before dividing.
     """
 
     purge: bool = True
+    smoothness: float = 0.0
     eps: float = 1e-9
+
+    def __post_init__(self) -> None:
+        if not self.smoothness >= 0:
+            raise ValueError(f"smoothness must be >= 0, got {self.smoothness}")
 
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
         _check(batch, params)
@@ -173,7 +199,10 @@ class AverageTimestamp:
         average = stamps / (counts + self.eps)
         square = (average * average).sum((1, 3))                              # (refs, B)
         active = (counts.detach().sum(1) > 0).sum(-1)                          # (refs, B)
-        return (square / active.clamp(min=1).to(square.dtype)).sum(0)
+        loss = (square / active.clamp(min=1).to(square.dtype)).sum(0)
+        if self.smoothness > 0:
+            loss = loss + self.smoothness * log_depth_variation(params.inverse_depth.to(batch.dtype))
+        return loss
 
 
 def _sample_indexed(images: torch.Tensor, image: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -191,7 +220,7 @@ def _sample_indexed(images: torch.Tensor, image: torch.Tensor, x: torch.Tensor, 
     return value * valid
 
 
-@dataclass(frozen=True)
+@dataclass(frozen=True, eq=False)
 class SweepVote:
     """The depth sweep's per-event normalised vote, differentiable in depth and twist (lower is better).
 
@@ -218,12 +247,15 @@ class SweepVote:
         Blur [px].
     reference : float
         Reference time as a fraction of the window.
+    scale : Tensor (N,) or None
+        A fixed normaliser (:meth:`with_motion`); None: swept at every call.
     """
 
     rho_range: tuple[float, float] = (1.0 / 60.0, 2.0)
     candidates: int = 12
     sigma: float = 1.0
     reference: float = 0.5
+    scale: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         if not (0 <= self.rho_range[0] < self.rho_range[1]):
@@ -240,16 +272,18 @@ class SweepVote:
                       self.sigma)
         return _sample_indexed(images, image, x, y), _inside(batch, x.detach(), y.detach())
 
-    def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
-        B = batch.count
-        rays = batch.rays()
-        dt = (batch.t - self.reference * batch.duration_s.to(batch.dtype)[batch.window])[None]
+    def _dt(self, batch: EventWindows) -> torch.Tensor:
+        return (batch.t - self.reference * batch.duration_s.to(batch.dtype)[batch.window])[None]
+
+    def normaliser(self, batch: EventWindows, twist: torch.Tensor) -> torch.Tensor:
+        """What each event's vote is divided by (N,): its largest value over the constant-depth sweep with
+        the windows' ``twist`` (B, 6), or the window's median largest value for an event some candidate
+        pushes out of the image. No gradient."""
+        B, rays, dt = batch.count, batch.rays(), self._dt(batch)
         with torch.no_grad():
             peaks, always = [], torch.ones(len(batch), dtype=torch.bool)
-            shape = (B, 1, 1, 1)
             for rho in torch.linspace(*self.rho_range, self.candidates, dtype=batch.dtype):
-                candidate = DepthMotion(torch.full(shape, float(rho), dtype=batch.dtype), params.twist.detach())
+                candidate = DepthMotion(torch.full((B, 1, 1, 1), float(rho), dtype=batch.dtype), twist.detach())
                 score, inside = self._scores(batch, candidate, dt, rays)
                 peaks.append(score * inside)
                 always &= inside
@@ -257,9 +291,22 @@ class SweepVote:
             typical = torch.stack([peak[always & (batch.window == k)].median()
                                    if bool((always & (batch.window == k)).any()) else peak.median()
                                    for k in range(B)])
-            scale = torch.where(always, peak, typical[batch.window]).clamp(min=1e-12)
-        score, inside = self._scores(batch, params, dt, rays)
+            return torch.where(always, peak, typical[batch.window]).clamp(min=1e-12)
+
+    def with_motion(self, batch: EventWindows, twist: torch.Tensor) -> "SweepVote":
+        """This objective with the normaliser of a known ``twist`` (B, 6) fixed (:meth:`normaliser`): for a
+        depth-only optimisation of ``batch`` with that twist it gives the same values, without re-sweeping
+        at every call."""
+        return dataclasses.replace(self, scale=self.normaliser(batch, twist))
+
+    def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
+        _check(batch, params)
+        if self.scale is not None and self.scale.shape != (len(batch),):
+            raise ValueError(f"scale holds {self.scale.shape[0]} events, the batch {len(batch)}")
+        scale = self.normaliser(batch, params.twist) if self.scale is None else self.scale
+        score, inside = self._scores(batch, params, self._dt(batch), batch.rays())
         inside = inside.to(score.dtype)
+        B = batch.count
         votes = torch.zeros(B, dtype=score.dtype).index_add(0, batch.window, inside * score / scale)
         kept = torch.zeros(B, dtype=score.dtype).index_add(0, batch.window, inside)
         return -votes / kept.clamp(min=1.0)
@@ -292,7 +339,7 @@ class LocalContrast:
     reference : float
         Reference time as a fraction of the window.
     smoothness : float
-        Weight of the total variation of ``log(inverse depth)`` (0: none).
+        Weight of :func:`log_depth_variation` (0: none).
     """
 
     cells: tuple[int, int] = (6, 8)
@@ -334,8 +381,7 @@ class LocalContrast:
         used = (baseline > 0).sum(1).clamp(min=1).to(ratio.dtype)
         loss = -ratio.sum(1) / used
         if self.smoothness > 0:
-            log_rho = torch.log(params.inverse_depth.to(batch.dtype).clamp(min=1e-6))[:, 0]
-            loss = loss + self.smoothness * torch.stack([total_variation(g) for g in log_rho])
+            loss = loss + self.smoothness * log_depth_variation(params.inverse_depth.to(batch.dtype))
         return loss
 
 
@@ -444,4 +490,4 @@ class WeightedSum:
 
 
 #: The depth-and-motion objective shared by the fit's refinement and :mod:`learned` (docs/contrast_objective.md).
-SHARED_OBJECTIVE = AverageTimestamp()
+SHARED_OBJECTIVE = AverageTimestamp(smoothness=0.003)
