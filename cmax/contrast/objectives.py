@@ -26,7 +26,7 @@ import torch
 
 from cmax.contrast.batch import EventWindows
 from cmax.iwe import accumulate_bilinear_indexed, blur
-from cmax.objectives import contrast_of_images, deformation, total_variation
+from cmax.objectives import contrast_of_images, deformation, local_contrast, total_variation
 from cmax.warp import DepthGrid, warp_se3
 
 __all__ = [
@@ -365,13 +365,13 @@ class LocalContrast:
         cell = row * gw + col
         C = gh * gw
         image = ((batch.polarity > 0).long() * B + batch.window) * C + cell             # (N,)
-        ox = (col * cw - self.margin).to(batch.dtype)
-        oy = (row * ch - self.margin).to(batch.dtype)
+        corner = torch.arange(2 * B * C) % C                                           # each image's cell
+        origins = torch.stack([(corner % gw) * cw, (corner // gw) * ch], -1).to(batch.dtype) - self.margin
         size = (ch + 2 * self.margin, cw + 2 * self.margin)
 
         def energy(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-            images = blur(accumulate_bilinear_indexed(x - ox, y - oy, None, image, 2 * B * C, *size), self.sigma)
-            return (images * images).flatten(1).sum(1).view(2, B, C).sum(0)             # (B, C)
+            images = local_contrast(x, y, image, origins, count=2 * B * C, patch=size, sigma=self.sigma)
+            return images.view(2, B, C).sum(0)                                          # (B, C)
 
         with torch.no_grad():
             baseline = energy(batch.x, batch.y)
