@@ -121,7 +121,8 @@ class TrainConfig:
         In steps.
     seed : int
     collapse_weight : float
-        Weight of the deformation guard in the contrast loss.
+        Weight of the deformation guard added to the shared contrast objective (0: the objective alone,
+        :data:`cmax.contrast.SHARED_OBJECTIVE`, which needs no guard).
     si_variance_weight : float
         w of ``L_si = mean(R^2) - w mean(R)^2`` (1: the paper's fully invariant form, which leaves the
         scale free; 0.85 keeps a weak pull towards metric scale, as in most supervised depth networks).
@@ -141,7 +142,7 @@ class TrainConfig:
     log_every: int = 10
     image_every: int = 100
     seed: int = 0
-    collapse_weight: float = 0.1
+    collapse_weight: float = 0.0
     si_variance_weight: float = 0.85
     twist_weight: float = 1.0
 

@@ -8,8 +8,14 @@
   (kornia's Sobel).
 * ``L_teacher = L_si + lambda L_grad``;
 * ``L_student = L_contrast + (1 - lambda) L1(rho_teacher, rho_student)``, lambda = 0.6,
-  with ``L_contrast`` the batched ``cmax.fit`` objective of :func:`cmax.loss.contrast_loss`
-  applied to the predicted inverse depth and twist (EvtSlowTV eqs. 12-15).
+  with ``L_contrast`` the shared depth-and-motion objective of the contrast core,
+  :data:`cmax.contrast.SHARED_OBJECTIVE` (the very object, imported), applied to the
+  predicted inverse depth and twist (EvtSlowTV eqs. 12-15, with the objective of
+  ``docs/contrast_objective.md`` in place of the IWE variance). Metric scale: the
+  batch carries the known speed of each window (:attr:`cmax.contrast.EventWindows.speed`),
+  the objective rescales the predicted ``v`` to it, so the contrast fixes the depth in
+  metres; a window of unknown speed (NaN) leaves ``v`` as predicted and its scale to
+  the teacher term.
 """
 from __future__ import annotations
 
@@ -17,7 +23,7 @@ import kornia
 import torch
 from torch.nn import functional as F
 
-from cmax.loss import ContrastLoss, EventBatch
+from cmax.contrast import SHARED_OBJECTIVE, DepthMotion, EventWindows
 
 __all__ = ["scale_invariant_loss", "gradient_matching_loss", "teacher_loss", "student_loss", "LAMBDA"]
 
@@ -93,26 +99,29 @@ def teacher_loss(pred_depths, gt_depth: torch.Tensor, mask: torch.Tensor, *, lam
             + lam * gradient_matching_loss(pred_depths, gt_depth, mask))
 
 
-def student_loss(inverse_depth: torch.Tensor, twist: torch.Tensor, events: EventBatch, K: torch.Tensor, *,
+def student_loss(inverse_depth: torch.Tensor, twist: torch.Tensor, events: EventWindows, *,
                  teacher_inverse_depth: torch.Tensor | None, lam: float = LAMBDA,
-                 contrast: ContrastLoss = ContrastLoss()) -> tuple[torch.Tensor, dict[str, float]]:
+                 objective=SHARED_OBJECTIVE) -> tuple[torch.Tensor, dict[str, float]]:
     """``L_contrast + (1 - lam) * L1(teacher, student)`` (EvtSlowTV eq. 15); without a teacher only ``L_contrast``.
 
     Parameters
     ----------
     inverse_depth : Tensor (B, 1, H, W) [1/m]
     twist : Tensor (B, 6) [m/s, rad/s]
-    events : EventBatch
-        The raw events of the B windows.
-    K : Tensor (B, 3, 3)
+    events : cmax.contrast.EventWindows
+        The raw events of the B windows, their intrinsics and (the metric anchor) known speeds.
     teacher_inverse_depth : Tensor (B, 1, H, W) or None
         The frozen teacher's prediction (no gradient flows into it); None for fine-tuning.
+    objective : callable
+        ``objective(events, DepthMotion) -> (B,)``; default the shared one, :data:`cmax.contrast.SHARED_OBJECTIVE`.
 
     Returns
     -------
-    (loss, terms) : the scalar loss and its terms as floats (for logging).
+    (loss, terms) : the scalar loss (``L_contrast`` averaged over the windows) and its terms as floats.
     """
-    l_contrast = contrast(events, inverse_depth, twist, K)
+    if not isinstance(events, EventWindows):
+        raise TypeError(f"events must be a cmax.contrast.EventWindows, got {type(events).__name__}")
+    l_contrast = objective(events, DepthMotion(inverse_depth, twist)).mean()
     terms = {"contrast": float(l_contrast.detach())}
     if teacher_inverse_depth is None:
         return l_contrast, terms

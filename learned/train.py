@@ -30,7 +30,7 @@ import torch
 from tqdm import tqdm
 
 from cmax._args import ArgumentParser, run_main
-from cmax.loss import ContrastLoss, EventBatch
+from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, WeightedSum
 from learned.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from learned.config import Config, load_config
 from learned.data import H5WindowDataset, collate
@@ -53,9 +53,20 @@ def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[i
     return out
 
 
-def _events(batch: dict[str, torch.Tensor], width: int, height: int) -> EventBatch:
-    return EventBatch.from_padded(batch["x"], batch["y"], batch["t"], batch["polarity"], batch["valid"],
-                                  batch["duration_s"], width=width, height=height)
+def _events(batch: dict[str, torch.Tensor], width: int, height: int) -> EventWindows:
+    """The events of a collated batch with their intrinsics and the known speed of each window (``|v|`` of
+    its true twist; NaN where the window has none, whose scale is then left to the teacher term)."""
+    speed = torch.where(batch["has_twist"], batch["twist"][:, :3].norm(dim=-1), float("nan"))
+    return EventWindows.from_padded(batch["x"], batch["y"], batch["t"], batch["polarity"], batch["valid"],
+                                    batch["duration_s"], batch["K"], width=width, height=height, speed=speed)
+
+
+def contrast_objective(collapse_weight: float):
+    """The self-supervised term: :data:`cmax.contrast.SHARED_OBJECTIVE` itself, plus the collapse guard
+    (:class:`cmax.contrast.CollapseGuard`) when ``collapse_weight`` > 0."""
+    if collapse_weight == 0:
+        return SHARED_OBJECTIVE
+    return WeightedSum(((1.0, SHARED_OBJECTIVE), (float(collapse_weight), CollapseGuard())))
 
 
 def _load_weights(model: DepthPoseNet, state: dict[str, torch.Tensor], source: str) -> None:
@@ -110,7 +121,7 @@ class Trainer:
         dc = config.data
         self.dataset = H5WindowDataset(dc.files, window_us=dc.window_us, max_events=dc.max_events,
                                        bins=config.model.bins, augment=dc.augment, seed=tc.seed)
-        self.contrast = ContrastLoss(collapse_weight=tc.collapse_weight)
+        self.contrast = contrast_objective(tc.collapse_weight)
         self.log = self._logger() if self.rank == 0 else None
 
     # -- logging ------------------------------------------------------------------------------
@@ -192,8 +203,8 @@ class Trainer:
             with torch.no_grad():
                 teacher_rho = self.teacher(batch["volume"]).inverse_depth
         events = _events(batch, self.dataset.width, self.dataset.height)
-        loss, terms = student_loss(output.inverse_depth, output.twist, events, batch["K"],
-                                   teacher_inverse_depth=teacher_rho, lam=tc.lam, contrast=self.contrast)
+        loss, terms = student_loss(output.inverse_depth, output.twist, events, teacher_inverse_depth=teacher_rho,
+                                   lam=tc.lam, objective=self.contrast)
         return loss, terms, output
 
     def save(self) -> Path | None:

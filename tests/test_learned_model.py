@@ -70,21 +70,20 @@ def test_teacher_loss_gradcheck():
 
 
 def test_student_loss_is_contrast_plus_weighted_l1():
-    from cmax.loss import EventBatch, contrast_loss
+    from cmax.contrast import SHARED_OBJECTIVE, DepthMotion, EventWindows
     from cmax.synthetic_windows import make_window
-    from cmax.warp import WarpEvents
 
     w = make_window("slider", 2, width=64, height=48, focal=48.0, duration_s=0.1, max_frames=30)
-    events = EventBatch.from_windows([WarpEvents.from_events(w.events, w.K, max_events=2000)])
+    events = EventWindows.from_events(w.events, w.K, max_events=2000)
     rho = torch.full((1, 1, 48, 64), 0.3)
     teacher = torch.full((1, 1, 48, 64), 0.5)
-    twist, K = torch.as_tensor(w.twist, dtype=torch.float32)[None], torch.as_tensor(w.K, dtype=torch.float32)[None]
-    loss, terms = student_loss(rho, twist, events, K, teacher_inverse_depth=teacher)
-    expected = float(contrast_loss(events, rho, twist, K)) + 0.4 * 0.2
-    assert float(loss) == pytest.approx(expected, rel=1e-5)
+    twist = torch.as_tensor(w.twist, dtype=torch.float32)[None]
+    contrast = float(SHARED_OBJECTIVE(events, DepthMotion(rho, twist)).mean())
+    loss, terms = student_loss(rho, twist, events, teacher_inverse_depth=teacher)
+    assert float(loss) == pytest.approx(contrast + 0.4 * 0.2, rel=1e-5)
     assert terms["l1_teacher"] == pytest.approx(0.2)
-    alone, terms = student_loss(rho, twist, events, K, teacher_inverse_depth=None)
-    assert float(alone) == pytest.approx(float(contrast_loss(events, rho, twist, K))) and "l1_teacher" not in terms
+    alone, terms = student_loss(rho, twist, events, teacher_inverse_depth=None)
+    assert float(alone) == pytest.approx(contrast) and "l1_teacher" not in terms
 
 
 def test_evaluate_and_predict_on_a_trained_checkpoint(tmp_path):

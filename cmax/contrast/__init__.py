@@ -1,0 +1,24 @@
+"""The contrast core: events of one or many windows, warps, images of warped events, and objectives.
+
+Everything here is differentiable torch and knows nothing about stages or
+solvers: :class:`EventWindows` (the events of B windows), the warps of
+:mod:`cmax.warp`, the images of :mod:`cmax.iwe`, and the objectives
+``objective(batch, params) -> (B,)`` of :mod:`cmax.contrast.objectives`.
+:data:`SHARED_OBJECTIVE` is the depth-and-motion objective that :mod:`learned`
+trains on (see ``docs/contrast_objective.md``).
+"""
+from cmax.contrast.batch import EventWindows
+from cmax.contrast.objectives import (
+    SHARED_OBJECTIVE, AverageTimestamp, CollapseGuard, DepthMotion, GlobalContrast, LocalContrast, SweepVote,
+    WeightedSum, event_inverse_depth, twist_at_speed, warp_windows,
+)
+from cmax.iwe import accumulate_bilinear, accumulate_bilinear_indexed, blur, image_of_warped_events, polarity_images
+from cmax.iwe import sample_bilinear
+from cmax.warp import DepthGrid, WarpEvents, project, warp_flow, warp_rotation, warp_se3
+
+__all__ = [
+    "EventWindows", "DepthMotion", "SHARED_OBJECTIVE", "AverageTimestamp", "SweepVote", "LocalContrast",
+    "GlobalContrast", "CollapseGuard", "WeightedSum", "event_inverse_depth", "twist_at_speed", "warp_windows",
+    "accumulate_bilinear", "accumulate_bilinear_indexed", "blur", "image_of_warped_events", "polarity_images",
+    "sample_bilinear", "DepthGrid", "WarpEvents", "project", "warp_flow", "warp_rotation", "warp_se3",
+]

@@ -1,0 +1,162 @@
+"""One event type for the contrast core: the events of one window or of a batch of windows.
+
+:class:`EventWindows` holds N events of B windows concatenated, each event with
+the index of its window, and per window its intrinsics, duration and
+(optionally) known speed. The fit uses B = 1 (:meth:`EventWindows.from_events`),
+training uses B > 1 (:meth:`EventWindows.from_windows`, :meth:`EventWindows.from_padded`).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Sequence
+
+import torch
+
+from cmax.events import Events
+from cmax.warp import WarpEvents
+
+__all__ = ["EventWindows"]
+
+
+@dataclass(frozen=True, eq=False)
+class EventWindows:
+    """Events of B windows, concatenated, each with the index of its window.
+
+    Attributes
+    ----------
+    x, y : Tensor (N,)
+        Pixel coordinates [px] (dithered / undistorted by the caller).
+    t : Tensor (N,)
+        Seconds since the start of the event's window.
+    polarity : Tensor (N,)
+        Signed polarity -1/+1.
+    window : Tensor (N,) int64
+        Window of each event, ``0 <= window < count``.
+    K : Tensor (B, 3, 3)
+        Intrinsics [px] of each window.
+    duration_s : Tensor (B,)
+        Duration of each window [s] (its first to its last event), > 0.
+    width, height : int
+        Sensor size shared by the windows [px].
+    speed : Tensor (B,) or None
+        Known ``|v|`` [m/s] of each window: objectives that take a twist
+        rescale its ``v`` to this norm (the contrast fixes only depth x speed,
+        so this is the metric anchor); NaN for a window of unknown speed and
+        None for all leave ``v`` as given.
+    """
+
+    x: torch.Tensor
+    y: torch.Tensor
+    t: torch.Tensor
+    polarity: torch.Tensor
+    window: torch.Tensor
+    K: torch.Tensor
+    duration_s: torch.Tensor
+    width: int
+    height: int
+    speed: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        n = self.x.shape
+        if self.x.dim() != 1 or not (self.y.shape == self.t.shape == self.polarity.shape == self.window.shape == n):
+            raise ValueError("x, y, t, polarity, window must share one shape (N,), got "
+                             f"{[tuple(a.shape) for a in (self.x, self.y, self.t, self.polarity, self.window)]}")
+        if not self.x.is_floating_point():
+            raise TypeError(f"x must be a floating-point tensor, got {self.x.dtype}")
+        if self.window.dtype != torch.int64:
+            raise TypeError(f"window must be an int64 tensor, got {self.window.dtype}")
+        B = self.K.shape[0] if self.K.dim() == 3 else -1
+        if self.K.shape != (B, 3, 3) or B < 1:
+            raise ValueError(f"K must have shape (B, 3, 3) with B >= 1, got {tuple(self.K.shape)}")
+        if self.duration_s.shape != (B,) or not bool((self.duration_s > 0).all()):
+            raise ValueError(f"duration_s must be ({B},) and > 0 s, got {self.duration_s.tolist()}")
+        if self.speed is not None and (self.speed.shape != (B,)
+                                       or not bool((torch.isnan(self.speed) | (self.speed >= 0)).all())):
+            raise ValueError(f"speed must be ({B},) and >= 0 m/s (NaN: unknown), got {self.speed}")
+        if n[0] and (int(self.window.min()) < 0 or int(self.window.max()) >= B):
+            raise ValueError(f"window indices must lie in [0, {B}), got [{int(self.window.min())}, "
+                             f"{int(self.window.max())}]")
+        if int(self.width) < 1 or int(self.height) < 1:
+            raise ValueError(f"width and height must be positive, got {self.width}, {self.height}")
+
+    @property
+    def count(self) -> int:
+        """Number of windows B."""
+        return int(self.K.shape[0])
+
+    @property
+    def dtype(self) -> torch.dtype:
+        return self.x.dtype
+
+    def __len__(self) -> int:
+        return int(self.x.shape[0])
+
+    def rays(self) -> torch.Tensor:
+        """``K_b^-1 (x, y, 1)`` of every event (N, 3)."""
+        pixels = torch.stack([self.x, self.y, torch.ones_like(self.x)], -1)
+        return torch.einsum("nij,nj->ni", torch.linalg.inv(self.K.to(self.dtype))[self.window], pixels)
+
+    def with_speed(self, speed: torch.Tensor | Sequence[float] | None) -> "EventWindows":
+        """The same events with the known speed (B,) [m/s] of each window (None: unknown)."""
+        speed = None if speed is None else torch.as_tensor(speed, dtype=self.dtype).reshape(-1)
+        return EventWindows(self.x, self.y, self.t, self.polarity, self.window, self.K, self.duration_s,
+                            self.width, self.height, speed)
+
+    @classmethod
+    def from_warp_events(cls, windows: Sequence[WarpEvents], *, speed: Sequence[float] | None = None
+                         ) -> "EventWindows":
+        """Concatenate prepared windows (:meth:`cmax.warp.WarpEvents.from_events`) of one sensor size."""
+        if not windows or not all(isinstance(w, WarpEvents) for w in windows):
+            raise TypeError("windows must be a non-empty sequence of cmax.warp.WarpEvents")
+        size = (windows[0].width, windows[0].height)
+        for i, w in enumerate(windows):
+            if (w.width, w.height) != size:
+                raise ValueError(f"windows[{i}] is {w.width}x{w.height}, windows[0] is {size[0]}x{size[1]}")
+        dtype = windows[0].x.dtype
+        lengths = torch.tensor([len(w) for w in windows])
+        index = torch.repeat_interleave(torch.arange(len(windows)), lengths)
+        cat = lambda name: torch.cat([getattr(w, name).to(dtype) for w in windows])  # noqa: E731
+        duration = torch.tensor([w.duration_s for w in windows], dtype=torch.float64).to(dtype)
+        K = torch.stack([w.K.to(dtype) for w in windows])
+        out = cls(cat("x"), cat("y"), cat("t"), cat("polarity"), index, K, duration, size[0], size[1])
+        return out.with_speed(speed)
+
+    @classmethod
+    def from_events(cls, events: Events, K: object, *, speed: float | None = None, **prepare) -> "EventWindows":
+        """One window (B = 1) from :class:`cmax.Events` and intrinsics ``K`` (3, 3).
+
+        ``prepare`` goes to :meth:`cmax.warp.WarpEvents.from_events` (``max_events``,
+        ``seed``, ``dtype``, ``pixels``, ``dither``); ``speed`` is the known ``|v|`` [m/s].
+        """
+        warp_events = WarpEvents.from_events(events, K, **prepare)
+        if len(warp_events) < 2 or warp_events.duration_s <= 0:
+            raise ValueError(f"events: need at least 2 events spanning a non-zero time, got {len(warp_events)}")
+        return cls.from_warp_events([warp_events], speed=None if speed is None else [float(speed)])
+
+    @classmethod
+    def from_windows(cls, windows: Sequence[tuple[Events, object]], *, speed: Sequence[float] | None = None,
+                     **prepare) -> "EventWindows":
+        """B windows from a list of ``(events, K)`` pairs of one sensor size (see :meth:`from_events`)."""
+        if not windows:
+            raise ValueError("windows: need at least one (events, K) pair")
+        return cls.from_warp_events([WarpEvents.from_events(ev, K, **prepare) for ev, K in windows], speed=speed)
+
+    @classmethod
+    def from_padded(cls, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, polarity: torch.Tensor,
+                    valid: torch.Tensor, duration_s: torch.Tensor, K: torch.Tensor, *, width: int, height: int,
+                    speed: torch.Tensor | None = None) -> "EventWindows":
+        """From padded (B, Nmax) tensors (a collated data loader batch) and a (B, Nmax) bool mask of real events.
+
+        ``polarity`` is signed (-1/+1); ``t`` in seconds since each window's start;
+        ``duration_s`` (B,); ``K`` (B, 3, 3); ``speed`` (B,) [m/s] or None.
+        """
+        if x.dim() != 2 or not (x.shape == y.shape == t.shape == polarity.shape == valid.shape):
+            raise ValueError(f"x, y, t, polarity, valid must share one shape (B, Nmax), got {tuple(x.shape)}, "
+                             f"{tuple(y.shape)}, {tuple(t.shape)}, {tuple(polarity.shape)}, {tuple(valid.shape)}")
+        if valid.dtype != torch.bool:
+            raise TypeError(f"valid must be a bool tensor, got {valid.dtype}")
+        index = torch.arange(x.shape[0], device=x.device)[:, None].expand_as(x)
+        return cls(x[valid], y[valid], t[valid], polarity[valid], index[valid], K.to(x.dtype),
+                   duration_s.to(x.dtype), int(width), int(height),
+                   None if speed is None else speed.to(x.dtype))
+

@@ -1,0 +1,493 @@
+"""Objectives of the contrast core: ``objective(batch, params) -> (B,)``, lower is better, differentiable.
+
+Each objective is a small frozen dataclass holding its settings; calling it
+with an :class:`~cmax.contrast.batch.EventWindows` batch of B windows and the
+parameters of each window (:class:`DepthMotion`: an inverse-depth map on any
+grid up to the sensor size and a twist) returns one value per window, a
+tensor (B,) differentiable with respect to both. When the batch carries the
+known speed of each window, every objective first rescales the twist's ``v``
+to that norm (:func:`twist_at_speed`): the contrast sees only inverse depth
+times speed, and the known speed is what makes the depth metric.
+
+The shared depth-and-motion objective (the one :mod:`learned` trains on and
+the fit's final refinement can optimise) is :data:`SHARED_OBJECTIVE`, an
+:class:`AverageTimestamp`; ``docs/contrast_objective.md`` says why.
+
+Warping convention (:mod:`cmax.warp`): an event at pixel ``x_i``, time
+``t_i`` is moved to the reference time with the inverse depth read at its
+own pixel (bilinear on the depth grid, :class:`cmax.warp.DepthGrid`).
+"""
+from __future__ import annotations
+
+import dataclasses
+from dataclasses import dataclass
+
+import torch
+
+from cmax.contrast.batch import EventWindows
+from cmax.iwe import accumulate_bilinear_indexed, blur
+from cmax.objectives import contrast_of_images, deformation, local_contrast, total_variation
+from cmax.warp import DepthGrid, warp_se3
+
+__all__ = [
+    "DepthMotion", "twist_at_speed", "event_inverse_depth", "warp_windows", "log_depth_variation",
+    "AverageTimestamp", "SweepVote", "LocalContrast", "GlobalContrast", "CollapseGuard", "WeightedSum",
+    "SHARED_OBJECTIVE",
+]
+
+#: Probe times of the deformation guard, in units of the window duration (as in ``cmax.fit``).
+PROBE_TIMES = (-1.0, -0.5, 0.5, 1.0)
+
+
+@dataclass(frozen=True, eq=False)
+class DepthMotion:
+    """Parameters of B windows: inverse depth and twist.
+
+    Attributes
+    ----------
+    inverse_depth : Tensor (B, 1, h, w)
+        Inverse z-depth [1/m] (>= 0) on a grid of nodes over the image
+        (:class:`cmax.warp.DepthGrid`; ``h, w = H, W``: a per-pixel map).
+    twist : Tensor (B, 6)
+        ``(v [m/s], omega [rad/s])``, camera frame, constant over the window.
+    """
+
+    inverse_depth: torch.Tensor
+    twist: torch.Tensor
+
+    def __post_init__(self) -> None:
+        if self.inverse_depth.dim() != 4 or self.inverse_depth.shape[1] != 1:
+            raise ValueError(f"inverse_depth must have shape (B, 1, h, w), got {tuple(self.inverse_depth.shape)}")
+        if self.twist.shape != (self.inverse_depth.shape[0], 6):
+            raise ValueError(f"twist must have shape ({self.inverse_depth.shape[0]}, 6) (v m/s, omega rad/s), "
+                             f"got {tuple(self.twist.shape)}")
+
+
+def _check(batch: EventWindows, params: DepthMotion) -> None:
+    if not isinstance(batch, EventWindows):
+        raise TypeError(f"batch must be a cmax.contrast.EventWindows, got {type(batch).__name__}")
+    if not isinstance(params, DepthMotion):
+        raise TypeError(f"params must be a cmax.contrast.DepthMotion, got {type(params).__name__}")
+    if params.twist.shape[0] != batch.count:
+        raise ValueError(f"params hold {params.twist.shape[0]} windows, the batch {batch.count}")
+    h, w = params.inverse_depth.shape[-2:]
+    if h > batch.height or w > batch.width:
+        raise ValueError(f"inverse_depth grid {h}x{w} is finer than the image {batch.height}x{batch.width}")
+    if len(batch) == 0:
+        raise ValueError("batch: holds no events")
+
+
+def twist_at_speed(twist: torch.Tensor, speed: torch.Tensor | None) -> torch.Tensor:
+    """``twist`` (B, 6) with ``v`` rescaled to the norm ``speed`` (B,) [m/s]; unchanged when ``speed`` is None,
+    and for the windows whose speed is NaN (unknown).
+
+    Examples
+    --------
+    >>> twist_at_speed(torch.tensor([[3.0, 0, 4, 0, 0, 1]]), torch.tensor([10.0])).tolist()
+    [[6.0, 0.0, 8.0, 0.0, 0.0, 1.0]]
+    """
+    if speed is None:
+        return twist
+    v = twist[:, :3]
+    speed = speed.to(twist.dtype)[:, None]
+    known = ~torch.isnan(speed)
+    norm = torch.sqrt((v * v).sum(-1, keepdim=True) + 1e-24)
+    scaled = v * (torch.where(known, speed, 0.0) / norm)
+    return torch.cat([torch.where(known, scaled, v), twist[:, 3:]], -1)
+
+
+def event_inverse_depth(batch: EventWindows, inverse_depth: torch.Tensor) -> torch.Tensor:
+    """Inverse depth (N,) [1/m] of each event, read at its own pixel on its window's grid (B, 1, h, w)."""
+    h, w = inverse_depth.shape[-2:]
+    index, weight = DepthGrid((int(h), int(w)), batch.width, batch.height).weights(batch.x, batch.y)
+    offset = (batch.window * (h * w))[:, None]
+    return DepthGrid.sample(inverse_depth.to(batch.dtype).reshape(-1), index + offset, weight)
+
+
+def warp_windows(batch: EventWindows, params: DepthMotion, dt: torch.Tensor, rays: torch.Tensor | None = None
+                 ) -> tuple[torch.Tensor, torch.Tensor]:
+    """Warped pixels (R, N) of every event for ``dt = t_i - t_ref`` (R, N) [s] (:func:`cmax.warp.warp_se3`,
+    each event with its window's twist, at the batch's speed, and intrinsics)."""
+    dtype = batch.dtype
+    b = batch.window
+    twist = twist_at_speed(params.twist.to(dtype), batch.speed)[b]
+    rays = batch.rays() if rays is None else rays
+    identity = torch.eye(3, dtype=dtype, device=rays.device)
+    xn, yn = warp_se3(rays, dt, twist[:, :3], twist[:, 3:], event_inverse_depth(batch, params.inverse_depth),
+                      identity)
+    K = batch.K.to(dtype)[b]
+    return K[:, 0, 0] * xn + K[:, 0, 1] * yn + K[:, 0, 2], K[:, 1, 1] * yn + K[:, 1, 2]
+
+
+def log_depth_variation(inverse_depth: torch.Tensor, epsilon: float = 1e-3) -> torch.Tensor:
+    """Smoothed total variation of ``log(inverse depth)`` (B, 1, h, w) per window (B,), in units that do not
+    depend on the grid: the mean over nodes of ``sqrt(dx^2 + dy^2 + eps^2)`` times the grid's columns ``w``
+    (a map of one depth and its grid-interpolated twin on a finer grid score about alike)."""
+    log_rho = torch.log(inverse_depth.clamp(min=1e-6))[:, 0]
+    width = inverse_depth.shape[-1]
+    return torch.stack([total_variation(g, epsilon=epsilon) for g in log_rho]) * width
+
+
+def _inside(batch: EventWindows, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    return (x >= 0) & (x <= batch.width - 1) & (y >= 0) & (y <= batch.height - 1)
+
+
+@dataclass(frozen=True)
+class AverageTimestamp:
+    """Per-pixel average timestamp of the warped events, forward and backward (lower is better).
+
+    Zhu, Yuan, Chaney, Daniilidis, "Unsupervised event-based learning of optical
+    flow, depth, and egomotion", CVPR 2019, as refined by Hagenaars, Paredes-Vallés,
+    de Croon, "Self-supervised learning of event-based optical flow with spiking
+    neural networks", NeurIPS 2021. For each window and each reference time
+    (``forward``: the window's end, the events weighted by their normalised time
+    ``tau_i = t_i / T``; ``backward``: its start, weighted by ``1 - tau_i``) the
+    events are warped there and imaged per polarity ``p`` with bilinear votes;
+    the image of weighted votes over the image of votes is the average timestamp
+    ``T_p(x)`` of each pixel, and
+
+        L = sum_refs sum_x (T_+(x)^2 + T_-(x)^2) / #active pixels,
+
+    with active pixels those with at least one vote. An event blurred over many
+    pixels leaves pixels whose average is its own late timestamp; aligned, the
+    early events dilute the late ones. Normalising by the number of active pixels
+    (not by the events' count) keeps the loss from rewarding spreading events
+    out; with ``purge`` (Hagenaars et al.) an event whose warp to either
+    reference leaves the image is dropped from both, so pushing events out of
+    the image cannot lower the loss.
+
+    Zhu et al. and Hagenaars et al. add a smoothness term on the flow; here it is
+    ``smoothness`` times the total variation of the log inverse depth
+    (:func:`log_depth_variation`): without it a per-pixel map lets every pixel
+    place its few events wherever they score best.
+
+    Attributes
+    ----------
+    purge : bool
+        Drop events that either warp moves out of the image.
+    smoothness : float
+        Weight of :func:`log_depth_variation` (0: none).
+    eps : float
+        Added to the vote count before dividing.
+    """
+
+    purge: bool = True
+    smoothness: float = 0.0
+    eps: float = 1e-9
+
+    def __post_init__(self) -> None:
+        if not self.smoothness >= 0:
+            raise ValueError(f"smoothness must be >= 0, got {self.smoothness}")
+
+    def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
+        _check(batch, params)
+        B, H, W, b = batch.count, batch.height, batch.width, batch.window
+        duration = batch.duration_s.to(batch.dtype)[b]
+        tau = (batch.t / duration).clamp(0.0, 1.0)
+        dt = torch.stack([batch.t - duration, batch.t])                          # forward (end), backward (start)
+        x, y = warp_windows(batch, params, dt)
+        keep = torch.ones_like(x)
+        if self.purge:
+            keep = _inside(batch, x.detach(), y.detach()).all(0).to(x.dtype).expand_as(x)
+        weights = torch.stack([tau, 1.0 - tau])                                  # (2, N)
+        on = (batch.polarity > 0).long()
+        image = ((torch.arange(2, device=x.device)[:, None] * 2 + on[None]) * B + b[None]).reshape(-1)
+        counts = accumulate_bilinear_indexed(x.reshape(-1), y.reshape(-1), keep.reshape(-1), image, 4 * B, H, W)
+        stamps = accumulate_bilinear_indexed(x.reshape(-1), y.reshape(-1), (keep * weights).reshape(-1), image,
+                                             4 * B, H, W)
+        counts, stamps = counts.reshape(2, 2, B, H * W), stamps.reshape(2, 2, B, H * W)
+        average = stamps / (counts + self.eps)
+        square = (average * average).sum((1, 3))                              # (refs, B)
+        active = (counts.detach().sum(1) > 0).sum(-1)                          # (refs, B)
+        loss = (square / active.clamp(min=1).to(square.dtype)).sum(0)
+        if self.smoothness > 0:
+            loss = loss + self.smoothness * log_depth_variation(params.inverse_depth.to(batch.dtype))
+        return loss
+
+
+def _sample_indexed(images: torch.Tensor, image: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+    """Bilinear value (N,) of ``images`` (M, H, W) at points ``x, y`` (N,), point k read from ``images[image[k]]``
+    (zero outside; :func:`cmax.iwe.sample_bilinear` with one image per point)."""
+    M, H, W = images.shape
+    Hp, Wp = H + 2, W + 2
+    canvas = torch.nn.functional.pad(images, (1, 1, 1, 1)).reshape(-1)
+    x0, y0 = torch.floor(x.detach()), torch.floor(y.detach())
+    fx, fy = x - x0, y - y0
+    valid = ((x0 >= -1) & (x0 <= W - 1) & (y0 >= -1) & (y0 <= H - 1)).to(images.dtype)
+    corner = image * (Hp * Wp) + (y0.clamp(-1, H - 1).long() + 1) * Wp + x0.clamp(-1, W - 1).long() + 1
+    value = ((1 - fx) * (1 - fy) * canvas[corner] + fx * (1 - fy) * canvas[corner + 1]
+             + (1 - fx) * fy * canvas[corner + Wp] + fx * fy * canvas[corner + Wp + 1])
+    return value * valid
+
+
+@dataclass(frozen=True, eq=False)
+class SweepVote:
+    """The depth sweep's per-event normalised vote, differentiable in depth and twist (lower is better).
+
+    Each event is warped to the window's ``reference`` time with its inverse
+    depth; the blurred image of the warped events of its polarity is read back at
+    its own warped position (the adjoint of the voting: event i's share of the
+    energy ``sum I^2``), divided by the largest value the event reaches over a
+    sweep of ``candidates`` constant inverse depths in ``rho_range`` (computed
+    without gradient: one vote per event; an event that some candidate pushes out
+    of the image is divided by the window's median largest value instead), and
+    averaged over the events that stay inside. This is the cost of the plane
+    sweep (Rebecq, Gallego, Mueggler, Scaramuzza, "EMVS: Event-based multi-view
+    stereo", IJCV 2018; the contrast of Gallego, Rebecq, Scaramuzza, "A unifying
+    contrast maximization framework for event cameras", CVPR 2018) with the
+    per-event depth free; the result is ``-mean vote``.
+
+    Attributes
+    ----------
+    rho_range : (float, float)
+        Inverse depths [1/m] of the normalising sweep.
+    candidates : int
+        Constant inverse depths swept for the normaliser.
+    sigma : float
+        Blur [px].
+    reference : float
+        Reference time as a fraction of the window.
+    scale : Tensor (N,) or None
+        A fixed normaliser (:meth:`with_motion`); None: swept at every call.
+    """
+
+    rho_range: tuple[float, float] = (1.0 / 60.0, 2.0)
+    candidates: int = 12
+    sigma: float = 1.0
+    reference: float = 0.5
+    scale: torch.Tensor | None = None
+
+    def __post_init__(self) -> None:
+        if not (0 <= self.rho_range[0] < self.rho_range[1]):
+            raise ValueError(f"rho_range must be increasing and >= 0 [1/m], got {self.rho_range}")
+        if self.candidates < 2:
+            raise ValueError(f"candidates must be >= 2, got {self.candidates}")
+
+    def _scores(self, batch: EventWindows, params: DepthMotion, dt: torch.Tensor, rays: torch.Tensor
+                ) -> tuple[torch.Tensor, torch.Tensor]:
+        x, y = warp_windows(batch, params, dt, rays)
+        x, y = x[0], y[0]
+        image = (batch.polarity > 0).long() * batch.count + batch.window
+        images = blur(accumulate_bilinear_indexed(x, y, None, image, 2 * batch.count, batch.height, batch.width),
+                      self.sigma)
+        return _sample_indexed(images, image, x, y), _inside(batch, x.detach(), y.detach())
+
+    def _dt(self, batch: EventWindows) -> torch.Tensor:
+        return (batch.t - self.reference * batch.duration_s.to(batch.dtype)[batch.window])[None]
+
+    def normaliser(self, batch: EventWindows, twist: torch.Tensor) -> torch.Tensor:
+        """What each event's vote is divided by (N,): its largest value over the constant-depth sweep with
+        the windows' ``twist`` (B, 6), or the window's median largest value for an event some candidate
+        pushes out of the image. No gradient."""
+        B, rays, dt = batch.count, batch.rays(), self._dt(batch)
+        with torch.no_grad():
+            peaks, always = [], torch.ones(len(batch), dtype=torch.bool)
+            for rho in torch.linspace(*self.rho_range, self.candidates, dtype=batch.dtype):
+                candidate = DepthMotion(torch.full((B, 1, 1, 1), float(rho), dtype=batch.dtype), twist.detach())
+                score, inside = self._scores(batch, candidate, dt, rays)
+                peaks.append(score * inside)
+                always &= inside
+            peak = torch.stack(peaks).max(0).values
+            typical = torch.stack([peak[always & (batch.window == k)].median()
+                                   if bool((always & (batch.window == k)).any()) else peak.median()
+                                   for k in range(B)])
+            return torch.where(always, peak, typical[batch.window]).clamp(min=1e-12)
+
+    def with_motion(self, batch: EventWindows, twist: torch.Tensor) -> "SweepVote":
+        """This objective with the normaliser of a known ``twist`` (B, 6) fixed (:meth:`normaliser`): for a
+        depth-only optimisation of ``batch`` with that twist it gives the same values, without re-sweeping
+        at every call."""
+        return dataclasses.replace(self, scale=self.normaliser(batch, twist))
+
+    def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
+        _check(batch, params)
+        if self.scale is not None and self.scale.shape != (len(batch),):
+            raise ValueError(f"scale holds {self.scale.shape[0]} events, the batch {len(batch)}")
+        scale = self.normaliser(batch, params.twist) if self.scale is None else self.scale
+        score, inside = self._scores(batch, params, self._dt(batch), batch.rays())
+        inside = inside.to(score.dtype)
+        B = batch.count
+        votes = torch.zeros(B, dtype=score.dtype).index_add(0, batch.window, inside * score / scale)
+        kept = torch.zeros(B, dtype=score.dtype).index_add(0, batch.window, inside)
+        return -votes / kept.clamp(min=1.0)
+
+
+@dataclass(frozen=True)
+class LocalContrast:
+    """Contrast of each cell's own events in a small image around its cell, plus smoothness (lower is better).
+
+    The events are split by their pixel into ``cells``; each cell's events, warped to
+    the ``reference`` time, vote into an image of the cell plus ``margin`` px on each
+    side (one per polarity), and the cell's contrast is ``sum I^2`` of its blurred
+    images divided by the same for its unwarped events (no gradient). A cell
+    cannot raise it by piling its events onto another cell's edges. The loss is
+    ``-mean over cells with events`` plus ``smoothness`` times the total variation
+    of the log inverse depth. The per-patch (local) contrast follows Stoffregen &
+    Kleeman, "Event cameras, contrast maximization and reward functions: an
+    analysis", CVPR 2019, and the patch-wise motion of Shiba, Aoki, Gallego,
+    "Secrets of event-based optical flow", ECCV 2022 (which also regularises with
+    total variation).
+
+    Attributes
+    ----------
+    cells : (int, int)
+        Rows and columns of cells.
+    margin : int
+        Extra pixels around each cell's image.
+    sigma : float
+        Blur [px].
+    reference : float
+        Reference time as a fraction of the window.
+    smoothness : float
+        Weight of :func:`log_depth_variation` (0: none).
+    """
+
+    cells: tuple[int, int] = (6, 8)
+    margin: int = 8
+    sigma: float = 1.0
+    reference: float = 0.5
+    smoothness: float = 0.0
+
+    def __post_init__(self) -> None:
+        if len(self.cells) != 2 or min(self.cells) < 1:
+            raise ValueError(f"cells must be two positive integers, got {self.cells}")
+        if self.margin < 0 or self.smoothness < 0 or self.sigma < 0:
+            raise ValueError(f"margin, smoothness and sigma must be >= 0, got {self.margin}, {self.smoothness}, "
+                             f"{self.sigma}")
+
+    def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
+        _check(batch, params)
+        B, H, W = batch.count, batch.height, batch.width
+        gh, gw = self.cells
+        ch, cw = -(-H // gh), -(-W // gw)
+        row = (batch.y.detach() / ch).long().clamp(0, gh - 1)
+        col = (batch.x.detach() / cw).long().clamp(0, gw - 1)
+        cell = row * gw + col
+        C = gh * gw
+        image = ((batch.polarity > 0).long() * B + batch.window) * C + cell             # (N,)
+        corner = torch.arange(2 * B * C) % C                                           # each image's cell
+        origins = torch.stack([(corner % gw) * cw, (corner // gw) * ch], -1).to(batch.dtype) - self.margin
+        size = (ch + 2 * self.margin, cw + 2 * self.margin)
+
+        def energy(x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+            images = local_contrast(x, y, image, origins, count=2 * B * C, patch=size, sigma=self.sigma)
+            return images.view(2, B, C).sum(0)                                          # (B, C)
+
+        with torch.no_grad():
+            baseline = energy(batch.x, batch.y)
+        dt = (batch.t - self.reference * batch.duration_s.to(batch.dtype)[batch.window])[None]
+        x, y = warp_windows(batch, params, dt)
+        ratio = torch.where(baseline > 0, energy(x[0], y[0]) / baseline.clamp(min=1e-12), 0.0)
+        used = (baseline > 0).sum(1).clamp(min=1).to(ratio.dtype)
+        loss = -ratio.sum(1) / used
+        if self.smoothness > 0:
+            loss = loss + self.smoothness * log_depth_variation(params.inverse_depth.to(batch.dtype))
+        return loss
+
+
+@dataclass(frozen=True)
+class GlobalContrast:
+    """Normalised multi-reference contrast of the whole image (lower is better): ``-C(warped) / C(unwarped)``.
+
+    ``C`` is the mean over reference times (fractions ``references`` of the
+    window) of the contrast (``kind``: variance, paper eq. 11, or gradient
+    magnitude) of the blurred image of warped events; dividing by the unwarped
+    events' value makes it dimensionless (about -1 without motion). Gallego,
+    Rebecq, Scaramuzza, "A unifying contrast maximization framework for event
+    cameras", CVPR 2018; the multiple references against event collapse: Shiba,
+    Aoki, Gallego, "Event collapse in contrast maximization frameworks", Sensors
+    2022. A free depth can collapse it below the truth's value (see
+    ``docs/contrast_objective.md``): use it for motion, not for depth.
+
+    Attributes
+    ----------
+    references : tuple of float
+        Reference times as fractions of each window.
+    sigma : float
+        Blur [px].
+    kind : {"variance", "gradient"}
+    """
+
+    references: tuple[float, ...] = (0.0, 0.5, 1.0)
+    sigma: float = 1.0
+    kind: str = "variance"
+
+    def __post_init__(self) -> None:
+        contrast_of_images(torch.zeros(1, 1, 1), self.kind)      # validates the name
+        if not self.references:
+            raise ValueError("references: need at least one reference time")
+
+    def _per_window(self, batch: EventWindows, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
+        R, B = x.shape[0], batch.count
+        image = (torch.arange(R, device=x.device)[:, None] * B + batch.window[None, :]).reshape(-1)
+        images = blur(accumulate_bilinear_indexed(x.reshape(-1), y.reshape(-1), None, image, R * B, batch.height,
+                                                  batch.width), self.sigma)
+        return contrast_of_images(images, self.kind).view(R, B).mean(0)
+
+    def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
+        _check(batch, params)
+        fractions = torch.tensor(self.references, dtype=torch.float64)
+        refs = (fractions[:, None] * batch.duration_s.to(torch.float64)[None, :]).to(batch.dtype)   # (R, B)
+        x, y = warp_windows(batch, params, batch.t[None, :] - refs[:, batch.window])
+        with torch.no_grad():
+            baseline = self._per_window(batch, batch.x[None], batch.y[None])
+        contrast = self._per_window(batch, x, y)
+        return -torch.where(baseline > 0, contrast / torch.where(baseline > 0, baseline, 1.0), 0.0)
+
+
+@dataclass(frozen=True)
+class CollapseGuard:
+    """Shiba et al.'s guard against event collapse: the mean squared log area change of the warp (B,).
+
+    Measured on a ``lattice`` of probe pixels of each window at ``PROBE_TIMES``
+    (fractions of the window) with the inverse depth at the probes: 0 for a rigid
+    image motion, large when the warp squeezes the image (:func:`cmax.objectives.deformation`).
+    Shiba, Aoki, Gallego, "Event collapse in contrast maximization frameworks",
+    Sensors 2022, doi:10.3390/s22145190.
+
+    Attributes
+    ----------
+    lattice : (int, int)
+        Rows and columns of probes, spread over 10-90 % of the image.
+    """
+
+    lattice: tuple[int, int] = (9, 12)
+
+    def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
+        _check(batch, params)
+        B, H, W, dtype = batch.count, batch.height, batch.width, batch.dtype
+        twist = twist_at_speed(params.twist.to(dtype), batch.speed)
+        rows, cols = self.lattice
+        ys, xs = torch.meshgrid(torch.linspace(0.1, 0.9, rows, dtype=dtype) * H,
+                                torch.linspace(0.1, 0.9, cols, dtype=dtype) * W, indexing="ij")
+        P = xs.numel()
+        probes = EventWindows(xs.reshape(-1).repeat(B), ys.reshape(-1).repeat(B), torch.zeros(B * P, dtype=dtype),
+                              torch.ones(B * P, dtype=dtype), torch.arange(B).repeat_interleave(P),
+                              batch.K.to(dtype), batch.duration_s.to(dtype), W, H)
+        times = torch.tensor(PROBE_TIMES, dtype=dtype)[:, None] * probes.duration_s[probes.window][None]
+        x1, y1 = warp_windows(probes, DepthMotion(params.inverse_depth, twist), times)
+        x1, y1 = x1.view(len(PROBE_TIMES), B, rows, cols), y1.view(len(PROBE_TIMES), B, rows, cols)
+        return torch.stack([deformation(xs, ys, x1[:, k], y1[:, k]) for k in range(B)])
+
+
+@dataclass(frozen=True)
+class WeightedSum:
+    """``sum_k weight_k * objective_k(batch, params)`` (B,): e.g. a contrast plus the collapse guard.
+
+    Attributes
+    ----------
+    terms : tuple of (float, objective)
+    """
+
+    terms: tuple[tuple[float, object], ...]
+
+    def __post_init__(self) -> None:
+        if not self.terms or not all(len(t) == 2 and callable(t[1]) for t in self.terms):
+            raise ValueError("terms must be a non-empty tuple of (weight, objective) pairs")
+
+    def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
+        return sum(float(w) * objective(batch, params) for w, objective in self.terms if w != 0)
+
+
+#: The depth-and-motion objective shared by the fit's refinement and :mod:`learned` (docs/contrast_objective.md).
+SHARED_OBJECTIVE = AverageTimestamp(smoothness=0.003)
