@@ -20,10 +20,9 @@ from __future__ import annotations
 
 import os
 import time
-from contextlib import contextmanager
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Iterator
+from typing import Callable
 
 import numpy as np
 
@@ -116,19 +115,6 @@ class DemoReport:
     seconds: dict
 
 
-@contextmanager
-def _torch_threads(count: int) -> Iterator[None]:
-    """Run with ``count`` torch threads (fastest on a busy 2-core machine), restored afterwards."""
-    import torch
-
-    previous = torch.get_num_threads()
-    torch.set_num_threads(count)
-    try:
-        yield
-    finally:
-        torch.set_num_threads(previous)
-
-
 def run_demo(
     output_dir: str | os.PathLike = "demo_output", *, settings: DemoSettings | None = None,
     log: Callable[[str], None] = print, **overrides,
@@ -155,7 +141,9 @@ def run_demo(
     settings = replace(settings or DemoSettings(), **overrides)
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
-    with _torch_threads(1):
+    from cmax._threads import torch_threads_scope
+
+    with torch_threads_scope(threads=1):  # one thread: fastest on a busy 2-core machine
         return _run(output_dir, settings, log)
 
 
