@@ -71,7 +71,7 @@ def test_teacher_loss_gradcheck():
 
 def test_student_loss_is_contrast_plus_weighted_l1():
     from cmax.loss import EventBatch, contrast_loss
-    from cmax.synthetic_windows import make_window
+    from benchmarks.synthetic_windows import make_window
     from cmax.warp import WarpEvents
 
     w = make_window("slider", 2, width=64, height=48, focal=48.0, duration_s=0.1, max_frames=30)
