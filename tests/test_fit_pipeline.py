@@ -16,14 +16,6 @@ from cmax.fitting import (
 from cmax.fitting.solvers import ScipySolver, Solver, SolveResult, solve
 
 
-@pytest.fixture(autouse=True)
-def one_thread():
-    previous = torch.get_num_threads()
-    torch.set_num_threads(1)
-    yield
-    torch.set_num_threads(previous)
-
-
 @functools.lru_cache(maxsize=None)
 def small_se3():
     """A constant-twist indoor_flying window at 120 x 90 (exact twist)."""
