@@ -233,7 +233,8 @@ def measure_se3(window) -> dict:
         v = speed * v / np.linalg.norm(v)
         omega = omega_true + t * (result.omega - omega_true)
         structure.append(max(_patch_score(objective, v, omega, rho_true * float(k)) for k in STRUCTURE_SCALES))
-        grid = torch.as_tensor(DepthSweepStage().run(w, Motion(v=v, omega=omega), None)[0].inverse_depth.reshape(-1), dtype=dtype)
+        swept_motion, _ = DepthSweepStage().run(w, Motion(v=v, omega=omega), None)
+        grid = torch.as_tensor(swept_motion.inverse_depth.reshape(-1), dtype=dtype)
         swept.append(_patch_score(objective, v, omega, DepthGrid.sample(grid, patch_index, patch_weight)))
     at = {t: i for i, t in enumerate(PROFILE_T)}
     row.update({

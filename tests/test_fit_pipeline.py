@@ -27,10 +27,6 @@ def small_rotation():
     return make_window("rotation", 1, width=120, height=90, focal=90.0, duration_s=0.05, max_frames=60)
 
 
-def angle_deg(a, b) -> float:
-    return float(np.degrees(np.arccos(np.clip(a @ b / (np.linalg.norm(a) * np.linalg.norm(b)), -1, 1))))
-
-
 # ----------------------------------------------------------------------------------------------
 # The solver layer
 # ----------------------------------------------------------------------------------------------

@@ -12,8 +12,9 @@ from cmax._lazy import lazy_exports
 
 _LAZY = {
     "FitResult": "cmax.fitting.api", "fit": "cmax.fitting.api",
-    "LowParallaxWarning": "cmax.fitting.api", "LowMotionWarning": "cmax.fitting.api", "BoundWarning": "cmax.fitting.api",
-    "FitSettings": "cmax.fitting.settings", "MotionInit": "cmax.fitting.settings", "Refinement": "cmax.fitting.settings",
+    "LowParallaxWarning": "cmax.fitting.api", "LowMotionWarning": "cmax.fitting.api",
+    "BoundWarning": "cmax.fitting.api", "FitSettings": "cmax.fitting.settings",
+    "MotionInit": "cmax.fitting.settings", "Refinement": "cmax.fitting.settings",
     "PatchFlowSettings": "cmax.fitting.settings", "RefineSettings": "cmax.fitting.settings",
     "SweepSettings": "cmax.fitting.settings", "StageLog": "cmax.fitting.pipeline",
     "SequenceResult": "cmax.fitting.sequence", "fit_sequence": "cmax.fitting.sequence",

@@ -448,7 +448,8 @@ def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion
             scale_known: bool, seconds: float) -> FitResult:
     ev, s = w.ev, w.settings
     H, W = ev.height, ev.width
-    flow, v, omega, grid = motion.flow, np.asarray(motion.v, float), np.asarray(motion.omega, float), motion.inverse_depth
+    flow, grid = motion.flow, motion.inverse_depth
+    v, omega = np.asarray(motion.v, float), np.asarray(motion.omega, float)
     if model != "se3":
         v = np.zeros(3)
     with torch.no_grad():
@@ -466,7 +467,8 @@ def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion
         x_ref, y_ref = _all_events_at_reference(events, K, w, v, omega, grid)
         mask = event_pixels(x_ref, y_ref, H, W) & supported.ravel()[cell_map.numpy()].reshape(H, W)
     failed = [log for log in logs if not log.success]
-    message = "; ".join(f"{log.stage}: {log.message}" for log in failed) if failed else (logs[-1].message if logs else "")
+    last = logs[-1].message if logs else ""
+    message = "; ".join(f"{log.stage}: {log.message}" for log in failed) if failed else last
     return FitResult(
         model=model, t0_us=ev.t0_us, t1_us=ev.t1_us, t_ref_us=ev.t0_us + (ev.t1_us - ev.t0_us) // 2,
         flow=None if flow is None else np.asarray(flow, float), v=v, omega=omega,

@@ -39,7 +39,8 @@ from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import variance
 from cmax.warp import warp_se3
 
-__all__ = ["Patches", "PatchFlows", "make_patches", "patch_flows", "flow_information", "motion_from_flows", "explain_flows",
+__all__ = ["Patches", "PatchFlows", "make_patches", "patch_flows", "flow_information", "motion_from_flows",
+           "explain_flows",
            "spherical_cap", "fibonacci_sphere"]
 
 
