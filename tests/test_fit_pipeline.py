@@ -11,7 +11,7 @@ import torch
 
 from benchmarks.synthetic_windows import make_window
 from cmax.fitting import (
-    BoundWarning, FitSettings, LowMotionWarning, MotionInit, PatchFlowSettings, Refinement, fit,
+    BoundWarning, FitSettings, LowMotionWarning, MotionInit, PatchFlowSettings, Refinement, fit, fit_sequence,
 )
 from cmax.fitting.solvers import ScipySolver, Solver, SolveResult, solve
 
@@ -99,6 +99,16 @@ def test_warm_start_is_one_more_start_and_never_scores_worse():
     warm = fit(w.events, w.K, speed=float(np.linalg.norm(w.twist[:3])), depth_range=(1.0, 6.5), init=cold)
     assert "2 starts" in warm.stages[1].message and "1 starts" in cold.stages[1].message
     assert warm.stages[1].objective_after <= cold.stages[1].objective_after
+
+
+def test_fit_sequence_warm_starts_se3_windows():
+    w = small_se3()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")                   # short windows: little parallax
+        sequence = fit_sequence(w.events, w.K, "se3", window_us=45_000, speed=float(np.linalg.norm(w.twist[:3])),
+                                depth_range=(1.0, 6.5))
+    first, second = sequence.results[:2]
+    assert "1 starts" in first.stages[1].message and "2 starts" in second.stages[1].message
 
 
 def test_warm_start_moves_the_start_of_flow_and_rotation():
