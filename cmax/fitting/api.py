@@ -256,7 +256,8 @@ def fit(
         direction (and omega) as one more start of the motion refinement (or
         of the translation starts), the best one winning. With ``pose`` only
         the depth is fitted, by a sweep over the whole range that needs no
-        start: ``init`` is checked but not used.
+        start, and with ``motion_refinement="none"`` no objective compares
+        starts: there ``init`` is checked but not used.
     settings : FitSettings, optional
         Further options.
     **options
