@@ -83,8 +83,11 @@ def cached(cache: Path | None, key: str, make):
         return make()
     path = cache / f"{key}.pkl"
     if path.exists():
-        with open(path, "rb") as f:
-            return pickle.load(f)
+        try:
+            with open(path, "rb") as f:
+                return pickle.load(f)
+        except (ModuleNotFoundError, AttributeError):  # written by an older layout (cmax.synthetic_windows)
+            pass                                        # simulate it again and overwrite
     value = make()
     cache.mkdir(parents=True, exist_ok=True)
     partial = path.with_suffix(f".pkl.{os.getpid()}.partial")
