@@ -4,7 +4,7 @@ and ``accuracy_presets.png``.
 For every preset of :mod:`cmax.sim.presets` (``indoor_flying``, ``driving_day``,
 ``driving_night``, ``hiking``, ``rotation``, ``slider``), held-out seeds
 (default 100-109), one window of 0.1665 s (the paper's) from scene time 0.5 s,
-346x260, each preset's recommended simulator (:func:`cmax.synthetic_windows.preset_window`):
+346x260, each preset's recommended simulator (:func:`benchmarks.synthetic_windows.preset_window`):
 
 * presets whose camera translates: the depth with known motion
   (``fit(events, K, pose=T01)``) and ``se3`` with known speed
@@ -60,7 +60,7 @@ def translates(preset: str) -> bool:
 def preset_window(preset: str, seed: int, cache: Path | None):
     """The held-out window of ``preset`` for ``seed`` (kept in ``cache`` under ``preset_<name>_<seed>``, apart from
     the constant-twist windows of :mod:`benchmarks.accuracy_cmax`, some of which share a preset's name)."""
-    from cmax.synthetic_windows import preset_window as make
+    from benchmarks.synthetic_windows import preset_window as make
 
     return cached(cache, f"preset_{preset}_{seed}", lambda: make(preset, seed))
 

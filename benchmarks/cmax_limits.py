@@ -75,7 +75,8 @@ from cmax.fitting import FitSettings, fit
 from cmax.fitting.depth_sweep import _parabolic_argmax, node_cost_function, relative_sweep_cost
 from cmax.fitting.motion import LocalMotionObjective
 from cmax.fitting.patch_flow import make_patches
-from cmax.fitting.stages import Window, sweep
+from cmax.fitting.pipeline import DepthSweepStage, Motion
+from cmax.fitting.window import Window
 from cmax.geometry import se3_exp, se3_log
 from cmax.io.atomic import write_text_atomic
 from cmax.iwe import sample_bilinear
@@ -217,7 +218,8 @@ def measure_se3(window) -> dict:
     }
     settings = FitSettings()
     w = Window.from_events(window.events, window.K, settings)
-    patches = make_patches(w, grid=(6, 8), min_events=100, max_events=20_000, margin=0.3)
+    r = settings.refine
+    patches = make_patches(w, grid=r.grid, min_events=r.min_events, max_events=r.max_events, margin=r.margin)
     objective = LocalMotionObjective.build(w, patches, speed)
     dtype = objective.rays.dtype
     patch_index, patch_weight = w.grid.weights(patches.x, patches.y)
@@ -231,7 +233,8 @@ def measure_se3(window) -> dict:
         v = speed * v / np.linalg.norm(v)
         omega = omega_true + t * (result.omega - omega_true)
         structure.append(max(_patch_score(objective, v, omega, rho_true * float(k)) for k in STRUCTURE_SCALES))
-        grid = torch.as_tensor(sweep(w, v, omega), dtype=dtype)
+        swept_motion, _ = DepthSweepStage().run(w, Motion(v=v, omega=omega), None)
+        grid = torch.as_tensor(swept_motion.inverse_depth.reshape(-1), dtype=dtype)
         swept.append(_patch_score(objective, v, omega, DepthGrid.sample(grid, patch_index, patch_weight)))
     at = {t: i for i, t in enumerate(PROFILE_T)}
     row.update({

@@ -55,10 +55,10 @@ from benchmarks.accuracy_cmax import cached, parse_seeds, preset_depth_range, wi
 from cmax.contrast import (AverageTimestamp, CollapseGuard, DepthMotion, EventWindows, GlobalContrast,
                            LocalContrast, SweepVote, WeightedSum)
 from cmax.fitting import fit
-from cmax.fitting.window import event_pixels
+from cmax.fitting.api import event_pixels
 from cmax.io.atomic import write_text_atomic
 from cmax.metrics import depth_metrics
-from cmax.synthetic_windows import preset_window
+from benchmarks.synthetic_windows import preset_window
 
 RESULTS = Path(__file__).resolve().parent / "results"
 PRESETS = ("indoor_flying", "driving_day", "driving_night", "hiking", "slider")

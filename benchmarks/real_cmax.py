@@ -225,10 +225,12 @@ def _flow_explanations(events, K: np.ndarray, fitted_direction: np.ndarray) -> l
     """Patch flows of the window and how forward motion and the fitted direction explain them (markdown)."""
     from cmax.fitting import FitSettings
     from cmax.fitting.patch_flow import explain_flows, patch_flows
-    from cmax.fitting.stages import Window
+    from cmax.fitting.window import Window
 
-    window = Window.from_events(events, K, FitSettings(max_events=30_000))
-    centres, flows, _, information = patch_flows(window)
+    settings = FitSettings(max_events=30_000)
+    window = Window.from_events(events, K, settings)
+    flows_fit = patch_flows(window, settings.patch_flow)
+    centres, flows, information = flows_fit.centres, flows_fit.flows, flows_fit.information
     T = window.T
     directions = np.array([[0.0, 0.0, 1.0], fitted_direction])
     residual, omega, inverse_depth = explain_flows(centres, flows, information, K, directions)

@@ -1,6 +1,6 @@
 """Inference speed of the depth-pose network against ``cmax.fit``, per window, at 346x260 (same run).
 
-For each window (``indoor_flying`` preset windows of :func:`cmax.synthetic_windows.preset_window`,
+For each window (``indoor_flying`` preset windows of :func:`benchmarks.synthetic_windows.preset_window`,
 held-out seeds 100, 101, ...; 0.1665 s):
 
 * the network (default :class:`learned.model.ModelConfig`, untrained weights: speed does not
@@ -45,7 +45,7 @@ def _median_ms(function, repeats: int) -> float:
 def main(argv: list[str] | None = None) -> int:
     import cmax
     from cmax.representations import voxel_grid
-    from cmax.synthetic_windows import preset_window
+    from benchmarks.synthetic_windows import preset_window
     from learned.model import DepthPoseNet, ModelConfig
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])

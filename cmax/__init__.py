@@ -23,7 +23,7 @@ _LAZY = {
 #: Sub-packages and modules reachable after a plain ``import cmax`` (``cmax.io.read(...)``), loaded on first use.
 _SUBMODULES = (
     "io", "sim", "representations", "fitting", "emvs", "metrics", "viz", "geometry", "warp", "iwe",
-    "objectives", "loss", "synthetic_windows", "show", "demo",
+    "objectives", "contrast", "loss", "show", "demo",
 )
 
 __all__ = ["Camera", "Events", "EventTensors", "STRUCTURED_DTYPE", "concatenate", "__version__", *_LAZY]

@@ -543,7 +543,7 @@ CLI_CASES = [
     ("show-mode", ["show", "{file}", "--mode", "movie"], r"argument --mode: invalid choice"),
     ("show-truncated-h5", ["show", "{dir}/half.h5"], r"cmax show: error: .* not a readable HDF5 file"),
     ("show-output-folder-missing", ["show", "{file}", "-o", "{dir}/no/such/folder/x.png"],
-     r"cmax show: error: .*No such file or directory"),
+     r"cmax show: error: folder of path does not exist: .*no/such/folder"),
     ("scene-unknown-preset", ["scene", "moon", "-o", "{dir}/s.h5"], r"argument preset: invalid choice"),
     ("scene-negative-duration", ["scene", "slider", "-o", "{dir}/s.h5", "--duration", "-1"],
      r"duration_s must be positive"),

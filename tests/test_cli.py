@@ -114,7 +114,7 @@ def test_fit_writes_depth_trajectory_and_summary(tmp_path):
     checked against the truth here; benchmarks/accuracy_cmax.py measures it.)"""
     import json
 
-    from cmax.synthetic_windows import make_window
+    from benchmarks.synthetic_windows import make_window
 
     w = make_window("slider", 7, width=120, height=90, focal=90.0, duration_s=0.2)
     path = tmp_path / "slider.h5"
@@ -146,7 +146,7 @@ def test_fit_with_the_zero_rotation_start(tmp_path, capsys):
     iterations than without the flag), and the summary records it."""
     import json
 
-    from cmax.synthetic_windows import make_window
+    from benchmarks.synthetic_windows import make_window
 
     w = make_window("slider", 7, width=120, height=90, focal=90.0, duration_s=0.1)
     write_h5(tmp_path / "slider.h5", w.events)

@@ -76,7 +76,7 @@ def test_undistorted_events_match_opencv(tmp_path):
 
 @pytest.fixture(scope="module")
 def slider(tmp_path_factory):
-    from cmax.synthetic_windows import make_window
+    from benchmarks.synthetic_windows import make_window
 
     w = make_window("slider", 7, width=96, height=72, focal=72.0, duration_s=0.2)
     folder = tmp_path_factory.mktemp("fit_cli")

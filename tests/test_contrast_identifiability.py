@@ -13,7 +13,7 @@ import torch
 from benchmarks.objective_identifiability import descend as _descend
 from cmax.contrast import SHARED_OBJECTIVE, DepthMotion, EventWindows, GlobalContrast
 from cmax.metrics import depth_metrics
-from cmax.synthetic_windows import preset_window
+from benchmarks.synthetic_windows import preset_window
 from cmax.warp import DepthGrid
 
 DTYPE = torch.float32

@@ -13,7 +13,7 @@ def test_network_overfits_one_window_to_the_fits_depth_error():
     on the window's event pixels."""
     from cmax.fitting import fit
     from cmax.metrics import depth_metrics
-    from cmax.synthetic_windows import preset_window
+    from benchmarks.synthetic_windows import preset_window
     from learned.data import Sample, collate, to_item
     from learned.losses import student_loss
     from learned.model import DepthPoseNet, ModelConfig

@@ -7,7 +7,7 @@ import torch
 
 from cmax.contrast import (SHARED_OBJECTIVE, AverageTimestamp, CollapseGuard, DepthMotion, EventWindows,
                            GlobalContrast, LocalContrast, SweepVote, WeightedSum, twist_at_speed)
-from cmax.synthetic_windows import make_window
+from benchmarks.synthetic_windows import make_window
 
 OBJECTIVES = {
     "average_timestamp": AverageTimestamp(),

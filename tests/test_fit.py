@@ -9,7 +9,7 @@ import pytest
 
 from cmax.events import Events
 from cmax import FitResult, fit, fit_sequence
-from cmax.synthetic_windows import make_window, preset_window
+from benchmarks.synthetic_windows import make_window, preset_window
 
 SMALL = dict(width=120, height=90, focal=90.0)
 ABS_REL_SMALL = 0.25  # 120x90 (a third of the resolution: a third of the parallax); 0.17 measured
@@ -65,7 +65,7 @@ def _sanity(preset: str, width: int, height: int) -> None:
     import torch
 
     from cmax.fitting import FitSettings
-    from cmax.fitting.stages import SE3Model, Window
+    from cmax.fitting.window import SE3Model, Window
 
     w = _preset(preset, width, height)
     win = Window.from_events(w.events, w.K, FitSettings(max_events=60000), depth_grid=(6, 8))
@@ -130,7 +130,7 @@ def test_depth_with_known_pose_indoor_flying():
 
 
 def test_depth_spread_of_a_step_is_its_log_ratio_next_to_it_and_zero_away():
-    from cmax.fitting.window import depth_spread
+    from cmax.fitting.api import depth_spread
     from cmax.warp import DepthGrid
 
     grid = DepthGrid((4, 6), 60, 40)                     # nodes at x = 10 j + 4.5, y = 10 i + 4.5
@@ -144,7 +144,7 @@ def test_depth_spread_of_a_step_is_its_log_ratio_next_to_it_and_zero_away():
 
 
 def test_event_pixels_rounds_to_the_nearest_pixel_and_leaves_out_points_outside():
-    from cmax.fitting.window import event_pixels
+    from cmax.fitting.api import event_pixels
 
     x = np.array([0.4, 2.6, 2.4, -0.6, 4.49, 1.0, 3.0])
     y = np.array([0.0, 1.4, 1.6, 0.0, 2.0, 2.51, -0.51])

@@ -11,12 +11,13 @@ import pytest
 import torch
 
 from cmax.events import Events
-from cmax.fitting import FitSettings, fit
+from cmax.fitting import FitSettings, PatchFlowSettings, RefineSettings, fit
 from cmax.fitting.motion import LocalMotionObjective, refine_motion_local
 from cmax.fitting.patch_flow import (
     _field_matrices, flow_information, make_patches, motion_from_flows, patch_flows, spherical_cap,
 )
-from cmax.fitting.stages import Window
+from cmax.fitting.solvers import ScipySolver
+from cmax.fitting.window import Window
 from cmax.geometry import se3_exp
 
 
@@ -74,7 +75,18 @@ def point_scene(seed: int, *, width: int = 346, height: int = 260, duration_s: f
 
 
 def make_window(events: Events, K: np.ndarray) -> Window:
-    return Window.from_events(events, K, FitSettings(contrast="variance"))
+    return Window.from_events(events, K, FitSettings(contrast="variance", polarity_split=False))
+
+
+def flows_of(w: Window, **settings) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+    """centres, flows, counts, information of :func:`patch_flows` with these :class:`PatchFlowSettings`."""
+    r = patch_flows(w, PatchFlowSettings(**settings), ScipySolver())
+    return r.centres, r.flows, r.counts, r.information
+
+
+def refine(w: Window, v, omega, speed, **options) -> tuple[np.ndarray, np.ndarray]:
+    outcome = refine_motion_local(w, v, omega, speed, RefineSettings(), ScipySolver(), **options)
+    return outcome.v, outcome.omega
 
 
 def moving_pattern(flow_px, *, lines: bool = False, width: int = 200, height: int = 160, seed: int = 0) -> Events:
@@ -99,7 +111,7 @@ def moving_pattern(flow_px, *, lines: bool = False, width: int = 200, height: in
 def test_patch_flows_recover_a_constant_flow(flow_px):
     K = np.array([[150.0, 0, 100], [0, 150.0, 80], [0, 0, 1]])
     w = make_window(moving_pattern(flow_px), K)
-    centres, flows, counts, information = patch_flows(w, grid=(2, 3))
+    centres, flows, counts, information = flows_of(w, grid=(2, 3))
     assert centres.shape == (6, 2) and flows.shape == (6, 2) and counts.shape == (6,)
     assert information.shape == (6, 2, 2)
     np.testing.assert_allclose(flows * w.T, np.broadcast_to(flow_px, (6, 2)), atol=0.35)
@@ -110,11 +122,11 @@ def test_flow_information_is_small_along_edges():
     """Vertical lines: the flow across them (x) is sharp, along them (y) nearly free (the aperture problem)."""
     K = np.array([[150.0, 0, 100], [0, 150.0, 80], [0, 0, 1]])
     w = make_window(moving_pattern((6.0, -3.0), lines=True), K)
-    _, flows, _, information = patch_flows(w, grid=(2, 3))
+    _, flows, _, information = flows_of(w, grid=(2, 3))
     np.testing.assert_allclose(flows[:, 0] * w.T, 6.0, atol=0.35)
     assert np.all(information[:, 0, 0] > 4 * information[:, 1, 1])  # 5-10x measured; dots: within 3x
     dots = make_window(moving_pattern((6.0, -3.0)), K)
-    info_dots = patch_flows(dots, grid=(2, 3))[3]
+    info_dots = flows_of(dots, grid=(2, 3))[3]
     ratio = info_dots[:, 0, 0] / info_dots[:, 1, 1]
     assert np.all((ratio > 0.3) & (ratio < 3))
 
@@ -201,11 +213,11 @@ def test_patch_motion_survives_fast_rotations():
         events, K, v, omega = point_scene(seed, max_omega_deg=40)
         w = make_window(events, K)
         speed = float(np.linalg.norm(v))
-        centres, flows, counts, information = patch_flows(w)
+        centres, flows, counts, information = flows_of(w)
         v_new, omega_new, _ = motion_from_flows(centres, flows, information, K, speed)
         new.append(angle_deg(v_new, v))
         omega_errors.append(np.degrees(np.abs(omega_new - omega)).max())
-        centres, flows, counts, _ = patch_flows(w, margin=0.25, sigmas=(None,))
+        centres, flows, counts, _ = flows_of(w, margin=0.25, sigmas=(None,))
         v_old, _, _ = motion_from_flows(centres, flows, counts, K, speed, refine=False)
         old.append(angle_deg(v_old, v))
     assert np.median(new) < 5.0 and np.median(old) > 30.0
@@ -267,7 +279,7 @@ def test_local_refinement_recovers_from_a_tilted_start():
     w = make_window(events, K)
     speed = float(np.linalg.norm(v))
     start = se3_exp(np.r_[0, 0, 0, 0.0, 0.2, 0.1])[:3, :3] @ v                     # 13 deg off
-    v1, omega1 = refine_motion_local(w, start, omega + np.radians([1.5, -1.5, 0]), speed)
+    v1, omega1 = refine(w, start, omega + np.radians([1.5, -1.5, 0]), speed)
     assert angle_deg(v1, v) < 4.0 < angle_deg(start, v)
     np.testing.assert_allclose(np.linalg.norm(v1), speed)
     np.testing.assert_allclose(omega1, omega, atol=np.radians(1.0))
@@ -284,8 +296,8 @@ def test_refinement_keeps_the_best_of_several_starts(good_first):
            omega + np.radians([20.0, -20.0, 10.0]))
     good = (v, omega)
     first, second = (good, bad) if good_first else (bad, good)
-    alone = refine_motion_local(w, *bad, speed)
-    v1, omega1 = refine_motion_local(w, *first, speed, more_starts=[second])
+    alone = refine(w, *bad, speed)
+    v1, omega1 = refine(w, *first, speed, more_starts=[second])
     assert angle_deg(v1, v) < 4.0 < angle_deg(alone[0], v)
 
 

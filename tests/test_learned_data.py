@@ -7,7 +7,7 @@ import torch
 
 from cmax.loss import ContrastLoss, EventBatch
 from cmax.representations import voxel_grid
-from cmax.synthetic_windows import make_window
+from benchmarks.synthetic_windows import make_window
 from learned.data import H5WindowDataset, Sample, collate, flip_horizontal, flip_polarity, reverse_time, to_item
 
 

@@ -70,8 +70,8 @@ def test_teacher_loss_gradcheck():
 
 
 def test_student_loss_is_contrast_plus_weighted_l1():
+    from benchmarks.synthetic_windows import make_window
     from cmax.contrast import SHARED_OBJECTIVE, DepthMotion, EventWindows
-    from cmax.synthetic_windows import make_window
 
     w = make_window("slider", 2, width=64, height=48, focal=48.0, duration_s=0.1, max_frames=30)
     events = EventWindows.from_events(w.events, w.K, max_events=2000)

@@ -6,10 +6,9 @@ import pytest
 import torch
 
 from cmax.fitting import FitSettings
-from cmax.fitting.solvers import make_solver
-from cmax.fitting.stages import SE3Model, Window
+from cmax.fitting.window import SE3Model, Window
 from cmax.loss import ContrastLoss, EventBatch, contrast_loss
-from cmax.synthetic_windows import make_window
+from benchmarks.synthetic_windows import make_window
 from cmax.warp import DepthGrid, WarpEvents
 
 
@@ -21,7 +20,7 @@ def window():
 
 def _fit_objective(ev: WarpEvents, settings: FitSettings, grid_rho: np.ndarray, twist: np.ndarray) -> float:
     """The objective exactly as cmax.fit's se3 stages evaluate it (SE3Model.objective, scale 1)."""
-    w = Window(ev, settings, make_solver("scipy"), DepthGrid(grid_rho.shape, ev.width, ev.height))
+    w = Window(ev, settings, DepthGrid(grid_rho.shape, ev.width, ev.height))
     se3 = SE3Model(w, speed=1.0)
     rho = torch.as_tensor(grid_rho, dtype=ev.x.dtype)
     index, weight = se3.probes[3]

@@ -1,20 +1,27 @@
 """Contrast maximization solvers: one window (:func:`fit`) and a whole recording (:func:`fit_sequence`).
 
-Modules: ``window`` (the public :func:`fit`, :class:`FitResult`, :class:`FitSettings`),
-``sequence`` (:func:`fit_sequence`), ``stages`` (rotation, translation starts, depth, coarse to
-fine), ``depth_sweep`` (per-cell plane sweep of inverse depth), ``patch_flow`` (motion from
-patch flows), ``motion`` (the local motion refinement), ``solvers`` (scipy, casadi, torch back
-ends), ``cli`` (``cmax fit``). The public names load on first use (they import torch), so that
-``cmax.fitting.cli`` and the command line's parser start fast.
+Modules, in the order a reader meets them: ``api`` (the public :func:`fit` and :class:`FitResult`),
+``settings`` (:class:`FitSettings` and its nested sub-settings), ``window`` (the frozen input every
+stage reads), ``pipeline`` (the stage order of each model on one screen, and the stages),
+``patch_flow`` (patch flows and the motion-field equations), ``motion`` (the patch-wise refinement
+objective), ``depth_sweep`` (the plane sweep of inverse depth), ``solvers`` (scipy, casadi, torch: the
+one solve path), ``sequence`` (:func:`fit_sequence`), ``cli`` (``cmax fit``). The public names load on
+first use (they import torch), so that ``cmax.fitting.cli`` and the command line's parser start fast.
 """
 from cmax._lazy import lazy_exports
 
 _LAZY = {
-    "FitResult": "cmax.fitting.window", "FitSettings": "cmax.fitting.window", "fit": "cmax.fitting.window",
-    "LowParallaxWarning": "cmax.fitting.window",
+    "FitResult": "cmax.fitting.api", "fit": "cmax.fitting.api",
+    "LowParallaxWarning": "cmax.fitting.api", "LowMotionWarning": "cmax.fitting.api",
+    "BoundWarning": "cmax.fitting.api", "FitSettings": "cmax.fitting.settings",
+    "MotionInit": "cmax.fitting.settings", "Refinement": "cmax.fitting.settings",
+    "PatchFlowSettings": "cmax.fitting.settings", "RefineSettings": "cmax.fitting.settings",
+    "SweepSettings": "cmax.fitting.settings", "StageLog": "cmax.fitting.pipeline",
     "SequenceResult": "cmax.fitting.sequence", "fit_sequence": "cmax.fitting.sequence",
 }
 
-__all__ = ["FitResult", "FitSettings", "LowParallaxWarning", "SequenceResult", "fit", "fit_sequence"]
+__all__ = ["BoundWarning", "FitResult", "FitSettings", "LowMotionWarning", "LowParallaxWarning", "MotionInit",
+           "PatchFlowSettings", "RefineSettings", "Refinement", "SequenceResult", "StageLog", "SweepSettings",
+           "fit", "fit_sequence"]
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())

@@ -204,7 +204,7 @@ def _fit_default(name: str):
     def default():
         import inspect
 
-        from cmax.fitting.window import fit
+        from cmax.fitting.api import fit
 
         return inspect.signature(fit).parameters[name].default
     return default
@@ -212,7 +212,7 @@ def _fit_default(name: str):
 
 def _settings_default(name: str):
     def default():
-        from cmax.fitting.window import FitSettings
+        from cmax.fitting.settings import FitSettings
 
         return getattr(FitSettings(), name)
     return default
@@ -267,6 +267,20 @@ def _gyro_overlap(events, gyro, path: Path):
             f"(cut {(lo - first) * 1e-3:.1f} ms at the start, {(last - hi) * 1e-3:.1f} ms at the end): "
             "fitting the overlap")
     return events.slice_time(lo, hi + 1), note
+
+
+def _depth_scale(results, depth_range) -> "object":
+    """One colour scale for every depth picture of a run: ``--depth-range`` when given, else the
+    1-99th percentiles of all windows' depths on their masks (None when no window has a depth)."""
+    from cmax import viz
+
+    if depth_range is not None:
+        return viz.DepthScale(*depth_range)
+    maps = [np.where(r.mask, r.depth, np.nan) for r in results if r.depth is not None]
+    try:
+        return viz.DepthScale.from_depths(maps) if maps else None
+    except ValueError:  # no window holds a depth on its mask
+        return None
 
 
 def run_fit(args: argparse.Namespace) -> int:
@@ -335,11 +349,14 @@ def run_fit(args: argparse.Namespace) -> int:
     finally:
         source.finish()
     windows = []
+    scale = _depth_scale(sequence.results, args.depth_range)
     for i, r in enumerate(sequence.results):
         if r.depth is not None:
             save_npz_atomic(out / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask, depth_spread=r.depth_spread,
                             inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=K)
-            viz.save_png(out / f"depth_{i:05d}.png", viz.depth_image(np.where(r.mask, r.depth, np.nan)))
+            title = (f"window {i}, t_ref {(r.t_ref_us - int(events.t[0])) * 1e-6:.3f} s, "
+                     f"depth [{'m' if r.scale_known else 'up to scale'}]")
+            viz.save_png(out / f"depth_{i:05d}.png", viz.depth_panel(np.where(r.mask, r.depth, np.nan), scale, title))
         windows.append({"t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
                         "omega": r.omega.tolist(), "flow": None if r.flow is None else r.flow.tolist(),
                         "objective_after": r.objective_after, "seconds": r.seconds, "iterations": r.iterations,

@@ -245,8 +245,7 @@ def _vote_scale(score: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
     for an event that some candidates push out of the image (``inside`` (C, N) is 0 there), the median
     largest value of the events that stay inside. Such an event's own largest value is taken over the
     candidates that keep it inside only, mostly far ones: the near events at the bottom of a driving
-    window would vote for far depths with full weight (synthetic ``driving_night``, ``pose=``: abs_rel
-    0.90 and 1.50 on seeds 105 and 106 with their own largest value, 0.14 and 0.12 with this)."""
+    window would vote for far depths with full weight (``docs/fitting.md``)."""
     peak = (score * inside).max(0, keepdim=True).values
     always = inside.min(0, keepdim=True).values > 0
     typical = peak[always].median() if bool(always.any()) else peak.median()

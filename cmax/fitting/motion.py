@@ -3,8 +3,7 @@
 The patch-flow initialiser (:mod:`cmax.fitting.patch_flow`) fits constant
 flows to patches, and a constant flow is a biased summary of a patch whose
 flow varies (depth edges, the divergence of a forward motion, the rotation
-field across ~70 px): on the tuning windows those flows are 5-15% off, which
-costs 10-30 deg of translation direction. Here the events of each patch are
+field across a patch). Here the events of each patch are
 warped by the exact se3 warp of :mod:`cmax.warp` with the shared twist
 ``(v, omega)`` and one inverse depth ``rho_p`` per patch, and the objective is
 the sum over patches of each patch's IWE variance normalised by its unwarped
@@ -13,11 +12,11 @@ value:
     J(v, omega, rho) = sum_p Var(I_p(v, omega, rho_p)) / Var(I_p(0))
 
 Every patch weighs the same, whatever its events (the global contrast is ruled
-by the densest regions and peaks 16-60 deg off the true direction on some
-windows), and each patch's depth is free, so a wrong direction cannot be
+by the densest regions), and each patch's depth is free, so a wrong direction cannot be
 hidden by one depth grid. The depths start from a sweep per patch (the best of
 ``rho_candidates`` inverse depths for the start motion), then direction,
-rotation and depths are solved together by L-BFGS-B with ``|v|`` held.
+rotation and depths are solved together through :func:`cmax.fitting.solvers.solve` with ``|v|``
+held (normalised for L-BFGS-B and Adam, an equality constraint for IPOPT).
 
 References
 ----------
@@ -35,10 +34,12 @@ import numpy as np
 import torch
 
 from cmax.fitting.patch_flow import Patches, make_patches
+from cmax.fitting.settings import RefineSettings
+from cmax.fitting.solvers import SCIPY_DEFAULT_TOLERANCES, Solver, SolveResult, solve
 from cmax.objectives import variance
 from cmax.warp import warp_se3
 
-__all__ = ["LocalMotionObjective", "refine_motion_local"]
+__all__ = ["LocalMotionObjective", "RefineOutcome", "refine_motion_local", "omega_on_bound"]
 
 #: Direction parameters are ``DIRECTION_SCALE * v / |v|`` so that a step of one
 #: unit moves the direction by ~6 deg, like one pixel of the other parameters.
@@ -76,15 +77,18 @@ class LocalMotionObjective:
     rho_scale: float
     sigma: float
     base: torch.Tensor
+    unit_norm: bool = True
 
     @classmethod
-    def build(cls, w, patches: Patches, speed: float) -> "LocalMotionObjective":
-        """The objective of ``patches`` of window ``w`` (a :class:`cmax.fitting.stages.Window`) at ``speed`` [m/s]."""
+    def build(cls, w, patches: Patches, speed: float, *, unit_norm: bool = True) -> "LocalMotionObjective":
+        """The objective of ``patches`` of window ``w`` (a :class:`cmax.fitting.window.Window`) at ``speed``
+        [m/s]; ``unit_norm`` False for solvers that hold ``|u| = DIRECTION_SCALE`` as a constraint."""
         ev, sigma = w.ev, w.settings.sigma
         rays = torch.stack([patches.x, patches.y, torch.ones_like(patches.x)], -1) @ torch.linalg.inv(ev.K).T
         with torch.no_grad():
             base = variance(patches.images(patches.x, patches.y, sigma)).clamp(min=1e-12)
-        return cls(patches, rays, ev.K, float(speed), w.T * w.focal, float(speed) * w.T * w.focal, sigma, base)
+        return cls(patches, rays, ev.K, float(speed), w.T * w.focal, float(speed) * w.T * w.focal, sigma, base,
+                   unit_norm)
 
     def params(self, v: np.ndarray, omega: np.ndarray, rho: np.ndarray) -> np.ndarray:
         """Parameter vector (6 + P,) of ``v`` (3,) [m/s], ``omega`` (3,) [rad/s], ``rho`` (P,) [1/m]."""
@@ -99,7 +103,7 @@ class LocalMotionObjective:
         """Normalised contrast (P,) of each patch for parameters ``p`` (6 + P,); differentiable."""
         dtype = self.rays.dtype
         u = p[:3] / DIRECTION_SCALE
-        v = self.speed * u / torch.sqrt((u * u).sum() + 1e-12)
+        v = self.speed * u / torch.sqrt((u * u).sum() + 1e-12) if self.unit_norm else self.speed * u
         rho = (p[6:] / self.rho_scale)[self.patches.patch]
         return self.contrast_at(v.to(dtype), (p[3:6] / self.omega_scale).to(dtype), rho.to(dtype))
 
@@ -122,78 +126,86 @@ class LocalMotionObjective:
         return rho
 
 
-def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, *, grid: tuple[int, int] = (6, 8),
-                        min_events: int = 100, max_events: int = 20_000, margin: float = 0.3,
-                        rho_candidates: int = 24, iterations: int = 60, hold_omega: bool = False,
-                        more_starts: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> tuple[np.ndarray, np.ndarray]:
+@dataclass(frozen=True)
+class RefineOutcome:
+    """Result of :func:`refine_motion_local`: the motion, the patch-wise objective (minus the summed
+    normalised contrasts) at the first start and at the result, and every solve."""
+
+    v: np.ndarray
+    omega: np.ndarray
+    objective_before: float
+    objective_after: float
+    solves: tuple[SolveResult, ...]
+    at_bound: tuple[str, ...] = ()
+
+
+def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: RefineSettings,
+                        solver: Solver, *, hold_omega: bool = False,
+                        more_starts: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> RefineOutcome:
     """Refine ``v`` (3,) [m/s] and ``omega`` (3,) [rad/s] on the patch-wise contrast; ``|v|`` stays ``speed``.
 
     Parameters
     ----------
-    w : cmax.fitting.stages.Window
+    w : cmax.fitting.window.Window
     v, omega : ndarray (3,)
         The start (e.g. :func:`cmax.fitting.patch_flow.motion_from_flows`).
     speed : float
         ``|v|`` [m/s].
-    grid : (rows, cols)
-        Patches (6 x 8 on a 346 x 260 sensor: 43 x 43 px; 4 x 5 patches hold
-        too many depths each, 8 x 10 too few events).
-    min_events, max_events, margin
-        As in :func:`cmax.fitting.patch_flow.make_patches`.
-    rho_candidates : int
-        Inverse depths of the per-patch start sweep, log-uniform over the window's ``depth_range``.
-    iterations : int
-        L-BFGS-B iterations.
+    settings : RefineSettings
+        Patches, their per-patch start sweep and the iteration limit.
+    solver : Solver
+        The backend (:func:`cmax.fitting.solvers.solve`); with one that takes equality constraints the
+        direction is held on its sphere by ``|u| = DIRECTION_SCALE`` instead of being normalised.
     hold_omega : bool
         Keep ``omega`` as given (a known rotation): only the direction and the depths move.
     more_starts : sequence of (v, omega)
-        Further starts, each refined the same way; the refined motion with the
-        highest patch-wise contrast wins (the objective is the same for all, so
-        this is a multi-start of one optimisation).
+        Further starts, each refined the same way; the refined motion with the highest patch-wise
+        contrast wins (a multi-start of one optimisation).
 
     Returns
     -------
-    v, omega : ndarray (3,)
-        The start itself when fewer than 4 patches hold ``min_events``.
+    RefineOutcome
+        The start itself (no solves) when fewer than 4 patches hold ``settings.min_events``.
     """
-    patches = make_patches(w, grid=grid, min_events=min_events, max_events=max_events, margin=margin)
+    v, omega = np.asarray(v, float), np.asarray(omega, float)
+    patches = make_patches(w, grid=settings.grid, min_events=settings.min_events, max_events=settings.max_events,
+                           margin=settings.margin)
     if patches is None or patches.count < 4:
-        return np.asarray(v, float), np.asarray(omega, float)
-    objective = LocalMotionObjective.build(w, patches, speed)
+        return RefineOutcome(v, omega, float("nan"), float("nan"), ())
+    objective = LocalMotionObjective.build(w, patches, speed, unit_norm=not solver.takes_equality)
     near, far = w.settings.depth_range
-    candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), rho_candidates))
-    best = None
+    candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), settings.rho_candidates))
+    solves, best = [], None
     for start_v, start_omega in [(v, omega), *more_starts]:
-        value, v1, omega1 = _refine_from(w, objective, np.asarray(start_v, float), np.asarray(start_omega, float),
-                                         candidates, iterations, hold_omega)
-        if best is None or value < best[0]:
-            best = (value, v1, omega1)
-    return best[1], best[2]
+        result, v1, omega1, bound = _refine_from(w, objective, np.asarray(start_v, float),
+                                                 np.asarray(start_omega, float), candidates, settings.iterations,
+                                                 hold_omega, solver)
+        solves.append(result)
+        if best is None or result.fun < best[0]:
+            best = (result.fun, v1, omega1, bound)
+    return RefineOutcome(best[1], best[2], solves[0].fun_start, best[0], tuple(solves), best[3])
 
 
 def _refine_from(w, objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray, candidates: np.ndarray,
-                 iterations: int, hold_omega: bool) -> tuple[float, np.ndarray, np.ndarray]:
-    """One L-BFGS-B refinement from ``(v, omega)``: final ``-J``, ``v`` (3,), ``omega`` (3,)."""
-    from scipy.optimize import minimize
-
+                 iterations: int, hold_omega: bool, solver: Solver
+                 ) -> tuple[SolveResult, np.ndarray, np.ndarray, tuple[str, ...]]:
+    """One refinement from ``(v, omega)``: the solve, ``v`` (3,), ``omega`` (3,), the omega axes on a bound."""
     near, far = w.settings.depth_range
     rho0 = objective.sweep_rho(v, omega, candidates)
     x0 = objective.params(v, omega, rho0)
     P, s_o, s_r = objective.patches.count, objective.omega_scale, objective.rho_scale
-    lower = np.r_[np.full(3, -2 * DIRECTION_SCALE), np.full(3, -6 * s_o), np.full(P, s_r / far)]
-    upper = np.r_[np.full(3, 2 * DIRECTION_SCALE), np.full(3, 6 * s_o), np.full(P, s_r / near)]
-    if hold_omega:  # equal bounds: L-BFGS-B keeps these parameters fixed
+    max_omega = w.settings.max_omega
+    lower = np.r_[np.full(3, -2 * DIRECTION_SCALE), np.full(3, -max_omega * s_o), np.full(P, s_r / far)]
+    upper = np.r_[np.full(3, 2 * DIRECTION_SCALE), np.full(3, max_omega * s_o), np.full(P, s_r / near)]
+    if hold_omega:  # equal bounds: the solvers keep these parameters fixed
         lower[3:6] = upper[3:6] = x0[3:6]
-
-    def fun_and_grad(x: np.ndarray) -> tuple[float, np.ndarray]:
-        p = torch.tensor(x, dtype=torch.float64, requires_grad=True)
-        value = -objective.values(p).sum()
-        (grad,) = torch.autograd.grad(value, p)
-        return float(value.detach()), grad.numpy().copy()
-
-    result = minimize(fun_and_grad, np.clip(x0, lower, upper), jac=True, method="L-BFGS-B",
-                      bounds=list(zip(lower, upper)), options={"maxiter": iterations})
-    w.iterations += int(result.nit)
-    w.evaluations += int(result.nfev)
+    result = solve(lambda p: -objective.values(p).sum(), x0, lower, upper, solver, iterations=iterations,
+                   tolerances=SCIPY_DEFAULT_TOLERANCES, norm_slice=slice(0, 3), norm=DIRECTION_SCALE)
     v1, omega1, _ = objective.motion(result.x)
-    return float(result.fun), v1, omega1
+    bound = () if hold_omega else omega_on_bound(omega1, max_omega)
+    return result, v1, omega1, bound
+
+
+def omega_on_bound(omega: np.ndarray, max_omega: float) -> tuple[str, ...]:
+    """Names of the components of ``omega`` (3,) [rad/s] within 0.1% of the bound ``+-max_omega``."""
+    return tuple(f"omega_{axis}" for axis, value in zip("xyz", omega) if abs(value) >= 0.999 * max_omega)

@@ -21,12 +21,9 @@ thousand directions on the sphere at once and then in a fine cap around the
 best; the direction with the smallest residual whose inverse depths are
 mostly positive wins.
 
-On the tuning windows (``indoor_flying`` presets, seeds 1-12, 0.1665 s) the
-two blurs, the wider margin and the information weights took the median
-direction error from 17 to 7.4 deg (p90 30 -> 12.5) and the omega RMS error
-from 1.9 to 0.85 deg/s (p90 14 -> 1.9: large flows had stopped at the margin).
-This is the initialiser the issue asks for ("patch flows fitted to the
-motion-field equations"); :func:`cmax.fitting.stages.fit_se3` refines it.
+This is the se3 initialiser (:class:`cmax.fitting.pipeline.PatchFlowStage`);
+:mod:`cmax.fitting.motion` refines it. Why two blurs, the margin and the
+information weights: ``docs/fitting.md``.
 """
 from __future__ import annotations
 
@@ -36,11 +33,14 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cmax.fitting.settings import PatchFlowSettings
+from cmax.fitting.solvers import SCIPY_DEFAULT_TOLERANCES, ScipySolver, Solver, SolveResult, solve, torch_fun_and_grad
 from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import variance
 from cmax.warp import warp_se3
 
-__all__ = ["Patches", "make_patches", "patch_flows", "flow_information", "motion_from_flows", "explain_flows",
+__all__ = ["Patches", "PatchFlows", "make_patches", "patch_flows", "flow_information", "motion_from_flows",
+           "explain_flows",
            "spherical_cap", "fibonacci_sphere"]
 
 
@@ -128,37 +128,22 @@ def make_patches(w, *, grid: tuple[int, int], min_events: int, max_events: int, 
                    n.double().numpy())
 
 
-def _flow_objective(w, patches: Patches, sigma: float):
-    """``fun_and_grad(q (2P,)) -> (value, gradient (2P,))``: minus the summed normalised IWE variances.
+def _flow_loss(patches: Patches, sigma: float, T: float):
+    """``loss(q (2P,) float64) -> scalar``: minus the summed normalised IWE variances of the patches.
 
-    ``q`` holds each patch's displacement over the window [px] (flow times ``w.T``).
+    ``q`` holds each patch's displacement over the window [px] (flow times ``T`` [s]).
     """
-    P, T = patches.count, w.T
+    P = patches.count
     x, y, dt, patch = patches.x, patches.y, patches.dt, patches.patch
     with torch.no_grad():
         base = variance(patches.images(x, y, sigma)).clamp(min=1e-12)
 
-    def fun_and_grad(p: np.ndarray) -> tuple[float, np.ndarray]:
-        q = torch.tensor(p.reshape(P, 2), dtype=x.dtype, requires_grad=True)
-        flow = q / T
+    def loss(p: torch.Tensor) -> torch.Tensor:
+        flow = p.reshape(P, 2).to(x.dtype) / T
         images = patches.images(x - flow[patch, 0] * dt, y - flow[patch, 1] * dt, sigma)
-        value = -(variance(images) / base).sum()
-        (grad,) = torch.autograd.grad(value, q)
-        return float(value.detach()), grad.double().numpy().reshape(-1)
+        return -(variance(images) / base).sum()
 
-    return fun_and_grad
-
-
-def _solve_flows(w, fun_and_grad, patches: Patches, q0: np.ndarray, iterations: int) -> np.ndarray:
-    """Displacements over the window (P, 2) [px] maximising each patch's normalised IWE variance."""
-    from scipy.optimize import minimize
-
-    bound = float(patches.margin)
-    result = minimize(fun_and_grad, np.clip(q0, -bound, bound).reshape(-1), jac=True, method="L-BFGS-B",
-                      bounds=[(-bound, bound)] * (2 * patches.count), options={"maxiter": iterations})
-    w.iterations += int(result.nit)
-    w.evaluations += int(result.nfev)
-    return result.x.reshape(patches.count, 2)
+    return loss
 
 
 def flow_information(fun_and_grad, q: np.ndarray, step: float = 0.25) -> np.ndarray:
@@ -183,36 +168,12 @@ def flow_information(fun_and_grad, q: np.ndarray, step: float = 0.25) -> np.ndar
     return np.einsum("pij,pj,pkj->pik", vectors, values, vectors)
 
 
-def patch_flows(w, *, grid: tuple[int, int] = (4, 5), min_events: int = 200, max_events: int = 20_000,
-                margin: float = 0.4, sigmas: tuple[float | None, ...] = (3.0, None), iterations: int = 40,
-                coarse_step: int = 3) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
-    """Constant flow [px/s] of each patch with enough events, and how well it is determined.
+@dataclass(frozen=True, eq=False)
+class PatchFlows:
+    """Result of :func:`patch_flows`.
 
-    Each patch's flow maximises the normalised variance of its own IWE (all
-    patches in one separable solve), once per blur of ``sigmas``, each from the
-    last: a wide blur first (a wide basin: from a zero start the sharp objective
-    stops at a wrong local peak for flows beyond ~10 px).
-
-    Parameters
+    Attributes
     ----------
-    w : cmax.fitting.stages.Window
-    grid : (rows, cols)
-        Patches over the image.
-    min_events : int
-        Patches with fewer (subsampled) events are left out.
-    max_events : int
-        Uniform subsample of the window's events.
-    margin : float
-        Largest displacement over the window, as a fraction of the patch side.
-    sigmas : tuple of (float or None)
-        Blur [px] of each stage; None: the window's ``settings.sigma``.
-    iterations : int
-        L-BFGS-B iterations of each stage.
-    coarse_step : int
-        Every stage but the last uses every ``coarse_step``-th event (a wide blur needs fewer).
-
-    Returns
-    -------
     centres : ndarray (P, 2)
         Mean pixel of each patch's events.
     flows : ndarray (P, 2)
@@ -220,18 +181,52 @@ def patch_flows(w, *, grid: tuple[int, int] = (4, 5), min_events: int = 200, max
     counts : ndarray (P,)
     information : ndarray (P, 2, 2)
         :func:`flow_information` of each flow at the last blur [1/px^2 of displacement over the window].
+    solves : tuple of SolveResult
+        One per blur level.
     """
-    if len(sigmas) == 0:
-        raise ValueError("sigmas must hold at least one blur (None: the window's sigma)")
-    patches = make_patches(w, grid=grid, min_events=min_events, max_events=max_events, margin=margin)
+
+    centres: np.ndarray
+    flows: np.ndarray
+    counts: np.ndarray
+    information: np.ndarray
+    solves: tuple[SolveResult, ...] = ()
+
+
+def patch_flows(w, settings: PatchFlowSettings = PatchFlowSettings(), solver: Solver | None = None) -> PatchFlows:
+    """Constant flow [px/s] of each patch with enough events, and how well it is determined.
+
+    Each patch's flow maximises the normalised variance of its own IWE (all patches in one separable
+    solve), once per blur of ``settings.sigmas``, each from the last: a wide blur first (a wide basin:
+    from a zero start the sharp objective stops at a wrong local peak for large flows). Every level
+    but the last uses every ``settings.coarse_step``-th event.
+
+    Parameters
+    ----------
+    w : cmax.fitting.window.Window
+    settings : PatchFlowSettings
+        Patch grid, event counts, margin, blurs and iterations.
+    solver : Solver, optional
+        The backend (:func:`cmax.fitting.solvers.solve`); scipy's L-BFGS-B by default.
+    """
+    solver = ScipySolver() if solver is None else solver
+    patches = make_patches(w, grid=settings.grid, min_events=settings.min_events, max_events=settings.max_events,
+                           margin=settings.margin)
     if patches is None:
-        return np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2, 2))
-    q = np.zeros((patches.count, 2))
+        return PatchFlows(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2, 2)))
+    sigmas = settings.sigmas
+    q = np.zeros(2 * patches.count)
+    bound = float(patches.margin)
+    solves = []
     for stage, sigma in enumerate(sigmas):
-        subset = patches.every(coarse_step if stage < len(sigmas) - 1 else 1)
-        fun_and_grad = _flow_objective(w, subset, w.settings.sigma if sigma is None else sigma)
-        q = _solve_flows(w, fun_and_grad, subset, q, iterations)
-    return patches.centres, q / w.T, patches.counts, flow_information(fun_and_grad, q)
+        subset = patches.every(settings.coarse_step if stage < len(sigmas) - 1 else 1)
+        loss = _flow_loss(subset, w.settings.sigma if sigma is None else sigma, w.T)
+        result = solve(loss, q, np.full(q.size, -bound), np.full(q.size, bound), solver,
+                       iterations=settings.iterations, tolerances=SCIPY_DEFAULT_TOLERANCES)
+        solves.append(result)
+        q = result.x
+    q = q.reshape(patches.count, 2)
+    information = flow_information(torch_fun_and_grad(loss), q)
+    return PatchFlows(patches.centres, q / w.T, patches.counts, information, tuple(solves))
 
 
 def _field_matrices(centres: np.ndarray, K: np.ndarray, dt: float = 1e-3) -> tuple[np.ndarray, np.ndarray]:
@@ -284,7 +279,8 @@ def _weighted_system(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray
 
 
 def motion_from_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray, K: np.ndarray, speed: float,
-                      *, directions: int = 3000, refine: bool = True, omega: np.ndarray | None = None
+                      *, directions: int = 3000, refine: bool = True, omega: np.ndarray | None = None,
+                      cap_directions: int = 400
                       ) -> tuple[np.ndarray, np.ndarray, float]:
     """Best ``v`` (3,) [m/s, norm ``speed``], ``omega`` (3,) [rad/s] and the weighted RMS residual [px/s].
 
@@ -297,16 +293,14 @@ def motion_from_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarra
     weights : ndarray (P,) or (P, 2, 2)
         Per-patch weights: event counts, or the information matrices of
         :func:`flow_information` (the residual ``r`` of a patch costs ``r^T I r``:
-        a flow along an edge counts for nothing). On the tuning windows the
-        information matrices gave a median direction error of 7 deg (p90 13)
-        against 10 deg (p90 27) with counts.
+        a flow along an edge counts for nothing).
     K : ndarray (3, 3)
     speed : float
         ``|v|`` [m/s].
     directions : int
         Candidate directions (Fibonacci sphere; 3000: ~3.7 deg apart).
     refine : bool
-        Then 400 directions in a cap of 1.5 spacings around the best.
+        Then ``cap_directions`` directions in a cap of 1.5 spacings around the best.
     omega : ndarray (3,), optional
         A known angular velocity [rad/s] (a gyroscope's): it is held, and each
         direction's least squares solves the patches' inverse depths only.
@@ -319,9 +313,9 @@ def motion_from_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarra
     t = fibonacci_sphere(directions)                                       # (D, 3)
     score, omegas, residual = _direction_scores(t, LA, LB, b, speed, known)
     best = int(np.argmin(score))
-    if refine:  # a finer cap around the best: the sphere's points are ~3.7 deg apart for 3000
+    if refine and cap_directions > 0:  # a finer cap around the best: the sphere's points are ~3.7 deg apart for 3000
         spacing = math.sqrt(4 * math.pi / directions)
-        t = np.vstack([t[best], spherical_cap(t[best], 1.5 * spacing, 400)])
+        t = np.vstack([t[best], spherical_cap(t[best], 1.5 * spacing, cap_directions)])
         score, omegas, residual = _direction_scores(t, LA, LB, b, speed, known)
         best = int(np.argmin(score))
     return speed * t[best], omegas[best], float(residual[best])

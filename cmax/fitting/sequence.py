@@ -6,7 +6,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from cmax.events import Events
-from cmax.fitting.window import FitResult, fit
+from cmax.fitting.api import FitResult, fit
 from cmax.geometry import se3_exp
 
 __all__ = ["SequenceResult", "fit_sequence", "check_gyro", "window_gyro"]

@@ -13,7 +13,10 @@ constraint ``|x[v]| = speed`` on a slice ``v`` of the parameters. Backends:
 * :class:`TorchSolver` — Adam steps with projection onto the bounds (torch), a
   baseline and the optimizer the learned package uses.
 
-Every backend returns a :class:`SolveResult`.
+Every backend returns a :class:`SolveResult`. :func:`solve` is the one entry point of the fit's
+stages: it turns a torch loss into a :class:`Problem`, runs the backend with the stage's iteration
+limit and tolerances, and never hands back a point scoring worse than the start (it keeps the start
+and says so in the message, with ``success`` False).
 """
 from __future__ import annotations
 
@@ -23,7 +26,28 @@ from typing import Callable
 
 import numpy as np
 
-__all__ = ["Problem", "SolveResult", "Solver", "ScipySolver", "CasadiSolver", "TorchSolver", "make_solver"]
+__all__ = ["Problem", "SolveResult", "Solver", "ScipySolver", "CasadiSolver", "TorchSolver", "Tolerances",
+           "make_solver", "solve", "torch_fun_and_grad"]
+
+
+@dataclass(frozen=True)
+class Tolerances:
+    """Stopping tolerances of one solve: ``ftol`` relative decrease of the objective, ``gtol`` largest
+    projected gradient component (L-BFGS-B's names; IPOPT takes ``gtol`` as its ``tol``; Adam runs its
+    iterations)."""
+
+    ftol: float = 1e-7
+    gtol: float = 1e-6
+
+    def __post_init__(self) -> None:
+        if not (self.ftol > 0 and self.gtol > 0):
+            raise ValueError(f"tolerances must be positive, got ftol={self.ftol}, gtol={self.gtol}")
+
+
+#: scipy.optimize.minimize's own L-BFGS-B defaults (the patch stages were tuned with them).
+SCIPY_DEFAULT_TOLERANCES = Tolerances(ftol=2.220446049250313e-09, gtol=1e-05)
+#: Looser tolerances for a 2-parameter flow: its error is below 0.1 px well before the default stops.
+RELAXED_TOLERANCES = Tolerances(ftol=1e-5, gtol=1e-4)
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,6 +68,10 @@ class Problem:
 
 @dataclass(frozen=True)
 class SolveResult:
+    """One solve: the point ``x``, its objective ``fun``, the counts, the backend's message and whether it
+    succeeded; ``fun_start`` is the objective at the start, ``kept_start`` whether :func:`solve` handed back
+    the start because the backend ended worse (or not finite)."""
+
     x: np.ndarray
     fun: float
     iterations: int
@@ -51,6 +79,8 @@ class SolveResult:
     message: str
     success: bool
     seconds: float
+    fun_start: float = float("nan")
+    kept_start: bool = False
 
 
 class _Counted:
@@ -84,8 +114,9 @@ class Solver:
         copy.max_iterations = int(n)
         return copy
 
-    def relaxed(self) -> "Solver":
-        """A copy with the looser stopping tolerances of a 2-parameter problem (the same solver by default)."""
+    def with_tolerances(self, tolerances: Tolerances | None) -> "Solver":
+        """A copy with these stopping tolerances (None: the backend's own); backends without
+        tolerances return themselves."""
         return self
 
 
@@ -100,11 +131,11 @@ class ScipySolver(Solver):
     def __init__(self, *, max_iterations: int = 100, ftol: float = 1e-7, gtol: float = 1e-6, memory: int = 10) -> None:
         self.max_iterations, self.ftol, self.gtol, self.memory = max_iterations, ftol, gtol, memory
 
-    def relaxed(self) -> "ScipySolver":
-        """``ftol`` 1e-5, ``gtol`` 1e-4 (or looser where set looser): enough for a flow, whose error is
-        below 0.1 px well before the default tolerances stop (4x fewer evaluations)."""
+    def with_tolerances(self, tolerances: Tolerances | None) -> "ScipySolver":
+        if tolerances is None:
+            return self
         copy = self.with_iterations(self.max_iterations)
-        copy.ftol, copy.gtol = max(self.ftol, 1e-5), max(self.gtol, 1e-4)
+        copy.ftol, copy.gtol = tolerances.ftol, tolerances.gtol
         return copy
 
     def solve(self, problem: Problem) -> SolveResult:
@@ -187,6 +218,13 @@ class CasadiSolver(Solver):
                            str(stats.get("return_status", "")), bool(stats.get("success", False)),
                            time.perf_counter() - start)
 
+    def with_tolerances(self, tolerances: Tolerances | None) -> "CasadiSolver":
+        if tolerances is None:
+            return self
+        copy = self.with_iterations(self.max_iterations)
+        copy.tol = tolerances.gtol
+        return copy
+
 
 def _objective_callback(ca, f: _Counted, n: int):
     """A casadi function of x (n,) with a callback gradient (the object is kept alive on the result)."""
@@ -238,3 +276,42 @@ def make_solver(solver: "str | Solver") -> Solver:
     if solver not in table:
         raise ValueError(f"solver must be one of {sorted(table)} or a cmax.fitting.solvers.Solver, got {solver!r}")
     return table[solver]()
+
+
+def torch_fun_and_grad(loss: Callable) -> Callable[[np.ndarray], tuple[float, np.ndarray]]:
+    """``x (n,) float64 -> (loss, d loss / dx (n,))`` of a torch ``loss(params (n,) float64 tensor) -> scalar``."""
+    import torch
+
+    def fun_and_grad(x: np.ndarray) -> tuple[float, np.ndarray]:
+        p = torch.tensor(x, dtype=torch.float64, requires_grad=True)
+        value = loss(p)
+        (grad,) = torch.autograd.grad(value, p)
+        return float(value.detach()), grad.numpy().copy()
+
+    return fun_and_grad
+
+
+def solve(loss: Callable, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, solver: Solver, *,
+          iterations: int, tolerances: Tolerances | None = None, norm_slice: slice | None = None,
+          norm: float = 1.0) -> SolveResult:
+    """Minimise a torch ``loss(params (n,) float64) -> scalar`` over ``lower <= x <= upper`` from ``x0`` (n,).
+
+    The one solve path of :func:`cmax.fit`: ``solver`` limited to ``iterations`` with ``tolerances``;
+    ``norm_slice`` asks backends that take equality constraints (:attr:`Solver.takes_equality`) for
+    ``|x[norm_slice]| = norm``. ``x0`` is clipped into the bounds. When the backend ends worse than the
+    start (or not finite) the start is returned with ``kept_start`` True and ``success`` False: no solve
+    hands back a point scoring worse than its start.
+    """
+    f = _Counted(torch_fun_and_grad(loss))
+    lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
+    x0 = np.clip(np.asarray(x0, dtype=np.float64), lower, upper)
+    f0 = f(x0)[0]
+    problem = Problem(f, x0, lower, upper, speed=norm if norm_slice is not None else None, v_slice=norm_slice)
+    result = solver.with_iterations(iterations).with_tolerances(tolerances).solve(problem)
+    worse = not np.isfinite(result.fun) or not np.all(np.isfinite(result.x)) or result.fun > f0
+    if worse:
+        return SolveResult(x0.copy(), f0, result.iterations, result.evaluations + f.calls,
+                           f"{result.message}; kept the start (the solver ended at {result.fun:.6g} > {f0:.6g})",
+                           False, result.seconds, fun_start=f0, kept_start=True)
+    return SolveResult(result.x, result.fun, result.iterations, result.evaluations, result.message,
+                       result.success, result.seconds, fun_start=f0)

@@ -1,4 +1,5 @@
-"""Synthetic event windows with exact ground truth for the tests and benchmarks of :func:`cmax.fit`.
+"""Synthetic event windows with exact ground truth for the tests and benchmarks of :func:`cmax.fit` (a
+fixture of the benchmarks and tests, not part of the installed library).
 
 Each window is a piecewise-planar world (:mod:`cmax.sim.world`) seen by a
 camera that moves with a **constant body twist** ``xi = (v, omega)``, so that

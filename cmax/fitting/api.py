@@ -1,0 +1,518 @@
+"""``cmax.fit``: depth and camera motion of one event window by contrast maximization.
+
+The public :func:`fit`, its warnings and the frozen :class:`FitResult`. The fit itself is the
+pipeline of :mod:`cmax.fitting.pipeline` (its stage order on one screen) over the frozen
+:class:`~cmax.fitting.window.Window`, every stage solving through :mod:`cmax.fitting.solvers`;
+the options are :class:`~cmax.fitting.settings.FitSettings`. Method details and the evidence behind
+the defaults: ``docs/fitting.md``.
+"""
+from __future__ import annotations
+
+import time
+import warnings
+from dataclasses import dataclass, replace
+import numpy as np
+import torch
+
+from cmax._threads import torch_threads_scope
+from cmax.camera import check_intrinsics
+from cmax.events import Events
+from cmax.geometry import se3_exp, se3_log
+from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
+from cmax.fitting.settings import FitSettings
+from cmax.fitting.solvers import Solver, make_solver
+from cmax.fitting.window import LOW_PARALLAX_PX, Window
+from cmax.iwe import accumulate_bilinear, blur
+from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
+
+__all__ = ["FitResult", "FitSettings", "LowParallaxWarning", "LowMotionWarning", "BoundWarning", "fit"]
+
+
+class LowParallaxWarning(UserWarning):
+    """The fitted translation barely moves the events over the window (``FitResult.parallax_px`` below
+    ``LOW_PARALLAX_PX``): the depth, and without ``pose`` the translation direction, are poorly
+    constrained. Filter it with ``warnings.simplefilter("ignore", LowParallaxWarning)``."""
+
+
+class LowMotionWarning(UserWarning):
+    """``flow``/``rotation``: the fitted motion moves the events by less than ``FitSettings.low_motion_px``
+    over the window (``FitResult.motion_px``), or no stage could improve on the start: the motion is
+    too small to measure reliably. A longer window gives more motion."""
+
+
+class BoundWarning(UserWarning):
+    """A motion parameter ended on its bound (``FitResult.stages[i].at_bound``; ``success`` is False):
+    the true value is probably beyond it. Raise the bound (e.g. ``FitSettings.max_omega``)."""
+
+
+MODELS = ("flow", "rotation", "se3")
+#: The contrast of each model when ``FitSettings.contrast`` is None.
+DEFAULT_CONTRAST = {"flow": "variance", "rotation": "gradient", "se3": "variance"}
+#: Whether the motion contrast images each polarity apart when ``FitSettings.polarity_split`` is None.
+DEFAULT_POLARITY_SPLIT = {"flow": False, "rotation": True, "se3": False}
+
+
+@dataclass(frozen=True, eq=False)
+class FitResult:
+    """The motion (and depth) of one event window.
+
+    Attributes
+    ----------
+    model : str
+        ``"flow"``, ``"rotation"`` or ``"se3"``.
+    t0_us, t1_us : int
+        Times of the window's first and last events [µs].
+    t_ref_us : int
+        The reference time: the depth map is the scene's depth seen from the
+        camera at this time, the IWEs are warped to it (the window's middle).
+    flow : ndarray (2,) or None
+        Optical flow [px/s] (model ``flow``).
+    v, omega : ndarray (3,)
+        Linear [m/s] and angular [rad/s] velocity, camera frame (``v`` is a unit
+        vector times an unknown scale when ``scale_known`` is False; zero for
+        ``flow``/``rotation``; ``omega`` is the given one when ``fit`` got ``omega=``).
+    T : ndarray (4, 4)
+        ``se3_exp((v, omega) (t1 - t0))``: the camera at ``t1`` in the frame of the camera at ``t0``.
+    depth : ndarray (H, W) float32 or None
+        z-depth [m] at ``t_ref_us``, dense (interpolated from the grid); see ``mask``.
+    mask : ndarray (H, W) bool or None
+        The event pixels of the reference view: pixels that hold at least one
+        event once the events are warped to ``t_ref_us`` with the fitted
+        motion and depth (:func:`event_pixels`), in cells with at least
+        ``min_cell_events`` events. Like EMVS's semi-dense map, on the edges
+        seen at ``t_ref_us``.
+    inverse_depth_grid : ndarray (gh, gw) or None
+        The optimised inverse depths [1/m] at the grid nodes.
+    scale_known : bool
+        Whether ``v`` and ``depth`` are metric (``speed`` or ``pose`` given).
+    objective_before, objective_after : float
+        Normalised multi-reference contrast (1 = unwarped events) of the unwarped events and the result.
+    iterations, evaluations : int
+        Summed over the stages.
+    seconds : float
+    message : str
+        The last stage's message, or the messages of the stages that failed.
+    success : bool
+        False when a stage failed: its solver ended worse than its start (the start was kept), or a
+        parameter ended on a bound.
+    iwe_before, iwe_after : ndarray (H, W) float32
+        Event-count IWEs at ``t_ref_us`` without and with the fitted warp (blur sigma).
+    events_used : int
+    parallax_px : float or None
+        se3: median over the events of how far the fitted translation alone
+        moves each event over the whole window at its fitted depth [px]. The
+        translation direction and the depth rest on this displacement: on the
+        translation direction and the depth rest on this displacement
+        (``docs/fitting.md``). A wrong motion can also claim a large
+        parallax: a small value is a warning, a large one no guarantee. None
+        for ``flow`` and ``rotation``.
+    depth_spread : ndarray (H, W) float32 or None
+        se3: the range of log inverse depth over the 3 x 3 grid nodes around
+        each pixel (:func:`depth_spread`): large at depth edges, where the
+        bilinear grid blends two surfaces and most of the depth error lies; 0
+        on a smooth surface. A per-pixel confidence for semi-dense use:
+        ``mask & (depth_spread < limit)``; ``abs_rel_half`` in
+        ``benchmarks/results/accuracy_cmax.md`` is the error on the half of the
+        mask with the smallest spread. None for ``flow`` and ``rotation``.
+    stages : tuple of StageLog
+        One per stage (:mod:`cmax.fitting.pipeline`): stage, objective before/after (the stage's own),
+        iterations, evaluations, seconds, solver message, success, parameters on a bound.
+    motion_px : float or None
+        ``flow``/``rotation``: median displacement of the events by the fitted motion over the window [px].
+    """
+
+    model: str
+    t0_us: int
+    t1_us: int
+    t_ref_us: int
+    flow: np.ndarray | None
+    v: np.ndarray
+    omega: np.ndarray
+    T: np.ndarray
+    depth: np.ndarray | None
+    mask: np.ndarray | None
+    inverse_depth_grid: np.ndarray | None
+    scale_known: bool
+    objective_before: float
+    objective_after: float
+    iterations: int
+    evaluations: int
+    seconds: float
+    message: str
+    success: bool
+    iwe_before: np.ndarray
+    iwe_after: np.ndarray
+    events_used: int
+    parallax_px: float | None = None
+    depth_spread: np.ndarray | None = None
+    stages: tuple[StageLog, ...] = ()
+    motion_px: float | None = None
+
+    @property
+    def twist(self) -> np.ndarray:
+        """``(v, omega)`` (6,)."""
+        return np.r_[self.v, self.omega]
+
+    def plot(self, path, *, depth_scale=None) -> "object":
+        """Write a picture (.png, .jpg): IWE before, after, and the depth map on the mask (when fitted)
+        with a colour bar in metres; returns the path.
+
+        ``depth_scale``: a :class:`cmax.viz.DepthScale` or ``(near, far)`` [m] shared by the pictures
+        of a run (default: this map's own 1-99th percentiles). Pixels without an estimate are hatched
+        grey, outside the colour map.
+        """
+        from cmax import viz
+
+        tiles = [viz.titled(viz.iwe_image(self.iwe_before), "IWE before"),
+                 viz.titled(viz.iwe_image(self.iwe_after), "IWE after")]
+        if self.depth is not None:
+            depth = np.where(self.mask, self.depth, np.nan)
+            unit = "m" if self.scale_known else "up to scale"
+            tiles.append(viz.depth_panel(depth, depth_scale, f"depth [{unit}], t_ref {self.t_ref_us * 1e-6:.3f} s"))
+        return viz.save_image(path, viz.hstack(tiles))
+
+
+# ----------------------------------------------------------------------------------------
+# Validation and preparation
+# ----------------------------------------------------------------------------------------
+def _check_inputs(events: object, K: object, model: str) -> np.ndarray:
+    if not isinstance(events, Events):
+        raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+    if model not in MODELS:
+        raise ValueError(f"model must be one of {MODELS}, got {model!r}")
+    K = check_intrinsics(K)
+    if abs(np.linalg.det(K)) < 1e-12:
+        raise ValueError(f"K must be invertible, got {K.tolist()}")
+    if len(events) < 10:
+        raise ValueError(f"events: a window needs at least 10 events to fit a motion, got {len(events)}")
+    if events.t[-1] == events.t[0]:
+        raise ValueError("events all have the same timestamp: a window of zero duration shows no motion")
+    return K
+
+
+def _pose_twist(pose: object, duration_s: float) -> np.ndarray:
+    """The constant twist of a known motion: a twist (6,) [m/s, rad/s], or T (4, 4) from t0 to t1."""
+    array = np.asarray(pose, dtype=np.float64)
+    if array.shape == (6,):
+        xi = array
+    elif array.shape == (4, 4):
+        xi = se3_log(array) / duration_s
+    else:
+        raise ValueError(f"pose must be a twist (6,) [m/s, rad/s] or a (4, 4) motion over the window, got {array.shape}")
+    if not np.isfinite(xi).all():
+        raise ValueError("pose must be finite")
+    return xi
+
+
+def _known_omega(omega: object, pose: object) -> np.ndarray:
+    """A known angular velocity (3,) [rad/s], checked."""
+    if pose is not None:
+        raise ValueError("give pose or omega, not both: pose already fixes the rotation")
+    try:
+        array = np.asarray(omega, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise ValueError(f"omega must be 3 numbers [rad/s], got {omega!r}") from None
+    if array.shape != (3,):
+        raise ValueError(f"omega must be an angular velocity (3,) [rad/s], got shape {array.shape}")
+    if not np.isfinite(array).all():
+        raise ValueError(f"omega must be finite, got {array.tolist()}")
+    return array
+
+
+# ----------------------------------------------------------------------------------------
+# Public entry point
+# ----------------------------------------------------------------------------------------
+def fit(
+    events: Events, K: object, model: str = "se3", *, speed: float | None = None, pose: object = None,
+    omega: object = None, depth_grid: tuple[int, int] = (24, 32), solver: "str | Solver" = "scipy",
+    init: FitResult | None = None,
+    settings: FitSettings | None = None, num_threads: int | None = 1, **options,
+) -> FitResult:
+    """Fit the motion (and the depth) of one window of events by contrast maximization.
+
+    Parameters
+    ----------
+    events : Events
+        One window (at least 10 events spanning a non-zero time). Both
+        polarities are counted alike (the IWE counts events), so a window of
+        one polarity is fine.
+    K : array_like (3, 3)
+        Pinhole intrinsics [px] of the (undistorted) events.
+    model : {"se3", "rotation", "flow"}
+        ``flow``: a constant optical flow [px/s]; ``rotation``: an angular
+        velocity [rad/s]; ``se3``: linear and angular velocity plus an
+        inverse-depth grid.
+    speed : float, optional
+        Known ``|v|`` [m/s] (se3): depth and ``v`` are metric.
+    pose : array_like, optional
+        Known motion of the window (se3): a twist ``(v, omega)`` (6,) [m/s,
+        rad/s] or the (4, 4) transform from the camera at the first event to
+        the camera at the last; only the depth is optimised.
+    omega : array_like (3,), optional
+        Known angular velocity [rad/s] of the window, camera frame (se3; e.g.
+        a gyroscope's mean over the window, in the camera's axes): it is held
+        and only the translation direction and the depth are fitted (the
+        rotation is what limits the se3 depth: ``docs/fitting.md``).
+    depth_grid : (rows, cols)
+        Size of the inverse-depth grid (se3); the sweep over the whole depth
+        range runs on a grid ``depth_coarsening`` times coarser (12 x 16 for
+        the default 24 x 32), then refines on this one.
+    solver : {"scipy", "casadi", "torch"} or cmax.fitting.solvers.Solver
+    init : FitResult, optional
+        Warm start (e.g. the previous window of a sequence): ``flow`` and
+        ``rotation`` start from its flow or omega; se3 tries its translation
+        direction (and omega) as one more start of the motion refinement (or
+        of the translation starts), the best one winning. With ``pose`` only
+        the depth is fitted, by a sweep over the whole range that needs no
+        start, and with ``motion_refinement="none"`` no objective compares
+        starts: there ``init`` is checked but not used.
+    settings : FitSettings, optional
+        Further options.
+    **options
+        Alternatively, fields of :class:`FitSettings` as keywords (e.g.
+        ``fit(..., contrast="gradient", max_events=20000)``); not together
+        with ``settings``.
+    num_threads : int or None
+        torch threads during the fit (restored afterwards); 1 is fastest on
+        busy machines; None lets :func:`cmax._threads.torch_threads` choose
+        from the window's size, the cores and the machine's load.
+
+    Returns
+    -------
+    FitResult
+        With neither ``speed`` nor ``pose`` the translation and depth are up to
+        one scale: ``|v| = 1`` and ``scale_known`` is False.
+
+    Raises
+    ------
+    TypeError, ValueError
+        Not an ``Events``; unknown model or solver; a bad K; fewer than 10
+        events; all events at one time; ``speed`` not positive; a bad ``pose``
+        or ``omega``; ``pose`` and ``omega`` together; ``settings`` and
+        keyword options together.
+
+    Warns
+    -----
+    LowParallaxWarning
+        se3: the translation moves the events by under ``LOW_PARALLAX_PX``.
+    LowMotionWarning
+        flow, rotation: the motion moves the events by under ``low_motion_px``,
+        or no stage improved on the start.
+    BoundWarning
+        A motion parameter ended on its bound (``success`` is False).
+
+    Notes
+    -----
+    The stages of each model are listed, in order, in :func:`cmax.fitting.pipeline.stages_for`;
+    each one's log is in ``FitResult.stages``. The depth belongs to ``t_ref_us`` (the window's
+    middle), where the events are warped to.
+
+    References
+    ----------
+    G. Gallego, H. Rebecq, D. Scaramuzza, "A unifying contrast maximization
+    framework for event cameras", CVPR 2018, doi:10.1109/CVPR.2018.00407.
+    S. Shiba, Y. Aoki, G. Gallego, "Event collapse in contrast maximization
+    frameworks", Sensors 2022, doi:10.3390/s22145190.
+
+    Examples
+    --------
+    >>> result = cmax.fit(events, K, model="rotation")       # doctest: +SKIP
+    >>> result.omega                                          # doctest: +SKIP
+    """
+    start = time.perf_counter()
+    K = _check_inputs(events, K, model)
+    settings = _settings(settings, options, model)
+    if speed is not None and not (np.isfinite(speed) and speed > 0):
+        raise ValueError(f"speed must be a positive number of m/s, got {speed}")
+    if (speed is not None or pose is not None or omega is not None) and model != "se3":
+        raise ValueError(f"speed, pose and omega apply to model='se3', not {model!r}")
+    known_omega = None if omega is None else _known_omega(omega, pose)
+    if init is not None and not isinstance(init, FitResult):
+        raise TypeError(f"init must be a FitResult, got {type(init).__name__}")
+    backend = make_solver(solver)
+    pose_xi = None if pose is None else _pose_twist(pose, (int(events.t[-1]) - int(events.t[0])) * 1e-6)
+    scale = float(np.linalg.norm(pose_xi[:3])) if pose_xi is not None else (speed or 1.0)
+    if model == "se3" and scale <= 0:
+        raise ValueError("pose has no translation: depth is unobservable under a pure rotation")
+    with torch_threads_scope(len(events), threads=num_threads):
+        w = Window.from_events(events, K, settings, depth_grid)
+        motion = _start(model, init, pose_xi, known_omega, scale)
+        stages = stages_for(model, w, pose_known=pose_xi is not None, hold_omega=known_omega is not None,
+                            warm_v=init.v if init is not None and model == "se3" else None)
+        motion, logs = run_stages(stages, w, motion, backend)
+        if known_omega is not None:
+            motion = replace(motion, omega=known_omega)
+        result = _result(w, events, K, model, motion, logs, scale_known=pose is not None or speed is not None,
+                         seconds=time.perf_counter() - start)
+    _warn(result, settings, pose is not None)
+    return result
+
+
+def _settings(settings: FitSettings | None, options: dict, model: str) -> FitSettings:
+    """The settings of one fit: ``settings`` or the keyword ``options`` (not both), with the per-model
+    contrast and polarity split resolved."""
+    if settings is not None and options:
+        raise TypeError(f"fit() takes settings= or keyword options, not both (got settings and {sorted(options)})")
+    if settings is not None and not isinstance(settings, FitSettings):
+        raise TypeError(f"settings must be a FitSettings, got {type(settings).__name__}")
+    if options:
+        unknown = set(options) - set(FitSettings.__dataclass_fields__)
+        if unknown:
+            raise TypeError(f"fit() got unexpected keyword arguments {sorted(unknown)}")
+    settings = settings if settings is not None else FitSettings(**options)
+    if settings.contrast is None:
+        settings = replace(settings, contrast=DEFAULT_CONTRAST[model])
+    if settings.polarity_split is None:
+        settings = replace(settings, polarity_split=DEFAULT_POLARITY_SPLIT[model])
+    return settings
+
+
+def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, known_omega: np.ndarray | None,
+           scale: float) -> Motion:
+    """The motion the stages start from: the known pose, or the warm start's flow / omega, else zero."""
+    if pose_xi is not None:
+        return Motion(v=pose_xi[:3], omega=pose_xi[3:], speed=scale)
+    flow = init.flow if model == "flow" and init is not None and init.flow is not None else None
+    omega = init.omega if init is not None and model != "flow" else np.zeros(3)
+    if known_omega is not None:
+        omega = known_omega
+    return Motion(flow=None if flow is None else np.asarray(flow, float), omega=np.asarray(omega, float),
+                  speed=scale)
+
+
+def _warn(result: FitResult, settings: FitSettings, pose_known: bool) -> None:
+    """The warnings of a finished fit: low parallax (se3), low motion (flow, rotation), bounds."""
+    if result.parallax_px is not None and result.parallax_px < LOW_PARALLAX_PX:
+        unknown = "the depth is" if pose_known else "the depth and the translation direction are"
+        warnings.warn(f"cmax.fit: the translation moves the events by under {LOW_PARALLAX_PX:g} px over the window "
+                      f"(FitResult.parallax_px): {unknown} poorly constrained; a longer window or a faster "
+                      "motion gives more parallax", LowParallaxWarning, stacklevel=3)
+    kept = [log.stage for log in result.stages if not log.success and not log.at_bound]
+    if result.motion_px is not None and (result.motion_px < settings.low_motion_px or kept):
+        reason = (f"no stage improved on the start ({', '.join(kept)})" if kept else
+                  f"the fitted {result.model} moves the events by {result.motion_px:.2f} px over the window, under "
+                  f"low_motion_px={settings.low_motion_px:g}")
+        warnings.warn(f"cmax.fit: {reason}: the motion is too small to measure reliably; a longer window gives "
+                      "more motion", LowMotionWarning, stacklevel=3)
+    bounds = [(log.stage, name) for log in result.stages for name in log.at_bound]
+    if bounds:
+        warnings.warn(f"cmax.fit: {', '.join(f'{n} ({s})' for s, n in bounds)} ended on its bound: the true value "
+                      "is probably beyond it (raise FitSettings.max_omega / max_flow_px); success is False",
+                      BoundWarning, stacklevel=3)
+
+
+def event_pixels(x: np.ndarray, y: np.ndarray, height: int, width: int) -> np.ndarray:
+    """Pixels (H, W) bool that hold at least one of the points ``x, y`` (N,) [px] (rounded to the nearest
+    pixel; points outside the image are left out).
+
+    With the events warped to ``t_ref`` by the fitted motion and depth these are
+    the event pixels *of the reference view*: where the window's edges are at
+    ``t_ref``, the support of ``iwe_after``. The pixels the events were
+    recorded at instead form the band each edge swept over the window, and at
+    ``t_ref`` half of a moving depth edge's band shows the surface behind it
+    (``docs/fitting.md`` compares the two).
+    """
+    col, row = np.rint(x), np.rint(y)
+    inside = (col >= 0) & (col <= width - 1) & (row >= 0) & (row <= height - 1)
+    hits = np.zeros((height, width), bool)
+    hits[row[inside].astype(np.intp), col[inside].astype(np.intp)] = True
+    return hits
+
+
+def _warp_with_grid(ev: WarpEvents, index: torch.Tensor, weight: torch.Tensor, dt: torch.Tensor, v, omega,
+                    grid) -> tuple[torch.Tensor, torch.Tensor]:
+    """se3 warp of the events ``ev`` by ``dt`` (N,) or (B, N) [s] with twist ``v, omega`` and each event's
+    inverse depth interpolated from ``grid`` (gh, gw) [1/m] at its node ``index, weight`` (N, 4)."""
+    dtype = ev.x.dtype
+    rho = DepthGrid.sample(torch.as_tensor(grid, dtype=dtype), index, weight)
+    return warp_se3(ev.rays, dt, torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype), rho, ev.K)
+
+
+def _warped(w: Window, motion: Motion, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """The fit's events warped by ``dt`` (B, N) [s] with the fitted model (flow, rotation or se3)."""
+    ev = w.ev
+    with torch.no_grad():
+        if motion.flow is not None:
+            return warp_flow(ev.x, ev.y, dt, torch.as_tensor(motion.flow, dtype=ev.x.dtype))
+        if motion.inverse_depth is None:
+            return warp_rotation(ev.rays, dt, torch.as_tensor(motion.omega, dtype=ev.x.dtype), ev.K)
+        return _warp_with_grid(ev, w.index, w.weight, dt, motion.v, motion.omega, motion.inverse_depth)
+
+
+def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega, grid) -> tuple[np.ndarray, np.ndarray]:
+    """Pixel centres of *all* the window's events (not the fit's subsample, not dithered) warped to ``t_ref``
+    by the fitted se3 motion and depth grid: x, y (N,) [px]."""
+    ev = WarpEvents.from_events(events, K, dither=False, dtype=torch.float64)
+    index, weight = w.grid.weights(ev.x, ev.y)
+    with torch.no_grad():
+        x, y = _warp_with_grid(ev, index, weight, ev.dt((0.5,))[0], v, omega, grid)
+    return x.numpy(), y.numpy()
+
+
+def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion, logs: tuple[StageLog, ...], *,
+            scale_known: bool, seconds: float) -> FitResult:
+    ev, s = w.ev, w.settings
+    H, W = ev.height, ev.width
+    flow, grid = motion.flow, motion.inverse_depth
+    v, omega = np.asarray(motion.v, float), np.asarray(motion.omega, float)
+    if model != "se3":
+        v = np.zeros(3)
+    with torch.no_grad():
+        before = blur(accumulate_bilinear(ev.x, ev.y, None, H, W), s.sigma).numpy()
+        x, y = _warped(w, motion, w.dt_mid)
+        after = blur(accumulate_bilinear(x[0], y[0], None, H, W), s.sigma).numpy()
+        x_obj, y_obj = _warped(w, motion, w.dt)
+        objective = float(w.contrast(x_obj, y_obj, 1))
+    depth = mask = None
+    if grid is not None:
+        depth = (1.0 / w.grid.upsample(grid)).astype(np.float32)
+        counts = np.bincount(w.cell.numpy(), minlength=grid.size)
+        supported = counts.reshape(grid.shape) >= s.min_cell_events
+        cell_map = w.grid.cell_of(*[torch.from_numpy(a.ravel().astype(np.float64)) for a in np.mgrid[0:H, 0:W][::-1]])
+        x_ref, y_ref = _all_events_at_reference(events, K, w, v, omega, grid)
+        mask = event_pixels(x_ref, y_ref, H, W) & supported.ravel()[cell_map.numpy()].reshape(H, W)
+    failed = [log for log in logs if not log.success]
+    last = logs[-1].message if logs else ""
+    message = "; ".join(f"{log.stage}: {log.message}" for log in failed) if failed else last
+    return FitResult(
+        model=model, t0_us=ev.t0_us, t1_us=ev.t1_us, t_ref_us=ev.t0_us + (ev.t1_us - ev.t0_us) // 2,
+        flow=None if flow is None else np.asarray(flow, float), v=v, omega=omega,
+        T=se3_exp(np.r_[v, omega] * ev.duration_s), depth=depth, mask=mask,
+        inverse_depth_grid=None if grid is None else np.asarray(grid, float), scale_known=scale_known,
+        depth_spread=None if grid is None else depth_spread(np.asarray(grid, float), w.grid),
+        objective_before=1.0, objective_after=objective,
+        iterations=sum(log.iterations for log in logs), evaluations=sum(log.evaluations for log in logs),
+        seconds=seconds, message=message, success=not failed, iwe_before=before, iwe_after=after,
+        events_used=len(ev), parallax_px=None if grid is None else _parallax_px(w, v, np.asarray(grid, float)),
+        stages=logs, motion_px=None if grid is not None else _motion_px(w, motion),
+    )
+
+
+def depth_spread(inverse_depth_grid: np.ndarray, grid: DepthGrid) -> np.ndarray:
+    """Range of log inverse depth over the 3 x 3 nodes around each node of ``inverse_depth_grid`` (gh, gw)
+    [1/m, > 0], interpolated to the pixels like the depth (:meth:`DepthGrid.upsample`): (H, W) float32, >= 0.
+
+    ``log(rho_max / rho_min)`` of the neighbourhood: 0.69 next to a step from 2 m to 4 m, 0 on a
+    constant depth. Nodes outside the grid repeat the edge (``mode="nearest"``).
+    """
+    from scipy.ndimage import maximum_filter, minimum_filter
+
+    log_rho = np.log(np.asarray(inverse_depth_grid, dtype=np.float64).reshape(grid.shape))
+    spread = maximum_filter(log_rho, size=3, mode="nearest") - minimum_filter(log_rho, size=3, mode="nearest")
+    return grid.upsample(spread).astype(np.float32)
+
+
+def _motion_px(w: Window, motion: Motion) -> float:
+    """Median displacement [px] of the events by the fitted flow or rotation over the whole window."""
+    ev = w.ev
+    with torch.no_grad():
+        x, y = _warped(w, motion, torch.full_like(ev.x, ev.duration_s)[None])
+        return float(torch.hypot(x[0] - ev.x, y[0] - ev.y).median())
+
+
+def _parallax_px(w: Window, v: np.ndarray, grid: np.ndarray) -> float:
+    """Median displacement [px] of the events by the translation ``v T`` alone, at their fitted inverse depth."""
+    ev = w.ev
+    with torch.no_grad():
+        x, y = _warp_with_grid(ev, w.index, w.weight, torch.full_like(ev.x, ev.duration_s), v, np.zeros(3), grid)
+        return float(torch.hypot(x - ev.x, y - ev.y).median())

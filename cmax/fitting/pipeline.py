@@ -1,0 +1,375 @@
+"""The fit as a pipeline of stages: the order of each model's stages on one screen, and the stages.
+
+Each stage is a small frozen object that names its parameters, its objective and its schedule, and
+solves through the one solver layer (:func:`cmax.fitting.solvers.solve`). A stage reads the frozen
+:class:`~cmax.fitting.window.Window` and the :class:`Motion` so far and returns a new :class:`Motion`
+with a :class:`StageLog`; it never hands back a motion that scores worse on its objective than the
+one it got (the solver layer keeps the start when it ends worse, and the stage says so).
+
+The order (:func:`stages_for`)::
+
+    flow      FlowStage                                    (coarse to fine over image scales)
+    rotation  RotationStage                                (coarse to fine over image scales)
+    se3       pose known:          DepthSweepStage
+              default:             PatchFlowStage -> LocalRefineStage -> DepthSweepStage
+              motion_init=starts:  RotationStage -> TranslationStartsStage -> DepthSweepStage
+              then alternations x (MotionWithDepthStage -> DepthSweepStage)
+
+References: G. Gallego, H. Rebecq, D. Scaramuzza, "A unifying contrast maximization framework for
+event cameras", CVPR 2018 (the warps and the contrast); S. Shiba, Y. Aoki, G. Gallego, "Secrets of
+event-based optical flow", ECCV 2022 (patch-wise contrast, multi-reference); "Event collapse in
+contrast maximization frameworks", Sensors 2022 (the deformation guard).
+"""
+from __future__ import annotations
+
+import math
+import time
+from dataclasses import dataclass, field, replace
+from typing import Callable, Protocol
+
+import numpy as np
+import torch
+
+from cmax.fitting.depth_sweep import sweep_inverse_depth
+from cmax.fitting.motion import omega_on_bound, refine_motion_local
+from cmax.fitting.patch_flow import motion_from_flows, patch_flows
+from cmax.fitting.settings import MotionInit, Refinement
+from cmax.fitting.solvers import RELAXED_TOLERANCES, Solver, SolveResult, Tolerances, solve
+from cmax.fitting.window import SE3Model, Window
+from cmax.warp import warp_flow, warp_rotation
+
+__all__ = ["Motion", "StageLog", "Stage", "stages_for", "run_stages", "FlowStage", "RotationStage",
+           "PatchFlowStage", "LocalRefineStage", "TranslationStartsStage", "MotionWithDepthStage",
+           "DepthSweepStage", "directions"]
+
+
+@dataclass(frozen=True)
+class Motion:
+    """What the stages pass on: flow [px/s] (2,) or None, v [m/s] (3,), omega [rad/s] (3,), inverse-depth
+    grid (gh, gw) [1/m] or None, and the se3 scale ``speed`` (``|v|``) [m/s]."""
+
+    flow: np.ndarray | None = None
+    v: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    omega: np.ndarray = field(default_factory=lambda: np.zeros(3))
+    inverse_depth: np.ndarray | None = None
+    speed: float = 1.0
+    alternatives: tuple[tuple[np.ndarray, np.ndarray], ...] = ()
+    """Further (v, omega) starts an earlier stage proposes to the refinement."""
+
+
+@dataclass(frozen=True)
+class StageLog:
+    """One stage of one fit: its objective (lower is better; NaN where it has none) at its start and at
+    its end, the solver's counts, seconds and last message, whether it succeeded, and which parameters
+    ended on a bound."""
+
+    stage: str
+    objective_before: float
+    objective_after: float
+    iterations: int
+    evaluations: int
+    seconds: float
+    message: str
+    success: bool
+    at_bound: tuple[str, ...] = ()
+
+
+class Stage(Protocol):
+    """``run(window, motion, solver) -> (motion, log)``."""
+
+    name: str
+
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog]: ...
+
+
+# ----------------------------------------------------------------------------------------------
+# The order
+# ----------------------------------------------------------------------------------------------
+def stages_for(model: str, w: Window, *, pose_known: bool, hold_omega: bool,
+               warm_v: np.ndarray | None = None) -> tuple[Stage, ...]:
+    """The stages of ``model`` for a window with these settings, in order; ``warm_v`` (3,) is the
+    warm start's translation (se3 ``init=``), tried as one more start. The flow and rotation stages
+    start from the incoming :class:`Motion` (which holds the warm start's flow or omega)."""
+    s = w.settings
+    if model == "flow":
+        return (FlowStage(),)
+    if model == "rotation":
+        return (RotationStage(),)
+    if pose_known:
+        return (DepthSweepStage(),)
+    warm = None if warm_v is None or not np.linalg.norm(warm_v) > 0 else np.asarray(warm_v, float)
+    if s.motion_init is MotionInit.PATCHES:
+        motion = [PatchFlowStage(hold_omega, s.zero_rotation_start and not hold_omega, warm)]
+        if s.motion_refinement is Refinement.LOCAL:
+            motion.append(LocalRefineStage(hold_omega=hold_omega, warm_start=warm))
+    else:
+        motion = ([] if hold_omega else [RotationStage()]) + [TranslationStartsStage(hold_omega, warm)]
+    alternations = [MotionWithDepthStage(hold_omega=hold_omega), DepthSweepStage()] * s.alternations
+    return (*motion, DepthSweepStage(), *alternations)
+
+
+def run_stages(stages: tuple[Stage, ...], w: Window, motion: Motion, solver: Solver
+               ) -> tuple[Motion, tuple[StageLog, ...]]:
+    """Run ``stages`` in order from ``motion``; the final motion and every stage's log."""
+    logs = []
+    for stage in stages:
+        motion, log = stage.run(w, motion, solver)
+        logs.append(log)
+    return motion, tuple(logs)
+
+
+# ----------------------------------------------------------------------------------------------
+# Shared pieces: the log of a stage's solves, the coarse-to-fine driver
+# ----------------------------------------------------------------------------------------------
+def _log(name: str, before: float, after: float, solves: list[SolveResult] | tuple[SolveResult, ...],
+         seconds: float, at_bound: tuple[str, ...] = (), note: str = "") -> StageLog:
+    """A stage's log from its solves: it failed when a solve kept its start or the end scores worse than
+    the start, or when a parameter ended on a bound."""
+    kept = any(r.kept_start for r in solves)
+    worse = np.isfinite(before) and not after <= before
+    message = solves[-1].message if solves else "no solver"
+    message = "; ".join(m for m in (note, message) if m)
+    return StageLog(name, float(before), float(after), sum(r.iterations for r in solves),
+                    sum(r.evaluations for r in solves), seconds, message,
+                    not (kept or worse or at_bound), tuple(at_bound))
+
+
+def coarse_to_fine(w: Window, loss_at_scale: Callable[[torch.Tensor, int], torch.Tensor], x0: np.ndarray,
+                   lower: np.ndarray, upper: np.ndarray, solver: Solver, *,
+                   tolerances: Tolerances | None = None) -> tuple[np.ndarray, list[SolveResult], float, float]:
+    """Solve at each image scale of ``w.scales()`` from coarse to fine, warm-starting the next.
+
+    Returns the parameters, the solves, and the full-resolution objective at the start and at the end;
+    when the end scores worse at full resolution than the start, the start is returned.
+    """
+    x = np.clip(np.asarray(x0, dtype=np.float64), lower, upper)
+    with torch.no_grad():
+        before = float(loss_at_scale(torch.from_numpy(x), 1))
+    solves = []
+    for scale in w.scales():
+        iterations = w.settings.iterations if scale == 1 else w.settings.coarse_iterations
+        solves.append(solve(lambda p, s=scale: loss_at_scale(p, s), x, lower, upper, solver,
+                            iterations=iterations, tolerances=tolerances))
+        x = solves[-1].x
+    after = solves[-1].fun
+    if not after <= before:
+        return np.clip(np.asarray(x0, dtype=np.float64), lower, upper), solves, before, before
+    return x, solves, before, after
+
+
+def _omega_bounds(w: Window, omega: np.ndarray, hold: bool) -> tuple[np.ndarray, np.ndarray]:
+    """Bounds of the angular-velocity parameters [px]: ``+-max_omega``, or equal to ``omega`` when held."""
+    if hold:
+        value = np.asarray(omega, float) * w.omega_scale
+        return value, value.copy()
+    bound = w.settings.max_omega * w.omega_scale
+    return -np.full(3, bound), np.full(3, bound)
+
+
+# ----------------------------------------------------------------------------------------------
+# Global-contrast stages: flow, rotation
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class FlowStage:
+    """Parameters: the flow as a displacement over the window [px] (2,). Objective: minus the normalised
+    multi-reference contrast. Schedule: image scales coarse to fine, relaxed tolerances."""
+
+    name: str = "flow"
+
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog]:
+        start, ev = time.perf_counter(), w.ev
+        bound = w.settings.max_flow_px * max(ev.width, ev.height)
+        flow0 = np.zeros(2) if motion.flow is None else np.asarray(motion.flow, float)
+
+        def loss(p: torch.Tensor, scale: int) -> torch.Tensor:
+            x, y = warp_flow(ev.x, ev.y, w.dt_mid, (p / w.T).to(ev.x.dtype))
+            return -w.contrast(x, y, scale)
+
+        x, solves, before, after = coarse_to_fine(w, loss, flow0 * w.T, np.full(2, -bound), np.full(2, bound),
+                                                  solver, tolerances=RELAXED_TOLERANCES)
+        at_bound = tuple(f"flow_{a}" for a, value in zip("xy", x) if abs(value) >= 0.999 * bound)
+        log = _log(self.name, before, after, solves, time.perf_counter() - start, at_bound)
+        return replace(motion, flow=x / w.T), log
+
+
+@dataclass(frozen=True)
+class RotationStage:
+    """Parameters: the angular velocity as pixels over the window (3,). Objective: minus the normalised
+    multi-reference contrast of the rotation warp. Schedule: image scales coarse to fine."""
+
+    name: str = "rotation"
+
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog]:
+        start, ev, s = time.perf_counter(), w.ev, w.omega_scale
+        bound = w.settings.max_omega * s
+
+        def loss(p: torch.Tensor, scale: int) -> torch.Tensor:
+            x, y = warp_rotation(ev.rays, w.dt_mid, (p / s).to(ev.x.dtype), ev.K)
+            return -w.contrast(x, y, scale)
+
+        x, solves, before, after = coarse_to_fine(w, loss, np.asarray(motion.omega, float) * s,
+                                                  np.full(3, -bound), np.full(3, bound), solver)
+        omega = x / s
+        log = _log(self.name, before, after, solves, time.perf_counter() - start,
+                   omega_on_bound(omega, w.settings.max_omega))
+        return replace(motion, omega=omega), log
+
+
+# ----------------------------------------------------------------------------------------------
+# se3 stages
+# ----------------------------------------------------------------------------------------------
+@dataclass(frozen=True)
+class PatchFlowStage:
+    """Parameters: one flow per patch (2P,). Objective: the patches' summed normalised IWE variances
+    (:mod:`cmax.fitting.patch_flow`). Schedule: ``settings.patch_flow.sigmas`` wide to sharp. Then the
+    twist from the motion-field equations (least squares over directions, no solver); with
+    ``zero_rotation_start`` also the fit without rotation, passed on as a further start. With fewer
+    than 4 patches holding events it runs :class:`RotationStage` and :class:`TranslationStartsStage`."""
+
+    hold_omega: bool = False
+    zero_rotation_start: bool = False
+    warm_start: np.ndarray | None = None
+    name: str = "patch_flow"
+
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog]:
+        start = time.perf_counter()
+        flows = patch_flows(w, w.settings.patch_flow, solver)
+        if len(flows.centres) < 4:
+            fallback = ([] if self.hold_omega else [RotationStage()]) + [
+                TranslationStartsStage(self.hold_omega, self.warm_start)]
+            motion, logs = run_stages(tuple(fallback), w, motion, solver)
+            return motion, replace(logs[-1], stage=f"{self.name} (too few patches: {logs[-1].stage})",
+                                   seconds=time.perf_counter() - start, success=all(log.success for log in logs))
+        settings = w.settings.patch_flow
+
+        def twist(omega):
+            return motion_from_flows(flows.centres, flows.flows, flows.information, w.ev.K.double().numpy(),
+                                     motion.speed, omega=omega, directions=settings.directions,
+                                     cap_directions=settings.cap_directions)
+
+        v, omega, residual = twist(motion.omega if self.hold_omega else None)
+        alternatives = (twist(np.zeros(3))[:2],) if self.zero_rotation_start else ()
+        # the blur levels' objectives differ (blur, events): the stage has no one objective to compare
+        solves = flows.solves
+        log = StageLog(self.name, float("nan"), float("nan"), sum(r.iterations for r in solves),
+                       sum(r.evaluations for r in solves), time.perf_counter() - start,
+                       f"{len(flows.centres)} patches, motion-field residual {residual:.3g} px/s; "
+                       f"{solves[-1].message}", not any(r.kept_start for r in solves))
+        return replace(motion, v=v, omega=motion.omega if self.hold_omega else omega, alternatives=alternatives), log
+
+
+@dataclass(frozen=True)
+class LocalRefineStage:
+    """Parameters: direction, angular velocity and one inverse depth per patch (6 + P,). Objective: the
+    patch-wise normalised contrast (:class:`cmax.fitting.motion.LocalMotionObjective`), ``|v|`` held.
+    Schedule: one level, from the incoming motion, the earlier stages' alternatives and the warm start
+    (``init=``); the best refined start wins.
+
+    This is the final refinement of the default se3 path: to make it optimise another objective, give
+    :func:`cmax.fitting.motion.refine_motion_local` an objective with the same ``values(p) -> (P,)``,
+    ``params``, ``motion`` and ``sweep_rho`` interface."""
+
+    hold_omega: bool = False
+    warm_start: np.ndarray | None = None
+    name: str = "local_refine"
+
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog]:
+        start = time.perf_counter()
+        more = list(motion.alternatives)
+        if self.warm_start is not None:
+            more.append((motion.speed * self.warm_start / np.linalg.norm(self.warm_start), motion.omega))
+        outcome = refine_motion_local(w, motion.v, motion.omega, motion.speed, w.settings.refine, solver,
+                                      hold_omega=self.hold_omega, more_starts=more)
+        log = _log(self.name, outcome.objective_before, outcome.objective_after, outcome.solves,
+                   time.perf_counter() - start, outcome.at_bound, note=f"{1 + len(more)} starts")
+        return replace(motion, v=outcome.v, omega=outcome.omega, alternatives=()), log
+
+
+def directions(count: int) -> list[np.ndarray]:
+    """Start directions of the translation: the 6 camera axes, then the 8 diagonals."""
+    axes = [np.array(a, float) for a in ((0, 0, 1), (0, 0, -1), (1, 0, 0), (-1, 0, 0), (0, 1, 0), (0, -1, 0))]
+    if count <= 6:
+        return axes[:max(count, 1)]
+    diagonals = [np.array([a, b, c], float) / math.sqrt(3) for a in (1, -1) for b in (1, -1) for c in (1, -1)]
+    return (axes + diagonals)[:count]
+
+
+@dataclass(frozen=True)
+class TranslationStartsStage:
+    """Parameters: direction, angular velocity, one constant inverse depth (7,). Objective: the global
+    se3 objective (:class:`cmax.fitting.window.SE3Model`). Schedule: every start direction (and the
+    warm start) at image scale 2, then the best at full resolution."""
+
+    hold_omega: bool = False
+    warm_start: np.ndarray | None = None
+    name: str = "translation_starts"
+
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog]:
+        start, s = time.perf_counter(), w.settings
+        se3 = SE3Model(w, motion.speed, unit_norm=not solver.takes_equality)
+        lo_q, hi_q = se3.q_bounds
+        starts = directions(s.translation_starts)
+        if self.warm_start is not None and np.linalg.norm(self.warm_start) > 0:
+            starts = [self.warm_start / np.linalg.norm(self.warm_start)] + starts
+        lower_o, upper_o = _omega_bounds(w, motion.omega, self.hold_omega)
+        lower, upper = np.r_[-np.ones(3) * 2, lower_o, lo_q], np.r_[np.ones(3) * 2, upper_o, hi_q]
+        solves, best = [], None
+        for u0 in starts:
+            x0 = np.r_[u0, motion.omega * se3.omega_scale, math.sqrt(lo_q * hi_q)]
+            solves.append(solve(lambda p: se3.motion_loss(p, 2), x0, lower, upper, solver,
+                                iterations=s.start_iterations, norm_slice=slice(0, 3)))
+            if best is None or solves[-1].fun < best.fun:
+                best = solves[-1]
+        solves.append(solve(lambda p: se3.motion_loss(p, 1), best.x, lower, upper, solver,
+                            iterations=s.iterations, norm_slice=slice(0, 3)))
+        x = solves[-1].x
+        omega = x[3:6] / se3.omega_scale
+        bound = () if self.hold_omega else omega_on_bound(omega, s.max_omega)
+        log = _log(self.name, solves[-1].fun_start, solves[-1].fun, solves, time.perf_counter() - start, bound,
+                   note=f"{len(starts)} starts")
+        return replace(motion, v=se3.speed * x[:3] / np.linalg.norm(x[:3]), omega=omega), log
+
+
+@dataclass(frozen=True)
+class MotionWithDepthStage:
+    """Parameters: direction and angular velocity (6,). Objective: the global se3 objective with the
+    depth grid held. Schedule: one solve at full resolution."""
+
+    hold_omega: bool = False
+    name: str = "motion_with_depth"
+
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog]:
+        start = time.perf_counter()
+        se3 = SE3Model(w, motion.speed, unit_norm=not solver.takes_equality)
+        lower_o, upper_o = _omega_bounds(w, motion.omega, self.hold_omega)
+        q = torch.as_tensor(motion.inverse_depth.reshape(-1) * se3.q_scale, dtype=torch.float64)
+        result = solve(lambda p: se3.motion_loss(p, 1, q_fixed=q), np.r_[motion.v / se3.speed,
+                       motion.omega * se3.omega_scale], np.r_[-np.ones(3) * 2, lower_o],
+                       np.r_[np.ones(3) * 2, upper_o], solver, iterations=w.settings.iterations,
+                       norm_slice=slice(0, 3))
+        omega = result.x[3:6] / se3.omega_scale
+        bound = () if self.hold_omega else omega_on_bound(omega, w.settings.max_omega)
+        log = _log(self.name, result.fun_start, result.fun, [result], time.perf_counter() - start, bound)
+        return replace(motion, v=se3.speed * result.x[:3] / np.linalg.norm(result.x[:3]), omega=omega), log
+
+
+@dataclass(frozen=True)
+class DepthSweepStage:
+    """Parameters: the inverse-depth grid. Objective: the sweep's per-event normalised vote
+    (:mod:`cmax.fitting.depth_sweep`), maximised per node by a discrete search with semi-global
+    matching (no solver). Schedule: the whole ``depth_range`` on a coarser grid, then relative sweeps."""
+
+    name: str = "depth_sweep"
+
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog]:
+        start, s, ev = time.perf_counter(), w.settings, w.ev
+        lo, hi = s.depth_range
+        result = sweep_inverse_depth(
+            ev.rays, w.dt_mid, ev.polarity, motion.v, motion.omega, ev.K, height=ev.height, width=ev.width,
+            grid_shape=w.grid.shape, index=w.index, weight=w.weight, rho_range=(1.0 / hi, 1.0 / lo),
+            candidates=s.depth_candidates, sigma=s.sigma, smoothness=tuple(s.depth_smoothness),
+            coarsening=s.depth_coarsening, refinements=tuple(s.depth_refinements),
+            refine_candidates=s.sweep.refine_candidates, chunk=s.sweep.chunk)
+        log = StageLog(self.name, float("nan"), float("nan"), 0, 0, time.perf_counter() - start,
+                       f"plane sweep over {s.depth_candidates} inverse depths (no solver)", True)
+        return replace(motion, inverse_depth=result.inverse_depth.reshape(w.grid.shape)), log
