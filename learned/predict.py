@@ -15,7 +15,7 @@ import numpy as np
 import torch
 from tqdm import tqdm
 
-from cmax._args import ArgumentParser, positive_float, run_main
+from cmax._args import ArgumentParser, float_list, positive_float, run_main
 from cmax.fitting.cli import intrinsics_argument
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 from learned.data import H5WindowDataset
@@ -25,11 +25,17 @@ __all__ = ["predict_file", "main"]
 
 
 def predict_file(checkpoint: str | Path, path: str | Path, out: str | Path, *, K: np.ndarray | None = None,
-                 window_us: int | None = None, progress: bool = True) -> int:
-    """Predict every window of ``path`` into folder ``out``; returns the number of windows."""
+                 window_us: int | None = None, depth_range: tuple[float, float] | None = None,
+                 progress: bool = True) -> int:
+    """Predict every window of ``path`` into folder ``out``; returns the number of windows.
+
+    The depth pictures of one run share one colour scale with a colour bar in metres:
+    ``depth_range`` (near, far) [m], or the model's own output range.
+    """
     from cmax import viz
 
     model, config = load_model(checkpoint)
+    scale = viz.DepthScale(*(depth_range or (model.config.min_depth, model.config.max_depth)))
     window_us = int(config["data"]["window_us"]) if window_us is None else int(window_us)
     if window_us < 1:
         raise ValueError(f"the window must be at least 1 µs long, got {window_us} µs")
@@ -56,7 +62,8 @@ def predict_file(checkpoint: str | Path, path: str | Path, out: str | Path, *, K
             twist = output.twist[b].numpy()
             save_npz_atomic(out / f"window_{k:05d}.npz", depth=(1.0 / inverse).astype(np.float32),
                         inverse_depth=inverse, twist=twist, t0_us=t0, t1_us=t0 + window_us)
-            viz.save_png(out / f"window_{k:05d}.png", viz.depth_image((1.0 / inverse).astype(np.float32)))
+            title = f"window {k}, {t0 * 1e-6:.3f}-{(t0 + window_us) * 1e-6:.3f} s, depth [m]"
+            viz.save_png(out / f"window_{k:05d}.png", viz.depth_panel((1.0 / inverse).astype(np.float32), scale, title))
             lines.append(",".join([str(k), str(t0), str(t0 + window_us)] + [f"{v:.6g}" for v in twist]))
             k += 1
     write_text_atomic(out / "twists.csv", "\n".join(lines) + "\n")
@@ -73,13 +80,17 @@ def main(argv: list[str] | None = None) -> int:
                         help="fx,fy,cx,cy for files without gt/K (default: the file's gt/K)")
     parser.add_argument("--window", type=positive_float, default=None,
                         help="window length [s] (default: the checkpoint config's data.window_us)")
+    parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
+                        metavar="NEAR,FAR", help="colour scale of the depth pictures [m], one for the whole run "
+                        "(default: the model's output range)")
     return run_main(parser, _run, argv)
 
 
 def _run(args: argparse.Namespace) -> int:
     with torch.no_grad():
         n = predict_file(args.checkpoint, args.file, args.output, K=args.K,
-                         window_us=None if args.window is None else int(round(args.window * 1e6)))
+                         window_us=None if args.window is None else int(round(args.window * 1e6)),
+                         depth_range=None if args.depth_range is None else tuple(args.depth_range))
     print(f"{args.output}: {n} windows")
     return 0
 
