@@ -4,7 +4,7 @@ Register with ``add_fit_command(subparsers)`` in :mod:`cmax.cli`.
 
 Outputs in ``-o outdir/``: ``depth_XXXXX.npz`` (``depth``, ``mask``,
 ``depth_spread``, ``inverse_depth_grid``, ``t_ref_us``, ``K``) and ``depth_XXXXX.png`` per
-window (se3), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
+window (se3; the map with a colour bar in metres, unlabelled without ``--speed``), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
 camera-to-world, the first window's start as the origin) and
 ``summary.json`` (settings, per-window twist, objective, parallax, seconds).
 """
@@ -339,7 +339,9 @@ def run_fit(args: argparse.Namespace) -> int:
         if r.depth is not None:
             save_npz_atomic(out / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask, depth_spread=r.depth_spread,
                             inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=K)
-            viz.save_png(out / f"depth_{i:05d}.png", viz.depth_image(np.where(r.mask, r.depth, np.nan)))
+            title = "depth" if r.scale_known else "depth (up to scale)"
+            viz.save_png(out / f"depth_{i:05d}.png", viz.depth_panel(np.where(r.mask, r.depth, np.nan), None, title,
+                                                                     unit="m" if r.scale_known else ""))
         windows.append({"t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
                         "omega": r.omega.tolist(), "flow": None if r.flow is None else r.flow.tolist(),
                         "objective_after": r.objective_after, "seconds": r.seconds, "iterations": r.iterations,
