@@ -318,3 +318,14 @@ def test_polarity_option_reads_a_signed_file_and_is_refused_where_the_format_sta
     write_evt3(raw, random_events(200, width=64, height=48, t_span_us=10_000, seed=1))
     err = _one_line_exit_2(lambda: main(["info", str(raw), "--polarity", "signed"]), capsys)
     assert "states its polarities itself; polarity='signed' does not apply" in err
+
+
+def test_a_closed_stdout_ends_quietly(files):
+    """``cmax info MANY FILES | head -1``: no 'error: Broken pipe' line once the reader has left."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    command = [sys.executable, "-c", "import sys; from cmax.cli import main; sys.exit(main())", "info",
+               *[str(files["FILE"])] * 300]   # ~86 kB of output: more than a pipe holds (64 kB)
+    done = subprocess.run(f"{subprocess.list2cmdline(command)} | head -1", shell=True, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.stdout.startswith("file ")
+    assert done.stderr == "", done.stderr
