@@ -56,7 +56,8 @@ def predict_file(checkpoint: str | Path, path: str | Path, out: str | Path, *, K
             twist = output.twist[b].numpy()
             save_npz_atomic(out / f"window_{k:05d}.npz", depth=(1.0 / inverse).astype(np.float32),
                         inverse_depth=inverse, twist=twist, t0_us=t0, t1_us=t0 + window_us)
-            viz.save_png(out / f"window_{k:05d}.png", viz.depth_image((1.0 / inverse).astype(np.float32)))
+            viz.save_png(out / f"window_{k:05d}.png",
+                         viz.depth_panel((1.0 / inverse).astype(np.float32), None, "predicted depth"))
             lines.append(",".join([str(k), str(t0), str(t0 + window_us)] + [f"{v:.6g}" for v in twist]))
             k += 1
     write_text_atomic(out / "twists.csv", "\n".join(lines) + "\n")

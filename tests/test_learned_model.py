@@ -125,3 +125,6 @@ def test_evaluate_and_predict_on_a_trained_checkpoint(tmp_path):
     expected_depth = model(torch.from_numpy(voxel_grid(first, 5))[None]).depth[0, 0].detach().numpy()
     np.testing.assert_allclose(saved["depth"], expected_depth, rtol=1e-5)
     assert (tmp_path / "pred" / "twists.csv").read_text().count("\n") == n + 1
+    import cv2
+    picture = cv2.imread(str(tmp_path / "pred" / "window_00000.png"))   # the map, its title and colour bar
+    assert picture.shape[1] > saved["depth"].shape[1] + 30 and picture.shape[0] > saved["depth"].shape[0]
