@@ -28,7 +28,6 @@ from tqdm.auto import tqdm
 
 from cmax import Camera, concatenate
 from cmax.emvs import EMVS, SemiDenseDepth, read_tum_trajectory
-from cmax.emvs.result import depth_scale_bar
 
 ROOT = Path(__file__).resolve().parents[1]
 DATA = ROOT.parent / "shared" / "data" / "ecd_slider_depth"
@@ -141,14 +140,12 @@ def figure(frame: np.ndarray, events, result: SemiDenseDepth, camera: Camera) ->
     confidence = result.confidence
     top = float(np.percentile(confidence[confidence > 0], 99))
     grey = (255 * (1 - np.clip(confidence / top, 0, 1))).astype(np.uint8)
-    depth = viz.depth_image(result.depth, depth_range=result.depth_range)
-    depth[~result.mask] = 255  # white where the mask is off
+    depth = np.where(result.mask, result.depth, np.nan)  # no estimate: the grey hatch, never a depth colour
     tiles = [
         viz.titled(cv2.cvtColor(undistorted, cv2.COLOR_GRAY2BGR), "frame (undistorted)"),
-        viz.titled(viz.event_frame_image(np.asarray(event_frame(window))), "events, t_ref +-10 ms"),
+        viz.event_panel(np.asarray(event_frame(window)), "events, t_ref +-10 ms"),
         viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), "confidence (DSI max)"),
-        viz.titled(depth, f"EMVS depth, {result.mask.mean():.0%} px"),
-        viz.titled(depth_scale_bar(frame.shape[0], result.depth_range), "[m]"),
+        viz.depth_panel(depth, result.depth_range, f"EMVS depth, {result.mask.mean():.0%} px"),
     ]
     return viz.hstack(tiles)
 

@@ -181,7 +181,8 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
     :data:`USER_ERRORS` exception of the command prints ``PROG: error: MESSAGE``
     on one line and returns 2; with ``--debug`` or ``CMAX_DEBUG=1`` it is
     raised instead (the full traceback). ``KeyboardInterrupt`` returns 130
-    with one line. Any other exception is a bug and keeps its traceback.
+    with one line. A closed stdout (``| head``) ends quietly with status 1. Any other exception is a
+    bug and keeps its traceback.
     """
     args = parser.parse_args(None if argv is None else [str(a) for a in argv])
     command = run if run is not None else getattr(args, "run", None)
@@ -192,6 +193,11 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
     debug = bool(getattr(args, "debug", False)) or os.environ.get(DEBUG_ENV, "") not in ("", "0")
     try:
         return int(command(args) or 0)
+    except BrokenPipeError:  # the reader of stdout left (cmax info ... | head): not an error of the input
+        if debug:
+            raise
+        os.dup2(os.open(os.devnull, os.O_WRONLY), sys.stdout.fileno())  # no second error at exit's flush
+        return 1
     except USER_ERRORS as error:
         if debug:
             raise

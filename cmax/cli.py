@@ -52,11 +52,17 @@ def _add_size_option(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
                         help="unit of the file's time stamps where the file does not state it (never guessed)")
+    parser.add_argument("--polarity", choices=("01", "signed"), default=None,
+                        help="polarity encoding of an h5, text or .npy file: 01 (0 OFF, 1 ON) or signed "
+                        "(-1 OFF, +1 ON) (default: 01; never guessed)")
 
 
 def _size_kwargs(args: argparse.Namespace) -> dict[str, int | str | None]:
     width, height = args.size if args.size else (None, None)
-    return {"width": width, "height": height, "time_unit": args.time_unit}
+    options = {"width": width, "height": height, "time_unit": args.time_unit}
+    if args.polarity is not None:
+        options["polarity"] = args.polarity
+    return options
 
 
 # -- info ------------------------------------------------------------------------------

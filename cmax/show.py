@@ -3,6 +3,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Any
 
 import numpy as np
 
@@ -44,12 +45,13 @@ def _check_start(path: Path, t0_s: float, t_start: int, t_end: int) -> None:
 
 def read_window(
     path: str | os.PathLike, t0_s: float, dt_s: float, *,
-    width: int | None = None, height: int | None = None, time_unit: str | None = None,
+    width: int | None = None, height: int | None = None, time_unit: str | None = None, **options: Any,
 ) -> tuple[Events, np.ndarray | None]:
     """Events of ``[t0, t0 + dt)`` seconds after the first event, and the ground-truth
     depth (H, W) nearest to the window's middle when the file has a ``gt/`` group.
 
-    ``time_unit``: the unit of the file's time stamps where it is not implied (see :func:`cmax.io.read`).
+    ``time_unit``: the unit of the file's time stamps where it is not implied (see :func:`cmax.io.read`);
+    ``options`` (e.g. ``polarity='signed'``) go to the reader.
     Raises ``ValueError`` when ``t0`` lies after the file's last event.
     """
     from cmax.io import H5Reader, detect_format, read
@@ -62,13 +64,13 @@ def read_window(
         raise ValueError(f"t0 must be >= 0 seconds after the first event, got {t0_s}")
     path = Path(path)
     if detect_format(path) != "dsec":
-        events = read(path, width=width, height=height, time_unit=time_unit)
+        events = read(path, width=width, height=height, time_unit=time_unit, **options)
         if not len(events):
             return events, None
         _check_start(path, t0_s, events.t_start, events.t_end)
         start = events.t_start + round(t0_s * 1e6)
         return events.slice_time(start, start + round(dt_s * 1e6)), None
-    with H5Reader(path, width=width, height=height, time_unit=time_unit) as reader:
+    with H5Reader(path, width=width, height=height, time_unit=time_unit, **options) as reader:
         if not len(reader):
             return reader.read(), None
         _check_start(path, t0_s, reader.t_start, reader.t_end)
@@ -118,8 +120,10 @@ def render_events(
 def render_window(
     path: str | os.PathLike, *, t0_s: float = 0.0, dt_s: float = 0.05, mode: str = "both",
     bins: int = 5, width: int | None = None, height: int | None = None, time_unit: str | None = None,
+    **options: Any,
 ) -> np.ndarray:
-    """Picture of ``[t0, t0 + dt)`` seconds after the first event of a file (see :func:`render_events`)."""
-    events, depth = read_window(path, t0_s, dt_s, width=width, height=height, time_unit=time_unit)
+    """Picture of ``[t0, t0 + dt)`` seconds after the first event of a file (see :func:`render_events`);
+    ``options`` (e.g. ``polarity='signed'``) go to the reader."""
+    events, depth = read_window(path, t0_s, dt_s, width=width, height=height, time_unit=time_unit, **options)
     title = f"{Path(path).name}, {t0_s:g} s + {dt_s * 1e3:g} ms: "
     return render_events(events, mode=mode, bins=bins, depth=depth, title=title)

@@ -275,9 +275,10 @@ def _text_width(text: str, font_scale: float) -> int:
     return cv2.getTextSize(text, _FONT, font_scale, 1)[0][0]
 
 
-def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_scale: float = 0.4) -> np.ndarray:
-    """Vertical colour bar (height, w, 3) of ``scale`` labelled in metres, near at the top, with the
-    "no estimate" swatch below it labelled ``n/a``."""
+def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_scale: float = 0.4,
+                     unit: str = "m") -> np.ndarray:
+    """Vertical colour bar (height, w, 3) of ``scale`` labelled in ``unit`` (metres; ``""`` for
+    depth up to scale), near at the top, with the "no estimate" swatch below it labelled ``n/a``."""
     if isinstance(height, bool) or not isinstance(height, (int, np.integer)) or height < 40:
         raise ValueError(f"height must be an integer >= 40 px, got {height!r}")
     if not isinstance(scale, DepthScale):
@@ -288,7 +289,9 @@ def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_sca
     swatch = line + 2
     bar_height = height - swatch - 6 - line // 2
     depths = scale.ticks(ticks)
-    labels = [f"{d:.3g} m" for d in depths] + ["n/a"]
+    if not isinstance(unit, str):
+        raise TypeError(f"unit must be a string, got {type(unit).__name__}")
+    labels = [f"{d:.3g} {unit}".rstrip() for d in depths] + ["n/a"]
     width = bar_width + 8 + max(_text_width(text, font_scale) for text in labels) + 4
     image = np.full((height, width, 3), _WHITE, np.uint8)
     top = line // 2
@@ -307,15 +310,16 @@ def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_sca
 
 
 def depth_panel(depth: np.ndarray, scale: "DepthScale | tuple[float, float] | None" = None,
-                title: str = "depth") -> np.ndarray:
-    """A depth map with its title and a colour bar in metres (``scale`` as in :func:`depth_image`)."""
+                title: str = "depth", *, unit: str = "m") -> np.ndarray:
+    """A depth map with its title and a colour bar in ``unit`` (metres by default; ``""`` for depth
+    up to scale) (``scale`` as in :func:`depth_image`)."""
     depth = np.asarray(depth, dtype=np.float32)
     if depth.ndim != 2:
         raise ValueError(f"depth must have shape (H, W), got {depth.shape}")
     scale = DepthScale.of(scale, depth)
     image = depth_image(depth, scale)
     font = _font_scale(depth.shape[1]) * 0.9
-    bar = depth_colour_bar(max(depth.shape[0], 40), scale, font_scale=font)
+    bar = depth_colour_bar(max(depth.shape[0], 40), scale, font_scale=font, unit=unit)
     return titled(hstack([image, bar], gap=4), title)
 
 

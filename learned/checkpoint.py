@@ -33,6 +33,8 @@ from typing import Any, Sequence
 import numpy as np
 import torch
 
+from cmax.io.atomic import AtomicOutput, write_with
+
 __all__ = ["CheckpointError", "FORMAT", "rng_state", "set_rng_state", "plain_data", "save_checkpoint",
            "load_checkpoint", "upgrade_checkpoint", "main"]
 
@@ -94,7 +96,8 @@ def plain_data(value: Any, where: str = "config") -> Any:
 
 
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
-    """``torch.save`` to ``<path>.<pid>.partial``, flushed to disk, then ``os.replace``: never a partial file under ``path``.
+    """``torch.save`` through :func:`cmax.io.atomic.write_with` (a lock, a private ``O_EXCL | O_NOFOLLOW``
+    temporary file, fsync, rename): never a partial file under ``path``, never a planted link followed.
 
     ``payload`` needs the keys ``model``, ``optimizer``, ``step``, ``config``, ``rng``; its
     ``config`` is stored through :func:`plain_data` and ``format`` is set to :data:`FORMAT`.
@@ -105,16 +108,12 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     payload = {**payload, "config": plain_data(payload["config"]), "format": FORMAT}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
-    partial = path.with_name(f"{path.name}.{os.getpid()}.partial")
-    try:
-        with open(partial, "wb") as f:
-            torch.save(payload, f)
-            f.flush()
-            os.fsync(f.fileno())
-        os.replace(partial, path)
-    finally:
-        partial.unlink(missing_ok=True)
-    return path
+
+    def fill(output: AtomicOutput) -> None:
+        with os.fdopen(os.dup(output.fd), "wb") as file:
+            torch.save(payload, file)
+
+    return write_with(path, fill)
 
 
 def _refused(path: Path, error: BaseException) -> CheckpointError:

@@ -31,6 +31,7 @@ from tqdm import tqdm
 
 from cmax._args import ArgumentParser, run_main
 from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, WeightedSum
+from cmax.io.atomic import write_text_atomic
 from learned.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from learned.config import Config, load_config
 from learned.data import H5WindowDataset, collate
@@ -141,7 +142,8 @@ class Trainer:
                 self.log.add_scalar(key, value, self.step)
         else:
             self.out.mkdir(parents=True, exist_ok=True)
-            with open(self.out / "log.jsonl", "a") as f:
+            flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)  # never a planted link
+            with os.fdopen(os.open(self.out / "log.jsonl", flags, 0o644), "a") as f:
                 f.write(json.dumps({"step": self.step, **values}) + "\n")
 
     def _images(self, batch: dict[str, torch.Tensor], output) -> None:
@@ -221,7 +223,7 @@ class Trainer:
         tc = self.config.train
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
-            (self.out / "config.json").write_text(json.dumps(self.config.to_dict(), indent=2, default=str))
+            write_text_atomic(self.out / "config.json", json.dumps(self.config.to_dict(), indent=2, default=str))
         losses = []
         batches = self._batches()
         bar = tqdm(total=tc.steps, initial=self.step, desc=self.config.mode,

@@ -110,3 +110,30 @@ def test_preset_windows_and_constant_twist_windows_are_cached_apart(monkeypatch)
     for preset in ("rotation", "indoor_flying", "slider"):
         presets.preset_window(preset, 100, None)
     assert len(set(keys)) == len(keys) == 5
+
+
+def test_ecd_slider_emvs_figure_has_a_legend_a_colour_bar_and_no_white_no_estimate():
+    """The EMVS figure drew "no estimate" white (next to the near end of the colour map) and
+    its events without an ON/OFF legend."""
+    from types import SimpleNamespace
+
+    from benchmarks.ecd_slider_emvs import figure
+    from cmax import viz
+    from cmax.camera import Camera
+    from conftest import random_events
+
+    width, height = 96, 72
+    mask = np.zeros((height, width), bool)
+    mask[20:40, 30:60] = True
+    result = SimpleNamespace(t_ref_us=50_000, confidence=np.random.default_rng(0).random((height, width)),
+                             depth=np.full((height, width), 1.0, np.float32), mask=mask, depth_range=(0.5, 2.0))
+    camera = Camera(np.array([[80.0, 0, 48], [0, 80.0, 36], [0, 0, 1]]), width, height)
+    frame = np.full((height, width), 128, np.uint8)
+    picture = figure(frame, random_events(2000, width=width, height=height, t_span_us=100_000, seed=1),
+                     result, camera)
+    pixels = picture.reshape(-1, 3)
+    hatch = (pixels == viz.NO_DEPTH_BGR).all(axis=1) | (pixels == viz.NO_DEPTH_HATCH_BGR).all(axis=1)
+    assert hatch.sum() >= (~mask).sum()                       # every pixel without depth is hatched
+    title_rows = picture[: picture.shape[0] - height].reshape(-1, 3)
+    assert (title_rows == viz.ON_BGR).all(axis=1).sum() >= 25   # the ON/OFF legend
+    assert (title_rows == viz.OFF_BGR).all(axis=1).sum() >= 25

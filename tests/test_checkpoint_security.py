@@ -196,3 +196,18 @@ def test_upgrade_command_needs_the_trust_flag(tmp_path, capsys):
     assert "trust" in _one_error_line(capsys)
     assert main(["upgrade", str(tmp_path / "old.pt"), str(tmp_path / "new.pt"), "--trust-this-file"]) == 0
     assert load_checkpoint(tmp_path / "new.pt")["step"] == 3
+
+
+def test_save_checkpoint_never_follows_a_link_planted_at_a_temporary_name(tmp_path):
+    """The old fixed name ``<path>.<pid>.partial`` followed a planted link and overwrote its target."""
+    import os
+
+    outside = tmp_path / "outside.txt"
+    outside.write_text("precious\n")
+    folder = tmp_path / "run"
+    folder.mkdir()
+    (folder / f"last.pt.{os.getpid()}.partial").symlink_to(outside)
+    saved = save_checkpoint(folder / "last.pt", _payload())
+    assert outside.read_text() == "precious\n"
+    assert load_checkpoint(saved)["step"] == _payload()["step"]
+    assert not [p for p in folder.iterdir() if p.suffix == ".lock"]

@@ -129,7 +129,8 @@ def test_fit_writes_depth_trajectory_and_summary(tmp_path):
     assert depth["depth"].shape == depth["depth_spread"].shape == (90, 120) and depth["mask"].any()
     inside = depth["depth"][depth["mask"]]
     assert np.all(np.isfinite(inside)) and inside.min() >= 0.5 * 0.999 and inside.max() <= 60.0 * 1.001
-    assert (out / "depth_00000.png").is_file()
+    picture = cv2.imread(str(out / "depth_00000.png"))
+    assert picture.shape[1] > 120 + 30 and picture.shape[0] > 90   # the map, its title and its colour bar
     rows = [line.split() for line in (out / "trajectory.txt").read_text().splitlines()]
     times = np.array([float(r[0]) for r in rows])
     positions = np.array([[float(v) for v in r[1:4]] for r in rows])

@@ -13,6 +13,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from cmax.io import write_h5
@@ -288,3 +289,43 @@ def test_help_shows_the_librarys_defaults(capsys):
     sim_help = " ".join(capsys.readouterr().out.split())
     assert f"ON threshold (default: {EsimSettings().cp:g})" in sim_help
     assert f"lambda of adaptive sampling (default: {ConvertSettings().lam:g})" in sim_help
+
+
+def test_polarity_option_reads_a_signed_file_and_is_refused_where_the_format_states_it(tmp_path, capsys):
+    """cmax info/show name --polarity in their refusal of a -1/+1 file and read it with the option;
+    a format that states its own polarities (EVT3 here) refuses the option in one line."""
+    import h5py
+
+    from cmax.cli import main
+    from cmax.io.prophesee.writer import write_evt3
+
+    n = 400
+    path = tmp_path / "signed.h5"
+    with h5py.File(path, "w") as file:
+        group = file.create_group("events")
+        group["x"] = (np.arange(n) % 64).astype(np.uint16)
+        group["y"] = (np.arange(n) % 48).astype(np.uint16)
+        group["t"] = np.arange(n, dtype=np.int64) * 100
+        group["p"] = np.where(np.arange(n) % 4 == 0, 1, -1).astype(np.int8)   # 25% ON
+        file.attrs["width"], file.attrs["height"] = 64, 48
+    err = _one_line_exit_2(lambda: main(["info", str(path)]), capsys)
+    assert "(cmax: --polarity signed)" in err
+    assert main(["info", str(path), "--polarity", "signed"]) == 0
+    assert "100 ON / 300 OFF (25.0% ON)" in capsys.readouterr().out
+    assert main(["show", str(path), "--polarity", "signed", "-o", str(tmp_path / "s.png")]) == 0
+    assert (tmp_path / "s.png").stat().st_size > 0
+    raw = tmp_path / "ev.raw"
+    write_evt3(raw, random_events(200, width=64, height=48, t_span_us=10_000, seed=1))
+    err = _one_line_exit_2(lambda: main(["info", str(raw), "--polarity", "signed"]), capsys)
+    assert "states its polarities itself; polarity='signed' does not apply" in err
+
+
+def test_a_closed_stdout_ends_quietly(files):
+    """``cmax info MANY FILES | head -1``: no 'error: Broken pipe' line once the reader has left."""
+    env = {**os.environ, "PYTHONPATH": str(ROOT)}
+    command = [sys.executable, "-c", "import sys; from cmax.cli import main; sys.exit(main())", "info",
+               *[str(files["FILE"])] * 300]   # ~86 kB of output: more than a pipe holds (64 kB)
+    done = subprocess.run(f"{subprocess.list2cmdline(command)} | head -1", shell=True, env=env,
+                          capture_output=True, text=True, timeout=120)
+    assert done.stdout.startswith("file ")
+    assert done.stderr == "", done.stderr

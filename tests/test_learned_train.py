@@ -146,3 +146,17 @@ def test_torchrun_two_processes_match_one(scene_file, tmp_path):
     for key in a:
         torch.testing.assert_close(a[key], b[key], rtol=1e-4, atol=1e-5)
     assert not torch.equal(a["stem.0.weight"], load_checkpoint(tmp_path / "one" / "last.pt")["model"]["stem.0.weight"] * 0)
+
+
+def test_links_planted_in_the_output_folder_are_not_followed(scene_file, tmp_path):
+    """config.json was written with Path.write_text, which followed a planted link out of the folder."""
+    outside = tmp_path / "outside.txt"
+    outside.write_text("precious\n")
+    out = tmp_path / "run"
+    out.mkdir()
+    for name in ("config.json", f"last.pt.{os.getpid()}.partial"):
+        (out / name).symlink_to(outside)
+    Trainer(load_config(None, tiny(scene_file, out, "train.steps=2"), mode="teacher"), progress=False).run()
+    assert outside.read_text() == "precious\n"
+    assert not (out / "config.json").is_symlink() and '"mode": "teacher"' in (out / "config.json").read_text()
+    assert load_checkpoint(out / "last.pt")["step"] == 2

@@ -377,3 +377,39 @@ def test_the_h5_speed_benchmark_runs_on_a_small_file(tmp_path):
     assert events.duration_us == pytest.approx(100_000 / speed_h5.RATE_HZ * 1e6, rel=0.01)
     text = speed_h5.run(100_000, 5, path)
     assert text.count("| whole file (read_h5) |") == 2 and text.count("| one 50 ms window") == 2
+
+
+# -- cmax info checks every row, not only the first and last ----------------------------------
+@pytest.mark.parametrize("defect, match", [
+    ("nan", r"events/t\[10\] is nan, a non-finite time"),
+    ("back", r"corrupt events at row 11: t must be sorted"),
+    ("x", r"corrupt events at row 10: x must lie in \[0, width=64\)"),
+])
+def test_file_info_refuses_a_bad_row_in_the_middle_of_a_dsec_file(tmp_path, defect, match):
+    t = np.linspace(0.0, 0.5, 50)  # float seconds, unit stated: first and last rows are fine
+    x = np.zeros(50, np.uint16)
+    if defect == "nan":
+        t[10] = np.nan
+    elif defect == "back":
+        t[11] = t[9]
+    else:
+        x[10] = W
+    path = _dsec(tmp_path / f"{defect}.h5", t, x=x)
+    with pytest.raises(FormatError, match=match):
+        read_h5(path, time_unit="s")
+    with pytest.raises(FormatError, match=match):
+        file_info(path, time_unit="s")
+
+
+def test_file_info_checks_the_order_across_its_chunks(tmp_path, monkeypatch):
+    import cmax.io.info as info
+
+    monkeypatch.setattr(info, "_CHUNK", 8)
+    t = np.arange(40, dtype=np.int64)
+    t[16] = 3  # a step back exactly at a chunk boundary (rows 15 -> 16)
+    path = _dsec(tmp_path / "boundary.h5", t)
+    with pytest.raises(FormatError, match=r"row 16: t must be sorted"):
+        file_info(path)
+    good = _dsec(tmp_path / "good.h5", np.arange(40, dtype=np.int64))
+    summary = file_info(good)
+    assert (summary.count, summary.t_start_us, summary.t_end_us, summary.on_count) == (40, 0, 39, 20)

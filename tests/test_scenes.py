@@ -300,5 +300,13 @@ def test_simulate_scene_and_file_round_trip(tmp_path):
     assert loaded.attrs["simulator"]["cp"] == pytest.approx(0.2)
     with pytest.raises(FileExistsError):
         sequence.save(path)
+    # a second writer of the same path is locked out for the whole save (events, ground truth, rename)
+    from cmax.io.atomic import OutputLockedError, PathLock, lock_path
+
+    with PathLock(lock_path(path), path):
+        with pytest.raises(OutputLockedError):
+            sequence.save(path, overwrite=True)
+    assert load_sequence(path).depth.shape == (3, 48, 64)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["slider.h5"]
     with pytest.raises(ValueError, match="lam"):
         simulate_scene(scene, 0.1, simulator, lam=1.5)

@@ -152,3 +152,13 @@ def test_long_titles_wrap_instead_of_running_off_the_picture():
     assert long.shape[0] - 10 >= 2 * (short.shape[0] - 10)
     strip = long[:-10]
     assert (strip[:, -6:] == 255).all()                  # nothing drawn into the right margin
+
+
+def test_depth_colour_bar_states_its_unit_or_none_for_depth_up_to_scale():
+    scale = viz.DepthScale(1.0, 4.0)
+    metres = viz.depth_colour_bar(80, scale)
+    bare = viz.depth_colour_bar(80, scale, unit="")
+    assert bare.shape[1] < metres.shape[1]   # the labels lose their " m"
+    with pytest.raises(TypeError, match="unit must be a string"):
+        viz.depth_colour_bar(80, scale, unit=None)
+    assert viz.depth_panel(np.full((60, 80), 2.0, np.float32), scale, "depth (up to scale)", unit="").shape[1] > 80 + 30

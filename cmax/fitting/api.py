@@ -167,8 +167,9 @@ class FitResult:
                  viz.titled(viz.iwe_image(self.iwe_after), "IWE after")]
         if self.depth is not None:
             depth = np.where(self.mask, self.depth, np.nan)
-            unit = "m" if self.scale_known else "up to scale"
-            tiles.append(viz.depth_panel(depth, depth_scale, f"depth [{unit}], t_ref {self.t_ref_us * 1e-6:.3f} s"))
+            label = "m" if self.scale_known else "up to scale"
+            tiles.append(viz.depth_panel(depth, depth_scale, f"depth [{label}], t_ref {self.t_ref_us * 1e-6:.3f} s",
+                                         unit="m" if self.scale_known else ""))
         return viz.save_image(path, viz.hstack(tiles))
 
 

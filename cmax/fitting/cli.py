@@ -4,7 +4,7 @@ Register with ``add_fit_command(subparsers)`` in :mod:`cmax.cli`.
 
 Outputs in ``-o outdir/``: ``depth_XXXXX.npz`` (``depth``, ``mask``,
 ``depth_spread``, ``inverse_depth_grid``, ``t_ref_us``, ``K``) and ``depth_XXXXX.png`` per
-window (se3), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
+window (se3; the map with a colour bar in metres, unlabelled without ``--speed``), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
 camera-to-world, the first window's start as the origin) and
 ``summary.json`` (settings, per-window twist, objective, parallax, seconds).
 """
@@ -356,7 +356,8 @@ def run_fit(args: argparse.Namespace) -> int:
                             inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=K)
             title = (f"window {i}, t_ref {(r.t_ref_us - int(events.t[0])) * 1e-6:.3f} s, "
                      f"depth [{'m' if r.scale_known else 'up to scale'}]")
-            viz.save_png(out / f"depth_{i:05d}.png", viz.depth_panel(np.where(r.mask, r.depth, np.nan), scale, title))
+            viz.save_png(out / f"depth_{i:05d}.png", viz.depth_panel(np.where(r.mask, r.depth, np.nan), scale, title,
+                                                                     unit="m" if r.scale_known else ""))
         windows.append({"t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
                         "omega": r.omega.tolist(), "flow": None if r.flow is None else r.flow.tolist(),
                         "objective_after": r.objective_after, "seconds": r.seconds, "iterations": r.iterations,

@@ -117,6 +117,8 @@ def read(
         return read_mvsec(path, t0_us=t0_us, t1_us=t1_us, time_unit=time_unit, **options)
     if kind in ("aedat4", "raw") and time_unit not in (None, "us"):
         raise ValueError(f"{path} ({kind}) stores integer microseconds; time_unit={time_unit!r} does not apply")
+    if kind in ("aedat4", "raw") and "polarity" in options:
+        raise ValueError(f"{path} ({kind}) states its polarities itself; polarity={options['polarity']!r} does not apply")
     if kind == "aedat4":
         events = read_aedat4(path, **options)
     elif kind == "raw":

@@ -157,8 +157,8 @@ def polarity_01(p: np.ndarray, encoding: str, where: str) -> np.ndarray:
     other = "signed" if encoding == "01" else "01"
     raise FormatError(
         f"{where} holds the polarity values {shown}{' ...' if values.size > 6 else ''}, but the "
-        f"stated encoding is {stated}; pass polarity={other!r} if the file stores that encoding "
-        "(polarities are never mapped silently)"
+        f"stated encoding is {stated}; pass polarity={other!r} (cmax: --polarity {other}) if the file "
+        "stores that encoding (polarities are never mapped silently)"
     )
 
 

@@ -232,7 +232,8 @@ class AtomicOutput:
         self.path = Path(path)
         self.overwrite = bool(overwrite)
         if not self.path.parent.is_dir():
-            raise FileNotFoundError(f"folder of path does not exist: {self.path.parent}")
+            raise FileNotFoundError(f"cannot write {self.path}: its folder {self.path.parent} does not exist "
+                                    "(No such file or directory)")
         ignore_file_size_signal()
         self._lock = PathLock(lock_path(self.path), self.path)
         self.fd: int | None = None

@@ -83,14 +83,14 @@ def file_info(
     path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
     time_unit: str | None = None, **options: Any,
 ) -> EventFileInfo:
-    """Summary of an event file; DSEC files are scanned in chunks (bounded memory).
+    """Summary of an event file; DSEC files are read in chunks (bounded memory) and every row is
+    checked as the readers check it (a NaN time or a step back in the middle raises FormatError).
 
     ``time_unit`` and ``options`` (e.g. ``polarity='signed'``) go to the reader:
     times are never guessed and polarities never mapped silently, so a file
     whose ``events/p`` holds -1/+1 is refused unless ``polarity='signed'`` is given.
     """
-    from cmax.io import H5Reader, detect_format, read
-    from cmax.io._checks import polarity_01
+    from cmax.io import FormatError, H5Reader, detect_format, read
 
     path = Path(path)
     kind = detect_format(path)
@@ -98,11 +98,18 @@ def file_info(
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
         return events_info(events, path=str(path), format=kind)
     with H5Reader(path, width=width, height=height, time_unit=time_unit, **options) as reader:
-        column, encoding = reader.file["events/p"], options.get("polarity", "01")
-        on_count = sum(
-            int(np.count_nonzero(polarity_01(column[start: start + _CHUNK], encoding, f"{path}: events/p")))
-            for start in range(0, len(reader), _CHUNK)
-        )
+        # Every row is read and checked (coordinates, finite and sorted times, polarity), chunk by
+        # chunk, so a NaN or a step back in the middle is named here as the readers name it.
+        on_count, last_t = 0, None
+        for start in range(0, len(reader), _CHUNK):
+            chunk = reader.read_rows(start, start + _CHUNK)
+            if last_t is not None and int(chunk.t[0]) < last_t:
+                raise FormatError(
+                    f"{path}: events/t: corrupt events at row {start}: t must be sorted in non-decreasing "
+                    f"order ({int(chunk.t[0])} µs comes after {last_t} µs)"
+                )
+            last_t = int(chunk.t[-1])
+            on_count += int(np.count_nonzero(chunk.p))
         return EventFileInfo(
             path=str(path), format="dsec", count=len(reader), width=reader.width,
             height=reader.height, t_start_us=reader.t_start if len(reader) else None,
