@@ -73,9 +73,19 @@ def summarise(rows: list[dict], header: str) -> str:
                                  f"{np.percentile(values, 90):.4f} | {values.size} |")
     lines += ["", "Per window:", ""]
     for r in rows:
-        figures = ", ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, float))
+        figures = ", ".join(f"{k} {v:.4f}" for k, v in r.items() if isinstance(v, (int, float)) and k != "seed")
         lines.append(f"- {r['group']} seed {r['seed']} {r['model']} polish={r['polish']}: {figures}")
     return "\n".join(lines) + "\n"
+
+
+def _header(args: argparse.Namespace, argv: list[str] | None, start: float, done: str) -> str:
+    load_avg = f"{os.getloadavg()[0]:.2f}" if hasattr(os, "getloadavg") else "n/a"
+    command = " ".join(["python -m benchmarks.shared_polish", *(argv if argv is not None else sys.argv[1:])])
+    return (f"# cmax.fit with and without the shared-objective polish\n\nWritten by `{command}` ({done}) in "
+            f"{time.perf_counter() - start:.0f} s on {platform.machine()}, torch threads 1; load average (1 min) "
+            f"at the end {load_avg}. indoor_flying: 346x260, seeds {args.seeds} (held out); "
+            f"{args.presets or 'no other presets'}: 160x120, seeds {args.preset_seeds}. Each fit is given the "
+            f"preset's depth range and, for se3, the true speed.")
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -93,15 +103,16 @@ def main(argv: list[str] | None = None) -> int:
     models = [m for m in args.models.split(",") if m]
     if set(models) - set(MODES):
         parser.error(f"--models: unknown {sorted(set(models) - set(MODES))}")
-    jobs = [("indoor_flying", seed, lambda s=seed: cached(args.cache, f"indoor_flying_{s}",
-                                                          lambda: preset_window("indoor_flying", s)))
-            for seed in parse_seeds(parser, args.seeds)]
+    jobs = []                                   # the small windows first: every group has figures early
     for preset in [p for p in args.presets.split(",") if p]:
         jobs += [(preset, seed, lambda p=preset, s=seed: cached(args.preset_cache, f"{p}_{s}_160x120",
                                                                lambda: preset_window(p, s, width=160, height=120)))
                  for seed in parse_seeds(parser, args.preset_seeds)]
+    jobs += [("indoor_flying", seed, lambda s=seed: cached(args.cache, f"indoor_flying_{s}",
+                                                           lambda: preset_window("indoor_flying", s)))
+             for seed in parse_seeds(parser, args.seeds)]
     rows, start = [], time.perf_counter()
-    for group, seed, load in jobs:
+    for number, (group, seed, load) in enumerate(jobs, 1):
         window = load()
         depth_range = preset_depth_range(group)
         for model in models:
@@ -110,14 +121,7 @@ def main(argv: list[str] | None = None) -> int:
                 rows.append({"group": group, "seed": seed, "model": model, "polish": mode, **row})
                 print(f"{group} {seed} {model} polish={mode}: " + ", ".join(
                     f"{k} {v:.4f}" for k, v in row.items()), flush=True)
-    load_avg = f"{os.getloadavg()[0]:.2f}" if hasattr(os, "getloadavg") else "n/a"
-    command = " ".join(["python -m benchmarks.shared_polish", *(argv if argv is not None else sys.argv[1:])])
-    header = (f"# cmax.fit with and without the shared-objective polish\n\nWritten by `{command}` in "
-              f"{time.perf_counter() - start:.0f} s on {platform.machine()}, torch threads 1; load average (1 min) "
-              f"at the end {load_avg}. indoor_flying: 346x260, seeds {args.seeds} (held out); "
-              f"{args.presets or 'no other presets'}: 160x120, seeds {args.preset_seeds}. Each fit is given the "
-              f"preset's depth range and, for se3, the true speed.")
-    write_text_atomic(args.out, summarise(rows, header))
+        write_text_atomic(args.out, summarise(rows, _header(args, argv, start, f"{number} of {len(jobs)} windows")))
     print(f"wrote {args.out}")
     return 0
 

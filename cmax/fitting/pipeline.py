@@ -276,11 +276,8 @@ class LocalRefineStage:
     """Parameters: direction, angular velocity and one inverse depth per patch (6 + P,). Objective: the
     patch-wise normalised contrast (:class:`cmax.fitting.motion.LocalMotionObjective`), ``|v|`` held.
     Schedule: one level, from the incoming motion, the earlier stages' alternatives and the warm start
-    (``init=``); the best refined start wins.
-
-    This is the final refinement of the default se3 path: to make it optimise another objective, give
-    :func:`cmax.fitting.motion.refine_motion_local` an objective with the same ``values(p) -> (P,)``,
-    ``params``, ``motion`` and ``sweep_rho`` interface."""
+    (``init=``); the best refined start wins. The refinement on the objective :mod:`learned` trains on
+    is :class:`cmax.fitting.polish.SharedPolishStage` (``FitSettings.polish``), after the sweep."""
 
     hold_omega: bool = False
     warm_start: np.ndarray | None = None
