@@ -96,6 +96,12 @@ class EventWindows:
         pixels = torch.stack([self.x, self.y, torch.ones_like(self.x)], -1)
         return torch.einsum("nij,nj->ni", torch.linalg.inv(self.K.to(self.dtype))[self.window], pixels)
 
+    def to(self, dtype: torch.dtype) -> "EventWindows":
+        """The same events with the floating-point tensors (and the intrinsics, durations, speeds) in ``dtype``."""
+        cast = lambda a: None if a is None else a.to(dtype)  # noqa: E731
+        return EventWindows(cast(self.x), cast(self.y), cast(self.t), cast(self.polarity), self.window, cast(self.K),
+                            cast(self.duration_s), self.width, self.height, cast(self.speed))
+
     def with_speed(self, speed: torch.Tensor | Sequence[float] | None) -> "EventWindows":
         """The same events with the known speed (B,) [m/s] of each window (None: unknown)."""
         speed = None if speed is None else torch.as_tensor(speed, dtype=self.dtype).reshape(-1)

@@ -14,6 +14,8 @@ The order (:func:`stages_for`)::
               default:             PatchFlowStage -> LocalRefineStage -> DepthSweepStage
               motion_init=starts:  RotationStage -> TranslationStartsStage -> DepthSweepStage
               then alternations x (MotionWithDepthStage -> DepthSweepStage)
+              then, with settings.polish: SharedPolishStage  (cmax.fitting.polish: cmax.contrast.SHARED_OBJECTIVE,
+                                                              the objective learned trains on)
 
 References: G. Gallego, H. Rebecq, D. Scaramuzza, "A unifying contrast maximization framework for
 event cameras", CVPR 2018 (the warps and the contrast); S. Shiba, Y. Aoki, G. Gallego, "Secrets of
@@ -33,7 +35,7 @@ import torch
 from cmax.fitting.depth_sweep import sweep_inverse_depth
 from cmax.fitting.motion import omega_on_bound, refine_motion_local
 from cmax.fitting.patch_flow import motion_from_flows, patch_flows
-from cmax.fitting.settings import MotionInit, Refinement
+from cmax.fitting.settings import MotionInit, Polish, Refinement
 from cmax.fitting.solvers import RELAXED_TOLERANCES, Solver, SolveResult, Tolerances, solve
 from cmax.fitting.window import SE3Model, Window
 from cmax.warp import warp_flow, warp_rotation
@@ -95,8 +97,9 @@ def stages_for(model: str, w: Window, *, pose_known: bool, hold_omega: bool,
         return (FlowStage(),)
     if model == "rotation":
         return (RotationStage(),)
+    polish = _polish(s.polish, pose_known, hold_omega)
     if pose_known:
-        return (DepthSweepStage(),)
+        return (DepthSweepStage(), *polish)
     warm = None if warm_v is None or not np.linalg.norm(warm_v) > 0 else np.asarray(warm_v, float)
     if s.motion_init is MotionInit.PATCHES:
         motion = [PatchFlowStage(hold_omega, s.zero_rotation_start and not hold_omega, warm)]
@@ -105,7 +108,17 @@ def stages_for(model: str, w: Window, *, pose_known: bool, hold_omega: bool,
     else:
         motion = ([] if hold_omega else [RotationStage()]) + [TranslationStartsStage(hold_omega, warm)]
     alternations = [MotionWithDepthStage(hold_omega=hold_omega), DepthSweepStage()] * s.alternations
-    return (*motion, DepthSweepStage(), *alternations)
+    return (*motion, DepthSweepStage(), *alternations, *polish)
+
+
+def _polish(mode: Polish, pose_known: bool, hold_omega: bool) -> tuple[Stage, ...]:
+    """The final :class:`cmax.fitting.polish.SharedPolishStage` of se3 (none with ``Polish.NONE``); the motion
+    stays held when the pose is known."""
+    from cmax.fitting.polish import SharedPolishStage   # polish builds on this module's pieces
+
+    if mode is Polish.NONE:
+        return ()
+    return (SharedPolishStage(motion_free=mode is Polish.DEPTH_MOTION and not pose_known, hold_omega=hold_omega),)
 
 
 def run_stages(stages: tuple[Stage, ...], w: Window, motion: Motion, solver: Solver
@@ -263,11 +276,8 @@ class LocalRefineStage:
     """Parameters: direction, angular velocity and one inverse depth per patch (6 + P,). Objective: the
     patch-wise normalised contrast (:class:`cmax.fitting.motion.LocalMotionObjective`), ``|v|`` held.
     Schedule: one level, from the incoming motion, the earlier stages' alternatives and the warm start
-    (``init=``); the best refined start wins.
-
-    This is the final refinement of the default se3 path: to make it optimise another objective, give
-    :func:`cmax.fitting.motion.refine_motion_local` an objective with the same ``values(p) -> (P,)``,
-    ``params``, ``motion`` and ``sweep_rho`` interface."""
+    (``init=``); the best refined start wins. The refinement on the objective :mod:`learned` trains on
+    is :class:`cmax.fitting.polish.SharedPolishStage` (``FitSettings.polish``), after the sweep."""
 
     hold_omega: bool = False
     warm_start: np.ndarray | None = None

@@ -13,7 +13,8 @@ from dataclasses import dataclass, field
 
 import numpy as np
 
-__all__ = ["FitSettings", "MotionInit", "Refinement", "PatchFlowSettings", "RefineSettings", "SweepSettings"]
+__all__ = ["FitSettings", "MotionInit", "Refinement", "Polish", "PatchFlowSettings", "RefineSettings",
+           "SweepSettings"]
 
 
 class MotionInit(str, enum.Enum):
@@ -29,6 +30,16 @@ class Refinement(str, enum.Enum):
 
     LOCAL = "local"
     NONE = "none"
+
+
+class Polish(str, enum.Enum):
+    """The se3 fit's final stage on :data:`cmax.contrast.SHARED_OBJECTIVE` (the objective :mod:`learned`
+    trains on; :mod:`cmax.fitting.polish`): none, the inverse-depth grid alone, or the grid with the
+    translation direction and angular velocity (``|v|`` held)."""
+
+    NONE = "none"
+    DEPTH = "depth"
+    DEPTH_MOTION = "depth_motion"
 
 
 def _grid(name: str, value: object) -> tuple[int, int]:
@@ -193,6 +204,12 @@ class FitSettings:
     zero_rotation_start : bool
         A second start of the ``"local"`` refinement: the motion-field fit with the rotation held at
         zero (for vehicles); the refined motion with the higher patch-wise contrast wins.
+    polish : Polish or str
+        se3's final stage on the shared objective (:mod:`cmax.fitting.polish`): ``"none"``, ``"depth"``
+        (the inverse-depth grid) or ``"depth_motion"`` (the grid, the translation direction and the
+        angular velocity; with ``pose=`` or ``omega=`` the known part is held).
+    polish_iterations : int
+        Iteration limit of the polish's solve.
     alternations : int
         Rounds of (motion with the depth held, depth sweep) after the first depth (se3 without pose).
     collapse_weight : float
@@ -237,6 +254,8 @@ class FitSettings:
     motion_init: MotionInit = MotionInit.PATCHES
     motion_refinement: Refinement = Refinement.LOCAL
     zero_rotation_start: bool = False
+    polish: Polish = Polish.NONE
+    polish_iterations: int = 60
     collapse_weight: float = 0.1
     translation_starts: int = 6
     iterations: int = 60
@@ -259,7 +278,7 @@ class FitSettings:
             if not (isinstance(value, (bool, np.bool_)) or (value is None and name == "polarity_split")):
                 raise TypeError(f"{name} must be True or False{' or None' if name == 'polarity_split' else ''}, "
                                 f"got {value!r}")
-        for name, kind in (("motion_init", MotionInit), ("motion_refinement", Refinement)):
+        for name, kind in (("motion_init", MotionInit), ("motion_refinement", Refinement), ("polish", Polish)):
             try:
                 object.__setattr__(self, name, kind(getattr(self, name)))
             except ValueError:
@@ -284,6 +303,7 @@ class FitSettings:
             raise ValueError(f"collapse_weight must be >= 0, got {self.collapse_weight!r}")
         _positive_int("depth_candidates", self.depth_candidates, 2)
         _positive_int("alternations", self.alternations, 0)
+        _positive_int("polish_iterations", self.polish_iterations)
         _positive_int("translation_starts", self.translation_starts)
         _positive_int("iterations", self.iterations)
         _positive_int("coarse_iterations", self.coarse_iterations)
