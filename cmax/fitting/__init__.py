@@ -14,14 +14,14 @@ _LAZY = {
     "FitResult": "cmax.fitting.api", "fit": "cmax.fitting.api",
     "LowParallaxWarning": "cmax.fitting.api", "LowMotionWarning": "cmax.fitting.api",
     "BoundWarning": "cmax.fitting.api", "FitSettings": "cmax.fitting.settings",
-    "MotionInit": "cmax.fitting.settings", "Refinement": "cmax.fitting.settings",
+    "MotionInit": "cmax.fitting.settings", "Refinement": "cmax.fitting.settings", "Polish": "cmax.fitting.settings",
     "PatchFlowSettings": "cmax.fitting.settings", "RefineSettings": "cmax.fitting.settings",
     "SweepSettings": "cmax.fitting.settings", "StageLog": "cmax.fitting.pipeline",
     "SequenceResult": "cmax.fitting.sequence", "fit_sequence": "cmax.fitting.sequence",
 }
 
 __all__ = ["BoundWarning", "FitResult", "FitSettings", "LowMotionWarning", "LowParallaxWarning", "MotionInit",
-           "PatchFlowSettings", "RefineSettings", "Refinement", "SequenceResult", "StageLog", "SweepSettings",
+           "PatchFlowSettings", "Polish", "RefineSettings", "Refinement", "SequenceResult", "StageLog", "SweepSettings",
            "fit", "fit_sequence"]
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())
