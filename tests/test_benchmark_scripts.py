@@ -137,3 +137,30 @@ def test_ecd_slider_emvs_figure_has_a_legend_a_colour_bar_and_no_white_no_estima
     title_rows = picture[: picture.shape[0] - height].reshape(-1, 3)
     assert (title_rows == viz.ON_BGR).all(axis=1).sum() >= 25   # the ON/OFF legend
     assert (title_rows == viz.OFF_BGR).all(axis=1).sum() >= 25
+
+
+def test_accuracy_depth_figure_has_a_legend_a_colour_bar_of_the_ground_truth_scale_and_a_hatch():
+    """The held-out accuracy figure drew bare depth maps (no colour bar) and events without an ON/OFF legend."""
+    from benchmarks.accuracy import BAR_FONT_SCALE, MethodResult, SequenceSpec, depth_figure
+    from cmax import viz
+    from cmax.metrics import depth_metrics
+    from conftest import random_events
+
+    width, height = 60, 48
+    gt = np.linspace(2.0, 8.0, width * height, dtype=np.float32).reshape(height, width)
+    estimate = gt * 1.1
+    estimate[:, :20] = np.nan                                   # "no estimate" on the left third
+    metrics = depth_metrics(estimate, gt)
+    results = [MethodResult("cmax.fit", "seq", metrics, estimate, gt, 1.0)]
+    run = SimpleNamespace(spec=SequenceSpec("seq", "indoor_flying", 1), depth_range=(1.0, 10.0))
+    picture = depth_figure(run, results, random_events(500, width=width, height=height, t_span_us=10_000, seed=2))
+    bar = viz.depth_colour_bar(height, viz.DepthScale(float(np.percentile(gt, 1)), float(np.percentile(gt, 99))),
+                               font_scale=BAR_FONT_SCALE)
+    # the bar at the bottom right, level with the maps, on the 1st-99th percentiles of the ground truth
+    assert np.array_equal(picture[-height:, -bar.shape[1]:], bar)
+    pixels = picture[-height:].reshape(-1, 3)
+    hatch = (pixels == viz.NO_DEPTH_BGR).all(axis=1) | (pixels == viz.NO_DEPTH_HATCH_BGR).all(axis=1)
+    assert hatch.sum() >= 20 * height                           # every NaN pixel of the estimate is hatched
+    title_rows = picture[:-height].reshape(-1, 3)
+    assert (title_rows == viz.ON_BGR).all(axis=1).sum() >= 25   # the ON/OFF legend
+    assert (title_rows == viz.OFF_BGR).all(axis=1).sum() >= 25
