@@ -87,6 +87,22 @@ def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, t
     assert (tmp_path / "accuracy_presets.png").exists()
 
 
+def test_presets_figure_only_draws_the_figure_of_the_moving_presets_and_writes_no_table(monkeypatch, tmp_path):
+    import pytest
+
+    drawn = []
+    monkeypatch.setattr(presets, "preset_window", lambda preset, seed, cache: (preset, seed))
+    monkeypatch.setattr(presets, "measure", lambda *a: pytest.fail("--figure-only must not measure"))
+    monkeypatch.setattr(presets, "figure_row",
+                        lambda preset, window, depth_range: drawn.append(window) or np.zeros((4, 4, 3), np.uint8))
+    monkeypatch.setattr(presets, "RESULTS", tmp_path)
+    assert presets.main(["--figure-only", "--quick", "--presets", "rotation,driving_day"]) == 0
+    assert drawn == [("driving_day", 100)]                # the rotation preset does not translate: no row
+    assert [p.name for p in tmp_path.iterdir()] == ["accuracy_presets_quick.png"]
+    with pytest.raises(SystemExit):                       # nothing to draw is refused, not an empty picture
+        presets.main(["--figure-only", "--presets", "rotation"])
+
+
 def test_drive_summary_is_computed_from_the_fits():
     def result(v, omega_deg, contrast):
         return SimpleNamespace(v=np.asarray(v, float), omega=np.radians(omega_deg), objective_after=contrast)
