@@ -332,6 +332,15 @@ def row_with_colour_bar(tiles: list[np.ndarray], scale, height: int) -> np.ndarr
     return viz.hstack([np.vstack([np.full((top - t.shape[0], t.shape[1], 3), 255, np.uint8), t]) for t in tiles])
 
 
+def captioned(image: np.ndarray, caption: str, width: int = 640) -> np.ndarray:
+    """``image`` under ``caption``, wrapped to lines of at most ``width`` px: the text size of the tiles' titles
+    whatever the figure's width (a caption titled across a wide figure grows large)."""
+    from cmax import viz
+
+    strip = viz.titled(np.full((1, min(width, image.shape[1]), 3), 255, np.uint8), caption)[:-1]
+    return viz.vstack([strip, image], gap=0)
+
+
 def depth_figure(run: SequenceRun, results: list[MethodResult], events) -> np.ndarray:
     """Events (ON/OFF legend), ground truth and each method's depth side by side on one colour scale, the
     1st-99th percentiles of the ground truth, drawn as a colour bar in metres; "no estimate" hatched grey (BGR uint8)."""
@@ -354,7 +363,7 @@ def depth_figure(run: SequenceRun, results: list[MethodResult], events) -> np.nd
     caption = (f"{run.spec.label} (seed {run.spec.seed}): events of the first window, ground truth at cmax.fit's "
                "t_ref, each method's depth (one colour scale, bar in m; hatched: no estimate; title: Abs mean "
                "over all its windows)")
-    return viz.titled(row_with_colour_bar(tiles, scale, gt.shape[0]), caption)
+    return captioned(row_with_colour_bar(tiles, scale, gt.shape[0]), caption)
 
 
 # -- the section -------------------------------------------------------------------------------
