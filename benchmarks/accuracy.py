@@ -317,8 +317,33 @@ def markdown_tables(rows: list[dict[str, object]], sequences: list[str]) -> list
     return lines
 
 
+#: Text size of the colour bars of the figures (the tiles' titles use 0.45).
+BAR_FONT_SCALE = 0.4
+
+
+def row_with_colour_bar(tiles: list[np.ndarray], scale, height: int) -> np.ndarray:
+    """``tiles`` (titled pictures whose bottom ``height`` rows are the images) side by side, bottom-aligned so that
+    the images stay level whatever their titles' heights, with the colour bar [m] of ``scale`` (a
+    :class:`cmax.viz.DepthScale`, the scale of every depth tile of the row) at the right, level with the images."""
+    from cmax import viz
+
+    tiles = [*tiles, viz.depth_colour_bar(max(height, 40), scale, font_scale=BAR_FONT_SCALE)]
+    top = max(tile.shape[0] for tile in tiles)
+    return viz.hstack([np.vstack([np.full((top - t.shape[0], t.shape[1], 3), 255, np.uint8), t]) for t in tiles])
+
+
+def captioned(image: np.ndarray, caption: str, width: int = 640) -> np.ndarray:
+    """``image`` under ``caption``, wrapped to lines of at most ``width`` px: the text size of the tiles' titles
+    whatever the figure's width (a caption titled across a wide figure grows large)."""
+    from cmax import viz
+
+    strip = viz.titled(np.full((1, min(width, image.shape[1]), 3), 255, np.uint8), caption)[:-1]
+    return viz.vstack([strip, image], gap=0)
+
+
 def depth_figure(run: SequenceRun, results: list[MethodResult], events) -> np.ndarray:
-    """Events, ground truth and each method's depth side by side on one colour scale (BGR uint8)."""
+    """Events (ON/OFF legend), ground truth and each method's depth side by side on one colour scale, the
+    1st-99th percentiles of the ground truth, drawn as a colour bar in metres; "no estimate" hatched grey (BGR uint8)."""
     from cmax import viz
     from cmax.representations import event_frame
 
@@ -327,16 +352,18 @@ def depth_figure(run: SequenceRun, results: list[MethodResult], events) -> np.nd
     depth_range = (float(np.percentile(gt[valid], 1)), float(np.percentile(gt[valid], 99)))
     if not depth_range[0] < depth_range[1]:
         depth_range = (depth_range[0], depth_range[0] * 1.01)
-    tiles = [viz.titled(viz.event_frame_image(event_frame(events)), f"events ({len(events):,})"),
-             viz.titled(viz.depth_image(np.where(valid, gt, np.nan), depth_range=depth_range),
+    scale = viz.DepthScale(*depth_range)
+    tiles = [viz.event_panel(event_frame(events), f"events ({len(events):,})"),
+             viz.titled(viz.depth_image(np.where(valid, gt, np.nan), scale),
                         f"GT {depth_range[0]:.1f}-{depth_range[1]:.1f} m")]
     for r in results:
-        tiles.append(viz.titled(viz.depth_image(r.depth, depth_range=depth_range),
+        tiles.append(viz.titled(viz.depth_image(r.depth, scale),
                                 f"{SHORT_NAMES.get(r.method, r.method)} " + (
                                     f"{r.metrics.abs_mean:.2f} m" if r.metrics.n_pixels else "no depth")))
     caption = (f"{run.spec.label} (seed {run.spec.seed}): events of the first window, ground truth at cmax.fit's "
-               "t_ref, each method's depth (one colour scale; title: Abs mean over all its windows)")
-    return viz.titled(viz.hstack(tiles), caption)
+               "t_ref, each method's depth (one colour scale, bar in m; hatched: no estimate; title: Abs mean "
+               "over all its windows)")
+    return captioned(row_with_colour_bar(tiles, scale, gt.shape[0]), caption)
 
 
 # -- the section -------------------------------------------------------------------------------
@@ -392,7 +419,7 @@ def run_tables(settings: TableSettings, *, quick: bool, results_dir: Path = RESU
         results, figure, timings[spec.label] = evaluate_sequence(
             spec, settings, lambda text: tqdm.write(text, file=sys.stderr), cache)
         rows += [csv_row(r) for r in results]
-        viz.save_png(results_dir / f"accuracy_depth_{spec.label}{'_quick' if quick else ''}.png", figure)
+        viz.save_image(results_dir / f"accuracy_depth_{spec.label}{'_quick' if quick else ''}.png", figure)
     learned = results_dir / "accuracy_learned.csv"
     learned_rows = read_learned_rows(learned) if learned.exists() else []
     suffix = "_quick" if quick else ""

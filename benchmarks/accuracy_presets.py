@@ -26,12 +26,14 @@ truth lies inside that range. The issue's targets were set for
 The figure shows the first seed of each preset: the events, the IWE after the
 se3 fit, the depth of the se3 fit, of the ``pose=`` fit and the ground truth
 (all on the fit's mask, one colour scale per row: the 2nd-98th percentile of the
-ground truth shown).
+ground truth shown, drawn as a colour bar in metres; pixels off the mask hatched grey).
+``--figure-only`` draws that figure without the measurements (the .md is left as it is).
 
 Usage::
 
     python -m benchmarks.accuracy_presets [--seeds 100-109] [--presets hiking,slider] [--cache DIR]
     python -m benchmarks.accuracy_presets --quick      # 1 window per preset, accuracy_presets_quick.md
+    python -m benchmarks.accuracy_presets --figure-only [--quick]   # only the figure (about a minute)
 """
 from __future__ import annotations
 
@@ -81,26 +83,32 @@ def measure(preset: str, window, depth_range: tuple[float, float]) -> dict[str, 
 
 
 def figure_row(preset: str, window, depth_range: tuple[float, float]) -> np.ndarray:
-    """One row of the figure: events, IWE after the se3 fit, se3 depth, pose= depth, ground truth."""
+    """One row of the figure: events (ON/OFF legend), IWE after the se3 fit, se3 depth, pose= depth, ground truth
+    (the depths on one colour scale, drawn as a colour bar in metres; "no estimate" hatched grey)."""
+    from benchmarks.accuracy import row_with_colour_bar
     from cmax import viz
     from cmax.fitting import fit
+    from cmax.representations import event_frame
 
     speed = float(np.linalg.norm(window.twist[:3]))
     se3 = fit(window.events, window.K, speed=speed, depth_range=depth_range)
     known = fit(window.events, window.K, pose=window.T01, depth_range=depth_range)
     truth = window.depth[known.mask & np.isfinite(window.depth)]
     shown = (float(np.percentile(truth, 2)), float(np.percentile(truth, 98))) if truth.size else depth_range
+    if not shown[0] < shown[1]:
+        shown = (shown[0], shown[0] * 1.01)
+    scale = viz.DepthScale(*shown)
 
     def on_mask(result, depth):
-        return viz.depth_image(np.where(result.mask, depth, np.nan), depth_range=shown)
+        return viz.depth_image(np.where(result.mask, depth, np.nan), scale)
 
-    return viz.hstack([
-        viz.titled(viz.iwe_image(se3.iwe_before), f"{preset}: events"),
+    return row_with_colour_bar([
+        viz.event_panel(event_frame(window.events), f"{preset}: events"),
         viz.titled(viz.iwe_image(se3.iwe_after), "IWE after (se3)"),
         viz.titled(on_mask(se3, se3.depth), "depth, se3 speed="),
         viz.titled(on_mask(known, known.depth), "depth, pose="),
         viz.titled(on_mask(known, window.depth), "ground truth"),
-    ])
+    ], scale, window.depth.shape[0])
 
 
 def summarise(rows: dict[str, dict[str, list[dict]]], seeds: list[int], ranges: dict, seconds: float) -> str:
@@ -136,6 +144,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--cache", type=Path, default=None, help="folder to keep simulated windows between runs")
     parser.add_argument("--quick", action="store_true",
                         help="1 window per preset, written to accuracy_presets_quick.* (a smoke run)")
+    parser.add_argument("--figure-only", action="store_true",
+                        help="draw only the figure (first seed of each preset), no measurements, no .md")
     args = parser.parse_args(argv)
     seeds = parse_seeds(parser, args.seeds or ("100-100" if args.quick else "100-109"))
     presets = parse_names(parser, "--presets", args.presets, PRESET_NAMES)
@@ -144,6 +154,13 @@ def main(argv: list[str] | None = None) -> int:
     rows: dict[str, dict[str, list[dict]]] = {}
     ranges = {preset: preset_depth_range(preset) for preset in presets}
     figure = []
+    stem = "accuracy_presets_quick" if args.quick else "accuracy_presets"
+    if args.figure_only:
+        figure = [figure_row(p, preset_window(p, seeds[0], args.cache), ranges[p]) for p in presets if translates(p)]
+        if not figure:
+            parser.error("--figure-only: none of --presets translates, so there is no figure to draw")
+        print(f"wrote {viz.save_image(RESULTS / f'{stem}.png', viz.vstack(figure))}")
+        return 0
     for preset in presets:
         rows[preset] = {}
         for seed in seeds:
@@ -155,10 +172,9 @@ def main(argv: list[str] | None = None) -> int:
             figure.append(figure_row(preset, preset_window(preset, seeds[0], args.cache), ranges[preset]))
     seconds = time.perf_counter() - start
     RESULTS.mkdir(exist_ok=True)
-    stem = "accuracy_presets_quick" if args.quick else "accuracy_presets"
     text = summarise(rows, seeds, ranges, seconds).replace("(accuracy_presets.png)", f"({stem}.png)")
     if figure:
-        viz.save_png(RESULTS / f"{stem}.png", viz.vstack(figure))
+        viz.save_image(RESULTS / f"{stem}.png", viz.vstack(figure))
     write_text_atomic(RESULTS / f"{stem}.md", text)
     print(text)
     return 0

@@ -1,4 +1,5 @@
-"""Pictures of every preset scene: rendered frame, 30 ms of simulated events, ground-truth depth.
+"""Pictures of every preset scene: rendered frame, 30 ms of simulated events (ON/OFF legend), ground-truth
+depth (colour bar in metres, on the map's own 1st-99th percentiles; "no estimate" hatched grey).
 
 Run ``python -m benchmarks.scene_gallery``; writes ``benchmarks/results/scenes_gallery.png``
 (one row per preset) and ``benchmarks/results/scenes/<preset>.png``.
@@ -11,7 +12,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax.sim import EventSimulator, PRESETS, make_scene, simulate_scene
-from cmax.viz import depth_image, event_frame_image, hstack, save_png, titled, vstack
+from cmax.viz import depth_panel, event_panel, hstack, save_image, titled, vstack
 from cmax.representations import event_frame
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -27,11 +28,12 @@ def preset_row(name: str, *, seed: int, width: int, height: int, t_s: float, win
     intensity, _ = scene.render(t_s)
     grey = np.repeat(np.clip(intensity, 0, 255).astype(np.uint8)[..., None], 3, axis=2)
     info = scene.info
-    depth_text = f"depth {info.depth_range_m[0]:g}-{info.depth_range_m[1]:g} m" if info else "depth"
+    depth_text = f"depth (preset {info.depth_range_m[0]:g}-{info.depth_range_m[1]:g} m)" if info else "depth"
+    depth = sequence.depth[0]
     return hstack([
         titled(grey, f"{name} (seed {seed})"),
-        titled(event_frame_image(event_frame(sequence.events)), f"{window_s * 1e3:g} ms, {len(sequence.events):,} events"),
-        titled(depth_image(sequence.depth[0]), depth_text),
+        event_panel(event_frame(sequence.events), f"{window_s * 1e3:g} ms, {len(sequence.events):,} events"),
+        depth_panel(depth, None, depth_text),
     ])
 
 
@@ -45,10 +47,10 @@ def main() -> None:
     rows = []
     for name in sorted(PRESETS):
         row = preset_row(name, seed=args.seed, width=width, height=height, t_s=0.5, window_s=0.03)
-        save_png(RESULTS / "scenes" / f"{name}.png", row)
+        save_image(RESULTS / "scenes" / f"{name}.png", row)
         rows.append(row)
         print(f"drew {name}")
-    save_png(RESULTS / "scenes_gallery.png", vstack(rows))
+    save_image(RESULTS / "scenes_gallery.png", vstack(rows))
     print(f"wrote {RESULTS / 'scenes_gallery.png'}")
 
 

@@ -87,6 +87,22 @@ def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, t
     assert (tmp_path / "accuracy_presets.png").exists()
 
 
+def test_presets_figure_only_draws_the_figure_of_the_moving_presets_and_writes_no_table(monkeypatch, tmp_path):
+    import pytest
+
+    drawn = []
+    monkeypatch.setattr(presets, "preset_window", lambda preset, seed, cache: (preset, seed))
+    monkeypatch.setattr(presets, "measure", lambda *a: pytest.fail("--figure-only must not measure"))
+    monkeypatch.setattr(presets, "figure_row",
+                        lambda preset, window, depth_range: drawn.append(window) or np.zeros((4, 4, 3), np.uint8))
+    monkeypatch.setattr(presets, "RESULTS", tmp_path)
+    assert presets.main(["--figure-only", "--quick", "--presets", "rotation,driving_day"]) == 0
+    assert drawn == [("driving_day", 100)]                # the rotation preset does not translate: no row
+    assert [p.name for p in tmp_path.iterdir()] == ["accuracy_presets_quick.png"]
+    with pytest.raises(SystemExit):                       # nothing to draw is refused, not an empty picture
+        presets.main(["--figure-only", "--presets", "rotation"])
+
+
 def test_drive_summary_is_computed_from_the_fits():
     def result(v, omega_deg, contrast):
         return SimpleNamespace(v=np.asarray(v, float), omega=np.radians(omega_deg), objective_after=contrast)
@@ -135,5 +151,32 @@ def test_ecd_slider_emvs_figure_has_a_legend_a_colour_bar_and_no_white_no_estima
     hatch = (pixels == viz.NO_DEPTH_BGR).all(axis=1) | (pixels == viz.NO_DEPTH_HATCH_BGR).all(axis=1)
     assert hatch.sum() >= (~mask).sum()                       # every pixel without depth is hatched
     title_rows = picture[: picture.shape[0] - height].reshape(-1, 3)
+    assert (title_rows == viz.ON_BGR).all(axis=1).sum() >= 25   # the ON/OFF legend
+    assert (title_rows == viz.OFF_BGR).all(axis=1).sum() >= 25
+
+
+def test_accuracy_depth_figure_has_a_legend_a_colour_bar_of_the_ground_truth_scale_and_a_hatch():
+    """The held-out accuracy figure drew bare depth maps (no colour bar) and events without an ON/OFF legend."""
+    from benchmarks.accuracy import BAR_FONT_SCALE, MethodResult, SequenceSpec, depth_figure
+    from cmax import viz
+    from cmax.metrics import depth_metrics
+    from conftest import random_events
+
+    width, height = 60, 48
+    gt = np.linspace(2.0, 8.0, width * height, dtype=np.float32).reshape(height, width)
+    estimate = gt * 1.1
+    estimate[:, :20] = np.nan                                   # "no estimate" on the left third
+    metrics = depth_metrics(estimate, gt)
+    results = [MethodResult("cmax.fit", "seq", metrics, estimate, gt, 1.0)]
+    run = SimpleNamespace(spec=SequenceSpec("seq", "indoor_flying", 1), depth_range=(1.0, 10.0))
+    picture = depth_figure(run, results, random_events(500, width=width, height=height, t_span_us=10_000, seed=2))
+    bar = viz.depth_colour_bar(height, viz.DepthScale(float(np.percentile(gt, 1)), float(np.percentile(gt, 99))),
+                               font_scale=BAR_FONT_SCALE)
+    # the bar at the bottom right, level with the maps, on the 1st-99th percentiles of the ground truth
+    assert np.array_equal(picture[-height:, -bar.shape[1]:], bar)
+    pixels = picture[-height:].reshape(-1, 3)
+    hatch = (pixels == viz.NO_DEPTH_BGR).all(axis=1) | (pixels == viz.NO_DEPTH_HATCH_BGR).all(axis=1)
+    assert hatch.sum() >= 20 * height                           # every NaN pixel of the estimate is hatched
+    title_rows = picture[:-height].reshape(-1, 3)
     assert (title_rows == viz.ON_BGR).all(axis=1).sum() >= 25   # the ON/OFF legend
     assert (title_rows == viz.OFF_BGR).all(axis=1).sum() >= 25
