@@ -271,8 +271,14 @@ def _font_scale(width: int) -> float:
     return 0.45 * max(1.0, width / 640.0)
 
 
+def _thickness(font_scale: float) -> int:
+    """Stroke width [px] of text at ``font_scale``: 2 from 0.8 up, so that large text stays legible."""
+    return 1 if font_scale < 0.8 else 2
+
+
 def _text_width(text: str, font_scale: float) -> int:
-    return cv2.getTextSize(text, _FONT, font_scale, 1)[0][0]
+    """Width [px] of ``text`` as drawn (at the stroke width :func:`_thickness` gives)."""
+    return cv2.getTextSize(text, _FONT, font_scale, _thickness(font_scale))[0][0]
 
 
 def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_scale: float = 0.4,
@@ -283,7 +289,7 @@ def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_sca
         raise ValueError(f"height must be an integer >= 40 px, got {height!r}")
     if not isinstance(scale, DepthScale):
         raise TypeError(f"scale must be a DepthScale, got {type(scale).__name__}")
-    thickness = 1 if font_scale < 0.8 else 2
+    thickness = _thickness(font_scale)
     line = int(round(18 * font_scale / 0.4))
     bar_width = max(12, line)
     swatch = line + 2
@@ -354,7 +360,7 @@ def titled(image: np.ndarray, title: str, *,
     image = _check_picture(image)
     width = image.shape[1]
     font = _font_scale(width)
-    thickness = 1 if font < 0.8 else 2
+    thickness = _thickness(font)
     line = int(round(_TITLE_HEIGHT * font / 0.45))
     box = int(round(10 * font / 0.45))
     lines = _wrap(title, font, width - 8)

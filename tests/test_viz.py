@@ -162,3 +162,13 @@ def test_depth_colour_bar_states_its_unit_or_none_for_depth_up_to_scale():
     with pytest.raises(TypeError, match="unit must be a string"):
         viz.depth_colour_bar(80, scale, unit=None)
     assert viz.depth_panel(np.full((60, 80), 2.0, np.float32), scale, "depth (up to scale)", unit="").shape[1] > 80 + 30
+
+
+def test_wrapped_titles_of_wide_pictures_stay_inside_the_picture():
+    # at widths where the text is drawn with a 2 px stroke, wrapping measures with that stroke too
+    for width in (1400, 1817, 2600):
+        title = " ".join(f"word{k}: abs_rel 0.123, Abs mean 4.56 m" for k in range(12))
+        picture = viz.titled(np.full((40, width, 3), 255, np.uint8), title)
+        strip = picture[:-40]
+        assert (strip[:, -3:] == 255).all(), width   # no text reaches the right edge
+        assert (strip < 128).any()                    # and the text is there
