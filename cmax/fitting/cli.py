@@ -8,7 +8,7 @@ window (se3), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
 camera-to-world, the first window's start as the origin) and
 ``summary.json`` (settings, per-window twist, objective, parallax, seconds, quality verdict with its
 reason and alternatives, and the counts of each verdict). Each window's verdict is printed on a line of
-its own (unless ``--quiet``) and counted in the summary line (``docs/quality.md``).
+its own and counted in the summary line (``docs/quality.md``).
 """
 from __future__ import annotations
 
@@ -382,8 +382,7 @@ def run_fit(args: argparse.Namespace) -> int:
                         "message": r.message,
                         "scale_known": r.scale_known, "parallax_px": r.parallax_px,
                         **(r.quality.summary() if r.quality is not None else {"verdict": None})})
-        if not args.quiet:
-            print(window_line(i, r, int(events.t[0])))
+        print(window_line(i, r, int(events.t[0])))
     write_text_atomic(out / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
     summary = {"file": str(args.file), "model": sequence_model, "K": K.tolist(),
                "distortion": None if distortion is None else distortion.tolist(),
