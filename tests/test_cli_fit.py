@@ -197,8 +197,8 @@ def test_fit_prints_each_verdict_and_counts_them(tmp_path, capsys):
 
 def test_the_summary_counts_each_verdict(tmp_path, capsys, monkeypatch):
     """Five windows (the first with too few events, skipped), the fits of the others constructed with the
-    verdicts ambiguous (no ok neighbour within
-    reach, so unresolved), failed, low parallax and ok: one line each, the JSON and the summary line agree."""
+    verdicts ambiguous (no ok neighbour within reach, so unresolved), failed, low parallax and ok: one
+    line each, the JSON and the summary line agree."""
     from dataclasses import replace
 
     from benchmarks.synthetic_windows import make_window
