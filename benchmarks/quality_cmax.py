@@ -53,8 +53,8 @@ def table(rows: list[dict], title: str) -> list[str]:
              f"and the result {np.median([r['quality_seconds'] for r in rows]):.2f}.", "",
              "| seed | direction error [deg] | parallax [px] | verdict | reason |", "|---|---|---|---|---|"]
     for row in rows:
-        lines.append(f"| {row['seed']} | {row['direction_deg']:.1f} | {row['parallax_px']:.1f} | {row['verdict'].value} "
-                     f"| {row['reason']} |")
+        lines.append(f"| {row['seed']} | {row['direction_deg']:.1f} | {row['parallax_px']:.1f} "
+                     f"| {row['verdict'].value} | {row['reason']} |")
     return lines + [""]
 
 
@@ -79,7 +79,8 @@ def main(argv: list[str] | None = None) -> None:
     head = ["# cmax.fit quality verdicts on held-out synthetic windows", "",
             f"`indoor_flying` seeds {seeds[0]}-{seeds[-1]}, 346x260, `speed=|v|`, depth range 1-6.5 m, default "
             f"`QualitySettings`. Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
-            f"torch threads 1. Written by `python -m benchmarks.quality_cmax` in {time.perf_counter() - start:.0f} s.", ""]
+            f"torch threads 1. Written by `python -m benchmarks.quality_cmax` in "
+            f"{time.perf_counter() - start:.0f} s.", ""]
     args.output.write_text("\n".join(head + [line for section in sections for line in section]))
 
 

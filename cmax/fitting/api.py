@@ -26,7 +26,8 @@ from cmax.fitting.window import LOW_PARALLAX_PX, Window
 from cmax.iwe import accumulate_bilinear, blur
 from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
 
-__all__ = ["FitResult", "FitSettings", "QualitySettings", "Verdict", "LowParallaxWarning", "LowMotionWarning", "BoundWarning", "fit"]
+__all__ = ["FitResult", "FitSettings", "QualitySettings", "Verdict", "LowParallaxWarning", "LowMotionWarning",
+           "BoundWarning", "fit"]
 
 
 class LowParallaxWarning(UserWarning):

@@ -216,8 +216,9 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
     alternatives = []
     for name, v_alt, omega_alt in alternative_motions(objective, v, omega, rho, hold_omega=hold_omega):
         if settings.polish_iterations:
-            polished = refine_motion_local(w, v_alt, omega_alt, speed, replace(refine, iterations=settings.polish_iterations),
-                                           solver, hold_omega=hold_omega)
+            polished = refine_motion_local(w, v_alt, omega_alt, speed,
+                                           replace(refine, iterations=settings.polish_iterations), solver,
+                                           hold_omega=hold_omega)
             v_alt, omega_alt = polished.v, polished.omega
             if _distance_deg(v_alt, omega_alt, v, omega, w.T) < settings.distinct_deg:
                 continue
@@ -248,7 +249,8 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: str |
         return Quality(Verdict.AMBIGUOUS, reason, tuple(alternatives))
     if alternatives:
         worst = min(alternatives, key=lambda a: a.gain)
-        reason = f"every alternative scores worse beyond noise (closest: {worst.name}, gain {worst.gain:.3g} > noise {worst.noise:.3g})"
+        reason = (f"every alternative scores worse beyond noise (closest: {worst.name}, gain {worst.gain:.3g} > "
+                  f"noise {worst.noise:.3g})")
     else:
         reason = note or "no alternative tested"
     return Quality(Verdict.OK, reason, tuple(alternatives))
