@@ -50,7 +50,8 @@ def test_the_worst_verdict_wins():
 
 
 @pytest.mark.parametrize("field, value", [("margin", -0.1), ("noise_sigmas", float("nan")), ("neighbours", 0),
-                                          ("polish_iterations", -1), ("max_resolve_deg", "x")])
+                                          ("polish_iterations", -1), ("max_resolve_deg", "x"),
+                                          ("distinct_deg", float("inf"))])
 def test_quality_settings_are_checked(field, value):
     with pytest.raises(ValueError, match=field):
         QualitySettings(**{field: value})

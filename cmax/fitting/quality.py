@@ -87,7 +87,7 @@ class QualitySettings:
     def __post_init__(self) -> None:
         if not isinstance(self.ambiguity_test, bool):
             raise TypeError(f"ambiguity_test must be a bool, got {self.ambiguity_test!r}")
-        for name in ("margin", "noise_sigmas", "max_resolve_deg"):
+        for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
