@@ -266,6 +266,11 @@ K_ECD = np.array([[335.42, 0, 129.92], [0, 335.35, 99.19], [0, 0, 1]])
 ECD_SPEED = 0.317
 
 
+def _x_error_deg(v: np.ndarray) -> float:
+    """Angle [deg] between ``v`` (3,) and +x."""
+    return float(np.degrees(np.arccos(np.clip(v[0] / np.linalg.norm(v), -1, 1))))
+
+
 def slider(events_path: Path) -> tuple[list[str], np.ndarray]:
     """The ECD slider's windows against the ground truth (+x), with their verdicts; markdown and a picture."""
     from cmax.fitting import Verdict, fit_sequence
@@ -280,25 +285,30 @@ def slider(events_path: Path) -> tuple[list[str], np.ndarray]:
              f"{len(events):,} events simulated from the 87 real frames, {(events.t[-1] - first) * 1e-6:.2f} s, "
              "240x180; "
              f"`fit_sequence(events, K, speed={ECD_SPEED})`, default windows; {seconds:.0f} s in all.", "",
-             "| window | t [s] | direction error [deg] | reversed | omega [deg/s] | parallax [px] | verdict | reason "
-             "| resolution |", "|---|---|---|---|---|---|---|---|---|"]
+             "| window | t [s] | direction error [deg] | reversed | fit's own error [deg] | omega [deg/s] "
+             "| parallax [px] | verdict | reason | resolution |", "|---|---|---|---|---|---|---|---|---|---|"]
     rows = []
     for i, r in enumerate(sequence.results):
-        unit = r.v / np.linalg.norm(r.v)
-        error = float(np.degrees(np.arccos(np.clip(unit[0], -1, 1))))
-        rows.append((error, r.verdict, r.quality.resolved))
+        error = _x_error_deg(r.v)
+        own = error if r.quality.replaced is None else _x_error_deg(r.quality.replaced[0])
+        rows.append((error, r.verdict, own))
         lines.append(f"| {i} | {(r.t0_us - first) * 1e-6:.2f}-{(r.t1_us - first) * 1e-6:.2f} | {error:.1f} | "
-                     f"{'yes' if error > 90 else 'no'} | {np.round(np.degrees(r.omega), 1).tolist()} | "
+                     f"{'yes' if error > 90 else 'no'} | {own:.1f} | {np.round(np.degrees(r.omega), 1).tolist()} | "
                      f"{r.parallax_px:.1f} | {r.verdict.value} | {r.quality.reason} | {r.quality.resolution} |")
     errors = np.array([e for e, _, _ in rows])
     reversed_ = [row for row in rows if row[0] > 90]
-    flagged = [row for row in reversed_ if row[1] is not Verdict.OK]
+    own_reversed = [row for row in rows if row[2] > 90]
+    flagged = [row for row in own_reversed if row[1] is not Verdict.OK]
+    bad = [row for row in rows if row[2] > 30]
     ambiguous = [row for row in rows if row[1] is Verdict.AMBIGUOUS]
     counts = sequence.counts()
     lines += ["", f"{len(rows)} windows: {counts['ok']} ok, {counts['ambiguous']} ambiguous ({counts['resolved']} "
               f"resolved), {counts['low_parallax']} low parallax, {counts['failed']} failed. Reversed windows "
-              f"(direction error > 90 deg): {len(reversed_)} (target 0), of which {len(flagged)} flagged (not ok); "
-              f"{sum(row[0] > 90 for row in ambiguous)} of the {len(ambiguous)} ambiguous windows are reversed. "
+              f"(direction error > 90 deg) after the resolution: {len(reversed_)} (target 0); before it (each "
+              f"window's own fit): {len(own_reversed)}, of which {len(flagged)} flagged (not ok); "
+              f"{sum(row[2] > 90 for row in ambiguous)} of the {len(ambiguous)} ambiguous windows were reversed. "
+              f"Windows whose own fit is more than 30 deg off: {len(bad)}, flagged: "
+              f"{sum(row[1] is not Verdict.OK for row in bad)}. "
               f"Direction error median {np.median(errors):.1f} deg (target <= 10), p90 "
               f"{np.percentile(errors, 90):.1f} deg (target <= 20).", ""]
     r = sequence.results[len(sequence.results) // 2]

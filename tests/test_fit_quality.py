@@ -161,6 +161,7 @@ def test_fit_sequence_resolves_a_flipped_window_from_its_neighbours(monkeypatch)
     middle = result.results[2]
     np.testing.assert_allclose(middle.v, truth)
     assert middle.quality.resolved and "took the mirrored" in middle.quality.resolution
+    np.testing.assert_allclose(middle.quality.replaced[0], -truth)   # the fit it replaced, kept
     np.testing.assert_allclose(calls[-1], np.r_[truth, np.zeros(3)])   # re-fitted with the chosen motion held
     assert result.counts() == {"ok": 4, "ambiguous": 1, "low_parallax": 0, "failed": 0, "resolved": 1}
     travelled = result.poses[-1][:3, 3]

@@ -126,6 +126,8 @@ class Quality:
         not ambiguous or not in a sequence).
     resolved : bool
         Whether ``fit_sequence`` resolved it (kept the fit or took an alternative).
+    replaced : (v, omega) or None
+        The window's own fit ``(v (3,), omega (3,))`` when ``fit_sequence`` replaced it by an alternative.
     """
 
     verdict: Verdict
@@ -133,13 +135,16 @@ class Quality:
     alternatives: tuple[Alternative, ...] = ()
     resolution: str = ""
     resolved: bool = False
+    replaced: tuple[np.ndarray, np.ndarray] | None = None
 
     def summary(self) -> dict:
         """A JSON-ready dict."""
         return {"verdict": self.verdict.value, "reason": self.reason,
                 "alternatives": [{"name": a.name, "v": a.v.tolist(), "omega": a.omega.tolist(), "gain": a.gain,
                                   "noise": a.noise, "within_noise": a.within_noise} for a in self.alternatives],
-                "resolution": self.resolution, "resolved": self.resolved}
+                "resolution": self.resolution, "resolved": self.resolved,
+                "replaced": None if self.replaced is None else {"v": self.replaced[0].tolist(),
+                                                                 "omega": self.replaced[1].tolist()}}
 
 
 # ----------------------------------------------------------------------------------------------

@@ -168,7 +168,7 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, q
             continue
         events = take(r.t0_us, r.t1_us + 1)
         refit = fit(events, K, "se3", pose=np.r_[chosen.v, chosen.omega], quality=quality, **fit_options)
-        out[i] = replace(refit, scale_known=speed is not None, quality=resolved,
+        out[i] = replace(refit, scale_known=speed is not None, quality=replace(resolved, replaced=(r.v, r.omega)),
                          stages=r.stages + refit.stages, seconds=r.seconds + refit.seconds,
                          iterations=r.iterations + refit.iterations, evaluations=r.evaluations + refit.evaluations)
     return out
