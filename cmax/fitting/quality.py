@@ -206,7 +206,8 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
     polishing the alternatives with ``solver`` (a :class:`cmax.fitting.solvers.Solver`).
 
     Returns ``(alternatives, note)``: none, and ``note`` saying why, when the window has fewer than 4
-    patches with events (nothing to test on).
+    patches with events (nothing to test on); ``note`` also names the alternatives dropped because their
+    polish ended on the fit (within ``settings.distinct_deg``).
     """
     refine = w.settings.refine
     patches = make_patches(w, grid=refine.grid, min_events=refine.min_events, max_events=refine.max_events,
@@ -218,7 +219,7 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
     candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), refine.rho_candidates))
     c_fit, rho = _patch_contrast(objective, v, omega, candidates)
     own_gain = float(np.sum(c_fit - 1.0))
-    alternatives = []
+    alternatives, merged = [], []
     for name, v_alt, omega_alt in alternative_motions(objective, v, omega, rho, hold_omega=hold_omega):
         if settings.polish_iterations:
             polished = refine_motion_local(w, v_alt, omega_alt, speed,
@@ -226,13 +227,15 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
                                            hold_omega=hold_omega)
             v_alt, omega_alt = polished.v, polished.omega
             if _distance_deg(v_alt, omega_alt, v, omega, w.T) < settings.distinct_deg:
+                merged.append(name)
                 continue
         c_alt, _ = _patch_contrast(objective, v_alt, omega_alt, candidates)
         gain = c_fit - c_alt
         noise = max(settings.noise_sigmas * float(np.std(gain, ddof=1)) * math.sqrt(patches.count),
                     settings.margin * max(own_gain, 0.0))
         alternatives.append(Alternative(name, v_alt, omega_alt, float(gain.sum()), noise, bool(gain.sum() <= noise)))
-    return tuple(alternatives), ""
+    note = f"the {', '.join(merged)} alternative(s) polished back onto the fit" if merged else ""
+    return tuple(alternatives), note
 
 
 # ----------------------------------------------------------------------------------------------
@@ -255,7 +258,7 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: str |
     if alternatives:
         worst = min(alternatives, key=lambda a: a.gain)
         reason = (f"every alternative scores worse beyond noise (closest: {worst.name}, gain {worst.gain:.3g} > "
-                  f"noise {worst.noise:.3g})")
+                  f"noise {worst.noise:.3g})" + (f"; {note}" if note else ""))
     else:
         reason = note or "no alternative tested"
     return Quality(Verdict.OK, reason, tuple(alternatives))
