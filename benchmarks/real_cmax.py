@@ -13,6 +13,13 @@ Writes ``benchmarks/results/real_cmax.md`` and the pictures ``real_cmax_pegboard
   per axis with the gyro's mean over the window, and with an independent
   reference: the rotation between the APS frames (ECC homography
   ``H = K R^T K^-1`` between frames 0 and 2, 80 ms apart).
+* ``ecd_slider_depth`` (DAVIS240C, 240x180): the ECD slider's 87 real frames, simulated to events
+  first (``cmax simulate ../shared/data/ecd_slider_depth -o slider.h5``, passed as
+  ``--slider-events``; the section is skipped without it). The ground truth is a pure slide along +x
+  with the camera axes equal to the world's, so the true direction is +x in the camera frame in every
+  window. ``fit_sequence`` as ``cmax fit slider.h5 --K 335.42,335.35,129.92,99.19 --speed 0.317`` runs it
+  (default 166.5 ms windows); per window: the direction error, whether it is reversed (> 90 deg), the
+  quality verdict and its resolution.
 * ``prophesee_gen4_driving/evt3_sample.raw`` (1280x720, 8.8 ms, a car driving
   forward). No calibration: we assume f = 1000 px and the principal point at
   the image centre. se3 without a known speed (direction only); the fitted
@@ -20,7 +27,7 @@ Writes ``benchmarks/results/real_cmax.md`` and the pictures ``real_cmax_pegboard
 
 Usage::
 
-    python -m benchmarks.real_cmax [--data ../shared/data]
+    python -m benchmarks.real_cmax [--data ../shared/data] [--slider-events slider.h5]
 """
 from __future__ import annotations
 
@@ -112,8 +119,8 @@ def pegboard(data: Path) -> tuple[list[str], np.ndarray]:
              f"The event rate (1 ms bins) peaks at {freq:.0f} Hz ({100 * share:.0f}% of its spectral energy): "
              "mains flicker of the two lamps and the screen, not motion, makes most events.", "",
              "| window [ms] | events | gyro mean [deg/s] | fit omega [deg/s] | fit - gyro [deg/s] | APS [deg/s] "
-             "| fit - APS [deg/s] | contrast fit | contrast gyro | s |",
-             "|---|---|---|---|---|---|---|---|---|---|"]
+             "| fit - APS [deg/s] | contrast fit | contrast gyro | s | verdict |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
     picture_result = None
     for a, b in PEGBOARD_WINDOWS_MS:
         window = events.slice_time(t0 + a * 1000, t0 + b * 1000 + 1)
@@ -129,7 +136,7 @@ def pegboard(data: Path) -> tuple[list[str], np.ndarray]:
         fmt = lambda v: "" if v is None else str(np.round(v, 2).tolist())  # noqa: E731
         lines.append(f"| {a}-{b} | {len(window)} | {fmt(gyro)} | {fmt(fitted)} | {fmt(fitted - gyro)} | "
                      f"{fmt(reference)} | {fmt(None if reference is None else fitted - reference)} | "
-                     f"{c_fit:.4f} | {c_gyro:.4f} | {seconds:.2f} |")
+                     f"{c_fit:.4f} | {c_gyro:.4f} | {seconds:.2f} | {r.verdict.value} |")
         if (a, b) == (0, 130):
             picture_result = r
             se3 = fit(window, K_DAVIS346, model="se3")
@@ -174,13 +181,14 @@ def driving(data: Path) -> tuple[list[str], np.ndarray]:
              "30k events. Rows: the default fit; with the second start of the motion refinement at zero rotation "
              "(`FitSettings.zero_rotation_start`); with the rotation held as a gyroscope would give it "
              "(`fit(..., omega=)`: a car on a straight road turns by a few deg/s at most).", "",
-             "| fit | direction v / norm(v) | angle to +z [deg] | forward | omega [deg/s] | contrast after | s |",
-             "|---|---|---|---|---|---|---|"]
+             "| fit | direction v / norm(v) | angle to +z [deg] | forward | omega [deg/s] | contrast after | s "
+             "| verdict |",
+             "|---|---|---|---|---|---|---|---|"]
     for label, (result, seconds) in fits.items():
         unit, angle, is_forward = _direction(result)
         lines.append(f"| {label} | {np.round(unit, 3).tolist()} | {angle:.1f} | {'yes' if is_forward else 'no'} | "
                      f"{np.round(np.degrees(result.omega), 1).tolist()} | {result.objective_after:.4f} | "
-                     f"{seconds:.1f} |")
+                     f"{seconds:.1f} | {result.verdict.value}: {result.quality.reason} |")
     default = fits["default"][0]
     direction = default.v / np.linalg.norm(default.v)
     lines += ["", f"contrast = normalised multi-reference contrast (1 = the unwarped events). Straight forward "
@@ -253,10 +261,68 @@ def _flow_explanations(events, K: np.ndarray, fitted_direction: np.ndarray) -> l
     return lines
 
 
+#: The ECD slider as the issue's command line fits it: K of calib.txt (distortion ignored), the speed.
+K_ECD = np.array([[335.42, 0, 129.92], [0, 335.35, 99.19], [0, 0, 1]])
+ECD_SPEED = 0.317
+
+
+def _x_error_deg(v: np.ndarray) -> float:
+    """Angle [deg] between ``v`` (3,) and +x."""
+    return float(np.degrees(np.arccos(np.clip(v[0] / np.linalg.norm(v), -1, 1))))
+
+
+def slider(events_path: Path) -> tuple[list[str], np.ndarray]:
+    """The ECD slider's windows against the ground truth (+x), with their verdicts; markdown and a picture."""
+    from cmax.fitting import Verdict, fit_sequence
+    from cmax.io import read
+
+    events = read(events_path)
+    start = time.perf_counter()
+    sequence = fit_sequence(events, K_ECD, speed=ECD_SPEED)
+    seconds = time.perf_counter() - start
+    first = int(events.t[0])
+    lines = ["## ECD slider_depth (se3 sequence against the ground truth, +x)", "",
+             f"{len(events):,} events simulated from the 87 real frames, {(events.t[-1] - first) * 1e-6:.2f} s, "
+             "240x180; "
+             f"`fit_sequence(events, K, speed={ECD_SPEED})`, default windows; {seconds:.0f} s in all.", "",
+             "| window | t [s] | direction error [deg] | reversed | fit's own error [deg] | omega [deg/s] "
+             "| parallax [px] | verdict | reason | resolution |", "|---|---|---|---|---|---|---|---|---|---|"]
+    rows = []
+    for i, r in enumerate(sequence.results):
+        error = _x_error_deg(r.v)
+        own = error if r.quality.replaced is None else _x_error_deg(r.quality.replaced[0])
+        rows.append((error, r.verdict, own))
+        lines.append(f"| {i} | {(r.t0_us - first) * 1e-6:.2f}-{(r.t1_us - first) * 1e-6:.2f} | {error:.1f} | "
+                     f"{'yes' if error > 90 else 'no'} | {own:.1f} | {np.round(np.degrees(r.omega), 1).tolist()} | "
+                     f"{r.parallax_px:.1f} | {r.verdict.value} | {r.quality.reason} | {r.quality.resolution} |")
+    errors = np.array([e for e, _, _ in rows])
+    reversed_ = [row for row in rows if row[0] > 90]
+    own_reversed = [row for row in rows if row[2] > 90]
+    flagged = [row for row in own_reversed if row[1] is not Verdict.OK]
+    bad = [row for row in rows if row[2] > 30]
+    ambiguous = [row for row in rows if row[1] is Verdict.AMBIGUOUS]
+    counts = sequence.counts()
+    lines += ["", f"{len(rows)} windows: {counts['ok']} ok, {counts['ambiguous']} ambiguous ({counts['resolved']} "
+              f"resolved), {counts['low_parallax']} low parallax, {counts['failed']} failed. Reversed windows "
+              f"(direction error > 90 deg) after the resolution: {len(reversed_)} (target 0); before it (each "
+              f"window's own fit): {len(own_reversed)}, of which {len(flagged)} flagged (not ok); "
+              f"{sum(row[2] > 90 for row in ambiguous)} of the {len(ambiguous)} ambiguous windows were reversed. "
+              f"Windows whose own fit is more than 30 deg off: {len(bad)}, flagged: "
+              f"{sum(row[1] is not Verdict.OK for row in bad)}. "
+              f"Direction error median {np.median(errors):.1f} deg (target <= 10), p90 "
+              f"{np.percentile(errors, 90):.1f} deg (target <= 20).", ""]
+    r = sequence.results[len(sequence.results) // 2]
+    picture = viz.hstack([viz.titled(viz.iwe_image(r.iwe_before), "events (middle window)"),
+                          viz.titled(viz.iwe_image(r.iwe_after), f"IWE, se3 ({r.verdict.value})")])
+    return lines, picture
+
+
 def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--data", type=Path, default=DATA, help="the shared data folder")
-    parser.add_argument("--only", choices=("pegboard", "driving"), default=None)
+    parser.add_argument("--only", choices=("pegboard", "driving", "slider"), default=None)
+    parser.add_argument("--slider-events", type=Path, default=None,
+                        help="events simulated from ../shared/data/ecd_slider_depth (cmax simulate ... -o slider.h5)")
     args = parser.parse_args(argv)
     if not args.data.is_dir():
         parser.error(f"--data: no folder {args.data}")
@@ -266,6 +332,10 @@ def main(argv: list[str] | None = None) -> int:
              f"{os.getloadavg()[0]:.2f} (2 shared cores).", ""]
     RESULTS.mkdir(exist_ok=True)
     parts = {"pegboard": pegboard, "driving": driving}
+    if args.slider_events is not None:
+        parts["slider"] = lambda data: slider(args.slider_events)
+    elif args.only == "slider":
+        parser.error("--only slider needs --slider-events")
     for name, function in parts.items():
         if args.only not in (None, name):
             continue

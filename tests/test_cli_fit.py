@@ -167,3 +167,68 @@ def test_a_text_file_takes_its_size_from_the_dsec_calibration(tmp_path, capsys):
     assert "0 of 1 windows fitted" in capsys.readouterr().out
     assert main(["fit", str(path), "--K", "500,500,320,240", "-o", str(tmp_path / "o")]) == 2
     assert "width= and height=" in capsys.readouterr().err
+
+
+@pytest.mark.slow   # two real fits and their ambiguity tests: about 10 s on 2 shared cores
+def test_fit_prints_each_verdict_and_counts_them(tmp_path, capsys):
+    """Each window's verdict on a line of its own and in summary.json; the summary line counts them."""
+    from benchmarks.synthetic_windows import make_window
+
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    path = write_h5(tmp_path / "drive.h5", w.events)
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    out = tmp_path / "out"
+    speed = float(np.linalg.norm(w.twist[:3]))
+    assert main(["fit", str(path), "--K", K, "-o", str(out), "--window-ms", "45", "--speed", f"{speed}",
+                 "--depth-range", "1,20", "--max-events", "4000"]) == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    verdicts = [window["verdict"] for window in summary["windows"]]
+    assert len(verdicts) == 2 and set(verdicts) <= {"ok", "ambiguous", "low_parallax", "failed"}
+    for i, window in enumerate(summary["windows"]):
+        line = next(line for line in printed.splitlines() if line.startswith(f"window {i} ("))
+        assert f": {window['verdict'].replace('_', ' ')}: {window['reason']}" in line
+    counts = {name: verdicts.count(name) for name in ("ok", "ambiguous", "low_parallax", "failed")}
+    assert {k: summary["verdicts"][k] for k in counts} == counts
+    assert (f"2 of 2 windows fitted: {counts['ok']} ok, {counts['ambiguous']} ambiguous"
+            in printed), printed
+    assert f"{counts['low_parallax']} low parallax, {counts['failed']} failed; results in" in printed
+
+
+def test_the_summary_counts_each_verdict(tmp_path, capsys, monkeypatch):
+    """Five windows (the first with too few events, skipped), the fits of the others constructed with the
+    verdicts ambiguous (no ok neighbour within reach, so unresolved), failed, low parallax and ok: one
+    line each, the JSON and the summary line agree."""
+    from dataclasses import replace
+
+    from benchmarks.synthetic_windows import make_window
+    from cmax.fitting import QualitySettings, Verdict, fit
+    from cmax.fitting import sequence as sequence_module
+    from cmax.fitting.quality import Alternative, Quality
+
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    base = fit(w.events, w.K, speed=8.0, depth_range=(1.0, 20.0), max_events=1000,
+               quality=QualitySettings(ambiguity_test=False))
+    mirrored = Alternative("mirrored", -base.v, base.omega, 0.01, 0.1, True)
+    qualities = [Quality(Verdict.AMBIGUOUS, "mirrored within noise", (mirrored,)),
+                 Quality(Verdict.FAILED, "stage(s) failed: local_refine"),
+                 Quality(Verdict.LOW_PARALLAX, "parallax 0.40 px, under LOW_PARALLAX_PX=1"),
+                 Quality(Verdict.OK, "every alternative scores worse beyond noise")]
+
+    def constructed_fit(events, K, model="se3", **options):
+        return replace(base, t0_us=int(events.t[0]), t1_us=int(events.t[-1]), quality=qualities.pop(0))
+
+    monkeypatch.setattr(sequence_module, "fit", constructed_fit)
+    path = write_h5(tmp_path / "drive.h5", w.events)
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    out = tmp_path / "out"
+    assert main(["fit", str(path), "--K", K, "-o", str(out), "--window-ms", "19", "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    summary = json.loads((out / "summary.json").read_text())
+    assert [window["verdict"] for window in summary["windows"]] == ["ambiguous", "failed", "low_parallax", "ok"]
+    assert summary["verdicts"] == {"ok": 1, "ambiguous": 1, "low_parallax": 1, "failed": 1, "resolved": 0}
+    assert summary["windows"][0]["resolution"] == "unresolved: no confident (ok) neighbour window"
+    assert "window 0 (" in printed and ": ambiguous: mirrored within noise; unresolved: no confident" in printed
+    assert ("4 of 5 windows fitted, 1 skipped (fewer than 1,000 events): 1 ok, 1 ambiguous (0 resolved), "
+            "1 low parallax, 1 failed; results in"
+            in printed), printed

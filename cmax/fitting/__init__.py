@@ -18,10 +18,12 @@ _LAZY = {
     "PatchFlowSettings": "cmax.fitting.settings", "RefineSettings": "cmax.fitting.settings",
     "SweepSettings": "cmax.fitting.settings", "StageLog": "cmax.fitting.pipeline",
     "SequenceResult": "cmax.fitting.sequence", "fit_sequence": "cmax.fitting.sequence",
+    "Verdict": "cmax.fitting.quality", "QualitySettings": "cmax.fitting.quality", "Quality": "cmax.fitting.quality",
 }
 
 __all__ = ["BoundWarning", "FitResult", "FitSettings", "LowMotionWarning", "LowParallaxWarning", "MotionInit",
-           "PatchFlowSettings", "Polish", "RefineSettings", "Refinement", "SequenceResult", "StageLog", "SweepSettings",
-           "fit", "fit_sequence"]
+           "PatchFlowSettings", "Polish", "Quality", "QualitySettings", "RefineSettings", "Refinement",
+           "SequenceResult", "StageLog", "SweepSettings",
+           "Verdict", "fit", "fit_sequence"]
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())

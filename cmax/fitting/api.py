@@ -19,13 +19,15 @@ from cmax.camera import check_intrinsics
 from cmax.events import Events
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
+from cmax.fitting.quality import Quality, QualitySettings, Verdict, assess, verdict_of
 from cmax.fitting.settings import FitSettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import LOW_PARALLAX_PX, Window
 from cmax.iwe import accumulate_bilinear, blur
 from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
 
-__all__ = ["FitResult", "FitSettings", "LowParallaxWarning", "LowMotionWarning", "BoundWarning", "fit"]
+__all__ = ["FitResult", "FitSettings", "QualitySettings", "Verdict", "LowParallaxWarning", "LowMotionWarning",
+           "BoundWarning", "fit"]
 
 
 class LowParallaxWarning(UserWarning):
@@ -119,6 +121,9 @@ class FitResult:
         iterations, evaluations, seconds, solver message, success, parameters on a bound.
     motion_px : float or None
         ``flow``/``rotation``: median displacement of the events by the fitted motion over the window [px].
+    quality : Quality or None
+        The verdict (ok / ambiguous / low parallax / failed), its reason and the scored alternative
+        motions (:mod:`cmax.fitting.quality`, ``docs/quality.md``).
     """
 
     model: str
@@ -147,6 +152,12 @@ class FitResult:
     depth_spread: np.ndarray | None = None
     stages: tuple[StageLog, ...] = ()
     motion_px: float | None = None
+    quality: Quality | None = None
+
+    @property
+    def verdict(self) -> Verdict | None:
+        """``quality.verdict``: ok, ambiguous, low_parallax or failed."""
+        return None if self.quality is None else self.quality.verdict
 
     @property
     def twist(self) -> np.ndarray:
@@ -227,7 +238,8 @@ def fit(
     events: Events, K: object, model: str = "se3", *, speed: float | None = None, pose: object = None,
     omega: object = None, depth_grid: tuple[int, int] = (24, 32), solver: "str | Solver" = "scipy",
     init: FitResult | None = None,
-    settings: FitSettings | None = None, num_threads: int | None = 1, **options,
+    settings: FitSettings | None = None, num_threads: int | None = 1, quality: QualitySettings | None = None,
+    **options,
 ) -> FitResult:
     """Fit the motion (and the depth) of one window of events by contrast maximization.
 
@@ -277,6 +289,8 @@ def fit(
         torch threads during the fit (restored afterwards); 1 is fastest on
         busy machines; None lets :func:`cmax._threads.torch_threads` choose
         from the window's size, the cores and the machine's load.
+    quality : QualitySettings, optional
+        The ambiguity test behind ``FitResult.quality`` (:mod:`cmax.fitting.quality`).
 
     Returns
     -------
@@ -328,6 +342,9 @@ def fit(
     if (speed is not None or pose is not None or omega is not None) and model != "se3":
         raise ValueError(f"speed, pose and omega apply to model='se3', not {model!r}")
     known_omega = None if omega is None else _known_omega(omega, pose)
+    quality = QualitySettings() if quality is None else quality
+    if not isinstance(quality, QualitySettings):
+        raise TypeError(f"quality must be a QualitySettings, got {type(quality).__name__}")
     if init is not None and not isinstance(init, FitResult):
         raise TypeError(f"init must be a FitResult, got {type(init).__name__}")
     backend = make_solver(solver)
@@ -344,6 +361,9 @@ def fit(
         if known_omega is not None:
             motion = replace(motion, omega=known_omega)
         result = _result(w, events, K, model, motion, logs, scale_known=pose is not None or speed is not None,
+                         seconds=time.perf_counter() - start)
+        result = replace(result, quality=_quality(w, result, settings, quality, backend, pose_known=pose is not None,
+                                                  hold_omega=known_omega is not None, speed=scale),
                          seconds=time.perf_counter() - start)
     _warn(result, settings, pose is not None)
     return result
@@ -379,6 +399,32 @@ def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, kno
         omega = known_omega
     return Motion(flow=None if flow is None else np.asarray(flow, float), omega=np.asarray(omega, float),
                   speed=scale)
+
+
+def _low_motion(result: FitResult, settings: FitSettings) -> str | None:
+    """Why the fit moved the events too little to trust (the rule of the low-parallax and low-motion
+    warnings), or None."""
+    if result.parallax_px is not None and result.parallax_px < LOW_PARALLAX_PX:
+        return f"parallax {result.parallax_px:.2f} px, under LOW_PARALLAX_PX={LOW_PARALLAX_PX:g}"
+    if result.motion_px is not None and result.motion_px < settings.low_motion_px:
+        return f"motion {result.motion_px:.2f} px, under low_motion_px={settings.low_motion_px:g}"
+    return None
+
+
+def _quality(w: Window, result: FitResult, settings: FitSettings, quality: QualitySettings, solver: Solver, *,
+             pose_known: bool,
+             hold_omega: bool, speed: float) -> Quality:
+    """The verdict of a finished fit; the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on se3
+    fits with a fitted direction that did not fail and have parallax."""
+    failed = [log.stage for log in result.stages if not log.success]
+    low = _low_motion(result, settings)
+    alternatives, note = (), ("ambiguity not tested: the pose is given" if pose_known else
+                              "ambiguity not tested: a model without translation" if result.model != "se3" else
+                              "ambiguity not tested (QualitySettings.ambiguity_test False)")
+    if result.model == "se3" and not pose_known and quality.ambiguity_test and result.success and low is None:
+        alternatives, note = assess(w, result.v, result.omega, speed, quality, solver, hold_omega=hold_omega)
+    return verdict_of(success=result.success, failed_stages=failed, low_motion=low, alternatives=alternatives,
+                      note=note)
 
 
 def _warn(result: FitResult, settings: FitSettings, pose_known: bool) -> None:

@@ -6,7 +6,9 @@ Outputs in ``-o outdir/``: ``depth_XXXXX.npz`` (``depth``, ``mask``,
 ``depth_spread``, ``inverse_depth_grid``, ``t_ref_us``, ``K``) and ``depth_XXXXX.png`` per
 window (se3; the map with a colour bar in metres, unlabelled without ``--speed``), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
 camera-to-world, the first window's start as the origin) and
-``summary.json`` (settings, per-window twist, objective, parallax, seconds).
+``summary.json`` (settings, per-window twist, objective, parallax, seconds, quality verdict with its
+reason and alternatives, and the counts of each verdict). Each window's verdict is printed on a line of
+its own and counted in the summary line (``docs/quality.md``).
 """
 from __future__ import annotations
 
@@ -283,6 +285,23 @@ def _depth_scale(results, depth_range) -> "object":
         return None
 
 
+def verdict_counts(counts: dict[str, int]) -> str:
+    """The summary line's verdict counts, e.g. ``3 ok, 2 ambiguous (1 resolved), 0 low parallax, 1 failed``."""
+    resolved = f" ({counts['resolved']} resolved)" if counts.get("ambiguous") else ""
+    return (f"{counts['ok']} ok, {counts['ambiguous']} ambiguous{resolved}, {counts['low_parallax']} low parallax, "
+            f"{counts['failed']} failed")
+
+
+def window_line(index: int, result, first_us: int) -> str:
+    """One window's verdict line: its time (seconds after the first event), verdict, reason, resolution."""
+    t0, t1 = (result.t0_us - first_us) * 1e-6, (result.t1_us - first_us) * 1e-6
+    q = result.quality
+    if q is None:
+        return f"window {index} ({t0:.3f}-{t1:.3f} s): no verdict"
+    resolution = f"; {q.resolution}" if q.resolution else ""
+    return f"window {index} ({t0:.3f}-{t1:.3f} s): {q.verdict.value.replace('_', ' ')}: {q.reason}{resolution}"
+
+
 def run_fit(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status (1 when no window could be fitted)."""
     import sys
@@ -292,7 +311,6 @@ def run_fit(args: argparse.Namespace) -> int:
     from cmax import viz
     from cmax.fitting import fit_sequence
     from cmax.fitting.sequence import check_gyro
-    from cmax.fitting.window import LOW_PARALLAX_PX
     from cmax.io import read, read_gyro
 
     if args.calib is not None:
@@ -355,14 +373,17 @@ def run_fit(args: argparse.Namespace) -> int:
             save_npz_atomic(out / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask, depth_spread=r.depth_spread,
                             inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=K)
             title = (f"window {i}, t_ref {(r.t_ref_us - int(events.t[0])) * 1e-6:.3f} s, "
-                     f"depth [{'m' if r.scale_known else 'up to scale'}]")
+                     f"depth [{'m' if r.scale_known else 'up to scale'}]"
+                     + ("" if r.verdict is None else f", {r.verdict.value.replace('_', ' ')}"))
             viz.save_png(out / f"depth_{i:05d}.png", viz.depth_panel(np.where(r.mask, r.depth, np.nan), scale, title,
                                                                      unit="m" if r.scale_known else ""))
         windows.append({"t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
                         "omega": r.omega.tolist(), "flow": None if r.flow is None else r.flow.tolist(),
                         "objective_after": r.objective_after, "seconds": r.seconds, "iterations": r.iterations,
                         "message": r.message,
-                        "scale_known": r.scale_known, "parallax_px": r.parallax_px})
+                        "scale_known": r.scale_known, "parallax_px": r.parallax_px,
+                        **(r.quality.summary() if r.quality is not None else {"verdict": None})})
+        print(window_line(i, r, int(events.t[0])))
     write_text_atomic(out / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
     summary = {"file": str(args.file), "model": sequence_model, "K": K.tolist(),
                "distortion": None if distortion is None else distortion.tolist(),
@@ -372,14 +393,12 @@ def run_fit(args: argparse.Namespace) -> int:
                "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro),
                "solver": args.solver or _fit_default("solver")(),
                "zero_rotation_start": args.zero_rotation_start, "notes": notes,
-               "windows_total": n_windows, "windows": windows}
+               "windows_total": n_windows, "verdicts": sequence.counts(), "windows": windows}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
-    low = sum(w["parallax_px"] is not None and w["parallax_px"] < LOW_PARALLAX_PX for w in windows)
-    caveat = f", {low} with under {LOW_PARALLAX_PX:g} px of parallax (depth poorly constrained)" if low else ""
     min_events = _sequence_default("min_events")()
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""
-    print(f"{len(windows)} of {n_windows} windows fitted{skip}{caveat}; results in {out}")
+    print(f"{len(windows)} of {n_windows} windows fitted{skip}: {verdict_counts(sequence.counts())}; results in {out}")
     if not windows:
         print(f"cmax fit: no window was fitted: each has fewer than {min_events:,} events", file=sys.stderr)
         return 1

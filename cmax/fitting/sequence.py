@@ -1,12 +1,13 @@
 """``cmax.fit_sequence``: fit a recording window by window and integrate the trajectory."""
 from __future__ import annotations
 
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import numpy as np
 
 from cmax.events import Events
 from cmax.fitting.api import FitResult, fit
+from cmax.fitting.quality import QualitySettings, Verdict, choose_from_neighbours
 from cmax.geometry import se3_exp
 
 __all__ = ["SequenceResult", "fit_sequence", "check_gyro", "window_gyro"]
@@ -30,6 +31,18 @@ class SequenceResult:
     results: tuple
     times_us: np.ndarray
     poses: np.ndarray
+
+    @property
+    def verdicts(self) -> tuple:
+        """Each fitted window's :class:`~cmax.fitting.quality.Verdict` (``results[i].verdict``)."""
+        return tuple(r.verdict for r in self.results)
+
+    def counts(self) -> dict[str, int]:
+        """How many fitted windows have each verdict (``{"ok": n, "ambiguous": n, "low_parallax": n,
+        "failed": n}``), and ``"resolved"``: the ambiguous ones resolved from their neighbours."""
+        counts = {v.value: sum(r.verdict is v for r in self.results) for v in Verdict}
+        counts["resolved"] = sum(r.quality is not None and r.quality.resolved for r in self.results)
+        return counts
 
 
 def check_gyro(gyro: object) -> tuple[np.ndarray, np.ndarray]:
@@ -64,8 +77,9 @@ def window_gyro(gyro: tuple[np.ndarray, np.ndarray], t0_us: int, t1_us: int) -> 
 
 def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_500, step_us: int | None = None,
                  speed: float | None = None, gyro: object = None, min_events: int = 1000,
-                 **fit_options) -> SequenceResult:
-    """Fit consecutive windows of a recording, warm-starting each from the previous.
+                 quality: QualitySettings | None = None, **fit_options) -> SequenceResult:
+    """Fit consecutive windows of a recording, warm-starting each from the previous; resolve the
+    ambiguous windows from their neighbours.
 
     Parameters
     ----------
@@ -86,9 +100,19 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         The samples must span every window (checked before the first fit).
     min_events : int
         Windows with fewer events are skipped (the pose is held by the last twist).
+    quality : QualitySettings, optional
+        The ambiguity test of every window (``fit(..., quality=)``) and the resolution: once all windows
+        are fitted, each ``ambiguous`` window takes, among the fit and its alternatives within noise, the
+        motion closest to its ``ok`` neighbours' (up to ``quality.neighbours`` windows on each side;
+        :func:`cmax.fitting.quality.choose_from_neighbours`); an alternative is re-fitted with its motion
+        held (the depth swept for it). ``FitResult.quality.resolution`` says what was done, or why the
+        window stays unresolved.
     **fit_options
         Passed to :func:`fit`.
     """
+    quality = QualitySettings() if quality is None else quality
+    if not isinstance(quality, QualitySettings):
+        raise TypeError(f"quality must be a QualitySettings, got {type(quality).__name__}")
     step_us = window_us if step_us is None else int(step_us)
     if window_us <= 0 or step_us <= 0:
         raise ValueError(f"window_us and step_us must be positive, got {window_us}, {step_us}")
@@ -107,20 +131,47 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     starts = range(t_start, t_end + 2 - window_us, step_us)
     if gyro is not None and len(starts):
         _check_gyro_covers(gyro, t_start, starts[-1] + window_us - 1)
-    results, times, poses = [], [t_start], [np.eye(4)]
+    results, steps, times = [], [], [t_start]        # steps: the index of the result each step moves with
     previous: FitResult | None = None
     for t0 in starts:
         events = take(t0, t0 + window_us)
-        twist = previous.twist if previous is not None else np.zeros(6)
         if len(events) >= min_events and events.t[-1] > events.t[0]:
             omega = None if gyro is None else window_gyro(gyro, int(events.t[0]), int(events.t[-1]))
             previous = fit(events, K, model, speed=speed if model == "se3" else None, omega=omega, init=previous,
-                           **fit_options)
+                           quality=quality, **fit_options)
             results.append(previous)
-            twist = previous.twist
-        poses.append(poses[-1] @ se3_exp(twist * step_us * 1e-6))
+        steps.append(len(results) - 1)
         times.append(t0 + step_us)
+    results = _resolve_ambiguous(results, take, K, speed, quality, fit_options)
+    poses = [np.eye(4)]
+    for index in steps:
+        twist = results[index].twist if index >= 0 else np.zeros(6)
+        poses.append(poses[-1] @ se3_exp(twist * step_us * 1e-6))
     return SequenceResult(tuple(results), np.asarray(times, np.int64), np.stack(poses))
+
+
+def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, quality: QualitySettings,
+                       fit_options: dict) -> list[FitResult]:
+    """Each ambiguous se3 window resolved from its ``ok`` neighbours (:func:`choose_from_neighbours`);
+    a chosen alternative is re-fitted with its motion held (``fit(..., pose=)``), its depth swept."""
+    out = list(results)
+    for i, r in enumerate(results):
+        if r.verdict is not Verdict.AMBIGUOUS:
+            continue
+        near = results[max(0, i - quality.neighbours):i] + results[i + 1:i + 1 + quality.neighbours]
+        neighbours = [(n.v, n.omega) for n in near if n.verdict is Verdict.OK]
+        duration_s = (r.t1_us - r.t0_us) * 1e-6
+        chosen, resolved = choose_from_neighbours(r.v, r.omega, r.quality, neighbours, duration_s,
+                                                  quality.max_resolve_deg)
+        if chosen is None:
+            out[i] = replace(r, quality=resolved)
+            continue
+        events = take(r.t0_us, r.t1_us + 1)
+        refit = fit(events, K, "se3", pose=np.r_[chosen.v, chosen.omega], quality=quality, **fit_options)
+        out[i] = replace(refit, scale_known=speed is not None, quality=replace(resolved, replaced=(r.v, r.omega)),
+                         stages=r.stages + refit.stages, seconds=r.seconds + refit.seconds,
+                         iterations=r.iterations + refit.iterations, evaluations=r.evaluations + refit.evaluations)
+    return out
 
 
 def _check_gyro_covers(gyro: tuple[np.ndarray, np.ndarray], first_us: int, last_us: int) -> None:

@@ -1,0 +1,88 @@
+"""The quality verdicts of ``cmax.fit`` on held-out synthetic windows, written to
+``benchmarks/results/quality_cmax.md``: how many windows are ok / ambiguous / low parallax / failed,
+and whether the bad ones (direction more than ``BAD_DEG`` from the truth) are flagged (not ``ok``).
+
+Windows: ``indoor_flying`` (346x260, seeds 100-119 held out, as ``benchmarks.accuracy_cmax``), fitted
+with ``speed=|v|`` and the preset's depth range, with and without the gyroscope's rotation.
+
+    python -m benchmarks.quality_cmax [--seeds 100-119] [--cache DIR]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+import torch
+
+from benchmarks.accuracy_cmax import _room, cached
+from benchmarks.synthetic_windows import preset_window
+from cmax.fitting import Verdict, fit
+
+#: A window whose fitted direction is farther than this from the truth [deg] is a bad one.
+BAD_DEG = 30.0
+
+
+def run(window, gyro: bool) -> dict:
+    v = window.twist[:3]
+    speed = float(np.linalg.norm(v))
+    start = time.perf_counter()
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = fit(window.events, window.K, speed=speed, omega=window.twist[3:] if gyro else None, **_room())
+    seconds = time.perf_counter() - start
+    cos = float(r.v @ v / (np.linalg.norm(r.v) * speed))
+    return {"direction_deg": float(np.degrees(np.arccos(np.clip(cos, -1, 1)))), "verdict": r.verdict,
+            "reason": r.quality.reason, "seconds": seconds, "parallax_px": r.parallax_px,
+            "quality_seconds": seconds - sum(log.seconds for log in r.stages)}
+
+
+def table(rows: list[dict], title: str) -> list[str]:
+    bad = [row for row in rows if row["direction_deg"] > BAD_DEG]
+    flagged_bad = [row for row in bad if row["verdict"] is not Verdict.OK]
+    good = [row for row in rows if row["direction_deg"] <= BAD_DEG]
+    flagged_good = [row for row in good if row["verdict"] is not Verdict.OK]
+    counts = ", ".join(f"{sum(row['verdict'] is v for row in rows)} {v.value}" for v in Verdict)
+    lines = [f"## {title}", "", f"Verdicts: {counts}. Bad windows (direction > {BAD_DEG:g} deg): {len(bad)}, "
+             f"flagged (not ok): {len(flagged_bad)}. Good windows flagged anyway: {len(flagged_good)} of {len(good)}. "
+             f"Median seconds per fit {np.median([r['seconds'] for r in rows]):.2f}, of which the ambiguity test "
+             f"and the result {np.median([r['quality_seconds'] for r in rows]):.2f}.", "",
+             "| seed | direction error [deg] | parallax [px] | verdict | reason |", "|---|---|---|---|---|"]
+    for row in rows:
+        lines.append(f"| {row['seed']} | {row['direction_deg']:.1f} | {row['parallax_px']:.1f} "
+                     f"| {row['verdict'].value} | {row['reason']} |")
+    return lines + [""]
+
+
+def main(argv: list[str] | None = None) -> None:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--seeds", default="100-119")
+    parser.add_argument("--cache", type=Path, default=None)
+    parser.add_argument("--output", type=Path, default=Path(__file__).parent / "results" / "quality_cmax.md")
+    args = parser.parse_args(argv)
+    torch.set_num_threads(1)
+    first, last = (int(s) for s in args.seeds.split("-"))
+    seeds = list(range(first, last + 1))
+    start = time.perf_counter()
+    sections = []
+    for gyro in (False, True):
+        rows = []
+        for seed in seeds:
+            window = cached(args.cache, f"indoor_flying_{seed}", lambda s=seed: preset_window("indoor_flying", s))
+            rows.append({"seed": seed, **run(window, gyro)})
+            print(seed, gyro, f"{rows[-1]['direction_deg']:.1f}", rows[-1]["verdict"].value, flush=True)
+        sections.append(table(rows, "se3 with the gyroscope's rotation held" if gyro else "se3, rotation fitted"))
+    head = ["# cmax.fit quality verdicts on held-out synthetic windows", "",
+            f"`indoor_flying` seeds {seeds[0]}-{seeds[-1]}, 346x260, `speed=|v|`, depth range 1-6.5 m, default "
+            f"`QualitySettings`. Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+            f"torch threads 1. Written by `python -m benchmarks.quality_cmax` in "
+            f"{time.perf_counter() - start:.0f} s.", ""]
+    args.output.write_text("\n".join(head + [line for section in sections for line in section]))
+
+
+if __name__ == "__main__":
+    main()

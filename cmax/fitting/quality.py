@@ -1,0 +1,311 @@
+"""The quality verdict of a fitted window: ok, ambiguous, low parallax or failed.
+
+A se3 fit picks one motion; contrast maximization has well-known near-ties that a wrong pick cannot
+see from the inside: the mirrored translation ``v -> -v``, the rotation of the other sign
+``omega -> -omega``, and the bas-relief trade, where the rotation takes over the translation's flow so
+that ``-v`` explains the events nearly as well (Adelson & Bergen's bas-relief ambiguity; in event
+data e.g. Gallego et al., CVPR 2018, Fig. 6). :func:`assess` scores each alternative on the fit's own
+final motion objective, the patch-wise contrast of :class:`cmax.fitting.motion.LocalMotionObjective`,
+with each motion's patch depths re-optimised by the same per-patch inverse-depth sweep the refinement
+starts from (:meth:`~cmax.fitting.motion.LocalMotionObjective.sweep_rho`). An alternative within
+*noise* of the fit makes the window ambiguous:
+
+    gain_p = c_p(fit) - c_p(alternative)          (normalised contrast of patch p, each with its sweep)
+    G      = sum_p gain_p                          (> 0: the fit is better)
+    noise  = max(noise_sigmas * sqrt(P) * std_p(gain_p),  margin * sum_p (c_p(fit) - 1))
+    ambiguous when G <= noise
+
+The first term is the standard error of the summed gain over the ``P`` patches (a preference that only
+some patches share is not evidence); the second a relative margin on the fit's own gain over the
+unwarped events. :func:`choose_from_neighbours` resolves an ambiguous window of a sequence from the
+motion of its confident neighbours (:func:`cmax.fitting.fit_sequence`).
+"""
+from __future__ import annotations
+
+import enum
+import math
+from dataclasses import dataclass, replace
+from typing import Sequence
+
+import numpy as np
+import torch
+
+from cmax.fitting.motion import LocalMotionObjective, refine_motion_local
+from cmax.fitting.patch_flow import make_patches
+from cmax.warp import warp_se3
+
+__all__ = ["Verdict", "QualitySettings", "Alternative", "Quality", "assess", "verdict_of",
+           "choose_from_neighbours", "alternative_motions"]
+
+
+class Verdict(str, enum.Enum):
+    """The quality of one window's fit, worst first: ``failed`` (a stage failed, ``success`` False),
+    ``low_parallax`` (se3: ``parallax_px`` under ``LOW_PARALLAX_PX``; flow/rotation: ``motion_px``
+    under ``low_motion_px``), ``ambiguous`` (an alternative motion scores within noise), ``ok``."""
+
+    OK = "ok"
+    AMBIGUOUS = "ambiguous"
+    LOW_PARALLAX = "low_parallax"
+    FAILED = "failed"
+
+
+@dataclass(frozen=True)
+class QualitySettings:
+    """Options of the ambiguity test and of the resolution from neighbours.
+
+    Attributes
+    ----------
+    ambiguity_test : bool
+        Score the alternatives (se3 with a fitted direction; a few sweeps of the patch-wise objective).
+    margin : float
+        Relative margin: an alternative whose summed gain is within ``margin`` times the fit's own
+        contrast gain over the unwarped events is ambiguous, whatever the patches' spread.
+    noise_sigmas : float
+        Multiples of the standard error of the summed per-patch gain that count as noise.
+    polish_iterations : int
+        Iterations of the fit's own patch-wise refinement (:func:`cmax.fitting.motion.refine_motion_local`)
+        from each alternative before it is scored (0: the depth sweep only), so that an alternative is
+        compared at its own optimum as the fit is at its.
+    distinct_deg : float
+        A polished alternative that ends within this distance of the fit (direction angle plus rotation
+        over the window, degrees) is the fit itself, not an alternative: it is dropped.
+    neighbours : int
+        ``fit_sequence``: windows on each side searched for confident (``ok``) neighbours.
+    max_resolve_deg : float
+        ``fit_sequence``: a candidate farther than this from the neighbours' motion (direction angle
+        plus rotation difference over the window, degrees) does not resolve a window.
+    """
+
+    ambiguity_test: bool = True
+    margin: float = 0.02
+    noise_sigmas: float = 1.0
+    polish_iterations: int = 20
+    distinct_deg: float = 30.0
+    neighbours: int = 2
+    max_resolve_deg: float = 45.0
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.ambiguity_test, bool):
+            raise TypeError(f"ambiguity_test must be a bool, got {self.ambiguity_test!r}")
+        for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
+            raise ValueError(f"polish_iterations must be an int >= 0, got {self.polish_iterations!r}")
+        if not (isinstance(self.neighbours, int) and self.neighbours >= 1):
+            raise ValueError(f"neighbours must be an int >= 1, got {self.neighbours!r}")
+
+
+@dataclass(frozen=True, eq=False)
+class Alternative:
+    """One alternative motion of a window: ``name`` (``mirrored``, ``rotation_flipped``, ``bas_relief``),
+    ``v`` (3,) [m/s] and ``omega`` (3,) [rad/s], the summed gain of the fit over it (> 0: the fit is
+    better), its noise (see the module docstring) and whether the gain is within it."""
+
+    name: str
+    v: np.ndarray
+    omega: np.ndarray
+    gain: float
+    noise: float
+    within_noise: bool
+
+
+@dataclass(frozen=True, eq=False)
+class Quality:
+    """The verdict of one window and why.
+
+    Attributes
+    ----------
+    verdict : Verdict
+    reason : str
+    alternatives : tuple of Alternative
+        The scored alternatives (empty when not tested).
+    resolution : str
+        ``fit_sequence``: how an ambiguous window was resolved from its neighbours, or why not ("" when
+        not ambiguous or not in a sequence).
+    resolved : bool
+        Whether ``fit_sequence`` resolved it (kept the fit or took an alternative).
+    replaced : (v, omega) or None
+        The window's own fit ``(v (3,), omega (3,))`` when ``fit_sequence`` replaced it by an alternative.
+    """
+
+    verdict: Verdict
+    reason: str
+    alternatives: tuple[Alternative, ...] = ()
+    resolution: str = ""
+    resolved: bool = False
+    replaced: tuple[np.ndarray, np.ndarray] | None = None
+
+    def summary(self) -> dict:
+        """A JSON-ready dict."""
+        return {"verdict": self.verdict.value, "reason": self.reason,
+                "alternatives": [{"name": a.name, "v": a.v.tolist(), "omega": a.omega.tolist(), "gain": a.gain,
+                                  "noise": a.noise, "within_noise": a.within_noise} for a in self.alternatives],
+                "resolution": self.resolution, "resolved": self.resolved,
+                "replaced": None if self.replaced is None else {"v": self.replaced[0].tolist(),
+                                                                 "omega": self.replaced[1].tolist()}}
+
+
+# ----------------------------------------------------------------------------------------------
+# Alternatives and their scores
+# ----------------------------------------------------------------------------------------------
+def _unit_flows(rays: torch.Tensor, K: torch.Tensor, rho: torch.Tensor, v: np.ndarray,
+                dt: float) -> tuple[np.ndarray, np.ndarray]:
+    """Flows [px over ``dt``] of the translation ``v`` at inverse depths ``rho`` (M,), and of the unit
+    rotations about x, y, z: (2M,) and (2M, 3), by the exact warp (its conventions, not a formula's)."""
+    dtype = rays.dtype
+    t = torch.full((1, rays.shape[0]), dt, dtype=dtype)
+    zero = torch.zeros(3, dtype=dtype)
+    x0, y0 = warp_se3(rays, t * 0, zero, zero, rho, K)
+
+    def flow(v_, omega_):
+        x, y = warp_se3(rays, t, torch.as_tensor(v_, dtype=dtype), torch.as_tensor(omega_, dtype=dtype), rho, K)
+        return torch.cat([(x - x0)[0], (y - y0)[0]]).double().numpy()
+
+    rotation = np.stack([flow(zero, torch.eye(3, dtype=dtype)[k]) for k in range(3)], 1)
+    return flow(v, zero), rotation
+
+
+def alternative_motions(objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray, rho: np.ndarray,
+                        *, hold_omega: bool) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """The alternatives of the fit ``(v, omega)`` with patch inverse depths ``rho`` (P,) [1/m]:
+    ``mirrored`` ``(-v, omega)``; unless ``hold_omega``, ``rotation_flipped`` ``(v, -omega)`` and
+    ``bas_relief`` ``(-v, omega + d)`` with ``d`` the rotation whose flow best matches (least squares
+    over the patches' events) twice the translation's flow, so that ``-v`` with it moves the events as
+    the fit does."""
+    v, omega = np.asarray(v, float), np.asarray(omega, float)
+    out = [("mirrored", -v, omega.copy())]
+    if hold_omega:
+        return out
+    if np.linalg.norm(omega) > 0:
+        out.append(("rotation_flipped", v.copy(), -omega))
+    patches = objective.patches
+    step = max(1, len(patches.x) // 2000)
+    rays, rho_events = objective.rays[::step], torch.as_tensor(rho, dtype=objective.rays.dtype)[patches.patch[::step]]
+    dt = 1e-3
+    translation, rotation = _unit_flows(rays, objective.K, rho_events, v, dt)
+    d, *_ = np.linalg.lstsq(rotation, 2.0 * translation, rcond=None)
+    out.append(("bas_relief", -v, omega + d))
+    return out
+
+
+def _patch_contrast(objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray,
+                    candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """Per-patch normalised contrast (P,) of ``(v, omega)`` with each patch's best inverse depth among
+    ``candidates`` [1/m], and those depths (P,)."""
+    rho = objective.sweep_rho(v, omega, candidates)
+    with torch.no_grad():
+        values = objective.values(torch.from_numpy(objective.params(v, omega, rho))).double().numpy()
+    return values, rho
+
+
+def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualitySettings, solver, *,
+           hold_omega: bool) -> tuple[tuple[Alternative, ...], str]:
+    """The ambiguity test of a se3 fit ``(v, omega)`` of window ``w`` (a :class:`cmax.fitting.window.Window`),
+    polishing the alternatives with ``solver`` (a :class:`cmax.fitting.solvers.Solver`).
+
+    Returns ``(alternatives, note)``: none, and ``note`` saying why, when the window has fewer than 4
+    patches with events (nothing to test on); ``note`` also names the alternatives dropped because their
+    polish ended on the fit (within ``settings.distinct_deg``).
+    """
+    refine = w.settings.refine
+    patches = make_patches(w, grid=refine.grid, min_events=refine.min_events, max_events=refine.max_events,
+                           margin=refine.margin)
+    if patches is None or patches.count < 4:
+        return (), "ambiguity not tested: fewer than 4 patches hold events"
+    objective = LocalMotionObjective.build(w, patches, speed)
+    near, far = w.settings.depth_range
+    candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), refine.rho_candidates))
+    c_fit, rho = _patch_contrast(objective, v, omega, candidates)
+    own_gain = float(np.sum(c_fit - 1.0))
+    alternatives, merged = [], []
+    for name, v_alt, omega_alt in alternative_motions(objective, v, omega, rho, hold_omega=hold_omega):
+        if settings.polish_iterations:
+            polished = refine_motion_local(w, v_alt, omega_alt, speed,
+                                           replace(refine, iterations=settings.polish_iterations), solver,
+                                           hold_omega=hold_omega)
+            v_alt, omega_alt = polished.v, polished.omega
+            if _distance_deg(v_alt, omega_alt, v, omega, w.T) < settings.distinct_deg:
+                merged.append(name)
+                continue
+        c_alt, _ = _patch_contrast(objective, v_alt, omega_alt, candidates)
+        gain = c_fit - c_alt
+        noise = max(settings.noise_sigmas * float(np.std(gain, ddof=1)) * math.sqrt(patches.count),
+                    settings.margin * max(own_gain, 0.0))
+        alternatives.append(Alternative(name, v_alt, omega_alt, float(gain.sum()), noise, bool(gain.sum() <= noise)))
+    note = f"the {', '.join(merged)} alternative(s) polished back onto the fit" if merged else ""
+    return tuple(alternatives), note
+
+
+# ----------------------------------------------------------------------------------------------
+# The verdict
+# ----------------------------------------------------------------------------------------------
+def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: str | None,
+               alternatives: Sequence[Alternative], note: str = "") -> Quality:
+    """The verdict from the fit's ``success`` (and the names of its failed stages), a low-motion reason
+    (low parallax or motion, None when enough) and the ambiguity test's ``alternatives``;
+    the worst one wins (failed, low parallax, ambiguous, ok)."""
+    if not success:
+        return Quality(Verdict.FAILED, f"stage(s) failed: {', '.join(failed_stages) or 'unknown'}",
+                       tuple(alternatives))
+    if low_motion is not None:
+        return Quality(Verdict.LOW_PARALLAX, low_motion, tuple(alternatives))
+    close = [a for a in alternatives if a.within_noise]
+    if close:
+        reason = "; ".join(f"{a.name} within noise (gain {a.gain:.3g} <= noise {a.noise:.3g})" for a in close)
+        return Quality(Verdict.AMBIGUOUS, reason, tuple(alternatives))
+    if alternatives:
+        worst = min(alternatives, key=lambda a: a.gain)
+        reason = (f"every alternative scores worse beyond noise (closest: {worst.name}, gain {worst.gain:.3g} > "
+                  f"noise {worst.noise:.3g})" + (f"; {note}" if note else ""))
+    else:
+        reason = note or "no alternative tested"
+    return Quality(Verdict.OK, reason, tuple(alternatives))
+
+
+# ----------------------------------------------------------------------------------------------
+# Resolution from neighbours
+# ----------------------------------------------------------------------------------------------
+def _distance_deg(v: np.ndarray, omega: np.ndarray, v_ref: np.ndarray, omega_ref: np.ndarray,
+                  duration_s: float) -> float:
+    """Angle between the directions of ``v`` and ``v_ref`` [deg] plus the rotation between ``omega`` and
+    ``omega_ref`` accumulated over the window [deg]."""
+    cos = float(np.dot(v, v_ref) / max(np.linalg.norm(v) * np.linalg.norm(v_ref), 1e-12))
+    angle = math.degrees(math.acos(min(1.0, max(-1.0, cos))))
+    return angle + math.degrees(float(np.linalg.norm(np.asarray(omega) - omega_ref)) * duration_s)
+
+
+def choose_from_neighbours(v: np.ndarray, omega: np.ndarray, quality: Quality,
+                           neighbours: Sequence[tuple[np.ndarray, np.ndarray]], duration_s: float,
+                           max_resolve_deg: float) -> tuple[Alternative | None, Quality]:
+    """Resolve an ambiguous window from its confident neighbours' ``(v, omega)`` motions.
+
+    The candidates are the fit ``(v, omega)`` and its alternatives within noise; the one closest to the
+    neighbours' mean motion (:func:`_distance_deg`: direction angle plus rotation over the window) wins
+    when closer than ``max_resolve_deg``. Returns the chosen alternative (None: keep the fit, or
+    unresolved) and the quality with ``resolution``/``resolved`` filled in.
+    """
+    if quality.verdict is not Verdict.AMBIGUOUS:
+        return None, quality
+    if not neighbours:
+        return None, _with(quality, "unresolved: no confident (ok) neighbour window", False)
+    units = [np.asarray(nv, float) / max(np.linalg.norm(nv), 1e-12) for nv, _ in neighbours]
+    v_ref = np.mean(units, 0)
+    omega_ref = np.mean([np.asarray(no, float) for _, no in neighbours], 0)
+    candidates = [("fit", None, v, omega)] + [(a.name, a, a.v, a.omega) for a in quality.alternatives if a.within_noise]
+    scored = sorted(((_distance_deg(cv, co, v_ref, omega_ref, duration_s), name, alt)
+                     for name, alt, cv, co in candidates), key=lambda s: s[0])
+    distance, name, alt = scored[0]
+    if distance > max_resolve_deg:
+        return None, _with(quality, f"unresolved: the closest candidate ({name}) is {distance:.0f} deg from the "
+                                    f"{len(neighbours)} neighbour(s), over {max_resolve_deg:g}", False)
+    if alt is None:
+        return None, _with(quality, f"resolved: kept the fit, closest to the {len(neighbours)} neighbour(s) "
+                                    f"({distance:.0f} deg)", True)
+    return alt, _with(quality, f"resolved: took the {name} alternative, within noise and closest to the "
+                               f"{len(neighbours)} neighbour(s) ({distance:.0f} deg)", True)
+
+
+def _with(quality: Quality, resolution: str, resolved: bool) -> Quality:
+    return Quality(quality.verdict, quality.reason, quality.alternatives, resolution, resolved)

@@ -1,0 +1,169 @@
+"""The quality verdict of ``cmax.fit`` (ok / ambiguous / low parallax / failed), the ambiguity test
+against the mirrored, rotation-flipped and bas-relief alternatives, and the resolution of ambiguous
+windows from their neighbours in ``fit_sequence``."""
+from __future__ import annotations
+
+import functools
+import warnings
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from benchmarks.synthetic_windows import make_window
+from cmax.fitting import LowMotionWarning, QualitySettings, Verdict, fit, fit_sequence
+from cmax.fitting import sequence as sequence_module
+from cmax.fitting.quality import Alternative, Quality, choose_from_neighbours, verdict_of
+from cmax.fitting.solvers import Solver, SolveResult
+
+
+def _angle_deg(a: np.ndarray, b: np.ndarray) -> float:
+    cos = float(np.dot(a, b) / (np.linalg.norm(a) * np.linalg.norm(b)))
+    return float(np.degrees(np.arccos(np.clip(cos, -1.0, 1.0))))
+
+
+@functools.lru_cache(maxsize=None)
+def clear_window():
+    """A street seen driving forward (3 px of parallax): the fit is within 20 deg of the true direction."""
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    return w, fit(w.events, w.K, speed=float(np.linalg.norm(w.twist[:3])), depth_range=(1.0, 20.0))
+
+
+# ----------------------------------------------------------------------------------------------
+# The verdict of one window
+# ----------------------------------------------------------------------------------------------
+def _alt(name: str, gain: float, noise: float = 0.1) -> Alternative:
+    return Alternative(name, np.array([-1.0, 0, 0]), np.zeros(3), gain, noise, gain <= noise)
+
+
+def test_the_worst_verdict_wins():
+    close, far = _alt("mirrored", 0.05), _alt("bas_relief", 0.5)
+    assert verdict_of(success=False, failed_stages=["local_refine"], low_motion="parallax 0.2 px",
+                      alternatives=[close]).verdict is Verdict.FAILED
+    low = verdict_of(success=True, failed_stages=[], low_motion="parallax 0.2 px", alternatives=[close])
+    assert low.verdict is Verdict.LOW_PARALLAX and "0.2 px" in low.reason
+    ambiguous = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[close, far])
+    assert ambiguous.verdict is Verdict.AMBIGUOUS and "mirrored within noise" in ambiguous.reason
+    assert "bas_relief" not in ambiguous.reason
+    ok = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[far])
+    assert ok.verdict is Verdict.OK and "closest: bas_relief" in ok.reason
+
+
+@pytest.mark.parametrize("field, value", [("margin", -0.1), ("noise_sigmas", float("nan")), ("neighbours", 0),
+                                          ("polish_iterations", -1), ("max_resolve_deg", "x"),
+                                          ("distinct_deg", float("inf"))])
+def test_quality_settings_are_checked(field, value):
+    with pytest.raises(ValueError, match=field):
+        QualitySettings(**{field: value})
+
+
+def test_a_fronto_parallel_plane_under_pure_translation_is_ambiguous():
+    """A textured wall, the camera sliding parallel to it, a narrow view: a rotation moves the events
+    like the translation does, so ``-v`` with a rotation explains them about as well (bas-relief)."""
+    w = make_window("slider", 4, width=120, height=90, focal=200.0, duration_s=0.3, max_frames=40)
+    assert np.allclose(w.twist[3:], 0.0)                         # pure translation
+    r = fit(w.events, w.K, speed=float(np.linalg.norm(w.twist[:3])), depth_range=(1.0, 20.0), max_events=4000)
+    assert r.parallax_px > 3.0 and r.success                     # neither low parallax nor a failure
+    assert r.verdict is Verdict.AMBIGUOUS, r.quality.reason
+    close = [a for a in r.quality.alternatives if a.within_noise]
+    assert close and all(a.gain <= a.noise for a in close)
+    assert any(_angle_deg(a.v, r.v) > 30.0 for a in close)       # a genuinely other direction
+
+
+def test_a_clear_window_is_ok_and_its_fit_is_right():
+    w, r = clear_window()
+    assert _angle_deg(r.v, w.twist[:3]) < 20.0                   # the ground truth agrees with the verdict
+    assert r.verdict is Verdict.OK, r.quality.reason
+    assert {a.name for a in r.quality.alternatives} >= {"mirrored"}
+    assert all(a.gain > a.noise for a in r.quality.alternatives)
+
+
+def test_without_the_test_or_with_a_known_pose_nothing_is_ambiguous():
+    w, _ = clear_window()
+    r = fit(w.events, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+    assert r.verdict is Verdict.OK and r.quality.alternatives == () and "pose is given" in r.quality.reason
+
+
+class _Wild(Solver):
+    """A backend that always ends far from the start (a forced failure)."""
+
+    def solve(self, problem):
+        x = np.clip(problem.x0 + 3.0, problem.lower, problem.upper)
+        return SolveResult(x, problem.fun_and_grad(x)[0], 1, 1, "wild", True, 0.0)
+
+
+def test_a_failed_stage_gives_failed():
+    w = make_window("rotation", 1, width=120, height=90, focal=90.0, duration_s=0.05, max_frames=60)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore", LowMotionWarning)
+        r = fit(w.events, w.K, model="rotation", solver=_Wild())
+    assert not r.success and r.verdict is Verdict.FAILED and "rotation" in r.quality.reason
+
+
+# ----------------------------------------------------------------------------------------------
+# Resolution from neighbours
+# ----------------------------------------------------------------------------------------------
+def _ambiguous(v_alt, gain=0.01, noise=0.1) -> Quality:
+    alt = Alternative("mirrored", np.asarray(v_alt, float), np.zeros(3), gain, noise, gain <= noise)
+    return Quality(Verdict.AMBIGUOUS, "mirrored within noise", (alt,))
+
+
+def test_choose_from_neighbours_takes_the_alternative_closest_to_them():
+    fit_v, plus_x = np.array([-1.0, 0.0, 0.0]), np.array([1.0, 0.0, 0.0])
+    neighbours = [(np.array([1.0, 0.1, 0.0]), np.zeros(3)), (np.array([1.0, -0.1, 0.0]), np.zeros(3))]
+    chosen, q = choose_from_neighbours(fit_v, np.zeros(3), _ambiguous(plus_x), neighbours, 0.1, 45.0)
+    assert chosen is not None and np.allclose(chosen.v, plus_x) and q.resolved and "took the mirrored" in q.resolution
+    # the neighbours agree with the fit: it is kept
+    chosen, q = choose_from_neighbours(plus_x, np.zeros(3), _ambiguous(-plus_x), neighbours, 0.1, 45.0)
+    assert chosen is None and q.resolved and "kept the fit" in q.resolution
+    # no candidate near the neighbours, or no neighbours: unresolved, and said
+    up = [(np.array([0.0, 1.0, 0.0]), np.zeros(3))]
+    chosen, q = choose_from_neighbours(fit_v, np.zeros(3), _ambiguous(plus_x), up, 0.1, 45.0)
+    assert chosen is None and not q.resolved and q.resolution.startswith("unresolved: the closest candidate")
+    chosen, q = choose_from_neighbours(fit_v, np.zeros(3), _ambiguous(plus_x), [], 0.1, 45.0)
+    assert chosen is None and not q.resolved and "no confident" in q.resolution
+    # an alternative beyond noise is no candidate
+    chosen, q = choose_from_neighbours(fit_v, np.zeros(3), _ambiguous(plus_x, gain=0.5), neighbours, 0.1, 45.0)
+    assert chosen is None and not q.resolved
+
+
+def test_fit_sequence_resolves_a_flipped_window_from_its_neighbours(monkeypatch):
+    """Five windows of a camera moving +x at 0.5 m/s; the fit of the middle one is flipped (-x) and
+    ambiguous with +x within noise. fit_sequence takes +x for it (re-fitting it with that motion held),
+    and the trajectory ends where the true one does."""
+    base = clear_window()[1]
+    speed, truth = 0.5, np.array([0.5, 0.0, 0.0])
+    real_fit, calls = sequence_module.fit, []
+
+    def constructed_fit(events, K, model="se3", *, speed=None, pose=None, omega=None, init=None, quality=None,
+                        **options):
+        window = len(calls)
+        calls.append(pose)
+        t0, t1 = int(events.t[0]), int(events.t[-1])
+        if pose is not None:                     # the re-fit of a resolved window: its motion held
+            pose = np.asarray(pose, float)
+            return replace(base, t0_us=t0, t1_us=t1, v=pose[:3], omega=pose[3:], scale_known=True,
+                           quality=Quality(Verdict.OK, "ambiguity not tested: the pose is given"))
+        if window == 2:
+            q = _ambiguous(truth, gain=0.01, noise=0.1)
+            return replace(base, t0_us=t0, t1_us=t1, v=-truth, omega=np.zeros(3), quality=q)
+        return replace(base, t0_us=t0, t1_us=t1, v=truth.copy(), omega=np.zeros(3),
+                       quality=Quality(Verdict.OK, "every alternative scores worse beyond noise"))
+
+    monkeypatch.setattr(sequence_module, "fit", constructed_fit)
+    w = clear_window()[0]
+    events = w.events
+    span = int(events.t[-1]) - int(events.t[0])
+    window_us = span // 5
+    result = fit_sequence(events, w.K, window_us=window_us, speed=speed, min_events=10)
+    assert len(result.results) == 5 and real_fit is not constructed_fit
+    assert result.verdicts == (Verdict.OK, Verdict.OK, Verdict.AMBIGUOUS, Verdict.OK, Verdict.OK)
+    middle = result.results[2]
+    np.testing.assert_allclose(middle.v, truth)
+    assert middle.quality.resolved and "took the mirrored" in middle.quality.resolution
+    np.testing.assert_allclose(middle.quality.replaced[0], -truth)   # the fit it replaced, kept
+    np.testing.assert_allclose(calls[-1], np.r_[truth, np.zeros(3)])   # re-fitted with the chosen motion held
+    assert result.counts() == {"ok": 4, "ambiguous": 1, "low_parallax": 0, "failed": 0, "resolved": 1}
+    travelled = result.poses[-1][:3, 3]
+    expected = truth * (result.times_us[-1] - result.times_us[0]) * 1e-6
+    np.testing.assert_allclose(travelled, expected, atol=1e-9)       # no step walks backwards
