@@ -198,8 +198,8 @@ def driving(data: Path) -> tuple[list[str], np.ndarray]:
     chosen = fits["zero_rotation_start=True"][0]
     picture = viz.hstack([viz.titled(viz.iwe_image(chosen.iwe_before), "events (8.8 ms)"),
                           viz.titled(viz.iwe_image(chosen.iwe_after), "IWE, se3 (zero-rotation start)"),
-                          viz.titled(viz.depth_image(np.where(chosen.mask, chosen.depth, np.nan)),
-                                     "depth (up to scale)")])
+                          viz.depth_panel(np.where(chosen.mask, chosen.depth, np.nan), None,
+                                          "depth (up to scale)", unit="")])
     return lines, picture
 
 
