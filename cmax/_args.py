@@ -105,6 +105,32 @@ def float_list(counts: tuple[int, ...], what: str) -> Callable[[str], tuple[floa
     return parse
 
 
+# -- defaults owned by the library ----------------------------------------------------------
+def default_of(owner: Any, name: str) -> Any:
+    """The library's default of ``name``: a field of the dataclass ``owner``, or a parameter of the
+    function ``owner``."""
+    import dataclasses
+    import inspect
+
+    if dataclasses.is_dataclass(owner):
+        field = owner.__dataclass_fields__[name]
+        return field.default if field.default is not dataclasses.MISSING else field.default_factory()
+    return inspect.signature(owner).parameters[name].default
+
+
+def library_default(target: str, name: str) -> Callable[[], Any]:
+    """A deferred :func:`default_of`: ``target`` is ``"module:attribute"``, imported only when the
+    default is asked for (``--help``, or an option left out), so start-up loads no torch."""
+
+    def default() -> Any:
+        import importlib
+
+        module, attribute = target.split(":")
+        return default_of(getattr(importlib.import_module(module), attribute), name)
+
+    return default
+
+
 # -- parser and help ----------------------------------------------------------------------
 def api_default(action: argparse.Action, source: Callable[[], Any]) -> argparse.Action:
     """Mark ``action`` (default None: "the library's") to show ``source()`` as its default in ``--help``.

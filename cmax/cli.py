@@ -14,30 +14,20 @@ writes the result; no numerical code lives here.
 from __future__ import annotations
 
 import argparse
-import inspect
 import sys
 from pathlib import Path
 from typing import Any, Callable, Sequence
 
-from cmax._args import (ArgumentParser, api_default, nonnegative_int, positive_float, positive_int, run_main,
-                        sensor_size)
+from cmax._args import (ArgumentParser, api_default, default_of, library_default, nonnegative_int, positive_float,
+                        positive_int, run_main, sensor_size)
 
 __all__ = ["main", "build_parser"]
 
 _sensor_size = sensor_size  # the type of every WxH option (kept under its old name for importers)
 
 
-def _field_default(cls: type, name: str) -> Any:
-    """The default of dataclass field ``name`` of ``cls``: the library's, shown by ``--help``."""
-    import dataclasses
-
-    field = cls.__dataclass_fields__[name]
-    return field.default if field.default is not dataclasses.MISSING else field.default_factory()
-
-
-def _signature_default(function: Callable, name: str) -> Any:
-    """The default of parameter ``name`` of ``function``."""
-    return inspect.signature(function).parameters[name].default
+#: Where the simulator's defaults live (read only for --help and for options left out).
+_ESIM, _CONVERT = "cmax.sim.esim_settings:EsimSettings", "cmax.sim.convert:ConvertSettings"
 
 
 def _given(args: argparse.Namespace, names: dict[str, str]) -> dict[str, Any]:
@@ -130,14 +120,10 @@ def _cmd_demo(args: argparse.Namespace) -> int:
 
 
 def _demo_default(name: str) -> Callable[[], Any]:
-    def default() -> Any:
-        from cmax.demo import DemoSettings
-
-        if name == "size":
-            return _field_default(DemoSettings, "width"), _field_default(DemoSettings, "height")
-        return _field_default(DemoSettings, name)
-
-    return default
+    if name != "size":
+        return library_default("cmax.demo:DemoSettings", name)
+    width, height = (library_default("cmax.demo:DemoSettings", side) for side in ("width", "height"))
+    return lambda: (width(), height())
 
 
 def _add_demo(subparsers) -> None:
@@ -184,10 +170,7 @@ def _cmd_scene(args: argparse.Namespace) -> int:
 def _add_scene(subparsers) -> None:
     from cmax.sim.presets import PRESETS, make_scene
 
-    def depth_rate() -> float:   # cmax.sim.synthetic loads torch: read its default only for --help
-        from cmax.sim.synthetic import simulate_scene
-
-        return _signature_default(simulate_scene, "depth_rate_hz")
+    depth_rate = library_default("cmax.sim.synthetic:simulate_scene", "depth_rate_hz")  # loads torch: --help only
 
     parser = subparsers.add_parser(
         "scene", help="simulate a synthetic scene with ground-truth depth and poses",
@@ -197,10 +180,10 @@ def _add_scene(subparsers) -> None:
     parser.add_argument("preset", choices=sorted(PRESETS), help="scene preset")
     parser.add_argument("-o", "--output", type=Path, required=True, help="output .h5 file")
     parser.add_argument("--duration", type=float, default=2.0, help="seconds to simulate (checked by the scene)")
-    parser.add_argument("--seed", type=nonnegative_int, default=_signature_default(make_scene, "seed"),
+    parser.add_argument("--seed", type=nonnegative_int, default=default_of(make_scene, "seed"),
                         help="seed of the scene and of the simulator")
     parser.add_argument("--size", type=sensor_size, metavar="WxH", help="sensor size (a DAVIS346)",
-                        default=(_signature_default(make_scene, "width"), _signature_default(make_scene, "height")))
+                        default=(default_of(make_scene, "width"), default_of(make_scene, "height")))
     parser.add_argument("--cp", type=float, default=None, help="ON threshold (default: the preset's)")
     parser.add_argument("--cn", type=float, default=None, help="OFF threshold (default: the preset's)")
     api_default(parser.add_argument("--depth-rate", type=positive_float, default=None,
@@ -339,24 +322,6 @@ def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
     return 1 if totals["failed"] or empty else 0
 
 
-def _esim_default(name: str) -> Callable[[], Any]:
-    def default() -> Any:
-        from cmax.sim.esim_settings import EsimSettings
-
-        return _field_default(EsimSettings, name)
-
-    return default
-
-
-def _convert_default(name: str) -> Callable[[], Any]:
-    def default() -> Any:
-        from cmax.sim.convert import ConvertSettings
-
-        return _field_default(ConvertSettings, name)
-
-    return default
-
-
 def _add_simulate(subparsers) -> None:
     parser = subparsers.add_parser(
         "simulate", help="convert videos or image sequences to event files (ESIM), one or a whole collection",
@@ -376,17 +341,17 @@ def _add_simulate(subparsers) -> None:
             ("--shot-noise", float, "shot_noise_rate_hz", "shot-noise rate per pixel (Hz)"),
             ("--leak", float, "leak_rate_hz", "leak-event rate per pixel (Hz)"))
     for option, kind, name, text in esim:
-        api_default(parser.add_argument(option, type=kind, default=None, help=text), _esim_default(name))
+        api_default(parser.add_argument(option, type=kind, default=None, help=text), library_default(_ESIM, name))
     parser.add_argument("--seed", type=nonnegative_int, default=0,
                         help="seed of mismatch and noise (default 0, reproducible; the API's None draws a fresh one)")
     parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
                         help="resize frames (default: the video's size)")
     api_default(parser.add_argument("--adaptive", action=argparse.BooleanOptionalAction, default=None,
-                                    help="insert interpolated frames (adaptive sampling)"), _convert_default("adaptive"))
+                                    help="insert interpolated frames (adaptive sampling)"), library_default(_CONVERT, "adaptive"))
     api_default(parser.add_argument("--lam", type=float, default=None, help="lambda of adaptive sampling"),
-                _convert_default("lam"))
+                library_default(_CONVERT, "lam"))
     api_default(parser.add_argument("--method", choices=("flow", "linear"), default=None,
-                                    help="interpolation of adaptive sampling"), _convert_default("method"))
+                                    help="interpolation of adaptive sampling"), library_default(_CONVERT, "method"))
     parser.add_argument("--t0", type=float, default=None,
                         help="start, seconds into each video (default: its start)")
     parser.add_argument("--t1", type=float, default=None,

@@ -18,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax._args import api_default, float_list, nonnegative_float, positive_float, positive_int, sensor_size
+from cmax._args import (api_default, float_list, library_default, nonnegative_float, positive_float, positive_int,
+                        sensor_size)
 from cmax.camera import check_intrinsics
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
@@ -193,31 +194,15 @@ def undistorted_events(events, K: np.ndarray, distortion: np.ndarray):
 
 
 def _sequence_default(name: str):
-    def default():
-        import inspect
-
-        from cmax.fitting.sequence import fit_sequence
-
-        return inspect.signature(fit_sequence).parameters[name].default
-    return default
+    return library_default("cmax.fitting.sequence:fit_sequence", name)
 
 
 def _fit_default(name: str):
-    def default():
-        import inspect
-
-        from cmax.fitting.api import fit
-
-        return inspect.signature(fit).parameters[name].default
-    return default
+    return library_default("cmax.fitting.api:fit", name)
 
 
 def _settings_default(name: str):
-    def default():
-        from cmax.fitting.settings import FitSettings
-
-        return getattr(FitSettings(), name)
-    return default
+    return library_default("cmax.fitting.settings:FitSettings", name)
 
 
 def tum_lines(times_us: np.ndarray, poses: np.ndarray) -> list[str]:
