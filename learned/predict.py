@@ -202,10 +202,12 @@ def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:
 
 def forward(model: "DepthPoseNet", volumes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(inverse depth (B, H, W) float32 [1/m], twist (B, 6) float32 (v [m/s], omega [rad/s]))`` of the network
-    on event volumes (B, bins, H, W)."""
+    on event volumes (B, bins, H, W), with the threads :func:`cmax._threads.torch_threads` allows now."""
     import torch
 
-    with torch.inference_mode():
+    from cmax._threads import torch_threads_scope
+
+    with torch_threads_scope(volumes.size * model.config.width), torch.inference_mode():
         out = model(torch.from_numpy(np.ascontiguousarray(volumes, np.float32)))
     return out.inverse_depth[:, 0].numpy().copy(), out.twist.numpy().copy()
 

@@ -339,3 +339,20 @@ def test_every_mistake_is_one_line_and_exit_2(argv, message, checkpoint, events,
     assert status == 2, err
     assert err.startswith("cmax depth: error: ") and err.count("\n") == 1 and "Traceback" not in err, err
     assert message in err, err
+
+
+def test_the_shipped_model_when_present_loads_safely_and_runs(events, tmp_path, capsys):
+    """The model in learned/pretrained (the lead adds it): weights_only loading, and cmax depth runs on it."""
+    from learned import pretrained
+    from learned.evaluate import load_model
+
+    if not pretrained.CHECKPOINT.is_file():
+        pytest.skip(f"no shipped model at {pretrained.CHECKPOINT} yet")
+    model, config = load_model(pretrained.shipped_checkpoint())   # learned.checkpoint: torch.load(weights_only=True)
+    card = pretrained.checkpoint_card(pretrained.CHECKPOINT)
+    assert card is not None, "the shipped model needs its card student.json"
+    write_h5(tmp_path / "e.h5", events)
+    assert cmax_main(["depth", str(tmp_path / "e.h5"), "-o", str(tmp_path / "out"), "--K", K_TEXT, "--quiet"]) == 0
+    depth = np.load(next((tmp_path / "out").glob("window_*.npz")))["depth"]
+    lo, hi = model.config.min_depth, model.config.max_depth
+    assert np.isfinite(depth).all() and lo * (1 - 1e-5) <= depth.min() <= depth.max() <= hi * (1 + 1e-5)
