@@ -35,14 +35,14 @@ import numpy as np
 
 from cmax._args import (ArgumentParser, float_list, nonnegative_float, positive_float, positive_int, run_main,
                         sensor_size)
-from cmax.fitting.cli import intrinsics_argument, read_calibration, undistorted_events
+from cmax.fitting.cli import intrinsics_argument, read_calibration
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
     from cmax.events import Events
     from learned.model import DepthPoseNet
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
-           "event_volumes", "forward", "run_prediction", "predict_file", "add_arguments", "run", "main"]
+           "undistortion", "event_volumes", "forward", "run_prediction", "predict_file", "add_arguments", "run", "main"]
 
 #: Windows with fewer events are skipped (counted in the summary).
 MIN_EVENTS = 10
@@ -192,6 +192,22 @@ def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, wher
     return notes
 
 
+def undistortion(K: np.ndarray, distortion: np.ndarray, width: int, height: int) -> Callable[["Events"], "Events"]:
+    """``events -> events`` at their undistorted pixel (nearest integer; those that land outside the sensor are
+    dropped), as ``cmax fit --calib`` does, with the undistortion map of the camera computed once for all windows."""
+    from cmax.camera import Camera
+    from cmax.events import Events
+
+    camera = Camera(K, width, height, distortion)
+
+    def undistort(events: "Events") -> "Events":
+        xy = np.rint(camera.undistort(events)).astype(np.int64)
+        inside = (xy[:, 0] >= 0) & (xy[:, 0] < width) & (xy[:, 1] >= 0) & (xy[:, 1] < height)
+        return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], width, height)
+
+    return undistort
+
+
 def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:
     """The network input of each window: (B, bins, H, W) float32, :func:`cmax.representations.voxel_grid`
     over each window's own first..last event time (as :func:`learned.data.to_item` builds it in training)."""
@@ -311,6 +327,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
             raise ValueError(f"{calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({calib_camera}), the "
                              f"events come from a {recording.width}x{recording.height} sensor")
         K = _resolve_intrinsics(recording, K)
+        undistort = None if distortion is None else undistortion(K, distortion, recording.width, recording.height)
         notes = camera_notes(card, recording.width, recording.height, K, f"the card of {checkpoint}")
         start, end = time_bounds(recording.first_us, recording.last_us, t0_s, t1_s)
         window_us, starts, short = window_plan(start, end, window_us, explicit=explicit)
@@ -326,8 +343,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                 for index in range(first, min(first + batch, len(starts))):
                     t0 = int(starts[index])
                     events = recording.window(t0, t0 + window_us)
-                    if distortion is not None:
-                        events = undistorted_events(events, K, distortion)
+                    if undistort is not None:
+                        events = undistort(events)
                     if len(events) < MIN_EVENTS:
                         skipped += 1
                     else:

@@ -203,6 +203,44 @@ def test_cmax_depth_on_each_format_equals_a_direct_forward(name, checkpoint, net
     assert captured.err == ""
 
 
+DISTORTION = np.array([-0.12, 0.03, 0.002, -0.001])
+
+
+def _undistorted(events: Events) -> Events:
+    """The events at their undistorted pixel by OpenCV directly (nearest integer, those outside dropped)."""
+    pixels = np.column_stack([events.x, events.y]).astype(np.float64).reshape(-1, 1, 2)
+    xy = np.rint(cv2.undistortPoints(pixels, K, DISTORTION, P=K, criteria=(
+        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9)).reshape(-1, 2)).astype(np.int64)
+    inside = (xy[:, 0] >= 0) & (xy[:, 0] < W) & (xy[:, 1] >= 0) & (xy[:, 1] < H)
+    return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], W, H)
+
+
+@pytest.mark.parametrize("calibration", ["calib.txt", "cam_to_cam.yaml"])
+def test_a_calibration_with_distortion_undistorts_the_events(calibration, checkpoint, network, events, tmp_path,
+                                                            capsys):
+    """ECD calib.txt (with --size) or a DSEC cam_to_cam.yaml whose resolution stands for the missing size attributes."""
+    path = tmp_path / "e.h5"
+    _h5_without_size(path, events)
+    calib = tmp_path / calibration
+    if calibration == "calib.txt":
+        calib.write_text("60 58 31.5 23.5 " + " ".join(map(str, DISTORTION)) + " 0\n")
+        options = ["--size", f"{W}x{H}"]
+    else:
+        calib.write_text("intrinsics:\n  cam0:\n    camera_matrix: [60, 58, 31.5, 23.5]\n"
+                         f"    distortion_coeffs: [{', '.join(map(str, DISTORTION))}]\n"
+                         "    distortion_model: radtan\n    resolution: [64, 48]\n")
+        options = []
+    out = tmp_path / "out"
+    assert cmax_main(["depth", str(path), "-o", str(out), "--checkpoint", str(checkpoint), "--calib", str(calib),
+                      "--quiet", *options]) == 0
+    undistorted = _undistorted(events)
+    assert len(undistorted) < len(events) or not np.array_equal(undistorted.x, events.x)   # it moved events
+    first = int(events.t[0])
+    _check_outputs(out, _expected(network, undistorted, start=first, end=int(events.t[-1])))
+    assert json.loads((out / "summary.json").read_text())["distortion"] == pytest.approx(
+        list(DISTORTION) + ([0.0] if calibration == "calib.txt" else []))
+
+
 def test_python_m_learned_predict_is_the_same_command(checkpoint, events, tmp_path, capsys):
     from learned.predict import main
 
