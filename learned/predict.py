@@ -29,7 +29,7 @@ import sys
 import time
 from dataclasses import dataclass
 from pathlib import Path
-from typing import TYPE_CHECKING, Any, Callable, Sequence
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
@@ -42,7 +42,8 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
     from learned.model import DepthPoseNet
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
-           "undistortion", "event_volumes", "forward", "run_prediction", "predict_file", "add_arguments", "run", "main"]
+           "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
+           "write_window", "run_prediction", "predict_file", "add_arguments", "run", "main"]
 
 #: Windows with fewer events are skipped (counted in the summary).
 MIN_EVENTS = 10
@@ -228,6 +229,72 @@ def forward(model: "DepthPoseNet", volumes: np.ndarray) -> tuple[np.ndarray, np.
     return out.inverse_depth[:, 0].numpy().copy(), out.twist.numpy().copy()
 
 
+@dataclass(frozen=True, eq=False)
+class WindowPrediction:
+    """The network's output for one window.
+
+    Attributes
+    ----------
+    index : int
+        Position of the window in the recording (0 from the first start).
+    t0_us, t1_us : int
+        Window bounds [µs].
+    events : int
+        Events in the window.
+    inverse_depth : ndarray (H, W) float32
+        [1/m].
+    twist : ndarray (6,) float32
+        ``(v [m/s], omega [rad/s])``, camera frame.
+    """
+
+    index: int
+    t0_us: int
+    t1_us: int
+    events: int
+    inverse_depth: np.ndarray
+    twist: np.ndarray
+
+
+def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"], starts: Sequence[int],
+                    window_us: int, *, batch: int = 8,
+                    transform: Callable[["Events"], "Events"] | None = None) -> Iterator[WindowPrediction | None]:
+    """For each start [µs] in order: the :class:`WindowPrediction` of ``[t0, t0 + window_us)``, or None when the
+    window (read with ``window(t0, t1)``, then ``transform``) holds fewer than :data:`MIN_EVENTS` events.
+    ``batch`` windows go through the network at a time."""
+    for first in range(0, len(starts), batch):
+        chunk = []
+        for index in range(first, min(first + batch, len(starts))):
+            t0 = int(starts[index])
+            events = window(t0, t0 + window_us)
+            events = events if transform is None else transform(events)
+            chunk.append((index, t0, events if len(events) >= MIN_EVENTS else None))
+        kept = [events for _, _, events in chunk if events is not None]
+        outputs = iter(zip(*forward(model, event_volumes(kept, model.config.bins)))) if kept else iter(())
+        for index, t0, events in chunk:
+            if events is None:
+                yield None
+            else:
+                inverse, twist = next(outputs)
+                yield WindowPrediction(index, t0, t0 + window_us, len(events), inverse, twist)
+
+
+def write_window(out: Path, prediction: WindowPrediction, K: np.ndarray, scale) -> str:
+    """Write ``window_<k>.npz`` and ``window_<k>.png`` (atomically) into ``out``; returns the window's
+    ``twists.csv`` line. ``scale``: the run's :class:`cmax.viz.DepthScale`."""
+    from cmax import viz
+    from cmax.io.atomic import save_npz_atomic
+
+    p = prediction
+    depth = (1.0 / p.inverse_depth).astype(np.float32)
+    name = f"window_{p.index:05d}"
+    save_npz_atomic(out / f"{name}.npz", depth=depth, inverse_depth=p.inverse_depth.astype(np.float32),
+                    twist=p.twist.astype(np.float32), t0_us=np.int64(p.t0_us), t1_us=np.int64(p.t1_us),
+                    K=np.asarray(K, float))
+    title = f"window {p.index}, {p.t0_us * 1e-6:.3f}-{p.t1_us * 1e-6:.3f} s, depth [m]"
+    viz.save_png(out / f"{name}.png", viz.depth_panel(depth, scale, title))
+    return ",".join([str(p.index), str(p.t0_us), str(p.t1_us), str(p.events)] + [f"{v:.6g}" for v in p.twist])
+
+
 @dataclass(frozen=True)
 class DepthRun:
     """What :func:`run_prediction` did: windows written and skipped, the window [µs], notes, seconds, folder."""
@@ -254,12 +321,6 @@ def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarra
         raise ValueError(f"{recording.path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or "
                          "--calib FILE")
     return recording.K
-
-
-def _window_picture(depth: np.ndarray, scale, index: int, t0_us: int, t1_us: int) -> np.ndarray:
-    from cmax import viz
-
-    return viz.depth_panel(depth, scale, f"window {index}, {t0_us * 1e-6:.3f}-{t1_us * 1e-6:.3f} s, depth [m]")
 
 
 def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path | None = None,
@@ -295,7 +356,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     from tqdm.auto import tqdm
 
     from cmax import viz
-    from cmax.io.atomic import save_npz_atomic, write_text_atomic
+    from cmax.io.atomic import write_text_atomic
     from learned.evaluate import load_model
     from learned.pretrained import checkpoint_card, shipped_checkpoint
 
@@ -336,34 +397,18 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
             note(text)
         out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
-        lines, written, skipped = [_CSV_HEADER], 0, 0
+        lines, skipped = [_CSV_HEADER], 0
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
-            for first in range(0, len(starts), batch):
-                chunk, taken = [], []
-                for index in range(first, min(first + batch, len(starts))):
-                    t0 = int(starts[index])
-                    events = recording.window(t0, t0 + window_us)
-                    if undistort is not None:
-                        events = undistort(events)
-                    if len(events) < MIN_EVENTS:
-                        skipped += 1
-                    else:
-                        chunk.append(events)
-                        taken.append((index, t0))
-                if chunk:
-                    inverse, twists = forward(model, event_volumes(chunk, model.config.bins))
-                    for (index, t0), events, rho, twist in zip(taken, chunk, inverse, twists):
-                        depth = (1.0 / rho).astype(np.float32)
-                        save_npz_atomic(out / f"window_{index:05d}.npz", depth=depth, inverse_depth=rho,
-                                        twist=twist, t0_us=np.int64(t0), t1_us=np.int64(t0 + window_us), K=K)
-                        viz.save_png(out / f"window_{index:05d}.png",
-                                     _window_picture(depth, scale, index, t0, t0 + window_us))
-                        lines.append(",".join([str(index), str(t0), str(t0 + window_us), str(len(events))]
-                                              + [f"{v:.6g}" for v in twist]))
-                        written += 1
-                bar.update(min(first + batch, len(starts)) - first)
+            for prediction in predict_windows(model, recording.window, starts, window_us, batch=batch,
+                                              transform=undistort):
+                bar.update(1)
+                if prediction is None:
+                    skipped += 1
+                else:
+                    lines.append(write_window(out, prediction, K, scale))
     finally:
         recording.close()
+    written = len(lines) - 1
     if not written:
         raise ValueError(f"{path}: none of its {len(starts)} windows of {window_us * 1e-3:g} ms holds "
                          f"{MIN_EVENTS} events or more")

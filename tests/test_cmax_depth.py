@@ -394,3 +394,14 @@ def test_the_shipped_model_when_present_loads_safely_and_runs(events, tmp_path, 
     depth = np.load(next((tmp_path / "out").glob("window_*.npz")))["depth"]
     lo, hi = model.config.min_depth, model.config.max_depth
     assert np.isfinite(depth).all() and lo * (1 - 1e-5) <= depth.min() <= depth.max() <= hi * (1 + 1e-5)
+
+
+def test_a_file_without_a_window_of_enough_events_is_one_line(checkpoint, tmp_path, capsys):
+    sparse = Events([1, 2, 3, 4, 5, 6], [1, 1, 1, 1, 1, 1], [0, 40_000, 80_000, 120_000, 160_000, 199_000],
+                    [1, 0, 1, 0, 1, 0], W, H)
+    write_h5(tmp_path / "sparse.h5", sparse)
+    assert cmax_main(["depth", str(tmp_path / "sparse.h5"), "-o", str(tmp_path / "out"), "--checkpoint",
+                      str(checkpoint), "--K", K_TEXT, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "none of its 3 windows of 50 ms holds 10 events or more" in err, err
+    assert not (tmp_path / "out" / "twists.csv").exists()
