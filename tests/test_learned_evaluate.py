@@ -6,6 +6,8 @@ from the events put in the file.
 """
 from __future__ import annotations
 
+import dataclasses
+import json
 import math
 
 import numpy as np
@@ -170,3 +172,83 @@ def test_csv_round_trip(three_seeds, tmp_path):
     (tmp_path / "bad.csv").write_text("method,sequence\nx,y\n")
     with pytest.raises(ValueError, match="must have the columns"):
         read_csv(tmp_path / "bad.csv")
+
+
+# -- on a small simulated drive: the baselines, their cache, the objective check ------------------------------
+@pytest.fixture(scope="module")
+def drive(tmp_path_factory):
+    """driving_day seed 101 at 64x48: two 0.1 s windows from 0.2 s, the true depth at their middles (~11k events,
+    a few pixels of parallax: cmax.fit and EMVS both give depth on it)."""
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+
+    scene = make_scene("driving_day", seed=101, width=64, height=48, duration_s=1.0, texture_size=64)
+    middles = 0.2 + (np.arange(2) + 0.5) * WINDOW_S
+    sequence = simulate_scene(scene, 2 * WINDOW_S + 0.01, EventSimulator(**{**scene.recommended_simulator,
+                                                                          "seed": 101}),
+                              t0_s=0.2, depth_times_s=middles)
+    return sequence.save(tmp_path_factory.mktemp("drive") / "drive.h5")
+
+
+def test_baselines_are_scored_on_their_coverage_and_cached(drive, tmp_path, monkeypatch):
+    import benchmarks.learned_table as table
+
+    cache = tmp_path / "table.baselines.json"
+    rows = table.score_all([drive], {}, constant_depth_m=8.0, mean_twist=np.zeros(6), window_s=WINDOW_S, cache=cache)
+    by = {(r.method, r.mask): r for r in rows}
+    assert set(by) == {(m, k) for m in ("constant", "cmax.fit", "EMVS (GT poses)") for k in ("dense", "event")}
+    for method in ("cmax.fit", "EMVS (GT poses)"):
+        dense, event = by[(method, "dense")], by[(method, "event")]
+        assert 0 < dense.coverage < 1 and 0 < event.coverage <= 1 and np.isfinite(dense.abs_mean_m)
+        assert event.n_pixels <= dense.n_pixels
+    assert np.isfinite(by[("cmax.fit", "dense")].v_rms_m_s) and np.isnan(by[("EMVS (GT poses)", "dense")].v_rms_m_s)
+    # a second run reads the baselines from the cache (refitting would fail here) and gives the same rows
+    def refit(*args, **kwargs):
+        raise AssertionError("refitted a cached baseline")
+    monkeypatch.setattr(table, "fit_windows", refit)
+    monkeypatch.setattr(table, "emvs_windows", refit)
+    again = table.score_all([drive], {}, constant_depth_m=8.0, mean_twist=np.zeros(6), window_s=WINDOW_S,
+                            cache=cache)
+    exact = lambda rows: [json.dumps(dataclasses.asdict(r)) for r in rows]  # noqa: E731 (NaN == NaN here)
+    assert exact(again) == exact(rows)
+    with pytest.raises(AssertionError, match="refitted"):   # another window length is another key
+        table.score_all([drive], {}, constant_depth_m=8.0, mean_twist=np.zeros(6), window_s=0.09, cache=cache)
+
+
+def test_objective_prefers_the_truth_on_a_drive(drive, tmp_path):
+    """Picked before looking: the drive above and a network that says 10 m everywhere and straight ahead; the
+    shared objective is lowest at the true depth and twist on both windows (on the sparse 64x48 indoor_flying
+    windows, 0.2-0.3 px of parallax, it is not: there it prefers the 10 m network)."""
+    from learned.evaluate import CANDIDATES, objective_preferences
+
+    ckpt = constant_checkpoint(tmp_path / "c10.pt", 10.0, [0, 0, 0.5, 0, 0, 0])
+    result = objective_preferences([drive], ckpt, window_s=WINDOW_S)
+    assert len(result.windows) == 2 and sum(result.counts.values()) == 2
+    assert result.counts["truth"] == 2
+    for w in result.windows:
+        assert set(w.values) == set(CANDIDATES) and all(np.isfinite(list(w.values.values())))
+        assert w.values["truth"] < w.values["constant depth + true twist"]
+        assert w.speed_m_s > 5      # the drive's true speed [m/s], the scale every twist was given
+
+
+def test_cli_mistakes_are_one_line(tmp_path, capsys):
+    from benchmarks.learned_table import main
+
+    path, _ = plane_file(tmp_path / "plane.h5")
+    common = ["--data", str(path), "--constant-depth", "3", "--window", "0.1", "--no-baselines"]
+    for argv, message in ((common + ["--mean-twist", "1,2"], "6 finite numbers"),
+                          (common + ["--mean-twist", "0,0,0,0,0,0", "--method", "net"], "NAME=CKPT"),
+                          (common + ["--mean-twist", "0,0,0,0,0,0", "--method", f"net={tmp_path / 'none.pt'}"],
+                           "no checkpoint at")):
+        try:
+            status = main(argv)
+        except SystemExit as exit:          # argparse's own errors
+            status = exit.code
+        err = capsys.readouterr().err
+        assert status == 2, err
+        assert message in err and err.count("\n") == 1, err
+    out = tmp_path / "t"
+    assert main(common + ["--mean-twist", "0.2,0,0,0,0,0", "--output", str(out)]) == 0
+    assert "| constant | 0.00 / 0.00 |" in (tmp_path / "t.md").read_text()
+    assert (tmp_path / "t.csv").read_text().count("\n") == 3
