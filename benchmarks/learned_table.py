@@ -206,6 +206,43 @@ def rows_from_cache(entries: list[dict], sequence: str) -> list[TableRow]:
     return [TableRow(**{**entry, "sequence": sequence}) for entry in entries]
 
 
+# -- the constant baseline's figures ----------------------------------------------------------------
+@dataclass(frozen=True)
+class TrainingStatistics:
+    """What a trivial predictor learns from labelled training files: the median true depth [m] and the mean
+    true twist (6,) ``(v m/s, omega rad/s)``, with the number of depth samples and twists they come from."""
+
+    median_depth_m: float
+    mean_twist: tuple[float, ...]
+    depth_samples: int
+    twists: int
+
+
+def training_statistics(files: Sequence[str | Path], *, pixel_stride: int = 4) -> TrainingStatistics:
+    """Median of the valid true depth (finite, > 1 mm, up to each file's far limit) over every depth map of
+    ``files`` (every ``pixel_stride``-th row and column, to bound memory), and the mean of their true twists."""
+    from learned.evaluate import MIN_DEPTH_M, far_limit
+
+    if not files or pixel_stride < 1:
+        raise ValueError(f"need training files and pixel_stride >= 1, got {len(files)} files, {pixel_stride}")
+    depths, twists = [], []
+    for path in files:
+        far = far_limit(path)
+        with h5py.File(path, "r") as f:
+            if "gt/depth" not in f or "gt/twists" not in f:
+                raise ValueError(f"{path}: training statistics need gt/depth and gt/twists")
+            for k in range(f["gt/depth"].shape[0]):
+                d = f["gt/depth"][k][::pixel_stride, ::pixel_stride]
+                with np.errstate(invalid="ignore"):
+                    depths.append(d[np.isfinite(d) & (d > MIN_DEPTH_M) & (d <= far)])
+            twists.append(f["gt/twists"][:].astype(np.float64))
+    depth, twist = np.concatenate(depths), np.concatenate(twists)
+    if not depth.size or not len(twist):
+        raise ValueError("the training files hold no valid depth or no twist")
+    return TrainingStatistics(float(np.median(depth)), tuple(float(x) for x in twist.mean(0)), int(depth.size),
+                              len(twist))
+
+
 # -- everything ---------------------------------------------------------------------------------
 def window_length_us(checkpoints: Sequence[Path], window_s: float | None) -> int:
     """The window length [µs]: ``window_s``, or the ``data.window_us`` all ``checkpoints`` agree on."""
@@ -335,8 +372,12 @@ def markdown_tables(rows: Sequence[TableRow]) -> list[str]:
     name = lambda m: f"{m} ({seeds[m]} seeds)" if seeds[m] > 1 else m  # noqa: E731
     lines = ["Networks: mean over their checkpoints (the training seeds) with the min–max range in brackets; "
              "baselines: one run. Windows per sequence: " + ", ".join(f"{s} {windows[s]}" for s in sequences)
-             + ". A method that has no estimate at some mask pixels is scored on the pixels it covers: its "
-             "coverage (covered / mask pixels) follows in square brackets.", ""]
+             + f". `{CONSTANT}`: one depth everywhere (the training set's median) and the training set's mean "
+             f"twist for every window; `{FIT}`: se3 fit of each window with its true speed and the scene's depth "
+             f"range, depth on its own mask; `{EMVS_GT}`: EMVS on each window's events with the true poses, the "
+             "reference view at the window's middle. A method that has no estimate at some mask pixels is scored "
+             "on the pixels it covers: its coverage (covered / mask pixels) follows in square brackets "
+             "(n/a [0 %]: no estimate at all, e.g. a fit that found too little parallax).", ""]
     for mask in MASKS:
         title = {"dense": "dense: every pixel with valid ground truth",
                  "event": "event pixels: valid ground truth and at least one event in the window"}[mask]
@@ -352,11 +393,13 @@ def markdown_tables(rows: Sequence[TableRow]) -> list[str]:
                     cell += f" [{100 * coverage.mean:.0f} %]"
                 cells.append(cell)
             lines.append(f"| {name(m)} | " + " | ".join(cells) + " |")
-        lines += ["", f"Cut-off errors [m] (mean |error| over the pixels with ground truth within 10 / 20 / 30 m), "
-                  f"{mask} mask:", "", "| method | " + " | ".join(sequences) + " |",
-                  "|---|" + "---:|" * len(sequences)]
+        lines += ["", f"Cut-off errors [m] (mean |error| over the pixels with ground truth within 10 / 20 / 30 m; "
+                  f"networks: mean over their checkpoints), {mask} mask:", "",
+                  "| method | " + " | ".join(sequences) + " |", "|---|" + "---:|" * len(sequences)]
+        mean_only = lambda s: None if s is None else Spread(s.mean, s.mean, s.mean, min(s.count, 1))  # noqa: E731
         for m in methods:
-            cells = [" / ".join(_cell(stats[f"err_{c}m"].get((m, s, mask))) for c in (10, 20, 30)) for s in sequences]
+            cells = [" / ".join(_cell(mean_only(stats[f"err_{c}m"].get((m, s, mask)))) for c in (10, 20, 30))
+                     for s in sequences]
             lines.append(f"| {name(m)} | " + " | ".join(cells) + " |")
         lines.append("")
     moving = [m for m in methods if any(np.isfinite(r.v_rms_m_s) for r in rows if r.method == m)]
@@ -440,10 +483,13 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--data", type=Path, nargs="+", required=True, help="held-out h5 files with gt/")
     parser.add_argument("--method", type=_method, action="append", default=[], metavar="NAME=CKPT[,CKPT...]",
                         help="a network row: its checkpoints (one per training seed)")
-    parser.add_argument("--constant-depth", type=positive_float, required=True,
+    parser.add_argument("--constant-depth", type=positive_float, default=None,
                         help="the constant baseline's depth [m] (the training set's median depth)")
-    parser.add_argument("--mean-twist", type=float_list((6,), "vx,vy,vz,wx,wy,wz"), required=True,
+    parser.add_argument("--mean-twist", type=float_list((6,), "vx,vy,vz,wx,wy,wz"), default=None,
                         help="the constant baseline's twist: 6 numbers, v [m/s] then omega [rad/s] (training mean)")
+    parser.add_argument("--training-data", type=Path, nargs="+", default=None,
+                        help="labelled training files: the constant baseline's depth and twist are their median "
+                             "depth and mean twist (training_statistics), unless given above")
     parser.add_argument("--window", type=positive_float, default=None,
                         help="window length [s] (default: the checkpoints' data.window_us)")
     parser.add_argument("--no-baselines", action="store_true", help="leave out cmax.fit and EMVS")
@@ -464,6 +510,12 @@ def _run(args: argparse.Namespace) -> int:
     methods = dict(args.method)
     if len(methods) != len(args.method):
         raise ValueError("--method: each name once")
+    if args.training_data is not None and (args.constant_depth is None or args.mean_twist is None):
+        stats = training_statistics(args.training_data)
+        args.constant_depth = stats.median_depth_m if args.constant_depth is None else args.constant_depth
+        args.mean_twist = stats.mean_twist if args.mean_twist is None else args.mean_twist
+    if args.constant_depth is None or args.mean_twist is None:
+        raise ValueError("give --constant-depth and --mean-twist, or --training-data to compute them")
     rows = score_all(args.data, methods, constant_depth_m=args.constant_depth, mean_twist=args.mean_twist,
                      window_s=args.window, baselines=not args.no_baselines,
                      cache=args.output.with_name(args.output.name + ".baselines.json"))

@@ -1,12 +1,20 @@
 """``python -m learned.evaluate --checkpoint CKPT --data FILE [FILE ...]``: depth and motion metrics of a network.
 
 Each file with ground truth (``cmax scene`` / ``SyntheticSequence.save``) is cut into
-windows centred on its ground-truth depth times (:class:`learned.data.H5WindowDataset`,
-no augmentation); the network's full-resolution depth is scored against the true depth
-with :func:`cmax.metrics.depth_metrics` (pooled over the file's windows, on every pixel
-with valid ground truth up to the scene's far limit, capped at 80 m as in
-``benchmarks/accuracy.py``; the prediction is dense, so ``coverage`` is 1), the twist
-with :func:`cmax.metrics.motion_metrics`.
+windows centred on its ground-truth depth times (:func:`held_out_windows`, through
+:class:`learned.data.H5WindowDataset`, no augmentation), each with two pixel masks
+(:func:`window_masks`): ``dense``, every pixel with valid ground truth up to the scene's
+far limit (capped at 80 m as in ``benchmarks/accuracy.py``), and ``event``, the dense
+pixels that hold at least one event of the window (the semi-dense protocol of EMVS-style
+baselines). :func:`score_depth` scores any method's depth (NaN: no estimate, reported as
+``coverage``) with :func:`cmax.metrics.depth_metrics`, pooled over a file's windows;
+:func:`score_motion` its twist against the true twist at each window's middle
+(:func:`cmax.metrics.motion_metrics`). The command line scores one network on the dense
+mask; ``benchmarks/learned_table.py`` builds the table of every method on both masks.
+
+:func:`objective_preferences` checks the contrast objective itself (issue 18, item 3):
+on each window, is it lowest at the true depth and twist, or at the network's, or at a
+constant depth?
 """
 from __future__ import annotations
 

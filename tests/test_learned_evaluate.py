@@ -240,7 +240,8 @@ def test_cli_mistakes_are_one_line(tmp_path, capsys):
     for argv, message in ((common + ["--mean-twist", "1,2"], "6 finite numbers"),
                           (common + ["--mean-twist", "0,0,0,0,0,0", "--method", "net"], "NAME=CKPT"),
                           (common + ["--mean-twist", "0,0,0,0,0,0", "--method", f"net={tmp_path / 'none.pt'}"],
-                           "no checkpoint at")):
+                           "no checkpoint at"),
+                          (common, "give --constant-depth and --mean-twist, or --training-data")):
         try:
             status = main(argv)
         except SystemExit as exit:          # argparse's own errors
@@ -252,3 +253,16 @@ def test_cli_mistakes_are_one_line(tmp_path, capsys):
     assert main(common + ["--mean-twist", "0.2,0,0,0,0,0", "--output", str(out)]) == 0
     assert "| constant | 0.00 / 0.00 |" in (tmp_path / "t.md").read_text()
     assert (tmp_path / "t.csv").read_text().count("\n") == 3
+    assert main(common + ["--training-data", str(path), "--output", str(out)]) == 0      # median 3 m, mean twist
+    assert "twist 0.5, 0, 0, 0, 0, 0.1 (v m/s" in (tmp_path / "t.md").read_text()
+
+
+def test_training_statistics_of_a_plane(tmp_path):
+    from benchmarks.learned_table import training_statistics
+
+    a, _ = plane_file(tmp_path / "a.h5", seed=1)
+    b, _ = plane_file(tmp_path / "b.h5", seed=2)
+    stats = training_statistics([a, b], pixel_stride=1)
+    assert stats.median_depth_m == pytest.approx(PLANE_M)        # the NaN and beyond-far columns left out
+    assert stats.mean_twist == pytest.approx(tuple(TRUE_TWIST))
+    assert stats.depth_samples == 2 * 2 * H * (W - 2) and stats.twists == 2 * 81
