@@ -448,12 +448,12 @@ def write_tables(rows: Sequence[TableRow], md_path: str | Path, csv_path: str | 
 
 
 # -- the objective check --------------------------------------------------------------------------
-def objective_lines(preferences) -> list[str]:
+def objective_lines(preferences, objective: str = "the shared contrast objective") -> list[str]:
     """Markdown of :func:`learned.evaluate.objective_preferences`: the counts, then every window's values."""
     from learned.evaluate import CANDIDATES
 
     total = len(preferences.windows)
-    lines = ["## Which parameters does the contrast objective prefer?", "",
+    lines = [f"## Which parameters does {objective} prefer?", "",
              "On each held-out window: the objective (lower is better; every twist scaled to the window's true "
              "speed) at the truth, at the network's depth and twist, at the network's depth with the true twist, "
              "and at a constant depth (the window's median true depth) with the true twist.", "",
@@ -494,7 +494,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="window length [s] (default: the checkpoints' data.window_us)")
     parser.add_argument("--no-baselines", action="store_true", help="leave out cmax.fit and EMVS")
     parser.add_argument("--objective-check", type=Path, default=None, metavar="CKPT",
-                        help="also report which parameters the shared contrast objective prefers with this network")
+                        help="also report which parameters the shared contrast objective (and its data term alone) prefers "
+                             "with this network")
     parser.add_argument("--output", type=Path, default=RESULTS / "learned_table",
                         help="path prefix of the .md, .csv and .baselines.json files")
     return run_main(parser, _run, argv)
@@ -503,6 +504,7 @@ def main(argv: list[str] | None = None) -> int:
 def _run(args: argparse.Namespace) -> int:
     import torch
 
+    from cmax.contrast import SHARED_OBJECTIVE
     from learned.evaluate import objective_preferences
 
     torch.set_num_threads(1)
@@ -525,9 +527,14 @@ def _run(args: argparse.Namespace) -> int:
                 f"{', '.join(f'{x:g}' for x in args.mean_twist)} (v m/s, omega rad/s)."]
     md, csv_path = write_tables(rows, args.output.with_name(args.output.name + ".md"),
                                 args.output.with_name(args.output.name + ".csv"), preamble=preamble)
-    if args.objective_check is not None:
-        preferences = objective_preferences(args.data, args.objective_check, window_s=args.window)
-        write_text_atomic(md, md.read_text() + "\n" + "\n".join(objective_lines(preferences)))
+    if args.objective_check is not None:   # the objective, and its data term alone (the smoothness ablated)
+        text = md.read_text()
+        for objective, label in ((SHARED_OBJECTIVE, f"the shared objective (`{SHARED_OBJECTIVE}`)"),
+                                 (dataclasses.replace(SHARED_OBJECTIVE, smoothness=0.0),
+                                  "its data term alone (smoothness 0)")):
+            preferences = objective_preferences(args.data, args.objective_check, objective, window_s=args.window)
+            text += "\n" + "\n".join(objective_lines(preferences, label))
+        write_text_atomic(md, text)
     print(md.read_text())
     return 0
 

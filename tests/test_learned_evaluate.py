@@ -253,8 +253,11 @@ def test_cli_mistakes_are_one_line(tmp_path, capsys):
     assert main(common + ["--mean-twist", "0.2,0,0,0,0,0", "--output", str(out)]) == 0
     assert "| constant | 0.00 / 0.00 |" in (tmp_path / "t.md").read_text()
     assert (tmp_path / "t.csv").read_text().count("\n") == 3
-    assert main(common + ["--training-data", str(path), "--output", str(out)]) == 0      # median 3 m, mean twist
-    assert "twist 0.5, 0, 0, 0, 0, 0.1 (v m/s" in (tmp_path / "t.md").read_text()
+    ckpt = constant_checkpoint(tmp_path / "c.pt", 5.0, [0.5, 0, 0, 0, 0, 0])
+    assert main(common + ["--training-data", str(path), "--objective-check", str(ckpt), "--output", str(out)]) == 0
+    text = (tmp_path / "t.md").read_text()
+    assert "twist 0.5, 0, 0, 0, 0, 0.1 (v m/s" in text                          # median 3 m, the mean twist
+    assert text.count("| lowest at | windows |") == 2 and "its data term alone (smoothness 0)" in text
 
 
 def test_training_statistics_of_a_plane(tmp_path):
