@@ -295,7 +295,7 @@ def score_all(test_files: Sequence[str | Path], methods: Mapping[str, Sequence[s
     window_us = window_length_us([p for paths in checkpoints.values() for p in paths], window_s)
     n_planes = TableSettings.n_planes if n_planes is None else int(n_planes)
     cache_path = None if cache is None else Path(cache)
-    cached, fresh = read_cache(cache_path), False
+    cached = read_cache(cache_path)
     models = {name: [load_model(p)[0] for p in paths] for name, paths in checkpoints.items()}
     rows: list[TableRow] = []
     for path in tqdm([Path(p) for p in test_files], desc="sequences", unit="file", file=sys.stderr):
@@ -309,17 +309,18 @@ def score_all(test_files: Sequence[str | Path], methods: Mapping[str, Sequence[s
             continue
         near_far = depth_range(path)
         sha = file_sha256(path)
-        for method, settings, run in (
-                (FIT, {"depth_range": near_far}, lambda: method_rows(FIT, "", windows, *fit_windows(windows, near_far))),
-                (EMVS_GT, {"depth_range": near_far, "n_planes": n_planes},
-                 lambda: method_rows(EMVS_GT, "", windows, emvs_windows(windows, read_poses(path), near_far, n_planes),
-                                     None))):
-            key = cache_key(sha, window_us, method, settings)
+        settings = {FIT: {"depth_range": near_far}, EMVS_GT: {"depth_range": near_far, "n_planes": n_planes}}
+        for method in (FIT, EMVS_GT):
+            key = cache_key(sha, window_us, method, settings[method])
             if key in cached:
                 rows += rows_from_cache(cached[key], windows[0].sequence)
                 continue
-            computed = run()
-            cached[key], fresh = [dataclasses.asdict(r) for r in computed], True
+            if method == FIT:
+                computed = method_rows(FIT, "", windows, *fit_windows(windows, near_far))
+            else:
+                depth = emvs_windows(windows, read_poses(path), near_far, n_planes)
+                computed = method_rows(EMVS_GT, "", windows, depth, None)
+            cached[key] = [dataclasses.asdict(r) for r in computed]
             rows += computed
             if cache_path is not None:   # after every baseline: an interrupted run keeps what it computed
                 cache_path.parent.mkdir(parents=True, exist_ok=True)
@@ -494,8 +495,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="window length [s] (default: the checkpoints' data.window_us)")
     parser.add_argument("--no-baselines", action="store_true", help="leave out cmax.fit and EMVS")
     parser.add_argument("--objective-check", type=Path, default=None, metavar="CKPT",
-                        help="also report which parameters the shared contrast objective (and its data term alone) prefers "
-                             "with this network")
+                        help="also report which parameters the shared contrast objective (and its data term "
+                             "alone) prefers with this network")
     parser.add_argument("--output", type=Path, default=RESULTS / "learned_table",
                         help="path prefix of the .md, .csv and .baselines.json files")
     return run_main(parser, _run, argv)
