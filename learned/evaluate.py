@@ -102,8 +102,6 @@ def far_limit(path: str | Path) -> float:
     return min(far, FAR_LIMIT_M)
 
 
-_far_limit = far_limit   # the name earlier callers used
-
 
 def depth_range(path: str | Path) -> tuple[float, float]:
     """``(near, far)`` [m] of a file's scene (``depth_range_m``), far capped as :func:`far_limit`; raises a
