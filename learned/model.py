@@ -153,9 +153,12 @@ class DepthPoseNet(nn.Module):
     (torch.Size([2, 1, 30, 41]), torch.Size([2, 6]))
     """
 
-    def __init__(self, config: ModelConfig = ModelConfig()) -> None:
+    def __init__(self, config: ModelConfig = ModelConfig(), *, channels_last: bool = True) -> None:
+        """``channels_last``: run in NHWC (about 2x faster convolutions on CPU with oneDNN; same results to
+        float rounding); ``False`` keeps NCHW, the layout of the original network."""
         super().__init__()
         self.config = config
+        self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
         c = [config.width * 2 ** k for k in range(config.levels + 1)]
         kind = {"block": config.block, "norm": config.norm}
         self.stem = _block(config.bins, c[0], 1, **kind)
@@ -166,7 +169,7 @@ class DepthPoseNet(nn.Module):
         self.pose_out = nn.Linear(c[-1], 6)
         nn.init.zeros_(self.pose_out.weight)
         nn.init.zeros_(self.pose_out.bias)
-        self.to(memory_format=torch.channels_last)   # NHWC: about 2x faster convolutions on CPU (oneDNN)
+        self.to(memory_format=self.memory_format)
 
     def _bounded(self, logits: torch.Tensor) -> torch.Tensor:
         lo, hi = 1.0 / self.config.max_depth, 1.0 / self.config.min_depth
@@ -178,7 +181,7 @@ class DepthPoseNet(nn.Module):
             raise ValueError(f"volume must have shape (B, {self.config.bins}, H, W), got {tuple(volume.shape)}")
         H, W = volume.shape[-2:]
         m = 2 ** self.config.levels
-        x = F.pad(volume, (0, (-W) % m, 0, (-H) % m)).contiguous(memory_format=torch.channels_last)
+        x = F.pad(volume, (0, (-W) % m, 0, (-H) % m)).contiguous(memory_format=self.memory_format)
         skips = [self.stem(x)]
         for down in self.down:
             skips.append(down(skips[-1]))

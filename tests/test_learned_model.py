@@ -235,3 +235,32 @@ def test_evaluate_and_predict_on_a_trained_checkpoint(tmp_path):
     panel = viz.depth_panel(saved["depth"], scale, f"window 0, {int(saved['t0_us']) * 1e-6:.3f}-"
                             f"{int(saved['t1_us']) * 1e-6:.3f} s, depth [m]")
     assert np.array_equal(picture, panel)
+
+
+@pytest.mark.parametrize("n, bins, same_time", [(0, 5, False), (1, 5, False), (7, 5, True), (5000, 5, False),
+                                                (5000, 1, False), (5000, 3, False)])
+def test_event_volume_equals_voxel_grid(n, bins, same_time):
+    from cmax.events import Events
+    from cmax.representations import voxel_grid
+    from learned.volume import event_volume
+
+    rng = np.random.default_rng(n + bins)
+    t = np.full(n, 1_000_000) if same_time else np.sort(rng.integers(10**12, 10**12 + 166_500, n))
+    events = Events(rng.integers(0, 37, n), rng.integers(0, 23, n), t, rng.integers(0, 2, n), width=37, height=23)
+    volume = event_volume(events, bins)
+    assert volume.shape == (bins, 23, 37) and volume.dtype == np.float32
+    np.testing.assert_allclose(volume, voxel_grid(events, bins), atol=2e-6)
+    if n:   # each event's weight 1 in total, signed by polarity
+        assert float(volume.sum()) == pytest.approx(float(2 * events.p.sum() - n), abs=1e-3)
+
+
+def test_event_volume_doc_example_and_bad_input():
+    from cmax.events import Events
+    from learned.volume import event_volume
+
+    ev = Events([0, 1, 1], [0, 0, 0], [0, 50, 100], [1, 1, 0], width=2, height=1)
+    assert event_volume(ev, bins=3)[:, 0].tolist() == [[1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]
+    with pytest.raises(TypeError, match="Events"):
+        event_volume(ev.to_torch())
+    with pytest.raises(ValueError, match="bins"):
+        event_volume(ev, bins=0)
