@@ -1,19 +1,28 @@
-"""Inference speed of the depth-pose network against ``cmax.fit``, per window, at 346x260 (same run).
+"""Inference speed of the depth-pose network against ``cmax.fit``, per 346x260 window (same run).
 
-For each window (``indoor_flying`` preset windows of :func:`benchmarks.synthetic_windows.preset_window`,
-held-out seeds 100, 101, ...; 0.1665 s):
+Inputs: ``indoor_flying`` preset windows of :func:`benchmarks.synthetic_windows.preset_window`
+(held-out seeds 100, 101, ...; 0.1665 s, 346x260), and denser windows made by merging the
+events of 2 and 4 of them (time-aligned: one 0.1665 s window with 2x and 4x the events).
 
-* the network (default :class:`learned.model.ModelConfig`, untrained weights: speed does not
-  depend on them): milliseconds per window, batch 1, ``torch.no_grad``, forward only and
-  event volume + forward; median of ``--repeats`` after a warm-up;
-* ``cmax.fit(events, K, "se3", speed=|v|)`` (known speed, the scipy solver, 1 thread as its
-  default): seconds per window, one run each after one warm-up fit.
+* **event volume**: :func:`cmax.representations.voxel_grid` (5 bins, numpy) and the compiled
+  :func:`learned.volume.event_volume` (the same volume), ms per window at each event count;
+* **network forward**, batch 1, ``torch.inference_mode``, for the original network
+  (``ModelConfig()``, in its original NCHW layout and channels_last) and the fast one
+  (``ModelConfig.fast()``: eager, and with ``--compile`` also ``torch.compile``d, whose compile
+  time is reported), with 1 and 2 torch threads; untrained weights (speed does not depend on them);
+* **per window**: volume (compiled, on the densest window) + forward, and windows/s;
+* ``cmax.fit(events, K, "se3", speed=|v|)`` (known speed, its defaults, 1 thread): seconds per
+  window, ``--fits`` runs after one warm-up fit;
+* **training step** (``--train-repeats``): teacher loss forward + backward + AdamW step, batch 8 at
+  160x120, 2 threads, for both networks.
 
-The amortization factor is fit seconds / network seconds. Writes ``results/speed_learned.md``.
+Timings are medians of ``--repeats`` interleaved rounds (every variant once per round) after a
+warm-up, so load changes hit all variants alike; the load average is printed beside them.
+Writes ``results/speed_learned.md``.
 
 Usage::
 
-    python -m benchmarks.speed_learned [--windows 3] [--repeats 7] [--threads 1]
+    python -m benchmarks.speed_learned [--windows 4] [--repeats 9] [--fits 1] [--compile] [--train-repeats 5]
 """
 from __future__ import annotations
 
@@ -23,6 +32,7 @@ import platform
 import statistics
 import time
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 import torch
@@ -30,67 +40,180 @@ import torch
 from cmax.io.atomic import write_text_atomic
 
 RESULTS = Path(__file__).resolve().parent / "results"
+BUDGET_MS = 30.0
 
 
-def _median_ms(function, repeats: int) -> float:
-    function()
-    times = []
-    for _ in range(repeats):
-        start = time.perf_counter()
-        function()
-        times.append((time.perf_counter() - start) * 1e3)
-    return statistics.median(times)
+def interleaved_ms(functions: dict[str, Callable[[], object]], repeats: int,
+                   threads: dict[str, int] | None = None) -> dict[str, float]:
+    """Median milliseconds of each function over ``repeats`` rounds that run every function once (after a warm-up).
+
+    ``threads`` maps a name to the torch thread count set before its call (default: unchanged).
+    """
+    threads = threads or {}
+    times: dict[str, list[float]] = {name: [] for name in functions}
+    for round_ in range(repeats + 1):
+        for name, function in functions.items():
+            if name in threads:
+                torch.set_num_threads(threads[name])
+            start = time.perf_counter()
+            function()
+            if round_:
+                times[name].append((time.perf_counter() - start) * 1e3)
+    return {name: statistics.median(values) for name, values in times.items()}
+
+
+def merged_events(windows: list):
+    """The events of several windows of one sensor in one window: each shifted to start at the first's t0."""
+    from cmax.events import Events
+
+    t0 = int(windows[0].events.t[0])
+    parts = [w.events for w in windows]
+    t = np.concatenate([e.t - int(e.t[0]) + t0 for e in parts])
+    order = np.argsort(t, kind="stable")
+    column = lambda name: np.concatenate([getattr(e, name) for e in parts])[order]
+    return Events(column("x"), column("y"), t[order], column("p"), width=parts[0].width, height=parts[0].height)
+
+
+def train_step_seconds(configs: dict[str, object], repeats: int, threads: int = 2) -> dict[str, float]:
+    """Median seconds of one teacher-loss step (forward, backward, AdamW), batch 8 at 160x120, per config."""
+    from learned.losses import teacher_loss
+    from learned.model import DepthPoseNet
+
+    torch.manual_seed(0)
+    volume = torch.randn(8, 5, 120, 160)
+    depth = torch.rand(8, 1, 120, 160) * 5 + 1
+    mask = torch.rand(8, 1, 120, 160) > 0.3
+    steps = {}
+    for name, config in configs.items():
+        net = DepthPoseNet(config)
+        optimizer = torch.optim.AdamW(net.parameters(), lr=1e-4)
+
+        def step(net=net, optimizer=optimizer) -> None:
+            out = net(volume)
+            loss = teacher_loss(tuple(1.0 / d for d in out.inverse_depths), depth, mask)
+            optimizer.zero_grad(set_to_none=True)
+            loss.backward()
+            optimizer.step()
+
+        steps[name] = step
+    torch.set_num_threads(threads)
+    return {name: ms / 1e3 for name, ms in interleaved_ms(steps, repeats).items()}
 
 
 def main(argv: list[str] | None = None) -> int:
     import cmax
-    from cmax.representations import voxel_grid
     from benchmarks.synthetic_windows import preset_window
+    from cmax.representations import voxel_grid
     from learned.model import DepthPoseNet, ModelConfig
+    from learned.volume import event_volume
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--windows", type=int, default=3)
-    parser.add_argument("--repeats", type=int, default=7)
-    parser.add_argument("--threads", type=int, default=1, help="torch threads of the network (fit uses 1)")
+    parser.add_argument("--windows", type=int, default=4, help="preset windows (>= 4: the densest merges 4)")
+    parser.add_argument("--repeats", type=int, default=9)
+    parser.add_argument("--fits", type=int, default=1, help="cmax.fit runs after the warm-up fit")
+    parser.add_argument("--compile", action="store_true", help="also time torch.compile of the fast net")
+    parser.add_argument("--train-repeats", type=int, default=5, help="training-step rounds (0: skip)")
     parser.add_argument("--output", type=Path, default=RESULTS / "speed_learned.md")
     args = parser.parse_args(argv)
-    load_before = os.getloadavg()[0]
-    torch.set_num_threads(args.threads)
-    model = DepthPoseNet(ModelConfig()).eval()
-    parameters = sum(p.numel() for p in model.parameters())
+    if args.windows < 4 or args.repeats < 1 or args.fits < 1 or args.train_repeats < 0:
+        parser.error("need --windows >= 4, --repeats >= 1, --fits >= 1, --train-repeats >= 0")
+    loads = [os.getloadavg()[0]]
     windows = [preset_window("indoor_flying", 100 + k, texture_size=256) for k in range(args.windows)]
-    rows = []
-    warm = windows[0]
-    cmax.fit(warm.events, warm.K, "se3", speed=float(np.linalg.norm(warm.twist[:3])))
-    for w in windows:
-        volume = torch.from_numpy(voxel_grid(w.events, 5))[None]
-        with torch.no_grad():
-            forward_ms = _median_ms(lambda: model(volume), args.repeats)
-            full_ms = _median_ms(lambda: model(torch.from_numpy(voxel_grid(w.events, 5))[None]), args.repeats)
+    inputs = {f"seed {windows[0].seed}": windows[0].events, "2 merged": merged_events(windows[:2]),
+              "4 merged": merged_events(windows[:4])}
+
+    # -- event volume --------------------------------------------------------------------------
+    torch.set_num_threads(1)
+    for events in inputs.values():
+        np.testing.assert_allclose(event_volume(events, 5), voxel_grid(events, 5), atol=1e-5)
+    volume_ms = {}
+    for label, events in inputs.items():
+        volume_ms[label] = interleaved_ms({"voxel_grid": lambda e=events: voxel_grid(e, 5),
+                                           "event_volume": lambda e=events: event_volume(e, 5)}, args.repeats)
+    loads.append(os.getloadavg()[0])
+
+    # -- network forward -----------------------------------------------------------------------
+    volume = torch.from_numpy(voxel_grid(inputs["4 merged"], 5))[None]
+    nets = {"original, NCHW (as before)": DepthPoseNet(ModelConfig(), channels_last=False).eval(),
+            "original, channels_last": DepthPoseNet(ModelConfig()).eval(),
+            "fast, channels_last": DepthPoseNet(ModelConfig.fast()).eval()}
+    compile_s = None
+    if args.compile:
+        torch.set_num_threads(2)
+        compiled = torch.compile(DepthPoseNet(ModelConfig.fast()).eval())
         start = time.perf_counter()
-        cmax.fit(w.events, w.K, "se3", speed=float(np.linalg.norm(w.twist[:3])))
-        fit_s = time.perf_counter() - start
-        rows.append((w.seed, len(w.events), forward_ms, full_ms, fit_s))
-    load_after = os.getloadavg()[0]
+        with torch.inference_mode():
+            compiled(volume)
+        compile_s = time.perf_counter() - start
+        nets["fast, channels_last, torch.compile"] = compiled
+    parameters = {name: sum(p.numel() for p in net.parameters()) for name, net in nets.items()}
+    calls, threads = {}, {}
+    for name, net in nets.items():
+        for n in (1, 2):
+            calls[(name, n)] = lambda net=net: net(volume)
+            threads[(name, n)] = n
+    with torch.inference_mode():
+        forward_ms = interleaved_ms(calls, args.repeats, threads)
+    loads.append(os.getloadavg()[0])
+
+    # -- cmax.fit ------------------------------------------------------------------------------
+    torch.set_num_threads(1)
+    fit = lambda w: cmax.fit(w.events, w.K, "se3", speed=float(np.linalg.norm(w.twist[:3])))
+    fit(windows[-1])
+    fit_s = []
+    for w in windows[: args.fits]:
+        start = time.perf_counter()
+        fit(w)
+        fit_s.append(time.perf_counter() - start)
+    fit_median = statistics.median(fit_s)
+    loads.append(os.getloadavg()[0])
+
+    train_s = {}
+    if args.train_repeats:
+        train_s = train_step_seconds({"original": ModelConfig(), "fast": ModelConfig.fast()}, args.train_repeats)
+        loads.append(os.getloadavg()[0])
+
+    # -- report --------------------------------------------------------------------------------
+    counts = {label: len(events) for label, events in inputs.items()}
+    densest = volume_ms["4 merged"]["event_volume"]
     lines = [
         "# Inference speed of the depth-pose network versus cmax.fit",
         "",
-        f"`python -m benchmarks.speed_learned --windows {args.windows} --repeats {args.repeats} --threads {args.threads}`"
-        f" -- 346x260 `indoor_flying` preset windows of 0.1665 s (seeds 100-{99 + args.windows}); network: default "
-        f"`ModelConfig` ({parameters:,} parameters), batch 1, CPU, {args.threads} torch thread(s), median of "
-        f"{args.repeats} after a warm-up; `cmax.fit(..., 'se3', speed=|v|)`: one run per window after a warm-up fit, "
-        "1 thread (its default).",
+        f"`python -m benchmarks.speed_learned --windows {args.windows} --repeats {args.repeats} --fits {args.fits}"
+        f"{' --compile' if args.compile else ''} --train-repeats {args.train_repeats}` -- 346x260 `indoor_flying` "
+        f"preset windows of 0.1665 s (seeds 100-{99 + args.windows}); medians of {args.repeats} interleaved rounds "
+        "after a warm-up, batch 1, CPU, `torch.inference_mode`, untrained weights.",
         "",
         f"Machine: {platform.platform()}, {os.cpu_count()} CPUs, torch {torch.__version__}; 1-minute load average "
-        f"before/after: {load_before:.2f} / {load_after:.2f} (other processes share the cores; compare the ratios).",
+        f"at each stage: {' / '.join(f'{v:.2f}' for v in loads)} (the 2 cores are shared with other jobs: "
+        "a load above 2 slows every row; compare the rows, which were interleaved).",
         "",
-        "| window (seed) | events | network forward [ms] | volume + forward [ms] | cmax.fit se3 [s] | amortization (fit / volume+forward) |",
-        "|---:|---:|---:|---:|---:|---:|",
+        "## Event volume (5 bins), 1 thread",
+        "",
+        "| input | events | `voxel_grid` [ms] | `learned.volume.event_volume` [ms] | speed-up |",
+        "|---|---:|---:|---:|---:|",
     ]
-    for seed, n, forward_ms, full_ms, fit_s in rows:
-        lines.append(f"| {seed} | {n:,} | {forward_ms:.1f} | {full_ms:.1f} | {fit_s:.2f} | {fit_s * 1e3 / full_ms:.0f}x |")
-    med = [statistics.median(c) for c in zip(*[r[2:] for r in rows])]
-    lines += [f"| median | | {med[0]:.1f} | {med[1]:.1f} | {med[2]:.2f} | {med[2] * 1e3 / med[1]:.0f}x |", ""]
+    for label, ms in volume_ms.items():
+        lines.append(f"| {label} | {counts[label]:,} | {ms['voxel_grid']:.1f} | {ms['event_volume']:.1f} | "
+                     f"{ms['voxel_grid'] / ms['event_volume']:.1f}x |")
+    lines += ["", "## Network forward and the whole window (346x260, batch 1)", "",
+              f"Per window = the forward + `event_volume` on the densest input ({counts['4 merged']:,} events, "
+              f"{densest:.1f} ms); target <= {BUDGET_MS:.0f} ms with 2 threads.", "",
+              "| network | parameters | threads | forward [ms] | per window [ms] | windows/s | vs cmax.fit se3 |",
+              "|---|---:|---:|---:|---:|---:|---:|"]
+    for (name, n), ms in forward_ms.items():
+        total = ms + densest
+        lines.append(f"| {name} | {parameters[name]:,} | {n} | {ms:.1f} | {total:.1f} | {1e3 / total:.1f} | "
+                     f"{fit_median * 1e3 / total:.0f}x |")
+    lines += ["", f"`cmax.fit(events, K, 'se3', speed=|v|)`: {', '.join(f'{s:.2f}' for s in fit_s)} s per window "
+              f"(median {fit_median:.2f} s, {1 / fit_median:.2f} windows/s; 1 thread, after a warm-up fit).", ""]
+    if compile_s is not None:
+        lines += [f"`torch.compile` of the fast net: {compile_s:.1f} s to compile (first call, 2 threads).", ""]
+    if train_s:
+        lines += ["## Training step (teacher loss, forward + backward + AdamW, batch 8 at 160x120, 2 threads)", "",
+                  "| network | seconds per step |", "|---|---:|"]
+        lines += [f"| {name} | {s:.3f} |" for name, s in train_s.items()]
+        lines.append("")
     write_text_atomic(args.output, "\n".join(lines))
     print("\n".join(lines))
     return 0

@@ -11,16 +11,36 @@ from learned.losses import gradient_matching_loss, scale_invariant_loss, student
 from learned.model import DepthPoseNet, ModelConfig
 
 
-def test_shapes_and_depth_bounds_on_odd_sizes():
-    config = ModelConfig(width=4, levels=3, min_depth=1.0, max_depth=20.0, max_speed=2.0, max_angular_speed=1.0)
+@pytest.mark.parametrize("block, norm", [("dense", "group"), ("separable", "group"), ("separable", "none"),
+                                         ("dense", "none")])
+def test_shapes_and_depth_bounds_on_odd_sizes(block, norm):
+    config = ModelConfig(width=4, levels=3, min_depth=1.0, max_depth=20.0, max_speed=2.0, max_angular_speed=1.0,
+                         block=block, norm=norm)
     net = DepthPoseNet(config)
-    out = net(torch.randn(2, 5, 37, 51) * 50)
+    net.pose_out.weight.data.normal_(0, 10.0)   # a saturating pose head: the bounds must still hold
+    with torch.no_grad():
+        out = net(torch.randn(2, 5, 37, 51) * 50)
     assert [tuple(d.shape) for d in out.inverse_depths] == [(2, 1, 37, 51), (2, 1, 19, 26), (2, 1, 10, 13)]
     for d in out.inverse_depths:
         assert float(d.min()) >= 1 / 20.0 and float(d.max()) <= 1.0
+        assert float(d.max() - d.min()) > 0   # the input reaches the output
     assert out.twist.shape == (2, 6)
     assert float(out.twist[:, :3].abs().max()) <= 2.0 and float(out.twist[:, 3:].abs().max()) <= 1.0
+    assert float(out.twist.abs().min()) > 0
     torch.testing.assert_close(out.depth, 1.0 / out.inverse_depth)
+
+
+def test_block_kinds_build_the_layers_they_name():
+    dense, separable = DepthPoseNet(ModelConfig(width=8)), DepthPoseNet(ModelConfig(width=8, block="separable"))
+    assert [tuple(m.weight.shape) for m in dense.stem if isinstance(m, torch.nn.Conv2d)] == [(8, 5, 3, 3), (8, 8, 3, 3)]
+    # depthwise 3x3 (one filter per input channel) then pointwise 1x1, twice
+    assert [(tuple(m.weight.shape), m.groups) for m in separable.stem if isinstance(m, torch.nn.Conv2d)] == [
+        ((5, 1, 3, 3), 5), ((8, 5, 1, 1), 1), ((8, 1, 3, 3), 8), ((8, 8, 1, 1), 1)]
+    plain = DepthPoseNet(ModelConfig(width=8, norm="none"))
+    assert not any(isinstance(m, torch.nn.GroupNorm) for m in plain.modules())
+    assert plain.stem[0].bias is not None and dense.stem[0].bias is None   # a bias only where no norm follows
+    count = lambda net: sum(p.numel() for p in net.parameters())
+    assert count(separable) < count(dense) / 2
 
 
 def test_model_rejects_bad_input_and_config():
@@ -30,6 +50,86 @@ def test_model_rejects_bad_input_and_config():
         ModelConfig(min_depth=5.0, max_depth=1.0)
     with pytest.raises(ValueError, match="width"):
         ModelConfig(width=0)
+    with pytest.raises(ValueError, match="model.block must be one of"):
+        ModelConfig(block="mobile")
+    with pytest.raises(ValueError, match="model.norm must be one of"):
+        ModelConfig(norm="batch")
+    with pytest.raises(ValueError, match="GroupNorm"):   # 12 channels in 8 groups
+        ModelConfig(width=12)
+    assert DepthPoseNet(ModelConfig(width=12, norm="none", levels=1))(torch.zeros(1, 5, 8, 8)).twist.shape == (1, 6)
+
+
+def test_config_files_reach_the_new_fields_and_name_bad_ones():
+    from learned.config import load_config
+
+    config = load_config(None, ['model.block="separable"', "model.norm=none", "model.width=8"])
+    assert (config.model.block, config.model.norm, config.model.width) == ("separable", "none", 8)
+    assert ModelConfig.fast() == ModelConfig(width=8, block="separable")
+    assert ModelConfig.fast(max_depth=10.0).max_depth == 10.0
+    with pytest.raises(TypeError, match="model.block must be a string"):
+        load_config(None, ["model.block=3"])
+    with pytest.raises(ValueError, match="model.block must be one of"):
+        load_config(None, ["model.block=resnet"])
+
+
+# The original network (before ModelConfig.block / .norm), width 2, levels 1: its parameters in order and
+# the outputs that its code (commit 757fe8a) gave for the weights and input below.
+_OLD_KEYS = [("stem.0.weight", (2, 5, 3, 3)), ("stem.1.weight", (2,)), ("stem.1.bias", (2,)),
+             ("stem.3.weight", (2, 2, 3, 3)), ("stem.4.weight", (2,)), ("stem.4.bias", (2,)),
+             ("down.0.0.weight", (4, 2, 3, 3)), ("down.0.1.weight", (4,)), ("down.0.1.bias", (4,)),
+             ("down.0.3.weight", (4, 4, 3, 3)), ("down.0.4.weight", (4,)), ("down.0.4.bias", (4,)),
+             ("up.0.0.weight", (2, 6, 3, 3)), ("up.0.1.weight", (2,)), ("up.0.1.bias", (2,)),
+             ("up.0.3.weight", (2, 2, 3, 3)), ("up.0.4.weight", (2,)), ("up.0.4.bias", (2,)),
+             ("heads.0.weight", (1, 2, 3, 3)), ("heads.0.bias", (1,)), ("pose.0.weight", (4, 4, 3, 3)),
+             ("pose.0.bias", (4,)), ("pose_out.weight", (6, 4)), ("pose_out.bias", (6,))]
+_OLD_INVERSE_DEPTH_ROWS = [[1.0327216386795044, 1.0052361488342285, 1.0205340385437012, 1.0455844402313232],
+                           [1.0701361894607544, 1.106982946395874, 1.1215777397155762, 1.1065514087677002]]
+_OLD_INVERSE_DEPTH_SUM = 64.69664001464844
+_OLD_TWIST = [-7.493375778198242, -6.484403133392334, -3.9564170837402344, -0.5053828954696655,
+              1.4670695066452026, 0.64588862657547]
+
+
+def test_old_config_checkpoints_load_and_compute_what_they_did(tmp_path):
+    from learned.checkpoint import rng_state, save_checkpoint
+    from learned.config import Config
+    from learned.evaluate import load_model
+
+    fill = lambda shape, k: (torch.sin(torch.arange(math.prod(shape), dtype=torch.float64) * 0.7 + k)
+                             .reshape(shape).float() * 0.5)
+    weights = {name: fill(shape, k) for k, (name, shape) in enumerate(_OLD_KEYS)}
+    config = Config(model=ModelConfig(width=2, levels=1)).to_dict()
+    del config["model"]["block"], config["model"]["norm"]   # as written before these fields existed
+    save_checkpoint(tmp_path / "old.pt", {"model": weights, "optimizer": {}, "step": 0, "config": config,
+                                          "rng": rng_state()})
+    model, loaded = load_model(tmp_path / "old.pt")
+    assert (loaded["model"]["block"], loaded["model"]["norm"]) == ("dense", "group")
+    x = (torch.cos(torch.arange(5 * 7 * 9, dtype=torch.float64) * 0.3).reshape(1, 5, 7, 9).float() * 3)
+    with torch.no_grad():
+        out = model(x)
+    np.testing.assert_allclose(out.inverse_depth[0, 0, :2, :4].numpy(), _OLD_INVERSE_DEPTH_ROWS, rtol=1e-5)
+    assert float(out.inverse_depth.sum()) == pytest.approx(_OLD_INVERSE_DEPTH_SUM, rel=1e-5)
+    np.testing.assert_allclose(out.twist[0].numpy(), _OLD_TWIST, rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("config, factor", [(ModelConfig.fast(levels=2), 5), (ModelConfig.fast(levels=2, norm="none"), 2)])
+def test_fast_net_learns_a_fixed_depth_map(config, factor):
+    """Teacher loss on one fixed volume and depth map: 60 Adam steps cut it ``factor`` times (no norm learns slower)."""
+    torch.manual_seed(0)
+    rows, cols = torch.meshgrid(torch.linspace(0, 1, 24), torch.linspace(0, 1, 32), indexing="ij")
+    depth = (1.0 + 3.0 * cols + 2.0 * (rows > 0.5)).expand(2, 1, 24, 32)   # a ramp and a step [m]
+    volume = torch.stack([torch.sin(7 * cols + k) * depth[0, 0] for k in range(5)])[None].expand(2, -1, -1, -1)
+    mask = torch.ones_like(depth, dtype=torch.bool)
+    net = DepthPoseNet(config)
+    optimizer = torch.optim.Adam(net.parameters(), lr=3e-3)
+    losses = []
+    for _ in range(60):
+        out = net(volume)
+        loss = teacher_loss(tuple(1.0 / d for d in out.inverse_depths), depth, mask)
+        optimizer.zero_grad()
+        loss.backward()
+        optimizer.step()
+        losses.append(float(loss.detach()))
+    assert losses[-1] < losses[0] / factor
 
 
 def test_scale_invariant_loss_closed_form():
@@ -135,3 +235,32 @@ def test_evaluate_and_predict_on_a_trained_checkpoint(tmp_path):
     panel = viz.depth_panel(saved["depth"], scale, f"window 0, {int(saved['t0_us']) * 1e-6:.3f}-"
                             f"{int(saved['t1_us']) * 1e-6:.3f} s, depth [m]")
     assert np.array_equal(picture, panel)
+
+
+@pytest.mark.parametrize("n, bins, same_time", [(0, 5, False), (1, 5, False), (7, 5, True), (5000, 5, False),
+                                                (5000, 1, False), (5000, 3, False)])
+def test_event_volume_equals_voxel_grid(n, bins, same_time):
+    from cmax.events import Events
+    from cmax.representations import voxel_grid
+    from learned.volume import event_volume
+
+    rng = np.random.default_rng(n + bins)
+    t = np.full(n, 1_000_000) if same_time else np.sort(rng.integers(10**12, 10**12 + 166_500, n))
+    events = Events(rng.integers(0, 37, n), rng.integers(0, 23, n), t, rng.integers(0, 2, n), width=37, height=23)
+    volume = event_volume(events, bins)
+    assert volume.shape == (bins, 23, 37) and volume.dtype == np.float32
+    np.testing.assert_allclose(volume, voxel_grid(events, bins), atol=2e-6)
+    if n:   # each event's weight 1 in total, signed by polarity
+        assert float(volume.sum()) == pytest.approx(float(2 * events.p.sum() - n), abs=1e-3)
+
+
+def test_event_volume_doc_example_and_bad_input():
+    from cmax.events import Events
+    from learned.volume import event_volume
+
+    ev = Events([0, 1, 1], [0, 0, 0], [0, 50, 100], [1, 1, 0], width=2, height=1)
+    assert event_volume(ev, bins=3)[:, 0].tolist() == [[1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]
+    with pytest.raises(TypeError, match="Events"):
+        event_volume(ev.to_torch())
+    with pytest.raises(ValueError, match="bins"):
+        event_volume(ev, bins=0)
