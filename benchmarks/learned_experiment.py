@@ -29,7 +29,9 @@ Training (``--stage train``): per seed, the teacher (``learned/configs/teacher.t
 and the student from that teacher; ``runs/<mode>_s<seed>/``. Evaluation (``--stage evaluate``) scores
 every checkpoint with :mod:`benchmarks.learned_table` (dense and event-pixel masks, the constant-depth
 baseline, ``cmax.fit`` and EMVS rows) into ``benchmarks/results/accuracy_learned.{md,csv}``;
-``--stage curves`` draws the learning curves (``benchmarks/results/learned_curves.png``).
+``--stage curves`` draws the learning curves (``benchmarks/results/learned_curves.png``); ``--stage ship``
+copies the student of seed 0 into ``learned/pretrained/student.pt`` with its card ``student.json`` (scores on
+the test files and on the fixed window ``tests/data/learned_window.npz``).
 """
 from __future__ import annotations
 
@@ -50,11 +52,11 @@ SIZE = (160, 120)
 WINDOW_S = 0.1665
 #: Speed-up of each preset (TimeScaledScene) so that a 0.1665 s window at 160x120 has 3-4 px of parallax.
 SPEED_FACTOR = {"indoor_flying": 3.5, "slider": 2.0, "hiking": 6.0, "driving_day": 1.0, "driving_night": 1.0}
-LABELLED_PRESETS = ("driving_day", "driving_night", "slider")
+LABELLED_PRESETS = ("driving_day", "driving_night", "slider", "hiking")
 LABELLED_SEEDS = tuple(range(1, 7))
 UNLABELLED = tuple([("indoor_flying", s) for s in range(11, 17)]
                    + [(p, s) for p in ("slider", "driving_day", "driving_night", "hiking") for s in (11, 12)])
-VAL = tuple((p, 51) for p in ("indoor_flying", "driving_day", "driving_night", "slider"))
+VAL = tuple((p, 51) for p in ("indoor_flying", "driving_day", "driving_night", "slider", "hiking"))
 TEST_SEQUENCES = (("indoor_flying1", "indoor_flying", 101), ("indoor_flying2", "indoor_flying", 102),
                   ("indoor_flying3", "indoor_flying", 103), ("driving_day", "driving_day", 101),
                   ("driving_night", "driving_night", 101), ("own_slider", "slider", 201),
@@ -247,31 +249,105 @@ def train_all(root: Path, runs: Path, seeds: list[int], extra: list[str]) -> Non
             train_one(mode, seed, root, runs, extra)
 
 
-# -- statistics of the training data (the baselines' inputs) -----------------------------------------
-def training_statistics(root: Path) -> dict[str, object]:
-    """Median ground-truth depth [m] and mean twist of the labelled windows (the constant and mean-twist rows)."""
-    import h5py
-
-    depths, twists = [], []
-    for path in sorted((root / "labelled").glob("*.h5")):
-        with h5py.File(path, "r") as f:
-            d = f["gt/depth"][::4]
-            depths.append(d[np.isfinite(d) & (d > 0)])
-            twists.append(f["gt/twists"][:])
-    return {"median_depth_m": float(np.median(np.concatenate(depths))),
-            "mean_twist": np.concatenate(twists).mean(0).tolist()}
-
-
+# -- evaluation --------------------------------------------------------------------------------------
 def evaluate(root: Path, runs: Path, seeds: list[int], baselines: bool = True) -> None:
-    from benchmarks.learned_table import score_all, write_tables
+    from benchmarks.learned_table import score_all, training_statistics, write_tables
 
-    stats = training_statistics(root)
+    stats = training_statistics(sorted((root / "labelled").glob("*.h5")))
     methods = {METHOD_NAMES[m]: [run_dir(runs, m, s) / "last.pt" for s in seeds] for m in MODES}
     order = [label for label, _, _ in TEST_SEQUENCES]
     files = sorted((root / "test").glob("*.h5"), key=lambda p: order.index(p.stem) if p.stem in order else 99)
-    rows = score_all(files, methods, constant_depth_m=stats["median_depth_m"],
-                     mean_twist=np.asarray(stats["mean_twist"]), window_s=WINDOW_S, baselines=baselines)
+    rows = score_all(files, methods, constant_depth_m=stats.median_depth_m, mean_twist=np.asarray(stats.mean_twist),
+                     window_s=WINDOW_S, baselines=baselines, cache=RESULTS / "accuracy_learned.baselines.json")
     write_tables(rows, RESULTS / "accuracy_learned_table.md", RESULTS / "accuracy_learned.csv")
+
+
+# -- the shipped model --------------------------------------------------------------------------------
+PRETRAINED = Path(__file__).resolve().parents[1] / "learned" / "pretrained"
+FIXTURE = Path(__file__).resolve().parents[1] / "tests" / "data" / "learned_window.npz"
+#: The run that ships (chosen before any result was seen: the student of the first seed).
+SHIPPED = ("student", 0)
+#: The held-out window that the shipped model's card scores (test file, window index).
+FIXTURE_WINDOW = ("indoor_flying1", 2)
+
+
+def write_fixture(root: Path, out: Path = FIXTURE) -> Path:
+    """One held-out window (events, K, true depth and twist) as a small npz: the card's fixed input."""
+    from cmax.io.atomic import save_npz_atomic
+    from learned.evaluate import held_out_windows
+
+    label, index = FIXTURE_WINDOW
+    window = held_out_windows(root / "test" / f"{label}.h5", int(round(WINDOW_S * 1e6)))[index]
+    ev, sample = window.sample.events, window.sample
+    out.parent.mkdir(parents=True, exist_ok=True)
+    return save_npz_atomic(out, x=ev.x.astype(np.uint16), y=ev.y.astype(np.uint16),
+                           t_us=(ev.t - sample.t0_us).astype(np.uint32), p=ev.p.astype(np.uint8),
+                           t0_us=np.int64(sample.t0_us), t1_us=np.int64(sample.t1_us), K=sample.K,
+                           depth=sample.depth.astype(np.float32), twist=np.asarray(sample.twist, np.float64),
+                           far_m=np.float64(window.far_m), width=np.int64(ev.width), height=np.int64(ev.height))
+
+
+def fixture_scores(checkpoint: Path, fixture: Path = FIXTURE) -> dict[str, float]:
+    """Abs mean [m] and abs_rel of ``checkpoint`` on the fixture window (dense mask), and its mean twist."""
+    import torch
+
+    from cmax.events import Events
+    from cmax.metrics import depth_metrics
+    from cmax.representations import voxel_grid
+    from learned.evaluate import load_model
+
+    data = np.load(fixture)
+    events = Events(data["x"].astype(np.int64), data["y"].astype(np.int64),
+                    data["t_us"].astype(np.int64) + int(data["t0_us"]), data["p"].astype(np.int64),
+                    int(data["width"]), int(data["height"]))
+    model, _ = load_model(checkpoint)
+    with torch.no_grad():
+        out = model(torch.from_numpy(voxel_grid(events, model.config.bins))[None])
+    depth = out.depth[0, 0].double().numpy()
+    truth = data["depth"].astype(np.float64)
+    m = depth_metrics(depth, truth, max_depth=float(data["far_m"]))
+    return {"abs_mean_m": float(m.abs_mean), "abs_rel": float(m.abs_rel),
+            "twist": [float(v) for v in out.twist[0]]}
+
+
+def ship(root: Path, runs: Path) -> Path:
+    """Copy the chosen student into ``learned/pretrained/student.pt`` (weights and config; no optimizer state)
+    with its card ``student.json``: camera, window, the run, its test scores, its scores on the fixture."""
+    import csv
+
+    import torch
+
+    from cmax.io.atomic import write_text_atomic
+    from cmax.sim.presets import davis346_camera
+    from learned.checkpoint import load_checkpoint, save_checkpoint
+
+    mode, seed = SHIPPED
+    source = run_dir(runs, mode, seed) / "last.pt"
+    ckpt = load_checkpoint(source)
+    payload = {"model": {k: v.clone() for k, v in ckpt["model"].items()}, "optimizer": {}, "step": ckpt["step"],
+               "config": ckpt["config"], "rng": {}}
+    target = save_checkpoint(PRETRAINED / "student.pt", payload)
+    if not FIXTURE.exists():
+        write_fixture(root)
+    K = davis346_camera(*SIZE).K
+    scores = {}
+    table = RESULTS / "accuracy_learned.csv"
+    if table.exists():
+        with table.open() as f:
+            for row in csv.DictReader(f):
+                if row["method"] == METHOD_NAMES[mode] and row["seed"] == str(seed) and row["mask"] == "dense":
+                    scores[row["sequence"]] = {"abs_mean_m": float(row["abs_mean_m"]),
+                                               "rmse_log": float(row["rmse_log"])}
+    card = {"model": f"{METHOD_NAMES[mode]}, seed {seed}", "size": list(SIZE),
+            "K": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])], "window_s": WINDOW_S,
+            "steps": int(ckpt["step"]), "torch": torch.__version__,
+            "reproduce": "CMAX_TORCH_THREADS=1 python -m benchmarks.learned_experiment --data-dir DATA "
+                         "&& python -m benchmarks.learned_experiment --stage ship --data-dir DATA",
+            "test_scores_dense": scores,
+            "fixture": {"file": str(FIXTURE.relative_to(FIXTURE.parents[2])), "test_file": FIXTURE_WINDOW[0],
+                        "window": FIXTURE_WINDOW[1], **fixture_scores(target)}}
+    write_text_atomic(PRETRAINED / "student.json", json.dumps(card, indent=2) + "\n")
+    return target
 
 
 # -- learning curves ---------------------------------------------------------------------------------
@@ -327,7 +403,8 @@ def main(argv: list[str] | None = None) -> int:
     from cmax._args import ArgumentParser, run_main
 
     parser = ArgumentParser(prog="python -m benchmarks.learned_experiment", description=__doc__.splitlines()[0])
-    parser.add_argument("--stage", choices=("all", "data", "train", "evaluate", "curves", "parallax"), default="all")
+    parser.add_argument("--stage", choices=("all", "data", "train", "evaluate", "curves", "ship", "parallax"),
+                        default="all")
     parser.add_argument("--data-dir", type=Path, required=True, help="cache of the simulated files")
     parser.add_argument("--runs-dir", type=Path, default=None, help="training runs (default DATA_DIR/runs)")
     parser.add_argument("--seeds", default="0,1,2", help="training seeds, comma-separated")
@@ -353,6 +430,8 @@ def _run(args: argparse.Namespace) -> int:
         evaluate(root, runs, seeds, baselines=not args.no_baselines)
     if args.stage in ("all", "curves"):
         print(draw_curves(runs, seeds, RESULTS / "learned_curves.png"))
+    if args.stage in ("all", "ship"):
+        print(ship(root, runs))
     return 0
 
 

@@ -29,13 +29,18 @@ import torch
 from tqdm import tqdm
 
 from cmax._args import ArgumentParser, run_main
+from cmax._threads import torch_threads
 from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, WeightedSum
 from cmax.io.atomic import write_text_atomic
 from learned.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from learned.config import Config, load_config
 from learned.data import H5WindowDataset, collate
 from learned.losses import student_loss, teacher_loss
-from learned.model import DepthPoseNet
+from learned.model import DepthPoseNet, ModelConfig
+
+#: Steps between two choices of torch's thread count (:func:`cmax._threads.torch_threads`: the cores less the
+#: load of other processes; ``CMAX_TORCH_THREADS`` fixes it).
+THREAD_CHECK_EVERY = 25
 
 __all__ = ["batch_indices", "learning_rate", "twist_scale", "Trainer", "main"]
 
@@ -61,14 +66,24 @@ def _events(batch: dict[str, torch.Tensor], width: int, height: int) -> EventWin
                                     batch["duration_s"], batch["K"], width=width, height=height, speed=speed)
 
 
-def twist_scale(dataset: H5WindowDataset) -> torch.Tensor:
-    """Root mean square of each twist component (6,) over the ground-truth twists of ``dataset``'s files
-    [m/s, rad/s] (at least 1e-3 each; ones when no file has twists): the teacher's twist-loss scale."""
+def twist_scale(dataset: H5WindowDataset, model: ModelConfig, *, floor: float = 0.05) -> torch.Tensor:
+    """The teacher's twist-loss scale (6,) [m/s x3, rad/s x3]: the root mean square of one component of ``v``
+    (``sqrt(mean |v|^2 / 3)``) and of ``omega`` over the ground-truth twists of ``dataset``'s files, each at
+    least ``floor`` x the model's bound (``max_speed``, ``max_angular_speed``).
+
+    One scale per vector, not per component: a component that barely moves in the data (the rotation of a
+    drive, of a slider) would otherwise be divided by almost nothing and its noise would swamp the loss.
+    The model's bounds when no file has twists.
+    """
+    bounds = np.array([model.max_speed, model.max_angular_speed])
     twists = [gt["twists"] for gt in dataset._gt if gt is not None and gt["twists"] is not None]
-    if not twists:
-        return torch.ones(6)
-    rms = np.sqrt(np.mean(np.concatenate(twists) ** 2, axis=0))
-    return torch.as_tensor(np.maximum(rms, 1e-3), dtype=torch.float32)
+    if twists:
+        all_twists = np.concatenate(twists)
+        rms = np.sqrt([np.mean(all_twists[:, :3] ** 2), np.mean(all_twists[:, 3:] ** 2)])
+        scales = np.maximum(rms, floor * bounds)
+    else:
+        scales = bounds
+    return torch.as_tensor(np.repeat(scales, 3), dtype=torch.float32)
 
 
 def learning_rate(step: int, config) -> float:
@@ -80,7 +95,7 @@ def learning_rate(step: int, config) -> float:
         return tc.lr * (step + 1) / tc.warmup_steps
     span = max(tc.steps - tc.warmup_steps, 1)
     progress = min((step - tc.warmup_steps) / span, 1.0)
-    return tc.lr * (0.01 + 0.99 * 0.5 * (1.0 + np.cos(np.pi * progress)))
+    return float(tc.lr * (0.01 + 0.99 * 0.5 * (1.0 + np.cos(np.pi * progress))))
 
 
 def contrast_objective(collapse_weight: float):
@@ -144,7 +159,7 @@ class Trainer:
         self.dataset = H5WindowDataset(dc.files, window_us=dc.window_us, max_events=dc.max_events,
                                        bins=config.model.bins, augment=dc.augment, seed=tc.seed)
         self.contrast = contrast_objective(tc.collapse_weight)
-        self.twist_scale = twist_scale(self.dataset)
+        self.twist_scale = twist_scale(self.dataset, config.model)
         self.validation = None
         if tc.val_every:
             val = H5WindowDataset(dc.val_files, window_us=dc.window_us, max_events=dc.max_events,
@@ -267,11 +282,14 @@ class Trainer:
             self.out.mkdir(parents=True, exist_ok=True)
             write_text_atomic(self.out / "config.json", json.dumps(self.config.to_dict(), indent=2, default=str))
         losses = []
+        start = self.step
         batches = self._batches()
         bar = tqdm(total=tc.steps, initial=self.step, desc=self.config.mode,
                    disable=not self.progress or self.rank != 0)
         self.model.train()
         while self.step < tc.steps:
+            if self.step % THREAD_CHECK_EVERY == 0 or self.step == start:   # the machine's load changes
+                torch.set_num_threads(torch_threads())
             for group in self.optimizer.param_groups:
                 group["lr"] = learning_rate(self.step, self.config)
             batch = next(batches)
