@@ -8,7 +8,7 @@ at every decoder scale, bounded to the configured depth range:
 
     rho = 1/z_max + (1/z_min - 1/z_max) * sigmoid(logit)      [1/m]
 
-The pose head on the bottleneck (conv, global mean, linear) gives the twist
+The pose head on the bottleneck (conv, mean over a grid of cells, linear) gives the twist
 ``(v [m/s], omega [rad/s])`` of the window, each scaled by a configured
 typical magnitude (``tanh`` bounded). Inputs whose sides are not multiples of
 ``2**levels`` are zero-padded and the outputs cropped back.
@@ -52,6 +52,11 @@ class ModelConfig:
     norm : {"group", "none"}
         Normalisation after each convolution of a block: ``"group"`` (per-sample GroupNorm,
         the original network) or ``"none"`` (biased convolutions, no normalisation).
+    pose_cells : int
+        The pose head averages the bottleneck over a ``pose_cells`` x ``pose_cells`` grid of cells
+        before its linear layer. 1 (the original network) is a global mean, which discards where in
+        the image a feature is: expansion and contraction (forward and backward motion), or a pan left
+        and right at the two sides, average alike. 3 keeps the layout the motion field needs.
     """
 
     bins: int = 5
@@ -63,9 +68,10 @@ class ModelConfig:
     max_angular_speed: float = 3.0
     block: str = "dense"
     norm: str = "group"
+    pose_cells: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("bins", "width", "levels"):
+        for name in ("bins", "width", "levels", "pose_cells"):
             if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
                 raise ValueError(f"model.{name} must be a positive integer, got {getattr(self, name)!r}")
         if self.block not in BLOCKS:
@@ -166,7 +172,8 @@ class DepthPoseNet(nn.Module):
         self.up = nn.ModuleList(_block(c[k + 1] + c[k], c[k], 1, **kind) for k in reversed(range(config.levels)))
         self.heads = nn.ModuleList(nn.Conv2d(c[k], 1, 3, 1, 1) for k in reversed(range(config.levels)))
         self.pose = nn.Sequential(nn.Conv2d(c[-1], c[-1], 3, 1, 1), nn.LeakyReLU(0.1))
-        self.pose_out = nn.Linear(c[-1], 6)
+        self.pose_pool = nn.AdaptiveAvgPool2d(config.pose_cells)
+        self.pose_out = nn.Linear(c[-1] * config.pose_cells ** 2, 6)
         nn.init.zeros_(self.pose_out.weight)
         nn.init.zeros_(self.pose_out.bias)
         self.to(memory_format=self.memory_format)
@@ -186,7 +193,7 @@ class DepthPoseNet(nn.Module):
         for down in self.down:
             skips.append(down(skips[-1]))
         feature = skips.pop()
-        pooled = self.pose(feature).mean(dim=(2, 3))
+        pooled = self.pose_pool(self.pose(feature)).flatten(1)
         scale = torch.tensor([self.config.max_speed] * 3 + [self.config.max_angular_speed] * 3,
                              dtype=pooled.dtype, device=pooled.device)
         twist = torch.tanh(self.pose_out(pooled)) * scale
