@@ -414,23 +414,27 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
     against EMVS with the true poses; markdown and a picture."""
     from cmax.fitting import Verdict
 
+    from cmax.emvs import read_tum_trajectory
+
     sequence, seconds, origin = slider_sequence(events_path, cache)
     walls, maps, calibrated_wall = slider_far_wall(events_path, sequence, folder)
     first = sequence.results[0].t0_us
+    speeds = window_speeds(*read_tum_trajectory(folder / "groundtruth.txt"),
+                           [(r.t0_us, r.t1_us) for r in sequence.results])
     lines = ["## ECD slider_depth (se3 sequence against the ground truth, +x)", "",
              f"Events simulated from the 87 real frames (`{events_path.name}`), 240x180; "
              f"`fit_sequence(events, K, speed={ECD_SPEED})`, default windows; {seconds:.0f} s in all ({origin}).", "",
              "| window | t [s] | direction error [deg] | reversed | fit's own error [deg] | omega [deg/s] "
-             "| parallax [px] | far wall EMVS / fit [m] | verdict | reason | resolution |",
-             "|---|---|---|---|---|---|---|---|---|---|---|"]
+             "| parallax [px] | true speed [m/s] | far wall EMVS / fit [m] | verdict | reason | resolution |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|"]
     rows = []
-    for i, (r, wall) in enumerate(zip(sequence.results, walls)):
+    for i, (r, wall, speed) in enumerate(zip(sequence.results, walls, speeds)):
         error = _x_error_deg(r.v)
         own = error if r.quality.replaced is None else _x_error_deg(r.quality.replaced[0])
         rows.append((error, r.verdict, own))
         lines.append(f"| {i} | {(r.t0_us - first) * 1e-6:.2f}-{(r.t1_us - first) * 1e-6:.2f} | {error:.1f} | "
                      f"{'yes' if error > 90 else 'no'} | {own:.1f} | {np.round(np.degrees(r.omega), 1).tolist()} | "
-                     f"{r.parallax_px:.1f} | {wall.emvs_m:.2f} / {wall.fit_m:.2f} ({wall.pixels} px) | "
+                     f"{r.parallax_px:.1f} | {speed:.3f} | {wall.emvs_m:.2f} / {wall.fit_m:.2f} ({wall.pixels} px) | "
                      f"{r.verdict.value} | {r.quality.reason} | {r.quality.resolution} |")
     errors = np.array([e for e, _, _ in rows])
     reversed_ = [row for row in rows if row[0] > 90]
@@ -450,6 +454,17 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
               f"{'met' if np.median(errors) <= 10 else 'not met'}), p90 {np.percentile(errors, 90):.1f} deg "
               f"(target <= 20, {'met' if np.percentile(errors, 90) <= 20 else 'not met'}).", ""]
     lines += _far_wall_lines(walls, calibrated_wall, [r.verdict is Verdict.OK for r in sequence.results])
+    rescaled = np.array([w.ratio * speed / ECD_SPEED for w, speed in zip(walls, speeds) if w.pixels > 0])
+    slow = [i for i, speed in enumerate(speeds) if abs(speed / ECD_SPEED - 1) > 0.2]
+    lines += [f"True speed: the ground truth's displacement over each window (its first and last poses clamp the "
+              f"ends). {len(slow)} window(s) move more than 20% off {ECD_SPEED} m/s"
+              + (" (" + ", ".join(f"window {i}: {speeds[i]:.3f} m/s, "
+                                  f"{speeds[i] * (r.t1_us - r.t0_us) * 1e-3:.0f} mm over the window"
+                                  for i, r in ((i, sequence.results[i]) for i in slow))
+                 + "; their direction error is still measured against +x)" if slow else "")
+              + f". The depth of a fit scales with the speed it is given; with each window's true speed instead of "
+              f"{ECD_SPEED} m/s the far wall's median ratio fit / EMVS would be "
+              f"{np.median(rescaled) if rescaled.size else np.nan:.3f}.", ""]
     middle = len(sequence.results) // 2
     r = sequence.results[middle]
     scale = (0.47, 2.4)                     # EMVS's depth range: one colour scale for both depth maps
@@ -458,6 +473,15 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
                           viz.depth_panel(np.where(r.mask, r.depth, np.nan), scale, f"fit depth, {when}"),
                           viz.depth_panel(maps[middle], scale, f"EMVS, true poses, {when}")])
     return lines, picture
+
+
+def window_speeds(times_us: np.ndarray, T_w_c: np.ndarray, windows: list[tuple[int, int]]) -> np.ndarray:
+    """Mean speed [m/s] of a trajectory (``times_us`` (M,), ``T_w_c`` (M, 4, 4)) over each ``(t0_us, t1_us)``:
+    the distance between the positions at the two ends (linear interpolation; clamped outside the poses' span)
+    over the window's duration."""
+    positions = T_w_c[:, :3, 3]
+    at = lambda t: np.array([np.interp(t, times_us, positions[:, k]) for k in range(3)])  # noqa: E731
+    return np.array([np.linalg.norm(at(b) - at(a)) / ((b - a) * 1e-6) for a, b in windows])
 
 
 def _far_wall_lines(walls: list, calibrated_wall: float, ok: list[bool]) -> list[str]:

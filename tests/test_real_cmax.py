@@ -92,3 +92,14 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
     assert "this run" in origin and "cached" in again_origin and "not recorded" not in again_origin
     other, _, _ = real_cmax.slider_sequence(paths[1], cache)
     assert calls == [50, 60] and other.n == 60
+
+
+def test_window_speeds_of_a_slide_that_stops():
+    """x = 0.3 m/s * t for 1 s, then at rest: 0.3 m/s inside the slide, 0 at rest, half over a window
+    that straddles the stop, and the ends clamped outside the poses' span."""
+    times = np.arange(0, 2_000_001, 10_000)
+    T = np.tile(np.eye(4), (len(times), 1, 1))
+    T[:, 0, 3] = 0.3 * np.minimum(times, 1_000_000) * 1e-6
+    speeds = real_cmax.window_speeds(times, T, [(100_000, 300_000), (1_200_000, 1_500_000),
+                                                (900_000, 1_100_000), (1_900_000, 2_100_000)])
+    np.testing.assert_allclose(speeds, [0.3, 0.0, 0.15, 0.0], atol=1e-12)
