@@ -214,8 +214,18 @@ def run_dir(runs: Path, mode: str, seed: int) -> Path:
     return runs / f"{mode}_s{seed}"
 
 
-def train_one(mode: str, seed: int, root: Path, runs: Path, extra: list[str]) -> Path:
-    """Train (or resume, or verify as finished) one run; returns its ``last.pt``."""
+#: Ablations (``--stage ablation``, seed 0): name -> (mode, config overrides, files read with the true twist).
+ABLATIONS = {"finetune_true_twist": ("finetune", ["train.contrast_twist=truth"], True),
+             "student_no_teacher_term": ("student", ["train.lam=1.0"], False)}
+
+
+def train_one(mode: str, seed: int, root: Path, runs: Path, extra: list[str], *, name: str | None = None,
+              true_twist: bool = False) -> Path:
+    """Train (or resume, or verify as finished) one run; returns its ``last.pt``.
+
+    ``name``: the run folder's name instead of the mode's (ablations); ``true_twist``: the unlabelled
+    synthetic files are read with ``known_twist`` (their true twist kept, depth hidden).
+    """
     import torch
 
     from learned.checkpoint import load_checkpoint
@@ -223,7 +233,10 @@ def train_one(mode: str, seed: int, root: Path, runs: Path, extra: list[str]) ->
     from learned.train import Trainer
 
     files, val = data_files(root)[mode]
-    out = run_dir(runs, mode, seed)
+    if true_twist:
+        files = [{**f, "known_twist": f["known_speed"]} if isinstance(f, dict) else f for f in files]
+        val = [{**f, "known_twist": f["known_speed"]} if isinstance(f, dict) else f for f in val]
+    out = run_dir(runs, name or mode, seed)
     overrides = [f"data.files={json.dumps(files)}", f"data.val_files={json.dumps(val)}", f"train.seed={seed}",
                  f"train.out={out}"]
     if mode != "teacher":
@@ -243,6 +256,11 @@ def train_one(mode: str, seed: int, root: Path, runs: Path, extra: list[str]) ->
     return last
 
 
+def train_ablations(root: Path, runs: Path, extra: list[str], seed: int = 0) -> None:
+    for name, (mode, overrides, true_twist) in ABLATIONS.items():
+        train_one(mode, seed, root, runs, list(overrides) + list(extra), name=name, true_twist=true_twist)
+
+
 def train_all(root: Path, runs: Path, seeds: list[int], extra: list[str]) -> None:
     for seed in seeds:
         for mode in MODES:
@@ -255,6 +273,9 @@ def evaluate(root: Path, runs: Path, seeds: list[int], baselines: bool = True) -
 
     stats = training_statistics(sorted((root / "labelled").glob("*.h5")))
     methods = {METHOD_NAMES[m]: [run_dir(runs, m, s) / "last.pt" for s in seeds] for m in MODES}
+    for name in ABLATIONS:   # seed 0 only, when run
+        if (run_dir(runs, name, 0) / "last.pt").exists():
+            methods[f"ablation: {name}"] = [run_dir(runs, name, 0) / "last.pt"]
     order = [label for label, _, _ in TEST_SEQUENCES]
     files = sorted((root / "test").glob("*.h5"), key=lambda p: order.index(p.stem) if p.stem in order else 99)
     rows = score_all(files, methods, constant_depth_m=stats.median_depth_m, mean_twist=np.asarray(stats.mean_twist),
@@ -403,7 +424,8 @@ def main(argv: list[str] | None = None) -> int:
     from cmax._args import ArgumentParser, run_main
 
     parser = ArgumentParser(prog="python -m benchmarks.learned_experiment", description=__doc__.splitlines()[0])
-    parser.add_argument("--stage", choices=("all", "data", "train", "evaluate", "curves", "ship", "parallax"),
+    parser.add_argument("--stage", choices=("all", "data", "train", "ablation", "evaluate", "curves", "ship",
+                                            "parallax"),
                         default="all")
     parser.add_argument("--data-dir", type=Path, required=True, help="cache of the simulated files")
     parser.add_argument("--runs-dir", type=Path, default=None, help="training runs (default DATA_DIR/runs)")
@@ -426,6 +448,8 @@ def _run(args: argparse.Namespace) -> int:
         make_data(root, args.jobs)
     if args.stage in ("all", "train"):
         train_all(root, runs, seeds, args.overrides)
+    if args.stage == "ablation":
+        train_ablations(root, runs, args.overrides)
     if args.stage in ("all", "evaluate"):
         evaluate(root, runs, seeds, baselines=not args.no_baselines)
     if args.stage in ("all", "curves"):

@@ -52,7 +52,7 @@ def _check_file_entry(entry: object, index: int) -> None:
         return
     if not isinstance(entry, dict):
         raise TypeError(f"{where} must be a path or {{\"path\", \"K\", \"use_gt\"}}, got {entry!r}")
-    unknown = set(entry) - {"path", "K", "use_gt", "known_speed"}
+    unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist"}
     if unknown or not isinstance(entry.get("path"), (str, Path)):
         raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\" and \"known_speed\" "
                         f"only, got {entry!r}")
@@ -63,7 +63,7 @@ def _check_file_entry(entry: object, index: int) -> None:
         if (flat is None or len(flat) not in (4, 9) or
                 not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in flat)):
             raise TypeError(f"{where}.K must be [fx, fy, cx, cy] or a 3x3 list of finite numbers, got {K!r}")
-    for key in ("use_gt", "known_speed"):
+    for key in ("use_gt", "known_speed", "known_twist"):
         if not isinstance(entry.get(key, True), bool):
             raise TypeError(f"{where}.{key} must be true or false, got {entry[key]!r}")
 
@@ -151,6 +151,10 @@ class TrainConfig:
         Fine-tune and student: weight of :func:`learned.losses.speed_loss` on windows of known speed.
     clip_grad_norm : float
         Largest global gradient norm of a step (0: no clipping).
+    contrast_twist : str
+        Fine-tune and student: the twist the contrast objective warps with, ``"network"`` (the paper) or
+        ``"truth"`` (an ablation: the window's true twist where its file is read with ``known_twist``, so
+        that only the depth is learned from the contrast).
     """
 
     batch_size: int = 16
@@ -172,11 +176,14 @@ class TrainConfig:
     val_every: int = 0
     speed_weight: float = 0.1
     clip_grad_norm: float = 1.0
+    contrast_twist: str = "network"
 
     def __post_init__(self) -> None:
         _check_types(TrainConfig, asdict(self), "train")
         _require(self.schedule in ("constant", "cosine"), "train", "schedule", "'constant' or 'cosine'",
                  self.schedule)
+        _require(self.contrast_twist in ("network", "truth"), "train", "contrast_twist", "'network' or 'truth'",
+                 self.contrast_twist)
         for name in ("batch_size", "checkpoint_every", "log_every", "image_every"):
             _require(getattr(self, name) >= 1, "train", name, "a whole number >= 1", getattr(self, name))
         for name in ("steps", "seed", "warmup_steps", "val_every"):

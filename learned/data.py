@@ -168,12 +168,15 @@ class FileSpec:
     calibration) is still used when no ``K`` is given. ``known_speed`` (with ``use_gt`` False) keeps
     the camera speed ``|v|`` of each window (what odometry or a speedometer would give a real
     recording) as the contrast loss's metric anchor; the depth and the twist stay hidden.
+    ``known_twist`` (with ``use_gt`` False; an ablation: the motion known, the depth hidden) keeps the
+    whole twist of each window.
     """
 
     path: Path
     K: np.ndarray | None = None
     use_gt: bool = True
     known_speed: bool = False
+    known_twist: bool = False
 
 
 def _as_spec(entry: object) -> FileSpec:
@@ -187,7 +190,8 @@ def _as_spec(entry: object) -> FileSpec:
             K = np.asarray(K, float)
             if K.shape == (4,):
                 K = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
-        return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)))
+        return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
+                        bool(entry.get("known_twist", False)))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
@@ -261,12 +265,13 @@ class H5WindowDataset(torch.utils.data.Dataset):
 
     @staticmethod
     def _load_speeds(file: h5py.File, spec: FileSpec) -> tuple[np.ndarray, np.ndarray] | None:
-        """``(poses_t (M,) µs, |v| (M,) m/s)`` of a file whose speed is known although its ground truth is hidden."""
-        if spec.use_gt or not spec.known_speed:
+        """``(poses_t (M,) µs, twists (M, 6))`` of a file whose speed (or twist) is known although its ground
+        truth is hidden."""
+        if spec.use_gt or not (spec.known_speed or spec.known_twist):
             return None
         if "gt/twists" not in file or "gt/poses_t" not in file:
             raise ValueError(f"{spec.path}: known_speed needs gt/twists and gt/poses_t in the file")
-        return file["gt/poses_t"][:], np.linalg.norm(file["gt/twists"][:, :3], axis=1)
+        return file["gt/poses_t"][:], file["gt/twists"][:]
 
     def set_epoch(self, epoch: int) -> None:
         """Change the augmentation draws (called by the trainer each epoch)."""
@@ -284,11 +289,13 @@ class H5WindowDataset(torch.utils.data.Dataset):
             reader = self._readers[file_index] = H5Reader(spec.path)
         events = reader.window(t0, t0 + self.window_us)
         if gt is None:
-            speed = None
+            speed = twist = None
             if self._speeds[file_index] is not None:
-                times, speeds = self._speeds[file_index]
-                speed = float(speeds[int(np.argmin(np.abs(times - (t0 + self.window_us // 2))))])
-            return Sample(events, spec.K, None, None, t0, t0 + self.window_us, speed)
+                times, twists = self._speeds[file_index]
+                middle = twists[int(np.argmin(np.abs(times - (t0 + self.window_us // 2))))]
+                speed = float(np.linalg.norm(middle[:3]))
+                twist = middle.copy() if spec.known_twist else None
+            return Sample(events, spec.K, None, twist, t0, t0 + self.window_us, speed)
         middle = t0 + self.window_us // 2
         k = int(np.argmin(np.abs(gt["depth_t"] - middle)))
         depth = reader.file["gt/depth"][k]

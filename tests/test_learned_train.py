@@ -229,3 +229,29 @@ def test_speed_loss_and_known_speed_windows(scene_file):
     assert sample.depth is None and sample.twist is None and not bool(item["has_twist"])
     assert float(item["speed"]) == pytest.approx(expected, rel=1e-6)
     assert np.isnan(float(none[1]["speed"]))
+    known = H5WindowDataset([{"path": str(scene_file), "use_gt": False, "known_twist": True}], window_us=100_000)
+    assert known.sample(1).depth is None and bool(known[1]["has_twist"])
+    assert np.allclose(known.sample(1).twist, twists[np.argmin(np.abs(times - middle))])
+
+
+def test_contrast_twist_truth_warps_with_the_true_twist(scene_file, tmp_path):
+    """The ablation's switch: with contrast_twist=truth the student's contrast term uses the file's twist,
+    so the loss equals the shared objective at the network's depth and the true twist."""
+    from cmax.contrast import SHARED_OBJECTIVE, DepthMotion
+    from learned.data import collate
+    from learned.train import _events
+
+    teacher = tmp_path / "teacher"
+    Trainer(load_config(None, tiny(scene_file, teacher, "train.steps=1"), mode="teacher"), progress=False).run()
+    files = f'data.files=[{{"path": "{scene_file}", "use_gt": false, "known_twist": true}}]'
+    config = load_config(None, tiny(scene_file, tmp_path / "s", "train.steps=1", f"train.teacher={teacher / 'last.pt'}",
+                                    "train.contrast_twist=truth", "train.speed_weight=0", "train.lam=1.0") + [files],
+                         mode="student")
+    trainer = Trainer(config, progress=False)
+    batch = collate([trainer.dataset[i] for i in range(3)])
+    loss, terms, output = trainer.loss(batch)
+    expected = SHARED_OBJECTIVE(_events(batch, trainer.dataset.width, trainer.dataset.height),
+                                DepthMotion(output.inverse_depth, batch["twist"])).mean()
+    assert float(loss) == pytest.approx(float(expected), rel=1e-6)
+    with pytest.raises(ValueError, match="contrast_twist"):
+        load_config(None, ["train.contrast_twist=gyro"])
