@@ -28,7 +28,7 @@ a window holds 3-4 px of translational parallax (the median over pixels and time
 Training (``--stage train``): per seed, the teacher (``learned/configs/teacher.toml``), then the fine-tune
 and the student from that teacher; ``runs/<mode>_s<seed>/``. Evaluation (``--stage evaluate``) scores
 every checkpoint with :mod:`benchmarks.learned_table` (dense and event-pixel masks, the constant-depth
-baseline, ``cmax.fit`` and EMVS rows) into ``benchmarks/results/accuracy_learned.{md,csv}``;
+baseline, ``cmax.fit`` and EMVS rows) into ``benchmarks/results/accuracy_learned_table.{md,csv}``;
 ``--stage curves`` draws the learning curves (``benchmarks/results/learned_curves.png``); ``--stage ship``
 copies the student of seed 0 into ``learned/pretrained/student.pt`` with its card ``student.json`` (scores on
 the test files and on the fixed window ``tests/data/learned_window.npz``).
@@ -279,8 +279,8 @@ def evaluate(root: Path, runs: Path, seeds: list[int], baselines: bool = True) -
     order = [label for label, _, _ in TEST_SEQUENCES]
     files = sorted((root / "test").glob("*.h5"), key=lambda p: order.index(p.stem) if p.stem in order else 99)
     rows = score_all(files, methods, constant_depth_m=stats.median_depth_m, mean_twist=np.asarray(stats.mean_twist),
-                     window_s=WINDOW_S, baselines=baselines, cache=RESULTS / "accuracy_learned.baselines.json")
-    write_tables(rows, RESULTS / "accuracy_learned_table.md", RESULTS / "accuracy_learned.csv")
+                     window_s=WINDOW_S, baselines=baselines, cache=RESULTS / "accuracy_learned_table.baselines.json")
+    write_tables(rows, RESULTS / "accuracy_learned_table.md", RESULTS / "accuracy_learned_table.csv")
 
 
 # -- the shipped model --------------------------------------------------------------------------------
@@ -352,7 +352,7 @@ def ship(root: Path, runs: Path) -> Path:
         write_fixture(root)
     K = davis346_camera(*SIZE).K
     scores = {}
-    table = RESULTS / "accuracy_learned.csv"
+    table = RESULTS / "accuracy_learned_table.csv"
     if table.exists():
         with table.open() as f:
             for row in csv.DictReader(f):
