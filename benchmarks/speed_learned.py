@@ -7,14 +7,15 @@ events of 2 and 4 of them (time-aligned: one 0.1665 s window with 2x and 4x the 
 * **event volume**: :func:`cmax.representations.voxel_grid` (5 bins, numpy) and the compiled
   :func:`learned.volume.event_volume` (the same volume), ms per window at each event count;
 * **network forward**, batch 1, ``torch.inference_mode``, for the original network
-  (``ModelConfig()``, in its original NCHW layout and channels_last) and the fast one
-  (``ModelConfig.fast()``: eager, and with ``--compile`` also ``torch.compile``d, whose compile
-  time is reported), with 1 and 2 torch threads; untrained weights (speed does not depend on them);
+  (``ModelConfig()``, in its original NCHW layout and channels_last), width 8 with dense blocks,
+  and the fast one (``ModelConfig.fast()``, also without GroupNorm; with ``--compile`` also
+  ``torch.compile``d and ``torch.jit.trace`` + ``freeze``d, their preparation times reported),
+  with 1 and 2 torch threads; untrained weights (speed does not depend on them);
 * **per window**: volume (compiled, on the densest window) + forward, and windows/s;
 * ``cmax.fit(events, K, "se3", speed=|v|)`` (known speed, its defaults, 1 thread): seconds per
   window, ``--fits`` runs after one warm-up fit;
 * **training step** (``--train-repeats``): teacher loss forward + backward + AdamW step, batch 8 at
-  160x120, 2 threads, for both networks.
+  160x120, 2 threads, for the original and the fast network.
 
 Timings are medians of ``--repeats`` interleaved rounds (every variant once per round) after a
 warm-up, so load changes hit all variants alike; the load average is printed beside them.
@@ -28,6 +29,7 @@ from __future__ import annotations
 
 import argparse
 import os
+from dataclasses import fields
 import platform
 import statistics
 import time
@@ -44,22 +46,37 @@ BUDGET_MS = 30.0
 
 
 def interleaved_ms(functions: dict[str, Callable[[], object]], repeats: int,
-                   threads: dict[str, int] | None = None) -> dict[str, float]:
-    """Median milliseconds of each function over ``repeats`` rounds that run every function once (after a warm-up).
+                   threads: dict[str, int] | None = None) -> dict[str, tuple[float, float]]:
+    """Median (wall, CPU) milliseconds of each function over ``repeats`` rounds that run every function once.
 
-    ``threads`` maps a name to the torch thread count set before its call (default: unchanged).
+    One warm-up round first. CPU time is the process's (all threads): with one thread it is what the wall
+    time would be on an idle machine, whatever the load. ``threads`` maps a name to the torch thread count
+    set before its call (default: unchanged).
     """
     threads = threads or {}
-    times: dict[str, list[float]] = {name: [] for name in functions}
+    times: dict[str, list[tuple[float, float]]] = {name: [] for name in functions}
     for round_ in range(repeats + 1):
         for name, function in functions.items():
             if name in threads:
                 torch.set_num_threads(threads[name])
-            start = time.perf_counter()
+            start, cpu = time.perf_counter(), time.process_time()
             function()
             if round_:
-                times[name].append((time.perf_counter() - start) * 1e3)
-    return {name: statistics.median(values) for name, values in times.items()}
+                times[name].append(((time.perf_counter() - start) * 1e3, (time.process_time() - cpu) * 1e3))
+    return {name: (statistics.median(v[0] for v in values), statistics.median(v[1] for v in values))
+            for name, values in times.items()}
+
+
+class _Tensors(torch.nn.Module):
+    """A network returning (inverse_depth, twist) tensors instead of a NetOutput, for ``torch.jit.trace``."""
+
+    def __init__(self, net: torch.nn.Module) -> None:
+        super().__init__()
+        self.net = net
+
+    def forward(self, volume: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        out = self.net(volume)
+        return out.inverse_depth, out.twist
 
 
 def merged_events(windows: list):
@@ -97,7 +114,7 @@ def train_step_seconds(configs: dict[str, object], repeats: int, threads: int = 
 
         steps[name] = step
     torch.set_num_threads(threads)
-    return {name: ms / 1e3 for name, ms in interleaved_ms(steps, repeats).items()}
+    return {name: ms[0] / 1e3 for name, ms in interleaved_ms(steps, repeats).items()}
 
 
 def main(argv: list[str] | None = None) -> int:
@@ -136,8 +153,13 @@ def main(argv: list[str] | None = None) -> int:
     volume = torch.from_numpy(voxel_grid(inputs["4 merged"], 5))[None]
     nets = {"original, NCHW (as before)": DepthPoseNet(ModelConfig(), channels_last=False).eval(),
             "original, channels_last": DepthPoseNet(ModelConfig()).eval(),
-            "fast, channels_last": DepthPoseNet(ModelConfig.fast()).eval()}
-    compile_s = None
+            "width 8, dense, channels_last": DepthPoseNet(ModelConfig(width=8)).eval(),
+            "width 8, separable, channels_last": DepthPoseNet(ModelConfig(width=8, block="separable")).eval(),
+            "space_to_depth, width 16, separable": DepthPoseNet(ModelConfig(space_to_depth=True,
+                                                                            block="separable")).eval(),
+            "fast, no GroupNorm": DepthPoseNet(ModelConfig.fast(norm="none")).eval(),
+            "fast": DepthPoseNet(ModelConfig.fast()).eval()}
+    compile_s = trace_s = None
     if args.compile:
         torch.set_num_threads(2)
         compiled = torch.compile(DepthPoseNet(ModelConfig.fast()).eval())
@@ -145,15 +167,30 @@ def main(argv: list[str] | None = None) -> int:
         with torch.inference_mode():
             compiled(volume)
         compile_s = time.perf_counter() - start
-        nets["fast, channels_last, torch.compile"] = compiled
-    parameters = {name: sum(p.numel() for p in net.parameters()) for name, net in nets.items()}
+        nets["fast, torch.compile"] = compiled
+        start = time.perf_counter()
+        with torch.inference_mode():
+            traced = torch.jit.freeze(torch.jit.trace(_Tensors(nets["fast"]).eval(), volume))
+            traced(volume)
+        trace_s = time.perf_counter() - start
+        nets["fast, jit.trace + freeze"] = traced
+    fast_parameters = sum(p.numel() for p in nets["fast"].parameters())
+    parameters = {name: sum(p.numel() for p in net.parameters()) if "trace" not in name else fast_parameters
+                  for name, net in nets.items()}   # a frozen trace holds its weights as constants
     calls, threads = {}, {}
     for name, net in nets.items():
         for n in (1, 2):
             calls[(name, n)] = lambda net=net: net(volume)
             threads[(name, n)] = n
+    densest_events = inputs["4 merged"]
+    fast_name = "fast, torch.compile" if args.compile else "fast"
+    end_to_end = {n: lambda n=n: nets[fast_name](torch.from_numpy(event_volume(densest_events, 5))[None])
+                  for n in (1, 2)}
+    calls.update({("end-to-end", n): f for n, f in end_to_end.items()})
+    threads.update({("end-to-end", n): n for n in end_to_end})
     with torch.inference_mode():
         forward_ms = interleaved_ms(calls, args.repeats, threads)
+    whole = {n: forward_ms.pop(("end-to-end", n)) for n in end_to_end}
     loads.append(os.getloadavg()[0])
 
     # -- cmax.fit ------------------------------------------------------------------------------
@@ -175,7 +212,7 @@ def main(argv: list[str] | None = None) -> int:
 
     # -- report --------------------------------------------------------------------------------
     counts = {label: len(events) for label, events in inputs.items()}
-    densest = volume_ms["4 merged"]["event_volume"]
+    densest = volume_ms["4 merged"]["event_volume"][0]
     lines = [
         "# Inference speed of the depth-pose network versus cmax.fit",
         "",
@@ -190,25 +227,36 @@ def main(argv: list[str] | None = None) -> int:
         "",
         "## Event volume (5 bins), 1 thread",
         "",
-        "| input | events | `voxel_grid` [ms] | `learned.volume.event_volume` [ms] | speed-up |",
+        "Wall ms (CPU ms of the process in brackets: the idle-machine figure for one thread).",
+        "",
+        "| input | events | `voxel_grid` [ms] | `learned.volume.event_volume` [ms] | speed-up (wall) |",
         "|---|---:|---:|---:|---:|",
     ]
     for label, ms in volume_ms.items():
-        lines.append(f"| {label} | {counts[label]:,} | {ms['voxel_grid']:.1f} | {ms['event_volume']:.1f} | "
-                     f"{ms['voxel_grid'] / ms['event_volume']:.1f}x |")
+        (grid, grid_cpu), (fast, fast_cpu) = ms["voxel_grid"], ms["event_volume"]
+        lines.append(f"| {label} | {counts[label]:,} | {grid:.1f} ({grid_cpu:.1f}) | {fast:.1f} ({fast_cpu:.1f}) | "
+                     f"{grid / fast:.1f}x |")
+    fast_fields = {f.name: getattr(ModelConfig.fast(), f.name) for f in fields(ModelConfig)
+                   if getattr(ModelConfig.fast(), f.name) != getattr(ModelConfig(), f.name)}
     lines += ["", "## Network forward and the whole window (346x260, batch 1)", "",
+              "fast = `ModelConfig.fast()` = `ModelConfig(" + ", ".join(f"{k}={v!r}" for k, v in fast_fields.items())
+              + ")`; every network runs channels_last unless marked NCHW.", "",
               f"Per window = the forward + `event_volume` on the densest input ({counts['4 merged']:,} events, "
               f"{densest:.1f} ms); target <= {BUDGET_MS:.0f} ms with 2 threads.", "",
-              "| network | parameters | threads | forward [ms] | per window [ms] | windows/s | vs cmax.fit se3 |",
+              "| network | parameters | threads | forward [ms] (CPU ms) | per window [ms] | windows/s | "
+              "vs cmax.fit se3 |",
               "|---|---:|---:|---:|---:|---:|---:|"]
-    for (name, n), ms in forward_ms.items():
+    for (name, n), (ms, cpu) in forward_ms.items():
         total = ms + densest
-        lines.append(f"| {name} | {parameters[name]:,} | {n} | {ms:.1f} | {total:.1f} | {1e3 / total:.1f} | "
+        lines.append(f"| {name} | {parameters[name]:,} | {n} | {ms:.1f} ({cpu:.1f}) | {total:.1f} | {1e3 / total:.1f} | "
                      f"{fit_median * 1e3 / total:.0f}x |")
+    lines += ["", f"Measured in one call (`event_volume` on the densest input, then the {fast_name} net): "
+              + ", ".join(f"{whole[n][0]:.1f} ms with {n} thread{'s' if n > 1 else ''}" for n in whole) + "."]
     lines += ["", f"`cmax.fit(events, K, 'se3', speed=|v|)`: {', '.join(f'{s:.2f}' for s in fit_s)} s per window "
               f"(median {fit_median:.2f} s, {1 / fit_median:.2f} windows/s; 1 thread, after a warm-up fit).", ""]
     if compile_s is not None:
-        lines += [f"`torch.compile` of the fast net: {compile_s:.1f} s to compile (first call, 2 threads).", ""]
+        lines += [f"`torch.compile` of the fast net: {compile_s:.1f} s to compile (first call, 2 threads); "
+                  f"`torch.jit.trace` + `freeze`: {trace_s:.1f} s.", ""]
     if train_s:
         lines += ["## Training step (teacher loss, forward + backward + AdamW, batch 8 at 160x120, 2 threads)", "",
                   "| network | seconds per step |", "|---|---:|"]
