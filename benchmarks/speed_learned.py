@@ -15,7 +15,10 @@ events of 2 and 4 of them (time-aligned: one 0.1665 s window with 2x and 4x the 
 * ``cmax.fit(events, K, "se3", speed=|v|)`` (known speed, its defaults, 1 thread): seconds per
   window, ``--fits`` runs after one warm-up fit;
 * **training step** (``--train-repeats``): teacher loss forward + backward + AdamW step, batch 8 at
-  160x120, 2 threads, for the original and the fast network.
+  160x120, 2 threads, for the original and the fast network;
+* **does it learn** (``--accuracy-train``/``--accuracy-val`` labelled h5 files): each of
+  :data:`CANDIDATES` trained as a teacher for ``--accuracy-steps`` steps per seed, its last training
+  losses and Abs mean on the held-out files.
 
 Timings are medians of ``--repeats`` interleaved rounds (every variant once per round) after a
 warm-up, so load changes hit all variants alike; the load average is printed beside them.
@@ -24,15 +27,17 @@ Writes ``results/speed_learned.md``.
 Usage::
 
     python -m benchmarks.speed_learned [--windows 4] [--repeats 9] [--fits 1] [--compile] [--train-repeats 5]
+        [--accuracy-train A.h5 B.h5 ... --accuracy-val C.h5 ... --accuracy-steps 200 --accuracy-seeds 0 1]
 """
 from __future__ import annotations
 
 import argparse
 import os
-from dataclasses import fields
 import platform
 import statistics
 import time
+import warnings
+from dataclasses import fields
 from pathlib import Path
 from typing import Callable
 
@@ -40,9 +45,22 @@ import numpy as np
 import torch
 
 from cmax.io.atomic import write_text_atomic
+from learned.model import DepthPoseNet, ModelConfig
 
 RESULTS = Path(__file__).resolve().parent / "results"
 BUDGET_MS = 30.0
+
+
+#: The networks trained by the accuracy section.
+CANDIDATES = {"original": ModelConfig(), "fast": ModelConfig.fast(),
+              "width 8, separable": ModelConfig(width=8, block="separable"),
+              "space_to_depth, width 16, separable": ModelConfig(space_to_depth=True, block="separable")}
+
+
+def changed_fields(config: ModelConfig) -> dict[str, object]:
+    """The fields of ``config`` that differ from the defaults (the original network)."""
+    return {f.name: getattr(config, f.name) for f in fields(ModelConfig)
+            if getattr(config, f.name) != getattr(ModelConfig(), f.name)}
 
 
 def interleaved_ms(functions: dict[str, Callable[[], object]], repeats: int,
@@ -91,10 +109,9 @@ def merged_events(windows: list):
     return Events(column("x"), column("y"), t[order], column("p"), width=parts[0].width, height=parts[0].height)
 
 
-def train_step_seconds(configs: dict[str, object], repeats: int, threads: int = 2) -> dict[str, float]:
+def train_step_seconds(configs: dict[str, ModelConfig], repeats: int, threads: int = 2) -> dict[str, float]:
     """Median seconds of one teacher-loss step (forward, backward, AdamW), batch 8 at 160x120, per config."""
     from learned.losses import teacher_loss
-    from learned.model import DepthPoseNet
 
     torch.manual_seed(0)
     volume = torch.randn(8, 5, 120, 160)
@@ -117,11 +134,43 @@ def train_step_seconds(configs: dict[str, object], repeats: int, threads: int = 
     return {name: ms[0] / 1e3 for name, ms in interleaved_ms(steps, repeats).items()}
 
 
+def accuracy_rows(configs: dict[str, ModelConfig], train: list[str], val: list[str], steps: int, seeds: list[int],
+                  out: Path) -> list[tuple[str, int, float, float, list[tuple[str, float]]]]:
+    """Teacher training of each network on ``train``, ``steps`` steps per seed.
+
+    Returns rows (name, seed, seconds, mean loss of the last 10 steps, [(file stem, Abs mean [m])] on ``val``).
+    Batch 8, lr 3e-4, 1 thread; the same data order for every config of a seed.
+    """
+    import json
+
+    from learned.config import load_config
+    from learned.evaluate import evaluate_files
+    from learned.train import Trainer
+
+    torch.set_num_threads(1)
+    rows = []
+    for seed in seeds:
+        for name, model in configs.items():
+            run = out / f"{name.replace(' ', '_')}_seed{seed}"
+            config = load_config(None, [f"data.files={json.dumps(train)}", f"train.steps={steps}",
+                                        "train.batch_size=8", "train.lr=3e-4", f"train.seed={seed}", f"train.out={run}",
+                                        f"train.checkpoint_every={steps}", f"train.log_every={steps}",
+                                        f"train.image_every={10 * steps}"]
+                                 + [f"model.{k}={json.dumps(v)}" for k, v in changed_fields(model).items()],
+                                 mode="teacher")
+            start = time.perf_counter()
+            losses = Trainer(config, progress=False).run()
+            seconds = time.perf_counter() - start
+            reports = evaluate_files(run / "last.pt", val)
+            rows.append((name, seed, seconds, float(np.mean(losses[-10:])),
+                         [(r.sequence, r.depth.abs_mean) for r in reports]))
+    return rows
+
+
 def main(argv: list[str] | None = None) -> int:
     import cmax
     from benchmarks.synthetic_windows import preset_window
     from cmax.representations import voxel_grid
-    from learned.model import DepthPoseNet, ModelConfig
     from learned.volume import event_volume
 
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
@@ -130,10 +179,18 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fits", type=int, default=1, help="cmax.fit runs after the warm-up fit")
     parser.add_argument("--compile", action="store_true", help="also time torch.compile of the fast net")
     parser.add_argument("--train-repeats", type=int, default=5, help="training-step rounds (0: skip)")
+    parser.add_argument("--accuracy-train", nargs="*", default=[], metavar="H5",
+                        help="labelled files: also train each candidate as a teacher on them (slow)")
+    parser.add_argument("--accuracy-val", nargs="*", default=[], metavar="H5", help="held-out labelled files")
+    parser.add_argument("--accuracy-steps", type=int, default=200)
+    parser.add_argument("--accuracy-seeds", type=int, nargs="+", default=[0])
+    parser.add_argument("--accuracy-out", type=Path, default=Path("runs/speed_learned_accuracy"))
     parser.add_argument("--output", type=Path, default=RESULTS / "speed_learned.md")
     args = parser.parse_args(argv)
-    if args.windows < 4 or args.repeats < 1 or args.fits < 1 or args.train_repeats < 0:
-        parser.error("need --windows >= 4, --repeats >= 1, --fits >= 1, --train-repeats >= 0")
+    if args.windows < 4 or args.repeats < 1 or args.fits < 1 or args.train_repeats < 0 or args.accuracy_steps < 10:
+        parser.error("need --windows >= 4, --repeats >= 1, --fits >= 1, --train-repeats >= 0, --accuracy-steps >= 10")
+    if bool(args.accuracy_train) != bool(args.accuracy_val):
+        parser.error("--accuracy-train and --accuracy-val go together")
     loads = [os.getloadavg()[0]]
     windows = [preset_window("indoor_flying", 100 + k, texture_size=256) for k in range(args.windows)]
     inputs = {f"seed {windows[0].seed}": windows[0].events, "2 merged": merged_events(windows[:2]),
@@ -169,7 +226,8 @@ def main(argv: list[str] | None = None) -> int:
         compile_s = time.perf_counter() - start
         nets["fast, torch.compile"] = compiled
         start = time.perf_counter()
-        with torch.inference_mode():
+        with torch.inference_mode(), warnings.catch_warnings():
+            warnings.simplefilter("ignore", torch.jit.TracerWarning)   # constants of one input shape: intended
             traced = torch.jit.freeze(torch.jit.trace(_Tensors(nets["fast"]).eval(), volume))
             traced(volume)
         trace_s = time.perf_counter() - start
@@ -197,11 +255,12 @@ def main(argv: list[str] | None = None) -> int:
     torch.set_num_threads(1)
     fit = lambda w: cmax.fit(w.events, w.K, "se3", speed=float(np.linalg.norm(w.twist[:3])))
     fit(windows[-1])
-    fit_s = []
+    fit_s, fit_cpu = [], []
     for w in windows[: args.fits]:
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         fit(w)
         fit_s.append(time.perf_counter() - start)
+        fit_cpu.append(time.process_time() - cpu)
     fit_median = statistics.median(fit_s)
     loads.append(os.getloadavg()[0])
 
@@ -236,8 +295,7 @@ def main(argv: list[str] | None = None) -> int:
         (grid, grid_cpu), (fast, fast_cpu) = ms["voxel_grid"], ms["event_volume"]
         lines.append(f"| {label} | {counts[label]:,} | {grid:.1f} ({grid_cpu:.1f}) | {fast:.1f} ({fast_cpu:.1f}) | "
                      f"{grid / fast:.1f}x |")
-    fast_fields = {f.name: getattr(ModelConfig.fast(), f.name) for f in fields(ModelConfig)
-                   if getattr(ModelConfig.fast(), f.name) != getattr(ModelConfig(), f.name)}
+    fast_fields = changed_fields(ModelConfig.fast())
     lines += ["", "## Network forward and the whole window (346x260, batch 1)", "",
               "fast = `ModelConfig.fast()` = `ModelConfig(" + ", ".join(f"{k}={v!r}" for k, v in fast_fields.items())
               + ")`; every network runs channels_last unless marked NCHW.", "",
@@ -253,7 +311,8 @@ def main(argv: list[str] | None = None) -> int:
     lines += ["", f"Measured in one call (`event_volume` on the densest input, then the {fast_name} net): "
               + ", ".join(f"{whole[n][0]:.1f} ms with {n} thread{'s' if n > 1 else ''}" for n in whole) + "."]
     lines += ["", f"`cmax.fit(events, K, 'se3', speed=|v|)`: {', '.join(f'{s:.2f}' for s in fit_s)} s per window "
-              f"(median {fit_median:.2f} s, {1 / fit_median:.2f} windows/s; 1 thread, after a warm-up fit).", ""]
+              f"(CPU {', '.join(f'{s:.2f}' for s in fit_cpu)} s; median {fit_median:.2f} s, {1 / fit_median:.2f} windows/s; "
+              "1 thread, after a warm-up fit).", ""]
     if compile_s is not None:
         lines += [f"`torch.compile` of the fast net: {compile_s:.1f} s to compile (first call, 2 threads); "
                   f"`torch.jit.trace` + `freeze`: {trace_s:.1f} s.", ""]
@@ -262,8 +321,26 @@ def main(argv: list[str] | None = None) -> int:
                   "| network | seconds per step |", "|---|---:|"]
         lines += [f"| {name} | {s:.3f} |" for name, s in train_s.items()]
         lines.append("")
-    write_text_atomic(args.output, "\n".join(lines))
+    write_text_atomic(args.output, "\n".join(lines))   # the speed report stands alone
     print("\n".join(lines))
+    if args.accuracy_train:
+        accuracy = accuracy_rows(CANDIDATES, args.accuracy_train, args.accuracy_val, args.accuracy_steps,
+                                 args.accuracy_seeds, args.accuracy_out)
+        stems = [stem for stem, _ in accuracy[0][4]]
+        lines += [f"## Does the fast net learn? Teacher training, {args.accuracy_steps} steps per run", "",
+                  f"Batch 8, lr 3e-4, 1 thread, the same data order per seed; trained on "
+                  f"{', '.join(Path(f).stem for f in args.accuracy_train)}; Abs mean [m] on held-out "
+                  f"{', '.join(stems)} (short runs, so the held-out scores are noisy: the training loss is the steadier figure). "
+                  f"`--accuracy-steps {args.accuracy_steps} --accuracy-seeds "
+                  f"{' '.join(map(str, args.accuracy_seeds))}`, {len(args.accuracy_train)} training files.", "",
+                  "| network | seed | seconds | loss, last 10 steps | " + " | ".join(f"Abs mean {s} [m]" for s in stems)
+                  + " |", "|---|---:|---:|---:|" + "---:|" * len(stems)]
+        for name, seed, seconds, loss, scores in accuracy:
+            lines.append(f"| {name} | {seed} | {seconds:.0f} | {loss:.3f} | "
+                         + " | ".join(f"{v:.2f}" for _, v in scores) + " |")
+        lines += ["", f"1-minute load average after training: {os.getloadavg()[0]:.2f}.", ""]
+        write_text_atomic(args.output, "\n".join(lines))
+        print("\n".join(lines[-len(accuracy) - 8:]))
     return 0
 
 

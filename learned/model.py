@@ -12,6 +12,12 @@ The pose head on the bottleneck (conv, global mean, linear) gives the twist
 ``(v [m/s], omega [rad/s])`` of the window, each scaled by a configured
 typical magnitude (``tanh`` bounded). Inputs whose sides are not multiples of
 ``2**levels`` are zero-padded and the outputs cropped back.
+
+:class:`ModelConfig` also shapes the network for speed: ``block`` (dense 3x3 or
+depthwise-separable convolutions), ``norm`` (GroupNorm or none) and
+``space_to_depth`` (the U-Net runs at half resolution on 2x2-folded input and
+its finest output is unfolded back). Its defaults are the original network;
+:meth:`ModelConfig.fast` is the recommended fast one.
 """
 from __future__ import annotations
 
@@ -171,8 +177,8 @@ class DepthPoseNet(nn.Module):
     """
 
     def __init__(self, config: ModelConfig = ModelConfig(), *, channels_last: bool = True) -> None:
-        """``channels_last``: run in NHWC (about 2x faster convolutions on CPU with oneDNN; same results to
-        float rounding); ``False`` keeps NCHW, the layout of the original network."""
+        """``channels_last``: weights and activations in NHWC, the layout oneDNN's CPU convolutions are
+        fastest in (same results to float rounding); ``False`` keeps NCHW, the original network's layout."""
         super().__init__()
         self.config = config
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
