@@ -48,6 +48,20 @@ def test_block_kinds_build_the_layers_they_name():
     assert folded.full_head.weight.shape == (4, 8, 3, 3) and not hasattr(dense, "full_head")
 
 
+@pytest.mark.parametrize("config", [ModelConfig(width=4, levels=2), ModelConfig.fast(width=4, levels=2)])
+def test_channels_last_is_a_layout_not_a_different_network(config):
+    fast, plain = DepthPoseNet(config), DepthPoseNet(config, channels_last=False)
+    assert fast.stem[0].weight.is_contiguous(memory_format=torch.channels_last)
+    assert not plain.stem[0].weight.is_contiguous(memory_format=torch.channels_last)
+    plain.load_state_dict(fast.state_dict())
+    volume = torch.randn(2, 5, 19, 27)
+    with torch.no_grad():
+        a, b = fast(volume), plain(volume)
+    for x, y in zip(a.inverse_depths, b.inverse_depths):
+        torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(a.twist, b.twist, rtol=1e-5, atol=1e-6)
+
+
 def test_space_to_depth_full_resolution_output_unfolds_the_head():
     """The finest inverse depth at pixel (2i + a, 2j + b) is the head's channel 2a + b at (i, j)."""
     net = DepthPoseNet(ModelConfig(width=4, levels=2, space_to_depth=True, min_depth=1.0, max_depth=10.0))
