@@ -168,11 +168,6 @@ def accuracy_rows(configs: dict[str, ModelConfig], train: list[str], val: list[s
 
 
 def main(argv: list[str] | None = None) -> int:
-    import cmax
-    from benchmarks.synthetic_windows import preset_window
-    from cmax.representations import voxel_grid
-    from learned.volume import event_volume
-
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--windows", type=int, default=4, help="preset windows (>= 4: the densest merges 4)")
     parser.add_argument("--repeats", type=int, default=9)
@@ -185,12 +180,30 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--accuracy-steps", type=int, default=200)
     parser.add_argument("--accuracy-seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--accuracy-out", type=Path, default=Path("runs/speed_learned_accuracy"))
+    parser.add_argument("--sections", nargs="+", choices=("speed", "training"), default=["speed"],
+                        help="speed: the timings (-> --output); training: the candidates' teacher runs "
+                             "(needs --accuracy-train/--accuracy-val; -> --training-output)")
     parser.add_argument("--output", type=Path, default=RESULTS / "speed_learned.md")
+    parser.add_argument("--training-output", type=Path, default=RESULTS / "speed_learned_training.md")
     args = parser.parse_args(argv)
     if args.windows < 4 or args.repeats < 1 or args.fits < 1 or args.train_repeats < 0 or args.accuracy_steps < 10:
         parser.error("need --windows >= 4, --repeats >= 1, --fits >= 1, --train-repeats >= 0, --accuracy-steps >= 10")
-    if bool(args.accuracy_train) != bool(args.accuracy_val):
-        parser.error("--accuracy-train and --accuracy-val go together")
+    if ("training" in args.sections) != bool(args.accuracy_train) or bool(args.accuracy_train) != bool(args.accuracy_val):
+        parser.error("--sections training needs --accuracy-train and --accuracy-val (and they need it)")
+    if "training" in args.sections:
+        training_report(args)
+    if "speed" in args.sections:
+        speed_report(args)
+    return 0
+
+
+def speed_report(args: argparse.Namespace) -> None:
+    """Time the volume, the networks, cmax.fit and the training step; write ``args.output``."""
+    import cmax
+    from benchmarks.synthetic_windows import preset_window
+    from cmax.representations import voxel_grid
+    from learned.volume import event_volume
+
     loads = [os.getloadavg()[0]]
     windows = [preset_window("indoor_flying", 100 + k, texture_size=256) for k in range(args.windows)]
     inputs = {f"seed {windows[0].seed}": windows[0].events, "2 merged": merged_events(windows[:2]),
@@ -295,10 +308,8 @@ def main(argv: list[str] | None = None) -> int:
         (grid, grid_cpu), (fast, fast_cpu) = ms["voxel_grid"], ms["event_volume"]
         lines.append(f"| {label} | {counts[label]:,} | {grid:.1f} ({grid_cpu:.1f}) | {fast:.1f} ({fast_cpu:.1f}) | "
                      f"{grid / fast:.1f}x |")
-    fast_fields = changed_fields(ModelConfig.fast())
     lines += ["", "## Network forward and the whole window (346x260, batch 1)", "",
-              "fast = `ModelConfig.fast()` = `ModelConfig(" + ", ".join(f"{k}={v!r}" for k, v in fast_fields.items())
-              + ")`; every network runs channels_last unless marked NCHW.", "",
+              f"fast = `ModelConfig.fast()` = `ModelConfig({_fields_text(ModelConfig.fast())})`; every network runs channels_last unless marked NCHW.", "",
               f"Per window = the forward + `event_volume` on the densest input ({counts['4 merged']:,} events, "
               f"{densest:.1f} ms); target <= {BUDGET_MS:.0f} ms with 2 threads.", "",
               "| network | parameters | threads | forward [ms] (CPU ms) | per window [ms] | windows/s | "
@@ -321,27 +332,36 @@ def main(argv: list[str] | None = None) -> int:
                   "| network | seconds per step |", "|---|---:|"]
         lines += [f"| {name} | {s:.3f} |" for name, s in train_s.items()]
         lines.append("")
-    write_text_atomic(args.output, "\n".join(lines))   # the speed report stands alone
+    write_text_atomic(args.output, "\n".join(lines))
     print("\n".join(lines))
-    if args.accuracy_train:
-        accuracy = accuracy_rows(CANDIDATES, args.accuracy_train, args.accuracy_val, args.accuracy_steps,
-                                 args.accuracy_seeds, args.accuracy_out)
-        stems = [stem for stem, _ in accuracy[0][4]]
-        lines += [f"## Does the fast net learn? Teacher training, {args.accuracy_steps} steps per run", "",
-                  f"Batch 8, lr 3e-4, 1 thread, the same data order per seed; trained on "
-                  f"{', '.join(Path(f).stem for f in args.accuracy_train)}; Abs mean [m] on held-out "
-                  f"{', '.join(stems)} (short runs, so the held-out scores are noisy: the training loss is the steadier figure). "
-                  f"`--accuracy-steps {args.accuracy_steps} --accuracy-seeds "
-                  f"{' '.join(map(str, args.accuracy_seeds))}`, {len(args.accuracy_train)} training files.", "",
-                  "| network | seed | seconds | loss, last 10 steps | " + " | ".join(f"Abs mean {s} [m]" for s in stems)
-                  + " |", "|---|---:|---:|---:|" + "---:|" * len(stems)]
-        for name, seed, seconds, loss, scores in accuracy:
-            lines.append(f"| {name} | {seed} | {seconds:.0f} | {loss:.3f} | "
-                         + " | ".join(f"{v:.2f}" for _, v in scores) + " |")
-        lines += ["", f"1-minute load average after training: {os.getloadavg()[0]:.2f}.", ""]
-        write_text_atomic(args.output, "\n".join(lines))
-        print("\n".join(lines[-len(accuracy) - 8:]))
-    return 0
+
+
+def training_report(args: argparse.Namespace) -> None:
+    """Train each of :data:`CANDIDATES` as a teacher; write ``args.training_output``."""
+    load = os.getloadavg()[0]
+    accuracy = accuracy_rows(CANDIDATES, args.accuracy_train, args.accuracy_val, args.accuracy_steps,
+                             args.accuracy_seeds, args.accuracy_out)
+    stems = [stem for stem, _ in accuracy[0][4]]
+    lines = [f"# Does the fast net learn? Teacher training of each candidate, {args.accuracy_steps} steps per run", "",
+             f"`python -m benchmarks.speed_learned --sections training --accuracy-steps {args.accuracy_steps} "
+             f"--accuracy-seeds {' '.join(map(str, args.accuracy_seeds))} --accuracy-train ... --accuracy-val ...`: "
+             f"batch 8, lr 3e-4, 1 thread, the same data order for every network of a seed; trained on "
+             f"{', '.join(Path(f).stem for f in args.accuracy_train)}; Abs mean [m] on the held-out "
+             f"{', '.join(stems)} (short runs: the held-out scores are noisy, the training loss is the steadier "
+             f"figure). Networks: {', '.join(f'{k} = `ModelConfig({_fields_text(v)})`' for k, v in CANDIDATES.items())}.",
+             "", "| network | seed | seconds | loss, mean of the last 10 steps | "
+             + " | ".join(f"Abs mean {s} [m]" for s in stems) + " |", "|---|---:|---:|---:|" + "---:|" * len(stems)]
+    for name, seed, seconds, loss, scores in accuracy:
+        lines.append(f"| {name} | {seed} | {seconds:.0f} | {loss:.3f} | " + " | ".join(f"{v:.2f}" for _, v in scores)
+                     + " |")
+    lines += ["", f"Machine: {os.cpu_count()} CPUs shared with other jobs; 1-minute load average {load:.2f} at the "
+              f"start, {os.getloadavg()[0]:.2f} at the end (the seconds column depends on it).", ""]
+    write_text_atomic(args.training_output, "\n".join(lines))
+    print("\n".join(lines))
+
+
+def _fields_text(config: ModelConfig) -> str:
+    return ", ".join(f"{k}={v!r}" for k, v in changed_fields(config).items())
 
 
 if __name__ == "__main__":
