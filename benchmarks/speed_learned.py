@@ -20,8 +20,10 @@ events of 2 and 4 of them (time-aligned: one 0.1665 s window with 2x and 4x the 
   :data:`CANDIDATES` trained as a teacher for ``--accuracy-steps`` steps per seed, its last training
   losses and Abs mean on the held-out files.
 
-Timings are medians of ``--repeats`` interleaved rounds (every variant once per round) after a
-warm-up, so load changes hit all variants alike; the load average is printed beside them.
+Timings are medians and minimums of ``--repeats`` interleaved rounds (every variant once per round)
+after a warm-up, so load changes hit all variants alike; the minimum (least disturbed round) is the
+idle-machine figure used for the per-window totals, the median what the shared machine gave; the
+load average is printed beside them.
 Writes ``results/speed_learned.md``.
 
 Usage::
@@ -64,12 +66,12 @@ def changed_fields(config: ModelConfig) -> dict[str, object]:
 
 
 def interleaved_ms(functions: dict[str, Callable[[], object]], repeats: int,
-                   threads: dict[str, int] | None = None) -> dict[str, tuple[float, float]]:
-    """Median (wall, CPU) milliseconds of each function over ``repeats`` rounds that run every function once.
+                   threads: dict[str, int] | None = None) -> dict[str, tuple[float, float, float]]:
+    """(median wall, min wall, median CPU) milliseconds of each function over ``repeats`` interleaved rounds.
 
-    One warm-up round first. CPU time is the process's (all threads): with one thread it is what the wall
-    time would be on an idle machine, whatever the load. ``threads`` maps a name to the torch thread count
-    set before its call (default: unchanged).
+    Each round runs every function once, after one warm-up round. The minimum is the least disturbed
+    round (the figure of an idle machine); the median is what the shared machine gave. CPU time is the
+    process's (all threads). ``threads`` maps a name to the torch thread count set before its call.
     """
     threads = threads or {}
     times: dict[str, list[tuple[float, float]]] = {name: [] for name in functions}
@@ -81,8 +83,8 @@ def interleaved_ms(functions: dict[str, Callable[[], object]], repeats: int,
             function()
             if round_:
                 times[name].append(((time.perf_counter() - start) * 1e3, (time.process_time() - cpu) * 1e3))
-    return {name: (statistics.median(v[0] for v in values), statistics.median(v[1] for v in values))
-            for name, values in times.items()}
+    return {name: (statistics.median(v[0] for v in values), min(v[0] for v in values),
+                   statistics.median(v[1] for v in values)) for name, values in times.items()}
 
 
 class _Tensors(torch.nn.Module):
@@ -109,8 +111,9 @@ def merged_events(windows: list):
     return Events(column("x"), column("y"), t[order], column("p"), width=parts[0].width, height=parts[0].height)
 
 
-def train_step_seconds(configs: dict[str, ModelConfig], repeats: int, threads: int = 2) -> dict[str, float]:
-    """Median seconds of one teacher-loss step (forward, backward, AdamW), batch 8 at 160x120, per config."""
+def train_step_seconds(configs: dict[str, ModelConfig], repeats: int,
+                       threads: int = 2) -> dict[str, tuple[float, float]]:
+    """Median and min milliseconds of one teacher-loss step (forward, backward, AdamW), batch 8 at 160x120, per config."""
     from learned.losses import teacher_loss
 
     torch.manual_seed(0)
@@ -131,15 +134,15 @@ def train_step_seconds(configs: dict[str, ModelConfig], repeats: int, threads: i
 
         steps[name] = step
     torch.set_num_threads(threads)
-    return {name: ms[0] / 1e3 for name, ms in interleaved_ms(steps, repeats).items()}
+    return {name: ms[:2] for name, ms in interleaved_ms(steps, repeats).items()}
 
 
-def accuracy_rows(configs: dict[str, ModelConfig], train: list[str], val: list[str], steps: int, seeds: list[int],
-                  out: Path) -> list[tuple[str, int, float, float, list[tuple[str, float]]]]:
-    """Teacher training of each network on ``train``, ``steps`` steps per seed.
+def accuracy_rows(runs: list[tuple[str, ModelConfig, int]], train: list[str], val: list[str], seeds: list[int],
+                  out: Path) -> list[tuple[str, int, int, float, float, list[tuple[str, float]]]]:
+    """Teacher training of each network ``(name, config, steps)`` on ``train``, once per seed.
 
-    Returns rows (name, seed, seconds, mean loss of the last 10 steps, [(file stem, Abs mean [m])] on ``val``).
-    Batch 8, lr 3e-4, 1 thread; the same data order for every config of a seed.
+    Returns rows (name, seed, steps, seconds, mean loss of the last 10 steps, [(file stem, Abs mean [m])] on
+    ``val``). Batch 8, lr 3e-4, 1 thread; the same data order for every network of a seed.
     """
     import json
 
@@ -150,8 +153,8 @@ def accuracy_rows(configs: dict[str, ModelConfig], train: list[str], val: list[s
     torch.set_num_threads(1)
     rows = []
     for seed in seeds:
-        for name, model in configs.items():
-            run = out / f"{name.replace(' ', '_')}_seed{seed}"
+        for name, model, steps in runs:
+            run = out / f"{name.replace(' ', '_').replace(',', '')}_seed{seed}"
             config = load_config(None, [f"data.files={json.dumps(train)}", f"train.steps={steps}",
                                         "train.batch_size=8", "train.lr=3e-4", f"train.seed={seed}", f"train.out={run}",
                                         f"train.checkpoint_every={steps}", f"train.log_every={steps}",
@@ -162,7 +165,7 @@ def accuracy_rows(configs: dict[str, ModelConfig], train: list[str], val: list[s
             losses = Trainer(config, progress=False).run()
             seconds = time.perf_counter() - start
             reports = evaluate_files(run / "last.pt", val)
-            rows.append((name, seed, seconds, float(np.mean(losses[-10:])),
+            rows.append((name, seed, steps, seconds, float(np.mean(losses[-10:])),
                          [(r.sequence, r.depth.abs_mean) for r in reports]))
     return rows
 
@@ -178,6 +181,8 @@ def main(argv: list[str] | None = None) -> int:
                         help="labelled files: also train each candidate as a teacher on them (slow)")
     parser.add_argument("--accuracy-val", nargs="*", default=[], metavar="H5", help="held-out labelled files")
     parser.add_argument("--accuracy-steps", type=int, default=200)
+    parser.add_argument("--accuracy-fast-steps", type=int, default=0,
+                        help="also train the fast net this many steps (about the original's time for --accuracy-steps)")
     parser.add_argument("--accuracy-seeds", type=int, nargs="+", default=[0])
     parser.add_argument("--accuracy-out", type=Path, default=Path("runs/speed_learned_accuracy"))
     parser.add_argument("--sections", nargs="+", choices=("speed", "training"), default=["speed"],
@@ -186,8 +191,10 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--output", type=Path, default=RESULTS / "speed_learned.md")
     parser.add_argument("--training-output", type=Path, default=RESULTS / "speed_learned_training.md")
     args = parser.parse_args(argv)
-    if args.windows < 4 or args.repeats < 1 or args.fits < 1 or args.train_repeats < 0 or args.accuracy_steps < 10:
-        parser.error("need --windows >= 4, --repeats >= 1, --fits >= 1, --train-repeats >= 0, --accuracy-steps >= 10")
+    if (args.windows < 4 or args.repeats < 1 or args.fits < 1 or args.train_repeats < 0 or args.accuracy_steps < 10
+            or 0 < args.accuracy_fast_steps < 10):
+        parser.error("need --windows >= 4, --repeats >= 1, --fits >= 1, --train-repeats >= 0, --accuracy-steps >= 10, "
+                     "--accuracy-fast-steps 0 or >= 10")
     if ("training" in args.sections) != bool(args.accuracy_train) or bool(args.accuracy_train) != bool(args.accuracy_val):
         parser.error("--sections training needs --accuracy-train and --accuracy-val (and they need it)")
     if "training" in args.sections:
@@ -274,7 +281,7 @@ def speed_report(args: argparse.Namespace) -> None:
         fit(w)
         fit_s.append(time.perf_counter() - start)
         fit_cpu.append(time.process_time() - cpu)
-    fit_median = statistics.median(fit_s)
+    fit_best = min(fit_s)
     loads.append(os.getloadavg()[0])
 
     train_s = {}
@@ -284,14 +291,14 @@ def speed_report(args: argparse.Namespace) -> None:
 
     # -- report --------------------------------------------------------------------------------
     counts = {label: len(events) for label, events in inputs.items()}
-    densest = volume_ms["4 merged"]["event_volume"][0]
+    densest = volume_ms["4 merged"]["event_volume"][1]   # its least disturbed round
     lines = [
         "# Inference speed of the depth-pose network versus cmax.fit",
         "",
         f"`python -m benchmarks.speed_learned --windows {args.windows} --repeats {args.repeats} --fits {args.fits}"
         f"{' --compile' if args.compile else ''} --train-repeats {args.train_repeats}` -- 346x260 `indoor_flying` "
-        f"preset windows of 0.1665 s (seeds 100-{99 + args.windows}); medians of {args.repeats} interleaved rounds "
-        "after a warm-up, batch 1, CPU, `torch.inference_mode`, untrained weights.",
+        f"preset windows of 0.1665 s (seeds 100-{99 + args.windows}); median and min of {args.repeats} interleaved "
+        "rounds after a warm-up, batch 1, CPU, `torch.inference_mode`, untrained weights.",
         "",
         f"Machine: {platform.platform()}, {os.cpu_count()} CPUs, torch {torch.__version__}; 1-minute load average "
         f"at each stage: {' / '.join(f'{v:.2f}' for v in loads)} (the 2 cores are shared with other jobs: "
@@ -299,38 +306,41 @@ def speed_report(args: argparse.Namespace) -> None:
         "",
         "## Event volume (5 bins), 1 thread",
         "",
-        "Wall ms (CPU ms of the process in brackets: the idle-machine figure for one thread).",
+        "Wall ms, median / min of the rounds.",
         "",
-        "| input | events | `voxel_grid` [ms] | `learned.volume.event_volume` [ms] | speed-up (wall) |",
+        "| input | events | `voxel_grid` [ms] | `learned.volume.event_volume` [ms] | speed-up (min) |",
         "|---|---:|---:|---:|---:|",
     ]
     for label, ms in volume_ms.items():
-        (grid, grid_cpu), (fast, fast_cpu) = ms["voxel_grid"], ms["event_volume"]
-        lines.append(f"| {label} | {counts[label]:,} | {grid:.1f} ({grid_cpu:.1f}) | {fast:.1f} ({fast_cpu:.1f}) | "
-                     f"{grid / fast:.1f}x |")
+        (grid, grid_min, _), (fast, fast_min, _) = ms["voxel_grid"], ms["event_volume"]
+        lines.append(f"| {label} | {counts[label]:,} | {grid:.1f} / {grid_min:.1f} | {fast:.1f} / {fast_min:.1f} | "
+                     f"{grid_min / fast_min:.1f}x |")
     lines += ["", "## Network forward and the whole window (346x260, batch 1)", "",
               f"fast = `ModelConfig.fast()` = `ModelConfig({_fields_text(ModelConfig.fast())})`; every network runs channels_last unless marked NCHW.", "",
-              f"Per window = the forward + `event_volume` on the densest input ({counts['4 merged']:,} events, "
-              f"{densest:.1f} ms); target <= {BUDGET_MS:.0f} ms with 2 threads.", "",
-              "| network | parameters | threads | forward [ms] (CPU ms) | per window [ms] | windows/s | "
-              "vs cmax.fit se3 |",
-              "|---|---:|---:|---:|---:|---:|---:|"]
-    for (name, n), (ms, cpu) in forward_ms.items():
-        total = ms + densest
-        lines.append(f"| {name} | {parameters[name]:,} | {n} | {ms:.1f} ({cpu:.1f}) | {total:.1f} | {1e3 / total:.1f} | "
-                     f"{fit_median * 1e3 / total:.0f}x |")
-    lines += ["", f"Measured in one call (`event_volume` on the densest input, then the {fast_name} net): "
-              + ", ".join(f"{whole[n][0]:.1f} ms with {n} thread{'s' if n > 1 else ''}" for n in whole) + "."]
+              f"Per window = the least disturbed forward + `event_volume` on the densest input "
+              f"({counts['4 merged']:,} events, {densest:.1f} ms); target <= {BUDGET_MS:.0f} ms with 2 threads. "
+              "The median column is what the shared machine gave (with 2 threads a busy core stalls every "
+              "parallel step, so it suffers most).", "",
+              "| network | parameters | threads | forward, median [ms] | forward, min [ms] | per window [ms] | "
+              "windows/s | vs cmax.fit se3 |",
+              "|---|---:|---:|---:|---:|---:|---:|---:|"]
+    for (name, n), (ms, least, _) in forward_ms.items():
+        total = least + densest
+        lines.append(f"| {name} | {parameters[name]:,} | {n} | {ms:.1f} | {least:.1f} | {total:.1f} | "
+                     f"{1e3 / total:.1f} | {fit_best * 1e3 / total:.0f}x |")
+    lines += ["", f"Measured in one call (`event_volume` on the densest input, then the {fast_name} net), "
+              "median / min: " + ", ".join(f"{whole[n][0]:.1f} / {whole[n][1]:.1f} ms with {n} thread"
+                                          f"{'s' if n > 1 else ''}" for n in whole) + "."]
     lines += ["", f"`cmax.fit(events, K, 'se3', speed=|v|)`: {', '.join(f'{s:.2f}' for s in fit_s)} s per window "
-              f"(CPU {', '.join(f'{s:.2f}' for s in fit_cpu)} s; median {fit_median:.2f} s, {1 / fit_median:.2f} windows/s; "
-              "1 thread, after a warm-up fit).", ""]
+              f"(CPU {', '.join(f'{s:.2f}' for s in fit_cpu)} s; min {fit_best:.2f} s, {1 / fit_best:.2f} windows/s, the "
+              "last column's reference; 1 thread, after a warm-up fit).", ""]
     if compile_s is not None:
         lines += [f"`torch.compile` of the fast net: {compile_s:.1f} s to compile (first call, 2 threads); "
                   f"`torch.jit.trace` + `freeze`: {trace_s:.1f} s.", ""]
     if train_s:
         lines += ["## Training step (teacher loss, forward + backward + AdamW, batch 8 at 160x120, 2 threads)", "",
-                  "| network | seconds per step |", "|---|---:|"]
-        lines += [f"| {name} | {s:.3f} |" for name, s in train_s.items()]
+                  "| network | seconds per step, median | min |", "|---|---:|---:|"]
+        lines += [f"| {name} | {ms / 1e3:.3f} | {least / 1e3:.3f} |" for name, (ms, least) in train_s.items()]
         lines.append("")
     write_text_atomic(args.output, "\n".join(lines))
     print("\n".join(lines))
@@ -339,21 +349,24 @@ def speed_report(args: argparse.Namespace) -> None:
 def training_report(args: argparse.Namespace) -> None:
     """Train each of :data:`CANDIDATES` as a teacher; write ``args.training_output``."""
     load = os.getloadavg()[0]
-    accuracy = accuracy_rows(CANDIDATES, args.accuracy_train, args.accuracy_val, args.accuracy_steps,
-                             args.accuracy_seeds, args.accuracy_out)
-    stems = [stem for stem, _ in accuracy[0][4]]
+    runs = [(name, config, args.accuracy_steps) for name, config in CANDIDATES.items()]
+    if args.accuracy_fast_steps:
+        runs.append((f"fast, {args.accuracy_fast_steps} steps", ModelConfig.fast(), args.accuracy_fast_steps))
+    accuracy = accuracy_rows(runs, args.accuracy_train, args.accuracy_val, args.accuracy_seeds, args.accuracy_out)
+    stems = [stem for stem, _ in accuracy[0][5]]
+    fast_steps = f" --accuracy-fast-steps {args.accuracy_fast_steps}" if args.accuracy_fast_steps else ""
     lines = [f"# Does the fast net learn? Teacher training of each candidate, {args.accuracy_steps} steps per run", "",
-             f"`python -m benchmarks.speed_learned --sections training --accuracy-steps {args.accuracy_steps} "
+             f"`python -m benchmarks.speed_learned --sections training --accuracy-steps {args.accuracy_steps}{fast_steps} "
              f"--accuracy-seeds {' '.join(map(str, args.accuracy_seeds))} --accuracy-train ... --accuracy-val ...`: "
              f"batch 8, lr 3e-4, 1 thread, the same data order for every network of a seed; trained on "
              f"{', '.join(Path(f).stem for f in args.accuracy_train)}; Abs mean [m] on the held-out "
              f"{', '.join(stems)} (short runs: the held-out scores are noisy, the training loss is the steadier "
              f"figure). Networks: {', '.join(f'{k} = `ModelConfig({_fields_text(v)})`' for k, v in CANDIDATES.items())}.",
-             "", "| network | seed | seconds | loss, mean of the last 10 steps | "
-             + " | ".join(f"Abs mean {s} [m]" for s in stems) + " |", "|---|---:|---:|---:|" + "---:|" * len(stems)]
-    for name, seed, seconds, loss, scores in accuracy:
-        lines.append(f"| {name} | {seed} | {seconds:.0f} | {loss:.3f} | " + " | ".join(f"{v:.2f}" for _, v in scores)
-                     + " |")
+             "", "| network | seed | steps | seconds | loss, mean of the last 10 steps | "
+             + " | ".join(f"Abs mean {s} [m]" for s in stems) + " |", "|---|---:|---:|---:|---:|" + "---:|" * len(stems)]
+    for name, seed, steps, seconds, loss, scores in accuracy:
+        lines.append(f"| {name} | {seed} | {steps} | {seconds:.0f} | {loss:.3f} | "
+                     + " | ".join(f"{v:.2f}" for _, v in scores) + " |")
     lines += ["", f"Machine: {os.cpu_count()} CPUs shared with other jobs; 1-minute load average {load:.2f} at the "
               f"start, {os.getloadavg()[0]:.2f} at the end (the seconds column depends on it).", ""]
     write_text_atomic(args.training_output, "\n".join(lines))
