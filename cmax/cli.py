@@ -4,6 +4,7 @@
 ``cmax show FILE -o out.png`` event frame or event-volume bins of a time window
 ``cmax scene PRESET -o F.h5``  synthetic scene: events plus ground-truth depth and poses
 ``cmax fit FILE --K ...``     depth and motion per window by contrast maximization
+``cmax depth FILE -o out/``   depth and motion per window by the shipped depth-pose network
 ``cmax demo``                 the end-to-end demo on data it makes itself
 ``cmax simulate IN -o OUT``   videos to event files (ESIM), with a resumable manifest
 ``cmax manifest merge ...``   join the manifests of several machines or shards
@@ -202,6 +203,18 @@ def _add_emvs(subparsers) -> None:
     from cmax.emvs_cli import add_emvs_command
 
     add_emvs_command(subparsers)
+
+
+def _add_depth(subparsers) -> None:
+    from learned.predict import add_arguments, run
+
+    parser = subparsers.add_parser(
+        "depth", help="depth and motion per window by the learned depth-pose network",
+        description="Depth maps [m] (npz and PNG with a colour bar) and twists of every window of an event file, "
+        "by the depth-pose network shipped in the package (or --checkpoint); the same command as "
+        "python -m learned.predict.")
+    add_arguments(parser)
+    parser.set_defaults(run=lambda args: run(args, "cmax depth"))
 
 
 # -- simulate / manifest ---------------------------------------------------------------
@@ -418,7 +431,7 @@ def _add_manifest(subparsers) -> None:
     merge.set_defaults(run=_cmd_manifest)
 
 
-_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_scene, _add_fit, _add_emvs, _add_demo,
+_COMMANDS: tuple[Callable, ...] = (_add_info, _add_show, _add_scene, _add_fit, _add_depth, _add_emvs, _add_demo,
                                    _add_simulate, _add_manifest)
 
 

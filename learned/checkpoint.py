@@ -79,10 +79,10 @@ def plain_data(value: Any, where: str = "config") -> Any:
     Paths become str and NumPy scalars Python numbers; anything else raises TypeError
     naming where it sits (a checkpoint must load with ``weights_only=True``).
     """
+    if isinstance(value, np.generic) and value.ndim == 0 and value.dtype.kind in "biuf":
+        return value.item()          # before the plain types: np.float64 is a float subclass
     if value is None or isinstance(value, (bool, int, float, str)):
         return value
-    if isinstance(value, np.generic) and value.ndim == 0 and value.dtype.kind in "biuf":
-        return value.item()
     if isinstance(value, os.PathLike):
         return os.fspath(value)
     if isinstance(value, dict):
@@ -106,6 +106,9 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     if missing:
         raise ValueError(f"a checkpoint needs the keys {sorted(_KEYS)}, missing {sorted(missing)}")
     payload = {**payload, "config": plain_data(payload["config"]), "format": FORMAT}
+    optimizer = payload["optimizer"]
+    if isinstance(optimizer, dict) and "param_groups" in optimizer:   # hyper-parameters as plain numbers
+        payload["optimizer"] = {**optimizer, "param_groups": plain_data(optimizer["param_groups"])}
     path = Path(path)
     path.parent.mkdir(parents=True, exist_ok=True)
 

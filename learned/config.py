@@ -52,9 +52,10 @@ def _check_file_entry(entry: object, index: int) -> None:
         return
     if not isinstance(entry, dict):
         raise TypeError(f"{where} must be a path or {{\"path\", \"K\", \"use_gt\"}}, got {entry!r}")
-    unknown = set(entry) - {"path", "K", "use_gt"}
+    unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist"}
     if unknown or not isinstance(entry.get("path"), (str, Path)):
-        raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\" and \"use_gt\" only, got {entry!r}")
+        raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\" and \"known_speed\" "
+                        f"only, got {entry!r}")
     K = entry.get("K")
     if K is not None:
         flat = [v for row in K for v in row] if K and isinstance(K[0], (list, tuple)) else list(K) \
@@ -62,8 +63,9 @@ def _check_file_entry(entry: object, index: int) -> None:
         if (flat is None or len(flat) not in (4, 9) or
                 not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in flat)):
             raise TypeError(f"{where}.K must be [fx, fy, cx, cy] or a 3x3 list of finite numbers, got {K!r}")
-    if not isinstance(entry.get("use_gt", True), bool):
-        raise TypeError(f"{where}.use_gt must be true or false, got {entry['use_gt']!r}")
+    for key in ("use_gt", "known_speed", "known_twist"):
+        if not isinstance(entry.get(key, True), bool):
+            raise TypeError(f"{where}.{key} must be true or false, got {entry[key]!r}")
 
 
 @dataclass(frozen=True)
@@ -81,9 +83,16 @@ class DataConfig:
     augment : bool
     workers : int
         DataLoader worker processes (0: load in the training process).
+    val_files : list
+        Held-out files (same forms as ``files``) whose loss is logged every ``train.val_every`` steps
+        (``val/loss`` in ``log.jsonl``): the learning curve that says when training is flat.
+    val_windows : int
+        Windows of ``val_files`` used (evenly spread over them).
     """
 
     files: tuple = ()
+    val_files: tuple = ()
+    val_windows: int = 32
     window_us: int = 166_500
     max_events: int = 20_000
     augment: bool = True
@@ -92,8 +101,10 @@ class DataConfig:
     def __post_init__(self) -> None:
         _check_types(DataConfig, asdict(self), "data")
         object.__setattr__(self, "files", tuple(self.files))
-        for i, entry in enumerate(self.files):
+        object.__setattr__(self, "val_files", tuple(self.val_files))
+        for i, entry in enumerate(self.files + self.val_files):
             _check_file_entry(entry, i)
+        _require(self.val_windows >= 1, "data", "val_windows", ">= 1", self.val_windows)
         _require(self.window_us >= 1, "data", "window_us", "a whole number of µs >= 1", self.window_us)
         _require(self.max_events >= 1, "data", "max_events", ">= 1", self.max_events)
         _require(self.workers >= 0, "data", "workers", ">= 0", self.workers)
@@ -127,8 +138,23 @@ class TrainConfig:
         w of ``L_si = mean(R^2) - w mean(R)^2`` (1: the paper's fully invariant form, which leaves the
         scale free; 0.85 keeps a weak pull towards metric scale, as in most supervised depth networks).
     twist_weight : float
-        Teacher only: weight of a smooth-L1 loss between the predicted and the true twist (scaled by
-        the model's bounds), so that the pose head starts from a sensible motion; 0 = the paper's teacher.
+        Teacher only: weight of a smooth-L1 loss between the predicted and the true twist, each component
+        divided by its root mean square over the training windows (the data's own speed statistics), so
+        that the pose head learns the motion of each window; 0 = the paper's teacher.
+    schedule : str
+        ``"constant"`` learning rate, or ``"cosine"``: linear warm-up over ``warmup_steps``, then a cosine
+        decay to ``lr / 100`` at ``steps`` (a function of the step alone, so a resumed run is unchanged).
+    warmup_steps : int
+    val_every : int
+        Steps between validation losses (0: never); needs ``data.val_files``.
+    speed_weight : float
+        Fine-tune and student: weight of :func:`learned.losses.speed_loss` on windows of known speed.
+    clip_grad_norm : float
+        Largest global gradient norm of a step (0: no clipping).
+    contrast_twist : str
+        Fine-tune and student: the twist the contrast objective warps with, ``"network"`` (the paper) or
+        ``"truth"`` (an ablation: the window's true twist where its file is read with ``known_twist``, so
+        that only the depth is learned from the contrast).
     """
 
     batch_size: int = 16
@@ -145,15 +171,25 @@ class TrainConfig:
     collapse_weight: float = 0.0
     si_variance_weight: float = 0.85
     twist_weight: float = 1.0
+    schedule: str = "constant"
+    warmup_steps: int = 0
+    val_every: int = 0
+    speed_weight: float = 0.1
+    clip_grad_norm: float = 1.0
+    contrast_twist: str = "network"
 
     def __post_init__(self) -> None:
         _check_types(TrainConfig, asdict(self), "train")
+        _require(self.schedule in ("constant", "cosine"), "train", "schedule", "'constant' or 'cosine'",
+                 self.schedule)
+        _require(self.contrast_twist in ("network", "truth"), "train", "contrast_twist", "'network' or 'truth'",
+                 self.contrast_twist)
         for name in ("batch_size", "checkpoint_every", "log_every", "image_every"):
             _require(getattr(self, name) >= 1, "train", name, "a whole number >= 1", getattr(self, name))
-        for name in ("steps", "seed"):
+        for name in ("steps", "seed", "warmup_steps", "val_every"):
             _require(getattr(self, name) >= 0, "train", name, "a whole number >= 0", getattr(self, name))
         _require(self.lr > 0, "train", "lr", "> 0", self.lr)
-        for name in ("weight_decay", "lam", "collapse_weight", "twist_weight"):
+        for name in ("weight_decay", "lam", "collapse_weight", "twist_weight", "speed_weight", "clip_grad_norm"):
             _require(getattr(self, name) >= 0, "train", name, ">= 0", getattr(self, name))
         _require(0 <= self.si_variance_weight <= 1, "train", "si_variance_weight", "in [0, 1]",
                  self.si_variance_weight)
@@ -171,6 +207,8 @@ class Config:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if self.mode in ("finetune", "student") and not self.train.teacher:
             raise ValueError(f"mode {self.mode!r} needs train.teacher (a teacher checkpoint)")
+        if self.train.val_every and not self.data.val_files:
+            raise ValueError("train.val_every > 0 needs data.val_files (held-out files)")
 
     def to_dict(self) -> dict[str, Any]:
         return asdict(self)
@@ -184,7 +222,7 @@ def _section(cls, values: dict, name: str):
     if unknown:
         raise ValueError(f"unknown keys in [{name}]: {sorted(unknown)} (known: {sorted(known)})")
     _check_types(cls, values, name)
-    values = {k: tuple(v) if isinstance(v, list) and k == "files" else v for k, v in values.items()}
+    values = {k: tuple(v) if isinstance(v, list) and k in ("files", "val_files") else v for k, v in values.items()}
     return cls(**values)
 
 

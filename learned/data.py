@@ -48,6 +48,9 @@ class Sample:
         ``(v [m/s], omega [rad/s])`` at the middle, camera frame.
     t0_us, t1_us : int
         Window bounds [µs].
+    speed : float or None
+        Known camera speed ``|v|`` [m/s] at the middle (the contrast loss's metric anchor), also where the
+        twist is hidden; None: ``|v|`` of ``twist`` when it is given, else unknown.
     """
 
     events: Events
@@ -56,6 +59,14 @@ class Sample:
     twist: np.ndarray | None
     t0_us: int
     t1_us: int
+    speed: float | None = None
+
+    @property
+    def known_speed(self) -> float:
+        """``speed``, else ``|v|`` of the twist, else NaN [m/s] (unchanged by every augmentation)."""
+        if self.speed is not None:
+            return float(self.speed)
+        return float(np.linalg.norm(self.twist[:3])) if self.twist is not None else float("nan")
 
 
 #: Reflection of the camera frame by x -> -x: v -> S v, omega -> det(S) S omega (a pseudo-vector).
@@ -114,7 +125,7 @@ def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0) ->
         ``volume`` (bins, H, W) float32; ``x, y, t, polarity`` (max_events,) float32 padded,
         ``valid`` (max_events,) bool (the raw events for the contrast loss: a seeded uniform
         subset of at most ``max_events``, dithered, t in seconds since the first event);
-        ``duration_s`` () float32; ``K`` (3, 3) float32; ``inverse_depth`` (1, H, W) float32
+        ``duration_s`` () float32; ``K`` (3, 3) float32; ``speed`` () float32 [m/s] (NaN: unknown); ``inverse_depth`` (1, H, W) float32
         (0 where unknown), ``depth_mask`` (1, H, W) bool; ``twist`` (6,) float32 and
         ``has_twist`` () bool.
     """
@@ -137,6 +148,7 @@ def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0) ->
         "polarity": pad(prepared.polarity), "valid": torch.arange(max_events) < n,
         "duration_s": torch.tensor(prepared.duration_s, dtype=torch.float32),
         "K": torch.as_tensor(sample.K, dtype=torch.float32),
+        "speed": torch.tensor(sample.known_speed, dtype=torch.float32),
         "inverse_depth": torch.from_numpy(inverse)[None], "depth_mask": torch.from_numpy(mask)[None],
         "twist": torch.as_tensor(sample.twist if sample.twist is not None else np.zeros(6), dtype=torch.float32),
         "has_twist": torch.tensor(sample.twist is not None),
@@ -153,12 +165,18 @@ class FileSpec:
     """An event file and how to read it: ``K`` (3, 3) for files without ``gt/K``.
 
     ``use_gt`` False hides the ground truth (depth, poses) of ``gt/``; its ``gt/K`` (the
-    calibration) is still used when no ``K`` is given.
+    calibration) is still used when no ``K`` is given. ``known_speed`` (with ``use_gt`` False) keeps
+    the camera speed ``|v|`` of each window (what odometry or a speedometer would give a real
+    recording) as the contrast loss's metric anchor; the depth and the twist stay hidden.
+    ``known_twist`` (with ``use_gt`` False; an ablation: the motion known, the depth hidden) keeps the
+    whole twist of each window.
     """
 
     path: Path
     K: np.ndarray | None = None
     use_gt: bool = True
+    known_speed: bool = False
+    known_twist: bool = False
 
 
 def _as_spec(entry: object) -> FileSpec:
@@ -172,7 +190,8 @@ def _as_spec(entry: object) -> FileSpec:
             K = np.asarray(K, float)
             if K.shape == (4,):
                 K = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
-        return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)))
+        return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
+                        bool(entry.get("known_twist", False)))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
@@ -205,6 +224,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self.augment, self.seed, self.epoch = augment, seed, 0
         self.index: list[tuple[int, int]] = []
         self._gt: list[dict | None] = []
+        self._speeds: list[tuple[np.ndarray, np.ndarray] | None] = []
         self.skipped = 0
         self._readers: dict[int, H5Reader] = {}
         size = None
@@ -218,6 +238,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 if spec.K is None and gt is None and "gt/K" in reader.file:   # calibration, not ground truth
                     spec = self.specs[i] = replace(spec, K=reader.file["gt/K"][:])
                 self._gt.append(gt)
+                self._speeds.append(self._load_speeds(reader.file, spec))
                 if gt is not None:
                     starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]
                 elif spec.K is None:
@@ -242,6 +263,16 @@ class H5WindowDataset(torch.utils.data.Dataset):
         return {"depth_t": gt["depth_t"][:], "poses_t": gt["poses_t"][:],
                 "twists": gt["twists"][:] if "twists" in gt else None, "K": gt["K"][:]}
 
+    @staticmethod
+    def _load_speeds(file: h5py.File, spec: FileSpec) -> tuple[np.ndarray, np.ndarray] | None:
+        """``(poses_t (M,) µs, twists (M, 6))`` of a file whose speed (or twist) is known although its ground
+        truth is hidden."""
+        if spec.use_gt or not (spec.known_speed or spec.known_twist):
+            return None
+        if "gt/twists" not in file or "gt/poses_t" not in file:
+            raise ValueError(f"{spec.path}: known_speed needs gt/twists and gt/poses_t in the file")
+        return file["gt/poses_t"][:], file["gt/twists"][:]
+
     def set_epoch(self, epoch: int) -> None:
         """Change the augmentation draws (called by the trainer each epoch)."""
         self.epoch = int(epoch)
@@ -258,7 +289,13 @@ class H5WindowDataset(torch.utils.data.Dataset):
             reader = self._readers[file_index] = H5Reader(spec.path)
         events = reader.window(t0, t0 + self.window_us)
         if gt is None:
-            return Sample(events, spec.K, None, None, t0, t0 + self.window_us)
+            speed = twist = None
+            if self._speeds[file_index] is not None:
+                times, twists = self._speeds[file_index]
+                middle = twists[int(np.argmin(np.abs(times - (t0 + self.window_us // 2))))]
+                speed = float(np.linalg.norm(middle[:3]))
+                twist = middle.copy() if spec.known_twist else None
+            return Sample(events, spec.K, None, twist, t0, t0 + self.window_us, speed)
         middle = t0 + self.window_us // 2
         k = int(np.argmin(np.abs(gt["depth_t"] - middle)))
         depth = reader.file["gt/depth"][k]

@@ -1,12 +1,20 @@
 """``python -m learned.evaluate --checkpoint CKPT --data FILE [FILE ...]``: depth and motion metrics of a network.
 
 Each file with ground truth (``cmax scene`` / ``SyntheticSequence.save``) is cut into
-windows centred on its ground-truth depth times (:class:`learned.data.H5WindowDataset`,
-no augmentation); the network's full-resolution depth is scored against the true depth
-with :func:`cmax.metrics.depth_metrics` (pooled over the file's windows, on every pixel
-with valid ground truth up to the scene's far limit, capped at 80 m as in
-``benchmarks/accuracy.py``; the prediction is dense, so ``coverage`` is 1), the twist
-with :func:`cmax.metrics.motion_metrics`.
+windows centred on its ground-truth depth times (:func:`held_out_windows`, through
+:class:`learned.data.H5WindowDataset`, no augmentation), each with two pixel masks
+(:func:`window_masks`): ``dense``, every pixel with valid ground truth up to the scene's
+far limit (capped at 80 m as in ``benchmarks/accuracy.py``), and ``event``, the dense
+pixels that hold at least one event of the window (the semi-dense protocol of EMVS-style
+baselines). :func:`score_depth` scores any method's depth (NaN: no estimate, reported as
+``coverage``) with :func:`cmax.metrics.depth_metrics`, pooled over a file's windows;
+:func:`score_motion` its twist against the true twist at each window's middle
+(:func:`cmax.metrics.motion_metrics`). The command line scores one network on the dense
+mask; ``benchmarks/learned_table.py`` builds the table of every method on both masks.
+
+:func:`objective_preferences` checks the contrast objective itself (issue 18, item 3):
+on each window, is it lowest at the true depth and twist, or at the network's, or at a
+constant depth?
 """
 from __future__ import annotations
 
@@ -24,14 +32,20 @@ import numpy as np
 import torch
 
 from cmax._args import ArgumentParser, positive_float, run_main
-from cmax.metrics import DepthMetrics, MotionMetrics, depth_metrics, motion_metrics
+from cmax.contrast import SHARED_OBJECTIVE, DepthMotion, EventWindows
+from cmax.events import Events
 from cmax.io.atomic import write_text_atomic
+from cmax.metrics import DepthMetrics, MotionMetrics, depth_metrics, motion_metrics
+from cmax.representations import voxel_grid
 from learned.checkpoint import CheckpointError, load_checkpoint
 from learned.config import config_from_dict
-from learned.data import H5WindowDataset, collate
+from learned.data import H5WindowDataset, Sample, collate
 from learned.model import DepthPoseNet
 
-__all__ = ["FileReport", "load_model", "predict_batches", "evaluate_files", "write_accuracy_csv", "main"]
+__all__ = ["FileReport", "HeldOutWindow", "WindowPreference", "ObjectivePreferences", "load_model", "predict_batches",
+           "far_limit", "depth_range", "event_mask", "window_masks", "held_out_windows", "predict_windows",
+           "no_pixels", "score_depth", "true_twists", "score_motion", "evaluate_files", "candidate_parameters",
+           "objective_preferences", "write_accuracy_csv", "main"]
 
 CSV_COLUMNS = ("method", "sequence", "abs_mean_m", "rmse_log", "abs_rel", "err_10m", "err_20m", "err_30m",
                "coverage", "n_pixels")
@@ -76,7 +90,9 @@ def predict_batches(model: DepthPoseNet, dataset: torch.utils.data.Dataset, batc
         yield batch, model(batch["volume"])
 
 
-def _far_limit(path: Path) -> float:
+def far_limit(path: str | Path) -> float:
+    """The far end [m] of the depth evaluated in a file: its scene's ``depth_range_m[1]`` capped at
+    :data:`FAR_LIMIT_M` (80 m, as ``benchmarks/accuracy.py``); :data:`FAR_LIMIT_M` when the file states none."""
     with h5py.File(path, "r") as f:
         scene = f.attrs.get("scene")
     try:
@@ -86,35 +102,251 @@ def _far_limit(path: Path) -> float:
     return min(far, FAR_LIMIT_M)
 
 
+
+def depth_range(path: str | Path) -> tuple[float, float]:
+    """``(near, far)`` [m] of a file's scene (``depth_range_m``), far capped as :func:`far_limit`; raises a
+    ValueError when the file does not state its range (a depth sweep over a guessed range would not be fair)."""
+    with h5py.File(path, "r") as f:
+        scene = f.attrs.get("scene")
+    try:
+        near = float(json.loads(scene)["depth_range_m"][0])
+    except (TypeError, ValueError, KeyError):
+        raise ValueError(f"{path}: no scene depth_range_m in its attributes (a file of SyntheticSequence.save)") \
+            from None
+    return near, far_limit(path)
+
+
+@dataclass(frozen=True, eq=False)
+class HeldOutWindow:
+    """One evaluation window of a file with ground truth, and its two pixel masks.
+
+    Attributes
+    ----------
+    sequence : str
+        The file's stem.
+    sample : Sample
+        The window's events (µs), ``K``, the true z-depth (H, W) [m] at its middle and the true twist
+        ``(v m/s, omega rad/s)`` (6,) at its middle (or None when the file has no twists).
+    dense : ndarray (H, W) bool
+        Pixels with valid ground truth: finite, above 1 mm, at most ``far_m``.
+    event : ndarray (H, W) bool
+        ``dense`` and at least one event of the window at the pixel (the semi-dense protocol).
+    far_m : float
+        Far end of the evaluated depth [m] (:func:`far_limit`).
+    """
+
+    sequence: str
+    sample: Sample
+    dense: np.ndarray
+    event: np.ndarray
+    far_m: float
+
+    @property
+    def masks(self) -> dict[str, np.ndarray]:
+        """``{"dense": ..., "event": ...}``."""
+        return {"dense": self.dense, "event": self.event}
+
+
+#: Ground truth at or below this depth [m] is not valid (:func:`cmax.metrics.depth_metrics`' ``min_depth``).
+MIN_DEPTH_M = 1e-3
+
+
+def event_mask(events: Events) -> np.ndarray:
+    """Pixels (H, W) bool that hold at least one of ``events`` (integer sensor coordinates)."""
+    hits = np.zeros((events.height, events.width), bool)
+    hits[np.asarray(events.y, np.intp), np.asarray(events.x, np.intp)] = True
+    return hits
+
+
+def window_masks(depth: np.ndarray, events: Events, far_m: float) -> tuple[np.ndarray, np.ndarray]:
+    """The dense mask (valid true ``depth`` (H, W) [m]: finite, > 1 mm, <= ``far_m``) and the event mask
+    (dense and an event of the window at the pixel), each (H, W) bool."""
+    depth = np.asarray(depth)
+    if depth.shape != (events.height, events.width):
+        raise ValueError(f"depth is {depth.shape}, the events' sensor {(events.height, events.width)}")
+    with np.errstate(invalid="ignore"):
+        dense = np.isfinite(depth) & (depth > MIN_DEPTH_M) & (depth <= far_m)
+    return dense, dense & event_mask(events)
+
+
+def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) -> list[HeldOutWindow]:
+    """The windows of a file with ground truth, centred on its depth times (:class:`learned.data.H5WindowDataset`,
+    no augmentation), with their masks. Raises a ValueError for a file without ``gt/`` or without a window."""
+    path = Path(path)
+    dataset = H5WindowDataset([path], window_us=int(window_us), max_events=1000, min_events=min_events)
+    if dataset._gt[0] is None:
+        raise ValueError(f"{path} has no gt/: evaluation needs ground truth")
+    if len(dataset) == 0:
+        raise ValueError(f"{path}: no window of {window_us} µs with ground truth and at least {min_events} events")
+    far = far_limit(path)
+    windows = []
+    for i in range(len(dataset)):
+        sample = dataset.sample(i)
+        dense, event = window_masks(sample.depth, sample.events, far)
+        windows.append(HeldOutWindow(path.stem, sample, dense, event, far))
+    return windows
+
+
+@torch.no_grad()
+def predict_windows(model: DepthPoseNet, windows: Sequence[HeldOutWindow], batch_size: int = 8
+                    ) -> tuple[np.ndarray, np.ndarray]:
+    """The network's full-resolution z-depth (N, H, W) float32 [m] and twist (N, 6) ``(v m/s, omega rad/s)``
+    of each window (its event volume, :func:`learned.data.to_item`)."""
+    depths, twists = [], []
+    for start in range(0, len(windows), batch_size):
+        volume = np.stack([voxel_grid(w.sample.events, model.config.bins) for w in windows[start:start + batch_size]])
+        out = model(torch.from_numpy(volume))
+        depths.append(out.depth[:, 0].numpy()), twists.append(out.twist.numpy())
+    return np.concatenate(depths).astype(np.float32), np.concatenate(twists).astype(np.float64)
+
+
+def no_pixels(cutoffs: tuple[float, ...] = (10.0, 20.0, 30.0)) -> DepthMetrics:
+    """Metrics of a method with no estimate on any pixel of the mask: NaN errors, coverage 0."""
+    nan = float("nan")
+    return DepthMetrics(nan, nan, nan, nan, nan, nan, nan, nan, {c: nan for c in cutoffs}, n_pixels=0,
+                        coverage=0.0, n_frames=0)
+
+
+def score_depth(pred: np.ndarray, windows: Sequence[HeldOutWindow], mask: str) -> DepthMetrics:
+    """Pooled :func:`cmax.metrics.depth_metrics` of predicted z-depths ``pred`` (N, H, W) [m] (NaN: no estimate)
+    against the windows' truth, on their ``mask`` ("dense" or "event"); ``coverage`` is the share of the mask's
+    pixels that have an estimate. A method with no estimate on the mask gets :func:`no_pixels`."""
+    if mask not in ("dense", "event"):
+        raise ValueError(f"mask must be 'dense' or 'event', got {mask!r}")
+    pred = np.asarray(pred)
+    if pred.shape != (len(windows),) + windows[0].dense.shape:
+        raise ValueError(f"pred is {pred.shape}, the windows need {(len(windows),) + windows[0].dense.shape}")
+    gt = np.stack([w.sample.depth for w in windows])
+    masks = np.stack([w.masks[mask] for w in windows])
+    with np.errstate(invalid="ignore"):
+        if not (masks & np.isfinite(pred) & (pred > 0)).any():
+            return no_pixels()
+    return depth_metrics(pred, gt, mask=masks, max_depth=max(w.far_m for w in windows))
+
+
+def true_twists(windows: Sequence[HeldOutWindow]) -> np.ndarray | None:
+    """The true twist (N, 6) at each window's middle; None when the file has no twists."""
+    if any(w.sample.twist is None for w in windows):
+        return None
+    return np.stack([np.asarray(w.sample.twist, np.float64) for w in windows])
+
+
+def score_motion(twists: np.ndarray, windows: Sequence[HeldOutWindow]) -> MotionMetrics | None:
+    """:func:`cmax.metrics.motion_metrics` of predicted twists (N, 6) or one twist (6,) for every window
+    against the true twist at each window's middle; None when the file has no twists."""
+    truth = true_twists(windows)
+    if truth is None:
+        return None
+    twists = np.broadcast_to(np.asarray(twists, np.float64), truth.shape)
+    return motion_metrics(twists[:, :3], twists[:, 3:], truth[:, :3], truth[:, 3:])
+
+
 def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, window_s: float | None = None,
                    batch_size: int = 8) -> list[FileReport]:
-    """Metrics of ``checkpoint`` on each file with ground truth (window length from the checkpoint's config)."""
+    """Metrics of ``checkpoint`` on each file with ground truth (window length from the checkpoint's config),
+    on the dense mask (:func:`held_out_windows`)."""
     model, config = load_model(checkpoint)
     window_us = int(round(window_s * 1e6)) if window_s is not None else int(config["data"]["window_us"])
     if window_us < 1:
         raise ValueError(f"the window must be at least 1 µs long, got {window_s} s")
     reports = []
     for path in map(Path, files):
-        dataset = H5WindowDataset([path], window_us=window_us, max_events=1000, bins=model.config.bins,
-                                  min_events=10)
-        if dataset._gt[0] is None:
-            raise ValueError(f"{path} has no gt/: evaluation needs ground truth")
-        if len(dataset) == 0:
-            raise ValueError(f"{path}: no window of {window_us} µs with ground truth and at least 10 events")
-        preds, gts, v, w, v_gt, w_gt = [], [], [], [], [], []
-        for batch, out in predict_batches(model, dataset, batch_size):
-            preds.append(out.depth[:, 0].numpy())
-            mask = batch["depth_mask"][:, 0].numpy()
-            gts.append(np.where(mask, 1.0 / np.where(mask, batch["inverse_depth"][:, 0].numpy(), 1.0), np.nan))
-            keep = batch["has_twist"].numpy()
-            v.append(out.twist[keep, :3].numpy()), w.append(out.twist[keep, 3:].numpy())
-            v_gt.append(batch["twist"][keep, :3].numpy()), w_gt.append(batch["twist"][keep, 3:].numpy())
-        metrics = depth_metrics(np.concatenate(preds), np.concatenate(gts), max_depth=_far_limit(path))
-        motion = None
-        if sum(len(a) for a in v):
-            motion = motion_metrics(np.concatenate(v), np.concatenate(w), np.concatenate(v_gt), np.concatenate(w_gt))
-        reports.append(FileReport(path.stem, metrics, motion, len(dataset)))
+        windows = held_out_windows(path, window_us)
+        depth, twist = predict_windows(model, windows, batch_size)
+        metrics = score_depth(depth, windows, "dense")
+        reports.append(FileReport(path.stem, metrics, score_motion(twist, windows), len(windows)))
     return reports
+
+
+#: The candidates of :func:`objective_preferences`, in the order they are reported.
+CANDIDATES = ("truth", "network", "network depth + true twist", "constant depth + true twist")
+
+
+@dataclass(frozen=True)
+class WindowPreference:
+    """The objective's value (lower is better) at each candidate of one window, and the lowest candidate.
+
+    ``values`` maps each of :data:`CANDIDATES` to the objective's value; ``speed_m_s`` is the known speed
+    [m/s] the objective scaled every twist to (the true ``|v|`` at the window's middle).
+    """
+
+    sequence: str
+    t0_us: int
+    t1_us: int
+    speed_m_s: float
+    values: dict[str, float]
+    lowest: str
+
+
+@dataclass(frozen=True)
+class ObjectivePreferences:
+    """:func:`objective_preferences` over all windows: each window's values and how often each candidate won."""
+
+    windows: tuple[WindowPreference, ...]
+    counts: dict[str, int]
+
+
+def candidate_parameters(window: HeldOutWindow, network_depth: np.ndarray, network_twist: np.ndarray
+                         ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
+    """Inverse depth (H, W) [1/m] and twist (6,) of each of :data:`CANDIDATES` for one window.
+
+    The true inverse depth takes the far limit where the truth is invalid (NaN sky, beyond ``far_m``); the
+    constant is the median of the valid true depth; the network's depth is clipped to ``(0, far_m]`` likewise.
+    """
+    depth = np.asarray(window.sample.depth, np.float64)
+    if not window.dense.any():
+        raise ValueError(f"{window.sequence} window at {window.sample.t0_us} µs has no valid true depth")
+    if window.sample.twist is None:
+        raise ValueError(f"{window.sequence}: the objective check needs the true twist (gt/twists)")
+    truth = 1.0 / np.where(window.dense, depth, window.far_m)
+    network = 1.0 / np.clip(np.asarray(network_depth, np.float64), MIN_DEPTH_M, window.far_m)
+    constant = np.full_like(truth, 1.0 / float(np.median(depth[window.dense])))
+    twist = np.asarray(window.sample.twist, np.float64)
+    network_twist = np.asarray(network_twist, np.float64)
+    return dict(zip(CANDIDATES, ((truth, twist), (network, network_twist), (network, twist), (constant, twist))))
+
+
+def window_preference(window: HeldOutWindow, network_depth: np.ndarray, network_twist: np.ndarray,
+                      objective: object, *, max_events: int | None = None, seed: int = 0) -> WindowPreference:
+    """The objective at each of :data:`CANDIDATES` of one window (its events as one
+    :class:`cmax.contrast.EventWindows` with the true speed; float64)."""
+    speed = float(np.linalg.norm(np.asarray(window.sample.twist, np.float64)[:3]))
+    batch = EventWindows.from_events(window.sample.events, window.sample.K, speed=speed, max_events=max_events,
+                                     seed=seed, dtype=torch.float64)
+    values = {}
+    with torch.no_grad():
+        for name, (inverse, twist) in candidate_parameters(window, network_depth, network_twist).items():
+            params = DepthMotion(torch.from_numpy(np.ascontiguousarray(inverse))[None, None],
+                                 torch.from_numpy(twist)[None])
+            values[name] = float(objective(batch, params)[0])
+    return WindowPreference(window.sequence, int(window.sample.t0_us), int(window.sample.t1_us), speed, values,
+                            min(values, key=values.get))
+
+
+def objective_preferences(files: Sequence[str | Path], checkpoint: str | Path, objective: object = SHARED_OBJECTIVE, *,
+                          window_s: float | None = None, max_events: int | None = None
+                          ) -> ObjectivePreferences:
+    """Which of :data:`CANDIDATES` the contrast ``objective`` (``objective(batch, params) -> (B,)``)
+    finds lowest on each held-out window of ``files`` (issue 18 item 3: does the loss prefer the truth?).
+
+    Every window (:func:`held_out_windows`, length from the checkpoint's ``data.window_us`` unless
+    ``window_s``) is scored at the true inverse depth and true twist, at the network's depth and twist, at the
+    network's depth with the true twist, and at a constant depth (the median true depth) with the true twist;
+    the objective scales every twist's ``v`` to the window's true speed (:func:`cmax.contrast.twist_at_speed`).
+    ``max_events``: a seeded uniform subset of each window's events (default the checkpoint's
+    ``data.max_events``, as in training).
+    """
+    model, config = load_model(checkpoint)
+    window_us = int(round(window_s * 1e6)) if window_s is not None else int(config["data"]["window_us"])
+    max_events = int(config["data"]["max_events"]) if max_events is None else int(max_events)
+    results = []
+    for path in files:
+        windows = held_out_windows(path, window_us)
+        depths, twists = predict_windows(model, windows)
+        results += [window_preference(w, d, t, objective, max_events=max_events)
+                    for w, d, t in zip(windows, depths, twists)]
+    counts = {name: sum(r.lowest == name for r in results) for name in CANDIDATES}
+    return ObjectivePreferences(tuple(results), counts)
 
 
 def csv_row(method: str, report: FileReport) -> dict[str, object]:

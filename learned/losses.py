@@ -25,7 +25,7 @@ from torch.nn import functional as F
 
 from cmax.contrast import SHARED_OBJECTIVE, DepthMotion, EventWindows
 
-__all__ = ["scale_invariant_loss", "gradient_matching_loss", "teacher_loss", "student_loss", "LAMBDA"]
+__all__ = ["scale_invariant_loss", "gradient_matching_loss", "teacher_loss", "speed_loss", "student_loss", "LAMBDA"]
 
 #: The paper's lambda.
 LAMBDA = 0.6
@@ -99,10 +99,31 @@ def teacher_loss(pred_depths, gt_depth: torch.Tensor, mask: torch.Tensor, *, lam
             + lam * gradient_matching_loss(pred_depths, gt_depth, mask))
 
 
+def speed_loss(twist: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
+    """Mean over the windows of known speed of ``(|v| / speed - 1)^2``; 0 when no speed is known.
+
+    The contrast objective rescales ``v`` to the known speed (it sees only inverse depth x speed), so
+    it never trains the magnitude of the predicted ``v``; this term does (a network must give metric
+    speeds where no speed is known, at inference), and it keeps ``|v|`` away from 0, where the
+    rescaling's gradient (``speed / |v|``) explodes.
+
+    Parameters
+    ----------
+    twist : Tensor (B, 6) [m/s, rad/s]
+    speed : Tensor (B,) [m/s], NaN where unknown.
+    """
+    known = ~torch.isnan(speed)
+    if not bool(known.any()):
+        return twist.new_zeros(())
+    norm = twist[known, :3].norm(dim=-1)
+    return ((norm / speed[known].clamp(min=1e-6) - 1.0) ** 2).mean()
+
+
 def student_loss(inverse_depth: torch.Tensor, twist: torch.Tensor, events: EventWindows, *,
                  teacher_inverse_depth: torch.Tensor | None, lam: float = LAMBDA,
-                 objective=SHARED_OBJECTIVE) -> tuple[torch.Tensor, dict[str, float]]:
-    """``L_contrast + (1 - lam) * L1(teacher, student)`` (EvtSlowTV eq. 15); without a teacher only ``L_contrast``.
+                 objective=SHARED_OBJECTIVE, speed_weight: float = 0.0) -> tuple[torch.Tensor, dict[str, float]]:
+    """``L_contrast + (1 - lam) * L1(teacher, student) + speed_weight * L_speed`` (EvtSlowTV eq. 15 and
+    :func:`speed_loss`); without a teacher no L1 term.
 
     Parameters
     ----------
@@ -114,6 +135,8 @@ def student_loss(inverse_depth: torch.Tensor, twist: torch.Tensor, events: Event
         The frozen teacher's prediction (no gradient flows into it); None for fine-tuning.
     objective : callable
         ``objective(events, DepthMotion) -> (B,)``; default the shared one, :data:`cmax.contrast.SHARED_OBJECTIVE`.
+    speed_weight : float
+        Weight of :func:`speed_loss` on the windows whose ``events.speed`` is known.
 
     Returns
     -------
@@ -123,8 +146,13 @@ def student_loss(inverse_depth: torch.Tensor, twist: torch.Tensor, events: Event
         raise TypeError(f"events must be a cmax.contrast.EventWindows, got {type(events).__name__}")
     l_contrast = objective(events, DepthMotion(inverse_depth, twist)).mean()
     terms = {"contrast": float(l_contrast.detach())}
+    loss = l_contrast
+    if speed_weight > 0 and events.speed is not None:
+        l_speed = speed_loss(twist, events.speed.to(twist.dtype))
+        terms["speed"] = float(l_speed.detach())
+        loss = loss + speed_weight * l_speed
     if teacher_inverse_depth is None:
-        return l_contrast, terms
+        return loss, terms
     l1 = (inverse_depth - teacher_inverse_depth.detach()).abs().mean()
     terms["l1_teacher"] = float(l1.detach())
-    return l_contrast + (1.0 - lam) * l1, terms
+    return loss + (1.0 - lam) * l1, terms

@@ -8,7 +8,7 @@ at every decoder scale, bounded to the configured depth range:
 
     rho = 1/z_max + (1/z_min - 1/z_max) * sigmoid(logit)      [1/m]
 
-The pose head on the bottleneck (conv, global mean, linear) gives the twist
+The pose head on the bottleneck (conv, mean over a grid of cells, linear) gives the twist
 ``(v [m/s], omega [rad/s])`` of the window, each scaled by a configured
 typical magnitude (``tanh`` bounded). Inputs whose sides are not multiples of
 ``2**levels`` are zero-padded and the outputs cropped back.
@@ -64,6 +64,11 @@ class ModelConfig:
         levels, and unfold the finest inverse depth back to full resolution
         (``pixel_shuffle`` of a 4-channel head): no full-resolution feature maps, the same
         output scales. ``False``: the original network.
+    pose_cells : int
+        The pose head averages the bottleneck over a ``pose_cells`` x ``pose_cells`` grid of cells
+        before its linear layer. 1 (the original network) is a global mean, which discards where in
+        the image a feature is: expansion and contraction (forward and backward motion), or a pan left
+        and right at the two sides, average alike. 3 keeps the layout the motion field needs.
     """
 
     bins: int = 5
@@ -76,9 +81,10 @@ class ModelConfig:
     block: str = "dense"
     norm: str = "group"
     space_to_depth: bool = False
+    pose_cells: int = 1
 
     def __post_init__(self) -> None:
-        for name in ("bins", "width", "levels"):
+        for name in ("bins", "width", "levels", "pose_cells"):
             if not (isinstance(getattr(self, name), int) and getattr(self, name) >= 1):
                 raise ValueError(f"model.{name} must be a positive integer, got {getattr(self, name)!r}")
         if self.block not in BLOCKS:
@@ -192,7 +198,8 @@ class DepthPoseNet(nn.Module):
         if config.space_to_depth:   # the full-resolution inverse depth, as 2x2 blocks of the finest features
             self.full_head = nn.Conv2d(c[0], 4, 3, 1, 1)
         self.pose = nn.Sequential(nn.Conv2d(c[-1], c[-1], 3, 1, 1), nn.LeakyReLU(0.1))
-        self.pose_out = nn.Linear(c[-1], 6)
+        self.pose_pool = nn.AdaptiveAvgPool2d(config.pose_cells)
+        self.pose_out = nn.Linear(c[-1] * config.pose_cells ** 2, 6)
         nn.init.zeros_(self.pose_out.weight)
         nn.init.zeros_(self.pose_out.bias)
         self.to(memory_format=self.memory_format)
@@ -213,7 +220,7 @@ class DepthPoseNet(nn.Module):
         for down in self.down:
             skips.append(down(skips[-1]))
         feature = skips.pop()
-        pooled = self.pose(feature).mean(dim=(2, 3))
+        pooled = self.pose_pool(self.pose(feature)).flatten(1)
         scale = torch.tensor([self.config.max_speed] * 3 + [self.config.max_angular_speed] * 3,
                              dtype=pooled.dtype, device=pooled.device)
         twist = torch.tanh(self.pose_out(pooled)) * scale

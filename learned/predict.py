@@ -1,98 +1,490 @@
-"""``python -m learned.predict --checkpoint CKPT FILE -o out/``: depth and twist of every window of an event file.
+"""``cmax depth FILE -o OUT/`` (also ``python -m learned.predict``): depth and twist of every window of an event file.
 
-Writes per window ``window_<k>.npz`` (``depth`` (H, W) float32 [m], ``inverse_depth``,
-``twist`` (6,) [m/s, rad/s], ``t0_us``, ``t1_us``) and ``window_<k>.png`` (a depth picture),
-and ``twists.csv`` (one line per window). Every file is written atomically.
-Files without ``gt/K`` need ``--K fx,fy,cx,cy``.
+Reads any format :func:`cmax.io.read` reads (a DSEC-layout h5 through :class:`cmax.io.H5Reader`,
+one window at a time; the other formats decoded whole), cuts it into consecutive windows of the
+checkpoint's length (``--window``; a recording shorter than one window gives one window over the
+whole recording), builds each window's event volume (:func:`cmax.representations.voxel_grid`,
+as in training) and runs the network on ``--batch`` windows at a time. Writes, atomically, in
+``OUT/``:
+
+* ``window_<k>.npz`` for window ``k`` (its position in the recording; windows with fewer than
+  :data:`MIN_EVENTS` events are skipped): ``depth`` (H, W) float32 [m], ``inverse_depth``
+  (H, W) float32 [1/m], ``twist`` (6,) float32 ``(v [m/s], omega [rad/s])`` in the camera
+  frame, ``t0_us``, ``t1_us`` [µs] and ``K`` (3, 3) [px];
+* ``window_<k>.png``: the depth with a colour bar in metres and the window's time in its title,
+  one colour scale for the whole run (``--depth-range``, default the model's output range);
+* ``twists.csv`` (one line per window) and ``summary.json`` (inputs, settings, notes, counts).
+
+Intrinsics come from ``--K``, ``--calib`` (whose distortion, when it has one, undistorts the events
+first) or the file's own ``gt/K``. The network is fully convolutional and runs at any sensor size,
+but the depth it reads from the events' motion assumes the camera it was trained with: a sensor
+size or focal length unlike the one in the checkpoint's card (:mod:`learned.pretrained`) is noted
+once. The checkpoint defaults to the model shipped in the package.
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
+import time
+from dataclasses import dataclass
 from pathlib import Path
+from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
-import torch
-from tqdm import tqdm
 
-from cmax._args import ArgumentParser, float_list, positive_float, run_main
-from cmax.fitting.cli import intrinsics_argument
-from cmax.io.atomic import save_npz_atomic, write_text_atomic
-from learned.data import H5WindowDataset
-from learned.evaluate import load_model, predict_batches
+from cmax._args import (ArgumentParser, float_list, nonnegative_float, positive_float, positive_int, run_main,
+                        sensor_size)
+from cmax.fitting.cli import intrinsics_argument, read_calibration
 
-__all__ = ["predict_file", "main"]
+if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
+    from cmax.events import Events
+    from learned.model import DepthPoseNet
+
+__all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
+           "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
+           "write_window", "run_prediction", "predict_file", "add_arguments", "run", "main"]
+
+#: Windows with fewer events are skipped (counted in the summary).
+MIN_EVENTS = 10
+_CSV_HEADER = "window,t0_us,t1_us,events,vx,vy,vz,wx,wy,wz"
 
 
-def predict_file(checkpoint: str | Path, path: str | Path, out: str | Path, *, K: np.ndarray | None = None,
-                 window_us: int | None = None, depth_range: tuple[float, float] | None = None,
-                 progress: bool = True) -> int:
-    """Predict every window of ``path`` into folder ``out``; returns the number of windows.
+@dataclass(frozen=True, eq=False)
+class Recording:
+    """An event file opened for reading window by window.
 
-    The depth pictures of one run share one colour scale with a colour bar in metres:
-    ``depth_range`` (near, far) [m], or the model's own output range.
+    Attributes
+    ----------
+    path : Path
+    format : str
+        One of :data:`cmax.io.FORMATS`.
+    width, height : int
+        Sensor size [px].
+    first_us, last_us : int
+        Times of its first and last event [µs].
+    K : ndarray (3, 3) or None
+        The file's own intrinsics (``gt/K`` of an h5 file) [px], validated.
+    window : callable
+        ``window(t0_us, t1_us) -> Events`` with ``t0_us <= t < t1_us``.
+    close : callable
+        Releases the file.
     """
-    from cmax import viz
 
-    model, config = load_model(checkpoint)
-    scale = viz.DepthScale(*(depth_range or (model.config.min_depth, model.config.max_depth)))
-    window_us = int(config["data"]["window_us"]) if window_us is None else int(window_us)
+    path: Path
+    format: str
+    width: int
+    height: int
+    first_us: int
+    last_us: int
+    K: np.ndarray | None
+    window: Callable[[int, int], "Events"]
+    close: Callable[[], None]
+
+
+def _file_intrinsics(file: Any, path: Path) -> np.ndarray | None:
+    """``gt/K`` of an open h5 file, validated (None when it has none)."""
+    from cmax.camera import check_intrinsics
+
+    if "gt" not in file or "K" not in file["gt"]:
+        return None
+    try:
+        return check_intrinsics(np.asarray(file["gt/K"][()]), f"{path}: gt/K")
+    except TypeError as error:
+        raise ValueError(str(error)) from None
+
+
+def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, time_unit: str | None = None,
+                   polarity: str | None = None) -> Recording:
+    """Open an event file of any format :func:`cmax.io.read` reads.
+
+    ``size`` (width, height) [px], ``time_unit`` and ``polarity`` as :func:`cmax.io.read` takes them
+    (for files that do not state them; never guessed). A DSEC-layout h5 file is read window by
+    window (:class:`cmax.io.H5Reader`); other formats are decoded whole. Raises FileNotFoundError,
+    :class:`cmax.io.FormatError` or ValueError (one line each) for a missing, unreadable or empty file.
+    """
+    from cmax.io import H5Reader, detect_format, read
+
+    path = Path(path)
+    kind = detect_format(path)
+    width, height = size if size is not None else (None, None)
+    options = {} if polarity is None else {"polarity": polarity}
+    if kind == "dsec":
+        reader = H5Reader(path, width=width, height=height, time_unit=time_unit, **options)
+        try:
+            K = _file_intrinsics(reader.file, path)
+            first, last = reader.t_start, reader.t_end   # "holds no events" when empty
+        except BaseException:
+            reader.close()
+            raise
+        return Recording(path, kind, reader.width, reader.height, first, last, K, reader.window, reader.close)
+    events = read(path, width=width, height=height, time_unit=time_unit, **options)
+    if len(events) == 0:
+        raise ValueError(f"{path} holds no events")
+    return Recording(path, kind, events.width, events.height, int(events.t[0]), int(events.t[-1]), None,
+                     events.slice_time, lambda: None)
+
+
+def time_bounds(first_us: int, last_us: int, t0_s: float | None, t1_s: float | None) -> tuple[int, int]:
+    """``(start, end)`` [µs], both inclusive: the part of a recording from ``t0_s`` to ``t1_s`` seconds after
+    its first event (None: its first / last event). ValueError when that part is empty or out of the recording."""
+    if t0_s is not None and t1_s is not None and t1_s <= t0_s:
+        raise ValueError(f"--t1 must be after --t0, got {t0_s} and {t1_s}")
+    start = first_us + (0 if t0_s is None else int(round(t0_s * 1e6)))
+    end = last_us if t1_s is None else min(last_us, first_us + int(round(t1_s * 1e6)) - 1)
+    length = (last_us - first_us) * 1e-6
+    if start > last_us:
+        raise ValueError(f"--t0 {t0_s} s is past the recording's last event ({length:.6f} s after its first)")
+    if end < start:
+        raise ValueError(f"--t1 {t1_s} s leaves no time to predict")
+    return start, end
+
+
+def window_plan(start_us: int, end_us: int, window_us: int, *, explicit: bool) -> tuple[int, np.ndarray, str | None]:
+    """``(window_us, starts (N,) int64 [µs], note)``: consecutive windows ``[t0, t0 + window_us)`` from
+    ``start_us`` that fit in ``[start_us, end_us]`` (inclusive).
+
+    A span shorter than ``window_us`` gives one window over the whole span with a note when the window is
+    the checkpoint's (``explicit`` False), and a ValueError when the caller asked for it (``--window``).
+    """
     if window_us < 1:
         raise ValueError(f"the window must be at least 1 µs long, got {window_us} µs")
-    if not Path(path).is_file():
-        raise FileNotFoundError(f"no such event file: {path}")
-    spec = {"path": str(path), "use_gt": False, **({"K": np.asarray(K, float).tolist()} if K is not None else {})}
-    try:
-        dataset = H5WindowDataset([spec], window_us=window_us, max_events=1000, bins=model.config.bins, min_events=10)
-    except ValueError:
+    span = end_us - start_us + 1
+    if window_us <= span:
+        return window_us, np.arange(start_us, end_us + 2 - window_us, window_us, dtype=np.int64), None
+    if explicit:
+        raise ValueError(f"--window {window_us * 1e-6:g} s is longer than the events to predict "
+                         f"({span * 1e-6:.6f} s); give a shorter one, or leave --window out for one window over "
+                         "the whole recording")
+    note = (f"the recording ({span * 1e-3:.1f} ms) is shorter than the model's window ({window_us * 1e-3:.1f} ms): "
+            "predicting one window over the whole recording (less motion per window than in training: its depth "
+            "may be biased)")
+    return span, np.array([start_us], dtype=np.int64), note
+
+
+def _card_numbers(card: dict, key: str, count: int, where: str) -> list[float] | None:
+    values = card.get(key)
+    if values is None:
+        return None
+    if (not isinstance(values, list) or len(values) != count
+            or not all(isinstance(v, (int, float)) and not isinstance(v, bool) and np.isfinite(v) and v > 0
+                       for v in values[:2])):
+        raise ValueError(f"{where}: \"{key}\" must be a list of {count} numbers, got {values!r}")
+    return [float(v) for v in values]
+
+
+def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, where: str = "the card") -> list[str]:
+    """Notes on how this camera differs from the one the network was trained with (from its card:
+    ``"size": [W, H]`` [px], ``"K": [fx, fy, cx, cy]`` [px]); empty when they agree or nothing is recorded."""
+    if not card:
+        return []
+    notes = []
+    size = _card_numbers(card, "size", 2, where)
+    if size is not None and (int(size[0]), int(size[1])) != (width, height):
+        notes.append(f"the network was trained on a {int(size[0])}x{int(size[1])} sensor, this file is {width}x{height}: "
+                     "it is fully convolutional and runs at any size, but its depth assumes the trained camera")
+    trained = _card_numbers(card, "K", 4, where)
+    if trained is not None:
+        ratio = float(K[0, 0]) / trained[0]
+        if abs(ratio - 1.0) > 0.05:
+            notes.append(f"the focal length here is {K[0, 0]:.1f} px, the network was trained at {trained[0]:.1f} px: "
+                         f"the depth it infers from image motion scales with it (to first order, true depth = "
+                         f"predicted x {ratio:.3g})")
+    return notes
+
+
+def undistortion(K: np.ndarray, distortion: np.ndarray, width: int, height: int) -> Callable[["Events"], "Events"]:
+    """``events -> events`` at their undistorted pixel (nearest integer; those that land outside the sensor are
+    dropped), as ``cmax fit --calib`` does, with the undistortion map of the camera computed once for all windows."""
+    from cmax.camera import Camera
+    from cmax.events import Events
+
+    camera = Camera(K, width, height, distortion)
+
+    def undistort(events: "Events") -> "Events":
+        xy = np.rint(camera.undistort(events)).astype(np.int64)
+        inside = (xy[:, 0] >= 0) & (xy[:, 0] < width) & (xy[:, 1] >= 0) & (xy[:, 1] < height)
+        return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], width, height)
+
+    return undistort
+
+
+def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:
+    """The network input of each window: (B, bins, H, W) float32, :func:`cmax.representations.voxel_grid`
+    over each window's own first..last event time (as :func:`learned.data.to_item` builds it in training)."""
+    from cmax.representations import voxel_grid
+
+    return np.stack([np.asarray(voxel_grid(events, bins), np.float32) for events in windows])
+
+
+def forward(model: "DepthPoseNet", volumes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``(inverse depth (B, H, W) float32 [1/m], twist (B, 6) float32 (v [m/s], omega [rad/s]))`` of the network
+    on event volumes (B, bins, H, W), with the threads :func:`cmax._threads.torch_threads` allows now."""
+    import torch
+
+    from cmax._threads import torch_threads_scope
+
+    with torch_threads_scope(volumes.size * model.config.width), torch.inference_mode():
+        out = model(torch.from_numpy(np.ascontiguousarray(volumes, np.float32)))
+    return out.inverse_depth[:, 0].numpy().copy(), out.twist.numpy().copy()
+
+
+@dataclass(frozen=True, eq=False)
+class WindowPrediction:
+    """The network's output for one window.
+
+    Attributes
+    ----------
+    index : int
+        Position of the window in the recording (0 from the first start).
+    t0_us, t1_us : int
+        Window bounds [µs].
+    events : int
+        Events in the window.
+    inverse_depth : ndarray (H, W) float32
+        [1/m].
+    twist : ndarray (6,) float32
+        ``(v [m/s], omega [rad/s])``, camera frame.
+    """
+
+    index: int
+    t0_us: int
+    t1_us: int
+    events: int
+    inverse_depth: np.ndarray
+    twist: np.ndarray
+
+
+def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"], starts: Sequence[int],
+                    window_us: int, *, batch: int = 8,
+                    transform: Callable[["Events"], "Events"] | None = None) -> Iterator[WindowPrediction | None]:
+    """For each start [µs] in order: the :class:`WindowPrediction` of ``[t0, t0 + window_us)``, or None when the
+    window (read with ``window(t0, t1)``, then ``transform``) holds fewer than :data:`MIN_EVENTS` events.
+    ``batch`` windows go through the network at a time."""
+    for first in range(0, len(starts), batch):
+        chunk = []
+        for index in range(first, min(first + batch, len(starts))):
+            t0 = int(starts[index])
+            events = window(t0, t0 + window_us)
+            events = events if transform is None else transform(events)
+            chunk.append((index, t0, events if len(events) >= MIN_EVENTS else None))
+        kept = [events for _, _, events in chunk if events is not None]
+        outputs = iter(zip(*forward(model, event_volumes(kept, model.config.bins)))) if kept else iter(())
+        for index, t0, events in chunk:
+            if events is None:
+                yield None
+            else:
+                inverse, twist = next(outputs)
+                yield WindowPrediction(index, t0, t0 + window_us, len(events), inverse, twist)
+
+
+def write_window(out: Path, prediction: WindowPrediction, K: np.ndarray, scale) -> str:
+    """Write ``window_<k>.npz`` and ``window_<k>.png`` (atomically) into ``out``; returns the window's
+    ``twists.csv`` line. ``scale``: the run's :class:`cmax.viz.DepthScale`."""
+    from cmax import viz
+    from cmax.io.atomic import save_npz_atomic
+
+    p = prediction
+    depth = (1.0 / p.inverse_depth).astype(np.float32)
+    name = f"window_{p.index:05d}"
+    save_npz_atomic(out / f"{name}.npz", depth=depth, inverse_depth=p.inverse_depth.astype(np.float32),
+                    twist=p.twist.astype(np.float32), t0_us=np.int64(p.t0_us), t1_us=np.int64(p.t1_us),
+                    K=np.asarray(K, float))
+    title = f"window {p.index}, {p.t0_us * 1e-6:.3f}-{p.t1_us * 1e-6:.3f} s, depth [m]"
+    viz.save_png(out / f"{name}.png", viz.depth_panel(depth, scale, title))
+    return ",".join([str(p.index), str(p.t0_us), str(p.t1_us), str(p.events)] + [f"{v:.6g}" for v in p.twist])
+
+
+@dataclass(frozen=True)
+class DepthRun:
+    """What :func:`run_prediction` did: windows written and skipped, the window [µs], notes, seconds, folder."""
+
+    windows: int
+    skipped: int
+    window_us: int
+    notes: tuple[str, ...]
+    seconds: float
+    output: Path
+
+    def summary_line(self) -> str:
+        """The command's final line."""
+        skipped = f", {self.skipped} skipped (fewer than {MIN_EVENTS} events)" if self.skipped else ""
+        rate = self.windows / self.seconds if self.seconds > 0 else float("inf")
+        return (f"{self.windows} windows of {self.window_us * 1e-3:g} ms predicted{skipped} in {self.seconds:.1f} s "
+                f"({rate:.1f} windows/s); results in {self.output}")
+
+
+def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarray:
+    if K is not None:
+        return np.asarray(K, float)
+    if recording.K is None:
+        raise ValueError(f"{recording.path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or "
+                         "--calib FILE")
+    return recording.K
+
+
+def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path | None = None,
+                   K: np.ndarray | None = None, calib: str | Path | None = None, calib_camera: str = "cam0",
+                   size: tuple[int, int] | None = None, time_unit: str | None = None, polarity: str | None = None,
+                   t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
+                   depth_range: tuple[float, float] | None = None, batch: int = 8, progress: bool = True,
+                   note: Callable[[str], None] | None = None) -> DepthRun:
+    """Predict depth and twist for every window of the event file ``path`` into the folder ``out``.
+
+    Parameters
+    ----------
+    checkpoint : path, optional
+        A :mod:`learned.checkpoint` file (default: :func:`learned.pretrained.shipped_checkpoint`).
+    K : ndarray (3, 3), optional
+        Intrinsics [px]; ``calib`` (ECD calib.txt or DSEC cam_to_cam.yaml, camera ``calib_camera``)
+        instead; neither: the file's ``gt/K``.
+    size, time_unit, polarity : as :func:`cmax.io.read` (for files that do not state them).
+    t0_s, t1_s : float, optional
+        Part to predict, seconds after the first event.
+    window_s : float, optional
+        Window length [s] (default: the checkpoint config's ``data.window_us``).
+    depth_range : (near, far) [m], optional
+        Colour scale of every picture of the run (default: the model's output range).
+    batch : int
+        Windows per forward pass.
+    note : callable, optional
+        Receives each note (default: printed on stderr).
+
+    Raises FileNotFoundError, ValueError (including :class:`cmax.io.FormatError` and
+    :class:`learned.checkpoint.CheckpointError`) with a one-line message for every input a user can get wrong.
+    """
+    from tqdm.auto import tqdm
+
+    from cmax import viz
+    from cmax.io.atomic import write_text_atomic
+    from learned.evaluate import load_model
+    from learned.pretrained import checkpoint_card, shipped_checkpoint
+
+    started = time.perf_counter()
+    note = note or (lambda text: print(f"learned.predict: note: {text}", file=sys.stderr))
+    if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
+        raise ValueError(f"batch must be a whole number >= 1, got {batch!r}")
+    checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
+    model, config = load_model(checkpoint)   # first: a refused checkpoint writes nothing
+    card = checkpoint_card(checkpoint)
+    explicit = window_s is not None
+    window_us = int(config["data"]["window_us"]) if window_s is None else int(round(window_s * 1e6))
+    if window_us < 1:
+        raise ValueError(f"the window must be at least 1 µs long, got {window_us} µs")
+    scale = viz.DepthScale(*(depth_range or (model.config.min_depth, model.config.max_depth)))
+    distortion, calib_size = None, None
+    if calib is not None:
         if K is not None:
+            raise ValueError("give the intrinsics with --K or --calib, not both")
+        K, distortion, calib_size = read_calibration(calib, calib_camera)
+    try:
+        recording = open_recording(path, size=size, time_unit=time_unit, polarity=polarity)
+    except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
+        if calib_size is None or size is not None or "width=" not in str(error):
             raise
-        dataset = H5WindowDataset([{"path": str(path)}], window_us=window_us, max_events=1000,
-                                  bins=model.config.bins, min_events=10)
-    if len(dataset) == 0:
-        raise ValueError(f"{path}: no window of {window_us} µs with at least 10 events")
-    out = Path(out)
-    out.mkdir(parents=True, exist_ok=True)
-    lines = ["window,t0_us,t1_us,vx,vy,vz,wx,wy,wz"]
-    k = 0
-    for batch, output in tqdm(predict_batches(model, dataset), total=-(-len(dataset) // 8), disable=not progress):
-        for b in range(output.twist.shape[0]):
-            _, t0 = dataset.index[k]
-            inverse = output.inverse_depth[b, 0].numpy()
-            twist = output.twist[b].numpy()
-            save_npz_atomic(out / f"window_{k:05d}.npz", depth=(1.0 / inverse).astype(np.float32),
-                        inverse_depth=inverse, twist=twist, t0_us=t0, t1_us=t0 + window_us)
-            title = f"window {k}, {t0 * 1e-6:.3f}-{(t0 + window_us) * 1e-6:.3f} s, depth [m]"
-            viz.save_png(out / f"window_{k:05d}.png", viz.depth_panel((1.0 / inverse).astype(np.float32), scale, title))
-            lines.append(",".join([str(k), str(t0), str(t0 + window_us)] + [f"{v:.6g}" for v in twist]))
-            k += 1
+        recording = open_recording(path, size=calib_size, time_unit=time_unit, polarity=polarity)
+    try:
+        if calib_size is not None and (recording.width, recording.height) != tuple(calib_size):
+            raise ValueError(f"{calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({calib_camera}), the "
+                             f"events come from a {recording.width}x{recording.height} sensor")
+        K = _resolve_intrinsics(recording, K)
+        undistort = None if distortion is None else undistortion(K, distortion, recording.width, recording.height)
+        notes = camera_notes(card, recording.width, recording.height, K, f"the card of {checkpoint}")
+        start, end = time_bounds(recording.first_us, recording.last_us, t0_s, t1_s)
+        window_us, starts, short = window_plan(start, end, window_us, explicit=explicit)
+        notes += [short] if short else []
+        for text in notes:
+            note(text)
+        out = Path(out)
+        out.mkdir(parents=True, exist_ok=True)
+        lines, skipped = [_CSV_HEADER], 0
+        with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
+            for prediction in predict_windows(model, recording.window, starts, window_us, batch=batch,
+                                              transform=undistort):
+                bar.update(1)
+                if prediction is None:
+                    skipped += 1
+                else:
+                    lines.append(write_window(out, prediction, K, scale))
+    finally:
+        recording.close()
+    written = len(lines) - 1
+    if not written:
+        raise ValueError(f"{path}: none of its {len(starts)} windows of {window_us * 1e-3:g} ms holds "
+                         f"{MIN_EVENTS} events or more")
     write_text_atomic(out / "twists.csv", "\n".join(lines) + "\n")
-    return k
+    run = DepthRun(written, skipped, window_us, tuple(notes), time.perf_counter() - started, out)
+    summary = {"file": str(path), "format": recording.format, "checkpoint": str(checkpoint),
+               "size": [recording.width, recording.height], "K": np.asarray(K).tolist(),
+               "distortion": None if distortion is None else distortion.tolist(), "window_us": window_us,
+               "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],
+               "windows_total": len(starts), "windows": written, "skipped": skipped, "min_events": MIN_EVENTS,
+               "notes": list(notes), "seconds": run.seconds}
+    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    return run
 
 
-def main(argv: list[str] | None = None) -> int:
-    """Entry point; returns the exit status (2 and one line for a bad argument or file)."""
-    parser = ArgumentParser(prog="python -m learned.predict", description=__doc__.splitlines()[0])
-    parser.add_argument("file", type=Path, help="DSEC-layout h5 event file")
-    parser.add_argument("--checkpoint", type=Path, required=True, help="checkpoint of learned.train (last.pt)")
+def predict_file(checkpoint: str | Path | None, path: str | Path, out: str | Path, *, K: np.ndarray | None = None,
+                 window_us: int | None = None, depth_range: tuple[float, float] | None = None,
+                 progress: bool = True, **options: Any) -> int:
+    """:func:`run_prediction` with the window in µs; returns the number of windows written."""
+    window_s = None if window_us is None else int(window_us) * 1e-6
+    return run_prediction(path, out, checkpoint=checkpoint, K=K, window_s=window_s, depth_range=depth_range,
+                          progress=progress, **options).windows
+
+
+# -- command line ---------------------------------------------------------------------------
+def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
+    """The options of ``cmax depth`` / ``python -m learned.predict`` (one definition for both); returns ``parser``."""
+    parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
     parser.add_argument("-o", "--output", type=Path, required=True, help="output folder")
-    parser.add_argument("--K", type=intrinsics_argument, default=None,
-                        help="fx,fy,cx,cy for files without gt/K (default: the file's gt/K)")
+    parser.add_argument("--checkpoint", type=Path, default=None,
+                        help="checkpoint of learned.train (default: the model shipped in learned/pretrained)")
+    camera = parser.add_mutually_exclusive_group()
+    camera.add_argument("--K", type=intrinsics_argument, default=None,
+                        help="intrinsics fx,fy,cx,cy [px] (default: the file's gt/K)")
+    camera.add_argument("--calib", type=Path, default=None,
+                        help="calibration file instead of --K: ECD calib.txt or DSEC cam_to_cam.yaml (its "
+                             "distortion undistorts the events)")
+    parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
+                        help="camera of a cam_to_cam.yaml: cam0 (raw events) or camRect0 (rectified)")
+    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
+                        help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as shipped)")
+    parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
+                        help="unit of the file's time stamps where the file does not state it (never guessed)")
+    parser.add_argument("--polarity", choices=("01", "signed"), default=None,
+                        help="polarity encoding of an h5, text or .npy file: 01 (0 OFF, 1 ON) or signed "
+                             "(-1 OFF, +1 ON) (default: 01; never guessed)")
+    parser.add_argument("--t0", type=nonnegative_float, default=None,
+                        help="start, seconds after the first event (default: the first event)")
+    parser.add_argument("--t1", type=nonnegative_float, default=None,
+                        help="end, seconds after the first event (default: the last event)")
     parser.add_argument("--window", type=positive_float, default=None,
                         help="window length [s] (default: the checkpoint config's data.window_us)")
     parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
                         metavar="NEAR,FAR", help="colour scale of the depth pictures [m], one for the whole run "
                         "(default: the model's output range)")
-    return run_main(parser, _run, argv)
+    parser.add_argument("--batch", type=positive_int, default=8, help="windows per forward pass")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    return parser
 
 
-def _run(args: argparse.Namespace) -> int:
-    with torch.no_grad():
-        n = predict_file(args.checkpoint, args.file, args.output, K=args.K,
-                         window_us=None if args.window is None else int(round(args.window * 1e6)),
-                         depth_range=None if args.depth_range is None else tuple(args.depth_range))
-    print(f"{args.output}: {n} windows")
+def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> int:
+    """Run the command of :func:`add_arguments`' options; prints notes on stderr and the summary line."""
+    result = run_prediction(
+        args.file, args.output, checkpoint=args.checkpoint, K=args.K, calib=args.calib,
+        calib_camera=args.calib_camera, size=args.size, time_unit=args.time_unit, polarity=args.polarity,
+        t0_s=args.t0, t1_s=args.t1, window_s=args.window,
+        depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
+        progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr))
+    print(result.summary_line())
     return 0
+
+
+def main(argv: list[str] | None = None) -> int:
+    """Entry point; returns the exit status (2 and one line for a bad argument or file)."""
+    parser = add_arguments(ArgumentParser(prog="python -m learned.predict", description=__doc__.splitlines()[0]))
+    return run_main(parser, run, argv)
 
 
 if __name__ == "__main__":

@@ -21,7 +21,6 @@ import argparse
 import json
 import os
 import sys
-import warnings
 from pathlib import Path
 from typing import Iterator
 
@@ -30,15 +29,20 @@ import torch
 from tqdm import tqdm
 
 from cmax._args import ArgumentParser, run_main
+from cmax._threads import torch_threads
 from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, WeightedSum
 from cmax.io.atomic import write_text_atomic
 from learned.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from learned.config import Config, load_config
 from learned.data import H5WindowDataset, collate
 from learned.losses import student_loss, teacher_loss
-from learned.model import DepthPoseNet
+from learned.model import DepthPoseNet, ModelConfig
 
-__all__ = ["batch_indices", "Trainer", "main"]
+#: Steps between two choices of torch's thread count (:func:`cmax._threads.torch_threads`: the cores less the
+#: load of other processes; ``CMAX_TORCH_THREADS`` fixes it).
+THREAD_CHECK_EVERY = 25
+
+__all__ = ["batch_indices", "learning_rate", "twist_scale", "Trainer", "main"]
 
 
 def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[int]:
@@ -55,11 +59,43 @@ def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[i
 
 
 def _events(batch: dict[str, torch.Tensor], width: int, height: int) -> EventWindows:
-    """The events of a collated batch with their intrinsics and the known speed of each window (``|v|`` of
-    its true twist; NaN where the window has none, whose scale is then left to the teacher term)."""
-    speed = torch.where(batch["has_twist"], batch["twist"][:, :3].norm(dim=-1), float("nan"))
+    """The events of a collated batch with their intrinsics and the known speed of each window
+    (:attr:`learned.data.Sample.known_speed`; NaN where unknown, whose scale is then left to the teacher term)."""
+    speed = batch["speed"]
     return EventWindows.from_padded(batch["x"], batch["y"], batch["t"], batch["polarity"], batch["valid"],
                                     batch["duration_s"], batch["K"], width=width, height=height, speed=speed)
+
+
+def twist_scale(dataset: H5WindowDataset, model: ModelConfig, *, floor: float = 0.05) -> torch.Tensor:
+    """The teacher's twist-loss scale (6,) [m/s x3, rad/s x3]: the root mean square of one component of ``v``
+    (``sqrt(mean |v|^2 / 3)``) and of ``omega`` over the ground-truth twists of ``dataset``'s files, each at
+    least ``floor`` x the model's bound (``max_speed``, ``max_angular_speed``).
+
+    One scale per vector, not per component: a component that barely moves in the data (the rotation of a
+    drive, of a slider) would otherwise be divided by almost nothing and its noise would swamp the loss.
+    The model's bounds when no file has twists.
+    """
+    bounds = np.array([model.max_speed, model.max_angular_speed])
+    twists = [gt["twists"] for gt in dataset._gt if gt is not None and gt["twists"] is not None]
+    if twists:
+        all_twists = np.concatenate(twists)
+        rms = np.sqrt([np.mean(all_twists[:, :3] ** 2), np.mean(all_twists[:, 3:] ** 2)])
+        scales = np.maximum(rms, floor * bounds)
+    else:
+        scales = bounds
+    return torch.as_tensor(np.repeat(scales, 3), dtype=torch.float32)
+
+
+def learning_rate(step: int, config) -> float:
+    """The learning rate of ``step`` (0-based) under ``config.train`` (see :class:`learned.config.TrainConfig`)."""
+    tc = config.train
+    if tc.schedule == "constant":
+        return tc.lr
+    if step < tc.warmup_steps:
+        return tc.lr * (step + 1) / tc.warmup_steps
+    span = max(tc.steps - tc.warmup_steps, 1)
+    progress = min((step - tc.warmup_steps) / span, 1.0)
+    return float(tc.lr * (0.01 + 0.99 * 0.5 * (1.0 + np.cos(np.pi * progress))))
 
 
 def contrast_objective(collapse_weight: float):
@@ -123,28 +159,49 @@ class Trainer:
         self.dataset = H5WindowDataset(dc.files, window_us=dc.window_us, max_events=dc.max_events,
                                        bins=config.model.bins, augment=dc.augment, seed=tc.seed)
         self.contrast = contrast_objective(tc.collapse_weight)
+        self.twist_scale = twist_scale(self.dataset, config.model)
+        self.validation = None
+        if tc.val_every:
+            val = H5WindowDataset(dc.val_files, window_us=dc.window_us, max_events=dc.max_events,
+                                  bins=config.model.bins, augment=False, seed=tc.seed)
+            if len(val) == 0:
+                raise ValueError("data.val_files hold no window")
+            picks = np.unique(np.linspace(0, len(val) - 1, min(dc.val_windows, len(val))).round().astype(int))
+            self.validation = (val, picks.tolist())
         self.log = self._logger() if self.rank == 0 else None
 
     # -- logging ------------------------------------------------------------------------------
     def _logger(self):
+        """TensorBoard's writer when it is installed (scalars always go to ``log.jsonl`` too), else None."""
         try:
             from torch.utils.tensorboard import SummaryWriter
             return SummaryWriter(str(self.out / "tb"))
         except ImportError:
-            warnings.warn("tensorboard is not installed: logging scalars to log.jsonl instead")
             return None
 
     def _scalars(self, values: dict[str, float]) -> None:
+        """One line ``{"step", **values}`` in ``out/log.jsonl`` (the learning curves), and TensorBoard."""
         if self.rank != 0:
             return
         if self.log is not None:
             for key, value in values.items():
                 self.log.add_scalar(key, value, self.step)
-        else:
-            self.out.mkdir(parents=True, exist_ok=True)
-            flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)  # never a planted link
-            with os.fdopen(os.open(self.out / "log.jsonl", flags, 0o644), "a") as f:
-                f.write(json.dumps({"step": self.step, **values}) + "\n")
+        self.out.mkdir(parents=True, exist_ok=True)
+        flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)  # never a planted link
+        with os.fdopen(os.open(self.out / "log.jsonl", flags, 0o644), "a") as f:
+            f.write(json.dumps({"step": self.step, **values}) + "\n")
+
+    @torch.no_grad()
+    def validate(self) -> dict[str, float]:
+        """Mean loss and terms over the validation windows (no augmentation, batches of ``batch_size``)."""
+        dataset, picks = self.validation
+        sums: dict[str, float] = {}
+        for start in range(0, len(picks), self.config.train.batch_size):
+            chosen = picks[start: start + self.config.train.batch_size]
+            loss, terms, _ = self.loss(collate([dataset[i] for i in chosen]), net=self.model)
+            for key, value in {"loss": float(loss), **terms}.items():
+                sums[key] = sums.get(key, 0.0) + value * len(chosen)
+        return {f"val/{key}": value / len(picks) for key, value in sums.items()}
 
     def _images(self, batch: dict[str, torch.Tensor], output) -> None:
         if self.rank != 0 or self.log is None:
@@ -182,9 +239,10 @@ class Trainer:
             yield collate([self.dataset[i] for i in local])
             step += 1
 
-    def loss(self, batch: dict[str, torch.Tensor]):
+    def loss(self, batch: dict[str, torch.Tensor], net: torch.nn.Module | None = None):
+        """``(loss, terms, output)`` of one batch under the run's mode (``net``: default the trained one)."""
         tc, mode = self.config.train, self.config.mode
-        output = self.net(batch["volume"])
+        output = (self.net if net is None else net)(batch["volume"])
         if mode == "teacher":
             mask = batch["depth_mask"]
             gt = torch.where(mask, 1.0 / torch.where(mask, batch["inverse_depth"], 1.0), 1.0)
@@ -192,8 +250,7 @@ class Trainer:
                                 variance_weight=tc.si_variance_weight)
             terms = {"teacher": float(loss.detach())}
             if tc.twist_weight > 0:
-                m = self.config.model
-                scale = torch.tensor([m.max_speed] * 3 + [m.max_angular_speed] * 3) / 10
+                scale = self.twist_scale
                 has = batch["has_twist"].to(output.twist.dtype)[:, None]
                 err = torch.nn.functional.smooth_l1_loss(output.twist / scale, batch["twist"] / scale, reduction="none")
                 twist_term = (err * has).mean()
@@ -205,8 +262,11 @@ class Trainer:
             with torch.no_grad():
                 teacher_rho = self.teacher(batch["volume"]).inverse_depth
         events = _events(batch, self.dataset.width, self.dataset.height)
-        loss, terms = student_loss(output.inverse_depth, output.twist, events, teacher_inverse_depth=teacher_rho,
-                                   lam=tc.lam, objective=self.contrast)
+        twist = output.twist
+        if tc.contrast_twist == "truth":   # the ablation: the motion known where the file gives it
+            twist = torch.where(batch["has_twist"][:, None], batch["twist"].to(twist.dtype), twist)
+        loss, terms = student_loss(output.inverse_depth, twist, events, teacher_inverse_depth=teacher_rho,
+                                   lam=tc.lam, objective=self.contrast, speed_weight=tc.speed_weight)
         return loss, terms, output
 
     def save(self) -> Path | None:
@@ -225,22 +285,33 @@ class Trainer:
             self.out.mkdir(parents=True, exist_ok=True)
             write_text_atomic(self.out / "config.json", json.dumps(self.config.to_dict(), indent=2, default=str))
         losses = []
+        start = self.step
         batches = self._batches()
         bar = tqdm(total=tc.steps, initial=self.step, desc=self.config.mode,
                    disable=not self.progress or self.rank != 0)
         self.model.train()
         while self.step < tc.steps:
+            if self.step % THREAD_CHECK_EVERY == 0 or self.step == start:   # the machine's load changes
+                torch.set_num_threads(torch_threads())
+            for group in self.optimizer.param_groups:
+                group["lr"] = learning_rate(self.step, self.config)
             batch = next(batches)
             loss, terms, output = self.loss(batch)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
+            if tc.clip_grad_norm > 0:
+                norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), tc.clip_grad_norm)
+                terms["grad_norm"] = float(norm)
             self.optimizer.step()
             self.step += 1
             losses.append(float(loss.detach()))
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.4f}")
             if self.step % tc.log_every == 0:
-                self._scalars({f"loss/{k}": v for k, v in {"total": losses[-1], **terms}.items()})
+                self._scalars({f"loss/{k}": v for k, v in {"total": losses[-1], **terms}.items()}
+                              | {"lr": self.optimizer.param_groups[0]["lr"]})
+            if tc.val_every and (self.step % tc.val_every == 0 or self.step == tc.steps) and self.rank == 0:
+                self._scalars(self.validate())
             if self.step % tc.image_every == 0:
                 self._images(batch, output)
             if self.step % tc.checkpoint_every == 0 or self.step == tc.steps:

@@ -211,3 +211,20 @@ def test_save_checkpoint_never_follows_a_link_planted_at_a_temporary_name(tmp_pa
     assert outside.read_text() == "precious\n"
     assert load_checkpoint(saved)["step"] == _payload()["step"]
     assert not [p for p in folder.iterdir() if p.suffix == ".lock"]
+
+
+def test_numpy_scalars_in_config_and_optimizer_are_stored_as_plain_numbers(tmp_path):
+    """np.float64 is a float subclass: a learning rate computed with numpy once made our own checkpoint
+    unloadable under weights_only=True."""
+    import numpy as np
+    import torch
+
+    from learned.checkpoint import load_checkpoint, save_checkpoint
+
+    net = torch.nn.Linear(2, 1)
+    optimizer = torch.optim.AdamW(net.parameters(), lr=1e-3)
+    optimizer.param_groups[0]["lr"] = np.float64(5e-4)
+    path = save_checkpoint(tmp_path / "c.pt", {"model": net.state_dict(), "optimizer": optimizer.state_dict(),
+                                               "step": 1, "config": {"lr": np.float64(5e-4)}, "rng": {}})
+    ckpt = load_checkpoint(path)
+    assert type(ckpt["optimizer"]["param_groups"][0]["lr"]) is float and ckpt["config"]["lr"] == 5e-4

@@ -6,11 +6,10 @@ import pytest
 import torch
 
 
-@pytest.mark.slow
 def test_network_overfits_one_window_to_the_fits_depth_error():
     """A small DepthPoseNet trained on one window with the shared objective alone (its speed known, its
-    twist predicted) reaches the depth error of the per-window fit with the same speed (``cmax.fit(speed=)``)
-    on the window's event pixels."""
+    twist predicted; the student's recipe: speed anchor 0.1, gradients clipped to norm 1) reaches the depth
+    error of the per-window fit with the same speed (``cmax.fit(speed=)``) on the window's event pixels."""
     from cmax.fitting import fit
     from cmax.metrics import depth_metrics
     from benchmarks.synthetic_windows import preset_window
@@ -34,12 +33,13 @@ def test_network_overfits_one_window_to_the_fits_depth_error():
 
     net = DepthPoseNet(ModelConfig(width=8, levels=3, min_depth=near_far[0], max_depth=near_far[1],
                                    max_speed=1.0, max_angular_speed=1.0))
-    optimizer = torch.optim.Adam(net.parameters(), lr=2e-3)
-    for _ in range(300):
+    optimizer = torch.optim.Adam(net.parameters(), lr=3e-3)
+    for _ in range(150):
         optimizer.zero_grad()
         out = net(batch["volume"])
-        loss, _ = student_loss(out.inverse_depth, out.twist, events, teacher_inverse_depth=None)
+        loss, _ = student_loss(out.inverse_depth, out.twist, events, teacher_inverse_depth=None, speed_weight=0.1)
         loss.backward()
+        torch.nn.utils.clip_grad_norm_(net.parameters(), 1.0)
         optimizer.step()
     with torch.no_grad():
         depth = net(batch["volume"]).depth[0, 0].double().numpy()

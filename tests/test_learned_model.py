@@ -136,7 +136,7 @@ def test_old_config_checkpoints_load_and_compute_what_they_did(tmp_path):
                              .reshape(shape).float() * 0.5)
     weights = {name: fill(shape, k) for k, (name, shape) in enumerate(_OLD_KEYS)}
     config = Config(model=ModelConfig(width=2, levels=1)).to_dict()
-    for key in ("block", "norm", "space_to_depth"):   # as written before these fields existed
+    for key in ("block", "norm", "space_to_depth", "pose_cells"):   # as written before these fields existed
         del config["model"][key]
     save_checkpoint(tmp_path / "old.pt", {"model": weights, "optimizer": {}, "step": 0, "config": config,
                                           "rng": rng_state()})

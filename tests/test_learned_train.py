@@ -160,3 +160,98 @@ def test_links_planted_in_the_output_folder_are_not_followed(scene_file, tmp_pat
     assert outside.read_text() == "precious\n"
     assert not (out / "config.json").is_symlink() and '"mode": "teacher"' in (out / "config.json").read_text()
     assert load_checkpoint(out / "last.pt")["step"] == 2
+
+
+def test_twist_scale_is_one_rms_per_vector_with_a_floor_from_the_bounds():
+    from types import SimpleNamespace
+
+    from learned.model import ModelConfig
+    from learned.train import twist_scale
+
+    twists = np.array([[3.0, 0.0, 4.0, 0.0, 0.0, 0.0], [0.0, 0.0, 0.0, 0.0, 0.03, 0.04]])
+    dataset = SimpleNamespace(_gt=[{"twists": twists}, None])
+    model = ModelConfig(max_speed=10.0, max_angular_speed=2.0)
+    scale = twist_scale(dataset, model).numpy()
+    # v: mean |v|^2 over the two twists = 12.5, per component / 3; omega: sqrt(0.00125 / 3) = 0.02 is below
+    # the floor 0.05 * 2 rad/s
+    assert np.allclose(scale[:3], np.sqrt(25.0 / 6.0)) and np.allclose(scale[3:], 0.1)
+    assert np.allclose(twist_scale(SimpleNamespace(_gt=[None]), model).numpy(), [10, 10, 10, 2, 2, 2])
+
+
+def test_cosine_schedule_warms_up_then_decays_to_a_hundredth():
+    from learned.train import learning_rate
+
+    config = load_config(None, ["train.lr=0.01", "train.steps=110", "train.schedule=cosine", "train.warmup_steps=10"])
+    rates = [learning_rate(s, config) for s in range(110)]
+    assert rates[0] == pytest.approx(0.001) and rates[9] == pytest.approx(0.01)
+    assert rates[60] == pytest.approx(0.01 * (0.01 + 0.99 * 0.5)) and rates[-1] > 0.0001
+    assert all(type(r) is float for r in rates) and all(np.diff(rates[10:]) <= 0)
+    assert learning_rate(5, load_config(None, ["train.lr=0.01"])) == 0.01
+
+
+def test_validation_losses_are_logged_on_the_held_out_files(scene_file, tmp_path):
+    import json
+
+    config = load_config(None, tiny(scene_file, tmp_path, "train.steps=4", "train.val_every=2",
+                                    f'data.val_files=["{scene_file}"]', "data.val_windows=3"), mode="teacher")
+    trainer = Trainer(config, progress=False)
+    trainer.run()
+    lines = [json.loads(line) for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    val = [line for line in lines if "val/loss" in line]
+    assert [line["step"] for line in val] == [2, 4]
+    dataset, picks = trainer.validation
+    assert len(picks) == 3
+    loss, _, _ = trainer.loss(collate_items(dataset, picks), net=trainer.model)   # the same windows, recomputed
+    assert val[-1]["val/loss"] == pytest.approx(float(loss), rel=1e-5)
+
+
+def collate_items(dataset, picks):
+    from learned.data import collate
+    return collate([dataset[i] for i in picks])
+
+
+def test_speed_loss_and_known_speed_windows(scene_file):
+    import h5py
+
+    from learned.data import H5WindowDataset
+    from learned.losses import speed_loss
+
+    twist = torch.tensor([[3.0, 0.0, 4.0, 0, 0, 0], [1.0, 0, 0, 0, 0, 0]])
+    assert float(speed_loss(twist, torch.tensor([10.0, float("nan")]))) == pytest.approx(0.25)
+    assert float(speed_loss(twist, torch.tensor([float("nan")] * 2))) == 0.0
+    hidden = H5WindowDataset([{"path": str(scene_file), "use_gt": False, "known_speed": True}], window_us=100_000)
+    none = H5WindowDataset([{"path": str(scene_file), "use_gt": False}], window_us=100_000)
+    with h5py.File(scene_file) as f:
+        times, twists = f["gt/poses_t"][:], f["gt/twists"][:]
+    item, sample = hidden[1], hidden.sample(1)
+    middle = (sample.t0_us + sample.t1_us) // 2
+    expected = np.linalg.norm(twists[np.argmin(np.abs(times - middle)), :3])
+    assert sample.depth is None and sample.twist is None and not bool(item["has_twist"])
+    assert float(item["speed"]) == pytest.approx(expected, rel=1e-6)
+    assert np.isnan(float(none[1]["speed"]))
+    known = H5WindowDataset([{"path": str(scene_file), "use_gt": False, "known_twist": True}], window_us=100_000)
+    assert known.sample(1).depth is None and bool(known[1]["has_twist"])
+    assert np.allclose(known.sample(1).twist, twists[np.argmin(np.abs(times - middle))])
+
+
+def test_contrast_twist_truth_warps_with_the_true_twist(scene_file, tmp_path):
+    """The ablation's switch: with contrast_twist=truth the student's contrast term uses the file's twist,
+    so the loss equals the shared objective at the network's depth and the true twist."""
+    from cmax.contrast import SHARED_OBJECTIVE, DepthMotion
+    from learned.data import collate
+    from learned.train import _events
+
+    teacher = tmp_path / "teacher"
+    Trainer(load_config(None, tiny(scene_file, teacher, "train.steps=1"), mode="teacher"), progress=False).run()
+    files = f'data.files=[{{"path": "{scene_file}", "use_gt": false, "known_twist": true}}]'
+    config = load_config(None, tiny(scene_file, tmp_path / "s", "train.steps=1", f"train.teacher={teacher / 'last.pt'}",
+                                    "train.contrast_twist=truth", "train.speed_weight=0", "train.lam=1.0") + [files],
+                         mode="student")
+    trainer = Trainer(config, progress=False)
+    batch = collate([trainer.dataset[i] for i in range(3)])
+    loss, terms, output = trainer.loss(batch)
+    expected = SHARED_OBJECTIVE(_events(batch, trainer.dataset.width, trainer.dataset.height),
+                                DepthMotion(output.inverse_depth, batch["twist"])).mean()
+    assert float(loss) == pytest.approx(float(expected), rel=1e-6)
+    with pytest.raises(ValueError, match="contrast_twist"):
+        load_config(None, ["train.contrast_twist=gyro"])

@@ -310,3 +310,24 @@ def test_simulate_scene_and_file_round_trip(tmp_path):
     assert sorted(p.name for p in tmp_path.iterdir()) == ["slider.h5"]
     with pytest.raises(ValueError, match="lam"):
         simulate_scene(scene, 0.1, simulator, lam=1.5)
+
+
+def test_time_scaled_scene_plays_the_same_path_faster():
+    from cmax.sim.scenes import TimeScaledScene
+
+    base = make_scene("indoor_flying", seed=2, width=32, height=24, duration_s=2.0, texture_size=64)
+    fast = TimeScaledScene(base, 2.5)
+    assert np.array_equal(fast.pose(0.4), base.pose(1.0))
+    assert np.allclose(fast.twist(0.4), 2.5 * base.twist(1.0))
+    intensity, depth = fast.render(0.4)
+    expected = base.render(1.0)
+    assert np.array_equal(intensity, expected[0]) and np.array_equal(depth, expected[1], equal_nan=True)
+    # the twist is the derivative of the pose: a finite difference of the fast path agrees
+    h = 1e-4
+    T = invert_pose(fast.pose(0.4)) @ fast.pose(0.4 + h)
+    assert np.allclose(vee(T[:3, :3] - T[:3, :3].T) / 2 / h, fast.twist(0.4)[3:], atol=1e-2)
+    assert np.allclose(T[:3, 3] / h, fast.twist(0.4)[:3], atol=1e-2)
+    assert fast.info.speed_range_mps == tuple(2.5 * v for v in base.info.speed_range_mps)
+    for bad in (0, -1.0, float("nan"), True):
+        with pytest.raises(ValueError):
+            TimeScaledScene(base, bad)

@@ -12,7 +12,7 @@ _LAZY = {
     "EsimSettings": "cmax.sim.esim", "EventSimulator": "cmax.sim.esim",
     "PRESETS": "cmax.sim.presets", "make_scene": "cmax.sim.presets",
     "iter_upsample": "cmax.sim.sampling", "upsample": "cmax.sim.sampling",
-    "PlanarScene": "cmax.sim.scenes", "RGBDScene": "cmax.sim.scenes", "SceneInfo": "cmax.sim.scenes",
+    "PlanarScene": "cmax.sim.scenes", "RGBDScene": "cmax.sim.scenes", "TimeScaledScene": "cmax.sim.scenes", "SceneInfo": "cmax.sim.scenes",
     "SyntheticSequence": "cmax.sim.synthetic", "load_sequence": "cmax.sim.synthetic",
     "simulate_scene": "cmax.sim.synthetic", "open_source": "cmax.sim.video",
 }

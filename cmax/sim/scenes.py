@@ -29,7 +29,7 @@ from cmax.sim.render import PlanarRenderer, Sky
 from cmax.sim.trajectories import Trajectory
 from cmax.sim.world import PlanarWorld
 
-__all__ = ["Scene", "SceneInfo", "PlanarScene", "RGBDScene", "warp_image"]
+__all__ = ["Scene", "SceneInfo", "PlanarScene", "RGBDScene", "TimeScaledScene", "warp_image"]
 
 
 @runtime_checkable
@@ -204,6 +204,62 @@ def warp_image(
     map_y = np.where(valid, y, -10).astype(np.float32).reshape(H, W)
     warped = cv2.remap(image_a, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE)
     return np.where(valid.reshape(H, W), warped, 0).astype(np.float32), valid.reshape(H, W)
+
+
+class TimeScaledScene:
+    """A scene played ``factor`` times faster: the same world and path, ``factor`` x the speeds.
+
+    ``render(t)``, ``pose(t)`` are the wrapped scene's at ``factor * t``; ``twist(t)`` is
+    ``factor`` times its twist there (both ``v`` and ``omega`` scale). The parallax of a
+    window of fixed length grows by ``factor``: a way to give slow scenes the few pixels
+    of parallax depth estimation needs without a longer window or a larger sensor.
+
+    Parameters
+    ----------
+    scene : Scene
+        Built for a trajectory of at least ``factor`` x the duration to be simulated.
+    factor : float
+        Speed-up (> 0; < 1 slows the scene down).
+
+    Examples
+    --------
+    >>> from cmax.sim.presets import make_scene
+    >>> base = make_scene("slider", seed=1, width=32, height=24, duration_s=2.0, texture_size=64)
+    >>> fast = TimeScaledScene(base, 2.0)
+    >>> bool(np.allclose(fast.twist(0.25), 2.0 * base.twist(0.5)))
+    True
+    """
+
+    def __init__(self, scene: Scene, factor: float) -> None:
+        if not isinstance(scene, Scene):
+            raise TypeError(f"scene must have camera, render, pose and twist, got {type(scene).__name__}")
+        if isinstance(factor, (bool, np.bool_)) or not isinstance(factor, (int, float, np.integer, np.floating)) \
+                or not (np.isfinite(factor) and factor > 0):
+            raise ValueError(f"factor must be a finite number > 0, got {factor!r}")
+        self.scene, self.factor = scene, float(factor)
+        self.camera = scene.camera
+        self.recommended_simulator = getattr(scene, "recommended_simulator", MappingProxyType({}))
+        info = getattr(scene, "info", None)
+        self.info = None if info is None else SceneInfo(
+            f"{info.name}_x{self.factor:g}", info.duration_s / self.factor, info.depth_range_m,
+            (info.speed_range_mps[0] * self.factor, info.speed_range_mps[1] * self.factor),
+            info.max_angular_speed_dps * self.factor,
+            f"{info.description} (played {self.factor:g}x faster)".strip())
+
+    def render(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Intensity and z-depth of the wrapped scene at ``factor * t_s``."""
+        return self.scene.render(self.factor * _check_time(t_s))
+
+    def pose(self, t_s: float) -> np.ndarray:
+        """``T_w_c`` (4, 4) of the wrapped scene at ``factor * t_s``."""
+        return self.scene.pose(self.factor * _check_time(t_s))
+
+    def twist(self, t_s: float) -> np.ndarray:
+        """``factor`` x the wrapped scene's body twist at ``factor * t_s`` [m/s, rad/s]."""
+        return self.factor * np.asarray(self.scene.twist(self.factor * _check_time(t_s)), dtype=np.float64)
+
+    def __repr__(self) -> str:
+        return f"TimeScaledScene({self.scene!r}, factor={self.factor:g})"
 
 
 class RGBDScene:

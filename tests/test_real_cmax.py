@@ -1,0 +1,105 @@
+"""``benchmarks.real_cmax``: the DSEC file as DSEC ships it (fitted by the CLI), the far-wall region of an EMVS
+depth map, and the cache of the slider's fit."""
+from __future__ import annotations
+
+import json
+from types import SimpleNamespace
+
+import h5py
+import numpy as np
+import pytest
+
+from benchmarks import real_cmax
+from benchmarks.real_cmax import FarWall, far_wall_region, write_dsec_original
+from cmax.cli import main
+from cmax.events import Events
+from cmax.io import read, write_h5
+
+pytest.importorskip("cv2")
+
+
+def test_dsec_original_layout_and_the_cli_fits_it(tmp_path, capsys):
+    """uint32 t relative to t_offset, ms_to_idx, no size attributes: read() asks for the size, and
+    ``cmax fit FILE --size W,H --K ... --speed ...`` fits it end to end (exit 0, a window in summary.json)."""
+    from benchmarks.synthetic_windows import make_window
+
+    w = make_window("slider", 0, width=96, height=72)
+    shifted = Events(w.events.x, w.events.y, w.events.t + 7_000_000_000, w.events.p, 96, 72)  # past 2**32 us
+    path = write_dsec_original(tmp_path / "events.h5", shifted)
+    with h5py.File(path, "r") as file:
+        assert file["events/t"].dtype == np.uint32 and not dict(file.attrs)
+        assert int(file["t_offset"][()]) == int(shifted.t[0])
+        index = file["ms_to_idx"][:]
+        t = file["events/t"][:].astype(np.int64)
+    expected = [int(np.sum(t < 1000 * k)) for k in range(len(index))]      # first event with t >= 1000 k
+    np.testing.assert_array_equal(index, expected)
+    assert len(index) == t[-1] // 1000 + 1
+    with pytest.raises(ValueError, match="width= and height="):
+        read(path)
+    assert read(path, width=96, height=72) == shifted
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    out = tmp_path / "fit"
+    speed = float(np.linalg.norm(w.twist[:3]))
+    assert main(["fit", str(path), "--size", "96,72", "--K", K, "--speed", f"{speed}", "-o", str(out),
+                 "--max-events", "3000", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["windows"] and summary["windows"][0]["t0_us"] >= shifted.t[0]
+    v = np.asarray(summary["windows"][0]["v"])
+    np.testing.assert_allclose(np.linalg.norm(v), speed, rtol=1e-6)     # --speed made it metric
+    assert "windows fitted" in capsys.readouterr().out
+
+
+def test_dsec_original_refuses_a_span_that_wraps_uint32(tmp_path):
+    events = Events(np.zeros(2, int), np.zeros(2, int), np.array([0, 2 ** 32]), np.zeros(2, int), 4, 4)
+    with pytest.raises(ValueError, match="would wrap"):
+        write_dsec_original(tmp_path / "x.h5", events)
+    assert not (tmp_path / "x.h5").exists()
+
+
+def test_far_wall_region_is_the_farthest_structure():
+    """A table object at 1.0 m and a wall at 2.1 m: the region is exactly the wall's pixels."""
+    depth = np.full((40, 60), np.nan, np.float32)
+    depth[5:15, 5:25] = 1.0
+    depth[20:35, 10:50] = 2.1 + np.linspace(-0.02, 0.02, 40)[None]
+    result = SimpleNamespace(depth=depth, mask=np.isfinite(depth), depth_range=(0.47, 2.4))
+    region, threshold = far_wall_region(result)
+    assert 1.0 < threshold < 2.07
+    np.testing.assert_array_equal(region, np.isfinite(depth) & (depth > 2.0))
+    assert FarWall(2.0, 2.2, 10, threshold).ratio == pytest.approx(1.1)
+
+
+def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
+    """The second call reads the pickle; another events file (or a changed one) is fitted again."""
+    import cmax.fitting
+
+    calls = []
+
+    def fake_fit_sequence(events, K, speed):
+        calls.append(len(events))
+        return SimpleNamespace(n=len(events), speed=speed)
+
+    monkeypatch.setattr(cmax.fitting, "fit_sequence", fake_fit_sequence)
+    rng = np.random.default_rng(0)
+    paths = []
+    for n in (50, 60):
+        events = Events(rng.integers(0, 8, n), rng.integers(0, 8, n), np.sort(rng.integers(0, 1000, n)),
+                        rng.integers(0, 2, n), 8, 8)
+        paths.append(write_h5(tmp_path / f"e{n}.h5", events))
+    cache = tmp_path / "cache" / "fit.pkl"
+    first, _, origin = real_cmax.slider_sequence(paths[0], cache)
+    again, _, again_origin = real_cmax.slider_sequence(paths[0], cache)
+    assert calls == [50] and first.n == again.n == 50 and again.speed == real_cmax.ECD_SPEED
+    assert "this run" in origin and "cached" in again_origin and "not recorded" not in again_origin
+    other, _, _ = real_cmax.slider_sequence(paths[1], cache)
+    assert calls == [50, 60] and other.n == 60
+
+
+def test_window_speeds_of_a_slide_that_stops():
+    """x = 0.3 m/s * t for 1 s, then at rest: 0.3 m/s inside the slide, 0 at rest, half over a window
+    that straddles the stop, and the ends clamped outside the poses' span."""
+    times = np.arange(0, 2_000_001, 10_000)
+    T = np.tile(np.eye(4), (len(times), 1, 1))
+    T[:, 0, 3] = 0.3 * np.minimum(times, 1_000_000) * 1e-6
+    speeds = real_cmax.window_speeds(times, T, [(100_000, 300_000), (1_200_000, 1_500_000),
+                                                (900_000, 1_100_000), (1_900_000, 2_100_000)])
+    np.testing.assert_allclose(speeds, [0.3, 0.0, 0.15, 0.0], atol=1e-12)
