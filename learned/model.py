@@ -12,6 +12,12 @@ The pose head on the bottleneck (conv, mean over a grid of cells, linear) gives 
 ``(v [m/s], omega [rad/s])`` of the window, each scaled by a configured
 typical magnitude (``tanh`` bounded). Inputs whose sides are not multiples of
 ``2**levels`` are zero-padded and the outputs cropped back.
+
+:class:`ModelConfig` also shapes the network for speed: ``block`` (dense 3x3 or
+depthwise-separable convolutions), ``norm`` (GroupNorm or none) and
+``space_to_depth`` (the U-Net runs at half resolution on 2x2-folded input and
+its finest output is unfolded back). Its defaults are the original network;
+:meth:`ModelConfig.fast` is the recommended fast one.
 """
 from __future__ import annotations
 
@@ -52,6 +58,12 @@ class ModelConfig:
     norm : {"group", "none"}
         Normalisation after each convolution of a block: ``"group"`` (per-sample GroupNorm,
         the original network) or ``"none"`` (biased convolutions, no normalisation).
+    space_to_depth : bool
+        ``True``: fold each 2x2 pixel block of the input into channels (``pixel_unshuffle``,
+        ``4 * bins`` channels at half resolution), run the U-Net there with ``levels - 1``
+        levels, and unfold the finest inverse depth back to full resolution
+        (``pixel_shuffle`` of a 4-channel head): no full-resolution feature maps, the same
+        output scales. ``False``: the original network.
     pose_cells : int
         The pose head averages the bottleneck over a ``pose_cells`` x ``pose_cells`` grid of cells
         before its linear layer. 1 (the original network) is a global mean, which discards where in
@@ -68,6 +80,7 @@ class ModelConfig:
     max_angular_speed: float = 3.0
     block: str = "dense"
     norm: str = "group"
+    space_to_depth: bool = False
     pose_cells: int = 1
 
     def __post_init__(self) -> None:
@@ -78,8 +91,10 @@ class ModelConfig:
             raise ValueError(f"model.block must be one of {BLOCKS}, got {self.block!r}")
         if self.norm not in NORMS:
             raise ValueError(f"model.norm must be one of {NORMS}, got {self.norm!r}")
+        if not isinstance(self.space_to_depth, bool):
+            raise ValueError(f"model.space_to_depth must be true or false, got {self.space_to_depth!r}")
         if self.norm == "group":
-            for k in range(self.levels + 1):
+            for k in range(self.inner_levels + 1):
                 c = self.width * 2 ** k
                 if c % min(8, c):
                     raise ValueError(f"model.width={self.width} gives {c} channels at level {k}, which GroupNorm's "
@@ -90,14 +105,22 @@ class ModelConfig:
         if self.max_speed <= 0 or self.max_angular_speed <= 0:
             raise ValueError("model.max_speed and model.max_angular_speed must be positive")
 
+    @property
+    def inner_levels(self) -> int:
+        """Levels of the U-Net proper (``levels - 1`` with ``space_to_depth``)."""
+        return self.levels - int(self.space_to_depth)
+
     @classmethod
     def fast(cls, **changes) -> "ModelConfig":
-        """The recommended fast network: ``width=8, block="separable"`` (other fields as given, else defaults).
+        """The recommended fast network: ``space_to_depth=True`` (width 16, dense blocks, GroupNorm, 4 levels).
 
-        In a config file: ``[model] width = 8, block = "separable"``. See
-        ``benchmarks/results/speed_learned.md`` for its speed against the default (original) network.
+        Other fields as given in ``changes``, else the defaults. In a config file: ``space_to_depth = true``
+        under ``[model]`` (or the override ``model.space_to_depth=true``). The defaults of
+        :class:`ModelConfig` stay the original network, so that configs and checkpoints written before
+        ``block``, ``norm`` and ``space_to_depth`` existed rebuild it. See
+        ``benchmarks/results/speed_learned.md`` for its speed against the original network.
         """
-        return cls(**{"width": 8, "block": "separable", **changes})
+        return cls(**{"space_to_depth": True, **changes})
 
 
 @dataclass(frozen=True, eq=False)
@@ -160,17 +183,20 @@ class DepthPoseNet(nn.Module):
     """
 
     def __init__(self, config: ModelConfig = ModelConfig(), *, channels_last: bool = True) -> None:
-        """``channels_last``: run in NHWC (about 2x faster convolutions on CPU with oneDNN; same results to
-        float rounding); ``False`` keeps NCHW, the layout of the original network."""
+        """``channels_last``: weights and activations in NHWC, the layout oneDNN's CPU convolutions are
+        fastest in (same results to float rounding); ``False`` keeps NCHW, the original network's layout."""
         super().__init__()
         self.config = config
         self.memory_format = torch.channels_last if channels_last else torch.contiguous_format
-        c = [config.width * 2 ** k for k in range(config.levels + 1)]
+        levels = config.inner_levels
+        c = [config.width * 2 ** k for k in range(levels + 1)]
         kind = {"block": config.block, "norm": config.norm}
-        self.stem = _block(config.bins, c[0], 1, **kind)
-        self.down = nn.ModuleList(_block(c[k], c[k + 1], 2, **kind) for k in range(config.levels))
-        self.up = nn.ModuleList(_block(c[k + 1] + c[k], c[k], 1, **kind) for k in reversed(range(config.levels)))
-        self.heads = nn.ModuleList(nn.Conv2d(c[k], 1, 3, 1, 1) for k in reversed(range(config.levels)))
+        self.stem = _block(config.bins * (4 if config.space_to_depth else 1), c[0], 1, **kind)
+        self.down = nn.ModuleList(_block(c[k], c[k + 1], 2, **kind) for k in range(levels))
+        self.up = nn.ModuleList(_block(c[k + 1] + c[k], c[k], 1, **kind) for k in reversed(range(levels)))
+        self.heads = nn.ModuleList(nn.Conv2d(c[k], 1, 3, 1, 1) for k in reversed(range(levels)))
+        if config.space_to_depth:   # the full-resolution inverse depth, as 2x2 blocks of the finest features
+            self.full_head = nn.Conv2d(c[0], 4, 3, 1, 1)
         self.pose = nn.Sequential(nn.Conv2d(c[-1], c[-1], 3, 1, 1), nn.LeakyReLU(0.1))
         self.pose_pool = nn.AdaptiveAvgPool2d(config.pose_cells)
         self.pose_out = nn.Linear(c[-1] * config.pose_cells ** 2, 6)
@@ -188,8 +214,9 @@ class DepthPoseNet(nn.Module):
             raise ValueError(f"volume must have shape (B, {self.config.bins}, H, W), got {tuple(volume.shape)}")
         H, W = volume.shape[-2:]
         m = 2 ** self.config.levels
-        x = F.pad(volume, (0, (-W) % m, 0, (-H) % m)).contiguous(memory_format=self.memory_format)
-        skips = [self.stem(x)]
+        x = F.pad(volume, (0, (-W) % m, 0, (-H) % m))
+        inner = F.pixel_unshuffle(x, 2) if self.config.space_to_depth else x
+        skips = [self.stem(inner.contiguous(memory_format=self.memory_format))]
         for down in self.down:
             skips.append(down(skips[-1]))
         feature = skips.pop()
@@ -203,6 +230,8 @@ class DepthPoseNet(nn.Module):
             feature = up(torch.cat([F.interpolate(feature, size=skip.shape[-2:], mode="bilinear",
                                                   align_corners=False), skip], 1))
             outputs.append(self._bounded(head(feature)))
+        if self.config.space_to_depth:
+            outputs.append(self._bounded(F.pixel_shuffle(self.full_head(feature), 2)))
         crops = []
         for out in reversed(outputs):   # finest first, cropped to the input's extent at that scale
             s = x.shape[-1] // out.shape[-1]

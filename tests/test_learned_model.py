@@ -11,11 +11,12 @@ from learned.losses import gradient_matching_loss, scale_invariant_loss, student
 from learned.model import DepthPoseNet, ModelConfig
 
 
-@pytest.mark.parametrize("block, norm", [("dense", "group"), ("separable", "group"), ("separable", "none"),
-                                         ("dense", "none")])
-def test_shapes_and_depth_bounds_on_odd_sizes(block, norm):
+@pytest.mark.parametrize("block, norm, space_to_depth", [
+    ("dense", "group", False), ("separable", "group", False), ("separable", "none", False), ("dense", "none", False),
+    ("dense", "group", True), ("separable", "group", True), ("separable", "none", True)])
+def test_shapes_and_depth_bounds_on_odd_sizes(block, norm, space_to_depth):
     config = ModelConfig(width=4, levels=3, min_depth=1.0, max_depth=20.0, max_speed=2.0, max_angular_speed=1.0,
-                         block=block, norm=norm)
+                         block=block, norm=norm, space_to_depth=space_to_depth)
     net = DepthPoseNet(config)
     net.pose_out.weight.data.normal_(0, 10.0)   # a saturating pose head: the bounds must still hold
     with torch.no_grad():
@@ -41,6 +42,38 @@ def test_block_kinds_build_the_layers_they_name():
     assert plain.stem[0].bias is not None and dense.stem[0].bias is None   # a bias only where no norm follows
     count = lambda net: sum(p.numel() for p in net.parameters())
     assert count(separable) < count(dense) / 2
+    # space to depth: 2x2 pixels x 5 bins in, one level fewer, a 4-channel head unfolded to full resolution
+    folded = DepthPoseNet(ModelConfig(width=8, levels=3, space_to_depth=True))
+    assert folded.stem[0].weight.shape == (8, 20, 3, 3) and len(folded.down) == len(folded.heads) == 2
+    assert folded.full_head.weight.shape == (4, 8, 3, 3) and not hasattr(dense, "full_head")
+
+
+@pytest.mark.parametrize("config", [ModelConfig(width=4, levels=2), ModelConfig.fast(width=4, levels=2)])
+def test_channels_last_is_a_layout_not_a_different_network(config):
+    fast, plain = DepthPoseNet(config), DepthPoseNet(config, channels_last=False)
+    assert fast.stem[0].weight.is_contiguous(memory_format=torch.channels_last)
+    assert not plain.stem[0].weight.is_contiguous(memory_format=torch.channels_last)
+    plain.load_state_dict(fast.state_dict())
+    volume = torch.randn(2, 5, 19, 27)
+    with torch.no_grad():
+        a, b = fast(volume), plain(volume)
+    for x, y in zip(a.inverse_depths, b.inverse_depths):
+        torch.testing.assert_close(x, y, rtol=1e-5, atol=1e-6)
+    torch.testing.assert_close(a.twist, b.twist, rtol=1e-5, atol=1e-6)
+
+
+def test_space_to_depth_full_resolution_output_unfolds_the_head():
+    """The finest inverse depth at pixel (2i + a, 2j + b) is the head's channel 2a + b at (i, j)."""
+    net = DepthPoseNet(ModelConfig(width=4, levels=2, space_to_depth=True, min_depth=1.0, max_depth=10.0))
+    captured = {}
+    net.full_head.register_forward_hook(lambda module, args, output: captured.update(logits=output))
+    with torch.no_grad():
+        out = net(torch.randn(1, 5, 12, 16))
+    logits = captured["logits"][0]   # (4, 6, 8)
+    expected = 0.1 + 0.9 * torch.sigmoid(logits)
+    for a in range(2):
+        for b in range(2):
+            torch.testing.assert_close(out.inverse_depth[0, 0, a::2, b::2], expected[2 * a + b])
 
 
 def test_model_rejects_bad_input_and_config():
@@ -56,6 +89,8 @@ def test_model_rejects_bad_input_and_config():
         ModelConfig(norm="batch")
     with pytest.raises(ValueError, match="GroupNorm"):   # 12 channels in 8 groups
         ModelConfig(width=12)
+    with pytest.raises(ValueError, match="space_to_depth"):
+        ModelConfig(space_to_depth=1)
     assert DepthPoseNet(ModelConfig(width=12, norm="none", levels=1))(torch.zeros(1, 5, 8, 8)).twist.shape == (1, 6)
 
 
@@ -64,10 +99,13 @@ def test_config_files_reach_the_new_fields_and_name_bad_ones():
 
     config = load_config(None, ['model.block="separable"', "model.norm=none", "model.width=8"])
     assert (config.model.block, config.model.norm, config.model.width) == ("separable", "none", 8)
-    assert ModelConfig.fast() == ModelConfig(width=8, block="separable")
+    assert ModelConfig.fast() == ModelConfig(space_to_depth=True)
     assert ModelConfig.fast(max_depth=10.0).max_depth == 10.0
     with pytest.raises(TypeError, match="model.block must be a string"):
         load_config(None, ["model.block=3"])
+    with pytest.raises(TypeError, match="model.space_to_depth must be true or false"):
+        load_config(None, ["model.space_to_depth=1"])
+    assert load_config(None, ["model.space_to_depth=true"]).model.space_to_depth is True
     with pytest.raises(ValueError, match="model.block must be one of"):
         load_config(None, ["model.block=resnet"])
 
@@ -98,11 +136,13 @@ def test_old_config_checkpoints_load_and_compute_what_they_did(tmp_path):
                              .reshape(shape).float() * 0.5)
     weights = {name: fill(shape, k) for k, (name, shape) in enumerate(_OLD_KEYS)}
     config = Config(model=ModelConfig(width=2, levels=1)).to_dict()
-    del config["model"]["block"], config["model"]["norm"]   # as written before these fields existed
+    for key in ("block", "norm", "space_to_depth", "pose_cells"):   # as written before these fields existed
+        del config["model"][key]
     save_checkpoint(tmp_path / "old.pt", {"model": weights, "optimizer": {}, "step": 0, "config": config,
                                           "rng": rng_state()})
     model, loaded = load_model(tmp_path / "old.pt")
-    assert (loaded["model"]["block"], loaded["model"]["norm"]) == ("dense", "group")
+    assert (loaded["model"]["block"], loaded["model"]["norm"], loaded["model"]["space_to_depth"]) == (
+        "dense", "group", False)
     x = (torch.cos(torch.arange(5 * 7 * 9, dtype=torch.float64) * 0.3).reshape(1, 5, 7, 9).float() * 3)
     with torch.no_grad():
         out = model(x)
@@ -111,7 +151,9 @@ def test_old_config_checkpoints_load_and_compute_what_they_did(tmp_path):
     np.testing.assert_allclose(out.twist[0].numpy(), _OLD_TWIST, rtol=1e-4, atol=1e-5)
 
 
-@pytest.mark.parametrize("config, factor", [(ModelConfig.fast(levels=2), 5), (ModelConfig.fast(levels=2, norm="none"), 2)])
+@pytest.mark.parametrize("config, factor", [(ModelConfig.fast(levels=2), 5),
+                                            (ModelConfig(width=8, levels=2, block="separable"), 5),
+                                            (ModelConfig(width=8, levels=2, block="separable", norm="none"), 2)])
 def test_fast_net_learns_a_fixed_depth_map(config, factor):
     """Teacher loss on one fixed volume and depth map: 60 Adam steps cut it ``factor`` times (no norm learns slower)."""
     torch.manual_seed(0)
