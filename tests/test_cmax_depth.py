@@ -32,6 +32,11 @@ K_TEXT = "60,58,31.5,23.5"
 K = np.array([[60.0, 0, 31.5], [0, 58.0, 23.5], [0, 0, 1]])
 MVSEC_T0 = 1_504_645_177_000_000   # MVSEC stores seconds since the epoch
 
+#: The reference forward and the command's may run the network in other memory layouts (channels_last,
+#: NCHW) and batch sizes, whose sums differ in order: up to ~4e-3 relative in a few pixels of an untrained
+#: network's outputs (its GroupNorm amplifies rounding); a wrong window or volume differs by O(1).
+FORWARD_RTOL = 1e-2
+
 
 @pytest.fixture(scope="module")
 def checkpoint(tmp_path_factory) -> Path:
@@ -86,14 +91,14 @@ def _check_outputs(out: Path, expected: list[tuple[int, np.ndarray, np.ndarray]]
     for k, (t0, depth, twist) in enumerate(expected):
         saved = np.load(out / f"window_{k:05d}.npz")
         assert saved["depth"].dtype == np.float32 and saved["depth"].shape == depth.shape
-        np.testing.assert_allclose(saved["depth"], depth, rtol=1e-5)
-        np.testing.assert_allclose(saved["inverse_depth"], 1.0 / depth, rtol=1e-5)
-        np.testing.assert_allclose(saved["twist"], twist, rtol=1e-5, atol=1e-7)
+        np.testing.assert_allclose(saved["depth"], depth, rtol=FORWARD_RTOL)
+        np.testing.assert_allclose(saved["inverse_depth"], 1.0 / depth, rtol=FORWARD_RTOL)
+        np.testing.assert_allclose(saved["twist"], twist, rtol=FORWARD_RTOL, atol=1e-7)
         assert (int(saved["t0_us"]), int(saved["t1_us"])) == (t0, t0 + window_us)
         np.testing.assert_array_equal(saved["K"], K_expected)
         row = rows[k + 1].split(",")
         assert [int(v) for v in row[:3]] == [k, t0, t0 + window_us]
-        np.testing.assert_allclose([float(v) for v in row[4:]], twist, rtol=1e-5, atol=1e-6)
+        np.testing.assert_allclose([float(v) for v in row[4:]], twist, rtol=FORWARD_RTOL, atol=1e-6)
     # one colour scale per run: the model's range (0.5-60 m), the window's time in the title
     t0, depth, _ = expected[-1]
     k = len(expected) - 1
@@ -267,7 +272,7 @@ def test_t0_t1_window_and_depth_range(checkpoint, network, events, tmp_path, cap
     for k, (t0, depth, _) in enumerate(expected):
         saved = np.load(out / f"window_{k:05d}.npz")
         assert int(saved["t0_us"]) == t0
-        np.testing.assert_allclose(saved["depth"], depth, rtol=1e-5)
+        np.testing.assert_allclose(saved["depth"], depth, rtol=FORWARD_RTOL)
     panel = viz.depth_panel(depth, viz.DepthScale(1.0, 10.0),
                             f"window 3, {t0 * 1e-6:.3f}-{(t0 + 40_000) * 1e-6:.3f} s, depth [m]")
     assert np.array_equal(cv2.imread(str(out / "window_00003.png")), panel)
@@ -285,7 +290,7 @@ def test_a_recording_shorter_than_the_window_gives_one_window(checkpoint, networ
     (t0, depth, twist), = _expected(network, short, span)
     saved = np.load(out / "window_00000.npz")
     assert (int(saved["t0_us"]), int(saved["t1_us"])) == (t0, t0 + span)
-    np.testing.assert_allclose(saved["depth"], depth, rtol=1e-5)
+    np.testing.assert_allclose(saved["depth"], depth, rtol=FORWARD_RTOL)
     assert not (out / "window_00001.npz").exists()
 
 
