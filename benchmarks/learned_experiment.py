@@ -383,41 +383,75 @@ def read_log(path: Path) -> dict[str, tuple[np.ndarray, np.ndarray]]:
     return {k: (np.array(sorted(v)), np.array([v[s] for s in sorted(v)])) for k, v in series.items()}
 
 
+COLOURS = ((31, 119, 180), (255, 127, 14), (44, 160, 44), (214, 39, 40))   # RGB, one per seed
+
+
+def line_plot(series, *, title: str, xlabel: str, ylabel: str, size: tuple[int, int] = (460, 320)) -> np.ndarray:
+    """A line chart (H, W, 3) uint8 RGB drawn with OpenCV: ``series`` of ``(label, (r, g, b), x, y, markers)``,
+    axes with 5 ticks each, a legend in the top right corner (the project does not depend on matplotlib)."""
+    import cv2
+
+    from cmax import viz
+
+    W, H = size
+    left, right, top, bottom = 58, 12, 10, 40
+    image = np.full((H, W, 3), 255, np.uint8)
+    xs = np.concatenate([np.asarray(x, float) for _, _, x, _, _ in series]) if series else np.array([0.0, 1.0])
+    ys = np.concatenate([np.asarray(y, float) for _, _, _, y, _ in series]) if series else np.array([0.0, 1.0])
+    x0, x1 = float(xs.min()), float(max(xs.max(), xs.min() + 1))
+    y0, y1 = float(np.nanmin(ys)), float(np.nanmax(ys))
+    y0, y1 = (y0 - 0.05 * (y1 - y0 + 1e-9), y1 + 0.05 * (y1 - y0 + 1e-9))
+
+    def to_px(x, y):
+        px = left + (np.asarray(x, float) - x0) / (x1 - x0) * (W - left - right)
+        py = H - bottom - (np.asarray(y, float) - y0) / (y1 - y0) * (H - top - bottom)
+        return np.stack([px, py], -1)
+
+    font = cv2.FONT_HERSHEY_SIMPLEX
+    cv2.rectangle(image, (left, top), (W - right, H - bottom), (0, 0, 0), 1)
+    for k in range(5):
+        xv, yv = x0 + k * (x1 - x0) / 4, y0 + k * (y1 - y0) / 4
+        px, py = to_px(xv, yv)
+        cv2.line(image, (int(px), H - bottom), (int(px), H - bottom + 4), (0, 0, 0), 1)
+        cv2.putText(image, f"{xv:.0f}", (int(px) - 12, H - bottom + 16), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+        cv2.line(image, (left - 4, int(py)), (left, int(py)), (0, 0, 0), 1)
+        cv2.putText(image, f"{yv:.3g}", (4, int(py) + 4), font, 0.35, (0, 0, 0), 1, cv2.LINE_AA)
+    cv2.putText(image, xlabel, (W // 2 - 20, H - 6), font, 0.4, (0, 0, 0), 1, cv2.LINE_AA)
+    for k, (label, colour, x, y, markers) in enumerate(series):
+        points = to_px(x, y).round().astype(np.int32)
+        cv2.polylines(image, [points], False, colour, 2 if markers else 1, cv2.LINE_AA)
+        if markers:
+            for p in points:
+                cv2.circle(image, (int(p[0]), int(p[1])), 3, colour, -1, cv2.LINE_AA)
+        cv2.putText(image, label, (W - right - 150, top + 14 + 13 * k), font, 0.35, colour, 1, cv2.LINE_AA)
+    return viz.titled(image, f"{title} ({ylabel})")
+
+
 def draw_curves(runs: Path, seeds: list[int], out: Path) -> Path:
-    """Training (smoothed) and validation loss against the step, one panel per mode, one colour per seed."""
-    import matplotlib
-    matplotlib.use("Agg")
-    import matplotlib.pyplot as plt
+    """Training (smoothed, thin) and validation loss (dots) against the step, one panel per mode, one colour
+    per seed; ``out`` a PNG."""
+    from cmax import viz
 
-    from cmax.io.atomic import AtomicOutput
-
-    fig, axes = plt.subplots(1, len(MODES), figsize=(5 * len(MODES), 3.6))
-    for ax, mode in zip(axes, MODES):
+    panels = []
+    for mode in MODES:
+        series = []
         for k, seed in enumerate(seeds):
             log = run_dir(runs, mode, seed) / "log.jsonl"
             if not log.exists():
                 continue
-            series = read_log(log)
-            colour = f"C{k}"
-            if "loss/total" in series:
-                steps, values = series["loss/total"]
+            data = read_log(log)
+            colour = COLOURS[k % len(COLOURS)]
+            if "loss/total" in data:
+                steps, values = data["loss/total"]
                 width = max(1, len(values) // 20)
                 smooth = np.convolve(values, np.ones(width) / width, mode="valid")
-                ax.plot(steps[width - 1:], smooth, color=colour, alpha=0.5, label=f"train, seed {seed}")
-            if "val/loss" in series:
-                steps, values = series["val/loss"]
-                ax.plot(steps, values, "o-", color=colour, ms=3, label=f"validation, seed {seed}")
-        ax.set_title(METHOD_NAMES[mode])
-        ax.set_xlabel("step")
-        ax.set_ylabel("loss (teacher: L_si + 0.6 L_grad + twist; others: contrast + 0.4 L1)" if mode == "teacher"
-                      else "loss")
-        ax.grid(alpha=0.3)
-        ax.legend(fontsize=7)
-    fig.tight_layout()
-    with AtomicOutput(out) as tmp:
-        fig.savefig(tmp, format="png", dpi=110)
-    plt.close(fig)
-    return out
+                series.append((f"train, seed {seed}", tuple(c // 2 + 127 for c in colour), steps[width - 1:],
+                               smooth, False))
+            if "val/loss" in data:
+                steps, values = data["val/loss"]
+                series.append((f"validation, seed {seed}", colour, steps, values, True))
+        panels.append(line_plot(series, title=METHOD_NAMES[mode], xlabel="step", ylabel="loss"))
+    return viz.save_png(out, viz.hstack(panels))
 
 
 def main(argv: list[str] | None = None) -> int:

@@ -410,3 +410,28 @@ def test_a_file_without_a_window_of_enough_events_is_one_line(checkpoint, tmp_pa
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "none of its 3 windows of 50 ms holds 10 events or more" in err, err
     assert not (tmp_path / "out" / "twists.csv").exists()
+
+
+def test_the_shipped_model_reproduces_the_scores_on_its_card():
+    """The card of learned/pretrained/student.pt stores the model's Abs mean and twist on one held-out window
+    (tests/data/learned_window.npz, events and true depth); the shipped weights give them again."""
+    from cmax.metrics import depth_metrics
+    from learned import pretrained
+    from learned.evaluate import load_model
+
+    if not pretrained.CHECKPOINT.is_file():
+        pytest.skip(f"no shipped model at {pretrained.CHECKPOINT} yet")
+    card = pretrained.checkpoint_card(pretrained.CHECKPOINT)
+    fixture = Path(__file__).resolve().parents[1] / card["fixture"]["file"]
+    data = np.load(fixture)
+    window = Events(data["x"].astype(np.int64), data["y"].astype(np.int64),
+                    data["t_us"].astype(np.int64) + int(data["t0_us"]), data["p"].astype(np.int64),
+                    int(data["width"]), int(data["height"]))
+    model, _ = load_model(pretrained.shipped_checkpoint())
+    with torch.no_grad():
+        out = model(torch.from_numpy(voxel_grid(window, model.config.bins))[None])
+    metrics = depth_metrics(out.depth[0, 0].double().numpy(), data["depth"].astype(np.float64),
+                            max_depth=float(data["far_m"]))
+    assert metrics.abs_mean == pytest.approx(card["fixture"]["abs_mean_m"], rel=1e-3)
+    np.testing.assert_allclose(out.twist[0].numpy(), card["fixture"]["twist"], rtol=1e-3, atol=1e-4)
+    assert list(card["size"]) == [int(data["width"]), int(data["height"])]
