@@ -94,8 +94,9 @@ def parallax_px(preset: str, seed: int, times_s=(0.3, 0.6, 0.9)) -> float:
     return float(np.median(values))
 
 
-def _complete(path: Path) -> bool:
-    """True when ``path`` is a complete event file with ground truth (a resumed stage verifies, never trusts)."""
+def _complete(path: Path, *, ground_truth: bool = True) -> bool:
+    """True when ``path`` is a complete event file (:func:`cmax.io.h5.verify_h5`), with ``gt/depth`` and
+    ``gt/twists`` when ``ground_truth`` (a resumed stage verifies what it keeps, never trusts its existence)."""
     import h5py
 
     from cmax.io.h5 import FormatError, verify_h5
@@ -104,6 +105,8 @@ def _complete(path: Path) -> bool:
         return False
     try:
         verify_h5(path)
+        if not ground_truth:
+            return True
         with h5py.File(path, "r") as f:
             return "gt/depth" in f and "gt/twists" in f
     except (FormatError, OSError):
@@ -151,7 +154,6 @@ def data_jobs(root: Path) -> list[tuple]:
 
 def convert_videos(root: Path) -> list[str]:
     """The real videos of ``../shared/data`` as event files (ESIM, adaptive sampling) in ``unlabelled/``."""
-    from cmax.io.h5 import FormatError, verify_h5
     from cmax.sim.convert import ConvertSettings, convert_video
     from cmax.sim.esim import EsimSettings
     from cmax.sim.video import ImageFolderSource
@@ -163,12 +165,9 @@ def convert_videos(root: Path) -> list[str]:
         if not source.exists():
             lines.append(f"{source}: missing, skipped")
             continue
-        try:
-            verify_h5(out)
+        if _complete(out, ground_truth=False):
             lines.append(f"{out.name}: verified, kept")
             continue
-        except (FormatError, FileNotFoundError, OSError):
-            pass
         frames = ImageFolderSource(source, size=SIZE, prefetch=0) if source.is_dir() else None
         convert_video(source, out, settings, frames=frames)
         lines.append(f"{out.name}: converted")
@@ -199,10 +198,12 @@ def data_files(root: Path) -> dict[str, list]:
     labelled = [str(p) for p in sorted((root / "labelled").glob("*.h5"))]
     unlabelled = [{"path": str(p), "use_gt": False, "known_speed": not p.stem.startswith("video_")}
                   for p in sorted((root / "unlabelled").glob("*.h5"))]
-    missing_k = [e for e in unlabelled if not e["known_speed"]]
-    for entry in missing_k:  # converted videos carry no gt/K: the DAVIS346 intrinsics scaled, as for the scenes
-        from cmax.sim.presets import davis346_camera
-        entry["K"] = davis346_camera(*SIZE).K.tolist()
+    from cmax.sim.presets import davis346_camera
+
+    video_K = davis346_camera(*SIZE).K.tolist()   # converted videos carry no gt/K: the scenes' camera
+    for entry in unlabelled:
+        if not entry["known_speed"]:
+            entry["K"] = video_K
     val = sorted((root / "val").glob("*.h5"))
     val_labelled = [str(p) for p in val if not p.stem.startswith("indoor_flying")]
     val_unlabelled = [{"path": str(p), "use_gt": False, "known_speed": True} for p in val]
@@ -334,10 +335,9 @@ def fixture_scores(checkpoint: Path, fixture: Path = FIXTURE) -> dict[str, float
 def ship(root: Path, runs: Path) -> Path:
     """Copy the chosen student into ``learned/pretrained/student.pt`` (weights and config; no optimizer state)
     with its card ``student.json``: camera, window, the run, its test scores, its scores on the fixture."""
-    import csv
-
     import torch
 
+    from benchmarks.learned_table import read_csv
     from cmax.io.atomic import write_text_atomic
     from cmax.sim.presets import davis346_camera
     from learned.checkpoint import load_checkpoint, save_checkpoint
@@ -351,14 +351,10 @@ def ship(root: Path, runs: Path) -> Path:
     if not FIXTURE.exists():
         write_fixture(root)
     K = davis346_camera(*SIZE).K
-    scores = {}
     table = RESULTS / "accuracy_learned_table.csv"
-    if table.exists():
-        with table.open() as f:
-            for row in csv.DictReader(f):
-                if row["method"] == METHOD_NAMES[mode] and row["seed"] == str(seed) and row["mask"] == "dense":
-                    scores[row["sequence"]] = {"abs_mean_m": float(row["abs_mean_m"]),
-                                               "rmse_log": float(row["rmse_log"])}
+    scores = {row.sequence: {"abs_mean_m": row.abs_mean_m, "rmse_log": row.rmse_log}
+              for row in (read_csv(table) if table.exists() else [])
+              if row.method == METHOD_NAMES[mode] and row.seed == str(seed) and row.mask == "dense"}
     card = {"model": f"{METHOD_NAMES[mode]}, seed {seed}", "size": list(SIZE),
             "K": [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])], "window_s": WINDOW_S,
             "steps": int(ckpt["step"]), "torch": torch.__version__,

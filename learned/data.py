@@ -224,7 +224,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self.augment, self.seed, self.epoch = augment, seed, 0
         self.index: list[tuple[int, int]] = []
         self._gt: list[dict | None] = []
-        self._speeds: list[tuple[np.ndarray, np.ndarray] | None] = []
+        self._known_motion: list[tuple[np.ndarray, np.ndarray] | None] = []
         self.skipped = 0
         self._readers: dict[int, H5Reader] = {}
         size = None
@@ -238,7 +238,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 if spec.K is None and gt is None and "gt/K" in reader.file:   # calibration, not ground truth
                     spec = self.specs[i] = replace(spec, K=reader.file["gt/K"][:])
                 self._gt.append(gt)
-                self._speeds.append(self._load_speeds(reader.file, spec))
+                self._known_motion.append(self._load_known_motion(reader.file, spec))
                 if gt is not None:
                     starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]
                 elif spec.K is None:
@@ -264,7 +264,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 "twists": gt["twists"][:] if "twists" in gt else None, "K": gt["K"][:]}
 
     @staticmethod
-    def _load_speeds(file: h5py.File, spec: FileSpec) -> tuple[np.ndarray, np.ndarray] | None:
+    def _load_known_motion(file: h5py.File, spec: FileSpec) -> tuple[np.ndarray, np.ndarray] | None:
         """``(poses_t (M,) µs, twists (M, 6))`` of a file whose speed (or twist) is known although its ground
         truth is hidden."""
         if spec.use_gt or not (spec.known_speed or spec.known_twist):
@@ -290,8 +290,8 @@ class H5WindowDataset(torch.utils.data.Dataset):
         events = reader.window(t0, t0 + self.window_us)
         if gt is None:
             speed = twist = None
-            if self._speeds[file_index] is not None:
-                times, twists = self._speeds[file_index]
+            if self._known_motion[file_index] is not None:
+                times, twists = self._known_motion[file_index]
                 middle = twists[int(np.argmin(np.abs(times - (t0 + self.window_us // 2))))]
                 speed = float(np.linalg.norm(middle[:3]))
                 twist = middle.copy() if spec.known_twist else None
