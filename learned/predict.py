@@ -33,9 +33,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from cmax._args import (ArgumentParser, float_list, nonnegative_float, positive_float, positive_int, run_main,
-                        sensor_size)
-from cmax.fitting.cli import intrinsics_argument, read_calibration
+from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
+from cmax.fitting.cli import add_recording_arguments, intrinsics_argument, read_calibration
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
     from cmax.events import Events
@@ -448,17 +447,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                              "distortion undistorts the events)")
     parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
                         help="camera of a cam_to_cam.yaml: cam0 (raw events) or camRect0 (rectified)")
-    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
-                        help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as shipped)")
-    parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
-                        help="unit of the file's time stamps where the file does not state it (never guessed)")
+    add_recording_arguments(parser)
     parser.add_argument("--polarity", choices=("01", "signed"), default=None,
                         help="polarity encoding of an h5, text or .npy file: 01 (0 OFF, 1 ON) or signed "
                              "(-1 OFF, +1 ON) (default: 01; never guessed)")
-    parser.add_argument("--t0", type=nonnegative_float, default=None,
-                        help="start, seconds after the first event (default: the first event)")
-    parser.add_argument("--t1", type=nonnegative_float, default=None,
-                        help="end, seconds after the first event (default: the last event)")
     parser.add_argument("--window", type=positive_float, default=None,
                         help="window length [s] (default: the checkpoint config's data.window_us)")
     parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,

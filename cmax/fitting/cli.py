@@ -40,6 +40,20 @@ def intrinsics_argument(text: str) -> np.ndarray:
         raise argparse.ArgumentTypeError(f"--K: {error}") from None
 
 
+def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--size``, ``--time-unit``, ``--t0``, ``--t1``: what a command reading any recording needs
+    (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
+    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
+                        help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
+                             "shipped)")
+    parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
+                        help="unit of the file's time stamps where the file does not state it (never guessed)")
+    parser.add_argument("--t0", type=nonnegative_float, default=None,
+                        help="start, seconds after the first event (default: the first event)")
+    parser.add_argument("--t1", type=nonnegative_float, default=None,
+                        help="end, seconds after the first event (default: the last event)")
+
+
 def add_fit_command(subparsers) -> argparse.ArgumentParser:
     """Add ``fit`` to an ``argparse`` sub-parser collection; returns the new parser."""
     parser = subparsers.add_parser("fit", help="depth and motion per window by contrast maximization",
@@ -56,16 +70,8 @@ def add_fit_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--distortion", type=_distortion, default=None,
                         help="OpenCV k1,k2,p1,p2[,k3] of --K: events are undistorted to the nearest pixel "
                              "before the fit (default: none, a pinhole camera)")
-    parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
-                        help="unit of the file's time stamps where the file does not state it (never guessed)")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
-    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
-                        help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
-                             "shipped)")
-    parser.add_argument("--t0", type=nonnegative_float, default=None,
-                        help="start, seconds after the first event (default: the first event)")
-    parser.add_argument("--t1", type=nonnegative_float, default=None,
-                        help="end, seconds after the first event (default: the last event)")
+    add_recording_arguments(parser)
     api_default(parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
                                     metavar="NEAR,FAR", help="depth bounds [m] (in units of --speed x 1 s without "
                                     "it); give the scene's own range when known: it matters for se3"),
