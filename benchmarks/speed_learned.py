@@ -10,7 +10,7 @@ events of 2 and 4 of them (time-aligned: one 0.1665 s window with 2x and 4x the 
   (``ModelConfig()``, in its original NCHW layout and channels_last), width 8 with dense blocks,
   and the fast one (``ModelConfig.fast()``, also without GroupNorm; with ``--compile`` also
   ``torch.compile``d and ``torch.jit.trace`` + ``freeze``d, their preparation times reported),
-  with 1 and 2 torch threads; untrained weights (speed does not depend on them);
+  with 1 and 2 torch threads; untrained weights (speed does not depend on them), and the shipped student when present;
 * **per window**: volume (compiled, on the densest window) + forward, and windows/s;
 * ``cmax.fit(events, K, "se3", speed=|v|)`` (known speed, its defaults, 1 thread): seconds per
   window, ``--fits`` runs after one warm-up fit;
@@ -48,6 +48,8 @@ import torch
 
 from cmax.io.atomic import write_text_atomic
 from learned.model import DepthPoseNet, ModelConfig
+from learned import pretrained
+from learned.evaluate import load_model
 
 RESULTS = Path(__file__).resolve().parent / "results"
 BUDGET_MS = 30.0
@@ -236,6 +238,8 @@ def speed_report(args: argparse.Namespace) -> None:
                                                                             block="separable")).eval(),
             "fast, no GroupNorm": DepthPoseNet(ModelConfig.fast(norm="none")).eval(),
             "fast": DepthPoseNet(ModelConfig.fast()).eval()}
+    if pretrained.CHECKPOINT.is_file():   # the network that ships (learned/pretrained/student.pt), trained weights
+        nets["shipped student (learned/pretrained)"] = load_model(pretrained.CHECKPOINT)[0]
     compile_s = trace_s = None
     if args.compile:
         torch.set_num_threads(2)
@@ -298,7 +302,7 @@ def speed_report(args: argparse.Namespace) -> None:
         f"`python -m benchmarks.speed_learned --windows {args.windows} --repeats {args.repeats} --fits {args.fits}"
         f"{' --compile' if args.compile else ''} --train-repeats {args.train_repeats}` -- 346x260 `indoor_flying` "
         f"preset windows of 0.1665 s (seeds 100-{99 + args.windows}); median and min of {args.repeats} interleaved "
-        "rounds after a warm-up, batch 1, CPU, `torch.inference_mode`, untrained weights.",
+        "rounds after a warm-up, batch 1, CPU, `torch.inference_mode`, untrained weights except the shipped student's (learned/pretrained).",
         "",
         f"Machine: {platform.platform()}, {os.cpu_count()} CPUs, torch {torch.__version__}; 1-minute load average "
         f"at each stage: {' / '.join(f'{v:.2f}' for v in loads)} (the 2 cores are shared with other jobs: "
