@@ -34,7 +34,7 @@ from cmax.fitting.motion import LocalMotionObjective, refine_motion_local
 from cmax.fitting.patch_flow import make_patches
 from cmax.warp import warp_se3
 
-__all__ = ["Verdict", "QualitySettings", "Alternative", "Quality", "assess", "verdict_of",
+__all__ = ["Verdict", "QualitySettings", "Alternative", "Quality", "MotionScorer", "assess", "verdict_of",
            "choose_from_neighbours", "alternative_motions"]
 
 
@@ -74,6 +74,17 @@ class QualitySettings:
     max_resolve_deg : float
         ``fit_sequence``: a candidate farther than this from the neighbours' motion (direction angle
         plus rotation difference over the window, degrees) does not resolve a window.
+    smoothing : bool
+        ``fit_sequence``: the motion prior across windows. After the resolution, every se3 window whose
+        data cannot tell its own motion from the consensus of its confident neighbours (the median
+        direction and rotation of the window and at least ``min_consensus`` of them, scored as an
+        alternative: gain within noise) takes the consensus, its depth swept for it
+        (:func:`cmax.fitting.sequence.smooth_from_neighbours`).
+    min_consensus : int
+        ``fit_sequence``: confident neighbours needed to form a consensus.
+    smoothing_min_deg : float
+        ``fit_sequence``: a consensus closer than this to the window's own motion (direction angle plus
+        rotation over the window, degrees) changes nothing worth a re-fit: the window keeps its fit.
     """
 
     ambiguity_test: bool = True
@@ -83,18 +94,24 @@ class QualitySettings:
     distinct_deg: float = 30.0
     neighbours: int = 2
     max_resolve_deg: float = 45.0
+    smoothing: bool = True
+    min_consensus: int = 2
+    smoothing_min_deg: float = 1.0
 
     def __post_init__(self) -> None:
-        if not isinstance(self.ambiguity_test, bool):
-            raise TypeError(f"ambiguity_test must be a bool, got {self.ambiguity_test!r}")
-        for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg"):
+        for name in ("ambiguity_test", "smoothing"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
+        for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg", "smoothing_min_deg"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
         if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
             raise ValueError(f"polish_iterations must be an int >= 0, got {self.polish_iterations!r}")
-        if not (isinstance(self.neighbours, int) and self.neighbours >= 1):
-            raise ValueError(f"neighbours must be an int >= 1, got {self.neighbours!r}")
+        for name in ("neighbours", "min_consensus"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -200,6 +217,48 @@ def _patch_contrast(objective: LocalMotionObjective, v: np.ndarray, omega: np.nd
     return values, rho
 
 
+@dataclass(frozen=True, eq=False)
+class MotionScorer:
+    """Scores other motions of a window against its fit ``(v, omega)``: the gain and noise of the module
+    docstring, each motion with its own per-patch inverse-depth sweep. Built by :meth:`build`."""
+
+    objective: LocalMotionObjective
+    candidates: np.ndarray
+    c_fit: np.ndarray
+    rho: np.ndarray
+    settings: QualitySettings
+
+    @classmethod
+    def build(cls, w, v: np.ndarray, omega: np.ndarray, speed: float,
+              settings: QualitySettings) -> "MotionScorer | None":
+        """The scorer of the fit ``(v (3,) [m/s], omega (3,) [rad/s])`` of window ``w`` (a
+        :class:`cmax.fitting.window.Window`) with ``|v| = speed``; None when fewer than 4 patches hold events."""
+        refine = w.settings.refine
+        patches = make_patches(w, grid=refine.grid, min_events=refine.min_events, max_events=refine.max_events,
+                               margin=refine.margin)
+        if patches is None or patches.count < 4:
+            return None
+        objective = LocalMotionObjective.build(w, patches, speed)
+        near, far = w.settings.depth_range
+        candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), refine.rho_candidates))
+        c_fit, rho = _patch_contrast(objective, np.asarray(v, float), np.asarray(omega, float), candidates)
+        return cls(objective, candidates, c_fit, rho, settings)
+
+    @property
+    def own_gain(self) -> float:
+        """The fit's summed normalised contrast over the unwarped events (``sum_p (c_p - 1)``)."""
+        return float(np.sum(self.c_fit - 1.0))
+
+    def score(self, name: str, v: np.ndarray, omega: np.ndarray) -> Alternative:
+        """``(v (3,), omega (3,))`` as an :class:`Alternative` of the fit: summed gain, noise, within noise."""
+        c_alt, _ = _patch_contrast(self.objective, np.asarray(v, float), np.asarray(omega, float), self.candidates)
+        gain = self.c_fit - c_alt
+        noise = max(self.settings.noise_sigmas * float(np.std(gain, ddof=1)) * math.sqrt(len(gain)),
+                    self.settings.margin * max(self.own_gain, 0.0))
+        return Alternative(name, np.asarray(v, float), np.asarray(omega, float), float(gain.sum()), noise,
+                           bool(gain.sum() <= noise))
+
+
 def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualitySettings, solver, *,
            hold_omega: bool) -> tuple[tuple[Alternative, ...], str]:
     """The ambiguity test of a se3 fit ``(v, omega)`` of window ``w`` (a :class:`cmax.fitting.window.Window`),
@@ -209,18 +268,12 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
     patches with events (nothing to test on); ``note`` also names the alternatives dropped because their
     polish ended on the fit (within ``settings.distinct_deg``).
     """
-    refine = w.settings.refine
-    patches = make_patches(w, grid=refine.grid, min_events=refine.min_events, max_events=refine.max_events,
-                           margin=refine.margin)
-    if patches is None or patches.count < 4:
+    scorer = MotionScorer.build(w, v, omega, speed, settings)
+    if scorer is None:
         return (), "ambiguity not tested: fewer than 4 patches hold events"
-    objective = LocalMotionObjective.build(w, patches, speed)
-    near, far = w.settings.depth_range
-    candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), refine.rho_candidates))
-    c_fit, rho = _patch_contrast(objective, v, omega, candidates)
-    own_gain = float(np.sum(c_fit - 1.0))
+    refine = w.settings.refine
     alternatives, merged = [], []
-    for name, v_alt, omega_alt in alternative_motions(objective, v, omega, rho, hold_omega=hold_omega):
+    for name, v_alt, omega_alt in alternative_motions(scorer.objective, v, omega, scorer.rho, hold_omega=hold_omega):
         if settings.polish_iterations:
             polished = refine_motion_local(w, v_alt, omega_alt, speed,
                                            replace(refine, iterations=settings.polish_iterations), solver,
@@ -229,11 +282,7 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
             if _distance_deg(v_alt, omega_alt, v, omega, w.T) < settings.distinct_deg:
                 merged.append(name)
                 continue
-        c_alt, _ = _patch_contrast(objective, v_alt, omega_alt, candidates)
-        gain = c_fit - c_alt
-        noise = max(settings.noise_sigmas * float(np.std(gain, ddof=1)) * math.sqrt(patches.count),
-                    settings.margin * max(own_gain, 0.0))
-        alternatives.append(Alternative(name, v_alt, omega_alt, float(gain.sum()), noise, bool(gain.sum() <= noise)))
+        alternatives.append(scorer.score(name, v_alt, omega_alt))
     note = f"the {', '.join(merged)} alternative(s) polished back onto the fit" if merged else ""
     return tuple(alternatives), note
 

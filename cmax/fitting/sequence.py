@@ -5,12 +5,15 @@ from dataclasses import dataclass, replace
 
 import numpy as np
 
+from cmax._threads import torch_threads_scope
 from cmax.events import Events
-from cmax.fitting.api import FitResult, fit
-from cmax.fitting.quality import QualitySettings, Verdict, choose_from_neighbours
+from cmax.fitting.api import FitResult, _check_inputs, _settings, fit
+from cmax.fitting.quality import MotionScorer, QualitySettings, Verdict, _distance_deg, choose_from_neighbours
+from cmax.fitting.window import Window
 from cmax.geometry import se3_exp
 
-__all__ = ["SequenceResult", "fit_sequence", "check_gyro", "window_gyro"]
+__all__ = ["SequenceResult", "fit_sequence", "check_gyro", "window_gyro", "neighbour_consensus",
+           "smooth_from_neighbours"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -109,6 +112,15 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         window stays unresolved.
     **fit_options
         Passed to :func:`fit`.
+
+    Notes
+    -----
+    Consecutive windows share their motion. ``fit_sequence`` uses that three times: each window starts
+    from the previous one's motion (``init=``), ambiguous windows are resolved from their confident
+    neighbours, and, with ``quality.smoothing``, a motion prior across windows: a window whose data
+    cannot tell its own motion from its neighbours' consensus takes the consensus
+    (:func:`smooth_from_neighbours`; ``FitResult.quality.resolution`` says so and ``replaced`` keeps the
+    window's own motion).
     """
     quality = QualitySettings() if quality is None else quality
     if not isinstance(quality, QualitySettings):
@@ -143,6 +155,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         steps.append(len(results) - 1)
         times.append(t0 + step_us)
     results = _resolve_ambiguous(results, take, K, speed, quality, fit_options)
+    if quality.smoothing and model == "se3":
+        results = smooth_from_neighbours(results, take, K, quality, fit_options, hold_omega=gyro is not None)
     poses = [np.eye(4)]
     for index in steps:
         twist = results[index].twist if index >= 0 else np.zeros(6)
@@ -172,6 +186,100 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, q
                          stages=r.stages + refit.stages, seconds=r.seconds + refit.seconds,
                          iterations=r.iterations + refit.iterations, evaluations=r.evaluations + refit.evaluations)
     return out
+
+
+def _confident(result: FitResult) -> bool:
+    """A window whose motion its neighbours may lean on: ``ok``, or ambiguous and resolved."""
+    q = result.quality
+    return q is not None and (q.verdict is Verdict.OK or (q.verdict is Verdict.AMBIGUOUS and q.resolved))
+
+
+def neighbour_consensus(results: list[FitResult], i: int, neighbours: int,
+                        min_count: int) -> tuple[np.ndarray, np.ndarray, int] | None:
+    """The motion that window ``i`` and the confident windows around it agree on (a running median).
+
+    The window itself and up to ``neighbours`` windows on each side that are ``ok`` or resolved: their unit
+    translation directions' component-wise median, renormalised, and their angular velocities'
+    component-wise median [rad/s]. The window votes too, so that one deviant neighbour among two does not
+    move the consensus (a median filter over the sequence). Returns ``(direction (3,), omega (3,), count)``
+    with ``count`` the confident neighbours, or None with fewer than ``min_count`` of them (or directions
+    that cancel out).
+    """
+    near = results[max(0, i - neighbours):i] + results[i + 1:i + 1 + neighbours]
+    confident = [r for r in near if r.model == "se3" and _confident(r) and np.linalg.norm(r.v) > 0]
+    if len(confident) < min_count or not np.linalg.norm(results[i].v) > 0:
+        return None
+    votes = [results[i], *confident]
+    direction = np.median([r.v / np.linalg.norm(r.v) for r in votes], axis=0)
+    if not np.linalg.norm(direction) > 1e-6:
+        return None
+    omega = np.median([r.omega for r in votes], axis=0)
+    return direction / np.linalg.norm(direction), omega, len(confident)
+
+
+def smooth_from_neighbours(results: list[FitResult], take, K, quality: QualitySettings, fit_options: dict, *,
+                           hold_omega: bool = False) -> list[FitResult]:
+    """The motion prior across windows of :func:`fit_sequence` (``quality.smoothing``).
+
+    For every se3 window with a fitted direction, the running median of it and its confident neighbours
+    (:func:`neighbour_consensus`, with the window's own ``|v|``; its own omega with ``hold_omega``, a
+    rotation given per window such as a gyroscope's)
+    is scored against the window's fit on the fit's own patch-wise objective
+    (:class:`cmax.fitting.quality.MotionScorer`: each motion with its own depth sweep, the gain against the
+    patches' noise). When the gain is within noise, the window's data cannot tell its motion from its
+    neighbours': it takes the consensus, re-fitted with the motion held (``fit(..., pose=)``, depth swept);
+    otherwise it keeps its fit (the evidence beats the prior). The consensus comes from the windows as
+    they were before this pass (one Jacobi step, so the order of the windows does not matter).
+    ``FitResult.quality.resolution`` says what was done; ``replaced`` holds the window's own motion.
+    """
+    out = list(results)
+    options = {k: v for k, v in fit_options.items() if k not in ("solver", "num_threads", "init")}
+    for i, r in enumerate(results):
+        if r.model != "se3" or r.quality is None or r.verdict in (Verdict.FAILED, Verdict.LOW_PARALLAX):
+            continue
+        consensus = neighbour_consensus(results, i, quality.neighbours, quality.min_consensus)
+        if consensus is None:
+            continue
+        direction, omega, count = consensus
+        v_prior = np.linalg.norm(r.v) * direction
+        omega_prior = r.omega if hold_omega else omega
+        duration_s = (r.t1_us - r.t0_us) * 1e-6
+        distance = _distance_deg(v_prior, omega_prior, r.v, r.omega, duration_s)
+        if distance < quality.smoothing_min_deg:
+            continue
+        events = take(r.t0_us, r.t1_us + 1)
+        prior = _score_prior(events, K, r, v_prior, omega_prior, options, quality, fit_options.get("num_threads", 1))
+        if prior is None:
+            continue
+        head = f"smoothing: the consensus of {count} neighbour(s) is {distance:.1f} deg away"
+        if not prior.within_noise:
+            text = f"{head}; kept the fit (it scores better beyond noise: gain {prior.gain:.3g} > {prior.noise:.3g})"
+            out[i] = replace(r, quality=replace(r.quality, resolution=_join(r.quality.resolution, text)))
+            continue
+        refit = fit(events, K, "se3", pose=np.r_[v_prior, omega_prior], quality=quality, **options)
+        text = f"{head}; took it (within noise: gain {prior.gain:.3g} <= {prior.noise:.3g})"
+        q = replace(r.quality, resolution=_join(r.quality.resolution, text),
+                    replaced=r.quality.replaced if r.quality.replaced is not None else (r.v, r.omega))
+        out[i] = replace(refit, scale_known=r.scale_known, quality=q, stages=r.stages + refit.stages,
+                         seconds=r.seconds + refit.seconds, iterations=r.iterations + refit.iterations,
+                         evaluations=r.evaluations + refit.evaluations)
+    return out
+
+
+def _score_prior(events: Events, K, result: FitResult, v: np.ndarray, omega: np.ndarray, options: dict,
+                 quality: QualitySettings, num_threads: int | None):
+    """The prior motion ``(v, omega)`` scored as an alternative of ``result`` on the window's own objective
+    (an :class:`~cmax.fitting.quality.Alternative`), or None when the window has too few patches."""
+    settings = _settings(options.get("settings"), {k: v_ for k, v_ in options.items()
+                                                   if k not in ("settings", "depth_grid")}, "se3")
+    with torch_threads_scope(len(events), threads=num_threads):
+        w = Window.from_events(events, _check_inputs(events, K, "se3"), settings, options.get("depth_grid", (24, 32)))
+        scorer = MotionScorer.build(w, result.v, result.omega, float(np.linalg.norm(result.v)), quality)
+        return None if scorer is None else scorer.score("neighbours", v, omega)
+
+
+def _join(first: str, second: str) -> str:
+    return f"{first}; {second}" if first else second
 
 
 def _check_gyro_covers(gyro: tuple[np.ndarray, np.ndarray], first_us: int, last_us: int) -> None:

@@ -1,0 +1,155 @@
+"""The motion prior across windows of ``fit_sequence`` (``QualitySettings.smoothing``): the neighbours'
+consensus, the test of a window's motion against it on the fit's own objective, and the choice."""
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import replace
+
+import numpy as np
+import pytest
+
+from benchmarks.synthetic_windows import make_window
+from cmax.fitting import QualitySettings, Verdict, fit, fit_sequence
+from cmax.fitting import sequence as sequence_module
+from cmax.fitting.quality import Alternative, MotionScorer, Quality
+from cmax.fitting.sequence import neighbour_consensus
+from cmax.fitting.settings import FitSettings
+from cmax.fitting.window import Window
+
+
+def _rotate_z(v: np.ndarray, degrees: float) -> np.ndarray:
+    c, s = math.cos(math.radians(degrees)), math.sin(math.radians(degrees))
+    return np.array([c * v[0] - s * v[1], s * v[0] + c * v[1], v[2]])
+
+
+@functools.lru_cache(maxsize=None)
+def street():
+    """A street seen driving forward (3 px of parallax) and its fit with the true speed."""
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    return w, fit(w.events, w.K, speed=float(np.linalg.norm(w.twist[:3])), depth_range=(1.0, 20.0))
+
+
+def _result(v, omega=(0.0, 0.0, 0.0), verdict=Verdict.OK, resolved=False):
+    base = street()[1]
+    return replace(base, v=np.asarray(v, float), omega=np.asarray(omega, float),
+                   quality=Quality(verdict, "constructed", resolved=resolved))
+
+
+# ----------------------------------------------------------------------------------------------
+# The consensus
+# ----------------------------------------------------------------------------------------------
+def test_the_consensus_is_the_running_median_of_the_window_and_its_confident_neighbours():
+    x = np.array([1.0, 0.0, 0.0])
+    results = [_result(_rotate_z(x, 10), (0.0, 0.1, 0.0)),
+               _result(_rotate_z(x, 20), (0.0, 0.3, 0.0)),
+               _result(-x, (0.0, 9.0, 0.0)),                       # the window itself: one vote
+               _result(_rotate_z(x, 30), (0.0, 0.2, 0.0)),
+               _result(_rotate_z(x, 20), (0.0, 0.3, 0.0), verdict=Verdict.AMBIGUOUS, resolved=True),
+               _result(_rotate_z(x, 0), (0.0, 0.0, 0.0))]          # 3 windows away: outside neighbours=2
+    direction, omega, count = neighbour_consensus(results, 2, neighbours=2, min_count=2)
+    # votes at 10, 20, 180, 30 and 20 deg: the component-wise medians are those of the 20 deg direction
+    assert count == 4
+    np.testing.assert_allclose(direction, _rotate_z(x, 20), atol=1e-12)
+    np.testing.assert_allclose(omega, [0.0, 0.3, 0.0])
+    # an unresolved ambiguous neighbour does not vote
+    results[4] = _result(_rotate_z(x, 20), (0.0, 0.3, 0.0), verdict=Verdict.AMBIGUOUS)
+    assert neighbour_consensus(results, 2, neighbours=2, min_count=2)[2] == 3
+    # one deviant neighbour among two moves nothing: the window's own vote breaks the tie
+    direction, _, count = neighbour_consensus([_result(x), _result(x), _result(-x)], 0, neighbours=2, min_count=2)
+    assert count == 2 and np.allclose(direction, x)
+    # too few confident neighbours: no consensus
+    assert neighbour_consensus(results, 0, neighbours=1, min_count=2) is None
+    assert neighbour_consensus(results, 0, neighbours=1, min_count=1)[2] == 1
+
+
+@pytest.mark.parametrize("field,value", [("smoothing", 1), ("min_consensus", 0), ("min_consensus", 1.5),
+                                         ("smoothing_min_deg", -1.0), ("smoothing_min_deg", float("nan"))])
+def test_smoothing_settings_are_checked(field, value):
+    with pytest.raises((TypeError, ValueError), match=field):
+        QualitySettings(**{field: value})
+
+
+# ----------------------------------------------------------------------------------------------
+# The test against the window's own objective
+# ----------------------------------------------------------------------------------------------
+def test_the_scorer_tells_a_far_motion_from_a_near_one():
+    """On a clear window, the fit's own motion rotated by 1 deg is within noise of the fit (the data
+    cannot tell them apart), the direction 60 deg away is not; and the fit against itself gains 0."""
+    w, r = street()
+    settings = FitSettings(depth_range=(1.0, 20.0), contrast="variance", polarity_split=False)
+    window = Window.from_events(w.events, w.K, settings, (24, 32))
+    scorer = MotionScorer.build(window, r.v, r.omega, float(np.linalg.norm(r.v)), QualitySettings())
+    assert scorer is not None
+    itself = scorer.score("itself", r.v, r.omega)
+    assert itself.gain == pytest.approx(0.0, abs=1e-9) and itself.within_noise
+    near = scorer.score("near", _rotate_z(r.v, 1.0), r.omega)
+    far = scorer.score("far", np.linalg.norm(r.v) * np.array([1.0, 0.0, 0.3]) / np.linalg.norm([1.0, 0.0, 0.3]),
+                       r.omega)
+    assert near.within_noise, near
+    assert not far.within_noise and far.gain > 0, far
+
+
+# ----------------------------------------------------------------------------------------------
+# The choice in fit_sequence
+# ----------------------------------------------------------------------------------------------
+def _constructed_sequence(monkeypatch, prior_within_noise: bool):
+    """Five windows of a camera moving +x; the middle one's own fit is 25 deg off. The prior's score is
+    constructed (within noise or not); returns the sequence and the poses the re-fits were given."""
+    speed, truth = 0.5, np.array([0.5, 0.0, 0.0])
+    off = _rotate_z(truth, 25.0)
+    poses, windows = [], []
+    base = street()[1]
+
+    def constructed_fit(events, K, model="se3", *, speed=None, pose=None, omega=None, init=None, quality=None,
+                        **options):
+        t0, t1 = int(events.t[0]), int(events.t[-1])
+        if pose is not None:
+            poses.append(np.asarray(pose, float))
+            pose = np.asarray(pose, float)
+            return replace(base, t0_us=t0, t1_us=t1, v=pose[:3], omega=pose[3:], scale_known=True,
+                           quality=Quality(Verdict.OK, "ambiguity not tested: the pose is given"))
+        windows.append(t0)
+        v = off if len(windows) == 3 else truth
+        return replace(base, t0_us=t0, t1_us=t1, v=v.copy(), omega=np.zeros(3),
+                       quality=Quality(Verdict.OK, "every alternative scores worse beyond noise"))
+
+    def constructed_score(events, K, result, v, omega, options, quality, num_threads):
+        gain = 0.05 if prior_within_noise else 0.5
+        return Alternative("neighbours", v, omega, gain, 0.1, gain <= 0.1)
+
+    monkeypatch.setattr(sequence_module, "fit", constructed_fit)
+    monkeypatch.setattr(sequence_module, "_score_prior", constructed_score)
+    w = street()[0]
+    window_us = (int(w.events.t[-1]) - int(w.events.t[0])) // 5
+    return fit_sequence(w.events, w.K, window_us=window_us, speed=speed, min_events=10), poses, truth, off
+
+
+def test_a_window_its_data_cannot_tell_from_its_neighbours_takes_their_motion(monkeypatch):
+    sequence, poses, truth, off = _constructed_sequence(monkeypatch, prior_within_noise=True)
+    middle = sequence.results[2]
+    assert len(poses) == 1                                # only the middle window differs from its neighbours
+    np.testing.assert_allclose(poses[0], np.r_[truth, np.zeros(3)], atol=1e-12)
+    np.testing.assert_allclose(middle.v, truth, atol=1e-12)
+    np.testing.assert_allclose(middle.quality.replaced[0], off)         # its own fit, kept
+    assert "took it" in middle.quality.resolution and middle.verdict is Verdict.OK
+    assert all("smoothing" not in r.quality.resolution for k, r in enumerate(sequence.results) if k != 2)
+
+
+def test_a_window_whose_data_beats_the_prior_keeps_its_fit(monkeypatch):
+    sequence, poses, truth, off = _constructed_sequence(monkeypatch, prior_within_noise=False)
+    middle = sequence.results[2]
+    assert poses == []
+    np.testing.assert_allclose(middle.v, off, atol=1e-12)
+    assert "kept the fit" in middle.quality.resolution and middle.quality.replaced is None
+
+
+def test_without_smoothing_nothing_changes(monkeypatch):
+    monkeypatch.setattr(sequence_module, "_score_prior",
+                        lambda *a, **k: pytest.fail("scored although smoothing is off"))
+    w = street()[0]
+    window_us = (int(w.events.t[-1]) - int(w.events.t[0])) // 2
+    sequence = fit_sequence(w.events, w.K, window_us=window_us, speed=0.5, min_events=10,
+                            quality=QualitySettings(smoothing=False, ambiguity_test=False),
+                            depth_range=(1.0, 20.0))
+    assert all("smoothing" not in r.quality.resolution for r in sequence.results)
