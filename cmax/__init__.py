@@ -1,11 +1,13 @@
 """evtslowtv's core: events, file formats, representations, simulation and contrast maximization.
 
->>> import cmax
->>> result = cmax.fit(events, K, model="se3", speed=1.0)      # doctest: +SKIP
->>> sequence = cmax.fit_sequence(events, K, window_us=100_000)  # doctest: +SKIP
-
+``cmax.fit(events, K, model="se3", speed=1.0)`` fits one window (a worked example:
+:func:`cmax.fitting.api.fit`), ``cmax.fit_sequence(events, K, window_us=100_000)`` a whole recording.
 The solvers (``fit``, ``fit_sequence``, ``EMVS``) import torch; they load on first use so that
-``import cmax`` and the file tools stay fast.
+``import cmax`` and the file tools stay fast:
+
+>>> import cmax
+>>> cmax.fit.__module__    # loaded here, at its first use
+'cmax.fitting.api'
 """
 from cmax._lazy import lazy_exports
 from cmax.camera import Camera

@@ -34,7 +34,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.fitting.cli import add_recording_arguments, intrinsics_argument, read_calibration
+from cmax.cli.recording import add_recording_arguments, intrinsics_argument, read_calibration
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
     from cmax.events import Events

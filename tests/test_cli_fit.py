@@ -8,8 +8,9 @@ import numpy as np
 import pytest
 
 from cmax.cli import main
+from cmax.cli.fit import undistorted_events
+from cmax.cli.recording import read_calibration
 from cmax.events import Events
-from cmax.fitting.cli import read_calibration, undistorted_events
 from cmax.io import write_h5, write_txt
 
 cv2 = pytest.importorskip("cv2")

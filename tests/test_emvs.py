@@ -222,7 +222,7 @@ def test_pose_input_forms_give_the_same_depth(plane, plane_result):
 
 
 def test_tum_trajectory_round_trip(tmp_path):
-    from cmax.fitting.cli import tum_lines
+    from cmax.cli.fit import tum_lines
 
     rng = np.random.default_rng(0)
     times = np.array([1_700_000_000_123_456, 1_700_000_000_223_457, 1_700_000_000_323_458])
@@ -307,7 +307,7 @@ def test_as_trajectory_rejects_fractional_microseconds():
 # -- command line -------------------------------------------------------------------------------
 def test_cli_round_trip(plane, tmp_path, capsys):
     from cmax.cli import main
-    from cmax.fitting.cli import tum_lines
+    from cmax.cli.fit import tum_lines
     from cmax.io import write_h5
 
     events, camera, (times, poses) = plane

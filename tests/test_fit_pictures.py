@@ -9,7 +9,7 @@ import numpy as np
 import pytest
 
 from cmax import viz
-from cmax.fitting.cli import _depth_scale
+from cmax.cli.fit import _depth_scale
 
 
 def _window(depth: np.ndarray, mask: np.ndarray) -> SimpleNamespace:

@@ -5,8 +5,8 @@ Modules, in the order a reader meets them: ``api`` (the public :func:`fit` and :
 stage reads), ``pipeline`` (the stage order of each model on one screen, and the stages),
 ``patch_flow`` (patch flows and the motion-field equations), ``motion`` (the patch-wise refinement
 objective), ``depth_sweep`` (the plane sweep of inverse depth), ``solvers`` (scipy, casadi, torch: the
-one solve path), ``sequence`` (:func:`fit_sequence`), ``cli`` (``cmax fit``). The public names load on
-first use (they import torch), so that ``cmax.fitting.cli`` and the command line's parser start fast.
+one solve path), ``sequence`` (:func:`fit_sequence`); the command ``cmax fit`` is :mod:`cmax.cli.fit`.
+The public names load on first use (they import torch), so that the command line's parser starts fast.
 """
 from cmax._lazy import lazy_exports
 

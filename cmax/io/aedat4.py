@@ -447,6 +447,8 @@ def read_aedat4(
 
     Examples
     --------
+    A recording of a DAVIS346 (needs the file: ``cmax`` writes no AEDAT4):
+
     >>> events = read_aedat4("davis.aedat4")  # doctest: +SKIP
     >>> events.sensor_size, len(events)        # doctest: +SKIP
     ((346, 260), 117667)

@@ -184,9 +184,16 @@ class H5Writer:
 
     Examples
     --------
-    >>> with H5Writer("out.h5", 346, 260, source="demo") as writer:  # doctest: +SKIP
+    >>> import tempfile
+    >>> from cmax.io import read
+    >>> path = Path(tempfile.mkdtemp()) / "out.h5"
+    >>> chunks = [Events([0, 1], [0, 0], [10, 20], [1, 0], 346, 260), Events([5], [2], [30], [1], 346, 260)]
+    >>> with H5Writer(path, 346, 260, source="demo") as writer:
     ...     for chunk in chunks:
     ...         writer.append(chunk)
+    >>> events = read(path)
+    >>> len(events), events.sensor_size, events.x.tolist()
+    (3, (346, 260), [0, 1, 5])
     """
 
     def __init__(

@@ -102,8 +102,12 @@ class PlanarScene:
 
     Examples
     --------
-    >>> scene = make_scene("indoor_flying", width=64, height=48)  # doctest: +SKIP
-    >>> intensity, depth = scene.render(0.5)  # doctest: +SKIP
+    >>> from cmax.sim.presets import make_scene
+    >>> scene = make_scene("indoor_flying", width=64, height=48, texture_size=64)
+    >>> intensity, depth = scene.render(0.5)
+    >>> near, far = scene.info.depth_range_m   # what the scene promises [m]
+    >>> intensity.shape, depth.dtype.name, bool(near <= np.nanmin(depth) and np.nanmax(depth) <= far)
+    ((48, 64), 'float32', True)
     """
 
     def __init__(self, world: PlanarWorld, camera: Camera, trajectory: Trajectory, *, sky: Sky = Sky(),

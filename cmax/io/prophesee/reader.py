@@ -173,9 +173,13 @@ def read_evt3(
 
     Examples
     --------
-    >>> events = read_evt3("recording.raw")          # doctest: +SKIP
-    >>> events.sensor_size                           # doctest: +SKIP
-    (1280, 720)
+    >>> import tempfile
+    >>> from cmax.io.prophesee.writer import write_evt3
+    >>> path = Path(tempfile.mkdtemp()) / "recording.raw"
+    >>> write_evt3(path, Events([3, 4, 5], [7, 7, 7], [100, 100, 250], [1, 1, 0], 1280, 720))
+    >>> events = read_evt3(path)
+    >>> events.sensor_size, events.x.tolist(), events.t.tolist(), events.p.tolist()
+    ((1280, 720), [3, 4, 5], [100, 100, 250], [1, 1, 0])
     """
     return _read(path, _EVT3, width, height, chunk_bytes, sort)
 

@@ -1,6 +1,6 @@
 """The ``cmax fit`` command: fit a recording window by window and write depth, trajectory and summary.
 
-Register with ``add_fit_command(subparsers)`` in :mod:`cmax.cli`.
+Registered by :func:`cmax.cli.build_parser` through :func:`add_command`; :func:`run` runs it.
 
 Outputs in ``-o outdir/``: ``depth_XXXXX.npz`` (``depth``, ``mask``,
 ``depth_spread``, ``inverse_depth_grid``, ``t_ref_us``, ``K``) and ``depth_XXXXX.png`` per
@@ -18,43 +18,15 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax._args import (api_default, float_list, library_default, nonnegative_float, positive_float, positive_int,
-                        sensor_size)
-from cmax.camera import check_intrinsics
+from cmax._args import api_default, float_list, library_default, positive_float, positive_int
+from cmax.cli.recording import (add_recording_arguments, distortion_argument, intrinsics_argument, read_calibration,
+                                time_slice)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
-__all__ = ["add_fit_command", "run_fit", "tum_lines", "intrinsics_argument", "read_calibration", "time_slice"]
+__all__ = ["add_command", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
 
 
-def intrinsics_argument(text: str) -> np.ndarray:
-    """``argparse`` type of ``--K fx,fy,cx,cy`` [px]: the validated (3, 3) matrix (``cmax fit``, ``cmax emvs``,
-    ``python -m learned.predict``)."""
-    try:
-        fx, fy, cx, cy = (float(v) for v in text.split(","))
-    except ValueError:
-        raise argparse.ArgumentTypeError(f"--K must be fx,fy,cx,cy (four numbers), got {text!r}") from None
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    try:
-        return check_intrinsics(K)
-    except ValueError as error:
-        raise argparse.ArgumentTypeError(f"--K: {error}") from None
-
-
-def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--size``, ``--time-unit``, ``--t0``, ``--t1``: what a command reading any recording needs
-    (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
-    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
-                        help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
-                             "shipped)")
-    parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
-                        help="unit of the file's time stamps where the file does not state it (never guessed)")
-    parser.add_argument("--t0", type=nonnegative_float, default=None,
-                        help="start, seconds after the first event (default: the first event)")
-    parser.add_argument("--t1", type=nonnegative_float, default=None,
-                        help="end, seconds after the first event (default: the last event)")
-
-
-def add_fit_command(subparsers) -> argparse.ArgumentParser:
+def add_command(subparsers) -> argparse.ArgumentParser:
     """Add ``fit`` to an ``argparse`` sub-parser collection; returns the new parser."""
     parser = subparsers.add_parser("fit", help="depth and motion per window by contrast maximization",
                                    description=__doc__.split("\n\n")[0])
@@ -67,7 +39,7 @@ def add_fit_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
                         help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
                              "(rectified events)")
-    parser.add_argument("--distortion", type=_distortion, default=None,
+    parser.add_argument("--distortion", type=distortion_argument, default=None,
                         help="OpenCV k1,k2,p1,p2[,k3] of --K: events are undistorted to the nearest pixel "
                              "before the fit (default: none, a pinhole camera)")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
@@ -98,95 +70,8 @@ def add_fit_command(subparsers) -> argparse.ArgumentParser:
     api_default(parser.add_argument("--max-events", type=positive_int, default=None,
                                     help="windows with more events are subsampled to this many "
                                          "(cmax.FitSettings.max_events)"), _settings_default("max_events"))
-    parser.set_defaults(run=run_fit)
+    parser.set_defaults(run=run)
     return parser
-
-
-_distortion = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
-
-
-def _numbers(text: str) -> list[float]:
-    return [float(v) for v in text.replace("[", " ").replace("]", " ").replace(",", " ").split()]
-
-
-def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray, np.ndarray | None,
-                                                                      tuple[int, int] | None]:
-    """``(K (3, 3), distortion (4,) or (5,) or None, (width, height) or None)`` of a calibration file.
-
-    * ECD ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or only ``fx fy cx cy``);
-    * DSEC ``cam_to_cam.yaml``: ``intrinsics/<camera>`` with ``camera_matrix: [fx, fy, cx, cy]``,
-      optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``.
-
-    Raises FileNotFoundError, or ValueError naming the file and what is missing.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no calibration file at {path}")
-    text = path.read_text("utf-8", errors="replace")
-    if path.suffix.lower() in (".yaml", ".yml"):
-        values = _yaml_intrinsics(path, text, camera)
-        try:
-            fx, fy, cx, cy = _numbers(values["camera_matrix"])
-            distortion = _numbers(values["distortion_coeffs"]) if "distortion_coeffs" in values else None
-            size = tuple(int(v) for v in _numbers(values["resolution"])) if "resolution" in values else None
-        except (KeyError, ValueError, TypeError):
-            raise ValueError(f"{path}: intrinsics/{camera} needs camera_matrix: [fx, fy, cx, cy] (and optionally "
-                             "distortion_coeffs, resolution: [w, h])") from None
-        if values.get("distortion_model", "radtan").strip() not in ("radtan", "plumb_bob"):
-            raise ValueError(f"{path}: distortion_model {values['distortion_model'].strip()!r} is not supported "
-                             "(radtan / plumb_bob)")
-        if size is not None and len(size) != 2:
-            raise ValueError(f"{path}: resolution must be [width, height]")
-    else:
-        lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
-        try:
-            numbers = _numbers(lines[0]) if len(lines) == 1 else []
-        except ValueError:
-            numbers = []
-        if len(numbers) not in (4, 8, 9):
-            raise ValueError(f"{path}: expected one line 'fx fy cx cy [k1 k2 p1 p2 [k3]]' (ECD calib.txt)")
-        (fx, fy, cx, cy), distortion, size = numbers[:4], numbers[4:] or None, None
-    if distortion is not None and (len(distortion) not in (4, 5) or not np.isfinite(distortion).all()):
-        raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])")
-    K = check_intrinsics(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
-    return K, None if distortion is None else np.asarray(distortion, float), size
-
-
-def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
-    """The ``key: value`` lines under ``intrinsics:`` / ``<camera>:`` of a DSEC cam_to_cam.yaml (no YAML library)."""
-    section, current, indents, values = None, None, {}, {}
-    for raw in text.splitlines():
-        line = raw.split("#", 1)[0].rstrip()
-        if not line.strip() or line.lstrip().startswith("-"):
-            continue
-        indent = len(line) - len(line.lstrip())
-        key, _, value = line.strip().partition(":")
-        if indent == 0:
-            section, current = key, None
-        elif section == "intrinsics" and not value.strip():
-            current, indents[key] = key, indent
-        elif section == "intrinsics" and current == camera and indent > indents.get(camera, 0):
-            values[key] = value.strip()
-    if not values:
-        found = sorted(indents) or ["none"]
-        raise ValueError(f"{path}: no intrinsics/{camera} (cameras found: {', '.join(found)}); "
-                         "choose one with --calib-camera")
-    return values
-
-
-def time_slice(events, t0_s: float | None, t1_s: float | None):
-    """The events of ``[first + t0_s, first + t1_s)`` (seconds after the first event; None: no bound)."""
-    if t0_s is None and t1_s is None:
-        return events
-    start = int(events.t[0])
-    t0 = start + int(round((t0_s or 0.0) * 1e6))
-    t1 = int(events.t[-1]) + 1 if t1_s is None else start + int(round(t1_s * 1e6))
-    if t1 <= t0:
-        raise ValueError(f"--t1 must be after --t0, got {t0_s} and {t1_s}")
-    events = events.slice_time(t0, t1)
-    if len(events) == 0:
-        raise ValueError(f"no events between --t0 {t0_s} s and --t1 {t1_s} s")
-    return events
 
 
 def undistorted_events(events, K: np.ndarray, distortion: np.ndarray):
@@ -293,7 +178,7 @@ def window_line(index: int, result, first_us: int) -> str:
     return f"window {index} ({t0:.3f}-{t1:.3f} s): {q.verdict.value.replace('_', ' ')}: {q.reason}{resolution}"
 
 
-def run_fit(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status (1 when no window could be fitted)."""
     import sys
 

@@ -1,6 +1,6 @@
 """The ``cmax emvs`` command: semi-dense depth of a recording from known poses (EMVS).
 
-Register with ``add_emvs_command(subparsers)`` in :mod:`cmax.cli`.
+Registered by :func:`cmax.cli.build_parser` through :func:`add_command`; :func:`run` runs it.
 
 Outputs in ``-o outdir/``: ``depth.npz`` (``depth``, ``confidence``, ``mask``,
 ``t_ref_us``, ``T_w_ref``, ``K``, ``depth_range``), ``depth.png`` (confidence
@@ -15,13 +15,11 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, nonnegative_float, positive_int, sensor_size
-from cmax.fitting.cli import intrinsics_argument, time_slice
+from cmax.cli.recording import distortion_argument, intrinsics_argument, time_slice
 from cmax.io.atomic import save_npz_atomic
 
-__all__ = ["add_emvs_command", "run_emvs", "camera_for"]
+__all__ = ["add_command", "run", "camera_for"]
 
-
-_distortion = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
 _depth_range = float_list((2,), "--depth-range (near,far)")
 
 
@@ -33,7 +31,7 @@ def _emvs_default(name: str):
     return default
 
 
-def add_emvs_command(subparsers) -> argparse.ArgumentParser:
+def add_command(subparsers) -> argparse.ArgumentParser:
     """Add ``emvs`` to an ``argparse`` sub-parser collection; returns the new parser."""
     parser = subparsers.add_parser(
         "emvs", help="semi-dense depth from events and known poses (EMVS space sweep)",
@@ -46,7 +44,7 @@ def add_emvs_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
     parser.add_argument("--K", type=intrinsics_argument, default=None,
                         help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file)")
-    parser.add_argument("--distortion", type=_distortion, default=None,
+    parser.add_argument("--distortion", type=distortion_argument, default=None,
                         help="OpenCV k1,k2,p1,p2[,k3] (default: none, a pinhole camera)")
     api_default(parser.add_argument("--depth-range", type=_depth_range, default=None, metavar="NEAR,FAR",
                                     help="depth range of the planes [m]"), _emvs_default("depth_range"))
@@ -58,7 +56,7 @@ def add_emvs_command(subparsers) -> argparse.ArgumentParser:
                         help="end, seconds after the first event (default: the last event)")
     parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
                         help="sensor size, for files that do not store it (ECD text, .npy)")
-    parser.set_defaults(run=run_emvs)
+    parser.set_defaults(run=run)
     return parser
 
 
@@ -80,8 +78,7 @@ def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distor
     return Camera(K, width, height, distortion)
 
 
-
-def run_emvs(args: argparse.Namespace) -> int:
+def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status."""
     from cmax.emvs import EMVS, read_tum_trajectory
     from cmax.io import read

@@ -1,0 +1,54 @@
+"""The ``cmax demo`` command: the end-to-end demo (:func:`cmax.demo.run_demo`) on data it makes itself."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+from typing import Any, Callable
+
+from cmax._args import api_default, library_default, nonnegative_int, positive_float, sensor_size
+from cmax.cli._common import given
+
+__all__ = ["add_command", "run"]
+
+#: demo options (dest) -> DemoSettings fields; None on the command line = the library's default.
+_DEMO_OPTIONS = {"seed": "seed", "duration": "duration_s", "window": "window_s"}
+
+
+def run(args: argparse.Namespace) -> int:
+    """Run the demo and print where its report is; returns the exit status (0)."""
+    from cmax.demo import run_demo
+
+    overrides = given(args, _DEMO_OPTIONS)
+    if args.size is not None:
+        overrides["width"], overrides["height"] = args.size
+    report = run_demo(args.output, **overrides)
+    print(f"demo report: {report.report_png}")
+    return 0
+
+
+def _demo_default(name: str) -> Callable[[], Any]:
+    if name != "size":
+        return library_default("cmax.demo:DemoSettings", name)
+    width, height = (library_default("cmax.demo:DemoSettings", side) for side in ("width", "height"))
+    return lambda: (width(), height())
+
+
+def add_command(subparsers) -> argparse.ArgumentParser:
+    """Add ``demo`` to an ``argparse`` sub-parser collection; returns the new parser."""
+    parser = subparsers.add_parser(
+        "demo", help="end-to-end demo on data it makes itself",
+        description="Render a synthetic scene, simulate its events, fit depth and motion with cmax.fit, run "
+        "EMVS with the true poses, score both against ground truth, and write report.png, report.md and "
+        "summary.txt.",
+    )
+    parser.add_argument("-o", "--output", type=Path, default=Path("demo_output"), help="output folder")
+    api_default(parser.add_argument("--seed", type=nonnegative_int, default=None, help="seed of the scene"),
+                _demo_default("seed"))
+    api_default(parser.add_argument("--duration", type=positive_float, default=None,
+                                    help="seconds of scene to simulate"), _demo_default("duration_s"))
+    api_default(parser.add_argument("--window", type=positive_float, default=None,
+                                    help="seconds of the window cmax.fit fits"), _demo_default("window_s"))
+    api_default(parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
+                                    help="sensor WIDTHxHEIGHT"), _demo_default("size"))
+    parser.set_defaults(run=run)
+    return parser

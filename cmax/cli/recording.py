@@ -1,0 +1,179 @@
+"""Options shared by the commands that read a recording, and the calibration and time-slice helpers behind them.
+
+* :func:`add_file_options` / :func:`file_kwargs`: ``--size``, ``--time-unit``, ``--polarity`` of the file
+  tools (``cmax info``, ``cmax show``), passed to :func:`cmax.io.read` as keywords;
+* :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--t0``, ``--t1`` of the commands that fit or
+  predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``;
+* :func:`intrinsics_argument`, :data:`distortion_argument`: ``argparse`` types of ``--K`` and ``--distortion``;
+  :func:`read_calibration`: ``--calib`` (ECD ``calib.txt``, DSEC ``cam_to_cam.yaml``).
+
+No import here loads torch (the parsers are built at start-up).
+"""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+import numpy as np
+
+from cmax._args import float_list, nonnegative_float, sensor_size
+from cmax.camera import check_intrinsics
+
+__all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "intrinsics_argument",
+           "distortion_argument", "read_calibration", "time_slice"]
+
+#: ``argparse`` type of ``--distortion k1,k2,p1,p2[,k3]`` (OpenCV order, dimensionless).
+distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
+
+
+def add_file_options(parser: argparse.ArgumentParser) -> None:
+    """``--size``, ``--time-unit``, ``--polarity``: what reading a file that does not state them needs
+    (``cmax info``, ``cmax show``); :func:`file_kwargs` turns them into :func:`cmax.io.read` keywords."""
+    parser.add_argument(
+        "--size", type=sensor_size, default=None, metavar="WxH",
+        help="sensor size, for files that do not store it (ECD text, .npy, original DSEC)",
+    )
+    parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
+                        help="unit of the file's time stamps where the file does not state it (never guessed)")
+    parser.add_argument("--polarity", choices=("01", "signed"), default=None,
+                        help="polarity encoding of an h5, text or .npy file: 01 (0 OFF, 1 ON) or signed "
+                        "(-1 OFF, +1 ON) (default: 01; never guessed)")
+
+
+def file_kwargs(args: argparse.Namespace) -> dict[str, int | str | None]:
+    """The :func:`cmax.io.read` keywords of :func:`add_file_options`' options (``polarity`` only when given).
+
+    >>> file_kwargs(argparse.Namespace(size=(346, 260), time_unit="us", polarity=None))
+    {'width': 346, 'height': 260, 'time_unit': 'us'}
+    """
+    width, height = args.size if args.size else (None, None)
+    options: dict[str, int | str | None] = {"width": width, "height": height, "time_unit": args.time_unit}
+    if args.polarity is not None:
+        options["polarity"] = args.polarity
+    return options
+
+
+def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
+    """``--size``, ``--time-unit``, ``--t0``, ``--t1``: what a command reading any recording needs
+    (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
+    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
+                        help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
+                             "shipped)")
+    parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
+                        help="unit of the file's time stamps where the file does not state it (never guessed)")
+    parser.add_argument("--t0", type=nonnegative_float, default=None,
+                        help="start, seconds after the first event (default: the first event)")
+    parser.add_argument("--t1", type=nonnegative_float, default=None,
+                        help="end, seconds after the first event (default: the last event)")
+
+
+def intrinsics_argument(text: str) -> np.ndarray:
+    """``argparse`` type of ``--K fx,fy,cx,cy`` [px]: the validated (3, 3) float64 matrix (``cmax fit``,
+    ``cmax emvs``, ``python -m learned.predict``).
+
+    >>> intrinsics_argument("200,200,120,90")
+    array([[200.,   0., 120.],
+           [  0., 200.,  90.],
+           [  0.,   0.,   1.]])
+    """
+    try:
+        fx, fy, cx, cy = (float(v) for v in text.split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"--K must be fx,fy,cx,cy (four numbers), got {text!r}") from None
+    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    try:
+        return check_intrinsics(K)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"--K: {error}") from None
+
+
+def _numbers(text: str) -> list[float]:
+    return [float(v) for v in text.replace("[", " ").replace("]", " ").replace(",", " ").split()]
+
+
+def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray, np.ndarray | None,
+                                                                      tuple[int, int] | None]:
+    """``(K (3, 3), distortion (4,) or (5,) or None, (width, height) or None)`` of a calibration file.
+
+    * ECD ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or only ``fx fy cx cy``);
+    * DSEC ``cam_to_cam.yaml``: ``intrinsics/<camera>`` with ``camera_matrix: [fx, fy, cx, cy]``,
+      optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``.
+
+    Raises FileNotFoundError, or ValueError naming the file and what is missing.
+    """
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no calibration file at {path}")
+    text = path.read_text("utf-8", errors="replace")
+    if path.suffix.lower() in (".yaml", ".yml"):
+        values = _yaml_intrinsics(path, text, camera)
+        try:
+            fx, fy, cx, cy = _numbers(values["camera_matrix"])
+            distortion = _numbers(values["distortion_coeffs"]) if "distortion_coeffs" in values else None
+            size = tuple(int(v) for v in _numbers(values["resolution"])) if "resolution" in values else None
+        except (KeyError, ValueError, TypeError):
+            raise ValueError(f"{path}: intrinsics/{camera} needs camera_matrix: [fx, fy, cx, cy] (and optionally "
+                             "distortion_coeffs, resolution: [w, h])") from None
+        if values.get("distortion_model", "radtan").strip() not in ("radtan", "plumb_bob"):
+            raise ValueError(f"{path}: distortion_model {values['distortion_model'].strip()!r} is not supported "
+                             "(radtan / plumb_bob)")
+        if size is not None and len(size) != 2:
+            raise ValueError(f"{path}: resolution must be [width, height]")
+    else:
+        lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+        try:
+            numbers = _numbers(lines[0]) if len(lines) == 1 else []
+        except ValueError:
+            numbers = []
+        if len(numbers) not in (4, 8, 9):
+            raise ValueError(f"{path}: expected one line 'fx fy cx cy [k1 k2 p1 p2 [k3]]' (ECD calib.txt)")
+        (fx, fy, cx, cy), distortion, size = numbers[:4], numbers[4:] or None, None
+    if distortion is not None and (len(distortion) not in (4, 5) or not np.isfinite(distortion).all()):
+        raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])")
+    K = check_intrinsics(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
+    return K, None if distortion is None else np.asarray(distortion, float), size
+
+
+def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
+    """The ``key: value`` lines under ``intrinsics:`` / ``<camera>:`` of a DSEC cam_to_cam.yaml (no YAML library)."""
+    section, current, indents, values = None, None, {}, {}
+    for raw in text.splitlines():
+        line = raw.split("#", 1)[0].rstrip()
+        if not line.strip() or line.lstrip().startswith("-"):
+            continue
+        indent = len(line) - len(line.lstrip())
+        key, _, value = line.strip().partition(":")
+        if indent == 0:
+            section, current = key, None
+        elif section == "intrinsics" and not value.strip():
+            current, indents[key] = key, indent
+        elif section == "intrinsics" and current == camera and indent > indents.get(camera, 0):
+            values[key] = value.strip()
+    if not values:
+        found = sorted(indents) or ["none"]
+        raise ValueError(f"{path}: no intrinsics/{camera} (cameras found: {', '.join(found)}); "
+                         "choose one with --calib-camera")
+    return values
+
+
+def time_slice(events, t0_s: float | None, t1_s: float | None):
+    """The events of ``[first + t0_s, first + t1_s)`` (seconds after the first event; None: no bound).
+
+    >>> import numpy as np
+    >>> from cmax.events import Events
+    >>> t_us = np.arange(0, 1_000_000, 100_000)  # one event every 0.1 s
+    >>> events = Events(np.zeros(10), np.zeros(10), t_us, np.ones(10), 4, 4)
+    >>> time_slice(events, 0.25, 0.5).t.tolist()
+    [300000, 400000]
+    """
+    if t0_s is None and t1_s is None:
+        return events
+    start = int(events.t[0])
+    t0 = start + int(round((t0_s or 0.0) * 1e6))
+    t1 = int(events.t[-1]) + 1 if t1_s is None else start + int(round(t1_s * 1e6))
+    if t1 <= t0:
+        raise ValueError(f"--t1 must be after --t0, got {t0_s} and {t1_s}")
+    events = events.slice_time(t0, t1)
+    if len(events) == 0:
+        raise ValueError(f"no events between --t0 {t0_s} s and --t1 {t1_s} s")
+    return events

@@ -1,0 +1,44 @@
+"""The ``cmax show`` command: a time window of an event file drawn as a PNG (event frame, event-volume bins)."""
+from __future__ import annotations
+
+import argparse
+from pathlib import Path
+
+from cmax.cli.recording import add_file_options, file_kwargs
+
+__all__ = ["add_command", "run"]
+
+
+def run(args: argparse.Namespace) -> int:
+    """Draw the window and write the picture; returns the exit status (0)."""
+    from cmax.show import render_window
+
+    image = render_window(
+        args.file, t0_s=args.t0, dt_s=args.dt, mode=args.mode, bins=args.bins, **file_kwargs(args)
+    )
+    from cmax.viz import save_image
+
+    output = args.output or args.file.with_suffix(".png")
+    save_image(output, image)
+    print(f"wrote {output}")
+    return 0
+
+
+def add_command(subparsers) -> argparse.ArgumentParser:
+    """Add ``show`` to an ``argparse`` sub-parser collection; returns the new parser."""
+    parser = subparsers.add_parser(
+        "show", help="draw a time window of an event file as a PNG",
+        description="Draw the events of [t0, t0 + dt) as an event frame (ON blue, OFF red) "
+        "or as the bins of the event volume; ground-truth depth is drawn beside them when the file has it.",
+    )
+    parser.add_argument("file", type=Path, help="event file (any supported format)")
+    # t0, dt, bins: validated by cmax.show.render_window (one-line errors naming the value)
+    parser.add_argument("--t0", type=float, default=0.0, help="window start in seconds after the first event")
+    parser.add_argument("--dt", type=float, default=0.05, help="window length in seconds")
+    parser.add_argument("--mode", choices=("frame", "voxel", "both"), default="both",
+                        help="event frame, event-volume bins, or both")
+    parser.add_argument("--bins", type=int, default=5, help="bins of the event volume")
+    parser.add_argument("-o", "--output", type=Path, default=None, help="picture path, .png, .jpg or .jpeg (default: FILE with .png)")
+    add_file_options(parser)
+    parser.set_defaults(run=run)
+    return parser

@@ -1,0 +1,182 @@
+"""The ``cmax simulate`` command: videos, image sequences or whole collections to event files (ESIM).
+
+One source (a video, an ECD or rpg_vid2e image folder, a timestamp file) to one h5 file with
+``manifest.json`` beside it, or a collection (a folder of videos, a list file, a catalogue's folder) to
+DSEC-layout h5 files in a folder; resumable through the manifest, in ``--workers`` processes.
+"""
+from __future__ import annotations
+
+import argparse
+import sys
+from pathlib import Path
+from typing import Sequence
+
+from cmax._args import api_default, library_default, nonnegative_int, positive_int, sensor_size
+from cmax.cli._common import given
+
+__all__ = ["add_command", "run"]
+
+#: Where the simulator's defaults live (read only for --help and for options left out).
+_ESIM, _CONVERT = "cmax.sim.esim_settings:EsimSettings", "cmax.sim.convert:ConvertSettings"
+#: simulate options (dest) -> EsimSettings / ConvertSettings fields; None on the command line = the library's default.
+_ESIM_OPTIONS = {"cp": "cp", "cn": "cn", "threshold_sigma": "threshold_sigma", "refractory_us": "refractory_us",
+                 "shot_noise": "shot_noise_rate_hz", "leak": "leak_rate_hz", "seed": "seed"}
+_CONVERT_OPTIONS = {"size": "size", "adaptive": "adaptive", "lam": "lam", "method": "method", "t0": "t0_s",
+                    "t1": "t1_s"}
+
+
+def run(args: argparse.Namespace) -> int:
+    """Convert the input; returns the exit status (1 when a video failed or yielded no events)."""
+    from cmax.sim.catalogue import parse_shard
+    from cmax.sim.convert import ConvertSettings, collect_jobs, convert_collection
+    from cmax.sim.esim import EsimSettings
+
+    esim = EsimSettings(**given(args, _ESIM_OPTIONS))
+    settings = ConvertSettings(esim, **given(args, _CONVERT_OPTIONS))
+    shard = parse_shard(args.shard) if args.shard else None
+    single = _single_input(args)
+    if single is not None:
+        return _simulate_one(args, single, settings)
+    jobs, missing = collect_jobs(args.input, catalogue=args.catalogue, shard=shard)
+    manifest = convert_collection(jobs, args.output, settings, workers=args.workers, missing=missing,
+                                  catalogue=args.catalogue, shard=shard, progress=not args.quiet)
+    status = _report_manifest(args.output / "manifest.json", manifest, [job.name for job in jobs])
+    if missing:
+        print(f"  missing from {args.input}: {', '.join(missing)}", file=sys.stderr)
+    return status
+
+
+def _single_input(args: argparse.Namespace) -> Path | None:
+    """The frame source of a one-file conversion (``-o F.h5``): a video, or an image folder's folder/timestamp
+    file; None for a collection (a folder of videos, a list file, a catalogue)."""
+    from cmax.sim.convert import VIDEO_SUFFIXES
+
+    source, single = args.input, args.output.suffix == ".h5" and not args.catalogue
+    image_source = _image_folder(source)
+    if image_source is not None:
+        if not single:
+            raise ValueError(f"{source} is an image folder (one sequence): give the output file as -o NAME.h5")
+        return image_source
+    if not single:
+        return None
+    if source.is_dir():
+        return None  # a folder of videos into one .h5 file: refused by the collection with a clear message
+    if not source.exists():
+        raise FileNotFoundError(f"input not found: {source}")
+    if source.suffix.lower() not in VIDEO_SUFFIXES:
+        raise ValueError(f"INPUT must be a video ({', '.join(VIDEO_SUFFIXES)}), an image folder with images.txt or "
+                         f"images/ + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, got {source}")
+    return source
+
+
+def _image_folder(source: Path) -> Path | None:
+    """The path :func:`cmax.sim.video.open_source` reads for an image sequence, or None if ``source`` is none.
+
+    * ECD: a folder holding ``images.txt`` (lines ``t images/frame_00000000.png``), or that file;
+    * rpg_vid2e / ESIM: a folder holding ``images/`` and ``timestamps.txt``, a folder of images with
+      ``timestamps.txt`` in it or in its parent, or the ``timestamps.txt`` file.
+    """
+    from cmax.sim.video import IMAGE_SUFFIXES
+
+    if source.is_file():
+        if source.name == "timestamps.txt" and (source.parent / "images").is_dir():
+            return source.parent / "images"
+        return source if source.name in ("images.txt", "timestamps.txt") else None
+    if not source.is_dir():
+        return None
+    if (source / "images.txt").is_file():
+        return source / "images.txt"
+    if (source / "images").is_dir() and (source / "timestamps.txt").is_file():
+        return source / "images"
+    has_images = any(p.suffix.lower() in IMAGE_SUFFIXES for p in source.iterdir())
+    if has_images and any((folder / "timestamps.txt").is_file() for folder in (source, source.parent)):
+        return source
+    return None
+
+
+def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
+    """``cmax simulate SOURCE -o F.h5``: one conversion with progress and a manifest beside F.h5."""
+    from cmax.sim.convert import VideoJob, convert_collection, load_manifest, write_manifest
+
+    output = args.output
+    manifest_path = output.parent / "manifest.json"
+    manifest = load_manifest(manifest_path) if manifest_path.is_file() else None
+    listed = manifest["videos"].get(output.stem) if manifest else None
+    if output.exists() and not args.overwrite and not (listed and listed.get("status") == "ok"):
+        raise FileExistsError(f"{output} exists and is not a finished conversion of {manifest_path}; "
+                              "pass --overwrite to replace it")
+    if args.overwrite and listed:   # forget the old entry: the video is redone, the old file replaced atomically
+        write_manifest(manifest_path, {**manifest, "videos": {k: v for k, v in manifest["videos"].items()
+                                                              if k != output.stem}})
+    job = VideoJob(output.stem, source)
+    manifest = convert_collection([job], output.parent, settings, workers=1, progress=not args.quiet)
+    return _report_manifest(manifest_path, manifest, [job.name])
+
+
+def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
+    """Print the outcome of a conversion; 1 when a video failed or yielded no events, else 0."""
+    totals, videos = manifest["totals"], manifest["videos"]
+    empty = [name for name in names if videos.get(name, {}).get("status") == "ok"
+             and videos[name].get("events", 0) == 0]
+    note = f" ({len(empty)} of them with no events)" if empty else ""
+    print(f"{path}: {totals['ok']} videos ok{note}, {totals['failed']} failed, {totals['events']:,} events")
+    for name in names:
+        entry = videos.get(name, {})
+        if entry.get("status") == "ok" and name not in empty:
+            print(f"  {entry['output']}: {entry['events']:,} events from {entry['frames']} frames "
+                  f"({entry['samples']} samples), {entry['duration_s']:.2f} s of video")
+    for name, entry in videos.items():
+        if entry["status"] != "ok":
+            print(f"  failed {name}: {entry['error']}", file=sys.stderr)
+    for name in empty:
+        entry = videos[name]
+        print(f"  no events from {name}: {entry['frames']} frame(s) over {entry['duration_s']:.3f} s "
+              f"(events need at least two frames that differ by a threshold); {entry['output']} holds 0 events",
+              file=sys.stderr)
+    return 1 if totals["failed"] or empty else 0
+
+
+def add_command(subparsers) -> argparse.ArgumentParser:
+    """Add ``simulate`` to an ``argparse`` sub-parser collection; returns the new parser."""
+    parser = subparsers.add_parser(
+        "simulate", help="convert videos or image sequences to event files (ESIM), one or a whole collection",
+        description="Convert a video file, an image folder (ECD: images.txt; rpg_vid2e/ESIM: images/ + "
+        "timestamps.txt) or a timestamp file to one h5 file (-o F.h5, with manifest.json beside it); or a "
+        "folder of videos, a list file (one video per line, optional tab and category) or a catalogue's "
+        "folder (--catalogue slowtv) to DSEC-layout h5 files in the folder -o, with manifest.json; "
+        "resumable, in --workers processes. Exit status 1 when a video fails or yields no events.",
+    )
+    parser.add_argument("input", type=Path,
+                        help="video file, image folder, timestamp file, folder of videos, or list file")
+    parser.add_argument("-o", "--output", type=Path, required=True, help="output .h5 file or folder")
+    # Simulator settings are validated by EsimSettings / ConvertSettings (one-line errors naming the value).
+    esim = (("--cp", float, "cp", "ON threshold"), ("--cn", float, "cn", "OFF threshold"),
+            ("--threshold-sigma", float, "threshold_sigma", "per-pixel threshold mismatch (std)"),
+            ("--refractory-us", int, "refractory_us", "refractory period in µs"),
+            ("--shot-noise", float, "shot_noise_rate_hz", "shot-noise rate per pixel (Hz)"),
+            ("--leak", float, "leak_rate_hz", "leak-event rate per pixel (Hz)"))
+    for option, kind, name, text in esim:
+        api_default(parser.add_argument(option, type=kind, default=None, help=text), library_default(_ESIM, name))
+    parser.add_argument("--seed", type=nonnegative_int, default=0,
+                        help="seed of mismatch and noise (default 0, reproducible; the API's None draws a fresh one)")
+    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
+                        help="resize frames (default: the video's size)")
+    api_default(parser.add_argument("--adaptive", action=argparse.BooleanOptionalAction, default=None,
+                                    help="insert interpolated frames (adaptive sampling)"), library_default(_CONVERT, "adaptive"))
+    api_default(parser.add_argument("--lam", type=float, default=None, help="lambda of adaptive sampling"),
+                library_default(_CONVERT, "lam"))
+    api_default(parser.add_argument("--method", choices=("flow", "linear"), default=None,
+                                    help="interpolation of adaptive sampling"), library_default(_CONVERT, "method"))
+    parser.add_argument("--t0", type=float, default=None,
+                        help="start, seconds into each video (default: its start)")
+    parser.add_argument("--t1", type=float, default=None,
+                        help="end, seconds into each video (default: its end)")
+    parser.add_argument("--workers", type=positive_int, default=1, help="parallel processes")
+    parser.add_argument("--catalogue", choices=("slowtv",), default=None,
+                        help="INPUT is the folder of a catalogue's videos named by index (00000.mp4)")
+    parser.add_argument("--shard", default=None, metavar="i/n",
+                        help="convert shard i of n (0-based; default: all)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing output .h5")
+    parser.add_argument("--quiet", action="store_true", help="no progress bars")
+    parser.set_defaults(run=run)
+    return parser
