@@ -10,8 +10,9 @@ import pytest
 
 from cmax import Camera, Events
 from cmax.emvs import EMVS, DSI, SemiDenseDepth, as_trajectory, read_tum_trajectory, semi_dense_depth
-from cmax.emvs.dsi import (base_plane_homographies, bilinear_splat, gather_votes, plane_depths, plane_transfer,
-                           project_packets, splat_votes)
+from cmax.emvs.dsi import (base_plane_homographies, bilinear_splat, plane_depths, plane_transfer, project_packets,
+                           splat_votes)
+from cmax.emvs.gather import gather_votes
 from cmax.geometry import se3_exp
 from cmax.sim.esim import EventSimulator
 

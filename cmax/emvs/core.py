@@ -32,8 +32,8 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cmax.camera import Camera
-from cmax.emvs.dsi import (base_plane_homographies, gather_votes, plane_depths, plane_transfer, project_packets,
-                           splat_votes)
+from cmax.emvs.dsi import base_plane_homographies, plane_depths, plane_transfers, project_packets, splat_votes
+from cmax.emvs.gather import ShiftedAdditions, gather_votes
 from cmax.emvs.poses import as_trajectory, check_coverage
 from cmax.emvs.result import DSI, SemiDenseDepth, semi_dense_depth
 from cmax.events import Events
@@ -229,22 +229,29 @@ class EMVS:
         reach = max(K[0, 0], K[1, 1], K[0, 2], self.camera.width - K[0, 2], K[1, 2], self.camera.height - K[1, 2])
         max_travel = 2.0 * self.transfer_tolerance_px / (reach * 0.5 * (inverse[0] - inverse[-1]))
         groups = _groups(centres, np.diff(starts), self.events_per_transfer, max_travel)
-        pixels = self.camera.undistort(events)
         sizes = np.diff(starts)
+        first = np.array([j for j, _ in groups])
+        weights = np.add.reduceat(sizes, first).astype(np.float64)[:, None]
+        transfers = plane_transfers(np.add.reduceat(centres * sizes[:, None], first, axis=0) / weights, depths, K)
+        # Every packet maps to its group's base plane: all homographies and projections in one pass each.
+        z_base = np.array([depths[transfer.base] if transfer else depths[-1] for transfer in transfers])
+        homographies = base_plane_homographies(T_ref_c, np.repeat(z_base, np.diff(np.append(first, len(sizes)))), K)
+        positions, hits = project_packets(self.camera.undistort(events), homographies, sizes)
         votes = np.zeros((len(depths), self.camera.height, self.camera.width), np.float32)
-        vote = partial(gather_votes, subpixel=self.subpixel) if self.voting == "gather" else splat_votes
+        pending = ShiftedAdditions(votes)
+        vote = (partial(gather_votes, subpixel=self.subpixel, pending=pending) if self.voting == "gather"
+                else splat_votes)
         voted = 0
-        for j, m in tqdm(groups, desc="EMVS", unit="group", disable=not self.progress):
-            centre = np.average(centres[j:m], axis=0, weights=sizes[j:m])
-            transfer = plane_transfer(centre, depths, K)
+        for (j, m), transfer in tqdm(zip(groups, transfers), total=len(groups), desc="EMVS", unit="group",
+                                     disable=not self.progress):
             if transfer is None:
                 continue
-            homographies = base_plane_homographies(T_ref_c[j:m], depths[transfer.base], K)
-            positions, hits = project_packets(pixels[starts[j]: starts[m]], homographies, sizes[j:m])
-            if not hits.all():
-                positions = positions[hits]
-            voted += len(positions)
-            vote(votes, positions, transfer)
+            group, group_hits = positions[starts[j]: starts[m]], hits[starts[j]: starts[m]]
+            if not group_hits.all():
+                group = group[group_hits]
+            voted += len(group)
+            vote(votes, group, transfer)
+        pending.flush()
         return DSI(votes, depths, K.copy(), t_ref_us, T_w_ref, voted, time.perf_counter() - start,
                    parallax_px=parallax_px)
 

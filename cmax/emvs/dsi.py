@@ -18,37 +18,23 @@ scale and one offset per plane, depending only on the camera centre ``C``.
 
 Voting. :func:`splat_votes` adds the exact bilinear votes of every event on
 every plane (4 weights per event and plane, one compiled loop): the reference.
-:func:`gather_votes` is the fast path. Events of consecutive packets whose
-camera centres stay close share one transfer; they are splatted once
-(bilinear) on the base plane, on grids shifted by multiples of ``1/S`` px.
-A plane whose transfer is a translation (camera moving parallel to the
-image plane) then receives the grid of its sub-pixel phase added at an
-integer offset (the exact bilinear votes, offset rounded to ``1/S`` px), so
-the cost per plane is one image addition whatever the number of events.
-Scaled planes (motion along the optical axis) receive the splat resampled by
-``cv2.warpAffine`` (times ``1 / a_i**2``, one vote per event and plane).
-Votes that fall outside the reference image are outside the DSI and are not
-counted.
+The fast path, one splat per group of packets and one image addition per
+plane, is :mod:`cmax.emvs.gather`. Votes that fall outside the reference
+image are outside the DSI and are not counted.
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
-import cv2
 import numpy as np
 
 from cmax._jit import kernel
 
-__all__ = ["plane_depths", "PlaneTransfer", "plane_transfer", "base_plane_homographies", "project_packets",
-           "splat_votes", "gather_votes", "bilinear_splat"]
+__all__ = ["plane_depths", "PlaneTransfer", "plane_transfer", "plane_transfers", "base_plane_homographies", "project_packets",
+           "splat_votes", "bilinear_splat"]
 
 #: Votes per np.bincount call of :func:`splat_votes` (bounds its temporaries).
 _VOTES_PER_CHUNK = 1 << 21
-#: A gather canvas larger than this many reference images falls back to splatting.
-_MAX_CANVAS_IMAGES = 16
-#: Shifted images are splatted directly (not box-filtered from a fine grid) below this many
-#: event-shifts per fine-grid cell.
-_DIRECT_SPLATS_PER_CELL = 4
 
 
 def plane_depths(depth_range: tuple[float, float], n_planes: int) -> np.ndarray:
@@ -85,27 +71,38 @@ class PlaneTransfer:
     valid: np.ndarray
 
 
+def plane_transfers(centres_ref: np.ndarray, depths: np.ndarray, K: np.ndarray) -> list[PlaneTransfer | None]:
+    """Transfers of base-plane pixels to every plane for camera centres ``C`` (G, 3) in the reference frame.
+
+    For each centre the base plane is the middle (in index, i.e. inverse depth)
+    of the planes in front of ``C``; ``None`` when no plane is in front of it.
+    One vectorized pass over all centres (G, n_planes).
+    """
+    centres_ref = np.asarray(centres_ref, dtype=np.float64).reshape(-1, 3)
+    cz = centres_ref[:, 2:3]
+    valid = depths[None] > cz + 1e-6 * np.abs(depths)[None]
+    count = valid.sum(axis=1)
+    base = np.argmax(np.cumsum(valid, axis=1) > (count // 2)[:, None], axis=1)
+    z_b = depths[base][:, None]
+    with np.errstate(divide="ignore", invalid="ignore"):  # rows without a valid plane are dropped
+        lam = np.where(valid, (depths[None] - cz) / (z_b - cz), 0.0)
+    scales = lam * z_b / depths[None]
+    c = (1.0 - lam)[..., None] * centres_ref[:, None, :2] / depths[None, :, None]
+    offsets = (1.0 - scales)[..., None] * K[:2, 2] + c @ K[:2, :2].T
+    return [PlaneTransfer(int(base[g]), scales[g], offsets[g], valid[g]) if count[g] else None
+            for g in range(len(centres_ref))]
+
+
 def plane_transfer(centre_ref: np.ndarray, depths: np.ndarray, K: np.ndarray) -> PlaneTransfer | None:
     """Transfer of base-plane pixels to every plane for a camera centre ``C`` (3,) in the reference frame.
 
     The base plane is the middle (in index, i.e. inverse depth) of the planes
-    in front of ``C``; ``None`` when no plane is in front of it.
+    in front of ``C``; ``None`` when no plane is in front of it (:func:`plane_transfers`).
     """
-    cz = centre_ref[2]
-    valid = depths > cz + 1e-6 * np.abs(depths)
-    if not valid.any():
-        return None
-    indices = np.flatnonzero(valid)
-    base = int(indices[len(indices) // 2])
-    z_b = depths[base]
-    lam = np.where(valid, (depths - cz) / (z_b - cz), 0.0)
-    scales = lam * z_b / depths
-    c = (1.0 - lam)[:, None] * centre_ref[None, :2] / depths[:, None]
-    offsets = (1.0 - scales)[:, None] * K[None, :2, 2] + c @ K[:2, :2].T
-    return PlaneTransfer(base, scales, offsets, valid)
+    return plane_transfers(np.asarray(centre_ref)[None], depths, K)[0]
 
 
-def base_plane_homographies(T_ref_c: np.ndarray, z_base: float, K: np.ndarray) -> np.ndarray:
+def base_plane_homographies(T_ref_c: np.ndarray, z_base: float | np.ndarray, K: np.ndarray) -> np.ndarray:
     """Plane-induced homographies (k, 3, 3) from event pixels to the reference view via ``Z_ref = z_base``.
 
     For a camera ``T_ref_c = [R | C]`` the ray of pixel ``x`` meets the plane at
@@ -114,7 +111,8 @@ def base_plane_homographies(T_ref_c: np.ndarray, z_base: float, K: np.ndarray) -
         H = K (C e_3^T + (z_base - C_z) I) R K^-1,
 
     and the third component of ``H x`` is ``z_base (R K^-1 x)_z``: positive exactly
-    when the ray points towards the plane (for ``z_base > C_z``).
+    when the ray points towards the plane (for ``z_base > C_z``). ``z_base`` [m] is
+    one depth for all cameras or one per camera (k,).
     """
     R = T_ref_c[:, :3, :3]
     C = T_ref_c[:, :3, 3]
@@ -122,9 +120,28 @@ def base_plane_homographies(T_ref_c: np.ndarray, z_base: float, K: np.ndarray) -
     return K @ middle @ R @ np.linalg.inv(K)
 
 
+@kernel
+def _project(pixels, homographies, starts, out, hits):
+    """``out[i] = (H x_i)_xy / (H x_i)_z`` with ``H`` the homography of the packet ``[starts[j], starts[j + 1])``
+    holding pixel ``i``; where ``(H x_i)_z <= 0`` (``hits[i]`` False) the division is by 1."""
+    for j in range(len(starts) - 1):
+        H = homographies[j]
+        for i in range(starts[j], starts[j + 1]):
+            x, y = np.float64(pixels[i, 0]), np.float64(pixels[i, 1])
+            u = x * H[0, 0] + y * H[0, 1] + H[0, 2]
+            v = x * H[1, 0] + y * H[1, 1] + H[1, 2]
+            w = x * H[2, 0] + y * H[2, 1] + H[2, 2]
+            hit = w > 0
+            if not hit:
+                w = 1.0
+            hits[i] = hit
+            out[i, 0] = u / w
+            out[i, 1] = v / w
+
+
 def project_packets(pixels: np.ndarray, homographies: np.ndarray, sizes: np.ndarray
                     ) -> tuple[np.ndarray, np.ndarray]:
-    """Apply one homography per packet of consecutive pixels.
+    """Apply one homography per packet of consecutive pixels (one compiled pass).
 
     Parameters
     ----------
@@ -133,7 +150,7 @@ def project_packets(pixels: np.ndarray, homographies: np.ndarray, sizes: np.ndar
     homographies : ndarray, shape (k, 3, 3)
         From :func:`base_plane_homographies`.
     sizes : ndarray, shape (k,)
-        Events per packet (sum N); all but the last equal.
+        Events per packet (sum N).
 
     Returns
     -------
@@ -142,16 +159,15 @@ def project_packets(pixels: np.ndarray, homographies: np.ndarray, sizes: np.ndar
     hits : ndarray, shape (N,), bool
         Rays that meet the plane in front of their camera.
     """
-    out = np.empty((len(pixels), 3))
-    full = len(sizes) - 1 if len(sizes) > 1 and sizes[-1] != sizes[0] else len(sizes)
-    split = int(sizes[0]) * full
-    for start, stop, H in ((0, split, homographies[:full]), (split, len(pixels), homographies[full:])):
-        if stop > start:
-            xy = pixels[start:stop].astype(np.float64).reshape(len(H), -1, 2)
-            out[start:stop] = (xy @ H[:, :, :2].transpose(0, 2, 1) + H[:, None, :, 2]).reshape(-1, 3)
-    hits = out[:, 2] > 0
-    depth = np.where(hits, out[:, 2], 1.0)
-    return out[:, :2] / depth[:, None], hits
+    sizes = np.asarray(sizes, dtype=np.int64)
+    if len(sizes) != len(homographies) or sizes.sum() != len(pixels):
+        raise ValueError(f"{len(homographies)} homographies and packet sizes summing to {sizes.sum()} "
+                         f"for {len(sizes)} packets of {len(pixels)} pixels")
+    starts = np.concatenate([[0], np.cumsum(sizes)])
+    out = np.empty((len(pixels), 2))
+    hits = np.empty(len(pixels), bool)
+    _project(np.ascontiguousarray(pixels), np.ascontiguousarray(homographies, dtype=np.float64), starts, out, hits)
+    return out, hits
 
 
 @kernel
@@ -214,141 +230,3 @@ def splat_votes(dsi: np.ndarray, positions: np.ndarray, transfer: PlaneTransfer)
         x = a * positions[None, :, 0] + transfer.offsets[chunk, 0, None]
         y = a * positions[None, :, 1] + transfer.offsets[chunk, 1, None]
         dsi[chunk] += bilinear_splat(x, y, None, width, height).astype(np.float32)
-
-
-def _canvas(positions: np.ndarray, transfer: PlaneTransfer, width: int, height: int
-            ) -> tuple[int, int, int, int] | None:
-    """Base-plane rectangle ``(x0, y0, x1, y1)`` (inclusive) holding every vote that reaches the image."""
-    planes = transfer.valid
-    a = transfer.scales[planes]
-    b = transfer.offsets[planes]
-    # Base-plane points that some plane maps into [-1, W] x [-1, H] (the reach of a bilinear gather).
-    reach_lo = np.min((-1.0 - b) / a[:, None], axis=0)
-    reach_hi = np.max((np.array([width, height]) - b) / a[:, None], axis=0)
-    xs, ys = positions[:, 0], positions[:, 1]
-    lo = np.maximum(np.floor([xs.min(), ys.min()]), np.floor(reach_lo))
-    hi = np.minimum(np.floor([xs.max(), ys.max()]) + 1, np.ceil(reach_hi))
-    if np.any(hi < lo):
-        return None
-    return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
-
-
-def _phase_images(positions: np.ndarray, x0: int, y0: int, width: int, height: int, subpixel: int,
-                  x_phases: np.ndarray, y_phases: np.ndarray) -> np.ndarray:
-    """Bilinear votes (len(y_phases), len(x_phases), height, width) float32 on sub-pixel-shifted grids.
-
-    Layer ``[m, n]`` holds the cells centred at base-plane pixels
-    ``(x0 + k + x_phases[n] / S, y0 + l + y_phases[m] / S)``: exactly the
-    bilinear splat of the positions (N, 2) shifted by ``-(x_phases[n], y_phases[m]) / S``.
-    Along an axis with several phases the positions are splatted on a grid
-    ``S`` times finer (sub-cell ``J`` centred at ``x0 + J / S``) and two box
-    filters of ``S`` sub-cells make the triangle of half-width ``S`` sub-cells,
-    whose linear interpolation of that splat is the 1-pixel bilinear tent;
-    along an axis with one phase the shifted positions are splatted directly.
-    """
-    S = subpixel
-    sx = S if len(x_phases) > 1 else 1
-    sy = S if len(y_phases) > 1 else 1
-    layers = len(x_phases) * len(y_phases)
-    if len(positions) * layers <= _DIRECT_SPLATS_PER_CELL * sx * sy * width * height:
-        # Few events for the fine grid: splat each needed shift directly (one compiled pass).
-        shift_x = np.tile(x_phases / S, len(y_phases))[:, None]
-        shift_y = np.repeat(y_phases / S, len(x_phases))[:, None]
-        u = positions[None, :, 0] - x0 - shift_x
-        v = positions[None, :, 1] - y0 - shift_y
-        images = bilinear_splat(u, v, None, width, height).astype(np.float32)
-        return images.reshape(len(y_phases), len(x_phases), height, width)
-    u = (positions[:, 0] - x0 - (x_phases[0] / S if sx == 1 else 0.0)) * sx
-    v = (positions[:, 1] - y0 - (y_phases[0] / S if sy == 1 else 0.0)) * sy
-    fine = bilinear_splat(u[None], v[None], None, sx * width, sy * height)[0].astype(np.float32)
-    if sx == sy == 1:
-        return fine[None, None]
-    once = cv2.boxFilter(fine, -1, (sx, sy), anchor=(0, 0), normalize=False, borderType=cv2.BORDER_CONSTANT)
-    tent = cv2.boxFilter(once, -1, (sx, sy), anchor=(sx - 1, sy - 1), normalize=True,
-                         borderType=cv2.BORDER_CONSTANT)
-    # tent[sy l + j, sx k + i] is cell (l, k) of the grid shifted by (i, j) / S.
-    grid = tent.reshape(height, sy, width, sx)
-    rows = y_phases if sy > 1 else np.zeros(1, np.int64)
-    cols = x_phases if sx > 1 else np.zeros(1, np.int64)
-    return np.ascontiguousarray(grid[:, rows][:, :, :, cols].transpose(1, 3, 0, 2))
-
-
-def _add_at_offset(target: np.ndarray, image: np.ndarray, qx: int, qy: int) -> None:
-    """``target[p] += image[p + q]`` over the overlap (integer offset ``q``, in place)."""
-    height, width = target.shape
-    image_h, image_w = image.shape
-    lo_x, lo_y = max(0, -qx), max(0, -qy)
-    hi_x, hi_y = min(width, image_w - qx), min(height, image_h - qy)
-    if hi_x <= lo_x or hi_y <= lo_y:
-        return
-    region = target[lo_y:hi_y, lo_x:hi_x]
-    cv2.add(region, image[lo_y + qy: hi_y + qy, lo_x + qx: hi_x + qx], dst=region)
-
-
-def _warp_add(target: np.ndarray, image: np.ndarray, scale: float, offset: np.ndarray, x0: int, y0: int) -> None:
-    """``target[p] += image((p - offset) / scale - (x0, y0)) / scale**2`` (bilinear gather, ``cv2.warpAffine``)."""
-    height, width = target.shape
-    canvas_h, canvas_w = image.shape
-    a = scale
-    bx, by = float(offset[0]), float(offset[1])
-    x1, y1 = x0 + canvas_w - 1, y0 + canvas_h - 1
-    # Destination rectangle that the canvas can reach.
-    rx0, ry0 = max(0, int(np.floor(a * (x0 - 1) + bx))), max(0, int(np.floor(a * (y0 - 1) + by)))
-    rx1 = min(width, int(np.ceil(a * (x1 + 1) + bx)) + 1)
-    ry1 = min(height, int(np.ceil(a * (y1 + 1) + by)) + 1)
-    if rx1 <= rx0 or ry1 <= ry0:
-        return
-    # Destination pixel p (relative to the rectangle) reads canvas ((p + r0 - b) / a - x0).
-    matrix = np.array([[1.0 / a, 0.0, (rx0 - bx) / a - x0], [0.0, 1.0 / a, (ry0 - by) / a - y0]])
-    warped = cv2.warpAffine(image, matrix, (rx1 - rx0, ry1 - ry0), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
-                            borderMode=cv2.BORDER_CONSTANT, borderValue=0.0)
-    region = target[ry0:ry1, rx0:rx1]
-    cv2.scaleAdd(warped, 1.0 / (a * a), region, dst=region)
-
-
-def gather_votes(dsi: np.ndarray, positions: np.ndarray, transfer: PlaneTransfer, *, subpixel: int = 4) -> None:
-    """Add the votes of base-plane positions (N, 2) to ``dsi`` by splatting once and shifting per plane.
-
-    A plane whose transfer is a translation to within ``1/(2S)`` px over the
-    splat (``|a_i - 1|`` times its half-diagonal; ``S = subpixel``) receives
-    the bilinear splat of the positions on a grid shifted by a multiple of
-    ``1/S`` px, added at an integer offset: the exact bilinear votes with
-    the plane's offset rounded to ``1/S`` px. The grids are made once per call
-    (:func:`_phase_images`), only for the sub-pixel phases that some plane
-    needs. Other planes (a camera moving along its axis) receive the
-    unshifted splat resampled by ``cv2.warpAffine`` (bilinear gather at 1/32 px,
-    times ``1 / a_i**2`` so that every event keeps one vote per plane). Falls
-    back to :func:`splat_votes` when the events spread over a base-plane
-    area of more than 16 reference images.
-    """
-    _, height, width = dsi.shape
-    if not len(positions) or not transfer.valid.any():
-        return
-    box = _canvas(positions, transfer, width, height)
-    if box is None:
-        return
-    x0, y0, x1, y1 = box[0] - 1, box[1] - 1, box[2], box[3]
-    canvas_w, canvas_h = x1 - x0 + 1, y1 - y0 + 1
-    if canvas_w * canvas_h > _MAX_CANVAS_IMAGES * width * height:
-        splat_votes(dsi, positions, transfer)
-        return
-    planes = np.flatnonzero(transfer.valid)
-    centre = np.array([x0 + x1, y0 + y1]) / 2.0
-    half_diagonal = 0.5 * float(np.hypot(canvas_w, canvas_h))
-    shifted = np.abs(transfer.scales[planes] - 1.0) * half_diagonal <= 0.5 / subpixel
-    if shifted.any():
-        moving = planes[shifted]
-        # x_i = a x + b = x + b + (a - 1) x, with (a - 1) x taken at the canvas centre; plane i reads
-        # base pixel p - r / S = p + q + phase / S (r the shift in 1/S px).
-        shift = transfer.offsets[moving] + (transfer.scales[moving, None] - 1.0) * centre
-        q, phase = np.divmod(-np.round(shift * subpixel).astype(np.int64), subpixel)
-        x_phases, x_index = np.unique(phase[:, 0], return_inverse=True)
-        y_phases, y_index = np.unique(phase[:, 1], return_inverse=True)
-        images = _phase_images(positions, x0, y0, canvas_w, canvas_h, subpixel, x_phases, y_phases)
-        for i, (qx, qy), n, m in zip(moving, q, x_index, y_index):
-            _add_at_offset(dsi[i], images[m, n], int(qx) - x0, int(qy) - y0)
-    if not shifted.all():
-        image = bilinear_splat((positions[None, :, 0] - x0), (positions[None, :, 1] - y0), None,
-                               canvas_w, canvas_h)[0].astype(np.float32)
-        for i in planes[~shifted]:
-            _warp_add(dsi[i], image, float(transfer.scales[i]), transfer.offsets[i], x0, y0)

@@ -16,10 +16,12 @@ from typing import TYPE_CHECKING
 import cv2
 import numpy as np
 
+from cmax._jit import kernel
+
 if TYPE_CHECKING:  # pragma: no cover
     from cmax import viz
 
-__all__ = ["DSI", "SemiDenseDepth", "semi_dense_depth", "depth_scale_bar", "write_ply", "NoBaselineWarning",
+__all__ = ["DSI", "SemiDenseDepth", "semi_dense_depth", "plane_argmax", "depth_scale_bar", "write_ply", "NoBaselineWarning",
            "MIN_PARALLAX_PX"]
 
 #: Below this parallax [px] between the nearest and the farthest plane, no depth is given.
@@ -154,6 +156,48 @@ def _masked_median(depth: np.ndarray, mask: np.ndarray, size: int) -> np.ndarray
     return out
 
 
+@kernel
+def _argmax_planes(votes, index, best):
+    """First plane of the largest vote per cell of ``votes`` (P, n): ``index`` (n,) int64, ``best`` (n,)."""
+    index[:] = 0
+    best[:] = votes[0]
+    for k in range(1, votes.shape[0]):
+        plane = votes[k]
+        for i in range(votes.shape[1]):
+            value = plane[i]
+            # np.argmax: the first maximum, and the first NaN when there is one.
+            if value > best[i] or (value != value and best[i] == best[i]):
+                best[i] = value
+                index[i] = k
+
+
+def plane_argmax(votes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """``np.argmax(votes, axis=0)`` and the maximum itself, in one pass over the planes.
+
+    Parameters
+    ----------
+    votes : ndarray, shape (n_planes, H, W), float32 or float64
+        Must have at least one plane.
+
+    Returns
+    -------
+    index : ndarray, shape (H, W), int64
+        First plane of the largest vote (of the first NaN, as ``np.argmax``).
+    maximum : ndarray, shape (H, W), float32
+        ``votes[index]`` cast to float32.
+    """
+    if votes.ndim != 3 or votes.shape[0] < 1:
+        raise ValueError(f"votes must have shape (n_planes, H, W) with n_planes >= 1, got {votes.shape}")
+    if votes.dtype not in (np.float32, np.float64):
+        index = np.argmax(votes, axis=0)
+        return index, np.take_along_axis(votes, index[None], axis=0)[0].astype(np.float32)
+    flat = np.ascontiguousarray(votes).reshape(votes.shape[0], -1)
+    index = np.empty(flat.shape[1], np.int64)
+    best = np.empty(flat.shape[1], votes.dtype)
+    _argmax_planes(flat, index, best)
+    return index.reshape(votes.shape[1:]), best.astype(np.float32).reshape(votes.shape[1:])
+
+
 def semi_dense_depth(dsi: DSI, *, threshold_kernel: int = 5, threshold_c: float = 5.0,
                      median_size: int = 5, seconds: float | None = None) -> SemiDenseDepth:
     """Depth map of a DSI: argmax along depth, confidence, adaptive Gaussian mask, median filter.
@@ -180,9 +224,7 @@ def semi_dense_depth(dsi: DSI, *, threshold_kernel: int = 5, threshold_c: float 
         translation every plane gets the same votes, and the argmax would be the
         near plane, a confident wrong answer.
     """
-    votes = dsi.votes
-    index = np.argmax(votes, axis=0)
-    confidence = np.take_along_axis(votes, index[None], axis=0)[0].astype(np.float32)
+    index, confidence = plane_argmax(dsi.votes)
     peak = float(confidence.max())
     no_baseline = bool(dsi.parallax_px < MIN_PARALLAX_PX)  # False for NaN (unknown)
     if no_baseline:
