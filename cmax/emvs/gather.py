@@ -188,10 +188,10 @@ class ShiftedAdditions:
     before anything else writes to the planes, and at the end.
     """
 
-    def __init__(self, dsi: np.ndarray, pool_floats: int = _POOL_FLOATS) -> None:
+    def __init__(self, dsi: np.ndarray, pool_floats: int | None = None) -> None:
         self.dsi = dsi
         self._pool = np.empty(0, np.float32)
-        self._pool_floats = int(pool_floats)
+        self._pool_floats = _POOL_FLOATS if pool_floats is None else int(pool_floats)
         self._used = 0
         self._starts: list[np.ndarray] = []
         self._shapes: list[tuple[int, int, int]] = []
