@@ -39,21 +39,40 @@ _POOL_FLOATS = 1 << 23
 _BAND_BYTES = 1 << 19
 
 
+@kernel
+def _canvas_box(positions, scales, offsets, valid, width, height, box):
+    """``box`` (4,) float64 = ``(x0, y0, x1, y1)`` of :func:`_canvas` (``x1 < x0`` or ``y1 < y0``: empty)."""
+    reach_lo_x, reach_lo_y, reach_hi_x, reach_hi_y = np.inf, np.inf, -np.inf, -np.inf
+    for i in range(scales.shape[0]):
+        if valid[i]:
+            a = scales[i]
+            reach_lo_x = min(reach_lo_x, (-1.0 - offsets[i, 0]) / a)
+            reach_lo_y = min(reach_lo_y, (-1.0 - offsets[i, 1]) / a)
+            reach_hi_x = max(reach_hi_x, (width - offsets[i, 0]) / a)
+            reach_hi_y = max(reach_hi_y, (height - offsets[i, 1]) / a)
+    lo_x, lo_y, hi_x, hi_y = positions[0, 0], positions[0, 1], positions[0, 0], positions[0, 1]
+    for i in range(1, positions.shape[0]):
+        lo_x, hi_x = min(lo_x, positions[i, 0]), max(hi_x, positions[i, 0])
+        lo_y, hi_y = min(lo_y, positions[i, 1]), max(hi_y, positions[i, 1])
+    box[0] = max(np.floor(lo_x), np.floor(reach_lo_x))
+    box[1] = max(np.floor(lo_y), np.floor(reach_lo_y))
+    box[2] = min(np.floor(hi_x) + 1.0, np.ceil(reach_hi_x))
+    box[3] = min(np.floor(hi_y) + 1.0, np.ceil(reach_hi_y))
+
+
 def _canvas(positions: np.ndarray, transfer: PlaneTransfer, width: int, height: int
             ) -> tuple[int, int, int, int] | None:
-    """Base-plane rectangle ``(x0, y0, x1, y1)`` (inclusive) holding every vote that reaches the image."""
-    planes = transfer.valid
-    a = transfer.scales[planes]
-    b = transfer.offsets[planes]
-    # Base-plane points that some plane maps into [-1, W] x [-1, H] (the reach of a bilinear gather).
-    reach_lo = np.min((-1.0 - b) / a[:, None], axis=0)
-    reach_hi = np.max((np.array([width, height]) - b) / a[:, None], axis=0)
-    xs, ys = positions[:, 0], positions[:, 1]
-    lo = np.maximum(np.floor([xs.min(), ys.min()]), np.floor(reach_lo))
-    hi = np.minimum(np.floor([xs.max(), ys.max()]) + 1, np.ceil(reach_hi))
-    if np.any(hi < lo):
+    """Base-plane rectangle ``(x0, y0, x1, y1)`` (inclusive) holding every vote that reaches the image.
+
+    The positions' bounding box, cut to the base-plane points that some valid
+    plane maps into ``[-1, W] x [-1, H]`` (the reach of a bilinear gather);
+    ``None`` when they do not meet. ``positions`` (N, 2) float64 [px], N >= 1.
+    """
+    box = np.empty(4)
+    _canvas_box(positions, transfer.scales, transfer.offsets, transfer.valid, float(width), float(height), box)
+    if box[2] < box[0] or box[3] < box[1]:
         return None
-    return int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1])
+    return int(box[0]), int(box[1]), int(box[2]), int(box[3])
 
 
 def _phase_images(positions: np.ndarray, x0: int, y0: int, width: int, height: int, subpixel: int,
@@ -107,13 +126,19 @@ def _splat_shifted(positions, x0, y0, shift_x, shift_y, out, scratch):
     u = np.empty((1, n))
     v = np.empty((1, n))
     no_weights = np.zeros((0, 0))
+    sums = scratch[0]
+    sums[:] = 0.0
     for k in range(out.shape[0]):
         for i in range(n):
             u[0, i] = positions[i, 0] - x0 - shift_x[k]
             v[0, i] = positions[i, 1] - y0 - shift_y[k]
-        scratch[:] = 0.0
         _splat_layers(u, v, no_weights, scratch)
-        out[k] = scratch[0]
+        layer = out[k]
+        for y in range(sums.shape[0]):  # cast, and zero the sums for the next layer, in one pass
+            row, cast = sums[y], layer[y]
+            for x in range(sums.shape[1]):
+                cast[x] = row[x]
+                row[x] = 0.0
 
 
 @kernel
@@ -296,8 +321,13 @@ def gather_votes(dsi: np.ndarray, positions: np.ndarray, transfer: PlaneTransfer
         # base pixel p - r / S = p + q + phase / S (r the shift in 1/S px).
         shift = transfer.offsets[moving] + (transfer.scales[moving, None] - 1.0) * centre
         q, phase = np.divmod(-np.round(shift * subpixel).astype(np.int64), subpixel)
-        x_phases, x_index = np.unique(phase[:, 0], return_inverse=True)
-        y_phases, y_index = np.unique(phase[:, 1], return_inverse=True)
+        # The phases some plane needs (sorted), and each plane's rank among them.
+        present = np.zeros((2, subpixel), bool)
+        present[0, phase[:, 0]] = True
+        present[1, phase[:, 1]] = True
+        rank = np.cumsum(present, axis=1) - 1
+        x_phases, y_phases = np.flatnonzero(present[0]), np.flatnonzero(present[1])
+        x_index, y_index = rank[0, phase[:, 0]], rank[1, phase[:, 1]]
         images = additions.images(len(x_phases) * len(y_phases), canvas_h, canvas_w)
         _phase_images(positions, x0, y0, canvas_w, canvas_h, subpixel, x_phases, y_phases,
                       images.reshape(len(y_phases), len(x_phases), canvas_h, canvas_w))
