@@ -231,3 +231,25 @@ def test_emvs_splat_voting_equals_group_by_group_too():
     events, camera, trajectory = _events_and_trajectory("general", n=8000)
     emvs = EMVS(camera, depth_range=(0.8, 6.0), n_planes=12, voting="splat", events_per_transfer=2048)
     np.testing.assert_array_equal(emvs.dsi(events, trajectory).votes, _dsi_group_by_group(emvs, events, trajectory))
+
+
+# -- the median filter of the depth ----------------------------------------------------------------
+@pytest.mark.parametrize("size", [3, 5])
+def test_masked_median_equals_nanmedian_of_each_window(size):
+    from cmax.emvs.result import _masked_median
+
+    rng = np.random.default_rng(8)
+    depth = rng.choice(plane_depths((0.5, 5.0), 30), (21, 27)).astype(np.float32)  # ties, as plane depths
+    depth[:, :9] = rng.uniform(0.5, 5.0, (21, 9)).astype(np.float32)              # and distinct values
+    mask = rng.random(depth.shape) < 0.45
+    out = _masked_median(depth, mask, size)
+    radius = size // 2
+    expected = np.full(depth.shape, np.nan, np.float32)
+    for r, c in zip(*np.nonzero(mask)):
+        window = np.where(mask, depth, np.nan)[max(0, r - radius): r + radius + 1, max(0, c - radius): c + radius + 1]
+        expected[r, c] = np.nanmedian(window)
+    counts = [int(mask[max(0, r - radius): r + radius + 1, max(0, c - radius): c + radius + 1].sum())
+              for r, c in zip(*np.nonzero(mask))]
+    assert any(n % 2 == 0 for n in counts) and any(n % 2 == 1 for n in counts)  # both kinds of middle
+    np.testing.assert_array_equal(out, expected)
+    assert np.isnan(_masked_median(depth, np.zeros_like(mask), size)).all()

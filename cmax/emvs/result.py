@@ -142,17 +142,43 @@ class SemiDenseDepth:
         return write_ply(path, self.points, binary=binary)
 
 
+@kernel
+def _median_kernel(depth, mask, radius, out):
+    """``out[r, c]`` = median of ``depth`` over the masked pixels of the window around each masked ``(r, c)``.
+
+    float32 arithmetic as ``np.nanmedian``: the middle value, or the float32 sum of the two middle
+    values halved.
+    """
+    height, width = depth.shape
+    values = np.empty((2 * radius + 1) ** 2, depth.dtype)
+    for r in range(height):
+        for c in range(width):
+            if not mask[r, c]:
+                continue
+            n = 0
+            for y in range(max(0, r - radius), min(height, r + radius + 1)):
+                for x in range(max(0, c - radius), min(width, c + radius + 1)):
+                    if mask[y, x]:
+                        value = depth[y, x]
+                        j = n  # insertion sort of the few window values
+                        while j > 0 and values[j - 1] > value:
+                            values[j] = values[j - 1]
+                            j -= 1
+                        values[j] = value
+                        n += 1
+            middle = n // 2
+            out[r, c] = values[middle] if n % 2 else (values[middle - 1] + values[middle]) / 2
+
+
 def _masked_median(depth: np.ndarray, mask: np.ndarray, size: int) -> np.ndarray:
-    """Median of the masked depths in the ``size`` x ``size`` window of every masked pixel (H, W) float32."""
-    if not mask.any():
-        return np.full(depth.shape, np.nan, np.float32)
-    radius = size // 2
-    values = np.where(mask, depth, np.nan).astype(np.float32)
-    padded = np.pad(values, radius, constant_values=np.nan)
-    windows = np.lib.stride_tricks.sliding_window_view(padded, (size, size))
-    rows, cols = np.nonzero(mask)
+    """Median of the masked depths in the ``size`` x ``size`` window of every masked pixel (H, W) float32.
+
+    NaN outside the mask; the masked depths must be finite. One compiled pass.
+    """
     out = np.full(depth.shape, np.nan, np.float32)
-    out[rows, cols] = np.nanmedian(windows[rows, cols].reshape(len(rows), -1), axis=1)
+    if mask.any():
+        _median_kernel(np.ascontiguousarray(depth, dtype=np.float32), np.ascontiguousarray(mask, dtype=bool),
+                       size // 2, out)
     return out
 
 
