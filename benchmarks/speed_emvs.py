@@ -247,7 +247,7 @@ def emvs_report(args: argparse.Namespace):
                     {"repeats": repeats, "events": n, "sensor": f"{SIZE[0]}x{SIZE[1]}", "planes": PLANES,
                      "depth_range_m": depth_range, "scene": f"slider seed 0, {duration} s, ground-truth poses",
                      "floor_scene": f"slider seed 0, {floor_duration} s ({len(long[0]) if long else 0} events)",
-                     "opencv_threads": cv2.getNumThreads(), "clock": CLOCK[0]})
+                     "opencv_threads": cv2.getNumThreads()})
     gather = EMVS(camera, depth_range=depth_range, n_planes=PLANES)
     splat = EMVS(camera, depth_range=depth_range, n_planes=PLANES, voting="splat")
     port = lambda: semi_dense_depth(numpy_port_dsi(events, camera, *poses, depth_range, PLANES))  # noqa: E731
