@@ -53,12 +53,20 @@ def test_add_shifted_equals_the_additions_one_after_the_other(monkeypatch, band_
     assert not np.array_equal(out, base)
 
 
-def test_add_shifted_refuses_a_dsi_it_cannot_write():
+def test_add_shifted_refuses_what_it_cannot_read_or_write():
     images, pool, start, shapes, plane, layer, offset, base = _random_additions(np.random.default_rng(2))
     with pytest.raises(ValueError, match="float32"):
         add_shifted(base.astype(np.float64), pool, start, shapes, plane, layer, offset)
     with pytest.raises(ValueError, match="C-contiguous"):
         add_shifted(base[:, :, ::2], pool, start, shapes, plane, layer, offset)
+    with pytest.raises(ValueError, match="pool must be"):
+        add_shifted(base, pool.astype(np.float64), start, shapes, plane, layer, offset)
+    with pytest.raises(ValueError, match="inside the pool"):
+        add_shifted(base, pool[:-1], start, shapes, plane, layer, offset)  # the last image runs past the end
+    with pytest.raises(ValueError, match="planes of the DSI"):
+        add_shifted(base, pool, start, shapes, plane + base.shape[0], layer, offset)
+    with pytest.raises(ValueError, match="images of the pool"):
+        add_shifted(base, pool, start, shapes, plane, layer - 100, offset)
 
 
 def test_shifted_additions_flush_when_their_buffer_is_full():
@@ -253,3 +261,32 @@ def test_masked_median_equals_nanmedian_of_each_window(size):
     assert any(n % 2 == 0 for n in counts) and any(n % 2 == 1 for n in counts)  # both kinds of middle
     np.testing.assert_array_equal(out, expected)
     assert np.isnan(_masked_median(depth, np.zeros_like(mask), size)).all()
+
+
+def _canvas_numpy(positions, transfer, width, height):
+    """The canvas box written with numpy reductions (as the gather path computed it before)."""
+    a = transfer.scales[transfer.valid]
+    b = transfer.offsets[transfer.valid]
+    reach_lo = np.min((-1.0 - b) / a[:, None], axis=0)
+    reach_hi = np.max((np.array([width, height]) - b) / a[:, None], axis=0)
+    lo = np.maximum(np.floor(positions.min(axis=0)), np.floor(reach_lo))
+    hi = np.minimum(np.floor(positions.max(axis=0)) + 1, np.ceil(reach_hi))
+    return None if np.any(hi < lo) else (int(lo[0]), int(lo[1]), int(hi[0]), int(hi[1]))
+
+
+def test_canvas_box_equals_numpy_reductions():
+    K = np.array([[100.0, 0, 60], [0, 100, 45], [0, 0, 1]])
+    depths = plane_depths((1.0, 4.0), 20)
+    rng = np.random.default_rng(9)
+    boxes = []
+    for trial in range(30):
+        transfer = plane_transfer(rng.normal(0, 0.3, 3) * [1, 1, 0.5], depths, K)
+        if transfer is None:
+            continue
+        spread = 10.0 ** rng.uniform(0, 3.5)  # from inside the image to far beyond what any plane sees
+        centre = [60, 45] if trial % 3 else [60 + 2e4 * rng.choice([-1, 1]), 45]  # or where no plane sees
+        positions = rng.normal(centre, spread, (int(rng.integers(1, 500)), 2))
+        box = gather_module._canvas(positions, transfer, 120, 90)
+        assert box == _canvas_numpy(positions, transfer, 120, 90)
+        boxes.append(box)
+    assert None in boxes and any(box is not None for box in boxes)

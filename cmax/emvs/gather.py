@@ -191,16 +191,24 @@ def add_shifted(dsi: np.ndarray, pool: np.ndarray, layer_start: np.ndarray, laye
     """
     if dsi.dtype != np.float32 or not dsi.flags.c_contiguous or dsi.ndim != 3:
         raise ValueError("dsi must be a C-contiguous float32 array (n_planes, H, W)")
+    if pool.dtype != np.float32 or pool.ndim != 1 or not pool.flags.c_contiguous:
+        raise ValueError("pool must be a contiguous 1-D float32 array")
+    shape = np.asarray(layer_shape, dtype=np.int64).reshape(-1, 2)
+    layer_start = np.asarray(layer_start, dtype=np.int64)
+    plane, layer = np.asarray(plane, dtype=np.int64), np.asarray(layer, dtype=np.int64)
+    if len(layer_start) != len(shape) or np.any(shape < 1) or np.any(layer_start < 0) or np.any(
+            layer_start + shape[:, 0] * shape[:, 1] > len(pool)):
+        raise ValueError(f"{len(layer_start)} images of {len(shape)} shapes must lie inside the pool of {len(pool)}")
+    if np.any((layer < 0) | (layer >= len(shape))) or np.any((plane < 0) | (plane >= dsi.shape[0])):
+        raise ValueError("additions must name images of the pool and planes of the DSI")
     if not len(plane):
         return
     band = max(1, _BAND_BYTES // (dsi.shape[0] * dsi.shape[2] * 4))
-    shape = np.asarray(layer_shape, dtype=np.int64)
     # Plane by plane (a band of one plane stays in L1 while its additions run), in order within a plane.
     order = np.argsort(plane, kind="stable")
     offset = np.asarray(offset, dtype=np.int64)[order]
-    _add_shifted(dsi, pool, np.ascontiguousarray(layer_start, dtype=np.int64), shape[:, 0].copy(),
-                 shape[:, 1].copy(), np.asarray(plane, dtype=np.int64)[order],
-                 np.asarray(layer, dtype=np.int64)[order], offset[:, 0].copy(), offset[:, 1].copy(), band)
+    _add_shifted(dsi, pool, np.ascontiguousarray(layer_start), shape[:, 0].copy(), shape[:, 1].copy(),
+                 plane[order], layer[order], offset[:, 0].copy(), offset[:, 1].copy(), band)
 
 
 class ShiftedAdditions:
