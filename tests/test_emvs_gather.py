@@ -1,4 +1,4 @@
-"""EMVS fast path: batched image additions, one-pass argmax, vectorized transfers, and the same DSI as group by group."""
+"""EMVS fast path: batched image additions, one-pass argmax and median, vectorized transfers, the same DSI."""
 from __future__ import annotations
 
 import numpy as np

@@ -30,8 +30,8 @@ import numpy as np
 
 from cmax._jit import kernel
 
-__all__ = ["plane_depths", "PlaneTransfer", "plane_transfer", "plane_transfers", "base_plane_homographies", "project_packets",
-           "splat_votes", "bilinear_splat"]
+__all__ = ["plane_depths", "PlaneTransfer", "plane_transfer", "plane_transfers", "base_plane_homographies",
+           "project_packets", "splat_votes", "bilinear_splat"]
 
 #: Votes per np.bincount call of :func:`splat_votes` (bounds its temporaries).
 _VOTES_PER_CHUNK = 1 << 21

@@ -21,8 +21,8 @@ from cmax._jit import kernel
 if TYPE_CHECKING:  # pragma: no cover
     from cmax import viz
 
-__all__ = ["DSI", "SemiDenseDepth", "semi_dense_depth", "plane_argmax", "depth_scale_bar", "write_ply", "NoBaselineWarning",
-           "MIN_PARALLAX_PX"]
+__all__ = ["DSI", "SemiDenseDepth", "semi_dense_depth", "plane_argmax", "depth_scale_bar", "write_ply",
+           "NoBaselineWarning", "MIN_PARALLAX_PX"]
 
 #: Below this parallax [px] between the nearest and the farthest plane, no depth is given.
 MIN_PARALLAX_PX = 1.0
