@@ -188,6 +188,16 @@ def add_shifted(dsi: np.ndarray, pool: np.ndarray, layer_start: np.ndarray, laye
 
     Additions to the same cell happen in the order of ``a``: the result is that of
     adding one image after the other (float32).
+
+    Examples
+    --------
+    One 2 x 3 image added to plane 1, read one column to the right (``qx = 1``):
+
+    >>> dsi = np.zeros((2, 2, 3), np.float32)
+    >>> pool = np.arange(1, 7, dtype=np.float32)  # the image [[1, 2, 3], [4, 5, 6]]
+    >>> add_shifted(dsi, pool, np.array([0]), np.array([[2, 3]]), np.array([1]), np.array([0]), np.array([[1, 0]]))
+    >>> dsi[1].tolist()
+    [[2.0, 3.0, 0.0], [5.0, 6.0, 0.0]]
     """
     if dsi.dtype != np.float32 or not dsi.flags.c_contiguous or dsi.ndim != 3:
         raise ValueError("dsi must be a C-contiguous float32 array (n_planes, H, W)")
