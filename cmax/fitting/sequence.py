@@ -7,7 +7,8 @@ import numpy as np
 
 from cmax.events import Events
 from cmax.fitting.api import FitResult, fit
-from cmax.fitting.quality import QualitySettings, Verdict, choose_from_neighbours
+from cmax.fitting.quality import Verdict, choose_from_neighbours
+from cmax.fitting.settings import FitSettings
 from cmax.geometry import se3_exp
 
 __all__ = ["SequenceResult", "fit_sequence", "check_gyro", "window_gyro"]
@@ -77,7 +78,7 @@ def window_gyro(gyro: tuple[np.ndarray, np.ndarray], t0_us: int, t1_us: int) -> 
 
 def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_500, step_us: int | None = None,
                  speed: float | None = None, gyro: object = None, min_events: int = 1000,
-                 quality: QualitySettings | None = None, **fit_options) -> SequenceResult:
+                 **fit_options) -> SequenceResult:
     """Fit consecutive windows of a recording, warm-starting each from the previous; resolve the
     ambiguous windows from their neighbours.
 
@@ -100,19 +101,20 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         The samples must span every window (checked before the first fit).
     min_events : int
         Windows with fewer events are skipped (the pose is held by the last twist).
-    quality : QualitySettings, optional
-        The ambiguity test of every window (``fit(..., quality=)``) and the resolution: once all windows
-        are fitted, each ``ambiguous`` window takes, among the fit and its alternatives within noise, the
-        motion closest to its ``ok`` neighbours' (up to ``quality.neighbours`` windows on each side;
+    **fit_options
+        Passed to :func:`fit`: ``settings=`` or fields of :class:`FitSettings` as keywords (not both),
+        ``solver``, ``depth_grid``, ``num_threads``. ``pose``, ``omega`` and ``init`` are set per window
+        here (a TypeError). The settings' ``quality`` (:class:`cmax.fitting.QualitySettings`, e.g.
+        ``fit_sequence(..., quality=QualitySettings(...))``) rules the ambiguity test of every window
+        and the resolution: once all windows are fitted, each ``ambiguous`` window takes, among the fit
+        and its alternatives within noise, the motion closest to its ``ok`` neighbours' (up to
+        ``quality.neighbours`` windows on each side;
         :func:`cmax.fitting.quality.choose_from_neighbours`); an alternative is re-fitted with its motion
         held (the depth swept for it). ``FitResult.quality.resolution`` says what was done, or why the
         window stays unresolved.
-    **fit_options
-        Passed to :func:`fit`.
     """
-    quality = QualitySettings() if quality is None else quality
-    if not isinstance(quality, QualitySettings):
-        raise TypeError(f"quality must be a QualitySettings, got {type(quality).__name__}")
+    settings, fit_options = _sequence_settings(fit_options)
+    quality = settings.quality
     step_us = window_us if step_us is None else int(step_us)
     if window_us <= 0 or step_us <= 0:
         raise ValueError(f"window_us and step_us must be positive, got {window_us}, {step_us}")
@@ -138,11 +140,11 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         if len(events) >= min_events and events.t[-1] > events.t[0]:
             omega = None if gyro is None else window_gyro(gyro, int(events.t[0]), int(events.t[-1]))
             previous = fit(events, K, model, speed=speed if model == "se3" else None, omega=omega, init=previous,
-                           quality=quality, **fit_options)
+                           settings=settings, **fit_options)
             results.append(previous)
         steps.append(len(results) - 1)
         times.append(t0 + step_us)
-    results = _resolve_ambiguous(results, take, K, speed, quality, fit_options)
+    results = _resolve_ambiguous(results, take, K, speed, settings, fit_options)
     poses = [np.eye(4)]
     for index in steps:
         twist = results[index].twist if index >= 0 else np.zeros(6)
@@ -150,10 +152,28 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     return SequenceResult(tuple(results), np.asarray(times, np.int64), np.stack(poses))
 
 
-def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, quality: QualitySettings,
+def _sequence_settings(fit_options: dict) -> tuple[FitSettings, dict]:
+    """The one :class:`FitSettings` of every window of a sequence, from ``settings=`` or the keyword fields
+    among ``fit_options`` (not both), and the other options of :func:`fit`."""
+    taken = sorted({"pose", "omega", "init"} & set(fit_options))
+    if taken:
+        raise TypeError(f"fit_sequence() sets {taken} per window; it does not take them")
+    fields = {k: v for k, v in fit_options.items() if k in FitSettings.__dataclass_fields__}
+    rest = {k: v for k, v in fit_options.items() if k not in fields and k != "settings"}
+    settings = fit_options.get("settings")
+    if settings is not None and fields:
+        raise TypeError(f"fit_sequence() takes settings= or keyword options, not both (got settings and "
+                        f"{sorted(fields)})")
+    if settings is not None and not isinstance(settings, FitSettings):
+        raise TypeError(f"settings must be a FitSettings, got {type(settings).__name__}")
+    return (settings if settings is not None else FitSettings(**fields)), rest
+
+
+def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, settings: FitSettings,
                        fit_options: dict) -> list[FitResult]:
     """Each ambiguous se3 window resolved from its ``ok`` neighbours (:func:`choose_from_neighbours`);
     a chosen alternative is re-fitted with its motion held (``fit(..., pose=)``), its depth swept."""
+    quality = settings.quality
     out = list(results)
     for i, r in enumerate(results):
         if r.verdict is not Verdict.AMBIGUOUS:
@@ -167,7 +187,7 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, q
             out[i] = replace(r, quality=resolved)
             continue
         events = take(r.t0_us, r.t1_us + 1)
-        refit = fit(events, K, "se3", pose=np.r_[chosen.v, chosen.omega], quality=quality, **fit_options)
+        refit = fit(events, K, "se3", pose=np.r_[chosen.v, chosen.omega], settings=settings, **fit_options)
         out[i] = replace(refit, scale_known=speed is not None, quality=replace(resolved, replaced=(r.v, r.omega)),
                          stages=r.stages + refit.stages, seconds=r.seconds + refit.seconds,
                          iterations=r.iterations + refit.iterations, evaluations=r.evaluations + refit.evaluations)
