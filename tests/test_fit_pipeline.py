@@ -311,3 +311,5 @@ def test_quality_is_a_field_of_the_settings():
         fit_sequence(w.events, w.K, "rotation", settings=FitSettings(), quality=q)
     with pytest.raises(TypeError, match="omega"):
         fit_sequence(w.events, w.K, "se3", omega=np.zeros(3))
+    with pytest.raises(ValueError, match="speed applies to model='se3'"):
+        fit_sequence(w.events, w.K, "rotation", speed=1.0)

@@ -91,7 +91,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     window_us, step_us : int
         Window length and the step between window starts [µs] (``step_us`` defaults to ``window_us``).
     speed : float, optional
-        Known speed [m/s] of every window.
+        Known speed [m/s] of every window (se3; a ValueError with another model).
     gyro : (times_us (N,), omega (N, 3)), optional
         Gyroscope samples [µs, rad/s] in the camera's axes and on the events'
         clock (se3): each window's rotation is held at their mean over the
@@ -115,6 +115,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     """
     settings, fit_options = _sequence_settings(fit_options)
     quality = settings.quality
+    if speed is not None and model != "se3":
+        raise ValueError(f"speed applies to model='se3', not {model!r}")
     step_us = window_us if step_us is None else int(step_us)
     if window_us <= 0 or step_us <= 0:
         raise ValueError(f"window_us and step_us must be positive, got {window_us}, {step_us}")
@@ -139,7 +141,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         events = take(t0, t0 + window_us)
         if len(events) >= min_events and events.t[-1] > events.t[0]:
             omega = None if gyro is None else window_gyro(gyro, int(events.t[0]), int(events.t[-1]))
-            previous = fit(events, K, model, speed=speed if model == "se3" else None, omega=omega, init=previous,
+            previous = fit(events, K, model, speed=speed, omega=omega, init=previous,
                            settings=settings, **fit_options)
             results.append(previous)
         steps.append(len(results) - 1)
