@@ -260,6 +260,8 @@ def test_the_new_constants_are_checked():
                         (lambda: FitSettings(collapse_lattice=(0, 3)), "collapse_lattice"),
                         (lambda: FitSettings(collapse_times=(0.0, 1.0)), "collapse_times"),
                         (lambda: FitSettings(low_parallax_px=0.0), "low_parallax_px"),
+                        (lambda: FitSettings(image_scales=(2, 4, 1)), "image_scales"),
+                        (lambda: FitSettings(image_scales=(4, 2)), "image_scales"),
                         (lambda: FitSettings(flow_tolerances=None), "flow_tolerances"),
                         (lambda: FitSettings(quality={"margin": 0.1}), "quality"),
                         (lambda: QualitySettings(motion_cells=(1,)), "motion_cells"),
@@ -289,11 +291,13 @@ def test_the_settings_reach_the_stages():
         rotation = small_rotation()
         loose = fit(rotation.events, rotation.K, model="rotation", tolerances=Tolerances(ftol=1e-2, gtol=1e-1))
         tight = fit(rotation.events, rotation.K, model="rotation")
+        one_scale = fit(rotation.events, rotation.K, model="rotation", image_scales=(1,))
     assert "too few patches" in few.stages[0].stage and "too few" not in base.stages[0].stage
     assert not np.array_equal(scaled.v, base.v)
     assert not np.array_equal(border.inverse_depth_grid, same_pose.inverse_depth_grid)
     assert parallax.verdict is Verdict.LOW_PARALLAX and same_pose.verdict is not Verdict.LOW_PARALLAX
     assert loose.iterations < tight.iterations
+    assert not np.array_equal(one_scale.omega, tight.omega)
 
 
 def test_quality_is_a_field_of_the_settings():

@@ -374,6 +374,10 @@ class FitSettings:
         Iteration limit of each solve of the global-contrast stages at full resolution.
     coarse_iterations : int
         Iteration limit of each solve at a coarser image scale.
+    image_scales : tuple of int or None
+        The coarse-to-fine schedule of the global-contrast stages (``flow``, ``rotation``): image scales,
+        decreasing, ending with 1 (full resolution). None: by the sensor's larger side, ``(4, 2, 1)`` from
+        256 px, ``(2, 1)`` from 96 px, else ``(1,)``.
     tolerances : Tolerances or None
         Stopping tolerances of the global-contrast solves of ``rotation``, the se3 translation starts and
         the motion with the depth held (None: the backend's own).
@@ -428,6 +432,7 @@ class FitSettings:
     translation_starts: int = 6
     iterations: int = 60
     coarse_iterations: int = 20
+    image_scales: tuple[int, ...] | None = None
     start_iterations: int = 25
     tolerances: Tolerances | None = None
     flow_tolerances: Tolerances = RELAXED_TOLERANCES
@@ -478,6 +483,14 @@ class FitSettings:
             raise ValueError(f"collapse_times must be non-zero fractions of the window, got {self.collapse_times!r}")
         object.__setattr__(self, "collapse_times", tuple(float(t) for t in times))
         _tolerances("tolerances", self.tolerances, optional=True)
+        if self.image_scales is not None:
+            scales = tuple(self.image_scales)
+            if (not scales or scales[-1] != 1 or any(not isinstance(k, (int, np.integer)) or isinstance(k, bool)
+                                                     or k < 1 for k in scales)
+                    or any(a <= b for a, b in zip(scales, scales[1:]))):
+                raise ValueError(f"image_scales must be decreasing integers ending with 1 (or None), got "
+                                 f"{self.image_scales!r}")
+            object.__setattr__(self, "image_scales", tuple(int(k) for k in scales))
         _tolerances("flow_tolerances", self.flow_tolerances)
         if not (np.isfinite(self.collapse_weight) and self.collapse_weight >= 0):
             raise ValueError(f"collapse_weight must be >= 0, got {self.collapse_weight!r}")

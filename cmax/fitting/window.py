@@ -100,7 +100,10 @@ class Window:
                                         baseline=self._baselines[scale], on=self.on)
 
     def scales(self) -> tuple[int, ...]:
-        """Image scales of the coarse-to-fine schedule: 4, 2, 1 for sensors of 256 px and more."""
+        """Image scales of the coarse-to-fine schedule: ``settings.image_scales``, or by default 4, 2, 1 for
+        sensors of 256 px and more, 2, 1 from 96 px, else 1."""
+        if self.settings.image_scales is not None:
+            return self.settings.image_scales
         size = max(self.ev.width, self.ev.height)
         return (4, 2, 1) if size >= 256 else (2, 1) if size >= 96 else (1,)
 
