@@ -58,7 +58,8 @@ __all__ = ["Verdict", "QualitySettings", "Alternative", "Quality", "assess", "mo
 class Verdict(str, enum.Enum):
     """The quality of one window's fit, worst first: ``failed`` (a stage failed, ``success`` False),
     ``low_parallax`` (se3: ``parallax_px`` under ``FitSettings.low_parallax_px``; flow/rotation:
-    ``motion_px`` under ``low_motion_px``, or a motion within noise, :func:`motion_within_noise`), ``ambiguous`` (an alternative motion scores within noise), ``ok``."""
+    ``motion_px`` under ``low_motion_px``, or a motion within noise, :func:`motion_within_noise`),
+    ``ambiguous`` (an alternative motion scores within noise), ``ok``."""
 
     OK = "ok"
     AMBIGUOUS = "ambiguous"
@@ -175,8 +176,8 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
     polishing the alternatives with ``solver`` (a :class:`cmax.fitting.solvers.Solver`).
 
     Returns ``(alternatives, note)``: none, and ``note`` saying why, when the window has fewer than
-    ``w.settings.refine.min_patches`` patches with events (nothing to test on); ``note`` also names the alternatives dropped because their
-    polish ended on the fit (within ``settings.distinct_deg``).
+    ``w.settings.refine.min_patches`` patches with events (nothing to test on); ``note`` also names the
+    alternatives dropped because their polish ended on the fit (within ``settings.distinct_deg``).
     """
     refine = w.settings.refine
     patches = make_patches(w, grid=refine.grid, min_events=refine.min_events, max_events=refine.max_events,

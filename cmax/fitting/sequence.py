@@ -114,7 +114,6 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         window stays unresolved.
     """
     settings, fit_options = _sequence_settings(fit_options)
-    quality = settings.quality
     if speed is not None and model != "se3":
         raise ValueError(f"speed applies to model='se3', not {model!r}")
     step_us = window_us if step_us is None else int(step_us)
