@@ -399,11 +399,14 @@ def test_an_event_pushed_out_of_the_image_gets_the_typical_vote_scale():
     that keep it inside)."""
     import torch
 
-    from cmax.fitting.depth_sweep import _vote_scale
+    from cmax.contrast.sweep import vote_scale
 
     score = torch.tensor([[1.0, 4.0, 2.0, 0.0], [3.0, 2.0, 6.0, 5.0], [2.0, 1.0, 1.0, 1.0]])
     inside = torch.tensor([[1.0, 1.0, 1.0, 0.0], [1.0, 1.0, 1.0, 1.0], [1.0, 1.0, 1.0, 1.0]])
-    np.testing.assert_allclose(_vote_scale(score, inside).numpy(), [[3.0, 4.0, 6.0, 4.0]])
+    np.testing.assert_allclose(vote_scale(score, inside).numpy(), [[3.0, 4.0, 6.0, 4.0]])
+    # the quantile of the always-inside events' largest values (3, 4, 6): the lowest, the lower median, the top
+    for quantile, typical in ((0.0, 3.0), (0.5, 4.0), (1.0, 6.0)):
+        np.testing.assert_allclose(vote_scale(score, inside, quantile).numpy(), [[3.0, 4.0, 6.0, typical]])
 
 
 def test_semi_global_matching_fills_a_flat_node_and_keeps_a_depth_step():

@@ -114,7 +114,7 @@ def _constructed_sequence(monkeypatch, prior_within_noise: bool):
         return replace(base, t0_us=t0, t1_us=t1, v=v.copy(), omega=np.zeros(3),
                        quality=Quality(Verdict.OK, "every alternative scores worse beyond noise"))
 
-    def constructed_score(events, K, result, v, omega, options, quality, num_threads):
+    def constructed_score(events, K, result, v, omega, settings, fit_options):
         gain = 0.05 if prior_within_noise else 0.5
         return Alternative("neighbours", v, omega, gain, 0.1, gain <= 0.1)
 

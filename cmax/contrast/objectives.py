@@ -439,8 +439,8 @@ class GlobalContrast:
 class CollapseGuard:
     """Shiba et al.'s guard against event collapse: the mean squared log area change of the warp (B,).
 
-    Measured on a ``lattice`` of probe pixels of each window at ``PROBE_TIMES``
-    (fractions of the window) with the inverse depth at the probes: 0 for a rigid
+    Measured on a ``lattice`` of probe pixels of each window warped by time offsets
+    ``times`` (in units of the window's duration) with the inverse depth at the probes: 0 for a rigid
     image motion, large when the warp squeezes the image (:func:`cmax.objectives.deformation`).
     Shiba, Aoki, Gallego, "Event collapse in contrast maximization frameworks",
     Sensors 2022, doi:10.3390/s22145190.
@@ -449,9 +449,19 @@ class CollapseGuard:
     ----------
     lattice : (int, int)
         Rows and columns of probes, spread over 10-90 % of the image.
+    times : tuple of float
+        Time offsets of the probes' warps, in units of the window's duration (``PROBE_TIMES``, as
+        ``FitSettings.collapse_times``).
     """
 
     lattice: tuple[int, int] = (9, 12)
+    times: tuple[float, ...] = PROBE_TIMES
+
+    def __post_init__(self) -> None:
+        if len(self.lattice) != 2 or min(self.lattice) < 1:
+            raise ValueError(f"lattice must be two positive integers (rows, cols), got {self.lattice}")
+        if not self.times:
+            raise ValueError("times: need at least one probe time")
 
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
         _check(batch, params)
@@ -464,9 +474,9 @@ class CollapseGuard:
         probes = EventWindows(xs.reshape(-1).repeat(B), ys.reshape(-1).repeat(B), torch.zeros(B * P, dtype=dtype),
                               torch.ones(B * P, dtype=dtype), torch.arange(B).repeat_interleave(P),
                               batch.K.to(dtype), batch.duration_s.to(dtype), W, H)
-        times = torch.tensor(PROBE_TIMES, dtype=dtype)[:, None] * probes.duration_s[probes.window][None]
+        times = torch.tensor(self.times, dtype=dtype)[:, None] * probes.duration_s[probes.window][None]
         x1, y1 = warp_windows(probes, DepthMotion(params.inverse_depth, twist), times)
-        x1, y1 = x1.view(len(PROBE_TIMES), B, rows, cols), y1.view(len(PROBE_TIMES), B, rows, cols)
+        x1, y1 = x1.view(len(self.times), B, rows, cols), y1.view(len(self.times), B, rows, cols)
         return torch.stack([deformation(xs, ys, x1[:, k], y1[:, k]) for k in range(B)])
 
 

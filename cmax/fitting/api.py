@@ -19,10 +19,10 @@ from cmax.camera import check_intrinsics
 from cmax.events import Events
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
-from cmax.fitting.quality import Quality, QualitySettings, Verdict, assess, verdict_of
-from cmax.fitting.settings import FitSettings
+from cmax.fitting.quality import Quality, Verdict, assess, motion_within_noise, verdict_of
+from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
-from cmax.fitting.window import LOW_PARALLAX_PX, Window
+from cmax.fitting.window import Window
 from cmax.iwe import accumulate_bilinear, blur
 from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
 
@@ -32,7 +32,7 @@ __all__ = ["FitResult", "FitSettings", "QualitySettings", "Verdict", "LowParalla
 
 class LowParallaxWarning(UserWarning):
     """The fitted translation barely moves the events over the window (``FitResult.parallax_px`` below
-    ``LOW_PARALLAX_PX``): the depth, and without ``pose`` the translation direction, are poorly
+    ``FitSettings.low_parallax_px``): the depth, and without ``pose`` the translation direction, are poorly
     constrained. Filter it with ``warnings.simplefilter("ignore", LowParallaxWarning)``."""
 
 
@@ -238,7 +238,7 @@ def fit(
     events: Events, K: object, model: str = "se3", *, speed: float | None = None, pose: object = None,
     omega: object = None, depth_grid: tuple[int, int] = (24, 32), solver: "str | Solver" = "scipy",
     init: FitResult | None = None,
-    settings: FitSettings | None = None, num_threads: int | None = 1, quality: QualitySettings | None = None,
+    settings: FitSettings | None = None, num_threads: int | None = 1,
     **options,
 ) -> FitResult:
     """Fit the motion (and the depth) of one window of events by contrast maximization.
@@ -280,17 +280,17 @@ def fit(
         start, and with ``motion_refinement="none"`` no objective compares
         starts: there ``init`` is checked but not used.
     settings : FitSettings, optional
-        Further options.
+        Further options, among them ``settings.quality`` (:class:`QualitySettings`: the ambiguity test
+        and the low-motion test behind ``FitResult.quality``, :mod:`cmax.fitting.quality`).
     **options
         Alternatively, fields of :class:`FitSettings` as keywords (e.g.
-        ``fit(..., contrast="gradient", max_events=20000)``); not together
-        with ``settings``.
+        ``fit(..., contrast="gradient", max_events=20000)`` or
+        ``fit(..., quality=QualitySettings(ambiguity_test=False))``); not together with ``settings``
+        (a TypeError: no keyword silently overrides a field of ``settings``).
     num_threads : int or None
         torch threads during the fit (restored afterwards); 1 is fastest on
         busy machines; None lets :func:`cmax._threads.torch_threads` choose
         from the window's size, the cores and the machine's load.
-    quality : QualitySettings, optional
-        The ambiguity test behind ``FitResult.quality`` (:mod:`cmax.fitting.quality`).
 
     Returns
     -------
@@ -309,9 +309,10 @@ def fit(
     Warns
     -----
     LowParallaxWarning
-        se3: the translation moves the events by under ``LOW_PARALLAX_PX``.
+        se3: the translation moves the events by under ``FitSettings.low_parallax_px``.
     LowMotionWarning
-        flow, rotation: the motion moves the events by under ``low_motion_px``,
+        flow, rotation: the motion moves the events by under ``low_motion_px``, its contrast gain is
+        within noise (``QualitySettings.motion_test``, :func:`cmax.fitting.quality.motion_within_noise`),
         or no stage improved on the start.
     BoundWarning
         A motion parameter ended on its bound (``success`` is False).
@@ -352,9 +353,6 @@ def fit(
     if (speed is not None or pose is not None or omega is not None) and model != "se3":
         raise ValueError(f"speed, pose and omega apply to model='se3', not {model!r}")
     known_omega = None if omega is None else _known_omega(omega, pose)
-    quality = QualitySettings() if quality is None else quality
-    if not isinstance(quality, QualitySettings):
-        raise TypeError(f"quality must be a QualitySettings, got {type(quality).__name__}")
     if init is not None and not isinstance(init, FitResult):
         raise TypeError(f"init must be a FitResult, got {type(init).__name__}")
     backend = make_solver(solver)
@@ -372,10 +370,11 @@ def fit(
             motion = replace(motion, omega=known_omega)
         result = _result(w, events, K, model, motion, logs, scale_known=pose is not None or speed is not None,
                          seconds=time.perf_counter() - start)
-        result = replace(result, quality=_quality(w, result, settings, quality, backend, pose_known=pose is not None,
+        low = _low_motion(w, result, motion)
+        result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
                                                   hold_omega=known_omega is not None, speed=scale),
                          seconds=time.perf_counter() - start)
-    _warn(result, settings, pose is not None)
+    _warn(result, settings, low, pose is not None)
     return result
 
 
@@ -411,23 +410,34 @@ def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, kno
                   speed=scale)
 
 
-def _low_motion(result: FitResult, settings: FitSettings) -> str | None:
+def _low_motion(w: Window, result: FitResult, motion: Motion) -> str | None:
     """Why the fit moved the events too little to trust (the rule of the low-parallax and low-motion
-    warnings), or None."""
-    if result.parallax_px is not None and result.parallax_px < LOW_PARALLAX_PX:
-        return f"parallax {result.parallax_px:.2f} px, under LOW_PARALLAX_PX={LOW_PARALLAX_PX:g}"
-    if result.motion_px is not None and result.motion_px < settings.low_motion_px:
+    warnings and of the ``low_parallax`` verdict), or None: se3 parallax under ``low_parallax_px``;
+    flow/rotation motion under ``low_motion_px``, or (``quality.motion_test``) a contrast gain within
+    the noise of its spread over the image's cells (:func:`cmax.fitting.quality.motion_within_noise`)."""
+    settings = w.settings
+    if result.parallax_px is not None and result.parallax_px < settings.low_parallax_px:
+        return f"parallax {result.parallax_px:.2f} px, under low_parallax_px={settings.low_parallax_px:g}"
+    if result.motion_px is None:
+        return None
+    if result.motion_px < settings.low_motion_px:
         return f"motion {result.motion_px:.2f} px, under low_motion_px={settings.low_motion_px:g}"
+    if settings.quality.motion_test:
+        x, y = _warped(w, motion, w.dt)
+        gain, noise, within = motion_within_noise(w, x, y, settings.quality)
+        if within:
+            return (f"the {result.model}'s contrast gain {gain:.3g} is within the noise of its spread over the "
+                    f"image's cells ({noise:.3g}): the fitted {result.motion_px:.2f} px of motion are not measured")
     return None
 
 
-def _quality(w: Window, result: FitResult, settings: FitSettings, quality: QualitySettings, solver: Solver, *,
-             pose_known: bool,
-             hold_omega: bool, speed: float) -> Quality:
-    """The verdict of a finished fit; the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on se3
-    fits with a fitted direction that did not fail and have parallax."""
+def _quality(w: Window, result: FitResult, low: str | None, solver: Solver, *, pose_known: bool, hold_omega: bool,
+             speed: float) -> Quality:
+    """The verdict of a finished fit (:class:`QualitySettings` ``w.settings.quality``) with the low-motion
+    reason ``low`` (:func:`_low_motion`); the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on
+    se3 fits with a fitted direction that did not fail and have parallax."""
+    quality = w.settings.quality
     failed = [log.stage for log in result.stages if not log.success]
-    low = _low_motion(result, settings)
     alternatives, note = (), ("ambiguity not tested: the pose is given" if pose_known else
                               "ambiguity not tested: a model without translation" if result.model != "se3" else
                               "ambiguity not tested (QualitySettings.ambiguity_test False)")
@@ -437,18 +447,17 @@ def _quality(w: Window, result: FitResult, settings: FitSettings, quality: Quali
                       note=note)
 
 
-def _warn(result: FitResult, settings: FitSettings, pose_known: bool) -> None:
-    """The warnings of a finished fit: low parallax (se3), low motion (flow, rotation), bounds."""
-    if result.parallax_px is not None and result.parallax_px < LOW_PARALLAX_PX:
+def _warn(result: FitResult, settings: FitSettings, low: str | None, pose_known: bool) -> None:
+    """The warnings of a finished fit: low parallax (se3), low motion (flow, rotation), bounds. ``low`` is
+    :func:`_low_motion`'s reason, the rule of the ``low_parallax`` verdict too."""
+    if low is not None and result.parallax_px is not None:
         unknown = "the depth is" if pose_known else "the depth and the translation direction are"
-        warnings.warn(f"cmax.fit: the translation moves the events by under {LOW_PARALLAX_PX:g} px over the window "
-                      f"(FitResult.parallax_px): {unknown} poorly constrained; a longer window or a faster "
+        warnings.warn(f"cmax.fit: the translation moves the events by under {settings.low_parallax_px:g} px over the "
+                      f"window (FitResult.parallax_px): {unknown} poorly constrained; a longer window or a faster "
                       "motion gives more parallax", LowParallaxWarning, stacklevel=3)
     kept = [log.stage for log in result.stages if not log.success and not log.at_bound]
-    if result.motion_px is not None and (result.motion_px < settings.low_motion_px or kept):
-        reason = (f"no stage improved on the start ({', '.join(kept)})" if kept else
-                  f"the fitted {result.model} moves the events by {result.motion_px:.2f} px over the window, under "
-                  f"low_motion_px={settings.low_motion_px:g}")
+    if result.motion_px is not None and (low is not None or kept):
+        reason = f"no stage improved on the start ({', '.join(kept)})" if kept else low
         warnings.warn(f"cmax.fit: {reason}: the motion is too small to measure reliably; a longer window gives "
                       "more motion", LowMotionWarning, stacklevel=3)
     bounds = [(log.stage, name) for log in result.stages for name in log.at_bound]

@@ -8,7 +8,9 @@ polarity, blurred) are read back **at each event's own warped position**
 event i's share of the IWE's energy ``sum(I^2)`` at depth ``rho_k``: high when
 the events that share its depth line up with it. The shares are averaged per
 node of the depth grid with the grid's own bilinear weights, giving a cost
-volume ``S[k, node]``, and the depth of a node is where its curve peaks.
+volume ``S[k, node]``, and the depth of a node is where its curve peaks. The
+cost itself (warp, votes, normalisation, per-node mean) is the contrast core's
+:class:`cmax.contrast.SweepNodeCost`; this module is the search over it.
 
 What makes the sweep unbiased:
 
@@ -21,7 +23,7 @@ What makes the sweep unbiased:
   event has one vote: otherwise a node that straddles a depth edge follows
   the surface whose events pile up highest (a dense, fast edge), not the one
   most of its events belong to (an event that some candidates push out of the
-  image is divided by the typical largest value instead, :func:`_vote_scale`);
+  image is divided by the typical largest value instead, :func:`cmax.contrast.sweep.vote_scale`);
 * the mean, not the sum, is taken per node, so a candidate that moves votes
   between nodes cannot win by the count of events it gathers;
 * polarities are imaged apart (an ON edge and the OFF edge behind it
@@ -58,8 +60,8 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from cmax.iwe import polarity_images, sample_bilinear
-from cmax.warp import DepthGrid, warp_se3
+from cmax.contrast.sweep import SweepNodeCost
+from cmax.warp import DepthGrid
 
 __all__ = ["DepthSweep", "sweep_inverse_depth", "relative_sweep_cost", "node_cost_function", "coarse_grid_shape"]
 
@@ -89,17 +91,6 @@ class DepthSweep:
     confidence: np.ndarray
 
 
-def _event_scores(rays, dt, on, v, omega, rho, K, height, width, sigma):
-    """IWE value at each event's warped position for inverse depths ``rho`` (B, N): (B, N) and inside."""
-    B = rho.shape[0]
-    x, y = warp_se3(rays, dt, v, omega, rho, K)
-    images = polarity_images(x, y, on, height, width, sigma)
-    seen = sample_bilinear(images, torch.cat([x, x]), torch.cat([y, y]))
-    score = on * seen[:B] + (1.0 - on) * seen[B:]
-    inside = ((x >= 1) & (x <= width - 2) & (y >= 1) & (y <= height - 2)).to(x.dtype)
-    return score, inside
-
-
 def coarse_grid_shape(grid_shape: tuple[int, int], coarsening: int) -> tuple[int, int]:
     """The grid ``coarsening`` times coarser than ``grid_shape`` (rounded up, at least 1 x 1)."""
     return tuple(max(1, math.ceil(n / coarsening)) for n in grid_shape)
@@ -110,7 +101,8 @@ def sweep_inverse_depth(
     K: torch.Tensor, *, height: int, width: int, grid_shape: tuple[int, int], index: torch.Tensor,
     weight: torch.Tensor, rho_range: tuple[float, float], candidates: int = 48, sigma: float = 1.0,
     polarity_split: bool = True, smoothness: tuple[float, float] = (0.1, 1.0), coarsening: int = 2,
-    refinements: tuple[float, ...] = (0.3,), refine_candidates: int = 13, chunk: int = 8,
+    refinements: tuple[float, ...] = (0.3,), refine_candidates: int = 13, chunk: int = 8, border_px: int = 1,
+    vote_scale_quantile: float = 0.5,
 ) -> DepthSweep:
     """Per-node inverse depth of a window with known twist, by a sweep of the contrast.
 
@@ -154,6 +146,10 @@ def sweep_inverse_depth(
         Steps of each relative sweep.
     chunk : int
         Candidates warped at once (memory against speed).
+    border_px, vote_scale_quantile
+        Of the cost (:class:`cmax.contrast.SweepNodeCost`): events warped closer than ``border_px`` to the
+        edge count as outside; the quantile of the events' largest values that an event pushed out of
+        the image by some candidate is divided by.
 
     Returns
     -------
@@ -167,7 +163,8 @@ def sweep_inverse_depth(
     coarse_grid = DepthGrid(coarse, width, height)
     coarse_index, coarse_weight = coarse_grid.weights(pixels[:, 0], pixels[:, 1])
     with torch.no_grad():
-        common = dict(height=height, width=width, sigma=sigma, polarity_split=polarity_split, chunk=chunk)
+        common = dict(height=height, width=width, sigma=sigma, polarity_split=polarity_split, chunk=chunk,
+                      border_px=border_px, vote_scale_quantile=vote_scale_quantile)
         S = node_cost_function(rays, dt, polarity, v, omega, K, grid_shape=coarse, index=coarse_index,
                                weight=coarse_weight, **common)(rhos[:, None].expand(-1, N))  # (C, Gc)
         rho, confidence = _regularised_argmax(S, rhos, _node_events(coarse_index, coarse_weight, coarse),
@@ -209,47 +206,11 @@ def relative_sweep_cost(node_cost, base_inverse_depth: torch.Tensor, steps: torc
 def node_cost_function(rays: torch.Tensor, dt: torch.Tensor, polarity: torch.Tensor, v: np.ndarray,
                        omega: np.ndarray, K: torch.Tensor, *, height: int, width: int, grid_shape: tuple[int, int],
                        index: torch.Tensor, weight: torch.Tensor, sigma: float = 1.0, polarity_split: bool = True,
-                       chunk: int = 8):
-    """The sweep's cost as a function: per-event inverse depths (C, N) [1/m] -> node costs (C, G).
-
-    Arguments as in :func:`sweep_inverse_depth`; the result is the mean, over
-    each node's events, of the IWE value at the event (one image per
-    polarity, blur ``sigma``) divided by the event's largest value over the
-    C candidates (one vote per event: compare candidates within one call).
-    """
-    return lambda rho_events: _node_cost(  # noqa: E731
-        rays, dt, polarity, v, omega, rho_events, K, height, width, sigma, polarity_split, index, weight,
-        grid_shape, chunk)
-
-
-def _node_cost(rays, dt, polarity, v, omega, rho_events, K, height, width, sigma, polarity_split, index, weight,
-               grid_shape, chunk):
-    """Mean normalised IWE value at each node's events (C, G) for per-event inverse depths (C, N)."""
-    dtype = rays.dtype
-    on = (polarity > 0).to(dtype) if polarity_split else torch.ones_like(polarity, dtype=dtype)
-    v, omega = torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype)
-    parts = [_event_scores(rays, dt, on, v, omega, part, K, height, width, sigma) for part in rho_events.split(chunk)]
-    score = torch.cat([p[0] for p in parts])                                     # (C, N)
-    inside = torch.cat([p[1] for p in parts])
-    score = score / _vote_scale(score, inside)                                   # one vote per event
-    C, G = score.shape[0], grid_shape[0] * grid_shape[1]
-    flat_index = index.reshape(-1)
-    w_in = inside[:, :, None] * weight[None]                                       # (C, N, 4)
-    sums = torch.zeros(C, G, dtype=dtype).index_add_(1, flat_index, (w_in * score[:, :, None]).reshape(C, -1))
-    weights = torch.zeros(C, G, dtype=dtype).index_add_(1, flat_index, w_in.reshape(C, -1))
-    return sums / weights.clamp(min=1e-6)
-
-
-def _vote_scale(score: torch.Tensor, inside: torch.Tensor) -> torch.Tensor:
-    """What each event's IWE values (C, N) are divided by (1, N): its largest over the candidates, or,
-    for an event that some candidates push out of the image (``inside`` (C, N) is 0 there), the median
-    largest value of the events that stay inside. Such an event's own largest value is taken over the
-    candidates that keep it inside only, mostly far ones: the near events at the bottom of a driving
-    window would vote for far depths with full weight (``docs/fitting.md``)."""
-    peak = (score * inside).max(0, keepdim=True).values
-    always = inside.min(0, keepdim=True).values > 0
-    typical = peak[always].median() if bool(always.any()) else peak.median()
-    return torch.where(always, peak, typical).clamp(min=1e-12)
+                       chunk: int = 8, border_px: int = 1, vote_scale_quantile: float = 0.5) -> SweepNodeCost:
+    """The sweep's cost as a function: per-event inverse depths (C, N) [1/m] -> node costs (C, G), the
+    contrast core's :class:`cmax.contrast.SweepNodeCost` (arguments as in :func:`sweep_inverse_depth`)."""
+    return SweepNodeCost(rays, dt, polarity, v, omega, K, height, width, grid_shape, index, weight, sigma,
+                         polarity_split, chunk, border_px, vote_scale_quantile)
 
 
 def _regularised_argmax(S: torch.Tensor, values: torch.Tensor, node_events: torch.Tensor,

@@ -7,7 +7,7 @@ field across a patch). Here the events of each patch are
 warped by the exact se3 warp of :mod:`cmax.warp` with the shared twist
 ``(v, omega)`` and one inverse depth ``rho_p`` per patch, and the objective is
 the sum over patches of each patch's IWE variance normalised by its unwarped
-value:
+value (the contrast core's :class:`cmax.contrast.patches.PatchMotionContrast`):
 
     J(v, omega, rho) = sum_p Var(I_p(v, omega, rho_p)) / Var(I_p(0))
 
@@ -33,66 +33,69 @@ from typing import Sequence
 import numpy as np
 import torch
 
-from cmax.fitting.patch_flow import Patches, make_patches
+from cmax.contrast.patches import Patches, PatchMotionContrast
+from cmax.fitting.patch_flow import make_patches
 from cmax.fitting.settings import RefineSettings
-from cmax.fitting.solvers import SCIPY_DEFAULT_TOLERANCES, Solver, SolveResult, solve
-from cmax.objectives import variance
-from cmax.warp import warp_se3
+from cmax.fitting.solvers import Solver, SolveResult, solve
 
 __all__ = ["LocalMotionObjective", "RefineOutcome", "refine_motion_local", "omega_on_bound"]
-
-#: Direction parameters are ``DIRECTION_SCALE * v / |v|`` so that a step of one
-#: unit moves the direction by ~6 deg, like one pixel of the other parameters.
-DIRECTION_SCALE = 10.0
 
 
 @dataclass(frozen=True, eq=False)
 class LocalMotionObjective:
-    """The patch-wise contrast ``J(v, omega, rho)`` of a window (see the module docstring).
+    """The patch-wise contrast ``J(v, omega, rho)`` of a window in the refinement's parameters (see the
+    module docstring); the contrast itself is :class:`cmax.contrast.patches.PatchMotionContrast`.
 
-    Parameters live in pixels of displacement over the window: ``p = (DIRECTION_SCALE
+    Parameters live in pixels of displacement over the window: ``p = (direction_scale
     v / speed (3), omega T f (3), rho speed T f (P))``.
 
     Attributes
     ----------
-    patches : Patches
-    rays : Tensor (M, 3)
-        ``K^-1 (x, y, 1)`` of the patches' events.
-    K : Tensor (3, 3)
+    contrast : PatchMotionContrast
+        The patches, their rays, ``K``, the blur and each patch's unwarped variance.
     speed : float
         ``|v|`` [m/s].
     omega_scale, rho_scale : float
         Pixels over the window per rad/s and per 1/m.
-    sigma : float
-        IWE blur [px].
-    base : Tensor (P,)
-        Variance of each patch's unwarped IWE.
+    unit_norm : bool
+        ``v = speed u / |u|`` (True) or ``speed u`` for solvers that hold ``|u| = direction_scale``.
+    direction_scale : float
+        :attr:`cmax.fitting.RefineSettings.direction_scale`.
     """
 
-    patches: Patches
-    rays: torch.Tensor
-    K: torch.Tensor
+    contrast: PatchMotionContrast
     speed: float
     omega_scale: float
     rho_scale: float
-    sigma: float
-    base: torch.Tensor
     unit_norm: bool = True
+    direction_scale: float = 10.0
 
     @classmethod
-    def build(cls, w, patches: Patches, speed: float, *, unit_norm: bool = True) -> "LocalMotionObjective":
+    def build(cls, w, patches: Patches, speed: float, *, unit_norm: bool = True,
+              direction_scale: float | None = None) -> "LocalMotionObjective":
         """The objective of ``patches`` of window ``w`` (a :class:`cmax.fitting.window.Window`) at ``speed``
-        [m/s]; ``unit_norm`` False for solvers that hold ``|u| = DIRECTION_SCALE`` as a constraint."""
-        ev, sigma = w.ev, w.settings.sigma
-        rays = torch.stack([patches.x, patches.y, torch.ones_like(patches.x)], -1) @ torch.linalg.inv(ev.K).T
-        with torch.no_grad():
-            base = variance(patches.images(patches.x, patches.y, sigma)).clamp(min=1e-12)
-        return cls(patches, rays, ev.K, float(speed), w.T * w.focal, float(speed) * w.T * w.focal, sigma, base,
-                   unit_norm)
+        [m/s]; ``unit_norm`` False for solvers that hold ``|u| = direction_scale`` as a constraint;
+        ``direction_scale`` None: ``w.settings.refine.direction_scale``."""
+        contrast = PatchMotionContrast.build(patches, w.ev.K, w.settings.sigma)
+        scale = w.settings.refine.direction_scale if direction_scale is None else float(direction_scale)
+        return cls(contrast, float(speed), w.T * w.focal, float(speed) * w.T * w.focal, unit_norm, scale)
+
+    @property
+    def patches(self) -> Patches:
+        return self.contrast.patches
+
+    @property
+    def rays(self) -> torch.Tensor:
+        """``K^-1 (x, y, 1)`` (M, 3) of the patches' events."""
+        return self.contrast.rays
+
+    @property
+    def K(self) -> torch.Tensor:
+        return self.contrast.K
 
     def params(self, v: np.ndarray, omega: np.ndarray, rho: np.ndarray) -> np.ndarray:
         """Parameter vector (6 + P,) of ``v`` (3,) [m/s], ``omega`` (3,) [rad/s], ``rho`` (P,) [1/m]."""
-        return np.r_[DIRECTION_SCALE * np.asarray(v) / np.linalg.norm(v), np.asarray(omega) * self.omega_scale,
+        return np.r_[self.direction_scale * np.asarray(v) / np.linalg.norm(v), np.asarray(omega) * self.omega_scale,
                      np.asarray(rho) * self.rho_scale]
 
     def motion(self, p: np.ndarray) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
@@ -102,7 +105,7 @@ class LocalMotionObjective:
     def values(self, p: torch.Tensor) -> torch.Tensor:
         """Normalised contrast (P,) of each patch for parameters ``p`` (6 + P,); differentiable."""
         dtype = self.rays.dtype
-        u = p[:3] / DIRECTION_SCALE
+        u = p[:3] / self.direction_scale
         v = self.speed * u / torch.sqrt((u * u).sum() + 1e-12) if self.unit_norm else self.speed * u
         rho = (p[6:] / self.rho_scale)[self.patches.patch]
         return self.contrast_at(v.to(dtype), (p[3:6] / self.omega_scale).to(dtype), rho.to(dtype))
@@ -110,8 +113,7 @@ class LocalMotionObjective:
     def contrast_at(self, v: torch.Tensor, omega: torch.Tensor, rho_events: torch.Tensor) -> torch.Tensor:
         """Normalised contrast (P,) of each patch for ``v`` (3,) [m/s], ``omega`` (3,) [rad/s] and any
         per-event inverse depth (M,) [1/m] (e.g. the ground truth, in ``benchmarks/cmax_limits.py``)."""
-        x, y = warp_se3(self.rays, self.patches.dt, v, omega, rho_events, self.K)
-        return variance(self.patches.images(x, y, self.sigma)) / self.base
+        return self.contrast(v, omega, rho_events)
 
     def sweep_rho(self, v: np.ndarray, omega: np.ndarray, candidates: np.ndarray) -> np.ndarray:
         """Best inverse depth (P,) [1/m] of each patch among ``candidates`` (C,) [1/m] for a fixed motion."""
@@ -155,7 +157,7 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, setti
         Patches, their per-patch start sweep and the iteration limit.
     solver : Solver
         The backend (:func:`cmax.fitting.solvers.solve`); with one that takes equality constraints the
-        direction is held on its sphere by ``|u| = DIRECTION_SCALE`` instead of being normalised.
+        direction is held on its sphere by ``|u| = settings.direction_scale`` instead of being normalised.
     hold_omega : bool
         Keep ``omega`` as given (a known rotation): only the direction and the depths move.
     more_starts : sequence of (v, omega)
@@ -165,21 +167,23 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, setti
     Returns
     -------
     RefineOutcome
-        The start itself (no solves) when fewer than 4 patches hold ``settings.min_events``.
+        The start itself (no solves) when fewer than ``settings.min_patches`` patches hold
+        ``settings.min_events``.
     """
     v, omega = np.asarray(v, float), np.asarray(omega, float)
     patches = make_patches(w, grid=settings.grid, min_events=settings.min_events, max_events=settings.max_events,
-                           margin=settings.margin)
-    if patches is None or patches.count < 4:
+                           margin=settings.margin, min_margin_px=settings.min_margin_px)
+    if patches is None or patches.count < settings.min_patches:
         return RefineOutcome(v, omega, float("nan"), float("nan"), ())
-    objective = LocalMotionObjective.build(w, patches, speed, unit_norm=not solver.takes_equality)
+    objective = LocalMotionObjective.build(w, patches, speed, unit_norm=not solver.takes_equality,
+                                           direction_scale=settings.direction_scale)
     near, far = w.settings.depth_range
     candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), settings.rho_candidates))
     solves, best = [], None
     for start_v, start_omega in [(v, omega), *more_starts]:
         result, v1, omega1, bound = _refine_from(w, objective, np.asarray(start_v, float),
-                                                 np.asarray(start_omega, float), candidates, settings.iterations,
-                                                 hold_omega, solver)
+                                                 np.asarray(start_omega, float), candidates, settings, hold_omega,
+                                                 solver)
         solves.append(result)
         if best is None or result.fun < best[0]:
             best = (result.fun, v1, omega1, bound)
@@ -187,20 +191,20 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, setti
 
 
 def _refine_from(w, objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray, candidates: np.ndarray,
-                 iterations: int, hold_omega: bool, solver: Solver
+                 settings: RefineSettings, hold_omega: bool, solver: Solver
                  ) -> tuple[SolveResult, np.ndarray, np.ndarray, tuple[str, ...]]:
     """One refinement from ``(v, omega)``: the solve, ``v`` (3,), ``omega`` (3,), the omega axes on a bound."""
     near, far = w.settings.depth_range
     rho0 = objective.sweep_rho(v, omega, candidates)
     x0 = objective.params(v, omega, rho0)
     P, s_o, s_r = objective.patches.count, objective.omega_scale, objective.rho_scale
-    max_omega = w.settings.max_omega
-    lower = np.r_[np.full(3, -2 * DIRECTION_SCALE), np.full(3, -max_omega * s_o), np.full(P, s_r / far)]
-    upper = np.r_[np.full(3, 2 * DIRECTION_SCALE), np.full(3, max_omega * s_o), np.full(P, s_r / near)]
+    max_omega, scale = w.settings.max_omega, objective.direction_scale
+    lower = np.r_[np.full(3, -2 * scale), np.full(3, -max_omega * s_o), np.full(P, s_r / far)]
+    upper = np.r_[np.full(3, 2 * scale), np.full(3, max_omega * s_o), np.full(P, s_r / near)]
     if hold_omega:  # equal bounds: the solvers keep these parameters fixed
         lower[3:6] = upper[3:6] = x0[3:6]
-    result = solve(lambda p: -objective.values(p).sum(), x0, lower, upper, solver, iterations=iterations,
-                   tolerances=SCIPY_DEFAULT_TOLERANCES, norm_slice=slice(0, 3), norm=DIRECTION_SCALE)
+    result = solve(lambda p: -objective.values(p).sum(), x0, lower, upper, solver, iterations=settings.iterations,
+                   tolerances=settings.tolerances, norm_slice=slice(0, 3), norm=scale)
     v1, omega1, _ = objective.motion(result.x)
     bound = () if hold_omega else omega_on_bound(omega1, max_omega)
     return result, v1, omega1, bound

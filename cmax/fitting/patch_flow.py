@@ -2,7 +2,8 @@
 
 The image is cut into patches; each patch gets a constant optical flow by
 contrast maximization of its own events (all patches in one solve: the
-objective is the sum of the patches' normalised IWE variances, separable),
+objective is the sum of the patches' normalised IWE variances, separable:
+the contrast core's :class:`cmax.contrast.patches.PatchFlowContrast`),
 first with a wide blur (a wide basin), then with the window's blur. The
 curvature of each patch's contrast at its peak (:func:`flow_information`)
 says how well its flow is known: a patch that sees one edge orientation
@@ -33,10 +34,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cmax.contrast.patches import Patches, PatchFlowContrast, cut_patches
 from cmax.fitting.settings import PatchFlowSettings
-from cmax.fitting.solvers import SCIPY_DEFAULT_TOLERANCES, ScipySolver, Solver, SolveResult, solve, torch_fun_and_grad
-from cmax.iwe import accumulate_bilinear_indexed, blur
-from cmax.objectives import variance
+from cmax.fitting.solvers import ScipySolver, Solver, SolveResult, solve, torch_fun_and_grad
 from cmax.warp import warp_se3
 
 __all__ = ["Patches", "PatchFlows", "make_patches", "patch_flows", "flow_information", "motion_from_flows",
@@ -44,115 +44,29 @@ __all__ = ["Patches", "PatchFlows", "make_patches", "patch_flows", "flow_informa
            "spherical_cap", "fibonacci_sphere"]
 
 
-@dataclass(frozen=True, eq=False)
-class Patches:
-    """Events of a window cut into a grid of patches, each imaged in its own small frame.
-
-    Attributes
-    ----------
-    x, y : Tensor (M,)
-        Pixels [px] of the kept events (a uniform subsample of the window).
-    dt : Tensor (M,)
-        ``t - t_mid`` [s] (the window's middle is the reference time).
-    patch : Tensor (M,) int64
-        The patch of each event (0 <= patch < P).
-    offset : Tensor (P, 2)
-        Top-left pixel ``(x, y)`` of each patch's frame (the patch plus ``margin``).
-    size : (int, int)
-        ``(H, W)`` of every patch frame [px].
-    margin : int
-        Pixels around a patch inside its frame (the largest displacement kept) [px].
-    centres : ndarray (P, 2)
-        Mean pixel of each patch's events.
-    counts : ndarray (P,)
-        Events per patch (of the subsample).
-    """
-
-    x: torch.Tensor
-    y: torch.Tensor
-    dt: torch.Tensor
-    patch: torch.Tensor
-    offset: torch.Tensor
-    size: tuple[int, int]
-    margin: int
-    centres: np.ndarray
-    counts: np.ndarray
-
-    @property
-    def count(self) -> int:
-        return int(self.offset.shape[0])
-
-    def every(self, step: int) -> "Patches":
-        """The same patches with every ``step``-th event (centres and counts unchanged)."""
-        if step <= 1:
-            return self
-        return Patches(self.x[::step], self.y[::step], self.dt[::step], self.patch[::step], self.offset, self.size,
-                       self.margin, self.centres, self.counts)
-
-    def images(self, x: torch.Tensor, y: torch.Tensor, sigma: float) -> torch.Tensor:
-        """Blurred count images (P, H, W) of the events at full-image pixels ``x, y`` (M,)."""
-        H, W = self.size
-        ox, oy = self.offset[self.patch, 0], self.offset[self.patch, 1]
-        return blur(accumulate_bilinear_indexed(x - ox, y - oy, None, self.patch, self.count, H, W), sigma)
-
-
-def make_patches(w, *, grid: tuple[int, int], min_events: int, max_events: int, margin: float) -> Patches | None:
-    """Cut a window's events into a ``grid`` (rows, cols) of patches; None when no patch has ``min_events``.
-
-    ``margin`` is a fraction of the patch side (at least 8 px): how far an event
-    may move inside its patch's frame.
-    """
+def make_patches(w, *, grid: tuple[int, int], min_events: int, max_events: int, margin: float,
+                 min_margin_px: int = 8) -> Patches | None:
+    """Cut a window's events (``w``: a :class:`cmax.fitting.window.Window`) into a ``grid`` (rows, cols) of
+    patches (:func:`cmax.contrast.patches.cut_patches`); None when no patch has ``min_events``."""
     ev = w.ev
-    gh, gw = grid
-    step = max(1, len(ev) // max_events)
-    x, y, dt = ev.x[::step], ev.y[::step], w.dt_mid[0, ::step]
-    cell = ((y * gh / ev.height).long().clamp(0, gh - 1) * gw + (x * gw / ev.width).long().clamp(0, gw - 1))
-    counts = torch.bincount(cell, minlength=gh * gw)
-    keep = torch.nonzero(counts >= min_events).reshape(-1)
-    if keep.numel() == 0:
-        return None
-    remap = torch.full((gh * gw,), -1, dtype=torch.long)
-    remap[keep] = torch.arange(keep.numel())
-    patch = remap[cell]
-    sel = patch >= 0
-    x, y, dt, patch = x[sel], y[sel], dt[sel], patch[sel]
-    P = keep.numel()
-    ph, pw = math.ceil(ev.height / gh), math.ceil(ev.width / gw)
-    pad = max(8, int(margin * max(ph, pw)))
-    offset = torch.stack([(keep % gw).to(x.dtype) * ev.width / gw - pad,
-                          (keep // gw).to(x.dtype) * ev.height / gh - pad], 1)
-    n = counts[keep].to(x.dtype)
-    centres = torch.stack([torch.zeros(P, dtype=x.dtype).index_add_(0, patch, x),
-                           torch.zeros(P, dtype=x.dtype).index_add_(0, patch, y)], 1) / n[:, None]
-    return Patches(x, y, dt, patch, offset, (ph + 2 * pad, pw + 2 * pad), pad, centres.double().numpy(),
-                   n.double().numpy())
+    return cut_patches(ev.x, ev.y, w.dt_mid[0], ev.width, ev.height, grid=grid, min_events=min_events,
+                       max_events=max_events, margin=margin, min_margin_px=min_margin_px)
 
 
-def _flow_loss(patches: Patches, sigma: float, T: float):
-    """``loss(q (2P,) float64) -> scalar``: minus the summed normalised IWE variances of the patches.
-
-    ``q`` holds each patch's displacement over the window [px] (flow times ``T`` [s]).
-    """
-    P = patches.count
-    x, y, dt, patch = patches.x, patches.y, patches.dt, patches.patch
-    with torch.no_grad():
-        base = variance(patches.images(x, y, sigma)).clamp(min=1e-12)
-
-    def loss(p: torch.Tensor) -> torch.Tensor:
-        flow = p.reshape(P, 2).to(x.dtype) / T
-        images = patches.images(x - flow[patch, 0] * dt, y - flow[patch, 1] * dt, sigma)
-        return -(variance(images) / base).sum()
-
-    return loss
+def _flow_loss(patches: Patches, sigma: float, T: float) -> PatchFlowContrast:
+    """``loss(q (2P,) float64) -> scalar``: minus the summed normalised IWE variances of the patches
+    (:class:`cmax.contrast.patches.PatchFlowContrast`); ``q`` holds each patch's displacement over the
+    window [px] (flow times ``T`` [s])."""
+    return PatchFlowContrast.build(patches, sigma, T)
 
 
-def flow_information(fun_and_grad, q: np.ndarray, step: float = 0.25) -> np.ndarray:
+def flow_information(fun_and_grad, q: np.ndarray, step: float = 0.25, floor: float = 1e-3) -> np.ndarray:
     """Curvature (P, 2, 2) [1/px^2] of each patch's contrast peak: how sharply its flow is determined.
 
     Minus the Hessian of the normalised contrast with respect to the patch's
     displacement ``q`` (P, 2) [px], by central differences of the gradient
-    (``step`` [px]), symmetrised, its eigenvalues clipped to at least 1e-3 of
-    the largest over all patches. An edge of one orientation gives a rank-one
+    (``step`` [px]), symmetrised, its eigenvalues clipped to at least ``floor``
+    times the largest over all patches. An edge of one orientation gives a rank-one
     matrix (the aperture problem): its flow along the edge is free.
     """
     P = q.shape[0]
@@ -164,7 +78,7 @@ def flow_information(fun_and_grad, q: np.ndarray, step: float = 0.25) -> np.ndar
         H[:, :, j] = (plus - minus).reshape(P, 2) / (2 * step)   # fun is minus the contrast
     H = 0.5 * (H + H.transpose(0, 2, 1))
     values, vectors = np.linalg.eigh(H)
-    values = np.clip(values, 1e-3 * max(float(values.max()), 1e-12), None)
+    values = np.clip(values, floor * max(float(values.max()), 1e-12), None)
     return np.einsum("pij,pj,pkj->pik", vectors, values, vectors)
 
 
@@ -210,7 +124,7 @@ def patch_flows(w, settings: PatchFlowSettings = PatchFlowSettings(), solver: So
     """
     solver = ScipySolver() if solver is None else solver
     patches = make_patches(w, grid=settings.grid, min_events=settings.min_events, max_events=settings.max_events,
-                           margin=settings.margin)
+                           margin=settings.margin, min_margin_px=settings.min_margin_px)
     if patches is None:
         return PatchFlows(np.zeros((0, 2)), np.zeros((0, 2)), np.zeros(0), np.zeros((0, 2, 2)))
     sigmas = settings.sigmas
@@ -221,11 +135,12 @@ def patch_flows(w, settings: PatchFlowSettings = PatchFlowSettings(), solver: So
         subset = patches.every(settings.coarse_step if stage < len(sigmas) - 1 else 1)
         loss = _flow_loss(subset, w.settings.sigma if sigma is None else sigma, w.T)
         result = solve(loss, q, np.full(q.size, -bound), np.full(q.size, bound), solver,
-                       iterations=settings.iterations, tolerances=SCIPY_DEFAULT_TOLERANCES)
+                       iterations=settings.iterations, tolerances=settings.tolerances)
         solves.append(result)
         q = result.x
     q = q.reshape(patches.count, 2)
-    information = flow_information(torch_fun_and_grad(loss), q)
+    information = flow_information(torch_fun_and_grad(loss), q, settings.information_step_px,
+                                   settings.information_floor)
     return PatchFlows(patches.centres, q / w.T, patches.counts, information, tuple(solves))
 
 
@@ -280,8 +195,8 @@ def _weighted_system(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray
 
 def motion_from_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarray, K: np.ndarray, speed: float,
                       *, directions: int = 3000, refine: bool = True, omega: np.ndarray | None = None,
-                      cap_directions: int = 400
-                      ) -> tuple[np.ndarray, np.ndarray, float]:
+                      cap_directions: int = 400, cap_radius: float = 1.5, negative_depth_penalty: float = 4.0,
+                      min_patches: int = 4) -> tuple[np.ndarray, np.ndarray, float]:
     """Best ``v`` (3,) [m/s, norm ``speed``], ``omega`` (3,) [rad/s] and the weighted RMS residual [px/s].
 
     Parameters
@@ -300,23 +215,28 @@ def motion_from_flows(centres: np.ndarray, flows: np.ndarray, weights: np.ndarra
     directions : int
         Candidate directions (Fibonacci sphere; 3000: ~3.7 deg apart).
     refine : bool
-        Then ``cap_directions`` directions in a cap of 1.5 spacings around the best.
+        Then ``cap_directions`` directions in a cap of ``cap_radius`` spacings around the best.
     omega : ndarray (3,), optional
         A known angular velocity [rad/s] (a gyroscope's): it is held, and each
         direction's least squares solves the patches' inverse depths only.
+    negative_depth_penalty : float
+        A direction's residual is multiplied by ``1 + negative_depth_penalty * x``, ``x`` the fraction of
+        negative inverse depths.
+    min_patches : int
+        Fewer flows raise a ValueError.
     """
     P = len(centres)
-    if P < 4:
-        raise ValueError(f"need at least 4 patches with events to initialise the motion, got {P}")
+    if P < max(3, min_patches):
+        raise ValueError(f"need at least {max(3, min_patches)} patches with events to initialise the motion, got {P}")
     LA, LB, b = _weighted_system(centres, flows, weights, K)
     known = None if omega is None else np.asarray(omega, dtype=np.float64).reshape(3)
     t = fibonacci_sphere(directions)                                       # (D, 3)
-    score, omegas, residual = _direction_scores(t, LA, LB, b, speed, known)
+    score, omegas, residual = _direction_scores(t, LA, LB, b, speed, known, negative_depth_penalty)
     best = int(np.argmin(score))
     if refine and cap_directions > 0:  # a finer cap around the best: the sphere's points are ~3.7 deg apart for 3000
         spacing = math.sqrt(4 * math.pi / directions)
-        t = np.vstack([t[best], spherical_cap(t[best], 1.5 * spacing, cap_directions)])
-        score, omegas, residual = _direction_scores(t, LA, LB, b, speed, known)
+        t = np.vstack([t[best], spherical_cap(t[best], cap_radius * spacing, cap_directions)])
+        score, omegas, residual = _direction_scores(t, LA, LB, b, speed, known, negative_depth_penalty)
         best = int(np.argmin(score))
     return speed * t[best], omegas[best], float(residual[best])
 
@@ -335,17 +255,18 @@ def spherical_cap(axis: np.ndarray, radius: float, count: int) -> np.ndarray:
 
 
 def _direction_scores(t: np.ndarray, LA: np.ndarray, LB: np.ndarray, b: np.ndarray, speed: float,
-                      omega: np.ndarray | None = None) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+                      omega: np.ndarray | None = None, negative_depth_penalty: float = 4.0
+                      ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
     """Score (D,), omega (D, 3) [rad/s] and RMS residual (D,) of directions ``t`` (D, 3).
 
     The weighted motion-field rows ``LA``, ``LB`` (P, 2, 3) and flows ``b`` (2P,);
     per direction one least-squares problem in ``omega`` (unless it is known)
-    and the patches' inverse depths. The score is the residual times ``1 + 4 x``
-    (x: the fraction of negative depths).
+    and the patches' inverse depths. The score is the residual times
+    ``1 + negative_depth_penalty * x`` (x: the fraction of negative depths).
     """
     x, residual = _solve_directions(t, LA, LB, b, speed, omega)
     negative = (x[:, 3:] < 0).mean(1)
-    return residual * (1 + 4 * negative), x[:, :3], residual
+    return residual * (1 + negative_depth_penalty * negative), x[:, :3], residual
 
 
 def _solve_directions(t: np.ndarray, LA: np.ndarray, LB: np.ndarray, b: np.ndarray, speed: float,

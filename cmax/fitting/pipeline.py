@@ -36,7 +36,7 @@ from cmax.fitting.depth_sweep import sweep_inverse_depth
 from cmax.fitting.motion import omega_on_bound, refine_motion_local
 from cmax.fitting.patch_flow import motion_from_flows, patch_flows
 from cmax.fitting.settings import MotionInit, Polish, Refinement
-from cmax.fitting.solvers import RELAXED_TOLERANCES, Solver, SolveResult, Tolerances, solve
+from cmax.fitting.solvers import Solver, SolveResult, Tolerances, solve
 from cmax.fitting.window import SE3Model, Window
 from cmax.warp import warp_flow, warp_rotation
 
@@ -185,7 +185,7 @@ def _omega_bounds(w: Window, omega: np.ndarray, hold: bool) -> tuple[np.ndarray,
 @dataclass(frozen=True)
 class FlowStage:
     """Parameters: the flow as a displacement over the window [px] (2,). Objective: minus the normalised
-    multi-reference contrast. Schedule: image scales coarse to fine, relaxed tolerances."""
+    multi-reference contrast. Schedule: image scales coarse to fine, ``settings.flow_tolerances``."""
 
     name: str = "flow"
 
@@ -199,7 +199,7 @@ class FlowStage:
             return -w.contrast(x, y, scale)
 
         x, solves, before, after = coarse_to_fine(w, loss, flow0 * w.T, np.full(2, -bound), np.full(2, bound),
-                                                  solver, tolerances=RELAXED_TOLERANCES)
+                                                  solver, tolerances=w.settings.flow_tolerances)
         at_bound = tuple(f"flow_{a}" for a, value in zip("xy", x) if abs(value) >= 0.999 * bound)
         log = _log(self.name, before, after, solves, time.perf_counter() - start, at_bound)
         return replace(motion, flow=x / w.T), log
@@ -221,7 +221,8 @@ class RotationStage:
             return -w.contrast(x, y, scale)
 
         x, solves, before, after = coarse_to_fine(w, loss, np.asarray(motion.omega, float) * s,
-                                                  np.full(3, -bound), np.full(3, bound), solver)
+                                                  np.full(3, -bound), np.full(3, bound), solver,
+                                                  tolerances=w.settings.tolerances)
         omega = x / s
         log = _log(self.name, before, after, solves, time.perf_counter() - start,
                    omega_on_bound(omega, w.settings.max_omega))
@@ -234,10 +235,11 @@ class RotationStage:
 @dataclass(frozen=True)
 class PatchFlowStage:
     """Parameters: one flow per patch (2P,). Objective: the patches' summed normalised IWE variances
-    (:mod:`cmax.fitting.patch_flow`). Schedule: ``settings.patch_flow.sigmas`` wide to sharp. Then the
+    (:class:`cmax.contrast.PatchFlowContrast`). Schedule: ``settings.patch_flow.sigmas`` wide to sharp. Then the
     twist from the motion-field equations (least squares over directions, no solver); with
     ``zero_rotation_start`` also the fit without rotation, passed on as a further start. With fewer
-    than 4 patches holding events it runs :class:`RotationStage` and :class:`TranslationStartsStage`."""
+    than ``settings.patch_flow.min_patches`` patches holding events it runs :class:`RotationStage` and
+    :class:`TranslationStartsStage`."""
 
     hold_omega: bool = False
     zero_rotation_start: bool = False
@@ -247,7 +249,7 @@ class PatchFlowStage:
     def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog]:
         start = time.perf_counter()
         flows = patch_flows(w, w.settings.patch_flow, solver)
-        if len(flows.centres) < 4:
+        if len(flows.centres) < w.settings.patch_flow.min_patches:
             fallback = ([] if self.hold_omega else [RotationStage()]) + [
                 TranslationStartsStage(self.hold_omega, self.warm_start)]
             motion, logs = run_stages(tuple(fallback), w, motion, solver)
@@ -258,7 +260,9 @@ class PatchFlowStage:
         def twist(omega):
             return motion_from_flows(flows.centres, flows.flows, flows.information, w.ev.K.double().numpy(),
                                      motion.speed, omega=omega, directions=settings.directions,
-                                     cap_directions=settings.cap_directions)
+                                     cap_directions=settings.cap_directions, cap_radius=settings.cap_radius,
+                                     negative_depth_penalty=settings.negative_depth_penalty,
+                                     min_patches=settings.min_patches)
 
         v, omega, residual = twist(motion.omega if self.hold_omega else None)
         alternatives = (twist(np.zeros(3))[:2],) if self.zero_rotation_start else ()
@@ -274,7 +278,8 @@ class PatchFlowStage:
 @dataclass(frozen=True)
 class LocalRefineStage:
     """Parameters: direction, angular velocity and one inverse depth per patch (6 + P,). Objective: the
-    patch-wise normalised contrast (:class:`cmax.fitting.motion.LocalMotionObjective`), ``|v|`` held.
+    patch-wise normalised contrast (:class:`cmax.contrast.PatchMotionContrast`, in the parameters of
+    :class:`cmax.fitting.motion.LocalMotionObjective`), ``|v|`` held.
     Schedule: one level, from the incoming motion, the earlier stages' alternatives and the warm start
     (``init=``); the best refined start wins. The refinement on the objective :mod:`learned` trains on
     is :class:`cmax.fitting.polish.SharedPolishStage` (``FitSettings.polish``), after the sweep."""
@@ -327,11 +332,11 @@ class TranslationStartsStage:
         for u0 in starts:
             x0 = np.r_[u0, motion.omega * se3.omega_scale, math.sqrt(lo_q * hi_q)]
             solves.append(solve(lambda p: se3.motion_loss(p, 2), x0, lower, upper, solver,
-                                iterations=s.start_iterations, norm_slice=slice(0, 3)))
+                                iterations=s.start_iterations, tolerances=s.tolerances, norm_slice=slice(0, 3)))
             if best is None or solves[-1].fun < best.fun:
                 best = solves[-1]
         solves.append(solve(lambda p: se3.motion_loss(p, 1), best.x, lower, upper, solver,
-                            iterations=s.iterations, norm_slice=slice(0, 3)))
+                            iterations=s.iterations, tolerances=s.tolerances, norm_slice=slice(0, 3)))
         x = solves[-1].x
         omega = x[3:6] / se3.omega_scale
         bound = () if self.hold_omega else omega_on_bound(omega, s.max_omega)
@@ -356,7 +361,7 @@ class MotionWithDepthStage:
         result = solve(lambda p: se3.motion_loss(p, 1, q_fixed=q), np.r_[motion.v / se3.speed,
                        motion.omega * se3.omega_scale], np.r_[-np.ones(3) * 2, lower_o],
                        np.r_[np.ones(3) * 2, upper_o], solver, iterations=w.settings.iterations,
-                       norm_slice=slice(0, 3))
+                       tolerances=w.settings.tolerances, norm_slice=slice(0, 3))
         omega = result.x[3:6] / se3.omega_scale
         bound = () if self.hold_omega else omega_on_bound(omega, w.settings.max_omega)
         log = _log(self.name, result.fun_start, result.fun, [result], time.perf_counter() - start, bound)
@@ -366,7 +371,7 @@ class MotionWithDepthStage:
 @dataclass(frozen=True)
 class DepthSweepStage:
     """Parameters: the inverse-depth grid. Objective: the sweep's per-event normalised vote
-    (:mod:`cmax.fitting.depth_sweep`), maximised per node by a discrete search with semi-global
+    (:class:`cmax.contrast.SweepNodeCost`), maximised per node by a discrete search with semi-global
     matching (no solver). Schedule: the whole ``depth_range`` on a coarser grid, then relative sweeps."""
 
     name: str = "depth_sweep"
@@ -379,7 +384,8 @@ class DepthSweepStage:
             grid_shape=w.grid.shape, index=w.index, weight=w.weight, rho_range=(1.0 / hi, 1.0 / lo),
             candidates=s.depth_candidates, sigma=s.sigma, smoothness=tuple(s.depth_smoothness),
             coarsening=s.depth_coarsening, refinements=tuple(s.depth_refinements),
-            refine_candidates=s.sweep.refine_candidates, chunk=s.sweep.chunk)
+            refine_candidates=s.sweep.refine_candidates, chunk=s.sweep.chunk, border_px=s.sweep.border_px,
+            vote_scale_quantile=s.sweep.vote_scale_quantile)
         log = StageLog(self.name, float("nan"), float("nan"), 0, 0, time.perf_counter() - start,
                        f"plane sweep over {s.depth_candidates} inverse depths (no solver)", True)
         return replace(motion, inverse_depth=result.inverse_depth.reshape(w.grid.shape)), log

@@ -19,6 +19,20 @@ The first term is the standard error of the summed gain over the ``P`` patches (
 some patches share is not evidence); the second a relative margin on the fit's own gain over the
 unwarped events. :func:`choose_from_neighbours` resolves an ambiguous window of a sequence from the
 motion of its confident neighbours (:func:`cmax.fitting.fit_sequence`).
+
+``flow`` and ``rotation`` have no alternative motion of the same score, but a window with too little
+motion can be fitted to a confident wrong answer: a motion that raises the contrast through a few
+regions of the image (texture, the window's edges) while the true motion, under a pixel, is within the
+blur. :func:`motion_within_noise` splits the fitted multi-reference contrast gain over a grid of cells
+(:func:`cmax.contrast.cells.contrast_by_cell`, exact: the shares sum to the gain) and applies the same
+rule as the ambiguity test:
+
+    gain_c = (C_c(fit) - C_c(unwarped)) / C(unwarped)      (cell c's share of the normalised contrast)
+    G      = sum_c gain_c = objective_after - 1
+    noise  = motion_noise_sigmas * sqrt(P) * std_c(gain_c)  (P: cells with events)
+    within noise when G <= noise
+
+A motion that sharpens the scene gains in most cells; a gain carried by a few cells is not evidence.
 """
 from __future__ import annotations
 
@@ -30,88 +44,28 @@ from typing import Sequence
 import numpy as np
 import torch
 
+from cmax.contrast.cells import contrast_by_cell
 from cmax.fitting.motion import LocalMotionObjective, refine_motion_local
 from cmax.fitting.patch_flow import make_patches
+from cmax.fitting.settings import QualitySettings
+from cmax.iwe import accumulate_bilinear, blur, polarity_images
 from cmax.warp import warp_se3
 
-__all__ = ["Verdict", "QualitySettings", "Alternative", "Quality", "MotionScorer", "assess", "verdict_of",
+__all__ = ["Verdict", "QualitySettings", "Alternative", "Quality", "MotionScorer", "assess", "motion_within_noise",
+           "verdict_of",
            "choose_from_neighbours", "alternative_motions"]
 
 
 class Verdict(str, enum.Enum):
     """The quality of one window's fit, worst first: ``failed`` (a stage failed, ``success`` False),
-    ``low_parallax`` (se3: ``parallax_px`` under ``LOW_PARALLAX_PX``; flow/rotation: ``motion_px``
-    under ``low_motion_px``), ``ambiguous`` (an alternative motion scores within noise), ``ok``."""
+    ``low_parallax`` (se3: ``parallax_px`` under ``FitSettings.low_parallax_px``; flow/rotation:
+    ``motion_px`` under ``low_motion_px``, or a motion within noise, :func:`motion_within_noise`),
+    ``ambiguous`` (an alternative motion scores within noise), ``ok``."""
 
     OK = "ok"
     AMBIGUOUS = "ambiguous"
     LOW_PARALLAX = "low_parallax"
     FAILED = "failed"
-
-
-@dataclass(frozen=True)
-class QualitySettings:
-    """Options of the ambiguity test and of the resolution from neighbours.
-
-    Attributes
-    ----------
-    ambiguity_test : bool
-        Score the alternatives (se3 with a fitted direction; a few sweeps of the patch-wise objective).
-    margin : float
-        Relative margin: an alternative whose summed gain is within ``margin`` times the fit's own
-        contrast gain over the unwarped events is ambiguous, whatever the patches' spread.
-    noise_sigmas : float
-        Multiples of the standard error of the summed per-patch gain that count as noise.
-    polish_iterations : int
-        Iterations of the fit's own patch-wise refinement (:func:`cmax.fitting.motion.refine_motion_local`)
-        from each alternative before it is scored (0: the depth sweep only), so that an alternative is
-        compared at its own optimum as the fit is at its.
-    distinct_deg : float
-        A polished alternative that ends within this distance of the fit (direction angle plus rotation
-        over the window, degrees) is the fit itself, not an alternative: it is dropped.
-    neighbours : int
-        ``fit_sequence``: windows on each side searched for confident (``ok``) neighbours.
-    max_resolve_deg : float
-        ``fit_sequence``: a candidate farther than this from the neighbours' motion (direction angle
-        plus rotation difference over the window, degrees) does not resolve a window.
-    smoothing : bool
-        ``fit_sequence``: the motion prior across windows. After the resolution, every se3 window whose
-        data cannot tell its own motion from the consensus of its confident neighbours (the median
-        direction and rotation of the window and at least ``min_consensus`` of them, scored as an
-        alternative: gain within noise) takes the consensus, its depth swept for it
-        (:func:`cmax.fitting.sequence.smooth_from_neighbours`).
-    min_consensus : int
-        ``fit_sequence``: confident neighbours needed to form a consensus.
-    smoothing_min_deg : float
-        ``fit_sequence``: a consensus closer than this to the window's own motion (direction angle plus
-        rotation over the window, degrees) changes nothing worth a re-fit: the window keeps its fit.
-    """
-
-    ambiguity_test: bool = True
-    margin: float = 0.02
-    noise_sigmas: float = 1.0
-    polish_iterations: int = 20
-    distinct_deg: float = 30.0
-    neighbours: int = 2
-    max_resolve_deg: float = 45.0
-    smoothing: bool = True
-    min_consensus: int = 2
-    smoothing_min_deg: float = 1.0
-
-    def __post_init__(self) -> None:
-        for name in ("ambiguity_test", "smoothing"):
-            if not isinstance(getattr(self, name), bool):
-                raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
-        for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg", "smoothing_min_deg"):
-            value = getattr(self, name)
-            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
-        if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
-            raise ValueError(f"polish_iterations must be an int >= 0, got {self.polish_iterations!r}")
-        for name in ("neighbours", "min_consensus"):
-            value = getattr(self, name)
-            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
-                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
 
 
 @dataclass(frozen=True, eq=False)
@@ -232,11 +186,12 @@ class MotionScorer:
     def build(cls, w, v: np.ndarray, omega: np.ndarray, speed: float,
               settings: QualitySettings) -> "MotionScorer | None":
         """The scorer of the fit ``(v (3,) [m/s], omega (3,) [rad/s])`` of window ``w`` (a
-        :class:`cmax.fitting.window.Window`) with ``|v| = speed``; None when fewer than 4 patches hold events."""
+        :class:`cmax.fitting.window.Window`) with ``|v| = speed``; None when fewer than
+        ``w.settings.refine.min_patches`` patches (at least 2) hold events."""
         refine = w.settings.refine
         patches = make_patches(w, grid=refine.grid, min_events=refine.min_events, max_events=refine.max_events,
-                               margin=refine.margin)
-        if patches is None or patches.count < 4:
+                               margin=refine.margin, min_margin_px=refine.min_margin_px)
+        if patches is None or patches.count < max(refine.min_patches, 2):
             return None
         objective = LocalMotionObjective.build(w, patches, speed)
         near, far = w.settings.depth_range
@@ -264,13 +219,14 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
     """The ambiguity test of a se3 fit ``(v, omega)`` of window ``w`` (a :class:`cmax.fitting.window.Window`),
     polishing the alternatives with ``solver`` (a :class:`cmax.fitting.solvers.Solver`).
 
-    Returns ``(alternatives, note)``: none, and ``note`` saying why, when the window has fewer than 4
-    patches with events (nothing to test on); ``note`` also names the alternatives dropped because their
-    polish ended on the fit (within ``settings.distinct_deg``).
+    Returns ``(alternatives, note)``: none, and ``note`` saying why, when the window has fewer than
+    ``w.settings.refine.min_patches`` patches with events (nothing to test on); ``note`` also names the
+    alternatives dropped because their polish ended on the fit (within ``settings.distinct_deg``).
     """
     scorer = MotionScorer.build(w, v, omega, speed, settings)
     if scorer is None:
-        return (), "ambiguity not tested: fewer than 4 patches hold events"
+        return (), (f"ambiguity not tested: fewer than {max(w.settings.refine.min_patches, 2)} patches hold "
+                    "events")
     refine = w.settings.refine
     alternatives, merged = [], []
     for name, v_alt, omega_alt in alternative_motions(scorer.objective, v, omega, scorer.rho, hold_omega=hold_omega):
@@ -285,6 +241,40 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
         alternatives.append(scorer.score(name, v_alt, omega_alt))
     note = f"the {', '.join(merged)} alternative(s) polished back onto the fit" if merged else ""
     return tuple(alternatives), note
+
+
+# ----------------------------------------------------------------------------------------------
+# Flow and rotation: is the fitted motion measured at all?
+# ----------------------------------------------------------------------------------------------
+def motion_within_noise(w, x: torch.Tensor, y: torch.Tensor, settings: QualitySettings) -> tuple[float, float, bool]:
+    """The low-motion test of a flow or rotation fit (see the module docstring): ``(G, noise, G <= noise)``.
+
+    ``w`` is the fit's :class:`cmax.fitting.window.Window` (its contrast kind, blur and polarity split);
+    ``x, y`` (B, N) [px] its events warped by the fitted motion to the ``B`` reference times of
+    ``w.dt``. ``G`` is the normalised contrast gain over the unwarped events (``objective_after - 1``),
+    ``noise`` ``settings.motion_noise_sigmas`` standard errors of it over ``settings.motion_cells``.
+    """
+    ev, s = w.ev, w.settings
+    H, W, kind = ev.height, ev.width, s.contrast or "variance"
+
+    def shares(xw: torch.Tensor, yw: torch.Tensor) -> torch.Tensor:
+        if w.on is None:
+            images = blur(accumulate_bilinear(xw, yw, None, H, W), s.sigma)
+        else:
+            images = polarity_images(xw, yw, w.on, H, W, s.sigma)
+        return contrast_by_cell(images, kind, settings.motion_cells).sum(0) / xw.shape[0]   # mean over references
+
+    with torch.no_grad():
+        before = shares(ev.x[None], ev.y[None])
+        after = shares(x, y)
+    total = float(before.sum())
+    used = ((before > 0) | (after > 0)).numpy()
+    gain = ((after - before) / max(total, 1e-300)).double().numpy()[used]
+    G = float(gain.sum())
+    if gain.size < 2:
+        return G, float("inf"), True
+    noise = settings.motion_noise_sigmas * float(np.std(gain, ddof=1)) * math.sqrt(gain.size)
+    return G, noise, bool(G <= noise)
 
 
 # ----------------------------------------------------------------------------------------------

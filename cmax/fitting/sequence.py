@@ -8,7 +8,8 @@ import numpy as np
 from cmax._threads import torch_threads_scope
 from cmax.events import Events
 from cmax.fitting.api import FitResult, _check_inputs, _settings, fit
-from cmax.fitting.quality import MotionScorer, QualitySettings, Verdict, _distance_deg, choose_from_neighbours
+from cmax.fitting.quality import MotionScorer, Verdict, _distance_deg, choose_from_neighbours
+from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.window import Window
 from cmax.geometry import se3_exp
 
@@ -80,7 +81,7 @@ def window_gyro(gyro: tuple[np.ndarray, np.ndarray], t0_us: int, t1_us: int) -> 
 
 def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_500, step_us: int | None = None,
                  speed: float | None = None, gyro: object = None, min_events: int = 1000,
-                 quality: QualitySettings | None = None, **fit_options) -> SequenceResult:
+                 **fit_options) -> SequenceResult:
     """Fit consecutive windows of a recording, warm-starting each from the previous; resolve the
     ambiguous windows from their neighbours.
 
@@ -93,7 +94,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     window_us, step_us : int
         Window length and the step between window starts [µs] (``step_us`` defaults to ``window_us``).
     speed : float, optional
-        Known speed [m/s] of every window.
+        Known speed [m/s] of every window (se3; a ValueError with another model).
     gyro : (times_us (N,), omega (N, 3)), optional
         Gyroscope samples [µs, rad/s] in the camera's axes and on the events'
         clock (se3): each window's rotation is held at their mean over the
@@ -103,15 +104,17 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         The samples must span every window (checked before the first fit).
     min_events : int
         Windows with fewer events are skipped (the pose is held by the last twist).
-    quality : QualitySettings, optional
-        The ambiguity test of every window (``fit(..., quality=)``) and the resolution: once all windows
-        are fitted, each ``ambiguous`` window takes, among the fit and its alternatives within noise, the
-        motion closest to its ``ok`` neighbours' (up to ``quality.neighbours`` windows on each side;
+    **fit_options
+        Passed to :func:`fit`: ``settings=`` or fields of :class:`FitSettings` as keywords (not both),
+        ``solver``, ``depth_grid``, ``num_threads``. ``pose``, ``omega`` and ``init`` are set per window
+        here (a TypeError). The settings' ``quality`` (:class:`cmax.fitting.QualitySettings`, e.g.
+        ``fit_sequence(..., quality=QualitySettings(...))``) rules the ambiguity test of every window
+        and the resolution: once all windows are fitted, each ``ambiguous`` window takes, among the fit
+        and its alternatives within noise, the motion closest to its ``ok`` neighbours' (up to
+        ``quality.neighbours`` windows on each side;
         :func:`cmax.fitting.quality.choose_from_neighbours`); an alternative is re-fitted with its motion
         held (the depth swept for it). ``FitResult.quality.resolution`` says what was done, or why the
         window stays unresolved.
-    **fit_options
-        Passed to :func:`fit`.
 
     Notes
     -----
@@ -122,9 +125,9 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     (:func:`smooth_from_neighbours`; ``FitResult.quality.resolution`` says so and ``replaced`` keeps the
     window's own motion).
     """
-    quality = QualitySettings() if quality is None else quality
-    if not isinstance(quality, QualitySettings):
-        raise TypeError(f"quality must be a QualitySettings, got {type(quality).__name__}")
+    settings, fit_options = _sequence_settings(fit_options)
+    if speed is not None and model != "se3":
+        raise ValueError(f"speed applies to model='se3', not {model!r}")
     step_us = window_us if step_us is None else int(step_us)
     if window_us <= 0 or step_us <= 0:
         raise ValueError(f"window_us and step_us must be positive, got {window_us}, {step_us}")
@@ -149,14 +152,14 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         events = take(t0, t0 + window_us)
         if len(events) >= min_events and events.t[-1] > events.t[0]:
             omega = None if gyro is None else window_gyro(gyro, int(events.t[0]), int(events.t[-1]))
-            previous = fit(events, K, model, speed=speed if model == "se3" else None, omega=omega, init=previous,
-                           quality=quality, **fit_options)
+            previous = fit(events, K, model, speed=speed, omega=omega, init=previous,
+                           settings=settings, **fit_options)
             results.append(previous)
         steps.append(len(results) - 1)
         times.append(t0 + step_us)
-    results = _resolve_ambiguous(results, take, K, speed, quality, fit_options)
-    if quality.smoothing and model == "se3":
-        results = smooth_from_neighbours(results, take, K, quality, fit_options, hold_omega=gyro is not None)
+    results = _resolve_ambiguous(results, take, K, speed, settings, fit_options)
+    if settings.quality.smoothing and model == "se3":
+        results = smooth_from_neighbours(results, take, K, settings, fit_options, hold_omega=gyro is not None)
     poses = [np.eye(4)]
     for index in steps:
         twist = results[index].twist if index >= 0 else np.zeros(6)
@@ -164,10 +167,28 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     return SequenceResult(tuple(results), np.asarray(times, np.int64), np.stack(poses))
 
 
-def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, quality: QualitySettings,
+def _sequence_settings(fit_options: dict) -> tuple[FitSettings, dict]:
+    """The one :class:`FitSettings` of every window of a sequence, from ``settings=`` or the keyword fields
+    among ``fit_options`` (not both), and the other options of :func:`fit`."""
+    taken = sorted({"pose", "omega", "init"} & set(fit_options))
+    if taken:
+        raise TypeError(f"fit_sequence() sets {taken} per window; it does not take them")
+    fields = {k: v for k, v in fit_options.items() if k in FitSettings.__dataclass_fields__}
+    rest = {k: v for k, v in fit_options.items() if k not in fields and k != "settings"}
+    settings = fit_options.get("settings")
+    if settings is not None and fields:
+        raise TypeError(f"fit_sequence() takes settings= or keyword options, not both (got settings and "
+                        f"{sorted(fields)})")
+    if settings is not None and not isinstance(settings, FitSettings):
+        raise TypeError(f"settings must be a FitSettings, got {type(settings).__name__}")
+    return (settings if settings is not None else FitSettings(**fields)), rest
+
+
+def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, settings: FitSettings,
                        fit_options: dict) -> list[FitResult]:
     """Each ambiguous se3 window resolved from its ``ok`` neighbours (:func:`choose_from_neighbours`);
     a chosen alternative is re-fitted with its motion held (``fit(..., pose=)``), its depth swept."""
+    quality = settings.quality
     out = list(results)
     for i, r in enumerate(results):
         if r.verdict is not Verdict.AMBIGUOUS:
@@ -181,7 +202,7 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, q
             out[i] = replace(r, quality=resolved)
             continue
         events = take(r.t0_us, r.t1_us + 1)
-        refit = fit(events, K, "se3", pose=np.r_[chosen.v, chosen.omega], quality=quality, **fit_options)
+        refit = fit(events, K, "se3", pose=np.r_[chosen.v, chosen.omega], settings=settings, **fit_options)
         out[i] = replace(refit, scale_known=speed is not None, quality=replace(resolved, replaced=(r.v, r.omega)),
                          stages=r.stages + refit.stages, seconds=r.seconds + refit.seconds,
                          iterations=r.iterations + refit.iterations, evaluations=r.evaluations + refit.evaluations)
@@ -217,9 +238,9 @@ def neighbour_consensus(results: list[FitResult], i: int, neighbours: int,
     return direction / np.linalg.norm(direction), omega, len(confident)
 
 
-def smooth_from_neighbours(results: list[FitResult], take, K, quality: QualitySettings, fit_options: dict, *,
+def smooth_from_neighbours(results: list[FitResult], take, K, settings: FitSettings, fit_options: dict, *,
                            hold_omega: bool = False) -> list[FitResult]:
-    """The motion prior across windows of :func:`fit_sequence` (``quality.smoothing``).
+    """The motion prior across windows of :func:`fit_sequence` (``settings.quality.smoothing``).
 
     For every se3 window with a fitted direction, the running median of it and its confident neighbours
     (:func:`neighbour_consensus`, with the window's own ``|v|``; its own omega with ``hold_omega``, a
@@ -232,8 +253,7 @@ def smooth_from_neighbours(results: list[FitResult], take, K, quality: QualitySe
     they were before this pass (one Jacobi step, so the order of the windows does not matter).
     ``FitResult.quality.resolution`` says what was done; ``replaced`` holds the window's own motion.
     """
-    out = list(results)
-    options = {k: v for k, v in fit_options.items() if k not in ("solver", "num_threads", "init")}
+    quality, out = settings.quality, list(results)
     for i, r in enumerate(results):
         if r.model != "se3" or r.quality is None or r.verdict in (Verdict.FAILED, Verdict.LOW_PARALLAX):
             continue
@@ -248,7 +268,7 @@ def smooth_from_neighbours(results: list[FitResult], take, K, quality: QualitySe
         if distance < quality.smoothing_min_deg:
             continue
         events = take(r.t0_us, r.t1_us + 1)
-        prior = _score_prior(events, K, r, v_prior, omega_prior, options, quality, fit_options.get("num_threads", 1))
+        prior = _score_prior(events, K, r, v_prior, omega_prior, settings, fit_options)
         if prior is None:
             continue
         head = f"smoothing: the consensus of {count} neighbour(s) is {distance:.1f} deg away"
@@ -256,7 +276,7 @@ def smooth_from_neighbours(results: list[FitResult], take, K, quality: QualitySe
             text = f"{head}; kept the fit (it scores better beyond noise: gain {prior.gain:.3g} > {prior.noise:.3g})"
             out[i] = replace(r, quality=replace(r.quality, resolution=_join(r.quality.resolution, text)))
             continue
-        refit = fit(events, K, "se3", pose=np.r_[v_prior, omega_prior], quality=quality, **options)
+        refit = fit(events, K, "se3", pose=np.r_[v_prior, omega_prior], settings=settings, **fit_options)
         text = f"{head}; took it (within noise: gain {prior.gain:.3g} <= {prior.noise:.3g})"
         q = replace(r.quality, resolution=_join(r.quality.resolution, text),
                     replaced=r.quality.replaced if r.quality.replaced is not None else (r.v, r.omega))
@@ -266,15 +286,15 @@ def smooth_from_neighbours(results: list[FitResult], take, K, quality: QualitySe
     return out
 
 
-def _score_prior(events: Events, K, result: FitResult, v: np.ndarray, omega: np.ndarray, options: dict,
-                 quality: QualitySettings, num_threads: int | None):
+def _score_prior(events: Events, K, result: FitResult, v: np.ndarray, omega: np.ndarray, settings: FitSettings,
+                 fit_options: dict):
     """The prior motion ``(v, omega)`` scored as an alternative of ``result`` on the window's own objective
     (an :class:`~cmax.fitting.quality.Alternative`), or None when the window has too few patches."""
-    settings = _settings(options.get("settings"), {k: v_ for k, v_ in options.items()
-                                                   if k not in ("settings", "depth_grid")}, "se3")
-    with torch_threads_scope(len(events), threads=num_threads):
-        w = Window.from_events(events, _check_inputs(events, K, "se3"), settings, options.get("depth_grid", (24, 32)))
-        scorer = MotionScorer.build(w, result.v, result.omega, float(np.linalg.norm(result.v)), quality)
+    settings = _settings(settings, {}, "se3")
+    with torch_threads_scope(len(events), threads=fit_options.get("num_threads", 1)):
+        w = Window.from_events(events, _check_inputs(events, K, "se3"), settings,
+                               fit_options.get("depth_grid", (24, 32)))
+        scorer = MotionScorer.build(w, result.v, result.omega, float(np.linalg.norm(result.v)), settings.quality)
         return None if scorer is None else scorer.score("neighbours", v, omega)
 
 

@@ -1,20 +1,34 @@
 """Settings of :func:`cmax.fit`: every tuned constant of the fit, in frozen dataclasses validated at construction.
 
-:class:`FitSettings` holds the window-wide options and three nested sub-settings, one per se3 stage
-that has constants of its own: :class:`PatchFlowSettings` (the patch-flow initialiser),
+:class:`FitSettings` holds the window-wide options and four nested sub-settings: one per se3 stage
+that has constants of its own, :class:`PatchFlowSettings` (the patch-flow initialiser),
 :class:`RefineSettings` (the patch-wise refinement) and :class:`SweepSettings` (the depth sweep's
-second-level constants). Strategies are enums (:class:`MotionInit`, :class:`Refinement`); their string
-values are accepted and turned into the enum. Why each default is what it is: ``docs/fitting.md``.
+second-level constants), and :class:`QualitySettings` (the verdict: the ambiguity test, the low-motion
+test and the resolution of ambiguous windows from their neighbours). Strategies are enums
+(:class:`MotionInit`, :class:`Refinement`, :class:`Polish`); their string values are accepted and turned
+into the enum. Stopping tolerances are :class:`cmax.fitting.solvers.Tolerances`. Why each default is
+what it is: ``docs/fitting.md``.
 """
 from __future__ import annotations
 
 import enum
+import math
 from dataclasses import dataclass, field
 
 import numpy as np
 
+from cmax.fitting.solvers import RELAXED_TOLERANCES, SCIPY_DEFAULT_TOLERANCES, Tolerances
+
 __all__ = ["FitSettings", "MotionInit", "Refinement", "Polish", "PatchFlowSettings", "RefineSettings",
-           "SweepSettings"]
+           "SweepSettings", "QualitySettings", "LOW_PARALLAX_PX", "PROBE_TIMES"]
+
+LOW_PARALLAX_PX = 1.0
+"""Default of :attr:`FitSettings.low_parallax_px`: below this median displacement [px] of the events by the
+translation over the window, :func:`cmax.fit` warns (:class:`cmax.fitting.LowParallaxWarning`)."""
+
+PROBE_TIMES = (-1.0, -0.5, 0.5, 1.0)
+"""Default of :attr:`FitSettings.collapse_times`: the time offsets the deformation guard warps its probes
+by, in units of the window's duration."""
 
 
 class MotionInit(str, enum.Enum):
@@ -67,6 +81,18 @@ def _fraction(name: str, value: object) -> None:
         raise ValueError(f"{name} must be in [0, 1], got {value!r}")
 
 
+def _non_negative(name: str, value: object) -> None:
+    if not (isinstance(value, (int, float, np.number)) and not isinstance(value, bool) and np.isfinite(value)
+            and value >= 0):
+        raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+
+
+def _tolerances(name: str, value: object, optional: bool = False) -> None:
+    if not (isinstance(value, Tolerances) or (optional and value is None)):
+        raise TypeError(f"{name} must be a cmax.fitting.solvers.Tolerances{' or None' if optional else ''}, "
+                        f"got {value!r}")
+
+
 @dataclass(frozen=True)
 class PatchFlowSettings:
     """The patch-flow initialiser of se3 (:mod:`cmax.fitting.patch_flow`).
@@ -91,6 +117,23 @@ class PatchFlowSettings:
         Candidate translation directions of the motion-field fit (Fibonacci sphere).
     cap_directions : int
         Directions of the finer cap around the best (0: no cap).
+    cap_radius : float
+        Radius of that cap, in spacings of the ``directions`` on the sphere (``sqrt(4 pi / directions)`` rad).
+    negative_depth_penalty : float
+        A direction's motion-field residual is multiplied by ``1 + negative_depth_penalty * x``, ``x`` the
+        fraction of its patches' inverse depths that come out negative.
+    min_margin_px : int
+        Smallest ``margin`` [px], whatever the patch side.
+    min_patches : int
+        With fewer patches holding ``min_events``, the stage falls back to the rotation and translation
+        starts (the motion-field equations need the patches' spread).
+    information_step_px : float
+        Step [px of displacement over the window] of the central differences of each patch's contrast
+        curvature (:func:`cmax.fitting.patch_flow.flow_information`).
+    information_floor : float
+        The curvature's eigenvalues are clipped to at least this fraction of the largest over all patches.
+    tolerances : Tolerances
+        Stopping tolerances of each level's solve (scipy's L-BFGS-B defaults).
     """
 
     grid: tuple[int, int] = (4, 5)
@@ -102,6 +145,13 @@ class PatchFlowSettings:
     coarse_step: int = 3
     directions: int = 3000
     cap_directions: int = 400
+    cap_radius: float = 1.5
+    negative_depth_penalty: float = 4.0
+    min_margin_px: int = 8
+    min_patches: int = 4
+    information_step_px: float = 0.25
+    information_floor: float = 1e-3
+    tolerances: Tolerances = SCIPY_DEFAULT_TOLERANCES
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "grid", _grid("patch_flow.grid", self.grid))
@@ -114,6 +164,14 @@ class PatchFlowSettings:
         _positive_int("patch_flow.coarse_step", self.coarse_step)
         _positive_int("patch_flow.directions", self.directions, 2)
         _positive_int("patch_flow.cap_directions", self.cap_directions, 0)
+        _positive("patch_flow.cap_radius", self.cap_radius)
+        _non_negative("patch_flow.negative_depth_penalty", self.negative_depth_penalty)
+        _positive_int("patch_flow.min_margin_px", self.min_margin_px, 0)
+        _positive_int("patch_flow.min_patches", self.min_patches, 3)
+        _positive("patch_flow.information_step_px", self.information_step_px)
+        if not (isinstance(self.information_floor, (int, float, np.number)) and 0 < self.information_floor <= 1):
+            raise ValueError(f"patch_flow.information_floor must be in (0, 1], got {self.information_floor!r}")
+        _tolerances("patch_flow.tolerances", self.tolerances)
 
 
 @dataclass(frozen=True)
@@ -126,18 +184,31 @@ class RefineSettings:
         Patches, each with its own inverse depth.
     min_events, max_events, margin
         As in :class:`PatchFlowSettings`.
+    min_margin_px, min_patches
+        As in :class:`PatchFlowSettings` (with fewer patches the refinement keeps its start, and the
+        ambiguity test does not run).
     rho_candidates : int
         Inverse depths of the per-patch start sweep, log-uniform over ``depth_range``.
     iterations : int
         Solver iterations.
+    direction_scale : float
+        The translation direction enters the solve as ``direction_scale * v / |v|`` [parameter units per
+        unit vector], so that a unit step turns it by about ``1 / direction_scale`` rad (10: ~6 deg), like
+        one pixel of displacement of the other parameters; each component is bounded by twice it.
+    tolerances : Tolerances
+        Stopping tolerances of the solve (scipy's L-BFGS-B defaults).
     """
 
     grid: tuple[int, int] = (6, 8)
     min_events: int = 100
     max_events: int = 20_000
     margin: float = 0.3
+    min_margin_px: int = 8
+    min_patches: int = 4
     rho_candidates: int = 24
     iterations: int = 60
+    direction_scale: float = 10.0
+    tolerances: Tolerances = SCIPY_DEFAULT_TOLERANCES
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "grid", _grid("refine.grid", self.grid))
@@ -146,6 +217,10 @@ class RefineSettings:
         _fraction("refine.margin", self.margin)
         _positive_int("refine.rho_candidates", self.rho_candidates, 2)
         _positive_int("refine.iterations", self.iterations)
+        _positive_int("refine.min_margin_px", self.min_margin_px, 0)
+        _positive_int("refine.min_patches", self.min_patches, 1)
+        _positive("refine.direction_scale", self.direction_scale)
+        _tolerances("refine.tolerances", self.tolerances)
 
 
 @dataclass(frozen=True)
@@ -158,14 +233,105 @@ class SweepSettings:
         Steps of each relative sweep.
     chunk : int
         Candidates warped at once (memory against speed; no effect on the result).
+    border_px : int
+        A warped event closer than this to the image's edge [px] counts as pushed out of the image (its
+        vote is left out of its node's mean; the bilinear vote of an event on the edge row is cut).
+    vote_scale_quantile : float
+        An event that some candidate pushes out of the image is divided by this quantile (lower
+        interpolation: 0.5 is the lower median) of the largest values of the events that every
+        candidate keeps inside, instead of its own largest value
+        (:class:`cmax.contrast.SweepNodeCost`).
     """
 
     refine_candidates: int = 13
     chunk: int = 8
+    border_px: int = 1
+    vote_scale_quantile: float = 0.5
 
     def __post_init__(self) -> None:
         _positive_int("sweep.refine_candidates", self.refine_candidates, 3)
         _positive_int("sweep.chunk", self.chunk)
+        _positive_int("sweep.border_px", self.border_px, 0)
+        _fraction("sweep.vote_scale_quantile", self.vote_scale_quantile)
+
+
+@dataclass(frozen=True)
+class QualitySettings:
+    """Options of the verdict (:mod:`cmax.fitting.quality`): the ambiguity test of se3, the low-motion test of
+    flow and rotation, and the resolution of ambiguous windows from their neighbours.
+
+    Attributes
+    ----------
+    ambiguity_test : bool
+        Score the alternatives (se3 with a fitted direction; a few sweeps of the patch-wise objective).
+    margin : float
+        Relative margin: an alternative whose summed gain is within ``margin`` times the fit's own
+        contrast gain over the unwarped events is ambiguous, whatever the patches' spread.
+    noise_sigmas : float
+        Multiples of the standard error of the summed per-patch gain that count as noise.
+    polish_iterations : int
+        Iterations of the fit's own patch-wise refinement (:func:`cmax.fitting.motion.refine_motion_local`)
+        from each alternative before it is scored (0: the depth sweep only), so that an alternative is
+        compared at its own optimum as the fit is at its.
+    distinct_deg : float
+        A polished alternative that ends within this distance of the fit (direction angle plus rotation
+        over the window, degrees) is the fit itself, not an alternative: it is dropped.
+    neighbours : int
+        ``fit_sequence``: windows on each side searched for confident (``ok``) neighbours.
+    max_resolve_deg : float
+        ``fit_sequence``: a candidate farther than this from the neighbours' motion (direction angle
+        plus rotation difference over the window, degrees) does not resolve a window.
+    motion_test : bool
+        ``flow``/``rotation``: test the fitted motion's contrast gain against its spread over the
+        image's cells (:func:`cmax.fitting.quality.motion_within_noise`); a gain within noise makes the
+        verdict ``low_parallax`` and warns :class:`cmax.fitting.LowMotionWarning`.
+    motion_cells : (rows, cols)
+        The cells of that test.
+    motion_noise_sigmas : float
+        Multiples of the standard error of the summed per-cell gain that count as noise.
+    smoothing : bool
+        ``fit_sequence``: the motion prior across windows. After the resolution, every se3 window whose
+        data cannot tell its own motion from the consensus of its confident neighbours (the median
+        direction and rotation of the window and at least ``min_consensus`` of them, scored as an
+        alternative: gain within noise) takes the consensus, its depth swept for it
+        (:func:`cmax.fitting.sequence.smooth_from_neighbours`).
+    min_consensus : int
+        ``fit_sequence``: confident neighbours needed to form a consensus.
+    smoothing_min_deg : float
+        ``fit_sequence``: a consensus closer than this to the window's own motion (direction angle plus
+        rotation over the window, degrees) changes nothing worth a re-fit: the window keeps its fit.
+    """
+
+    ambiguity_test: bool = True
+    margin: float = 0.02
+    noise_sigmas: float = 1.0
+    polish_iterations: int = 20
+    distinct_deg: float = 30.0
+    neighbours: int = 2
+    max_resolve_deg: float = 45.0
+    motion_test: bool = True
+    motion_cells: tuple[int, int] = (6, 8)
+    motion_noise_sigmas: float = 2.5
+    smoothing: bool = True
+    min_consensus: int = 2
+    smoothing_min_deg: float = 1.0
+
+    def __post_init__(self) -> None:
+        for name in ("ambiguity_test", "motion_test", "smoothing"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
+        object.__setattr__(self, "motion_cells", _grid("motion_cells", self.motion_cells))
+        for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg", "motion_noise_sigmas",
+                     "smoothing_min_deg"):
+            value = getattr(self, name)
+            if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
+                raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
+            raise ValueError(f"polish_iterations must be an int >= 0, got {self.polish_iterations!r}")
+        for name in ("neighbours", "min_consensus"):
+            value = getattr(self, name)
+            if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
+                raise ValueError(f"{name} must be an int >= 1, got {value!r}")
 
 
 @dataclass(frozen=True)
@@ -214,6 +380,10 @@ class FitSettings:
         Rounds of (motion with the depth held, depth sweep) after the first depth (se3 without pose).
     collapse_weight : float
         Weight of the deformation guard (:func:`cmax.objectives.deformation`).
+    collapse_lattice : (rows, cols)
+        Probe pixels of the deformation guard, spread over 10-90 % of the image.
+    collapse_times : tuple of float
+        Time offsets the deformation guard warps its probes by, in units of the window's duration.
     translation_starts : int
         Directions tried for the translation with ``motion_init="starts"`` (6: the camera axes; 14
         adds the diagonals).
@@ -221,6 +391,16 @@ class FitSettings:
         Iteration limit of each solve of the global-contrast stages at full resolution.
     coarse_iterations : int
         Iteration limit of each solve at a coarser image scale.
+    image_scales : tuple of int or None
+        The coarse-to-fine schedule of the global-contrast stages (``flow``, ``rotation``): image scales,
+        decreasing, ending with 1 (full resolution). None: by the sensor's larger side, ``(4, 2, 1)`` from
+        256 px, ``(2, 1)`` from 96 px, else ``(1,)``.
+    tolerances : Tolerances or None
+        Stopping tolerances of the global-contrast solves of ``rotation``, the se3 translation starts and
+        the motion with the depth held (None: the backend's own).
+    flow_tolerances : Tolerances
+        Stopping tolerances of the ``flow`` solves (looser: a 2-parameter flow is below 0.1 px of error
+        well before the backend's own tolerances stop it).
     start_iterations : int
         Iteration limit of each translation start (``motion_init="starts"``, at image scale 2).
     max_omega : float
@@ -232,12 +412,19 @@ class FitSettings:
     low_motion_px : float
         ``flow`` and ``rotation``: below this median displacement of the events over the window [px]
         the fit warns (:class:`cmax.fitting.LowMotionWarning`).
+    low_parallax_px : float
+        se3: below this median displacement of the events by the translation over the window [px]
+        (``FitResult.parallax_px``) the fit warns (:class:`cmax.fitting.LowParallaxWarning`) and the
+        verdict is ``low_parallax``.
     min_cell_events : int
         Depth cells with fewer events are outside the mask.
     seed : int
         Seed of the subsampling.
     patch_flow, refine, sweep
         The nested settings of those stages.
+    quality : QualitySettings
+        The verdict of the fit (:mod:`cmax.fitting.quality`): the ambiguity test of se3, the low-motion
+        test of flow and rotation, and (:func:`cmax.fit_sequence`) the resolution from neighbours.
     """
 
     contrast: str | None = None
@@ -257,18 +444,25 @@ class FitSettings:
     polish: Polish = Polish.NONE
     polish_iterations: int = 60
     collapse_weight: float = 0.1
+    collapse_lattice: tuple[int, int] = (9, 12)
+    collapse_times: tuple[float, ...] = PROBE_TIMES
     translation_starts: int = 6
     iterations: int = 60
     coarse_iterations: int = 20
+    image_scales: tuple[int, ...] | None = None
     start_iterations: int = 25
+    tolerances: Tolerances | None = None
+    flow_tolerances: Tolerances = RELAXED_TOLERANCES
     max_omega: float = 6.0
     max_flow_px: float = 2.0
     low_motion_px: float = 2.0
+    low_parallax_px: float = LOW_PARALLAX_PX
     min_cell_events: int = 15
     seed: int = 0
     patch_flow: PatchFlowSettings = field(default_factory=PatchFlowSettings)
     refine: RefineSettings = field(default_factory=RefineSettings)
     sweep: SweepSettings = field(default_factory=SweepSettings)
+    quality: QualitySettings = field(default_factory=QualitySettings)
 
     def __post_init__(self) -> None:
         if self.contrast not in (None, "variance", "gradient"):
@@ -297,8 +491,24 @@ class FitSettings:
                              f"{self.depth_smoothness!r}")
         if len(self.references) == 0 or any(not 0 <= r <= 1 for r in self.references):
             raise ValueError(f"references must be fractions of the window in [0, 1], got {self.references!r}")
-        for name in ("sigma", "max_omega", "max_flow_px", "low_motion_px"):
+        for name in ("sigma", "max_omega", "max_flow_px", "low_motion_px", "low_parallax_px"):
             _positive(name, getattr(self, name))
+        object.__setattr__(self, "collapse_lattice", _grid("collapse_lattice", self.collapse_lattice))
+        times = tuple(self.collapse_times)
+        if not times or any(not (isinstance(t, (int, float, np.number)) and np.isfinite(t) and t != 0)
+                            for t in times):
+            raise ValueError(f"collapse_times must be non-zero fractions of the window, got {self.collapse_times!r}")
+        object.__setattr__(self, "collapse_times", tuple(float(t) for t in times))
+        _tolerances("tolerances", self.tolerances, optional=True)
+        if self.image_scales is not None:
+            scales = tuple(self.image_scales)
+            if (not scales or scales[-1] != 1 or any(not isinstance(k, (int, np.integer)) or isinstance(k, bool)
+                                                     or k < 1 for k in scales)
+                    or any(a <= b for a, b in zip(scales, scales[1:]))):
+                raise ValueError(f"image_scales must be decreasing integers ending with 1 (or None), got "
+                                 f"{self.image_scales!r}")
+            object.__setattr__(self, "image_scales", tuple(int(k) for k in scales))
+        _tolerances("flow_tolerances", self.flow_tolerances)
         if not (np.isfinite(self.collapse_weight) and self.collapse_weight >= 0):
             raise ValueError(f"collapse_weight must be >= 0, got {self.collapse_weight!r}")
         _positive_int("depth_candidates", self.depth_candidates, 2)
@@ -309,6 +519,7 @@ class FitSettings:
         _positive_int("coarse_iterations", self.coarse_iterations)
         _positive_int("start_iterations", self.start_iterations)
         _positive_int("min_cell_events", self.min_cell_events, 0)
-        for name, kind in (("patch_flow", PatchFlowSettings), ("refine", RefineSettings), ("sweep", SweepSettings)):
+        for name, kind in (("patch_flow", PatchFlowSettings), ("refine", RefineSettings), ("sweep", SweepSettings),
+                           ("quality", QualitySettings)):
             if not isinstance(getattr(self, name), kind):
                 raise TypeError(f"{name} must be a {kind.__name__}, got {type(getattr(self, name)).__name__}")

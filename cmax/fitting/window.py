@@ -13,6 +13,7 @@ from typing import TYPE_CHECKING
 import numpy as np
 import torch
 
+from cmax.fitting.settings import LOW_PARALLAX_PX  # noqa: F401  (re-exported: the default of low_parallax_px)
 from cmax.objectives import deformation, multi_reference_contrast
 from cmax.warp import DepthGrid, WarpEvents, warp_se3
 
@@ -21,11 +22,6 @@ if TYPE_CHECKING:  # pragma: no cover
     from cmax.fitting.settings import FitSettings
 
 __all__ = ["Window", "SE3Model", "LOW_PARALLAX_PX"]
-
-LOW_PARALLAX_PX = 1.0
-"""Below this median displacement [px] of the events by the translation over the window, :func:`cmax.fit`
-warns (:class:`cmax.fitting.LowParallaxWarning`): the depth and the translation direction are poorly
-constrained (``docs/fitting.md``)."""
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,20 +100,25 @@ class Window:
                                         baseline=self._baselines[scale], on=self.on)
 
     def scales(self) -> tuple[int, ...]:
-        """Image scales of the coarse-to-fine schedule: 4, 2, 1 for sensors of 256 px and more."""
+        """Image scales of the coarse-to-fine schedule: ``settings.image_scales``, or by default 4, 2, 1 for
+        sensors of 256 px and more, 2, 1 from 96 px, else 1."""
+        if self.settings.image_scales is not None:
+            return self.settings.image_scales
         size = max(self.ev.width, self.ev.height)
         return (4, 2, 1) if size >= 256 else (2, 1) if size >= 96 else (1,)
 
 
 def _probe_lattice(w: Window):
-    """A 9 x 12 lattice of probe pixels, their rays, grid weights, and probe times (4, 1)."""
+    """The ``settings.collapse_lattice`` (rows, cols) of probe pixels over 10-90 % of the image, their rays,
+    grid weights, and the probe times (T, 1) [s] (``settings.collapse_times`` times the duration)."""
     ev = w.ev
-    ys, xs = torch.meshgrid(torch.linspace(0.1, 0.9, 9, dtype=ev.x.dtype) * ev.height,
-                            torch.linspace(0.1, 0.9, 12, dtype=ev.x.dtype) * ev.width, indexing="ij")
+    rows, cols = w.settings.collapse_lattice
+    ys, xs = torch.meshgrid(torch.linspace(0.1, 0.9, rows, dtype=ev.x.dtype) * ev.height,
+                            torch.linspace(0.1, 0.9, cols, dtype=ev.x.dtype) * ev.width, indexing="ij")
     Kinv = torch.linalg.inv(ev.K)
     rays = torch.stack([xs, ys, torch.ones_like(xs)], -1) @ Kinv.T
     index, weight = w.grid.weights(xs.reshape(-1), ys.reshape(-1))
-    times = torch.tensor([-1.0, -0.5, 0.5, 1.0], dtype=ev.x.dtype)[:, None] * w.T
+    times = torch.tensor(w.settings.collapse_times, dtype=ev.x.dtype)[:, None] * w.T
     return xs, ys, rays.reshape(-1, 3), (index, weight), times
 
 
@@ -153,7 +154,7 @@ class SE3Model:
         ev = self.w.ev
         x1, y1 = warp_se3(rays, times.expand(-1, rays.shape[0]), v.to(ev.x.dtype), omega.to(ev.x.dtype),
                           rho_probes.to(ev.x.dtype), ev.K)
-        return deformation(xs, ys, x1.view(4, *xs.shape), y1.view(4, *xs.shape))
+        return deformation(xs, ys, x1.view(len(times), *xs.shape), y1.view(len(times), *xs.shape))
 
     def rho_events(self, q: torch.Tensor) -> torch.Tensor:
         if q.numel() == 1:

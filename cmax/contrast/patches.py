@@ -1,0 +1,205 @@
+"""Patch-wise contrast: a window's events cut into a grid of patches, each imaged in its own small frame.
+
+Two objectives of the se3 fit live here, both sums over patches of each patch's IWE variance
+normalised by its unwarped value, so that every patch weighs the same whatever its events (the
+global contrast is ruled by the densest regions):
+
+* :class:`PatchFlowContrast`: each patch moves with its own constant flow (the patch-flow
+  initialiser, :mod:`cmax.fitting.patch_flow`); separable over patches.
+* :class:`PatchMotionContrast`: the events are warped by the exact se3 warp of :mod:`cmax.warp`
+  with one shared twist and any per-event inverse depth (the fit's refinement,
+  :mod:`cmax.fitting.motion`, gives each patch one inverse depth).
+
+They differ from :class:`cmax.contrast.LocalContrast` (the contrast core's per-cell objective on a
+depth map): the variance, not the energy ``sum I^2``, of each patch's image; the image's own frame
+(the patch plus a margin) for each patch; the events subsampled once; the sum, not the mean, over
+patches; no depth smoothness.
+
+References
+----------
+S. Shiba, Y. Aoki, G. Gallego, "Secrets of event-based optical flow", ECCV 2022 (patch-wise contrast
+with a shared motion). T. Stoffregen, L. Kleeman, "Event cameras, contrast maximization and reward
+functions: an analysis", CVPR 2019 (local contrast). G. Gallego, H. Rebecq, D. Scaramuzza, "A
+unifying contrast maximization framework for event cameras", CVPR 2018 (the warps and the variance).
+"""
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import numpy as np
+import torch
+
+from cmax.iwe import accumulate_bilinear_indexed, blur
+from cmax.objectives import variance
+from cmax.warp import warp_se3
+
+__all__ = ["Patches", "cut_patches", "PatchFlowContrast", "PatchMotionContrast"]
+
+
+@dataclass(frozen=True, eq=False)
+class Patches:
+    """Events of a window cut into a grid of patches, each imaged in its own small frame.
+
+    Attributes
+    ----------
+    x, y : Tensor (M,)
+        Pixels [px] of the kept events (a uniform subsample of the window).
+    dt : Tensor (M,)
+        ``t - t_mid`` [s] (the window's middle is the reference time).
+    patch : Tensor (M,) int64
+        The patch of each event (0 <= patch < P).
+    offset : Tensor (P, 2)
+        Top-left pixel ``(x, y)`` of each patch's frame (the patch plus ``margin``).
+    size : (int, int)
+        ``(H, W)`` of every patch frame [px].
+    margin : int
+        Pixels around a patch inside its frame (the largest displacement kept) [px].
+    centres : ndarray (P, 2)
+        Mean pixel of each patch's events.
+    counts : ndarray (P,)
+        Events per patch (of the subsample).
+    """
+
+    x: torch.Tensor
+    y: torch.Tensor
+    dt: torch.Tensor
+    patch: torch.Tensor
+    offset: torch.Tensor
+    size: tuple[int, int]
+    margin: int
+    centres: np.ndarray
+    counts: np.ndarray
+
+    @property
+    def count(self) -> int:
+        return int(self.offset.shape[0])
+
+    def every(self, step: int) -> "Patches":
+        """The same patches with every ``step``-th event (centres and counts unchanged)."""
+        if step <= 1:
+            return self
+        return Patches(self.x[::step], self.y[::step], self.dt[::step], self.patch[::step], self.offset, self.size,
+                       self.margin, self.centres, self.counts)
+
+    def images(self, x: torch.Tensor, y: torch.Tensor, sigma: float) -> torch.Tensor:
+        """Blurred count images (P, H, W) of the events at full-image pixels ``x, y`` (M,)."""
+        H, W = self.size
+        ox, oy = self.offset[self.patch, 0], self.offset[self.patch, 1]
+        return blur(accumulate_bilinear_indexed(x - ox, y - oy, None, self.patch, self.count, H, W), sigma)
+
+
+def cut_patches(x: torch.Tensor, y: torch.Tensor, dt: torch.Tensor, width: int, height: int, *,
+                grid: tuple[int, int], min_events: int, max_events: int, margin: float,
+                min_margin_px: int = 8) -> Patches | None:
+    """Cut events at pixels ``x, y`` (N,) [px] with ``dt = t - t_ref`` (N,) [s] of a ``width`` x ``height``
+    sensor into a ``grid`` (rows, cols) of patches; None when no patch has ``min_events``.
+
+    Every ``N // max_events``-th event is kept (a uniform subsample). ``margin`` is a fraction of the
+    patch side (at least ``min_margin_px`` px): how far an event may move inside its patch's frame.
+    """
+    gh, gw = grid
+    step = max(1, len(x) // max_events)
+    x, y, dt = x[::step], y[::step], dt[::step]
+    cell = ((y * gh / height).long().clamp(0, gh - 1) * gw + (x * gw / width).long().clamp(0, gw - 1))
+    counts = torch.bincount(cell, minlength=gh * gw)
+    keep = torch.nonzero(counts >= min_events).reshape(-1)
+    if keep.numel() == 0:
+        return None
+    remap = torch.full((gh * gw,), -1, dtype=torch.long)
+    remap[keep] = torch.arange(keep.numel())
+    patch = remap[cell]
+    sel = patch >= 0
+    x, y, dt, patch = x[sel], y[sel], dt[sel], patch[sel]
+    P = keep.numel()
+    ph, pw = math.ceil(height / gh), math.ceil(width / gw)
+    pad = max(int(min_margin_px), int(margin * max(ph, pw)))
+    offset = torch.stack([(keep % gw).to(x.dtype) * width / gw - pad,
+                          (keep // gw).to(x.dtype) * height / gh - pad], 1)
+    n = counts[keep].to(x.dtype)
+    centres = torch.stack([torch.zeros(P, dtype=x.dtype).index_add_(0, patch, x),
+                           torch.zeros(P, dtype=x.dtype).index_add_(0, patch, y)], 1) / n[:, None]
+    return Patches(x, y, dt, patch, offset, (ph + 2 * pad, pw + 2 * pad), pad, centres.double().numpy(),
+                   n.double().numpy())
+
+
+@dataclass(frozen=True, eq=False)
+class PatchFlowContrast:
+    """Minus the summed normalised IWE variances of patches that each move with a constant flow.
+
+    ``J(q) = -sum_p Var(I_p(q_p)) / Var(I_p(0))`` with ``q`` (2P,) each patch's displacement over the
+    window [px] (flow times ``T``), the events of patch ``p`` moved by ``-q_p dt / T``
+    (:func:`cmax.warp.warp_flow`'s convention). Separable: each patch's term depends on its own flow
+    only. Lower is better; differentiable in ``q``.
+
+    Attributes
+    ----------
+    patches : Patches
+    sigma : float
+        IWE blur [px].
+    T : float
+        Window duration [s].
+    base : Tensor (P,)
+        Variance of each patch's unwarped IWE (no gradient).
+    """
+
+    patches: Patches
+    sigma: float
+    T: float
+    base: torch.Tensor
+
+    @classmethod
+    def build(cls, patches: Patches, sigma: float, T: float) -> "PatchFlowContrast":
+        """The objective of ``patches`` with blur ``sigma`` [px] over a window of ``T`` [s]."""
+        with torch.no_grad():
+            base = variance(patches.images(patches.x, patches.y, sigma)).clamp(min=1e-12)
+        return cls(patches, sigma, T, base)
+
+    def __call__(self, q: torch.Tensor) -> torch.Tensor:
+        """``J(q)`` (scalar) of displacements ``q`` (2P,) [px over the window]."""
+        patches = self.patches
+        x, y, dt, patch = patches.x, patches.y, patches.dt, patches.patch
+        flow = q.reshape(patches.count, 2).to(x.dtype) / self.T
+        images = patches.images(x - flow[patch, 0] * dt, y - flow[patch, 1] * dt, self.sigma)
+        return -(variance(images) / self.base).sum()
+
+
+@dataclass(frozen=True, eq=False)
+class PatchMotionContrast:
+    """Normalised IWE variance (P,) of each patch for one se3 twist and per-event inverse depths.
+
+    ``c_p(v, omega, rho) = Var(I_p(v, omega, rho)) / Var(I_p(0))``, the events warped to the window's
+    middle by :func:`cmax.warp.warp_se3`. The se3 refinement maximises ``sum_p c_p`` with one inverse
+    depth per patch (:class:`cmax.fitting.motion.LocalMotionObjective`); the verdict compares motions
+    on it (:mod:`cmax.fitting.quality`). Higher is better; differentiable in ``v``, ``omega``, ``rho``.
+
+    Attributes
+    ----------
+    patches : Patches
+    rays : Tensor (M, 3)
+        ``K^-1 (x, y, 1)`` of the patches' events.
+    K : Tensor (3, 3)
+    sigma : float
+        IWE blur [px].
+    base : Tensor (P,)
+        Variance of each patch's unwarped IWE (no gradient).
+    """
+
+    patches: Patches
+    rays: torch.Tensor
+    K: torch.Tensor
+    sigma: float
+    base: torch.Tensor
+
+    @classmethod
+    def build(cls, patches: Patches, K: torch.Tensor, sigma: float) -> "PatchMotionContrast":
+        """The objective of ``patches`` with intrinsics ``K`` (3, 3) [px] and blur ``sigma`` [px]."""
+        rays = torch.stack([patches.x, patches.y, torch.ones_like(patches.x)], -1) @ torch.linalg.inv(K).T
+        with torch.no_grad():
+            base = variance(patches.images(patches.x, patches.y, sigma)).clamp(min=1e-12)
+        return cls(patches, rays, K, sigma, base)
+
+    def __call__(self, v: torch.Tensor, omega: torch.Tensor, rho_events: torch.Tensor) -> torch.Tensor:
+        """``c_p`` (P,) for ``v`` (3,) [m/s], ``omega`` (3,) [rad/s] and per-event inverse depths (M,) [1/m]."""
+        x, y = warp_se3(self.rays, self.patches.dt, v, omega, rho_events, self.K)
+        return variance(self.patches.images(x, y, self.sigma)) / self.base
