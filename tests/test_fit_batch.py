@@ -155,6 +155,49 @@ def test_bad_input_is_refused_before_any_fit(call, error, match, monkeypatch):
         call([translating_edges((300.0, 0.0), 0), translating_edges((300.0, 0.0), 1)])
 
 
+def _thread_counts() -> dict[str, int]:
+    """Threads of every BLAS and OpenMP library loaded in this process (threadpoolctl)."""
+    from threadpoolctl import threadpool_info
+
+    return {info["filepath"]: info["num_threads"] for info in threadpool_info()}
+
+
+def _torch_threads() -> tuple[int, int]:
+    import torch
+
+    return torch.get_num_threads(), torch.get_num_interop_threads()
+
+
+def test_every_worker_runs_torch_and_blas_on_one_thread():
+    pytest.importorskip("threadpoolctl")
+    from concurrent.futures import ProcessPoolExecutor
+
+    with ProcessPoolExecutor(1, mp_context=batch._context(), initializer=batch._init_worker) as pool:
+        assert pool.submit(_torch_threads).result() == (1, 1)
+        counts = pool.submit(_thread_counts).result()
+    assert any("openblas" in path for path in counts) and set(counts.values()) == {1}, counts
+
+
+def test_one_blas_thread_without_threadpoolctl_sets_openblas_itself(tmp_path):
+    """The fallback (no threadpoolctl): numpy's and scipy's OpenBLAS set through their own setters,
+    checked in a fresh interpreter through threadpoolctl's own reading."""
+    pytest.importorskip("threadpoolctl")
+    code = textwrap.dedent("""
+        import sys
+        import numpy, scipy.linalg
+        sys.modules["threadpoolctl"] = None          # import threadpoolctl fails inside the fallback
+        from cmax.fitting.batch import one_blas_thread
+        count = one_blas_thread()
+        del sys.modules["threadpoolctl"]
+        from threadpoolctl import threadpool_info
+        print(count, sorted({i["num_threads"] for i in threadpool_info() if i["internal_api"] == "openblas"}))
+    """)
+    env = {**os.environ, "PYTHONPATH": str(ROOT), "OPENBLAS_NUM_THREADS": "2", "OMP_NUM_THREADS": "2"}
+    out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, env=env, check=True).stdout
+    count, threads = out.split(" ", 1)
+    assert int(count) >= 1 and threads.strip() == "[1]", out
+
+
 def test_jobs_none_means_every_available_core():
     assert batch.check_jobs(None) == len(os.sched_getaffinity(0))
     assert batch.check_jobs(3) == 3

@@ -14,9 +14,10 @@ Design choices:
   so each worker forks with torch already imported. Like every ``spawn``/``forkserver`` pool, a
   script that calls :func:`fit_windows` with ``jobs > 1`` must guard its top level with
   ``if __name__ == "__main__":``.
-* **One thread per worker.** Each worker sets torch to one intra-op and one inter-op thread and
-  ``CMAX_TORCH_THREADS=1`` (:mod:`cmax._threads`), so ``jobs`` workers use ``jobs`` cores and none
-  falls off the thread-pool cliff of a busy machine.
+* **One thread per worker.** Each worker sets torch to one intra-op and one inter-op thread,
+  ``CMAX_TORCH_THREADS=1`` (:mod:`cmax._threads`) and its BLAS to one thread
+  (:func:`one_blas_thread`), so ``jobs`` workers use ``jobs`` cores and none falls off the
+  thread-pool cliff of a busy machine.
 * **A failed window stops the call.** An exception in a window's fit cancels the windows not yet
   started and raises :class:`WindowFitError` naming the window's index (the original exception is
   its ``__cause__``). A made-up ``FitResult(success=False)`` would need every field of a fit that
@@ -57,8 +58,12 @@ __all__ = ["WindowFitError", "fit_windows", "check_jobs"]
 #: Keywords of :func:`cmax.fit` that :func:`fit_windows` passes on (besides the FitSettings fields).
 _FIT_KEYWORDS = frozenset({"speed", "pose", "omega", "depth_grid", "solver", "init", "settings", "num_threads",
                            "quality"})
-#: Modules the forkserver imports once, so that each worker forks with torch and the fit loaded.
-_PRELOAD = ["cmax.fitting.batch"]
+#: Modules the forkserver imports once, so that each worker forks with them loaded: the fit, and what
+#: its first call would import lazily (torch's ``broadcast_shapes`` pulls in sympy through
+#: ``symbolic_shapes``; the scipy solvers and filters), which every worker's first window paid
+#: otherwise. A module missing in some version is skipped.
+_PRELOAD = ["cmax.fitting.batch", "cmax.fitting.polish", "cmax.contrast", "scipy.optimize", "scipy.ndimage",
+            "torch.fx.experimental.symbolic_shapes"]
 #: Windows submitted per worker ahead of the results (bounds the events held in flight).
 _AHEAD = 2
 
@@ -226,7 +231,8 @@ def _guarded(task: FitTask) -> tuple[FitResult, tuple]:
 
 def _init_worker() -> None:
     """Each worker: torch on one thread (intra- and inter-op), ``CMAX_TORCH_THREADS=1`` for
-    :mod:`cmax._threads`, SIGINT left to the calling process (which terminates the workers)."""
+    :mod:`cmax._threads`, BLAS on one thread (:func:`one_blas_thread`), SIGINT left to the calling
+    process (which terminates the workers)."""
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ["CMAX_TORCH_THREADS"] = "1"
     import torch
@@ -236,6 +242,46 @@ def _init_worker() -> None:
         torch.set_num_interop_threads(1)
     except RuntimeError:  # pragma: no cover - already set (a forkserver preloaded it)
         pass
+    one_blas_thread()
+
+
+#: Thread-count setters of the OpenBLAS builds numpy and scipy wheels bundle (64- and 32-bit integers).
+_OPENBLAS_SETTERS = ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads",
+                     "openblas_set_num_threads64_", "openblas_set_num_threads")
+
+
+def one_blas_thread() -> int:
+    """Set the BLAS libraries loaded in this process (numpy's and scipy's) to one thread; returns how
+    many were set.
+
+    OpenBLAS threads spin while they wait for work, like torch's OpenMP pool: on a busy machine a
+    worker whose BLAS keeps two threads fits its windows several times slower than with one, and
+    ``jobs`` workers would ask for ``2 jobs`` cores. With ``threadpoolctl`` installed it sets every
+    BLAS and OpenMP library it knows; otherwise the OpenBLAS builds mapped into this process (Linux)
+    are set through their own setter.
+    """
+    try:
+        import threadpoolctl
+    except ImportError:
+        threadpoolctl = None
+    if threadpoolctl is not None:
+        threadpoolctl.threadpool_limits(limits=1)
+        return len(threadpoolctl.threadpool_info())
+    import ctypes
+
+    try:
+        with open("/proc/self/maps", encoding="utf-8") as maps:
+            paths = sorted({line.split()[-1] for line in maps if "openblas" in line.lower() and ".so" in line})
+    except OSError:  # pragma: no cover - not Linux
+        return 0
+    count = 0
+    for path in paths:
+        library = ctypes.CDLL(path)
+        setter = next((getattr(library, name) for name in _OPENBLAS_SETTERS if hasattr(library, name)), None)
+        if setter is not None:
+            setter(ctypes.c_int(1))
+            count += 1
+    return count
 
 
 def _context() -> multiprocessing.context.BaseContext:

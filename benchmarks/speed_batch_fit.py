@@ -1,0 +1,152 @@
+"""Windows per second of :func:`cmax.fit_windows` with 1, 2, ... worker processes.
+
+Fits the same ``--windows`` se3 windows (``indoor_flying`` preset windows of
+:func:`benchmarks.synthetic_windows.preset_window`, 0.1665 s each, at
+``--width`` x ``--height``, scale unknown) with ``fit_windows(..., jobs=n)`` for
+each ``n`` of ``--jobs``, interleaved over ``--repeats`` rounds; windows/s =
+windows / median wall time of one call. A call with ``jobs > 1`` includes
+starting its workers (forked from the forkserver); the forkserver's own start
+(once per process: a new interpreter importing torch) is timed apart, by a
+first call on two windows before the rounds. The results are checked equal to
+the ``jobs=1`` results (``seconds`` aside). The 1-minute load average is
+written next to every round: on a shared machine other work takes cores too.
+
+Writes ``benchmarks/results/speed_batch_fit.md``.
+
+jobs=1 fits in this process, with its BLAS as the environment sets it: run
+with ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1`` for the workers' one thread
+(two spinning BLAS threads made each fit several times slower on a busy machine).
+
+Usage::
+
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.speed_batch_fit [--windows 6] [--jobs 1,2] [--repeats 3] [--width 160 --height 120]
+"""
+from __future__ import annotations
+
+import argparse
+import os
+import platform
+import statistics
+import time
+import warnings
+from pathlib import Path
+
+import numpy as np
+
+RESULTS = Path(__file__).resolve().parent / "results"
+
+
+def windows_of(count: int, width: int, height: int, first_seed: int = 100) -> tuple[list, np.ndarray]:
+    """``count`` indoor_flying windows (seeds ``first_seed``...) and their shared K (3, 3)."""
+    from benchmarks.synthetic_windows import preset_window
+
+    made = [preset_window("indoor_flying", first_seed + i, width=width, height=height, duration_s=0.1665,
+                          texture_size=128) for i in range(count)]
+    return [w.events for w in made], made[0].K
+
+
+def timed_call(windows: list, K: np.ndarray, jobs: int) -> tuple[float, list]:
+    """Wall time [s] of one ``fit_windows(..., jobs=jobs)`` call, and its results."""
+    from cmax.fitting import fit_windows
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        start = time.perf_counter()
+        results = fit_windows(windows, K, jobs=jobs, progress=False)
+        return time.perf_counter() - start, results
+
+
+def start_forkserver() -> float:
+    """Seconds to start the workers' forkserver and one worker (a new interpreter importing torch and the
+    fit: once per process), by a pool of one worker running a trivial task."""
+    from concurrent.futures import ProcessPoolExecutor
+
+    from cmax.fitting import batch
+
+    start = time.perf_counter()
+    with ProcessPoolExecutor(1, mp_context=batch._context(), initializer=batch._init_worker) as pool:
+        pool.submit(abs, -1).result()
+    return time.perf_counter() - start
+
+
+def same_results(a: list, b: list) -> bool:
+    """Whether two result lists agree: motion, depth grid and objective of every window, bit for bit."""
+    return all(np.array_equal(x.v, y.v) and np.array_equal(x.omega, y.omega)
+               and np.array_equal(x.inverse_depth_grid, y.inverse_depth_grid) and x.objective_after == y.objective_after
+               for x, y in zip(a, b)) and len(a) == len(b)
+
+
+def report(calls: dict[int, list[float]], loads: list[float], forkserver_s: float, *, windows: int, events: list[int],
+           width: int, height: int, repeats: int, equal: bool, cores: int) -> str:
+    """The markdown of the results from the wall times [s] of the calls of each job count: windows/s
+    (``windows`` / median time), the ratio to the fewest jobs and the parallel efficiency (ratio / jobs)."""
+    rates = {jobs: windows / statistics.median(seconds) for jobs, seconds in calls.items()}
+    base = rates[min(rates)]
+    lines = ["# Batched fitting: windows/s of `cmax.fit_windows`", "",
+             f"Written by `python -m benchmarks.speed_batch_fit`: {windows} se3 windows of `indoor_flying` "
+             f"(0.1665 s, {width}x{height}, {min(events):,}-{max(events):,} events, scale unknown), fitted with "
+             f"`fit_windows(..., jobs=n)`; windows/s = {windows} / median wall time of {repeats} interleaved calls "
+             "(each call with jobs > 1 starts its workers). Results identical across the job counts: "
+             f"{'yes' if equal else 'NO'}. Machine: {platform.machine()}, {cores} cores available, torch on one "
+             f"thread per worker (and one BLAS thread: `one_blas_thread`); this process's OMP_NUM_THREADS="
+             f"{os.environ.get('OMP_NUM_THREADS', 'unset')}, OPENBLAS_NUM_THREADS="
+             f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')} (jobs=1 fits here); 1-minute load average during "
+             f"the rounds {min(loads):.1f}-{max(loads):.1f}.", "",
+             f"| jobs | windows/s | s per window | ratio to jobs={min(rates)} | parallel efficiency |",
+             "|---:|---:|---:|---:|---:|"]
+    for jobs, rate in sorted(rates.items()):
+        ratio = rate / base
+        lines.append(f"| {jobs} | {rate:.3f} | {1 / rate:.2f} | {ratio:.2f} | {ratio / jobs:.2f} |")
+    lines += ["", "Every call [s], in the order run (rounds interleave the job counts):", ""]
+    lines += [f"- jobs {jobs}: " + ", ".join(f"{t:.1f}" for t in seconds) for jobs, seconds in sorted(calls.items())]
+    lines += ["", f"Starting the forkserver and one worker (once per process: a new interpreter importing torch and the "
+              f"fit) took {forkserver_s:.1f} s, outside the figures above.", "",
+              "The machine is shared with a training job (about one core) and other sessions' work: at a load "
+              "average well above the core count every process gets a fair share of the cores, so extra workers "
+              "win only the share the others leave them, and the figures for more jobs are pessimistic (and "
+              "noisy: see the calls above). On an idle machine N windows on N cores take about the time of one.",
+              ""]
+    return "\n".join(lines)
+
+
+def main(argv: list[str] | None = None) -> int:
+    parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
+    parser.add_argument("--windows", type=int, default=6)
+    parser.add_argument("--jobs", default="1,2", help="comma-separated worker counts")
+    parser.add_argument("--repeats", type=int, default=3)
+    parser.add_argument("--width", type=int, default=160)
+    parser.add_argument("--height", type=int, default=120)
+    parser.add_argument("--no-write", action="store_true")
+    args = parser.parse_args(argv)
+    jobs_list = sorted({int(j) for j in args.jobs.split(",")})
+    if args.windows < 1 or args.repeats < 1 or jobs_list[0] < 1:
+        parser.error("--windows, --repeats and every --jobs must be positive")
+    import torch
+
+    torch.set_num_threads(1)
+    windows, K = windows_of(args.windows, args.width, args.height)
+    forkserver_s = start_forkserver()
+    times: dict[int, list[float]] = {jobs: [] for jobs in jobs_list}
+    loads, reference, equal = [], None, True
+    for round_ in range(args.repeats):
+        for jobs in jobs_list:
+            seconds, results = timed_call(windows, K, jobs)
+            times[jobs].append(seconds)
+            loads.append(os.getloadavg()[0])
+            reference = results if reference is None else reference
+            equal &= same_results(results, reference)
+            print(f"round {round_ + 1}, jobs {jobs}: {seconds:.2f} s ({args.windows / seconds:.3f} windows/s), "
+                  f"load {loads[-1]:.1f}", flush=True)
+    text = report(times, loads, forkserver_s, windows=args.windows, events=[len(w) for w in windows],
+                  width=args.width, height=args.height, repeats=args.repeats, equal=equal,
+                  cores=len(os.sched_getaffinity(0)))
+    print(text)
+    if not args.no_write:
+        from cmax.io.atomic import write_text_atomic
+
+        write_text_atomic(RESULTS / "speed_batch_fit.md", text)
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
