@@ -45,15 +45,62 @@ def windows_of(count: int, width: int, height: int, first_seed: int = 100) -> tu
     return [w.events for w in made], made[0].K
 
 
-def timed_call(windows: list, K: np.ndarray, jobs: int) -> tuple[float, list]:
-    """Wall time [s] of one ``fit_windows(..., jobs=jobs)`` call, and its results."""
+def autogroup_enabled() -> bool | None:
+    """Whether the kernel shares the cores between sessions (autogroups) rather than processes; None: unknown."""
+    try:
+        return Path("/proc/sys/kernel/sched_autogroup_enabled").read_text().strip() == "1"
+    except OSError:
+        return None
+
+
+def other_busy_sessions() -> int | None:
+    """Sessions (autogroups) other than this process's with a running process now, from /proc; None: unknown."""
+    try:
+        own = Path("/proc/self/autogroup").read_text().split()[0]
+    except OSError:
+        return None
+    busy = set()
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            state = (entry / "stat").read_text().rsplit(")", 1)[1].split()[0]
+            group = (entry / "autogroup").read_text().split()[0] if state == "R" else None
+        except (OSError, IndexError):
+            continue
+        if group is not None and group != own:
+            busy.add(group)
+    return len(busy)
+
+
+def timed_call(windows: list, K: np.ndarray, jobs: int) -> tuple[float, list, list[int]]:
+    """Wall time [s] of one ``fit_windows(..., jobs=jobs)`` call, its results, and the other busy
+    sessions sampled every 0.5 s during it (:func:`other_busy_sessions`)."""
+    import threading
+
     from cmax.fitting import fit_windows
 
+    samples: list[int] = []
+    stop = threading.Event()
+
+    def sample() -> None:
+        while not stop.wait(0.5):
+            count = other_busy_sessions()
+            if count is not None:
+                samples.append(count)
+
+    sampler = threading.Thread(target=sample, daemon=True)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
+        sampler.start()
         start = time.perf_counter()
-        results = fit_windows(windows, K, jobs=jobs, progress=False)
-        return time.perf_counter() - start, results
+        try:
+            results = fit_windows(windows, K, jobs=jobs, progress=False)
+        finally:
+            seconds = time.perf_counter() - start
+            stop.set()
+            sampler.join()
+        return seconds, results, samples
 
 
 def start_forkserver() -> float:
@@ -76,8 +123,8 @@ def same_results(a: list, b: list) -> bool:
                for x, y in zip(a, b)) and len(a) == len(b)
 
 
-def report(calls: dict[int, list[float]], loads: list[float], forkserver_s: float, *, windows: int, events: list[int],
-           width: int, height: int, repeats: int, equal: bool, cores: int) -> str:
+def report(calls: dict[int, list[float]], loads: list[float], sessions: dict[int, list[int]], forkserver_s: float, *, windows: int, events: list[int],
+           width: int, height: int, repeats: int, equal: bool, cores: int, autogroup: bool | None) -> str:
     """The markdown of the results from the wall times [s] of the calls of each job count: windows/s
     (``windows`` / median time), the ratio to the fewest jobs and the parallel efficiency (ratio / jobs)."""
     rates = {jobs: windows / statistics.median(seconds) for jobs, seconds in calls.items()}
@@ -92,20 +139,25 @@ def report(calls: dict[int, list[float]], loads: list[float], forkserver_s: floa
              f"{os.environ.get('OMP_NUM_THREADS', 'unset')}, OPENBLAS_NUM_THREADS="
              f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')} (jobs=1 fits here); 1-minute load average during "
              f"the rounds {min(loads):.1f}-{max(loads):.1f}.", "",
-             f"| jobs | windows/s | s per window | ratio to jobs={min(rates)} | parallel efficiency |",
-             "|---:|---:|---:|---:|---:|"]
+             f"| jobs | windows/s | s per window | ratio to jobs={min(rates)} | parallel efficiency | "
+             "other busy sessions (mean) |",
+             "|---:|---:|---:|---:|---:|---:|"]
     for jobs, rate in sorted(rates.items()):
         ratio = rate / base
-        lines.append(f"| {jobs} | {rate:.3f} | {1 / rate:.2f} | {ratio:.2f} | {ratio / jobs:.2f} |")
+        busy = f"{np.mean(sessions[jobs]):.1f}" if sessions.get(jobs) else "unknown"
+        lines.append(f"| {jobs} | {rate:.3f} | {1 / rate:.2f} | {ratio:.2f} | {ratio / jobs:.2f} | {busy} |")
     lines += ["", "Every call [s], in the order run (rounds interleave the job counts):", ""]
     lines += [f"- jobs {jobs}: " + ", ".join(f"{t:.1f}" for t in seconds) for jobs, seconds in sorted(calls.items())]
     lines += ["", f"Starting the forkserver and one worker (once per process: a new interpreter importing torch and the "
               f"fit) took {forkserver_s:.1f} s, outside the figures above.", "",
-              "The machine is shared with a training job (about one core) and other sessions' work: at a load "
-              "average well above the core count every process gets a fair share of the cores, so extra workers "
-              "win only the share the others leave them, and the figures for more jobs are pessimistic (and "
-              "noisy: see the calls above). On an idle machine N windows on N cores take about the time of one.",
-              ""]
+              "The machine is shared with a training job and other sessions' work (the load average above). "
+              + ("The kernel's autogroup scheduling is on (`/proc/sys/kernel/sched_autogroup_enabled` = 1): it "
+                 "shares the cores between sessions, not processes, so with S other busy sessions on C cores this "
+                 "session gets about C / (S + 1) cores whatever its number of workers, and more workers gain only "
+                 "where that exceeds one core (here, with 2 cores: no other busy session). The last column is S, "
+                 "sampled every 0.5 s during the calls. " if autogroup else "")
+              + "The figures for more jobs are therefore pessimistic, and noisy (the calls above); on an idle "
+              "machine N windows on N cores take about the time of one.", ""]
     return "\n".join(lines)
 
 
@@ -127,19 +179,22 @@ def main(argv: list[str] | None = None) -> int:
     windows, K = windows_of(args.windows, args.width, args.height)
     forkserver_s = start_forkserver()
     times: dict[int, list[float]] = {jobs: [] for jobs in jobs_list}
+    sessions: dict[int, list[int]] = {jobs: [] for jobs in jobs_list}
     loads, reference, equal = [], None, True
     for round_ in range(args.repeats):
         for jobs in jobs_list:
-            seconds, results = timed_call(windows, K, jobs)
+            seconds, results, busy = timed_call(windows, K, jobs)
             times[jobs].append(seconds)
+            sessions[jobs] += busy
             loads.append(os.getloadavg()[0])
             reference = results if reference is None else reference
             equal &= same_results(results, reference)
             print(f"round {round_ + 1}, jobs {jobs}: {seconds:.2f} s ({args.windows / seconds:.3f} windows/s), "
-                  f"load {loads[-1]:.1f}", flush=True)
-    text = report(times, loads, forkserver_s, windows=args.windows, events=[len(w) for w in windows],
+                  f"load {loads[-1]:.1f}, other busy sessions {np.mean(busy) if busy else float('nan'):.1f}",
+                  flush=True)
+    text = report(times, loads, sessions, forkserver_s, windows=args.windows, events=[len(w) for w in windows],
                   width=args.width, height=args.height, repeats=args.repeats, equal=equal,
-                  cores=len(os.sched_getaffinity(0)))
+                  cores=len(os.sched_getaffinity(0)), autogroup=autogroup_enabled())
     print(text)
     if not args.no_write:
         from cmax.io.atomic import write_text_atomic

@@ -321,3 +321,16 @@ def test_sequence_warm_starts_by_default_and_refuses_them_in_parallel():
         cmax.fit_sequence(events, K, "flow", window_us=20_000, jobs=2, warm_start=True)
     with pytest.raises(ValueError, match="jobs must be a positive integer"):
         cmax.fit_sequence(events, K, "flow", window_us=20_000, jobs=0)
+    with pytest.raises(TypeError, match="bogus"):                 # refused before any worker starts
+        cmax.fit_sequence(events, K, "flow", window_us=20_000, jobs=2, bogus=1)
+
+
+def test_benchmark_report_gives_windows_per_second_ratio_and_efficiency():
+    from benchmarks.speed_batch_fit import report
+
+    text = report({1: [10.0, 12.0, 11.0], 2: [6.0, 5.0, 7.0]}, [1.0, 2.0], {1: [0, 1], 2: [1, 1]}, 3.0, windows=6,
+                  events=[100, 200], width=160, height=120, repeats=3, equal=True, cores=2, autogroup=True)
+    # 6 windows / median 11 s = 0.545 windows/s; 6 / 6 s = 1.0 windows/s: ratio 1.83, efficiency 0.92
+    assert "| 1 | 0.545 | 1.83 | 1.00 | 1.00 | 0.5 |" in text          # 1.83 s per window
+    assert "| 2 | 1.000 | 1.00 | 1.83 | 0.92 | 1.0 |" in text
+    assert "autogroup" in text and "Results identical across the job counts: yes" in text

@@ -53,7 +53,7 @@ from cmax.events import Events
 from cmax.fitting.api import MODELS, FitResult, _check_inputs, _known_omega, _pose_twist, _settings, fit
 from cmax.fitting.solvers import make_solver
 
-__all__ = ["WindowFitError", "fit_windows", "check_jobs"]
+__all__ = ["WindowFitError", "FitTask", "fit_windows", "check_jobs", "check_options", "run_tasks", "one_blas_thread"]
 
 #: Keywords of :func:`cmax.fit` that :func:`fit_windows` passes on (besides the FitSettings fields).
 _FIT_KEYWORDS = frozenset({"speed", "pose", "omega", "depth_grid", "solver", "init", "settings", "num_threads",
@@ -150,7 +150,7 @@ def fit_windows(windows: Sequence[Events], K: object, model: str = "se3", *, job
                         f"{type(windows).__name__}")
     workers = check_jobs(jobs)
     K = check_intrinsics(K)
-    _check_options(model, fit_options, workers)
+    check_options(model, fit_options, workers)
     for i, events in enumerate(windows):
         try:
             _check_inputs(events, K, model)
@@ -160,8 +160,9 @@ def fit_windows(windows: Sequence[Events], K: object, model: str = "se3", *, job
     return run_tasks(tasks, min(workers, max(1, len(windows))), total=len(windows), progress=progress)
 
 
-def _check_options(model: str, options: dict, workers: int) -> None:
-    """The keywords shared by every window, checked once up front (unknown names, the settings)."""
+def check_options(model: str, options: dict, workers: int) -> None:
+    """Refuse bad keywords of :func:`cmax.fit` shared by every window (unknown names, the settings,
+    ``speed``/``pose``/``omega``, the solver, ``num_threads`` with ``workers > 1``) before any fit starts."""
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     settings_fields = set(options) - _FIT_KEYWORDS

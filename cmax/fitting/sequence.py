@@ -8,7 +8,7 @@ from tqdm.auto import tqdm
 
 from cmax.events import Events
 from cmax.fitting.api import FitResult, fit
-from cmax.fitting.batch import FitTask, check_jobs, run_tasks
+from cmax.fitting.batch import FitTask, check_jobs, check_options, run_tasks
 from cmax.fitting.quality import QualitySettings, Verdict, choose_from_neighbours
 from cmax.geometry import se3_exp
 
@@ -143,6 +143,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         raise TypeError(f"warm_start must be True, False or None, got {warm_start!r}")
     if warm_start and jobs != 1:
         raise ValueError(f"warm starts chain the windows one after another: jobs={jobs} needs warm_start=False")
+    if jobs != 1:                                # refused here rather than by every worker
+        check_options(model, {"speed": speed if model == "se3" else None, **fit_options}, jobs)
     step_us = window_us if step_us is None else int(step_us)
     if window_us <= 0 or step_us <= 0:
         raise ValueError(f"window_us and step_us must be positive, got {window_us}, {step_us}")
