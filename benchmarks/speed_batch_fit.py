@@ -73,9 +73,30 @@ def other_busy_sessions() -> int | None:
     return len(busy)
 
 
-def timed_call(windows: list, K: np.ndarray, jobs: int) -> tuple[float, list, list[int]]:
-    """Wall time [s] of one ``fit_windows(..., jobs=jobs)`` call, its results, and the other busy
-    sessions sampled every 0.5 s during it (:func:`other_busy_sessions`)."""
+def tree_cpu_seconds() -> float:
+    """CPU seconds [s] (user + system) of this process, its children and the children they waited for:
+    the workers of :func:`cmax.fit_windows` are children of the forkserver, which waits for them, so
+    their time shows in its ``cutime``/``cstime`` once they exit (Linux ``/proc``)."""
+    own = os.times()
+    total = own.user + own.system + own.children_user + own.children_system
+    tick = os.sysconf("SC_CLK_TCK")
+    me = str(os.getpid())
+    for entry in Path("/proc").iterdir():
+        if not entry.name.isdigit():
+            continue
+        try:
+            fields = (entry / "stat").read_text().rsplit(")", 1)[1].split()
+        except OSError:
+            continue
+        if fields[1] == me:                      # ppid; utime, stime, cutime, cstime follow at 11-14
+            total += sum(int(v) for v in fields[11:15]) / tick
+    return total
+
+
+def timed_call(windows: list, K: np.ndarray, jobs: int) -> tuple[float, float, list, list[int]]:
+    """Wall time and CPU time of this process tree [s] (:func:`tree_cpu_seconds`) of one
+    ``fit_windows(..., jobs=jobs)`` call, its results, and the other busy sessions sampled every
+    0.5 s during it (:func:`other_busy_sessions`)."""
     import threading
 
     from cmax.fitting import fit_windows
@@ -93,14 +114,15 @@ def timed_call(windows: list, K: np.ndarray, jobs: int) -> tuple[float, list, li
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         sampler.start()
-        start = time.perf_counter()
+        cpu, start = tree_cpu_seconds(), time.perf_counter()
         try:
             results = fit_windows(windows, K, jobs=jobs, progress=False)
         finally:
             seconds = time.perf_counter() - start
             stop.set()
             sampler.join()
-        return seconds, results, samples
+        time.sleep(0.3)                            # the forkserver waits for the exited workers
+        return seconds, tree_cpu_seconds() - cpu, results, samples
 
 
 def start_forkserver() -> float:
@@ -123,7 +145,8 @@ def same_results(a: list, b: list) -> bool:
                for x, y in zip(a, b)) and len(a) == len(b)
 
 
-def report(calls: dict[int, list[float]], loads: list[float], sessions: dict[int, list[int]], forkserver_s: float, *, windows: int, events: list[int],
+def report(calls: dict[int, list[float]], cpu: dict[int, list[float]], loads: list[float],
+           sessions: dict[int, list[int]], forkserver_s: float, *, windows: int, events: list[int],
            width: int, height: int, repeats: int, equal: bool, cores: int, autogroup: bool | None) -> str:
     """The markdown of the results from the wall times [s] of the calls of each job count: windows/s
     (``windows`` / median time), the ratio to the fewest jobs and the parallel efficiency (ratio / jobs)."""
@@ -140,12 +163,15 @@ def report(calls: dict[int, list[float]], loads: list[float], sessions: dict[int
              f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')} (jobs=1 fits here); 1-minute load average during "
              f"the rounds {min(loads):.1f}-{max(loads):.1f}.", "",
              f"| jobs | windows/s | s per window | ratio to jobs={min(rates)} | parallel efficiency | "
-             "other busy sessions (mean) |",
-             "|---:|---:|---:|---:|---:|---:|"]
+             "CPU s per window | cores used (CPU / wall) | other busy sessions (mean) |",
+             "|---:|---:|---:|---:|---:|---:|---:|---:|"]
     for jobs, rate in sorted(rates.items()):
         ratio = rate / base
         busy = f"{np.mean(sessions[jobs]):.1f}" if sessions.get(jobs) else "unknown"
-        lines.append(f"| {jobs} | {rate:.3f} | {1 / rate:.2f} | {ratio:.2f} | {ratio / jobs:.2f} | {busy} |")
+        cpu_s = statistics.median(cpu[jobs])
+        used = sum(cpu[jobs]) / sum(calls[jobs])
+        lines.append(f"| {jobs} | {rate:.3f} | {1 / rate:.2f} | {ratio:.2f} | {ratio / jobs:.2f} | "
+                     f"{cpu_s / windows:.2f} | {used:.2f} | {busy} |")
     lines += ["", "Every call [s], in the order run (rounds interleave the job counts):", ""]
     lines += [f"- jobs {jobs}: " + ", ".join(f"{t:.1f}" for t in seconds) for jobs, seconds in sorted(calls.items())]
     lines += ["", f"Starting the forkserver and one worker (once per process: a new interpreter importing torch and the "
@@ -156,6 +182,8 @@ def report(calls: dict[int, list[float]], loads: list[float], sessions: dict[int
                  "session gets about C / (S + 1) cores whatever its number of workers, and more workers gain only "
                  "where that exceeds one core (here, with 2 cores: no other busy session). The last column is S, "
                  "sampled every 0.5 s during the calls. " if autogroup else "")
+              + "CPU s per window (median call's CPU time of this process and its workers / windows) tells the work "
+              "done; cores used (all calls' CPU time / their wall time) tells the share of the machine the call got. "
               + "The figures for more jobs are therefore pessimistic, and noisy (the calls above); on an idle "
               "machine N windows on N cores take about the time of one.", ""]
     return "\n".join(lines)
@@ -180,19 +208,22 @@ def main(argv: list[str] | None = None) -> int:
     forkserver_s = start_forkserver()
     times: dict[int, list[float]] = {jobs: [] for jobs in jobs_list}
     sessions: dict[int, list[int]] = {jobs: [] for jobs in jobs_list}
+    cpu: dict[int, list[float]] = {jobs: [] for jobs in jobs_list}
     loads, reference, equal = [], None, True
     for round_ in range(args.repeats):
         for jobs in jobs_list:
-            seconds, results, busy = timed_call(windows, K, jobs)
+            seconds, cpu_s, results, busy = timed_call(windows, K, jobs)
             times[jobs].append(seconds)
+            cpu[jobs].append(cpu_s)
             sessions[jobs] += busy
             loads.append(os.getloadavg()[0])
             reference = results if reference is None else reference
             equal &= same_results(results, reference)
             print(f"round {round_ + 1}, jobs {jobs}: {seconds:.2f} s ({args.windows / seconds:.3f} windows/s), "
+                  f"CPU {cpu_s:.2f} s, "
                   f"load {loads[-1]:.1f}, other busy sessions {np.mean(busy) if busy else float('nan'):.1f}",
                   flush=True)
-    text = report(times, loads, sessions, forkserver_s, windows=args.windows, events=[len(w) for w in windows],
+    text = report(times, cpu, loads, sessions, forkserver_s, windows=args.windows, events=[len(w) for w in windows],
                   width=args.width, height=args.height, repeats=args.repeats, equal=equal,
                   cores=len(os.sched_getaffinity(0)), autogroup=autogroup_enabled())
     print(text)
