@@ -19,7 +19,8 @@ with ``OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1`` for the workers' one thread
 
 Usage::
 
-    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.speed_batch_fit [--windows 6] [--jobs 1,2] [--repeats 3] [--width 160 --height 120]
+    OMP_NUM_THREADS=1 OPENBLAS_NUM_THREADS=1 python -m benchmarks.speed_batch_fit [--windows 6] [--jobs 1,2]
+        [--repeats 3] [--width 160 --height 120]
 """
 from __future__ import annotations
 
@@ -174,8 +175,8 @@ def report(calls: dict[int, list[float]], cpu: dict[int, list[float]], loads: li
                      f"{cpu_s / windows:.2f} | {used:.2f} | {busy} |")
     lines += ["", "Every call [s], in the order run (rounds interleave the job counts):", ""]
     lines += [f"- jobs {jobs}: " + ", ".join(f"{t:.1f}" for t in seconds) for jobs, seconds in sorted(calls.items())]
-    lines += ["", f"Starting the forkserver and one worker (once per process: a new interpreter importing torch and the "
-              f"fit) took {forkserver_s:.1f} s, outside the figures above.", "",
+    lines += ["", "Starting the forkserver and one worker (once per process: a new interpreter importing torch and "
+              f"the fit) took {forkserver_s:.1f} s, outside the figures above.", "",
               "The machine is shared with a training job and other sessions' work (the load average above). "
               + ("The kernel's autogroup scheduling is on (`/proc/sys/kernel/sched_autogroup_enabled` = 1): it "
                  "shares the cores between sessions, not processes, so with S other busy sessions on C cores this "

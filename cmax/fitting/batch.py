@@ -22,7 +22,8 @@ Design choices:
   started and raises :class:`WindowFitError` naming the window's index (the original exception is
   its ``__cause__``). A made-up ``FitResult(success=False)`` would need every field of a fit that
   never happened; ``success=False`` keeps its meaning: a fit that ran and ended on a bound or worse
-  than its start.
+  than its start. A worker that dies (killed, out of memory) raises it too, for a window it held,
+  with ``BrokenProcessPool`` as the cause.
 * **Warnings reach the caller.** A worker's warnings (:class:`~cmax.fitting.LowParallaxWarning` and
   the like) are recorded and re-issued in the calling process once all windows are done, in window
   order, each prefixed with ``window i:``; ``jobs=1`` does the same, so both give the same warnings.
