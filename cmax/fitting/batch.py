@@ -1,9 +1,12 @@
 """``cmax.fit_windows``: many independent windows fitted in one call, in parallel over the cores.
 
-Each window is one :func:`cmax.fit` in a worker process that runs torch on one thread: N windows on
-N free cores take about the time of one. The results are those of :func:`cmax.fit` on each window,
-bit for bit (the fit is deterministic: its subsampling is seeded and its torch runs on one thread
-either way), in the order of the input.
+Each window is one :func:`cmax.fit` in a worker process that runs torch on one thread, so that
+``jobs`` workers can keep ``jobs`` cores busy. The results are those of :func:`cmax.fit` on each
+window, bit for bit (the fit is deterministic: its subsampling is seeded and its torch runs on one
+thread either way; ``tests/test_fit_batch.py``), in the order of the input. On Linux with autogroup
+scheduling the kernel shares the cores between sessions, not processes: the workers of one call then
+share their session's slice, and more workers gain only where that slice exceeds one core
+(``benchmarks/results/speed_batch_fit.md``).
 
 Design choices:
 
