@@ -20,6 +20,7 @@ _LAZY = {
     "fit": "cmax.fitting", "fit_sequence": "cmax.fitting", "FitResult": "cmax.fitting",
     "FitSettings": "cmax.fitting", "SequenceResult": "cmax.fitting", "LowParallaxWarning": "cmax.fitting",
     "EMVS": "cmax.emvs", "SemiDenseDepth": "cmax.emvs",
+    "fit_windows": "cmax.fitting",
 }
 
 #: Sub-packages and modules reachable after a plain ``import cmax`` (``cmax.io.read(...)``), loaded on first use.

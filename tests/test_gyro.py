@@ -112,7 +112,7 @@ def test_fit_sequence_checks_the_gyro_span_before_fitting(scene, monkeypatch):
     events, K, v, omega = scene
     fits = []
     monkeypatch.setattr(sequence, "fit", lambda events, *a, **k: fits.append(k["omega"]) or
-                        SimpleNamespace(twist=np.zeros(6), verdict=None))
+                        SimpleNamespace(twist=np.zeros(6), verdict=None, model="se3", quality=None))
     t0, t1 = int(events.t[0]), int(events.t[-1])
     late = (np.array([t0 + 5_000, t1 + 10_000]), np.stack([omega, omega]))
     with pytest.raises(ValueError, match=f"gyro covers {t0 + 5_000}-{t1 + 10_000} us, but the windows span {t0}-"):

@@ -18,12 +18,13 @@ _LAZY = {
     "PatchFlowSettings": "cmax.fitting.settings", "RefineSettings": "cmax.fitting.settings",
     "SweepSettings": "cmax.fitting.settings", "StageLog": "cmax.fitting.pipeline",
     "SequenceResult": "cmax.fitting.sequence", "fit_sequence": "cmax.fitting.sequence",
+    "fit_windows": "cmax.fitting.batch", "WindowFitError": "cmax.fitting.batch",
     "Verdict": "cmax.fitting.quality", "QualitySettings": "cmax.fitting.quality", "Quality": "cmax.fitting.quality",
 }
 
 __all__ = ["BoundWarning", "FitResult", "FitSettings", "LowMotionWarning", "LowParallaxWarning", "MotionInit",
            "PatchFlowSettings", "Polish", "Quality", "QualitySettings", "RefineSettings", "Refinement",
            "SequenceResult", "StageLog", "SweepSettings",
-           "Verdict", "fit", "fit_sequence"]
+           "Verdict", "WindowFitError", "fit", "fit_sequence", "fit_windows"]
 
 __getattr__, __dir__ = lazy_exports(__name__, _LAZY, globals())
