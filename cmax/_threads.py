@@ -17,6 +17,12 @@ thread to under 10 frames/s with two threads on a busy two-core machine.
 integer). :func:`torch_threads_scope` sets torch's thread count for a block
 and restores it afterwards; every torch path of the library (renderer, fit,
 loss, network) runs inside one.
+
+The BLAS that numpy and scipy load (OpenBLAS) has its own spinning pool with
+the same cliff: scipy's L-BFGS-B on the fit's few dozen parameters gains
+nothing from a second thread and loses several times over on a busy machine.
+:func:`blas_threads_scope` sets those libraries' count for a block (the fit
+runs in one, with the torch count).
 """
 from __future__ import annotations
 
@@ -24,7 +30,8 @@ import os
 from contextlib import contextmanager
 from typing import Iterator
 
-__all__ = ["available_cores", "torch_threads", "torch_threads_scope", "SMALL_WORK"]
+__all__ = ["available_cores", "torch_threads", "torch_threads_scope", "blas_threads_scope", "set_blas_threads",
+           "SMALL_WORK"]
 
 #: Elements of work below which one thread is used.
 SMALL_WORK = 1 << 16
@@ -120,3 +127,76 @@ def torch_threads_scope(work: int | None = None, *, threads: int | None = None) 
     finally:
         if changed:
             torch.set_num_threads(before)
+
+
+#: Thread-count setters and getters of the OpenBLAS builds numpy and scipy ship (their symbols are renamed).
+_OPENBLAS_SYMBOLS = (("scipy_openblas_set_num_threads64_", "scipy_openblas_get_num_threads64_"),
+                     ("scipy_openblas_set_num_threads", "scipy_openblas_get_num_threads"),
+                     ("openblas_set_num_threads64_", "openblas_get_num_threads64_"),
+                     ("openblas_set_num_threads", "openblas_get_num_threads"))
+
+
+def _openblas_pools() -> list[tuple]:
+    """``(setter, getter)`` of every OpenBLAS mapped into this process (Linux ``/proc/self/maps``;
+    empty elsewhere or when none is loaded)."""
+    import ctypes
+
+    try:
+        with open("/proc/self/maps", encoding="utf-8") as maps:
+            paths = sorted({line.split()[-1] for line in maps if "openblas" in line.lower() and ".so" in line})
+    except OSError:  # pragma: no cover - not Linux
+        return []
+    pools = []
+    for path in paths:
+        try:
+            library = ctypes.CDLL(path)
+        except OSError:  # pragma: no cover - unloadable
+            continue
+        for set_name, get_name in _OPENBLAS_SYMBOLS:
+            if hasattr(library, set_name) and hasattr(library, get_name):
+                getter = getattr(library, get_name)
+                getter.restype = ctypes.c_int
+                pools.append((getattr(library, set_name), getter))
+                break
+    return pools
+
+
+def set_blas_threads(threads: int) -> list[int]:
+    """Set every loaded OpenBLAS to ``threads`` (>= 1) threads; returns their counts before, one per
+    library (empty: none loaded, or not Linux)."""
+    import ctypes
+
+    if not (isinstance(threads, int) and threads >= 1):
+        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
+    before = []
+    for setter, getter in _openblas_pools():
+        before.append(int(getter()))
+        setter(ctypes.c_int(threads))
+    return before
+
+
+@contextmanager
+def blas_threads_scope(threads: int) -> Iterator[int]:
+    """Run a block with every loaded OpenBLAS (numpy's, scipy's) on ``threads`` threads; restores each
+    library's count afterwards. Yields ``threads``.
+
+    Examples
+    --------
+    >>> import numpy
+    >>> with blas_threads_scope(1) as n:
+    ...     n
+    1
+    """
+    import ctypes
+
+    pools = _openblas_pools()
+    if not (isinstance(threads, int) and threads >= 1):
+        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
+    before = [int(getter()) for _, getter in pools]
+    for setter, _ in pools:
+        setter(ctypes.c_int(threads))
+    try:
+        yield threads
+    finally:
+        for (setter, _), count in zip(pools, before):
+            setter(ctypes.c_int(count))

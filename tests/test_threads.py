@@ -4,7 +4,7 @@ from __future__ import annotations
 import pytest
 import torch
 
-from cmax._threads import available_cores, torch_threads, torch_threads_scope
+from cmax._threads import available_cores, blas_threads_scope, torch_threads, torch_threads_scope
 
 
 def test_small_work_takes_one_thread(monkeypatch: pytest.MonkeyPatch) -> None:
@@ -54,3 +54,53 @@ def test_scope_sets_and_restores(monkeypatch: pytest.MonkeyPatch) -> None:
 
 def test_available_cores_is_positive() -> None:
     assert 1 <= available_cores()
+
+
+def test_blas_scope_sets_every_openblas_and_restores_it() -> None:
+    """In a process whose OpenBLAS pools start at 2 threads (numpy's and scipy's), the scope sets each to 1
+    and restores 2; ``cmax.fit`` runs its solvers inside such a scope (one BLAS thread with one torch thread)."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    code = """
+import warnings
+import numpy as np, scipy.optimize
+import cmax.fitting.api as api
+from cmax._threads import _openblas_pools, blas_threads_scope
+from cmax.events import Events
+pools = _openblas_pools()
+counts = lambda: [int(g()) for _, g in pools]
+print("pools", len(pools), "before", counts())
+with blas_threads_scope(1):
+    print("inside", counts())
+print("after", counts())
+seen, real = [], api.run_stages
+def recording(*a, **k):
+    seen.append(counts())
+    return real(*a, **k)
+api.run_stages = recording
+rng = np.random.default_rng(0)
+n = 3000
+x, t = rng.uniform(10, 50, n), np.sort(rng.integers(0, 50_000, n))
+events = Events((x + 40e-6 * t).round().astype(np.int64).clip(0, 63), rng.integers(0, 48, n), t,
+                np.ones(n, np.int64), 64, 48)
+with warnings.catch_warnings():
+    warnings.simplefilter("ignore")
+    api.fit(events, np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]]), model="flow")
+print("during fit", seen[0], "after fit", counts())
+"""
+    root = Path(__file__).resolve().parents[1]
+    env = {**os.environ, "OPENBLAS_NUM_THREADS": "2", "PYTHONPATH": str(root)}
+    out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, timeout=300)
+    assert out.returncode == 0, out.stderr
+    lines = dict(line.split(" ", 1) for line in out.stdout.splitlines())
+    pools = int(lines["pools"].split()[0])
+    assert pools >= 1                                   # numpy's OpenBLAS at least
+    assert lines["pools"].endswith(str([2] * pools))
+    assert lines["inside"] == str([1] * pools) and lines["after"] == str([2] * pools)
+    assert lines["during"] == f"fit {[1] * pools} after fit {[2] * pools}"
+    with pytest.raises(ValueError, match="threads"):
+        with blas_threads_scope(0):
+            pass

@@ -14,7 +14,7 @@ from dataclasses import dataclass, replace
 import numpy as np
 import torch
 
-from cmax._threads import torch_threads_scope
+from cmax._threads import blas_threads_scope, torch_threads_scope
 from cmax.camera import check_intrinsics
 from cmax.events import Events
 from cmax.geometry import se3_exp, se3_log
@@ -360,7 +360,7 @@ def fit(
     scale = float(np.linalg.norm(pose_xi[:3])) if pose_xi is not None else (speed or 1.0)
     if model == "se3" and scale <= 0:
         raise ValueError("pose has no translation: depth is unobservable under a pure rotation")
-    with torch_threads_scope(len(events), threads=num_threads):
+    with torch_threads_scope(len(events), threads=num_threads) as threads, blas_threads_scope(threads):
         w = Window.from_events(events, K, settings, depth_grid)
         motion = _start(model, init, pose_xi, known_omega, scale)
         stages = stages_for(model, w, pose_known=pose_xi is not None, hold_omega=known_omega is not None,

@@ -51,7 +51,7 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
-from cmax._threads import available_cores
+from cmax._threads import available_cores, set_blas_threads
 from cmax.camera import check_intrinsics
 from cmax.events import Events
 from cmax.fitting.api import MODELS, FitResult, _check_inputs, _known_omega, _pose_twist, _settings, fit
@@ -250,11 +250,6 @@ def _init_worker() -> None:
     one_blas_thread()
 
 
-#: Thread-count setters of the OpenBLAS builds numpy and scipy wheels bundle (64- and 32-bit integers).
-_OPENBLAS_SETTERS = ("scipy_openblas_set_num_threads64_", "scipy_openblas_set_num_threads",
-                     "openblas_set_num_threads64_", "openblas_set_num_threads")
-
-
 def one_blas_thread() -> int:
     """Set the BLAS libraries loaded in this process (numpy's and scipy's) to one thread; returns how
     many were set.
@@ -263,7 +258,7 @@ def one_blas_thread() -> int:
     worker whose BLAS keeps two threads fits its windows several times slower than with one, and
     ``jobs`` workers would ask for ``2 jobs`` cores. With ``threadpoolctl`` installed it sets every
     BLAS and OpenMP library it knows; otherwise the OpenBLAS builds mapped into this process (Linux)
-    are set through their own setter.
+    are set through their own setter (:func:`cmax._threads.set_blas_threads`).
     """
     try:
         import threadpoolctl
@@ -272,21 +267,7 @@ def one_blas_thread() -> int:
     if threadpoolctl is not None:
         threadpoolctl.threadpool_limits(limits=1)
         return len(threadpoolctl.threadpool_info())
-    import ctypes
-
-    try:
-        with open("/proc/self/maps", encoding="utf-8") as maps:
-            paths = sorted({line.split()[-1] for line in maps if "openblas" in line.lower() and ".so" in line})
-    except OSError:  # pragma: no cover - not Linux
-        return 0
-    count = 0
-    for path in paths:
-        library = ctypes.CDLL(path)
-        setter = next((getattr(library, name) for name in _OPENBLAS_SETTERS if hasattr(library, name)), None)
-        if setter is not None:
-            setter(ctypes.c_int(1))
-            count += 1
-    return count
+    return len(set_blas_threads(1))
 
 
 def _context() -> multiprocessing.context.BaseContext:
