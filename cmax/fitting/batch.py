@@ -146,8 +146,20 @@ def fit_windows(windows: Sequence[Events], K: object, model: str = "se3", *, job
 
     Examples
     --------
-    >>> results = cmax.fit_windows(windows, K, speed=1.0, jobs=4)   # doctest: +SKIP
-    >>> [r.verdict for r in results]                                # doctest: +SKIP
+    Two windows of 300 points moving at (40, -20) and (-30, 10) px/s, fitted in this process (``jobs=2``
+    would fit them in two worker processes, with the same results):
+
+    >>> import cmax
+    >>> rng = np.random.default_rng(0)
+    >>> K = np.array([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])
+    >>> def window(fx, fy):
+    ...     x0, y0 = rng.uniform(8, 50, 300), rng.uniform(8, 40, 300)
+    ...     t_s = np.sort(rng.uniform(0, 0.1, 6000)); point = rng.integers(0, 300, 6000)
+    ...     return cmax.Events(np.rint(x0[point] + fx * t_s), np.rint(y0[point] + fy * t_s),
+    ...                        np.rint(t_s * 1e6).astype(np.int64), np.ones(6000), width=64, height=48)
+    >>> results = cmax.fit_windows([window(40, -20), window(-30, 10)], K, model="flow", jobs=1, progress=False)
+    >>> [bool(np.allclose(r.flow, truth, atol=2.0)) for r, truth in zip(results, [(40, -20), (-30, 10)])]
+    [True, True]
     """
     if isinstance(windows, Events) or not isinstance(windows, Sequence):
         raise TypeError(f"windows must be a sequence of cmax.Events (one window: cmax.fit), got "
