@@ -233,3 +233,28 @@ def test_the_summary_counts_each_verdict(tmp_path, capsys, monkeypatch):
     assert ("4 of 5 windows fitted, 1 skipped (fewer than 1,000 events): 1 ok, 1 ambiguous (0 resolved), "
             "1 low parallax, 1 failed; results in"
             in printed), printed
+
+
+def test_jobs_fit_the_windows_in_parallel_from_cold_starts(slider, tmp_path, capsys):
+    """``--jobs 2``: two flow windows fitted by worker processes; each equals ``cmax.fit`` of that window alone
+    (no warm start), bit for bit, and the summary says how they were fitted."""
+    from cmax.fitting import fit
+
+    w, path, _ = slider
+    out = tmp_path / "out"
+    argv = ["fit", str(path), "--size", "96,72", "--K", "72,72,48,36", "-o", str(out), "--model", "flow",
+            "--window-ms", "90", "--jobs", "2", "--quiet"]
+    assert main(argv) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["jobs"] == 2 and summary["warm_start"] is False and len(summary["windows"]) == 2
+    first = int(w.events.t[0])
+    for k, window in enumerate(summary["windows"]):
+        t0 = first + k * 90_000
+        alone = fit(w.events.slice_time(t0, t0 + 90_000), np.array([[72.0, 0, 48], [0, 72.0, 36], [0, 0, 1]]),
+                    "flow")
+        assert window["flow"] == alone.flow.tolist()
+    try:
+        status = main([*argv[:-3], "--jobs", "0"])
+    except SystemExit as exit_:
+        status = exit_.code
+    assert status == 2 and "--jobs" in capsys.readouterr().err

@@ -66,6 +66,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                              "default ended at a pitching plane; about 1 s more per window)")
     api_default(parser.add_argument("--solver", choices=("scipy", "casadi", "torch"), default=None,
                                     help="optimisation back end"), _fit_default("solver"))
+    parser.add_argument("--jobs", type=positive_int, default=1,
+                        help="worker processes: above 1 the windows are fitted in parallel, each from a cold start "
+                             "(cmax.fit_sequence(jobs=, warm_start=False))")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     api_default(parser.add_argument("--max-events", type=positive_int, default=None,
                                     help="windows with more events are subsampled to this many "
@@ -236,12 +239,17 @@ def run(args: argparse.Namespace) -> int:
         print(f"cmax fit: note: {note}", file=sys.stderr)
     out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
-    source = _CountedWindows(events, tqdm(total=n_windows, desc="windows", unit="window", disable=args.quiet))
+    if args.jobs == 1:     # the bar ticks as each window is taken, i.e. when the one before is done
+        source = _CountedWindows(events, tqdm(total=n_windows, desc="windows", unit="window", disable=args.quiet))
+    else:                  # workers take windows ahead of their fits: fit_sequence's own bar counts results
+        source = events
     try:
         sequence = fit_sequence(source, K, sequence_model, window_us=window_us, step_us=step_us, speed=args.speed,
-                                gyro=gyro, zero_rotation_start=args.zero_rotation_start, **options)
+                                gyro=gyro, zero_rotation_start=args.zero_rotation_start, jobs=args.jobs,
+                                progress=args.jobs > 1 and not args.quiet, **options)
     finally:
-        source.finish()
+        if args.jobs == 1:
+            source.finish()
     windows = []
     scale = _depth_scale(sequence.results, args.depth_range)
     for i, r in enumerate(sequence.results):
@@ -268,7 +276,8 @@ def run(args: argparse.Namespace) -> int:
                "depth_range": None if args.depth_range is None else list(args.depth_range),
                "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro),
                "solver": args.solver or _fit_default("solver")(),
-               "zero_rotation_start": args.zero_rotation_start, "notes": notes,
+               "zero_rotation_start": args.zero_rotation_start, "jobs": args.jobs,
+               "warm_start": args.jobs == 1, "notes": notes,
                "windows_total": n_windows, "verdicts": sequence.counts(), "windows": windows}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
     min_events = _sequence_default("min_events")()
