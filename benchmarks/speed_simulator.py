@@ -100,6 +100,42 @@ def _source_events(simulator_class, source, c):
     return Events.concatenate([simulator.step(frame, t_us) for frame, t_us in source])
 
 
+def _cpu_seconds(function, repeats: int) -> float:
+    """Median CPU seconds of this process over ``repeats`` calls (one thread: its work, less the waits)."""
+    times = []
+    for _ in range(repeats):
+        start = time.process_time()
+        function()
+        times.append(time.process_time() - start)
+    return float(np.median(times))
+
+
+def parallel_capacity(threads: int = 2, seconds: float = 0.3) -> float:
+    """CPU seconds per wall second that ``threads`` GIL-free threads get now (zlib inflating).
+
+    About ``threads`` on a machine with that many idle cores; about 1 when
+    the scheduler keeps this process on one core (e.g. another process busy
+    on the other core of two): then decoding cannot overlap the simulation.
+    """
+    import threading
+    import zlib
+
+    blob = zlib.compress(np.random.default_rng(0).integers(0, 4, 1 << 22, dtype=np.uint8).tobytes())
+    deadline = time.perf_counter() + seconds
+
+    def inflate() -> None:
+        while time.perf_counter() < deadline:
+            zlib.decompress(blob)
+
+    workers = [threading.Thread(target=inflate) for _ in range(threads)]
+    wall, cpu = time.perf_counter(), time.process_time()
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
+    return (time.process_time() - cpu) / (time.perf_counter() - wall)
+
+
 def _cpu_per_wall(function) -> float:
     """CPU seconds of this process (all threads) per wall second of one call."""
     wall, cpu = time.perf_counter(), time.process_time()
@@ -125,7 +161,7 @@ def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
 
     from benchmarks.speed_peers import ESIM_PY_MEV_S
     from cmax._threads import available_cores
-    from cmax.sim.prefetch import default_decoders
+    from cmax.sim.prefetch import MAX_DECODERS, default_decoders
 
     folder, paths, times = _truck()
     frames = [cv2.imread(p, cv2.IMREAD_GRAYSCALE) for p in paths]
@@ -135,7 +171,8 @@ def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
                for n in counts}
     labels = {n: f"ImageFolderSource ({n} decoding thread{'s' * (n > 1)}) + step" for n in counts}
     head = _head_esim()
-    curve, versus, identical = [], [], True
+    capacity = [parallel_capacity()]
+    curve, versus, bounds, identical = [], [], [], True
     for c in thresholds:
         count = _run_frames(EventSimulator, frames, times, c)
         serial = EventSimulator(cp=c, cn=c).simulate(np.stack(frames), times)
@@ -167,6 +204,11 @@ def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
         best = max(counts, key=lambda n: rows[labels[n]].mev_per_s)
         curve.append((c, density, rows["PNG decode + step, one thread"].mev_per_s,
                       rows[labels[best]].mev_per_s, rows["step only, frames decoded"].mev_per_s))
+        decode = _cpu_seconds(lambda: [cv2.imread(p, cv2.IMREAD_UNCHANGED) for p in paths], repeats)
+        step = _cpu_seconds(lambda: _run_frames(EventSimulator, frames, times, c), repeats)
+        two, many = (decode + step) / 2, max(step, decode / MAX_DECODERS)
+        bounds.append(f"C = {c}: decode {decode * 1e3:.0f} ms, step {step * 1e3:.0f} ms of CPU; 2 cores {two * 1e3:.0f} ms ({count / two / 1e6:.1f} M ev/s), "
+                      f"{MAX_DECODERS + 1}+ cores {many * 1e3:.0f} ms ({count / many / 1e6:.1f} M ev/s)")
         reference = ESIM_PY_MEV_S["truck"].get(c)
         if reference is not None:
             versus.append(f"C = {c}: " + ", ".join(
@@ -175,7 +217,11 @@ def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
                 + f", one thread without a pool {rows['PNG decode + step, one thread'].mev_per_s:.2f} = "
                 f"{rows['PNG decode + step, one thread'].mev_per_s / reference:.2f}x"
                 + f" (esim_py {reference} M ev/s)")
+    capacity.append(parallel_capacity())
     report.checks["truck-pan frames"] = len(paths)
+    report.checks["CPU seconds per wall second of 2 GIL-free threads (zlib), before / after the truck-pan "
+                  "groups (about 2: two cores for this process; about 1: one, and the decoding threads "
+                  "cannot overlap the simulation)"] = " / ".join(f"{v:.2f}" for v in capacity)
     report.checks["cores available / decoding threads by default"] = (
         f"{available_cores()} / {default_decoders()}")
     report.checks[f"pipelined events identical to the serial simulation (x, y, t, p; decoding threads "
@@ -188,6 +234,10 @@ def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
     if versus:
         report.checks["pipelined against C++ esim_py (issue 22's figures; esim_py is not importable "
                       "here, so not the same process)"] = "; ".join(versus)
+    report.checks["bound on a free machine, from the CPU seconds (process time, medians) of decoding "
+                  "(IMREAD_UNCHANGED, one thread) and of the step in this run; an estimate, not a "
+                  "measurement: (decode + step) / 2 on 2 cores, max(step, decode / 4) with 4 decoders "
+                  "and a core for the simulation"] = "; ".join(bounds)
     target = 2 * REFERENCE_MEV_S[1]
     report.checks["density curve: C / events per pixel per frame / Mev/s one thread / best pipelined / "
                   "step only"] = "; ".join(
