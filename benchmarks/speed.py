@@ -172,8 +172,9 @@ def write_report(report: Report, machine: dict) -> tuple[Path, Path]:
     stem = RESULTS / f"speed_{report.section}"
     payload = {"machine": machine, **asdict(report)}
     stem.with_suffix(".json").write_text(json.dumps(payload, indent=2) + "\n")
-    lines = [f"# {report.title}", "", "Written by `python -m benchmarks.speed --section "
-             f"{report.section}`; median of {report.config.get('repeats')} runs after a warm-up.", ""]
+    command = report.config.get("command", f"python -m benchmarks.speed --section {report.section}")
+    lines = [f"# {report.title}", "", f"Written by `{command}`; median of "
+             f"{report.config.get('repeats')} runs after a warm-up.", ""]
     lines += ["| | |", "|---|---|"] + [f"| {key} | {value} |" for key, value in machine.items()]
     lines += [f"| {key} | {value} |" for key, value in report.config.items()]
     if report.summary:

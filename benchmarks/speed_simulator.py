@@ -2,7 +2,9 @@
 
 Run with ``python -m benchmarks.speed --section simulator`` or, with more
 options, ``python -m benchmarks.speed_simulator [--quick] [--full-adaptive]``
-(both write ``benchmarks/results/speed_simulator.md`` and ``.json``).
+(both write ``benchmarks/results/speed_simulator.md`` and ``.json``;
+``--truck-only``: only the truck-pan groups at C = 0.2/0.1/0.05, to
+``speed_simulator_truck.md`` and ``.json``).
 Measures, in one run, against the code of the last commit (``git show
 HEAD:cmax/sim/esim.py`` and ``sampling.py``, loaded as modules and timed
 interleaved in the same process):
@@ -10,9 +12,16 @@ interleaved in the same process):
 * events/s of :class:`cmax.sim.esim.EventSimulator` on the 161 real frames of
   ``../shared/data/esim_truck_pan`` at several thresholds (the event-density
   curve): PNG decoding + step in one thread (as the reference C++ ESIM's
-  3.6-4.2 M events/s was measured), the same with decoding in the background
-  thread of :class:`cmax.sim.video.ImageFolderSource` (pipelined), step alone
-  on decoded frames, and PNG decoding alone;
+  3.6-4.2 M events/s was measured), the same with the PNGs decoded by
+  :class:`cmax.sim.video.ImageFolderSource` in 1 and in 2 (and, on a machine
+  with more cores, its default number of) decoding threads while the
+  simulation runs (pipelined; each row's note gives the process's CPU
+  seconds per wall second, how much the threads overlapped), step alone on
+  decoded frames, and PNG decoding alone (``IMREAD_GRAYSCALE`` as the
+  reference, ``IMREAD_UNCHANGED`` as the source); the pipelined rows'
+  events/s against the C++ esim_py figures of issue 22
+  (``benchmarks.speed_peers.ESIM_PY_MEV_S``; esim_py itself is not
+  importable here);
 * ``../shared/data/videos/bikes.mp4`` (640x272, 25 fps): decoding + simulation
   without adaptive sampling, and with adaptive sampling (linear, flow) on its
   first second (``--quick``: 0.4 s), new against HEAD; ``--full-adaptive``
@@ -85,6 +94,57 @@ def _run_source(simulator_class, source, c):
     return count
 
 
+def _source_events(simulator_class, source, c):
+    """The events of a pipelined run, concatenated (for the identity check)."""
+    from cmax.events import Events
+
+    simulator = simulator_class(cp=c, cn=c)
+    return Events.concatenate([simulator.step(frame, t_us) for frame, t_us in source])
+
+
+def _cpu_seconds(function, repeats: int) -> float:
+    """Median CPU seconds of this process over ``repeats`` calls (one thread: its work, less the waits)."""
+    times = []
+    for _ in range(repeats):
+        start = time.process_time()
+        function()
+        times.append(time.process_time() - start)
+    return float(np.median(times))
+
+
+def parallel_capacity(threads: int = 2, seconds: float = 0.3) -> float:
+    """CPU seconds per wall second that ``threads`` GIL-free threads get now (zlib inflating).
+
+    About ``threads`` on a machine with that many idle cores; about 1 when
+    the scheduler keeps this process on one core (e.g. another process busy
+    on the other core of two): then decoding cannot overlap the simulation.
+    """
+    import threading
+    import zlib
+
+    blob = zlib.compress(np.random.default_rng(0).integers(0, 4, 1 << 22, dtype=np.uint8).tobytes())
+    deadline = time.perf_counter() + seconds
+
+    def inflate() -> None:
+        while time.perf_counter() < deadline:
+            zlib.decompress(blob)
+
+    workers = [threading.Thread(target=inflate) for _ in range(threads)]
+    wall, cpu = time.perf_counter(), time.process_time()
+    for worker in workers:
+        worker.start()
+    for worker in workers:
+        worker.join()
+    return (time.process_time() - cpu) / (time.perf_counter() - wall)
+
+
+def _cpu_per_wall(function) -> float:
+    """CPU seconds of this process (all threads) per wall second of one call."""
+    wall, cpu = time.perf_counter(), time.process_time()
+    function()
+    return (time.process_time() - cpu) / (time.perf_counter() - wall)
+
+
 def _run_frames(simulator_class, frames, times, c):
     simulator, count = simulator_class(cp=c, cn=c), 0
     for frame, t_us in zip(frames, times):
@@ -101,44 +161,87 @@ def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
     from cmax.sim.esim import EventSimulator
     from cmax.sim.video import ImageFolderSource
 
+    from benchmarks.speed_peers import ESIM_PY_MEV_S
+    from cmax._threads import available_cores
+    from cmax.sim.prefetch import MAX_DECODERS, default_decoders
+
     folder, paths, times = _truck()
     frames = [cv2.imread(p, cv2.IMREAD_GRAYSCALE) for p in paths]
     height, width = frames[0].shape
-    source = ImageFolderSource(folder / "images", timestamps=times, dtype=np.uint8)
+    counts = sorted({1, 2, default_decoders()})
+    sources = {n: ImageFolderSource(folder / "images", timestamps=times, dtype=np.uint8, decoders=n)
+               for n in counts}
+    labels = {n: f"ImageFolderSource ({n} decoding thread{'s' * (n > 1)}) + step" for n in counts}
     head = _head_esim()
-    curve = []
+    capacity = [parallel_capacity()]
+    curve, versus, bounds, identical = [], [], [], True
     for c in thresholds:
         count = _run_frames(EventSimulator, frames, times, c)
+        serial = EventSimulator(cp=c, cn=c).simulate(np.stack(frames), times)
+        identical &= all(_same_events(_source_events(EventSimulator, source, c), serial)
+                         for source in sources.values())
         methods = []
         if head is not None:
             methods.append(("HEAD: PNG decode + step, one thread",
                             lambda: _run_pngs(head, paths, times, c), ""))
-        methods += [
-            ("PNG decode + step, one thread", lambda: _run_pngs(EventSimulator, paths, times, c),
-             f"{len(paths)} frames"),
-            ("ImageFolderSource (decode thread) + step", lambda: _run_source(EventSimulator, source, c),
-             "pipelined, prefetch 4"),
-            ("step only, frames decoded", lambda: _run_frames(EventSimulator, frames, times, c), ""),
-        ]
+        methods.append(("PNG decode + step, one thread", lambda: _run_pngs(EventSimulator, paths, times, c),
+                        f"{len(paths)} frames"))
+        for n, source in sources.items():
+            run = (lambda source: lambda: _run_source(EventSimulator, source, c))(source)
+            methods.append((labels[n], run, f"pipelined, prefetch 4; CPU/wall {_cpu_per_wall(run):.2f}"))
+        methods.append(("step only, frames decoded", lambda: _run_frames(EventSimulator, frames, times, c), ""))
         if head is not None:
             methods.append(("HEAD: step only, frames decoded",
                             lambda: _run_frames(head, frames, times, c), ""))
-        methods.append(("PNG decode only", lambda: [cv2.imread(p, cv2.IMREAD_GRAYSCALE) for p in paths], ""))
+        methods += [
+            ("PNG decode only, IMREAD_GRAYSCALE", lambda: [cv2.imread(p, cv2.IMREAD_GRAYSCALE) for p in paths],
+             "as the reference ESIM"),
+            ("PNG decode only, IMREAD_UNCHANGED", lambda: [cv2.imread(p, cv2.IMREAD_UNCHANGED) for p in paths],
+             "as ImageFolderSource (grey PNGs: same values)"),
+        ]
         density = count / (len(paths) - 1) / (width * height)
         group = f"truck-pan {width}x{height}, C={c}, {count:,} events ({density:.3f} per pixel per frame)"
         run_group(report, group, methods, count, repeats)
         rows = {row.method: row for row in report.rows if row.group == group}
+        best = max(counts, key=lambda n: rows[labels[n]].mev_per_s)
         curve.append((c, density, rows["PNG decode + step, one thread"].mev_per_s,
-                      rows["ImageFolderSource (decode thread) + step"].mev_per_s,
-                      rows["step only, frames decoded"].mev_per_s))
+                      rows[labels[best]].mev_per_s, rows["step only, frames decoded"].mev_per_s))
+        decode = _cpu_seconds(lambda: [cv2.imread(p, cv2.IMREAD_UNCHANGED) for p in paths], repeats)
+        step = _cpu_seconds(lambda: _run_frames(EventSimulator, frames, times, c), repeats)
+        two, many = (decode + step) / 2, max(step, decode / MAX_DECODERS)
+        bounds.append(f"C = {c}: decode {decode * 1e3:.0f} ms, step {step * 1e3:.0f} ms of CPU; 2 cores {two * 1e3:.0f} ms ({count / two / 1e6:.1f} M ev/s), "
+                      f"{MAX_DECODERS + 1}+ cores {many * 1e3:.0f} ms ({count / many / 1e6:.1f} M ev/s)")
+        reference = ESIM_PY_MEV_S["truck"].get(c)
+        if reference is not None:
+            versus.append(f"C = {c}: " + ", ".join(
+                f"{n} thread{'s' * (n > 1)} {rows[labels[n]].mev_per_s:.2f} M ev/s = "
+                f"{rows[labels[n]].mev_per_s / reference:.2f}x" for n in counts)
+                + f", one thread without a pool {rows['PNG decode + step, one thread'].mev_per_s:.2f} = "
+                f"{rows['PNG decode + step, one thread'].mev_per_s / reference:.2f}x"
+                + f" (esim_py {reference} M ev/s)")
+    capacity.append(parallel_capacity())
     report.checks["truck-pan frames"] = len(paths)
+    report.checks["CPU seconds per wall second of 2 GIL-free threads (zlib), before / after the truck-pan "
+                  "groups (about 2: two cores for this process; about 1: one, and the decoding threads "
+                  "cannot overlap the simulation)"] = " / ".join(f"{v:.2f}" for v in capacity)
+    report.checks["cores available / decoding threads by default"] = (
+        f"{available_cores()} / {default_decoders()}")
+    report.checks[f"pipelined events identical to the serial simulation (x, y, t, p; decoding threads "
+                  f"{', '.join(map(str, counts))}; C={', '.join(map(str, thresholds))})"] = identical
     if head is not None:
         same = all(_same_events(head(cp=c, cn=c).simulate(np.stack(frames), times),
                                 EventSimulator(cp=c, cn=c).simulate(np.stack(frames), times))
                    for c in thresholds)
         report.checks[f"events identical to HEAD (x, y, t, p; C={', '.join(map(str, thresholds))})"] = same
+    if versus:
+        report.checks["pipelined against C++ esim_py (issue 22's figures; esim_py is not importable "
+                      "here, so not the same process)"] = "; ".join(versus)
+    report.checks["bound on a free machine, from the CPU seconds (process time, medians) of decoding "
+                  "(IMREAD_UNCHANGED, one thread) and of the step in this run; an estimate, not a "
+                  "measurement: (decode + step) / 2 on 2 cores, max(step, decode / 4) with 4 decoders "
+                  "and a core for the simulation"] = "; ".join(bounds)
     target = 2 * REFERENCE_MEV_S[1]
-    report.checks["density curve: C / events per pixel per frame / Mev/s one thread / pipelined / "
+    report.checks["density curve: C / events per pixel per frame / Mev/s one thread / best pipelined / "
                   "step only"] = "; ".join(
         f"{c} / {d:.3f} / {a:.1f} / {b:.1f} / {s:.1f}" for c, d, a, b, s in curve)
     reached = [(c, d) for c, d, _, b, _ in curve if b >= target]
@@ -302,12 +405,26 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--long-minutes", type=float, default=10.0)
     parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--truck-only", action="store_true",
+                        help="only the truck-pan groups at C = 0.2/0.1/0.05, written to "
+                             "benchmarks/results/speed_simulator_truck.md and .json")
     args = parser.parse_args(argv)
     cv2.setNumThreads(1)  # single-threaded, as the reference C++ ESIM figure
     machine = speed.machine_info()
     repeats = 3 if args.quick else args.repeats
     report = speed.Report("simulator", "Simulator speed (EventSimulator, adaptive sampling, conversion)",
                           {"repeats": repeats, "opencv_threads": 1, "quick": args.quick})
+    if args.truck_only:
+        report = speed.Report("simulator_truck", "Simulator speed on truck-pan incl. PNG decoding",
+                              {"repeats": repeats, "opencv_threads": 1,
+                               "command": "python -m benchmarks.speed_simulator --truck-only"})
+        truck_groups(report, speed.run_group, repeats, (0.2, 0.1, 0.05))
+        report.notes += [
+            "Mev/s counts events per wall second; rows of one group are timed interleaved.",
+            f"Load average (1 min) at the end: {os.getloadavg()[0]:.2f} (2 shared cores).",
+        ]
+        speed.publish_report(report, machine, write=not args.no_write)
+        return 0
     truck_groups(report, speed.run_group, repeats, (0.2, 0.05) if args.quick else THRESHOLDS)
     bikes_groups(report, speed.run_group, speed.time_call, speed.add_row,
                  seconds=0.4 if args.quick else 1.0, full_adaptive=args.full_adaptive)

@@ -11,13 +11,18 @@ microseconds, strictly increasing, with attributes ``width``, ``height``
 so hours of video stream in constant memory (see
 :func:`cmax.sim.sampling.iter_upsample`).
 
-Prefetching: :class:`VideoFileSource` and :class:`ImageFolderSource` decode in
-a background thread, at most ``prefetch`` frames (default 4) ahead of the
-consumer, in a bounded queue. OpenCV releases the GIL while it decodes, so
-decoding overlaps with the simulation of the previous frames; memory grows by
-at most ``prefetch`` frames. Errors of the decoder are raised in the consuming
-thread, at the frame where they happened; stopping the iteration early stops
-the thread. ``prefetch=0`` decodes in the consuming thread.
+Prefetching: :class:`VideoFileSource` decodes its stream in a background
+thread and :class:`ImageFolderSource` decodes its images in a small pool of
+``decoders`` threads (default :func:`cmax.sim.prefetch.default_decoders`: the
+available cores, at most 4), several images at once, at most ``prefetch``
+frames (default 4) ahead of the consumer. OpenCV releases the GIL while it
+decodes, so decoding overlaps with the simulation of the previous frames;
+memory grows by at most ``prefetch`` frames. The frames come in the same
+order and with the same values as without prefetching. Errors of a decoder
+are raised in the consuming thread, at the frame where they happened, naming
+the file; stopping the iteration early (``break``, an error,
+``KeyboardInterrupt``) stops the threads. ``prefetch=0`` decodes in the
+consuming thread.
 
 Colour is converted to grey with OpenCV's ``BGR2GRAY`` on the 8-bit values
 (as the reference ESIM does); 16-bit images are scaled by ``255 / 65535``.
@@ -41,7 +46,8 @@ from typing import Iterator, Protocol, Union, runtime_checkable
 import cv2
 import numpy as np
 
-from cmax.sim.prefetch import DEFAULT_PREFETCH, _check_prefetch, prefetched
+from cmax.sim.prefetch import (DEFAULT_PREFETCH, _check_decoders, _check_prefetch, ordered_map,
+                               prefetched)
 
 __all__ = [
     "DEFAULT_PREFETCH",
@@ -291,11 +297,19 @@ def _find_timestamps(folder: Path) -> Path:
                             f"{', '.join(_TIMESTAMP_FILES)} in the folder or its parent")
 
 
-def _read_image(path: Path, size: Size | None, dtype: type = np.float32) -> np.ndarray:
-    image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+def _imread(path: Path) -> np.ndarray:
+    """The image as stored (``IMREAD_UNCHANGED``: grey stays grey, no colour conversion)."""
+    try:
+        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    except cv2.error as error:
+        raise DecodeError(f"OpenCV cannot decode the image {path}: {error}") from error
     if image is None:
         raise DecodeError(f"OpenCV cannot decode the image {path}")
-    return _to_grey(image, size, str(path), dtype)
+    return image
+
+
+def _read_image(path: Path, size: Size | None, dtype: type = np.float32) -> np.ndarray:
+    return _to_grey(_imread(path), size, str(path), dtype)
 
 
 class ImageFolderSource:
@@ -315,7 +329,13 @@ class ImageFolderSource:
     dtype : np.float32 or np.uint8
         Type of the yielded frames (see the module docstring).
     prefetch : int
-        Frames decoded ahead in a background thread (0: none).
+        Frames decoded ahead of the consumer, at most (0: decoded in the
+        consuming thread, one at a time).
+    decoders : int, optional
+        Threads decoding images at once when ``prefetch > 0`` (at most
+        ``prefetch`` are used); default
+        :func:`cmax.sim.prefetch.default_decoders` (the available cores, at
+        most 4).
 
     The first image is read at construction (for ``width``/``height``); the
     others when iterated, where an image of another size raises ValueError.
@@ -323,12 +343,13 @@ class ImageFolderSource:
 
     def __init__(self, folder: PathLike, *, timestamps: PathLike | np.ndarray | None = None,
                  size: Size | None = None, dtype: type = np.float32,
-                 prefetch: int = DEFAULT_PREFETCH) -> None:
+                 prefetch: int = DEFAULT_PREFETCH, decoders: int | None = None) -> None:
         folder = Path(folder)
         if not folder.is_dir():
             raise FileNotFoundError(f"image folder not found: {folder}")
         self._size = _check_size(size)
         self.dtype, self.prefetch = _check_dtype(dtype), _check_prefetch(prefetch)
+        self.decoders = _check_decoders(decoders)
         if timestamps is None or isinstance(timestamps, (str, Path)):
             file = _find_timestamps(folder) if timestamps is None else Path(timestamps)
             self.timestamps_us, self.images = read_timestamps(file, folder)
@@ -354,17 +375,17 @@ class ImageFolderSource:
         return self.frame_count
 
     def __iter__(self) -> Iterator[tuple[np.ndarray, int]]:
-        return prefetched(self._frames, self.prefetch)
+        return ordered_map(self._decode, zip(self.images, self.timestamps_us.tolist()),
+                           self.decoders, self.prefetch)
 
-    def _frames(self) -> Iterator[tuple[np.ndarray, int]]:
-        for path, t in zip(self.images, self.timestamps_us.tolist()):
-            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
-            if image is None:
-                raise DecodeError(f"OpenCV cannot decode the image {path}")
-            if image.shape[:2] != self._shape:
-                raise ValueError(f"{path} is {image.shape[1]}x{image.shape[0]} pixels, the first image "
-                                 f"{self.images[0].name} {self._shape[1]}x{self._shape[0]}")
-            yield _to_grey(image, self._size, str(path), self.dtype), t
+    def _decode(self, item: tuple[Path, int]) -> tuple[np.ndarray, int]:
+        """One frame and its time; runs in a decoding thread."""
+        path, t = item
+        image = _imread(path)
+        if image.shape[:2] != self._shape:
+            raise ValueError(f"{path} is {image.shape[1]}x{image.shape[0]} pixels, the first image "
+                             f"{self.images[0].name} {self._shape[1]}x{self._shape[0]}")
+        return _to_grey(image, self._size, str(path), self.dtype), t
 
 
 # -- video files --------------------------------------------------------------------------
@@ -493,7 +514,8 @@ class VideoFileSource:
 def open_source(source: PathLike | np.ndarray | FrameSource, *,
                 timestamps: PathLike | np.ndarray | None = None, size: Size | None = None,
                 t0_s: float | None = None, t1_s: float | None = None,
-                dtype: type = np.float32, prefetch: int = DEFAULT_PREFETCH) -> FrameSource:
+                dtype: type = np.float32, prefetch: int = DEFAULT_PREFETCH,
+                decoders: int | None = None) -> FrameSource:
     """A frame source for a path, an array or an existing source.
 
     * an array (T, H, W): :class:`ArraySource`, ``timestamps`` in integer µs required;
@@ -504,7 +526,8 @@ def open_source(source: PathLike | np.ndarray | FrameSource, *,
     * a frame source: returned unchanged (no other argument allowed).
 
     ``dtype`` (np.float32 or np.uint8) and ``prefetch`` (frames decoded ahead
-    in a background thread; files only) are passed on.
+    in background threads; files only) are passed on; ``decoders`` (threads
+    decoding images at once) applies to image folders only.
 
     Raises
     ------
@@ -518,6 +541,8 @@ def open_source(source: PathLike | np.ndarray | FrameSource, *,
             raise ValueError("an array source needs timestamps= (integer µs)")
         if t0_s is not None or t1_s is not None:
             raise ValueError("t0_s/t1_s apply to video files only")
+        if decoders is not None:
+            raise ValueError("decoders= applies to image folders only (an array needs no decoding)")
         return ArraySource(source, np.asarray(timestamps), size=size, dtype=dtype)
     if isinstance(source, (str, Path)):
         path = Path(source)
@@ -528,15 +553,18 @@ def open_source(source: PathLike | np.ndarray | FrameSource, *,
                 raise ValueError("t0_s/t1_s apply to video files only")
             if path.is_dir():
                 return ImageFolderSource(path, timestamps=timestamps, size=size, dtype=dtype,
-                                         prefetch=prefetch)
+                                         prefetch=prefetch, decoders=decoders)
             return ImageFolderSource(path.parent, timestamps=path, size=size, dtype=dtype,
-                                     prefetch=prefetch)
+                                     prefetch=prefetch, decoders=decoders)
         if timestamps is not None:
             raise ValueError("timestamps= does not apply to a video file (it has its own times)")
+        if decoders is not None:
+            raise ValueError("decoders= applies to image folders only (a video stream is decoded "
+                             "in order by one thread)")
         return VideoFileSource(path, size=size, t0_s=t0_s, t1_s=t1_s, dtype=dtype,
                                prefetch=prefetch)
     if isinstance(source, FrameSource):
-        if any(v is not None for v in (timestamps, size, t0_s, t1_s)):
-            raise ValueError("an existing frame source takes no timestamps/size/t0_s/t1_s")
+        if any(v is not None for v in (timestamps, size, t0_s, t1_s, decoders)):
+            raise ValueError("an existing frame source takes no timestamps/size/t0_s/t1_s/decoders")
         return source
     raise TypeError(f"cannot make a frame source from {type(source).__name__}")
