@@ -177,7 +177,7 @@ def report(calls: dict[int, list[float]], cpu: dict[int, list[float]], loads: li
     lines += [f"- jobs {jobs}: " + ", ".join(f"{t:.1f}" for t in seconds) for jobs, seconds in sorted(calls.items())]
     lines += ["", "Starting the forkserver and one worker (once per process: a new interpreter importing torch and "
               f"the fit) took {forkserver_s:.1f} s, outside the figures above.", "",
-              "The machine is shared with a training job and other sessions' work (the load average above). "
+              "Other sessions' work on the machine shows in the load average above and the last column. "
               + ("The kernel's autogroup scheduling is on (`/proc/sys/kernel/sched_autogroup_enabled` = 1): it "
                  "shares the cores between sessions, not processes, so with S other busy sessions on C cores this "
                  "session gets about C / (S + 1) cores whatever its number of workers, and more workers gain only "
