@@ -136,6 +136,9 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     (["--K", "60,60,32,24", "--depth-range", "3,nan"], "argument --depth-range"),
     (["--K", "60,60,32,24", "--distortion", "1,2"], "argument --distortion"),
     (["--K", "60,60,32,24", "--size", "64;48"], "argument --size"),
+    (["--K", "60,60,32,24", "--omega", "0,0,0", "--gyro", "GYRO"], "pass one of them"),
+    (["--K", "60,60,32,24", "--omega", "0,0"], "argument --omega"),
+    (["--K", "60,60,32,24", "--omega", "0,0,0", "--model", "flow"], "--omega applies to --model se3"),
 ])
 def test_fit_option_errors_are_one_line(tmp_path, capsys, extra, message):
     rng = np.random.default_rng(1)
@@ -258,3 +261,16 @@ def test_jobs_fit_the_windows_in_parallel_from_cold_starts(slider, tmp_path, cap
     except SystemExit as exit_:
         status = exit_.code
     assert status == 2 and "--jobs" in capsys.readouterr().err
+
+
+def test_omega_holds_a_known_rotation_in_every_window(slider, tmp_path):
+    """``--omega 0.1,0,0``: every window's rotation is the given one (held, as a gyroscope's), said in the summary."""
+    w, path, _ = slider
+    out = tmp_path / "out"
+    argv = ["fit", str(path), "--size", "96,72", "--K", "72,72,48,36", "-o", str(out), "--speed", "0.5",
+            "--window-ms", "90", "--omega", "0.1,0,0", "--max-events", "4000", "--quiet"]
+    assert main(argv) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["omega"] == [0.1, 0.0, 0.0] and len(summary["windows"]) == 2
+    for window in summary["windows"]:
+        np.testing.assert_allclose(window["omega"], [0.1, 0.0, 0.0], atol=1e-12)

@@ -60,6 +60,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="gyroscope samples (se3): an .aedat4 file (its IMU stream) or a text file of "
                              "'t wx wy wz' lines [s, rad/s], camera axes, the events' clock; each window's "
                              "rotation is held at their mean, only direction and depth are fitted")
+    parser.add_argument("--omega", type=float_list((3,), "--omega (wx,wy,wz)"), default=None, metavar="WX,WY,WZ",
+                        help="se3: a known, constant angular velocity [rad/s] of every window, camera axes (e.g. "
+                             "0,0,0 for a linear stage or a straight drive): held like --gyro's, only direction and "
+                             "depth are fitted; not with --gyro")
     parser.add_argument("--zero-rotation-start", action="store_true",
                         help="se3: also start the motion refinement from the flows explained without rotation "
                              "and keep the better (vehicles: on a forward drive it found forward motion where the "
@@ -218,6 +222,13 @@ def run(args: argparse.Namespace) -> int:
         if len(events) < total:
             notes.append(f"{total - len(events):,} events fall outside the image once undistorted (dropped)")
     gyro = None
+    if args.omega is not None:
+        if args.model not in (None, "se3"):
+            raise ValueError(f"--omega applies to --model se3, not {args.model}")
+        if args.gyro is not None:
+            raise ValueError("--omega is a constant rotation, --gyro a measured one: pass one of them")
+        # a gyroscope that reads the same rate over the whole recording
+        gyro = (np.array([int(events.t[0]), int(events.t[-1]) + 1]), np.tile(np.asarray(args.omega, float), (2, 1)))
     if args.gyro is not None:
         gyro = check_gyro(read_gyro(args.gyro))
         events, note = _gyro_overlap(events, gyro, args.gyro)
@@ -275,6 +286,7 @@ def run(args: argparse.Namespace) -> int:
                "window_ms": window_us / 1000, "step_ms": step_us / 1000, "t0_s": args.t0, "t1_s": args.t1,
                "depth_range": None if args.depth_range is None else list(args.depth_range),
                "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro),
+               "omega": None if args.omega is None else list(args.omega),
                "solver": args.solver or _fit_default("solver")(),
                "zero_rotation_start": args.zero_rotation_start, "jobs": args.jobs,
                "warm_start": args.jobs == 1, "notes": notes,
