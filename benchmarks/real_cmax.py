@@ -20,8 +20,9 @@ Writes ``benchmarks/results/real_cmax.md`` and the pictures ``real_cmax_pegboard
   window. ``fit_sequence`` as ``cmax fit slider.h5 --K 335.42,335.35,129.92,99.19 --speed 0.317`` runs it
   (default 166.5 ms windows); per window: the direction error, whether it is reversed (> 90 deg), the
   quality verdict and its resolution, and the far wall's depth against EMVS with the ground-truth poses
-  (run at the window's reference time; :func:`slider_far_wall`). ``--slider-cache FILE`` keeps the fit
-  (about 5 minutes) for a second run.
+  (run at the window's reference time; :func:`slider_far_wall`); then the same with the rotation held at
+  zero (``cmax fit ... --omega 0,0,0``: a linear stage does not rotate). ``--slider-cache FILE`` keeps the
+  fits (about 5 minutes; the held-rotation one beside it, ``FILE``'s stem + ``_omega0``) for a second run.
 * A DSEC-layout file as DSEC ships it (uint32 ``t`` relative to ``t_offset``, ``ms_to_idx``, no size
   attributes; :func:`write_dsec_original`) of the first second of the slider events, fitted end to end by
   ``cmax fit FILE --size 240,180 --K ... --speed 0.317`` (with ``--slider-events``).
@@ -302,9 +303,12 @@ def _x_error_deg(v: np.ndarray) -> float:
 FAR_WALL_M, FAR_WALL_TOLERANCE = 2.1, 0.10
 
 
-def slider_sequence(events_path: Path, cache: Path | None = None):
+def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tuple | None = None):
     """``fit_sequence(events, K_ECD, speed=ECD_SPEED)`` of the slider events, its wall time [s], and a note on
     where it comes from (this run, or the cache and the 1-minute load average when it was fitted).
+
+    ``omega`` (3,) [rad/s]: every window's rotation held at it (``cmax fit --omega``: a constant gyroscope
+    reading over the recording), only the direction and the depth fitted.
 
     With ``cache`` the result is pickled there (atomically) and read back by a later call on the same events
     file (same resolved path, size and modification time); a cache of anything else is refitted and replaced.
@@ -316,7 +320,8 @@ def slider_sequence(events_path: Path, cache: Path | None = None):
     from cmax.io.atomic import write_bytes_atomic
 
     stat = events_path.stat()
-    key = (str(events_path.resolve()), stat.st_size, stat.st_mtime_ns, K_ECD.tolist(), ECD_SPEED)
+    key = (str(events_path.resolve()), stat.st_size, stat.st_mtime_ns, K_ECD.tolist(), ECD_SPEED) + (
+        () if omega is None else (tuple(float(w) for w in omega),))
     if cache is not None and cache.is_file():
         with open(cache, "rb") as file:
             stored = pickle.load(file)
@@ -327,9 +332,11 @@ def slider_sequence(events_path: Path, cache: Path | None = None):
                 "fitted by an earlier run of this script (cached), load average (1 min) at its start "
                 + ("not recorded" if load is None else f"{load:.2f}"))
     events = read(events_path)
+    gyro = None if omega is None else (np.array([int(events.t[0]), int(events.t[-1]) + 1]),
+                                       np.tile(np.asarray(omega, float), (2, 1)))
     load = os.getloadavg()[0]
     start = time.perf_counter()
-    sequence = fit_sequence(events, K_ECD, speed=ECD_SPEED)
+    sequence = fit_sequence(events, K_ECD, speed=ECD_SPEED, gyro=gyro)
     seconds = time.perf_counter() - start
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
@@ -375,14 +382,15 @@ class FarWall:
         return self.fit_m / self.emvs_m
 
 
-def slider_far_wall(events_path: Path, sequence, folder: Path) -> tuple[list, list, float]:
+def slider_far_wall(events_path: Path, sequence, folder: Path, others: tuple = ()) -> tuple[list, list, float, list]:
     """Far-wall depth of every window of ``sequence`` against EMVS with the ground-truth poses.
 
     EMVS (:class:`cmax.emvs.EMVS`, depth range 0.47-2.4 m, all the events in the poses' span) is run at each
     window's ``t_ref_us`` with the fit's own camera model (``K_ECD``, distortion ignored, as ``cmax fit`` is run
     here), so its depth map shares the fit's pixel grid. Returns the :class:`FarWall` of each window, each
-    window's EMVS depth (H, W) [m] (NaN off its mask), and the median depth [m] of the far-wall structure of one
-    EMVS run with the calibrated camera (``calib.txt``'s distortion, middle reference time).
+    window's EMVS depth (H, W) [m] (NaN off its mask), the median depth [m] of the far-wall structure of one
+    EMVS run with the calibrated camera (``calib.txt``'s distortion, middle reference time), and the
+    :class:`FarWall` lists of the ``others`` sequences (same windows) against the same EMVS runs.
     """
     from benchmarks.ecd_slider_emvs import DEPTH_RANGE, depth_structures
     from cmax import Camera
@@ -395,18 +403,26 @@ def slider_far_wall(events_path: Path, sequence, folder: Path) -> tuple[list, li
     pinhole = Camera.from_intrinsics(K_ECD[0, 0], K_ECD[1, 1], K_ECD[0, 2], K_ECD[1, 2], events.width,
                                      events.height)
     emvs = EMVS(pinhole, depth_range=DEPTH_RANGE)
-    walls, maps = [], []
-    for r in tqdm(sequence.results, desc="EMVS at each window's reference time", unit="window", leave=False):
+    walls, maps, other_walls = [], [], [[] for _ in others]
+    for k, r in enumerate(tqdm(sequence.results, desc="EMVS at each window's reference time", unit="window",
+                               leave=False)):
         reference = emvs.run(events, (times, poses), t_ref_us=r.t_ref_us)
         region, threshold = far_wall_region(reference)
         maps.append(np.where(reference.mask, reference.depth, np.nan))
-        both = region & r.mask & np.isfinite(r.depth)
-        walls.append(FarWall(float(np.median(reference.depth[both])) if both.any() else np.nan,
-                             float(np.median(r.depth[both])) if both.any() else np.nan, int(both.sum()), threshold))
+        walls.append(_far_wall(reference, region, threshold, r))
+        for out, other in zip(other_walls, others):
+            out.append(_far_wall(reference, region, threshold, other.results[k]))
     calibrated = EMVS(Camera.from_ecd_calib(folder / "calib.txt", events.width, events.height),
                       depth_range=DEPTH_RANGE).run(events, (times, poses))
     structures = depth_structures(calibrated)
-    return walls, maps, (structures[-1].median_depth_m if structures else np.nan)
+    return walls, maps, (structures[-1].median_depth_m if structures else np.nan), other_walls
+
+
+def _far_wall(reference, region: np.ndarray, threshold: float, result) -> FarWall:
+    """The fit ``result``'s depth against the EMVS ``reference`` on the far-wall ``region`` inside its mask."""
+    both = region & result.mask & np.isfinite(result.depth)
+    return FarWall(float(np.median(reference.depth[both])) if both.any() else np.nan,
+                   float(np.median(result.depth[both])) if both.any() else np.nan, int(both.sum()), threshold)
 
 
 def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[list[str], np.ndarray]:
@@ -417,7 +433,9 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
     from cmax.emvs import read_tum_trajectory
 
     sequence, seconds, origin = slider_sequence(events_path, cache)
-    walls, maps, calibrated_wall = slider_far_wall(events_path, sequence, folder)
+    held_cache = None if cache is None else cache.with_name(cache.stem + "_omega0" + cache.suffix)
+    held, held_seconds, held_origin = slider_sequence(events_path, held_cache, omega=(0.0, 0.0, 0.0))
+    walls, maps, calibrated_wall, (held_walls,) = slider_far_wall(events_path, sequence, folder, (held,))
     first = sequence.results[0].t0_us
     speeds = window_speeds(*read_tum_trajectory(folder / "groundtruth.txt"),
                            [(r.t0_us, r.t1_us) for r in sequence.results])
@@ -465,6 +483,7 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
               + f". The depth of a fit scales with the speed it is given; with each window's true speed instead of "
               f"{ECD_SPEED} m/s the far wall's median ratio fit / EMVS would be "
               f"{np.median(rescaled) if rescaled.size else np.nan:.3f}.", ""]
+    lines += _held_rotation_lines(held, held_walls, held_seconds, held_origin)
     middle = len(sequence.results) // 2
     r = sequence.results[middle]
     scale = (0.47, 2.4)                     # EMVS's depth range: one colour scale for both depth maps
@@ -473,6 +492,33 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
                           viz.depth_panel(np.where(r.mask, r.depth, np.nan), scale, f"fit depth, {when}"),
                           viz.depth_panel(maps[middle], scale, f"EMVS, true poses, {when}")])
     return lines, picture
+
+
+def _held_rotation_lines(held, walls: list, seconds: float, origin: str) -> list[str]:
+    """Markdown of the slider fitted with its rotation held at zero (``cmax fit --omega 0,0,0``)."""
+    from cmax.fitting import Verdict
+
+    errors = np.array([_x_error_deg(r.v) for r in held.results])
+    usable = [w for w in walls if w.pixels > 0]
+    ratios = np.array([w.ratio for w in usable])
+    ratio = float(np.median(ratios)) if usable else np.nan
+    fit_m = float(np.median([w.fit_m for w in usable])) if usable else np.nan
+    ok = [w.ratio for w, r in zip(walls, held.results) if r.verdict is Verdict.OK and w.pixels > 0]
+    met = lambda ok_: "met" if ok_ else "not met"  # noqa: E731
+    return ["### With the rotation held at zero", "",
+            "A slider is a linear stage: its user knows that it does not rotate and can say so "
+            f"(`cmax fit ... --omega 0,0,0`; here `fit_sequence(..., gyro=)` with a constant zero reading): "
+            f"{seconds:.0f} s in all ({origin}). Direction error median {np.median(errors):.1f} deg, p90 "
+            f"{np.percentile(errors, 90):.1f} deg, reversed {int(np.sum(errors > 90))}; verdicts "
+            f"{_verdict_counts([r.verdict.value for r in held.results])}. Far wall over the {len(usable)} windows "
+            f"with far-wall pixels: the fit's median {fit_m:.2f} m, median ratio fit / EMVS {ratio:.3f} "
+            f"(target within {FAR_WALL_TOLERANCE:.0%}: {met(abs(ratio - 1) <= FAR_WALL_TOLERANCE)}; "
+            f"{int(np.sum(np.abs(ratios - 1) <= FAR_WALL_TOLERANCE))} of the windows within it; per window "
+            f"{ratios.min():.2f}-{ratios.max():.2f}; over the {len(ok)} ok windows "
+            f"{np.median(ok) if ok else np.nan:.3f}); fit against {FAR_WALL_M} m: {fit_m / FAR_WALL_M:.3f} "
+            f"({met(abs(fit_m / FAR_WALL_M - 1) <= FAR_WALL_TOLERANCE)}). With the rotation free the far wall "
+            "comes out nearer because a rotation about y trades against the +x translation (the bas-relief "
+            "ambiguity: each patch's depth absorbs what the rotation takes from the translation's flow).", ""]
 
 
 def window_speeds(times_us: np.ndarray, T_w_c: np.ndarray, windows: list[tuple[int, int]]) -> np.ndarray:

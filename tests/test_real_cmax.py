@@ -74,9 +74,9 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
 
     calls = []
 
-    def fake_fit_sequence(events, K, speed):
+    def fake_fit_sequence(events, K, speed, gyro=None):
         calls.append(len(events))
-        return SimpleNamespace(n=len(events), speed=speed)
+        return SimpleNamespace(n=len(events), speed=speed, gyro=gyro)
 
     monkeypatch.setattr(cmax.fitting, "fit_sequence", fake_fit_sequence)
     rng = np.random.default_rng(0)
@@ -92,6 +92,9 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
     assert "this run" in origin and "cached" in again_origin and "not recorded" not in again_origin
     other, _, _ = real_cmax.slider_sequence(paths[1], cache)
     assert calls == [50, 60] and other.n == 60
+    # the same events with the rotation held at zero: another fit (a constant zero gyro over the events)
+    held, _, _ = real_cmax.slider_sequence(paths[1], cache, omega=(0.0, 0.0, 0.0))
+    assert calls == [50, 60, 60] and held.gyro is not None and np.all(held.gyro[1] == 0)
 
 
 def test_window_speeds_of_a_slide_that_stops():
