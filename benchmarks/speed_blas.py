@@ -24,14 +24,9 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.speed_threads import _spin  # the same busy loop as the torch thread benchmark
+
 RESULTS = Path(__file__).resolve().parent / "results"
-
-
-def _spin(stop) -> None:  # a busy loop, in a child process
-    x = 0
-    while not stop.is_set():
-        for _ in range(100_000):
-            x += 1
 
 
 @contextlib.contextmanager
