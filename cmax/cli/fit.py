@@ -67,7 +67,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--zero-rotation-start", action="store_true",
                         help="se3: also start the motion refinement from the flows explained without rotation "
                              "and keep the better (vehicles: on a forward drive it found forward motion where the "
-                             "default ended at a pitching plane; about 1 s more per window)")
+                             "default ended at a pitching plane; one more refinement per window)")
     api_default(parser.add_argument("--solver", choices=("scipy", "casadi", "torch"), default=None,
                                     help="optimisation back end"), _fit_default("solver"))
     parser.add_argument("--jobs", type=positive_int, default=1,
