@@ -129,7 +129,7 @@ CMAX_CASES = [
     (["manifest", "merge", "NOSETTINGS", "-o", "OUT"], "'settings' must be an object"),
     (["simulate", "DIR", "-o", "RESUME"], "'settings' must be an object"),
     (["frobnicate"], "cmax: error: argument COMMAND: invalid choice"),
-    (["fit", "FILE", "-o", "OUT"], "one of the arguments --K --calib is required"),
+    (["fit", "FILE", "-o", "OUT"], "stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib"),
 ]
 
 

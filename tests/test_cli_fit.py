@@ -139,6 +139,7 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     (["--K", "60,60,32,24", "--omega", "0,0,0", "--gyro", "GYRO"], "pass one of them"),
     (["--K", "60,60,32,24", "--omega", "0,0"], "argument --omega"),
     (["--K", "60,60,32,24", "--omega", "0,0,0", "--model", "flow"], "--omega applies to --model se3"),
+    ([], "stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib"),
 ])
 def test_fit_option_errors_are_one_line(tmp_path, capsys, extra, message):
     rng = np.random.default_rng(1)
@@ -274,3 +275,17 @@ def test_omega_holds_a_known_rotation_in_every_window(slider, tmp_path):
     assert summary["omega"] == [0.1, 0.0, 0.0] and len(summary["windows"]) == 2
     for window in summary["windows"]:
         np.testing.assert_allclose(window["omega"], [0.1, 0.0, 0.0], atol=1e-12)
+
+
+def test_an_h5_file_with_its_own_intrinsics_needs_no_K(tmp_path, capsys):
+    """A file written by ``cmax scene`` stores ``gt/K``: ``cmax fit`` uses it when no --K or --calib is given."""
+    import h5py
+
+    scene = tmp_path / "scene.h5"
+    assert main(["scene", "slider", "-o", str(scene), "--duration", "0.25", "--size", "96x72", "--seed", "3"]) == 0
+    with h5py.File(scene, "r") as file:
+        K = np.asarray(file["gt/K"][()])
+    out = tmp_path / "out"
+    assert main(["fit", str(scene), "-o", str(out), "--model", "flow", "--window-ms", "200", "--quiet"]) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    np.testing.assert_array_equal(summary["K"], K)

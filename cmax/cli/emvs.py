@@ -15,7 +15,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, nonnegative_float, positive_int, sensor_size
-from cmax.cli.recording import distortion_argument, intrinsics_argument, time_slice
+from cmax.cli.recording import distortion_argument, file_intrinsics, intrinsics_argument, time_slice
 from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_command", "run", "camera_for"]
@@ -65,16 +65,9 @@ def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distor
     from cmax.camera import Camera
 
     if K is None:
-        import h5py
-
-        try:
-            with h5py.File(path, "r") as file:
-                matrix = np.asarray(file["gt/K"]) if "gt/K" in file else None
-        except OSError:
-            matrix = None
-        if matrix is None:
+        K = file_intrinsics(path)
+        if K is None:
             raise ValueError(f"{path} holds no gt/K; give the intrinsics with --K fx,fy,cx,cy")
-        return Camera(matrix, width, height, distortion)
     return Camera(K, width, height, distortion)
 
 

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, library_default, positive_float, positive_int
-from cmax.cli.recording import (add_recording_arguments, distortion_argument, intrinsics_argument, read_calibration,
-                                time_slice)
+from cmax.cli.recording import (add_recording_arguments, distortion_argument, file_intrinsics, intrinsics_argument,
+                                read_calibration, time_slice)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 __all__ = ["add_command", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
@@ -31,8 +31,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser("fit", help="depth and motion per window by contrast maximization",
                                    description=__doc__.split("\n\n")[0])
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
-    camera = parser.add_mutually_exclusive_group(required=True)
-    camera.add_argument("--K", type=intrinsics_argument, help="intrinsics fx,fy,cx,cy [px]")
+    camera = parser.add_mutually_exclusive_group()
+    camera.add_argument("--K", type=intrinsics_argument,
+                        help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file, e.g. one cmax scene wrote)")
     camera.add_argument("--calib", type=Path, default=None,
                         help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
                              "k3) or DSEC cam_to_cam.yaml (intrinsics of --calib-camera)")
@@ -202,6 +203,10 @@ def run(args: argparse.Namespace) -> int:
         K, distortion, calib_size = read_calibration(args.calib, args.calib_camera)
     else:
         K, distortion, calib_size = args.K, args.distortion, None
+        if K is None:
+            K = file_intrinsics(args.file)
+            if K is None:
+                raise ValueError(f"{args.file} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib")
     width, height = args.size or (None, None)
     try:
         events = read(args.file, width=width, height=height, time_unit=args.time_unit)

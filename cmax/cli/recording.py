@@ -19,7 +19,7 @@ import numpy as np
 from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import check_intrinsics
 
-__all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "intrinsics_argument",
+__all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "intrinsics_argument", "file_intrinsics",
            "distortion_argument", "read_calibration", "time_slice"]
 
 #: ``argparse`` type of ``--distortion k1,k2,p1,p2[,k3]`` (OpenCV order, dimensionless).
@@ -85,6 +85,24 @@ def intrinsics_argument(text: str) -> np.ndarray:
         return check_intrinsics(K)
     except ValueError as error:
         raise argparse.ArgumentTypeError(f"--K: {error}") from None
+
+
+def file_intrinsics(path: str | Path) -> np.ndarray | None:
+    """``gt/K`` (3, 3) [px] of an h5 event file (as ``cmax scene`` and the simulator write it), validated;
+    None when the file is not h5 or stores none (ValueError when it stores a bad one)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as file:
+            if "gt" not in file or "K" not in file["gt"]:
+                return None
+            matrix = np.asarray(file["gt/K"][()])
+    except OSError:                     # not an h5 file
+        return None
+    try:
+        return check_intrinsics(matrix, f"{path}: gt/K")
+    except TypeError as error:
+        raise ValueError(str(error)) from None
 
 
 def _numbers(text: str) -> list[float]:
