@@ -209,11 +209,13 @@ def undistortion(K: np.ndarray, distortion: np.ndarray, width: int, height: int)
 
 
 def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:
-    """The network input of each window: (B, bins, H, W) float32, :func:`cmax.representations.voxel_grid`
-    over each window's own first..last event time (as :func:`learned.data.to_item` builds it in training)."""
-    from cmax.representations import voxel_grid
+    """The network input of each window: (B, bins, H, W) float32, the event volume over each window's own
+    first..last event time, as :func:`learned.data.to_item` builds it in training with
+    :func:`cmax.representations.voxel_grid`; computed by the compiled :func:`learned.volume.event_volume`,
+    which equals it to float32 rounding and is faster (``benchmarks/results/speed_learned.md``)."""
+    from learned.volume import event_volume
 
-    return np.stack([np.asarray(voxel_grid(events, bins), np.float32) for events in windows])
+    return np.stack([event_volume(events, bins) for events in windows])
 
 
 def forward(model: "DepthPoseNet", volumes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
