@@ -3,8 +3,8 @@
 Reads any format :func:`cmax.io.read` reads (a DSEC-layout h5 through :class:`cmax.io.H5Reader`,
 one window at a time; the other formats decoded whole), cuts it into consecutive windows of the
 checkpoint's length (``--window``; a recording shorter than one window gives one window over the
-whole recording), builds each window's event volume (:func:`cmax.representations.voxel_grid`,
-as in training) and runs the network on ``--batch`` windows at a time. Writes, atomically, in
+whole recording), builds each window's event volume (that of :func:`cmax.representations.voxel_grid`,
+as in training, by the compiled :func:`learned.volume.event_volume`) and runs the network on ``--batch`` windows at a time. Writes, atomically, in
 ``OUT/``:
 
 * ``window_<k>.npz`` for window ``k`` (its position in the recording; windows with fewer than
