@@ -468,18 +468,24 @@ def _wait_for(condition, timeout_s: float, what: str):
 def test_killing_the_parent_of_two_workers_leaves_no_process(tmp_path):
     videos, out = tmp_path / "videos", tmp_path / "out"
     videos.mkdir()
-    for seed, name in enumerate("abc"):
-        _write_video(videos / f"{name}.avi", 300, seed)
+    for seed, name in enumerate("abc"):     # long enough that no video is done between the checks below
+        _write_video(videos / f"{name}.avi", 1200, seed)
     parent = subprocess.Popen(_cmax("simulate", str(videos), "-o", str(out), "--quiet", "--method", "linear",
                                     "--workers", "2"), env=_env(), stdout=subprocess.DEVNULL,
                               stderr=subprocess.PIPE)
     try:
-        _wait_for(lambda: len(list(out.glob("*.h5.*.partial"))) == 2 or parent.poll() is not None, 120,
-                  "two workers writing")
+        partials = _wait_for(lambda: (lambda found: found if len(found) == 2 or parent.poll() is not None
+                                      else None)(list(out.glob("*.h5.*.partial"))), 120, "two workers writing")
         assert parent.poll() is None, parent.stderr.read()
-        workers = _descendants(parent.pid)
-        holders = {_holder_of(workers, f"{name}.h5.lock") for name in "ab"}
-        assert None not in holders and len(holders) == 2  # two worker processes, one per video
+        names = [f"{p.name.split('.h5.')[0]}.h5.lock" for p in partials]
+
+        def two_holders():      # /proc is read while the workers run: look again until both are seen
+            pids = _descendants(parent.pid)
+            found = {_holder_of(pids, name) for name in names}
+            return (pids, found) if None not in found and len(found) == 2 else None
+
+        workers, holders = _wait_for(two_holders, 5, f"two worker processes holding {names}")
+        assert len(holders) == 2  # two worker processes, one per video
         parent.send_signal(signal.SIGKILL)
         parent.wait(timeout=30)
         _wait_for(lambda: not any(_alive(pid) for pid in workers), 5, f"the workers {workers} to die")
