@@ -316,6 +316,7 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     import pickle
 
     from cmax.fitting import fit_sequence
+    from cmax.fitting.sequence import constant_gyro
     from cmax.io import read
     from cmax.io.atomic import write_bytes_atomic
 
@@ -332,8 +333,7 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
                 "fitted by an earlier run of this script (cached), load average (1 min) at its start "
                 + ("not recorded" if load is None else f"{load:.2f}"))
     events = read(events_path)
-    gyro = None if omega is None else (np.array([int(events.t[0]), int(events.t[-1]) + 1]),
-                                       np.tile(np.asarray(omega, float), (2, 1)))
+    gyro = None if omega is None else constant_gyro(omega, int(events.t[0]), int(events.t[-1]) + 1)
     load = os.getloadavg()[0]
     start = time.perf_counter()
     sequence = fit_sequence(events, K_ECD, speed=ECD_SPEED, gyro=gyro)

@@ -194,7 +194,7 @@ def run(args: argparse.Namespace) -> int:
 
     from cmax import viz
     from cmax.fitting import fit_sequence
-    from cmax.fitting.sequence import check_gyro
+    from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read, read_gyro
 
     if args.calib is not None:
@@ -232,8 +232,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--omega applies to --model se3, not {args.model}")
         if args.gyro is not None:
             raise ValueError("--omega is a constant rotation, --gyro a measured one: pass one of them")
-        # a gyroscope that reads the same rate over the whole recording
-        gyro = (np.array([int(events.t[0]), int(events.t[-1]) + 1]), np.tile(np.asarray(args.omega, float), (2, 1)))
+        gyro = constant_gyro(args.omega, int(events.t[0]), int(events.t[-1]) + 1)
     if args.gyro is not None:
         gyro = check_gyro(read_gyro(args.gyro))
         events, note = _gyro_overlap(events, gyro, args.gyro)

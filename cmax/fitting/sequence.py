@@ -15,7 +15,7 @@ from cmax.fitting.settings import FitSettings
 from cmax.fitting.window import Window
 from cmax.geometry import se3_exp
 
-__all__ = ["SequenceResult", "fit_sequence", "check_gyro", "window_gyro", "neighbour_consensus",
+__all__ = ["SequenceResult", "fit_sequence", "check_gyro", "window_gyro", "constant_gyro", "neighbour_consensus",
            "smooth_from_neighbours"]
 
 
@@ -67,6 +67,20 @@ def check_gyro(gyro: object) -> tuple[np.ndarray, np.ndarray]:
     if not np.isfinite(omega).all():
         raise ValueError("gyro omega must be finite")
     return times.astype(np.int64), omega
+
+
+def constant_gyro(omega: object, t0_us: int, t1_us: int) -> tuple[np.ndarray, np.ndarray]:
+    """Gyroscope samples (as :func:`check_gyro` returns them) that read the constant ``omega`` (3,) [rad/s]
+    from ``t0_us`` to ``t1_us`` [µs]: a known rotation for every window of ``fit_sequence(gyro=)`` (e.g. zero
+    for a linear stage).
+
+    Examples
+    --------
+    >>> times, omega = constant_gyro([0.0, 0.1, 0.0], 0, 1000)
+    >>> times.tolist(), omega.tolist()
+    ([0, 1000], [[0.0, 0.1, 0.0], [0.0, 0.1, 0.0]])
+    """
+    return check_gyro((np.array([int(t0_us), int(t1_us)]), np.tile(np.asarray(omega, float), (2, 1))))
 
 
 def window_gyro(gyro: tuple[np.ndarray, np.ndarray], t0_us: int, t1_us: int) -> np.ndarray:
