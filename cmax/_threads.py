@@ -161,18 +161,27 @@ def _openblas_pools() -> list[tuple]:
     return pools
 
 
+def _set_pools(pools: list[tuple], counts: list[int]) -> list[int]:
+    """Set each OpenBLAS pool of :func:`_openblas_pools` to its count; returns their counts before."""
+    import ctypes
+
+    before = [int(getter()) for _, getter in pools]
+    for (setter, _), count in zip(pools, counts):
+        setter(ctypes.c_int(count))
+    return before
+
+
+def _check_threads(threads: object) -> int:
+    if isinstance(threads, bool) or not (isinstance(threads, int) and threads >= 1):
+        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
+    return threads
+
+
 def set_blas_threads(threads: int) -> list[int]:
     """Set every loaded OpenBLAS to ``threads`` (>= 1) threads; returns their counts before, one per
     library (empty: none loaded, or not Linux)."""
-    import ctypes
-
-    if not (isinstance(threads, int) and threads >= 1):
-        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
-    before = []
-    for setter, getter in _openblas_pools():
-        before.append(int(getter()))
-        setter(ctypes.c_int(threads))
-    return before
+    pools = _openblas_pools()
+    return _set_pools(pools, [_check_threads(threads)] * len(pools))
 
 
 @contextmanager
@@ -187,16 +196,10 @@ def blas_threads_scope(threads: int) -> Iterator[int]:
     ...     n
     1
     """
-    import ctypes
-
+    threads = _check_threads(threads)
     pools = _openblas_pools()
-    if not (isinstance(threads, int) and threads >= 1):
-        raise ValueError(f"threads must be an int >= 1, got {threads!r}")
-    before = [int(getter()) for _, getter in pools]
-    for setter, _ in pools:
-        setter(ctypes.c_int(threads))
+    before = _set_pools(pools, [threads] * len(pools))
     try:
         yield threads
     finally:
-        for (setter, _), count in zip(pools, before):
-            setter(ctypes.c_int(count))
+        _set_pools(pools, before)
