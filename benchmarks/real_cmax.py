@@ -499,26 +499,22 @@ def _held_rotation_lines(held, walls: list, seconds: float, origin: str) -> list
     from cmax.fitting import Verdict
 
     errors = np.array([_x_error_deg(r.v) for r in held.results])
-    usable = [w for w in walls if w.pixels > 0]
-    ratios = np.array([w.ratio for w in usable])
-    ratio = float(np.median(ratios)) if usable else np.nan
-    fit_m = float(np.median([w.fit_m for w in usable])) if usable else np.nan
-    ok = [w.ratio for w, r in zip(walls, held.results) if r.verdict is Verdict.OK and w.pixels > 0]
-    met = lambda ok_: "met" if ok_ else "not met"  # noqa: E731
+    w = wall_summary(walls, [r.verdict is Verdict.OK for r in held.results])
+    walls_text = ("no window has far-wall pixels inside the fit's mask: not measured (not met)" if w is None else
+                  f"over the {w.windows} windows with far-wall pixels: the fit's median {w.fit_m:.2f} m, median ratio "
+                  f"fit / EMVS {w.ratio:.3f} (target within {FAR_WALL_TOLERANCE:.0%}: "
+                  f"{_met(abs(w.ratio - 1) <= FAR_WALL_TOLERANCE)}; {w.within} of the windows within it; per window "
+                  f"{w.low:.2f}-{w.high:.2f}; over the {w.ok_windows} ok windows {w.ok_ratio:.3f}); fit against "
+                  f"{FAR_WALL_M} m: {w.fit_m / FAR_WALL_M:.3f} ({_met(abs(w.fit_m / FAR_WALL_M - 1) <= FAR_WALL_TOLERANCE)})")
     return ["### With the rotation held at zero", "",
             "A slider is a linear stage: its user knows that it does not rotate and can say so "
             f"(`cmax fit ... --omega 0,0,0`; here `fit_sequence(..., gyro=)` with a constant zero reading): "
             f"{seconds:.0f} s in all ({origin}). Direction error median {np.median(errors):.1f} deg, p90 "
             f"{np.percentile(errors, 90):.1f} deg, reversed {int(np.sum(errors > 90))}; verdicts "
-            f"{_verdict_counts([r.verdict.value for r in held.results])}. Far wall over the {len(usable)} windows "
-            f"with far-wall pixels: the fit's median {fit_m:.2f} m, median ratio fit / EMVS {ratio:.3f} "
-            f"(target within {FAR_WALL_TOLERANCE:.0%}: {met(abs(ratio - 1) <= FAR_WALL_TOLERANCE)}; "
-            f"{int(np.sum(np.abs(ratios - 1) <= FAR_WALL_TOLERANCE))} of the windows within it; per window "
-            f"{ratios.min():.2f}-{ratios.max():.2f}; over the {len(ok)} ok windows "
-            f"{np.median(ok) if ok else np.nan:.3f}); fit against {FAR_WALL_M} m: {fit_m / FAR_WALL_M:.3f} "
-            f"({met(abs(fit_m / FAR_WALL_M - 1) <= FAR_WALL_TOLERANCE)}). With the rotation free the far wall "
-            "comes out nearer because a rotation about y trades against the +x translation (the bas-relief "
-            "ambiguity: each patch's depth absorbs what the rotation takes from the translation's flow).", ""]
+            f"{_verdict_counts([r.verdict.value for r in held.results])}. Far wall {walls_text}. With the rotation "
+            "free the far wall comes out nearer because a rotation about y trades against the +x translation (the "
+            "bas-relief ambiguity: each patch's depth absorbs what the rotation takes from the translation's "
+            "flow).", ""]
 
 
 def window_speeds(times_us: np.ndarray, T_w_c: np.ndarray, windows: list[tuple[int, int]]) -> np.ndarray:
@@ -530,31 +526,59 @@ def window_speeds(times_us: np.ndarray, T_w_c: np.ndarray, windows: list[tuple[i
     return np.array([np.linalg.norm(at(b) - at(a)) / ((b - a) * 1e-6) for a, b in windows])
 
 
+@dataclass(frozen=True)
+class WallSummary:
+    """The far walls of a sequence's windows, summarised: over the ``windows`` that have far-wall pixels,
+    the medians of the fit's and EMVS's far wall [m] and of their ratio, how many ratios are within
+    ``FAR_WALL_TOLERANCE``, the ratios' range, and the median ratio over the ``ok`` windows (``ok_windows``)."""
+
+    windows: int
+    fit_m: float
+    emvs_m: float
+    ratio: float
+    within: int
+    low: float
+    high: float
+    ok_windows: int
+    ok_ratio: float
+
+
+def wall_summary(walls: list, ok: list[bool]) -> WallSummary | None:
+    """:class:`WallSummary` of ``walls`` (:class:`FarWall` per window; ``ok``: whether each window's verdict is
+    ok), or None when no window has far-wall pixels."""
+    usable = [w for w in walls if w.pixels > 0]
+    if not usable:
+        return None
+    ratios = np.array([w.ratio for w in usable])
+    ok_ratios = [w.ratio for w, is_ok in zip(walls, ok) if is_ok and w.pixels > 0]
+    return WallSummary(len(usable), float(np.median([w.fit_m for w in usable])),
+                       float(np.median([w.emvs_m for w in usable])), float(np.median(ratios)),
+                       int(np.sum(np.abs(ratios - 1) <= FAR_WALL_TOLERANCE)), float(ratios.min()),
+                       float(ratios.max()), len(ok_ratios), float(np.median(ok_ratios)) if ok_ratios else np.nan)
+
+
+def _met(flag: bool) -> str:
+    return "met" if flag else "not met"
+
+
 def _far_wall_lines(walls: list, calibrated_wall: float, ok: list[bool]) -> list[str]:
     """Markdown on the far wall: the fit against EMVS with the true poses, and against 2.1 m (``ok``: whether
     each window's verdict is ok)."""
-    usable = [w for w in walls if w.pixels > 0]
-    if not usable:
+    w = wall_summary(walls, ok)
+    if w is None:
         return ["Far wall: no window has EMVS far-wall pixels inside the fit's mask; not measured (not met).", ""]
-    ratios = np.array([w.ratio for w in usable])
-    fit_m = float(np.median([w.fit_m for w in usable])) if usable else np.nan
-    emvs_m = float(np.median([w.emvs_m for w in usable])) if usable else np.nan
-    ratio = float(np.median(ratios)) if usable else np.nan
-    within = int(np.sum(np.abs(ratios - 1) <= FAR_WALL_TOLERANCE))
-    ok_ratios = [w.ratio for w, is_ok in zip(walls, ok) if is_ok and w.pixels > 0]
-    met = lambda ok: "met" if ok else "not met"  # noqa: E731
     return ["Far wall: EMVS with the ground-truth poses (depth range 0.47-2.4 m, all events, the fit's pinhole K) "
             "is run at each window's reference time; its far wall is the masked pixels beyond the midpoint, in "
             "inverse depth, between its farthest depth-histogram mode and the next one; the column compares the "
             "medians over the far-wall pixels that are also in the fit's mask. "
-            f"Over the {len(usable)} windows with such pixels: the fit's far wall median {fit_m:.2f} m, EMVS's "
-            f"{emvs_m:.2f} m, median ratio fit / EMVS {ratio:.3f} (target within {FAR_WALL_TOLERANCE:.0%}: "
-            f"{met(abs(ratio - 1) <= FAR_WALL_TOLERANCE)}; {within} of the {len(usable)} windows within "
-            f"{FAR_WALL_TOLERANCE:.0%}); fit against {FAR_WALL_M} m: {fit_m / FAR_WALL_M:.3f} "
-            f"({met(abs(fit_m / FAR_WALL_M - 1) <= FAR_WALL_TOLERANCE)}); over the {len(ok_ratios)} ok windows "
-            f"alone the median ratio is {np.median(ok_ratios) if ok_ratios else np.nan:.3f} "
-            f"({met(bool(ok_ratios) and abs(np.median(ok_ratios) - 1) <= FAR_WALL_TOLERANCE)}). Per window the "
-            f"ratio spans {ratios.min():.2f}-{ratios.max():.2f}. EMVS with the calibrated camera "
+            f"Over the {w.windows} windows with such pixels: the fit's far wall median {w.fit_m:.2f} m, EMVS's "
+            f"{w.emvs_m:.2f} m, median ratio fit / EMVS {w.ratio:.3f} (target within {FAR_WALL_TOLERANCE:.0%}: "
+            f"{_met(abs(w.ratio - 1) <= FAR_WALL_TOLERANCE)}; {w.within} of the {w.windows} windows within "
+            f"{FAR_WALL_TOLERANCE:.0%}); fit against {FAR_WALL_M} m: {w.fit_m / FAR_WALL_M:.3f} "
+            f"({_met(abs(w.fit_m / FAR_WALL_M - 1) <= FAR_WALL_TOLERANCE)}); over the {w.ok_windows} ok windows "
+            f"alone the median ratio is {w.ok_ratio:.3f} "
+            f"({_met(w.ok_windows > 0 and abs(w.ok_ratio - 1) <= FAR_WALL_TOLERANCE)}). Per window the "
+            f"ratio spans {w.low:.2f}-{w.high:.2f}. EMVS with the calibrated camera "
             f"(`calib.txt`'s distortion, middle reference time): far-wall mode at {calibrated_wall:.2f} m.", ""]
 
 
