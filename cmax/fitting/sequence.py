@@ -248,7 +248,7 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, s
     for i, r in enumerate(results):
         if r.verdict is not Verdict.AMBIGUOUS:
             continue
-        near = results[max(0, i - quality.neighbours):i] + results[i + 1:i + 1 + quality.neighbours]
+        near = _around(results, i, quality.neighbours)
         neighbours = [(n.v, n.omega) for n in near if n.verdict is Verdict.OK]
         duration_s = (r.t1_us - r.t0_us) * 1e-6
         chosen, resolved = choose_from_neighbours(r.v, r.omega, r.quality, neighbours, duration_s,
@@ -272,6 +272,11 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, s
     return out
 
 
+def _around(results: list[FitResult], i: int, count: int) -> list[FitResult]:
+    """Up to ``count`` windows on each side of ``results[i]``, not ``i`` itself."""
+    return results[max(0, i - count):i] + results[i + 1:i + 1 + count]
+
+
 def _confident(result: FitResult) -> bool:
     """A window whose motion its neighbours may lean on: ``ok``, or ambiguous and resolved."""
     q = result.quality
@@ -289,7 +294,7 @@ def neighbour_consensus(results: list[FitResult], i: int, neighbours: int,
     with ``count`` the confident neighbours, or None with fewer than ``min_count`` of them (or directions
     that cancel out).
     """
-    near = results[max(0, i - neighbours):i] + results[i + 1:i + 1 + neighbours]
+    near = _around(results, i, neighbours)
     confident = [r for r in near if r.model == "se3" and _confident(r) and np.linalg.norm(r.v) > 0]
     if len(confident) < min_count or not np.linalg.norm(results[i].v) > 0:
         return None
