@@ -14,8 +14,9 @@ dropped, a point whose corners all leave the one-pixel border votes nothing), ``
 float rounding, in one compiled pass per patch instead of a dozen torch operations and their autograd.
 
 The gradient. ``dVar_p / dB_p(u) = (2/n) (B_p(u) - mean_p)``; the blur with zero padding and a
-symmetric kernel is its own adjoint, so ``dVar_p / dI_p = (2/n) G_p`` with ``G_p = g * (B_p - mean_p)``
-(the mean does not drop out: with zero padding ``g * 1`` is not 1 near the frame's border). An event
+symmetric kernel is its own adjoint, so ``dVar_p / dI_p = (2/n) G_p`` with ``G_p = g * (B_p - mean_p)
+= g * B_p - mean_p (g * 1)`` (the mean does not drop out: with zero padding ``g * 1``, the blur of
+the frame's ones, is not 1 near the frame's border; it is separable, ``h_y(r) h_x(c)``). An event
 at ``(x0 + fx, y0 + fy)`` puts ``(1-fx)(1-fy), fx(1-fy), (1-fx)fy, fx fy`` on pixels ``(x0, y0),
 (x0+1, y0), (x0, y0+1), (x0+1, y0+1)``, so
 
@@ -27,7 +28,8 @@ gradient, which treats ``floor`` and the validity test as constants).
 
 The images and the blur run in the events' dtype (float32 or float64); the sums of the mean and of
 the variance in float64. The events are grouped by patch (a counting sort) so that each patch's
-images stay in small scratch buffers.
+images stay in small scratch buffers, and each blur runs only on the box that the patch's votes
+touch, grown by the kernel's radius (a patch's events fill its core, not the margin of its frame).
 
 References
 ----------
@@ -63,46 +65,63 @@ def _group(patch, count, order, starts):  # pragma: no cover - compiled
 
 
 @kernel(fastmath={"contract"})
-def _blur_into(padded, taps, rows, out):  # pragma: no cover - compiled
-    """``out`` (H, W) = the separable blur of ``padded`` (H, W + 2R) (zeros in its R side columns).
+def _blur_box(padded, taps, rows, out, r_lo, r_hi, c_lo, c_hi):  # pragma: no cover - compiled
+    """Separable blur (zero padding) of an image that is zero outside rows ``r_lo..r_hi`` and columns
+    ``c_lo..c_hi`` (inclusive), written to ``out`` (H, W) on that box grown by R and cut to the frame.
 
-    ``rows`` (H + 2R, W) is scratch whose R top and bottom rows are zero (they stay so). The inner
-    loops run along a row into a fresh buffer (no aliasing: they vectorise); each output sums its
-    taps in the order ``k = 0 .. 2R`` (with fused multiply-adds).
+    The image is ``padded`` (H, W + 2R): pixel ``(r, c)`` at ``[r, R + c]``, zero elsewhere. ``rows``
+    (H + 2R, W) is zero scratch (it is left zero). Outside the grown box ``out`` is not written (the
+    blur is zero there). The inner loops run along a row into a fresh buffer (no aliasing: they
+    vectorise); each output sums its taps in the order ``k = 0 .. 2R`` (with fused multiply-adds).
     """
     H, W = out.shape
     R = (taps.shape[0] - 1) // 2
-    line = np.empty(W, out.dtype)
-    for r in range(H):
+    c0, c1 = max(c_lo - R, 0), min(c_hi + R, W - 1) + 1
+    m = c1 - c0
+    line = np.empty(m, out.dtype)
+    for r in range(r_lo, r_hi + 1):   # loops over views from index 0: no negative-index checks, they vectorise
         line[:] = 0
         for k in range(2 * R + 1):
             t = taps[k]
-            for c in range(W):
-                line[c] += t * padded[r, c + k]
-        rows[R + r, :] = line
-    for r in range(H):
+            source = padded[r, c0 + k:c1 + k]
+            for c in range(m):
+                line[c] += t * source[c]
+        target = rows[R + r, c0:c1]
+        for c in range(m):
+            target[c] = line[c]
+    for r in range(max(r_lo - R, 0), min(r_hi + R, H - 1) + 1):
         line[:] = 0
         for k in range(2 * R + 1):
             t = taps[k]
-            for c in range(W):
-                line[c] += t * rows[r + k, c]
-        out[r, :] = line
+            source = rows[r + k, c0:c1]
+            for c in range(m):
+                line[c] += t * source[c]
+        target = out[r, c0:c1]
+        for c in range(m):
+            target[c] = line[c]
+    for r in range(r_lo, r_hi + 1):
+        target = rows[R + r, c0:c1]
+        for c in range(m):
+            target[c] = 0
 
 
 @kernel
-def _forward(x, y, offset, order, starts, taps, one, blurred, stats, padded, rows, column_sums):  # pragma: no cover
-    """Blurred images ``blurred`` (P, H, W) and ``stats`` (P, 2) float64 = (mean, variance) of each patch.
+def _forward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, padded, rows,
+             column_sums):  # pragma: no cover - compiled
+    """Blurred images ``blurred`` (P, H, W), ``stats`` (P, 2) float64 = (mean, variance) of each patch.
 
-    ``one`` is 1 in the images' dtype (the bilinear weights are computed in it, as the torch path does);
-    ``padded`` (H, W + 2R) and ``rows`` (H + 2R, W) are zeroed scratch of that dtype; ``column_sums``
-    (2, W) float64 scratch.
+    ``boxes`` (P, 4) int64 receives ``(r0, r1, c0, c1)``: rows ``r0..r1`` and columns ``c0..c1``
+    (inclusive) of ``blurred[p]`` hold the blurred image, zero outside (not written; ``r1 < r0`` when
+    the patch has no votes). ``one`` is 1 in the images' dtype (the bilinear weights are computed in
+    it, as the torch path does); ``padded`` (H, W + 2R) and ``rows`` (H + 2R, W) are zero scratch of
+    that dtype (left zero); ``column_sums`` (2, W) float64 scratch.
     """
     P, H, W = blurred.shape
     R = (taps.shape[0] - 1) // 2
     n = H * W
     for p in range(P):
-        padded[:, :] = 0
         ox, oy = offset[p, 0], offset[p, 1]
+        r_lo, r_hi, c_lo, c_hi = H, -1, W, -1
         for j in range(starts[p], starts[p + 1]):
             i = order[j]
             lx, ly = x[i] - ox, y[i] - oy
@@ -122,26 +141,40 @@ def _forward(x, y, offset, order, starts, taps, one, blurred, stats, padded, row
                     padded[iy + 1, R + ix] += gx * fy
                 if ix + 1 < W:
                     padded[iy + 1, R + ix + 1] += fx * fy
+            r_lo, r_hi = min(r_lo, max(iy, 0)), max(r_hi, min(iy + 1, H - 1))
+            c_lo, c_hi = min(c_lo, max(ix, 0)), max(c_hi, min(ix + 1, W - 1))
+        if r_hi < r_lo:
+            boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3] = 0, -1, 0, -1
+            stats[p, 0] = stats[p, 1] = 0.0
+            continue
         image = blurred[p]
-        _blur_into(padded, taps, rows, image)
+        _blur_box(padded, taps, rows, image, r_lo, r_hi, c_lo, c_hi)
+        for r in range(r_lo, r_hi + 1):
+            padded[r, R + c_lo:R + c_hi + 1] = 0
+        r0, r1, c0, c1 = max(r_lo - R, 0), min(r_hi + R, H - 1), max(c_lo - R, 0), min(c_hi + R, W - 1)
+        boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3] = r0, r1, c0, c1
         column_sums[:, :] = 0
-        for r in range(H):
-            for c in range(W):
-                b = np.float64(image[r, c])
-                column_sums[0, c] += b
-                column_sums[1, c] += b * b
+        sums, squares = column_sums[0, :c1 + 1 - c0], column_sums[1, :c1 + 1 - c0]
+        for r in range(r0, r1 + 1):
+            row = image[r, c0:c1 + 1]
+            for c in range(c1 + 1 - c0):
+                b = np.float64(row[c])
+                sums[c] += b
+                squares[c] += b * b
         mean = column_sums[0].sum() / n
         stats[p, 0] = mean
         stats[p, 1] = column_sums[1].sum() / n - mean * mean
 
 
 @kernel
-def _backward(x, y, offset, order, starts, taps, one, blurred, stats, scale, grad_x, grad_y, padded, rows,
-              field):  # pragma: no cover - compiled
+def _backward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, scale, grad_x, grad_y, padded, rows,
+              field, ones_y, ones_x):  # pragma: no cover - compiled
     """``grad_x, grad_y`` (M,) = ``sum_p scale[p] dVar_p / d(x, y)`` (see the module docstring).
 
-    ``scale`` (P,) float64 is the upstream gradient; ``padded``, ``rows`` as :func:`_forward`, the
-    right side columns of ``padded`` zero; ``field`` (H, W) scratch.
+    ``G = g * (B - mean)`` is ``g * B`` (non-zero on the box of :func:`_forward` grown by R) minus
+    ``mean ones_y[r] ones_x[c]``, the blur of the frame's ones (separable), computed into ``field``
+    (H, W) scratch. ``scale`` (P,) float64 is the upstream gradient; ``padded``, ``rows`` as
+    :func:`_forward`; ``ones_y`` (H,), ``ones_x`` (W,) of the images' dtype.
     """
     P, H, W = blurred.shape
     R = (taps.shape[0] - 1) // 2
@@ -149,11 +182,21 @@ def _backward(x, y, offset, order, starts, taps, one, blurred, stats, scale, gra
     for p in range(P):
         if starts[p] == starts[p + 1]:
             continue
+        r0, r1, c0, c1 = boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3]
+        field[:, :] = 0
+        if r1 >= r0:
+            for r in range(r0, r1 + 1):
+                target, source = padded[r, R + c0:R + c1 + 1], blurred[p, r, c0:c1 + 1]
+                for c in range(c1 + 1 - c0):
+                    target[c] = source[c]
+            _blur_box(padded, taps, rows, field, r0, r1, c0, c1)
+            for r in range(r0, r1 + 1):
+                padded[r, R + c0:R + c1 + 1] = 0
         mean = stats[p, 0]
         for r in range(H):
+            row, level = field[r], mean * ones_y[r]
             for c in range(W):
-                padded[r, R + c] = blurred[p, r, c] - mean
-        _blur_into(padded, taps, rows, field)
+                row[c] -= level * ones_x[c]
         s = 2.0 * scale[p] / n
         ox, oy = offset[p, 0], offset[p, 1]
         for j in range(starts[p], starts[p + 1]):
@@ -179,6 +222,14 @@ def _backward(x, y, offset, order, starts, taps, one, blurred, stats, scale, gra
                     g11 = field[iy + 1, ix + 1]
             grad_x[i] = s * ((one - fy) * (g10 - g00) + fy * (g11 - g01))
             grad_y[i] = s * ((one - fx) * (g01 - g00) + fx * (g11 - g10))
+
+
+def _blurred_ones(taps: np.ndarray, length: int) -> np.ndarray:
+    """The 1-D blur (zero padding) of ``length`` ones: ``(g * 1)[c] = sum_k g[k] [0 <= c + k - R < length]``."""
+    R = (taps.shape[0] - 1) // 2
+    ones = np.zeros(length + 2 * R)
+    ones[R:R + length] = 1
+    return np.convolve(ones, taps.astype(np.float64), mode="valid")
 
 
 def gaussian_taps(sigma: float, dtype: np.dtype) -> np.ndarray:
@@ -217,22 +268,24 @@ class _Workspace:
         _group(patch, P, self.order, self.starts)
         self.blurred = np.empty((P, H, W), x.dtype)
         self.stats = np.empty((P, 2))
+        self.boxes = np.empty((P, 4), np.int64)
         self.padded = np.zeros((H, W + 2 * R), x.dtype)
         self.rows = np.zeros((H + 2 * R, W), x.dtype)
 
     def forward(self) -> np.ndarray:
         """Fill the images and statistics; the variances (P,) float64."""
         _forward(self.x, self.y, self.offset, self.order, self.starts, self.taps, self.one, self.blurred, self.stats,
-                 self.padded, self.rows, np.empty((2, self.blurred.shape[2])))
+                 self.boxes, self.padded, self.rows, np.empty((2, self.blurred.shape[2])))
         return self.stats[:, 1]
 
     def backward(self, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
         """Gradients (M,), (M,) of ``sum_p scale[p] Var_p`` with respect to ``x`` and ``y``."""
         grad_x, grad_y = np.empty_like(self.x), np.empty_like(self.y)
-        self.padded[:] = 0
+        P, H, W = self.blurred.shape
         _backward(self.x, self.y, self.offset, self.order, self.starts, self.taps, self.one, self.blurred, self.stats,
-                  np.ascontiguousarray(scale, dtype=np.float64), grad_x, grad_y, self.padded, self.rows,
-                  np.empty(self.blurred.shape[1:], self.x.dtype))
+                  self.boxes, np.ascontiguousarray(scale, dtype=np.float64), grad_x, grad_y, self.padded, self.rows,
+                  np.empty((H, W), self.x.dtype), _blurred_ones(self.taps, H).astype(self.x.dtype),
+                  _blurred_ones(self.taps, W).astype(self.x.dtype))
         return grad_x, grad_y
 
 
