@@ -38,6 +38,7 @@ cameras", CVPR 2018 (the bilinear IWE, its variance and the variance's gradient)
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
@@ -224,6 +225,14 @@ def _backward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, sca
             grad_y[i] = s * ((one - fx) * (g01 - g00) + fx * (g11 - g10))
 
 
+@functools.lru_cache(maxsize=32)
+def _taps(sigma: float, dtype: str) -> np.ndarray:
+    """:func:`gaussian_taps`, kept (read-only) for the next evaluation with the same blur."""
+    taps = gaussian_taps(sigma, np.dtype(dtype))
+    taps.setflags(write=False)
+    return taps
+
+
 def _blurred_ones(taps: np.ndarray, length: int) -> np.ndarray:
     """The 1-D blur (zero padding) of ``length`` ones: ``(g * 1)[c] = sum_k g[k] [0 <= c + k - R < length]``."""
     R = (taps.shape[0] - 1) // 2
@@ -260,7 +269,7 @@ class _Workspace:
         H, W = size
         P = offset.shape[0]
         self.x, self.y, self.offset = x, y, offset
-        self.taps = gaussian_taps(sigma, x.dtype)
+        self.taps = _taps(float(sigma), x.dtype.str)
         self.one = x.dtype.type(1)
         R = (self.taps.shape[0] - 1) // 2
         self.order = np.empty(patch.shape[0], np.int64)
