@@ -96,6 +96,16 @@ def test_an_event_that_leaves_the_frame_stops_voting():
     assert got[0] == 0 and got[1] == 0
 
 
+def test_a_non_finite_event_votes_nothing():
+    x, y, patch, offset = random_events(n=30)
+    bad_x, bad_y = x.clone(), y.clone()
+    bad_x[3], bad_y[7], bad_x[9] = float("nan"), float("inf"), -float("inf")
+    keep = torch.ones(30, dtype=torch.bool)
+    keep[[3, 7, 9]] = False
+    np.testing.assert_allclose(patch_variances(bad_x, bad_y, patch, offset, (13, 17), 1.0).numpy(),
+                               reference(x[keep], y[keep], patch[keep], offset, (13, 17), 1.0).numpy(), rtol=1e-10)
+
+
 def test_gradcheck_on_a_small_patch_set():
     x, y, patch, offset = random_events(n=40, P=3, size=(7, 8), seed=3, spill=1.5)
     x.requires_grad_(True)

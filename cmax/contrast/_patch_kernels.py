@@ -327,7 +327,7 @@ def patch_variances(x: torch.Tensor, y: torch.Tensor, patch: torch.Tensor, offse
     Parameters
     ----------
     x, y : Tensor (M,), float32 or float64, CPU
-        Event pixels in the full image [px].
+        Event pixels in the full image [px]; an event with a non-finite coordinate votes nothing.
     patch : Tensor (M,), integer
         The patch of each event, ``0 <= patch < P``.
     offset : Tensor (P, 2)
