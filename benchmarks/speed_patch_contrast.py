@@ -155,7 +155,7 @@ def cases(window, seed: int) -> dict:
             x, y = x0.clone().requires_grad_(), y0.clone().requires_grad_()
             values = patches.variances(x, y, sigma)
             values.sum().backward()
-            return float(values.sum()), np.concatenate([x.grad.numpy(), y.grad.numpy()])
+            return float(values.detach().sum()), np.concatenate([x.grad.numpy(), y.grad.numpy()])
         return run
 
     # Each call builds its objective (base variances included), as each solve of the fit does once:
