@@ -30,11 +30,16 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cmax.contrast._patch_kernels import _PatchVariances
 from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import variance
 from cmax.warp import warp_se3
 
 __all__ = ["Patches", "cut_patches", "PatchFlowContrast", "PatchMotionContrast"]
+
+#: CPU float32 / float64 events take the compiled :func:`cmax.contrast._patch_kernels.patch_variances`;
+#: False: the torch operations of :meth:`Patches.images` everywhere (the reference; for tests and benchmarks).
+_COMPILED = True
 
 
 @dataclass(frozen=True, eq=False)
@@ -87,6 +92,17 @@ class Patches:
         H, W = self.size
         ox, oy = self.offset[self.patch, 0], self.offset[self.patch, 1]
         return blur(accumulate_bilinear_indexed(x - ox, y - oy, None, self.patch, self.count, H, W), sigma)
+
+    def variances(self, x: torch.Tensor, y: torch.Tensor, sigma: float) -> torch.Tensor:
+        """``variance(self.images(x, y, sigma))`` (P,): each patch's blurred IWE variance; differentiable.
+
+        CPU float32 / float64 events go through the compiled value and gradient of
+        :mod:`cmax.contrast._patch_kernels` (equal to float rounding), anything else through the torch
+        operations of :meth:`images`.
+        """
+        if _COMPILED and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and y.dtype == x.dtype:
+            return _PatchVariances.apply(x, y, self.patch, self.offset, self.size, float(sigma))
+        return variance(self.images(x, y, sigma))
 
 
 def cut_patches(x: torch.Tensor, y: torch.Tensor, dt: torch.Tensor, width: int, height: int, *,
@@ -152,7 +168,7 @@ class PatchFlowContrast:
     def build(cls, patches: Patches, sigma: float, T: float) -> "PatchFlowContrast":
         """The objective of ``patches`` with blur ``sigma`` [px] over a window of ``T`` [s]."""
         with torch.no_grad():
-            base = variance(patches.images(patches.x, patches.y, sigma)).clamp(min=1e-12)
+            base = patches.variances(patches.x, patches.y, sigma).clamp(min=1e-12)
         return cls(patches, sigma, T, base)
 
     def __call__(self, q: torch.Tensor) -> torch.Tensor:
@@ -160,8 +176,8 @@ class PatchFlowContrast:
         patches = self.patches
         x, y, dt, patch = patches.x, patches.y, patches.dt, patches.patch
         flow = q.reshape(patches.count, 2).to(x.dtype) / self.T
-        images = patches.images(x - flow[patch, 0] * dt, y - flow[patch, 1] * dt, self.sigma)
-        return -(variance(images) / self.base).sum()
+        variances = patches.variances(x - flow[patch, 0] * dt, y - flow[patch, 1] * dt, self.sigma)
+        return -(variances / self.base).sum()
 
 
 @dataclass(frozen=True, eq=False)
@@ -196,10 +212,10 @@ class PatchMotionContrast:
         """The objective of ``patches`` with intrinsics ``K`` (3, 3) [px] and blur ``sigma`` [px]."""
         rays = torch.stack([patches.x, patches.y, torch.ones_like(patches.x)], -1) @ torch.linalg.inv(K).T
         with torch.no_grad():
-            base = variance(patches.images(patches.x, patches.y, sigma)).clamp(min=1e-12)
+            base = patches.variances(patches.x, patches.y, sigma).clamp(min=1e-12)
         return cls(patches, rays, K, sigma, base)
 
     def __call__(self, v: torch.Tensor, omega: torch.Tensor, rho_events: torch.Tensor) -> torch.Tensor:
         """``c_p`` (P,) for ``v`` (3,) [m/s], ``omega`` (3,) [rad/s] and per-event inverse depths (M,) [1/m]."""
         x, y = warp_se3(self.rays, self.patches.dt, v, omega, rho_events, self.K)
-        return variance(self.patches.images(x, y, self.sigma)) / self.base
+        return self.patches.variances(x, y, self.sigma) / self.base
