@@ -35,7 +35,7 @@ from cmax.events import Events
 from cmax.geometry_torch import so3_rotate, rodrigues_coefficients
 
 __all__ = [
-    "WarpEvents", "DepthGrid", "warp_flow", "warp_rotation", "warp_se3", "project",
+    "WarpEvents", "DepthGrid", "warp_flow", "warp_rotation", "warp_se3", "se3_parts", "project",
     "MIN_PROJECTED_DEPTH",
 ]
 
@@ -105,6 +105,15 @@ def warp_se3(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torch
         Inverse z-depth ``rho_i`` [1/m] of each event (>= 0).
     K : Tensor, shape (3, 3)
     """
+    rotated, moved = se3_parts(rays, dt, v, omega)
+    return project(rotated + inv_depth[..., None] * moved, K)
+
+
+def se3_parts(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torch.Tensor
+              ) -> tuple[torch.Tensor, torch.Tensor]:
+    """The two depth-free parts of :func:`warp_se3`: ``R(omega dt) ray`` and ``J(omega dt) v dt``, each
+    (..., N, 3), so that ``warp_se3 = project(rotated + rho * moved, K)`` for any inverse depth ``rho``
+    (a sweep over depths computes them once). Shapes and units as :func:`warp_se3`."""
     w = omega * dt[..., None]
     shape = w.shape
     rays = rays.expand(shape)
@@ -114,7 +123,7 @@ def warp_se3(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torch
     u = (v * dt[..., None]).expand(shape)
     wu = torch.linalg.cross(w, u, dim=-1)
     moved = u + B * wu + C * torch.linalg.cross(w, wu, dim=-1)
-    return project(rotated + inv_depth[..., None] * moved, K)
+    return rotated, moved
 
 
 @dataclass(frozen=True, eq=False)

@@ -33,7 +33,7 @@ import torch
 from cmax.contrast._patch_kernels import _PatchVariances
 from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import variance
-from cmax.warp import warp_se3
+from cmax.warp import project, se3_parts, warp_se3
 
 __all__ = ["Patches", "cut_patches", "PatchFlowContrast", "PatchMotionContrast"]
 
@@ -219,3 +219,15 @@ class PatchMotionContrast:
         """``c_p`` (P,) for ``v`` (3,) [m/s], ``omega`` (3,) [rad/s] and per-event inverse depths (M,) [1/m]."""
         x, y = warp_se3(self.rays, self.patches.dt, v, omega, rho_events, self.K)
         return self.patches.variances(x, y, self.sigma) / self.base
+
+    def at_depths(self, v: torch.Tensor, omega: torch.Tensor, rho_rows: torch.Tensor) -> torch.Tensor:
+        """``c_p`` (C, P) for one motion and each row of per-event inverse depths ``rho_rows`` (C, M) [1/m]:
+        the rows of :meth:`__call__` with the depth-free part of the warp (:func:`cmax.warp.se3_parts`)
+        computed once (a sweep over depths). No gradient."""
+        with torch.no_grad():
+            rotated, moved = se3_parts(self.rays, self.patches.dt, v, omega)
+            rows = []
+            for rho in rho_rows:
+                x, y = project(rotated + rho[:, None] * moved, self.K)
+                rows.append(self.patches.variances(x, y, self.sigma) / self.base)
+            return torch.stack(rows)

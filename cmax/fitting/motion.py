@@ -117,15 +117,13 @@ class LocalMotionObjective:
 
     def sweep_rho(self, v: np.ndarray, omega: np.ndarray, candidates: np.ndarray) -> np.ndarray:
         """Best inverse depth (P,) [1/m] of each patch among ``candidates`` (C,) [1/m] for a fixed motion."""
-        best = np.full(self.patches.count, -np.inf)
-        rho = np.full(self.patches.count, float(candidates[0]))
-        with torch.no_grad():
-            for c in candidates:
-                p = torch.from_numpy(self.params(v, omega, np.full(self.patches.count, c)))
-                values = self.values(p).double().numpy()
-                better = values > best
-                best[better], rho[better] = values[better], c
-        return rho
+        dtype = self.rays.dtype
+        v = self.speed * np.asarray(v, float) / np.linalg.norm(v)
+        rows = torch.as_tensor(np.asarray(candidates, float), dtype=dtype)[:, None].expand(-1, len(self.rays))
+        values = self.contrast.at_depths(torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype),
+                                         rows).double().numpy()                       # (C, P)
+        values = np.where(np.isnan(values), -np.inf, values)     # a NaN row never wins
+        return np.asarray(candidates, float)[values.argmax(0)]   # the first best candidate on ties
 
 
 @dataclass(frozen=True)
