@@ -27,6 +27,7 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
+from cmax.contrast._sweep_kernels import event_scores_compiled, node_sums, se3_terms, vote_scale_compiled
 from cmax.iwe import polarity_images, sample_bilinear
 from cmax.warp import warp_se3
 
@@ -80,6 +81,11 @@ class SweepNodeCost:
     of the IWE value at the event divided by the event's :func:`vote_scale` over the C rows of the same
     call (one vote per event: compare candidates within one call). Higher is better.
 
+    On the CPU, with the events, their times, the inverse depths and the grid weights in one float dtype
+    and no gradient asked, the cost is computed by the compiled kernels of
+    :mod:`cmax.contrast._sweep_kernels` (the same values, to float rounding); otherwise (CUDA, autograd,
+    mixed dtypes) by the torch operations of :func:`event_scores`, the reference.
+
     Attributes
     ----------
     rays : Tensor (N, 3)
@@ -127,6 +133,8 @@ class SweepNodeCost:
 
     def __call__(self, rho_events: torch.Tensor) -> torch.Tensor:
         """Mean normalised IWE value at each node's events (C, G) for per-event inverse depths (C, N)."""
+        if _use_compiled(self.rays, self.dt, rho_events, self.index, self.weight):
+            return self._compiled(rho_events)
         dtype = self.rays.dtype
         polarity = self.polarity
         on = (polarity > 0).to(dtype) if self.polarity_split else torch.ones_like(polarity, dtype=dtype)
@@ -142,3 +150,35 @@ class SweepNodeCost:
         sums = torch.zeros(C, G, dtype=dtype).index_add_(1, flat_index, (w_in * score[:, :, None]).reshape(C, -1))
         weights = torch.zeros(C, G, dtype=dtype).index_add_(1, flat_index, w_in.reshape(C, -1))
         return sums / weights.clamp(min=1e-6)
+
+    def _compiled(self, rho_events: torch.Tensor) -> torch.Tensor:
+        """:meth:`__call__` by the compiled kernels of :mod:`cmax.contrast._sweep_kernels` (CPU, one dtype)."""
+        dtype = self.rays.dtype
+        v, omega = torch.as_tensor(self.v, dtype=dtype), torch.as_tensor(self.omega, dtype=dtype)
+        rotated, moved = se3_terms(self.rays, self.dt, v, omega)
+        image_of = ((self.polarity <= 0) if self.polarity_split else torch.zeros_like(self.polarity, dtype=torch.bool))
+        score, inside, peak, always = event_scores_compiled(
+            rotated.contiguous().numpy(), moved.contiguous().numpy(), rho_events.detach().contiguous().numpy(),
+            image_of.to(torch.int64).numpy(), 2 if self.polarity_split else 1, self.K.detach().cpu().numpy(),
+            self.height, self.width, self.sigma, self.border_px, self.chunk)
+        scale = vote_scale_compiled(peak, always, self.vote_scale_quantile)            # one vote per event
+        sums, weights = node_sums(score, scale, inside, self.index.contiguous().numpy(),
+                                  self.weight.contiguous().numpy(), self.grid_shape[0] * self.grid_shape[1])
+        return torch.from_numpy(sums) / torch.from_numpy(weights).clamp(min=1e-6)
+
+
+#: The compiled path of :class:`SweepNodeCost` on CPU float tensors (False: the torch reference everywhere;
+#: for tests and benchmarks that compare the two).
+_COMPILED = True
+
+
+def _use_compiled(rays: torch.Tensor, dt: torch.Tensor, rho: torch.Tensor, index: torch.Tensor,
+                  weight: torch.Tensor) -> bool:
+    """Whether :class:`SweepNodeCost` runs its compiled kernels: CPU tensors, ``rays``, ``dt``, ``rho`` and
+    ``weight`` of one dtype (float32 or float64), ``dt`` one row of N, int64 ``index``, no gradient asked."""
+    tensors = (rays, dt, rho, index, weight)
+    return (_COMPILED and all(t.device.type == "cpu" for t in tensors)
+            and rays.dtype in (torch.float32, torch.float64)
+            and dt.dtype == rho.dtype == weight.dtype == rays.dtype and index.dtype == torch.int64
+            and dt.numel() == rays.shape[0] and rho.dim() == 2 and rho.shape[1] == rays.shape[0]
+            and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)))
