@@ -168,3 +168,16 @@ def test_the_torch_path_keeps_gradients_and_mixed_dtypes(monkeypatch):
     assert rho.grad is not None and float(rho.grad.abs().sum()) > 0
     cost(torch.full((2, n), 0.5, dtype=torch.float32))
     assert not called
+
+
+def test_the_chunk_does_not_change_the_compiled_scores():
+    cost, n = _real_cost(torch.float32)
+    rotated, moved = se3_terms(cost.rays, cost.dt, torch.as_tensor(cost.v, dtype=torch.float32),
+                               torch.as_tensor(cost.omega, dtype=torch.float32))
+    rho = np.ascontiguousarray(np.broadcast_to(np.linspace(0.1, 1.5, 7, dtype=np.float32)[:, None], (7, n)))
+    image_of = (cost.polarity <= 0).to(torch.int64).numpy()
+    runs = [event_scores_compiled(rotated.numpy(), moved.numpy(), rho, image_of, 2, cost.K.numpy(), cost.height,
+                                  cost.width, 1.0, 1, chunk) for chunk in (1, 3, 7)]
+    for other in runs[1:]:
+        for a, b in zip(runs[0], other):
+            np.testing.assert_array_equal(a, b)

@@ -56,14 +56,16 @@ def se3_terms(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torc
 
 
 @kernel(error_model="numpy")
-def _warp(rotated, moved, rho, k00, k01, k02, k11, k12, zmin, width, height, border, one, base, fx, fy,
+def _warp(rotated, moved, rho, offset, k00, k01, k02, k11, k12, zmin, width, height, border, one, base, fx, fy,
           inside):  # pragma: no cover - compiled
     """Warp every event with each row of ``rho`` (C, N) [1/m] (:func:`cmax.warp.warp_se3`).
 
-    Writes, per candidate and event (C, N): ``base``, the flat index of the lower-left pixel in an image
-    padded by one pixel on each side ((H + 2) x (W + 2)), -1 where the event votes and reads nothing;
-    ``fx``, ``fy``, the position's fractional part; ``inside``, 1 where it lies ``border`` px inside the
-    image, else 0. ``rotated``, ``moved`` (N, 3).
+    ``rotated``, ``moved`` (3, N); ``offset`` (N,) int32: where the event's polarity image starts in a
+    stack of images padded by one pixel on each side ((H + 2) x (W + 2) each). Writes, per candidate and
+    event (C, N): ``base`` (int32), the flat index in that stack of the lower-left pixel of the warped
+    position, -1 where the event votes and reads nothing (:func:`cmax.iwe._splat`'s rule); ``fx``,
+    ``fy``, the position's fractional part; ``inside``, 1 where it lies ``border`` px inside the image,
+    else 0.
     """
     C, N = rho.shape
     Wp = width + 2
@@ -71,9 +73,9 @@ def _warp(rotated, moved, rho, k00, k01, k02, k11, k12, zmin, width, height, bor
     for c in range(C):
         for n in range(N):
             r = rho[c, n]
-            px = rotated[n, 0] + r * moved[n, 0]
-            py = rotated[n, 1] + r * moved[n, 1]
-            z = rotated[n, 2] + r * moved[n, 2]
+            px = rotated[0, n] + r * moved[0, n]
+            py = rotated[1, n] + r * moved[1, n]
+            z = rotated[2, n] + r * moved[2, n]
             if z < zmin:
                 z = zmin
             X = px / z
@@ -85,69 +87,72 @@ def _warp(rotated, moved, rho, k00, k01, k02, k11, k12, zmin, width, height, bor
             x0, y0 = np.floor(x), np.floor(y)
             fx[c, n], fy[c, n] = x - x0, y - y0
             if x0 >= -1 and x0 <= width - 1 and y0 >= -1 and y0 <= height - 1:
-                base[c, n] = (int(y0) + 1) * Wp + int(x0) + 1
+                base[c, n] = offset[n] + (np.int32(y0) + 1) * Wp + np.int32(x0) + 1
             else:
                 base[c, n] = -1
 
 
 @kernel(error_model="numpy")
-def _splat(base, fx, fy, image_of, Wp, one, canvas):  # pragma: no cover - compiled
-    """Bilinear votes of the warped events into ``canvas`` (C, P, (H + 2) Wp) (zeros on entry; the
+def _splat(base, fx, fy, Wp, one, canvas):  # pragma: no cover - compiled
+    """Bilinear votes of the warped events into ``canvas`` (C, P (H + 2) Wp) (zeros on entry; the
     padding collects the votes that fall off the image), corner after corner in event order as
     ``index_add`` adds the stacked corners of :func:`cmax.iwe._splat`."""
     C, N = base.shape
     for c in range(C):
+        image, b_, u_, v_ = canvas[c], base[c], fx[c], fy[c]
         for n in range(N):
-            b = base[c, n]
-            if b >= 0:
-                canvas[c, image_of[n], b] += (one - fx[c, n]) * (one - fy[c, n])
+            if b_[n] >= 0:
+                image[b_[n]] += (one - u_[n]) * (one - v_[n])
         for n in range(N):
-            b = base[c, n]
-            if b >= 0:
-                canvas[c, image_of[n], b + 1] += fx[c, n] * (one - fy[c, n])
+            if b_[n] >= 0:
+                image[b_[n] + 1] += u_[n] * (one - v_[n])
         for n in range(N):
-            b = base[c, n]
-            if b >= 0:
-                canvas[c, image_of[n], b + Wp] += (one - fx[c, n]) * fy[c, n]
+            if b_[n] >= 0:
+                image[b_[n] + Wp] += (one - u_[n]) * v_[n]
         for n in range(N):
-            b = base[c, n]
-            if b >= 0:
-                canvas[c, image_of[n], b + Wp + 1] += fx[c, n] * fy[c, n]
+            if b_[n] >= 0:
+                image[b_[n] + Wp + 1] += u_[n] * v_[n]
 
 
 @kernel(error_model="numpy")
-def _sample_own(images, base, fx, fy, image_of, inside, Wp, one, score, peak, always):  # pragma: no cover
-    """Each event's bilinear read (C, N) of its own polarity image in ``images`` (C, P, (H + 2) Wp), zero
+def _sample_own(images, base, fx, fy, inside, Wp, one, score, peak, always):  # pragma: no cover - compiled
+    """Each event's bilinear read (C, N) of its own polarity image in ``images`` (C, P (H + 2) Wp), zero
     padded, at its warped position (:func:`cmax.iwe.sample_bilinear`; 0 where ``base`` is -1), and the
     running per-event largest ``score * inside`` (``peak`` (N,)) and whether the event stayed inside for
     every candidate so far (``always`` (N,) bool)."""
     C, N = base.shape
     zero = one - one
     for c in range(C):
+        image = images[c]
         for n in range(N):
             b = base[c, n]
             if b < 0:
                 value = zero
             else:
-                image = images[c, image_of[n]]
                 u, v = fx[c, n], fy[c, n]
                 value = ((one - u) * (one - v) * image[b] + u * (one - v) * image[b + 1]
                          + (one - u) * v * image[b + Wp] + u * v * image[b + Wp + 1])
             score[c, n] = value
-            held = value * inside[c, n]
-            if held > peak[n]:
-                peak[n] = held
-            if inside[c, n] <= zero:
+            if inside[c, n] > zero:
+                if value > peak[n]:      # value * 1
+                    peak[n] = value
+            else:
                 always[n] = False
+                if zero > peak[n]:       # value * 0
+                    peak[n] = zero
 
 
 @kernel(error_model="numpy")
 def _node_sums(score, scale, inside, index, weight, sums, weights):  # pragma: no cover - compiled
     """Add ``inside * weight * score / scale`` and ``inside * weight`` of every event into its four
-    nodes: ``sums``, ``weights`` (C, G) (zeros on entry); ``index``, ``weight`` (N, 4), ``scale`` (N,)."""
+    nodes: ``sums``, ``weights`` (C, G) (zeros on entry); ``index``, ``weight`` (N, 4), ``scale`` (N,).
+    ``inside`` is 1 or 0: an event outside adds zeros, and is skipped."""
     C, N = score.shape
+    zero = scale[0] - scale[0]
     for c in range(C):
         for n in range(N):
+            if not inside[c, n] > zero:
+                continue
             s = score[c, n] / scale[n]
             for k in range(4):
                 w = inside[c, n] * weight[n, k]
@@ -158,7 +163,7 @@ def _node_sums(score, scale, inside, index, weight, sums, weights):  # pragma: n
 
 def event_scores_compiled(rotated: np.ndarray, moved: np.ndarray, rho: np.ndarray, image_of: np.ndarray,
                           images: int, K: np.ndarray, height: int, width: int, sigma: float, border_px: int,
-                          chunk: int) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
+                          chunk: int = 1) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray]:
     """:func:`cmax.contrast.sweep.event_scores` for all candidates by the kernels of this module: the IWE
     value at each event's warped position and the inside flag, both (C, N) in ``rho``'s dtype, and per
     event (N,) the largest ``score * inside`` over the candidates and whether every candidate keeps the
@@ -166,7 +171,8 @@ def event_scores_compiled(rotated: np.ndarray, moved: np.ndarray, rho: np.ndarra
 
     ``rotated``, ``moved`` (N, 3) from :func:`se3_terms`; ``rho`` (C, N) [1/m]; ``image_of`` (N,) int64
     (0: first polarity image, 1: second); ``images``: 2 with a polarity split, else 1; ``K`` (3, 3);
-    blur ``sigma`` [px]; ``chunk`` candidates warped at once (memory only: no effect on the result).
+    blur ``sigma`` [px]; ``chunk`` candidates warped at once (no effect on the result; one at a time keeps
+    a candidate's images in the cache from the votes to the read-back).
     """
     dtype = rho.dtype.type
     C, N = rho.shape
@@ -177,28 +183,31 @@ def event_scores_compiled(rotated: np.ndarray, moved: np.ndarray, rho: np.ndarra
     score, inside = np.empty((C, N), rho.dtype), np.empty((C, N), rho.dtype)
     peak, always = np.full(N, -np.inf, rho.dtype), np.ones(N, np.bool_)
     chunk = max(1, min(int(chunk), C))
-    canvas = np.empty((chunk, images, Hp * Wp), rho.dtype)
+    canvas = np.empty((chunk, images * Hp * Wp), rho.dtype)
     blurred = np.zeros_like(canvas)                     # the padding stays zero: only the interior is written
-    base = np.empty((chunk, N), np.int64)
+    base = np.empty((chunk, N), np.int32)
     fx, fy = np.empty((chunk, N), rho.dtype), np.empty((chunk, N), rho.dtype)
+    offset = (image_of * (Hp * Wp)).astype(np.int32)
+    rotated_t, moved_t = np.ascontiguousarray(rotated.T), np.ascontiguousarray(moved.T)
     for start in range(0, C, chunk):
         stop = min(C, start + chunk)
         m = stop - start
-        _warp(rotated, moved, rho[start:stop], k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2],
+        _warp(rotated_t, moved_t, rho[start:stop], offset, k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2],
               dtype(MIN_PROJECTED_DEPTH), width, height, border_px, dtype(1), base[:m], fx[:m], fy[:m],
               inside[start:stop])
         canvas[:m] = 0
-        _splat(base[:m], fx[:m], fy[:m], image_of, Wp, dtype(1), canvas[:m])
+        _splat(base[:m], fx[:m], fy[:m], Wp, dtype(1), canvas[:m])
         if taps is None:
             seen = canvas
         else:
             for i in range(m):
                 for p in range(images):
-                    cv2.sepFilter2D(canvas[i, p].reshape(Hp, Wp)[1:-1, 1:-1], -1, taps, taps,
-                                    dst=blurred[i, p].reshape(Hp, Wp)[1:-1, 1:-1], borderType=cv2.BORDER_CONSTANT)
+                    source = canvas[i].reshape(images, Hp, Wp)[p, 1:-1, 1:-1]
+                    target = blurred[i].reshape(images, Hp, Wp)[p, 1:-1, 1:-1]
+                    cv2.sepFilter2D(source, -1, taps, taps, dst=target, borderType=cv2.BORDER_CONSTANT)
             seen = blurred
-        _sample_own(seen[:m], base[:m], fx[:m], fy[:m], image_of, inside[start:stop], Wp, dtype(1),
-                    score[start:stop], peak, always)
+        _sample_own(seen[:m], base[:m], fx[:m], fy[:m], inside[start:stop], Wp, dtype(1), score[start:stop],
+                    peak, always)
     return score, inside, peak, always
 
 

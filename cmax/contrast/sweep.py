@@ -22,6 +22,7 @@ contrast maximization framework for event cameras", CVPR 2018 (the warp and the 
 """
 from __future__ import annotations
 
+import functools
 from dataclasses import dataclass
 
 import numpy as np
@@ -107,7 +108,8 @@ class SweepNodeCost:
     polarity_split : bool
         One image per polarity (True) or one for all events.
     chunk : int
-        Candidates warped at once (memory against speed; no effect on the result).
+        Candidates warped at once by the torch operations (memory against speed; no effect on the result);
+        the compiled path warps one at a time.
     border_px : int
         Events warped closer than this to the edge [px] count as outside.
     vote_scale_quantile : float
@@ -151,16 +153,22 @@ class SweepNodeCost:
         weights = torch.zeros(C, G, dtype=dtype).index_add_(1, flat_index, w_in.reshape(C, -1))
         return sums / weights.clamp(min=1e-6)
 
-    def _compiled(self, rho_events: torch.Tensor) -> torch.Tensor:
-        """:meth:`__call__` by the compiled kernels of :mod:`cmax.contrast._sweep_kernels` (CPU, one dtype)."""
+    @functools.cached_property
+    def _se3_terms(self) -> tuple[np.ndarray, np.ndarray]:
+        """The depth-independent parts of the warp, (N, 3) each (:func:`cmax.contrast._sweep_kernels.se3_terms`),
+        computed at the first compiled call and kept: the refinements call the same cost again."""
         dtype = self.rays.dtype
         v, omega = torch.as_tensor(self.v, dtype=dtype), torch.as_tensor(self.omega, dtype=dtype)
-        rotated, moved = se3_terms(self.rays, self.dt, v, omega)
+        return tuple(part.contiguous().numpy() for part in se3_terms(self.rays, self.dt, v, omega))
+
+    def _compiled(self, rho_events: torch.Tensor) -> torch.Tensor:
+        """:meth:`__call__` by the compiled kernels of :mod:`cmax.contrast._sweep_kernels` (CPU, one dtype)."""
+        rotated, moved = self._se3_terms
         image_of = ((self.polarity <= 0) if self.polarity_split else torch.zeros_like(self.polarity, dtype=torch.bool))
         score, inside, peak, always = event_scores_compiled(
-            rotated.contiguous().numpy(), moved.contiguous().numpy(), rho_events.detach().contiguous().numpy(),
+            rotated, moved, rho_events.detach().contiguous().numpy(),
             image_of.to(torch.int64).numpy(), 2 if self.polarity_split else 1, self.K.detach().cpu().numpy(),
-            self.height, self.width, self.sigma, self.border_px, self.chunk)
+            self.height, self.width, self.sigma, self.border_px)
         scale = vote_scale_compiled(peak, always, self.vote_scale_quantile)            # one vote per event
         sums, weights = node_sums(score, scale, inside, self.index.contiguous().numpy(),
                                   self.weight.contiguous().numpy(), self.grid_shape[0] * self.grid_shape[1])
