@@ -181,3 +181,19 @@ def test_the_chunk_does_not_change_the_compiled_scores():
     for other in runs[1:]:
         for a, b in zip(runs[0], other):
             np.testing.assert_array_equal(a, b)
+
+
+def test_the_kept_warp_terms_follow_changes_of_the_events_and_the_motion(monkeypatch):
+    """The depth-independent warp terms are reused between calls; changing the rays in place, or the
+    twist, gives the costs of the new input, not those of the kept terms."""
+    cost, n = _real_cost(torch.float64)
+    rays = cost.rays.clone()
+    cost = replace(cost, rays=rays)
+    rho = torch.linspace(0.1, 1.5, 5, dtype=torch.float64)[:, None].expand(-1, n)
+    before = cost(rho)
+    rays[:, 0] += 0.02                                                          # every event moves 1.8 px
+    compiled, reference = _both(cost, rho, monkeypatch)
+    _assert_same(compiled, reference, torch.float64)
+    assert not torch.allclose(compiled, before)
+    turned = replace(cost, omega=np.asarray(cost.omega) + np.array([0.0, 0.5, 0.0]))
+    _assert_same(*_both(turned, rho, monkeypatch), torch.float64)

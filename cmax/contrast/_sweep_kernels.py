@@ -1,8 +1,9 @@
 """Compiled kernels of the depth sweep's cost (:class:`cmax.contrast.SweepNodeCost`) on the CPU.
 
-The same arithmetic as the torch reference of :mod:`cmax.contrast.sweep`, operation for operation and in
-the events' own float dtype (float32 or float64), so the two agree to float rounding (bit for bit where the
-order of the sums is the same):
+The same arithmetic as the torch reference of :mod:`cmax.contrast.sweep`, operation for operation, in
+the events' own float dtype (float32 or float64), with every sum taken in the order in which torch's CPU
+``index_add`` takes it (one thread), so the two agree bit for bit on the tested windows (and to float
+rounding should torch's order change):
 
 * the se3 warp of :func:`cmax.warp.warp_se3`: ``rotated + rho moved`` per candidate, its z clamped to
   :data:`cmax.warp.MIN_PROJECTED_DEPTH`, projected with ``K`` (``rotated`` and ``moved`` do not depend on
@@ -17,8 +18,7 @@ order of the sums is the same):
 The Gaussian blur between votes and read-back stays OpenCV's ``sepFilter2D`` (zero padding), as in
 :func:`cmax.iwe.blur` on the CPU. Scalars enter the kernels in the events' dtype (``one``, ``zmin``, the
 entries of ``K``) so that numba keeps float32 arithmetic in float32; the kernels use numba's ``numpy``
-error model (IEEE division, as torch, without Python's zero-division check, which would stop the
-vectorisation of the warp).
+error model (IEEE division, as torch, with no zero-division check in the loops).
 """
 from __future__ import annotations
 
@@ -60,9 +60,9 @@ def _warp(rotated, moved, rho, offset, k00, k01, k02, k11, k12, zmin, width, hei
           inside):  # pragma: no cover - compiled
     """Warp every event with each row of ``rho`` (C, N) [1/m] (:func:`cmax.warp.warp_se3`).
 
-    ``rotated``, ``moved`` (3, N); ``offset`` (N,) int32: where the event's polarity image starts in a
+    ``rotated``, ``moved`` (3, N); ``offset`` (N,) int: where the event's polarity image starts in a
     stack of images padded by one pixel on each side ((H + 2) x (W + 2) each). Writes, per candidate and
-    event (C, N): ``base`` (int32), the flat index in that stack of the lower-left pixel of the warped
+    event (C, N): ``base`` (int), the flat index in that stack of the lower-left pixel of the warped
     position, -1 where the event votes and reads nothing (:func:`cmax.iwe._splat`'s rule); ``fx``,
     ``fy``, the position's fractional part; ``inside``, 1 where it lies ``border`` px inside the image,
     else 0.
@@ -87,7 +87,7 @@ def _warp(rotated, moved, rho, offset, k00, k01, k02, k11, k12, zmin, width, hei
             x0, y0 = np.floor(x), np.floor(y)
             fx[c, n], fy[c, n] = x - x0, y - y0
             if x0 >= -1 and x0 <= width - 1 and y0 >= -1 and y0 <= height - 1:
-                base[c, n] = offset[n] + (np.int32(y0) + 1) * Wp + np.int32(x0) + 1
+                base[c, n] = offset[n] + (int(y0) + 1) * Wp + int(x0) + 1
             else:
                 base[c, n] = -1
 
@@ -185,9 +185,10 @@ def event_scores_compiled(rotated: np.ndarray, moved: np.ndarray, rho: np.ndarra
     chunk = max(1, min(int(chunk), C))
     canvas = np.empty((chunk, images * Hp * Wp), rho.dtype)
     blurred = np.zeros_like(canvas)                     # the padding stays zero: only the interior is written
-    base = np.empty((chunk, N), np.int32)
+    index_type = np.int32 if images * Hp * Wp < 2**31 - 1 else np.int64
+    base = np.empty((chunk, N), index_type)
     fx, fy = np.empty((chunk, N), rho.dtype), np.empty((chunk, N), rho.dtype)
-    offset = (image_of * (Hp * Wp)).astype(np.int32)
+    offset = (image_of * (Hp * Wp)).astype(index_type)
     rotated_t, moved_t = np.ascontiguousarray(rotated.T), np.ascontiguousarray(moved.T)
     for start in range(0, C, chunk):
         stop = min(C, start + chunk)

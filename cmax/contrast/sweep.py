@@ -22,7 +22,7 @@ contrast maximization framework for event cameras", CVPR 2018 (the warp and the 
 """
 from __future__ import annotations
 
-import functools
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
@@ -135,7 +135,7 @@ class SweepNodeCost:
 
     def __call__(self, rho_events: torch.Tensor) -> torch.Tensor:
         """Mean normalised IWE value at each node's events (C, G) for per-event inverse depths (C, N)."""
-        if _use_compiled(self.rays, self.dt, rho_events, self.index, self.weight):
+        if _use_compiled(self, rho_events):
             return self._compiled(rho_events)
         dtype = self.rays.dtype
         polarity = self.polarity
@@ -153,17 +153,9 @@ class SweepNodeCost:
         weights = torch.zeros(C, G, dtype=dtype).index_add_(1, flat_index, w_in.reshape(C, -1))
         return sums / weights.clamp(min=1e-6)
 
-    @functools.cached_property
-    def _se3_terms(self) -> tuple[np.ndarray, np.ndarray]:
-        """The depth-independent parts of the warp, (N, 3) each (:func:`cmax.contrast._sweep_kernels.se3_terms`),
-        computed at the first compiled call and kept: the refinements call the same cost again."""
-        dtype = self.rays.dtype
-        v, omega = torch.as_tensor(self.v, dtype=dtype), torch.as_tensor(self.omega, dtype=dtype)
-        return tuple(part.contiguous().numpy() for part in se3_terms(self.rays, self.dt, v, omega))
-
     def _compiled(self, rho_events: torch.Tensor) -> torch.Tensor:
         """:meth:`__call__` by the compiled kernels of :mod:`cmax.contrast._sweep_kernels` (CPU, one dtype)."""
-        rotated, moved = self._se3_terms
+        rotated, moved = _warp_terms(self.rays, self.dt, self.v, self.omega)
         image_of = ((self.polarity <= 0) if self.polarity_split else torch.zeros_like(self.polarity, dtype=torch.bool))
         score, inside, peak, always = event_scores_compiled(
             rotated, moved, rho_events.detach().contiguous().numpy(),
@@ -180,13 +172,36 @@ class SweepNodeCost:
 _COMPILED = True
 
 
-def _use_compiled(rays: torch.Tensor, dt: torch.Tensor, rho: torch.Tensor, index: torch.Tensor,
-                  weight: torch.Tensor) -> bool:
-    """Whether :class:`SweepNodeCost` runs its compiled kernels: CPU tensors, ``rays``, ``dt``, ``rho`` and
-    ``weight`` of one dtype (float32 or float64), ``dt`` one row of N, int64 ``index``, no gradient asked."""
-    tensors = (rays, dt, rho, index, weight)
-    return (_COMPILED and all(t.device.type == "cpu" for t in tensors)
+#: The last :func:`_warp_terms`: weak references to its rays and times, their versions, dtype, v and omega, and
+#: the terms. The whole-range sweep and the refinements of one window share them.
+_LAST_TERMS: list = []
+
+
+def _warp_terms(rays: torch.Tensor, dt: torch.Tensor, v: np.ndarray, omega: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The depth-independent parts of the se3 warp, (N, 3) each in the dtype of ``rays``
+    (:func:`cmax.contrast._sweep_kernels.se3_terms`); the last ones are reused while the same ``rays`` and
+    ``dt`` tensors, unchanged, come with the same ``v`` [m/s] and ``omega`` [rad/s] (3,)."""
+    dtype = rays.dtype
+    v, omega = torch.as_tensor(v, dtype=dtype).detach(), torch.as_tensor(omega, dtype=dtype).detach()
+    key = (rays._version, dt._version, dtype, v.numpy().tobytes(), omega.numpy().tobytes())
+    last = _LAST_TERMS[0] if _LAST_TERMS else None
+    if last is not None and last[0]() is rays and last[1]() is dt and last[2] == key:
+        return last[3]
+    terms = tuple(part.contiguous().numpy() for part in se3_terms(rays, dt, v, omega))
+    _LAST_TERMS[:] = [(weakref.ref(rays), weakref.ref(dt), key, terms)]
+    return terms
+
+
+def _use_compiled(cost: SweepNodeCost, rho: torch.Tensor) -> bool:
+    """Whether ``cost`` runs its compiled kernels for ``rho``: CPU tensors, the rays, times, inverse depths and
+    grid weights in one dtype (float32 or float64), the times one row of N, int64 node indices, and no
+    gradient asked of any of them or of ``v``, ``omega``."""
+    rays, dt, index, weight = cost.rays, cost.dt, cost.index, cost.weight
+    tensors = (rays, dt, rho, index, weight, cost.polarity, cost.K)
+    motion = [t for t in (cost.v, cost.omega) if isinstance(t, torch.Tensor)]
+    return (_COMPILED and all(t.device.type == "cpu" for t in tensors + tuple(motion))
             and rays.dtype in (torch.float32, torch.float64)
             and dt.dtype == rho.dtype == weight.dtype == rays.dtype and index.dtype == torch.int64
             and dt.numel() == rays.shape[0] and rho.dim() == 2 and rho.shape[1] == rays.shape[0]
-            and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors)))
+            and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors + tuple(motion))))
