@@ -197,3 +197,13 @@ def test_the_kept_warp_terms_follow_changes_of_the_events_and_the_motion(monkeyp
     assert not torch.allclose(compiled, before)
     turned = replace(cost, omega=np.asarray(cost.omega) + np.array([0.0, 0.5, 0.0]))
     _assert_same(*_both(turned, rho, monkeypatch), torch.float64)
+
+
+def test_the_benchmark_switch_restores_the_compiled_path():
+    from benchmarks.speed_sweep import torch_reference
+
+    with pytest.raises(RuntimeError):
+        with torch_reference():
+            assert sweep._COMPILED is False
+            raise RuntimeError("inside")
+    assert sweep._COMPILED is True
