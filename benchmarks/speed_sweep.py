@@ -19,6 +19,7 @@ whether the inverse-depth grids are identical.
 Usage::
 
     python -m benchmarks.speed_sweep [--seed 100] [--repeats 7] [--fit-seeds 100,101,102,103] [--fit-repeats 3]
+                                     [--clock wall|cpu]
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ import cProfile
 import os
 import pstats
 import statistics
+import sys
 import time
 
 import numpy as np
@@ -103,7 +105,6 @@ def first_call_seconds(seed: int) -> dict:
     """Seconds of the first and second compiled sweep in fresh processes sharing a fresh numba cache
     (first process: compiling; second: loading the cache). The fit that records the call is not timed."""
     import subprocess
-    import sys
     import tempfile
 
     code = (
@@ -215,8 +216,8 @@ def sweep_report(args: argparse.Namespace):
     cost, rho = coarse_cost(call_args, call_kwargs)
     candidates = rho.shape[0]
     report = Report("sweep", "The depth sweep's cost: compiled kernels against the torch reference",
-                    {"command": COMMAND, "repeats": args.repeats, "window": f"indoor_flying seed {args.seed}",
-                     "events": n, "sensor": f"{call_kwargs['width']}x{call_kwargs['height']}",
+                    {"command": getattr(args, "command", COMMAND), "repeats": args.repeats,
+                     "window": f"indoor_flying seed {args.seed}", "events": n, "sensor": f"{call_kwargs['width']}x{call_kwargs['height']}",
                      "dtype": str(call_args[0].dtype), "grid": call_kwargs["grid_shape"],
                      "coarse grid": cost.grid_shape, "candidates": candidates,
                      "refinements": call_kwargs.get("refinements"),
@@ -268,7 +269,7 @@ def sweep_report(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.speed import machine_info, publish_report
+    from benchmarks.speed import CLOCK, CLOCKS, machine_info, publish_report
 
     parser = argparse.ArgumentParser(prog=COMMAND, description=__doc__.split("\n")[0])
     parser.add_argument("--seed", type=int, default=100, help="indoor_flying window (default 100)")
@@ -276,9 +277,16 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--fit-seeds", type=lambda s: [int(v) for v in s.split(",") if v], default=[],
                         help="comma-separated windows whose fits run on both paths (default: none)")
     parser.add_argument("--fit-repeats", type=int, default=3)
+    parser.add_argument("--clock", choices=sorted(CLOCKS), default="wall",
+                        help="wall seconds, or CPU seconds of this process (steadier on a busy machine), for the "
+                             "timed groups; the fits are timed in wall seconds")
     parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args(argv)
-    publish_report(sweep_report(args), machine_info(), write=not args.no_write)
+    CLOCK[0] = args.clock
+    args.command = " ".join([COMMAND, *(sys.argv[1:] if argv is None else argv)])
+    machine = machine_info()
+    machine["clock"] = args.clock
+    publish_report(sweep_report(args), machine, write=not args.no_write)
     return 0
 
 
