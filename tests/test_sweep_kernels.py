@@ -69,9 +69,11 @@ def test_a_real_window_costs_the_same_as_the_torch_reference(dtype, polarity_spl
 
 
 @pytest.mark.parametrize("polarity", [1.0, -1.0])
-def test_one_polarity_only(polarity, monkeypatch):
+def test_one_polarity_only_and_a_skewed_camera(polarity, monkeypatch):
     cost, n = _real_cost(torch.float32)
-    cost = replace(cost, polarity=torch.full((n,), polarity))
+    skewed = cost.K.clone()
+    skewed[0, 1] = 0.4                                                               # K[0, 1] enters the warp
+    cost = replace(cost, polarity=torch.full((n,), polarity), K=skewed)
     rho = torch.linspace(0.1, 1.5, 6)[:, None].expand(-1, n)
     _assert_same(*_both(cost, rho, monkeypatch), torch.float32)
 
@@ -207,3 +209,19 @@ def test_the_benchmark_switch_restores_the_compiled_path():
             assert sweep._COMPILED is False
             raise RuntimeError("inside")
     assert sweep._COMPILED is True
+
+
+def test_no_event_stays_inside_for_every_candidate(monkeypatch):
+    """A candidate that throws every event off the image leaves no event inside for all candidates: every
+    event is then divided by the median of all events' largest values, those taken inside the border only
+    (an event in the border band reads a value but counts 0)."""
+    cost, _ = _real_cost(torch.float32, border_px=25)
+    keep = cost.dt[0].abs() > 0.005                                                  # events that move
+    cost = replace(cost, rays=cost.rays[keep], dt=cost.dt[:, keep], polarity=cost.polarity[keep],
+                   index=cost.index[keep], weight=cost.weight[keep], v=np.array([20.0, 0.0, 0.0]))
+    n = int(keep.sum())
+    rho = torch.cat([torch.linspace(0.0, 0.5, 5), torch.tensor([400.0])])[:, None].expand(-1, n)
+    x, _ = warp_se3(cost.rays, cost.dt, torch.as_tensor(cost.v, dtype=torch.float32),
+                    torch.as_tensor(cost.omega, dtype=torch.float32), rho, cost.K)
+    assert bool(((x[-1] < -1) | (x[-1] > cost.width)).all())
+    _assert_same(*_both(cost, rho, monkeypatch), torch.float32)
