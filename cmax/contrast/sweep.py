@@ -22,11 +22,13 @@ contrast maximization framework for event cameras", CVPR 2018 (the warp and the 
 """
 from __future__ import annotations
 
+import weakref
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
+from cmax.contrast._sweep_kernels import event_scores_compiled, node_sums, se3_terms, vote_scale_compiled
 from cmax.iwe import polarity_images, sample_bilinear
 from cmax.warp import warp_se3
 
@@ -80,6 +82,11 @@ class SweepNodeCost:
     of the IWE value at the event divided by the event's :func:`vote_scale` over the C rows of the same
     call (one vote per event: compare candidates within one call). Higher is better.
 
+    On the CPU, with the events, their times, the inverse depths and the grid weights in one float dtype
+    and no gradient asked, the cost is computed by the compiled kernels of
+    :mod:`cmax.contrast._sweep_kernels` (the same values, to float rounding); otherwise (CUDA, autograd,
+    mixed dtypes) by the torch operations of :func:`event_scores`, the reference.
+
     Attributes
     ----------
     rays : Tensor (N, 3)
@@ -101,7 +108,8 @@ class SweepNodeCost:
     polarity_split : bool
         One image per polarity (True) or one for all events.
     chunk : int
-        Candidates warped at once (memory against speed; no effect on the result).
+        Candidates warped at once by the torch operations (memory against speed; no effect on the result);
+        the compiled path warps one at a time.
     border_px : int
         Events warped closer than this to the edge [px] count as outside.
     vote_scale_quantile : float
@@ -127,6 +135,8 @@ class SweepNodeCost:
 
     def __call__(self, rho_events: torch.Tensor) -> torch.Tensor:
         """Mean normalised IWE value at each node's events (C, G) for per-event inverse depths (C, N)."""
+        if _use_compiled(self, rho_events):
+            return self._compiled(rho_events)
         dtype = self.rays.dtype
         polarity = self.polarity
         on = (polarity > 0).to(dtype) if self.polarity_split else torch.ones_like(polarity, dtype=dtype)
@@ -142,3 +152,56 @@ class SweepNodeCost:
         sums = torch.zeros(C, G, dtype=dtype).index_add_(1, flat_index, (w_in * score[:, :, None]).reshape(C, -1))
         weights = torch.zeros(C, G, dtype=dtype).index_add_(1, flat_index, w_in.reshape(C, -1))
         return sums / weights.clamp(min=1e-6)
+
+    def _compiled(self, rho_events: torch.Tensor) -> torch.Tensor:
+        """:meth:`__call__` by the compiled kernels of :mod:`cmax.contrast._sweep_kernels` (CPU, one dtype)."""
+        rotated, moved = _warp_terms(self.rays, self.dt, self.v, self.omega)
+        image_of = ((self.polarity <= 0) if self.polarity_split else torch.zeros_like(self.polarity, dtype=torch.bool))
+        score, inside, peak, always = event_scores_compiled(
+            rotated, moved, rho_events.detach().contiguous().numpy(),
+            image_of.to(torch.int64).numpy(), 2 if self.polarity_split else 1, self.K.detach().cpu().numpy(),
+            self.height, self.width, self.sigma, self.border_px)
+        scale = vote_scale_compiled(peak, always, self.vote_scale_quantile)            # one vote per event
+        sums, weights = node_sums(score, scale, inside, self.index.contiguous().numpy(),
+                                  self.weight.contiguous().numpy(), self.grid_shape[0] * self.grid_shape[1])
+        return torch.from_numpy(sums) / torch.from_numpy(weights).clamp(min=1e-6)
+
+
+#: The compiled path of :class:`SweepNodeCost` on CPU float tensors (False: the torch reference everywhere;
+#: for tests and benchmarks that compare the two).
+_COMPILED = True
+
+
+#: The last :func:`_warp_terms`: weak references to its rays and times, their versions, dtype, v and omega, and
+#: the terms. The whole-range sweep and the refinements of one window share them.
+_LAST_TERMS: list = []
+
+
+def _warp_terms(rays: torch.Tensor, dt: torch.Tensor, v: np.ndarray, omega: np.ndarray
+                ) -> tuple[np.ndarray, np.ndarray]:
+    """The depth-independent parts of the se3 warp, (N, 3) each in the dtype of ``rays``
+    (:func:`cmax.contrast._sweep_kernels.se3_terms`); the last ones are reused while the same ``rays`` and
+    ``dt`` tensors, unchanged, come with the same ``v`` [m/s] and ``omega`` [rad/s] (3,)."""
+    dtype = rays.dtype
+    v, omega = torch.as_tensor(v, dtype=dtype).detach(), torch.as_tensor(omega, dtype=dtype).detach()
+    key = (rays._version, dt._version, dtype, v.numpy().tobytes(), omega.numpy().tobytes())
+    last = _LAST_TERMS[0] if _LAST_TERMS else None
+    if last is not None and last[0]() is rays and last[1]() is dt and last[2] == key:
+        return last[3]
+    terms = tuple(part.contiguous().numpy() for part in se3_terms(rays, dt, v, omega))
+    _LAST_TERMS[:] = [(weakref.ref(rays), weakref.ref(dt), key, terms)]
+    return terms
+
+
+def _use_compiled(cost: SweepNodeCost, rho: torch.Tensor) -> bool:
+    """Whether ``cost`` runs its compiled kernels for ``rho``: CPU tensors, the rays, times, inverse depths and
+    grid weights in one dtype (float32 or float64), the times one row of N, int64 node indices, and no
+    gradient asked of any of them or of ``v``, ``omega``."""
+    rays, dt, index, weight = cost.rays, cost.dt, cost.index, cost.weight
+    tensors = (rays, dt, rho, index, weight, cost.polarity, cost.K)
+    motion = [t for t in (cost.v, cost.omega) if isinstance(t, torch.Tensor)]
+    return (_COMPILED and all(t.device.type == "cpu" for t in tensors + tuple(motion))
+            and rays.dtype in (torch.float32, torch.float64)
+            and dt.dtype == rho.dtype == weight.dtype == rays.dtype and index.dtype == torch.int64
+            and dt.numel() == rays.shape[0] and rho.dim() == 2 and rho.shape[1] == rays.shape[0]
+            and not (torch.is_grad_enabled() and any(t.requires_grad for t in tensors + tuple(motion))))
