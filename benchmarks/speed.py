@@ -109,6 +109,20 @@ def run_group(report: "Report", group: str, methods: list[tuple[str, Callable[[]
         add_row(report, group, name, times[name], events, baseline=i == 0, note=note)
 
 
+def fresh_process_outputs(code: str, runs: int = 2, env: dict | None = None) -> list[str]:
+    """The standard output of ``python -c code`` run ``runs`` times, one fresh process after another, all
+    sharing one new, empty ``NUMBA_CACHE_DIR``: the first compiles the numba kernels, the next ones load
+    them from that cache (how long a kernel's first call takes, with and without the cache). ``env``
+    adds variables."""
+    import subprocess
+    import tempfile
+
+    with tempfile.TemporaryDirectory() as cache:
+        variables = {**os.environ, **(env or {}), "NUMBA_CACHE_DIR": cache}
+        return [subprocess.run([sys.executable, "-c", code], env=variables, capture_output=True, text=True,
+                               check=True).stdout for _ in range(runs)]
+
+
 def machine_info() -> dict:
     info = {
         "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),

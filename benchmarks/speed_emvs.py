@@ -176,10 +176,6 @@ def first_call_seconds(duration_s: float = 0.05) -> dict:
     Two child processes share a fresh ``NUMBA_CACHE_DIR``; each times its first
     and second call on a short slider sequence. The simulation is not timed.
     """
-    import subprocess
-    import sys
-    import tempfile
-
     code = (
         "import time; from benchmarks.speed_emvs import slider_sequence; from cmax.emvs import EMVS\n"
         f"events, camera, poses, _ = slider_sequence({duration_s})\n"
@@ -189,14 +185,10 @@ def first_call_seconds(duration_s: float = 0.05) -> dict:
         "    start = time.perf_counter(); emvs.run(events, poses); times.append(time.perf_counter() - start)\n"
         "print(times[0], times[1])\n"
     )
-    result = {}
-    with tempfile.TemporaryDirectory() as cache:
-        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
-        for label in ("compile (empty numba cache)", "cached (numba cache on disk)"):
-            out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-            first, second = (float(v) for v in out.stdout.split()[-2:])
-            result[label] = (first, second)
-    return result
+    from benchmarks.speed import fresh_process_outputs
+
+    labels = ("compile (empty numba cache)", "cached (numba cache on disk)")
+    return {label: tuple(float(v) for v in out.split()[-2:]) for label, out in zip(labels, fresh_process_outputs(code))}
 
 
 def _accuracy(result, depth_gt) -> str:

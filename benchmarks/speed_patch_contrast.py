@@ -35,9 +35,7 @@ import argparse
 import contextlib
 import os
 import statistics
-import subprocess
 import sys
-import tempfile
 import time
 import warnings
 from pathlib import Path
@@ -212,14 +210,11 @@ def agreement(calls: dict) -> dict[str, tuple[float, float]]:
 
 def compile_seconds() -> tuple[list[float], list[float]]:
     """First-call seconds (float32, float64) in a fresh process: with an empty numba cache, then with its result."""
-    with tempfile.TemporaryDirectory() as cache:
-        env = {**os.environ, "NUMBA_CACHE_DIR": cache, "OMP_NUM_THREADS": "1"}
-        runs = []
-        for _ in range(2):
-            out = subprocess.run([sys.executable, "-c", _COMPILE_PROBE], env=env, capture_output=True, text=True,
-                                 check=True)
-            runs.append([float(line) for line in out.stdout.split()])
-    return runs[0], runs[1]
+    from benchmarks.speed import fresh_process_outputs
+
+    first, second = ([float(line) for line in out.split()]
+                     for out in fresh_process_outputs(_COMPILE_PROBE, env={"OMP_NUM_THREADS": "1"}))
+    return first, second
 
 
 def fit_check(seeds: list[int], repeats: int) -> list[dict]:

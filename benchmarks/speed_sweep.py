@@ -104,9 +104,6 @@ def coarse_cost(args: tuple, kwargs: dict):
 def first_call_seconds(seed: int) -> dict:
     """Seconds of the first and second compiled sweep in fresh processes sharing a fresh numba cache
     (first process: compiling; second: loading the cache). The fit that records the call is not timed."""
-    import subprocess
-    import tempfile
-
     code = (
         "import time, torch; torch.set_num_threads(1)\n"
         "from benchmarks.accuracy_cmax import windows\n"
@@ -119,13 +116,10 @@ def first_call_seconds(seed: int) -> dict:
         "    t = time.perf_counter(); fresh_sweep(*a, **k); times.append(time.perf_counter() - t)\n"
         "print(times[0], times[1])\n"
     )
-    result = {}
-    with tempfile.TemporaryDirectory() as cache:
-        env = {**os.environ, "NUMBA_CACHE_DIR": cache}
-        for label in ("compile (empty numba cache)", "cached (numba cache on disk)"):
-            out = subprocess.run([sys.executable, "-c", code], env=env, capture_output=True, text=True, check=True)
-            result[label] = tuple(float(v) for v in out.stdout.split()[-2:])
-    return result
+    from benchmarks.speed import fresh_process_outputs
+
+    labels = ("compile (empty numba cache)", "cached (numba cache on disk)")
+    return {label: tuple(float(v) for v in out.split()[-2:]) for label, out in zip(labels, fresh_process_outputs(code))}
 
 
 def profile_lines(args: tuple, kwargs: dict, repeats: int = 3, top: int = 10) -> list[str]:

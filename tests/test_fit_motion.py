@@ -258,13 +258,18 @@ def test_motion_from_flows_rejects_too_few_patches():
 # ----------------------------------------------------------------------------------------------------
 # The local refinement and the whole fit
 # ----------------------------------------------------------------------------------------------------
-def test_local_objective_peaks_at_the_true_motion():
-    events, K, v, omega = point_scene(1)
+def _patch_objective(seed: int):
+    """The refinement's objective on a point scene's window, its true ``v`` and ``omega``, and 24 inverse-depth
+    candidates [1/m]."""
+    events, K, v, omega = point_scene(seed)
     w = make_window(events, K)
-    speed = float(np.linalg.norm(v))
     patches = make_patches(w, grid=(6, 8), min_events=100, max_events=20_000, margin=0.3)
-    objective = LocalMotionObjective.build(w, patches, speed)
-    candidates = np.exp(np.linspace(np.log(1 / 60), np.log(2.0), 24))
+    objective = LocalMotionObjective.build(w, patches, float(np.linalg.norm(v)))
+    return objective, v, omega, np.exp(np.linspace(np.log(1 / 60), np.log(2.0), 24))
+
+
+def test_local_objective_peaks_at_the_true_motion():
+    objective, v, omega, candidates = _patch_objective(1)
 
     def score(v_, omega_):
         rho = objective.sweep_rho(v_, omega_, candidates)
@@ -279,12 +284,8 @@ def test_local_objective_peaks_at_the_true_motion():
 def test_depth_sweep_of_the_patches_equals_one_warp_per_candidate():
     """``sweep_rho`` warps once and projects per candidate (``PatchMotionContrast.at_depths``): each row
     equals the full objective at that depth, and the chosen depths are the per-candidate argmax."""
-    events, K, v, omega = point_scene(1)
-    w = make_window(events, K)
-    speed = float(np.linalg.norm(v))
-    patches = make_patches(w, grid=(6, 8), min_events=100, max_events=20_000, margin=0.3)
-    objective = LocalMotionObjective.build(w, patches, speed)
-    candidates = np.exp(np.linspace(np.log(1 / 60), np.log(2.0), 24))
+    objective, v, omega, candidates = _patch_objective(1)
+    patches = objective.patches
     v_, omega_ = v * 1.0, omega + np.radians([2.0, -1.0, 0.5])
     with torch.no_grad():
         loop = np.stack([objective.values(torch.from_numpy(objective.params(v_, omega_, np.full(patches.count, c))))
