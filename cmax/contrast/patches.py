@@ -31,14 +31,17 @@ import numpy as np
 import torch
 
 from cmax.contrast._patch_kernels import _PatchVariances
+from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import variance
 from cmax.warp import project, se3_parts, warp_se3
 
 __all__ = ["Patches", "cut_patches", "PatchFlowContrast", "PatchMotionContrast"]
 
-#: CPU float32 / float64 events take the compiled :func:`cmax.contrast._patch_kernels.patch_variances`;
-#: False: the torch operations of :meth:`Patches.images` everywhere (the reference; for tests and benchmarks).
+#: CPU float32 / float64 events take the compiled :func:`cmax.contrast._patch_kernels.patch_variances` (and
+#: :class:`PatchMotionContrast` the compiled :func:`cmax.contrast._warp_kernels.warp_se3_compiled`); False: the
+#: torch operations of :meth:`Patches.images` and :func:`cmax.warp.warp_se3` everywhere (the reference; for
+#: tests and benchmarks).
 _COMPILED = True
 
 
@@ -217,7 +220,11 @@ class PatchMotionContrast:
 
     def __call__(self, v: torch.Tensor, omega: torch.Tensor, rho_events: torch.Tensor) -> torch.Tensor:
         """``c_p`` (P,) for ``v`` (3,) [m/s], ``omega`` (3,) [rad/s] and per-event inverse depths (M,) [1/m]."""
-        x, y = warp_se3(self.rays, self.patches.dt, v, omega, rho_events, self.K)
+        dt = self.patches.dt
+        if _COMPILED and compiled_warp_applies(self.rays, dt, v, omega, rho_events):
+            x, y = warp_se3_compiled(self.rays, dt, v, omega, rho_events, self.K)
+        else:
+            x, y = warp_se3(self.rays, dt, v, omega, rho_events, self.K)
         return self.patches.variances(x, y, self.sigma) / self.base
 
     def at_depths(self, v: torch.Tensor, omega: torch.Tensor, rho_rows: torch.Tensor) -> torch.Tensor:

@@ -1,0 +1,211 @@
+"""Compiled se3 warp of one event set with its analytic gradient (the patch refinement's warp).
+
+:func:`cmax.warp.warp_se3` for rays ``r`` (N, 3), times ``dt`` (N,), one twist ``(v, omega)`` and
+per-event inverse depths ``rho`` (N,):
+
+    w = omega dt,  s = |w|^2,  A, B, C = rodrigues_coefficients(s)
+    P = r + A (w x r) + B (w x (w x r))  +  rho (u + B (w x u) + C (w x (w x u))),   u = v dt
+    x = K00 X/Z + K01 Y/Z + K02,   y = K11 Y/Z + K12,   Z = max(P_z, MIN_PROJECTED_DEPTH)
+
+in one pass, and its gradient with respect to ``v``, ``omega`` and ``rho`` in a second pass instead
+of torch's two dozen operations and their autograd (which dominate a refinement evaluation once the
+patch images are compiled, :mod:`cmax.contrast._patch_kernels`). With ``g = dL/dP`` of an event,
+
+    dL/drho = moved . g
+    dL/dv   = rho dt J(w)^T g,    J(w)^T g = g - B (w x g) + C (w x (w x g))
+    dL/dw   = 2 A' ((w x r).g) w + A (r x g) + 2 B' ((w x (w x r)).g) w + B ((w x r) x g + r x (g x w))
+              + rho [2 B' ((w x u).g) w + B (u x g) + 2 C' ((w x (w x u)).g) w + C ((w x u) x g + u x (g x w))]
+    dL/domega = dt dL/dw
+
+where ``A', B', C'`` are the derivatives in ``s`` (their series below ``_SMALL_ANGLE_SQ``, as
+:func:`cmax.geometry_torch.rodrigues_coefficients`). A clamped ``Z`` passes no gradient to ``P_z``.
+Everything is computed in float64 and the positions are returned in the events' dtype: equal to the
+torch warp to float rounding (``tests/test_warp_kernels.py``).
+"""
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import torch
+from torch.autograd.function import once_differentiable
+
+from cmax._jit import kernel
+from cmax.geometry_torch import _SMALL_ANGLE_SQ
+from cmax.warp import MIN_PROJECTED_DEPTH
+
+__all__ = ["warp_se3_compiled", "compiled_warp_applies"]
+
+
+@kernel
+def _coefficients(s, small):  # pragma: no cover - compiled
+    """``A, B, C`` and their derivatives in ``s = theta^2``."""
+    if s < small:
+        return (1.0 - s / 6.0 + s * s / 120.0, 0.5 - s / 24.0 + s * s / 720.0, 1.0 / 6.0 - s / 120.0 + s * s / 5040.0,
+                -1.0 / 6.0 + s / 60.0, -1.0 / 24.0 + s / 360.0, -1.0 / 120.0 + s / 2520.0)
+    t = math.sqrt(s)
+    sin, cos = math.sin(t), math.cos(t)
+    A, B, C = sin / t, (1.0 - cos) / s, (t - sin) / (s * t)
+    dA = (t * cos - sin) / (2.0 * s * t)
+    dB = (0.5 * t * sin - (1.0 - cos)) / (s * s)
+    dC = ((1.0 - cos) * t - 3.0 * (t - sin)) / (2.0 * s * s * t)
+    return A, B, C, dA, dB, dC
+
+
+@kernel
+def _cross(a0, a1, a2, b0, b1, b2):  # pragma: no cover - compiled
+    return a1 * b2 - a2 * b1, a2 * b0 - a0 * b2, a0 * b1 - a1 * b0
+
+
+@kernel
+def _point(r0, r1, r2, dt, v, omega, rho, small):  # pragma: no cover - compiled
+    """The warped point ``P`` (3 floats) and the pieces the gradient needs."""
+    w0, w1, w2 = omega[0] * dt, omega[1] * dt, omega[2] * dt
+    A, B, C, dA, dB, dC = _coefficients(w0 * w0 + w1 * w1 + w2 * w2, small)
+    wr0, wr1, wr2 = _cross(w0, w1, w2, r0, r1, r2)
+    wwr0, wwr1, wwr2 = _cross(w0, w1, w2, wr0, wr1, wr2)
+    u0, u1, u2 = v[0] * dt, v[1] * dt, v[2] * dt
+    wu0, wu1, wu2 = _cross(w0, w1, w2, u0, u1, u2)
+    wwu0, wwu1, wwu2 = _cross(w0, w1, w2, wu0, wu1, wu2)
+    m0, m1, m2 = u0 + B * wu0 + C * wwu0, u1 + B * wu1 + C * wwu1, u2 + B * wu2 + C * wwu2
+    p0 = r0 + A * wr0 + B * wwr0 + rho * m0
+    p1 = r1 + A * wr1 + B * wwr1 + rho * m1
+    p2 = r2 + A * wr2 + B * wwr2 + rho * m2
+    return p0, p1, p2, m0, m1, m2
+
+
+@kernel
+def _forward(rays, dt, v, omega, rho, k, zmin, small, x, y):  # pragma: no cover - compiled
+    for i in range(rays.shape[0]):
+        p0, p1, p2, m0, m1, m2 = _point(float(rays[i, 0]), float(rays[i, 1]), float(rays[i, 2]), float(dt[i]), v,
+                                        omega, float(rho[i]), small)
+        z = max(p2, zmin)
+        x[i] = k[0] * (p0 / z) + k[1] * (p1 / z) + k[2]
+        y[i] = k[3] * (p1 / z) + k[4]
+
+
+@kernel
+def _backward(rays, dt, v, omega, rho, k, zmin, small, gx, gy, grad_v, grad_omega, grad_rho
+              ):  # pragma: no cover - compiled
+    for i in range(rays.shape[0]):
+        r0, r1, r2, t, q = float(rays[i, 0]), float(rays[i, 1]), float(rays[i, 2]), float(dt[i]), float(rho[i])
+        p0, p1, p2, m0, m1, m2 = _point(r0, r1, r2, t, v, omega, q, small)
+        clamped = p2 < zmin
+        z = zmin if clamped else p2
+        ax, ay = float(gx[i]), float(gy[i])
+        g0 = ax * k[0] / z
+        g1 = (ax * k[1] + ay * k[3]) / z
+        g2 = 0.0 if clamped else -(ax * (k[0] * p0 + k[1] * p1) + ay * k[3] * p1) / (z * z)
+        grad_rho[i] = m0 * g0 + m1 * g1 + m2 * g2
+        w0, w1, w2 = omega[0] * t, omega[1] * t, omega[2] * t
+        A, B, C, dA, dB, dC = _coefficients(w0 * w0 + w1 * w1 + w2 * w2, small)
+        # dL/dv = rho dt J^T g
+        wg0, wg1, wg2 = _cross(w0, w1, w2, g0, g1, g2)
+        wwg0, wwg1, wwg2 = _cross(w0, w1, w2, wg0, wg1, wg2)
+        f = q * t
+        grad_v[0] += f * (g0 - B * wg0 + C * wwg0)
+        grad_v[1] += f * (g1 - B * wg1 + C * wwg1)
+        grad_v[2] += f * (g2 - B * wg2 + C * wwg2)
+        # dL/dw: the rotated ray's terms, then rho times the moved part's
+        wr0, wr1, wr2 = _cross(w0, w1, w2, r0, r1, r2)
+        wwr0, wwr1, wwr2 = _cross(w0, w1, w2, wr0, wr1, wr2)
+        rg0, rg1, rg2 = _cross(r0, r1, r2, g0, g1, g2)
+        wrg0, wrg1, wrg2 = _cross(wr0, wr1, wr2, g0, g1, g2)
+        gw0, gw1, gw2 = _cross(g0, g1, g2, w0, w1, w2)
+        rgw0, rgw1, rgw2 = _cross(r0, r1, r2, gw0, gw1, gw2)
+        s_rot = 2.0 * (dA * (wr0 * g0 + wr1 * g1 + wr2 * g2) + dB * (wwr0 * g0 + wwr1 * g1 + wwr2 * g2))
+        d0 = s_rot * w0 + A * rg0 + B * (wrg0 + rgw0)
+        d1 = s_rot * w1 + A * rg1 + B * (wrg1 + rgw1)
+        d2 = s_rot * w2 + A * rg2 + B * (wrg2 + rgw2)
+        if q != 0.0:
+            u0, u1, u2 = v[0] * t, v[1] * t, v[2] * t
+            wu0, wu1, wu2 = _cross(w0, w1, w2, u0, u1, u2)
+            wwu0, wwu1, wwu2 = _cross(w0, w1, w2, wu0, wu1, wu2)
+            ug0, ug1, ug2 = _cross(u0, u1, u2, g0, g1, g2)
+            wug0, wug1, wug2 = _cross(wu0, wu1, wu2, g0, g1, g2)
+            ugw0, ugw1, ugw2 = _cross(u0, u1, u2, gw0, gw1, gw2)
+            s_mov = 2.0 * (dB * (wu0 * g0 + wu1 * g1 + wu2 * g2) + dC * (wwu0 * g0 + wwu1 * g1 + wwu2 * g2))
+            d0 += q * (s_mov * w0 + B * ug0 + C * (wug0 + ugw0))
+            d1 += q * (s_mov * w1 + B * ug1 + C * (wug1 + ugw1))
+            d2 += q * (s_mov * w2 + B * ug2 + C * (wug2 + ugw2))
+        grad_omega[0] += t * d0
+        grad_omega[1] += t * d1
+        grad_omega[2] += t * d2
+
+
+def _arrays(rays, dt, v, omega, rho, K):
+    def flat(tensor, dtype=np.float64):
+        return np.ascontiguousarray(tensor.detach().numpy(), dtype=dtype)
+
+    k = flat(K)
+    return (np.ascontiguousarray(rays.detach().numpy()), np.ascontiguousarray(dt.detach().numpy()), flat(v),
+            flat(omega), np.ascontiguousarray(rho.detach().numpy()),
+            np.array([k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2]]))
+
+
+class _Se3Warp(torch.autograd.Function):
+    """:func:`warp_se3_compiled` with its compiled backward."""
+
+    @staticmethod
+    def forward(ctx, rays, dt, v, omega, rho, K):  # type: ignore[override]
+        arrays = _arrays(rays, dt, v, omega, rho, K)
+        ctx.arrays, ctx.dtypes = arrays, (v.dtype, omega.dtype, rho.dtype)
+        x = np.empty(rays.shape[0], rays.detach().numpy().dtype)
+        y = np.empty_like(x)
+        _forward(*arrays, MIN_PROJECTED_DEPTH, _SMALL_ANGLE_SQ, x, y)
+        return torch.from_numpy(x), torch.from_numpy(y)
+
+    @staticmethod
+    @once_differentiable
+    def backward(ctx, grad_x, grad_y):  # type: ignore[override]
+        arrays = ctx.arrays
+        n = arrays[0].shape[0]
+        gx = np.zeros(n) if grad_x is None else np.ascontiguousarray(grad_x.numpy())
+        gy = np.zeros(n) if grad_y is None else np.ascontiguousarray(grad_y.numpy())
+        grad_v, grad_omega, grad_rho = np.zeros(3), np.zeros(3), np.empty(n)
+        _backward(*arrays, MIN_PROJECTED_DEPTH, _SMALL_ANGLE_SQ, gx, gy, grad_v, grad_omega, grad_rho)
+        v_dtype, omega_dtype, rho_dtype = ctx.dtypes
+        needs = ctx.needs_input_grad
+        return (None, None, torch.from_numpy(grad_v).to(v_dtype) if needs[2] else None,
+                torch.from_numpy(grad_omega).to(omega_dtype) if needs[3] else None,
+                torch.from_numpy(grad_rho).to(rho_dtype) if needs[4] else None, None)
+
+
+def compiled_warp_applies(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torch.Tensor,
+                          rho: torch.Tensor) -> bool:
+    """Whether :func:`warp_se3_compiled` takes these inputs: CPU float32/float64 rays (N, 3), ``dt`` and
+    ``rho`` (N,) of the same dtype, ``v`` and ``omega`` (3,) (any float dtype)."""
+    n = rays.shape[0] if rays.dim() == 2 else -1
+    tensors = (rays, dt, v, omega, rho)
+    return (all(t.device.type == "cpu" for t in tensors) and rays.dtype in (torch.float32, torch.float64)
+            and rays.shape == (n, 3) and dt.shape == (n,) and rho.shape == (n,) and dt.dtype == rays.dtype
+            and rho.dtype == rays.dtype and v.shape == (3,) and omega.shape == (3,)
+            and v.is_floating_point() and omega.is_floating_point())
+
+
+def warp_se3_compiled(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torch.Tensor,
+                      rho: torch.Tensor, K: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`cmax.warp.warp_se3` for one event set (see the module docstring); differentiable in ``v``,
+    ``omega`` and ``rho`` (first order).
+
+    Parameters
+    ----------
+    rays : Tensor (N, 3), float32 or float64, CPU
+        ``K^-1 (x, y, 1)`` of the events.
+    dt : Tensor (N,), the dtype of ``rays``
+        ``t_i - t_ref`` [s].
+    v, omega : Tensor (3,)
+        Linear [m/s] and angular [rad/s] velocity, camera frame.
+    rho : Tensor (N,), the dtype of ``rays``
+        Inverse depth of each event [1/m].
+    K : Tensor (3, 3)
+
+    Returns
+    -------
+    x, y : Tensor (N,), the dtype of ``rays``
+    """
+    if not compiled_warp_applies(rays, dt, v, omega, rho):
+        raise ValueError("warp_se3_compiled needs CPU float32/float64 rays (N, 3), dt and rho (N,) of their dtype "
+                         f"and v, omega (3,); got {tuple(rays.shape)} {rays.dtype}, {tuple(dt.shape)} {dt.dtype}, "
+                         f"{tuple(rho.shape)} {rho.dtype}, {tuple(v.shape)}, {tuple(omega.shape)}")
+    return _Se3Warp.apply(rays, dt, v, omega, rho, K)
