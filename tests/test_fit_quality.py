@@ -130,6 +130,42 @@ def test_choose_from_neighbours_takes_the_alternative_closest_to_them():
     assert chosen is None and not q.resolved
 
 
+def test_a_run_of_ambiguous_windows_is_resolved_inwards_from_its_ends(monkeypatch):
+    """Eight windows moving +x; the fits of windows 1-6 are flipped (-x), ambiguous with +x within noise.
+    Windows 3 and 4 have no ok window within two on either side: they are resolved from windows 1-2 and 5-6,
+    themselves resolved from windows 0 and 7 in the pass before (a run of ambiguous windows, as on the ECD
+    slider, is not left unresolved), and the whole trajectory moves +x."""
+    base = clear_window()[1]
+    truth = np.array([0.5, 0.0, 0.0])
+
+    def constructed_fit(events, K, model="se3", *, speed=None, pose=None, omega=None, init=None, quality=None,
+                        **options):
+        t0, t1 = int(events.t[0]), int(events.t[-1])
+        if pose is not None:
+            pose = np.asarray(pose, float)
+            return replace(base, t0_us=t0, t1_us=t1, v=pose[:3], omega=pose[3:], scale_known=True,
+                           quality=Quality(Verdict.OK, "ambiguity not tested: the pose is given"))
+        index = round((t0 - t_first) / window_us)
+        if 1 <= index <= 6:
+            return replace(base, t0_us=t0, t1_us=t1, v=-truth, omega=np.zeros(3), quality=_ambiguous(truth))
+        return replace(base, t0_us=t0, t1_us=t1, v=truth.copy(), omega=np.zeros(3),
+                       quality=Quality(Verdict.OK, "every alternative scores worse beyond noise"))
+
+    monkeypatch.setattr(sequence_module, "fit", constructed_fit)
+    events = clear_window()[0].events
+    t_first = int(events.t[0])
+    window_us = (int(events.t[-1]) - t_first) // 8
+    result = fit_sequence(events, clear_window()[0].K, window_us=window_us, speed=0.5, min_events=10,
+                          quality=QualitySettings(smoothing=False))
+    assert len(result.results) == 8
+    for i, r in enumerate(result.results):
+        np.testing.assert_allclose(r.v, truth, err_msg=f"window {i}")
+    inner = [result.results[i].quality.resolution for i in (3, 4)]
+    assert all("took the mirrored" in text and "resolved themselves" in text for text in inner)
+    assert all("resolved themselves" not in result.results[i].quality.resolution for i in (1, 2, 5, 6))
+    assert result.counts()["resolved"] == 6
+
+
 def test_fit_sequence_resolves_a_flipped_window_from_its_neighbours(monkeypatch):
     """Five windows of a camera moving +x at 0.5 m/s; the fit of the middle one is flipped (-x) and
     ambiguous with +x within noise. fit_sequence takes +x for it (re-fitting it with that motion held),

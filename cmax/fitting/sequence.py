@@ -241,18 +241,44 @@ def _sequence_settings(fit_options: dict) -> tuple[FitSettings, dict]:
 
 def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, settings: FitSettings,
                        fit_options: dict, jobs: int = 1) -> list[FitResult]:
-    """Each ambiguous se3 window resolved from its ``ok`` neighbours (:func:`choose_from_neighbours`);
-    a chosen alternative is re-fitted with its motion held (``fit(..., pose=)``), its depth swept (the
-    re-fits on ``jobs`` workers: each depends on the first fits alone)."""
+    """Each ambiguous se3 window resolved from its confident neighbours (:func:`choose_from_neighbours`),
+    nearest first: the ``ok`` windows within ``QualitySettings.neighbours`` on each side, then, pass after
+    pass, also the windows resolved in an earlier pass (with the motion they were resolved to), so that a run
+    of ambiguous windows is resolved inwards from the confident windows at its ends rather than left
+    unresolved; a window's outcome is fixed in the first pass that gives it a confident neighbour. A chosen
+    alternative is re-fitted with its motion held (``fit(..., pose=)``), its depth swept (the re-fits on
+    ``jobs`` workers: each depends on the first fits alone)."""
     quality, out, refits = settings.quality, list(results), []
-    for i, r in enumerate(results):
-        if r.verdict is not Verdict.AMBIGUOUS:
-            continue
-        near = _around(results, i, quality.neighbours)
-        neighbours = [(n.v, n.omega) for n in near if n.verdict is Verdict.OK]
-        duration_s = (r.t1_us - r.t0_us) * 1e-6
-        chosen, resolved = choose_from_neighbours(r.v, r.omega, r.quality, neighbours, duration_s,
-                                                  quality.max_resolve_deg)
+    confident = {i: (r.v, r.omega) for i, r in enumerate(results) if r.verdict is Verdict.OK}
+    pending = [i for i, r in enumerate(results) if r.verdict is Verdict.AMBIGUOUS]
+    decisions: dict[int, tuple] = {}
+    while pending:
+        decided = {}
+        for i in pending:
+            near = [j for j in range(max(0, i - quality.neighbours), i + quality.neighbours + 1) if j in confident]
+            if not near:
+                continue
+            r = results[i]
+            chosen, resolved = choose_from_neighbours(r.v, r.omega, r.quality, [confident[j] for j in near],
+                                                      (r.t1_us - r.t0_us) * 1e-6, quality.max_resolve_deg)
+            through = sum(j in decisions for j in near)
+            if through:
+                resolved = replace(resolved, resolution=f"{resolved.resolution}; {through} of the neighbour(s) "
+                                                        "resolved themselves from theirs")
+            decided[i] = (chosen, resolved)
+        if not decided:
+            break
+        for i, (chosen, resolved) in decided.items():
+            decisions[i] = (chosen, resolved)
+            if resolved.resolved:
+                confident[i] = (results[i].v, results[i].omega) if chosen is None else (chosen.v, chosen.omega)
+        pending = [i for i in pending if i not in decided]
+    for i in pending:                            # no confident window anywhere near the run
+        r = results[i]
+        decisions[i] = choose_from_neighbours(r.v, r.omega, r.quality, [], (r.t1_us - r.t0_us) * 1e-6,
+                                              quality.max_resolve_deg)
+    for i, (chosen, resolved) in sorted(decisions.items()):
+        r = results[i]
         if chosen is None:
             out[i] = replace(r, quality=resolved)
             continue
