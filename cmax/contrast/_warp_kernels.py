@@ -75,6 +75,22 @@ def _point(r0, r1, r2, dt, v, omega, rho, small):  # pragma: no cover - compiled
 
 
 @kernel
+def _twist_gradient(a0, a1, a2, w0, w1, w2, g0, g1, g2, c1, c2, d1, d2):  # pragma: no cover - compiled
+    """``dL/dw`` (3 floats) of ``c1(s) (w x a) + c2(s) (w x (w x a))`` for ``dL/dP = g``, with ``d1, d2`` the
+    derivatives of ``c1, c2`` in ``s = |w|^2``: ``2 (d1 (w x a).g + d2 (w x (w x a)).g) w + c1 (a x g)
+    + c2 ((w x a) x g + a x (g x w))``."""
+    wa0, wa1, wa2 = _cross(w0, w1, w2, a0, a1, a2)
+    wwa0, wwa1, wwa2 = _cross(w0, w1, w2, wa0, wa1, wa2)
+    ag0, ag1, ag2 = _cross(a0, a1, a2, g0, g1, g2)
+    wag0, wag1, wag2 = _cross(wa0, wa1, wa2, g0, g1, g2)
+    gw0, gw1, gw2 = _cross(g0, g1, g2, w0, w1, w2)
+    agw0, agw1, agw2 = _cross(a0, a1, a2, gw0, gw1, gw2)
+    scale = 2.0 * (d1 * (wa0 * g0 + wa1 * g1 + wa2 * g2) + d2 * (wwa0 * g0 + wwa1 * g1 + wwa2 * g2))
+    return (scale * w0 + c1 * ag0 + c2 * (wag0 + agw0), scale * w1 + c1 * ag1 + c2 * (wag1 + agw1),
+            scale * w2 + c1 * ag2 + c2 * (wag2 + agw2))
+
+
+@kernel
 def _forward(rays, dt, v, omega, rho, k, zmin, small, x, y):  # pragma: no cover - compiled
     for i in range(rays.shape[0]):
         p0, p1, p2, m0, m1, m2 = _point(float(rays[i, 0]), float(rays[i, 1]), float(rays[i, 2]), float(dt[i]), v,
@@ -106,28 +122,11 @@ def _backward(rays, dt, v, omega, rho, k, zmin, small, gx, gy, grad_v, grad_omeg
         grad_v[0] += f * (g0 - B * wg0 + C * wwg0)
         grad_v[1] += f * (g1 - B * wg1 + C * wwg1)
         grad_v[2] += f * (g2 - B * wg2 + C * wwg2)
-        # dL/dw: the rotated ray's terms, then rho times the moved part's
-        wr0, wr1, wr2 = _cross(w0, w1, w2, r0, r1, r2)
-        wwr0, wwr1, wwr2 = _cross(w0, w1, w2, wr0, wr1, wr2)
-        rg0, rg1, rg2 = _cross(r0, r1, r2, g0, g1, g2)
-        wrg0, wrg1, wrg2 = _cross(wr0, wr1, wr2, g0, g1, g2)
-        gw0, gw1, gw2 = _cross(g0, g1, g2, w0, w1, w2)
-        rgw0, rgw1, rgw2 = _cross(r0, r1, r2, gw0, gw1, gw2)
-        s_rot = 2.0 * (dA * (wr0 * g0 + wr1 * g1 + wr2 * g2) + dB * (wwr0 * g0 + wwr1 * g1 + wwr2 * g2))
-        d0 = s_rot * w0 + A * rg0 + B * (wrg0 + rgw0)
-        d1 = s_rot * w1 + A * rg1 + B * (wrg1 + rgw1)
-        d2 = s_rot * w2 + A * rg2 + B * (wrg2 + rgw2)
+        # dL/dw: the rotated ray's terms, then rho times the moved part's (the same form in u = v dt)
+        d0, d1, d2 = _twist_gradient(r0, r1, r2, w0, w1, w2, g0, g1, g2, A, B, dA, dB)
         if q != 0.0:
-            u0, u1, u2 = v[0] * t, v[1] * t, v[2] * t
-            wu0, wu1, wu2 = _cross(w0, w1, w2, u0, u1, u2)
-            wwu0, wwu1, wwu2 = _cross(w0, w1, w2, wu0, wu1, wu2)
-            ug0, ug1, ug2 = _cross(u0, u1, u2, g0, g1, g2)
-            wug0, wug1, wug2 = _cross(wu0, wu1, wu2, g0, g1, g2)
-            ugw0, ugw1, ugw2 = _cross(u0, u1, u2, gw0, gw1, gw2)
-            s_mov = 2.0 * (dB * (wu0 * g0 + wu1 * g1 + wu2 * g2) + dC * (wwu0 * g0 + wwu1 * g1 + wwu2 * g2))
-            d0 += q * (s_mov * w0 + B * ug0 + C * (wug0 + ugw0))
-            d1 += q * (s_mov * w1 + B * ug1 + C * (wug1 + ugw1))
-            d2 += q * (s_mov * w2 + B * ug2 + C * (wug2 + ugw2))
+            e0, e1, e2 = _twist_gradient(v[0] * t, v[1] * t, v[2] * t, w0, w1, w2, g0, g1, g2, B, C, dB, dC)
+            d0, d1, d2 = d0 + q * e0, d1 + q * e1, d2 + q * e2
         grad_omega[0] += t * d0
         grad_omega[1] += t * d1
         grad_omega[2] += t * d2
