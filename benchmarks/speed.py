@@ -123,6 +123,17 @@ def fresh_process_outputs(code: str, runs: int = 2, env: dict | None = None) -> 
                                check=True).stdout for _ in range(runs)]
 
 
+def first_calls_seconds(setup: str, call: str) -> dict[str, tuple[float, float]]:
+    """Seconds of the first and the second ``call`` (a Python expression) after ``setup`` (untimed), in a fresh
+    process with an empty numba cache and in a second one that loads it (:func:`fresh_process_outputs`):
+    ``{"compile (empty numba cache)": (first, second), "cached (numba cache on disk)": (first, second)}``."""
+    code = (f"{setup}\nimport time\ntimes = []\nfor _ in range(2):\n"
+            f"    start = time.perf_counter(); {call}; times.append(time.perf_counter() - start)\n"
+            "print(times[0], times[1])\n")
+    labels = ("compile (empty numba cache)", "cached (numba cache on disk)")
+    return {label: tuple(float(v) for v in out.split()[-2:]) for label, out in zip(labels, fresh_process_outputs(code))}
+
+
 def machine_info() -> dict:
     info = {
         "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),

@@ -176,19 +176,12 @@ def first_call_seconds(duration_s: float = 0.05) -> dict:
     Two child processes share a fresh ``NUMBA_CACHE_DIR``; each times its first
     and second call on a short slider sequence. The simulation is not timed.
     """
-    code = (
-        "import time; from benchmarks.speed_emvs import slider_sequence; from cmax.emvs import EMVS\n"
-        f"events, camera, poses, _ = slider_sequence({duration_s})\n"
-        "emvs = EMVS(camera, depth_range=(0.4, 3.0), n_planes=100)\n"
-        "times = []\n"
-        "for _ in range(2):\n"
-        "    start = time.perf_counter(); emvs.run(events, poses); times.append(time.perf_counter() - start)\n"
-        "print(times[0], times[1])\n"
-    )
-    from benchmarks.speed import fresh_process_outputs
+    from benchmarks.speed import first_calls_seconds
 
-    labels = ("compile (empty numba cache)", "cached (numba cache on disk)")
-    return {label: tuple(float(v) for v in out.split()[-2:]) for label, out in zip(labels, fresh_process_outputs(code))}
+    setup = ("from benchmarks.speed_emvs import slider_sequence; from cmax.emvs import EMVS\n"
+             f"events, camera, poses, _ = slider_sequence({duration_s})\n"
+             "emvs = EMVS(camera, depth_range=(0.4, 3.0), n_planes=100)")
+    return first_calls_seconds(setup, "emvs.run(events, poses)")
 
 
 def _accuracy(result, depth_gt) -> str:

@@ -104,22 +104,15 @@ def coarse_cost(args: tuple, kwargs: dict):
 def first_call_seconds(seed: int) -> dict:
     """Seconds of the first and second compiled sweep in fresh processes sharing a fresh numba cache
     (first process: compiling; second: loading the cache). The fit that records the call is not timed."""
-    code = (
-        "import time, torch; torch.set_num_threads(1)\n"
-        "from benchmarks.accuracy_cmax import windows\n"
-        "from benchmarks.speed_sweep import fresh_sweep, recorded_sweep, torch_reference\n"
-        f"w = windows('se3', {seed}, None)\n"
-        "with torch_reference():\n"
-        "    a, k = recorded_sweep(w)\n"
-        "times = []\n"
-        "for _ in range(2):\n"
-        "    t = time.perf_counter(); fresh_sweep(*a, **k); times.append(time.perf_counter() - t)\n"
-        "print(times[0], times[1])\n"
-    )
-    from benchmarks.speed import fresh_process_outputs
+    from benchmarks.speed import first_calls_seconds
 
-    labels = ("compile (empty numba cache)", "cached (numba cache on disk)")
-    return {label: tuple(float(v) for v in out.split()[-2:]) for label, out in zip(labels, fresh_process_outputs(code))}
+    setup = ("import torch; torch.set_num_threads(1)\n"
+             "from benchmarks.accuracy_cmax import windows\n"
+             "from benchmarks.speed_sweep import fresh_sweep, recorded_sweep, torch_reference\n"
+             f"w = windows('se3', {seed}, None)\n"
+             "with torch_reference():\n"
+             "    a, k = recorded_sweep(w)")
+    return first_calls_seconds(setup, "fresh_sweep(*a, **k)")
 
 
 def profile_lines(args: tuple, kwargs: dict, repeats: int = 3, top: int = 10) -> list[str]:
