@@ -58,13 +58,12 @@ def _cross(a0, a1, a2, b0, b1, b2):  # pragma: no cover - compiled
 
 
 @kernel
-def _point(r0, r1, r2, dt, v, omega, rho, small):  # pragma: no cover - compiled
-    """The warped point ``P`` (3 floats) and the pieces the gradient needs."""
-    w0, w1, w2 = omega[0] * dt, omega[1] * dt, omega[2] * dt
-    A, B, C, dA, dB, dC = _coefficients(w0 * w0 + w1 * w1 + w2 * w2, small)
+def _point(r0, r1, r2, w0, w1, w2, t, v, rho, A, B, C):  # pragma: no cover - compiled
+    """The warped point ``P`` and the moved part ``J(w) v dt`` (3 floats each) of a ray, for ``w = omega dt``
+    and its coefficients ``A, B, C``."""
     wr0, wr1, wr2 = _cross(w0, w1, w2, r0, r1, r2)
     wwr0, wwr1, wwr2 = _cross(w0, w1, w2, wr0, wr1, wr2)
-    u0, u1, u2 = v[0] * dt, v[1] * dt, v[2] * dt
+    u0, u1, u2 = v[0] * t, v[1] * t, v[2] * t
     wu0, wu1, wu2 = _cross(w0, w1, w2, u0, u1, u2)
     wwu0, wwu1, wwu2 = _cross(w0, w1, w2, wu0, wu1, wu2)
     m0, m1, m2 = u0 + B * wu0 + C * wwu0, u1 + B * wu1 + C * wwu1, u2 + B * wu2 + C * wwu2
@@ -93,8 +92,11 @@ def _twist_gradient(a0, a1, a2, w0, w1, w2, g0, g1, g2, c1, c2, d1, d2):  # prag
 @kernel
 def _forward(rays, dt, v, omega, rho, k, zmin, small, x, y):  # pragma: no cover - compiled
     for i in range(rays.shape[0]):
-        p0, p1, p2, m0, m1, m2 = _point(float(rays[i, 0]), float(rays[i, 1]), float(rays[i, 2]), float(dt[i]), v,
-                                        omega, float(rho[i]), small)
+        t = float(dt[i])
+        w0, w1, w2 = omega[0] * t, omega[1] * t, omega[2] * t
+        A, B, C, _, _, _ = _coefficients(w0 * w0 + w1 * w1 + w2 * w2, small)
+        p0, p1, p2, m0, m1, m2 = _point(float(rays[i, 0]), float(rays[i, 1]), float(rays[i, 2]), w0, w1, w2, t, v,
+                                        float(rho[i]), A, B, C)
         z = max(p2, zmin)
         x[i] = k[0] * (p0 / z) + k[1] * (p1 / z) + k[2]
         y[i] = k[3] * (p1 / z) + k[4]
@@ -105,7 +107,9 @@ def _backward(rays, dt, v, omega, rho, k, zmin, small, gx, gy, grad_v, grad_omeg
               ):  # pragma: no cover - compiled
     for i in range(rays.shape[0]):
         r0, r1, r2, t, q = float(rays[i, 0]), float(rays[i, 1]), float(rays[i, 2]), float(dt[i]), float(rho[i])
-        p0, p1, p2, m0, m1, m2 = _point(r0, r1, r2, t, v, omega, q, small)
+        w0, w1, w2 = omega[0] * t, omega[1] * t, omega[2] * t
+        A, B, C, dA, dB, dC = _coefficients(w0 * w0 + w1 * w1 + w2 * w2, small)
+        p0, p1, p2, m0, m1, m2 = _point(r0, r1, r2, w0, w1, w2, t, v, q, A, B, C)
         clamped = p2 < zmin
         z = zmin if clamped else p2
         ax, ay = float(gx[i]), float(gy[i])
@@ -113,8 +117,6 @@ def _backward(rays, dt, v, omega, rho, k, zmin, small, gx, gy, grad_v, grad_omeg
         g1 = (ax * k[1] + ay * k[3]) / z
         g2 = 0.0 if clamped else -(ax * (k[0] * p0 + k[1] * p1) + ay * k[3] * p1) / (z * z)
         grad_rho[i] = m0 * g0 + m1 * g1 + m2 * g2
-        w0, w1, w2 = omega[0] * t, omega[1] * t, omega[2] * t
-        A, B, C, dA, dB, dC = _coefficients(w0 * w0 + w1 * w1 + w2 * w2, small)
         # dL/dv = rho dt J^T g
         wg0, wg1, wg2 = _cross(w0, w1, w2, g0, g1, g2)
         wwg0, wwg1, wwg2 = _cross(w0, w1, w2, wg0, wg1, wg2)
