@@ -22,6 +22,7 @@ import torch
 from benchmarks.accuracy_cmax import _room, cached
 from benchmarks.synthetic_windows import preset_window
 from cmax.fitting import Verdict, fit
+from cmax.io.atomic import write_text_atomic
 
 #: A window whose fitted direction is farther than this from the truth [deg] is a bad one.
 BAD_DEG = 30.0
@@ -81,7 +82,7 @@ def main(argv: list[str] | None = None) -> None:
             f"`QualitySettings`. Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
             f"torch threads 1. Written by `python -m benchmarks.quality_cmax` in "
             f"{time.perf_counter() - start:.0f} s.", ""]
-    args.output.write_text("\n".join(head + [line for section in sections for line in section]))
+    write_text_atomic(args.output, "\n".join(head + [line for section in sections for line in section]))
 
 
 if __name__ == "__main__":

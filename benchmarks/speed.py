@@ -29,6 +29,8 @@ from typing import Callable
 
 import numpy as np
 
+from cmax.io.atomic import write_text_atomic
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 SECTIONS: dict[str, Callable[[argparse.Namespace], "Report"]] = {}
@@ -196,7 +198,7 @@ def write_report(report: Report, machine: dict) -> tuple[Path, Path]:
     RESULTS.mkdir(parents=True, exist_ok=True)
     stem = RESULTS / f"speed_{report.section}"
     payload = {"machine": machine, **asdict(report)}
-    stem.with_suffix(".json").write_text(json.dumps(payload, indent=2) + "\n")
+    write_text_atomic(stem.with_suffix(".json"), json.dumps(payload, indent=2) + "\n")
     command = report.config.get("command", f"python -m benchmarks.speed --section {report.section}")
     lines = [f"# {report.title}", "", f"Written by `{command}`; median of "
              f"{report.config.get('repeats')} runs after a warm-up.", ""]
@@ -215,7 +217,7 @@ def write_report(report: Report, machine: dict) -> tuple[Path, Path]:
         lines += ["", "## Checks (same run)", ""] + [f"- {k}: {v}" for k, v in report.checks.items()]
     if report.notes:
         lines += ["", "## Notes", ""] + [f"- {note}" for note in report.notes]
-    stem.with_suffix(".md").write_text("\n".join(lines) + "\n")
+    write_text_atomic(stem.with_suffix(".md"), "\n".join(lines) + "\n")
     return stem.with_suffix(".md"), stem.with_suffix(".json")
 
 

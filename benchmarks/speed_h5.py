@@ -40,6 +40,7 @@ import numpy as np
 
 from cmax.events import Events
 from cmax.io import H5Reader, H5Writer, read_h5
+from cmax.io.atomic import write_text_atomic
 
 RESULTS = Path(__file__).resolve().parent / "results"
 WIDTH, HEIGHT = 640, 480
@@ -178,7 +179,7 @@ def main(argv: list[str] | None = None) -> int:
         sections.append(run(count, args.repeats, keep))
     text = "\n".join(["# DSEC h5 reading against the h5py floor", ""] + sections)
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text(text)
+    write_text_atomic(args.output, text)
     print(text)
     return 0
 

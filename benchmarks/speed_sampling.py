@@ -26,6 +26,7 @@ from pathlib import Path
 import cv2
 
 from benchmarks.speed_simulator import DATA
+from cmax.io.atomic import write_text_atomic
 
 RESULTS = Path(__file__).resolve().parent / "results"
 
@@ -75,7 +76,7 @@ def main(argv: list[str] | None = None) -> int:
     text = "\n".join(lines) + "\n"
     print(text)
     if not args.no_write:
-        (RESULTS / "speed_sampling.md").write_text(text)
+        write_text_atomic(RESULTS / "speed_sampling.md", text)
     return 0
 
 

@@ -24,6 +24,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from cmax.io.atomic import write_text_atomic
 from cmax.sim.presets import PRESETS, make_scene
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -147,7 +148,7 @@ def main() -> None:
                   f"adaptive sampling lam=0.5, ESIM C=0.2, depth maps at 20 Hz): **{seconds:.1f} s** for "
                   f"{frames} rendered frames and {events:,} events (target: under 60 s for 2 s)."]
     args.output.parent.mkdir(parents=True, exist_ok=True)
-    args.output.write_text("\n".join(lines) + "\n")
+    write_text_atomic(args.output, "\n".join(lines) + "\n")
     print(f"wrote {args.output}")
 
 

@@ -23,6 +23,8 @@ from pathlib import Path
 
 import numpy as np
 
+from cmax.io.atomic import write_text_atomic
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -103,7 +105,7 @@ def main(argv: list[str] | None = None) -> int:
     text = "\n".join(lines) + "\n"
     print(text)
     if not args.no_write:
-        (RESULTS / "speed_threads.md").write_text(text)
+        write_text_atomic(RESULTS / "speed_threads.md", text)
     return 0
 
 

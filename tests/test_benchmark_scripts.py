@@ -63,7 +63,22 @@ def test_accuracy_fits_get_the_room_depth_range_and_the_default_range_rows_do_no
     for model in ("depth", "depth_default_range", "se3", "se3_default_range", "se3_gyro", "se3_gyro_bias"):
         accuracy_cmax.RUNS[model](window, 100)
     room = {"depth_range": (1.0, 6.5)}   # the indoor_flying preset's stated range
-    assert calls == [("depth", room), ("depth", {}), ("se3", room), ("se3", {}), ("se3", room), ("se3", room)]
+    judged = {"verdict": True}
+    assert calls == [("depth", room), ("depth", {}), ("se3", {**judged, **room}), ("se3", judged),
+                     ("se3", {**judged, **room}), ("se3", {**judged, **room})]
+
+
+def test_the_accuracy_report_gives_the_figures_over_the_windows_the_fit_called_ok():
+    results = [{"abs_rel": a, "seconds": 1.0, "verdict": v}
+               for a, v in [(0.1, "ok"), (0.9, "low_parallax"), (0.3, "ok"), (0.7, "ambiguous"), (0.2, "ok")]]
+    text = accuracy_cmax.summarise({"se3": results, "depth": [{"abs_rel": 0.05}] * 5}, list(range(100, 105)), 1.0)
+    # all five windows: median 0.3, p90 0.82 (numpy's linear interpolation between 0.7 and 0.9)
+    assert "| se3 | abs_rel | 0.300 | 0.820 | <= 0.2 | no / no |" in text
+    assert "| se3 | ambiguous 1, low_parallax 1, ok 3 |" in text
+    # the three ok windows (0.1, 0.2, 0.3): median 0.2, p90 0.28
+    assert "| se3 (ok, 3 of 5) | abs_rel | 0.200 | 0.280 | <= 0.2 | yes / no |" in text
+    assert "- se3 seed 101: abs_rel 0.900, seconds 1.000, verdict low_parallax" in text
+    assert "depth (ok" not in text   # no verdicts, no such rows
 
 
 def test_presets_benchmark_fits_every_preset_with_its_depth_range(monkeypatch, tmp_path):
