@@ -195,3 +195,24 @@ def test_accuracy_depth_figure_has_a_legend_a_colour_bar_of_the_ground_truth_sca
     title_rows = picture[:-height].reshape(-1, 3)
     assert (title_rows == viz.ON_BGR).all(axis=1).sum() >= 25   # the ON/OFF legend
     assert (title_rows == viz.OFF_BGR).all(axis=1).sum() >= 25
+
+
+def test_se3_variants_parse_dotted_settings_and_refuse_unknown_fields():
+    import pytest
+
+    from benchmarks.se3_variants import parse_variant, settings_of
+    from cmax.fitting import FitSettings
+
+    variant = parse_variant("refine.iterations=150, patch_flow.max_events=10000,low_parallax_px=2.5")
+    assert variant == {"refine.iterations": 150, "patch_flow.max_events": 10000, "low_parallax_px": 2.5}
+    base = FitSettings(depth_range=(1.0, 6.5))
+    s = settings_of(variant, base)
+    assert (s.refine.iterations, s.patch_flow.max_events, s.low_parallax_px) == (150, 10000, 2.5)
+    assert s.refine.max_events == base.refine.max_events and s.depth_range == (1.0, 6.5)
+    for bad in ("refine.iteration=3", "refines.iterations=3"):
+        with pytest.raises(ValueError, match="no field"):
+            settings_of(parse_variant(bad), base)
+    with pytest.raises(ValueError, match="refine.iterations must be"):
+        settings_of(parse_variant("refine.iterations=-1"), base)   # the dataclass's own validation
+    with pytest.raises(ValueError, match="field=value"):
+        parse_variant("refine.iterations")

@@ -72,7 +72,8 @@ def _single_input(args: argparse.Namespace) -> Path | None:
 def _image_folder(source: Path) -> Path | None:
     """The path :func:`cmax.sim.video.open_source` reads for an image sequence, or None if ``source`` is none.
 
-    * ECD: a folder holding ``images.txt`` (lines ``t images/frame_00000000.png``), or that file;
+    * ECD: a folder holding ``images.txt`` (lines ``t images/frame_00000000.png``), that file, or the
+      folder of images with ``images.txt`` in its parent;
     * rpg_vid2e / ESIM: a folder holding ``images/`` and ``timestamps.txt``, a folder of images with
       ``timestamps.txt`` in it or in its parent, or the ``timestamps.txt`` file.
     """
@@ -88,10 +89,13 @@ def _image_folder(source: Path) -> Path | None:
         return source / "images.txt"
     if (source / "images").is_dir() and (source / "timestamps.txt").is_file():
         return source / "images"
-    has_images = any(p.suffix.lower() in IMAGE_SUFFIXES for p in source.iterdir())
-    if has_images and any((folder / "timestamps.txt").is_file() for folder in (source, source.parent)):
+    if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in source.iterdir()):
+        return None
+    if (source / "timestamps.txt").is_file():
         return source
-    return None
+    if (source.parent / "images.txt").is_file():   # ECD's images/ (its lines name them from the parent)
+        return source.parent / "images.txt"
+    return source if (source.parent / "timestamps.txt").is_file() else None
 
 
 def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:

@@ -125,7 +125,7 @@ def read(
         events = read_raw(path, width=width, height=height, **options)
     else:
         if width is None or height is None:
-            raise ValueError(f"{path} ({kind}) stores no sensor size: pass width= and height=")
+            raise ValueError(f"{path} ({kind}) stores no sensor size: pass width= and height= (cmax: --size WxH)")
         if kind == "txt":
             events = read_txt(path, width=width, height=height, time_unit=time_unit, **options)
         else:

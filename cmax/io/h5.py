@@ -544,7 +544,7 @@ class H5Reader:
             width, height = int(attrs["width"]), int(attrs["height"])
         if width is None or height is None:
             raise FormatError(
-                f"{self.path} stores no sensor size; pass width= and height= (DSEC: 640, 480)"
+                f"{self.path} stores no sensor size; pass width= and height= (cmax: --size WxH; DSEC: 640x480)"
             )
         self.width, self.height = _check_sensor_size(width, height)
         self.time_unit = self._time_unit(time_unit)

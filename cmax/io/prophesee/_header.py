@@ -109,7 +109,7 @@ def _sensor_size(
     if size is None:
         raise FormatError(
             f"{path}: the header gives no sensor size (no 'format ...;width=;height=', "
-            "'geometry WxH' or known plugin_name line); pass width= and height="
+            "'geometry WxH' or known plugin_name line); pass width= and height= (cmax: --size WxH)"
         )
     try:
         return _check_sensor_size(*size)
