@@ -133,6 +133,8 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     (["--calib", "YAML", "--calib-camera", "left"], "no intrinsics/left"),
     (["--K", "60,60,32,24", "--gyro", "GYRO"], "do not overlap the events"),
     (["--K", "60,60,32,24", "--t0", "1", "--t1", "0.5"], "--t1 must be after --t0"),
+    (["--K", "60,60,32,24", "--t0", "0.2"], "--t0 0.2 s is past the recording's last event ("),
+    (["--K", "60,60,32,24", "-o", "CALIB"], "is a file, not a folder"),
     (["--K", "60,60,32,24", "--depth-range", "3,nan"], "argument --depth-range"),
     (["--K", "60,60,32,24", "--distortion", "1,2"], "argument --distortion"),
     (["--K", "60,60,32,24", "--size", "64;48"], "argument --size"),

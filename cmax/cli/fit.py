@@ -197,6 +197,9 @@ def run(args: argparse.Namespace) -> int:
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read, read_gyro
 
+    out = Path(args.output)
+    if out.exists() and not out.is_dir():
+        raise ValueError(f"-o {out} is a file, not a folder: give a folder for the depth maps and the summary")
     if args.calib is not None:
         if args.distortion is not None:
             raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
@@ -252,7 +255,6 @@ def run(args: argparse.Namespace) -> int:
     n_windows = len(range(int(events.t[0]), int(events.t[-1]) + 2 - window_us, step_us))
     for note in notes:
         print(f"cmax fit: note: {note}", file=sys.stderr)
-    out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     if args.jobs == 1:     # the bar ticks as each window is taken, i.e. when the one before is done
         source = _CountedWindows(events, tqdm(total=n_windows, desc="windows", unit="window", disable=args.quiet))
