@@ -209,12 +209,17 @@ def test_signed_polarity_in_a_dsec_file_is_refused_not_counted_as_on(tmp_path):
 
 def test_other_polarity_values_are_refused_in_either_encoding(tmp_path):
     path = _dsec(tmp_path / "two.h5", np.arange(4, dtype=np.int64), p=np.array([0, 2, 0, 2], np.uint8))
-    with pytest.raises(FormatError, match=r"polarity values \[0, 2\]"):
+    # values that fit neither encoding: no advice to pass the other one
+    with pytest.raises(FormatError, match=r"polarity values \[0, 2\].*fit neither 0/1 nor -1/\+1"):
         file_info(path)
-    with pytest.raises(FormatError, match=r"polarity values \[0, 2\]"):
+    with pytest.raises(FormatError, match=r"polarity values \[0, 2\].*fit neither 0/1 nor -1/\+1"):
         read_h5(path, polarity="signed")
     path = _dsec(tmp_path / "three.h5", np.arange(3, dtype=np.int64), p=np.array([-1, 0, 1], np.int8))
-    with pytest.raises(FormatError, match=r"polarity values \[-1, 0, 1\]"):
+    with pytest.raises(FormatError, match=r"polarity values \[-1, 0, 1\].*fit neither"):
+        read_h5(path, polarity="signed")
+    # values that fit the other encoding: that one is named
+    path = _dsec(tmp_path / "zero_one.h5", np.arange(2, dtype=np.int64), p=np.array([0, 1], np.int8))
+    with pytest.raises(FormatError, match=r"pass polarity='01' \(cmax: --polarity 01\)"):
         read_h5(path, polarity="signed")
     with pytest.raises(ValueError, match=r"polarity must be one of \('01', 'signed'\)"):
         read_h5(path, polarity="pm1")

@@ -155,10 +155,12 @@ def polarity_01(p: np.ndarray, encoding: str, where: str) -> np.ndarray:
     shown = values[:6].tolist()
     stated = "0 (OFF) / 1 (ON)" if encoding == "01" else "-1 (OFF) / +1 (ON)"
     other = "signed" if encoding == "01" else "01"
+    fits_other = set(values.tolist()) <= ({-1, 1} if other == "signed" else {0, 1})
+    advice = (f"pass polarity={other!r} (cmax: --polarity {other}) if the file stores that encoding" if fits_other
+              else "they fit neither 0/1 nor -1/+1: convert the column to one of them")
     raise FormatError(
         f"{where} holds the polarity values {shown}{' ...' if values.size > 6 else ''}, but the "
-        f"stated encoding is {stated}; pass polarity={other!r} (cmax: --polarity {other}) if the file "
-        "stores that encoding (polarities are never mapped silently)"
+        f"stated encoding is {stated}; {advice} (polarities are never mapped silently)"
     )
 
 
