@@ -256,7 +256,7 @@ def test_ctrl_c_leaves_no_orphan_process(tmp_path):
         from test_fit_batch import K_PLANE, approaching_plane
         import cmax
         if __name__ == "__main__":
-            windows = [approaching_plane(seed) for seed in range(8)]
+            windows = [approaching_plane(seed % 8) for seed in range(400)]   # far more work than the test waits
             print("fitting", flush=True)
             cmax.fit_windows(windows, K_PLANE, speed=4.0, depth_grid=(3, 4), jobs=2, progress=False)
             print("finished", flush=True)
