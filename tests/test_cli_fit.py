@@ -291,3 +291,20 @@ def test_an_h5_file_with_its_own_intrinsics_needs_no_K(tmp_path, capsys):
     assert main(["fit", str(scene), "-o", str(out), "--model", "flow", "--window-ms", "200", "--quiet"]) == 0
     summary = json.loads((out / "summary.json").read_text())
     np.testing.assert_array_equal(summary["K"], K)
+
+
+def test_the_advice_names_what_helps_when_half_the_windows_are_unmeasured():
+    from cmax.cli.fit import advice
+
+    counts = {"ok": 2, "ambiguous": 0, "resolved": 0, "low_parallax": 2, "failed": 0}
+    (line,) = advice(counts, "se3")
+    assert line.startswith("2 of 4 windows have too little parallax") and "--model rotation" in line
+    (line,) = advice(counts, "rotation")
+    assert "too little motion" in line and "--model rotation" not in line
+    assert advice({**counts, "low_parallax": 1}, "se3") == []            # 1 of 3: the windows mostly measure
+    ambiguous = {"ok": 1, "ambiguous": 3, "resolved": 1, "low_parallax": 0, "failed": 0}
+    (line,) = advice(ambiguous, "se3")                                    # 2 unresolved of 4
+    assert line.startswith("2 of 4 windows stay ambiguous") and "--omega 0,0,0" in line
+    (line,) = advice(ambiguous, "se3", rotation_known=True)
+    assert "--gyro" not in line and "longer --window-ms" in line
+    assert advice({**ambiguous, "resolved": 3}, "se3") == []               # all resolved by their neighbours

@@ -23,7 +23,7 @@ from cmax.cli.recording import (add_recording_arguments, distortion_argument, fi
                                 read_calibration, time_slice)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
-__all__ = ["add_command", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
+__all__ = ["add_command", "advice", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
 
 
 def add_command(subparsers) -> argparse.ArgumentParser:
@@ -176,6 +176,31 @@ def verdict_counts(counts: dict[str, int]) -> str:
             f"{counts['failed']} failed")
 
 
+def advice(counts: dict[str, int], model: str, rotation_known: bool = False) -> list[str]:
+    """What to try when at least half of the fitted windows are low parallax or ambiguous and unresolved (one
+    line each; none otherwise); ``rotation_known``: the run held the rotation (``--gyro``, ``--omega``).
+
+    >>> advice({"ok": 1, "ambiguous": 0, "resolved": 0, "low_parallax": 3, "failed": 0}, "se3")[0][:40]
+    '3 of 4 windows have too little parallax:'
+    >>> advice({"ok": 3, "ambiguous": 1, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3")
+    []
+    """
+    total = sum(counts[k] for k in ("ok", "ambiguous", "low_parallax", "failed"))
+    unresolved = counts["ambiguous"] - counts.get("resolved", 0)
+    lines = []
+    if total and 2 * counts["low_parallax"] >= total:
+        lines.append(f"{counts['low_parallax']} of {total} windows have too little "
+                     + ("parallax: their translation and depth are not measured; a longer --window-ms gives more "
+                        "parallax, --model rotation fits the rotation alone" if model == "se3" else
+                        "motion to measure: a longer --window-ms gives more"))
+    if total and model == "se3" and 2 * unresolved >= total:
+        known = "" if rotation_known else ("a known rotation (--gyro, or --omega 0,0,0 for a rig that does not "
+                                           "rotate) or ")
+        lines.append(f"{unresolved} of {total} windows stay ambiguous (an alternative motion scores as well): "
+                     f"{known}a longer --window-ms tells them apart")
+    return lines
+
+
 def window_line(index: int, result, first_us: int) -> str:
     """One window's verdict line: its time (seconds after the first event), verdict, reason, resolution."""
     t0, t1 = (result.t0_us - first_us) * 1e-6, (result.t1_us - first_us) * 1e-6
@@ -302,6 +327,8 @@ def run(args: argparse.Namespace) -> int:
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""
     print(f"{len(windows)} of {n_windows} windows fitted{skip}: {verdict_counts(sequence.counts())}; results in {out}")
+    for line in advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None):
+        print(f"cmax fit: note: {line}", file=sys.stderr)
     if not windows:
         print(f"cmax fit: no window was fitted: each has fewer than {min_events:,} events", file=sys.stderr)
         return 1
