@@ -23,6 +23,7 @@ import argparse
 import math
 import os
 import sys
+import warnings
 from typing import Any, Callable, Sequence
 
 __all__ = [
@@ -206,7 +207,8 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
     Bad arguments exit with status 2 from the parser (one line). A
     :data:`USER_ERRORS` exception of the command prints ``PROG: error: MESSAGE``
     on one line and returns 2; with ``--debug`` or ``CMAX_DEBUG=1`` it is
-    raised instead (the full traceback). ``KeyboardInterrupt`` returns 130
+    raised instead (the full traceback). A warning of the library prints as
+    ``PROG: warning: MESSAGE`` on one line (Python's format with ``--debug``). ``KeyboardInterrupt`` returns 130
     with one line. A closed stdout (``| head``) ends quietly with status 1. Any other exception is a
     bug and keeps its traceback.
     """
@@ -218,7 +220,11 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
         return 2
     debug = bool(getattr(args, "debug", False)) or os.environ.get(DEBUG_ENV, "") not in ("", "0")
     try:
-        return int(command(args) or 0)
+        with warnings.catch_warnings():
+            if not debug:   # a warning of the library: one line, no source file and line of code
+                warnings.showwarning = lambda message, *_, **__: print(
+                    f"{label}: warning: {one_line(str(message))}", file=sys.stderr)
+            return int(command(args) or 0)
     except BrokenPipeError:  # the reader of stdout left (cmax info ... | head): not an error of the input
         if debug:
             raise

@@ -1,0 +1,165 @@
+"""What a new user meets first: ``cmax scene``, ``cmax emvs`` and ``cmax demo`` refuse a mistake in one line
+that names the option to change, BEFORE the long work (simulating), and do what the README says on the files
+``cmax scene`` writes; a warning of the library is one line."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from cmax.cli import main as cmax_main
+
+
+def _one_line(call, capsys) -> tuple[int, str]:
+    try:
+        status = call()
+    except SystemExit as exit_:   # argparse
+        status = exit_.code
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    return status, err
+
+
+@pytest.fixture(scope="module")
+def slider_file(tmp_path_factory) -> Path:
+    """0.3 s of a small slider scene (64x48) with its ground truth (gt/K, gt/poses), as `cmax scene` writes it."""
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+
+    scene = make_scene("slider", seed=1, width=64, height=48, duration_s=1.0, texture_size=64)
+    sequence = simulate_scene(scene, 0.3, EventSimulator(**{**scene.recommended_simulator, "seed": 1}),
+                              depth_rate_hz=10)
+    return sequence.save(tmp_path_factory.mktemp("new_user") / "slider.h5")
+
+
+# -- cmax scene ------------------------------------------------------------------------------------
+@pytest.fixture
+def no_simulation(monkeypatch):
+    """Make simulating fail: a refusal must come before it (it took minutes before the error)."""
+    import cmax.sim.synthetic
+
+    def simulate(*args, **kwargs):
+        raise AssertionError("simulated before refusing the output")
+
+    monkeypatch.setattr(cmax.sim.synthetic, "simulate_scene", simulate)
+
+
+@pytest.mark.parametrize("output, extra, message", [
+    ("EXISTING", [], "exists: pass --overwrite to replace it"),
+    ("scene.txt", [], "cmax scene writes an HDF5 file: give a name ending in .h5"),
+    (".", [], "is a folder: give the file to write"),
+    ("missing/scene.h5", [], "the folder missing does not exist"),
+    ("scene.h5", ["--depth-rate", "1e9"], "asks for 100,000,001 depth maps of 64x48 over 0.1 s"),
+])
+def test_scene_refuses_its_output_before_simulating(tmp_path, capsys, monkeypatch, no_simulation, output, extra,
+                                                    message):
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "EXISTING").with_suffix(".h5").write_bytes(b"an earlier result")
+    output = "EXISTING.h5" if output == "EXISTING" else output
+    status, err = _one_line(lambda: cmax_main(["scene", "slider", "-o", output, "--duration", "0.1",
+                                               "--size", "64x48", *extra]), capsys)
+    assert status == 2 and message in err, err
+    assert (tmp_path / "EXISTING.h5").read_bytes() == b"an earlier result"
+
+
+def test_scene_depth_map_budget_is_the_memory_they_take():
+    from cmax.cli.scene import MAX_DEPTH_BYTES, check_depth_maps
+
+    maps = MAX_DEPTH_BYTES // (346 * 260 * 4)                # just fits: 11,930 maps of a DAVIS346
+    check_depth_maps((maps - 1) / 1000.0, 1000.0, 346, 260)
+    with pytest.raises(ValueError, match=f"asks for {maps + 1:,} depth maps of 346x260"):
+        check_depth_maps(maps / 1000.0, 1000.0, 346, 260)
+
+
+@pytest.mark.parametrize("option, value", [("--duration", "nan"), ("--duration", "0"), ("--cp", "-1"),
+                                           ("--cn", "inf")])
+def test_scene_numbers_are_refused_by_their_option_name(tmp_path, capsys, option, value):
+    status, err = _one_line(lambda: cmax_main(["scene", "slider", "-o", str(tmp_path / "s.h5"), option, value]),
+                            capsys)
+    assert status == 2 and f"argument {option}: expected a finite number > 0" in err
+
+
+# -- cmax emvs ---------------------------------------------------------------------------------------
+def test_emvs_uses_the_files_own_poses(slider_file, tmp_path, capsys):
+    """Without --poses an h5 file's gt/poses are the trajectory: the depth of cmax.EMVS run on those poses."""
+    import h5py
+
+    import cmax
+    from cmax.camera import Camera
+
+    with h5py.File(slider_file, "r") as file:
+        times, poses, K = file["gt/poses_t"][()], file["gt/poses"][()], file["gt/K"][()]
+    events = cmax.io.read(slider_file)
+    expected = cmax.EMVS(Camera(K, 64, 48), depth_range=(0.4, 3.0), n_planes=40).run(events, (times, poses))
+    assert cmax_main(["emvs", str(slider_file), "--depth-range", "0.4,3", "--planes", "40",
+                      "-o", str(tmp_path / "own")]) == 0
+    own = np.load(tmp_path / "own" / "depth.npz")
+    assert expected.mask.sum() > 0
+    np.testing.assert_array_equal(own["mask"], expected.mask)
+    np.testing.assert_array_equal(own["depth"], expected.depth)
+
+
+def test_emvs_without_poses_anywhere_says_how_to_give_them(tmp_path, capsys):
+    from cmax.io import write_h5
+    from conftest import random_events
+
+    bare = write_h5(tmp_path / "bare.h5", random_events(500, width=64, height=48))
+    status, err = _one_line(lambda: cmax_main(["emvs", str(bare), "--K", "60,60,32,24", "-o", str(tmp_path / "o")]),
+                            capsys)
+    assert status == 2 and "stores no poses (gt/poses): give them with --poses traj.txt" in err
+
+
+@pytest.mark.parametrize("argv, message", [
+    (["--poses", "FILE"], "is not a text file: expected a TUM trajectory"),      # the h5 given as the poses
+    (["-o", "FILE"], "is a file: give a folder for depth.npz"),
+    (["--t0", "5"], "--t0 5.0 s is past the last event"),
+    (["--planes", "1"], "argument --planes: expected a whole number >= 2"),
+    (["--depth-range", "3,0.4"], "0 < NEAR < FAR"),
+])
+def test_emvs_mistakes_name_the_option(slider_file, tmp_path, capsys, argv, message):
+    argv = [str(slider_file) if a == "FILE" else a for a in argv]
+    output = [] if "-o" in argv else ["-o", str(tmp_path / "o")]
+    status, err = _one_line(lambda: cmax_main(["emvs", str(slider_file), *output, *argv]), capsys)
+    assert status == 2 and message in err, err
+    assert not (tmp_path / "o").exists()
+
+
+# -- warnings of the library ---------------------------------------------------------------------------
+def test_a_library_warning_is_one_line_and_debug_shows_pythons_format(capsys):
+    import argparse
+    import warnings
+
+    from cmax._args import ArgumentParser, run_main
+
+    class FarWarning(UserWarning):
+        pass
+
+    def command(args: argparse.Namespace) -> int:
+        warnings.warn("the scene is\n far away", FarWarning)
+        return 0
+
+    assert run_main(ArgumentParser(prog="tool"), command, []) == 0
+    assert capsys.readouterr().err == "tool: warning: the scene is far away\n"
+    with pytest.warns(FarWarning, match="the scene is"):   # --debug: Python's own warning, left to its handler
+        assert run_main(ArgumentParser(prog="tool"), command, ["--debug"]) == 0
+    assert "tool: warning" not in capsys.readouterr().err
+
+
+# -- cmax demo -----------------------------------------------------------------------------------------
+@pytest.mark.parametrize("argv, message", [
+    (["--window", "2"], "--window must be in (0, --duration=0.5], got 2.0"),
+    (["--duration", "0.05"], "--window must be in (0, --duration=0.05], got 0.1665"),
+    (["--size", "8x8"], "--size width must be an integer >= 16, got 8"),
+    (["-o", "FILE"], "is a file: give a folder for the demo's h5 file and report"),
+])
+def test_demo_refusals_name_the_options(tmp_path, capsys, argv, message):
+    (tmp_path / "a.txt").write_text("notes")
+    argv = [str(tmp_path / "a.txt") if a == "FILE" else a for a in argv]
+    output = [] if "-o" in argv else ["-o", str(tmp_path / "demo")]
+    status, err = _one_line(lambda: cmax_main(["demo", *output, *argv]), capsys)
+    assert status == 2 and message in err, err
+    assert not (tmp_path / "demo").exists()
+
+
