@@ -365,6 +365,10 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     note = note or (lambda text: print(f"learned.predict: note: {text}", file=sys.stderr))
     if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
         raise ValueError(f"batch must be a whole number >= 1, got {batch!r}")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"the output {out} is a file: give a folder (for window_*.npz, window_*.png, "
+                              "twists.csv, summary.json)")
     checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
     model, config = load_model(checkpoint)   # first: a refused checkpoint writes nothing
     card = checkpoint_card(checkpoint)
@@ -396,7 +400,6 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         notes += [short] if short else []
         for text in notes:
             note(text)
-        out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
         lines, skipped = [_CSV_HEADER], 0
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:

@@ -42,7 +42,7 @@ from learned.model import DepthPoseNet, ModelConfig
 #: load of other processes; ``CMAX_TORCH_THREADS`` fixes it).
 THREAD_CHECK_EVERY = 25
 
-__all__ = ["batch_indices", "learning_rate", "twist_scale", "Trainer", "main"]
+__all__ = ["batch_indices", "learning_rate", "twist_scale", "Trainer", "check_output", "main"]
 
 
 def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[int]:
@@ -115,6 +115,12 @@ def _load_weights(model: DepthPoseNet, state: dict[str, torch.Tensor], source: s
                               f"({' '.join(str(error).split())[:300]})") from None
 
 
+def _no_window(dataset: H5WindowDataset) -> str:
+    """Why ``dataset`` holds no window, and what to change (the end of an error message)."""
+    return (f"each needs {dataset.window_us * 1e-3:g} ms of events (data.window_us) with at least 100 of them "
+            f"({dataset.skipped} window(s) had fewer); give longer recordings or a shorter data.window_us")
+
+
 class Trainer:
     """One training run (a rank of it under ``torchrun``); :meth:`run` trains to ``config.train.steps``."""
 
@@ -156,8 +162,13 @@ class Trainer:
         if self.world > 1:
             self.net = torch.nn.parallel.DistributedDataParallel(self.model, find_unused_parameters=True)
         dc = config.data
+        if not dc.files:
+            raise ValueError("data.files is empty: give the training event files, e.g. 'data.files=[\"a.h5\", "
+                             "\"b.h5\"]' (h5 files of cmax scene or cmax simulate)")
         self.dataset = H5WindowDataset(dc.files, window_us=dc.window_us, max_events=dc.max_events,
                                        bins=config.model.bins, augment=dc.augment, seed=tc.seed)
+        if len(self.dataset) == 0:
+            raise ValueError(f"data.files hold no window: {_no_window(self.dataset)}")
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model)
         self.validation = None
@@ -165,7 +176,7 @@ class Trainer:
             val = H5WindowDataset(dc.val_files, window_us=dc.window_us, max_events=dc.max_events,
                                   bins=config.model.bins, augment=False, seed=tc.seed)
             if len(val) == 0:
-                raise ValueError("data.val_files hold no window")
+                raise ValueError(f"data.val_files hold no window: {_no_window(val)}")
             picks = np.unique(np.linspace(0, len(val) - 1, min(dc.val_windows, len(val))).round().astype(int))
             self.validation = (val, picks.tolist())
         self.log = self._logger() if self.rank == 0 else None
@@ -322,20 +333,46 @@ class Trainer:
         return losses
 
 
+class _IntermixedParser(ArgumentParser):
+    """Takes the ``key=value`` overrides before, between and after the options (``train.steps=3 --resume
+    train.lr=1e-3``; a plain parser refused the ones after an option as unrecognized arguments)."""
+
+    def parse_args(self, args=None, namespace=None):  # noqa: D102 (argparse API)
+        return self.parse_intermixed_args(args, namespace)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status (2 and one line for a bad argument, config or checkpoint)."""
-    parser = ArgumentParser(prog="python -m learned.train", description=__doc__.splitlines()[0])
+    parser = _IntermixedParser(prog="python -m learned.train", description=__doc__.splitlines()[0])
     parser.add_argument("--mode", choices=("teacher", "finetune", "student"), required=True, help="what to train")
     parser.add_argument("--config", type=Path, default=None,
                         help="a .json or .toml config (default: the defaults of learned.config)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt when it exists")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="start afresh over an earlier run in train.out (its last.pt and log.jsonl replaced)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("overrides", nargs="*", help="section.key=value (e.g. train.steps=100)")
     return run_main(parser, _run, argv)
 
 
+def check_output(out: Path, *, resume: bool, overwrite: bool) -> None:
+    """Refuse ``train.out`` when it is a file, or when it holds an earlier run's ``last.pt`` and neither
+    ``--resume`` (continue it) nor ``--overwrite`` (replace it) says what to do with it."""
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"train.out {out} is a file: give a folder for last.pt, config.json and log.jsonl")
+    if resume and overwrite:
+        raise ValueError("--resume continues the run in train.out, --overwrite replaces it: give one of them")
+    if not resume and not overwrite and (out / "last.pt").is_file():
+        raise FileExistsError(f"{out / 'last.pt'} exists (an earlier run): --resume continues it, --overwrite "
+                              "starts afresh over it, or give another train.out=FOLDER")
+
+
 def _run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides, mode=args.mode)
+    out = Path(config.train.out)
+    check_output(out, resume=args.resume, overwrite=args.overwrite)
+    if args.overwrite and int(os.environ.get("RANK", "0")) == 0:
+        (out / "log.jsonl").unlink(missing_ok=True)   # the new run's learning curves alone
     trainer = Trainer(config, resume=args.resume, progress=not args.no_progress)
     losses = trainer.run()
     if trainer.rank == 0 and losses:

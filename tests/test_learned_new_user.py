@@ -1,0 +1,97 @@
+"""What a new user meets first in ``python -m learned.train`` and ``python -m learned.predict``: an earlier run
+is kept unless told, overrides may follow the options, and a mistake is one line that says what to do, before the
+model is loaded."""
+from __future__ import annotations
+
+from pathlib import Path
+
+import pytest
+
+
+def _one_line(call, capsys) -> tuple[int, str]:
+    try:
+        status = call()
+    except SystemExit as exit_:   # argparse
+        status = exit_.code
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    return status, err
+
+
+@pytest.fixture(scope="module")
+def slider_file(tmp_path_factory) -> Path:
+    """0.3 s of a small slider scene (64x48) with its ground truth (gt/K, gt/poses), as `cmax scene` writes it."""
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+
+    scene = make_scene("slider", seed=1, width=64, height=48, duration_s=1.0, texture_size=64)
+    sequence = simulate_scene(scene, 0.3, EventSimulator(**{**scene.recommended_simulator, "seed": 1}),
+                              depth_rate_hz=10)
+    return sequence.save(tmp_path_factory.mktemp("new_user") / "slider.h5")
+
+
+# -- python -m learned.train -------------------------------------------------------------------------------
+def _train(slider_file: Path, out: Path, *extra: str) -> list[str]:
+    return ["--mode", "teacher", "--no-progress", f'data.files=["{slider_file}"]', "train.val_every=0",
+            "train.steps=1", "train.batch_size=1", "model.width=2", "model.levels=1", "data.window_us=50000",
+            "data.max_events=500", f"train.out={out}", *extra]
+
+
+def test_train_keeps_an_earlier_run_unless_told(slider_file, tmp_path, capsys):
+    from learned.checkpoint import load_checkpoint
+    from learned.train import main
+
+    out = tmp_path / "run"
+    assert main(_train(slider_file, out)) == 0
+    first = (out / "last.pt").read_bytes()
+    status, err = _one_line(lambda: main(_train(slider_file, out)), capsys)
+    assert status == 2 and "last.pt exists (an earlier run): --resume continues it, --overwrite" in err
+    assert (out / "last.pt").read_bytes() == first
+    status, err = _one_line(lambda: main(_train(slider_file, out, "--resume", "--overwrite")), capsys)
+    assert status == 2 and "give one of them" in err
+    (out / "log.jsonl").write_text('{"step": 99}\n')
+    assert main(_train(slider_file, out, "--overwrite", "train.log_every=1")) == 0
+    assert load_checkpoint(out / "last.pt")["step"] == 1
+    assert '"step": 99' not in (out / "log.jsonl").read_text()   # the new run's curves alone
+    assert main(_train(slider_file, out, "--resume", "train.steps=2")) == 0
+    assert load_checkpoint(out / "last.pt")["step"] == 2
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["train.val_every=5"], "or turn validation off with train.val_every=0"),
+    (["data.files=[]"], "data.files is empty: give the training event files, e.g. 'data.files="),
+    (["data.window_us=2000000"], "data.files hold no window: each needs 2000 ms of events (data.window_us)"),
+    (["train.out=FILE"], "is a file: give a folder for last.pt"),
+])
+def test_train_mistakes_say_what_to_do(slider_file, tmp_path, capsys, extra, message):
+    from learned.train import main
+
+    extra = [f"train.out={slider_file}" if e == "train.out=FILE" else e for e in extra]
+    status, err = _one_line(lambda: main(_train(slider_file, tmp_path / "run", *extra)), capsys)
+    assert status == 2 and message in err, err
+    assert not (tmp_path / "run" / "last.pt").exists()
+
+
+# -- python -m learned.predict ----------------------------------------------------------------------------------
+def test_predict_refuses_a_file_as_output_before_loading_a_model(slider_file, tmp_path, capsys, monkeypatch):
+    import learned.evaluate
+    from learned.predict import main
+
+    monkeypatch.setattr(learned.evaluate, "load_model", lambda *a: (_ for _ in ()).throw(AssertionError("loaded")))
+    (tmp_path / "out.txt").write_text("notes")
+    status, err = _one_line(lambda: main([str(slider_file), "-o", str(tmp_path / "out.txt")]), capsys)
+    assert status == 2 and "out.txt is a file: give a folder" in err
+
+
+def test_a_checkpoint_folder_points_at_its_file(slider_file, tmp_path, capsys):
+    from learned.predict import main
+
+    (tmp_path / "run").mkdir()
+    status, err = _one_line(lambda: main([str(slider_file), "-o", str(tmp_path / "o"), "--checkpoint",
+                                          str(tmp_path / "run")]), capsys)
+    assert status == 2 and "it is a folder (it holds no .pt file)" in err
+    (tmp_path / "run" / "last.pt").write_bytes(b"x")
+    status, err = _one_line(lambda: main([str(slider_file), "-o", str(tmp_path / "o"), "--checkpoint",
+                                          str(tmp_path / "run")]), capsys)
+    assert status == 2 and f"give the file, e.g. {tmp_path / 'run' / 'last.pt'}" in err
