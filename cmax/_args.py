@@ -22,6 +22,7 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import sys
 import warnings
 from typing import Any, Callable, Sequence
@@ -170,6 +171,11 @@ class HelpFormatter(argparse.HelpFormatter):
         return f"{text} (default: {_shown(value, action.metavar).replace('%', '%%')})"
 
 
+_NUMBER = r"(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
+#: Arguments that are numbers, the first negative: ``-5``, ``-0.1,0,0``, ``-1e-3,2``.
+_NEGATIVE_NUMBERS = re.compile(rf"^-{_NUMBER}(,[-+]?{_NUMBER})*$")
+
+
 class ArgumentParser(argparse.ArgumentParser):
     """An ``argparse`` parser whose errors are one line (``PROG: error: MESSAGE (see PROG --help)``), exit 2.
 
@@ -180,6 +186,9 @@ class ArgumentParser(argparse.ArgumentParser):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
+        # a value such as -0.1,0,0 (--omega) or -1e-3 is a value, not an unknown option: argparse's own
+        # pattern takes only -5 and -.5, and said 'expected one argument' for the others
+        self._negative_number_matcher = _NEGATIVE_NUMBERS
         self.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                           help=f"show the traceback of an error (also: {DEBUG_ENV}=1)")
 

@@ -163,3 +163,20 @@ def test_demo_refusals_name_the_options(tmp_path, capsys, argv, message):
     assert not (tmp_path / "demo").exists()
 
 
+
+
+# -- negative numbers as values ------------------------------------------------------------------------------
+def test_comma_separated_values_may_start_negative(capsys):
+    """``--omega -0.1,0,0`` is a value (argparse took it for an unknown option: 'expected one argument')."""
+    from cmax.cli import build_parser
+
+    parser = build_parser()
+    base = ["fit", "a.h5", "--K", "60,60,32,24", "-o", "out"]
+    assert parser.parse_args([*base, "--omega", "-0.1,0,0"]).omega == (-0.1, 0.0, 0.0)
+    assert parser.parse_args([*base, "--omega", "-1e-3,-2,+3"]).omega == (-0.001, -2.0, 3.0)
+    status, err = _one_line(lambda: cmax_main(["emvs", "a.h5", "-o", "o", "--K", "-100,100,60,45"]), capsys)
+    assert status == 2 and "K must have positive focal lengths" in err
+    status, err = _one_line(lambda: cmax_main(["emvs", "a.h5", "-o", "o", "--depth-range", "-1,1"]), capsys)
+    assert status == 2 and "0 < NEAR < FAR" in err
+    status, err = _one_line(lambda: cmax_main([*base, "-x"]), capsys)   # an option is still an option
+    assert status == 2 and "unrecognized arguments: -x" in err
