@@ -180,3 +180,42 @@ def test_comma_separated_values_may_start_negative(capsys):
     assert status == 2 and "0 < NEAR < FAR" in err
     status, err = _one_line(lambda: cmax_main([*base, "-x"]), capsys)   # an option is still an option
     assert status == 2 and "unrecognized arguments: -x" in err
+
+
+def test_emvs_takes_a_calibration_file_and_a_time_unit(slider_file, tmp_path, capsys):
+    """``--calib calib.txt`` (ECD) gives the same depth as ``--K``; a .npy of float seconds needs --time-unit,
+    which cmax emvs now has (it had neither: 'unrecognized arguments')."""
+    import h5py
+
+    import cmax
+
+    with h5py.File(slider_file, "r") as file:
+        K = file["gt/K"][()]
+    numbers = [repr(float(v)) for v in (K[0, 0], K[1, 1], K[0, 2], K[1, 2])]
+    (tmp_path / "calib.txt").write_text(" ".join(numbers) + "\n")
+    events = cmax.io.read(slider_file)
+    table = np.zeros(len(events), dtype=[("t", "<f8"), ("x", "<u2"), ("y", "<u2"), ("p", "i1")])
+    table["t"], table["x"], table["y"], table["p"] = events.t * 1e-6, events.x, events.y, events.p
+    np.save(tmp_path / "events.npy", table)
+    from cmax.cli.fit import tum_lines
+
+    with h5py.File(slider_file, "r") as file:
+        (tmp_path / "traj.txt").write_text("\n".join(tum_lines(file["gt/poses_t"][()], file["gt/poses"][()])) + "\n")
+    common = ["--depth-range", "0.4,3", "--planes", "40", "--poses", str(tmp_path / "traj.txt")]
+    assert cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "k"), *common]) == 0
+    assert cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "calib"), "--calib", str(tmp_path / "calib.txt"),
+                      *common]) == 0
+    status, err = _one_line(lambda: cmax_main(["emvs", str(tmp_path / "events.npy"), "-o", str(tmp_path / "npy"),
+                                               "--size", "64x48", *common]), capsys)
+    assert status == 2 and "time_unit=" in err   # (cmax.io names the keyword, not --time-unit)
+    assert cmax_main(["emvs", str(tmp_path / "events.npy"), "-o", str(tmp_path / "npy"), "--size", "64x48",
+                      "--time-unit", "s", "--K", ",".join(numbers),
+                      *common]) == 0
+    by_k, by_calib, by_npy = (np.load(tmp_path / name / "depth.npz") for name in ("k", "calib", "npy"))
+    assert by_k["mask"].sum() > 0
+    for other in (by_calib, by_npy):
+        np.testing.assert_array_equal(other["mask"], by_k["mask"])
+        np.testing.assert_array_equal(other["depth"], by_k["depth"])
+    status, err = _one_line(lambda: cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "o"), "--calib",
+                                               str(tmp_path / "calib.txt"), "--distortion", "0,0,0,0"]), capsys)
+    assert status == 2 and "pass --calib or --K with --distortion, not both" in err

@@ -16,8 +16,9 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax._args import api_default, float_list, nonnegative_float, positive_int, sensor_size
-from cmax.cli.recording import distortion_argument, file_intrinsics, intrinsics_argument, time_slice
+from cmax._args import api_default, float_list, nonnegative_float, positive_int
+from cmax.cli.recording import (add_file_options, distortion_argument, file_intrinsics, file_kwargs,
+                                intrinsics_argument, read_calibration, time_slice)
 from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_command", "run", "camera_for", "file_trajectory", "output_folder"]
@@ -61,10 +62,17 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--poses", type=Path, default=None,
                         help="TUM trajectory file (default: gt/poses of an h5 file, as cmax scene writes it)")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
-    parser.add_argument("--K", type=intrinsics_argument, default=None,
+    camera = parser.add_mutually_exclusive_group()
+    camera.add_argument("--K", type=intrinsics_argument, default=None,
                         help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file)")
+    camera.add_argument("--calib", type=Path, default=None,
+                        help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
+                             "k3) or DSEC cam_to_cam.yaml (intrinsics of --calib-camera)")
+    parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
+                        help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
+                             "(rectified events)")
     parser.add_argument("--distortion", type=distortion_argument, default=None,
-                        help="OpenCV k1,k2,p1,p2[,k3] (default: none, a pinhole camera)")
+                        help="OpenCV k1,k2,p1,p2[,k3] of --K (default: none, a pinhole camera)")
     api_default(parser.add_argument("--depth-range", type=_depth_range, default=None, metavar="NEAR,FAR",
                                     help="depth range of the planes [m]"), _emvs_default("depth_range"))
     api_default(parser.add_argument("--planes", type=_planes, default=None, help="number of depth planes (>= 2)"),
@@ -73,8 +81,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="start, seconds after the first event (default: the first event)")
     parser.add_argument("--t1", type=nonnegative_float, default=None,
                         help="end, seconds after the first event (default: the last event)")
-    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
-                        help="sensor size, for files that do not store it (ECD text, .npy)")
+    add_file_options(parser)   # --size, --time-unit, --polarity
     parser.set_defaults(run=run)
     return parser
 
@@ -122,17 +129,30 @@ def run(args: argparse.Namespace) -> int:
 
     out = output_folder(Path(args.output))
     trajectory = None if args.poses is None else read_tum_trajectory(args.poses)   # a bad file: before the events
-    width, height = args.size if args.size else (None, None)
-    events = read(args.file, width=width, height=height)
+    K, distortion, calib_size = args.K, args.distortion, None
+    if args.calib is not None:
+        if args.distortion is not None:
+            raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
+        K, distortion, calib_size = read_calibration(args.calib, args.calib_camera)
+    options = file_kwargs(args)
+    try:
+        events = read(args.file, **options)
+    except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
+        if calib_size is None or args.size is not None or "width=" not in str(error):
+            raise
+        events = read(args.file, **{**options, "width": calib_size[0], "height": calib_size[1]})
     if len(events) == 0:
         raise ValueError(f"{args.file} holds no events")
+    if calib_size is not None and (events.width, events.height) != tuple(calib_size):
+        raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
+                         f"the events come from a {events.width}x{events.height} sensor")
     if trajectory is None:
         trajectory = file_trajectory(args.file)
         if trajectory is None:
             raise ValueError(f"{args.file} stores no poses (gt/poses): give them with --poses traj.txt (TUM: "
                              "t[s] tx ty tz qx qy qz qw, camera-to-world, e.g. the trajectory.txt of cmax fit)")
     events = time_slice(events, args.t0, args.t1)
-    camera = camera_for(args.file, events.width, events.height, args.K, args.distortion)
+    camera = camera_for(args.file, events.width, events.height, K, distortion)
     options = {key: value for key, value in (("depth_range", args.depth_range), ("n_planes", args.planes))
                if value is not None}   # None: EMVS's own default
     result = EMVS(camera, **options).run(events, trajectory)

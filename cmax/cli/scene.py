@@ -54,10 +54,10 @@ def check_depth_maps(duration_s: float, rate_hz: float, width: int, height: int)
     ``duration_s``) would take more than :data:`MAX_DEPTH_BYTES`, before any is rendered.
 
     >>> check_depth_maps(2.0, 20.0, 346, 260)   # 41 maps, 15 MB
-    >>> check_depth_maps(0.1, 1e9, 64, 48)
+    >>> check_depth_maps(0.1, 1e9, 64, 48)  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    ValueError: --depth-rate 1e+09 Hz asks for 100,000,001 depth maps of 64x48 over 0.1 s (1.1 TiB); they must fit in 4 GiB: give a lower rate
+    ValueError: --depth-rate 1e+09 Hz asks for 100,000,001 depth maps of 64x48 over 0.1 s (1.1 TiB); ...
     """
     maps = int(duration_s * rate_hz + 1e-9) + 1
     size = maps * width * height * 4
@@ -115,7 +115,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--cp", type=positive_float, default=None, help="ON threshold (default: the preset's)")
     parser.add_argument("--cn", type=positive_float, default=None, help="OFF threshold (default: the preset's)")
     api_default(parser.add_argument("--depth-rate", type=positive_float, default=None,
-                                    help="ground-truth depth maps per second (all held in memory: at most 4 GiB of them)"),
+                                    help="ground-truth depth maps per second (held in memory: 4 GiB of them at most)"),
                 depth_rate)
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
     parser.set_defaults(run=run)
