@@ -42,7 +42,7 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
-           "write_window", "run_prediction", "predict_file", "add_arguments", "run", "main"]
+           "write_window", "earlier_results", "run_prediction", "predict_file", "add_arguments", "run", "main"]
 
 #: Windows with fewer events are skipped (counted in the summary).
 MIN_EVENTS = 10
@@ -315,6 +315,16 @@ class DepthRun:
                 f"({rate:.1f} windows/s); results in {self.output}")
 
 
+def earlier_results(out: Path) -> list[Path]:
+    """The files of an earlier :func:`run_prediction` in the folder ``out`` (``window_<k>.npz`` / ``.png``,
+    ``twists.csv``, ``summary.json``); empty when there are none (or no folder)."""
+    if not out.is_dir():
+        return []
+    named = [out / "twists.csv", out / "summary.json"]
+    return sorted([path for path in named if path.is_file()] + [path for pattern in ("window_*.npz", "window_*.png")
+                                                               for path in out.glob(pattern) if path.is_file()])
+
+
 def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarray:
     if K is not None:
         return np.asarray(K, float)
@@ -329,7 +339,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                    size: tuple[int, int] | None = None, time_unit: str | None = None, polarity: str | None = None,
                    t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
                    depth_range: tuple[float, float] | None = None, batch: int = 8, progress: bool = True,
-                   note: Callable[[str], None] | None = None) -> DepthRun:
+                   note: Callable[[str], None] | None = None, overwrite: bool = False) -> DepthRun:
     """Predict depth and twist for every window of the event file ``path`` into the folder ``out``.
 
     Parameters
@@ -350,6 +360,9 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         Windows per forward pass.
     note : callable, optional
         Receives each note (default: printed on stderr).
+    overwrite : bool
+        Replace the results of an earlier run in ``out`` (its ``window_*`` files, ``twists.csv``,
+        ``summary.json``); without it such a folder is refused, as its windows would mix with this run's.
 
     Raises FileNotFoundError, ValueError (including :class:`cmax.io.FormatError` and
     :class:`learned.checkpoint.CheckpointError`) with a one-line message for every input a user can get wrong.
@@ -369,6 +382,11 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"the output {out} is a file: give a folder (for window_*.npz, window_*.png, "
                               "twists.csv, summary.json)")
+    earlier = earlier_results(out)
+    if earlier and not overwrite:
+        raise FileExistsError(f"{out} holds the results of an earlier run ({len(earlier)} files: window_*.npz, "
+                              "twists.csv, ...) that would mix with this run's: --overwrite replaces them, or give "
+                              "another -o")
     checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
     model, config = load_model(checkpoint)   # first: a refused checkpoint writes nothing
     card = checkpoint_card(checkpoint)
@@ -401,6 +419,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         for text in notes:
             note(text)
         out.mkdir(parents=True, exist_ok=True)
+        for path in earlier:   # --overwrite: the earlier run's files only, once this run's inputs are checked
+            path.unlink(missing_ok=True)
         lines, skipped = [_CSV_HEADER], 0
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
             for prediction in predict_windows(model, recording.window, starts, window_us, batch=batch,
@@ -463,6 +483,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         "(default: the model's output range)")
     parser.add_argument("--batch", type=positive_int, default=8, help="windows per forward pass")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the results of an earlier run in the output folder (else refused)")
     return parser
 
 
@@ -473,7 +495,8 @@ def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> i
         calib_camera=args.calib_camera, size=args.size, time_unit=args.time_unit, polarity=args.polarity,
         t0_s=args.t0, t1_s=args.t1, window_s=args.window,
         depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
-        progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr))
+        progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),
+        overwrite=args.overwrite)
     print(result.summary_line())
     return 0
 

@@ -95,3 +95,32 @@ def test_a_checkpoint_folder_points_at_its_file(slider_file, tmp_path, capsys):
     status, err = _one_line(lambda: main([str(slider_file), "-o", str(tmp_path / "o"), "--checkpoint",
                                           str(tmp_path / "run")]), capsys)
     assert status == 2 and f"give the file, e.g. {tmp_path / 'run' / 'last.pt'}" in err
+
+
+def test_predict_keeps_an_earlier_runs_windows_from_mixing_with_new_ones(slider_file, tmp_path, capsys):
+    """A second run into the same folder with another window left the first run's window files beside the
+    new twists.csv; now it is refused, and --overwrite replaces them (only once its inputs are checked)."""
+    import json
+
+    from learned.checkpoint import rng_state, save_checkpoint
+    from learned.config import Config, DataConfig
+    from learned.model import DepthPoseNet, ModelConfig
+    from learned.predict import main
+
+    config = Config(model=ModelConfig(width=2, levels=1), data=DataConfig(window_us=50_000))
+    checkpoint = save_checkpoint(tmp_path / "tiny.pt", {"model": DepthPoseNet(config.model).state_dict(),
+                                                        "optimizer": {}, "step": 0, "config": config.to_dict(),
+                                                        "rng": rng_state()})
+    out = tmp_path / "out"
+    base = [str(slider_file), "-o", str(out), "--checkpoint", str(checkpoint), "--quiet"]
+    assert main(base) == 0
+    first = sorted(p.name for p in out.iterdir())
+    assert len([name for name in first if name.endswith(".npz")]) == 5          # 0.3 s in windows of 50 ms
+    status, err = _one_line(lambda: main([*base, "--window", "0.2"]), capsys)
+    assert status == 2 and "holds the results of an earlier run" in err and "--overwrite replaces them" in err
+    status, err = _one_line(lambda: main([*base, "--window", "5", "--overwrite"]), capsys)  # refused: kept
+    assert status == 2 and sorted(p.name for p in out.iterdir()) == first
+    assert main([*base, "--window", "0.2", "--overwrite"]) == 0
+    assert sorted(p.name for p in out.iterdir()) == ["summary.json", "twists.csv", "window_00000.npz",
+                                                     "window_00000.png"]
+    assert json.loads((out / "summary.json").read_text())["windows"] == 1
