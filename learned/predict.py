@@ -503,7 +503,11 @@ def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> i
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status (2 and one line for a bad argument or file)."""
-    parser = add_arguments(ArgumentParser(prog="python -m learned.predict", description=__doc__.splitlines()[0]))
+    parser = add_arguments(ArgumentParser(
+        prog="python -m learned.predict",
+        description="Depth [m] and twist of every window of an event file by the depth-pose network (the shipped "
+        "model, or --checkpoint): window_<k>.npz and .png, twists.csv, summary.json in the output folder; the same "
+        "command as cmax depth (docs/learned.md)."))
     return run_main(parser, run, argv)
 
 

@@ -343,7 +343,12 @@ class _IntermixedParser(ArgumentParser):
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status (2 and one line for a bad argument, config or checkpoint)."""
-    parser = _IntermixedParser(prog="python -m learned.train", description=__doc__.splitlines()[0])
+    parser = _IntermixedParser(
+        prog="python -m learned.train",
+        description="Train the depth-pose network: --mode teacher (supervised, files with ground truth), finetune "
+        "(the teacher's weights, contrast loss) or student (a fresh network, contrast + the frozen teacher). "
+        "section.key=value overrides of the config may stand anywhere on the line (e.g. "
+        "'data.files=[\"a.h5\"]' train.steps=100 train.out=runs/teacher); see docs/learned.md.")
     parser.add_argument("--mode", choices=("teacher", "finetune", "student"), required=True, help="what to train")
     parser.add_argument("--config", type=Path, default=None,
                         help="a .json or .toml config (default: the defaults of learned.config)")

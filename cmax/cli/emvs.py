@@ -57,7 +57,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
         description="EMVS (Rebecq et al., IJCV 2018): vote the events into a Disparity Space Image on the "
         "reference view at the middle of their time span, using the poses of a TUM trajectory file "
         "(t[s] tx ty tz qx qy qz qw, camera-to-world, on the events' clock: what `cmax fit` writes, or "
-        "ground truth); write depth.npz, depth.png and points.ply to the output folder.")
+        "ground truth) or, without --poses, the file's own gt/poses (cmax scene); write depth.npz, depth.png "
+        "and points.ply to the output folder.")
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
     parser.add_argument("--poses", type=Path, default=None,
                         help="TUM trajectory file (default: gt/poses of an h5 file, as cmax scene writes it)")
