@@ -174,10 +174,22 @@ def _card_numbers(card: dict, key: str, count: int, where: str) -> list[float] |
 
 def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, where: str = "the card") -> list[str]:
     """Notes on how this camera differs from the one the network was trained with (from its card:
-    ``"size": [W, H]`` [px], ``"K": [fx, fy, cx, cy]`` [px]); empty when they agree or nothing is recorded."""
-    if not card:
-        return []
+    ``"size": [W, H]`` [px], ``"K": [fx, fy, cx, cy]`` [px]), and on a principal point off this sensor (the
+    intrinsics of another camera?); empty when they agree or nothing is recorded.
+
+    >>> K = np.array([[200.0, 0, 32], [0, 200, 24], [0, 0, 1]])
+    >>> camera_notes(None, 64, 48, K), len(camera_notes(None, 1280, 720, K))
+    ([], 0)
+    >>> camera_notes(None, 32, 24, np.array([[200.0, 0, 640], [0, 200, 360], [0, 0, 1]]))[0][:56]
+    'the principal point (640.0, 360.0) px lies off the 32x24'
+    """
     notes = []
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        notes.append(f"the principal point ({cx:.1f}, {cy:.1f}) px lies off the {width}x{height} sensor: are these "
+                     "the intrinsics of this camera?")
+    if not card:
+        return notes
     size = _card_numbers(card, "size", 2, where)
     if size is not None and (int(size[0]), int(size[1])) != (width, height):
         notes.append(f"the network was trained on a {int(size[0])}x{int(size[1])} sensor, this file is {width}x{height}: "

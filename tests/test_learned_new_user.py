@@ -124,3 +124,22 @@ def test_predict_keeps_an_earlier_runs_windows_from_mixing_with_new_ones(slider_
     assert sorted(p.name for p in out.iterdir()) == ["summary.json", "twists.csv", "window_00000.npz",
                                                      "window_00000.png"]
     assert json.loads((out / "summary.json").read_text())["windows"] == 1
+
+
+def test_predict_notes_a_principal_point_off_the_sensor(slider_file, tmp_path, capsys):
+    """--K of another camera (here a 1280x720 one on a 64x48 file) is noted, not taken silently."""
+    from learned.checkpoint import rng_state, save_checkpoint
+    from learned.config import Config, DataConfig
+    from learned.model import DepthPoseNet, ModelConfig
+    from learned.predict import main
+
+    config = Config(model=ModelConfig(width=2, levels=1), data=DataConfig(window_us=50_000))
+    checkpoint = save_checkpoint(tmp_path / "tiny.pt", {"model": DepthPoseNet(config.model).state_dict(),
+                                                        "optimizer": {}, "step": 0, "config": config.to_dict(),
+                                                        "rng": rng_state()})
+    base = [str(slider_file), "--checkpoint", str(checkpoint), "--quiet"]
+    assert main([*base, "-o", str(tmp_path / "a"), "--K", "60,60,32,24"]) == 0
+    assert "principal point" not in capsys.readouterr().err
+    assert main([*base, "-o", str(tmp_path / "b"), "--K", "900,900,640,360"]) == 0
+    assert ("note: the principal point (640.0, 360.0) px lies off the 64x48 sensor: are these the intrinsics of "
+            "this camera?") in capsys.readouterr().err
