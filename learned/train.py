@@ -169,6 +169,10 @@ class Trainer:
                                        bins=config.model.bins, augment=dc.augment, seed=tc.seed)
         if len(self.dataset) == 0:
             raise ValueError(f"data.files hold no window: {_no_window(self.dataset)}")
+        if config.mode == "teacher" and all(gt is None for gt in self.dataset._gt):
+            raise ValueError("--mode teacher learns from ground-truth depth (gt/depth, as cmax scene writes it) and "
+                             "none of data.files holds it (or each says use_gt: false): its loss would be 0 at every "
+                             "step; give labelled files, or train --mode finetune / student on unlabelled ones")
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model)
         self.validation = None

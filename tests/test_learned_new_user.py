@@ -143,3 +143,18 @@ def test_predict_notes_a_principal_point_off_the_sensor(slider_file, tmp_path, c
     assert main([*base, "-o", str(tmp_path / "b"), "--K", "900,900,640,360"]) == 0
     assert ("note: the principal point (640.0, 360.0) px lies off the 64x48 sensor: are these the intrinsics of "
             "this camera?") in capsys.readouterr().err
+
+
+def test_teacher_refuses_files_without_ground_truth(slider_file, tmp_path, capsys):
+    """--mode teacher on unlabelled files trained with a loss of 0 at every step (a run that looks fine)."""
+    import cmax
+    from cmax.io import write_h5
+    from learned.train import main
+
+    bare = write_h5(tmp_path / "bare.h5", cmax.io.read(slider_file))   # the same events, no gt/
+    status, err = _one_line(lambda: main(_train(bare, tmp_path / "run")), capsys)
+    assert status == 2 and 'has no gt/K: give its intrinsics with it, {"path": ' in err
+    entry = f'data.files=[{{"path": "{bare}", "K": [60, 60, 32, 24]}}]'
+    status, err = _one_line(lambda: main(_train(bare, tmp_path / "run", entry)), capsys)
+    assert status == 2 and "--mode teacher learns from ground-truth depth" in err and "its loss would be 0" in err
+    assert not (tmp_path / "run" / "last.pt").exists()
