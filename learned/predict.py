@@ -42,7 +42,7 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
-           "write_window", "earlier_results", "run_prediction", "predict_file", "add_arguments", "run", "main"]
+           "window_picture", "write_window", "earlier_results", "run_prediction", "predict_file", "add_arguments", "run", "main"]
 
 #: Windows with fewer events are skipped (counted in the summary).
 MIN_EVENTS = 10
@@ -291,6 +291,27 @@ def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"
                 yield WindowPrediction(index, t0, t0 + window_us, len(events), inverse, twist)
 
 
+#: Narrowest depth picture [px]: a smaller sensor's map is shown enlarged (each pixel a block), so that its title
+#: and colour bar stay readable.
+MIN_PICTURE_WIDTH = 320
+
+
+def window_picture(depth: np.ndarray, scale, title: str) -> np.ndarray:
+    """The picture of a window's depth (H, W) [m]: :func:`cmax.viz.depth_panel` on ``scale``, each pixel a
+    ``z x z`` block when the sensor is narrower than :data:`MIN_PICTURE_WIDTH` (``z`` the smallest whole
+    factor that reaches it).
+
+    >>> window_picture(np.ones((48, 64), np.float32), (0.5, 60.0), "depth").shape[1] >= 5 * 64
+    True
+    """
+    from cmax import viz
+
+    zoom = -(-MIN_PICTURE_WIDTH // depth.shape[1])
+    if zoom > 1:
+        depth = np.repeat(np.repeat(depth, zoom, axis=0), zoom, axis=1)
+    return viz.depth_panel(depth, scale, title)
+
+
 def write_window(out: Path, prediction: WindowPrediction, K: np.ndarray, scale) -> str:
     """Write ``window_<k>.npz`` and ``window_<k>.png`` (atomically) into ``out``; returns the window's
     ``twists.csv`` line. ``scale``: the run's :class:`cmax.viz.DepthScale`."""
@@ -304,7 +325,7 @@ def write_window(out: Path, prediction: WindowPrediction, K: np.ndarray, scale) 
                     twist=p.twist.astype(np.float32), t0_us=np.int64(p.t0_us), t1_us=np.int64(p.t1_us),
                     K=np.asarray(K, float))
     title = f"window {p.index}, {p.t0_us * 1e-6:.3f}-{p.t1_us * 1e-6:.3f} s, depth [m]"
-    viz.save_png(out / f"{name}.png", viz.depth_panel(depth, scale, title))
+    viz.save_png(out / f"{name}.png", window_picture(depth, scale, title))
     return ",".join([str(p.index), str(p.t0_us), str(p.t1_us), str(p.events)] + [f"{v:.6g}" for v in p.twist])
 
 

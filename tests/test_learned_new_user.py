@@ -158,3 +158,20 @@ def test_teacher_refuses_files_without_ground_truth(slider_file, tmp_path, capsy
     status, err = _one_line(lambda: main(_train(bare, tmp_path / "run", entry)), capsys)
     assert status == 2 and "--mode teacher learns from ground-truth depth" in err and "its loss would be 0" in err
     assert not (tmp_path / "run" / "last.pt").exists()
+
+
+def test_a_small_sensors_depth_picture_is_enlarged_to_stay_readable():
+    """A 64x48 map was drawn at 64x48: its title wrapped and the colour bar's labels overlapped."""
+    import numpy as np
+
+    from cmax import viz
+    from learned.predict import MIN_PICTURE_WIDTH, window_picture
+
+    depth = np.linspace(1.0, 9.0, 64 * 48, dtype=np.float32).reshape(48, 64)
+    picture = window_picture(depth, viz.DepthScale(1.0, 10.0), "window 0, 0.000-0.050 s, depth [m]")
+    enlarged = viz.depth_image(np.repeat(np.repeat(depth, 5, axis=0), 5, axis=1), viz.DepthScale(1.0, 10.0))
+    assert picture.shape[1] > MIN_PICTURE_WIDTH == 5 * 64
+    rows = [r for r in range(picture.shape[0] - 240 + 1) if np.array_equal(picture[r:r + 240, :320], enlarged)]
+    assert len(rows) == 1                                    # the map, each pixel a 5x5 block, under its title
+    big = np.ones((260, 346), np.float32)
+    assert np.array_equal(window_picture(big, (0.5, 60.0), "t"), viz.depth_panel(big, (0.5, 60.0), "t"))
