@@ -382,10 +382,18 @@ def _run(args: argparse.Namespace) -> int:
     check_output(out, resume=args.resume, overwrite=args.overwrite)
     if args.overwrite and int(os.environ.get("RANK", "0")) == 0:
         (out / "log.jsonl").unlink(missing_ok=True)   # the new run's learning curves alone
+    rank0 = int(os.environ.get("RANK", "0")) == 0
+    if args.resume and rank0 and not (out / "last.pt").is_file():
+        print(f"python -m learned.train: note: --resume, but {out / 'last.pt'} does not exist: starting at step 0",
+              file=sys.stderr)
     trainer = Trainer(config, resume=args.resume, progress=not args.no_progress)
     losses = trainer.run()
     if trainer.rank == 0 and losses:
-        print(f"{config.mode}: {len(losses)} steps, loss {losses[0]:.4f} -> {losses[-1]:.4f}; {trainer.out / 'last.pt'}")
+        print(f"{config.mode}: {len(losses)} steps, loss {losses[0]:.4f} -> {losses[-1]:.4f}; "
+              f"{trainer.out / 'last.pt'}")
+    elif trainer.rank == 0:
+        print(f"{config.mode}: nothing to train: {trainer.out / 'last.pt'} is at step {trainer.step} of "
+              f"train.steps={config.train.steps}; raise train.steps to train further")
     if torch.distributed.is_initialized():
         torch.distributed.destroy_process_group()
     return 0

@@ -175,3 +175,20 @@ def test_a_small_sensors_depth_picture_is_enlarged_to_stay_readable():
     assert len(rows) == 1                                    # the map, each pixel a 5x5 block, under its title
     big = np.ones((260, 346), np.float32)
     assert np.array_equal(window_picture(big, (0.5, 60.0), "t"), viz.depth_panel(big, (0.5, 60.0), "t"))
+
+
+def test_resume_says_when_it_starts_afresh_or_has_nothing_to_do(slider_file, tmp_path, capsys):
+    """--resume into a folder without last.pt (a typo in train.out) started at step 0 without a word, and a
+    run already at train.steps printed nothing at all."""
+    from learned.train import main
+
+    out = tmp_path / "run"
+    assert main(_train(slider_file, out, "--resume")) == 0
+    captured = capsys.readouterr()
+    assert f"note: --resume, but {out / 'last.pt'} does not exist: starting at step 0" in captured.err
+    assert captured.out.startswith("teacher: 1 steps, loss ")
+    assert main(_train(slider_file, out, "--resume")) == 0
+    captured = capsys.readouterr()
+    assert captured.err == ""
+    assert captured.out == (f"teacher: nothing to train: {out / 'last.pt'} is at step 1 of train.steps=1; "
+                            "raise train.steps to train further\n")
