@@ -219,3 +219,26 @@ def test_emvs_takes_a_calibration_file_and_a_time_unit(slider_file, tmp_path, ca
     status, err = _one_line(lambda: cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "o"), "--calib",
                                                str(tmp_path / "calib.txt"), "--distortion", "0,0,0,0"]), capsys)
     assert status == 2 and "pass --calib or --K with --distortion, not both" in err
+
+
+def test_emvs_picture_of_a_small_sensor_is_enlarged(slider_file, tmp_path):
+    """depth.png of a 64x48 file was 64x48 maps under wrapped titles; each pixel is now a 5x5 block."""
+    import cv2
+
+    import cmax
+    from cmax.camera import Camera
+    from cmax.cli.emvs import file_trajectory
+
+    assert cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "o"), "--depth-range", "0.4,3",
+                      "--planes", "40"]) == 0
+    picture = cv2.imread(str(tmp_path / "o" / "depth.png"))
+    assert picture.shape[1] > 2 * 320
+    with np.load(tmp_path / "o" / "depth.npz") as saved:
+        K = saved["K"]
+    result = cmax.EMVS(Camera(K, 64, 48), depth_range=(0.4, 3.0), n_planes=40).run(cmax.io.read(slider_file),
+                                                                                     file_trajectory(slider_file))
+    assert np.array_equal(picture, result.image(zoom=5))
+    small = result.image()
+    assert small.shape[1] < picture.shape[1] / 2 and small.shape[0] < picture.shape[0] / 2
+    with pytest.raises(ValueError, match="zoom must be a whole number >= 1"):
+        result.image(zoom=0)
