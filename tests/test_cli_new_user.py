@@ -242,3 +242,15 @@ def test_emvs_picture_of_a_small_sensor_is_enlarged(slider_file, tmp_path):
     assert small.shape[1] < picture.shape[1] / 2 and small.shape[0] < picture.shape[0] / 2
     with pytest.raises(ValueError, match="zoom must be a whole number >= 1"):
         result.image(zoom=0)
+
+
+def test_emvs_takes_the_depth_range_a_scene_file_records(slider_file, tmp_path, capsys):
+    """A cmax scene file records its scene's depth range (slider: 0.4-3 m); EMVS's default 0.5-5 m ignored it."""
+    assert cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "own"), "--planes", "40"]) == 0
+    assert "note: planes over 0.4-3 m, the depth range the file records" in capsys.readouterr().err
+    assert cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "given"), "--planes", "40",
+                      "--depth-range", "0.4,3"]) == 0
+    assert "note:" not in capsys.readouterr().err
+    own, given = np.load(tmp_path / "own" / "depth.npz"), np.load(tmp_path / "given" / "depth.npz")
+    assert tuple(own["depth_range"]) == (0.4, 3.0)
+    np.testing.assert_array_equal(own["depth"], given["depth"])

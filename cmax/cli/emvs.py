@@ -12,6 +12,7 @@ semi-dense point cloud in the world frame); one summary line on stdout. The pose
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
@@ -77,7 +78,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--distortion", type=distortion_argument, default=None,
                         help="OpenCV k1,k2,p1,p2[,k3] of --K (default: none, a pinhole camera)")
     api_default(parser.add_argument("--depth-range", type=_depth_range, default=None, metavar="NEAR,FAR",
-                                    help="depth range of the planes [m]"), _emvs_default("depth_range"))
+                                    help="depth range of the planes [m]: the scene's own range when the file "
+                                    "records one (cmax scene), else"), _emvs_default("depth_range"))
     api_default(parser.add_argument("--planes", type=_planes, default=None, help="number of depth planes (>= 2)"),
                 _emvs_default("n_planes"))
     parser.add_argument("--t0", type=nonnegative_float, default=None,
@@ -98,6 +100,25 @@ def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distor
         if K is None:
             raise ValueError(f"{path} holds no gt/K; give the intrinsics with --K fx,fy,cx,cy")
     return Camera(K, width, height, distortion)
+
+
+def file_depth_range(path: Path) -> tuple[float, float] | None:
+    """``(near, far)`` [m] that an h5 file of ``cmax scene`` records for its scene (attribute ``scene``,
+    ``depth_range_m``); None for any other file, or a record without a valid range."""
+    import json
+
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as file:
+            record = file.attrs.get("scene")
+    except OSError:                     # not an h5 file
+        return None
+    try:
+        near, far = (float(v) for v in json.loads(record)["depth_range_m"])
+    except (TypeError, ValueError, KeyError):
+        return None
+    return (near, far) if 0 < near < far < float("inf") else None
 
 
 def file_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -156,7 +177,13 @@ def run(args: argparse.Namespace) -> int:
                              "t[s] tx ty tz qx qy qz qw, camera-to-world, e.g. the trajectory.txt of cmax fit)")
     events = time_slice(events, args.t0, args.t1)
     camera = camera_for(args.file, events.width, events.height, K, distortion)
-    options = {key: value for key, value in (("depth_range", args.depth_range), ("n_planes", args.planes))
+    depth_range = args.depth_range
+    if depth_range is None:
+        depth_range = file_depth_range(args.file)
+        if depth_range is not None:
+            print(f"cmax emvs: note: planes over {depth_range[0]:g}-{depth_range[1]:g} m, the depth range the file "
+                  "records for its scene (--depth-range to change it)", file=sys.stderr)
+    options = {key: value for key, value in (("depth_range", depth_range), ("n_planes", args.planes))
                if value is not None}   # None: EMVS's own default
     result = EMVS(camera, **options).run(events, trajectory)
     out.mkdir(parents=True, exist_ok=True)
