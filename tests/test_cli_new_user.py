@@ -254,3 +254,17 @@ def test_emvs_takes_the_depth_range_a_scene_file_records(slider_file, tmp_path, 
     own, given = np.load(tmp_path / "own" / "depth.npz"), np.load(tmp_path / "given" / "depth.npz")
     assert tuple(own["depth_range"]) == (0.4, 3.0)
     np.testing.assert_array_equal(own["depth"], given["depth"])
+
+
+def test_scene_says_the_intrinsics_and_depth_range_it_stored(tmp_path, capsys):
+    """The README's `cmax fit room.h5 --K 78.5,78.3,59.9,46.0` needs K: `cmax scene` now prints it."""
+    from cmax.sim.synthetic import load_sequence
+
+    out = tmp_path / "room.h5"
+    assert cmax_main(["scene", "indoor_flying", "-o", str(out), "--duration", "0.05", "--size", "64x48"]) == 0
+    line = capsys.readouterr().out
+    K = load_sequence(out).K
+    assert f"--K {K[0, 0]:.6g},{K[1, 1]:.6g},{K[0, 2]:.6g},{K[1, 2]:.6g}, depth 1-6.5 m (both stored in the file)" \
+        in line
+    fx, fy, cx, cy = (float(v) for v in line.split("--K ")[1].split(",")[:4])
+    np.testing.assert_allclose([fx, fy, cx, cy], [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], rtol=1e-5)

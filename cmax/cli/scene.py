@@ -88,8 +88,12 @@ def run(args: argparse.Namespace) -> int:
     sequence = simulate_scene(scene, args.duration, EventSimulator(**settings), progress=True,
                               depth_rate_hz=depth_rate)
     path = sequence.save(args.output, overwrite=args.overwrite)
+    K = sequence.K
+    near, far = scene.info.depth_range_m
     print(f"wrote {path}: {len(sequence.events):,} events, {len(sequence.depth_t_us)} depth map(s), "
-          f"{len(sequence.poses_t_us)} poses, {len(sequence.frame_t_us)} rendered frames")
+          f"{len(sequence.poses_t_us)} poses, {len(sequence.frame_t_us)} rendered frames; "
+          f"--K {K[0, 0]:.6g},{K[1, 1]:.6g},{K[0, 2]:.6g},{K[1, 2]:.6g}, depth {near:g}-{far:g} m "
+          "(both stored in the file)")
     return 0
 
 
