@@ -192,6 +192,14 @@ class ArgumentParser(argparse.ArgumentParser):
         self.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                           help=f"show the traceback of an error (also: {DEBUG_ENV}=1)")
 
+    def parse_args(self, args=None, namespace=None):  # noqa: D102 (argparse API)
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:   # named by the sub-command they were given to (argparse named the top-level command)
+            owner = next((action.choices.get(getattr(parsed, action.dest, None)) for action in self._actions
+                          if isinstance(action, argparse._SubParsersAction)), None)
+            (owner or self).error(f"unrecognized arguments: {' '.join(extras)}")
+        return parsed
+
     def error(self, message: str):  # noqa: D102 (argparse API)
         self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
 

@@ -268,3 +268,11 @@ def test_scene_says_the_intrinsics_and_depth_range_it_stored(tmp_path, capsys):
         in line
     fx, fy, cx, cy = (float(v) for v in line.split("--K ")[1].split(",")[:4])
     np.testing.assert_allclose([fx, fy, cx, cy], [K[0, 0], K[1, 1], K[0, 2], K[1, 2]], rtol=1e-5)
+
+
+def test_an_unknown_option_is_named_by_its_sub_command(capsys):
+    """It was 'cmax: error: unrecognized arguments: --calib x (see cmax --help)': the help meant is the sub-command's."""
+    status, err = _one_line(lambda: cmax_main(["emvs", "a.h5", "-o", "o", "--bogus", "x"]), capsys)
+    assert status == 2 and err == "cmax emvs: error: unrecognized arguments: --bogus x (see cmax emvs --help)\n"
+    status, err = _one_line(lambda: cmax_main(["--bogus"]), capsys)
+    assert status == 2 and err.startswith("cmax: error: unrecognized arguments: --bogus")
