@@ -271,7 +271,7 @@ def test_scene_says_the_intrinsics_and_depth_range_it_stored(tmp_path, capsys):
 
 
 def test_an_unknown_option_is_named_by_its_sub_command(capsys):
-    """It was 'cmax: error: unrecognized arguments: --calib x (see cmax --help)': the help meant is the sub-command's."""
+    """It was 'cmax: error: unrecognized arguments: --bogus x (see cmax --help)', not the sub-command's help."""
     status, err = _one_line(lambda: cmax_main(["emvs", "a.h5", "-o", "o", "--bogus", "x"]), capsys)
     assert status == 2 and err == "cmax emvs: error: unrecognized arguments: --bogus x (see cmax emvs --help)\n"
     status, err = _one_line(lambda: cmax_main(["--bogus"]), capsys)
