@@ -11,7 +11,7 @@ Data order: the global batch of step ``s`` is a fixed function of ``(seed, s)``
 (a seeded permutation per epoch), so a resumed run sees the same batches; in a
 ``torchrun`` job rank ``r`` of ``R`` takes entries ``r, r + R, ...`` of each
 global batch (the role of a ``DistributedSampler``), gradients are averaged by
-``DistributedDataParallel`` (gloo on CPU, nccl on GPU), and only rank 0 writes.
+``DistributedDataParallel`` (gloo: training runs on the CPU, a GPU is not used), and only rank 0 writes.
 Checkpoints (``out/last.pt``) hold the model, optimiser, step, config and RNG
 states and are written atomically; ``--resume`` continues bit-for-bit on CPU.
 """
@@ -37,6 +37,10 @@ from learned.config import Config, load_config
 from learned.data import H5WindowDataset, collate
 from learned.losses import student_loss, teacher_loss
 from learned.model import DepthPoseNet, ModelConfig
+
+#: The process group of a ``torchrun`` job. Training runs on the CPU (no tensor is moved to a GPU), so gloo
+#: even where CUDA is available: nccl, chosen there before, refuses CPU tensors.
+DDP_BACKEND = "gloo"
 
 #: Steps between two choices of torch's thread count (:func:`cmax._threads.torch_threads`: the cores less the
 #: load of other processes; ``CMAX_TORCH_THREADS`` fixes it).
@@ -129,8 +133,7 @@ class Trainer:
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
         if self.world > 1 and not torch.distributed.is_initialized():
-            backend = "nccl" if torch.cuda.is_available() else "gloo"
-            torch.distributed.init_process_group(backend)
+            torch.distributed.init_process_group(DDP_BACKEND)
         tc = config.train
         if tc.batch_size % self.world:
             raise ValueError(f"train.batch_size ({tc.batch_size}) must be a multiple of the {self.world} ranks")

@@ -192,3 +192,22 @@ def test_resume_says_when_it_starts_afresh_or_has_nothing_to_do(slider_file, tmp
     assert captured.err == ""
     assert captured.out == (f"teacher: nothing to train: {out / 'last.pt'} is at step 1 of train.steps=1; "
                             "raise train.steps to train further\n")
+
+
+def test_a_torchrun_job_uses_gloo_even_where_cuda_is_available(slider_file, tmp_path, monkeypatch):
+    """Training keeps its tensors on the CPU; with CUDA available the job asked for nccl, which refuses them."""
+    import torch
+
+    from learned.config import load_config
+    from learned.train import Trainer
+
+    chosen = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.distributed, "is_initialized", lambda: False)
+    monkeypatch.setattr(torch.distributed, "init_process_group", lambda backend, *a, **k: chosen.append(backend))
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    config = load_config(None, _train(slider_file, tmp_path / "run")[3:], mode="teacher")
+    with pytest.raises(ValueError, match="multiple of the 2 ranks"):   # batch_size 1: stops after the group
+        Trainer(config, progress=False)
+    assert chosen == ["gloo"]
