@@ -22,7 +22,9 @@ from __future__ import annotations
 import argparse
 import math
 import os
+import re
 import sys
+import warnings
 from typing import Any, Callable, Sequence
 
 __all__ = [
@@ -169,6 +171,11 @@ class HelpFormatter(argparse.HelpFormatter):
         return f"{text} (default: {_shown(value, action.metavar).replace('%', '%%')})"
 
 
+_NUMBER = r"(\d+\.?\d*|\.\d+)([eE][-+]?\d+)?"
+#: Arguments that are numbers, the first negative: ``-5``, ``-0.1,0,0``, ``-1e-3,2``.
+_NEGATIVE_NUMBERS = re.compile(rf"^-{_NUMBER}(,[-+]?{_NUMBER})*$")
+
+
 class ArgumentParser(argparse.ArgumentParser):
     """An ``argparse`` parser whose errors are one line (``PROG: error: MESSAGE (see PROG --help)``), exit 2.
 
@@ -179,8 +186,19 @@ class ArgumentParser(argparse.ArgumentParser):
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs.setdefault("formatter_class", HelpFormatter)
         super().__init__(*args, **kwargs)
+        # a value such as -0.1,0,0 (--omega) or -1e-3 is a value, not an unknown option: argparse's own
+        # pattern takes only -5 and -.5, and said 'expected one argument' for the others
+        self._negative_number_matcher = _NEGATIVE_NUMBERS
         self.add_argument("--debug", action="store_true", default=argparse.SUPPRESS,
                           help=f"show the traceback of an error (also: {DEBUG_ENV}=1)")
+
+    def parse_args(self, args=None, namespace=None):  # noqa: D102 (argparse API)
+        parsed, extras = self.parse_known_args(args, namespace)
+        if extras:   # named by the sub-command they were given to (argparse named the top-level command)
+            owner = next((action.choices.get(getattr(parsed, action.dest, None)) for action in self._actions
+                          if isinstance(action, argparse._SubParsersAction)), None)
+            (owner or self).error(f"unrecognized arguments: {' '.join(extras)}")
+        return parsed
 
     def error(self, message: str):  # noqa: D102 (argparse API)
         self.exit(2, f"{self.prog}: error: {one_line(message)} (see {self.prog} --help)\n")
@@ -206,7 +224,8 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
     Bad arguments exit with status 2 from the parser (one line). A
     :data:`USER_ERRORS` exception of the command prints ``PROG: error: MESSAGE``
     on one line and returns 2; with ``--debug`` or ``CMAX_DEBUG=1`` it is
-    raised instead (the full traceback). ``KeyboardInterrupt`` returns 130
+    raised instead (the full traceback). A warning of the library prints as
+    ``PROG: warning: MESSAGE`` on one line (Python's format with ``--debug``). ``KeyboardInterrupt`` returns 130
     with one line. A closed stdout (``| head``) ends quietly with status 1. Any other exception is a
     bug and keeps its traceback.
     """
@@ -218,7 +237,11 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
         return 2
     debug = bool(getattr(args, "debug", False)) or os.environ.get(DEBUG_ENV, "") not in ("", "0")
     try:
-        return int(command(args) or 0)
+        with warnings.catch_warnings():
+            if not debug:   # a warning of the library: one line, no source file and line of code
+                warnings.showwarning = lambda message, *_, **__: print(
+                    f"{label}: warning: {one_line(str(message))}", file=sys.stderr)
+            return int(command(args) or 0)
     except BrokenPipeError:  # the reader of stdout left (cmax info ... | head): not an error of the input
         if debug:
             raise

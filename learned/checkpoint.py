@@ -170,6 +170,11 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         of format 1: see :func:`upgrade_checkpoint`), or keys of the wrong kind.
     """
     path = Path(path)
+    if path.is_dir():
+        inside = sorted(path.glob("*.pt"))
+        hint = f"give the file, e.g. {path / 'last.pt' if (path / 'last.pt').is_file() else inside[0]}" if inside \
+            else "it holds no .pt file"
+        raise FileNotFoundError(f"no checkpoint at {path}: it is a folder ({hint})")
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
     try:

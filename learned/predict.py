@@ -42,7 +42,7 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
-           "write_window", "run_prediction", "predict_file", "add_arguments", "run", "main"]
+           "window_picture", "write_window", "earlier_results", "run_prediction", "predict_file", "add_arguments", "run", "main"]
 
 #: Windows with fewer events are skipped (counted in the summary).
 MIN_EVENTS = 10
@@ -174,10 +174,22 @@ def _card_numbers(card: dict, key: str, count: int, where: str) -> list[float] |
 
 def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, where: str = "the card") -> list[str]:
     """Notes on how this camera differs from the one the network was trained with (from its card:
-    ``"size": [W, H]`` [px], ``"K": [fx, fy, cx, cy]`` [px]); empty when they agree or nothing is recorded."""
-    if not card:
-        return []
+    ``"size": [W, H]`` [px], ``"K": [fx, fy, cx, cy]`` [px]), and on a principal point off this sensor (the
+    intrinsics of another camera?); empty when they agree or nothing is recorded.
+
+    >>> K = np.array([[200.0, 0, 32], [0, 200, 24], [0, 0, 1]])
+    >>> camera_notes(None, 64, 48, K), len(camera_notes(None, 1280, 720, K))
+    ([], 0)
+    >>> camera_notes(None, 32, 24, np.array([[200.0, 0, 640], [0, 200, 360], [0, 0, 1]]))[0][:56]
+    'the principal point (640.0, 360.0) px lies off the 32x24'
+    """
     notes = []
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (0 <= cx <= width and 0 <= cy <= height):
+        notes.append(f"the principal point ({cx:.1f}, {cy:.1f}) px lies off the {width}x{height} sensor: are these "
+                     "the intrinsics of this camera?")
+    if not card:
+        return notes
     size = _card_numbers(card, "size", 2, where)
     if size is not None and (int(size[0]), int(size[1])) != (width, height):
         notes.append(f"the network was trained on a {int(size[0])}x{int(size[1])} sensor, this file is {width}x{height}: "
@@ -279,6 +291,27 @@ def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"
                 yield WindowPrediction(index, t0, t0 + window_us, len(events), inverse, twist)
 
 
+#: Narrowest depth picture [px]: a smaller sensor's map is shown enlarged (each pixel a block), so that its title
+#: and colour bar stay readable.
+MIN_PICTURE_WIDTH = 320
+
+
+def window_picture(depth: np.ndarray, scale, title: str) -> np.ndarray:
+    """The picture of a window's depth (H, W) [m]: :func:`cmax.viz.depth_panel` on ``scale``, each pixel a
+    ``z x z`` block when the sensor is narrower than :data:`MIN_PICTURE_WIDTH` (``z`` the smallest whole
+    factor that reaches it).
+
+    >>> window_picture(np.ones((48, 64), np.float32), (0.5, 60.0), "depth").shape[1] >= 5 * 64
+    True
+    """
+    from cmax import viz
+
+    zoom = -(-MIN_PICTURE_WIDTH // depth.shape[1])
+    if zoom > 1:
+        depth = np.repeat(np.repeat(depth, zoom, axis=0), zoom, axis=1)
+    return viz.depth_panel(depth, scale, title)
+
+
 def write_window(out: Path, prediction: WindowPrediction, K: np.ndarray, scale) -> str:
     """Write ``window_<k>.npz`` and ``window_<k>.png`` (atomically) into ``out``; returns the window's
     ``twists.csv`` line. ``scale``: the run's :class:`cmax.viz.DepthScale`."""
@@ -292,7 +325,7 @@ def write_window(out: Path, prediction: WindowPrediction, K: np.ndarray, scale) 
                     twist=p.twist.astype(np.float32), t0_us=np.int64(p.t0_us), t1_us=np.int64(p.t1_us),
                     K=np.asarray(K, float))
     title = f"window {p.index}, {p.t0_us * 1e-6:.3f}-{p.t1_us * 1e-6:.3f} s, depth [m]"
-    viz.save_png(out / f"{name}.png", viz.depth_panel(depth, scale, title))
+    viz.save_png(out / f"{name}.png", window_picture(depth, scale, title))
     return ",".join([str(p.index), str(p.t0_us), str(p.t1_us), str(p.events)] + [f"{v:.6g}" for v in p.twist])
 
 
@@ -315,6 +348,16 @@ class DepthRun:
                 f"({rate:.1f} windows/s); results in {self.output}")
 
 
+def earlier_results(out: Path) -> list[Path]:
+    """The files of an earlier :func:`run_prediction` in the folder ``out`` (``window_<k>.npz`` / ``.png``,
+    ``twists.csv``, ``summary.json``); empty when there are none (or no folder)."""
+    if not out.is_dir():
+        return []
+    named = [out / "twists.csv", out / "summary.json"]
+    return sorted([path for path in named if path.is_file()] + [path for pattern in ("window_*.npz", "window_*.png")
+                                                               for path in out.glob(pattern) if path.is_file()])
+
+
 def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarray:
     if K is not None:
         return np.asarray(K, float)
@@ -329,7 +372,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                    size: tuple[int, int] | None = None, time_unit: str | None = None, polarity: str | None = None,
                    t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
                    depth_range: tuple[float, float] | None = None, batch: int = 8, progress: bool = True,
-                   note: Callable[[str], None] | None = None) -> DepthRun:
+                   note: Callable[[str], None] | None = None, overwrite: bool = False) -> DepthRun:
     """Predict depth and twist for every window of the event file ``path`` into the folder ``out``.
 
     Parameters
@@ -350,6 +393,9 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         Windows per forward pass.
     note : callable, optional
         Receives each note (default: printed on stderr).
+    overwrite : bool
+        Replace the results of an earlier run in ``out`` (its ``window_*`` files, ``twists.csv``,
+        ``summary.json``); without it such a folder is refused, as its windows would mix with this run's.
 
     Raises FileNotFoundError, ValueError (including :class:`cmax.io.FormatError` and
     :class:`learned.checkpoint.CheckpointError`) with a one-line message for every input a user can get wrong.
@@ -365,6 +411,15 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     note = note or (lambda text: print(f"learned.predict: note: {text}", file=sys.stderr))
     if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
         raise ValueError(f"batch must be a whole number >= 1, got {batch!r}")
+    out = Path(out)
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"the output {out} is a file: give a folder (for window_*.npz, window_*.png, "
+                              "twists.csv, summary.json)")
+    earlier = earlier_results(out)
+    if earlier and not overwrite:
+        raise FileExistsError(f"{out} holds the results of an earlier run ({len(earlier)} files: window_*.npz, "
+                              "twists.csv, ...) that would mix with this run's: --overwrite replaces them, or give "
+                              "another -o")
     checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
     model, config = load_model(checkpoint)   # first: a refused checkpoint writes nothing
     card = checkpoint_card(checkpoint)
@@ -396,8 +451,9 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         notes += [short] if short else []
         for text in notes:
             note(text)
-        out = Path(out)
         out.mkdir(parents=True, exist_ok=True)
+        for path in earlier:   # --overwrite: the earlier run's files only, once this run's inputs are checked
+            path.unlink(missing_ok=True)
         lines, skipped = [_CSV_HEADER], 0
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
             for prediction in predict_windows(model, recording.window, starts, window_us, batch=batch,
@@ -460,6 +516,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         "(default: the model's output range)")
     parser.add_argument("--batch", type=positive_int, default=8, help="windows per forward pass")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the results of an earlier run in the output folder (else refused)")
     return parser
 
 
@@ -470,14 +528,19 @@ def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> i
         calib_camera=args.calib_camera, size=args.size, time_unit=args.time_unit, polarity=args.polarity,
         t0_s=args.t0, t1_s=args.t1, window_s=args.window,
         depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
-        progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr))
+        progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),
+        overwrite=args.overwrite)
     print(result.summary_line())
     return 0
 
 
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status (2 and one line for a bad argument or file)."""
-    parser = add_arguments(ArgumentParser(prog="python -m learned.predict", description=__doc__.splitlines()[0]))
+    parser = add_arguments(ArgumentParser(
+        prog="python -m learned.predict",
+        description="Depth [m] and twist of every window of an event file by the depth-pose network (the shipped "
+        "model, or --checkpoint): window_<k>.npz and .png, twists.csv, summary.json in the output folder; the same "
+        "command as cmax depth (docs/learned.md)."))
     return run_main(parser, run, argv)
 
 

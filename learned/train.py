@@ -11,7 +11,7 @@ Data order: the global batch of step ``s`` is a fixed function of ``(seed, s)``
 (a seeded permutation per epoch), so a resumed run sees the same batches; in a
 ``torchrun`` job rank ``r`` of ``R`` takes entries ``r, r + R, ...`` of each
 global batch (the role of a ``DistributedSampler``), gradients are averaged by
-``DistributedDataParallel`` (gloo on CPU, nccl on GPU), and only rank 0 writes.
+``DistributedDataParallel`` (gloo: training runs on the CPU, a GPU is not used), and only rank 0 writes.
 Checkpoints (``out/last.pt``) hold the model, optimiser, step, config and RNG
 states and are written atomically; ``--resume`` continues bit-for-bit on CPU.
 """
@@ -38,11 +38,15 @@ from learned.data import H5WindowDataset, collate
 from learned.losses import student_loss, teacher_loss
 from learned.model import DepthPoseNet, ModelConfig
 
+#: The process group of a ``torchrun`` job. Training runs on the CPU (no tensor is moved to a GPU), so gloo
+#: even where CUDA is available: nccl, chosen there before, refuses CPU tensors.
+DDP_BACKEND = "gloo"
+
 #: Steps between two choices of torch's thread count (:func:`cmax._threads.torch_threads`: the cores less the
 #: load of other processes; ``CMAX_TORCH_THREADS`` fixes it).
 THREAD_CHECK_EVERY = 25
 
-__all__ = ["batch_indices", "learning_rate", "twist_scale", "Trainer", "main"]
+__all__ = ["batch_indices", "learning_rate", "twist_scale", "Trainer", "check_output", "main"]
 
 
 def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[int]:
@@ -115,6 +119,12 @@ def _load_weights(model: DepthPoseNet, state: dict[str, torch.Tensor], source: s
                               f"({' '.join(str(error).split())[:300]})") from None
 
 
+def _no_window(dataset: H5WindowDataset) -> str:
+    """Why ``dataset`` holds no window, and what to change (the end of an error message)."""
+    return (f"each needs {dataset.window_us * 1e-3:g} ms of events (data.window_us) with at least 100 of them "
+            f"({dataset.skipped} window(s) had fewer); give longer recordings or a shorter data.window_us")
+
+
 class Trainer:
     """One training run (a rank of it under ``torchrun``); :meth:`run` trains to ``config.train.steps``."""
 
@@ -123,8 +133,7 @@ class Trainer:
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
         if self.world > 1 and not torch.distributed.is_initialized():
-            backend = "nccl" if torch.cuda.is_available() else "gloo"
-            torch.distributed.init_process_group(backend)
+            torch.distributed.init_process_group(DDP_BACKEND)
         tc = config.train
         if tc.batch_size % self.world:
             raise ValueError(f"train.batch_size ({tc.batch_size}) must be a multiple of the {self.world} ranks")
@@ -156,8 +165,17 @@ class Trainer:
         if self.world > 1:
             self.net = torch.nn.parallel.DistributedDataParallel(self.model, find_unused_parameters=True)
         dc = config.data
+        if not dc.files:
+            raise ValueError("data.files is empty: give the training event files, e.g. 'data.files=[\"a.h5\", "
+                             "\"b.h5\"]' (h5 files of cmax scene or cmax simulate)")
         self.dataset = H5WindowDataset(dc.files, window_us=dc.window_us, max_events=dc.max_events,
                                        bins=config.model.bins, augment=dc.augment, seed=tc.seed)
+        if len(self.dataset) == 0:
+            raise ValueError(f"data.files hold no window: {_no_window(self.dataset)}")
+        if config.mode == "teacher" and all(gt is None for gt in self.dataset._gt):
+            raise ValueError("--mode teacher learns from ground-truth depth (gt/depth, as cmax scene writes it) and "
+                             "none of data.files holds it (or each says use_gt: false): its loss would be 0 at every "
+                             "step; give labelled files, or train --mode finetune / student on unlabelled ones")
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model)
         self.validation = None
@@ -165,7 +183,7 @@ class Trainer:
             val = H5WindowDataset(dc.val_files, window_us=dc.window_us, max_events=dc.max_events,
                                   bins=config.model.bins, augment=False, seed=tc.seed)
             if len(val) == 0:
-                raise ValueError("data.val_files hold no window")
+                raise ValueError(f"data.val_files hold no window: {_no_window(val)}")
             picks = np.unique(np.linspace(0, len(val) - 1, min(dc.val_windows, len(val))).round().astype(int))
             self.validation = (val, picks.tolist())
         self.log = self._logger() if self.rank == 0 else None
@@ -322,24 +340,63 @@ class Trainer:
         return losses
 
 
+class _IntermixedParser(ArgumentParser):
+    """Takes the ``key=value`` overrides before, between and after the options (``train.steps=3 --resume
+    train.lr=1e-3``; a plain parser refused the ones after an option as unrecognized arguments)."""
+
+    def parse_args(self, args=None, namespace=None):  # noqa: D102 (argparse API)
+        return self.parse_intermixed_args(args, namespace)
+
+
 def main(argv: list[str] | None = None) -> int:
     """Entry point; returns the exit status (2 and one line for a bad argument, config or checkpoint)."""
-    parser = ArgumentParser(prog="python -m learned.train", description=__doc__.splitlines()[0])
+    parser = _IntermixedParser(
+        prog="python -m learned.train",
+        description="Train the depth-pose network: --mode teacher (supervised, files with ground truth), finetune "
+        "(the teacher's weights, contrast loss) or student (a fresh network, contrast + the frozen teacher). "
+        "section.key=value overrides of the config may stand anywhere on the line (e.g. "
+        "'data.files=[\"a.h5\"]' train.steps=100 train.out=runs/teacher); see docs/learned.md.")
     parser.add_argument("--mode", choices=("teacher", "finetune", "student"), required=True, help="what to train")
     parser.add_argument("--config", type=Path, default=None,
                         help="a .json or .toml config (default: the defaults of learned.config)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt when it exists")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="start afresh over an earlier run in train.out (its last.pt and log.jsonl replaced)")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("overrides", nargs="*", help="section.key=value (e.g. train.steps=100)")
     return run_main(parser, _run, argv)
 
 
+def check_output(out: Path, *, resume: bool, overwrite: bool) -> None:
+    """Refuse ``train.out`` when it is a file, or when it holds an earlier run's ``last.pt`` and neither
+    ``--resume`` (continue it) nor ``--overwrite`` (replace it) says what to do with it."""
+    if out.exists() and not out.is_dir():
+        raise FileExistsError(f"train.out {out} is a file: give a folder for last.pt, config.json and log.jsonl")
+    if resume and overwrite:
+        raise ValueError("--resume continues the run in train.out, --overwrite replaces it: give one of them")
+    if not resume and not overwrite and (out / "last.pt").is_file():
+        raise FileExistsError(f"{out / 'last.pt'} exists (an earlier run): --resume continues it, --overwrite "
+                              "starts afresh over it, or give another train.out=FOLDER")
+
+
 def _run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides, mode=args.mode)
+    out = Path(config.train.out)
+    check_output(out, resume=args.resume, overwrite=args.overwrite)
+    if args.overwrite and int(os.environ.get("RANK", "0")) == 0:
+        (out / "log.jsonl").unlink(missing_ok=True)   # the new run's learning curves alone
+    rank0 = int(os.environ.get("RANK", "0")) == 0
+    if args.resume and rank0 and not (out / "last.pt").is_file():
+        print(f"python -m learned.train: note: --resume, but {out / 'last.pt'} does not exist: starting at step 0",
+              file=sys.stderr)
     trainer = Trainer(config, resume=args.resume, progress=not args.no_progress)
     losses = trainer.run()
     if trainer.rank == 0 and losses:
-        print(f"{config.mode}: {len(losses)} steps, loss {losses[0]:.4f} -> {losses[-1]:.4f}; {trainer.out / 'last.pt'}")
+        print(f"{config.mode}: {len(losses)} steps, loss {losses[0]:.4f} -> {losses[-1]:.4f}; "
+              f"{trainer.out / 'last.pt'}")
+    elif trainer.rank == 0:
+        print(f"{config.mode}: nothing to train: {trainer.out / 'last.pt'} is at step {trainer.step} of "
+              f"train.steps={config.train.steps}; raise train.steps to train further")
     if torch.distributed.is_initialized():
         torch.distributed.destroy_process_group()
     return 0

@@ -25,6 +25,7 @@ from conftest import random_events
 from learned.checkpoint import rng_state, save_checkpoint
 from learned.config import Config, DataConfig
 from learned.model import DepthPoseNet, ModelConfig
+from learned.predict import window_picture
 
 W, H = 64, 48
 WINDOW_US = 50_000
@@ -111,8 +112,8 @@ def _check_outputs(out: Path, expected: list[tuple[int, np.ndarray, np.ndarray]]
     # one colour scale per run: the model's range (0.5-60 m), the window's time in the title
     t0, depth, _ = expected[-1]
     k = len(expected) - 1
-    panel = viz.depth_panel(np.load(out / f"window_{k:05d}.npz")["depth"], viz.DepthScale(0.5, 60.0),
-                            f"window {k}, {t0 * 1e-6:.3f}-{(t0 + window_us) * 1e-6:.3f} s, depth [m]")
+    panel = window_picture(np.load(out / f"window_{k:05d}.npz")["depth"], viz.DepthScale(0.5, 60.0),
+                           f"window {k}, {t0 * 1e-6:.3f}-{(t0 + window_us) * 1e-6:.3f} s, depth [m]")
     assert np.array_equal(cv2.imread(str(out / f"window_{k:05d}.png")), panel)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["windows"] == len(expected) and summary["size"][0] in (W, 346)
@@ -282,8 +283,8 @@ def test_t0_t1_window_and_depth_range(checkpoint, network, events, tmp_path, cap
         saved = np.load(out / f"window_{k:05d}.npz")
         assert int(saved["t0_us"]) == t0
         np.testing.assert_allclose(saved["depth"], depth, rtol=FORWARD_RTOL)
-    panel = viz.depth_panel(depth, viz.DepthScale(1.0, 10.0),
-                            f"window 3, {t0 * 1e-6:.3f}-{(t0 + 40_000) * 1e-6:.3f} s, depth [m]")
+    panel = window_picture(depth, viz.DepthScale(1.0, 10.0),
+                           f"window 3, {t0 * 1e-6:.3f}-{(t0 + 40_000) * 1e-6:.3f} s, depth [m]")
     assert np.array_equal(cv2.imread(str(out / "window_00003.png")), panel)
 
 

@@ -137,3 +137,13 @@ def test_full_default_demo(tmp_path: Path) -> None:
     for value in (report.fit_depth["abs_rel"], report.emvs_depth["abs_rel"], report.motion["omega_rms_deg_s"]):
         assert math.isfinite(value)
     assert report.emvs_depth["abs_rel"] < 0.7
+    # the README's caption of docs/demo.png quotes this run (deterministic): redraw both when it changes
+    caption = " ".join((Path(__file__).resolve().parents[1] / "README.md").read_text().split())
+    errors = [w["abs_rel"] for w in report.windows]
+    directions = [w["direction_error_deg"] for w in report.windows]
+    for quoted in (f"scores abs_rel {report.fit_depth['abs_rel']:.3f} with the translation "
+                   f"{report.motion['direction_error_deg']:.1f} deg off",
+                   f"(the five: {min(errors):.3f}-{max(errors):.3f} and {min(directions):.1f}-{max(directions):.1f} deg)",
+                   f"EMVS with the true poses: {report.emvs_depth['abs_rel']:.3f} on "
+                   f"{report.emvs_depth['coverage']:.0%} of the pixels"):
+        assert quoted in caption, quoted

@@ -8,20 +8,47 @@ from typing import Any, Callable
 from cmax._args import api_default, library_default, nonnegative_int, positive_float, sensor_size
 from cmax.cli._common import given
 
-__all__ = ["add_command", "run"]
+__all__ = ["add_command", "run", "settings_of"]
 
 #: demo options (dest) -> DemoSettings fields; None on the command line = the library's default.
 _DEMO_OPTIONS = {"seed": "seed", "duration": "duration_s", "window": "window_s"}
+
+
+#: DemoSettings fields -> the options that set them, for the messages of refused settings.
+_OPTION_OF = {"window_s": "--window", "duration_s": "--duration", "width": "--size width", "height": "--size height"}
+
+
+def settings_of(args: argparse.Namespace):
+    """The :class:`cmax.demo.DemoSettings` of the options given (the library's defaults for the others); a
+    refused combination is a ValueError naming the options (``--window``), not the fields (``window_s``).
+
+    >>> settings_of(argparse.Namespace(seed=None, duration=0.3, window=0.5, size=None))
+    Traceback (most recent call last):
+    ...
+    ValueError: --window must be in (0, --duration=0.3], got 0.5
+    """
+    import re
+
+    from cmax.demo import DemoSettings
+
+    overrides = given(args, _DEMO_OPTIONS)
+    if args.size is not None:
+        overrides["width"], overrides["height"] = args.size
+    try:
+        return DemoSettings(**overrides)
+    except ValueError as error:
+        text = re.sub(r"\b(" + "|".join(_OPTION_OF) + r")\b", lambda m: _OPTION_OF[m.group(1)], str(error))
+        raise ValueError(text) from None
 
 
 def run(args: argparse.Namespace) -> int:
     """Run the demo and print where its report is; returns the exit status (0)."""
     from cmax.demo import run_demo
 
-    overrides = given(args, _DEMO_OPTIONS)
-    if args.size is not None:
-        overrides["width"], overrides["height"] = args.size
-    report = run_demo(args.output, **overrides)
+    settings = settings_of(args)
+    if args.output.exists() and not args.output.is_dir():
+        raise FileExistsError(f"-o {args.output} is a file: give a folder for the demo's h5 file and report")
+    report = run_demo(args.output, settings=settings)
     print(f"demo report: {report.report_png}")
     return 0
 

@@ -5,22 +5,44 @@ Registered by :func:`cmax.cli.build_parser` through :func:`add_command`; :func:`
 Outputs in ``-o outdir/``: ``depth.npz`` (``depth``, ``confidence``, ``mask``,
 ``t_ref_us``, ``T_w_ref``, ``K``, ``depth_range``), ``depth.png`` (confidence
 and coloured depth with a scale bar in metres) and ``points.ply`` (the
-semi-dense point cloud in the world frame); one summary line on stdout.
+semi-dense point cloud in the world frame); one summary line on stdout. The poses come from
+``--poses`` (a TUM file) or, without it, from the ground truth an h5 file stores (``gt/poses``,
+``gt/poses_t``: what ``cmax scene`` writes).
 """
 from __future__ import annotations
 
 import argparse
+import sys
 from pathlib import Path
 
 import numpy as np
 
-from cmax._args import api_default, float_list, nonnegative_float, positive_int, sensor_size
-from cmax.cli.recording import distortion_argument, file_intrinsics, intrinsics_argument, time_slice
+from cmax._args import api_default, float_list, nonnegative_float, positive_int
+from cmax.cli.recording import (add_file_options, distortion_argument, file_intrinsics, file_kwargs,
+                                intrinsics_argument, read_calibration, time_slice)
 from cmax.io.atomic import save_npz_atomic
 
-__all__ = ["add_command", "run", "camera_for"]
+__all__ = ["add_command", "run", "camera_for", "file_trajectory", "output_folder"]
 
-_depth_range = float_list((2,), "--depth-range (near,far)")
+_range_numbers = float_list((2,), "--depth-range (near,far)")
+#: Narrowest map in depth.png [px]: a smaller sensor's maps are drawn enlarged (each pixel a block).
+MIN_PICTURE_WIDTH = 320
+
+
+def _depth_range(text: str) -> tuple[float, ...]:
+    """``argparse`` type of ``--depth-range NEAR,FAR`` [m]: two finite numbers with 0 < NEAR < FAR."""
+    near, far = _range_numbers(text)
+    if not 0 < near < far:
+        raise argparse.ArgumentTypeError(f"--depth-range must be NEAR,FAR with 0 < NEAR < FAR [m], got {text!r}")
+    return near, far
+
+
+def _planes(text: str) -> int:
+    """``argparse`` type of ``--planes``: a whole number >= 2 (EMVS needs two depth planes at least)."""
+    value = positive_int(text)
+    if value < 2:
+        raise argparse.ArgumentTypeError(f"expected a whole number >= 2, got {text!r}")
+    return value
 
 
 def _emvs_default(name: str):
@@ -38,24 +60,33 @@ def add_command(subparsers) -> argparse.ArgumentParser:
         description="EMVS (Rebecq et al., IJCV 2018): vote the events into a Disparity Space Image on the "
         "reference view at the middle of their time span, using the poses of a TUM trajectory file "
         "(t[s] tx ty tz qx qy qz qw, camera-to-world, on the events' clock: what `cmax fit` writes, or "
-        "ground truth); write depth.npz, depth.png and points.ply to the output folder.")
+        "ground truth) or, without --poses, the file's own gt/poses (cmax scene); write depth.npz, depth.png "
+        "and points.ply to the output folder.")
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
-    parser.add_argument("--poses", required=True, type=Path, help="TUM trajectory file")
+    parser.add_argument("--poses", type=Path, default=None,
+                        help="TUM trajectory file (default: gt/poses of an h5 file, as cmax scene writes it)")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
-    parser.add_argument("--K", type=intrinsics_argument, default=None,
+    camera = parser.add_mutually_exclusive_group()
+    camera.add_argument("--K", type=intrinsics_argument, default=None,
                         help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file)")
+    camera.add_argument("--calib", type=Path, default=None,
+                        help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
+                             "k3) or DSEC cam_to_cam.yaml (intrinsics of --calib-camera)")
+    parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
+                        help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
+                             "(rectified events)")
     parser.add_argument("--distortion", type=distortion_argument, default=None,
-                        help="OpenCV k1,k2,p1,p2[,k3] (default: none, a pinhole camera)")
+                        help="OpenCV k1,k2,p1,p2[,k3] of --K (default: none, a pinhole camera)")
     api_default(parser.add_argument("--depth-range", type=_depth_range, default=None, metavar="NEAR,FAR",
-                                    help="depth range of the planes [m]"), _emvs_default("depth_range"))
-    api_default(parser.add_argument("--planes", type=positive_int, default=None, help="number of depth planes"),
+                                    help="depth range of the planes [m]: the scene's own range when the file "
+                                    "records one (cmax scene), else"), _emvs_default("depth_range"))
+    api_default(parser.add_argument("--planes", type=_planes, default=None, help="number of depth planes (>= 2)"),
                 _emvs_default("n_planes"))
     parser.add_argument("--t0", type=nonnegative_float, default=None,
                         help="start, seconds after the first event (default: the first event)")
     parser.add_argument("--t1", type=nonnegative_float, default=None,
                         help="end, seconds after the first event (default: the last event)")
-    parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
-                        help="sensor size, for files that do not store it (ECD text, .npy)")
+    add_file_options(parser)   # --size, --time-unit, --polarity
     parser.set_defaults(run=run)
     return parser
 
@@ -71,27 +102,95 @@ def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distor
     return Camera(K, width, height, distortion)
 
 
+def file_depth_range(path: Path) -> tuple[float, float] | None:
+    """``(near, far)`` [m] that an h5 file of ``cmax scene`` records for its scene (attribute ``scene``,
+    ``depth_range_m``); None for any other file, or a record without a valid range."""
+    import json
+
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as file:
+            record = file.attrs.get("scene")
+    except OSError:                     # not an h5 file
+        return None
+    try:
+        near, far = (float(v) for v in json.loads(record)["depth_range_m"])
+    except (TypeError, ValueError, KeyError):
+        return None
+    return (near, far) if 0 < near < far < float("inf") else None
+
+
+def file_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
+    """``(times_us (M,) int64, T_w_c (M, 4, 4))``: the ground-truth poses ``gt/poses_t``, ``gt/poses`` of an h5
+    file (as ``cmax scene`` writes them, on the clock :func:`cmax.io.read` gives its events); None when the file
+    is not h5 or stores none. Validated by :func:`cmax.emvs.poses.as_trajectory`."""
+    import h5py
+
+    from cmax.emvs.poses import as_trajectory
+
+    try:
+        with h5py.File(path, "r") as file:
+            if "gt" not in file or "poses" not in file["gt"] or "poses_t" not in file["gt"]:
+                return None
+            times, poses = np.asarray(file["gt/poses_t"][()]), np.asarray(file["gt/poses"][()])
+    except OSError:                     # not an h5 file
+        return None
+    return as_trajectory((times, poses), name=f"{path}: gt/poses")
+
+
+def output_folder(path: Path) -> Path:
+    """``-o``: refused (before any work) when it is a file; created later, when the results are written."""
+    if path.exists() and not path.is_dir():
+        raise FileExistsError(f"-o {path} is a file: give a folder for depth.npz, depth.png and points.ply")
+    return path
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status."""
     from cmax.emvs import EMVS, read_tum_trajectory
     from cmax.io import read
 
-    width, height = args.size if args.size else (None, None)
-    events = read(args.file, width=width, height=height)
+    out = output_folder(Path(args.output))
+    trajectory = None if args.poses is None else read_tum_trajectory(args.poses)   # a bad file: before the events
+    K, distortion, calib_size = args.K, args.distortion, None
+    if args.calib is not None:
+        if args.distortion is not None:
+            raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
+        K, distortion, calib_size = read_calibration(args.calib, args.calib_camera)
+    options = file_kwargs(args)
+    try:
+        events = read(args.file, **options)
+    except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
+        if calib_size is None or args.size is not None or "width=" not in str(error):
+            raise
+        events = read(args.file, **{**options, "width": calib_size[0], "height": calib_size[1]})
     if len(events) == 0:
         raise ValueError(f"{args.file} holds no events")
+    if calib_size is not None and (events.width, events.height) != tuple(calib_size):
+        raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
+                         f"the events come from a {events.width}x{events.height} sensor")
+    if trajectory is None:
+        trajectory = file_trajectory(args.file)
+        if trajectory is None:
+            raise ValueError(f"{args.file} stores no poses (gt/poses): give them with --poses traj.txt (TUM: "
+                             "t[s] tx ty tz qx qy qz qw, camera-to-world, e.g. the trajectory.txt of cmax fit)")
     events = time_slice(events, args.t0, args.t1)
-    camera = camera_for(args.file, events.width, events.height, args.K, args.distortion)
-    trajectory = read_tum_trajectory(args.poses)
-    options = {key: value for key, value in (("depth_range", args.depth_range), ("n_planes", args.planes))
+    camera = camera_for(args.file, events.width, events.height, K, distortion)
+    depth_range = args.depth_range
+    if depth_range is None:
+        depth_range = file_depth_range(args.file)
+        if depth_range is not None:
+            print(f"cmax emvs: note: planes over {depth_range[0]:g}-{depth_range[1]:g} m, the depth range the file "
+                  "records for its scene (--depth-range to change it)", file=sys.stderr)
+    options = {key: value for key, value in (("depth_range", depth_range), ("n_planes", args.planes))
                if value is not None}   # None: EMVS's own default
     result = EMVS(camera, **options).run(events, trajectory)
-    out = Path(args.output)
     out.mkdir(parents=True, exist_ok=True)
     save_npz_atomic(out / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
               t_ref_us=np.int64(result.t_ref_us), T_w_ref=result.T_w_ref, K=result.K,
               depth_range=np.array(result.depth_range))
-    result.plot(out / "depth.png")
+    result.plot(out / "depth.png", zoom=-(-MIN_PICTURE_WIDTH // events.width))   # small sensors enlarged
     result.save_ply(out / "points.ply")
     depths = result.depth[result.mask]
     median = f"{np.median(depths):.3f} m" if depths.size else "n/a"

@@ -113,29 +113,35 @@ class SemiDenseDepth:
     K: np.ndarray
     n_events: int
 
-    def image(self, scale: "viz.DepthScale | tuple[float, float] | None" = None) -> np.ndarray:
+    def image(self, scale: "viz.DepthScale | tuple[float, float] | None" = None, *, zoom: int = 1) -> np.ndarray:
         """Picture (BGR uint8): the confidence map beside the depth with its colour bar [m].
 
         ``scale`` (a :class:`cmax.viz.DepthScale`, or ``(near, far)`` metres; default: the DSI's
         depth range) gives several maps one colour scale; no estimate is drawn as a grey hatch.
+        ``zoom``: each pixel of the maps drawn as a ``zoom x zoom`` block (a small sensor's picture
+        stays readable).
         """
         from cmax import viz
 
+        if isinstance(zoom, bool) or not isinstance(zoom, (int, np.integer)) or zoom < 1:
+            raise ValueError(f"zoom must be a whole number >= 1, got {zoom!r}")
         confidence = self.confidence
         top = float(np.percentile(confidence[confidence > 0], 99)) if np.any(confidence > 0) else 1.0
         grey = (255 * (1.0 - np.clip(confidence / top, 0, 1))).astype(np.uint8)
         depth = np.where(self.mask, self.depth, np.nan)
+        if zoom > 1:
+            grey, depth = (np.repeat(np.repeat(a, zoom, axis=0), zoom, axis=1) for a in (grey, depth))
         return viz.hstack([
             viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), "confidence (DSI max)"),
             viz.depth_panel(depth, self.depth_range if scale is None else scale,
                             f"semi-dense depth, {int(self.mask.sum())} px"),
         ])
 
-    def plot(self, path: str | os.PathLike) -> Path:
-        """Write :meth:`image` as a PNG (atomically); returns the path."""
+    def plot(self, path: str | os.PathLike, *, zoom: int = 1) -> Path:
+        """Write :meth:`image` (``zoom`` as there) as a PNG (atomically); returns the path."""
         from cmax import viz
 
-        return viz.save_png(path, self.image())
+        return viz.save_png(path, self.image(zoom=zoom))
 
     def save_ply(self, path: str | os.PathLike, *, binary: bool = True) -> Path:
         """Write :attr:`points` (world frame, metres) as a PLY point cloud (atomically); returns the path."""
