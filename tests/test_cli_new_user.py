@@ -114,7 +114,7 @@ def test_emvs_without_poses_anywhere_says_how_to_give_them(tmp_path, capsys):
 @pytest.mark.parametrize("argv, message", [
     (["--poses", "FILE"], "is not a text file: expected a TUM trajectory"),      # the h5 given as the poses
     (["-o", "FILE"], "is a file: give a folder for depth.npz"),
-    (["--t0", "5"], "--t0 5.0 s is past the last event"),
+    (["--t0", "5"], "--t0 5.0 s is past the recording's last event"),
     (["--planes", "1"], "argument --planes: expected a whole number >= 2"),
     (["--depth-range", "3,0.4"], "0 < NEAR < FAR"),
 ])

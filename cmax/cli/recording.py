@@ -188,9 +188,6 @@ def time_slice(events, t0_s: float | None, t1_s: float | None):
         return events
     start = int(events.t[0])
     t0 = start + int(round((t0_s or 0.0) * 1e6))
-    if t1_s is None and t0 > int(events.t[-1]):
-        raise ValueError(f"--t0 {t0_s} s is past the last event ({(int(events.t[-1]) - start) * 1e-6:.6f} s after "
-                         "the first)")
     t1 = int(events.t[-1]) + 1 if t1_s is None else start + int(round(t1_s * 1e6))
     duration_s = (int(events.t[-1]) - start) * 1e-6
     if t1_s is None and t0 >= t1:
