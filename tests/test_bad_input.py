@@ -239,6 +239,19 @@ API_CASES = [
 ]
 
 
+def _frames_folder(parent):
+    """An ECD-like folder (images.txt) next to the fixtures."""
+    folder = parent / "ecd"
+    folder.mkdir(exist_ok=True)
+    (folder / "images.txt").write_text("0.0 images/frame_00000000.png\n")
+    return folder
+
+
+def _file(path, data: bytes):
+    path.write_bytes(data)
+    return path
+
+
 @pytest.mark.parametrize("call, error, match", [pytest.param(*case[1:], id=case[0]) for case in API_CASES])
 def test_bad_argument_raises_clear_error(call, error, match):
     with pytest.raises(error, match=match):
@@ -428,7 +441,7 @@ def _shrink_sensor(path: Path) -> Path:
 FILE_CASES = [
     ("h5-truncated-half", lambda b: read(b.h5_half), FormatError, r"not a readable HDF5 file"),
     ("h5-truncated-header", lambda b: read(b.h5_header), FormatError, r"not a readable HDF5 file"),
-    ("h5-empty-file", lambda b: read(b.h5_empty), FormatError, r"cannot tell the event format"),
+    ("h5-empty-file", lambda b: read(b.h5_empty), FormatError, r"empty\.h5 is empty \(0 bytes\): no events to read"),
     ("h5-reader-truncated", lambda b: H5Reader(b.h5_half), FormatError, r"not a readable HDF5 file"),
     ("h5-times-go-back", lambda b: read_h5(b.h5_unsorted), FormatError, r"corrupt events .* t must be sorted"),
     ("h5-corrupt-ms-to-idx", lambda b: H5Reader(b.h5_bad_index), FormatError, r"corrupt ms_to_idx"),
@@ -483,7 +496,11 @@ FILE_CASES = [
     ("npy-garbage", lambda b: read(b.npy_garbage, width=4, height=4), FormatError, r"not a readable .npy"),
     ("unknown-format", lambda b: read(b.unknown), FormatError, r"cannot tell the event format"),
     ("missing-file", lambda b: read(b.folder / "nope.h5"), FileNotFoundError, r"no such event file"),
-    ("folder-instead-of-file", lambda b: read(b.folder), FileNotFoundError, r"no such event file"),
+    ("folder-instead-of-file", lambda b: read(b.folder), FormatError, r"is a folder, not an event file$"),
+    ("frames-folder", lambda b: read(_frames_folder(b.folder)), FormatError,
+     r"is a folder, not an event file: a sequence of frames .* `cmax simulate FOLDER -o events\.h5`"),
+    ("video-file", lambda b: read(_file(b.folder / "clip.mp4", b"\x00\x00\x00\x18ftypmp42")), FormatError,
+     r"cannot tell the event format .*; a video becomes events with `cmax simulate VIDEO -o events\.h5`"),
     ("video-truncated", lambda b: _convert(b.video_half, b.folder / "from_half_video.h5"), ValueError,
      r"video .*corrupt"),
     ("video-garbage", lambda b: _convert(b.video_garbage, b.folder / "from_garbage_video.h5"), ValueError,

@@ -42,6 +42,9 @@ __all__ = [
 ]
 
 FORMATS = ("dsec", "mvsec", "txt", "aedat4", "raw", "npy")
+#: Suffixes of video files: frames, not events (:func:`detect_format` points them to ``cmax simulate``,
+#: :mod:`cmax.sim.convert` converts them).
+VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".ts")
 
 
 def detect_format(path: str | os.PathLike) -> str:
@@ -51,10 +54,16 @@ def detect_format(path: str | os.PathLike) -> str:
     suffix ``.txt`` second.
     """
     path = Path(path)
+    if path.is_dir():
+        raise FormatError(f"{path} is a folder, not an event file" + (
+            ": a sequence of frames (ECD images.txt, ESIM timestamps.txt) becomes events with "
+            "`cmax simulate FOLDER -o events.h5`" if _holds_frames(path) else ""))
     if not path.is_file():
         raise FileNotFoundError(f"no such event file: {path}")
     with open(path, "rb") as handle:
         head = handle.read(16)
+    if not head:
+        raise FormatError(f"{path} is empty (0 bytes): no events to read")
     if head.startswith(b"\x89HDF\r\n\x1a\n"):
         try:
             with h5py.File(path, "r") as file:
@@ -73,10 +82,18 @@ def detect_format(path: str | os.PathLike) -> str:
         return "raw"
     if path.suffix.lower() in (".txt", ".csv"):
         return "txt"
+    video = path.suffix.lower() in VIDEO_SUFFIXES
     raise FormatError(
         f"cannot tell the event format of {path}: expected DSEC/MVSEC HDF5, AEDAT4, "
         "Prophesee .raw, ECD .txt or a structured .npy"
+        + ("; a video becomes events with `cmax simulate VIDEO -o events.h5`" if video else "")
     )
+
+
+
+def _holds_frames(folder: Path) -> bool:
+    """Whether ``folder`` looks like a frame sequence: a timestamp file of ECD or ESIM, or ``images/``."""
+    return any((folder / name).exists() for name in ("images.txt", "timestamps.txt", "images"))
 
 
 def read(
@@ -155,7 +172,7 @@ def _read_npy(
     t = np.asarray(array["t"])
     if t.dtype.kind == "f" and time_unit is None:
         raise FormatError(f"{path}: field t holds {t.dtype} times; state their unit with time_unit='s', "
-                          "'ms' or 'us' (times are never guessed)")
+                          "'ms' or 'us' (cmax: --time-unit; times are never guessed)")
     t_us = times_to_us(t, time_unit or "us", f"{path}: field t")
     p = polarity_01(np.asarray(array["p"]), polarity, f"{path}: field p")
     try:

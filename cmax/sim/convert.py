@@ -44,6 +44,7 @@ from typing import Any, Callable, Iterable, Sequence
 
 import numpy as np
 
+from cmax.io import VIDEO_SUFFIXES
 from cmax.io.atomic import PathLock, discard_leftovers, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
 from cmax.sim.esim import EsimSettings, EventSimulator
@@ -54,8 +55,6 @@ __all__ = [
     "convert_video", "convert_collection", "load_manifest", "merge_manifests", "write_manifest",
 ]
 
-#: File suffixes taken as videos when INPUT is a folder.
-VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".ts")
 MANIFEST = "manifest.json"
 #: Lock file of an output folder, held by the conversion writing into it.
 FOLDER_LOCK = ".conversion.lock"
