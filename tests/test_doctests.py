@@ -80,6 +80,7 @@ def run_examples(module: types.ModuleType) -> tuple[doctest.TestResults, str, Co
 @pytest.mark.parametrize("name", sorted(MODULES))
 def test_docstring_examples_run_as_shown(name: str, tmp_path: Path, monkeypatch: pytest.MonkeyPatch) -> None:
     monkeypatch.chdir(tmp_path)  # an example that writes a file writes it here
+    monkeypatch.delenv("CMAX_TORCH_THREADS", raising=False)  # the examples show the policy, not an override
     results, report, collected = run_examples(importlib.import_module(name))
     assert results.failed == 0, f"{name}: {results.failed} of {results.attempted} examples failed\n{report}"
     missed = written_examples(MODULES[name].read_text(encoding="utf-8")) - collected
