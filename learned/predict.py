@@ -12,7 +12,8 @@ as in training, by the compiled :func:`learned.volume.event_volume`) and runs th
   (H, W) float32 [1/m], ``twist`` (6,) float32 ``(v [m/s], omega [rad/s])`` in the camera
   frame, ``t0_us``, ``t1_us`` [µs] and ``K`` (3, 3) [px];
 * ``window_<k>.png``: the depth with a colour bar in metres and the window's time in its title,
-  one colour scale for the whole run (``--depth-range``, default the model's output range);
+  one colour scale for the whole run (``--depth-range``, default the 1st-99th percentiles of the depths
+  of all its windows, drawn once every window is predicted);
 * ``twists.csv`` (one line per window) and ``summary.json`` (inputs, settings, notes, counts).
 
 Intrinsics come from ``--K``, ``--calib`` (whose distortion, when it has one, undistorts the events
@@ -312,21 +313,53 @@ def window_picture(depth: np.ndarray, scale, title: str) -> np.ndarray:
     return viz.depth_panel(depth, scale, title)
 
 
-def write_window(out: Path, prediction: WindowPrediction, K: np.ndarray, scale) -> str:
-    """Write ``window_<k>.npz`` and ``window_<k>.png`` (atomically) into ``out``; returns the window's
-    ``twists.csv`` line. ``scale``: the run's :class:`cmax.viz.DepthScale`."""
-    from cmax import viz
+#: Depths per window that :func:`run_prediction` keeps for the run's colour scale (an even subsample of the map).
+SCALE_SAMPLES = 4096
+
+
+def write_window(out: Path, prediction: WindowPrediction, K: np.ndarray) -> tuple[str, np.ndarray]:
+    """Write ``window_<k>.npz`` (atomically) into ``out``; returns the window's ``twists.csv`` line and up to
+    :data:`SCALE_SAMPLES` of its depths [m] (an even subsample, every depth of a small map) for
+    :func:`run_scale`. The picture comes later (:func:`draw_window`), on the run's scale."""
     from cmax.io.atomic import save_npz_atomic
 
     p = prediction
     depth = (1.0 / p.inverse_depth).astype(np.float32)
-    name = f"window_{p.index:05d}"
-    save_npz_atomic(out / f"{name}.npz", depth=depth, inverse_depth=p.inverse_depth.astype(np.float32),
+    save_npz_atomic(out / f"window_{p.index:05d}.npz", depth=depth, inverse_depth=p.inverse_depth.astype(np.float32),
                     twist=p.twist.astype(np.float32), t0_us=np.int64(p.t0_us), t1_us=np.int64(p.t1_us),
                     K=np.asarray(K, float))
-    title = f"window {p.index}, {p.t0_us * 1e-6:.3f}-{p.t1_us * 1e-6:.3f} s, depth [m]"
+    flat = depth.ravel()
+    sample = flat[::-(-flat.size // SCALE_SAMPLES)]
+    line = ",".join([str(p.index), str(p.t0_us), str(p.t1_us), str(p.events)] + [f"{v:.6g}" for v in p.twist])
+    return line, sample
+
+
+def run_scale(samples: list[np.ndarray], depth_range: tuple[float, float] | None):
+    """The colour scale of every picture of a run: ``depth_range`` [m] when given, else the 1st-99th
+    percentiles of the windows' sampled depths (:meth:`cmax.viz.DepthScale.from_depths`).
+
+    >>> run_scale([np.array([1.0, 2.0]), np.array([3.0])], (0.5, 9.0))
+    DepthScale(near=0.5, far=9.0)
+    >>> run_scale([np.linspace(1.0, 3.0, 101), np.linspace(2.0, 4.0, 101)], None)   # pooled: 1.0-4.0
+    DepthScale(near=1.0402, far=3.9598)
+    """
+    from cmax import viz
+
+    if depth_range is not None:
+        return viz.DepthScale(*depth_range)
+    return viz.DepthScale.from_depths(samples)
+
+
+def draw_window(out: Path, index: int, scale) -> None:
+    """``window_<index>.png`` (atomically) from its ``.npz`` in ``out``: the depth on ``scale`` (the run's
+    :class:`cmax.viz.DepthScale`), the window's time in the title."""
+    from cmax import viz
+
+    name = f"window_{index:05d}"
+    with np.load(out / f"{name}.npz") as saved:
+        depth, t0_us, t1_us = saved["depth"], int(saved["t0_us"]), int(saved["t1_us"])
+    title = f"window {index}, {t0_us * 1e-6:.3f}-{t1_us * 1e-6:.3f} s, depth [m]"
     viz.save_png(out / f"{name}.png", window_picture(depth, scale, title))
-    return ",".join([str(p.index), str(p.t0_us), str(p.t1_us), str(p.events)] + [f"{v:.6g}" for v in p.twist])
 
 
 @dataclass(frozen=True)
@@ -388,7 +421,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     window_s : float, optional
         Window length [s] (default: the checkpoint config's ``data.window_us``).
     depth_range : (near, far) [m], optional
-        Colour scale of every picture of the run (default: the model's output range).
+        Colour scale of every picture of the run (default: the 1st-99th percentiles of all its windows'
+        depths, :func:`run_scale`).
     batch : int
         Windows per forward pass.
     note : callable, optional
@@ -427,7 +461,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     window_us = int(config["data"]["window_us"]) if window_s is None else int(round(window_s * 1e6))
     if window_us < 1:
         raise ValueError(f"the window must be at least 1 µs long, got {window_us} µs")
-    scale = viz.DepthScale(*(depth_range or (model.config.min_depth, model.config.max_depth)))
+    if depth_range is not None:
+        viz.DepthScale(*depth_range)   # checked before any work
     distortion, calib_size = None, None
     if calib is not None:
         if K is not None:
@@ -454,7 +489,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         out.mkdir(parents=True, exist_ok=True)
         for path in earlier:   # --overwrite: the earlier run's files only, once this run's inputs are checked
             path.unlink(missing_ok=True)
-        lines, skipped = [_CSV_HEADER], 0
+        lines, skipped, samples, indices = [_CSV_HEADER], 0, [], []
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
             for prediction in predict_windows(model, recording.window, starts, window_us, batch=batch,
                                               transform=undistort):
@@ -462,13 +497,19 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                 if prediction is None:
                     skipped += 1
                 else:
-                    lines.append(write_window(out, prediction, K, scale))
+                    line, sample = write_window(out, prediction, K)
+                    lines.append(line)
+                    samples.append(sample)
+                    indices.append(prediction.index)
     finally:
         recording.close()
     written = len(lines) - 1
     if not written:
         raise ValueError(f"{path}: none of its {len(starts)} windows of {window_us * 1e-3:g} ms holds "
                          f"{MIN_EVENTS} events or more")
+    scale = run_scale(samples, depth_range)
+    for index in indices:
+        draw_window(out, index, scale)
     write_text_atomic(out / "twists.csv", "\n".join(lines) + "\n")
     run = DepthRun(written, skipped, window_us, tuple(notes), time.perf_counter() - started, out)
     summary = {"file": str(path), "format": recording.format, "checkpoint": str(checkpoint),
@@ -513,7 +554,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         help="window length [s] (default: the checkpoint config's data.window_us)")
     parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
                         metavar="NEAR,FAR", help="colour scale of the depth pictures [m], one for the whole run "
-                        "(default: the model's output range)")
+                        "(default: the 1st-99th percentiles of all its windows' depths)")
     parser.add_argument("--batch", type=positive_int, default=8, help="windows per forward pass")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--overwrite", action="store_true",

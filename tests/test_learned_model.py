@@ -267,15 +267,21 @@ def test_evaluate_and_predict_on_a_trained_checkpoint(tmp_path):
     expected_depth = model(torch.from_numpy(voxel_grid(first, 5))[None]).depth[0, 0].detach().numpy()
     np.testing.assert_allclose(saved["depth"], expected_depth, rtol=1e-5)
     assert (tmp_path / "pred" / "twists.csv").read_text().count("\n") == n + 1
-    # the pictures of one run share one colour scale: the model's range, with its colour bar in metres
+    # the pictures of one run share one colour scale: the percentiles of all its windows' depths (these maps are
+    # small enough to be pooled whole), with its colour bar in metres
+    import json
+
     import cv2
 
     from cmax import viz
+    from learned.predict import window_picture
 
+    depths = [np.load(tmp_path / "pred" / f"window_{k:05d}.npz")["depth"] for k in range(n)]
+    scale = viz.DepthScale.from_depths(depths)
+    assert json.loads((tmp_path / "pred" / "summary.json").read_text())["depth_range_m"] == [scale.near, scale.far]
     picture = cv2.imread(str(tmp_path / "pred" / "window_00000.png"))
-    scale = viz.DepthScale(model.config.min_depth, model.config.max_depth)
-    panel = viz.depth_panel(saved["depth"], scale, f"window 0, {int(saved['t0_us']) * 1e-6:.3f}-"
-                            f"{int(saved['t1_us']) * 1e-6:.3f} s, depth [m]")
+    panel = window_picture(saved["depth"], scale, f"window 0, {int(saved['t0_us']) * 1e-6:.3f}-"
+                           f"{int(saved['t1_us']) * 1e-6:.3f} s, depth [m]")
     assert np.array_equal(picture, panel)
 
 
