@@ -196,7 +196,7 @@ def parse_png(data: bytes, name: str = "<bytes>") -> tuple[PngHeader, bytes] | N
 
 @kernel
 def unfilter_rows(raw, out, bpp):  # pragma: no cover - compiled by numba
-    """Undo the PNG row filters: ``raw`` uint8 (H * (1 + S),) into ``out`` uint8 (H, S).
+    """Undo the PNG row filters: ``raw`` uint8 (H * (1 + S),) into ``out`` uint8 (H, S), C-contiguous.
 
     Each row of ``raw`` is a filter-type byte (0 None, 1 Sub, 2 Up,
     3 Average, 4 Paeth) then S filtered bytes; ``bpp`` is the bytes per
@@ -206,84 +206,81 @@ def unfilter_rows(raw, out, bpp):  # pragma: no cover - compiled by numba
     (the rows from it on are not valid).
     """
     height, stride = out.shape
+    flat = out.reshape(height * stride)
     for y in range(height):
-        base = y * (stride + 1)
-        kind = raw[base]
+        src, dst = y * (stride + 1) + 1, y * stride
+        kind = np.int64(raw[src - 1])
         if kind > 4:
             return y
-        row = raw[base + 1:base + 1 + stride]
-        target = out[y]
-        if y == 0 and kind >= 2:  # no row above: Up is None, Average halves a, Paeth is Sub
-            kind = (0, 0, 0, 5, 1)[kind]
+        if y == 0 and kind >= 2:  # no row above: Up is None, Paeth is Sub, Average halves a only
+            kind = 0 if kind == 2 else 1 if kind == 4 else 5
         if kind == 0:
-            target[:] = row
+            flat[dst:dst + stride] = raw[src:src + stride]
         elif kind == 2:
-            above = out[y - 1]
             for i in range(stride):
-                target[i] = row[i] + above[i]
-        elif bpp == 1:  # Sub, Average, Paeth with the left byte carried in a register
-            _unfilter_row_1(kind, row, target, out[y - 1])
+                flat[dst + i] = raw[src + i] + flat[dst - stride + i]
+        elif bpp == 1:
+            _unfilter_row_1(kind, raw, src, flat, dst, stride)
         else:
-            _unfilter_row(kind, row, target, out[y - 1], bpp)
+            _unfilter_row(kind, raw, src, flat, dst, stride, bpp)
     return -1
 
 
-@kernel
-def _unfilter_row_1(kind, row, target, above):  # pragma: no cover - compiled by numba
-    """One row of Sub (1), Average (3), Paeth (4) or Average on the first row (5), one byte per pixel."""
-    stride = row.size
-    a = np.int32(0)
+@kernel(inline="always")
+def _unfilter_row_1(kind, raw, src, flat, dst, stride):  # pragma: no cover - compiled by numba
+    """One row of Sub (1), Average (3), Paeth (4) or Average of the first row (5), one byte per pixel.
+
+    The left neighbour ``a`` is carried in a register (the loop's only serial
+    dependency); ``flat[dst - stride:dst]`` is the row above.
+    """
+    a = 0
     if kind == 1:
         for i in range(stride):
-            a = (np.int32(row[i]) + a) & 255
-            target[i] = a
+            a = (raw[src + i] + a) & 255
+            flat[dst + i] = a
     elif kind == 5:
         for i in range(stride):
-            a = (np.int32(row[i]) + (a >> 1)) & 255
-            target[i] = a
+            a = (raw[src + i] + (a >> 1)) & 255
+            flat[dst + i] = a
     elif kind == 3:
         for i in range(stride):
-            a = (np.int32(row[i]) + ((a + np.int32(above[i])) >> 1)) & 255
-            target[i] = a
+            a = (raw[src + i] + ((a + flat[dst - stride + i]) >> 1)) & 255
+            flat[dst + i] = a
     else:
-        c = np.int32(0)
+        c = 0
         for i in range(stride):
-            b = np.int32(above[i])
-            pa, pb, pc = abs(b - c), abs(a - c), abs(a + b - 2 * c)
-            if pa <= pb and pa <= pc:
-                predictor = a
-            elif pb <= pc:
-                predictor = b
-            else:
-                predictor = c
-            a = (np.int32(row[i]) + predictor) & 255
-            target[i] = a
+            b = np.int64(flat[dst - stride + i])
+            a = (raw[src + i] + _paeth(a, b, c)) & 255
+            flat[dst + i] = a
             c = b
 
 
-@kernel
-def _unfilter_row(kind, row, target, above, bpp):  # pragma: no cover - compiled by numba
-    """As :func:`_unfilter_row_1` for ``bpp`` bytes per pixel (the left byte read back from ``target``)."""
-    stride = row.size
+@kernel(inline="always")
+def _unfilter_row(kind, raw, src, flat, dst, stride, bpp):  # pragma: no cover - compiled by numba
+    """As :func:`_unfilter_row_1` for ``bpp`` bytes per pixel (the left byte read back from ``flat``)."""
     for i in range(stride):
-        a = np.int32(target[i - bpp]) if i >= bpp else np.int32(0)
+        a = np.int64(flat[dst + i - bpp]) if i >= bpp else 0
         if kind == 1:
             predictor = a
         elif kind == 5:
             predictor = a >> 1
         elif kind == 3:
-            predictor = (a + np.int32(above[i])) >> 1
+            predictor = (a + flat[dst - stride + i]) >> 1
         else:
-            b = np.int32(above[i])
-            c = np.int32(above[i - bpp]) if i >= bpp else np.int32(0)
-            pa, pb, pc = abs(b - c), abs(a - c), abs(a + b - 2 * c)
-            if pa <= pb and pa <= pc:
-                predictor = a
-            elif pb <= pc:
-                predictor = b
-            else:
-                predictor = c
-        target[i] = (np.int32(row[i]) + predictor) & 255
+            c = np.int64(flat[dst - stride + i - bpp]) if i >= bpp else 0
+            predictor = _paeth(a, np.int64(flat[dst - stride + i]), c)
+        flat[dst + i] = (raw[src + i] + predictor) & 255
+
+
+@kernel(inline="always")
+def _paeth(a, b, c):  # pragma: no cover - compiled by numba
+    """The Paeth predictor of left ``a``, above ``b``, upper-left ``c`` (int64 in [0, 255])."""
+    pa, pb, pc = abs(b - c), abs(a - c), abs(a + b - 2 * c)
+    if pa <= pb and pa <= pc:
+        return a
+    if pb <= pc:
+        return b
+    return c
 
 
 def decode_png(data: bytes, name: str = "<bytes>", *, inflate: Inflate | None = None) -> np.ndarray | None:
