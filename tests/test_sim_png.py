@@ -173,7 +173,11 @@ def test_other_files_are_left_to_opencv(tmp_path, textured):
     header = bytearray(grey_png(textured, 1))
     header[8 + 8 + 12] = 1  # interlace method: Adam7 (CRC fixed below)
     header[29:33] = struct.pack(">I", zlib.crc32(bytes(header[12:29])))
-    for data in (colour, grey_alpha, jpeg, transparent, gamma, unknown, interrupted, bytes(header)):
+    huge = bytearray(grey_png(textured, 1))
+    huge[16:24] = struct.pack(">II", 2**16, 2**15)  # 2**31 pixels: above OpenCV's limit
+    huge[29:33] = struct.pack(">I", zlib.crc32(bytes(huge[12:29])))
+    for data in (colour, grey_alpha, jpeg, transparent, gamma, unknown, interrupted, bytes(header),
+                 bytes(huge)):
         assert decode_png(data) is None
     path = tmp_path / "colour.png"
     path.write_bytes(colour)

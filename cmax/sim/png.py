@@ -66,6 +66,8 @@ PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 #: Ancillary chunks skipped by the fast path (text, time, pixel size: no effect on the pixels).
 _METADATA_CHUNKS = frozenset({b"tEXt", b"zTXt", b"iTXt", b"tIME", b"pHYs"})
 _CHUNK_HEAD = struct.Struct(">I4s")
+#: Larger images go to OpenCV, which applies its own limit (``CV_IO_MAX_IMAGE_PIXELS``, 2**30 by default).
+_MAX_PIXELS = 2**30
 _IHDR = struct.Struct(">IIBBBBB")
 
 PathLike = Union[str, Path]
@@ -176,7 +178,7 @@ def parse_png(data: bytes, name: str = "<bytes>") -> tuple[PngHeader, bytes] | N
                 data, offset + 8)
             header = PngHeader(width, height, depth, colour, interlace)
             if (colour != 0 or depth not in (8, 16) or compression or filtering or interlace
-                    or not 0 < width < 2**31 or not 0 < height < 2**31):
+                    or not 0 < width < 2**31 or not 0 < height < 2**31 or width * height > _MAX_PIXELS):
                 return None  # colour, palette, 1/2/4 bits, Adam7 or an odd header: OpenCV decides
         elif kind == b"IDAT":
             if idat_closed:
