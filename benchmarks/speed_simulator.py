@@ -487,6 +487,12 @@ def main(argv: list[str] | None = None) -> int:
                                "command": "python -m benchmarks.speed_simulator --truck-only"
                                + (" --clock cpu" if args.clock == "cpu" else "")})
         truck_groups(report, speed.run_group, repeats, (0.2, 0.1, 0.05))
+        if INFLATE_BACKEND != "zlib":
+            from importlib.metadata import version
+
+            report.notes.append(f"PNG frames inflated by {INFLATE_BACKEND} {version(INFLATE_BACKEND)} "
+                                "(the optional extra evtslowtv[fast]); without it the same command "
+                                "writes speed_simulator_truck.md (zlib).")
         report.notes += [
             f"Mev/s counts events per {args.clock} second; rows of one group are timed interleaved.",
             f"Load average (1 min) at the start / end: {load_at_start:.2f} / {os.getloadavg()[0]:.2f} "
