@@ -169,7 +169,8 @@ def parse_png(data: bytes, name: str = "<bytes>") -> tuple[PngHeader, bytes] | N
                            f"end of the file, {end} bytes)")
         critical = kind in (b"IHDR", b"IDAT", b"IEND")
         if critical and _crc32(view[offset + 4:stop - 4]) != int.from_bytes(data[stop - 4:stop], "big"):
-            raise PngError(f"{name}: corrupt PNG (CRC mismatch in the {kind.decode()} chunk at byte {offset})")
+            raise PngError(f"{name}: corrupt PNG (CRC mismatch in the {kind.decode()} chunk at byte "
+                           f"{offset})")
         if header is None:
             if kind != b"IHDR" or length != 13:
                 raise PngError(f"{name}: corrupt PNG (the first chunk is {kind!r} of {length} bytes, "
