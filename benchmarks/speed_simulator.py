@@ -4,7 +4,8 @@ Run with ``python -m benchmarks.speed --section simulator`` or, with more
 options, ``python -m benchmarks.speed_simulator [--quick] [--full-adaptive]``
 (both write ``benchmarks/results/speed_simulator.md`` and ``.json``;
 ``--truck-only``: only the truck-pan groups at C = 0.2/0.1/0.05, to
-``speed_simulator_truck.md`` and ``.json``).
+``speed_simulator_truck.md`` and ``.json``, or ``speed_simulator_truck_isal``
+when the optional ``isal`` inflates the PNGs).
 Measures, in one run, against the code of the last commit (``git show
 HEAD:cmax/sim/esim.py`` and ``sampling.py``, loaded as modules and timed
 interleaved in the same process):
@@ -18,7 +19,10 @@ interleaved in the same process):
   simulation runs (pipelined; each row's note gives the process's CPU
   seconds per wall second, how much the threads overlapped), step alone on
   decoded frames, and PNG decoding alone (``IMREAD_GRAYSCALE`` as the
-  reference, ``IMREAD_UNCHANGED`` as the source); the pipelined rows'
+  reference, ``IMREAD_UNCHANGED`` as the source did before
+  :mod:`cmax.sim.png`); each PNG row twice, with ``cv2.imread`` and with
+  :func:`cmax.sim.png.read_png` (the source's reader; "fast PNG decode",
+  with each inflate importable: zlib, and isal when installed); the
   events/s against the C++ esim_py figures of issue 22
   (``benchmarks.speed_peers.ESIM_PY_MEV_S``; esim_py itself is not
   importable here);
@@ -85,6 +89,37 @@ def _run_pngs(simulator_class, paths, times, c):
     for path, t_us in zip(paths, times):
         count += len(simulator.step(cv2.imread(path, cv2.IMREAD_GRAYSCALE), int(t_us)))
     return count
+
+
+def _run_fast_pngs(simulator_class, paths, times, c, inflate=None):
+    from cmax.sim.png import read_png
+
+    simulator, count = simulator_class(cp=c, cn=c), 0
+    for path, t_us in zip(paths, times):
+        count += len(simulator.step(read_png(path, inflate=inflate), int(t_us)))
+    return count
+
+
+def _cv2_folder_source(folder, times, decoders):
+    """An ImageFolderSource that decodes every image with ``cv2.imread`` (as before ``cmax.sim.png``)."""
+    from cmax.sim.video import ImageFolderSource, _to_grey
+
+    class Cv2FolderSource(ImageFolderSource):
+        def _decode(self, item):
+            path, t = item
+            image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+            return _to_grey(image, self._size, str(path), self.dtype), t
+
+    return Cv2FolderSource(folder, timestamps=times, dtype=np.uint8, decoders=decoders)
+
+
+def _inflates():
+    """``{name: inflate}`` of :mod:`cmax.sim.png`: zlib, and isal when importable (the default first)."""
+    from cmax.sim import png
+
+    names = [png.INFLATE_BACKEND] + [n for n in ("zlib", "isal") if n != png.INFLATE_BACKEND]
+    functions = {"zlib": png.inflate_zlib, "isal": png.inflate_isal}
+    return {n: functions[n] for n in names if n == "zlib" or png.INFLATE_BACKEND == "isal"}
 
 
 def _run_source(simulator_class, source, c):
@@ -159,6 +194,7 @@ def _same_events(a, b) -> bool:
 def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
     """One group per threshold on truck-pan; the density curve goes to ``report.checks``."""
     from cmax.sim.esim import EventSimulator
+    from cmax.sim.png import INFLATE_BACKEND, read_png
     from cmax.sim.video import ImageFolderSource
 
     from benchmarks.speed_peers import ESIM_PY_MEV_S
@@ -172,6 +208,15 @@ def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
     sources = {n: ImageFolderSource(folder / "images", timestamps=times, dtype=np.uint8, decoders=n)
                for n in counts}
     labels = {n: f"ImageFolderSource ({n} decoding thread{'s' * (n > 1)}) + step" for n in counts}
+    cv2_sources = {n: _cv2_folder_source(folder / "images", times, n) for n in counts}
+    cv2_labels = {n: f"ImageFolderSource, cv2.imread ({n} decoding thread{'s' * (n > 1)}) + step"
+                  for n in counts}
+    inflates = _inflates()
+    fast_one = f"fast PNG decode ({INFLATE_BACKEND}) + step, one thread"
+    report.checks[f"cmax.sim.png pixels identical to cv2.imread IMREAD_UNCHANGED (all {len(paths)} frames, "
+                  f"inflate {', '.join(inflates)})"] = all(
+        np.array_equal(read_png(p, inflate=f), cv2.imread(p, cv2.IMREAD_UNCHANGED))
+        for p in paths for f in inflates.values())
     head = _head_esim()
     capacity = [parallel_capacity()]
     curve, versus, bounds, identical = [], [], [], True
@@ -185,10 +230,14 @@ def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
             methods.append(("HEAD: PNG decode + step, one thread",
                             lambda: _run_pngs(head, paths, times, c), ""))
         methods.append(("PNG decode + step, one thread", lambda: _run_pngs(EventSimulator, paths, times, c),
-                        f"{len(paths)} frames"))
-        for n, source in sources.items():
-            run = (lambda source: lambda: _run_source(EventSimulator, source, c))(source)
-            methods.append((labels[n], run, f"pipelined, prefetch 4; CPU/wall {_cpu_per_wall(run):.2f}"))
+                        f"{len(paths)} frames, cv2.imread"))
+        methods.append((fast_one, lambda: _run_fast_pngs(EventSimulator, paths, times, c),
+                        "cmax.sim.png.read_png"))
+        for n in counts:
+            for label, source, how in ((cv2_labels[n], cv2_sources[n], "cv2.imread"),
+                                       (labels[n], sources[n], f"cmax.sim.png ({INFLATE_BACKEND})")):
+                run = (lambda source: lambda: _run_source(EventSimulator, source, c))(source)
+                methods.append((label, run, f"pipelined, prefetch 4, {how}; CPU/wall {_cpu_per_wall(run):.2f}"))
         methods.append(("step only, frames decoded", lambda: _run_frames(EventSimulator, frames, times, c), ""))
         if head is not None:
             methods.append(("HEAD: step only, frames decoded",
@@ -197,28 +246,35 @@ def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
             ("PNG decode only, IMREAD_GRAYSCALE", lambda: [cv2.imread(p, cv2.IMREAD_GRAYSCALE) for p in paths],
              "as the reference ESIM"),
             ("PNG decode only, IMREAD_UNCHANGED", lambda: [cv2.imread(p, cv2.IMREAD_UNCHANGED) for p in paths],
-             "as ImageFolderSource (grey PNGs: same values)"),
+             "as ImageFolderSource before cmax.sim.png (grey PNGs: same values)"),
         ]
+        methods += [(f"fast PNG decode only, {name}",
+                     (lambda f: lambda: [read_png(p, inflate=f) for p in paths])(f),
+                     "cmax.sim.png.read_png" + (", as ImageFolderSource" if name == INFLATE_BACKEND else ""))
+                    for name, f in inflates.items()]
         density = count / (len(paths) - 1) / (width * height)
         group = f"truck-pan {width}x{height}, C={c}, {count:,} events ({density:.3f} per pixel per frame)"
         run_group(report, group, methods, count, repeats)
         rows = {row.method: row for row in report.rows if row.group == group}
         best = max(counts, key=lambda n: rows[labels[n]].mev_per_s)
-        curve.append((c, density, rows["PNG decode + step, one thread"].mev_per_s,
+        curve.append((c, density, rows[fast_one].mev_per_s,
                       rows[labels[best]].mev_per_s, rows["step only, frames decoded"].mev_per_s))
-        decode = _cpu_seconds(lambda: [cv2.imread(p, cv2.IMREAD_UNCHANGED) for p in paths], repeats)
+        decode = _cpu_seconds(lambda: [read_png(p) for p in paths], repeats)
         step = _cpu_seconds(lambda: _run_frames(EventSimulator, frames, times, c), repeats)
         two, many = (decode + step) / 2, max(step, decode / MAX_DECODERS)
         bounds.append(f"C = {c}: decode {decode * 1e3:.0f} ms, step {step * 1e3:.0f} ms of CPU; 2 cores {two * 1e3:.0f} ms ({count / two / 1e6:.1f} M ev/s), "
                       f"{MAX_DECODERS + 1}+ cores {many * 1e3:.0f} ms ({count / many / 1e6:.1f} M ev/s)")
         reference = ESIM_PY_MEV_S["truck"].get(c)
         if reference is not None:
-            versus.append(f"C = {c}: " + ", ".join(
-                f"{n} thread{'s' * (n > 1)} {rows[labels[n]].mev_per_s:.2f} M ev/s = "
-                f"{rows[labels[n]].mev_per_s / reference:.2f}x" for n in counts)
-                + f", one thread without a pool {rows['PNG decode + step, one thread'].mev_per_s:.2f} = "
-                f"{rows['PNG decode + step, one thread'].mev_per_s / reference:.2f}x"
-                + f" (esim_py {reference} M ev/s)")
+            def ratio(label: str) -> str:
+                return f"{rows[label].mev_per_s:.2f} M ev/s = {rows[label].mev_per_s / reference:.2f}x"
+
+            versus.append(
+                f"C = {c} (esim_py {reference} M ev/s): one thread, no pool: fast {ratio(fast_one)}, cv2 "
+                f"{ratio('PNG decode + step, one thread')}; pipelined, fast: " + ", ".join(
+                    f"{n} thread{'s' * (n > 1)} {ratio(labels[n])}" for n in counts)
+                + "; pipelined, cv2: " + ", ".join(
+                    f"{n} thread{'s' * (n > 1)} {ratio(cv2_labels[n])}" for n in counts))
     capacity.append(parallel_capacity())
     report.checks["truck-pan frames"] = len(paths)
     report.checks["CPU seconds per wall second of 2 GIL-free threads (zlib), before / after the truck-pan "
@@ -237,12 +293,12 @@ def truck_groups(report, run_group, repeats, thresholds=THRESHOLDS):
         report.checks["pipelined against C++ esim_py (issue 22's figures; esim_py is not importable "
                       "here, so not the same process)"] = "; ".join(versus)
     report.checks["bound on a free machine, from the CPU seconds (process time, medians) of decoding "
-                  "(IMREAD_UNCHANGED, one thread) and of the step in this run; an estimate, not a "
+                  f"(cmax.sim.png, {INFLATE_BACKEND}, one thread) and of the step in this run; an estimate, not a "
                   "measurement: (decode + step) / 2 on 2 cores, max(step, decode / 4) with 4 decoders "
                   "and a core for the simulation"] = "; ".join(bounds)
     target = 2 * REFERENCE_MEV_S[1]
-    report.checks["density curve: C / events per pixel per frame / Mev/s one thread / best pipelined / "
-                  "step only"] = "; ".join(
+    report.checks["density curve: C / events per pixel per frame / Mev/s one thread (fast decode) / best "
+                  "pipelined (fast decode) / step only"] = "; ".join(
         f"{c} / {d:.3f} / {a:.1f} / {b:.1f} / {s:.1f}" for c, d, a, b, s in curve)
     reached = [(c, d) for c, d, _, b, _ in curve if b >= target]
     report.checks[f"2x the reference ({target:.1f} Mev/s) pipelined reached at"] = (
@@ -405,23 +461,42 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--repeats", type=int, default=5)
     parser.add_argument("--long-minutes", type=float, default=10.0)
     parser.add_argument("--no-write", action="store_true")
+    parser.add_argument("--clock", choices=sorted(speed.CLOCKS), default="wall",
+                        help="time wall seconds (default) or CPU seconds of the process (all its threads: "
+                             "the one-thread rows' work on a busy machine; pipelined rows then add up "
+                             "their threads' CPU time)")
     parser.add_argument("--truck-only", action="store_true",
                         help="only the truck-pan groups at C = 0.2/0.1/0.05, written to "
                              "benchmarks/results/speed_simulator_truck.md and .json")
     args = parser.parse_args(argv)
+    speed.CLOCK[0] = args.clock
+    load_at_start = os.getloadavg()[0]
     cv2.setNumThreads(1)  # single-threaded, as the reference C++ ESIM figure
     machine = speed.machine_info()
     repeats = 3 if args.quick else args.repeats
     report = speed.Report("simulator", "Simulator speed (EventSimulator, adaptive sampling, conversion)",
                           {"repeats": repeats, "opencv_threads": 1, "quick": args.quick})
     if args.truck_only:
-        report = speed.Report("simulator_truck", "Simulator speed on truck-pan incl. PNG decoding",
-                              {"repeats": repeats, "opencv_threads": 1,
-                               "command": "python -m benchmarks.speed_simulator --truck-only"})
+        from cmax.sim.png import INFLATE_BACKEND
+
+        # with the optional isal installed, a second file: the default install's figures stay apart
+        suffix = "" if INFLATE_BACKEND == "zlib" else f"_{INFLATE_BACKEND}"
+        report = speed.Report(f"simulator_truck{suffix}", "Simulator speed on truck-pan incl. PNG decoding",
+                              {"repeats": repeats, "opencv_threads": 1, "png_inflate": INFLATE_BACKEND,
+                               "clock": args.clock,
+                               "command": "python -m benchmarks.speed_simulator --truck-only"
+                               + (" --clock cpu" if args.clock == "cpu" else "")})
         truck_groups(report, speed.run_group, repeats, (0.2, 0.1, 0.05))
+        if INFLATE_BACKEND != "zlib":
+            from importlib.metadata import version
+
+            report.notes.append(f"PNG frames inflated by {INFLATE_BACKEND} {version(INFLATE_BACKEND)} "
+                                "(the optional extra evtslowtv[fast]); without it the same command "
+                                "writes speed_simulator_truck.md (zlib).")
         report.notes += [
-            "Mev/s counts events per wall second; rows of one group are timed interleaved.",
-            f"Load average (1 min) at the end: {os.getloadavg()[0]:.2f} (2 shared cores).",
+            f"Mev/s counts events per {args.clock} second; rows of one group are timed interleaved.",
+            f"Load average (1 min) at the start / end: {load_at_start:.2f} / {os.getloadavg()[0]:.2f} "
+            "(2 shared cores).",
         ]
         speed.publish_report(report, machine, write=not args.no_write)
         return 0

@@ -262,6 +262,42 @@ def test_mismatched_and_undecodable_images(tmp_path):
         list(ImageFolderSource(tmp_path / "c", timestamps=np.array([0, 1, 2])))
 
 
+def test_grey_pngs_are_read_without_opencv(tmp_path, monkeypatch):
+    """Grey 8- and 16-bit PNGs go through cmax.sim.png (same values); other images still through cv2."""
+    images = write_images(tmp_path / "grey", 3)
+    deep = (images[0].astype(np.uint16) * 257 + 1)
+    (tmp_path / "deep").mkdir()
+    cv2.imwrite(str(tmp_path / "deep" / "0.png"), deep)
+    cv2.imwrite(str(tmp_path / "grey" / "frame_3.bmp"), images[1])
+    expected = [f for f, _ in ImageFolderSource(tmp_path / "grey", timestamps=np.arange(4))]
+    expected_deep = next(iter(ImageFolderSource(tmp_path / "deep", timestamps=np.array([0]))))[0]
+    calls = []
+    real_imread = cv2.imread
+    monkeypatch.setattr(cv2, "imread", lambda *args: calls.append(str(args[0])) or real_imread(*args))
+    frames = [f for f, _ in ImageFolderSource(tmp_path / "grey", timestamps=np.arange(4))]
+    assert [Path(c).name for c in calls] == ["frame_3.bmp"]  # the PNGs never reached OpenCV
+    for frame, image in zip(frames, images + [images[1]]):
+        np.testing.assert_array_equal(frame, image.astype(np.float32))
+    np.testing.assert_array_equal(frames, expected)
+    frame, _ = next(iter(ImageFolderSource(tmp_path / "deep", timestamps=np.array([0]))))
+    np.testing.assert_array_equal(frame, deep.astype(np.float32) * np.float32(255 / 65535))
+    np.testing.assert_array_equal(frame, expected_deep)
+
+
+def test_corrupt_png_raises_decode_error_naming_it(tmp_path):
+    write_images(tmp_path / "d", 3)
+    path = tmp_path / "d" / "frame_1.png"
+    path.write_bytes(path.read_bytes()[:-40])  # cut inside the image data
+    source = ImageFolderSource(tmp_path / "d", timestamps=np.array([0, 1, 2]), prefetch=2)
+    with pytest.raises(DecodeError, match=r"frame_1\.png: truncated PNG"):
+        list(source)
+    data = bytearray((tmp_path / "d" / "frame_2.png").read_bytes())
+    data[60] ^= 0xFF  # inside the IDAT chunk
+    path.write_bytes(bytes(data))
+    with pytest.raises(DecodeError, match=r"frame_1\.png: corrupt PNG \(CRC mismatch"):
+        list(ImageFolderSource(tmp_path / "d", timestamps=np.array([0, 1, 2]), prefetch=0))
+
+
 def test_colour_images_become_grey(tmp_path):
     folder = tmp_path / "colour"
     folder.mkdir()
