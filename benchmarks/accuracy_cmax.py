@@ -262,7 +262,8 @@ def _figure_rows(model: str, results: list[dict]) -> list[str]:
         med, p90 = float(np.nanmedian(values)), float(np.nanpercentile(values, 90))
         target = TARGETS.get((model.split(" ")[0], key))
         met = "" if target is None else f"{'yes' if med <= target else 'no'} / {'yes' if p90 <= target else 'no'}"
-        lines.append(f"| {model} | {key} | {med:.3f} | {p90:.3f} | {'' if target is None else f'<= {target}'} | {met} |")
+        bound = "" if target is None else f"<= {target}"
+        lines.append(f"| {model} | {key} | {med:.3f} | {p90:.3f} | {bound} | {met} |")
     return lines
 
 

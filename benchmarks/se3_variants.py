@@ -84,7 +84,8 @@ def report(rows: dict[str, list[dict]], seeds: list[int], seconds: float) -> str
              f"(1 min) at the end {os.getloadavg()[0]:.2f}. Written by `python -m benchmarks.se3_variants` in "
              f"{seconds:.0f} s. Medians / p90 over all windows, then over the windows each variant's fit called "
              "`ok`.", "",
-             "| variant | " + " | ".join(FIGURES) + " | ok windows | " + " | ".join(f"{f} (ok)" for f in FIGURES) + " |",
+             "| variant | " + " | ".join(FIGURES) + " | ok windows | "
+             + " | ".join(f"{f} (ok)" for f in FIGURES) + " |",
              "|---|" + "---|" * (2 * len(FIGURES) + 1)]
     for name, results in rows.items():
         ok = [r for r in results if r["verdict"] == "ok"]
