@@ -38,3 +38,28 @@ def random_events(n: int, width: int = 64, height: int = 48, seed: int = 0, t_sp
 def small_events() -> Events:
     """2,000 random events on a 64x48 sensor over 0.1 s."""
     return random_events(2000)
+
+
+def one_line_error(call, capsys) -> tuple[int, str]:
+    """Run ``call`` (a command's ``main``; argparse's ``SystemExit`` taken as its status) and check that it
+    wrote exactly one line to stderr and no traceback; returns ``(status, stderr)``."""
+    try:
+        status = call()
+    except SystemExit as exit_:   # argparse
+        status = exit_.code
+    err = capsys.readouterr().err
+    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
+    return status, err
+
+
+@pytest.fixture(scope="session")
+def slider_file(tmp_path_factory) -> Path:
+    """0.3 s of a small slider scene (64x48) with its ground truth (gt/K, gt/poses), as `cmax scene` writes it."""
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+
+    scene = make_scene("slider", seed=1, width=64, height=48, duration_s=1.0, texture_size=64)
+    sequence = simulate_scene(scene, 0.3, EventSimulator(**{**scene.recommended_simulator, "seed": 1}),
+                              depth_rate_hz=10)
+    return sequence.save(tmp_path_factory.mktemp("new_user") / "slider.h5")

@@ -3,35 +3,11 @@ that names the option to change, BEFORE the long work (simulating), and do what 
 ``cmax scene`` writes; a warning of the library is one line."""
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 import pytest
 
 from cmax.cli import main as cmax_main
-
-
-def _one_line(call, capsys) -> tuple[int, str]:
-    try:
-        status = call()
-    except SystemExit as exit_:   # argparse
-        status = exit_.code
-    err = capsys.readouterr().err
-    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    return status, err
-
-
-@pytest.fixture(scope="module")
-def slider_file(tmp_path_factory) -> Path:
-    """0.3 s of a small slider scene (64x48) with its ground truth (gt/K, gt/poses), as `cmax scene` writes it."""
-    from cmax.sim.esim import EventSimulator
-    from cmax.sim.presets import make_scene
-    from cmax.sim.synthetic import simulate_scene
-
-    scene = make_scene("slider", seed=1, width=64, height=48, duration_s=1.0, texture_size=64)
-    sequence = simulate_scene(scene, 0.3, EventSimulator(**{**scene.recommended_simulator, "seed": 1}),
-                              depth_rate_hz=10)
-    return sequence.save(tmp_path_factory.mktemp("new_user") / "slider.h5")
+from conftest import one_line_error
 
 
 # -- cmax scene ------------------------------------------------------------------------------------
@@ -58,7 +34,7 @@ def test_scene_refuses_its_output_before_simulating(tmp_path, capsys, monkeypatc
     monkeypatch.chdir(tmp_path)
     (tmp_path / "EXISTING").with_suffix(".h5").write_bytes(b"an earlier result")
     output = "EXISTING.h5" if output == "EXISTING" else output
-    status, err = _one_line(lambda: cmax_main(["scene", "slider", "-o", output, "--duration", "0.1",
+    status, err = one_line_error(lambda: cmax_main(["scene", "slider", "-o", output, "--duration", "0.1",
                                                "--size", "64x48", *extra]), capsys)
     assert status == 2 and message in err, err
     assert (tmp_path / "EXISTING.h5").read_bytes() == b"an earlier result"
@@ -76,7 +52,7 @@ def test_scene_depth_map_budget_is_the_memory_they_take():
 @pytest.mark.parametrize("option, value", [("--duration", "nan"), ("--duration", "0"), ("--cp", "-1"),
                                            ("--cn", "inf")])
 def test_scene_numbers_are_refused_by_their_option_name(tmp_path, capsys, option, value):
-    status, err = _one_line(lambda: cmax_main(["scene", "slider", "-o", str(tmp_path / "s.h5"), option, value]),
+    status, err = one_line_error(lambda: cmax_main(["scene", "slider", "-o", str(tmp_path / "s.h5"), option, value]),
                             capsys)
     assert status == 2 and f"argument {option}: expected a finite number > 0" in err
 
@@ -106,7 +82,7 @@ def test_emvs_without_poses_anywhere_says_how_to_give_them(tmp_path, capsys):
     from conftest import random_events
 
     bare = write_h5(tmp_path / "bare.h5", random_events(500, width=64, height=48))
-    status, err = _one_line(lambda: cmax_main(["emvs", str(bare), "--K", "60,60,32,24", "-o", str(tmp_path / "o")]),
+    status, err = one_line_error(lambda: cmax_main(["emvs", str(bare), "--K", "60,60,32,24", "-o", str(tmp_path / "o")]),
                             capsys)
     assert status == 2 and "stores no poses (gt/poses): give them with --poses traj.txt" in err
 
@@ -121,7 +97,7 @@ def test_emvs_without_poses_anywhere_says_how_to_give_them(tmp_path, capsys):
 def test_emvs_mistakes_name_the_option(slider_file, tmp_path, capsys, argv, message):
     argv = [str(slider_file) if a == "FILE" else a for a in argv]
     output = [] if "-o" in argv else ["-o", str(tmp_path / "o")]
-    status, err = _one_line(lambda: cmax_main(["emvs", str(slider_file), *output, *argv]), capsys)
+    status, err = one_line_error(lambda: cmax_main(["emvs", str(slider_file), *output, *argv]), capsys)
     assert status == 2 and message in err, err
     assert not (tmp_path / "o").exists()
 
@@ -158,7 +134,7 @@ def test_demo_refusals_name_the_options(tmp_path, capsys, argv, message):
     (tmp_path / "a.txt").write_text("notes")
     argv = [str(tmp_path / "a.txt") if a == "FILE" else a for a in argv]
     output = [] if "-o" in argv else ["-o", str(tmp_path / "demo")]
-    status, err = _one_line(lambda: cmax_main(["demo", *output, *argv]), capsys)
+    status, err = one_line_error(lambda: cmax_main(["demo", *output, *argv]), capsys)
     assert status == 2 and message in err, err
     assert not (tmp_path / "demo").exists()
 
@@ -174,11 +150,11 @@ def test_comma_separated_values_may_start_negative(capsys):
     base = ["fit", "a.h5", "--K", "60,60,32,24", "-o", "out"]
     assert parser.parse_args([*base, "--omega", "-0.1,0,0"]).omega == (-0.1, 0.0, 0.0)
     assert parser.parse_args([*base, "--omega", "-1e-3,-2,+3"]).omega == (-0.001, -2.0, 3.0)
-    status, err = _one_line(lambda: cmax_main(["emvs", "a.h5", "-o", "o", "--K", "-100,100,60,45"]), capsys)
+    status, err = one_line_error(lambda: cmax_main(["emvs", "a.h5", "-o", "o", "--K", "-100,100,60,45"]), capsys)
     assert status == 2 and "K must have positive focal lengths" in err
-    status, err = _one_line(lambda: cmax_main(["emvs", "a.h5", "-o", "o", "--depth-range", "-1,1"]), capsys)
+    status, err = one_line_error(lambda: cmax_main(["emvs", "a.h5", "-o", "o", "--depth-range", "-1,1"]), capsys)
     assert status == 2 and "0 < NEAR < FAR" in err
-    status, err = _one_line(lambda: cmax_main([*base, "-x"]), capsys)   # an option is still an option
+    status, err = one_line_error(lambda: cmax_main([*base, "-x"]), capsys)   # an option is still an option
     assert status == 2 and "unrecognized arguments: -x" in err
 
 
@@ -205,7 +181,7 @@ def test_emvs_takes_a_calibration_file_and_a_time_unit(slider_file, tmp_path, ca
     assert cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "k"), *common]) == 0
     assert cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "calib"), "--calib", str(tmp_path / "calib.txt"),
                       *common]) == 0
-    status, err = _one_line(lambda: cmax_main(["emvs", str(tmp_path / "events.npy"), "-o", str(tmp_path / "npy"),
+    status, err = one_line_error(lambda: cmax_main(["emvs", str(tmp_path / "events.npy"), "-o", str(tmp_path / "npy"),
                                                "--size", "64x48", *common]), capsys)
     assert status == 2 and "time_unit=" in err   # (cmax.io names the keyword, not --time-unit)
     assert cmax_main(["emvs", str(tmp_path / "events.npy"), "-o", str(tmp_path / "npy"), "--size", "64x48",
@@ -216,7 +192,7 @@ def test_emvs_takes_a_calibration_file_and_a_time_unit(slider_file, tmp_path, ca
     for other in (by_calib, by_npy):
         np.testing.assert_array_equal(other["mask"], by_k["mask"])
         np.testing.assert_array_equal(other["depth"], by_k["depth"])
-    status, err = _one_line(lambda: cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "o"), "--calib",
+    status, err = one_line_error(lambda: cmax_main(["emvs", str(slider_file), "-o", str(tmp_path / "o"), "--calib",
                                                str(tmp_path / "calib.txt"), "--distortion", "0,0,0,0"]), capsys)
     assert status == 2 and "pass --calib or --K with --distortion, not both" in err
 
@@ -272,7 +248,7 @@ def test_scene_says_the_intrinsics_and_depth_range_it_stored(tmp_path, capsys):
 
 def test_an_unknown_option_is_named_by_its_sub_command(capsys):
     """It was 'cmax: error: unrecognized arguments: --bogus x (see cmax --help)', not the sub-command's help."""
-    status, err = _one_line(lambda: cmax_main(["emvs", "a.h5", "-o", "o", "--bogus", "x"]), capsys)
+    status, err = one_line_error(lambda: cmax_main(["emvs", "a.h5", "-o", "o", "--bogus", "x"]), capsys)
     assert status == 2 and err == "cmax emvs: error: unrecognized arguments: --bogus x (see cmax emvs --help)\n"
-    status, err = _one_line(lambda: cmax_main(["--bogus"]), capsys)
+    status, err = one_line_error(lambda: cmax_main(["--bogus"]), capsys)
     assert status == 2 and err.startswith("cmax: error: unrecognized arguments: --bogus")

@@ -7,28 +7,7 @@ from pathlib import Path
 
 import pytest
 
-
-def _one_line(call, capsys) -> tuple[int, str]:
-    try:
-        status = call()
-    except SystemExit as exit_:   # argparse
-        status = exit_.code
-    err = capsys.readouterr().err
-    assert "Traceback" not in err and len(err.strip().splitlines()) == 1, err
-    return status, err
-
-
-@pytest.fixture(scope="module")
-def slider_file(tmp_path_factory) -> Path:
-    """0.3 s of a small slider scene (64x48) with its ground truth (gt/K, gt/poses), as `cmax scene` writes it."""
-    from cmax.sim.esim import EventSimulator
-    from cmax.sim.presets import make_scene
-    from cmax.sim.synthetic import simulate_scene
-
-    scene = make_scene("slider", seed=1, width=64, height=48, duration_s=1.0, texture_size=64)
-    sequence = simulate_scene(scene, 0.3, EventSimulator(**{**scene.recommended_simulator, "seed": 1}),
-                              depth_rate_hz=10)
-    return sequence.save(tmp_path_factory.mktemp("new_user") / "slider.h5")
+from conftest import one_line_error
 
 
 # -- python -m learned.train -------------------------------------------------------------------------------
@@ -45,10 +24,10 @@ def test_train_keeps_an_earlier_run_unless_told(slider_file, tmp_path, capsys):
     out = tmp_path / "run"
     assert main(_train(slider_file, out)) == 0
     first = (out / "last.pt").read_bytes()
-    status, err = _one_line(lambda: main(_train(slider_file, out)), capsys)
+    status, err = one_line_error(lambda: main(_train(slider_file, out)), capsys)
     assert status == 2 and "last.pt exists (an earlier run): --resume continues it, --overwrite" in err
     assert (out / "last.pt").read_bytes() == first
-    status, err = _one_line(lambda: main(_train(slider_file, out, "--resume", "--overwrite")), capsys)
+    status, err = one_line_error(lambda: main(_train(slider_file, out, "--resume", "--overwrite")), capsys)
     assert status == 2 and "give one of them" in err
     (out / "log.jsonl").write_text('{"step": 99}\n')
     assert main(_train(slider_file, out, "--overwrite", "train.log_every=1")) == 0
@@ -68,7 +47,7 @@ def test_train_mistakes_say_what_to_do(slider_file, tmp_path, capsys, extra, mes
     from learned.train import main
 
     extra = [f"train.out={slider_file}" if e == "train.out=FILE" else e for e in extra]
-    status, err = _one_line(lambda: main(_train(slider_file, tmp_path / "run", *extra)), capsys)
+    status, err = one_line_error(lambda: main(_train(slider_file, tmp_path / "run", *extra)), capsys)
     assert status == 2 and message in err, err
     assert not (tmp_path / "run" / "last.pt").exists()
 
@@ -80,7 +59,7 @@ def test_predict_refuses_a_file_as_output_before_loading_a_model(slider_file, tm
 
     monkeypatch.setattr(learned.evaluate, "load_model", lambda *a: (_ for _ in ()).throw(AssertionError("loaded")))
     (tmp_path / "out.txt").write_text("notes")
-    status, err = _one_line(lambda: main([str(slider_file), "-o", str(tmp_path / "out.txt")]), capsys)
+    status, err = one_line_error(lambda: main([str(slider_file), "-o", str(tmp_path / "out.txt")]), capsys)
     assert status == 2 and "out.txt is a file: give a folder" in err
 
 
@@ -88,11 +67,11 @@ def test_a_checkpoint_folder_points_at_its_file(slider_file, tmp_path, capsys):
     from learned.predict import main
 
     (tmp_path / "run").mkdir()
-    status, err = _one_line(lambda: main([str(slider_file), "-o", str(tmp_path / "o"), "--checkpoint",
+    status, err = one_line_error(lambda: main([str(slider_file), "-o", str(tmp_path / "o"), "--checkpoint",
                                           str(tmp_path / "run")]), capsys)
     assert status == 2 and "it is a folder (it holds no .pt file)" in err
     (tmp_path / "run" / "last.pt").write_bytes(b"x")
-    status, err = _one_line(lambda: main([str(slider_file), "-o", str(tmp_path / "o"), "--checkpoint",
+    status, err = one_line_error(lambda: main([str(slider_file), "-o", str(tmp_path / "o"), "--checkpoint",
                                           str(tmp_path / "run")]), capsys)
     assert status == 2 and f"give the file, e.g. {tmp_path / 'run' / 'last.pt'}" in err
 
@@ -116,9 +95,9 @@ def test_predict_keeps_an_earlier_runs_windows_from_mixing_with_new_ones(slider_
     assert main(base) == 0
     first = sorted(p.name for p in out.iterdir())
     assert len([name for name in first if name.endswith(".npz")]) == 5          # 0.3 s in windows of 50 ms
-    status, err = _one_line(lambda: main([*base, "--window", "0.2"]), capsys)
+    status, err = one_line_error(lambda: main([*base, "--window", "0.2"]), capsys)
     assert status == 2 and "holds the results of an earlier run" in err and "--overwrite replaces them" in err
-    status, err = _one_line(lambda: main([*base, "--window", "5", "--overwrite"]), capsys)  # refused: kept
+    status, err = one_line_error(lambda: main([*base, "--window", "5", "--overwrite"]), capsys)  # refused: kept
     assert status == 2 and sorted(p.name for p in out.iterdir()) == first
     assert main([*base, "--window", "0.2", "--overwrite"]) == 0
     assert sorted(p.name for p in out.iterdir()) == ["summary.json", "twists.csv", "window_00000.npz",
@@ -152,10 +131,10 @@ def test_teacher_refuses_files_without_ground_truth(slider_file, tmp_path, capsy
     from learned.train import main
 
     bare = write_h5(tmp_path / "bare.h5", cmax.io.read(slider_file))   # the same events, no gt/
-    status, err = _one_line(lambda: main(_train(bare, tmp_path / "run")), capsys)
+    status, err = one_line_error(lambda: main(_train(bare, tmp_path / "run")), capsys)
     assert status == 2 and 'has no gt/K: give its intrinsics with it, {"path": ' in err
     entry = f'data.files=[{{"path": "{bare}", "K": [60, 60, 32, 24]}}]'
-    status, err = _one_line(lambda: main(_train(bare, tmp_path / "run", entry)), capsys)
+    status, err = one_line_error(lambda: main(_train(bare, tmp_path / "run", entry)), capsys)
     assert status == 2 and "--mode teacher learns from ground-truth depth" in err and "its loss would be 0" in err
     assert not (tmp_path / "run" / "last.pt").exists()
 

@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, nonnegative_float, positive_int
-from cmax.cli.recording import (add_file_options, distortion_argument, file_intrinsics, file_kwargs,
-                                intrinsics_argument, read_calibration, time_slice)
+from cmax.cli.recording import (add_camera_options, add_file_options, file_intrinsics, file_kwargs,
+                                read_calibration, time_slice)
 from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_command", "run", "camera_for", "file_trajectory", "output_folder"]
@@ -66,17 +66,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--poses", type=Path, default=None,
                         help="TUM trajectory file (default: gt/poses of an h5 file, as cmax scene writes it)")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
-    camera = parser.add_mutually_exclusive_group()
-    camera.add_argument("--K", type=intrinsics_argument, default=None,
-                        help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file)")
-    camera.add_argument("--calib", type=Path, default=None,
-                        help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
-                             "k3) or DSEC cam_to_cam.yaml (intrinsics of --calib-camera)")
-    parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
-                        help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
-                             "(rectified events)")
-    parser.add_argument("--distortion", type=distortion_argument, default=None,
-                        help="OpenCV k1,k2,p1,p2[,k3] of --K (default: none, a pinhole camera)")
+    add_camera_options(parser)
     api_default(parser.add_argument("--depth-range", type=_depth_range, default=None, metavar="NEAR,FAR",
                                     help="depth range of the planes [m]: the scene's own range when the file "
                                     "records one (cmax scene), else"), _emvs_default("depth_range"))

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, library_default, positive_float, positive_int
-from cmax.cli.recording import (add_recording_arguments, distortion_argument, file_intrinsics, intrinsics_argument,
-                                read_calibration, time_slice)
+from cmax.cli.recording import (add_camera_options, add_recording_arguments, file_intrinsics, read_calibration,
+                                time_slice)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 __all__ = ["add_command", "advice", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
@@ -31,18 +31,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser("fit", help="depth and motion per window by contrast maximization",
                                    description=__doc__.split("\n\n")[0])
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
-    camera = parser.add_mutually_exclusive_group()
-    camera.add_argument("--K", type=intrinsics_argument,
-                        help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file, e.g. one cmax scene wrote)")
-    camera.add_argument("--calib", type=Path, default=None,
-                        help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
-                             "k3) or DSEC cam_to_cam.yaml (intrinsics of --calib-camera)")
-    parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
-                        help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
-                             "(rectified events)")
-    parser.add_argument("--distortion", type=distortion_argument, default=None,
-                        help="OpenCV k1,k2,p1,p2[,k3] of --K: events are undistorted to the nearest pixel "
-                             "before the fit (default: none, a pinhole camera)")
+    add_camera_options(parser, distortion_help=": events are undistorted to the nearest pixel before the fit")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
     add_recording_arguments(parser)
     api_default(parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,

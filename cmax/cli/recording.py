@@ -4,8 +4,10 @@
   tools (``cmax info``, ``cmax show``), passed to :func:`cmax.io.read` as keywords;
 * :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--t0``, ``--t1`` of the commands that fit or
   predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``;
-* :func:`intrinsics_argument`, :data:`distortion_argument`: ``argparse`` types of ``--K`` and ``--distortion``;
-  :func:`read_calibration`: ``--calib`` (ECD ``calib.txt``, DSEC ``cam_to_cam.yaml``).
+* :func:`add_camera_options`: ``--K`` or ``--calib`` (with ``--calib-camera``), and ``--distortion``, of the
+  commands that need the intrinsics (``cmax fit``, ``cmax emvs``); :func:`intrinsics_argument`,
+  :data:`distortion_argument`: their ``argparse`` types; :func:`read_calibration`: ``--calib`` (ECD
+  ``calib.txt``, DSEC ``cam_to_cam.yaml``).
 
 No import here loads torch (the parsers are built at start-up).
 """
@@ -19,8 +21,8 @@ import numpy as np
 from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import check_intrinsics
 
-__all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "intrinsics_argument", "file_intrinsics",
-           "distortion_argument", "read_calibration", "time_slice"]
+__all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "intrinsics_argument",
+           "file_intrinsics", "distortion_argument", "read_calibration", "time_slice"]
 
 #: ``argparse`` type of ``--distortion k1,k2,p1,p2[,k3]`` (OpenCV order, dimensionless).
 distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
@@ -65,6 +67,22 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start, seconds after the first event (default: the first event)")
     parser.add_argument("--t1", type=nonnegative_float, default=None,
                         help="end, seconds after the first event (default: the last event)")
+
+
+def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str = "") -> None:
+    """``--K`` or ``--calib`` (one of them), ``--calib-camera`` and ``--distortion``; ``distortion_help`` ends
+    the help of ``--distortion`` (what the command does with it)."""
+    camera = parser.add_mutually_exclusive_group()
+    camera.add_argument("--K", type=intrinsics_argument, default=None,
+                        help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file, e.g. one cmax scene wrote)")
+    camera.add_argument("--calib", type=Path, default=None,
+                        help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
+                             "k3) or DSEC cam_to_cam.yaml (intrinsics of --calib-camera)")
+    parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
+                        help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
+                             "(rectified events)")
+    parser.add_argument("--distortion", type=distortion_argument, default=None,
+                        help=f"OpenCV k1,k2,p1,p2[,k3] of --K{distortion_help} (default: none, a pinhole camera)")
 
 
 def intrinsics_argument(text: str) -> np.ndarray:
