@@ -16,8 +16,8 @@ as in training, by the compiled :func:`learned.volume.event_volume`) and runs th
   of all its windows, drawn once every window is predicted);
 * ``twists.csv`` (one line per window) and ``summary.json`` (inputs, settings, notes, counts).
 
-Intrinsics come from ``--K``, ``--calib`` (whose distortion, when it has one, undistorts the events
-first) or the file's own ``gt/K``. The network is fully convolutional and runs at any sensor size,
+Intrinsics come from ``--K`` (with ``--distortion``, the events are undistorted first), ``--calib`` (whose
+distortion, when it has one, undistorts the events first) or the file's own ``gt/K``. The network is fully convolutional and runs at any sensor size,
 but the depth it reads from the events' motion assumes the camera it was trained with: a sensor
 size or focal length unlike the one in the checkpoint's card (:mod:`learned.pretrained`) is noted
 once. The checkpoint defaults to the model shipped in the package.
@@ -35,7 +35,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import add_recording_arguments, intrinsics_argument, read_calibration
+from cmax.cli.recording import add_camera_options, add_recording_arguments, read_calibration
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
     from cmax.events import Events
@@ -402,7 +402,7 @@ def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarra
 
 def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path | None = None,
                    K: np.ndarray | None = None, calib: str | Path | None = None, calib_camera: str = "cam0",
-                   size: tuple[int, int] | None = None, time_unit: str | None = None, polarity: str | None = None,
+                   distortion: np.ndarray | None = None, size: tuple[int, int] | None = None, time_unit: str | None = None, polarity: str | None = None,
                    t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
                    depth_range: tuple[float, float] | None = None, batch: int = 8, progress: bool = True,
                    note: Callable[[str], None] | None = None, overwrite: bool = False) -> DepthRun:
@@ -415,6 +415,9 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     K : ndarray (3, 3), optional
         Intrinsics [px]; ``calib`` (ECD calib.txt or DSEC cam_to_cam.yaml, camera ``calib_camera``)
         instead; neither: the file's ``gt/K``.
+    distortion : ndarray (4,) or (5,), optional
+        OpenCV ``k1, k2, p1, p2[, k3]`` of ``K`` (with ``K`` only; a ``calib`` file brings its own): the
+        events are undistorted to the nearest pixel before the network sees them.
     size, time_unit, polarity : as :func:`cmax.io.read` (for files that do not state them).
     t0_s, t1_s : float, optional
         Part to predict, seconds after the first event.
@@ -463,7 +466,11 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         raise ValueError(f"the window must be at least 1 µs long, got {window_us} µs")
     if depth_range is not None:
         viz.DepthScale(*depth_range)   # checked before any work
-    distortion, calib_size = None, None
+    calib_size = None
+    if distortion is not None:
+        if K is None:
+            raise ValueError("--distortion applies to --K: give both (a --calib file brings its own distortion)")
+        distortion = np.asarray(distortion, float)
     if calib is not None:
         if K is not None:
             raise ValueError("give the intrinsics with --K or --calib, not both")
@@ -538,14 +545,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", type=Path, required=True, help="output folder")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="checkpoint of learned.train (default: the model shipped in learned/pretrained)")
-    camera = parser.add_mutually_exclusive_group()
-    camera.add_argument("--K", type=intrinsics_argument, default=None,
-                        help="intrinsics fx,fy,cx,cy [px] (default: the file's gt/K)")
-    camera.add_argument("--calib", type=Path, default=None,
-                        help="calibration file instead of --K: ECD calib.txt or DSEC cam_to_cam.yaml (its "
-                             "distortion undistorts the events)")
-    parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
-                        help="camera of a cam_to_cam.yaml: cam0 (raw events) or camRect0 (rectified)")
+    add_camera_options(parser, distortion_help=": events are undistorted to the nearest pixel first")
     add_recording_arguments(parser)
     parser.add_argument("--polarity", choices=("01", "signed"), default=None,
                         help="polarity encoding of an h5, text or .npy file: 01 (0 OFF, 1 ON) or signed "
@@ -566,7 +566,7 @@ def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> i
     """Run the command of :func:`add_arguments`' options; prints notes on stderr and the summary line."""
     result = run_prediction(
         args.file, args.output, checkpoint=args.checkpoint, K=args.K, calib=args.calib,
-        calib_camera=args.calib_camera, size=args.size, time_unit=args.time_unit, polarity=args.polarity,
+        calib_camera=args.calib_camera, distortion=args.distortion, size=args.size, time_unit=args.time_unit, polarity=args.polarity,
         t0_s=args.t0, t1_s=args.t1, window_s=args.window,
         depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
         progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),

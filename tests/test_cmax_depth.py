@@ -233,30 +233,41 @@ def _undistorted(events: Events) -> Events:
     return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], W, H)
 
 
-@pytest.mark.parametrize("calibration", ["calib.txt", "cam_to_cam.yaml"])
+@pytest.mark.parametrize("calibration", ["calib.txt", "cam_to_cam.yaml", "--distortion"])
 def test_a_calibration_with_distortion_undistorts_the_events(calibration, checkpoint, network, events, tmp_path,
                                                             capsys):
-    """ECD calib.txt (with --size) or a DSEC cam_to_cam.yaml whose resolution stands for the missing size attributes."""
+    """ECD calib.txt (with --size), a DSEC cam_to_cam.yaml whose resolution stands for the missing size
+    attributes, or --K with --distortion: the same undistorted events."""
     path = tmp_path / "e.h5"
     _h5_without_size(path, events)
     calib = tmp_path / calibration
     if calibration == "calib.txt":
         calib.write_text("60 58 31.5 23.5 " + " ".join(map(str, DISTORTION)) + " 0\n")
-        options = ["--size", f"{W}x{H}"]
-    else:
+        options = ["--calib", str(calib), "--size", f"{W}x{H}"]
+    elif calibration == "cam_to_cam.yaml":
         calib.write_text("intrinsics:\n  cam0:\n    camera_matrix: [60, 58, 31.5, 23.5]\n"
                          f"    distortion_coeffs: [{', '.join(map(str, DISTORTION))}]\n"
                          "    distortion_model: radtan\n    resolution: [64, 48]\n")
-        options = []
+        options = ["--calib", str(calib)]
+    else:
+        options = ["--K", "60,58,31.5,23.5", "--distortion", ",".join(map(str, DISTORTION)), "--size", f"{W}x{H}"]
     out = tmp_path / "out"
-    assert cmax_main(["depth", str(path), "-o", str(out), "--checkpoint", str(checkpoint), "--calib", str(calib),
-                      "--quiet", *options]) == 0
+    assert cmax_main(["depth", str(path), "-o", str(out), "--checkpoint", str(checkpoint), "--quiet",
+                      *options]) == 0
     undistorted = _undistorted(events)
     assert len(undistorted) < len(events) or not np.array_equal(undistorted.x, events.x)   # it moved events
     first = int(events.t[0])
     _check_outputs(out, _expected(network, undistorted, start=first, end=int(events.t[-1])))
     assert json.loads((out / "summary.json").read_text())["distortion"] == pytest.approx(
         list(DISTORTION) + ([0.0] if calibration == "calib.txt" else []))
+
+
+def test_distortion_needs_the_K_it_belongs_to(checkpoint, events, tmp_path, capsys):
+    write_h5(tmp_path / "e.h5", events)
+    status = cmax_main(["depth", str(tmp_path / "e.h5"), "-o", str(tmp_path / "out"), "--checkpoint",
+                        str(checkpoint), "--distortion", "0.1,0,0,0", "--quiet"])
+    err = capsys.readouterr().err
+    assert status == 2 and "--distortion applies to --K: give both" in err and err.count("\n") == 1, err
 
 
 def test_python_m_learned_predict_is_the_same_command(checkpoint, events, tmp_path, capsys):
