@@ -31,6 +31,7 @@ __all__ = [
     "event_frame_image", "iwe_image", "signed_image", "voxel_grid_image", "depth_image", "robust_max",
     "titled", "hstack", "vstack", "save_png", "save_image", "DepthScale", "depth_colour_bar", "depth_panel",
     "event_panel", "grid", "ON_BGR", "OFF_BGR", "NO_DEPTH_BGR", "NO_DEPTH_HATCH_BGR", "IMAGE_SUFFIXES",
+    "MIN_PICTURE_WIDTH", "readable_zoom", "enlarge",
 ]
 
 _WHITE = 255
@@ -45,6 +46,30 @@ NO_DEPTH_BGR = (150, 150, 150)
 NO_DEPTH_HATCH_BGR = (170, 170, 170)
 #: Extensions :func:`save_image` writes, and how: OpenCV's encoder of that name.
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg")
+#: Narrowest map in a saved picture [px]: a smaller sensor's maps are drawn enlarged (:func:`readable_zoom`), so
+#: that their titles and colour bars stay readable.
+MIN_PICTURE_WIDTH = 320
+
+
+def readable_zoom(width: int) -> int:
+    """The smallest whole factor that draws a map ``width`` pixels wide at least :data:`MIN_PICTURE_WIDTH`
+    wide (1 for a wide enough map).
+
+    >>> readable_zoom(64), readable_zoom(346)
+    (5, 1)
+    """
+    return max(1, -(-MIN_PICTURE_WIDTH // int(width)))
+
+
+def enlarge(values: np.ndarray, zoom: int) -> np.ndarray:
+    """``values`` (H, W) with each pixel a ``zoom x zoom`` block (H zoom, W zoom); ``zoom`` a whole number >= 1.
+
+    >>> enlarge(np.array([[1, 2]]), 2).tolist()
+    [[1, 1, 2, 2], [1, 1, 2, 2]]
+    """
+    if isinstance(zoom, bool) or not isinstance(zoom, (int, np.integer)) or zoom < 1:
+        raise ValueError(f"zoom must be a whole number >= 1, got {zoom!r}")
+    return values if zoom == 1 else np.repeat(np.repeat(values, zoom, axis=0), zoom, axis=1)
 
 
 def _check_finite(values: np.ndarray, name: str) -> None:

@@ -292,25 +292,17 @@ def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"
                 yield WindowPrediction(index, t0, t0 + window_us, len(events), inverse, twist)
 
 
-#: Narrowest depth picture [px]: a smaller sensor's map is shown enlarged (each pixel a block), so that its title
-#: and colour bar stay readable.
-MIN_PICTURE_WIDTH = 320
-
-
 def window_picture(depth: np.ndarray, scale, title: str) -> np.ndarray:
     """The picture of a window's depth (H, W) [m]: :func:`cmax.viz.depth_panel` on ``scale``, each pixel a
-    ``z x z`` block when the sensor is narrower than :data:`MIN_PICTURE_WIDTH` (``z`` the smallest whole
-    factor that reaches it).
+    ``z x z`` block when the sensor is narrower than :data:`cmax.viz.MIN_PICTURE_WIDTH`
+    (``z = cmax.viz.readable_zoom(W)``).
 
     >>> window_picture(np.ones((48, 64), np.float32), (0.5, 60.0), "depth").shape[1] >= 5 * 64
     True
     """
     from cmax import viz
 
-    zoom = -(-MIN_PICTURE_WIDTH // depth.shape[1])
-    if zoom > 1:
-        depth = np.repeat(np.repeat(depth, zoom, axis=0), zoom, axis=1)
-    return viz.depth_panel(depth, scale, title)
+    return viz.depth_panel(viz.enlarge(depth, viz.readable_zoom(depth.shape[1])), scale, title)
 
 
 #: Depths per window that :func:`run_prediction` keeps for the run's colour scale (an even subsample of the map).

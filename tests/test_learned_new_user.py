@@ -144,12 +144,12 @@ def test_a_small_sensors_depth_picture_is_enlarged_to_stay_readable():
     import numpy as np
 
     from cmax import viz
-    from learned.predict import MIN_PICTURE_WIDTH, window_picture
+    from learned.predict import window_picture
 
     depth = np.linspace(1.0, 9.0, 64 * 48, dtype=np.float32).reshape(48, 64)
     picture = window_picture(depth, viz.DepthScale(1.0, 10.0), "window 0, 0.000-0.050 s, depth [m]")
     enlarged = viz.depth_image(np.repeat(np.repeat(depth, 5, axis=0), 5, axis=1), viz.DepthScale(1.0, 10.0))
-    assert picture.shape[1] > MIN_PICTURE_WIDTH == 5 * 64
+    assert picture.shape[1] > viz.MIN_PICTURE_WIDTH == 5 * 64
     rows = [r for r in range(picture.shape[0] - 240 + 1) if np.array_equal(picture[r:r + 240, :320], enlarged)]
     assert len(rows) == 1                                    # the map, each pixel a 5x5 block, under its title
     big = np.ones((260, 346), np.float32)

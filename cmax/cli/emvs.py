@@ -25,8 +25,6 @@ from cmax.io.atomic import save_npz_atomic
 __all__ = ["add_command", "run", "camera_for", "file_trajectory", "output_folder"]
 
 _range_numbers = float_list((2,), "--depth-range (near,far)")
-#: Narrowest map in depth.png [px]: a smaller sensor's maps are drawn enlarged (each pixel a block).
-MIN_PICTURE_WIDTH = 320
 
 
 def _depth_range(text: str) -> tuple[float, ...]:
@@ -138,6 +136,7 @@ def output_folder(path: Path) -> Path:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status."""
+    from cmax import viz
     from cmax.emvs import EMVS, read_tum_trajectory
     from cmax.io import read
 
@@ -180,7 +179,7 @@ def run(args: argparse.Namespace) -> int:
     save_npz_atomic(out / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
               t_ref_us=np.int64(result.t_ref_us), T_w_ref=result.T_w_ref, K=result.K,
               depth_range=np.array(result.depth_range))
-    result.plot(out / "depth.png", zoom=-(-MIN_PICTURE_WIDTH // events.width))   # small sensors enlarged
+    result.plot(out / "depth.png", zoom=viz.readable_zoom(events.width))   # small sensors enlarged
     result.save_ply(out / "points.ply")
     depths = result.depth[result.mask]
     median = f"{np.median(depths):.3f} m" if depths.size else "n/a"

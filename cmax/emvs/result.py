@@ -123,14 +123,10 @@ class SemiDenseDepth:
         """
         from cmax import viz
 
-        if isinstance(zoom, bool) or not isinstance(zoom, (int, np.integer)) or zoom < 1:
-            raise ValueError(f"zoom must be a whole number >= 1, got {zoom!r}")
         confidence = self.confidence
         top = float(np.percentile(confidence[confidence > 0], 99)) if np.any(confidence > 0) else 1.0
-        grey = (255 * (1.0 - np.clip(confidence / top, 0, 1))).astype(np.uint8)
-        depth = np.where(self.mask, self.depth, np.nan)
-        if zoom > 1:
-            grey, depth = (np.repeat(np.repeat(a, zoom, axis=0), zoom, axis=1) for a in (grey, depth))
+        grey = viz.enlarge((255 * (1.0 - np.clip(confidence / top, 0, 1))).astype(np.uint8), zoom)
+        depth = viz.enlarge(np.where(self.mask, self.depth, np.nan), zoom)
         return viz.hstack([
             viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), "confidence (DSI max)"),
             viz.depth_panel(depth, self.depth_range if scale is None else scale,
