@@ -18,8 +18,8 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, nonnegative_float, positive_int
-from cmax.cli.recording import (add_camera_options, add_file_options, file_intrinsics, file_kwargs,
-                                read_calibration, time_slice)
+from cmax.cli.recording import (add_camera_options, add_file_options, calibration_of, file_intrinsics,
+                                read_calibrated, time_slice)
 from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_command", "run", "camera_for", "file_trajectory", "output_folder"]
@@ -138,27 +138,11 @@ def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status."""
     from cmax import viz
     from cmax.emvs import EMVS, read_tum_trajectory
-    from cmax.io import read
 
     out = output_folder(Path(args.output))
     trajectory = None if args.poses is None else read_tum_trajectory(args.poses)   # a bad file: before the events
-    K, distortion, calib_size = args.K, args.distortion, None
-    if args.calib is not None:
-        if args.distortion is not None:
-            raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
-        K, distortion, calib_size = read_calibration(args.calib, args.calib_camera)
-    options = file_kwargs(args)
-    try:
-        events = read(args.file, **options)
-    except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
-        if calib_size is None or args.size is not None or "width=" not in str(error):
-            raise
-        events = read(args.file, **{**options, "width": calib_size[0], "height": calib_size[1]})
-    if len(events) == 0:
-        raise ValueError(f"{args.file} holds no events")
-    if calib_size is not None and (events.width, events.height) != tuple(calib_size):
-        raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
-                         f"the events come from a {events.width}x{events.height} sensor")
+    K, distortion, calib_size = calibration_of(args)
+    events = read_calibrated(args, calib_size)
     if trajectory is None:
         trajectory = file_trajectory(args.file)
         if trajectory is None:

@@ -19,8 +19,8 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, library_default, positive_float, positive_int
-from cmax.cli.recording import (add_camera_options, add_recording_arguments, file_intrinsics, read_calibration,
-                                time_slice)
+from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_of, file_intrinsics,
+                                read_calibrated, time_slice)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 __all__ = ["add_command", "advice", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
@@ -209,33 +209,17 @@ def run(args: argparse.Namespace) -> int:
     from cmax import viz
     from cmax.fitting import fit_sequence
     from cmax.fitting.sequence import check_gyro, constant_gyro
-    from cmax.io import read, read_gyro
+    from cmax.io import read_gyro
 
     out = Path(args.output)
     if out.exists() and not out.is_dir():
         raise ValueError(f"-o {out} is a file, not a folder: give a folder for the depth maps and the summary")
-    if args.calib is not None:
-        if args.distortion is not None:
-            raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
-        K, distortion, calib_size = read_calibration(args.calib, args.calib_camera)
-    else:
-        K, distortion, calib_size = args.K, args.distortion, None
+    K, distortion, calib_size = calibration_of(args)
+    if K is None:
+        K = file_intrinsics(args.file)
         if K is None:
-            K = file_intrinsics(args.file)
-            if K is None:
-                raise ValueError(f"{args.file} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib")
-    width, height = args.size or (None, None)
-    try:
-        events = read(args.file, width=width, height=height, time_unit=args.time_unit)
-    except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
-        if calib_size is None or args.size is not None or "width=" not in str(error):
-            raise
-        events = read(args.file, width=calib_size[0], height=calib_size[1], time_unit=args.time_unit)
-    if len(events) == 0:
-        raise ValueError(f"{args.file} holds no events")
-    if calib_size is not None and (events.width, events.height) != calib_size:
-        raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
-                         f"the events come from a {events.width}x{events.height} sensor")
+            raise ValueError(f"{args.file} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib")
+    events = read_calibrated(args, calib_size)
     events = time_slice(events, args.t0, args.t1)
     notes = []
     if distortion is not None:

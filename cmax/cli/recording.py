@@ -5,7 +5,8 @@
 * :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--t0``, ``--t1`` of the commands that fit or
   predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``;
 * :func:`add_camera_options`: ``--K`` or ``--calib`` (with ``--calib-camera``), and ``--distortion``, of the
-  commands that need the intrinsics (``cmax fit``, ``cmax emvs``); :func:`intrinsics_argument`,
+  commands that need the intrinsics (``cmax fit``, ``cmax emvs``), :func:`calibration_of` and
+  :func:`read_calibrated` behind them; :func:`intrinsics_argument`,
   :data:`distortion_argument`: their ``argparse`` types; :func:`read_calibration`: ``--calib`` (ECD
   ``calib.txt``, DSEC ``cam_to_cam.yaml``).
 
@@ -21,8 +22,9 @@ import numpy as np
 from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import check_intrinsics
 
-__all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "intrinsics_argument",
-           "file_intrinsics", "distortion_argument", "read_calibration", "time_slice"]
+__all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
+           "read_calibrated", "intrinsics_argument", "file_intrinsics", "distortion_argument", "read_calibration",
+           "time_slice"]
 
 #: ``argparse`` type of ``--distortion k1,k2,p1,p2[,k3]`` (OpenCV order, dimensionless).
 distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
@@ -43,14 +45,15 @@ def add_file_options(parser: argparse.ArgumentParser) -> None:
 
 
 def file_kwargs(args: argparse.Namespace) -> dict[str, int | str | None]:
-    """The :func:`cmax.io.read` keywords of :func:`add_file_options`' options (``polarity`` only when given).
+    """The :func:`cmax.io.read` keywords of :func:`add_file_options`' options, or of
+    :func:`add_recording_arguments`' (``polarity`` only when given: those have none).
 
     >>> file_kwargs(argparse.Namespace(size=(346, 260), time_unit="us", polarity=None))
     {'width': 346, 'height': 260, 'time_unit': 'us'}
     """
     width, height = args.size if args.size else (None, None)
     options: dict[str, int | str | None] = {"width": width, "height": height, "time_unit": args.time_unit}
-    if args.polarity is not None:
+    if getattr(args, "polarity", None) is not None:
         options["polarity"] = args.polarity
     return options
 
@@ -83,6 +86,38 @@ def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str 
                              "(rectified events)")
     parser.add_argument("--distortion", type=distortion_argument, default=None,
                         help=f"OpenCV k1,k2,p1,p2[,k3] of --K{distortion_help} (default: none, a pinhole camera)")
+
+
+def calibration_of(args: argparse.Namespace) -> tuple[np.ndarray | None, np.ndarray | None, tuple[int, int] | None]:
+    """``(K, distortion, calibrated size)`` of :func:`add_camera_options`' options: ``--K`` and ``--distortion``
+    as given (no size), or those of the ``--calib`` file (:func:`read_calibration`), which refuses
+    ``--distortion`` beside it."""
+    if args.calib is None:
+        return args.K, args.distortion, None
+    if args.distortion is not None:
+        raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
+    return read_calibration(args.calib, args.calib_camera)
+
+
+def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None):
+    """The events of ``args.file`` (:func:`cmax.io.read` with :func:`file_kwargs`); a file that stores no size
+    takes the calibration's (``calib_size``, from :func:`calibration_of`) unless ``--size`` gives one. Refuses a
+    file without events and events of another sensor than the calibrated one."""
+    from cmax.io import read
+
+    options = file_kwargs(args)
+    try:
+        events = read(args.file, **options)
+    except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
+        if calib_size is None or args.size is not None or "width=" not in str(error):
+            raise
+        events = read(args.file, **{**options, "width": calib_size[0], "height": calib_size[1]})
+    if len(events) == 0:
+        raise ValueError(f"{args.file} holds no events")
+    if calib_size is not None and (events.width, events.height) != tuple(calib_size):
+        raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
+                         f"the events come from a {events.width}x{events.height} sensor")
+    return events
 
 
 def intrinsics_argument(text: str) -> np.ndarray:
