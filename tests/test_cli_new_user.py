@@ -89,7 +89,7 @@ def test_emvs_without_poses_anywhere_says_how_to_give_them(tmp_path, capsys):
 
 @pytest.mark.parametrize("argv, message", [
     (["--poses", "FILE"], "is not a text file: expected a TUM trajectory"),      # the h5 given as the poses
-    (["-o", "FILE"], "is a file: give a folder for depth.npz"),
+    (["-o", "FILE"], "is a file, not a folder: give a folder for depth.npz"),
     (["--t0", "5"], "--t0 5.0 s is past the recording's last event"),
     (["--planes", "1"], "argument --planes: expected a whole number >= 2"),
     (["--depth-range", "3,0.4"], "0 < NEAR < FAR"),
@@ -128,7 +128,7 @@ def test_a_library_warning_is_one_line_and_debug_shows_pythons_format(capsys):
     (["--window", "2"], "--window must be in (0, --duration=0.5], got 2.0"),
     (["--duration", "0.05"], "--window must be in (0, --duration=0.05], got 0.1665"),
     (["--size", "8x8"], "--size width must be an integer >= 16, got 8"),
-    (["-o", "FILE"], "is a file: give a folder for the demo's h5 file and report"),
+    (["-o", "FILE"], "is a file, not a folder: give a folder for the demo's h5 file and report"),
 ])
 def test_demo_refusals_name_the_options(tmp_path, capsys, argv, message):
     (tmp_path / "a.txt").write_text("notes")

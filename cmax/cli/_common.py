@@ -2,9 +2,10 @@
 from __future__ import annotations
 
 import argparse
+from pathlib import Path
 from typing import Any
 
-__all__ = ["given"]
+__all__ = ["given", "output_folder"]
 
 
 def given(args: argparse.Namespace, names: dict[str, str]) -> dict[str, Any]:
@@ -14,3 +15,16 @@ def given(args: argparse.Namespace, names: dict[str, str]) -> dict[str, Any]:
     {'seed': 3}
     """
     return {key: getattr(args, dest) for dest, key in names.items() if getattr(args, dest) is not None}
+
+
+def output_folder(path: Path, contents: str) -> Path:
+    """``-o``, refused before any work when it names a file (``contents``: what the folder will hold, for the
+    message); the folder itself is made when the results are written.
+
+    >>> output_folder(Path("results"), "the depth maps")
+    PosixPath('results')
+    """
+    path = Path(path)
+    if path.exists() and not path.is_dir():
+        raise FileExistsError(f"-o {path} is a file, not a folder: give a folder for {contents}")
+    return path

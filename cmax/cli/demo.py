@@ -6,7 +6,7 @@ from pathlib import Path
 from typing import Any, Callable
 
 from cmax._args import api_default, library_default, nonnegative_int, positive_float, sensor_size
-from cmax.cli._common import given
+from cmax.cli._common import given, output_folder
 
 __all__ = ["add_command", "run", "settings_of"]
 
@@ -46,9 +46,7 @@ def run(args: argparse.Namespace) -> int:
     from cmax.demo import run_demo
 
     settings = settings_of(args)
-    if args.output.exists() and not args.output.is_dir():
-        raise FileExistsError(f"-o {args.output} is a file: give a folder for the demo's h5 file and report")
-    report = run_demo(args.output, settings=settings)
+    report = run_demo(output_folder(args.output, "the demo's h5 file and report"), settings=settings)
     print(f"demo report: {report.report_png}")
     return 0
 

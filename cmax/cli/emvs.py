@@ -18,11 +18,12 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, nonnegative_float, positive_int
+from cmax.cli._common import output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_of, file_intrinsics,
                                 read_calibrated, time_slice)
 from cmax.io.atomic import save_npz_atomic
 
-__all__ = ["add_command", "run", "camera_for", "file_trajectory", "output_folder"]
+__all__ = ["add_command", "run", "camera_for", "file_trajectory"]
 
 _range_numbers = float_list((2,), "--depth-range (near,far)")
 
@@ -127,19 +128,12 @@ def file_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
     return as_trajectory((times, poses), name=f"{path}: gt/poses")
 
 
-def output_folder(path: Path) -> Path:
-    """``-o``: refused (before any work) when it is a file; created later, when the results are written."""
-    if path.exists() and not path.is_dir():
-        raise FileExistsError(f"-o {path} is a file: give a folder for depth.npz, depth.png and points.ply")
-    return path
-
-
 def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status."""
     from cmax import viz
     from cmax.emvs import EMVS, read_tum_trajectory
 
-    out = output_folder(Path(args.output))
+    out = output_folder(args.output, "depth.npz, depth.png and points.ply")
     trajectory = None if args.poses is None else read_tum_trajectory(args.poses)   # a bad file: before the events
     K, distortion, calib_size = calibration_of(args)
     events = read_calibrated(args, calib_size)

@@ -19,6 +19,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, library_default, positive_float, positive_int
+from cmax.cli._common import output_folder
 from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_of, file_intrinsics,
                                 read_calibrated, time_slice)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
@@ -211,9 +212,7 @@ def run(args: argparse.Namespace) -> int:
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read_gyro
 
-    out = Path(args.output)
-    if out.exists() and not out.is_dir():
-        raise ValueError(f"-o {out} is a file, not a folder: give a folder for the depth maps and the summary")
+    out = output_folder(args.output, "the depth maps and the summary")
     K, distortion, calib_size = calibration_of(args)
     if K is None:
         K = file_intrinsics(args.file)
