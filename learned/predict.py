@@ -17,10 +17,10 @@ as in training, by the compiled :func:`learned.volume.event_volume`) and runs th
 * ``twists.csv`` (one line per window) and ``summary.json`` (inputs, settings, notes, counts).
 
 Intrinsics come from ``--K`` (with ``--distortion``, the events are undistorted first), ``--calib`` (whose
-distortion, when it has one, undistorts the events first) or the file's own ``gt/K``. The network is fully convolutional and runs at any sensor size,
-but the depth it reads from the events' motion assumes the camera it was trained with: a sensor
-size or focal length unlike the one in the checkpoint's card (:mod:`learned.pretrained`) is noted
-once. The checkpoint defaults to the model shipped in the package.
+distortion, when it has one, undistorts the events first) or the file's own ``gt/K``. The network is fully
+convolutional and runs at any sensor size, but the depth it reads from the events' motion assumes the camera it
+was trained with: a sensor size or focal length unlike the one in the checkpoint's card
+(:mod:`learned.pretrained`) is noted once. The checkpoint defaults to the model shipped in the package.
 """
 from __future__ import annotations
 
@@ -43,7 +43,8 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
-           "window_picture", "write_window", "earlier_results", "run_prediction", "predict_file", "add_arguments", "run", "main"]
+           "window_picture", "write_window", "earlier_results", "run_prediction", "predict_file", "add_arguments",
+           "run", "main"]
 
 #: Windows with fewer events are skipped (counted in the summary).
 MIN_EVENTS = 10
@@ -394,7 +395,8 @@ def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarra
 
 def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path | None = None,
                    K: np.ndarray | None = None, calib: str | Path | None = None, calib_camera: str = "cam0",
-                   distortion: np.ndarray | None = None, size: tuple[int, int] | None = None, time_unit: str | None = None, polarity: str | None = None,
+                   distortion: np.ndarray | None = None, size: tuple[int, int] | None = None,
+                   time_unit: str | None = None, polarity: str | None = None,
                    t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
                    depth_range: tuple[float, float] | None = None, batch: int = 8, progress: bool = True,
                    note: Callable[[str], None] | None = None, overwrite: bool = False) -> DepthRun:
@@ -558,7 +560,8 @@ def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> i
     """Run the command of :func:`add_arguments`' options; prints notes on stderr and the summary line."""
     result = run_prediction(
         args.file, args.output, checkpoint=args.checkpoint, K=args.K, calib=args.calib,
-        calib_camera=args.calib_camera, distortion=args.distortion, size=args.size, time_unit=args.time_unit, polarity=args.polarity,
+        calib_camera=args.calib_camera, distortion=args.distortion, size=args.size, time_unit=args.time_unit,
+        polarity=args.polarity,
         t0_s=args.t0, t1_s=args.t1, window_s=args.window,
         depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
         progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),
