@@ -136,6 +136,13 @@ def first_calls_seconds(setup: str, call: str) -> dict[str, tuple[float, float]]
     return {label: tuple(float(v) for v in out.split()[-2:]) for label, out in zip(labels, fresh_process_outputs(code))}
 
 
+def timed_machine(clock: str) -> dict:
+    """Time the groups that follow with ``clock`` (a key of :data:`CLOCKS`); returns :func:`machine_info` with
+    the clock recorded, for the report's header."""
+    CLOCK[0] = clock
+    return {**machine_info(), "clock": clock}
+
+
 def machine_info() -> dict:
     info = {
         "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
@@ -485,9 +492,7 @@ def main(argv: list[str] | None = None) -> int:
         import torch
 
         torch.set_num_threads(args.torch_threads)
-    CLOCK[0] = args.clock
-    machine = machine_info()
-    machine["clock"] = args.clock
+    machine = timed_machine(args.clock)
     for name in args.section or sorted(SECTIONS):
         publish_report(SECTIONS[name](args), machine, write=not args.no_write)
     return 0

@@ -284,7 +284,7 @@ def emvs_report(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.speed import CLOCK, CLOCKS, machine_info, publish_report
+    from benchmarks.speed import CLOCKS, publish_report, timed_machine
 
     parser = argparse.ArgumentParser(prog="python -m benchmarks.speed_emvs", description=__doc__.split("\n")[0])
     parser.add_argument("--duration", type=float, default=0.5, help="seconds of slider scene (default 0.5)")
@@ -301,9 +301,7 @@ def main(argv: list[str] | None = None) -> int:
     args.emvs_duration = args.duration
     args.emvs_floor_duration = args.floor_duration
     args.emvs_skip_port = args.skip_port
-    CLOCK[0] = args.clock
-    machine = machine_info()
-    machine["clock"] = args.clock
+    machine = timed_machine(args.clock)   # first: the groups of the report are timed on its clock
     publish_report(emvs_report(args), machine, write=not args.no_write)
     return 0
 

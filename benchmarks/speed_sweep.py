@@ -256,7 +256,7 @@ def sweep_report(args: argparse.Namespace):
 
 
 def main(argv: list[str] | None = None) -> int:
-    from benchmarks.speed import CLOCK, CLOCKS, machine_info, publish_report
+    from benchmarks.speed import CLOCKS, publish_report, timed_machine
 
     parser = argparse.ArgumentParser(prog=COMMAND, description=__doc__.split("\n")[0])
     parser.add_argument("--seed", type=int, default=100, help="indoor_flying window (default 100)")
@@ -269,10 +269,8 @@ def main(argv: list[str] | None = None) -> int:
                              "timed groups; the fits are timed in wall seconds")
     parser.add_argument("--no-write", action="store_true")
     args = parser.parse_args(argv)
-    CLOCK[0] = args.clock
     args.command = " ".join([COMMAND, *(sys.argv[1:] if argv is None else argv)])
-    machine = machine_info()
-    machine["clock"] = args.clock
+    machine = timed_machine(args.clock)   # first: the groups of the report are timed on its clock
     publish_report(sweep_report(args), machine, write=not args.no_write)
     return 0
 

@@ -216,3 +216,12 @@ def test_se3_variants_parse_dotted_settings_and_refuse_unknown_fields():
         settings_of(parse_variant("refine.iterations=-1"), base)   # the dataclass's own validation
     with pytest.raises(ValueError, match="field=value"):
         parse_variant("refine.iterations")
+
+
+def test_timed_machine_sets_the_clock_of_the_groups_and_records_it(monkeypatch):
+    import benchmarks.speed as speed
+
+    monkeypatch.setattr(speed, "CLOCK", ["wall"])
+    machine = speed.timed_machine("cpu")
+    assert speed.CLOCK == ["cpu"] and machine["clock"] == "cpu"
+    assert set(speed.machine_info()) | {"clock"} == set(machine)
