@@ -383,9 +383,9 @@ def _run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides, mode=args.mode)
     out = Path(config.train.out)
     check_output(out, resume=args.resume, overwrite=args.overwrite)
-    if args.overwrite and int(os.environ.get("RANK", "0")) == 0:
-        (out / "log.jsonl").unlink(missing_ok=True)   # the new run's learning curves alone
     rank0 = int(os.environ.get("RANK", "0")) == 0
+    if args.overwrite and rank0:
+        (out / "log.jsonl").unlink(missing_ok=True)   # the new run's learning curves alone
     if args.resume and rank0 and not (out / "last.pt").is_file():
         print(f"python -m learned.train: note: --resume, but {out / 'last.pt'} does not exist: starting at step 0",
               file=sys.stderr)
