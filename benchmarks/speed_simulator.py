@@ -117,9 +117,8 @@ def _inflates():
     """``{name: inflate}`` of :mod:`cmax.sim.png`: zlib, and isal when importable (the default first)."""
     from cmax.sim import png
 
-    names = [png.INFLATE_BACKEND] + [n for n in ("zlib", "isal") if n != png.INFLATE_BACKEND]
-    functions = {"zlib": png.inflate_zlib, "isal": png.inflate_isal}
-    return {n: functions[n] for n in names if n == "zlib" or png.INFLATE_BACKEND == "isal"}
+    inflates = {"zlib": png.inflate_zlib}
+    return {"isal": png.inflate_isal, **inflates} if png.INFLATE_BACKEND == "isal" else inflates
 
 
 def _run_source(simulator_class, source, c):
