@@ -5,6 +5,7 @@ from __future__ import annotations
 from types import SimpleNamespace
 
 import numpy as np
+import pytest
 
 import benchmarks.accuracy_cmax as accuracy_cmax
 import benchmarks.accuracy_presets as presets
@@ -225,3 +226,59 @@ def test_timed_machine_sets_the_clock_of_the_groups_and_records_it(monkeypatch):
     machine = speed.timed_machine("cpu")
     assert speed.CLOCK == ["cpu"] and machine["clock"] == "cpu"
     assert set(speed.machine_info()) | {"clock"} == set(machine)
+
+
+def test_accuracy_noise_worker_fits_the_exported_windows_as_accuracy_cmax_does(monkeypatch, tmp_path):
+    """The worker process (this checkout's cmax, as --against-tree runs another's) gives, per window and fit
+    seed, the figures accuracy_cmax computes in process for the same fit."""
+    import benchmarks.accuracy_noise as noise
+    from benchmarks.synthetic_windows import make_window
+
+    from cmax.geometry import se3_exp
+
+    made = make_window("slider", 7, width=120, height=90, focal=90.0, duration_s=0.1)
+    duration_s = (made.events.t[-1] - made.events.t[0]) * 1e-6
+    window = SimpleNamespace(events=made.events, K=made.K, twist=made.twist, depth=made.depth,
+                             T01=se3_exp(made.twist * duration_s))    # a constant twist over the window
+    monkeypatch.setattr(noise, "windows", lambda model, seed, cache: window)
+    noise.export_windows(tmp_path, ["se3", "depth"], [100], None)
+    rows = noise.by_model_and_seed(noise.run_workers(tmp_path, [0, 2], {"this": noise.ROOT})["this"], [0, 2])
+    room = accuracy_cmax._room()
+    for fit_seed in (0, 2):
+        expected = accuracy_cmax.run_se3(window, seed=fit_seed, **room)
+        (row,) = rows["se3"][fit_seed]
+        assert row["window"] == 100
+        for figure in ("abs_rel", "direction_deg", "omega_rms_deg_s"):
+            assert row[figure] == pytest.approx(expected[figure], rel=1e-6, abs=1e-9), figure
+        (row,) = rows["depth"][fit_seed]
+        assert row["abs_rel"] == pytest.approx(accuracy_cmax.run_depth(window, seed=fit_seed, **room)["abs_rel"],
+                                               rel=1e-6)
+
+
+def test_accuracy_noise_places_the_reference_in_the_range_and_pairs_the_fits(tmp_path):
+    import benchmarks.accuracy_noise as noise
+
+    reference = tmp_path / "reference.md"
+    reference.write_text("| model | figure | median | p90 | target | met |\n|---|---|---|---|---|---|\n"
+                         "| se3 | abs_rel | 0.150 | 0.500 | <= 0.2 | yes / no |\n"
+                         "| se3 (ok, 3 of 5) | abs_rel | 0.100 | 0.200 | <= 0.2 | yes / yes |\n")
+    assert noise.reference_figures(reference.read_text()) == {("se3", "abs_rel"): (0.15, 0.5)}
+
+    def results(values):
+        return [{"window": 100 + i, "abs_rel": a, "direction_deg": 1.0, "omega_rms_deg_s": 1.0, "seconds": 1.0}
+                for i, a in enumerate(values)]
+
+    rows = {"se3": {0: results([0.1, 0.2, 0.3]), 1: results([0.2, 0.3, 0.4])}}
+    text = noise.summarise(rows, [100, 101, 102], [0, 1], noise.reference_figures(reference.read_text()),
+                           "ref", 1.0)
+    # medians 0.2 and 0.3 (the reference's 0.15 is below them); p90s 0.28 and 0.38 (0.5 above)
+    assert "| se3 | abs_rel | median | 0.200 | 0.300 | 0.200-0.300 | 0.150 | below the range |" in text
+    assert "| se3 | abs_rel | p90 | 0.280 | 0.380 | 0.280-0.380 | 0.500 | above the range |" in text
+    assert "- se3 abs_rel: 100: 0.1 0.2; 101: 0.2 0.3; 102: 0.3 0.4" in text
+
+    before = {"se3": {0: results([0.2, 0.2, 0.2]), 1: results([0.1, 0.5, 0.2])}}
+    table = "\n".join(noise.compare(before, rows, [0, 1], ("old", "new")))
+    # new - old per fit: -0.1, 0, +0.1 (seed 0); +0.1, -0.2, +0.2 (seed 1)
+    assert "- se3 abs_rel: new lower in 2 of 6 fits, higher in 3; median difference +0.05" in table
+    # medians: old 0.2 and 0.2 (mean 0.2), new 0.2 and 0.3 (mean 0.25); pooled over the six fits: 0.2, 0.25
+    assert "| se3 | abs_rel | median | 0.200 | 0.250 | 0.200 | 0.250 |" in table
