@@ -6,8 +6,13 @@ Windows: ``indoor_flying`` (346x260, seeds 100-119 held out, as ``benchmarks.acc
 :class:`cmax.fitting.FitSettings`, nested fields dotted (``refine.iterations=150``); the default settings
 run too. The variants run interleaved window by window (the same load on each), one torch thread.
 
+A single fit per window is not enough to tell two variants apart: the se3 figures move with the fit's seed
+(``FitSettings.seed``, its dither) by more than most settings do (``benchmarks/results/accuracy_noise.md``).
+``--fit-seeds 0-4`` fits every window at each of those seeds with every variant; the figures are then
+pooled over all fits, and each variant is compared with the default fit by fit (same window and seed).
+
     python -m benchmarks.se3_variants "refine.iterations=150" \\
-        "patch_flow.max_events=10000,refine.max_events=10000" [--seeds 100-119] [--cache DIR]
+        "patch_flow.max_events=10000,refine.max_events=10000" [--seeds 100-119] [--fit-seeds 0-4] [--cache DIR]
 """
 from __future__ import annotations
 
@@ -76,14 +81,23 @@ def run(window, settings: FitSettings) -> dict:
             "verdict": r.quality.verdict.value if r.quality is not None else "none"}
 
 
-def report(rows: dict[str, list[dict]], seeds: list[int], seconds: float) -> str:
+def paired(rows: dict[str, list[dict]], figure: str) -> dict[str, str]:
+    """Per variant, ``"lower in n of N"``: the fits (same window and fit seed) where its ``figure`` is below the
+    default's."""
+    base = [r[figure] for r in rows["default"]]
+    return {name: f"{sum(r[figure] < b for r, b in zip(results, base, strict=True))} of {len(base)}"
+            for name, results in rows.items() if name != "default"}
+
+
+def report(rows: dict[str, list[dict]], seeds: list[int], seconds: float, fit_seeds: list[int] = (0,)) -> str:
+    """The markdown report; ``rows[variant]`` holds one result per window and fit seed (windows outer)."""
     lines = ["# cmax.fit se3 under settings variants", "",
              f"`indoor_flying` seeds {seeds[0]}-{seeds[-1]} (held out), 346x260, `speed=|v|`, depth range 1-6.5 m; "
+             f"fit seeds {', '.join(map(str, fit_seeds))} ({len(seeds) * len(fit_seeds)} fits per variant); "
              "the variants interleaved window by window. Machine: "
              f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1; load average "
              f"(1 min) at the end {os.getloadavg()[0]:.2f}. Written by `python -m benchmarks.se3_variants` in "
-             f"{seconds:.0f} s. Medians / p90 over all windows, then over the windows each variant's fit called "
-             "`ok`.", "",
+             f"{seconds:.0f} s. Medians / p90 over all fits, then over the fits each variant called `ok`.", "",
              "| variant | " + " | ".join(FIGURES) + " | ok windows | "
              + " | ".join(f"{f} (ok)" for f in FIGURES) + " |",
              "|---|" + "---|" * (2 * len(FIGURES) + 1)]
@@ -97,10 +111,19 @@ def report(rows: dict[str, list[dict]], seeds: list[int], seconds: float) -> str
                     for f in FIGURES]
         lines.append(f"| {name} | " + " | ".join(cells(results)) + f" | {len(ok)} of {len(results)} | "
                      + " | ".join(cells(ok)) + " |")
-    lines += ["", "Per window (abs_rel, direction [deg], verdict):", ""]
+    if len(rows) > 1:
+        lines += ["", "Fit by fit against the default (same window and fit seed): the fits where the variant is lower "
+                  "(better).", "", "| variant | " + " | ".join(FIGURES[:3]) + " |", "|---|" + "---|" * 3]
+        lower = {f: paired(rows, f) for f in FIGURES[:3]}
+        for name in rows:
+            if name != "default":
+                lines.append(f"| {name} | " + " | ".join(lower[f][name] for f in FIGURES[:3]) + " |")
+    labels = [f"{s}" if len(fit_seeds) == 1 else f"{s}/{k}" for s in seeds for k in fit_seeds]
+    lines += ["", "Per fit (window" + ("" if len(fit_seeds) == 1 else "/fit seed")
+              + ": abs_rel, direction [deg], verdict):", ""]
     for name, results in rows.items():
-        lines.append(f"- {name}: " + "; ".join(f"{s} {r['abs_rel']:.3f} {r['direction_deg']:.1f} {r['verdict']}"
-                                              for s, r in zip(seeds, results)))
+        lines.append(f"- {name}: " + "; ".join(f"{label} {r['abs_rel']:.3f} {r['direction_deg']:.1f} {r['verdict']}"
+                                              for label, r in zip(labels, results)))
     return "\n".join(lines) + "\n"
 
 
@@ -108,10 +131,12 @@ def main(argv: list[str] | None = None) -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("variants", nargs="+", help='field=value[,field=value...], e.g. "refine.iterations=150"')
     parser.add_argument("--seeds", default="100-119")
+    parser.add_argument("--fit-seeds", default="0-0", help="FitSettings.seed values, first-last (default 0-0)")
     parser.add_argument("--cache", type=Path, default=None, help="folder to keep simulated windows between runs")
     parser.add_argument("--output", type=Path, default=RESULTS / "se3_variants.md")
     args = parser.parse_args(argv)
     seeds = parse_seeds(parser, args.seeds)
+    fit_seeds = parse_seeds(parser, args.fit_seeds)
     base = FitSettings(**_room())
     try:
         variants = {"default": base, **{text: settings_of(parse_variant(text), base) for text in args.variants}}
@@ -125,12 +150,13 @@ def main(argv: list[str] | None = None) -> int:
         run(first, settings)   # warm-up (compilation, torch's first calls), not counted
     for seed in seeds:
         window = windows("se3", seed, args.cache)
-        for name, settings in variants.items():
-            rows[name].append(run(window, settings))
-            r = rows[name][-1]
-            print(seed, name, f"{r['abs_rel']:.3f} {r['direction_deg']:.1f} {r['seconds']:.2f} {r['verdict']}",
-                  flush=True)
-    text = report(rows, seeds, time.perf_counter() - start)
+        for fit_seed in fit_seeds:
+            for name, settings in variants.items():
+                rows[name].append(run(window, replace(settings, seed=fit_seed)))
+                r = rows[name][-1]
+                print(seed, fit_seed, name, f"{r['abs_rel']:.3f} {r['direction_deg']:.1f} {r['seconds']:.2f} "
+                      f"{r['verdict']}", flush=True)
+    text = report(rows, seeds, time.perf_counter() - start, fit_seeds)
     write_text_atomic(args.output, text)
     print(text)
     return 0

@@ -198,6 +198,21 @@ def test_accuracy_depth_figure_has_a_legend_a_colour_bar_of_the_ground_truth_sca
     assert (title_rows == viz.OFF_BGR).all(axis=1).sum() >= 25
 
 
+def test_se3_variants_pool_the_fit_seeds_and_compare_each_variant_fit_by_fit():
+    from benchmarks.se3_variants import report
+
+    def fits(directions):
+        return [{"abs_rel": 0.1, "direction_deg": d, "omega_rms_deg_s": 1.0, "seconds": 1.0, "verdict": "ok"}
+                for d in directions]
+
+    rows = {"default": fits([1.0, 9.0, 3.0, 5.0]), "more": fits([2.0, 4.0, 3.0, 1.0])}   # windows 100, 101 x seeds 0, 1
+    text = report(rows, [100, 101], 1.0, [0, 1])
+    assert "fit seeds 0, 1 (4 fits per variant)" in text
+    assert "| default | 0.100 / 0.100 | 4.000 / 7.800 |" in text        # pooled: median 4, p90 7.8
+    assert "| more | 0 of 4 | 2 of 4 | 0 of 4 |" in text                 # lower than the default on 100/1 and 101/1
+    assert "- more: 100/0 0.100 2.0 ok; 100/1 0.100 4.0 ok; 101/0 0.100 3.0 ok; 101/1 0.100 1.0 ok" in text
+
+
 def test_se3_variants_parse_dotted_settings_and_refuse_unknown_fields():
     import pytest
 
