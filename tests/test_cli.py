@@ -142,6 +142,28 @@ def test_fit_writes_depth_trajectory_and_summary(tmp_path):
     assert summary["zero_rotation_start"] is False
 
 
+def test_fit_with_members_reaches_the_fit(tmp_path):
+    """`cmax fit --members 3`: the motion stages run on three draws of the window (three times the solver
+    iterations of those stages, counted in the window's iterations) and the summary records it."""
+    import json
+
+    from benchmarks.synthetic_windows import make_window
+
+    w = make_window("slider", 7, width=120, height=90, focal=90.0, duration_s=0.1)
+    write_h5(tmp_path / "slider.h5", w.events)
+    K = w.K
+    args = ["fit", str(tmp_path / "slider.h5"), "--K", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}",
+            "--window-ms", "90", "--max-events", "15000", "--speed", "1", "--quiet"]
+    summaries = {}
+    for name, flag in (("one", []), ("three", ["--members", "3"])):
+        assert main(args + ["-o", str(tmp_path / name)] + flag) == 0
+        summaries[name] = json.loads((tmp_path / name / "summary.json").read_text())
+    assert (summaries["one"]["members"], summaries["three"]["members"]) == (1, 3)
+    assert summaries["three"]["windows"][0]["iterations"] > summaries["one"]["windows"][0]["iterations"]
+    with pytest.raises(SystemExit):
+        main(args + ["-o", str(tmp_path / "bad"), "--members", "0"])
+
+
 def test_fit_with_the_zero_rotation_start(tmp_path, capsys):
     """`cmax fit --zero-rotation-start` reaches the fit: a second refinement runs (more solver
     iterations than without the flag), and the summary records it."""

@@ -65,6 +65,11 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="worker processes: above 1 the windows are fitted in parallel, each from a cold start "
                              "(cmax.fit_sequence(jobs=, warm_start=False))")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
+    api_default(parser.add_argument("--members", type=positive_int, default=None,
+                                    help="se3: fit the motion on this many draws of each window (other subsamples "
+                                         "and dithers) and keep their consensus: nearer the truth on average, "
+                                         "the motion stages' time times N (cmax.FitSettings.motion_members)"),
+                _settings_default("motion_members"))
     api_default(parser.add_argument("--max-events", type=positive_int, default=None,
                                     help="windows with more events are subsampled to this many "
                                          "(cmax.FitSettings.max_events)"), _settings_default("max_events"))
@@ -238,7 +243,8 @@ def run(args: argparse.Namespace) -> int:
         events, note = _gyro_overlap(events, gyro, args.gyro)
         notes += [note] if note else []
     options = {key: value for key, value in (("solver", args.solver), ("max_events", args.max_events),
-                                             ("depth_range", args.depth_range)) if value is not None}
+                                             ("motion_members", args.members), ("depth_range", args.depth_range))
+               if value is not None}
     # None above: the library's default (one source: fit_sequence / fit / FitSettings).
     sequence_model = args.model or _sequence_default("model")()
     window_us = (_sequence_default("window_us")() if args.window_ms is None
@@ -292,6 +298,7 @@ def run(args: argparse.Namespace) -> int:
                "omega": None if args.omega is None else list(args.omega),
                "solver": args.solver or _fit_default("solver")(),
                "zero_rotation_start": args.zero_rotation_start, "jobs": args.jobs,
+               "members": args.members or _settings_default("motion_members")(),
                "warm_start": args.jobs == 1, "notes": notes,
                "windows_total": n_windows, "verdicts": sequence.counts(), "windows": windows}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))

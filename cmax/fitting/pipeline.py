@@ -12,6 +12,7 @@ The order (:func:`stages_for`)::
     rotation  RotationStage                                (coarse to fine over image scales)
     se3       pose known:          DepthSweepStage
               default:             PatchFlowStage -> LocalRefineStage -> DepthSweepStage
+              motion_members > 1:  MotionMembersStage(PatchFlowStage -> LocalRefineStage) -> DepthSweepStage
               motion_init=starts:  RotationStage -> TranslationStartsStage -> DepthSweepStage
               then alternations x (MotionWithDepthStage -> DepthSweepStage)
               then, with settings.polish: SharedPolishStage  (cmax.fitting.polish: cmax.contrast.SHARED_OBJECTIVE,
@@ -35,6 +36,7 @@ import torch
 from cmax.fitting.depth_sweep import sweep_inverse_depth
 from cmax.fitting.motion import omega_on_bound, refine_motion_local
 from cmax.fitting.patch_flow import motion_from_flows, patch_flows
+from cmax.fitting.quality import _distance_deg
 from cmax.fitting.settings import MotionInit, Polish, Refinement
 from cmax.fitting.solvers import Solver, SolveResult, Tolerances, solve
 from cmax.fitting.window import SE3Model, Window
@@ -42,7 +44,7 @@ from cmax.warp import warp_flow, warp_rotation
 
 __all__ = ["Motion", "StageLog", "Stage", "stages_for", "run_stages", "FlowStage", "RotationStage",
            "PatchFlowStage", "LocalRefineStage", "TranslationStartsStage", "MotionWithDepthStage",
-           "DepthSweepStage", "directions"]
+           "DepthSweepStage", "MotionMembersStage", "consensus", "directions"]
 
 
 @dataclass(frozen=True)
@@ -77,11 +79,12 @@ class StageLog:
 
 
 class Stage(Protocol):
-    """``run(window, motion, solver) -> (motion, log)``."""
+    """``run(window, motion, solver) -> (motion, log)``; a stage that runs other stages
+    (:class:`MotionMembersStage`) returns their logs, a tuple, and :func:`run_stages` lists each."""
 
     name: str
 
-    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog]: ...
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog | tuple[StageLog, ...]]: ...
 
 
 # ----------------------------------------------------------------------------------------------
@@ -105,6 +108,8 @@ def stages_for(model: str, w: Window, *, pose_known: bool, hold_omega: bool,
         motion = [PatchFlowStage(hold_omega, s.zero_rotation_start and not hold_omega, warm)]
         if s.motion_refinement is Refinement.LOCAL:
             motion.append(LocalRefineStage(hold_omega=hold_omega, warm_start=warm))
+        if s.motion_members > 1:
+            motion = [MotionMembersStage(tuple(motion), s.motion_members, s.members_agree_deg)]
     else:
         motion = ([] if hold_omega else [RotationStage()]) + [TranslationStartsStage(hold_omega, warm)]
     alternations = [MotionWithDepthStage(hold_omega=hold_omega), DepthSweepStage()] * s.alternations
@@ -127,7 +132,7 @@ def run_stages(stages: tuple[Stage, ...], w: Window, motion: Motion, solver: Sol
     logs = []
     for stage in stages:
         motion, log = stage.run(w, motion, solver)
-        logs.append(log)
+        logs.extend(log if isinstance(log, tuple) else (log,))    # a stage of stages logs each of them
     return motion, tuple(logs)
 
 
@@ -298,6 +303,65 @@ class LocalRefineStage:
         log = _log(self.name, outcome.objective_before, outcome.objective_after, outcome.solves,
                    time.perf_counter() - start, outcome.at_bound, note=f"{1 + len(more)} starts")
         return replace(motion, v=outcome.v, omega=outcome.omega, alternatives=()), log
+
+
+def member_seed(seed: int, member: int) -> int:
+    """The subsampling and dither seed of member ``member`` of a fit with ``seed``: ``seed`` itself for
+    member 0, then well-mixed draws of ``(seed, member)``."""
+    if member == 0:
+        return int(seed)
+    return int(np.random.SeedSequence([int(seed), int(member)]).generate_state(1)[0])
+
+
+def consensus(motions: list[Motion], agree_deg: float, duration_s: float) -> tuple[Motion, np.ndarray]:
+    """The consensus of the members' se3 ``motions``: the mean direction (at the members' ``|v|``) and mean
+    angular velocity of the members within ``agree_deg`` of their medoid (the member with the least summed
+    distance to the others; distance: :func:`cmax.fitting.quality._distance_deg`, direction angle plus the
+    rotation over ``duration_s``). Returns it (the medoid's other fields) and the members kept (M,) bool."""
+    count = len(motions)
+    distance = np.array([[_distance_deg(a.v, a.omega, b.v, b.omega, duration_s) for b in motions] for a in motions])
+    medoid = int(np.argmin(distance.sum(1)))
+    kept = distance[medoid] <= agree_deg
+    units = np.array([m.v / np.linalg.norm(m.v) for m in motions])[kept]
+    direction = units.mean(0)
+    if not np.linalg.norm(direction) > 1e-9 * count:     # opposite members cancel (cannot pass agree_deg < 90)
+        direction = units[0]
+    speed = motions[medoid].speed
+    v = speed * direction / np.linalg.norm(direction)
+    omega = np.array([m.omega for m in motions])[kept].mean(0)
+    return replace(motions[medoid], v=v, omega=omega, alternatives=()), kept
+
+
+@dataclass(frozen=True)
+class MotionMembersStage:
+    """Runs the motion ``stages`` on ``members`` draws of the window (:meth:`Window.with_seed`: other
+    subsamples and dithers of the same events, member 0 the window itself) from the same incoming motion,
+    and passes on their :func:`consensus`. Each member's stages solve through the solver layer and log as
+    usual (``"<stage> [member k]"``); this stage adds no solve of its own, so its log has no objective.
+
+    Why: the local refinement's objective is nearly flat along the bas-relief valley (translation traded
+    against rotation), so where the solve stops moves with details as small as the dither; the members'
+    end points scatter around the truth and their mean lies nearer it (``docs/fitting.md``)."""
+
+    stages: tuple[Stage, ...]
+    members: int
+    agree_deg: float
+    name: str = "motion_members"
+
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, tuple[StageLog, ...]]:
+        start = time.perf_counter()
+        ends, logs = [], []
+        for member in range(self.members):
+            drawn = w if member == 0 else w.with_seed(member_seed(w.settings.seed, member))
+            end, member_logs = run_stages(self.stages, drawn, motion, solver)
+            ends.append(end)
+            logs += [replace(log, stage=f"{log.stage} [member {member}]") for log in member_logs]
+        agreed, kept = consensus(ends, self.agree_deg, w.T)
+        spread = max(_distance_deg(m.v, m.omega, agreed.v, agreed.omega, w.T) for m, k in zip(ends, kept) if k)
+        log = StageLog(self.name, float("nan"), float("nan"), 0, 0, time.perf_counter() - start,
+                       f"{int(kept.sum())} of {self.members} members within {self.agree_deg:g} deg of their medoid "
+                       f"(farthest kept {spread:.1f} deg from the mean)", True)
+        return agreed, (*logs, log)
 
 
 def directions(count: int) -> list[np.ndarray]:

@@ -370,6 +370,17 @@ class FitSettings:
     zero_rotation_start : bool
         A second start of the ``"local"`` refinement: the motion-field fit with the rotation held at
         zero (for vehicles); the refined motion with the higher patch-wise contrast wins.
+    motion_members : int
+        se3 (``motion_init="patches"``): run the motion stages (patch flows, local refinement) on this many
+        draws of the window, each with its own subsampling and dither seed (the first is ``seed``), and
+        continue from their consensus (:class:`cmax.fitting.pipeline.MotionMembersStage`). The refinement
+        stops at a point of a nearly flat valley of its objective that moves with the draw; the draws'
+        consensus lies nearer the truth than one draw does, at the members' cost in time
+        (``docs/fitting.md``). 1: one draw, the window itself.
+    members_agree_deg : float
+        The consensus is the mean motion of the members within this distance of their medoid (direction
+        angle plus the rotation over the window, degrees): a member that went to the mirrored motion does
+        not pull the mean.
     polish : Polish or str
         se3's final stage on the shared objective (:mod:`cmax.fitting.polish`): ``"none"``, ``"depth"``
         (the inverse-depth grid) or ``"depth_motion"`` (the grid, the translation direction and the
@@ -441,6 +452,8 @@ class FitSettings:
     motion_init: MotionInit = MotionInit.PATCHES
     motion_refinement: Refinement = Refinement.LOCAL
     zero_rotation_start: bool = False
+    motion_members: int = 1
+    members_agree_deg: float = 30.0
     polish: Polish = Polish.NONE
     polish_iterations: int = 60
     collapse_weight: float = 0.1
@@ -515,6 +528,8 @@ class FitSettings:
         _positive_int("alternations", self.alternations, 0)
         _positive_int("polish_iterations", self.polish_iterations)
         _positive_int("translation_starts", self.translation_starts)
+        _positive_int("motion_members", self.motion_members)
+        _positive("members_agree_deg", self.members_agree_deg)
         _positive_int("iterations", self.iterations)
         _positive_int("coarse_iterations", self.coarse_iterations)
         _positive_int("start_iterations", self.start_iterations)

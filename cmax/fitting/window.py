@@ -7,7 +7,7 @@ their value for the unwarped events, so one set of solver tolerances fits every 
 from __future__ import annotations
 
 import math
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from typing import TYPE_CHECKING
 
 import numpy as np
@@ -36,6 +36,10 @@ class Window:
         With ``contrast`` and ``polarity_split`` resolved for the model.
     grid : DepthGrid
         The inverse-depth grid of se3.
+    source : Events or None
+        The events ``ev`` was made from (before subsampling and dither), so that a stage can draw other
+        subsamples of the same window (:class:`cmax.fitting.pipeline.MotionMembersStage`); None when the
+        window was built from prepared events.
     dt : Tensor (B, N)
         ``t - t_ref`` [s] for each reference time of ``settings.references``.
     dt_mid : Tensor (1, N)
@@ -53,6 +57,7 @@ class Window:
     ev: WarpEvents
     settings: "FitSettings"
     grid: DepthGrid
+    source: "Events | None" = field(default=None, repr=False)
     dt: torch.Tensor = field(init=False)
     dt_mid: torch.Tensor = field(init=False)
     focal: float = field(init=False)
@@ -76,7 +81,14 @@ class Window:
                     depth_grid: tuple[int, int] = (24, 32)) -> "Window":
         """The window of ``events`` with intrinsics ``K`` (3, 3), subsampled and dithered as ``settings`` say."""
         ev = WarpEvents.from_events(events, K, max_events=settings.max_events, seed=settings.seed)
-        return cls(ev, settings, DepthGrid(tuple(depth_grid), events.width, events.height))
+        return cls(ev, settings, DepthGrid(tuple(depth_grid), events.width, events.height), events)
+
+    def with_seed(self, seed: int) -> "Window":
+        """The same window drawn again from :attr:`source` with another subsampling and dither ``seed``."""
+        if self.source is None:
+            raise ValueError("this window keeps no source events to draw again from (built from prepared events)")
+        K = self.ev.K.double().numpy()
+        return Window.from_events(self.source, K, replace(self.settings, seed=int(seed)), self.grid.shape)
 
     @property
     def T(self) -> float:
