@@ -299,19 +299,38 @@ def _x_error_deg(v: np.ndarray) -> float:
     return float(np.degrees(np.arccos(np.clip(v[0] / np.linalg.norm(v), -1, 1))))
 
 
+#: ``motion_members`` of the slider's third sequence (``cmax fit --members``).
+SLIDER_MEMBERS = 4
 #: The far wall of the ECD slider as the issue gives it [m], and the tolerance of the target (10%).
 FAR_WALL_M, FAR_WALL_TOLERANCE = 2.1, 0.10
 
 
-def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tuple | None = None):
+def library_fingerprint() -> str:
+    """SHA-256 of every ``cmax`` source file (paths and contents, sorted): a fit cached under another
+    fingerprint came from other code."""
+    import hashlib
+
+    import cmax
+
+    root = Path(cmax.__file__).resolve().parent
+    digest = hashlib.sha256()
+    for path in sorted(root.rglob("*.py")):
+        digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
+
+
+def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tuple | None = None,
+                    members: int = 1):
     """``fit_sequence(events, K_ECD, speed=ECD_SPEED)`` of the slider events, its wall time [s], and a note on
     where it comes from (this run, or the cache and the 1-minute load average when it was fitted).
 
     ``omega`` (3,) [rad/s]: every window's rotation held at it (``cmax fit --omega``: a constant gyroscope
     reading over the recording), only the direction and the depth fitted.
+    ``members``: ``FitSettings.motion_members`` (``cmax fit --members``).
 
     With ``cache`` the result is pickled there (atomically) and read back by a later call on the same events
-    file (same resolved path, size and modification time); a cache of anything else is refitted and replaced.
+    file (same resolved path, size and modification time) fitted by the same library code (a hash of the
+    ``cmax`` sources, :func:`library_fingerprint`); a cache of anything else is refitted and replaced.
     """
     import pickle
 
@@ -321,8 +340,9 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     from cmax.io.atomic import write_bytes_atomic
 
     stat = events_path.stat()
-    key = (str(events_path.resolve()), stat.st_size, stat.st_mtime_ns, K_ECD.tolist(), ECD_SPEED) + (
-        () if omega is None else (tuple(float(w) for w in omega),))
+    key = (str(events_path.resolve()), stat.st_size, stat.st_mtime_ns, K_ECD.tolist(), ECD_SPEED,
+           library_fingerprint()) + (
+        () if omega is None else (tuple(float(w) for w in omega),)) + (() if members == 1 else (("members", members),))
     if cache is not None and cache.is_file():
         with open(cache, "rb") as file:
             stored = pickle.load(file)
@@ -336,7 +356,7 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     gyro = None if omega is None else constant_gyro(omega, int(events.t[0]), int(events.t[-1]) + 1)
     load = os.getloadavg()[0]
     start = time.perf_counter()
-    sequence = fit_sequence(events, K_ECD, speed=ECD_SPEED, gyro=gyro)
+    sequence = fit_sequence(events, K_ECD, speed=ECD_SPEED, gyro=gyro, motion_members=members)
     seconds = time.perf_counter() - start
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
@@ -435,7 +455,10 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
     sequence, seconds, origin = slider_sequence(events_path, cache)
     held_cache = None if cache is None else cache.with_name(cache.stem + "_omega0" + cache.suffix)
     held, held_seconds, held_origin = slider_sequence(events_path, held_cache, omega=(0.0, 0.0, 0.0))
-    walls, maps, calibrated_wall, (held_walls,) = slider_far_wall(events_path, sequence, folder, (held,))
+    members_cache = None if cache is None else cache.with_name(f"{cache.stem}_members{SLIDER_MEMBERS}{cache.suffix}")
+    members, members_seconds, members_origin = slider_sequence(events_path, members_cache, members=SLIDER_MEMBERS)
+    walls, maps, calibrated_wall, (held_walls, members_walls) = slider_far_wall(events_path, sequence, folder,
+                                                                                 (held, members))
     first = sequence.results[0].t0_us
     speeds = window_speeds(*read_tum_trajectory(folder / "groundtruth.txt"),
                            [(r.t0_us, r.t1_us) for r in sequence.results])
@@ -484,6 +507,7 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
               f"{ECD_SPEED} m/s the far wall's median ratio fit / EMVS would be "
               f"{np.median(rescaled) if rescaled.size else np.nan:.3f}.", ""]
     lines += _held_rotation_lines(held, held_walls, held_seconds, held_origin)
+    lines += _members_lines(members, members_walls, members_seconds, members_origin)
     middle = len(sequence.results) // 2
     r = sequence.results[middle]
     scale = (0.47, 2.4)                     # EMVS's depth range: one colour scale for both depth maps
@@ -494,27 +518,40 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
     return lines, picture
 
 
-def _held_rotation_lines(held, walls: list, seconds: float, origin: str) -> list[str]:
-    """Markdown of the slider fitted with its rotation held at zero (``cmax fit --omega 0,0,0``)."""
+def _variant_summary(sequence, walls: list) -> str:
+    """The direction errors, verdicts and far wall of another fit of the slider's windows (markdown text)."""
     from cmax.fitting import Verdict
 
-    errors = np.array([_x_error_deg(r.v) for r in held.results])
-    w = wall_summary(walls, [r.verdict is Verdict.OK for r in held.results])
+    errors = np.array([_x_error_deg(r.v) for r in sequence.results])
+    w = wall_summary(walls, [r.verdict is Verdict.OK for r in sequence.results])
     walls_text = ("no window has far-wall pixels inside the fit's mask: not measured (not met)" if w is None else
                   f"over the {w.windows} windows with far-wall pixels: the fit's median {w.fit_m:.2f} m, median ratio "
                   f"fit / EMVS {w.ratio:.3f} (target within {FAR_WALL_TOLERANCE:.0%}: "
                   f"{_met(abs(w.ratio - 1) <= FAR_WALL_TOLERANCE)}; {w.within} of the windows within it; per window "
                   f"{w.low:.2f}-{w.high:.2f}; over the {w.ok_windows} ok windows {w.ok_ratio:.3f}); fit against "
                   f"{FAR_WALL_M} m: {w.fit_m / FAR_WALL_M:.3f} ({_met(abs(w.fit_m / FAR_WALL_M - 1) <= FAR_WALL_TOLERANCE)})")
+    return (f"Direction error median {np.median(errors):.1f} deg, p90 {np.percentile(errors, 90):.1f} deg, reversed "
+            f"{int(np.sum(errors > 90))}; verdicts {_verdict_counts([r.verdict.value for r in sequence.results])}. "
+            f"Far wall {walls_text}.")
+
+
+def _held_rotation_lines(held, walls: list, seconds: float, origin: str) -> list[str]:
+    """Markdown of the slider fitted with its rotation held at zero (``cmax fit --omega 0,0,0``)."""
     return ["### With the rotation held at zero", "",
             "A slider is a linear stage: its user knows that it does not rotate and can say so "
             f"(`cmax fit ... --omega 0,0,0`; here `fit_sequence(..., gyro=)` with a constant zero reading): "
-            f"{seconds:.0f} s in all ({origin}). Direction error median {np.median(errors):.1f} deg, p90 "
-            f"{np.percentile(errors, 90):.1f} deg, reversed {int(np.sum(errors > 90))}; verdicts "
-            f"{_verdict_counts([r.verdict.value for r in held.results])}. Far wall {walls_text}. With the rotation "
+            f"{seconds:.0f} s in all ({origin}). {_variant_summary(held, walls)} With the rotation "
             "free the far wall comes out nearer because a rotation about y trades against the +x translation (the "
             "bas-relief ambiguity: each patch's depth absorbs what the rotation takes from the translation's "
             "flow).", ""]
+
+
+def _members_lines(members, walls: list, seconds: float, origin: str) -> list[str]:
+    """Markdown of the slider fitted with motion members (``cmax fit --members``), the rotation free."""
+    return [f"### With {SLIDER_MEMBERS} motion members", "",
+            f"`fit_sequence(..., motion_members={SLIDER_MEMBERS})` (`cmax fit ... --members {SLIDER_MEMBERS}`: each "
+            "window's motion from four draws of its events, their consensus kept; the rotation free): "
+            f"{seconds:.0f} s in all ({origin}). {_variant_summary(members, walls)}", ""]
 
 
 def window_speeds(times_us: np.ndarray, T_w_c: np.ndarray, windows: list[tuple[int, int]]) -> np.ndarray:

@@ -74,9 +74,9 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
 
     calls = []
 
-    def fake_fit_sequence(events, K, speed, gyro=None):
+    def fake_fit_sequence(events, K, speed, gyro=None, motion_members=1):
         calls.append(len(events))
-        return SimpleNamespace(n=len(events), speed=speed, gyro=gyro)
+        return SimpleNamespace(n=len(events), speed=speed, gyro=gyro, members=motion_members)
 
     monkeypatch.setattr(cmax.fitting, "fit_sequence", fake_fit_sequence)
     rng = np.random.default_rng(0)
@@ -95,6 +95,17 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
     # the same events with the rotation held at zero: another fit (a constant zero gyro over the events)
     held, _, _ = real_cmax.slider_sequence(paths[1], cache, omega=(0.0, 0.0, 0.0))
     assert calls == [50, 60, 60] and held.gyro is not None and np.all(held.gyro[1] == 0)
+    # with motion members: another fit, cached apart from the one-member fit
+    members, _, _ = real_cmax.slider_sequence(paths[1], cache, members=4)
+    assert calls == [50, 60, 60, 60] and members.members == 4 and other.members == 1
+    again, _, _ = real_cmax.slider_sequence(paths[1], cache)
+    assert calls == [50, 60, 60, 60, 60] and again.members == 1     # the cache held the members' fit last
+    # other library code: the cache is not trusted
+    real_cmax.slider_sequence(paths[1], cache)
+    assert calls == [50, 60, 60, 60, 60]
+    monkeypatch.setattr(real_cmax, "library_fingerprint", lambda: "other code")
+    real_cmax.slider_sequence(paths[1], cache)
+    assert calls == [50, 60, 60, 60, 60, 60]
 
 
 def test_window_speeds_of_a_slide_that_stops():
