@@ -101,7 +101,8 @@ def summarise(rows: dict[str, dict[int, list[dict]]], seeds: list[int], fit_seed
     for model, by_seed in rows.items():
         for figure in FIGURES[model]:
             lines.append(f"- {model} {figure}: " + "; ".join(
-                f"{seed}: " + " ".join(f"{by_seed[s][i][figure]:.3g}" for s in fit_seeds) for i, seed in enumerate(seeds)))
+                f"{seed}: " + " ".join(f"{by_seed[s][i][figure]:.3g}" for s in fit_seeds)
+                for i, seed in enumerate(seeds)))
     return "\n".join(lines) + "\n"
 
 
@@ -155,7 +156,8 @@ def compare(before: dict[str, dict[int, list[dict]]], after: dict[str, dict[int,
     for model in after:
         for figure in (*FIGURES[model], "seconds"):
             for k, name in enumerate(("median", "p90")):
-                means = [np.mean([statistics(side[model][s], figure)[k] for s in fit_seeds]) for side in (before, after)]
+                means = [np.mean([statistics(side[model][s], figure)[k] for s in fit_seeds])
+                         for side in (before, after)]
                 pooled = [statistics([r for s in fit_seeds for r in side[model][s]], figure)[k]
                           for side in (before, after)]
                 lines.append(f"| {model} | {figure} | {name} | {means[0]:.3f} | {means[1]:.3f} | {pooled[0]:.3f} | "
@@ -197,7 +199,8 @@ def main(argv: list[str] | None = None) -> int:
     start = time.perf_counter()
     with tempfile.TemporaryDirectory() as folder:
         export_windows(Path(folder), models, seeds, args.cache)
-        rows = {name: by_model_and_seed(r, fit_seeds) for name, r in run_workers(Path(folder), fit_seeds, trees).items()}
+        fitted = run_workers(Path(folder), fit_seeds, trees)
+        rows = {name: by_model_and_seed(r, fit_seeds) for name, r in fitted.items()}
     text = summarise(rows["this"], seeds, fit_seeds, reference, args.reference_name or str(args.reference),
                      time.perf_counter() - start)
     if args.against_tree is not None:

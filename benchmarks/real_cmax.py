@@ -529,7 +529,8 @@ def _variant_summary(sequence, walls: list) -> str:
                   f"fit / EMVS {w.ratio:.3f} (target within {FAR_WALL_TOLERANCE:.0%}: "
                   f"{_met(abs(w.ratio - 1) <= FAR_WALL_TOLERANCE)}; {w.within} of the windows within it; per window "
                   f"{w.low:.2f}-{w.high:.2f}; over the {w.ok_windows} ok windows {w.ok_ratio:.3f}); fit against "
-                  f"{FAR_WALL_M} m: {w.fit_m / FAR_WALL_M:.3f} ({_met(abs(w.fit_m / FAR_WALL_M - 1) <= FAR_WALL_TOLERANCE)})")
+                  f"{FAR_WALL_M} m: {w.fit_m / FAR_WALL_M:.3f} "
+                  f"({_met(abs(w.fit_m / FAR_WALL_M - 1) <= FAR_WALL_TOLERANCE)})")
     return (f"Direction error median {np.median(errors):.1f} deg, p90 {np.percentile(errors, 90):.1f} deg, reversed "
             f"{int(np.sum(errors > 90))}; verdicts {_verdict_counts([r.verdict.value for r in sequence.results])}. "
             f"Far wall {walls_text}.")

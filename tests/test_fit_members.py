@@ -68,7 +68,8 @@ def test_a_window_drawn_again_keeps_its_events_and_changes_only_the_dither():
     shift = (again.ev.x - window.ev.x).numpy()
     assert np.abs(shift).max() < 1.0 and np.abs(shift).max() > 0.1      # both within their pixel, drawn apart
     assert len(w.events) <= FitSettings().max_events                  # no subsample: event k is event k
-    assert np.abs(again.ev.x.numpy() - w.events.x).max() <= 0.5 and np.abs(again.ev.y.numpy() - w.events.y).max() <= 0.5
+    assert np.abs(again.ev.x.numpy() - w.events.x).max() <= 0.5
+    assert np.abs(again.ev.y.numpy() - w.events.y).max() <= 0.5
     prepared = Window(WarpEvents.from_events(w.events, w.K), FitSettings(), window.grid)
     with pytest.raises(ValueError, match="keeps no source events"):
         prepared.with_seed(1)
