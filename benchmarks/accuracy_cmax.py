@@ -280,7 +280,8 @@ def summarise(rows: dict[str, list[dict]], seeds: list[int], seconds: float) -> 
              f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1 "
              f"(fit's default). Written by `python -m benchmarks.accuracy_cmax` in {seconds:.0f} s; load average "
              f"(1 min) at the end {os.getloadavg()[0]:.2f}. Seeds 100-119 are held out; settings were chosen on "
-             "seeds 1-12.", "", *header]
+             "seeds 1-12. Every fit uses FitSettings.seed 0 (its subsample and dither); how much the figures move "
+             "with that seed: `accuracy_noise.md` (se3 a lot, depth barely).", "", *header]
     for model, results in rows.items():
         if results:
             lines += _figure_rows(model, results)
