@@ -82,8 +82,7 @@ def esim_groups(report, run_group, repeats: int, summary: list) -> None:
     import cv2
 
     from cmax.sim.esim import EventSimulator
-    from cmax.sim.png import read_png
-    from cmax.sim.video import ImageFolderSource
+    from cmax.sim.video import ImageFolderSource, _read_image
 
     cv2.setNumThreads(1)
     esim_py = _esim_py()
@@ -105,9 +104,8 @@ def esim_groups(report, run_group, repeats: int, summary: list) -> None:
         return count
 
     def read_ours(path):
-        """The library's reader (cmax.sim.png, OpenCV for what it does not handle), as ImageFolderSource reads."""
-        image = read_png(path)
-        return cv2.imread(path, cv2.IMREAD_GRAYSCALE) if image is None else image
+        """The frame as ImageFolderSource(dtype=np.uint8) reads it (cmax.sim.png, OpenCV for the rest)."""
+        return _read_image(Path(path), None, np.uint8)
 
     def run_source(c):
         simulator, count = EventSimulator(cp=c, cn=c), 0
