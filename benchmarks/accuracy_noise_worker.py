@@ -1,12 +1,12 @@
 """Worker of :mod:`benchmarks.accuracy_noise`: fits exported windows with whichever ``cmax`` is importable.
 
-Run as a script (``python benchmarks/accuracy_noise_worker.py FOLDER SEEDS``), not as a module, so that
-``PYTHONPATH`` chooses the ``cmax`` it measures (this checkout, or another version's checkout for a
-before/after comparison); it imports nothing of ``benchmarks``. ``FOLDER`` holds one ``<model>_<window>.npz``
-per fit (``x, y, t, p, width, height, K, twist, T01, depth, depth_range``); ``SEEDS`` is a comma list of
-``FitSettings.seed`` values. Prints one JSON line per fit: ``model, window, fit_seed``, the figures of
-:mod:`benchmarks.accuracy_cmax` (``abs_rel`` on the fit's mask with finite ground truth inside the depth
-range; se3: ``direction_deg``, ``omega_rms_deg_s``) and ``seconds``.
+Run as a script (``python benchmarks/accuracy_noise_worker.py FOLDER SEEDS MODELS``), not as a module, so
+that ``PYTHONPATH`` chooses the ``cmax`` it measures (this checkout, or another version's checkout for a
+before/after comparison); it imports nothing of ``benchmarks``. ``FOLDER`` holds one ``window_<window>.npz``
+per held-out window (``x, y, t, p, width, height, K, twist, T01, depth, depth_range``); ``SEEDS`` is a comma
+list of ``FitSettings.seed`` values, ``MODELS`` a comma list of ``se3``, ``depth``. Prints one JSON line per fit:
+``model, window, fit_seed``, the figures of :mod:`benchmarks.accuracy_cmax` (``abs_rel`` on the fit's mask
+with finite ground truth inside the depth range; se3: ``direction_deg``, ``omega_rms_deg_s``) and ``seconds``.
 """
 from __future__ import annotations
 
@@ -30,13 +30,13 @@ def abs_rel(depth: np.ndarray, mask: np.ndarray, truth: np.ndarray, depth_range:
     return float(np.mean(np.abs(depth[valid] - truth[valid]) / truth[valid]))
 
 
-def fit_one(path: Path, fit_seed: int) -> dict:
-    """Fit the window of ``path`` with ``seed=fit_seed``: its figures (see the module docstring)."""
+def fit_one(window: dict, index: int, model: str, fit_seed: int) -> dict:
+    """Fit the held-out ``window`` (the arrays of its file) numbered ``index`` as ``model`` with
+    ``seed=fit_seed``: its figures (see the module docstring)."""
     from cmax.events import Events
     from cmax.fitting import fit
 
-    z = np.load(path)
-    model, window = path.stem.rsplit("_", 1)
+    z = window
     events = Events(z["x"], z["y"], z["t"], z["p"], int(z["width"]), int(z["height"]))
     depth_range = tuple(float(d) for d in z["depth_range"])
     v, omega = z["twist"][:3], z["twist"][3:]
@@ -45,7 +45,7 @@ def fit_one(path: Path, fit_seed: int) -> dict:
         r = fit(events, z["K"], pose=z["T01"], depth_range=depth_range, seed=fit_seed)
     else:
         r = fit(events, z["K"], speed=float(np.linalg.norm(v)), depth_range=depth_range, seed=fit_seed)
-    row = {"model": model, "window": int(window), "fit_seed": fit_seed,
+    row = {"model": model, "window": index, "fit_seed": fit_seed,
            "abs_rel": abs_rel(r.depth, r.mask, z["depth"], z["depth_range"])}
     if model == "se3":
         cos = float(r.v @ v / (np.linalg.norm(r.v) * np.linalg.norm(v)))
@@ -55,15 +55,24 @@ def fit_one(path: Path, fit_seed: int) -> dict:
     return row
 
 
+def load_window(path: Path) -> tuple[int, dict]:
+    """The window number and arrays of an exported ``window_<number>.npz``."""
+    with np.load(path) as saved:
+        return int(path.stem.rsplit("_", 1)[1]), {key: saved[key] for key in saved.files}
+
+
 def main(argv: list[str]) -> int:
-    folder, seeds = Path(argv[0]), [int(s) for s in argv[1].split(",")]
+    folder, seeds, models = Path(argv[0]), [int(s) for s in argv[1].split(",")], argv[2].split(",")
     torch.set_num_threads(1)
     warnings.simplefilter("ignore")       # the fits' low-parallax warnings: the figures say it
-    files = sorted(folder.glob("*.npz"))
-    fit_one(files[0], seeds[0])           # warm-up (compilation, torch's first calls), not reported
+    files = sorted(folder.glob("window_*.npz"))
+    index, window = load_window(files[0])
+    fit_one(window, index, models[0], seeds[0])   # warm-up (compilation, torch's first calls), not reported
     for path in files:
-        for fit_seed in seeds:
-            print(json.dumps(fit_one(path, fit_seed)), flush=True)
+        index, window = load_window(path)
+        for model in models:
+            for fit_seed in seeds:
+                print(json.dumps(fit_one(window, index, model, fit_seed)), flush=True)
     return 0
 
 

@@ -256,8 +256,9 @@ def test_accuracy_noise_worker_fits_the_exported_windows_as_accuracy_cmax_does(m
     window = SimpleNamespace(events=made.events, K=made.K, twist=made.twist, depth=made.depth,
                              T01=se3_exp(made.twist * duration_s))    # a constant twist over the window
     monkeypatch.setattr(noise, "windows", lambda model, seed, cache: window)
-    noise.export_windows(tmp_path, ["se3", "depth"], [100], None)
-    rows = noise.by_model_and_seed(noise.run_workers(tmp_path, [0, 2], {"this": noise.ROOT})["this"], [0, 2])
+    noise.export_windows(tmp_path, [100], None)
+    rows = noise.by_model_and_seed(noise.run_workers(tmp_path, ["se3", "depth"], [0, 2], {"this": noise.ROOT})["this"],
+                                   [0, 2])
     room = accuracy_cmax._room()
     for fit_seed in (0, 2):
         expected = accuracy_cmax.run_se3(window, seed=fit_seed, **room)
