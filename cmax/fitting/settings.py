@@ -104,7 +104,9 @@ class PatchFlowSettings:
     min_events : int
         Patches with fewer (subsampled) events are left out.
     max_events : int
-        Uniform subsample of the window's events.
+        Uniform subsample of the window's events (the default, equal to ``FitSettings.max_events``, takes
+        them all: each patch's flow is then sharper, and the motion-field fit that starts the refinement
+        steadier; docs/fitting.md).
     margin : float
         Largest displacement over the window, as a fraction of the patch side (at least 8 px).
     sigmas : tuple of (float or None)
@@ -138,7 +140,7 @@ class PatchFlowSettings:
 
     grid: tuple[int, int] = (4, 5)
     min_events: int = 200
-    max_events: int = 20_000
+    max_events: int = 60_000
     margin: float = 0.4
     sigmas: tuple[float | None, ...] = (3.0, None)
     iterations: int = 40
