@@ -28,8 +28,9 @@ Writes ``benchmarks/results/real_cmax.md`` and the pictures ``real_cmax_pegboard
   ``cmax fit FILE --size 240,180 --K ... --speed 0.317`` (with ``--slider-events``).
 * ``prophesee_gen4_driving/evt3_sample.raw`` (1280x720, 8.8 ms, a car driving
   forward). No calibration: we assume f = 1000 px and the principal point at
-  the image centre. se3 without a known speed (direction only); the fitted
-  translation direction should point forward (+z dominant).
+  the image centre. se3 without a known speed (direction only), at full
+  resolution as ``cmax fit`` runs it, at the fit seeds :data:`DRIVE_FIT_SEEDS`;
+  the fitted translation direction should point forward (within 15 deg of +z).
 
 Usage::
 
@@ -182,51 +183,67 @@ def pegboard(data: Path) -> tuple[list[str], np.ndarray]:
 GYRO_HYPOTHESES_DEG_S = ((0.0, 0.0, 0.0), (0.0, 5.0, 0.0), (3.0, -5.0, 2.0))
 
 
+#: Fit seeds (``FitSettings.seed``: the subsample and dither of the fit) of the drive: one seed is not
+#: enough, the end point of this 8.8 ms window moves with it.
+DRIVE_FIT_SEEDS = (0, 1, 2, 3, 4)
+#: Issue 19's target for the drive: the direction within 15 deg of forward.
+FORWARD_TARGET_DEG = 15.0
+
+
 def driving(data: Path) -> tuple[list[str], np.ndarray]:
-    """se3 direction of the Prophesee drive; returns markdown lines and a picture."""
+    """se3 direction of the Prophesee drive at full resolution, as ``cmax fit`` runs it, at each of
+    :data:`DRIVE_FIT_SEEDS`; returns markdown lines and a picture."""
+    from cmax.fitting import FitSettings
     from cmax.io import read
 
-    from cmax.events import Events
-
-    full = read(data / "prophesee_gen4_driving" / "evt3_sample.raw")
-    # 2x2 binning to 640x360 (K halved): 4x fewer pixels per IWE; fit's dithering restores sub-pixel spread.
-    events = Events(full.x // 2, full.y // 2, full.t, full.p, full.width // 2, full.height // 2)
-    K = K_GEN4 * np.array([[0.5], [0.5], [1.0]])
-    K[:2, 2] = (K_GEN4[:2, 2] + 0.5) / 2 - 0.5
-    options = dict(model="se3", depth_range=(0.05, 50.0), max_events=30_000)
+    events = read(data / "prophesee_gen4_driving" / "evt3_sample.raw")
+    K = K_GEN4
+    depth_range = (0.05, 50.0)
+    variants = [("default", {}, {}), ("zero_rotation_start=True", {"zero_rotation_start": True}, {}),
+                *[(f"omega held at {list(rates)} deg/s", {}, {"omega": np.radians(rates)})
+                  for rates in GYRO_HYPOTHESES_DEG_S]]
     fits = {}
-    for label, extra in [("default", {}), ("zero_rotation_start=True", {"zero_rotation_start": True}),
-                         *[(f"omega held at {list(rates)} deg/s", {"omega": np.radians(rates)})
-                           for rates in GYRO_HYPOTHESES_DEG_S]]:
-        start = time.perf_counter()
-        fits[label] = (fit(events, K, **options, **extra), time.perf_counter() - start)
-    forward = fit(events, K, model="se3", pose=np.r_[0.0, 0.0, 1.0, 0.0, 0.0, 0.0], depth_range=(0.05, 50.0),
-                  max_events=30_000)  # the hypothesis "straight forward, no rotation", depth swept
+    for label, settings, extra in tqdm(variants, desc="drive", leave=False):
+        for seed in DRIVE_FIT_SEEDS:
+            start = time.perf_counter()
+            result = fit(events, K, model="se3", settings=FitSettings(seed=seed, depth_range=depth_range, **settings),
+                         **extra)
+            fits[label, seed] = (result, time.perf_counter() - start)
+    forward = fit(events, K, model="se3", pose=np.r_[0.0, 0.0, 1.0, 0.0, 0.0, 0.0], depth_range=depth_range)
+    seeds = ", ".join(str(seed) for seed in DRIVE_FIT_SEEDS)
     lines = ["## Prophesee Gen4 drive (se3, scale unknown)", "",
-             f"{len(full)} events, {(full.t[-1] - full.t[0]) / 1e3:.1f} ms, 1280x720. Assumed K: f = 1000 px, "
-             "principal point at the centre (no calibration in the file). Events binned 2x2 to 640x360 (K halved); "
-             "fit(model='se3') with depth range 0.05-50 (in units of |v| x 1 s: a 10 m/s car sees 0.5-500 m), "
-             "30k events. Rows: the default fit; with the second start of the motion refinement at zero rotation "
-             "(`FitSettings.zero_rotation_start`); with the rotation held as a gyroscope would give it "
-             "(`fit(..., omega=)`: a car on a straight road turns by a few deg/s at most).", "",
-             "| fit | direction v / norm(v) | angle to +z [deg] | forward | omega [deg/s] | contrast after | s "
-             "| verdict |",
+             f"{len(events)} events, {(events.t[-1] - events.t[0]) / 1e3:.1f} ms, 1280x720, fitted at full "
+             "resolution as `cmax fit` does (the default subsample of 60k events). Assumed K: f = 1000 px, principal "
+             "point at the centre (no calibration in the file). fit(model='se3') with depth range 0.05-50 (in units "
+             "of |v| x 1 s: a 10 m/s car sees 0.5-500 m). Fits: the default; with the second start of the motion "
+             "refinement at zero rotation (`FitSettings.zero_rotation_start`, `--zero-rotation-start`, the flag "
+             "docs/limits.md recommends for vehicles); with the rotation held as a gyroscope would give it "
+             "(`fit(..., omega=)`: a car on a straight road turns by a few deg/s at most). Each at the fit seeds "
+             f"{seeds} (`FitSettings.seed`: the fit's subsample and dither, any of them as valid as 0).", "",
+             f"| fit | angle to +z per fit seed [deg] | within {FORWARD_TARGET_DEG:g} deg | median [deg] | "
+             "omega, seed 0 [deg/s] | contrast after, seed 0 | s per fit | verdicts |",
              "|---|---|---|---|---|---|---|---|"]
-    for label, (result, seconds) in fits.items():
-        unit, angle, is_forward = _direction(result)
-        lines.append(f"| {label} | {np.round(unit, 3).tolist()} | {angle:.1f} | {'yes' if is_forward else 'no'} | "
-                     f"{np.round(np.degrees(result.omega), 1).tolist()} | {result.objective_after:.4f} | "
-                     f"{seconds:.1f} | {result.verdict.value}: {result.quality.reason} |")
-    default = fits["default"][0]
-    direction = default.v / np.linalg.norm(default.v)
-    lines += ["", f"contrast = normalised multi-reference contrast (1 = the unwarped events). Straight forward "
+    for label, _, _ in variants:
+        results = [fits[label, seed] for seed in DRIVE_FIT_SEEDS]
+        angles = [_direction(result)[1] for result, _ in results]
+        within = sum(angle <= FORWARD_TARGET_DEG for angle in angles)
+        first = results[0][0]
+        verdicts = _verdict_counts([result.verdict.value for result, _ in results])
+        lines.append(f"| {label} | {', '.join(f'{angle:.1f}' for angle in angles)} | {within} of {len(angles)} | "
+                     f"{np.median(angles):.1f} | {np.round(np.degrees(first.omega), 1).tolist()} | "
+                     f"{first.objective_after:.4f} | {np.median([s for _, s in results]):.1f} | {verdicts} |")
+    default = {seed: fits["default", seed][0] for seed in DRIVE_FIT_SEEDS}
+    lines += ["", "contrast = normalised multi-reference contrast (1 = the unwarped events). Straight forward "
               f"motion (v = +z, omega = 0, depth swept) scores {forward.objective_after:.4f}. "
-              + _drive_summary({label: result for label, (result, _) in fits.items()}), ""]
-    lines += _flow_explanations(events, K, direction)
-    chosen = fits["zero_rotation_start=True"][0]
-    picture = viz.hstack([viz.titled(viz.iwe_image(chosen.iwe_before), "events (8.8 ms)"),
-                          viz.titled(viz.iwe_image(chosen.iwe_after), "IWE, se3 (zero-rotation start)"),
-                          viz.depth_panel(np.where(chosen.mask, chosen.depth, np.nan), None,
+              + _drive_summary(default, {label: fits[label, seed][0] for label, _, _ in variants[1:]
+                                         for seed in DRIVE_FIT_SEEDS}), ""]
+    worst = max(DRIVE_FIT_SEEDS, key=lambda seed: _direction(default[seed])[1])
+    lines += _flow_explanations(events, K, default[worst].v / np.linalg.norm(default[worst].v), worst)
+    chosen = default[DRIVE_FIT_SEEDS[0]]
+    half = lambda image: cv2.resize(image, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)  # noqa: E731
+    picture = viz.hstack([viz.titled(half(viz.iwe_image(chosen.iwe_before)), "events (8.8 ms)"),
+                          viz.titled(half(viz.iwe_image(chosen.iwe_after)), "IWE, se3 (default, seed 0)"),
+                          viz.depth_panel(half(np.where(chosen.mask, chosen.depth, np.nan)), None,
                                           "depth (up to scale)", unit="")])
     return lines, picture
 
@@ -238,54 +255,57 @@ def _direction(result) -> tuple[np.ndarray, float, bool]:
     return unit, angle, bool(unit[2] > 0 and abs(unit[2]) == np.abs(unit).max())
 
 
-def _drive_summary(fits: dict) -> str:
-    """One sentence on the drive's fits (``label -> FitResult``, ``"default"`` among them), from their figures."""
-    default = fits["default"]
-    _, angle, is_forward = _direction(default)
-    rate = np.degrees(default.omega)
-    axis = int(np.argmax(np.abs(rate)))
-    text = (f"The default fit {'points forward' if is_forward else 'does not point forward'} ({angle:.0f} deg from "
-            f"+z, {('pitch', 'yaw', 'roll')[axis]} rate {rate[axis]:+.0f} deg/s).")
-    others = {label: r for label, r in fits.items() if label != "default"}
-    forward = [label for label, r in others.items() if _direction(r)[2]]
-    if forward:
-        higher = [label for label in forward if others[label].objective_after > default.objective_after]
-        text += (f" {len(forward)} of the other {len(others)} fits point forward, {len(higher)} of them with a "
-                 "higher contrast than the default.")
-    else:
-        text += f" None of the other {len(others)} fits points forward."
+def _drive_summary(default: dict, others: dict) -> str:
+    """Sentences on the drive's fits from their figures: ``default`` maps fit seed -> FitResult of the
+    default fit, ``others`` (label, seed) -> FitResult of the other fits."""
+    angles = {seed: _direction(result)[1] for seed, result in default.items()}
+    wrong = [seed for seed, angle in angles.items() if angle > FORWARD_TARGET_DEG]
+    text = (f"The default fit is within {FORWARD_TARGET_DEG:g} deg of forward at {len(angles) - len(wrong)} of "
+            f"{len(angles)} fit seeds")
+    if wrong:
+        worst = max(wrong, key=lambda seed: angles[seed])
+        rate = np.degrees(default[worst].omega)
+        axis = int(np.argmax(np.abs(rate)))
+        text += (f"; the farthest (seed {worst}) ends {angles[worst]:.0f} deg from +z with a "
+                 f"{('pitch', 'yaw', 'roll')[axis]} rate of {rate[axis]:+.0f} deg/s, verdict "
+                 f"{default[worst].verdict.value}")
+    text += "."
+    failing = sorted({label for (label, _), result in others.items() if _direction(result)[1] > FORWARD_TARGET_DEG})
+    text += (" Every other fit is within it." if not failing else
+             f" Fits off by more: {', '.join(failing)}.")
     return text
 
 
-def _flow_explanations(events, K: np.ndarray, fitted_direction: np.ndarray) -> list[str]:
-    """Patch flows of the window and how forward motion and the fitted direction explain them (markdown)."""
+def _flow_explanations(events, K: np.ndarray, fitted_direction: np.ndarray, seed: int) -> list[str]:
+    """Patch flows of the window at fit seed ``seed`` and how forward motion and the direction
+    ``fitted_direction`` (3,) (the default fit's at that seed) explain them (markdown)."""
     from cmax.fitting import FitSettings
     from cmax.fitting.patch_flow import explain_flows, patch_flows
     from cmax.fitting.window import Window
 
-    settings = FitSettings(max_events=30_000)
+    settings = FitSettings(seed=seed)
     window = Window.from_events(events, K, settings)
     flows_fit = patch_flows(window, settings.patch_flow)
     centres, flows, information = flows_fit.centres, flows_fit.flows, flows_fit.information
     T = window.T
     directions = np.array([[0.0, 0.0, 1.0], fitted_direction])
     residual, omega, inverse_depth = explain_flows(centres, flows, information, K, directions)
-    lines = ["Patch flows of the window (displacement over the 8.8 ms, px, at the patch's mean pixel):", "",
+    lines = [f"Patch flows of the window at fit seed {seed}, the default fit's farthest from forward "
+             "(displacement over the 8.8 ms, px, at the patch's mean pixel):", "",
              "| patch centre (x, y) | displacement (dx, dy) |", "|---|---|"]
     lines += [f"| ({c[0]:.0f}, {c[1]:.0f}) | ({f[0] * T:+.2f}, {f[1] * T:+.2f}) |" for c, f in zip(centres, flows)]
     lines += ["", "How each translation direction explains them (motion-field equations, least-squares rotation "
               "and one inverse depth per patch, weighted by each flow's information):", "",
               "| direction | residual [px over the window] | omega [deg/s] "
               "| patch inverse depths for norm(v) = 1: min / median / max |", "|---|---|---|---|"]
-    for name, r, om, rho in zip(("forward (0, 0, 1)", "fitted (default)"), residual, omega, inverse_depth):
+    for name, r, om, rho in zip(("forward (0, 0, 1)", f"fitted (default, seed {seed})"), residual, omega,
+                                inverse_depth):
         lines.append(f"| {name} | {r * T:.3f} | {np.round(np.degrees(om), 1).tolist()} | "
                      f"{rho.min():.2f} / {np.median(rho):.2f} / {rho.max():.2f} |")
-    spread = [float(rho.max() / rho.min()) if rho.min() > 0 else float("inf") for rho in inverse_depth]
-    lines += ["", f"Forward motion leaves {residual[0] * T:.2f} px of residual, the default fit's direction "
-              f"{residual[1] * T:.2f} px, with inverse depths within a factor {spread[1]:.1f} of each other (nearly "
-              f"one plane) and a pitch rate of {np.degrees(omega[1][0]):.0f} deg/s. A plane seen over a short "
-              "baseline explains the flows of a translation with a rotation and another translation: the "
-              "patch flows alone do not single out forward motion in these 8.8 ms.", ""]
+    lines += ["", f"Forward motion leaves {residual[0] * T:.2f} px of residual, the fitted direction "
+              f"{residual[1] * T:.2f} px: the motion-field equations of {len(centres)} patch flows "
+              + ("prefer the fitted direction (the patch flows alone do not single out forward motion in these "
+                 "8.8 ms)." if residual[1] < residual[0] else "prefer forward motion."), ""]
     return lines
 
 

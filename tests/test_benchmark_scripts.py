@@ -120,16 +120,22 @@ def test_presets_figure_only_draws_the_figure_of_the_moving_presets_and_writes_n
 
 
 def test_drive_summary_is_computed_from_the_fits():
-    def result(v, omega_deg, contrast):
-        return SimpleNamespace(v=np.asarray(v, float), omega=np.radians(omega_deg), objective_after=contrast)
+    def result(v, omega_deg, verdict="ok"):
+        return SimpleNamespace(v=np.asarray(v, float), omega=np.radians(omega_deg),
+                               verdict=SimpleNamespace(value=verdict))
 
-    fits = {"default": result([0, 1, 0.2], [134, 2, 0], 1.0304), "a": result([0.1, 0, 1], [0, 0, 0], 1.0308),
-            "b": result([1, 0, 0.1], [0, 5, 0], 1.05), "c": result([0, 0.1, 1], [0, -3, 0], 1.0300)}
-    text = _drive_summary(fits)
-    assert text.startswith("The default fit does not point forward (79 deg from +z, pitch rate +134 deg/s).")
-    assert text.endswith("2 of the other 3 fits point forward, 1 of them with a higher contrast than the default.")
-    fits["default"] = result([0, 0, 1], [1, -2, 0], 1.0)
-    assert _drive_summary(fits).startswith("The default fit points forward (0 deg from +z, yaw rate -2 deg/s).")
+    # seed 1 is 78.9 deg from +z (cos = 0.2 / |(0, 1, 0.2)|), seed 0 cos^-1(1 / |(0.1, 0, 1)|) = 5.7 deg
+    default = {0: result([0.1, 0, 1], [0, 0, 0]), 1: result([0, 1, 0.2], [134, 2, 0], "ambiguous")}
+    others = {("zrs", 0): result([0, 0.1, 1], [0, -3, 0]), ("zrs", 1): result([1, 0, 0.1], [0, 5, 0]),
+              ("held", 0): result([0, 0, 1], [0, 0, 0])}
+    text = _drive_summary(default, others)
+    assert text.startswith("The default fit is within 15 deg of forward at 1 of 2 fit seeds; the farthest (seed 1) "
+                           "ends 79 deg from +z with a pitch rate of +134 deg/s, verdict ambiguous.")
+    assert text.endswith("Fits off by more: zrs.")
+    default[1] = result([0, 0, 1], [1, -2, 0])
+    del others["zrs", 1]
+    assert _drive_summary(default, others) == ("The default fit is within 15 deg of forward at 2 of 2 fit seeds. "
+                                               "Every other fit is within it.")
 
 
 def test_preset_windows_and_constant_twist_windows_are_cached_apart(monkeypatch):
