@@ -13,7 +13,7 @@ import pytest
 from benchmarks.synthetic_windows import make_window
 from cmax.fitting import LowMotionWarning, QualitySettings, Verdict, fit, fit_sequence
 from cmax.fitting import sequence as sequence_module
-from cmax.fitting.quality import Alternative, Quality, choose_from_neighbours, verdict_of
+from cmax.fitting.quality import Alternative, Quality, choose_from_neighbours, choose_from_run, verdict_of
 from cmax.fitting.solvers import Solver, SolveResult
 
 
@@ -128,6 +128,72 @@ def test_choose_from_neighbours_takes_the_alternative_closest_to_them():
     # an alternative beyond noise is no candidate
     chosen, q = choose_from_neighbours(fit_v, np.zeros(3), _ambiguous(plus_x, gain=0.5), neighbours, 0.1, 45.0)
     assert chosen is None and not q.resolved
+
+
+def _run(gains, noise=0.4):
+    """Windows whose fit moves -x where their gain is negative (the mirrored +x scored better) and +x
+    otherwise, each ambiguous with the mirrored motion within noise."""
+    plus_x = np.array([1.0, 0.0, 0.0])
+    motions = [(-plus_x if g < 0 else plus_x, np.zeros(3)) for g in gains]
+    qualities = [Quality(Verdict.AMBIGUOUS, "mirrored within noise",
+                         (Alternative("mirrored", -v, np.zeros(3), g, noise, abs(g) <= noise),))
+                 for (v, _), g in zip(motions, gains)]
+    return motions, qualities
+
+
+def test_choose_from_run_takes_the_motion_the_run_favours_beyond_its_pooled_noise():
+    """Three ambiguous windows, no confident neighbour: -x, +x, -x fits, the first and last preferring their
+    mirrored +x (gains -0.3, -0.25), the middle its own +x (gain 0.2). Evidence for +x: 0.3 + 0 + 0.25 = 0.55,
+    for -x: 0 - 0.2 + 0 = -0.2; 0.75 is above the pooled noise sqrt(3 * 0.4^2) = 0.69: +x for all three."""
+    motions, qualities = _run([-0.3, 0.2, -0.25])
+    chosen = choose_from_run(motions, qualities, [0.1] * 3, 45.0)
+    assert [c is None for c, _ in chosen] == [False, True, False]
+    assert all(np.allclose(c.v, [1, 0, 0]) for c, _ in chosen if c is not None)
+    assert all(q.resolved and "pooled over the run of 3 ambiguous windows" in q.resolution for _, q in chosen)
+    assert "0.55 beats the other motion's -0.2 by more than the pooled noise 0.693" in chosen[0][1].resolution
+    # weaker preferences (0.05 + 0.04 against -0.1: 0.19 < 0.69): the run stays unresolved, and says why
+    motions, qualities = _run([-0.05, 0.1, -0.04])
+    chosen = choose_from_run(motions, qualities, [0.1] * 3, 45.0)
+    assert all(c is None and not q.resolved and "within the pooled noise" in q.resolution for c, q in chosen)
+    # one window cannot beat its own noise: unresolved, as with no neighbour at all
+    motions, qualities = _run([-0.3])
+    ((c, q),) = choose_from_run(motions, qualities, [0.1], 45.0)
+    assert c is None and not q.resolved and q.resolution == "unresolved: no confident (ok) neighbour window"
+
+
+def test_fit_sequence_resolves_a_run_without_ok_windows_by_its_pooled_evidence(monkeypatch):
+    """Four windows moving +x, all ambiguous and none ok; two of the fits are flipped (-x) while their
+    own mirrored alternative (+x) scored better, the others prefer their +x fit slightly: fit_sequence takes
+    +x for all four (the two flipped re-fitted with it held)."""
+    base = clear_window()[1]
+    truth = np.array([0.5, 0.0, 0.0])
+    gains = [0.1, -0.4, 0.05, -0.35]
+
+    def constructed_fit(events, K, model="se3", *, speed=None, pose=None, omega=None, init=None, quality=None,
+                        **options):
+        t0, t1 = int(events.t[0]), int(events.t[-1])
+        if pose is not None:
+            pose = np.asarray(pose, float)
+            return replace(base, t0_us=t0, t1_us=t1, v=pose[:3], omega=pose[3:], scale_known=True,
+                           quality=Quality(Verdict.OK, "ambiguity not tested: the pose is given"))
+        gain = gains[min(round((t0 - t_first) / window_us), 3)]
+        v = truth if gain > 0 else -truth
+        alt = Alternative("mirrored", -v, np.zeros(3), gain, 0.3, True)
+        return replace(base, t0_us=t0, t1_us=t1, v=v.copy(), omega=np.zeros(3),
+                       quality=Quality(Verdict.AMBIGUOUS, "mirrored within noise", (alt,)))
+
+    monkeypatch.setattr(sequence_module, "fit", constructed_fit)
+    events = clear_window()[0].events
+    t_first = int(events.t[0])
+    window_us = (int(events.t[-1]) - t_first) // 4
+    result = fit_sequence(events, clear_window()[0].K, window_us=window_us, speed=0.5, min_events=10,
+                          quality=QualitySettings(smoothing=False))
+    assert len(result.results) == 4
+    for i, r in enumerate(result.results):
+        np.testing.assert_allclose(r.v, truth, err_msg=f"window {i}")
+        assert "pooled over the run of 4" in r.quality.resolution
+    assert [r.quality.replaced is not None for r in result.results] == [False, True, False, True]
+    assert result.counts()["resolved"] == 4
 
 
 def test_a_run_of_ambiguous_windows_is_resolved_inwards_from_its_ends(monkeypatch):

@@ -18,7 +18,8 @@ starts from (:meth:`~cmax.fitting.motion.LocalMotionObjective.sweep_rho`). An al
 The first term is the standard error of the summed gain over the ``P`` patches (a preference that only
 some patches share is not evidence); the second a relative margin on the fit's own gain over the
 unwarped events. :func:`choose_from_neighbours` resolves an ambiguous window of a sequence from the
-motion of its confident neighbours (:func:`cmax.fitting.fit_sequence`).
+motion of its confident neighbours (:func:`cmax.fitting.fit_sequence`), and :func:`choose_from_run` a run of
+ambiguous windows with none, from the evidence of its windows summed under one motion.
 
 ``flow`` and ``rotation`` have no alternative motion of the same score, but a window with too little
 motion can be fitted to a confident wrong answer: a motion that raises the contrast through a few
@@ -53,7 +54,7 @@ from cmax.warp import warp_se3
 
 __all__ = ["Verdict", "QualitySettings", "Alternative", "Quality", "MotionScorer", "assess", "motion_within_noise",
            "verdict_of",
-           "choose_from_neighbours", "alternative_motions"]
+           "choose_from_neighbours", "choose_from_run", "alternative_motions"]
 
 
 class Verdict(str, enum.Enum):
@@ -344,6 +345,65 @@ def choose_from_neighbours(v: np.ndarray, omega: np.ndarray, quality: Quality,
                                     f"({distance:.0f} deg)", True)
     return alt, _with(quality, f"resolved: took the {name} alternative, within noise and closest to the "
                                f"{len(neighbours)} neighbour(s) ({distance:.0f} deg)", True)
+
+
+def choose_from_run(motions: Sequence[tuple[np.ndarray, np.ndarray]], qualities: Sequence[Quality],
+                    durations_s: Sequence[float], max_resolve_deg: float
+                    ) -> list[tuple[Alternative | None, Quality]]:
+    """Resolve a run of consecutive ambiguous windows that has no confident neighbour by the run's pooled
+    evidence, assuming one motion for the run (the motion prior of a sequence, with nothing to anchor it).
+
+    Each window ``i`` has candidates: its fit ``motions[i] = (v, omega)`` (score 0) and its alternatives
+    within noise (score ``-gain``: above 0 when the alternative scored better than the fit on the window's
+    own objective). A hypothesis is a candidate of some window that every window of the run has a candidate
+    near (:func:`_distance_deg` within ``max_resolve_deg``); its evidence ``E`` is the sum over the windows of
+    their best-scoring candidate near it. The hypothesis of the highest evidence wins when it is above that of
+    every hypothesis farther than ``max_resolve_deg`` from it by more than the run's pooled noise,
+    ``sqrt(sum_i noise_i^2)`` (``noise_i``: the largest noise of window ``i``'s alternatives), and each window
+    takes its candidate near it; otherwise the whole run stays unresolved, and says why. A run of one window
+    cannot gain on its own noise: it stays unresolved.
+
+    Returns, per window, the chosen alternative (None: keep the fit, or unresolved) and the quality with
+    ``resolution``/``resolved`` filled in.
+    """
+    unresolved = "unresolved: no confident (ok) neighbour window"
+    count = len(motions)
+    if count < 2 or any(q.verdict is not Verdict.AMBIGUOUS for q in qualities):
+        return [(None, _with(q, unresolved, False)) for q in qualities]
+    candidates = [[("fit", None, np.asarray(v, float), np.asarray(omega, float), 0.0)]
+                  + [(a.name, a, a.v, a.omega, -a.gain) for a in q.alternatives if a.within_noise]
+                  for (v, omega), q in zip(motions, qualities)]
+
+    def support(v_ref: np.ndarray, omega_ref: np.ndarray):
+        """Each window's best candidate near the hypothesis (or None when it has none), and the evidence."""
+        picks = []
+        for cands, duration in zip(candidates, durations_s):
+            near = [c for c in cands if _distance_deg(c[2], c[3], v_ref, omega_ref, duration) <= max_resolve_deg]
+            picks.append(max(near, key=lambda c: c[4]) if near else None)
+        return picks, (sum(c[4] for c in picks) if all(c is not None for c in picks) else -math.inf)
+
+    hypotheses = [(c[2], c[3], *support(c[2], c[3])) for cands in candidates for c in cands]
+    covered = [h for h in hypotheses if math.isfinite(h[3])]
+    noise = math.sqrt(sum(max((a.noise for a in q.alternatives), default=0.0) ** 2 for q in qualities))
+    if not covered:
+        return [(None, _with(q, f"{unresolved}; no one motion has a candidate in each of the run's {count} "
+                                "ambiguous windows", False)) for q in qualities]
+    best = max(covered, key=lambda h: h[3])
+    duration = float(np.median(durations_s))
+    rivals = [h for h in covered if _distance_deg(h[0], h[1], best[0], best[1], duration) > max_resolve_deg]
+    rival = max((h[3] for h in rivals), default=-math.inf)
+    if not best[3] - rival > noise:
+        return [(None, _with(q, f"{unresolved}; pooled over the run of {count} ambiguous windows the best motion's "
+                                f"evidence {best[3]:.3g} is within the pooled noise {noise:.3g} of another's "
+                                f"({rival:.3g})", False)) for q in qualities]
+    against = "no other motion covers the run" if not math.isfinite(rival) else f"the other motion's {rival:.3g}"
+    out = []
+    for (name, alt, _, _, _), q in zip(best[2], qualities):
+        what = "kept the fit" if alt is None else f"took the {name} alternative"
+        out.append((alt, _with(q, f"resolved: {what}, no confident neighbour; pooled over the run of {count} "
+                                  f"ambiguous windows one motion's evidence {best[3]:.3g} beats {against} by more "
+                                  f"than the pooled noise {noise:.3g}", True)))
+    return out
 
 
 def _with(quality: Quality, resolution: str, resolved: bool) -> Quality:

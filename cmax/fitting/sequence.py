@@ -10,7 +10,7 @@ from cmax._threads import torch_threads_scope
 from cmax.events import Events
 from cmax.fitting.api import FitResult, _check_inputs, _settings, fit
 from cmax.fitting.batch import FitTask, check_jobs, check_options, run_tasks
-from cmax.fitting.quality import MotionScorer, Verdict, _distance_deg, choose_from_neighbours
+from cmax.fitting.quality import MotionScorer, Verdict, _distance_deg, choose_from_neighbours, choose_from_run
 from cmax.fitting.settings import FitSettings
 from cmax.fitting.window import Window
 from cmax.geometry import se3_exp
@@ -143,9 +143,11 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         and the resolution: once all windows are fitted, each ``ambiguous`` window takes, among the fit
         and its alternatives within noise, the motion closest to its ``ok`` neighbours' (up to
         ``quality.neighbours`` windows on each side;
-        :func:`cmax.fitting.quality.choose_from_neighbours`); an alternative is re-fitted with its motion
-        held (the depth swept for it). ``FitResult.quality.resolution`` says what was done, or why the
-        window stays unresolved.
+        :func:`cmax.fitting.quality.choose_from_neighbours`); a run of ambiguous windows with no ``ok``
+        window within reach takes the one motion its windows' own scores favour, summed over the run, when
+        that beats every other by more than the pooled noise (:func:`cmax.fitting.quality.choose_from_run`);
+        an alternative is re-fitted with its motion held (the depth swept for it).
+        ``FitResult.quality.resolution`` says what was done, or why the window stays unresolved.
 
     Notes
     -----
@@ -245,8 +247,9 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, s
     nearest first: the ``ok`` windows within ``QualitySettings.neighbours`` on each side, then, pass after
     pass, also the windows resolved in an earlier pass (with the motion they were resolved to), so that a run
     of ambiguous windows is resolved inwards from the confident windows at its ends rather than left
-    unresolved; a window's outcome is fixed in the first pass that gives it a confident neighbour. A chosen
-    alternative is re-fitted with its motion held (``fit(..., pose=)``), its depth swept (the re-fits on
+    unresolved; a window's outcome is fixed in the first pass that gives it a confident neighbour. A run with
+    no confident window within reach is resolved, or left unresolved, by its pooled evidence
+    (:func:`choose_from_run`). A chosen alternative is re-fitted with its motion held (``fit(..., pose=)``), its depth swept (the re-fits on
     ``jobs`` workers: each depends on the first fits alone)."""
     quality, out, refits = settings.quality, list(results), []
     confident = {i: (r.v, r.omega) for i, r in enumerate(results) if r.verdict is Verdict.OK}
@@ -273,10 +276,11 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, s
             if resolved.resolved:
                 confident[i] = (results[i].v, results[i].omega) if chosen is None else (chosen.v, chosen.omega)
         pending = [i for i in pending if i not in decided]
-    for i in pending:                            # no confident window anywhere near the run
-        r = results[i]
-        decisions[i] = choose_from_neighbours(r.v, r.omega, r.quality, [], (r.t1_us - r.t0_us) * 1e-6,
-                                              quality.max_resolve_deg)
+    for run in _runs(pending):                   # no confident window anywhere near: the run's pooled evidence
+        rs = [results[i] for i in run]
+        chosen = choose_from_run([(r.v, r.omega) for r in rs], [r.quality for r in rs],
+                                 [(r.t1_us - r.t0_us) * 1e-6 for r in rs], quality.max_resolve_deg)
+        decisions.update(zip(run, chosen))
     for i, (chosen, resolved) in sorted(decisions.items()):
         r = results[i]
         if chosen is None:
@@ -296,6 +300,17 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, s
                                   iterations=r.iterations + refit.iterations,
                                   evaluations=r.evaluations + refit.evaluations)
     return out
+
+
+def _runs(indices: list[int]) -> list[list[int]]:
+    """``indices`` (ascending) split into runs of consecutive integers."""
+    runs: list[list[int]] = []
+    for i in indices:
+        if runs and i == runs[-1][-1] + 1:
+            runs[-1].append(i)
+        else:
+            runs.append([i])
+    return runs
 
 
 def _around(results: list[FitResult], i: int, count: int) -> list[FitResult]:
