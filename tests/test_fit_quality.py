@@ -161,13 +161,14 @@ def test_choose_from_run_takes_the_motion_the_run_favours_beyond_its_pooled_nois
     assert c is None and not q.resolved and q.resolution == "unresolved: no confident (ok) neighbour window"
 
 
-def test_fit_sequence_resolves_a_run_without_ok_windows_by_its_pooled_evidence(monkeypatch):
-    """Four windows moving +x, all ambiguous and none ok; two of the fits are flipped (-x) while their
-    own mirrored alternative (+x) scored better, the others prefer their +x fit slightly: fit_sequence takes
-    +x for all four (the two flipped re-fitted with it held)."""
+def _constructed_sequence(monkeypatch, count: int, motion_of):
+    """``fit_sequence`` over ``count`` windows of :func:`clear_window`'s events, with ``fit`` replaced: a
+    re-fit with the pose held returns that pose (``ok``); otherwise window ``i`` returns ``motion_of(i)``,
+    a ``(v (3,), quality)`` with zero rotation. Smoothing off, so that only the resolution acts."""
     base = clear_window()[1]
-    truth = np.array([0.5, 0.0, 0.0])
-    gains = [0.1, -0.4, 0.05, -0.35]
+    events = clear_window()[0].events
+    t_first = int(events.t[0])
+    window_us = (int(events.t[-1]) - t_first) // count
 
     def constructed_fit(events, K, model="se3", *, speed=None, pose=None, omega=None, init=None, quality=None,
                         **options):
@@ -176,19 +177,29 @@ def test_fit_sequence_resolves_a_run_without_ok_windows_by_its_pooled_evidence(m
             pose = np.asarray(pose, float)
             return replace(base, t0_us=t0, t1_us=t1, v=pose[:3], omega=pose[3:], scale_known=True,
                            quality=Quality(Verdict.OK, "ambiguity not tested: the pose is given"))
-        gain = gains[min(round((t0 - t_first) / window_us), 3)]
-        v = truth if gain > 0 else -truth
-        alt = Alternative("mirrored", -v, np.zeros(3), gain, 0.3, True)
-        return replace(base, t0_us=t0, t1_us=t1, v=v.copy(), omega=np.zeros(3),
-                       quality=Quality(Verdict.AMBIGUOUS, "mirrored within noise", (alt,)))
+        v, q = motion_of(min(round((t0 - t_first) / window_us), count - 1))
+        return replace(base, t0_us=t0, t1_us=t1, v=np.array(v, float), omega=np.zeros(3), quality=q)
 
     monkeypatch.setattr(sequence_module, "fit", constructed_fit)
-    events = clear_window()[0].events
-    t_first = int(events.t[0])
-    window_us = (int(events.t[-1]) - t_first) // 4
     result = fit_sequence(events, clear_window()[0].K, window_us=window_us, speed=0.5, min_events=10,
                           quality=QualitySettings(smoothing=False))
-    assert len(result.results) == 4
+    assert len(result.results) == count
+    return result
+
+
+def test_fit_sequence_resolves_a_run_without_ok_windows_by_its_pooled_evidence(monkeypatch):
+    """Four windows moving +x, all ambiguous and none ok; two of the fits are flipped (-x) while their
+    own mirrored alternative (+x) scored better, the others prefer their +x fit slightly: fit_sequence takes
+    +x for all four (the two flipped re-fitted with it held)."""
+    truth = np.array([0.5, 0.0, 0.0])
+    gains = [0.1, -0.4, 0.05, -0.35]
+
+    def motion_of(i):
+        v = truth if gains[i] > 0 else -truth
+        alt = Alternative("mirrored", -v, np.zeros(3), gains[i], 0.3, True)
+        return v, Quality(Verdict.AMBIGUOUS, "mirrored within noise", (alt,))
+
+    result = _constructed_sequence(monkeypatch, 4, motion_of)
     for i, r in enumerate(result.results):
         np.testing.assert_allclose(r.v, truth, err_msg=f"window {i}")
         assert "pooled over the run of 4" in r.quality.resolution
@@ -201,29 +212,14 @@ def test_a_run_of_ambiguous_windows_is_resolved_inwards_from_its_ends(monkeypatc
     Windows 3 and 4 have no ok window within two on either side: they are resolved from windows 1-2 and 5-6,
     themselves resolved from windows 0 and 7 in the pass before (a run of ambiguous windows, as on the ECD
     slider, is not left unresolved), and the whole trajectory moves +x."""
-    base = clear_window()[1]
     truth = np.array([0.5, 0.0, 0.0])
 
-    def constructed_fit(events, K, model="se3", *, speed=None, pose=None, omega=None, init=None, quality=None,
-                        **options):
-        t0, t1 = int(events.t[0]), int(events.t[-1])
-        if pose is not None:
-            pose = np.asarray(pose, float)
-            return replace(base, t0_us=t0, t1_us=t1, v=pose[:3], omega=pose[3:], scale_known=True,
-                           quality=Quality(Verdict.OK, "ambiguity not tested: the pose is given"))
-        index = round((t0 - t_first) / window_us)
-        if 1 <= index <= 6:
-            return replace(base, t0_us=t0, t1_us=t1, v=-truth, omega=np.zeros(3), quality=_ambiguous(truth))
-        return replace(base, t0_us=t0, t1_us=t1, v=truth.copy(), omega=np.zeros(3),
-                       quality=Quality(Verdict.OK, "every alternative scores worse beyond noise"))
+    def motion_of(i):
+        if 1 <= i <= 6:
+            return -truth, _ambiguous(truth)
+        return truth, Quality(Verdict.OK, "every alternative scores worse beyond noise")
 
-    monkeypatch.setattr(sequence_module, "fit", constructed_fit)
-    events = clear_window()[0].events
-    t_first = int(events.t[0])
-    window_us = (int(events.t[-1]) - t_first) // 8
-    result = fit_sequence(events, clear_window()[0].K, window_us=window_us, speed=0.5, min_events=10,
-                          quality=QualitySettings(smoothing=False))
-    assert len(result.results) == 8
+    result = _constructed_sequence(monkeypatch, 8, motion_of)
     for i, r in enumerate(result.results):
         np.testing.assert_allclose(r.v, truth, err_msg=f"window {i}")
     inner = [result.results[i].quality.resolution for i in (3, 4)]
