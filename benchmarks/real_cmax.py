@@ -235,7 +235,7 @@ def driving(data: Path) -> tuple[list[str], np.ndarray]:
     default = {seed: fits["default", seed][0] for seed in DRIVE_FIT_SEEDS}
     lines += ["", "contrast = normalised multi-reference contrast (1 = the unwarped events). Straight forward "
               f"motion (v = +z, omega = 0, depth swept) scores {forward.objective_after:.4f}. "
-              + _drive_summary(default, {label: fits[label, seed][0] for label, _, _ in variants[1:]
+              + _drive_summary(default, {(label, seed): fits[label, seed][0] for label, _, _ in variants[1:]
                                          for seed in DRIVE_FIT_SEEDS}), ""]
     worst = max(DRIVE_FIT_SEEDS, key=lambda seed: _direction(default[seed])[1])
     lines += _flow_explanations(events, K, default[worst].v / np.linalg.norm(default[worst].v), worst)
@@ -588,7 +588,9 @@ def window_speeds(times_us: np.ndarray, T_w_c: np.ndarray, windows: list[tuple[i
 class WallSummary:
     """The far walls of a sequence's windows, summarised: over the ``windows`` that have far-wall pixels,
     the medians of the fit's and EMVS's far wall [m] and of their ratio, how many ratios are within
-    ``FAR_WALL_TOLERANCE``, the ratios' range, and the median ratio over the ``ok`` windows (``ok_windows``)."""
+    ``FAR_WALL_TOLERANCE``, the ratios' range and quartiles, how many ratios are under
+    ``1 - 2 FAR_WALL_TOLERANCE`` (``near``: the wall far too near), and the median ratio over the ``ok``
+    windows (``ok_windows``)."""
 
     windows: int
     fit_m: float
@@ -597,6 +599,8 @@ class WallSummary:
     within: int
     low: float
     high: float
+    quartiles: tuple[float, float]
+    near: int
     ok_windows: int
     ok_ratio: float
 
@@ -612,7 +616,8 @@ def wall_summary(walls: list, ok: list[bool]) -> WallSummary | None:
     return WallSummary(len(usable), float(np.median([w.fit_m for w in usable])),
                        float(np.median([w.emvs_m for w in usable])), float(np.median(ratios)),
                        int(np.sum(np.abs(ratios - 1) <= FAR_WALL_TOLERANCE)), float(ratios.min()),
-                       float(ratios.max()), len(ok_ratios), float(np.median(ok_ratios)) if ok_ratios else np.nan)
+                       float(ratios.max()), tuple(float(q) for q in np.percentile(ratios, [25, 75])),
+                       int(np.sum(ratios < 1 - 2 * FAR_WALL_TOLERANCE)), len(ok_ratios), float(np.median(ok_ratios)) if ok_ratios else np.nan)
 
 
 def _met(flag: bool) -> str:
@@ -636,7 +641,9 @@ def _far_wall_lines(walls: list, calibrated_wall: float, ok: list[bool]) -> list
             f"({_met(abs(w.fit_m / FAR_WALL_M - 1) <= FAR_WALL_TOLERANCE)}); over the {w.ok_windows} ok windows "
             f"alone the median ratio is {w.ok_ratio:.3f} "
             f"({_met(w.ok_windows > 0 and abs(w.ok_ratio - 1) <= FAR_WALL_TOLERANCE)}). Per window the "
-            f"ratio spans {w.low:.2f}-{w.high:.2f}. EMVS with the calibrated camera "
+            f"ratio spans {w.low:.2f}-{w.high:.2f} (quartiles {w.quartiles[0]:.2f} / {w.quartiles[1]:.2f}; "
+            f"{w.near} of the {w.windows} under {1 - 2 * FAR_WALL_TOLERANCE:.1f}: a median near a quartile "
+            "moves with one window). EMVS with the calibrated camera "
             f"(`calib.txt`'s distortion, middle reference time): far-wall mode at {calibrated_wall:.2f} m.", ""]
 
 
