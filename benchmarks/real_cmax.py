@@ -225,7 +225,7 @@ def driving(data: Path) -> tuple[list[str], np.ndarray]:
              "|---|---|---|---|---|---|---|---|"]
     for label, _, _ in variants:
         results = [fits[label, seed] for seed in DRIVE_FIT_SEEDS]
-        angles = [_direction(result)[1] for result, _ in results]
+        angles = [_forward_angle(result) for result, _ in results]
         within = sum(angle <= FORWARD_TARGET_DEG for angle in angles)
         first = results[0][0]
         verdicts = _verdict_counts([result.verdict.value for result, _ in results])
@@ -237,28 +237,30 @@ def driving(data: Path) -> tuple[list[str], np.ndarray]:
               f"motion (v = +z, omega = 0, depth swept) scores {forward.objective_after:.4f}. "
               + _drive_summary(default, {(label, seed): fits[label, seed][0] for label, _, _ in variants[1:]
                                          for seed in DRIVE_FIT_SEEDS}), ""]
-    worst = max(DRIVE_FIT_SEEDS, key=lambda seed: _direction(default[seed])[1])
+    worst = max(DRIVE_FIT_SEEDS, key=lambda seed: _forward_angle(default[seed]))
     lines += _flow_explanations(events, K, default[worst].v / np.linalg.norm(default[worst].v), worst)
     chosen = default[DRIVE_FIT_SEEDS[0]]
-    half = lambda image: cv2.resize(image, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)  # noqa: E731
-    picture = viz.hstack([viz.titled(half(viz.iwe_image(chosen.iwe_before)), "events (8.8 ms)"),
-                          viz.titled(half(viz.iwe_image(chosen.iwe_after)), "IWE, se3 (default, seed 0)"),
-                          viz.depth_panel(half(np.where(chosen.mask, chosen.depth, np.nan)), None,
+    picture = viz.hstack([viz.titled(_half(viz.iwe_image(chosen.iwe_before)), "events (8.8 ms)"),
+                          viz.titled(_half(viz.iwe_image(chosen.iwe_after)), "IWE, se3 (default, seed 0)"),
+                          viz.depth_panel(_half(np.where(chosen.mask, chosen.depth, np.nan)), None,
                                           "depth (up to scale)", unit="")])
     return lines, picture
 
 
-def _direction(result) -> tuple[np.ndarray, float, bool]:
-    """Unit translation (3,), its angle to +z [deg], and whether +z is its largest component (forward)."""
-    unit = result.v / np.linalg.norm(result.v)
-    angle = float(np.degrees(np.arccos(np.clip(unit[2], -1, 1))))
-    return unit, angle, bool(unit[2] > 0 and abs(unit[2]) == np.abs(unit).max())
+def _half(image: np.ndarray) -> np.ndarray:
+    """``image`` at half its width and height (area average): the drive's 1280x720 panels for the picture."""
+    return cv2.resize(image, None, fx=0.5, fy=0.5, interpolation=cv2.INTER_AREA)
+
+
+def _forward_angle(result) -> float:
+    """Angle [deg] between the fitted translation ``result.v`` and forward (+z)."""
+    return float(np.degrees(np.arccos(np.clip(result.v[2] / np.linalg.norm(result.v), -1, 1))))
 
 
 def _drive_summary(default: dict, others: dict) -> str:
     """Sentences on the drive's fits from their figures: ``default`` maps fit seed -> FitResult of the
     default fit, ``others`` (label, seed) -> FitResult of the other fits."""
-    angles = {seed: _direction(result)[1] for seed, result in default.items()}
+    angles = {seed: _forward_angle(result) for seed, result in default.items()}
     wrong = [seed for seed, angle in angles.items() if angle > FORWARD_TARGET_DEG]
     text = (f"The default fit is within {FORWARD_TARGET_DEG:g} deg of forward at {len(angles) - len(wrong)} of "
             f"{len(angles)} fit seeds")
@@ -270,7 +272,8 @@ def _drive_summary(default: dict, others: dict) -> str:
                  f"{('pitch', 'yaw', 'roll')[axis]} rate of {rate[axis]:+.0f} deg/s, verdict "
                  f"{default[worst].verdict.value}")
     text += "."
-    failing = sorted({label for (label, _), result in others.items() if _direction(result)[1] > FORWARD_TARGET_DEG})
+    failing = sorted({label for (label, _), result in others.items()
+                      if _forward_angle(result) > FORWARD_TARGET_DEG})
     text += (" Every other fit is within it." if not failing else
              f" Fits off by more: {', '.join(failing)}.")
     return text
@@ -617,7 +620,8 @@ def wall_summary(walls: list, ok: list[bool]) -> WallSummary | None:
                        float(np.median([w.emvs_m for w in usable])), float(np.median(ratios)),
                        int(np.sum(np.abs(ratios - 1) <= FAR_WALL_TOLERANCE)), float(ratios.min()),
                        float(ratios.max()), tuple(float(q) for q in np.percentile(ratios, [25, 75])),
-                       int(np.sum(ratios < 1 - 2 * FAR_WALL_TOLERANCE)), len(ok_ratios), float(np.median(ok_ratios)) if ok_ratios else np.nan)
+                       int(np.sum(ratios < 1 - 2 * FAR_WALL_TOLERANCE)), len(ok_ratios),
+                       float(np.median(ok_ratios)) if ok_ratios else np.nan)
 
 
 def _met(flag: bool) -> str:

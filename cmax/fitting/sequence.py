@@ -249,8 +249,8 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, s
     of ambiguous windows is resolved inwards from the confident windows at its ends rather than left
     unresolved; a window's outcome is fixed in the first pass that gives it a confident neighbour. A run with
     no confident window within reach is resolved, or left unresolved, by its pooled evidence
-    (:func:`choose_from_run`). A chosen alternative is re-fitted with its motion held (``fit(..., pose=)``), its depth swept (the re-fits on
-    ``jobs`` workers: each depends on the first fits alone)."""
+    (:func:`choose_from_run`). A chosen alternative is re-fitted with its motion held (``fit(..., pose=)``),
+    its depth swept (the re-fits on ``jobs`` workers: each depends on the first fits alone)."""
     quality, out, refits = settings.quality, list(results), []
     confident = {i: (r.v, r.omega) for i, r in enumerate(results) if r.verdict is Verdict.OK}
     pending = [i for i, r in enumerate(results) if r.verdict is Verdict.AMBIGUOUS]
