@@ -317,3 +317,29 @@ def test_quality_is_a_field_of_the_settings():
         fit_sequence(w.events, w.K, "se3", omega=np.zeros(3))
     with pytest.raises(ValueError, match="speed applies to model='se3'"):
         fit_sequence(w.events, w.K, "rotation", speed=1.0)
+
+
+def test_the_patch_flows_read_every_event_of_the_window_by_default():
+    """The default patch flows take all of the window's subsample (FitSettings.max_events), not a draw of it:
+    on 50k events (more than the 20k the patch flows once drew), the default patches hold the same events as
+    patches with no cap at all."""
+    from cmax.events import Events
+    from cmax.fitting.patch_flow import make_patches
+    from cmax.fitting.window import Window
+
+    rng = np.random.default_rng(0)
+    n = 50_000
+    events = Events(rng.integers(0, 160, n), rng.integers(0, 120, n), np.sort(rng.integers(0, 100_000, n)),
+                    rng.integers(0, 2, n), width=160, height=120)
+    settings = FitSettings()
+    assert n <= settings.max_events
+    w = Window.from_events(events, np.array([[120.0, 0, 80], [0, 120.0, 60], [0, 0, 1]]), settings)
+    pf = settings.patch_flow
+
+    def patches(max_events):
+        return make_patches(w, grid=pf.grid, min_events=pf.min_events, max_events=max_events, margin=pf.margin,
+                            min_margin_px=pf.min_margin_px)
+
+    default, uncapped = patches(pf.max_events), patches(10 ** 9)
+    np.testing.assert_array_equal(default.counts, uncapped.counts)
+    assert default.counts.sum() > 20_000
