@@ -40,7 +40,7 @@ from __future__ import annotations
 import enum
 import math
 from dataclasses import dataclass, replace
-from typing import Sequence
+from typing import NamedTuple, Sequence
 
 import numpy as np
 import torch
@@ -316,6 +316,27 @@ def _distance_deg(v: np.ndarray, omega: np.ndarray, v_ref: np.ndarray, omega_ref
     return angle + math.degrees(float(np.linalg.norm(np.asarray(omega) - omega_ref)) * duration_s)
 
 
+#: The resolution of an ambiguous window that no confident neighbour can resolve.
+NO_CONFIDENT_NEIGHBOUR = "unresolved: no confident (ok) neighbour window"
+
+
+class _Candidate(NamedTuple):
+    """A motion an ambiguous window may take: its fit (``alternative`` None) or an alternative within noise;
+    ``score`` is 0 for the fit and minus the alternative's gain (above 0: it scored better than the fit)."""
+
+    name: str
+    alternative: "Alternative | None"
+    v: np.ndarray
+    omega: np.ndarray
+    score: float
+
+
+def _candidates(v: np.ndarray, omega: np.ndarray, quality: Quality) -> list[_Candidate]:
+    """The fit ``(v, omega)`` and the alternatives of ``quality`` within noise, as :class:`_Candidate`."""
+    return [_Candidate("fit", None, np.asarray(v, float), np.asarray(omega, float), 0.0)] + [
+        _Candidate(a.name, a, a.v, a.omega, -a.gain) for a in quality.alternatives if a.within_noise]
+
+
 def choose_from_neighbours(v: np.ndarray, omega: np.ndarray, quality: Quality,
                            neighbours: Sequence[tuple[np.ndarray, np.ndarray]], duration_s: float,
                            max_resolve_deg: float) -> tuple[Alternative | None, Quality]:
@@ -329,14 +350,12 @@ def choose_from_neighbours(v: np.ndarray, omega: np.ndarray, quality: Quality,
     if quality.verdict is not Verdict.AMBIGUOUS:
         return None, quality
     if not neighbours:
-        return None, _with(quality, "unresolved: no confident (ok) neighbour window", False)
+        return None, _with(quality, NO_CONFIDENT_NEIGHBOUR, False)
     units = [np.asarray(nv, float) / max(np.linalg.norm(nv), 1e-12) for nv, _ in neighbours]
     v_ref = np.mean(units, 0)
     omega_ref = np.mean([np.asarray(no, float) for _, no in neighbours], 0)
-    candidates = [("fit", None, v, omega)] + [(a.name, a, a.v, a.omega) for a in quality.alternatives if a.within_noise]
-    scored = sorted(((_distance_deg(cv, co, v_ref, omega_ref, duration_s), name, alt)
-                     for name, alt, cv, co in candidates), key=lambda s: s[0])
-    distance, name, alt = scored[0]
+    distance, name, alt = min(((_distance_deg(c.v, c.omega, v_ref, omega_ref, duration_s), c.name, c.alternative)
+                               for c in _candidates(v, omega, quality)), key=lambda s: s[0])
     if distance > max_resolve_deg:
         return None, _with(quality, f"unresolved: the closest candidate ({name}) is {distance:.0f} deg from the "
                                     f"{len(neighbours)} neighbour(s), over {max_resolve_deg:g}", False)
@@ -366,43 +385,42 @@ def choose_from_run(motions: Sequence[tuple[np.ndarray, np.ndarray]], qualities:
     Returns, per window, the chosen alternative (None: keep the fit, or unresolved) and the quality with
     ``resolution``/``resolved`` filled in.
     """
-    unresolved = "unresolved: no confident (ok) neighbour window"
     count = len(motions)
     if count < 2 or any(q.verdict is not Verdict.AMBIGUOUS for q in qualities):
-        return [(None, _with(q, unresolved, False)) for q in qualities]
-    candidates = [[("fit", None, np.asarray(v, float), np.asarray(omega, float), 0.0)]
-                  + [(a.name, a, a.v, a.omega, -a.gain) for a in q.alternatives if a.within_noise]
-                  for (v, omega), q in zip(motions, qualities)]
+        return [(None, _with(q, NO_CONFIDENT_NEIGHBOUR, False)) for q in qualities]
+    candidates = [_candidates(v, omega, q) for (v, omega), q in zip(motions, qualities)]
 
-    def support(v_ref: np.ndarray, omega_ref: np.ndarray):
-        """Each window's best candidate near the hypothesis (or None when it has none), and the evidence."""
+    def support(hypothesis: _Candidate) -> tuple[list[_Candidate | None], float]:
+        """Each window's best-scoring candidate near ``hypothesis`` (None when it has none), and the evidence:
+        their summed scores, -inf unless every window has one."""
         picks = []
-        for cands, duration in zip(candidates, durations_s):
-            near = [c for c in cands if _distance_deg(c[2], c[3], v_ref, omega_ref, duration) <= max_resolve_deg]
-            picks.append(max(near, key=lambda c: c[4]) if near else None)
-        return picks, (sum(c[4] for c in picks) if all(c is not None for c in picks) else -math.inf)
+        for window, duration in zip(candidates, durations_s):
+            near = [c for c in window
+                    if _distance_deg(c.v, c.omega, hypothesis.v, hypothesis.omega, duration) <= max_resolve_deg]
+            picks.append(max(near, key=lambda c: c.score) if near else None)
+        return picks, (sum(c.score for c in picks) if all(c is not None for c in picks) else -math.inf)
 
-    hypotheses = [(c[2], c[3], *support(c[2], c[3])) for cands in candidates for c in cands]
-    covered = [h for h in hypotheses if math.isfinite(h[3])]
+    covered = [(h, *support(h)) for window in candidates for h in window]
+    covered = [(h, picks, evidence) for h, picks, evidence in covered if math.isfinite(evidence)]
     noise = math.sqrt(sum(max((a.noise for a in q.alternatives), default=0.0) ** 2 for q in qualities))
     if not covered:
-        return [(None, _with(q, f"{unresolved}; no one motion has a candidate in each of the run's {count} "
-                                "ambiguous windows", False)) for q in qualities]
-    best = max(covered, key=lambda h: h[3])
+        return [(None, _with(q, f"{NO_CONFIDENT_NEIGHBOUR}; no one motion has a candidate in each of the run's "
+                                f"{count} ambiguous windows", False)) for q in qualities]
+    best, picks, evidence = max(covered, key=lambda entry: entry[2])
     duration = float(np.median(durations_s))
-    rivals = [h for h in covered if _distance_deg(h[0], h[1], best[0], best[1], duration) > max_resolve_deg]
-    rival = max((h[3] for h in rivals), default=-math.inf)
-    if not best[3] - rival > noise:
-        return [(None, _with(q, f"{unresolved}; pooled over the run of {count} ambiguous windows the best motion's "
-                                f"evidence {best[3]:.3g} is within the pooled noise {noise:.3g} of another's "
-                                f"({rival:.3g})", False)) for q in qualities]
+    rival = max((e for h, _, e in covered
+                 if _distance_deg(h.v, h.omega, best.v, best.omega, duration) > max_resolve_deg), default=-math.inf)
+    if not evidence - rival > noise:
+        return [(None, _with(q, f"{NO_CONFIDENT_NEIGHBOUR}; pooled over the run of {count} ambiguous windows the "
+                                f"best motion's evidence {evidence:.3g} is within the pooled noise {noise:.3g} of "
+                                f"another's ({rival:.3g})", False)) for q in qualities]
     against = "no other motion covers the run" if not math.isfinite(rival) else f"the other motion's {rival:.3g}"
     out = []
-    for (name, alt, _, _, _), q in zip(best[2], qualities):
-        what = "kept the fit" if alt is None else f"took the {name} alternative"
-        out.append((alt, _with(q, f"resolved: {what}, no confident neighbour; pooled over the run of {count} "
-                                  f"ambiguous windows one motion's evidence {best[3]:.3g} beats {against} by more "
-                                  f"than the pooled noise {noise:.3g}", True)))
+    for pick, q in zip(picks, qualities):
+        what = "kept the fit" if pick.alternative is None else f"took the {pick.name} alternative"
+        out.append((pick.alternative, _with(q, f"resolved: {what}, no confident neighbour; pooled over the run of "
+                                               f"{count} ambiguous windows one motion's evidence {evidence:.3g} "
+                                               f"beats {against} by more than the pooled noise {noise:.3g}", True)))
     return out
 
 
