@@ -82,6 +82,7 @@ def esim_groups(report, run_group, repeats: int, summary: list) -> None:
     import cv2
 
     from cmax.sim.esim import EventSimulator
+    from cmax.sim.png import INFLATE_BACKEND
     from cmax.sim.video import ImageFolderSource, _read_image
 
     cv2.setNumThreads(1)
@@ -94,6 +95,8 @@ def esim_groups(report, run_group, repeats: int, summary: list) -> None:
             f"context, and the implementation before issue 22 (commit {BASELINE_REV}) is timed in "
             "this process instead.")
     folder, paths, times = _truck()
+    # the inflate the default install uses (isal where it has wheels, else zlib): named in the rows
+    source_label = f"ImageFolderSource (decode threads, {INFLATE_BACKEND} inflate)"
     frames = np.stack([cv2.imread(p, cv2.IMREAD_GRAYSCALE) for p in paths])
     bikes, bikes_t = _bikes_frames(BIKES_FRAMES)
 
@@ -122,15 +125,14 @@ def esim_groups(report, run_group, repeats: int, summary: list) -> None:
         elif head is not None:
             methods.append((f"{BASELINE_REV}: PNG decode + step, one thread", lambda: run_pngs(head, c),
                             "before issue 22"))
-        methods += [("ours: PNG decode (cmax.sim.png) + step, one thread",
+        methods += [(f"ours: PNG decode (cmax.sim.png, {INFLATE_BACKEND}) + step, one thread",
                      lambda: run_pngs(EventSimulator, c, read_ours), ""),
-                    ("ours: ImageFolderSource (decode threads) + step", lambda: run_source(c),
+                    (f"ours: {source_label} + step", lambda: run_source(c),
                      "what cmax simulate runs: frames decoded in threads while the compiled (nogil) simulation "
                      "runs (with the CPU clock the overlap does not show)")]
         group = f"ESIM truck-pan 240x180 incl. PNG decoding, C={c}, {count:,} events"
         run_group(report, group, methods, count, repeats)
-        _esim_summary(report, summary, group, "truck", c, count, esim_py is not None,
-                      "ImageFolderSource (decode threads) + step")
+        _esim_summary(report, summary, group, "truck", c, count, esim_py is not None, f"{source_label} + step")
     for c in THRESHOLDS:
         count = len(EventSimulator(cp=c, cn=c).simulate(bikes, bikes_t))
         methods = []
