@@ -267,6 +267,20 @@ def test_evt3_encoder_uses_vectors(tmp_path: Path) -> None:
     assert words.size < len(events) / 2
 
 
+def test_evt3_words_of_a_run_of_two_and_a_vector(tmp_path: Path) -> None:
+    """The words by the EVT 3.0 layout, by hand: a run of two events in one block stays two ADDR_X words,
+    a run of three in the next block is VECT_BASE_X + VECT_12 (bits 1-3 of block 1), after the first
+    unit's TIME_HIGH, TIME_LOW (100 µs) and ADDR_Y (row 5)."""
+    events = Events([0, 1, 13, 14, 15], [5] * 5, [100] * 5, [1] * 5, 64, 8)
+    write_evt3(tmp_path / "a.raw", events)
+    header = b"% evt 3.0\n% format EVT3;height=8;width=64\n% geometry 64x8\n% generator evtslowtv\n% end\n"
+    raw = (tmp_path / "a.raw").read_bytes()
+    assert raw.startswith(header)
+    words = np.frombuffer(raw[len(header):], "<u2").tolist()
+    assert words == [0x8000, 0x6000 | 100, 5, 0x2800 | 0, 0x2800 | 1, 0x3800 | 12, 0x4000 | 0b1110]
+    assert read_evt3(tmp_path / "a.raw") == events
+
+
 def test_write_empty_and_invalid(tmp_path: Path) -> None:
     for write, read in ((write_evt3, read_evt3), (write_evt2, read_evt2)):
         write(tmp_path / "empty.raw", Events.empty(10, 5))
