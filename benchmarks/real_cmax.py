@@ -21,8 +21,9 @@ Writes ``benchmarks/results/real_cmax.md`` and the pictures ``real_cmax_pegboard
   (default 166.5 ms windows); per window: the direction error, whether it is reversed (> 90 deg), the
   quality verdict and its resolution, and the far wall's depth against EMVS with the ground-truth poses
   (run at the window's reference time; :func:`slider_far_wall`); then the same with the rotation held at
-  zero (``cmax fit ... --omega 0,0,0``: a linear stage does not rotate). ``--slider-cache FILE`` keeps the
-  fits (about 5 minutes; the held-rotation one beside it, ``FILE``'s stem + ``_omega0``) for a second run.
+  zero (``cmax fit ... --omega 0,0,0``: a linear stage does not rotate), with 4 motion members and with
+  ``--zero-rotation-start``. ``--slider-cache FILE`` keeps the fits (about 7 minutes; the variants beside it,
+  ``FILE``'s stem + ``_omega0``, ``_members4``, ``_zrs``) for a second run.
 * A DSEC-layout file as DSEC ships it (uint32 ``t`` relative to ``t_offset``, ``ms_to_idx``, no size
   attributes; :func:`write_dsec_original`) of the first second of the slider events, fitted end to end by
   ``cmax fit FILE --size 240,180 --K ... --speed 0.317`` (with ``--slider-events``).
@@ -343,13 +344,14 @@ def library_fingerprint() -> str:
 
 
 def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tuple | None = None,
-                    members: int = 1):
+                    members: int = 1, zero_rotation_start: bool = False):
     """``fit_sequence(events, K_ECD, speed=ECD_SPEED)`` of the slider events, its wall time [s], and a note on
     where it comes from (this run, or the cache and the 1-minute load average when it was fitted).
 
     ``omega`` (3,) [rad/s]: every window's rotation held at it (``cmax fit --omega``: a constant gyroscope
     reading over the recording), only the direction and the depth fitted.
     ``members``: ``FitSettings.motion_members`` (``cmax fit --members``).
+    ``zero_rotation_start``: ``FitSettings.zero_rotation_start`` (``cmax fit --zero-rotation-start``).
 
     With ``cache`` the result is pickled there (atomically) and read back by a later call on the same events
     file (same resolved path, size and modification time) fitted by the same library code (a hash of the
@@ -365,7 +367,8 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     stat = events_path.stat()
     key = (str(events_path.resolve()), stat.st_size, stat.st_mtime_ns, K_ECD.tolist(), ECD_SPEED,
            library_fingerprint()) + (
-        () if omega is None else (tuple(float(w) for w in omega),)) + (() if members == 1 else (("members", members),))
+        () if omega is None else (tuple(float(w) for w in omega),)) + (() if members == 1 else (("members", members),)) + (
+        (("zero_rotation_start", True),) if zero_rotation_start else ())
     if cache is not None and cache.is_file():
         with open(cache, "rb") as file:
             stored = pickle.load(file)
@@ -379,7 +382,8 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     gyro = None if omega is None else constant_gyro(omega, int(events.t[0]), int(events.t[-1]) + 1)
     load = os.getloadavg()[0]
     start = time.perf_counter()
-    sequence = fit_sequence(events, K_ECD, speed=ECD_SPEED, gyro=gyro, motion_members=members)
+    sequence = fit_sequence(events, K_ECD, speed=ECD_SPEED, gyro=gyro, motion_members=members,
+                            zero_rotation_start=zero_rotation_start)
     seconds = time.perf_counter() - start
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
@@ -480,8 +484,10 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
     held, held_seconds, held_origin = slider_sequence(events_path, held_cache, omega=(0.0, 0.0, 0.0))
     members_cache = None if cache is None else cache.with_name(f"{cache.stem}_members{SLIDER_MEMBERS}{cache.suffix}")
     members, members_seconds, members_origin = slider_sequence(events_path, members_cache, members=SLIDER_MEMBERS)
-    walls, maps, calibrated_wall, (held_walls, members_walls) = slider_far_wall(events_path, sequence, folder,
-                                                                                 (held, members))
+    zrs_cache = None if cache is None else cache.with_name(f"{cache.stem}_zrs{cache.suffix}")
+    zrs, zrs_seconds, zrs_origin = slider_sequence(events_path, zrs_cache, zero_rotation_start=True)
+    walls, maps, calibrated_wall, (held_walls, members_walls, zrs_walls) = slider_far_wall(
+        events_path, sequence, folder, (held, members, zrs))
     first = sequence.results[0].t0_us
     speeds = window_speeds(*read_tum_trajectory(folder / "groundtruth.txt"),
                            [(r.t0_us, r.t1_us) for r in sequence.results])
@@ -531,6 +537,7 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
               f"{np.median(rescaled) if rescaled.size else np.nan:.3f}.", ""]
     lines += _held_rotation_lines(held, held_walls, held_seconds, held_origin)
     lines += _members_lines(members, members_walls, members_seconds, members_origin)
+    lines += _zero_rotation_start_lines(zrs, zrs_walls, zrs_seconds, zrs_origin)
     middle = len(sequence.results) // 2
     r = sequence.results[middle]
     scale = (0.47, 2.4)                     # EMVS's depth range: one colour scale for both depth maps
@@ -551,7 +558,8 @@ def _variant_summary(sequence, walls: list) -> str:
                   f"over the {w.windows} windows with far-wall pixels: the fit's median {w.fit_m:.2f} m, median ratio "
                   f"fit / EMVS {w.ratio:.3f} (target within {FAR_WALL_TOLERANCE:.0%}: "
                   f"{_met(abs(w.ratio - 1) <= FAR_WALL_TOLERANCE)}; {w.within} of the windows within it; per window "
-                  f"{w.low:.2f}-{w.high:.2f}; over the {w.ok_windows} ok windows {w.ok_ratio:.3f}); fit against "
+                  f"{w.low:.2f}-{w.high:.2f}, quartiles {w.quartiles[0]:.2f} / {w.quartiles[1]:.2f}, {w.near} under "
+                  f"{1 - 2 * FAR_WALL_TOLERANCE:.1f}; over the {w.ok_windows} ok windows {w.ok_ratio:.3f}); fit against "
                   f"{FAR_WALL_M} m: {w.fit_m / FAR_WALL_M:.3f} "
                   f"({_met(abs(w.fit_m / FAR_WALL_M - 1) <= FAR_WALL_TOLERANCE)})")
     return (f"Direction error median {np.median(errors):.1f} deg, p90 {np.percentile(errors, 90):.1f} deg, reversed "
@@ -576,6 +584,15 @@ def _members_lines(members, walls: list, seconds: float, origin: str) -> list[st
             f"`fit_sequence(..., motion_members={SLIDER_MEMBERS})` (`cmax fit ... --members {SLIDER_MEMBERS}`: each "
             "window's motion from four draws of its events, their consensus kept; the rotation free): "
             f"{seconds:.0f} s in all ({origin}). {_variant_summary(members, walls)}", ""]
+
+
+def _zero_rotation_start_lines(sequence, walls: list, seconds: float, origin: str) -> list[str]:
+    """Markdown of the slider fitted with ``zero_rotation_start`` (``cmax fit --zero-rotation-start``)."""
+    return ["### With `--zero-rotation-start`", "",
+            "`fit_sequence(..., zero_rotation_start=True)` (`cmax fit ... --zero-rotation-start`: a second start "
+            "of each window's motion refinement without rotation, the one with the higher patch-wise contrast kept; "
+            "the rotation free, the flag docs/limits.md recommends for vehicles): "
+            f"{seconds:.0f} s in all ({origin}). {_variant_summary(sequence, walls)}", ""]
 
 
 def window_speeds(times_us: np.ndarray, T_w_c: np.ndarray, windows: list[tuple[int, int]]) -> np.ndarray:

@@ -74,9 +74,10 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
 
     calls = []
 
-    def fake_fit_sequence(events, K, speed, gyro=None, motion_members=1):
+    def fake_fit_sequence(events, K, speed, gyro=None, motion_members=1, zero_rotation_start=False):
         calls.append(len(events))
-        return SimpleNamespace(n=len(events), speed=speed, gyro=gyro, members=motion_members)
+        return SimpleNamespace(n=len(events), speed=speed, gyro=gyro, members=motion_members,
+                               zero_rotation_start=zero_rotation_start)
 
     monkeypatch.setattr(cmax.fitting, "fit_sequence", fake_fit_sequence)
     rng = np.random.default_rng(0)
@@ -100,12 +101,17 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
     assert calls == [50, 60, 60, 60] and members.members == 4 and other.members == 1
     again, _, _ = real_cmax.slider_sequence(paths[1], cache)
     assert calls == [50, 60, 60, 60, 60] and again.members == 1     # the cache held the members' fit last
+    # with a second start at zero rotation: another fit too
+    zrs, _, _ = real_cmax.slider_sequence(paths[1], cache, zero_rotation_start=True)
+    assert calls == [50, 60, 60, 60, 60, 60] and zrs.zero_rotation_start and not again.zero_rotation_start
     # other library code: the cache is not trusted
     real_cmax.slider_sequence(paths[1], cache)
-    assert calls == [50, 60, 60, 60, 60]
+    assert calls == [50, 60, 60, 60, 60, 60, 60]
+    real_cmax.slider_sequence(paths[1], cache)
+    assert calls == [50, 60, 60, 60, 60, 60, 60]
     monkeypatch.setattr(real_cmax, "library_fingerprint", lambda: "other code")
     real_cmax.slider_sequence(paths[1], cache)
-    assert calls == [50, 60, 60, 60, 60, 60]
+    assert calls == [50, 60, 60, 60, 60, 60, 60, 60]
 
 
 def test_window_speeds_of_a_slide_that_stops():
