@@ -6,13 +6,16 @@ import pytest
 import torch
 
 from cmax.contrast import (SHARED_OBJECTIVE, AverageTimestamp, CollapseGuard, DepthMotion, EventWindows,
-                           GlobalContrast, LocalContrast, SweepVote, WeightedSum, twist_at_speed)
+                           GlobalContrast, LocalContrast, PlaneVote, SweepVote, VoteNormaliser, WeightedSum,
+                           twist_at_speed)
 from benchmarks.synthetic_windows import make_window
 
 OBJECTIVES = {
     "average_timestamp": AverageTimestamp(),
     "average_timestamp_tv": AverageTimestamp(smoothness=0.01),
     "sweep_vote": SweepVote(rho_range=(0.2, 1.0), candidates=6),
+    "plane_vote": PlaneVote(rho_range=(0.2, 1.0), planes=6),
+    "plane_vote_window_tv": PlaneVote(rho_range=(0.2, 1.0), planes=6, normaliser="window", smoothness=0.01),
     "local_contrast": LocalContrast(cells=(2, 3), margin=3, smoothness=0.01),
     "global_contrast": GlobalContrast(),
     "collapse_guard": CollapseGuard(lattice=(3, 4)),
@@ -86,6 +89,41 @@ def test_gradcheck(name):
         objective = objective.with_motion(batch, params.twist.detach())
     assert torch.autograd.gradcheck(lambda r, t: objective(batch, DepthMotion(r, t)),
                                     (params.inverse_depth, params.twist), eps=1e-6, atol=1e-5, rtol=1e-3)
+
+
+def test_plane_vote_without_motion_is_minus_one_for_any_depth():
+    """With a zero twist every plane's image is the unwarped one: each event's value is the same on every
+    plane, so each vote is 1 (its own largest value), and the window's mean value over the window's mean
+    is 1 too: the loss is -1 whatever the depth map."""
+    batch, params = _tiny()
+    still = torch.zeros(1, 6, dtype=torch.float64)
+    for normaliser in VoteNormaliser:
+        objective = PlaneVote(rho_range=(0.2, 1.0), planes=5, normaliser=normaliser)
+        for rho in (params.inverse_depth.detach(), torch.full((1, 1, 1, 1), 0.9, dtype=torch.float64)):
+            assert float(objective(batch, DepthMotion(rho, still))[0]) == pytest.approx(-1.0, rel=1e-12)
+
+
+def test_plane_vote_with_motion_fixes_the_planes_and_gives_the_same_values():
+    batch, params = _tiny()
+    objective = PlaneVote(rho_range=(0.2, 1.0), planes=6, smoothness=0.01)
+    fixed = objective.with_motion(batch, params.twist)
+    assert fixed.values[0].shape == (6, len(batch)) and not fixed.values[0].requires_grad
+    torch.testing.assert_close(fixed(batch, params), objective(batch, params))
+    with pytest.raises(ValueError, match="events"):
+        fixed(EventWindows(batch.x[:-1], batch.y[:-1], batch.t[:-1], batch.polarity[:-1], batch.window[:-1],
+                           batch.K, batch.duration_s, 16, 12), params)
+
+
+def test_plane_vote_settings_are_checked():
+    with pytest.raises(ValueError, match="rho_range"):
+        PlaneVote(rho_range=(0.0, 1.0))
+    with pytest.raises(ValueError, match="planes"):
+        PlaneVote(planes=1)
+    with pytest.raises(ValueError, match="normaliser must be one of"):
+        PlaneVote(normaliser="median")
+    with pytest.raises(ValueError, match="smoothness"):
+        PlaneVote(smoothness=-1.0)
+    assert PlaneVote(normaliser="window").normaliser is VoteNormaliser.WINDOW
 
 
 def test_weighted_sum_is_the_weighted_sum():

@@ -20,6 +20,8 @@ own pixel (bilinear on the depth grid, :class:`cmax.warp.DepthGrid`).
 from __future__ import annotations
 
 import dataclasses
+import enum
+import math
 from dataclasses import dataclass
 
 import torch
@@ -31,8 +33,8 @@ from cmax.warp import DepthGrid, warp_se3
 
 __all__ = [
     "DepthMotion", "twist_at_speed", "event_inverse_depth", "warp_windows", "log_depth_variation",
-    "AverageTimestamp", "SweepVote", "LocalContrast", "GlobalContrast", "CollapseGuard", "WeightedSum",
-    "SHARED_OBJECTIVE",
+    "AverageTimestamp", "SweepVote", "PlaneVote", "VoteNormaliser", "LocalContrast", "GlobalContrast",
+    "CollapseGuard", "WeightedSum", "SHARED_OBJECTIVE",
 ]
 
 #: Probe times of the deformation guard, in units of the window duration (as in ``cmax.fit``).
@@ -310,6 +312,145 @@ class SweepVote:
         votes = torch.zeros(B, dtype=score.dtype).index_add(0, batch.window, inside * score / scale)
         kept = torch.zeros(B, dtype=score.dtype).index_add(0, batch.window, inside)
         return -votes / kept.clamp(min=1.0)
+
+
+class VoteNormaliser(str, enum.Enum):
+    """What :class:`PlaneVote` divides each event's value by: ``event_peak``, the event's largest value over
+    the planes (one vote per event, as the sweep's :func:`cmax.contrast.sweep.vote_scale`); ``window``, the
+    mean over the window's events of the unwarped image's value at them (one number per window that no
+    motion changes, so that a sharper motion scores higher)."""
+
+    EVENT_PEAK = "event_peak"
+    WINDOW = "window"
+
+
+@dataclass(frozen=True, eq=False)
+class PlaneVote:
+    """Each event read in the image of all events warped with one constant inverse depth, at its own
+    (lower is better).
+
+    For ``planes`` inverse depths log-spaced over ``rho_range`` every event of a window is warped to the
+    ``reference`` time with that one inverse depth and imaged per polarity (blur ``sigma``); event i's
+    value on plane c is that image read back at its own warped position (a slice of the space sweep's
+    volume: the disparity space image of Rebecq, Gallego, Mueggler, Scaramuzza, "EMVS: Event-based
+    multi-view stereo", IJCV 2018, read per event as the sweep's vote). The objective reads each event on
+    the planes at its own inverse depth (the map at its pixel, :func:`event_inverse_depth`), linearly
+    between the two nearest planes in log inverse depth, divides by the :class:`VoteNormaliser`, and
+    averages over the events that stay inside the image on every plane: ``-mean vote``, plus
+    ``smoothness`` times :func:`log_depth_variation`.
+
+    Unlike :class:`SweepVote`, whose events are read in the image of the *current* depth map (which a free
+    depth can focus onto itself), the planes' images do not depend on the depth map: nothing collapses, and
+    a node's best depth is the peak of its events' columns, the sweep's own choice. The planes' values
+    depend on the motion: :meth:`with_motion` computes them once for a known twist (a depth-only
+    optimisation); without it they are computed at every call, differentiable in the twist.
+
+    Attributes
+    ----------
+    rho_range : (float, float)
+        Smallest and largest inverse depth of the planes [1/m], ``0 < lo < hi``; depths beyond are read on
+        the end planes (no gradient there).
+    planes : int
+        Number of planes.
+    sigma : float
+        Blur of the planes' images [px].
+    reference : float
+        Reference time as a fraction of the window.
+    normaliser : VoteNormaliser or str
+    smoothness : float
+        Weight of :func:`log_depth_variation`.
+    values : (Tensor (C, N), Tensor (C, N)) or None
+        The planes' values and whether each event stays inside the image on each plane, fixed by
+        :meth:`with_motion` (None: computed at each call).
+    """
+
+    rho_range: tuple[float, float] = (1.0 / 60.0, 2.0)
+    planes: int = 32
+    sigma: float = 1.0
+    reference: float = 0.5
+    normaliser: VoteNormaliser | str = VoteNormaliser.EVENT_PEAK
+    smoothness: float = 0.0
+    values: tuple[torch.Tensor, torch.Tensor] | None = None
+
+    def __post_init__(self) -> None:
+        lo, hi = self.rho_range
+        if not (0 < lo < hi):
+            raise ValueError(f"rho_range must be increasing and > 0 [1/m] (the planes are log-spaced), got "
+                             f"{self.rho_range}")
+        if self.planes < 2:
+            raise ValueError(f"planes must be >= 2, got {self.planes}")
+        if not self.smoothness >= 0:
+            raise ValueError(f"smoothness must be >= 0, got {self.smoothness}")
+        try:
+            object.__setattr__(self, "normaliser", VoteNormaliser(self.normaliser))
+        except ValueError:
+            raise ValueError(f"normaliser must be one of {[n.value for n in VoteNormaliser]}, got "
+                             f"{self.normaliser!r}") from None
+
+    def plane_inverse_depths(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
+        """The planes' inverse depths (C,) [1/m], log-spaced over ``rho_range``."""
+        lo, hi = self.rho_range
+        return torch.exp(torch.linspace(math.log(lo), math.log(hi), self.planes, dtype=dtype))
+
+    def plane_values(self, batch: EventWindows, twist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """Each event's image value on each plane (C, N) for the windows' ``twist`` (B, 6), and whether it
+        stays inside the image there (C, N) (no gradient)."""
+        B, dtype = batch.count, batch.dtype
+        dt = (batch.t - self.reference * batch.duration_s.to(dtype)[batch.window])[None]
+        rays = batch.rays()
+        image = (batch.polarity > 0).long() * B + batch.window
+        values, inside = [], []
+        for rho in self.plane_inverse_depths(dtype):
+            plane = DepthMotion(torch.full((B, 1, 1, 1), float(rho), dtype=dtype), twist)
+            x, y = warp_windows(batch, plane, dt, rays)
+            x, y = x[0], y[0]
+            images = blur(accumulate_bilinear_indexed(x, y, None, image, 2 * B, batch.height, batch.width),
+                          self.sigma)
+            values.append(_sample_indexed(images, image, x, y))
+            inside.append(_inside(batch, x.detach(), y.detach()))
+        return torch.stack(values), torch.stack(inside)
+
+    def with_motion(self, batch: EventWindows, twist: torch.Tensor) -> "PlaneVote":
+        """This objective with the planes' values of a known ``twist`` (B, 6) fixed: for a depth-only
+        optimisation of ``batch`` with that twist it gives the same values, without re-imaging the planes."""
+        with torch.no_grad():
+            return dataclasses.replace(self, values=self.plane_values(batch, twist.detach()))
+
+    def _scale(self, batch: EventWindows, values: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
+        if self.normaliser is VoteNormaliser.EVENT_PEAK:
+            return values.max(0).values.clamp(min=1e-12)
+        with torch.no_grad():
+            B, image = batch.count, (batch.polarity > 0).long() * batch.count + batch.window
+            x, y = batch.x.to(batch.dtype), batch.y.to(batch.dtype)
+            images = blur(accumulate_bilinear_indexed(x, y, None, image, 2 * B, batch.height, batch.width),
+                          self.sigma)
+            unwarped = _sample_indexed(images, image, x, y) * kept
+            total = torch.zeros(B, dtype=unwarped.dtype).index_add(0, batch.window, unwarped)
+            count = torch.zeros(B, dtype=unwarped.dtype).index_add(0, batch.window, kept)
+            return (total / count.clamp(min=1.0)).clamp(min=1e-12)[batch.window]
+
+    def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
+        _check(batch, params)
+        values, inside = self.plane_values(batch, params.twist) if self.values is None else self.values
+        if values.shape != (self.planes, len(batch)):
+            raise ValueError(f"the fixed plane values hold {values.shape[1]} events, the batch {len(batch)}")
+        dtype = values.dtype
+        kept = inside.all(0).to(dtype)                                       # inside on every plane
+        lo, hi = (math.log(r) for r in self.rho_range)
+        rho = event_inverse_depth(batch, params.inverse_depth.to(dtype)).clamp(min=1e-12)
+        position = ((torch.log(rho) - lo) / (hi - lo) * (self.planes - 1)).clamp(0, self.planes - 1)
+        below = torch.floor(position.detach()).long().clamp(max=self.planes - 2)
+        fraction = position - below
+        events = torch.arange(values.shape[1], device=values.device)
+        value = (1 - fraction) * values[below, events] + fraction * values[below + 1, events]
+        vote = kept * value / self._scale(batch, values, kept)
+        B = batch.count
+        votes = torch.zeros(B, dtype=dtype).index_add(0, batch.window, vote)
+        count = torch.zeros(B, dtype=dtype).index_add(0, batch.window, kept)
+        loss = -votes / count.clamp(min=1.0)
+        if self.smoothness > 0:
+            loss = loss + self.smoothness * log_depth_variation(params.inverse_depth.to(batch.dtype))
+        return loss
 
 
 @dataclass(frozen=True)
