@@ -393,8 +393,8 @@ class PlaneVote:
         return torch.exp(torch.linspace(math.log(lo), math.log(hi), self.planes, dtype=dtype))
 
     def plane_values(self, batch: EventWindows, twist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each event's image value on each plane (C, N) for the windows' ``twist`` (B, 6), and whether it
-        stays inside the image there (C, N) (no gradient)."""
+        """Each event's image value on each plane (C, N), differentiable in the windows' ``twist`` (B, 6), and
+        whether the event stays inside the image on that plane (C, N) bool."""
         B, dtype = batch.count, batch.dtype
         dt = (batch.t - self.reference * batch.duration_s.to(dtype)[batch.window])[None]
         rays = batch.rays()
