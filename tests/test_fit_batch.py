@@ -251,7 +251,10 @@ def test_ctrl_c_leaves_no_orphan_process(tmp_path):
     KeyboardInterrupt and every process it started is gone."""
     script = tmp_path / "interrupted.py"
     script.write_text(textwrap.dedent(f"""
+        import signal
         import sys
+        # a shell that starts the test run in the background leaves SIGINT ignored, and so in this child
+        signal.signal(signal.SIGINT, signal.default_int_handler)
         sys.path[:0] = [{str(ROOT)!r}, {str(Path(__file__).parent)!r}]
         from test_fit_batch import K_PLANE, approaching_plane
         import cmax

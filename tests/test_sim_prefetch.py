@@ -100,6 +100,8 @@ def test_keyboard_interrupt_while_waiting_ends_the_threads():
     # 'DID NOT RAISE' in a full run on a loaded machine. No collection runs during the wait.
     gc.collect()
     gc.disable()
+    # a shell that starts the test run in the background leaves SIGINT ignored: Ctrl-C's own handler here
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     try:
         with pytest.raises(KeyboardInterrupt):
             for value in ordered_map(work, range(50), workers=2, depth=4):
@@ -107,6 +109,7 @@ def test_keyboard_interrupt_while_waiting_ends_the_threads():
                 if value == 4:
                     waiting.set()
     finally:
+        signal.signal(signal.SIGINT, previous)
         gc.enable()
     assert seen == list(range(5))
     assert decoding_threads() == []
