@@ -23,6 +23,7 @@ import dataclasses
 import enum
 import math
 from dataclasses import dataclass
+from typing import NamedTuple
 
 import torch
 
@@ -222,6 +223,14 @@ def _sample_indexed(images: torch.Tensor, image: torch.Tensor, x: torch.Tensor, 
     return value * valid
 
 
+def _own_image_values(batch: EventWindows, x: torch.Tensor, y: torch.Tensor, sigma: float) -> torch.Tensor:
+    """Each event's value (N,) in the blurred (``sigma`` px) image of the events of its window and polarity at
+    pixels ``x, y`` (N,), read at its own pixel (the adjoint of its vote: its share of the energy ``sum I^2``)."""
+    image = (batch.polarity > 0).long() * batch.count + batch.window
+    images = blur(accumulate_bilinear_indexed(x, y, None, image, 2 * batch.count, batch.height, batch.width), sigma)
+    return _sample_indexed(images, image, x, y)
+
+
 @dataclass(frozen=True, eq=False)
 class SweepVote:
     """The depth sweep's per-event normalised vote, differentiable in depth and twist (lower is better).
@@ -269,10 +278,7 @@ class SweepVote:
                 ) -> tuple[torch.Tensor, torch.Tensor]:
         x, y = warp_windows(batch, params, dt, rays)
         x, y = x[0], y[0]
-        image = (batch.polarity > 0).long() * batch.count + batch.window
-        images = blur(accumulate_bilinear_indexed(x, y, None, image, 2 * batch.count, batch.height, batch.width),
-                      self.sigma)
-        return _sample_indexed(images, image, x, y), _inside(batch, x.detach(), y.detach())
+        return _own_image_values(batch, x, y, self.sigma), _inside(batch, x.detach(), y.detach())
 
     def _dt(self, batch: EventWindows) -> torch.Tensor:
         return (batch.t - self.reference * batch.duration_s.to(batch.dtype)[batch.window])[None]
@@ -312,6 +318,15 @@ class SweepVote:
         votes = torch.zeros(B, dtype=score.dtype).index_add(0, batch.window, inside * score / scale)
         kept = torch.zeros(B, dtype=score.dtype).index_add(0, batch.window, inside)
         return -votes / kept.clamp(min=1.0)
+
+
+class PlaneValues(NamedTuple):
+    """What :class:`PlaneVote` reads for one motion: each event's value on each plane (C, N), whether it stays
+    inside the image on every plane (N,) (1.0 / 0.0), and what its value is divided by (N,)."""
+
+    values: torch.Tensor
+    kept: torch.Tensor
+    scale: torch.Tensor
 
 
 class VoteNormaliser(str, enum.Enum):
@@ -359,9 +374,9 @@ class PlaneVote:
     normaliser : VoteNormaliser or str
     smoothness : float
         Weight of :func:`log_depth_variation`.
-    values : (Tensor (C, N), Tensor (C, N)) or None
-        The planes' values and whether each event stays inside the image on each plane, fixed by
-        :meth:`with_motion` (None: computed at each call).
+    values : PlaneValues or None
+        The planes' values, which events stay inside and the normaliser, fixed by :meth:`with_motion`
+        (None: computed at each call).
     """
 
     rho_range: tuple[float, float] = (1.0 / 60.0, 2.0)
@@ -370,7 +385,7 @@ class PlaneVote:
     reference: float = 0.5
     normaliser: VoteNormaliser | str = VoteNormaliser.EVENT_PEAK
     smoothness: float = 0.0
-    values: tuple[torch.Tensor, torch.Tensor] | None = None
+    values: PlaneValues | None = None
 
     def __post_init__(self) -> None:
         lo, hi = self.rho_range
@@ -392,50 +407,45 @@ class PlaneVote:
         lo, hi = self.rho_range
         return torch.exp(torch.linspace(math.log(lo), math.log(hi), self.planes, dtype=dtype))
 
-    def plane_values(self, batch: EventWindows, twist: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
-        """Each event's image value on each plane (C, N), differentiable in the windows' ``twist`` (B, 6), and
-        whether the event stays inside the image on that plane (C, N) bool."""
+    def plane_values(self, batch: EventWindows, twist: torch.Tensor) -> PlaneValues:
+        """:class:`PlaneValues` of the windows' ``twist`` (B, 6): the planes' values are differentiable in it."""
         B, dtype = batch.count, batch.dtype
         dt = (batch.t - self.reference * batch.duration_s.to(dtype)[batch.window])[None]
         rays = batch.rays()
-        image = (batch.polarity > 0).long() * B + batch.window
-        values, inside = [], []
+        values, kept = [], torch.ones(len(batch), dtype=torch.bool, device=rays.device)
         for rho in self.plane_inverse_depths(dtype):
             plane = DepthMotion(torch.full((B, 1, 1, 1), float(rho), dtype=dtype), twist)
             x, y = warp_windows(batch, plane, dt, rays)
             x, y = x[0], y[0]
-            images = blur(accumulate_bilinear_indexed(x, y, None, image, 2 * B, batch.height, batch.width),
-                          self.sigma)
-            values.append(_sample_indexed(images, image, x, y))
-            inside.append(_inside(batch, x.detach(), y.detach()))
-        return torch.stack(values), torch.stack(inside)
+            values.append(_own_image_values(batch, x, y, self.sigma))
+            kept &= _inside(batch, x.detach(), y.detach())
+        values = torch.stack(values)
+        kept = kept.to(values.dtype)
+        return PlaneValues(values, kept, self._scale(batch, values, kept))
 
     def with_motion(self, batch: EventWindows, twist: torch.Tensor) -> "PlaneVote":
-        """This objective with the planes' values of a known ``twist`` (B, 6) fixed: for a depth-only
+        """This objective with the :class:`PlaneValues` of a known ``twist`` (B, 6) fixed: for a depth-only
         optimisation of ``batch`` with that twist it gives the same values, without re-imaging the planes."""
         with torch.no_grad():
             return dataclasses.replace(self, values=self.plane_values(batch, twist.detach()))
 
     def _scale(self, batch: EventWindows, values: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
+        """What each event's value is divided by (N,): see :class:`VoteNormaliser`."""
         if self.normaliser is VoteNormaliser.EVENT_PEAK:
             return values.max(0).values.clamp(min=1e-12)
         with torch.no_grad():
-            B, image = batch.count, (batch.polarity > 0).long() * batch.count + batch.window
-            x, y = batch.x.to(batch.dtype), batch.y.to(batch.dtype)
-            images = blur(accumulate_bilinear_indexed(x, y, None, image, 2 * B, batch.height, batch.width),
-                          self.sigma)
-            unwarped = _sample_indexed(images, image, x, y) * kept
-            total = torch.zeros(B, dtype=unwarped.dtype).index_add(0, batch.window, unwarped)
-            count = torch.zeros(B, dtype=unwarped.dtype).index_add(0, batch.window, kept)
+            x, y = batch.x.to(values.dtype), batch.y.to(values.dtype)
+            unwarped = _own_image_values(batch, x, y, self.sigma) * kept
+            total = torch.zeros(batch.count, dtype=values.dtype).index_add(0, batch.window, unwarped)
+            count = torch.zeros(batch.count, dtype=values.dtype).index_add(0, batch.window, kept)
             return (total / count.clamp(min=1.0)).clamp(min=1e-12)[batch.window]
 
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
         _check(batch, params)
-        values, inside = self.plane_values(batch, params.twist) if self.values is None else self.values
+        values, kept, scale = self.plane_values(batch, params.twist) if self.values is None else self.values
         if values.shape != (self.planes, len(batch)):
             raise ValueError(f"the fixed plane values hold {values.shape[1]} events, the batch {len(batch)}")
         dtype = values.dtype
-        kept = inside.all(0).to(dtype)                                       # inside on every plane
         lo, hi = (math.log(r) for r in self.rho_range)
         rho = event_inverse_depth(batch, params.inverse_depth.to(dtype)).clamp(min=1e-12)
         position = ((torch.log(rho) - lo) / (hi - lo) * (self.planes - 1)).clamp(0, self.planes - 1)
@@ -443,7 +453,7 @@ class PlaneVote:
         fraction = position - below
         events = torch.arange(values.shape[1], device=values.device)
         value = (1 - fraction) * values[below, events] + fraction * values[below + 1, events]
-        vote = kept * value / self._scale(batch, values, kept)
+        vote = kept * value / scale
         B = batch.count
         votes = torch.zeros(B, dtype=dtype).index_add(0, batch.window, vote)
         count = torch.zeros(B, dtype=dtype).index_add(0, batch.window, kept)
