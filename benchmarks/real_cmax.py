@@ -567,32 +567,43 @@ def _variant_summary(sequence, walls: list) -> str:
             f"Far wall {walls_text}.")
 
 
+def _variant_lines(title: str, how: str, sequence, walls: list, seconds: float, origin: str,
+                   after: str = "") -> list[str]:
+    """Markdown of another fit of the slider's windows: a heading, how it was fitted (``how``), its time and
+    origin, :func:`_variant_summary`, and ``after``."""
+    return [f"### {title}", "", f"{how}: {seconds:.0f} s in all ({origin}). {_variant_summary(sequence, walls)}"
+            + (f" {after}" if after else ""), ""]
+
+
 def _held_rotation_lines(held, walls: list, seconds: float, origin: str) -> list[str]:
     """Markdown of the slider fitted with its rotation held at zero (``cmax fit --omega 0,0,0``)."""
-    return ["### With the rotation held at zero", "",
-            "A slider is a linear stage: its user knows that it does not rotate and can say so "
-            f"(`cmax fit ... --omega 0,0,0`; here `fit_sequence(..., gyro=)` with a constant zero reading): "
-            f"{seconds:.0f} s in all ({origin}). {_variant_summary(held, walls)} With the rotation "
-            "free the far wall comes out nearer because a rotation about y trades against the +x translation (the "
-            "bas-relief ambiguity: each patch's depth absorbs what the rotation takes from the translation's "
-            "flow).", ""]
+    return _variant_lines(
+        "With the rotation held at zero",
+        "A slider is a linear stage: its user knows that it does not rotate and can say so "
+        "(`cmax fit ... --omega 0,0,0`; here `fit_sequence(..., gyro=)` with a constant zero reading)",
+        held, walls, seconds, origin,
+        "With the rotation free the far wall comes out nearer because a rotation about y trades against the +x "
+        "translation (the bas-relief ambiguity: each patch's depth absorbs what the rotation takes from the "
+        "translation's flow).")
 
 
 def _members_lines(members, walls: list, seconds: float, origin: str) -> list[str]:
     """Markdown of the slider fitted with motion members (``cmax fit --members``), the rotation free."""
-    return [f"### With {SLIDER_MEMBERS} motion members", "",
-            f"`fit_sequence(..., motion_members={SLIDER_MEMBERS})` (`cmax fit ... --members {SLIDER_MEMBERS}`: each "
-            "window's motion from four draws of its events, their consensus kept; the rotation free): "
-            f"{seconds:.0f} s in all ({origin}). {_variant_summary(members, walls)}", ""]
+    return _variant_lines(
+        f"With {SLIDER_MEMBERS} motion members",
+        f"`fit_sequence(..., motion_members={SLIDER_MEMBERS})` (`cmax fit ... --members {SLIDER_MEMBERS}`: each "
+        "window's motion from four draws of its events, their consensus kept; the rotation free)",
+        members, walls, seconds, origin)
 
 
 def _zero_rotation_start_lines(sequence, walls: list, seconds: float, origin: str) -> list[str]:
     """Markdown of the slider fitted with ``zero_rotation_start`` (``cmax fit --zero-rotation-start``)."""
-    return ["### With `--zero-rotation-start`", "",
-            "`fit_sequence(..., zero_rotation_start=True)` (`cmax fit ... --zero-rotation-start`: a second start "
-            "of each window's motion refinement without rotation, the one with the higher patch-wise contrast kept; "
-            "the rotation free, the flag docs/limits.md recommends for vehicles): "
-            f"{seconds:.0f} s in all ({origin}). {_variant_summary(sequence, walls)}", ""]
+    return _variant_lines(
+        "With `--zero-rotation-start`",
+        "`fit_sequence(..., zero_rotation_start=True)` (`cmax fit ... --zero-rotation-start`: a second start of "
+        "each window's motion refinement without rotation, the one with the higher patch-wise contrast kept; the "
+        "rotation free, the flag docs/limits.md recommends for vehicles)",
+        sequence, walls, seconds, origin)
 
 
 def window_speeds(times_us: np.ndarray, T_w_c: np.ndarray, windows: list[tuple[int, int]]) -> np.ndarray:

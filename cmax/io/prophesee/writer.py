@@ -50,7 +50,7 @@ def _encode_evt3_words(x, y, t, p, has_previous, previous_t, previous_y, out):
     """
     # Each event is tested against the next two in one branch-free expression: almost every event of
     # a real recording is a unit of its own, and following every run to its end (the earlier loop)
-    # mispredicted its branches; measured 1.5x faster on the Gen4 sample (same words).
+    # mispredicted its branches (measured: docs/speed.md).
     n, w = t.size, 0
     high_before = (previous_t >> 12) if has_previous else 0
     known = has_previous                  # whether last_t / last_y hold a unit's values
