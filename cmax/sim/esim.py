@@ -21,7 +21,7 @@ uzh-rpg/rpg_vid2e) so that both give the same events on the same frames:
   is used; integer-valued float frames give the same values. Fractional grey
   values (frames interpolated by :mod:`cmax.sim.sampling`) use numpy's
   float32 log of the same argument, within 1-2 ulp of ``cv::log``: a bit-exact
-  emulation costs 100x more and there is no reference to agree with.
+  emulation costs far more and there is no reference to agree with.
 * ``L_ref`` is a float32 value that moves one float32 threshold at a time
   (``L_ref += C`` in float32, sequentially). This matters: a pixel that
   returns to the grey value it started from lands *exactly* on a crossing
@@ -133,7 +133,7 @@ def _log_grey(grey: np.ndarray, log_eps: float, table: np.ndarray | None = None)
 
     Whole grey values take the 256-entry table of ``cv::log`` values (exactly
     the reference's); fractional ones (interpolated frames) numpy's float32
-    log of the same argument, within an ulp or two of ``cv::log`` and 100x
+    log of the same argument, within an ulp or two of ``cv::log`` and far
     faster than its bit-exact emulation (:func:`_log_float32`).
     """
     table = _log_float32(np.arange(256, dtype=np.float32), log_eps) if table is None else table

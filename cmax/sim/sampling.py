@@ -46,7 +46,7 @@ steps that follow eq. 1, which only need about ``max |total dL| / bound``.
 And why key frames: rendering a flow-warped frame costs four ``cv2.remap``
 passes and its bound can only be checked by trial, while a blended frame costs
 two array operations and its step is exact; rendering every sample by flow was
-20-50x slower for at most sub-pixel differences.
+many times slower for at most sub-pixel differences.
 
 Limits: ``cv2.remap`` resolves sample positions to float32 precision (about
 ``6e-8 * W`` pixels), so a pure-black pixel next to a white one in frames wider
