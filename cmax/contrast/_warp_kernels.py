@@ -103,8 +103,10 @@ def _forward(rays, dt, v, omega, rho, k, zmin, small, x, y):  # pragma: no cover
 
 
 @kernel
-def _backward(rays, dt, v, omega, rho, k, zmin, small, gx, gy, grad_v, grad_omega, grad_rho
+def _backward(rays, dt, v, omega, rho, k, zmin, small, gx, gy, grad_v, grad_omega, grad_rho, twist
               ):  # pragma: no cover - compiled
+    """``grad_rho`` (N,) and, with ``twist``, ``grad_v``, ``grad_omega`` (3,) (added to; left as they are
+    without ``twist``) for ``dL/dx = gx``, ``dL/dy = gy`` (N,)."""
     for i in range(rays.shape[0]):
         r0, r1, r2, t, q = float(rays[i, 0]), float(rays[i, 1]), float(rays[i, 2]), float(dt[i]), float(rho[i])
         w0, w1, w2 = omega[0] * t, omega[1] * t, omega[2] * t
@@ -117,6 +119,8 @@ def _backward(rays, dt, v, omega, rho, k, zmin, small, gx, gy, grad_v, grad_omeg
         g1 = (ax * k[1] + ay * k[3]) / z
         g2 = 0.0 if clamped else -(ax * (k[0] * p0 + k[1] * p1) + ay * k[3] * p1) / (z * z)
         grad_rho[i] = m0 * g0 + m1 * g1 + m2 * g2
+        if not twist:
+            continue
         # dL/dv = rho dt J^T g
         wg0, wg1, wg2 = _cross(w0, w1, w2, g0, g1, g2)
         wwg0, wwg1, wwg2 = _cross(w0, w1, w2, wg0, wg1, wg2)
@@ -164,9 +168,10 @@ class _Se3Warp(torch.autograd.Function):
         gx = np.zeros(n) if grad_x is None else np.ascontiguousarray(grad_x.numpy())
         gy = np.zeros(n) if grad_y is None else np.ascontiguousarray(grad_y.numpy())
         grad_v, grad_omega, grad_rho = np.zeros(3), np.zeros(3), np.empty(n)
-        _backward(*arrays, MIN_PROJECTED_DEPTH, _SMALL_ANGLE_SQ, gx, gy, grad_v, grad_omega, grad_rho)
-        v_dtype, omega_dtype, rho_dtype = ctx.dtypes
         needs = ctx.needs_input_grad
+        _backward(*arrays, MIN_PROJECTED_DEPTH, _SMALL_ANGLE_SQ, gx, gy, grad_v, grad_omega, grad_rho,
+                  bool(needs[2] or needs[3]))
+        v_dtype, omega_dtype, rho_dtype = ctx.dtypes
         return (None, None, torch.from_numpy(grad_v).to(v_dtype) if needs[2] else None,
                 torch.from_numpy(grad_omega).to(omega_dtype) if needs[3] else None,
                 torch.from_numpy(grad_rho).to(rho_dtype) if needs[4] else None, None)

@@ -13,7 +13,7 @@ from typing import Sequence
 import torch
 
 from cmax.events import Events
-from cmax.warp import WarpEvents
+from cmax.warp import DepthGrid, WarpEvents
 
 __all__ = ["EventWindows"]
 
@@ -92,9 +92,47 @@ class EventWindows:
         return int(self.x.shape[0])
 
     def rays(self) -> torch.Tensor:
-        """``K_b^-1 (x, y, 1)`` of every event (N, 3)."""
+        """``K_b^-1 (x, y, 1)`` of every event (N, 3); kept for the next call unless the pixels or the
+        intrinsics carry a gradient."""
+        return self._kept("rays", self._rays)
+
+    def _rays(self) -> torch.Tensor:
         pixels = torch.stack([self.x, self.y, torch.ones_like(self.x)], -1)
         return torch.einsum("nij,nj->ni", torch.linalg.inv(self.K.to(self.dtype))[self.window], pixels)
+
+    def window_bounds(self) -> tuple[tuple[int, int], ...] | None:
+        """``(start, end)`` of each window's events when every window's events are one contiguous run in window
+        order (as :meth:`from_windows` and :meth:`from_padded` make them), else None."""
+        return self._kept("bounds", self._window_bounds)
+
+    def _window_bounds(self) -> tuple[tuple[int, int], ...] | None:
+        window = self.window
+        if len(window) and not bool((window[1:] >= window[:-1]).all()):
+            return None
+        ends = torch.cumsum(torch.bincount(window, minlength=self.count), 0).tolist()
+        return tuple(zip([0] + ends[:-1], ends))
+
+    def grid_weights(self, shape: tuple[int, int]) -> tuple[torch.Tensor, torch.Tensor]:
+        """Node indices (N, 4) int64, offset to each event's window (``window * gh * gw``), and bilinear
+        weights (N, 4) of every event on a depth grid of ``shape`` (gh, gw) (:class:`cmax.warp.DepthGrid`);
+        kept for the next call with that shape unless the pixels carry a gradient."""
+        gh, gw = int(shape[0]), int(shape[1])
+
+        def compute() -> tuple[torch.Tensor, torch.Tensor]:
+            index, weight = DepthGrid((gh, gw), self.width, self.height).weights(self.x, self.y)
+            return index + (self.window * (gh * gw))[:, None], weight
+
+        return self._kept(("grid", gh, gw), compute)
+
+    def _kept(self, key: object, compute):
+        """``compute()``, computed once per key for a batch whose pixels and intrinsics need no gradient (the
+        batch is immutable: a frozen dataclass of tensors nobody writes to)."""
+        if self.x.requires_grad or self.y.requires_grad or self.K.requires_grad:
+            return compute()
+        kept = self.__dict__.setdefault("_kept_values", {})
+        if key not in kept:
+            kept[key] = compute()
+        return kept[key]
 
     def to(self, dtype: torch.dtype) -> "EventWindows":
         """The same events with the floating-point tensors (and the intrinsics, durations, speeds) in ``dtype``."""

@@ -27,6 +27,8 @@ from typing import NamedTuple
 
 import torch
 
+from cmax.contrast._timestamp_kernels import average_timestamp_images, compiled_images_apply
+from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.contrast.batch import EventWindows
 from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import contrast_of_images, deformation, local_contrast, total_variation
@@ -37,6 +39,11 @@ __all__ = [
     "AverageTimestamp", "SweepVote", "PlaneVote", "VoteNormaliser", "LocalContrast", "GlobalContrast",
     "CollapseGuard", "WeightedSum", "SHARED_OBJECTIVE",
 ]
+
+#: CPU float32 / float64 batches take the compiled images of :mod:`cmax.contrast._timestamp_kernels` and the
+#: compiled warp of :mod:`cmax.contrast._warp_kernels` in :class:`AverageTimestamp`;
+#: False: the torch operations everywhere (the reference; for tests and benchmarks).
+_COMPILED = True
 
 #: Probe times of the deformation guard, in units of the window duration (as in ``cmax.fit``).
 PROBE_TIMES = (-1.0, -0.5, 0.5, 1.0)
@@ -101,25 +108,44 @@ def twist_at_speed(twist: torch.Tensor, speed: torch.Tensor | None) -> torch.Ten
 
 def event_inverse_depth(batch: EventWindows, inverse_depth: torch.Tensor) -> torch.Tensor:
     """Inverse depth (N,) [1/m] of each event, read at its own pixel on its window's grid (B, 1, h, w)."""
-    h, w = inverse_depth.shape[-2:]
-    index, weight = DepthGrid((int(h), int(w)), batch.width, batch.height).weights(batch.x, batch.y)
-    offset = (batch.window * (h * w))[:, None]
-    return DepthGrid.sample(inverse_depth.to(batch.dtype).reshape(-1), index + offset, weight)
+    index, weight = batch.grid_weights(tuple(inverse_depth.shape[-2:]))
+    return DepthGrid.sample(inverse_depth.to(batch.dtype).reshape(-1), index, weight)
 
 
-def warp_windows(batch: EventWindows, params: DepthMotion, dt: torch.Tensor, rays: torch.Tensor | None = None
-                 ) -> tuple[torch.Tensor, torch.Tensor]:
+def warp_windows(batch: EventWindows, params: DepthMotion, dt: torch.Tensor, rays: torch.Tensor | None = None,
+                 *, compiled: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Warped pixels (R, N) of every event for ``dt = t_i - t_ref`` (R, N) [s] (:func:`cmax.warp.warp_se3`,
-    each event with its window's twist, at the batch's speed, and intrinsics)."""
+    each event with its window's twist, at the batch's speed, and intrinsics). With ``compiled``, a CPU
+    batch whose windows' events are contiguous runs is warped by
+    :func:`cmax.contrast._warp_kernels.warp_se3_compiled`, window by window (equal to float rounding)."""
     dtype = batch.dtype
     b = batch.window
-    twist = twist_at_speed(params.twist.to(dtype), batch.speed)[b]
     rays = batch.rays() if rays is None else rays
+    bounds = batch.window_bounds() if compiled and rays.device.type == "cpu" else None
+    if bounds is not None:
+        twists = twist_at_speed(params.twist.to(dtype), batch.speed)
+        rho = event_inverse_depth(batch, params.inverse_depth)
+        if all(compiled_warp_applies(rays, row, twists[0, :3], twists[0, 3:], rho) for row in dt):
+            return _warp_compiled(batch, bounds, rays, dt, twists, rho)
+    twist = twist_at_speed(params.twist.to(dtype), batch.speed)[b]
     identity = torch.eye(3, dtype=dtype, device=rays.device)
     xn, yn = warp_se3(rays, dt, twist[:, :3], twist[:, 3:], event_inverse_depth(batch, params.inverse_depth),
                       identity)
     K = batch.K.to(dtype)[b]
     return K[:, 0, 0] * xn + K[:, 0, 1] * yn + K[:, 0, 2], K[:, 1, 1] * yn + K[:, 1, 2]
+
+
+def _warp_compiled(batch: EventWindows, bounds: tuple[tuple[int, int], ...], rays: torch.Tensor, dt: torch.Tensor,
+                   twists: torch.Tensor, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+    """:func:`warp_windows` by :func:`cmax.contrast._warp_kernels.warp_se3_compiled`, window after window (each
+    window's events a contiguous run ``bounds[b]``) and row after row of ``dt``."""
+    xs, ys = [], []
+    for row in dt:
+        pieces = [warp_se3_compiled(rays[lo:hi], row[lo:hi], twists[b, :3], twists[b, 3:], rho[lo:hi], batch.K[b])
+                  for b, (lo, hi) in enumerate(bounds) if hi > lo]
+        xs.append(torch.cat([x for x, _ in pieces]))
+        ys.append(torch.cat([y for _, y in pieces]))
+    return torch.stack(xs), torch.stack(ys)
 
 
 def log_depth_variation(inverse_depth: torch.Tensor, epsilon: float = 1e-3) -> torch.Tensor:
@@ -188,7 +214,11 @@ class AverageTimestamp:
         duration = batch.duration_s.to(batch.dtype)[b]
         tau = (batch.t / duration).clamp(0.0, 1.0)
         dt = torch.stack([batch.t - duration, batch.t])                          # forward (end), backward (start)
-        x, y = warp_windows(batch, params, dt)
+        x, y = warp_windows(batch, params, dt, compiled=_COMPILED)
+        if _COMPILED and compiled_images_apply(x, y):
+            base = (batch.polarity > 0).long() * B + b
+            loss = average_timestamp_images(x, y, tau, base, B, (H, W), self.eps, self.purge)
+            return self._smooth(loss, batch, params)
         keep = torch.ones_like(x)
         if self.purge:
             keep = _inside(batch, x.detach(), y.detach()).all(0).to(x.dtype).expand_as(x)
@@ -203,6 +233,9 @@ class AverageTimestamp:
         square = (average * average).sum((1, 3))                              # (refs, B)
         active = (counts.detach().sum(1) > 0).sum(-1)                          # (refs, B)
         loss = (square / active.clamp(min=1).to(square.dtype)).sum(0)
+        return self._smooth(loss, batch, params)
+
+    def _smooth(self, loss: torch.Tensor, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
         if self.smoothness > 0:
             loss = loss + self.smoothness * log_depth_variation(params.inverse_depth.to(batch.dtype))
         return loss

@@ -28,7 +28,7 @@ from cmax.fitting.pipeline import Motion, StageLog, _log, _omega_bounds
 from cmax.fitting.solvers import Solver, solve
 from cmax.fitting.window import Window
 
-__all__ = ["SharedPolishStage", "window_events", "polish_layout", "PolishLayout"]
+__all__ = ["SharedPolishStage", "window_events", "polish_layout", "PolishLayout", "motion_objective"]
 
 
 def window_events(w: Window, speed: float) -> EventWindows:
@@ -95,6 +95,15 @@ def polish_loss(batch: EventWindows, layout: PolishLayout, motion: Motion, objec
     return loss
 
 
+def motion_objective(batch: EventWindows, motion: Motion, objective=SHARED_OBJECTIVE) -> float:
+    """``objective`` at ``motion``'s inverse-depth grid, ``v`` and ``omega`` as they are (what a caller of the
+    fit's result evaluates), on the one-window ``batch``."""
+    inverse_depth = torch.as_tensor(np.asarray(motion.inverse_depth, dtype=np.float64))
+    twist = torch.as_tensor(np.r_[motion.v, motion.omega], dtype=torch.float64)[None]
+    with torch.no_grad():
+        return float(objective(batch, DepthMotion(inverse_depth.reshape(1, 1, *inverse_depth.shape), twist))[0])
+
+
 @dataclass(frozen=True)
 class SharedPolishStage:
     """Parameters: the log inverse-depth grid (G,) and, with ``motion_free``, the direction and angular
@@ -121,9 +130,15 @@ class SharedPolishStage:
         result = solve(polish_loss(batch, layout, motion), x0, lower, upper, solver, iterations=s.polish_iterations,
                        norm_slice=slice(layout.nodes, layout.nodes + 3) if self.motion_free else None)
         polished = layout.motion(result.x, motion)
+        before, after = motion_objective(batch, motion), motion_objective(batch, polished)
+        note = ""
+        if not after <= before:   # the objective jumps where a vote enters a pixel: the motion's own rounding
+            polished, after = motion, before   # can land on the other side of the solver's end point
+            result, note = replace(result, kept_start=True), "the end scored worse as a motion: kept the start"
         bound = omega_on_bound(polished.omega, s.max_omega) if self.motion_free and not self.hold_omega else ()
         nodes = int(np.sum((result.x[:layout.nodes] <= lower[:layout.nodes] + 1e-9)
                            | (result.x[:layout.nodes] >= upper[:layout.nodes] - 1e-9)))
-        log = _log(self.name, result.fun_start, result.fun, [result], time.perf_counter() - start, bound,
-                   note=f"{nodes} of {layout.nodes} depth nodes at the depth_range bounds" if nodes else "")
+        log = _log(self.name, before, after, [result], time.perf_counter() - start, bound,
+                   note="; ".join(filter(None, (note, f"{nodes} of {layout.nodes} depth nodes at the depth_range "
+                                                             "bounds" if nodes else ""))))
         return polished, log
