@@ -141,6 +141,24 @@ def test_the_polish_never_returns_a_worse_objective_than_its_start():
     assert log.objective_after == log.objective_before == pytest.approx(student_value(start), rel=1e-9)
 
 
+class _Boasting(Solver):
+    """A backend that ends far from its start and reports a value far below the start's for it."""
+
+    def solve(self, problem):
+        x = np.clip(problem.x0 + 1.5, problem.lower, problem.upper)
+        return SolveResult(x, problem.fun_and_grad(problem.x0)[0] - 1.0, 1, 1, "boasting", True, 0.0)
+
+
+def test_the_polish_judges_the_motion_it_returns_not_the_solver_s_word():
+    """The stage scores the motion it would hand back (learned's loss at that inverse depth and twist); when
+    that scores worse than the start, whatever the backend reported, it keeps the start and says so."""
+    w, start = prepared()
+    motion, log = SharedPolishStage().run(w, start, _Boasting())
+    assert not log.success and "kept the start" in log.message
+    np.testing.assert_allclose(motion.inverse_depth, start.inverse_depth, rtol=1e-12)
+    assert log.objective_after == log.objective_before == pytest.approx(student_value(start), rel=1e-9)
+
+
 @pytest.mark.parametrize("solver", ["scipy", "torch", "casadi"])
 def test_every_solver_runs_the_polish_and_lowers_the_loss(solver):
     if solver == "casadi":
