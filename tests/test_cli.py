@@ -164,6 +164,30 @@ def test_fit_with_members_reaches_the_fit(tmp_path):
         main(args + ["-o", str(tmp_path / "bad"), "--members", "0"])
 
 
+def test_fit_with_the_polish_reaches_the_fit(tmp_path):
+    """`cmax fit --polish depth`: each se3 window ends on the shared objective (the depth grid moves, more
+    solver iterations), and the summary records it; without the flag the library's default, none."""
+    import json
+
+    from benchmarks.synthetic_windows import make_window
+
+    w = make_window("slider", 7, width=120, height=90, focal=90.0, duration_s=0.1)
+    write_h5(tmp_path / "slider.h5", w.events)
+    K = w.K
+    args = ["fit", str(tmp_path / "slider.h5"), "--K", f"{K[0, 0]},{K[1, 1]},{K[0, 2]},{K[1, 2]}",
+            "--window-ms", "90", "--max-events", "15000", "--speed", "1", "--quiet"]
+    summaries, grids = {}, {}
+    for name, flag in (("plain", []), ("polished", ["--polish", "depth"])):
+        assert main(args + ["-o", str(tmp_path / name)] + flag) == 0
+        summaries[name] = json.loads((tmp_path / name / "summary.json").read_text())
+        grids[name] = np.load(tmp_path / name / "depth_00000.npz")["inverse_depth_grid"]
+    assert (summaries["plain"]["polish"], summaries["polished"]["polish"]) == ("none", "depth")
+    assert summaries["polished"]["windows"][0]["iterations"] > summaries["plain"]["windows"][0]["iterations"]
+    assert not np.allclose(grids["plain"], grids["polished"])
+    with pytest.raises(SystemExit):
+        main(args + ["-o", str(tmp_path / "bad"), "--polish", "motion"])
+
+
 def test_fit_with_the_zero_rotation_start(tmp_path, capsys):
     """`cmax fit --zero-rotation-start` reaches the fit: a second refinement runs (more solver
     iterations than without the flag), and the summary records it."""

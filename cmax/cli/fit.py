@@ -59,6 +59,11 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="se3: also start the motion refinement from the flows explained without rotation "
                              "and keep the better (vehicles: on a forward drive it found forward motion where the "
                              "default ended at a pitching plane; one more refinement per window)")
+    api_default(parser.add_argument("--polish", choices=("none", "depth", "depth_motion"), default=None,
+                                    help="se3: end each window on the objective the network trains on "
+                                         "(cmax.contrast.SHARED_OBJECTIVE; the depth grid, or it and the motion; "
+                                         "cmax.FitSettings.polish): a few seconds more per window, docs/fitting.md"),
+                lambda: _settings_default("polish")().value)
     api_default(parser.add_argument("--solver", choices=("scipy", "casadi", "torch"), default=None,
                                     help="optimisation back end"), _fit_default("solver"))
     parser.add_argument("--jobs", type=positive_int, default=1,
@@ -243,7 +248,8 @@ def run(args: argparse.Namespace) -> int:
         events, note = _gyro_overlap(events, gyro, args.gyro)
         notes += [note] if note else []
     options = {key: value for key, value in (("solver", args.solver), ("max_events", args.max_events),
-                                             ("motion_members", args.members), ("depth_range", args.depth_range))
+                                             ("motion_members", args.members), ("depth_range", args.depth_range),
+                                             ("polish", args.polish))
                if value is not None}
     # None above: the library's default (one source: fit_sequence / fit / FitSettings).
     sequence_model = args.model or _sequence_default("model")()
@@ -299,6 +305,7 @@ def run(args: argparse.Namespace) -> int:
                "solver": args.solver or _fit_default("solver")(),
                "zero_rotation_start": args.zero_rotation_start, "jobs": args.jobs,
                "members": args.members or _settings_default("motion_members")(),
+               "polish": args.polish or _settings_default("polish")().value,
                "warm_start": args.jobs == 1, "notes": notes,
                "windows_total": n_windows, "verdicts": sequence.counts(), "windows": windows}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
