@@ -174,17 +174,20 @@ def cases(window, seed: int) -> dict:
     return info, calls, builds
 
 
-def time_interleaved(calls: dict, repeats: int) -> dict[str, dict[str, list[float]]]:
-    """Seconds of every call on both paths, interleaved, ``repeats`` times (after one warm-up each)."""
+def time_interleaved(calls: dict, repeats: int, switch=None) -> dict[str, dict[str, list[float]]]:
+    """Seconds of every call on both paths, interleaved, ``repeats`` times (after one warm-up each);
+    ``switch(flag)`` is the context manager that selects the compiled (True) or torch (False) path (default:
+    the patch contrasts' :func:`compiled`)."""
+    switch = compiled if switch is None else switch
     times = {name: {"compiled": [], "torch": []} for name in calls}
     for name, call in calls.items():
         for flag in (True, False):
-            with compiled(flag):
+            with switch(flag):
                 call()
     for _ in range(repeats):
         for name, call in calls.items():
             for flag, label in ((True, "compiled"), (False, "torch")):
-                with compiled(flag):
+                with switch(flag):
                     start = time.perf_counter()
                     call()
                     times[name][label].append(time.perf_counter() - start)

@@ -139,22 +139,6 @@ def _evaluation(objective, batch, rho, twist_free, twist):
     return run
 
 
-def time_interleaved(calls: dict, repeats: int) -> dict[str, dict[str, list[float]]]:
-    times = {name: {"compiled": [], "torch": []} for name in calls}
-    for call in calls.values():
-        for flag in (True, False):
-            with compiled(flag):
-                call()
-    for _ in range(repeats):
-        for name, call in calls.items():
-            for flag, label in ((True, "compiled"), (False, "torch")):
-                with compiled(flag):
-                    start = time.perf_counter()
-                    call()
-                    times[name][label].append(time.perf_counter() - start)
-    return times
-
-
 def agreement(calls: dict) -> dict[str, tuple[float, float]]:
     """Relative difference of the values and of the gradients (norm of the difference over the norm)."""
     out = {}
@@ -231,6 +215,7 @@ def report(times, agree, compile_times, polish, args, loads, seeds) -> str:
 def main(argv: list[str] | None = None) -> None:
     from benchmarks.accuracy_cmax import parse_seeds, windows as load_windows
     from benchmarks.speed import fresh_process_outputs
+    from benchmarks.speed_patch_contrast import time_interleaved
     from cmax.io.atomic import write_text_atomic
 
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
@@ -246,7 +231,7 @@ def main(argv: list[str] | None = None) -> None:
     windows = [load_windows("se3", seed, args.cache) for seed in seeds]
     speeds = [float(np.linalg.norm(w.twist[:3])) for w in windows]
     calls = cases(windows, speeds)
-    times = time_interleaved(calls, args.repeats)
+    times = time_interleaved(calls, args.repeats, compiled)
     agree = agreement(calls)
     compile_times = [[float(v) for v in out.split()]
                      for out in fresh_process_outputs(_COMPILE_PROBE, env={"OMP_NUM_THREADS": "1"})]

@@ -304,3 +304,27 @@ def test_accuracy_noise_places_the_reference_in_the_range_and_pairs_the_fits(tmp
     assert "- se3 abs_rel: new lower in 2 of 6 fits, higher in 3; median difference +0.05" in table
     # medians: old 0.2 and 0.2 (mean 0.2), new 0.2 and 0.3 (mean 0.25); pooled over the six fits: 0.2, 0.25
     assert "| se3 | abs_rel | median | 0.200 | 0.250 | 0.200 | 0.250 |" in table
+
+
+def test_speed_shared_objective_times_both_paths_and_finds_them_equal():
+    """The shared-objective speed benchmark's calls, on two small windows: every call runs on both paths,
+    each path is timed, and the compiled and torch values agree (float64 rows to float rounding)."""
+    import torch
+
+    from benchmarks.speed_patch_contrast import time_interleaved
+    from benchmarks.speed_shared_objective import agreement, cases, compiled
+    from benchmarks.synthetic_windows import make_window
+
+    torch.set_num_threads(1)
+    windows = [make_window("indoor_flying", seed, width=64, height=48, focal=48.0, duration_s=0.1, max_frames=20)
+               for seed in (3, 4)]
+    speeds = [float(np.linalg.norm(w.twist[:3])) for w in windows]
+    calls = cases(windows, speeds)
+    assert len(calls) == 2 * 2 + 2                      # polish depth / depth_motion per window, loss, step
+    times = time_interleaved(calls, 1, compiled)
+    assert all(len(t["compiled"]) == len(t["torch"]) == 1 for t in times.values())
+    for name, (value, gradient) in agreement(calls).items():
+        if name.startswith("polish"):
+            assert value < 1e-12 and gradient < 1e-10
+        elif name.startswith("training loss"):
+            assert value < 1e-5 and gradient < 0.05

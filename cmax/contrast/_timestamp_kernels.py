@@ -62,6 +62,16 @@ def _keep(x, y, width, height, purge, keep):  # pragma: no cover - compiled
 
 
 @kernel
+def _corner(lx, ly, W, H):  # pragma: no cover - compiled
+    """``(votes, ix, iy, fx, fy)`` of a point at ``(lx, ly)``: its top-left pixel and the fractions; ``votes``
+    False when its corners all leave the one-pixel border of the ``W`` x ``H`` frame (or it is not finite)."""
+    x0, y0 = np.floor(lx), np.floor(ly)
+    if not (x0 >= -1 and x0 <= W - 1 and y0 >= -1 and y0 <= H - 1):
+        return False, 0, 0, 0.0, 0.0
+    return True, int(x0), int(y0), lx - x0, ly - y0
+
+
+@kernel
 def _vote(images, m, u, v, count, stamp):  # pragma: no cover - compiled
     images[m, u, v, 0] += count
     images[m, u, v, 1] += stamp
@@ -93,13 +103,10 @@ def _forward(x, y, tau, base, windows, keep, eps, images, squares, active):  # p
             k = keep[i]
             if k == 0.0:
                 continue
-            lx, ly = x[r, i], y[r, i]
-            x0, y0 = np.floor(lx), np.floor(ly)
-            if not (x0 >= -1 and x0 <= W - 1 and y0 >= -1 and y0 <= H - 1):
+            votes, ix, iy, fx, fy = _corner(x[r, i], y[r, i], W, H)
+            if not votes:
                 continue
-            fx, fy = lx - x0, ly - y0
             gx, gy = 1.0 - fx, 1.0 - fy
-            ix, iy = int(x0), int(y0)
             m = r * 2 * B + base[i]
             w = tau[i] if r == 0 else 1.0 - tau[i]
             if iy >= 0:
@@ -145,12 +152,9 @@ def _backward(x, y, tau, base, windows, keep, images, scale, grad_x, grad_y):  #
             k = keep[i]
             if k == 0.0:
                 continue
-            lx, ly = x[r, i], y[r, i]
-            x0, y0 = np.floor(lx), np.floor(ly)
-            if not (x0 >= -1 and x0 <= W - 1 and y0 >= -1 and y0 <= H - 1):
+            votes, ix, iy, fx, fy = _corner(x[r, i], y[r, i], W, H)
+            if not votes:
                 continue
-            fx, fy = lx - x0, ly - y0
-            ix, iy = int(x0), int(y0)
             m = r * 2 * B + base[i]
             s = scale[r, base[i] - B if base[i] >= B else base[i]]
             w = tau[i] if r == 0 else 1.0 - tau[i]
