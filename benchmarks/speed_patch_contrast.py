@@ -57,16 +57,23 @@ for dtype in (torch.float32, torch.float64):
 
 
 @contextlib.contextmanager
-def compiled(flag: bool):
-    """Run the patch contrasts on the compiled path (True) or on the torch reference (False)."""
-    import cmax.contrast.patches as patches
+def compiled_flag(module_name: str, flag: bool):
+    """Set ``module_name``'s ``_COMPILED`` switch to ``flag`` (the compiled path, or the torch reference) for
+    the block."""
+    import importlib
 
-    saved = patches._COMPILED
-    patches._COMPILED = flag
+    module = importlib.import_module(module_name)
+    saved = module._COMPILED
+    module._COMPILED = flag
     try:
         yield
     finally:
-        patches._COMPILED = saved
+        module._COMPILED = saved
+
+
+def compiled(flag: bool):
+    """Run the patch contrasts on the compiled path (True) or on the torch reference (False)."""
+    return compiled_flag("cmax.contrast.patches", flag)
 
 
 @contextlib.contextmanager

@@ -28,7 +28,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import contextlib
 import os
 import statistics
 import sys
@@ -53,17 +52,11 @@ for dtype in (torch.float32, torch.float64):
 """
 
 
-@contextlib.contextmanager
 def compiled(flag: bool):
     """Run the shared objective on the compiled path (True) or on the torch reference (False)."""
-    import cmax.contrast.objectives as objectives
+    from benchmarks.speed_patch_contrast import compiled_flag
 
-    saved = objectives._COMPILED
-    objectives._COMPILED = flag
-    try:
-        yield
-    finally:
-        objectives._COMPILED = saved
+    return compiled_flag("cmax.contrast.objectives", flag)
 
 
 def cases(windows: list, speeds: list[float]) -> dict:
