@@ -113,6 +113,13 @@ def test_what_it_takes_and_refuses():
     with pytest.raises(ValueError, match="needs CPU float32/float64"):
         average_timestamp_images(x[:1], x[:1], torch.zeros(5), torch.zeros(5, dtype=torch.int64), 1, (4, 4), 1e-9,
                                  True)
+    tau, base = torch.zeros(5), torch.zeros(5, dtype=torch.int64)
+    with pytest.raises(ValueError, match=r"base must lie in \[0, 2\)"):     # an image the kernel does not have
+        average_timestamp_images(x, x, tau, base + 2, 1, (4, 4), 1e-9, True)
+    with pytest.raises(ValueError, match="tau and base"):
+        average_timestamp_images(x, x, tau[:4], base, 1, (4, 4), 1e-9, True)
+    with pytest.raises(ValueError, match="positive"):
+        average_timestamp_images(x, x, tau, base, 0, (4, 4), 1e-9, True)
 
 
 def test_event_windows_keep_rays_and_grid_weights(windows):

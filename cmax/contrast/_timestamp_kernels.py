@@ -241,5 +241,14 @@ def average_timestamp_images(x: torch.Tensor, y: torch.Tensor, tau: torch.Tensor
     if not compiled_images_apply(x, y):
         raise ValueError(f"average_timestamp_images needs CPU float32/float64 x, y (2, N); got {tuple(x.shape)} "
                          f"{x.dtype} on {x.device}, {tuple(y.shape)} {y.dtype}")
+    n = x.shape[1]
+    if tau.shape != (n,) or base.shape != (n,) or base.dtype != torch.int64:
+        raise ValueError(f"tau and base must be ({n},), base int64; got {tuple(tau.shape)}, {tuple(base.shape)} "
+                         f"{base.dtype}")
+    if int(windows) < 1 or int(size[0]) < 1 or int(size[1]) < 1:
+        raise ValueError(f"windows and size must be positive, got {windows}, {tuple(size)}")
+    if n and (int(base.min()) < 0 or int(base.max()) >= 2 * int(windows)):   # the kernels index images by it
+        raise ValueError(f"base must lie in [0, {2 * int(windows)}) (polarity_on * B + window), got "
+                         f"[{int(base.min())}, {int(base.max())}]")
     return _AverageTimestampImages.apply(x, y, tau, base, int(windows), (int(size[0]), int(size[1])),
                                          float(eps), bool(purge))
