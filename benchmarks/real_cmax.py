@@ -344,7 +344,7 @@ def library_fingerprint() -> str:
 
 
 def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tuple | None = None,
-                    members: int = 1, zero_rotation_start: bool = False):
+                    members: int = 1, zero_rotation_start: bool = False, polish: str = "none"):
     """``fit_sequence(events, K_ECD, speed=ECD_SPEED)`` of the slider events, its wall time [s], and a note on
     where it comes from (this run, or the cache and the 1-minute load average when it was fitted).
 
@@ -352,6 +352,7 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     reading over the recording), only the direction and the depth fitted.
     ``members``: ``FitSettings.motion_members`` (``cmax fit --members``).
     ``zero_rotation_start``: ``FitSettings.zero_rotation_start`` (``cmax fit --zero-rotation-start``).
+    ``polish``: ``FitSettings.polish`` (``cmax fit --polish``).
 
     With ``cache`` the result is pickled there (atomically) and read back by a later call on the same events
     file (same resolved path, size and modification time) fitted by the same library code (a hash of the
@@ -368,7 +369,8 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     key = (str(events_path.resolve()), stat.st_size, stat.st_mtime_ns, K_ECD.tolist(), ECD_SPEED,
            library_fingerprint()) + (
         () if omega is None else (tuple(float(w) for w in omega),)) + (() if members == 1 else (("members", members),)) + (
-        (("zero_rotation_start", True),) if zero_rotation_start else ())
+        (("zero_rotation_start", True),) if zero_rotation_start else ()) + (
+        (("polish", polish),) if polish != "none" else ())
     if cache is not None and cache.is_file():
         with open(cache, "rb") as file:
             stored = pickle.load(file)
@@ -383,7 +385,7 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     load = os.getloadavg()[0]
     start = time.perf_counter()
     sequence = fit_sequence(events, K_ECD, speed=ECD_SPEED, gyro=gyro, motion_members=members,
-                            zero_rotation_start=zero_rotation_start)
+                            zero_rotation_start=zero_rotation_start, polish=polish)
     seconds = time.perf_counter() - start
     if cache is not None:
         cache.parent.mkdir(parents=True, exist_ok=True)
@@ -486,8 +488,10 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
     members, members_seconds, members_origin = slider_sequence(events_path, members_cache, members=SLIDER_MEMBERS)
     zrs_cache = None if cache is None else cache.with_name(f"{cache.stem}_zrs{cache.suffix}")
     zrs, zrs_seconds, zrs_origin = slider_sequence(events_path, zrs_cache, zero_rotation_start=True)
-    walls, maps, calibrated_wall, (held_walls, members_walls, zrs_walls) = slider_far_wall(
-        events_path, sequence, folder, (held, members, zrs))
+    polished = {mode: slider_sequence(events_path, None if cache is None else cache.with_name(
+        f"{cache.stem}_polish_{mode}{cache.suffix}"), polish=mode) for mode in ("depth", "depth_motion")}
+    walls, maps, calibrated_wall, (held_walls, members_walls, zrs_walls, *polished_walls) = slider_far_wall(
+        events_path, sequence, folder, (held, members, zrs, *(p[0] for p in polished.values())))
     first = sequence.results[0].t0_us
     speeds = window_speeds(*read_tum_trajectory(folder / "groundtruth.txt"),
                            [(r.t0_us, r.t1_us) for r in sequence.results])
@@ -538,6 +542,9 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
     lines += _held_rotation_lines(held, held_walls, held_seconds, held_origin)
     lines += _members_lines(members, members_walls, members_seconds, members_origin)
     lines += _zero_rotation_start_lines(zrs, zrs_walls, zrs_seconds, zrs_origin)
+    for (mode, (polished_sequence, polished_seconds, polished_origin)), mode_walls in zip(polished.items(),
+                                                                                        polished_walls):
+        lines += _polish_lines(mode, polished_sequence, mode_walls, polished_seconds, polished_origin)
     middle = len(sequence.results) // 2
     r = sequence.results[middle]
     scale = (0.47, 2.4)                     # EMVS's depth range: one colour scale for both depth maps
@@ -603,6 +610,16 @@ def _zero_rotation_start_lines(sequence, walls: list, seconds: float, origin: st
         "`fit_sequence(..., zero_rotation_start=True)` (`cmax fit ... --zero-rotation-start`: a second start of "
         "each window's motion refinement without rotation, the one with the higher patch-wise contrast kept; the "
         "rotation free, the flag docs/limits.md recommends for vehicles)",
+        sequence, walls, seconds, origin)
+
+
+def _polish_lines(mode: str, sequence, walls: list, seconds: float, origin: str) -> list[str]:
+    """Markdown of the slider fitted with the shared-objective polish ``mode`` (``cmax fit --polish MODE``)."""
+    what = "the depth grid" if mode == "depth" else "the depth grid, the direction and the rotation"
+    return _variant_lines(
+        f"With `--polish {mode}`",
+        f"`fit_sequence(..., polish=\"{mode}\")` (`cmax fit ... --polish {mode}`: each window ends on the objective "
+        f"the network trains on, `cmax.contrast.SHARED_OBJECTIVE`, over {what})",
         sequence, walls, seconds, origin)
 
 

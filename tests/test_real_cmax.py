@@ -74,10 +74,10 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
 
     calls = []
 
-    def fake_fit_sequence(events, K, speed, gyro=None, motion_members=1, zero_rotation_start=False):
+    def fake_fit_sequence(events, K, speed, gyro=None, motion_members=1, zero_rotation_start=False, polish="none"):
         calls.append(len(events))
         return SimpleNamespace(n=len(events), speed=speed, gyro=gyro, members=motion_members,
-                               zero_rotation_start=zero_rotation_start)
+                               zero_rotation_start=zero_rotation_start, polish=polish)
 
     monkeypatch.setattr(cmax.fitting, "fit_sequence", fake_fit_sequence)
     rng = np.random.default_rng(0)
@@ -104,14 +104,17 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
     # with a second start at zero rotation: another fit too
     zrs, _, _ = real_cmax.slider_sequence(paths[1], cache, zero_rotation_start=True)
     assert calls == [50, 60, 60, 60, 60, 60] and zrs.zero_rotation_start and not again.zero_rotation_start
+    # with the shared-objective polish: another fit, the mode passed on
+    polished, _, _ = real_cmax.slider_sequence(paths[1], cache, polish="depth_motion")
+    assert calls == [50, 60, 60, 60, 60, 60, 60] and polished.polish == "depth_motion"
     # other library code: the cache is not trusted
     real_cmax.slider_sequence(paths[1], cache)
-    assert calls == [50, 60, 60, 60, 60, 60, 60]
+    assert len(calls) == 8
     real_cmax.slider_sequence(paths[1], cache)
-    assert calls == [50, 60, 60, 60, 60, 60, 60]
+    assert len(calls) == 8
     monkeypatch.setattr(real_cmax, "library_fingerprint", lambda: "other code")
     real_cmax.slider_sequence(paths[1], cache)
-    assert calls == [50, 60, 60, 60, 60, 60, 60, 60]
+    assert len(calls) == 9
 
 
 def test_window_speeds_of_a_slide_that_stops():
