@@ -121,16 +121,14 @@ def warp_windows(batch: EventWindows, params: DepthMotion, dt: torch.Tensor, ray
     dtype = batch.dtype
     b = batch.window
     rays = batch.rays() if rays is None else rays
+    twists = twist_at_speed(params.twist.to(dtype), batch.speed)                 # (B, 6)
+    rho = event_inverse_depth(batch, params.inverse_depth)
     bounds = batch.window_bounds() if compiled and rays.device.type == "cpu" else None
-    if bounds is not None:
-        twists = twist_at_speed(params.twist.to(dtype), batch.speed)
-        rho = event_inverse_depth(batch, params.inverse_depth)
-        if all(compiled_warp_applies(rays, row, twists[0, :3], twists[0, 3:], rho) for row in dt):
-            return _warp_compiled(batch, bounds, rays, dt, twists, rho)
-    twist = twist_at_speed(params.twist.to(dtype), batch.speed)[b]
+    if bounds is not None and all(compiled_warp_applies(rays, row, twists[0, :3], twists[0, 3:], rho) for row in dt):
+        return _warp_compiled(batch, bounds, rays, dt, twists, rho)
+    twist = twists[b]
     identity = torch.eye(3, dtype=dtype, device=rays.device)
-    xn, yn = warp_se3(rays, dt, twist[:, :3], twist[:, 3:], event_inverse_depth(batch, params.inverse_depth),
-                      identity)
+    xn, yn = warp_se3(rays, dt, twist[:, :3], twist[:, 3:], rho, identity)
     K = batch.K.to(dtype)[b]
     return K[:, 0, 0] * xn + K[:, 0, 1] * yn + K[:, 0, 2], K[:, 1, 1] * yn + K[:, 1, 2]
 
@@ -155,6 +153,14 @@ def log_depth_variation(inverse_depth: torch.Tensor, epsilon: float = 1e-3) -> t
     log_rho = torch.log(inverse_depth.clamp(min=1e-6))[:, 0]
     width = inverse_depth.shape[-1]
     return torch.stack([total_variation(g, epsilon=epsilon) for g in log_rho]) * width
+
+
+def _plus_smoothness(loss: torch.Tensor, smoothness: float, batch: EventWindows, params: DepthMotion
+                     ) -> torch.Tensor:
+    """``loss`` (B,) plus ``smoothness`` times :func:`log_depth_variation` of the inverse depth (none at 0)."""
+    if smoothness > 0:
+        loss = loss + smoothness * log_depth_variation(params.inverse_depth.to(batch.dtype))
+    return loss
 
 
 def _inside(batch: EventWindows, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -218,7 +224,7 @@ class AverageTimestamp:
         if _COMPILED and compiled_images_apply(x, y):
             base = (batch.polarity > 0).long() * B + b
             loss = average_timestamp_images(x, y, tau, base, B, (H, W), self.eps, self.purge)
-            return self._smooth(loss, batch, params)
+            return _plus_smoothness(loss, self.smoothness, batch, params)
         keep = torch.ones_like(x)
         if self.purge:
             keep = _inside(batch, x.detach(), y.detach()).all(0).to(x.dtype).expand_as(x)
@@ -233,12 +239,7 @@ class AverageTimestamp:
         square = (average * average).sum((1, 3))                              # (refs, B)
         active = (counts.detach().sum(1) > 0).sum(-1)                          # (refs, B)
         loss = (square / active.clamp(min=1).to(square.dtype)).sum(0)
-        return self._smooth(loss, batch, params)
-
-    def _smooth(self, loss: torch.Tensor, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        if self.smoothness > 0:
-            loss = loss + self.smoothness * log_depth_variation(params.inverse_depth.to(batch.dtype))
-        return loss
+        return _plus_smoothness(loss, self.smoothness, batch, params)
 
 
 def _sample_indexed(images: torch.Tensor, image: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
@@ -491,9 +492,7 @@ class PlaneVote:
         votes = torch.zeros(B, dtype=dtype).index_add(0, batch.window, vote)
         count = torch.zeros(B, dtype=dtype).index_add(0, batch.window, kept)
         loss = -votes / count.clamp(min=1.0)
-        if self.smoothness > 0:
-            loss = loss + self.smoothness * log_depth_variation(params.inverse_depth.to(batch.dtype))
-        return loss
+        return _plus_smoothness(loss, self.smoothness, batch, params)
 
 
 @dataclass(frozen=True)
@@ -564,9 +563,7 @@ class LocalContrast:
         ratio = torch.where(baseline > 0, energy(x[0], y[0]) / baseline.clamp(min=1e-12), 0.0)
         used = (baseline > 0).sum(1).clamp(min=1).to(ratio.dtype)
         loss = -ratio.sum(1) / used
-        if self.smoothness > 0:
-            loss = loss + self.smoothness * log_depth_variation(params.inverse_depth.to(batch.dtype))
-        return loss
+        return _plus_smoothness(loss, self.smoothness, batch, params)
 
 
 @dataclass(frozen=True)
