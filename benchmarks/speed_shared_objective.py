@@ -76,15 +76,15 @@ def cases(windows: list, speeds: list[float]) -> dict:
         twist = torch.as_tensor(window.twist, dtype=torch.float64)[None]
         for motion in (False, True):
             calls[f"polish, {'depth_motion' if motion else 'depth'}: 1 window, {len(batch)} events, float64, "
-                  f"grid {w.grid.shape[0]}x{w.grid.shape[1]}"] = _evaluation(SHARED_OBJECTIVE, batch, rho,
-                                                                              twist if motion else None, twist)
+                  f"grid {w.grid.shape[0]}x{w.grid.shape[1]}"] = _evaluation(SHARED_OBJECTIVE, batch, rho, twist,
+                                                                              twist_free=motion)
     events = DataConfig().max_events
     batch = EventWindows.from_windows([(w.events, w.K) for w in windows], max_events=events, dtype=torch.float32,
                                       speed=speeds)
     rho = torch.full((len(windows), 1, batch.height, batch.width), 0.3)
     twist = torch.as_tensor(np.stack([w.twist for w in windows]), dtype=torch.float32)
     calls[f"training loss: {len(windows)} windows, {events} events each, float32, per-pixel map"] = \
-        _evaluation(SHARED_OBJECTIVE, batch, rho, twist, twist)
+        _evaluation(SHARED_OBJECTIVE, batch, rho, twist, twist_free=True)
     calls[f"student training step (learned/configs/student.toml's network and loss, batch {len(windows)}): "
           "forward, teacher, loss, backward, AdamW"] = _student_step(batch)
     return calls
@@ -119,15 +119,17 @@ def _student_step(batch):
     return run
 
 
-def _evaluation(objective, batch, rho, twist_free, twist):
+def _evaluation(objective, batch, rho, twist, *, twist_free: bool):
+    """``run() -> (value, gradient)`` of ``objective`` at ``rho`` and ``twist``: the gradient in the inverse
+    depth, and in the twist too when ``twist_free``."""
     from cmax.contrast import DepthMotion
 
     def run():
         r = rho.clone().requires_grad_()
-        t = twist.clone().requires_grad_() if twist_free is not None else twist
+        t = twist.clone().requires_grad_() if twist_free else twist
         value = objective(batch, DepthMotion(r, t)).sum()
         value.backward()
-        grads = [r.grad.reshape(-1)] + ([t.grad.reshape(-1)] if twist_free is not None else [])
+        grads = [r.grad.reshape(-1)] + ([t.grad.reshape(-1)] if twist_free else [])
         return float(value.detach()), torch.cat(grads).double().numpy()
     return run
 
