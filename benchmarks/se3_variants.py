@@ -3,7 +3,7 @@
 
 Windows: ``indoor_flying`` (346x260, seeds 100-119 held out, as ``benchmarks.accuracy_cmax``), fitted with
 ``speed=|v|`` and the preset's depth range. A variant is a list of ``field=value`` of
-:class:`cmax.fitting.FitSettings`, nested fields dotted (``refine.iterations=150``); the default settings
+:class:`cmax.fitting.FitSettings`, nested fields dotted (``refine.iterations=150``, ``patch_flow.tolerances.ftol=1e-6``); the default settings
 run too. The variants run interleaved window by window (the same load on each), one torch thread.
 
 A single fit per window is not enough to tell two variants apart: the se3 figures move with the fit's seed
@@ -50,20 +50,22 @@ def parse_variant(text: str) -> dict[str, object]:
 
 
 def settings_of(variant: dict[str, object], base: FitSettings) -> FitSettings:
-    """``base`` with the dotted fields of ``variant`` replaced (each level validated by its dataclass)."""
+    """``base`` with the dotted fields of ``variant`` replaced, at any depth (``refine.tolerances.ftol``);
+    each level validated by its dataclass."""
     settings = base
     for name, value in variant.items():
-        head, _, rest = name.partition(".")
-        known = {f.name for f in fields(settings)}
-        if head not in known:
-            raise ValueError(f"FitSettings has no field {head!r}")
-        if rest:
-            inner = getattr(settings, head)
-            if rest not in {f.name for f in fields(inner)}:
-                raise ValueError(f"FitSettings.{head} has no field {rest!r}")
-            value = replace(inner, **{rest: value})
-        settings = replace(settings, **{head: value})
+        settings = _replaced(settings, name.split("."), value, "FitSettings")
     return settings
+
+
+def _replaced(obj, path: list[str], value: object, where: str):
+    """``obj`` (a dataclass) with the field at ``path`` set to ``value``, every level rebuilt by ``replace``."""
+    head = path[0].strip()
+    if head not in {f.name for f in fields(obj)}:
+        raise ValueError(f"{where} has no field {head!r}")
+    if len(path) > 1:
+        value = _replaced(getattr(obj, head), path[1:], value, f"{where}.{head}")
+    return replace(obj, **{head: value})
 
 
 def run(window, settings: FitSettings) -> dict:

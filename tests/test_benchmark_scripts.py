@@ -231,7 +231,10 @@ def test_se3_variants_parse_dotted_settings_and_refuse_unknown_fields():
     s = settings_of(variant, base)
     assert (s.refine.iterations, s.patch_flow.max_events, s.low_parallax_px) == (150, 10000, 2.5)
     assert s.refine.max_events == base.refine.max_events and s.depth_range == (1.0, 6.5)
-    for bad in ("refine.iteration=3", "refines.iterations=3"):
+    deep = settings_of(parse_variant("patch_flow.tolerances.ftol=1e-6"), base)     # any depth
+    assert deep.patch_flow.tolerances.ftol == 1e-6
+    assert deep.patch_flow.tolerances.gtol == base.patch_flow.tolerances.gtol and deep.refine == base.refine
+    for bad in ("refine.iteration=3", "refines.iterations=3", "refine.tolerances.xtol=1"):
         with pytest.raises(ValueError, match="no field"):
             settings_of(parse_variant(bad), base)
     with pytest.raises(ValueError, match="refine.iterations must be"):

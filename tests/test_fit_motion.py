@@ -14,7 +14,7 @@ from cmax.events import Events
 from cmax.fitting import FitSettings, PatchFlowSettings, RefineSettings, fit
 from cmax.fitting.motion import LocalMotionObjective, refine_motion_local
 from cmax.fitting.patch_flow import (
-    _field_matrices, flow_information, make_patches, motion_from_flows, patch_flows, spherical_cap,
+    _field_matrices, _solve_directions, _weighted_system, fibonacci_sphere, flow_information, make_patches, motion_from_flows, patch_flows, spherical_cap,
 )
 from cmax.fitting.solvers import ScipySolver
 from cmax.fitting.window import Window
@@ -179,6 +179,33 @@ def test_a_known_rotation_is_held_and_only_the_direction_is_solved():
     _, _, residual_wrong = motion_from_flows(centres, flows, np.ones(20), K346, speed, omega=wrong,
                                              directions=20000)
     assert residual_wrong > 10 * residual
+
+
+@pytest.mark.parametrize("known_omega", [False, True])
+def test_direction_solves_equal_a_dense_least_squares_per_direction(known_omega):
+    """The closed-form elimination of each patch's inverse depth gives what ``np.linalg.lstsq`` gives on the
+    full (2P, 3 + P) system of each direction (noisy flows, information weights, 50 directions)."""
+    rng = np.random.default_rng(5)
+    v, omega = np.array([0.2, -0.1, 0.5]), np.radians([5.0, -10.0, 3.0])
+    centres, flows = exact_patch_flows(rng, v, omega)
+    flows = flows + rng.normal(0, 5.0, flows.shape)
+    information = np.einsum("pij,pkj->pik", *(2 * [rng.normal(size=(20, 2, 2))])) + 0.1 * np.eye(2)
+    LA, LB, b = _weighted_system(centres, flows, information, K346)
+    t, speed = fibonacci_sphere(50), 0.7
+    known = omega if known_omega else None
+    x, residual = _solve_directions(t, LA, LB, b, speed, known)
+    for d in range(len(t)):
+        field = (speed * LA @ t[d]).reshape(40)                  # rho_p's column has patch p's two rows
+        columns = np.zeros((40, 20))
+        columns[np.arange(40), np.arange(40) // 2] = field
+        if known_omega:
+            solution, *_ = np.linalg.lstsq(columns, b - LB.reshape(40, 3) @ omega, rcond=None)
+            solution = np.r_[omega, solution]
+        else:
+            solution, *_ = np.linalg.lstsq(np.column_stack([LB.reshape(40, 3), columns]), b, rcond=None)
+        np.testing.assert_allclose(x[d], solution, rtol=1e-7, atol=1e-9 * np.abs(solution).max())
+        rms = np.sqrt(np.mean((np.column_stack([LB.reshape(40, 3), columns]) @ solution - b) ** 2))
+        assert residual[d] == pytest.approx(rms, rel=1e-7)
 
 
 def test_information_weights_ignore_flows_along_edges():
