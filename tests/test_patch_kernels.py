@@ -234,3 +234,104 @@ def test_the_patch_flow_objective_on_a_real_window(window, monkeypatch):
     (value_a, grad_a), (value_b, grad_b) = _both_paths(monkeypatch, run)
     np.testing.assert_allclose(float(value_a), float(value_b), rtol=1e-5)
     np.testing.assert_allclose(grad_a.numpy(), grad_b.numpy(), atol=1e-4 * float(grad_b.abs().max()), rtol=0)
+
+
+# ----------------------------------------------------------------------------------------------
+# The objectives' value and gradient without autograd (what the fit's solves call)
+# ----------------------------------------------------------------------------------------------
+def _autograd(loss, x: np.ndarray) -> tuple[float, np.ndarray]:
+    p = torch.tensor(x, dtype=torch.float64, requires_grad=True)
+    value = loss(p)
+    (grad,) = torch.autograd.grad(value, p)
+    return float(value.detach()), grad.numpy()
+
+
+def _float64_patches():
+    """Random float64 events cut into 2 x 3 patches of a 60 x 40 sensor, with times over 0.1 s."""
+    rng = np.random.default_rng(4)
+    x = torch.from_numpy(rng.uniform(0, 60, 3000))
+    y = torch.from_numpy(rng.uniform(0, 40, 3000))
+    dt = torch.from_numpy(rng.uniform(-0.05, 0.05, 3000))
+    return cut_patches(x, y, dt, 60, 40, grid=(2, 3), min_events=10, max_events=10_000, margin=0.2)
+
+
+@pytest.mark.parametrize("case", ["float32 window", "float64 events"])
+def test_patch_flow_fun_and_grad_equals_autograd(window, case):
+    """PatchFlowContrast.fun_and_grad (compiled, no autograd) against autograd through the same kernels
+    at random displacements: float32 events to float32 rounding, float64 to 1e-10."""
+    from cmax.fitting.patch_flow import make_patches
+
+    if case == "float32 window":
+        w, fw = window
+        f = fw.settings.patch_flow
+        patches = make_patches(fw, grid=f.grid, min_events=f.min_events, max_events=f.max_events, margin=f.margin,
+                               min_margin_px=f.min_margin_px)
+        T, tol = fw.T, 2e-5
+    else:
+        patches, T, tol = _float64_patches(), 0.1, 1e-10
+    loss = PatchFlowContrast.build(patches, 1.0, T)
+    assert patches.compiled
+    for seed in range(3):
+        q = np.random.default_rng(seed).uniform(-3, 3, 2 * patches.count)
+        value, grad = loss.fun_and_grad(q)
+        want_value, want_grad = _autograd(loss, q)
+        assert value == pytest.approx(want_value, rel=tol)
+        np.testing.assert_allclose(grad, want_grad, rtol=0, atol=10 * tol * np.abs(want_grad).max())
+
+
+@pytest.mark.parametrize("unit_norm", [True, False])
+@pytest.mark.parametrize("case", ["float32 window", "float64 events"])
+def test_refinement_fun_and_grad_equals_autograd(window, unit_norm, case):
+    """LocalMotionObjective.fun_and_grad chains the kernels' gradients through the refinement's parameters
+    (direction normalised or not, omega and per-patch inverse depths scaled); it equals autograd of
+    ``-sum(values(p))`` at points off the optimum."""
+    from cmax.fitting.motion import LocalMotionObjective
+    from cmax.fitting.patch_flow import make_patches
+
+    w, fw = window
+    if case == "float32 window":
+        r = fw.settings.refine
+        patches = make_patches(fw, grid=r.grid, min_events=r.min_events, max_events=r.max_events, margin=r.margin,
+                               min_margin_px=r.min_margin_px)
+        v, omega, tol = w.twist[:3], w.twist[3:], 2e-5
+    else:
+        patches, tol = _float64_patches(), 1e-10
+        v, omega = np.array([0.3, -0.1, 0.4]), np.array([0.2, 0.1, -0.3])
+    K = fw.ev.K.to(patches.x.dtype)      # the events' dtype
+    speed = float(np.linalg.norm(v))
+    objective = LocalMotionObjective(PatchMotionContrast.build(patches, K, fw.settings.sigma), speed,
+                                     fw.T * fw.focal, speed * fw.T * fw.focal, unit_norm)
+    rng = np.random.default_rng(2)
+    for _ in range(3):
+        tilted = v + rng.normal(0, 0.1, 3)
+        p = objective.params(tilted, omega + rng.normal(0, 0.05, 3), rng.uniform(0.2, 0.8, patches.count))
+        if not unit_norm:
+            p[:3] *= 1.1     # off the sphere: the constraint's solvers see such points too
+        value, grad = objective.fun_and_grad(p)
+        want_value, want_grad = _autograd(lambda q: -objective.values(q).sum(), p)
+        assert value == pytest.approx(want_value, rel=tol)
+        np.testing.assert_allclose(grad, want_grad, rtol=0, atol=10 * tol * np.abs(want_grad).max())
+
+
+def test_fun_and_grad_take_torch_s_autograd_when_the_kernels_are_off(window, monkeypatch):
+    """With ``_COMPILED`` False the same methods differentiate the torch operations (the reference)."""
+    from cmax.fitting.motion import LocalMotionObjective
+    from cmax.fitting.patch_flow import make_patches
+
+    w, fw = window
+    r = fw.settings.refine
+    patches = make_patches(fw, grid=r.grid, min_events=r.min_events, max_events=r.max_events, margin=r.margin,
+                           min_margin_px=r.min_margin_px)
+    objective = LocalMotionObjective.build(fw, patches, float(np.linalg.norm(w.twist[:3])))
+    flow = PatchFlowContrast.build(patches, 1.0, fw.T)
+    p = objective.params(w.twist[:3], w.twist[3:], np.full(patches.count, 0.4))
+    q = np.random.default_rng(0).uniform(-2, 2, 2 * patches.count)
+    compiled = objective.fun_and_grad(p), flow.fun_and_grad(q)
+    monkeypatch.setattr(patches_module, "_COMPILED", False)
+    assert not patches.compiled
+    with pytest.raises(ValueError, match="Patches.compiled"):
+        objective.contrast.sum_and_gradients(w.twist[:3], w.twist[3:], np.full(len(patches.x), 0.4))
+    reference_ = objective.fun_and_grad(p), flow.fun_and_grad(q)
+    for (value, grad), (want_value, want_grad) in zip(compiled, reference_):
+        assert value == pytest.approx(want_value, rel=1e-5)
+        np.testing.assert_allclose(grad, want_grad, rtol=0, atol=1e-3 * np.abs(want_grad).max())

@@ -47,7 +47,7 @@ from torch.autograd.function import once_differentiable
 
 from cmax._jit import kernel
 
-__all__ = ["patch_variances", "gaussian_taps"]
+__all__ = ["patch_variances", "gaussian_taps", "group_by_patch"]
 
 
 @kernel
@@ -265,16 +265,15 @@ class _Workspace:
     """Arrays of one evaluation: the events grouped by patch, the blurred images and their statistics."""
 
     def __init__(self, x: np.ndarray, y: np.ndarray, patch: np.ndarray, offset: np.ndarray,
-                 size: tuple[int, int], sigma: float) -> None:
+                 size: tuple[int, int], sigma: float,
+                 grouping: tuple[np.ndarray, np.ndarray] | None = None) -> None:
         H, W = size
         P = offset.shape[0]
         self.x, self.y, self.offset = x, y, offset
         self.taps = _taps(float(sigma), x.dtype.str)
         self.one = x.dtype.type(1)
         R = (self.taps.shape[0] - 1) // 2
-        self.order = np.empty(patch.shape[0], np.int64)
-        self.starts = np.empty(P + 1, np.int64)
-        _group(patch, P, self.order, self.starts)
+        self.order, self.starts = group_by_patch(patch, P) if grouping is None else grouping
         self.blurred = np.empty((P, H, W), x.dtype)
         self.stats = np.empty((P, 2))
         self.boxes = np.empty((P, 4), np.int64)
@@ -296,6 +295,14 @@ class _Workspace:
                   np.empty((H, W), self.x.dtype), _blurred_ones(self.taps, H).astype(self.x.dtype),
                   _blurred_ones(self.taps, W).astype(self.x.dtype))
         return grad_x, grad_y
+
+
+def group_by_patch(patch: np.ndarray, count: int) -> tuple[np.ndarray, np.ndarray]:
+    """``(order (M,), starts (count + 1,))`` int64: the events of patch ``p`` are ``order[starts[p]:starts[p + 1]]``
+    (a counting sort of ``patch`` (M,) int64; the same for every evaluation of one event set)."""
+    order, starts = np.empty(patch.shape[0], np.int64), np.empty(count + 1, np.int64)
+    _group(patch, count, order, starts)
+    return order, starts
 
 
 def _numpy(tensor: torch.Tensor, dtype: np.dtype | None = None) -> np.ndarray:

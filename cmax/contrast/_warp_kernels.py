@@ -142,10 +142,34 @@ def _arrays(rays, dt, v, omega, rho, K):
     def flat(tensor, dtype=np.float64):
         return np.ascontiguousarray(tensor.detach().numpy(), dtype=dtype)
 
-    k = flat(K)
     return (np.ascontiguousarray(rays.detach().numpy()), np.ascontiguousarray(dt.detach().numpy()), flat(v),
-            flat(omega), np.ascontiguousarray(rho.detach().numpy()),
-            np.array([k[0, 0], k[0, 1], k[0, 2], k[1, 1], k[1, 2]]))
+            flat(omega), np.ascontiguousarray(rho.detach().numpy()), intrinsics_row(flat(K)))
+
+
+def intrinsics_row(K: np.ndarray) -> np.ndarray:
+    """``(K00, K01, K02, K11, K12)`` (5,) float64 of ``K`` (3, 3): what the kernels read."""
+    return np.array([K[0, 0], K[0, 1], K[0, 2], K[1, 1], K[1, 2]], dtype=np.float64)
+
+
+def se3_warp_arrays(rays: np.ndarray, dt: np.ndarray, v: np.ndarray, omega: np.ndarray, rho: np.ndarray,
+                    k: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+    """The warp of the module docstring on contiguous arrays: ``rays`` (N, 3), ``dt``, ``rho`` (N,) of one
+    float dtype, ``v``, ``omega`` (3,) float64, ``k`` from :func:`intrinsics_row`; ``x, y`` (N,) in that dtype."""
+    x = np.empty(rays.shape[0], rays.dtype)
+    y = np.empty_like(x)
+    _forward(rays, dt, v, omega, rho, k, MIN_PROJECTED_DEPTH, _SMALL_ANGLE_SQ, x, y)
+    return x, y
+
+
+def se3_warp_gradients(rays: np.ndarray, dt: np.ndarray, v: np.ndarray, omega: np.ndarray, rho: np.ndarray,
+                       k: np.ndarray, gx: np.ndarray, gy: np.ndarray, twist: bool = True
+                       ) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """``dL/dv`` (3,), ``dL/domega`` (3,) float64 (zero without ``twist``) and ``dL/drho`` (N,) float64 of the
+    warp of :func:`se3_warp_arrays` for ``dL/dx = gx``, ``dL/dy = gy`` (N,)."""
+    grad_v, grad_omega, grad_rho = np.zeros(3), np.zeros(3), np.empty(rays.shape[0])
+    _backward(rays, dt, v, omega, rho, k, MIN_PROJECTED_DEPTH, _SMALL_ANGLE_SQ, gx, gy, grad_v, grad_omega,
+              grad_rho, twist)
+    return grad_v, grad_omega, grad_rho
 
 
 class _Se3Warp(torch.autograd.Function):
@@ -155,9 +179,7 @@ class _Se3Warp(torch.autograd.Function):
     def forward(ctx, rays, dt, v, omega, rho, K):  # type: ignore[override]
         arrays = _arrays(rays, dt, v, omega, rho, K)
         ctx.arrays, ctx.dtypes = arrays, (v.dtype, omega.dtype, rho.dtype)
-        x = np.empty(rays.shape[0], rays.detach().numpy().dtype)
-        y = np.empty_like(x)
-        _forward(*arrays, MIN_PROJECTED_DEPTH, _SMALL_ANGLE_SQ, x, y)
+        x, y = se3_warp_arrays(*arrays)
         return torch.from_numpy(x), torch.from_numpy(y)
 
     @staticmethod
@@ -167,10 +189,8 @@ class _Se3Warp(torch.autograd.Function):
         n = arrays[0].shape[0]
         gx = np.zeros(n) if grad_x is None else np.ascontiguousarray(grad_x.numpy())
         gy = np.zeros(n) if grad_y is None else np.ascontiguousarray(grad_y.numpy())
-        grad_v, grad_omega, grad_rho = np.zeros(3), np.zeros(3), np.empty(n)
         needs = ctx.needs_input_grad
-        _backward(*arrays, MIN_PROJECTED_DEPTH, _SMALL_ANGLE_SQ, gx, gy, grad_v, grad_omega, grad_rho,
-                  bool(needs[2] or needs[3]))
+        grad_v, grad_omega, grad_rho = se3_warp_gradients(*arrays, gx, gy, bool(needs[2] or needs[3]))
         v_dtype, omega_dtype, rho_dtype = ctx.dtypes
         return (None, None, torch.from_numpy(grad_v).to(v_dtype) if needs[2] else None,
                 torch.from_numpy(grad_omega).to(omega_dtype) if needs[3] else None,

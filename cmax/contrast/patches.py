@@ -24,14 +24,17 @@ unifying contrast maximization framework for event cameras", CVPR 2018 (the warp
 """
 from __future__ import annotations
 
+import functools
 import math
 from dataclasses import dataclass
 
 import numpy as np
 import torch
 
-from cmax.contrast._patch_kernels import _PatchVariances
-from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
+from cmax.contrast._patch_kernels import _PatchVariances, _Workspace, group_by_patch
+from cmax.contrast._warp_kernels import (
+    compiled_warp_applies, intrinsics_row, se3_warp_arrays, se3_warp_gradients, warp_se3_compiled,
+)
 from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import variance
 from cmax.warp import project, se3_parts, warp_se3
@@ -89,6 +92,28 @@ class Patches:
             return self
         return Patches(self.x[::step], self.y[::step], self.dt[::step], self.patch[::step], self.offset, self.size,
                        self.margin, self.centres, self.counts)
+
+    @property
+    def compiled(self) -> bool:
+        """Whether the compiled kernels take these events (CPU float32 / float64, ``_COMPILED``): then
+        :meth:`variances` runs them under autograd, and the objectives below offer ``fun_and_grad`` /
+        ``sum_and_gradients`` that run them with no autograd at all."""
+        return _COMPILED and self.x.device.type == "cpu" and self.x.dtype in (torch.float32, torch.float64)
+
+    @functools.cached_property
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, tuple[np.ndarray, np.ndarray]]:
+        """``(patch (M,) int64, offset (P, 2) in the events' dtype, (order, starts))``: what the compiled
+        kernels read, computed once per event set (:func:`cmax.contrast._patch_kernels.group_by_patch`)."""
+        patch = np.ascontiguousarray(self.patch.numpy(), dtype=np.int64)
+        offset = np.ascontiguousarray(self.offset.numpy(), dtype=self.x.numpy().dtype)
+        return patch, offset, group_by_patch(patch, self.count)
+
+    def variance_work(self, x: np.ndarray, y: np.ndarray, sigma: float) -> _Workspace:
+        """The compiled per-patch variances of events at pixels ``x, y`` (M,) (arrays of the events' dtype):
+        ``.forward() -> (P,)`` float64, then ``.backward(scale (P,)) -> (dx (M,), dy (M,))`` of
+        ``sum_p scale_p Var_p``."""
+        patch, offset, grouping = self.kernel_arrays
+        return _Workspace(x, y, patch, offset, self.size, sigma, grouping)
 
     def images(self, x: torch.Tensor, y: torch.Tensor, sigma: float) -> torch.Tensor:
         """Blurred count images (P, H, W) of the events at full-image pixels ``x, y`` (M,)."""
@@ -182,6 +207,28 @@ class PatchFlowContrast:
         variances = patches.variances(x - flow[patch, 0] * dt, y - flow[patch, 1] * dt, self.sigma)
         return -(variances / self.base).sum()
 
+    def fun_and_grad(self, q: np.ndarray) -> tuple[float, np.ndarray]:
+        """``(J(q), dJ/dq (2P,))`` for ``q`` (2P,) float64 [px]: :meth:`__call__` and its autograd gradient,
+        computed by the compiled kernels with no autograd when :attr:`Patches.compiled` (the same
+        arithmetic in the events' dtype; the sums over events and patches in float64), else through torch."""
+        patches = self.patches
+        if not patches.compiled:
+            from cmax.fitting.solvers import torch_fun_and_grad  # the reference path
+
+            return torch_fun_and_grad(self)(q)
+        x, y, dt = (t.numpy() for t in (patches.x, patches.y, patches.dt))
+        patch = patches.kernel_arrays[0]
+        dtype = x.dtype
+        flow = np.asarray(q, dtype=np.float64).reshape(patches.count, 2).astype(dtype) / dtype.type(self.T)
+        work = patches.variance_work(x - flow[patch, 0] * dt, y - flow[patch, 1] * dt, self.sigma)
+        base = self.base.double().numpy()
+        value = -float(np.sum(work.forward() / base))
+        gx, gy = work.backward(-1.0 / base)
+        grad = np.empty((patches.count, 2))
+        grad[:, 0] = np.bincount(patch, -(gx * dt), minlength=patches.count)    # x_i - flow_p dt_i
+        grad[:, 1] = np.bincount(patch, -(gy * dt), minlength=patches.count)
+        return value, grad.reshape(-1) / self.T
+
 
 @dataclass(frozen=True, eq=False)
 class PatchMotionContrast:
@@ -226,6 +273,35 @@ class PatchMotionContrast:
         else:
             x, y = warp_se3(self.rays, dt, v, omega, rho_events, self.K)
         return self.patches.variances(x, y, self.sigma) / self.base
+
+    def sum_and_gradients(self, v: np.ndarray, omega: np.ndarray, rho_events: np.ndarray
+                          ) -> tuple[float, np.ndarray, np.ndarray, np.ndarray]:
+        """``sum_p c_p`` and its gradient in ``v`` (3,), ``omega`` (3,) and ``rho_events`` (M,) (float64) for
+        ``v`` [m/s], ``omega`` [rad/s] and per-event inverse depths [1/m], all in the events' dtype (the
+        values :meth:`__call__` takes). The compiled warp and patch kernels with no autograd (the sums
+        in float64); only when :attr:`Patches.compiled`. Equal to ``__call__(...).sum()`` and its
+        autograd gradient to float rounding (``tests/test_patch_kernels.py``)."""
+        patches = self.patches
+        if not patches.compiled:
+            raise ValueError("sum_and_gradients needs CPU float32 / float64 events (Patches.compiled)")
+        arrays = self.kernel_arrays
+        rays, dt, k = arrays
+        dtype = rays.dtype
+        v64, omega64 = np.asarray(v, dtype).astype(np.float64), np.asarray(omega, dtype).astype(np.float64)
+        rho = np.ascontiguousarray(rho_events, dtype=dtype)
+        x, y = se3_warp_arrays(rays, dt, v64, omega64, rho, k)
+        work = patches.variance_work(x, y, self.sigma)
+        base = self.base.double().numpy()
+        value = float(np.sum(work.forward() / base))
+        gx, gy = work.backward(1.0 / base)
+        grad_v, grad_omega, grad_rho = se3_warp_gradients(rays, dt, v64, omega64, rho, k, gx, gy)
+        return value, grad_v, grad_omega, grad_rho
+
+    @functools.cached_property
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+        """``(rays (M, 3), dt (M,))`` contiguous in the events' dtype and ``K`` as the warp kernel reads it."""
+        return (np.ascontiguousarray(self.rays.numpy()), np.ascontiguousarray(self.patches.dt.numpy()),
+                intrinsics_row(self.K.double().numpy()))
 
     def at_depths(self, v: torch.Tensor, omega: torch.Tensor, rho_rows: torch.Tensor) -> torch.Tensor:
         """``c_p`` (C, P) for one motion and each row of per-event inverse depths ``rho_rows`` (C, M) [1/m]:

@@ -27,6 +27,7 @@ contrast with a shared motion).
 """
 from __future__ import annotations
 
+import math
 from dataclasses import dataclass
 from typing import Sequence
 
@@ -36,7 +37,7 @@ import torch
 from cmax.contrast.patches import Patches, PatchMotionContrast
 from cmax.fitting.patch_flow import make_patches
 from cmax.fitting.settings import RefineSettings
-from cmax.fitting.solvers import Solver, SolveResult, solve
+from cmax.fitting.solvers import GradientLoss, Solver, SolveResult, solve, torch_fun_and_grad
 
 __all__ = ["LocalMotionObjective", "RefineOutcome", "refine_motion_local", "omega_on_bound"]
 
@@ -109,6 +110,31 @@ class LocalMotionObjective:
         v = self.speed * u / torch.sqrt((u * u).sum() + 1e-12) if self.unit_norm else self.speed * u
         rho = (p[6:] / self.rho_scale)[self.patches.patch]
         return self.contrast_at(v.to(dtype), (p[3:6] / self.omega_scale).to(dtype), rho.to(dtype))
+
+    def fun_and_grad(self, p: np.ndarray) -> tuple[float, np.ndarray]:
+        """``(-sum(values(p)), its gradient (6 + P,))`` for parameters ``p`` (6 + P,) float64: the
+        refinement's loss. With compiled patches (:attr:`cmax.contrast.patches.Patches.compiled`) the
+        kernels' own gradients are chained through the parameterisation here (no autograd), else torch's
+        autograd of :meth:`values`; both give the same value and gradient to float rounding."""
+        if not self.patches.compiled:
+            return torch_fun_and_grad(lambda q: -self.values(q).sum())(p)
+        p = np.asarray(p, dtype=np.float64)
+        u = p[:3] / self.direction_scale
+        if self.unit_norm:
+            norm = math.sqrt(float(u @ u) + 1e-12)
+            v = self.speed * u / norm
+        else:
+            v = self.speed * u
+        patch = self.patches.kernel_arrays[0]
+        value, grad_v, grad_omega, grad_rho = self.contrast.sum_and_gradients(
+            v, p[3:6] / self.omega_scale, (p[6:] / self.rho_scale)[patch])
+        if self.unit_norm:   # d(speed u / |u|)/du = speed (I - u u^T / |u|^2) / |u|
+            grad_u = self.speed * (grad_v - u * float(u @ grad_v) / norm ** 2) / norm
+        else:
+            grad_u = self.speed * grad_v
+        grad_rho_patches = np.bincount(patch, grad_rho, minlength=self.patches.count)
+        return -value, -np.r_[grad_u / self.direction_scale, grad_omega / self.omega_scale,
+                              grad_rho_patches / self.rho_scale]
 
     def contrast_at(self, v: torch.Tensor, omega: torch.Tensor, rho_events: torch.Tensor) -> torch.Tensor:
         """Normalised contrast (P,) of each patch for ``v`` (3,) [m/s], ``omega`` (3,) [rad/s] and any
@@ -201,7 +227,7 @@ def _refine_from(w, objective: LocalMotionObjective, v: np.ndarray, omega: np.nd
     upper = np.r_[np.full(3, 2 * scale), np.full(3, max_omega * s_o), np.full(P, s_r / near)]
     if hold_omega:  # equal bounds: the solvers keep these parameters fixed
         lower[3:6] = upper[3:6] = x0[3:6]
-    result = solve(lambda p: -objective.values(p).sum(), x0, lower, upper, solver, iterations=settings.iterations,
+    result = solve(GradientLoss(objective.fun_and_grad), x0, lower, upper, solver, iterations=settings.iterations,
                    tolerances=settings.tolerances, norm_slice=slice(0, 3), norm=scale)
     v1, omega1, _ = objective.motion(result.x)
     bound = () if hold_omega else omega_on_bound(omega1, max_omega)

@@ -36,7 +36,7 @@ import torch
 
 from cmax.contrast.patches import Patches, PatchFlowContrast, cut_patches
 from cmax.fitting.settings import PatchFlowSettings
-from cmax.fitting.solvers import ScipySolver, Solver, SolveResult, solve, torch_fun_and_grad
+from cmax.fitting.solvers import GradientLoss, ScipySolver, Solver, SolveResult, solve
 from cmax.warp import warp_se3
 
 __all__ = ["Patches", "PatchFlows", "make_patches", "patch_flows", "flow_information", "motion_from_flows",
@@ -134,12 +134,12 @@ def patch_flows(w, settings: PatchFlowSettings = PatchFlowSettings(), solver: So
     for stage, sigma in enumerate(sigmas):
         subset = patches.every(settings.coarse_step if stage < len(sigmas) - 1 else 1)
         loss = _flow_loss(subset, w.settings.sigma if sigma is None else sigma, w.T)
-        result = solve(loss, q, np.full(q.size, -bound), np.full(q.size, bound), solver,
+        result = solve(GradientLoss(loss.fun_and_grad), q, np.full(q.size, -bound), np.full(q.size, bound), solver,
                        iterations=settings.iterations, tolerances=settings.tolerances)
         solves.append(result)
         q = result.x
     q = q.reshape(patches.count, 2)
-    information = flow_information(torch_fun_and_grad(loss), q, settings.information_step_px,
+    information = flow_information(loss.fun_and_grad, q, settings.information_step_px,
                                    settings.information_floor)
     return PatchFlows(patches.centres, q / w.T, patches.counts, information, tuple(solves))
 

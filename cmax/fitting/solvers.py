@@ -27,7 +27,7 @@ from typing import Callable
 import numpy as np
 
 __all__ = ["Problem", "SolveResult", "Solver", "ScipySolver", "CasadiSolver", "TorchSolver", "Tolerances",
-           "make_solver", "solve", "torch_fun_and_grad"]
+           "GradientLoss", "make_solver", "solve", "torch_fun_and_grad"]
 
 
 @dataclass(frozen=True)
@@ -291,10 +291,19 @@ def torch_fun_and_grad(loss: Callable) -> Callable[[np.ndarray], tuple[float, np
     return fun_and_grad
 
 
-def solve(loss: Callable, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, solver: Solver, *,
+@dataclass(frozen=True)
+class GradientLoss:
+    """A loss given by its value and gradient, ``fun_and_grad(x (n,) float64) -> (float, (n,) float64)``, for
+    :func:`solve`: objectives that compute their own gradient (compiled kernels) instead of torch autograd."""
+
+    fun_and_grad: Callable[[np.ndarray], tuple[float, np.ndarray]]
+
+
+def solve(loss: "Callable | GradientLoss", x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, solver: Solver, *,
           iterations: int, tolerances: Tolerances | None = None, norm_slice: slice | None = None,
           norm: float = 1.0) -> SolveResult:
-    """Minimise a torch ``loss(params (n,) float64) -> scalar`` over ``lower <= x <= upper`` from ``x0`` (n,).
+    """Minimise ``loss`` over ``lower <= x <= upper`` from ``x0`` (n,): a torch ``loss(params (n,) float64) ->
+    scalar`` (differentiated by autograd) or a :class:`GradientLoss`.
 
     The one solve path of :func:`cmax.fit`: ``solver`` limited to ``iterations`` with ``tolerances``;
     ``norm_slice`` asks backends that take equality constraints (:attr:`Solver.takes_equality`) for
@@ -302,7 +311,7 @@ def solve(loss: Callable, x0: np.ndarray, lower: np.ndarray, upper: np.ndarray, 
     start (or not finite) the start is returned with ``kept_start`` True and ``success`` False: no solve
     hands back a point scoring worse than its start.
     """
-    f = _Counted(torch_fun_and_grad(loss))
+    f = _Counted(loss.fun_and_grad if isinstance(loss, GradientLoss) else torch_fun_and_grad(loss))
     lower, upper = np.asarray(lower, dtype=np.float64), np.asarray(upper, dtype=np.float64)
     x0 = np.clip(np.asarray(x0, dtype=np.float64), lower, upper)
     f0 = f(x0)[0]
