@@ -307,10 +307,16 @@ class PatchMotionContrast:
         """``c_p`` (C, P) for one motion and each row of per-event inverse depths ``rho_rows`` (C, M) [1/m]:
         the rows of :meth:`__call__` with the depth-free part of the warp (:func:`cmax.warp.se3_parts`)
         computed once (a sweep over depths). No gradient."""
+        compiled = self.patches.compiled
         with torch.no_grad():
             rotated, moved = se3_parts(self.rays, self.patches.dt, v, omega)
             rows = []
             for rho in rho_rows:
                 x, y = project(rotated + rho[:, None] * moved, self.K)
-                rows.append(self.patches.variances(x, y, self.sigma) / self.base)
+                if compiled:   # the kernel of variances() without its autograd wrapper and grouping
+                    x, y = x.numpy(), y.numpy()
+                    variances = torch.from_numpy(self.patches.variance_work(x, y, self.sigma).forward().astype(x.dtype))
+                else:
+                    variances = self.patches.variances(x, y, self.sigma)
+                rows.append(variances / self.base)
             return torch.stack(rows)
