@@ -14,6 +14,9 @@ torch thread, interleaved, medians:
   ``coarse_step``-th event) and at its fine level (the window's sigma), 2 px of flow per patch;
 * the refinement's objective (value + gradient, the parameters as the solver sees them) at the true
   motion, each patch's depth the median inverse depth of the sweep's candidates;
+* the same two objectives through ``fun_and_grad``, what the fit's solves call: on the compiled path
+  the kernels' gradients chained in numpy with no autograd at all, on the torch path autograd of the
+  torch operations (so its ratio is against the same reference as the rows above);
 * the refinement's depth sweep (``sweep_rho``: forward evaluations of every candidate);
 * the numba compile time: the first call in a fresh process with an empty numba cache, and with the
   cache that compile left (what every later process pays);
@@ -147,6 +150,14 @@ def cases(window, seed: int) -> dict:
         p = objective.params(v, omega, np.full(refine_patches.count, float(np.median(candidates))))
         return value_and_grad(lambda x: -objective.values(x).sum(), p)
 
+    def refine_fun_and_grad():
+        objective = refine_objective()
+        return objective.fun_and_grad(objective.params(v, omega, np.full(refine_patches.count,
+                                                                         float(np.median(candidates)))))
+
+    def flow_fun_and_grad():
+        return PatchFlowContrast.build(flow_patches, settings.sigma, w.T).fun_and_grad(q)
+
     def sweep():
         return refine_objective().sweep_rho(v, omega, candidates)
 
@@ -172,6 +183,8 @@ def cases(window, seed: int) -> dict:
         f"patch flows, coarse (sigma 3 px, every {flow.coarse_step}-th event)": flow_loss(3.0, flow.coarse_step),
         f"patch flows, fine (sigma {settings.sigma:g} px)": flow_loss(settings.sigma, 1),
         "refinement (se3 warp + patch contrast)": refine_loss,
+        "patch flows, fine: fun_and_grad (what the solves call; compiled: no autograd)": flow_fun_and_grad,
+        "refinement: fun_and_grad (what the solves call; compiled: no autograd)": refine_fun_and_grad,
         f"depth sweep ({refine.rho_candidates} forward evaluations)": sweep,
     }
     builds = {

@@ -47,7 +47,7 @@ from torch.autograd.function import once_differentiable
 
 from cmax._jit import kernel
 
-__all__ = ["patch_variances", "gaussian_taps", "group_by_patch"]
+__all__ = ["patch_variances", "gaussian_taps", "group_by_patch", "shift_by_patch", "flow_gradient_by_patch"]
 
 
 @kernel
@@ -223,6 +223,27 @@ def _backward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, sca
                     g11 = field[iy + 1, ix + 1]
             grad_x[i] = s * ((one - fy) * (g10 - g00) + fy * (g11 - g01))
             grad_y[i] = s * ((one - fx) * (g01 - g00) + fx * (g11 - g10))
+
+
+@kernel
+def shift_by_patch(x, y, dt, patch, flow, out_x, out_y):  # pragma: no cover - compiled
+    """``out = (x - flow[patch, 0] dt, y - flow[patch, 1] dt)`` (M,) in the events' dtype: each patch's events
+    moved by its own constant flow ``flow`` (P, 2) (the patch flows' warp, one pass instead of numpy's six)."""
+    for i in range(x.shape[0]):
+        p = patch[i]
+        out_x[i] = x[i] - flow[p, 0] * dt[i]
+        out_y[i] = y[i] - flow[p, 1] * dt[i]
+
+
+@kernel
+def flow_gradient_by_patch(gx, gy, dt, patch, grad):  # pragma: no cover - compiled
+    """``grad`` (P, 2) float64 (zeroed here) ``+= -(g dt)`` of each event, summed per patch in event order:
+    the gradient of :func:`shift_by_patch`'s flows for ``dL/d out = (gx, gy)``."""
+    grad[:, :] = 0.0
+    for i in range(gx.shape[0]):
+        p = patch[i]
+        grad[p, 0] += -(gx[i] * dt[i])
+        grad[p, 1] += -(gy[i] * dt[i])
 
 
 @functools.lru_cache(maxsize=32)

@@ -31,7 +31,9 @@ from dataclasses import dataclass
 import numpy as np
 import torch
 
-from cmax.contrast._patch_kernels import _PatchVariances, _Workspace, group_by_patch
+from cmax.contrast._patch_kernels import (
+    _PatchVariances, _Workspace, flow_gradient_by_patch, group_by_patch, shift_by_patch,
+)
 from cmax.contrast._warp_kernels import (
     compiled_warp_applies, intrinsics_row, se3_warp_arrays, se3_warp_gradients, warp_se3_compiled,
 )
@@ -220,13 +222,14 @@ class PatchFlowContrast:
         patch = patches.kernel_arrays[0]
         dtype = x.dtype
         flow = np.asarray(q, dtype=np.float64).reshape(patches.count, 2).astype(dtype) / dtype.type(self.T)
-        work = patches.variance_work(x - flow[patch, 0] * dt, y - flow[patch, 1] * dt, self.sigma)
+        moved_x, moved_y = np.empty_like(x), np.empty_like(y)
+        shift_by_patch(x, y, dt, patch, flow, moved_x, moved_y)        # x_i - flow_p dt_i
+        work = patches.variance_work(moved_x, moved_y, self.sigma)
         base = self.base.double().numpy()
         value = -float(np.sum(work.forward() / base))
         gx, gy = work.backward(-1.0 / base)
         grad = np.empty((patches.count, 2))
-        grad[:, 0] = np.bincount(patch, -(gx * dt), minlength=patches.count)    # x_i - flow_p dt_i
-        grad[:, 1] = np.bincount(patch, -(gy * dt), minlength=patches.count)
+        flow_gradient_by_patch(gx, gy, dt, patch, grad)
         return value, grad.reshape(-1) / self.T
 
 
