@@ -16,6 +16,7 @@ import torch
 
 from cmax._threads import blas_threads_scope, torch_threads_scope
 from cmax.camera import check_intrinsics
+from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
@@ -491,7 +492,12 @@ def _warp_with_grid(ev: WarpEvents, index: torch.Tensor, weight: torch.Tensor, d
     inverse depth interpolated from ``grid`` (gh, gw) [1/m] at its node ``index, weight`` (N, 4)."""
     dtype = ev.x.dtype
     rho = DepthGrid.sample(torch.as_tensor(grid, dtype=dtype), index, weight)
-    return warp_se3(ev.rays, dt, torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype), rho, ev.K)
+    v, omega = torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype)
+    rows = dt.reshape(-1, dt.shape[-1])
+    if all(compiled_warp_applies(ev.rays, row, v, omega, rho) for row in rows):   # the compiled warp, per row
+        warped = [warp_se3_compiled(ev.rays, row, v, omega, rho, ev.K) for row in rows]
+        return tuple(torch.stack(part).reshape(dt.shape) for part in zip(*warped))
+    return warp_se3(ev.rays, dt, v, omega, rho, ev.K)
 
 
 def _warped(w: Window, motion: Motion, dt: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
