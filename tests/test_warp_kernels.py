@@ -111,3 +111,27 @@ def test_depth_only_gradient_equals_the_torch_warp():
         x, y = warp(rays, dt, v, omega, r, K)
         grads.append(torch.autograd.grad((x - 2 * y).sum(), r)[0])
     assert torch.allclose(grads[0], grads[1], rtol=1e-10, atol=1e-12)
+
+
+@pytest.mark.parametrize("dtype", [torch.float32, torch.float64])
+def test_the_sweep_s_projection_is_cmax_warp_project_bit_for_bit(dtype):
+    """project_at_depth (one pass per depth candidate of the patch sweep) computes what
+    ``project(rotated + rho * moved, K)`` computes, in the same dtype, to the last bit; a point behind
+    the camera is clamped alike."""
+    import numpy as np
+
+    from cmax.contrast._warp_kernels import project_at_depth
+    from cmax.warp import MIN_PROJECTED_DEPTH, project, se3_parts
+
+    rays, dt, rho, K = _events(3000, dtype)
+    v, omega = torch.tensor([0.3, -0.2, 1.4], dtype=dtype), torch.tensor([0.4, -0.3, 0.2], dtype=dtype)
+    rotated, moved = se3_parts(rays, dt, v, omega)
+    rho = rho.clone()
+    rho[:5] = -50.0                                                    # far behind: z clamped
+    want_x, want_y = project(rotated + rho[:, None] * moved, K)
+    np_dtype = rotated.numpy().dtype
+    x, y = np.empty(3000, np_dtype), np.empty(3000, np_dtype)
+    project_at_depth(rotated.numpy(), moved.numpy(), rho.numpy(), K.numpy()[[0, 0, 0, 1, 1], [0, 1, 2, 1, 2]],
+                     np_dtype.type(MIN_PROJECTED_DEPTH), x, y)
+    np.testing.assert_array_equal(x, want_x.numpy())
+    np.testing.assert_array_equal(y, want_y.numpy())

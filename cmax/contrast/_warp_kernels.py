@@ -34,7 +34,7 @@ from cmax._jit import kernel
 from cmax.geometry_torch import _SMALL_ANGLE_SQ
 from cmax.warp import MIN_PROJECTED_DEPTH
 
-__all__ = ["warp_se3_compiled", "compiled_warp_applies"]
+__all__ = ["warp_se3_compiled", "compiled_warp_applies", "project_at_depth"]
 
 
 @kernel
@@ -170,6 +170,22 @@ def se3_warp_gradients(rays: np.ndarray, dt: np.ndarray, v: np.ndarray, omega: n
     _backward(rays, dt, v, omega, rho, k, MIN_PROJECTED_DEPTH, _SMALL_ANGLE_SQ, gx, gy, grad_v, grad_omega,
               grad_rho, twist)
     return grad_v, grad_omega, grad_rho
+
+
+@kernel
+def project_at_depth(rotated, moved, rho, k, zmin, x, y):  # pragma: no cover - compiled
+    """``x, y = project(rotated + rho moved)`` (N,) for the two depth-free parts (N, 3) of the warp
+    (:func:`cmax.warp.se3_parts`) and inverse depths ``rho`` (N,), all in one dtype, as
+    :func:`cmax.warp.project` computes it in that dtype (``k`` (5,) and ``zmin`` of it too): one pass per
+    candidate of a depth sweep instead of torch's eight."""
+    for i in range(rotated.shape[0]):
+        q = rho[i]
+        p0 = rotated[i, 0] + q * moved[i, 0]
+        p1 = rotated[i, 1] + q * moved[i, 1]
+        z = max(rotated[i, 2] + q * moved[i, 2], zmin)
+        X, Y = p0 / z, p1 / z
+        x[i] = k[0] * X + k[1] * Y + k[2]
+        y[i] = k[3] * Y + k[4]
 
 
 class _Se3Warp(torch.autograd.Function):

@@ -35,11 +35,11 @@ from cmax.contrast._patch_kernels import (
     _PatchVariances, _Workspace, flow_gradient_by_patch, group_by_patch, shift_by_patch,
 )
 from cmax.contrast._warp_kernels import (
-    compiled_warp_applies, intrinsics_row, se3_warp_arrays, se3_warp_gradients, warp_se3_compiled,
+    compiled_warp_applies, intrinsics_row, project_at_depth, se3_warp_arrays, se3_warp_gradients, warp_se3_compiled,
 )
 from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import variance
-from cmax.warp import project, se3_parts, warp_se3
+from cmax.warp import MIN_PROJECTED_DEPTH, project, se3_parts, warp_se3
 
 __all__ = ["Patches", "cut_patches", "PatchFlowContrast", "PatchMotionContrast"]
 
@@ -310,16 +310,23 @@ class PatchMotionContrast:
         """``c_p`` (C, P) for one motion and each row of per-event inverse depths ``rho_rows`` (C, M) [1/m]:
         the rows of :meth:`__call__` with the depth-free part of the warp (:func:`cmax.warp.se3_parts`)
         computed once (a sweep over depths). No gradient."""
-        compiled = self.patches.compiled
         with torch.no_grad():
             rotated, moved = se3_parts(self.rays, self.patches.dt, v, omega)
+            if self.patches.compiled and rho_rows.dtype == rotated.dtype:
+                return torch.stack([self._compiled_row(rotated, moved, rho) for rho in rho_rows])
             rows = []
             for rho in rho_rows:
                 x, y = project(rotated + rho[:, None] * moved, self.K)
-                if compiled:   # the kernel of variances() without its autograd wrapper and grouping
-                    x, y = x.numpy(), y.numpy()
-                    variances = torch.from_numpy(self.patches.variance_work(x, y, self.sigma).forward().astype(x.dtype))
-                else:
-                    variances = self.patches.variances(x, y, self.sigma)
-                rows.append(variances / self.base)
+                rows.append(self.patches.variances(x, y, self.sigma) / self.base)
             return torch.stack(rows)
+
+    def _compiled_row(self, rotated: torch.Tensor, moved: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
+        """One row of :meth:`at_depths` by the compiled projection and patch variances (the same values as
+        the torch operations, bit for bit: the same operations in the same dtype)."""
+        rotated, moved, rho = (np.ascontiguousarray(t.numpy()) for t in (rotated, moved, rho))
+        dtype = rotated.dtype
+        x, y = np.empty(rho.shape[0], dtype), np.empty(rho.shape[0], dtype)
+        project_at_depth(rotated, moved, rho, self.K.numpy().astype(dtype)[[0, 0, 0, 1, 1], [0, 1, 2, 1, 2]],
+                         dtype.type(MIN_PROJECTED_DEPTH), x, y)
+        variances = self.patches.variance_work(x, y, self.sigma).forward().astype(dtype)
+        return torch.from_numpy(variances) / self.base
