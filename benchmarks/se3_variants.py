@@ -3,8 +3,9 @@
 
 Windows: ``indoor_flying`` (346x260, seeds 100-119 held out, as ``benchmarks.accuracy_cmax``), fitted with
 ``speed=|v|`` and the preset's depth range. A variant is a list of ``field=value`` of
-:class:`cmax.fitting.FitSettings`, nested fields dotted (``refine.iterations=150``, ``patch_flow.tolerances.ftol=1e-6``); the default settings
-run too. The variants run interleaved window by window (the same load on each), one torch thread.
+:class:`cmax.fitting.FitSettings`, nested fields dotted at any depth (``refine.iterations=150``,
+``patch_flow.tolerances.ftol=1e-6``); the default settings run too. The variants run interleaved window
+by window (the same load on each), one torch thread.
 
 A single fit per window is not enough to tell two variants apart: the se3 figures move with the fit's seed
 (``FitSettings.seed``, its dither) by more than most settings do (``benchmarks/results/accuracy_noise.md``).
@@ -20,6 +21,7 @@ import argparse
 import ast
 import os
 import platform
+import sys
 import time
 import warnings
 from dataclasses import fields, replace
@@ -91,14 +93,15 @@ def paired(rows: dict[str, list[dict]], figure: str) -> dict[str, str]:
             for name, results in rows.items() if name != "default"}
 
 
-def report(rows: dict[str, list[dict]], seeds: list[int], seconds: float, fit_seeds: list[int] = (0,)) -> str:
+def report(rows: dict[str, list[dict]], seeds: list[int], seconds: float, fit_seeds: list[int] = (0,),
+           command: str = "python -m benchmarks.se3_variants") -> str:
     """The markdown report; ``rows[variant]`` holds one result per window and fit seed (windows outer)."""
     lines = ["# cmax.fit se3 under settings variants", "",
              f"`indoor_flying` seeds {seeds[0]}-{seeds[-1]} (held out), 346x260, `speed=|v|`, depth range 1-6.5 m; "
              f"fit seeds {', '.join(map(str, fit_seeds))} ({len(seeds) * len(fit_seeds)} fits per variant); "
              "the variants interleaved window by window. Machine: "
              f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1; load average "
-             f"(1 min) at the end {os.getloadavg()[0]:.2f}. Written by `python -m benchmarks.se3_variants` in "
+             f"(1 min) at the end {os.getloadavg()[0]:.2f}. Written by `{command}` in "
              f"{seconds:.0f} s. Medians / p90 over all fits, then over the fits each variant called `ok`.", "",
              "| variant | " + " | ".join(FIGURES) + " | ok windows | "
              + " | ".join(f"{f} (ok)" for f in FIGURES) + " |",
@@ -158,7 +161,8 @@ def main(argv: list[str] | None = None) -> int:
                 r = rows[name][-1]
                 print(seed, fit_seed, name, f"{r['abs_rel']:.3f} {r['direction_deg']:.1f} {r['seconds']:.2f} "
                       f"{r['verdict']}", flush=True)
-    text = report(rows, seeds, time.perf_counter() - start, fit_seeds)
+    arguments = " ".join(f'"{a}"' if "," in a or " " in a else a for a in (sys.argv[1:] if argv is None else argv))
+    text = report(rows, seeds, time.perf_counter() - start, fit_seeds, f"python -m benchmarks.se3_variants {arguments}")
     write_text_atomic(args.output, text)
     print(text)
     return 0

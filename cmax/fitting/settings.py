@@ -135,7 +135,8 @@ class PatchFlowSettings:
     information_floor : float
         The curvature's eigenvalues are clipped to at least this fraction of the largest over all patches.
     tolerances : Tolerances
-        Stopping tolerances of each level's solve (scipy's L-BFGS-B defaults).
+        Stopping tolerances of each level's solve: ``ftol`` 1e-7 (scipy's default spent most evaluations on
+        the last sliver of the decrease, for no measured accuracy: ``docs/fitting.md``), scipy's ``gtol``.
     """
 
     grid: tuple[int, int] = (4, 5)
@@ -153,7 +154,7 @@ class PatchFlowSettings:
     min_patches: int = 4
     information_step_px: float = 0.25
     information_floor: float = 1e-3
-    tolerances: Tolerances = SCIPY_DEFAULT_TOLERANCES
+    tolerances: Tolerances = Tolerances(ftol=1e-7, gtol=SCIPY_DEFAULT_TOLERANCES.gtol)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "grid", _grid("patch_flow.grid", self.grid))
