@@ -2,6 +2,7 @@
 themselves are timed by the scripts, not here)."""
 from __future__ import annotations
 
+from pathlib import Path
 from types import SimpleNamespace
 
 import numpy as np
@@ -331,3 +332,19 @@ def test_speed_shared_objective_times_both_paths_and_finds_them_equal():
             assert value < 1e-12 and gradient < 1e-10
         elif name.startswith("training loss"):
             assert value < 1e-5 and gradient < 0.05
+
+
+def test_speed_fit_ab_reports_both_checkouts_and_refuses_a_folder_that_is_not_one(tmp_path):
+    import pytest
+
+    from benchmarks import speed_fit_ab
+
+    root = Path(speed_fit_ab.__file__).resolve().parents[1]
+    seconds = {"before": [2.0, 3.0, 1.0], "after": [1.0, 1.0, 1.0]}
+    text = speed_fit_ab.report({"before": root, "after": root}, seconds, [100, 101, 102], (0.5, 0.7), "cmd")
+    assert "| before |" in text and "| after |" in text and "`cmd`" in text
+    assert "median 2.00, range 1.00-3.00" in text                       # per-window ratios 2, 3, 1
+    assert "100: 2.00, 1.00; 101: 3.00, 1.00; 102: 1.00, 1.00" in text
+    with pytest.raises(SystemExit):
+        speed_fit_ab.main(["--before", str(tmp_path), "--output", str(tmp_path / "out.md")])
+    assert not (tmp_path / "out.md").exists()
