@@ -485,6 +485,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--skip-long", action="store_true", help="simulator: skip the 10-minute run")
     parser.add_argument("--long-minutes", type=float, default=10.0,
                         help="simulator: minutes of looped video in the memory run (default 10)")
+    parser.add_argument("--cmax-cache", type=Path, default=None,
+                        help="cmax: folder of the accuracy benchmark's simulated windows (reused between runs)")
     args = parser.parse_args(argv)
     if args.events < 2 or args.repeats < 1:
         parser.error("--events must be >= 2 and --repeats >= 1")
