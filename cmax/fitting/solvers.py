@@ -44,7 +44,7 @@ class Tolerances:
             raise ValueError(f"tolerances must be positive, got ftol={self.ftol}, gtol={self.gtol}")
 
 
-#: scipy.optimize.minimize's own L-BFGS-B defaults (the patch stages were tuned with them).
+#: scipy.optimize.minimize's own L-BFGS-B defaults (the refinement's tolerances; the patch flows' gtol).
 SCIPY_DEFAULT_TOLERANCES = Tolerances(ftol=2.220446049250313e-09, gtol=1e-05)
 #: Looser tolerances for a 2-parameter flow: its error is below 0.1 px well before the default stops.
 RELAXED_TOLERANCES = Tolerances(ftol=1e-5, gtol=1e-4)
