@@ -348,3 +348,24 @@ def test_speed_fit_ab_reports_both_checkouts_and_refuses_a_folder_that_is_not_on
     with pytest.raises(SystemExit):
         speed_fit_ab.main(["--before", str(tmp_path), "--output", str(tmp_path / "out.md")])
     assert not (tmp_path / "out.md").exists()
+
+
+def test_real_cmax_seed_spread_counts_each_target_per_fit_seed():
+    """Two fit seeds of a 4-window slider sequence: seed 0 meets every target, seed 1 has a reversed window,
+    a p90 over 20 deg and its far wall at 60% of EMVS's; the table and the counts say so."""
+    from benchmarks.real_cmax import FarWall, _seed_spread_lines
+    from cmax.fitting import Verdict
+
+    def sequence(directions_deg):
+        results = tuple(SimpleNamespace(v=np.array([np.cos(np.radians(a)), np.sin(np.radians(a)), 0.0]),
+                                        verdict=Verdict.OK) for a in directions_deg)
+        return SimpleNamespace(results=results)
+
+    good = [FarWall(2.0, 2.0 * r, 50, 1.5) for r in (0.94, 1.0, 1.04, 0.98)]
+    bad = [FarWall(2.0, 2.0 * r, 50, 1.5) for r in (0.6, 0.6, 0.62, 1.0)]
+    lines = _seed_spread_lines({0: (sequence([2, 4, 6, 8]), good), 1: (sequence([5, 6, 30, 170]), bad)})
+    text = "\n".join(lines)
+    assert "| 0 | 0 | 5.0 / 7.4 | 0.990 (0.97 / 1.01) | 0 | 4 ok |" in text
+    assert "| 1 | 1 |" in text and "| 0.610 (0.60 / 0.71) | 3 |" in text
+    assert "Targets met at 1 of 2 fit seeds (no reversed window), 1 of 2 (direction" in text
+    assert "1 of 2 (far wall within 10% of EMVS)" in text
