@@ -74,10 +74,11 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
 
     calls = []
 
-    def fake_fit_sequence(events, K, speed, gyro=None, motion_members=1, zero_rotation_start=False, polish="none"):
+    def fake_fit_sequence(events, K, speed, gyro=None, motion_members=1, zero_rotation_start=False, polish="none",
+                          seed=0):
         calls.append(len(events))
         return SimpleNamespace(n=len(events), speed=speed, gyro=gyro, members=motion_members,
-                               zero_rotation_start=zero_rotation_start, polish=polish)
+                               zero_rotation_start=zero_rotation_start, polish=polish, seed=seed)
 
     monkeypatch.setattr(cmax.fitting, "fit_sequence", fake_fit_sequence)
     rng = np.random.default_rng(0)
@@ -107,14 +108,17 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
     # with the shared-objective polish: another fit, the mode passed on
     polished, _, _ = real_cmax.slider_sequence(paths[1], cache, polish="depth_motion")
     assert calls == [50, 60, 60, 60, 60, 60, 60] and polished.polish == "depth_motion"
-    # other library code: the cache is not trusted
-    real_cmax.slider_sequence(paths[1], cache)
-    assert len(calls) == 8
-    real_cmax.slider_sequence(paths[1], cache)
-    assert len(calls) == 8
-    monkeypatch.setattr(real_cmax, "library_fingerprint", lambda: "other code")
+    # at another fit seed: another fit, the seed passed on
+    seeded, _, _ = real_cmax.slider_sequence(paths[1], cache, seed=3)
+    assert calls == [50, 60, 60, 60, 60, 60, 60, 60] and seeded.seed == 3 and polished.seed == 0
+    # other library code: the cache is not trusted (the first call refits: the cache held the seed-3 fit)
     real_cmax.slider_sequence(paths[1], cache)
     assert len(calls) == 9
+    real_cmax.slider_sequence(paths[1], cache)
+    assert len(calls) == 9
+    monkeypatch.setattr(real_cmax, "library_fingerprint", lambda: "other code")
+    real_cmax.slider_sequence(paths[1], cache)
+    assert len(calls) == 10
 
 
 def test_window_speeds_of_a_slide_that_stops():

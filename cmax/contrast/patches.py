@@ -214,10 +214,11 @@ class PatchFlowContrast:
         computed by the compiled kernels with no autograd when :attr:`Patches.compiled` (the same
         arithmetic in the events' dtype; the sums over events and patches in float64), else through torch."""
         patches = self.patches
-        if not patches.compiled:
-            from cmax.fitting.solvers import torch_fun_and_grad  # the reference path
-
-            return torch_fun_and_grad(self)(q)
+        if not patches.compiled:   # the reference path: autograd of the torch operations
+            params = torch.tensor(np.asarray(q, dtype=np.float64), requires_grad=True)
+            value = self(params)
+            (grad,) = torch.autograd.grad(value, params)
+            return float(value.detach()), grad.numpy().copy()
         x, y, dt = (t.numpy() for t in (patches.x, patches.y, patches.dt))
         patch = patches.kernel_arrays[0]
         dtype = x.dtype
