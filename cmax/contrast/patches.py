@@ -288,8 +288,7 @@ class PatchMotionContrast:
         patches = self.patches
         if not patches.compiled:
             raise ValueError("sum_and_gradients needs CPU float32 / float64 events (Patches.compiled)")
-        arrays = self.kernel_arrays
-        rays, dt, k = arrays
+        rays, dt, k = self.kernel_arrays
         dtype = rays.dtype
         v64, omega64 = np.asarray(v, dtype).astype(np.float64), np.asarray(omega, dtype).astype(np.float64)
         rho = np.ascontiguousarray(rho_events, dtype=dtype)
@@ -303,7 +302,8 @@ class PatchMotionContrast:
 
     @functools.cached_property
     def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(rays (M, 3), dt (M,))`` contiguous in the events' dtype and ``K`` as the warp kernel reads it."""
+        """``(rays (M, 3), dt (M,), k (5,))``: the rays and times contiguous in the events' dtype, ``K`` as the
+        warp kernels read it (:func:`cmax.contrast._warp_kernels.intrinsics_row`, float64)."""
         return (np.ascontiguousarray(self.rays.numpy()), np.ascontiguousarray(self.patches.dt.numpy()),
                 intrinsics_row(self.K.double().numpy()))
 
@@ -314,20 +314,23 @@ class PatchMotionContrast:
         with torch.no_grad():
             rotated, moved = se3_parts(self.rays, self.patches.dt, v, omega)
             if self.patches.compiled and rho_rows.dtype == rotated.dtype:
-                return torch.stack([self._compiled_row(rotated, moved, rho) for rho in rho_rows])
+                return self._compiled_rows(rotated, moved, rho_rows)
             rows = []
             for rho in rho_rows:
                 x, y = project(rotated + rho[:, None] * moved, self.K)
                 rows.append(self.patches.variances(x, y, self.sigma) / self.base)
             return torch.stack(rows)
 
-    def _compiled_row(self, rotated: torch.Tensor, moved: torch.Tensor, rho: torch.Tensor) -> torch.Tensor:
-        """One row of :meth:`at_depths` by the compiled projection and patch variances (the same values as
+    def _compiled_rows(self, rotated: torch.Tensor, moved: torch.Tensor, rho_rows: torch.Tensor) -> torch.Tensor:
+        """The rows of :meth:`at_depths` by the compiled projection and patch variances (the same values as
         the torch operations, bit for bit: the same operations in the same dtype)."""
-        rotated, moved, rho = (np.ascontiguousarray(t.numpy()) for t in (rotated, moved, rho))
+        rotated, moved = np.ascontiguousarray(rotated.numpy()), np.ascontiguousarray(moved.numpy())
         dtype = rotated.dtype
-        x, y = np.empty(rho.shape[0], dtype), np.empty(rho.shape[0], dtype)
-        project_at_depth(rotated, moved, rho, self.K.numpy().astype(dtype)[[0, 0, 0, 1, 1], [0, 1, 2, 1, 2]],
-                         dtype.type(MIN_PROJECTED_DEPTH), x, y)
-        variances = self.patches.variance_work(x, y, self.sigma).forward().astype(dtype)
-        return torch.from_numpy(variances) / self.base
+        k, zmin = self.kernel_arrays[2].astype(dtype), dtype.type(MIN_PROJECTED_DEPTH)
+        rows = []
+        for rho in rho_rows:
+            x, y = np.empty(rho.shape[0], dtype), np.empty(rho.shape[0], dtype)
+            project_at_depth(rotated, moved, np.ascontiguousarray(rho.numpy()), k, zmin, x, y)
+            variances = self.patches.variance_work(x, y, self.sigma).forward().astype(dtype)
+            rows.append(torch.from_numpy(variances) / self.base)
+        return torch.stack(rows)
