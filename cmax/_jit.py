@@ -59,3 +59,15 @@ def kernel(function: Callable | None = None, **options: Any) -> Callable:
     if function is None:
         return lambda f: _Kernel(f, settings)
     return _Kernel(function, settings)
+
+
+def vector_kernel(function: Callable | None = None, **options: Any) -> Callable:
+    """:func:`kernel` with numpy's error model: a float division by zero gives inf or nan instead of
+    raising ``ZeroDivisionError``.
+
+    numba's default (Python's) model tests every divisor, and that branch keeps LLVM from vectorising
+    the loop around it; under this model a loop of divisions runs on SIMD registers. For kernels whose
+    divisors cannot be zero (clamped depths, positive counts plus an epsilon): a divisor that can be
+    zero needs its own guard.
+    """
+    return kernel(function, error_model="numpy", **options)

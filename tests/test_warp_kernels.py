@@ -31,7 +31,8 @@ def _both(rays, dt, v, omega, rho, K, weights):
 
 
 @pytest.mark.parametrize("dtype, tol", [(torch.float64, 1e-12), (torch.float32, 2e-5)])
-@pytest.mark.parametrize("omega_scale", [0.0, 1e-3, 0.5, 5.0])   # zero, the small-angle series, large angles
+@pytest.mark.parametrize("omega_scale", [0.0, 1e-3, 0.5, 5.0, 20.0])
+# zero, the small-angle series, large angles; at 20 some events turn by more than 1 rad: sin and cos
 def test_positions_and_gradients_equal_the_torch_warp(dtype, tol, omega_scale):
     rays, dt, rho, K = _events(3000, dtype)
     v = torch.tensor([0.3, -0.2, 1.5], dtype=dtype)
@@ -135,3 +136,34 @@ def test_the_sweep_s_projection_is_cmax_warp_project_bit_for_bit(dtype):
                      np_dtype.type(MIN_PROJECTED_DEPTH), x, y)
     np.testing.assert_array_equal(x, want_x.numpy())
     np.testing.assert_array_equal(y, want_y.numpy())
+
+
+def _exact_series(s: float, first: int, derivative: bool) -> float:
+    """``sum_j (-1)^j s^j / (2j + first)!`` (or its derivative in ``s``) in exact rational arithmetic, 30 terms
+    (the omitted ones below 1e-70 for s <= 1), rounded once to float64."""
+    from fractions import Fraction
+    from math import factorial
+
+    x, total = Fraction(s), Fraction(0)
+    for j in range(30):
+        c = Fraction((-1) ** j, factorial(2 * j + first))
+        total += c * j * x ** (j - 1) if derivative and j else (0 if derivative else c * x ** j)
+    return float(total)
+
+
+def test_the_series_coefficients_equal_their_definitions():
+    """A, B, C and their derivatives by the vectorised kernels' series (s <= 1) against their defining series
+    summed exactly, and against sin / cos where those lose no digits to cancellation."""
+    import math
+
+    from cmax.contrast._warp_kernels import _SERIES_MAX_SQ, _series
+
+    for s in [0.0, 1e-12, 1e-5, 1e-4, 2e-4, 1e-3, 0.01, 0.1, 0.37, 0.9, _SERIES_MAX_SQ]:
+        want = [_exact_series(s, first, derivative) for derivative in (False, True) for first in (1, 2, 3)]
+        for g, w in zip(_series(s), want):
+            assert abs(g - w) <= 3e-16 * abs(w), (s, g, w)
+    t = math.sqrt(0.9)
+    A, B, C, dA, _, _ = _series(0.9)
+    assert A == pytest.approx(math.sin(t) / t, rel=1e-15) and B == pytest.approx((1 - math.cos(t)) / 0.9, rel=1e-15)
+    assert C == pytest.approx((t - math.sin(t)) / (0.9 * t), rel=1e-13)
+    assert dA == pytest.approx((t * math.cos(t) - math.sin(t)) / (2 * 0.9 * t), rel=1e-13)

@@ -26,7 +26,7 @@ import cv2
 import numpy as np
 import torch
 
-from cmax._jit import kernel
+from cmax._jit import vector_kernel
 from cmax.iwe import _gaussian_kernel
 from cmax.warp import MIN_PROJECTED_DEPTH, se3_parts
 
@@ -45,7 +45,7 @@ def se3_terms(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torc
     return rotated[0], moved[0]
 
 
-@kernel(error_model="numpy")
+@vector_kernel
 def _warp(rotated, moved, rho, offset, k00, k01, k02, k11, k12, zmin, width, height, border, one, base, fx, fy,
           inside):  # pragma: no cover - compiled
     """Warp every event with each row of ``rho`` (C, N) [1/m] (:func:`cmax.warp.warp_se3`).
@@ -82,7 +82,7 @@ def _warp(rotated, moved, rho, offset, k00, k01, k02, k11, k12, zmin, width, hei
                 base[c, n] = -1
 
 
-@kernel(error_model="numpy")
+@vector_kernel
 def _splat(base, fx, fy, Wp, one, canvas):  # pragma: no cover - compiled
     """Bilinear votes of the warped events into ``canvas`` (C, P (H + 2) Wp) (zeros on entry; the
     padding collects the votes that fall off the image), corner after corner in event order as
@@ -104,7 +104,7 @@ def _splat(base, fx, fy, Wp, one, canvas):  # pragma: no cover - compiled
                 image[b_[n] + Wp + 1] += u_[n] * v_[n]
 
 
-@kernel(error_model="numpy")
+@vector_kernel
 def _sample_own(images, base, fx, fy, inside, Wp, one, score, peak, always):  # pragma: no cover - compiled
     """Each event's bilinear read (C, N) of its own polarity image in ``images`` (C, P (H + 2) Wp), zero
     padded, at its warped position (:func:`cmax.iwe.sample_bilinear`; 0 where ``base`` is -1), and the
@@ -132,7 +132,7 @@ def _sample_own(images, base, fx, fy, inside, Wp, one, score, peak, always):  # 
                     peak[n] = zero
 
 
-@kernel(error_model="numpy")
+@vector_kernel
 def _node_sums(score, scale, inside, index, weight, sums, weights):  # pragma: no cover - compiled
     """Add ``inside * weight * score / scale`` and ``inside * weight`` of every event into its four
     nodes: ``sums``, ``weights`` (C, G) (zeros on entry); ``index``, ``weight`` (N, 4), ``scale`` (N,).

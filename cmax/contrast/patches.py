@@ -288,24 +288,26 @@ class PatchMotionContrast:
         patches = self.patches
         if not patches.compiled:
             raise ValueError("sum_and_gradients needs CPU float32 / float64 events (Patches.compiled)")
-        rays, dt, k = self.kernel_arrays
+        rays, dt, k, dt_max = self.kernel_arrays
         dtype = rays.dtype
         v64, omega64 = np.asarray(v, dtype).astype(np.float64), np.asarray(omega, dtype).astype(np.float64)
         rho = np.ascontiguousarray(rho_events, dtype=dtype)
-        x, y = se3_warp_arrays(rays, dt, v64, omega64, rho, k)
+        x, y = se3_warp_arrays(rays, dt, v64, omega64, rho, k, dt_max)
         work = patches.variance_work(x, y, self.sigma)
         base = self.base.double().numpy()
         value = float(np.sum(work.forward() / base))
         gx, gy = work.backward(1.0 / base)
-        grad_v, grad_omega, grad_rho = se3_warp_gradients(rays, dt, v64, omega64, rho, k, gx, gy)
+        grad_v, grad_omega, grad_rho = se3_warp_gradients(rays, dt, v64, omega64, rho, k, gx, gy, dt_max=dt_max)
         return value, grad_v, grad_omega, grad_rho
 
     @functools.cached_property
-    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
-        """``(rays (M, 3), dt (M,), k (5,))``: the rays and times contiguous in the events' dtype, ``K`` as the
-        warp kernels read it (:func:`cmax.contrast._warp_kernels.intrinsics_row`, float64)."""
-        return (np.ascontiguousarray(self.rays.numpy()), np.ascontiguousarray(self.patches.dt.numpy()),
-                intrinsics_row(self.K.double().numpy()))
+    def kernel_arrays(self) -> tuple[np.ndarray, np.ndarray, np.ndarray, float]:
+        """``(rays (3, M), dt (M,), k (5,), dt_max)``: the rays (coordinates in rows) and times contiguous in
+        the events' dtype, ``K`` as the warp kernels read it (:func:`cmax.contrast._warp_kernels.intrinsics_row`,
+        float64), ``max |dt|`` [s]."""
+        dt = np.ascontiguousarray(self.patches.dt.numpy())
+        return (np.ascontiguousarray(self.rays.numpy().T), dt, intrinsics_row(self.K.double().numpy()),
+                float(np.abs(dt).max()) if dt.size else 0.0)
 
     def at_depths(self, v: torch.Tensor, omega: torch.Tensor, rho_rows: torch.Tensor) -> torch.Tensor:
         """``c_p`` (C, P) for one motion and each row of per-event inverse depths ``rho_rows`` (C, M) [1/m]:
