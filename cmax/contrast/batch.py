@@ -78,6 +78,18 @@ class EventWindows:
                              f"{int(self.window.max())}]")
         if int(self.width) < 1 or int(self.height) < 1:
             raise ValueError(f"width and height must be positive, got {self.width}, {self.height}")
+        with torch.no_grad():
+            for name in ("x", "y", "t"):
+                value = getattr(self, name)
+                if n[0] and not bool(torch.isfinite(value).all()):
+                    raise ValueError(f"{name} must be finite (no NaN or inf)")
+            if n[0]:
+                slack = 1e-6 * self.duration_s.abs().max() + 1e-9   # float rounding of the times
+                late = self.t - self.duration_s.to(self.t.dtype)[self.window]
+                if bool((self.t < -slack).any()) or bool((late > slack).any()):
+                    raise ValueError("t must be seconds since the start of each event's window, within [0, duration_s]"
+                                     f" (got {float(self.t.min()):.6g}..{float(self.t.max()):.6g} s against durations "
+                                     f"up to {float(self.duration_s.max()):.6g} s: microseconds?)")
 
     @property
     def count(self) -> int:

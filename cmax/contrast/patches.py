@@ -115,6 +115,8 @@ class Patches:
         ``.forward() -> (P,)`` float64, then ``.backward(scale (P,)) -> (dx (M,), dy (M,))`` of
         ``sum_p scale_p Var_p``."""
         patch, offset, grouping = self.kernel_arrays
+        _check_length("x", x.shape, patch.shape)
+        _check_length("y", y.shape, patch.shape)
         return _Workspace(x, y, patch, offset, self.size, sigma, grouping)
 
     def images(self, x: torch.Tensor, y: torch.Tensor, sigma: float) -> torch.Tensor:
@@ -131,8 +133,16 @@ class Patches:
         operations of :meth:`images`.
         """
         if _COMPILED and x.device.type == "cpu" and x.dtype in (torch.float32, torch.float64) and y.dtype == x.dtype:
+            _check_length("x", tuple(x.shape), tuple(self.patch.shape))
+            _check_length("y", tuple(y.shape), tuple(self.patch.shape))
             return _PatchVariances.apply(x, y, self.patch, self.offset, self.size, float(sigma))
         return variance(self.images(x, y, sigma))
+
+
+def _check_length(name: str, shape: tuple[int, ...], want: tuple[int, ...]) -> None:
+    """Refuse an array of the wrong shape before a compiled kernel reads it (the kernels do no bounds checks)."""
+    if tuple(shape) != tuple(want):
+        raise ValueError(f"{name} must have shape {tuple(want)}, got {tuple(shape)}")
 
 
 def cut_patches(x: torch.Tensor, y: torch.Tensor, dt: torch.Tensor, width: int, height: int, *,
@@ -214,6 +224,7 @@ class PatchFlowContrast:
         computed by the compiled kernels with no autograd when :attr:`Patches.compiled` (the same
         arithmetic in the events' dtype; the sums over events and patches in float64), else through torch."""
         patches = self.patches
+        _check_length("q", np.shape(q), (2 * patches.count,))
         if not patches.compiled:   # the reference path: autograd of the torch operations
             params = torch.tensor(np.asarray(q, dtype=np.float64), requires_grad=True)
             value = self(params)
@@ -289,6 +300,9 @@ class PatchMotionContrast:
         if not patches.compiled:
             raise ValueError("sum_and_gradients needs CPU float32 / float64 events (Patches.compiled)")
         rays, dt, k, dt_max = self.kernel_arrays
+        _check_length("rho_events", np.shape(rho_events), dt.shape)
+        _check_length("v", np.shape(v), (3,))
+        _check_length("omega", np.shape(omega), (3,))
         dtype = rays.dtype
         v64, omega64 = np.asarray(v, dtype).astype(np.float64), np.asarray(omega, dtype).astype(np.float64)
         rho = np.ascontiguousarray(rho_events, dtype=dtype)
@@ -313,6 +327,7 @@ class PatchMotionContrast:
         """``c_p`` (C, P) for one motion and each row of per-event inverse depths ``rho_rows`` (C, M) [1/m]:
         the rows of :meth:`__call__` with the depth-free part of the warp (:func:`cmax.warp.se3_parts`)
         computed once (a sweep over depths). No gradient."""
+        _check_length("each row of rho_rows", tuple(rho_rows.shape[1:]), (len(self.rays),))
         with torch.no_grad():
             rotated, moved = se3_parts(self.rays, self.patches.dt, v, omega)
             if self.patches.compiled and rho_rows.dtype == rotated.dtype:

@@ -133,8 +133,22 @@ class SweepNodeCost:
     border_px: int = 1
     vote_scale_quantile: float = 0.5
 
+    def __post_init__(self) -> None:
+        n, nodes = self.rays.shape[0], self.grid_shape[0] * self.grid_shape[1]
+        if tuple(self.rays.shape) != (n, 3) or self.dt.numel() != n or self.polarity.numel() != n:
+            raise ValueError(f"rays must be (N, 3) with dt and polarity of N events, got {tuple(self.rays.shape)}, "
+                             f"{tuple(self.dt.shape)}, {tuple(self.polarity.shape)}")
+        if tuple(self.index.shape) != (n, 4) or tuple(self.weight.shape) != (n, 4):
+            raise ValueError(f"index and weight must be (N, 4) = ({n}, 4), got {tuple(self.index.shape)} and "
+                             f"{tuple(self.weight.shape)}")
+        if n and (int(self.index.min()) < 0 or int(self.index.max()) >= nodes):
+            raise ValueError(f"index must hold nodes of the {self.grid_shape} grid (0 <= index < {nodes}), got "
+                             f"{int(self.index.min())}..{int(self.index.max())}")
+
     def __call__(self, rho_events: torch.Tensor) -> torch.Tensor:
         """Mean normalised IWE value at each node's events (C, G) for per-event inverse depths (C, N)."""
+        if rho_events.dim() != 2 or rho_events.shape[1] != self.rays.shape[0]:
+            raise ValueError(f"rho_events must be (C, N) with N = {self.rays.shape[0]}, got {tuple(rho_events.shape)}")
         if _use_compiled(self, rho_events):
             return self._compiled(rho_events)
         dtype = self.rays.dtype
