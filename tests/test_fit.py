@@ -190,6 +190,8 @@ def test_fit_sequence_integrates_windows(slider):
     (dict(motion_init="random"), ValueError, "motion_init"),
     (dict(zero_rotation_start="yes"), TypeError, "zero_rotation_start"),
     (dict(polarity_split=1), TypeError, "polarity_split"),
+    (dict(K=np.array([[10.0, 0, 60], [0, 10.0, 4], [0, 0, 1]])), ValueError, "principal point"),
+    (dict(K=np.array([[20.0, 0, 12], [0, 20.0, 9], [0, 0, 1]])), ValueError, "outside the 12x9 image"),
 ])
 def test_bad_arguments(kwargs, error, match):
     events = Events(np.arange(20) % 10, np.arange(20) % 7, np.arange(20) * 100, np.ones(20), 12, 9)
@@ -197,6 +199,39 @@ def test_bad_arguments(kwargs, error, match):
     args.update(kwargs)
     with pytest.raises(error, match=match):
         fit(events, **args)
+
+
+def test_a_non_finite_init_and_window_lengths_in_other_units_are_refused(slider):
+    """A warm start must be a motion (NaN / inf refused before any fit); fit_sequence's lengths are integer
+    microseconds (a float of seconds, or True, refused; a float holding whole microseconds is taken)."""
+    import dataclasses
+
+    events, K = slider.events, slider.K
+    start = fit(events, K, model="flow")
+    for field, value in (("flow", np.array([np.nan, 0.0])), ("flow", np.array([np.inf, 0.0]))):
+        with pytest.raises(ValueError, match="non-finite motion"):
+            fit(events, K, model="flow", init=dataclasses.replace(start, **{field: value}))
+    with pytest.raises(ValueError, match="whole microseconds"):
+        fit_sequence(events, K, model="flow", window_us=0.09)
+    with pytest.raises(TypeError, match="integer microseconds"):
+        fit_sequence(events, K, model="flow", window_us=True)
+    span = int(events.t[-1] - events.t[0])
+    assert len(fit_sequence(events, K, model="flow", window_us=float(span)).results) == 1
+
+
+def test_depth_pinned_to_an_end_of_depth_range_is_a_bound_failure(slider):
+    """The slider window's wall lies at 3.9 m: a range that stops at 0.3 m pins the depth to its far end (the
+    sweep reports it, BoundWarning, success False); a range that holds it does not."""
+    from cmax.fitting import BoundWarning
+
+    pose = slider.twist
+    with pytest.warns(BoundWarning, match="far end"):
+        pinned = fit(slider.events, slider.K, pose=pose, depth_range=(0.1, 0.3))
+    sweep = [log for log in pinned.stages if log.stage == "depth_sweep"][0]
+    assert sweep.at_bound == ("depth_far",) and not sweep.success and not pinned.success
+    assert np.median(pinned.depth[pinned.mask]) == pytest.approx(0.3, rel=0.05)
+    free = fit(slider.events, slider.K, pose=pose, depth_range=(0.1, 20.0))
+    assert free.success and all(not log.at_bound for log in free.stages)
 
 
 def test_bad_windows():

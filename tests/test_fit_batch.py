@@ -118,13 +118,14 @@ def test_warnings_come_back_in_window_order_named_by_window():
 
 @pytest.mark.parametrize("jobs", [1, 2])
 def test_a_failing_window_is_named_and_keeps_its_cause(jobs):
-    """A 12x9 window is too small for the default 24x32 depth grid: cmax.fit raises inside the fit."""
-    tiny = Events(np.arange(20) % 10, np.arange(20) % 7, np.arange(20) * 100, np.ones(20), 12, 9)
+    """A 60x45 window is too small for a 60x80 depth grid (the 120x90 ones are not): cmax.fit raises inside
+    the fit, in the worker."""
+    tiny = Events(np.arange(20) % 10, np.arange(20) % 7, np.arange(20) * 100, np.ones(20), 60, 45)
     windows = [translating_edges((300.0, 0.0), 0), tiny, translating_edges((300.0, 0.0), 1)]
     with pytest.raises(ValueError, match="finer than the image"):
-        cmax.fit(tiny, K, "flow")
+        cmax.fit(tiny, K, "flow", depth_grid=(60, 80))
     with pytest.raises(WindowFitError, match=r"window 1 \(0-1900 us\): ValueError: .*finer than the image") as info:
-        fit_windows(windows, K, "flow", jobs=jobs, progress=False)
+        fit_windows(windows, K, "flow", jobs=jobs, progress=False, depth_grid=(60, 80))
     assert info.value.index == 1 and isinstance(info.value.__cause__, ValueError)
     assert multiprocessing.active_children() == []
 

@@ -11,6 +11,7 @@ import numpy as np
 import pytest
 
 from benchmarks.synthetic_windows import make_window
+from cmax import Events
 from cmax.fitting import LowMotionWarning, QualitySettings, Verdict, fit, fit_sequence
 from cmax.fitting import sequence as sequence_module
 from cmax.fitting.quality import Alternative, Quality, choose_from_neighbours, choose_from_run, verdict_of
@@ -48,6 +49,21 @@ def test_the_worst_verdict_wins():
     assert "bas_relief" not in ambiguous.reason
     ok = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[far])
     assert ok.verdict is Verdict.OK and "closest: bas_relief" in ok.reason
+
+
+def test_a_window_the_ambiguity_test_cannot_hold_is_not_ok():
+    """All events on one corner pixel: one patch, so no alternative can be scored; the fit found a
+    direction with parallax, but nothing checks it against its mirror: ambiguous, never ok."""
+    assert verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[], note="x",
+                      untestable=True).verdict is Verdict.AMBIGUOUS
+    assert verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[]).verdict is Verdict.OK
+    rng = np.random.default_rng(0)
+    n = 3000
+    events = Events(np.full(n, 63), np.full(n, 47), np.sort(rng.integers(0, 100_000, n)), rng.integers(0, 2, n),
+                    width=64, height=48)
+    result = fit(events, np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]]), speed=0.5)
+    assert result.parallax_px > 1.0   # the fit's own verdict rules out low parallax (3.4 px measured)
+    assert result.verdict is Verdict.AMBIGUOUS and "ambiguity not tested" in result.quality.reason
 
 
 @pytest.mark.parametrize("field, value", [("margin", -0.1), ("noise_sigmas", float("nan")), ("neighbours", 0),

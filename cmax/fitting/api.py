@@ -196,6 +196,10 @@ def _check_inputs(events: object, K: object, model: str) -> np.ndarray:
     K = check_intrinsics(K)
     if abs(np.linalg.det(K)) < 1e-12:
         raise ValueError(f"K must be invertible, got {K.tolist()}")
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (-0.5 <= cx <= events.width - 0.5 and -0.5 <= cy <= events.height - 0.5):
+        raise ValueError(f"K's principal point ({cx:g}, {cy:g}) lies outside the {events.width}x{events.height} "
+                         "image: K belongs to another sensor size or crop (give the K of these pixels)")
     if len(events) < 10:
         raise ValueError(f"events: a window needs at least 10 events to fit a motion, got {len(events)}")
     if events.t[-1] == events.t[0]:
@@ -356,6 +360,9 @@ def fit(
     known_omega = None if omega is None else _known_omega(omega, pose)
     if init is not None and not isinstance(init, FitResult):
         raise TypeError(f"init must be a FitResult, got {type(init).__name__}")
+    if init is not None and not all(np.isfinite(np.asarray(part, dtype=np.float64)).all()
+                                    for part in (init.v, init.omega, init.flow) if part is not None):
+        raise ValueError("init holds a non-finite motion (NaN or inf in v, omega or flow): it cannot start a fit")
     backend = make_solver(solver)
     pose_xi = None if pose is None else _pose_twist(pose, (int(events.t[-1]) - int(events.t[0])) * 1e-6)
     scale = float(np.linalg.norm(pose_xi[:3])) if pose_xi is not None else (speed or 1.0)
@@ -442,10 +449,11 @@ def _quality(w: Window, result: FitResult, low: str | None, solver: Solver, *, p
     alternatives, note = (), ("ambiguity not tested: the pose is given" if pose_known else
                               "ambiguity not tested: a model without translation" if result.model != "se3" else
                               "ambiguity not tested (QualitySettings.ambiguity_test False)")
+    tested = True
     if result.model == "se3" and not pose_known and quality.ambiguity_test and result.success and low is None:
-        alternatives, note = assess(w, result.v, result.omega, speed, quality, solver, hold_omega=hold_omega)
+        alternatives, note, tested = assess(w, result.v, result.omega, speed, quality, solver, hold_omega=hold_omega)
     return verdict_of(success=result.success, failed_stages=failed, low_motion=low, alternatives=alternatives,
-                      note=note)
+                      note=note, untestable=not tested)
 
 
 def _warn(result: FitResult, settings: FitSettings, low: str | None, pose_known: bool) -> None:
@@ -461,11 +469,19 @@ def _warn(result: FitResult, settings: FitSettings, low: str | None, pose_known:
         reason = f"no stage improved on the start ({', '.join(kept)})" if kept else low
         warnings.warn(f"cmax.fit: {reason}: the motion is too small to measure reliably; a longer window gives "
                       "more motion", LowMotionWarning, stacklevel=3)
-    bounds = [(log.stage, name) for log in result.stages for name in log.at_bound]
+    bounds = [(log.stage, name) for log in result.stages for name in log.at_bound if not name.startswith("depth_")]
     if bounds:
         warnings.warn(f"cmax.fit: {', '.join(f'{n} ({s})' for s, n in bounds)} ended on its bound: the true value "
                       "is probably beyond it (raise FitSettings.max_omega / max_flow_px); success is False",
                       BoundWarning, stacklevel=3)
+    depth = [name for log in result.stages for name in log.at_bound if name.startswith("depth_")]
+    if depth:
+        lo, hi = settings.depth_range
+        ends = " and ".join(f"the {'near' if n == 'depth_near' else 'far'} end ({lo if n == 'depth_near' else hi:g} m)"
+                            for n in depth)
+        warnings.warn(f"cmax.fit: at least {settings.depth_bound_fraction:.0%} of the events' depth ended on {ends} "
+                      f"of depth_range: the scene probably lies beyond it, or the speed / pose is in other units "
+                      "(m/s, m); widen depth_range or check the units; success is False", BoundWarning, stacklevel=3)
 
 
 def event_pixels(x: np.ndarray, y: np.ndarray, height: int, width: int) -> np.ndarray:

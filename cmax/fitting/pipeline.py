@@ -450,6 +450,31 @@ class DepthSweepStage:
             coarsening=s.depth_coarsening, refinements=tuple(s.depth_refinements),
             refine_candidates=s.sweep.refine_candidates, chunk=s.sweep.chunk, border_px=s.sweep.border_px,
             vote_scale_quantile=s.sweep.vote_scale_quantile)
-        log = StageLog(self.name, float("nan"), float("nan"), 0, 0, time.perf_counter() - start,
-                       f"plane sweep over {s.depth_candidates} inverse depths (no solver)", True)
+        shares = depth_on_bounds(result.inverse_depth, w.index, w.weight, (1.0 / hi, 1.0 / lo), s.depth_candidates)
+        bound = tuple(name for name, share in shares.items() if share >= s.depth_bound_fraction)
+        message = (f"plane sweep over {s.depth_candidates} inverse depths (no solver); events' depth on the near "
+                   f"bound {shares['depth_near']:.0%}, on the far bound {shares['depth_far']:.0%}")
+        log = StageLog(self.name, float("nan"), float("nan"), 0, 0, time.perf_counter() - start, message, not bound,
+                       bound)
         return replace(motion, inverse_depth=result.inverse_depth.reshape(w.grid.shape)), log
+
+
+def depth_on_bounds(inverse_depth: np.ndarray, index: torch.Tensor, weight: torch.Tensor,
+                    rho_range: tuple[float, float], candidates: int) -> dict[str, float]:
+    """Shares of the events' depth on each end of the range: ``{"depth_near": ..., "depth_far": ...}``.
+
+    ``inverse_depth`` (G,) [1/m] of the grid's nodes, each event's nodes and bilinear weights ``index``,
+    ``weight`` (N, 4) (:meth:`cmax.warp.DepthGrid.weights`), ``rho_range = (1/far, 1/near)`` [1/m]; a node is on
+    an end within half a step of a ``candidates``-plane sweep over the range (uniform in log inverse depth).
+    """
+    rho = np.asarray(inverse_depth, float).reshape(-1)
+    low, high = rho_range
+    half_step = 0.5 * np.log(high / low) / max(candidates - 1, 1)
+    mass = np.bincount(index.reshape(-1).numpy(), weight.reshape(-1).double().numpy(), minlength=rho.size)
+    total = float(mass.sum())
+    if total <= 0:
+        return {"depth_near": 0.0, "depth_far": 0.0}
+    with np.errstate(divide="ignore", invalid="ignore"):
+        near = np.log(high / rho) <= half_step
+        far = np.log(rho / low) <= half_step
+    return {"depth_near": float(mass[near].sum()) / total, "depth_far": float(mass[far].sum()) / total}

@@ -216,18 +216,19 @@ class MotionScorer:
 
 
 def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualitySettings, solver, *,
-           hold_omega: bool) -> tuple[tuple[Alternative, ...], str]:
+           hold_omega: bool) -> tuple[tuple[Alternative, ...], str, bool]:
     """The ambiguity test of a se3 fit ``(v, omega)`` of window ``w`` (a :class:`cmax.fitting.window.Window`),
     polishing the alternatives with ``solver`` (a :class:`cmax.fitting.solvers.Solver`).
 
-    Returns ``(alternatives, note)``: none, and ``note`` saying why, when the window has fewer than
-    ``w.settings.refine.min_patches`` patches with events (nothing to test on); ``note`` also names the
-    alternatives dropped because their polish ended on the fit (within ``settings.distinct_deg``).
+    Returns ``(alternatives, note, tested)``: ``tested`` False, no alternatives and ``note`` saying why when
+    the window has fewer than ``w.settings.refine.min_patches`` patches with events (nothing to test on: the
+    verdict cannot be ``ok``); ``note`` also names the alternatives dropped because their polish ended on
+    the fit (within ``settings.distinct_deg``).
     """
     scorer = MotionScorer.build(w, v, omega, speed, settings)
     if scorer is None:
         return (), (f"ambiguity not tested: fewer than {max(w.settings.refine.min_patches, 2)} patches hold "
-                    "events")
+                    "events"), False
     refine = w.settings.refine
     alternatives, merged = [], []
     for name, v_alt, omega_alt in alternative_motions(scorer.objective, v, omega, scorer.rho, hold_omega=hold_omega):
@@ -241,7 +242,7 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
                 continue
         alternatives.append(scorer.score(name, v_alt, omega_alt))
     note = f"the {', '.join(merged)} alternative(s) polished back onto the fit" if merged else ""
-    return tuple(alternatives), note
+    return tuple(alternatives), note, True
 
 
 # ----------------------------------------------------------------------------------------------
@@ -282,10 +283,12 @@ def motion_within_noise(w, x: torch.Tensor, y: torch.Tensor, settings: QualitySe
 # The verdict
 # ----------------------------------------------------------------------------------------------
 def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: str | None,
-               alternatives: Sequence[Alternative], note: str = "") -> Quality:
+               alternatives: Sequence[Alternative], note: str = "", untestable: bool = False) -> Quality:
     """The verdict from the fit's ``success`` (and the names of its failed stages), a low-motion reason
     (low parallax or motion, None when enough) and the ambiguity test's ``alternatives``;
-    the worst one wins (failed, low parallax, ambiguous, ok)."""
+    the worst one wins (failed, low parallax, ambiguous, ok). ``untestable``: the ambiguity test was due
+    but the window could not hold it (:func:`assess`'s ``tested`` False): ambiguous, since nothing
+    tells the fitted direction from its mirror."""
     if not success:
         return Quality(Verdict.FAILED, f"stage(s) failed: {', '.join(failed_stages) or 'unknown'}",
                        tuple(alternatives))
@@ -295,6 +298,9 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: str |
     if close:
         reason = "; ".join(f"{a.name} within noise (gain {a.gain:.3g} <= noise {a.noise:.3g})" for a in close)
         return Quality(Verdict.AMBIGUOUS, reason, tuple(alternatives))
+    if untestable:
+        return Quality(Verdict.AMBIGUOUS, f"{note or 'ambiguity not tested'}: nothing tells the fitted direction "
+                       "from its mirrored or rotation-swapped alternatives", tuple(alternatives))
     if alternatives:
         worst = min(alternatives, key=lambda a: a.gain)
         reason = (f"every alternative scores worse beyond noise (closest: {worst.name}, gain {worst.gain:.3g} > "

@@ -7,7 +7,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cmax._threads import torch_threads_scope
-from cmax.events import Events
+from cmax.events import Events, check_time_us
 from cmax.fitting.api import FitResult, _check_inputs, _settings, fit
 from cmax.fitting.batch import FitTask, check_jobs, check_options, run_tasks
 from cmax.fitting.quality import MotionScorer, Verdict, _distance_deg, choose_from_neighbours, choose_from_run
@@ -175,7 +175,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         raise ValueError(f"warm starts chain the windows one after another: jobs={jobs} needs warm_start=False")
     if jobs != 1:                                # refused here rather than by every worker
         check_options(model, {"speed": speed, "settings": settings, **fit_options}, jobs)
-    step_us = window_us if step_us is None else int(step_us)
+    window_us = check_time_us("window_us", window_us)
+    step_us = window_us if step_us is None else check_time_us("step_us", step_us)
     if window_us <= 0 or step_us <= 0:
         raise ValueError(f"window_us and step_us must be positive, got {window_us}, {step_us}")
     if gyro is not None:

@@ -366,6 +366,11 @@ class FitSettings:
         The sweep over the whole range runs on a grid this many times coarser than ``depth_grid``.
     depth_refinements : tuple of float
         Half-widths (log of a factor) of the relative sweeps that follow the first one.
+    depth_bound_fraction : float
+        When at least this share of the events' depth (by their grid weights) ends on one end of
+        ``depth_range`` (within half a sweep step), the sweep reports that bound (``depth_near`` /
+        ``depth_far``): a ``BoundWarning``, ``success`` False. Under it the shares are only noted in the
+        stage's message.
     motion_init : MotionInit or str
         ``"patches"`` (patch flows and the motion-field equations) or ``"starts"``.
     motion_refinement : Refinement or str
@@ -451,6 +456,7 @@ class FitSettings:
     depth_smoothness: tuple[float, float] = (0.1, 1.0)
     depth_coarsening: int = 2
     depth_refinements: tuple[float, ...] = (0.3, 0.1)
+    depth_bound_fraction: float = 0.5
     alternations: int = 0
     motion_init: MotionInit = MotionInit.PATCHES
     motion_refinement: Refinement = Refinement.LOCAL
@@ -528,6 +534,8 @@ class FitSettings:
         if not (np.isfinite(self.collapse_weight) and self.collapse_weight >= 0):
             raise ValueError(f"collapse_weight must be >= 0, got {self.collapse_weight!r}")
         _positive_int("depth_candidates", self.depth_candidates, 2)
+        if not (isinstance(self.depth_bound_fraction, (int, float)) and 0 < self.depth_bound_fraction <= 1):
+            raise ValueError(f"depth_bound_fraction must be in (0, 1], got {self.depth_bound_fraction!r}")
         _positive_int("alternations", self.alternations, 0)
         _positive_int("polish_iterations", self.polish_iterations)
         _positive_int("translation_starts", self.translation_starts)
