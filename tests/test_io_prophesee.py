@@ -309,7 +309,9 @@ def test_sensor_size_from_header(tmp_path: Path, header: bytes, size: tuple[int,
     path = _write(tmp_path / "h.raw", header, [0x8000, 0x6000, 0x0001, 0x2002], "<u2")
     assert read_evt3(path).sensor_size == size
     assert read_raw(path).sensor_size == size
-    assert read_evt3(path, width=100, height=90).sensor_size == (100, 90)
+    assert read_evt3(path, width=size[0], height=size[1]).sensor_size == size
+    with pytest.raises(ValueError, match=rf"width=100, height=90 contradicts the {size[0]}x{size[1]} sensor"):
+        read_evt3(path, width=100, height=90)
 
 
 def test_sensor_size_unknown(tmp_path: Path) -> None:
@@ -373,10 +375,11 @@ def test_reserved_word_offset(tmp_path: Path) -> None:
 
 
 def test_event_outside_sensor(tmp_path: Path) -> None:
-    path = _write(tmp_path / "o.raw", EVT3_HEADER, [0x8000, 0x6000, 0x0001, 0x3010, 0x4800], "<u2")
-    message = rf"x=27 outside the 20x16 sensor, at byte offset {len(EVT3_HEADER) + 8}"
+    header = b"% evt 3.0\n% format EVT3;height=16;width=20\n% end\n"
+    path = _write(tmp_path / "o.raw", header, [0x8000, 0x6000, 0x0001, 0x3010, 0x4800], "<u2")
+    message = rf"x=27 outside the 20x16 sensor, at byte offset {len(header) + 8}"
     with pytest.raises(FormatError, match=message):
-        read_evt3(path, width=20, height=16)
+        read_evt3(path)
     path2 = _write(tmp_path / "o2.raw", EVT2_HEADER, [0x80000000, 0x00000020], "<u4")
     with pytest.raises(FormatError, match="y=32 outside"):
         read_evt2(path2)

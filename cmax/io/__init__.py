@@ -25,12 +25,13 @@ import h5py
 import numpy as np
 
 from cmax.events import Events, check_event_count
-from cmax.io._checks import check_polarity_encoding, check_time_unit, polarity_01, times_to_us
+from cmax.io._checks import (check_polarity_encoding, check_stated_size, check_time_unit, polarity_01,
+                             times_to_us)
 from cmax.io.aedat4 import read_aedat4, read_aedat4_imu
 from cmax.io.errors import FormatError
 from cmax.io.gyro import read_gyro
 from cmax.io.h5 import H5_ERRORS, H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
-from cmax.io.mvsec import read_mvsec
+from cmax.io.mvsec import MVSEC_HEIGHT, MVSEC_WIDTH, read_mvsec
 from cmax.io.prophesee import read_evt2, read_evt3, read_raw, write_evt2, write_evt3
 from cmax.io.text import read_txt, write_txt
 
@@ -108,7 +109,8 @@ def read(
     path : str or Path
     width, height : int, optional
         Sensor size, needed where the file does not store it (ECD text, NumPy,
-        original DSEC files); it overrides nothing a file states.
+        original DSEC files); it overrides nothing a file states: a size that
+        differs from the file's raises :class:`ValueError`.
     t0_us, t1_us : int, optional
         Keep only ``t0_us <= t < t1_us`` (absolute µs). HDF5 files read only
         that slice from disk; other formats are decoded whole, then cut.
@@ -131,6 +133,7 @@ def read(
     if kind == "dsec":
         return read_h5(path, width=width, height=height, t0_us=t0_us, t1_us=t1_us, time_unit=time_unit, **options)
     if kind == "mvsec":
+        check_stated_size(width, height, (MVSEC_WIDTH, MVSEC_HEIGHT), f"{path} (MVSEC, a DAVIS346)")
         return read_mvsec(path, t0_us=t0_us, t1_us=t1_us, time_unit=time_unit, **options)
     if kind in ("aedat4", "raw") and time_unit not in (None, "us"):
         raise ValueError(f"{path} ({kind}) stores integer microseconds; time_unit={time_unit!r} does not apply")
@@ -138,6 +141,7 @@ def read(
         raise ValueError(f"{path} ({kind}) states its polarities itself; polarity={options['polarity']!r} does not apply")
     if kind == "aedat4":
         events = read_aedat4(path, **options)
+        check_stated_size(width, height, events.sensor_size, path)
     elif kind == "raw":
         events = read_raw(path, width=width, height=height, **options)
     else:

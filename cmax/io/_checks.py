@@ -10,10 +10,12 @@ the format (or the caller) states; any other value is refused, never mapped.
 from __future__ import annotations
 
 import math
+import os
 from typing import Any
 
 import numpy as np
 
+from cmax.events import _check_sensor_size
 from cmax.io.errors import FormatError
 
 __all__ = [
@@ -189,3 +191,28 @@ def check_allocated(dataset: Any, where: str) -> None:
             f"{dsid.get_storage_size():,} of their {dataset.size * dataset.dtype.itemsize:,} bytes "
             "(truncated or crafted; refusing to allocate)"
         )
+
+
+def check_stated_size(
+    width: int | None, height: int | None, stated: tuple[int, int], where: str | os.PathLike
+) -> tuple[int, int]:
+    """The sensor size ``stated`` by the file ``where``, after checking the caller's ``width``/``height``.
+
+    A caller's size is for files that store none: one given for a file that
+    states its own must equal it (pixels), else :class:`ValueError`; nothing is
+    overridden or ignored silently. ``stated`` is returned unchanged.
+
+    >>> check_stated_size(None, None, (64, 48), "a.h5"), check_stated_size(64, 48, (64, 48), "a.h5")
+    ((64, 48), (64, 48))
+    """
+    if width is None and height is None:
+        return stated
+    if width is None or height is None:
+        raise ValueError("give both width and height, or neither")
+    width, height = _check_sensor_size(width, height)
+    if (width, height) != tuple(stated):
+        raise ValueError(
+            f"width={width}, height={height} contradicts the {stated[0]}x{stated[1]} sensor that {where} "
+            "states; leave the size out (it is for files that do not store one)"
+        )
+    return stated

@@ -10,6 +10,8 @@ Layout (Gehrig et al., "DSEC", RA-L 2021), one group per file::
     ms_to_idx  (M,) uint64     ms_to_idx[k] = index of the first event with t >= 1000*k
     t_offset   ()   int64      µs added to events/t to give absolute time
 
+``events/t`` and ``t_offset`` carry the attribute ``unit = "us"`` (files of
+earlier versions, like DSEC's own, carry none: integer times are then µs),
 plus file attributes ``width``, ``height`` and whatever the writer was given
 (simulator settings, source). Files written here are chunked and compressed
 (Blosc/LZ4 with byte shuffle through ``hdf5plugin`` by default, gzip on request)
@@ -28,8 +30,8 @@ import hdf5plugin
 import numpy as np
 
 from cmax.events import Events, _check_sensor_size, check_event_count, check_time_us, window_steps
-from cmax.io._checks import (add_offset, check_allocated, check_offset, check_polarity_encoding, check_time_unit,
-                             polarity_01, scalar_to_us, times_to_us, unit_from_attrs)
+from cmax.io._checks import (add_offset, check_allocated, check_offset, check_polarity_encoding, check_stated_size,
+                             check_time_unit, polarity_01, scalar_to_us, times_to_us, unit_from_attrs)
 from cmax.io.atomic import AtomicOutput, write_error
 from cmax.io.errors import FormatError
 
@@ -245,6 +247,7 @@ class H5Writer:
             )
             for name, dtype in _COLUMNS.items()
         }
+        self._datasets["t"].attrs["unit"] = "us"
 
     def _guarded(self, action, *args) -> Any:
         """Run a step that writes; on any failure remove the temporary file (a write error names ``path``)."""
@@ -343,7 +346,7 @@ class H5Writer:
         closing = np.array([self._count], dtype=np.uint64)
         ms_to_idx = np.concatenate(self._ms_to_idx + [closing])
         self._file.create_dataset("ms_to_idx", data=ms_to_idx, **self._filters)
-        self._file.create_dataset("t_offset", data=np.int64(self._t_offset or 0))
+        self._file.create_dataset("t_offset", data=np.int64(self._t_offset or 0)).attrs["unit"] = "us"
         self._file.attrs["event_count"] = np.int64(self._count)
         self._file.attrs["complete"] = True  # the last thing written
         self._file.close()
@@ -464,6 +467,10 @@ def is_dsec_h5(file: h5py.File) -> bool:
     )
 
 
+class _CallerError(ValueError):
+    """A caller's argument that contradicts the file (kept apart from h5py's errors on corrupt files)."""
+
+
 class H5Reader:
     """Random access to a DSEC-layout HDF5 event file.
 
@@ -486,11 +493,14 @@ class H5Reader:
     path : str or Path
     width, height : int, optional
         Sensor size, for files without ``width``/``height`` attributes (original
-        DSEC files are 640x480 and carry none).
+        DSEC files are 640x480 and carry none). A size that differs from the
+        one the file's attributes state raises :class:`ValueError`.
     time_unit : {'us', 'ms', 's'}, optional
         Unit of ``events/t`` and ``t_offset``; default: the unit the file states
         (attribute ``unit``/``units`` of ``events/t``, or ``time_unit`` of the
-        file), else µs for integer times. Must agree with a unit the file states.
+        file), else µs for integer times. Must agree with a unit the file states
+        (files of :class:`H5Writer` state ``"us"``); files that state none (DSEC's
+        own, earlier versions of this writer) with integer times are µs by default.
     polarity : {'01', 'signed'}
         Encoding of ``events/p``: ``'01'`` (0 OFF, 1 ON, the layout's) or
         ``'signed'`` (-1 OFF, +1 ON). Other values raise :class:`FormatError`.
@@ -516,6 +526,9 @@ class H5Reader:
         except FormatError:
             self._file.close()
             raise
+        except _CallerError as error:  # the caller's arguments, not the file: not "corrupt"
+            self._file.close()
+            raise ValueError(str(error)) from None
         except H5_ERRORS as error:  # corrupt metadata surfaces as any of these from h5py
             self._file.close()
             raise FormatError(f"{self.path}: corrupt HDF5 file ({type(error).__name__}: {error})") from None
@@ -540,8 +553,12 @@ class H5Reader:
         for name, column in self._columns.items():
             check_allocated(column, f"{self.path}: events/{name}")
         attrs = self._file.attrs
-        if width is None and height is None and "width" in attrs and "height" in attrs:
-            width, height = int(attrs["width"]), int(attrs["height"])
+        if "width" in attrs and "height" in attrs:
+            stated = int(attrs["width"]), int(attrs["height"])
+            try:
+                width, height = check_stated_size(width, height, stated, self.path)
+            except ValueError as error:
+                raise _CallerError(str(error)) from None
         if width is None or height is None:
             raise FormatError(
                 f"{self.path} stores no sensor size; pass width= and height= (cmax: --size WxH; DSEC: 640x480)"
@@ -582,6 +599,11 @@ class H5Reader:
             raise FormatError(
                 f"{self.path}: time_unit={stated!r} contradicts the unit the file states ({in_file!r})"
             )
+        if stated not in (None, "us") and in_file is None and self._written_here() and column.dtype.kind in "iu":
+            raise FormatError(
+                f"{self.path}: time_unit={stated!r} contradicts the file's layout: H5Writer (attribute "
+                "layout='dsec') stores integer µs; leave time_unit out"
+            )
         unit = stated or in_file
         if unit is None:
             if column.dtype.kind == "f":
@@ -594,6 +616,14 @@ class H5Reader:
                 raise FormatError(f"{self.path}: events/t must hold numbers, got dtype {column.dtype}")
             unit = "us"
         return unit
+
+    def _written_here(self) -> bool:
+        """Whether :class:`H5Writer` wrote the file (attribute ``layout='dsec'``, in every version; the
+        ``unit`` attributes of ``events/t`` came later)."""
+        layout = self._file.attrs.get("layout")
+        if isinstance(layout, bytes):
+            layout = layout.decode("utf-8", "replace")
+        return isinstance(layout, str) and layout == "dsec"
 
     # -- metadata ---------------------------------------------------------------------
     def __len__(self) -> int:

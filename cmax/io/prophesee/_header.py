@@ -15,6 +15,7 @@ from typing import Union
 
 from cmax.events import _check_sensor_size
 from cmax.io.errors import FormatError
+from cmax.io._checks import check_stated_size
 
 PathLike = Union[str, "os.PathLike[str]"]
 
@@ -98,14 +99,22 @@ def _read_header(path: Path) -> _Header:
 def _sensor_size(
     header: _Header, width: int | None, height: int | None, path: Path
 ) -> tuple[int, int]:
+    """(width, height) in pixels: the header's, which a caller's size must equal (else :class:`ValueError`);
+    the caller's where the header states none (or none readable)."""
     if (width is None) != (height is None):
         raise ValueError("give both width and height, or neither")
     if width is not None:
-        return _check_sensor_size(width, height)
+        width, height = _check_sensor_size(width, height)
     try:
         size = header.sensor_size()
     except ValueError:
+        if width is not None:
+            return width, height
         raise FormatError(f"{path}: unreadable sensor size in the header {header.fields}") from None
+    if size is not None and width is not None:
+        return check_stated_size(width, height, size, path)
+    if width is not None:
+        return width, height
     if size is None:
         raise FormatError(
             f"{path}: the header gives no sensor size (no 'format ...;width=;height=', "

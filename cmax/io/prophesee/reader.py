@@ -150,7 +150,7 @@ def read_evt3(
     width, height : int, optional, keyword-only
         Sensor size in pixels; by default from the header (``format
         EVT3;width=;height=``, ``geometry WxH`` or a known ``plugin_name``).
-        Given, they take precedence over the header.
+        Given, they must equal a size the header states (else :class:`ValueError`).
     sort : bool, keyword-only
         If the stream's time goes back (which the format does not produce;
         a sign of corruption), sort the events stably by time instead of

@@ -1,0 +1,145 @@
+"""A caller's sensor size or time unit never overrides what a file states: equal is accepted, different refused.
+
+``cmax.io.read(path, width=, height=)`` (CLI ``--size``) is for files that store no size; ``time_unit`` (CLI
+``--time-unit``) for files that leave the unit open. Files written by :class:`cmax.io.H5Writer` state µs.
+"""
+from __future__ import annotations
+
+from pathlib import Path
+
+import h5py
+import numpy as np
+import pytest
+
+from cmax.cli import main
+from cmax.events import Events
+from cmax.io import FormatError, H5Reader, read, read_evt2, read_evt3, read_h5, write_evt2, write_evt3, write_h5
+from conftest import random_events
+
+W, H = 64, 48
+CONTRADICTS = r"width={}, height={} contradicts the 64x48 sensor that .*{} states; leave the size out"
+
+
+@pytest.fixture
+def events() -> Events:
+    return random_events(500, width=W, height=H, t_span_us=50_000)
+
+
+def _refused(call, width: int, height: int, name: str) -> None:
+    """``call`` raises a plain ValueError (the caller's mistake, not a corrupt file) naming both sizes."""
+    with pytest.raises(ValueError, match=CONTRADICTS.format(width, height, name)) as error:
+        call()
+    assert not isinstance(error.value, FormatError)
+    assert "corrupt" not in str(error.value) and "\n" not in str(error.value)
+
+
+# -- sensor size ----------------------------------------------------------------------
+@pytest.mark.parametrize("width, height", [(128, 96), (32, 24), (64, 49)])
+def test_h5_refuses_a_size_other_than_its_own(tmp_path: Path, events: Events, width: int, height: int) -> None:
+    path = write_h5(tmp_path / "ev.h5", events)
+    _refused(lambda: read(path, width=width, height=height), width, height, "ev.h5")
+    _refused(lambda: read_h5(path, width=width, height=height, t0_us=0, t1_us=10_000), width, height, "ev.h5")
+    _refused(lambda: H5Reader(path, width=width, height=height), width, height, "ev.h5")
+
+
+def test_h5_accepts_its_own_size_and_a_size_where_it_states_none(tmp_path: Path, events: Events) -> None:
+    path = write_h5(tmp_path / "ev.h5", events)
+    assert read(path, width=W, height=H) == events
+    with pytest.raises(ValueError, match="give both width and height"):
+        read(path, width=W)
+    with h5py.File(path, "a") as file:
+        del file.attrs["width"], file.attrs["height"]
+    assert read(path, width=W, height=H) == events
+    assert read(path, width=100, height=90).sensor_size == (100, 90)
+
+
+@pytest.mark.parametrize("fmt", ["evt3", "evt2"])
+def test_raw_refuses_a_size_other_than_its_header(tmp_path: Path, events: Events, fmt: str) -> None:
+    writer, reader = {"evt3": (write_evt3, read_evt3), "evt2": (write_evt2, read_evt2)}[fmt]
+    path = tmp_path / f"ev.{fmt}.raw"
+    writer(path, events)
+    _refused(lambda: read(path, width=128, height=96), 128, 96, f"ev.{fmt}.raw")
+    _refused(lambda: reader(path, width=2000, height=2000), 2000, 2000, f"ev.{fmt}.raw")
+    assert read(path, width=W, height=H) == events
+    assert reader(path) == events
+
+
+def test_raw_refuses_a_size_other_than_its_plugins(tmp_path: Path) -> None:
+    path = tmp_path / "gen4.raw"
+    path.write_bytes(b"% evt 3.0\n% plugin_name hal_plugin_gen41_evk3\n% end\n"
+                     + np.array([0x8000, 0x6000, 0x0001, 0x2002], "<u2").tobytes())
+    with pytest.raises(ValueError, match=r"width=2000, height=2000 contradicts the 1280x720 sensor"):
+        read(path, width=2000, height=2000)
+    assert read(path, width=1280, height=720).sensor_size == (1280, 720)
+
+
+def test_raw_without_a_size_takes_the_callers(tmp_path: Path) -> None:
+    path = tmp_path / "bare.raw"
+    path.write_bytes(b"% evt 3.0\n% end\n" + np.array([0x8000, 0x6000, 0x0001, 0x2002], "<u2").tobytes())
+    assert read(path, width=4, height=4).sensor_size == (4, 4)
+
+
+def test_mvsec_refuses_a_size_other_than_the_davis346(tmp_path: Path) -> None:
+    path = tmp_path / "mvsec.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=np.array([[1, 2, 10.0, -1], [3, 4, 10.5, 1]]))
+    with pytest.raises(ValueError, match=r"width=640, height=480 contradicts the 346x260 sensor"):
+        read(path, width=640, height=480)
+    assert read(path, width=346, height=260).sensor_size == (346, 260)
+
+
+def test_aedat4_refuses_a_size_other_than_its_stream(shared_data: Path) -> None:
+    path = shared_data / "davis346_pegboard" / "davis.aedat4"
+    if not path.is_file():
+        pytest.skip(f"{path} is absent")
+    with pytest.raises(ValueError, match=r"width=100, height=100 contradicts the 346x260 sensor that .*davis\.aedat4"):
+        read(path, width=100, height=100)
+    assert read(path, width=346, height=260).sensor_size == (346, 260)
+
+
+# -- time unit ------------------------------------------------------------------------
+def test_h5_writer_states_microseconds_and_refuses_another_unit(tmp_path: Path, events: Events) -> None:
+    path = write_h5(tmp_path / "ev.h5", events)
+    with h5py.File(path, "r") as file:
+        assert file["events/t"].attrs["unit"] == "us"
+        assert file["t_offset"].attrs["unit"] == "us"
+    for unit in ("s", "ms"):
+        with pytest.raises(FormatError, match=rf"time_unit='{unit}' contradicts the unit the file states \('us'\)"):
+            read(path, time_unit=unit)
+    assert read(path, time_unit="us") == events
+
+
+def test_h5_of_an_earlier_writer_reads_as_before(tmp_path: Path, events: Events) -> None:
+    """Files written before the ``unit`` attributes existed: µs by default; another unit contradicts the layout."""
+    path = write_h5(tmp_path / "old.h5", events)
+    with h5py.File(path, "a") as file:
+        del file["events/t"].attrs["unit"], file["t_offset"].attrs["unit"]
+    assert read(path) == events
+    assert read(path, time_unit="us") == events
+    with pytest.raises(FormatError, match=r"time_unit='s' contradicts the file's layout: H5Writer .* integer µs"):
+        read(path, time_unit="s")
+
+
+def test_original_dsec_file_keeps_the_callers_unit(tmp_path: Path) -> None:
+    """DSEC as shipped (uint32 t, t_offset, no attributes) states no unit: µs by default, the caller's if given."""
+    path = tmp_path / "dsec.h5"
+    with h5py.File(path, "w") as file:
+        file["events/x"], file["events/y"] = np.array([1, 2], np.uint16), np.array([3, 4], np.uint16)
+        file["events/t"], file["events/p"] = np.array([0, 7], np.uint32), np.array([0, 1], np.uint8)
+        file["t_offset"] = np.int64(5)
+    assert read(path, width=640, height=480).t.tolist() == [5, 12]
+    assert read(path, width=640, height=480, time_unit="ms").t.tolist() == [5000, 12000]
+
+
+# -- the CLI: one line, exit status 2 ------------------------------------------------
+@pytest.mark.parametrize("option, message", [
+    (["--size", "128x96"], "width=128, height=96 contradicts the 64x48 sensor"),
+    (["--time-unit", "s"], "time_unit='s' contradicts the unit the file states ('us')"),
+])
+def test_cmax_info_refuses_in_one_line(tmp_path: Path, events: Events, capsys, option, message) -> None:
+    path = write_h5(tmp_path / "ev.h5", events)
+    assert main(["info", str(path), *option]) == 2
+    err = capsys.readouterr().err
+    assert message in err and err.count("\n") == 1
+    assert main(["info", str(path), "--size", f"{W}x{H}"]) == 0
+    assert "64 x 48" in capsys.readouterr().out
