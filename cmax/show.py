@@ -9,7 +9,7 @@ import numpy as np
 
 from cmax.events import Events
 from cmax.representations import event_frame, voxel_grid
-from cmax.viz import depth_panel, event_panel, hstack, vstack, voxel_grid_image
+from cmax.viz import depth_panel, enlarge, event_panel, hstack, readable_zoom, vstack, voxel_grid_image
 
 __all__ = ["read_window", "render_window", "render_events", "SHOW_PERCENTILE", "SHOW_GAMMA"]
 
@@ -94,26 +94,31 @@ def render_events(
 
     Contrast: :data:`SHOW_PERCENTILE` and :data:`SHOW_GAMMA`. Layout: the event frame
     and the depth side by side when they fit in about 1800 px, else one above the other; the
-    bins in rows of up to 1800 px, at half size on sensors wider than 640 px.
+    bins in rows of up to 1800 px, at half size on sensors wider than 640 px; the frame and the depth of
+    a sensor narrower than :data:`cmax.viz.MIN_PICTURE_WIDTH` enlarged by a whole factor.
     """
     if mode not in ("frame", "voxel", "both"):
         raise ValueError(f"mode must be 'frame', 'voxel' or 'both', got {mode!r}")
     width = events.width
     wide = width > _WIDE_SENSOR
+    zoom = readable_zoom(width)   # small sensors drawn enlarged: titles, legend and colour bar stay readable
     top = []
     if mode in ("frame", "both"):
-        top.append(event_panel(event_frame(events), f"{title}{len(events):,} events",
+        counts = event_frame(events)
+        top.append(event_panel(np.stack([enlarge(c, zoom) for c in counts]), f"{title}{len(events):,} events",
                                percentile=SHOW_PERCENTILE, gamma=SHOW_GAMMA))
     if depth is not None:
-        top.append(depth_panel(depth, None, "ground-truth depth"))
+        top.append(depth_panel(enlarge(np.asarray(depth, dtype=np.float32), zoom), None, "ground-truth depth"))
     rows = []
     if top:
         rows.append(hstack(top) if sum(p.shape[1] for p in top) <= _LAYOUT_WIDTH else vstack(top))
     if mode in ("voxel", "both"):
         shrink = 2 if wide else 1
-        columns = max(1, min(bins, _LAYOUT_WIDTH // (width // shrink + 4)))
-        rows.append(voxel_grid_image(voxel_grid(events, bins=bins), columns=columns, shrink=shrink,
-                                     percentile=SHOW_PERCENTILE, gamma=SHOW_GAMMA))
+        columns = max(1, min(bins, _LAYOUT_WIDTH // (width * zoom // shrink + 4)))
+        volume = voxel_grid(events, bins=bins)
+        volume = np.stack([enlarge(b, zoom) for b in volume]) if zoom > 1 else volume
+        rows.append(voxel_grid_image(volume, columns=columns, shrink=shrink, percentile=SHOW_PERCENTILE,
+                                     gamma=SHOW_GAMMA))
     return vstack(rows)
 
 

@@ -46,10 +46,10 @@ def test_show_writes_picture_of_the_window(h5_file, tmp_path):
     out = tmp_path / "frame.png"
     assert main(["show", str(path), "--t0", "0.05", "--dt", "0.02", "--mode", "frame", "-o", str(out)]) == 0
     image = cv2.imread(str(out))
-    assert image.shape[1] == 64 and image.shape[0] > 48
+    assert image.shape[1] == 5 * 64 and image.shape[0] > 5 * 48   # a 64 px sensor drawn 5x (readable_zoom)
     # Pixels with events are coloured, the others white: count them against the window.
     window = ev.slice_time(ev.t_start + 50_000, ev.t_start + 70_000)
-    picture = image[-48:]
+    picture = image[-5 * 48::5, ::5]
     coloured = np.count_nonzero((picture != 255).any(axis=2))
     assert coloured == np.unique(window.y.astype(int) * 64 + window.x).size
 
@@ -58,7 +58,7 @@ def test_show_voxel_mode(h5_file, tmp_path):
     path, _ = h5_file
     out = tmp_path / "voxel.png"
     assert main(["show", str(path), "--mode", "voxel", "--bins", "3", "-o", str(out)]) == 0
-    assert cv2.imread(str(out)).shape[1] == 3 * 64 + 2 * 4
+    assert cv2.imread(str(out)).shape[1] == 3 * (5 * 64) + 2 * 4    # three bins side by side, each drawn 5x
 
 
 @pytest.mark.parametrize("argv, message", [

@@ -65,7 +65,22 @@ def test_contrast_follows_the_bulk_of_the_pixels_not_a_few_bright_ones():
         y += [i // 4 + 40] * 60
     t = np.arange(len(x))
     events = Events(x, y, t, np.ones(len(x), int), width=64, height=48)
-    frame = render_events(events, mode="frame")[-48:]
+    frame = render_events(events, mode="frame")[-5 * 48::5, ::5]     # drawn 5x enlarged: one sample per pixel
     # the scene's pixels (2 events) are saturated blue: the scale is the 90th percentile of the non-zero pixels
     assert SHOW_PERCENTILE == 90.0
     assert tuple(frame[0, 0]) == (255, 0, 0) and tuple(frame[41, 51]) == (255, 0, 0)
+
+
+def test_a_small_sensor_is_drawn_enlarged_by_a_whole_factor():
+    """64x48 (the size the docs' examples use): each event pixel a 5x5 block, so that the title, the legend and
+    the colour bar fit; the five bins side by side at the same zoom."""
+    rng = np.random.default_rng(1)
+    n = 300
+    events = Events(rng.integers(0, 64, n), rng.integers(0, 48, n), np.sort(rng.integers(0, 10_000, n)),
+                    rng.integers(0, 2, n), width=64, height=48)
+    frame = render_events(events, mode="frame")
+    assert frame.shape[1] == 5 * 64 and frame.shape[0] > 5 * 48
+    painted = (frame[-5 * 48:] != 255).any(-1)             # the map: a non-white pixel comes in 5x5 blocks
+    assert painted.reshape(48, 5, 64, 5).all(axis=(1, 3)).sum() == painted.reshape(48, 5, 64, 5).any(axis=(1, 3)).sum()
+    both = render_events(events, bins=5)
+    assert both.shape[1] >= 5 * (5 * 64)
