@@ -142,3 +142,69 @@ def test_overwrite_keeps_the_old_file_when_the_new_conversion_fails(tmp_path, ca
     assert "failed clip:" in capsys.readouterr().err
     assert out.read_bytes() == before and not list(tmp_path.glob("*.partial"))
     assert load_manifest(tmp_path / "manifest.json")["videos"]["clip"]["status"] == "failed"
+
+
+def test_a_refused_overwrite_keeps_the_manifest_entry(tmp_path, capsys):
+    """--overwrite refused (other settings, or the folder locked by another writer) changes nothing: the plain
+    rerun still resumes the finished file."""
+    from cmax.io.atomic import PathLock
+
+    write_video(tmp_path / "clip.avi")
+    out = tmp_path / "out" / "clip.h5"
+    base = ["simulate", str(tmp_path / "clip.avi"), "-o", str(out), *FAST, "--quiet"]
+    assert main(base) == 0
+    before = (out.parent / "manifest.json").read_bytes()
+    assert main([*base, "--overwrite", "--cp", "0.3"]) == 2
+    assert "other settings" in capsys.readouterr().err
+    assert (out.parent / "manifest.json").read_bytes() == before
+    with PathLock(out.parent / ".conversion.lock", out.parent):
+        assert main([*base, "--overwrite"]) == 2
+        assert "nothing was changed" in capsys.readouterr().err
+    assert (out.parent / "manifest.json").read_bytes() == before
+    mtime = os.stat(out).st_mtime_ns
+    assert main(base) == 0 and os.stat(out).st_mtime_ns == mtime      # resumed, not refused
+    assert main([*base, "--overwrite"]) == 0 and os.stat(out).st_mtime_ns != mtime
+
+
+def test_outputs_are_printed_relative_to_the_output_folder(tmp_path, monkeypatch, capsys):
+    """The manifest stores the output's name; a rerun from another folder, or of a moved folder, prints where
+    the file is now (old manifests holding the typed path are still read)."""
+    write_video(tmp_path / "clip.avi")
+    video = str(tmp_path / "clip.avi")
+    monkeypatch.chdir(tmp_path)
+    assert main(["simulate", video, "-o", "out/clip.h5", *FAST, "--quiet"]) == 0
+    assert "  out/clip.h5: " in capsys.readouterr().out
+    assert load_manifest(tmp_path / "out" / "manifest.json")["videos"]["clip"]["output"] == "clip.h5"
+    monkeypatch.chdir(tmp_path / "out")
+    assert main(["simulate", video, "-o", "clip.h5", *FAST, "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "\n  clip.h5: " in printed and "out/clip.h5" not in printed
+    monkeypatch.chdir(tmp_path)
+    (tmp_path / "out").rename(tmp_path / "moved")
+    manifest_path = tmp_path / "moved" / "manifest.json"
+    old = json.loads(manifest_path.read_text())
+    old["videos"]["clip"]["output"] = "out/clip.h5"          # as written before: the path typed then
+    manifest_path.write_text(json.dumps(old))
+    mtime = os.stat(tmp_path / "moved" / "clip.h5").st_mtime_ns
+    assert main(["simulate", video, "-o", "moved/clip.h5", *FAST, "--quiet"]) == 0
+    printed = capsys.readouterr().out
+    assert "  moved/clip.h5: " in printed and "out/clip.h5" not in printed
+    assert os.stat(tmp_path / "moved" / "clip.h5").st_mtime_ns == mtime
+
+
+@pytest.mark.parametrize("extra, message", [
+    (["--t1", "0"], "argument --t1: expected a finite number > 0, got '0'"),
+    (["--t1", "-0.5"], "argument --t1: expected a finite number > 0"),
+    (["--t1", "inf"], "argument --t1: expected a finite number > 0"),
+    (["--t0", "-1"], "t0_s must be a non-negative number of seconds"),
+    (["--t0", "0.2", "--t1", "0.1"], "t1_s (0.1) must be larger than t0_s (0.2)"),
+    (["--t0", "0.2", "--t1", "0.2"], "must be larger than t0_s"),
+])
+def test_an_empty_time_range_is_refused_before_converting(tmp_path, capsys, extra, message):
+    from conftest import one_line_error
+
+    write_video(tmp_path / "clip.avi")
+    status, err = one_line_error(lambda: main(["simulate", str(tmp_path / "clip.avi"), "-o",
+                                               str(tmp_path / "out" / "clip.h5"), *FAST, *extra]), capsys)
+    assert status == 2 and message in err, err
+    assert not (tmp_path / "out").exists()

@@ -331,3 +331,28 @@ def test_time_scaled_scene_plays_the_same_path_faster():
     for bad in (0, -1.0, float("nan"), True):
         with pytest.raises(ValueError):
             TimeScaledScene(base, bad)
+
+
+# -- cmax scene --duration -----------------------------------------------------------------------
+@pytest.mark.parametrize("duration", ["1e-7", "5e-7", "0"])
+def test_scene_duration_shorter_than_a_microsecond_is_refused(tmp_path, capsys, duration):
+    """A duration that rounds to no time step (one rendered frame, 0 events) is refused while parsing."""
+    from cmax.cli import main
+    from conftest import one_line_error
+
+    status, err = one_line_error(lambda: main(["scene", "slider", "-o", str(tmp_path / "s.h5"), "--duration",
+                                               duration, "--size", "32x24"]), capsys)
+    assert status == 2 and "argument --duration: expected" in err, err
+    assert not (tmp_path / "s.h5").exists()
+
+
+def test_scene_duration_of_one_microsecond_renders_one_interval():
+    from cmax.cli.scene import MIN_DURATION_S, scene_duration
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.synthetic import simulate_scene
+
+    assert scene_duration("1e-6") == MIN_DURATION_S == 1e-6
+    scene = make_scene("slider", seed=0, width=32, height=24, texture_size=64)
+    sequence = simulate_scene(scene, MIN_DURATION_S, EventSimulator())
+    assert list(sequence.frame_t_us) == [0, 1]           # two frames: one interval
+    assert len(simulate_scene(scene, 4e-7, EventSimulator()).frame_t_us) == 1   # what the bound refuses

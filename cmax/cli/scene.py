@@ -17,13 +17,24 @@ MAX_DEPTH_BYTES = 4 << 30
 
 #: Longest scene [s] (that of :func:`cmax.sim.presets.make_scene`).
 MAX_DURATION_S = 600.0
+#: Shortest scene [s]: one microsecond, the time resolution of events (a shorter one renders a single frame).
+MIN_DURATION_S = 1e-6
 
 
 def scene_duration(text: str) -> float:
-    """``argparse`` type of ``--duration``: seconds in (0, :data:`MAX_DURATION_S`]."""
+    """``argparse`` type of ``--duration``: seconds in [:data:`MIN_DURATION_S`, :data:`MAX_DURATION_S`].
+
+    >>> scene_duration("1e-7")
+    Traceback (most recent call last):
+    ...
+    argparse.ArgumentTypeError: expected at least 1e-06 s (one microsecond, the time resolution of events), got '1e-7'
+    """
     value = positive_float(text)
     if value > MAX_DURATION_S:
         raise argparse.ArgumentTypeError(f"expected seconds in (0, {MAX_DURATION_S:g}], got {text!r}")
+    if value < MIN_DURATION_S:
+        raise argparse.ArgumentTypeError(f"expected at least {MIN_DURATION_S:g} s (one microsecond, the time "
+                                         f"resolution of events), got {text!r}")
     return value
 
 

@@ -11,7 +11,7 @@ import sys
 from pathlib import Path
 from typing import Sequence
 
-from cmax._args import api_default, library_default, nonnegative_int, positive_int, sensor_size
+from cmax._args import api_default, library_default, nonnegative_int, positive_float, positive_int, sensor_size
 from cmax.cli._common import given
 
 __all__ = ["add_command", "run"]
@@ -100,7 +100,7 @@ def _image_folder(source: Path) -> Path | None:
 
 def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     """``cmax simulate SOURCE -o F.h5``: one conversion with progress and a manifest beside F.h5."""
-    from cmax.sim.convert import VideoJob, convert_collection, load_manifest, write_manifest
+    from cmax.sim.convert import VideoJob, convert_collection, load_manifest
 
     output = args.output
     manifest_path = output.parent / "manifest.json"
@@ -109,16 +109,19 @@ def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     if output.exists() and not args.overwrite and not (listed and listed.get("status") == "ok"):
         raise FileExistsError(f"{output} exists and is not a finished conversion of {manifest_path}; "
                               "pass --overwrite to replace it")
-    if args.overwrite and listed:   # forget the old entry: the video is redone, the old file replaced atomically
-        write_manifest(manifest_path, {**manifest, "videos": {k: v for k, v in manifest["videos"].items()
-                                                              if k != output.stem}})
     job = VideoJob(output.stem, source)
-    manifest = convert_collection([job], output.parent, settings, workers=1, progress=not args.quiet)
+    # --overwrite: the old entry is dropped under the folder's lock once the settings match (a refused run
+    # changes nothing); the old file is replaced atomically when the new one is complete.
+    manifest = convert_collection([job], output.parent, settings, workers=1, progress=not args.quiet,
+                                  redo=[job.name] if args.overwrite else ())
     return _report_manifest(manifest_path, manifest, [job.name])
 
 
 def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
-    """Print the outcome of a conversion; 1 when a video failed or yielded no events, else 0."""
+    """Print the outcome of a conversion (outputs as paths in the folder of ``path``, the manifest);
+    1 when a video failed or yielded no events, else 0."""
+    from cmax.sim.convert import entry_output
+
     totals, videos = manifest["totals"], manifest["videos"]
     empty = [name for name in names if videos.get(name, {}).get("status") == "ok"
              and videos[name].get("events", 0) == 0]
@@ -127,7 +130,7 @@ def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
     for name in names:
         entry = videos.get(name, {})
         if entry.get("status") == "ok" and name not in empty:
-            print(f"  {entry['output']}: {entry['events']:,} events from {entry['frames']} frames "
+            print(f"  {entry_output(entry, path.parent)}: {entry['events']:,} events from {entry['frames']} frames "
                   f"({entry['samples']} samples), {entry['duration_s']:.2f} s of video")
     for name, entry in videos.items():
         if entry["status"] != "ok":
@@ -135,7 +138,8 @@ def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
     for name in empty:
         entry = videos[name]
         print(f"  no events from {name}: {entry['frames']} frame(s) over {entry['duration_s']:.3f} s "
-              f"(events need at least two frames that differ by a threshold); {entry['output']} holds 0 events",
+              f"(events need at least two frames that differ by a threshold); {entry_output(entry, path.parent)} "
+              "holds 0 events",
               file=sys.stderr)
     return 1 if totals["failed"] or empty else 0
 
@@ -173,8 +177,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                                     help="interpolation of adaptive sampling"), library_default(_CONVERT, "method"))
     parser.add_argument("--t0", type=float, default=None,
                         help="start, seconds into each video (default: its start)")
-    parser.add_argument("--t1", type=float, default=None,
-                        help="end, seconds into each video (default: its end)")
+    parser.add_argument("--t1", type=positive_float, default=None,
+                        help="end, seconds into each video, after --t0 (default: its end)")
     parser.add_argument("--workers", type=positive_int, default=1, help="parallel processes")
     parser.add_argument("--catalogue", choices=("slowtv",), default=None,
                         help="INPUT is the folder of a catalogue's videos named by index (00000.mp4)")

@@ -1,0 +1,185 @@
+"""Resuming and stopping a collection (cmax/sim/convert.py): damaged outputs are redone, an interrupt leaves no
+temporaries, the manifest names outputs relative to its folder."""
+from __future__ import annotations
+
+import json
+import os
+import signal
+import threading
+import time
+
+import pytest
+
+from cmax.io.h5 import read_h5
+from cmax.sim.convert import (
+    ConvertSettings,
+    collect_jobs,
+    convert_collection,
+    entry_output,
+    file_sha256,
+    load_manifest,
+    output_problem,
+)
+from test_sim_convert import write_video
+
+cv2 = pytest.importorskip("cv2")
+FAST = ConvertSettings(adaptive=False)
+
+
+def _damage_in_place(path, manifest_entry) -> None:
+    """Change one byte of the event data so that size, completion record and event count still pass."""
+    data = bytearray(path.read_bytes())
+    original = bytes(data)
+    for offset in range(len(data) // 2, len(data)):  # a byte the structural checks do not read
+        data[offset] ^= 0xFF
+        path.write_bytes(bytes(data))
+        if output_problem(dict(manifest_entry, sha256=file_sha256(path)), path) is None:
+            return
+        data[offset] ^= 0xFF
+    path.write_bytes(original)
+    raise AssertionError("no byte to damage without breaking the file's structure")
+
+
+def test_a_file_damaged_in_place_is_redone_on_resume(tmp_path):
+    write_video(tmp_path / "a.avi")
+    jobs, _ = collect_jobs(tmp_path / "a.avi")
+    out = tmp_path / "out"
+    entry = convert_collection(jobs, out, FAST, progress=False)["videos"]["a"]
+    good = (out / "a.h5").read_bytes()
+    _damage_in_place(out / "a.h5", entry)
+    assert (out / "a.h5").stat().st_size == entry["bytes"] and (out / "a.h5").read_bytes() != good
+    assert "SHA-256" in output_problem(entry, out / "a.h5")
+    seen = []
+    manifest = convert_collection(jobs, out, FAST, progress=False, on_result=lambda r: seen.append(r.name))
+    assert seen == ["a"]                                     # not skipped
+    assert (out / "a.h5").read_bytes() == good and manifest["videos"]["a"]["status"] == "ok"
+    assert manifest["videos"]["a"]["sha256"] == file_sha256(out / "a.h5")
+    # An intact file is skipped (its checksum is read, not rewritten).
+    seen.clear()
+    convert_collection(jobs, out, FAST, progress=False, on_result=lambda r: seen.append(r.name))
+    assert seen == []
+
+
+def test_resume_notes_the_damaged_file(tmp_path, capsys):
+    write_video(tmp_path / "a.avi")
+    jobs, _ = collect_jobs(tmp_path / "a.avi")
+    entry = convert_collection(jobs, tmp_path, FAST, progress=False)["videos"]["a"]
+    _damage_in_place(tmp_path / "a.h5", entry)
+    capsys.readouterr()
+    convert_collection(jobs, tmp_path, FAST, progress=False)
+    err = capsys.readouterr().err
+    assert "note: a: output not verified" in err and "SHA-256" in err and "converting it again" in err
+
+
+def test_the_manifest_names_outputs_relative_to_its_folder(tmp_path, monkeypatch):
+    write_video(tmp_path / "a.avi")
+    monkeypatch.chdir(tmp_path)
+    jobs, _ = collect_jobs("a.avi")
+    manifest = convert_collection(jobs, "out", FAST, progress=False)
+    assert manifest["videos"]["a"]["output"] == "a.h5"
+    assert load_manifest(tmp_path / "out" / "manifest.json")["videos"]["a"]["output"] == "a.h5"
+    # Old manifests hold the path typed at conversion time: still the file in the manifest's folder.
+    for old in ("out/a.h5", str(tmp_path / "out" / "a.h5"), "a.h5"):
+        assert entry_output({"output": old}, tmp_path / "moved") == tmp_path / "moved" / "a.h5"
+
+
+def test_an_interrupt_removes_the_temporaries_of_the_workers(tmp_path):
+    """Ctrl-C while two workers write: their ``.partial`` and ``.lock`` files are removed (as with one worker)."""
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    for name, shift in (("a", 0), ("b", 3)):   # long enough to be interrupted mid-write
+        write_video(videos / f"{name}.avi", n_frames=300, width=160, height=120, shift=shift)
+    jobs, _ = collect_jobs(videos)
+    out = tmp_path / "out"
+    done, sent = threading.Event(), []
+
+    def interrupt_while_writing() -> None:
+        deadline = time.monotonic() + 120
+        while not done.is_set() and time.monotonic() < deadline:
+            if list(out.glob("*.h5.*.partial")):
+                time.sleep(0.05)
+                if not done.is_set():
+                    sent.append(True)
+                    os.kill(os.getpid(), signal.SIGINT)
+                return
+            time.sleep(0.005)
+
+    watcher = threading.Thread(target=interrupt_while_writing)
+    watcher.start()
+    try:
+        with pytest.raises(KeyboardInterrupt):
+            convert_collection(jobs, out, FAST, workers=2, progress=False)
+    finally:
+        done.set()
+        watcher.join()
+    assert sent
+    assert sorted(p.name for p in out.iterdir() if p.suffix in (".partial", ".lock")) == []
+    # A resume converts both (nothing was recorded as done) and leaves no temporaries either.
+    manifest = convert_collection(jobs, out, FAST, workers=2, progress=False)
+    assert manifest["totals"]["ok"] == 2, manifest["videos"]
+    assert len(read_h5(out / "a.h5")) == manifest["videos"]["a"]["events"]
+
+
+def test_an_interrupt_leaves_the_files_of_another_writer_alone(tmp_path, monkeypatch):
+    """The clean-up after killed workers takes each output's lock (a live writer's temporaries stay) and is not
+    cut short by a second Ctrl-C."""
+    from cmax.io.atomic import AtomicOutput
+    import cmax.sim.convert as convert
+
+    out = tmp_path / "out"
+    out.mkdir()
+    other = AtomicOutput(out / "a.h5", overwrite=True)   # another live writer of a.h5
+    try:
+        calls = []
+        real = convert.discard_leftovers
+
+        def discard(path):
+            calls.append(os.path.basename(path))
+            return real(path)
+
+        monkeypatch.setattr(convert, "discard_leftovers", discard)
+
+        class Process:
+            exitcode = None
+
+            def kill(self):
+                pass
+
+            def join(self, timeout=None):   # a second Ctrl-C while the workers are stopped
+                os.kill(os.getpid(), signal.SIGINT)
+
+        class Receive:
+            def close(self):
+                pass
+
+        def wait(connections):
+            raise KeyboardInterrupt
+
+        monkeypatch.setattr("multiprocessing.connection.wait", wait)
+
+        class Context:
+            def Pipe(self, duplex):
+                return Receive(), Receive()
+
+            def Process(self, **kwargs):
+                process = Process()
+                process.start = lambda: None
+                return process
+
+        monkeypatch.setattr(convert, "_worker_context", lambda: Context())
+        jobs = [convert.VideoJob("a", tmp_path / "a.avi"), convert.VideoJob("b", tmp_path / "b.avi")]
+        with pytest.raises(KeyboardInterrupt):
+            convert._run_parallel(jobs, out, FAST, 2, False, lambda result: None)
+        assert sorted(calls) == ["a.h5", "b.h5"]
+        assert other.temp.exists() and (out / "a.h5.lock").exists()   # the live writer's files are kept
+    finally:
+        other.abort()
+    assert not list(out.glob("*.partial"))
+
+
+def test_settings_refuse_an_empty_time_range():
+    with pytest.raises(ValueError, match="t1_s must be > 0"):
+        ConvertSettings(t1_s=0.0)
+    with pytest.raises(ValueError, match="larger than t0_s"):
+        ConvertSettings(t0_s=0.2, t1_s=0.1)
+    assert ConvertSettings(t1_s=1e-3).t1_s == 1e-3
