@@ -163,3 +163,30 @@ def test_an_unordered_batch_takes_the_torch_warp_and_gives_the_same_loss(windows
     b = _value_and_gradients(SHARED_OBJECTIVE, mixed, rho, twist, True, monkeypatch)
     assert torch.allclose(a[0], b[0], rtol=1e-12)
     assert float((a[1] - b[1]).norm()) <= 1e-10 * float(a[1].norm())
+
+
+def test_float32_events_on_the_last_pixel_are_not_purged_by_rounding():
+    """With no motion, the float32 round trip K (K^-1 p) puts an event of the last column at x = W - 1 + 2e-6:
+    it stays inside (EDGE_TOLERANCE_PX), in the compiled kernels and in the torch operations alike (before: the
+    whole window purged, loss 1e-5 against 0.5 in float64)."""
+    from cmax.contrast import SHARED_OBJECTIVE, DepthMotion, EventWindows
+    from cmax.contrast import objectives as objectives_module
+
+    W, H, n = 32, 24, 400
+    rng = np.random.default_rng(0)
+    t, p = np.sort(rng.uniform(0, 0.1, n)), rng.choice([-1.0, 1.0], n)
+    K = torch.tensor([[30.0, 0, 16], [0, 30.0, 12], [0, 0, 1]])[None]
+    x = np.where(np.arange(n) % 2 == 0, W - 1.0, 5.0)            # half on the last column, half well inside
+    losses = []
+    for compiled in (True, False):
+        objectives_module._COMPILED = compiled
+        try:
+            batch = EventWindows(torch.tensor(x, dtype=torch.float32), torch.full((n,), H - 1.0),
+                                 torch.tensor(t, dtype=torch.float32), torch.tensor(p, dtype=torch.float32),
+                                 torch.zeros(n, dtype=torch.int64), K, torch.tensor([0.1]), W, H)
+            params = DepthMotion(torch.full((1, 1, 3, 4), 0.5), torch.zeros(1, 6))
+            losses.append(float(SHARED_OBJECTIVE(batch, params)))
+        finally:
+            objectives_module._COMPILED = True
+    assert losses[0] == pytest.approx(losses[1], rel=1e-5)
+    assert abs(losses[0]) > 0.1        # the events count: a purged window scores about 0

@@ -46,17 +46,23 @@ from torch.autograd.function import once_differentiable
 
 from cmax._jit import kernel
 
+#: How far [px] past the outermost pixel centres a warped event still counts as inside the image: the float32
+#: round trip ``K (K^-1 p)`` moves an event on the last column by ~2e-6 px, which must not purge it.
+EDGE_TOLERANCE_PX = 1e-3
+
 __all__ = ["average_timestamp_images", "compiled_images_apply"]
 
 
 @kernel
-def _keep(x, y, width, height, purge, keep):  # pragma: no cover - compiled
-    """``keep`` (N,) float64: 1, or with ``purge`` 0 for an event that either reference warps out of the image."""
+def _keep(x, y, width, height, tol, purge, keep):  # pragma: no cover - compiled
+    """``keep`` (N,) float64: 1, or with ``purge`` 0 for an event that either reference warps out of the image
+    (by more than ``tol`` px past its outermost pixel centres)."""
     for i in range(keep.shape[0]):
         inside = True
         if purge:
             for r in range(x.shape[0]):
-                if not (x[r, i] >= 0 and x[r, i] <= width - 1 and y[r, i] >= 0 and y[r, i] <= height - 1):
+                if not (x[r, i] >= -tol and x[r, i] <= width - 1 + tol and y[r, i] >= -tol
+                        and y[r, i] <= height - 1 + tol):
                     inside = False
         keep[i] = 1.0 if inside else 0.0
 
@@ -185,7 +191,7 @@ class _AverageTimestampImages(torch.autograd.Function):
         H, W = size
         xs, ys, taus, bases = _numpy(x), _numpy(y), _numpy(tau), _numpy(base, np.int64)
         keep = np.empty(xs.shape[1])
-        _keep(xs, ys, W, H, bool(purge), keep)
+        _keep(xs, ys, W, H, EDGE_TOLERANCE_PX, bool(purge), keep)
         images = np.zeros((4 * windows, H, W, 2))
         squares, active = np.empty((2, windows)), np.empty((2, windows), np.int64)
         _forward(xs, ys, taus, bases, windows, keep, float(eps), images, squares, active)

@@ -27,7 +27,7 @@ from typing import NamedTuple
 
 import torch
 
-from cmax.contrast._timestamp_kernels import average_timestamp_images, compiled_images_apply
+from cmax.contrast._timestamp_kernels import EDGE_TOLERANCE_PX, average_timestamp_images, compiled_images_apply
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.contrast.batch import EventWindows
 from cmax.iwe import accumulate_bilinear_indexed, blur
@@ -164,7 +164,8 @@ def _plus_smoothness(loss: torch.Tensor, smoothness: float, batch: EventWindows,
 
 
 def _inside(batch: EventWindows, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-    return (x >= 0) & (x <= batch.width - 1) & (y >= 0) & (y <= batch.height - 1)
+    tol = EDGE_TOLERANCE_PX
+    return (x >= -tol) & (x <= batch.width - 1 + tol) & (y >= -tol) & (y <= batch.height - 1 + tol)
 
 
 @dataclass(frozen=True)
