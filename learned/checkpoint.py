@@ -36,7 +36,7 @@ import torch
 from cmax.io.atomic import AtomicOutput, write_with
 
 __all__ = ["CheckpointError", "FORMAT", "rng_state", "set_rng_state", "plain_data", "save_checkpoint",
-           "load_checkpoint", "upgrade_checkpoint", "main"]
+           "load_checkpoint", "check_weights", "upgrade_checkpoint", "main"]
 
 #: Format of the checkpoints this version writes (stored under ``"format"``).
 FORMAT = 2
@@ -185,6 +185,45 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
             ImportError, IndexError, zipfile.BadZipFile, UnicodeDecodeError, MemoryError, OverflowError) as error:
         raise _refused(path, error) from None
     return _check_payload(path, payload)
+
+
+def check_weights(model_config: Any, state: dict[str, torch.Tensor], source: str | Path) -> None:
+    """Refuse weights that do not fit the network of ``model_config`` before that network is built.
+
+    The network (:class:`learned.model.DepthPoseNet`) is built on torch's ``meta`` device, which
+    allocates no memory, and the name and shape of each of its parameters and buffers is compared with
+    ``state`` (a checkpoint's ``"model"``): a crafted config (``model.levels=24`` beside small weights) would
+    otherwise allocate many GB before its weights were checked. Raises :class:`CheckpointError` (one line,
+    naming ``source``) on a mismatch or on a network that torch cannot even describe.
+
+    >>> from learned.model import DepthPoseNet, ModelConfig
+    >>> check_weights(ModelConfig(width=2, levels=1), DepthPoseNet(ModelConfig(width=2, levels=1)).state_dict(), "x")
+    >>> try:
+    ...     check_weights(ModelConfig(width=2, levels=9), DepthPoseNet(ModelConfig(width=2, levels=1)).state_dict(),
+    ...                   "x.pt")
+    ... except CheckpointError as error:
+    ...     print(str(error)[:47])
+    x.pt: its weights do not fit its model config (
+    """
+    from learned.model import DepthPoseNet
+
+    try:
+        with torch.device("meta"):
+            expected = {name: tuple(tensor.shape) for name, tensor in DepthPoseNet(model_config).state_dict().items()}
+    except (RuntimeError, ValueError, OverflowError, MemoryError) as error:   # sizes past int64
+        raise CheckpointError(f"{source}: its model config describes a network torch cannot build "
+                              f"({' '.join(str(error).split())[:200]})") from None
+    stored = {name: tuple(tensor.shape) for name, tensor in state.items()}
+    missing = sorted(set(expected) - set(stored))
+    unexpected = sorted(set(stored) - set(expected))
+    other = [name for name in expected if name in stored and stored[name] != expected[name]]
+    if not (missing or unexpected or other):
+        return
+    parts = [f"{len(missing)} of its {len(expected)} tensors missing (e.g. {missing[0]})" if missing else "",
+             f"{len(unexpected)} unexpected (e.g. {unexpected[0]})" if unexpected else "",
+             f"{len(other)} of another shape (e.g. {other[0]}: {list(stored[other[0]])}, the config's "
+             f"{list(expected[other[0]])})" if other else ""]
+    raise CheckpointError(f"{source}: its weights do not fit its model config ({'; '.join(p for p in parts if p)})")
 
 
 def _upgraded_rng(rng: dict[str, Any]) -> dict[str, Any]:

@@ -242,8 +242,9 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 if gt is not None:
                     starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]
                 elif spec.K is None:
-                    raise ValueError(f"{spec.path} has no gt/K: give its intrinsics with it, "
-                                     f"{{\"path\": \"{spec.path}\", \"K\": [fx, fy, cx, cy]}}")
+                    raise ValueError(f"{spec.path} has no gt/K: give its intrinsics in its entry of the config's "
+                                     f"data.files, e.g. 'data.files=[{{\"path\": \"{spec.path}\", "
+                                     f"\"K\": [fx, fy, cx, cy]}}]'")
                 else:
                     starts = list(range(reader.t_start, reader.t_end - self.window_us + 1, self.window_us))
                 slack = self.window_us // 10   # windows may reach 10% beyond the recorded events

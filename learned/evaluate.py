@@ -37,7 +37,7 @@ from cmax.events import Events
 from cmax.io.atomic import write_text_atomic
 from cmax.metrics import DepthMetrics, MotionMetrics, depth_metrics, motion_metrics
 from cmax.representations import voxel_grid
-from learned.checkpoint import CheckpointError, load_checkpoint
+from learned.checkpoint import CheckpointError, check_weights, load_checkpoint
 from learned.config import config_from_dict
 from learned.data import H5WindowDataset, Sample, collate
 from learned.model import DepthPoseNet
@@ -69,10 +69,16 @@ def load_model(checkpoint: str | Path) -> tuple[DepthPoseNet, dict]:
     missing, foreign, crafted or inconsistent checkpoint (see :func:`learned.checkpoint.load_checkpoint`).
     """
     ckpt = load_checkpoint(checkpoint)
+    stated = ckpt["config"].get("model")
+    levels = stated.get("levels") if isinstance(stated, dict) else None
+    if isinstance(levels, int) and levels > len(ckpt["model"]):   # each level has weights; also bounds the checks
+        raise CheckpointError(f"{checkpoint}: its model config has model.levels={levels}, its weights "
+                              f"{len(ckpt['model'])} tensors: they do not fit")
     try:
         config = config_from_dict(ckpt["config"])
     except (TypeError, ValueError) as error:
         raise CheckpointError(f"{checkpoint}: its config is not valid: {error}") from None
+    check_weights(config.model, ckpt["model"], checkpoint)   # on the meta device: a crafted config allocates nothing
     model = DepthPoseNet(config.model)
     try:
         model.load_state_dict(ckpt["model"])
@@ -173,6 +179,15 @@ def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) 
     """The windows of a file with ground truth, centred on its depth times (:class:`learned.data.H5WindowDataset`,
     no augmentation), with their masks. Raises a ValueError for a file without ``gt/`` or without a window."""
     path = Path(path)
+    try:
+        with h5py.File(path, "r") as file:
+            depth, K = "gt/depth" in file, "gt/K" in file
+    except OSError:   # missing, or not an h5 file: H5WindowDataset says which
+        depth = K = True
+    if not depth:
+        raise ValueError(f"{path} has no {'gt/depth' if K else 'gt/K nor gt/depth'}: no ground truth to evaluate "
+                         f"the network against (files of cmax scene hold it); to predict depth on this file, run "
+                         f"cmax depth {path} -o OUT --K fx,fy,cx,cy")
     dataset = H5WindowDataset([path], window_us=int(window_us), max_events=1000, min_events=min_events)
     if dataset._gt[0] is None:
         raise ValueError(f"{path} has no gt/: evaluation needs ground truth")

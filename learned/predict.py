@@ -16,6 +16,9 @@ as in training, by the compiled :func:`learned.volume.event_volume`) and runs th
   of all its windows, drawn once every window is predicted);
 * ``twists.csv`` (one line per window) and ``summary.json`` (inputs, settings, notes, counts).
 
+One run at a time holds ``OUT/`` (a second one is refused at once); the results appear in ``OUT/`` when every
+one of them is written, so a failed run leaves the folder as it was (:func:`run_prediction`).
+
 Intrinsics come from ``--K`` (with ``--distortion``, the events are undistorted first), ``--calib`` (whose
 distortion, when it has one, undistorts the events first) or the file's own ``gt/K``. The network is fully
 convolutional and runs at any sensor size, but the depth it reads from the events' motion assumes the camera it
@@ -26,9 +29,13 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
+import re
+import secrets
+import shutil
 import sys
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
@@ -36,6 +43,7 @@ import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
 from cmax.cli.recording import add_camera_options, add_recording_arguments, read_calibration
+from learned._output import locked_folder
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
     from cmax.events import Events
@@ -43,11 +51,15 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
-           "window_picture", "write_window", "earlier_results", "run_prediction", "predict_file", "add_arguments",
+           "window_picture", "write_window", "earlier_results", "FOLDER_LOCK", "discard_stages", "publish",
+           "run_prediction", "predict_file", "add_arguments",
            "run", "main"]
 
 #: Windows with fewer events are skipped (counted in the summary).
 MIN_EVENTS = 10
+#: The lock a run holds on its output folder (:func:`learned._output.locked_folder`), inside that folder.
+FOLDER_LOCK = ".depth.lock"
+_STAGE_SUFFIX = ".partial"
 _CSV_HEADER = "window,t0_us,t1_us,events,vx,vy,vz,wx,wy,wz"
 
 
@@ -427,17 +439,19 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     overwrite : bool
         Replace the results of an earlier run in ``out`` (its ``window_*`` files, ``twists.csv``,
         ``summary.json``); without it such a folder is refused, as its windows would mix with this run's.
+        The earlier results stay as they are until this run has succeeded.
+
+    The run holds ``out`` from its first look at it to its end (the lock ``out/.depth.lock``,
+    :func:`learned._output.locked_folder`): a second run into the same folder meanwhile is refused at once
+    (:class:`cmax.io.atomic.OutputLockedError`, an OSError) and changes nothing. The results are written into
+    a private folder ``out/.depth.<hex>.partial`` and moved into ``out`` once all of them are written (then the
+    earlier run's files that this run did not replace are removed): a failed or interrupted run leaves ``out``
+    as it was (a killed run's private folder is removed by the next run).
 
     Raises FileNotFoundError, ValueError (including :class:`cmax.io.FormatError` and
-    :class:`learned.checkpoint.CheckpointError`) with a one-line message for every input a user can get wrong.
+    :class:`learned.checkpoint.CheckpointError`), OSError with a one-line message for every input a user can
+    get wrong.
     """
-    from tqdm.auto import tqdm
-
-    from cmax import viz
-    from cmax.io.atomic import write_text_atomic
-    from learned.evaluate import load_model
-    from learned.pretrained import checkpoint_card, shipped_checkpoint
-
     started = time.perf_counter()
     note = note or (lambda text: print(f"learned.predict: note: {text}", file=sys.stderr))
     if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
@@ -446,11 +460,61 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"the output {out} is a file: give a folder (for window_*.npz, window_*.png, "
                               "twists.csv, summary.json)")
-    earlier = earlier_results(out)
-    if earlier and not overwrite:
-        raise FileExistsError(f"{out} holds the results of an earlier run ({len(earlier)} files: window_*.npz, "
-                              "twists.csv, ...) that would mix with this run's: --overwrite replaces them, or give "
-                              "another -o")
+    with locked_folder(out, FOLDER_LOCK):   # from the look at earlier results to the last file moved in
+        discard_stages(out)
+        earlier = earlier_results(out)
+        if earlier and not overwrite:
+            raise FileExistsError(f"{out} holds the results of an earlier run ({len(earlier)} files: window_*.npz, "
+                                  "twists.csv, ...) that would mix with this run's: --overwrite replaces them, or "
+                                  "give another -o")
+        stage = out / f".depth.{secrets.token_hex(8)}{_STAGE_SUFFIX}"
+        stage.mkdir()
+        try:
+            run = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
+                                distortion=distortion, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s,
+                                t1_s=t1_s, window_s=window_s, depth_range=depth_range, batch=batch,
+                                progress=progress, note=note)
+            publish(stage, out, earlier)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+    return replace(run, seconds=time.perf_counter() - started, output=out)
+
+
+def discard_stages(out: Path) -> list[Path]:
+    """Remove the private folders (``.depth.<16 hex>.partial``) that killed runs left in ``out``; returns them.
+    Call it holding ``out``'s lock (:func:`run_prediction` does)."""
+    stale = [folder for folder in out.glob(f".depth.*{_STAGE_SUFFIX}")
+             if re.fullmatch(r"\.depth\.[0-9a-f]{16}" + re.escape(_STAGE_SUFFIX), folder.name)
+             and folder.is_dir() and not folder.is_symlink()]
+    for folder in stale:
+        shutil.rmtree(folder, ignore_errors=True)
+    return stale
+
+
+def publish(stage: Path, out: Path, earlier: Sequence[Path]) -> list[Path]:
+    """Move the results in ``stage`` into ``out`` (renames within one folder tree; ``summary.json`` last), then
+    remove the files of ``earlier`` (an earlier run's) that none of them replaced; returns the files of ``out``."""
+    new = earlier_results(stage)
+    names = {file.name for file in new}
+    for file in sorted(new, key=lambda file: file.name == "summary.json"):
+        os.replace(file, out / file.name)
+    for stale in earlier:
+        if stale.name not in names:
+            stale.unlink(missing_ok=True)
+    return [out / file.name for file in new]
+
+
+def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_camera, distortion, size,
+                  time_unit, polarity, t0_s, t1_s, window_s, depth_range, batch, progress, note) -> DepthRun:
+    """:func:`run_prediction`'s work, every result written into the empty folder ``stage``."""
+    from tqdm.auto import tqdm
+
+    from cmax import viz
+    from cmax.io.atomic import write_text_atomic
+    from learned.evaluate import load_model
+    from learned.pretrained import checkpoint_card, shipped_checkpoint
+
+    started = time.perf_counter()
     checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
     model, config = load_model(checkpoint)   # first: a refused checkpoint writes nothing
     card = checkpoint_card(checkpoint)
@@ -487,9 +551,6 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         notes += [short] if short else []
         for text in notes:
             note(text)
-        out.mkdir(parents=True, exist_ok=True)
-        for path in earlier:   # --overwrite: the earlier run's files only, once this run's inputs are checked
-            path.unlink(missing_ok=True)
         lines, skipped, samples, indices = [_CSV_HEADER], 0, [], []
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
             for prediction in predict_windows(model, recording.window, starts, window_us, batch=batch,
@@ -498,7 +559,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                 if prediction is None:
                     skipped += 1
                 else:
-                    line, sample = write_window(out, prediction, K)
+                    line, sample = write_window(stage, prediction, K)
                     lines.append(line)
                     samples.append(sample)
                     indices.append(prediction.index)
@@ -510,16 +571,16 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                          f"{MIN_EVENTS} events or more")
     scale = run_scale(samples, depth_range)
     for index in indices:
-        draw_window(out, index, scale)
-    write_text_atomic(out / "twists.csv", "\n".join(lines) + "\n")
-    run = DepthRun(written, skipped, window_us, tuple(notes), time.perf_counter() - started, out)
+        draw_window(stage, index, scale)
+    write_text_atomic(stage / "twists.csv", "\n".join(lines) + "\n")
+    run = DepthRun(written, skipped, window_us, tuple(notes), time.perf_counter() - started, stage)
     summary = {"file": str(path), "format": recording.format, "checkpoint": str(checkpoint),
                "size": [recording.width, recording.height], "K": np.asarray(K).tolist(),
                "distortion": None if distortion is None else distortion.tolist(), "window_us": window_us,
                "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],
                "windows_total": len(starts), "windows": written, "skipped": skipped, "min_events": MIN_EVENTS,
                "notes": list(notes), "seconds": run.seconds}
-    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2) + "\n")
+    write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2) + "\n")
     return run
 
 

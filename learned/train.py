@@ -13,7 +13,8 @@ Data order: the global batch of step ``s`` is a fixed function of ``(seed, s)``
 global batch (the role of a ``DistributedSampler``), gradients are averaged by
 ``DistributedDataParallel`` (gloo: training runs on the CPU, a GPU is not used), and only rank 0 writes.
 Checkpoints (``out/last.pt``) hold the model, optimiser, step, config and RNG
-states and are written atomically; ``--resume`` continues bit-for-bit on CPU.
+states and are written atomically; ``--resume`` continues bit-for-bit on CPU. One run at a time holds
+``train.out`` (its lock :data:`FOLDER_LOCK`): a second one into the same folder is refused at once.
 """
 from __future__ import annotations
 
@@ -32,6 +33,7 @@ from cmax._args import ArgumentParser, run_main
 from cmax._threads import torch_threads
 from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, WeightedSum
 from cmax.io.atomic import write_text_atomic
+from learned._output import locked_folder
 from learned.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from learned.config import Config, load_config
 from learned.data import H5WindowDataset, collate
@@ -42,11 +44,14 @@ from learned.model import DepthPoseNet, ModelConfig
 #: even where CUDA is available: nccl, chosen there before, refuses CPU tensors.
 DDP_BACKEND = "gloo"
 
+#: The lock a run holds on its ``train.out`` (:func:`learned._output.locked_folder`), inside that folder.
+FOLDER_LOCK = ".train.lock"
+
 #: Steps between two choices of torch's thread count (:func:`cmax._threads.torch_threads`: the cores less the
 #: load of other processes; ``CMAX_TORCH_THREADS`` fixes it).
 THREAD_CHECK_EVERY = 25
 
-__all__ = ["batch_indices", "learning_rate", "twist_scale", "Trainer", "check_output", "main"]
+__all__ = ["FOLDER_LOCK", "batch_indices", "learning_rate", "twist_scale", "Trainer", "check_output", "main"]
 
 
 def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[int]:
@@ -369,7 +374,11 @@ def main(argv: list[str] | None = None) -> int:
 
 def check_output(out: Path, *, resume: bool, overwrite: bool) -> None:
     """Refuse ``train.out`` when it is a file, or when it holds an earlier run's ``last.pt`` and neither
-    ``--resume`` (continue it) nor ``--overwrite`` (replace it) says what to do with it."""
+    ``--resume`` (continue it) nor ``--overwrite`` (replace it) says what to do with it.
+
+    The command runs this check again, and trains, holding the folder's lock (:data:`FOLDER_LOCK`,
+    :func:`learned._output.locked_folder`): a second run into the same ``train.out`` meanwhile, ``--resume``
+    included, is refused at once (one line) and changes nothing."""
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"train.out {out} is a file: give a folder for last.pt, config.json and log.jsonl")
     if resume and overwrite:
@@ -383,6 +392,14 @@ def _run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides, mode=args.mode)
     out = Path(config.train.out)
     check_output(out, resume=args.resume, overwrite=args.overwrite)
+    if int(os.environ.get("RANK", "0")) != 0:   # the other ranks of a torchrun job write nothing
+        return _train(args, config, out)
+    with locked_folder(out, FOLDER_LOCK):   # one run at a time, from the look at last.pt to the last write
+        check_output(out, resume=args.resume, overwrite=args.overwrite)
+        return _train(args, config, out)
+
+
+def _train(args: argparse.Namespace, config: Config, out: Path) -> int:
     rank0 = int(os.environ.get("RANK", "0")) == 0
     if args.overwrite and rank0:
         (out / "log.jsonl").unlink(missing_ok=True)   # the new run's learning curves alone

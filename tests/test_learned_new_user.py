@@ -132,7 +132,8 @@ def test_teacher_refuses_files_without_ground_truth(slider_file, tmp_path, capsy
 
     bare = write_h5(tmp_path / "bare.h5", cmax.io.read(slider_file))   # the same events, no gt/
     status, err = one_line_error(lambda: main(_train(bare, tmp_path / "run")), capsys)
-    assert status == 2 and 'has no gt/K: give its intrinsics with it, {"path": ' in err
+    assert status == 2 and "has no gt/K: give its intrinsics in its entry of the config's data.files, e.g. " \
+        """'data.files=[{"path": """ in err
     entry = f'data.files=[{{"path": "{bare}", "K": [60, 60, 32, 24]}}]'
     status, err = one_line_error(lambda: main(_train(bare, tmp_path / "run", entry)), capsys)
     assert status == 2 and "--mode teacher learns from ground-truth depth" in err and "its loss would be 0" in err

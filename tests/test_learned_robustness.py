@@ -1,0 +1,196 @@
+"""``learned`` against crafted checkpoints, concurrent runs and reruns into one output folder.
+
+* a checkpoint whose config describes a far larger network than its weights is refused before that network is
+  built (it would allocate many GB);
+* ``python -m learned.train`` and ``cmax depth`` hold their output folder: a second run into it meanwhile is
+  refused in one line and changes nothing (the lock is taken here, in the test process);
+* ``--overwrite`` records the input file in ``summary.json`` and keeps the earlier results until the new run
+  succeeds;
+* ``python -m learned.evaluate`` on a file without ground truth says so, not how to give K in a config.
+"""
+from __future__ import annotations
+
+import json
+from pathlib import Path
+
+import pytest
+
+from conftest import one_line_error, random_events
+
+
+def _files(folder: Path) -> dict[str, bytes]:
+    """Every file under ``folder`` (hidden ones included) and its bytes."""
+    return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory) -> Path:
+    """A checkpoint of a tiny network (width 2, one level, windows of 50 ms)."""
+    from learned.checkpoint import rng_state, save_checkpoint
+    from learned.config import Config, DataConfig
+    from learned.model import DepthPoseNet, ModelConfig
+
+    config = Config(model=ModelConfig(width=2, levels=1), data=DataConfig(window_us=50_000))
+    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt",
+                           {"model": DepthPoseNet(config.model).state_dict(), "optimizer": {}, "step": 0,
+                            "config": config.to_dict(), "rng": rng_state()})
+
+
+def _crafted(source: Path, target: Path, **model: int) -> Path:
+    """``source`` with keys of its config's ``model`` changed (its weights kept), as a crafted file would be."""
+    import torch
+
+    ckpt = torch.load(source, weights_only=True)
+    ckpt["config"]["model"].update(model)
+    torch.save(ckpt, target)
+    return target
+
+
+def _never(*args, **kwargs):
+    raise AssertionError("the network of the crafted config was built")
+
+
+# -- 1. a config that does not fit its weights -----------------------------------------------------------------
+@pytest.mark.parametrize("model, message", [
+    ({"levels": 24}, "its weights do not fit its model config (3"),   # 16M channels at level 24
+    ({"width": 2**40}, "describes a network torch cannot build"),                              # sizes past int64
+    ({"levels": 1000}, "model.levels=1000, its weights 24 tensors"),   # refused before the config is checked
+])
+def test_a_config_larger_than_its_weights_is_refused_before_the_network_is_built(
+        tiny_checkpoint, tmp_path, monkeypatch, model, message):
+    import learned.evaluate
+    from learned.checkpoint import CheckpointError
+
+    monkeypatch.setattr(learned.evaluate, "DepthPoseNet", _never)   # were it built, it would take many GB
+    crafted = _crafted(tiny_checkpoint, tmp_path / "crafted.pt", **model)
+    with pytest.raises(CheckpointError) as caught:
+        learned.evaluate.load_model(crafted)
+    assert message in str(caught.value) and "\n" not in str(caught.value), caught.value
+
+
+def test_cmax_depth_refuses_the_crafted_checkpoint_in_one_line(tiny_checkpoint, slider_file, tmp_path, capsys,
+                                                                monkeypatch):
+    import learned.evaluate
+    from learned.predict import main
+
+    monkeypatch.setattr(learned.evaluate, "DepthPoseNet", _never)   # were it built, it would take many GB
+    crafted = _crafted(tiny_checkpoint, tmp_path / "crafted.pt", levels=24)
+    status, err = one_line_error(lambda: main([str(slider_file), "-o", str(tmp_path / "out"), "--checkpoint",
+                                               str(crafted), "--quiet"]), capsys)
+    assert status == 2 and "crafted.pt: its weights do not fit its model config" in err, err
+    assert not (tmp_path / "out").exists()
+
+
+def test_check_weights_names_what_differs():
+    from learned.checkpoint import CheckpointError, check_weights
+    from learned.model import DepthPoseNet, ModelConfig
+
+    config = ModelConfig(width=2, levels=1)
+    state = DepthPoseNet(config).state_dict()
+    check_weights(config, state, "ok.pt")   # fits: nothing raised
+    with pytest.raises(CheckpointError, match=r"1 unexpected \(e\.g\. extra\)"):
+        check_weights(config, {**state, "extra": state["heads.0.weight"]}, "x.pt")
+    with pytest.raises(CheckpointError, match=r"1 of another shape \(e\.g\. heads\.0\.bias: \[3\], the config's \[1\]"):
+        check_weights(config, {**state, "heads.0.bias": state["heads.0.bias"].repeat(3)}, "x.pt")
+
+
+# -- 2. one training run at a time in train.out ------------------------------------------------------------------
+def _train(slider_file: Path, out: Path, *extra: str) -> list[str]:
+    return ["--mode", "teacher", "--no-progress", f'data.files=["{slider_file}"]', "train.val_every=0",
+            "train.steps=1", "train.batch_size=1", "model.width=2", "model.levels=1", "data.window_us=50000",
+            "data.max_events=500", f"train.out={out}", *extra]
+
+
+@pytest.mark.parametrize("flag", ["--overwrite", "--resume", None])
+def test_a_second_training_run_into_a_held_folder_is_refused_and_changes_nothing(slider_file, tmp_path, capsys,
+                                                                                  flag):
+    from cmax.io.atomic import PathLock
+    from learned.train import FOLDER_LOCK, main
+
+    out = tmp_path / "run"
+    out.mkdir()
+    if flag is not None:   # an earlier run's files (the first run is still writing them)
+        (out / "last.pt").write_bytes(b"not yet a checkpoint")
+        (out / "log.jsonl").write_text('{"step": 1}\n')
+    with PathLock(out / FOLDER_LOCK, out):
+        before = _files(out)
+        status, err = one_line_error(lambda: main(_train(slider_file, out, *([flag] if flag else []))), capsys)
+        assert status == 2 and "is being written by another writer" in err, err
+        assert _files(out) == before
+
+
+def test_a_training_run_releases_its_folder(slider_file, tmp_path):
+    from learned.train import main
+
+    out = tmp_path / "run"
+    assert main(_train(slider_file, out)) == 0
+    assert main(_train(slider_file, out, "--resume", "train.steps=2")) == 0   # not refused by the first run's lock
+    assert not list(out.glob("*.lock"))
+
+
+# -- 3. and 4. one cmax depth run at a time in -o OUT; --overwrite --------------------------------------------------
+def _depth(slider_file: Path, out: Path, checkpoint: Path, *extra: str) -> list[str]:
+    return [str(slider_file), "-o", str(out), "--checkpoint", str(checkpoint), "--quiet", *extra]
+
+
+@pytest.mark.parametrize("earlier", [False, True])
+def test_a_second_depth_run_into_a_held_folder_is_refused_and_changes_nothing(slider_file, tiny_checkpoint, tmp_path,
+                                                                              capsys, earlier):
+    from cmax.io.atomic import PathLock
+    from learned.predict import FOLDER_LOCK, main
+
+    out = tmp_path / "out"
+    if earlier:
+        assert main(_depth(slider_file, out, tiny_checkpoint)) == 0
+    out.mkdir(exist_ok=True)
+    with PathLock(out / FOLDER_LOCK, out):
+        before = _files(out)
+        status, err = one_line_error(lambda: main(_depth(slider_file, out, tiny_checkpoint, "--overwrite")), capsys)
+        assert status == 2 and "is being written by another writer" in err, err
+        assert _files(out) == before
+    capsys.readouterr()
+    assert main(_depth(slider_file, out, tiny_checkpoint, "--overwrite")) == 0   # released: runs
+    assert not [p.name for p in out.iterdir() if p.name.startswith(".")]         # no lock, no private folder left
+
+
+def test_overwrite_records_the_input_file_and_keeps_the_earlier_results_until_it_succeeds(slider_file, tiny_checkpoint,
+                                                                                       tmp_path, capsys):
+    from learned.predict import main
+
+    out = tmp_path / "out"
+    assert main(_depth(slider_file, out, tiny_checkpoint)) == 0
+    assert main(_depth(slider_file, out, tiny_checkpoint, "--overwrite")) == 0
+    assert json.loads((out / "summary.json").read_text())["file"] == str(slider_file)
+    before = _files(out)
+    assert len([name for name in before if name.endswith(".npz")]) == 5          # 0.3 s in windows of 50 ms
+    capsys.readouterr()
+    # a window of 0.2 ms holds no 10 events: the run fails after its checks, with the input named
+    status, err = one_line_error(lambda: main(_depth(slider_file, out, tiny_checkpoint, "--overwrite", "--t0", "0.1",
+                                                     "--t1", "0.1002", "--window", "0.0002")), capsys)
+    assert status == 2 and f"{slider_file}: none of its 1 windows" in err, err
+    assert _files(out) == before                                                   # the earlier results kept
+    assert main(_depth(slider_file, out, tiny_checkpoint, "--overwrite", "--window", "0.2")) == 0
+    assert sorted(_files(out)) == ["summary.json", "twists.csv", "window_00000.npz", "window_00000.png"]
+
+
+def test_a_killed_runs_private_folder_is_removed_by_the_next_run(slider_file, tiny_checkpoint, tmp_path):
+    from learned.predict import main
+
+    out = tmp_path / "out"
+    left = out / ".depth.0123456789abcdef.partial"
+    left.mkdir(parents=True)
+    (left / "window_00000.npz").write_bytes(b"half written")
+    assert main(_depth(slider_file, out, tiny_checkpoint)) == 0
+    assert not left.exists() and (out / "summary.json").is_file()
+
+
+# -- 5. evaluate on a file without ground truth ----------------------------------------------------------------------
+def test_evaluate_on_a_file_without_ground_truth_says_so(tiny_checkpoint, tmp_path, capsys):
+    from cmax.io.h5 import write_h5
+    from learned.evaluate import main
+
+    write_h5(tmp_path / "ev.h5", random_events(2000, seed=3))
+    status, err = one_line_error(lambda: main(["--checkpoint", str(tiny_checkpoint), "--data",
+                                               str(tmp_path / "ev.h5")]), capsys)
+    assert status == 2 and "no ground truth to evaluate the network against" in err, err
+    assert '{"path"' not in err and f"cmax depth {tmp_path / 'ev.h5'} -o OUT --K" in err
