@@ -132,6 +132,14 @@ def _forward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, padd
             fx, fy = lx - x0, ly - y0
             gx, gy = one - fx, one - fy
             ix, iy = int(x0), int(y0)
+            if ix >= 0 and iy >= 0 and ix + 1 < W and iy + 1 < H:   # all four corners inside: no tests
+                top, bottom = padded[iy], padded[iy + 1]
+                top[R + ix] += gx * gy
+                top[R + ix + 1] += fx * gy
+                bottom[R + ix] += gx * fy
+                bottom[R + ix + 1] += fx * fy
+                r_lo, r_hi, c_lo, c_hi = min(r_lo, iy), max(r_hi, iy + 1), min(c_lo, ix), max(c_hi, ix + 1)
+                continue
             if iy >= 0:
                 if ix >= 0:
                     padded[iy, R + ix] += gx * gy
@@ -210,6 +218,12 @@ def _backward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, sca
                 continue
             fx, fy = lx - x0, ly - y0
             ix, iy = int(x0), int(y0)
+            if ix >= 0 and iy >= 0 and ix + 1 < W and iy + 1 < H:   # all four corners inside: no tests
+                top, bottom = field[iy], field[iy + 1]
+                g00, g10, g01, g11 = top[ix], top[ix + 1], bottom[ix], bottom[ix + 1]
+                grad_x[i] = s * ((one - fy) * (g10 - g00) + fy * (g11 - g01))
+                grad_y[i] = s * ((one - fx) * (g01 - g00) + fx * (g11 - g10))
+                continue
             g00 = g10 = g01 = g11 = one - one
             if iy >= 0:
                 if ix >= 0:
