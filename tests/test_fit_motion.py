@@ -12,7 +12,7 @@ import torch
 
 from cmax.events import Events
 from cmax.fitting import FitSettings, PatchFlowSettings, RefineSettings, fit
-from cmax.fitting.motion import LocalMotionObjective, refine_motion_local
+from cmax.fitting.motion import LocalMotionObjective, refine_motion_local, strided_argmax
 from cmax.fitting.patch_flow import (
     _field_matrices, _solve_directions, _weighted_system, fibonacci_sphere, flow_information, make_patches, motion_from_flows, patch_flows, spherical_cap,
 )
@@ -326,6 +326,53 @@ def test_depth_sweep_of_the_patches_equals_one_warp_per_candidate():
     clear = np.sort(loop, 0)[-1] - np.sort(loop, 0)[-2] > 1e-4 * np.abs(loop).max()   # no near-tie at the top
     assert clear.sum() >= patches.count // 2
     np.testing.assert_array_equal(objective.sweep_rho(v_, omega_, candidates)[clear], candidates[loop.argmax(0)][clear])
+
+
+def _counted(table: np.ndarray):
+    """``values(index)`` over ``table`` (count, columns) for :func:`strided_argmax`, and the rows it scored."""
+    scored = []
+
+    def values(index: np.ndarray) -> np.ndarray:
+        scored.append(index.shape[0])
+        return np.take_along_axis(table, index, 0)
+    return values, scored
+
+
+@pytest.mark.parametrize("count, stride", [(24, 3), (24, 4), (25, 3), (7, 2), (5, 8), (24, 1)])
+def test_strided_argmax_finds_every_single_peak(count, stride):
+    """On columns that rise strictly to one peak and fall strictly after it, the strided search returns the
+    full argmax, scoring about ``count / stride + 2 (stride - 1)`` rows."""
+    rng = np.random.default_rng(count * 10 + stride)
+    columns = 400
+    peak = rng.integers(0, count, columns)
+    steps = rng.choice([0.25, 0.5, 1.0, 3.0], (count, columns))
+    rows = np.arange(count)[:, None]
+    rise = np.cumsum(np.where(rows <= peak, steps, 0.0), 0)
+    fall = np.cumsum(np.where(rows > peak, steps, 0.0), 0)
+    table = rise - fall
+    values, scored = _counted(table)
+    np.testing.assert_array_equal(strided_argmax(values, count, columns, stride), table.argmax(0))
+    expected = count if stride == 1 else len(set(range(0, count, stride)) | {count - 1}) + 2 * (stride - 1)
+    assert sum(scored) == expected
+
+
+def test_strided_argmax_can_miss_a_narrow_second_peak():
+    """Its limit: a peak narrower than the stride between two coarse rows is not seen."""
+    table = np.array([[5.0, 4.0, 3.0, 2.0, 9.0, 2.0, 1.0]]).T      # the best (row 4) sits between rows 3 and 6
+    values, _ = _counted(table)
+    assert strided_argmax(values, 7, 1, 3).tolist() == [0]
+    assert strided_argmax(values, 7, 1, 1).tolist() == [4]
+
+
+def test_strided_depth_sweep_equals_the_full_sweep_on_the_refinement_patches():
+    """The refinement's start sweep with the default stride picks each patch's depth as scoring every candidate
+    does (the patches' contrast over inverse depth has one peak), at about half the evaluations."""
+    objective, v, omega, candidates = _patch_objective(1)
+    assert RefineSettings().rho_sweep_stride > 1
+    for v_, omega_ in [(v, omega), (v, omega + np.radians([2.0, -1.0, 0.5])),
+                       (se3_exp(np.r_[0, 0, 0, 0.0, 0.2, 0.1])[:3, :3] @ v, omega)]:
+        np.testing.assert_array_equal(objective.sweep_rho(v_, omega_, candidates, RefineSettings().rho_sweep_stride),
+                                      objective.sweep_rho(v_, omega_, candidates, 1))
 
 
 def test_local_refinement_recovers_from_a_tilted_start():

@@ -323,13 +323,20 @@ class PatchMotionContrast:
         return (np.ascontiguousarray(self.rays.numpy().T), dt, intrinsics_row(self.K.double().numpy()),
                 float(np.abs(dt).max()) if dt.size else 0.0)
 
-    def at_depths(self, v: torch.Tensor, omega: torch.Tensor, rho_rows: torch.Tensor) -> torch.Tensor:
+    def depth_free_parts(self, v: torch.Tensor, omega: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
+        """The two parts (1, M, 3) of the warp of ``v`` (3,) [m/s], ``omega`` (3,) [rad/s] that do not depend
+        on the inverse depth (:func:`cmax.warp.se3_parts`), for :meth:`at_depths`. No gradient."""
+        with torch.no_grad():
+            return se3_parts(self.rays, self.patches.dt, v, omega)
+
+    def at_depths(self, v: torch.Tensor, omega: torch.Tensor, rho_rows: torch.Tensor,
+                  parts: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
         """``c_p`` (C, P) for one motion and each row of per-event inverse depths ``rho_rows`` (C, M) [1/m]:
-        the rows of :meth:`__call__` with the depth-free part of the warp (:func:`cmax.warp.se3_parts`)
-        computed once (a sweep over depths). No gradient."""
+        the rows of :meth:`__call__` with the depth-free part of the warp (:meth:`depth_free_parts`, or
+        ``parts`` when the caller has them for this motion) computed once (a sweep over depths). No gradient."""
         _check_length("each row of rho_rows", tuple(rho_rows.shape[1:]), (len(self.rays),))
         with torch.no_grad():
-            rotated, moved = se3_parts(self.rays, self.patches.dt, v, omega)
+            rotated, moved = self.depth_free_parts(v, omega) if parts is None else parts
             if self.patches.compiled and rho_rows.dtype == rotated.dtype:
                 return self._compiled_rows(rotated, moved, rho_rows)
             rows = []

@@ -29,7 +29,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
-from typing import Sequence
+from typing import Callable, Sequence
 
 import numpy as np
 import torch
@@ -39,7 +39,7 @@ from cmax.fitting.patch_flow import make_patches
 from cmax.fitting.settings import RefineSettings
 from cmax.fitting.solvers import GradientLoss, Solver, SolveResult, solve, torch_fun_and_grad
 
-__all__ = ["LocalMotionObjective", "RefineOutcome", "refine_motion_local", "omega_on_bound"]
+__all__ = ["LocalMotionObjective", "RefineOutcome", "refine_motion_local", "omega_on_bound", "strided_argmax"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -141,15 +141,51 @@ class LocalMotionObjective:
         per-event inverse depth (M,) [1/m] (e.g. the ground truth, in ``benchmarks/cmax_limits.py``)."""
         return self.contrast(v, omega, rho_events)
 
-    def sweep_rho(self, v: np.ndarray, omega: np.ndarray, candidates: np.ndarray) -> np.ndarray:
-        """Best inverse depth (P,) [1/m] of each patch among ``candidates`` (C,) [1/m] for a fixed motion."""
+    def sweep_rho(self, v: np.ndarray, omega: np.ndarray, candidates: np.ndarray, stride: int = 1) -> np.ndarray:
+        """Best inverse depth (P,) [1/m] of each patch among ``candidates`` (C,) [1/m] for a fixed motion
+        (the first best on ties), found by :func:`strided_argmax` with ``stride`` (1: every candidate)."""
         dtype = self.rays.dtype
-        v = self.speed * np.asarray(v, float) / np.linalg.norm(v)
-        rows = torch.as_tensor(np.asarray(candidates, float), dtype=dtype)[:, None].expand(-1, len(self.rays))
-        values = self.contrast.at_depths(torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype),
-                                         rows).double().numpy()                       # (C, P)
-        values = np.where(np.isnan(values), -np.inf, values)     # a NaN row never wins
-        return np.asarray(candidates, float)[values.argmax(0)]   # the first best candidate on ties
+        candidates = np.asarray(candidates, float)
+        v = torch.as_tensor(self.speed * np.asarray(v, float) / np.linalg.norm(v), dtype=dtype)
+        omega = torch.as_tensor(omega, dtype=dtype)
+        parts = self.contrast.depth_free_parts(v, omega)
+        patch = self.patches.patch.cpu().numpy()
+
+        def values(index: np.ndarray) -> np.ndarray:   # (R, P) candidate indices -> (R, P) contrasts
+            rows = torch.as_tensor(candidates[index][:, patch], dtype=dtype)
+            out = self.contrast.at_depths(v, omega, rows, parts).double().numpy()
+            return np.where(np.isnan(out), -np.inf, out)   # a NaN never wins
+
+        return candidates[strided_argmax(values, len(candidates), self.patches.count, stride)]
+
+
+def strided_argmax(values: Callable[[np.ndarray], np.ndarray], count: int, columns: int, stride: int) -> np.ndarray:
+    """The index (columns,) int of the largest of ``count`` values in each column (the first on ties), scoring
+    only some rows: every ``stride``-th (the last one always among them), then in each column the ``stride - 1``
+    rows on each side of its best so far. ``values(index (R, columns) int) -> (R, columns)`` scores row
+    ``index[r, j]`` of column ``j``.
+
+    About ``count / stride + 2 (stride - 1)`` rows instead of ``count``; the same index as the full argmax
+    wherever a column's values rise strictly to one peak and fall strictly after it (the true best lies
+    between the coarse rows around the coarse best), not always otherwise: a peak narrower than the stride
+    away from the coarse best, or one behind a plateau whose coarse rows tie, is missed.
+
+    Examples
+    --------
+    >>> table = np.array([[0.0, 1.0, 5.0, 2.0, 1.0, 0.0, 0.0]]).T       # one column, one peak at row 2
+    >>> strided_argmax(lambda index: np.take_along_axis(table, index, 0), 7, 1, 3).tolist()
+    [2]
+    """
+    if stride <= 1:
+        return values(np.repeat(np.arange(count)[:, None], columns, 1)).argmax(0)
+    coarse = np.unique(np.r_[np.arange(0, count, stride), count - 1])
+    scores = values(np.repeat(coarse[:, None], columns, 1))
+    best = coarse[scores.argmax(0)]
+    steps = np.r_[np.arange(-stride + 1, 0), np.arange(1, stride)]
+    near = np.clip(best[None, :] + steps[:, None], 0, count - 1)
+    index = np.concatenate([best[None], near])
+    score = np.concatenate([scores.max(0)[None], values(near)])
+    return np.where(score == score.max(0)[None], index, count).min(0)
 
 
 @dataclass(frozen=True)
@@ -167,7 +203,8 @@ class RefineOutcome:
 
 def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: RefineSettings,
                         solver: Solver, *, hold_omega: bool = False,
-                        more_starts: Sequence[tuple[np.ndarray, np.ndarray]] = ()) -> RefineOutcome:
+                        more_starts: Sequence[tuple[np.ndarray, np.ndarray]] = (),
+                        objective: LocalMotionObjective | None = None) -> RefineOutcome:
     """Refine ``v`` (3,) [m/s] and ``omega`` (3,) [rad/s] on the patch-wise contrast; ``|v|`` stays ``speed``.
 
     Parameters
@@ -187,6 +224,9 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, setti
     more_starts : sequence of (v, omega)
         Further starts, each refined the same way; the refined motion with the highest patch-wise
         contrast wins (a multi-start of one optimisation).
+    objective : LocalMotionObjective, optional
+        The window's objective at ``speed``, when the caller holds one built with these ``settings``' patches
+        (the ambiguity test's polishes); used when its parameterisation is the one ``solver`` needs.
 
     Returns
     -------
@@ -195,12 +235,15 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, setti
         ``settings.min_events``.
     """
     v, omega = np.asarray(v, float), np.asarray(omega, float)
-    patches = make_patches(w, grid=settings.grid, min_events=settings.min_events, max_events=settings.max_events,
-                           margin=settings.margin, min_margin_px=settings.min_margin_px)
-    if patches is None or patches.count < settings.min_patches:
+    if objective is None or objective.unit_norm == solver.takes_equality:
+        patches = make_patches(w, grid=settings.grid, min_events=settings.min_events, max_events=settings.max_events,
+                               margin=settings.margin, min_margin_px=settings.min_margin_px)
+        if patches is None or patches.count < settings.min_patches:
+            return RefineOutcome(v, omega, float("nan"), float("nan"), ())
+        objective = LocalMotionObjective.build(w, patches, speed, unit_norm=not solver.takes_equality,
+                                               direction_scale=settings.direction_scale)
+    elif objective.patches.count < settings.min_patches:
         return RefineOutcome(v, omega, float("nan"), float("nan"), ())
-    objective = LocalMotionObjective.build(w, patches, speed, unit_norm=not solver.takes_equality,
-                                           direction_scale=settings.direction_scale)
     near, far = w.settings.depth_range
     candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), settings.rho_candidates))
     solves, best = [], None
@@ -219,7 +262,7 @@ def _refine_from(w, objective: LocalMotionObjective, v: np.ndarray, omega: np.nd
                  ) -> tuple[SolveResult, np.ndarray, np.ndarray, tuple[str, ...]]:
     """One refinement from ``(v, omega)``: the solve, ``v`` (3,), ``omega`` (3,), the omega axes on a bound."""
     near, far = w.settings.depth_range
-    rho0 = objective.sweep_rho(v, omega, candidates)
+    rho0 = objective.sweep_rho(v, omega, candidates, settings.rho_sweep_stride)
     x0 = objective.params(v, omega, rho0)
     P, s_o, s_r = objective.patches.count, objective.omega_scale, objective.rho_scale
     max_omega, scale = w.settings.max_omega, objective.direction_scale

@@ -163,10 +163,10 @@ def alternative_motions(objective: LocalMotionObjective, v: np.ndarray, omega: n
 
 
 def _patch_contrast(objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray,
-                    candidates: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+                    candidates: np.ndarray, stride: int = 1) -> tuple[np.ndarray, np.ndarray]:
     """Per-patch normalised contrast (P,) of ``(v, omega)`` with each patch's best inverse depth among
-    ``candidates`` [1/m], and those depths (P,)."""
-    rho = objective.sweep_rho(v, omega, candidates)
+    ``candidates`` [1/m] (swept with ``stride``, :meth:`LocalMotionObjective.sweep_rho`), and those depths (P,)."""
+    rho = objective.sweep_rho(v, omega, candidates, stride)
     with torch.no_grad():
         values = objective.values(torch.from_numpy(objective.params(v, omega, rho))).double().numpy()
     return values, rho
@@ -182,6 +182,7 @@ class MotionScorer:
     c_fit: np.ndarray
     rho: np.ndarray
     settings: QualitySettings
+    stride: int = 1
 
     @classmethod
     def build(cls, w, v: np.ndarray, omega: np.ndarray, speed: float,
@@ -197,8 +198,9 @@ class MotionScorer:
         objective = LocalMotionObjective.build(w, patches, speed)
         near, far = w.settings.depth_range
         candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), refine.rho_candidates))
-        c_fit, rho = _patch_contrast(objective, np.asarray(v, float), np.asarray(omega, float), candidates)
-        return cls(objective, candidates, c_fit, rho, settings)
+        stride = refine.rho_sweep_stride
+        c_fit, rho = _patch_contrast(objective, np.asarray(v, float), np.asarray(omega, float), candidates, stride)
+        return cls(objective, candidates, c_fit, rho, settings, stride)
 
     @property
     def own_gain(self) -> float:
@@ -207,7 +209,8 @@ class MotionScorer:
 
     def score(self, name: str, v: np.ndarray, omega: np.ndarray) -> Alternative:
         """``(v (3,), omega (3,))`` as an :class:`Alternative` of the fit: summed gain, noise, within noise."""
-        c_alt, _ = _patch_contrast(self.objective, np.asarray(v, float), np.asarray(omega, float), self.candidates)
+        c_alt, _ = _patch_contrast(self.objective, np.asarray(v, float), np.asarray(omega, float), self.candidates,
+                                   self.stride)
         gain = self.c_fit - c_alt
         noise = max(self.settings.noise_sigmas * float(np.std(gain, ddof=1)) * math.sqrt(len(gain)),
                     self.settings.margin * max(self.own_gain, 0.0))
@@ -234,8 +237,8 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
     for name, v_alt, omega_alt in alternative_motions(scorer.objective, v, omega, scorer.rho, hold_omega=hold_omega):
         if settings.polish_iterations:
             polished = refine_motion_local(w, v_alt, omega_alt, speed,
-                                           replace(refine, iterations=settings.polish_iterations), solver,
-                                           hold_omega=hold_omega)
+                                           replace(refine, iterations=settings.polish_iterations),
+                                           solver, hold_omega=hold_omega, objective=scorer.objective)
             v_alt, omega_alt = polished.v, polished.omega
             if _distance_deg(v_alt, omega_alt, v, omega, w.T) < settings.distinct_deg:
                 merged.append(name)

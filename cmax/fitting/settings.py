@@ -192,6 +192,9 @@ class RefineSettings:
         ambiguity test does not run).
     rho_candidates : int
         Inverse depths of the per-patch start sweep, log-uniform over ``depth_range``.
+    rho_sweep_stride : int
+        That sweep scores every ``rho_sweep_stride``-th candidate, then the candidates around each patch's
+        best one (:meth:`cmax.fitting.motion.LocalMotionObjective.sweep_rho`); 1: every candidate.
     iterations : int
         Solver iterations.
     direction_scale : float
@@ -209,6 +212,7 @@ class RefineSettings:
     min_margin_px: int = 8
     min_patches: int = 4
     rho_candidates: int = 24
+    rho_sweep_stride: int = 3
     iterations: int = 60
     direction_scale: float = 10.0
     tolerances: Tolerances = SCIPY_DEFAULT_TOLERANCES
@@ -219,6 +223,7 @@ class RefineSettings:
         _positive_int("refine.max_events", self.max_events)
         _fraction("refine.margin", self.margin)
         _positive_int("refine.rho_candidates", self.rho_candidates, 2)
+        _positive_int("refine.rho_sweep_stride", self.rho_sweep_stride)
         _positive_int("refine.iterations", self.iterations)
         _positive_int("refine.min_margin_px", self.min_margin_px, 0)
         _positive_int("refine.min_patches", self.min_patches, 1)
