@@ -136,9 +136,30 @@ _OPENBLAS_SYMBOLS = (("scipy_openblas_set_num_threads64_", "scipy_openblas_get_n
                      ("openblas_set_num_threads", "openblas_get_num_threads"))
 
 
+#: ``(len(sys.modules), pools)`` of the last scan of :func:`_openblas_pools`.
+_POOLS_SEEN: tuple[int, list[tuple]] | None = None
+
+
 def _openblas_pools() -> list[tuple]:
     """``(setter, getter)`` of every OpenBLAS mapped into this process (Linux ``/proc/self/maps``;
-    empty elsewhere or when none is loaded)."""
+    empty elsewhere or when none is loaded).
+
+    The scan (a few ms in a process with torch and numba loaded) is kept until a module is imported: an
+    OpenBLAS comes into the process with the extension module that links it (numpy, scipy). A library
+    loaded some other way (``ctypes``) is seen at the next import; missing it costs speed only.
+    """
+    global _POOLS_SEEN
+    import sys
+
+    if _POOLS_SEEN is not None and _POOLS_SEEN[0] == len(sys.modules):
+        return _POOLS_SEEN[1]
+    pools = _scan_openblas()
+    _POOLS_SEEN = (len(sys.modules), pools)
+    return pools
+
+
+def _scan_openblas() -> list[tuple]:
+    """:func:`_openblas_pools` without the memo: read ``/proc/self/maps`` and load each OpenBLAS's symbols."""
     import ctypes
 
     try:

@@ -104,3 +104,19 @@ print("during fit", seen[0], "after fit", counts())
     with pytest.raises(ValueError, match="threads"):
         with blas_threads_scope(0):
             pass
+
+
+def test_the_openblas_scan_is_kept_until_a_module_is_imported(monkeypatch):
+    """``/proc/self/maps`` is read again only after an import (an OpenBLAS comes with an extension module)."""
+    import sys
+    import types
+
+    from cmax import _threads
+
+    scans = []
+    monkeypatch.setattr(_threads, "_scan_openblas", lambda: scans.append(1) or [("set", "get")])
+    monkeypatch.setattr(_threads, "_POOLS_SEEN", None)
+    first = _threads._openblas_pools()
+    assert _threads._openblas_pools() is first and len(scans) == 1
+    monkeypatch.setitem(sys.modules, "cmax_test_new_module", types.ModuleType("cmax_test_new_module"))
+    assert _threads._openblas_pools() == first and len(scans) == 2
