@@ -52,13 +52,13 @@ import collections
 import functools
 import os
 import pickle
-import platform
 import time
 from pathlib import Path
 
 import numpy as np
 import torch
 
+from benchmarks.machine import describe
 from cmax.fitting import fit
 from cmax.fitting.api import event_pixels
 from cmax.io.atomic import write_text_atomic
@@ -277,7 +277,7 @@ def summarise(rows: dict[str, list[dict]], seeds: list[int], seconds: float) -> 
     header = ["| model | figure | median | p90 | target | met (median / p90) |", "|---|---|---|---|---|---|"]
     lines = ["# cmax.fit accuracy on held-out synthetic windows", "",
              f"Seeds {seeds[0]}-{seeds[-1]} ({len(seeds)} windows per model), 346x260. "
-             f"Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1 "
+             f"Machine: {describe()}, torch threads 1 "
              f"(fit's default). Written by `python -m benchmarks.accuracy_cmax` in {seconds:.0f} s; load average "
              f"(1 min) at the end {os.getloadavg()[0]:.2f}. Seeds 100-119 are held out; settings were chosen on "
              "seeds 1-12. Every fit uses FitSettings.seed 0 (its subsample and dither); how much the figures move "

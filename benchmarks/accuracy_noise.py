@@ -30,7 +30,6 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import re
 import subprocess
 import sys
@@ -40,6 +39,7 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.machine import describe
 from benchmarks.accuracy_cmax import RESULTS, _room, parse_names, parse_seeds, windows
 from cmax.io.atomic import write_text_atomic
 
@@ -81,7 +81,7 @@ def summarise(rows: dict[str, dict[int, list[dict]]], seeds: list[int], fit_seed
              f"Held-out windows {seeds[0]}-{seeds[-1]} (346x260, `indoor_flying`, as `benchmarks.accuracy_cmax`), "
              f"each fitted with `FitSettings.seed` = {fit_seeds[0]}-{fit_seeds[-1]} (the seed of the fit's "
              "subsample and sub-pixel dither; `accuracy_cmax` uses 0). Written by `python -m "
-             f"benchmarks.accuracy_noise` in {seconds:.0f} s on {platform.machine()}, {os.cpu_count()} cores, "
+             f"benchmarks.accuracy_noise` in {seconds:.0f} s on {describe()}, "
              "torch threads 1. Lower is better for every figure.", "",
              "| model | figure | statistic | " + " | ".join(f"seed {s}" for s in fit_seeds)
              + f" | range over seeds | {reference_name} | where |",

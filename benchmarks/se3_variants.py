@@ -20,7 +20,6 @@ from __future__ import annotations
 import argparse
 import ast
 import os
-import platform
 import sys
 import time
 import warnings
@@ -30,6 +29,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.machine import describe
 from benchmarks.accuracy_cmax import RESULTS, _room, abs_rel, parse_seeds, windows
 from cmax.fitting import FitSettings, fit
 from cmax.io.atomic import write_text_atomic
@@ -100,7 +100,7 @@ def report(rows: dict[str, list[dict]], seeds: list[int], seconds: float, fit_se
              f"`indoor_flying` seeds {seeds[0]}-{seeds[-1]} (held out), 346x260, `speed=|v|`, depth range 1-6.5 m; "
              f"fit seeds {', '.join(map(str, fit_seeds))} ({len(seeds) * len(fit_seeds)} fits per variant); "
              "the variants interleaved window by window. Machine: "
-             f"{platform.processor() or platform.machine()}, {os.cpu_count()} cores, torch threads 1; load average "
+             f"{describe()}, torch threads 1; load average "
              f"(1 min) at the end {os.getloadavg()[0]:.2f}. Written by `{command}` in "
              f"{seconds:.0f} s. Medians / p90 over all fits, then over the fits each variant called `ok`.", "",
              "| variant | " + " | ".join(FIGURES) + " | ok windows | "

@@ -29,6 +29,7 @@ from typing import Callable
 
 import numpy as np
 
+from benchmarks.machine import cpu_name
 from cmax.io.atomic import write_text_atomic
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -148,7 +149,7 @@ def machine_info() -> dict:
         "date_utc": _dt.datetime.now(_dt.timezone.utc).strftime("%Y-%m-%d %H:%M UTC"),
         "python": platform.python_version(),
         "platform": platform.platform(),
-        "cpu": _cpu_name(),
+        "cpu": cpu_name(),
         "cpu_count": os.cpu_count(),
         "numpy": np.__version__,
         "load_average_1min_at_start": (
@@ -169,16 +170,6 @@ def machine_info() -> dict:
     except ImportError:
         info["tonic"] = None
     return info
-
-
-def _cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown"
 
 
 def add_row(report: Report, group: str, method: str, times: list[float], events: int,

@@ -20,12 +20,12 @@ from __future__ import annotations
 import argparse
 import json
 import os
-import platform
 import statistics
 import subprocess
 import sys
 from pathlib import Path
 
+from benchmarks.machine import describe
 from benchmarks.accuracy_cmax import RESULTS, parse_seeds
 from cmax.io.atomic import write_text_atomic
 
@@ -100,7 +100,7 @@ def report(roots: dict[str, Path], seconds: dict[str, list[float]], seeds: list[
              f"Written by `{command}`: `indoor_flying` seeds {seeds[0]}-{seeds[-1]} (held out), 346x260, "
              "`speed=|v|`, the preset's depth range, fit seed 0, one torch thread, verdict included; each checkout "
              "in a worker process of its own, warmed up by one fit, the two fitting each window in turn (the order "
-             f"alternating). Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores; load "
+             f"alternating). Machine: {describe()}; load "
              f"average (1 min) {loads[0]:.2f} before, {loads[1]:.2f} after.", "",
              "| checkout | revision | median [s] | p90 [s] |", "|---|---|---:|---:|"]
     for name, root in roots.items():
