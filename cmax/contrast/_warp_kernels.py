@@ -209,7 +209,8 @@ def _backward_series(rays, dt, v, omega, rho, k, zmin, gx, gy, grad_rho, terms, 
     """:func:`_backward` where every event's ``s`` is within the series (``series`` True), in two passes: this
     one writes each event's ``dL/drho`` and its six terms of ``dL/dv``, ``dL/domega`` to ``terms`` (6, N)
     (zeros without ``twist``) with no reduction, so that it runs on SIMD registers; :func:`_sum_terms` then
-    adds the terms in event order, as :func:`_backward` does (the same sums, bit for bit)."""
+    adds the terms in event order. (:func:`_backward`'s loop, compiled with reassociation, adds them in an order
+    of LLVM's choosing: the two agree to float64 rounding, ``dL/drho`` bit for bit.)"""
     v0, v1, v2, o0, o1, o2 = v[0], v[1], v[2], omega[0], omega[1], omega[2]
     k0, k1, k3 = k[0], k[1], k[3]
     for i in range(dt.shape[0]):
@@ -223,8 +224,8 @@ def _backward_series(rays, dt, v, omega, rho, k, zmin, gx, gy, grad_rho, terms, 
 
 @vector_kernel
 def _sum_terms(terms, grad_v, grad_omega):  # pragma: no cover - compiled
-    """``grad_v``, ``grad_omega`` (3,) += the rows of ``terms`` (6, N), each summed in event order (no
-    reassociation: the order of :func:`_backward`'s running sums)."""
+    """``grad_v``, ``grad_omega`` (3,) += the rows of ``terms`` (6, N), each summed in event order (compiled
+    without reassociation, so the order is the loop's)."""
     s0, s1, s2, s3, s4, s5 = grad_v[0], grad_v[1], grad_v[2], grad_omega[0], grad_omega[1], grad_omega[2]
     for i in range(terms.shape[1]):
         s0, s1, s2 = s0 + terms[0, i], s1 + terms[1, i], s2 + terms[2, i]
