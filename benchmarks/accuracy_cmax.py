@@ -79,10 +79,32 @@ TARGETS = {
 }
 
 
+#: The sources a simulated window depends on (relative to the repository root; folders: every ``.py`` below):
+#: :func:`cached` keys its files by their hash, so that a change to the simulator simulates the windows again.
+SIMULATION_SOURCES = ("cmax/sim", "cmax/camera.py", "cmax/events.py", "cmax/geometry.py",
+                      "benchmarks/synthetic_windows.py")
+
+
+@functools.lru_cache(maxsize=1)
+def simulation_fingerprint() -> str:
+    """The first 12 hex digits of the SHA-256 of :data:`SIMULATION_SOURCES` (paths and contents, sorted)."""
+    import hashlib
+
+    root = Path(__file__).resolve().parents[1]
+    digest = hashlib.sha256()
+    for name in SIMULATION_SOURCES:
+        paths = sorted((root / name).rglob("*.py")) if (root / name).is_dir() else [root / name]
+        for path in paths:
+            digest.update(str(path.relative_to(root)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()[:12]
+
+
 def cached(cache: Path | None, key: str, make):
+    """``make()``, pickled in ``cache`` under ``key`` and :func:`simulation_fingerprint` (a window simulated
+    by other simulator code is not read back: it is simulated again); no cache: ``make()``."""
     if cache is None:
         return make()
-    path = cache / f"{key}.pkl"
+    path = cache / f"{key}_{simulation_fingerprint()}.pkl"
     if path.exists():
         try:
             with open(path, "rb") as f:
@@ -329,7 +351,8 @@ def main(argv: list[str] | None = None) -> int:
     """Fit every window, print one line per window, write the table; returns 0."""
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", default=None, help="first-last (default 100-119; --quick: 100-101)")
-    parser.add_argument("--cache", type=Path, default=None, help="folder to keep simulated windows between runs")
+    parser.add_argument("--cache", type=Path, default=None,
+                        help="folder to keep simulated windows between runs (keyed by the simulator sources)")
     parser.add_argument("--models", default=",".join(RUNS))
     parser.add_argument("--quick", action="store_true",
                         help="2 windows per model, written to accuracy_cmax_quick.md (a smoke run, not the figures)")

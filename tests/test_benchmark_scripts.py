@@ -369,3 +369,22 @@ def test_real_cmax_seed_spread_counts_each_target_per_fit_seed():
     assert "| 1 | 1 |" in text and "| 0.610 (0.60 / 0.71) | 3 |" in text
     assert "Targets met at 1 of 2 fit seeds (no reversed window), 1 of 2 (direction" in text
     assert "1 of 2 (far wall within 10% of EMVS)" in text
+
+
+def test_window_cache_is_keyed_by_the_simulator_sources(tmp_path, monkeypatch):
+    """A window cached by other simulator code is simulated again, not read back (``accuracy_cmax.cached``)."""
+    from benchmarks import accuracy_cmax
+
+    made = []
+
+    def make():
+        made.append(1)
+        return {"window": len(made)}
+
+    first = accuracy_cmax.cached(tmp_path, "w", make)
+    assert accuracy_cmax.cached(tmp_path, "w", make) == first and len(made) == 1      # read back
+    fingerprint = accuracy_cmax.simulation_fingerprint()
+    assert len(fingerprint) == 12 and int(fingerprint, 16) >= 0
+    assert (tmp_path / f"w_{fingerprint}.pkl").exists()
+    monkeypatch.setattr(accuracy_cmax, "simulation_fingerprint", lambda: "0" * 12)
+    assert accuracy_cmax.cached(tmp_path, "w", make) == {"window": 2} and len(made) == 2   # simulated again
