@@ -365,14 +365,28 @@ def test_strided_argmax_can_miss_a_narrow_second_peak():
 
 
 def test_strided_depth_sweep_equals_the_full_sweep_on_the_refinement_patches():
-    """The refinement's start sweep with the default stride picks each patch's depth as scoring every candidate
-    does (the patches' contrast over inverse depth has one peak), at about half the evaluations."""
+    """Every third candidate, then the two on each side of each patch's best, picks each patch's depth as
+    scoring every candidate does on the refinement's patches (their contrast over inverse depth has one peak)."""
     objective, v, omega, candidates = _patch_objective(1)
-    assert RefineSettings().rho_sweep_stride > 1
     for v_, omega_ in [(v, omega), (v, omega + np.radians([2.0, -1.0, 0.5])),
                        (se3_exp(np.r_[0, 0, 0, 0.0, 0.2, 0.1])[:3, :3] @ v, omega)]:
-        np.testing.assert_array_equal(objective.sweep_rho(v_, omega_, candidates, RefineSettings().rho_sweep_stride),
+        np.testing.assert_array_equal(objective.sweep_rho(v_, omega_, candidates, 3),
                                       objective.sweep_rho(v_, omega_, candidates, 1))
+
+
+@pytest.mark.parametrize("depth_range, stride", [((1.0, 6.5), 3), ((0.5, 60.0), 1), ((2.0, 2.5), 3), ((1.0, 1.0), 1)])
+def test_the_sweep_stride_keeps_the_coarse_candidates_within_the_coarse_step(depth_range, stride):
+    """The stride is the number of candidate steps (log-uniform in inverse depth) within ``rho_coarse_step``,
+    capped where a wider stride would score more candidates than it saves (24 candidates: 3, 13 scored)."""
+    settings = RefineSettings()
+    assert settings.rho_sweep_stride(depth_range) == stride
+    near, far = depth_range
+    if far > near:
+        spacing = np.log(far / near) / (settings.rho_candidates - 1)
+        assert stride * spacing <= settings.rho_coarse_step + 1e-9
+    assert RefineSettings(rho_coarse_step=0.0).rho_sweep_stride(depth_range) == 1
+    with pytest.raises(ValueError, match="rho_coarse_step"):
+        RefineSettings(rho_coarse_step=-0.1)
 
 
 def test_local_refinement_recovers_from_a_tilted_start():

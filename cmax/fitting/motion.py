@@ -262,7 +262,7 @@ def _refine_from(w, objective: LocalMotionObjective, v: np.ndarray, omega: np.nd
                  ) -> tuple[SolveResult, np.ndarray, np.ndarray, tuple[str, ...]]:
     """One refinement from ``(v, omega)``: the solve, ``v`` (3,), ``omega`` (3,), the omega axes on a bound."""
     near, far = w.settings.depth_range
-    rho0 = objective.sweep_rho(v, omega, candidates, settings.rho_sweep_stride)
+    rho0 = objective.sweep_rho(v, omega, candidates, settings.rho_sweep_stride(w.settings.depth_range))
     x0 = objective.params(v, omega, rho0)
     P, s_o, s_r = objective.patches.count, objective.omega_scale, objective.rho_scale
     max_omega, scale = w.settings.max_omega, objective.direction_scale

@@ -198,7 +198,7 @@ class MotionScorer:
         objective = LocalMotionObjective.build(w, patches, speed)
         near, far = w.settings.depth_range
         candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), refine.rho_candidates))
-        stride = refine.rho_sweep_stride
+        stride = refine.rho_sweep_stride(w.settings.depth_range)
         c_fit, rho = _patch_contrast(objective, np.asarray(v, float), np.asarray(omega, float), candidates, stride)
         return cls(objective, candidates, c_fit, rho, settings, stride)
 

@@ -192,9 +192,12 @@ class RefineSettings:
         ambiguity test does not run).
     rho_candidates : int
         Inverse depths of the per-patch start sweep, log-uniform over ``depth_range``.
-    rho_sweep_stride : int
-        That sweep scores every ``rho_sweep_stride``-th candidate, then the candidates around each patch's
-        best one (:meth:`cmax.fitting.motion.LocalMotionObjective.sweep_rho`); 1: every candidate.
+    rho_coarse_step : float
+        That sweep first scores candidates this far apart at most in log inverse depth, then the ones around
+        each patch's best (:meth:`rho_sweep_stride`, :func:`cmax.fitting.motion.strided_argmax`); 0: every
+        candidate. With the default 0.25 the room's 1-6.5 m takes every third candidate; ranges as wide as the
+        default 0.5-60 m (candidates 0.21 apart) take every one, where a patch's contrast over depth can
+        have a second peak between coarse candidates.
     iterations : int
         Solver iterations.
     direction_scale : float
@@ -212,7 +215,7 @@ class RefineSettings:
     min_margin_px: int = 8
     min_patches: int = 4
     rho_candidates: int = 24
-    rho_sweep_stride: int = 3
+    rho_coarse_step: float = 0.25
     iterations: int = 60
     direction_scale: float = 10.0
     tolerances: Tolerances = SCIPY_DEFAULT_TOLERANCES
@@ -223,12 +226,31 @@ class RefineSettings:
         _positive_int("refine.max_events", self.max_events)
         _fraction("refine.margin", self.margin)
         _positive_int("refine.rho_candidates", self.rho_candidates, 2)
-        _positive_int("refine.rho_sweep_stride", self.rho_sweep_stride)
+        if not (isinstance(self.rho_coarse_step, (int, float)) and not isinstance(self.rho_coarse_step, bool)
+                and math.isfinite(self.rho_coarse_step) and self.rho_coarse_step >= 0):
+            raise ValueError(f"refine.rho_coarse_step must be a finite number >= 0, got {self.rho_coarse_step!r}")
         _positive_int("refine.iterations", self.iterations)
         _positive_int("refine.min_margin_px", self.min_margin_px, 0)
         _positive_int("refine.min_patches", self.min_patches, 1)
         _positive("refine.direction_scale", self.direction_scale)
         _tolerances("refine.tolerances", self.tolerances)
+
+    def rho_sweep_stride(self, depth_range: tuple[float, float]) -> int:
+        """The stride of the per-patch start sweep over ``depth_range`` (near, far) [m]: how many candidate
+        steps (log-uniform in inverse depth) fit in ``rho_coarse_step``, at least 1, and no more than the
+        stride that scores the fewest candidates (a wider one scores more around the best than it saves).
+
+        Examples
+        --------
+        >>> RefineSettings().rho_sweep_stride((1.0, 6.5)), RefineSettings().rho_sweep_stride((0.5, 60.0))
+        (3, 1)
+        """
+        near, far = depth_range
+        spacing = math.log(far / near) / (self.rho_candidates - 1)
+        widest = max(1, int(self.rho_coarse_step / spacing + 1e-9)) if spacing > 0 else 1
+        count = self.rho_candidates
+        scored = [len(set(range(0, count, s)) | {count - 1}) + 2 * (s - 1) for s in range(1, widest + 1)]
+        return 1 + scored.index(min(scored))
 
 
 @dataclass(frozen=True)
