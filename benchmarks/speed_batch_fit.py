@@ -34,6 +34,8 @@ from pathlib import Path
 
 import numpy as np
 
+from benchmarks.machine import cpu_name
+
 RESULTS = Path(__file__).resolve().parent / "results"
 
 
@@ -158,7 +160,8 @@ def report(calls: dict[int, list[float]], cpu: dict[int, list[float]], loads: li
              f"(0.1665 s, {width}x{height}, {min(events):,}-{max(events):,} events, scale unknown), fitted with "
              f"`fit_windows(..., jobs=n)`; windows/s = {windows} / median wall time of {repeats} interleaved calls "
              "(each call with jobs > 1 starts its workers). Results identical across the job counts: "
-             f"{'yes' if equal else 'NO'}. Machine: {platform.machine()}, {cores} cores available, torch on one "
+             f"{'yes' if equal else 'NO'}. Machine: {platform.machine()} ({cpu_name()}), {cores} cores available, "
+             "torch on one "
              f"thread per worker (and one BLAS thread: `one_blas_thread`); this process's OMP_NUM_THREADS="
              f"{os.environ.get('OMP_NUM_THREADS', 'unset')}, OPENBLAS_NUM_THREADS="
              f"{os.environ.get('OPENBLAS_NUM_THREADS', 'unset')} (jobs=1 fits here); 1-minute load average during "

@@ -340,3 +340,31 @@ def test_benchmark_report_gives_windows_per_second_ratio_and_efficiency():
     assert "| 1 | 0.545 | 1.83 | 1.00 | 1.00 | 1.67 | 0.94 | 0.5 |" in text
     assert "| 2 | 1.000 | 1.00 | 1.83 | 0.92 | 2.00 | 1.83 | 1.0 |" in text
     assert "autogroup" in text and "Results identical across the job counts: yes" in text
+
+
+def test_the_forkserver_warms_the_kernels_with_one_small_fit(monkeypatch):
+    """``cmax.fitting._warm`` (the last module the forkserver preloads) fits a deterministic synthetic window
+    through every se3 stage and leaves torch's thread count as it was."""
+    import torch
+
+    from cmax.fitting import batch
+    from cmax.fitting._warm import warm, warm_events
+
+    assert batch._PRELOAD[-1] == "cmax.fitting._warm"
+    first, second = warm_events(), warm_events()
+    assert np.array_equal(first[0].t, second[0].t) and np.array_equal(first[0].x, second[0].x)
+    events, K, speed = first
+    assert len(events) > 1000 and np.all(np.diff(events.t) >= 0)
+    stages = []
+    real_fit = cmax.fitting.api.fit
+
+    def recording(*args, **kwargs):
+        result = real_fit(*args, **kwargs)
+        stages.extend(log.stage for log in result.stages)
+        return result
+
+    monkeypatch.setattr(cmax.fitting.api, "fit", recording)
+    before = torch.get_num_threads()
+    warm()
+    assert torch.get_num_threads() == before
+    assert {"patch_flow", "local_refine", "depth_sweep"} <= set(stages)

@@ -65,9 +65,10 @@ _FIT_KEYWORDS = frozenset({"speed", "pose", "omega", "depth_grid", "solver", "in
 #: Modules the forkserver imports once, so that each worker forks with them loaded: the fit, and what
 #: its first call would import lazily (torch's ``broadcast_shapes`` pulls in sympy through
 #: ``symbolic_shapes``; the scipy solvers and filters), which every worker's first window paid
-#: otherwise. A module missing in some version is skipped.
+#: otherwise; last :mod:`cmax.fitting._warm`, one small fit that loads the compiled kernels from numba's
+#: cache in the server. A module missing in some version is skipped.
 _PRELOAD = ["cmax.fitting.batch", "cmax.fitting.polish", "cmax.contrast", "scipy.optimize", "scipy.ndimage",
-            "torch.fx.experimental.symbolic_shapes"]
+            "torch.fx.experimental.symbolic_shapes", "cmax.fitting._warm"]
 #: Windows submitted per worker ahead of the results (bounds the events held in flight).
 _AHEAD = 2
 
