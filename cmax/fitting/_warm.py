@@ -54,4 +54,8 @@ def warm() -> None:
         torch.set_num_threads(threads)
 
 
-warm()
+try:
+    warm()
+except Exception as error:  # pragma: no cover - the warm-up only saves time: it must never stop the server
+    warnings.warn(f"cmax.fitting._warm: the warm-up fit failed ({type(error).__name__}: {error}); the workers "
+                  "load the kernels themselves", RuntimeWarning, stacklevel=1)
