@@ -16,8 +16,6 @@ with ``speed=|v|`` and the preset's depth range, with and without the gyroscope'
 from __future__ import annotations
 
 import argparse
-import os
-import platform
 import time
 import warnings
 from pathlib import Path
@@ -25,6 +23,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.machine import describe
 from benchmarks.accuracy_cmax import _room, cached
 from benchmarks.synthetic_windows import preset_window
 from cmax.fitting import FitSettings, Verdict, fit
@@ -129,7 +128,7 @@ def main(argv: list[str] | None = None) -> None:
         sections.append(table(rows, "se3 with the gyroscope's rotation held" if gyro else "se3, rotation fitted"))
     head = ["# cmax.fit quality verdicts on held-out synthetic windows", "",
             f"`indoor_flying` seeds {seeds[0]}-{seeds[-1]}, 346x260, `speed=|v|`, depth range 1-6.5 m, default "
-            f"`QualitySettings`. Machine: {platform.processor() or platform.machine()}, {os.cpu_count()} cores, "
+            f"`QualitySettings`. Machine: {describe()}, "
             f"torch threads 1. Written by `python -m benchmarks.quality_cmax` in "
             f"{time.perf_counter() - start:.0f} s.", ""]
     write_text_atomic(args.output, "\n".join(head + [line for section in sections for line in section]))
