@@ -144,9 +144,10 @@ def _openblas_pools() -> list[tuple]:
     """``(setter, getter)`` of every OpenBLAS mapped into this process (Linux ``/proc/self/maps``;
     empty elsewhere or when none is loaded).
 
-    The scan (a few ms in a process with torch and numba loaded) is kept until a module is imported: an
-    OpenBLAS comes into the process with the extension module that links it (numpy, scipy). A library
-    loaded some other way (``ctypes``) is seen at the next import; missing it costs speed only.
+    The scan reads every mapping of the process (many, with torch and numba loaded), so its result is kept
+    until a module is imported: an OpenBLAS comes into the process with the extension module that links
+    it (numpy, scipy). A library loaded some other way (``ctypes``) is seen at the next import; missing it
+    costs speed only.
     """
     global _POOLS_SEEN
     import sys

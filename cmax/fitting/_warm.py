@@ -1,8 +1,8 @@
 """One small se3 fit at import, for the forkserver of :func:`cmax.fitting.fit_windows` only.
 
 The fit's compiled kernels are loaded from numba's on-disk cache at their first call, in each process:
-every worker of ``fit_windows`` / ``fit_sequence(jobs=)`` paid it on its first window (a few tenths of a
-second, as long as fitting a small window). Listed in :data:`cmax.fitting.batch._PRELOAD`, this module
+every worker of ``fit_windows`` / ``fit_sequence(jobs=)`` paid it on its first window (``docs/fitting.md``
+has the measurement). Listed in :data:`cmax.fitting.batch._PRELOAD`, this module
 makes the forkserver run one fit of a synthetic window as it starts, so that the kernels (and torch's and
 scipy's first-call work) are loaded once there and every worker forked from it starts with them.
 
