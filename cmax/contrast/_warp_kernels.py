@@ -181,45 +181,31 @@ def _gradient(r0, r1, r2, t, q, v0, v1, v2, w0, w1, w2, k0, k1, k3, zmin, ax, ay
 
 
 @vector_kernel(fastmath={"reassoc"})
-def _backward(rays, dt, v, omega, rho, k, zmin, series, small, gx, gy, grad_v, grad_omega, grad_rho, twist
-              ):  # pragma: no cover - compiled
-    """``grad_rho`` (N,) and, with ``twist``, ``grad_v``, ``grad_omega`` (3,) (added to, in event order; left
-    as they are without ``twist``) for ``dL/dx = gx``, ``dL/dy = gy`` (N,); rays and ``series`` as
-    :func:`_forward`."""
+def _backward_terms(rays, dt, v, omega, rho, k, zmin, series, small, gx, gy, grad_rho, terms, twist
+                    ):  # pragma: no cover - compiled
+    """``grad_rho`` (N,) for ``dL/dx = gx``, ``dL/dy = gy`` (N,), and each event's six terms of ``dL/dv``,
+    ``dL/domega`` in ``terms`` (6, N) (zeros without ``twist``; :func:`_sum_terms` adds them). Rays and
+    ``series`` as :func:`_forward`: with ``series`` the loop holds no call and no reduction, so it runs on
+    SIMD registers (reassociation is allowed within an event's terms; the sums over events are
+    :func:`_sum_terms`'s, in event order)."""
     v0, v1, v2, o0, o1, o2 = v[0], v[1], v[2], omega[0], omega[1], omega[2]
     k0, k1, k3 = k[0], k[1], k[3]
-    s0, s1, s2, s3, s4, s5 = grad_v[0], grad_v[1], grad_v[2], grad_omega[0], grad_omega[1], grad_omega[2]
-    for i in range(dt.shape[0]):
-        t = float(dt[i])
-        w0, w1, w2 = o0 * t, o1 * t, o2 * t
-        if series:
+    if series:
+        for i in range(dt.shape[0]):
+            t = float(dt[i])
+            w0, w1, w2 = o0 * t, o1 * t, o2 * t
             A, B, C, dA, dB, dC = _series(w0 * w0 + w1 * w1 + w2 * w2)
-        else:
+            grad_rho[i], terms[0, i], terms[1, i], terms[2, i], terms[3, i], terms[4, i], terms[5, i] = _gradient(
+                float(rays[0, i]), float(rays[1, i]), float(rays[2, i]), t, float(rho[i]), v0, v1, v2, w0, w1, w2,
+                k0, k1, k3, zmin, float(gx[i]), float(gy[i]), twist, A, B, C, dA, dB, dC)
+    else:
+        for i in range(dt.shape[0]):
+            t = float(dt[i])
+            w0, w1, w2 = o0 * t, o1 * t, o2 * t
             A, B, C, dA, dB, dC = _coefficients(w0 * w0 + w1 * w1 + w2 * w2, small)
-        grad_rho[i], e0, e1, e2, e3, e4, e5 = _gradient(
-            float(rays[0, i]), float(rays[1, i]), float(rays[2, i]), t, float(rho[i]), v0, v1, v2, w0, w1, w2,
-            k0, k1, k3, zmin, float(gx[i]), float(gy[i]), twist, A, B, C, dA, dB, dC)
-        s0, s1, s2, s3, s4, s5 = s0 + e0, s1 + e1, s2 + e2, s3 + e3, s4 + e4, s5 + e5
-    if twist:
-        grad_v[0], grad_v[1], grad_v[2], grad_omega[0], grad_omega[1], grad_omega[2] = s0, s1, s2, s3, s4, s5
-
-
-@vector_kernel(fastmath={"reassoc"})
-def _backward_series(rays, dt, v, omega, rho, k, zmin, gx, gy, grad_rho, terms, twist):  # pragma: no cover - compiled
-    """:func:`_backward` where every event's ``s`` is within the series (``series`` True), in two passes: this
-    one writes each event's ``dL/drho`` and its six terms of ``dL/dv``, ``dL/domega`` to ``terms`` (6, N)
-    (zeros without ``twist``) with no reduction, so that it runs on SIMD registers; :func:`_sum_terms` then
-    adds the terms in event order. (:func:`_backward`'s loop, compiled with reassociation, adds them in an order
-    of LLVM's choosing: the two agree to float64 rounding, ``dL/drho`` bit for bit.)"""
-    v0, v1, v2, o0, o1, o2 = v[0], v[1], v[2], omega[0], omega[1], omega[2]
-    k0, k1, k3 = k[0], k[1], k[3]
-    for i in range(dt.shape[0]):
-        t = float(dt[i])
-        w0, w1, w2 = o0 * t, o1 * t, o2 * t
-        A, B, C, dA, dB, dC = _series(w0 * w0 + w1 * w1 + w2 * w2)
-        grad_rho[i], terms[0, i], terms[1, i], terms[2, i], terms[3, i], terms[4, i], terms[5, i] = _gradient(
-            float(rays[0, i]), float(rays[1, i]), float(rays[2, i]), t, float(rho[i]), v0, v1, v2, w0, w1, w2,
-            k0, k1, k3, zmin, float(gx[i]), float(gy[i]), twist, A, B, C, dA, dB, dC)
+            grad_rho[i], terms[0, i], terms[1, i], terms[2, i], terms[3, i], terms[4, i], terms[5, i] = _gradient(
+                float(rays[0, i]), float(rays[1, i]), float(rays[2, i]), t, float(rho[i]), v0, v1, v2, w0, w1, w2,
+                k0, k1, k3, zmin, float(gx[i]), float(gy[i]), twist, A, B, C, dA, dB, dC)
 
 
 @vector_kernel
@@ -273,14 +259,11 @@ def se3_warp_gradients(rays: np.ndarray, dt: np.ndarray, v: np.ndarray, omega: n
     """``dL/dv`` (3,), ``dL/domega`` (3,) float64 (zero without ``twist``) and ``dL/drho`` (N,) float64 of the
     warp of :func:`se3_warp_arrays` for ``dL/dx = gx``, ``dL/dy = gy`` (N,)."""
     grad_v, grad_omega, grad_rho = np.zeros(3), np.zeros(3), np.empty(dt.shape[0])
-    if _within_series(dt, omega, dt_max):
-        terms = np.empty((6, dt.shape[0]))
-        _backward_series(rays, dt, v, omega, rho, k, MIN_PROJECTED_DEPTH, gx, gy, grad_rho, terms, twist)
-        if twist:
-            _sum_terms(terms, grad_v, grad_omega)
-    else:
-        _backward(rays, dt, v, omega, rho, k, MIN_PROJECTED_DEPTH, False, _SMALL_ANGLE_SQ, gx, gy, grad_v,
-                  grad_omega, grad_rho, twist)
+    terms = np.empty((6, dt.shape[0]))
+    _backward_terms(rays, dt, v, omega, rho, k, MIN_PROJECTED_DEPTH, _within_series(dt, omega, dt_max),
+                    _SMALL_ANGLE_SQ, gx, gy, grad_rho, terms, twist)
+    if twist:
+        _sum_terms(terms, grad_v, grad_omega)
     return grad_v, grad_omega, grad_rho
 
 
