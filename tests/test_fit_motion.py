@@ -12,7 +12,7 @@ import torch
 
 from cmax.events import Events
 from cmax.fitting import FitSettings, PatchFlowSettings, RefineSettings, fit
-from cmax.fitting.motion import LocalMotionObjective, refine_motion_local, strided_argmax
+from cmax.fitting.motion import LocalMotionObjective, refine_motion_local, strided_argmax, sweep_stride
 from cmax.fitting.patch_flow import (
     _field_matrices, _solve_directions, _weighted_system, fibonacci_sphere, flow_information, make_patches, motion_from_flows, patch_flows, spherical_cap,
 )
@@ -379,12 +379,12 @@ def test_the_sweep_stride_keeps_the_coarse_candidates_within_the_coarse_step(dep
     """The stride is the number of candidate steps (log-uniform in inverse depth) within ``rho_coarse_step``,
     capped where a wider stride would score more candidates than it saves (24 candidates: 3, 13 scored)."""
     settings = RefineSettings()
-    assert settings.rho_sweep_stride(depth_range) == stride
+    assert sweep_stride(settings, depth_range) == stride
     near, far = depth_range
     if far > near:
         spacing = np.log(far / near) / (settings.rho_candidates - 1)
         assert stride * spacing <= settings.rho_coarse_step + 1e-9
-    assert RefineSettings(rho_coarse_step=0.0).rho_sweep_stride(depth_range) == 1
+    assert sweep_stride(RefineSettings(rho_coarse_step=0.0), depth_range) == 1
     with pytest.raises(ValueError, match="rho_coarse_step"):
         RefineSettings(rho_coarse_step=-0.1)
 

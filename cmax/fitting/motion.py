@@ -39,7 +39,8 @@ from cmax.fitting.patch_flow import make_patches
 from cmax.fitting.settings import RefineSettings
 from cmax.fitting.solvers import GradientLoss, Solver, SolveResult, solve, torch_fun_and_grad
 
-__all__ = ["LocalMotionObjective", "RefineOutcome", "refine_motion_local", "omega_on_bound", "strided_argmax"]
+__all__ = ["LocalMotionObjective", "RefineOutcome", "refine_motion_local", "omega_on_bound", "strided_argmax",
+           "coarse_rows", "rows_scored", "sweep_stride"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -178,7 +179,7 @@ def strided_argmax(values: Callable[[np.ndarray], np.ndarray], count: int, colum
     """
     if stride <= 1:
         return values(np.repeat(np.arange(count)[:, None], columns, 1)).argmax(0)
-    coarse = np.unique(np.r_[np.arange(0, count, stride), count - 1])
+    coarse = coarse_rows(count, stride)
     scores = values(np.repeat(coarse[:, None], columns, 1))
     best = coarse[scores.argmax(0)]
     steps = np.r_[np.arange(-stride + 1, 0), np.arange(1, stride)]
@@ -186,6 +187,37 @@ def strided_argmax(values: Callable[[np.ndarray], np.ndarray], count: int, colum
     index = np.concatenate([best[None], near])
     score = np.concatenate([scores.max(0)[None], values(near)])
     return np.where(score == score.max(0)[None], index, count).min(0)
+
+
+def coarse_rows(count: int, stride: int) -> np.ndarray:
+    """The rows :func:`strided_argmax` scores first: every ``stride``-th of ``count``, the last one always
+    among them (int, ascending)."""
+    return np.unique(np.r_[np.arange(0, count, max(stride, 1)), count - 1])
+
+
+def rows_scored(count: int, stride: int) -> int:
+    """How many rows :func:`strided_argmax` scores in each column: ``count`` with ``stride`` 1, else the
+    :func:`coarse_rows` and the ``stride - 1`` on each side of the coarse best."""
+    return count if stride <= 1 else len(coarse_rows(count, stride)) + 2 * (stride - 1)
+
+
+def sweep_stride(settings: RefineSettings, depth_range: tuple[float, float]) -> int:
+    """The stride of the per-patch start sweep over ``depth_range`` (near, far) [m]: how many candidate steps
+    (log-uniform in inverse depth) fit in ``settings.rho_coarse_step``, at least 1, and no more than the stride
+    that scores the fewest candidates (:func:`rows_scored`: a wider one scores more around the best than it
+    saves).
+
+    Examples
+    --------
+    >>> sweep_stride(RefineSettings(), (1.0, 6.5)), sweep_stride(RefineSettings(), (0.5, 60.0))
+    (3, 1)
+    """
+    near, far = depth_range
+    count = settings.rho_candidates
+    spacing = math.log(far / near) / (count - 1)
+    widest = max(1, int(settings.rho_coarse_step / spacing + 1e-9)) if spacing > 0 else 1
+    scored = [rows_scored(count, stride) for stride in range(1, widest + 1)]
+    return 1 + scored.index(min(scored))
 
 
 @dataclass(frozen=True)
@@ -235,7 +267,7 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, setti
         ``settings.min_events``.
     """
     v, omega = np.asarray(v, float), np.asarray(omega, float)
-    if objective is None or objective.unit_norm == solver.takes_equality:
+    if objective is None or objective.unit_norm == solver.takes_equality:   # none, or the other parameterisation
         patches = make_patches(w, grid=settings.grid, min_events=settings.min_events, max_events=settings.max_events,
                                margin=settings.margin, min_margin_px=settings.min_margin_px)
         if patches is None or patches.count < settings.min_patches:
@@ -262,7 +294,7 @@ def _refine_from(w, objective: LocalMotionObjective, v: np.ndarray, omega: np.nd
                  ) -> tuple[SolveResult, np.ndarray, np.ndarray, tuple[str, ...]]:
     """One refinement from ``(v, omega)``: the solve, ``v`` (3,), ``omega`` (3,), the omega axes on a bound."""
     near, far = w.settings.depth_range
-    rho0 = objective.sweep_rho(v, omega, candidates, settings.rho_sweep_stride(w.settings.depth_range))
+    rho0 = objective.sweep_rho(v, omega, candidates, sweep_stride(settings, w.settings.depth_range))
     x0 = objective.params(v, omega, rho0)
     P, s_o, s_r = objective.patches.count, objective.omega_scale, objective.rho_scale
     max_omega, scale = w.settings.max_omega, objective.direction_scale

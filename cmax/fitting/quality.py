@@ -46,7 +46,7 @@ import numpy as np
 import torch
 
 from cmax.contrast.cells import contrast_by_cell
-from cmax.fitting.motion import LocalMotionObjective, refine_motion_local
+from cmax.fitting.motion import LocalMotionObjective, refine_motion_local, sweep_stride
 from cmax.fitting.patch_flow import make_patches
 from cmax.fitting.settings import QualitySettings
 from cmax.iwe import accumulate_bilinear, blur, polarity_images
@@ -198,7 +198,7 @@ class MotionScorer:
         objective = LocalMotionObjective.build(w, patches, speed)
         near, far = w.settings.depth_range
         candidates = np.exp(np.linspace(np.log(1.0 / far), np.log(1.0 / near), refine.rho_candidates))
-        stride = refine.rho_sweep_stride(w.settings.depth_range)
+        stride = sweep_stride(refine, w.settings.depth_range)
         c_fit, rho = _patch_contrast(objective, np.asarray(v, float), np.asarray(omega, float), candidates, stride)
         return cls(objective, candidates, c_fit, rho, settings, stride)
 

@@ -194,8 +194,8 @@ class RefineSettings:
         Inverse depths of the per-patch start sweep, log-uniform over ``depth_range``.
     rho_coarse_step : float
         That sweep first scores candidates this far apart at most in log inverse depth, then the ones around
-        each patch's best (:meth:`rho_sweep_stride`, :func:`cmax.fitting.motion.strided_argmax`); 0: every
-        candidate. With the default 0.25 the room's 1-6.5 m takes every third candidate; ranges as wide as the
+        each patch's best (:func:`cmax.fitting.motion.sweep_stride`, :func:`~cmax.fitting.motion.strided_argmax`);
+        0: every candidate. With the default 0.25 the room's 1-6.5 m takes every third candidate; ranges as wide as the
         default 0.5-60 m (candidates 0.21 apart) take every one, where a patch's contrast over depth can
         have a second peak between coarse candidates.
     iterations : int
@@ -234,23 +234,6 @@ class RefineSettings:
         _positive_int("refine.min_patches", self.min_patches, 1)
         _positive("refine.direction_scale", self.direction_scale)
         _tolerances("refine.tolerances", self.tolerances)
-
-    def rho_sweep_stride(self, depth_range: tuple[float, float]) -> int:
-        """The stride of the per-patch start sweep over ``depth_range`` (near, far) [m]: how many candidate
-        steps (log-uniform in inverse depth) fit in ``rho_coarse_step``, at least 1, and no more than the
-        stride that scores the fewest candidates (a wider one scores more around the best than it saves).
-
-        Examples
-        --------
-        >>> RefineSettings().rho_sweep_stride((1.0, 6.5)), RefineSettings().rho_sweep_stride((0.5, 60.0))
-        (3, 1)
-        """
-        near, far = depth_range
-        spacing = math.log(far / near) / (self.rho_candidates - 1)
-        widest = max(1, int(self.rho_coarse_step / spacing + 1e-9)) if spacing > 0 else 1
-        count = self.rho_candidates
-        scored = [len(set(range(0, count, s)) | {count - 1}) + 2 * (s - 1) for s in range(1, widest + 1)]
-        return 1 + scored.index(min(scored))
 
 
 @dataclass(frozen=True)
