@@ -10,8 +10,9 @@ import pytest
 import torch
 
 from benchmarks.synthetic_windows import make_window
+from cmax import Events
 from cmax.fitting import (
-    BoundWarning, FitSettings, LowMotionWarning, MotionInit, PatchFlowSettings, QualitySettings, Refinement,
+    BoundWarning, FitSettings, LowMotionWarning, LowParallaxWarning, MotionInit, PatchFlowSettings, QualitySettings, Refinement,
     RefineSettings, SweepSettings, Verdict, fit, fit_sequence,
 )
 from cmax.fitting.solvers import ScipySolver, Solver, SolveResult, solve
@@ -225,6 +226,69 @@ def test_a_clear_motion_of_five_pixels_is_not_warned(model):
     assert r.motion_px > 5.0 and not warned and r.verdict is Verdict.OK and r.success, r.quality.reason
     if model == "rotation":
         assert np.linalg.norm(r.omega - w.twist[3:]) <= 0.15 * np.linalg.norm(w.twist[3:])
+
+
+def _sensor_noise(seed: int, n: int = 20_000, width: int = 160, height: int = 120) -> Events:
+    """Events without motion: uniform in pixel, time (0.1 s) and polarity."""
+    rng = np.random.default_rng(seed)
+    return Events(rng.integers(0, width, n), rng.integers(0, height, n), np.sort(rng.integers(0, 100_000, n)),
+                  rng.integers(0, 2, n), width, height)
+
+
+NOISE_K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
+
+
+@pytest.mark.parametrize("model", ["flow", "se3"])
+def test_sensor_noise_is_never_a_confident_motion(model):
+    """Pure noise: a large motion raises the contrast by sweeping the events off one side of the image (the
+    flow fit lands at ~70-120 px, verdict ok, before the permutation test); the same motion gains as much on
+    the time-shuffled events, so the verdict says the motion is not measured, with a warning."""
+    events = _sensor_noise(1)
+    category = LowMotionWarning if model == "flow" else LowParallaxWarning
+    with pytest.warns(category, match="timestamps shuffled"):
+        r = fit(events, NOISE_K, model=model, **({"speed": 1.0} if model == "se3" else {}))
+    assert r.verdict is Verdict.LOW_PARALLAX and "not measured" in r.quality.reason and r.success
+    if model == "flow":   # the permutation test is what catches it: the other tests call it ok
+        off = FitSettings(quality=QualitySettings(shuffle_test=False))
+        r_off = fit(events, NOISE_K, model="flow", settings=off)
+        np.testing.assert_array_equal(r_off.flow, r.flow)    # the test judges the fit, it does not change it
+        assert r_off.verdict is Verdict.OK and r_off.motion_px > 20.0
+
+
+def test_the_shuffle_test_rule():
+    """shuffled_gain_test: flagged when the shuffled events gain at least shuffle_fraction of the fit's gain, or
+    when the fit gains nothing; a moving scene's shuffled events are blurred (negative gain)."""
+    from cmax.fitting.api import _settings, _warped
+    from cmax.fitting.pipeline import Motion
+    from cmax.fitting.quality import shuffled_gain_test
+    from cmax.fitting.window import Window
+
+    w = small_rotation()
+    r = fit(w.events, w.K, model="rotation")
+    window = Window.from_events(w.events, w.K, _settings(None, {}, "rotation"))
+    motion = Motion(omega=r.omega)
+    x, y = _warped(window, motion, window.dt)
+    order = torch.randperm(window.dt.shape[1], generator=torch.Generator().manual_seed(0))
+    xs, ys = _warped(window, motion, window.dt[:, order])
+    gain, shuffled, flagged = shuffled_gain_test(window, x, y, xs, ys, QualitySettings())
+    assert gain == pytest.approx(r.objective_after - 1.0, rel=1e-4) and shuffled < 0 < gain and not flagged
+    assert shuffled_gain_test(window, x, y, x, y, QualitySettings())[2]              # shuffled = fit: flagged
+    unwarped = window.ev.x.expand_as(x), window.ev.y.expand_as(y)
+    assert shuffled_gain_test(window, *unwarped, *unwarped, QualitySettings())[2]   # no gain: flagged
+    with pytest.raises(ValueError, match="shuffle_fraction"):
+        QualitySettings(shuffle_fraction=0.0)
+    with pytest.raises(TypeError, match="shuffle_test"):
+        QualitySettings(shuffle_test="yes")
+
+
+def test_fit_sequence_says_when_it_fits_nothing():
+    events = _sensor_noise(0, n=3000)
+    with pytest.raises(ValueError, match="no events"):
+        fit_sequence(events[:0], NOISE_K)
+    with pytest.warns(UserWarning, match="shorter than one window"):
+        assert fit_sequence(events, NOISE_K, window_us=200_000).results == ()
+    with pytest.warns(UserWarning, match="min_events"):
+        assert fit_sequence(events, NOISE_K, window_us=50_000, min_events=5_000).results == ()
 
 
 def test_the_motion_test_rule():

@@ -12,7 +12,7 @@ import pytest
 
 from benchmarks.synthetic_windows import make_window
 from cmax import Events
-from cmax.fitting import LowMotionWarning, QualitySettings, Verdict, fit, fit_sequence
+from cmax.fitting import FitSettings, LowMotionWarning, LowParallaxWarning, QualitySettings, Verdict, fit, fit_sequence
 from cmax.fitting import sequence as sequence_module
 from cmax.fitting.quality import Alternative, Quality, choose_from_neighbours, choose_from_run, verdict_of
 from cmax.fitting.solvers import Solver, SolveResult
@@ -61,8 +61,11 @@ def test_a_window_the_ambiguity_test_cannot_hold_is_not_ok():
     n = 3000
     events = Events(np.full(n, 63), np.full(n, 47), np.sort(rng.integers(0, 100_000, n)), rng.integers(0, 2, n),
                     width=64, height=48)
-    result = fit(events, np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]]), speed=0.5)
-    assert result.parallax_px > 1.0   # the fit's own verdict rules out low parallax (3.4 px measured)
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    with pytest.warns(LowParallaxWarning, match="not measured"):   # the permutation test sees no motion at all
+        assert fit(events, K, speed=0.5).verdict is Verdict.LOW_PARALLAX
+    result = fit(events, K, speed=0.5, settings=FitSettings(quality=QualitySettings(shuffle_test=False)))
+    assert result.parallax_px > 1.0   # without it, the parallax rules out low parallax (3.4 px measured)
     assert result.verdict is Verdict.AMBIGUOUS and "ambiguity not tested" in result.quality.reason
 
 

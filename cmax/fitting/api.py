@@ -20,7 +20,7 @@ from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
-from cmax.fitting.quality import Quality, Verdict, assess, motion_within_noise, verdict_of
+from cmax.fitting.quality import Quality, Verdict, assess, motion_within_noise, shuffled_gain_test, verdict_of
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -34,13 +34,16 @@ __all__ = ["FitResult", "FitSettings", "QualitySettings", "Verdict", "LowParalla
 class LowParallaxWarning(UserWarning):
     """The fitted translation barely moves the events over the window (``FitResult.parallax_px`` below
     ``FitSettings.low_parallax_px``): the depth, and without ``pose`` the translation direction, are poorly
-    constrained. Filter it with ``warnings.simplefilter("ignore", LowParallaxWarning)``."""
+    constrained; or the fitted motion gains as much contrast on the events with their timestamps shuffled
+    (``QualitySettings.shuffle_test``): nothing is measured. Filter it with
+    ``warnings.simplefilter("ignore", LowParallaxWarning)``."""
 
 
 class LowMotionWarning(UserWarning):
     """``flow``/``rotation``: the fitted motion moves the events by less than ``FitSettings.low_motion_px``
-    over the window (``FitResult.motion_px``), or no stage could improve on the start: the motion is
-    too small to measure reliably. A longer window gives more motion."""
+    over the window (``FitResult.motion_px``), its contrast gain is within noise, or no stage could improve
+    on the start: the motion is too small to measure reliably (a longer window gives more motion); or the
+    same motion gains as much on the events with their timestamps shuffled: no motion is measured."""
 
 
 class BoundWarning(UserWarning):
@@ -314,11 +317,13 @@ def fit(
     Warns
     -----
     LowParallaxWarning
-        se3: the translation moves the events by under ``FitSettings.low_parallax_px``.
+        se3: the translation moves the events by under ``FitSettings.low_parallax_px``, or (no ``pose``)
+        the fitted motion gains as much contrast on the events with their timestamps shuffled
+        (``QualitySettings.shuffle_test``, :func:`cmax.fitting.quality.shuffled_gain_test`: noise).
     LowMotionWarning
         flow, rotation: the motion moves the events by under ``low_motion_px``, its contrast gain is
-        within noise (``QualitySettings.motion_test``, :func:`cmax.fitting.quality.motion_within_noise`),
-        or no stage improved on the start.
+        within noise (``QualitySettings.motion_test``, :func:`cmax.fitting.quality.motion_within_noise`)
+        or matched on time-shuffled events (``shuffle_test``), or no stage improved on the start.
     BoundWarning
         A motion parameter ended on its bound (``success`` is False).
 
@@ -378,7 +383,7 @@ def fit(
             motion = replace(motion, omega=known_omega)
         result = _result(w, events, K, model, motion, logs, scale_known=pose is not None or speed is not None,
                          seconds=time.perf_counter() - start)
-        low = _low_motion(w, result, motion)
+        low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
                                                   hold_omega=known_omega is not None, speed=scale),
                          seconds=time.perf_counter() - start)
@@ -418,24 +423,38 @@ def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, kno
                   speed=scale)
 
 
-def _low_motion(w: Window, result: FitResult, motion: Motion) -> str | None:
+def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: bool = False) -> str | None:
     """Why the fit moved the events too little to trust (the rule of the low-parallax and low-motion
     warnings and of the ``low_parallax`` verdict), or None: se3 parallax under ``low_parallax_px``;
     flow/rotation motion under ``low_motion_px``, or (``quality.motion_test``) a contrast gain within
-    the noise of its spread over the image's cells (:func:`cmax.fitting.quality.motion_within_noise`)."""
+    the noise of its spread over the image's cells (:func:`cmax.fitting.quality.motion_within_noise`);
+    every model without a given pose (``quality.shuffle_test``): a gain that the time-shuffled events
+    share (:func:`cmax.fitting.quality.shuffled_gain_test`)."""
     settings = w.settings
     if result.parallax_px is not None and result.parallax_px < settings.low_parallax_px:
         return f"parallax {result.parallax_px:.2f} px, under low_parallax_px={settings.low_parallax_px:g}"
-    if result.motion_px is None:
-        return None
-    if result.motion_px < settings.low_motion_px:
+    if result.motion_px is not None and result.motion_px < settings.low_motion_px:
         return f"motion {result.motion_px:.2f} px, under low_motion_px={settings.low_motion_px:g}"
-    if settings.quality.motion_test:
-        x, y = _warped(w, motion, w.dt)
-        gain, noise, within = motion_within_noise(w, x, y, settings.quality)
+    quality = settings.quality
+    if not (quality.motion_test and result.motion_px is not None) and not (quality.shuffle_test and not pose_known):
+        return None
+    x, y = _warped(w, motion, w.dt)
+    if quality.motion_test and result.motion_px is not None:
+        gain, noise, within = motion_within_noise(w, x, y, quality)
         if within:
             return (f"the {result.model}'s contrast gain {gain:.3g} is within the noise of its spread over the "
                     f"image's cells ({noise:.3g}): the fitted {result.motion_px:.2f} px of motion are not measured")
+    if quality.shuffle_test and not pose_known:
+        order = torch.randperm(w.dt.shape[1], generator=torch.Generator().manual_seed(settings.seed))
+        xs, ys = _warped(w, motion, w.dt[:, order])
+        gain, shuffled, flagged = shuffled_gain_test(w, x, y, xs, ys, quality)
+        if flagged and gain <= 0:
+            return (f"the {result.model} does not sharpen the image of warped events (contrast gain {gain:.3g} over "
+                    "the unwarped events): the motion is not measured")
+        if flagged:
+            return (f"the {result.model}'s contrast gain {gain:.3g} is matched by the same motion on the events with "
+                    f"their timestamps shuffled ({shuffled:.3g}, >= {quality.shuffle_fraction:g} of it): it comes "
+                    "from the image's border, not from aligning events; the motion is not measured")
     return None
 
 
@@ -461,14 +480,18 @@ def _warn(result: FitResult, settings: FitSettings, low: str | None, pose_known:
     :func:`_low_motion`'s reason, the rule of the ``low_parallax`` verdict too."""
     if low is not None and result.parallax_px is not None:
         unknown = "the depth is" if pose_known else "the depth and the translation direction are"
-        warnings.warn(f"cmax.fit: the translation moves the events by under {settings.low_parallax_px:g} px over the "
-                      f"window (FitResult.parallax_px): {unknown} poorly constrained; a longer window or a faster "
-                      "motion gives more parallax", LowParallaxWarning, stacklevel=3)
+        if low.startswith("parallax"):
+            warnings.warn(f"cmax.fit: the translation moves the events by under {settings.low_parallax_px:g} px over "
+                          f"the window (FitResult.parallax_px): {unknown} poorly constrained; a longer window or a "
+                          "faster motion gives more parallax", LowParallaxWarning, stacklevel=3)
+        else:
+            warnings.warn(f"cmax.fit: {low} (FitResult.quality)", LowParallaxWarning, stacklevel=3)
     kept = [log.stage for log in result.stages if not log.success and not log.at_bound]
     if result.motion_px is not None and (low is not None or kept):
         reason = f"no stage improved on the start ({', '.join(kept)})" if kept else low
-        warnings.warn(f"cmax.fit: {reason}: the motion is too small to measure reliably; a longer window gives "
-                      "more motion", LowMotionWarning, stacklevel=3)
+        advice = ("" if "shuffled" in reason or "does not sharpen" in reason else
+                  ": the motion is too small to measure reliably; a longer window gives more motion")
+        warnings.warn(f"cmax.fit: {reason}{advice}", LowMotionWarning, stacklevel=3)
     bounds = [(log.stage, name) for log in result.stages for name in log.at_bound if not name.startswith("depth_")]
     if bounds:
         warnings.warn(f"cmax.fit: {', '.join(f'{n} ({s})' for s, n in bounds)} ended on its bound: the true value "

@@ -34,6 +34,19 @@ rule as the ambiguity test:
     within noise when G <= noise
 
 A motion that sharpens the scene gains in most cells; a gain carried by a few cells is not evidence.
+
+Every model, finally: a gain that does not come from aligning events in time. On events without motion
+(sensor noise, flicker, a static scene) a large motion still raises the contrast, because it sweeps the
+events off one side of the image and leaves an empty band (the image's border, not the scene, makes the
+image of warped events uneven). :func:`shuffled_gain_test` warps the same events by the same motion with
+their timestamps permuted among them, which keeps that border effect and destroys any alignment:
+
+    G_shuffled = gain of the fitted motion on the time-shuffled events
+    not measured when G_shuffled >= shuffle_fraction * G
+
+On moving scenes the shuffled events are blurred (``G_shuffled < 0``); on noise ``G_shuffled`` is
+nearly ``G``. This is a permutation test in the sense of Good, "Permutation, Parametric and Bootstrap
+Tests of Hypotheses" (Springer, 2005): the null of "no relation between an event's time and its place".
 """
 from __future__ import annotations
 
@@ -53,14 +66,15 @@ from cmax.iwe import accumulate_bilinear, blur, polarity_images
 from cmax.warp import warp_se3
 
 __all__ = ["Verdict", "QualitySettings", "Alternative", "Quality", "MotionScorer", "assess", "motion_within_noise",
-           "verdict_of",
+           "shuffled_gain_test", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions"]
 
 
 class Verdict(str, enum.Enum):
     """The quality of one window's fit, worst first: ``failed`` (a stage failed, ``success`` False),
     ``low_parallax`` (se3: ``parallax_px`` under ``FitSettings.low_parallax_px``; flow/rotation:
-    ``motion_px`` under ``low_motion_px``, or a motion within noise, :func:`motion_within_noise`),
+    ``motion_px`` under ``low_motion_px``, or a motion within noise, :func:`motion_within_noise`; every
+    model: a gain that time-shuffled events share, :func:`shuffled_gain_test`),
     ``ambiguous`` (an alternative motion scores within noise), ``ok``."""
 
     OK = "ok"
@@ -251,14 +265,11 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
 # ----------------------------------------------------------------------------------------------
 # Flow and rotation: is the fitted motion measured at all?
 # ----------------------------------------------------------------------------------------------
-def motion_within_noise(w, x: torch.Tensor, y: torch.Tensor, settings: QualitySettings) -> tuple[float, float, bool]:
-    """The low-motion test of a flow or rotation fit (see the module docstring): ``(G, noise, G <= noise)``.
-
-    ``w`` is the fit's :class:`cmax.fitting.window.Window` (its contrast kind, blur and polarity split);
-    ``x, y`` (B, N) [px] its events warped by the fitted motion to the ``B`` reference times of
-    ``w.dt``. ``G`` is the normalised contrast gain over the unwarped events (``objective_after - 1``),
-    ``noise`` ``settings.motion_noise_sigmas`` standard errors of it over ``settings.motion_cells``.
-    """
+def _cell_gains(w, cells: tuple[int, int], *warped: tuple[torch.Tensor, torch.Tensor]
+                ) -> list[tuple[np.ndarray, np.ndarray]]:
+    """For each ``(x, y)`` (B, N) [px] of ``warped``: each cell's share (C,) of its normalised contrast gain
+    over ``w``'s unwarped events (they sum to ``objective_after - 1``), and which cells (C,) hold events in
+    either."""
     ev, s = w.ev, w.settings
     H, W, kind = ev.height, ev.width, s.contrast or "variance"
 
@@ -267,14 +278,42 @@ def motion_within_noise(w, x: torch.Tensor, y: torch.Tensor, settings: QualitySe
             images = blur(accumulate_bilinear(xw, yw, None, H, W), s.sigma)
         else:
             images = polarity_images(xw, yw, w.on, H, W, s.sigma)
-        return contrast_by_cell(images, kind, settings.motion_cells).sum(0) / xw.shape[0]   # mean over references
+        return contrast_by_cell(images, kind, cells).sum(0) / xw.shape[0]   # mean over references
 
     with torch.no_grad():
         before = shares(ev.x[None], ev.y[None])
-        after = shares(x, y)
-    total = float(before.sum())
-    used = ((before > 0) | (after > 0)).numpy()
-    gain = ((after - before) / max(total, 1e-300)).double().numpy()[used]
+        total = max(float(before.sum()), 1e-300)
+        out = []
+        for x, y in warped:
+            after = shares(x, y)
+            out.append((((after - before) / total).double().numpy(), ((before > 0) | (after > 0)).numpy()))
+    return out
+
+
+def shuffled_gain_test(w, x: torch.Tensor, y: torch.Tensor, x_shuffled: torch.Tensor, y_shuffled: torch.Tensor,
+                       settings: QualitySettings) -> tuple[float, float, bool]:
+    """The permutation test of every model (see the module docstring): ``(G, G_shuffled, not measured)``.
+
+    ``x, y`` (B, N) [px]: ``w``'s events warped by the fitted motion to the ``B`` reference times of
+    ``w.dt``; ``x_shuffled, y_shuffled`` (B, N): the same events warped by the same motion with their time
+    offsets ``w.dt`` permuted among the events. Not measured when ``G <= 0`` or ``G_shuffled >=
+    settings.shuffle_fraction * G``.
+    """
+    (fitted, _), (permuted, _) = _cell_gains(w, settings.motion_cells, (x, y), (x_shuffled, y_shuffled))
+    gain, shuffled = float(fitted.sum()), float(permuted.sum())
+    return gain, shuffled, bool(gain <= 0 or shuffled >= settings.shuffle_fraction * gain)
+
+
+def motion_within_noise(w, x: torch.Tensor, y: torch.Tensor, settings: QualitySettings) -> tuple[float, float, bool]:
+    """The low-motion test of a flow or rotation fit (see the module docstring): ``(G, noise, G <= noise)``.
+
+    ``w`` is the fit's :class:`cmax.fitting.window.Window` (its contrast kind, blur and polarity split);
+    ``x, y`` (B, N) [px] its events warped by the fitted motion to the ``B`` reference times of
+    ``w.dt``. ``G`` is the normalised contrast gain over the unwarped events (``objective_after - 1``),
+    ``noise`` ``settings.motion_noise_sigmas`` standard errors of it over ``settings.motion_cells``.
+    """
+    ((gain, used),) = _cell_gains(w, settings.motion_cells, (x, y))
+    gain = gain[used]
     G = float(gain.sum())
     if gain.size < 2:
         return G, float("inf"), True

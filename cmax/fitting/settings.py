@@ -302,6 +302,13 @@ class QualitySettings:
         The cells of that test.
     motion_noise_sigmas : float
         Multiples of the standard error of the summed per-cell gain that count as noise.
+    shuffle_test : bool
+        Every model without a given pose: warp the events by the fitted motion once more with their
+        timestamps permuted among them (:func:`cmax.fitting.quality.shuffled_gain_test`); when that gains
+        at least ``shuffle_fraction`` of the fit's own contrast gain, the gain comes from the image's
+        border, not from aligning events in time: the verdict is ``low_parallax`` and the fit warns.
+    shuffle_fraction : float
+        The fraction of that test, in (0, 1].
     smoothing : bool
         ``fit_sequence``: the motion prior across windows. After the resolution, every se3 window whose
         data cannot tell its own motion from the consensus of its confident neighbours (the median
@@ -325,12 +332,14 @@ class QualitySettings:
     motion_test: bool = True
     motion_cells: tuple[int, int] = (6, 8)
     motion_noise_sigmas: float = 2.5
+    shuffle_test: bool = True
+    shuffle_fraction: float = 0.5
     smoothing: bool = True
     min_consensus: int = 2
     smoothing_min_deg: float = 1.0
 
     def __post_init__(self) -> None:
-        for name in ("ambiguity_test", "motion_test", "smoothing"):
+        for name in ("ambiguity_test", "motion_test", "shuffle_test", "smoothing"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
         object.__setattr__(self, "motion_cells", _grid("motion_cells", self.motion_cells))
@@ -339,6 +348,8 @@ class QualitySettings:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if not (isinstance(self.shuffle_fraction, (int, float)) and 0 < self.shuffle_fraction <= 1):
+            raise ValueError(f"shuffle_fraction must lie in (0, 1], got {self.shuffle_fraction!r}")
         if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
             raise ValueError(f"polish_iterations must be an int >= 0, got {self.polish_iterations!r}")
         for name in ("neighbours", "min_consensus"):
