@@ -136,6 +136,7 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     (["--K", "60,60,32,24", "--t0", "0.2"], "--t0 0.2 s is past the recording's last event ("),
     (["--K", "60,60,32,24", "-o", "CALIB"], "is a file, not a folder"),
     (["--K", "60,60,32,24", "--depth-range", "3,nan"], "argument --depth-range"),
+    (["--K", "60,60,32,24", "--depth-range", "5,1"], "depth_range must satisfy 0 < near < far"),  # before the bar
     (["--K", "60,60,32,24", "--distortion", "1,2"], "argument --distortion"),
     (["--K", "60,60,32,24", "--size", "64;48"], "argument --size"),
     (["--K", "60,60,32,24", "--omega", "0,0,0", "--gyro", "GYRO"], "pass one of them"),

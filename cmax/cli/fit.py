@@ -218,7 +218,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from cmax import viz
-    from cmax.fitting import fit_sequence
+    from cmax.fitting import FitSettings, fit_sequence
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read_gyro
 
@@ -251,7 +251,9 @@ def run(args: argparse.Namespace) -> int:
                                              ("motion_members", args.members), ("depth_range", args.depth_range),
                                              ("polish", args.polish))
                if value is not None}
-    # None above: the library's default (one source: fit_sequence / fit / FitSettings).
+    # None above: the library's default (one source: fit_sequence / fit / FitSettings). Checked here, before the
+    # progress bar starts:
+    FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})
     sequence_model = args.model or _sequence_default("model")()
     window_us = (_sequence_default("window_us")() if args.window_ms is None
                  else _microseconds(args.window_ms, "--window-ms"))

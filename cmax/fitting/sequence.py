@@ -1,6 +1,7 @@
 """``cmax.fit_sequence``: fit a recording window by window and integrate the trajectory."""
 from __future__ import annotations
 
+import warnings
 from dataclasses import dataclass, replace
 
 import numpy as np
@@ -159,10 +160,18 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     window's own motion).
     Raises
     ------
+    ValueError
+        ``source`` holds no events; a bad ``window_us``, ``step_us``, ``jobs`` or ``gyro``.
     cmax.fitting.batch.WindowFitError
         ``jobs`` other than 1: a window's fit raised; ``index`` is its place among the fitted windows,
         the original exception is ``__cause__`` (the warnings of the workers' fits are re-issued here,
         prefixed with ``window i:``). With ``jobs=1`` a window's exception propagates as it is.
+
+    Warns
+    -----
+    UserWarning
+        No window was fitted: the recording is shorter than one window, or no window holds ``min_events``
+        events (the result then holds no window).
     """
     settings, fit_options = _sequence_settings(fit_options)
     if speed is not None and model != "se3":
@@ -184,6 +193,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
             raise ValueError(f"gyro applies to model='se3', not {model!r}")
         gyro = check_gyro(gyro)
     if isinstance(source, Events):
+        if len(source) == 0:
+            raise ValueError("source holds no events: there is nothing to fit")
         t_start, t_end = int(source.t[0]), int(source.t[-1])
         take = lambda a, b: source.slice_time(a, b) if hasattr(source, "slice_time") else _slice(source, a, b)  # noqa: E731
     elif hasattr(source, "window"):
@@ -215,6 +226,12 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
             results.append(previous)
     else:
         results = run_tasks(tasks(), min(jobs, max(1, len(starts))), total=len(starts), progress=progress)
+    if not results:
+        span = f"the recording ({(t_end - t_start + 1) * 1e-3:.1f} ms) is shorter than one window " \
+               f"({window_us * 1e-3:.1f} ms)" if not len(starts) else \
+               f"none of its {len(starts)} window(s) holds min_events={min_events} events over more than one time stamp"
+        warnings.warn(f"fit_sequence: no window fitted: {span}; pass a shorter window_us or a lower min_events",
+                      UserWarning, stacklevel=2)
     results = _resolve_ambiguous(results, take, K, speed, settings, fit_options, jobs)
     if settings.quality.smoothing and model == "se3":
         results = smooth_from_neighbours(results, take, K, settings, fit_options, hold_omega=gyro is not None)
