@@ -144,6 +144,19 @@ def test_overwrite_keeps_the_old_file_when_the_new_conversion_fails(tmp_path, ca
     assert load_manifest(tmp_path / "manifest.json")["videos"]["clip"]["status"] == "failed"
 
 
+def test_an_earlier_failure_in_the_same_folder_does_not_fail_the_next_video(tmp_path, capsys):
+    """Single-file conversions into one folder share its manifest: a video that failed before is reported in
+    one line, but the status is this run's (0 for a good video, 1 again for the failed one)."""
+    (tmp_path / "broken.avi").write_bytes(b"not a video")
+    assert main(["simulate", str(tmp_path / "broken.avi"), "-o", str(tmp_path / "broken.h5"), *FAST, "--quiet"]) == 1
+    capsys.readouterr()
+    write_video(tmp_path / "clip.avi")
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(tmp_path / "clip.h5"), *FAST, "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "failed broken:" not in err and "1 other video(s) of manifest.json failed in earlier runs: broken" in err
+    assert main(["simulate", str(tmp_path / "broken.avi"), "-o", str(tmp_path / "broken.h5"), *FAST, "--quiet"]) == 1
+
+
 def test_a_refused_overwrite_keeps_the_manifest_entry(tmp_path, capsys):
     """--overwrite refused (other settings, or the folder locked by another writer) changes nothing: the plain
     rerun still resumes the finished file."""

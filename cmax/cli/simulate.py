@@ -119,7 +119,8 @@ def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
 
 def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
     """Print the outcome of a conversion (outputs as paths in the folder of ``path``, the manifest);
-    1 when a video failed or yielded no events, else 0."""
+    1 when a video of this run (``names``) failed or yielded no events, else 0. Failures the manifest holds
+    from other runs into the same folder are counted in one line, not in the status."""
     from cmax.sim.convert import entry_output
 
     totals, videos = manifest["totals"], manifest["videos"]
@@ -132,16 +133,20 @@ def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
         if entry.get("status") == "ok" and name not in empty:
             print(f"  {entry_output(entry, path.parent)}: {entry['events']:,} events from {entry['frames']} frames "
                   f"({entry['samples']} samples), {entry['duration_s']:.2f} s of video")
-    for name, entry in videos.items():
-        if entry["status"] != "ok":
-            print(f"  failed {name}: {entry['error']}", file=sys.stderr)
+    failed = [name for name in names if videos.get(name, {}).get("status", "ok") != "ok"]
+    for name in failed:
+        print(f"  failed {name}: {videos[name]['error']}", file=sys.stderr)
+    others = sorted(name for name, entry in videos.items() if entry["status"] != "ok" and name not in failed)
+    if others:
+        print(f"  ({len(others)} other video(s) of {path.name} failed in earlier runs: {', '.join(others[:5])}"
+              f"{', ...' if len(others) > 5 else ''})", file=sys.stderr)
     for name in empty:
         entry = videos[name]
         print(f"  no events from {name}: {entry['frames']} frame(s) over {entry['duration_s']:.3f} s "
               f"(events need at least two frames that differ by a threshold); {entry_output(entry, path.parent)} "
               "holds 0 events",
               file=sys.stderr)
-    return 1 if totals["failed"] or empty else 0
+    return 1 if failed or empty else 0
 
 
 def add_command(subparsers) -> argparse.ArgumentParser:
