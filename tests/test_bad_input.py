@@ -20,6 +20,7 @@ import re
 import subprocess
 import sys
 import tracemalloc
+import warnings
 from pathlib import Path
 from types import SimpleNamespace
 
@@ -265,6 +266,23 @@ def test_duplicated_timestamps_are_legal():
     assert len(events.slice_time(5, 6)) == 3 and len(events.slice_time(5, 5)) == 0
     grid = voxel_grid(events, bins=3)  # t_N == t_0: every event in bin 0 with weight p (documented)
     assert grid[0, 0].tolist() == [0.0, -1.0, 1.0, 1.0] and not grid[1:].any()
+
+
+def test_frames_in_zero_one_are_warned_not_guessed():
+    """ESIM takes grey values in [0, 255]; float frames in [0, 1] (the skimage/torch convention) are not
+    rescaled behind the user's back: the simulation runs as given, with a warning that says how to fix it.
+    The same frames times 255 give more events and no warning."""
+    from cmax.sim import EventSimulator
+
+    rng = np.random.default_rng(0)
+    frames, times = rng.random((3, 6, 8)), np.array([0, 1000, 2000])
+    with pytest.warns(UserWarning, match=r"\[0, 1\] image\? multiply it by 255"):
+        dark = EventSimulator().simulate(frames, times)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        scaled = EventSimulator().simulate(frames * 255, times)
+        EventSimulator().simulate(np.zeros((3, 6, 8)), times)             # black frames: nothing to say
+    assert len(scaled) > len(dark)
 
 
 def test_zero_length_windows_give_no_events(tmp_path):

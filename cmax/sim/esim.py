@@ -57,6 +57,8 @@ https://proceedings.mlr.press/v87/rebecq18a.html
 """
 from __future__ import annotations
 
+import warnings
+
 import cv2
 import numpy as np
 
@@ -396,6 +398,13 @@ class EventSimulator:
             All events, sorted by time; width W, height H. Afterwards the
             simulator holds the state after the last frame, so :meth:`step`
             can go on.
+
+        Warns
+        -----
+        UserWarning
+            Float frames whose values all lie in [0, 1] (not all zero): most
+            likely a [0, 1] image, which ESIM sees as nearly black; they are
+            simulated as given, not rescaled.
         """
         frames = np.asarray(frames)
         if frames.ndim not in (3, 4) or (frames.ndim == 4 and frames.shape[3] != 3):
@@ -407,6 +416,10 @@ class EventSimulator:
             raise ValueError(
                 f"timestamps_us has {times.size} entries but frames has {frames.shape[0]} frames"
             )
+        if frames.dtype.kind == "f" and frames.size and 0 < np.nanmax(frames) <= 1:
+            warnings.warn(f"frames are floats in [{np.nanmin(frames):g}, {np.nanmax(frames):g}]: ESIM takes grey "
+                          "values in [0, 255], so to it the whole sequence is nearly black (a [0, 1] image? "
+                          "multiply it by 255)", UserWarning, stacklevel=2)
         self.reset()
         eps = self.settings.log_eps
         sink = _Columns(0)
