@@ -90,6 +90,17 @@ def sensor_size(text: str) -> tuple[int, int]:
     return width, height
 
 
+def grid_shape(text: str) -> tuple[int, int]:
+    """``ROWS,COLS`` (or ``ROWSxCOLS``) of a grid, each a positive integer."""
+    try:
+        rows, cols = (int(part) for part in text.lower().replace("x", ",").split(","))
+    except ValueError:
+        raise argparse.ArgumentTypeError(f"expected ROWS,COLS such as 24,32, got {text!r}") from None
+    if rows < 1 or cols < 1:
+        raise argparse.ArgumentTypeError(f"rows and columns must be positive, got {text!r}")
+    return rows, cols
+
+
 def float_list(counts: tuple[int, ...], what: str) -> Callable[[str], tuple[float, ...]]:
     """A type of ``counts`` comma-separated finite numbers (``what`` names them in the message)."""
 

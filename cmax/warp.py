@@ -146,7 +146,8 @@ class DepthGrid:
         if not (isinstance(gh, (int, np.integer)) and isinstance(gw, (int, np.integer)) and gh >= 1 and gw >= 1):
             raise ValueError(f"depth_grid must be two positive integers (rows, cols), got {self.shape}")
         if gh > self.height or gw > self.width:
-            raise ValueError(f"depth_grid {self.shape} is finer than the image {self.height}x{self.width}")
+            raise ValueError(f"depth_grid {self.shape} is finer than the image {self.height}x{self.width} (rows x "
+                             "columns; cmax fit: --depth-grid ROWS,COLS)")
         object.__setattr__(self, "shape", (int(gh), int(gw)))
 
     def weights(self, x: torch.Tensor, y: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:

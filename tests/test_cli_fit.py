@@ -98,7 +98,7 @@ def test_fit_options_short_recording_and_gyro_overlap(slider, tmp_path, capsys):
     out = tmp_path / "out"
     argv = ["fit", str(path), "--size", "96,72", "--calib", str(calib), "-o", str(out), "--t0", "0.05",
             "--t1", "0.15", "--depth-range", "1,3", "--window-ms", "500", "--gyro", str(gyro),
-            "--max-events", "4000"]
+            "--max-events", "4000", "--depth-grid", "12,16"]
     assert main(argv) == 0
     captured = capsys.readouterr()
     assert "the gyro covers" in captured.err and "fitting the overlap" in captured.err
@@ -111,7 +111,9 @@ def test_fit_options_short_recording_and_gyro_overlap(slider, tmp_path, capsys):
     assert window["t1_us"] - window["t0_us"] > 60_000                              # the whole overlap
     np.testing.assert_allclose(window["omega"], 0.0)                               # held at the gyro's
     assert summary["depth_range"] == [1.0, 3.0] and summary["calib"] == str(calib)
+    assert summary["depth_grid"] == [12, 16]
     depth = np.load(out / "depth_00000.npz")
+    assert depth["inverse_depth_grid"].shape == (12, 16)
     inside = depth["depth"][depth["mask"]]
     assert inside.size and inside.min() >= 1.0 - 1e-6 and inside.max() <= 3.0 + 1e-6
 
@@ -137,6 +139,9 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     (["--K", "60,60,32,24", "-o", "CALIB"], "is a file, not a folder"),
     (["--K", "60,60,32,24", "--depth-range", "3,nan"], "argument --depth-range"),
     (["--K", "60,60,32,24", "--depth-range", "5,1"], "depth_range must satisfy 0 < near < far"),  # before the bar
+    (["--K", "60,60,32,24", "--depth-grid", "24,0"], "argument --depth-grid"),
+    (["--K", "60,60,32,24", "--depth-grid", "49,32"], "finer than the image 48x64 (rows x columns; cmax fit: "
+                                                      "--depth-grid ROWS,COLS)"),
     (["--K", "60,60,32,24", "--distortion", "1,2"], "argument --distortion"),
     (["--K", "60,60,32,24", "--size", "64;48"], "argument --size"),
     (["--K", "60,60,32,24", "--omega", "0,0,0", "--gyro", "GYRO"], "pass one of them"),

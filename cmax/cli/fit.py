@@ -18,7 +18,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax._args import api_default, float_list, library_default, positive_float, positive_int
+from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import output_folder
 from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_of, file_intrinsics,
                                 read_calibrated, time_slice)
@@ -64,6 +64,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                                          "(cmax.contrast.SHARED_OBJECTIVE; the depth grid, or it and the motion; "
                                          "cmax.FitSettings.polish): a few seconds more per window, docs/fitting.md"),
                 lambda: _settings_default("polish")().value)
+    api_default(parser.add_argument("--depth-grid", type=grid_shape, default=None, metavar="ROWS,COLS",
+                                    help="se3: nodes of the inverse-depth grid, at most the sensor's rows and columns "
+                                         "(cmax.fit(depth_grid=))"), _fit_default("depth_grid"))
     api_default(parser.add_argument("--solver", choices=("scipy", "casadi", "torch"), default=None,
                                     help="optimisation back end"), _fit_default("solver"))
     parser.add_argument("--jobs", type=positive_int, default=1,
@@ -219,6 +222,7 @@ def run(args: argparse.Namespace) -> int:
 
     from cmax import viz
     from cmax.fitting import FitSettings, fit_sequence
+    from cmax.warp import DepthGrid
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read_gyro
 
@@ -247,7 +251,8 @@ def run(args: argparse.Namespace) -> int:
         gyro = check_gyro(read_gyro(args.gyro))
         events, note = _gyro_overlap(events, gyro, args.gyro)
         notes += [note] if note else []
-    options = {key: value for key, value in (("solver", args.solver), ("max_events", args.max_events),
+    options = {key: value for key, value in (("solver", args.solver), ("depth_grid", args.depth_grid),
+                                             ("max_events", args.max_events),
                                              ("motion_members", args.members), ("depth_range", args.depth_range),
                                              ("polish", args.polish))
                if value is not None}
@@ -255,6 +260,8 @@ def run(args: argparse.Namespace) -> int:
     # progress bar starts:
     FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})
     sequence_model = args.model or _sequence_default("model")()
+    if sequence_model == "se3":
+        DepthGrid(tuple(args.depth_grid or _fit_default("depth_grid")()), events.width, events.height)
     window_us = (_sequence_default("window_us")() if args.window_ms is None
                  else _microseconds(args.window_ms, "--window-ms"))
     step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
@@ -305,6 +312,7 @@ def run(args: argparse.Namespace) -> int:
                "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro),
                "omega": None if args.omega is None else list(args.omega),
                "solver": args.solver or _fit_default("solver")(),
+               "depth_grid": list(args.depth_grid or _fit_default("depth_grid")()),
                "zero_rotation_start": args.zero_rotation_start, "jobs": args.jobs,
                "members": args.members or _settings_default("motion_members")(),
                "polish": args.polish or _settings_default("polish")().value,
