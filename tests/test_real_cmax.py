@@ -72,11 +72,12 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
     """The second call reads the pickle; another events file (or a changed one) is fitted again."""
     import cmax.fitting
 
-    calls = []
+    calls, seen = [], []
 
     def fake_fit_sequence(events, K, speed, gyro=None, motion_members=1, zero_rotation_start=False, polish="none",
                           seed=0):
         calls.append(len(events))
+        seen.append(events)
         return SimpleNamespace(n=len(events), speed=speed, gyro=gyro, members=motion_members,
                                zero_rotation_start=zero_rotation_start, polish=polish, seed=seed)
 
@@ -119,6 +120,20 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
     monkeypatch.setattr(real_cmax, "library_fingerprint", lambda: "other code")
     real_cmax.slider_sequence(paths[1], cache)
     assert len(calls) == 10
+    # with a calibration: another fit, of the events undistorted as cmax fit --calib does
+    from cmax.cli.fit import undistorted_events
+    from cmax.io import read
+
+    calib = tmp_path / "calib.txt"
+    calib.write_text("6 6 3.5 3.5 -0.4 0 0 0 0\n")
+    calibrated, _, _ = real_cmax.slider_sequence(paths[1], cache, calibration=calib)
+    expected = undistorted_events(read(paths[1]), np.array([[6, 0, 3.5], [0, 6, 3.5], [0, 0, 1.0]]),
+                                  np.array([-0.4, 0, 0, 0, 0]))
+    raw = read(paths[1])
+    assert len(calls) == 11 and calibrated.n == len(expected)
+    np.testing.assert_array_equal(seen[-1].x, expected.x)
+    np.testing.assert_array_equal(seen[-1].y, expected.y)
+    assert len(expected) < len(raw) or np.any(expected.x != raw.x)          # the distortion moved events
 
 
 def test_window_speeds_of_a_slide_that_stops():
