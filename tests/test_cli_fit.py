@@ -314,3 +314,17 @@ def test_the_advice_names_what_helps_when_half_the_windows_are_unmeasured():
     (line,) = advice(ambiguous, "se3", rotation_known=True)
     assert "--gyro" not in line and "longer --window-ms" in line
     assert advice({**ambiguous, "resolved": 3}, "se3") == []               # all resolved by their neighbours
+
+
+def test_a_recording_without_motion_is_called_so(tmp_path, capsys):
+    """Sensor noise (uniform events, no motion): every window low parallax by the permutation test, and the
+    advice says that a longer window is no cure."""
+    rng = np.random.default_rng(0)
+    n = 30_000
+    events = Events(rng.integers(0, 160, n), rng.integers(0, 120, n), np.sort(rng.integers(0, 400_000, n)),
+                    rng.integers(0, 2, n), 160, 120)
+    path = write_h5(tmp_path / "noise.h5", events)
+    assert main(["fit", str(path), "--K", "100,100,80,60", "-o", str(tmp_path / "o"), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "2 of 2 windows fitted: 0 ok, 0 ambiguous, 2 low parallax" in captured.out
+    assert "2 of them show no motion at all" in captured.err and "check the recording" in captured.err

@@ -179,9 +179,11 @@ def verdict_counts(counts: dict[str, int]) -> str:
             f"{counts['failed']} failed")
 
 
-def advice(counts: dict[str, int], model: str, rotation_known: bool = False) -> list[str]:
+def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_motion: int = 0) -> list[str]:
     """What to try when at least half of the fitted windows are low parallax or ambiguous and unresolved (one
-    line each; none otherwise); ``rotation_known``: the run held the rotation (``--gyro``, ``--omega``).
+    line each; none otherwise); ``rotation_known``: the run held the rotation (``--gyro``, ``--omega``);
+    ``no_motion``: how many of the low-parallax windows show no motion at all (the permutation test,
+    :data:`cmax.fitting.quality.NO_MOTION`), for which a longer window is no cure.
 
     >>> advice({"ok": 1, "ambiguous": 0, "resolved": 0, "low_parallax": 3, "failed": 0}, "se3")[0][:40]
     '3 of 4 windows have too little parallax:'
@@ -196,6 +198,9 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False) -> 
                      + ("parallax: their translation and depth are not measured; a longer --window-ms gives more "
                         "parallax, --model rotation fits the rotation alone" if model == "se3" else
                         "motion to measure: a longer --window-ms gives more"))
+        if no_motion:
+            lines.append(f"{no_motion} of them show no motion at all (the fitted motion sharpens the events with their "
+                         "timestamps shuffled as much): sensor noise, flicker or a static scene; check the recording")
     if total and model == "se3" and 2 * unresolved >= total:
         known = "" if rotation_known else ("a known rotation (--gyro, or --omega 0,0,0 for a rig that does not "
                                            "rotate) or ")
@@ -221,7 +226,8 @@ def run(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from cmax import viz
-    from cmax.fitting import FitSettings, fit_sequence
+    from cmax.fitting import FitSettings, Verdict, fit_sequence
+    from cmax.fitting.quality import NO_MOTION
     from cmax.warp import DepthGrid
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read_gyro
@@ -323,7 +329,9 @@ def run(args: argparse.Namespace) -> int:
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""
     print(f"{len(windows)} of {n_windows} windows fitted{skip}: {verdict_counts(sequence.counts())}; results in {out}")
-    for line in advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None):
+    no_motion = sum(r.verdict is Verdict.LOW_PARALLAX and r.quality.reason.endswith(NO_MOTION)
+                    for r in sequence.results)
+    for line in advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None, no_motion):
         print(f"cmax fit: note: {line}", file=sys.stderr)
     if not windows:
         print(f"cmax fit: no window was fitted: each has fewer than {min_events:,} events", file=sys.stderr)

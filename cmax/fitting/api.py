@@ -20,7 +20,7 @@ from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
-from cmax.fitting.quality import Quality, Verdict, assess, motion_within_noise, shuffled_gain_test, verdict_of
+from cmax.fitting.quality import NO_MOTION, Quality, Verdict, assess, motion_within_noise, shuffled_gain_test, verdict_of
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -450,11 +450,11 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
         gain, shuffled, flagged = shuffled_gain_test(w, x, y, xs, ys, quality)
         if flagged and gain <= 0:
             return (f"the {result.model} does not sharpen the image of warped events (contrast gain {gain:.3g} over "
-                    "the unwarped events): the motion is not measured")
+                    f"the unwarped events): {NO_MOTION}")
         if flagged:
             return (f"the {result.model}'s contrast gain {gain:.3g} is matched by the same motion on the events with "
                     f"their timestamps shuffled ({shuffled:.3g}, >= {quality.shuffle_fraction:g} of it): it comes "
-                    "from the image's border, not from aligning events; the motion is not measured")
+                    f"from the image's border, not from aligning events; {NO_MOTION}")
     return None
 
 
@@ -489,7 +489,7 @@ def _warn(result: FitResult, settings: FitSettings, low: str | None, pose_known:
     kept = [log.stage for log in result.stages if not log.success and not log.at_bound]
     if result.motion_px is not None and (low is not None or kept):
         reason = f"no stage improved on the start ({', '.join(kept)})" if kept else low
-        advice = ("" if "shuffled" in reason or "does not sharpen" in reason else
+        advice = ("" if reason.endswith(NO_MOTION) else
                   ": the motion is too small to measure reliably; a longer window gives more motion")
         warnings.warn(f"cmax.fit: {reason}{advice}", LowMotionWarning, stacklevel=3)
     bounds = [(log.stage, name) for log in result.stages for name in log.at_bound if not name.startswith("depth_")]

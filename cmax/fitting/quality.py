@@ -66,8 +66,13 @@ from cmax.iwe import accumulate_bilinear, blur, polarity_images
 from cmax.warp import warp_se3
 
 __all__ = ["Verdict", "QualitySettings", "Alternative", "Quality", "MotionScorer", "assess", "motion_within_noise",
-           "shuffled_gain_test", "verdict_of",
+           "shuffled_gain_test", "NO_MOTION", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions"]
+
+
+#: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
+#: all: the events' times and places are unrelated (noise, flicker, a static scene), not just a short window.
+NO_MOTION = "the motion is not measured"
 
 
 class Verdict(str, enum.Enum):
