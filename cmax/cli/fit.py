@@ -228,9 +228,9 @@ def run(args: argparse.Namespace) -> int:
     from cmax import viz
     from cmax.fitting import FitSettings, Verdict, fit_sequence
     from cmax.fitting.quality import NO_MOTION
-    from cmax.warp import DepthGrid
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read_gyro
+    from cmax.warp import DepthGrid
 
     out = output_folder(args.output, "the depth maps and the summary")
     K, distortion, calib_size = calibration_of(args)

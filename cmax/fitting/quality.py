@@ -268,7 +268,7 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
 
 
 # ----------------------------------------------------------------------------------------------
-# Flow and rotation: is the fitted motion measured at all?
+# Is the fitted motion measured at all? (flow and rotation: the cell-noise test; every model: the permutation test)
 # ----------------------------------------------------------------------------------------------
 def _cell_gains(w, cells: tuple[int, int], *warped: tuple[torch.Tensor, torch.Tensor]
                 ) -> list[tuple[np.ndarray, np.ndarray]]:

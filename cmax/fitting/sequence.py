@@ -227,10 +227,11 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     else:
         results = run_tasks(tasks(), min(jobs, max(1, len(starts))), total=len(starts), progress=progress)
     if not results:
-        span = f"the recording ({(t_end - t_start + 1) * 1e-3:.1f} ms) is shorter than one window " \
-               f"({window_us * 1e-3:.1f} ms)" if not len(starts) else \
-               f"none of its {len(starts)} window(s) holds min_events={min_events} events over more than one time stamp"
-        warnings.warn(f"fit_sequence: no window fitted: {span}; pass a shorter window_us or a lower min_events",
+        why = (f"the recording ({(t_end - t_start + 1) * 1e-3:.1f} ms) is shorter than one window "
+               f"({window_us * 1e-3:.1f} ms)" if not len(starts) else
+               f"none of its {len(starts)} window(s) holds min_events={min_events} events over more than one time "
+               "stamp")
+        warnings.warn(f"fit_sequence: no window fitted: {why}; pass a shorter window_us or a lower min_events",
                       UserWarning, stacklevel=2)
     results = _resolve_ambiguous(results, take, K, speed, settings, fit_options, jobs)
     if settings.quality.smoothing and model == "se3":
