@@ -238,21 +238,26 @@ def _sensor_noise(seed: int, n: int = 20_000, width: int = 160, height: int = 12
 NOISE_K = np.array([[100.0, 0, 80], [0, 100.0, 60], [0, 0, 1]])
 
 
-@pytest.mark.parametrize("model", ["flow", "se3"])
+@pytest.mark.parametrize("model", ["flow", "se3", "depth"])
 def test_sensor_noise_is_never_a_confident_motion(model):
     """Pure noise: a large motion raises the contrast by sweeping the events off one side of the image (the
     flow fit lands at ~70-120 px, verdict ok, before the permutation test); the same motion gains as much on
-    the time-shuffled events, so the verdict says the motion is not measured, with a warning."""
+    the time-shuffled events, so the verdict says the motion is not measured, with a warning. With a given
+    pose ("depth") the swept depth of noise was called ok too."""
     events = _sensor_noise(1)
+    options = {"flow": {"model": "flow"}, "se3": {"speed": 1.0}, "depth": {"pose": np.r_[0.5, 0, 0, 0, 0, 0]}}[model]
     category = LowMotionWarning if model == "flow" else LowParallaxWarning
     with pytest.warns(category, match="timestamps shuffled"):
-        r = fit(events, NOISE_K, model=model, **({"speed": 1.0} if model == "se3" else {}))
+        r = fit(events, NOISE_K, **options)
     assert r.verdict is Verdict.LOW_PARALLAX and "not measured" in r.quality.reason and r.success
-    if model == "flow":   # the permutation test is what catches it: the other tests call it ok
+    if model != "se3":   # the permutation test is what catches it: without it the verdict is ok
         off = FitSettings(quality=QualitySettings(shuffle_test=False))
-        r_off = fit(events, NOISE_K, model="flow", settings=off)
-        np.testing.assert_array_equal(r_off.flow, r.flow)    # the test judges the fit, it does not change it
-        assert r_off.verdict is Verdict.OK and r_off.motion_px > 20.0
+        r_off = fit(events, NOISE_K, settings=off, **options)
+        field = "depth" if model == "depth" else "flow"          # the test judges the fit, it does not change it
+        np.testing.assert_array_equal(getattr(r_off, field), getattr(r, field))
+        assert r_off.verdict is Verdict.OK
+        if model == "flow":
+            assert r_off.motion_px > 20.0
 
 
 def test_the_shuffle_test_rule():
@@ -277,6 +282,10 @@ def test_the_shuffle_test_rule():
     assert shuffled_gain_test(window, *unwarped, *unwarped, QualitySettings())[2]   # no gain: flagged
     with pytest.raises(ValueError, match="shuffle_fraction"):
         QualitySettings(shuffle_fraction=0.0)
+    with pytest.raises(ValueError, match="shuffle_events"):
+        QualitySettings(shuffle_events=10)
+    few = QualitySettings(shuffle_events=1000)                      # every k-th event: the same verdict here
+    assert shuffled_gain_test(window, x, y, xs, ys, few)[1] < 0 < shuffled_gain_test(window, x, y, xs, ys, few)[0]
     with pytest.raises(TypeError, match="shuffle_test"):
         QualitySettings(shuffle_test="yes")
 

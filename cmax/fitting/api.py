@@ -317,8 +317,8 @@ def fit(
     Warns
     -----
     LowParallaxWarning
-        se3: the translation moves the events by under ``FitSettings.low_parallax_px``, or (no ``pose``)
-        the fitted motion gains as much contrast on the events with their timestamps shuffled
+        se3: the translation moves the events by under ``FitSettings.low_parallax_px``, or the fitted (or
+        given) motion gains as much contrast on the events with their timestamps shuffled
         (``QualitySettings.shuffle_test``, :func:`cmax.fitting.quality.shuffled_gain_test`: noise).
     LowMotionWarning
         flow, rotation: the motion moves the events by under ``low_motion_px``, its contrast gain is
@@ -428,15 +428,15 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
     warnings and of the ``low_parallax`` verdict), or None: se3 parallax under ``low_parallax_px``;
     flow/rotation motion under ``low_motion_px``, or (``quality.motion_test``) a contrast gain within
     the noise of its spread over the image's cells (:func:`cmax.fitting.quality.motion_within_noise`);
-    every model without a given pose (``quality.shuffle_test``): a gain that the time-shuffled events
-    share (:func:`cmax.fitting.quality.shuffled_gain_test`)."""
+    every model, with a given pose too (``quality.shuffle_test``): a gain that the time-shuffled events
+    share (:func:`cmax.fitting.quality.shuffled_gain_test`); ``pose_known`` words the reason for it."""
     settings = w.settings
     if result.parallax_px is not None and result.parallax_px < settings.low_parallax_px:
         return f"parallax {result.parallax_px:.2f} px, under low_parallax_px={settings.low_parallax_px:g}"
     if result.motion_px is not None and result.motion_px < settings.low_motion_px:
         return f"motion {result.motion_px:.2f} px, under low_motion_px={settings.low_motion_px:g}"
     quality = settings.quality
-    if not (quality.motion_test and result.motion_px is not None) and not (quality.shuffle_test and not pose_known):
+    if not (quality.motion_test and result.motion_px is not None) and not quality.shuffle_test:
         return None
     x, y = _warped(w, motion, w.dt)
     if quality.motion_test and result.motion_px is not None:
@@ -444,17 +444,18 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
         if within:
             return (f"the {result.model}'s contrast gain {gain:.3g} is within the noise of its spread over the "
                     f"image's cells ({noise:.3g}): the fitted {result.motion_px:.2f} px of motion are not measured")
-    if quality.shuffle_test and not pose_known:
+    if quality.shuffle_test:
         order = torch.randperm(w.dt.shape[1], generator=torch.Generator().manual_seed(settings.seed))
         xs, ys = _warped(w, motion, w.dt[:, order])
         gain, shuffled, flagged = shuffled_gain_test(w, x, y, xs, ys, quality)
+        what = "the given motion and the swept depth" if pose_known else f"the {result.model}"
         if flagged and gain <= 0:
-            return (f"the {result.model} does not sharpen the image of warped events (contrast gain {gain:.3g} over "
-                    f"the unwarped events): {NO_MOTION}")
+            return (f"{what} do{'' if pose_known else 'es'} not sharpen the image of warped events (contrast gain "
+                    f"{gain:.3g} over the unwarped events): {NO_MOTION}")
         if flagged:
-            return (f"the {result.model}'s contrast gain {gain:.3g} is matched by the same motion on the events with "
-                    f"their timestamps shuffled ({shuffled:.3g}, >= {quality.shuffle_fraction:g} of it): it comes "
-                    f"from the image's border, not from aligning events; {NO_MOTION}")
+            return (f"the contrast gain {gain:.3g} of {what} is matched on the events with their timestamps shuffled "
+                    f"({shuffled:.3g}, >= {quality.shuffle_fraction:g} of it): it comes from the image's border, not "
+                    f"from aligning events; {NO_MOTION}")
     return None
 
 

@@ -270,19 +270,21 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
 # ----------------------------------------------------------------------------------------------
 # Is the fitted motion measured at all? (flow and rotation: the cell-noise test; every model: the permutation test)
 # ----------------------------------------------------------------------------------------------
-def _cell_gains(w, cells: tuple[int, int], *warped: tuple[torch.Tensor, torch.Tensor]
-                ) -> list[tuple[np.ndarray, np.ndarray]]:
+def _cell_gains(w, cells: tuple[int, int], *warped: tuple[torch.Tensor, torch.Tensor],
+                index: slice = slice(None)) -> list[tuple[np.ndarray, np.ndarray]]:
     """For each ``(x, y)`` (B, N) [px] of ``warped``: each cell's share (C,) of its normalised contrast gain
     over ``w``'s unwarped events (they sum to ``objective_after - 1``), and which cells (C,) hold events in
-    either."""
+    either; on the events ``index`` selects (all by default)."""
     ev, s = w.ev, w.settings
     H, W, kind = ev.height, ev.width, s.contrast or "variance"
+    on = None if w.on is None else w.on[..., index]
 
     def shares(xw: torch.Tensor, yw: torch.Tensor) -> torch.Tensor:
-        if w.on is None:
+        xw, yw = xw[:, index], yw[:, index]
+        if on is None:
             images = blur(accumulate_bilinear(xw, yw, None, H, W), s.sigma)
         else:
-            images = polarity_images(xw, yw, w.on, H, W, s.sigma)
+            images = polarity_images(xw, yw, on, H, W, s.sigma)
         return contrast_by_cell(images, kind, cells).sum(0) / xw.shape[0]   # mean over references
 
     with torch.no_grad():
@@ -302,9 +304,12 @@ def shuffled_gain_test(w, x: torch.Tensor, y: torch.Tensor, x_shuffled: torch.Te
     ``x, y`` (B, N) [px]: ``w``'s events warped by the fitted motion to the ``B`` reference times of
     ``w.dt``; ``x_shuffled, y_shuffled`` (B, N): the same events warped by the same motion with their time
     offsets ``w.dt`` permuted among the events. Not measured when ``G <= 0`` or ``G_shuffled >=
-    settings.shuffle_fraction * G``.
+    settings.shuffle_fraction * G``. Both gains are taken on every k-th event, k the smallest stride that
+    leaves at most ``settings.shuffle_events`` (the same subset for the unwarped, fitted and shuffled images).
     """
-    (fitted, _), (permuted, _) = _cell_gains(w, settings.motion_cells, (x, y), (x_shuffled, y_shuffled))
+    stride = max(1, -(-x.shape[1] // settings.shuffle_events))
+    (fitted, _), (permuted, _) = _cell_gains(w, settings.motion_cells, (x, y), (x_shuffled, y_shuffled),
+                                             index=slice(None, None, stride))
     gain, shuffled = float(fitted.sum()), float(permuted.sum())
     return gain, shuffled, bool(gain <= 0 or shuffled >= settings.shuffle_fraction * gain)
 

@@ -303,12 +303,14 @@ class QualitySettings:
     motion_noise_sigmas : float
         Multiples of the standard error of the summed per-cell gain that count as noise.
     shuffle_test : bool
-        Every model without a given pose: warp the events by the fitted motion once more with their
+        Every model, with a given pose too: warp the events by the fitted motion once more with their
         timestamps permuted among them (:func:`cmax.fitting.quality.shuffled_gain_test`); when that gains
         at least ``shuffle_fraction`` of the fit's own contrast gain, the gain comes from the image's
         border, not from aligning events in time: the verdict is ``low_parallax`` and the fit warns.
     shuffle_fraction : float
         The fraction of that test, in (0, 1].
+    shuffle_events : int
+        At most this many events (every k-th) enter that test's images.
     smoothing : bool
         ``fit_sequence``: the motion prior across windows. After the resolution, every se3 window whose
         data cannot tell its own motion from the consensus of its confident neighbours (the median
@@ -334,6 +336,7 @@ class QualitySettings:
     motion_noise_sigmas: float = 2.5
     shuffle_test: bool = True
     shuffle_fraction: float = 0.5
+    shuffle_events: int = 20_000
     smoothing: bool = True
     min_consensus: int = 2
     smoothing_min_deg: float = 1.0
@@ -352,6 +355,9 @@ class QualitySettings:
             raise ValueError(f"shuffle_fraction must lie in (0, 1], got {self.shuffle_fraction!r}")
         if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
             raise ValueError(f"polish_iterations must be an int >= 0, got {self.polish_iterations!r}")
+        if not (isinstance(self.shuffle_events, int) and not isinstance(self.shuffle_events, bool)
+                and self.shuffle_events >= 100):
+            raise ValueError(f"shuffle_events must be an int >= 100, got {self.shuffle_events!r}")
         for name in ("neighbours", "min_consensus"):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
