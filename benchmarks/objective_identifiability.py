@@ -85,6 +85,7 @@ def objectives(rho_range: tuple[float, float]) -> dict[str, object]:
         "sweep_vote": SweepVote(rho_range=rho_range),
         "plane_vote_tv": PlaneVote(rho_range=rho_range, smoothness=0.003),
         "plane_vote_window_tv": PlaneVote(rho_range=rho_range, normaliser="window", smoothness=0.001),
+        "plane_vote_profile_tv": PlaneVote(rho_range=rho_range, smoothness=0.003, motion_weight=2.0),
         "local_contrast_tv": LocalContrast(smoothness=0.003),
         "global_contrast": WeightedSum(((1.0, GlobalContrast()), (0.1, CollapseGuard()))),
     }
@@ -285,7 +286,7 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", default="160x120,346x260")
     parser.add_argument("--presets", default=",".join(PRESETS))
     parser.add_argument("--objectives", default="average_timestamp,average_timestamp_tv,sweep_vote,plane_vote_tv,"
-                        "plane_vote_window_tv,local_contrast_tv,global_contrast")
+                        "plane_vote_window_tv,plane_vote_profile_tv,local_contrast_tv,global_contrast")
     parser.add_argument("--cache", type=Path, default=None, help="folder to keep simulated windows between runs")
     parser.add_argument("--out", type=Path, default=RESULTS / "objective_identifiability.md")
     args = parser.parse_args(argv)

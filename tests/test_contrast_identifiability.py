@@ -78,11 +78,16 @@ def test_descent_from_the_truth_does_not_collapse(slider):
     assert global_after > 2 * after
 
 
-@pytest.mark.parametrize("fixture", ["slider", "room"])
-def test_true_motion_beats_mirror_and_rotation_swaps(fixture, request):
-    """With depth free (best constant, then a short descent on a 3 x 4 grid), the true motion scores below
-    its mirror v -> -v and, where the window rotates, below omega -> -omega and omega_x <-> omega_y."""
-    w, batch, _, rho_range, _ = request.getfixturevalue(fixture)
+def _profiled(rho_range):
+    """The plane vote with its depth-free motion term (``plane_vote_profile_tv`` of the benchmark)."""
+    return PlaneVote(rho_range=rho_range, smoothness=0.003, motion_weight=2.0)
+
+
+def _motion_losses(objective, fixture_values) -> dict[str, float]:
+    """The objective's loss at the true motion and its alternatives, depth free (best constant, then a short
+    descent on a 3 x 4 grid): the mirror v -> -v and, where the window rotates, omega -> -omega and
+    omega_x <-> omega_y."""
+    w, batch, _, rho_range, _ = fixture_values
     alternatives = {"true": w.twist, "mirror": np.r_[-w.twist[:3], w.twist[3:]]}
     if np.linalg.norm(w.twist[3:]) > 1e-3:
         alternatives |= {"omega_neg": np.r_[w.twist[:3], -w.twist[3:]],
@@ -91,10 +96,29 @@ def test_true_motion_beats_mirror_and_rotation_swaps(fixture, request):
     for name, twist in alternatives.items():
         twist = torch.as_tensor(twist, dtype=DTYPE)[None]
         start = min(np.linspace(*rho_range, 12),
-                    key=lambda r: float(SHARED_OBJECTIVE(batch, DepthMotion(_constant(r), twist))[0]))
-        losses[name] = _descend(SHARED_OBJECTIVE, batch, twist, torch.full((1, 1, 3, 4), start, dtype=DTYPE),
+                    key=lambda r: float(objective(batch, DepthMotion(_constant(r), twist))[0]))
+        losses[name] = _descend(objective, batch, twist, torch.full((1, 1, 3, 4), start, dtype=DTYPE),
                                 12, rho_range)[1]
+    return losses
+
+
+@pytest.mark.parametrize("fixture", ["slider", "room"])
+def test_true_motion_beats_mirror_and_rotation_swaps(fixture, request):
+    """Under the shared objective, with depth free, the true motion scores below its mirror and, where the
+    window rotates, below its rotation swaps."""
+    losses = _motion_losses(SHARED_OBJECTIVE, request.getfixturevalue(fixture))
     assert min(losses, key=losses.get) == "true", losses
+
+
+@pytest.mark.parametrize("fixture", ["slider", "room"])
+def test_the_plane_vote_motion_term_sees_the_mirror(fixture, request):
+    """The plane vote divides each event by its own peak, so its depth term cannot tell a motion from its
+    mirror; with its depth-free motion term (motion_weight), depth free, the true motion beats the mirror
+    v -> -v by a clear margin. The rotation swaps are near ties on the room window (measured: omega_swap
+    0.05% below the truth), so they are not asserted (docs/contrast_objective.md)."""
+    values = request.getfixturevalue(fixture)
+    losses = _motion_losses(_profiled(values[3]), values)
+    assert losses["true"] < losses["mirror"] - 0.05 * abs(losses["true"]), losses
 
 
 def test_plane_vote_descent_from_the_truth_does_not_collapse(slider):

@@ -16,6 +16,8 @@ OBJECTIVES = {
     "sweep_vote": SweepVote(rho_range=(0.2, 1.0), candidates=6),
     "plane_vote": PlaneVote(rho_range=(0.2, 1.0), planes=6),
     "plane_vote_window_tv": PlaneVote(rho_range=(0.2, 1.0), planes=6, normaliser="window", smoothness=0.01),
+    "plane_vote_profile_tv": PlaneVote(rho_range=(0.2, 1.0), planes=6, smoothness=0.01, motion_weight=2.0,
+                                       motion_cells=(2, 3)),
     "local_contrast": LocalContrast(cells=(2, 3), margin=3, smoothness=0.01),
     "global_contrast": GlobalContrast(),
     "collapse_guard": CollapseGuard(lattice=(3, 4)),
@@ -114,6 +116,23 @@ def test_plane_vote_with_motion_fixes_the_planes_and_gives_the_same_values():
                            batch.K, batch.duration_s, 16, 12), params)
 
 
+def test_plane_vote_motion_term_does_not_depend_on_the_depth_map():
+    """motion_weight adds the same number at every depth map of one motion (its cells' best planes), and a
+    different one at another motion: it ranks motions and leaves a depth-only descent as it was."""
+    batch, params = _tiny(n=200)
+    plain = PlaneVote(rho_range=(0.2, 1.0), planes=6)
+    profiled = PlaneVote(rho_range=(0.2, 1.0), planes=6, motion_weight=2.0, motion_cells=(2, 3))
+    added = [float(profiled(batch, DepthMotion(rho, params.twist)) - plain(batch, DepthMotion(rho, params.twist)))
+             for rho in (params.inverse_depth.detach(), torch.full((1, 1, 1, 1), 0.9, dtype=torch.float64))]
+    assert added[0] == pytest.approx(added[1], rel=1e-12) and added[0] < 0
+    other = params.twist.detach() * torch.tensor([[-1.0, 1, 1, 1, 1, 1]], dtype=torch.float64)
+    rho = params.inverse_depth.detach()
+    assert float(profiled(batch, DepthMotion(rho, other)) - plain(batch, DepthMotion(rho, other))) != \
+        pytest.approx(added[0], rel=1e-6)
+    fixed = profiled.with_motion(batch, params.twist.detach())
+    torch.testing.assert_close(fixed(batch, params), profiled(batch, params))
+
+
 def test_plane_vote_settings_are_checked():
     with pytest.raises(ValueError, match="rho_range"):
         PlaneVote(rho_range=(0.0, 1.0))
@@ -123,6 +142,10 @@ def test_plane_vote_settings_are_checked():
         PlaneVote(normaliser="median")
     with pytest.raises(ValueError, match="smoothness"):
         PlaneVote(smoothness=-1.0)
+    with pytest.raises(ValueError, match="motion_weight"):
+        PlaneVote(motion_weight=float("nan"))
+    with pytest.raises(ValueError, match="motion_cells"):
+        PlaneVote(motion_cells=(0, 3))
     assert PlaneVote(normaliser="window").normaliser is VoteNormaliser.WINDOW
 
 

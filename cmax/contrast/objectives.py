@@ -409,6 +409,15 @@ class PlaneVote:
     normaliser : VoteNormaliser or str
     smoothness : float
         Weight of :func:`log_depth_variation`.
+    motion_weight : float
+        Weight of a term that ranks motions and does not depend on the depth map (0: none): minus the
+        sweep's best focus per cell, ``sum over cells of max over planes of the cell's summed votes``,
+        each vote divided by the ``window`` normaliser (which keeps a sharper motion's contrast), over the
+        window's kept events. It is the plane sweep's cost with each cell's depth profiled out (Rebecq et
+        al. 2018, per cell as the fit's patch-wise motion objective), so a depth-only descent sees the
+        event-peak depth term alone while a motion that focuses no cell scores worse.
+    motion_cells : (int, int)
+        Rows and columns of those cells, over each window's image.
     values : PlaneValues or None
         The planes' values, which events stay inside and the normaliser, fixed by :meth:`with_motion`
         (None: computed at each call).
@@ -420,6 +429,8 @@ class PlaneVote:
     reference: float = 0.5
     normaliser: VoteNormaliser | str = VoteNormaliser.EVENT_PEAK
     smoothness: float = 0.0
+    motion_weight: float = 0.0
+    motion_cells: tuple[int, int] = (6, 8)
     values: PlaneValues | None = None
 
     def __post_init__(self) -> None:
@@ -431,6 +442,11 @@ class PlaneVote:
             raise ValueError(f"planes must be >= 2, got {self.planes}")
         if not self.smoothness >= 0:
             raise ValueError(f"smoothness must be >= 0, got {self.smoothness}")
+        if not (isinstance(self.motion_weight, (int, float)) and math.isfinite(self.motion_weight)
+                and self.motion_weight >= 0):
+            raise ValueError(f"motion_weight must be a finite number >= 0, got {self.motion_weight!r}")
+        if not (len(self.motion_cells) == 2 and all(isinstance(n, int) and n >= 1 for n in self.motion_cells)):
+            raise ValueError(f"motion_cells must be two positive integers (rows, cols), got {self.motion_cells!r}")
         try:
             object.__setattr__(self, "normaliser", VoteNormaliser(self.normaliser))
         except ValueError:
@@ -468,6 +484,10 @@ class PlaneVote:
         """What each event's value is divided by (N,): see :class:`VoteNormaliser`."""
         if self.normaliser is VoteNormaliser.EVENT_PEAK:
             return values.max(0).values.clamp(min=1e-12)
+        return self._window_scale(batch, values, kept)
+
+    def _window_scale(self, batch: EventWindows, values: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
+        """The ``window`` normaliser of each event (N,): its window's mean unwarped image value at its events."""
         with torch.no_grad():
             x, y = batch.x.to(values.dtype), batch.y.to(values.dtype)
             unwarped = _own_image_values(batch, x, y, self.sigma) * kept
@@ -493,7 +513,24 @@ class PlaneVote:
         votes = torch.zeros(B, dtype=dtype).index_add(0, batch.window, vote)
         count = torch.zeros(B, dtype=dtype).index_add(0, batch.window, kept)
         loss = -votes / count.clamp(min=1.0)
+        if self.motion_weight:
+            loss = loss + self.motion_weight * self.motion_profile(batch, values, kept)
         return _plus_smoothness(loss, self.smoothness, batch, params)
+
+    def motion_profile(self, batch: EventWindows, values: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
+        """The depth-free motion term (B,) of ``motion_weight`` (see the class docstring) from the planes'
+        ``values`` (C, N) and ``kept`` (N,) of one motion; differentiable in the values."""
+        B, (rows, cols) = batch.count, self.motion_cells
+        scale = self._window_scale(batch, values, kept)
+        with torch.no_grad():
+            row = (batch.y * rows / batch.height).long().clamp(0, rows - 1)
+            col = (batch.x * cols / batch.width).long().clamp(0, cols - 1)
+            cell = (batch.window * rows + row) * cols + col
+            count = torch.zeros(B, dtype=values.dtype).index_add(0, batch.window, kept)
+        per_cell = torch.zeros(values.shape[0], B * rows * cols, dtype=values.dtype).index_add(
+            1, cell, kept * values / scale)                                  # (C, cells): each plane's summed votes
+        best = per_cell.max(0).values.view(B, rows * cols).sum(1)
+        return -best / count.clamp(min=1.0)
 
 
 @dataclass(frozen=True)
