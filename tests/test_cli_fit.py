@@ -328,3 +328,22 @@ def test_a_recording_without_motion_is_called_so(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "2 of 2 windows fitted: 0 ok, 0 ambiguous, 2 low parallax" in captured.out
     assert "2 of them show no motion at all" in captured.err and "check the recording" in captured.err
+
+
+def test_a_calibration_file_beside_the_events_is_named_not_read(tmp_path, capsys):
+    """An ECD folder ships calib.txt beside its events: `cmax fit --K` (a pinhole) says it is there and how to
+    use it, and does not read it; with --calib the note goes."""
+    rng = np.random.default_rng(3)
+    n = 3000
+    events = Events(rng.integers(0, 64, n), rng.integers(0, 48, n), np.sort(rng.integers(0, 100_000, n)),
+                    rng.integers(0, 2, n), 64, 48)
+    path = write_h5(tmp_path / "ev.h5", events)
+    calib = tmp_path / "calib.txt"
+    calib.write_text("60 60 32 24 -0.1 0.05 0 0 0\n")
+    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "a"), "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert f"{calib} lies beside the events but was not read: pass --calib {calib}" in err
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["distortion"] is None and summary["calib"] is None
+    assert main(["fit", str(path), "--calib", str(calib), "-o", str(tmp_path / "b"), "--quiet"]) == 0
+    assert "lies beside the events" not in capsys.readouterr().err

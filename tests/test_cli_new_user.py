@@ -187,6 +187,7 @@ def test_emvs_takes_a_calibration_file_and_a_time_unit(slider_file, tmp_path, ca
     assert cmax_main(["emvs", str(tmp_path / "events.npy"), "-o", str(tmp_path / "npy"), "--size", "64x48",
                       "--time-unit", "s", "--K", ",".join(numbers),
                       *common]) == 0
+    assert "calib.txt lies beside the events but was not read" in capsys.readouterr().err   # --K, calib.txt there
     by_k, by_calib, by_npy = (np.load(tmp_path / name / "depth.npz") for name in ("k", "calib", "npy"))
     assert by_k["mask"].sum() > 0
     for other in (by_calib, by_npy):

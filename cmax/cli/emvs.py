@@ -19,8 +19,8 @@ import numpy as np
 
 from cmax._args import api_default, float_list, nonnegative_float, positive_int
 from cmax.cli._common import output_folder
-from cmax.cli.recording import (add_camera_options, add_file_options, calibration_of, file_intrinsics,
-                                read_calibrated, time_slice)
+from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
+                                file_intrinsics, read_calibrated, time_slice)
 from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_command", "run", "camera_for", "file_trajectory"]
@@ -152,6 +152,8 @@ def run(args: argparse.Namespace) -> int:
                   "records for its scene (--depth-range to change it)", file=sys.stderr)
     options = {key: value for key, value in (("depth_range", depth_range), ("n_planes", args.planes))
                if value is not None}   # None: EMVS's own default
+    if hint := calibration_hint(args):
+        print(f"cmax emvs: note: {hint}", file=sys.stderr)
     result = EMVS(camera, **options).run(events, trajectory)
     out.mkdir(parents=True, exist_ok=True)
     save_npz_atomic(out / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,

@@ -20,8 +20,8 @@ import numpy as np
 
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import output_folder
-from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_of, file_intrinsics,
-                                read_calibrated, time_slice)
+from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_hint, calibration_of,
+                                file_intrinsics, read_calibrated, time_slice)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 __all__ = ["add_command", "advice", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
@@ -240,7 +240,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{args.file} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib")
     events = read_calibrated(args, calib_size)
     events = time_slice(events, args.t0, args.t1)
-    notes = []
+    notes = [hint] if (hint := calibration_hint(args)) else []
     if distortion is not None:
         total = len(events)
         events = undistorted_events(events, K, distortion)

@@ -99,6 +99,26 @@ def calibration_of(args: argparse.Namespace) -> tuple[np.ndarray | None, np.ndar
     return read_calibration(args.calib, args.calib_camera)
 
 
+#: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.
+CALIBRATION_NAMES = ("calib.txt", "cam_to_cam.yaml")
+
+
+def calibration_hint(args: argparse.Namespace) -> str | None:
+    """A note when no ``--calib`` or ``--distortion`` was given but a data set's calibration file lies beside
+    ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either), or None. It is not read
+    (never guessed): the note says how to use it."""
+    if args.calib is not None or args.distortion is not None:
+        return None
+    folder = Path(args.file).resolve().parent
+    for place in (folder, folder / "calibration", folder.parent, folder.parent / "calibration"):
+        for name in CALIBRATION_NAMES:
+            if (place / name).is_file():
+                return (f"{place / name} lies beside the events but was not read: pass --calib {place / name} to "
+                        "use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
+                        "distortion biases the fitted rotation and depth, docs/limits.md)")
+    return None
+
+
 def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None):
     """The events of ``args.file`` (:func:`cmax.io.read` with :func:`file_kwargs`); a file that stores no size
     takes the calibration's (``calib_size``, from :func:`calibration_of`) unless ``--size`` gives one. Refuses a
