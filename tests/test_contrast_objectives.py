@@ -133,6 +133,23 @@ def test_plane_vote_motion_term_does_not_depend_on_the_depth_map():
     torch.testing.assert_close(fixed(batch, params), profiled(batch, params))
 
 
+def test_plane_values_equal_the_planes_one_by_one(windows):
+    """All planes imaged at once equal each plane warped (warp_windows at a constant inverse depth) and imaged
+    on its own, with the same events kept, for a batch of two windows."""
+    from cmax.contrast.objectives import _inside, _own_image_values, warp_windows
+
+    batch = EventWindows.from_windows([(w.events, w.K) for w in windows], dtype=torch.float64, max_events=3000)
+    twist = torch.as_tensor(np.stack([w.twist for w in windows]))
+    objective = PlaneVote(rho_range=(0.2, 1.0), planes=5)
+    values, kept, _ = objective.plane_values(batch, twist)
+    dt = (batch.t - objective.reference * batch.duration_s.to(torch.float64)[batch.window])[None]
+    for c, rho in enumerate(objective.plane_inverse_depths()):
+        x, y = warp_windows(batch, DepthMotion(torch.full((2, 1, 1, 1), float(rho), dtype=torch.float64), twist), dt)
+        torch.testing.assert_close(values[c], _own_image_values(batch, x[0], y[0], objective.sigma), rtol=1e-12,
+                                   atol=1e-12)
+        assert not torch.any((kept > 0) & ~_inside(batch, x[0], y[0]))
+
+
 def test_plane_vote_settings_are_checked():
     with pytest.raises(ValueError, match="rho_range"):
         PlaneVote(rho_range=(0.0, 1.0))

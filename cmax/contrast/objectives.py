@@ -32,7 +32,7 @@ from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.contrast.batch import EventWindows
 from cmax.iwe import accumulate_bilinear_indexed, blur
 from cmax.objectives import contrast_of_images, deformation, local_contrast, total_variation
-from cmax.warp import DepthGrid, warp_se3
+from cmax.warp import DepthGrid, project, se3_parts, warp_se3
 
 __all__ = [
     "DepthMotion", "twist_at_speed", "event_inverse_depth", "warp_windows", "log_depth_variation",
@@ -459,19 +459,28 @@ class PlaneVote:
         return torch.exp(torch.linspace(math.log(lo), math.log(hi), self.planes, dtype=dtype))
 
     def plane_values(self, batch: EventWindows, twist: torch.Tensor) -> PlaneValues:
-        """:class:`PlaneValues` of the windows' ``twist`` (B, 6): the planes' values are differentiable in it."""
-        B, dtype = batch.count, batch.dtype
-        dt = (batch.t - self.reference * batch.duration_s.to(dtype)[batch.window])[None]
-        rays = batch.rays()
-        values, kept = [], torch.ones(len(batch), dtype=torch.bool, device=rays.device)
-        for rho in self.plane_inverse_depths(dtype):
-            plane = DepthMotion(torch.full((B, 1, 1, 1), float(rho), dtype=dtype), twist)
-            x, y = warp_windows(batch, plane, dt, rays)
-            x, y = x[0], y[0]
-            values.append(_own_image_values(batch, x, y, self.sigma))
-            kept &= _inside(batch, x.detach(), y.detach())
-        values = torch.stack(values)
-        kept = kept.to(values.dtype)
+        """:class:`PlaneValues` of the windows' ``twist`` (B, 6): the planes' values are differentiable in it.
+
+        All planes at once: the depth-free parts of the warp (:func:`cmax.warp.se3_parts`) once, every plane's
+        points as ``rotated + rho_c moved`` (C, N), one splat into the ``C x 2B`` images (plane, polarity,
+        window), one blur, one read-back."""
+        B, C, dtype, b = batch.count, self.planes, batch.dtype, batch.window
+        dt = batch.t - self.reference * batch.duration_s.to(dtype)[b]
+        twists = twist_at_speed(twist.to(dtype), batch.speed)[b]                  # (N, 6)
+        rotated, moved = se3_parts(batch.rays(), dt, twists[:, :3], twists[:, 3:])
+        rho = self.plane_inverse_depths(dtype).to(rotated.device)
+        points = rotated[None] + rho[:, None, None] * moved[None]                  # (C, N, 3)
+        identity = torch.eye(3, dtype=dtype, device=points.device)
+        xn, yn = project(points, identity)
+        K = batch.K.to(dtype)[b]
+        x, y = K[:, 0, 0] * xn + K[:, 0, 1] * yn + K[:, 0, 2], K[:, 1, 1] * yn + K[:, 1, 2]
+        own = (batch.polarity > 0).long() * B + b                                  # (N,): polarity, window
+        image = (torch.arange(C, device=x.device)[:, None] * (2 * B) + own[None]).reshape(-1)
+        xs, ys = x.reshape(-1), y.reshape(-1)
+        images = blur(accumulate_bilinear_indexed(xs, ys, None, image, C * 2 * B, batch.height, batch.width),
+                      self.sigma)
+        values = _sample_indexed(images, image, xs, ys).view(C, len(batch))
+        kept = _inside(batch, x.detach(), y.detach()).all(0).to(values.dtype)
         return PlaneValues(values, kept, self._scale(batch, values, kept))
 
     def with_motion(self, batch: EventWindows, twist: torch.Tensor) -> "PlaneVote":
