@@ -167,3 +167,32 @@ def test_the_series_coefficients_equal_their_definitions():
     assert A == pytest.approx(math.sin(t) / t, rel=1e-15) and B == pytest.approx((1 - math.cos(t)) / 0.9, rel=1e-15)
     assert C == pytest.approx((t - math.sin(t)) / (0.9 * t), rel=1e-13)
     assert dA == pytest.approx((t * math.cos(t) - math.sin(t)) / (2 * 0.9 * t), rel=1e-13)
+
+
+@pytest.mark.parametrize("omega_scale", [1e-3, 0.5, 20.0])
+def test_the_rotation_warp_equals_cmax_warp_rotation(omega_scale):
+    """warp_rotation_compiled (the rotation fit's warp: the se3 kernel with no translation) gives
+    cmax.warp.warp_rotation's positions and omega-gradient for (R, N) and (N,) times; None where the
+    kernel does not apply."""
+    from cmax.contrast._warp_kernels import warp_rotation_compiled
+    from cmax.warp import warp_rotation
+
+    rays, dt, _, K = _events(3000, torch.float64)
+    rows = torch.stack([dt, dt - 0.05, dt + 0.05])
+    omega = torch.tensor([0.7, -1.1, 0.4], dtype=torch.float64) * omega_scale
+    g = torch.Generator().manual_seed(2)
+    weights = torch.randn(2, 3, 3000, generator=g, dtype=torch.float64)
+    out = []
+    for warp in (warp_rotation, warp_rotation_compiled):
+        w = omega.clone().requires_grad_(True)
+        x, y = warp(rays, rows, w, K)
+        (grad,) = torch.autograd.grad((weights[0] * x + weights[1] * y).sum(), w)
+        out.append((x.detach(), y.detach(), grad))
+    (x1, y1, g1), (x2, y2, g2) = out
+    assert x2.shape == (3, 3000)
+    torch.testing.assert_close(x2, x1, rtol=0, atol=1e-9)
+    torch.testing.assert_close(y2, y1, rtol=0, atol=1e-9)
+    torch.testing.assert_close(g2, g1, rtol=1e-9, atol=1e-9 * float(g1.abs().max()))
+    single = warp_rotation_compiled(rays, dt, omega, K)
+    torch.testing.assert_close(single[0], x1[0], rtol=0, atol=1e-9)
+    assert warp_rotation_compiled(rays.float(), dt, omega, K) is None          # dtypes differ: not taken

@@ -37,7 +37,7 @@ from cmax._jit import vector_kernel
 from cmax.geometry_torch import _SMALL_ANGLE_SQ
 from cmax.warp import MIN_PROJECTED_DEPTH
 
-__all__ = ["warp_se3_compiled", "compiled_warp_applies", "project_at_depth"]
+__all__ = ["warp_se3_compiled", "compiled_warp_applies", "project_at_depth", "warp_rotation_compiled"]
 
 
 def _taylor(first: int) -> tuple[tuple[float, ...], tuple[float, ...]]:
@@ -346,3 +346,17 @@ def warp_se3_compiled(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, ome
                          f"and v, omega (3,); got {tuple(rays.shape)} {rays.dtype}, {tuple(dt.shape)} {dt.dtype}, "
                          f"{tuple(rho.shape)} {rho.dtype}, {tuple(v.shape)}, {tuple(omega.shape)}")
     return _Se3Warp.apply(rays, dt, v, omega, rho, K)
+
+
+def warp_rotation_compiled(rays: torch.Tensor, dt: torch.Tensor, omega: torch.Tensor, K: torch.Tensor
+                           ) -> tuple[torch.Tensor, torch.Tensor] | None:
+    """:func:`cmax.warp.warp_rotation` by :func:`warp_se3_compiled` with no translation (``v = 0``, ``rho = 0``),
+    row by row for ``dt`` (N,) or (R, N): equal to the torch warp to float rounding, differentiable in
+    ``omega``; None when the compiled warp does not take these inputs (:func:`compiled_warp_applies`)."""
+    zero, rho = rays.new_zeros(3), rays.new_zeros(rays.shape[0] if rays.dim() == 2 else 0)
+    rows = dt if dt.dim() == 2 else dt[None]
+    if not all(compiled_warp_applies(rays, row, zero, omega, rho) for row in rows):
+        return None
+    xs, ys = zip(*(warp_se3_compiled(rays, row, zero, omega, rho, K) for row in rows))
+    x, y = torch.stack(xs), torch.stack(ys)
+    return (x, y) if dt.dim() == 2 else (x[0], y[0])

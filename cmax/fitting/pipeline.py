@@ -33,6 +33,7 @@ from typing import Callable, Protocol
 import numpy as np
 import torch
 
+from cmax.contrast._warp_kernels import warp_rotation_compiled
 from cmax.fitting.depth_sweep import sweep_inverse_depth
 from cmax.fitting.motion import omega_on_bound, refine_motion_local
 from cmax.fitting.patch_flow import motion_from_flows, patch_flows
@@ -222,7 +223,9 @@ class RotationStage:
         bound = w.settings.max_omega * s
 
         def loss(p: torch.Tensor, scale: int) -> torch.Tensor:
-            x, y = warp_rotation(ev.rays, w.dt_mid, (p / s).to(ev.x.dtype), ev.K)
+            omega = (p / s).to(ev.x.dtype)
+            warped = warp_rotation_compiled(ev.rays, w.dt_mid, omega, ev.K)   # CPU: the compiled warp
+            x, y = warp_rotation(ev.rays, w.dt_mid, omega, ev.K) if warped is None else warped
             return -w.contrast(x, y, scale)
 
         x, solves, before, after = coarse_to_fine(w, loss, np.asarray(motion.omega, float) * s,
