@@ -481,7 +481,7 @@ def _warn(result: FitResult, settings: FitSettings, low: str | None, pose_known:
     :func:`_low_motion`'s reason, the rule of the ``low_parallax`` verdict too."""
     if low is not None and result.parallax_px is not None:
         unknown = "the depth is" if pose_known else "the depth and the translation direction are"
-        if low.startswith("parallax"):
+        if result.parallax_px < settings.low_parallax_px:   # _low_motion's first rule
             warnings.warn(f"cmax.fit: the translation moves the events by under {settings.low_parallax_px:g} px over "
                           f"the window (FitResult.parallax_px): {unknown} poorly constrained; a longer window or a "
                           "faster motion gives more parallax", LowParallaxWarning, stacklevel=3)

@@ -226,9 +226,7 @@ class RefineSettings:
         _positive_int("refine.max_events", self.max_events)
         _fraction("refine.margin", self.margin)
         _positive_int("refine.rho_candidates", self.rho_candidates, 2)
-        if not (isinstance(self.rho_coarse_step, (int, float)) and not isinstance(self.rho_coarse_step, bool)
-                and math.isfinite(self.rho_coarse_step) and self.rho_coarse_step >= 0):
-            raise ValueError(f"refine.rho_coarse_step must be a finite number >= 0, got {self.rho_coarse_step!r}")
+        _non_negative("refine.rho_coarse_step", self.rho_coarse_step)
         _positive_int("refine.iterations", self.iterations)
         _positive_int("refine.min_margin_px", self.min_margin_px, 0)
         _positive_int("refine.min_patches", self.min_patches, 1)
@@ -355,9 +353,7 @@ class QualitySettings:
             raise ValueError(f"shuffle_fraction must lie in (0, 1], got {self.shuffle_fraction!r}")
         if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
             raise ValueError(f"polish_iterations must be an int >= 0, got {self.polish_iterations!r}")
-        if not (isinstance(self.shuffle_events, int) and not isinstance(self.shuffle_events, bool)
-                and self.shuffle_events >= 100):
-            raise ValueError(f"shuffle_events must be an int >= 100, got {self.shuffle_events!r}")
+        _positive_int("shuffle_events", self.shuffle_events, 100)
         for name in ("neighbours", "min_consensus"):
             value = getattr(self, name)
             if not (isinstance(value, int) and not isinstance(value, bool) and value >= 1):
