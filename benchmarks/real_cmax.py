@@ -40,6 +40,7 @@ Usage::
 from __future__ import annotations
 
 import argparse
+import functools
 import os
 import time
 from dataclasses import dataclass
@@ -445,6 +446,38 @@ class FarWall:
         return self.fit_m / self.emvs_m
 
 
+@functools.lru_cache(maxsize=1)
+def _slider_ground_truth(events_path: Path, folder: Path):
+    """The slider's events within the ground-truth poses' span and the trajectory ``(times_us, T_w_c)``,
+    read once per run (both far-wall comparisons use them)."""
+    from cmax.emvs import read_tum_trajectory
+    from cmax.io import read
+
+    times, poses = read_tum_trajectory(folder / "groundtruth.txt")
+    return read(events_path).slice_time(int(times[0]), int(times[-1]) + 1), (times, poses)
+
+
+def _far_walls_against(emvs, events, trajectory, sequences) -> tuple[list[list], dict]:
+    """The :class:`FarWall` list of each of ``sequences`` (the same windows, fitted differently) against
+    ``emvs`` run once at each window's reference time with the ground-truth ``trajectory``; and those runs
+    by reference time ``{t_ref_us: (EMVS result, far-wall region, threshold)}``."""
+    references: dict[int, tuple] = {}
+    out = []
+    bar = tqdm(desc="EMVS at each window's reference time", unit="window", leave=False)
+    for sequence in sequences:
+        walls = []
+        for r in sequence.results:
+            if r.t_ref_us not in references:
+                reference = emvs.run(events, trajectory, t_ref_us=r.t_ref_us)
+                references[r.t_ref_us] = (reference, *far_wall_region(reference))
+                bar.update()
+            reference, region, threshold = references[r.t_ref_us]
+            walls.append(_far_wall(reference, region, threshold, r))
+        out.append(walls)
+    bar.close()
+    return out, references
+
+
 def slider_far_wall(events_path: Path, sequence, folder: Path, others: tuple = ()) -> tuple[list, list, float, list]:
     """Far-wall depth of every window of ``sequence`` against EMVS with the ground-truth poses.
 
@@ -457,26 +490,17 @@ def slider_far_wall(events_path: Path, sequence, folder: Path, others: tuple = (
     """
     from benchmarks.ecd_slider_emvs import DEPTH_RANGE, depth_structures
     from cmax import Camera
-    from cmax.emvs import EMVS, read_tum_trajectory
-    from cmax.io import read
+    from cmax.emvs import EMVS
 
-    times, poses = read_tum_trajectory(folder / "groundtruth.txt")
-    events = read(events_path)
-    events = events.slice_time(int(times[0]), int(times[-1]) + 1)
+    events, trajectory = _slider_ground_truth(events_path, folder)
     pinhole = Camera.from_intrinsics(K_ECD[0, 0], K_ECD[1, 1], K_ECD[0, 2], K_ECD[1, 2], events.width,
                                      events.height)
-    emvs = EMVS(pinhole, depth_range=DEPTH_RANGE)
-    walls, maps, other_walls = [], [], [[] for _ in others]
-    for k, r in enumerate(tqdm(sequence.results, desc="EMVS at each window's reference time", unit="window",
-                               leave=False)):
-        reference = emvs.run(events, (times, poses), t_ref_us=r.t_ref_us)
-        region, threshold = far_wall_region(reference)
-        maps.append(np.where(reference.mask, reference.depth, np.nan))
-        walls.append(_far_wall(reference, region, threshold, r))
-        for out, other in zip(other_walls, others):
-            out.append(_far_wall(reference, region, threshold, other.results[k]))
+    (walls, *other_walls), references = _far_walls_against(EMVS(pinhole, depth_range=DEPTH_RANGE), events,
+                                                           trajectory, (sequence, *others))
+    maps = [np.where(reference.mask, reference.depth, np.nan)
+            for reference, _, _ in (references[r.t_ref_us] for r in sequence.results)]
     calibrated = EMVS(Camera.from_ecd_calib(folder / "calib.txt", events.width, events.height),
-                      depth_range=DEPTH_RANGE).run(events, (times, poses))
+                      depth_range=DEPTH_RANGE).run(events, trajectory)
     structures = depth_structures(calibrated)
     return walls, maps, (structures[-1].median_depth_m if structures else np.nan), other_walls
 
@@ -488,25 +512,11 @@ def calibrated_far_walls(events_path: Path, folder: Path, sequences: list) -> li
     on the same undistorted pixel grid (``K_ECD``). Returns the :class:`FarWall` lists, one per sequence."""
     from benchmarks.ecd_slider_emvs import DEPTH_RANGE
     from cmax import Camera
-    from cmax.emvs import EMVS, read_tum_trajectory
-    from cmax.io import read
+    from cmax.emvs import EMVS
 
-    times, poses = read_tum_trajectory(folder / "groundtruth.txt")
-    events = read(events_path)
-    events = events.slice_time(int(times[0]), int(times[-1]) + 1)
+    events, trajectory = _slider_ground_truth(events_path, folder)
     emvs = EMVS(Camera.from_ecd_calib(folder / "calib.txt", events.width, events.height), depth_range=DEPTH_RANGE)
-    references: dict[int, tuple] = {}
-    out = []
-    for sequence in sequences:
-        walls = []
-        for r in sequence.results:
-            if r.t_ref_us not in references:
-                reference = emvs.run(events, (times, poses), t_ref_us=r.t_ref_us)
-                references[r.t_ref_us] = (reference, *far_wall_region(reference))
-            reference, region, threshold = references[r.t_ref_us]
-            walls.append(_far_wall(reference, region, threshold, r))
-        out.append(walls)
-    return out
+    return _far_walls_against(emvs, events, trajectory, sequences)[0]
 
 
 def _far_wall(reference, region: np.ndarray, threshold: float, result) -> FarWall:
