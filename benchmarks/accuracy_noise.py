@@ -39,8 +39,8 @@ from pathlib import Path
 
 import numpy as np
 
-from benchmarks.machine import describe
 from benchmarks.accuracy_cmax import RESULTS, _room, parse_names, parse_seeds, windows
+from benchmarks.machine import describe
 from cmax.io.atomic import write_text_atomic
 
 ROOT = Path(__file__).resolve().parents[1]

@@ -1,7 +1,8 @@
 """What machine a benchmark ran on, for the headers of its results files.
 
-Absolute timings depend on the CPU model as much as on the code (the same se3 fit took about 1.9x longer on
-one of this project's 2-core hosts than on another), so every results file that quotes seconds names it.
+Absolute timings depend on the CPU model as much as on the code (the same fit takes markedly longer on one
+of this project's 2-core hosts than on another: docs/benchmarks.md), so every results file that quotes seconds
+names it.
 """
 from __future__ import annotations
 

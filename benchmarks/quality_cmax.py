@@ -23,8 +23,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.machine import describe
 from benchmarks.accuracy_cmax import _room, cached
+from benchmarks.machine import describe
 from benchmarks.synthetic_windows import preset_window
 from cmax.fitting import FitSettings, Verdict, fit
 from cmax.fitting.api import DEFAULT_CONTRAST, DEFAULT_POLARITY_SPLIT

@@ -29,8 +29,8 @@ from pathlib import Path
 import numpy as np
 import torch
 
-from benchmarks.machine import describe
 from benchmarks.accuracy_cmax import RESULTS, _room, abs_rel, parse_seeds, windows
+from benchmarks.machine import describe
 from cmax.fitting import FitSettings, fit
 from cmax.io.atomic import write_text_atomic
 

@@ -25,8 +25,8 @@ import subprocess
 import sys
 from pathlib import Path
 
-from benchmarks.machine import describe
 from benchmarks.accuracy_cmax import RESULTS, parse_seeds
+from benchmarks.machine import describe
 from cmax.io.atomic import write_text_atomic
 
 #: The worker, run with ``python -c`` in a checkout (so it needs nothing of this file there): reads window
