@@ -328,6 +328,8 @@ def test_a_recording_without_motion_is_called_so(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "2 of 2 windows fitted: 0 ok, 0 ambiguous, 2 low parallax" in captured.out
     assert "2 of them show no motion at all" in captured.err and "check the recording" in captured.err
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert [w["cause"] for w in summary["windows"]] == ["no_motion", "no_motion"]
 
 
 def test_a_calibration_file_beside_the_events_is_named_not_read(tmp_path, capsys):

@@ -15,6 +15,7 @@ from cmax.fitting import (
     BoundWarning, FitSettings, LowMotionWarning, LowParallaxWarning, MotionInit, PatchFlowSettings, QualitySettings, Refinement,
     RefineSettings, SweepSettings, Verdict, fit, fit_sequence,
 )
+from cmax.fitting.quality import LowMotionCause
 from cmax.fitting.solvers import ScipySolver, Solver, SolveResult, solve
 
 
@@ -211,6 +212,8 @@ def test_a_rotation_of_under_a_pixel_that_the_objective_misfits_is_warned():
     assert warned or within, (r.omega, truth)
     if warned:
         assert r.verdict is Verdict.LOW_PARALLAX and r.success
+        small = r.motion_px < FitSettings().low_motion_px                # the rule that fired, typed
+        assert r.quality.cause is (LowMotionCause.MOTION if small else LowMotionCause.CELL_NOISE), r.quality.reason
     off = FitSettings(quality=QualitySettings(motion_test=False))
     r_off, warned_off = _fit_warned(w.events, w.K, model="rotation", settings=off)
     np.testing.assert_array_equal(r_off.omega, r.omega)      # the test judges the fit, it does not change it
@@ -250,12 +253,13 @@ def test_sensor_noise_is_never_a_confident_motion(model):
     with pytest.warns(category, match="timestamps shuffled"):
         r = fit(events, NOISE_K, **options)
     assert r.verdict is Verdict.LOW_PARALLAX and "not measured" in r.quality.reason and r.success
+    assert r.quality.cause is LowMotionCause.NO_MOTION
     if model != "se3":   # the permutation test is what catches it: without it the verdict is ok
         off = FitSettings(quality=QualitySettings(shuffle_test=False))
         r_off = fit(events, NOISE_K, settings=off, **options)
         field = "depth" if model == "depth" else "flow"          # the test judges the fit, it does not change it
         np.testing.assert_array_equal(getattr(r_off, field), getattr(r, field))
-        assert r_off.verdict is Verdict.OK
+        assert r_off.verdict is Verdict.OK and r_off.quality.cause is None
         if model == "flow":
             assert r_off.motion_px > 20.0
 

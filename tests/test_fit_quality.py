@@ -14,7 +14,8 @@ from benchmarks.synthetic_windows import make_window
 from cmax import Events
 from cmax.fitting import FitSettings, LowMotionWarning, LowParallaxWarning, QualitySettings, Verdict, fit, fit_sequence
 from cmax.fitting import sequence as sequence_module
-from cmax.fitting.quality import Alternative, Quality, choose_from_neighbours, choose_from_run, verdict_of
+from cmax.fitting.quality import (Alternative, LowMotion, LowMotionCause, Quality, choose_from_neighbours, choose_from_run,
+                                  verdict_of)
 from cmax.fitting.solvers import Solver, SolveResult
 
 
@@ -40,10 +41,12 @@ def _alt(name: str, gain: float, noise: float = 0.1) -> Alternative:
 
 def test_the_worst_verdict_wins():
     close, far = _alt("mirrored", 0.05), _alt("bas_relief", 0.5)
-    assert verdict_of(success=False, failed_stages=["local_refine"], low_motion="parallax 0.2 px",
-                      alternatives=[close]).verdict is Verdict.FAILED
-    low = verdict_of(success=True, failed_stages=[], low_motion="parallax 0.2 px", alternatives=[close])
-    assert low.verdict is Verdict.LOW_PARALLAX and "0.2 px" in low.reason
+    parallax = LowMotion(LowMotionCause.PARALLAX, "parallax 0.2 px")
+    failed = verdict_of(success=False, failed_stages=["local_refine"], low_motion=parallax, alternatives=[close])
+    assert failed.verdict is Verdict.FAILED and failed.cause is None
+    low = verdict_of(success=True, failed_stages=[], low_motion=parallax, alternatives=[close])
+    assert low.verdict is Verdict.LOW_PARALLAX and "0.2 px" in low.reason and low.cause is LowMotionCause.PARALLAX
+    assert low.summary()["cause"] == "parallax"
     ambiguous = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[close, far])
     assert ambiguous.verdict is Verdict.AMBIGUOUS and "mirrored within noise" in ambiguous.reason
     assert "bas_relief" not in ambiguous.reason
@@ -63,10 +66,12 @@ def test_a_window_the_ambiguity_test_cannot_hold_is_not_ok():
                     width=64, height=48)
     K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
     with pytest.warns(LowParallaxWarning, match="not measured"):   # the permutation test sees no motion at all
-        assert fit(events, K, speed=0.5).verdict is Verdict.LOW_PARALLAX
+        result = fit(events, K, speed=0.5)
+    assert result.verdict is Verdict.LOW_PARALLAX and result.quality.cause is LowMotionCause.NO_MOTION
     result = fit(events, K, speed=0.5, settings=FitSettings(quality=QualitySettings(shuffle_test=False)))
     assert result.parallax_px > 1.0   # without it, the parallax rules out low parallax (3.4 px measured)
     assert result.verdict is Verdict.AMBIGUOUS and "ambiguity not tested" in result.quality.reason
+    assert result.quality.cause is None
 
 
 @pytest.mark.parametrize("field, value", [("margin", -0.1), ("noise_sigmas", float("nan")), ("neighbours", 0),

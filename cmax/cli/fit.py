@@ -183,7 +183,7 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     """What to try when at least half of the fitted windows are low parallax or ambiguous and unresolved (one
     line each; none otherwise); ``rotation_known``: the run held the rotation (``--gyro``, ``--omega``);
     ``no_motion``: how many of the low-parallax windows show no motion at all (the permutation test,
-    :data:`cmax.fitting.quality.NO_MOTION`), for which a longer window is no cure.
+    :attr:`cmax.fitting.quality.LowMotionCause.NO_MOTION`), for which a longer window is no cure.
 
     >>> advice({"ok": 1, "ambiguous": 0, "resolved": 0, "low_parallax": 3, "failed": 0}, "se3")[0][:40]
     '3 of 4 windows have too little parallax:'
@@ -227,7 +227,7 @@ def run(args: argparse.Namespace) -> int:
 
     from cmax import viz
     from cmax.fitting import FitSettings, Verdict, fit_sequence
-    from cmax.fitting.quality import NO_MOTION
+    from cmax.fitting.quality import LowMotionCause
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read_gyro
     from cmax.warp import DepthGrid
@@ -329,8 +329,7 @@ def run(args: argparse.Namespace) -> int:
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""
     print(f"{len(windows)} of {n_windows} windows fitted{skip}: {verdict_counts(sequence.counts())}; results in {out}")
-    no_motion = sum(r.verdict is Verdict.LOW_PARALLAX and r.quality.reason.endswith(NO_MOTION)
-                    for r in sequence.results)
+    no_motion = sum(r.quality is not None and r.quality.cause is LowMotionCause.NO_MOTION for r in sequence.results)
     for line in advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None, no_motion):
         print(f"cmax fit: note: {line}", file=sys.stderr)
     if not windows:

@@ -20,9 +20,11 @@ _LAZY = {
     "SequenceResult": "cmax.fitting.sequence", "fit_sequence": "cmax.fitting.sequence",
     "fit_windows": "cmax.fitting.batch", "WindowFitError": "cmax.fitting.batch",
     "Verdict": "cmax.fitting.quality", "QualitySettings": "cmax.fitting.quality", "Quality": "cmax.fitting.quality",
+    "LowMotionCause": "cmax.fitting.quality",
 }
 
-__all__ = ["BoundWarning", "FitResult", "FitSettings", "LowMotionWarning", "LowParallaxWarning", "MotionInit",
+__all__ = ["BoundWarning", "FitResult", "FitSettings", "LowMotionCause", "LowMotionWarning", "LowParallaxWarning",
+           "MotionInit",
            "PatchFlowSettings", "Polish", "Quality", "QualitySettings", "RefineSettings", "Refinement",
            "SequenceResult", "StageLog", "SweepSettings",
            "Verdict", "WindowFitError", "fit", "fit_sequence", "fit_windows"]

@@ -20,7 +20,8 @@ from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
-from cmax.fitting.quality import NO_MOTION, Quality, Verdict, assess, motion_within_noise, shuffled_gain_test, verdict_of
+from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, motion_within_noise,
+                                  shuffled_gain_test, verdict_of)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -423,18 +424,20 @@ def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, kno
                   speed=scale)
 
 
-def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: bool = False) -> str | None:
+def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: bool = False) -> LowMotion | None:
     """Why the fit moved the events too little to trust (the rule of the low-parallax and low-motion
-    warnings and of the ``low_parallax`` verdict), or None: se3 parallax under ``low_parallax_px``;
+    warnings and of the ``low_parallax`` verdict, :class:`~cmax.fitting.quality.LowMotionCause`), or None: se3 parallax under ``low_parallax_px``;
     flow/rotation motion under ``low_motion_px``, or (``quality.motion_test``) a contrast gain within
     the noise of its spread over the image's cells (:func:`cmax.fitting.quality.motion_within_noise`);
     every model, with a given pose too (``quality.shuffle_test``): a gain that the time-shuffled events
     share (:func:`cmax.fitting.quality.shuffled_gain_test`); ``pose_known`` words the reason for it."""
     settings = w.settings
     if result.parallax_px is not None and result.parallax_px < settings.low_parallax_px:
-        return f"parallax {result.parallax_px:.2f} px, under low_parallax_px={settings.low_parallax_px:g}"
+        return LowMotion(LowMotionCause.PARALLAX,
+                         f"parallax {result.parallax_px:.2f} px, under low_parallax_px={settings.low_parallax_px:g}")
     if result.motion_px is not None and result.motion_px < settings.low_motion_px:
-        return f"motion {result.motion_px:.2f} px, under low_motion_px={settings.low_motion_px:g}"
+        return LowMotion(LowMotionCause.MOTION,
+                         f"motion {result.motion_px:.2f} px, under low_motion_px={settings.low_motion_px:g}")
     quality = settings.quality
     if not (quality.motion_test and result.motion_px is not None) and not quality.shuffle_test:
         return None
@@ -442,27 +445,31 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
     if quality.motion_test and result.motion_px is not None:
         gain, noise, within = motion_within_noise(w, x, y, quality)
         if within:
-            return (f"the {result.model}'s contrast gain {gain:.3g} is within the noise of its spread over the "
-                    f"image's cells ({noise:.3g}): the fitted {result.motion_px:.2f} px of motion are not measured")
+            return LowMotion(LowMotionCause.CELL_NOISE,
+                             f"the {result.model}'s contrast gain {gain:.3g} is within the noise of its spread over "
+                             f"the image's cells ({noise:.3g}): the fitted {result.motion_px:.2f} px of motion are "
+                             "not measured")
     if quality.shuffle_test:
         order = torch.randperm(w.dt.shape[1], generator=torch.Generator().manual_seed(settings.seed))
         xs, ys = _warped(w, motion, w.dt[:, order])
         gain, shuffled, flagged = shuffled_gain_test(w, x, y, xs, ys, quality)
         what = "the given motion and the swept depth" if pose_known else f"the {result.model}"
         if flagged and gain <= 0:
-            return (f"{what} do{'' if pose_known else 'es'} not sharpen the image of warped events (contrast gain "
-                    f"{gain:.3g} over the unwarped events): {NO_MOTION}")
+            return LowMotion(LowMotionCause.NO_MOTION,
+                             f"{what} do{'' if pose_known else 'es'} not sharpen the image of warped events (contrast "
+                             f"gain {gain:.3g} over the unwarped events): {NO_MOTION}")
         if flagged:
-            return (f"the contrast gain {gain:.3g} of {what} is matched on the events with their timestamps shuffled "
-                    f"({shuffled:.3g}, >= {quality.shuffle_fraction:g} of it): it comes from the image's border, not "
-                    f"from aligning events; {NO_MOTION}")
+            return LowMotion(LowMotionCause.NO_MOTION,
+                             f"the contrast gain {gain:.3g} of {what} is matched on the events with their timestamps "
+                             f"shuffled ({shuffled:.3g}, >= {quality.shuffle_fraction:g} of it): it comes from the "
+                             f"image's border, not from aligning events; {NO_MOTION}")
     return None
 
 
-def _quality(w: Window, result: FitResult, low: str | None, solver: Solver, *, pose_known: bool, hold_omega: bool,
+def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver, *, pose_known: bool, hold_omega: bool,
              speed: float) -> Quality:
     """The verdict of a finished fit (:class:`QualitySettings` ``w.settings.quality``) with the low-motion
-    reason ``low`` (:func:`_low_motion`); the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on
+    rule that fired, ``low`` (:func:`_low_motion`); the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on
     se3 fits with a fitted direction that did not fail and have parallax."""
     quality = w.settings.quality
     failed = [log.stage for log in result.stages if not log.success]
@@ -476,21 +483,21 @@ def _quality(w: Window, result: FitResult, low: str | None, solver: Solver, *, p
                       note=note, untestable=not tested)
 
 
-def _warn(result: FitResult, settings: FitSettings, low: str | None, pose_known: bool) -> None:
+def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_known: bool) -> None:
     """The warnings of a finished fit: low parallax (se3), low motion (flow, rotation), bounds. ``low`` is
-    :func:`_low_motion`'s reason, the rule of the ``low_parallax`` verdict too."""
+    :func:`_low_motion`'s rule, that of the ``low_parallax`` verdict too."""
     if low is not None and result.parallax_px is not None:
         unknown = "the depth is" if pose_known else "the depth and the translation direction are"
-        if result.parallax_px < settings.low_parallax_px:   # _low_motion's first rule
+        if low.cause is LowMotionCause.PARALLAX:
             warnings.warn(f"cmax.fit: the translation moves the events by under {settings.low_parallax_px:g} px over "
                           f"the window (FitResult.parallax_px): {unknown} poorly constrained; a longer window or a "
                           "faster motion gives more parallax", LowParallaxWarning, stacklevel=3)
         else:
-            warnings.warn(f"cmax.fit: {low} (FitResult.quality)", LowParallaxWarning, stacklevel=3)
+            warnings.warn(f"cmax.fit: {low.reason} (FitResult.quality)", LowParallaxWarning, stacklevel=3)
     kept = [log.stage for log in result.stages if not log.success and not log.at_bound]
     if result.motion_px is not None and (low is not None or kept):
-        reason = f"no stage improved on the start ({', '.join(kept)})" if kept else low
-        advice = ("" if reason.endswith(NO_MOTION) else
+        reason = f"no stage improved on the start ({', '.join(kept)})" if kept else low.reason
+        advice = ("" if not kept and low.cause is LowMotionCause.NO_MOTION else
                   ": the motion is too small to measure reliably; a longer window gives more motion")
         warnings.warn(f"cmax.fit: {reason}{advice}", LowMotionWarning, stacklevel=3)
     bounds = [(log.stage, name) for log in result.stages for name in log.at_bound if not name.startswith("depth_")]

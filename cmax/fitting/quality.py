@@ -65,13 +65,13 @@ from cmax.fitting.settings import QualitySettings
 from cmax.iwe import accumulate_bilinear, blur, polarity_images
 from cmax.warp import warp_se3
 
-__all__ = ["Verdict", "QualitySettings", "Alternative", "Quality", "MotionScorer", "assess", "motion_within_noise",
+__all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alternative", "Quality", "MotionScorer", "assess", "motion_within_noise",
            "shuffled_gain_test", "NO_MOTION", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
-#: all: the events' times and places are unrelated (noise, flicker, a static scene), not just a short window.
+#: all, for a reader of the text; code reads :attr:`Quality.cause` (:attr:`LowMotionCause.NO_MOTION`).
 NO_MOTION = "the motion is not measured"
 
 
@@ -86,6 +86,32 @@ class Verdict(str, enum.Enum):
     AMBIGUOUS = "ambiguous"
     LOW_PARALLAX = "low_parallax"
     FAILED = "failed"
+
+
+class LowMotionCause(str, enum.Enum):
+    """Which rule made a fit ``low_parallax`` (the order in which the fit tries them):
+
+    * ``parallax``: se3 parallax under ``FitSettings.low_parallax_px``;
+    * ``motion``: flow/rotation motion under ``FitSettings.low_motion_px``;
+    * ``cell_noise``: a contrast gain within the noise of its spread over the image's cells
+      (:func:`motion_within_noise`);
+    * ``no_motion``: the time-shuffled events gain as much, or the fit gains nothing
+      (:func:`shuffled_gain_test`): the events' times and places are unrelated (noise, flicker, a static
+      scene), so a longer window is no cure.
+    """
+
+    PARALLAX = "parallax"
+    MOTION = "motion"
+    CELL_NOISE = "cell_noise"
+    NO_MOTION = "no_motion"
+
+
+@dataclass(frozen=True)
+class LowMotion:
+    """Why a fit moved the events too little to trust: the rule (``cause``) and a sentence (``reason``)."""
+
+    cause: LowMotionCause
+    reason: str
 
 
 @dataclass(frozen=True, eq=False)
@@ -119,6 +145,8 @@ class Quality:
         Whether ``fit_sequence`` resolved it (kept the fit or took an alternative).
     replaced : (v, omega) or None
         The window's own fit ``(v (3,), omega (3,))`` when ``fit_sequence`` replaced it by an alternative.
+    cause : LowMotionCause or None
+        The rule behind a ``low_parallax`` verdict (None for the other verdicts).
     """
 
     verdict: Verdict
@@ -127,10 +155,12 @@ class Quality:
     resolution: str = ""
     resolved: bool = False
     replaced: tuple[np.ndarray, np.ndarray] | None = None
+    cause: LowMotionCause | None = None
 
     def summary(self) -> dict:
         """A JSON-ready dict."""
         return {"verdict": self.verdict.value, "reason": self.reason,
+                "cause": None if self.cause is None else self.cause.value,
                 "alternatives": [{"name": a.name, "v": a.v.tolist(), "omega": a.omega.tolist(), "gain": a.gain,
                                   "noise": a.noise, "within_noise": a.within_noise} for a in self.alternatives],
                 "resolution": self.resolution, "resolved": self.resolved,
@@ -334,10 +364,10 @@ def motion_within_noise(w, x: torch.Tensor, y: torch.Tensor, settings: QualitySe
 # ----------------------------------------------------------------------------------------------
 # The verdict
 # ----------------------------------------------------------------------------------------------
-def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: str | None,
+def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMotion | None,
                alternatives: Sequence[Alternative], note: str = "", untestable: bool = False) -> Quality:
-    """The verdict from the fit's ``success`` (and the names of its failed stages), a low-motion reason
-    (low parallax or motion, None when enough) and the ambiguity test's ``alternatives``;
+    """The verdict from the fit's ``success`` (and the names of its failed stages), why its motion is too
+    small to trust (None when it is not) and the ambiguity test's ``alternatives``;
     the worst one wins (failed, low parallax, ambiguous, ok). ``untestable``: the ambiguity test was due
     but the window could not hold it (:func:`assess`'s ``tested`` False): ambiguous, since nothing
     tells the fitted direction from its mirror."""
@@ -345,7 +375,7 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: str |
         return Quality(Verdict.FAILED, f"stage(s) failed: {', '.join(failed_stages) or 'unknown'}",
                        tuple(alternatives))
     if low_motion is not None:
-        return Quality(Verdict.LOW_PARALLAX, low_motion, tuple(alternatives))
+        return Quality(Verdict.LOW_PARALLAX, low_motion.reason, tuple(alternatives), cause=low_motion.cause)
     close = [a for a in alternatives if a.within_noise]
     if close:
         reason = "; ".join(f"{a.name} within noise (gain {a.gain:.3g} <= noise {a.noise:.3g})" for a in close)
@@ -483,4 +513,4 @@ def choose_from_run(motions: Sequence[tuple[np.ndarray, np.ndarray]], qualities:
 
 
 def _with(quality: Quality, resolution: str, resolved: bool) -> Quality:
-    return Quality(quality.verdict, quality.reason, quality.alternatives, resolution, resolved)
+    return replace(quality, resolution=resolution, resolved=resolved)
