@@ -34,7 +34,8 @@ seeds 1-12), with the motion known (the true twist, ``|v|`` fixing the scale):
 
 Event pixels: pixels with at least one event of the window and finite ground
 truth inside the preset's depth range; abs_rel as :func:`cmax.metrics.depth_metrics`.
-Windows hold at most ``MAX_EVENTS`` events (a seeded uniform subset); one thread.
+Windows hold at most ``MAX_EVENTS`` events (a seeded uniform subset), as many as the sweep's fit reads
+(``FitSettings.max_events``), so that the objectives and the sweep see windows of the same size; one thread.
 
 Usage::
 
@@ -54,7 +55,7 @@ import torch
 from benchmarks.accuracy_cmax import cached, parse_seeds, preset_depth_range, with_truth
 from cmax.contrast import (AverageTimestamp, CollapseGuard, DepthMotion, EventWindows, GlobalContrast,
                            LocalContrast, PlaneVote, SweepVote, WeightedSum)
-from cmax.fitting import fit
+from cmax.fitting import FitSettings, fit
 from cmax.fitting.api import event_pixels
 from cmax.io.atomic import write_text_atomic
 from cmax.metrics import depth_metrics
@@ -71,7 +72,8 @@ GRID_STEPS = 40
 PIXEL_STEPS = 80
 MOTION_GRID = (6, 8)
 MOTION_STEPS = 40
-MAX_EVENTS = 20_000
+#: Events per window the objectives read: the fit's own subsample size (the sweep's), not fewer.
+MAX_EVENTS = FitSettings().max_events
 LR = 0.05
 #: abs_rel by which a descent's depth must be worse than the truth's to count as "below truth with worse depth".
 WORSE_BY = 0.05
