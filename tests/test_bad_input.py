@@ -285,6 +285,25 @@ def test_frames_in_zero_one_are_warned_not_guessed():
     assert len(scaled) > len(dark)
 
 
+def test_a_rotation_in_deg_per_s_is_warned_not_guessed():
+    """A gyroscope's deg/s given as rad/s (``omega=``, or a twist ``pose=``) turns 57.3 times too fast: the fit
+    takes it as given (a fast spin is possible), with a warning that names the units; 1 rad/s says nothing."""
+    rng = np.random.default_rng(0)
+    n = 3000
+    events = Events(rng.integers(0, 64, n), rng.integers(0, 48, n), np.sort(rng.integers(0, 50_000, n)),
+                    rng.integers(0, 2, n), 64, 48)
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    deg = r"turns at 10 rad/s \(573 deg/s\).*deg/s passed as rad/s.*0\.175 rad/s if these were deg/s"
+    with pytest.warns(UserWarning, match=deg):
+        cmax.fit(events, K, speed=0.5, omega=[0.0, 6.0, -8.0])
+    with pytest.warns(UserWarning, match=deg):
+        cmax.fit(events, K, pose=[0.5, 0, 0, 0.0, 6.0, -8.0])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cmax.fit(events, K, speed=0.5, omega=[1.0, 0.0, 0.0])
+    assert not [w for w in caught if "deg/s" in str(w.message)]
+
+
 def test_zero_length_windows_give_no_events(tmp_path):
     events = _events()
     t = int(events.t[50])

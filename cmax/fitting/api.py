@@ -240,6 +240,19 @@ def _known_omega(omega: object, pose: object) -> np.ndarray:
     return array
 
 
+def _warn_fast_omega(omega: np.ndarray | None, max_omega: float) -> None:
+    """Warn when a given angular velocity (``omega=``, or ``pose=``'s) [rad/s] turns faster than ``max_omega``,
+    the bound of a fitted one: the usual cause is a gyroscope's deg/s passed as rad/s (57.3 times too fast),
+    which the fit would take as given. Not refused: a fast spin is possible."""
+    if omega is None or not np.linalg.norm(omega) > max_omega:
+        return
+    rate = float(np.linalg.norm(omega))
+    warnings.warn(f"cmax.fit: the given rotation turns at {rate:.3g} rad/s ({np.degrees(rate):.4g} deg/s), faster "
+                  f"than FitSettings.max_omega ({max_omega:g} rad/s, the bound of a fitted rotation): rotations are "
+                  f"in rad/s, and a gyroscope's deg/s passed as rad/s is 57.3 times too fast ({np.radians(rate):.3g} "
+                  "rad/s if these were deg/s)", UserWarning, stacklevel=3)
+
+
 # ----------------------------------------------------------------------------------------
 # Public entry point
 # ----------------------------------------------------------------------------------------
@@ -372,6 +385,7 @@ def fit(
     backend = make_solver(solver)
     pose_xi = None if pose is None else _pose_twist(pose, (int(events.t[-1]) - int(events.t[0])) * 1e-6)
     scale = float(np.linalg.norm(pose_xi[:3])) if pose_xi is not None else (speed or 1.0)
+    _warn_fast_omega(known_omega if pose_xi is None else pose_xi[3:], settings.max_omega)
     if model == "se3" and scale <= 0:
         raise ValueError("pose has no translation: depth is unobservable under a pure rotation")
     with torch_threads_scope(len(events), threads=num_threads) as threads, blas_threads_scope(threads):
