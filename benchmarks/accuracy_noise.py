@@ -15,7 +15,10 @@ range of those medians and p90s over the fit seeds, and where the reference figu
 the same windows with the same seeds with that version's ``cmax`` as well, in a second process running
 at the same time (one thread each, so the seconds compare on a 2-core machine with nothing else
 running), and adds the before/after table: both versions' figures averaged over the seeds, pooled over
-all fits, and paired fit by fit (same window, same seed).
+all fits, the pooled figure's difference with its 90% interval over the windows (a paired bootstrap
+that resamples whole windows, each with all its fit seeds in both versions: the windows are the
+independent draws, the seeds of one window are not), and paired fit by fit (same window, same seed).
+A difference whose interval holds 0 is within the noise of the held-out set.
 
 The fits run in :mod:`benchmarks.accuracy_noise_worker` processes on exported windows, so the other
 version needs nothing of this checkout's ``benchmarks``. Written to ``benchmarks/results/accuracy_noise.md``.
@@ -147,22 +150,51 @@ def by_model_and_seed(rows: list[dict], fit_seeds: list[int]) -> dict[str, dict[
     return grouped
 
 
+#: Bootstrap draws of the paired difference's interval, and the generator's seed (the report is reproducible).
+BOOTSTRAP_DRAWS = 2000
+BOOTSTRAP_SEED = 0
+
+
+def pooled_difference_interval(before: np.ndarray, after: np.ndarray, k: int, draws: int = BOOTSTRAP_DRAWS,
+                               seed: int = BOOTSTRAP_SEED) -> tuple[float, float, float]:
+    """The pooled statistic's difference ``after - before`` (``k`` 0: median, 1: 90th percentile over all
+    fits) and its 90% interval over the windows: ``before`` and ``after`` (windows, fit seeds) are resampled
+    together by whole windows (rows), ``draws`` times. Returns ``(difference, low, high)``."""
+    stat = (np.nanmedian, lambda v: np.nanpercentile(v, 90))[k]
+    difference = float(stat(after.ravel()) - stat(before.ravel()))
+    rows = np.random.default_rng(seed).integers(0, before.shape[0], size=(draws, before.shape[0]))
+    spread = np.array([stat(after[r].ravel()) - stat(before[r].ravel()) for r in rows])
+    low, high = np.percentile(spread, [5, 95])
+    return difference, float(low), float(high)
+
+
+def _verdict(low: float, high: float) -> str:
+    """Lower is better: where a difference's interval lies against 0."""
+    return "better" if high < 0 else "worse" if low > 0 else "within noise"
+
+
 def compare(before: dict[str, dict[int, list[dict]]], after: dict[str, dict[int, list[dict]]],
             fit_seeds: list[int], names: tuple[str, str]) -> list[str]:
     """The before/after table (see the module docstring): per figure and statistic the mean over the fit
-    seeds, the pooled figure over all fits, and the fits where ``after`` is lower (better) than ``before``."""
+    seeds, the pooled figure over all fits with the difference's interval over the windows, and the fits
+    where ``after`` is lower (better) than ``before``."""
     lines = [f"| model | figure | statistic | {names[0]}: mean over seeds | {names[1]}: mean over seeds | "
-             f"{names[0]}: all fits pooled | {names[1]}: all fits pooled |", "|---|---|---|---:|---:|---:|---:|"]
+             f"{names[0]}: all fits pooled | {names[1]}: all fits pooled | pooled difference (90% interval "
+             "over windows) | |", "|---|---|---|---:|---:|---:|---:|---:|---|"]
     paired = []
     for model in after:
         for figure in (*FIGURES[model], "seconds"):
+            grids = [np.array([[r[figure] for r in side[model][s]] for s in fit_seeds], float).T
+                     for side in (before, after)]                                # (windows, fit seeds)
             for k, name in enumerate(("median", "p90")):
                 means = [np.mean([statistics(side[model][s], figure)[k] for s in fit_seeds])
                          for side in (before, after)]
                 pooled = [statistics([r for s in fit_seeds for r in side[model][s]], figure)[k]
                           for side in (before, after)]
+                difference, low, high = pooled_difference_interval(*grids, k)
                 lines.append(f"| {model} | {figure} | {name} | {means[0]:.3f} | {means[1]:.3f} | {pooled[0]:.3f} | "
-                             f"{pooled[1]:.3f} |")
+                             f"{pooled[1]:.3f} | {difference:+.3f} ({low:+.3f} to {high:+.3f}) | "
+                             f"{_verdict(low, high)} |")
             matched = [(b, a) for s in fit_seeds for b, a in zip(before[model][s], after[model][s], strict=True)]
             if any(b["window"] != a["window"] for b, a in matched):
                 raise ValueError(f"{model}: the two versions' fits are not of the same windows")

@@ -310,6 +310,25 @@ def test_accuracy_noise_places_the_reference_in_the_range_and_pairs_the_fits(tmp
     assert "| se3 | abs_rel | median | 0.200 | 0.250 | 0.200 | 0.250 |" in table
 
 
+def test_accuracy_noise_interval_resamples_whole_windows():
+    """The pooled difference's 90% interval: a shift of every fit by c is exactly c in every resample (worse, or
+    better for -c); one window far worse and the others equal give an interval from 0 (resamples without that
+    window) upwards: within noise; the same windows and seeds give 0."""
+    import benchmarks.accuracy_noise as noise
+
+    rng = np.random.default_rng(1)
+    before = rng.random((20, 5))
+    for k in (0, 1):
+        assert noise.pooled_difference_interval(before, before + 0.1, k) == pytest.approx((0.1, 0.1, 0.1))
+        assert noise.pooled_difference_interval(before, before, k) == (0.0, 0.0, 0.0)
+    assert noise._verdict(0.1, 0.1) == "worse" and noise._verdict(-0.2, -0.1) == "better"
+    after = before.copy()
+    after[3] += 5.0                                                      # one window of 20 far worse
+    difference, low, high = noise.pooled_difference_interval(before, after, 1)
+    assert difference > 0 and low == pytest.approx(0.0, abs=1e-12) and high > 0
+    assert noise._verdict(low, high) == "within noise"
+
+
 def test_speed_shared_objective_times_both_paths_and_finds_them_equal():
     """The shared-objective speed benchmark's calls, on two small windows: every call runs on both paths,
     each path is timed, and the compiled and torch values agree (float64 rows to float rounding)."""
