@@ -239,7 +239,7 @@ def main(argv: list[str] | None = None) -> int:
     if args.against_tree is not None:
         names = (args.against_name or str(args.against_tree), "this checkout")
         text += "\n".join(["", f"## Against {names[0]}", "",
-                           f"The same windows and fit seeds fitted by `{args.against_tree}`'s `cmax` in a second "
+                           f"The same windows and fit seeds fitted by {names[0]}'s `cmax` in a second "
                            "process at the same time (one thread each). Lower is better.", "",
                            *compare(rows["against"], rows["this"], fit_seeds, names)]) + "\n"
     args.output.parent.mkdir(parents=True, exist_ok=True)
