@@ -14,8 +14,8 @@ from benchmarks.synthetic_windows import make_window
 from cmax import Events
 from cmax.fitting import FitSettings, LowMotionWarning, LowParallaxWarning, QualitySettings, Verdict, fit, fit_sequence
 from cmax.fitting import sequence as sequence_module
-from cmax.fitting.quality import (Alternative, LowMotion, LowMotionCause, Quality, choose_from_neighbours, choose_from_run,
-                                  verdict_of)
+from cmax.fitting.quality import (Alternative, LowMotion, LowMotionCause, Quality, choose_from_neighbours,
+                                  choose_from_run, verdict_of)
 from cmax.fitting.solvers import Solver, SolveResult
 
 

@@ -226,7 +226,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from cmax import viz
-    from cmax.fitting import FitSettings, Verdict, fit_sequence
+    from cmax.fitting import FitSettings, fit_sequence
     from cmax.fitting.quality import LowMotionCause
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read_gyro

@@ -24,8 +24,7 @@ _LAZY = {
 }
 
 __all__ = ["BoundWarning", "FitResult", "FitSettings", "LowMotionCause", "LowMotionWarning", "LowParallaxWarning",
-           "MotionInit",
-           "PatchFlowSettings", "Polish", "Quality", "QualitySettings", "RefineSettings", "Refinement",
+           "MotionInit", "PatchFlowSettings", "Polish", "Quality", "QualitySettings", "RefineSettings", "Refinement",
            "SequenceResult", "StageLog", "SweepSettings",
            "Verdict", "WindowFitError", "fit", "fit_sequence", "fit_windows"]
 

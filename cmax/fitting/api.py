@@ -440,11 +440,12 @@ def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, kno
 
 def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: bool = False) -> LowMotion | None:
     """Why the fit moved the events too little to trust (the rule of the low-parallax and low-motion
-    warnings and of the ``low_parallax`` verdict, :class:`~cmax.fitting.quality.LowMotionCause`), or None: se3 parallax under ``low_parallax_px``;
-    flow/rotation motion under ``low_motion_px``, or (``quality.motion_test``) a contrast gain within
-    the noise of its spread over the image's cells (:func:`cmax.fitting.quality.motion_within_noise`);
-    every model, with a given pose too (``quality.shuffle_test``): a gain that the time-shuffled events
-    share (:func:`cmax.fitting.quality.shuffled_gain_test`); ``pose_known`` words the reason for it."""
+    warnings and of the ``low_parallax`` verdict; :class:`~cmax.fitting.quality.LowMotionCause` names it), or
+    None: se3 parallax under ``low_parallax_px``; flow/rotation motion under ``low_motion_px``, or
+    (``quality.motion_test``) a contrast gain within the noise of its spread over the image's cells
+    (:func:`cmax.fitting.quality.motion_within_noise`); every model, with a given pose too
+    (``quality.shuffle_test``): a gain that the time-shuffled events share
+    (:func:`cmax.fitting.quality.shuffled_gain_test`); ``pose_known`` words the reason for it."""
     settings = w.settings
     if result.parallax_px is not None and result.parallax_px < settings.low_parallax_px:
         return LowMotion(LowMotionCause.PARALLAX,
@@ -480,11 +481,11 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
     return None
 
 
-def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver, *, pose_known: bool, hold_omega: bool,
-             speed: float) -> Quality:
+def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver, *, pose_known: bool,
+             hold_omega: bool, speed: float) -> Quality:
     """The verdict of a finished fit (:class:`QualitySettings` ``w.settings.quality``) with the low-motion
-    rule that fired, ``low`` (:func:`_low_motion`); the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on
-    se3 fits with a fitted direction that did not fail and have parallax."""
+    rule that fired, ``low`` (:func:`_low_motion`); the ambiguity test (:func:`cmax.fitting.quality.assess`)
+    runs on se3 fits with a fitted direction that did not fail and have parallax."""
     quality = w.settings.quality
     failed = [log.stage for log in result.stages if not log.success]
     alternatives, note = (), ("ambiguity not tested: the pose is given" if pose_known else

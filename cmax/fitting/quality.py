@@ -65,8 +65,8 @@ from cmax.fitting.settings import QualitySettings
 from cmax.iwe import accumulate_bilinear, blur, polarity_images
 from cmax.warp import warp_se3
 
-__all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alternative", "Quality", "MotionScorer", "assess", "motion_within_noise",
-           "shuffled_gain_test", "NO_MOTION", "verdict_of",
+__all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alternative", "Quality", "MotionScorer",
+           "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions"]
 
 
