@@ -131,6 +131,8 @@ def test_plane_vote_motion_term_does_not_depend_on_the_depth_map():
         pytest.approx(added[0], rel=1e-6)
     fixed = profiled.with_motion(batch, params.twist.detach())
     torch.testing.assert_close(fixed(batch, params), profiled(batch, params))
+    assert fixed.motion_term is not None and plain.with_motion(batch, params.twist.detach()).motion_term is None
+    torch.testing.assert_close(fixed.motion_term, profiled.motion_profile(batch, *fixed.values[:2]))
 
 
 def test_plane_values_equal_the_planes_one_by_one(windows):

@@ -421,6 +421,9 @@ class PlaneVote:
     values : PlaneValues or None
         The planes' values, which events stay inside and the normaliser, fixed by :meth:`with_motion`
         (None: computed at each call).
+    motion_term : Tensor (B,) or None
+        The motion term of those fixed values (:meth:`motion_profile`), fixed with them when
+        ``motion_weight`` is not 0: with the motion known it is a constant of the depth map.
     """
 
     rho_range: tuple[float, float] = (1.0 / 60.0, 2.0)
@@ -432,6 +435,7 @@ class PlaneVote:
     motion_weight: float = 0.0
     motion_cells: tuple[int, int] = (6, 8)
     values: PlaneValues | None = None
+    motion_term: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
         lo, hi = self.rho_range
@@ -487,7 +491,9 @@ class PlaneVote:
         """This objective with the :class:`PlaneValues` of a known ``twist`` (B, 6) fixed: for a depth-only
         optimisation of ``batch`` with that twist it gives the same values, without re-imaging the planes."""
         with torch.no_grad():
-            return dataclasses.replace(self, values=self.plane_values(batch, twist.detach()))
+            values = self.plane_values(batch, twist.detach())
+            term = self.motion_profile(batch, values.values, values.kept) if self.motion_weight else None
+            return dataclasses.replace(self, values=values, motion_term=term)
 
     def _scale(self, batch: EventWindows, values: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
         """What each event's value is divided by (N,): see :class:`VoteNormaliser`."""
@@ -523,7 +529,9 @@ class PlaneVote:
         count = torch.zeros(B, dtype=dtype).index_add(0, batch.window, kept)
         loss = -votes / count.clamp(min=1.0)
         if self.motion_weight:
-            loss = loss + self.motion_weight * self.motion_profile(batch, values, kept)
+            fixed = self.values is not None and self.motion_term is not None
+            term = self.motion_term if fixed else self.motion_profile(batch, values, kept)
+            loss = loss + self.motion_weight * term
         return _plus_smoothness(loss, self.smoothness, batch, params)
 
     def motion_profile(self, batch: EventWindows, values: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
