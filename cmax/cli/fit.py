@@ -7,7 +7,7 @@ Outputs in ``-o outdir/``: ``depth_XXXXX.npz`` (``depth``, ``mask``,
 window (se3; the map with a colour bar in metres, unlabelled without ``--speed``), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
 camera-to-world, the first window's start as the origin) and
 ``summary.json`` (settings, per-window twist, objective, parallax, seconds, quality verdict with its
-reason and alternatives, and the counts of each verdict). Each window's verdict is printed on a line of
+reason, low-motion cause and alternatives, and the counts of each verdict). Each window's verdict is printed on a line of
 its own and counted in the summary line (``docs/quality.md``).
 """
 from __future__ import annotations
