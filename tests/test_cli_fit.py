@@ -240,6 +240,7 @@ def test_the_summary_counts_each_verdict(tmp_path, capsys, monkeypatch):
     summary = json.loads((out / "summary.json").read_text())
     assert [window["verdict"] for window in summary["windows"]] == ["ambiguous", "failed", "low_parallax", "ok"]
     assert summary["verdicts"] == {"ok": 1, "ambiguous": 1, "low_parallax": 1, "failed": 1, "resolved": 0}
+    assert summary["skipped_us"] == [int(w.events.t[0])]                     # the first window: too few events
     assert summary["windows"][0]["resolution"] == "unresolved: no confident (ok) neighbour window"
     assert "window 0 (" in printed and ": ambiguous: mirrored within noise; unresolved: no confident" in printed
     assert ("4 of 5 windows fitted, 1 skipped (fewer than 1,000 events): 1 ok, 1 ambiguous (0 resolved), "

@@ -16,6 +16,7 @@ from cmax.fitting import (
     RefineSettings, SweepSettings, Verdict, fit, fit_sequence,
 )
 from cmax.fitting.quality import LowMotionCause
+from cmax.geometry import se3_exp
 from cmax.fitting.solvers import ScipySolver, Solver, SolveResult, solve
 
 
@@ -302,6 +303,31 @@ def test_fit_sequence_says_when_it_fits_nothing():
         assert fit_sequence(events, NOISE_K, window_us=200_000).results == ()
     with pytest.warns(UserWarning, match="min_events"):
         assert fit_sequence(events, NOISE_K, window_us=50_000, min_events=5_000).results == ()
+
+
+def test_fit_sequence_says_which_windows_it_skipped_and_what_the_trajectory_assumes_there():
+    """A recording with a gap (a paused sensor, 1.3 s): the windows inside it are skipped with a warning that
+    counts them, ``skipped_us`` lists their starts, and across them the trajectory carries the last fitted
+    twist (constant velocity); a recording without gaps skips nothing and says nothing of it."""
+    w = small_se3()
+    e = w.events
+    gap = Events(np.r_[e.x, e.x], np.r_[e.y, e.y], np.r_[e.t, e.t.astype(np.int64) + 1_400_000], np.r_[e.p, e.p],
+                 e.width, e.height)
+    first, step = int(gap.t[0]), 50_000
+    starts = np.arange(first, int(gap.t[-1]) + 2 - step, step)                 # complete windows only
+    inside = starts[(starts >= e.t[-1]) & (starts + step <= first + 1_400_000)]  # wholly in the gap
+    with pytest.warns(UserWarning, match=rf"fit_sequence: {len(inside)} of {len(starts)} windows hold fewer than "):
+        seq = fit_sequence(gap, w.K, window_us=step, speed=0.5, quality=QualitySettings(smoothing=False))
+    assert len(seq.results) == len(starts) - len(inside) and seq.results[-1].t0_us >= first + 1_400_000
+    np.testing.assert_array_equal(seq.skipped_us, inside)
+    before = int(np.sum(starts < inside[0]))                  # windows fitted before the gap; poses[before]: its start
+    np.testing.assert_allclose(seq.poses[before + len(inside)],
+                               seq.poses[before] @ se3_exp(seq.results[before - 1].twist * len(inside) * step * 1e-6),
+                               atol=1e-9)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        plain = fit_sequence(e, w.K, window_us=step, speed=0.5)
+    assert plain.skipped_us.size == 0 and not [c for c in caught if "were not fitted" in str(c.message)]
 
 
 def test_the_motion_test_rule():

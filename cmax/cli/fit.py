@@ -7,7 +7,8 @@ Outputs in ``-o outdir/``: ``depth_XXXXX.npz`` (``depth``, ``mask``,
 window (se3; the map with a colour bar in metres, unlabelled without ``--speed``), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
 camera-to-world, the first window's start as the origin) and
 ``summary.json`` (settings, per-window twist, objective, parallax, seconds, quality verdict with its
-reason, low-motion cause and alternatives, and the counts of each verdict). Each window's verdict is printed on a line of
+reason, low-motion cause and alternatives, the counts of each verdict, and the starts of the windows
+skipped for too few events, across which the trajectory carries the last fitted twist). Each window's verdict is printed on a line of
 its own and counted in the summary line (``docs/quality.md``).
 """
 from __future__ import annotations
@@ -323,7 +324,8 @@ def run(args: argparse.Namespace) -> int:
                "members": args.members or _settings_default("motion_members")(),
                "polish": args.polish or _settings_default("polish")().value,
                "warm_start": args.jobs == 1, "notes": notes,
-               "windows_total": n_windows, "verdicts": sequence.counts(), "windows": windows}
+               "windows_total": n_windows, "skipped_us": sequence.skipped_us.tolist(),
+               "verdicts": sequence.counts(), "windows": windows}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
     min_events = _sequence_default("min_events")()
     skipped = n_windows - len(windows)

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -33,11 +33,16 @@ class SequenceResult:
         ``T_w_c`` at ``times_us``, the first the identity; between two starts the
         camera moves with the window's constant twist (metric only when every
         window's ``scale_known``).
+    skipped_us : ndarray (S,)
+        Start [µs] of every window not fitted (fewer than ``min_events`` events): over those the
+        poses carry the last fitted window's twist (constant velocity; before the first fit they stand
+        still), an assumption, not a measurement.
     """
 
     results: tuple
     times_us: np.ndarray
     poses: np.ndarray
+    skipped_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
 
     @property
     def verdicts(self) -> tuple:
@@ -121,7 +126,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         zero-rate offset goes straight into the depth: calibrate it first.
         The samples must span every window (checked before the first fit).
     min_events : int
-        Windows with fewer events are skipped (the pose is held by the last twist).
+        Windows with fewer events are skipped (``SequenceResult.skipped_us``, with a warning): over them
+        the trajectory carries the last fitted window's twist.
     jobs : int or None
         Worker processes of :func:`cmax.fitting.batch.fit_windows` (None: every available core). 1 (the
         default) fits in this process.
@@ -171,7 +177,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     -----
     UserWarning
         No window was fitted: the recording is shorter than one window, or no window holds ``min_events``
-        events (the result then holds no window).
+        events (the result then holds no window). Some windows were skipped: how many, and that the
+        trajectory assumes a constant velocity across them.
     """
     settings, fit_options = _sequence_settings(fit_options)
     if speed is not None and model != "se3":
@@ -206,6 +213,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     if gyro is not None and len(starts):
         _check_gyro_covers(gyro, t_start, starts[-1] + window_us - 1)
     steps, times = [], [t_start]                # steps: the index of the result each step moves with
+    skipped: list[int] = []
 
     def tasks():                                 # taken one by one as the fits need them
         fitted = 0
@@ -216,6 +224,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
                 yield FitTask(fitted, events, K, model, dict(speed=speed, omega=omega, settings=settings,
                                                               **fit_options))
                 fitted += 1
+            else:
+                skipped.append(t0)
             steps.append(fitted - 1)
             times.append(t0 + step_us)
 
@@ -233,6 +243,12 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
                "stamp")
         warnings.warn(f"fit_sequence: no window fitted: {why}; pass a shorter window_us or a lower min_events",
                       UserWarning, stacklevel=2)
+    elif skipped:
+        warnings.warn(f"fit_sequence: {len(skipped)} of {len(starts)} windows hold fewer than min_events={min_events} "
+                      f"events over more than one time stamp and were not fitted (the first at "
+                      f"{(skipped[0] - t_start) * 1e-6:.3f} s): across them the trajectory carries the last fitted "
+                      "window's twist, a constant velocity that nothing measured (SequenceResult.skipped_us)",
+                      UserWarning, stacklevel=2)
     results = _resolve_ambiguous(results, take, K, speed, settings, fit_options, jobs)
     if settings.quality.smoothing and model == "se3":
         results = smooth_from_neighbours(results, take, K, settings, fit_options, hold_omega=gyro is not None)
@@ -240,7 +256,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     for index in steps:
         twist = results[index].twist if index >= 0 else np.zeros(6)
         poses.append(poses[-1] @ se3_exp(twist * step_us * 1e-6))
-    return SequenceResult(tuple(results), np.asarray(times, np.int64), np.stack(poses))
+    return SequenceResult(tuple(results), np.asarray(times, np.int64), np.stack(poses),
+                          np.asarray(skipped, np.int64))
 
 
 def _sequence_settings(fit_options: dict) -> tuple[FitSettings, dict]:
