@@ -304,6 +304,29 @@ def test_a_rotation_in_deg_per_s_is_warned_not_guessed():
     assert not [w for w in caught if "deg/s" in str(w.message)]
 
 
+def test_intrinsics_in_another_order_are_warned_not_guessed():
+    """A valid K unlike any camera's: MVSEC's DAVIS346 numbers given in ROS's row order (fx, cx, fy, cy) or as
+    cx, cy, fx, fy make fy / fx 0.77 and move the principal point 16% / 37% of the image off its centre; the
+    fit runs as given, with a warning naming the order. MVSEC's own K says nothing."""
+    rng = np.random.default_rng(0)
+    n = 3000
+    events = Events(rng.integers(0, 346, n), rng.integers(0, 260, n), np.sort(rng.integers(0, 50_000, n)),
+                    rng.integers(0, 2, n), 346, 260)
+
+    def K(fx, fy, cx, cy):
+        return np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1.0]])
+
+    with pytest.warns(UserWarning, match=r"principal point is 16% .* fy / fx = 0\.77 .*order of the numbers"):
+        cmax.fit(events, K(226.38, 173.64, 226.15, 133.73), model="flow")
+    with pytest.warns(UserWarning, match=r"principal point is 37% of the image from its centre"):
+        cmax.fit(events, K(173.64, 133.73, 226.38, 226.15), model="flow")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cmax.fit(events, K(226.38, 226.15, 173.64, 133.73), model="flow")
+        cmax.fit(events, K(226.38, 240.0, 190.0, 145.0), model="flow")        # 6% aspect, 5% off centre: a camera
+    assert not [w for w in caught if "unlike a camera" in str(w.message)]
+
+
 def test_zero_length_windows_give_no_events(tmp_path):
     events = _events()
     t = int(events.t[50])
