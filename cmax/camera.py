@@ -11,7 +11,7 @@ import numpy as np
 
 from cmax.events import Events, _check_sensor_size
 
-__all__ = ["Camera", "check_intrinsics"]
+__all__ = ["Camera", "check_intrinsics", "intrinsics_oddity"]
 
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 
@@ -35,6 +35,35 @@ def check_intrinsics(K: object, name: str = "K") -> np.ndarray:
     if not np.allclose(matrix[2], [0, 0, 1]) or matrix[1, 0] != 0:
         raise ValueError(f"{name} must have the form [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {matrix.tolist()}")
     return matrix
+
+
+#: How far a plausible principal point lies from the image's centre (a fraction of the image's size), and
+#: how far a plausible pixel aspect fy / fx lies from 1: beyond either, K was probably given in another order.
+ODD_PRINCIPAL_POINT = 0.25
+ODD_ASPECT = 0.1
+
+
+def intrinsics_oddity(K: np.ndarray, width: int, height: int) -> str | None:
+    """Why a valid ``K`` (3, 3) [px] is unlike any camera's for a ``width`` x ``height`` sensor, or None: the
+    principal point more than :data:`ODD_PRINCIPAL_POINT` of the image's size from its centre, or ``fy / fx``
+    more than :data:`ODD_ASPECT` from 1. The usual cause is the order of the numbers (``fx, fy, cx, cy``
+    against ROS's row order ``fx, cx, fy, cy``, or ``cx, cy, fx, fy``); a crop can move the centre, so
+    callers warn, they do not refuse.
+
+    >>> intrinsics_oddity(np.array([[226.38, 0, 173.64], [0, 226.15, 133.73], [0, 0, 1]]), 346, 260) is None
+    True
+    >>> intrinsics_oddity(np.array([[226.38, 0, 226.15], [0, 173.64, 133.73], [0, 0, 1]]), 346, 260)[:40]
+    'K (fx 226.38, fy 173.64, cx 226.15, cy 1'
+    """
+    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
+    off = max(abs(cx - (width - 1) / 2) / width, abs(cy - (height - 1) / 2) / height)
+    aspect = fy / fx
+    if off <= ODD_PRINCIPAL_POINT and abs(aspect - 1.0) <= ODD_ASPECT:
+        return None
+    return (f"K (fx {fx:g}, fy {fy:g}, cx {cx:g}, cy {cy:g}) is unlike a camera's for a {width}x{height} sensor: "
+            f"the principal point is {off:.0%} of the image from its centre and fy / fx = {aspect:.2f} (cameras: "
+            "within a few per cent of the centre, fy / fx near 1); check the order of the numbers (fx, fy, cx, cy; "
+            "ROS's rows read fx, cx, fy, cy)")
 
 
 @dataclass(frozen=True, eq=False)

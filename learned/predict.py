@@ -188,20 +188,27 @@ def _card_numbers(card: dict, key: str, count: int, where: str) -> list[float] |
 
 def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, where: str = "the card") -> list[str]:
     """Notes on how this camera differs from the one the network was trained with (from its card:
-    ``"size": [W, H]`` [px], ``"K": [fx, fy, cx, cy]`` [px]), and on a principal point off this sensor (the
-    intrinsics of another camera?); empty when they agree or nothing is recorded.
+    ``"size": [W, H]`` [px], ``"K": [fx, fy, cx, cy]`` [px]), on a principal point off this sensor (the
+    intrinsics of another camera?) and on a K unlike any camera's (:func:`cmax.camera.intrinsics_oddity`: the
+    numbers in another order?); empty when they agree or nothing is recorded.
 
     >>> K = np.array([[200.0, 0, 32], [0, 200, 24], [0, 0, 1]])
-    >>> camera_notes(None, 64, 48, K), len(camera_notes(None, 1280, 720, K))
-    ([], 0)
+    >>> camera_notes(None, 64, 48, K)
+    []
+    >>> camera_notes(None, 1280, 720, K)[0][:48]          # 64x48's K on a 1280x720 sensor: its corner
+    'K (fx 200, fy 200, cx 32, cy 24) is unlike a cam'
     >>> camera_notes(None, 32, 24, np.array([[200.0, 0, 640], [0, 200, 360], [0, 0, 1]]))[0][:56]
     'the principal point (640.0, 360.0) px lies off the 32x24'
     """
+    from cmax.camera import intrinsics_oddity
+
     notes = []
     cx, cy = float(K[0, 2]), float(K[1, 2])
     if not (0 <= cx <= width and 0 <= cy <= height):
         notes.append(f"the principal point ({cx:.1f}, {cy:.1f}) px lies off the {width}x{height} sensor: are these "
                      "the intrinsics of this camera?")
+    elif (oddity := intrinsics_oddity(K, width, height)) is not None:
+        notes.append(oddity)
     if not card:
         return notes
     size = _card_numbers(card, "size", 2, where)

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from cmax._threads import blas_threads_scope, torch_threads_scope
-from cmax.camera import check_intrinsics
+from cmax.camera import check_intrinsics, intrinsics_oddity
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events
 from cmax.geometry import se3_exp, se3_log
@@ -240,26 +240,11 @@ def _known_omega(omega: object, pose: object) -> np.ndarray:
     return array
 
 
-#: How far a plausible principal point lies from the image's centre (a fraction of the image's size), and
-#: how far a plausible pixel aspect fy / fx lies from 1: beyond either, K is probably given in another order.
-ODD_PRINCIPAL_POINT = 0.25
-ODD_ASPECT = 0.1
-
-
 def _warn_odd_intrinsics(K: np.ndarray, width: int, height: int) -> None:
-    """Warn when ``K`` is valid but unlike any camera's: the principal point more than
-    :data:`ODD_PRINCIPAL_POINT` of the image's size from its centre, or ``fy / fx`` more than
-    :data:`ODD_ASPECT` from 1. The usual cause is the order of the numbers (``fx, fy, cx, cy`` against
-    ROS's row order ``fx, cx, fy, cy``, or ``cx, cy, fx, fy``). Not refused: a crop can move the centre."""
-    fx, fy, cx, cy = float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
-    off = max(abs(cx - (width - 1) / 2) / width, abs(cy - (height - 1) / 2) / height)
-    aspect = fy / fx
-    if off > ODD_PRINCIPAL_POINT or abs(aspect - 1.0) > ODD_ASPECT:
-        warnings.warn(f"cmax.fit: K (fx {fx:g}, fy {fy:g}, cx {cx:g}, cy {cy:g}) is unlike a camera's for a "
-                      f"{width}x{height} sensor: the principal point is {off:.0%} of the image from its centre and "
-                      f"fy / fx = {aspect:.2f} (cameras: within a few per cent of the centre, fy / fx near 1); "
-                      "check the order of the numbers (fx, fy, cx, cy; ROS's rows read fx, cx, fy, cy)",
-                      UserWarning, stacklevel=3)
+    """Warn when a valid ``K`` is unlike any camera's (:func:`cmax.camera.intrinsics_oddity`): fitted as given."""
+    oddity = intrinsics_oddity(K, width, height)
+    if oddity is not None:
+        warnings.warn(f"cmax.fit: {oddity}", UserWarning, stacklevel=3)
 
 
 def _warn_fast_omega(omega: np.ndarray | None, max_omega: float) -> None:
