@@ -225,6 +225,22 @@ def _pose_twist(pose: object, duration_s: float) -> np.ndarray:
     return xi
 
 
+def _check_speed(speed: object) -> float | None:
+    """A known speed [m/s] as one positive float (None stays None); arrays, strings and non-positive values
+    are refused with the value in the message."""
+    if speed is None:
+        return None
+    if np.ndim(speed) != 0 or isinstance(speed, (str, bytes, bool, np.bool_)):
+        raise ValueError(f"speed must be one positive number of m/s, got {speed!r}")
+    try:
+        value = float(speed)
+    except (TypeError, ValueError):
+        raise ValueError(f"speed must be one positive number of m/s, got {speed!r}") from None
+    if not (np.isfinite(value) and value > 0):
+        raise ValueError(f"speed must be a positive number of m/s, got {speed}")
+    return value
+
+
 def _known_omega(omega: object, pose: object) -> np.ndarray:
     """A known angular velocity (3,) [rad/s], checked."""
     if pose is not None:
@@ -380,8 +396,7 @@ def fit(
     K = _check_inputs(events, K, model)
     _warn_odd_intrinsics(K, events.width, events.height)
     settings = _settings(settings, options, model)
-    if speed is not None and not (np.isfinite(speed) and speed > 0):
-        raise ValueError(f"speed must be a positive number of m/s, got {speed}")
+    speed = _check_speed(speed)
     if (speed is not None or pose is not None or omega is not None) and model != "se3":
         raise ValueError(f"speed, pose and omega apply to model='se3', not {model!r}")
     known_omega = None if omega is None else _known_omega(omega, pose)

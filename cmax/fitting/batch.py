@@ -54,7 +54,8 @@ from tqdm.auto import tqdm
 from cmax._threads import available_cores, set_blas_threads
 from cmax.camera import check_intrinsics
 from cmax.events import Events
-from cmax.fitting.api import MODELS, FitResult, _check_inputs, _known_omega, _pose_twist, _settings, fit
+from cmax.fitting.api import (MODELS, FitResult, _check_inputs, _check_speed, _known_omega, _pose_twist, _settings,
+                              fit)
 from cmax.fitting.solvers import make_solver
 
 __all__ = ["WindowFitError", "FitTask", "fit_windows", "check_jobs", "check_options", "run_tasks", "one_blas_thread"]
@@ -185,8 +186,7 @@ def check_options(model: str, options: dict, workers: int) -> None:
     settings_fields = set(options) - _FIT_KEYWORDS
     _settings(options.get("settings"), {k: options[k] for k in settings_fields}, model)
     speed, pose, omega = options.get("speed"), options.get("pose"), options.get("omega")
-    if speed is not None and not (np.isfinite(speed) and speed > 0):
-        raise ValueError(f"speed must be a positive number of m/s, got {speed}")
+    _check_speed(speed)
     if (speed is not None or pose is not None or omega is not None) and model != "se3":
         raise ValueError(f"speed, pose and omega apply to model='se3', not {model!r}")
     if omega is not None:
