@@ -303,6 +303,11 @@ def test_fit_sequence_says_when_it_fits_nothing():
         assert fit_sequence(events, NOISE_K, window_us=200_000).results == ()
     with pytest.warns(UserWarning, match="min_events"):
         assert fit_sequence(events, NOISE_K, window_us=50_000, min_events=5_000).results == ()
+    for bad in (0, -3, 9, 9.5, True):           # fewer than a fit takes: empty windows raised IndexError before
+        with pytest.raises(ValueError, match=r"min_events must be a whole number >= 10"):
+            fit_sequence(events, NOISE_K, window_us=50_000, min_events=bad)
+    with pytest.raises(ValueError, match=r"K must be a 3x3 matrix"):      # checked though no window is fitted
+        fit_sequence(events, [100, 100, 80, 60], window_us=200_000)
 
 
 def test_fit_sequence_says_which_windows_it_skipped_and_what_the_trajectory_assumes_there():

@@ -53,6 +53,8 @@ class BoundWarning(UserWarning):
 
 
 MODELS = ("flow", "rotation", "se3")
+#: The fewest events a window can be fitted with (fewer: a ValueError).
+MIN_WINDOW_EVENTS = 10
 #: The contrast of each model when ``FitSettings.contrast`` is None.
 DEFAULT_CONTRAST = {"flow": "variance", "rotation": "gradient", "se3": "variance"}
 #: Whether the motion contrast images each polarity apart when ``FitSettings.polarity_split`` is None.
@@ -204,8 +206,9 @@ def _check_inputs(events: object, K: object, model: str) -> np.ndarray:
     if not (-0.5 <= cx <= events.width - 0.5 and -0.5 <= cy <= events.height - 0.5):
         raise ValueError(f"K's principal point ({cx:g}, {cy:g}) lies outside the {events.width}x{events.height} "
                          "image: K belongs to another sensor size or crop (give the K of these pixels)")
-    if len(events) < 10:
-        raise ValueError(f"events: a window needs at least 10 events to fit a motion, got {len(events)}")
+    if len(events) < MIN_WINDOW_EVENTS:
+        raise ValueError(f"events: a window needs at least {MIN_WINDOW_EVENTS} events to fit a motion, got "
+                         f"{len(events)}")
     if events.t[-1] == events.t[0]:
         raise ValueError("events all have the same timestamp: a window of zero duration shows no motion")
     return K

@@ -8,8 +8,9 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cmax._threads import torch_threads_scope
+from cmax.camera import check_intrinsics
 from cmax.events import Events, check_time_us
-from cmax.fitting.api import FitResult, _check_inputs, _settings, fit
+from cmax.fitting.api import MIN_WINDOW_EVENTS, FitResult, _check_inputs, _settings, fit
 from cmax.fitting.batch import FitTask, check_jobs, check_options, run_tasks
 from cmax.fitting.quality import MotionScorer, Verdict, _distance_deg, choose_from_neighbours, choose_from_run
 from cmax.fitting.settings import FitSettings
@@ -126,7 +127,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         zero-rate offset goes straight into the depth: calibrate it first.
         The samples must span every window (checked before the first fit).
     min_events : int
-        Windows with fewer events are skipped (``SequenceResult.skipped_us``, with a warning): over them
+        At least :data:`cmax.fitting.api.MIN_WINDOW_EVENTS` (10). Windows with fewer events are skipped (``SequenceResult.skipped_us``, with a warning): over them
         the trajectory carries the last fitted window's twist.
     jobs : int or None
         Worker processes of :func:`cmax.fitting.batch.fit_windows` (None: every available core). 1 (the
@@ -167,7 +168,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     Raises
     ------
     ValueError
-        ``source`` holds no events; a bad ``window_us``, ``step_us``, ``jobs`` or ``gyro``.
+        ``source`` holds no events; a bad ``K`` (checked before any window, also when none is fitted),
+        ``window_us``, ``step_us``, ``min_events``, ``jobs`` or ``gyro``.
     cmax.fitting.batch.WindowFitError
         ``jobs`` other than 1: a window's fit raised; ``index`` is its place among the fitted windows,
         the original exception is ``__cause__`` (the warnings of the workers' fits are re-issued here,
@@ -191,6 +193,11 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         raise ValueError(f"warm starts chain the windows one after another: jobs={jobs} needs warm_start=False")
     if jobs != 1:                                # refused here rather than by every worker
         check_options(model, {"speed": speed, "settings": settings, **fit_options}, jobs)
+    K = check_intrinsics(K)
+    if isinstance(min_events, (bool, np.bool_)) or not isinstance(min_events, (int, np.integer)) \
+            or min_events < MIN_WINDOW_EVENTS:
+        raise ValueError(f"min_events must be a whole number >= {MIN_WINDOW_EVENTS} (the fewest events a window can be "
+                         f"fitted with), got {min_events!r}")
     window_us = check_time_us("window_us", window_us)
     step_us = window_us if step_us is None else check_time_us("step_us", step_us)
     if window_us <= 0 or step_us <= 0:
