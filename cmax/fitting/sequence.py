@@ -127,8 +127,9 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         zero-rate offset goes straight into the depth: calibrate it first.
         The samples must span every window (checked before the first fit).
     min_events : int
-        At least :data:`cmax.fitting.api.MIN_WINDOW_EVENTS` (10). Windows with fewer events are skipped (``SequenceResult.skipped_us``, with a warning): over them
-        the trajectory carries the last fitted window's twist.
+        At least :data:`cmax.fitting.api.MIN_WINDOW_EVENTS` (10). Windows with fewer events are skipped
+        (``SequenceResult.skipped_us``, with a warning): over them the trajectory carries the last fitted
+        window's twist.
     jobs : int or None
         Worker processes of :func:`cmax.fitting.batch.fit_windows` (None: every available core). 1 (the
         default) fits in this process.
@@ -196,8 +197,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     K = check_intrinsics(K)
     if isinstance(min_events, (bool, np.bool_)) or not isinstance(min_events, (int, np.integer)) \
             or min_events < MIN_WINDOW_EVENTS:
-        raise ValueError(f"min_events must be a whole number >= {MIN_WINDOW_EVENTS} (the fewest events a window can be "
-                         f"fitted with), got {min_events!r}")
+        raise ValueError(f"min_events must be a whole number >= {MIN_WINDOW_EVENTS} (the fewest events a window can "
+                         f"be fitted with), got {min_events!r}")
     window_us = check_time_us("window_us", window_us)
     step_us = window_us if step_us is None else check_time_us("step_us", step_us)
     if window_us <= 0 or step_us <= 0:
