@@ -267,8 +267,9 @@ def run(args: argparse.Namespace) -> int:
     # progress bar starts:
     FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})
     sequence_model = args.model or _sequence_default("model")()
+    depth_grid = tuple(args.depth_grid or _fit_default("depth_grid")())
     if sequence_model == "se3":
-        DepthGrid(tuple(args.depth_grid or _fit_default("depth_grid")()), events.width, events.height)
+        DepthGrid(depth_grid, events.width, events.height)
     window_us = (_sequence_default("window_us")() if args.window_ms is None
                  else _microseconds(args.window_ms, "--window-ms"))
     step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
@@ -319,7 +320,7 @@ def run(args: argparse.Namespace) -> int:
                "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro),
                "omega": None if args.omega is None else list(args.omega),
                "solver": args.solver or _fit_default("solver")(),
-               "depth_grid": list(args.depth_grid or _fit_default("depth_grid")()),
+               "depth_grid": list(depth_grid),
                "zero_rotation_start": args.zero_rotation_start, "jobs": args.jobs,
                "members": args.members or _settings_default("motion_members")(),
                "polish": args.polish or _settings_default("polish")().value,
