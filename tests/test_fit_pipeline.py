@@ -308,6 +308,8 @@ def test_fit_sequence_says_when_it_fits_nothing():
             fit_sequence(events, NOISE_K, window_us=50_000, min_events=bad)
     with pytest.raises(ValueError, match=r"K must be a 3x3 matrix"):      # checked though no window is fitted
         fit_sequence(events, [100, 100, 80, 60], window_us=200_000)
+    with pytest.raises(ValueError, match=r"speed must be a positive number of m/s, got -1"):   # so is the speed
+        fit_sequence(events, NOISE_K, window_us=200_000, speed=-1.0)
 
 
 def test_fit_sequence_says_which_windows_it_skipped_and_what_the_trajectory_assumes_there():

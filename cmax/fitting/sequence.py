@@ -10,7 +10,7 @@ from tqdm.auto import tqdm
 from cmax._threads import torch_threads_scope
 from cmax.camera import check_intrinsics
 from cmax.events import Events, check_time_us
-from cmax.fitting.api import MIN_WINDOW_EVENTS, FitResult, _check_inputs, _settings, fit
+from cmax.fitting.api import MIN_WINDOW_EVENTS, FitResult, _check_inputs, _check_speed, _settings, fit
 from cmax.fitting.batch import FitTask, check_jobs, check_options, run_tasks
 from cmax.fitting.quality import MotionScorer, Verdict, _distance_deg, choose_from_neighbours, choose_from_run
 from cmax.fitting.settings import FitSettings
@@ -169,8 +169,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     Raises
     ------
     ValueError
-        ``source`` holds no events; a bad ``K`` (checked before any window, also when none is fitted),
-        ``window_us``, ``step_us``, ``min_events``, ``jobs`` or ``gyro``.
+        ``source`` holds no events; a bad ``K`` or ``speed`` (checked before any window, also when none is
+        fitted), ``window_us``, ``step_us``, ``min_events``, ``jobs`` or ``gyro``.
     cmax.fitting.batch.WindowFitError
         ``jobs`` other than 1: a window's fit raised; ``index`` is its place among the fitted windows,
         the original exception is ``__cause__`` (the warnings of the workers' fits are re-issued here,
@@ -194,7 +194,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         raise ValueError(f"warm starts chain the windows one after another: jobs={jobs} needs warm_start=False")
     if jobs != 1:                                # refused here rather than by every worker
         check_options(model, {"speed": speed, "settings": settings, **fit_options}, jobs)
-    K = check_intrinsics(K)
+    K, speed = check_intrinsics(K), _check_speed(speed)
     if isinstance(min_events, (bool, np.bool_)) or not isinstance(min_events, (int, np.integer)) \
             or min_events < MIN_WINDOW_EVENTS:
         raise ValueError(f"min_events must be a whole number >= {MIN_WINDOW_EVENTS} (the fewest events a window can "
