@@ -68,16 +68,25 @@ class EventWindows:
         B = self.K.shape[0] if self.K.dim() == 3 else -1
         if self.K.shape != (B, 3, 3) or B < 1:
             raise ValueError(f"K must have shape (B, 3, 3) with B >= 1, got {tuple(self.K.shape)}")
-        if self.duration_s.shape != (B,) or not bool((self.duration_s > 0).all()):
+        if self.duration_s.shape != (B,):
+            raise ValueError(f"duration_s must be ({B},), got {tuple(self.duration_s.shape)}")
+        if self.speed is not None and self.speed.shape != (B,):
+            raise ValueError(f"speed must be ({B},) m/s (NaN: unknown), got {tuple(self.speed.shape)}")
+        if int(self.width) < 1 or int(self.height) < 1:
+            raise ValueError(f"width and height must be positive, got {self.width}, {self.height}")
+        devices = {str(a.device) for a in self._tensors()}
+        if len(devices) > 1:
+            raise ValueError(f"x, y, t, polarity, window, K, duration_s and speed must be on one device, got "
+                             f"{sorted(devices)} (EventWindows.to(device=...) moves them all)")
+        if self.x.device.type == "meta":   # shapes only: meta tensors hold no values to check
+            return
+        if not bool((self.duration_s > 0).all()):
             raise ValueError(f"duration_s must be ({B},) and > 0 s, got {self.duration_s.tolist()}")
-        if self.speed is not None and (self.speed.shape != (B,)
-                                       or not bool((torch.isnan(self.speed) | (self.speed >= 0)).all())):
+        if self.speed is not None and not bool((torch.isnan(self.speed) | (self.speed >= 0)).all()):
             raise ValueError(f"speed must be ({B},) and >= 0 m/s (NaN: unknown), got {self.speed}")
         if n[0] and (int(self.window.min()) < 0 or int(self.window.max()) >= B):
             raise ValueError(f"window indices must lie in [0, {B}), got [{int(self.window.min())}, "
                              f"{int(self.window.max())}]")
-        if int(self.width) < 1 or int(self.height) < 1:
-            raise ValueError(f"width and height must be positive, got {self.width}, {self.height}")
         with torch.no_grad():
             for name in ("x", "y", "t"):
                 value = getattr(self, name)
@@ -146,10 +155,20 @@ class EventWindows:
             kept[key] = compute()
         return kept[key]
 
-    def to(self, dtype: torch.dtype) -> "EventWindows":
-        """The same events with the floating-point tensors (and the intrinsics, durations, speeds) in ``dtype``."""
-        cast = lambda a: None if a is None else a.to(dtype)  # noqa: E731
-        return EventWindows(cast(self.x), cast(self.y), cast(self.t), cast(self.polarity), self.window, cast(self.K),
+    def _tensors(self) -> tuple[torch.Tensor, ...]:
+        return tuple(a for a in (self.x, self.y, self.t, self.polarity, self.window, self.K, self.duration_s,
+                                 self.speed) if a is not None)
+
+    @property
+    def device(self) -> torch.device:
+        return self.x.device
+
+    def to(self, dtype: torch.dtype | None = None, *, device: torch.device | str | None = None) -> "EventWindows":
+        """The same events with the floating-point tensors (and the intrinsics, durations, speeds) in ``dtype``
+        (None: as they are) and every tensor, the window indices too, on ``device`` (None: where it is)."""
+        cast = lambda a: None if a is None else a.to(device=device, dtype=dtype)  # noqa: E731
+        window = self.window if device is None else self.window.to(device)
+        return EventWindows(cast(self.x), cast(self.y), cast(self.t), cast(self.polarity), window, cast(self.K),
                             cast(self.duration_s), self.width, self.height, cast(self.speed))
 
     def with_speed(self, speed: torch.Tensor | Sequence[float] | None) -> "EventWindows":

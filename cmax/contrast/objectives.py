@@ -324,9 +324,10 @@ class SweepVote:
         pushes out of the image. No gradient."""
         B, rays, dt = batch.count, batch.rays(), self._dt(batch)
         with torch.no_grad():
-            peaks, always = [], torch.ones(len(batch), dtype=torch.bool)
-            for rho in torch.linspace(*self.rho_range, self.candidates, dtype=batch.dtype):
-                candidate = DepthMotion(torch.full((B, 1, 1, 1), float(rho), dtype=batch.dtype), twist.detach())
+            peaks, always = [], torch.ones(len(batch), dtype=torch.bool, device=batch.device)
+            for rho in torch.linspace(*self.rho_range, self.candidates, dtype=batch.dtype).tolist():
+                candidate = DepthMotion(torch.full((B, 1, 1, 1), rho, dtype=batch.dtype, device=batch.device),
+                                        twist.detach())
                 score, inside = self._scores(batch, candidate, dt, rays)
                 peaks.append(score * inside)
                 always &= inside
@@ -350,8 +351,9 @@ class SweepVote:
         score, inside = self._scores(batch, params, self._dt(batch), batch.rays())
         inside = inside.to(score.dtype)
         B = batch.count
-        votes = torch.zeros(B, dtype=score.dtype).index_add(0, batch.window, inside * score / scale)
-        kept = torch.zeros(B, dtype=score.dtype).index_add(0, batch.window, inside)
+        zeros = torch.zeros(B, dtype=score.dtype, device=batch.device)
+        votes = zeros.index_add(0, batch.window, inside * score / scale)
+        kept = zeros.index_add(0, batch.window, inside)
         return -votes / kept.clamp(min=1.0)
 
 
@@ -506,8 +508,9 @@ class PlaneVote:
         with torch.no_grad():
             x, y = batch.x.to(values.dtype), batch.y.to(values.dtype)
             unwarped = _own_image_values(batch, x, y, self.sigma) * kept
-            total = torch.zeros(batch.count, dtype=values.dtype).index_add(0, batch.window, unwarped)
-            count = torch.zeros(batch.count, dtype=values.dtype).index_add(0, batch.window, kept)
+            zeros = torch.zeros(batch.count, dtype=values.dtype, device=batch.device)
+            total = zeros.index_add(0, batch.window, unwarped)
+            count = zeros.index_add(0, batch.window, kept)
             return (total / count.clamp(min=1.0)).clamp(min=1e-12)[batch.window]
 
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
@@ -525,8 +528,8 @@ class PlaneVote:
         value = (1 - fraction) * values[below, events] + fraction * values[below + 1, events]
         vote = kept * value / scale
         B = batch.count
-        votes = torch.zeros(B, dtype=dtype).index_add(0, batch.window, vote)
-        count = torch.zeros(B, dtype=dtype).index_add(0, batch.window, kept)
+        votes = torch.zeros(B, dtype=dtype, device=batch.device).index_add(0, batch.window, vote)
+        count = torch.zeros(B, dtype=dtype, device=batch.device).index_add(0, batch.window, kept)
         loss = -votes / count.clamp(min=1.0)
         if self.motion_weight:
             fixed = self.values is not None and self.motion_term is not None
@@ -543,8 +546,8 @@ class PlaneVote:
             row = (batch.y * rows / batch.height).long().clamp(0, rows - 1)
             col = (batch.x * cols / batch.width).long().clamp(0, cols - 1)
             cell = (batch.window * rows + row) * cols + col
-            count = torch.zeros(B, dtype=values.dtype).index_add(0, batch.window, kept)
-        per_cell = torch.zeros(values.shape[0], B * rows * cols, dtype=values.dtype).index_add(
+            count = torch.zeros(B, dtype=values.dtype, device=batch.device).index_add(0, batch.window, kept)
+        per_cell = torch.zeros(values.shape[0], B * rows * cols, dtype=values.dtype, device=batch.device).index_add(
             1, cell, kept * values / scale)                                  # (C, cells): each plane's summed votes
         best = per_cell.max(0).values.view(B, rows * cols).sum(1)
         return -best / count.clamp(min=1.0)
@@ -603,7 +606,7 @@ class LocalContrast:
         cell = row * gw + col
         C = gh * gw
         image = ((batch.polarity > 0).long() * B + batch.window) * C + cell             # (N,)
-        corner = torch.arange(2 * B * C) % C                                           # each image's cell
+        corner = torch.arange(2 * B * C, device=batch.device) % C                          # each image's cell
         origins = torch.stack([(corner % gw) * cw, (corner // gw) * ch], -1).to(batch.dtype) - self.margin
         size = (ch + 2 * self.margin, cw + 2 * self.margin)
 
@@ -662,7 +665,7 @@ class GlobalContrast:
 
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
         _check(batch, params)
-        fractions = torch.tensor(self.references, dtype=torch.float64)
+        fractions = torch.tensor(self.references, dtype=torch.float64, device=batch.device)
         refs = (fractions[:, None] * batch.duration_s.to(torch.float64)[None, :]).to(batch.dtype)   # (R, B)
         x, y = warp_windows(batch, params, batch.t[None, :] - refs[:, batch.window])
         with torch.no_grad():
@@ -701,16 +704,18 @@ class CollapseGuard:
 
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
         _check(batch, params)
-        B, H, W, dtype = batch.count, batch.height, batch.width, batch.dtype
+        B, H, W, dtype, device = batch.count, batch.height, batch.width, batch.dtype, batch.device
         twist = twist_at_speed(params.twist.to(dtype), batch.speed)
         rows, cols = self.lattice
-        ys, xs = torch.meshgrid(torch.linspace(0.1, 0.9, rows, dtype=dtype) * H,
-                                torch.linspace(0.1, 0.9, cols, dtype=dtype) * W, indexing="ij")
+        ys, xs = torch.meshgrid(torch.linspace(0.1, 0.9, rows, dtype=dtype, device=device) * H,
+                                torch.linspace(0.1, 0.9, cols, dtype=dtype, device=device) * W, indexing="ij")
         P = xs.numel()
-        probes = EventWindows(xs.reshape(-1).repeat(B), ys.reshape(-1).repeat(B), torch.zeros(B * P, dtype=dtype),
-                              torch.ones(B * P, dtype=dtype), torch.arange(B).repeat_interleave(P),
-                              batch.K.to(dtype), batch.duration_s.to(dtype), W, H)
-        times = torch.tensor(self.times, dtype=dtype)[:, None] * probes.duration_s[probes.window][None]
+        probes = EventWindows(xs.reshape(-1).repeat(B), ys.reshape(-1).repeat(B),
+                              torch.zeros(B * P, dtype=dtype, device=device),
+                              torch.ones(B * P, dtype=dtype, device=device),
+                              torch.arange(B, device=device).repeat_interleave(P), batch.K.to(dtype),
+                              batch.duration_s.to(dtype), W, H)
+        times = torch.tensor(self.times, dtype=dtype, device=device)[:, None] * probes.duration_s[probes.window][None]
         x1, y1 = warp_windows(probes, DepthMotion(params.inverse_depth, twist), times)
         x1, y1 = x1.view(len(self.times), B, rows, cols), y1.view(len(self.times), B, rows, cols)
         return torch.stack([deformation(xs, ys, x1[:, k], y1[:, k]) for k in range(B)])
