@@ -104,6 +104,8 @@ def test_an_interrupt_removes_the_temporaries_of_the_workers(tmp_path):
                 return
             time.sleep(0.005)
 
+    # a shell that starts the test run in the background leaves SIGINT ignored: Ctrl-C's own handler here
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
     watcher = threading.Thread(target=interrupt_while_writing)
     watcher.start()
     try:
@@ -112,6 +114,7 @@ def test_an_interrupt_removes_the_temporaries_of_the_workers(tmp_path):
     finally:
         done.set()
         watcher.join()
+        signal.signal(signal.SIGINT, previous)
     assert sent
     assert sorted(p.name for p in out.iterdir() if p.suffix in (".partial", ".lock")) == []
     # A resume converts both (nothing was recorded as done) and leaves no temporaries either.
