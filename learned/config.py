@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import re
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
@@ -155,6 +156,11 @@ class TrainConfig:
         Fine-tune and student: the twist the contrast objective warps with, ``"network"`` (the paper) or
         ``"truth"`` (an ablation: the window's true twist where its file is read with ``known_twist``, so
         that only the depth is learned from the contrast).
+    device : str
+        Where the network and the losses run: ``"cpu"``, ``"cuda"`` (under ``torchrun`` each rank takes the
+        GPU of its ``LOCAL_RANK``, and the ranks meet over nccl instead of gloo), ``"cuda:N"``, or ``"auto"``
+        (``"cuda"`` when torch sees a GPU, else ``"cpu"``). The files are read and the event volumes built on
+        the CPU either way; ``--resume`` is bit-for-bit on the CPU only.
     """
 
     batch_size: int = 16
@@ -177,9 +183,12 @@ class TrainConfig:
     speed_weight: float = 0.1
     clip_grad_norm: float = 1.0
     contrast_twist: str = "network"
+    device: str = "cpu"
 
     def __post_init__(self) -> None:
         _check_types(TrainConfig, asdict(self), "train")
+        _require(re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.device) is not None, "train", "device",
+                 "'cpu', 'cuda', 'cuda:N' or 'auto'", self.device)
         _require(self.schedule in ("constant", "cosine"), "train", "schedule", "'constant' or 'cosine'",
                  self.schedule)
         _require(self.contrast_twist in ("network", "truth"), "train", "contrast_twist", "'network' or 'truth'",

@@ -11,7 +11,8 @@ Data order: the global batch of step ``s`` is a fixed function of ``(seed, s)``
 (a seeded permutation per epoch), so a resumed run sees the same batches; in a
 ``torchrun`` job rank ``r`` of ``R`` takes entries ``r, r + R, ...`` of each
 global batch (the role of a ``DistributedSampler``), gradients are averaged by
-``DistributedDataParallel`` (gloo: training runs on the CPU, a GPU is not used), and only rank 0 writes.
+``DistributedDataParallel`` (gloo on the CPU; with ``train.device=cuda`` nccl, each rank on the GPU of its
+``LOCAL_RANK``), and only rank 0 writes.
 Checkpoints (``out/last.pt``) hold the model, optimiser, step, config and RNG
 states and are written atomically; ``--resume`` continues bit-for-bit on CPU. One run at a time holds
 ``train.out`` (its lock :data:`FOLDER_LOCK`): a second one into the same folder is refused at once.
@@ -40,9 +41,38 @@ from learned.data import H5WindowDataset, collate
 from learned.losses import student_loss, teacher_loss
 from learned.model import DepthPoseNet, ModelConfig
 
-#: The process group of a ``torchrun`` job. Training runs on the CPU (no tensor is moved to a GPU), so gloo
-#: even where CUDA is available: nccl, chosen there before, refuses CPU tensors.
-DDP_BACKEND = "gloo"
+
+def training_device(name: str, local_rank: int = 0) -> torch.device:
+    """The device of ``train.device`` (``"cpu"``, ``"cuda"``, ``"cuda:N"``, ``"auto"``) for the rank whose
+    ``LOCAL_RANK`` is ``local_rank``: ``"cuda"`` is that rank's GPU, ``"auto"`` a GPU when torch sees one.
+
+    Raises
+    ------
+    ValueError
+        A GPU was asked for where torch sees none (a CPU build of torch, or no device).
+    """
+    if name == "auto":
+        name = "cuda" if torch.cuda.is_available() else "cpu"
+    if name.startswith("cuda"):
+        if not torch.cuda.is_available():
+            raise ValueError(f"train.device={name!r}: torch {torch.__version__} sees no CUDA device; give "
+                             "train.device=cpu (or auto)")
+        if name == "cuda":
+            name = f"cuda:{local_rank}"
+    return torch.device(name)
+
+
+def ddp_backend(device: torch.device) -> str:
+    """The process group of a ``torchrun`` job on ``device``: nccl between GPUs, gloo between CPUs (nccl refuses
+    CPU tensors)."""
+    return "nccl" if device.type == "cuda" else "gloo"
+
+
+def on_device(batch: dict[str, torch.Tensor], device: torch.device) -> dict[str, torch.Tensor]:
+    """A collated batch with every tensor on ``device`` (the others as they are)."""
+    return {key: value.to(device, non_blocking=True) if isinstance(value, torch.Tensor) else value
+            for key, value in batch.items()}
+
 
 #: The lock a run holds on its ``train.out`` (:func:`learned._output.locked_folder`), inside that folder.
 FOLDER_LOCK = ".train.lock"
@@ -51,7 +81,8 @@ FOLDER_LOCK = ".train.lock"
 #: load of other processes; ``CMAX_TORCH_THREADS`` fixes it).
 THREAD_CHECK_EVERY = 25
 
-__all__ = ["FOLDER_LOCK", "batch_indices", "learning_rate", "twist_scale", "Trainer", "check_output", "main"]
+__all__ = ["FOLDER_LOCK", "batch_indices", "learning_rate", "twist_scale", "training_device", "ddp_backend",
+           "on_device", "Trainer", "check_output", "main"]
 
 
 def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[int]:
@@ -137,14 +168,17 @@ class Trainer:
         self.config, self.progress = config, progress
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
+        self.device = training_device(config.train.device, int(os.environ.get("LOCAL_RANK", "0")))
+        if self.device.type == "cuda":
+            torch.cuda.set_device(self.device)
         if self.world > 1 and not torch.distributed.is_initialized():
-            torch.distributed.init_process_group(DDP_BACKEND)
+            torch.distributed.init_process_group(ddp_backend(self.device))
         tc = config.train
         if tc.batch_size % self.world:
             raise ValueError(f"train.batch_size ({tc.batch_size}) must be a multiple of the {self.world} ranks")
         self.out = Path(tc.out)
         torch.manual_seed(tc.seed)
-        self.model = DepthPoseNet(config.model)
+        self.model = DepthPoseNet(config.model).to(self.device)
         self.teacher = None
         if config.mode in ("finetune", "student"):
             from learned.evaluate import load_model
@@ -153,7 +187,7 @@ class Trainer:
             if config.mode == "finetune":
                 _load_weights(self.model, teacher.state_dict(), f"the teacher {tc.teacher}")
             else:
-                self.teacher = teacher.eval().requires_grad_(False)
+                self.teacher = teacher.to(self.device).eval().requires_grad_(False)
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
         self.step = 0
         if resume and (self.out / "last.pt").is_file():
@@ -168,7 +202,9 @@ class Trainer:
             set_rng_state(ckpt["rng"])
         self.net = self.model
         if self.world > 1:
-            self.net = torch.nn.parallel.DistributedDataParallel(self.model, find_unused_parameters=True)
+            self.net = torch.nn.parallel.DistributedDataParallel(
+                self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None,
+                find_unused_parameters=True)
         dc = config.data
         if not dc.files:
             raise ValueError("data.files is empty: give the training event files, e.g. 'data.files=[\"a.h5\", "
@@ -182,7 +218,7 @@ class Trainer:
                              "none of data.files holds it (or each says use_gt: false): its loss would be 0 at every "
                              "step; give labelled files, or train --mode finetune / student on unlabelled ones")
         self.contrast = contrast_objective(tc.collapse_weight)
-        self.twist_scale = twist_scale(self.dataset, config.model)
+        self.twist_scale = twist_scale(self.dataset, config.model).to(self.device)
         self.validation = None
         if tc.val_every:
             val = H5WindowDataset(dc.val_files, window_us=dc.window_us, max_events=dc.max_events,
@@ -221,7 +257,7 @@ class Trainer:
         sums: dict[str, float] = {}
         for start in range(0, len(picks), self.config.train.batch_size):
             chosen = picks[start: start + self.config.train.batch_size]
-            loss, terms, _ = self.loss(collate([dataset[i] for i in chosen]), net=self.model)
+            loss, terms, _ = self.loss(on_device(collate([dataset[i] for i in chosen]), self.device), net=self.model)
             for key, value in {"loss": float(loss), **terms}.items():
                 sums[key] = sums.get(key, 0.0) + value * len(chosen)
         return {f"val/{key}": value / len(picks) for key, value in sums.items()}
@@ -259,7 +295,7 @@ class Trainer:
             indices = batch_indices(step, size=len(self.dataset), batch_size=tc.batch_size, seed=tc.seed)
             local = indices[self.rank::self.world]
             self.dataset.set_epoch(step * tc.batch_size // len(self.dataset))
-            yield collate([self.dataset[i] for i in local])
+            yield on_device(collate([self.dataset[i] for i in local]), self.device)
             step += 1
 
     def loss(self, batch: dict[str, torch.Tensor], net: torch.nn.Module | None = None):

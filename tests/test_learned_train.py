@@ -255,3 +255,43 @@ def test_contrast_twist_truth_warps_with_the_true_twist(scene_file, tmp_path):
     assert float(loss) == pytest.approx(float(expected), rel=1e-6)
     with pytest.raises(ValueError, match="contrast_twist"):
         load_config(None, ["train.contrast_twist=gyro"])
+
+
+def test_the_training_device_is_chosen_and_checked(monkeypatch):
+    """``train.device``: cpu as given; ``auto`` is the CPU where torch sees no GPU and ``cuda`` the rank's own GPU
+    where it does; a GPU asked for where there is none is one clear error; a bad name is refused by the config."""
+    from learned.config import TrainConfig
+    from learned.train import ddp_backend, on_device, training_device
+
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert training_device("cpu") == torch.device("cpu") == training_device("auto", 1)
+    with pytest.raises(ValueError, match="sees no CUDA device"):
+        training_device("cuda")
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    assert training_device("auto", 1) == torch.device("cuda:1") == training_device("cuda", 1)
+    assert training_device("cuda:0", 1) == torch.device("cuda:0")
+    assert ddp_backend(torch.device("cuda:1")) == "nccl" and ddp_backend(torch.device("cpu")) == "gloo"
+    with pytest.raises(ValueError, match="train.device"):
+        TrainConfig(device="gpu")
+    batch = {"volume": torch.zeros(2, 5, 4, 4), "valid": torch.ones(2, 3, dtype=torch.bool), "name": ["a", "b"]}
+    moved = on_device(batch, torch.device("meta"))
+    assert moved["volume"].device.type == moved["valid"].device.type == "meta" and moved["name"] == ["a", "b"]
+
+
+def test_a_step_on_the_training_device_moves_the_batch_model_and_teacher(scene_file, tmp_path, monkeypatch):
+    """The trainer puts the network, the frozen teacher and every batch on ``train.device`` (the CPU here:
+    ``auto`` without a GPU) and trains as before: the same losses as the default device."""
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    teacher_out = tmp_path / "teacher"
+    assert main(["--mode", "teacher", *tiny(scene_file, teacher_out, "train.steps=2")]) == 0
+    runs = {}
+    for device in ("cpu", "auto"):
+        out = tmp_path / f"student_{device}"
+        config = load_config(None, tiny(scene_file, out, "train.steps=2", f"train.teacher={teacher_out / 'last.pt'}",
+                                        f"train.device={device}"), mode="student")
+        trainer = Trainer(config, progress=False)
+        assert trainer.device == torch.device("cpu")
+        assert next(trainer.model.parameters()).device == trainer.device == next(trainer.teacher.parameters()).device
+        assert all(v.device == trainer.device for v in next(trainer._batches()).values() if torch.is_tensor(v))
+        runs[device] = trainer.run()
+    assert runs["cpu"] == runs["auto"]
