@@ -9,12 +9,12 @@ from __future__ import annotations
 
 import json
 import math
-import re
 import tomllib
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
 
+from learned.device import DEVICE_NAMES, is_device_name
 from learned.model import ModelConfig
 
 __all__ = ["DataConfig", "TrainConfig", "Config", "load_config", "apply_overrides", "config_from_dict", "MODES"]
@@ -187,8 +187,7 @@ class TrainConfig:
 
     def __post_init__(self) -> None:
         _check_types(TrainConfig, asdict(self), "train")
-        _require(re.fullmatch(r"cpu|auto|cuda(:\d+)?", self.device) is not None, "train", "device",
-                 "'cpu', 'cuda', 'cuda:N' or 'auto'", self.device)
+        _require(is_device_name(self.device), "train", "device", DEVICE_NAMES, self.device)
         _require(self.schedule in ("constant", "cosine"), "train", "schedule", "'constant' or 'cosine'",
                  self.schedule)
         _require(self.contrast_twist in ("network", "truth"), "train", "contrast_twist", "'network' or 'truth'",

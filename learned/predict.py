@@ -253,14 +253,16 @@ def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:
 
 def forward(model: "DepthPoseNet", volumes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(inverse depth (B, H, W) float32 [1/m], twist (B, 6) float32 (v [m/s], omega [rad/s]))`` of the network
-    on event volumes (B, bins, H, W), with the threads :func:`cmax._threads.torch_threads` allows now."""
+    on event volumes (B, bins, H, W), on the device of its weights (on the CPU with the threads
+    :func:`cmax._threads.torch_threads` allows now)."""
     import torch
 
     from cmax._threads import torch_threads_scope
 
+    device = next(model.parameters()).device
     with torch_threads_scope(volumes.size * model.config.width), torch.inference_mode():
-        out = model(torch.from_numpy(np.ascontiguousarray(volumes, np.float32)))
-    return out.inverse_depth[:, 0].numpy().copy(), out.twist.numpy().copy()
+        out = model(torch.from_numpy(np.ascontiguousarray(volumes, np.float32)).to(device))
+    return out.inverse_depth[:, 0].cpu().numpy().copy(), out.twist.cpu().numpy().copy()
 
 
 @dataclass(frozen=True, eq=False)
@@ -418,7 +420,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                    time_unit: str | None = None, polarity: str | None = None,
                    t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
                    depth_range: tuple[float, float] | None = None, batch: int = 8, progress: bool = True,
-                   note: Callable[[str], None] | None = None, overwrite: bool = False) -> DepthRun:
+                   note: Callable[[str], None] | None = None, overwrite: bool = False,
+                   device: str = "cpu") -> DepthRun:
     """Predict depth and twist for every window of the event file ``path`` into the folder ``out``.
 
     Parameters
@@ -441,6 +444,9 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         depths, :func:`run_scale`).
     batch : int
         Windows per forward pass.
+    device : str
+        Where the network runs: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"auto"`` (a GPU when torch sees
+        one); the events are read and their volumes built on the CPU.
     note : callable, optional
         Receives each note (default: printed on stderr).
     overwrite : bool
@@ -463,6 +469,9 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     note = note or (lambda text: print(f"learned.predict: note: {text}", file=sys.stderr))
     if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
         raise ValueError(f"batch must be a whole number >= 1, got {batch!r}")
+    from learned.device import resolve_device
+
+    device = resolve_device(device)   # before any work
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"the output {out} is a file: give a folder (for window_*.npz, window_*.png, "
@@ -480,7 +489,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
             run = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
                                 distortion=distortion, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s,
                                 t1_s=t1_s, window_s=window_s, depth_range=depth_range, batch=batch,
-                                progress=progress, note=note)
+                                progress=progress, note=note, device=device)
             publish(stage, out, earlier)
         finally:
             shutil.rmtree(stage, ignore_errors=True)
@@ -512,7 +521,7 @@ def publish(stage: Path, out: Path, earlier: Sequence[Path]) -> list[Path]:
 
 
 def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_camera, distortion, size,
-                  time_unit, polarity, t0_s, t1_s, window_s, depth_range, batch, progress, note) -> DepthRun:
+                  time_unit, polarity, t0_s, t1_s, window_s, depth_range, batch, progress, note, device) -> DepthRun:
     """:func:`run_prediction`'s work, every result written into the empty folder ``stage``."""
     from tqdm.auto import tqdm
 
@@ -524,6 +533,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
     started = time.perf_counter()
     checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
     model, config = load_model(checkpoint)   # first: a refused checkpoint writes nothing
+    model = model.to(device)
     card = checkpoint_card(checkpoint)
     explicit = window_s is not None
     window_us = int(config["data"]["window_us"]) if window_s is None else int(round(window_s * 1e6))
@@ -586,7 +596,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                "distortion": None if distortion is None else distortion.tolist(), "window_us": window_us,
                "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],
                "windows_total": len(starts), "windows": written, "skipped": skipped, "min_events": MIN_EVENTS,
-               "notes": list(notes), "seconds": run.seconds}
+               "notes": list(notes), "device": str(device), "seconds": run.seconds}
     write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2) + "\n")
     return run
 
@@ -618,6 +628,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         metavar="NEAR,FAR", help="colour scale of the depth pictures [m], one for the whole run "
                         "(default: the 1st-99th percentiles of all its windows' depths)")
     parser.add_argument("--batch", type=positive_int, default=8, help="windows per forward pass")
+    parser.add_argument("--device", default="cpu", metavar="DEVICE",
+                        help="where the network runs: cpu, cuda, cuda:N or auto (a GPU when torch sees one); "
+                             "default cpu")
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the results of an earlier run in the output folder (else refused)")
@@ -633,7 +646,7 @@ def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> i
         t0_s=args.t0, t1_s=args.t1, window_s=args.window,
         depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
         progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),
-        overwrite=args.overwrite)
+        overwrite=args.overwrite, device=args.device)
     print(result.summary_line())
     return 0
 

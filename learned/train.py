@@ -38,28 +38,9 @@ from learned._output import locked_folder
 from learned.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
 from learned.config import Config, load_config
 from learned.data import H5WindowDataset, collate
+from learned.device import resolve_device
 from learned.losses import student_loss, teacher_loss
 from learned.model import DepthPoseNet, ModelConfig
-
-
-def training_device(name: str, local_rank: int = 0) -> torch.device:
-    """The device of ``train.device`` (``"cpu"``, ``"cuda"``, ``"cuda:N"``, ``"auto"``) for the rank whose
-    ``LOCAL_RANK`` is ``local_rank``: ``"cuda"`` is that rank's GPU, ``"auto"`` a GPU when torch sees one.
-
-    Raises
-    ------
-    ValueError
-        A GPU was asked for where torch sees none (a CPU build of torch, or no device).
-    """
-    if name == "auto":
-        name = "cuda" if torch.cuda.is_available() else "cpu"
-    if name.startswith("cuda"):
-        if not torch.cuda.is_available():
-            raise ValueError(f"train.device={name!r}: torch {torch.__version__} sees no CUDA device; give "
-                             "train.device=cpu (or auto)")
-        if name == "cuda":
-            name = f"cuda:{local_rank}"
-    return torch.device(name)
 
 
 def ddp_backend(device: torch.device) -> str:
@@ -81,8 +62,8 @@ FOLDER_LOCK = ".train.lock"
 #: load of other processes; ``CMAX_TORCH_THREADS`` fixes it).
 THREAD_CHECK_EVERY = 25
 
-__all__ = ["FOLDER_LOCK", "batch_indices", "learning_rate", "twist_scale", "training_device", "ddp_backend",
-           "on_device", "Trainer", "check_output", "main"]
+__all__ = ["FOLDER_LOCK", "batch_indices", "learning_rate", "twist_scale", "ddp_backend", "on_device", "Trainer",
+           "check_output", "main"]
 
 
 def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[int]:
@@ -168,7 +149,7 @@ class Trainer:
         self.config, self.progress = config, progress
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))
-        self.device = training_device(config.train.device, int(os.environ.get("LOCAL_RANK", "0")))
+        self.device = resolve_device(config.train.device, int(os.environ.get("LOCAL_RANK", "0")))
         if self.device.type == "cuda":
             torch.cuda.set_device(self.device)
         if self.world > 1 and not torch.distributed.is_initialized():

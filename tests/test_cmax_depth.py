@@ -463,3 +463,24 @@ def test_the_shipped_model_reproduces_the_scores_on_its_card():
     assert metrics.abs_mean == pytest.approx(card["fixture"]["abs_mean_m"], rel=1e-3)
     np.testing.assert_allclose(out.twist[0].numpy(), card["fixture"]["twist"], rtol=1e-3, atol=1e-4)
     assert list(card["size"]) == [int(data["width"]), int(data["height"])]
+
+
+def test_the_device_option_runs_the_network_where_asked_and_refuses_a_missing_gpu(checkpoint, events, tmp_path,
+                                                                                   capsys, monkeypatch):
+    """``--device auto`` without a GPU is the CPU (the same windows as the default, and summary.json says where
+    it ran); ``--device cuda`` where torch sees none is one line and exit 2, and writes nothing."""
+    write_h5(tmp_path / "e.h5", events)
+    base = [str(tmp_path / "e.h5"), "--checkpoint", str(checkpoint), "--K", K_TEXT, "--quiet"]
+    assert cmax_main(["depth", *base, "-o", str(tmp_path / "cpu")]) == 0
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    assert cmax_main(["depth", *base, "-o", str(tmp_path / "auto"), "--device", "auto"]) == 0
+    for name in ("window_00000.npz", "window_00002.npz"):
+        a, b = np.load(tmp_path / "cpu" / name), np.load(tmp_path / "auto" / name)
+        for key in ("depth", "twist"):
+            np.testing.assert_array_equal(a[key], b[key])
+    assert json.loads((tmp_path / "auto" / "summary.json").read_text())["device"] == "cpu"
+    capsys.readouterr()
+    assert cmax_main(["depth", *base, "-o", str(tmp_path / "gpu"), "--device", "cuda"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "sees no CUDA device" in err[0], err
+    assert not (tmp_path / "gpu").exists()

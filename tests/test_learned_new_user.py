@@ -191,3 +191,25 @@ def test_a_torchrun_job_uses_gloo_even_where_cuda_is_available(slider_file, tmp_
     with pytest.raises(ValueError, match="multiple of the 2 ranks"):   # batch_size 1: stops after the group
         Trainer(config, progress=False)
     assert chosen == ["gloo"]
+
+
+def test_a_torchrun_job_on_gpus_takes_its_rank_s_gpu_and_nccl(slider_file, tmp_path, monkeypatch):
+    """``train.device=cuda`` under torchrun: the rank sets the GPU of its LOCAL_RANK before it joins the group,
+    and the group is nccl (CUDA's presence faked: no GPU here)."""
+    import torch
+
+    from learned.config import load_config
+    from learned.train import Trainer
+
+    calls = []
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
+    monkeypatch.setattr(torch.cuda, "set_device", lambda device: calls.append(("set_device", str(device))))
+    monkeypatch.setattr(torch.distributed, "is_initialized", lambda: False)
+    monkeypatch.setattr(torch.distributed, "init_process_group", lambda backend, *a, **k: calls.append(backend))
+    monkeypatch.setenv("WORLD_SIZE", "2")
+    monkeypatch.setenv("RANK", "1")
+    monkeypatch.setenv("LOCAL_RANK", "1")
+    config = load_config(None, [*_train(slider_file, tmp_path / "run")[3:], "train.device=cuda"], mode="teacher")
+    with pytest.raises(ValueError, match="multiple of the 2 ranks"):   # batch_size 1: stops after the group
+        Trainer(config, progress=False)
+    assert calls == [("set_device", "cuda:1"), "nccl"]

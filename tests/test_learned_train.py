@@ -261,15 +261,18 @@ def test_the_training_device_is_chosen_and_checked(monkeypatch):
     """``train.device``: cpu as given; ``auto`` is the CPU where torch sees no GPU and ``cuda`` the rank's own GPU
     where it does; a GPU asked for where there is none is one clear error; a bad name is refused by the config."""
     from learned.config import TrainConfig
-    from learned.train import ddp_backend, on_device, training_device
+    from learned.device import resolve_device
+    from learned.train import ddp_backend, on_device
 
     monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
-    assert training_device("cpu") == torch.device("cpu") == training_device("auto", 1)
+    assert resolve_device("cpu") == torch.device("cpu") == resolve_device("auto", 1)
     with pytest.raises(ValueError, match="sees no CUDA device"):
-        training_device("cuda")
+        resolve_device("cuda")
+    with pytest.raises(ValueError, match="device must be"):
+        resolve_device("gpu")
     monkeypatch.setattr(torch.cuda, "is_available", lambda: True)
-    assert training_device("auto", 1) == torch.device("cuda:1") == training_device("cuda", 1)
-    assert training_device("cuda:0", 1) == torch.device("cuda:0")
+    assert resolve_device("auto", 1) == torch.device("cuda:1") == resolve_device("cuda", 1)
+    assert resolve_device("cuda:0", 1) == torch.device("cuda:0")
     assert ddp_backend(torch.device("cuda:1")) == "nccl" and ddp_backend(torch.device("cpu")) == "gloo"
     with pytest.raises(ValueError, match="train.device"):
         TrainConfig(device="gpu")
