@@ -7,6 +7,7 @@ from types import SimpleNamespace
 
 import numpy as np
 import pytest
+import torch
 
 import benchmarks.accuracy_cmax as accuracy_cmax
 import benchmarks.accuracy_presets as presets
@@ -407,3 +408,22 @@ def test_window_cache_is_keyed_by_the_simulator_sources(tmp_path, monkeypatch):
     assert (tmp_path / f"w_{fingerprint}.pkl").exists()
     monkeypatch.setattr(accuracy_cmax, "simulation_fingerprint", lambda: "0" * 12)
     assert accuracy_cmax.cached(tmp_path, "w", make) == {"window": 2} and len(made) == 2   # simulated again
+
+
+def test_device_check_runs_every_part_and_fails_a_difference_beyond_its_tolerance(tmp_path, monkeypatch, capsys):
+    """``benchmarks.device_check --device cpu`` (the CPU against itself: every difference 0) writes its table and
+    exits 0; with a tolerance below 0 every comparison fails and it exits 1; a GPU where torch sees none is
+    refused by the parser. ``relative`` is max |a - b| / max |b|."""
+    from benchmarks import device_check
+
+    assert device_check.relative(np.array([1.0, 2.0]), np.array([1.0, 4.0])) == pytest.approx(0.5)
+    assert device_check.main(["--device", "cpu", "--out", str(tmp_path / "a.md")]) == 0
+    text = (tmp_path / "a.md").read_text()
+    assert text.count("| ok |") == 8 and "0 of 8 comparisons" in text
+    monkeypatch.setattr(device_check, "TOLERANCE", {part: -1.0 for part in device_check.TOLERANCE})
+    assert device_check.main(["--device", "cpu", "--out", str(tmp_path / "b.md")]) == 1
+    assert "8 of 8 comparisons outside" in (tmp_path / "b.md").read_text()
+    monkeypatch.setattr(torch.cuda, "is_available", lambda: False)
+    with pytest.raises(SystemExit):
+        device_check.main(["--device", "cuda", "--out", str(tmp_path / "c.md")])
+    assert "sees no CUDA device" in capsys.readouterr().err
