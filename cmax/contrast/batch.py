@@ -171,6 +171,10 @@ class EventWindows:
         return EventWindows(cast(self.x), cast(self.y), cast(self.t), cast(self.polarity), window, cast(self.K),
                             cast(self.duration_s), self.width, self.height, cast(self.speed))
 
+    def window_sum(self, values: torch.Tensor) -> torch.Tensor:
+        """The sum (B,) over each window's events of ``values`` (N,), on the batch's device, in their dtype."""
+        return torch.zeros(self.count, dtype=values.dtype, device=self.device).index_add(0, self.window, values)
+
     def with_speed(self, speed: torch.Tensor | Sequence[float] | None) -> "EventWindows":
         """The same events with the known speed (B,) [m/s] of each window (None: unknown)."""
         speed = None if speed is None else torch.as_tensor(speed, dtype=self.dtype).reshape(-1)

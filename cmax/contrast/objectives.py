@@ -350,10 +350,7 @@ class SweepVote:
         scale = self.normaliser(batch, params.twist) if self.scale is None else self.scale
         score, inside = self._scores(batch, params, self._dt(batch), batch.rays())
         inside = inside.to(score.dtype)
-        B = batch.count
-        zeros = torch.zeros(B, dtype=score.dtype, device=batch.device)
-        votes = zeros.index_add(0, batch.window, inside * score / scale)
-        kept = zeros.index_add(0, batch.window, inside)
+        votes, kept = batch.window_sum(inside * score / scale), batch.window_sum(inside)
         return -votes / kept.clamp(min=1.0)
 
 
@@ -508,9 +505,7 @@ class PlaneVote:
         with torch.no_grad():
             x, y = batch.x.to(values.dtype), batch.y.to(values.dtype)
             unwarped = _own_image_values(batch, x, y, self.sigma) * kept
-            zeros = torch.zeros(batch.count, dtype=values.dtype, device=batch.device)
-            total = zeros.index_add(0, batch.window, unwarped)
-            count = zeros.index_add(0, batch.window, kept)
+            total, count = batch.window_sum(unwarped), batch.window_sum(kept)
             return (total / count.clamp(min=1.0)).clamp(min=1e-12)[batch.window]
 
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
@@ -527,9 +522,7 @@ class PlaneVote:
         events = torch.arange(values.shape[1], device=values.device)
         value = (1 - fraction) * values[below, events] + fraction * values[below + 1, events]
         vote = kept * value / scale
-        B = batch.count
-        votes = torch.zeros(B, dtype=dtype, device=batch.device).index_add(0, batch.window, vote)
-        count = torch.zeros(B, dtype=dtype, device=batch.device).index_add(0, batch.window, kept)
+        votes, count = batch.window_sum(vote), batch.window_sum(kept)
         loss = -votes / count.clamp(min=1.0)
         if self.motion_weight:
             fixed = self.values is not None and self.motion_term is not None
@@ -546,7 +539,7 @@ class PlaneVote:
             row = (batch.y * rows / batch.height).long().clamp(0, rows - 1)
             col = (batch.x * cols / batch.width).long().clamp(0, cols - 1)
             cell = (batch.window * rows + row) * cols + col
-            count = torch.zeros(B, dtype=values.dtype, device=batch.device).index_add(0, batch.window, kept)
+            count = batch.window_sum(kept)
         per_cell = torch.zeros(values.shape[0], B * rows * cols, dtype=values.dtype, device=batch.device).index_add(
             1, cell, kept * values / scale)                                  # (C, cells): each plane's summed votes
         best = per_cell.max(0).values.view(B, rows * cols).sum(1)
