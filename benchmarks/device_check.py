@@ -22,7 +22,6 @@ Usage::
 from __future__ import annotations
 
 import argparse
-import dataclasses
 import platform
 import tempfile
 import time
@@ -31,6 +30,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.synthetic_windows import tiny_training_file
 from cmax.io.atomic import write_text_atomic
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -73,18 +73,6 @@ def objectives_part(device: torch.device) -> list[tuple[str, float]]:
             results.append([x.detach().cpu().numpy() for x in (value, r.grad, t.grad)])
         rows.append((name, max(relative(a, b) for a, b in zip(results[1], results[0]))))
     return rows
-
-
-def _scene(folder: Path) -> Path:
-    """0.6 s of a tiny indoor_flying scene (48x36) with ground truth every 50 ms (as the training tests use)."""
-    from cmax.sim.esim import EventSimulator
-    from cmax.sim.presets import make_scene
-    from cmax.sim.synthetic import simulate_scene
-
-    scene = make_scene("indoor_flying", seed=5, width=48, height=36, duration_s=1.0, texture_size=64)
-    sequence = simulate_scene(scene, 0.6, EventSimulator(**{**scene.recommended_simulator, "seed": 5}),
-                              depth_rate_hz=20)
-    return sequence.save(folder / "tiny.h5")
 
 
 def training_part(device: torch.device, scene: Path, folder: Path) -> list[tuple[str, float]]:
@@ -136,7 +124,7 @@ def main(argv: list[str] | None = None) -> int:
     started = time.perf_counter()
     with tempfile.TemporaryDirectory() as tmp:
         folder = Path(tmp)
-        scene = _scene(folder)
+        scene = tiny_training_file(folder)
         parts = {"objectives": objectives_part(device), "training": training_part(device, scene, folder),
                  "prediction": prediction_part(device, scene, folder)}
     name = torch.cuda.get_device_name(device) if device.type == "cuda" else platform.processor() or "CPU"

@@ -26,6 +26,7 @@ se3 benchmarks and the objective-sanity test use.
 from __future__ import annotations
 
 from dataclasses import dataclass
+from pathlib import Path
 
 import numpy as np
 
@@ -37,7 +38,8 @@ from cmax.sim.render import PlanarRenderer
 from cmax.sim.trajectories import look_at_rotation
 from cmax.sim.world import WorldBuilder
 
-__all__ = ["SyntheticWindow", "PresetWindow", "PRESETS", "make_window", "preset_window", "davis_camera"]
+__all__ = ["SyntheticWindow", "PresetWindow", "PRESETS", "make_window", "preset_window", "davis_camera",
+           "tiny_training_file"]
 
 PRESETS = ("slider", "rotation", "indoor_flying", "driving", "two_planes")
 
@@ -247,3 +249,15 @@ def preset_window(preset: str, seed: int, *, width: int = 346, height: int = 260
     T01 = np.linalg.inv(scene.pose(t0_us * 1e-6)) @ scene.pose(t1_us * 1e-6)
     twist = se3_log(T01) / ((t1_us - t0_us) * 1e-6)
     return PresetWindow(events, sequence.K.copy(), T01, twist, depth.astype(np.float32), t_ref_us, preset, seed)
+
+
+def tiny_training_file(folder: str | Path) -> Path:
+    """0.6 s of a tiny ``indoor_flying`` scene (48x36) with ground truth every 50 ms, saved to ``folder/tiny.h5``
+    (what :mod:`learned.train` reads): the training tests' and ``benchmarks.device_check``'s data."""
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+
+    scene = make_scene("indoor_flying", seed=5, width=48, height=36, duration_s=1.0, texture_size=64)
+    sequence = simulate_scene(scene, 0.6, EventSimulator(**{**scene.recommended_simulator, "seed": 5}),
+                              depth_rate_hz=20)
+    return sequence.save(Path(folder) / "tiny.h5")

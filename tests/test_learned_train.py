@@ -23,14 +23,9 @@ ROOT = Path(__file__).resolve().parents[1]
 @pytest.fixture(scope="module")
 def scene_file(tmp_path_factory) -> Path:
     """0.6 s of a tiny indoor_flying scene (48x36) with ground truth every 50 ms."""
-    from cmax.sim.esim import EventSimulator
-    from cmax.sim.presets import make_scene
-    from cmax.sim.synthetic import simulate_scene
+    from benchmarks.synthetic_windows import tiny_training_file
 
-    scene = make_scene("indoor_flying", seed=5, width=48, height=36, duration_s=1.0, texture_size=64)
-    sequence = simulate_scene(scene, 0.6, EventSimulator(**{**scene.recommended_simulator, "seed": 5}),
-                              depth_rate_hz=20)
-    return sequence.save(tmp_path_factory.mktemp("learned") / "tiny.h5")
+    return tiny_training_file(tmp_path_factory.mktemp("learned"))
 
 
 def tiny(scene_file: Path, out: Path, *extra: str) -> list[str]:
