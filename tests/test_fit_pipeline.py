@@ -123,6 +123,39 @@ def test_warm_start_moves_the_start_of_flow_and_rotation():
     assert warm.objective_after == pytest.approx(cold.objective_after, rel=1e-3)
 
 
+def _still_dots(seed: int = 2, width: int = 120, height: int = 90) -> Events:
+    """ON events of 300 dots that do not move, 15 each over 0.1 s (a camera at rest)."""
+    rng = np.random.default_rng(seed)
+    dots = rng.integers([10, 10], [width - 10, height - 10], (300, 2))
+    which = rng.integers(0, 300, 4500)
+    t = np.sort(rng.integers(0, 100_000, 4500))
+    return Events(dots[which, 0], dots[which, 1], t, np.ones(4500, int), width, height)
+
+
+@pytest.mark.parametrize("model, carried", [("flow", dict(flow=np.array([500.0, 0.0]))),
+                                            ("rotation", dict(omega=np.array([0.0, 3.0, 0.0])))])
+def test_a_warm_start_that_scores_worse_than_no_motion_is_not_solved_from(model, carried):
+    """The previous window's fast motion carried into a window where the camera rests: solved from there it
+    ended on that motion (flow: 499 px/s, normalised contrast 0.22, below the unwarped events' 1); the fit
+    weighs it against no motion, starts from the better one, and ends at rest, never below the unwarped
+    events."""
+    import dataclasses
+
+    events = _still_dots()
+    K = np.array([[90.0, 0, 59.5], [0, 90.0, 44.5], [0, 0, 1]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")                   # at rest: the low-motion warning
+        cold = fit(events, K, model=model)
+        warm = fit(events, K, model=model, init=dataclasses.replace(cold, **carried))
+    moved = warm.flow if model == "flow" else warm.omega
+    assert np.linalg.norm(moved) < 1e-2 * np.linalg.norm(next(iter(carried.values())))
+    assert warm.objective_after >= warm.objective_before == pytest.approx(1.0)
+    stage = warm.stages[0]
+    assert stage.message.startswith(f"from {'zero flow' if model == 'flow' else 'no rotation'} (it scores better "
+                                    "than the warm start)")
+    assert stage.objective_before == pytest.approx(-1.0)  # the start: the unwarped events
+
+
 # ----------------------------------------------------------------------------------------------
 # Bounds and too little motion
 # ----------------------------------------------------------------------------------------------

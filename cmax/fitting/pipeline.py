@@ -176,6 +176,25 @@ def coarse_to_fine(w: Window, loss_at_scale: Callable[[torch.Tensor, int], torch
     return x, solves, before, after
 
 
+def best_start(loss: Callable[[torch.Tensor], torch.Tensor], starts: list[np.ndarray], lower: np.ndarray,
+               upper: np.ndarray) -> int:
+    """Index of the start (each clipped to ``[lower, upper]``) that ``loss`` scores lowest, the first on a tie:
+    a warm start that scores worse than the cold one is not solved from (a motion carried over from another
+    window can fit this one worse than no motion at all)."""
+    with torch.no_grad():
+        values = [float(loss(torch.from_numpy(np.clip(np.asarray(x, dtype=np.float64), lower, upper))))
+                  for x in starts]
+    return int(np.argmin(values))
+
+
+def _warm_or_cold(starts: list[np.ndarray], chosen: int, what: str) -> str:
+    """The note of a stage that weighed a warm start against the cold one (``starts``: warm, cold)."""
+    if len(starts) == 1:
+        return ""
+    return (f"from the warm start (it scores better than {what})" if chosen == 0 else
+            f"from {what} (it scores better than the warm start)")
+
+
 def _omega_bounds(w: Window, omega: np.ndarray, hold: bool) -> tuple[np.ndarray, np.ndarray]:
     """Bounds of the angular-velocity parameters [px]: ``+-max_omega``, or equal to ``omega`` when held."""
     if hold:
@@ -191,7 +210,8 @@ def _omega_bounds(w: Window, omega: np.ndarray, hold: bool) -> tuple[np.ndarray,
 @dataclass(frozen=True)
 class FlowStage:
     """Parameters: the flow as a displacement over the window [px] (2,). Objective: minus the normalised
-    multi-reference contrast. Schedule: image scales coarse to fine, ``settings.flow_tolerances``."""
+    multi-reference contrast. Schedule: image scales coarse to fine, ``settings.flow_tolerances``, from the
+    incoming flow (a warm start) or zero, whichever scores better (:func:`best_start`)."""
 
     name: str = "flow"
 
@@ -204,17 +224,22 @@ class FlowStage:
             x, y = warp_flow(ev.x, ev.y, w.dt_mid, (p / w.T).to(ev.x.dtype))
             return -w.contrast(x, y, scale)
 
-        x, solves, before, after = coarse_to_fine(w, loss, flow0 * w.T, np.full(2, -bound), np.full(2, bound),
-                                                  solver, tolerances=w.settings.flow_tolerances)
+        lower, upper = np.full(2, -bound), np.full(2, bound)
+        starts = [flow0 * w.T] + ([np.zeros(2)] if flow0.any() else [])
+        chosen = best_start(lambda p: loss(p, 1), starts, lower, upper)
+        x, solves, before, after = coarse_to_fine(w, loss, starts[chosen], lower, upper, solver,
+                                                  tolerances=w.settings.flow_tolerances)
         at_bound = tuple(f"flow_{a}" for a, value in zip("xy", x) if abs(value) >= 0.999 * bound)
-        log = _log(self.name, before, after, solves, time.perf_counter() - start, at_bound)
+        log = _log(self.name, before, after, solves, time.perf_counter() - start, at_bound,
+                   note=_warm_or_cold(starts, chosen, "zero flow"))
         return replace(motion, flow=x / w.T), log
 
 
 @dataclass(frozen=True)
 class RotationStage:
     """Parameters: the angular velocity as pixels over the window (3,). Objective: minus the normalised
-    multi-reference contrast of the rotation warp. Schedule: image scales coarse to fine."""
+    multi-reference contrast of the rotation warp. Schedule: image scales coarse to fine, from the incoming
+    rotation (a warm start) or zero, whichever scores better (:func:`best_start`)."""
 
     name: str = "rotation"
 
@@ -228,12 +253,15 @@ class RotationStage:
             x, y = warp_rotation(ev.rays, w.dt_mid, omega, ev.K) if warped is None else warped
             return -w.contrast(x, y, scale)
 
-        x, solves, before, after = coarse_to_fine(w, loss, np.asarray(motion.omega, float) * s,
-                                                  np.full(3, -bound), np.full(3, bound), solver,
+        lower, upper = np.full(3, -bound), np.full(3, bound)
+        omega0 = np.asarray(motion.omega, float)
+        starts = [omega0 * s] + ([np.zeros(3)] if omega0.any() else [])
+        chosen = best_start(lambda p: loss(p, 1), starts, lower, upper)
+        x, solves, before, after = coarse_to_fine(w, loss, starts[chosen], lower, upper, solver,
                                                   tolerances=w.settings.tolerances)
         omega = x / s
         log = _log(self.name, before, after, solves, time.perf_counter() - start,
-                   omega_on_bound(omega, w.settings.max_omega))
+                   omega_on_bound(omega, w.settings.max_omega), note=_warm_or_cold(starts, chosen, "no rotation"))
         return replace(motion, omega=omega), log
 
 
