@@ -31,7 +31,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "concatenate",
-    "check_event_count",
+    "check_event_count", "window_starts", "uncovered_tail",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
@@ -494,6 +494,35 @@ def window_steps(duration_us: int, step_us: int | None) -> tuple[int, int]:
     if step <= 0:
         raise ValueError(f"step_us must be positive, got {step_us}")
     return duration, step
+
+
+def window_starts(first_us: int, last_us: int, window_us: int, step_us: int) -> np.ndarray:
+    """Starts (N,) int64 [µs] of the whole windows ``[t0, t0 + window_us)`` from ``first_us``, every ``step_us``,
+    that end by ``last_us + 1`` (``last_us``: the last event, inclusive). Empty when even one window is longer.
+
+    >>> window_starts(0, 249, 100, 100).tolist()          # 250 µs of events: two whole windows
+    [0, 100]
+    >>> window_starts(0, 249, 100, 50).tolist()           # overlapping windows
+    [0, 50, 100, 150]
+    """
+    return np.arange(int(first_us), int(last_us) + 2 - int(window_us), int(step_us), dtype=np.int64)
+
+
+def uncovered_tail(first_us: int, last_us: int, window_us: int, step_us: int) -> tuple[int, int] | None:
+    """``(start, end)`` [µs], ``end`` exclusive, of the recording after its last whole window (the windows of
+    :func:`window_starts`), which a window-by-window fit leaves out; None when the windows reach ``last_us``
+    (or when no window fits at all: then nothing is covered, which callers report on its own).
+
+    >>> uncovered_tail(0, 249, 100, 100)                  # the last 50 µs
+    (200, 250)
+    >>> uncovered_tail(0, 299, 100, 100) is None
+    True
+    """
+    starts = window_starts(first_us, last_us, window_us, step_us)
+    if not len(starts):
+        return None
+    end = int(starts[-1]) + int(window_us)
+    return (end, int(last_us) + 1) if end <= int(last_us) else None
 
 
 def concatenate(parts: Sequence[Events]) -> Events:

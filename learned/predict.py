@@ -42,7 +42,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import add_camera_options, add_recording_arguments, read_calibration
+from cmax.cli.recording import add_camera_options, add_recording_arguments, read_calibration, tail_note
+from cmax.events import window_starts
 from learned._output import locked_folder
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
@@ -158,13 +159,14 @@ def window_plan(start_us: int, end_us: int, window_us: int, *, explicit: bool) -
     ``start_us`` that fit in ``[start_us, end_us]`` (inclusive).
 
     A span shorter than ``window_us`` gives one window over the whole span with a note when the window is
-    the checkpoint's (``explicit`` False), and a ValueError when the caller asked for it (``--window``).
+    the checkpoint's (``explicit`` False), and a ValueError when the caller asked for it (``--window``). What
+    the whole windows of a longer span leave out at its end: :func:`cmax.cli.recording.tail_note`.
     """
     if window_us < 1:
         raise ValueError(f"the window must be at least 1 µs long, got {window_us} µs")
     span = end_us - start_us + 1
     if window_us <= span:
-        return window_us, np.arange(start_us, end_us + 2 - window_us, window_us, dtype=np.int64), None
+        return window_us, window_starts(start_us, end_us, window_us, window_us), None
     if explicit:
         raise ValueError(f"--window {window_us * 1e-6:g} s is longer than the events to predict "
                          f"({span * 1e-6:.6f} s); give a shorter one, or leave --window out for one window over "
@@ -586,6 +588,9 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
     if not written:
         raise ValueError(f"{path}: none of its {len(starts)} windows of {window_us * 1e-3:g} ms holds "
                          f"{MIN_EVENTS} events or more")
+    if (tail := tail_note(start, end, window_us, window_us, option="--window", unit_us=1_000_000)) is not None:
+        note(tail)                           # after the run: a mistake found during it stays one line
+        notes.append(tail)
     scale = run_scale(samples, depth_range)
     for index in indices:
         draw_window(stage, index, scale)

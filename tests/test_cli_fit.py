@@ -315,6 +315,12 @@ def test_the_advice_names_what_helps_when_half_the_windows_are_unmeasured():
     (line,) = advice(ambiguous, "se3", rotation_known=True)
     assert "--gyro" not in line and "longer --window-ms" in line
     assert advice({**ambiguous, "resolved": 3}, "se3") == []               # all resolved by their neighbours
+    # a flow that sharpens only parts of the image: too little motion, or parts that move differently
+    (line,) = advice(counts, "flow", cell_noise=2)
+    assert line.startswith("2 of 4 windows have a fitted flow that sharpens only parts of the image")
+    assert "longer --window-ms" in line and "--model se3 or a shorter --window-ms" in line
+    first, second = advice({**counts, "low_parallax": 3, "ok": 1}, "flow", cell_noise=1)
+    assert first.startswith("2 of 4 windows have too little motion") and second.startswith("1 of 4 windows have")
 
 
 def test_a_recording_without_motion_is_called_so(tmp_path, capsys):
@@ -350,3 +356,43 @@ def test_a_calibration_file_beside_the_events_is_named_not_read(tmp_path, capsys
     assert summary["distortion"] is None and summary["calib"] is None
     assert main(["fit", str(path), "--calib", str(calib), "-o", str(tmp_path / "b"), "--quiet"]) == 0
     assert "lies beside the events" not in capsys.readouterr().err
+
+
+def test_the_end_that_no_whole_window_covers_is_named_with_a_window_that_tiles(tmp_path, capsys, monkeypatch):
+    """40 ms windows on a 100 ms recording leave its last 20 ms out: a note says how long, from when, how many
+    events, and which --window-ms covers it; summary.json records the span; that window leaves nothing out."""
+    import re
+    from dataclasses import replace
+
+    from benchmarks.synthetic_windows import make_window
+    from cmax.fitting import QualitySettings, fit
+    from cmax.fitting import sequence as sequence_module
+
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    base = fit(w.events, w.K, speed=8.0, depth_range=(1.0, 20.0), max_events=1000,
+               quality=QualitySettings(ambiguity_test=False))
+    monkeypatch.setattr(sequence_module, "fit", lambda events, K, model="se3", **options: replace(
+        base, t0_us=int(events.t[0]), t1_us=int(events.t[-1])))
+    path = write_h5(tmp_path / "drive.h5", w.events)
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    first, last = int(w.events.t[0]), int(w.events.t[-1])
+    assert 95_000 < last - first < 100_000
+    out = tmp_path / "out"
+    assert main(["fit", str(path), "--K", K, "-o", str(out), "--window-ms", "40", "--quiet"]) == 0
+    err = capsys.readouterr().err
+    left = int(np.sum(w.events.t >= first + 80_000))
+    match = re.search(r"note: the last ([\d.]+) ms of the recording \(after 0\.080 s, ([\d,]+) events\) are shorter "
+                      r"than a window \(40\.0 ms\) and are left out: --window-ms ([\d.]+) covers it in 3 windows", err)
+    assert match, err
+    assert float(match[1]) == pytest.approx((last + 1 - first - 80_000) * 1e-3, abs=0.05)
+    assert int(match[2].replace(",", "")) == left > 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["uncovered_us"] == [first + 80_000, last + 1] and summary["windows_total"] == 2
+    assert any("are left out" in note for note in summary["notes"])
+    again = tmp_path / "again"
+    assert main(["fit", str(path), "--K", K, "-o", str(again), "--window-ms", match[3], "--quiet"]) == 0
+    assert "left out" not in capsys.readouterr().err
+    summary = json.loads((again / "summary.json").read_text())
+    assert summary["windows_total"] == 3
+    # windows of whole µs cannot always divide the recording: they leave out at most its last 2 µs
+    assert summary["uncovered_us"] is None or summary["uncovered_us"][1] - summary["uncovered_us"][0] < 3

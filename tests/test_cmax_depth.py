@@ -18,6 +18,7 @@ import torch
 
 from cmax import viz
 from cmax.cli import main as cmax_main
+from cmax.cli.recording import tail_note
 from cmax.events import Events
 from cmax.io import write_evt2, write_evt3, write_h5, write_txt
 from cmax.representations import voxel_grid
@@ -218,11 +219,16 @@ def test_cmax_depth_on_each_format_equals_a_direct_forward(name, checkpoint, net
     _check_outputs(out, expected)
     assert re.fullmatch(rf"{len(expected)} windows of 50 ms predicted in [\d.]+ s \([\d.]+ windows/s\); "
                         rf"results in {re.escape(str(out))}\n", captured.out), captured.out
+    # the events end 50 µs before the fourth window's end: that window is left out, with a note
+    first, last = int(events.t[0]), int(events.t[-1])
+    tail = tail_note(first, last, 50_000, 50_000, option="--window", unit_us=1_000_000)
+    assert tail is not None and "covers it in 4 windows" in tail
+    tail = f"cmax depth: note: {re.escape(tail)}\n"
     if name == "mvsec":   # this K (a small sensor's) on MVSEC's 346x260 sensor: its principal point is in a corner
-        assert re.fullmatch(r"cmax depth: note: K \(.*\) is unlike a camera's for a 346x260 sensor: .*\n",
+        assert re.fullmatch(r"cmax depth: note: K \(.*\) is unlike a camera's for a 346x260 sensor: .*\n" + tail,
                             captured.err), captured.err
     else:
-        assert captured.err == ""
+        assert re.fullmatch(tail, captured.err), captured.err
 
 
 DISTORTION = np.array([-0.12, 0.03, 0.002, -0.001])
@@ -343,9 +349,10 @@ def test_camera_unlike_the_trained_one_is_noted_once(checkpoint, events, tmp_pat
     assert cmax_main(["depth", str(tmp_path / "e.h5"), "-o", str(tmp_path / "out"), "--checkpoint", str(card_ckpt),
                       "--K", K_TEXT, "--quiet"]) == 0
     notes = capsys.readouterr().err.splitlines()
-    assert len(notes) == 2 and all(line.startswith("cmax depth: note: ") for line in notes)
+    assert len(notes) == 3 and all(line.startswith("cmax depth: note: ") for line in notes)
     assert "trained on a 346x260 sensor, this file is 64x48" in notes[0]
     assert "predicted x 0.5" in notes[1]   # 60 px here, 120 px in training
+    assert "are left out" in notes[2]      # the events end 50 µs before the fourth window's end
 
 
 def test_the_shipped_model_is_the_default(checkpoint, events, tmp_path, monkeypatch, capsys):
@@ -484,3 +491,19 @@ def test_the_device_option_runs_the_network_where_asked_and_refuses_a_missing_gp
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "sees no CUDA device" in err[0], err
     assert not (tmp_path / "gpu").exists()
+
+
+def test_the_window_plan_and_the_note_on_the_end_its_windows_leave_out():
+    """2.5 s of events in 1 s windows: two windows and a note on the last 0.5 s with a --window [s] whose three
+    windows cover the recording; with that window, three windows and no note."""
+    from learned.predict import window_plan
+
+    window_us, starts, short = window_plan(0, 2_499_999, 1_000_000, explicit=True)
+    assert window_us == 1_000_000 and starts.tolist() == [0, 1_000_000] and short is None
+    note = tail_note(0, 2_499_999, window_us, window_us, option="--window", unit_us=1_000_000)
+    assert note is not None and "the last 500.0 ms of the recording (after 2.000 s)" in note
+    suggested = float(note.split("--window ")[1].split()[0])
+    assert note.endswith("covers it in 3 windows") and 0.8 < suggested < 1.0
+    window_us, starts, _ = window_plan(0, 2_499_999, int(round(suggested * 1e6)), explicit=True)
+    assert len(starts) == 3 and starts[-1] + window_us >= 2_499_999
+    assert tail_note(0, 2_499_999, window_us, window_us) is None

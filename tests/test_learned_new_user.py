@@ -95,6 +95,7 @@ def test_predict_keeps_an_earlier_runs_windows_from_mixing_with_new_ones(slider_
     assert main(base) == 0
     first = sorted(p.name for p in out.iterdir())
     assert len([name for name in first if name.endswith(".npz")]) == 5          # 0.3 s in windows of 50 ms
+    assert "covers it in 6 windows" in capsys.readouterr().err                 # the sixth ends 2 ms late: noted
     status, err = one_line_error(lambda: main([*base, "--window", "0.2"]), capsys)
     assert status == 2 and "holds the results of an earlier run" in err and "--overwrite replaces them" in err
     status, err = one_line_error(lambda: main([*base, "--window", "5", "--overwrite"]), capsys)  # refused: kept

@@ -7,8 +7,9 @@ Outputs in ``-o outdir/``: ``depth_XXXXX.npz`` (``depth``, ``mask``,
 window (se3; the map with a colour bar in metres, unlabelled without ``--speed``), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
 camera-to-world, the first window's start as the origin) and
 ``summary.json`` (settings, per-window twist, objective, parallax, seconds, quality verdict with its
-reason, low-motion cause and alternatives, the counts of each verdict, and the starts of the windows
-skipped for too few events, across which the trajectory carries the last fitted twist). Each window's verdict is printed on a line of
+reason, low-motion cause and alternatives, the counts of each verdict, the starts of the windows
+skipped for too few events, across which the trajectory carries the last fitted twist, and the end of the
+recording after the last whole window, not fitted: a note says so). Each window's verdict is printed on a line of
 its own and counted in the summary line (``docs/quality.md``).
 """
 from __future__ import annotations
@@ -22,7 +23,7 @@ import numpy as np
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import output_folder
 from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_hint, calibration_of,
-                                file_intrinsics, read_calibrated, time_slice)
+                                file_intrinsics, read_calibrated, tail_note, time_slice)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 __all__ = ["add_command", "advice", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
@@ -180,11 +181,15 @@ def verdict_counts(counts: dict[str, int]) -> str:
             f"{counts['failed']} failed")
 
 
-def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_motion: int = 0) -> list[str]:
+def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_motion: int = 0,
+           cell_noise: int = 0) -> list[str]:
     """What to try when at least half of the fitted windows are low parallax or ambiguous and unresolved (one
     line each; none otherwise); ``rotation_known``: the run held the rotation (``--gyro``, ``--omega``);
     ``no_motion``: how many of the low-parallax windows show no motion at all (the permutation test,
-    :attr:`cmax.fitting.quality.LowMotionCause.NO_MOTION`), for which a longer window is no cure.
+    :attr:`cmax.fitting.quality.LowMotionCause.NO_MOTION`), for which a longer window is no cure;
+    ``cell_noise`` (flow, rotation): how many have a motion that sharpens only parts of the image
+    (:attr:`~cmax.fitting.quality.LowMotionCause.CELL_NOISE`): too little motion, or parts that move
+    differently, for which a longer window is no cure either.
 
     >>> advice({"ok": 1, "ambiguous": 0, "resolved": 0, "low_parallax": 3, "failed": 0}, "se3")[0][:40]
     '3 of 4 windows have too little parallax:'
@@ -195,10 +200,16 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     unresolved = counts["ambiguous"] - counts.get("resolved", 0)
     lines = []
     if total and 2 * counts["low_parallax"] >= total:
-        lines.append(f"{counts['low_parallax']} of {total} windows have too little "
-                     + ("parallax: their translation and depth are not measured; a longer --window-ms gives more "
-                        "parallax, --model rotation fits the rotation alone" if model == "se3" else
-                        "motion to measure: a longer --window-ms gives more"))
+        if counts["low_parallax"] > cell_noise:
+            lines.append(f"{counts['low_parallax'] - cell_noise} of {total} windows have too little "
+                         + ("parallax: their translation and depth are not measured; a longer --window-ms gives more "
+                            "parallax, --model rotation fits the rotation alone" if model == "se3" else
+                            "motion to measure: a longer --window-ms gives more"))
+        if cell_noise:
+            lines.append(f"{cell_noise} of {total} windows have a fitted {model} that sharpens only parts of the image: "
+                         "either too little motion (a longer --window-ms gives more) or parts that move differently "
+                         "(depth differences, or a motion that changes within a window: --model se3 or a shorter "
+                         "--window-ms)")
         if no_motion:
             lines.append(f"{no_motion} of them show no motion at all (the fitted motion sharpens the events with their "
                          "timestamps shuffled as much): sensor noise, flicker or a static scene; check the recording")
@@ -227,6 +238,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from cmax import viz
+    from cmax.events import uncovered_tail, window_starts
     from cmax.fitting import FitSettings, fit_sequence
     from cmax.fitting.quality import LowMotionCause
     from cmax.fitting.sequence import check_gyro, constant_gyro
@@ -278,7 +290,11 @@ def run(args: argparse.Namespace) -> int:
         notes.append(f"the recording ({span_us * 1e-3:.1f} ms) is shorter than the window ({window_us * 1e-3:.1f} ms): "
                      "fitting one window over the whole recording")
         window_us = step_us = span_us
-    n_windows = len(range(int(events.t[0]), int(events.t[-1]) + 2 - window_us, step_us))
+    first_us, last_us = int(events.t[0]), int(events.t[-1])
+    n_windows = len(window_starts(first_us, last_us, window_us, step_us))
+    tail = uncovered_tail(first_us, last_us, window_us, step_us)
+    if tail is not None:
+        notes.append(tail_note(first_us, last_us, window_us, step_us, events=len(events.slice_time(*tail))))
     for note in notes:
         print(f"cmax fit: note: {note}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
@@ -326,14 +342,17 @@ def run(args: argparse.Namespace) -> int:
                "polish": args.polish or _settings_default("polish")().value,
                "warm_start": args.jobs == 1, "notes": notes,
                "windows_total": n_windows, "skipped_us": sequence.skipped_us.tolist(),
+               "uncovered_us": None if sequence.uncovered_us is None else list(sequence.uncovered_us),
                "verdicts": sequence.counts(), "windows": windows}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
     min_events = _sequence_default("min_events")()
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""
     print(f"{len(windows)} of {n_windows} windows fitted{skip}: {verdict_counts(sequence.counts())}; results in {out}")
-    no_motion = sum(r.quality is not None and r.quality.cause is LowMotionCause.NO_MOTION for r in sequence.results)
-    for line in advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None, no_motion):
+    causes = [None if r.quality is None else r.quality.cause for r in sequence.results]
+    no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)
+    for line in advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None, no_motion,
+                       cell_noise):
         print(f"cmax fit: note: {line}", file=sys.stderr)
     if not windows:
         print(f"cmax fit: no window was fitted: each has fewer than {min_events:,} events", file=sys.stderr)

@@ -3,7 +3,8 @@
 * :func:`add_file_options` / :func:`file_kwargs`: ``--size``, ``--time-unit``, ``--polarity`` of the file
   tools (``cmax info``, ``cmax show``), passed to :func:`cmax.io.read` as keywords;
 * :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--t0``, ``--t1`` of the commands that fit or
-  predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``;
+  predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``; :func:`tail_note` says
+  what their windows leave out at the end;
 * :func:`add_camera_options`: ``--K`` or ``--calib`` (with ``--calib-camera``), and ``--distortion``, of the
   commands that need the intrinsics (``cmax fit``, ``cmax emvs``), :func:`calibration_of` and
   :func:`read_calibrated` behind them; :func:`intrinsics_argument`,
@@ -24,7 +25,7 @@ from cmax.camera import check_intrinsics
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "distortion_argument", "read_calibration",
-           "time_slice"]
+           "time_slice", "tail_note"]
 
 #: ``argparse`` type of ``--distortion k1,k2,p1,p2[,k3]`` (OpenCV order, dimensionless).
 distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
@@ -271,3 +272,40 @@ def time_slice(events, t0_s: float | None, t1_s: float | None):
     if len(events) == 0:
         raise ValueError(f"no events between --t0 {t0_s} s and --t1 {t1_s} s")
     return events
+
+
+#: :func:`tail_note` is silent about an end shorter than this fraction of a window (the few µs that windows of whole
+#: µs leave when they cannot divide the recording exactly).
+TAIL_NOTE_FRACTION = 0.01
+
+
+def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, option: str = "--window-ms",
+              unit_us: int = 1000, events: int | None = None) -> str | None:
+    """The note of a window-by-window command on the end of the recording that its whole windows leave out
+    (:func:`cmax.events.uncovered_tail`), with a window length ``option`` (in units of ``unit_us`` µs) whose
+    windows tile the recording (when the windows do not overlap: up to a few µs, as whole µs rarely divide the
+    recording); None when nothing, or less than :data:`TAIL_NOTE_FRACTION` of a window, is left out.
+    ``events``: how many events that end holds (said when given).
+
+    >>> print(tail_note(0, 2_499_999, 1_000_000, 1_000_000))
+    the last 500.0 ms of the recording (after 2.000 s) are shorter than a window (1000.0 ms) and are left out: --window-ms 833.333 covers it in 3 windows
+    >>> tail_note(0, 2_999_999, 1_000_000, 1_000_000) is None
+    True
+    """
+    from cmax.events import uncovered_tail
+
+    tail = uncovered_tail(first_us, last_us, window_us, step_us)
+    if tail is None or tail[1] - tail[0] < TAIL_NOTE_FRACTION * window_us:
+        return None
+    start, end = tail
+    held = "" if events is None else f", {events:,} events"
+    text = (f"the last {(end - start) * 1e-3:.1f} ms of the recording (after {(start - first_us) * 1e-6:.3f} s{held}) "
+            f"are shorter than a window ({window_us * 1e-3:.1f} ms) and are left out")
+    if step_us == window_us:
+        span = int(last_us) - int(first_us) + 1
+        count = -(-span // int(window_us))                  # ceil: windows a little shorter than asked
+        length = span // count                              # whole µs, so that `count` of them fit in the span
+        digits = len(str(unit_us)) - 1
+        value = f"{length / unit_us:.{digits}f}".rstrip("0").rstrip(".")
+        text += f": {option} {value} covers it in {count} windows"
+    return text

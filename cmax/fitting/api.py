@@ -40,11 +40,20 @@ class LowParallaxWarning(UserWarning):
     ``warnings.simplefilter("ignore", LowParallaxWarning)``."""
 
 
+#: What a flow or rotation fit whose gain is within the noise of its spread over the image's cells may mean
+#: (:attr:`~cmax.fitting.quality.LowMotionCause.CELL_NOISE`): the test cannot tell the two apart.
+CELL_NOISE_ADVICE = ("either the motion is too small to measure (a longer window gives more) or parts of the image "
+                     "move differently (depth differences, or a motion that changes within the window: model='se3', "
+                     "a depth per part of the image, or a shorter window)")
+
+
 class LowMotionWarning(UserWarning):
     """``flow``/``rotation``: the fitted motion moves the events by less than ``FitSettings.low_motion_px``
     over the window (``FitResult.motion_px``), its contrast gain is within noise, or no stage could improve
-    on the start: the motion is too small to measure reliably (a longer window gives more motion); or the
-    same motion gains as much on the events with their timestamps shuffled: no motion is measured."""
+    on the start: the motion is too small to measure reliably (a longer window gives more motion) or, when
+    the gain is within noise, parts of the image move differently (depth differences, or a motion that
+    changes within the window: another model or a shorter window); or the same motion gains as much on the
+    events with their timestamps shuffled: no motion is measured."""
 
 
 class BoundWarning(UserWarning):
@@ -489,7 +498,7 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
             return LowMotion(LowMotionCause.CELL_NOISE,
                              f"the {result.model}'s contrast gain {gain:.3g} is within the noise of its spread over "
                              f"the image's cells ({noise:.3g}): the fitted {result.motion_px:.2f} px of motion are "
-                             "not measured")
+                             "not measured (they sharpen only parts of the image)")
     if quality.shuffle_test:
         order = torch.randperm(w.dt.shape[1], generator=torch.Generator().manual_seed(settings.seed))
         xs, ys = _warped(w, motion, w.dt[:, order])
@@ -539,6 +548,7 @@ def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_
     if result.motion_px is not None and (low is not None or kept):
         reason = f"no stage improved on the start ({', '.join(kept)})" if kept else low.reason
         advice = ("" if not kept and low.cause is LowMotionCause.NO_MOTION else
+                  f": {CELL_NOISE_ADVICE}" if not kept and low.cause is LowMotionCause.CELL_NOISE else
                   ": the motion is too small to measure reliably; a longer window gives more motion")
         warnings.warn(f"cmax.fit: {reason}{advice}", LowMotionWarning, stacklevel=3)
     bounds = [(log.stage, name) for log in result.stages for name in log.at_bound if not name.startswith("depth_")]

@@ -9,7 +9,7 @@ from tqdm.auto import tqdm
 
 from cmax._threads import torch_threads_scope
 from cmax.camera import check_intrinsics
-from cmax.events import Events, check_time_us
+from cmax.events import Events, check_time_us, uncovered_tail, window_starts
 from cmax.fitting.api import MIN_WINDOW_EVENTS, FitResult, _check_inputs, _check_speed, _settings, fit
 from cmax.fitting.batch import FitTask, check_jobs, check_options, run_tasks
 from cmax.fitting.quality import MotionScorer, Verdict, _distance_deg, choose_from_neighbours, choose_from_run
@@ -38,12 +38,16 @@ class SequenceResult:
         Start [µs] of every window not fitted (fewer than ``min_events`` events): over those the
         poses carry the last fitted window's twist (constant velocity; before the first fit they stand
         still), an assumption, not a measurement.
+    uncovered_us : (2,) int tuple or None
+        ``(start, end)`` [µs, end exclusive] of the recording after the last whole window, not fitted (shorter
+        than a window; :func:`cmax.events.uncovered_tail`); None when the windows reach its last event.
     """
 
     results: tuple
     times_us: np.ndarray
     poses: np.ndarray
     skipped_us: np.ndarray = field(default_factory=lambda: np.zeros(0, np.int64))
+    uncovered_us: tuple[int, int] | None = None
 
     @property
     def verdicts(self) -> tuple:
@@ -117,6 +121,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     model : str
     window_us, step_us : int
         Window length and the step between window starts [µs] (``step_us`` defaults to ``window_us``).
+        Only whole windows are fitted: the end of the recording after the last one
+        (``SequenceResult.uncovered_us``) is not.
     speed : float, optional
         Known speed [m/s] of every window (se3; a ValueError with another model).
     gyro : (times_us (N,), omega (N, 3)), optional
@@ -217,7 +223,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         take = source.window
     else:
         raise TypeError(f"source must be Events or a reader with window(t0_us, t1_us), got {type(source).__name__}")
-    starts = range(t_start, t_end + 2 - window_us, step_us)
+    starts = window_starts(t_start, t_end, window_us, step_us)
     if gyro is not None and len(starts):
         _check_gyro_covers(gyro, t_start, starts[-1] + window_us - 1)
     steps, times = [], [t_start]                # steps: the index of the result each step moves with
@@ -225,7 +231,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
 
     def tasks():                                 # taken one by one as the fits need them
         fitted = 0
-        for t0 in starts:
+        for t0 in starts.tolist():
             events = take(t0, t0 + window_us)
             if len(events) >= min_events and events.t[-1] > events.t[0]:
                 omega = None if gyro is None else window_gyro(gyro, int(events.t[0]), int(events.t[-1]))
@@ -265,7 +271,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         twist = results[index].twist if index >= 0 else np.zeros(6)
         poses.append(poses[-1] @ se3_exp(twist * step_us * 1e-6))
     return SequenceResult(tuple(results), np.asarray(times, np.int64), np.stack(poses),
-                          np.asarray(skipped, np.int64))
+                          np.asarray(skipped, np.int64), uncovered_tail(t_start, t_end, window_us, step_us))
 
 
 def _sequence_settings(fit_options: dict) -> tuple[FitSettings, dict]:
