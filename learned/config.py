@@ -214,8 +214,11 @@ class Config:
         if self.mode not in MODES:
             raise ValueError(f"mode must be one of {MODES}, got {self.mode!r}")
         if self.mode in ("finetune", "student") and not self.train.teacher:
+            from learned.pretrained import CHECKPOINT
+
             raise ValueError(f"mode {self.mode!r} needs train.teacher (a teacher checkpoint, e.g. "
-                             "train.teacher=runs/teacher/last.pt)")
+                             f"train.teacher=runs/teacher/last.pt, or the model that ships with the package: "
+                             f"train.teacher={CHECKPOINT})")
         if self.train.val_every and not self.data.val_files:
             raise ValueError("train.val_every > 0 needs data.val_files (held-out files): give them, e.g. "
                              "'data.val_files=[\"val.h5\"]', or turn validation off with train.val_every=0")

@@ -20,6 +20,7 @@ states and are written atomically; ``--resume`` continues bit-for-bit on CPU. On
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import json
 import os
 import sys
@@ -36,7 +37,7 @@ from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, Weighte
 from cmax.io.atomic import write_text_atomic
 from learned._output import locked_folder
 from learned.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
-from learned.config import Config, load_config
+from learned.config import Config, config_from_dict, load_config
 from learned.data import H5WindowDataset, collate
 from learned.device import resolve_device
 from learned.losses import student_loss, teacher_loss
@@ -136,6 +137,43 @@ def _load_weights(model: DepthPoseNet, state: dict[str, torch.Tensor], source: s
                               f"({' '.join(str(error).split())[:300]})") from None
 
 
+def with_teacher_model(config: Config) -> Config:
+    """``config`` with the network its teacher fixes (``--mode finetune`` / ``student``; others unchanged).
+
+    ``finetune`` trains the teacher's network further, so its model config is the teacher's (read from the
+    checkpoint ``train.teacher``): a run that leaves ``model.*`` at the defaults takes it; one that sets it
+    otherwise is refused with the fields that differ. ``student`` trains a network of its own, but the frozen
+    teacher reads the student's event volumes: their ``model.bins`` must agree.
+
+    Raises FileNotFoundError / :class:`learned.checkpoint.CheckpointError` for a missing or invalid teacher,
+    ValueError for a model config that contradicts it.
+    """
+    if config.mode not in ("finetune", "student"):
+        return config
+    path = config.train.teacher
+    try:
+        teacher = config_from_dict(load_checkpoint(path)["config"]).model
+    except (TypeError, ValueError) as error:
+        if isinstance(error, CheckpointError):
+            raise
+        raise CheckpointError(f"{path}: its config is not valid: {error}") from None
+    if config.mode == "student":
+        if teacher.bins != config.model.bins:
+            raise ValueError(f"the teacher {path} reads event volumes of {teacher.bins} time bins, this run's network "
+                             f"{config.model.bins} (model.bins), and the frozen teacher sees the student's volumes: "
+                             f"set model.bins={teacher.bins}")
+        return config
+    if config.model == teacher:
+        return config
+    if config.model != ModelConfig():
+        differ = ", ".join(f"model.{f.name}={getattr(config.model, f.name)!r} (the teacher's "
+                           f"{getattr(teacher, f.name)!r})" for f in dataclasses.fields(ModelConfig)
+                           if getattr(config.model, f.name) != getattr(teacher, f.name))
+        raise ValueError(f"--mode finetune trains the teacher's network further, so its model config is the teacher's "
+                         f"({path}); this run sets {differ}: drop those model.* settings")
+    return dataclasses.replace(config, model=teacher)
+
+
 def _no_window(dataset: H5WindowDataset) -> str:
     """Why ``dataset`` holds no window, and what to change (the end of an error message)."""
     return (f"each needs {dataset.window_us * 1e-3:g} ms of events (data.window_us) with at least 100 of them "
@@ -146,6 +184,7 @@ class Trainer:
     """One training run (a rank of it under ``torchrun``); :meth:`run` trains to ``config.train.steps``."""
 
     def __init__(self, config: Config, *, resume: bool = False, progress: bool = True) -> None:
+        config = with_teacher_model(config)
         self.config, self.progress = config, progress
         self.world = int(os.environ.get("WORLD_SIZE", "1"))
         self.rank = int(os.environ.get("RANK", "0"))

@@ -73,6 +73,33 @@ def test_student_and_finetune_run_from_teacher(scene_file, tmp_path):
         assert 0 < losses[0] < 2.5
 
 
+def test_finetune_takes_the_teachers_network_and_refuses_another(scene_file, tmp_path):
+    """A teacher of another size than the defaults (the shipped model is one): finetune left at the default
+    model config builds the teacher's network and starts from its weights (it failed: "its weights do not fit
+    the model of this config"); a run that sets another model config is refused with the fields that differ;
+    a student whose volumes have other time bins than the teacher's is refused before its first step."""
+    from learned.model import ModelConfig
+
+    teacher = tmp_path / "teacher"
+    Trainer(load_config(None, tiny(scene_file, teacher, "train.steps=1"), mode="teacher"), progress=False).run()
+    stated = load_checkpoint(teacher / "last.pt")["config"]["model"]
+    assert (stated["width"], stated["levels"]) == (4, 2) != (ModelConfig().width, ModelConfig().levels)
+    plain = [f'data.files=["{scene_file}"]', "data.max_events=1500", "data.window_us=100000", "train.batch_size=4",
+             "train.steps=1", f"train.teacher={teacher / 'last.pt'}"]
+    trainer = Trainer(load_config(None, [*plain, f"train.out={tmp_path / 'ft'}"], mode="finetune"), progress=False)
+    assert (trainer.config.model.width, trainer.config.model.levels) == (4, 2)
+    start = params(teacher / "last.pt")
+    assert all(torch.equal(start[k], v) for k, v in trainer.model.state_dict().items())
+    trainer.run()
+    assert load_checkpoint(tmp_path / "ft" / "last.pt")["config"]["model"] == stated
+    with pytest.raises(ValueError, match=r"model config is the teacher's .*model\.width=8 \(the teacher's 4\)"):
+        Trainer(load_config(None, [*plain, "model.width=8", f"train.out={tmp_path / 'ft8'}"], mode="finetune"),
+                progress=False)
+    with pytest.raises(ValueError, match="reads event volumes of 5 time bins, this run's network 3"):
+        Trainer(load_config(None, [*plain, "model.bins=3", f"train.out={tmp_path / 'st'}"], mode="student"),
+                progress=False)
+
+
 def test_resume_continues_bit_for_bit(scene_file, tmp_path):
     straight, split = tmp_path / "straight", tmp_path / "split"
     Trainer(load_config(None, tiny(scene_file, straight, "train.steps=6"), mode="teacher"), progress=False).run()
