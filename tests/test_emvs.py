@@ -332,6 +332,20 @@ def test_cli_round_trip(plane, tmp_path, capsys):
     code = main(["emvs", str(path), "--poses", str(tmp_path / "traj.txt"), "-o", str(out), "--depth-range",
                  "1,4", "--K", f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}", "--t0", "0.05", "--t1", "0.25"])
     assert code == 0 and "median depth" in capsys.readouterr().out
+    # poses that end before the events (cmax fit's trajectory.txt stops at its last whole window): the overlap,
+    # with a note saying what was cut
+    short = times < int(events.t[0]) + (int(events.t[-1]) - int(events.t[0])) * 3 // 5
+    (tmp_path / "short.txt").write_text("\n".join(tum_lines(times[short], poses[short])) + "\n")
+    assert main(["emvs", str(path), "--poses", str(tmp_path / "short.txt"), "-o", str(out), "--depth-range",
+                 "1,4"]) == 0
+    captured = capsys.readouterr()
+    last = int(times[short][-1])
+    cut = int(np.sum(events.t > last))
+    assert (f"note: the poses of {tmp_path / 'short.txt'} cover " in captured.err and f"{cut:,} events): EMVS on the "
+            "overlap" in captured.err), captured.err
+    saved = np.load(out / "depth.npz")
+    assert int(saved["t_ref_us"]) == (int(events.t[0]) + int(events.t[events.t <= last][-1])) // 2
+    assert abs(np.nanmedian(saved["depth"]) / PLANE_DEPTH - 1) < 0.02
 
 
 def test_cli_errors_exit_2(plane, tmp_path, capsys):
@@ -344,8 +358,11 @@ def test_cli_errors_exit_2(plane, tmp_path, capsys):
     traj.write_text("0.0 0 0 0 0 0 0 1\n0.01 0 0 0 0 0 0 1\n")
     assert main(["emvs", str(path), "--poses", str(traj), "-o", str(tmp_path / "o")]) == 2
     assert "gt/K" in capsys.readouterr().err
-    assert main(["emvs", str(path), "--poses", str(traj), "-o", str(tmp_path / "o"), "--K", "150,150,60,45"]) == 2
-    assert "cover" in capsys.readouterr().err
+    late = tmp_path / "late.txt"           # poses on another clock: nothing overlaps
+    late.write_text("100.0 0 0 0 0 0 0 1\n100.01 0 0 0 0 0 0 1\n")
+    assert main(["emvs", str(path), "--poses", str(late), "-o", str(tmp_path / "o"), "--K", "150,150,60,45"]) == 2
+    err = capsys.readouterr().err
+    assert "do not overlap the events" in err and "same clock" in err and err.count("\n") == 1
     assert main(["emvs", str(path), "--poses", str(tmp_path / "none.txt"), "-o", str(tmp_path / "o"),
                  "--K", "150,150,60,45"]) == 2
     with pytest.raises(SystemExit):

@@ -20,7 +20,7 @@ import numpy as np
 from cmax._args import api_default, float_list, nonnegative_float, positive_int
 from cmax.cli._common import output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
-                                file_intrinsics, read_calibrated, time_slice)
+                                file_intrinsics, overlap, read_calibrated, time_slice)
 from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_command", "run", "camera_for", "file_trajectory"]
@@ -143,6 +143,10 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{args.file} stores no poses (gt/poses): give them with --poses traj.txt (TUM: "
                              "t[s] tx ty tz qx qy qz qw, camera-to-world, e.g. the trajectory.txt of cmax fit)")
     events = time_slice(events, args.t0, args.t1)
+    events, cut = overlap(events, trajectory[0], "poses", args.poses or f"{args.file}: gt/poses",
+                          "EMVS on the overlap")
+    if cut:
+        print(f"cmax emvs: note: {cut}", file=sys.stderr)
     camera = camera_for(args.file, events.width, events.height, K, distortion)
     depth_range = args.depth_range
     if depth_range is None:

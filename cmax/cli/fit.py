@@ -23,7 +23,7 @@ import numpy as np
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import output_folder
 from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_hint, calibration_of,
-                                file_intrinsics, read_calibrated, tail_note, time_slice)
+                                file_intrinsics, overlap, read_calibrated, tail_note, time_slice)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 __all__ = ["add_command", "advice", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
@@ -144,22 +144,6 @@ class _CountedWindows:
         self.bar.close()
 
 
-def _gyro_overlap(events, gyro, path: Path):
-    """The events inside the gyro's time span, and a note when some were cut (ValueError: no overlap)."""
-    times = gyro[0]
-    first, last = int(events.t[0]), int(events.t[-1])
-    lo, hi = max(first, int(times[0])), min(last, int(times[-1]))
-    if hi <= lo:
-        raise ValueError(f"the gyro samples of {path} ({times[0] * 1e-6:.6f}-{times[-1] * 1e-6:.6f} s) do not overlap "
-                         f"the events ({first * 1e-6:.6f}-{last * 1e-6:.6f} s): are they on the same clock?")
-    if lo == first and hi == last:
-        return events, None
-    note = (f"the gyro covers {(hi - lo) * 1e-3:.1f} ms of the {(last - first) * 1e-3:.1f} ms of events "
-            f"(cut {(lo - first) * 1e-3:.1f} ms at the start, {(last - hi) * 1e-3:.1f} ms at the end): "
-            "fitting the overlap")
-    return events.slice_time(lo, hi + 1), note
-
-
 def _depth_scale(results, depth_range) -> "object":
     """One colour scale for every depth picture of a run: ``--depth-range`` when given, else the
     1-99th percentiles of all windows' depths on their masks (None when no window has a depth)."""
@@ -268,7 +252,7 @@ def run(args: argparse.Namespace) -> int:
         gyro = constant_gyro(args.omega, int(events.t[0]), int(events.t[-1]) + 1)
     if args.gyro is not None:
         gyro = check_gyro(read_gyro(args.gyro))
-        events, note = _gyro_overlap(events, gyro, args.gyro)
+        events, note = overlap(events, gyro[0], "gyro samples", args.gyro, "fitting the overlap")
         notes += [note] if note else []
     options = {key: value for key, value in (("solver", args.solver), ("depth_grid", args.depth_grid),
                                              ("max_events", args.max_events),

@@ -4,7 +4,8 @@
   tools (``cmax info``, ``cmax show``), passed to :func:`cmax.io.read` as keywords;
 * :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--t0``, ``--t1`` of the commands that fit or
   predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``; :func:`tail_note` says
-  what their windows leave out at the end;
+  what their windows leave out at the end; :func:`overlap` cuts the events to the span of a gyroscope's samples
+  or of poses;
 * :func:`add_camera_options`: ``--K`` or ``--calib`` (with ``--calib-camera``), and ``--distortion``, of the
   commands that need the intrinsics (``cmax fit``, ``cmax emvs``), :func:`calibration_of` and
   :func:`read_calibrated` behind them; :func:`intrinsics_argument`,
@@ -25,7 +26,7 @@ from cmax.camera import check_intrinsics
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "distortion_argument", "read_calibration",
-           "time_slice", "tail_note"]
+           "time_slice", "tail_note", "overlap"]
 
 #: ``argparse`` type of ``--distortion k1,k2,p1,p2[,k3]`` (OpenCV order, dimensionless).
 distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
@@ -309,3 +310,23 @@ def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, opti
         value = f"{length / unit_us:.{digits}f}".rstrip("0").rstrip(".")
         text += f": {option} {value} covers it in {count} windows"
     return text
+
+
+def overlap(events, times_us: np.ndarray, what: str, source: object, doing: str):
+    """The events inside ``[times_us[0], times_us[-1]]`` (a gyroscope's samples, a trajectory's poses [µs], on
+    the events' clock), and a note when some were cut (None when none); ValueError when nothing overlaps.
+    ``what`` names the samples in the texts (a plural: ``"gyro samples"``, ``"poses"``), ``source`` their file,
+    ``doing`` ends the note (e.g. ``"fitting the overlap"``).
+    """
+    first, last = int(events.t[0]), int(events.t[-1])
+    lo, hi = max(first, int(times_us[0])), min(last, int(times_us[-1]))
+    if hi <= lo:
+        raise ValueError(f"the {what} of {source} ({times_us[0] * 1e-6:.6f}-{times_us[-1] * 1e-6:.6f} s) do not "
+                         f"overlap the events ({first * 1e-6:.6f}-{last * 1e-6:.6f} s): are they on the same clock?")
+    if lo == first and hi == last:
+        return events, None
+    kept = events.slice_time(lo, hi + 1)
+    note = (f"the {what} of {source} cover {(hi - lo) * 1e-3:.1f} ms of the {(last - first) * 1e-3:.1f} ms of events "
+            f"(cut {(lo - first) * 1e-3:.1f} ms at the start, {(last - hi) * 1e-3:.1f} ms at the end, "
+            f"{len(events) - len(kept):,} events): {doing}")
+    return kept, note
