@@ -98,6 +98,30 @@ def test_an_image_folder_needs_an_h5_output(tmp_path, capsys):
     assert "image folder (one sequence)" in capsys.readouterr().err
 
 
+def test_an_image_folder_without_times_says_how_to_write_them(tmp_path, capsys):
+    """Frames extracted by ffmpeg (no timestamp file): one line that says so (it said 'holds no videos') and
+    gives a command whose timestamps.txt the conversion then reads, at 25 frames/s."""
+    import subprocess
+    import sys
+
+    from conftest import one_line_error
+
+    seq = tmp_path / "frames"
+    seq.mkdir()
+    frames = _frames(6)
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(seq / f"{k:04d}.png"), frame)
+    out = tmp_path / "events" / "frames.h5"
+    status, err = one_line_error(lambda: main(["simulate", str(seq), "-o", str(out), *FAST, "--quiet"]), capsys)
+    assert status == 2 and "holds 6 images but no times for them: write timestamps.txt beside them" in err
+    command = err.split("25 frames/s: ")[1].strip()           # run by a shell, as the user would
+    assert command.startswith("python -c ") and command.endswith(f"> {seq / 'timestamps.txt'}")
+    subprocess.run(command.replace("python", f'"{sys.executable}"', 1), shell=True, check=True)
+    assert main(["simulate", str(seq), "-o", str(out), *FAST, "--quiet"]) == 0
+    times_us = np.arange(6, dtype=np.int64) * 40_000
+    assert len(read(out)) == _expected_events(frames, times_us, tmp_path) > 0
+
+
 def _manifest(tmp_path, name: str, videos: dict) -> str:
     base = {"format": "evtslowtv-manifest/1", "simulator": "cmax 1", "settings": {"s": 1}, "catalogue": None,
             "missing": [], "videos": videos}

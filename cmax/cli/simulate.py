@@ -76,6 +76,8 @@ def _image_folder(source: Path) -> Path | None:
       folder of images with ``images.txt`` in its parent;
     * rpg_vid2e / ESIM: a folder holding ``images/`` and ``timestamps.txt``, a folder of images with
       ``timestamps.txt`` in it or in its parent, or the ``timestamps.txt`` file.
+
+    A folder of images (and no videos) with neither is a ValueError that says how to write the times.
     """
     from cmax.sim.video import IMAGE_SUFFIXES
 
@@ -95,7 +97,18 @@ def _image_folder(source: Path) -> Path | None:
         return source
     if (source.parent / "images.txt").is_file():   # ECD's images/ (its lines name them from the parent)
         return source.parent / "images.txt"
-    return source if (source.parent / "timestamps.txt").is_file() else None
+    if (source.parent / "timestamps.txt").is_file():
+        return source
+    from cmax.sim.convert import VIDEO_SUFFIXES
+
+    names = [p.suffix.lower() for p in source.iterdir()]
+    if any(suffix in VIDEO_SUFFIXES for suffix in names):
+        return None                                  # videos beside the images: a collection
+    count = sum(suffix in IMAGE_SUFFIXES for suffix in names)
+    raise ValueError(f"{source} holds {count} images but no times for them: write timestamps.txt beside them (one "
+                     "time in seconds per image, in name order, as rpg_vid2e/ESIM do; or images.txt as ECD), e.g. at "
+                     f"25 frames/s: python -c \"print('\\n'.join(f'{{i / 25:.6f}}' for i in range({count})))\" > "
+                     f"{source / 'timestamps.txt'}")
 
 
 def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
