@@ -151,11 +151,10 @@ def with_teacher_model(config: Config) -> Config:
     if config.mode not in ("finetune", "student"):
         return config
     path = config.train.teacher
+    checkpoint = load_checkpoint(path)
     try:
-        teacher = config_from_dict(load_checkpoint(path)["config"]).model
+        teacher = config_from_dict(checkpoint["config"]).model
     except (TypeError, ValueError) as error:
-        if isinstance(error, CheckpointError):
-            raise
         raise CheckpointError(f"{path}: its config is not valid: {error}") from None
     if config.mode == "student":
         if teacher.bins != config.model.bins:

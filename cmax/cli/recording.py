@@ -306,7 +306,7 @@ def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, opti
         span = int(last_us) - int(first_us) + 1
         count = -(-span // int(window_us))                  # ceil: windows a little shorter than asked
         length = span // count                              # whole µs, so that `count` of them fit in the span
-        digits = len(str(unit_us)) - 1
+        digits = len(str(unit_us)) - 1                      # down to 1 µs: 3 for ms, 6 for s
         value = f"{length / unit_us:.{digits}f}".rstrip("0").rstrip(".")
         text += f": {option} {value} covers it in {count} windows"
     return text

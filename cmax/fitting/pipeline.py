@@ -182,9 +182,9 @@ def best_start(loss: Callable[[torch.Tensor], torch.Tensor], starts: list[np.nda
     a warm start that scores worse than the cold one is not solved from (a motion carried over from another
     window can fit this one worse than no motion at all)."""
     with torch.no_grad():
-        values = [float(loss(torch.from_numpy(np.clip(np.asarray(x, dtype=np.float64), lower, upper))))
-                  for x in starts]
-    return int(np.argmin(values))
+        values = np.array([float(loss(torch.from_numpy(np.clip(np.asarray(x, dtype=np.float64), lower, upper))))
+                           for x in starts])
+    return int(np.argmin(np.where(np.isnan(values), np.inf, values)))
 
 
 def _warm_or_cold(starts: list[np.ndarray], chosen: int, what: str) -> str:
