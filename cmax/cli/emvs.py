@@ -20,7 +20,7 @@ import numpy as np
 from cmax._args import api_default, float_list, nonnegative_float, positive_int
 from cmax.cli._common import output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
-                                file_intrinsics, overlap, read_calibrated, time_slice)
+                                file_intrinsics, overlap, read_calibrated)
 from cmax.io.atomic import save_npz_atomic
 
 __all__ = ["add_command", "run", "camera_for", "file_trajectory"]
@@ -136,13 +136,12 @@ def run(args: argparse.Namespace) -> int:
     out = output_folder(args.output, "depth.npz, depth.png and points.ply")
     trajectory = None if args.poses is None else read_tum_trajectory(args.poses)   # a bad file: before the events
     K, distortion, calib_size = calibration_of(args)
-    events = read_calibrated(args, calib_size)
+    events = read_calibrated(args, calib_size)       # --t0 / --t1 applied
     if trajectory is None:
         trajectory = file_trajectory(args.file)
         if trajectory is None:
             raise ValueError(f"{args.file} stores no poses (gt/poses): give them with --poses traj.txt (TUM: "
                              "t[s] tx ty tz qx qy qz qw, camera-to-world, e.g. the trajectory.txt of cmax fit)")
-    events = time_slice(events, args.t0, args.t1)
     events, cut = overlap(events, trajectory[0], "poses", args.poses or f"{args.file}: gt/poses",
                           "EMVS on the overlap")
     if cut:

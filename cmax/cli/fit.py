@@ -23,7 +23,7 @@ import numpy as np
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import output_folder
 from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_hint, calibration_of,
-                                file_intrinsics, overlap, read_calibrated, tail_note, time_slice)
+                                file_intrinsics, overlap, read_calibrated, tail_note)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 __all__ = ["add_command", "advice", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
@@ -235,8 +235,7 @@ def run(args: argparse.Namespace) -> int:
         K = file_intrinsics(args.file)
         if K is None:
             raise ValueError(f"{args.file} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib")
-    events = read_calibrated(args, calib_size)
-    events = time_slice(events, args.t0, args.t1)
+    events = read_calibrated(args, calib_size)       # --t0 / --t1 applied
     notes = [hint] if (hint := calibration_hint(args)) else []
     if distortion is not None:
         total = len(events)

@@ -26,7 +26,7 @@ from cmax.camera import check_intrinsics
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "distortion_argument", "read_calibration",
-           "time_slice", "tail_note", "overlap"]
+           "time_slice", "time_span_us", "tail_note", "overlap"]
 
 #: ``argparse`` type of ``--distortion k1,k2,p1,p2[,k3]`` (OpenCV order, dimensionless).
 distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
@@ -122,24 +122,58 @@ def calibration_hint(args: argparse.Namespace) -> str | None:
 
 
 def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None):
-    """The events of ``args.file`` (:func:`cmax.io.read` with :func:`file_kwargs`); a file that stores no size
-    takes the calibration's (``calib_size``, from :func:`calibration_of`) unless ``--size`` gives one. Refuses a
-    file without events and events of another sensor than the calibrated one."""
-    from cmax.io import read
+    """The events of ``args.file`` (:func:`cmax.io.read` with :func:`file_kwargs`) between ``--t0`` and ``--t1``
+    (:func:`time_slice`); a file that stores no size takes the calibration's (``calib_size``, from
+    :func:`calibration_of`) unless ``--size`` gives one. A DSEC-layout h5 file is read from disk only over that
+    span (a recording too long to hold, :data:`cmax.events.MAX_EVENTS`, can be fitted a part at a time); other
+    formats are decoded whole, then cut. Refuses a file without events and events of another sensor than the
+    calibrated one."""
+    from cmax.events import EventLimitError
+    from cmax.io import detect_format, read
 
     options = file_kwargs(args)
+    t0_s, t1_s = getattr(args, "t0", None), getattr(args, "t1", None)
+
+    def read_span(**size):
+        bounds = _h5_span_us(args.file, {**options, **size}, t0_s, t1_s)
+        span = {} if bounds is None else {"t0_us": bounds[0], "t1_us": bounds[1]}
+        events = read(args.file, **{**options, **size, **span})
+        if bounds is None:
+            return events if not len(events) else time_slice(events, t0_s, t1_s)
+        if len(events) == 0:
+            raise ValueError(f"no events between --t0 {t0_s} s and --t1 {t1_s} s")
+        return events
+
     try:
-        events = read(args.file, **options)
-    except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
-        if calib_size is None or args.size is not None or "width=" not in str(error):
+        try:
+            events = read_span()
+        except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
+            if calib_size is None or args.size is not None or "width=" not in str(error):
+                raise
+            events = read_span(width=calib_size[0], height=calib_size[1])
+    except EventLimitError as error:
+        if detect_format(args.file) != "dsec":
             raise
-        events = read(args.file, **{**options, "width": calib_size[0], "height": calib_size[1]})
+        raise EventLimitError(f"{error}; on the command line, --t0 / --t1 read a part of it") from None
     if len(events) == 0:
         raise ValueError(f"{args.file} holds no events")
     if calib_size is not None and (events.width, events.height) != tuple(calib_size):
         raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
                          f"the events come from a {events.width}x{events.height} sensor")
     return events
+
+
+def _h5_span_us(path, options: dict, t0_s: float | None, t1_s: float | None) -> tuple[int, int] | None:
+    """The absolute span [µs] of ``--t0`` / ``--t1`` in a DSEC-layout h5 file, from its first and last event
+    alone (:class:`cmax.io.H5Reader`); None for other formats, an empty file, or when neither is given."""
+    from cmax.io import H5Reader, detect_format
+
+    if (t0_s is None and t1_s is None) or detect_format(path) != "dsec":
+        return None
+    with H5Reader(path, **options) as reader:
+        if not len(reader):
+            return None
+        return time_span_us(reader.t_start, reader.t_end, t0_s, t1_s)
 
 
 def intrinsics_argument(text: str) -> np.ndarray:
@@ -249,6 +283,23 @@ def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
     return values
 
 
+def time_span_us(first_us: int, last_us: int, t0_s: float | None, t1_s: float | None) -> tuple[int, int]:
+    """``[t0, t1)`` [µs, absolute] of ``--t0`` / ``--t1`` (seconds after the first event ``first_us``; None: no
+    bound) in a recording whose last event is at ``last_us``; ValueError when that span is empty.
+
+    >>> time_span_us(1_000_000, 1_900_000, 0.25, 0.5)
+    (1250000, 1500000)
+    """
+    t0 = first_us + int(round((t0_s or 0.0) * 1e6))
+    t1 = last_us + 1 if t1_s is None else first_us + int(round(t1_s * 1e6))
+    if t1_s is None and t0 >= t1:
+        raise ValueError(f"--t0 {t0_s} s is past the recording's last event ({(last_us - first_us) * 1e-6:.6f} s "
+                         "after its first)")
+    if t1 <= t0:
+        raise ValueError(f"--t1 must be after --t0, got {t0_s} and {t1_s}")
+    return t0, t1
+
+
 def time_slice(events, t0_s: float | None, t1_s: float | None):
     """The events of ``[first + t0_s, first + t1_s)`` (seconds after the first event; None: no bound).
 
@@ -261,15 +312,7 @@ def time_slice(events, t0_s: float | None, t1_s: float | None):
     """
     if t0_s is None and t1_s is None:
         return events
-    start = int(events.t[0])
-    t0 = start + int(round((t0_s or 0.0) * 1e6))
-    t1 = int(events.t[-1]) + 1 if t1_s is None else start + int(round(t1_s * 1e6))
-    duration_s = (int(events.t[-1]) - start) * 1e-6
-    if t1_s is None and t0 >= t1:
-        raise ValueError(f"--t0 {t0_s} s is past the recording's last event ({duration_s:.6f} s after its first)")
-    if t1 <= t0:
-        raise ValueError(f"--t1 must be after --t0, got {t0_s} and {t1_s}")
-    events = events.slice_time(t0, t1)
+    events = events.slice_time(*time_span_us(int(events.t[0]), int(events.t[-1]), t0_s, t1_s))
     if len(events) == 0:
         raise ValueError(f"no events between --t0 {t0_s} s and --t1 {t1_s} s")
     return events
