@@ -398,29 +398,29 @@ def test_the_end_that_no_whole_window_covers_is_named_with_a_window_that_tiles(t
     assert summary["uncovered_us"] is None or summary["uncovered_us"][1] - summary["uncovered_us"][0] < 3
 
 
-def test_a_part_of_a_recording_too_long_to_hold_is_read_alone(tmp_path, capsys, monkeypatch):
-    """A DSEC-layout h5 holding more events than fit in memory (cmax.events.MAX_EVENTS, lowered here): the whole
-    file is refused with one line, as before; --t0 / --t1 read only their span from disk (they read the whole
-    file first and were refused the same), and the window fitted is that span's."""
-    from conftest import one_line_error
+@pytest.mark.parametrize("suffix", [".h5", ".raw"])
+def test_a_part_of_a_recording_too_long_to_hold_is_read_alone(tmp_path, capsys, monkeypatch, suffix):
+    """A DSEC-layout h5 or a Prophesee RAW file holding more events than fit in memory (cmax.events.MAX_EVENTS,
+    lowered here under the file's 400k events, over one RAW chunk's): the whole file is refused with one line,
+    as before; --t0 / --t1 read only their span (they read the whole file first and were refused the same),
+    and the window fitted is that span's."""
+    from conftest import one_line_error, random_events
 
-    from benchmarks.synthetic_windows import make_window
-    from cmax.io import read
+    from cmax.io import read, write_evt3
 
-    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
-    path = write_h5(tmp_path / "drive.h5", w.events)
-    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
-    first = int(w.events.t[0])
-    span = w.events.slice_time(first + 40_000, first + 60_000)
-    assert 1000 < len(span) < len(w.events) // 3
-    monkeypatch.setattr("cmax.events.MAX_EVENTS", len(span) + 10)
-    status, err = one_line_error(lambda: main(["fit", str(path), "--K", K, "-o", str(tmp_path / "all"), "--quiet"]),
-                                 capsys)
+    events = random_events(400_000, width=120, height=90, seed=4, t_span_us=1_000_000)
+    path = tmp_path / f"recording{suffix}"
+    write_h5(path, events) if suffix == ".h5" else write_evt3(path, events)
+    span = events.slice_time(400_000, 500_000)
+    monkeypatch.setattr("cmax.events.MAX_EVENTS", 150_000)
+    status, err = one_line_error(lambda: main(["fit", str(path), "--K", "90,90,59.5,44.5", "-o", str(tmp_path / "all"),
+                                               "--quiet"]), capsys)
     assert status == 2 and "more than cmax.events.MAX_EVENTS" in err and "--t0 / --t1 read a part of it" in err
     out = tmp_path / "part"
-    assert main(["fit", str(path), "--K", K, "-o", str(out), "--model", "flow", "--t0", "0.04", "--t1", "0.06",
-                 "--quiet"]) == 0
+    assert main(["fit", str(path), "--K", "90,90,59.5,44.5", "-o", str(out), "--model", "flow", "--t0", "0.4",
+                 "--t1", "0.5", "--max-events", "5000", "--quiet"]) == 0
     (window,) = json.loads((out / "summary.json").read_text())["windows"]
-    assert (window["t0_us"], window["t1_us"]) == (int(span.t[0]), int(span.t[-1]))
+    # the window spans the part (its ends: the first and last of the fit's 5000-event subsample)
+    assert int(span.t[0]) <= window["t0_us"] < 400_100 and 499_900 < window["t1_us"] <= int(span.t[-1])
     monkeypatch.setattr("cmax.events.MAX_EVENTS", 1 << 28)
-    assert len(read(path, t0_us=first + 40_000, t1_us=first + 60_000)) == len(span)   # the same events
+    assert read(path, t0_us=400_000, t1_us=500_000) == span                      # the same events

@@ -14,7 +14,7 @@ import pytest
 from cmax.events import Events
 from cmax.io.errors import FormatError
 from cmax.io.prophesee import (
-    iter_evt2, iter_evt3, read_evt2, read_evt3, read_raw, write_evt2, write_evt3,
+    iter_evt2, iter_evt3, iter_raw, read_evt2, read_evt3, read_raw, write_evt2, write_evt3,
 )
 
 from conftest import random_events
@@ -239,6 +239,27 @@ def test_round_trip(tmp_path: Path, codec: str, case: int) -> None:
     for chunk_bytes in (6, 1000):
         parts = list(iterate(path, chunk_bytes=chunk_bytes))
         assert sum(map(_as_tuples, parts), []) == _as_tuples(events)
+
+
+@pytest.mark.parametrize("codec", ["evt3", "evt2"])
+def test_a_time_span_is_decoded_holding_only_that_span(tmp_path: Path, codec: str, monkeypatch) -> None:
+    """``read_raw(..., t0_us=, t1_us=)`` equals the whole file cut to the span (open ends too), for every chunk
+    size; with cmax.events.MAX_EVENTS under the file's count but over the span's, the whole file is refused and
+    the span is read; ``iter_raw`` yields what the format's own iterator does."""
+    events = random_events(20_000, seed=3, t_span_us=1_000_000)
+    path = tmp_path / f"{codec}.raw"
+    (write_evt3 if codec == "evt3" else write_evt2)(path, events)
+    for t0, t1 in ((250_000, 400_000), (None, 100_000), (900_000, None), (2_000_000, None), (0, 1)):
+        expected = events.slice_time(-1 if t0 is None else t0, 2**62 if t1 is None else t1)
+        for chunk_bytes in (64, 4096, 1 << 20):
+            assert read_raw(path, t0_us=t0, t1_us=t1, chunk_bytes=chunk_bytes) == expected, (t0, t1, chunk_bytes)
+    span = events.slice_time(250_000, 400_000)
+    monkeypatch.setattr("cmax.events.MAX_EVENTS", len(span) + 100)
+    with pytest.raises(ValueError, match="MAX_EVENTS"):
+        read_raw(path)
+    assert read_raw(path, t0_us=250_000, t1_us=400_000, chunk_bytes=4096) == span
+    own = iter_evt3 if codec == "evt3" else iter_evt2
+    assert [len(c) for c in iter_raw(path, chunk_bytes=4096)] == [len(c) for c in own(path, chunk_bytes=4096)]
 
 
 @pytest.mark.parametrize("codec", ["evt3", "evt2"])

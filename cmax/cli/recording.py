@@ -125,9 +125,9 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
     """The events of ``args.file`` (:func:`cmax.io.read` with :func:`file_kwargs`) between ``--t0`` and ``--t1``
     (:func:`time_slice`); a file that stores no size takes the calibration's (``calib_size``, from
     :func:`calibration_of`) unless ``--size`` gives one. A DSEC-layout h5 file is read from disk only over that
-    span (a recording too long to hold, :data:`cmax.events.MAX_EVENTS`, can be fitted a part at a time); other
-    formats are decoded whole, then cut. Refuses a file without events and events of another sensor than the
-    calibrated one."""
+    span, a Prophesee RAW file decoded up to its end holding only the span (a recording too long to hold,
+    :data:`cmax.events.MAX_EVENTS`, can be fitted a part at a time); other formats are decoded whole, then cut.
+    Refuses a file without events and events of another sensor than the calibrated one."""
     from cmax.events import EventLimitError
     from cmax.io import detect_format, read
 
@@ -135,7 +135,7 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
     t0_s, t1_s = getattr(args, "t0", None), getattr(args, "t1", None)
 
     def read_span(**size):
-        bounds = _h5_span_us(args.file, {**options, **size}, t0_s, t1_s)
+        bounds = _file_span_us(args.file, {**options, **size}, t0_s, t1_s)
         span = {} if bounds is None else {"t0_us": bounds[0], "t1_us": bounds[1]}
         events = read(args.file, **{**options, **size, **span})
         if bounds is None:
@@ -152,7 +152,7 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
                 raise
             events = read_span(width=calib_size[0], height=calib_size[1])
     except EventLimitError as error:
-        if detect_format(args.file) != "dsec":
+        if detect_format(args.file) not in ("dsec", "raw"):
             raise
         raise EventLimitError(f"{error}; on the command line, --t0 / --t1 read a part of it") from None
     if len(events) == 0:
@@ -163,17 +163,24 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
     return events
 
 
-def _h5_span_us(path, options: dict, t0_s: float | None, t1_s: float | None) -> tuple[int, int] | None:
-    """The absolute span [µs] of ``--t0`` / ``--t1`` in a DSEC-layout h5 file, from its first and last event
-    alone (:class:`cmax.io.H5Reader`); None for other formats, an empty file, or when neither is given."""
+def _file_span_us(path, options: dict, t0_s: float | None, t1_s: float | None) -> tuple[int, int | None] | None:
+    """The absolute span [µs] of ``--t0`` / ``--t1`` in a file that can be read a span at a time, from its first
+    event (and last, for a DSEC-layout h5: :class:`cmax.io.H5Reader`; a Prophesee RAW file's first chunk:
+    :func:`cmax.io.prophesee.iter_raw`, its end open without ``--t1``); None for other formats, an empty file,
+    or when neither bound is given."""
     from cmax.io import H5Reader, detect_format
+    from cmax.io.prophesee import iter_raw
 
-    if (t0_s is None and t1_s is None) or detect_format(path) != "dsec":
+    if t0_s is None and t1_s is None:
         return None
-    with H5Reader(path, **options) as reader:
-        if not len(reader):
-            return None
-        return time_span_us(reader.t_start, reader.t_end, t0_s, t1_s)
+    kind = detect_format(path)
+    if kind == "dsec":
+        with H5Reader(path, **options) as reader:
+            return time_span_us(reader.t_start, reader.t_end, t0_s, t1_s) if len(reader) else None
+    if kind == "raw" and options.get("time_unit") in (None, "us") and "polarity" not in options:
+        first = next(iter_raw(path, width=options.get("width"), height=options.get("height")), None)
+        return None if first is None else time_span_us(int(first.t[0]), None, t0_s, t1_s)
+    return None
 
 
 def intrinsics_argument(text: str) -> np.ndarray:
@@ -283,14 +290,18 @@ def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
     return values
 
 
-def time_span_us(first_us: int, last_us: int, t0_s: float | None, t1_s: float | None) -> tuple[int, int]:
+def time_span_us(first_us: int, last_us: int | None, t0_s: float | None,
+                 t1_s: float | None) -> tuple[int, int | None]:
     """``[t0, t1)`` [µs, absolute] of ``--t0`` / ``--t1`` (seconds after the first event ``first_us``; None: no
-    bound) in a recording whose last event is at ``last_us``; ValueError when that span is empty.
+    bound) in a recording whose last event is at ``last_us`` (None: not known yet, ``t1`` then None without
+    ``--t1``); ValueError when that span is empty.
 
     >>> time_span_us(1_000_000, 1_900_000, 0.25, 0.5)
     (1250000, 1500000)
     """
     t0 = first_us + int(round((t0_s or 0.0) * 1e6))
+    if t1_s is None and last_us is None:
+        return t0, None
     t1 = last_us + 1 if t1_s is None else first_us + int(round(t1_s * 1e6))
     if t1_s is None and t0 >= t1:
         raise ValueError(f"--t0 {t0_s} s is past the recording's last event ({(last_us - first_us) * 1e-6:.6f} s "

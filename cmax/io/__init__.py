@@ -113,7 +113,8 @@ def read(
         differs from the file's raises :class:`ValueError`.
     t0_us, t1_us : int, optional
         Keep only ``t0_us <= t < t1_us`` (absolute µs). HDF5 files read only
-        that slice from disk; other formats are decoded whole, then cut.
+        that slice from disk, Prophesee RAW files decode chunk by chunk up to its
+        end holding only the slice; other formats are decoded whole, then cut.
     time_unit : {'us', 'ms', 's'}, optional
         Unit of the file's time stamps where the format leaves it open (DSEC
         HDF5 with float times, ECD text or MVSEC in another unit than seconds,
@@ -143,7 +144,7 @@ def read(
         events = read_aedat4(path, **options)
         check_stated_size(width, height, events.sensor_size, path)
     elif kind == "raw":
-        events = read_raw(path, width=width, height=height, **options)
+        events = read_raw(path, width=width, height=height, t0_us=t0_us, t1_us=t1_us, **options)
     else:
         if width is None or height is None:
             raise ValueError(f"{path} ({kind}) stores no sensor size: pass width= and height= (cmax: --size WxH)")

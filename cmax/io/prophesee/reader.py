@@ -1,6 +1,7 @@
 """Reading Prophesee RAW files: whole (:func:`read_evt3`, :func:`read_evt2`,
-:func:`read_raw`, which dispatches on the header) or chunk by chunk in bounded
-memory (:func:`iter_evt3`, :func:`iter_evt2`).
+:func:`read_raw`, which dispatches on the header), chunk by chunk in bounded
+memory (:func:`iter_evt3`, :func:`iter_evt2`, :func:`iter_raw`), or a time span of
+them in memory bounded by that span (``read_raw(..., t0_us=, t1_us=)``).
 
 The header and sensor size are checked before any word is decoded. The
 readers of a whole file read all its words at once, bound the event count
@@ -15,14 +16,14 @@ from typing import Iterator
 
 import numpy as np
 
-from cmax.events import Events, check_event_count
+from cmax.events import Events, check_event_count, concatenate
 from cmax.io.errors import FormatError
 from cmax.io.prophesee._decode import (
     _EVT2, _EVT3, _Codec, _count, _decode, _empty_columns, _Limits, _WordError,
 )
 from cmax.io.prophesee._header import PathLike, _read_header, _sensor_size
 
-__all__ = ["CHUNK_BYTES", "read_raw", "read_evt3", "read_evt2", "iter_evt3", "iter_evt2"]
+__all__ = ["CHUNK_BYTES", "read_raw", "read_evt3", "read_evt2", "iter_raw", "iter_evt3", "iter_evt2"]
 
 #: Default bytes of raw words decoded at a time by the iterators.
 CHUNK_BYTES = 1 << 18
@@ -136,6 +137,40 @@ def _read(path, codec, width, height, chunk_bytes, sort) -> Events:
     return Events._trusted(*columns, limits.width, limits.height)
 
 
+def _read_span(path, codec, width, height, chunk_bytes, sort, t0_us: int | None, t1_us: int | None) -> Events:
+    """The events with ``t0_us <= t < t1_us`` (None: no bound) decoded chunk by chunk: memory holds the span and
+    one chunk, and decoding stops at the first chunk that reaches ``t1_us`` (a valid stream's time does not go
+    back; with ``sort`` each chunk is sorted and disorder across chunks raises, as :func:`iter_evt3`)."""
+    _, limits, _, _ = _open_data(path, codec, width, height, chunk_bytes, not sort)
+    lo, hi = -(2**62) if t0_us is None else int(t0_us), 2**62 if t1_us is None else int(t1_us)
+    kept, count = [], 0
+    for chunk in _iter(path, codec, width, height, chunk_bytes, sort):
+        part = chunk.slice_time(lo, hi)
+        if len(part):
+            count = check_event_count(count + len(part), f"{path}: the span [{lo}, {hi}) µs")
+            kept.append(part)
+        if int(chunk.t[-1]) >= hi:
+            break
+    if not kept:
+        return Events._trusted(*_empty_columns(0), limits.width, limits.height)
+    return concatenate(kept)
+
+
+def _codec_of(path: PathLike):
+    """The codec of the event format a RAW file's header declares (FormatError for none or another)."""
+    declared = _read_header(Path(path)).event_format()
+    codecs = {"evt3": _EVT3, "evt2": _EVT2}
+    if declared not in codecs:
+        raise FormatError(
+            f"{path}: " + (
+                "the header declares no event format ('% evt 3.0' or '% format EVT3' line); "
+                "call read_evt3 or read_evt2 directly" if declared is None
+                else f"unsupported event format {declared!r} (EVT 3.0 and EVT 2.0 are read)"
+            )
+        )
+    return codecs[declared]
+
+
 # -- public readers -------------------------------------------------------------------
 def read_evt3(
     path: PathLike, *, width: int | None = None, height: int | None = None,
@@ -222,7 +257,7 @@ def iter_evt2(
 
 def read_raw(
     path: PathLike, *, width: int | None = None, height: int | None = None,
-    sort: bool = False, chunk_bytes: int = CHUNK_BYTES,
+    sort: bool = False, chunk_bytes: int = CHUNK_BYTES, t0_us: int | None = None, t1_us: int | None = None,
 ) -> Events:
     """Read a Prophesee RAW file in the format its header declares.
 
@@ -230,16 +265,20 @@ def read_raw(
     on ``% evt 2.0`` / ``% format EVT2...`` to :func:`read_evt2`; other options
     as there. Raises :class:`FormatError` when the header declares no format
     or one that is not supported (e.g. EVT 2.1).
+
+    ``t0_us``, ``t1_us`` (absolute µs, None: no bound): only the events with ``t0_us <= t < t1_us``, decoded
+    chunk by chunk (``chunk_bytes``) so that memory holds that span and one chunk, not the file; decoding
+    stops at the first chunk that reaches ``t1_us``.
     """
-    header = _read_header(Path(path))
-    declared = header.event_format()
-    codecs = {"evt3": _EVT3, "evt2": _EVT2}
-    if declared not in codecs:
-        raise FormatError(
-            f"{path}: " + (
-                "the header declares no event format ('% evt 3.0' or '% format EVT3' line); "
-                "call read_evt3 or read_evt2 directly" if declared is None
-                else f"unsupported event format {declared!r} (EVT 3.0 and EVT 2.0 are read)"
-            )
-        )
-    return _read(path, codecs[declared], width, height, chunk_bytes, sort)
+    codec = _codec_of(path)
+    if t0_us is None and t1_us is None:
+        return _read(path, codec, width, height, chunk_bytes, sort)
+    return _read_span(path, codec, width, height, chunk_bytes, sort, t0_us, t1_us)
+
+
+def iter_raw(
+    path: PathLike, *, width: int | None = None, height: int | None = None,
+    sort: bool = False, chunk_bytes: int = CHUNK_BYTES,
+) -> Iterator[Events]:
+    """Yield the events of a RAW file chunk by chunk in the format its header declares; as :func:`iter_evt3`."""
+    return _iter(path, _codec_of(path), width, height, chunk_bytes, sort)
