@@ -109,15 +109,20 @@ def _file_intrinsics(file: Any, path: Path) -> np.ndarray | None:
 
 
 def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, time_unit: str | None = None,
-                   polarity: str | None = None) -> Recording:
+                   polarity: str | None = None, t0_s: float | None = None,
+                   t1_s: float | None = None) -> Recording:
     """Open an event file of any format :func:`cmax.io.read` reads.
 
     ``size`` (width, height) [px], ``time_unit`` and ``polarity`` as :func:`cmax.io.read` takes them
     (for files that do not state them; never guessed). A DSEC-layout h5 file is read window by
-    window (:class:`cmax.io.H5Reader`); other formats are decoded whole. Raises FileNotFoundError,
-    :class:`cmax.io.FormatError` or ValueError (one line each) for a missing, unreadable or empty file.
+    window (:class:`cmax.io.H5Reader`); a Prophesee RAW file with ``t0_s`` / ``t1_s`` (seconds after its
+    first event, as ``--t0`` / ``--t1``) is decoded holding only that span (its ``first_us`` stays the
+    file's); other formats are decoded whole. Raises FileNotFoundError, :class:`cmax.io.FormatError` or
+    ValueError (one line each) for a missing, unreadable or empty file.
     """
+    from cmax.cli.recording import time_span_us
     from cmax.io import H5Reader, detect_format, read
+    from cmax.io.prophesee import iter_raw
 
     path = Path(path)
     kind = detect_format(path)
@@ -132,11 +137,20 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
             reader.close()
             raise
         return Recording(path, kind, reader.width, reader.height, first, last, K, reader.window, reader.close)
+    first = None
+    if kind == "raw" and (t0_s is not None or t1_s is not None) and time_unit in (None, "us") and not options:
+        chunk = next(iter_raw(path, width=width, height=height), None)
+        if chunk is not None:
+            first = int(chunk.t[0])
+            t0_us, t1_us = time_span_us(first, None, t0_s, t1_s)
+            options = {"t0_us": t0_us, "t1_us": t1_us}
     events = read(path, width=width, height=height, time_unit=time_unit, **options)
     if len(events) == 0:
+        if first is not None:
+            raise ValueError(f"{path}: no events between --t0 {t0_s} s and --t1 {t1_s} s")
         raise ValueError(f"{path} holds no events")
-    return Recording(path, kind, events.width, events.height, int(events.t[0]), int(events.t[-1]), None,
-                     events.slice_time, lambda: None)
+    return Recording(path, kind, events.width, events.height, int(events.t[0]) if first is None else first,
+                     int(events.t[-1]), None, events.slice_time, lambda: None)
 
 
 def time_bounds(first_us: int, last_us: int, t0_s: float | None, t1_s: float | None) -> tuple[int, int]:
@@ -553,11 +567,12 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
             raise ValueError("give the intrinsics with --K or --calib, not both")
         K, distortion, calib_size = read_calibration(calib, calib_camera)
     try:
-        recording = open_recording(path, size=size, time_unit=time_unit, polarity=polarity)
+        recording = open_recording(path, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s, t1_s=t1_s)
     except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
         if calib_size is None or size is not None or "width=" not in str(error):
             raise
-        recording = open_recording(path, size=calib_size, time_unit=time_unit, polarity=polarity)
+        recording = open_recording(path, size=calib_size, time_unit=time_unit, polarity=polarity, t0_s=t0_s,
+                                   t1_s=t1_s)
     try:
         if calib_size is not None and (recording.width, recording.height) != tuple(calib_size):
             raise ValueError(f"{calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({calib_camera}), the "

@@ -507,3 +507,23 @@ def test_the_window_plan_and_the_note_on_the_end_its_windows_leave_out():
     window_us, starts, _ = window_plan(0, 2_499_999, int(round(suggested * 1e6)), explicit=True)
     assert len(starts) == 3 and starts[-1] + window_us >= 2_499_999
     assert tail_note(0, 2_499_999, window_us, window_us) is None
+
+
+def test_t0_t1_of_a_raw_file_too_long_to_hold_read_only_that_span(checkpoint, network, tmp_path, capsys, monkeypatch):
+    """A Prophesee RAW file over cmax.events.MAX_EVENTS (lowered here under its 400k events, over one chunk's):
+    the whole file is refused; --t0 0.2 --t1 0.4 decode only that span (the file was decoded whole and refused
+    the same) and predict its windows as a direct forward does."""
+    from conftest import one_line_error
+
+    events = random_events(400_000, W, H, seed=6, t_span_us=1_000_000)
+    path = tmp_path / "long.raw"
+    write_evt3(path, events)
+    monkeypatch.setattr("cmax.events.MAX_EVENTS", 150_000)
+    base = ["depth", str(path), "--checkpoint", str(checkpoint), "--K", K_TEXT, "--quiet"]
+    status, err = one_line_error(lambda: cmax_main([*base, "-o", str(tmp_path / "all")]), capsys)
+    assert status == 2 and "more than cmax.events.MAX_EVENTS" in err
+    out = tmp_path / "part"
+    assert cmax_main([*base, "-o", str(out), "--t0", "0.2", "--t1", "0.4"]) == 0
+    first = int(events.t[0])
+    expected = _expected(network, events, start=first + 200_000, end=first + 400_000 - 1)
+    _check_outputs(out, expected)
