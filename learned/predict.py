@@ -117,12 +117,14 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
     (for files that do not state them; never guessed). A DSEC-layout h5 file is read window by
     window (:class:`cmax.io.H5Reader`); a Prophesee RAW file with ``t0_s`` / ``t1_s`` (seconds after its
     first event, as ``--t0`` / ``--t1``) is decoded holding only that span (its ``first_us`` stays the
-    file's); other formats are decoded whole. Raises FileNotFoundError, :class:`cmax.io.FormatError` or
-    ValueError (one line each) for a missing, unreadable or empty file.
+    file's), and one too long to hold (:data:`cmax.events.MAX_EVENTS`) window after window
+    (:class:`cmax.io.prophesee.RawWindows`); other formats are decoded whole. Raises FileNotFoundError,
+    :class:`cmax.io.FormatError` or ValueError (one line each) for a missing, unreadable or empty file.
     """
     from cmax.cli.recording import time_span_us
+    from cmax.events import EventLimitError
     from cmax.io import H5Reader, detect_format, read
-    from cmax.io.prophesee import iter_raw
+    from cmax.io.prophesee import RawWindows, iter_raw
 
     path = Path(path)
     kind = detect_format(path)
@@ -144,7 +146,16 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
             first = int(chunk.t[0])
             t0_us, t1_us = time_span_us(first, None, t0_s, t1_s)
             options = {"t0_us": t0_us, "t1_us": t1_us}
-    events = read(path, width=width, height=height, time_unit=time_unit, **options)
+    try:
+        events = read(path, width=width, height=height, time_unit=time_unit, **options)
+    except EventLimitError:
+        if kind != "raw":
+            raise
+        windows = RawWindows(path, width=width, height=height)
+        if not windows.count:
+            raise ValueError(f"{path} holds no events") from None
+        return Recording(path, kind, windows.width, windows.height, windows.first_us, windows.last_us, None,
+                         windows.window, windows.close)
     if len(events) == 0:
         if first is not None:
             raise ValueError(f"{path}: no events between --t0 {t0_s} s and --t1 {t1_s} s")

@@ -509,21 +509,45 @@ def test_the_window_plan_and_the_note_on_the_end_its_windows_leave_out():
     assert tail_note(0, 2_499_999, window_us, window_us) is None
 
 
-def test_t0_t1_of_a_raw_file_too_long_to_hold_read_only_that_span(checkpoint, network, tmp_path, capsys, monkeypatch):
+def test_t0_t1_of_a_raw_file_too_long_to_hold_read_only_that_span(checkpoint, network, tmp_path, monkeypatch):
     """A Prophesee RAW file over cmax.events.MAX_EVENTS (lowered here under its 400k events, over one chunk's):
-    the whole file is refused; --t0 0.2 --t1 0.4 decode only that span (the file was decoded whole and refused
-    the same) and predict its windows as a direct forward does."""
-    from conftest import one_line_error
-
+    --t0 0.2 --t1 0.4 decode only that span (the file was decoded whole and refused) and predict its windows
+    as a direct forward does."""
     events = random_events(400_000, W, H, seed=6, t_span_us=1_000_000)
     path = tmp_path / "long.raw"
     write_evt3(path, events)
     monkeypatch.setattr("cmax.events.MAX_EVENTS", 150_000)
     base = ["depth", str(path), "--checkpoint", str(checkpoint), "--K", K_TEXT, "--quiet"]
-    status, err = one_line_error(lambda: cmax_main([*base, "-o", str(tmp_path / "all")]), capsys)
-    assert status == 2 and "more than cmax.events.MAX_EVENTS" in err
     out = tmp_path / "part"
     assert cmax_main([*base, "-o", str(out), "--t0", "0.2", "--t1", "0.4"]) == 0
     first = int(events.t[0])
     expected = _expected(network, events, start=first + 200_000, end=first + 400_000 - 1)
     _check_outputs(out, expected)
+
+
+def test_a_whole_raw_file_too_long_to_hold_is_predicted_window_after_window(checkpoint, network, tmp_path,
+                                                                           monkeypatch):
+    """The same RAW file without --t0 / --t1 (it was refused): decoded window after window
+    (cmax.io.prophesee.RawWindows), every window equal to a direct forward."""
+    events = random_events(400_000, W, H, seed=6, t_span_us=1_000_000)
+    path = tmp_path / "long.raw"
+    write_evt3(path, events)
+    monkeypatch.setattr("cmax.events.MAX_EVENTS", 150_000)
+    out = tmp_path / "all"
+    assert cmax_main(["depth", str(path), "--checkpoint", str(checkpoint), "--K", K_TEXT, "--quiet", "-o", str(out)]) == 0
+    _check_outputs(out, _expected(network, events))
+
+
+def test_raw_windows_equal_the_whole_file_cut_and_read_forward(tmp_path):
+    from cmax.io.prophesee import RawWindows
+
+    events = random_events(50_000, W, H, seed=7, t_span_us=1_000_000)
+    path = tmp_path / "r.raw"
+    write_evt3(path, events)
+    windows = RawWindows(path, chunk_bytes=2048)
+    assert (windows.first_us, windows.last_us, windows.count) == (int(events.t[0]), int(events.t[-1]), len(events))
+    starts = np.sort(np.random.default_rng(1).integers(-10_000, 1_100_000, 40))
+    for t0, length in zip(starts, np.random.default_rng(2).integers(1, 300_000, 40)):   # overlapping, gaps, empty
+        assert windows.window(t0, t0 + length) == events.slice_time(int(t0), int(t0 + length))
+    with pytest.raises(ValueError, match="reads forward"):
+        windows.window(int(starts[-1]) - 1, int(starts[-1]) + 10)

@@ -1,7 +1,8 @@
 """Reading Prophesee RAW files: whole (:func:`read_evt3`, :func:`read_evt2`,
 :func:`read_raw`, which dispatches on the header), chunk by chunk in bounded
-memory (:func:`iter_evt3`, :func:`iter_evt2`, :func:`iter_raw`), or a time span of
-them in memory bounded by that span (``read_raw(..., t0_us=, t1_us=)``).
+memory (:func:`iter_evt3`, :func:`iter_evt2`, :func:`iter_raw`), a time span of
+them in memory bounded by that span (``read_raw(..., t0_us=, t1_us=)``), or window
+after window in time order (:class:`RawWindows`).
 
 The header and sensor size are checked before any word is decoded. The
 readers of a whole file read all its words at once, bound the event count
@@ -23,7 +24,7 @@ from cmax.io.prophesee._decode import (
 )
 from cmax.io.prophesee._header import PathLike, _read_header, _sensor_size
 
-__all__ = ["CHUNK_BYTES", "read_raw", "read_evt3", "read_evt2", "iter_raw", "iter_evt3", "iter_evt2"]
+__all__ = ["CHUNK_BYTES", "read_raw", "read_evt3", "read_evt2", "iter_raw", "iter_evt3", "iter_evt2", "RawWindows"]
 
 #: Default bytes of raw words decoded at a time by the iterators.
 CHUNK_BYTES = 1 << 18
@@ -282,3 +283,64 @@ def iter_raw(
 ) -> Iterator[Events]:
     """Yield the events of a RAW file chunk by chunk in the format its header declares; as :func:`iter_evt3`."""
     return _iter(path, _codec_of(path), width, height, chunk_bytes, sort)
+
+
+class RawWindows:
+    """Windows ``[t0_us, t1_us)`` of a RAW file, asked for in order of ``t0_us``, decoded chunk by chunk
+    (:func:`iter_raw`): memory holds the events from the last asked ``t0_us`` on and one chunk, not the file.
+
+    ``first_us`` / ``last_us`` (the first and last events' times [µs]), ``count``, ``width`` and ``height``
+    come from one decoding pass over the file at construction; ``window`` then decodes it a second time, as
+    far as the windows reach. A window that starts before the one asked before raises ValueError (the events
+    before it are gone); one of more than :data:`cmax.events.MAX_EVENTS` events raises
+    :class:`cmax.events.EventLimitError`. ``close`` is a no-op (each pass opens and closes the file).
+
+    >>> import tempfile
+    >>> from cmax.io.prophesee.writer import write_evt3
+    >>> path = Path(tempfile.mkdtemp()) / "recording.raw"
+    >>> write_evt3(path, Events([1, 2, 3, 4], [0, 0, 0, 0], [10, 20, 30, 40], [1, 0, 1, 0], 640, 480))
+    >>> windows = RawWindows(path)
+    >>> windows.first_us, windows.last_us, windows.window(15, 35).t.tolist(), windows.window(35, 50).t.tolist()
+    (10, 40, [20, 30], [40])
+    """
+
+    def __init__(self, path: PathLike, *, width: int | None = None, height: int | None = None,
+                 chunk_bytes: int = CHUNK_BYTES) -> None:
+        self.path, self._options = Path(path), dict(width=width, height=height, chunk_bytes=chunk_bytes)
+        _, limits, _, _ = _open_data(self.path, _codec_of(self.path), width, height, chunk_bytes, True)
+        self.width, self.height = limits.width, limits.height
+        self.first_us = self.last_us = None
+        self.count = 0
+        for chunk in iter_raw(self.path, **self._options):
+            if self.first_us is None:
+                self.first_us = int(chunk.t[0])
+            self.last_us, self.count = int(chunk.t[-1]), self.count + len(chunk)
+        self._chunks: Iterator[Events] | None = None
+        self._held: list[Events] = []
+        self._asked: int | None = None
+
+    def window(self, t0_us: int, t1_us: int) -> Events:
+        """The events with ``t0_us <= t < t1_us`` (``t0_us`` not before the last window's)."""
+        t0_us, t1_us = int(t0_us), int(t1_us)
+        if self._asked is not None and t0_us < self._asked:
+            raise ValueError(f"{self.path}: RawWindows reads forward: a window from {t0_us} µs comes after one from "
+                             f"{self._asked} µs")
+        if self._chunks is None:
+            self._chunks = iter_raw(self.path, **self._options)
+        self._asked = t0_us
+        self._held = [chunk for chunk in self._held if int(chunk.t[-1]) >= t0_us]
+        while self._chunks is not None and (not self._held or int(self._held[-1].t[-1]) < t1_us):
+            chunk = next(self._chunks, None)
+            if chunk is None:
+                self._chunks = iter(())                    # exhausted: later windows hold what is held
+                break
+            if int(chunk.t[-1]) >= t0_us:
+                self._held.append(chunk)
+        parts = [part for part in (chunk.slice_time(t0_us, t1_us) for chunk in self._held) if len(part)]
+        check_event_count(sum(len(part) for part in parts), f"{self.path}: the window [{t0_us}, {t1_us}) µs")
+        if not parts:
+            return Events._trusted(*_empty_columns(0), self.width, self.height)
+        return parts[0] if len(parts) == 1 else concatenate(parts)
+
+    def close(self) -> None:
+        """Nothing to release (each pass opens and closes the file)."""
