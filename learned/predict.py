@@ -614,7 +614,8 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
     if not written:
         raise ValueError(f"{path}: none of its {len(starts)} windows of {window_us * 1e-3:g} ms holds "
                          f"{MIN_EVENTS} events or more")
-    if (tail := tail_note(start, end, window_us, window_us, option="--window", unit_us=1_000_000)) is not None:
+    if (tail := tail_note(start, end, window_us, window_us, option="--window", unit_us=1_000_000,
+                          origin_us=recording.first_us)) is not None:
         note(tail)                           # after the run: a mistake found during it stays one line
         notes.append(tail)
     scale = run_scale(samples, depth_range)

@@ -420,6 +420,7 @@ def test_a_part_of_a_recording_too_long_to_hold_is_read_alone(tmp_path, capsys, 
     assert main(["fit", str(path), "--K", "90,90,59.5,44.5", "-o", str(out), "--model", "flow", "--t0", "0.4",
                  "--t1", "0.5", "--max-events", "5000", "--quiet"]) == 0
     (window,) = json.loads((out / "summary.json").read_text())["windows"]
+    assert "window 0 (0.400-0.500 s):" in capsys.readouterr().out      # times from the file's first event
     # the window spans the part (its ends: the first and last of the fit's 5000-event subsample)
     assert int(span.t[0]) <= window["t0_us"] < 400_100 and 499_900 < window["t1_us"] <= int(span.t[-1])
     monkeypatch.setattr("cmax.events.MAX_EVENTS", 1 << 28)

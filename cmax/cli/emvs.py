@@ -136,7 +136,7 @@ def run(args: argparse.Namespace) -> int:
     out = output_folder(args.output, "depth.npz, depth.png and points.ply")
     trajectory = None if args.poses is None else read_tum_trajectory(args.poses)   # a bad file: before the events
     K, distortion, calib_size = calibration_of(args)
-    events = read_calibrated(args, calib_size)       # --t0 / --t1 applied
+    events, _ = read_calibrated(args, calib_size)    # --t0 / --t1 applied
     if trajectory is None:
         trajectory = file_trajectory(args.file)
         if trajectory is None:

@@ -235,7 +235,7 @@ def run(args: argparse.Namespace) -> int:
         K = file_intrinsics(args.file)
         if K is None:
             raise ValueError(f"{args.file} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib")
-    events = read_calibrated(args, calib_size)       # --t0 / --t1 applied
+    events, origin_us = read_calibrated(args, calib_size)   # --t0 / --t1 applied; times print from the file's start
     notes = [hint] if (hint := calibration_hint(args)) else []
     if distortion is not None:
         total = len(events)
@@ -277,7 +277,8 @@ def run(args: argparse.Namespace) -> int:
     n_windows = len(window_starts(first_us, last_us, window_us, step_us))
     tail = uncovered_tail(first_us, last_us, window_us, step_us)
     if tail is not None:
-        notes.append(tail_note(first_us, last_us, window_us, step_us, events=len(events.slice_time(*tail))))
+        notes.append(tail_note(first_us, last_us, window_us, step_us, events=len(events.slice_time(*tail)),
+                               origin_us=origin_us))
     for note in notes:
         print(f"cmax fit: note: {note}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
@@ -298,7 +299,7 @@ def run(args: argparse.Namespace) -> int:
         if r.depth is not None:
             save_npz_atomic(out / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask, depth_spread=r.depth_spread,
                             inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=K)
-            title = (f"window {i}, t_ref {(r.t_ref_us - int(events.t[0])) * 1e-6:.3f} s, "
+            title = (f"window {i}, t_ref {(r.t_ref_us - origin_us) * 1e-6:.3f} s, "
                      f"depth [{'m' if r.scale_known else 'up to scale'}]"
                      + ("" if r.verdict is None else f", {r.verdict.value.replace('_', ' ')}"))
             viz.save_png(out / f"depth_{i:05d}.png", viz.depth_panel(np.where(r.mask, r.depth, np.nan), scale, title,
@@ -309,7 +310,7 @@ def run(args: argparse.Namespace) -> int:
                         "message": r.message,
                         "scale_known": r.scale_known, "parallax_px": r.parallax_px,
                         **(r.quality.summary() if r.quality is not None else {"verdict": None})})
-        print(window_line(i, r, int(events.t[0])))
+        print(window_line(i, r, origin_us))
     write_text_atomic(out / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
     summary = {"file": str(args.file), "model": sequence_model, "K": K.tolist(),
                "distortion": None if distortion is None else distortion.tolist(),

@@ -122,8 +122,9 @@ def calibration_hint(args: argparse.Namespace) -> str | None:
 
 
 def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None):
-    """The events of ``args.file`` (:func:`cmax.io.read` with :func:`file_kwargs`) between ``--t0`` and ``--t1``
-    (:func:`time_slice`); a file that stores no size takes the calibration's (``calib_size``, from
+    """``(events, origin_us)``: the events of ``args.file`` (:func:`cmax.io.read` with :func:`file_kwargs`) between
+    ``--t0`` and ``--t1`` (:func:`time_slice`), and the time [µs] of the file's first event, which ``--t0`` and
+    the times a command prints count from; a file that stores no size takes the calibration's (``calib_size``, from
     :func:`calibration_of`) unless ``--size`` gives one. A DSEC-layout h5 file is read from disk only over that
     span, a Prophesee RAW file decoded up to its end holding only the span (a recording too long to hold,
     :data:`cmax.events.MAX_EVENTS`, can be fitted a part at a time); other formats are decoded whole, then cut.
@@ -139,18 +140,19 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
         span = {} if bounds is None else {"t0_us": bounds[0], "t1_us": bounds[1]}
         events = read(args.file, **{**options, **size, **span})
         if bounds is None:
-            return events if not len(events) else time_slice(events, t0_s, t1_s)
+            origin = int(events.t[0]) if len(events) else 0
+            return (events if not len(events) else time_slice(events, t0_s, t1_s)), origin
         if len(events) == 0:
             raise ValueError(f"no events between --t0 {t0_s} s and --t1 {t1_s} s")
-        return events
+        return events, bounds[0] - int(round((t0_s or 0.0) * 1e6))
 
     try:
         try:
-            events = read_span()
+            events, origin = read_span()
         except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
             if calib_size is None or args.size is not None or "width=" not in str(error):
                 raise
-            events = read_span(width=calib_size[0], height=calib_size[1])
+            events, origin = read_span(width=calib_size[0], height=calib_size[1])
     except EventLimitError as error:
         if detect_format(args.file) not in ("dsec", "raw"):
             raise
@@ -160,7 +162,7 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
     if calib_size is not None and (events.width, events.height) != tuple(calib_size):
         raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
                          f"the events come from a {events.width}x{events.height} sensor")
-    return events
+    return events, origin
 
 
 def _file_span_us(path, options: dict, t0_s: float | None, t1_s: float | None) -> tuple[int, int | None] | None:
@@ -335,12 +337,13 @@ TAIL_NOTE_FRACTION = 0.01
 
 
 def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, option: str = "--window-ms",
-              unit_us: int = 1000, events: int | None = None) -> str | None:
+              unit_us: int = 1000, events: int | None = None, origin_us: int | None = None) -> str | None:
     """The note of a window-by-window command on the end of the recording that its whole windows leave out
     (:func:`cmax.events.uncovered_tail`), with a window length ``option`` (in units of ``unit_us`` µs) whose
     windows tile the recording (when the windows do not overlap: up to a few µs, as whole µs rarely divide the
     recording); None when nothing, or less than :data:`TAIL_NOTE_FRACTION` of a window, is left out.
-    ``events``: how many events that end holds (said when given).
+    ``events``: how many events that end holds (said when given); ``origin_us``: where the times it gives count
+    from (the file's first event when ``--t0`` cut the events; default ``first_us``).
 
     >>> print(tail_note(0, 2_499_999, 1_000_000, 1_000_000))
     the last 500.0 ms of the recording (after 2.000 s) are shorter than a window (1000.0 ms) and are left out: --window-ms 833.333 covers it in 3 windows
@@ -354,7 +357,8 @@ def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, opti
         return None
     start, end = tail
     held = "" if events is None else f", {events:,} events"
-    text = (f"the last {(end - start) * 1e-3:.1f} ms of the recording (after {(start - first_us) * 1e-6:.3f} s{held}) "
+    origin = first_us if origin_us is None else origin_us
+    text = (f"the last {(end - start) * 1e-3:.1f} ms of the recording (after {(start - origin) * 1e-6:.3f} s{held}) "
             f"are shorter than a window ({window_us * 1e-3:.1f} ms) and are left out")
     if step_us == window_us:
         span = int(last_us) - int(first_us) + 1
