@@ -121,10 +121,10 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
     (:class:`cmax.io.prophesee.RawWindows`); other formats are decoded whole. Raises FileNotFoundError,
     :class:`cmax.io.FormatError` or ValueError (one line each) for a missing, unreadable or empty file.
     """
-    from cmax.cli.recording import time_span_us
+    from cmax.cli.recording import file_span_us
     from cmax.events import EventLimitError
     from cmax.io import H5Reader, detect_format, read
-    from cmax.io.prophesee import RawWindows, iter_raw
+    from cmax.io.prophesee import RawWindows
 
     path = Path(path)
     kind = detect_format(path)
@@ -140,12 +140,10 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
             raise
         return Recording(path, kind, reader.width, reader.height, first, last, K, reader.window, reader.close)
     first = None
-    if kind == "raw" and (t0_s is not None or t1_s is not None) and time_unit in (None, "us") and not options:
-        chunk = next(iter_raw(path, width=width, height=height), None)
-        if chunk is not None:
-            first = int(chunk.t[0])
-            t0_us, t1_us = time_span_us(first, None, t0_s, t1_s)
-            options = {"t0_us": t0_us, "t1_us": t1_us}
+    if kind == "raw":      # a span of it decoded alone (a DSEC-layout h5 file is read window by window above)
+        span = file_span_us(path, dict(width=width, height=height, time_unit=time_unit, **options), t0_s, t1_s)
+        if span is not None:
+            first, options = span[0], {**options, "t0_us": span[1], "t1_us": span[2]}
     try:
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
     except EventLimitError:

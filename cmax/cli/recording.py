@@ -26,7 +26,7 @@ from cmax.camera import check_intrinsics
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "distortion_argument", "read_calibration",
-           "time_slice", "time_span_us", "tail_note", "overlap"]
+           "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap"]
 
 #: ``argparse`` type of ``--distortion k1,k2,p1,p2[,k3]`` (OpenCV order, dimensionless).
 distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
@@ -136,15 +136,15 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
     t0_s, t1_s = getattr(args, "t0", None), getattr(args, "t1", None)
 
     def read_span(**size):
-        bounds = _file_span_us(args.file, {**options, **size}, t0_s, t1_s)
-        span = {} if bounds is None else {"t0_us": bounds[0], "t1_us": bounds[1]}
-        events = read(args.file, **{**options, **size, **span})
-        if bounds is None:
+        span = file_span_us(args.file, {**options, **size}, t0_s, t1_s)
+        bounds = {} if span is None else {"t0_us": span[1], "t1_us": span[2]}
+        events = read(args.file, **{**options, **size, **bounds})
+        if span is None:
             origin = int(events.t[0]) if len(events) else 0
             return (events if not len(events) else time_slice(events, t0_s, t1_s)), origin
         if len(events) == 0:
             raise ValueError(f"no events between --t0 {t0_s} s and --t1 {t1_s} s")
-        return events, bounds[0] - int(round((t0_s or 0.0) * 1e6))
+        return events, span[0]
 
     try:
         try:
@@ -165,11 +165,13 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
     return events, origin
 
 
-def _file_span_us(path, options: dict, t0_s: float | None, t1_s: float | None) -> tuple[int, int | None] | None:
-    """The absolute span [µs] of ``--t0`` / ``--t1`` in a file that can be read a span at a time, from its first
-    event (and last, for a DSEC-layout h5: :class:`cmax.io.H5Reader`; a Prophesee RAW file's first chunk:
-    :func:`cmax.io.prophesee.iter_raw`, its end open without ``--t1``); None for other formats, an empty file,
-    or when neither bound is given."""
+def file_span_us(path, options: dict, t0_s: float | None,
+                 t1_s: float | None) -> tuple[int, int, int | None] | None:
+    """``(first_us, t0_us, t1_us)``: a file's first event and the absolute span [µs] of ``--t0`` / ``--t1``, for
+    the files that can be read a span at a time, from their first event alone (and last, for a DSEC-layout h5:
+    :class:`cmax.io.H5Reader`; a Prophesee RAW file's first chunk, :func:`cmax.io.prophesee.iter_raw`, its end
+    open without ``--t1``); None for other formats, an empty file, or when neither bound is given. ``options``:
+    the :func:`cmax.io.read` keywords of the file."""
     from cmax.io import H5Reader, detect_format
     from cmax.io.prophesee import iter_raw
 
@@ -178,10 +180,14 @@ def _file_span_us(path, options: dict, t0_s: float | None, t1_s: float | None) -
     kind = detect_format(path)
     if kind == "dsec":
         with H5Reader(path, **options) as reader:
-            return time_span_us(reader.t_start, reader.t_end, t0_s, t1_s) if len(reader) else None
+            if not len(reader):
+                return None
+            return (reader.t_start, *time_span_us(reader.t_start, reader.t_end, t0_s, t1_s))
     if kind == "raw" and options.get("time_unit") in (None, "us") and "polarity" not in options:
         first = next(iter_raw(path, width=options.get("width"), height=options.get("height")), None)
-        return None if first is None else time_span_us(int(first.t[0]), None, t0_s, t1_s)
+        if first is None:
+            return None
+        return (int(first.t[0]), *time_span_us(int(first.t[0]), None, t0_s, t1_s))
     return None
 
 
