@@ -293,7 +293,8 @@ class RawWindows:
     come from one decoding pass over the file at construction; ``window`` then decodes it a second time, as
     far as the windows reach. A window that starts before the one asked before raises ValueError (the events
     before it are gone); one of more than :data:`cmax.events.MAX_EVENTS` events raises
-    :class:`cmax.events.EventLimitError`. ``close`` is a no-op (each pass opens and closes the file).
+    :class:`cmax.events.EventLimitError`. ``close`` closes the file of the second pass (also closed when that
+    pass ends).
 
     >>> import tempfile
     >>> from cmax.io.prophesee.writer import write_evt3
@@ -343,4 +344,7 @@ class RawWindows:
         return parts[0] if len(parts) == 1 else concatenate(parts)
 
     def close(self) -> None:
-        """Nothing to release (each pass opens and closes the file)."""
+        """Close the file of the second pass (later windows hold only what is already decoded)."""
+        if self._chunks is not None and hasattr(self._chunks, "close"):
+            self._chunks.close()
+        self._chunks = iter(())
