@@ -51,7 +51,7 @@ def test_a_video_without_events_says_so_and_exits_1(tmp_path, capsys):
     assert main(["simulate", str(tmp_path / "still.avi"), "-o", str(tmp_path / "still.h5"), *FAST, "--quiet"]) == 1
     captured = capsys.readouterr()
     assert "no events from still: 1 frame(s)" in captured.err
-    assert "1 videos ok (1 of them with no events)" in captured.out
+    assert "1 video ok (1 of them with no events)" in captured.out
     assert load_manifest(tmp_path / "manifest.json")["videos"]["still"]["events"] == 0
 
 

@@ -140,7 +140,8 @@ def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
     empty = [name for name in names if videos.get(name, {}).get("status") == "ok"
              and videos[name].get("events", 0) == 0]
     note = f" ({len(empty)} of them with no events)" if empty else ""
-    print(f"{path}: {totals['ok']} videos ok{note}, {totals['failed']} failed, {totals['events']:,} events")
+    videos_ok = f"{totals['ok']} video{'' if totals['ok'] == 1 else 's'} ok"
+    print(f"{path}: {videos_ok}{note}, {totals['failed']} failed, {totals['events']:,} events")
     for name in names:
         entry = videos.get(name, {})
         if entry.get("status") == "ok" and name not in empty:
