@@ -28,7 +28,7 @@ import cv2
 import numpy as np
 
 __all__ = [
-    "event_frame_image", "iwe_image", "signed_image", "voxel_grid_image", "depth_image", "robust_max",
+    "event_frame_image", "iwe_image", "signed_image", "signed_colour_bar", "voxel_grid_image", "depth_image", "robust_max",
     "titled", "hstack", "vstack", "save_png", "save_image", "DepthScale", "depth_colour_bar", "depth_panel",
     "event_panel", "grid", "ON_BGR", "OFF_BGR", "NO_DEPTH_BGR", "NO_DEPTH_HATCH_BGR", "IMAGE_SUFFIXES",
     "MIN_PICTURE_WIDTH", "readable_zoom", "enlarge",
@@ -167,11 +167,40 @@ def signed_image(values: np.ndarray, *, scale: float | None = None, gamma: float
     return np.clip(image, 0, 255).astype(np.uint8)
 
 
+def signed_colour_bar(height: int, scale: float, *, gamma: float = 1.0, font_scale: float = 0.4,
+                      unit: str = "") -> np.ndarray:
+    """Vertical colour bar (height, w, 3) of :func:`signed_image`'s map: ``+scale`` (blue, top), 0 (white), and
+    ``-scale`` (red, bottom), labelled at the ends and at zero in ``unit``; the ends saturate (``>=``)."""
+    if isinstance(height, bool) or not isinstance(height, (int, np.integer)) or height < 40:
+        raise ValueError(f"height must be an integer >= 40 px, got {height!r}")
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive finite number, got {scale}")
+    thickness = _thickness(font_scale)
+    line = int(round(18 * font_scale / 0.4))
+    bar_width = max(12, line)
+    labels = [f">= +{scale:.3g} {unit}".rstrip(), f"0 {unit}".rstrip(), f"<= -{scale:.3g} {unit}".rstrip()]
+    width = bar_width + 8 + max(_text_width(text, font_scale) for text in labels) + 4
+    image = np.full((height, width, 3), _WHITE, np.uint8)
+    top = line // 2
+    bar_height = height - line
+    values = np.linspace(scale, -scale, bar_height, dtype=np.float32)
+    image[top: top + bar_height, :bar_width] = signed_image(np.repeat(values[:, None], bar_width, axis=1),
+                                                            scale=scale, gamma=gamma)
+    for k, text in enumerate(labels):
+        row = top + int(round(k * (bar_height - 1) / 2))
+        image[row, bar_width: bar_width + 4] = 0
+        cv2.putText(image, text, (bar_width + 6, row + line // 3), _FONT, font_scale, (0, 0, 0), thickness,
+                    cv2.LINE_AA)
+    return image
+
+
 def voxel_grid_image(volume: np.ndarray, *, gap: int = 4, columns: int | None = None,
-                     percentile: float = 99.0, gamma: float = 1.0, shrink: int = 1) -> np.ndarray:
+                     percentile: float = 99.0, gamma: float = 1.0, shrink: int = 1,
+                     unit: str | None = "events") -> np.ndarray:
     """The B bins of an event volume (B, H, W) on one symmetric colour scale (the ``percentile`` of
     the non-zero ``|values|`` of all bins), side by side or in rows of ``columns``, each bin
-    reduced ``shrink`` times (area average of the picture) for wide sensors."""
+    reduced ``shrink`` times (area average of the picture) for wide sensors; with a colour bar of that
+    scale labelled in ``unit`` beside them (None: no bar)."""
     volume = np.asarray(volume, dtype=np.float32)
     if volume.ndim != 3:
         raise ValueError(f"volume must have shape (B, H, W), got {volume.shape}")
@@ -188,7 +217,12 @@ def voxel_grid_image(volume: np.ndarray, *, gap: int = 4, columns: int | None = 
             size = (max(1, tile.shape[1] // shrink), max(1, tile.shape[0] // shrink))
             tile = cv2.resize(tile, size, interpolation=cv2.INTER_AREA)
         tiles.append(titled(tile, f"bin {i}"))
-    return grid(tiles, len(tiles) if columns is None else columns, gap=gap)
+    picture = grid(tiles, len(tiles) if columns is None else columns, gap=gap)
+    if unit is None:
+        return picture
+    bar = signed_colour_bar(max(tiles[0].shape[0], 40), scale, gamma=gamma,
+                            font_scale=_font_scale(tiles[0].shape[1]) * 0.9, unit=unit)
+    return hstack([picture, bar], gap=gap)
 
 
 @dataclass(frozen=True)

@@ -172,3 +172,23 @@ def test_wrapped_titles_of_wide_pictures_stay_inside_the_picture():
         strip = picture[:-40]
         assert (strip[:, -3:] == 255).all(), width   # no text reaches the right edge
         assert (strip < 128).any()                    # and the text is there
+
+
+def test_the_event_volume_bins_carry_the_colour_bar_of_their_scale():
+    """One bin holds +2 and -2 events at two pixels (the rest 0): the bar beside the bins runs from the blue of +2
+    (top) through white to the red of -2 (bottom), the colours the pixels have; without a unit, no bar."""
+    volume = np.zeros((2, 60, 80), np.float32)
+    volume[0, 10, 10], volume[1, 30, 40] = 2.0, -2.0
+    bare = viz.voxel_grid_image(volume, unit=None, percentile=100.0)
+    picture = viz.voxel_grid_image(volume, percentile=100.0)
+    assert picture.shape[1] > bare.shape[1] + 40 and picture.shape[0] == bare.shape[0]
+    bar = picture[:, bare.shape[1] + 4: bare.shape[1] + 4 + 12]
+    column = bar[:, 6].astype(int)
+    painted = np.flatnonzero((column != 255).any(axis=1))
+    top, bottom = column[painted[0]], column[painted[-1]]
+    positive = viz.signed_image(np.array([[2.0]]), scale=2.0)[0, 0]
+    negative = viz.signed_image(np.array([[-2.0]]), scale=2.0)[0, 0]
+    np.testing.assert_array_equal(top, positive)
+    np.testing.assert_array_equal(bottom, negative)
+    middle = column[(painted[0] + painted[-1]) // 2]
+    assert (middle > 240).all()                                  # white at zero
