@@ -58,7 +58,8 @@ def test_show_voxel_mode(h5_file, tmp_path):
     path, _ = h5_file
     out = tmp_path / "voxel.png"
     assert main(["show", str(path), "--mode", "voxel", "--bins", "3", "-o", str(out)]) == 0
-    assert cv2.imread(str(out)).shape[1] == 3 * (5 * 64) + 2 * 4    # three bins side by side, each drawn 5x
+    width = cv2.imread(str(out)).shape[1]       # three bins side by side, each drawn 5x, then their colour bar
+    assert 3 * (5 * 64) + 2 * 4 + 4 + 40 < width < 3 * (5 * 64) + 2 * 4 + 4 + 250
 
 
 @pytest.mark.parametrize("argv, message", [
