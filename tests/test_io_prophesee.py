@@ -435,3 +435,22 @@ def test_bad_arguments(evt3_file: Path) -> None:
         iter_evt3(evt3_file, chunk_bytes=1.5)
     with pytest.raises(TypeError):
         read_evt3(evt3_file, 32, 16)  # options are keyword-only
+
+
+def test_file_info_of_a_raw_file_too_long_to_hold(tmp_path: Path, monkeypatch) -> None:
+    """``cmax info`` of a RAW file over cmax.events.MAX_EVENTS (lowered here under its 400k events, over one
+    chunk's): decoded chunk by chunk (it was decoded whole and refused), every figure that of the events."""
+    from cmax.io.info import file_info
+
+    events = random_events(400_000, seed=9, t_span_us=2_000_000)
+    path = tmp_path / "long.raw"
+    write_evt3(path, events)
+    monkeypatch.setattr("cmax.events.MAX_EVENTS", 150_000)
+    info = file_info(path)
+    assert (info.format, info.count, info.width, info.height) == ("raw", len(events), 64, 48)
+    assert (info.t_start_us, info.t_end_us) == (int(events.t[0]), int(events.t[-1]))
+    assert info.on_count == int(np.count_nonzero(events.p))
+    empty = tmp_path / "empty.raw"
+    write_evt3(empty, Events([], [], [], [], 32, 16))
+    info = file_info(empty)
+    assert (info.count, info.width, info.height, info.t_start_us) == (0, 32, 16, None)

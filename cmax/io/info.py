@@ -84,7 +84,8 @@ def file_info(
     time_unit: str | None = None, **options: Any,
 ) -> EventFileInfo:
     """Summary of an event file; DSEC files are read in chunks (bounded memory) and every row is
-    checked as the readers check it (a NaN time or a step back in the middle raises FormatError).
+    checked as the readers check it (a NaN time or a step back in the middle raises FormatError);
+    Prophesee RAW files are decoded chunk by chunk (:func:`cmax.io.prophesee.iter_raw`).
 
     ``time_unit`` and ``options`` (e.g. ``polarity='signed'``) go to the reader:
     times are never guessed and polarities never mapped silently, so a file
@@ -94,6 +95,8 @@ def file_info(
 
     path = Path(path)
     kind = detect_format(path)
+    if kind == "raw" and time_unit in (None, "us") and not options:
+        return _raw_info(path, width, height)
     if kind != "dsec":
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
         return events_info(events, path=str(path), format=kind)
@@ -116,3 +119,19 @@ def file_info(
             t_end_us=reader.t_end if len(reader) else None, on_count=on_count,
             attrs=reader.attrs,
         )
+
+
+def _raw_info(path: Path, width: int | None, height: int | None) -> EventFileInfo:
+    """:func:`file_info` of a Prophesee RAW file, decoded chunk by chunk (a file of any length)."""
+    from cmax.io.prophesee import iter_raw, read_raw
+
+    count = on = 0
+    first = last = size = None
+    for chunk in iter_raw(path, width=width, height=height):
+        size = chunk.sensor_size
+        first = int(chunk.t[0]) if first is None else first
+        last, count, on = int(chunk.t[-1]), count + len(chunk), on + int(np.count_nonzero(chunk.p))
+    if size is None:                                   # no event: the header's size
+        size = read_raw(path, width=width, height=height).sensor_size
+    return EventFileInfo(path=str(path), format="raw", count=count, width=size[0], height=size[1],
+                         t_start_us=first, t_end_us=last, on_count=on)
