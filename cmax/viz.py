@@ -28,7 +28,8 @@ import cv2
 import numpy as np
 
 __all__ = [
-    "event_frame_image", "iwe_image", "signed_image", "signed_colour_bar", "voxel_grid_image", "depth_image", "robust_max",
+    "event_frame_image", "iwe_image", "signed_image", "signed_colour_bar", "voxel_grid_image", "depth_image",
+    "robust_max",
     "titled", "hstack", "vstack", "save_png", "save_image", "DepthScale", "depth_colour_bar", "depth_panel",
     "event_panel", "grid", "ON_BGR", "OFF_BGR", "NO_DEPTH_BGR", "NO_DEPTH_HATCH_BGR", "IMAGE_SUFFIXES",
     "MIN_PICTURE_WIDTH", "readable_zoom", "enlarge",

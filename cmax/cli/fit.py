@@ -190,10 +190,10 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
                             "parallax, --model rotation fits the rotation alone" if model == "se3" else
                             "motion to measure: a longer --window-ms gives more"))
         if cell_noise:
-            lines.append(f"{cell_noise} of {total} windows have a fitted {model} that sharpens only parts of the image: "
-                         "either too little motion (a longer --window-ms gives more) or parts that move differently "
-                         "(depth differences, or a motion that changes within a window: --model se3 or a shorter "
-                         "--window-ms)")
+            lines.append(f"{cell_noise} of {total} windows have a fitted {model} that sharpens only parts of the "
+                         "image: either too little motion (a longer --window-ms gives more) or parts that move "
+                         "differently (depth differences, or a motion that changes within a window: --model se3 or a "
+                         "shorter --window-ms)")
         if no_motion:
             lines.append(f"{no_motion} of them show no motion at all (the fitted motion sharpens the events with their "
                          "timestamps shuffled as much): sensor noise, flicker or a static scene; check the recording")
