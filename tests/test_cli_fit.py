@@ -413,9 +413,10 @@ def test_a_part_of_a_recording_too_long_to_hold_is_read_alone(tmp_path, capsys, 
     write_h5(path, events) if suffix == ".h5" else write_evt3(path, events)
     span = events.slice_time(400_000, 500_000)
     monkeypatch.setattr("cmax.events.MAX_EVENTS", 150_000)
-    status, err = one_line_error(lambda: main(["fit", str(path), "--K", "90,90,59.5,44.5", "-o", str(tmp_path / "all"),
-                                               "--quiet"]), capsys)
-    assert status == 2 and "more than cmax.events.MAX_EVENTS" in err and "--t0 / --t1 read a part of it" in err
+    if suffix == ".raw":   # (an h5 file is fitted window by window: the next test)
+        status, err = one_line_error(lambda: main(["fit", str(path), "--K", "90,90,59.5,44.5", "-o",
+                                                   str(tmp_path / "all"), "--quiet"]), capsys)
+        assert status == 2 and "more than cmax.events.MAX_EVENTS" in err and "--t0 / --t1 read a part of it" in err
     out = tmp_path / "part"
     assert main(["fit", str(path), "--K", "90,90,59.5,44.5", "-o", str(out), "--model", "flow", "--t0", "0.4",
                  "--t1", "0.5", "--max-events", "5000", "--quiet"]) == 0
@@ -425,3 +426,28 @@ def test_a_part_of_a_recording_too_long_to_hold_is_read_alone(tmp_path, capsys, 
     assert int(span.t[0]) <= window["t0_us"] < 400_100 and 499_900 < window["t1_us"] <= int(span.t[-1])
     monkeypatch.setattr("cmax.events.MAX_EVENTS", 1 << 28)
     assert read(path, t0_us=400_000, t1_us=500_000) == span                      # the same events
+
+
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_a_whole_h5_file_too_long_to_hold_is_fitted_window_by_window(tmp_path, capsys, monkeypatch, jobs):
+    """A DSEC-layout h5 file over cmax.events.MAX_EVENTS (lowered here) without --t0/--t1 (it was refused): read
+    window by window from the file, with a note, every window's fit equal to that of the same file held in
+    memory; undistortion (--distortion) applies to each window."""
+    from conftest import random_events
+
+    events = random_events(400_000, width=120, height=90, seed=4, t_span_us=1_000_000)
+    path = write_h5(tmp_path / "recording.h5", events)
+    argv = ["fit", str(path), "--K", "90,90,59.5,44.5", "--model", "flow", "--max-events", "3000",
+            "--distortion", "-0.1,0.02,0,0", "--quiet", "--jobs", str(jobs)]
+    assert main([*argv, "-o", str(tmp_path / "held")]) == 0     # --distortion: its summary crashed (a tuple)
+    assert json.loads((tmp_path / "held" / "summary.json").read_text())["distortion"] == [-0.1, 0.02, 0.0, 0.0]
+    capsys.readouterr()
+    monkeypatch.setattr("cmax.events.MAX_EVENTS", 150_000)
+    assert main([*argv, "-o", str(tmp_path / "streamed")]) == 0
+    err = capsys.readouterr().err
+    assert "more than cmax.events.MAX_EVENTS=150,000: fitting it window by window from the file" in err
+    held, streamed = (json.loads((tmp_path / name / "summary.json").read_text())["windows"]
+                      for name in ("held", "streamed"))
+    assert len(held) == len(streamed) == 6
+    for a, b in zip(held, streamed):
+        assert (a["t0_us"], a["t1_us"], a["flow"]) == (b["t0_us"], b["t1_us"], b["flow"])

@@ -22,8 +22,9 @@ import numpy as np
 
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import output_folder
-from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_hint, calibration_of,
-                                file_intrinsics, overlap, read_calibrated, tail_note)
+from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
+                                calibration_of, event_span, file_intrinsics, open_streamed, overlap, read_calibrated,
+                                tail_note)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 __all__ = ["add_command", "advice", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
@@ -126,17 +127,20 @@ def _microseconds(ms: float, option: str) -> int:
 
 
 class _CountedWindows:
-    """Events behind the reader protocol of :func:`fit_sequence` (``window(t0_us, t1_us)``, ``t_start``,
-    ``t_end``), advancing a progress bar by one each time a window is done (the next one is taken)."""
+    """Events (or :class:`~cmax.cli.recording.StreamedEvents`) behind the reader protocol of :func:`fit_sequence`
+    (``window(t0_us, t1_us)``, ``t_start``, ``t_end``), advancing a progress bar by one each time a window is done
+    (the next one is taken)."""
 
     def __init__(self, events, bar) -> None:
         self.events, self.bar, self.taken = events, bar, 0
-        self.t_start, self.t_end = int(events.t[0]), int(events.t[-1])
+        self.t_start, self.t_end = event_span(events)
 
     def window(self, t0_us: int, t1_us: int):
         if self.taken and self.bar.n < self.bar.total:
             self.bar.update(1)
         self.taken += 1
+        if isinstance(self.events, StreamedEvents):
+            return self.events.window(t0_us, t1_us)
         return self.events.slice_time(t0_us, t1_us)
 
     def finish(self) -> None:
@@ -222,7 +226,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from cmax import viz
-    from cmax.events import uncovered_tail, window_starts
+    from cmax.events import EventLimitError, uncovered_tail, window_starts
     from cmax.fitting import FitSettings, fit_sequence
     from cmax.fitting.quality import LowMotionCause
     from cmax.fitting.sequence import check_gyro, constant_gyro
@@ -235,9 +239,21 @@ def run(args: argparse.Namespace) -> int:
         K = file_intrinsics(args.file)
         if K is None:
             raise ValueError(f"{args.file} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib")
-    events, origin_us = read_calibrated(args, calib_size)   # --t0 / --t1 applied; times print from the file's start
     notes = [hint] if (hint := calibration_hint(args)) else []
-    if distortion is not None:
+    try:
+        events, origin_us = read_calibrated(args, calib_size)   # --t0/--t1 applied; times print from the file's start
+    except EventLimitError as error:         # a whole DSEC-layout h5 file too long to hold: window by window
+        if args.t0 is not None or args.t1 is not None or (events := open_streamed(args, calib_size)) is None:
+            raise
+        if calib_size is not None and (events.width, events.height) != tuple(calib_size):
+            events.close()
+            raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera, the events come from "
+                             f"a {events.width}x{events.height} sensor") from None
+        origin_us = events.t_start
+        notes.append(f"{str(error).split(' that fit in memory')[0]}: fitting it window by window from the file")
+    if distortion is not None and isinstance(events, StreamedEvents):
+        events = events.with_transform(lambda window: undistorted_events(window, K, distortion))
+    elif distortion is not None:
         total = len(events)
         events = undistorted_events(events, K, distortion)
         if len(events) < total:
@@ -248,7 +264,7 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--omega applies to --model se3, not {args.model}")
         if args.gyro is not None:
             raise ValueError("--omega is a constant rotation, --gyro a measured one: pass one of them")
-        gyro = constant_gyro(args.omega, int(events.t[0]), int(events.t[-1]) + 1)
+        gyro = constant_gyro(args.omega, event_span(events)[0], event_span(events)[1] + 1)
     if args.gyro is not None:
         gyro = check_gyro(read_gyro(args.gyro))
         events, note = overlap(events, gyro[0], "gyro samples", args.gyro, "fitting the overlap")
@@ -268,17 +284,17 @@ def run(args: argparse.Namespace) -> int:
     window_us = (_sequence_default("window_us")() if args.window_ms is None
                  else _microseconds(args.window_ms, "--window-ms"))
     step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
-    span_us = int(events.t[-1]) - int(events.t[0]) + 1
+    first_us, last_us = event_span(events)
+    span_us = last_us - first_us + 1
     if window_us > span_us:
         notes.append(f"the recording ({span_us * 1e-3:.1f} ms) is shorter than the window ({window_us * 1e-3:.1f} ms): "
                      "fitting one window over the whole recording")
         window_us = step_us = span_us
-    first_us, last_us = int(events.t[0]), int(events.t[-1])
     n_windows = len(window_starts(first_us, last_us, window_us, step_us))
     tail = uncovered_tail(first_us, last_us, window_us, step_us)
     if tail is not None:
-        notes.append(tail_note(first_us, last_us, window_us, step_us, events=len(events.slice_time(*tail)),
-                               origin_us=origin_us))
+        held = None if isinstance(events, StreamedEvents) else len(events.slice_time(*tail))
+        notes.append(tail_note(first_us, last_us, window_us, step_us, events=held, origin_us=origin_us))
     for note in notes:
         print(f"cmax fit: note: {note}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
@@ -293,6 +309,8 @@ def run(args: argparse.Namespace) -> int:
     finally:
         if args.jobs == 1:
             source.finish()
+        if isinstance(events, StreamedEvents):
+            events.close()
     windows = []
     scale = _depth_scale(sequence.results, args.depth_range)
     for i, r in enumerate(sequence.results):

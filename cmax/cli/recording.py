@@ -5,7 +5,7 @@
 * :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--t0``, ``--t1`` of the commands that fit or
   predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``; :func:`tail_note` says
   what their windows leave out at the end; :func:`overlap` cuts the events to the span of a gyroscope's samples
-  or of poses;
+  or of poses; :func:`open_streamed`: a DSEC-layout h5 file too long to hold, read window by window;
 * :func:`add_camera_options`: ``--K`` or ``--calib`` (with ``--calib-camera``), and ``--distortion``, of the
   commands that need the intrinsics (``cmax fit``, ``cmax emvs``), :func:`calibration_of` and
   :func:`read_calibrated` behind them; :func:`intrinsics_argument`,
@@ -26,7 +26,8 @@ from cmax.camera import check_intrinsics
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "distortion_argument", "read_calibration",
-           "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap"]
+           "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
+           "open_streamed", "event_span"]
 
 #: ``argparse`` type of ``--distortion k1,k2,p1,p2[,k3]`` (OpenCV order, dimensionless).
 distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
@@ -95,7 +96,7 @@ def calibration_of(args: argparse.Namespace) -> tuple[np.ndarray | None, np.ndar
     as given (no size), or those of the ``--calib`` file (:func:`read_calibration`), which refuses
     ``--distortion`` beside it."""
     if args.calib is None:
-        return args.K, args.distortion, None
+        return args.K, None if args.distortion is None else np.asarray(args.distortion, dtype=np.float64), None
     if args.distortion is not None:
         raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
     return read_calibration(args.calib, args.calib_camera)
@@ -379,10 +380,11 @@ def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, opti
 def overlap(events, times_us: np.ndarray, what: str, source: object, doing: str):
     """The events inside ``[times_us[0], times_us[-1]]`` (a gyroscope's samples, a trajectory's poses [µs], on
     the events' clock), and a note when some were cut (None when none); ValueError when nothing overlaps.
+    ``events``: :class:`cmax.events.Events` or :class:`StreamedEvents` (whose cut events are not counted).
     ``what`` names the samples in the texts (a plural: ``"gyro samples"``, ``"poses"``), ``source`` their file,
     ``doing`` ends the note (e.g. ``"fitting the overlap"``).
     """
-    first, last = int(events.t[0]), int(events.t[-1])
+    first, last = event_span(events)
     lo, hi = max(first, int(times_us[0])), min(last, int(times_us[-1]))
     if hi <= lo:
         raise ValueError(f"the {what} of {source} ({times_us[0] * 1e-6:.6f}-{times_us[-1] * 1e-6:.6f} s) do not "
@@ -390,7 +392,61 @@ def overlap(events, times_us: np.ndarray, what: str, source: object, doing: str)
     if lo == first and hi == last:
         return events, None
     kept = events.slice_time(lo, hi + 1)
+    count = "" if isinstance(events, StreamedEvents) else f", {len(events) - len(kept):,} events"
     note = (f"the {what} of {source} cover {(hi - lo) * 1e-3:.1f} ms of the {(last - first) * 1e-3:.1f} ms of events "
-            f"(cut {(lo - first) * 1e-3:.1f} ms at the start, {(last - hi) * 1e-3:.1f} ms at the end, "
-            f"{len(events) - len(kept):,} events): {doing}")
+            f"(cut {(lo - first) * 1e-3:.1f} ms at the start, {(last - hi) * 1e-3:.1f} ms at the end{count}): {doing}")
     return kept, note
+
+
+def event_span(events) -> tuple[int, int]:
+    """The first and last event times [µs] of :class:`cmax.events.Events` or :class:`StreamedEvents`."""
+    if isinstance(events, StreamedEvents):
+        return events.t_start, events.t_end
+    return int(events.t[0]), int(events.t[-1])
+
+
+class StreamedEvents:
+    """A recording too long to hold, read window by window from a DSEC-layout h5 file
+    (:class:`cmax.io.H5Reader`): the reader protocol of :func:`cmax.fitting.fit_sequence` (``window(t0_us,
+    t1_us)``, ``t_start``, ``t_end``) with ``width``, ``height``, a span cut to ``[t_start, t_end]``
+    (:meth:`slice_time`) and a ``transform`` applied to every window read (e.g. the undistortion)."""
+
+    def __init__(self, reader, t_start: int, t_end: int, transform=None) -> None:
+        self.reader, self.t_start, self.t_end, self.transform = reader, int(t_start), int(t_end), transform
+        self.width, self.height = reader.width, reader.height
+
+    def window(self, t0_us: int, t1_us: int):
+        """The (transformed) events of ``[t0_us, t1_us)`` inside the span."""
+        events = self.reader.window(max(int(t0_us), self.t_start), max(min(int(t1_us), self.t_end + 1), self.t_start))
+        return events if self.transform is None else self.transform(events)
+
+    def slice_time(self, t0_us: int, t1_us: int) -> "StreamedEvents":
+        """The same recording over ``[t0_us, t1_us)`` (nothing is read)."""
+        return StreamedEvents(self.reader, max(self.t_start, int(t0_us)), min(self.t_end, int(t1_us) - 1),
+                              self.transform)
+
+    def with_transform(self, transform) -> "StreamedEvents":
+        """The same recording with ``transform`` applied to every window (after any it had)."""
+        before = self.transform
+        return StreamedEvents(self.reader, self.t_start, self.t_end,
+                              transform if before is None else (lambda events: transform(before(events))))
+
+    def close(self) -> None:
+        self.reader.close()
+
+
+def open_streamed(args: argparse.Namespace, calib_size: tuple[int, int] | None) -> StreamedEvents | None:
+    """``args.file`` as :class:`StreamedEvents` when it is a DSEC-layout h5 file (None otherwise), its size from
+    ``--size`` or the calibration (``calib_size``) when it stores none."""
+    from cmax.io import H5Reader, detect_format
+
+    if detect_format(args.file) != "dsec":
+        return None
+    options = file_kwargs(args)
+    if options.get("width") is None and calib_size is not None:
+        options.update(width=calib_size[0], height=calib_size[1])
+    reader = H5Reader(args.file, **options)
+    if not len(reader):
+        reader.close()
+        raise ValueError(f"{args.file} holds no events")
+    return StreamedEvents(reader, reader.t_start, reader.t_end)
