@@ -412,8 +412,11 @@ def test_refinement_keeps_the_best_of_several_starts(good_first):
     good = (v, omega)
     first, second = (good, bad) if good_first else (bad, good)
     alone = refine(w, *bad, speed)
-    v1, omega1 = refine(w, *first, speed, more_starts=[second])
-    assert angle_deg(v1, v) < 4.0 < angle_deg(alone[0], v)
+    outcome = refine_motion_local(w, *first, speed, RefineSettings(), ScipySolver(), more_starts=[second])
+    assert angle_deg(outcome.v, v) < 4.0 < angle_deg(alone[0], v)
+    # the winner is the solve whose end is returned (the stage judges that one)
+    assert outcome.winner == (0 if good_first else 1)
+    assert outcome.objective_after == min(r.fun for r in outcome.solves) == outcome.solves[outcome.winner].fun
 
 
 @pytest.mark.parametrize("seed, max_omega_deg", [(1, 12.0), (2, 40.0)])

@@ -105,6 +105,21 @@ def test_warm_start_is_one_more_start_and_never_scores_worse():
     assert warm.stages[1].objective_after <= cold.stages[1].objective_after
 
 
+def test_a_losing_start_that_its_solver_could_not_improve_does_not_fail_the_stage():
+    """Of a multi-start stage only the winning solve's failure counts: the casadi fit of a slider window ended
+    'failed' because its second start (which lost) hit IPOPT's iteration limit and kept that start, while the
+    first start's solve improved and was returned."""
+    from cmax.fitting.pipeline import _log
+
+    improved = SolveResult(np.zeros(2), -5.0, 10, 12, "converged", True, 0.1, fun_start=-3.0)
+    stuck = SolveResult(np.ones(2), -4.0, 50, 60, "Maximum_Iterations_Exceeded; kept the start", False, 0.2,
+                        fun_start=-4.0, kept_start=True)
+    won = _log("local_refine", -3.0, -5.0, [improved, stuck], 0.3, note="2 starts", winner=0)
+    assert won.success and won.message == "2 starts; converged" and won.iterations == 60
+    assert not _log("local_refine", -3.0, -4.0, [improved, stuck], 0.3, winner=1).success   # the stuck one won
+    assert not _log("rotation", -3.0, -5.0, [improved, stuck], 0.3).success                 # one start per solve
+
+
 def test_fit_sequence_warm_starts_se3_windows():
     w = small_se3()
     with warnings.catch_warnings():

@@ -223,7 +223,8 @@ def sweep_stride(settings: RefineSettings, depth_range: tuple[float, float]) -> 
 @dataclass(frozen=True)
 class RefineOutcome:
     """Result of :func:`refine_motion_local`: the motion, the patch-wise objective (minus the summed
-    normalised contrasts) at the first start and at the result, and every solve."""
+    normalised contrasts) at the first start and at the result, every solve, and which of them the result
+    is (``winner``)."""
 
     v: np.ndarray
     omega: np.ndarray
@@ -231,6 +232,7 @@ class RefineOutcome:
     objective_after: float
     solves: tuple[SolveResult, ...]
     at_bound: tuple[str, ...] = ()
+    winner: int = 0
 
 
 def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: RefineSettings,
@@ -285,8 +287,8 @@ def refine_motion_local(w, v: np.ndarray, omega: np.ndarray, speed: float, setti
                                                  solver)
         solves.append(result)
         if best is None or result.fun < best[0]:
-            best = (result.fun, v1, omega1, bound)
-    return RefineOutcome(best[1], best[2], solves[0].fun_start, best[0], tuple(solves), best[3])
+            best = (result.fun, v1, omega1, bound, len(solves) - 1)
+    return RefineOutcome(best[1], best[2], solves[0].fun_start, best[0], tuple(solves), best[3], best[4])
 
 
 def _refine_from(w, objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray, candidates: np.ndarray,

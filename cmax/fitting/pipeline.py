@@ -141,12 +141,14 @@ def run_stages(stages: tuple[Stage, ...], w: Window, motion: Motion, solver: Sol
 # Shared pieces: the log of a stage's solves, the coarse-to-fine driver
 # ----------------------------------------------------------------------------------------------
 def _log(name: str, before: float, after: float, solves: list[SolveResult] | tuple[SolveResult, ...],
-         seconds: float, at_bound: tuple[str, ...] = (), note: str = "") -> StageLog:
+         seconds: float, at_bound: tuple[str, ...] = (), note: str = "", winner: int | None = None) -> StageLog:
     """A stage's log from its solves: it failed when a solve kept its start or the end scores worse than
-    the start, or when a parameter ended on a bound."""
-    kept = any(r.kept_start for r in solves)
+    the start, or when a parameter ended on a bound. ``winner``: of solves from several starts, the one whose
+    end the stage returns; only its own failure counts (a losing start that its solver could not improve does
+    not fail the stage), and its message is the stage's."""
+    kept = solves[winner].kept_start if winner is not None else any(r.kept_start for r in solves)
     worse = np.isfinite(before) and not after <= before
-    message = solves[-1].message if solves else "no solver"
+    message = (solves[-1 if winner is None else winner].message) if solves else "no solver"
     message = "; ".join(m for m in (note, message) if m)
     return StageLog(name, float(before), float(after), sum(r.iterations for r in solves),
                     sum(r.evaluations for r in solves), seconds, message,
@@ -180,7 +182,9 @@ def best_start(loss: Callable[[torch.Tensor], torch.Tensor], starts: list[np.nda
                upper: np.ndarray) -> int:
     """Index of the start (each clipped to ``[lower, upper]``) that ``loss`` scores lowest, the first on a tie:
     a warm start that scores worse than the cold one is not solved from (a motion carried over from another
-    window can fit this one worse than no motion at all)."""
+    window can fit this one worse than no motion at all). One start: 0, without evaluating ``loss``."""
+    if len(starts) == 1:
+        return 0
     with torch.no_grad():
         values = np.array([float(loss(torch.from_numpy(np.clip(np.asarray(x, dtype=np.float64), lower, upper))))
                            for x in starts])
@@ -332,7 +336,8 @@ class LocalRefineStage:
         outcome = refine_motion_local(w, motion.v, motion.omega, motion.speed, w.settings.refine, solver,
                                       hold_omega=self.hold_omega, more_starts=more)
         log = _log(self.name, outcome.objective_before, outcome.objective_after, outcome.solves,
-                   time.perf_counter() - start, outcome.at_bound, note=f"{1 + len(more)} starts")
+                   time.perf_counter() - start, outcome.at_bound, note=f"{1 + len(more)} starts",
+                   winner=outcome.winner if outcome.solves else None)
         return replace(motion, v=outcome.v, omega=outcome.omega, alternatives=()), log
 
 
