@@ -416,7 +416,8 @@ class DepthRun:
         """The command's final line."""
         skipped = f", {self.skipped} skipped (fewer than {MIN_EVENTS} events)" if self.skipped else ""
         rate = self.windows / self.seconds if self.seconds > 0 else float("inf")
-        return (f"{self.windows} windows of {self.window_us * 1e-3:g} ms predicted{skipped} in {self.seconds:.1f} s "
+        noun = "window" if self.windows == 1 else "windows"
+        return (f"{self.windows} {noun} of {self.window_us * 1e-3:g} ms predicted{skipped} in {self.seconds:.1f} s "
                 f"({rate:.1f} windows/s); results in {self.output}")
 
 

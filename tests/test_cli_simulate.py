@@ -98,6 +98,23 @@ def test_an_image_folder_needs_an_h5_output(tmp_path, capsys):
     assert "image folder (one sequence)" in capsys.readouterr().err
 
 
+def test_t0_t1_cut_an_image_folder_as_they_cut_a_video(tmp_path, capsys):
+    """--t0/--t1 on an image folder (they failed the conversion: 't0_s/t1_s apply to video files only'): the
+    frames with t0 <= t < t1 on the timestamps' clock, the same events as converting those frames alone."""
+    frames = _frames(8)
+    times_us = np.arange(8, dtype=np.int64) * 40_000                     # 0, 40, ..., 280 ms
+    seq = tmp_path / "seq"
+    (seq / "images").mkdir(parents=True)
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(seq / "images" / f"frame_{k:08d}.png"), frame)
+    (seq / "timestamps.txt").write_text("".join(f"{t * 1e-6:.6f}\n" for t in times_us))
+    out = tmp_path / "events" / "seq.h5"
+    assert main(["simulate", str(seq), "-o", str(out), *FAST, "--t0", "0.07", "--t1", "0.2", "--quiet"]) == 0
+    kept = (times_us >= 70_000) & (times_us < 200_000)                    # frames 2, 3, 4
+    assert len(read(out)) == _expected_events(frames[kept], times_us[kept], tmp_path) > 0
+    assert load_manifest(out.parent / "manifest.json")["videos"]["seq"]["frames"] == 3
+
+
 def test_an_image_folder_without_times_says_how_to_write_them(tmp_path, capsys):
     """Frames extracted by ffmpeg (no timestamp file): one line that says so (it said 'holds no videos') and
     gives a command whose timestamps.txt the conversion then reads, at 25 frames/s."""

@@ -335,7 +335,7 @@ def test_windows_with_too_few_events_are_skipped_and_counted(checkpoint, tmp_pat
     out = tmp_path / "out"
     assert cmax_main(["depth", str(tmp_path / "gap.h5"), "-o", str(out), "--checkpoint", str(checkpoint),
                       "--K", K_TEXT, "--quiet"]) == 0
-    assert "1 windows of 50 ms predicted, 2 skipped (fewer than 10 events)" in capsys.readouterr().out
+    assert "1 window of 50 ms predicted, 2 skipped (fewer than 10 events)" in capsys.readouterr().out
     assert [p.name for p in out.glob("*.npz")] == ["window_00000.npz"]
 
 

@@ -143,3 +143,24 @@ def test_cmax_info_refuses_in_one_line(tmp_path: Path, events: Events, capsys, o
     assert message in err and err.count("\n") == 1
     assert main(["info", str(path), "--size", f"{W}x{H}"]) == 0
     assert "64 x 48" in capsys.readouterr().out
+
+
+def test_seconds_stated_as_microseconds_are_refused_not_collapsed(tmp_path: Path, events: Events) -> None:
+    """An ECD text file (float seconds) read with time_unit='us' (the unit a user guesses when float times are
+    refused without one) rounded every time to 0 µs: the recording collapsed into one microsecond. Refused now;
+    whole float µs still read, sub-µs float µs still round (test_reliability_readers), and seconds with
+    nanosecond digits still round to µs under time_unit='s'."""
+    from cmax.io import write_txt
+
+    path = write_txt(tmp_path / "ecd.txt", events)                         # "t[s] x y p"
+    with pytest.raises(FormatError, match=r"distinct times stated in us, which rounding to whole microseconds merges into 1 "):
+        read(path, width=events.width, height=events.height, time_unit="us")
+    assert read(path, width=events.width, height=events.height, time_unit="s") == events
+    whole = tmp_path / "us.txt"
+    whole.write_text("".join(f"{float(t):.1f} {x} {y} {p}\n" for t, x, y, p in
+                             zip(events.t, events.x, events.y, events.p)))
+    assert read(whole, width=events.width, height=events.height, time_unit="us") == events
+    nano = tmp_path / "ns.txt"
+    nano.write_text("".join(f"{t * 1e-6 + 3e-10:.10f} {x} {y} {p}\n" for t, x, y, p in
+                            zip(events.t, events.x, events.y, events.p)))
+    assert read(nano, width=events.width, height=events.height, time_unit="s") == events

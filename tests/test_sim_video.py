@@ -339,7 +339,7 @@ def test_open_source_dispatch(tmp_path):
     assert open_source(source) is source
     with pytest.raises(ValueError, match="timestamps"):
         open_source(frames)
-    with pytest.raises(ValueError, match="video files only"):
+    with pytest.raises(ValueError, match="not to an array"):
         open_source(frames, timestamps=np.array([0, 1]), t0_s=1.0)
     with pytest.raises(TypeError):
         open_source(42)  # type: ignore[arg-type]

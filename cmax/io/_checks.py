@@ -60,12 +60,19 @@ def unit_from_attrs(attrs: Any, where: str, keys: tuple[str, ...] = ("unit", "un
     return None
 
 
+#: Rounding float times to whole µs that merges this many distinct consecutive times into one is a unit error.
+_COLLAPSE = 100
+
+
 def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
     """A raw time column as int64 µs under ``unit`` (canonical); may return ``t`` itself, modified.
 
     Integers are scaled exactly (overflow refused); floats are checked for
     NaN/infinity, scaled and rounded to the nearest microsecond (``np.rint``,
-    half to even). Raises :class:`FormatError` naming ``where`` and the index.
+    half to even). Float times whose rounding to whole µs would merge at least :data:`_COLLAPSE` of their
+    distinct consecutive values into one (at least 100 of them) are refused: that is another unit, not
+    sub-µs precision (seconds read as µs, an ECD text file with ``time_unit='us'``, collapse the whole
+    recording into a microsecond). Raises :class:`FormatError` naming ``where`` and the index.
     """
     factor = TIME_UNITS[unit]
     kind = t.dtype.kind
@@ -91,7 +98,15 @@ def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
         if scaled.size and np.abs(scaled).max() > _FLOAT_US_LIMIT:
             i = int(np.argmax(np.abs(scaled)))
             raise FormatError(f"{where}[{i}] = {t[i]} {unit} does not fit into int64 microseconds")
-        return np.rint(scaled, out=scaled).astype(np.int64)
+        rounded = np.rint(scaled)
+        distinct = int(np.count_nonzero(np.diff(scaled))) + 1 if scaled.size else 0
+        if distinct >= 100:
+            kept = int(np.count_nonzero(np.diff(rounded))) + 1
+            if kept * _COLLAPSE < distinct:
+                raise FormatError(f"{where} holds {distinct:,} distinct times stated in {unit}, which rounding to whole "
+                                  f"microseconds merges into {kept:,} (from {float(t[0])!r} to {float(t[-1])!r} "
+                                  f"{unit}): another unit? (time_unit='s' or 'ms'; cmax: --time-unit s)")
+        return rounded.astype(np.int64)
     raise FormatError(f"{where} must hold numbers (times), got dtype {t.dtype}")
 
 

@@ -329,6 +329,16 @@ def _read_image(path: Path, size: Size | None, dtype: type = np.float32) -> np.n
     return _to_grey(_imread(path), size, str(path), dtype)
 
 
+def _check_time_range(t0_s: object, t1_s: object) -> None:
+    """``t0_s``, ``t1_s``: None or finite seconds >= 0, ``t1_s`` after ``t0_s`` (ValueError otherwise)."""
+    for name, value in (("t0_s", t0_s), ("t1_s", t1_s)):
+        if value is not None and not (isinstance(value, (int, float, np.integer, np.floating))
+                                      and math.isfinite(value) and value >= 0):
+            raise ValueError(f"{name} must be a finite time >= 0 in seconds, got {value!r}")
+    if t0_s is not None and t1_s is not None and t1_s <= t0_s:
+        raise ValueError(f"t1_s ({t1_s}) must be after t0_s ({t0_s})")
+
+
 class ImageFolderSource:
     """A folder of images with their times.
 
@@ -343,6 +353,9 @@ class ImageFolderSource:
         or ``timestamps.txt`` in the folder, else in its parent.
     size : (int, int), optional
         Output (width, height); frames are resized with ``INTER_AREA``.
+    t0_s, t1_s : float, optional
+        Keep the images with ``t0_s <= t < t1_s`` (seconds, the timestamps' own
+        clock, as a video's container time).
     dtype : np.float32 or np.uint8
         Type of the yielded frames (see the module docstring).
     prefetch : int
@@ -359,11 +372,12 @@ class ImageFolderSource:
     """
 
     def __init__(self, folder: PathLike, *, timestamps: PathLike | np.ndarray | None = None,
-                 size: Size | None = None, dtype: type = np.float32,
-                 prefetch: int = DEFAULT_PREFETCH, decoders: int | None = None) -> None:
+                 size: Size | None = None, t0_s: float | None = None, t1_s: float | None = None,
+                 dtype: type = np.float32, prefetch: int = DEFAULT_PREFETCH, decoders: int | None = None) -> None:
         folder = Path(folder)
         if not folder.is_dir():
             raise FileNotFoundError(f"image folder not found: {folder}")
+        _check_time_range(t0_s, t1_s)
         self._size = _check_size(size)
         self.dtype, self.prefetch = _check_dtype(dtype), _check_prefetch(prefetch)
         self.decoders = _check_decoders(decoders)
@@ -383,6 +397,15 @@ class ImageFolderSource:
             _strictly_increasing(self.timestamps_us, str(folder))
         if not self.images:
             raise ValueError(f"no images in {folder} (zero frames)")
+        if t0_s is not None or t1_s is not None:
+            lo = -(2**62) if t0_s is None else int(round(t0_s * 1e6))
+            hi = 2**62 if t1_s is None else int(round(t1_s * 1e6))
+            keep = (self.timestamps_us >= lo) & (self.timestamps_us < hi)
+            if not keep.any():
+                raise ValueError(f"{folder}: no images in [{t0_s}, {t1_s}) s (zero frames; their times span "
+                                 f"{self.timestamps_us[0] * 1e-6:g}-{self.timestamps_us[-1] * 1e-6:g} s)")
+            self.timestamps_us = self.timestamps_us[keep]
+            self.images = [image for image, kept in zip(self.images, keep) if kept]
         first = _read_image(self.images[0], None)
         self._shape = first.shape
         self.width, self.height = self._size or (first.shape[1], first.shape[0])
@@ -448,12 +471,7 @@ class VideoFileSource:
             raise FileNotFoundError(f"video file not found: {self.path}")
         self._size = _check_size(size)
         self.dtype, self.prefetch = _check_dtype(dtype), _check_prefetch(prefetch)
-        for name, value in (("t0_s", t0_s), ("t1_s", t1_s)):
-            if value is not None and not (isinstance(value, (int, float, np.integer, np.floating))
-                                          and math.isfinite(value) and value >= 0):
-                raise ValueError(f"{name} must be a finite time >= 0 in seconds, got {value!r}")
-        if t0_s is not None and t1_s is not None and t1_s <= t0_s:
-            raise ValueError(f"t1_s ({t1_s}) must be after t0_s ({t0_s})")
+        _check_time_range(t0_s, t1_s)
         self.t0_s, self.t1_s = t0_s, t1_s
         capture = self._open()
         try:
@@ -539,7 +557,7 @@ def open_source(source: PathLike | np.ndarray | FrameSource, *,
     * a folder: :class:`ImageFolderSource` (``timestamps`` optional);
     * a ``.txt`` file: :class:`ImageFolderSource` of the file's folder with
       the file as timestamps (ECD ``images.txt``, ESIM ``timestamps.txt``);
-    * any other file: :class:`VideoFileSource` (``t0_s``, ``t1_s`` apply only here);
+    * any other file: :class:`VideoFileSource` (``t0_s``, ``t1_s`` apply to files and folders);
     * a frame source: returned unchanged (no other argument allowed).
 
     ``dtype`` (np.float32 or np.uint8) and ``prefetch`` (frames decoded ahead
@@ -557,7 +575,7 @@ def open_source(source: PathLike | np.ndarray | FrameSource, *,
         if timestamps is None:
             raise ValueError("an array source needs timestamps= (integer µs)")
         if t0_s is not None or t1_s is not None:
-            raise ValueError("t0_s/t1_s apply to video files only")
+            raise ValueError("t0_s/t1_s apply to video files and image folders, not to an array (slice it)")
         if decoders is not None:
             raise ValueError("decoders= applies to image folders only (an array needs no decoding)")
         return ArraySource(source, np.asarray(timestamps), size=size, dtype=dtype)
@@ -566,12 +584,10 @@ def open_source(source: PathLike | np.ndarray | FrameSource, *,
         if not path.exists():
             raise FileNotFoundError(f"no such file or folder: {path}")
         if path.is_dir() or path.suffix.lower() == ".txt":
-            if t0_s is not None or t1_s is not None:
-                raise ValueError("t0_s/t1_s apply to video files only")
             if path.is_dir():
-                return ImageFolderSource(path, timestamps=timestamps, size=size, dtype=dtype,
-                                         prefetch=prefetch, decoders=decoders)
-            return ImageFolderSource(path.parent, timestamps=path, size=size, dtype=dtype,
+                return ImageFolderSource(path, timestamps=timestamps, size=size, t0_s=t0_s, t1_s=t1_s,
+                                         dtype=dtype, prefetch=prefetch, decoders=decoders)
+            return ImageFolderSource(path.parent, timestamps=path, size=size, t0_s=t0_s, t1_s=t1_s, dtype=dtype,
                                      prefetch=prefetch, decoders=decoders)
         if timestamps is not None:
             raise ValueError("timestamps= does not apply to a video file (it has its own times)")
