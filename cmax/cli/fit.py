@@ -226,6 +226,7 @@ def run(args: argparse.Namespace) -> int:
     from tqdm.auto import tqdm
 
     from cmax import viz
+    import cmax.events as cmax_events
     from cmax.events import EventLimitError, uncovered_tail, window_starts
     from cmax.fitting import FitSettings, fit_sequence
     from cmax.fitting.quality import LowMotionCause
@@ -242,7 +243,7 @@ def run(args: argparse.Namespace) -> int:
     notes = [hint] if (hint := calibration_hint(args)) else []
     try:
         events, origin_us = read_calibrated(args, calib_size)   # --t0/--t1 applied; times print from the file's start
-    except EventLimitError as error:         # a whole DSEC-layout h5 file too long to hold: window by window
+    except EventLimitError:                  # a whole DSEC-layout h5 file too long to hold: window by window
         if args.t0 is not None or args.t1 is not None or (events := open_streamed(args, calib_size)) is None:
             raise
         if calib_size is not None and (events.width, events.height) != tuple(calib_size):
@@ -250,7 +251,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera, the events come from "
                              f"a {events.width}x{events.height} sensor") from None
         origin_us = events.t_start
-        notes.append(f"{str(error).split(' that fit in memory')[0]}: fitting it window by window from the file")
+        notes.append(f"{args.file} holds {len(events.reader):,} events, more than cmax.events.MAX_EVENTS="
+                     f"{cmax_events.MAX_EVENTS:,}: fitting it window by window from the file")
     if distortion is not None and isinstance(events, StreamedEvents):
         events = events.with_transform(lambda window: undistorted_events(window, K, distortion))
     elif distortion is not None:

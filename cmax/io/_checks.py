@@ -70,7 +70,7 @@ def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
     Integers are scaled exactly (overflow refused); floats are checked for
     NaN/infinity, scaled and rounded to the nearest microsecond (``np.rint``,
     half to even). Float times whose rounding to whole µs would merge at least :data:`_COLLAPSE` of their
-    distinct consecutive values into one (at least 100 of them) are refused: that is another unit, not
+    distinct consecutive values into one (when there are at least as many) are refused: that is another unit, not
     sub-µs precision (seconds read as µs, an ECD text file with ``time_unit='us'``, collapse the whole
     recording into a microsecond). Raises :class:`FormatError` naming ``where`` and the index.
     """
@@ -100,7 +100,7 @@ def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
             raise FormatError(f"{where}[{i}] = {t[i]} {unit} does not fit into int64 microseconds")
         rounded = np.rint(scaled)
         distinct = int(np.count_nonzero(np.diff(scaled))) + 1 if scaled.size else 0
-        if distinct >= 100:
+        if distinct >= _COLLAPSE:
             kept = int(np.count_nonzero(np.diff(rounded))) + 1
             if kept * _COLLAPSE < distinct:
                 raise FormatError(f"{where} holds {distinct:,} distinct times stated in {unit}, which rounding to whole "
