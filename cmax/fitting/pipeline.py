@@ -178,25 +178,21 @@ def coarse_to_fine(w: Window, loss_at_scale: Callable[[torch.Tensor, int], torch
     return x, solves, before, after
 
 
-def best_start(loss: Callable[[torch.Tensor], torch.Tensor], starts: list[np.ndarray], lower: np.ndarray,
-               upper: np.ndarray) -> int:
-    """Index of the start (each clipped to ``[lower, upper]``) that ``loss`` scores lowest, the first on a tie:
-    a warm start that scores worse than the cold one is not solved from (a motion carried over from another
-    window can fit this one worse than no motion at all). One start: 0, without evaluating ``loss``."""
-    if len(starts) == 1:
-        return 0
+def warm_or_cold(loss: Callable[[torch.Tensor], torch.Tensor], warm: np.ndarray, lower: np.ndarray,
+                 upper: np.ndarray, cold: str) -> tuple[np.ndarray, str]:
+    """The start of a stage and the note on it: the incoming (warm) parameters, or zero (``cold`` names it)
+    when ``loss`` scores zero lower (each clipped to ``[lower, upper]``; a NaN loss ranks last). A motion
+    carried over from another window can fit this one worse than no motion at all, and is then not solved from.
+    Zero incoming parameters: they, without evaluating ``loss``, and no note."""
+    warm = np.asarray(warm, dtype=np.float64)
+    if not warm.any():
+        return warm, ""
+    zero = np.zeros_like(warm)
     with torch.no_grad():
-        values = np.array([float(loss(torch.from_numpy(np.clip(np.asarray(x, dtype=np.float64), lower, upper))))
-                           for x in starts])
-    return int(np.argmin(np.where(np.isnan(values), np.inf, values)))
-
-
-def _warm_or_cold(starts: list[np.ndarray], chosen: int, what: str) -> str:
-    """The note of a stage that weighed a warm start against the cold one (``starts``: warm, cold)."""
-    if len(starts) == 1:
-        return ""
-    return (f"from the warm start (it scores better than {what})" if chosen == 0 else
-            f"from {what} (it scores better than the warm start)")
+        values = np.array([float(loss(torch.from_numpy(np.clip(x, lower, upper)))) for x in (warm, zero)])
+    if int(np.argmin(np.where(np.isnan(values), np.inf, values))) == 0:
+        return warm, f"from the warm start (it scores better than {cold})"
+    return zero, f"from {cold} (it scores better than the warm start)"
 
 
 def _omega_bounds(w: Window, omega: np.ndarray, hold: bool) -> tuple[np.ndarray, np.ndarray]:
@@ -215,7 +211,7 @@ def _omega_bounds(w: Window, omega: np.ndarray, hold: bool) -> tuple[np.ndarray,
 class FlowStage:
     """Parameters: the flow as a displacement over the window [px] (2,). Objective: minus the normalised
     multi-reference contrast. Schedule: image scales coarse to fine, ``settings.flow_tolerances``, from the
-    incoming flow (a warm start) or zero, whichever scores better (:func:`best_start`)."""
+    incoming flow (a warm start) or zero, whichever scores better (:func:`warm_or_cold`)."""
 
     name: str = "flow"
 
@@ -229,13 +225,11 @@ class FlowStage:
             return -w.contrast(x, y, scale)
 
         lower, upper = np.full(2, -bound), np.full(2, bound)
-        starts = [flow0 * w.T] + ([np.zeros(2)] if flow0.any() else [])
-        chosen = best_start(lambda p: loss(p, 1), starts, lower, upper)
-        x, solves, before, after = coarse_to_fine(w, loss, starts[chosen], lower, upper, solver,
+        x0, note = warm_or_cold(lambda p: loss(p, 1), flow0 * w.T, lower, upper, "zero flow")
+        x, solves, before, after = coarse_to_fine(w, loss, x0, lower, upper, solver,
                                                   tolerances=w.settings.flow_tolerances)
         at_bound = tuple(f"flow_{a}" for a, value in zip("xy", x) if abs(value) >= 0.999 * bound)
-        log = _log(self.name, before, after, solves, time.perf_counter() - start, at_bound,
-                   note=_warm_or_cold(starts, chosen, "zero flow"))
+        log = _log(self.name, before, after, solves, time.perf_counter() - start, at_bound, note=note)
         return replace(motion, flow=x / w.T), log
 
 
@@ -243,7 +237,7 @@ class FlowStage:
 class RotationStage:
     """Parameters: the angular velocity as pixels over the window (3,). Objective: minus the normalised
     multi-reference contrast of the rotation warp. Schedule: image scales coarse to fine, from the incoming
-    rotation (a warm start) or zero, whichever scores better (:func:`best_start`)."""
+    rotation (a warm start) or zero, whichever scores better (:func:`warm_or_cold`)."""
 
     name: str = "rotation"
 
@@ -258,14 +252,12 @@ class RotationStage:
             return -w.contrast(x, y, scale)
 
         lower, upper = np.full(3, -bound), np.full(3, bound)
-        omega0 = np.asarray(motion.omega, float)
-        starts = [omega0 * s] + ([np.zeros(3)] if omega0.any() else [])
-        chosen = best_start(lambda p: loss(p, 1), starts, lower, upper)
-        x, solves, before, after = coarse_to_fine(w, loss, starts[chosen], lower, upper, solver,
-                                                  tolerances=w.settings.tolerances)
+        x0, note = warm_or_cold(lambda p: loss(p, 1), np.asarray(motion.omega, float) * s, lower, upper,
+                                "no rotation")
+        x, solves, before, after = coarse_to_fine(w, loss, x0, lower, upper, solver, tolerances=w.settings.tolerances)
         omega = x / s
         log = _log(self.name, before, after, solves, time.perf_counter() - start,
-                   omega_on_bound(omega, w.settings.max_omega), note=_warm_or_cold(starts, chosen, "no rotation"))
+                   omega_on_bound(omega, w.settings.max_omega), note=note)
         return replace(motion, omega=omega), log
 
 
