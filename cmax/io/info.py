@@ -123,15 +123,8 @@ def file_info(
 
 def _raw_info(path: Path, width: int | None, height: int | None) -> EventFileInfo:
     """:func:`file_info` of a Prophesee RAW file, decoded chunk by chunk (a file of any length)."""
-    from cmax.io.prophesee import iter_raw, read_raw
+    from cmax.io.prophesee import scan_raw
 
-    count = on = 0
-    first = last = size = None
-    for chunk in iter_raw(path, width=width, height=height):
-        size = chunk.sensor_size
-        first = int(chunk.t[0]) if first is None else first
-        last, count, on = int(chunk.t[-1]), count + len(chunk), on + int(np.count_nonzero(chunk.p))
-    if size is None:                                   # no event: the header's size
-        size = read_raw(path, width=width, height=height).sensor_size
-    return EventFileInfo(path=str(path), format="raw", count=count, width=size[0], height=size[1],
-                         t_start_us=first, t_end_us=last, on_count=on)
+    scan = scan_raw(path, width=width, height=height)
+    return EventFileInfo(path=str(path), format="raw", count=scan.count, width=scan.width, height=scan.height,
+                         t_start_us=scan.first_us, t_end_us=scan.last_us, on_count=scan.on_count)

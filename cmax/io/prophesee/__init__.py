@@ -64,11 +64,11 @@ from __future__ import annotations
 # CHUNK_BYTES (the readers' default) and PathLike are importable from here, as before.
 from cmax.io.prophesee._header import PathLike  # noqa: F401
 from cmax.io.prophesee.reader import (  # noqa: F401
-    CHUNK_BYTES, RawWindows, iter_evt2, iter_evt3, iter_raw, read_evt2, read_evt3, read_raw,
+    CHUNK_BYTES, RawScan, RawWindows, iter_evt2, iter_evt3, iter_raw, read_evt2, read_evt3, read_raw, scan_raw,
 )
 from cmax.io.prophesee.writer import write_evt2, write_evt3
 
 __all__ = [
-    "read_raw", "read_evt3", "read_evt2", "iter_raw", "iter_evt3", "iter_evt2", "RawWindows", "write_evt3",
-    "write_evt2",
+    "read_raw", "read_evt3", "read_evt2", "iter_raw", "iter_evt3", "iter_evt2", "RawScan", "scan_raw", "RawWindows",
+    "write_evt3", "write_evt2",
 ]

@@ -12,6 +12,7 @@ chunk by chunk. Errors report the byte offset of the bad word.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Iterator
 
@@ -24,7 +25,8 @@ from cmax.io.prophesee._decode import (
 )
 from cmax.io.prophesee._header import PathLike, _read_header, _sensor_size
 
-__all__ = ["CHUNK_BYTES", "read_raw", "read_evt3", "read_evt2", "iter_raw", "iter_evt3", "iter_evt2", "RawWindows"]
+__all__ = ["CHUNK_BYTES", "read_raw", "read_evt3", "read_evt2", "iter_raw", "iter_evt3", "iter_evt2", "RawScan",
+           "scan_raw", "RawWindows"]
 
 #: Default bytes of raw words decoded at a time by the iterators.
 CHUNK_BYTES = 1 << 18
@@ -285,12 +287,38 @@ def iter_raw(
     return _iter(path, _codec_of(path), width, height, chunk_bytes, sort)
 
 
+@dataclass(frozen=True)
+class RawScan:
+    """What one decoding pass over a RAW file finds: the sensor size [px], the event and ON-event counts, and
+    the first and last events' times [µs] (None without events)."""
+
+    width: int
+    height: int
+    count: int
+    on_count: int
+    first_us: int | None
+    last_us: int | None
+
+
+def scan_raw(path: PathLike, *, width: int | None = None, height: int | None = None,
+             chunk_bytes: int = CHUNK_BYTES) -> RawScan:
+    """:class:`RawScan` of a RAW file, decoded chunk by chunk (:func:`iter_raw`: a file of any length)."""
+    _, limits, _, _ = _open_data(Path(path), _codec_of(path), width, height, chunk_bytes, True)
+    count = on = 0
+    first = last = None
+    for chunk in iter_raw(path, width=width, height=height, chunk_bytes=chunk_bytes):
+        first = int(chunk.t[0]) if first is None else first
+        last, count, on = int(chunk.t[-1]), count + len(chunk), on + int(np.count_nonzero(chunk.p))
+    return RawScan(limits.width, limits.height, count, on, first, last)
+
+
 class RawWindows:
     """Windows ``[t0_us, t1_us)`` of a RAW file, asked for in order of ``t0_us``, decoded chunk by chunk
     (:func:`iter_raw`): memory holds the events from the last asked ``t0_us`` on and one chunk, not the file.
 
     ``first_us`` / ``last_us`` (the first and last events' times [µs]), ``count``, ``width`` and ``height``
-    come from one decoding pass over the file at construction; ``window`` then decodes it a second time, as
+    come from one decoding pass over the file at construction (:func:`scan_raw`); ``window`` then decodes it
+    a second time, as
     far as the windows reach. A window that starts before the one asked before raises ValueError (the events
     before it are gone); one of more than :data:`cmax.events.MAX_EVENTS` events raises
     :class:`cmax.events.EventLimitError`. ``close`` closes the file of the second pass (also closed when that
@@ -308,14 +336,9 @@ class RawWindows:
     def __init__(self, path: PathLike, *, width: int | None = None, height: int | None = None,
                  chunk_bytes: int = CHUNK_BYTES) -> None:
         self.path, self._options = Path(path), dict(width=width, height=height, chunk_bytes=chunk_bytes)
-        _, limits, _, _ = _open_data(self.path, _codec_of(self.path), width, height, chunk_bytes, True)
-        self.width, self.height = limits.width, limits.height
-        self.first_us = self.last_us = None
-        self.count = 0
-        for chunk in iter_raw(self.path, **self._options):
-            if self.first_us is None:
-                self.first_us = int(chunk.t[0])
-            self.last_us, self.count = int(chunk.t[-1]), self.count + len(chunk)
+        scan = scan_raw(self.path, **self._options)
+        self.width, self.height, self.count = scan.width, scan.height, scan.count
+        self.first_us, self.last_us = scan.first_us, scan.last_us
         self._chunks: Iterator[Events] | None = None
         self._held: list[Events] = []
         self._asked: int | None = None
