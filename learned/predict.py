@@ -42,7 +42,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import add_camera_options, add_recording_arguments, read_calibration, tail_note
+from cmax.cli.recording import (add_camera_options, add_recording_arguments, read_calibration, tail_note,
+                                time_span_us)
 from cmax.events import window_starts
 from learned._output import locked_folder
 
@@ -164,14 +165,13 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
 
 def time_bounds(first_us: int, last_us: int, t0_s: float | None, t1_s: float | None) -> tuple[int, int]:
     """``(start, end)`` [µs], both inclusive: the part of a recording from ``t0_s`` to ``t1_s`` seconds after
-    its first event (None: its first / last event). ValueError when that part is empty or out of the recording."""
-    if t0_s is not None and t1_s is not None and t1_s <= t0_s:
-        raise ValueError(f"--t1 must be after --t0, got {t0_s} and {t1_s}")
-    start = first_us + (0 if t0_s is None else int(round(t0_s * 1e6)))
-    end = last_us if t1_s is None else min(last_us, first_us + int(round(t1_s * 1e6)) - 1)
-    length = (last_us - first_us) * 1e-6
+    its first event (None: its first / last event), :func:`cmax.cli.recording.time_span_us` with its end made
+    inclusive and clipped to the recording. ValueError when that part is empty or out of the recording."""
+    start, stop = time_span_us(first_us, last_us, t0_s, t1_s)
     if start > last_us:
-        raise ValueError(f"--t0 {t0_s} s is past the recording's last event ({length:.6f} s after its first)")
+        raise ValueError(f"--t0 {t0_s} s is past the recording's last event ({(last_us - first_us) * 1e-6:.6f} s "
+                         "after its first)")
+    end = min(last_us, stop - 1)
     if end < start:
         raise ValueError(f"--t1 {t1_s} s leaves no time to predict")
     return start, end
