@@ -246,10 +246,6 @@ def run(args: argparse.Namespace) -> int:
     except EventLimitError:                  # a whole DSEC-layout h5 file too long to hold: window by window
         if args.t0 is not None or args.t1 is not None or (events := open_streamed(args, calib_size)) is None:
             raise
-        if calib_size is not None and (events.width, events.height) != tuple(calib_size):
-            events.close()
-            raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera, the events come from "
-                             f"a {events.width}x{events.height} sensor") from None
         origin_us = events.t_start
         notes.append(f"{args.file} holds {len(events.reader):,} events, more than cmax.events.MAX_EVENTS="
                      f"{cmax_events.MAX_EVENTS:,}: fitting it window by window from the file")
@@ -266,7 +262,8 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"--omega applies to --model se3, not {args.model}")
         if args.gyro is not None:
             raise ValueError("--omega is a constant rotation, --gyro a measured one: pass one of them")
-        gyro = constant_gyro(args.omega, event_span(events)[0], event_span(events)[1] + 1)
+        first_us, last_us = event_span(events)
+        gyro = constant_gyro(args.omega, first_us, last_us + 1)
     if args.gyro is not None:
         gyro = check_gyro(read_gyro(args.gyro))
         events, note = overlap(events, gyro[0], "gyro samples", args.gyro, "fitting the overlap")

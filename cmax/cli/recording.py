@@ -160,10 +160,16 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
         raise EventLimitError(f"{error}; on the command line, --t0 / --t1 read a part of it") from None
     if len(events) == 0:
         raise ValueError(f"{args.file} holds no events")
-    if calib_size is not None and (events.width, events.height) != tuple(calib_size):
-        raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
-                         f"the events come from a {events.width}x{events.height} sensor")
+    _check_calibrated_size(args, calib_size, events.width, events.height)
     return events, origin
+
+
+def _check_calibrated_size(args: argparse.Namespace, calib_size: tuple[int, int] | None, width: int,
+                           height: int) -> None:
+    """ValueError when the events come from another sensor than the one ``--calib`` calibrates."""
+    if calib_size is not None and (width, height) != tuple(calib_size):
+        raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
+                         f"the events come from a {width}x{height} sensor")
 
 
 def file_span_us(path, options: dict, t0_s: float | None,
@@ -437,7 +443,8 @@ class StreamedEvents:
 
 def open_streamed(args: argparse.Namespace, calib_size: tuple[int, int] | None) -> StreamedEvents | None:
     """``args.file`` as :class:`StreamedEvents` when it is a DSEC-layout h5 file (None otherwise), its size from
-    ``--size`` or the calibration (``calib_size``) when it stores none."""
+    ``--size`` or the calibration (``calib_size``) when it stores none; checked as :func:`read_calibrated`
+    checks the events (none, another sensor than the calibrated one)."""
     from cmax.io import H5Reader, detect_format
 
     if detect_format(args.file) != "dsec":
@@ -446,7 +453,11 @@ def open_streamed(args: argparse.Namespace, calib_size: tuple[int, int] | None) 
     if options.get("width") is None and calib_size is not None:
         options.update(width=calib_size[0], height=calib_size[1])
     reader = H5Reader(args.file, **options)
-    if not len(reader):
+    try:
+        if not len(reader):
+            raise ValueError(f"{args.file} holds no events")
+        _check_calibrated_size(args, calib_size, reader.width, reader.height)
+    except BaseException:
         reader.close()
-        raise ValueError(f"{args.file} holds no events")
+        raise
     return StreamedEvents(reader, reader.t_start, reader.t_end)
