@@ -3,6 +3,7 @@ success, never worse than the start, bounds reported, warm starts, typed setting
 from __future__ import annotations
 
 import functools
+from dataclasses import replace
 import warnings
 
 import numpy as np
@@ -54,6 +55,79 @@ def test_solve_keeps_the_start_when_the_backend_ends_worse():
     good = solve(loss, start, np.full(2, -10.0), np.full(2, 10.0), ScipySolver(), iterations=50)
     np.testing.assert_allclose(good.x, [1.0, -2.0], atol=1e-6)
     assert good.success and not good.kept_start and good.fun_start == pytest.approx(0.25)
+
+
+def _constrained_rosenbrock(x):
+    """Rosenbrock in (x0, x1) plus a ripple in x2: value and gradient."""
+    a, b = x[0], x[1]
+    value = (1 - a) ** 2 + 100 * (b - a * a) ** 2 + 0.5 * np.sin(7 * x[2])
+    return value, np.array([-2 * (1 - a) - 400 * a * (b - a * a), 200 * (b - a * a), 3.5 * np.cos(7 * x[2])])
+
+
+def test_casadi_starts_at_the_given_point_even_on_a_bound():
+    """IPOPT's default bound_push (1e-2) moved the start off a bound before its first evaluation, losing a good
+    start (a 640x480 se3 refinement ended below its start)."""
+    pytest.importorskip("casadi")
+    from cmax.fitting.solvers import CasadiSolver, Problem
+
+    evaluated = []
+
+    def fun_and_grad(x):
+        evaluated.append(x.copy())
+        return _constrained_rosenbrock(x)
+
+    x0 = np.array([1.0, 0.0, -2.0])                              # x2 on its lower bound, |v| = |x[:2]| = 1
+    CasadiSolver(max_iterations=5).solve(Problem(fun_and_grad, x0, np.full(3, -2.0), np.full(3, 2.0),
+                                                 speed=1.0, v_slice=slice(0, 2)))
+    # IPOPT evaluates the given point (for its scaling), then the point its iterations start from
+    np.testing.assert_allclose(evaluated[1], x0, atol=1e-6)
+
+
+@pytest.mark.parametrize("iterations", [2, 3, 4, 6])
+def test_casadi_returns_a_point_on_the_constraint_with_its_own_value(iterations):
+    """Stopped by its iteration limit, IPOPT's last point lies off |v| = speed (by 6% to 0.004% here): the solver
+    returns a point on it, with the objective there."""
+    pytest.importorskip("casadi")
+    from cmax.fitting.solvers import CasadiSolver, Problem
+
+    x0 = np.array([1.0, 0.0, 0.8])
+    r = CasadiSolver(max_iterations=iterations).solve(Problem(_constrained_rosenbrock, x0, np.full(3, -2.0),
+                                                              np.full(3, 2.0), speed=1.0, v_slice=slice(0, 2)))
+    assert np.linalg.norm(r.x[:2]) == pytest.approx(1.0, abs=1e-12)
+    assert r.fun == _constrained_rosenbrock(r.x)[0] < _constrained_rosenbrock(x0)[0]
+
+
+def test_casadi_never_returns_a_point_worse_than_one_it_evaluated_on_the_constraint():
+    """IPOPT's iterates are not monotone: on the default se3 path its last point at the iteration limit scored
+    worse than one it had evaluated, and the refinement reported the worse one (or, when every evaluated
+    point but the start was worse, kept the start and failed the stage)."""
+    pytest.importorskip("casadi")
+    from cmax.fitting.solvers import CasadiSolver
+
+    class Recording(CasadiSolver):
+        def solve(self, problem):
+            evaluated = []
+
+            def fun_and_grad(x):
+                value, grad = problem.fun_and_grad(x)
+                evaluated.append((x.copy(), value))
+                return value, grad
+
+            result = super().solve(replace(problem, fun_and_grad=fun_and_grad))
+            self.solves.append((problem, evaluated, result))
+            return result
+
+    solver = Recording()
+    solver.solves = []
+    w = small_se3()
+    fit(w.events, w.K, speed=float(np.linalg.norm(w.twist[:3])), solver=solver, depth_range=(1.0, 6.5))
+    refine = [(p, e, r) for p, e, r in solver.solves if p.v_slice is not None]
+    assert refine
+    for problem, evaluated, result in refine:
+        on_constraint = [value for x, value in evaluated
+                         if abs(np.linalg.norm(x[problem.v_slice]) - problem.speed) <= 1e-6 * problem.speed]
+        assert result.fun <= min(on_constraint) + 1e-6 * abs(min(on_constraint))
+    assert any("best evaluated point" in r.message for _, _, r in refine)    # the case arose here
 
 
 def test_a_forced_failure_keeps_the_start_and_reports_it():

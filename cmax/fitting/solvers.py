@@ -86,8 +86,10 @@ class SolveResult:
 class _Counted:
     """Caches the last evaluation (IPOPT asks for f and grad separately) and counts calls."""
 
-    def __init__(self, fun_and_grad: Callable[[np.ndarray], tuple[float, np.ndarray]]) -> None:
+    def __init__(self, fun_and_grad: Callable[[np.ndarray], tuple[float, np.ndarray]],
+                 feasible: Callable[[np.ndarray], bool] | None = None) -> None:
         self.fun_and_grad, self.calls, self._x, self._value = fun_and_grad, 0, None, None
+        self.feasible, self.best_x, self.best_f = feasible, None, np.inf
 
     def __call__(self, x: np.ndarray) -> tuple[float, np.ndarray]:
         x = np.asarray(x, dtype=np.float64).ravel()
@@ -95,6 +97,8 @@ class _Counted:
             self.calls += 1
             f, g = self.fun_and_grad(x)
             self._x, self._value = x.copy(), (float(f), np.asarray(g, dtype=np.float64).ravel())
+            if self.feasible is not None and self._value[0] < self.best_f and self.feasible(x):
+                self.best_x, self.best_f = x.copy(), self._value[0]
         return self._value
 
 
@@ -183,18 +187,55 @@ class TorchSolver(Solver):
 
 
 class CasadiSolver(Solver):
-    """IPOPT (casadi) with a limited-memory Hessian; the scale as an equality constraint on |v|."""
+    """IPOPT (casadi) with a limited-memory Hessian; the scale as an equality constraint on |v|.
+
+    IPOPT starts from the given point moved at most ``bound_push`` (relative) away from the bounds
+    (its own default, 1e-2, moved a good start by enough to lose the contrast it had: the refinement of
+    a 640x480 window then ended below its start after 60 iterations). Its iterates need not improve the
+    objective monotonically (its filter line search trades the objective against the constraint), so at
+    its iteration limit its last point can score worse than an earlier one, or lie off the constraint.
+    The solver therefore returns a point on ``|v| = speed`` (its last point moved there and evaluated
+    again when it is not), or the best point IPOPT evaluated whose ``|v|`` is within ``feasibility``
+    (relative) of the speed, moved onto ``|v| = speed`` and evaluated there, when that scores better than
+    both the last point and the start (the message says which; ``success`` stays IPOPT's own).
+    """
 
     takes_equality = True
 
-    def __init__(self, *, max_iterations: int = 100, tol: float = 1e-6) -> None:
-        self.max_iterations, self.tol = max_iterations, tol
+    def __init__(self, *, max_iterations: int = 100, tol: float = 1e-6, feasibility: float = 1e-3,
+                 bound_push: float = 1e-8) -> None:
+        if not (feasibility > 0 and bound_push > 0):
+            raise ValueError(f"feasibility and bound_push must be positive, got {feasibility}, {bound_push}")
+        self.max_iterations, self.tol, self.feasibility, self.bound_push = max_iterations, tol, feasibility, bound_push
+
+    def _feasible(self, problem: Problem) -> Callable[[np.ndarray], bool]:
+        """Whether a point lies within the bounds (IPOPT relaxes them by about 1e-8) and, with the scale
+        constraint, has ``|v|`` within :attr:`feasibility` of the speed."""
+        span = np.maximum(np.abs(problem.lower), np.abs(problem.upper))
+        slack = 1e-7 * np.where(np.isfinite(span), np.maximum(span, 1.0), 1.0)
+
+        def feasible(x: np.ndarray) -> bool:
+            if np.any(x < problem.lower - slack) or np.any(x > problem.upper + slack):
+                return False
+            if problem.speed is None or problem.v_slice is None:
+                return True
+            return abs(np.linalg.norm(x[problem.v_slice]) - problem.speed) <= self.feasibility * problem.speed
+
+        return feasible
+
+    def _on_constraint(self, problem: Problem, x: np.ndarray) -> np.ndarray:
+        """``x`` inside the bounds with ``|v| = speed`` exactly (when the problem has the constraint)."""
+        x = np.clip(x, problem.lower, problem.upper)
+        if problem.speed is not None and problem.v_slice is not None:
+            v = x[problem.v_slice]
+            x[problem.v_slice] = v * (problem.speed / max(np.linalg.norm(v), 1e-300))
+        return x
 
     def solve(self, problem: Problem) -> SolveResult:
         import casadi as ca
 
         start = time.perf_counter()
-        f = _Counted(problem.fun_and_grad)
+        f = _Counted(problem.fun_and_grad, self._feasible(problem))
         n = len(problem.x0)
         objective = _objective_callback(ca, f, n)
         X = ca.MX.sym("x", n)
@@ -206,17 +247,30 @@ class CasadiSolver(Solver):
             lbg = ubg = 0.0
         options = {"ipopt.hessian_approximation": "limited-memory", "ipopt.max_iter": self.max_iterations,
                    "ipopt.tol": self.tol, "ipopt.print_level": 0, "print_time": False,
-                   "ipopt.sb": "yes"}
+                   "ipopt.sb": "yes", "ipopt.bound_push": self.bound_push, "ipopt.bound_frac": self.bound_push}
         solver = ca.nlpsol("cmax_fit", "ipopt", nlp, options)
         arguments = {"x0": problem.x0, "lbx": problem.lower, "ubx": problem.upper}
         if lbg is not None:
             arguments.update(lbg=lbg, ubg=ubg)
         solution = solver(**arguments)
         stats = solver.stats()
-        x = np.asarray(solution["x"]).ravel()
-        return SolveResult(x, float(solution["f"]), int(stats.get("iter_count", 0)), f.calls,
-                           str(stats.get("return_status", "")), bool(stats.get("success", False)),
-                           time.perf_counter() - start)
+        x, value = np.asarray(solution["x"]).ravel(), float(solution["f"])
+        message = str(stats.get("return_status", ""))
+        moved = self._on_constraint(problem, x.copy())
+        if not np.array_equal(moved, x):                            # off the constraint (or the bounds)
+            moved_value = f(moved)[0]
+            if not np.allclose(moved, x, rtol=1e-6, atol=1e-9):     # more than IPOPT's own tolerance
+                message += (f"; its last point, off the constraint, moved onto |v| = speed (objective "
+                            f"{value:.6g} -> {moved_value:.6g})")
+            x, value = moved, moved_value
+        if f.best_x is not None and f.best_f < value and f.best_f < (f0 := f(problem.x0)[0]):
+            best = self._on_constraint(problem, f.best_x.copy())
+            best_value = f(best)[0]
+            if best_value < min(value, f0):
+                message += f"; returned its best evaluated point ({best_value:.6g} < its last {value:.6g})"
+                x, value = best, best_value
+        return SolveResult(x, value, int(stats.get("iter_count", 0)), f.calls, message,
+                           bool(stats.get("success", False)), time.perf_counter() - start)
 
     def with_tolerances(self, tolerances: Tolerances | None) -> "CasadiSolver":
         if tolerances is None:
