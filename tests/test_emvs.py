@@ -210,6 +210,26 @@ def test_plot_and_ply(plane_result, tmp_path):
     assert not list(tmp_path.glob("*.partial"))
 
 
+def test_picture_takes_its_colour_scale_from_the_map_not_from_the_planes_range():
+    """A DSI over 0.5-200 m (a hike's range) with its depths within 1.8-2.7 m: drawn on the DSI's range, all
+    of it fell in the darkest fifth of the colours; the picture takes the map's own percentiles."""
+    from cmax import viz
+
+    depths = plane_depths((0.5, 200.0), 60)
+    votes = np.full((60, 20, 30), 0.1, np.float32)
+    near, far = np.argmin(np.abs(depths - 1.8)), np.argmin(np.abs(depths - 2.7))
+    for column, plane in enumerate(np.linspace(near, far, 30).round().astype(int)):
+        votes[plane, 5:15, column] = 10.0
+    result = semi_dense_depth(DSI(votes, depths, np.array([[50.0, 0, 15], [0, 50, 10], [0, 0, 1]]), 0, np.eye(4), 1,
+                                  0.0), median_size=1)
+    own = viz.DepthScale.from_depths(result.depth[result.mask])
+    assert 1.7 < own.near < own.far < 2.8
+    panel = viz.depth_panel(np.where(result.mask, result.depth, np.nan), own,
+                            f"semi-dense depth, {int(result.mask.sum())} px")
+    np.testing.assert_array_equal(result.image()[:panel.shape[0], -panel.shape[1]:], panel)   # padded below
+    assert not np.array_equal(result.image(), result.image((0.5, 200.0)))
+
+
 # -- pose inputs -------------------------------------------------------------------------------
 def test_pose_input_forms_give_the_same_depth(plane, plane_result):
     events, camera, (times, poses) = plane

@@ -116,8 +116,10 @@ class SemiDenseDepth:
     def image(self, scale: "viz.DepthScale | tuple[float, float] | None" = None, *, zoom: int = 1) -> np.ndarray:
         """Picture (BGR uint8): the confidence map beside the depth with its colour bar [m].
 
-        ``scale`` (a :class:`cmax.viz.DepthScale`, or ``(near, far)`` metres; default: the DSI's
-        depth range) gives several maps one colour scale; no estimate is drawn as a grey hatch.
+        ``scale`` (a :class:`cmax.viz.DepthScale`, or ``(near, far)`` metres) gives several maps one
+        colour scale; default: the 1st-99th percentiles of the map's own depths (the DSI's depth range when
+        the mask is empty), so that a scene in a wide range (a 0.5-200 m hike, most of it beyond 5 m) is not
+        drawn in the darkest few colours. No estimate is drawn as a grey hatch.
         ``zoom``: each pixel of the maps drawn as a ``zoom x zoom`` block (a small sensor's picture
         stays readable).
         """
@@ -129,9 +131,17 @@ class SemiDenseDepth:
         depth = viz.enlarge(np.where(self.mask, self.depth, np.nan), zoom)
         return viz.hstack([
             viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), "confidence (DSI max)"),
-            viz.depth_panel(depth, self.depth_range if scale is None else scale,
+            viz.depth_panel(depth, self._own_scale() if scale is None else scale,
                             f"semi-dense depth, {int(self.mask.sum())} px"),
         ])
+
+    def _own_scale(self) -> "viz.DepthScale":
+        """The colour scale of :meth:`image` by default: the map's own depths, or the DSI's range."""
+        from cmax import viz
+
+        if not np.any(self.mask):
+            return viz.DepthScale(*self.depth_range)
+        return viz.DepthScale.from_depths(self.depth[self.mask])
 
     def plot(self, path: str | os.PathLike, *, zoom: int = 1) -> Path:
         """Write :meth:`image` (``zoom`` as there) as a PNG (atomically); returns the path."""
