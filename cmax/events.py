@@ -496,16 +496,26 @@ def window_steps(duration_us: int, step_us: int | None) -> tuple[int, int]:
     return duration, step
 
 
+#: A window counts as whole when it ends at most this fraction of its length after the last event: a recording's
+#: end is known only to within the gap after its last event (the events of ``--t0 0.6 --t1 0.8`` end a few µs
+#: before 0.8 s, and 100 ms windows from the first of them should still be two).
+WINDOW_END_TOLERANCE = 0.01
+
+
 def window_starts(first_us: int, last_us: int, window_us: int, step_us: int) -> np.ndarray:
     """Starts (N,) int64 [µs] of the whole windows ``[t0, t0 + window_us)`` from ``first_us``, every ``step_us``,
-    that end by ``last_us + 1`` (``last_us``: the last event, inclusive). Empty when even one window is longer.
+    that end by ``last_us + 1`` (``last_us``: the last event, inclusive), or at most
+    :data:`WINDOW_END_TOLERANCE` of a window later. Empty when even one window is longer.
 
     >>> window_starts(0, 249, 100, 100).tolist()          # 250 µs of events: two whole windows
     [0, 100]
     >>> window_starts(0, 249, 100, 50).tolist()           # overlapping windows
     [0, 50, 100, 150]
+    >>> window_starts(6, 199_992, 100_000, 100_000).tolist()   # the last ends 14 µs after the last event
+    [6, 100006]
     """
-    return np.arange(int(first_us), int(last_us) + 2 - int(window_us), int(step_us), dtype=np.int64)
+    slack = int(WINDOW_END_TOLERANCE * int(window_us))
+    return np.arange(int(first_us), int(last_us) + 2 + slack - int(window_us), int(step_us), dtype=np.int64)
 
 
 def uncovered_tail(first_us: int, last_us: int, window_us: int, step_us: int) -> tuple[int, int] | None:

@@ -398,6 +398,35 @@ def test_the_end_that_no_whole_window_covers_is_named_with_a_window_that_tiles(t
     assert summary["uncovered_us"] is None or summary["uncovered_us"][1] - summary["uncovered_us"][0] < 3
 
 
+def test_t0_t1_spanning_whole_windows_fit_them_all(tmp_path, capsys, monkeypatch):
+    """--t0 0.6 --t1 0.8 --window-ms 100: the events inside end a few µs before 0.8 s and start a few after 0.6,
+    so the second window ended after the last event and was left out (1 window and a note to use 99.993 ms).
+    A window that ends within 1% of its length after the last event is whole."""
+    from dataclasses import replace
+
+    from benchmarks.synthetic_windows import make_window
+    from cmax.fitting import QualitySettings, fit
+    from cmax.fitting import sequence as sequence_module
+
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    base = fit(w.events, w.K, speed=8.0, depth_range=(1.0, 20.0), max_events=1000,
+               quality=QualitySettings(ambiguity_test=False))
+    monkeypatch.setattr(sequence_module, "fit", lambda events, K, model="se3", **options: replace(
+        base, t0_us=int(events.t[0]), t1_us=int(events.t[-1])))
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.choice(np.arange(3, 1_000_000), 200_000, replace=False))   # first event at >= 3 µs
+    events = Events(rng.integers(0, 120, t.size), rng.integers(0, 90, t.size), t, rng.integers(0, 2, t.size), 120, 90)
+    inside = events.slice_time(int(t[0]) + 600_000, int(t[0]) + 800_000).t
+    assert inside[0] > t[0] + 600_000 and inside[-1] < t[0] + 800_000 - 1          # a gap at both ends
+    path = write_h5(tmp_path / "long.h5", events)
+    out = tmp_path / "out"
+    assert main(["fit", str(path), "--K", "90,90,60,45", "-o", str(out), "--t0", "0.6", "--t1", "0.8",
+                 "--window-ms", "100", "--quiet"]) == 0
+    assert "left out" not in capsys.readouterr().err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["windows_total"] == 2 and summary["uncovered_us"] is None
+
+
 @pytest.mark.parametrize("suffix", [".h5", ".raw"])
 def test_a_part_of_a_recording_too_long_to_hold_is_read_alone(tmp_path, capsys, monkeypatch, suffix):
     """A DSEC-layout h5 or a Prophesee RAW file holding more events than fit in memory (cmax.events.MAX_EVENTS,

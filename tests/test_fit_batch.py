@@ -299,7 +299,7 @@ def _alive(pid: int) -> bool:
 
 
 def _recording() -> Events:
-    """0.1 s of dots moving at a constant flow, cut into four full 20 ms windows by the tests."""
+    """0.1 s of dots moving at a constant flow, cut into five full 20 ms windows by the tests."""
     return translating_edges((200.0, 60.0), 5)
 
 
@@ -307,7 +307,8 @@ def test_parallel_sequence_equals_the_cold_serial_sequence_bit_for_bit():
     events = _recording()
     serial = cmax.fit_sequence(events, K, "flow", window_us=20_000, min_events=100, warm_start=False)
     parallel = cmax.fit_sequence(events, K, "flow", window_us=20_000, min_events=100, jobs=2)
-    assert len(serial.results) == 4          # starts 0, 20, 40, 60 ms: the last full window ends before 100 ms
+    # events at 16-99,997 µs: windows from 16 µs, the fifth ending 20 µs after the last event (whole: within 1%)
+    assert len(serial.results) == 5
     assert_same(parallel.results, serial.results, "results")
     assert np.array_equal(parallel.poses, serial.poses) and np.array_equal(parallel.times_us, serial.times_us)
 
@@ -317,8 +318,8 @@ def test_sequence_warm_starts_by_default_and_refuses_them_in_parallel():
     events = _recording()
     sequence = cmax.fit_sequence(events, K, "flow", window_us=20_000, min_events=100)
     previous = None
-    assert len(sequence.results) == 4
-    for i, t0 in enumerate(range(int(events.t[0]), int(events.t[0]) + 80_000, 20_000)):
+    assert len(sequence.results) == 5
+    for i, t0 in enumerate(range(int(events.t[0]), int(events.t[0]) + 100_000, 20_000)):
         previous = cmax.fit(events.slice_time(t0, t0 + 20_000), K, "flow", init=previous)
         assert_same(sequence.results[i], previous, f"window {i}")
     with pytest.raises(ValueError, match="jobs=2 needs warm_start=False"):

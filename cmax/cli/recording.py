@@ -362,8 +362,8 @@ def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, opti
     the last 500.0 ms of the recording (after 2.000 s) are shorter than a window (1000.0 ms) and are left out: --window-ms 833.333 covers it in 3 windows
     >>> tail_note(0, 2_999_999, 1_000_000, 1_000_000) is None
     True
-    >>> print(tail_note(0, 499_971, 100_000, 100_000))
-    the last 99.972 ms of the recording (after 0.400 s) are shorter than a window (100.000 ms) and are left out: --window-ms 99.994 covers it in 5 windows
+    >>> print(tail_note(0, 2_979, 1_000, 1_000))
+    the last 0.980 ms of the recording (after 0.002 s) are shorter than a window (1.000 ms) and are left out: --window-ms 0.993 covers it in 3 windows
     """
     from cmax.events import uncovered_tail
 
@@ -374,7 +374,7 @@ def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, opti
     held = "" if events is None else f", {events:,} events"
     origin = first_us if origin_us is None else origin_us
     tail_ms, window_ms = (end - start) * 1e-3, window_us * 1e-3
-    digits = 1 if f"{tail_ms:.1f}" != f"{window_ms:.1f}" else 3       # 99.972 ms is not "100.0 ms" < 100.0 ms
+    digits = 1 if f"{tail_ms:.1f}" != f"{window_ms:.1f}" else 3       # 0.980 ms is not "1.0 ms" < 1.0 ms
     text = (f"the last {tail_ms:.{digits}f} ms of the recording (after {(start - origin) * 1e-6:.3f} s{held}) "
             f"are shorter than a window ({window_ms:.{digits}f} ms) and are left out")
     if step_us == window_us:

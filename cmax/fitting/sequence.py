@@ -121,7 +121,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     model : str
     window_us, step_us : int
         Window length and the step between window starts [µs] (``step_us`` defaults to ``window_us``).
-        Only whole windows are fitted: the end of the recording after the last one
+        Only whole windows are fitted (:func:`cmax.events.window_starts`: those that end by the last event, or
+        at most 1% of a window after it): the end of the recording after the last one
         (``SequenceResult.uncovered_us``) is not.
     speed : float, optional
         Known speed [m/s] of every window (se3; a ValueError with another model).
