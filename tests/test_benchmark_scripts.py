@@ -427,3 +427,24 @@ def test_device_check_runs_every_part_and_fails_a_difference_beyond_its_toleranc
     with pytest.raises(SystemExit):
         device_check.main(["--device", "cuda", "--out", str(tmp_path / "c.md")])
     assert "sees no CUDA device" in capsys.readouterr().err
+
+
+def test_solver_agreement_fits_each_solver_and_measures_the_gap_to_scipy(monkeypatch):
+    """Each solver fits the same window; the gap is against L-BFGS-B's refinement objective, a failed stage is
+    counted and named."""
+    import benchmarks.solver_agreement as agreement
+    from benchmarks.synthetic_windows import make_window
+
+    small = make_window("indoor_flying", 3, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    monkeypatch.setattr(agreement, "cached", lambda cache, key, make: small)
+    rows = agreement.run(100, None)
+    assert set(rows) == set(agreement.SOLVERS) and rows["scipy"]["gap_pct"] == 0.0
+    for solver in agreement.SOLVERS:
+        expected = 100 * (rows[solver]["refine"] - rows["scipy"]["refine"]) / abs(rows["scipy"]["refine"])
+        assert rows[solver]["gap_pct"] == pytest.approx(expected) and abs(expected) < 2.0
+        assert rows[solver]["success"] == (rows[solver]["failed"] == [])
+    failed = {s: dict(r) for s, r in rows.items()}
+    failed["casadi"].update(success=False, failed=["local_refine"], gap_pct=-3.0)
+    text = agreement.report({100: rows, 101: failed}, 1.0, 0.0)
+    casadi = next(line for line in text.splitlines() if line.startswith("| casadi |"))
+    assert "| -3.00 |" in casadi and "1 of 2" in casadi and "no (local_refine)" in text
