@@ -190,10 +190,10 @@ class CasadiSolver(Solver):
     """IPOPT (casadi) with a limited-memory Hessian; the scale as an equality constraint on |v|.
 
     IPOPT starts from the given point moved at most ``bound_push`` (relative) away from the bounds
-    (its own default, 1e-2, moved a good start by enough to lose the contrast it had: the refinement of
-    a 640x480 window then ended below its start after 60 iterations). Its iterates need not improve the
-    objective monotonically (its filter line search trades the objective against the constraint), so at
-    its iteration limit its last point can score worse than an earlier one, or lie off the constraint.
+    (its own default, 1e-2, can move a good start by enough to lose the contrast it had). Its iterates
+    need not improve the objective monotonically (its filter line search trades the objective against
+    the constraint), so at its iteration limit its last point can score worse than an earlier one, or lie
+    off the constraint.
     The solver therefore returns a point on ``|v| = speed`` (its last point moved there and evaluated
     again when it is not), or the best point IPOPT evaluated whose ``|v|`` is within ``feasibility``
     (relative) of the speed, moved onto ``|v| = speed`` and evaluated there, when that scores better than
