@@ -410,7 +410,28 @@ def test_sweep_finds_the_depth_of_a_fronto_parallel_plane():
     x, y, dt, _ = _plane_events(rng, points, np.full(400, depth), 30, f, v)
     result = _sweep(x, y, dt, v, f, H, W, (3, 4), rho_range=(0.05, 2.0))
     np.testing.assert_allclose(result.inverse_depth, 1 / depth, rtol=0.06)
-    assert result.coarse_shape == (2, 2) and result.cost.shape == (48, 4) and np.all(result.confidence > 0)
+    assert result.coarse_shape == (2, 2) and np.all(result.confidence > 0)
+    assert result.cost.shape == (len(result.candidates), 4) and len(result.candidates) >= 48
+
+
+def test_sweep_reaches_a_far_plane_over_a_wide_range():
+    """A plane at 60 m over the range 0.5-200 m, 12 px of parallax over the window: 48 candidates uniform in
+    inverse depth jump from 200 m to 21.5 m, and the relative refinement (35% either way) reaches 148 m or 29 m
+    from them; the old sweep put the plane at 148 m. The far-end candidates let the sweep reach it."""
+    from cmax.fitting.depth_sweep import sweep_candidates
+
+    rng = np.random.default_rng(1)
+    H, W, f, depth, v = 60, 80, 60.0, 60.0, np.array([60.0, 0.0, 0.0])      # 60 px/s of flow: 12 px over 0.2 s
+    points = rng.uniform([5, 5], [W - 5, H - 5], (400, 2))
+    x, y, dt, _ = _plane_events(rng, points, np.full(400, depth), 30, f, v)
+    result = _sweep(x, y, dt, v, f, H, W, (3, 4), rho_range=(1 / 200, 1 / 0.5))
+    np.testing.assert_allclose(1 / result.inverse_depth, depth, rtol=0.05)
+    uniform = np.linspace(1 / 200, 1 / 0.5, 48)
+    assert uniform[0] * np.exp(0.3) < 1 / depth < uniform[1] / np.exp(0.3)          # out of the refinement's reach
+    candidates = sweep_candidates((1 / 200, 1 / 0.5), 48, 0.3)
+    assert np.array_equal(result.candidates, candidates) and np.all(np.diff(candidates) > 0)
+    far = candidates[candidates < uniform[1]]
+    np.testing.assert_allclose(far[1:] / far[:-1], np.exp(0.3), rtol=1e-12)          # a factor the refinement reaches
 
 
 def test_every_event_has_one_vote_in_the_sweep():

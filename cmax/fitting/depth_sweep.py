@@ -63,7 +63,8 @@ import torch
 from cmax.contrast.sweep import SweepNodeCost
 from cmax.warp import DepthGrid
 
-__all__ = ["DepthSweep", "sweep_inverse_depth", "relative_sweep_cost", "node_cost_function", "coarse_grid_shape"]
+__all__ = ["DepthSweep", "sweep_inverse_depth", "sweep_candidates", "relative_sweep_cost", "node_cost_function",
+           "coarse_grid_shape"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -89,6 +90,30 @@ class DepthSweep:
     coarse_shape: tuple[int, int]
     cost: np.ndarray
     confidence: np.ndarray
+
+
+def sweep_candidates(rho_range: tuple[float, float], count: int, reach: float) -> np.ndarray:
+    """The inverse depths [1/m] of the whole-range sweep: ``count`` uniform over ``rho_range`` (uniform in parallax),
+    and, at its far end, where the uniform ones lie further apart than the relative refinement reaches
+    (a factor ``exp(reach)`` either way), a geometric sequence of ratio ``exp(reach)`` from the far end up to
+    where the uniform spacing is finer; sorted, (C,) float64.
+
+    Uniform candidates alone leave far depths unreachable over a wide range: over 0.5-200 m 36 of them jump from
+    200 m to 16 m, and a relative refinement of 35% either way puts a tree at 30 m at 148 m or 22 m.
+
+    >>> sweep_candidates((0.5, 1.0), 6, 0.3).round(3).tolist()        # a narrow range: the uniform ones alone
+    [0.5, 0.6, 0.7, 0.8, 0.9, 1.0]
+    >>> sweep_candidates((0.005, 2.0), 3, 0.3)[:4].round(4).tolist()  # 0.5-200 m: every 35% at the far end
+    [0.005, 0.0067, 0.0091, 0.0123]
+    """
+    low, high = float(rho_range[0]), float(rho_range[1])
+    uniform = np.linspace(low, high, int(count))
+    if reach <= 0 or count < 2:
+        return uniform
+    ratio, step = math.exp(float(reach)), (high - low) / (int(count) - 1)
+    top = min(high, step / (ratio - 1.0))                    # beyond it, uniform steps are under a factor `ratio`
+    far = low * ratio ** np.arange(1, max(int(math.ceil(math.log(top / low) / reach)), 0) + 1) if top > low else []
+    return np.unique(np.concatenate([uniform, np.asarray(far, float)[np.asarray(far, float) < high]]))
 
 
 def coarse_grid_shape(grid_shape: tuple[int, int], coarsening: int) -> tuple[int, int]:
@@ -125,7 +150,8 @@ def sweep_inverse_depth(
     rho_range : (float, float)
         Smallest and largest inverse depth [1/m].
     candidates : int
-        Inverse depths swept, uniform in ``rho_range``.
+        Inverse depths swept uniform in ``rho_range``, with the far-end ones that :func:`sweep_candidates` adds
+        over a wide range (ratio ``exp(max(refinements))``), so that the refinements reach every depth.
     sigma : float
         IWE blur [px].
     polarity_split : bool
@@ -156,7 +182,7 @@ def sweep_inverse_depth(
     DepthSweep
     """
     dtype = rays.dtype
-    rhos = torch.linspace(float(rho_range[0]), float(rho_range[1]), candidates, dtype=dtype)
+    rhos = torch.as_tensor(sweep_candidates(rho_range, candidates, max(refinements, default=0.0)), dtype=dtype)
     N = rays.shape[0]
     coarse = coarse_grid_shape(grid_shape, int(coarsening))
     pixels = rays @ K.to(dtype).T                                             # (x, y, 1) of the events
@@ -271,6 +297,11 @@ def _parabolic_argmax(A: torch.Tensor, rhos: torch.Tensor) -> torch.Tensor:
     a, b, c = A[i - 1, cols], A[i, cols], A[i + 1, cols]
     curvature = a - 2 * b + c
     offset = torch.where(curvature < 0, 0.5 * (a - c) / curvature.clamp(max=-1e-12), torch.zeros_like(b))
-    rho = rhos[i] + offset.clamp(-0.5, 0.5) * (rhos[1] - rhos[0])
+    offset = offset.clamp(-0.5, 0.5)                    # in candidates
+    steps = torch.diff(rhos)
+    if torch.allclose(steps, steps[0].expand_as(steps), rtol=1e-9, atol=0.0):
+        rho = rhos[i] + offset * (rhos[1] - rhos[0])
+    else:                                               # :func:`sweep_candidates` at a wide range: each side's own
+        rho = rhos[i] + offset * torch.where(offset > 0, rhos[i + 1] - rhos[i], rhos[i] - rhos[i - 1])
     rho = torch.where(k == 0, rhos[0], torch.where(k == C - 1, rhos[-1], rho))
     return rho

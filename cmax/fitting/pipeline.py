@@ -480,7 +480,7 @@ class DepthSweepStage:
             vote_scale_quantile=s.sweep.vote_scale_quantile)
         shares = depth_on_bounds(result.inverse_depth, w.index, w.weight, (1.0 / hi, 1.0 / lo), s.depth_candidates)
         bound = tuple(name for name, share in shares.items() if share >= s.depth_bound_fraction)
-        message = (f"plane sweep over {s.depth_candidates} inverse depths (no solver); events' depth on the near "
+        message = (f"plane sweep over {len(result.candidates)} inverse depths (no solver); events' depth on the near "
                    f"bound {shares['depth_near']:.0%}, on the far bound {shares['depth_far']:.0%}")
         log = StageLog(self.name, float("nan"), float("nan"), 0, 0, time.perf_counter() - start, message, not bound,
                        bound)

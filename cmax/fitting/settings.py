@@ -382,7 +382,9 @@ class FitSettings:
         Bounds of the depth [m] (in units of ``speed * 1 s`` when the scale is unknown); give the
         scene's own range when it is known.
     depth_candidates : int
-        Inverse depths of the plane sweep (uniform in inverse depth over ``depth_range``).
+        Inverse depths of the plane sweep (uniform in inverse depth over ``depth_range``; over a wide range
+        :func:`cmax.fitting.depth_sweep.sweep_candidates` adds a few at its far end, spaced as the first of
+        ``depth_refinements`` reaches: the widest).
     depth_smoothness : (float, float)
         Semi-global matching penalties ``(P1, P2)`` of the sweep, in units of the median node confidence.
     depth_coarsening : int
