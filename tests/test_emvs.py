@@ -230,6 +230,26 @@ def test_picture_takes_its_colour_scale_from_the_map_not_from_the_planes_range()
     assert not np.array_equal(result.image(), result.image((0.5, 200.0)))
 
 
+def test_the_share_of_the_depth_map_on_the_first_and_last_planes():
+    """30 columns: 3 on the nearest plane, 6 on the farthest, the rest between: the shares are those columns' share
+    of the mask."""
+    depths = plane_depths((0.5, 200.0), 60)
+    votes = np.full((60, 20, 30), 0.1, np.float32)
+    between = list(np.linspace(5, 50, 21).round().astype(int))
+    planes = between[:10] + [0] * 3 + [59] * 6 + between[10:]                 # columns 10-12 near, 13-18 far
+    for column, plane in enumerate(planes):
+        votes[plane, 5:15, column] = 10.0
+    result = semi_dense_depth(DSI(votes, depths, np.array([[50.0, 0, 15], [0, 50, 10], [0, 0, 1]]), 0, np.eye(4), 1,
+                                  0.0), median_size=1)
+    mask = result.mask
+    near, far = mask[:, 10:13], mask[:, 13:19]
+    np.testing.assert_allclose(result.depth[:, 10:13][near], depths[0], rtol=1e-5)
+    np.testing.assert_allclose(result.depth[:, 13:19][far], depths[-1], rtol=1e-5)
+    assert near.sum() >= 10 and far.sum() >= 20                   # the adaptive mask keeps the band's edges
+    shares = result.on_bounds()
+    assert shares["near"] == pytest.approx(near.sum() / mask.sum()) and shares["far"] == pytest.approx(far.sum() / mask.sum())
+
+
 # -- pose inputs -------------------------------------------------------------------------------
 def test_pose_input_forms_give_the_same_depth(plane, plane_result):
     events, camera, (times, poses) = plane

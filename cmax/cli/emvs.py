@@ -23,6 +23,9 @@ from cmax.cli.recording import (add_camera_options, add_file_options, calibratio
                                 file_intrinsics, overlap, read_calibrated)
 from cmax.io.atomic import save_npz_atomic
 
+#: ``cmax emvs`` notes the share of the depth map on the nearest or farthest plane from this share on.
+EMVS_BOUND_NOTE = 0.05
+
 __all__ = ["add_command", "run", "camera_for", "file_trajectory"]
 
 _range_numbers = float_list((2,), "--depth-range (near,far)")
@@ -165,6 +168,12 @@ def run(args: argparse.Namespace) -> int:
     result.plot(out / "depth.png", zoom=viz.readable_zoom(events.width))   # small sensors enlarged
     result.save_ply(out / "points.ply")
     depths = result.depth[result.mask]
+    for end, share in result.on_bounds().items():
+        if share >= EMVS_BOUND_NOTE:
+            plane = result.depth_range[0 if end == "near" else 1]
+            print(f"cmax emvs: note: {share:.1%} of the depth map lies on the {end} plane ({plane:g} m): the range's "
+                  f"end rather than a measurement (the scene {'nearer' if end == 'near' else 'farther'} than the "
+                  f"range, or too little parallax to tell); --depth-range widens it", file=sys.stderr)
     median = f"{np.median(depths):.3f} m" if depths.size else "n/a"
     print(f"emvs: {len(events):,} events, {result.n_planes} planes, {int(result.mask.sum()):,} px in the mask "
           f"({result.mask.mean():.1%}), median depth {median}, {result.seconds:.2f} s "

@@ -135,6 +135,20 @@ class SemiDenseDepth:
                             f"semi-dense depth, {int(self.mask.sum())} px"),
         ])
 
+    def on_bounds(self) -> dict[str, float]:
+        """Shares of the masked pixels whose depth lies on the nearest or the farthest plane (within half a plane
+        step, the planes being uniform in inverse depth): ``{"near": ..., "far": ...}``. A pile-up on the far
+        plane is the scene beyond the range, or rays with too little parallax to tell (both ends are clips, not
+        measurements)."""
+        near, far = self.depth_range
+        depths = self.depth[self.mask].astype(np.float64)
+        if not depths.size:
+            return {"near": 0.0, "far": 0.0}
+        half_step = 0.5 * (1.0 / near - 1.0 / far) / max(self.n_planes - 1, 1)
+        inverse = 1.0 / depths
+        return {"near": float(np.mean(inverse >= 1.0 / near - half_step)),
+                "far": float(np.mean(inverse <= 1.0 / far + half_step))}
+
     def _own_scale(self) -> "viz.DepthScale":
         """The colour scale of :meth:`image` by default: the map's own depths, or the DSI's range."""
         from cmax import viz
