@@ -54,12 +54,15 @@ FAR_LIMIT_M = 80.0
 
 @dataclass(frozen=True, eq=False)
 class FileReport:
-    """Metrics of one file: its stem, the pooled depth metrics, the motion metrics (or None), windows."""
+    """Metrics of one file: its stem, the pooled depth metrics, the motion metrics (or None), windows, and the
+    notes on how its camera differs from the one the network was trained with (:func:`learned.predict.camera_notes`:
+    the depth a network infers from image motion scales with the focal length)."""
 
     sequence: str
     depth: DepthMetrics
     motion: MotionMetrics | None
     windows: int
+    notes: tuple[str, ...] = ()
 
 
 def load_model(checkpoint: str | Path) -> tuple[DepthPoseNet, dict]:
@@ -260,7 +263,11 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
                    batch_size: int = 8) -> list[FileReport]:
     """Metrics of ``checkpoint`` on each file with ground truth (window length from the checkpoint's config),
     on the dense mask (:func:`held_out_windows`)."""
+    from learned.predict import camera_notes
+    from learned.pretrained import checkpoint_card
+
     model, config = load_model(checkpoint)
+    card = checkpoint_card(checkpoint)
     window_us = int(round(window_s * 1e6)) if window_s is not None else int(config["data"]["window_us"])
     if window_us < 1:
         raise ValueError(f"the window must be at least 1 µs long, got {window_s} s")
@@ -269,7 +276,10 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
         windows = held_out_windows(path, window_us)
         depth, twist = predict_windows(model, windows, batch_size)
         metrics = score_depth(depth, windows, "dense")
-        reports.append(FileReport(path.stem, metrics, score_motion(twist, windows), len(windows)))
+        first = windows[0].sample
+        notes = camera_notes(card, first.events.width, first.events.height, np.asarray(first.K, float),
+                             f"the card of {checkpoint}")
+        reports.append(FileReport(path.stem, metrics, score_motion(twist, windows), len(windows), tuple(notes)))
     return reports
 
 
@@ -393,6 +403,8 @@ def main(argv: list[str] | None = None) -> int:
 
 def _run(args: argparse.Namespace) -> int:
     for report in evaluate_files(args.checkpoint, args.data, window_s=args.window):
+        for note in report.notes:
+            print(f"learned.evaluate: note: {report.sequence}: {note}", file=sys.stderr)
         m = report.depth
         line = (f"{report.sequence}: {report.windows} windows  abs_mean {m.abs_mean:.3f} m  abs_rel {m.abs_rel:.3f}  "
                 f"rmse_log {m.rmse_log:.3f}  delta1 {m.delta1:.3f}  "

@@ -312,3 +312,32 @@ def test_event_volume_doc_example_and_bad_input():
         event_volume(ev.to_torch())
     with pytest.raises(ValueError, match="bins"):
         event_volume(ev, bins=0)
+
+
+def test_evaluate_notes_a_camera_unlike_the_one_the_network_was_trained_with(tmp_path, capsys):
+    """The shipped network (its card: the trained sensor and K) evaluated on a 40x30 file: the report and the
+    command line say that the sensor differs and by how much the focal length scales its depth, as cmax depth
+    does."""
+    import json
+
+    import h5py
+
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+    from learned.evaluate import evaluate_files, main
+    from learned.pretrained import shipped_checkpoint
+
+    scene = make_scene("indoor_flying", seed=7, width=40, height=30, duration_s=1.0, texture_size=64)
+    path = simulate_scene(scene, 0.4, EventSimulator(**{**scene.recommended_simulator, "seed": 7}),
+                          depth_rate_hz=20).save(tmp_path / "s.h5")
+    checkpoint = shipped_checkpoint()
+    card = json.loads(checkpoint.with_suffix(".json").read_text())
+    with h5py.File(path, "r") as file:
+        fx = float(file["gt/K"][0, 0])
+    (report,) = evaluate_files(checkpoint, [path])
+    assert any(f"trained on a {card['size'][0]}x{card['size'][1]} sensor, this file is 40x30" in n for n in report.notes)
+    assert any(f"predicted x {fx / card['K'][0]:.3g}" in n for n in report.notes)
+    assert main(["--checkpoint", str(checkpoint), "--data", str(path)]) == 0
+    err = capsys.readouterr().err
+    assert err.count("learned.evaluate: note: s: ") == len(report.notes) >= 2
