@@ -54,6 +54,16 @@ def test_the_worst_verdict_wins():
     assert ok.verdict is Verdict.OK and "closest: bas_relief" in ok.reason
 
 
+def test_an_alternative_that_scores_better_beyond_noise_is_not_called_within_noise():
+    """A mirrored motion that beats the fit by 4.06 with a noise of 0.725 read 'mirrored within noise (gain -4.06
+    <= noise 0.725)'; it is ambiguous (the fit missed it), said as such."""
+    better, close = _alt("mirrored", -4.06, 0.725), _alt("bas_relief", -0.5, 0.725)
+    quality = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[better, close])
+    assert quality.verdict is Verdict.AMBIGUOUS
+    assert "mirrored scores better beyond noise (gain -4.06 < -noise 0.725" in quality.reason
+    assert "bas_relief within noise (gain -0.5 <= noise 0.725)" in quality.reason
+
+
 def test_a_window_the_ambiguity_test_cannot_hold_is_not_ok():
     """All events on one corner pixel: one patch, so no alternative can be scored; the fit found a
     direction with parallax, but nothing checks it against its mirror: ambiguous, never ok."""

@@ -378,7 +378,9 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
         return Quality(Verdict.LOW_PARALLAX, low_motion.reason, tuple(alternatives), cause=low_motion.cause)
     close = [a for a in alternatives if a.within_noise]
     if close:
-        reason = "; ".join(f"{a.name} within noise (gain {a.gain:.3g} <= noise {a.noise:.3g})" for a in close)
+        reason = "; ".join(f"{a.name} within noise (gain {a.gain:.3g} <= noise {a.noise:.3g})" if a.gain >= -a.noise
+                           else f"{a.name} scores better beyond noise (gain {a.gain:.3g} < -noise {a.noise:.3g}: the "
+                                "fit missed it)" for a in close)
         return Quality(Verdict.AMBIGUOUS, reason, tuple(alternatives))
     if untestable:
         return Quality(Verdict.AMBIGUOUS, f"{note or 'ambiguity not tested'}: nothing tells the fitted direction "
