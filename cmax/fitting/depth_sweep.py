@@ -112,8 +112,10 @@ def sweep_candidates(rho_range: tuple[float, float], count: int, reach: float) -
         return uniform
     ratio, step = math.exp(float(reach)), (high - low) / (int(count) - 1)
     top = min(high, step / (ratio - 1.0))                    # beyond it, uniform steps are under a factor `ratio`
-    far = low * ratio ** np.arange(1, max(int(math.ceil(math.log(top / low) / reach)), 0) + 1) if top > low else []
-    return np.unique(np.concatenate([uniform, np.asarray(far, float)[np.asarray(far, float) < high]]))
+    if top <= low:
+        return uniform
+    far = low * ratio ** np.arange(1, math.ceil(math.log(top / low) / reach) + 1)
+    return np.unique(np.concatenate([uniform, far[far < high]]))
 
 
 def coarse_grid_shape(grid_shape: tuple[int, int], coarsening: int) -> tuple[int, int]:

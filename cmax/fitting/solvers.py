@@ -65,6 +65,11 @@ class Problem:
     speed: float | None = None
     v_slice: slice | None = None
 
+    @property
+    def constrained(self) -> bool:
+        """Whether the problem asks for ``|x[v_slice]| = speed``."""
+        return self.speed is not None and self.v_slice is not None
+
 
 @dataclass(frozen=True)
 class SolveResult:
@@ -217,7 +222,7 @@ class CasadiSolver(Solver):
         def feasible(x: np.ndarray) -> bool:
             if np.any(x < problem.lower - slack) or np.any(x > problem.upper + slack):
                 return False
-            if problem.speed is None or problem.v_slice is None:
+            if not problem.constrained:
                 return True
             return abs(np.linalg.norm(x[problem.v_slice]) - problem.speed) <= self.feasibility * problem.speed
 
@@ -226,7 +231,7 @@ class CasadiSolver(Solver):
     def _on_constraint(self, problem: Problem, x: np.ndarray) -> np.ndarray:
         """``x`` inside the bounds with ``|v| = speed`` exactly (when the problem has the constraint)."""
         x = np.clip(x, problem.lower, problem.upper)
-        if problem.speed is not None and problem.v_slice is not None:
+        if problem.constrained:
             v = x[problem.v_slice]
             x[problem.v_slice] = v * (problem.speed / max(np.linalg.norm(v), 1e-300))
         return x
@@ -241,7 +246,7 @@ class CasadiSolver(Solver):
         X = ca.MX.sym("x", n)
         nlp = {"x": X, "f": objective(X)}
         lbg = ubg = None
-        if problem.speed is not None and problem.v_slice is not None:
+        if problem.constrained:
             v = X[problem.v_slice.start:problem.v_slice.stop]
             nlp["g"] = ca.sumsqr(v) - problem.speed ** 2
             lbg = ubg = 0.0
