@@ -30,12 +30,16 @@ if TYPE_CHECKING:  # pragma: no cover
     import torch
 
 __all__ = [
-    "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "concatenate",
+    "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "FIELD_ALIASES", "concatenate",
     "check_event_count", "window_starts", "uncovered_tail",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
 STRUCTURED_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("p", "i1")])
+
+#: Other names of the fields ``t`` and ``p`` that :meth:`Events.from_structured` reads where ``t`` / ``p``
+#: are absent: dv-processing's ``EventStore.numpy()`` (``timestamp`` [µs], ``x``, ``y``, ``polarity``).
+FIELD_ALIASES = {"t": "timestamp", "p": "polarity"}
 
 _MAX_SENSOR_SIZE = 65535
 
@@ -279,7 +283,9 @@ class Events:
     def from_structured(
         cls, array: np.ndarray, width: int, height: int, *, sort: bool = False
     ) -> "Events":
-        """Events from a structured array with fields ``x, y, t, p`` (any order).
+        """Events from a structured array with fields ``x, y, t, p`` (any order): tonic's and
+        Prophesee Metavision's layout; dv-processing's ``timestamp`` and ``polarity`` are read as ``t``
+        and ``p`` where those are absent (:data:`FIELD_ALIASES`).
 
         Fields may have any integer or bool dtype (``t`` in microseconds);
         polarity may be {0, 1}, {-1, +1} or bool. Extra fields are ignored.
@@ -290,12 +296,13 @@ class Events:
             raise TypeError(
                 f"array must be a structured array with fields x, y, t, p; got dtype {array.dtype}"
             )
-        missing = [name for name in "xytp" if name not in names]
+        fields = {name: name if name in names else FIELD_ALIASES.get(name) for name in "xytp"}
+        missing = [name for name, field in fields.items() if field not in names]
         if missing:
             raise ValueError(f"array lacks the field(s) {missing}; it has {list(names)}")
         if array.ndim != 1:
             raise ValueError(f"array must be one-dimensional (N,), got shape {array.shape}")
-        return cls(array["x"], array["y"], array["t"], array["p"], width, height, sort=sort)
+        return cls(*(array[fields[name]] for name in "xytp"), width, height, sort=sort)
 
     @classmethod
     def from_array(
@@ -304,13 +311,17 @@ class Events:
         """Events from an (N, 4) array whose columns are named by ``order``.
 
         ``order`` is a permutation of ``"xytp"``, e.g. ``"txyp"`` for the ECD
-        text layout. Time must already be in integer microseconds.
+        text layout. Time must already be in integer microseconds. A
+        structured array (named fields, e.g. a tonic data set's events) is read
+        by its field names (:meth:`from_structured`), not by ``order``.
         """
         if sorted(order) != sorted("xytp") or len(order) != 4:
             raise ValueError(f"order must be a permutation of 'xytp', got {order!r}")
         if hasattr(array, "detach"):
             array = array.detach().cpu().numpy()
         array = np.asarray(array)
+        if array.dtype.names is not None:
+            return cls.from_structured(array, width, height, sort=sort)
         if array.ndim != 2 or array.shape[1] != 4:
             raise ValueError(f"array must have shape (N, 4), got {array.shape}")
         columns = {name: array[:, i] for i, name in enumerate(order)}

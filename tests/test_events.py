@@ -40,6 +40,40 @@ def test_structured_round_trip_from_other_dtypes():
     assert Events.from_structured(back, 10, 5) == ev
 
 
+def _tonic_dv_and_metavision(ev: Events) -> dict[str, np.ndarray]:
+    """``ev`` in the structured layouts users hold: a tonic data set's (int64 x, y, t, p), Prophesee
+    Metavision's ``EventCD`` (x, y, p, t) and dv-processing's ``EventStore.numpy()`` (timestamp, x, y, polarity)."""
+    tonic = np.zeros(len(ev), dtype=[("x", "<i8"), ("y", "<i8"), ("t", "<i8"), ("p", "<i8")])
+    metavision = np.zeros(len(ev), dtype=[("x", "<u2"), ("y", "<u2"), ("p", "<i2"), ("t", "<i8")])
+    dv = np.zeros(len(ev), dtype=[("timestamp", "<i8"), ("x", "<i2"), ("y", "<i2"), ("polarity", "i1")])
+    for array in (tonic, metavision):
+        array["x"], array["y"], array["t"], array["p"] = ev.x, ev.y, ev.t, ev.p
+    dv["timestamp"], dv["x"], dv["y"], dv["polarity"] = ev.t, ev.x, ev.y, ev.p
+    return {"tonic": tonic, "metavision": metavision, "dv": dv}
+
+
+@pytest.mark.parametrize("layout", ["tonic", "metavision", "dv"])
+def test_structured_arrays_of_other_tools_by_field_name(layout, tmp_path):
+    """``from_structured``, ``from_array`` (which reads a structured array by its names, not by ``order``:
+    a tonic user's first try) and ``cmax.io.read`` of the saved ``.npy`` give the same events."""
+    from cmax.io import read
+
+    ev = random_events(200)
+    array = _tonic_dv_and_metavision(ev)[layout]
+    assert Events.from_structured(array, ev.width, ev.height) == ev
+    assert Events.from_array(array, ev.width, ev.height) == ev
+    assert Events.from_array(array, ev.width, ev.height, order="txyp") == ev
+    np.save(tmp_path / "events.npy", array)
+    assert read(tmp_path / "events.npy", width=ev.width, height=ev.height) == ev
+
+
+def test_a_field_name_wins_over_its_alias():
+    """Where both ``t`` and dv-processing's ``timestamp`` exist, ``t`` is read."""
+    array = np.zeros(3, dtype=[("x", "u2"), ("y", "u2"), ("t", "i8"), ("timestamp", "i8"), ("p", "i1")])
+    array["t"], array["timestamp"] = [1, 2, 3], [30, 20, 10]
+    assert Events.from_structured(array, 4, 4).t.tolist() == [1, 2, 3]
+
+
 def test_array_round_trip_with_column_order():
     ev = random_events(300)
     for order in ("xytp", "txyp", "ptyx"):

@@ -24,7 +24,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from cmax.events import Events, check_event_count
+from cmax.events import FIELD_ALIASES, Events, check_event_count
 from cmax.io._checks import (check_polarity_encoding, check_stated_size, check_time_unit, polarity_01,
                              times_to_us)
 from cmax.io.aedat4 import read_aedat4, read_aedat4_imu
@@ -170,16 +170,17 @@ def _read_npy(
     except ValueError as error:
         raise FormatError(f"{path} is not a readable .npy file ({error})") from None
     names = array.dtype.names or ()
-    if array.ndim != 1 or any(name not in names for name in "xytp"):
-        raise FormatError(f"{path}: expected a 1-D structured array with fields x, y, t, p; "
-                          f"got dtype {array.dtype}, shape {array.shape}")
+    fields = {name: name if name in names else FIELD_ALIASES.get(name) for name in "xytp"}
+    if array.ndim != 1 or any(field not in names for field in fields.values()):
+        raise FormatError(f"{path}: expected a 1-D structured array with fields x, y, t, p (or dv-processing's "
+                          f"timestamp, polarity); got dtype {array.dtype}, shape {array.shape}")
     check_event_count(array.shape[0], f"{path}")
-    t = np.asarray(array["t"])
+    t = np.asarray(array[fields["t"]])
     if t.dtype.kind == "f" and time_unit is None:
-        raise FormatError(f"{path}: field t holds {t.dtype} times; state their unit with time_unit='s', "
+        raise FormatError(f"{path}: field {fields['t']} holds {t.dtype} times; state their unit with time_unit='s', "
                           "'ms' or 'us' (cmax: --time-unit; times are never guessed)")
-    t_us = times_to_us(t, time_unit or "us", f"{path}: field t")
-    p = polarity_01(np.asarray(array["p"]), polarity, f"{path}: field p")
+    t_us = times_to_us(t, time_unit or "us", f"{path}: field {fields['t']}")
+    p = polarity_01(np.asarray(array[fields["p"]]), polarity, f"{path}: field {fields['p']}")
     try:
         return Events(array["x"], array["y"], t_us, p, width, height)
     except (TypeError, ValueError) as error:
