@@ -11,7 +11,7 @@ import numpy as np
 
 from cmax.events import Events, _check_sensor_size
 
-__all__ = ["Camera", "check_intrinsics", "intrinsics_oddity"]
+__all__ = ["Camera", "check_intrinsics", "intrinsics_oddity", "pinhole_events"]
 
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 
@@ -219,6 +219,12 @@ class Camera:
         A table lookup in :attr:`undistortion_map` (no per-event solve). The
         result may fall outside the image for strongly distorted borders.
         """
+        self._check_events(events)
+        if not self.is_distorted:
+            return np.column_stack([events.x, events.y]).astype(np.float32)
+        return self.undistortion_map[events.y, events.x]
+
+    def _check_events(self, events: object) -> None:
         if not isinstance(events, Events):
             raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
         if events.sensor_size != (self.width, self.height):
@@ -226,9 +232,20 @@ class Camera:
                 f"events come from a {events.width}x{events.height} sensor, "
                 f"the camera is {self.width}x{self.height}"
             )
+
+    def undistort_events(self, events: Events) -> Events:
+        """The events at their undistorted pixels, the nearest integer ones, for a pinhole model with
+        :attr:`K` (what ``cmax fit --calib`` fits); events whose undistorted pixel lies outside the image
+        are dropped. A camera without distortion returns ``events`` themselves.
+
+        Raises ``ValueError`` when the events come from a sensor of another size than the camera's.
+        """
+        self._check_events(events)
         if not self.is_distorted:
-            return np.column_stack([events.x, events.y]).astype(np.float32)
-        return self.undistortion_map[events.y, events.x]
+            return events
+        xy = np.rint(self.undistortion_map[events.y, events.x]).astype(np.int64)
+        inside = (xy[:, 0] >= 0) & (xy[:, 0] < self.width) & (xy[:, 1] >= 0) & (xy[:, 1] < self.height)
+        return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], self.width, self.height)
 
     def scaled(self, width: int, height: int) -> "Camera":
         """The same camera resampled to ``width`` x ``height`` pixels (distortion kept)."""
@@ -240,3 +257,12 @@ class Camera:
         K[0, 2] = sx * (self.cx + 0.5) - 0.5
         K[1, 2] = sy * (self.cy + 0.5) - 0.5
         return Camera(K, width, height, self.distortion)
+
+
+def pinhole_events(events: Events, K: object) -> tuple[Events, np.ndarray]:
+    """``(events, K (3, 3))`` for a pinhole fit: a matrix ``K`` is returned as given (checked later by the
+    caller); a :class:`Camera` gives its ``K`` and the events through :meth:`Camera.undistort_events`
+    (undistorted when it has a distortion; refused when they come from a sensor of another size)."""
+    if isinstance(K, Camera):
+        return K.undistort_events(events), K.K
+    return events, K

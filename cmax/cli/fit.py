@@ -89,13 +89,11 @@ def add_command(subparsers) -> argparse.ArgumentParser:
 
 
 def undistorted_events(events, K: np.ndarray, distortion: np.ndarray):
-    """The events at their undistorted pixel (nearest integer; events that land outside are dropped)."""
+    """The events at their undistorted pixel (nearest integer; events that land outside are dropped):
+    :meth:`cmax.Camera.undistort_events` of the camera ``K``, ``distortion`` of the events' sensor."""
     from cmax.camera import Camera
-    from cmax.events import Events
 
-    xy = np.rint(Camera(K, events.width, events.height, distortion).undistort(events)).astype(np.int64)
-    inside = (xy[:, 0] >= 0) & (xy[:, 0] < events.width) & (xy[:, 1] >= 0) & (xy[:, 1] < events.height)
-    return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], events.width, events.height)
+    return Camera(K, events.width, events.height, distortion).undistort_events(events)
 
 
 def _sequence_default(name: str):

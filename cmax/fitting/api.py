@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from cmax._threads import blas_threads_scope, torch_threads_scope
-from cmax.camera import check_intrinsics, intrinsics_oddity
+from cmax.camera import check_intrinsics, intrinsics_oddity, pinhole_events
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events
 from cmax.geometry import se3_exp, se3_log
@@ -306,8 +306,12 @@ def fit(
         One window (at least 10 events spanning a non-zero time). Both
         polarities are counted alike (the IWE counts events), so a window of
         one polarity is fine.
-    K : array_like (3, 3)
-        Pinhole intrinsics [px] of the (undistorted) events.
+    K : array_like (3, 3) or cmax.Camera
+        Pinhole intrinsics [px] of the (undistorted) events; or the
+        :class:`cmax.Camera` of the events' sensor, whose distortion (if any)
+        is undone first (:meth:`cmax.Camera.undistort_events`: each event to
+        its undistorted pixel, as ``cmax fit --calib`` does), so that the
+        depth and masks are maps of the undistorted image.
     model : {"se3", "rotation", "flow"}
         ``flow``: a constant optical flow [px/s]; ``rotation``: an angular
         velocity [rad/s]; ``se3``: linear and angular velocity plus an
@@ -405,6 +409,7 @@ def fit(
     (array([ 40., -20.]), True)
     """
     start = time.perf_counter()
+    events, K = pinhole_events(events, K)
     K = _check_inputs(events, K, model)
     _warn_odd_intrinsics(K, events.width, events.height)
     settings = _settings(settings, options, model)

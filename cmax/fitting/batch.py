@@ -52,7 +52,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cmax._threads import available_cores, set_blas_threads
-from cmax.camera import check_intrinsics
+from cmax.camera import Camera, check_intrinsics, pinhole_events
 from cmax.events import Events
 from cmax.fitting.api import (MODELS, FitResult, _check_inputs, _check_speed, _known_omega, _pose_twist, _settings,
                               fit)
@@ -112,8 +112,9 @@ def fit_windows(windows: Sequence[Events], K: object, model: str = "se3", *, job
     ----------
     windows : sequence of Events
         The windows (each at least 10 events over a non-zero time; sensors may differ).
-    K : array_like (3, 3)
-        Pinhole intrinsics [px], shared by every window.
+    K : array_like (3, 3) or cmax.Camera
+        Pinhole intrinsics [px], shared by every window; or the :class:`cmax.Camera` of their sensor (its
+        distortion undone first, as :func:`cmax.fit` does).
     model : {"se3", "rotation", "flow"}
     jobs : int or None, keyword-only
         Worker processes, each running torch on one thread; None: the cores this process may run on
@@ -167,11 +168,15 @@ def fit_windows(windows: Sequence[Events], K: object, model: str = "se3", *, job
         raise TypeError(f"windows must be a sequence of cmax.Events (one window: cmax.fit), got "
                         f"{type(windows).__name__}")
     workers = check_jobs(jobs)
-    K = check_intrinsics(K)
+    camera = K if isinstance(K, Camera) else None
+    K = check_intrinsics(K.K if camera is not None else K)
     check_options(model, fit_options, workers)
+    windows = list(windows)
     for i, events in enumerate(windows):
         try:
-            _check_inputs(events, K, model)
+            if camera is not None:
+                windows[i], _ = pinhole_events(events, camera)
+            _check_inputs(windows[i], K, model)
         except (TypeError, ValueError) as error:
             raise type(error)(f"windows[{i}]: {error}") from None
     tasks = (FitTask(i, events, K, model, dict(fit_options)) for i, events in enumerate(windows))

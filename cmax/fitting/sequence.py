@@ -8,7 +8,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cmax._threads import torch_threads_scope
-from cmax.camera import check_intrinsics
+from cmax.camera import Camera, check_intrinsics, pinhole_events
 from cmax.events import Events, check_time_us, uncovered_tail, window_starts
 from cmax.fitting.api import MIN_WINDOW_EVENTS, FitResult, _check_inputs, _check_speed, _settings, fit
 from cmax.fitting.batch import FitTask, check_jobs, check_options, run_tasks
@@ -117,7 +117,9 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     ----------
     source : Events or cmax.io.H5Reader
         Anything with ``window(t0_us, t1_us)`` (a reader) or an :class:`Events`.
-    K : array_like (3, 3)
+    K : array_like (3, 3) or cmax.Camera
+        Pinhole intrinsics [px] of the events; or the :class:`cmax.Camera` of their sensor, whose
+        distortion (if any) is undone in every window first (as :func:`cmax.fit` does).
     model : str
     window_us, step_us : int
         Window length and the step between window starts [µs] (``step_us`` defaults to ``window_us``).
@@ -201,7 +203,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         raise ValueError(f"warm starts chain the windows one after another: jobs={jobs} needs warm_start=False")
     if jobs != 1:                                # refused here rather than by every worker
         check_options(model, {"speed": speed, "settings": settings, **fit_options}, jobs)
-    K, speed = check_intrinsics(K), _check_speed(speed)
+    camera = K if isinstance(K, Camera) else None
+    K, speed = check_intrinsics(K.K if camera is not None else K), _check_speed(speed)
     if isinstance(min_events, (bool, np.bool_)) or not isinstance(min_events, (int, np.integer)) \
             or min_events < MIN_WINDOW_EVENTS:
         raise ValueError(f"min_events must be a whole number >= {MIN_WINDOW_EVENTS} (the fewest events a window can "
@@ -224,6 +227,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         take = source.window
     else:
         raise TypeError(f"source must be Events or a reader with window(t0_us, t1_us), got {type(source).__name__}")
+    if camera is not None:                       # every window, also those the resolution reads again
+        take = lambda a, b, read=take: pinhole_events(read(a, b), camera)[0]  # noqa: E731
     starts = window_starts(t_start, t_end, window_us, step_us)
     if gyro is not None and len(starts):
         _check_gyro_covers(gyro, t_start, starts[-1] + window_us - 1)
