@@ -19,6 +19,7 @@ __version__ = "0.1.0"
 _LAZY = {
     "fit": "cmax.fitting", "fit_sequence": "cmax.fitting", "FitResult": "cmax.fitting",
     "FitSettings": "cmax.fitting", "SequenceResult": "cmax.fitting", "LowParallaxWarning": "cmax.fitting",
+    "LowMotionWarning": "cmax.fitting", "BoundWarning": "cmax.fitting",
     "EMVS": "cmax.emvs", "SemiDenseDepth": "cmax.emvs",
     "fit_windows": "cmax.fitting",
 }

@@ -32,3 +32,14 @@ def test_events_concatenate_is_cmax_concatenate():
     np.testing.assert_array_equal(joined.t, [0, 5, 9])
     with pytest.raises(ValueError, match="back in time"):
         cmax.Events.concatenate([b, a])
+
+
+def test_every_warning_the_fit_issues_is_reachable_from_cmax():
+    """A user who sees ``LowMotionWarning`` printed filters it as ``cmax.LowMotionWarning``."""
+    from cmax.fitting import api
+
+    warning_classes = {name for name, value in vars(api).items()
+                       if isinstance(value, type) and issubclass(value, Warning) and value.__module__ == api.__name__}
+    assert warning_classes == {"LowParallaxWarning", "LowMotionWarning", "BoundWarning"}
+    for name in warning_classes:
+        assert getattr(cmax, name) is getattr(api, name) and name in cmax.__all__
