@@ -266,7 +266,7 @@ def test_validation_errors_name_the_argument():
             voxel_grid(ev, bad)
     with pytest.raises(TypeError, match="events"):
         voxel_grid(np.zeros((10, 4)), 5)
-    with pytest.raises(TypeError, match="events"):
+    with pytest.raises(TypeError, match=r"events .* \(a structured array, e.g. tonic's: cmax.Events.from_structured"):
         event_frame(ev.to_structured())
     with pytest.raises(ValueError, match="t0_us"):
         voxel_grid(ev, 5, t0_us=int(ev.t[1]))
