@@ -25,7 +25,7 @@ import numpy as np
 import torch
 
 from cmax.events import Events
-from cmax.io import H5Reader
+from cmax.io import FormatError, H5Reader
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
 
@@ -195,6 +195,17 @@ def _as_spec(entry: object) -> FileSpec:
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
+def _training_file(path: Path) -> H5Reader:
+    """``H5Reader(path)``; a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``, ``.npy``, ...)
+    is refused with the one-line conversion that makes it one."""
+    try:
+        return H5Reader(path)
+    except FormatError as error:
+        raise FormatError(f"{error}; training reads DSEC-layout h5 files: convert it once with "
+                          f"cmax.io.write_h5('events.h5', cmax.io.read('{path}'[, width=, height=])) and give its K "
+                          "in data.files") from None
+
+
 class H5WindowDataset(torch.utils.data.Dataset):
     """Windows of DSEC-layout files (see the module docstring).
 
@@ -229,7 +240,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self._readers: dict[int, H5Reader] = {}
         size = None
         for i, spec in enumerate(self.specs):
-            with H5Reader(spec.path) as reader:
+            with _training_file(spec.path) as reader:
                 if size is None:
                     size = (reader.width, reader.height)
                 elif size != (reader.width, reader.height):

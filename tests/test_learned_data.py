@@ -115,6 +115,23 @@ def test_dataset_rejects_bad_input(scene_file, tmp_path):
         H5WindowDataset([3])
 
 
+def test_an_event_file_of_another_format_is_refused_with_its_conversion(scene_file, tmp_path):
+    """A ``.npy`` (or ``.raw``, ``.aedat4``) in ``data.files``: the error gives the conversion, which works."""
+    import cmax
+    from cmax.io import FormatError
+
+    _, sequence, _ = scene_file
+    np.save(tmp_path / "tonic.npy", sequence.events.to_structured())
+    with pytest.raises(FormatError, match=r"convert it once with cmax.io.write_h5\('events.h5', "
+                                          r"cmax.io.read\('.*tonic.npy'\[, width=, height=\]\)\)"):
+        H5WindowDataset([tmp_path / "tonic.npy"])
+    converted = cmax.io.write_h5(tmp_path / "events.h5", cmax.io.read(tmp_path / "tonic.npy", width=48, height=36))
+    dataset = H5WindowDataset([{"path": converted, "K": [40.0, 40.0, 23.5, 17.5]}], window_us=100_000,
+                              max_events=100)
+    assert len(dataset) > 0 and dataset.sample(0).events == sequence.events.slice_time(
+        dataset.sample(0).t0_us, dataset.sample(0).t1_us)
+
+
 def test_mvsec_dataset_reads_events_and_depth(tmp_path):
     import h5py
 
