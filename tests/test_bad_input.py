@@ -218,7 +218,7 @@ API_CASES = [
     ("emvs-reversed-depth-range", lambda: _emvs(depth_range=(5.0, 1.0)), ValueError, r"0 < near < far"),
     ("emvs-nan-depth-range", lambda: _emvs(depth_range=(np.nan, 1.0)), ValueError, r"0 < near < far"),
     ("emvs-one-plane", lambda: _emvs(n_planes=1), ValueError, r"n_planes must be an integer >= 2"),
-    ("emvs-not-a-camera", lambda: _emvs(camera=K_GOOD), TypeError, r"camera must be a cmax.Camera"),
+    ("emvs-not-a-camera", lambda: _emvs(camera=K_GOOD), TypeError, r"camera must be a cmax.Camera, got ndarray \(a K matrix: cmax.Camera\(K, width, height"),
     ("emvs-empty-window", lambda: _emvs().run(Events.empty(64, 48), _POSES), ValueError,
      r"events must not be empty"),
     ("emvs-not-events", lambda: _emvs().run(np.zeros((3, 4)), _POSES), TypeError, r"events must be cmax.Events"),

@@ -158,7 +158,9 @@ class EMVS:
 
     def __post_init__(self) -> None:
         if not isinstance(self.camera, Camera):
-            raise TypeError(f"camera must be a cmax.Camera, got {type(self.camera).__name__}")
+            raise TypeError(f"camera must be a cmax.Camera, got {type(self.camera).__name__}"
+                            + (" (a K matrix: cmax.Camera(K, width, height[, distortion]))"
+                               if np.shape(self.camera) == (3, 3) else ""))
         try:
             near, far = (float(v) for v in self.depth_range)
         except (TypeError, ValueError):
