@@ -24,9 +24,10 @@ Writes ``benchmarks/results/real_cmax.md`` and the pictures ``real_cmax_pegboard
   (default 166.5 ms windows); per window: the direction error, whether it is reversed (> 90 deg), the
   quality verdict and its resolution, and the far wall's depth against EMVS with the ground-truth poses
   (run at the window's reference time; :func:`slider_far_wall`); then the same with the rotation held at
-  zero (``cmax fit ... --omega 0,0,0``: a linear stage does not rotate), with 4 motion members and with
-  ``--zero-rotation-start``. ``--slider-cache FILE`` keeps the fits (about 7 minutes; the variants beside it,
-  ``FILE``'s stem + ``_omega0``, ``_members4``, ``_zrs``) for a second run.
+  zero (``cmax fit ... --omega 0,0,0``: a linear stage does not rotate; at every fit seed, without and with
+  the lens calibration), with 4 motion members and with ``--zero-rotation-start``. ``--slider-cache FILE``
+  keeps the fits (about 10 minutes; the variants beside it, ``FILE``'s stem + ``_omega0``, ``_members4``,
+  ``_zrs``, ...) for a second run.
 * A DSEC-layout file as DSEC ships it (uint32 ``t`` relative to ``t_offset``, ``ms_to_idx``, no size
   attributes; :func:`write_dsec_original`) of the first second of the slider events, fitted end to end by
   ``cmax fit FILE --size 240,180 --K ... --speed 0.317`` (with ``--slider-events``).
@@ -643,14 +644,25 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
         f"{cache.stem}_polish_{mode}{cache.suffix}"), polish=mode) for mode in ("depth", "depth_motion")}
     seeded = {seed: slider_sequence(events_path, None if cache is None else cache.with_name(
         f"{cache.stem}_seed{seed}{cache.suffix}"), seed=seed) for seed in SLIDER_FIT_SEEDS[1:]}
+    held_seeded = {seed: slider_sequence(events_path, None if cache is None else cache.with_name(
+        f"{cache.stem}_omega0_seed{seed}{cache.suffix}"), omega=(0.0, 0.0, 0.0), seed=seed)
+        for seed in SLIDER_FIT_SEEDS[1:]}
     walls, maps, calibrated_wall, (held_walls, members_walls, zrs_walls, *other_walls) = slider_far_wall(
         events_path, sequence, folder, (held, members, zrs, *(p[0] for p in polished.values()),
-                                        *(p[0] for p in seeded.values())))
-    polished_walls, seeded_walls = other_walls[:len(polished)], other_walls[len(polished):]
+                                        *(p[0] for p in seeded.values()), *(p[0] for p in held_seeded.values())))
+    polished_walls = other_walls[:len(polished)]
+    seeded_walls = other_walls[len(polished):len(polished) + len(seeded)]
+    held_seeded_walls = other_walls[len(polished) + len(seeded):]
     calibrated = {seed: slider_sequence(events_path, None if cache is None else cache.with_name(
         f"{cache.stem}_calib_seed{seed}{cache.suffix}"), seed=seed, calibration=folder / "calib.txt")
         for seed in SLIDER_FIT_SEEDS}
-    calibrated_walls = calibrated_far_walls(events_path, folder, [c[0] for c in calibrated.values()])
+    calibrated_held = {seed: slider_sequence(events_path, None if cache is None else cache.with_name(
+        f"{cache.stem}_calib_omega0_seed{seed}{cache.suffix}"), omega=(0.0, 0.0, 0.0), seed=seed,
+        calibration=folder / "calib.txt") for seed in SLIDER_FIT_SEEDS}
+    all_calibrated_walls = calibrated_far_walls(events_path, folder, [c[0] for c in (*calibrated.values(),
+                                                                                    *calibrated_held.values())])
+    calibrated_walls, calibrated_held_walls = (all_calibrated_walls[:len(calibrated)],
+                                               all_calibrated_walls[len(calibrated):])
     first = sequence.results[0].t0_us
     speeds = window_speeds(*read_tum_trajectory(folder / "groundtruth.txt"),
                            [(r.t0_us, r.t1_us) for r in sequence.results])
@@ -713,6 +725,19 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
         "flow towards the image's edges, which a translation plus a rotation about y of the other sense (whose flow "
         "grows towards the edges) imitates, at the price of a depth offset.")
     lines += _held_rotation_lines(held, held_walls, held_seconds, held_origin)
+    lines += _seed_spread_lines(
+        {0: (held, held_walls), **{seed: (held_seeded[seed][0], seed_walls) for seed, seed_walls
+                                   in zip(held_seeded, held_seeded_walls)}},
+        "With the rotation held at zero, at other fit seeds",
+        "`cmax fit slider.h5 --K ... --speed 0.317 --omega 0,0,0` at the fit seeds: the targets per seed.",
+        two_modes=False)
+    lines += _seed_spread_lines(
+        {seed: (calibrated_held[seed][0], walls_) for seed, walls_ in zip(calibrated_held, calibrated_held_walls)},
+        "With the calibration and the rotation held at zero",
+        "`cmax fit slider.h5 --calib calib.txt --speed 0.317 --omega 0,0,0`, the command a user of an ECD slider "
+        "recording would run (its lens calibration, a stage that cannot rotate); the far wall against EMVS with "
+        f"the calibrated camera as above ({sum(c[1] for c in calibrated_held.values()):.0f} s for the "
+        f"{len(calibrated_held)} seeds).", two_modes=False)
     lines += _members_lines(members, members_walls, members_seconds, members_origin)
     lines += _zero_rotation_start_lines(zrs, zrs_walls, zrs_seconds, zrs_origin)
     for (mode, (polished_sequence, polished_seconds, polished_origin)), mode_walls in zip(polished.items(),
@@ -753,10 +778,11 @@ _SEEDS_INTRO = ("`fit_sequence(..., seed=s)` (`FitSettings.seed`: the fit's subs
 
 
 def _seed_spread_lines(fits: dict, title: str = _SEEDS_TITLE, intro: str = _SEEDS_INTRO,
-                       after: str = "") -> list[str]:
+                       after: str = "", two_modes: bool = True) -> list[str]:
     """Markdown of a sequence at each fit seed (``fits[seed] = (sequence, walls)``): the issue's figures per
     seed, and at how many seeds each target is met (one seed's figures are one draw of the fit's noise: its
-    subsample and dither); ``title`` and ``intro`` head it, ``after`` ends it."""
+    subsample and dither); ``title`` and ``intro`` head it, ``after`` ends it. ``two_modes``: the fits leave
+    the rotation free, and the pooled quartiles of their far-wall ratios are said to show its two modes."""
     from cmax.fitting import Verdict
 
     lines = [f"### {title}", "", intro, "",
@@ -781,7 +807,7 @@ def _seed_spread_lines(fits: dict, title: str = _SEEDS_TITLE, intro: str = _SEED
               + (f" The per-window ratios gather in two modes (over all the seeds' windows, quartiles "
                  f"{np.percentile(pooled, 25):.2f} / {np.percentile(pooled, 75):.2f}: the rotation traded against the "
                  "translation or not, the bas-relief valley), so the median sits between them and moves with a "
-                 "window or two; float rounding alone moves it as much." if pooled else "")
+                 "window or two; float rounding alone moves it as much." if pooled and two_modes else "")
               + (f" {after}" if after else ""), ""]
     return lines
 
