@@ -85,7 +85,9 @@ class Stage(Protocol):
 
     name: str
 
-    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog | tuple[StageLog, ...]]: ...
+    def run(self, w: Window, motion: Motion, solver: Solver) -> tuple[Motion, StageLog | tuple[StageLog, ...]]:
+        """Improve ``motion`` on window ``w`` through ``solver``; the new motion and the stage's log
+        (objective before / after, iterations, seconds, the solver's message, success)."""
 
 
 # ----------------------------------------------------------------------------------------------

@@ -114,6 +114,8 @@ class Solver:
     max_iterations: int = 100
 
     def solve(self, problem: Problem) -> SolveResult:  # pragma: no cover - interface
+        """Minimise ``problem`` (its ``fun_and_grad`` from ``x0`` within its bounds, with ``|v| = speed``
+        where it asks and the backend takes equalities); the best point and what the backend said."""
         raise NotImplementedError
 
     def with_iterations(self, n: int) -> "Solver":

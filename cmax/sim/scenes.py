@@ -38,11 +38,14 @@ class Scene(Protocol):
 
     camera: Camera
 
-    def render(self, t_s: float) -> tuple[np.ndarray, np.ndarray]: ...
+    def render(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
+        """Intensity (H, W) float32 [0, 255] and z-depth (H, W) float32 [m, NaN where unknown] at ``t_s`` [s]."""
 
-    def pose(self, t_s: float) -> np.ndarray: ...
+    def pose(self, t_s: float) -> np.ndarray:
+        """``T_w_c`` (4, 4) float64, the camera-to-world pose at ``t_s`` [s]."""
 
-    def twist(self, t_s: float) -> np.ndarray: ...
+    def twist(self, t_s: float) -> np.ndarray:
+        """Body twist ``(v [m/s], omega [rad/s])`` (6,) float64 in the camera frame at ``t_s`` [s]."""
 
 
 @dataclass(frozen=True)

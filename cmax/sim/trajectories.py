@@ -35,9 +35,11 @@ __all__ = ["Trajectory", "SinusoidalTrajectory", "look_at_rotation"]
 class Trajectory(Protocol):
     """Anything with ``pose(t_s) -> (4, 4)`` and ``twist(t_s) -> (6,)``."""
 
-    def pose(self, t_s: float) -> np.ndarray: ...
+    def pose(self, t_s: float) -> np.ndarray:
+        """``T_w_c`` (4, 4) float64, the camera-to-world pose at ``t_s`` [s]."""
 
-    def twist(self, t_s: float) -> np.ndarray: ...
+    def twist(self, t_s: float) -> np.ndarray:
+        """Body twist ``(v [m/s], omega [rad/s])`` (6,) float64 in the camera frame at ``t_s`` [s]."""
 
 
 def look_at_rotation(forward, up=(0.0, 0.0, 1.0)) -> np.ndarray:
