@@ -27,7 +27,7 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
                                 tail_note)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
-__all__ = ["add_command", "advice", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
+__all__ = ["add_command", "advice", "hot_pixel_note", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
 
 
 def add_command(subparsers) -> argparse.ArgumentParser:
@@ -84,6 +84,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     api_default(parser.add_argument("--max-events", type=positive_int, default=None,
                                     help="windows with more events are subsampled to this many "
                                          "(cmax.FitSettings.max_events)"), _settings_default("max_events"))
+    parser.add_argument("--keep-hot-pixels", action="store_true",
+                        help="fit every event; by default the events of hot pixels (far more events than the scene's "
+                             "edges give any pixel: a defect or a flickering light) are left out and named in a note "
+                             "(cmax.FitSettings.hot_pixel_factor)")
     parser.set_defaults(run=run)
     return parser
 
@@ -217,6 +221,19 @@ def window_line(index: int, result, first_us: int) -> str:
     return f"window {index} ({t0:.3f}-{t1:.3f} s): {q.verdict.value.replace('_', ' ')}: {q.reason}{resolution}"
 
 
+def hot_pixel_note(results) -> str | None:
+    """One sentence on the hot pixels the fits left out (``FitResult.hot_pixels``), or None when none."""
+    hot = [r.hot_pixels for r in results if len(r.hot_pixels)]
+    if not hot:
+        return None
+    pixels, counts = np.unique(np.concatenate(hot), axis=0, return_counts=True)
+    order = np.argsort(-counts, kind="stable")[:5]
+    named = ", ".join(f"({x}, {y})" for x, y in pixels[order])
+    return (f"{len(pixels)} hot pixel(s) fire far more than the scene's edges make any pixel fire, in {len(hot)} of "
+            f"{len(results)} windows ({named}{', ...' if len(pixels) > 5 else ''}): their events were left out of "
+            "those windows' fits (--keep-hot-pixels keeps them)")
+
+
 def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status (1 when no window could be fitted)."""
     import sys
@@ -271,6 +288,8 @@ def run(args: argparse.Namespace) -> int:
                                              ("motion_members", args.members), ("depth_range", args.depth_range),
                                              ("polish", args.polish))
                if value is not None}
+    if args.keep_hot_pixels:
+        options["hot_pixel_factor"] = None
     # None above: the library's default (one source: fit_sequence / fit / FitSettings). Checked here, before the
     # progress bar starts:
     FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})
@@ -324,6 +343,7 @@ def run(args: argparse.Namespace) -> int:
                         "objective_after": r.objective_after, "seconds": r.seconds, "iterations": r.iterations,
                         "message": r.message,
                         "scale_known": r.scale_known, "parallax_px": r.parallax_px,
+                        "hot_pixels": r.hot_pixels.tolist(),
                         **(r.quality.summary() if r.quality is not None else {"verdict": None})})
         print(window_line(i, r, origin_us))
     write_text_atomic(out / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
@@ -339,7 +359,7 @@ def run(args: argparse.Namespace) -> int:
                "zero_rotation_start": args.zero_rotation_start, "jobs": args.jobs,
                "members": args.members or _settings_default("motion_members")(),
                "polish": args.polish or _settings_default("polish")().value,
-               "warm_start": args.jobs == 1, "notes": notes,
+               "warm_start": args.jobs == 1, "keep_hot_pixels": args.keep_hot_pixels, "notes": notes,
                "windows_total": n_windows, "skipped_us": sequence.skipped_us.tolist(),
                "uncovered_us": None if sequence.uncovered_us is None else list(sequence.uncovered_us),
                "verdicts": sequence.counts(), "windows": windows}
@@ -348,6 +368,9 @@ def run(args: argparse.Namespace) -> int:
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""
     print(f"{len(windows)} of {n_windows} windows fitted{skip}: {verdict_counts(sequence.counts())}; results in {out}")
+    hot_note = hot_pixel_note(sequence.results)
+    if hot_note:
+        print(f"cmax fit: note: {hot_note}", file=sys.stderr)
     causes = [None if r.quality is None else r.quality.cause for r in sequence.results]
     no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)
     for line in advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None, no_motion,

@@ -10,7 +10,7 @@ from __future__ import annotations
 
 import time
 import warnings
-from dataclasses import dataclass, replace
+from dataclasses import dataclass, field, replace
 import numpy as np
 import torch
 
@@ -18,6 +18,7 @@ from cmax._threads import blas_threads_scope, torch_threads_scope
 from cmax.camera import check_intrinsics, intrinsics_oddity, pinhole_events
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events
+from cmax.hot_pixels import hot_pixels, without_pixels
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, motion_within_noise,
@@ -140,6 +141,9 @@ class FitResult:
     quality : Quality or None
         The verdict (ok / ambiguous / low parallax / failed), its reason and the scored alternative
         motions (:mod:`cmax.fitting.quality`, ``docs/quality.md``).
+    hot_pixels : ndarray (K, 2) int64
+        ``(x, y)`` of the hot pixels whose events the fit left out (``FitSettings.hot_pixel_factor``;
+        :func:`cmax.hot_pixels.hot_pixels`); empty when none.
     """
 
     model: str
@@ -169,6 +173,7 @@ class FitResult:
     stages: tuple[StageLog, ...] = ()
     motion_px: float | None = None
     quality: Quality | None = None
+    hot_pixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
 
     @property
     def verdict(self) -> Verdict | None:
@@ -413,6 +418,7 @@ def fit(
     K = _check_inputs(events, K, model)
     _warn_odd_intrinsics(K, events.width, events.height)
     settings = _settings(settings, options, model)
+    events, hot = _without_hot_pixels(events, settings)
     speed = _check_speed(speed)
     if (speed is not None or pose is not None or omega is not None) and model != "se3":
         raise ValueError(f"speed, pose and omega apply to model='se3', not {model!r}")
@@ -441,7 +447,7 @@ def fit(
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
                                                   hold_omega=known_omega is not None, speed=scale),
-                         seconds=time.perf_counter() - start)
+                         hot_pixels=hot, seconds=time.perf_counter() - start)
     _warn(result, settings, low, pose is not None)
     return result
 
@@ -463,6 +469,23 @@ def _settings(settings: FitSettings | None, options: dict, model: str) -> FitSet
     if settings.polarity_split is None:
         settings = replace(settings, polarity_split=DEFAULT_POLARITY_SPLIT[model])
     return settings
+
+
+def _without_hot_pixels(events: Events, settings: FitSettings) -> tuple[Events, np.ndarray]:
+    """``events`` without the events of their hot pixels (``settings.hot_pixel_factor``, None: all kept) and
+    those pixels (K, 2) ``(x, y)``; refused when too few events remain to fit."""
+    if settings.hot_pixel_factor is None:
+        return events, np.zeros((0, 2), np.int64)
+    hot = hot_pixels(events, settings.hot_pixel_factor, settings.hot_pixel_min_events)
+    if not len(hot):
+        return events, hot
+    kept = without_pixels(events, hot)
+    if len(kept) < MIN_WINDOW_EVENTS or kept.t[-1] == kept.t[0]:
+        span = int(kept.t[-1] - kept.t[0]) if len(kept) else 0
+        raise ValueError(f"events: without the {len(events) - len(kept):,} events of its {len(hot)} hot pixel(s) the "
+                         f"window holds {len(kept)} events over {span} µs: too few to fit a motion "
+                         "(hot_pixel_factor=None keeps every event)")
+    return kept, hot
 
 
 def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, known_omega: np.ndarray | None,

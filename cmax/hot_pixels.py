@@ -1,0 +1,57 @@
+"""Hot pixels: pixels that fire far more often than a moving scene makes any pixel fire.
+
+A hot pixel (a sensor defect) or a pixel on a flickering light fires at a steady rate whatever the
+camera does, so its events carry no motion, and in contrast maximization a few of them pull the fit
+(measured in ``docs/fitting.md``). A moving edge makes a pixel fire a few to a few tens of times as it
+passes (its contrast over the contrast threshold), so the event counts of a window's active pixels
+have a short tail, while a hot pixel's count grows with the window's length. The rule, as the per-pixel
+rate filters of the cameras' own software (dv-processing's ``HotPixelFilter``, Metavision's activity
+filters) but without a calibration recording:
+
+    hot  <=>  count > max(factor * p99(counts of the active pixels), min_events)
+
+By construction at most 1% of the active pixels can exceed it.
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from cmax.events import Events
+
+__all__ = ["hot_pixels", "without_pixels"]
+
+
+def hot_pixels(events: Events, factor: float = 8.0, min_events: int = 30) -> np.ndarray:
+    """The hot pixels of ``events``: ``(K, 2)`` int64 ``(x, y)``, sorted by ``y * width + x``.
+
+    A pixel is hot when it holds more than ``factor`` times the 99th percentile of the event counts of
+    the pixels with events, and more than ``min_events`` events (module docstring).
+
+    >>> x = np.r_[np.arange(100) % 10, np.full(50, 3)]           # 100 pixels with one event, one with 51
+    >>> events = Events(x, np.r_[np.arange(100) // 10, np.full(50, 2)], np.arange(150), np.ones(150), 10, 10)
+    >>> hot_pixels(events).tolist()
+    [[3, 2]]
+    """
+    if not isinstance(events, Events):
+        raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+    if not (np.isfinite(factor) and factor > 0):
+        raise ValueError(f"factor must be a positive number, got {factor!r}")
+    if not (isinstance(min_events, (int, np.integer)) and not isinstance(min_events, bool) and min_events >= 0):
+        raise ValueError(f"min_events must be a whole number >= 0, got {min_events!r}")
+    if len(events) == 0:
+        return np.zeros((0, 2), np.int64)
+    flat = events.y.astype(np.int64) * events.width + events.x
+    counts = np.bincount(flat, minlength=events.width * events.height)
+    threshold = max(factor * float(np.percentile(counts[counts > 0], 99)), float(min_events))
+    hot = np.flatnonzero(counts > threshold)
+    return np.column_stack([hot % events.width, hot // events.width]).astype(np.int64)
+
+
+def without_pixels(events: Events, pixels: np.ndarray) -> Events:
+    """``events`` without those of ``pixels`` ``(K, 2)`` ``(x, y)`` (the others in their order)."""
+    pixels = np.asarray(pixels, dtype=np.int64).reshape(-1, 2)
+    if not len(pixels):
+        return events
+    drop = np.zeros(events.width * events.height, bool)
+    drop[pixels[:, 1] * events.width + pixels[:, 0]] = True
+    return events[~drop[events.y.astype(np.int64) * events.width + events.x]]
