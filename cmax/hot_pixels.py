@@ -14,11 +14,48 @@ By construction at most 1% of the active pixels can exceed it.
 """
 from __future__ import annotations
 
+from dataclasses import dataclass
+
 import numpy as np
 
 from cmax.events import Events
 
-__all__ = ["hot_pixels", "without_pixels"]
+__all__ = ["HotPixelFilter", "hot_pixels", "without_pixels"]
+
+
+@dataclass(frozen=True)
+class HotPixelFilter:
+    """The rule of :func:`hot_pixels` with its two constants, as the fit (``FitSettings.hot_pixels``) and
+    EMVS (``EMVS.hot_pixels``) take it; ``None`` in their place keeps every event.
+
+    >>> HotPixelFilter(factor=0)
+    Traceback (most recent call last):
+    ...
+    ValueError: factor must be a positive number, got 0
+    """
+
+    factor: float = 8.0
+    min_events: int = 30
+
+    def __post_init__(self) -> None:
+        _check(self.factor, self.min_events)
+
+    def find(self, events: Events) -> np.ndarray:
+        """The hot pixels of ``events``: ``(K, 2)`` int64 ``(x, y)`` (:func:`hot_pixels`)."""
+        return hot_pixels(events, self.factor, self.min_events)
+
+    def apply(self, events: Events) -> tuple[Events, np.ndarray]:
+        """``events`` without the events of their hot pixels, and those pixels ``(K, 2)`` ``(x, y)``."""
+        hot = self.find(events)
+        return without_pixels(events, hot), hot
+
+
+def _check(factor: object, min_events: object) -> None:
+    if isinstance(factor, bool) or not (isinstance(factor, (int, float, np.number)) and np.isfinite(factor)
+                                        and factor > 0):
+        raise ValueError(f"factor must be a positive number, got {factor!r}")
+    if not (isinstance(min_events, (int, np.integer)) and not isinstance(min_events, bool) and min_events >= 0):
+        raise ValueError(f"min_events must be a whole number >= 0, got {min_events!r}")
 
 
 def hot_pixels(events: Events, factor: float = 8.0, min_events: int = 30) -> np.ndarray:
@@ -34,10 +71,7 @@ def hot_pixels(events: Events, factor: float = 8.0, min_events: int = 30) -> np.
     """
     if not isinstance(events, Events):
         raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
-    if not (np.isfinite(factor) and factor > 0):
-        raise ValueError(f"factor must be a positive number, got {factor!r}")
-    if not (isinstance(min_events, (int, np.integer)) and not isinstance(min_events, bool) and min_events >= 0):
-        raise ValueError(f"min_events must be a whole number >= 0, got {min_events!r}")
+    _check(factor, min_events)
     if len(events) == 0:
         return np.zeros((0, 2), np.int64)
     flat = events.y.astype(np.int64) * events.width + events.x

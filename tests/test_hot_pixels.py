@@ -2,14 +2,15 @@
 from __future__ import annotations
 
 import json
+from dataclasses import replace
 
 import numpy as np
 import pytest
 
 import cmax
-from cmax import Events
+from cmax import Camera, Events
 from cmax.fitting import FitSettings
-from cmax.hot_pixels import hot_pixels, without_pixels
+from cmax.hot_pixels import HotPixelFilter, hot_pixels, without_pixels
 from cmax.metrics import depth_metrics
 
 #: Events per hot pixel over the 0.1665 s window (about 4.8 kHz), and how many hot pixels.
@@ -58,7 +59,7 @@ def test_the_fit_leaves_hot_pixels_out(window):
     clean = _abs_rel(cmax.fit(window.events, window.K, pose=window.T01), window.depth)
     dropped = cmax.fit(noisy, window.K, pose=window.T01)
     with pytest.warns(cmax.LowParallaxWarning, match="do not sharpen the image of warped events"):
-        kept = cmax.fit(noisy, window.K, pose=window.T01, hot_pixel_factor=None)   # static pixels hide the motion
+        kept = cmax.fit(noisy, window.K, pose=window.T01, hot_pixels=None)   # static pixels hide the motion
     np.testing.assert_array_equal(dropped.hot_pixels, injected)
     assert kept.hot_pixels.shape == (0, 2)
     assert _abs_rel(dropped, window.depth) < clean + 0.03, (_abs_rel(dropped, window.depth), clean)
@@ -66,13 +67,16 @@ def test_the_fit_leaves_hot_pixels_out(window):
 
 
 def test_hot_pixel_settings_are_checked():
-    for bad in (0.0, -1.0, float("nan")):
-        with pytest.raises(ValueError, match="hot_pixel_factor must be a positive number"):
-            FitSettings(hot_pixel_factor=bad)
-    with pytest.raises(ValueError, match="hot_pixel_min_events must be an integer >= 0"):
-        FitSettings(hot_pixel_min_events=-1)
+    for bad in (0.0, -1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="factor must be a positive number"):
+            HotPixelFilter(factor=bad)
+    with pytest.raises(ValueError, match="min_events must be a whole number >= 0"):
+        HotPixelFilter(min_events=-1)
+    with pytest.raises(TypeError, match="hot_pixels must be a cmax.hot_pixels.HotPixelFilter or None"):
+        FitSettings(hot_pixels=8.0)
     with pytest.raises(ValueError, match="factor must be a positive number"):
         hot_pixels(Events.empty(4, 4), factor=0.0)
+    assert FitSettings().hot_pixels == HotPixelFilter(8.0, 30)
 
 
 def test_a_window_that_only_its_hot_pixel_moves_is_refused_with_the_way_out():
@@ -84,7 +88,7 @@ def test_a_window_that_only_its_hot_pixel_moves_is_refused_with_the_way_out():
     assert hot_pixels(events).tolist() == [[0, 0]]
     K = np.array([[20.0, 0, 9.5], [0, 20.0, 9.5], [0, 0, 1]])
     with pytest.raises(ValueError, match=r"without the 200 events of its 1 hot pixel\(s\) the window holds 150 "
-                                         r"events over 0 µs: too few .* \(hot_pixel_factor=None keeps every event\)"):
+                                         r"events over 0 µs: too few .* \(hot_pixels=None keeps every event\)"):
         cmax.fit(events, K, model="flow")
 
 
@@ -103,4 +107,42 @@ def test_cmax_fit_names_the_hot_pixels(window, tmp_path, capsys):
     assert sorted(map(tuple, summary["windows"][0]["hot_pixels"])) == sorted(map(tuple, injected.tolist()))
     assert main(["fit", str(path), "--K", K, "--model", "rotation", "--window-ms", "166", "-o", str(tmp_path / "kept"),
                  "--quiet", "--keep-hot-pixels"]) == 0
+    assert "hot pixel" not in capsys.readouterr().err
+
+
+def test_emvs_leaves_hot_pixels_out():
+    """EMVS with the true poses on 0.5 s of a simulated slider (240x180) with 10 pixels at 1.6 kHz: their
+    events vote along rays that sweep the DSI (measured abs_rel 0.061 clean, 0.179 with them voting, 0.061
+    left out)."""
+    from cmax.sim import EventSimulator, make_scene, simulate_scene
+
+    scene = make_scene("slider", seed=5, width=240, height=180, duration_s=0.6, texture_size=256)
+    sequence = simulate_scene(scene, 0.5, EventSimulator(**scene.recommended_simulator), depth_rate_hz=10)
+    noisy, injected = _with_hot_pixels(sequence.events)
+    camera = Camera(sequence.K, 240, 180)
+    trajectory = (sequence.poses_t_us, sequence.poses)
+
+    def abs_rel(result) -> float:
+        return depth_metrics(np.where(result.mask, result.depth, np.nan), scene.render(result.t_ref_us * 1e-6)[1]).abs_rel
+
+    clean = abs_rel(cmax.EMVS(camera, depth_range=scene.info.depth_range_m).run(sequence.events, trajectory))
+    dropped = cmax.EMVS(camera, depth_range=scene.info.depth_range_m).run(noisy, trajectory)
+    kept = cmax.EMVS(camera, depth_range=scene.info.depth_range_m, hot_pixels=None).run(noisy, trajectory)
+    np.testing.assert_array_equal(dropped.hot_pixels, injected)
+    assert kept.hot_pixels.shape == (0, 2)
+    assert abs_rel(dropped) < clean + 0.02 and abs_rel(kept) > 2 * clean, (clean, abs_rel(dropped), abs_rel(kept))
+
+
+def test_cmax_emvs_names_the_hot_pixels(tmp_path, capsys):
+    from cmax.cli import main
+    from cmax.sim import EventSimulator, make_scene, simulate_scene
+
+    scene = make_scene("slider", seed=5, width=120, height=90, duration_s=0.6, texture_size=128)
+    sequence = simulate_scene(scene, 0.5, EventSimulator(**scene.recommended_simulator), depth_rate_hz=10)
+    noisy, injected = _with_hot_pixels(sequence.events)
+    path = tmp_path / "hot.h5"
+    replace(sequence, events=noisy).save(path)
+    assert main(["emvs", str(path), "-o", str(tmp_path / "out")]) == 0
+    assert f"{HOT_COUNT} hot pixel(s)" in capsys.readouterr().err
+    assert main(["emvs", str(path), "-o", str(tmp_path / "kept"), "--keep-hot-pixels"]) == 0
     assert "hot pixel" not in capsys.readouterr().err

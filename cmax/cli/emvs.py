@@ -78,6 +78,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="start, seconds after the first event (default: the first event)")
     parser.add_argument("--t1", type=nonnegative_float, default=None,
                         help="end, seconds after the first event (default: the last event)")
+    parser.add_argument("--keep-hot-pixels", action="store_true",
+                        help="every event votes; by default the events of hot pixels (far more events than the "
+                             "scene's edges give any pixel: a defect or a flickering light) do not, and a note names "
+                             "them (cmax.EMVS.hot_pixels)")
     add_file_options(parser)   # --size, --time-unit, --polarity
     parser.set_defaults(run=run)
     return parser
@@ -158,6 +162,8 @@ def run(args: argparse.Namespace) -> int:
                   "records for its scene (--depth-range to change it)", file=sys.stderr)
     options = {key: value for key, value in (("depth_range", depth_range), ("n_planes", args.planes))
                if value is not None}   # None: EMVS's own default
+    if args.keep_hot_pixels:
+        options["hot_pixels"] = None
     if hint := calibration_hint(args):
         print(f"cmax emvs: note: {hint}", file=sys.stderr)
     result = EMVS(camera, **options).run(events, trajectory)
@@ -168,6 +174,11 @@ def run(args: argparse.Namespace) -> int:
     result.plot(out / "depth.png", zoom=viz.readable_zoom(events.width))   # small sensors enlarged
     result.save_ply(out / "points.ply")
     depths = result.depth[result.mask]
+    if len(result.hot_pixels):
+        named = ", ".join(f"({x}, {y})" for x, y in result.hot_pixels[:5])
+        print(f"cmax emvs: note: {len(result.hot_pixels)} hot pixel(s) fire far more than the scene's edges make any "
+              f"pixel fire ({named}{', ...' if len(result.hot_pixels) > 5 else ''}): their events did not vote "
+              "(--keep-hot-pixels keeps them)", file=sys.stderr)
     for end, share in result.on_bounds().items():
         if share >= EMVS_BOUND_NOTE:
             plane = result.depth_range[0 if end == "near" else 1]

@@ -87,7 +87,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--keep-hot-pixels", action="store_true",
                         help="fit every event; by default the events of hot pixels (far more events than the scene's "
                              "edges give any pixel: a defect or a flickering light) are left out and named in a note "
-                             "(cmax.FitSettings.hot_pixel_factor)")
+                             "(cmax.FitSettings.hot_pixels)")
     parser.set_defaults(run=run)
     return parser
 
@@ -289,7 +289,7 @@ def run(args: argparse.Namespace) -> int:
                                              ("polish", args.polish))
                if value is not None}
     if args.keep_hot_pixels:
-        options["hot_pixel_factor"] = None
+        options["hot_pixels"] = None
     # None above: the library's default (one source: fit_sequence / fit / FitSettings). Checked here, before the
     # progress bar starts:
     FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})

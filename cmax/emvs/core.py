@@ -25,7 +25,7 @@ EMVS finds with the camera-to-world poses ``(times_us, T_w_c)``:
 from __future__ import annotations
 
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from functools import partial
 
 import numpy as np
@@ -38,6 +38,7 @@ from cmax.emvs.poses import as_trajectory, check_coverage
 from cmax.emvs.result import DSI, SemiDenseDepth, semi_dense_depth
 from cmax.events import Events
 from cmax.geometry import interpolate_poses, invert_pose
+from cmax.hot_pixels import HotPixelFilter
 
 __all__ = ["EMVS"]
 
@@ -141,6 +142,10 @@ class EMVS:
         Median filter window of the depth (masked pixels only; 1 disables it).
     progress : bool
         Show a progress bar over the packet groups.
+    hot_pixels : HotPixelFilter or None
+        Which pixels are hot (:class:`cmax.hot_pixels.HotPixelFilter`: far more events than the scene's
+        edges give any pixel; a defect or a flickering light): their events do not vote
+        (``SemiDenseDepth.hot_pixels`` lists them). None: every event votes.
     """
 
     camera: Camera
@@ -155,8 +160,12 @@ class EMVS:
     threshold_c: float = 5.0
     median_size: int = 5
     progress: bool = False
+    hot_pixels: HotPixelFilter | None = field(default_factory=HotPixelFilter)
 
     def __post_init__(self) -> None:
+        if self.hot_pixels is not None and not isinstance(self.hot_pixels, HotPixelFilter):
+            raise TypeError(f"hot_pixels must be a cmax.hot_pixels.HotPixelFilter or None, got "
+                            f"{type(self.hot_pixels).__name__}")
         if not isinstance(self.camera, Camera):
             raise TypeError(f"camera must be a cmax.Camera, got {type(self.camera).__name__}"
                             + (" (a K matrix: cmax.Camera(K, width, height[, distortion]))"
@@ -216,6 +225,9 @@ class EMVS:
         """
         start = time.perf_counter()
         events = self._check_events(events)
+        hot = np.zeros((0, 2), np.int64)
+        if self.hot_pixels is not None:
+            events, hot = self.hot_pixels.apply(events)
         times, T_w_c = as_trajectory(poses)
         t = events.t
         check_coverage(times, int(t[0]), int(t[-1]))
@@ -255,7 +267,7 @@ class EMVS:
             vote(votes, group, transfer)
         pending.flush()
         return DSI(votes, depths, K.copy(), t_ref_us, T_w_ref, voted, time.perf_counter() - start,
-                   parallax_px=parallax_px)
+                   parallax_px=parallax_px, hot_pixels=hot)
 
     def run(self, events: Events, poses: object, *, t_ref_us: int | None = None) -> SemiDenseDepth:
         """Semi-dense depth of the reference view from events and camera poses.

@@ -9,7 +9,7 @@ from __future__ import annotations
 
 import os
 import warnings
-from dataclasses import dataclass
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import TYPE_CHECKING
 
@@ -59,6 +59,8 @@ class DSI:
         largest ``f |t_xy| + r |t_z|`` of a camera centre ``t`` in the reference frame
         (``f`` the focal length, ``r`` the largest distance of the principal point to
         the border). NaN when unknown (a DSI built by hand).
+    hot_pixels : ndarray, shape (K, 2), int64
+        ``(x, y)`` of the hot pixels whose events did not vote (``EMVS.hot_pixels``); empty when none.
     """
 
     votes: np.ndarray
@@ -69,6 +71,7 @@ class DSI:
     n_events: int
     seconds: float
     parallax_px: float = float("nan")
+    hot_pixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
 
 
 @dataclass(frozen=True, eq=False)
@@ -99,6 +102,8 @@ class SemiDenseDepth:
         Pinhole of the reference view.
     n_events : int
         Events that voted.
+    hot_pixels : ndarray, shape (K, 2), int64
+        ``(x, y)`` of the hot pixels whose events did not vote (``EMVS.hot_pixels``); empty when none.
     """
 
     depth: np.ndarray
@@ -112,6 +117,7 @@ class SemiDenseDepth:
     seconds: float
     K: np.ndarray
     n_events: int
+    hot_pixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
 
     def image(self, scale: "viz.DepthScale | tuple[float, float] | None" = None, *, zoom: int = 1) -> np.ndarray:
         """Picture (BGR uint8): the confidence map beside the depth with its colour bar [m].
@@ -303,6 +309,7 @@ def semi_dense_depth(dsi: DSI, *, threshold_kernel: int = 5, threshold_c: float 
         t_ref_us=int(dsi.t_ref_us), T_w_ref=dsi.T_w_ref.copy(),
         depth_range=(float(dsi.depths[0]), float(dsi.depths[-1])), n_planes=len(dsi.depths),
         seconds=float(dsi.seconds if seconds is None else seconds), K=dsi.K.copy(), n_events=int(dsi.n_events),
+        hot_pixels=dsi.hot_pixels,
     )
 
 

@@ -18,7 +18,6 @@ from cmax._threads import blas_threads_scope, torch_threads_scope
 from cmax.camera import check_intrinsics, intrinsics_oddity, pinhole_events
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events
-from cmax.hot_pixels import hot_pixels, without_pixels
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, motion_within_noise,
@@ -142,8 +141,8 @@ class FitResult:
         The verdict (ok / ambiguous / low parallax / failed), its reason and the scored alternative
         motions (:mod:`cmax.fitting.quality`, ``docs/quality.md``).
     hot_pixels : ndarray (K, 2) int64
-        ``(x, y)`` of the hot pixels whose events the fit left out (``FitSettings.hot_pixel_factor``;
-        :func:`cmax.hot_pixels.hot_pixels`); empty when none.
+        ``(x, y)`` of the hot pixels whose events the fit left out (``FitSettings.hot_pixels``,
+        :class:`cmax.hot_pixels.HotPixelFilter`); empty when none.
     """
 
     model: str
@@ -472,19 +471,18 @@ def _settings(settings: FitSettings | None, options: dict, model: str) -> FitSet
 
 
 def _without_hot_pixels(events: Events, settings: FitSettings) -> tuple[Events, np.ndarray]:
-    """``events`` without the events of their hot pixels (``settings.hot_pixel_factor``, None: all kept) and
+    """``events`` without the events of their hot pixels (``settings.hot_pixels``, None: all kept) and
     those pixels (K, 2) ``(x, y)``; refused when too few events remain to fit."""
-    if settings.hot_pixel_factor is None:
+    if settings.hot_pixels is None:
         return events, np.zeros((0, 2), np.int64)
-    hot = hot_pixels(events, settings.hot_pixel_factor, settings.hot_pixel_min_events)
+    kept, hot = settings.hot_pixels.apply(events)
     if not len(hot):
         return events, hot
-    kept = without_pixels(events, hot)
     if len(kept) < MIN_WINDOW_EVENTS or kept.t[-1] == kept.t[0]:
         span = int(kept.t[-1] - kept.t[0]) if len(kept) else 0
         raise ValueError(f"events: without the {len(events) - len(kept):,} events of its {len(hot)} hot pixel(s) the "
                          f"window holds {len(kept)} events over {span} µs: too few to fit a motion "
-                         "(hot_pixel_factor=None keeps every event)")
+                         "(hot_pixels=None keeps every event)")
     return kept, hot
 
 

@@ -18,6 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cmax.fitting.solvers import RELAXED_TOLERANCES, SCIPY_DEFAULT_TOLERANCES, Tolerances
+from cmax.hot_pixels import HotPixelFilter
 
 __all__ = ["FitSettings", "MotionInit", "Refinement", "Polish", "PatchFlowSettings", "RefineSettings",
            "SweepSettings", "QualitySettings", "LOW_PARALLAX_PX", "PROBE_TIMES"]
@@ -462,13 +463,11 @@ class FitSettings:
         verdict is ``low_parallax``.
     min_cell_events : int
         Depth cells with fewer events are outside the mask.
-    hot_pixel_factor : float or None
-        Pixels with more than this many times the 99th percentile of the active pixels' event counts
-        (and more than ``hot_pixel_min_events``) are hot (:func:`cmax.hot_pixels.hot_pixels`: a defect or a
-        flickering light, no motion) and their events are left out of the fit (``FitResult.hot_pixels``
-        lists them); None keeps every event.
-    hot_pixel_min_events : int
-        The fewest events a hot pixel holds.
+    hot_pixels : HotPixelFilter or None
+        Which pixels are hot (:class:`cmax.hot_pixels.HotPixelFilter`: more than ``factor`` (8) times the
+        99th percentile of the window's per-pixel event counts and more than ``min_events`` (30); a defect
+        or a flickering light, firing without motion): their events are left out of the fit
+        (``FitResult.hot_pixels`` lists them). None keeps every event.
     seed : int
         Seed of the subsampling.
     patch_flow, refine, sweep
@@ -512,8 +511,7 @@ class FitSettings:
     low_motion_px: float = 2.0
     low_parallax_px: float = LOW_PARALLAX_PX
     min_cell_events: int = 15
-    hot_pixel_factor: float | None = 8.0
-    hot_pixel_min_events: int = 30
+    hot_pixels: HotPixelFilter | None = field(default_factory=HotPixelFilter)
     seed: int = 0
     patch_flow: PatchFlowSettings = field(default_factory=PatchFlowSettings)
     refine: RefineSettings = field(default_factory=RefineSettings)
@@ -579,9 +577,9 @@ class FitSettings:
         _positive_int("coarse_iterations", self.coarse_iterations)
         _positive_int("start_iterations", self.start_iterations)
         _positive_int("min_cell_events", self.min_cell_events, 0)
-        if self.hot_pixel_factor is not None:
-            _positive("hot_pixel_factor", self.hot_pixel_factor)
-        _positive_int("hot_pixel_min_events", self.hot_pixel_min_events, 0)
+        if self.hot_pixels is not None and not isinstance(self.hot_pixels, HotPixelFilter):
+            raise TypeError(f"hot_pixels must be a cmax.hot_pixels.HotPixelFilter or None, got "
+                            f"{type(self.hot_pixels).__name__}")
         for name, kind in (("patch_flow", PatchFlowSettings), ("refine", RefineSettings), ("sweep", SweepSettings),
                            ("quality", QualitySettings)):
             if not isinstance(getattr(self, name), kind):
