@@ -123,7 +123,8 @@ def test_emvs_leaves_hot_pixels_out():
     trajectory = (sequence.poses_t_us, sequence.poses)
 
     def abs_rel(result) -> float:
-        return depth_metrics(np.where(result.mask, result.depth, np.nan), scene.render(result.t_ref_us * 1e-6)[1]).abs_rel
+        truth = scene.render(result.t_ref_us * 1e-6)[1]
+        return depth_metrics(np.where(result.mask, result.depth, np.nan), truth).abs_rel
 
     clean = abs_rel(cmax.EMVS(camera, depth_range=scene.info.depth_range_m).run(sequence.events, trajectory))
     dropped = cmax.EMVS(camera, depth_range=scene.info.depth_range_m).run(noisy, trajectory)

@@ -27,7 +27,8 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
                                 tail_note)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
-__all__ = ["add_command", "advice", "hot_pixel_note", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
+__all__ = ["add_command", "advice", "hot_pixel_note", "run", "tum_lines", "undistorted_events", "verdict_counts",
+           "window_line"]
 
 
 def add_command(subparsers) -> argparse.ArgumentParser:
