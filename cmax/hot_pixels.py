@@ -20,7 +20,7 @@ import numpy as np
 
 from cmax.events import Events
 
-__all__ = ["HotPixelFilter", "hot_pixels", "without_pixels"]
+__all__ = ["HotPixelFilter", "hot_pixels", "hot_pixels_of_counts", "without_pixels"]
 
 
 @dataclass(frozen=True)
@@ -71,14 +71,24 @@ def hot_pixels(events: Events, factor: float = 8.0, min_events: int = 30) -> np.
     """
     if not isinstance(events, Events):
         raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
-    _check(factor, min_events)
-    if len(events) == 0:
-        return np.zeros((0, 2), np.int64)
     flat = events.y.astype(np.int64) * events.width + events.x
-    counts = np.bincount(flat, minlength=events.width * events.height)
-    threshold = max(factor * float(np.percentile(counts[counts > 0], 99)), float(min_events))
-    hot = np.flatnonzero(counts > threshold)
-    return np.column_stack([hot % events.width, hot // events.width]).astype(np.int64)
+    counts = np.bincount(flat, minlength=events.width * events.height).reshape(events.height, events.width)
+    return hot_pixels_of_counts(counts, factor, min_events)
+
+
+def hot_pixels_of_counts(counts: np.ndarray, factor: float = 8.0, min_events: int = 30) -> np.ndarray:
+    """:func:`hot_pixels` from the per-pixel event counts ``counts`` (H, W) of a window or a recording:
+    ``(K, 2)`` int64 ``(x, y)``, sorted by ``y * W + x``."""
+    _check(factor, min_events)
+    counts = np.asarray(counts)
+    if counts.ndim != 2:
+        raise ValueError(f"counts must be an (H, W) image of per-pixel event counts, got shape {counts.shape}")
+    active = counts[counts > 0]
+    if not active.size:
+        return np.zeros((0, 2), np.int64)
+    threshold = max(factor * float(np.percentile(active, 99)), float(min_events))
+    y, x = np.nonzero(counts > threshold)
+    return np.column_stack([x, y]).astype(np.int64)
 
 
 def without_pixels(events: Events, pixels: np.ndarray) -> Events:

@@ -147,3 +147,29 @@ def test_cmax_emvs_names_the_hot_pixels(tmp_path, capsys):
     assert f"{HOT_COUNT} hot pixel(s)" in capsys.readouterr().err
     assert main(["emvs", str(path), "-o", str(tmp_path / "kept"), "--keep-hot-pixels"]) == 0
     assert "hot pixel" not in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("suffix", ["h5", "raw", "npy"])
+def test_cmax_info_names_the_hot_pixels_of_a_recording(window, tmp_path, suffix):
+    """Per-pixel counts over the whole file (DSEC read in chunks, RAW decoded chunk by chunk, others in
+    memory): the injected pixels, busiest first, with their rate; none on the clean recording."""
+    from cmax.io import write_evt3, write_h5
+    from cmax.io.info import file_info
+
+    noisy, injected = _with_hot_pixels(window.events)
+
+    def saved(events: Events, name: str):
+        path = tmp_path / f"{name}.{suffix}"
+        if suffix == "h5":
+            write_h5(path, events)
+        elif suffix == "raw":
+            write_evt3(path, events)
+        else:
+            np.save(path, events.to_structured())
+        return file_info(path, **({"width": 120, "height": 90} if suffix == "npy" else {}))
+
+    info = saved(noisy, "hot")
+    np.testing.assert_array_equal(info.hot_pixels(), injected)
+    line = next(text for text in info.lines() if text.startswith("hot pixels"))
+    assert line.startswith(f"hot pixels  {HOT_COUNT}: (") and " events, " in line and " Hz" in line
+    assert "hot pixels  none (no pixel fires far more than the others)" in saved(window.events, "clean").lines()

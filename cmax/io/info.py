@@ -20,7 +20,8 @@ class EventFileInfo:
     """What ``cmax info`` prints about an event file.
 
     Times in µs; ``rate_hz`` in events per second; ``on_fraction`` is the
-    share of ON events (0.5 = balanced).
+    share of ON events (0.5 = balanced); ``pixel_counts`` (height, width)
+    the events of each pixel (its hot pixels: :meth:`hot_pixels`).
     """
 
     path: str
@@ -32,6 +33,7 @@ class EventFileInfo:
     t_end_us: int | None
     on_count: int
     attrs: dict[str, Any] = field(default_factory=dict)
+    pixel_counts: np.ndarray | None = None
 
     @property
     def duration_s(self) -> float:
@@ -46,6 +48,24 @@ class EventFileInfo:
     @property
     def on_fraction(self) -> float:
         return self.on_count / self.count if self.count else float("nan")
+
+    def hot_pixels(self) -> np.ndarray:
+        """``(K, 2)`` ``(x, y)`` of the pixels that :class:`cmax.hot_pixels.HotPixelFilter`'s default rule calls
+        hot over the whole recording (empty without counts)."""
+        from cmax.hot_pixels import hot_pixels_of_counts
+
+        return np.zeros((0, 2), np.int64) if self.pixel_counts is None else hot_pixels_of_counts(self.pixel_counts)
+
+    def _hot_line(self) -> str:
+        hot = self.hot_pixels()
+        if not len(hot):
+            return "hot pixels  none (no pixel fires far more than the others)"
+        counts = self.pixel_counts[hot[:, 1], hot[:, 0]]
+        order = np.argsort(-counts, kind="stable")
+        rate = (lambda n: f", {n / self.duration_s:,.0f} Hz") if self.duration_s > 0 else (lambda n: "")
+        named = "; ".join(f"({x}, {y}) {n:,} events{rate(n)}" for (x, y), n in zip(hot[order][:5], counts[order][:5]))
+        return (f"hot pixels  {len(hot)}: {named}{'; ...' if len(hot) > 5 else ''} (cmax fit and cmax emvs "
+                "leave such pixels out)")
 
     def lines(self) -> list[str]:
         """Human-readable lines, one fact each."""
@@ -63,6 +83,8 @@ class EventFileInfo:
                 f"polarity    {self.on_count:,} ON / {self.count - self.on_count:,} OFF "
                 f"({100 * self.on_fraction:.1f}% ON)",
             ]
+            if self.pixel_counts is not None:
+                out.append(self._hot_line())
         for key, value in sorted(self.attrs.items()):
             if key not in ("width", "height"):
                 out.append(f"attr        {key} = {value}")
@@ -75,8 +97,14 @@ def events_info(events: Events, *, path: str = "", format: str = "") -> EventFil
         path=path, format=format, count=len(events), width=events.width, height=events.height,
         t_start_us=events.t_start if len(events) else None,
         t_end_us=events.t_end if len(events) else None,
-        on_count=int(np.count_nonzero(events.p)),
+        on_count=int(np.count_nonzero(events.p)), pixel_counts=_pixel_counts(events),
     )
+
+
+def _pixel_counts(events: Events) -> np.ndarray:
+    """The events of each pixel, (height, width) int64."""
+    flat = events.y.astype(np.int64) * events.width + events.x
+    return np.bincount(flat, minlength=events.width * events.height).reshape(events.height, events.width)
 
 
 def file_info(
@@ -104,6 +132,7 @@ def file_info(
         # Every row is read and checked (coordinates, finite and sorted times, polarity), chunk by
         # chunk, so a NaN or a step back in the middle is named here as the readers name it.
         on_count, last_t = 0, None
+        pixels = np.zeros((reader.height, reader.width), np.int64)
         for start in range(0, len(reader), _CHUNK):
             chunk = reader.read_rows(start, start + _CHUNK)
             if last_t is not None and int(chunk.t[0]) < last_t:
@@ -113,11 +142,12 @@ def file_info(
                 )
             last_t = int(chunk.t[-1])
             on_count += int(np.count_nonzero(chunk.p))
+            pixels += _pixel_counts(chunk)
         return EventFileInfo(
             path=str(path), format="dsec", count=len(reader), width=reader.width,
             height=reader.height, t_start_us=reader.t_start if len(reader) else None,
             t_end_us=reader.t_end if len(reader) else None, on_count=on_count,
-            attrs=reader.attrs,
+            attrs=reader.attrs, pixel_counts=pixels,
         )
 
 
@@ -127,4 +157,5 @@ def _raw_info(path: Path, width: int | None, height: int | None) -> EventFileInf
 
     scan = scan_raw(path, width=width, height=height)
     return EventFileInfo(path=str(path), format="raw", count=scan.count, width=scan.width, height=scan.height,
-                         t_start_us=scan.first_us, t_end_us=scan.last_us, on_count=scan.on_count)
+                         t_start_us=scan.first_us, t_end_us=scan.last_us, on_count=scan.on_count,
+                         pixel_counts=scan.pixel_counts)

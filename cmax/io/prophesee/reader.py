@@ -289,8 +289,8 @@ def iter_raw(
 
 @dataclass(frozen=True)
 class RawScan:
-    """What one decoding pass over a RAW file finds: the sensor size [px], the event and ON-event counts, and
-    the first and last events' times [µs] (None without events)."""
+    """What one decoding pass over a RAW file finds: the sensor size [px], the event and ON-event counts, the
+    first and last events' times [µs] (None without events) and the events of each pixel, (height, width)."""
 
     width: int
     height: int
@@ -298,6 +298,7 @@ class RawScan:
     on_count: int
     first_us: int | None
     last_us: int | None
+    pixel_counts: np.ndarray | None = None
 
 
 def scan_raw(path: PathLike, *, width: int | None = None, height: int | None = None,
@@ -306,10 +307,12 @@ def scan_raw(path: PathLike, *, width: int | None = None, height: int | None = N
     _, limits, _, _ = _open_data(Path(path), _codec_of(path), width, height, chunk_bytes, True)
     count = on = 0
     first = last = None
+    pixels = np.zeros(limits.width * limits.height, np.int64)
     for chunk in iter_raw(path, width=width, height=height, chunk_bytes=chunk_bytes):
         first = int(chunk.t[0]) if first is None else first
         last, count, on = int(chunk.t[-1]), count + len(chunk), on + int(np.count_nonzero(chunk.p))
-    return RawScan(limits.width, limits.height, count, on, first, last)
+        pixels += np.bincount(chunk.y.astype(np.int64) * limits.width + chunk.x, minlength=pixels.size)
+    return RawScan(limits.width, limits.height, count, on, first, last, pixels.reshape(limits.height, limits.width))
 
 
 class RawWindows:
