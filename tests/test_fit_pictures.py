@@ -58,3 +58,5 @@ def test_fit_result_plot_has_a_colour_bar_and_hatches_pixels_without_depth(tmp_p
     assert np.array_equal(picture[: expected.shape[0], -expected.shape[1]:], expected)
     with pytest.raises(ValueError):
         result.plot(tmp_path / "fit.gif")
+    # the same picture in memory (a notebook's), what plot() wrote (PNG: lossless)
+    assert np.array_equal(result.image(depth_scale=(1.0, 4.0)), picture)

@@ -184,9 +184,9 @@ class FitResult:
         """``(v, omega)`` (6,)."""
         return np.r_[self.v, self.omega]
 
-    def plot(self, path, *, depth_scale=None) -> "object":
-        """Write a picture (.png, .jpg): IWE before, after, and the depth map on the mask (when fitted)
-        with a colour bar in metres; returns the path.
+    def image(self, *, depth_scale=None) -> np.ndarray:
+        """The picture (BGR uint8, OpenCV's order: ``image[..., ::-1]`` for matplotlib): IWE before, after,
+        and the depth map on the mask (when fitted) with a colour bar in metres.
 
         ``depth_scale``: a :class:`cmax.viz.DepthScale` or ``(near, far)`` [m] shared by the pictures
         of a run (default: this map's own 1-99th percentiles). Pixels without an estimate are hatched
@@ -201,7 +201,13 @@ class FitResult:
             label = "m" if self.scale_known else "up to scale"
             tiles.append(viz.depth_panel(depth, depth_scale, f"depth [{label}], t_ref {self.t_ref_us * 1e-6:.3f} s",
                                          unit="m" if self.scale_known else ""))
-        return viz.save_image(path, viz.hstack(tiles))
+        return viz.hstack(tiles)
+
+    def plot(self, path, *, depth_scale=None) -> "object":
+        """Write :meth:`image` to ``path`` (.png, .jpg); returns the path."""
+        from cmax import viz
+
+        return viz.save_image(path, self.image(depth_scale=depth_scale))
 
 
 # ----------------------------------------------------------------------------------------
