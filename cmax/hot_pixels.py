@@ -20,7 +20,8 @@ import numpy as np
 
 from cmax.events import Events
 
-__all__ = ["HotPixelFilter", "hot_pixels", "hot_pixels_of_counts", "without_pixels"]
+__all__ = ["HotPixelFilter", "check_filter", "hot_pixels", "hot_pixels_of_counts", "no_pixels", "pixel_counts",
+           "without_pixels"]
 
 
 @dataclass(frozen=True)
@@ -50,6 +51,23 @@ class HotPixelFilter:
         return without_pixels(events, hot), hot
 
 
+def check_filter(value: object) -> None:
+    """Refuse a ``hot_pixels`` setting that is neither a :class:`HotPixelFilter` nor None."""
+    if value is not None and not isinstance(value, HotPixelFilter):
+        raise TypeError(f"hot_pixels must be a cmax.hot_pixels.HotPixelFilter or None, got {type(value).__name__}")
+
+
+def no_pixels() -> np.ndarray:
+    """An empty ``(0, 2)`` int64 list of pixels ``(x, y)`` (no hot pixel)."""
+    return np.zeros((0, 2), np.int64)
+
+
+def pixel_counts(events: Events) -> np.ndarray:
+    """The events of each pixel, (height, width) int64."""
+    flat = events.y.astype(np.int64) * events.width + events.x
+    return np.bincount(flat, minlength=events.width * events.height).reshape(events.height, events.width)
+
+
 def _check(factor: object, min_events: object) -> None:
     if isinstance(factor, bool) or not (isinstance(factor, (int, float, np.number)) and np.isfinite(factor)
                                         and factor > 0):
@@ -71,9 +89,7 @@ def hot_pixels(events: Events, factor: float = 8.0, min_events: int = 30) -> np.
     """
     if not isinstance(events, Events):
         raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
-    flat = events.y.astype(np.int64) * events.width + events.x
-    counts = np.bincount(flat, minlength=events.width * events.height).reshape(events.height, events.width)
-    return hot_pixels_of_counts(counts, factor, min_events)
+    return hot_pixels_of_counts(pixel_counts(events), factor, min_events)
 
 
 def hot_pixels_of_counts(counts: np.ndarray, factor: float = 8.0, min_events: int = 30) -> np.ndarray:
@@ -85,7 +101,7 @@ def hot_pixels_of_counts(counts: np.ndarray, factor: float = 8.0, min_events: in
         raise ValueError(f"counts must be an (H, W) image of per-pixel event counts, got shape {counts.shape}")
     active = counts[counts > 0]
     if not active.size:
-        return np.zeros((0, 2), np.int64)
+        return no_pixels()
     threshold = max(factor * float(np.percentile(active, 99)), float(min_events))
     y, x = np.nonzero(counts > threshold)
     return np.column_stack([x, y]).astype(np.int64)

@@ -5,7 +5,7 @@ import argparse
 from pathlib import Path
 from typing import Any
 
-__all__ = ["given", "output_folder"]
+__all__ = ["given", "named_pixels", "output_folder"]
 
 
 def given(args: argparse.Namespace, names: dict[str, str]) -> dict[str, Any]:
@@ -28,3 +28,8 @@ def output_folder(path: Path, contents: str) -> Path:
     if path.exists() and not path.is_dir():
         raise FileExistsError(f"-o {path} is a file, not a folder: give a folder for {contents}")
     return path
+
+
+def named_pixels(pixels, most: int = 5) -> str:
+    """``"(x, y), (x, y), ..."``: the first ``most`` of ``pixels`` (K, 2), and ``, ...`` when there are more."""
+    return ", ".join(f"({x}, {y})" for x, y in pixels[:most]) + (", ..." if len(pixels) > most else "")

@@ -18,7 +18,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, nonnegative_float, positive_int
-from cmax.cli._common import output_folder
+from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
                                 file_intrinsics, overlap, read_calibrated)
 from cmax.io.atomic import save_npz_atomic
@@ -175,10 +175,9 @@ def run(args: argparse.Namespace) -> int:
     result.save_ply(out / "points.ply")
     depths = result.depth[result.mask]
     if len(result.hot_pixels):
-        named = ", ".join(f"({x}, {y})" for x, y in result.hot_pixels[:5])
         print(f"cmax emvs: note: {len(result.hot_pixels)} hot pixel(s) fire far more than the scene's edges make any "
-              f"pixel fire ({named}{', ...' if len(result.hot_pixels) > 5 else ''}): their events did not vote "
-              "(--keep-hot-pixels keeps them)", file=sys.stderr)
+              f"pixel fire ({named_pixels(result.hot_pixels)}): their events did not vote (--keep-hot-pixels keeps "
+              "them)", file=sys.stderr)
     for end, share in result.on_bounds().items():
         if share >= EMVS_BOUND_NOTE:
             plane = result.depth_range[0 if end == "near" else 1]

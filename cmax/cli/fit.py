@@ -21,7 +21,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
-from cmax.cli._common import output_folder
+from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
                                 calibration_of, event_span, file_intrinsics, open_streamed, overlap, read_calibrated,
                                 tail_note)
@@ -228,11 +228,10 @@ def hot_pixel_note(results) -> str | None:
     if not hot:
         return None
     pixels, counts = np.unique(np.concatenate(hot), axis=0, return_counts=True)
-    order = np.argsort(-counts, kind="stable")[:5]
-    named = ", ".join(f"({x}, {y})" for x, y in pixels[order])
+    pixels = pixels[np.argsort(-counts, kind="stable")]          # the pixels hot in most windows first
     return (f"{len(pixels)} hot pixel(s) fire far more than the scene's edges make any pixel fire, in {len(hot)} of "
-            f"{len(results)} windows ({named}{', ...' if len(pixels) > 5 else ''}): their events were left out of "
-            "those windows' fits (--keep-hot-pixels keeps them)")
+            f"{len(results)} windows ({named_pixels(pixels)}): their events were left out of those windows' fits "
+            "(--keep-hot-pixels keeps them)")
 
 
 def run(args: argparse.Namespace) -> int:

@@ -38,7 +38,7 @@ from cmax.emvs.poses import as_trajectory, check_coverage
 from cmax.emvs.result import DSI, SemiDenseDepth, semi_dense_depth
 from cmax.events import Events
 from cmax.geometry import interpolate_poses, invert_pose
-from cmax.hot_pixels import HotPixelFilter
+from cmax.hot_pixels import HotPixelFilter, check_filter, no_pixels
 
 __all__ = ["EMVS"]
 
@@ -163,9 +163,7 @@ class EMVS:
     hot_pixels: HotPixelFilter | None = field(default_factory=HotPixelFilter)
 
     def __post_init__(self) -> None:
-        if self.hot_pixels is not None and not isinstance(self.hot_pixels, HotPixelFilter):
-            raise TypeError(f"hot_pixels must be a cmax.hot_pixels.HotPixelFilter or None, got "
-                            f"{type(self.hot_pixels).__name__}")
+        check_filter(self.hot_pixels)
         if not isinstance(self.camera, Camera):
             raise TypeError(f"camera must be a cmax.Camera, got {type(self.camera).__name__}"
                             + (" (a K matrix: cmax.Camera(K, width, height[, distortion]))"
@@ -225,7 +223,7 @@ class EMVS:
         """
         start = time.perf_counter()
         events = self._check_events(events)
-        hot = np.zeros((0, 2), np.int64)
+        hot = no_pixels()
         if self.hot_pixels is not None:
             events, hot = self.hot_pixels.apply(events)
         times, T_w_c = as_trajectory(poses)

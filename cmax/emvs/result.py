@@ -17,6 +17,7 @@ import cv2
 import numpy as np
 
 from cmax._jit import kernel
+from cmax.hot_pixels import no_pixels
 
 if TYPE_CHECKING:  # pragma: no cover
     from cmax import viz
@@ -71,7 +72,7 @@ class DSI:
     n_events: int
     seconds: float
     parallax_px: float = float("nan")
-    hot_pixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    hot_pixels: np.ndarray = field(default_factory=no_pixels)
 
 
 @dataclass(frozen=True, eq=False)
@@ -117,7 +118,7 @@ class SemiDenseDepth:
     seconds: float
     K: np.ndarray
     n_events: int
-    hot_pixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    hot_pixels: np.ndarray = field(default_factory=no_pixels)
 
     def image(self, scale: "viz.DepthScale | tuple[float, float] | None" = None, *, zoom: int = 1) -> np.ndarray:
         """Picture (BGR uint8): the confidence map beside the depth with its colour bar [m].

@@ -18,6 +18,7 @@ from cmax._threads import blas_threads_scope, torch_threads_scope
 from cmax.camera import check_intrinsics, intrinsics_oddity, pinhole_events
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events
+from cmax.hot_pixels import no_pixels
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, motion_within_noise,
@@ -172,7 +173,7 @@ class FitResult:
     stages: tuple[StageLog, ...] = ()
     motion_px: float | None = None
     quality: Quality | None = None
-    hot_pixels: np.ndarray = field(default_factory=lambda: np.zeros((0, 2), np.int64))
+    hot_pixels: np.ndarray = field(default_factory=no_pixels)
 
     @property
     def verdict(self) -> Verdict | None:
@@ -480,7 +481,7 @@ def _without_hot_pixels(events: Events, settings: FitSettings) -> tuple[Events, 
     """``events`` without the events of their hot pixels (``settings.hot_pixels``, None: all kept) and
     those pixels (K, 2) ``(x, y)``; refused when too few events remain to fit."""
     if settings.hot_pixels is None:
-        return events, np.zeros((0, 2), np.int64)
+        return events, no_pixels()
     kept, hot = settings.hot_pixels.apply(events)
     if not len(hot):
         return events, hot

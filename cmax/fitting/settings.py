@@ -18,7 +18,7 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from cmax.fitting.solvers import RELAXED_TOLERANCES, SCIPY_DEFAULT_TOLERANCES, Tolerances
-from cmax.hot_pixels import HotPixelFilter
+from cmax.hot_pixels import HotPixelFilter, check_filter
 
 __all__ = ["FitSettings", "MotionInit", "Refinement", "Polish", "PatchFlowSettings", "RefineSettings",
            "SweepSettings", "QualitySettings", "LOW_PARALLAX_PX", "PROBE_TIMES"]
@@ -577,9 +577,7 @@ class FitSettings:
         _positive_int("coarse_iterations", self.coarse_iterations)
         _positive_int("start_iterations", self.start_iterations)
         _positive_int("min_cell_events", self.min_cell_events, 0)
-        if self.hot_pixels is not None and not isinstance(self.hot_pixels, HotPixelFilter):
-            raise TypeError(f"hot_pixels must be a cmax.hot_pixels.HotPixelFilter or None, got "
-                            f"{type(self.hot_pixels).__name__}")
+        check_filter(self.hot_pixels)
         for name, kind in (("patch_flow", PatchFlowSettings), ("refine", RefineSettings), ("sweep", SweepSettings),
                            ("quality", QualitySettings)):
             if not isinstance(getattr(self, name), kind):

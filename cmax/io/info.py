@@ -9,6 +9,7 @@ from typing import Any
 import numpy as np
 
 from cmax.events import Events
+from cmax.hot_pixels import hot_pixels_of_counts, no_pixels, pixel_counts
 
 __all__ = ["EventFileInfo", "file_info", "events_info"]
 
@@ -52,9 +53,7 @@ class EventFileInfo:
     def hot_pixels(self) -> np.ndarray:
         """``(K, 2)`` ``(x, y)`` of the pixels that :class:`cmax.hot_pixels.HotPixelFilter`'s default rule calls
         hot over the whole recording (empty without counts)."""
-        from cmax.hot_pixels import hot_pixels_of_counts
-
-        return np.zeros((0, 2), np.int64) if self.pixel_counts is None else hot_pixels_of_counts(self.pixel_counts)
+        return no_pixels() if self.pixel_counts is None else hot_pixels_of_counts(self.pixel_counts)
 
     def _hot_line(self) -> str:
         hot = self.hot_pixels()
@@ -97,14 +96,8 @@ def events_info(events: Events, *, path: str = "", format: str = "") -> EventFil
         path=path, format=format, count=len(events), width=events.width, height=events.height,
         t_start_us=events.t_start if len(events) else None,
         t_end_us=events.t_end if len(events) else None,
-        on_count=int(np.count_nonzero(events.p)), pixel_counts=_pixel_counts(events),
+        on_count=int(np.count_nonzero(events.p)), pixel_counts=pixel_counts(events),
     )
-
-
-def _pixel_counts(events: Events) -> np.ndarray:
-    """The events of each pixel, (height, width) int64."""
-    flat = events.y.astype(np.int64) * events.width + events.x
-    return np.bincount(flat, minlength=events.width * events.height).reshape(events.height, events.width)
 
 
 def file_info(
@@ -142,7 +135,7 @@ def file_info(
                 )
             last_t = int(chunk.t[-1])
             on_count += int(np.count_nonzero(chunk.p))
-            pixels += _pixel_counts(chunk)
+            pixels += pixel_counts(chunk)
         return EventFileInfo(
             path=str(path), format="dsec", count=len(reader), width=reader.width,
             height=reader.height, t_start_us=reader.t_start if len(reader) else None,

@@ -19,6 +19,7 @@ from typing import Iterator
 import numpy as np
 
 from cmax.events import Events, check_event_count, concatenate
+from cmax.hot_pixels import pixel_counts
 from cmax.io.errors import FormatError
 from cmax.io.prophesee._decode import (
     _EVT2, _EVT3, _Codec, _count, _decode, _empty_columns, _Limits, _WordError,
@@ -307,12 +308,12 @@ def scan_raw(path: PathLike, *, width: int | None = None, height: int | None = N
     _, limits, _, _ = _open_data(Path(path), _codec_of(path), width, height, chunk_bytes, True)
     count = on = 0
     first = last = None
-    pixels = np.zeros(limits.width * limits.height, np.int64)
+    pixels = np.zeros((limits.height, limits.width), np.int64)
     for chunk in iter_raw(path, width=width, height=height, chunk_bytes=chunk_bytes):
         first = int(chunk.t[0]) if first is None else first
         last, count, on = int(chunk.t[-1]), count + len(chunk), on + int(np.count_nonzero(chunk.p))
-        pixels += np.bincount(chunk.y.astype(np.int64) * limits.width + chunk.x, minlength=pixels.size)
-    return RawScan(limits.width, limits.height, count, on, first, last, pixels.reshape(limits.height, limits.width))
+        pixels += pixel_counts(chunk)
+    return RawScan(limits.width, limits.height, count, on, first, last, pixels)
 
 
 class RawWindows:
