@@ -11,7 +11,7 @@ import numpy as np
 
 from cmax.events import Events, _check_sensor_size
 
-__all__ = ["Camera", "check_intrinsics", "intrinsics_oddity", "pinhole_events"]
+__all__ = ["Camera", "camera_and_intrinsics", "check_intrinsics", "intrinsics_oddity", "pinhole_events"]
 
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 
@@ -257,6 +257,12 @@ class Camera:
         K[0, 2] = sx * (self.cx + 0.5) - 0.5
         K[1, 2] = sy * (self.cy + 0.5) - 0.5
         return Camera(K, width, height, self.distortion)
+
+
+def camera_and_intrinsics(K: object) -> tuple["Camera | None", np.ndarray]:
+    """``(camera, K (3, 3))`` of a ``K`` that is a matrix (checked; camera None) or a :class:`Camera` (its ``K``)."""
+    camera = K if isinstance(K, Camera) else None
+    return camera, check_intrinsics(K.K if camera is not None else K)
 
 
 def pinhole_events(events: Events, K: object) -> tuple[Events, np.ndarray]:

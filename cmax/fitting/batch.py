@@ -52,7 +52,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cmax._threads import available_cores, set_blas_threads
-from cmax.camera import Camera, check_intrinsics, pinhole_events
+from cmax.camera import camera_and_intrinsics, pinhole_events
 from cmax.events import Events
 from cmax.fitting.api import (MODELS, FitResult, _check_inputs, _check_speed, _known_omega, _pose_twist, _settings,
                               fit)
@@ -168,8 +168,7 @@ def fit_windows(windows: Sequence[Events], K: object, model: str = "se3", *, job
         raise TypeError(f"windows must be a sequence of cmax.Events (one window: cmax.fit), got "
                         f"{type(windows).__name__}")
     workers = check_jobs(jobs)
-    camera = K if isinstance(K, Camera) else None
-    K = check_intrinsics(K.K if camera is not None else K)
+    camera, K = camera_and_intrinsics(K)
     check_options(model, fit_options, workers)
     windows = list(windows)
     for i, events in enumerate(windows):

@@ -8,7 +8,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cmax._threads import torch_threads_scope
-from cmax.camera import Camera, check_intrinsics, pinhole_events
+from cmax.camera import camera_and_intrinsics, pinhole_events
 from cmax.events import Events, check_time_us, uncovered_tail, window_starts
 from cmax.fitting.api import MIN_WINDOW_EVENTS, FitResult, _check_inputs, _check_speed, _settings, fit
 from cmax.fitting.batch import FitTask, check_jobs, check_options, run_tasks
@@ -203,8 +203,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         raise ValueError(f"warm starts chain the windows one after another: jobs={jobs} needs warm_start=False")
     if jobs != 1:                                # refused here rather than by every worker
         check_options(model, {"speed": speed, "settings": settings, **fit_options}, jobs)
-    camera = K if isinstance(K, Camera) else None
-    K, speed = check_intrinsics(K.K if camera is not None else K), _check_speed(speed)
+    (camera, K), speed = camera_and_intrinsics(K), _check_speed(speed)
     if isinstance(min_events, (bool, np.bool_)) or not isinstance(min_events, (int, np.integer)) \
             or min_events < MIN_WINDOW_EVENTS:
         raise ValueError(f"min_events must be a whole number >= {MIN_WINDOW_EVENTS} (the fewest events a window can "
