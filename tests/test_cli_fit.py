@@ -127,6 +127,15 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "0 of 1 windows fitted, 1 skipped (fewer than 1,000 events)" in captured.out
     assert "no window was fitted" in captured.err
+    assert "a longer --window-ms or a lower --min-events (at least 10) fits them" in captured.err
+    assert "pass a longer window_us or a lower min_events" in captured.err         # fit_sequence's own warning
+    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet", "--min-events", "9"]) == 2
+    assert "--min-events must be at least 10" in capsys.readouterr().err
+    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet", "--min-events", "300",
+                 "--max-events", "300", "--depth-grid", "6,8"]) == 0
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    assert summary["min_events"] == 300 and len(summary["windows"]) == 1 and summary["skipped_us"] == []
+    assert summary["windows"][0]["verdict"] != "ok"                                # noise: nothing to be sure of
 
 
 @pytest.mark.parametrize("extra, message", [

@@ -47,6 +47,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                                     help="motion model"), _sequence_default("model"))
     api_default(parser.add_argument("--window-ms", type=positive_float, default=None, help="window length [ms]"),
                 lambda: _sequence_default("window_us")() / 1000)
+    api_default(parser.add_argument("--min-events", type=positive_int, default=None,
+                                    help="windows with fewer events are skipped, not fitted (at least 10; a sparse "
+                                         "recording: a lower value or a longer --window-ms)"),
+                _sequence_default("min_events"))
     parser.add_argument("--step-ms", type=positive_float, default=None,
                         help="step between window starts [ms] (default: the window length)")
     parser.add_argument("--speed", type=positive_float, default=None,
@@ -244,6 +248,7 @@ def run(args: argparse.Namespace) -> int:
     import cmax.events as cmax_events
     from cmax.events import EventLimitError, uncovered_tail, window_starts
     from cmax.fitting import FitSettings, fit_sequence
+    from cmax.fitting.api import MIN_WINDOW_EVENTS
     from cmax.fitting.quality import LowMotionCause
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read_gyro
@@ -293,6 +298,10 @@ def run(args: argparse.Namespace) -> int:
     # None above: the library's default (one source: fit_sequence / fit / FitSettings). Checked here, before the
     # progress bar starts:
     FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})
+    min_events = args.min_events or _sequence_default("min_events")()
+    if min_events < MIN_WINDOW_EVENTS:
+        raise ValueError(f"--min-events must be at least {MIN_WINDOW_EVENTS} (the fewest events a window can be "
+                         f"fitted with), got {min_events}")
     sequence_model = args.model or _sequence_default("model")()
     depth_grid = tuple(args.depth_grid or _fit_default("depth_grid")())
     if sequence_model == "se3":
@@ -303,8 +312,9 @@ def run(args: argparse.Namespace) -> int:
     first_us, last_us = event_span(events)
     span_us = last_us - first_us + 1
     if window_us > span_us:
-        notes.append(f"the recording ({span_us * 1e-3:.1f} ms) is shorter than the window ({window_us * 1e-3:.1f} ms): "
-                     "fitting one window over the whole recording")
+        what = "the recording" if args.t0 is None and args.t1 is None else "the span of --t0/--t1"
+        notes.append(f"{what} ({span_us * 1e-3:.1f} ms) is shorter than the window ({window_us * 1e-3:.1f} ms): "
+                     f"fitting one window over {'the whole recording' if what == 'the recording' else 'it'}")
         window_us = step_us = span_us
     n_windows = len(window_starts(first_us, last_us, window_us, step_us))
     tail = uncovered_tail(first_us, last_us, window_us, step_us)
@@ -321,6 +331,7 @@ def run(args: argparse.Namespace) -> int:
     try:
         sequence = fit_sequence(source, K, sequence_model, window_us=window_us, step_us=step_us, speed=args.speed,
                                 gyro=gyro, zero_rotation_start=args.zero_rotation_start, jobs=args.jobs,
+                                min_events=min_events,
                                 progress=args.jobs > 1 and not args.quiet, **options)
     finally:
         if args.jobs == 1:
@@ -350,7 +361,8 @@ def run(args: argparse.Namespace) -> int:
     summary = {"file": str(args.file), "model": sequence_model, "K": K.tolist(),
                "distortion": None if distortion is None else distortion.tolist(),
                "calib": None if args.calib is None else str(args.calib),
-               "window_ms": window_us / 1000, "step_ms": step_us / 1000, "t0_s": args.t0, "t1_s": args.t1,
+               "window_ms": window_us / 1000, "step_ms": step_us / 1000, "min_events": min_events,
+               "t0_s": args.t0, "t1_s": args.t1,
                "depth_range": None if args.depth_range is None else list(args.depth_range),
                "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro),
                "omega": None if args.omega is None else list(args.omega),
@@ -364,7 +376,6 @@ def run(args: argparse.Namespace) -> int:
                "uncovered_us": None if sequence.uncovered_us is None else list(sequence.uncovered_us),
                "verdicts": sequence.counts(), "windows": windows}
     write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
-    min_events = _sequence_default("min_events")()
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""
     print(f"{len(windows)} of {n_windows} windows fitted{skip}: {verdict_counts(sequence.counts())}; results in {out}")
@@ -377,6 +388,8 @@ def run(args: argparse.Namespace) -> int:
                        cell_noise):
         print(f"cmax fit: note: {line}", file=sys.stderr)
     if not windows:
-        print(f"cmax fit: no window was fitted: each has fewer than {min_events:,} events", file=sys.stderr)
+        print(f"cmax fit: no window was fitted: each has fewer than {min_events:,} events (over more than one time "
+              f"stamp); a longer --window-ms or a lower --min-events (at least {MIN_WINDOW_EVENTS}) fits them",
+              file=sys.stderr)
         return 1
     return 0

@@ -257,11 +257,10 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         results = run_tasks(tasks(), min(jobs, max(1, len(starts))), total=len(starts), progress=progress)
     if not results:
         why = (f"the recording ({(t_end - t_start + 1) * 1e-3:.1f} ms) is shorter than one window "
-               f"({window_us * 1e-3:.1f} ms)" if not len(starts) else
+               f"({window_us * 1e-3:.1f} ms); pass a shorter window_us" if not len(starts) else
                f"none of its {len(starts)} window(s) holds min_events={min_events} events over more than one time "
-               "stamp")
-        warnings.warn(f"fit_sequence: no window fitted: {why}; pass a shorter window_us or a lower min_events",
-                      UserWarning, stacklevel=2)
+               f"stamp; pass a longer window_us or a lower min_events (at least {MIN_WINDOW_EVENTS})")
+        warnings.warn(f"fit_sequence: no window fitted: {why}", UserWarning, stacklevel=2)
     elif skipped:
         warnings.warn(f"fit_sequence: {len(skipped)} of {len(starts)} windows hold fewer than min_events={min_events} "
                       f"events over more than one time stamp and were not fitted (the first at "
