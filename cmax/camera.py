@@ -9,7 +9,7 @@ from pathlib import Path
 import cv2
 import numpy as np
 
-from cmax.events import Events, _check_sensor_size
+from cmax.events import Events, _check_sensor_size, require_events
 
 __all__ = ["Camera", "camera_and_intrinsics", "check_intrinsics", "intrinsics_oddity", "pinhole_events"]
 
@@ -27,7 +27,9 @@ def check_intrinsics(K: object, name: str = "K") -> np.ndarray:
     except (TypeError, ValueError):
         raise TypeError(f"{name} must be a 3x3 matrix of numbers, got {K!r}") from None
     if matrix.shape != (3, 3):
-        raise ValueError(f"{name} must be a 3x3 matrix, got shape {matrix.shape}")
+        hint = (" (four numbers fx, fy, cx, cy? np.array([[fx, 0, cx], [0, fy, cy], [0, 0, 1]]) is the matrix)"
+                if matrix.shape == (4,) else "")
+        raise ValueError(f"{name} must be a 3x3 matrix, got shape {matrix.shape}{hint}")
     if not np.isfinite(matrix).all():
         raise ValueError(f"{name} must be finite, got {matrix.tolist()}")
     if not (matrix[0, 0] > 0 and matrix[1, 1] > 0):
@@ -225,8 +227,7 @@ class Camera:
         return self.undistortion_map[events.y, events.x]
 
     def _check_events(self, events: object) -> None:
-        if not isinstance(events, Events):
-            raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+        require_events(events)
         if events.sensor_size != (self.width, self.height):
             raise ValueError(
                 f"events come from a {events.width}x{events.height} sensor, "

@@ -21,6 +21,7 @@ silently.
 """
 from __future__ import annotations
 
+import os
 from dataclasses import dataclass
 from typing import TYPE_CHECKING, Iterator, NamedTuple, Sequence
 
@@ -31,7 +32,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "FIELD_ALIASES", "concatenate",
-    "check_event_count", "window_starts", "uncovered_tail",
+    "check_event_count", "window_starts", "uncovered_tail", "require_events",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
@@ -51,6 +52,28 @@ MAX_EVENTS = 1 << 28
 
 _INT64_MAX = int(np.iinfo(np.int64).max)
 _INT64_MIN = int(np.iinfo(np.int64).min)
+
+
+def require_events(events: object, name: str = "events") -> "Events":
+    """``events`` when it is :class:`Events`; otherwise a ``TypeError`` that names the conversion for what
+    was given: a structured array (tonic's, Metavision's, dv-processing's; by field names), an (N, 4)
+    array (columns named by ``order``), :class:`EventTensors` (torch) or a path (:func:`cmax.io.read`)."""
+    if isinstance(events, Events):
+        return events
+    got = type(events).__name__
+    if isinstance(events, EventTensors):
+        hint = "; these are the torch tensors of Events.to_torch(): pass the Events they came from"
+    elif getattr(getattr(events, "dtype", None), "names", None):
+        hint = (f" (a structured array with fields {list(events.dtype.names)}): "
+                "cmax.Events.from_structured(array, width, height) reads it by its field names")
+    elif getattr(events, "ndim", None) == 2 and getattr(events, "shape", (0, 0))[1] == 4:
+        hint = (f" of shape {tuple(events.shape)}: cmax.Events.from_array(array, width, height, order='xytp') "
+                "names its columns (times in integer µs)")
+    elif isinstance(events, (str, os.PathLike)):
+        hint = f" ({events!s}): read the file with cmax.io.read(path) first"
+    else:
+        hint = ""
+    raise TypeError(f"{name} must be cmax.Events, got {got}{hint}")
 
 
 class EventLimitError(ValueError):

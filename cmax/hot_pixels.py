@@ -18,7 +18,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
-from cmax.events import Events
+from cmax.events import Events, require_events
 
 __all__ = ["HotPixelFilter", "check_filter", "hot_pixels", "hot_pixels_of_counts", "no_pixels", "pixel_counts",
            "without_pixels"]
@@ -87,8 +87,7 @@ def hot_pixels(events: Events, factor: float = 8.0, min_events: int = 30) -> np.
     >>> hot_pixels(events).tolist()
     [[3, 2]]
     """
-    if not isinstance(events, Events):
-        raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+    require_events(events)
     return hot_pixels_of_counts(pixel_counts(events), factor, min_events)
 
 

@@ -36,7 +36,7 @@ from cmax.emvs.dsi import base_plane_homographies, plane_depths, plane_transfers
 from cmax.emvs.gather import ShiftedAdditions, gather_votes
 from cmax.emvs.poses import as_trajectory, check_coverage
 from cmax.emvs.result import DSI, SemiDenseDepth, semi_dense_depth
-from cmax.events import Events
+from cmax.events import Events, require_events
 from cmax.geometry import interpolate_poses, invert_pose
 from cmax.hot_pixels import HotPixelFilter, check_filter, no_pixels
 
@@ -195,8 +195,7 @@ class EMVS:
         return plane_depths(self.depth_range, self.n_planes)
 
     def _check_events(self, events: object) -> Events:
-        if not isinstance(events, Events):
-            raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+        require_events(events)
         if len(events) == 0:
             raise ValueError("events must not be empty")
         if events.sensor_size != (self.camera.width, self.camera.height):

@@ -17,7 +17,7 @@ import torch
 from cmax._threads import blas_threads_scope, torch_threads_scope
 from cmax.camera import check_intrinsics, intrinsics_oddity, pinhole_events
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
-from cmax.events import Events
+from cmax.events import Events, require_events
 from cmax.hot_pixels import no_pixels
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
@@ -215,8 +215,7 @@ class FitResult:
 # Validation and preparation
 # ----------------------------------------------------------------------------------------
 def _check_inputs(events: object, K: object, model: str) -> np.ndarray:
-    if not isinstance(events, Events):
-        raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+    require_events(events)
     if model not in MODELS:
         raise ValueError(f"model must be one of {MODELS}, got {model!r}")
     K = check_intrinsics(K)

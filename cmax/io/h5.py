@@ -29,7 +29,8 @@ import h5py
 import hdf5plugin
 import numpy as np
 
-from cmax.events import Events, _check_sensor_size, check_event_count, check_time_us, window_steps
+from cmax.events import (Events, _check_sensor_size, check_event_count, check_time_us, require_events,
+                         window_steps)
 from cmax.io._checks import (add_offset, check_allocated, check_offset, check_polarity_encoding, check_stated_size,
                              check_time_unit, polarity_01, scalar_to_us, times_to_us, unit_from_attrs)
 from cmax.io.atomic import AtomicOutput, write_error
@@ -270,8 +271,7 @@ class H5Writer:
         """Append events later than (or at the time of) everything written so far."""
         if self._closed:
             raise ValueError(f"the writer of {self.path} is closed")
-        if not isinstance(events, Events):
-            raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+        require_events(events)
         if events.sensor_size != (self.width, self.height):
             raise ValueError(
                 f"events have sensor {events.sensor_size}, the file has {(self.width, self.height)}"
@@ -409,8 +409,7 @@ def write_h5(
     compression: str = "blosc", **attrs: Any,
 ) -> Path:
     """Write ``events`` to a DSEC-layout HDF5 file (atomically); returns the path."""
-    if not isinstance(events, Events):
-        raise TypeError(f"events must be cmax.Events, got {type(events).__name__}")
+    require_events(events)
     t_offset = events.t_start if len(events) else 0
     with H5Writer(
         path, events.width, events.height, t_offset_us=t_offset, overwrite=overwrite,
