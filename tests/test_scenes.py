@@ -312,6 +312,34 @@ def test_simulate_scene_and_file_round_trip(tmp_path):
         simulate_scene(scene, 0.1, simulator, lam=1.5)
 
 
+def test_a_loaded_sequence_gives_the_motion_and_depth_of_a_window(tmp_path):
+    """pose_at / motion / depth_at of a saved and loaded sequence against the scene itself (analytic poses,
+    rendered depth): exact at the stored times, geodesic interpolation in between."""
+    from cmax.geometry import invert_pose
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.synthetic import load_sequence, simulate_scene
+
+    scene = make_scene("indoor_flying", seed=3, width=48, height=36, texture_size=64)
+    sequence = simulate_scene(scene, 0.2, EventSimulator(**scene.recommended_simulator, seed=0),
+                              depth_times_s=[0.0, 0.1, 0.2], t_offset_us=2_000_000, max_step_s=5e-3)
+    loaded = load_sequence(sequence.save(tmp_path / "room.h5"))
+    k = len(loaded.poses_t_us) // 2
+    np.testing.assert_allclose(loaded.pose_at(int(loaded.poses_t_us[k])), scene.pose(
+        (int(loaded.poses_t_us[k]) - 2_000_000) * 1e-6), atol=1e-12)
+    t0, t1 = 2_031_234, 2_187_655                                   # between stored poses
+    expected = invert_pose(scene.pose(0.031234)) @ scene.pose(0.187655)
+    T01 = loaded.motion(t0, t1)
+    assert np.abs(T01 - expected).max() < 1e-5 and np.abs(expected - np.eye(4)).max() > 1e-2
+    np.testing.assert_array_equal(loaded.depth_at(2_100_000), scene.render(0.1)[1].astype(np.float32))
+    np.testing.assert_array_equal(loaded.depth_at(2_104_000, max_offset_us=5_000), loaded.depth[1])
+    with pytest.raises(ValueError, match=r"no depth map within 0 µs of 2104000 µs: the nearest is at 2100000 µs"):
+        loaded.depth_at(2_104_000)
+    with pytest.raises(ValueError, match="query_times_us must lie in"):
+        loaded.motion(1_999_000, 2_100_000)
+    with pytest.raises(ValueError, match="whole microseconds"):
+        loaded.pose_at(2_000_000.5)
+
+
 def test_time_scaled_scene_plays_the_same_path_faster():
     from cmax.sim.scenes import TimeScaledScene
 

@@ -88,6 +88,46 @@ class SyntheticSequence:
     def height(self) -> int:
         return self.events.height
 
+    def pose_at(self, t_us: int) -> np.ndarray:
+        """``T_w_c`` (4, 4) at ``t_us`` [µs, the events' clock], interpolated geodesically between the two
+        stored poses around it (:func:`cmax.geometry.interpolate_poses`); ValueError outside them."""
+        from cmax.events import check_time_us
+        from cmax.geometry import interpolate_poses
+
+        t_us = check_time_us("t_us", t_us)
+        return interpolate_poses(self.poses_t_us, self.poses, np.array([t_us], np.int64))[0]
+
+    def motion(self, t0_us: int, t1_us: int) -> np.ndarray:
+        """``T_01`` (4, 4): the camera at ``t1_us`` in its frame at ``t0_us`` [µs], the ``pose=`` that
+        :func:`cmax.fit` takes for a window from ``t0_us`` to ``t1_us`` (its first and last event)."""
+        from cmax.geometry import relative_pose
+
+        return relative_pose(self.pose_at(t0_us), self.pose_at(t1_us))
+
+    def depth_at(self, t_us: int, max_offset_us: int = 0) -> np.ndarray:
+        """The stored z-depth map (H, W) float32 [m] (NaN: unknown) rendered nearest to ``t_us`` [µs].
+
+        Depth is stored only at ``depth_t_us``; a map rendered more than ``max_offset_us`` away from ``t_us``
+        raises ValueError (by default the time must be one of ``depth_t_us``: the depth of another time
+        would be another camera's). Centre a window on a depth time to compare a fit's depth at its
+        ``t_ref_us`` (the window's middle) with it.
+        """
+        from cmax.events import check_time_us
+
+        t_us = check_time_us("t_us", t_us)
+        max_offset_us = check_time_us("max_offset_us", max_offset_us)
+        if max_offset_us < 0:
+            raise ValueError(f"max_offset_us must be >= 0, got {max_offset_us}")
+        if not len(self.depth_t_us):
+            raise ValueError("this sequence stores no depth maps")
+        k = int(np.argmin(np.abs(self.depth_t_us.astype(np.int64) - t_us)))
+        offset = abs(int(self.depth_t_us[k]) - t_us)
+        if offset > max_offset_us:
+            raise ValueError(f"no depth map within {max_offset_us} µs of {t_us} µs: the nearest is at "
+                             f"{int(self.depth_t_us[k])} µs ({offset} µs away); depth_t_us holds the "
+                             f"{len(self.depth_t_us)} times, or raise max_offset_us")
+        return self.depth[k]
+
     def save(self, path: str | os.PathLike, *, overwrite: bool = False, compression: str = "blosc") -> Path:
         """Write events (DSEC layout, :class:`cmax.io.H5Writer`) and ``gt/`` into one HDF5 file.
 
