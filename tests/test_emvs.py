@@ -340,6 +340,21 @@ def test_bad_tum_files_raise(tmp_path):
         read_tum_trajectory(tmp_path / "missing.txt")
 
 
+def test_as_trajectory_reads_a_synthetic_sequence_s_ground_truth():
+    from cmax.sim.synthetic import SyntheticSequence
+
+    times = np.array([0, 5_000, 10_000])
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, 0, 3] = [0.0, 0.1, 0.2]
+    sequence = SyntheticSequence(Events.empty(8, 6), np.zeros((0, 6, 8), np.float32), np.zeros(0, np.int64), poses,
+                                 times, np.zeros((3, 6)), np.eye(3), np.zeros(0, np.int64), {})
+    got_times, got_poses = as_trajectory(sequence)
+    np.testing.assert_array_equal(got_times, times)
+    np.testing.assert_array_equal(got_poses, poses)
+    with pytest.raises(TypeError, match=r"attributes times_us \(or poses_t_us\) and poses"):
+        as_trajectory(np.eye(4))
+
+
 def test_as_trajectory_rejects_fractional_microseconds():
     with pytest.raises(ValueError, match="whole microseconds"):
         as_trajectory((np.array([0.5, 1.0]), np.stack([np.eye(4)] * 2)))

@@ -30,7 +30,8 @@ def as_trajectory(poses: object, name: str = "poses") -> tuple[np.ndarray, np.nd
     ----------
     poses : tuple or object
         ``(times_us (M,), T_w_c (M, 4, 4))``, or anything with attributes
-        ``times_us`` and ``poses`` of those shapes (e.g. ``cmax.fit_sequence``'s result).
+        ``times_us`` and ``poses`` of those shapes (e.g. ``cmax.fit_sequence``'s result), or
+        ``poses_t_us`` and ``poses`` (a :class:`cmax.sim.SyntheticSequence`'s ground truth).
     name : str
         Name used in error messages.
 
@@ -53,10 +54,12 @@ def as_trajectory(poses: object, name: str = "poses") -> tuple[np.ndarray, np.nd
         times, matrices = poses
     elif hasattr(poses, "times_us") and hasattr(poses, "poses"):
         times, matrices = poses.times_us, poses.poses
+    elif hasattr(poses, "poses_t_us") and hasattr(poses, "poses"):      # a SyntheticSequence's ground truth
+        times, matrices = poses.poses_t_us, poses.poses
     else:
         raise TypeError(
-            f"{name} must be (times_us, T_w_c) or an object with attributes times_us and poses "
-            f"(e.g. cmax.fit_sequence's result), got {type(poses).__name__}"
+            f"{name} must be (times_us, T_w_c) or an object with attributes times_us (or poses_t_us) and poses "
+            f"(e.g. cmax.fit_sequence's result, a cmax.sim.SyntheticSequence), got {type(poses).__name__}"
         )
     times = np.asarray(times)
     if times.ndim != 1 or times.size < 1:
