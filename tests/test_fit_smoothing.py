@@ -93,9 +93,11 @@ def test_the_scorer_tells_a_far_motion_from_a_near_one():
 # ----------------------------------------------------------------------------------------------
 # The choice in fit_sequence
 # ----------------------------------------------------------------------------------------------
-def _constructed_sequence(monkeypatch, prior_within_noise: bool):
-    """Five windows of a camera moving +x; the middle one's own fit is 25 deg off. The prior's score is
-    constructed (within noise or not); returns the sequence and the poses the re-fits were given."""
+def _constructed_sequence(monkeypatch, prior_within_noise: bool, windows_off=(2,), count: int = 5,
+                          quality: QualitySettings | None = None):
+    """``count`` windows of a camera moving +x; the own fits of those in ``windows_off`` are 25 deg off. The
+    prior's score is constructed (within noise or not); returns the sequence and the poses the re-fits were
+    given."""
     speed, truth = 0.5, np.array([0.5, 0.0, 0.0])
     off = _rotate_z(truth, 25.0)
     poses, windows = [], []
@@ -110,7 +112,7 @@ def _constructed_sequence(monkeypatch, prior_within_noise: bool):
             return replace(base, t0_us=t0, t1_us=t1, v=pose[:3], omega=pose[3:], scale_known=True,
                            quality=Quality(Verdict.OK, "ambiguity not tested: the pose is given"))
         windows.append(t0)
-        v = off if len(windows) == 3 else truth
+        v = off if len(windows) - 1 in windows_off else truth
         return replace(base, t0_us=t0, t1_us=t1, v=v.copy(), omega=np.zeros(3),
                        quality=Quality(Verdict.OK, "every alternative scores worse beyond noise"))
 
@@ -121,8 +123,10 @@ def _constructed_sequence(monkeypatch, prior_within_noise: bool):
     monkeypatch.setattr(sequence_module, "fit", constructed_fit)
     monkeypatch.setattr(sequence_module, "_score_prior", constructed_score)
     w = street()[0]
-    window_us = (int(w.events.t[-1]) - int(w.events.t[0])) // 5
-    return fit_sequence(w.events, w.K, window_us=window_us, speed=speed, min_events=10), poses, truth, off
+    window_us = (int(w.events.t[-1]) - int(w.events.t[0])) // count
+    options = {} if quality is None else {"quality": quality}
+    return (fit_sequence(w.events, w.K, window_us=window_us, speed=speed, min_events=10, **options), poses, truth,
+            off)
 
 
 def test_a_window_its_data_cannot_tell_from_its_neighbours_takes_their_motion(monkeypatch):
@@ -142,6 +146,36 @@ def test_a_window_whose_data_beats_the_prior_keeps_its_fit(monkeypatch):
     assert poses == []
     np.testing.assert_allclose(middle.v, off, atol=1e-12)
     assert "kept the fit" in middle.quality.resolution and middle.quality.replaced is None
+
+
+@pytest.mark.parametrize("span_s", [0.0, QualitySettings().smoothing_span_s])
+def test_a_run_of_windows_with_one_wrong_motion_is_outvoted_by_the_prior_s_span(monkeypatch, span_s):
+    """Nine windows moving +x, three in a row fitted 25 deg off (the slider's bias, window after window):
+    with two neighbours on each side (span 0) the run is its own majority and nothing moves; with the
+    default span (every window here lies within 1.7 s) the six others outvote it and the run takes +x."""
+    quality = QualitySettings(smoothing_span_s=span_s)
+    sequence, poses, truth, off = _constructed_sequence(monkeypatch, True, windows_off=(3, 4, 5), count=9,
+                                                        quality=quality)
+    run = sequence.results[3:6]
+    if span_s == 0.0:
+        assert poses == [] and all(np.allclose(r.v, off) for r in run)
+        return
+    assert len(poses) == 3
+    for r in run:
+        np.testing.assert_allclose(r.v, truth, atol=1e-12)
+        np.testing.assert_allclose(r.quality.replaced[0], off)
+        assert r.quality.resolution.startswith("smoothing: the consensus of 8 neighbour(s) is 25.0 deg away; took it")
+    assert all(r.quality.resolution == "" for k, r in enumerate(sequence.results) if k not in (3, 4, 5))
+
+
+def test_the_prior_s_neighbours_follow_its_span_in_seconds():
+    quality = QualitySettings()
+    assert sequence_module.prior_neighbours(quality, 166_500) == 10          # the default window: +-1.7 s
+    assert sequence_module.prior_neighbours(quality, 50_000) == 34
+    assert sequence_module.prior_neighbours(quality, 2_000_000) == quality.neighbours      # never fewer
+    assert sequence_module.prior_neighbours(QualitySettings(smoothing_span_s=0.0), 166_500) == 2
+    with pytest.raises(ValueError, match="smoothing_span_s"):
+        QualitySettings(smoothing_span_s=-1.0)
 
 
 def test_without_smoothing_nothing_changes(monkeypatch):

@@ -18,7 +18,7 @@ from cmax.fitting.window import Window
 from cmax.geometry import se3_exp
 
 __all__ = ["SequenceResult", "fit_sequence", "check_gyro", "window_gyro", "constant_gyro", "neighbour_consensus",
-           "smooth_from_neighbours"]
+           "smooth_from_neighbours", "prior_neighbours"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -172,9 +172,9 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     Consecutive windows share their motion. ``fit_sequence`` uses that three times: each window starts
     from the previous one's motion (``init=``), ambiguous windows are resolved from their confident
     neighbours, and, with ``quality.smoothing``, a motion prior across windows: a window whose data
-    cannot tell its own motion from its neighbours' consensus takes the consensus
-    (:func:`smooth_from_neighbours`; ``FitResult.quality.resolution`` says so and ``replaced`` keeps the
-    window's own motion).
+    cannot tell its own motion from the consensus of its neighbours within ``quality.smoothing_span_s``
+    on each side takes the consensus (:func:`smooth_from_neighbours`; ``FitResult.quality.resolution``
+    says so and ``replaced`` keeps the window's own motion).
     Raises
     ------
     ValueError
@@ -269,7 +269,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
                       UserWarning, stacklevel=2)
     results = _resolve_ambiguous(results, take, K, speed, settings, fit_options, jobs)
     if settings.quality.smoothing and model == "se3":
-        results = smooth_from_neighbours(results, take, K, settings, fit_options, hold_omega=gyro is not None)
+        results = smooth_from_neighbours(results, take, K, settings, fit_options, hold_omega=gyro is not None,
+                                         neighbours=prior_neighbours(settings.quality, step_us))
     poses = [np.eye(4)]
     for index in steps:
         twist = results[index].twist if index >= 0 else np.zeros(6)
@@ -401,13 +402,25 @@ def neighbour_consensus(results: list[FitResult], i: int, neighbours: int,
     return direction / np.linalg.norm(direction), omega, len(confident)
 
 
+def prior_neighbours(quality, step_us: int) -> int:
+    """Windows on each side that the motion prior of :func:`fit_sequence` reads: as many steps of ``step_us``
+    [µs] as fit into ``quality.smoothing_span_s``, at least ``quality.neighbours``.
+
+    >>> from cmax.fitting import QualitySettings
+    >>> prior_neighbours(QualitySettings(), 166_500), prior_neighbours(QualitySettings(), 1_000_000)
+    (10, 2)
+    """
+    return max(quality.neighbours, int(round(quality.smoothing_span_s / (step_us * 1e-6))))
+
+
 def smooth_from_neighbours(results: list[FitResult], take, K, settings: FitSettings, fit_options: dict, *,
-                           hold_omega: bool = False) -> list[FitResult]:
+                           hold_omega: bool = False, neighbours: int | None = None) -> list[FitResult]:
     """The motion prior across windows of :func:`fit_sequence` (``settings.quality.smoothing``).
 
     For every se3 window with a fitted direction, the running median of it and its confident neighbours
-    (:func:`neighbour_consensus`, with the window's own ``|v|``; its own omega with ``hold_omega``, a
-    rotation given per window such as a gyroscope's)
+    within ``neighbours`` windows on each side (:func:`neighbour_consensus`; :func:`prior_neighbours` in
+    :func:`fit_sequence`, ``quality.neighbours`` when None; with the window's own ``|v|``; its own omega
+    with ``hold_omega``, a rotation given per window such as a gyroscope's)
     is scored against the window's fit on the fit's own patch-wise objective
     (:class:`cmax.fitting.quality.MotionScorer`: each motion with its own depth sweep, the gain against the
     patches' noise). When the gain is within noise, the window's data cannot tell its motion from its
@@ -417,10 +430,11 @@ def smooth_from_neighbours(results: list[FitResult], take, K, settings: FitSetti
     ``FitResult.quality.resolution`` says what was done; ``replaced`` holds the window's own motion.
     """
     quality, out = settings.quality, list(results)
+    neighbours = quality.neighbours if neighbours is None else neighbours
     for i, r in enumerate(results):
         if r.model != "se3" or r.quality is None or r.verdict in (Verdict.FAILED, Verdict.LOW_PARALLAX):
             continue
-        consensus = neighbour_consensus(results, i, quality.neighbours, quality.min_consensus)
+        consensus = neighbour_consensus(results, i, neighbours, quality.min_consensus)
         if consensus is None:
             continue
         direction, omega, count = consensus

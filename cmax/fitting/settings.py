@@ -318,6 +318,13 @@ class QualitySettings:
         (:func:`cmax.fitting.sequence.smooth_from_neighbours`).
     min_consensus : int
         ``fit_sequence``: confident neighbours needed to form a consensus.
+    smoothing_span_s : float
+        ``fit_sequence``: the motion prior's neighbours lie within this many seconds on each side of a
+        window (as many windows as the step fits into it, at least ``neighbours``): a prior of steady
+        motion over about three seconds, which a window takes only where its data cannot tell its own
+        motion from it. A run of a few windows that share a wrong motion (the rotation traded against the
+        translation, window after window) is outvoted; a turn, whose windows tell their own motion
+        apart from a consensus that far, keeps its fits (docs/quality.md).
     smoothing_min_deg : float
         ``fit_sequence``: a consensus closer than this to the window's own motion (direction angle plus
         rotation over the window, degrees) changes nothing worth a re-fit: the window keeps its fit.
@@ -338,6 +345,7 @@ class QualitySettings:
     shuffle_events: int = 20_000
     smoothing: bool = True
     min_consensus: int = 2
+    smoothing_span_s: float = 1.7
     smoothing_min_deg: float = 1.0
 
     def __post_init__(self) -> None:
@@ -346,7 +354,7 @@ class QualitySettings:
                 raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
         object.__setattr__(self, "motion_cells", _grid("motion_cells", self.motion_cells))
         for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg", "motion_noise_sigmas",
-                     "smoothing_min_deg"):
+                     "smoothing_min_deg", "smoothing_span_s"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
