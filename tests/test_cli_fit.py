@@ -102,7 +102,8 @@ def test_fit_options_short_recording_and_gyro_overlap(slider, tmp_path, capsys):
     assert main(argv) == 0
     captured = capsys.readouterr()
     assert "the gyro samples of" in captured.err and " cover " in captured.err and "fitting the overlap" in captured.err
-    assert "is shorter than the window (500.0 ms): fitting one window over the whole recording" in captured.err
+    assert "the span of --t0/--t1 (" in captured.err
+    assert "is shorter than the window (500.0 ms): fitting one window over it" in captured.err
     assert "windows: 100%" in captured.err and "1/1" in captured.err           # the progress bar
     assert "1 of 1 windows fitted" in captured.out
     summary = json.loads((out / "summary.json").read_text())
