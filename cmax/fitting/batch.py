@@ -327,6 +327,12 @@ def _in_workers(tasks: Iterable[FitTask], workers: int) -> Iterator[tuple[int, t
 def _terminate(pool: ProcessPoolExecutor) -> None:
     """Stop ``pool`` now: cancel what has not started, terminate (then kill) the workers and wait for them."""
     processes = list((getattr(pool, "_processes", None) or {}).values())   # the executor keeps no public list
+    call_queue = getattr(pool, "_call_queue", None)
+    if call_queue is not None:
+        # Its feeder thread may be blocked writing a window into a pipe that no worker will read again; the
+        # executor's clean-up joins that thread without a timeout (the hang of CPython gh-94777, which 3.11
+        # avoids only once it finds a worker dead). Nothing in the queue matters any more: do not wait for it.
+        call_queue.cancel_join_thread()
     pool.shutdown(wait=False, cancel_futures=True)
     for process in processes:
         if process.is_alive():
