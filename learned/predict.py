@@ -252,18 +252,11 @@ def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, wher
 
 def undistortion(K: np.ndarray, distortion: np.ndarray, width: int, height: int) -> Callable[["Events"], "Events"]:
     """``events -> events`` at their undistorted pixel (nearest integer; those that land outside the sensor are
-    dropped), as ``cmax fit --calib`` does, with the undistortion map of the camera computed once for all windows."""
+    dropped), as ``cmax fit --calib`` does: :meth:`cmax.Camera.undistort_events` of one camera, whose undistortion
+    map is computed once for all windows."""
     from cmax.camera import Camera
-    from cmax.events import Events
 
-    camera = Camera(K, width, height, distortion)
-
-    def undistort(events: "Events") -> "Events":
-        xy = np.rint(camera.undistort(events)).astype(np.int64)
-        inside = (xy[:, 0] >= 0) & (xy[:, 0] < width) & (xy[:, 1] >= 0) & (xy[:, 1] < height)
-        return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], width, height)
-
-    return undistort
+    return Camera(K, width, height, distortion).undistort_events
 
 
 def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:

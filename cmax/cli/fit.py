@@ -269,11 +269,15 @@ def run(args: argparse.Namespace) -> int:
         origin_us = events.t_start
         notes.append(f"{args.file} holds {len(events.reader):,} events, more than cmax.events.MAX_EVENTS="
                      f"{cmax_events.MAX_EVENTS:,}: fitting it window by window from the file")
+    if distortion is not None:          # one camera, its undistortion map computed once for every window
+        from cmax.camera import Camera
+
+        undistort = Camera(K, events.width, events.height, distortion).undistort_events
     if distortion is not None and isinstance(events, StreamedEvents):
-        events = events.with_transform(lambda window: undistorted_events(window, K, distortion))
+        events = events.with_transform(undistort)
     elif distortion is not None:
         total = len(events)
-        events = undistorted_events(events, K, distortion)
+        events = undistort(events)
         if len(events) < total:
             notes.append(f"{total - len(events):,} events fall outside the image once undistorted (dropped)")
     gyro = None
