@@ -32,7 +32,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "FIELD_ALIASES", "concatenate",
-    "check_event_count", "window_starts", "uncovered_tail", "require_events",
+    "check_event_count", "window_starts", "uncovered_tail", "require_events", "structured_fields",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
@@ -41,6 +41,12 @@ STRUCTURED_DTYPE = np.dtype([("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("p", "i1
 #: Other names of the fields ``t`` and ``p`` that :meth:`Events.from_structured` reads where ``t`` / ``p``
 #: are absent: dv-processing's ``EventStore.numpy()`` (``timestamp`` [µs], ``x``, ``y``, ``polarity``).
 FIELD_ALIASES = {"t": "timestamp", "p": "polarity"}
+
+
+def structured_fields(names: Sequence[str]) -> dict[str, str | None]:
+    """The field that holds each of ``x, y, t, p`` in a structured array with field ``names``: the column's
+    own name where present, else its :data:`FIELD_ALIASES` name (which may be absent too: check it)."""
+    return {name: name if name in names else FIELD_ALIASES.get(name) for name in "xytp"}
 
 _MAX_SENSOR_SIZE = 65535
 
@@ -319,7 +325,7 @@ class Events:
             raise TypeError(
                 f"array must be a structured array with fields x, y, t, p; got dtype {array.dtype}"
             )
-        fields = {name: name if name in names else FIELD_ALIASES.get(name) for name in "xytp"}
+        fields = structured_fields(names)
         missing = [name for name, field in fields.items() if field not in names]
         if missing:
             raise ValueError(f"array lacks the field(s) {missing}; it has {list(names)}")

@@ -24,7 +24,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from cmax.events import FIELD_ALIASES, Events, check_event_count
+from cmax.events import Events, check_event_count, structured_fields
 from cmax.io._checks import (check_polarity_encoding, check_stated_size, check_time_unit, polarity_01,
                              times_to_us)
 from cmax.io.aedat4 import read_aedat4, read_aedat4_imu
@@ -170,7 +170,7 @@ def _read_npy(
     except ValueError as error:
         raise FormatError(f"{path} is not a readable .npy file ({error})") from None
     names = array.dtype.names or ()
-    fields = {name: name if name in names else FIELD_ALIASES.get(name) for name in "xytp"}
+    fields = structured_fields(names)
     if array.ndim != 1 or any(field not in names for field in fields.values()):
         raise FormatError(f"{path}: expected a 1-D structured array with fields x, y, t, p (or dv-processing's "
                           f"timestamp, polarity); got dtype {array.dtype}, shape {array.shape}")
