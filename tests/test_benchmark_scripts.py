@@ -383,12 +383,12 @@ def test_real_cmax_seed_spread_counts_each_target_per_fit_seed():
 
     good = [FarWall(2.0, 2.0 * r, 50, 1.5) for r in (0.94, 1.0, 1.04, 0.98)]
     bad = [FarWall(2.0, 2.0 * r, 50, 1.5) for r in (0.6, 0.6, 0.62, 1.0)]
-    lines = _seed_spread_lines({0: (sequence([2, 4, 6, 8]), good), 1: (sequence([5, 6, 30, 170]), bad)})
+    lines = _seed_spread_lines({0: (sequence([2, 4, 6, 8]), good, bad), 1: (sequence([5, 6, 30, 170]), bad, bad)})
     text = "\n".join(lines)
-    assert "| 0 | 0 | 5.0 / 7.4 | 0.990 (0.97 / 1.01) | 0 | 4 ok |" in text
-    assert "| 1 | 1 |" in text and "| 0.610 (0.60 / 0.71) | 3 |" in text
+    assert "| 0 | 0 | 5.0 / 7.4 | 0.990 (0.97 / 1.01) | 0 | 0.610 | 4 ok |" in text
+    assert "| 1 | 1 |" in text and "| 0.610 (0.60 / 0.71) | 3 | 0.610 |" in text
     assert "Targets met at 1 of 2 fit seeds (no reversed window), 1 of 2 (direction" in text
-    assert "1 of 2 (far wall within 10% of EMVS)" in text
+    assert "1 of 2 (far wall within 10% of EMVS; against EMVS over every event, blind to occlusion: 0 of 2)" in text
 
 
 def test_window_cache_is_keyed_by_the_simulator_sources(tmp_path, monkeypatch):

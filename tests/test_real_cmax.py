@@ -177,3 +177,30 @@ def test_aps_registrations_recover_a_known_rotation_and_the_direct_one_holds_on_
     left[:, :173] = 1
     by_halves = [real_cmax.aps_rotation(frame0, frame1, K, 0.04, mask) for mask in (left, 1 - left)]
     assert np.degrees(np.ptp(np.array(by_halves), axis=0)).max() > 1.0
+
+
+def test_far_wall_reference_reads_the_events_near_each_windows_reference_time(monkeypatch):
+    """The far wall's EMVS reference of a window is run on the events within ``span_us`` of its reference time
+    (EMVS knows no occlusion: over the whole recording it draws the wall behind a near object), once per
+    reference time for every sequence; ``span_us=None`` reads every event."""
+    t = np.arange(0, 1_000_000, 1000)
+    events = Events(np.zeros_like(t), np.zeros_like(t), t, np.ones_like(t), 4, 4)
+    seen = []
+
+    class Recorder:
+        def run(self, events, trajectory, t_ref_us):
+            seen.append((t_ref_us, int(events.t[0]), int(events.t[-1])))
+            return SimpleNamespace(depth=np.full((4, 4), 2.0), mask=np.ones((4, 4), bool))
+
+    monkeypatch.setattr(real_cmax, "far_wall_region", lambda reference: (np.ones((4, 4), bool), 1.0))
+    result = lambda t_ref: SimpleNamespace(t_ref_us=t_ref, mask=np.ones((4, 4), bool),  # noqa: E731
+                                           depth=np.full((4, 4), 1.8))
+    first = SimpleNamespace(results=(result(300_000), result(700_000)))
+    second = SimpleNamespace(results=(result(300_000), result(700_000)))
+    (walls, again), references = real_cmax._far_walls_against(Recorder(), events, None, (first, second), 100_000)
+    assert seen == [(300_000, 200_000, 400_000), (700_000, 600_000, 800_000)]     # within 100 ms, once each
+    assert sorted(references) == [300_000, 700_000]
+    assert [w.ratio for w in walls] == [w.ratio for w in again] == [pytest.approx(0.9)] * 2
+    seen.clear()
+    real_cmax._far_walls_against(Recorder(), events, None, (first,), None)
+    assert seen == [(300_000, 0, 999_000), (700_000, 0, 999_000)]
