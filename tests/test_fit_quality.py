@@ -15,7 +15,7 @@ from cmax import Events
 from cmax.fitting import FitSettings, LowMotionWarning, LowParallaxWarning, QualitySettings, Verdict, fit, fit_sequence
 from cmax.fitting import sequence as sequence_module
 from cmax.fitting.quality import (Alternative, LowMotion, LowMotionCause, Quality, choose_from_neighbours,
-                                  choose_from_run, verdict_of)
+                                  choose_from_run, rate_change, verdict_of)
 from cmax.fitting.solvers import Solver, SolveResult
 
 
@@ -86,10 +86,54 @@ def test_a_window_the_ambiguity_test_cannot_hold_is_not_ok():
 
 @pytest.mark.parametrize("field, value", [("margin", -0.1), ("noise_sigmas", float("nan")), ("neighbours", 0),
                                           ("polish_iterations", -1), ("max_resolve_deg", "x"),
-                                          ("distinct_deg", float("inf"))])
+                                          ("distinct_deg", float("inf")), ("max_rate_change", 1.0),
+                                          ("max_rate_change", True), ("max_rate_change", "6"),
+                                          ("max_rate_change", float("nan"))])
 def test_quality_settings_are_checked(field, value):
     with pytest.raises(ValueError, match=field):
         QualitySettings(**{field: value})
+
+
+def test_rate_change_is_the_busier_half_over_the_other():
+    assert rate_change(np.arange(0, 1000, 10)) == 1.0                                  # 50 and 50 events
+    stop = np.r_[np.arange(0, 500, 5), np.arange(500, 1001, 50)]                        # 100, then 11 events
+    assert rate_change(stop) == pytest.approx(100 / 11)
+    assert rate_change(stop[::-1].max() - stop[::-1]) == pytest.approx(101 / 10)       # a start (t = 500: 2nd half)
+    assert rate_change(np.array([0, 1, 2, 1000])) == 3.0                                # the midpoint's event: second half
+    assert rate_change(np.array([0, 1, 2, 3, 2000, 2000])) == 2.0
+    assert rate_change(np.array([0, 1, 2, 3, 4000])) == 4.0
+    assert rate_change(np.array([5, 5, 5])) == 1.0 and rate_change(np.array([7])) == 1.0
+    quality = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 0.5)],
+                         rate=float("inf"), max_rate_change=6.0)
+    assert quality.verdict is Verdict.AMBIGUOUS and quality.unsteady
+    assert quality.reason.startswith("one half of the window holds no event")
+    assert quality.summary()["rate_change"] is None and quality.summary()["unsteady"] is True
+    low = verdict_of(success=True, failed_stages=[], low_motion=LowMotion(LowMotionCause.PARALLAX, "0.2 px"),
+                     alternatives=[], rate=9.0, max_rate_change=6.0)
+    assert low.verdict is Verdict.LOW_PARALLAX and low.unsteady         # the worse verdict wins; measured still
+
+
+def test_a_window_whose_camera_stops_halfway_is_unsteady_not_ok():
+    """The clear street window with nine in ten of its second half's events dropped (the camera slowing to a
+    near stop: events come at a rate proportional to the image's speed): no constant velocity explains it,
+    and the fit says so (ambiguous, unsteady, the rate change in the reason) where the whole window is ok."""
+    w, whole = clear_window()
+    assert not whole.quality.unsteady and whole.quality.rate_change < 1.5 and whole.verdict is Verdict.OK
+    t = w.events.t
+    middle = t[0] + (t[-1] - t[0]) / 2
+    keep = (t < middle) | (np.arange(len(t)) % 10 == 0)
+    keep[-1] = True                                          # the window keeps its span
+    stopping = w.events[np.flatnonzero(keep)]
+    options = dict(speed=float(np.linalg.norm(w.twist[:3])), depth_range=(1.0, 20.0))
+    r = fit(stopping, w.K, **options)
+    assert r.quality.rate_change == pytest.approx(rate_change(stopping.t))
+    assert r.quality.rate_change > QualitySettings().max_rate_change
+    assert r.verdict is Verdict.AMBIGUOUS and r.quality.unsteady
+    assert f"the event rate changes {r.quality.rate_change:.1f}x" in r.quality.reason
+    off = fit(stopping, w.K, quality=QualitySettings(max_rate_change=float("inf")), **options)
+    assert not off.quality.unsteady and "rate" not in off.quality.reason          # the test turned off
+    given = fit(stopping, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+    assert given.quality.rate_change is None and not given.quality.unsteady      # a given pose is not tested
 
 
 def test_a_fronto_parallel_plane_under_pure_translation_is_ambiguous():

@@ -168,6 +168,70 @@ def test_a_run_of_windows_with_one_wrong_motion_is_outvoted_by_the_prior_s_span(
     assert all(r.quality.resolution == "" for k, r in enumerate(sequence.results) if k not in (3, 4, 5))
 
 
+def _unsteady_sequence(monkeypatch, **options):
+    """Five windows of a camera moving +x at 0.5 m/s; the middle one's fit is 60 deg off and unsteady (its motion
+    changes inside it). Returns the sequence and the poses the re-fits were given."""
+    truth, off = np.array([0.5, 0.0, 0.0]), _rotate_z(np.array([0.5, 0.0, 0.0]), 60.0)
+    base, poses, windows = street()[1], [], []
+
+    def constructed_fit(events, K, model="se3", *, speed=None, pose=None, omega=None, init=None, **kwargs):
+        t0, t1 = int(events.t[0]), int(events.t[-1])
+        if pose is not None:
+            poses.append(np.asarray(pose, float))
+            return replace(base, t0_us=t0, t1_us=t1, v=np.asarray(pose, float)[:3], omega=np.zeros(3),
+                           scale_known=True, quality=Quality(Verdict.OK, "ambiguity not tested: the pose is given"))
+        windows.append(t0)
+        if len(windows) == 3:
+            return replace(base, t0_us=t0, t1_us=t1, v=off.copy(), omega=np.zeros(3),
+                           quality=Quality(Verdict.AMBIGUOUS, "the event rate changes 15.3x", rate_change=15.3,
+                                           unsteady=True))
+        return replace(base, t0_us=t0, t1_us=t1, v=truth.copy(), omega=np.zeros(3),
+                       quality=Quality(Verdict.OK, "every alternative scores worse beyond noise"))
+
+    monkeypatch.setattr(sequence_module, "fit", constructed_fit)
+    monkeypatch.setattr(sequence_module, "_score_prior",
+                        lambda *a, **k: Alternative("neighbours", a[3], a[4], 0.5, 0.1, False))  # the fit "wins"
+    w = street()[0]
+    window_us = (int(w.events.t[-1]) - int(w.events.t[0])) // 5
+    return fit_sequence(w.events, w.K, window_us=window_us, speed=0.5, min_events=10, **options), poses, truth, off
+
+
+def test_an_unsteady_window_takes_its_neighbours_motion_without_its_own_vote(monkeypatch):
+    """A window whose motion changes inside it (a stop) is no evidence for its direction, however well its fit
+    scores: it takes the consensus of its neighbours (re-fitted with it), counts as resolved, and its own
+    direction neither votes in its consensus nor in its neighbours'."""
+    sequence, poses, truth, off = _unsteady_sequence(monkeypatch)
+    middle = sequence.results[2]
+    assert len(poses) == 1
+    np.testing.assert_allclose(poses[0], np.r_[truth, np.zeros(3)], atol=1e-12)
+    np.testing.assert_allclose(middle.v, truth, atol=1e-12)
+    np.testing.assert_allclose(middle.quality.replaced[0], off)
+    assert middle.verdict is Verdict.AMBIGUOUS and middle.quality.unsteady and middle.quality.resolved
+    assert middle.quality.resolution == ("smoothing: the consensus of 4 neighbour(s) is 60.0 deg away; took it (the "
+                                         "motion is not steady over the window: its own fit is no evidence)")
+    assert sequence.counts()["resolved"] == 1
+    assert all(r.quality.resolution == "" for k, r in enumerate(sequence.results) if k != 2)
+
+
+def test_an_unsteady_window_stays_unresolved_without_the_prior(monkeypatch):
+    sequence, poses, _, off = _unsteady_sequence(monkeypatch, quality=QualitySettings(smoothing=False))
+    middle = sequence.results[2]
+    assert poses == [] and np.allclose(middle.v, off) and not middle.quality.resolved
+    assert middle.quality.resolution == ("unresolved: the motion is not steady over the window and the motion prior "
+                                         "(QualitySettings.smoothing) is off")
+
+
+def test_an_unsteady_window_does_not_vote():
+    x = np.array([1.0, 0.0, 0.0])
+    results = [_result(x), _result(_rotate_z(x, 40)), _result(_rotate_z(x, 40))]
+    assert np.allclose(neighbour_consensus(results, 0, neighbours=2, min_count=2)[0], _rotate_z(x, 40))
+    # without its own vote the window takes the median of its neighbours alone
+    np.testing.assert_allclose(neighbour_consensus(results, 0, neighbours=2, min_count=2, own_vote=False)[0],
+                               _rotate_z(x, 40), atol=1e-12)
+    results[1] = replace(results[1], quality=Quality(Verdict.AMBIGUOUS, "unsteady", resolved=True, unsteady=True))
+    assert neighbour_consensus(results, 0, neighbours=2, min_count=1)[2] == 1     # an unsteady neighbour: no vote
+
+
 def test_the_prior_s_neighbours_follow_its_span_in_seconds():
     quality = QualitySettings()
     assert sequence_module.prior_neighbours(quality, 166_500) == 10          # the default window: +-1.7 s

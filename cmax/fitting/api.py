@@ -22,7 +22,7 @@ from cmax.hot_pixels import no_pixels
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, motion_within_noise,
-                                  shuffled_gain_test, verdict_of)
+                                  rate_change, shuffled_gain_test, verdict_of)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -450,8 +450,9 @@ def fit(
         result = _result(w, events, K, model, motion, logs, scale_known=pose is not None or speed is not None,
                          seconds=time.perf_counter() - start)
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
+        rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
-                                                  hold_omega=known_omega is not None, speed=scale),
+                                                  hold_omega=known_omega is not None, speed=scale, rate=rate),
                          hot_pixels=hot, seconds=time.perf_counter() - start)
     _warn(result, settings, low, pose is not None)
     return result
@@ -549,10 +550,11 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
 
 
 def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver, *, pose_known: bool,
-             hold_omega: bool, speed: float) -> Quality:
+             hold_omega: bool, speed: float, rate: float | None = None) -> Quality:
     """The verdict of a finished fit (:class:`QualitySettings` ``w.settings.quality``) with the low-motion
-    rule that fired, ``low`` (:func:`_low_motion`); the ambiguity test (:func:`cmax.fitting.quality.assess`)
-    runs on se3 fits with a fitted direction that did not fail and have parallax."""
+    rule that fired, ``low`` (:func:`_low_motion`), and the window's :func:`cmax.fitting.quality.rate_change`
+    ``rate`` (None: not measured); the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on se3 fits
+    with a fitted direction that did not fail and have parallax."""
     quality = w.settings.quality
     failed = [log.stage for log in result.stages if not log.success]
     alternatives, note = (), ("ambiguity not tested: the pose is given" if pose_known else
@@ -562,7 +564,7 @@ def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver
     if result.model == "se3" and not pose_known and quality.ambiguity_test and result.success and low is None:
         alternatives, note, tested = assess(w, result.v, result.omega, speed, quality, solver, hold_omega=hold_omega)
     return verdict_of(success=result.success, failed_stages=failed, low_motion=low, alternatives=alternatives,
-                      note=note, untestable=not tested)
+                      note=note, untestable=not tested, rate=rate, max_rate_change=quality.max_rate_change)
 
 
 def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_known: bool) -> None:

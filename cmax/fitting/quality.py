@@ -47,6 +47,13 @@ their timestamps permuted among them, which keeps that border effect and destroy
 On moving scenes the shuffled events are blurred (``G_shuffled < 0``); on noise ``G_shuffled`` is
 nearly ``G``. This is a permutation test in the sense of Good, "Permutation, Parametric and Bootstrap
 Tests of Hypotheses" (Springer, 2005): the null of "no relation between an event's time and its place".
+
+A se3 fit, last, assumes one constant velocity over the window. Events come at a rate proportional to the
+image's speed times its gradients, so a camera that stops or starts inside the window leaves most of the
+window's events in one half of it: :func:`rate_change` is the ratio of the busier half's events to the
+other's. Beyond ``max_rate_change`` the window's motion is not steady, no single motion explains its events,
+and the fit's own score is no evidence for its direction: the verdict is ``ambiguous`` (``Quality.unsteady``),
+and ``fit_sequence`` gives the window its neighbours' motion (:func:`cmax.fitting.sequence.smooth_from_neighbours`).
 """
 from __future__ import annotations
 
@@ -67,7 +74,7 @@ from cmax.warp import warp_se3
 
 __all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alternative", "Quality", "MotionScorer",
            "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
-           "choose_from_neighbours", "choose_from_run", "alternative_motions"]
+           "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
@@ -80,7 +87,8 @@ class Verdict(str, enum.Enum):
     ``low_parallax`` (se3: ``parallax_px`` under ``FitSettings.low_parallax_px``; flow/rotation:
     ``motion_px`` under ``low_motion_px``, or a motion within noise, :func:`motion_within_noise`; every
     model: a gain that time-shuffled events share, :func:`shuffled_gain_test`),
-    ``ambiguous`` (an alternative motion scores within noise), ``ok``."""
+    ``ambiguous`` (se3: an alternative motion scores within noise, or the motion is not steady over the
+    window, :func:`rate_change`), ``ok``."""
 
     OK = "ok"
     AMBIGUOUS = "ambiguous"
@@ -147,6 +155,11 @@ class Quality:
         The window's own fit ``(v (3,), omega (3,))`` when ``fit_sequence`` replaced it by an alternative.
     cause : LowMotionCause or None
         The rule behind a ``low_parallax`` verdict (None for the other verdicts).
+    rate_change : float or None
+        The window's :func:`rate_change` (se3 with a fitted motion; None when not measured).
+    unsteady : bool
+        ``rate_change`` is over ``QualitySettings.max_rate_change``: the motion is not steady over the window
+        (ambiguous: no single motion explains its events; ``fit_sequence`` gives it its neighbours' motion).
     """
 
     verdict: Verdict
@@ -156,11 +169,16 @@ class Quality:
     resolved: bool = False
     replaced: tuple[np.ndarray, np.ndarray] | None = None
     cause: LowMotionCause | None = None
+    rate_change: float | None = None
+    unsteady: bool = False
 
     def summary(self) -> dict:
-        """A JSON-ready dict."""
+        """A JSON-ready dict (an infinite ``rate_change``, one half of the window without events, as None with
+        ``unsteady`` True)."""
+        rate = None if self.rate_change is None or not math.isfinite(self.rate_change) else self.rate_change
         return {"verdict": self.verdict.value, "reason": self.reason,
                 "cause": None if self.cause is None else self.cause.value,
+                "rate_change": rate, "unsteady": self.unsteady,
                 "alternatives": [{"name": a.name, "v": a.v.tolist(), "omega": a.omega.tolist(), "gain": a.gain,
                                   "noise": a.noise, "within_noise": a.within_noise} for a in self.alternatives],
                 "resolution": self.resolution, "resolved": self.resolved,
@@ -362,36 +380,79 @@ def motion_within_noise(w, x: torch.Tensor, y: torch.Tensor, settings: QualitySe
 
 
 # ----------------------------------------------------------------------------------------------
+# Is the motion steady over the window? (se3)
+# ----------------------------------------------------------------------------------------------
+def rate_change(t_us: np.ndarray) -> float:
+    """How unevenly a window's events fill its time: the events in the busier half of ``[t[0], t[-1]]`` over
+    those in the other half (an event at the midpoint counts in the second). 1 for a steady rate; inf when one
+    half holds none; 1 for fewer than two events or a single time stamp. ``t_us`` (N,) sorted [µs].
+
+    >>> rate_change(np.array([0, 10, 20, 30, 40, 50, 60, 70, 80, 100]))      # 5 and 5 events
+    1.0
+    >>> rate_change(np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 100]))              # a stop: 9 events, then 1
+    9.0
+    """
+    t = np.asarray(t_us)
+    if t.size < 2 or t[-1] == t[0]:
+        return 1.0
+    first = int(np.searchsorted(t, t[0] + (t[-1] - t[0]) / 2, side="left"))
+    low, high = sorted((first, t.size - first))
+    return math.inf if low == 0 else high / low
+
+
+def _unsteady_reason(rate: float, max_rate_change: float) -> str:
+    """The reason of an unsteady window (:func:`rate_change` ``rate`` over ``max_rate_change``), "" otherwise."""
+    if not rate > max_rate_change:
+        return ""
+    how = "one half of the window holds no event" if math.isinf(rate) else \
+        f"the event rate changes {rate:.1f}x between the window's halves"
+    return (f"{how} (over max_rate_change={max_rate_change:g}): the motion is not steady over the window (a start, "
+            "a stop, something entering the view), so no single motion explains its events")
+
+
+# ----------------------------------------------------------------------------------------------
 # The verdict
 # ----------------------------------------------------------------------------------------------
 def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMotion | None,
-               alternatives: Sequence[Alternative], note: str = "", untestable: bool = False) -> Quality:
+               alternatives: Sequence[Alternative], note: str = "", untestable: bool = False,
+               rate: float | None = None, max_rate_change: float = math.inf) -> Quality:
     """The verdict from the fit's ``success`` (and the names of its failed stages), why its motion is too
-    small to trust (None when it is not) and the ambiguity test's ``alternatives``;
-    the worst one wins (failed, low parallax, ambiguous, ok). ``untestable``: the ambiguity test was due
-    but the window could not hold it (:func:`assess`'s ``tested`` False): ambiguous, since nothing
-    tells the fitted direction from its mirror."""
+    small to trust (None when it is not), the ambiguity test's ``alternatives`` and the window's
+    :func:`rate_change` ``rate`` (None: not measured); the worst one wins (failed, low parallax, ambiguous,
+    ok). ``untestable``: the ambiguity test was due but the window could not hold it (:func:`assess`'s
+    ``tested`` False): ambiguous, since nothing tells the fitted direction from its mirror. A ``rate`` over
+    ``max_rate_change``: ambiguous and ``unsteady``, the motion is not steady over the window."""
+    unsteady = "" if rate is None else _unsteady_reason(rate, max_rate_change)
+    measured = dict(rate_change=rate, unsteady=bool(unsteady))
     if not success:
         return Quality(Verdict.FAILED, f"stage(s) failed: {', '.join(failed_stages) or 'unknown'}",
-                       tuple(alternatives))
+                       tuple(alternatives), **measured)
     if low_motion is not None:
-        return Quality(Verdict.LOW_PARALLAX, low_motion.reason, tuple(alternatives), cause=low_motion.cause)
+        return Quality(Verdict.LOW_PARALLAX, low_motion.reason, tuple(alternatives), cause=low_motion.cause,
+                       **measured)
     close = [a for a in alternatives if a.within_noise]
     if close:
         reason = "; ".join(f"{a.name} within noise (gain {a.gain:.3g} <= noise {a.noise:.3g})" if a.gain >= -a.noise
                            else f"{a.name} scores better beyond noise (gain {a.gain:.3g} < -noise {a.noise:.3g}: the "
                                 "fit missed it)" for a in close)
-        return Quality(Verdict.AMBIGUOUS, reason, tuple(alternatives))
+        return Quality(Verdict.AMBIGUOUS, _join_reasons(unsteady, reason), tuple(alternatives), **measured)
     if untestable:
-        return Quality(Verdict.AMBIGUOUS, f"{note or 'ambiguity not tested'}: nothing tells the fitted direction "
-                       "from its mirrored or rotation-swapped alternatives", tuple(alternatives))
+        return Quality(Verdict.AMBIGUOUS, _join_reasons(unsteady, f"{note or 'ambiguity not tested'}: nothing tells "
+                                                        "the fitted direction from its mirrored or rotation-swapped "
+                                                        "alternatives"), tuple(alternatives), **measured)
     if alternatives:
         worst = min(alternatives, key=lambda a: a.gain)
         reason = (f"every alternative scores worse beyond noise (closest: {worst.name}, gain {worst.gain:.3g} > "
                   f"noise {worst.noise:.3g})" + (f"; {note}" if note else ""))
     else:
         reason = note or "no alternative tested"
-    return Quality(Verdict.OK, reason, tuple(alternatives))
+    if unsteady:
+        return Quality(Verdict.AMBIGUOUS, _join_reasons(unsteady, reason), tuple(alternatives), **measured)
+    return Quality(Verdict.OK, reason, tuple(alternatives), **measured)
+
+
+def _join_reasons(first: str, second: str) -> str:
+    return f"{first}; {second}" if first else second
 
 
 # ----------------------------------------------------------------------------------------------

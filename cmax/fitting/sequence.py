@@ -174,7 +174,10 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     neighbours, and, with ``quality.smoothing``, a motion prior across windows: a window whose data
     cannot tell its own motion from the consensus of its neighbours within ``quality.smoothing_span_s``
     on each side takes the consensus (:func:`smooth_from_neighbours`; ``FitResult.quality.resolution``
-    says so and ``replaced`` keeps the window's own motion).
+    says so and ``replaced`` keeps the window's own motion). A window whose motion is not steady
+    (``quality.unsteady``: a start or a stop inside it, :func:`cmax.fitting.quality.rate_change`) takes
+    the consensus without the test: its own fit is no evidence (without ``quality.smoothing`` it stays
+    unresolved).
     Raises
     ------
     ValueError
@@ -271,6 +274,9 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     if settings.quality.smoothing and model == "se3":
         results = smooth_from_neighbours(results, take, K, settings, fit_options, hold_omega=gyro is not None,
                                          neighbours=prior_neighbours(settings.quality, step_us))
+    else:
+        results = [_unresolved_unsteady(r, "the motion prior (QualitySettings.smoothing) is off")
+                   if r.quality is not None and r.quality.unsteady else r for r in results]
     poses = [np.eye(4)]
     for index in steps:
         twist = results[index].twist if index >= 0 else np.zeros(6)
@@ -308,7 +314,7 @@ def _resolve_ambiguous(results: list[FitResult], take, K, speed: float | None, s
     its depth swept (the re-fits on ``jobs`` workers: each depends on the first fits alone)."""
     quality, out, refits = settings.quality, list(results), []
     confident = {i: (r.v, r.omega) for i, r in enumerate(results) if r.verdict is Verdict.OK}
-    pending = [i for i, r in enumerate(results) if r.verdict is Verdict.AMBIGUOUS]
+    pending = [i for i, r in enumerate(results) if r.verdict is Verdict.AMBIGUOUS and not r.quality.unsteady]
     decisions: dict[int, tuple] = {}
     while pending:
         decided = {}
@@ -374,27 +380,28 @@ def _around(results: list[FitResult], i: int, count: int) -> list[FitResult]:
 
 
 def _confident(result: FitResult) -> bool:
-    """A window whose motion its neighbours may lean on: ``ok``, or ambiguous and resolved."""
+    """A window whose motion its neighbours may lean on: ``ok``, or ambiguous and resolved, not unsteady."""
     q = result.quality
-    return q is not None and (q.verdict is Verdict.OK or (q.verdict is Verdict.AMBIGUOUS and q.resolved))
+    return q is not None and not q.unsteady and (
+        q.verdict is Verdict.OK or (q.verdict is Verdict.AMBIGUOUS and q.resolved))
 
 
-def neighbour_consensus(results: list[FitResult], i: int, neighbours: int,
-                        min_count: int) -> tuple[np.ndarray, np.ndarray, int] | None:
+def neighbour_consensus(results: list[FitResult], i: int, neighbours: int, min_count: int, *,
+                        own_vote: bool = True) -> tuple[np.ndarray, np.ndarray, int] | None:
     """The motion that window ``i`` and the confident windows around it agree on (a running median).
 
     The window itself and up to ``neighbours`` windows on each side that are ``ok`` or resolved: their unit
     translation directions' component-wise median, renormalised, and their angular velocities'
-    component-wise median [rad/s]. The window votes too, so that one deviant neighbour among two does not
-    move the consensus (a median filter over the sequence). Returns ``(direction (3,), omega (3,), count)``
-    with ``count`` the confident neighbours, or None with fewer than ``min_count`` of them (or directions
-    that cancel out).
+    component-wise median [rad/s]. The window votes too (unless ``own_vote`` is False: an unsteady window,
+    whose fit is no evidence), so that one deviant neighbour among two does not move the consensus (a median
+    filter over the sequence). Returns ``(direction (3,), omega (3,), count)`` with ``count`` the confident
+    neighbours, or None with fewer than ``min_count`` of them (or directions that cancel out).
     """
     near = _around(results, i, neighbours)
     confident = [r for r in near if r.model == "se3" and _confident(r) and np.linalg.norm(r.v) > 0]
     if len(confident) < min_count or not np.linalg.norm(results[i].v) > 0:
         return None
-    votes = [results[i], *confident]
+    votes = [results[i], *confident] if own_vote else confident
     direction = np.median([r.v / np.linalg.norm(r.v) for r in votes], axis=0)
     if not np.linalg.norm(direction) > 1e-6:
         return None
@@ -427,6 +434,8 @@ def smooth_from_neighbours(results: list[FitResult], take, K, settings: FitSetti
     neighbours': it takes the consensus, re-fitted with the motion held (``fit(..., pose=)``, depth swept);
     otherwise it keeps its fit (the evidence beats the prior). The consensus comes from the windows as
     they were before this pass (one Jacobi step, so the order of the windows does not matter).
+    An unsteady window (``Quality.unsteady``: its motion changes inside it, so its own fit is no evidence)
+    takes the consensus of its neighbours without its own vote or the test, and counts as resolved.
     ``FitResult.quality.resolution`` says what was done; ``replaced`` holds the window's own motion.
     """
     quality, out = settings.quality, list(results)
@@ -434,33 +443,51 @@ def smooth_from_neighbours(results: list[FitResult], take, K, settings: FitSetti
     for i, r in enumerate(results):
         if r.model != "se3" or r.quality is None or r.verdict in (Verdict.FAILED, Verdict.LOW_PARALLAX):
             continue
-        consensus = neighbour_consensus(results, i, neighbours, quality.min_consensus)
+        unsteady = r.quality.unsteady
+        consensus = neighbour_consensus(results, i, neighbours, quality.min_consensus, own_vote=not unsteady)
         if consensus is None:
+            if unsteady:
+                out[i] = _unresolved_unsteady(r, f"fewer than min_consensus={quality.min_consensus} confident "
+                                                 f"neighbour(s) within {neighbours} window(s)")
             continue
         direction, omega, count = consensus
         v_prior = np.linalg.norm(r.v) * direction
         omega_prior = r.omega if hold_omega else omega
         duration_s = (r.t1_us - r.t0_us) * 1e-6
         distance = _distance_deg(v_prior, omega_prior, r.v, r.omega, duration_s)
+        head = f"smoothing: the consensus of {count} neighbour(s) is {distance:.1f} deg away"
         if distance < quality.smoothing_min_deg:
+            if unsteady:
+                out[i] = replace(r, quality=replace(r.quality, resolved=True, resolution=_join(
+                    r.quality.resolution, f"{head}; kept the fit (the motion is not steady over the window: "
+                                          "its neighbours' motion decides)")))
             continue
         events = take(r.t0_us, r.t1_us + 1)
-        prior = _score_prior(events, K, r, v_prior, omega_prior, settings, fit_options)
-        if prior is None:
-            continue
-        head = f"smoothing: the consensus of {count} neighbour(s) is {distance:.1f} deg away"
-        if not prior.within_noise:
-            text = f"{head}; kept the fit (it scores better beyond noise: gain {prior.gain:.3g} > {prior.noise:.3g})"
-            out[i] = replace(r, quality=replace(r.quality, resolution=_join(r.quality.resolution, text)))
-            continue
+        if unsteady:
+            text = f"{head}; took it (the motion is not steady over the window: its own fit is no evidence)"
+        else:
+            prior = _score_prior(events, K, r, v_prior, omega_prior, settings, fit_options)
+            if prior is None:
+                continue
+            if not prior.within_noise:
+                text = (f"{head}; kept the fit (it scores better beyond noise: gain {prior.gain:.3g} > "
+                        f"{prior.noise:.3g})")
+                out[i] = replace(r, quality=replace(r.quality, resolution=_join(r.quality.resolution, text)))
+                continue
+            text = f"{head}; took it (within noise: gain {prior.gain:.3g} <= {prior.noise:.3g})"
         refit = fit(events, K, "se3", pose=np.r_[v_prior, omega_prior], settings=settings, **fit_options)
-        text = f"{head}; took it (within noise: gain {prior.gain:.3g} <= {prior.noise:.3g})"
-        q = replace(r.quality, resolution=_join(r.quality.resolution, text),
+        q = replace(r.quality, resolution=_join(r.quality.resolution, text), resolved=r.quality.resolved or unsteady,
                     replaced=r.quality.replaced if r.quality.replaced is not None else (r.v, r.omega))
         out[i] = replace(refit, scale_known=r.scale_known, quality=q, stages=r.stages + refit.stages,
                          seconds=r.seconds + refit.seconds, iterations=r.iterations + refit.iterations,
                          evaluations=r.evaluations + refit.evaluations)
     return out
+
+
+def _unresolved_unsteady(result: FitResult, why: str) -> FitResult:
+    """``result``, an unsteady window, with the resolution that says why its neighbours did not give it a motion."""
+    text = f"unresolved: the motion is not steady over the window and {why}"
+    return replace(result, quality=replace(result.quality, resolution=_join(result.quality.resolution, text)))
 
 
 def _score_prior(events: Events, K, result: FitResult, v: np.ndarray, omega: np.ndarray, settings: FitSettings,

@@ -328,6 +328,12 @@ class QualitySettings:
     smoothing_min_deg : float
         ``fit_sequence``: a consensus closer than this to the window's own motion (direction angle plus
         rotation over the window, degrees) changes nothing worth a re-fit: the window keeps its fit.
+    max_rate_change : float
+        se3 with a fitted motion: a window whose busier half holds more than this many times the events of
+        its other half (:func:`cmax.fitting.quality.rate_change`; a start or a stop inside it) is
+        ``ambiguous`` and ``unsteady``: no constant velocity explains it, and ``fit_sequence`` gives it its
+        neighbours' motion. Above 1; ``math.inf`` turns the test off (docs/quality.md: how the value was
+        chosen).
     """
 
     ambiguity_test: bool = True
@@ -347,6 +353,7 @@ class QualitySettings:
     min_consensus: int = 2
     smoothing_span_s: float = 1.7
     smoothing_min_deg: float = 1.0
+    max_rate_change: float = 6.0
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "smoothing"):
@@ -358,6 +365,9 @@ class QualitySettings:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if isinstance(self.max_rate_change, bool) or not (isinstance(self.max_rate_change, (int, float))
+                                                          and self.max_rate_change > 1):
+            raise ValueError(f"max_rate_change must be a number > 1 (math.inf: no test), got {self.max_rate_change!r}")
         if not (isinstance(self.shuffle_fraction, (int, float)) and 0 < self.shuffle_fraction <= 1):
             raise ValueError(f"shuffle_fraction must lie in (0, 1], got {self.shuffle_fraction!r}")
         if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
