@@ -251,11 +251,24 @@ def test_a_warm_start_that_scores_worse_than_no_motion_is_not_solved_from(model,
 def test_a_rotation_beyond_the_bound_is_reported_not_clipped_silently():
     w = small_rotation()
     rate = float(np.linalg.norm(w.twist[3:]))
-    with pytest.warns(BoundWarning, match="ended on its bound"):
-        r = fit(w.events, w.K, model="rotation", max_omega=0.3 * rate)
+    with pytest.warns(BoundWarning, match="ended on its bound: the true value may lie beyond it"):   # and low motion:
+        r = fit(w.events, w.K, model="rotation", max_omega=0.3 * rate)                    # the clip's, not the data's
     assert not r.success and r.stages[0].at_bound
     free = fit(w.events, w.K, model="rotation")
     assert free.success and not free.stages[0].at_bound
+
+
+def test_a_bound_hit_in_a_window_without_parallax_is_not_called_beyond_the_bound():
+    """50 events (0.8 ms) of a slider window: the rotation the starts leave on its bound may not be held there by
+    anything in the window (0.2 px of parallax): the warning names that reading beside a wider bound (which a
+    clipped fast rotation, whose clipped motion is small too, needs)."""
+    w = make_window("slider", 0, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=40)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = fit(w.events[:50], w.K, speed=0.5)
+    bounds = [str(c.message) for c in caught if issubclass(c.category, BoundWarning)]
+    assert r.verdict is Verdict.FAILED and any(log.at_bound for log in r.stages)
+    assert bounds and all("do not hold it there (parallax" in m and "a longer window" in m for m in bounds), bounds
 
 
 def _fit_warned(*args, **kwargs):

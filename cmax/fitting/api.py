@@ -587,17 +587,24 @@ def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_
         warnings.warn(f"cmax.fit: {reason}{advice}", LowMotionWarning, stacklevel=3)
     bounds = [(log.stage, name) for log in result.stages for name in log.at_bound if not name.startswith("depth_")]
     if bounds:
-        warnings.warn(f"cmax.fit: {', '.join(f'{n} ({s})' for s, n in bounds)} ended on its bound: the true value "
-                      "is probably beyond it (raise FitSettings.max_omega / max_flow_px); success is False",
-                      BoundWarning, stacklevel=3)
+        raise_bound = "raise FitSettings.max_omega / max_flow_px"
+        why = (f"the true value is probably beyond it ({raise_bound})" if low is None else
+               f"the window's events do not hold it there ({low.reason}): it is not measured; a longer window gives "
+               "more motion" if low.cause in (LowMotionCause.NO_MOTION, LowMotionCause.CELL_NOISE) else
+               f"the true value may lie beyond it ({raise_bound}), or the window's events do not hold it there "
+               f"({low.reason}: a longer window gives more motion)")
+        warnings.warn(f"cmax.fit: {', '.join(f'{n} ({s})' for s, n in bounds)} ended on its bound: {why}; success "
+                      "is False", BoundWarning, stacklevel=3)
     depth = [name for log in result.stages for name in log.at_bound if name.startswith("depth_")]
     if depth:
         lo, hi = settings.depth_range
         ends = " and ".join(f"the {'near' if n == 'depth_near' else 'far'} end ({lo if n == 'depth_near' else hi:g} m)"
                             for n in depth)
+        why = ("the scene probably lies beyond it, or the speed / pose is in other units (m/s, m); widen depth_range "
+               "or check the units" + ("" if low is None else f", or the window's events do not hold the depth there "
+                                                              f"({low.reason}: a longer window gives more parallax)"))
         warnings.warn(f"cmax.fit: at least {settings.depth_bound_fraction:.0%} of the events' depth ended on {ends} "
-                      f"of depth_range: the scene probably lies beyond it, or the speed / pose is in other units "
-                      "(m/s, m); widen depth_range or check the units; success is False", BoundWarning, stacklevel=3)
+                      f"of depth_range: {why}; success is False", BoundWarning, stacklevel=3)
 
 
 def event_pixels(x: np.ndarray, y: np.ndarray, height: int, width: int) -> np.ndarray:
