@@ -818,10 +818,17 @@ def _seed_spread_lines(fits: dict, title: str = _SEEDS_TITLE, intro: str = _SEED
              "| windows under 0.8 | against EMVS over every event | verdicts |", "|---|---|---|---|---|---|---|"]
     met = {"reversed": 0, "direction": 0, "wall": 0, "blind": 0}
     pooled = [w.ratio for _, walls, _ in fits.values() for w in walls if w.pixels > 0]
+    steady_medians = []
     for seed, (sequence, walls, blind_walls) in fits.items():
         errors = np.array([_x_error_deg(r.v) for r in sequence.results])
         ok = [r.verdict is Verdict.OK for r in sequence.results]
         w, blind = wall_summary(walls, ok), wall_summary(blind_walls, ok)
+        unsteady = [i for i, r in enumerate(sequence.results) if getattr(r.quality, "unsteady", False)]
+        steady = wall_summary([wall for i, wall in enumerate(walls) if i not in unsteady],
+                              [is_ok for i, is_ok in enumerate(ok) if i not in unsteady])
+        if unsteady and steady is not None:
+            steady_medians.append(f"seed {seed}: {steady.ratio:.3f} without window(s) "
+                                  f"{', '.join(map(str, unsteady))}")
         met["reversed"] += int(np.sum(errors > 90) == 0)
         met["direction"] += int(np.median(errors) <= 10 and np.percentile(errors, 90) <= 20)
         met["wall"] += int(w is not None and abs(w.ratio - 1) <= FAR_WALL_TOLERANCE)
@@ -836,6 +843,9 @@ def _seed_spread_lines(fits: dict, title: str = _SEEDS_TITLE, intro: str = _SEED
               f"(direction median <= 10 and p90 <= 20 deg), {met['wall']} of {n} (far wall within "
               f"{FAR_WALL_TOLERANCE:.0%} of EMVS; against EMVS over every event, blind to occlusion: "
               f"{met['blind']} of {n})."
+              + (" The median over the steady windows alone (an unsteady window, fitted with its neighbours' motion "
+                 "at the run's speed where the camera stops, has a depth scaled by a speed it does not have): "
+                 + "; ".join(steady_medians) + "." if steady_medians else "")
               + (f" The per-window ratios gather in two modes (over all the seeds' windows, quartiles "
                  f"{np.percentile(pooled, 25):.2f} / {np.percentile(pooled, 75):.2f}: the rotation traded against the "
                  "translation or not, the bas-relief valley), so the median sits between them and moves with a "
@@ -949,13 +959,18 @@ def _far_wall_lines(walls: list, calibrated_wall: float, ok: list[bool], blind_w
     w, blind = wall_summary(walls, ok), wall_summary(blind_walls, ok)
     if w is None:
         return ["Far wall: no window has EMVS far-wall pixels inside the fit's mask; not measured (not met).", ""]
+    apart = sorted((i for i, (a, b) in enumerate(zip(walls, blind_walls)) if a.pixels and b.pixels),
+                   key=lambda i: -abs(np.log(walls[i].ratio / blind_walls[i].ratio)))[:3]
     blind_text = ("" if blind is None else
                   f" Against EMVS over every event of the recording (the reference of the runs before 2026-12-04): "
                   f"median ratio {blind.ratio:.3f}, per window {blind.low:.2f}-{blind.high:.2f}, {blind.near} under "
                   f"{1 - 2 * FAR_WALL_TOLERANCE:.1f}; that reference knows no occlusion and draws the far wall "
                   "behind the tower that stands in front of the dartboard from 2.7 s on (APS frames 70-85), where "
-                  "the window's events, and its fit, see the tower (the last windows: 0.4 there against about 0.9 "
-                  "with the events near the reference time, whatever the fit's motion).")
+                  "the window's events, and its fit, see the tower. The windows the two references judge most "
+                  "differently: " + ", ".join(
+                      f"window {i} ({blind_walls[i].ratio:.2f} on {blind_walls[i].pixels} px against every event, "
+                      f"{walls[i].ratio:.2f} on {walls[i].pixels} px near the reference time)" for i in sorted(apart))
+                  + ".")
     return [f"Far wall: EMVS with the ground-truth poses (depth range 0.47-2.4 m, the events within "
             f"{REFERENCE_SPAN_US * 1e-3:.0f} ms of the reference time, the fit's pinhole K) "
             "is run at each window's reference time; its far wall is the masked pixels beyond the midpoint, in "

@@ -376,9 +376,10 @@ def test_real_cmax_seed_spread_counts_each_target_per_fit_seed():
     from benchmarks.real_cmax import FarWall, _seed_spread_lines
     from cmax.fitting import Verdict
 
-    def sequence(directions_deg):
+    def sequence(directions_deg, unsteady=()):
         results = tuple(SimpleNamespace(v=np.array([np.cos(np.radians(a)), np.sin(np.radians(a)), 0.0]),
-                                        verdict=Verdict.OK) for a in directions_deg)
+                                        verdict=Verdict.OK, quality=SimpleNamespace(unsteady=i in unsteady))
+                        for i, a in enumerate(directions_deg))
         return SimpleNamespace(results=results)
 
     good = [FarWall(2.0, 2.0 * r, 50, 1.5) for r in (0.94, 1.0, 1.04, 0.98)]
@@ -389,6 +390,9 @@ def test_real_cmax_seed_spread_counts_each_target_per_fit_seed():
     assert "| 1 | 1 |" in text and "| 0.610 (0.60 / 0.71) | 3 | 0.610 |" in text
     assert "Targets met at 1 of 2 fit seeds (no reversed window), 1 of 2 (direction" in text
     assert "1 of 2 (far wall within 10% of EMVS; against EMVS over every event, blind to occlusion: 0 of 2)" in text
+    assert "steady windows alone" not in text                                      # no unsteady window
+    lines = _seed_spread_lines({0: (sequence([2, 4, 6, 8], unsteady=(3,)), bad, bad)})
+    assert "seed 0: 0.600 without window(s) 3." in "\n".join(lines)               # median of 0.6, 0.6, 0.62
 
 
 def test_window_cache_is_keyed_by_the_simulator_sources(tmp_path, monkeypatch):
