@@ -578,7 +578,8 @@ def _far_walls_against(emvs, events, trajectory, sequences, span_us: int | None 
         walls = []
         for r in sequence.results:
             if r.t_ref_us not in references:
-                near = events if span_us is None else events.slice_time(r.t_ref_us - span_us, r.t_ref_us + span_us + 1)
+                near = (events if span_us is None else
+                        events.slice_time(r.t_ref_us - span_us, r.t_ref_us + span_us + 1))
                 reference = emvs.run(near, trajectory, t_ref_us=r.t_ref_us)
                 references[r.t_ref_us] = (reference, *far_wall_region(reference))
                 bar.update()
@@ -669,7 +670,7 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
     polished_walls = other_walls[:len(polished)]
     seeded_walls = other_walls[len(polished):len(polished) + len(seeded)]
     held_seeded_walls = other_walls[len(polished) + len(seeded):]
-    # the same against EMVS over every event (occlusion-blind, REFERENCE_SPAN_US), as the runs before measured
+    # the same against EMVS over every event (blind to occlusion: REFERENCE_SPAN_US), as runs before 2026-12-04
     blind_walls, _, _, (blind_held, _, _, *blind_others) = slider_far_wall(events_path, sequence, folder, others,
                                                                            span_us=None)
     blind_seeded = blind_others[len(polished):len(polished) + len(seeded)]

@@ -99,7 +99,8 @@ def test_rate_change_is_the_busier_half_over_the_other():
     stop = np.r_[np.arange(0, 500, 5), np.arange(500, 1001, 50)]                        # 100, then 11 events
     assert rate_change(stop) == pytest.approx(100 / 11)
     assert rate_change(stop[::-1].max() - stop[::-1]) == pytest.approx(101 / 10)       # a start (t = 500: 2nd half)
-    assert rate_change(np.array([0, 1, 2, 1000])) == 3.0                                # the midpoint's event: second half
+    assert rate_change(np.array([0, 1, 2, 1000])) == 3.0
+    assert rate_change(np.array([0, 1, 50, 100])) == 1.0          # the event at the midpoint (50) counts in the second
     assert rate_change(np.array([0, 1, 2, 3, 2000, 2000])) == 2.0
     assert rate_change(np.array([0, 1, 2, 3, 4000])) == 4.0
     assert rate_change(np.array([5, 5, 5])) == 1.0 and rate_change(np.array([7])) == 1.0

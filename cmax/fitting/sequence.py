@@ -276,7 +276,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
                                          neighbours=prior_neighbours(settings.quality, step_us))
     else:
         results = [_unresolved_unsteady(r, "the motion prior (QualitySettings.smoothing) is off")
-                   if r.quality is not None and r.quality.unsteady else r for r in results]
+                   if r.verdict is Verdict.AMBIGUOUS and r.quality.unsteady else r for r in results]
     poses = [np.eye(4)]
     for index in steps:
         twist = results[index].twist if index >= 0 else np.zeros(6)
