@@ -325,6 +325,14 @@ def test_the_advice_names_what_helps_when_half_the_windows_are_unmeasured():
     (line,) = advice(ambiguous, "se3", rotation_known=True)
     assert "--gyro" not in line and "longer --window-ms" in line
     assert advice({**ambiguous, "resolved": 3}, "se3") == []               # all resolved by their neighbours
+    # windows where the camera starts or stops: a shorter window, not a longer one
+    first, second = advice({"ok": 1, "ambiguous": 3, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3",
+                           unsteady=1)
+    assert first.startswith("2 of 4 windows stay ambiguous (an alternative motion") and "longer" in first
+    assert second.startswith("1 of 4 windows stay ambiguous because the camera starts or stops")
+    assert "shorter --window-ms" in second
+    (line,) = advice({"ok": 1, "ambiguous": 3, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", unsteady=3)
+    assert "starts or stops" in line
     # a flow that sharpens only parts of the image: too little motion, or parts that move differently
     (line,) = advice(counts, "flow", cell_noise=2)
     assert line.startswith("2 of 4 windows have a fitted flow that sharpens only parts of the image")
@@ -347,6 +355,30 @@ def test_a_recording_without_motion_is_called_so(tmp_path, capsys):
     assert "2 of them show no motion at all" in captured.err and "check the recording" in captured.err
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert [w["cause"] for w in summary["windows"]] == ["no_motion", "no_motion"]
+
+
+def test_a_window_where_the_camera_stops_is_called_unsteady_and_a_shorter_window_advised(tmp_path, capsys):
+    """A street window whose second half keeps one event in ten (the camera slowing to a near stop), alone in
+    its recording: ambiguous and unsteady, no neighbour to resolve it from, and the advice says that a shorter
+    window, not a longer one, helps; summary.json carries the rate change."""
+    from benchmarks.synthetic_windows import make_window
+
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    t = w.events.t
+    keep = (t < t[0] + (t[-1] - t[0]) / 2) | (np.arange(len(t)) % 10 == 0)
+    keep[-1] = True
+    path = write_h5(tmp_path / "stop.h5", w.events[np.flatnonzero(keep)])
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    speed = f"{float(np.linalg.norm(w.twist[:3])):.6g}"
+    assert main(["fit", str(path), "--K", K, "--speed", speed, "--depth-range", "1,20", "--window-ms", "100",
+                 "-o", str(tmp_path / "o"), "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "1 of 1 windows fitted: 0 ok, 1 ambiguous (0 resolved)" in captured.out
+    assert "1 of 1 windows stay ambiguous because the camera starts or stops" in captured.err
+    assert "a longer --window-ms tells them apart" not in captured.err
+    (window,) = json.loads((tmp_path / "o" / "summary.json").read_text())["windows"]
+    assert window["unsteady"] and window["rate_change"] > 6 and window["verdict"] == "ambiguous"
+    assert window["resolution"].startswith("unresolved: the motion is not steady over the window and fewer than")
 
 
 def test_a_calibration_file_beside_the_events_is_named_not_read(tmp_path, capsys):

@@ -177,14 +177,16 @@ def verdict_counts(counts: dict[str, int]) -> str:
 
 
 def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_motion: int = 0,
-           cell_noise: int = 0) -> list[str]:
+           cell_noise: int = 0, unsteady: int = 0) -> list[str]:
     """What to try when at least half of the fitted windows are low parallax or ambiguous and unresolved (one
     line each; none otherwise); ``rotation_known``: the run held the rotation (``--gyro``, ``--omega``);
     ``no_motion``: how many of the low-parallax windows show no motion at all (the permutation test,
     :attr:`cmax.fitting.quality.LowMotionCause.NO_MOTION`), for which a longer window is no cure;
     ``cell_noise`` (flow, rotation): how many have a motion that sharpens only parts of the image
     (:attr:`~cmax.fitting.quality.LowMotionCause.CELL_NOISE`): too little motion, or parts that move
-    differently, for which a longer window is no cure either.
+    differently, for which a longer window is no cure either; ``unsteady`` (se3): how many of the unresolved
+    ambiguous windows are so because their motion is not steady (``Quality.unsteady``: a start or a stop), for
+    which a shorter window is the cure.
 
     >>> advice({"ok": 1, "ambiguous": 0, "resolved": 0, "low_parallax": 3, "failed": 0}, "se3")[0][:40]
     '3 of 4 windows have too little parallax:'
@@ -211,8 +213,13 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     if total and model == "se3" and 2 * unresolved >= total:
         known = "" if rotation_known else ("a known rotation (--gyro, or --omega 0,0,0 for a rig that does not "
                                            "rotate) or ")
-        lines.append(f"{unresolved} of {total} windows stay ambiguous (an alternative motion scores as well): "
-                     f"{known}a longer --window-ms tells them apart")
+        if unresolved > unsteady:
+            lines.append(f"{unresolved - unsteady} of {total} windows stay ambiguous (an alternative motion scores "
+                         f"as well): {known}a longer --window-ms tells them apart")
+        if unsteady:
+            lines.append(f"{unsteady} of {total} windows stay ambiguous because the camera starts or stops inside "
+                         "them (their event rate changes beyond QualitySettings.max_rate_change between their "
+                         "halves): a shorter --window-ms keeps the motion steady within each window")
     return lines
 
 
@@ -249,7 +256,7 @@ def run(args: argparse.Namespace) -> int:
     from cmax.events import EventLimitError, uncovered_tail, window_starts
     from cmax.fitting import FitSettings, fit_sequence
     from cmax.fitting.api import MIN_WINDOW_EVENTS
-    from cmax.fitting.quality import LowMotionCause
+    from cmax.fitting.quality import LowMotionCause, Verdict
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read_gyro
     from cmax.warp import DepthGrid
@@ -388,8 +395,10 @@ def run(args: argparse.Namespace) -> int:
         print(f"cmax fit: note: {hot_note}", file=sys.stderr)
     causes = [None if r.quality is None else r.quality.cause for r in sequence.results]
     no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)
+    unsteady = sum(r.verdict is Verdict.AMBIGUOUS and r.quality.unsteady and not r.quality.resolved
+                   for r in sequence.results)
     for line in advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None, no_motion,
-                       cell_noise):
+                       cell_noise, unsteady):
         print(f"cmax fit: note: {line}", file=sys.stderr)
     if not windows:
         print(f"cmax fit: no window was fitted: each has fewer than {min_events:,} events (over more than one time "
