@@ -252,10 +252,12 @@ def test_ctrl_c_leaves_no_orphan_process(tmp_path):
     KeyboardInterrupt and every process it started is gone."""
     script = tmp_path / "interrupted.py"
     script.write_text(textwrap.dedent(f"""
+        import faulthandler
         import signal
         import sys
         # a shell that starts the test run in the background leaves SIGINT ignored, and so in this child
         signal.signal(signal.SIGINT, signal.default_int_handler)
+        faulthandler.register(signal.SIGUSR1, all_threads=True)   # the test's dump of a process that does not exit
         sys.path[:0] = [{str(ROOT)!r}, {str(Path(__file__).parent)!r}]
         from test_fit_batch import K_PLANE, approaching_plane
         import cmax
@@ -277,7 +279,14 @@ def test_ctrl_c_leaves_no_orphan_process(tmp_path):
         assert len(seen) >= 3, seen
         time.sleep(1.0)
         os.killpg(process.pid, signal.SIGINT)
-        _, stderr = process.communicate(timeout=60)
+        try:
+            _, stderr = process.communicate(timeout=60)
+        except subprocess.TimeoutExpired:     # every thread's stack, to say where it waits (it exits in ~2 s)
+            os.kill(process.pid, signal.SIGUSR1)
+            time.sleep(2.0)
+            os.killpg(process.pid, signal.SIGKILL)
+            _, stderr = process.communicate()
+            pytest.fail(f"the interrupted process did not exit within 60 s; its threads:\n{stderr[-8000:]}")
     finally:
         if process.poll() is None:
             os.killpg(process.pid, signal.SIGKILL)
