@@ -246,6 +246,30 @@ def _descendants(pid: int) -> set[int]:
     return found
 
 
+def test_terminating_the_pool_frees_a_reader_left_with_part_of_a_result():
+    """A worker terminated while it wrote its result leaves part of a message in the results pipe; the executor's
+    manager thread then waits for the rest, and the interpreter's exit joins that thread forever (a Ctrl-C'd run
+    that did not exit). Here the partial message is written by hand (a header announcing 1000 bytes, none
+    following): after ``_terminate`` the manager thread ends."""
+    import struct
+    from concurrent.futures import ProcessPoolExecutor
+
+    from cmax.fitting.batch import _terminate
+
+    pool = ProcessPoolExecutor(max_workers=1, mp_context=multiprocessing.get_context("forkserver"))
+    assert pool.submit(abs, -3).result(timeout=60) == 3          # the manager thread and the worker run
+    manager, writer = pool._executor_manager_thread, pool._result_queue._writer
+    os.write(writer.fileno(), struct.pack("!i", 1000))           # what a worker killed mid-write leaves
+    time.sleep(0.5)                                              # the manager reads the header, waits for the rest
+    _terminate(pool)
+    manager.join(timeout=30)
+    stuck = manager.is_alive()
+    if stuck:                                                    # free it, or this test process could not exit
+        writer.close()
+        manager.join(timeout=30)
+    assert not stuck
+
+
 @pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
 def test_ctrl_c_leaves_no_orphan_process(tmp_path):
     """SIGINT to the whole process group (a terminal's Ctrl-C) while workers fit: the call raises

@@ -325,8 +325,10 @@ def _in_workers(tasks: Iterable[FitTask], workers: int) -> Iterator[tuple[int, t
 
 
 def _terminate(pool: ProcessPoolExecutor) -> None:
-    """Stop ``pool`` now: cancel what has not started, terminate (then kill) the workers and wait for them."""
+    """Stop ``pool`` now: cancel what has not started, terminate (then kill) the workers and wait for them,
+    then close this process's end of the results pipe so that nothing waits on a result that will never come."""
     processes = list((getattr(pool, "_processes", None) or {}).values())   # the executor keeps no public list
+    result_queue = getattr(pool, "_result_queue", None)
     call_queue = getattr(pool, "_call_queue", None)
     if call_queue is not None:
         # Its feeder thread may be blocked writing a window into a pipe that no worker will read again; the
@@ -342,3 +344,11 @@ def _terminate(pool: ProcessPoolExecutor) -> None:
         if process.is_alive():  # pragma: no cover - a worker stuck in uninterruptible I/O
             process.kill()
             process.join(timeout=5)
+    writer = getattr(result_queue, "_writer", None)
+    if writer is not None:
+        # A worker terminated while it wrote its result (a FitResult spans several pipe buffers) leaves part of a
+        # message in the results pipe: the executor's manager thread then waits in recv() for the rest, which no
+        # one will write, and this process's exit joins that thread forever (it held a Ctrl-C'd run open, rarely,
+        # under load). This process holds the pipe's write end too; with the workers gone, closing it gives the
+        # reader end-of-file, and the manager thread counts the pool broken and ends.
+        writer.close()
