@@ -452,3 +452,11 @@ def test_solver_agreement_fits_each_solver_and_measures_the_gap_to_scipy(monkeyp
     text = agreement.report({100: rows, 101: failed}, 1.0, 0.0)
     casadi = next(line for line in text.splitlines() if line.startswith("| casadi |"))
     assert "| -3.00 |" in casadi and "1 of 2" in casadi and "no (local_refine)" in text
+
+
+def test_rate_change_summary_row_counts_windows_over_the_threshold():
+    from benchmarks.rate_change import summary_row
+
+    row = summary_row("set", [1.0, 1.2, 1.4, 9.0], 6.0)
+    # median of 1.0, 1.2, 1.4, 9.0 is 1.3; numpy's p99 interpolates 1.4 + 0.97 * 7.6 = 8.772
+    assert row == "| set | 4 | 1.30 | 8.77 | 9.00 | 1 |"
