@@ -223,11 +223,13 @@ def test_an_unsteady_window_stays_unresolved_without_the_prior(monkeypatch):
 
 def test_an_unsteady_window_does_not_vote():
     x = np.array([1.0, 0.0, 0.0])
-    results = [_result(x), _result(_rotate_z(x, 40)), _result(_rotate_z(x, 40))]
-    assert np.allclose(neighbour_consensus(results, 0, neighbours=2, min_count=2)[0], _rotate_z(x, 40))
-    # without its own vote the window takes the median of its neighbours alone
+    results = [_result(x), _result(_rotate_z(x, 40)), _result(_rotate_z(x, 60))]
+    # with its vote: the component-wise medians of 0, 40 and 60 deg are those of 40 deg
+    np.testing.assert_allclose(neighbour_consensus(results, 0, neighbours=2, min_count=2)[0], _rotate_z(x, 40),
+                               atol=1e-12)
+    # without it: the medians of 40 and 60 deg alone, (cos 40 + cos 60, sin 40 + sin 60) / 2, at 50 deg
     np.testing.assert_allclose(neighbour_consensus(results, 0, neighbours=2, min_count=2, own_vote=False)[0],
-                               _rotate_z(x, 40), atol=1e-12)
+                               _rotate_z(x, 50), atol=1e-12)
     results[1] = replace(results[1], quality=Quality(Verdict.AMBIGUOUS, "unsteady", resolved=True, unsteady=True))
     assert neighbour_consensus(results, 0, neighbours=2, min_count=1)[2] == 1     # an unsteady neighbour: no vote
 
