@@ -432,27 +432,23 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
                        **measured)
     close = [a for a in alternatives if a.within_noise]
     if close:
+        verdict = Verdict.AMBIGUOUS
         reason = "; ".join(f"{a.name} within noise (gain {a.gain:.3g} <= noise {a.noise:.3g})" if a.gain >= -a.noise
                            else f"{a.name} scores better beyond noise (gain {a.gain:.3g} < -noise {a.noise:.3g}: the "
                                 "fit missed it)" for a in close)
-        return Quality(Verdict.AMBIGUOUS, _join_reasons(unsteady, reason), tuple(alternatives), **measured)
-    if untestable:
-        return Quality(Verdict.AMBIGUOUS, _join_reasons(unsteady, f"{note or 'ambiguity not tested'}: nothing tells "
-                                                        "the fitted direction from its mirrored or rotation-swapped "
-                                                        "alternatives"), tuple(alternatives), **measured)
-    if alternatives:
-        worst = min(alternatives, key=lambda a: a.gain)
+    elif untestable:
+        verdict = Verdict.AMBIGUOUS
+        reason = (f"{note or 'ambiguity not tested'}: nothing tells the fitted direction from its mirrored or "
+                  "rotation-swapped alternatives")
+    elif alternatives:
+        verdict, worst = Verdict.OK, min(alternatives, key=lambda a: a.gain)
         reason = (f"every alternative scores worse beyond noise (closest: {worst.name}, gain {worst.gain:.3g} > "
                   f"noise {worst.noise:.3g})" + (f"; {note}" if note else ""))
     else:
-        reason = note or "no alternative tested"
+        verdict, reason = Verdict.OK, note or "no alternative tested"
     if unsteady:
-        return Quality(Verdict.AMBIGUOUS, _join_reasons(unsteady, reason), tuple(alternatives), **measured)
-    return Quality(Verdict.OK, reason, tuple(alternatives), **measured)
-
-
-def _join_reasons(first: str, second: str) -> str:
-    return f"{first}; {second}" if first else second
+        verdict, reason = Verdict.AMBIGUOUS, f"{unsteady}; {reason}"
+    return Quality(verdict, reason, tuple(alternatives), **measured)
 
 
 # ----------------------------------------------------------------------------------------------
