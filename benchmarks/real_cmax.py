@@ -591,18 +591,17 @@ def _far_walls_against(emvs, events, trajectory, sequences, span_us: int | None 
 
 
 def slider_far_wall(events_path: Path, sequence, folder: Path, others: tuple = (),
-                    span_us: int | None = REFERENCE_SPAN_US) -> tuple[list, list, float, list]:
+                    span_us: int | None = REFERENCE_SPAN_US) -> tuple[list, list, list]:
     """Far-wall depth of every window of ``sequence`` against EMVS with the ground-truth poses.
 
     EMVS (:class:`cmax.emvs.EMVS`, depth range 0.47-2.4 m, the events within ``span_us`` of the reference time,
     :data:`REFERENCE_SPAN_US`; None: all the events in the poses' span) is run at each
     window's ``t_ref_us`` with the fit's own camera model (``K_ECD``, distortion ignored, as ``cmax fit`` is run
     here), so its depth map shares the fit's pixel grid. Returns the :class:`FarWall` of each window, each
-    window's EMVS depth (H, W) [m] (NaN off its mask), the median depth [m] of the far-wall structure of one
-    EMVS run with the calibrated camera (``calib.txt``'s distortion, middle reference time), and the
-    :class:`FarWall` lists of the ``others`` sequences (same windows) against the same EMVS runs.
+    window's EMVS depth (H, W) [m] (NaN off its mask), and the :class:`FarWall` lists of the ``others``
+    sequences (same windows) against the same EMVS runs.
     """
-    from benchmarks.ecd_slider_emvs import DEPTH_RANGE, depth_structures
+    from benchmarks.ecd_slider_emvs import DEPTH_RANGE
     from cmax import Camera
     from cmax.emvs import EMVS
 
@@ -613,10 +612,21 @@ def slider_far_wall(events_path: Path, sequence, folder: Path, others: tuple = (
                                                            trajectory, (sequence, *others), span_us)
     maps = [np.where(reference.mask, reference.depth, np.nan)
             for reference, _, _ in (references[r.t_ref_us] for r in sequence.results)]
+    return walls, maps, other_walls
+
+
+def calibrated_far_wall_mode(events_path: Path, folder: Path) -> float:
+    """The median depth [m] of the far-wall structure of one EMVS run with the ground-truth poses and the
+    calibrated camera (``calib.txt``'s distortion, middle reference time, every event); NaN without one."""
+    from benchmarks.ecd_slider_emvs import DEPTH_RANGE, depth_structures
+    from cmax import Camera
+    from cmax.emvs import EMVS
+
+    events, trajectory = _slider_ground_truth(events_path, folder)
     calibrated = EMVS(Camera.from_ecd_calib(folder / "calib.txt", events.width, events.height),
                       depth_range=DEPTH_RANGE).run(events, trajectory)
     structures = depth_structures(calibrated)
-    return walls, maps, (structures[-1].median_depth_m if structures else np.nan), other_walls
+    return structures[-1].median_depth_m if structures else np.nan
 
 
 def calibrated_far_walls(events_path: Path, folder: Path, sequences: list,
@@ -665,14 +675,15 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
         for seed in SLIDER_FIT_SEEDS[1:]}
     others = (held, members, zrs, *(p[0] for p in polished.values()), *(p[0] for p in seeded.values()),
               *(p[0] for p in held_seeded.values()))
-    walls, maps, calibrated_wall, (held_walls, members_walls, zrs_walls, *other_walls) = slider_far_wall(
+    walls, maps, (held_walls, members_walls, zrs_walls, *other_walls) = slider_far_wall(
         events_path, sequence, folder, others)
+    calibrated_wall = calibrated_far_wall_mode(events_path, folder)
     polished_walls = other_walls[:len(polished)]
     seeded_walls = other_walls[len(polished):len(polished) + len(seeded)]
     held_seeded_walls = other_walls[len(polished) + len(seeded):]
     # the same against EMVS over every event (blind to occlusion: REFERENCE_SPAN_US), as runs before 2026-12-04
-    blind_walls, _, _, (blind_held, _, _, *blind_others) = slider_far_wall(events_path, sequence, folder, others,
-                                                                           span_us=None)
+    blind_walls, _, (blind_held, _, _, *blind_others) = slider_far_wall(events_path, sequence, folder, others,
+                                                                        span_us=None)
     blind_seeded = blind_others[len(polished):len(polished) + len(seeded)]
     blind_held_seeded = blind_others[len(polished) + len(seeded):]
     calibrated = {seed: slider_sequence(events_path, None if cache is None else cache.with_name(
