@@ -192,17 +192,25 @@ class Camera:
         return rays * depth[:, None]
 
     def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
-        """Undistorted pixel coordinates (N, 2) float64 of distorted pixels (N, 2) (same K)."""
+        """Undistorted pixel coordinates (N, 2) float64 of distorted pixels (N, 2) (same K).
+
+        The model is ``pixel = K [distort(x_n); 1]`` with the full ``K``, skew
+        included: pixels are normalised by ``K^-1`` and OpenCV's iterative
+        ``undistortPoints`` runs on normalised coordinates (given ``K`` itself,
+        OpenCV would read only fx, fy, cx, cy and drop the skew ``K[0, 1]``).
+        """
         pixels = np.asarray(pixels, dtype=np.float64)
         if pixels.ndim != 2 or pixels.shape[1] != 2:
             raise ValueError(f"pixels must have shape (N, 2), got {pixels.shape}")
         if not self.is_distorted or not len(pixels):
             return pixels.copy()
+        ones = np.ones((len(pixels), 1))
+        normalised = (np.hstack([pixels, ones]) @ np.linalg.inv(self.K).T)[:, :2]
         undistorted = cv2.undistortPoints(
-            pixels.reshape(-1, 1, 2), self.K, self.distortion, R=None, P=self.K,
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9),
+            np.ascontiguousarray(normalised).reshape(-1, 1, 2), np.eye(3), self.distortion, R=None, P=np.eye(3),
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12),
         )
-        return undistorted.reshape(-1, 2)
+        return (np.hstack([undistorted.reshape(-1, 2), ones]) @ self.K.T)[:, :2]
 
     @cached_property
     def undistortion_map(self) -> np.ndarray:

@@ -31,6 +31,20 @@ def test_undistort_inverts_opencv_distortion(shared_data):
     np.testing.assert_allclose(redistorted.reshape(-1, 2), np.column_stack([ev.x, ev.y]), atol=2e-3)
 
 
+def test_undistort_keeps_the_skew_of_K():
+    """pixel = K [distort(x_n); 1] with a skewed K: undistortion gives K [x_n; 1] back (OpenCV, handed K
+    itself, drops K[0, 1]: it was 4.4 px off here)."""
+    K = np.array([[300.0, 12.0, 160.0], [0.0, 290.0, 120.0], [0.0, 0.0, 1.0]])
+    distortion = np.array([-0.2, 0.05, 0.001, -0.002, 0.0])
+    cam = Camera(K, 320, 240, distortion)
+    rng = np.random.default_rng(3)
+    normalized = np.column_stack([rng.uniform(-0.45, 0.45, 200), rng.uniform(-0.35, 0.35, 200), np.ones(200)])
+    distorted, _ = cv2.projectPoints(normalized, np.zeros(3), np.zeros(3), np.eye(3), distortion)  # K = I: no skew
+    pixels = (np.column_stack([distorted.reshape(-1, 2), np.ones(200)]) @ K.T)[:, :2]
+    expected = (normalized @ K.T)[:, :2]
+    np.testing.assert_allclose(cam.undistort_points(pixels), expected, atol=1e-6)
+
+
 def test_undistort_without_distortion_is_identity():
     cam = Camera.from_intrinsics(100, 100, 16, 12, 32, 24, distortion=[0, 0, 0, 0, 0])
     assert not cam.is_distorted
