@@ -164,3 +164,44 @@ def test_seconds_stated_as_microseconds_are_refused_not_collapsed(tmp_path: Path
     nano.write_text("".join(f"{t * 1e-6 + 3e-10:.10f} {x} {y} {p}\n" for t, x, y, p in
                             zip(events.t, events.x, events.y, events.p)))
     assert read(nano, width=events.width, height=events.height, time_unit="s") == events
+
+
+def test_an_ecd_text_file_of_integer_microseconds_is_refused_without_a_unit(tmp_path: Path, events: Events,
+                                                                             capsys) -> None:
+    """Whole-number times read as ECD's seconds made 50 ms of events a 14-hour recording (0.000 Mev/s; `cmax fit`
+    then cut it into a million windows). Refused without a unit, naming --time-unit; read with it."""
+    path = tmp_path / "us.txt"
+    path.write_text("".join(f"{t} {x} {y} {p}\n" for t, x, y, p in zip(events.t, events.x, events.y, events.p)))
+    with pytest.raises(FormatError, match=r"every time in column t is a whole number .* integer microseconds.*"
+                                          r"time_unit='us' \(cmax: --time-unit us\)"):
+        read(path, width=W, height=H)
+    assert read(path, width=W, height=H, time_unit="us") == events
+    assert main(["info", str(path), "--size", f"{W}x{H}"]) == 2
+    assert "--time-unit us" in capsys.readouterr().err
+    # Whole seconds stated as seconds are the caller's word; a few whole times (a toy file) are not refused.
+    assert len(read(path, width=W, height=H, time_unit="s")) == len(events)
+    few = tmp_path / "few.txt"
+    few.write_text("0 1 2 1\n1 3 4 0\n2 5 6 1\n")
+    assert read(few, width=W, height=H).t.tolist() == [0, 1_000_000, 2_000_000]
+
+
+def test_float32_times_that_already_lost_microseconds_are_refused(tmp_path: Path, events: Events) -> None:
+    """float32 holds every integer only up to 2**24: a float32 µs column past 16.8 s (or float32 seconds past
+    16.8 s) has lost microseconds before any reader sees it. Refused by Events, the .npy reader and from_array;
+    float32 below that and float64 read as before."""
+    late = np.float32(2**24 + 2)
+    with pytest.raises(ValueError, match=r"float32 number, whose values there lie 2 µs apart"):
+        Events([0, 1], [0, 1], np.array([0, late], np.float32), [0, 1], W, H)
+    assert Events([0, 1], [0, 1], np.array([0, 2**24], np.float32), [0, 1], W, H).t.tolist() == [0, 2**24]
+    table = events.to_structured().astype([("x", "<u2"), ("y", "<u2"), ("t", "<f4"), ("p", "<i1")])
+    with pytest.raises(ValueError, match="microseconds are already lost"):
+        Events.from_array(np.concatenate([table, np.array([(1, 1, late, 1)], table.dtype)]), W, H)
+    seconds = table.astype([("x", "<u2"), ("y", "<u2"), ("t", "<f4"), ("p", "<i1")])
+    seconds["t"] = (events.t + 20_000_000) / 1e6                           # 20 s in float32 seconds: 2 µs steps
+    np.save(tmp_path / "s.npy", seconds)
+    with pytest.raises(FormatError, match=r"s.npy: field t\[\d+\] = .* s is a float32 number, whose values there "
+                                          r"lie 1.91 µs apart"):
+        read(tmp_path / "s.npy", width=W, height=H, time_unit="s")
+    seconds["t"] = events.t / 1e6                                          # below 16.8 s: within a microsecond
+    np.save(tmp_path / "s.npy", seconds)
+    assert np.abs(read(tmp_path / "s.npy", width=W, height=H, time_unit="s").t - events.t).max() <= 1

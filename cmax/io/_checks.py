@@ -72,7 +72,8 @@ def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
     half to even). Float times whose rounding to whole µs would merge at least :data:`_COLLAPSE` of their
     distinct consecutive values into one (when there are at least as many) are refused: that is another unit, not
     sub-µs precision (seconds read as µs, an ECD text file with ``time_unit='us'``, collapse the whole
-    recording into a microsecond). Raises :class:`FormatError` naming ``where`` and the index.
+    recording into a microsecond), and so are float times whose dtype cannot hold every microsecond where
+    they lie (float32 beyond 2**24 µs). Raises :class:`FormatError` naming ``where`` and the index.
     """
     factor = TIME_UNITS[unit]
     kind = t.dtype.kind
@@ -98,6 +99,13 @@ def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
         if scaled.size and np.abs(scaled).max() > _FLOAT_US_LIMIT:
             i = int(np.argmax(np.abs(scaled)))
             raise FormatError(f"{where}[{i}] = {t[i]} {unit} does not fit into int64 microseconds")
+        if scaled.size:
+            i = int(np.argmax(np.abs(t)))
+            step_us = float(np.abs(t[i]) - np.nextafter(np.abs(t[i]), t.dtype.type(0))) * factor  # gap below it
+            if step_us > 1:
+                raise FormatError(f"{where}[{i}] = {t[i]} {unit} is a {t.dtype} number, whose values there lie "
+                                  f"{step_us:.3g} µs apart: microseconds are already lost (store times as int64 "
+                                  "µs or float64)")
         rounded = np.rint(scaled)
         distinct = int(np.count_nonzero(np.diff(scaled))) + 1 if scaled.size else 0
         if distinct >= _COLLAPSE:

@@ -28,7 +28,8 @@ def read_txt(
 
     Time stamps are in seconds (ECD's unit) unless ``time_unit`` states another
     (``'ms'``, ``'us'``), and are rounded to the nearest microsecond (half to
-    even). Polarity is 0/1 (ECD's encoding) unless ``polarity='signed'`` states
+    even); a column of whole numbers only, read without a stated unit, is
+    refused (integer microseconds are not ECD's seconds). Polarity is 0/1 (ECD's encoding) unless ``polarity='signed'`` states
     -1/+1; other values raise :class:`FormatError`. The file stores no sensor
     size, so ``width`` and ``height`` are required (ECD's DAVIS240C: 240 x 180).
     Lines starting with ``#`` are comments.
@@ -48,6 +49,8 @@ def read_txt(
         raise FormatError(f"{path}: expected 4 columns 't x y p', found {table.shape[1]}")
     if not np.isfinite(table[:, 1:]).all():
         raise FormatError(f"{path} contains non-finite numbers")
+    if time_unit is None:
+        _refuse_whole_seconds(table[:, 0], path)
     t_us = times_to_us(table[:, 0], unit, f"{path}: column t")
     p = polarity_01(table[:, 3], polarity, f"{path}: column p")
     try:
@@ -56,8 +59,34 @@ def read_txt(
         raise FormatError(f"{path}: {error}") from None
 
 
-def write_txt(path: str | os.PathLike, events: Events) -> Path:
-    """Write events as ECD text (``t[s] x y p``, 9 decimals), atomically."""
+#: This many distinct times, every one a whole number, are not seconds of an event camera.
+_WHOLE_TIMES = 100
+
+
+def _refuse_whole_seconds(t: np.ndarray, path: Path) -> None:
+    """Refuse a time column read as ECD's seconds (no unit stated) whose every value is a whole number.
+
+    An event camera's times in seconds carry decimals; a column of at least
+    :data:`_WHOLE_TIMES` distinct whole numbers is integer microseconds (or
+    ms, ns) that would read as hours or days of recording.
+    """
+    if t.size < _WHOLE_TIMES or not np.array_equal(t, np.round(t)):
+        return
+    distinct = int(np.count_nonzero(np.diff(t))) + 1
+    if distinct >= _WHOLE_TIMES:
+        raise FormatError(
+            f"{path}: every time in column t is a whole number ({distinct:,} distinct, from {t[0]:.0f} to "
+            f"{t[-1]:.0f}), but ECD text states seconds with decimals: these look like integer microseconds. "
+            "State the unit: time_unit='us' (cmax: --time-unit us), or time_unit='s' if they are whole seconds"
+        )
+
+
+def write_txt(path: str | os.PathLike, events: Events, *, overwrite: bool = False) -> Path:
+    """Write events as ECD text (``t[s] x y p``, 9 decimals), atomically; returns the path.
+
+    An existing ``path`` raises :class:`FileExistsError` (left untouched)
+    unless ``overwrite=True``.
+    """
     path = Path(path)
     table = np.column_stack([events.t / 1e6, events.x, events.y, events.p])
 
@@ -65,4 +94,4 @@ def write_txt(path: str | os.PathLike, events: Events) -> Path:
         with os.fdopen(os.dup(output.fd), "wb") as file:
             np.savetxt(file, table, fmt=["%.9f", "%d", "%d", "%d"])
 
-    return write_with(path, fill)
+    return write_with(path, fill, overwrite=overwrite)
