@@ -174,8 +174,8 @@ def test_evt2_decoder_on_words_of_defined_types(words):
 @given(events=event_streams(max_size=400, max_sensor=2048))
 def test_evt_writers_round_trip(events):
     assume(not len(events) or events.t[-1] < 2**40)
-    write_evt3(_TMP / "round3.raw", events)
-    write_evt2(_TMP / "round2.raw", events)
+    write_evt3(_TMP / "round3.raw", events, overwrite=True)
+    write_evt2(_TMP / "round2.raw", events, overwrite=True)
     assert read_evt3(_TMP / "round3.raw") == events
     assert read_evt2(_TMP / "round2.raw") == events
 

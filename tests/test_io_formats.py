@@ -24,6 +24,24 @@ def test_ecd_text_round_trip(tmp_path):
     assert read_txt(write_txt(tmp_path / "e.txt", ev), width=240, height=180) == ev
 
 
+@pytest.mark.parametrize("writer", ["write_txt", "write_evt2", "write_evt3"])
+def test_event_writers_refuse_an_existing_file_unless_told(tmp_path, writer):
+    """They replaced an existing file silently (write_h5 refused): now FileExistsError, the file untouched,
+    and overwrite=True replaces it; each returns the path written."""
+    import cmax.io
+
+    write = getattr(cmax.io, writer)
+    path = tmp_path / ("e.txt" if writer == "write_txt" else "e.raw")
+    path.write_bytes(b"earlier results")
+    with pytest.raises(FileExistsError, match="pass overwrite=True"):
+        write(path, random_events(50))
+    assert path.read_bytes() == b"earlier results"
+    events = random_events(50, seed=4)
+    assert write(path, events, overwrite=True) == path
+    assert read(path, **({"width": events.width, "height": events.height} if writer == "write_txt" else {})) == events
+    assert sorted(p.name for p in tmp_path.iterdir()) == [path.name]
+
+
 def test_ecd_text_errors(tmp_path):
     path = tmp_path / "bad.txt"
     path.write_text("0.1 1 2\n0.2 1 2\n")

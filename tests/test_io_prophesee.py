@@ -273,7 +273,7 @@ def test_round_trip_in_small_encoder_blocks(
     for case in _round_trip_cases():
         for block in (1, 7, 64):
             monkeypatch.setattr(prophesee, "_ENCODE_BLOCK", block)
-            write(tmp_path / "blocks.raw", case[:700])
+            write(tmp_path / "blocks.raw", case[:700], overwrite=True)
             assert read(tmp_path / "blocks.raw") == case[:700]
 
 
@@ -304,8 +304,8 @@ def test_evt3_words_of_a_run_of_two_and_a_vector(tmp_path: Path) -> None:
 
 def test_write_empty_and_invalid(tmp_path: Path) -> None:
     for write, read in ((write_evt3, read_evt3), (write_evt2, read_evt2)):
-        write(tmp_path / "empty.raw", Events.empty(10, 5))
-        assert read(tmp_path / "empty.raw") == Events.empty(10, 5)
+        write(tmp_path / f"empty{write.__name__}.raw", Events.empty(10, 5))
+        assert read(tmp_path / f"empty{write.__name__}.raw") == Events.empty(10, 5)
         with pytest.raises(TypeError):
             write(tmp_path / "x.raw", np.zeros(3))
         with pytest.raises(ValueError, match="2048"):

@@ -90,7 +90,7 @@ def test_a_second_process_cannot_touch_the_first_writers_file(tmp_path):
         with pytest.raises(OutputLockedError):
             write_h5(target, other, overwrite=True)
         with pytest.raises(OutputLockedError):
-            write_evt3(target, other)
+            write_evt3(target, other, overwrite=True)
         second = _python("""
             import sys
             from conftest import random_events
@@ -154,10 +154,10 @@ from cmax.viz import save_image  # noqa: E402
 
 WRITERS = {
     "h5": lambda path: write_h5(path, random_events(200), overwrite=True),
-    "evt3": lambda path: write_evt3(path, random_events(200)),
+    "evt3": lambda path: write_evt3(path, random_events(200), overwrite=True),
     "text": lambda path: write_text_atomic(path, "new"),
     "npz": lambda path: save_npz_atomic(path, a=np.arange(3)),
-    "ecd_txt": lambda path: write_txt(path, random_events(50)),
+    "ecd_txt": lambda path: write_txt(path, random_events(50), overwrite=True),
     "picture": lambda path: save_image(path, np.zeros((4, 4), np.uint8)),
     "ply": lambda path: write_ply(path, np.ones((3, 3))),
 }

@@ -10,6 +10,7 @@ leaves nothing under its name.
 """
 from __future__ import annotations
 
+from pathlib import Path
 from typing import NamedTuple
 
 import numpy as np
@@ -169,7 +170,7 @@ def _encode_evt2(x, y, t, p, previous: _Previous | None) -> np.ndarray:
     return out[:n]
 
 
-def _write(path: PathLike, events: Events, version: str, encode, t_limit: int | None) -> None:
+def _write(path: PathLike, events: Events, version: str, encode, t_limit: int | None, overwrite: bool) -> Path:
     if not isinstance(events, Events):
         raise TypeError(f"events must be Events, got {type(events).__name__}")
     width, height = events.sensor_size
@@ -195,10 +196,10 @@ def _write(path: PathLike, events: Events, version: str, encode, t_limit: int | 
             output.write(encode(block.x, block.y, block.t, block.p, previous))
             previous = _Previous(int(block.t[-1]), int(block.y[-1]))
 
-    write_with(path, fill)  # lock, private temporary file, fsync, rename (cmax.io.atomic)
+    return write_with(path, fill, overwrite=overwrite)  # lock, private temporary file, fsync, rename (cmax.io.atomic)
 
 
-def write_evt3(path: PathLike, events: Events) -> None:
+def write_evt3(path: PathLike, events: Events, *, overwrite: bool = False) -> Path:
     """Write events as a Prophesee EVT 3.0 RAW file (atomically: a private temporary file, then rename).
 
     The header declares ``evt 3.0``, ``format EVT3;height=H;width=W`` and
@@ -214,14 +215,23 @@ def write_evt3(path: PathLike, events: Events) -> None:
         Sensor at most 2048x2048; times ``0 <= t < 2**40`` µs (the 24-bit time
         is written with a TIME_HIGH word at least every 8.4 s, so huge absolute
         times would cost many words).
+    overwrite : bool, keyword-only
+        Replace an existing ``path``; by default an existing file raises
+        :class:`FileExistsError` and is left untouched.
+
+    Returns
+    -------
+    Path
+        The file written.
     """
-    _write(path, events, "3.0", _encode_evt3, _EVT3_MAX_T)
+    return _write(path, events, "3.0", _encode_evt3, _EVT3_MAX_T, overwrite)
 
 
-def write_evt2(path: PathLike, events: Events) -> None:
+def write_evt2(path: PathLike, events: Events, *, overwrite: bool = False) -> Path:
     """Write events as a Prophesee EVT 2.0 RAW file (atomically), one CD word per event.
 
     ``events``: sensor at most 2048x2048, times ``t >= 0`` µs. :func:`read_evt2`
-    gives back exactly ``events``.
+    gives back exactly ``events``. An existing ``path`` raises
+    :class:`FileExistsError` unless ``overwrite=True``; returns the path written.
     """
-    _write(path, events, "2.0", _encode_evt2, None)
+    return _write(path, events, "2.0", _encode_evt2, None, overwrite)
