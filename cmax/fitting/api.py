@@ -374,7 +374,8 @@ def fit(
     TypeError, ValueError
         Not an ``Events``; unknown model or solver; a bad K; fewer than 10
         events; all events at one time; ``speed`` not positive; a bad ``pose``
-        or ``omega``; ``pose`` and ``omega`` together; ``settings`` and
+        or ``omega``; ``pose`` and ``omega`` together; ``pose`` and a ``speed``
+        other than its own; ``settings`` and
         keyword options together.
 
     Warns
@@ -436,6 +437,9 @@ def fit(
     backend = make_solver(solver)
     pose_xi = None if pose is None else _pose_twist(pose, (int(events.t[-1]) - int(events.t[0])) * 1e-6)
     scale = float(np.linalg.norm(pose_xi[:3])) if pose_xi is not None else (speed or 1.0)
+    if pose_xi is not None and speed is not None and not np.isclose(speed, scale, rtol=1e-6, atol=0.0):
+        raise ValueError(f"pose moves at {scale:.6g} m/s but speed={speed:.6g} m/s: give one of them "
+                         "(pose already fixes the speed)")
     _warn_fast_omega(known_omega if pose_xi is None else pose_xi[3:], settings.max_omega)
     if model == "se3" and scale <= 0:
         raise ValueError("pose has no translation: depth is unobservable under a pure rotation")

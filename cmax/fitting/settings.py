@@ -550,8 +550,14 @@ class FitSettings:
             except ValueError:
                 raise ValueError(f"{name} must be one of {[k.value for k in kind]}, got {getattr(self, name)!r}") \
                     from None
-        near, far = (float(value) for value in self.depth_range)
-        if not (np.isfinite(near) and np.isfinite(far) and 0 < near < far):
+        try:
+            near, far = (float(value) for value in self.depth_range)
+        except (TypeError, ValueError):
+            raise ValueError(f"depth_range must be two numbers (near, far) in metres, got {self.depth_range!r}") \
+                from None
+        if not (np.isfinite(near) and np.isfinite(far)):
+            raise ValueError(f"depth_range must be finite metres (the sweep spans it), got {self.depth_range}")
+        if not 0 < near < far:
             raise ValueError(f"depth_range must satisfy 0 < near < far (metres), got {self.depth_range}")
         if not (isinstance(self.max_events, (int, np.integer)) and self.max_events >= 10):
             raise ValueError(f"max_events must be >= 10, got {self.max_events}")
