@@ -258,6 +258,46 @@ def test_the_summary_counts_each_verdict(tmp_path, capsys, monkeypatch):
             in printed), printed
 
 
+def test_a_run_whose_every_window_failed_exits_1_and_the_summary_records_what_was_said(tmp_path, capsys, monkeypatch):
+    """Every fitted window failed: exit 1 (it was 0) with a note; the same warning of each window is printed once
+    with its count and recorded in summary.json (it was printed per window, recorded nowhere); the summary's notes
+    hold every note printed (the late ones were missing) and depth_range the range used (it was null)."""
+    import warnings
+    from dataclasses import replace
+
+    from benchmarks.synthetic_windows import make_window
+    from cmax.fitting import FitSettings, LowParallaxWarning, QualitySettings, Verdict, fit
+    from cmax.fitting import sequence as sequence_module
+    from cmax.fitting.quality import Quality
+
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    base = fit(w.events, w.K, speed=8.0, depth_range=(1.0, 20.0), max_events=1000,
+               quality=QualitySettings(ambiguity_test=False))
+    parallax = iter([0.25, 0.5, 0.75, 1.0])
+
+    def failing_fit(events, K, model="se3", **options):
+        warnings.warn(f"parallax {next(parallax)} px", LowParallaxWarning)
+        return replace(base, t0_us=int(events.t[0]), t1_us=int(events.t[-1]),
+                       quality=Quality(Verdict.FAILED, "stage(s) failed: local_refine"))
+
+    monkeypatch.setattr(sequence_module, "fit", failing_fit)
+    path = write_h5(tmp_path / "drive.h5", w.events)
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    out = tmp_path / "out"
+    assert main(["fit", str(path), "--K", K, "-o", str(out), "--window-ms", "24", "--min-events", "10",
+                 "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert err.count("LowParallaxWarning") == 1
+    assert "cmax fit: warning: LowParallaxWarning (4 times; the first): parallax 0.25 px" in err
+    assert "cmax fit: note: every fitted window failed (4)" in err
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["verdicts"]["failed"] == 4 and len(summary["windows"]) == 4
+    assert summary["warnings"] == [{"category": "LowParallaxWarning", "windows": 4, "message": "parallax 0.25 px"}]
+    printed_notes = [line.removeprefix("cmax fit: note: ") for line in err.splitlines() if "cmax fit: note: " in line]
+    assert summary["notes"] == printed_notes and len(printed_notes) >= 2          # the tail note and the failure
+    assert summary["depth_range"] == list(FitSettings().depth_range)
+
+
 def test_jobs_fit_the_windows_in_parallel_from_cold_starts(slider, tmp_path, capsys):
     """``--jobs 2``: two flow windows fitted by worker processes; each equals ``cmax.fit`` of that window alone
     (no warm start), bit for bit, and the summary says how they were fitted."""
@@ -391,12 +431,13 @@ def test_a_calibration_file_beside_the_events_is_named_not_read(tmp_path, capsys
     path = write_h5(tmp_path / "ev.h5", events)
     calib = tmp_path / "calib.txt"
     calib.write_text("60 60 32 24 -0.1 0.05 0 0 0\n")
-    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "a"), "--quiet"]) == 0
+    # Random events: the one window fails, so the run exits 1 (every window failed); the note is the point here.
+    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "a"), "--quiet"]) == 1
     err = capsys.readouterr().err
     assert f"{calib} lies beside the events but was not read: pass --calib {calib}" in err
     summary = json.loads((tmp_path / "a" / "summary.json").read_text())
-    assert summary["distortion"] is None and summary["calib"] is None
-    assert main(["fit", str(path), "--calib", str(calib), "-o", str(tmp_path / "b"), "--quiet"]) == 0
+    assert summary["distortion"] is None and summary["calib"] is None and summary["verdicts"]["failed"] == 1
+    assert main(["fit", str(path), "--calib", str(calib), "-o", str(tmp_path / "b"), "--quiet"]) == 0  # low parallax
     assert "lies beside the events" not in capsys.readouterr().err
 
 

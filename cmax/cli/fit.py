@@ -9,13 +9,15 @@ camera-to-world, the first window's start as the origin) and
 ``summary.json`` (settings, per-window twist, objective, parallax, seconds, quality verdict with its
 reason, low-motion cause and alternatives, the counts of each verdict, the starts of the windows
 skipped for too few events, across which the trajectory carries the last fitted twist, and the end of the
-recording after the last whole window, not fitted: a note says so). Each window's verdict is printed on a line of
-its own and counted in the summary line (``docs/quality.md``).
+recording after the last whole window, not fitted: a note says so; every note printed, and the warnings, once per
+kind with how often they came). Each window's verdict is printed on a line of its own and counted in the summary
+line (``docs/quality.md``); the exit status is 1 when no window was fitted or every fitted one failed.
 """
 from __future__ import annotations
 
 import argparse
 import json
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -27,7 +29,7 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
                                 tail_note)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
-__all__ = ["add_command", "advice", "hot_pixel_note", "run", "tum_lines", "undistorted_events", "verdict_counts",
+__all__ = ["add_command", "advice", "grouped_warnings", "hot_pixel_note", "run", "tum_lines", "undistorted_events", "verdict_counts",
            "window_line"]
 
 
@@ -223,6 +225,31 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     return lines
 
 
+def grouped_warnings(caught: list) -> list[dict]:
+    """The warnings of a run (``warnings.catch_warnings(record=True)``), one entry per kind: the same category and
+    the same words once the numbers are left out (a warning of every window is said once, with how often it came).
+    Each entry: ``category`` (class name), ``windows`` (how many times it came), ``message`` (the first one) and
+    ``text`` (the line to print).
+
+    >>> import warnings
+    >>> caught = [warnings.WarningMessage(UserWarning(f"parallax {p} px"), UserWarning, "f.py", 1) for p in (0.4, 0.7)]
+    >>> [line["text"] for line in grouped_warnings(caught)]
+    ['UserWarning (2 times; the first): parallax 0.4 px']
+    """
+    import re
+
+    groups: dict[tuple[str, str], dict] = {}
+    for item in caught:
+        message = str(item.message)
+        key = (item.category.__name__, re.sub(r"[-+]?\d[\d.,:e+-]*", "#", message))
+        entry = groups.setdefault(key, {"category": key[0], "windows": 0, "message": message})
+        entry["windows"] += 1
+    for entry in groups.values():
+        times = f" ({entry['windows']} times; the first)" if entry["windows"] > 1 else ""
+        entry["text"] = f"{entry['category']}{times}: {entry['message']}"
+    return list(groups.values())
+
+
 def window_line(index: int, result, first_us: int) -> str:
     """One window's verdict line: its time (seconds after the first event), verdict, reason, resolution."""
     t0, t1 = (result.t0_us - first_us) * 1e-6, (result.t1_us - first_us) * 1e-6
@@ -246,7 +273,7 @@ def hot_pixel_note(results) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the command; returns the exit status (1 when no window could be fitted)."""
+    """Run the command; returns the exit status (1 when no window could be fitted, or every fitted one failed)."""
     import sys
 
     from tqdm.auto import tqdm
@@ -340,15 +367,20 @@ def run(args: argparse.Namespace) -> int:
     else:                  # workers take windows ahead of their fits: fit_sequence's own bar counts results
         source = events
     try:
-        sequence = fit_sequence(source, K, sequence_model, window_us=window_us, step_us=step_us, speed=args.speed,
-                                gyro=gyro, zero_rotation_start=args.zero_rotation_start, jobs=args.jobs,
-                                min_events=min_events,
-                                progress=args.jobs > 1 and not args.quiet, **options)
+        with warnings.catch_warnings(record=True) as caught:   # said once each, after the bar, and recorded
+            warnings.simplefilter("always")
+            sequence = fit_sequence(source, K, sequence_model, window_us=window_us, step_us=step_us,
+                                    speed=args.speed, gyro=gyro, zero_rotation_start=args.zero_rotation_start,
+                                    jobs=args.jobs, min_events=min_events,
+                                    progress=args.jobs > 1 and not args.quiet, **options)
     finally:
         if args.jobs == 1:
             source.finish()
         if isinstance(events, StreamedEvents):
             events.close()
+    warned = grouped_warnings(caught)
+    for line in warned:
+        print(f"cmax fit: warning: {line['text']}", file=sys.stderr)
     windows = []
     scale = _depth_scale(sequence.results, args.depth_range)
     for i, r in enumerate(sequence.results):
@@ -369,12 +401,23 @@ def run(args: argparse.Namespace) -> int:
                         **(r.quality.summary() if r.quality is not None else {"verdict": None})})
         print(window_line(i, r, origin_us))
     write_text_atomic(out / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
+    late_notes = [hot_note] if (hot_note := hot_pixel_note(sequence.results)) else []
+    causes = [None if r.quality is None else r.quality.cause for r in sequence.results]
+    no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)
+    unsteady = sum(r.verdict is Verdict.AMBIGUOUS and r.quality.unsteady and not r.quality.resolved
+                   for r in sequence.results)
+    late_notes += advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None,
+                         no_motion, cell_noise, unsteady)
+    failed = sum(r.verdict is Verdict.FAILED for r in sequence.results)
+    if windows and failed == len(windows):
+        late_notes.append(f"every fitted window failed ({failed}): no depth or motion of this run can be trusted "
+                          "(each window's line says why)")
     summary = {"file": str(args.file), "model": sequence_model, "K": K.tolist(),
                "distortion": None if distortion is None else distortion.tolist(),
                "calib": None if args.calib is None else str(args.calib),
                "window_ms": window_us / 1000, "step_ms": step_us / 1000, "min_events": min_events,
                "t0_s": args.t0, "t1_s": args.t1,
-               "depth_range": None if args.depth_range is None else list(args.depth_range),
+               "depth_range": list(args.depth_range or _settings_default("depth_range")()),
                "speed": args.speed, "gyro": None if args.gyro is None else str(args.gyro),
                "omega": None if args.omega is None else list(args.omega),
                "solver": args.solver or _fit_default("solver")(),
@@ -382,7 +425,8 @@ def run(args: argparse.Namespace) -> int:
                "zero_rotation_start": args.zero_rotation_start, "jobs": args.jobs,
                "members": args.members or _settings_default("motion_members")(),
                "polish": args.polish or _settings_default("polish")().value,
-               "warm_start": args.jobs == 1, "keep_hot_pixels": args.keep_hot_pixels, "notes": notes,
+               "warm_start": args.jobs == 1, "keep_hot_pixels": args.keep_hot_pixels, "notes": notes + late_notes,
+               "warnings": [{key: line[key] for key in ("category", "windows", "message")} for line in warned],
                "windows_total": n_windows, "skipped_us": sequence.skipped_us.tolist(),
                "uncovered_us": None if sequence.uncovered_us is None else list(sequence.uncovered_us),
                "verdicts": sequence.counts(), "windows": windows}
@@ -390,19 +434,11 @@ def run(args: argparse.Namespace) -> int:
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""
     print(f"{len(windows)} of {n_windows} windows fitted{skip}: {verdict_counts(sequence.counts())}; results in {out}")
-    hot_note = hot_pixel_note(sequence.results)
-    if hot_note:
-        print(f"cmax fit: note: {hot_note}", file=sys.stderr)
-    causes = [None if r.quality is None else r.quality.cause for r in sequence.results]
-    no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)
-    unsteady = sum(r.verdict is Verdict.AMBIGUOUS and r.quality.unsteady and not r.quality.resolved
-                   for r in sequence.results)
-    for line in advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None, no_motion,
-                       cell_noise, unsteady):
+    for line in late_notes:
         print(f"cmax fit: note: {line}", file=sys.stderr)
     if not windows:
         print(f"cmax fit: no window was fitted: each has fewer than {min_events:,} events (over more than one time "
               f"stamp); a longer --window-ms or a lower --min-events (at least {MIN_WINDOW_EVENTS}) fits them",
               file=sys.stderr)
         return 1
-    return 0
+    return 1 if failed == len(windows) else 0

@@ -362,6 +362,8 @@ def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, opti
     the last 500.0 ms of the recording (after 2.000 s) are shorter than a window (1000.0 ms) and are left out: --window-ms 833.333 covers it in 3 windows
     >>> tail_note(0, 2_999_999, 1_000_000, 1_000_000) is None
     True
+    >>> print(tail_note(0, 4_999_999, 1_000_000, 3_000_000))
+    windows of 1000 ms every 3000 ms leave the 2000 ms between them out, and the last 1000 ms of the recording (after 4.000 s), where the next step has no whole window
     >>> print(tail_note(0, 2_979, 1_000, 1_000))
     the last 0.980 ms of the recording (after 0.002 s) are shorter than a window (1.000 ms) and are left out: --window-ms 0.993 covers it in 3 windows
     """
@@ -375,6 +377,13 @@ def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, opti
     origin = first_us if origin_us is None else origin_us
     tail_ms, window_ms = (end - start) * 1e-3, window_us * 1e-3
     digits = 1 if f"{tail_ms:.1f}" != f"{window_ms:.1f}" else 3       # 0.980 ms is not "1.0 ms" < 1.0 ms
+    if step_us > window_us:     # the windows leave gaps: the end is short of a step, not of a window
+        def ms(value_us: int) -> str:
+            return f"{value_us * 1e-3:.3f}".rstrip("0").rstrip(".")
+
+        return (f"windows of {ms(window_us)} ms every {ms(step_us)} ms leave the {ms(step_us - window_us)} ms between "
+                f"them out, and the last {ms(end - start)} ms of the recording (after {(start - origin) * 1e-6:.3f} s{held}), where the next step has no whole "
+                "window")
     text = (f"the last {tail_ms:.{digits}f} ms of the recording (after {(start - origin) * 1e-6:.3f} s{held}) "
             f"are shorter than a window ({window_ms:.{digits}f} ms) and are left out")
     if step_us == window_us:
