@@ -200,7 +200,7 @@ def _timestamps(values: object) -> np.ndarray:
             i = int(decreasing[0])
             raise ValueError(
                 f"t must be sorted in non-decreasing order; t[{i + 1}]={array[i + 1]} µs comes "
-                f"after t[{i}]={array[i]} µs (pass sort=True to sort by time explicitly)"
+                f"after t[{i}]={array[i]} µs (pass sort=True to sort by time explicitly; cmax: --sort)"
             )
     return array
 

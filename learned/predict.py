@@ -111,10 +111,10 @@ def _file_intrinsics(file: Any, path: Path) -> np.ndarray | None:
 
 def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, time_unit: str | None = None,
                    polarity: str | None = None, t0_s: float | None = None,
-                   t1_s: float | None = None) -> Recording:
+                   t1_s: float | None = None, sort: bool = False) -> Recording:
     """Open an event file of any format :func:`cmax.io.read` reads.
 
-    ``size`` (width, height) [px], ``time_unit`` and ``polarity`` as :func:`cmax.io.read` takes them
+    ``size`` (width, height) [px], ``time_unit``, ``polarity`` and ``sort`` as :func:`cmax.io.read` takes them
     (for files that do not state them; never guessed). A DSEC-layout h5 file is read window by
     window (:class:`cmax.io.H5Reader`); a Prophesee RAW file with ``t0_s`` / ``t1_s`` (seconds after its
     first event, as ``--t0`` / ``--t1``) is decoded holding only that span (its ``first_us`` stays the
@@ -124,11 +124,12 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
     """
     from cmax.cli.recording import file_span_us
     from cmax.events import EventLimitError
-    from cmax.io import H5Reader, detect_format, read
+    from cmax.io import H5Reader, check_sortable, detect_format, read
     from cmax.io.prophesee import RawWindows
 
     path = Path(path)
     kind = detect_format(path)
+    check_sortable(path, kind, sort)
     width, height = size if size is not None else (None, None)
     options = {} if polarity is None else {"polarity": polarity}
     if kind == "dsec":
@@ -146,7 +147,7 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
         if span is not None:
             first, options = span[0], {**options, "t0_us": span[1], "t1_us": span[2]}
     try:
-        events = read(path, width=width, height=height, time_unit=time_unit, **options)
+        events = read(path, width=width, height=height, time_unit=time_unit, sort=sort, **options)
     except EventLimitError:
         if kind != "raw":
             raise
@@ -436,7 +437,7 @@ def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarra
 def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path | None = None,
                    K: np.ndarray | None = None, calib: str | Path | None = None, calib_camera: str = "cam0",
                    distortion: np.ndarray | None = None, size: tuple[int, int] | None = None,
-                   time_unit: str | None = None, polarity: str | None = None,
+                   time_unit: str | None = None, polarity: str | None = None, sort: bool = False,
                    t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
                    depth_range: tuple[float, float] | None = None, batch: int = 8, progress: bool = True,
                    note: Callable[[str], None] | None = None, overwrite: bool = False,
@@ -453,7 +454,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     distortion : ndarray (4,) or (5,), optional
         OpenCV ``k1, k2, p1, p2[, k3]`` of ``K`` (with ``K`` only; a ``calib`` file brings its own): the
         events are undistorted to the nearest pixel before the network sees them.
-    size, time_unit, polarity : as :func:`cmax.io.read` (for files that do not state them).
+    size, time_unit, polarity, sort : as :func:`cmax.io.read` (for files that do not state them; ``sort``: a
+        file whose time goes back, sorted).
     t0_s, t1_s : float, optional
         Part to predict, seconds after the first event.
     window_s : float, optional
@@ -506,7 +508,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         stage.mkdir()
         try:
             run = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
-                                distortion=distortion, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s,
+                                distortion=distortion, size=size, time_unit=time_unit, polarity=polarity, sort=sort,
+                                t0_s=t0_s,
                                 t1_s=t1_s, window_s=window_s, depth_range=depth_range, batch=batch,
                                 progress=progress, note=note, device=device)
             publish(stage, out, earlier)
@@ -540,7 +543,7 @@ def publish(stage: Path, out: Path, earlier: Sequence[Path]) -> list[Path]:
 
 
 def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_camera, distortion, size,
-                  time_unit, polarity, t0_s, t1_s, window_s, depth_range, batch, progress, note, device) -> DepthRun:
+                  time_unit, polarity, sort, t0_s, t1_s, window_s, depth_range, batch, progress, note, device) -> DepthRun:
     """:func:`run_prediction`'s work, every result written into the empty folder ``stage``."""
     from tqdm.auto import tqdm
 
@@ -570,12 +573,13 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
             raise ValueError("give the intrinsics with --K or --calib, not both")
         K, distortion, calib_size = read_calibration(calib, calib_camera)
     try:
-        recording = open_recording(path, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s, t1_s=t1_s)
+        recording = open_recording(path, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s, t1_s=t1_s,
+                                   sort=sort)
     except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
         if calib_size is None or size is not None or "width=" not in str(error):
             raise
         recording = open_recording(path, size=calib_size, time_unit=time_unit, polarity=polarity, t0_s=t0_s,
-                                   t1_s=t1_s)
+                                   t1_s=t1_s, sort=sort)
     try:
         if calib_size is not None and (recording.width, recording.height) != tuple(calib_size):
             raise ValueError(f"{calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({calib_camera}), the "
@@ -666,7 +670,7 @@ def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> i
     result = run_prediction(
         args.file, args.output, checkpoint=args.checkpoint, K=args.K, calib=args.calib,
         calib_camera=args.calib_camera, distortion=args.distortion, size=args.size, time_unit=args.time_unit,
-        polarity=args.polarity,
+        polarity=args.polarity, sort=args.sort,
         t0_s=args.t0, t1_s=args.t1, window_s=args.window,
         depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
         progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),

@@ -101,3 +101,34 @@ def test_time_window_on_formats_without_index(tmp_path):
     ev = random_events(800, width=240, height=180)
     write_txt(tmp_path / "e.txt", ev)
     assert read(tmp_path / "e.txt", width=240, height=180, t0_us=20_000, t1_us=40_000) == ev.slice_time(20_000, 40_000)
+
+
+def test_a_file_whose_time_goes_back_is_sorted_when_asked(tmp_path, capsys):
+    """The refusal said "pass sort=True", but cmax.io.read(..., sort=True) raised TypeError for text and .npy files
+    and the command line had no such option. Now read(sort=True) and --sort sort text, .npy and AEDAT4 files (read
+    whole); a file read by time span from disk (DSEC h5, Prophesee RAW) is refused, saying why."""
+    from cmax.cli import main
+    from cmax.io import write_h5
+
+    events = random_events(300, width=64, height=48)
+    order = np.random.default_rng(2).permutation(len(events))
+    text = tmp_path / "shuffled.txt"
+    text.write_text("".join(f"{t * 1e-6:.6f} {x} {y} {p}\n" for t, x, y, p in
+                            zip(events.t[order], events.x[order], events.y[order], events.p[order])))
+    npy = tmp_path / "shuffled.npy"
+    np.save(npy, events.to_structured()[order])
+    for path in (text, npy):
+        with pytest.raises(FormatError, match=r"t must be sorted .*pass sort=True .*cmax: --sort"):
+            read(path, width=64, height=48)
+        back = read(path, width=64, height=48, sort=True)
+        assert np.array_equal(back.t, events.t) and sorted(zip(back.t, back.x, back.y, back.p)) == sorted(
+            zip(events.t, events.x, events.y, events.p))
+    assert main(["info", str(text), "--size", "64x48", "--sort"]) == 0
+    assert "events      300\n" in capsys.readouterr().out
+    h5 = write_h5(tmp_path / "e.h5", events)
+    with pytest.raises(ValueError, match=r"e.h5 \(dsec\) is read a time span at a time from disk"):
+        read(h5, sort=True)
+    assert main(["info", str(h5), "--sort"]) == 2
+    assert "sorting applies to ECD text, .npy and AEDAT4 files" in capsys.readouterr().err
+    with pytest.raises(TypeError, match="sort must be True or False"):
+        read(text, width=64, height=48, sort="yes")

@@ -14,7 +14,7 @@ def run(args: argparse.Namespace) -> int:
     from cmax.io.info import file_info
 
     for path in args.files:
-        print("\n".join(file_info(path, **file_kwargs(args)).lines()))
+        print("\n".join(file_info(path, **file_kwargs(args, path)).lines()))
     return 0
 
 

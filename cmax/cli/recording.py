@@ -34,7 +34,7 @@ distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
 
 
 def add_file_options(parser: argparse.ArgumentParser) -> None:
-    """``--size``, ``--time-unit``, ``--polarity``: what reading a file that does not state them needs
+    """``--size``, ``--time-unit``, ``--polarity``, ``--sort``: what reading a file that does not state them needs
     (``cmax info``, ``cmax show``); :func:`file_kwargs` turns them into :func:`cmax.io.read` keywords."""
     parser.add_argument(
         "--size", type=sensor_size, default=None, metavar="WxH",
@@ -45,11 +45,19 @@ def add_file_options(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--polarity", choices=("01", "signed"), default=None,
                         help="polarity encoding of an h5, text or .npy file: 01 (0 OFF, 1 ON) or signed "
                         "(-1 OFF, +1 ON) (default: 01; never guessed)")
+    _add_sort(parser)
 
 
-def file_kwargs(args: argparse.Namespace) -> dict[str, int | str | None]:
+def _add_sort(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--sort", action="store_true",
+                        help="sort the events by time where the file's time goes back (ECD text, .npy, AEDAT4: "
+                             "files read whole; default: refuse such a file)")
+
+
+def file_kwargs(args: argparse.Namespace, path: Path | None = None) -> dict[str, int | str | None]:
     """The :func:`cmax.io.read` keywords of :func:`add_file_options`' options, or of
-    :func:`add_recording_arguments`' (``polarity`` only when given: those have none).
+    :func:`add_recording_arguments`' (``polarity`` only when given: those have none; ``sort`` only when given,
+    and refused for a ``path`` (default ``args.file``) of a format read by time span from disk).
 
     >>> file_kwargs(argparse.Namespace(size=(346, 260), time_unit="us", polarity=None))
     {'width': 346, 'height': 260, 'time_unit': 'us'}
@@ -58,11 +66,17 @@ def file_kwargs(args: argparse.Namespace) -> dict[str, int | str | None]:
     options: dict[str, int | str | None] = {"width": width, "height": height, "time_unit": args.time_unit}
     if getattr(args, "polarity", None) is not None:
         options["polarity"] = args.polarity
+    if getattr(args, "sort", False):
+        from cmax.io import check_sortable, detect_format
+
+        path = args.file if path is None else path
+        check_sortable(path, detect_format(path), True)
+        options["sort"] = True
     return options
 
 
 def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--size``, ``--time-unit``, ``--t0``, ``--t1``: what a command reading any recording needs
+    """``--size``, ``--time-unit``, ``--t0``, ``--t1``, ``--sort``: what a command reading any recording needs
     (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
     parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
                         help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
@@ -73,6 +87,7 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
                         help="start, seconds after the first event (default: the first event)")
     parser.add_argument("--t1", type=nonnegative_float, default=None,
                         help="end, seconds after the first event (default: the last event)")
+    _add_sort(parser)
 
 
 def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str = "") -> None:

@@ -36,13 +36,16 @@ from cmax.io.prophesee import read_evt2, read_evt3, read_raw, write_evt2, write_
 from cmax.io.text import read_txt, write_txt
 
 __all__ = [
-    "FormatError", "detect_format", "read",
+    "FormatError", "SORTABLE_FORMATS", "check_sortable", "detect_format", "read",
     "H5Reader", "H5Writer", "read_h5", "write_h5",
     "read_mvsec", "read_txt", "write_txt", "read_aedat4", "read_aedat4_imu", "read_gyro",
     "read_raw", "read_evt2", "read_evt3", "write_evt2", "write_evt3",
 ]
 
 FORMATS = ("dsec", "mvsec", "txt", "aedat4", "raw", "npy")
+#: Formats decoded whole, which :func:`read` can sort by time (``sort=True``); the others are read a time span at
+#: a time from disk, so their events must be stored in time order.
+SORTABLE_FORMATS = ("txt", "npy", "aedat4")
 #: Suffixes of video files: frames, not events (:func:`detect_format` points them to ``cmax simulate``,
 #: :mod:`cmax.sim.convert` converts them).
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".ts")
@@ -99,7 +102,7 @@ def _holds_frames(folder: Path) -> bool:
 
 def read(
     path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
-    t0_us: int | None = None, t1_us: int | None = None, time_unit: str | None = None,
+    t0_us: int | None = None, t1_us: int | None = None, time_unit: str | None = None, sort: bool = False,
     **options: Any,
 ) -> Events:
     """Read events from any supported file, detecting its format.
@@ -120,6 +123,10 @@ def read(
         HDF5 with float times, ECD text or MVSEC in another unit than seconds,
         NumPy). Never guessed: float times without a stated unit are refused.
         AEDAT4 and Prophesee files store integer µs; another unit is refused.
+    sort : bool
+        Sort the events by time (stable) instead of refusing a file whose
+        time goes back; for the formats decoded whole (:data:`SORTABLE_FORMATS`:
+        ECD text, NumPy, AEDAT4), refused for the others.
     **options
         Passed to the format's reader (e.g. ``camera='right'`` for MVSEC,
         ``polarity='signed'`` for a DSEC, text or NumPy file storing -1/+1).
@@ -131,6 +138,7 @@ def read(
     path = Path(path)
     kind = detect_format(path)
     time_unit = check_time_unit(time_unit)
+    check_sortable(path, kind, sort)
     if kind == "dsec":
         return read_h5(path, width=width, height=height, t0_us=t0_us, t1_us=t1_us, time_unit=time_unit, **options)
     if kind == "mvsec":
@@ -141,7 +149,7 @@ def read(
     if kind in ("aedat4", "raw") and "polarity" in options:
         raise ValueError(f"{path} ({kind}) states its polarities itself; polarity={options['polarity']!r} does not apply")
     if kind == "aedat4":
-        events = read_aedat4(path, **options)
+        events = read_aedat4(path, sort=sort, **options)
         check_stated_size(width, height, events.sensor_size, path)
     elif kind == "raw":
         events = read_raw(path, width=width, height=height, t0_us=t0_us, t1_us=t1_us, **options)
@@ -149,9 +157,9 @@ def read(
         if width is None or height is None:
             raise ValueError(f"{path} ({kind}) stores no sensor size: pass width= and height= (cmax: --size WxH)")
         if kind == "txt":
-            events = read_txt(path, width=width, height=height, time_unit=time_unit, **options)
+            events = read_txt(path, width=width, height=height, time_unit=time_unit, sort=sort, **options)
         else:
-            events = _read_npy(path, width, height, time_unit=time_unit, **options)
+            events = _read_npy(path, width, height, time_unit=time_unit, sort=sort, **options)
     if t0_us is None and t1_us is None:
         return events
     return events.slice_time(
@@ -159,11 +167,21 @@ def read(
     )
 
 
+def check_sortable(path: str | os.PathLike, kind: str, sort: object) -> None:
+    """Refuse ``sort`` other than a bool, and ``sort=True`` for a ``kind`` of file not in :data:`SORTABLE_FORMATS`."""
+    if not isinstance(sort, (bool, np.bool_)):
+        raise TypeError(f"sort must be True or False, got {sort!r}")
+    if sort and kind not in SORTABLE_FORMATS:
+        raise ValueError(f"{path} ({kind}) is read a time span at a time from disk, so its events must be stored in "
+                         "time order; sorting applies to ECD text, .npy and AEDAT4 files")
+
+
 def _read_npy(
-    path: Path, width: int, height: int, *, time_unit: str | None = None, polarity: str = "01"
+    path: Path, width: int, height: int, *, time_unit: str | None = None, polarity: str = "01", sort: bool = False
 ) -> Events:
     """A structured ``.npy`` (fields x, y, t, p): integer ``t`` is µs unless ``time_unit`` says
-    otherwise, float ``t`` needs ``time_unit``; ``p`` in the stated encoding (0/1 by default)."""
+    otherwise, float ``t`` needs ``time_unit``; ``p`` in the stated encoding (0/1 by default); ``sort``: sort
+    by time (stable) instead of refusing a time that goes back."""
     polarity = check_polarity_encoding(polarity)
     try:
         array = np.load(path, mmap_mode="r", allow_pickle=False)
@@ -182,6 +200,6 @@ def _read_npy(
     t_us = times_to_us(t, time_unit or "us", f"{path}: field {fields['t']}")
     p = polarity_01(np.asarray(array[fields["p"]]), polarity, f"{path}: field {fields['p']}")
     try:
-        return Events(array["x"], array["y"], t_us, p, width, height)
+        return Events(array["x"], array["y"], t_us, p, width, height, sort=sort)
     except (TypeError, ValueError) as error:
         raise FormatError(f"{path}: {error}") from None

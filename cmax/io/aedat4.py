@@ -381,7 +381,7 @@ def _check_order(t: np.ndarray, where: str, what: str, sort: bool) -> np.ndarray
         return np.argsort(t, kind="stable")
     i = int(decreasing[0])
     raise FormatError(f"{where}: {what} time goes back ({t[i + 1]} µs after {t[i]} µs at index "
-                      f"{i + 1}); pass sort=True to sort by time")
+                      f"{i + 1}); pass sort=True to sort by time (cmax: --sort)")
 
 
 # -- public API ------------------------------------------------------------------------

@@ -22,7 +22,7 @@ __all__ = ["read_txt", "write_txt"]
 
 def read_txt(
     path: str | os.PathLike, *, width: int, height: int, time_unit: str | None = None,
-    polarity: str = "01",
+    polarity: str = "01", sort: bool = False,
 ) -> Events:
     """Read an ECD ``events.txt`` (``t[s] x y p`` per line) into :class:`Events`.
 
@@ -32,7 +32,8 @@ def read_txt(
     refused (integer microseconds are not ECD's seconds). Polarity is 0/1 (ECD's encoding) unless ``polarity='signed'`` states
     -1/+1; other values raise :class:`FormatError`. The file stores no sensor
     size, so ``width`` and ``height`` are required (ECD's DAVIS240C: 240 x 180).
-    Lines starting with ``#`` are comments.
+    Lines starting with ``#`` are comments. Time must not go back unless
+    ``sort=True`` (the events are then sorted by time, stable).
     """
     path = Path(path)
     unit = check_time_unit(time_unit) or "s"
@@ -54,7 +55,7 @@ def read_txt(
     t_us = times_to_us(table[:, 0], unit, f"{path}: column t")
     p = polarity_01(table[:, 3], polarity, f"{path}: column p")
     try:
-        return Events(table[:, 1], table[:, 2], t_us, p, width, height)
+        return Events(table[:, 1], table[:, 2], t_us, p, width, height, sort=sort)
     except ValueError as error:
         raise FormatError(f"{path}: {error}") from None
 

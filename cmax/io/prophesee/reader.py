@@ -215,7 +215,7 @@ def read_evt3(
     >>> import tempfile
     >>> from cmax.io.prophesee.writer import write_evt3
     >>> path = Path(tempfile.mkdtemp()) / "recording.raw"
-    >>> write_evt3(path, Events([3, 4, 5], [7, 7, 7], [100, 100, 250], [1, 1, 0], 1280, 720))
+    >>> path = write_evt3(path, Events([3, 4, 5], [7, 7, 7], [100, 100, 250], [1, 1, 0], 1280, 720))
     >>> events = read_evt3(path)
     >>> events.sensor_size, events.x.tolist(), events.t.tolist(), events.p.tolist()
     ((1280, 720), [3, 4, 5], [100, 100, 250], [1, 1, 0])
@@ -331,7 +331,7 @@ class RawWindows:
     >>> import tempfile
     >>> from cmax.io.prophesee.writer import write_evt3
     >>> path = Path(tempfile.mkdtemp()) / "recording.raw"
-    >>> write_evt3(path, Events([1, 2, 3, 4], [0, 0, 0, 0], [10, 20, 30, 40], [1, 0, 1, 0], 640, 480))
+    >>> path = write_evt3(path, Events([1, 2, 3, 4], [0, 0, 0, 0], [10, 20, 30, 40], [1, 0, 1, 0], 640, 480))
     >>> windows = RawWindows(path)
     >>> windows.first_us, windows.last_us, windows.window(15, 35).t.tolist(), windows.window(35, 50).t.tolist()
     (10, 40, [20, 30], [40])
