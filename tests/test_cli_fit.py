@@ -128,6 +128,11 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "0 of 1 windows fitted, 1 skipped (fewer than 1,000 events)" in captured.out
     assert "no window was fitted" in captured.err
+    # A window a hair shorter than the recording leaves an end too short to name: no note (was "note: None").
+    window_ms = (int(events.t[-1]) - int(events.t[0]) + 1) / 1000 - 0.05
+    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o2"), "--quiet",
+                 "--window-ms", f"{window_ms:.3f}"]) == 1
+    assert "None" not in capsys.readouterr().err
     assert "a longer --window-ms or a lower --min-events (at least 10) fits them" in captured.err
     assert "pass a longer window_us or a lower min_events" in captured.err         # fit_sequence's own warning
     assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet", "--min-events", "9"]) == 2

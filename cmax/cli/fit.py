@@ -179,7 +179,7 @@ def verdict_counts(counts: dict[str, int]) -> str:
 
 
 def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_motion: int = 0,
-           cell_noise: int = 0, unsteady: int = 0) -> list[str]:
+           cell_noise: int = 0, unsteady: int = 0, sparse: int = 0) -> list[str]:
     """What to try when at least half of the fitted windows are low parallax or ambiguous and unresolved (one
     line each; none otherwise); ``rotation_known``: the run held the rotation (``--gyro``, ``--omega``);
     ``no_motion``: how many of the low-parallax windows show no motion at all (the permutation test,
@@ -188,7 +188,9 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     (:attr:`~cmax.fitting.quality.LowMotionCause.CELL_NOISE`): too little motion, or parts that move
     differently, for which a longer window is no cure either; ``unsteady`` (se3): how many of the unresolved
     ambiguous windows are so because their motion is not steady (``Quality.unsteady``: a start or a stop), for
-    which a shorter window is the cure.
+    which a shorter window is the cure; ``sparse`` (se3): how many of the other unresolved ambiguous windows are
+    so because they were fitted on too few events per pixel (``Quality.sparse``), for which more events are the
+    cure.
 
     >>> advice({"ok": 1, "ambiguous": 0, "resolved": 0, "low_parallax": 3, "failed": 0}, "se3")[0][:40]
     '3 of 4 windows have too little parallax:'
@@ -215,9 +217,13 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     if total and model == "se3" and 2 * unresolved >= total:
         known = "" if rotation_known else ("a known rotation (--gyro, or --omega 0,0,0 for a rig that does not "
                                            "rotate) or ")
-        if unresolved > unsteady:
-            lines.append(f"{unresolved - unsteady} of {total} windows stay ambiguous (an alternative motion scores "
-                         f"as well): {known}a longer --window-ms tells them apart")
+        if unresolved > unsteady + sparse:
+            lines.append(f"{unresolved - unsteady - sparse} of {total} windows stay ambiguous (an alternative motion "
+                         f"scores as well): {known}a longer --window-ms tells them apart")
+        if sparse:
+            lines.append(f"{sparse} of {total} windows stay ambiguous because they were fitted on too few events per "
+                         "pixel to vouch for their direction (QualitySettings.min_event_density): a larger "
+                         "--max-events, or a longer --window-ms, gives them more")
         if unsteady:
             lines.append(f"{unsteady} of {total} windows stay ambiguous because the camera starts or stops inside "
                          "them (their event rate changes beyond QualitySettings.max_rate_change between their "
@@ -358,7 +364,8 @@ def run(args: argparse.Namespace) -> int:
     tail = uncovered_tail(first_us, last_us, window_us, step_us)
     if tail is not None:
         held = None if isinstance(events, StreamedEvents) else len(events.slice_time(*tail))
-        notes.append(tail_note(first_us, last_us, window_us, step_us, events=held, origin_us=origin_us))
+        note = tail_note(first_us, last_us, window_us, step_us, events=held, origin_us=origin_us)
+        notes += [note] if note else []     # None: too short an end to name
     for note in notes:
         print(f"cmax fit: note: {note}", file=sys.stderr)
     out.mkdir(parents=True, exist_ok=True)
@@ -404,10 +411,11 @@ def run(args: argparse.Namespace) -> int:
     late_notes = [hot_note] if (hot_note := hot_pixel_note(sequence.results)) else []
     causes = [None if r.quality is None else r.quality.cause for r in sequence.results]
     no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)
-    unsteady = sum(r.verdict is Verdict.AMBIGUOUS and r.quality.unsteady and not r.quality.resolved
-                   for r in sequence.results)
+    unresolved = [r.quality for r in sequence.results if r.verdict is Verdict.AMBIGUOUS and not r.quality.resolved]
+    unsteady = sum(q.unsteady for q in unresolved)
+    sparse = sum(q.sparse and not q.unsteady for q in unresolved)
     late_notes += advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None,
-                         no_motion, cell_noise, unsteady)
+                         no_motion, cell_noise, unsteady, sparse)
     failed = sum(r.verdict is Verdict.FAILED for r in sequence.results)
     if windows and failed == len(windows):
         late_notes.append(f"every fitted window failed ({failed}): no depth or motion of this run can be trusted "

@@ -22,7 +22,7 @@ from cmax.hot_pixels import no_pixels
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, motion_within_noise,
-                                  rate_change, shuffled_gain_test, verdict_of)
+                                  rate_change, shuffled_gain_test, sparse_reason, verdict_of)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -456,7 +456,8 @@ def fit(
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
-                                                  hold_omega=known_omega is not None, speed=scale, rate=rate),
+                                                  hold_omega=known_omega is not None, speed=scale,
+                                                  given=len(events), rate=rate),
                          hot_pixels=hot, seconds=time.perf_counter() - start)
     _warn(result, settings, low, pose is not None)
     return result
@@ -554,21 +555,24 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
 
 
 def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver, *, pose_known: bool,
-             hold_omega: bool, speed: float, rate: float | None = None) -> Quality:
+             hold_omega: bool, speed: float, given: int, rate: float | None = None) -> Quality:
     """The verdict of a finished fit (:class:`QualitySettings` ``w.settings.quality``) with the low-motion
     rule that fired, ``low`` (:func:`_low_motion`), and the window's :func:`cmax.fitting.quality.rate_change`
     ``rate`` (None: not measured); the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on se3 fits
-    with a fitted direction that did not fail and have parallax."""
+    with a fitted direction that did not fail and have parallax, and so does the rule of sparse windows
+    (:func:`cmax.fitting.quality.sparse_reason`; ``given``: the events of the window before subsampling)."""
     quality = w.settings.quality
     failed = [log.stage for log in result.stages if not log.success]
     alternatives, note = (), ("ambiguity not tested: the pose is given" if pose_known else
                               "ambiguity not tested: a model without translation" if result.model != "se3" else
                               "ambiguity not tested (QualitySettings.ambiguity_test False)")
-    tested = True
+    tested, sparse = True, ""
     if result.model == "se3" and not pose_known and quality.ambiguity_test and result.success and low is None:
         alternatives, note, tested = assess(w, result.v, result.omega, speed, quality, solver, hold_omega=hold_omega)
+        sparse = sparse_reason(result.events_used, given, w.ev.width, w.ev.height, quality.min_event_density)
     return verdict_of(success=result.success, failed_stages=failed, low_motion=low, alternatives=alternatives,
-                      note=note, untestable=not tested, rate=rate, max_rate_change=quality.max_rate_change)
+                      note=note, untestable=not tested, rate=rate, max_rate_change=quality.max_rate_change,
+                      sparse=sparse)
 
 
 def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_known: bool) -> None:

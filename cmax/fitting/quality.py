@@ -74,7 +74,7 @@ from cmax.warp import warp_se3
 
 __all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alternative", "Quality", "MotionScorer",
            "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
-           "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change"]
+           "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change", "sparse_reason"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
@@ -160,6 +160,9 @@ class Quality:
     unsteady : bool
         ``rate_change`` is over ``QualitySettings.max_rate_change``: the motion is not steady over the window
         (ambiguous: no single motion explains its events; ``fit_sequence`` gives it its neighbours' motion).
+    sparse : bool
+        The window was fitted on fewer events per pixel than ``QualitySettings.min_event_density``
+        (:func:`sparse_reason`): ambiguous, since the ambiguity test cannot vouch for its direction.
     """
 
     verdict: Verdict
@@ -171,6 +174,7 @@ class Quality:
     cause: LowMotionCause | None = None
     rate_change: float | None = None
     unsteady: bool = False
+    sparse: bool = False
 
     def summary(self) -> dict:
         """A JSON-ready dict (an infinite ``rate_change``, one half of the window without events, as None with
@@ -178,7 +182,7 @@ class Quality:
         rate = None if self.rate_change is None or not math.isfinite(self.rate_change) else self.rate_change
         return {"verdict": self.verdict.value, "reason": self.reason,
                 "cause": None if self.cause is None else self.cause.value,
-                "rate_change": rate, "unsteady": self.unsteady,
+                "rate_change": rate, "unsteady": self.unsteady, "sparse": self.sparse,
                 "alternatives": [{"name": a.name, "v": a.v.tolist(), "omega": a.omega.tolist(), "gain": a.gain,
                                   "noise": a.noise, "within_noise": a.within_noise} for a in self.alternatives],
                 "resolution": self.resolution, "resolved": self.resolved,
@@ -410,18 +414,39 @@ def _unsteady_reason(rate: float, max_rate_change: float) -> str:
             "a stop, something entering the view), so no single motion explains its events")
 
 
+def sparse_reason(fitted: int, given: int, width: int, height: int, min_event_density: float) -> str:
+    """The reason of a window too sparse to vouch for its direction, "" otherwise: ``fitted`` events (of ``given``;
+    fewer when ``FitSettings.max_events`` subsampled them) on a ``width`` x ``height`` image, under
+    ``min_event_density`` events per pixel. Nearly every event then lies alone in its pixel, and the contrast
+    of a wrong direction can beat its mirrored and rotation-swapped alternatives by more than their noise.
+
+    >>> sparse_reason(3000, 3000, 346, 260, 0.1)[:60]
+    '3,000 events on 346x260 pixels (0.033 per pixel, under min_ev'
+    >>> sparse_reason(60_000, 60_000, 346, 260, 0.1)
+    ''
+    """
+    density = fitted / (width * height)
+    if not density < min_event_density:
+        return ""
+    more = (f"; {given:,} were given: a larger FitSettings.max_events (cmax fit: --max-events) fits more of them"
+            if given > fitted else "; a longer window gives more events")
+    return (f"{fitted:,} events on {width}x{height} pixels ({density:.3f} per pixel, under min_event_density="
+            f"{min_event_density:g}): too sparse for the contrast to vouch for the direction{more}")
+
+
 # ----------------------------------------------------------------------------------------------
 # The verdict
 # ----------------------------------------------------------------------------------------------
 def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMotion | None,
                alternatives: Sequence[Alternative], note: str = "", untestable: bool = False,
-               rate: float | None = None, max_rate_change: float = math.inf) -> Quality:
+               rate: float | None = None, max_rate_change: float = math.inf, sparse: str = "") -> Quality:
     """The verdict from the fit's ``success`` (and the names of its failed stages), why its motion is too
     small to trust (None when it is not), the ambiguity test's ``alternatives`` and the window's
     :func:`rate_change` ``rate`` (None: not measured); the worst one wins (failed, low parallax, ambiguous,
     ok). ``untestable``: the ambiguity test was due but the window could not hold it (:func:`assess`'s
     ``tested`` False): ambiguous, since nothing tells the fitted direction from its mirror. A ``rate`` over
-    ``max_rate_change``: ambiguous and ``unsteady``, the motion is not steady over the window."""
+    ``max_rate_change``: ambiguous and ``unsteady``, the motion is not steady over the window. ``sparse``: the
+    :func:`sparse_reason` of the window ("" when it is not sparse): an ``ok`` becomes ambiguous and ``sparse``."""
     unsteady = "" if rate is None else _unsteady_reason(rate, max_rate_change)
     measured = dict(rate_change=rate, unsteady=bool(unsteady))
     if not success:
@@ -448,6 +473,8 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
         verdict, reason = Verdict.OK, note or "no alternative tested"
     if unsteady:
         verdict, reason = Verdict.AMBIGUOUS, f"{unsteady}; {reason}"
+    if sparse and verdict is Verdict.OK:
+        return Quality(Verdict.AMBIGUOUS, f"{sparse}; {reason}", tuple(alternatives), sparse=True, **measured)
     return Quality(verdict, reason, tuple(alternatives), **measured)
 
 

@@ -334,6 +334,11 @@ class QualitySettings:
         ``ambiguous`` and ``unsteady``: no constant velocity explains it, and ``fit_sequence`` gives it its
         neighbours' motion. Above 1; ``math.inf`` turns the test off (docs/quality.md: how the value was
         chosen).
+    min_event_density : float
+        se3 with a fitted direction: a window fitted on fewer events than this per pixel of the image (after
+        ``FitSettings.max_events``) is at best ``ambiguous`` and ``sparse``: its image of warped events holds
+        too few coincidences for the ambiguity test to vouch for the direction (docs/quality.md: the
+        measurement behind the value). 0 turns the rule off.
     """
 
     ambiguity_test: bool = True
@@ -354,6 +359,7 @@ class QualitySettings:
     smoothing_span_s: float = 1.7
     smoothing_min_deg: float = 1.0
     max_rate_change: float = 6.0
+    min_event_density: float = 0.1
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "smoothing"):
@@ -361,7 +367,7 @@ class QualitySettings:
                 raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
         object.__setattr__(self, "motion_cells", _grid("motion_cells", self.motion_cells))
         for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg", "motion_noise_sigmas",
-                     "smoothing_min_deg", "smoothing_span_s"):
+                     "smoothing_min_deg", "smoothing_span_s", "min_event_density"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
