@@ -460,3 +460,18 @@ def test_rate_change_summary_row_counts_windows_over_the_threshold():
     row = summary_row("set", [1.0, 1.2, 1.4, 9.0], 6.0)
     # median of 1.0, 1.2, 1.4, 9.0 is 1.3; numpy's p99 interpolates 1.4 + 0.97 * 7.6 = 8.772
     assert row == "| set | 4 | 1.30 | 8.77 | 9.00 | 1 |"
+
+
+def test_quality_sparse_table_counts_the_ok_and_the_bad_ok_verdicts_of_each_rule():
+    from benchmarks.quality_sparse import table
+    from cmax.fitting import Verdict
+
+    def row(count, error, off, on):
+        return {"count": count, "density": count / 89_960, "error_deg": error, "off": off, "on": on,
+                "sparse": off is Verdict.OK and on is not Verdict.OK, "same_motion": True}
+
+    rows = [row(3000, 50.0, Verdict.OK, Verdict.AMBIGUOUS), row(3000, 10.0, Verdict.OK, Verdict.AMBIGUOUS),
+            row(3000, 70.0, Verdict.AMBIGUOUS, Verdict.AMBIGUOUS), row(40000, 5.0, Verdict.OK, Verdict.OK)]
+    lines = table(rows)
+    assert lines[2] == ("| 3,000 | 0.033 | 3 | 50.0 | 2 (1 bad: 50, 10 deg) | 0 (0 bad) | 2 | 3 of 3 |")
+    assert lines[3] == ("| 40,000 | 0.445 | 1 | 5.0 | 1 (0 bad: 5 deg) | 1 (0 bad: 5 deg) | 0 | 1 of 1 |")

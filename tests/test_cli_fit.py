@@ -568,3 +568,20 @@ def test_a_whole_h5_file_too_long_to_hold_is_fitted_window_by_window(tmp_path, c
     assert len(held) == len(streamed) == 6
     for a, b in zip(held, streamed):
         assert (a["t0_us"], a["t1_us"], a["flow"]) == (b["t0_us"], b["t1_us"], b["flow"])
+
+
+@pytest.mark.parametrize("options, message", [
+    (["--model", "flow", "--speed", "1.5"], "--speed applies to --model se3, not flow"),
+    (["--model", "rotation", "--zero-rotation-start"], "--zero-rotation-start applies to --model se3, not rotation"),
+    (["--omega", "0,0,0", "--gyro", "g.txt"], "--omega is a constant rotation, --gyro a measured one"),
+    (["--depth-range", "3,1"], "--depth-range must satisfy 0 < near < far (metres), got (3.0, 1.0)"),
+    (["--max-events", "5"], "--max-events must be >= 10, got 5"),
+])
+def test_options_are_checked_before_the_file_is_read_in_the_options_words(tmp_path, capsys, options, message):
+    """A contradicting or bad option is named at once, as the option (was: after reading the file, as the library's
+    keyword, e.g. "speed, pose and omega apply to model='se3'", "depth_range must satisfy"): the file here does
+    not even exist."""
+    argv = ["fit", str(tmp_path / "missing.h5"), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), *options]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    assert message in err and "missing.h5" not in err, err

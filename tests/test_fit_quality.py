@@ -355,11 +355,11 @@ def test_a_sparse_window_is_never_ok():
     how many events on how many pixels and what gives more; the worse verdicts stay; 0 turns the rule off."""
     from cmax.fitting.quality import sparse_reason
 
-    reason = sparse_reason(3000, 3000, 346, 260, 0.1)
-    assert reason.startswith("3,000 events on 346x260 pixels (0.033 per pixel, under min_event_density=0.1)")
+    reason = sparse_reason(3000, 3000, 346, 260, 0.25)
+    assert reason.startswith("3,000 events on 346x260 pixels (0.033 per pixel, under min_event_density=0.25)")
     assert "a longer window gives more events" in reason
-    assert "219,551 were given: a larger FitSettings.max_events" in sparse_reason(60_000, 219_551, 1280, 720, 0.1)
-    assert sparse_reason(9_000, 9_000, 346, 260, 0.1) == "" and sparse_reason(10, 10, 346, 260, 0.0) == ""
+    assert "219,551 were given: a larger FitSettings.max_events" in sparse_reason(60_000, 219_551, 1280, 720, 0.25)
+    assert sparse_reason(23_000, 23_000, 346, 260, 0.25) == "" and sparse_reason(10, 10, 346, 260, 0.0) == ""
     ok = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 1.0)],
                     sparse=reason)
     assert ok.verdict is Verdict.AMBIGUOUS and ok.sparse and ok.reason.startswith(reason + "; every alternative")

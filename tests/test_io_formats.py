@@ -132,3 +132,26 @@ def test_a_file_whose_time_goes_back_is_sorted_when_asked(tmp_path, capsys):
     assert "sorting applies to ECD text, .npy and AEDAT4 files" in capsys.readouterr().err
     with pytest.raises(TypeError, match="sort must be True or False"):
         read(text, width=64, height=48, sort="yes")
+
+
+def test_rpg_e2vid_text_states_its_size_on_its_first_line(tmp_path):
+    """rpg_e2vid's events.txt: a 'W H' line, then 't x y p' (was: numpy's "use `usecols`" advice, and the size
+    asked for although the file states it). Read with its size; a contradicting size refused; a file in 'x y t p'
+    order is named as such (was: a bare "t must be sorted")."""
+    events = random_events(200, width=64, height=48)
+    lines = "".join(f"{t * 1e-6:.6f} {x} {y} {p}\n" for t, x, y, p in zip(events.t, events.x, events.y, events.p))
+    path = tmp_path / "events.txt"
+    path.write_text("64 48\n" + lines)
+    assert read(path) == events and read(path, width=64, height=48) == events
+    with pytest.raises(ValueError, match=r"width=240, height=180 contradicts the 64x48 sensor that .*its first line"):
+        read(path, width=240, height=180)
+    (tmp_path / "ragged.txt").write_text("0.1 1 2 1\n0.2 1 2\n")
+    with pytest.raises(FormatError) as error:
+        read(tmp_path / "ragged.txt", width=64, height=48)
+    assert "usecols" not in str(error.value)
+    swapped = tmp_path / "xytp.txt"
+    swapped.write_text("".join(f"{x} {y} {t} {p}\n" for t, x, y, p in zip(events.t, events.x, events.y, events.p)))
+    with pytest.raises(FormatError, match=r"the columns look like 'x y t p', but ECD text is 't x y p'"):
+        read(swapped, width=64, height=48)
+    with pytest.raises(ValueError, match=r"stores no sensor size: pass width= and height= \(cmax: --size WxH\)"):
+        read(tmp_path / "ragged.txt")

@@ -29,7 +29,7 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
                                 tail_note)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
-__all__ = ["add_command", "advice", "grouped_warnings", "hot_pixel_note", "run", "tum_lines", "undistorted_events", "verdict_counts",
+__all__ = ["OPTION_OF_SETTING", "add_command", "advice", "grouped_warnings", "hot_pixel_note", "option_words", "run", "tum_lines", "undistorted_events", "verdict_counts",
            "window_line"]
 
 
@@ -126,6 +126,22 @@ def tum_lines(times_us: np.ndarray, poses: np.ndarray) -> list[str]:
     quats = Rotation.from_matrix(poses[:, :3, :3]).as_quat()  # x, y, z, w
     return [f"{t * 1e-6:.6f} " + " ".join(f"{v:.9f}" for v in (*T[:3, 3], *q))
             for t, T, q in zip(times_us, poses, quats)]
+
+
+#: The settings of :class:`cmax.FitSettings` that ``cmax fit`` options give, by the option's name.
+OPTION_OF_SETTING = {"depth_range": "--depth-range", "max_events": "--max-events", "motion_members": "--members",
+                     "depth_grid": "--depth-grid", "polish": "--polish", "solver": "--solver"}
+
+
+def option_words(message: str) -> str:
+    """A settings error in the command line's words: each setting :data:`OPTION_OF_SETTING` names, as its option.
+
+    >>> option_words("depth_range must satisfy 0 < near < far (metres), got (3.0, 1.0)")
+    '--depth-range must satisfy 0 < near < far (metres), got (3.0, 1.0)'
+    """
+    import re
+
+    return re.sub(r"\b(" + "|".join(OPTION_OF_SETTING) + r")\b", lambda m: OPTION_OF_SETTING[m.group(1)], message)
 
 
 def _microseconds(ms: float, option: str) -> int:
@@ -295,6 +311,34 @@ def run(args: argparse.Namespace) -> int:
     from cmax.warp import DepthGrid
 
     out = output_folder(args.output, "the depth maps and the summary")
+    # The options are checked before the file is read (a mistake is named at once, in the options' words):
+    sequence_model = args.model or _sequence_default("model")()
+    for option, given in (("--omega", args.omega is not None), ("--speed", args.speed is not None),
+                          ("--gyro", args.gyro is not None), ("--zero-rotation-start", args.zero_rotation_start)):
+        if given and sequence_model != "se3":
+            raise ValueError(f"{option} applies to --model se3, not {sequence_model}")
+    if args.omega is not None and args.gyro is not None:
+        raise ValueError("--omega is a constant rotation, --gyro a measured one: pass one of them")
+    options = {key: value for key, value in (("solver", args.solver), ("depth_grid", args.depth_grid),
+                                             ("max_events", args.max_events),
+                                             ("motion_members", args.members), ("depth_range", args.depth_range),
+                                             ("polish", args.polish))
+               if value is not None}
+    if args.keep_hot_pixels:
+        options["hot_pixels"] = None
+    # None above: the library's default (one source: fit_sequence / fit / FitSettings)
+    try:
+        FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})
+    except ValueError as error:
+        raise ValueError(option_words(str(error))) from None
+    min_events = args.min_events or _sequence_default("min_events")()
+    if min_events < MIN_WINDOW_EVENTS:
+        raise ValueError(f"--min-events must be at least {MIN_WINDOW_EVENTS} (the fewest events a window can be "
+                         f"fitted with), got {min_events}")
+    depth_grid = tuple(args.depth_grid or _fit_default("depth_grid")())
+    window_us = (_sequence_default("window_us")() if args.window_ms is None
+                 else _microseconds(args.window_ms, "--window-ms"))
+    step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
     K, distortion, calib_size = calibration_of(args)
     if K is None:
         K = file_intrinsics(args.file)
@@ -322,37 +366,14 @@ def run(args: argparse.Namespace) -> int:
             notes.append(f"{total - len(events):,} events fall outside the image once undistorted (dropped)")
     gyro = None
     if args.omega is not None:
-        if args.model not in (None, "se3"):
-            raise ValueError(f"--omega applies to --model se3, not {args.model}")
-        if args.gyro is not None:
-            raise ValueError("--omega is a constant rotation, --gyro a measured one: pass one of them")
         first_us, last_us = event_span(events)
         gyro = constant_gyro(args.omega, first_us, last_us + 1)
     if args.gyro is not None:
         gyro = check_gyro(read_gyro(args.gyro))
         events, note = overlap(events, gyro[0], "gyro samples", args.gyro, "fitting the overlap")
         notes += [note] if note else []
-    options = {key: value for key, value in (("solver", args.solver), ("depth_grid", args.depth_grid),
-                                             ("max_events", args.max_events),
-                                             ("motion_members", args.members), ("depth_range", args.depth_range),
-                                             ("polish", args.polish))
-               if value is not None}
-    if args.keep_hot_pixels:
-        options["hot_pixels"] = None
-    # None above: the library's default (one source: fit_sequence / fit / FitSettings). Checked here, before the
-    # progress bar starts:
-    FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})
-    min_events = args.min_events or _sequence_default("min_events")()
-    if min_events < MIN_WINDOW_EVENTS:
-        raise ValueError(f"--min-events must be at least {MIN_WINDOW_EVENTS} (the fewest events a window can be "
-                         f"fitted with), got {min_events}")
-    sequence_model = args.model or _sequence_default("model")()
-    depth_grid = tuple(args.depth_grid or _fit_default("depth_grid")())
     if sequence_model == "se3":
         DepthGrid(depth_grid, events.width, events.height)
-    window_us = (_sequence_default("window_us")() if args.window_ms is None
-                 else _microseconds(args.window_ms, "--window-ms"))
-    step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
     first_us, last_us = event_span(events)
     span_us = last_us - first_us + 1
     if window_us > span_us:
@@ -387,7 +408,7 @@ def run(args: argparse.Namespace) -> int:
             events.close()
     warned = grouped_warnings(caught)
     for line in warned:
-        print(f"cmax fit: warning: {line['text']}", file=sys.stderr)
+        print(f"cmax fit: warning: {option_words(line['text'])}", file=sys.stderr)
     windows = []
     scale = _depth_scale(sequence.results, args.depth_range)
     for i, r in enumerate(sequence.results):

@@ -420,9 +420,9 @@ def sparse_reason(fitted: int, given: int, width: int, height: int, min_event_de
     ``min_event_density`` events per pixel. Nearly every event then lies alone in its pixel, and the contrast
     of a wrong direction can beat its mirrored and rotation-swapped alternatives by more than their noise.
 
-    >>> sparse_reason(3000, 3000, 346, 260, 0.1)[:60]
-    '3,000 events on 346x260 pixels (0.033 per pixel, under min_ev'
-    >>> sparse_reason(60_000, 60_000, 346, 260, 0.1)
+    >>> sparse_reason(3000, 3000, 346, 260, 0.25)[:60]
+    '3,000 events on 346x260 pixels (0.033 per pixel, under min_e'
+    >>> sparse_reason(60_000, 60_000, 346, 260, 0.25)
     ''
     """
     density = fitted / (width * height)

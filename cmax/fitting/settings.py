@@ -359,7 +359,7 @@ class QualitySettings:
     smoothing_span_s: float = 1.7
     smoothing_min_deg: float = 1.0
     max_rate_change: float = 6.0
-    min_event_density: float = 0.1
+    min_event_density: float = 0.25
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "smoothing"):

@@ -5,7 +5,7 @@ format              detected by                 reader
 ==================  ==========================  =====================================
 DSEC HDF5           ``events/{x,y,t,p}``        :func:`read_h5`, :class:`H5Reader`
 MVSEC HDF5          ``davis/<cam>/events``      :func:`read_mvsec`
-ECD text            ``.txt``                    :func:`read_txt` (needs width/height)
+ECD text            ``.txt``                    :func:`read_txt` (width/height, or a ``W H`` first line)
 AEDAT 4.0           ``#!AER-DAT4.0`` magic      :func:`read_aedat4`, :func:`read_aedat4_imu`
 Prophesee EVT2/3    ``%`` header, ``.raw``      :func:`read_raw`, :func:`read_evt2`, :func:`read_evt3`
 NumPy               ``.npy`` structured x,y,t,p :meth:`Events.from_structured`
@@ -153,13 +153,12 @@ def read(
         check_stated_size(width, height, events.sensor_size, path)
     elif kind == "raw":
         events = read_raw(path, width=width, height=height, t0_us=t0_us, t1_us=t1_us, **options)
+    elif kind == "txt":       # rpg_e2vid's text files state their size on their first line
+        events = read_txt(path, width=width, height=height, time_unit=time_unit, sort=sort, **options)
     else:
         if width is None or height is None:
             raise ValueError(f"{path} ({kind}) stores no sensor size: pass width= and height= (cmax: --size WxH)")
-        if kind == "txt":
-            events = read_txt(path, width=width, height=height, time_unit=time_unit, sort=sort, **options)
-        else:
-            events = _read_npy(path, width, height, time_unit=time_unit, sort=sort, **options)
+        events = _read_npy(path, width, height, time_unit=time_unit, sort=sort, **options)
     if t0_us is None and t1_us is None:
         return events
     return events.slice_time(

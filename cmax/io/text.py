@@ -13,7 +13,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax.events import Events
-from cmax.io._checks import check_polarity_encoding, check_time_unit, polarity_01, times_to_us
+from cmax.io._checks import check_polarity_encoding, check_stated_size, check_time_unit, polarity_01, times_to_us
 from cmax.io.atomic import AtomicOutput, write_with
 from cmax.io.errors import FormatError
 
@@ -21,7 +21,7 @@ __all__ = ["read_txt", "write_txt"]
 
 
 def read_txt(
-    path: str | os.PathLike, *, width: int, height: int, time_unit: str | None = None,
+    path: str | os.PathLike, *, width: int | None = None, height: int | None = None, time_unit: str | None = None,
     polarity: str = "01", sort: bool = False,
 ) -> Events:
     """Read an ECD ``events.txt`` (``t[s] x y p`` per line) into :class:`Events`.
@@ -31,25 +31,38 @@ def read_txt(
     even); a column of whole numbers only, read without a stated unit, is
     refused (integer microseconds are not ECD's seconds). Polarity is 0/1 (ECD's encoding) unless ``polarity='signed'`` states
     -1/+1; other values raise :class:`FormatError`. The file stores no sensor
-    size, so ``width`` and ``height`` are required (ECD's DAVIS240C: 240 x 180).
-    Lines starting with ``#`` are comments. Time must not go back unless
-    ``sort=True`` (the events are then sorted by time, stable).
+    size, so ``width`` and ``height`` are required (ECD's DAVIS240C: 240 x 180),
+    unless its first line states it as rpg_e2vid's ``events.txt`` does (``W H``;
+    a size given too must equal it). Lines starting with ``#`` are comments.
+    Time must not go back unless ``sort=True`` (the events are then sorted by
+    time, stable); a file whose third column is the sorted one is refused as
+    ``x y t p`` columns, not ECD's order.
     """
     path = Path(path)
     unit = check_time_unit(time_unit) or "s"
     polarity = check_polarity_encoding(polarity)
+    header, skip = _size_header(path)
+    if header is not None:
+        width, height = check_stated_size(width, height, header, f"{path} (its first line)")
+    elif width is None or height is None:
+        raise ValueError(f"{path} (txt) stores no sensor size: pass width= and height= (cmax: --size WxH)")
     try:
         with warnings.catch_warnings():  # an empty file is no events, not a warning
             warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
-            table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#")
+            table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", skiprows=skip)
     except (ValueError, UnicodeDecodeError) as error:
-        raise FormatError(f"{path} is not an ECD text file of 't x y p' lines ({error})") from None
+        text = str(error).split("; use `usecols`")[0]      # numpy's advice on selecting columns does not apply
+        raise FormatError(f"{path} is not an ECD text file of 't x y p' lines ({text})") from None
     if table.size == 0:
         return Events.empty(width, height)
     if table.shape[1] != 4:
         raise FormatError(f"{path}: expected 4 columns 't x y p', found {table.shape[1]}")
     if not np.isfinite(table[:, 1:]).all():
         raise FormatError(f"{path} contains non-finite numbers")
+    if (not sort and len(table) >= 10 and (np.diff(table[:, 0]) < 0).any() and (np.diff(table[:, 2]) >= 0).all()
+            and table[-1, 2] > table[0, 2]):
+        raise FormatError(f"{path}: column 1 goes back in time while column 3 never does: the columns look like "
+                          "'x y t p', but ECD text is 't x y p' (reorder them, e.g. awk '{print $3, $1, $2, $4}')")
     if time_unit is None:
         _refuse_whole_seconds(table[:, 0], path)
     t_us = times_to_us(table[:, 0], unit, f"{path}: column t")
@@ -58,6 +71,23 @@ def read_txt(
         return Events(table[:, 1], table[:, 2], t_us, p, width, height, sort=sort)
     except ValueError as error:
         raise FormatError(f"{path}: {error}") from None
+
+
+def _size_header(path: Path) -> tuple[tuple[int, int] | None, int]:
+    """``((width, height), lines to skip)`` when the first line that is not a comment holds exactly two positive
+    integers (rpg_e2vid's ``events.txt`` header), else ``(None, 0)``."""
+    try:
+        with open(path, "rb") as file:
+            for number, line in enumerate(file):
+                words = line.split()
+                if not words or words[0].startswith(b"#"):
+                    continue
+                if len(words) == 2 and all(word.isdigit() and int(word) > 0 for word in words):
+                    return (int(words[0]), int(words[1])), number + 1
+                return None, 0
+    except OSError as error:
+        raise FormatError(f"{path} cannot be read ({error})") from None
+    return None, 0
 
 
 #: This many distinct times, every one a whole number, are not seconds of an event camera.
