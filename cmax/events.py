@@ -164,7 +164,8 @@ def _as_column(name: str, values: object) -> np.ndarray:
             bad = int(np.flatnonzero(array != np.round(array))[0])
             raise ValueError(
                 f"{name} must hold whole numbers, got {array[bad]} at index {bad}"
-                + (" (times are integer microseconds)" if name == "t" else "")
+                + (" (times are integer microseconds; from float seconds: np.rint(t * 1e6).astype(np.int64))"
+                   if name == "t" else "")
             )
     return array
 
