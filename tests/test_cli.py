@@ -101,6 +101,7 @@ def test_scene_command_writes_events_and_ground_truth(tmp_path, capsys):
     sequence = load_sequence(out)
     assert len(sequence.events) > 1000 and sequence.events.sensor_size == (96, 72)
     assert sequence.depth.shape == (3, 72, 96)  # depth maps at 0, 50 and 100 ms
+    assert sequence.attrs["simulated_s"] == [0.0, 0.1]     # the file says what was simulated (its scene: 1 s)
     # Slider: pure translation along x, depth within the preset's stated 0.4-3 m.
     valid = np.isfinite(sequence.depth)
     assert 0.4 <= sequence.depth[valid].min() and sequence.depth[valid].max() <= 3.0

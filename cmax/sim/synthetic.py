@@ -335,6 +335,7 @@ def simulate_scene(
     settings = {name: value for name, value in dataclasses.asdict(simulator.settings).items()}
     attrs: dict[str, Any] = {
         "source": "cmax.sim.simulate_scene",
+        "simulated_s": [float(t0_s), float(t_end)],   # the span simulated; scene.duration_s is the scene's design
         "simulator": settings,
         "sampling": {"lam": lam, "C": C, "min_step_s": min_step_s, "max_step_s": max_step_s,
                      "rate": "analytic motion-field bound max|grad L . u|"},
