@@ -153,7 +153,7 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     (["--K", "60,60,32,24", "--t0", "0.2"], "--t0 0.2 s is past the recording's last event ("),
     (["--K", "60,60,32,24", "-o", "CALIB"], "is a file, not a folder"),
     (["--K", "60,60,32,24", "--depth-range", "3,nan"], "argument --depth-range"),
-    (["--K", "60,60,32,24", "--depth-range", "5,1"], "depth_range must satisfy 0 < near < far"),  # before the bar
+    (["--K", "60,60,32,24", "--depth-range", "5,1"], "--depth-range must satisfy 0 < near < far"),  # before the bar
     (["--K", "60,60,32,24", "--depth-grid", "24,0"], "argument --depth-grid"),
     (["--K", "60,60,32,24", "--depth-grid", "49,32"], "finer than the image 48x64 (rows x columns; cmax fit: "
                                                       "--depth-grid ROWS,COLS)"),
