@@ -121,8 +121,8 @@ class SemiDenseDepth:
     hot_pixels: np.ndarray = field(default_factory=no_pixels)
 
     def image(self, scale: "viz.DepthScale | tuple[float, float] | None" = None, *, zoom: int = 1) -> np.ndarray:
-        """Picture (BGR uint8): the confidence map (its grey scale in the title: white no vote, black the 99th
-        percentile of the votes and above) beside the depth with its colour bar [m].
+        """Picture (BGR uint8): the confidence map (the DSI's maximum per pixel; its grey scale in the title:
+        white no vote, black the 99th percentile of the votes and above) beside the depth with its colour bar [m].
 
         ``scale`` (a :class:`cmax.viz.DepthScale`, or ``(near, far)`` metres) gives several maps one
         colour scale; default: the 1st-99th percentiles of the map's own depths (the DSI's depth range when
@@ -138,8 +138,7 @@ class SemiDenseDepth:
         grey = viz.enlarge((255 * (1.0 - np.clip(confidence / top, 0, 1))).astype(np.uint8), zoom)
         depth = viz.enlarge(np.where(self.mask, self.depth, np.nan), zoom)
         return viz.hstack([
-            viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR),
-                       f"confidence (DSI max): white 0, black >= {top:.3g} votes"),
+            viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), f"confidence 0-{top:.3g} votes"),
             viz.depth_panel(depth, self._own_scale() if scale is None else scale,
                             f"semi-dense depth, {int(self.mask.sum())} px"),
         ])
