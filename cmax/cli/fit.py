@@ -29,8 +29,8 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
                                 tail_note)
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
-__all__ = ["OPTION_OF_SETTING", "add_command", "advice", "grouped_warnings", "hot_pixel_note", "option_words", "run", "tum_lines", "undistorted_events", "verdict_counts",
-           "window_line"]
+__all__ = ["OPTION_OF_SETTING", "add_command", "advice", "grouped_warnings", "hot_pixel_note", "option_words", "run",
+           "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
 
 
 def add_command(subparsers) -> argparse.ArgumentParser:
@@ -250,7 +250,7 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
 def grouped_warnings(caught: list) -> list[dict]:
     """The warnings of a run (``warnings.catch_warnings(record=True)``), one entry per kind: the same category and
     the same words once the numbers are left out (a warning of every window is said once, with how often it came).
-    Each entry: ``category`` (class name), ``windows`` (how many times it came), ``message`` (the first one) and
+    Each entry: ``category`` (class name), ``count`` (how many times it came), ``message`` (the first one) and
     ``text`` (the line to print).
 
     >>> import warnings
@@ -264,10 +264,10 @@ def grouped_warnings(caught: list) -> list[dict]:
     for item in caught:
         message = str(item.message)
         key = (item.category.__name__, re.sub(r"[-+]?\d[\d.,:e+-]*", "#", message))
-        entry = groups.setdefault(key, {"category": key[0], "windows": 0, "message": message})
-        entry["windows"] += 1
+        entry = groups.setdefault(key, {"category": key[0], "count": 0, "message": message})
+        entry["count"] += 1
     for entry in groups.values():
-        times = f" ({entry['windows']} times; the first)" if entry["windows"] > 1 else ""
+        times = f" ({entry['count']} times; the first)" if entry["count"] > 1 else ""
         entry["text"] = f"{entry['category']}{times}: {entry['message']}"
     return list(groups.values())
 
@@ -455,7 +455,7 @@ def run(args: argparse.Namespace) -> int:
                "members": args.members or _settings_default("motion_members")(),
                "polish": args.polish or _settings_default("polish")().value,
                "warm_start": args.jobs == 1, "keep_hot_pixels": args.keep_hot_pixels, "notes": notes + late_notes,
-               "warnings": [{key: line[key] for key in ("category", "windows", "message")} for line in warned],
+               "warnings": [{key: line[key] for key in ("category", "count", "message")} for line in warned],
                "windows_total": n_windows, "skipped_us": sequence.skipped_us.tolist(),
                "uncovered_us": None if sequence.uncovered_us is None else list(sequence.uncovered_us),
                "verdicts": sequence.counts(), "windows": windows}
