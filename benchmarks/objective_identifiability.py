@@ -79,6 +79,12 @@ LR = 0.05
 WORSE_BY = 0.05
 
 
+#: Weights of the plane vote added to the shared objective (``average_timestamp_tv+<w>plane_vote``): the average
+#: timestamp puts the sparse events of low-texture regions (a night road) too far, the vote of all events at one
+#: depth does not. 0.5 was chosen among 0.25, 0.5 and 1 on the tuning seeds 1-2 (docs/contrast_objective.md).
+PLANE_VOTE_WEIGHTS = (0.5,)
+
+
 def objectives(rho_range: tuple[float, float]) -> dict[str, object]:
     """The candidates, by name (settings chosen on the tuning seeds)."""
     return {
@@ -90,6 +96,9 @@ def objectives(rho_range: tuple[float, float]) -> dict[str, object]:
         "plane_vote_profile_tv": PlaneVote(rho_range=rho_range, smoothness=0.003, motion_weight=2.0),
         "local_contrast_tv": LocalContrast(smoothness=0.003),
         "global_contrast": WeightedSum(((1.0, GlobalContrast()), (0.1, CollapseGuard()))),
+        **{f"average_timestamp_tv+{weight:g}plane_vote": WeightedSum(
+            ((1.0, AverageTimestamp(smoothness=0.003)), (weight, PlaneVote(rho_range=rho_range))))
+           for weight in PLANE_VOTE_WEIGHTS},
     }
 
 
@@ -167,7 +176,10 @@ def motion_alternatives(twist: np.ndarray) -> dict[str, np.ndarray]:
 
 def _with_motion(objective, batch: EventWindows, twist: torch.Tensor):
     """``objective`` with what it computes from a known ``twist`` alone fixed (the sweep vote's normaliser,
-    the plane vote's planes), else itself: the same values for a depth-only descent, computed once."""
+    the plane vote's planes; each term of a weighted sum), else itself: the same values for a depth-only descent,
+    computed once."""
+    if isinstance(objective, WeightedSum):
+        return WeightedSum(tuple((weight, _with_motion(term, batch, twist)) for weight, term in objective.terms))
     return objective.with_motion(batch, twist) if isinstance(objective, (SweepVote, PlaneVote)) else objective
 
 
@@ -288,7 +300,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--sizes", default="160x120,346x260")
     parser.add_argument("--presets", default=",".join(PRESETS))
     parser.add_argument("--objectives", default="average_timestamp,average_timestamp_tv,sweep_vote,plane_vote_tv,"
-                        "plane_vote_window_tv,plane_vote_profile_tv,local_contrast_tv,global_contrast")
+                        "plane_vote_window_tv,plane_vote_profile_tv,local_contrast_tv,global_contrast,"
+                        "average_timestamp_tv+0.5plane_vote")
     parser.add_argument("--cache", type=Path, default=None, help="folder to keep simulated windows between runs")
     parser.add_argument("--out", type=Path, default=RESULTS / "objective_identifiability.md")
     args = parser.parse_args(argv)

@@ -214,3 +214,16 @@ def test_learned_loss_is_the_core_objective(windows):
     twist = torch.as_tensor(w.twist, dtype=torch.float32)[None]
     loss, _ = losses.student_loss(rho, twist, batch, teacher_inverse_depth=None)
     assert float(loss) == pytest.approx(float(SHARED_OBJECTIVE(batch, DepthMotion(rho, twist))[0]), abs=1e-6)
+
+
+def test_the_identifiability_benchmark_fixes_the_planes_of_every_term_of_a_weighted_sum():
+    """benchmarks.objective_identifiability's combined candidate (the shared objective plus a plane vote): its
+    depth-only copy images the plane vote's planes once and gives the same values as the sum itself."""
+    from benchmarks.objective_identifiability import _with_motion
+
+    batch, params = _tiny()
+    combined = WeightedSum(((1.0, AverageTimestamp(smoothness=0.003)), (0.5, PlaneVote(rho_range=(0.2, 1.0), planes=6))))
+    fixed = _with_motion(combined, batch, params.twist.detach())
+    assert isinstance(fixed, WeightedSum) and fixed.terms[0][1] is combined.terms[0][1]
+    assert fixed.terms[1][1].values is not None and fixed.terms[1][0] == 0.5
+    torch.testing.assert_close(fixed(batch, params), combined(batch, params))
