@@ -151,7 +151,8 @@ def test_rpg_e2vid_text_states_its_size_on_its_first_line(tmp_path):
     assert "usecols" not in str(error.value)
     swapped = tmp_path / "xytp.txt"
     swapped.write_text("".join(f"{x} {y} {t} {p}\n" for t, x, y, p in zip(events.t, events.x, events.y, events.p)))
-    with pytest.raises(FormatError, match=r"the columns look like 'x y t p', but ECD text is 't x y p'"):
-        read(swapped, width=64, height=48)
+    for sort in (False, True):           # sorting by the x column would not mend the order
+        with pytest.raises(FormatError, match=r"the columns look like 'x y t p', but ECD text is 't x y p'"):
+            read(swapped, width=64, height=48, sort=sort)
     with pytest.raises(ValueError, match=r"stores no sensor size: pass width= and height= \(cmax: --size WxH\)"):
         read(tmp_path / "ragged.txt")

@@ -29,8 +29,9 @@ def read_txt(
     Time stamps are in seconds (ECD's unit) unless ``time_unit`` states another
     (``'ms'``, ``'us'``), and are rounded to the nearest microsecond (half to
     even); a column of whole numbers only, read without a stated unit, is
-    refused (integer microseconds are not ECD's seconds). Polarity is 0/1 (ECD's encoding) unless ``polarity='signed'`` states
-    -1/+1; other values raise :class:`FormatError`. The file stores no sensor
+    refused (integer microseconds are not ECD's seconds). Polarity is 0/1
+    (ECD's encoding) unless ``polarity='signed'`` states -1/+1; other values
+    raise :class:`FormatError`. The file stores no sensor
     size, so ``width`` and ``height`` are required (ECD's DAVIS240C: 240 x 180),
     unless its first line states it as rpg_e2vid's ``events.txt`` does (``W H``;
     a size given too must equal it). Lines starting with ``#`` are comments.
@@ -59,8 +60,8 @@ def read_txt(
         raise FormatError(f"{path}: expected 4 columns 't x y p', found {table.shape[1]}")
     if not np.isfinite(table[:, 1:]).all():
         raise FormatError(f"{path} contains non-finite numbers")
-    if (not sort and len(table) >= 10 and (np.diff(table[:, 0]) < 0).any() and (np.diff(table[:, 2]) >= 0).all()
-            and table[-1, 2] > table[0, 2]):
+    if (len(table) >= 10 and (np.diff(table[:, 0]) < 0).any() and (np.diff(table[:, 2]) >= 0).all()
+            and table[-1, 2] > table[0, 2]):    # refused with sort=True too: sorting would not mend the order
         raise FormatError(f"{path}: column 1 goes back in time while column 3 never does: the columns look like "
                           "'x y t p', but ECD text is 't x y p' (reorder them, e.g. awk '{print $3, $1, $2, $4}')")
     if time_unit is None:
@@ -78,16 +79,21 @@ def _size_header(path: Path) -> tuple[tuple[int, int] | None, int]:
     integers (rpg_e2vid's ``events.txt`` header), else ``(None, 0)``."""
     try:
         with open(path, "rb") as file:
-            for number, line in enumerate(file):
-                words = line.split()
-                if not words or words[0].startswith(b"#"):
-                    continue
-                if len(words) == 2 and all(word.isdigit() and int(word) > 0 for word in words):
-                    return (int(words[0]), int(words[1])), number + 1
-                return None, 0
+            head = file.read(_HEAD_BYTES)          # a binary file without newlines is not read whole here
     except OSError as error:
         raise FormatError(f"{path} cannot be read ({error})") from None
+    for number, line in enumerate(head.split(b"\n")[:-1] if len(head) == _HEAD_BYTES else head.split(b"\n")):
+        words = line.split()
+        if not words or words[0].startswith(b"#"):
+            continue
+        if len(words) == 2 and all(word.isdigit() and int(word) > 0 for word in words):
+            return (int(words[0]), int(words[1])), number + 1
+        return None, 0
     return None, 0
+
+
+#: Bytes of a text file's start that :func:`_size_header` reads.
+_HEAD_BYTES = 1 << 16
 
 
 #: This many distinct times, every one a whole number, are not seconds of an event camera.
