@@ -3,9 +3,10 @@
 A window fitted on few events per pixel has an image of warped events in which nearly every event lies alone
 in its pixel; the ambiguity test (:func:`cmax.fitting.quality.assess`) then passes wrong directions as ``ok``.
 This benchmark draws ``N`` events from held-out ``indoor_flying`` windows (346x260, seeds 100-107, the
-library's default settings, ``speed=|v|``, with the default depth range and with the room's) at several ``N``, fits each draw with the sparse
-rule off (``QualitySettings(min_event_density=0)``) and on (the default), and counts the ``ok`` verdicts and
-the ``ok`` ones whose direction is more than ``BAD_DEG`` from the truth.
+library's default settings, ``speed=|v|``, with the default depth range and with the room's) at several
+``N``, fits each draw with the sparse rule off (``QualitySettings(min_event_density=0)``) and on (the
+default), and counts the ``ok`` verdicts and the ``ok`` ones whose direction is more than ``BAD_DEG`` from the
+truth.
 
     python -m benchmarks.quality_sparse [--seeds 100-107] [--counts 3000,6000,10000,20000,40000] [--draws 2]
 """

@@ -192,8 +192,8 @@ def _timestamps(values: object) -> np.ndarray:
         i = int(np.argmax(np.abs(array)))
         step = float(np.abs(array[i]) - np.nextafter(np.abs(array[i]), array.dtype.type(0)))  # gap below it
         if step > 1:
-            raise ValueError(f"t[{i}] = {array[i]} µs is a {array.dtype} number, whose values there lie {step:.3g} µs "
-                             "apart: microseconds are already lost (pass int64 microseconds)")
+            raise ValueError(f"t[{i}] = {array[i]} µs is a {array.dtype} number, whose values there lie "
+                             f"{step:.3g} µs apart: microseconds are already lost (pass int64 microseconds)")
     array = array.astype(np.int64, copy=False)
     if array.size > 1:
         decreasing = np.flatnonzero(array[1:] < array[:-1])

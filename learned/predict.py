@@ -543,7 +543,8 @@ def publish(stage: Path, out: Path, earlier: Sequence[Path]) -> list[Path]:
 
 
 def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_camera, distortion, size,
-                  time_unit, polarity, sort, t0_s, t1_s, window_s, depth_range, batch, progress, note, device) -> DepthRun:
+                  time_unit, polarity, sort, t0_s, t1_s, window_s, depth_range, batch, progress, note,
+                  device) -> DepthRun:
     """:func:`run_prediction`'s work, every result written into the empty folder ``stage``."""
     from tqdm.auto import tqdm
 

@@ -222,7 +222,8 @@ def test_the_identifiability_benchmark_fixes_the_planes_of_every_term_of_a_weigh
     from benchmarks.objective_identifiability import _with_motion
 
     batch, params = _tiny()
-    combined = WeightedSum(((1.0, AverageTimestamp(smoothness=0.003)), (0.5, PlaneVote(rho_range=(0.2, 1.0), planes=6))))
+    combined = WeightedSum(((1.0, AverageTimestamp(smoothness=0.003)),
+                            (0.5, PlaneVote(rho_range=(0.2, 1.0), planes=6))))
     fixed = _with_motion(combined, batch, params.twist.detach())
     assert isinstance(fixed, WeightedSum) and fixed.terms[0][1] is combined.terms[0][1]
     assert fixed.terms[1][1].values is not None and fixed.terms[1][0] == 0.5

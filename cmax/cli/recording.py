@@ -397,8 +397,8 @@ def tail_note(first_us: int, last_us: int, window_us: int, step_us: int, *, opti
             return f"{value_us * 1e-3:.3f}".rstrip("0").rstrip(".")
 
         return (f"windows of {ms(window_us)} ms every {ms(step_us)} ms leave the {ms(step_us - window_us)} ms between "
-                f"them out, and the last {ms(end - start)} ms of the recording (after {(start - origin) * 1e-6:.3f} s{held}), where the next step has no whole "
-                "window")
+                f"them out, and the last {ms(end - start)} ms of the recording (after "
+                f"{(start - origin) * 1e-6:.3f} s{held}), where the next step has no whole window")
     text = (f"the last {tail_ms:.{digits}f} ms of the recording (after {(start - origin) * 1e-6:.3f} s{held}) "
             f"are shorter than a window ({window_ms:.{digits}f} ms) and are left out")
     if step_us == window_us:
