@@ -132,6 +132,12 @@ def test_a_file_whose_time_goes_back_is_sorted_when_asked(tmp_path, capsys):
     assert "sorting applies to ECD text, .npy and AEDAT4 files" in capsys.readouterr().err
     with pytest.raises(TypeError, match="sort must be True or False"):
         read(text, width=64, height=48, sort="yes")
+    from learned.predict import open_recording          # `cmax depth --sort` takes the same path
+
+    recording = open_recording(text, size=(64, 48), sort=True)
+    assert (recording.first_us, recording.last_us) == (int(events.t[0]), int(events.t[-1]))
+    with pytest.raises(ValueError, match="sorting applies to ECD text"):
+        open_recording(h5, sort=True)
 
 
 def test_rpg_e2vid_text_states_its_size_on_its_first_line(tmp_path):
