@@ -129,6 +129,8 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     captured = capsys.readouterr()
     assert "0 of 1 windows fitted, 1 skipped (fewer than 1,000 events)" in captured.out
     assert "no window was fitted" in captured.err
+    notes = json.loads((tmp_path / "o" / "summary.json").read_text())["notes"]
+    assert any("no window was fitted" in note for note in notes)
     # A window a hair shorter than the recording leaves an end too short to name: no note (was "note: None").
     window_ms = (int(events.t[-1]) - int(events.t[0]) + 1) / 1000 - 0.05
     assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o2"), "--quiet",

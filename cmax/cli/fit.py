@@ -438,7 +438,11 @@ def run(args: argparse.Namespace) -> int:
     late_notes += advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None,
                          no_motion, cell_noise, unsteady, sparse)
     failed = sum(r.verdict is Verdict.FAILED for r in sequence.results)
-    if windows and failed == len(windows):
+    if not windows:
+        late_notes.append(f"no window was fitted: each has fewer than {min_events:,} events (over more than one "
+                          f"time stamp); a longer --window-ms or a lower --min-events (at least {MIN_WINDOW_EVENTS}) "
+                          "fits them")
+    elif failed == len(windows):
         late_notes.append(f"every fitted window failed ({failed}): no depth or motion of this run can be trusted "
                           "(each window's line says why)")
     summary = {"file": str(args.file), "model": sequence_model, "K": K.tolist(),
@@ -465,9 +469,4 @@ def run(args: argparse.Namespace) -> int:
     print(f"{len(windows)} of {n_windows} windows fitted{skip}: {verdict_counts(sequence.counts())}; results in {out}")
     for line in late_notes:
         print(f"cmax fit: note: {line}", file=sys.stderr)
-    if not windows:
-        print(f"cmax fit: no window was fitted: each has fewer than {min_events:,} events (over more than one time "
-              f"stamp); a longer --window-ms or a lower --min-events (at least {MIN_WINDOW_EVENTS}) fits them",
-              file=sys.stderr)
-        return 1
-    return 1 if failed == len(windows) else 0
+    return 1 if not windows or failed == len(windows) else 0
