@@ -20,6 +20,7 @@ from pathlib import Path
 import numpy as np
 import torch
 
+from benchmarks.accuracy_cmax import parse_seeds
 from benchmarks.machine import describe
 from benchmarks.quality_cmax import BAD_DEG, angle_deg
 from benchmarks.synthetic_windows import make_window
@@ -72,13 +73,6 @@ def table(rows: list[dict]) -> list[str]:
     return lines
 
 
-def _seeds(text: str) -> list[int]:
-    if "-" in text:
-        first, last = (int(part) for part in text.split("-"))
-        return list(range(first, last + 1))
-    return [int(part) for part in text.split(",")]
-
-
 def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.split("\n")[0])
     parser.add_argument("--seeds", default="100-107")
@@ -89,10 +83,11 @@ def main(argv: list[str] | None = None) -> None:
     torch.set_num_threads(1)
     start = time.perf_counter()
     counts = [int(c) for c in args.counts.split(",")]
+    seeds = parse_seeds(parser, args.seeds)
     sections = []
     for title, depth_range in (("The library's default depth range (0.5-60 m)", None),
                                ("The room's depth range given (1-6.5 m, as `benchmarks.quality_cmax`)", (1.0, 6.5))):
-        sections += [f"## {title}", "", *table(draws(_seeds(args.seeds), counts, args.draws, depth_range)), ""]
+        sections += [f"## {title}", "", *table(draws(seeds, counts, args.draws, depth_range)), ""]
     lines = ["# cmax.fit verdicts on sparse windows", "",
              f"`indoor_flying` seeds {args.seeds}, 346x260, {args.draws} random draws of each event count per seed, "
              "fitted with the library's defaults and `speed=|v|`, with the sparse rule off "

@@ -32,7 +32,7 @@ if TYPE_CHECKING:  # pragma: no cover
 
 __all__ = [
     "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "FIELD_ALIASES", "concatenate",
-    "check_event_count", "window_starts", "uncovered_tail", "require_events", "structured_fields",
+    "check_event_count", "window_starts", "uncovered_tail", "require_events", "structured_fields", "float_step",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
@@ -182,6 +182,19 @@ def _coordinates(name: str, values: object, size: int, size_name: str) -> np.nda
     return array.astype(np.uint16, copy=False)
 
 
+def float_step(values: np.ndarray) -> tuple[int, float]:
+    """``(i, step)``: the index of the largest magnitude in the float array ``values`` (non-empty) and the gap from
+    it to the next value its dtype holds below it (in ``values``' unit): times whose step exceeds 1 µs have lost
+    microseconds.
+
+    >>> float_step(np.array([3.0, 2.0**24 + 2], np.float32))
+    (1, 2.0)
+    """
+    i = int(np.argmax(np.abs(values)))
+    largest = np.abs(values[i])
+    return i, float(largest - np.nextafter(largest, values.dtype.type(0)))
+
+
 def _timestamps(values: object) -> np.ndarray:
     array = _as_column("t", values)
     if array.dtype.kind == "u" and array.size and array.max() > np.iinfo(np.int64).max:
@@ -189,8 +202,7 @@ def _timestamps(values: object) -> np.ndarray:
     if array.dtype.kind == "f" and array.size and np.abs(array).max() > 2**62:
         raise ValueError("t does not fit into int64 microseconds")
     if array.dtype.kind == "f" and array.size:
-        i = int(np.argmax(np.abs(array)))
-        step = float(np.abs(array[i]) - np.nextafter(np.abs(array[i]), array.dtype.type(0)))  # gap below it
+        i, step = float_step(array)
         if step > 1:
             raise ValueError(f"t[{i}] = {array[i]} µs is a {array.dtype} number, whose values there lie "
                              f"{step:.3g} µs apart: microseconds are already lost (pass int64 microseconds)")

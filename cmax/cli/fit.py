@@ -434,7 +434,7 @@ def run(args: argparse.Namespace) -> int:
     no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)
     unresolved = [r.quality for r in sequence.results if r.verdict is Verdict.AMBIGUOUS and not r.quality.resolved]
     unsteady = sum(q.unsteady for q in unresolved)
-    sparse = sum(q.sparse and not q.unsteady for q in unresolved)
+    sparse = sum(q.sparse for q in unresolved)     # never unsteady too: verdict_of marks only an ok one sparse
     late_notes += advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None,
                          no_motion, cell_noise, unsteady, sparse)
     failed = sum(r.verdict is Verdict.FAILED for r in sequence.results)

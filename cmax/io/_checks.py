@@ -15,7 +15,7 @@ from typing import Any
 
 import numpy as np
 
-from cmax.events import _check_sensor_size
+from cmax.events import _check_sensor_size, float_step
 from cmax.io.errors import FormatError
 
 __all__ = [
@@ -100,8 +100,8 @@ def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
             i = int(np.argmax(np.abs(scaled)))
             raise FormatError(f"{where}[{i}] = {t[i]} {unit} does not fit into int64 microseconds")
         if scaled.size:
-            i = int(np.argmax(np.abs(t)))
-            step_us = float(np.abs(t[i]) - np.nextafter(np.abs(t[i]), t.dtype.type(0))) * factor  # gap below it
+            i, step = float_step(t)
+            step_us = step * factor
             if step_us > 1:
                 raise FormatError(f"{where}[{i}] = {t[i]} {unit} is a {t.dtype} number, whose values there lie "
                                   f"{step_us:.3g} µs apart: microseconds are already lost (store times as int64 "
