@@ -588,3 +588,25 @@ def test_options_are_checked_before_the_file_is_read_in_the_options_words(tmp_pa
     assert main(argv) == 2
     err = capsys.readouterr().err
     assert message in err and "missing.h5" not in err, err
+
+
+def test_max_omega_bounds_the_fitted_rotation_and_the_warning_names_the_option(tmp_path, capsys):
+    """A rotation window at about 0.8 rad/s: with ``--max-omega`` at 30% of it the fit ends on the bound, the
+    window fails and the warning says to raise ``--max-omega`` (the option, not the Python setting); with the
+    default bound the same window is fitted beyond that clip, without failing."""
+    from benchmarks.synthetic_windows import make_window
+
+    w = make_window("rotation", 1, width=120, height=90, focal=90.0, duration_s=0.05, max_frames=60)
+    rate = float(np.linalg.norm(w.twist[3:]))
+    path = write_h5(tmp_path / "turn.h5", w.events)
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    base = ["fit", str(path), "--K", K, "--model", "rotation", "--window-ms", "50", "--quiet"]
+    assert main([*base, "-o", str(tmp_path / "clipped"), "--max-omega", f"{0.3 * rate:.6f}"]) == 1
+    err = capsys.readouterr().err
+    assert "ended on its bound" in err and "raise --max-omega" in err and "FitSettings" not in err, err
+    assert "max_flow_px" not in err, err            # a rotation has no flow bound to raise
+    clipped = json.loads((tmp_path / "clipped" / "summary.json").read_text())["windows"][0]
+    assert clipped["verdict"] == "failed"
+    assert main([*base, "-o", str(tmp_path / "free")]) == 0
+    free = json.loads((tmp_path / "free" / "summary.json").read_text())["windows"][0]
+    assert free["verdict"] != "failed" and np.max(np.abs(free["omega"])) > 0.3 * rate, (free, rate)

@@ -91,6 +91,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     api_default(parser.add_argument("--max-events", type=positive_int, default=None,
                                     help="windows with more events are subsampled to this many "
                                          "(cmax.FitSettings.max_events)"), _settings_default("max_events"))
+    api_default(parser.add_argument("--max-omega", type=positive_float, default=None,
+                                    help="se3 and rotation: bound of each fitted angular-velocity component [rad/s]; a "
+                                         "window that ends on it is reported, never clipped (cmax.FitSettings."
+                                         "max_omega)"), _settings_default("max_omega"))
     parser.add_argument("--keep-hot-pixels", action="store_true",
                         help="fit every event; by default the events of hot pixels (far more events than the scene's "
                              "edges give any pixel: a defect or a flickering light) are left out and named in a note "
@@ -130,7 +134,7 @@ def tum_lines(times_us: np.ndarray, poses: np.ndarray) -> list[str]:
 
 #: The settings of :class:`cmax.FitSettings` that ``cmax fit`` options give, by the option's name.
 OPTION_OF_SETTING = {"depth_range": "--depth-range", "max_events": "--max-events", "motion_members": "--members",
-                     "depth_grid": "--depth-grid", "polish": "--polish", "solver": "--solver"}
+                     "depth_grid": "--depth-grid", "polish": "--polish", "solver": "--solver", "max_omega": "--max-omega"}
 
 
 def option_words(message: str) -> str:
@@ -138,10 +142,13 @@ def option_words(message: str) -> str:
 
     >>> option_words("depth_range must satisfy 0 < near < far (metres), got (3.0, 1.0)")
     '--depth-range must satisfy 0 < near < far (metres), got (3.0, 1.0)'
+    >>> option_words("omega_z ended on its bound: raise FitSettings.max_omega")
+    'omega_z ended on its bound: raise --max-omega'
     """
     import re
 
-    return re.sub(r"\b(" + "|".join(OPTION_OF_SETTING) + r")\b", lambda m: OPTION_OF_SETTING[m.group(1)], message)
+    return re.sub(r"\b(?:FitSettings\.)?(" + "|".join(OPTION_OF_SETTING) + r")\b", lambda m: OPTION_OF_SETTING[m.group(1)],
+                  message)
 
 
 def _microseconds(ms: float, option: str) -> int:
@@ -322,7 +329,7 @@ def run(args: argparse.Namespace) -> int:
     options = {key: value for key, value in (("solver", args.solver), ("depth_grid", args.depth_grid),
                                              ("max_events", args.max_events),
                                              ("motion_members", args.members), ("depth_range", args.depth_range),
-                                             ("polish", args.polish))
+                                             ("polish", args.polish), ("max_omega", args.max_omega))
                if value is not None}
     if args.keep_hot_pixels:
         options["hot_pixels"] = None

@@ -595,7 +595,9 @@ def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_
         warnings.warn(f"cmax.fit: {reason}{advice}", LowMotionWarning, stacklevel=3)
     bounds = [(log.stage, name) for log in result.stages for name in log.at_bound if not name.startswith("depth_")]
     if bounds:
-        raise_bound = "raise FitSettings.max_omega / max_flow_px"
+        raise_bound = "raise " + " / ".join(
+            setting for prefix, setting in (("omega_", "FitSettings.max_omega"), ("flow_", "FitSettings.max_flow_px"))
+            if any(name.startswith(prefix) for _, name in bounds))
         why = (f"the true value is probably beyond it ({raise_bound})" if low is None else
                f"the window's events do not hold it there ({low.reason}): it is not measured; a longer window gives "
                "more motion" if low.cause in (LowMotionCause.NO_MOTION, LowMotionCause.CELL_NOISE) else
