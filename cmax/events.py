@@ -182,6 +182,17 @@ def _coordinates(name: str, values: object, size: int, size_name: str) -> np.nda
     return array.astype(np.uint16, copy=False)
 
 
+def _base(values: object) -> object:
+    """``values`` as the numpy array whose memory a stored column could share (a torch tensor's numpy view;
+    anything else as given: only arrays can share memory)."""
+    if hasattr(values, "detach") and hasattr(values, "numpy"):
+        try:
+            return values.detach().cpu().numpy()
+        except (RuntimeError, TypeError):
+            return values
+    return values
+
+
 def float_step(values: np.ndarray) -> tuple[int, float]:
     """``(i, step)``: the index of the largest magnitude in the float array ``values`` (non-empty) and the gap from
     it to the next value its dtype holds below it (in ``values``' unit): times whose step exceeds 1 µs have lost
@@ -254,6 +265,9 @@ class Events:
     sort : bool, keyword-only
         Sort the events by time (stable) instead of raising on unsorted ``t``.
 
+    The columns are checked once and are read-only afterwards (``ev.x += 1`` raises); an input array that
+    the stored column would share memory with is copied, so changing it later does not change the events.
+
     Examples
     --------
     >>> ev = Events([0, 1, 2], [0, 0, 1], [10, 20, 30], [1, -1, 1], width=4, height=3)
@@ -282,6 +296,7 @@ class Events:
         sort: bool = False,
     ) -> None:
         width, height = _check_sensor_size(width, height)
+        x_in, y_in, t_in, p_in = x, y, t, p
         for name, values in (("x", x), ("y", y), ("t", t), ("p", p)):
             shape = np.shape(values)  # no conversion for arrays and views
             if len(shape) == 1:
@@ -297,12 +312,21 @@ class Events:
             order = np.argsort(t_checked, kind="stable")
             x, y, p, t_checked = x[order], y[order], p[order], t_checked[order]
         t = _timestamps(t_checked)
+        # A column that is still the caller's array (already of the stored dtype) is copied: the caller may change
+        # its buffer later, and the checks above (coordinates inside the sensor, time sorted) must keep holding.
+        x, y, t, p = (np.array(column) if isinstance(given, np.ndarray) and np.may_share_memory(column, given)
+                      else column for column, given in ((x, _base(x_in)), (y, _base(y_in)), (t, _base(t_in)),
+                                                        (p, _base(p_in))))
         self._set(x, y, t, p, width, height)
 
     # -- construction -----------------------------------------------------------------
     def _set(self, x, y, t, p, width, height) -> None:
+        """Store the columns as read-only views: validated once, they cannot be changed through the events
+        (``ev.x += 1`` raises), so the compiled kernels can index with them without bounds checks."""
         for name, value in (("x", x), ("y", y), ("t", t), ("p", p)):
-            object.__setattr__(self, name, np.ascontiguousarray(value))
+            column = np.ascontiguousarray(value).view()
+            column.flags.writeable = False
+            object.__setattr__(self, name, column)
         object.__setattr__(self, "width", width)
         object.__setattr__(self, "height", height)
 
@@ -399,12 +423,12 @@ class Events:
         p = (
             torch.from_numpy(self.signed_polarity(np.float32))
             if signed_polarity
-            else torch.from_numpy(self.p)
+            else torch.from_numpy(self.p.copy())
         )
-        return EventTensors(
+        return EventTensors(        # copies: a tensor changed in place must not change these (read-only) events
             torch.from_numpy(self.x.astype(np.int64)).to(device),
             torch.from_numpy(self.y.astype(np.int64)).to(device),
-            torch.from_numpy(self.t).to(device),
+            torch.from_numpy(self.t.copy()).to(device),
             p.to(device),
             self.width,
             self.height,

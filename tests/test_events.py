@@ -203,3 +203,36 @@ def test_input_arrays_are_not_modified():
     x = np.array([0, 1, 2])
     Events(x, x, [1, 2, 3], p, 4, 4)
     assert p.tolist() == [-1, 1, -1] and x.tolist() == [0, 1, 2]
+
+
+def test_validated_columns_cannot_change_behind_the_events_back():
+    """The columns are checked once (inside the sensor, sorted), so nothing may change them afterwards: a caller's
+    buffer that the events would share is copied, the columns are read-only, a tensor of ``to_torch`` is a copy.
+    Before, shifting the caller's ``x`` after construction put events outside the sensor, and the compiled
+    counting loop lost them (983 of 1000 counted) or corrupted the heap."""
+    import torch
+
+    from cmax.representations import event_frame, voxel_grid
+
+    rng = np.random.default_rng(0)
+    n = 1000
+    x = rng.integers(0, 64, n).astype(np.uint16)
+    t = np.sort(rng.integers(0, 10_000, n)).astype(np.int64)
+    ev = Events(x, rng.integers(0, 48, n), t, rng.integers(0, 2, n), width=64, height=48)
+    x += 70                                          # the caller reuses its buffers
+    t[:] = t[::-1]
+    assert ev.x.max() < 64 and np.all(np.diff(ev.t) >= 0)
+    assert event_frame(ev).sum() == n                  # every event counted once
+    assert voxel_grid(ev, 1).sum() == pytest.approx(ev.signed_polarity().sum())
+    with pytest.raises(ValueError, match="read-only"):
+        ev.x += 1
+    tensors = ev.to_torch()
+    tensors.t.add_(5)
+    tensors.p.fill_(3)
+    assert np.array_equal(ev.t, np.sort(ev.t)) and set(ev.p.tolist()) <= {0, 1}
+    assert tensors.t[0] == ev.t[0] + 5
+    xt = torch.randint(0, 64, (10,))
+    from_tensor = Events(xt, xt % 48, torch.arange(10), xt % 2, 64, 48)
+    xt += 100
+    assert from_tensor.x.max() < 64
+    assert not ev.slice_time(0, 5_000).x.flags.writeable
