@@ -11,7 +11,9 @@ settings) started at the truth: its direction error and its gain against the fit
 Windows: ``indoor_flying`` (346x260, seeds 100-119 held out, as ``benchmarks.accuracy_cmax``), fitted
 with ``speed=|v|`` and the preset's depth range, with and without the gyroscope's rotation.
 
-    python -m benchmarks.quality_cmax [--seeds 100-119] [--cache DIR]
+    python -m benchmarks.quality_cmax [--seeds 100-119] [--cache DIR] [--size 160x120 --output FILE]
+
+``--size`` simulates the same scenes at another sensor size (the camera's field of view unchanged).
 """
 from __future__ import annotations
 
@@ -32,6 +34,7 @@ from cmax.fitting.motion import refine_motion_local
 from cmax.fitting.quality import MotionScorer
 from cmax.fitting.solvers import make_solver
 from cmax.fitting.window import Window
+from cmax._args import sensor_size
 from cmax.io.atomic import write_text_atomic
 
 #: A window whose fitted direction is farther than this from the truth [deg] is a bad one.
@@ -112,6 +115,8 @@ def main(argv: list[str] | None = None) -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seeds", default="100-119")
     parser.add_argument("--cache", type=Path, default=None)
+    parser.add_argument("--size", type=sensor_size, default=(346, 260), metavar="WxH",
+                        help="sensor size of the simulated windows (default 346x260)")
     parser.add_argument("--output", type=Path, default=Path(__file__).parent / "results" / "quality_cmax.md")
     args = parser.parse_args(argv)
     torch.set_num_threads(1)
@@ -122,14 +127,18 @@ def main(argv: list[str] | None = None) -> None:
     for gyro in (False, True):
         rows = []
         for seed in seeds:
-            window = cached(args.cache, f"indoor_flying_{seed}", lambda s=seed: preset_window("indoor_flying", s))
+            width, height = args.size
+            key = f"indoor_flying_{seed}" + ("" if args.size == (346, 260) else f"_{width}x{height}")
+            window = cached(args.cache, key, lambda s=seed: preset_window("indoor_flying", s, width=width,
+                                                                        height=height))
             rows.append({"seed": seed, **run(window, gyro)})
             print(seed, gyro, f"{rows[-1]['direction_deg']:.1f}", rows[-1]["verdict"].value, flush=True)
         sections.append(table(rows, "se3 with the gyroscope's rotation held" if gyro else "se3, rotation fitted"))
     head = ["# cmax.fit quality verdicts on held-out synthetic windows", "",
-            f"`indoor_flying` seeds {seeds[0]}-{seeds[-1]}, 346x260, `speed=|v|`, depth range 1-6.5 m, default "
+            f"`indoor_flying` seeds {seeds[0]}-{seeds[-1]}, {args.size[0]}x{args.size[1]}, `speed=|v|`, depth range 1-6.5 m, default "
             f"`QualitySettings`. Machine: {describe()}, "
-            f"torch threads 1. Written by `python -m benchmarks.quality_cmax` in "
+            f"torch threads 1. Written by `python -m benchmarks.quality_cmax"
+            f"{'' if args.size == (346, 260) else f' --size {args.size[0]}x{args.size[1]}'}` in "
             f"{time.perf_counter() - start:.0f} s.", ""]
     write_text_atomic(args.output, "\n".join(head + [line for section in sections for line in section]))
 

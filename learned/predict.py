@@ -29,10 +29,6 @@ from __future__ import annotations
 
 import argparse
 import json
-import os
-import re
-import secrets
-import shutil
 import sys
 import time
 from dataclasses import dataclass, replace
@@ -45,7 +41,7 @@ from cmax._args import ArgumentParser, float_list, positive_float, positive_int,
 from cmax.cli.recording import (add_camera_options, add_recording_arguments, read_calibration, tail_note,
                                 time_span_us)
 from cmax.events import window_starts
-from learned._output import locked_folder
+from cmax.io import run_folder
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
     from cmax.events import Events
@@ -53,15 +49,16 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
-           "window_picture", "write_window", "earlier_results", "FOLDER_LOCK", "discard_stages", "publish",
+           "window_picture", "write_window", "earlier_results", "FOLDER_LOCK",
            "run_prediction", "predict_file", "add_arguments",
            "run", "main"]
 
 #: Windows with fewer events are skipped (counted in the summary).
 MIN_EVENTS = 10
-#: The lock a run holds on its output folder (:func:`learned._output.locked_folder`), inside that folder.
-FOLDER_LOCK = ".depth.lock"
-_STAGE_SUFFIX = ".partial"
+#: The private folders of a run's results: ``out/.depth.<16 hex>.partial`` (:mod:`cmax.io.run_folder`).
+_STAGE_PREFIX = "depth"
+#: The lock a run holds on its output folder (:func:`cmax.io.run_folder.staged_run`), inside that folder.
+FOLDER_LOCK = f".{_STAGE_PREFIX}.lock"
 _CSV_HEADER = "window,t0_us,t1_us,events,vx,vy,vz,wx,wy,wz"
 
 
@@ -476,7 +473,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         The earlier results stay as they are until this run has succeeded.
 
     The run holds ``out`` from its first look at it to its end (the lock ``out/.depth.lock``,
-    :func:`learned._output.locked_folder`): a second run into the same folder meanwhile is refused at once
+    :func:`cmax.io.run_folder.staged_run`): a second run into the same folder meanwhile is refused at once
     (:class:`cmax.io.atomic.OutputLockedError`, an OSError) and changes nothing. The results are written into
     a private folder ``out/.depth.<hex>.partial`` and moved into ``out`` once all of them are written (then the
     earlier run's files that this run did not replace are removed): a failed or interrupted run leaves ``out``
@@ -497,49 +494,13 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"the output {out} is a file: give a folder (for window_*.npz, window_*.png, "
                               "twists.csv, summary.json)")
-    with locked_folder(out, FOLDER_LOCK):   # from the look at earlier results to the last file moved in
-        discard_stages(out)
-        earlier = earlier_results(out)
-        if earlier and not overwrite:
-            raise FileExistsError(f"{out} holds the results of an earlier run ({len(earlier)} files: window_*.npz, "
-                                  "twists.csv, ...) that would mix with this run's: --overwrite replaces them, or "
-                                  "give another -o")
-        stage = out / f".depth.{secrets.token_hex(8)}{_STAGE_SUFFIX}"
-        stage.mkdir()
-        try:
-            run = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
-                                distortion=distortion, size=size, time_unit=time_unit, polarity=polarity, sort=sort,
-                                t0_s=t0_s,
-                                t1_s=t1_s, window_s=window_s, depth_range=depth_range, batch=batch,
-                                progress=progress, note=note, device=device)
-            publish(stage, out, earlier)
-        finally:
-            shutil.rmtree(stage, ignore_errors=True)
+    with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=overwrite,
+                               what="window_*.npz, twists.csv, ...") as stage:
+        run = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
+                            distortion=distortion, size=size, time_unit=time_unit, polarity=polarity, sort=sort,
+                            t0_s=t0_s, t1_s=t1_s, window_s=window_s, depth_range=depth_range, batch=batch,
+                            progress=progress, note=note, device=device)
     return replace(run, seconds=time.perf_counter() - started, output=out)
-
-
-def discard_stages(out: Path) -> list[Path]:
-    """Remove the private folders (``.depth.<16 hex>.partial``) that killed runs left in ``out``; returns them.
-    Call it holding ``out``'s lock (:func:`run_prediction` does)."""
-    stale = [folder for folder in out.glob(f".depth.*{_STAGE_SUFFIX}")
-             if re.fullmatch(r"\.depth\.[0-9a-f]{16}" + re.escape(_STAGE_SUFFIX), folder.name)
-             and folder.is_dir() and not folder.is_symlink()]
-    for folder in stale:
-        shutil.rmtree(folder, ignore_errors=True)
-    return stale
-
-
-def publish(stage: Path, out: Path, earlier: Sequence[Path]) -> list[Path]:
-    """Move the results in ``stage`` into ``out`` (renames within one folder tree; ``summary.json`` last), then
-    remove the files of ``earlier`` (an earlier run's) that none of them replaced; returns the files of ``out``."""
-    new = earlier_results(stage)
-    names = {file.name for file in new}
-    for file in sorted(new, key=lambda file: file.name == "summary.json"):
-        os.replace(file, out / file.name)
-    for stale in earlier:
-        if stale.name not in names:
-            stale.unlink(missing_ok=True)
-    return [out / file.name for file in new]
 
 
 def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_camera, distortion, size,

@@ -141,7 +141,7 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet", "--min-events", "9"]) == 2
     assert "--min-events must be at least 10" in capsys.readouterr().err
     assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet", "--min-events", "300",
-                 "--max-events", "300", "--depth-grid", "6,8"]) == 0
+                 "--max-events", "300", "--depth-grid", "6,8", "--overwrite"]) == 0
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["min_events"] == 300 and len(summary["windows"]) == 1 and summary["skipped_us"] == []
     assert summary["windows"][0]["verdict"] != "ok"                                # noise: nothing to be sure of
@@ -196,7 +196,7 @@ def test_a_text_file_takes_its_size_from_the_dsec_calibration(tmp_path, capsys):
     assert main(["fit", str(path), "--calib", str(tmp_path / "cam_to_cam.yaml"), "--calib-camera", "camRect0",
                  "-o", str(tmp_path / "o"), "--quiet"]) == 1
     assert "0 of 1 windows fitted" in capsys.readouterr().out
-    assert main(["fit", str(path), "--K", "500,500,320,240", "-o", str(tmp_path / "o")]) == 2
+    assert main(["fit", str(path), "--K", "500,500,320,240", "-o", str(tmp_path / "o2")]) == 2
     assert "width= and height=" in capsys.readouterr().err
 
 
@@ -610,3 +610,39 @@ def test_max_omega_bounds_the_fitted_rotation_and_the_warning_names_the_option(t
     assert main([*base, "-o", str(tmp_path / "free")]) == 0
     free = json.loads((tmp_path / "free" / "summary.json").read_text())["windows"][0]
     assert free["verdict"] != "failed" and np.max(np.abs(free["omega"])) > 0.3 * rate, (free, rate)
+
+
+def test_a_second_run_into_the_same_folder_never_mixes_with_the_first(tmp_path, capsys):
+    """A folder holding an earlier run's results is refused (exit 2, its files untouched); ``--overwrite`` replaces
+    them, and the earlier run's windows that the new run does not have are removed (was: windows 0-1 overwritten,
+    2-3 of the earlier run left beside them, summary.json listing 2); a run into a folder another run holds is
+    refused; no private folder or lock is left behind."""
+    from cmax.io.atomic import PathLock
+
+    rng = np.random.default_rng(3)
+    n = 2400
+    events = Events(rng.integers(0, 64, n), rng.integers(0, 48, n), np.sort(rng.integers(0, 50_000, n)),
+                    rng.integers(0, 2, n), 64, 48)
+    path = write_h5(tmp_path / "ev.h5", events)
+    out = tmp_path / "o"
+    base = ["fit", str(path), "--K", "60,60,32,24", "-o", str(out), "--quiet", "--min-events", "300",
+            "--depth-grid", "6,8"]
+    main([*base, "--window-ms", "12.5"])
+    first = sorted(p.name for p in out.glob("depth_*.npz"))
+    assert first == [f"depth_{i:05d}.npz" for i in range(4)]
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    capsys.readouterr()
+    assert main([*base, "--window-ms", "25"]) == 2
+    err = capsys.readouterr().err
+    assert "holds the results of an earlier run" in err and "--overwrite" in err and len(err.strip().splitlines()) == 1
+    assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    main([*base, "--window-ms", "25", "--overwrite"])
+    summary = json.loads((out / "summary.json").read_text())
+    assert len(summary["windows"]) == 2 and summary["window_ms"] == 25
+    assert sorted(p.name for p in out.glob("depth_*.npz")) == ["depth_00000.npz", "depth_00001.npz"]
+    assert sorted(p.name for p in out.glob("depth_*.png")) == ["depth_00000.png", "depth_00001.png"]
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+    with PathLock(out / ".fit.lock", out):
+        capsys.readouterr()
+        assert main([*base, "--window-ms", "25", "--overwrite"]) == 2
+        assert "being written by another writer" in capsys.readouterr().err

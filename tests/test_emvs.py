@@ -383,16 +383,21 @@ def test_cli_round_trip(plane, tmp_path, capsys):
     assert int(saved["t_ref_us"]) == (int(events.t[0]) + int(events.t[-1])) // 2
     assert cv2.imread(str(out / "depth.png")) is not None
     assert (out / "points.ply").read_bytes().startswith(b"ply\n")
-    # --K overrides, --t0/--t1 cut the events (seconds after the first event).
-    code = main(["emvs", str(path), "--poses", str(tmp_path / "traj.txt"), "-o", str(out), "--depth-range",
-                 "1,4", "--K", f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}", "--t0", "0.05", "--t1", "0.25"])
+    # --K overrides, --t0/--t1 cut the events (seconds after the first event); the folder holds this run's
+    # results: refused without --overwrite (nothing changed), replaced with it.
+    again = ["emvs", str(path), "--poses", str(tmp_path / "traj.txt"), "-o", str(out), "--depth-range",
+             "1,4", "--K", f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}", "--t0", "0.05", "--t1", "0.25"]
+    first = (out / "depth.npz").read_bytes()
+    assert main(again) == 2 and "--overwrite replaces them" in capsys.readouterr().err
+    assert (out / "depth.npz").read_bytes() == first
+    code = main([*again, "--overwrite"])
     assert code == 0 and "median depth" in capsys.readouterr().out
     # poses that end before the events (cmax fit's trajectory.txt stops at its last whole window): the overlap,
     # with a note saying what was cut
     short = times < int(events.t[0]) + (int(events.t[-1]) - int(events.t[0])) * 3 // 5
     (tmp_path / "short.txt").write_text("\n".join(tum_lines(times[short], poses[short])) + "\n")
     assert main(["emvs", str(path), "--poses", str(tmp_path / "short.txt"), "-o", str(out), "--depth-range",
-                 "1,4"]) == 0
+                 "1,4", "--overwrite"]) == 0
     captured = capsys.readouterr()
     last = int(times[short][-1])
     cut = int(np.sum(events.t > last))

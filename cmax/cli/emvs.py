@@ -21,12 +21,15 @@ from cmax._args import api_default, float_list, nonnegative_float, positive_int
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
                                 file_intrinsics, overlap, read_calibrated)
+from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic
 
 #: ``cmax emvs`` notes the share of the depth map on the nearest or farthest plane from this share on.
 EMVS_BOUND_NOTE = 0.05
+#: The files a run writes into ``-o``.
+RESULTS = ("depth.npz", "depth.png", "points.ply")
 
-__all__ = ["add_command", "run", "camera_for", "file_trajectory"]
+__all__ = ["RESULTS", "add_command", "run", "camera_for", "earlier_results", "file_trajectory"]
 
 _range_numbers = float_list((2,), "--depth-range (near,far)")
 
@@ -82,6 +85,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="every event votes; by default the events of hot pixels (far more events than the "
                              "scene's edges give any pixel: a defect or a flickering light) do not, and a note names "
                              "them (cmax.EMVS.hot_pixels)")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the results of an earlier run in -o (else refused); they stay until this run "
+                             "has written all of its own")
     add_file_options(parser)   # --size, --time-unit, --polarity
     parser.set_defaults(run=run)
     return parser
@@ -136,12 +142,29 @@ def file_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the command; returns the exit status."""
-    from cmax import viz
-    from cmax.emvs import EMVS, read_tum_trajectory
+    """Run the command; returns the exit status. The results are written as ``cmax fit`` writes its own
+    (:func:`cmax.io.run_folder.staged_run`): a folder with an earlier run's results is refused without
+    ``--overwrite``, a second run into the same folder meanwhile is refused, an interrupted run changes nothing."""
+    from cmax.emvs import read_tum_trajectory
 
     out = output_folder(args.output, "depth.npz, depth.png and points.ply")
     trajectory = None if args.poses is None else read_tum_trajectory(args.poses)   # a bad file: before the events
+    with run_folder.staged_run(out, "emvs", earlier_results, overwrite=args.overwrite, what=", ".join(RESULTS),
+                               why="that this run would replace") as stage:
+        return _emvs_into(stage, out, args, trajectory)
+
+
+def earlier_results(out: Path) -> list[Path]:
+    """The files of an earlier ``cmax emvs`` in the folder ``out`` (:data:`RESULTS`); empty when none (or no folder)."""
+    return [out / name for name in RESULTS if (out / name).is_file()]
+
+
+def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> int:
+    """:func:`run`'s work once ``out`` is held: read the events, run EMVS, write :data:`RESULTS` into the empty
+    folder ``stage`` (moved into ``out`` by :func:`run`); returns the exit status."""
+    from cmax import viz
+    from cmax.emvs import EMVS
+
     K, distortion, calib_size = calibration_of(args)
     events, _ = read_calibrated(args, calib_size)    # --t0 / --t1 applied
     if trajectory is None:
@@ -167,12 +190,11 @@ def run(args: argparse.Namespace) -> int:
     if hint := calibration_hint(args):
         print(f"cmax emvs: note: {hint}", file=sys.stderr)
     result = EMVS(camera, **options).run(events, trajectory)
-    out.mkdir(parents=True, exist_ok=True)
-    save_npz_atomic(out / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
+    save_npz_atomic(stage / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
               t_ref_us=np.int64(result.t_ref_us), T_w_ref=result.T_w_ref, K=result.K,
               depth_range=np.array(result.depth_range))
-    result.plot(out / "depth.png", zoom=viz.readable_zoom(events.width))   # small sensors enlarged
-    result.save_ply(out / "points.ply")
+    result.plot(stage / "depth.png", zoom=viz.readable_zoom(events.width))   # small sensors enlarged
+    result.save_ply(stage / "points.ply")
     depths = result.depth[result.mask]
     if len(result.hot_pixels):
         print(f"cmax emvs: note: {len(result.hot_pixels)} hot pixel(s) fire far more than the scene's edges make any "

@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import sys
 import warnings
 from pathlib import Path
 
@@ -27,10 +28,14 @@ from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
                                 calibration_of, event_span, file_intrinsics, open_streamed, overlap, read_calibrated,
                                 tail_note)
+from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
-__all__ = ["OPTION_OF_SETTING", "add_command", "advice", "grouped_warnings", "hot_pixel_note", "option_words", "run",
-           "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
+__all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
+           "hot_pixel_note", "option_words", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
+
+#: A run's lock ``-o/.fit.lock`` and private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
+_STAGE_PREFIX = "fit"
 
 
 def add_command(subparsers) -> argparse.ArgumentParser:
@@ -95,6 +100,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                                     help="se3 and rotation: bound of each fitted angular-velocity component [rad/s]; a "
                                          "window that ends on it is reported, never clipped (cmax.FitSettings."
                                          "max_omega)"), _settings_default("max_omega"))
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the results of an earlier run in -o (else refused: its windows would mix with "
+                             "this run's); they stay until this run has written all of its own")
     parser.add_argument("--keep-hot-pixels", action="store_true",
                         help="fit every event; by default the events of hot pixels (far more events than the scene's "
                              "edges give any pixel: a defect or a flickering light) are left out and named in a note "
@@ -121,6 +129,16 @@ def _fit_default(name: str):
 
 def _settings_default(name: str):
     return library_default("cmax.fitting.settings:FitSettings", name)
+
+
+def earlier_results(out: Path) -> list[Path]:
+    """The files of an earlier ``cmax fit`` in the folder ``out`` (``depth_<k>.npz`` / ``.png``, ``trajectory.txt``,
+    ``summary.json``); empty when there are none (or no folder)."""
+    if not out.is_dir():
+        return []
+    named = [path for path in (out / "trajectory.txt", out / "summary.json") if path.is_file()]
+    return sorted(named + [path for pattern in ("depth_*.npz", "depth_*.png") for path in out.glob(pattern)
+                           if path.is_file()])
 
 
 def tum_lines(times_us: np.ndarray, poses: np.ndarray) -> list[str]:
@@ -302,20 +320,15 @@ def hot_pixel_note(results) -> str | None:
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the command; returns the exit status (1 when no window could be fitted, or every fitted one failed)."""
-    import sys
+    """Run the command; returns the exit status (1 when no window could be fitted, or every fitted one failed).
 
-    from tqdm.auto import tqdm
-
-    from cmax import viz
-    import cmax.events as cmax_events
-    from cmax.events import EventLimitError, uncovered_tail, window_starts
-    from cmax.fitting import FitSettings, fit_sequence
+    The run holds ``-o`` (the lock ``.fit.lock`` in it) from its look at earlier results to its last file: a second
+    run into the same folder meanwhile is refused at once. A folder with an earlier run's results is refused without
+    ``--overwrite``. The results are written into a private folder and moved in once all are written, then the
+    earlier run's files that this run did not replace are removed: a failed or interrupted run leaves ``-o`` as it
+    was, and two runs' windows never mix."""
+    from cmax.fitting import FitSettings
     from cmax.fitting.api import MIN_WINDOW_EVENTS
-    from cmax.fitting.quality import LowMotionCause, Verdict
-    from cmax.fitting.sequence import check_gyro, constant_gyro
-    from cmax.io import read_gyro
-    from cmax.warp import DepthGrid
 
     out = output_folder(args.output, "the depth maps and the summary")
     # The options are checked before the file is read (a mistake is named at once, in the options' words):
@@ -346,6 +359,29 @@ def run(args: argparse.Namespace) -> int:
     window_us = (_sequence_default("window_us")() if args.window_ms is None
                  else _microseconds(args.window_ms, "--window-ms"))
     step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
+    with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
+                               what="depth_*.npz, summary.json, ...") as stage:
+        status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, min_events=min_events,
+                           depth_grid=depth_grid, window_us=window_us, step_us=step_us)
+    return status
+
+
+def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_model: str, options: dict,
+              min_events: int, depth_grid: tuple[int, int], window_us: int, step_us: int) -> int:
+    """:func:`run`'s work once the options are checked: read, fit, and write every result into the empty folder
+    ``stage`` (moved into ``out`` by :func:`run`); returns the exit status."""
+    from tqdm.auto import tqdm
+
+    from cmax import viz
+    import cmax.events as cmax_events
+    from cmax.events import EventLimitError, uncovered_tail, window_starts
+    from cmax.fitting import fit_sequence
+    from cmax.fitting.api import MIN_WINDOW_EVENTS
+    from cmax.fitting.quality import LowMotionCause, Verdict
+    from cmax.fitting.sequence import check_gyro, constant_gyro
+    from cmax.io import read_gyro
+    from cmax.warp import DepthGrid
+
     K, distortion, calib_size = calibration_of(args)
     if K is None:
         K = file_intrinsics(args.file)
@@ -396,7 +432,6 @@ def run(args: argparse.Namespace) -> int:
         notes += [note] if note else []     # None: too short an end to name
     for note in notes:
         print(f"cmax fit: note: {note}", file=sys.stderr)
-    out.mkdir(parents=True, exist_ok=True)
     if args.jobs == 1:     # the bar ticks as each window is taken, i.e. when the one before is done
         source = _CountedWindows(events, tqdm(total=n_windows, desc="windows", unit="window", disable=args.quiet))
     else:                  # workers take windows ahead of their fits: fit_sequence's own bar counts results
@@ -420,12 +455,12 @@ def run(args: argparse.Namespace) -> int:
     scale = _depth_scale(sequence.results, args.depth_range)
     for i, r in enumerate(sequence.results):
         if r.depth is not None:
-            save_npz_atomic(out / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask, depth_spread=r.depth_spread,
+            save_npz_atomic(stage / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask, depth_spread=r.depth_spread,
                             inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=K)
             title = (f"window {i}, t_ref {(r.t_ref_us - origin_us) * 1e-6:.3f} s, "
                      f"depth [{'m' if r.scale_known else 'up to scale'}]"
                      + ("" if r.verdict is None else f", {r.verdict.value.replace('_', ' ')}"))
-            viz.save_png(out / f"depth_{i:05d}.png", viz.depth_panel(np.where(r.mask, r.depth, np.nan), scale, title,
+            viz.save_png(stage / f"depth_{i:05d}.png", viz.depth_panel(np.where(r.mask, r.depth, np.nan), scale, title,
                                                                      unit="m" if r.scale_known else ""))
         windows.append({"t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
                         "omega": r.omega.tolist(), "flow": None if r.flow is None else r.flow.tolist(),
@@ -435,7 +470,7 @@ def run(args: argparse.Namespace) -> int:
                         "hot_pixels": r.hot_pixels.tolist(),
                         **(r.quality.summary() if r.quality is not None else {"verdict": None})})
         print(window_line(i, r, origin_us))
-    write_text_atomic(out / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
+    write_text_atomic(stage / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
     late_notes = [hot_note] if (hot_note := hot_pixel_note(sequence.results)) else []
     causes = [None if r.quality is None else r.quality.cause for r in sequence.results]
     no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)
@@ -470,7 +505,7 @@ def run(args: argparse.Namespace) -> int:
                "windows_total": n_windows, "skipped_us": sequence.skipped_us.tolist(),
                "uncovered_us": None if sequence.uncovered_us is None else list(sequence.uncovered_us),
                "verdicts": sequence.counts(), "windows": windows}
-    write_text_atomic(out / "summary.json", json.dumps(summary, indent=2))
+    write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2))
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""
     print(f"{len(windows)} of {n_windows} windows fitted{skip}: {verdict_counts(sequence.counts())}; results in {out}")

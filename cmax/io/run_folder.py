@@ -1,0 +1,107 @@
+"""The output folder of a run (``cmax fit -o``, ``cmax depth -o``, ``train.out``): held by one run at a time,
+its results written into a private stage and moved in together, so that an interrupted run leaves the folder as
+it was and an earlier run's files never mix with a new run's."""
+from __future__ import annotations
+
+import os
+import re
+import secrets
+import shutil
+from contextlib import contextmanager
+from pathlib import Path
+from typing import Callable, Iterator, Sequence
+
+from cmax.io.atomic import PathLock
+
+__all__ = ["locked_folder", "staged_run", "new_stage", "discard_stages", "publish"]
+
+_STAGE_SUFFIX = ".partial"
+
+
+@contextmanager
+def locked_folder(folder: str | os.PathLike, lock_name: str) -> Iterator[Path]:
+    """Hold the folder ``folder`` (created if needed) for one run: an exclusive lock on ``folder/lock_name``
+    (:class:`cmax.io.atomic.PathLock`, as ``cmax simulate`` locks its output folder), released, and its file
+    removed, when the block ends, however it ends (a killed process's lock is released by the system).
+
+    A second run into the same folder fails at once with :class:`cmax.io.atomic.OutputLockedError` (an
+    ``OSError``, one line) and changes nothing. A folder this call created is removed again when the block
+    leaves it empty (a refused run writes nothing). Yields ``folder`` as a Path.
+    """
+    folder = Path(folder)
+    if os.path.lexists(folder) and not folder.is_dir():
+        raise FileExistsError(f"the output {folder} is a file: give a folder")
+    created = not folder.exists()
+    folder.mkdir(parents=True, exist_ok=True)
+    try:
+        with PathLock(folder / lock_name, folder):
+            yield folder
+    finally:
+        if created:
+            try:
+                folder.rmdir()   # only when empty: nothing of this run, nor another run's lock, is in it
+            except OSError:
+                pass
+
+
+def new_stage(out: Path, prefix: str) -> Path:
+    """A new, empty private folder ``out/.<prefix>.<16 hex>.partial`` for a run's results (``out`` held with
+    :func:`locked_folder`)."""
+    stage = Path(out) / f".{prefix}.{secrets.token_hex(8)}{_STAGE_SUFFIX}"
+    stage.mkdir()
+    return stage
+
+
+def discard_stages(out: Path, prefix: str) -> list[Path]:
+    """Remove the private folders (``.<prefix>.<16 hex>.partial``) that killed runs left in ``out``; returns them.
+    Call it holding ``out``'s lock."""
+    pattern = re.compile(r"\." + re.escape(prefix) + r"\.[0-9a-f]{16}" + re.escape(_STAGE_SUFFIX))
+    stale = [folder for folder in Path(out).glob(f".{prefix}.*{_STAGE_SUFFIX}")
+             if pattern.fullmatch(folder.name) and folder.is_dir() and not folder.is_symlink()]
+    for folder in stale:
+        shutil.rmtree(folder, ignore_errors=True)
+    return stale
+
+
+def publish(stage: Path, out: Path, earlier: Sequence[Path], *, last: Sequence[str] = ("summary.json",)) -> list[Path]:
+    """Move the files of ``stage`` into ``out`` (renames within one folder tree; the names in ``last``, a run's
+    record of completion, after the others), then remove the files of ``earlier`` (an earlier run's) that none
+    of them replaced; returns the files now in ``out``."""
+    new = sorted((file for file in Path(stage).iterdir() if file.is_file() and not file.is_symlink()),
+                 key=lambda file: (file.name in last, file.name))
+    names = {file.name for file in new}
+    for file in new:
+        os.replace(file, Path(out) / file.name)
+    for stale in earlier:
+        if stale.name not in names:
+            stale.unlink(missing_ok=True)
+    return [Path(out) / file.name for file in new]
+
+
+@contextmanager
+def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[Path], list[Path]], *,
+               overwrite: bool, what: str, why: str = "that would mix with this run's",
+               option: str = "--overwrite") -> Iterator[Path]:
+    """Hold ``out`` for one run (the lock ``out/.<prefix>.lock``, :func:`locked_folder`) and yield an empty private
+    folder for its results; when the block ends without an error, move them into ``out`` (:func:`publish`) and
+    remove the earlier run's files (``earlier_results(out)``) that they did not replace. An error, or a kill,
+    leaves ``out`` as it was (a killed run's private folder is removed by the next run).
+
+    Raises FileExistsError, before any work, when ``out`` holds an earlier run's results and ``overwrite`` is
+    False (``what`` names them for the message, ``why`` says what this run would do to them, ``option`` is the flag
+    that allows it), and
+    :class:`cmax.io.atomic.OutputLockedError` when another run holds ``out``.
+    """
+    out = Path(out)
+    with locked_folder(out, f".{prefix}.lock"):   # from the look at earlier results to the last file moved in
+        discard_stages(out, prefix)
+        earlier = earlier_results(out)
+        if earlier and not overwrite:
+            raise FileExistsError(f"{out} holds the results of an earlier run ({len(earlier)} files: {what}) {why}: "
+                                  f"{option} replaces them, or give another -o")
+        stage = new_stage(out, prefix)
+        try:
+            yield stage
+            publish(stage, out, earlier)
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
