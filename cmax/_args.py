@@ -74,6 +74,18 @@ def positive_int(text: str) -> int:
     return int(_number(text, int, "a whole number >= 1", at_least=1))
 
 
+def int_at_least(minimum: int):
+    """An ``argparse`` type: a whole number >= ``minimum``.
+
+    >>> int_at_least(2)("5")
+    5
+    """
+    def parse(text: str) -> int:
+        return int(_number(text, int, f"a whole number >= {minimum}", at_least=minimum))
+
+    return parse
+
+
 def nonnegative_int(text: str) -> int:
     """A whole number >= 0."""
     return int(_number(text, int, "a whole number >= 0", at_least=0))

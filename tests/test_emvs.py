@@ -446,3 +446,14 @@ def test_ecd_slider_depth_structures(shared_data, tmp_path):
     near, far = structures[0], structures[-1]
     assert near.median_depth_m < 0.7 * far.median_depth_m
     assert far.centroid_xy[1] < near.centroid_xy[1]
+
+
+@pytest.mark.parametrize("planes", ["0", "1", "two"])
+def test_planes_below_two_are_refused_with_one_bound(tmp_path, capsys, planes):
+    """``--planes 0`` said ">= 1", then ``--planes 1`` said ">= 2": one bound, named once."""
+    from cmax.cli import main
+
+    with pytest.raises(SystemExit) as exit_:
+        main(["emvs", str(tmp_path / "missing.h5"), "-o", str(tmp_path / "o"), "--planes", planes])
+    assert exit_.value.code == 2
+    assert f"argument --planes: expected a whole number >= 2, got '{planes}'" in capsys.readouterr().err

@@ -324,6 +324,19 @@ def test_settings_take_strategies_as_enums_and_check_them():
         FitSettings(patch_flow={"grid": (4, 5)})
 
 
+@pytest.mark.parametrize("seed", [-1, True, "3", 1.5])
+def test_a_bad_seed_is_named_when_the_settings_are_made(seed):
+    """Was: accepted, then ``expected non-negative integer`` / ``manual_seed expected a long`` deep inside a fit."""
+    with pytest.raises(ValueError, match=f"seed must be an integer >= 0, got {seed!r}"):
+        FitSettings(seed=seed)
+
+
+def test_depth_range_is_stored_as_a_tuple_of_floats():
+    """A list or an array gives the same settings as the tuple (was: unequal, and ``==`` raised on an array)."""
+    assert FitSettings(depth_range=[0.4, 3]) == FitSettings(depth_range=(0.4, 3.0))
+    assert FitSettings(depth_range=np.array([1, 6.5])).depth_range == (1.0, 6.5)
+
+
 def test_settings_and_keyword_options_do_not_mix():
     w = small_rotation()
     with pytest.raises(TypeError, match="not both"):
@@ -588,3 +601,12 @@ def test_the_patch_flows_read_every_event_of_the_window_by_default():
     default, uncapped = patches(pf.max_events), patches(10 ** 9)
     np.testing.assert_array_equal(default.counts, uncapped.counts)
     assert default.counts.sum() > 20_000
+
+
+def test_fit_sequence_names_gyro_when_given_a_constant_omega():
+    """``fit_sequence(omega=)`` is refused with the way that works (was: only "sets ['omega'] per window")."""
+    from cmax.fitting import fit_sequence
+
+    w = small_rotation()
+    with pytest.raises(TypeError, match=r"give gyro= \(a constant one: gyro=cmax\.fitting\.sequence\.constant_gyro"):
+        fit_sequence(w.events, w.K, omega=[0.0, 0.0, 0.0])

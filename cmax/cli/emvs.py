@@ -17,7 +17,7 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax._args import api_default, float_list, nonnegative_float, positive_int
+from cmax._args import api_default, float_list, int_at_least, nonnegative_float
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
                                 file_intrinsics, overlap, read_calibrated)
@@ -42,12 +42,8 @@ def _depth_range(text: str) -> tuple[float, ...]:
     return near, far
 
 
-def _planes(text: str) -> int:
-    """``argparse`` type of ``--planes``: a whole number >= 2 (EMVS needs two depth planes at least)."""
-    value = positive_int(text)
-    if value < 2:
-        raise argparse.ArgumentTypeError(f"expected a whole number >= 2, got {text!r}")
-    return value
+#: ``argparse`` type of ``--planes``: EMVS needs two depth planes at least.
+_planes = int_at_least(2)
 
 
 def _emvs_default(name: str):

@@ -290,7 +290,9 @@ def _sequence_settings(fit_options: dict) -> tuple[FitSettings, dict]:
     among ``fit_options`` (not both), and the other options of :func:`fit`."""
     taken = sorted({"pose", "omega", "init"} & set(fit_options))
     if taken:
-        raise TypeError(f"fit_sequence() sets {taken} per window; it does not take them")
+        hint = ("; to hold the rotation of every window, give gyro= (a constant one: gyro=cmax.fitting.sequence."
+                "constant_gyro(omega, first_us, last_us); cmax fit --omega)" if "omega" in taken else "")
+        raise TypeError(f"fit_sequence() sets {taken} per window; it does not take them{hint}")
     fields = {k: v for k, v in fit_options.items() if k in FitSettings.__dataclass_fields__}
     rest = {k: v for k, v in fit_options.items() if k not in fields and k != "settings"}
     settings = fit_options.get("settings")

@@ -565,6 +565,8 @@ class FitSettings:
             raise ValueError(f"depth_range must be finite metres (the sweep spans it), got {self.depth_range}")
         if not 0 < near < far:
             raise ValueError(f"depth_range must satisfy 0 < near < far (metres), got {self.depth_range}")
+        object.__setattr__(self, "depth_range", (near, far))   # a list or an array compares equal to its tuple
+        _positive_int("seed", self.seed, 0)
         if not (isinstance(self.max_events, (int, np.integer)) and self.max_events >= 10):
             raise ValueError(f"max_events must be >= 10, got {self.max_events}")
         if not (isinstance(self.depth_coarsening, (int, np.integer)) and self.depth_coarsening >= 1):
