@@ -262,3 +262,20 @@ def test_an_empty_time_range_is_refused_before_converting(tmp_path, capsys, extr
                                                str(tmp_path / "out" / "clip.h5"), *FAST, *extra]), capsys)
     assert status == 2 and message in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_rerun_says_the_video_was_already_converted_and_redoes_a_replaced_one(tmp_path, capsys):
+    write_video(tmp_path / "in.avi", n_frames=8)
+    out = tmp_path / "out" / "in.h5"
+    args = ["simulate", str(tmp_path / "in.avi"), "-o", str(out), *FAST, "--quiet"]
+    assert main(args) == 0
+    first = capsys.readouterr().out
+    assert "already converted" not in first and "events from 8 frames" in first
+    assert main(args) == 0
+    assert f"in.h5: already converted from {tmp_path / 'in.avi'} (verified), " in capsys.readouterr().out
+    write_video(tmp_path / "in.avi", n_frames=12, shift=4)           # the video is replaced
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    assert "the source changed since it was converted" in captured.err
+    assert "already converted" not in captured.out and "events from 12 frames" in captured.out
+    assert load_manifest(out.parent / "manifest.json")["videos"]["in"]["frames"] == 12

@@ -8,6 +8,7 @@ import signal
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from cmax.io.h5 import read_h5
@@ -186,3 +187,82 @@ def test_settings_refuse_an_empty_time_range():
     with pytest.raises(ValueError, match="larger than t0_s"):
         ConvertSettings(t0_s=0.2, t1_s=0.1)
     assert ConvertSettings(t1_s=1e-3).t1_s == 1e-3
+
+
+# -- the source a resume skips is verified too (new-user report item 1) ------------------------------------
+def test_a_replaced_source_is_converted_again(tmp_path, capsys):
+    write_video(tmp_path / "a.avi", n_frames=8)
+    jobs, _ = collect_jobs(tmp_path / "a.avi")
+    out = tmp_path / "out"
+    old = convert_collection(jobs, out, FAST, progress=False)["videos"]["a"]
+    assert old["source_signature"]["bytes"] == (tmp_path / "a.avi").stat().st_size
+    write_video(tmp_path / "a.avi", n_frames=14, shift=5)          # the video is replaced, same name
+    fresh = convert_collection(collect_jobs(tmp_path / "a.avi")[0], tmp_path / "fresh", FAST, progress=False)
+    capsys.readouterr()
+    seen = []
+    manifest = convert_collection(jobs, out, FAST, progress=False, on_result=lambda r: seen.append(r.name))
+    assert seen == ["a"]
+    assert "note: a: the source changed since it was converted (a.avi has" in capsys.readouterr().err
+    entry = manifest["videos"]["a"]
+    assert entry["frames"] == 14 != old["frames"]
+    assert entry["events"] == fresh["videos"]["a"]["events"] == len(read_h5(out / "a.h5"))
+
+
+def test_a_touched_source_and_another_file_of_the_same_name_are_converted_again(tmp_path, capsys):
+    (tmp_path / "one").mkdir()
+    (tmp_path / "two").mkdir()
+    write_video(tmp_path / "one" / "a.avi")
+    write_video(tmp_path / "two" / "a.avi", shift=7)
+    out = tmp_path / "out"
+    convert_collection(collect_jobs(tmp_path / "one" / "a.avi")[0], out, FAST, progress=False)
+    seen = []
+    stat = (tmp_path / "one" / "a.avi").stat()
+    os.utime(tmp_path / "one" / "a.avi", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))   # re-exported
+    capsys.readouterr()
+    convert_collection(collect_jobs(tmp_path / "one" / "a.avi")[0], out, FAST, progress=False,
+                       on_result=lambda r: seen.append(r.name))
+    assert seen == ["a"] and "was modified after it was converted" in capsys.readouterr().err
+    manifest = convert_collection(collect_jobs(tmp_path / "two" / "a.avi")[0], out, FAST, progress=False,
+                                  on_result=lambda r: seen.append(r.name))
+    assert seen == ["a", "a"] and f"it was {tmp_path / 'one' / 'a.avi'}" in capsys.readouterr().err
+    assert manifest["videos"]["a"]["source"] == str(tmp_path / "two" / "a.avi")
+    # unchanged: skipped
+    convert_collection(collect_jobs(tmp_path / "two" / "a.avi")[0], out, FAST, progress=False,
+                       on_result=lambda r: seen.append(r.name))
+    assert seen == ["a", "a"]
+
+
+def test_an_old_manifest_without_a_signature_compares_the_source_path(tmp_path, capsys):
+    (tmp_path / "other").mkdir()
+    write_video(tmp_path / "a.avi")
+    write_video(tmp_path / "other" / "a.avi", shift=7)
+    out = tmp_path / "out"
+    manifest = convert_collection(collect_jobs(tmp_path / "a.avi")[0], out, FAST, progress=False)
+    del manifest["videos"]["a"]["source_signature"]                   # as an earlier version wrote it
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    seen = []
+    convert_collection(collect_jobs(tmp_path / "a.avi")[0], out, FAST, progress=False,
+                       on_result=lambda r: seen.append(r.name))
+    assert seen == []                                                 # the same path: skipped
+    capsys.readouterr()
+    convert_collection(collect_jobs(tmp_path / "other" / "a.avi")[0], out, FAST, progress=False,
+                       on_result=lambda r: seen.append(r.name))
+    assert seen == ["a"] and "it was converted from" in capsys.readouterr().err
+
+
+def test_the_signature_of_an_image_sequence_covers_its_images_and_times(tmp_path):
+    from cmax.sim.signature import signature_problem, source_signature
+
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"{i:03d}.png"), np.full((8, 8), 40 * i, np.uint8))
+    (folder / "timestamps.txt").write_text("0.0\n0.04\n0.08\n")
+    before = source_signature(folder)
+    assert before["files"] == 4 and source_signature(folder / "timestamps.txt")["files"] == 4
+    cv2.imwrite(str(folder / "001.png"), np.full((8, 8), 41, np.uint8))   # one image re-exported
+    os.utime(folder / "001.png", ns=(0, before["mtime_ns"] + 1))
+    assert signature_problem(before, source_signature(folder)) is not None
+    cv2.imwrite(str(folder / "003.png"), np.zeros((8, 8), np.uint8))       # one more image and time
+    (folder / "timestamps.txt").write_text("0.0\n0.04\n0.08\n0.12\n")
+    assert "seq has 5 files, it had 4" in signature_problem(before, source_signature(folder))

@@ -9,7 +9,7 @@ from __future__ import annotations
 import argparse
 import sys
 from pathlib import Path
-from typing import Sequence
+from typing import Collection, Sequence
 
 from cmax._args import api_default, library_default, nonnegative_int, positive_float, positive_int, sensor_size
 from cmax.cli._common import given
@@ -38,9 +38,11 @@ def run(args: argparse.Namespace) -> int:
     if single is not None:
         return _simulate_one(args, single, settings)
     jobs, missing = collect_jobs(args.input, catalogue=args.catalogue, shard=shard)
+    converted: set[str] = set()
     manifest = convert_collection(jobs, args.output, settings, workers=args.workers, missing=missing,
-                                  catalogue=args.catalogue, shard=shard, progress=not args.quiet)
-    status = _report_manifest(args.output / "manifest.json", manifest, [job.name for job in jobs])
+                                  catalogue=args.catalogue, shard=shard, progress=not args.quiet,
+                                  on_result=lambda result: converted.add(result.name))
+    status = _report_manifest(args.output / "manifest.json", manifest, [job.name for job in jobs], converted)
     if missing:
         print(f"  missing from {args.input}: {', '.join(missing)}", file=sys.stderr)
     return status
@@ -125,15 +127,19 @@ def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     job = VideoJob(output.stem, source)
     # --overwrite: the old entry is dropped under the folder's lock once the settings match (a refused run
     # changes nothing); the old file is replaced atomically when the new one is complete.
+    converted: set[str] = set()
     manifest = convert_collection([job], output.parent, settings, workers=1, progress=not args.quiet,
-                                  redo=[job.name] if args.overwrite else ())
-    return _report_manifest(manifest_path, manifest, [job.name])
+                                  redo=[job.name] if args.overwrite else (),
+                                  on_result=lambda result: converted.add(result.name))
+    return _report_manifest(manifest_path, manifest, [job.name], converted)
 
 
-def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
+def _report_manifest(path: Path, manifest: dict, names: Sequence[str], converted: Collection[str]) -> int:
     """Print the outcome of a conversion (outputs as paths in the folder of ``path``, the manifest);
-    1 when a video of this run (``names``) failed or yielded no events, else 0. Failures the manifest holds
-    from other runs into the same folder are counted in one line, not in the status."""
+    1 when a video of this run (``names``) failed or yielded no events, else 0. Videos of ``names`` not
+    in ``converted`` were skipped (an earlier run converted them; output and source verified) and are
+    said to be. Failures the manifest holds from other runs into the same folder are counted in one line,
+    not in the status."""
     from cmax.sim.convert import entry_output
 
     totals, videos = manifest["totals"], manifest["videos"]
@@ -145,8 +151,9 @@ def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
     for name in names:
         entry = videos.get(name, {})
         if entry.get("status") == "ok" and name not in empty:
-            print(f"  {entry_output(entry, path.parent)}: {entry['events']:,} events from {entry['frames']} frames "
-                  f"({entry['samples']} samples), {entry['duration_s']:.2f} s of video")
+            done = "" if name in converted else f"already converted from {entry['source']} (verified), "
+            print(f"  {entry_output(entry, path.parent)}: {done}{entry['events']:,} events from {entry['frames']} "
+                  f"frames ({entry['samples']} samples), {entry['duration_s']:.2f} s of video")
     failed = [name for name in names if videos.get(name, {}).get("status", "ok") != "ok"]
     for name in failed:
         print(f"  failed {name}: {videos[name]['error']}", file=sys.stderr)

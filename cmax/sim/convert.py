@@ -20,8 +20,10 @@ simulator version. An entry is ``ok`` only once its file has been verified
 (:func:`cmax.io.h5.verify_h5`: completion record, event count). A second run
 skips the videos whose entry is ``ok`` and whose file still has the recorded
 size, completion record, event count and SHA-256 (each skipped file is read
-once), and redoes the others (failed, crashed, missing, truncated, damaged or
-foreign output). A failing video (full disk, file-size limit, bad video) is
+once) and whose source still has the recorded signature (resolved path, files,
+bytes, latest mtime: :mod:`cmax.sim.signature`), and redoes the others (failed,
+crashed, missing, truncated, damaged or foreign output; a source replaced,
+re-exported, touched or moved). A failing video (full disk, file-size limit, bad video) is
 recorded and does not stop the others. An interrupted parallel run kills its
 workers and removes their temporary files.
 
@@ -52,6 +54,7 @@ from cmax.io import VIDEO_SUFFIXES
 from cmax.io.atomic import PathLock, discard_leftovers, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
 from cmax.sim.esim import EsimSettings, EventSimulator
+from cmax.sim.signature import signature_problem, source_signature
 from cmax.sim.video import DEFAULT_PREFETCH, VideoFileSource, open_source
 
 __all__ = [
@@ -143,7 +146,11 @@ class VideoResult:
     where adaptive sampling hit a cap (one sample per µs, ``max_insert``) and
     the ``lam * C`` bound does not hold; ``duration_s``: last minus first frame time;
     ``status``: ``"ok"`` or ``"failed"`` (then ``error`` says why, and no output exists);
-    ``bytes``, ``sha256``: size and checksum of the verified output file.
+    ``bytes``, ``sha256``: size and checksum of the verified output file;
+    ``source_signature``: the source as it was before it was read
+    (:func:`cmax.sim.signature.source_signature`: resolved path, files, bytes,
+    latest mtime in ns; None when the frames were passed in), which a resumed
+    conversion compares with the source it would skip.
     """
 
     name: str
@@ -161,6 +168,7 @@ class VideoResult:
     error: str | None = None
     bytes: int = 0
     sha256: str | None = None
+    source_signature: dict[str, Any] | None = None
 
 
 # -- one video --------------------------------------------------------------------------
@@ -238,9 +246,11 @@ def convert_video(
     settings = ConvertSettings() if settings is None else settings
     started = time.perf_counter()
     source, output = Path(source), Path(output)
+    signature = None
     if frames is None:
         if not source.exists():
             raise FileNotFoundError(f"video not found: {source}")
+        signature = source_signature(source)  # before reading: a source changed meanwhile is redone on resume
         frames = open_frames(source, settings)
     counter = [0, 0, 0, 0]  # frames read, first and last time, capped intervals
     stream: Iterable = _counted(frames, counter)
@@ -283,7 +293,7 @@ def convert_video(
         frames=counter[0], samples=samples, capped_intervals=counter[3],
         events=writer.count, duration_s=duration,
         events_per_s=writer.count / duration if duration > 0 else 0.0,
-        wall_s=time.perf_counter() - started,
+        wall_s=time.perf_counter() - started, source_signature=signature,
     )
 
 
@@ -536,6 +546,26 @@ def output_problem(entry: dict | None, output: Path) -> str | None:
     return None
 
 
+def source_problem(entry: dict, source: str | os.PathLike) -> str | None:
+    """Why ``source`` is not the source the manifest ``entry`` was converted from (None when it is).
+
+    Compared: the entry's ``source_signature`` with the source's now (resolved path, number of
+    files, bytes, latest mtime in ns; :mod:`cmax.sim.signature`); an entry of an older manifest,
+    without a signature, by its ``source`` path alone (as typed, or resolved from this folder).
+    """
+    recorded = entry.get("source_signature")
+    if not isinstance(recorded, dict):
+        old = entry.get("source")
+        if isinstance(old, str) and (old == str(source) or Path(old).resolve() == Path(source).resolve()):
+            return None
+        return f"it was converted from {old}, now {source}"
+    try:
+        now = source_signature(source)
+    except (OSError, ValueError) as error:
+        return " ".join(str(error).split())
+    return signature_problem(recorded, now)
+
+
 # -- a collection -----------------------------------------------------------------------
 def _failed(job: VideoJob, output: Path, error: str, started: float | None = None) -> VideoResult:
     wall = 0.0 if started is None else time.perf_counter() - started
@@ -649,7 +679,16 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
                 "convert into another folder or remove it"
             )
         manifest["videos"] = {name: entry for name, entry in previous["videos"].items() if name not in redo}
-    names = {job.name for job in jobs}
+    sources = {job.name: job.source for job in jobs}
+    names = set(sources)
+    for name, entry in manifest["videos"].items():  # never skip a video whose source changed
+        if entry["status"] == "ok" and name in sources:
+            problem = source_problem(entry, sources[name])
+            if problem is not None:
+                manifest["videos"][name] = dict(entry, status="failed",
+                                                error=f"the source changed since it was converted: {problem}")
+                print(f"cmax: note: {name}: the source changed since it was converted ({problem}); "
+                      "converting it again", file=sys.stderr)
     for name, entry in manifest["videos"].items():  # never list a file that is not there as it was
         if entry["status"] == "ok":
             problem = output_problem(entry, output_dir / f"{name}.h5")
