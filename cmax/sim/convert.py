@@ -66,6 +66,9 @@ MANIFEST = "manifest.json"
 #: Lock file of an output folder, held by the conversion writing into it.
 FOLDER_LOCK = ".conversion.lock"
 _FORMAT = "evtslowtv-manifest/1"
+#: ``output_paths`` of a manifest whose entries name their output relative to its folder (``a.h5``,
+#: ``shard0/a.h5`` after a merge); older manifests lack it (see :func:`entry_output`).
+_RELATIVE = "relative"
 
 
 # -- settings and records ---------------------------------------------------------------
@@ -443,7 +446,17 @@ def load_manifest(path: str | os.PathLike) -> dict[str, Any]:
     except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as error:
         message = " ".join(str(error).split())
         raise ValueError(f"{path} is not a JSON manifest: {message}") from None
-    return check_manifest(manifest, str(path))
+    return _with_relative_outputs(check_manifest(manifest, str(path)))
+
+
+def _with_relative_outputs(manifest: dict[str, Any]) -> dict[str, Any]:
+    """``manifest`` with ``output_paths`` ``"relative"``: an older manifest's outputs (bare names, or the
+    paths typed at conversion time) become the names :func:`entry_output` finds them under."""
+    if manifest.get("output_paths") == _RELATIVE:
+        return manifest
+    videos = {name: dict(entry, output=entry_output(entry, ".", relative=False).name) if "output" in entry
+              else entry for name, entry in manifest["videos"].items()}
+    return dict(manifest, videos=videos, output_paths=_RELATIVE)
 
 
 def _new_manifest(settings: ConvertSettings, catalogue: str | None, shard, missing) -> dict[str, Any]:
@@ -453,7 +466,7 @@ def _new_manifest(settings: ConvertSettings, catalogue: str | None, shard, missi
         "format": _FORMAT, "simulator": f"cmax {__version__}", "simulator_version": __version__,
         "settings": settings.to_dict(), "catalogue": catalogue,
         "shard": None if shard is None else f"{shard[0]}/{shard[1]}",
-        "missing": list(missing), "videos": {}, "totals": {},
+        "missing": list(missing), "videos": {}, "totals": {}, "output_paths": _RELATIVE,
     }
 
 
@@ -466,18 +479,43 @@ def _totals(videos: dict[str, dict]) -> dict[str, Any]:
     }
 
 
-def merge_manifests(manifests: Sequence[dict[str, Any]]) -> dict[str, Any]:
+def merge_manifests(manifests: Sequence[dict[str, Any]], *,
+                    folders: Sequence[str | os.PathLike] | None = None,
+                    into: str | os.PathLike | None = None) -> dict[str, Any]:
     """Join the manifests of several shards or machines into one.
 
     Settings and simulator version must agree. A video present in several
     manifests keeps its ``ok`` entry (else the last one); an entry missing in one
     manifest but converted in another is not missing. Each manifest is checked
     first (:func:`check_manifest`).
+
+    Parameters
+    ----------
+    manifests : sequence of dict
+        The manifests (:func:`load_manifest`).
+    folders : sequence of paths, optional
+        The folder of each manifest (where its outputs lie), with ``into``.
+    into : path, optional
+        The folder the merged manifest will be written to. With ``folders``, each
+        entry's ``output`` is rewritten relative to it (``shard0/00000.h5``), so
+        that :func:`entry_output` finds the files from the merged manifest and a
+        conversion resumed into ``into`` verifies and skips them. A manifest whose
+        folder does not lie inside ``into`` is refused (ValueError). Without them
+        the outputs are kept as they are (right only for manifests already in
+        ``into``).
     """
     if not manifests:
         raise ValueError("merge_manifests needs at least one manifest")
+    if (folders is None) != (into is None):
+        raise ValueError("merge_manifests takes folders= and into= together")
+    if folders is not None and len(folders) != len(manifests):
+        raise ValueError(f"merge_manifests got {len(folders)} folders for {len(manifests)} manifests")
     for number, manifest in enumerate(manifests, start=1):
         check_manifest(manifest, f"manifest {number} of {len(manifests)}")
+    manifests = [_with_relative_outputs(manifest) for manifest in manifests]
+    if folders is not None:
+        manifests = [_outputs_relative_to(manifest, Path(folder), Path(into))
+                     for manifest, folder in zip(manifests, folders)]
     first = manifests[0]
     for other in manifests[1:]:
         for key in ("settings", "simulator", "catalogue"):
@@ -490,10 +528,25 @@ def merge_manifests(manifests: Sequence[dict[str, Any]]) -> dict[str, Any]:
         for name, entry in manifest["videos"].items():
             if name not in videos or entry["status"] == "ok":
                 videos[name] = entry
-    merged = dict(first, shard=None, videos=dict(sorted(videos.items())))
+    merged = dict(first, shard=None, videos=dict(sorted(videos.items())), output_paths=_RELATIVE)
     merged["missing"] = sorted(missing - set(videos))
     merged["totals"] = _totals(merged["videos"])
     return merged
+
+
+def _outputs_relative_to(manifest: dict[str, Any], folder: Path, into: Path) -> dict[str, Any]:
+    """``manifest`` (of ``folder``) with each entry's output relative to the folder ``into`` (POSIX ``/``)."""
+    base = os.path.abspath(into)
+    videos = {}
+    for name, entry in manifest["videos"].items():
+        target = os.path.abspath(entry_output(entry, folder, relative=True))
+        relative = Path(os.path.relpath(target, base))
+        if relative.parts[:1] == ("..",):
+            raise ValueError(f"the outputs of {folder / MANIFEST} (e.g. {target}) lie outside {into}, the folder "
+                             "of the merged manifest: write it into a folder that holds the manifests' folders "
+                             f"(e.g. {Path(os.path.commonpath([base, os.path.abspath(folder)])) / MANIFEST})")
+        videos[name] = dict(entry, output=relative.as_posix())
+    return dict(manifest, videos=videos)
 
 
 # -- verification -----------------------------------------------------------------------
@@ -653,14 +706,26 @@ def convert_collection(
                                set(redo))
 
 
-def entry_output(entry: dict, folder: str | os.PathLike) -> Path:
+def entry_output(entry: dict, folder: str | os.PathLike, *, relative: bool = True) -> Path:
     """The output file of the manifest ``entry`` of a manifest in ``folder``.
 
-    The manifest stores the file's name relative to its folder; older manifests
-    hold the path typed at conversion time (relative to that run's folder, or
-    absolute). The file always lies in the manifest's folder, so its name is kept.
+    ``relative=True`` (a manifest whose ``output_paths`` is ``"relative"``: all that
+    :func:`convert_collection`, :func:`merge_manifests` and :func:`load_manifest`
+    return): the entry stores the file's path relative to the manifest's folder, a
+    name (``a.h5``) or, after a merge, a sub-path (``shard0/a.h5``); a path that
+    is absolute or climbs out of the folder (``..``) is refused (ValueError).
+    ``relative=False`` (older manifests, read as raw JSON): the entry holds a bare
+    name or the path typed at conversion time (relative to that run's folder,
+    or absolute); such a file always lies in the manifest's folder, so its name is
+    kept. :func:`load_manifest` turns an older manifest into the first kind.
     """
-    return Path(folder) / Path(str(entry["output"])).name
+    output = Path(str(entry["output"]))
+    if not relative:
+        return Path(folder) / output.name
+    if output.is_absolute() or ".." in output.parts or output.name in ("", "."):
+        raise ValueError(f"manifest entry output {str(entry['output'])!r} is not a path inside the manifest's "
+                         "folder (absolute, or climbing out with '..')")
+    return Path(folder) / output
 
 
 def _manifest_entry(result: VideoResult) -> dict[str, Any]:
@@ -691,7 +756,10 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
                       "converting it again", file=sys.stderr)
     for name, entry in manifest["videos"].items():  # never list a file that is not there as it was
         if entry["status"] == "ok":
-            problem = output_problem(entry, output_dir / f"{name}.h5")
+            try:
+                problem = output_problem(entry, entry_output(entry, output_dir))
+            except ValueError as error:  # an output path outside the folder
+                problem = str(error)
             if problem is not None:
                 manifest["videos"][name] = dict(entry, status="failed", error=f"output not verified: {problem}")
                 print(f"cmax: note: {name}: output not verified ({problem}); "
