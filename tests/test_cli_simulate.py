@@ -115,6 +115,29 @@ def test_t0_t1_cut_an_image_folder_as_they_cut_a_video(tmp_path, capsys):
     assert load_manifest(out.parent / "manifest.json")["videos"]["seq"]["frames"] == 3
 
 
+@pytest.mark.parametrize("start_s", [0.0, 1_700_000_000.0])
+def test_t0_t1_count_from_the_first_image_whatever_the_clock(tmp_path, capsys, start_s):
+    """--t0/--t1 are seconds after the first frame (the help's "seconds into each video"), for timestamps on an
+    absolute clock too (ROS/DSEC exports: --t0 0.1 kept every image, and --t1 found none)."""
+    frames = _frames(8)
+    times_us = np.arange(8, dtype=np.int64) * 40_000 + int(start_s * 1e6)
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(seq / f"{k:03d}.png"), frame)
+    (seq / "timestamps.txt").write_text("".join(f"{t * 1e-6:.6f}\n" for t in times_us))
+    out = tmp_path / "events" / "seq.h5"
+    assert main(["simulate", str(seq), "-o", str(out), *FAST, "--t0", "0.1", "--quiet"]) == 0
+    kept = times_us - times_us[0] >= 100_000                              # frames 3..7
+    assert load_manifest(out.parent / "manifest.json")["videos"]["seq"]["frames"] == 5
+    assert len(read(out)) == _expected_events(frames[kept], times_us[kept], tmp_path) > 0
+    capsys.readouterr()
+    assert main(["simulate", str(seq), "-o", str(tmp_path / "none.h5"), *FAST, "--t0", "2", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "no images from 2.0 s after the first frame to the end (zero frames)" in err and "span 0.280000 s" in err
+    assert ("they start at 1700000000.000000 s" in err) == bool(start_s)
+
+
 def test_an_image_folder_without_times_says_how_to_write_them(tmp_path, capsys):
     """Frames extracted by ffmpeg (no timestamp file): one line that says so (it said 'holds no videos') and
     gives a command whose timestamps.txt the conversion then reads, at 25 frames/s."""

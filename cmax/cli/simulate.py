@@ -202,9 +202,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     api_default(parser.add_argument("--method", choices=("flow", "linear"), default=None,
                                     help="interpolation of adaptive sampling"), library_default(_CONVERT, "method"))
     parser.add_argument("--t0", type=float, default=None,
-                        help="start, seconds into each video (default: its start)")
+                        help="start, seconds after each video's (or image sequence's) first frame, whatever clock "
+                        "its times are on (default: its start)")
     parser.add_argument("--t1", type=positive_float, default=None,
-                        help="end, seconds into each video, after --t0 (default: its end)")
+                        help="end, seconds after the first frame, after --t0 (default: its end)")
     parser.add_argument("--workers", type=positive_int, default=1, help="parallel processes")
     parser.add_argument("--catalogue", choices=("slowtv",), default=None,
                         help="INPUT is the folder of a catalogue's videos named by index (00000.mp4)")

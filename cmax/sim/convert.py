@@ -90,9 +90,11 @@ class ConvertSettings:
     method : {"flow", "linear"}
         Interpolation of the adaptive sampling.
     t0_s, t1_s : float or None
-        Time range of the video to convert: frames with ``t0_s <= t < t1_s``
-        (seconds of container time, as :class:`cmax.sim.video.VideoFileSource`);
-        ``t0_s >= 0``, ``t1_s > 0`` and ``t1_s > t0_s``.
+        Time range to convert, in seconds after the first frame, for a video and
+        an image sequence alike (whatever clock its timestamps are on): frames with
+        ``t_first + t0_s <= t < t_first + t1_s`` (:class:`cmax.sim.video.VideoFileSource`,
+        :class:`cmax.sim.video.ImageFolderSource`); ``t0_s >= 0``, ``t1_s > 0`` and
+        ``t1_s > t0_s``. A range that selects no frame fails the conversion.
     """
 
     esim: EsimSettings = field(default_factory=EsimSettings)
@@ -181,7 +183,8 @@ def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
 
     Frames are uint8 grey (H, W) (the 8-bit values the reference ESIM works
     on), decoded ``prefetch`` frames ahead in a background thread; times are
-    the container's presentation times in µs, ``t0_s <= t < t1_s``.
+    the container's presentation times (or the image sequence's timestamps) in
+    µs, from ``t0_s`` to ``t1_s`` seconds after the first frame.
 
     Raises
     ------
@@ -303,7 +306,9 @@ def convert_video(
 def _range_note(settings: ConvertSettings) -> str:
     if settings.t0_s is None and settings.t1_s is None:
         return ""
-    return f" in the time range [{settings.t0_s or 0} s, {settings.t1_s or 'end'} s]"
+    from cmax.sim.video import range_words
+
+    return " " + range_words(settings.t0_s, settings.t1_s)
 
 
 # -- jobs -------------------------------------------------------------------------------
