@@ -222,3 +222,13 @@ def test_settings_reject_bad_values():
                          ({"size": (0, 10)}, "size"), ({"t0_s": -1.0}, "t0_s")):
         with pytest.raises(ValueError, match=name):
             ConvertSettings(**kwargs)
+
+
+def test_convert_video_does_not_replace_an_existing_file_unless_told(tmp_path):
+    write_video(tmp_path / "a.avi")
+    (tmp_path / "a.h5").write_bytes(b"precious")
+    with pytest.raises(FileExistsError, match="pass overwrite=True"):
+        convert_video(tmp_path / "a.avi", tmp_path / "a.h5", FAST)
+    assert (tmp_path / "a.h5").read_bytes() == b"precious" and not list(tmp_path.glob("a.h5.*"))
+    result = convert_video(tmp_path / "a.avi", tmp_path / "a.h5", FAST, overwrite=True)
+    assert len(read_h5(tmp_path / "a.h5")) == result.events > 0

@@ -218,7 +218,7 @@ def convert_video(
     category: str | None = None,
     frames: Iterable[tuple[np.ndarray, int]] | None = None,
     progress: Callable[[int], None] | None = None,
-    overwrite: bool = True,
+    overwrite: bool = False,
 ) -> VideoResult:
     """Convert one video to a DSEC-layout event file, streaming (constant memory).
 
@@ -236,12 +236,18 @@ def convert_video(
         Frames to use instead of reading ``source`` (grey or BGR, µs).
     progress : callable, optional
         Called with the number of new video frames read, now and then.
+    overwrite : bool
+        Replace an existing ``output`` (atomically, once the new file is
+        complete; a failed conversion keeps the old one). Default False: an
+        existing ``output`` raises ``FileExistsError`` before anything is read,
+        as :func:`cmax.io.h5.write_h5` and ``cmax simulate`` do.
 
     Returns
     -------
     VideoResult
         With ``status="ok"``. Errors raise (the temporary file is removed):
-        ``FileNotFoundError``, ``ValueError`` for a video without frames in the
+        ``FileNotFoundError``, ``FileExistsError`` (``output`` exists and
+        ``overwrite`` is False), ``ValueError`` for a video without frames in the
         range, unreadable or inconsistent frames, ``OSError`` naming the output
         for a full disk or file-size limit, :class:`cmax.io.atomic.OutputLockedError`
         when another writer is writing ``output``.
@@ -252,6 +258,8 @@ def convert_video(
     settings = ConvertSettings() if settings is None else settings
     started = time.perf_counter()
     source, output = Path(source), Path(output)
+    if not overwrite and os.path.lexists(output):  # before any frame is read (the writer checks again)
+        raise FileExistsError(f"{output} exists (pass overwrite=True to replace it)")
     signature = None
     if frames is None:
         if not source.exists():
@@ -639,8 +647,10 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
             from tqdm.auto import tqdm
 
             bar = tqdm(desc=job.name, unit="frame", position=position, leave=False, mininterval=1.0)
+        # overwrite: under the folder's lock, an output the manifest does not list as verified is redone
+        # (replaced atomically when the new file is complete)
         result = convert_video(job.source, output, settings, category=job.category,
-                               progress=None if bar is None else bar.update)
+                               progress=None if bar is None else bar.update, overwrite=True)
         result = _verified(replace(result, name=job.name))
     except Exception as error:  # reported in the manifest; the other videos go on
         message = " ".join(f"{type(error).__name__}: {error}".split())
