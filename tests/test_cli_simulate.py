@@ -304,3 +304,19 @@ def test_a_rerun_says_the_video_was_already_converted_and_redoes_a_replaced_one(
     assert "the source changed since it was converted" in captured.err
     assert "already converted" not in captured.out and "events from 12 frames" in captured.out
     assert load_manifest(out.parent / "manifest.json")["videos"]["in"]["frames"] == 12
+
+
+def test_a_catalogue_conversion_that_finds_no_video_exits_1(tmp_path, capsys):
+    """A wrong folder or naming (``0.mp4`` for ``00000.mp4``) found none of the catalogue's videos and exited 0
+    ('0 videos ok, 0 failed'): in a SLURM array a silent success. Now exit 1, one line, nothing written."""
+    folder = tmp_path / "badcat"
+    folder.mkdir()
+    write_video(folder / "0.avi")
+    out = tmp_path / "out"
+    assert main(["simulate", "--catalogue", "slowtv", str(folder), "-o", str(out), *FAST, "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "no video to convert: none of the 40 entries of the slowtv catalogue has a video" in err
+    assert "holds 1 other video(s): 0.avi" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    assert main(["simulate", "--catalogue", "slowtv", str(folder), "-o", str(out), "--shard", "3/8", *FAST]) == 1
+    assert "none of the 5 entries of the slowtv catalogue (shard 3/8)" in capsys.readouterr().err

@@ -26,7 +26,8 @@ _CONVERT_OPTIONS = {"size": "size", "adaptive": "adaptive", "lam": "lam", "metho
 
 
 def run(args: argparse.Namespace) -> int:
-    """Convert the input; returns the exit status (1 when a video failed or yielded no events)."""
+    """Convert the input; returns the exit status (1 when a video failed or yielded no events, or a catalogue's
+    folder holds none of its videos)."""
     from cmax.sim.catalogue import parse_shard
     from cmax.sim.convert import ConvertSettings, collect_jobs, convert_collection
     from cmax.sim.esim import EsimSettings
@@ -38,6 +39,10 @@ def run(args: argparse.Namespace) -> int:
     if single is not None:
         return _simulate_one(args, single, settings)
     jobs, missing = collect_jobs(args.input, catalogue=args.catalogue, shard=shard)
+    if not jobs:  # a catalogue none of whose videos is there: a wrong folder or naming, not a success
+        print(f"cmax simulate: error: {_nothing_found(args.input, missing, args.catalogue, args.shard)}",
+              file=sys.stderr)
+        return 1
     converted: set[str] = set()
     manifest = convert_collection(jobs, args.output, settings, workers=args.workers, missing=missing,
                                   catalogue=args.catalogue, shard=shard, progress=not args.quiet,
@@ -46,6 +51,23 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         print(f"  missing from {args.input}: {', '.join(missing)}", file=sys.stderr)
     return status
+
+
+def _nothing_found(folder: Path, missing: Sequence[str], catalogue: str | None, shard: str | None) -> str:
+    """Why a catalogue conversion has no video to convert (``missing``: the entries looked for), in one line.
+
+    >>> _nothing_found(Path("slowtv"), ["00000", "00001"], "slowtv", None)[:60]
+    'no video to convert: none of the 2 entries of the slowtv cat'
+    """
+    from cmax.sim.convert import VIDEO_SUFFIXES
+
+    found = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES) if folder.is_dir() else []
+    there = (f"; {folder} holds {len(found)} other video(s): {', '.join(found[:3])}{', ...' if len(found) > 3 else ''}"
+             if found else f"; {folder} holds no video")
+    part = f" (shard {shard})" if shard else ""
+    first = missing[0] if missing else "00000"
+    return (f"no video to convert: none of the {len(missing)} entries of the {catalogue} catalogue{part} has a video "
+            f"in {folder} (named by index: {first}{VIDEO_SUFFIXES[0]}, ...){there}; nothing was written")
 
 
 def _single_input(args: argparse.Namespace) -> Path | None:
@@ -178,7 +200,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
         "timestamps.txt) or a timestamp file to one h5 file (-o F.h5, with manifest.json beside it); or a "
         "folder of videos, a list file (one video per line, optional tab and category) or a catalogue's "
         "folder (--catalogue slowtv) to DSEC-layout h5 files in the folder -o, with manifest.json; "
-        "resumable, in --workers processes. Exit status 1 when a video fails or yields no events.",
+        "resumable, in --workers processes. Exit status 1 when a video fails or yields no events, or when "
+        "none of a catalogue's videos (of its shard) is found.",
     )
     parser.add_argument("input", type=Path,
                         help="video file, image folder, timestamp file, folder of videos, or list file")
