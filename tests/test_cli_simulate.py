@@ -320,3 +320,31 @@ def test_a_catalogue_conversion_that_finds_no_video_exits_1(tmp_path, capsys):
     assert not out.exists()
     assert main(["simulate", "--catalogue", "slowtv", str(folder), "-o", str(out), "--shard", "3/8", *FAST]) == 1
     assert "none of the 5 entries of the slowtv catalogue (shard 3/8)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("first, step, unit", [(1600000000123456789, 50_000_000, "nanoseconds"),
+                                               (1600000000123456, 50_000, "microseconds"),
+                                               (1e300, 1e299, "another unit")])
+def test_timestamps_too_large_for_seconds_are_refused_naming_the_unit(tmp_path, capsys, first, step, unit):
+    """ns (or DSEC-style µs) in timestamps.txt overflowed int64 (numpy 'invalid value encountered in cast', then
+    'time 1 (-9223372036854775808 µs) follows time 0'); now refused when read, naming the likely unit."""
+    seq = tmp_path / "ns_like"
+    seq.mkdir()
+    for k, frame in enumerate(_frames(4)):
+        cv2.imwrite(str(seq / f"{k:03d}.png"), frame)
+    (seq / "timestamps.txt").write_text("".join(f"{first + k * step}\n" for k in range(4)))
+    assert main(["simulate", str(seq), "-o", str(tmp_path / "out" / "a.h5"), *FAST, "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "is too large for seconds" in err and f"these look like {unit}" in err
+    assert "cast" not in err and "9223372036854775808" not in err
+    assert not list((tmp_path / "out").glob("*.h5"))
+
+
+def test_non_finite_timestamps_are_refused(tmp_path):
+    from cmax.sim.video import read_timestamps
+
+    (tmp_path / "a.png").write_bytes(cv2.imencode(".png", _frames(1)[0])[1].tobytes())
+    (tmp_path / "b.png").write_bytes(cv2.imencode(".png", _frames(1)[0])[1].tobytes())
+    (tmp_path / "timestamps.txt").write_text("0.0\nnan\n")
+    with pytest.raises(ValueError, match=r"time 1 is nan \(times must be finite seconds\)"):
+        read_timestamps(tmp_path / "timestamps.txt")

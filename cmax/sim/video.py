@@ -153,6 +153,38 @@ def _mean_fps(t_us: np.ndarray) -> float | None:
     return None if t_us.size < 2 else (t_us.size - 1) * 1e6 / float(t_us[-1] - t_us[0])
 
 
+#: Largest time a timestamp file may state in seconds (about the year 5100 as seconds since 1970); larger values
+#: are another unit (ns or µs since 1970: 1.7e18, 1.7e15), never converted silently.
+MAX_SECONDS = 1e11
+#: Unit names and their size in seconds, smallest first (to name the unit of times too large for seconds).
+_SMALLER_UNITS = (("nanoseconds", 1e-9), ("microseconds", 1e-6), ("milliseconds", 1e-3))
+
+
+def _checked_seconds(seconds: np.ndarray, what: str) -> np.ndarray:
+    """``seconds`` (float64, (T,)) if every value is finite and within ``MAX_SECONDS``; else a ValueError naming
+    the first bad time and, for a large one, the unit it likely is (the one that puts it in 1973-5100 since 1970).
+
+    >>> _checked_seconds(np.array([1.6e18, 1.65e18]), "timestamps.txt")
+    Traceback (most recent call last):
+    ...
+    ValueError: timestamps.txt: time 0 (1.6e+18) is too large for seconds (5.07e+10 years): these look like nanoseconds (1600000000.000000 s since 1970 if so); write the times in seconds
+    """
+    bad = ~np.isfinite(seconds)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{what}: time {i} is {seconds[i]} (times must be finite seconds)")
+    large = np.abs(seconds) > MAX_SECONDS
+    if large.any():
+        i = int(np.flatnonzero(large)[0])
+        value = float(seconds[i])
+        unit = next((name for name, size in _SMALLER_UNITS if 1e8 <= abs(value) * size <= MAX_SECONDS), None)
+        guess = ("another unit (ns? µs?)" if unit is None else
+                 f"{unit} ({value * dict(_SMALLER_UNITS)[unit]:.6f} s since 1970 if so)")
+        raise ValueError(f"{what}: time {i} ({value:.6g}) is too large for seconds ({value / 3.15576e7:.3g} years): "
+                         f"these look like {guess}; write the times in seconds")
+    return seconds
+
+
 def _seconds_to_us(seconds: np.ndarray) -> np.ndarray:
     return np.rint(np.asarray(seconds, dtype=np.float64) * 1e6).astype(np.int64)
 
@@ -287,7 +319,7 @@ def read_timestamps(path: PathLike, folder: PathLike | None = None) -> tuple[np.
         if min(indices) < 0 or max(indices) >= len(listed):
             raise ValueError(f"{path}: image index out of range [0, {len(listed)}) of {folder}")
         images = [listed[i] for i in indices]
-    t_us = _seconds_to_us(np.array(seconds))
+    t_us = _seconds_to_us(_checked_seconds(np.array(seconds, dtype=np.float64), str(path)))
     _strictly_increasing(t_us, str(path))
     return t_us, images
 
