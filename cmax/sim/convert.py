@@ -472,6 +472,28 @@ def _with_relative_outputs(manifest: dict[str, Any]) -> dict[str, Any]:
     return dict(manifest, videos=videos, output_paths=_RELATIVE)
 
 
+def settings_difference(recorded: dict[str, Any], now: dict[str, Any]) -> str:
+    """The keys where two settings dicts (:meth:`ConvertSettings.to_dict`) differ, as ``key: old (recorded) vs
+    new (now)``; nested keys joined by dots.
+
+    >>> settings_difference({"esim": {"cp": 0.2}, "size": None}, {"esim": {"cp": 0.3}, "size": [64, 48]})
+    'esim.cp: 0.2 (recorded) vs 0.3 (now), size: None (recorded) vs [64, 48] (now)'
+    """
+    def flat(settings: Any, prefix: str = "") -> dict[str, Any]:
+        if not isinstance(settings, dict):
+            return {prefix: settings}
+        out: dict[str, Any] = {}
+        for key, value in settings.items():
+            out.update(flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
+        return out
+
+    old, new = flat(recorded), flat(now)
+    missing = object()
+    keys = [key for key in dict.fromkeys([*old, *new]) if old.get(key, missing) != new.get(key, missing)]
+    return ", ".join(f"{key}: {old.get(key, 'absent')!r} (recorded) vs {new.get(key, 'absent')!r} (now)"
+                     for key in keys)
+
+
 def _new_manifest(settings: ConvertSettings, catalogue: str | None, shard, missing) -> dict[str, Any]:
     from cmax import __version__
 
@@ -754,10 +776,9 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
     if os.path.lexists(path):
         previous = load_manifest(path)
         if previous["settings"] != manifest["settings"]:
-            raise ValueError(
-                f"{path} was written with other settings ({previous['settings']}); "
-                "convert into another folder or remove it"
-            )
+            difference = settings_difference(previous["settings"], manifest["settings"])
+            raise ValueError(f"{path} was written with other settings ({difference}); "
+                             "convert into another folder or remove it")
         manifest["videos"] = {name: entry for name, entry in previous["videos"].items() if name not in redo}
     sources = {job.name: job.source for job in jobs}
     names = set(sources)
