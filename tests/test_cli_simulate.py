@@ -348,3 +348,15 @@ def test_non_finite_timestamps_are_refused(tmp_path):
     (tmp_path / "timestamps.txt").write_text("0.0\nnan\n")
     with pytest.raises(ValueError, match=r"time 1 is nan \(times must be finite seconds\)"):
         read_timestamps(tmp_path / "timestamps.txt")
+
+
+@pytest.mark.parametrize("name", ["clip.hdf5", "CLIP.H5", "clip.HDF5"])
+def test_an_hdf5_suffix_other_than_h5_is_refused_not_made_a_folder(tmp_path, capsys, name):
+    """-o clip.hdf5 / CLIP.H5 made a FOLDER of that name (the file mode was chosen by the exact suffix .h5)."""
+    write_video(tmp_path / "clip.avi")
+    for source in (tmp_path / "clip.avi", tmp_path):                  # one video, a folder of videos
+        assert main(["simulate", str(source), "-o", str(tmp_path / "o" / name), *FAST, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert f"cmax simulate writes .h5 files (manifest entries are NAME.h5): give -o " in err
+        assert err.strip().endswith(str(tmp_path / "o" / name[:-len(name.split(".")[-1])]) + "h5")
+    assert not (tmp_path / "o").exists()

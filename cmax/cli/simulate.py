@@ -75,6 +75,7 @@ def _single_input(args: argparse.Namespace) -> Path | None:
     file; None for a collection (a folder of videos, a list file, a catalogue)."""
     from cmax.sim.convert import VIDEO_SUFFIXES
 
+    _check_output_suffix(args.output)
     source, single = args.input, args.output.suffix == ".h5" and not args.catalogue
     image_source = _image_folder(source)
     if image_source is not None:
@@ -89,8 +90,28 @@ def _single_input(args: argparse.Namespace) -> Path | None:
         raise FileNotFoundError(f"input not found: {source}")
     if source.suffix.lower() not in VIDEO_SUFFIXES:
         raise ValueError(f"INPUT must be a video ({', '.join(VIDEO_SUFFIXES)}), an image folder with images.txt or "
-                         f"images/ + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, got {source}")
+                         "images/ + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, "
+                         f"got {source}")
     return source
+
+
+#: Suffixes of HDF5 files (compared in lower case); cmax simulate writes ``.h5`` only.
+_H5_SUFFIXES = (".h5", ".hdf5", ".hdf", ".he5")
+
+
+def _check_output_suffix(output: Path) -> None:
+    """Refuse ``-o`` ending in an HDF5 suffix other than ``.h5`` (``x.hdf5``, ``X.H5``): taken for a folder, it
+    made a folder of that name. The outputs are named ``<stem>.h5`` (the manifest's entries), so the suffix is
+    not kept either.
+
+    >>> _check_output_suffix(Path("clip.hdf5"))
+    Traceback (most recent call last):
+    ...
+    ValueError: -o clip.hdf5: cmax simulate writes .h5 files (manifest entries are NAME.h5): give -o clip.h5
+    """
+    if output.suffix != ".h5" and output.suffix.lower() in _H5_SUFFIXES:
+        raise ValueError(f"-o {output}: cmax simulate writes .h5 files (manifest entries are NAME.h5): give -o "
+                         f"{output.with_suffix('.h5')}")
 
 
 def _image_folder(source: Path) -> Path | None:
