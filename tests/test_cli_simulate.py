@@ -66,21 +66,25 @@ def _expected_events(frames: np.ndarray, times_us: np.ndarray, tmp_path) -> int:
     return result.events
 
 
-@pytest.mark.parametrize("layout", ["ecd", "ecd-file", "ecd-images", "rpg", "rpg-file", "rpg-images"])
+@pytest.mark.parametrize("layout", ["ecd", "ecd-file", "ecd-images", "rpg", "rpg-file", "rpg-images",
+                                    "vid2e", "vid2e-file"])
 def test_image_folders_are_accepted_as_input(tmp_path, capsys, layout):
+    """rpg_vid2e's upsampler writes imgs/ + timestamps.txt (was: 'folder seq holds no videos')."""
     frames = _frames()
     times_us = np.arange(len(frames), dtype=np.int64) * 40_000 + 1_000_000
     seq = tmp_path / "seq"
-    (seq / "images").mkdir(parents=True)
+    images = "imgs" if layout.startswith("vid2e") else "images"
+    (seq / images).mkdir(parents=True)
     for k, frame in enumerate(frames):
-        cv2.imwrite(str(seq / "images" / f"frame_{k:08d}.png"), frame)
+        cv2.imwrite(str(seq / images / f"frame_{k:08d}.png"), frame)
     if layout.startswith("ecd"):   # ECD: images.txt with "t images/frame_XXXXXXXX.png"
         (seq / "images.txt").write_text("".join(f"{t * 1e-6:.6f} images/frame_{k:08d}.png\n"
                                                 for k, t in enumerate(times_us)))
         source = {"ecd": seq, "ecd-file": seq / "images.txt", "ecd-images": seq / "images"}[layout]
     else:                          # rpg_vid2e / ESIM: images/ and timestamps.txt (seconds, one per image)
         (seq / "timestamps.txt").write_text("".join(f"{t * 1e-6:.6f}\n" for t in times_us))
-        source = {"rpg": seq, "rpg-file": seq / "timestamps.txt", "rpg-images": seq / "images"}[layout]
+        source = {"rpg": seq, "rpg-file": seq / "timestamps.txt", "rpg-images": seq / "images",
+                  "vid2e": seq, "vid2e-file": seq / "timestamps.txt"}[layout]
     out = tmp_path / "events" / "seq.h5"
     assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet"]) == 0
     events = read(out)

@@ -90,11 +90,13 @@ def _single_input(args: argparse.Namespace) -> Path | None:
         raise FileNotFoundError(f"input not found: {source}")
     if source.suffix.lower() not in VIDEO_SUFFIXES:
         raise ValueError(f"INPUT must be a video ({', '.join(VIDEO_SUFFIXES)}), an image folder with images.txt or "
-                         "images/ + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, "
+                         "images/ (or imgs/) + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, "
                          f"got {source}")
     return source
 
 
+#: Image sub-folders beside a timestamps.txt: ESIM's ``images/``, rpg_vid2e's upsampler's ``imgs/``.
+_IMAGE_SUBFOLDERS = ("images", "imgs")
 #: Suffixes of HDF5 files (compared in lower case); cmax simulate writes ``.h5`` only.
 _H5_SUFFIXES = (".h5", ".hdf5", ".hdf", ".he5")
 
@@ -119,23 +121,25 @@ def _image_folder(source: Path) -> Path | None:
 
     * ECD: a folder holding ``images.txt`` (lines ``t images/frame_00000000.png``), that file, or the
       folder of images with ``images.txt`` in its parent;
-    * rpg_vid2e / ESIM: a folder holding ``images/`` and ``timestamps.txt``, a folder of images with
-      ``timestamps.txt`` in it or in its parent, or the ``timestamps.txt`` file.
+    * rpg_vid2e / ESIM: a folder holding ``images/`` (rpg_vid2e's upsampler: ``imgs/``) and ``timestamps.txt``,
+      a folder of images with ``timestamps.txt`` in it or in its parent, or the ``timestamps.txt`` file.
 
     A folder of images (and no videos) with neither is a ValueError that says how to write the times.
     """
     from cmax.sim.video import IMAGE_SUFFIXES
 
     if source.is_file():
-        if source.name == "timestamps.txt" and (source.parent / "images").is_dir():
-            return source.parent / "images"
+        for images in _IMAGE_SUBFOLDERS:
+            if source.name == "timestamps.txt" and (source.parent / images).is_dir():
+                return source.parent / images
         return source if source.name in ("images.txt", "timestamps.txt") else None
     if not source.is_dir():
         return None
     if (source / "images.txt").is_file():
         return source / "images.txt"
-    if (source / "images").is_dir() and (source / "timestamps.txt").is_file():
-        return source / "images"
+    for images in _IMAGE_SUBFOLDERS:
+        if (source / images).is_dir() and (source / "timestamps.txt").is_file():
+            return source / images
     if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in source.iterdir()):
         return None
     if (source / "timestamps.txt").is_file():
@@ -217,7 +221,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     """Add ``simulate`` to an ``argparse`` sub-parser collection; returns the new parser."""
     parser = subparsers.add_parser(
         "simulate", help="convert videos or image sequences to event files (ESIM), one or a whole collection",
-        description="Convert a video file, an image folder (ECD: images.txt; rpg_vid2e/ESIM: images/ + "
+        description="Convert a video file, an image folder (ECD: images.txt; rpg_vid2e/ESIM: images/ or imgs/ + "
         "timestamps.txt) or a timestamp file to one h5 file (-o F.h5, with manifest.json beside it); or a "
         "folder of videos, a list file (one video per line, optional tab and category) or a catalogue's "
         "folder (--catalogue slowtv) to DSEC-layout h5 files in the folder -o, with manifest.json; "
