@@ -364,3 +364,19 @@ def test_an_hdf5_suffix_other_than_h5_is_refused_not_made_a_folder(tmp_path, cap
         assert f"cmax simulate writes .h5 files (manifest entries are NAME.h5): give -o " in err
         assert err.strip().endswith(str(tmp_path / "o" / name[:-len(name.split(".")[-1])]) + "h5")
     assert not (tmp_path / "o").exists()
+
+
+def test_flow_on_frames_under_32_pixels_is_explained_in_the_commands_words(tmp_path, capsys):
+    """'needs frames of at least 32x32 pixels, got (16, 24); use method='linear'' gave (H, W) and the API's
+    words, once per video; with --size it is refused before any video is decoded."""
+    write_video(tmp_path / "tiny.avi", width=24, height=16)
+    assert main(["simulate", str(tmp_path / "tiny.avi"), "-o", str(tmp_path / "t.h5"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "got 24x16 (width x height)" in err and "(cmax simulate: --method linear)" in err
+    assert main(["simulate", str(tmp_path), "-o", str(tmp_path / "out"), "--size", "20x20", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == ("cmax simulate: error: --size 20x20 is smaller than the 32x32 pixels that --method flow "
+                           "(the default) needs: pass --method linear (or --no-adaptive)")
+    assert not (tmp_path / "out").exists()
+    assert main(["simulate", str(tmp_path), "-o", str(tmp_path / "out"), "--size", "20x20", "--method", "linear",
+                 "--quiet"]) == 0

@@ -34,6 +34,7 @@ def run(args: argparse.Namespace) -> int:
 
     esim = EsimSettings(**given(args, _ESIM_OPTIONS))
     settings = ConvertSettings(esim, **given(args, _CONVERT_OPTIONS))
+    _check_flow_size(settings, method_given=args.method is not None)
     shard = parse_shard(args.shard) if args.shard else None
     single = _single_input(args)
     if single is not None:
@@ -51,6 +52,18 @@ def run(args: argparse.Namespace) -> int:
     if missing:
         print(f"  missing from {args.input}: {', '.join(missing)}", file=sys.stderr)
     return status
+
+
+def _check_flow_size(settings, *, method_given: bool) -> None:
+    """Refuse a ``--size`` smaller than flow interpolation needs before any video is decoded (else every video
+    of a folder failed one by one with the library's words)."""
+    from cmax.sim.interpolation import MIN_FLOW_SIZE
+
+    if settings.adaptive and settings.method == "flow" and settings.size and min(settings.size) < MIN_FLOW_SIZE:
+        width, height = settings.size
+        which = "--method flow" if method_given else "--method flow (the default)"
+        raise ValueError(f"--size {width}x{height} is smaller than the {MIN_FLOW_SIZE}x{MIN_FLOW_SIZE} pixels that "
+                         f"{which} needs: pass --method linear (or --no-adaptive)")
 
 
 def _nothing_found(folder: Path, missing: Sequence[str], catalogue: str | None, shard: str | None) -> str:
