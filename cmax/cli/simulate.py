@@ -7,9 +7,12 @@ DSEC-layout h5 files in a folder; resumable through the manifest, in ``--workers
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Collection, Sequence
+from typing import Collection, Iterator, Sequence
 
 from cmax._args import api_default, library_default, nonnegative_int, positive_float, positive_int, sensor_size
 from cmax.cli._common import given
@@ -25,9 +28,43 @@ _CONVERT_OPTIONS = {"size": "size", "adaptive": "adaptive", "lam": "lam", "metho
                     "t1": "t1_s"}
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``timeout``, a SLURM time limit), raised where Ctrl-C's ``KeyboardInterrupt`` would be, so that the
+    same clean-up runs: workers stopped, temporary and lock files removed."""
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM raises :class:`Terminated` in the main thread (once: a second one is ignored, so
+    it cannot cut the clean-up short); the previous handler is restored afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminate(signum, frame) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
 def run(args: argparse.Namespace) -> int:
     """Convert the input; returns the exit status (1 when a video failed or yielded no events, or a catalogue's
-    folder holds none of its videos)."""
+    folder holds none of its videos; 143 after SIGTERM, once the clean-up is done)."""
+    try:
+        with _sigterm_as_interrupt():
+            return _run(args)
+    except Terminated:
+        print("cmax simulate: terminated (SIGTERM): the finished videos are kept and listed in the manifest; "
+              "a rerun converts the others", file=sys.stderr)
+        return 128 + int(signal.SIGTERM)
+
+
+def _run(args: argparse.Namespace) -> int:
     from cmax.sim.catalogue import parse_shard
     from cmax.sim.convert import ConvertSettings, collect_jobs, convert_collection
     from cmax.sim.esim import EsimSettings
