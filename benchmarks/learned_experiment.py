@@ -168,7 +168,7 @@ def convert_videos(root: Path) -> list[str]:
             lines.append(f"{out.name}: verified, kept")
             continue
         frames = ImageFolderSource(source, size=SIZE, prefetch=0) if source.is_dir() else None
-        convert_video(source, out, settings, frames=frames)
+        convert_video(source, out, settings, frames=frames, overwrite=True)  # an incomplete file is redone
         lines.append(f"{out.name}: converted")
     return lines
 

@@ -307,6 +307,36 @@ def test_frames_in_zero_one_are_warned_not_guessed():
     assert len(scaled) > len(dark)
 
 
+def test_zero_one_frames_are_warned_once_in_the_streaming_api(tmp_path):
+    """``EventSimulator.step``, ``iter_upsample`` and ``convert_video(frames=)`` took [0, 1] float frames without a
+    word (``simulate`` warned): now once per simulator (per stream for ``iter_upsample``), at its first frame; a
+    [0, 255] stream (its upsampled float frames too, a fade from black included) and 0/1 masks stay silent."""
+    from cmax.sim import EventSimulator, iter_upsample
+    from cmax.sim.convert import ConvertSettings, convert_video
+
+    rng = np.random.default_rng(0)
+    frames = [rng.random((32, 32)).astype(np.float32) for _ in range(3)]
+    simulator = EventSimulator()
+    with pytest.warns(UserWarning, match=r"\[0, 1\] image\? multiply it by 255") as caught:
+        for i, frame in enumerate(frames):
+            simulator.step(frame, i * 1000)
+        simulator.reset()
+        simulator.step(frames[0], 0)                                      # once per simulator
+    assert len([w for w in caught if "multiply it by 255" in str(w.message)]) == 1
+    with pytest.warns(UserWarning, match="multiply it by 255"):
+        list(iter_upsample(zip(frames, [0, 1000, 2000]), 0.2, method="linear"))
+    with pytest.warns(UserWarning, match="multiply it by 255"):
+        convert_video("frames", tmp_path / "a.h5", ConvertSettings(adaptive=False), frames=zip(frames, [0, 1000, 2000]))
+    fade = [np.zeros((32, 32), np.uint8), np.full((32, 32), 200, np.uint8)]   # from black: inserted frames < 1
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        simulator = EventSimulator()
+        for frame, t in iter_upsample(zip(fade, [0, 1_000_000]), 0.2, method="linear"):
+            simulator.step(frame, t)
+        EventSimulator().step(np.eye(4, dtype=np.float32), 0)              # a 0/1 mask
+        EventSimulator().step(frames[0] * 255, 0)
+
+
 def test_a_rotation_in_deg_per_s_is_warned_not_guessed():
     """A gyroscope's deg/s given as rad/s (``omega=``, or a twist ``pose=``) turns 57.3 times too fast: the fit
     takes it as given (a fast spin is possible), with a warning that names the units; 1 rad/s says nothing."""

@@ -66,21 +66,25 @@ def _expected_events(frames: np.ndarray, times_us: np.ndarray, tmp_path) -> int:
     return result.events
 
 
-@pytest.mark.parametrize("layout", ["ecd", "ecd-file", "ecd-images", "rpg", "rpg-file", "rpg-images"])
+@pytest.mark.parametrize("layout", ["ecd", "ecd-file", "ecd-images", "rpg", "rpg-file", "rpg-images",
+                                    "vid2e", "vid2e-file"])
 def test_image_folders_are_accepted_as_input(tmp_path, capsys, layout):
+    """rpg_vid2e's upsampler writes imgs/ + timestamps.txt (was: 'folder seq holds no videos')."""
     frames = _frames()
     times_us = np.arange(len(frames), dtype=np.int64) * 40_000 + 1_000_000
     seq = tmp_path / "seq"
-    (seq / "images").mkdir(parents=True)
+    images = "imgs" if layout.startswith("vid2e") else "images"
+    (seq / images).mkdir(parents=True)
     for k, frame in enumerate(frames):
-        cv2.imwrite(str(seq / "images" / f"frame_{k:08d}.png"), frame)
+        cv2.imwrite(str(seq / images / f"frame_{k:08d}.png"), frame)
     if layout.startswith("ecd"):   # ECD: images.txt with "t images/frame_XXXXXXXX.png"
         (seq / "images.txt").write_text("".join(f"{t * 1e-6:.6f} images/frame_{k:08d}.png\n"
                                                 for k, t in enumerate(times_us)))
         source = {"ecd": seq, "ecd-file": seq / "images.txt", "ecd-images": seq / "images"}[layout]
     else:                          # rpg_vid2e / ESIM: images/ and timestamps.txt (seconds, one per image)
         (seq / "timestamps.txt").write_text("".join(f"{t * 1e-6:.6f}\n" for t in times_us))
-        source = {"rpg": seq, "rpg-file": seq / "timestamps.txt", "rpg-images": seq / "images"}[layout]
+        source = {"rpg": seq, "rpg-file": seq / "timestamps.txt", "rpg-images": seq / "images",
+                  "vid2e": seq, "vid2e-file": seq / "timestamps.txt"}[layout]
     out = tmp_path / "events" / "seq.h5"
     assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet"]) == 0
     events = read(out)
@@ -113,6 +117,29 @@ def test_t0_t1_cut_an_image_folder_as_they_cut_a_video(tmp_path, capsys):
     kept = (times_us >= 70_000) & (times_us < 200_000)                    # frames 2, 3, 4
     assert len(read(out)) == _expected_events(frames[kept], times_us[kept], tmp_path) > 0
     assert load_manifest(out.parent / "manifest.json")["videos"]["seq"]["frames"] == 3
+
+
+@pytest.mark.parametrize("start_s", [0.0, 1_700_000_000.0])
+def test_t0_t1_count_from_the_first_image_whatever_the_clock(tmp_path, capsys, start_s):
+    """--t0/--t1 are seconds after the first frame (the help's "seconds into each video"), for timestamps on an
+    absolute clock too (ROS/DSEC exports: --t0 0.1 kept every image, and --t1 found none)."""
+    frames = _frames(8)
+    times_us = np.arange(8, dtype=np.int64) * 40_000 + int(start_s * 1e6)
+    seq = tmp_path / "seq"
+    seq.mkdir()
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(seq / f"{k:03d}.png"), frame)
+    (seq / "timestamps.txt").write_text("".join(f"{t * 1e-6:.6f}\n" for t in times_us))
+    out = tmp_path / "events" / "seq.h5"
+    assert main(["simulate", str(seq), "-o", str(out), *FAST, "--t0", "0.1", "--quiet"]) == 0
+    kept = times_us - times_us[0] >= 100_000                              # frames 3..7
+    assert load_manifest(out.parent / "manifest.json")["videos"]["seq"]["frames"] == 5
+    assert len(read(out)) == _expected_events(frames[kept], times_us[kept], tmp_path) > 0
+    capsys.readouterr()
+    assert main(["simulate", str(seq), "-o", str(tmp_path / "none.h5"), *FAST, "--t0", "2", "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "no images from 2.0 s after the first frame to the end (zero frames)" in err and "span 0.280000 s" in err
+    assert ("they start at 1700000000.000000 s" in err) == bool(start_s)
 
 
 def test_an_image_folder_without_times_says_how_to_write_them(tmp_path, capsys):
@@ -238,6 +265,8 @@ def test_outputs_are_printed_relative_to_the_output_folder(tmp_path, monkeypatch
     manifest_path = tmp_path / "moved" / "manifest.json"
     old = json.loads(manifest_path.read_text())
     old["videos"]["clip"]["output"] = "out/clip.h5"          # as written before: the path typed then
+    old.pop("output_paths")                                  # (older manifests lack these)
+    old["videos"]["clip"].pop("source_signature")
     manifest_path.write_text(json.dumps(old))
     mtime = os.stat(tmp_path / "moved" / "clip.h5").st_mtime_ns
     assert main(["simulate", video, "-o", "moved/clip.h5", *FAST, "--quiet"]) == 0
@@ -262,3 +291,92 @@ def test_an_empty_time_range_is_refused_before_converting(tmp_path, capsys, extr
                                                str(tmp_path / "out" / "clip.h5"), *FAST, *extra]), capsys)
     assert status == 2 and message in err, err
     assert not (tmp_path / "out").exists()
+
+
+def test_a_rerun_says_the_video_was_already_converted_and_redoes_a_replaced_one(tmp_path, capsys):
+    write_video(tmp_path / "in.avi", n_frames=8)
+    out = tmp_path / "out" / "in.h5"
+    args = ["simulate", str(tmp_path / "in.avi"), "-o", str(out), *FAST, "--quiet"]
+    assert main(args) == 0
+    first = capsys.readouterr().out
+    assert "already converted" not in first and "events from 8 frames" in first
+    assert main(args) == 0
+    assert f"in.h5: already converted from {tmp_path / 'in.avi'} (verified), " in capsys.readouterr().out
+    write_video(tmp_path / "in.avi", n_frames=12, shift=4)           # the video is replaced
+    assert main(args) == 0
+    captured = capsys.readouterr()
+    assert "the source changed since it was converted" in captured.err
+    assert "already converted" not in captured.out and "events from 12 frames" in captured.out
+    assert load_manifest(out.parent / "manifest.json")["videos"]["in"]["frames"] == 12
+
+
+def test_a_catalogue_conversion_that_finds_no_video_exits_1(tmp_path, capsys):
+    """A wrong folder or naming (``0.mp4`` for ``00000.mp4``) found none of the catalogue's videos and exited 0
+    ('0 videos ok, 0 failed'): in a SLURM array a silent success. Now exit 1, one line, nothing written."""
+    folder = tmp_path / "badcat"
+    folder.mkdir()
+    write_video(folder / "0.avi")
+    out = tmp_path / "out"
+    assert main(["simulate", "--catalogue", "slowtv", str(folder), "-o", str(out), *FAST, "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "no video to convert: none of the 40 entries of the slowtv catalogue has a video" in err
+    assert "holds 1 other video(s): 0.avi" in err and len(err.strip().splitlines()) == 1
+    assert not out.exists()
+    assert main(["simulate", "--catalogue", "slowtv", str(folder), "-o", str(out), "--shard", "3/8", *FAST]) == 1
+    assert "none of the 5 entries of the slowtv catalogue (shard 3/8)" in capsys.readouterr().err
+
+
+@pytest.mark.parametrize("first, step, unit", [(1600000000123456789, 50_000_000, "nanoseconds"),
+                                               (1600000000123456, 50_000, "microseconds"),
+                                               (1e300, 1e299, "another unit")])
+def test_timestamps_too_large_for_seconds_are_refused_naming_the_unit(tmp_path, capsys, first, step, unit):
+    """ns (or DSEC-style µs) in timestamps.txt overflowed int64 (numpy 'invalid value encountered in cast', then
+    'time 1 (-9223372036854775808 µs) follows time 0'); now refused when read, naming the likely unit."""
+    seq = tmp_path / "ns_like"
+    seq.mkdir()
+    for k, frame in enumerate(_frames(4)):
+        cv2.imwrite(str(seq / f"{k:03d}.png"), frame)
+    (seq / "timestamps.txt").write_text("".join(f"{first + k * step}\n" for k in range(4)))
+    assert main(["simulate", str(seq), "-o", str(tmp_path / "out" / "a.h5"), *FAST, "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "is too large for seconds" in err and f"these look like {unit}" in err
+    assert "cast" not in err and "9223372036854775808" not in err
+    assert not list((tmp_path / "out").glob("*.h5"))
+
+
+def test_non_finite_timestamps_are_refused(tmp_path):
+    from cmax.sim.video import read_timestamps
+
+    (tmp_path / "a.png").write_bytes(cv2.imencode(".png", _frames(1)[0])[1].tobytes())
+    (tmp_path / "b.png").write_bytes(cv2.imencode(".png", _frames(1)[0])[1].tobytes())
+    (tmp_path / "timestamps.txt").write_text("0.0\nnan\n")
+    with pytest.raises(ValueError, match=r"time 1 is nan \(times must be finite seconds\)"):
+        read_timestamps(tmp_path / "timestamps.txt")
+
+
+@pytest.mark.parametrize("name", ["clip.hdf5", "CLIP.H5", "clip.HDF5"])
+def test_an_hdf5_suffix_other_than_h5_is_refused_not_made_a_folder(tmp_path, capsys, name):
+    """-o clip.hdf5 / CLIP.H5 made a FOLDER of that name (the file mode was chosen by the exact suffix .h5)."""
+    write_video(tmp_path / "clip.avi")
+    for source in (tmp_path / "clip.avi", tmp_path):                  # one video, a folder of videos
+        assert main(["simulate", str(source), "-o", str(tmp_path / "o" / name), *FAST, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert f"cmax simulate writes .h5 files (manifest entries are NAME.h5): give -o " in err
+        assert err.strip().endswith(str(tmp_path / "o" / name[:-len(name.split(".")[-1])]) + "h5")
+    assert not (tmp_path / "o").exists()
+
+
+def test_flow_on_frames_under_32_pixels_is_explained_in_the_commands_words(tmp_path, capsys):
+    """'needs frames of at least 32x32 pixels, got (16, 24); use method='linear'' gave (H, W) and the API's
+    words, once per video; with --size it is refused before any video is decoded."""
+    write_video(tmp_path / "tiny.avi", width=24, height=16)
+    assert main(["simulate", str(tmp_path / "tiny.avi"), "-o", str(tmp_path / "t.h5"), "--quiet"]) == 1
+    err = capsys.readouterr().err
+    assert "got 24x16 (width x height)" in err and "(cmax simulate: --method linear)" in err
+    assert main(["simulate", str(tmp_path), "-o", str(tmp_path / "out"), "--size", "20x20", "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.strip() == ("cmax simulate: error: --size 20x20 is smaller than the 32x32 pixels that --method flow "
+                           "(the default) needs: pass --method linear (or --no-adaptive)")
+    assert not (tmp_path / "out").exists()
+    assert main(["simulate", str(tmp_path), "-o", str(tmp_path / "out"), "--size", "20x20", "--method", "linear",
+                 "--quiet"]) == 0

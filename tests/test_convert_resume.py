@@ -8,6 +8,7 @@ import signal
 import threading
 import time
 
+import numpy as np
 import pytest
 
 from cmax.io.h5 import read_h5
@@ -80,7 +81,14 @@ def test_the_manifest_names_outputs_relative_to_its_folder(tmp_path, monkeypatch
     assert load_manifest(tmp_path / "out" / "manifest.json")["videos"]["a"]["output"] == "a.h5"
     # Old manifests hold the path typed at conversion time: still the file in the manifest's folder.
     for old in ("out/a.h5", str(tmp_path / "out" / "a.h5"), "a.h5"):
-        assert entry_output({"output": old}, tmp_path / "moved") == tmp_path / "moved" / "a.h5"
+        assert entry_output({"output": old}, tmp_path / "moved", relative=False) == tmp_path / "moved" / "a.h5"
+        raw = dict(json.loads((tmp_path / "out" / "manifest.json").read_text()))
+        raw.pop("output_paths")
+        raw["videos"]["a"]["output"] = old                            # as an older version wrote it
+        (tmp_path / "moved").mkdir(exist_ok=True)
+        (tmp_path / "moved" / "manifest.json").write_text(json.dumps(raw))
+        entry = load_manifest(tmp_path / "moved" / "manifest.json")["videos"]["a"]
+        assert entry_output(entry, tmp_path / "moved") == tmp_path / "moved" / "a.h5"
 
 
 def test_an_interrupt_removes_the_temporaries_of_the_workers(tmp_path):
@@ -186,3 +194,117 @@ def test_settings_refuse_an_empty_time_range():
     with pytest.raises(ValueError, match="larger than t0_s"):
         ConvertSettings(t0_s=0.2, t1_s=0.1)
     assert ConvertSettings(t1_s=1e-3).t1_s == 1e-3
+
+
+# -- the source a resume skips is verified too (new-user report item 1) ------------------------------------
+def test_a_replaced_source_is_converted_again(tmp_path, capsys):
+    write_video(tmp_path / "a.avi", n_frames=8)
+    jobs, _ = collect_jobs(tmp_path / "a.avi")
+    out = tmp_path / "out"
+    old = convert_collection(jobs, out, FAST, progress=False)["videos"]["a"]
+    assert old["source_signature"]["bytes"] == (tmp_path / "a.avi").stat().st_size
+    write_video(tmp_path / "a.avi", n_frames=14, shift=5)          # the video is replaced, same name
+    fresh = convert_collection(collect_jobs(tmp_path / "a.avi")[0], tmp_path / "fresh", FAST, progress=False)
+    capsys.readouterr()
+    seen = []
+    manifest = convert_collection(jobs, out, FAST, progress=False, on_result=lambda r: seen.append(r.name))
+    assert seen == ["a"]
+    assert "note: a: the source changed since it was converted (a.avi has" in capsys.readouterr().err
+    entry = manifest["videos"]["a"]
+    assert entry["frames"] == 14 != old["frames"]
+    assert entry["events"] == fresh["videos"]["a"]["events"] == len(read_h5(out / "a.h5"))
+
+
+def test_a_touched_source_and_another_file_of_the_same_name_are_converted_again(tmp_path, capsys):
+    (tmp_path / "one").mkdir()
+    (tmp_path / "two").mkdir()
+    write_video(tmp_path / "one" / "a.avi")
+    write_video(tmp_path / "two" / "a.avi", shift=7)
+    out = tmp_path / "out"
+    convert_collection(collect_jobs(tmp_path / "one" / "a.avi")[0], out, FAST, progress=False)
+    seen = []
+    stat = (tmp_path / "one" / "a.avi").stat()
+    os.utime(tmp_path / "one" / "a.avi", ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))   # re-exported
+    capsys.readouterr()
+    convert_collection(collect_jobs(tmp_path / "one" / "a.avi")[0], out, FAST, progress=False,
+                       on_result=lambda r: seen.append(r.name))
+    assert seen == ["a"] and "was modified after it was converted" in capsys.readouterr().err
+    manifest = convert_collection(collect_jobs(tmp_path / "two" / "a.avi")[0], out, FAST, progress=False,
+                                  on_result=lambda r: seen.append(r.name))
+    assert seen == ["a", "a"] and f"it was {tmp_path / 'one' / 'a.avi'}" in capsys.readouterr().err
+    assert manifest["videos"]["a"]["source"] == str(tmp_path / "two" / "a.avi")
+    # unchanged: skipped
+    convert_collection(collect_jobs(tmp_path / "two" / "a.avi")[0], out, FAST, progress=False,
+                       on_result=lambda r: seen.append(r.name))
+    assert seen == ["a", "a"]
+
+
+def test_an_old_manifest_without_a_signature_compares_the_source_path(tmp_path, capsys):
+    (tmp_path / "other").mkdir()
+    write_video(tmp_path / "a.avi")
+    write_video(tmp_path / "other" / "a.avi", shift=7)
+    out = tmp_path / "out"
+    manifest = convert_collection(collect_jobs(tmp_path / "a.avi")[0], out, FAST, progress=False)
+    del manifest["videos"]["a"]["source_signature"]                   # as an earlier version wrote it
+    (out / "manifest.json").write_text(json.dumps(manifest))
+    seen = []
+    convert_collection(collect_jobs(tmp_path / "a.avi")[0], out, FAST, progress=False,
+                       on_result=lambda r: seen.append(r.name))
+    assert seen == []                                                 # the same path: skipped
+    capsys.readouterr()
+    convert_collection(collect_jobs(tmp_path / "other" / "a.avi")[0], out, FAST, progress=False,
+                       on_result=lambda r: seen.append(r.name))
+    assert seen == ["a"] and "it was converted from" in capsys.readouterr().err
+
+
+def test_the_signature_of_an_image_sequence_covers_its_images_and_times(tmp_path):
+    from cmax.sim.signature import signature_problem, source_signature
+
+    folder = tmp_path / "seq"
+    folder.mkdir()
+    for i in range(3):
+        cv2.imwrite(str(folder / f"{i:03d}.png"), np.full((8, 8), 40 * i, np.uint8))
+    (folder / "timestamps.txt").write_text("0.0\n0.04\n0.08\n")
+    before = source_signature(folder)
+    assert before["files"] == 4 and source_signature(folder / "timestamps.txt")["files"] == 4
+    cv2.imwrite(str(folder / "001.png"), np.full((8, 8), 41, np.uint8))   # one image re-exported
+    os.utime(folder / "001.png", ns=(0, before["mtime_ns"] + 1))
+    assert signature_problem(before, source_signature(folder)) is not None
+    cv2.imwrite(str(folder / "003.png"), np.zeros((8, 8), np.uint8))       # one more image and time
+    (folder / "timestamps.txt").write_text("0.0\n0.04\n0.08\n0.12\n")
+    assert "seq has 5 files, it had 4" in signature_problem(before, source_signature(folder))
+
+
+# -- merged manifests name outputs in sub-folders (new-user report item 3) ----------------------------------
+def test_entry_output_honours_sub_paths_and_refuses_paths_out_of_the_folder(tmp_path):
+    assert entry_output({"output": "shard0/a.h5"}, tmp_path) == tmp_path / "shard0" / "a.h5"
+    for bad in ("../a.h5", "shard0/../../a.h5", str(tmp_path / "a.h5")):
+        with pytest.raises(ValueError, match="not a path inside the manifest's folder"):
+            entry_output({"output": bad}, tmp_path)
+
+
+def test_a_resume_into_the_folder_of_merged_shards_converts_nothing_again(tmp_path, capsys):
+    from cmax.cli import main
+
+    videos = tmp_path / "slowtv"
+    videos.mkdir()
+    for name, shift in (("00000", 0), ("00001", 3), ("00003", 6)):
+        write_video(videos / f"{name}.avi", shift=shift)
+    evt = tmp_path / "evt"
+    for i in range(2):
+        assert main(["simulate", "--catalogue", "slowtv", str(videos), "-o", str(evt / f"shard{i}"),
+                     "--shard", f"{i}/2", "--no-adaptive", "--quiet"]) == 0
+    shards = sorted(str(p) for p in evt.glob("shard*/manifest.json"))
+    assert main(["manifest", "merge", *shards, "-o", str(evt / "manifest.json")]) == 0
+    merged = load_manifest(evt / "manifest.json")
+    assert {name: entry["output"] for name, entry in merged["videos"].items()} == {
+        "00000": "shard0/00000.h5", "00001": "shard1/00001.h5", "00003": "shard1/00003.h5"}
+    capsys.readouterr()
+    assert main(["simulate", "--catalogue", "slowtv", str(videos), "-o", str(evt), "--no-adaptive", "--quiet"]) == 0
+    captured = capsys.readouterr()
+    assert "not verified" not in captured.err and not list(evt.glob("*.h5"))
+    assert captured.out.count("already converted") == 3 and f"{evt / 'shard1' / '00003.h5'}: already" in captured.out
+    assert load_manifest(evt / "manifest.json")["videos"]["00001"]["output"] == "shard1/00001.h5"
+    # A merged manifest written outside the shards' folders is refused (its outputs could not be found from it).
+    assert main(["manifest", "merge", *shards, "-o", str(tmp_path / "elsewhere" / "manifest.json")]) == 2
+    assert "lie outside" in capsys.readouterr().err

@@ -142,3 +142,33 @@ def test_killed_conversion_resumes_without_damage(tmp_path):
     clean = convert_video(videos / "b.avi", tmp_path / "clean_b.h5", settings)
     assert read_h5(output / "b.h5") == read_h5(tmp_path / "clean_b.h5")
     assert clean.events == manifest["videos"]["b"]["events"]
+
+
+@pytest.mark.parametrize("workers", [1, 2])
+def test_sigterm_cleans_up_like_ctrl_c(tmp_path, workers):
+    """SIGTERM (timeout, a SLURM time limit) left .partial and .lock files (handled like SIGKILL); it now runs the
+    clean-up of Ctrl-C: exit 143, one line, only finished files and the manifest left, and a rerun finishes."""
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    for seed, name in enumerate(NAMES):
+        _write_video(videos / f"{name}.avi", 600, seed)
+    output = tmp_path / "events"
+    process = subprocess.Popen([*_command(videos, output), "--workers", str(workers)],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not list(output.glob("*.h5.*.partial")) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.002)
+    assert process.poll() is None, "the conversion ended before a video was being written"
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 143, err
+    assert "cmax simulate: terminated (SIGTERM)" in err and "Traceback" not in err
+    left = sorted(path.name for path in output.iterdir())
+    assert not [name for name in left if name.endswith((".partial", ".lock"))], left
+    manifest = _manifest(output)
+    _check_manifest_matches_files(manifest, output)
+    assert set(left) == {"manifest.json", *(f"{name}.h5" for name in manifest["videos"])}
+    done = subprocess.run([*_command(videos, output), "--workers", str(workers)], capture_output=True, text=True,
+                          timeout=300)
+    assert done.returncode == 0, done.stderr
+    assert sorted(path.name for path in output.iterdir()) == ["a.h5", "b.h5", "c.h5", "manifest.json"]

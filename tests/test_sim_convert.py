@@ -93,6 +93,19 @@ def test_collection_with_a_corrupt_video_and_resume(tmp_path):
         convert_collection(jobs, out, ConvertSettings(adaptive=False, lam=0.3), progress=False)
 
 
+def test_other_settings_are_named_key_by_key(tmp_path):
+    """The refusal printed only the recorded dict; it names each differing key, recorded vs now."""
+    write_video(tmp_path / "a.avi")
+    jobs, _ = collect_jobs(tmp_path / "a.avi")
+    convert_collection(jobs, tmp_path / "out", FAST, progress=False)
+    other = ConvertSettings(EsimSettings(cp=0.3), adaptive=False, size=(48, 32))
+    with pytest.raises(ValueError) as error:
+        convert_collection(jobs, tmp_path / "out", other, progress=False)
+    message = str(error.value)
+    assert "other settings (esim.cp: 0.2 (recorded) vs 0.3 (now), size: None (recorded) vs [48, 32] (now))" in message
+    assert "lam" not in message
+
+
 def test_parallel_workers_and_list_file(tmp_path):
     write_video(tmp_path / "a.avi")
     write_video(tmp_path / "b.avi", shift=5)
@@ -222,3 +235,13 @@ def test_settings_reject_bad_values():
                          ({"size": (0, 10)}, "size"), ({"t0_s": -1.0}, "t0_s")):
         with pytest.raises(ValueError, match=name):
             ConvertSettings(**kwargs)
+
+
+def test_convert_video_does_not_replace_an_existing_file_unless_told(tmp_path):
+    write_video(tmp_path / "a.avi")
+    (tmp_path / "a.h5").write_bytes(b"precious")
+    with pytest.raises(FileExistsError, match="pass overwrite=True"):
+        convert_video(tmp_path / "a.avi", tmp_path / "a.h5", FAST)
+    assert (tmp_path / "a.h5").read_bytes() == b"precious" and not list(tmp_path.glob("a.h5.*"))
+    result = convert_video(tmp_path / "a.avi", tmp_path / "a.h5", FAST, overwrite=True)
+    assert len(read_h5(tmp_path / "a.h5")) == result.events > 0

@@ -346,3 +346,25 @@ def test_open_source_dispatch(tmp_path):
     write_avi(tmp_path / "v.avi", count=3)
     with pytest.raises(ValueError, match="timestamps"):
         open_source(tmp_path / "v.avi", timestamps=np.array([0, 1, 2]))
+
+
+def test_t0_t1_count_seconds_after_the_first_frame_for_videos_and_image_folders(tmp_path):
+    """One meaning for every source: ``t_first + t0_s <= t < t_first + t1_s``; an image folder on an absolute
+    clock (ROS/DSEC exports) is cut as one that starts at 0 (it kept every image for t0_s=0.1)."""
+    path = tmp_path / "clip.avi"
+    write_avi(path, count=10, fps=20.0)
+    everything = [t for _, t in VideoFileSource(path)]
+    cut = [t for _, t in VideoFileSource(path, t0_s=0.1, t1_s=0.3)]
+    assert cut == [t for t in everything if 100_000 <= t - everything[0] < 300_000] and len(cut) == 4
+    with pytest.raises(ValueError, match="from 10.0 s after the first frame to the end"):
+        list(VideoFileSource(path, t0_s=10.0))
+    for start_us in (0, 1_700_000_000_000_000):
+        folder = tmp_path / f"seq{start_us}"
+        folder.mkdir()
+        for k in range(6):
+            cv2.imwrite(str(folder / f"{k}.png"), np.full((4, 4), 40 * k, np.uint8))
+        (folder / "timestamps.txt").write_text("".join(f"{(start_us + k * 50_000) * 1e-6:.6f}\n" for k in range(6)))
+        source = ImageFolderSource(folder, t0_s=0.1, t1_s=0.2)
+        assert (source.timestamps_us - start_us).tolist() == [100_000, 150_000]
+        with pytest.raises(ValueError, match=r"images span 0\.250000 s"):
+            ImageFolderSource(folder, t0_s=0.3)

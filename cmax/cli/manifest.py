@@ -39,7 +39,8 @@ def run(args: argparse.Namespace) -> int:
         raise ValueError(f"{len(conflicts)} videos were converted differently in several manifests: "
                          f"{'; '.join(conflicts[:5])}{' ...' if len(conflicts) > 5 else ''}; "
                          "merge only one conversion of each video")
-    merged = merge_manifests(manifests)
+    # outputs relative to the merged manifest's folder (shard0/00000.h5), where a resume looks for them
+    merged = merge_manifests(manifests, folders=[path.parent for path in args.manifests], into=args.output.parent)
     write_manifest(args.output, merged)
     totals = merged["totals"]
     for note in notes:
@@ -58,7 +59,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     merge = actions.add_parser(
         "merge", help="merge manifest.json files (shards, machines)",
         description="Merge manifest.json files (shards, machines). A video listed by several manifests keeps its "
-        "ok entry and is reported; two different ok entries of one video are refused (exit 2).")
+        "ok entry and is reported; two different ok entries of one video are refused (exit 2). Outputs are "
+        "listed relative to the folder of -o (shard0/00000.h5), which must hold the manifests' folders; a "
+        "conversion resumed into that folder verifies and skips them.")
     merge.add_argument("manifests", nargs="+", type=Path, help="manifest.json files")
     merge.add_argument("-o", "--output", type=Path, required=True, help="merged manifest to write")
     merge.set_defaults(run=run)

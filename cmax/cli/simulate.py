@@ -7,9 +7,12 @@ DSEC-layout h5 files in a folder; resumable through the manifest, in ``--workers
 from __future__ import annotations
 
 import argparse
+import signal
 import sys
+import threading
+from contextlib import contextmanager
 from pathlib import Path
-from typing import Sequence
+from typing import Collection, Iterator, Sequence
 
 from cmax._args import api_default, library_default, nonnegative_int, positive_float, positive_int, sensor_size
 from cmax.cli._common import given
@@ -25,25 +28,96 @@ _CONVERT_OPTIONS = {"size": "size", "adaptive": "adaptive", "lam": "lam", "metho
                     "t1": "t1_s"}
 
 
+class Terminated(KeyboardInterrupt):
+    """SIGTERM (``timeout``, a SLURM time limit), raised where Ctrl-C's ``KeyboardInterrupt`` would be, so that the
+    same clean-up runs: workers stopped, temporary and lock files removed."""
+
+
+@contextmanager
+def _sigterm_as_interrupt() -> Iterator[None]:
+    """Within the block, SIGTERM raises :class:`Terminated` in the main thread (once: a second one is ignored, so
+    it cannot cut the clean-up short); the previous handler is restored afterwards."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+
+    def terminate(signum, frame) -> None:
+        signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        raise Terminated()
+
+    previous = signal.signal(signal.SIGTERM, terminate)
+    try:
+        yield
+    finally:
+        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+
+
 def run(args: argparse.Namespace) -> int:
-    """Convert the input; returns the exit status (1 when a video failed or yielded no events)."""
+    """Convert the input; returns the exit status (1 when a video failed or yielded no events, or a catalogue's
+    folder holds none of its videos; 143 after SIGTERM, once the clean-up is done)."""
+    try:
+        with _sigterm_as_interrupt():
+            return _run(args)
+    except Terminated:
+        print("cmax simulate: terminated (SIGTERM): the finished videos are kept and listed in the manifest; "
+              "a rerun converts the others", file=sys.stderr)
+        return 128 + int(signal.SIGTERM)
+
+
+def _run(args: argparse.Namespace) -> int:
     from cmax.sim.catalogue import parse_shard
     from cmax.sim.convert import ConvertSettings, collect_jobs, convert_collection
     from cmax.sim.esim import EsimSettings
 
     esim = EsimSettings(**given(args, _ESIM_OPTIONS))
     settings = ConvertSettings(esim, **given(args, _CONVERT_OPTIONS))
+    _check_flow_size(settings, method_given=args.method is not None)
     shard = parse_shard(args.shard) if args.shard else None
     single = _single_input(args)
     if single is not None:
         return _simulate_one(args, single, settings)
     jobs, missing = collect_jobs(args.input, catalogue=args.catalogue, shard=shard)
+    if not jobs:  # a catalogue none of whose videos is there: a wrong folder or naming, not a success
+        print(f"cmax simulate: error: {_nothing_found(args.input, missing, args.catalogue, args.shard)}",
+              file=sys.stderr)
+        return 1
+    converted: set[str] = set()
     manifest = convert_collection(jobs, args.output, settings, workers=args.workers, missing=missing,
-                                  catalogue=args.catalogue, shard=shard, progress=not args.quiet)
-    status = _report_manifest(args.output / "manifest.json", manifest, [job.name for job in jobs])
+                                  catalogue=args.catalogue, shard=shard, progress=not args.quiet,
+                                  on_result=lambda result: converted.add(result.name))
+    status = _report_manifest(args.output / "manifest.json", manifest, [job.name for job in jobs], converted)
     if missing:
         print(f"  missing from {args.input}: {', '.join(missing)}", file=sys.stderr)
     return status
+
+
+def _check_flow_size(settings, *, method_given: bool) -> None:
+    """Refuse a ``--size`` smaller than flow interpolation needs before any video is decoded (else every video
+    of a folder failed one by one with the library's words)."""
+    from cmax.sim.interpolation import MIN_FLOW_SIZE
+
+    if settings.adaptive and settings.method == "flow" and settings.size and min(settings.size) < MIN_FLOW_SIZE:
+        width, height = settings.size
+        which = "--method flow" if method_given else "--method flow (the default)"
+        raise ValueError(f"--size {width}x{height} is smaller than the {MIN_FLOW_SIZE}x{MIN_FLOW_SIZE} pixels that "
+                         f"{which} needs: pass --method linear (or --no-adaptive)")
+
+
+def _nothing_found(folder: Path, missing: Sequence[str], catalogue: str | None, shard: str | None) -> str:
+    """Why a catalogue conversion has no video to convert (``missing``: the entries looked for), in one line.
+
+    >>> _nothing_found(Path("slowtv"), ["00000", "00001"], "slowtv", None)[:60]
+    'no video to convert: none of the 2 entries of the slowtv cat'
+    """
+    from cmax.sim.convert import VIDEO_SUFFIXES
+
+    found = sorted(p.name for p in folder.iterdir() if p.suffix.lower() in VIDEO_SUFFIXES) if folder.is_dir() else []
+    there = (f"; {folder} holds {len(found)} other video(s): {', '.join(found[:3])}{', ...' if len(found) > 3 else ''}"
+             if found else f"; {folder} holds no video")
+    part = f" (shard {shard})" if shard else ""
+    first = missing[0] if missing else "00000"
+    return (f"no video to convert: none of the {len(missing)} entries of the {catalogue} catalogue{part} has a video "
+            f"in {folder} (named by index: {first}{VIDEO_SUFFIXES[0]}, ...){there}; nothing was written")
 
 
 def _single_input(args: argparse.Namespace) -> Path | None:
@@ -51,6 +125,7 @@ def _single_input(args: argparse.Namespace) -> Path | None:
     file; None for a collection (a folder of videos, a list file, a catalogue)."""
     from cmax.sim.convert import VIDEO_SUFFIXES
 
+    _check_output_suffix(args.output)
     source, single = args.input, args.output.suffix == ".h5" and not args.catalogue
     image_source = _image_folder(source)
     if image_source is not None:
@@ -65,8 +140,30 @@ def _single_input(args: argparse.Namespace) -> Path | None:
         raise FileNotFoundError(f"input not found: {source}")
     if source.suffix.lower() not in VIDEO_SUFFIXES:
         raise ValueError(f"INPUT must be a video ({', '.join(VIDEO_SUFFIXES)}), an image folder with images.txt or "
-                         f"images/ + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, got {source}")
+                         "images/ (or imgs/) + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, "
+                         f"got {source}")
     return source
+
+
+#: Image sub-folders beside a timestamps.txt: ESIM's ``images/``, rpg_vid2e's upsampler's ``imgs/``.
+_IMAGE_SUBFOLDERS = ("images", "imgs")
+#: Suffixes of HDF5 files (compared in lower case); cmax simulate writes ``.h5`` only.
+_H5_SUFFIXES = (".h5", ".hdf5", ".hdf", ".he5")
+
+
+def _check_output_suffix(output: Path) -> None:
+    """Refuse ``-o`` ending in an HDF5 suffix other than ``.h5`` (``x.hdf5``, ``X.H5``): taken for a folder, it
+    made a folder of that name. The outputs are named ``<stem>.h5`` (the manifest's entries), so the suffix is
+    not kept either.
+
+    >>> _check_output_suffix(Path("clip.hdf5"))
+    Traceback (most recent call last):
+    ...
+    ValueError: -o clip.hdf5: cmax simulate writes .h5 files (manifest entries are NAME.h5): give -o clip.h5
+    """
+    if output.suffix != ".h5" and output.suffix.lower() in _H5_SUFFIXES:
+        raise ValueError(f"-o {output}: cmax simulate writes .h5 files (manifest entries are NAME.h5): give -o "
+                         f"{output.with_suffix('.h5')}")
 
 
 def _image_folder(source: Path) -> Path | None:
@@ -74,23 +171,25 @@ def _image_folder(source: Path) -> Path | None:
 
     * ECD: a folder holding ``images.txt`` (lines ``t images/frame_00000000.png``), that file, or the
       folder of images with ``images.txt`` in its parent;
-    * rpg_vid2e / ESIM: a folder holding ``images/`` and ``timestamps.txt``, a folder of images with
-      ``timestamps.txt`` in it or in its parent, or the ``timestamps.txt`` file.
+    * rpg_vid2e / ESIM: a folder holding ``images/`` (rpg_vid2e's upsampler: ``imgs/``) and ``timestamps.txt``,
+      a folder of images with ``timestamps.txt`` in it or in its parent, or the ``timestamps.txt`` file.
 
     A folder of images (and no videos) with neither is a ValueError that says how to write the times.
     """
     from cmax.sim.video import IMAGE_SUFFIXES
 
     if source.is_file():
-        if source.name == "timestamps.txt" and (source.parent / "images").is_dir():
-            return source.parent / "images"
+        for images in _IMAGE_SUBFOLDERS:
+            if source.name == "timestamps.txt" and (source.parent / images).is_dir():
+                return source.parent / images
         return source if source.name in ("images.txt", "timestamps.txt") else None
     if not source.is_dir():
         return None
     if (source / "images.txt").is_file():
         return source / "images.txt"
-    if (source / "images").is_dir() and (source / "timestamps.txt").is_file():
-        return source / "images"
+    for images in _IMAGE_SUBFOLDERS:
+        if (source / images).is_dir() and (source / "timestamps.txt").is_file():
+            return source / images
     if not any(p.suffix.lower() in IMAGE_SUFFIXES for p in source.iterdir()):
         return None
     if (source / "timestamps.txt").is_file():
@@ -125,15 +224,19 @@ def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     job = VideoJob(output.stem, source)
     # --overwrite: the old entry is dropped under the folder's lock once the settings match (a refused run
     # changes nothing); the old file is replaced atomically when the new one is complete.
+    converted: set[str] = set()
     manifest = convert_collection([job], output.parent, settings, workers=1, progress=not args.quiet,
-                                  redo=[job.name] if args.overwrite else ())
-    return _report_manifest(manifest_path, manifest, [job.name])
+                                  redo=[job.name] if args.overwrite else (),
+                                  on_result=lambda result: converted.add(result.name))
+    return _report_manifest(manifest_path, manifest, [job.name], converted)
 
 
-def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
+def _report_manifest(path: Path, manifest: dict, names: Sequence[str], converted: Collection[str]) -> int:
     """Print the outcome of a conversion (outputs as paths in the folder of ``path``, the manifest);
-    1 when a video of this run (``names``) failed or yielded no events, else 0. Failures the manifest holds
-    from other runs into the same folder are counted in one line, not in the status."""
+    1 when a video of this run (``names``) failed or yielded no events, else 0. Videos of ``names`` not
+    in ``converted`` were skipped (an earlier run converted them; output and source verified) and are
+    said to be. Failures the manifest holds from other runs into the same folder are counted in one line,
+    not in the status."""
     from cmax.sim.convert import entry_output
 
     totals, videos = manifest["totals"], manifest["videos"]
@@ -145,8 +248,9 @@ def _report_manifest(path: Path, manifest: dict, names: Sequence[str]) -> int:
     for name in names:
         entry = videos.get(name, {})
         if entry.get("status") == "ok" and name not in empty:
-            print(f"  {entry_output(entry, path.parent)}: {entry['events']:,} events from {entry['frames']} frames "
-                  f"({entry['samples']} samples), {entry['duration_s']:.2f} s of video")
+            done = "" if name in converted else f"already converted from {entry['source']} (verified), "
+            print(f"  {entry_output(entry, path.parent)}: {done}{entry['events']:,} events from {entry['frames']} "
+                  f"frames ({entry['samples']} samples), {entry['duration_s']:.2f} s of video")
     failed = [name for name in names if videos.get(name, {}).get("status", "ok") != "ok"]
     for name in failed:
         print(f"  failed {name}: {videos[name]['error']}", file=sys.stderr)
@@ -167,11 +271,12 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     """Add ``simulate`` to an ``argparse`` sub-parser collection; returns the new parser."""
     parser = subparsers.add_parser(
         "simulate", help="convert videos or image sequences to event files (ESIM), one or a whole collection",
-        description="Convert a video file, an image folder (ECD: images.txt; rpg_vid2e/ESIM: images/ + "
+        description="Convert a video file, an image folder (ECD: images.txt; rpg_vid2e/ESIM: images/ or imgs/ + "
         "timestamps.txt) or a timestamp file to one h5 file (-o F.h5, with manifest.json beside it); or a "
         "folder of videos, a list file (one video per line, optional tab and category) or a catalogue's "
         "folder (--catalogue slowtv) to DSEC-layout h5 files in the folder -o, with manifest.json; "
-        "resumable, in --workers processes. Exit status 1 when a video fails or yields no events.",
+        "resumable, in --workers processes. Exit status 1 when a video fails or yields no events, or when "
+        "none of a catalogue's videos (of its shard) is found.",
     )
     parser.add_argument("input", type=Path,
                         help="video file, image folder, timestamp file, folder of videos, or list file")
@@ -195,9 +300,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     api_default(parser.add_argument("--method", choices=("flow", "linear"), default=None,
                                     help="interpolation of adaptive sampling"), library_default(_CONVERT, "method"))
     parser.add_argument("--t0", type=float, default=None,
-                        help="start, seconds into each video (default: its start)")
+                        help="start, seconds after each video's (or image sequence's) first frame, whatever clock "
+                        "its times are on (default: its start)")
     parser.add_argument("--t1", type=positive_float, default=None,
-                        help="end, seconds into each video, after --t0 (default: its end)")
+                        help="end, seconds after the first frame, after --t0 (default: its end)")
     parser.add_argument("--workers", type=positive_int, default=1, help="parallel processes")
     parser.add_argument("--catalogue", choices=("slowtv",), default=None,
                         help="INPUT is the folder of a catalogue's videos named by index (00000.mp4)")

@@ -20,8 +20,10 @@ simulator version. An entry is ``ok`` only once its file has been verified
 (:func:`cmax.io.h5.verify_h5`: completion record, event count). A second run
 skips the videos whose entry is ``ok`` and whose file still has the recorded
 size, completion record, event count and SHA-256 (each skipped file is read
-once), and redoes the others (failed, crashed, missing, truncated, damaged or
-foreign output). A failing video (full disk, file-size limit, bad video) is
+once) and whose source still has the recorded signature (resolved path, files,
+bytes, latest mtime: :mod:`cmax.sim.signature`), and redoes the others (failed,
+crashed, missing, truncated, damaged or foreign output; a source replaced,
+re-exported, touched or moved). A failing video (full disk, file-size limit, bad video) is
 recorded and does not stop the others. An interrupted parallel run kills its
 workers and removes their temporary files.
 
@@ -52,6 +54,7 @@ from cmax.io import VIDEO_SUFFIXES
 from cmax.io.atomic import PathLock, discard_leftovers, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
 from cmax.sim.esim import EsimSettings, EventSimulator
+from cmax.sim.signature import signature_problem, source_signature
 from cmax.sim.video import DEFAULT_PREFETCH, VideoFileSource, open_source
 
 __all__ = [
@@ -63,6 +66,9 @@ MANIFEST = "manifest.json"
 #: Lock file of an output folder, held by the conversion writing into it.
 FOLDER_LOCK = ".conversion.lock"
 _FORMAT = "evtslowtv-manifest/1"
+#: ``output_paths`` of a manifest whose entries name their output relative to its folder (``a.h5``,
+#: ``shard0/a.h5`` after a merge); older manifests lack it (see :func:`entry_output`).
+_RELATIVE = "relative"
 
 
 # -- settings and records ---------------------------------------------------------------
@@ -84,9 +90,11 @@ class ConvertSettings:
     method : {"flow", "linear"}
         Interpolation of the adaptive sampling.
     t0_s, t1_s : float or None
-        Time range of the video to convert: frames with ``t0_s <= t < t1_s``
-        (seconds of container time, as :class:`cmax.sim.video.VideoFileSource`);
-        ``t0_s >= 0``, ``t1_s > 0`` and ``t1_s > t0_s``.
+        Time range to convert, in seconds after the first frame, for a video and
+        an image sequence alike (whatever clock its timestamps are on): frames with
+        ``t_first + t0_s <= t < t_first + t1_s`` (:class:`cmax.sim.video.VideoFileSource`,
+        :class:`cmax.sim.video.ImageFolderSource`); ``t0_s >= 0``, ``t1_s > 0`` and
+        ``t1_s > t0_s``. A range that selects no frame fails the conversion.
     """
 
     esim: EsimSettings = field(default_factory=EsimSettings)
@@ -143,7 +151,11 @@ class VideoResult:
     where adaptive sampling hit a cap (one sample per µs, ``max_insert``) and
     the ``lam * C`` bound does not hold; ``duration_s``: last minus first frame time;
     ``status``: ``"ok"`` or ``"failed"`` (then ``error`` says why, and no output exists);
-    ``bytes``, ``sha256``: size and checksum of the verified output file.
+    ``bytes``, ``sha256``: size and checksum of the verified output file;
+    ``source_signature``: the source as it was before it was read
+    (:func:`cmax.sim.signature.source_signature`: resolved path, files, bytes,
+    latest mtime in ns; None when the frames were passed in), which a resumed
+    conversion compares with the source it would skip.
     """
 
     name: str
@@ -161,6 +173,7 @@ class VideoResult:
     error: str | None = None
     bytes: int = 0
     sha256: str | None = None
+    source_signature: dict[str, Any] | None = None
 
 
 # -- one video --------------------------------------------------------------------------
@@ -170,7 +183,8 @@ def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
 
     Frames are uint8 grey (H, W) (the 8-bit values the reference ESIM works
     on), decoded ``prefetch`` frames ahead in a background thread; times are
-    the container's presentation times in µs, ``t0_s <= t < t1_s``.
+    the container's presentation times (or the image sequence's timestamps) in
+    µs, from ``t0_s`` to ``t1_s`` seconds after the first frame.
 
     Raises
     ------
@@ -204,7 +218,7 @@ def convert_video(
     category: str | None = None,
     frames: Iterable[tuple[np.ndarray, int]] | None = None,
     progress: Callable[[int], None] | None = None,
-    overwrite: bool = True,
+    overwrite: bool = False,
 ) -> VideoResult:
     """Convert one video to a DSEC-layout event file, streaming (constant memory).
 
@@ -222,12 +236,18 @@ def convert_video(
         Frames to use instead of reading ``source`` (grey or BGR, µs).
     progress : callable, optional
         Called with the number of new video frames read, now and then.
+    overwrite : bool
+        Replace an existing ``output`` (atomically, once the new file is
+        complete; a failed conversion keeps the old one). Default False: an
+        existing ``output`` raises ``FileExistsError`` before anything is read,
+        as :func:`cmax.io.h5.write_h5` and ``cmax simulate`` do.
 
     Returns
     -------
     VideoResult
         With ``status="ok"``. Errors raise (the temporary file is removed):
-        ``FileNotFoundError``, ``ValueError`` for a video without frames in the
+        ``FileNotFoundError``, ``FileExistsError`` (``output`` exists and
+        ``overwrite`` is False), ``ValueError`` for a video without frames in the
         range, unreadable or inconsistent frames, ``OSError`` naming the output
         for a full disk or file-size limit, :class:`cmax.io.atomic.OutputLockedError`
         when another writer is writing ``output``.
@@ -238,9 +258,13 @@ def convert_video(
     settings = ConvertSettings() if settings is None else settings
     started = time.perf_counter()
     source, output = Path(source), Path(output)
+    if not overwrite and os.path.lexists(output):  # before any frame is read (the writer checks again)
+        raise FileExistsError(f"{output} exists (pass overwrite=True to replace it)")
+    signature = None
     if frames is None:
         if not source.exists():
             raise FileNotFoundError(f"video not found: {source}")
+        signature = source_signature(source)  # before reading: a source changed meanwhile is redone on resume
         frames = open_frames(source, settings)
     counter = [0, 0, 0, 0]  # frames read, first and last time, capped intervals
     stream: Iterable = _counted(frames, counter)
@@ -283,14 +307,16 @@ def convert_video(
         frames=counter[0], samples=samples, capped_intervals=counter[3],
         events=writer.count, duration_s=duration,
         events_per_s=writer.count / duration if duration > 0 else 0.0,
-        wall_s=time.perf_counter() - started,
+        wall_s=time.perf_counter() - started, source_signature=signature,
     )
 
 
 def _range_note(settings: ConvertSettings) -> str:
     if settings.t0_s is None and settings.t1_s is None:
         return ""
-    return f" in the time range [{settings.t0_s or 0} s, {settings.t1_s or 'end'} s]"
+    from cmax.sim.video import range_words
+
+    return " " + range_words(settings.t0_s, settings.t1_s)
 
 
 # -- jobs -------------------------------------------------------------------------------
@@ -433,7 +459,39 @@ def load_manifest(path: str | os.PathLike) -> dict[str, Any]:
     except (json.JSONDecodeError, UnicodeDecodeError, RecursionError) as error:
         message = " ".join(str(error).split())
         raise ValueError(f"{path} is not a JSON manifest: {message}") from None
-    return check_manifest(manifest, str(path))
+    return _with_relative_outputs(check_manifest(manifest, str(path)))
+
+
+def _with_relative_outputs(manifest: dict[str, Any]) -> dict[str, Any]:
+    """``manifest`` with ``output_paths`` ``"relative"``: an older manifest's outputs (bare names, or the
+    paths typed at conversion time) become the names :func:`entry_output` finds them under."""
+    if manifest.get("output_paths") == _RELATIVE:
+        return manifest
+    videos = {name: dict(entry, output=entry_output(entry, ".", relative=False).name) if "output" in entry
+              else entry for name, entry in manifest["videos"].items()}
+    return dict(manifest, videos=videos, output_paths=_RELATIVE)
+
+
+def settings_difference(recorded: dict[str, Any], now: dict[str, Any]) -> str:
+    """The keys where two settings dicts (:meth:`ConvertSettings.to_dict`) differ, as ``key: old (recorded) vs
+    new (now)``; nested keys joined by dots.
+
+    >>> settings_difference({"esim": {"cp": 0.2}, "size": None}, {"esim": {"cp": 0.3}, "size": [64, 48]})
+    'esim.cp: 0.2 (recorded) vs 0.3 (now), size: None (recorded) vs [64, 48] (now)'
+    """
+    def flat(settings: Any, prefix: str = "") -> dict[str, Any]:
+        if not isinstance(settings, dict):
+            return {prefix: settings}
+        out: dict[str, Any] = {}
+        for key, value in settings.items():
+            out.update(flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
+        return out
+
+    old, new = flat(recorded), flat(now)
+    missing = object()
+    keys = [key for key in dict.fromkeys([*old, *new]) if old.get(key, missing) != new.get(key, missing)]
+    return ", ".join(f"{key}: {old.get(key, 'absent')!r} (recorded) vs {new.get(key, 'absent')!r} (now)"
+                     for key in keys)
 
 
 def _new_manifest(settings: ConvertSettings, catalogue: str | None, shard, missing) -> dict[str, Any]:
@@ -443,7 +501,7 @@ def _new_manifest(settings: ConvertSettings, catalogue: str | None, shard, missi
         "format": _FORMAT, "simulator": f"cmax {__version__}", "simulator_version": __version__,
         "settings": settings.to_dict(), "catalogue": catalogue,
         "shard": None if shard is None else f"{shard[0]}/{shard[1]}",
-        "missing": list(missing), "videos": {}, "totals": {},
+        "missing": list(missing), "videos": {}, "totals": {}, "output_paths": _RELATIVE,
     }
 
 
@@ -456,18 +514,43 @@ def _totals(videos: dict[str, dict]) -> dict[str, Any]:
     }
 
 
-def merge_manifests(manifests: Sequence[dict[str, Any]]) -> dict[str, Any]:
+def merge_manifests(manifests: Sequence[dict[str, Any]], *,
+                    folders: Sequence[str | os.PathLike] | None = None,
+                    into: str | os.PathLike | None = None) -> dict[str, Any]:
     """Join the manifests of several shards or machines into one.
 
     Settings and simulator version must agree. A video present in several
     manifests keeps its ``ok`` entry (else the last one); an entry missing in one
     manifest but converted in another is not missing. Each manifest is checked
     first (:func:`check_manifest`).
+
+    Parameters
+    ----------
+    manifests : sequence of dict
+        The manifests (:func:`load_manifest`).
+    folders : sequence of paths, optional
+        The folder of each manifest (where its outputs lie), with ``into``.
+    into : path, optional
+        The folder the merged manifest will be written to. With ``folders``, each
+        entry's ``output`` is rewritten relative to it (``shard0/00000.h5``), so
+        that :func:`entry_output` finds the files from the merged manifest and a
+        conversion resumed into ``into`` verifies and skips them. A manifest whose
+        folder does not lie inside ``into`` is refused (ValueError). Without them
+        the outputs are kept as they are (right only for manifests already in
+        ``into``).
     """
     if not manifests:
         raise ValueError("merge_manifests needs at least one manifest")
+    if (folders is None) != (into is None):
+        raise ValueError("merge_manifests takes folders= and into= together")
+    if folders is not None and len(folders) != len(manifests):
+        raise ValueError(f"merge_manifests got {len(folders)} folders for {len(manifests)} manifests")
     for number, manifest in enumerate(manifests, start=1):
         check_manifest(manifest, f"manifest {number} of {len(manifests)}")
+    manifests = [_with_relative_outputs(manifest) for manifest in manifests]
+    if folders is not None:
+        manifests = [_outputs_relative_to(manifest, Path(folder), Path(into))
+                     for manifest, folder in zip(manifests, folders)]
     first = manifests[0]
     for other in manifests[1:]:
         for key in ("settings", "simulator", "catalogue"):
@@ -480,10 +563,25 @@ def merge_manifests(manifests: Sequence[dict[str, Any]]) -> dict[str, Any]:
         for name, entry in manifest["videos"].items():
             if name not in videos or entry["status"] == "ok":
                 videos[name] = entry
-    merged = dict(first, shard=None, videos=dict(sorted(videos.items())))
+    merged = dict(first, shard=None, videos=dict(sorted(videos.items())), output_paths=_RELATIVE)
     merged["missing"] = sorted(missing - set(videos))
     merged["totals"] = _totals(merged["videos"])
     return merged
+
+
+def _outputs_relative_to(manifest: dict[str, Any], folder: Path, into: Path) -> dict[str, Any]:
+    """``manifest`` (of ``folder``) with each entry's output relative to the folder ``into`` (POSIX ``/``)."""
+    base = os.path.abspath(into)
+    videos = {}
+    for name, entry in manifest["videos"].items():
+        target = os.path.abspath(entry_output(entry, folder, relative=True))
+        relative = Path(os.path.relpath(target, base))
+        if relative.parts[:1] == ("..",):
+            raise ValueError(f"the outputs of {folder / MANIFEST} (e.g. {target}) lie outside {into}, the folder "
+                             "of the merged manifest: write it into a folder that holds the manifests' folders "
+                             f"(e.g. {Path(os.path.commonpath([base, os.path.abspath(folder)])) / MANIFEST})")
+        videos[name] = dict(entry, output=relative.as_posix())
+    return dict(manifest, videos=videos)
 
 
 # -- verification -----------------------------------------------------------------------
@@ -536,6 +634,26 @@ def output_problem(entry: dict | None, output: Path) -> str | None:
     return None
 
 
+def source_problem(entry: dict, source: str | os.PathLike) -> str | None:
+    """Why ``source`` is not the source the manifest ``entry`` was converted from (None when it is).
+
+    Compared: the entry's ``source_signature`` with the source's now (resolved path, number of
+    files, bytes, latest mtime in ns; :mod:`cmax.sim.signature`); an entry of an older manifest,
+    without a signature, by its ``source`` path alone (as typed, or resolved from this folder).
+    """
+    recorded = entry.get("source_signature")
+    if not isinstance(recorded, dict):
+        old = entry.get("source")
+        if isinstance(old, str) and (old == str(source) or Path(old).resolve() == Path(source).resolve()):
+            return None
+        return f"it was converted from {old}, now {source}"
+    try:
+        now = source_signature(source)
+    except (OSError, ValueError) as error:
+        return " ".join(str(error).split())
+    return signature_problem(recorded, now)
+
+
 # -- a collection -----------------------------------------------------------------------
 def _failed(job: VideoJob, output: Path, error: str, started: float | None = None) -> VideoResult:
     wall = 0.0 if started is None else time.perf_counter() - started
@@ -551,8 +669,10 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
             from tqdm.auto import tqdm
 
             bar = tqdm(desc=job.name, unit="frame", position=position, leave=False, mininterval=1.0)
+        # overwrite: under the folder's lock, an output the manifest does not list as verified is redone
+        # (replaced atomically when the new file is complete)
         result = convert_video(job.source, output, settings, category=job.category,
-                               progress=None if bar is None else bar.update)
+                               progress=None if bar is None else bar.update, overwrite=True)
         result = _verified(replace(result, name=job.name))
     except Exception as error:  # reported in the manifest; the other videos go on
         message = " ".join(f"{type(error).__name__}: {error}".split())
@@ -623,14 +743,26 @@ def convert_collection(
                                set(redo))
 
 
-def entry_output(entry: dict, folder: str | os.PathLike) -> Path:
+def entry_output(entry: dict, folder: str | os.PathLike, *, relative: bool = True) -> Path:
     """The output file of the manifest ``entry`` of a manifest in ``folder``.
 
-    The manifest stores the file's name relative to its folder; older manifests
-    hold the path typed at conversion time (relative to that run's folder, or
-    absolute). The file always lies in the manifest's folder, so its name is kept.
+    ``relative=True`` (a manifest whose ``output_paths`` is ``"relative"``: all that
+    :func:`convert_collection`, :func:`merge_manifests` and :func:`load_manifest`
+    return): the entry stores the file's path relative to the manifest's folder, a
+    name (``a.h5``) or, after a merge, a sub-path (``shard0/a.h5``); a path that
+    is absolute or climbs out of the folder (``..``) is refused (ValueError).
+    ``relative=False`` (older manifests, read as raw JSON): the entry holds a bare
+    name or the path typed at conversion time (relative to that run's folder,
+    or absolute); such a file always lies in the manifest's folder, so its name is
+    kept. :func:`load_manifest` turns an older manifest into the first kind.
     """
-    return Path(folder) / Path(str(entry["output"])).name
+    output = Path(str(entry["output"]))
+    if not relative:
+        return Path(folder) / output.name
+    if output.is_absolute() or ".." in output.parts or output.name in ("", "."):
+        raise ValueError(f"manifest entry output {str(entry['output'])!r} is not a path inside the manifest's "
+                         "folder (absolute, or climbing out with '..')")
+    return Path(folder) / output
 
 
 def _manifest_entry(result: VideoResult) -> dict[str, Any]:
@@ -644,15 +776,26 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
     if os.path.lexists(path):
         previous = load_manifest(path)
         if previous["settings"] != manifest["settings"]:
-            raise ValueError(
-                f"{path} was written with other settings ({previous['settings']}); "
-                "convert into another folder or remove it"
-            )
+            difference = settings_difference(previous["settings"], manifest["settings"])
+            raise ValueError(f"{path} was written with other settings ({difference}); "
+                             "convert into another folder or remove it")
         manifest["videos"] = {name: entry for name, entry in previous["videos"].items() if name not in redo}
-    names = {job.name for job in jobs}
+    sources = {job.name: job.source for job in jobs}
+    names = set(sources)
+    for name, entry in manifest["videos"].items():  # never skip a video whose source changed
+        if entry["status"] == "ok" and name in sources:
+            problem = source_problem(entry, sources[name])
+            if problem is not None:
+                manifest["videos"][name] = dict(entry, status="failed",
+                                                error=f"the source changed since it was converted: {problem}")
+                print(f"cmax: note: {name}: the source changed since it was converted ({problem}); "
+                      "converting it again", file=sys.stderr)
     for name, entry in manifest["videos"].items():  # never list a file that is not there as it was
         if entry["status"] == "ok":
-            problem = output_problem(entry, output_dir / f"{name}.h5")
+            try:
+                problem = output_problem(entry, entry_output(entry, output_dir))
+            except ValueError as error:  # an output path outside the folder
+                problem = str(error)
             if problem is not None:
                 manifest["videos"][name] = dict(entry, status="failed", error=f"output not verified: {problem}")
                 print(f"cmax: note: {name}: output not verified ({problem}); "

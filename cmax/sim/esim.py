@@ -92,6 +92,7 @@ __all__ = [
     "EventSimulator",
     "log_intensity",
     "threshold_crossings",
+    "unit_range_note",
 ]
 
 _NEVER = np.iinfo(np.int64).min // 4  # last event time of a pixel that has not fired yet
@@ -122,6 +123,25 @@ def _grey_frame(frame: object, name: str) -> np.ndarray:
     if colour:
         array = cv2.cvtColor(np.ascontiguousarray(array), cv2.COLOR_BGR2GRAY)
     return array
+
+
+def unit_range_note(frame: np.ndarray, what: str = "frames") -> str | None:
+    """The warning for float grey values that look like a [0, 1] image, or None.
+
+    A float array whose values lie in [0, 1], not all zero and not all whole
+    numbers (0/1 values are as likely a dark 8-bit frame): ESIM takes grey
+    values in [0, 255], so to it such frames are nearly black.
+
+    >>> unit_range_note(np.array([[0.2, 0.9]], np.float32)) is not None, unit_range_note(np.array([[0.0, 1.0]]))
+    (True, None)
+    """
+    if frame.dtype.kind != "f" or not frame.size:
+        return None
+    low, high = float(np.nanmin(frame)), float(np.nanmax(frame))
+    if not (0 < high <= 1) or np.array_equal(frame, np.rint(frame)):
+        return None
+    return (f"{what} are floats in [{low:g}, {high:g}]: ESIM takes grey values in [0, 255], so to it the whole "
+            "sequence is nearly black (a [0, 1] image? multiply it by 255)")
 
 
 def _log_float32(grey: np.ndarray, log_eps: float) -> np.ndarray:
@@ -224,6 +244,7 @@ class EventSimulator:
             cp, cn, threshold_sigma, refractory_us, log_eps, seed, shot_noise_rate_hz, leak_rate_hz
         )
         self._entropy = np.random.SeedSequence(self.settings.seed).entropy
+        self._unit_warned = False  # the [0, 1]-image warning, given at most once per simulator
         self._table = _log_float32(np.arange(256, dtype=np.float32), self.settings.log_eps)
         self.reset()
 
@@ -366,9 +387,22 @@ class EventSimulator:
         Events
             Events with ``t_prev <= t <= t_us``, sorted by time; none for the
             first frame, which only initialises ``L_ref``.
+
+        Warns
+        -----
+        UserWarning
+            Once per simulator, when the first frame (after construction or
+            :meth:`reset`) is float in [0, 1] with fractional values
+            (:func:`unit_range_note`): most likely a [0, 1] image, simulated as
+            given (nearly black to ESIM), not rescaled.
         """
         t_us = _whole("t_us", t_us)
         grey = _grey_frame(frame, "frame")
+        if self._shape is None and not self._unit_warned:  # the first frame tells the scale of the stream
+            note = unit_range_note(grey, "frames")
+            if note is not None:
+                self._unit_warned = True
+                warnings.warn(note, UserWarning, stacklevel=2)
         if self._shape is not None:
             if grey.shape != self._shape:
                 raise ValueError(f"frame has shape {grey.shape[:2]}, earlier frames {self._shape}")
@@ -420,6 +454,7 @@ class EventSimulator:
             warnings.warn(f"frames are floats in [{np.nanmin(frames):g}, {np.nanmax(frames):g}]: ESIM takes grey "
                           "values in [0, 255], so to it the whole sequence is nearly black (a [0, 1] image? "
                           "multiply it by 255)", UserWarning, stacklevel=2)
+            self._unit_warned = True
         self.reset()
         eps = self.settings.log_eps
         sink = _Columns(0)

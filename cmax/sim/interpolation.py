@@ -222,8 +222,9 @@ def check_frame(frame: object, index: int, shape: tuple[int, ...] | None,
     if shape is not None and array.shape != shape:
         raise ValueError(f"frame {index} has shape {array.shape}, the first frame {shape}")
     if method == "flow" and min(array.shape) < MIN_FLOW_SIZE:
-        raise ValueError(f"method='flow' needs frames of at least {MIN_FLOW_SIZE}x{MIN_FLOW_SIZE} "
-                         f"pixels, got {array.shape}; use method='linear'")
+        raise ValueError(f"method='flow' needs frames of at least {MIN_FLOW_SIZE}x{MIN_FLOW_SIZE} pixels, got "
+                         f"{array.shape[1]}x{array.shape[0]} (width x height); use method='linear' "
+                         "(cmax simulate: --method linear)")
     out = np.array(array, dtype=np.float32)
     low, high = float(out.min()), float(out.max())
     if not (0 <= low and high <= 255):  # also catches NaN

@@ -60,6 +60,7 @@ H. Rebecq, D. Gehrig, D. Scaramuzza. "ESIM: an Open Event Camera Simulator." CoR
 from __future__ import annotations
 
 import math
+import warnings
 from dataclasses import dataclass
 from typing import Callable, Iterable, Iterator, Literal
 
@@ -303,6 +304,12 @@ def _stream(source: Iterable[tuple[object, object]], settings: _Settings,
         except (TypeError, ValueError):
             raise TypeError(f"item {index} of the frame source must be a (frame, t_us) pair") from None
         frame = check_frame(frame_in, index, shape, settings.method)
+        if index == 0 and np.asarray(frame_in).dtype.kind == "f":  # the first frame tells the scale
+            from cmax.sim.esim import unit_range_note
+
+            note = unit_range_note(frame, "frames")
+            if note is not None:
+                warnings.warn(note, UserWarning, stacklevel=3)
         t = _check_time(t_in, index, None if previous is None else previous[2])
         shape, log = frame.shape, log_intensity(frame)
         if previous is not None:
@@ -369,6 +376,13 @@ def iter_upsample(
     ValueError, TypeError
         Bad settings (at the call), or, while iterating, a frame of another
         shape or out of range, a non-increasing time, an empty source.
+
+    Warns
+    -----
+    UserWarning
+        When the first frame is float in [0, 1] with fractional values
+        (:func:`cmax.sim.esim.unit_range_note`): most likely a [0, 1] image,
+        sampled as given (nearly black to ESIM), not rescaled.
 
     Examples
     --------

@@ -153,6 +153,38 @@ def _mean_fps(t_us: np.ndarray) -> float | None:
     return None if t_us.size < 2 else (t_us.size - 1) * 1e6 / float(t_us[-1] - t_us[0])
 
 
+#: Largest time a timestamp file may state in seconds (about the year 5100 as seconds since 1970); larger values
+#: are another unit (ns or µs since 1970: 1.7e18, 1.7e15), never converted silently.
+MAX_SECONDS = 1e11
+#: Unit names and their size in seconds, smallest first (to name the unit of times too large for seconds).
+_SMALLER_UNITS = (("nanoseconds", 1e-9), ("microseconds", 1e-6), ("milliseconds", 1e-3))
+
+
+def _checked_seconds(seconds: np.ndarray, what: str) -> np.ndarray:
+    """``seconds`` (float64, (T,)) if every value is finite and within ``MAX_SECONDS``; else a ValueError naming
+    the first bad time and, for a large one, the unit it likely is (the one that puts it in 1973-5100 since 1970).
+
+    >>> _checked_seconds(np.array([1.6e18, 1.65e18]), "timestamps.txt")
+    Traceback (most recent call last):
+    ...
+    ValueError: timestamps.txt: time 0 (1.6e+18) is too large for seconds (5.07e+10 years): these look like nanoseconds (1600000000.000000 s since 1970 if so); write the times in seconds
+    """
+    bad = ~np.isfinite(seconds)
+    if bad.any():
+        i = int(np.flatnonzero(bad)[0])
+        raise ValueError(f"{what}: time {i} is {seconds[i]} (times must be finite seconds)")
+    large = np.abs(seconds) > MAX_SECONDS
+    if large.any():
+        i = int(np.flatnonzero(large)[0])
+        value = float(seconds[i])
+        unit = next((name for name, size in _SMALLER_UNITS if 1e8 <= abs(value) * size <= MAX_SECONDS), None)
+        guess = ("another unit (ns? µs?)" if unit is None else
+                 f"{unit} ({value * dict(_SMALLER_UNITS)[unit]:.6f} s since 1970 if so)")
+        raise ValueError(f"{what}: time {i} ({value:.6g}) is too large for seconds ({value / 3.15576e7:.3g} years): "
+                         f"these look like {guess}; write the times in seconds")
+    return seconds
+
+
 def _seconds_to_us(seconds: np.ndarray) -> np.ndarray:
     return np.rint(np.asarray(seconds, dtype=np.float64) * 1e6).astype(np.int64)
 
@@ -287,7 +319,7 @@ def read_timestamps(path: PathLike, folder: PathLike | None = None) -> tuple[np.
         if min(indices) < 0 or max(indices) >= len(listed):
             raise ValueError(f"{path}: image index out of range [0, {len(listed)}) of {folder}")
         images = [listed[i] for i in indices]
-    t_us = _seconds_to_us(np.array(seconds))
+    t_us = _seconds_to_us(_checked_seconds(np.array(seconds, dtype=np.float64), str(path)))
     _strictly_increasing(t_us, str(path))
     return t_us, images
 
@@ -339,6 +371,33 @@ def _check_time_range(t0_s: object, t1_s: object) -> None:
         raise ValueError(f"t1_s ({t1_s}) must be after t0_s ({t0_s})")
 
 
+def range_words(t0_s: float | None, t1_s: float | None) -> str:
+    """``t0_s``, ``t1_s`` (seconds after the first frame) in words, for messages.
+
+    >>> range_words(0.1, 0.5), range_words(2.0, None)
+    ('from 0.1 s to 0.5 s after the first frame', 'from 2.0 s after the first frame to the end')
+    """
+    if t1_s is None:
+        return f"from {t0_s or 0} s after the first frame to the end"
+    return f"from {t0_s or 0} s to {t1_s} s after the first frame"
+
+
+def _in_range(t_us: np.ndarray, t0_s: float | None, t1_s: float | None) -> np.ndarray:
+    """(T,) bool: the times ``t_us`` (int64 µs, increasing) with ``t0_s <= t - t_us[0] < t1_s`` (seconds after
+    the first time; None: no bound).
+
+    >>> _in_range(np.array([1_700_000_000_000_000, 1_700_000_000_050_000, 1_700_000_000_100_000]), 0.05, None)
+    array([False,  True,  True])
+    """
+    elapsed = t_us - t_us[0]
+    keep = np.ones(t_us.shape, bool)
+    if t0_s is not None:
+        keep &= elapsed >= int(round(t0_s * 1e6))
+    if t1_s is not None:
+        keep &= elapsed < int(round(t1_s * 1e6))
+    return keep
+
+
 class ImageFolderSource:
     """A folder of images with their times.
 
@@ -354,8 +413,11 @@ class ImageFolderSource:
     size : (int, int), optional
         Output (width, height); frames are resized with ``INTER_AREA``.
     t0_s, t1_s : float, optional
-        Keep the images with ``t0_s <= t < t1_s`` (seconds, the timestamps' own
-        clock, as a video's container time).
+        Keep the images from ``t0_s`` (included) to ``t1_s`` (excluded) seconds
+        after the first image, whatever clock the timestamps are on (0-based, or
+        absolute as ROS or DSEC exports): ``t_first + t0_s <= t < t_first + t1_s``,
+        as for a video. The times kept are not shifted. A range that selects no
+        image raises ValueError naming the span of the images.
     dtype : np.float32 or np.uint8
         Type of the yielded frames (see the module docstring).
     prefetch : int
@@ -398,12 +460,12 @@ class ImageFolderSource:
         if not self.images:
             raise ValueError(f"no images in {folder} (zero frames)")
         if t0_s is not None or t1_s is not None:
-            lo = -(2**62) if t0_s is None else int(round(t0_s * 1e6))
-            hi = 2**62 if t1_s is None else int(round(t1_s * 1e6))
-            keep = (self.timestamps_us >= lo) & (self.timestamps_us < hi)
+            keep = _in_range(self.timestamps_us, t0_s, t1_s)
             if not keep.any():
-                raise ValueError(f"{folder}: no images in [{t0_s}, {t1_s}) s (zero frames; their times span "
-                                 f"{self.timestamps_us[0] * 1e-6:g}-{self.timestamps_us[-1] * 1e-6:g} s)")
+                first, last = int(self.timestamps_us[0]), int(self.timestamps_us[-1])
+                clock = "" if first == 0 else f"; on the timestamps' clock they start at {first * 1e-6:.6f} s"
+                raise ValueError(f"{folder}: no images {range_words(t0_s, t1_s)} (zero frames): the "
+                                 f"{len(self.images)} images span {(last - first) * 1e-6:.6f} s{clock}")
             self.timestamps_us = self.timestamps_us[keep]
             self.images = [image for image, kept in zip(self.images, keep) if kept]
         first = _read_image(self.images[0], None)
@@ -439,9 +501,11 @@ class VideoFileSource:
     size : (int, int), optional
         Output (width, height); frames are resized with ``INTER_AREA``.
     t0_s, t1_s : float, optional
-        Keep the frames with ``t0_s <= t < t1_s`` (seconds, container time);
-        the reader seeks near ``t0_s`` first. Times are not shifted to start
-        at zero.
+        Keep the frames from ``t0_s`` (included) to ``t1_s`` (excluded) seconds
+        after the first frame (``t_first + t0_s <= t < t_first + t1_s``; the
+        container's clock, which OpenCV starts at the stream's start, so
+        ``t_first`` is 0 for nearly every file); the reader seeks near
+        ``t0_s`` first. Times are not shifted to start at zero.
     dtype : np.float32 or np.uint8
         Type of the yielded frames (see the module docstring).
     prefetch : int
@@ -478,11 +542,12 @@ class VideoFileSource:
             fps = capture.get(cv2.CAP_PROP_FPS)
             count = capture.get(cv2.CAP_PROP_FRAME_COUNT)
             ok, image = capture.read()
+            self.fps = float(fps) if math.isfinite(fps) and fps > 0 else None
+            self._first_us = self._time_us(capture, first=True) if ok else 0  # t0_s, t1_s count from it
         finally:
             capture.release()
         if not ok or image is None:
             raise DecodeError(f"OpenCV opened {self.path} but decoded no frame from it")
-        self.fps = float(fps) if math.isfinite(fps) and fps > 0 else None
         self._container_count = int(count) if math.isfinite(count) and count > 0 else None
         self.frame_count = self._container_count if t0_s is None and t1_s is None else None
         first = _to_grey(image, self._size, str(self.path))
@@ -513,8 +578,8 @@ class VideoFileSource:
 
     def _frames(self) -> Iterator[tuple[np.ndarray, int]]:
         capture = self._open()
-        t0_us = None if self.t0_s is None else int(round(self.t0_s * 1e6))
-        t1_us = None if self.t1_s is None else int(round(self.t1_s * 1e6))
+        t0_us = None if self.t0_s is None else self._first_us + int(round(self.t0_s * 1e6))
+        t1_us = None if self.t1_s is None else self._first_us + int(round(self.t1_s * 1e6))
         try:
             if t0_us:
                 capture.set(cv2.CAP_PROP_POS_MSEC, t0_us / 1000)
@@ -541,7 +606,9 @@ class VideoFileSource:
                 raise DecodeError(f"{self.path}: decoding stopped after frame {decoded} of the "
                                   f"{count} the container lists (truncated or corrupt video)")
             if yielded == 0:
-                raise ValueError(f"{self.path}: no frames in [{self.t0_s}, {self.t1_s}) s (zero frames)")
+                last = "" if previous is None else \
+                    f": its last frame is {(previous - self._first_us) * 1e-6:.6f} s after the first"
+                raise ValueError(f"{self.path}: no frames {range_words(self.t0_s, self.t1_s)} (zero frames){last}")
         finally:
             capture.release()
 

@@ -1,0 +1,71 @@
+"""The signature of a conversion's source, so that a resumed conversion can tell whether its source changed.
+
+A signature is a small JSON-ready dict: the source's resolved path, the number of files it reads, their
+total byte size and the latest modification time (``st_mtime_ns``, integer nanoseconds). A video is one
+file; an image sequence (a folder, or an ``images.txt`` / ``timestamps.txt`` file) is its timestamp file
+and the images that file lists (as :func:`cmax.sim.video.read_timestamps` resolves them). Nothing is
+decoded: computing one costs a ``stat`` per file. Replacing, re-exporting, touching or moving the
+source changes it; a file changed in place within the same nanosecond and to the same size does not
+(the output's own checksum is checked separately, see :func:`cmax.sim.convert.output_problem`).
+
+>>> _ = Path("a.mp4").write_bytes(b"12345")
+>>> signature = source_signature("a.mp4")
+>>> signature["files"], signature["bytes"]
+(1, 5)
+>>> signature_problem(signature, source_signature("a.mp4")) is None
+True
+>>> _ = Path("a.mp4").write_bytes(b"1234567")
+>>> signature_problem(signature, source_signature("a.mp4"))
+'a.mp4 has 7 bytes, it had 5'
+"""
+from __future__ import annotations
+
+import os
+from pathlib import Path
+from typing import Any
+
+__all__ = ["source_files", "source_signature", "signature_problem"]
+
+
+def source_files(source: str | os.PathLike) -> list[Path]:
+    """The files a conversion of ``source`` reads: the video itself, or an image sequence's timestamp
+    file and its images (the same ones :func:`cmax.sim.video.open_source` would read).
+
+    Raises FileNotFoundError for a missing source, ValueError for an image sequence whose timestamp
+    file is unreadable (as the conversion itself would).
+    """
+    from cmax.sim.video import _find_timestamps, read_timestamps
+
+    path = Path(source)
+    if not path.exists():
+        raise FileNotFoundError(f"no such file or folder: {path}")
+    if path.is_dir():
+        stamps = _find_timestamps(path)
+        return [stamps, *read_timestamps(stamps, path)[1]]
+    if path.suffix.lower() == ".txt":
+        return [path, *read_timestamps(path, path.parent)[1]]
+    return [path]
+
+
+def source_signature(source: str | os.PathLike) -> dict[str, Any]:
+    """``{"path": resolved path, "files": n, "bytes": total bytes, "mtime_ns": latest mtime (ns)}`` of the
+    files :func:`source_files` lists."""
+    files = source_files(source)
+    stats = [os.stat(file) for file in files]
+    return {"path": str(Path(source).resolve()), "files": len(files), "bytes": sum(s.st_size for s in stats),
+            "mtime_ns": max(s.st_mtime_ns for s in stats)}
+
+
+def signature_problem(recorded: dict[str, Any], now: dict[str, Any]) -> str | None:
+    """How the signature ``now`` differs from ``recorded`` (a short phrase), or None when they are equal."""
+    name = Path(str(now.get("path", ""))).name
+    if recorded.get("path") != now.get("path"):
+        return f"it was {recorded.get('path')}, now {now.get('path')}"
+    if recorded.get("files") != now.get("files"):
+        return f"{name} has {now.get('files')} files, it had {recorded.get('files')}"
+    if recorded.get("bytes") != now.get("bytes"):
+        return f"{name} has {now.get('bytes')} bytes, it had {recorded.get('bytes')}"
+    if recorded.get("mtime_ns") != now.get("mtime_ns"):
+        return f"{name} was modified after it was converted (mtime {now.get('mtime_ns')} ns, was " \
+               f"{recorded.get('mtime_ns')} ns)"
+    return None
