@@ -308,3 +308,17 @@ def test_a_resume_into_the_folder_of_merged_shards_converts_nothing_again(tmp_pa
     # A merged manifest written outside the shards' folders is refused (its outputs could not be found from it).
     assert main(["manifest", "merge", *shards, "-o", str(tmp_path / "elsewhere" / "manifest.json")]) == 2
     assert "lie outside" in capsys.readouterr().err
+
+
+def test_a_moved_source_is_not_converted_again(tmp_path, capsys):
+    """A collection moved to another folder or disk (``mv`` keeps sizes and times) keeps its signature: the
+    resume verifies and skips it instead of converting hours of video again."""
+    (tmp_path / "here").mkdir()
+    write_video(tmp_path / "here" / "a.avi")
+    out = tmp_path / "out"
+    convert_collection(collect_jobs(tmp_path / "here" / "a.avi")[0], out, FAST, progress=False)
+    os.rename(tmp_path / "here", tmp_path / "there")
+    seen = []
+    convert_collection(collect_jobs(tmp_path / "there" / "a.avi")[0], out, FAST, progress=False,
+                       on_result=lambda r: seen.append(r.name))
+    assert seen == [] and "converting it again" not in capsys.readouterr().err

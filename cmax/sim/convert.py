@@ -20,10 +20,10 @@ simulator version. An entry is ``ok`` only once its file has been verified
 (:func:`cmax.io.h5.verify_h5`: completion record, event count). A second run
 skips the videos whose entry is ``ok`` and whose file still has the recorded
 size, completion record, event count and SHA-256 (each skipped file is read
-once) and whose source still has the recorded signature (resolved path, files,
-bytes, latest mtime: :mod:`cmax.sim.signature`), and redoes the others (failed,
-crashed, missing, truncated, damaged or foreign output; a source replaced,
-re-exported, touched or moved). A failing video (full disk, file-size limit, bad video) is
+once) and whose source still has the recorded signature (files, bytes, latest
+mtime: :mod:`cmax.sim.signature`; a moved source keeps it), and redoes the others
+(failed, crashed, missing, truncated, damaged or foreign output; a source replaced,
+re-exported, copied or touched). A failing video (full disk, file-size limit, bad video) is
 recorded and does not stop the others. An interrupted parallel run kills its
 workers and removes their temporary files.
 
@@ -155,7 +155,7 @@ class VideoResult:
     ``source_signature``: the source as it was before it was read
     (:func:`cmax.sim.signature.source_signature`: resolved path, files, bytes,
     latest mtime in ns; None when the frames were passed in), which a resumed
-    conversion compares with the source it would skip.
+    conversion compares, all but the path, with the source it would skip.
     """
 
     name: str
@@ -637,8 +637,8 @@ def output_problem(entry: dict | None, output: Path) -> str | None:
 def source_problem(entry: dict, source: str | os.PathLike) -> str | None:
     """Why ``source`` is not the source the manifest ``entry`` was converted from (None when it is).
 
-    Compared: the entry's ``source_signature`` with the source's now (resolved path, number of
-    files, bytes, latest mtime in ns; :mod:`cmax.sim.signature`); an entry of an older manifest,
+    Compared: the entry's ``source_signature`` with the source's now (number of files, bytes,
+    latest mtime in ns; :mod:`cmax.sim.signature`: a moved source is the same); an entry of an older manifest,
     without a signature, by its ``source`` path alone (as typed, or resolved from this folder).
     """
     recorded = entry.get("source_signature")

@@ -4,9 +4,11 @@ A signature is a small JSON-ready dict: the source's resolved path, the number o
 total byte size and the latest modification time (``st_mtime_ns``, integer nanoseconds). A video is one
 file; an image sequence (a folder, or an ``images.txt`` / ``timestamps.txt`` file) is its timestamp file
 and the images that file lists (as :func:`cmax.sim.video.read_timestamps` resolves them). Nothing is
-decoded: computing one costs a ``stat`` per file. Replacing, re-exporting, touching or moving the
-source changes it; a file changed in place within the same nanosecond and to the same size does not
-(the output's own checksum is checked separately, see :func:`cmax.sim.convert.output_problem`).
+decoded: computing one costs a ``stat`` per file. Replacing, re-exporting, copying or touching the
+source changes it; moving it (``mv`` keeps sizes and times: a collection moved to another disk is not
+converted again) does not, and nor does a file changed in place within the same nanosecond and to the
+same size (the output's own checksum is checked separately, see :func:`cmax.sim.convert.output_problem`).
+The path is recorded, not compared.
 
 >>> _ = Path("a.mp4").write_bytes(b"12345")
 >>> signature = source_signature("a.mp4")
@@ -57,15 +59,19 @@ def source_signature(source: str | os.PathLike) -> dict[str, Any]:
 
 
 def signature_problem(recorded: dict[str, Any], now: dict[str, Any]) -> str | None:
-    """How the signature ``now`` differs from ``recorded`` (a short phrase), or None when they are equal."""
+    """How the signature ``now`` differs from ``recorded`` in files, bytes or latest mtime (a short phrase, which
+    names both paths when they differ too), or None when it does not (the paths may differ: a moved source is the
+    same source)."""
     name = Path(str(now.get("path", ""))).name
-    if recorded.get("path") != now.get("path"):
-        return f"it was {recorded.get('path')}, now {now.get('path')}"
     if recorded.get("files") != now.get("files"):
-        return f"{name} has {now.get('files')} files, it had {recorded.get('files')}"
-    if recorded.get("bytes") != now.get("bytes"):
-        return f"{name} has {now.get('bytes')} bytes, it had {recorded.get('bytes')}"
-    if recorded.get("mtime_ns") != now.get("mtime_ns"):
-        return f"{name} was modified after it was converted (mtime {now.get('mtime_ns')} ns, was " \
-               f"{recorded.get('mtime_ns')} ns)"
-    return None
+        problem = f"{name} has {now.get('files')} files, it had {recorded.get('files')}"
+    elif recorded.get("bytes") != now.get("bytes"):
+        problem = f"{name} has {now.get('bytes')} bytes, it had {recorded.get('bytes')}"
+    elif recorded.get("mtime_ns") != now.get("mtime_ns"):
+        problem = (f"{name} was modified after it was converted (mtime {now.get('mtime_ns')} ns, was "
+                   f"{recorded.get('mtime_ns')} ns)")
+    else:
+        return None
+    if recorded.get("path") != now.get("path"):
+        problem = f"it was {recorded.get('path')}, now {now.get('path')}, and {problem}"
+    return problem
