@@ -457,3 +457,22 @@ def test_planes_below_two_are_refused_with_one_bound(tmp_path, capsys, planes):
         main(["emvs", str(tmp_path / "missing.h5"), "-o", str(tmp_path / "o"), "--planes", planes])
     assert exit_.value.code == 2
     assert f"argument --planes: expected a whole number >= 2, got '{planes}'" in capsys.readouterr().err
+
+
+def test_a_trajectory_in_microseconds_read_as_seconds_is_refused(plane, tmp_path, capsys):
+    """TUM times in µs (0, 5000, ...) put every event between the first two poses, 10^6 times too far apart:
+    was an empty map, exit 0, "no camera motion"; now one line naming the unit."""
+    from cmax.cli import main
+    from cmax.cli.fit import tum_lines
+    from cmax.io import write_h5
+
+    events, camera, (times, poses) = plane
+    path = write_h5(tmp_path / "plane.h5", events)
+    lines = tum_lines(times, poses)
+    (tmp_path / "us.txt").write_text("\n".join(f"{float(line.split()[0]) * 1e6:.0f} " + line.split(" ", 1)[1]
+                                               for line in lines) + "\n")
+    K = f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}"
+    assert main(["emvs", str(path), "--poses", str(tmp_path / "us.txt"), "--K", K, "-o", str(tmp_path / "o"),
+                 "--depth-range", "1,4"]) == 2
+    err = capsys.readouterr().err
+    assert "lies between two poses" in err and "times in µs read as seconds" in err and len(err.splitlines()) == 1

@@ -84,13 +84,36 @@ def as_trajectory(poses: object, name: str = "poses") -> tuple[np.ndarray, np.nd
     return times, matrices
 
 
+#: Two consecutive poses more than this many times the events' span apart, with every event between them, are
+#: refused by :func:`check_coverage`: a trajectory in another time unit, not a motion.
+SPARSE_POSES_RATIO = 1000
+
+
 def check_coverage(times_us: np.ndarray, t_first_us: int, t_last_us: int, name: str = "poses") -> None:
-    """Raise ``ValueError`` unless ``[times_us[0], times_us[-1]]`` covers ``[t_first_us, t_last_us]``."""
+    """Raise ``ValueError`` unless ``[times_us[0], times_us[-1]]`` covers ``[t_first_us, t_last_us]``, and when
+    every event lies between two consecutive poses more than :data:`SPARSE_POSES_RATIO` times the events' span
+    apart (a trajectory whose times are in µs or ms read as seconds: the camera would barely move).
+
+    >>> check_coverage(np.array([0, 5_000_000_000]), 0, 300_000)
+    Traceback (most recent call last):
+    ...
+    ValueError: every event (0.3 s) lies between two poses 5e+03 s apart, 1.7e+04 times the events' span: the camera cannot move over the events; are the poses' times in seconds (TUM: t[s]; times in µs read as seconds are 10^6 times too long)?
+    """
     if times_us[0] > t_first_us or times_us[-1] < t_last_us:
         raise ValueError(
             f"{name} cover [{int(times_us[0])}, {int(times_us[-1])}] µs but the events span "
             f"[{int(t_first_us)}, {int(t_last_us)}] µs; give poses over the whole span "
             "(or cut the events to the poses' span)"
+        )
+    span = max(int(t_last_us) - int(t_first_us), 1)
+    before = int(np.searchsorted(times_us, t_first_us, side="right")) - 1
+    after = int(np.searchsorted(times_us, t_last_us, side="left"))
+    if after - before == 1 and int(times_us[after]) - int(times_us[before]) > SPARSE_POSES_RATIO * span:
+        gap = int(times_us[after]) - int(times_us[before])
+        raise ValueError(
+            f"every event ({span * 1e-6:.3g} s) lies between two {name} {gap * 1e-6:.2g} s apart, {gap / span:.2g} "
+            "times the events' span: the camera cannot move over the events; are the poses' times in seconds (TUM: "
+            "t[s]; times in µs read as seconds are 10^6 times too long)?"
         )
 
 
