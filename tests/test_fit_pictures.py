@@ -49,7 +49,7 @@ def test_fit_result_plot_has_a_colour_bar_and_hatches_pixels_without_depth(tmp_p
     fields.update(depth=depth, mask=mask, iwe_before=np.ones((h, w)), iwe_after=np.ones((h, w)),
                   scale_known=True, t_ref_us=50_000)
     result = FitResult(**fields)
-    path = result.plot(tmp_path / "fit.png", depth_scale=(1.0, 4.0))
+    path = result.plot(tmp_path / "fit.png", depth_scale=(1.0, 4.0), zoom=1)
     picture = cv2.imread(str(path))
     expected = viz.depth_panel(np.where(mask, depth, np.nan), viz.DepthScale(1.0, 4.0),
                                "depth [m], t_ref 0.050 s")
@@ -59,4 +59,29 @@ def test_fit_result_plot_has_a_colour_bar_and_hatches_pixels_without_depth(tmp_p
     with pytest.raises(ValueError):
         result.plot(tmp_path / "fit.gif")
     # the same picture in memory (a notebook's), what plot() wrote (PNG: lossless)
-    assert np.array_equal(result.image(depth_scale=(1.0, 4.0)), picture)
+    assert np.array_equal(result.image(depth_scale=(1.0, 4.0), zoom=1), picture)
+
+
+def test_a_fit_result_is_read_only_and_its_picture_readable_on_a_small_sensor(tmp_path):
+    """``FitResult`` is frozen, and so are its arrays (``r.depth[~r.mask] = 0`` edited the result); the picture of a
+    96x72 fit is enlarged by default (it was 275 px wide, its colour-bar labels overlapping) and its titles carry
+    the verdict."""
+    from benchmarks.synthetic_windows import make_window
+    from cmax.fitting import fit
+
+    w = make_window("slider", 1, width=96, height=72, focal=70.0, duration_s=0.1, max_frames=40)
+    r = fit(w.events, w.K, speed=float(np.linalg.norm(w.twist[:3])), depth_range=(0.5, 8.0))
+    with pytest.raises(ValueError, match="read-only"):
+        r.v[0] = 99.0
+    with pytest.raises(ValueError, match="read-only"):
+        r.depth[~r.mask] = 0.0
+    depth = r.depth.copy()
+    depth[~r.mask] = 0.0                                   # a copy is the user's own
+    small, default = r.image(zoom=1), r.image()
+    zoom = viz.readable_zoom(96)
+    assert zoom > 1 and default.shape[1] > 2 * small.shape[1]
+    assert default.shape[1] >= 3 * viz.MIN_PICTURE_WIDTH
+    verdict = r.verdict.value.replace("_", " ")
+    titled = viz.titled(viz.iwe_image(viz.enlarge(r.iwe_after, zoom)), f"IWE after ({verdict})")
+    assert any(np.array_equal(default[: titled.shape[0], x: x + titled.shape[1]], titled)
+               for x in range(default.shape[1] - titled.shape[1] + 1))

@@ -460,8 +460,9 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
             title = (f"window {i}, t_ref {(r.t_ref_us - origin_us) * 1e-6:.3f} s, "
                      f"depth [{'m' if r.scale_known else 'up to scale'}]"
                      + ("" if r.verdict is None else f", {r.verdict.value.replace('_', ' ')}"))
-            viz.save_png(stage / f"depth_{i:05d}.png", viz.depth_panel(np.where(r.mask, r.depth, np.nan), scale, title,
-                                                                     unit="m" if r.scale_known else ""))
+            depth = viz.enlarge(np.where(r.mask, r.depth, np.nan), viz.readable_zoom(r.depth.shape[1]))
+            viz.save_png(stage / f"depth_{i:05d}.png", viz.depth_panel(depth, scale, title,
+                                                                       unit="m" if r.scale_known else ""))
         windows.append({"t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
                         "omega": r.omega.tolist(), "flow": None if r.flow is None else r.flow.tolist(),
                         "objective_after": r.objective_after, "seconds": r.seconds, "iterations": r.iterations,

@@ -120,7 +120,8 @@ class SemiDenseDepth:
     n_events: int
     hot_pixels: np.ndarray = field(default_factory=no_pixels)
 
-    def image(self, scale: "viz.DepthScale | tuple[float, float] | None" = None, *, zoom: int = 1) -> np.ndarray:
+    def image(self, scale: "viz.DepthScale | tuple[float, float] | None" = None, *,
+              zoom: int | None = None) -> np.ndarray:
         """Picture (BGR uint8): the confidence map (the DSI's maximum per pixel; its grey scale in the title:
         white no vote, black the 99th percentile of the votes and above) beside the depth with its colour bar [m].
 
@@ -128,10 +129,12 @@ class SemiDenseDepth:
         colour scale; default: the 1st-99th percentiles of the map's own depths (the DSI's depth range when
         the mask is empty), so that a scene in a wide range (a 0.5-200 m hike, most of it beyond 5 m) is not
         drawn in the darkest few colours. No estimate is drawn as a grey hatch.
-        ``zoom``: each pixel of the maps drawn as a ``zoom x zoom`` block (a small sensor's picture
-        stays readable).
+        ``zoom``: each pixel of the maps drawn as a ``zoom x zoom`` block (default
+        :func:`cmax.viz.readable_zoom`: a small sensor's picture enlarged until its labels are readable).
         """
         from cmax import viz
+
+        zoom = viz.readable_zoom(self.depth.shape[1]) if zoom is None else zoom
 
         confidence = self.confidence
         top = float(np.percentile(confidence[confidence > 0], 99)) if np.any(confidence > 0) else 1.0
@@ -165,7 +168,7 @@ class SemiDenseDepth:
             return viz.DepthScale(*self.depth_range)
         return viz.DepthScale.from_depths(self.depth[self.mask])
 
-    def plot(self, path: str | os.PathLike, *, zoom: int = 1) -> Path:
+    def plot(self, path: str | os.PathLike, *, zoom: int | None = None) -> Path:
         """Write :meth:`image` (``zoom`` as there) as a PNG (atomically); returns the path."""
         from cmax import viz
 

@@ -175,6 +175,15 @@ class FitResult:
     quality: Quality | None = None
     hot_pixels: np.ndarray = field(default_factory=no_pixels)
 
+    def __post_init__(self) -> None:
+        # Frozen means frozen: the arrays are read-only views (``r.depth[~r.mask] = 0`` would edit the result, and
+        # ``T`` would no longer match ``v`` after ``r.v[0] = 1``); ``r.depth.copy()`` gives a writable one.
+        for name, value in vars(self).items():
+            if isinstance(value, np.ndarray) and value.flags.writeable:
+                view = value.view()
+                view.flags.writeable = False
+                object.__setattr__(self, name, view)
+
     @property
     def verdict(self) -> Verdict | None:
         """``quality.verdict``: ok, ambiguous, low_parallax or failed."""
@@ -185,30 +194,33 @@ class FitResult:
         """``(v, omega)`` (6,)."""
         return np.r_[self.v, self.omega]
 
-    def image(self, *, depth_scale=None) -> np.ndarray:
+    def image(self, *, depth_scale=None, zoom: int | None = None) -> np.ndarray:
         """The picture (BGR uint8, OpenCV's order: ``image[..., ::-1]`` for matplotlib): IWE before, after,
-        and the depth map on the mask (when fitted) with a colour bar in metres.
+        and the depth map on the mask (when fitted) with a colour bar in metres; the verdict in the titles.
 
         ``depth_scale``: a :class:`cmax.viz.DepthScale` or ``(near, far)`` [m] shared by the pictures
         of a run (default: this map's own 1-99th percentiles). Pixels without an estimate are hatched
-        grey, outside the colour map.
+        grey, outside the colour map. ``zoom``: each pixel drawn as a ``zoom x zoom`` block (default
+        :func:`cmax.viz.readable_zoom`: a small sensor's picture enlarged until its labels are readable).
         """
         from cmax import viz
 
-        tiles = [viz.titled(viz.iwe_image(self.iwe_before), "IWE before"),
-                 viz.titled(viz.iwe_image(self.iwe_after), "IWE after")]
+        zoom = viz.readable_zoom(self.iwe_after.shape[1]) if zoom is None else zoom
+        verdict = "" if self.verdict is None else f" ({self.verdict.value.replace('_', ' ')})"
+        tiles = [viz.titled(viz.iwe_image(viz.enlarge(self.iwe_before, zoom)), "IWE before"),
+                 viz.titled(viz.iwe_image(viz.enlarge(self.iwe_after, zoom)), f"IWE after{verdict}")]
         if self.depth is not None:
-            depth = np.where(self.mask, self.depth, np.nan)
+            depth = viz.enlarge(np.where(self.mask, self.depth, np.nan), zoom)
             label = "m" if self.scale_known else "up to scale"
-            tiles.append(viz.depth_panel(depth, depth_scale, f"depth [{label}], t_ref {self.t_ref_us * 1e-6:.3f} s",
-                                         unit="m" if self.scale_known else ""))
+            tiles.append(viz.depth_panel(depth, depth_scale, f"depth [{label}], t_ref {self.t_ref_us * 1e-6:.3f} s"
+                                                             f"{verdict}", unit="m" if self.scale_known else ""))
         return viz.hstack(tiles)
 
-    def plot(self, path, *, depth_scale=None) -> "object":
-        """Write :meth:`image` to ``path`` (.png, .jpg); returns the path."""
+    def plot(self, path, *, depth_scale=None, zoom: int | None = None) -> "object":
+        """Write :meth:`image` (``depth_scale``, ``zoom`` as there) to ``path`` (.png, .jpg); returns the path."""
         from cmax import viz
 
-        return viz.save_image(path, self.image(depth_scale=depth_scale))
+        return viz.save_image(path, self.image(depth_scale=depth_scale, zoom=zoom))
 
 
 # ----------------------------------------------------------------------------------------
