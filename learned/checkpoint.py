@@ -35,8 +35,8 @@ import torch
 
 from cmax.io.atomic import AtomicOutput, write_with
 
-__all__ = ["CheckpointError", "FORMAT", "rng_state", "set_rng_state", "plain_data", "save_checkpoint",
-           "load_checkpoint", "check_weights", "upgrade_checkpoint", "main"]
+__all__ = ["CheckpointError", "FORMAT", "rng_state", "set_rng_state", "plain_data", "nonfinite_tensors",
+           "save_checkpoint", "load_checkpoint", "check_weights", "upgrade_checkpoint", "main"]
 
 #: Format of the checkpoints this version writes (stored under ``"format"``).
 FORMAT = 2
@@ -95,16 +95,37 @@ def plain_data(value: Any, where: str = "config") -> Any:
     raise TypeError(f"{where}: {type(value).__name__} cannot be stored in a checkpoint (plain data only)")
 
 
+def nonfinite_tensors(state: dict[str, torch.Tensor]) -> list[str]:
+    """The names of the floating-point tensors of ``state`` (a ``state_dict``) that hold a NaN or an infinity,
+    in ``state``'s order (integer tensors, e.g. a step counter, are never non-finite; entries that are not
+    tensors are left to the caller).
+
+    >>> nonfinite_tensors({"a": torch.ones(2), "b": torch.tensor([1.0, float("nan")]), "n": torch.tensor(3)})
+    ['b']
+    """
+    return [name for name, tensor in state.items() if isinstance(tensor, torch.Tensor) and
+            (tensor.is_floating_point() or tensor.is_complex()) and not bool(torch.isfinite(tensor).all())]
+
+
+def _nonfinite_message(bad: Sequence[str], total: int) -> str:
+    return (f"{len(bad)} of its {total} weight tensors hold NaN or infinite values (e.g. {bad[0]}): the training "
+            "run that wrote them diverged")
+
+
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     """``torch.save`` through :func:`cmax.io.atomic.write_with` (a lock, a private ``O_EXCL | O_NOFOLLOW``
     temporary file, fsync, rename): never a partial file under ``path``, never a planted link followed.
 
     ``payload`` needs the keys ``model``, ``optimizer``, ``step``, ``config``, ``rng``; its
-    ``config`` is stored through :func:`plain_data` and ``format`` is set to :data:`FORMAT`.
+    ``config`` is stored through :func:`plain_data` and ``format`` is set to :data:`FORMAT`. Weights that hold
+    a NaN or an infinity (:func:`nonfinite_tensors`) raise ValueError and write nothing: a diverged run never
+    replaces a good checkpoint.
     """
     missing = _KEYS - set(payload)
     if missing:
         raise ValueError(f"a checkpoint needs the keys {sorted(_KEYS)}, missing {sorted(missing)}")
+    if isinstance(payload["model"], dict) and (bad := nonfinite_tensors(payload["model"])):
+        raise ValueError(f"{path} was not written: {_nonfinite_message(bad, len(payload['model']))}")
     payload = {**payload, "config": plain_data(payload["config"]), "format": FORMAT}
     optimizer = payload["optimizer"]
     if isinstance(optimizer, dict) and "param_groups" in optimizer:   # hyper-parameters as plain numbers
@@ -148,6 +169,9 @@ def _check_payload(path: Path, payload: object) -> dict[str, Any]:
     if not (isinstance(model, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                             for k, v in model.items())):
         raise CheckpointError(f"{path}: 'model' must map parameter names to tensors")
+    bad = nonfinite_tensors(model)
+    if bad:
+        raise CheckpointError(f"{path} was refused: {_nonfinite_message(bad, len(model))}; use an earlier checkpoint")
     step = payload["step"]
     if not (isinstance(step, int) and not isinstance(step, bool) and step >= 0):
         raise CheckpointError(f"{path}: 'step' must be an integer >= 0, got {step!r}")
@@ -167,7 +191,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         No file at ``path``.
     CheckpointError (a ValueError)
         Not a ``torch.save`` file, a pickle that needs code to load (crafted, or
-        of format 1: see :func:`upgrade_checkpoint`), or keys of the wrong kind.
+        of format 1: see :func:`upgrade_checkpoint`), keys of the wrong kind, or weights that hold a NaN or
+        an infinity (a diverged run's).
     """
     path = Path(path)
     if path.is_dir():

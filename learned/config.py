@@ -128,7 +128,10 @@ class TrainConfig:
     teacher : str
         Checkpoint of the teacher (modes ``finetune``: initial weights; ``student``: the frozen teacher).
     out : str
-        Run folder: checkpoints ``last.pt`` and ``step_<n>.pt``, TensorBoard logs.
+        Run folder: the checkpoint ``last.pt`` (replaced every ``checkpoint_every`` steps and at the last
+        step; no per-step copies are kept), ``config.json``, the learning curves ``log.jsonl`` and TensorBoard's
+        ``tb/``. A step whose loss or weights go non-finite stops the run and saves nothing, so ``last.pt``
+        stays the last good checkpoint.
     checkpoint_every, log_every, image_every : int
         In steps.
     seed : int

@@ -36,7 +36,8 @@ from cmax._threads import torch_threads
 from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, WeightedSum
 from cmax.io.atomic import write_text_atomic
 from learned._output import locked_folder
-from learned.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from learned.checkpoint import (CheckpointError, load_checkpoint, nonfinite_tensors, rng_state, save_checkpoint,
+                                set_rng_state)
 from learned.config import Config, config_from_dict, load_config
 from learned.data import H5WindowDataset, collate
 from learned.device import resolve_device
@@ -63,8 +64,22 @@ FOLDER_LOCK = ".train.lock"
 #: load of other processes; ``CMAX_TORCH_THREADS`` fixes it).
 THREAD_CHECK_EVERY = 25
 
-__all__ = ["FOLDER_LOCK", "batch_indices", "learning_rate", "twist_scale", "ddp_backend", "on_device", "Trainer",
-           "check_output", "main"]
+__all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
+           "on_device", "nonfinite_terms", "Trainer", "check_output", "main"]
+
+
+class TrainingDiverged(ValueError):
+    """A step's loss or weights went non-finite: the run stops and saves nothing (``last.pt`` stays the last
+    good checkpoint). A ValueError, so the command prints it as one line and exits with status 2."""
+
+
+def nonfinite_terms(terms: dict[str, float]) -> list[str]:
+    """The names of the loss terms (``{name: value}``) that are NaN or infinite, in ``terms``' order.
+
+    >>> nonfinite_terms({"total": float("nan"), "teacher": 0.5, "twist": float("inf")})
+    ['total', 'twist']
+    """
+    return [name for name, value in terms.items() if not np.isfinite(value)]
 
 
 def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[int]:
@@ -209,6 +224,7 @@ class Trainer:
                 self.teacher = teacher.to(self.device).eval().requires_grad_(False)
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
         self.step = 0
+        self.saved_step: int | None = None   # the step of the good checkpoint in out/last.pt, if any
         if resume and (self.out / "last.pt").is_file():
             ckpt = load_checkpoint(self.out / "last.pt")
             _load_weights(self.model, ckpt["model"], str(self.out / "last.pt"))
@@ -217,7 +233,7 @@ class Trainer:
             except (ValueError, KeyError, TypeError) as error:
                 raise CheckpointError(f"{self.out / 'last.pt'}: its optimizer state does not fit this run "
                                       f"({error})") from None
-            self.step = int(ckpt["step"])
+            self.step = self.saved_step = int(ckpt["step"])
             set_rng_state(ckpt["rng"])
         self.net = self.model
         if self.world > 1:
@@ -354,7 +370,43 @@ class Trainer:
                    "config": self.config.to_dict(), "rng": rng_state(),
                    "data_order": {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
                                   "dataset_size": len(self.dataset)}}
-        return save_checkpoint(self.out / "last.pt", payload)
+        written = save_checkpoint(self.out / "last.pt", payload)
+        self.saved_step = self.step
+        return written
+
+    def _kept(self) -> str:
+        """What stays in ``train.out`` when the run stops (the end of a :class:`TrainingDiverged` message)."""
+        if self.saved_step is None:
+            return "no checkpoint had been written yet"
+        return f"the last good checkpoint {self.out / 'last.pt'} (step {self.saved_step}) is kept"
+
+    def _check_loss(self, terms: dict[str, float]) -> None:
+        """Raise :class:`TrainingDiverged` when a loss term of the step being run (``self.step + 1``) is not finite
+        on any rank (all ranks agree, so all of them stop)."""
+        bad = nonfinite_terms(terms)
+        if self.world > 1:   # every rank decides alike (a rank that stopped alone would hang the others)
+            flag = torch.tensor([float(bool(bad))], device=self.device)
+            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
+            if flag.item() and not bad:
+                bad = ["(on another rank)"]
+        if bad:
+            values = ", ".join(f"loss/{name}={terms[name]:g}" for name in bad if name in terms) or bad[0]
+            raise TrainingDiverged(f"step {self.step + 1}: the loss is not finite ({values}): training stopped and "
+                                   f"nothing was saved; {self._kept()}; a lower train.lr or gradient clipping "
+                                   f"(train.clip_grad_norm) may keep the run stable")
+
+    def _check_weights(self) -> None:
+        """Raise :class:`TrainingDiverged` when the update of step ``self.step`` left a weight non-finite (the same
+        on every rank: DDP keeps their weights equal)."""
+        state = self.model.state_dict()
+        floats = [tensor for tensor in state.values() if tensor.is_floating_point()]
+        if bool(torch.stack([torch.isfinite(tensor).all() for tensor in floats]).all()):   # one device sync
+            return
+        bad = nonfinite_tensors(state)
+        if bad:
+            raise TrainingDiverged(f"step {self.step}: the update made {len(bad)} weight tensors non-finite (e.g. "
+                                   f"{bad[0]}): training stopped and nothing was saved; {self._kept()}; a lower "
+                                   f"train.lr or gradient clipping (train.clip_grad_norm) may keep the run stable")
 
     def run(self) -> list[float]:
         """Train from the current step to ``train.steps``; returns the losses of the steps run."""
@@ -375,6 +427,7 @@ class Trainer:
                 group["lr"] = learning_rate(self.step, self.config)
             batch = next(batches)
             loss, terms, output = self.loss(batch)
+            self._check_loss({"total": float(loss.detach()), **terms})
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
             if tc.clip_grad_norm > 0:
@@ -382,6 +435,7 @@ class Trainer:
                 terms["grad_norm"] = float(norm)
             self.optimizer.step()
             self.step += 1
+            self._check_weights()
             losses.append(float(loss.detach()))
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.4f}")

@@ -195,3 +195,32 @@ def test_evaluate_on_a_file_without_ground_truth_says_so(tiny_checkpoint, tmp_pa
                                                str(tmp_path / "ev.h5")]), capsys)
     assert status == 2 and "no ground truth to evaluate the network against" in err, err
     assert '{"path"' not in err and f"cmax depth {tmp_path / 'ev.h5'} -o OUT --K" in err
+
+
+# -- 3. non-finite weights (a diverged run's) ------------------------------------------------------------------
+def test_a_checkpoint_with_non_finite_weights_is_never_written_nor_loaded(tiny_checkpoint, slider_file, tmp_path,
+                                                                         capsys):
+    """A diverged run's NaN weights were saved over last.pt, loaded by load_model, and `cmax depth` wrote NaN
+    depths and twists with exit 0."""
+    import torch
+
+    from learned.checkpoint import load_checkpoint, save_checkpoint
+    from learned.evaluate import load_model
+    from learned.predict import main
+
+    ckpt = torch.load(tiny_checkpoint, weights_only=True)
+    ckpt["model"]["heads.0.bias"] = torch.full_like(ckpt["model"]["heads.0.bias"], float("nan"))
+    nan_file = tmp_path / "nan.pt"
+    torch.save(ckpt, nan_file)                      # as the earlier version wrote it
+    for load in (load_checkpoint, load_model):
+        with pytest.raises(ValueError, match=r"nan\.pt was refused: 1 of its 24 weight tensors hold NaN or "
+                                             r"infinite values \(e\.g\. heads\.0\.bias\)"):
+            load(nan_file)
+    status, err = one_line_error(lambda: main([str(slider_file), "-o", str(tmp_path / "out"), "--checkpoint",
+                                               str(nan_file), "--quiet"]), capsys)
+    assert status == 2 and "nan.pt was refused" in err and "diverged" in err, err
+    assert not (tmp_path / "out").exists()
+    before = tiny_checkpoint.read_bytes()
+    with pytest.raises(ValueError, match="was not written: 1 of its 24 weight tensors hold NaN"):
+        save_checkpoint(tiny_checkpoint, {key: ckpt[key] for key in ("model", "optimizer", "step", "config", "rng")})
+    assert tiny_checkpoint.read_bytes() == before

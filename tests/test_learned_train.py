@@ -320,3 +320,24 @@ def test_a_step_on_the_training_device_moves_the_batch_model_and_teacher(scene_f
         assert all(v.device == trainer.device for v in next(trainer._batches()).values() if torch.is_tensor(v))
         runs[device] = trainer.run()
     assert runs["cpu"] == runs["auto"]
+
+
+def test_a_diverging_run_stops_and_keeps_the_last_good_checkpoint(scene_file, tmp_path, capsys):
+    """lr=1e8 without clipping: the loss goes NaN after a few steps. The run went on, replaced last.pt with NaN
+    weights at every checkpoint and ended with exit 0; it must stop at the first non-finite step, name it and
+    the terms, and leave last.pt as the last finite checkpoint."""
+    import json
+
+    args = ["--mode", "teacher", "--no-progress",
+            *tiny(scene_file, tmp_path, "train.steps=12", "train.lr=1e8", "train.clip_grad_norm=0",
+                  "train.checkpoint_every=1")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "training stopped and nothing was saved" in err, err
+    step = int(err.split("error: step ")[1].split(":")[0])
+    kept = load_checkpoint(tmp_path / "last.pt")   # loads: every weight finite
+    assert kept["step"] == step - 1 and f"(step {step - 1}) is kept" in err, err
+    assert all(torch.isfinite(t).all() for t in kept["model"].values() if t.is_floating_point())
+    assert "the loss is not finite (loss/total=nan" in err or "weight tensors non-finite" in err, err
+    logged = [json.loads(line)["step"] for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert max(logged) < step                        # the failed step is not in the learning curve
