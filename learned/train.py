@@ -14,7 +14,9 @@ global batch (the role of a ``DistributedSampler``), gradients are averaged by
 ``DistributedDataParallel`` (gloo on the CPU; with ``train.device=cuda`` nccl, each rank on the GPU of its
 ``LOCAL_RANK``), and only rank 0 writes.
 Checkpoints (``out/last.pt``) hold the model, optimiser, step, config and RNG
-states and are written atomically; ``--resume`` continues bit-for-bit on CPU. One run at a time holds
+states and are written atomically; ``--resume`` continues bit-for-bit on CPU, and refuses a config that
+differs from the checkpoint's in a field that changes the steps still to run (:func:`config_differences`,
+:data:`RESUMABLE`). One run at a time holds
 ``train.out`` (its lock :data:`FOLDER_LOCK`): a second one into the same folder is refused at once.
 """
 from __future__ import annotations
@@ -65,7 +67,31 @@ FOLDER_LOCK = ".train.lock"
 THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
-           "on_device", "nonfinite_terms", "Trainer", "check_output", "main"]
+           "on_device", "nonfinite_terms", "RESUMABLE", "config_differences", "Trainer", "check_output", "main"]
+
+#: The config fields a ``--resume`` may change: how far the run goes, where it runs and writes, and how often it
+#: logs, validates and saves. Any other field (the mode, the model, the data, the seed, the batch, the
+#: optimisation) changes the steps still to run, so a resumed run that sets it otherwise is refused.
+RESUMABLE = frozenset({"train.steps", "train.out", "train.device", "train.checkpoint_every", "train.log_every",
+                       "train.image_every", "train.val_every", "data.val_files", "data.val_windows"})
+
+
+def _fields(config: Config) -> dict[str, object]:
+    """``{"mode": ..., "model.width": ..., ...}``: every field of ``config`` under its dotted key, as plain JSON
+    data (tuples as lists)."""
+    values = json.loads(json.dumps(config.to_dict(), default=str))
+    flat: dict[str, object] = {"mode": values.pop("mode")}
+    for section, fields in values.items():
+        flat.update({f"{section}.{name}": value for name, value in fields.items()})
+    return flat
+
+
+def config_differences(recorded: Config, now: Config) -> list[str]:
+    """``"key=RECORDED (now NOW)"`` for each field outside :data:`RESUMABLE` in which ``now`` differs from
+    ``recorded`` (a checkpoint's config), in the config's order (``mode``, ``model.*``, ``data.*``, ``train.*``)."""
+    before, after = _fields(recorded), _fields(now)
+    return [f"{key}={json.dumps(before[key])} (now {json.dumps(after[key])})" for key in before
+            if key not in RESUMABLE and before[key] != after.get(key)]
 
 
 class TrainingDiverged(ValueError):
@@ -225,8 +251,10 @@ class Trainer:
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
         self.step = 0
         self.saved_step: int | None = None   # the step of the good checkpoint in out/last.pt, if any
+        ckpt = None
         if resume and (self.out / "last.pt").is_file():
             ckpt = load_checkpoint(self.out / "last.pt")
+            self._check_resumed_config(ckpt)
             _load_weights(self.model, ckpt["model"], str(self.out / "last.pt"))
             try:
                 self.optimizer.load_state_dict(ckpt["optimizer"])
@@ -252,6 +280,8 @@ class Trainer:
             raise ValueError("--mode teacher learns from ground-truth depth (gt/depth, as cmax scene writes it) and "
                              "none of data.files holds it (or each says use_gt: false): its loss would be 0 at every "
                              "step; give labelled files, or train --mode finetune / student on unlabelled ones")
+        if ckpt is not None:
+            self._check_data_order(ckpt.get("data_order"))
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model).to(self.device)
         self.validation = None
@@ -263,6 +293,35 @@ class Trainer:
             picks = np.unique(np.linspace(0, len(val) - 1, min(dc.val_windows, len(val))).round().astype(int))
             self.validation = (val, picks.tolist())
         self.log = self._logger() if self.rank == 0 else None
+
+    # -- resuming -----------------------------------------------------------------------------
+    def _check_resumed_config(self, ckpt: dict) -> None:
+        """Refuse (ValueError, one line naming the fields) to resume ``out/last.pt`` under a config whose fields
+        outside :data:`RESUMABLE` differ from the ones it was written with."""
+        path = self.out / "last.pt"
+        try:
+            recorded = config_from_dict(ckpt["config"])
+        except (TypeError, ValueError) as error:
+            raise CheckpointError(f"{path}: its config is not valid: {error}") from None
+        differ = config_differences(recorded, self.config)
+        if differ:
+            raise ValueError(f"--resume: {path} was written with other settings than this run's: "
+                             f"{', '.join(differ)}; repeat the settings of the run that wrote it, or start afresh "
+                             f"with --overwrite or another train.out")
+
+    def _check_data_order(self, order: object) -> None:
+        """Refuse to resume when the checkpoint's ``data_order`` (seed, batch size, windows in the data set) is not
+        this run's: the batches of the steps still to run would not be the ones the first run would have taken."""
+        if not isinstance(order, dict):   # checkpoints of earlier versions store none
+            return
+        now = {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
+               "dataset_size": len(self.dataset)}
+        differ = [f"{key} {order.get(key)!r} (now {value!r})" for key, value in now.items() if order.get(key) != value]
+        if differ:
+            raise ValueError(f"--resume: {self.out / 'last.pt'} was trained on another data order: "
+                             f"{', '.join(differ)} (dataset_size: the windows data.files hold; a file changed?); "
+                             f"the resumed steps would take other batches: start afresh with --overwrite or "
+                             f"another train.out")
 
     # -- logging ------------------------------------------------------------------------------
     def _logger(self):
@@ -481,9 +540,19 @@ def main(argv: list[str] | None = None) -> int:
     return run_main(parser, _run, argv)
 
 
-def check_output(out: Path, *, resume: bool, overwrite: bool) -> None:
-    """Refuse ``train.out`` when it is a file, or when it holds an earlier run's ``last.pt`` and neither
-    ``--resume`` (continue it) nor ``--overwrite`` (replace it) says what to do with it.
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether the paths ``a`` and ``b`` name one file (through links and relative parts)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:   # one of them does not exist
+        return a.resolve() == b.resolve()
+
+
+def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "") -> None:
+    """Refuse ``train.out`` when it is a file, when its ``last.pt`` is ``teacher`` (the checkpoint a finetune or
+    student run reads: with ``--overwrite`` the run would replace its own teacher, with ``--resume`` continue
+    the teacher's run in another mode), or when it holds an earlier run's ``last.pt`` and neither ``--resume``
+    (continue it) nor ``--overwrite`` (replace it) says what to do with it.
 
     The command runs this check again, and trains, holding the folder's lock (:data:`FOLDER_LOCK`,
     :func:`learned._output.locked_folder`): a second run into the same ``train.out`` meanwhile, ``--resume``
@@ -492,6 +561,9 @@ def check_output(out: Path, *, resume: bool, overwrite: bool) -> None:
         raise FileExistsError(f"train.out {out} is a file: give a folder for last.pt, config.json and log.jsonl")
     if resume and overwrite:
         raise ValueError("--resume continues the run in train.out, --overwrite replaces it: give one of them")
+    if teacher and _same_file(out / "last.pt", Path(teacher)):
+        raise ValueError(f"train.teacher {teacher} is {out / 'last.pt'}, the checkpoint this run writes: it would "
+                         f"replace (or, with --resume, continue) its own teacher; give another train.out")
     if not resume and not overwrite and (out / "last.pt").is_file():
         raise FileExistsError(f"{out / 'last.pt'} exists (an earlier run): --resume continues it, --overwrite "
                               "starts afresh over it, or give another train.out=FOLDER")
@@ -500,11 +572,12 @@ def check_output(out: Path, *, resume: bool, overwrite: bool) -> None:
 def _run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides, mode=args.mode)
     out = Path(config.train.out)
-    check_output(out, resume=args.resume, overwrite=args.overwrite)
+    teacher = config.train.teacher if config.mode in ("finetune", "student") else ""
+    check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)
     if int(os.environ.get("RANK", "0")) != 0:   # the other ranks of a torchrun job write nothing
         return _train(args, config, out)
     with locked_folder(out, FOLDER_LOCK):   # one run at a time, from the look at last.pt to the last write
-        check_output(out, resume=args.resume, overwrite=args.overwrite)
+        check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)
         return _train(args, config, out)
 
 

@@ -341,3 +341,66 @@ def test_a_diverging_run_stops_and_keeps_the_last_good_checkpoint(scene_file, tm
     assert "the loss is not finite (loss/total=nan" in err or "weight tensors non-finite" in err, err
     logged = [json.loads(line)["step"] for line in (tmp_path / "log.jsonl").read_text().splitlines()]
     assert max(logged) < step                        # the failed step is not in the learning curve
+
+
+def test_resume_refuses_a_run_that_differs_from_the_checkpoint(scene_file, slider_file, tmp_path, capsys):
+    """--resume continued a teacher run as a student, or with other data, seed, batch and lr, with exit 0 and no
+    note (and overwrote config.json); another model config gave a raw load_state_dict dump. Each is refused in
+    one line naming the fields (recorded, now); steps, logging and checkpoint intervals may change."""
+    import hashlib
+
+    from conftest import one_line_error
+
+    data = tmp_path / "data.h5"
+    shutil.copyfile(scene_file, data)
+    out = tmp_path / "run"
+    first = ["--mode", "teacher", "--no-progress", *tiny(data, out, "train.steps=2")]
+    assert main(first) == 0
+    capsys.readouterr()
+    digest = hashlib.md5((out / "last.pt").read_bytes()).hexdigest()
+    config_json = (out / "config.json").read_text()
+    cases = [
+        (["--mode", "student", f"train.teacher={ROOT / 'learned' / 'pretrained' / 'student.pt'}"],
+         ['mode="teacher" (now "student")', 'train.teacher="" (now "']),
+        (["--mode", "teacher", "train.batch_size=2", "train.seed=9", "train.lr=0.5", f'data.files=["{scene_file}"]'],
+         [f'data.files=["{data}"] (now ["{scene_file}"])', "train.batch_size=4 (now 2)", "train.lr=0.003 (now 0.5)",
+          "train.seed=0 (now 9)"]),
+        (["--mode", "teacher", "model.width=8"], ["model.width=4 (now 8)"]),
+    ]
+    for extra, expected in cases:
+        mode, rest = extra[:2], extra[2:]
+        args = [*mode, "--no-progress", "--resume", *tiny(data, out, "train.steps=4"), *rest]
+        status, err = one_line_error(lambda: main(args), capsys)
+        assert status == 2 and "was written with other settings than this run's" in err, err
+        assert all(text in err for text in expected), (expected, err)
+        assert "Missing key" not in err and "state_dict" not in err
+    # what does not change the steps still to run may change
+    assert main(["--mode", "teacher", "--no-progress", "--resume",
+                 *tiny(data, out, "train.steps=3", "train.log_every=2", "train.checkpoint_every=5")]) == 0
+    capsys.readouterr()
+    assert load_checkpoint(out / "last.pt")["step"] == 3
+    assert hashlib.md5((out / "last.pt").read_bytes()).hexdigest() != digest and config_json
+    # the same settings over files that changed: the stored data order no longer fits
+    shutil.copyfile(slider_file, data)
+    status, err = one_line_error(lambda: main(["--mode", "teacher", "--no-progress", "--resume",
+                                               *tiny(data, out, "train.steps=4")]), capsys)
+    assert status == 2 and "was trained on another data order: dataset_size" in err, err
+
+
+def test_a_run_never_writes_over_its_own_teacher(scene_file, tmp_path, capsys):
+    """train.teacher=runs/tt/last.pt train.out=runs/tt --overwrite replaced the teacher with the finetune's
+    checkpoint; the refusal without --overwrite did not say that the file is the teacher."""
+    from conftest import one_line_error
+
+    out = tmp_path / "tt"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=1")]) == 0
+    capsys.readouterr()
+    before = (out / "last.pt").read_bytes()
+    for mode in ("finetune", "student"):
+        for flags in ([], ["--overwrite"], ["--resume"]):
+            args = ["--mode", mode, "--no-progress", *flags,
+                    *tiny(scene_file, out, "train.steps=2", f"train.teacher={out / '.' / 'last.pt'}")]
+            status, err = one_line_error(lambda: main(args), capsys)
+            assert status == 2 and f"is {out / 'last.pt'}, the checkpoint this run writes" in err, err
+            assert "own teacher" in err
+    assert (out / "last.pt").read_bytes() == before
