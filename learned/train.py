@@ -351,7 +351,8 @@ class Trainer:
         sums: dict[str, float] = {}
         for start in range(0, len(picks), self.config.train.batch_size):
             chosen = picks[start: start + self.config.train.batch_size]
-            loss, terms, _ = self.loss(on_device(collate([dataset[i] for i in chosen]), self.device), net=self.model)
+            loss, terms, _ = self.loss(on_device(collate([dataset[i] for i in chosen]), self.device), net=self.model,
+                                       size=(dataset.width, dataset.height))
             for key, value in {"loss": float(loss), **terms}.items():
                 sums[key] = sums.get(key, 0.0) + value * len(chosen)
         return {f"val/{key}": value / len(picks) for key, value in sums.items()}
@@ -392,8 +393,12 @@ class Trainer:
             yield on_device(collate([self.dataset[i] for i in local]), self.device)
             step += 1
 
-    def loss(self, batch: dict[str, torch.Tensor], net: torch.nn.Module | None = None):
-        """``(loss, terms, output)`` of one batch under the run's mode (``net``: default the trained one)."""
+    def loss(self, batch: dict[str, torch.Tensor], net: torch.nn.Module | None = None,
+             size: tuple[int, int] | None = None):
+        """``(loss, terms, output)`` of one batch under the run's mode (``net``: default the trained one).
+
+        ``size``: ``(width, height)`` [px] of the sensor the batch's events come from (default the training
+        files'; a validation batch gives its own files', which may differ)."""
         tc, mode = self.config.train, self.config.mode
         output = (self.net if net is None else net)(batch["volume"])
         if mode == "teacher":
@@ -414,7 +419,8 @@ class Trainer:
         if self.teacher is not None:
             with torch.no_grad():
                 teacher_rho = self.teacher(batch["volume"]).inverse_depth
-        events = _events(batch, self.dataset.width, self.dataset.height)
+        width, height = size if size is not None else (self.dataset.width, self.dataset.height)
+        events = _events(batch, width, height)
         twist = output.twist
         if tc.contrast_twist == "truth":   # the ablation: the motion known where the file gives it
             twist = torch.where(batch["has_twist"][:, None], batch["twist"].to(twist.dtype), twist)

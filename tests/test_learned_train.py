@@ -404,3 +404,27 @@ def test_a_run_never_writes_over_its_own_teacher(scene_file, tmp_path, capsys):
             assert status == 2 and f"is {out / 'last.pt'}, the checkpoint this run writes" in err, err
             assert "own teacher" in err
     assert (out / "last.pt").read_bytes() == before
+
+
+def test_validation_uses_the_sensor_size_of_its_own_files(scene_file, slider_file, tmp_path):
+    """The contrast loss of a validation batch was built with the TRAINING files' sensor size: validating 64x48
+    files while training on 48x36 ones failed after the first step ("inverse_depth grid ... is finer than the
+    image"), and the other way round gave a silently different validation loss."""
+    import json
+
+    teacher = tmp_path / "teacher"
+    Trainer(load_config(None, tiny(scene_file, teacher, "train.steps=1"), mode="teacher"), progress=False).run()
+    for train_file, val_file in ((scene_file, slider_file), (slider_file, scene_file)):
+        out = tmp_path / f"{train_file.stem}_{val_file.stem}"
+        config = load_config(None, tiny(train_file, out, "train.steps=1", "train.val_every=1", "data.val_windows=2",
+                                        f'data.val_files=["{val_file}"]', f"train.teacher={teacher / 'last.pt'}"),
+                             mode="finetune")
+        trainer = Trainer(config, progress=False)
+        trainer.run()
+        logged = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+        val = [line["val/loss"] for line in logged if "val/loss" in line]
+        dataset, picks = trainer.validation
+        assert (dataset.width, dataset.height) != (trainer.dataset.width, trainer.dataset.height)
+        batch = collate_items(dataset, picks)
+        loss, _, _ = trainer.loss(batch, net=trainer.model, size=(dataset.width, dataset.height))
+        assert val == [pytest.approx(float(loss), rel=1e-5)]
