@@ -67,7 +67,25 @@ FOLDER_LOCK = ".train.lock"
 THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
-           "on_device", "nonfinite_terms", "RESUMABLE", "config_differences", "Trainer", "check_output", "main"]
+           "on_device", "nonfinite_terms", "global_mean", "RESUMABLE", "config_differences", "Trainer",
+           "check_output", "main"]
+
+def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
+    """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
+    local batches (``train.batch_size`` a multiple of the ranks) the mean of the ranks' batch means is the
+    global batch's mean, what one process with the whole batch logs (and what DDP's averaged gradients
+    optimise). A collective: every rank calls it with the same keys in the same order. ``values`` as they are
+    when ``world`` is 1. A NaN or an infinity on any rank makes that term non-finite on every rank.
+
+    >>> global_mean({"total": 0.5}, world=1, device=torch.device("cpu"))
+    {'total': 0.5}
+    """
+    if world == 1:
+        return dict(values)
+    summed = torch.tensor(list(values.values()), dtype=torch.float64, device=device)
+    torch.distributed.all_reduce(summed)
+    return dict(zip(values, (summed / world).tolist()))
+
 
 #: The config fields a ``--resume`` may change: how far the run goes, where it runs and writes, and how often it
 #: logs, validates and saves. Any other field (the mode, the model, the data, the seed, the batch, the
@@ -446,16 +464,12 @@ class Trainer:
         return f"the last good checkpoint {self.out / 'last.pt'} (step {self.saved_step}) is kept"
 
     def _check_loss(self, terms: dict[str, float]) -> None:
-        """Raise :class:`TrainingDiverged` when a loss term of the step being run (``self.step + 1``) is not finite
-        on any rank (all ranks agree, so all of them stop)."""
+        """Raise :class:`TrainingDiverged` when a loss term (:func:`global_mean` over the ranks: every rank decides
+        alike, as a rank that stopped alone would hang the others) of the step being run (``self.step + 1``) is
+        not finite."""
         bad = nonfinite_terms(terms)
-        if self.world > 1:   # every rank decides alike (a rank that stopped alone would hang the others)
-            flag = torch.tensor([float(bool(bad))], device=self.device)
-            torch.distributed.all_reduce(flag, op=torch.distributed.ReduceOp.MAX)
-            if flag.item() and not bad:
-                bad = ["(on another rank)"]
         if bad:
-            values = ", ".join(f"loss/{name}={terms[name]:g}" for name in bad if name in terms) or bad[0]
+            values = ", ".join(f"loss/{name}={terms[name]:g}" for name in bad)
             raise TrainingDiverged(f"step {self.step + 1}: the loss is not finite ({values}): training stopped and "
                                    f"nothing was saved; {self._kept()}; a lower train.lr or gradient clipping "
                                    f"(train.clip_grad_norm) may keep the run stable")
@@ -474,7 +488,8 @@ class Trainer:
                                    f"train.lr or gradient clipping (train.clip_grad_norm) may keep the run stable")
 
     def run(self) -> list[float]:
-        """Train from the current step to ``train.steps``; returns the losses of the steps run."""
+        """Train from the current step to ``train.steps``; returns the losses of the steps run (each the global
+        batch's: under ``torchrun`` averaged over the ranks, :func:`global_mean`, as are the logged terms)."""
         tc = self.config.train
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
@@ -492,21 +507,21 @@ class Trainer:
                 group["lr"] = learning_rate(self.step, self.config)
             batch = next(batches)
             loss, terms, output = self.loss(batch)
-            self._check_loss({"total": float(loss.detach()), **terms})
+            logged = global_mean({"total": float(loss.detach()), **terms}, world=self.world, device=self.device)
+            self._check_loss(logged)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            if tc.clip_grad_norm > 0:
+            if tc.clip_grad_norm > 0:   # of the averaged gradients: the same on every rank
                 norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), tc.clip_grad_norm)
-                terms["grad_norm"] = float(norm)
+                logged["grad_norm"] = float(norm)
             self.optimizer.step()
             self.step += 1
             self._check_weights()
-            losses.append(float(loss.detach()))
+            losses.append(logged["total"])
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.4f}")
             if self.step % tc.log_every == 0:
-                self._scalars({f"loss/{k}": v for k, v in {"total": losses[-1], **terms}.items()}
-                              | {"lr": self.optimizer.param_groups[0]["lr"]})
+                self._scalars({f"loss/{k}": v for k, v in logged.items()} | {"lr": self.optimizer.param_groups[0]["lr"]})
             if tc.val_every and (self.step % tc.val_every == 0 or self.step == tc.steps) and self.rank == 0:
                 self._scalars(self.validate())
             if self.step % tc.image_every == 0:

@@ -155,7 +155,8 @@ def test_sigkill_leaves_a_loadable_checkpoint_and_resume_continues(scene_file, t
 @pytest.mark.skipif(shutil.which("torchrun", path=os.path.dirname(sys.executable)) is None,
                     reason="torchrun not installed beside the Python interpreter")
 def test_torchrun_two_processes_match_one(scene_file, tmp_path):
-    """Two gloo ranks, 2 windows each, equal one process with the global batch of 4 (to float tolerance)."""
+    """Two gloo ranks, 2 windows each, equal one process with the global batch of 4 (to float tolerance): the
+    weights, and the losses logged in log.jsonl."""
     extra = ("train.steps=3", "data.augment=false")
     torchrun = os.path.join(os.path.dirname(sys.executable), "torchrun")
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -168,6 +169,16 @@ def test_torchrun_two_processes_match_one(scene_file, tmp_path):
     for key in a:
         torch.testing.assert_close(a[key], b[key], rtol=1e-4, atol=1e-5)
     assert not torch.equal(a["stem.0.weight"], load_checkpoint(tmp_path / "one" / "last.pt")["model"]["stem.0.weight"] * 0)
+    # the logged losses are the global batch's (they were rank 0's half batch: 0.48 against 1.10 in the report)
+    import json
+
+    logs = [[json.loads(line) for line in (tmp_path / run / "log.jsonl").read_text().splitlines()]
+            for run in ("ddp", "one")]
+    assert [line["step"] for line in logs[0]] == [line["step"] for line in logs[1]] == [1, 2, 3]
+    for ddp, one in zip(*logs):
+        assert set(ddp) == set(one) and {"loss/total", "loss/teacher", "loss/twist"} <= set(one)
+        for key in one:
+            assert ddp[key] == pytest.approx(one[key], rel=1e-4, abs=1e-6), (key, ddp, one)
 
 
 def test_links_planted_in_the_output_folder_are_not_followed(scene_file, tmp_path):
