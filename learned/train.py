@@ -67,8 +67,8 @@ FOLDER_LOCK = ".train.lock"
 THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
-           "on_device", "nonfinite_terms", "global_mean", "RESUMABLE", "config_differences", "Trainer",
-           "check_output", "main"]
+           "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RESUMABLE",
+           "config_differences", "Trainer", "check_output", "main"]
 
 def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
     """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
@@ -85,6 +85,46 @@ def global_mean(values: dict[str, float], *, world: int, device: torch.device) -
     summed = torch.tensor(list(values.values()), dtype=torch.float64, device=device)
     torch.distributed.all_reduce(summed)
     return dict(zip(values, (summed / world).tolist()))
+
+
+def drop_log_lines_after(path: Path, step: int) -> int:
+    """Keep in the learning curves ``path`` (``log.jsonl``) only the lines of steps up to ``step`` (a resumed run's
+    checkpoint): a run killed after its last checkpoint logged steps that the resumed run logs again. A line that
+    is not a whole JSON record (the half-written last line of a killed run) goes too. Rewritten atomically when
+    anything goes; returns the number of lines dropped (0 when there is no such file)."""
+    if not path.is_file() or path.is_symlink():
+        return 0
+    kept, dropped = [], 0
+    for line in path.read_text("utf-8", errors="replace").splitlines():
+        try:
+            record = json.loads(line)
+            keep = isinstance(record, dict) and isinstance(record.get("step"), int) and record["step"] <= step
+        except ValueError:
+            keep = False
+        if keep:
+            kept.append(line)
+        else:
+            dropped += 1
+    if dropped:
+        write_text_atomic(path, "".join(line + "\n" for line in kept))
+    return dropped
+
+
+def clear_tensorboard(folder: Path) -> list[Path]:
+    """Remove TensorBoard's event files (``events.out.tfevents.*``, regular files only: a link is never followed)
+    from ``folder`` (a run's ``tb/``), and ``folder`` itself when that leaves it empty; returns the files removed.
+    ``--overwrite``: the new run's learning curves alone."""
+    if folder.is_symlink() or not folder.is_dir():
+        return []
+    removed = [file for file in sorted(folder.glob("events.out.tfevents.*"))
+               if file.is_file() and not file.is_symlink()]
+    for file in removed:
+        file.unlink()
+    try:
+        folder.rmdir()
+    except OSError:   # something else is in it
+        pass
+    return removed
 
 
 #: The config fields a ``--resume`` may change: how far the run goes, where it runs and writes, and how often it
@@ -310,6 +350,9 @@ class Trainer:
                 raise ValueError(f"data.val_files hold no window: {_no_window(val)}")
             picks = np.unique(np.linspace(0, len(val) - 1, min(dc.val_windows, len(val))).round().astype(int))
             self.validation = (val, picks.tolist())
+        self.resumed = resume
+        if resume and self.rank == 0:   # the steps a killed run logged after its checkpoint are run again
+            drop_log_lines_after(self.out / "log.jsonl", self.step)
         self.log = self._logger() if self.rank == 0 else None
 
     # -- resuming -----------------------------------------------------------------------------
@@ -343,10 +386,12 @@ class Trainer:
 
     # -- logging ------------------------------------------------------------------------------
     def _logger(self):
-        """TensorBoard's writer when it is installed (scalars always go to ``log.jsonl`` too), else None."""
+        """TensorBoard's writer on ``out/tb`` when it is installed (scalars always go to ``log.jsonl`` too), else
+        None."""
         try:
             from torch.utils.tensorboard import SummaryWriter
-            return SummaryWriter(str(self.out / "tb"))
+            # resumed: TensorBoard drops the events of the steps after the checkpoint (a killed run's)
+            return SummaryWriter(str(self.out / "tb"), purge_step=self.step + 1 if self.resumed else None)
         except ImportError:
             return None
 
@@ -521,7 +566,8 @@ class Trainer:
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.4f}")
             if self.step % tc.log_every == 0:
-                self._scalars({f"loss/{k}": v for k, v in logged.items()} | {"lr": self.optimizer.param_groups[0]["lr"]})
+                self._scalars({f"loss/{k}": v for k, v in logged.items()}
+                              | {"lr": self.optimizer.param_groups[0]["lr"]})
             if tc.val_every and (self.step % tc.val_every == 0 or self.step == tc.steps) and self.rank == 0:
                 self._scalars(self.validate())
             if self.step % tc.image_every == 0:
@@ -604,8 +650,9 @@ def _run(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace, config: Config, out: Path) -> int:
     rank0 = int(os.environ.get("RANK", "0")) == 0
-    if args.overwrite and rank0:
-        (out / "log.jsonl").unlink(missing_ok=True)   # the new run's learning curves alone
+    if args.overwrite and rank0:   # the new run's learning curves alone
+        (out / "log.jsonl").unlink(missing_ok=True)
+        clear_tensorboard(out / "tb")
     if args.resume and rank0 and not (out / "last.pt").is_file():
         print(f"python -m learned.train: note: --resume, but {out / 'last.pt'} does not exist: starting at step 0",
               file=sys.stderr)

@@ -439,3 +439,35 @@ def test_validation_uses_the_sensor_size_of_its_own_files(scene_file, slider_fil
         batch = collate_items(dataset, picks)
         loss, _, _ = trainer.loss(batch, net=trainer.model, size=(dataset.width, dataset.height))
         assert val == [pytest.approx(float(loss), rel=1e-5)]
+
+
+def _tensorboard(folder: Path, tag: str) -> list[tuple[int, float]]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(folder)).Reload()
+    return [(event.step, round(event.value, 6)) for event in events.Scalars(tag)]
+
+
+def test_overwrite_and_resume_keep_one_run_in_the_learning_curves(scene_file, tmp_path):
+    """--overwrite kept the old run's TensorBoard events beside the new ones (lr: 0.1, 0.1, 0.1, then 1e-4 ...);
+    --resume after a kill logged the steps after the checkpoint twice in log.jsonl (nor purged TensorBoard)."""
+    import json
+
+    pytest.importorskip("tensorboard")
+    out = tmp_path / "run"
+    run = ["--mode", "teacher", "--no-progress"]
+    assert main([*run, *tiny(scene_file, out, "train.steps=3", "train.lr=0.1")]) == 0
+    assert main([*run, "--overwrite", *tiny(scene_file, out, "train.steps=3")]) == 0
+    assert _tensorboard(out / "tb", "lr") == [(1, 0.003), (2, 0.003), (3, 0.003)]
+    assert [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()] == [1, 2, 3]
+    # a kill after step 5 was logged and before its checkpoint: last.pt at step 4, log.jsonl up to step 5
+    assert main([*run, "--resume", *tiny(scene_file, out, "train.steps=4")]) == 0
+    at_four = (out / "last.pt").read_bytes()
+    assert main([*run, "--resume", *tiny(scene_file, out, "train.steps=5")]) == 0
+    (out / "last.pt").write_bytes(at_four)
+    with open(out / "log.jsonl", "a") as log:
+        log.write('{"step": 6, "loss/to')                      # the half-written line of the killed run
+    assert main([*run, "--resume", *tiny(scene_file, out, "train.steps=6")]) == 0
+    lines = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [line["step"] for line in lines] == [1, 2, 3, 4, 5, 6]
+    assert [step for step, _ in _tensorboard(out / "tb", "loss/total")] == [1, 2, 3, 4, 5, 6]
