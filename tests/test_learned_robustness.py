@@ -224,3 +224,40 @@ def test_a_checkpoint_with_non_finite_weights_is_never_written_nor_loaded(tiny_c
     with pytest.raises(ValueError, match="was not written: 1 of its 24 weight tensors hold NaN"):
         save_checkpoint(tiny_checkpoint, {key: ckpt[key] for key in ("model", "optimizer", "step", "config", "rng")})
     assert tiny_checkpoint.read_bytes() == before
+
+
+# -- 4. run_prediction's arguments, checked as the command line checks them -------------------------------------------
+def test_run_prediction_checks_K_and_the_times_as_the_command_line_does(tiny_checkpoint, slider_file, tmp_path):
+    """A 4-number K crashed (IndexError), a NaN or transposed K was stored in every window and summary.json,
+    window_s="0.05" failed inside numpy; each is one line before any work, and [fx, fy, cx, cy] is accepted."""
+    import h5py
+    import numpy as np
+
+    from learned.predict import run_prediction
+
+    with h5py.File(slider_file, "r") as f:
+        K = f["gt/K"][()]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    run = run_prediction(slider_file, tmp_path / "four", checkpoint=tiny_checkpoint, K=[fx, fy, cx, cy],
+                         progress=False, note=lambda text: None)
+    assert run.windows >= 1
+    assert np.allclose(json.loads((tmp_path / "four" / "summary.json").read_text())["K"], K)
+    nan_K = K.copy()
+    nan_K[0, 0] = np.nan
+    bad = [({"K": nan_K}, ValueError, "K must be finite"),
+           ({"K": K.T}, ValueError, r"K must have the form \[\[fx, s, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"),
+           ({"K": [fx, -fy, cx, cy]}, ValueError, "K must have positive focal lengths"),
+           ({"K": [fx, fy, cx]}, ValueError, r"K must be a 3x3 matrix, got shape \(3,\)"),
+           ({"K": "fx"}, TypeError, "K must be"),
+           ({"window_s": "0.05"}, TypeError, r"window_s must be a number of seconds, got '0.05' \(str\)"),
+           ({"window_s": True}, TypeError, "window_s must be a number of seconds"),
+           ({"window_s": float("nan")}, ValueError, "window_s must be a finite number of seconds > 0"),
+           ({"t0_s": -1.0}, ValueError, "t0_s must be a finite number of seconds >= 0"),
+           ({"t1_s": "1"}, TypeError, "t1_s must be a number of seconds"),
+           ({"depth_range": "0.4,3"}, TypeError, r"depth_range must be \(near, far\) in metres")]
+    for kwargs, kind, message in bad:
+        out = tmp_path / "refused"
+        with pytest.raises(kind, match=message) as caught:
+            run_prediction(slider_file, out, checkpoint=tiny_checkpoint, progress=False, note=lambda text: None,
+                           **kwargs)
+        assert "\n" not in str(caught.value) and not out.exists(), (kwargs, caught.value)
