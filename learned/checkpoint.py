@@ -140,6 +140,12 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     return write_with(path, fill)
 
 
+#: What ``torch.load`` raises for a file that is not a whole checkpoint (truncated, empty, foreign, crafted); an
+#: OSError too (``[Errno 22] Invalid argument`` from a zip whose directory points past the end of a truncated file).
+_LOAD_ERRORS = (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, TypeError, AttributeError, KeyError,
+                ImportError, IndexError, zipfile.BadZipFile, UnicodeDecodeError, MemoryError, OverflowError, OSError)
+
+
 def _refused(path: Path, error: BaseException) -> CheckpointError:
     detail = " ".join(str(error).split())
     # torch names the offending global ("... unsupported GLOBAL posix.system whose module ...").
@@ -206,8 +212,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         with warnings.catch_warnings():  # e.g. torch's note on an unusual pickle protocol
             warnings.simplefilter("ignore")
             payload = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, TypeError, AttributeError, KeyError,
-            ImportError, IndexError, zipfile.BadZipFile, UnicodeDecodeError, MemoryError, OverflowError) as error:
+    except _LOAD_ERRORS as error:
         raise _refused(path, error) from None
     return _check_payload(path, payload)
 
@@ -264,7 +269,8 @@ def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False)
     """Convert a TRUSTED checkpoint of format 1 to the current format (plain data, loads with ``weights_only=True``).
 
     This unpickles ``old`` with ``weights_only=False``, which runs any code the file
-    holds: pass ``trust=True`` only for a file you wrote yourself.
+    holds: pass ``trust=True`` only for a file you wrote yourself. A file that is not a whole checkpoint
+    (truncated, empty) raises :class:`CheckpointError` in one line naming it.
     """
     if trust is not True:
         raise ValueError("upgrade_checkpoint unpickles the file with weights_only=False, which runs any code it "
@@ -272,7 +278,11 @@ def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False)
     old = Path(old)
     if not old.is_file():
         raise FileNotFoundError(f"no checkpoint at {old}")
-    payload = torch.load(old, map_location="cpu", weights_only=False)
+    try:
+        payload = torch.load(old, map_location="cpu", weights_only=False)
+    except _LOAD_ERRORS as error:   # truncated, empty, not a torch.save file
+        raise CheckpointError(f"{old} is not a learned checkpoint (torch.load: {type(error).__name__}: "
+                              f"{' '.join(str(error).split())[:200]})") from None
     if not isinstance(payload, dict) or _KEYS - set(payload):
         raise CheckpointError(f"{old} is not a learned checkpoint")
     payload = {**payload, "rng": _upgraded_rng(payload["rng"]), "step": int(payload["step"])}
