@@ -37,7 +37,11 @@ def _check_types(cls: type, values: dict[str, Any], section: str) -> None:
         allowed, what = _KINDS[kind]
         value = values[f.name]
         if (isinstance(value, bool) and kind != "bool") or not isinstance(value, allowed):
-            raise TypeError(f"{section}.{f.name} must be {what}, got {value!r} ({type(value).__name__})")
+            hint = ""
+            if kind == "str" and isinstance(value, (int, float, bool)):   # key=123 is read as JSON: a number
+                hint = (f"; a value that reads as JSON (a number, true) is taken as one: quote it, "
+                        f"'{section}.{f.name}=\"{json.dumps(value)}\"'")
+            raise TypeError(f"{section}.{f.name} must be {what}, got {value!r} ({type(value).__name__}){hint}")
         if kind == "float" and not math.isfinite(value):
             raise ValueError(f"{section}.{f.name} must be {what}, got {value!r}")
 
@@ -47,16 +51,17 @@ def _require(condition: bool, section: str, name: str, rule: str, value: object)
         raise ValueError(f"{section}.{name} must be {rule}, got {value!r}")
 
 
-def _check_file_entry(entry: object, index: int) -> None:
-    where = f"data.files[{index}]"
+def _check_file_entry(entry: object, where: str) -> None:
+    """TypeError naming ``where`` (``data.files[2]``, ``data.val_files[0]``) for an entry of a list of data files
+    that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist"}`` of the right types."""
     if isinstance(entry, (str, Path)):
         return
     if not isinstance(entry, dict):
         raise TypeError(f"{where} must be a path or {{\"path\", \"K\", \"use_gt\"}}, got {entry!r}")
     unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist"}
     if unknown or not isinstance(entry.get("path"), (str, Path)):
-        raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\" and \"known_speed\" "
-                        f"only, got {entry!r}")
+        raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\", \"known_speed\" and "
+                        f"\"known_twist\" only, got {entry!r}")
     K = entry.get("K")
     if K is not None:
         flat = [v for row in K for v in row] if K and isinstance(K[0], (list, tuple)) else list(K) \
@@ -103,8 +108,9 @@ class DataConfig:
         _check_types(DataConfig, asdict(self), "data")
         object.__setattr__(self, "files", tuple(self.files))
         object.__setattr__(self, "val_files", tuple(self.val_files))
-        for i, entry in enumerate(self.files + self.val_files):
-            _check_file_entry(entry, i)
+        for key in ("files", "val_files"):
+            for i, entry in enumerate(getattr(self, key)):
+                _check_file_entry(entry, f"data.{key}[{i}]")
         _require(self.val_windows >= 1, "data", "val_windows", ">= 1", self.val_windows)
         _require(self.window_us >= 1, "data", "window_us", "a whole number of µs >= 1", self.window_us)
         _require(self.max_events >= 1, "data", "max_events", ">= 1", self.max_events)

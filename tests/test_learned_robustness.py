@@ -186,6 +186,18 @@ def test_a_killed_runs_private_folder_is_removed_by_the_next_run(slider_file, ti
 
 
 # -- 5. evaluate on a file without ground truth ----------------------------------------------------------------------
+def test_evaluate_on_an_event_file_of_another_format_names_no_config_key(tiny_checkpoint, tmp_path, capsys):
+    """An ECD text file given to learned.evaluate was answered with training's advice ("... give its K in
+    data.files"), a key evaluate does not have."""
+    from learned.evaluate import main
+
+    events = tmp_path / "events.txt"
+    events.write_text("0.001 1 2 1\n0.002 3 4 0\n")
+    status, err = one_line_error(lambda: main(["--checkpoint", str(tiny_checkpoint), "--data", str(events)]), capsys)
+    assert status == 2 and "events.txt is not an HDF5 file: learned.evaluate scores the network against" in err, err
+    assert "data.files" not in err and f"cmax depth {events} -o OUT" in err
+
+
 def test_evaluate_on_a_file_without_ground_truth_says_so(tiny_checkpoint, tmp_path, capsys):
     from cmax.io.h5 import write_h5
     from learned.evaluate import main
