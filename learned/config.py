@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,8 @@ from typing import Any
 from learned.device import DEVICE_NAMES, is_device_name
 from learned.model import ModelConfig
 
-__all__ = ["DataConfig", "TrainConfig", "Config", "load_config", "apply_overrides", "config_from_dict", "MODES"]
+__all__ = ["DataConfig", "TrainConfig", "Config", "load_config", "apply_overrides", "config_from_dict", "MODES",
+           "REMOVED_KEYS"]
 
 MODES = ("teacher", "finetune", "student")
 
@@ -87,8 +89,6 @@ class DataConfig:
     max_events : int
         Raw events per window kept for the contrast loss.
     augment : bool
-    workers : int
-        DataLoader worker processes (0: load in the training process).
     val_files : list
         Held-out files (same forms as ``files``) whose loss is logged every ``train.val_every`` steps
         (``val/loss`` in ``log.jsonl``): the learning curve that says when training is flat.
@@ -102,7 +102,6 @@ class DataConfig:
     window_us: int = 166_500
     max_events: int = 20_000
     augment: bool = True
-    workers: int = 0
 
     def __post_init__(self) -> None:
         _check_types(DataConfig, asdict(self), "data")
@@ -114,7 +113,6 @@ class DataConfig:
         _require(self.val_windows >= 1, "data", "val_windows", ">= 1", self.val_windows)
         _require(self.window_us >= 1, "data", "window_us", "a whole number of µs >= 1", self.window_us)
         _require(self.max_events >= 1, "data", "max_events", ">= 1", self.max_events)
-        _require(self.workers >= 0, "data", "workers", ">= 0", self.workers)
 
 
 @dataclass(frozen=True)
@@ -236,9 +234,30 @@ class Config:
         return asdict(self)
 
 
+#: Keys that earlier versions had, with the value they stored by default, and why they went. Configs and the
+#: checkpoints of those versions hold them: at that value a key is dropped silently, at another one with a
+#: warning (it never had an effect).
+REMOVED_KEYS = {("data", "workers"): (0, "it never had an effect: the windows are read in the training process, "
+                                         "and learned has no DataLoader")}
+
+
+def _drop_removed(values: dict, name: str) -> dict:
+    """``values`` (section ``name``) without the keys of :data:`REMOVED_KEYS`; a warning (one line) for each one
+    set to other than its old default."""
+    kept = dict(values)
+    for (section, key), (default, why) in REMOVED_KEYS.items():
+        if section == name and key in kept:
+            value = kept.pop(key)
+            if value != default:
+                warnings.warn(f"{section}.{key}={value!r} is ignored: {section}.{key} is no longer a setting ({why})",
+                              stacklevel=3)
+    return kept
+
+
 def _section(cls, values: dict, name: str):
     if not isinstance(values, dict):
         raise TypeError(f"[{name}] must be a table of keys, got {values!r}")
+    values = _drop_removed(values, name)
     known = {f.name for f in fields(cls)}
     unknown = set(values) - known
     if unknown:

@@ -353,7 +353,7 @@ class Trainer:
         self.resumed = resume
         if resume and self.rank == 0:   # the steps a killed run logged after its checkpoint are run again
             drop_log_lines_after(self.out / "log.jsonl", self.step)
-        self.log = self._logger() if self.rank == 0 else None
+        self.log = None   # TensorBoard's writer, opened by run() (a run with nothing to train writes nothing)
 
     # -- resuming -----------------------------------------------------------------------------
     def _check_resumed_config(self, ckpt: dict) -> None:
@@ -536,8 +536,12 @@ class Trainer:
         """Train from the current step to ``train.steps``; returns the losses of the steps run (each the global
         batch's: under ``torchrun`` averaged over the ranks, :func:`global_mean`, as are the logged terms)."""
         tc = self.config.train
+        if self.step >= tc.steps:   # nothing to train (train.steps=0, or a resumed run already there): no write
+            return []
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
+            if self.log is None:
+                self.log = self._logger()
             write_text_atomic(self.out / "config.json", json.dumps(self.config.to_dict(), indent=2, default=str))
         losses = []
         start = self.step
@@ -565,7 +569,7 @@ class Trainer:
             losses.append(logged["total"])
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.4f}")
-            if self.step % tc.log_every == 0:
+            if self.step % tc.log_every == 0 or self.step == tc.steps:   # the last step always
                 self._scalars({f"loss/{k}": v for k, v in logged.items()}
                               | {"lr": self.optimizer.param_groups[0]["lr"]})
             if tc.val_every and (self.step % tc.val_every == 0 or self.step == tc.steps) and self.rank == 0:
@@ -661,6 +665,8 @@ def _train(args: argparse.Namespace, config: Config, out: Path) -> int:
     if trainer.rank == 0 and losses:
         print(f"{config.mode}: {len(losses)} steps, loss {losses[0]:.4f} -> {losses[-1]:.4f}; "
               f"{trainer.out / 'last.pt'}")
+    elif trainer.rank == 0 and trainer.saved_step is None:   # train.steps=0, nothing resumed
+        print(f"{config.mode}: nothing to train: train.steps={config.train.steps}; give train.steps=N (N >= 1)")
     elif trainer.rank == 0:
         print(f"{config.mode}: nothing to train: {trainer.out / 'last.pt'} is at step {trainer.step} of "
               f"train.steps={config.train.steps}; raise train.steps to train further")

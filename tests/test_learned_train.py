@@ -471,3 +471,41 @@ def test_overwrite_and_resume_keep_one_run_in_the_learning_curves(scene_file, tm
     lines = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
     assert [line["step"] for line in lines] == [1, 2, 3, 4, 5, 6]
     assert [step for step, _ in _tensorboard(out / "tb", "loss/total")] == [1, 2, 3, 4, 5, 6]
+
+
+def test_settings_that_did_nothing_or_said_the_wrong_thing(scene_file, tmp_path, capsys):
+    """data.workers was checked and never used; a run shorter than train.log_every logged nothing (the last step
+    only when steps % log_every == 0); train.steps=0 spoke of a last.pt that did not exist; a labelled file's
+    own K in data.files was silently replaced by its gt/K."""
+    import dataclasses
+    import json
+    import warnings
+
+    from learned.config import DataConfig, config_from_dict
+    from learned.data import H5WindowDataset
+
+    # data.workers: gone; an old config or checkpoint that stores it at 0 loads quietly, another value warns
+    assert "workers" not in {f.name for f in dataclasses.fields(DataConfig)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_config(None, ["data.workers=0"]).data == DataConfig()
+        assert config_from_dict({"data": {"workers": 0, "window_us": 5000}}).data.window_us == 5000
+    with pytest.warns(UserWarning, match=r"data\.workers=4 is ignored: data\.workers is no longer a setting"):
+        load_config(None, ["data.workers=4"])
+    # the last step is logged whatever train.log_every
+    out = tmp_path / "short"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=3", "train.log_every=10")]) == 0
+    assert [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()] == [3]
+    capsys.readouterr()
+    # train.steps=0 on a new folder: says so, writes nothing
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, tmp_path / "zero", "train.steps=0")]) == 0
+    assert capsys.readouterr().out == "teacher: nothing to train: train.steps=0; give train.steps=N (N >= 1)\n"
+    assert not (tmp_path / "zero").exists()
+    # K in a labelled file's entry: the same as its gt/K is fine, another one is refused, use_gt false honours it
+    gt_K = H5WindowDataset([scene_file], window_us=100_000)._gt[0]["K"]
+    H5WindowDataset([{"path": str(scene_file), "K": gt_K.tolist()}], window_us=100_000)
+    other = [50.0, 50.0, 24.0, 18.0]
+    with pytest.raises(ValueError, match=r"its entry gives K .* but its ground truth .* was made with its gt/K"):
+        H5WindowDataset([{"path": str(scene_file), "K": other}], window_us=100_000)
+    hidden = H5WindowDataset([{"path": str(scene_file), "K": other, "use_gt": False}], window_us=100_000)
+    assert np.allclose(hidden.sample(0).K, [[50, 0, 24], [0, 50, 18], [0, 0, 1]])
