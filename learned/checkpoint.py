@@ -35,8 +35,8 @@ import torch
 
 from cmax.io.atomic import AtomicOutput, write_with
 
-__all__ = ["CheckpointError", "FORMAT", "rng_state", "set_rng_state", "plain_data", "save_checkpoint",
-           "load_checkpoint", "check_weights", "upgrade_checkpoint", "main"]
+__all__ = ["CheckpointError", "FORMAT", "rng_state", "set_rng_state", "plain_data", "nonfinite_tensors",
+           "save_checkpoint", "load_checkpoint", "check_weights", "upgrade_checkpoint", "main"]
 
 #: Format of the checkpoints this version writes (stored under ``"format"``).
 FORMAT = 2
@@ -95,16 +95,37 @@ def plain_data(value: Any, where: str = "config") -> Any:
     raise TypeError(f"{where}: {type(value).__name__} cannot be stored in a checkpoint (plain data only)")
 
 
+def nonfinite_tensors(state: dict[str, torch.Tensor]) -> list[str]:
+    """The names of the floating-point tensors of ``state`` (a ``state_dict``) that hold a NaN or an infinity,
+    in ``state``'s order (integer tensors, e.g. a step counter, are never non-finite; entries that are not
+    tensors are left to the caller).
+
+    >>> nonfinite_tensors({"a": torch.ones(2), "b": torch.tensor([1.0, float("nan")]), "n": torch.tensor(3)})
+    ['b']
+    """
+    return [name for name, tensor in state.items() if isinstance(tensor, torch.Tensor) and
+            (tensor.is_floating_point() or tensor.is_complex()) and not bool(torch.isfinite(tensor).all())]
+
+
+def _nonfinite_message(bad: Sequence[str], total: int) -> str:
+    return (f"{len(bad)} of its {total} weight tensors hold NaN or infinite values (e.g. {bad[0]}): the training "
+            "run that wrote them diverged")
+
+
 def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     """``torch.save`` through :func:`cmax.io.atomic.write_with` (a lock, a private ``O_EXCL | O_NOFOLLOW``
     temporary file, fsync, rename): never a partial file under ``path``, never a planted link followed.
 
     ``payload`` needs the keys ``model``, ``optimizer``, ``step``, ``config``, ``rng``; its
-    ``config`` is stored through :func:`plain_data` and ``format`` is set to :data:`FORMAT`.
+    ``config`` is stored through :func:`plain_data` and ``format`` is set to :data:`FORMAT`. Weights that hold
+    a NaN or an infinity (:func:`nonfinite_tensors`) raise ValueError and write nothing: a diverged run never
+    replaces a good checkpoint.
     """
     missing = _KEYS - set(payload)
     if missing:
         raise ValueError(f"a checkpoint needs the keys {sorted(_KEYS)}, missing {sorted(missing)}")
+    if isinstance(payload["model"], dict) and (bad := nonfinite_tensors(payload["model"])):
+        raise ValueError(f"{path} was not written: {_nonfinite_message(bad, len(payload['model']))}")
     payload = {**payload, "config": plain_data(payload["config"]), "format": FORMAT}
     optimizer = payload["optimizer"]
     if isinstance(optimizer, dict) and "param_groups" in optimizer:   # hyper-parameters as plain numbers
@@ -117,6 +138,12 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
             torch.save(payload, file)
 
     return write_with(path, fill)
+
+
+#: What ``torch.load`` raises for a file that is not a whole checkpoint (truncated, empty, foreign, crafted); an
+#: OSError too (``[Errno 22] Invalid argument`` from a zip whose directory points past the end of a truncated file).
+_LOAD_ERRORS = (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, TypeError, AttributeError, KeyError,
+                ImportError, IndexError, zipfile.BadZipFile, UnicodeDecodeError, MemoryError, OverflowError, OSError)
 
 
 def _refused(path: Path, error: BaseException) -> CheckpointError:
@@ -148,6 +175,9 @@ def _check_payload(path: Path, payload: object) -> dict[str, Any]:
     if not (isinstance(model, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                             for k, v in model.items())):
         raise CheckpointError(f"{path}: 'model' must map parameter names to tensors")
+    bad = nonfinite_tensors(model)
+    if bad:
+        raise CheckpointError(f"{path} was refused: {_nonfinite_message(bad, len(model))}; use an earlier checkpoint")
     step = payload["step"]
     if not (isinstance(step, int) and not isinstance(step, bool) and step >= 0):
         raise CheckpointError(f"{path}: 'step' must be an integer >= 0, got {step!r}")
@@ -167,7 +197,8 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         No file at ``path``.
     CheckpointError (a ValueError)
         Not a ``torch.save`` file, a pickle that needs code to load (crafted, or
-        of format 1: see :func:`upgrade_checkpoint`), or keys of the wrong kind.
+        of format 1: see :func:`upgrade_checkpoint`), keys of the wrong kind, or weights that hold a NaN or
+        an infinity (a diverged run's).
     """
     path = Path(path)
     if path.is_dir():
@@ -181,8 +212,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         with warnings.catch_warnings():  # e.g. torch's note on an unusual pickle protocol
             warnings.simplefilter("ignore")
             payload = torch.load(path, map_location="cpu", weights_only=True)
-    except (pickle.UnpicklingError, RuntimeError, EOFError, ValueError, TypeError, AttributeError, KeyError,
-            ImportError, IndexError, zipfile.BadZipFile, UnicodeDecodeError, MemoryError, OverflowError) as error:
+    except _LOAD_ERRORS as error:
         raise _refused(path, error) from None
     return _check_payload(path, payload)
 
@@ -239,7 +269,8 @@ def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False)
     """Convert a TRUSTED checkpoint of format 1 to the current format (plain data, loads with ``weights_only=True``).
 
     This unpickles ``old`` with ``weights_only=False``, which runs any code the file
-    holds: pass ``trust=True`` only for a file you wrote yourself.
+    holds: pass ``trust=True`` only for a file you wrote yourself. A file that is not a whole checkpoint
+    (truncated, empty) raises :class:`CheckpointError` in one line naming it.
     """
     if trust is not True:
         raise ValueError("upgrade_checkpoint unpickles the file with weights_only=False, which runs any code it "
@@ -247,7 +278,11 @@ def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False)
     old = Path(old)
     if not old.is_file():
         raise FileNotFoundError(f"no checkpoint at {old}")
-    payload = torch.load(old, map_location="cpu", weights_only=False)
+    try:
+        payload = torch.load(old, map_location="cpu", weights_only=False)
+    except _LOAD_ERRORS as error:   # truncated, empty, not a torch.save file
+        raise CheckpointError(f"{old} is not a learned checkpoint (torch.load: {type(error).__name__}: "
+                              f"{' '.join(str(error).split())[:200]})") from None
     if not isinstance(payload, dict) or _KEYS - set(payload):
         raise CheckpointError(f"{old} is not a learned checkpoint")
     payload = {**payload, "rng": _upgraded_rng(payload["rng"]), "step": int(payload["step"])}

@@ -10,6 +10,7 @@ from __future__ import annotations
 import json
 import math
 import tomllib
+import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
 from pathlib import Path
 from typing import Any
@@ -17,7 +18,8 @@ from typing import Any
 from learned.device import DEVICE_NAMES, is_device_name
 from learned.model import ModelConfig
 
-__all__ = ["DataConfig", "TrainConfig", "Config", "load_config", "apply_overrides", "config_from_dict", "MODES"]
+__all__ = ["DataConfig", "TrainConfig", "Config", "load_config", "apply_overrides", "config_from_dict", "MODES",
+           "REMOVED_KEYS"]
 
 MODES = ("teacher", "finetune", "student")
 
@@ -37,7 +39,11 @@ def _check_types(cls: type, values: dict[str, Any], section: str) -> None:
         allowed, what = _KINDS[kind]
         value = values[f.name]
         if (isinstance(value, bool) and kind != "bool") or not isinstance(value, allowed):
-            raise TypeError(f"{section}.{f.name} must be {what}, got {value!r} ({type(value).__name__})")
+            hint = ""
+            if kind == "str" and isinstance(value, (int, float, bool)):   # key=123 is read as JSON: a number
+                hint = (f"; a value that reads as JSON (a number, true) is taken as one: quote it, "
+                        f"'{section}.{f.name}=\"{json.dumps(value)}\"'")
+            raise TypeError(f"{section}.{f.name} must be {what}, got {value!r} ({type(value).__name__}){hint}")
         if kind == "float" and not math.isfinite(value):
             raise ValueError(f"{section}.{f.name} must be {what}, got {value!r}")
 
@@ -47,16 +53,17 @@ def _require(condition: bool, section: str, name: str, rule: str, value: object)
         raise ValueError(f"{section}.{name} must be {rule}, got {value!r}")
 
 
-def _check_file_entry(entry: object, index: int) -> None:
-    where = f"data.files[{index}]"
+def _check_file_entry(entry: object, where: str) -> None:
+    """TypeError naming ``where`` (``data.files[2]``, ``data.val_files[0]``) for an entry of a list of data files
+    that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist"}`` of the right types."""
     if isinstance(entry, (str, Path)):
         return
     if not isinstance(entry, dict):
         raise TypeError(f"{where} must be a path or {{\"path\", \"K\", \"use_gt\"}}, got {entry!r}")
     unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist"}
     if unknown or not isinstance(entry.get("path"), (str, Path)):
-        raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\" and \"known_speed\" "
-                        f"only, got {entry!r}")
+        raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\", \"known_speed\" and "
+                        f"\"known_twist\" only, got {entry!r}")
     K = entry.get("K")
     if K is not None:
         flat = [v for row in K for v in row] if K and isinstance(K[0], (list, tuple)) else list(K) \
@@ -82,8 +89,6 @@ class DataConfig:
     max_events : int
         Raw events per window kept for the contrast loss.
     augment : bool
-    workers : int
-        DataLoader worker processes (0: load in the training process).
     val_files : list
         Held-out files (same forms as ``files``) whose loss is logged every ``train.val_every`` steps
         (``val/loss`` in ``log.jsonl``): the learning curve that says when training is flat.
@@ -97,18 +102,17 @@ class DataConfig:
     window_us: int = 166_500
     max_events: int = 20_000
     augment: bool = True
-    workers: int = 0
 
     def __post_init__(self) -> None:
         _check_types(DataConfig, asdict(self), "data")
         object.__setattr__(self, "files", tuple(self.files))
         object.__setattr__(self, "val_files", tuple(self.val_files))
-        for i, entry in enumerate(self.files + self.val_files):
-            _check_file_entry(entry, i)
+        for key in ("files", "val_files"):
+            for i, entry in enumerate(getattr(self, key)):
+                _check_file_entry(entry, f"data.{key}[{i}]")
         _require(self.val_windows >= 1, "data", "val_windows", ">= 1", self.val_windows)
         _require(self.window_us >= 1, "data", "window_us", "a whole number of µs >= 1", self.window_us)
         _require(self.max_events >= 1, "data", "max_events", ">= 1", self.max_events)
-        _require(self.workers >= 0, "data", "workers", ">= 0", self.workers)
 
 
 @dataclass(frozen=True)
@@ -128,7 +132,10 @@ class TrainConfig:
     teacher : str
         Checkpoint of the teacher (modes ``finetune``: initial weights; ``student``: the frozen teacher).
     out : str
-        Run folder: checkpoints ``last.pt`` and ``step_<n>.pt``, TensorBoard logs.
+        Run folder: the checkpoint ``last.pt`` (replaced every ``checkpoint_every`` steps and at the last
+        step; no per-step copies are kept), ``config.json``, the learning curves ``log.jsonl`` and TensorBoard's
+        ``tb/``. A step whose loss or weights go non-finite stops the run and saves nothing, so ``last.pt``
+        stays the last good checkpoint.
     checkpoint_every, log_every, image_every : int
         In steps.
     seed : int
@@ -227,9 +234,30 @@ class Config:
         return asdict(self)
 
 
+#: Keys that earlier versions had, with the value they stored by default, and why they went. Configs and the
+#: checkpoints of those versions hold them: at that value a key is dropped silently, at another one with a
+#: warning (it never had an effect).
+REMOVED_KEYS = {("data", "workers"): (0, "it never had an effect: the windows are read in the training process, "
+                                         "and learned has no DataLoader")}
+
+
+def _drop_removed(values: dict, name: str) -> dict:
+    """``values`` (section ``name``) without the keys of :data:`REMOVED_KEYS`; a warning (one line) for each one
+    set to other than its old default."""
+    kept = dict(values)
+    for (section, key), (default, why) in REMOVED_KEYS.items():
+        if section == name and key in kept:
+            value = kept.pop(key)
+            if value != default:
+                warnings.warn(f"{section}.{key}={value!r} is ignored: {section}.{key} is no longer a setting ({why})",
+                              stacklevel=3)
+    return kept
+
+
 def _section(cls, values: dict, name: str):
     if not isinstance(values, dict):
         raise TypeError(f"[{name}] must be a table of keys, got {values!r}")
+    values = _drop_removed(values, name)
     known = {f.name for f in fields(cls)}
     unknown = set(values) - known
     if unknown:

@@ -165,7 +165,8 @@ class FileSpec:
     """An event file and how to read it: ``K`` (3, 3) for files without ``gt/K``.
 
     ``use_gt`` False hides the ground truth (depth, poses) of ``gt/``; its ``gt/K`` (the
-    calibration) is still used when no ``K`` is given. ``known_speed`` (with ``use_gt`` False) keeps
+    calibration) is still used when no ``K`` is given. With the ground truth used, a ``K`` other than the
+    file's ``gt/K`` (in whose camera that truth was made) is refused. ``known_speed`` (with ``use_gt`` False) keeps
     the camera speed ``|v|`` of each window (what odometry or a speedometer would give a real
     recording) as the contrast loss's metric anchor; the depth and the twist stay hidden.
     ``known_twist`` (with ``use_gt`` False; an ablation: the motion known, the depth hidden) keeps the
@@ -246,6 +247,10 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 elif size != (reader.width, reader.height):
                     raise ValueError(f"{spec.path} is {reader.width}x{reader.height}, the first file {size[0]}x{size[1]}")
                 gt = self._load_gt(reader.file, spec)
+                if gt is not None and spec.K is not None and not np.allclose(spec.K, gt["K"], rtol=1e-6, atol=1e-9):
+                    raise ValueError(f"{spec.path}: its entry gives K {np.asarray(spec.K).tolist()}, but its ground "
+                                     f"truth (gt/depth, gt/twists) was made with its gt/K {gt['K'].tolist()}: drop "
+                                     f"the entry's K, or read the file with \"use_gt\": false to use your K")
                 if spec.K is None and gt is None and "gt/K" in reader.file:   # calibration, not ground truth
                     spec = self.specs[i] = replace(spec, K=reader.file["gt/K"][:])
                 self._gt.append(gt)

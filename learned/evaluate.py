@@ -185,7 +185,11 @@ def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) 
     try:
         with h5py.File(path, "r") as file:
             depth, K = "gt/depth" in file, "gt/K" in file
-    except OSError:   # missing, or not an h5 file: H5WindowDataset says which
+    except OSError:   # missing (H5WindowDataset says so), or not an h5 file
+        if path.is_file():
+            raise ValueError(f"{path} is not an HDF5 file: learned.evaluate scores the network against the ground "
+                             f"truth (gt/depth, gt/K) of h5 files as cmax scene writes them; to predict depth on "
+                             f"this file, run cmax depth {path} -o OUT") from None
         depth = K = True
     if not depth:
         raise ValueError(f"{path} has no {'gt/depth' if K else 'gt/K nor gt/depth'}: no ground truth to evaluate "

@@ -50,7 +50,7 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
            "window_picture", "write_window", "earlier_results", "FOLDER_LOCK",
-           "run_prediction", "predict_file", "add_arguments",
+           "intrinsics_matrix", "run_prediction", "predict_file", "add_arguments",
            "run", "main"]
 
 #: Windows with fewer events are skipped (counted in the summary).
@@ -431,6 +431,53 @@ def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarra
     return recording.K
 
 
+def intrinsics_matrix(K: object, name: str = "K") -> np.ndarray:
+    """``K`` given as ``[fx, fy, cx, cy]`` [px] or a (3, 3) pinhole matrix, as the checked (3, 3) float64 matrix
+    (:func:`cmax.camera.check_intrinsics`, which ``--K`` and :func:`cmax.fit` use too): TypeError / ValueError in
+    one line naming ``name`` for anything else (NaN, a focal length <= 0, a transposed or non-pinhole matrix).
+
+    >>> intrinsics_matrix([200, 210, 120, 90]).tolist()
+    [[200.0, 0.0, 120.0], [0.0, 210.0, 90.0], [0.0, 0.0, 1.0]]
+    """
+    from cmax.camera import check_intrinsics
+
+    try:
+        flat = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be [fx, fy, cx, cy] or a 3x3 matrix of numbers, got {K!r}") from None
+    if flat.shape == (4,):
+        fx, fy, cx, cy = flat
+        flat = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return check_intrinsics(flat, name)
+
+
+def _check_seconds(name: str, value: object, *, positive: bool) -> None:
+    """TypeError / ValueError (one line naming ``name``) unless ``value`` is None or a finite number of seconds,
+    > 0 (``positive``) or >= 0."""
+    if value is None:
+        return
+    if isinstance(value, bool) or not isinstance(value, (int, float, np.integer, np.floating)):
+        raise TypeError(f"{name} must be a number of seconds, got {value!r} ({type(value).__name__})")
+    if not (np.isfinite(value) and (value > 0 if positive else value >= 0)):
+        raise ValueError(f"{name} must be a finite number of seconds {'> 0' if positive else '>= 0'}, got {value!r}")
+
+
+def _check_arguments(K: object, window_s: object, t0_s: object, t1_s: object,
+                     depth_range: object) -> np.ndarray | None:
+    """:func:`run_prediction`'s checks of the arguments a caller can get wrong, before any work; returns ``K``
+    as its checked (3, 3) matrix (None: none given)."""
+    _check_seconds("window_s", window_s, positive=True)
+    _check_seconds("t0_s", t0_s, positive=False)
+    _check_seconds("t1_s", t1_s, positive=False)
+    if depth_range is not None:
+        from cmax import viz
+
+        if isinstance(depth_range, (str, bytes)) or not hasattr(depth_range, "__len__") or len(depth_range) != 2:
+            raise TypeError(f"depth_range must be (near, far) in metres, got {depth_range!r}")
+        viz.DepthScale(*depth_range)   # 0 < near < far, finite numbers
+    return None if K is None else intrinsics_matrix(K)
+
+
 def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path | None = None,
                    K: np.ndarray | None = None, calib: str | Path | None = None, calib_camera: str = "cam0",
                    distortion: np.ndarray | None = None, size: tuple[int, int] | None = None,
@@ -445,8 +492,9 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     ----------
     checkpoint : path, optional
         A :mod:`learned.checkpoint` file (default: :func:`learned.pretrained.shipped_checkpoint`).
-    K : ndarray (3, 3), optional
-        Intrinsics [px]; ``calib`` (ECD calib.txt or DSEC cam_to_cam.yaml, camera ``calib_camera``)
+    K : array_like (3, 3) or (4,), optional
+        Intrinsics [px], the pinhole matrix or ``[fx, fy, cx, cy]`` (checked as ``--K`` is:
+        :func:`intrinsics_matrix`); ``calib`` (ECD calib.txt or DSEC cam_to_cam.yaml, camera ``calib_camera``)
         instead; neither: the file's ``gt/K``.
     distortion : ndarray (4,) or (5,), optional
         OpenCV ``k1, k2, p1, p2[, k3]`` of ``K`` (with ``K`` only; a ``calib`` file brings its own): the
@@ -456,7 +504,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     t0_s, t1_s : float, optional
         Part to predict, seconds after the first event.
     window_s : float, optional
-        Window length [s] (default: the checkpoint config's ``data.window_us``).
+        Window length [s] (default: the checkpoint config's ``data.window_us``). ``window_s``, ``t0_s`` and
+        ``t1_s`` must be finite numbers (``window_s`` > 0, the others >= 0), ``depth_range`` a pair of them.
     depth_range : (near, far) [m], optional
         Colour scale of every picture of the run (default: the 1st-99th percentiles of all its windows'
         depths, :func:`run_scale`).
@@ -485,6 +534,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     """
     started = time.perf_counter()
     note = note or (lambda text: print(f"learned.predict: note: {text}", file=sys.stderr))
+    K = _check_arguments(K, window_s, t0_s, t1_s, depth_range)
     if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
         raise ValueError(f"batch must be a whole number >= 1, got {batch!r}")
     from learned.device import resolve_device

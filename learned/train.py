@@ -14,7 +14,9 @@ global batch (the role of a ``DistributedSampler``), gradients are averaged by
 ``DistributedDataParallel`` (gloo on the CPU; with ``train.device=cuda`` nccl, each rank on the GPU of its
 ``LOCAL_RANK``), and only rank 0 writes.
 Checkpoints (``out/last.pt``) hold the model, optimiser, step, config and RNG
-states and are written atomically; ``--resume`` continues bit-for-bit on CPU. One run at a time holds
+states and are written atomically; ``--resume`` continues bit-for-bit on CPU, and refuses a config that
+differs from the checkpoint's in a field that changes the steps still to run (:func:`config_differences`,
+:data:`RESUMABLE`). One run at a time holds
 ``train.out`` (its lock :data:`FOLDER_LOCK`): a second one into the same folder is refused at once.
 """
 from __future__ import annotations
@@ -36,7 +38,8 @@ from cmax._threads import torch_threads
 from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, WeightedSum
 from cmax.io.atomic import write_text_atomic
 from learned._output import locked_folder
-from learned.checkpoint import CheckpointError, load_checkpoint, rng_state, save_checkpoint, set_rng_state
+from learned.checkpoint import (CheckpointError, load_checkpoint, nonfinite_tensors, rng_state, save_checkpoint,
+                                set_rng_state)
 from learned.config import Config, config_from_dict, load_config
 from learned.data import H5WindowDataset, collate
 from learned.device import resolve_device
@@ -63,8 +66,104 @@ FOLDER_LOCK = ".train.lock"
 #: load of other processes; ``CMAX_TORCH_THREADS`` fixes it).
 THREAD_CHECK_EVERY = 25
 
-__all__ = ["FOLDER_LOCK", "batch_indices", "learning_rate", "twist_scale", "ddp_backend", "on_device", "Trainer",
-           "check_output", "main"]
+__all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
+           "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RESUMABLE",
+           "config_differences", "Trainer", "check_output", "main"]
+
+def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
+    """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
+    local batches (``train.batch_size`` a multiple of the ranks) the mean of the ranks' batch means is the
+    global batch's mean, what one process with the whole batch logs (and what DDP's averaged gradients
+    optimise). A collective: every rank calls it with the same keys in the same order. ``values`` as they are
+    when ``world`` is 1. A NaN or an infinity on any rank makes that term non-finite on every rank.
+
+    >>> global_mean({"total": 0.5}, world=1, device=torch.device("cpu"))
+    {'total': 0.5}
+    """
+    if world == 1:
+        return dict(values)
+    summed = torch.tensor(list(values.values()), dtype=torch.float64, device=device)
+    torch.distributed.all_reduce(summed)
+    return dict(zip(values, (summed / world).tolist()))
+
+
+def drop_log_lines_after(path: Path, step: int) -> int:
+    """Keep in the learning curves ``path`` (``log.jsonl``) only the lines of steps up to ``step`` (a resumed run's
+    checkpoint): a run killed after its last checkpoint logged steps that the resumed run logs again. A line that
+    is not a whole JSON record (the half-written last line of a killed run) goes too. Rewritten atomically when
+    anything goes; returns the number of lines dropped (0 when there is no such file)."""
+    if not path.is_file() or path.is_symlink():
+        return 0
+    kept, dropped = [], 0
+    for line in path.read_text("utf-8", errors="replace").splitlines():
+        try:
+            record = json.loads(line)
+            keep = isinstance(record, dict) and isinstance(record.get("step"), int) and record["step"] <= step
+        except ValueError:
+            keep = False
+        if keep:
+            kept.append(line)
+        else:
+            dropped += 1
+    if dropped:
+        write_text_atomic(path, "".join(line + "\n" for line in kept))
+    return dropped
+
+
+def clear_tensorboard(folder: Path) -> list[Path]:
+    """Remove TensorBoard's event files (``events.out.tfevents.*``, regular files only: a link is never followed)
+    from ``folder`` (a run's ``tb/``), and ``folder`` itself when that leaves it empty; returns the files removed.
+    ``--overwrite``: the new run's learning curves alone."""
+    if folder.is_symlink() or not folder.is_dir():
+        return []
+    removed = [file for file in sorted(folder.glob("events.out.tfevents.*"))
+               if file.is_file() and not file.is_symlink()]
+    for file in removed:
+        file.unlink()
+    try:
+        folder.rmdir()
+    except OSError:   # something else is in it
+        pass
+    return removed
+
+
+#: The config fields a ``--resume`` may change: how far the run goes, where it runs and writes, and how often it
+#: logs, validates and saves. Any other field (the mode, the model, the data, the seed, the batch, the
+#: optimisation) changes the steps still to run, so a resumed run that sets it otherwise is refused.
+RESUMABLE = frozenset({"train.steps", "train.out", "train.device", "train.checkpoint_every", "train.log_every",
+                       "train.image_every", "train.val_every", "data.val_files", "data.val_windows"})
+
+
+def _fields(config: Config) -> dict[str, object]:
+    """``{"mode": ..., "model.width": ..., ...}``: every field of ``config`` under its dotted key, as plain JSON
+    data (tuples as lists)."""
+    values = json.loads(json.dumps(config.to_dict(), default=str))
+    flat: dict[str, object] = {"mode": values.pop("mode")}
+    for section, fields in values.items():
+        flat.update({f"{section}.{name}": value for name, value in fields.items()})
+    return flat
+
+
+def config_differences(recorded: Config, now: Config) -> list[str]:
+    """``"key=RECORDED (now NOW)"`` for each field outside :data:`RESUMABLE` in which ``now`` differs from
+    ``recorded`` (a checkpoint's config), in the config's order (``mode``, ``model.*``, ``data.*``, ``train.*``)."""
+    before, after = _fields(recorded), _fields(now)
+    return [f"{key}={json.dumps(before[key])} (now {json.dumps(after[key])})" for key in before
+            if key not in RESUMABLE and before[key] != after.get(key)]
+
+
+class TrainingDiverged(ValueError):
+    """A step's loss or weights went non-finite: the run stops and saves nothing (``last.pt`` stays the last
+    good checkpoint). A ValueError, so the command prints it as one line and exits with status 2."""
+
+
+def nonfinite_terms(terms: dict[str, float]) -> list[str]:
+    """The names of the loss terms (``{name: value}``) that are NaN or infinite, in ``terms``' order.
+
+    >>> nonfinite_terms({"total": float("nan"), "teacher": 0.5, "twist": float("inf")})
+    ['total', 'twist']
+    """
+    return [name for name, value in terms.items() if not np.isfinite(value)]
 
 
 def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[int]:
@@ -209,15 +308,18 @@ class Trainer:
                 self.teacher = teacher.to(self.device).eval().requires_grad_(False)
         self.optimizer = torch.optim.AdamW(self.model.parameters(), lr=tc.lr, weight_decay=tc.weight_decay)
         self.step = 0
+        self.saved_step: int | None = None   # the step of the good checkpoint in out/last.pt, if any
+        ckpt = None
         if resume and (self.out / "last.pt").is_file():
             ckpt = load_checkpoint(self.out / "last.pt")
+            self._check_resumed_config(ckpt)
             _load_weights(self.model, ckpt["model"], str(self.out / "last.pt"))
             try:
                 self.optimizer.load_state_dict(ckpt["optimizer"])
             except (ValueError, KeyError, TypeError) as error:
                 raise CheckpointError(f"{self.out / 'last.pt'}: its optimizer state does not fit this run "
                                       f"({error})") from None
-            self.step = int(ckpt["step"])
+            self.step = self.saved_step = int(ckpt["step"])
             set_rng_state(ckpt["rng"])
         self.net = self.model
         if self.world > 1:
@@ -236,6 +338,8 @@ class Trainer:
             raise ValueError("--mode teacher learns from ground-truth depth (gt/depth, as cmax scene writes it) and "
                              "none of data.files holds it (or each says use_gt: false): its loss would be 0 at every "
                              "step; give labelled files, or train --mode finetune / student on unlabelled ones")
+        if ckpt is not None:
+            self._check_data_order(ckpt.get("data_order"))
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model).to(self.device)
         self.validation = None
@@ -246,14 +350,48 @@ class Trainer:
                 raise ValueError(f"data.val_files hold no window: {_no_window(val)}")
             picks = np.unique(np.linspace(0, len(val) - 1, min(dc.val_windows, len(val))).round().astype(int))
             self.validation = (val, picks.tolist())
-        self.log = self._logger() if self.rank == 0 else None
+        self.resumed = resume
+        if resume and self.rank == 0:   # the steps a killed run logged after its checkpoint are run again
+            drop_log_lines_after(self.out / "log.jsonl", self.step)
+        self.log = None   # TensorBoard's writer, opened by run() (a run with nothing to train writes nothing)
+
+    # -- resuming -----------------------------------------------------------------------------
+    def _check_resumed_config(self, ckpt: dict) -> None:
+        """Refuse (ValueError, one line naming the fields) to resume ``out/last.pt`` under a config whose fields
+        outside :data:`RESUMABLE` differ from the ones it was written with."""
+        path = self.out / "last.pt"
+        try:
+            recorded = config_from_dict(ckpt["config"])
+        except (TypeError, ValueError) as error:
+            raise CheckpointError(f"{path}: its config is not valid: {error}") from None
+        differ = config_differences(recorded, self.config)
+        if differ:
+            raise ValueError(f"--resume: {path} was written with other settings than this run's: "
+                             f"{', '.join(differ)}; repeat the settings of the run that wrote it, or start afresh "
+                             f"with --overwrite or another train.out")
+
+    def _check_data_order(self, order: object) -> None:
+        """Refuse to resume when the checkpoint's ``data_order`` (seed, batch size, windows in the data set) is not
+        this run's: the batches of the steps still to run would not be the ones the first run would have taken."""
+        if not isinstance(order, dict):   # checkpoints of earlier versions store none
+            return
+        now = {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
+               "dataset_size": len(self.dataset)}
+        differ = [f"{key} {order.get(key)!r} (now {value!r})" for key, value in now.items() if order.get(key) != value]
+        if differ:
+            raise ValueError(f"--resume: {self.out / 'last.pt'} was trained on another data order: "
+                             f"{', '.join(differ)} (dataset_size: the windows data.files hold; a file changed?); "
+                             f"the resumed steps would take other batches: start afresh with --overwrite or "
+                             f"another train.out")
 
     # -- logging ------------------------------------------------------------------------------
     def _logger(self):
-        """TensorBoard's writer when it is installed (scalars always go to ``log.jsonl`` too), else None."""
+        """TensorBoard's writer on ``out/tb`` when it is installed (scalars always go to ``log.jsonl`` too), else
+        None."""
         try:
             from torch.utils.tensorboard import SummaryWriter
-            return SummaryWriter(str(self.out / "tb"))
+            # resumed: TensorBoard drops the events of the steps after the checkpoint (a killed run's)
+            return SummaryWriter(str(self.out / "tb"), purge_step=self.step + 1 if self.resumed else None)
         except ImportError:
             return None
 
@@ -276,7 +414,8 @@ class Trainer:
         sums: dict[str, float] = {}
         for start in range(0, len(picks), self.config.train.batch_size):
             chosen = picks[start: start + self.config.train.batch_size]
-            loss, terms, _ = self.loss(on_device(collate([dataset[i] for i in chosen]), self.device), net=self.model)
+            loss, terms, _ = self.loss(on_device(collate([dataset[i] for i in chosen]), self.device), net=self.model,
+                                       size=(dataset.width, dataset.height))
             for key, value in {"loss": float(loss), **terms}.items():
                 sums[key] = sums.get(key, 0.0) + value * len(chosen)
         return {f"val/{key}": value / len(picks) for key, value in sums.items()}
@@ -317,8 +456,12 @@ class Trainer:
             yield on_device(collate([self.dataset[i] for i in local]), self.device)
             step += 1
 
-    def loss(self, batch: dict[str, torch.Tensor], net: torch.nn.Module | None = None):
-        """``(loss, terms, output)`` of one batch under the run's mode (``net``: default the trained one)."""
+    def loss(self, batch: dict[str, torch.Tensor], net: torch.nn.Module | None = None,
+             size: tuple[int, int] | None = None):
+        """``(loss, terms, output)`` of one batch under the run's mode (``net``: default the trained one).
+
+        ``size``: ``(width, height)`` [px] of the sensor the batch's events come from (default the training
+        files'; a validation batch gives its own files', which may differ)."""
         tc, mode = self.config.train, self.config.mode
         output = (self.net if net is None else net)(batch["volume"])
         if mode == "teacher":
@@ -339,7 +482,8 @@ class Trainer:
         if self.teacher is not None:
             with torch.no_grad():
                 teacher_rho = self.teacher(batch["volume"]).inverse_depth
-        events = _events(batch, self.dataset.width, self.dataset.height)
+        width, height = size if size is not None else (self.dataset.width, self.dataset.height)
+        events = _events(batch, width, height)
         twist = output.twist
         if tc.contrast_twist == "truth":   # the ablation: the motion known where the file gives it
             twist = torch.where(batch["has_twist"][:, None], batch["twist"].to(twist.dtype), twist)
@@ -354,13 +498,50 @@ class Trainer:
                    "config": self.config.to_dict(), "rng": rng_state(),
                    "data_order": {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
                                   "dataset_size": len(self.dataset)}}
-        return save_checkpoint(self.out / "last.pt", payload)
+        written = save_checkpoint(self.out / "last.pt", payload)
+        self.saved_step = self.step
+        return written
+
+    def _kept(self) -> str:
+        """What stays in ``train.out`` when the run stops (the end of a :class:`TrainingDiverged` message)."""
+        if self.saved_step is None:
+            return "no checkpoint had been written yet"
+        return f"the last good checkpoint {self.out / 'last.pt'} (step {self.saved_step}) is kept"
+
+    def _check_loss(self, terms: dict[str, float]) -> None:
+        """Raise :class:`TrainingDiverged` when a loss term (:func:`global_mean` over the ranks: every rank decides
+        alike, as a rank that stopped alone would hang the others) of the step being run (``self.step + 1``) is
+        not finite."""
+        bad = nonfinite_terms(terms)
+        if bad:
+            values = ", ".join(f"loss/{name}={terms[name]:g}" for name in bad)
+            raise TrainingDiverged(f"step {self.step + 1}: the loss is not finite ({values}): training stopped and "
+                                   f"nothing was saved; {self._kept()}; a lower train.lr or gradient clipping "
+                                   f"(train.clip_grad_norm) may keep the run stable")
+
+    def _check_weights(self) -> None:
+        """Raise :class:`TrainingDiverged` when the update of step ``self.step`` left a weight non-finite (the same
+        on every rank: DDP keeps their weights equal)."""
+        state = self.model.state_dict()
+        floats = [tensor for tensor in state.values() if tensor.is_floating_point()]
+        if bool(torch.stack([torch.isfinite(tensor).all() for tensor in floats]).all()):   # one device sync
+            return
+        bad = nonfinite_tensors(state)
+        if bad:
+            raise TrainingDiverged(f"step {self.step}: the update made {len(bad)} weight tensors non-finite (e.g. "
+                                   f"{bad[0]}): training stopped and nothing was saved; {self._kept()}; a lower "
+                                   f"train.lr or gradient clipping (train.clip_grad_norm) may keep the run stable")
 
     def run(self) -> list[float]:
-        """Train from the current step to ``train.steps``; returns the losses of the steps run."""
+        """Train from the current step to ``train.steps``; returns the losses of the steps run (each the global
+        batch's: under ``torchrun`` averaged over the ranks, :func:`global_mean`, as are the logged terms)."""
         tc = self.config.train
+        if self.step >= tc.steps:   # nothing to train (train.steps=0, or a resumed run already there): no write
+            return []
         if self.rank == 0:
             self.out.mkdir(parents=True, exist_ok=True)
+            if self.log is None:
+                self.log = self._logger()
             write_text_atomic(self.out / "config.json", json.dumps(self.config.to_dict(), indent=2, default=str))
         losses = []
         start = self.step
@@ -375,18 +556,21 @@ class Trainer:
                 group["lr"] = learning_rate(self.step, self.config)
             batch = next(batches)
             loss, terms, output = self.loss(batch)
+            logged = global_mean({"total": float(loss.detach()), **terms}, world=self.world, device=self.device)
+            self._check_loss(logged)
             self.optimizer.zero_grad(set_to_none=True)
             loss.backward()
-            if tc.clip_grad_norm > 0:
+            if tc.clip_grad_norm > 0:   # of the averaged gradients: the same on every rank
                 norm = torch.nn.utils.clip_grad_norm_(self.model.parameters(), tc.clip_grad_norm)
-                terms["grad_norm"] = float(norm)
+                logged["grad_norm"] = float(norm)
             self.optimizer.step()
             self.step += 1
-            losses.append(float(loss.detach()))
+            self._check_weights()
+            losses.append(logged["total"])
             bar.update(1)
             bar.set_postfix(loss=f"{losses[-1]:.4f}")
-            if self.step % tc.log_every == 0:
-                self._scalars({f"loss/{k}": v for k, v in {"total": losses[-1], **terms}.items()}
+            if self.step % tc.log_every == 0 or self.step == tc.steps:   # the last step always
+                self._scalars({f"loss/{k}": v for k, v in logged.items()}
                               | {"lr": self.optimizer.param_groups[0]["lr"]})
             if tc.val_every and (self.step % tc.val_every == 0 or self.step == tc.steps) and self.rank == 0:
                 self._scalars(self.validate())
@@ -427,9 +611,19 @@ def main(argv: list[str] | None = None) -> int:
     return run_main(parser, _run, argv)
 
 
-def check_output(out: Path, *, resume: bool, overwrite: bool) -> None:
-    """Refuse ``train.out`` when it is a file, or when it holds an earlier run's ``last.pt`` and neither
-    ``--resume`` (continue it) nor ``--overwrite`` (replace it) says what to do with it.
+def _same_file(a: Path, b: Path) -> bool:
+    """Whether the paths ``a`` and ``b`` name one file (through links and relative parts)."""
+    try:
+        return os.path.samefile(a, b)
+    except OSError:   # one of them does not exist
+        return a.resolve() == b.resolve()
+
+
+def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "") -> None:
+    """Refuse ``train.out`` when it is a file, when its ``last.pt`` is ``teacher`` (the checkpoint a finetune or
+    student run reads: with ``--overwrite`` the run would replace its own teacher, with ``--resume`` continue
+    the teacher's run in another mode), or when it holds an earlier run's ``last.pt`` and neither ``--resume``
+    (continue it) nor ``--overwrite`` (replace it) says what to do with it.
 
     The command runs this check again, and trains, holding the folder's lock (:data:`FOLDER_LOCK`,
     :func:`learned._output.locked_folder`): a second run into the same ``train.out`` meanwhile, ``--resume``
@@ -438,6 +632,9 @@ def check_output(out: Path, *, resume: bool, overwrite: bool) -> None:
         raise FileExistsError(f"train.out {out} is a file: give a folder for last.pt, config.json and log.jsonl")
     if resume and overwrite:
         raise ValueError("--resume continues the run in train.out, --overwrite replaces it: give one of them")
+    if teacher and _same_file(out / "last.pt", Path(teacher)):
+        raise ValueError(f"train.teacher {teacher} is {out / 'last.pt'}, the checkpoint this run writes: it would "
+                         f"replace (or, with --resume, continue) its own teacher; give another train.out")
     if not resume and not overwrite and (out / "last.pt").is_file():
         raise FileExistsError(f"{out / 'last.pt'} exists (an earlier run): --resume continues it, --overwrite "
                               "starts afresh over it, or give another train.out=FOLDER")
@@ -446,18 +643,20 @@ def check_output(out: Path, *, resume: bool, overwrite: bool) -> None:
 def _run(args: argparse.Namespace) -> int:
     config = load_config(args.config, args.overrides, mode=args.mode)
     out = Path(config.train.out)
-    check_output(out, resume=args.resume, overwrite=args.overwrite)
+    teacher = config.train.teacher if config.mode in ("finetune", "student") else ""
+    check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)
     if int(os.environ.get("RANK", "0")) != 0:   # the other ranks of a torchrun job write nothing
         return _train(args, config, out)
     with locked_folder(out, FOLDER_LOCK):   # one run at a time, from the look at last.pt to the last write
-        check_output(out, resume=args.resume, overwrite=args.overwrite)
+        check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)
         return _train(args, config, out)
 
 
 def _train(args: argparse.Namespace, config: Config, out: Path) -> int:
     rank0 = int(os.environ.get("RANK", "0")) == 0
-    if args.overwrite and rank0:
-        (out / "log.jsonl").unlink(missing_ok=True)   # the new run's learning curves alone
+    if args.overwrite and rank0:   # the new run's learning curves alone
+        (out / "log.jsonl").unlink(missing_ok=True)
+        clear_tensorboard(out / "tb")
     if args.resume and rank0 and not (out / "last.pt").is_file():
         print(f"python -m learned.train: note: --resume, but {out / 'last.pt'} does not exist: starting at step 0",
               file=sys.stderr)
@@ -466,6 +665,8 @@ def _train(args: argparse.Namespace, config: Config, out: Path) -> int:
     if trainer.rank == 0 and losses:
         print(f"{config.mode}: {len(losses)} steps, loss {losses[0]:.4f} -> {losses[-1]:.4f}; "
               f"{trainer.out / 'last.pt'}")
+    elif trainer.rank == 0 and trainer.saved_step is None:   # train.steps=0, nothing resumed
+        print(f"{config.mode}: nothing to train: train.steps={config.train.steps}; give train.steps=N (N >= 1)")
     elif trainer.rank == 0:
         print(f"{config.mode}: nothing to train: {trainer.out / 'last.pt'} is at step {trainer.step} of "
               f"train.steps={config.train.steps}; raise train.steps to train further")

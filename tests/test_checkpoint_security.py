@@ -198,6 +198,23 @@ def test_upgrade_command_needs_the_trust_flag(tmp_path, capsys):
     assert load_checkpoint(tmp_path / "new.pt")["step"] == 3
 
 
+def test_upgrade_of_a_truncated_or_empty_file_is_one_line(tmp_path, capsys):
+    """`python -m learned.checkpoint upgrade` called torch.load unguarded: a 25-line traceback and exit 1."""
+    from learned.checkpoint import main
+
+    torch.save(_payload(), tmp_path / "old.pt")
+    whole = (tmp_path / "old.pt").read_bytes()
+    (tmp_path / "trunc.pt").write_bytes(whole[: len(whole) // 2])
+    (tmp_path / "empty.pt").write_bytes(b"")
+    for name in ("trunc.pt", "empty.pt"):
+        assert main(["upgrade", str(tmp_path / name), str(tmp_path / "new.pt"), "--trust-this-file"]) == 2
+        line = _one_error_line(capsys)
+        assert f"{tmp_path / name} is not a learned checkpoint (torch.load: " in line, line
+        assert not (tmp_path / "new.pt").exists()
+        with pytest.raises(CheckpointError, match="is not a learned checkpoint"):   # was OSError: [Errno 22]
+            load_checkpoint(tmp_path / name)
+
+
 def test_save_checkpoint_never_follows_a_link_planted_at_a_temporary_name(tmp_path):
     """The old fixed name ``<path>.<pid>.partial`` followed a planted link and overwrote its target."""
     import os

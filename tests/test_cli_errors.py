@@ -174,7 +174,7 @@ LEARNED_CASES = [
     ("train", ["--mode", "student", "train.teacher=TEXT", "train.out=OUT"], "is not a learned checkpoint"),
     ("train", ["--mode", "teacher", 'data.files=["TMP/missing.h5"]', "train.out=OUT"], "missing.h5"),
     ("train", ["--mode", "teacher", "--resume", "train.out=DIR", 'data.files=["FILE"]', "model.width=8"],
-     "its weights do not fit the model of this config"),
+     "was written with other settings than this run's: model.width="),
     ("train", ["--mode", "lecturer"], "argument --mode: invalid choice"),
     ("predict", ["FILE", "--checkpoint", "TMP/missing.pt", "-o", "OUT"], "no checkpoint at"),
     ("predict", ["FILE", "--checkpoint", "TEXT", "-o", "OUT"], "is not a learned checkpoint"),

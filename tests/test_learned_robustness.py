@@ -186,6 +186,18 @@ def test_a_killed_runs_private_folder_is_removed_by_the_next_run(slider_file, ti
 
 
 # -- 5. evaluate on a file without ground truth ----------------------------------------------------------------------
+def test_evaluate_on_an_event_file_of_another_format_names_no_config_key(tiny_checkpoint, tmp_path, capsys):
+    """An ECD text file given to learned.evaluate was answered with training's advice ("... give its K in
+    data.files"), a key evaluate does not have."""
+    from learned.evaluate import main
+
+    events = tmp_path / "events.txt"
+    events.write_text("0.001 1 2 1\n0.002 3 4 0\n")
+    status, err = one_line_error(lambda: main(["--checkpoint", str(tiny_checkpoint), "--data", str(events)]), capsys)
+    assert status == 2 and "events.txt is not an HDF5 file: learned.evaluate scores the network against" in err, err
+    assert "data.files" not in err and f"cmax depth {events} -o OUT" in err
+
+
 def test_evaluate_on_a_file_without_ground_truth_says_so(tiny_checkpoint, tmp_path, capsys):
     from cmax.io.h5 import write_h5
     from learned.evaluate import main
@@ -195,3 +207,69 @@ def test_evaluate_on_a_file_without_ground_truth_says_so(tiny_checkpoint, tmp_pa
                                                str(tmp_path / "ev.h5")]), capsys)
     assert status == 2 and "no ground truth to evaluate the network against" in err, err
     assert '{"path"' not in err and f"cmax depth {tmp_path / 'ev.h5'} -o OUT --K" in err
+
+
+# -- 3. non-finite weights (a diverged run's) ------------------------------------------------------------------
+def test_a_checkpoint_with_non_finite_weights_is_never_written_nor_loaded(tiny_checkpoint, slider_file, tmp_path,
+                                                                         capsys):
+    """A diverged run's NaN weights were saved over last.pt, loaded by load_model, and `cmax depth` wrote NaN
+    depths and twists with exit 0."""
+    import torch
+
+    from learned.checkpoint import load_checkpoint, save_checkpoint
+    from learned.evaluate import load_model
+    from learned.predict import main
+
+    ckpt = torch.load(tiny_checkpoint, weights_only=True)
+    ckpt["model"]["heads.0.bias"] = torch.full_like(ckpt["model"]["heads.0.bias"], float("nan"))
+    nan_file = tmp_path / "nan.pt"
+    torch.save(ckpt, nan_file)                      # as the earlier version wrote it
+    for load in (load_checkpoint, load_model):
+        with pytest.raises(ValueError, match=r"nan\.pt was refused: 1 of its 24 weight tensors hold NaN or "
+                                             r"infinite values \(e\.g\. heads\.0\.bias\)"):
+            load(nan_file)
+    status, err = one_line_error(lambda: main([str(slider_file), "-o", str(tmp_path / "out"), "--checkpoint",
+                                               str(nan_file), "--quiet"]), capsys)
+    assert status == 2 and "nan.pt was refused" in err and "diverged" in err, err
+    assert not (tmp_path / "out").exists()
+    before = tiny_checkpoint.read_bytes()
+    with pytest.raises(ValueError, match="was not written: 1 of its 24 weight tensors hold NaN"):
+        save_checkpoint(tiny_checkpoint, {key: ckpt[key] for key in ("model", "optimizer", "step", "config", "rng")})
+    assert tiny_checkpoint.read_bytes() == before
+
+
+# -- 4. run_prediction's arguments, checked as the command line checks them -------------------------------------------
+def test_run_prediction_checks_K_and_the_times_as_the_command_line_does(tiny_checkpoint, slider_file, tmp_path):
+    """A 4-number K crashed (IndexError), a NaN or transposed K was stored in every window and summary.json,
+    window_s="0.05" failed inside numpy; each is one line before any work, and [fx, fy, cx, cy] is accepted."""
+    import h5py
+    import numpy as np
+
+    from learned.predict import run_prediction
+
+    with h5py.File(slider_file, "r") as f:
+        K = f["gt/K"][()]
+    fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
+    run = run_prediction(slider_file, tmp_path / "four", checkpoint=tiny_checkpoint, K=[fx, fy, cx, cy],
+                         progress=False, note=lambda text: None)
+    assert run.windows >= 1
+    assert np.allclose(json.loads((tmp_path / "four" / "summary.json").read_text())["K"], K)
+    nan_K = K.copy()
+    nan_K[0, 0] = np.nan
+    bad = [({"K": nan_K}, ValueError, "K must be finite"),
+           ({"K": K.T}, ValueError, r"K must have the form \[\[fx, s, cx\], \[0, fy, cy\], \[0, 0, 1\]\]"),
+           ({"K": [fx, -fy, cx, cy]}, ValueError, "K must have positive focal lengths"),
+           ({"K": [fx, fy, cx]}, ValueError, r"K must be a 3x3 matrix, got shape \(3,\)"),
+           ({"K": "fx"}, TypeError, "K must be"),
+           ({"window_s": "0.05"}, TypeError, r"window_s must be a number of seconds, got '0.05' \(str\)"),
+           ({"window_s": True}, TypeError, "window_s must be a number of seconds"),
+           ({"window_s": float("nan")}, ValueError, "window_s must be a finite number of seconds > 0"),
+           ({"t0_s": -1.0}, ValueError, "t0_s must be a finite number of seconds >= 0"),
+           ({"t1_s": "1"}, TypeError, "t1_s must be a number of seconds"),
+           ({"depth_range": "0.4,3"}, TypeError, r"depth_range must be \(near, far\) in metres")]
+    for kwargs, kind, message in bad:
+        out = tmp_path / "refused"
+        with pytest.raises(kind, match=message) as caught:
+            run_prediction(slider_file, out, checkpoint=tiny_checkpoint, progress=False, note=lambda text: None,
+                           **kwargs)
+        assert "\n" not in str(caught.value) and not out.exists(), (kwargs, caught.value)

@@ -155,7 +155,8 @@ def test_sigkill_leaves_a_loadable_checkpoint_and_resume_continues(scene_file, t
 @pytest.mark.skipif(shutil.which("torchrun", path=os.path.dirname(sys.executable)) is None,
                     reason="torchrun not installed beside the Python interpreter")
 def test_torchrun_two_processes_match_one(scene_file, tmp_path):
-    """Two gloo ranks, 2 windows each, equal one process with the global batch of 4 (to float tolerance)."""
+    """Two gloo ranks, 2 windows each, equal one process with the global batch of 4 (to float tolerance): the
+    weights, and the losses logged in log.jsonl."""
     extra = ("train.steps=3", "data.augment=false")
     torchrun = os.path.join(os.path.dirname(sys.executable), "torchrun")
     env = {**os.environ, "OMP_NUM_THREADS": "1"}
@@ -168,6 +169,16 @@ def test_torchrun_two_processes_match_one(scene_file, tmp_path):
     for key in a:
         torch.testing.assert_close(a[key], b[key], rtol=1e-4, atol=1e-5)
     assert not torch.equal(a["stem.0.weight"], load_checkpoint(tmp_path / "one" / "last.pt")["model"]["stem.0.weight"] * 0)
+    # the logged losses are the global batch's (they were rank 0's half batch: 0.48 against 1.10 in the report)
+    import json
+
+    logs = [[json.loads(line) for line in (tmp_path / run / "log.jsonl").read_text().splitlines()]
+            for run in ("ddp", "one")]
+    assert [line["step"] for line in logs[0]] == [line["step"] for line in logs[1]] == [1, 2, 3]
+    for ddp, one in zip(*logs):
+        assert set(ddp) == set(one) and {"loss/total", "loss/teacher", "loss/twist"} <= set(one)
+        for key in one:
+            assert ddp[key] == pytest.approx(one[key], rel=1e-4, abs=1e-6), (key, ddp, one)
 
 
 def test_links_planted_in_the_output_folder_are_not_followed(scene_file, tmp_path):
@@ -320,3 +331,181 @@ def test_a_step_on_the_training_device_moves_the_batch_model_and_teacher(scene_f
         assert all(v.device == trainer.device for v in next(trainer._batches()).values() if torch.is_tensor(v))
         runs[device] = trainer.run()
     assert runs["cpu"] == runs["auto"]
+
+
+def test_a_diverging_run_stops_and_keeps_the_last_good_checkpoint(scene_file, tmp_path, capsys):
+    """lr=1e8 without clipping: the loss goes NaN after a few steps. The run went on, replaced last.pt with NaN
+    weights at every checkpoint and ended with exit 0; it must stop at the first non-finite step, name it and
+    the terms, and leave last.pt as the last finite checkpoint."""
+    import json
+
+    args = ["--mode", "teacher", "--no-progress",
+            *tiny(scene_file, tmp_path, "train.steps=12", "train.lr=1e8", "train.clip_grad_norm=0",
+                  "train.checkpoint_every=1")]
+    assert main(args) == 2
+    err = capsys.readouterr().err.strip()
+    assert "\n" not in err and "training stopped and nothing was saved" in err, err
+    step = int(err.split("error: step ")[1].split(":")[0])
+    kept = load_checkpoint(tmp_path / "last.pt")   # loads: every weight finite
+    assert kept["step"] == step - 1 and f"(step {step - 1}) is kept" in err, err
+    assert all(torch.isfinite(t).all() for t in kept["model"].values() if t.is_floating_point())
+    assert "the loss is not finite (loss/total=nan" in err or "weight tensors non-finite" in err, err
+    logged = [json.loads(line)["step"] for line in (tmp_path / "log.jsonl").read_text().splitlines()]
+    assert max(logged) < step                        # the failed step is not in the learning curve
+
+
+def test_resume_refuses_a_run_that_differs_from_the_checkpoint(scene_file, slider_file, tmp_path, capsys):
+    """--resume continued a teacher run as a student, or with other data, seed, batch and lr, with exit 0 and no
+    note (and overwrote config.json); another model config gave a raw load_state_dict dump. Each is refused in
+    one line naming the fields (recorded, now); steps, logging and checkpoint intervals may change."""
+    import hashlib
+
+    from conftest import one_line_error
+
+    data = tmp_path / "data.h5"
+    shutil.copyfile(scene_file, data)
+    out = tmp_path / "run"
+    first = ["--mode", "teacher", "--no-progress", *tiny(data, out, "train.steps=2")]
+    assert main(first) == 0
+    capsys.readouterr()
+    digest = hashlib.md5((out / "last.pt").read_bytes()).hexdigest()
+    config_json = (out / "config.json").read_text()
+    cases = [
+        (["--mode", "student", f"train.teacher={ROOT / 'learned' / 'pretrained' / 'student.pt'}"],
+         ['mode="teacher" (now "student")', 'train.teacher="" (now "']),
+        (["--mode", "teacher", "train.batch_size=2", "train.seed=9", "train.lr=0.5", f'data.files=["{scene_file}"]'],
+         [f'data.files=["{data}"] (now ["{scene_file}"])', "train.batch_size=4 (now 2)", "train.lr=0.003 (now 0.5)",
+          "train.seed=0 (now 9)"]),
+        (["--mode", "teacher", "model.width=8"], ["model.width=4 (now 8)"]),
+    ]
+    for extra, expected in cases:
+        mode, rest = extra[:2], extra[2:]
+        args = [*mode, "--no-progress", "--resume", *tiny(data, out, "train.steps=4"), *rest]
+        status, err = one_line_error(lambda: main(args), capsys)
+        assert status == 2 and "was written with other settings than this run's" in err, err
+        assert all(text in err for text in expected), (expected, err)
+        assert "Missing key" not in err and "state_dict" not in err
+    # what does not change the steps still to run may change
+    assert main(["--mode", "teacher", "--no-progress", "--resume",
+                 *tiny(data, out, "train.steps=3", "train.log_every=2", "train.checkpoint_every=5")]) == 0
+    capsys.readouterr()
+    assert load_checkpoint(out / "last.pt")["step"] == 3
+    assert hashlib.md5((out / "last.pt").read_bytes()).hexdigest() != digest and config_json
+    # the same settings over files that changed: the stored data order no longer fits
+    shutil.copyfile(slider_file, data)
+    status, err = one_line_error(lambda: main(["--mode", "teacher", "--no-progress", "--resume",
+                                               *tiny(data, out, "train.steps=4")]), capsys)
+    assert status == 2 and "was trained on another data order: dataset_size" in err, err
+
+
+def test_a_run_never_writes_over_its_own_teacher(scene_file, tmp_path, capsys):
+    """train.teacher=runs/tt/last.pt train.out=runs/tt --overwrite replaced the teacher with the finetune's
+    checkpoint; the refusal without --overwrite did not say that the file is the teacher."""
+    from conftest import one_line_error
+
+    out = tmp_path / "tt"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=1")]) == 0
+    capsys.readouterr()
+    before = (out / "last.pt").read_bytes()
+    for mode in ("finetune", "student"):
+        for flags in ([], ["--overwrite"], ["--resume"]):
+            args = ["--mode", mode, "--no-progress", *flags,
+                    *tiny(scene_file, out, "train.steps=2", f"train.teacher={out / '.' / 'last.pt'}")]
+            status, err = one_line_error(lambda: main(args), capsys)
+            assert status == 2 and f"is {out / 'last.pt'}, the checkpoint this run writes" in err, err
+            assert "own teacher" in err
+    assert (out / "last.pt").read_bytes() == before
+
+
+def test_validation_uses_the_sensor_size_of_its_own_files(scene_file, slider_file, tmp_path):
+    """The contrast loss of a validation batch was built with the TRAINING files' sensor size: validating 64x48
+    files while training on 48x36 ones failed after the first step ("inverse_depth grid ... is finer than the
+    image"), and the other way round gave a silently different validation loss."""
+    import json
+
+    teacher = tmp_path / "teacher"
+    Trainer(load_config(None, tiny(scene_file, teacher, "train.steps=1"), mode="teacher"), progress=False).run()
+    for train_file, val_file in ((scene_file, slider_file), (slider_file, scene_file)):
+        out = tmp_path / f"{train_file.stem}_{val_file.stem}"
+        config = load_config(None, tiny(train_file, out, "train.steps=1", "train.val_every=1", "data.val_windows=2",
+                                        f'data.val_files=["{val_file}"]', f"train.teacher={teacher / 'last.pt'}"),
+                             mode="finetune")
+        trainer = Trainer(config, progress=False)
+        trainer.run()
+        logged = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+        val = [line["val/loss"] for line in logged if "val/loss" in line]
+        dataset, picks = trainer.validation
+        assert (dataset.width, dataset.height) != (trainer.dataset.width, trainer.dataset.height)
+        batch = collate_items(dataset, picks)
+        loss, _, _ = trainer.loss(batch, net=trainer.model, size=(dataset.width, dataset.height))
+        assert val == [pytest.approx(float(loss), rel=1e-5)]
+
+
+def _tensorboard(folder: Path, tag: str) -> list[tuple[int, float]]:
+    from tensorboard.backend.event_processing.event_accumulator import EventAccumulator
+
+    events = EventAccumulator(str(folder)).Reload()
+    return [(event.step, round(event.value, 6)) for event in events.Scalars(tag)]
+
+
+def test_overwrite_and_resume_keep_one_run_in_the_learning_curves(scene_file, tmp_path):
+    """--overwrite kept the old run's TensorBoard events beside the new ones (lr: 0.1, 0.1, 0.1, then 1e-4 ...);
+    --resume after a kill logged the steps after the checkpoint twice in log.jsonl (nor purged TensorBoard)."""
+    import json
+
+    pytest.importorskip("tensorboard")
+    out = tmp_path / "run"
+    run = ["--mode", "teacher", "--no-progress"]
+    assert main([*run, *tiny(scene_file, out, "train.steps=3", "train.lr=0.1")]) == 0
+    assert main([*run, "--overwrite", *tiny(scene_file, out, "train.steps=3")]) == 0
+    assert _tensorboard(out / "tb", "lr") == [(1, 0.003), (2, 0.003), (3, 0.003)]
+    assert [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()] == [1, 2, 3]
+    # a kill after step 5 was logged and before its checkpoint: last.pt at step 4, log.jsonl up to step 5
+    assert main([*run, "--resume", *tiny(scene_file, out, "train.steps=4")]) == 0
+    at_four = (out / "last.pt").read_bytes()
+    assert main([*run, "--resume", *tiny(scene_file, out, "train.steps=5")]) == 0
+    (out / "last.pt").write_bytes(at_four)
+    with open(out / "log.jsonl", "a") as log:
+        log.write('{"step": 6, "loss/to')                      # the half-written line of the killed run
+    assert main([*run, "--resume", *tiny(scene_file, out, "train.steps=6")]) == 0
+    lines = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert [line["step"] for line in lines] == [1, 2, 3, 4, 5, 6]
+    assert [step for step, _ in _tensorboard(out / "tb", "loss/total")] == [1, 2, 3, 4, 5, 6]
+
+
+def test_settings_that_did_nothing_or_said_the_wrong_thing(scene_file, tmp_path, capsys):
+    """data.workers was checked and never used; a run shorter than train.log_every logged nothing (the last step
+    only when steps % log_every == 0); train.steps=0 spoke of a last.pt that did not exist; a labelled file's
+    own K in data.files was silently replaced by its gt/K."""
+    import dataclasses
+    import json
+    import warnings
+
+    from learned.config import DataConfig, config_from_dict
+    from learned.data import H5WindowDataset
+
+    # data.workers: gone; an old config or checkpoint that stores it at 0 loads quietly, another value warns
+    assert "workers" not in {f.name for f in dataclasses.fields(DataConfig)}
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert load_config(None, ["data.workers=0"]).data == DataConfig()
+        assert config_from_dict({"data": {"workers": 0, "window_us": 5000}}).data.window_us == 5000
+    with pytest.warns(UserWarning, match=r"data\.workers=4 is ignored: data\.workers is no longer a setting"):
+        load_config(None, ["data.workers=4"])
+    # the last step is logged whatever train.log_every
+    out = tmp_path / "short"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=3", "train.log_every=10")]) == 0
+    assert [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()] == [3]
+    capsys.readouterr()
+    # train.steps=0 on a new folder: says so, writes nothing
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, tmp_path / "zero", "train.steps=0")]) == 0
+    assert capsys.readouterr().out == "teacher: nothing to train: train.steps=0; give train.steps=N (N >= 1)\n"
+    assert not (tmp_path / "zero").exists()
+    # K in a labelled file's entry: the same as its gt/K is fine, another one is refused, use_gt false honours it
+    gt_K = H5WindowDataset([scene_file], window_us=100_000)._gt[0]["K"]
+    H5WindowDataset([{"path": str(scene_file), "K": gt_K.tolist()}], window_us=100_000)
+    other = [50.0, 50.0, 24.0, 18.0]
+    with pytest.raises(ValueError, match=r"its entry gives K .* but its ground truth .* was made with its gt/K"):
+        H5WindowDataset([{"path": str(scene_file), "K": other}], window_us=100_000)
+    hidden = H5WindowDataset([{"path": str(scene_file), "K": other, "use_gt": False}], window_us=100_000)
+    assert np.allclose(hidden.sample(0).K, [[50, 0, 24], [0, 50, 18], [0, 0, 1]])
