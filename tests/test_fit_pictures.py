@@ -62,21 +62,14 @@ def test_fit_result_plot_has_a_colour_bar_and_hatches_pixels_without_depth(tmp_p
     assert np.array_equal(result.image(depth_scale=(1.0, 4.0), zoom=1), picture)
 
 
-def test_a_fit_result_is_read_only_and_its_picture_readable_on_a_small_sensor(tmp_path):
-    """``FitResult`` is frozen, and so are its arrays (``r.depth[~r.mask] = 0`` edited the result); the picture of a
-    96x72 fit is enlarged by default (it was 275 px wide, its colour-bar labels overlapping) and its titles carry
-    the verdict."""
+def test_a_fit_results_picture_is_readable_on_a_small_sensor(tmp_path):
+    """The picture of a 96x72 fit is enlarged by default (it was 275 px wide, its colour-bar labels overlapping) and
+    its titles carry the verdict."""
     from benchmarks.synthetic_windows import make_window
     from cmax.fitting import fit
 
     w = make_window("slider", 1, width=96, height=72, focal=70.0, duration_s=0.1, max_frames=40)
     r = fit(w.events, w.K, speed=float(np.linalg.norm(w.twist[:3])), depth_range=(0.5, 8.0))
-    with pytest.raises(ValueError, match="read-only"):
-        r.v[0] = 99.0
-    with pytest.raises(ValueError, match="read-only"):
-        r.depth[~r.mask] = 0.0
-    depth = r.depth.copy()
-    depth[~r.mask] = 0.0                                   # a copy is the user's own
     small, default = r.image(zoom=1), r.image()
     zoom = viz.readable_zoom(96)
     assert zoom > 1 and default.shape[1] > 2 * small.shape[1]

@@ -175,15 +175,6 @@ class FitResult:
     quality: Quality | None = None
     hot_pixels: np.ndarray = field(default_factory=no_pixels)
 
-    def __post_init__(self) -> None:
-        # Frozen means frozen: the arrays are read-only views (``r.depth[~r.mask] = 0`` would edit the result, and
-        # ``T`` would no longer match ``v`` after ``r.v[0] = 1``); ``r.depth.copy()`` gives a writable one.
-        for name, value in vars(self).items():
-            if isinstance(value, np.ndarray) and value.flags.writeable:
-                view = value.view()
-                view.flags.writeable = False
-                object.__setattr__(self, name, view)
-
     @property
     def verdict(self) -> Verdict | None:
         """``quality.verdict``: ok, ambiguous, low_parallax or failed."""
