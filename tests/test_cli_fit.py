@@ -36,6 +36,13 @@ intrinsics:
 """
 
 
+def noise_events(n: int, span_us: int, seed: int) -> Events:
+    """``n`` events at random pixels of a 64x48 sensor and random times in ``[0, span_us)`` µs: no motion."""
+    rng = np.random.default_rng(seed)
+    return Events(rng.integers(0, 64, n), rng.integers(0, 48, n), np.sort(rng.integers(0, span_us, n)),
+                  rng.integers(0, 2, n), 64, 48)
+
+
 def test_calibration_files(tmp_path):
     ecd = tmp_path / "calib.txt"
     ecd.write_text("199.09 199.09 132.19 110.14 -0.368 0.150 -0.0003 -0.0002 0.0\n")
@@ -121,9 +128,7 @@ def test_fit_options_short_recording_and_gyro_overlap(slider, tmp_path, capsys):
 
 
 def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
-    rng = np.random.default_rng(1)
-    events = Events(rng.integers(0, 64, 300), rng.integers(0, 48, 300), np.sort(rng.integers(0, 50_000, 300)),
-                    rng.integers(0, 2, 300), 64, 48)
+    events = noise_events(300, 50_000, seed=1)
     path = write_h5(tmp_path / "few.h5", events)
     assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet"]) == 1
     captured = capsys.readouterr()
@@ -168,9 +173,7 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     ([], "stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib"),
 ])
 def test_fit_option_errors_are_one_line(tmp_path, capsys, extra, message):
-    rng = np.random.default_rng(1)
-    events = Events(rng.integers(0, 64, 300), rng.integers(0, 48, 300), np.sort(rng.integers(0, 50_000, 300)),
-                    rng.integers(0, 2, 300), 64, 48)
+    events = noise_events(300, 50_000, seed=1)
     path = write_h5(tmp_path / "ev.h5", events)
     (tmp_path / "calib.txt").write_text("60 60 32 24\n")
     (tmp_path / "cam_to_cam.yaml").write_text(DSEC_YAML)
@@ -432,10 +435,7 @@ def test_a_window_where_the_camera_stops_is_called_unsteady_and_a_shorter_window
 def test_a_calibration_file_beside_the_events_is_named_not_read(tmp_path, capsys):
     """An ECD folder ships calib.txt beside its events: `cmax fit --K` (a pinhole) says it is there and how to
     use it, and does not read it; with --calib the note goes."""
-    rng = np.random.default_rng(3)
-    n = 3000
-    events = Events(rng.integers(0, 64, n), rng.integers(0, 48, n), np.sort(rng.integers(0, 100_000, n)),
-                    rng.integers(0, 2, n), 64, 48)
+    events = noise_events(3000, 100_000, seed=3)
     path = write_h5(tmp_path / "ev.h5", events)
     calib = tmp_path / "calib.txt"
     calib.write_text("60 60 32 24 -0.1 0.05 0 0 0\n")
@@ -619,10 +619,7 @@ def test_a_second_run_into_the_same_folder_never_mixes_with_the_first(tmp_path, 
     refused; no private folder or lock is left behind."""
     from cmax.io.atomic import PathLock
 
-    rng = np.random.default_rng(3)
-    n = 2400
-    events = Events(rng.integers(0, 64, n), rng.integers(0, 48, n), np.sort(rng.integers(0, 50_000, n)),
-                    rng.integers(0, 2, n), 64, 48)
+    events = noise_events(2400, 50_000, seed=3)
     path = write_h5(tmp_path / "ev.h5", events)
     out = tmp_path / "o"
     base = ["fit", str(path), "--K", "60,60,32,24", "-o", str(out), "--quiet", "--min-events", "300",
