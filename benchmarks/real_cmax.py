@@ -175,11 +175,14 @@ def flicker_share(events) -> tuple[float, float]:
 def pegboard(data: Path) -> tuple[list[str], np.ndarray]:
     """Rotation windows against the gyro and the APS frames; returns markdown lines and a picture."""
     from cmax.fitting import FitSettings
-    from cmax.io import read, read_aedat4_imu
+    from cmax.io import read, read_gyro
     from cmax.io.aedat4 import read_aedat4_frames
+    from cmax.io.gyro import IMU_AXES
 
     path = data / "davis346_pegboard" / "davis.aedat4"
-    events, imu, frames = read(path), read_aedat4_imu(path), read_aedat4_frames(path)
+    events, frames = read(path), read_aedat4_frames(path)
+    gyro_t, gyro_rad = read_gyro(path)          # camera axes (a DAVIS's IMU turned by IMU_AXES["DAVIS"])
+    gyro_deg = np.degrees(gyro_rad)
     t0 = int(events.t[0])
     mid = (frames.t_exposure_start + frames.t_exposure_end) // 2
     aps_windows = {(3, 43): (0, 1), (43, 83): (1, 2), (3, 83): (0, 2)}  # APS exposure midpoints at 3, 43, 83 ms
@@ -194,9 +197,10 @@ def pegboard(data: Path) -> tuple[list[str], np.ndarray]:
     deg = np.degrees
     lines = ["## DAVIS346 pegboard (rotation against gyro and APS frames)", "",
              f"{len(events)} events, {(events.t[-1] - t0) / 1e3:.0f} ms. Assumed K = MVSEC DAVIS346 left "
-             "(fx 226.38, fy 226.15, cx 173.64, cy 133.73), IMU axes = camera axes. Gyro mean over the recording "
-             f"{np.round(imu.gyroscope.mean(0).astype(float), 2).tolist()} deg/s "
-             f"(std {np.round(imu.gyroscope.std(0).astype(float), 2).tolist()}).",
+             "(fx 226.38, fy 226.15, cx 173.64, cy 133.73); the gyro in camera axes, the IMU's turned by "
+             f"{IMU_AXES['DAVIS']} (`cmax.io.read_gyro`, as rpg_dvs_ros's DAVIS driver turns them; before "
+             "2026-12-04 these tables took the IMU's axes as the camera's). Gyro mean over the recording "
+             f"{np.round(gyro_deg.mean(0), 2).tolist()} deg/s (std {np.round(gyro_deg.std(0), 2).tolist()}).",
              "",
              f"APS exposure midpoints at {np.round((mid - t0) / 1e3, 1).tolist()} ms. "
              "The APS reference: the rotation between two APS frames fitted directly (3 parameters, photometric "
@@ -226,8 +230,8 @@ def pegboard(data: Path) -> tuple[list[str], np.ndarray]:
     fmt = lambda v: "" if v is None else str(np.round(v, 2).tolist())  # noqa: E731
     for a, b in PEGBOARD_WINDOWS_MS:
         window = events.slice_time(t0 + a * 1000, t0 + b * 1000 + 1)
-        inside = (imu.t >= window.t[0]) & (imu.t <= window.t[-1])
-        gyro = imu.gyroscope[inside].mean(0).astype(float)
+        inside = (gyro_t >= window.t[0]) & (gyro_t <= window.t[-1])
+        gyro = gyro_deg[inside].mean(0)
         results, seconds = [], []
         for seed in PEGBOARD_FIT_SEEDS:
             start = time.perf_counter()

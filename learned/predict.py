@@ -658,10 +658,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="checkpoint of learned.train (default: the model shipped in learned/pretrained)")
     add_camera_options(parser, distortion_help=": events are undistorted to the nearest pixel first")
-    add_recording_arguments(parser)
-    parser.add_argument("--polarity", choices=("01", "signed"), default=None,
-                        help="polarity encoding of an h5, text or .npy file: 01 (0 OFF, 1 ON) or signed "
-                             "(-1 OFF, +1 ON) (default: 01; never guessed)")
+    add_recording_arguments(parser)      # --size, --time-unit, --polarity, --t0, --t1, --sort
     parser.add_argument("--window", type=positive_float, default=None,
                         help="window length [s] (default: the checkpoint config's data.window_us)")
     parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,

@@ -579,6 +579,8 @@ def test_a_whole_h5_file_too_long_to_hold_is_fitted_window_by_window(tmp_path, c
     (["--omega", "0,0,0", "--gyro", "g.txt"], "--omega is a constant rotation, --gyro a measured one"),
     (["--depth-range", "3,1"], "--depth-range must satisfy 0 < near < far (metres), got (3.0, 1.0)"),
     (["--max-events", "5"], "--max-events must be >= 10, got 5"),
+    (["--gyro-axes=-x,y,-z"], "--gyro-axes turns the readings of --gyro: pass --gyro too"),
+    (["--gyro", "g.txt", "--gyro-axes", "x,x,z"], "--gyro-axes: gyro axes must name each IMU axis once"),
 ])
 def test_options_are_checked_before_the_file_is_read_in_the_options_words(tmp_path, capsys, options, message):
     """A contradicting or bad option is named at once, as the option (was: after reading the file, as the library's
@@ -643,3 +645,17 @@ def test_a_second_run_into_the_same_folder_never_mixes_with_the_first(tmp_path, 
         capsys.readouterr()
         assert main([*base, "--window-ms", "25", "--overwrite"]) == 2
         assert "being written by another writer" in capsys.readouterr().err
+
+
+def test_a_signed_polarity_file_is_fitted_with_polarity_signed(tmp_path, capsys):
+    """The reader's error advised ``--polarity signed``, which ``cmax fit`` did not have (unrecognized arguments)."""
+    events = noise_events(600, 50_000, seed=4)
+    table = np.zeros(len(events), [("x", "<u2"), ("y", "<u2"), ("t", "<i8"), ("p", "<i1")])
+    table["x"], table["y"], table["t"], table["p"] = events.x, events.y, events.t, 2 * events.p.astype(np.int8) - 1
+    np.save(tmp_path / "signed.npy", table)
+    base = ["fit", str(tmp_path / "signed.npy"), "--size", "64x48", "--K", "60,60,32,24", "--quiet",
+            "--min-events", "300", "--depth-grid", "6,8"]
+    assert main([*base, "-o", str(tmp_path / "a")]) == 2
+    assert "--polarity signed" in capsys.readouterr().err
+    main([*base, "-o", str(tmp_path / "b"), "--polarity", "signed"])
+    assert json.loads((tmp_path / "b" / "summary.json").read_text())["windows"]

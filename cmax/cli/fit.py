@@ -17,6 +17,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import warnings
 from pathlib import Path
@@ -66,6 +67,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="gyroscope samples (se3): an .aedat4 file (its IMU stream) or a text file of "
                              "'t wx wy wz' lines [s, rad/s], camera axes, the events' clock; each window's "
                              "rotation is held at their mean, only direction and depth are fitted")
+    parser.add_argument("--gyro-axes", default=None, metavar="AXES",
+                        help="the camera's x,y,z as signed axes of --gyro's IMU, e.g. --gyro-axes=-x,y,-z (with '=': "
+                             "the value starts with '-') (default: a DAVIS's AEDAT4 IMU is turned by -x,y,-z, as "
+                             "rpg_dvs_ros does; another camera's must be stated; a text file is in camera axes already)")
     parser.add_argument("--omega", type=float_list((3,), "--omega (wx,wy,wz)"), default=None, metavar="WX,WY,WZ",
                         help="se3: a known, constant angular velocity [rad/s] of every window, camera axes (e.g. "
                              "0,0,0 for a linear stage or a straight drive): held like --gyro's, only direction and "
@@ -220,7 +225,8 @@ def verdict_counts(counts: dict[str, int]) -> str:
 
 
 def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_motion: int = 0,
-           cell_noise: int = 0, unsteady: int = 0, sparse: int = 0) -> list[str]:
+           cell_noise: int = 0, unsteady: int = 0, sparse: int = 0, *, single_window: bool = False,
+           sparse_needs: int | None = None) -> list[str]:
     """What to try when at least half of the fitted windows are low parallax or ambiguous and unresolved (one
     line each; none otherwise); ``rotation_known``: the run held the rotation (``--gyro``, ``--omega``);
     ``no_motion``: how many of the low-parallax windows show no motion at all (the permutation test,
@@ -231,7 +237,15 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     ambiguous windows are so because their motion is not steady (``Quality.unsteady``: a start or a stop), for
     which a shorter window is the cure; ``sparse`` (se3): how many of the other unresolved ambiguous windows are
     so because they were fitted on too few events per pixel (``Quality.sparse``), for which more events are the
-    cure.
+    cure. ``single_window``: one window spans the whole recording (a longer ``--window-ms`` cannot give more);
+    ``sparse_needs``: the events a window must be fitted on to reach the density the verdict asks, when that is
+    more than ``--max-events`` lets through (then only a larger ``--max-events`` helps a sparse window).
+
+    >>> advice({"ok": 0, "ambiguous": 0, "resolved": 0, "low_parallax": 1, "failed": 0}, "se3", True, single_window=True)
+    ['1 of 1 windows have too little parallax: their translation and depth are not measured; a longer span of events (the run is one window over all of them) gives more parallax']
+    >>> advice({"ok": 0, "ambiguous": 2, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", sparse=2,
+    ...        sparse_needs=230_400)[0]
+    '2 of 2 windows stay ambiguous because they were fitted on too few events per pixel to vouch for their direction (QualitySettings.min_event_density): a larger --max-events (at least 230,400 on this sensor; the fit takes longer in proportion) gives them more; a longer --window-ms alone does not (a window is subsampled to --max-events)'
 
     >>> advice({"ok": 1, "ambiguous": 0, "resolved": 0, "low_parallax": 3, "failed": 0}, "se3")[0][:40]
     '3 of 4 windows have too little parallax:'
@@ -240,16 +254,18 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     """
     total = sum(counts[k] for k in ("ok", "ambiguous", "low_parallax", "failed"))
     unresolved = counts["ambiguous"] - counts.get("resolved", 0)
+    longer = ("a longer span of events (the run is one window over all of them)" if single_window
+              else "a longer --window-ms")
     lines = []
     if total and 2 * counts["low_parallax"] >= total:
         if counts["low_parallax"] > cell_noise:
             lines.append(f"{counts['low_parallax'] - cell_noise} of {total} windows have too little "
-                         + ("parallax: their translation and depth are not measured; a longer --window-ms gives more "
-                            "parallax, --model rotation fits the rotation alone" if model == "se3" else
-                            "motion to measure: a longer --window-ms gives more"))
+                         + (f"parallax: their translation and depth are not measured; {longer} gives more parallax"
+                            + ("" if rotation_known else ", --model rotation fits the rotation alone")
+                            if model == "se3" else f"motion to measure: {longer} gives more"))
         if cell_noise:
             lines.append(f"{cell_noise} of {total} windows have a fitted {model} that sharpens only parts of the "
-                         "image: either too little motion (a longer --window-ms gives more) or parts that move "
+                         f"image: either too little motion ({longer} gives more) or parts that move "
                          "differently (depth differences, or a motion that changes within a window: --model se3 or a "
                          "shorter --window-ms)")
         if no_motion:
@@ -260,11 +276,13 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
                                            "rotate) or ")
         if unresolved > unsteady + sparse:
             lines.append(f"{unresolved - unsteady - sparse} of {total} windows stay ambiguous (an alternative motion "
-                         f"scores as well): {known}a longer --window-ms tells them apart")
+                         f"scores as well): {known}{longer} tells them apart")
         if sparse:
+            cure = (f"a larger --max-events (at least {sparse_needs:,} on this sensor; the fit takes longer in "
+                    "proportion) gives them more; a longer --window-ms alone does not (a window is subsampled to "
+                    "--max-events)" if sparse_needs else f"{longer} gives them more")
             lines.append(f"{sparse} of {total} windows stay ambiguous because they were fitted on too few events per "
-                         "pixel to vouch for their direction (QualitySettings.min_event_density): a larger "
-                         "--max-events, or a longer --window-ms, gives them more")
+                         f"pixel to vouch for their direction (QualitySettings.min_event_density): {cure}")
         if unsteady:
             lines.append(f"{unsteady} of {total} windows stay ambiguous because the camera starts or stops inside "
                          "them (their event rate changes beyond QualitySettings.max_rate_change between their "
@@ -329,6 +347,7 @@ def run(args: argparse.Namespace) -> int:
     was, and two runs' windows never mix."""
     from cmax.fitting import FitSettings
     from cmax.fitting.api import MIN_WINDOW_EVENTS
+    from cmax.io.gyro import parse_axes
 
     out = output_folder(args.output, "the depth maps and the summary")
     # The options are checked before the file is read (a mistake is named at once, in the options' words):
@@ -339,6 +358,13 @@ def run(args: argparse.Namespace) -> int:
             raise ValueError(f"{option} applies to --model se3, not {sequence_model}")
     if args.omega is not None and args.gyro is not None:
         raise ValueError("--omega is a constant rotation, --gyro a measured one: pass one of them")
+    if args.gyro_axes is not None:
+        if args.gyro is None:
+            raise ValueError("--gyro-axes turns the readings of --gyro: pass --gyro too")
+        try:
+            parse_axes(args.gyro_axes)
+        except ValueError as error:
+            raise ValueError(f"--gyro-axes: {error}") from None
     options = {key: value for key, value in (("solver", args.solver), ("depth_grid", args.depth_grid),
                                              ("max_events", args.max_events),
                                              ("motion_members", args.members), ("depth_range", args.depth_range),
@@ -375,7 +401,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     from cmax import viz
     import cmax.events as cmax_events
     from cmax.events import EventLimitError, uncovered_tail, window_starts
-    from cmax.fitting import fit_sequence
+    from cmax.fitting import FitSettings, fit_sequence
     from cmax.fitting.api import MIN_WINDOW_EVENTS
     from cmax.fitting.quality import LowMotionCause, Verdict
     from cmax.fitting.sequence import check_gyro, constant_gyro
@@ -412,14 +438,15 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         first_us, last_us = event_span(events)
         gyro = constant_gyro(args.omega, first_us, last_us + 1)
     if args.gyro is not None:
-        gyro = check_gyro(read_gyro(args.gyro))
+        gyro = check_gyro(read_gyro(args.gyro, axes=args.gyro_axes))
         events, note = overlap(events, gyro[0], "gyro samples", args.gyro, "fitting the overlap")
         notes += [note] if note else []
     if sequence_model == "se3":
         DepthGrid(depth_grid, events.width, events.height)
     first_us, last_us = event_span(events)
     span_us = last_us - first_us + 1
-    if window_us > span_us:
+    single_window = window_us > span_us     # one window over every event: a longer --window-ms cannot help
+    if single_window:
         what = "the recording" if args.t0 is None and args.t1 is None else "the span of --t0/--t1"
         notes.append(f"{what} ({span_us * 1e-3:.1f} ms) is shorter than the window ({window_us * 1e-3:.1f} ms): "
                      f"fitting one window over {'the whole recording' if what == 'the recording' else 'it'}")
@@ -478,8 +505,11 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     unresolved = [r.quality for r in sequence.results if r.verdict is Verdict.AMBIGUOUS and not r.quality.resolved]
     unsteady = sum(q.unsteady for q in unresolved)
     sparse = sum(q.sparse for q in unresolved)     # never unsteady too: verdict_of marks only an ok one sparse
+    settings = FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})
+    needs = math.ceil(settings.quality.min_event_density * events.width * events.height)
     late_notes += advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None,
-                         no_motion, cell_noise, unsteady, sparse)
+                         no_motion, cell_noise, unsteady, sparse, single_window=single_window,
+                         sparse_needs=needs if needs > settings.max_events else None)
     failed = sum(r.verdict is Verdict.FAILED for r in sequence.results)
     if not windows:
         late_notes.append(f"no window was fitted: each has fewer than {min_events:,} events (over more than one "

@@ -2,7 +2,7 @@
 
 * :func:`add_file_options` / :func:`file_kwargs`: ``--size``, ``--time-unit``, ``--polarity`` of the file
   tools (``cmax info``, ``cmax show``), passed to :func:`cmax.io.read` as keywords;
-* :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--t0``, ``--t1`` of the commands that fit or
+* :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1`` of the commands that fit or
   predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``; :func:`tail_note` says
   what their windows leave out at the end; :func:`overlap` cuts the events to the span of a gyroscope's samples
   or of poses; :func:`open_streamed`: a DSEC-layout h5 file too long to hold, read window by window;
@@ -42,10 +42,14 @@ def add_file_options(parser: argparse.ArgumentParser) -> None:
     )
     parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
                         help="unit of the file's time stamps where the file does not state it (never guessed)")
+    _add_polarity(parser)
+    _add_sort(parser)
+
+
+def _add_polarity(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--polarity", choices=("01", "signed"), default=None,
                         help="polarity encoding of an h5, text or .npy file: 01 (0 OFF, 1 ON) or signed "
                         "(-1 OFF, +1 ON) (default: 01; never guessed)")
-    _add_sort(parser)
 
 
 def _add_sort(parser: argparse.ArgumentParser) -> None:
@@ -56,7 +60,7 @@ def _add_sort(parser: argparse.ArgumentParser) -> None:
 
 def file_kwargs(args: argparse.Namespace, path: Path | None = None) -> dict[str, int | str | None]:
     """The :func:`cmax.io.read` keywords of :func:`add_file_options`' options, or of
-    :func:`add_recording_arguments`' (``polarity`` only when given: those have none; ``sort`` only when given,
+    :func:`add_recording_arguments`' (``polarity`` only when given; ``sort`` only when given,
     and refused for a ``path`` (default ``args.file``) of a format read by time span from disk).
 
     >>> file_kwargs(argparse.Namespace(size=(346, 260), time_unit="us", polarity=None))
@@ -76,13 +80,14 @@ def file_kwargs(args: argparse.Namespace, path: Path | None = None) -> dict[str,
 
 
 def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--size``, ``--time-unit``, ``--t0``, ``--t1``, ``--sort``: what a command reading any recording needs
-    (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
+    """``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1``, ``--sort``: what a command reading any
+    recording needs (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
     parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
                         help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
                              "shipped)")
     parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
                         help="unit of the file's time stamps where the file does not state it (never guessed)")
+    _add_polarity(parser)
     parser.add_argument("--t0", type=nonnegative_float, default=None,
                         help="start, seconds after the first event (default: the first event)")
     parser.add_argument("--t1", type=nonnegative_float, default=None,
