@@ -48,7 +48,8 @@ def read_window(
     width: int | None = None, height: int | None = None, time_unit: str | None = None, **options: Any,
 ) -> tuple[Events, np.ndarray | None]:
     """Events of ``[t0, t0 + dt)`` seconds after the first event, and the ground-truth
-    depth (H, W) nearest to the window's middle when the file has a ``gt/`` group.
+    depth (H, W) nearest to the window's middle when the file has a ``gt/`` group and that map's time lies
+    within the window (None otherwise: a map of another time would be drawn as this window's).
 
     ``time_unit``: the unit of the file's time stamps where it is not implied (see :func:`cmax.io.read`);
     ``options`` (e.g. ``polarity='signed'``) go to the reader.
@@ -80,8 +81,10 @@ def read_window(
         depth = None
         gt = reader.file.get("gt")
         if gt is not None and "depth" in gt and "depth_t" in gt and len(gt["depth_t"]):
-            index = int(np.argmin(np.abs(gt["depth_t"][:] - (start + stop) // 2)))
-            depth = gt["depth"][index]
+            times = gt["depth_t"][:]
+            index = int(np.argmin(np.abs(times - (start + stop) // 2)))
+            if start <= times[index] < stop:
+                depth = gt["depth"][index]
     return events, depth
 
 

@@ -384,3 +384,17 @@ def test_scene_duration_of_one_microsecond_renders_one_interval():
     sequence = simulate_scene(scene, MIN_DURATION_S, EventSimulator())
     assert list(sequence.frame_t_us) == [0, 1]           # two frames: one interval
     assert len(simulate_scene(scene, 4e-7, EventSimulator()).frame_t_us) == 1   # what the bound refuses
+
+
+@pytest.mark.parametrize("duration_s", [0.2037, 0.001])
+def test_ground_truth_covers_the_last_events(duration_s):
+    """The pose grid (every 5 ms) and the depth grid stopped at the last multiple of their step: the last 3.7 ms of
+    events had no pose (``pose_at(t_end)`` raised; EMVS cut them), a 1 ms scene had a single pose."""
+    from cmax.sim import EventSimulator, make_scene, simulate_scene
+
+    scene = make_scene("slider", seed=0, width=64, height=48, duration_s=1.0)
+    seq = simulate_scene(scene, duration_s, EventSimulator(**scene.recommended_simulator, seed=0))
+    end_us = int(round(duration_s * 1e6))
+    assert seq.poses_t_us[-1] == end_us >= seq.events.t_end and seq.depth_t_us[-1] == end_us
+    assert len(seq.poses_t_us) >= 2
+    np.testing.assert_allclose(seq.pose_at(seq.events.t_end), scene.pose(seq.events.t_end * 1e-6), atol=1e-9)

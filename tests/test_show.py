@@ -84,3 +84,16 @@ def test_a_small_sensor_is_drawn_enlarged_by_a_whole_factor():
     assert painted.reshape(48, 5, 64, 5).all(axis=(1, 3)).sum() == painted.reshape(48, 5, 64, 5).any(axis=(1, 3)).sum()
     both = render_events(events, bins=5)
     assert both.shape[1] >= 5 * (5 * 64)
+
+
+def test_the_ground_truth_depth_is_drawn_only_for_a_window_that_holds_its_time(tmp_path):
+    """A scene with one depth map a second: a window at 0.45-0.5 s drew the map of t=0 as "ground-truth depth"."""
+    from cmax.show import read_window
+    from cmax.sim import EventSimulator, make_scene, simulate_scene
+
+    scene = make_scene("slider", seed=0, width=48, height=36, duration_s=1.0, texture_size=64)
+    simulate_scene(scene, 0.6, EventSimulator(**scene.recommended_simulator, seed=0),
+                   depth_times_s=[0.0, 0.5]).save(tmp_path / "s.h5")
+    _, far = read_window(tmp_path / "s.h5", 0.40, 0.05)
+    _, holds = read_window(tmp_path / "s.h5", 0.48, 0.05)
+    assert far is None and holds is not None and holds.shape == (36, 48)

@@ -234,6 +234,17 @@ def _check_positive(name: str, value: object) -> float:
     return float(value)
 
 
+def _times_to_end(t0_s: float, t_end_s: float, rate_hz: float) -> np.ndarray:
+    """Times [s] every ``1 / rate_hz`` from ``t0_s``, and ``t_end_s`` itself when the grid stops short of it by
+    more than half a µs: ground truth that covers every event, the last ones included.
+
+    >>> _times_to_end(0.0, 0.012, 200.0).tolist()
+    [0.0, 0.005, 0.01, 0.012]
+    """
+    times = np.arange(t0_s, t_end_s + 1e-9, 1.0 / rate_hz)
+    return times if t_end_s - times[-1] <= 5e-7 else np.append(times, t_end_s)
+
+
 def simulate_scene(
     scene: Scene,
     duration_s: float,
@@ -294,7 +305,7 @@ def simulate_scene(
         raise TypeError(f"scene must have camera, render, pose and twist, got {type(scene).__name__}")
     t_end = t0_s + duration_s
     if depth_times_s is None:
-        depth_times_s = np.arange(t0_s, t_end + 1e-9, 1.0 / _check_positive("depth_rate_hz", depth_rate_hz))
+        depth_times_s = _times_to_end(t0_s, t_end, _check_positive("depth_rate_hz", depth_rate_hz))
     depth_times_s = np.asarray(depth_times_s, dtype=np.float64)
     if depth_times_s.ndim != 1 or np.any(np.diff(depth_times_s) <= 0):
         raise ValueError("depth_times_s must be a strictly increasing (N,) array of seconds")
@@ -331,7 +342,7 @@ def simulate_scene(
         bar.update(round((t_next - t0_s) * 1e3) - bar.n)
         t = t_next
     bar.close()
-    poses_t = np.arange(t0_s, t_end + 1e-9, 1.0 / pose_rate_hz)
+    poses_t = _times_to_end(t0_s, t_end, pose_rate_hz)
     settings = {name: value for name, value in dataclasses.asdict(simulator.settings).items()}
     attrs: dict[str, Any] = {
         "source": "cmax.sim.simulate_scene",
