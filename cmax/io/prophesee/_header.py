@@ -1,7 +1,10 @@
 """The ASCII header of a Prophesee RAW file: ``%`` lines, event format and sensor size.
 
-A RAW file opens with lines starting with ``%`` (``% key value``), optionally
-closed by ``% end``; the little-endian event words follow. The header names
+A RAW file opens with text lines starting with ``%`` (``% key value``),
+optionally closed by ``% end``; the little-endian event words follow. Without
+``% end`` the header ends at the first line that is not text (``%`` then
+printable characters up to ``\\n``), so an event word starting with the byte 0x25
+is data, not a header line. The header names
 the event format (``% evt 3.0`` or ``% format EVT3;width=W;height=H``) and the
 sensor size (in the ``format`` line, a ``geometry WxH`` line, or implied by a
 known ``plugin_name`` or ``sensor_generation``).
@@ -20,6 +23,8 @@ from cmax.io._checks import check_stated_size
 PathLike = Union[str, "os.PathLike[str]"]
 
 _MAX_HEADER_BYTES = 1 << 20
+#: Tab and carriage return, the control characters a header line may hold (removed by ``str.translate``).
+_TAB_CR = {0x09: None, 0x0D: None}
 
 #: Sensor sizes of HAL plugins, matched as substrings of ``plugin_name``, in order.
 _PLUGIN_SIZES = (
@@ -72,19 +77,47 @@ class _Header:
         return {"3": (640, 480), "4": (1280, 720)}.get(generation)
 
 
+def _header_line_end(head: bytes, pos: int) -> int | None:
+    """Where the text line that starts with ``%`` at ``pos`` ends: the index of its ``\\n``, or None.
+
+    A header line is text: UTF-8 (in practice ASCII) without control characters
+    other than tab and carriage return, up to ``\\n``. None when the bytes after
+    ``pos`` are not: the ``%`` is then the first byte of an event word (0x25),
+    not a header line. ``len(head)`` when the line is text to the end of ``head``.
+    """
+    end = head.find(b"\n", pos)
+    body = head[pos + 1:len(head) if end < 0 else end]
+    try:
+        text = body.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    if not text.translate(_TAB_CR).isprintable():
+        return None
+    return len(head) if end < 0 else end
+
+
 def _read_header(path: Path) -> _Header:
+    """The ``%`` lines at the start of ``path``, up to ``% end`` or the first line that is not text.
+
+    A header line is ``%`` followed by printable text (:func:`_header_line_end`) up to ``\\n``.
+    Files without ``% end`` (older Metavision and ATIS recordings) end their
+    header at the first line that is not: an event word whose first byte is
+    0x25 (``%``) starts the data, it is not read as a header line.
+    """
     with open(path, "rb") as f:
         head = f.read(_MAX_HEADER_BYTES + 1)
     fields: dict[str, str] = {}
     pos = 0
     while pos < len(head) and head[pos:pos + 1] == b"%":
-        end = head.find(b"\n", pos)
-        if end < 0:
+        end = _header_line_end(head, pos)
+        if end is None:
+            break
+        if end == len(head):
             raise FormatError(
                 f"{path}: header line at byte {pos} has no end of line "
                 "(truncated file, or not a Prophesee RAW file)"
             )
-        line = head[pos + 1:end].decode("utf-8", "replace").strip()
+        line = head[pos + 1:end].decode("utf-8").strip()
         pos = end + 1
         if line.lower() == "end":
             break
