@@ -319,20 +319,25 @@ def test_write_empty_and_invalid(tmp_path: Path) -> None:
 
 
 # -- header and sensor size -----------------------------------------------------------
-@pytest.mark.parametrize("header, size", [
-    (b"% evt 3.0\n% geometry 640x480\n", (640, 480)),
-    (b"% format EVT3;height=720;width=1280\n", (1280, 720)),
-    (b"% evt 3.0\n% plugin_name hal_plugin_gen41_evk3\n", (1280, 720)),
-    (b"% evt 3.0\n% plugin_name hal_plugin_imx636_evk4\n", (1280, 720)),
-    (b"% evt 3.0\n% plugin_name hal_plugin_gen31_fx3\n", (640, 480)),
+@pytest.mark.parametrize("header, size, stated", [
+    (b"% evt 3.0\n% geometry 640x480\n", (640, 480), True),
+    (b"% format EVT3;height=720;width=1280\n", (1280, 720), True),
+    (b"% evt 3.0\n% plugin_name hal_plugin_gen41_evk3\n", (1280, 720), False),
+    (b"% evt 3.0\n% plugin_name hal_plugin_imx636_evk4\n", (1280, 720), False),
+    (b"% evt 3.0\n% plugin_name hal_plugin_gen31_fx3\n", (640, 480), False),
+    (b"% evt 3.0\n% sensor_generation 4.1\n", (1280, 720), False),
 ])
-def test_sensor_size_from_header(tmp_path: Path, header: bytes, size: tuple[int, int]) -> None:
+def test_sensor_size_from_header(tmp_path: Path, header: bytes, size: tuple[int, int], stated: bool) -> None:
+    """A stated size (format, geometry) is the file's; one inferred from the camera's name gives way to the caller's."""
     path = _write(tmp_path / "h.raw", header, [0x8000, 0x6000, 0x0001, 0x2002], "<u2")
     assert read_evt3(path).sensor_size == size
     assert read_raw(path).sensor_size == size
     assert read_evt3(path, width=size[0], height=size[1]).sensor_size == size
-    with pytest.raises(ValueError, match=rf"width=100, height=90 contradicts the {size[0]}x{size[1]} sensor"):
-        read_evt3(path, width=100, height=90)
+    if stated:
+        with pytest.raises(ValueError, match=rf"width=100, height=90 contradicts the {size[0]}x{size[1]} sensor"):
+            read_evt3(path, width=100, height=90)
+    else:
+        assert read_evt3(path, width=100, height=90).sensor_size == (100, 90)
 
 
 def test_sensor_size_unknown(tmp_path: Path) -> None:

@@ -6,8 +6,9 @@ optionally closed by ``% end``; the little-endian event words follow. Without
 printable characters up to ``\\n``), so an event word starting with the byte 0x25
 is data, not a header line. The header names
 the event format (``% evt 3.0`` or ``% format EVT3;width=W;height=H``) and the
-sensor size (in the ``format`` line, a ``geometry WxH`` line, or implied by a
-known ``plugin_name`` or ``sensor_generation``).
+sensor size (stated in the ``format`` line or a ``geometry WxH`` line, or only
+implied by a known ``plugin_name`` or ``sensor_generation``: a guess, which a
+caller's width and height replace).
 """
 from __future__ import annotations
 
@@ -58,8 +59,8 @@ class _Header:
             )
         return None
 
-    def sensor_size(self) -> tuple[int, int] | None:
-        """(width, height) from the ``format``, ``geometry`` or ``plugin_name`` lines."""
+    def stated_size(self) -> tuple[int, int] | None:
+        """(width, height) that a ``format ...;width=;height=`` or ``geometry WxH`` line states, or None."""
         options = dict(
             part.split("=", 1) for part in self.fields.get("format", "").split(";") if "=" in part
         )
@@ -69,12 +70,21 @@ class _Header:
         geometry = self.fields.get("geometry", "").lower().split("x")
         if len(geometry) == 2:
             return int(geometry[0]), int(geometry[1])
-        plugin = self.fields.get("plugin_name", "").lower()
+        return None
+
+    def inferred_size(self) -> tuple[tuple[int, int], str] | None:
+        """(width, height) implied by a known ``plugin_name`` or ``sensor_generation``, and the line that implies it.
+
+        A guess from the camera's name, not a size the file states: an
+        expelliarmus/tonic file names ``hal_plugin_gen3_fx3`` whatever its sensor.
+        """
+        plugin = self.fields.get("plugin_name", "")
         for pattern, size in _PLUGIN_SIZES:
-            if pattern in plugin:
-                return size
-        generation = self.fields.get("sensor_generation", "").split(".")[0].strip()
-        return {"3": (640, 480), "4": (1280, 720)}.get(generation)
+            if pattern in plugin.lower():
+                return size, f"plugin_name {plugin}"
+        generation = self.fields.get("sensor_generation", "")
+        size = {"3": (640, 480), "4": (1280, 720)}.get(generation.split(".")[0].strip())
+        return None if size is None else (size, f"sensor_generation {generation}")
 
 
 def _header_line_end(head: bytes, pos: int) -> int | None:
@@ -129,31 +139,41 @@ def _read_header(path: Path) -> _Header:
     return _Header(fields, pos)
 
 
-def _sensor_size(
-    header: _Header, width: int | None, height: int | None, path: Path
-) -> tuple[int, int]:
-    """(width, height) in pixels: the header's, which a caller's size must equal (else :class:`ValueError`);
-    the caller's where the header states none (or none readable)."""
+@dataclass(frozen=True)
+class _Size:
+    """A RAW file's sensor size in pixels, and the header line it is inferred from (None: stated or given)."""
+
+    width: int
+    height: int
+    inferred_from: str | None = None
+
+
+def _sensor_size(header: _Header, width: int | None, height: int | None, path: Path) -> _Size:
+    """The sensor size: the one the header states, which a caller's size must equal (else :class:`ValueError`);
+    else the caller's; else the one a known ``plugin_name``/``sensor_generation`` implies (a guess, which a
+    caller's size replaces); else :class:`FormatError`."""
     if (width is None) != (height is None):
         raise ValueError("give both width and height, or neither")
     if width is not None:
         width, height = _check_sensor_size(width, height)
     try:
-        size = header.sensor_size()
+        stated = header.stated_size()
     except ValueError:
         if width is not None:
-            return width, height
+            return _Size(width, height)
         raise FormatError(f"{path}: unreadable sensor size in the header {header.fields}") from None
-    if size is not None and width is not None:
-        return check_stated_size(width, height, size, path)
+    if stated is not None:
+        try:
+            stated = _check_sensor_size(*stated)
+        except (TypeError, ValueError) as error:
+            raise FormatError(f"{path}: bad sensor size in the header: {error}") from None
+        return _Size(*check_stated_size(width, height, stated, path))
     if width is not None:
-        return width, height
-    if size is None:
+        return _Size(width, height)
+    inferred = header.inferred_size()
+    if inferred is None:
         raise FormatError(
             f"{path}: the header gives no sensor size (no 'format ...;width=;height=', "
             "'geometry WxH' or known plugin_name line); pass width= and height= (cmax: --size WxH)"
         )
-    try:
-        return _check_sensor_size(*size)
-    except (TypeError, ValueError) as error:
-        raise FormatError(f"{path}: bad sensor size in the header: {error}") from None
+    return _Size(*inferred[0], inferred_from=inferred[1])
