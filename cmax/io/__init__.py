@@ -55,7 +55,8 @@ def detect_format(path: str | os.PathLike) -> str:
     """Name of the event format of ``path`` (one of :data:`FORMATS`), from its bytes.
 
     Magic bytes decide first (HDF5, AEDAT4, NumPy, Prophesee ``%`` header), the
-    suffix ``.txt`` second.
+    suffix ``.txt`` second; an empty ``.txt`` is ECD text of zero events (as
+    :func:`write_txt` writes it), any other empty file is refused.
     """
     path = Path(path)
     if path.is_dir():
@@ -67,6 +68,8 @@ def detect_format(path: str | os.PathLike) -> str:
     with open(path, "rb") as handle:
         head = handle.read(16)
     if not head:
+        if path.suffix.lower() in (".txt", ".csv"):
+            return "txt"                                 # ECD text of zero events (write_txt writes it so)
         raise FormatError(f"{path} is empty (0 bytes): no events to read")
     if head.startswith(b"\x89HDF\r\n\x1a\n"):
         try:
