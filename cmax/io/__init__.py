@@ -60,9 +60,7 @@ def detect_format(path: str | os.PathLike) -> str:
     """
     path = Path(path)
     if path.is_dir():
-        raise FormatError(f"{path} is a folder, not an event file" + (
-            ": a sequence of frames (ECD images.txt, ESIM timestamps.txt) becomes events with "
-            "`cmax simulate FOLDER -o events.h5`" if _holds_frames(path) else ""))
+        raise FormatError(_folder_message(path))
     if not path.is_file():
         raise FileNotFoundError(f"no such event file: {path}")
     with open(path, "rb") as handle:
@@ -96,6 +94,19 @@ def detect_format(path: str | os.PathLike) -> str:
         + ("; a video becomes events with `cmax simulate VIDEO -o events.h5`" if video else "")
     )
 
+
+
+def _folder_message(folder: Path) -> str:
+    """Why ``folder`` is not read as events, naming the ``events.txt`` inside (an ECD sequence) or its frames."""
+    message = f"{folder} is a folder, not an event file"
+    if (folder / "events.txt").is_file():
+        message += f": its events are in {folder / 'events.txt'} (give that file)"
+        if _holds_frames(folder):
+            message += "; its frames become events with `cmax simulate FOLDER -o events.h5`"
+    elif _holds_frames(folder):
+        message += (": a sequence of frames (ECD images.txt, ESIM timestamps.txt) becomes events with "
+                    "`cmax simulate FOLDER -o events.h5`")
+    return message
 
 
 def _holds_frames(folder: Path) -> bool:
