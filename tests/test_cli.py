@@ -32,6 +32,46 @@ def test_info_reports_counts_rate_and_balance(h5_file, capsys):
     assert "source = unit test" in out
 
 
+def test_info_of_one_event_says_the_rate_is_not_available(tmp_path, capsys):
+    """Report userC item 7: a file whose events span 0 µs printed `rate        nan Mev/s`."""
+    from cmax import Events
+
+    for name, events in (("one.h5", Events([1], [2], [5], [1], width=8, height=8)),
+                         ("same_time.h5", Events([1, 3], [2, 4], [5, 5], [1, 0], width=8, height=8))):
+        assert main(["info", str(write_h5(tmp_path / name, events))]) == 0
+        out = capsys.readouterr().out
+        assert "rate        n/a (the events span 0 µs)" in out and "nan" not in out
+
+
+def test_info_of_an_ecd_folder_points_to_its_events_txt(tmp_path, capsys):
+    """Report userC item 7: `cmax info FOLDER` of an ECD sequence advised only `cmax simulate FOLDER`."""
+    folder = tmp_path / "slider_depth"
+    folder.mkdir()
+    (folder / "images.txt").write_text("0.0 images/frame_00000000.png\n")
+    write_txt(folder / "events.txt", random_events(20, width=240, height=180))
+    assert main(["info", str(folder)]) == 2
+    err = capsys.readouterr().err
+    assert f"its events are in {folder / 'events.txt'} (give that file)" in err and err.count("\n") == 1
+    assert "its frames become events with `cmax simulate FOLDER -o events.h5`" in err
+    assert main(["info", str(folder / "events.txt"), "--size", "240x180"]) == 0
+
+
+def test_polarity_help_states_each_formats_default(tmp_path, capsys):
+    """Report userC item 7: the help said "default: 01", but an MVSEC file is read as -1/+1 without the option."""
+    import h5py
+
+    with pytest.raises(SystemExit):
+        main(["info", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "default: 01;" not in help_text
+    assert "(default: the format's own: 01; MVSEC: signed; never guessed)" in help_text
+    path = tmp_path / "mvsec.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=np.array([[1, 2, 10.0, -1], [3, 4, 10.5, 1]]))
+    assert main(["info", str(path)]) == 0
+    assert "1 ON / 1 OFF" in capsys.readouterr().out
+
+
 def test_info_on_text_needs_size(tmp_path, capsys):
     ev = random_events(100, width=240, height=180)
     path = write_txt(tmp_path / "events.txt", ev)

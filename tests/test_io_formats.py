@@ -24,6 +24,24 @@ def test_ecd_text_round_trip(tmp_path):
     assert read_txt(write_txt(tmp_path / "e.txt", ev), width=240, height=180) == ev
 
 
+def test_an_empty_text_file_of_zero_events_reads_back_through_read(tmp_path, capsys):
+    """Report userC item 5: write_txt of no events writes 0 bytes, which read() refused as an empty file."""
+    from cmax.cli import main
+
+    path = write_txt(tmp_path / "e.txt", Events.empty(240, 180))
+    assert path.stat().st_size == 0 and detect_format(path) == "txt"
+    events = read(path, width=240, height=180)
+    assert events == Events.empty(240, 180) and events == read_txt(path, width=240, height=180)
+    with pytest.raises(ValueError, match=r"e\.txt \(txt\) stores no sensor size: pass width= and height="):
+        read(path)
+    assert main(["info", str(path), "--size", "240x180"]) == 0
+    out = capsys.readouterr().out
+    assert "240 x 180" in out and "events      0" in out
+    (tmp_path / "e.h5").write_bytes(b"")                         # any other empty file is still refused
+    with pytest.raises(FormatError, match=r"e\.h5 is empty \(0 bytes\)"):
+        read(tmp_path / "e.h5", width=240, height=180)
+
+
 @pytest.mark.parametrize("writer", ["write_txt", "write_evt2", "write_evt3"])
 def test_event_writers_refuse_an_existing_file_unless_told(tmp_path, writer):
     """They replaced an existing file silently (write_h5 refused): now FileExistsError, the file untouched,

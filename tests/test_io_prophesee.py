@@ -319,20 +319,25 @@ def test_write_empty_and_invalid(tmp_path: Path) -> None:
 
 
 # -- header and sensor size -----------------------------------------------------------
-@pytest.mark.parametrize("header, size", [
-    (b"% evt 3.0\n% geometry 640x480\n", (640, 480)),
-    (b"% format EVT3;height=720;width=1280\n", (1280, 720)),
-    (b"% evt 3.0\n% plugin_name hal_plugin_gen41_evk3\n", (1280, 720)),
-    (b"% evt 3.0\n% plugin_name hal_plugin_imx636_evk4\n", (1280, 720)),
-    (b"% evt 3.0\n% plugin_name hal_plugin_gen31_fx3\n", (640, 480)),
+@pytest.mark.parametrize("header, size, stated", [
+    (b"% evt 3.0\n% geometry 640x480\n", (640, 480), True),
+    (b"% format EVT3;height=720;width=1280\n", (1280, 720), True),
+    (b"% evt 3.0\n% plugin_name hal_plugin_gen41_evk3\n", (1280, 720), False),
+    (b"% evt 3.0\n% plugin_name hal_plugin_imx636_evk4\n", (1280, 720), False),
+    (b"% evt 3.0\n% plugin_name hal_plugin_gen31_fx3\n", (640, 480), False),
+    (b"% evt 3.0\n% sensor_generation 4.1\n", (1280, 720), False),
 ])
-def test_sensor_size_from_header(tmp_path: Path, header: bytes, size: tuple[int, int]) -> None:
+def test_sensor_size_from_header(tmp_path: Path, header: bytes, size: tuple[int, int], stated: bool) -> None:
+    """A stated size (format, geometry) is the file's; one inferred from the camera's name gives way to the caller's."""
     path = _write(tmp_path / "h.raw", header, [0x8000, 0x6000, 0x0001, 0x2002], "<u2")
     assert read_evt3(path).sensor_size == size
     assert read_raw(path).sensor_size == size
     assert read_evt3(path, width=size[0], height=size[1]).sensor_size == size
-    with pytest.raises(ValueError, match=rf"width=100, height=90 contradicts the {size[0]}x{size[1]} sensor"):
-        read_evt3(path, width=100, height=90)
+    if stated:
+        with pytest.raises(ValueError, match=rf"width=100, height=90 contradicts the {size[0]}x{size[1]} sensor"):
+            read_evt3(path, width=100, height=90)
+    else:
+        assert read_evt3(path, width=100, height=90).sensor_size == (100, 90)
 
 
 def test_sensor_size_unknown(tmp_path: Path) -> None:
@@ -369,6 +374,41 @@ def test_unterminated_header(tmp_path: Path) -> None:
     path.write_bytes(b"% evt 3.0\n% format EVT3;width=1280")
     with pytest.raises(FormatError, match="cut.raw.*no end of line"):
         read_raw(path)
+
+
+def _without_end_line(path: Path) -> Path:
+    """``path`` rewritten without its ``% end`` line, as older Metavision/ATIS recordings are."""
+    raw = path.read_bytes()
+    assert raw.count(b"% end\n") == 1
+    path.write_bytes(raw.replace(b"% end\n", b""))
+    return path
+
+
+@pytest.mark.parametrize("codec, first_t", [
+    ("evt2", 0x25 * 64 + 41),      # first TIME_HIGH word 0x80000025: was 20 events dropped without a word
+    ("evt3", 0x25 * 4096 + 10),    # first TIME_HIGH word 0x8025: was "not a whole number of 2-byte words"
+])
+def test_a_header_without_end_stops_at_an_event_word_starting_with_0x25(
+    tmp_path: Path, codec: str, first_t: int
+) -> None:
+    """Report userC item 1: the first data word's byte 0x25 ('%') was read as a header line up to the next 0x0A."""
+    n, rng = 200, np.random.default_rng(0)
+    t = np.r_[np.full(20, first_t), np.sort(rng.integers(first_t + 64, first_t + 50_000, n - 20))]
+    x = np.r_[np.full(20, 100), rng.integers(0, 640, n - 20)]
+    events = Events(x, np.full(n, 33), t, np.zeros(n, int), width=640, height=480)
+    writer, reader = {"evt2": (write_evt2, read_evt2), "evt3": (write_evt3, read_evt3)}[codec]
+    path = _without_end_line(writer(tmp_path / f"noend.{codec}.raw", events))
+    assert path.read_bytes().split(b"evtslowtv\n", 1)[1][:1] == b"%"      # the data starts with 0x25
+    for read in (reader, read_raw):
+        got = read(path)
+        assert got == events and got.sensor_size == (640, 480)
+    assert sum(len(chunk) for chunk in iter_raw(path, chunk_bytes=64)) == n
+
+
+def test_a_header_line_may_hold_non_ascii_text(tmp_path: Path) -> None:
+    header = "% evt 3.0\n% integrator_name Prophésée\t\r\n% geometry 32x16\n".encode("utf-8")
+    path = _write(tmp_path / "utf8.raw", header, EVT3_WORDS, "<u2")
+    assert _as_tuples(read_raw(path)) == EVT3_EVENTS
 
 
 def test_garbage(tmp_path: Path) -> None:

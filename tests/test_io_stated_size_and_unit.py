@@ -64,13 +64,46 @@ def test_raw_refuses_a_size_other_than_its_header(tmp_path: Path, events: Events
     assert reader(path) == events
 
 
-def test_raw_refuses_a_size_other_than_its_plugins(tmp_path: Path) -> None:
+def test_raw_takes_the_callers_size_over_one_its_plugin_name_implies(tmp_path: Path) -> None:
+    """A size implied by ``plugin_name`` is a guess, not stated: the caller's replaces it (it refused 2000x2000)."""
     path = tmp_path / "gen4.raw"
     path.write_bytes(b"% evt 3.0\n% plugin_name hal_plugin_gen41_evk3\n% end\n"
                      + np.array([0x8000, 0x6000, 0x0001, 0x2002], "<u2").tobytes())
-    with pytest.raises(ValueError, match=r"width=2000, height=2000 contradicts the 1280x720 sensor"):
-        read(path, width=2000, height=2000)
+    assert read(path).sensor_size == (1280, 720)
+    assert read(path, width=2000, height=2000).sensor_size == (2000, 2000)
     assert read(path, width=1280, height=720).sensor_size == (1280, 720)
+
+
+def _expelliarmus_like(tmp_path: Path, events: Events) -> Path:
+    """``events`` as EVT2 under the header expelliarmus (tonic's decoder) writes for every file it saves."""
+    data = write_evt2(tmp_path / "plain.raw", events).read_bytes().split(b"% end\n", 1)[1]
+    header = (b"% Date 1970-12-25 07:51:03 \n% evt 2.0 \n% firmware_version 0.0.0 \n% integrator_name Prophesee \n"
+              b"% plugin_name hal_plugin_gen3_fx3 \n% serial_number 00000307 \n% system_ID 21 \n")
+    path = tmp_path / "exp_like.raw"
+    path.write_bytes(header + data)
+    return path
+
+
+def test_a_gen4_recording_saved_by_expelliarmus_reads_with_its_size(tmp_path: Path) -> None:
+    """Report userC item 2: a gen3 plugin_name made a 1280x720 file unreadable, and --size 1280x720 was refused."""
+    events = Events([1000, 5], [700, 3], [10, 20], [1, 0], width=1280, height=720)
+    path = _expelliarmus_like(tmp_path, events)
+    assert read(path, width=1280, height=720) == events
+    assert read_evt2(path, width=1280, height=720) == events
+    with pytest.raises(FormatError, match=r"x=1000 outside the 640x480 sensor.*the header does not state the sensor "
+                       r"size, 640x480 is only inferred from its 'plugin_name hal_plugin_gen3_fx3' line: pass the "
+                       r"sensor's width= and height= \(cmax: --size WxH\)") as caught:
+        read(path)
+    assert "states" not in str(caught.value)
+
+
+def test_cmax_info_of_an_expelliarmus_file_takes_size(tmp_path: Path, capsys) -> None:
+    path = _expelliarmus_like(tmp_path, Events([1000, 5], [700, 3], [10, 20], [1, 0], width=1280, height=720))
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "only inferred from its 'plugin_name hal_plugin_gen3_fx3' line" in err and err.count("\n") == 1
+    assert main(["info", str(path), "--size", "1280x720"]) == 0
+    assert "1280 x 720" in capsys.readouterr().out
 
 
 def test_raw_without_a_size_takes_the_callers(tmp_path: Path) -> None:

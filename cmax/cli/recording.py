@@ -49,7 +49,7 @@ def add_file_options(parser: argparse.ArgumentParser) -> None:
 def _add_polarity(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--polarity", choices=("01", "signed"), default=None,
                         help="polarity encoding of an h5, text or .npy file: 01 (0 OFF, 1 ON) or signed "
-                        "(-1 OFF, +1 ON) (default: 01; never guessed)")
+                        "(-1 OFF, +1 ON) (default: the format's own: 01; MVSEC: signed; never guessed)")
 
 
 def _add_sort(parser: argparse.ArgumentParser) -> None:

@@ -55,18 +55,19 @@ def detect_format(path: str | os.PathLike) -> str:
     """Name of the event format of ``path`` (one of :data:`FORMATS`), from its bytes.
 
     Magic bytes decide first (HDF5, AEDAT4, NumPy, Prophesee ``%`` header), the
-    suffix ``.txt`` second.
+    suffix ``.txt`` second; an empty ``.txt`` is ECD text of zero events (as
+    :func:`write_txt` writes it), any other empty file is refused.
     """
     path = Path(path)
     if path.is_dir():
-        raise FormatError(f"{path} is a folder, not an event file" + (
-            ": a sequence of frames (ECD images.txt, ESIM timestamps.txt) becomes events with "
-            "`cmax simulate FOLDER -o events.h5`" if _holds_frames(path) else ""))
+        raise FormatError(_folder_message(path))
     if not path.is_file():
         raise FileNotFoundError(f"no such event file: {path}")
     with open(path, "rb") as handle:
         head = handle.read(16)
     if not head:
+        if path.suffix.lower() in (".txt", ".csv"):
+            return "txt"                                 # ECD text of zero events (write_txt writes it so)
         raise FormatError(f"{path} is empty (0 bytes): no events to read")
     if head.startswith(b"\x89HDF\r\n\x1a\n"):
         try:
@@ -93,6 +94,19 @@ def detect_format(path: str | os.PathLike) -> str:
         + ("; a video becomes events with `cmax simulate VIDEO -o events.h5`" if video else "")
     )
 
+
+
+def _folder_message(folder: Path) -> str:
+    """Why ``folder`` is not read as events, naming the ``events.txt`` inside (an ECD sequence) or its frames."""
+    message = f"{folder} is a folder, not an event file"
+    if (folder / "events.txt").is_file():
+        message += f": its events are in {folder / 'events.txt'} (give that file)"
+        if _holds_frames(folder):
+            message += "; its frames become events with `cmax simulate FOLDER -o events.h5`"
+    elif _holds_frames(folder):
+        message += (": a sequence of frames (ECD images.txt, ESIM timestamps.txt) becomes events with "
+                    "`cmax simulate FOLDER -o events.h5`")
+    return message
 
 
 def _holds_frames(folder: Path) -> bool:

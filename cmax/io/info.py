@@ -66,6 +66,12 @@ class EventFileInfo:
         return (f"hot pixels  {len(hot)}: {named}{'; ...' if len(hot) > 5 else ''} (cmax fit and cmax emvs "
                 "leave such pixels out)")
 
+    def _rate_line(self) -> str:
+        """The event rate, or n/a where the events span no time (one event, or all at one time stamp)."""
+        if self.duration_s > 0:
+            return f"rate        {self.rate_hz / 1e6:.3f} Mev/s"
+        return "rate        n/a (the events span 0 µs)"
+
     def lines(self) -> list[str]:
         """Human-readable lines, one fact each."""
         out = [
@@ -78,7 +84,7 @@ class EventFileInfo:
             out += [
                 f"time        {self.t_start_us} .. {self.t_end_us} µs",
                 f"duration    {self.duration_s:.6f} s",
-                f"rate        {self.rate_hz / 1e6:.3f} Mev/s",
+                self._rate_line(),
                 f"polarity    {self.on_count:,} ON / {self.count - self.on_count:,} OFF "
                 f"({100 * self.on_fraction:.1f}% ON)",
             ]

@@ -38,20 +38,26 @@ _OK, _X_OUTSIDE, _Y_OUTSIDE, _TIME_BACK = 0, 2, 3, 4
 
 
 class _WordError(Exception):
-    """A word that cannot be decoded, at ``index`` in the run."""
+    """A word that cannot be decoded, at ``index`` in the run; ``hint``: advice to add after where it is."""
 
-    def __init__(self, index: int, reason: str) -> None:
+    def __init__(self, index: int, reason: str, hint: str = "") -> None:
         super().__init__(reason)
-        self.index, self.reason = int(index), reason
+        self.index, self.reason, self.hint = int(index), reason, hint
 
 
 @dataclass(frozen=True)
 class _Limits:
-    """What the decoded events must satisfy: sensor size and (optionally) time order."""
+    """What the decoded events must satisfy: sensor size and (optionally) time order.
+
+    ``inferred_from``: the header line the size is only inferred from (e.g.
+    ``plugin_name hal_plugin_gen3_fx3``), named with an event outside it; None
+    for a size stated by the header or given by the caller.
+    """
 
     width: int
     height: int
     check_order: bool
+    inferred_from: str | None = None
 
 
 def _new_state() -> np.ndarray:
@@ -250,11 +256,19 @@ def _decode(
     if code == _X_OUTSIDE or code == _Y_OUTSIDE:
         name = "x" if code == _X_OUTSIDE else "y"
         raise _WordError(index, f"event with {name}={a} outside the "
-                         f"{limits.width}x{limits.height} sensor")
+                         f"{limits.width}x{limits.height} sensor", _inferred_note(limits))
     if code == _TIME_BACK:
         raise _WordError(index, f"time goes back from {a} µs to {b} µs "
                          "(pass sort=True to sort the events by time)")
     return int(end)
+
+
+def _inferred_note(limits: _Limits) -> str:
+    """What to add to "outside the sensor" when the size is only inferred from the header's camera name."""
+    if limits.inferred_from is None:
+        return ""
+    return (f"; the header does not state the sensor size, {limits.width}x{limits.height} is only inferred from "
+            f"its '{limits.inferred_from}' line: pass the sensor's width= and height= (cmax: --size WxH)")
 
 
 def _empty_columns(n: int) -> tuple[np.ndarray, ...]:

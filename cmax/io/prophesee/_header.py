@@ -1,10 +1,14 @@
 """The ASCII header of a Prophesee RAW file: ``%`` lines, event format and sensor size.
 
-A RAW file opens with lines starting with ``%`` (``% key value``), optionally
-closed by ``% end``; the little-endian event words follow. The header names
+A RAW file opens with text lines starting with ``%`` (``% key value``),
+optionally closed by ``% end``; the little-endian event words follow. Without
+``% end`` the header ends at the first line that is not text (``%`` then
+printable characters up to ``\\n``), so an event word starting with the byte 0x25
+is data, not a header line. The header names
 the event format (``% evt 3.0`` or ``% format EVT3;width=W;height=H``) and the
-sensor size (in the ``format`` line, a ``geometry WxH`` line, or implied by a
-known ``plugin_name`` or ``sensor_generation``).
+sensor size (stated in the ``format`` line or a ``geometry WxH`` line, or only
+implied by a known ``plugin_name`` or ``sensor_generation``: a guess, which a
+caller's width and height replace).
 """
 from __future__ import annotations
 
@@ -20,6 +24,8 @@ from cmax.io._checks import check_stated_size
 PathLike = Union[str, "os.PathLike[str]"]
 
 _MAX_HEADER_BYTES = 1 << 20
+#: Tab and carriage return, the control characters a header line may hold (removed by ``str.translate``).
+_TAB_CR = {0x09: None, 0x0D: None}
 
 #: Sensor sizes of HAL plugins, matched as substrings of ``plugin_name``, in order.
 _PLUGIN_SIZES = (
@@ -53,8 +59,8 @@ class _Header:
             )
         return None
 
-    def sensor_size(self) -> tuple[int, int] | None:
-        """(width, height) from the ``format``, ``geometry`` or ``plugin_name`` lines."""
+    def stated_size(self) -> tuple[int, int] | None:
+        """(width, height) that a ``format ...;width=;height=`` or ``geometry WxH`` line states, or None."""
         options = dict(
             part.split("=", 1) for part in self.fields.get("format", "").split(";") if "=" in part
         )
@@ -64,27 +70,64 @@ class _Header:
         geometry = self.fields.get("geometry", "").lower().split("x")
         if len(geometry) == 2:
             return int(geometry[0]), int(geometry[1])
-        plugin = self.fields.get("plugin_name", "").lower()
+        return None
+
+    def inferred_size(self) -> tuple[tuple[int, int], str] | None:
+        """(width, height) implied by a known ``plugin_name`` or ``sensor_generation``, and the line that implies it.
+
+        A guess from the camera's name, not a size the file states: an
+        expelliarmus/tonic file names ``hal_plugin_gen3_fx3`` whatever its sensor.
+        """
+        plugin = self.fields.get("plugin_name", "")
         for pattern, size in _PLUGIN_SIZES:
-            if pattern in plugin:
-                return size
-        generation = self.fields.get("sensor_generation", "").split(".")[0].strip()
-        return {"3": (640, 480), "4": (1280, 720)}.get(generation)
+            if pattern in plugin.lower():
+                return size, f"plugin_name {plugin}"
+        generation = self.fields.get("sensor_generation", "")
+        size = {"3": (640, 480), "4": (1280, 720)}.get(generation.split(".")[0].strip())
+        return None if size is None else (size, f"sensor_generation {generation}")
+
+
+def _header_line_end(head: bytes, pos: int) -> int | None:
+    """Where the text line that starts with ``%`` at ``pos`` ends: the index of its ``\\n``, or None.
+
+    A header line is text: UTF-8 (in practice ASCII) without control characters
+    other than tab and carriage return, up to ``\\n``. None when the bytes after
+    ``pos`` are not: the ``%`` is then the first byte of an event word (0x25),
+    not a header line. ``len(head)`` when the line is text to the end of ``head``.
+    """
+    end = head.find(b"\n", pos)
+    body = head[pos + 1:len(head) if end < 0 else end]
+    try:
+        text = body.decode("utf-8")
+    except UnicodeDecodeError:
+        return None
+    if not text.translate(_TAB_CR).isprintable():
+        return None
+    return len(head) if end < 0 else end
 
 
 def _read_header(path: Path) -> _Header:
+    """The ``%`` lines at the start of ``path``, up to ``% end`` or the first line that is not text.
+
+    A header line is ``%`` followed by printable text (:func:`_header_line_end`) up to ``\\n``.
+    Files without ``% end`` (older Metavision and ATIS recordings) end their
+    header at the first line that is not: an event word whose first byte is
+    0x25 (``%``) starts the data, it is not read as a header line.
+    """
     with open(path, "rb") as f:
         head = f.read(_MAX_HEADER_BYTES + 1)
     fields: dict[str, str] = {}
     pos = 0
     while pos < len(head) and head[pos:pos + 1] == b"%":
-        end = head.find(b"\n", pos)
-        if end < 0:
+        end = _header_line_end(head, pos)
+        if end is None:
+            break
+        if end == len(head):
             raise FormatError(
                 f"{path}: header line at byte {pos} has no end of line "
                 "(truncated file, or not a Prophesee RAW file)"
             )
-        line = head[pos + 1:end].decode("utf-8", "replace").strip()
+        line = head[pos + 1:end].decode("utf-8").strip()
         pos = end + 1
         if line.lower() == "end":
             break
@@ -96,31 +139,41 @@ def _read_header(path: Path) -> _Header:
     return _Header(fields, pos)
 
 
-def _sensor_size(
-    header: _Header, width: int | None, height: int | None, path: Path
-) -> tuple[int, int]:
-    """(width, height) in pixels: the header's, which a caller's size must equal (else :class:`ValueError`);
-    the caller's where the header states none (or none readable)."""
+@dataclass(frozen=True)
+class _Size:
+    """A RAW file's sensor size in pixels, and the header line it is inferred from (None: stated or given)."""
+
+    width: int
+    height: int
+    inferred_from: str | None = None
+
+
+def _sensor_size(header: _Header, width: int | None, height: int | None, path: Path) -> _Size:
+    """The sensor size: the one the header states, which a caller's size must equal (else :class:`ValueError`);
+    else the caller's; else the one a known ``plugin_name``/``sensor_generation`` implies (a guess, which a
+    caller's size replaces); else :class:`FormatError`."""
     if (width is None) != (height is None):
         raise ValueError("give both width and height, or neither")
     if width is not None:
         width, height = _check_sensor_size(width, height)
     try:
-        size = header.sensor_size()
+        stated = header.stated_size()
     except ValueError:
         if width is not None:
-            return width, height
+            return _Size(width, height)
         raise FormatError(f"{path}: unreadable sensor size in the header {header.fields}") from None
-    if size is not None and width is not None:
-        return check_stated_size(width, height, size, path)
+    if stated is not None:
+        try:
+            stated = _check_sensor_size(*stated)
+        except (TypeError, ValueError) as error:
+            raise FormatError(f"{path}: bad sensor size in the header: {error}") from None
+        return _Size(*check_stated_size(width, height, stated, path))
     if width is not None:
-        return width, height
-    if size is None:
+        return _Size(width, height)
+    inferred = header.inferred_size()
+    if inferred is None:
         raise FormatError(
             f"{path}: the header gives no sensor size (no 'format ...;width=;height=', "
             "'geometry WxH' or known plugin_name line); pass width= and height= (cmax: --size WxH)"
         )
-    try:
-        return _check_sensor_size(*size)
-    except (TypeError, ValueError) as error:
-        raise FormatError(f"{path}: bad sensor size in the header: {error}") from None
+    return _Size(*inferred[0], inferred_from=inferred[1])

@@ -63,7 +63,7 @@ def _open_data(
             f"{path}: {n_bytes} bytes of {codec.title} data is not a whole number of "
             f"{word}-byte words (truncated file?)"
         )
-    return path, _Limits(size[0], size[1], check_order), header.data_offset, n_bytes // word
+    return path, _Limits(size.width, size.height, check_order, size.inferred_from), header.data_offset, n_bytes // word
 
 
 def _decode_words(
@@ -79,7 +79,7 @@ def _decode_words(
     except _WordError as error:
         at = offset + codec.dtype.itemsize * error.index
         raise FormatError(
-            f"{path}: {error.reason}, at byte offset {at} ({codec.title} word)"
+            f"{path}: {error.reason}, at byte offset {at} ({codec.title} word){error.hint}"
         ) from None
     return columns if end == bound else tuple(column[:end] for column in columns)
 
@@ -188,8 +188,11 @@ def read_evt3(
         The ``.raw`` file: ``%`` header lines, then little-endian 16-bit words.
     width, height : int, optional, keyword-only
         Sensor size in pixels; by default from the header (``format
-        EVT3;width=;height=``, ``geometry WxH`` or a known ``plugin_name``).
-        Given, they must equal a size the header states (else :class:`ValueError`).
+        EVT3;width=;height=``, ``geometry WxH``, else implied by a known
+        ``plugin_name`` or ``sensor_generation``). Given, they must equal a
+        size the header states (else :class:`ValueError`); they replace one
+        only implied by the camera's name (a guess: expelliarmus and tonic
+        name ``hal_plugin_gen3_fx3`` for every file they save).
     sort : bool, keyword-only
         If the stream's time goes back (which the format does not produce;
         a sign of corruption), sort the events stably by time instead of
