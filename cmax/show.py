@@ -133,5 +133,6 @@ def render_window(
     """Picture of ``[t0, t0 + dt)`` seconds after the first event of a file (see :func:`render_events`);
     ``options`` (e.g. ``polarity='signed'``) go to the reader."""
     events, depth = read_window(path, t0_s, dt_s, width=width, height=height, time_unit=time_unit, **options)
-    title = f"{Path(path).name}, {t0_s:g} s + {dt_s * 1e3:g} ms: "
+    span = f" (events over {(int(events.t[-1]) - int(events.t[0])) * 1e-3:.3g} ms)" if len(events) else ""
+    title = f"{Path(path).name}, {t0_s:g} s + {dt_s * 1e3:g} ms{span}: "   # a file may end within the window
     return render_events(events, mode=mode, bins=bins, depth=depth, title=title)

@@ -97,3 +97,15 @@ def test_the_ground_truth_depth_is_drawn_only_for_a_window_that_holds_its_time(t
     _, far = read_window(tmp_path / "s.h5", 0.40, 0.05)
     _, holds = read_window(tmp_path / "s.h5", 0.48, 0.05)
     assert far is None and holds is not None and holds.shape == (36, 48)
+
+
+def test_the_title_gives_the_span_the_events_cover(tmp_path, monkeypatch):
+    """A file of 8.8 ms drawn with the default 50 ms window was titled "0 s + 50 ms" alone."""
+    import cmax.show as show
+
+    events = Events([1, 2, 3], [0, 1, 2], [0, 4_000, 8_800], [1, 0, 1], 16, 12)
+    path = write_h5(tmp_path / "short.h5", events)
+    titles = []
+    monkeypatch.setattr(show, "render_events", lambda *a, title="", **k: titles.append(title))
+    show.render_window(path)
+    assert titles == ["short.h5, 0 s + 50 ms (events over 8.8 ms): "]
