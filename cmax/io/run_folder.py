@@ -1,6 +1,6 @@
-"""The output folder of a run (``cmax fit -o``, ``cmax depth -o``, ``train.out``): held by one run at a time,
-its results written into a private stage and moved in together, so that an interrupted run leaves the folder as
-it was and an earlier run's files never mix with a new run's."""
+"""The output folder of a run (``cmax fit -o``, ``cmax emvs -o``, ``cmax depth -o``, ``train.out``): held by one
+run at a time, its results written into a private stage and moved in together, so that an interrupted run leaves
+the folder as it was and an earlier run's files never mix with a new run's."""
 from __future__ import annotations
 
 import os
