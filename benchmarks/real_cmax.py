@@ -470,8 +470,9 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     ``zero_rotation_start``: ``FitSettings.zero_rotation_start`` (``cmax fit --zero-rotation-start``).
     ``polish``: ``FitSettings.polish`` (``cmax fit --polish``).
     ``seed``: ``FitSettings.seed`` (the fit's subsample and dither).
-    ``calibration``: an ECD ``calib.txt``; the events are undistorted with its lens distortion first, as
-    ``cmax fit --calib`` does (:func:`cmax.cli.fit.undistorted_events`: each event to its undistorted pixel).
+    ``calibration``: an ECD ``calib.txt``; the events are undistorted with its lens distortion first and fitted
+    with its K (unrounded: :data:`K_ECD` is the issue's command line's, to two decimals), as ``cmax fit --calib``
+    does (:func:`cmax.cli.fit.undistorted_events`: each event to its undistorted pixel).
 
     With ``cache`` the result is pickled there (atomically) and read back by a later call on the same events
     file (same resolved path, size and modification time) fitted by the same library code (a hash of the
@@ -502,16 +503,18 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
                 "fitted by an earlier run of this script (cached), load average (1 min) at its start "
                 + ("not recorded" if load is None else f"{load:.2f}"))
     events = read(events_path)
-    if calibration is not None:
+    K = K_ECD
+    if calibration is not None:   # as cmax fit --calib: undistorted, then fitted with the file's own K
         from cmax import Camera
         from cmax.cli.fit import undistorted_events
 
         camera = Camera.from_ecd_calib(calibration, events.width, events.height)
         events = undistorted_events(events, camera.K, camera.distortion)
+        K = camera.K
     gyro = None if omega is None else constant_gyro(omega, int(events.t[0]), int(events.t[-1]) + 1)
     load = os.getloadavg()[0]
     start = time.perf_counter()
-    sequence = fit_sequence(events, K_ECD, speed=ECD_SPEED, gyro=gyro, motion_members=members,
+    sequence = fit_sequence(events, K, speed=ECD_SPEED, gyro=gyro, motion_members=members,
                             zero_rotation_start=zero_rotation_start, polish=polish, seed=seed)
     seconds = time.perf_counter() - start
     if cache is not None:
@@ -638,7 +641,7 @@ def calibrated_far_walls(events_path: Path, folder: Path, sequences: list,
     """Far-wall depth of every window of each of ``sequences`` (fitted on the events undistorted with
     ``calib.txt``, :func:`slider_sequence` ``calibration=``) against EMVS with the ground-truth poses and the
     calibrated camera (its distortion: EMVS undistorts the events itself), at each window's reference time
-    on the events within ``span_us`` of it, on the same undistorted pixel grid (``K_ECD``). Returns the
+    on the events within ``span_us`` of it, on the same undistorted pixel grid (the calibration's K). Returns the
     :class:`FarWall` lists, one per sequence."""
     from benchmarks.ecd_slider_emvs import DEPTH_RANGE
     from cmax import Camera
