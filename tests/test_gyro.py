@@ -165,3 +165,16 @@ def test_fit_sequence_checks_the_gyro_span_before_fitting(scene, monkeypatch):
                           speed=float(np.linalg.norm(v)), gyro=late)
     assert len(fits) == len(result.results) == 2
     np.testing.assert_allclose(fits, [omega, omega])
+
+
+def test_stated_axes_turn_a_text_files_readings(tmp_path):
+    """A text file is in camera axes unless ``axes=`` states otherwise: the camera's x, y, z as signed IMU axes."""
+    path = tmp_path / "imu.txt"
+    path.write_text("0.0 1 2 3\n0.1 4 5 6\n")
+    _, same = read_gyro(path)
+    _, turned = read_gyro(path, axes="-y,x,-z")
+    np.testing.assert_array_equal(same, [[1, 2, 3], [4, 5, 6]])
+    np.testing.assert_array_equal(turned, [[-2, 1, -3], [-5, 4, -6]])
+    for bad in ("x,y", "x,y,w", "-x,-x,z"):
+        with pytest.raises(ValueError, match="name each IMU axis once"):
+            read_gyro(path, axes=bad)
