@@ -241,6 +241,20 @@ def test_choose_from_run_takes_the_motion_the_run_favours_beyond_its_pooled_nois
     assert c is None and not q.resolved and q.resolution == "unresolved: no confident (ok) neighbour window"
 
 
+def test_a_run_without_any_alternative_within_noise_is_not_resolved_by_agreeing_fits():
+    """Two sparse windows (ambiguous for too few events per pixel; every alternative worse beyond noise) fitted
+    one from the other agree: that was counted "resolved" ("one motion's evidence 0 beats no other motion covers
+    the run ..."), and made them confident neighbours of the motion prior. Nothing was weighed: unresolved."""
+    plus_x = np.array([1.0, 0.0, 0.0])
+    motions = [(plus_x, np.zeros(3)), (plus_x * 0.99 + [0, 0.01, 0], np.zeros(3))]
+    qualities = [Quality(Verdict.AMBIGUOUS, "60,000 events on 640x480 pixels (0.195 per pixel ...)",
+                         (Alternative("mirrored", -plus_x, np.zeros(3), 3.0, 1.0, False),), sparse=True)
+                 for _ in motions]
+    chosen = choose_from_run(motions, qualities, [0.1] * 2, 45.0)
+    assert all(c is None and not q.resolved and "none has an alternative within noise" in q.resolution
+               for c, q in chosen)
+
+
 def _constructed_sequence(monkeypatch, count: int, motion_of):
     """``fit_sequence`` over ``count`` windows of :func:`clear_window`'s events, with ``fit`` replaced: a
     re-fit with the pose held returns that pose (``ok``); otherwise window ``i`` returns ``motion_of(i)``,

@@ -554,7 +554,9 @@ def choose_from_run(motions: Sequence[tuple[np.ndarray, np.ndarray]], qualities:
     every hypothesis farther than ``max_resolve_deg`` from it by more than the run's pooled noise,
     ``sqrt(sum_i noise_i^2)`` (``noise_i``: the largest noise of window ``i``'s alternatives), and each window
     takes its candidate near it; otherwise the whole run stays unresolved, and says why. A run of one window
-    cannot gain on its own noise: it stays unresolved.
+    cannot gain on its own noise: it stays unresolved; nor can a run none of whose windows has an alternative
+    within noise (ambiguous as sparse or untested): its fits agreeing is all there is, and neighbours fitted one
+    from the other agree by construction.
 
     Returns, per window, the chosen alternative (None: keep the fit, or unresolved) and the quality with
     ``resolution``/``resolved`` filled in.
@@ -584,17 +586,24 @@ def choose_from_run(motions: Sequence[tuple[np.ndarray, np.ndarray]], qualities:
     duration = float(np.median(durations_s))
     rival = max((e for h, _, e in covered
                  if _distance_deg(h.v, h.omega, best.v, best.omega, duration) > max_resolve_deg), default=-math.inf)
+    if not math.isfinite(rival) and all(len(window) == 1 for window in candidates):
+        # Nothing was weighed: no window has an alternative within noise (each is ambiguous for another reason:
+        # too few events per pixel, too few patches to test), and warm-started neighbours agree by construction.
+        return [(None, _with(q, f"{NO_CONFIDENT_NEIGHBOUR}; the run's {count} ambiguous windows agree on one motion, "
+                                "but none has an alternative within noise to weigh it against, and neighbours "
+                                "fitted one from the other agreeing is no evidence", False)) for q in qualities]
     if not evidence - rival > noise:
         return [(None, _with(q, f"{NO_CONFIDENT_NEIGHBOUR}; pooled over the run of {count} ambiguous windows the "
                                 f"best motion's evidence {evidence:.3g} is within the pooled noise {noise:.3g} of "
                                 f"another's ({rival:.3g})", False)) for q in qualities]
-    against = "no other motion covers the run" if not math.isfinite(rival) else f"the other motion's {rival:.3g}"
+    why = (f"it is the only motion with a candidate in every window (pooled noise {noise:.3g})" if not math.isfinite(rival)
+           else f"its evidence {evidence:.3g} beats the other motion's {rival:.3g} by more than the pooled noise "
+                f"{noise:.3g}")
     out = []
     for pick, q in zip(picks, qualities):
         what = "kept the fit" if pick.alternative is None else f"took the {pick.name} alternative"
         out.append((pick.alternative, _with(q, f"resolved: {what}, no confident neighbour; pooled over the run of "
-                                               f"{count} ambiguous windows one motion's evidence {evidence:.3g} "
-                                               f"beats {against} by more than the pooled noise {noise:.3g}", True)))
+                                               f"{count} ambiguous windows one motion wins: {why}", True)))
     return out
 
 
