@@ -33,23 +33,47 @@ class Terminated(KeyboardInterrupt):
     same clean-up runs: workers stopped, temporary and lock files removed."""
 
 
+#: Set by the SIGTERM handler of :func:`_sigterm_as_interrupt`: the run was told to stop.
+_SIGTERM_RECEIVED = threading.Event()
+
+
 @contextmanager
 def _sigterm_as_interrupt() -> Iterator[None]:
     """Within the block, SIGTERM raises :class:`Terminated` in the main thread (once: a second one is ignored, so
-    it cannot cut the clean-up short); the previous handler is restored afterwards."""
+    it cannot cut the clean-up short); the previous handler is restored afterwards.
+
+    A signal handler runs between any two bytecodes, also inside a finalizer or a weakref callback, where Python
+    drops the exception it raises ("Exception ignored in ..."). The signal is remembered as well
+    (:data:`_SIGTERM_RECEIVED`): such a dropped :class:`Terminated` is not printed, :func:`stop_if_terminated`
+    raises it again after the video being converted, and :func:`run` reports the run as terminated."""
     if threading.current_thread() is not threading.main_thread():
         yield
         return
+    _SIGTERM_RECEIVED.clear()
 
     def terminate(signum, frame) -> None:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
+        _SIGTERM_RECEIVED.set()
         raise Terminated()
 
-    previous = signal.signal(signal.SIGTERM, terminate)
+    def unraisable(info) -> None:
+        if not isinstance(info.exc_value, Terminated):   # a dropped Terminated is remembered, not printed
+            hook(info)
+
+    previous, hook = signal.signal(signal.SIGTERM, terminate), sys.unraisablehook
+    sys.unraisablehook = unraisable
     try:
         yield
     finally:
         signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        sys.unraisablehook = hook
+
+
+def stop_if_terminated() -> None:
+    """Raise :class:`Terminated` when SIGTERM came but its exception was dropped (see :func:`_sigterm_as_interrupt`);
+    called after each video, where the Ctrl-C clean-up can run."""
+    if _SIGTERM_RECEIVED.is_set():
+        raise Terminated()
 
 
 def run(args: argparse.Namespace) -> int:
@@ -57,11 +81,22 @@ def run(args: argparse.Namespace) -> int:
     folder holds none of its videos; 143 after SIGTERM, once the clean-up is done)."""
     try:
         with _sigterm_as_interrupt():
-            return _run(args)
+            status = _run(args)
+        stop_if_terminated()     # a SIGTERM whose exception was dropped while the last video was converted
+        return status
     except Terminated:
         print("cmax simulate: terminated (SIGTERM): the finished videos are kept and listed in the manifest; "
               "a rerun converts the others", file=sys.stderr)
         return 128 + int(signal.SIGTERM)
+
+
+def _converted(names: set[str]):
+    """The ``on_result`` of a conversion: note each finished video in ``names``, then stop if SIGTERM came."""
+    def record(result) -> None:
+        names.add(result.name)
+        stop_if_terminated()
+
+    return record
 
 
 def _run(args: argparse.Namespace) -> int:
@@ -84,7 +119,7 @@ def _run(args: argparse.Namespace) -> int:
     converted: set[str] = set()
     manifest = convert_collection(jobs, args.output, settings, workers=args.workers, missing=missing,
                                   catalogue=args.catalogue, shard=shard, progress=not args.quiet,
-                                  on_result=lambda result: converted.add(result.name))
+                                  on_result=_converted(converted))
     status = _report_manifest(args.output / "manifest.json", manifest, [job.name for job in jobs], converted)
     if missing:
         print(f"  missing from {args.input}: {', '.join(missing)}", file=sys.stderr)
@@ -227,7 +262,7 @@ def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     converted: set[str] = set()
     manifest = convert_collection([job], output.parent, settings, workers=1, progress=not args.quiet,
                                   redo=[job.name] if args.overwrite else (),
-                                  on_result=lambda result: converted.add(result.name))
+                                  on_result=_converted(converted))
     return _report_manifest(manifest_path, manifest, [job.name], converted)
 
 
