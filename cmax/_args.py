@@ -69,11 +69,6 @@ def nonnegative_float(text: str) -> float:
     return float(_number(text, float, "a finite number >= 0", at_least=0))
 
 
-def positive_int(text: str) -> int:
-    """A whole number >= 1."""
-    return int(_number(text, int, "a whole number >= 1", at_least=1))
-
-
 def int_at_least(minimum: int):
     """An ``argparse`` type: a whole number >= ``minimum``.
 
@@ -83,12 +78,14 @@ def int_at_least(minimum: int):
     def parse(text: str) -> int:
         return int(_number(text, int, f"a whole number >= {minimum}", at_least=minimum))
 
+    parse.__doc__ = f"A whole number >= {minimum}."
     return parse
 
 
-def nonnegative_int(text: str) -> int:
-    """A whole number >= 0."""
-    return int(_number(text, int, "a whole number >= 0", at_least=0))
+#: A whole number >= 1.
+positive_int = int_at_least(1)
+#: A whole number >= 0.
+nonnegative_int = int_at_least(0)
 
 
 def sensor_size(text: str) -> tuple[int, int]:

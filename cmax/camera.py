@@ -11,7 +11,8 @@ import numpy as np
 
 from cmax.events import Events, _check_sensor_size, require_events
 
-__all__ = ["Camera", "camera_and_intrinsics", "check_intrinsics", "intrinsics_oddity", "pinhole_events"]
+__all__ = ["Camera", "camera_and_intrinsics", "check_intrinsics", "intrinsics_matrix", "intrinsics_oddity",
+           "pinhole_events"]
 
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 
@@ -37,6 +38,24 @@ def check_intrinsics(K: object, name: str = "K") -> np.ndarray:
     if not np.allclose(matrix[2], [0, 0, 1]) or matrix[1, 0] != 0:
         raise ValueError(f"{name} must have the form [[fx, s, cx], [0, fy, cy], [0, 0, 1]], got {matrix.tolist()}")
     return matrix
+
+
+def intrinsics_matrix(K: object, name: str = "K") -> np.ndarray:
+    """``K`` given as ``[fx, fy, cx, cy]`` [px] or a (3, 3) pinhole matrix, as the checked (3, 3) float64 matrix
+    (:func:`check_intrinsics`): TypeError / ValueError in one line naming ``name`` for anything else (NaN, a focal
+    length <= 0, a transposed or non-pinhole matrix).
+
+    >>> intrinsics_matrix([200, 210, 120, 90]).tolist()
+    [[200.0, 0.0, 120.0], [0.0, 210.0, 90.0], [0.0, 0.0, 1.0]]
+    """
+    try:
+        flat = np.asarray(K, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be [fx, fy, cx, cy] or a 3x3 matrix of numbers, got {K!r}") from None
+    if flat.shape == (4,):
+        fx, fy, cx, cy = flat
+        flat = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+    return check_intrinsics(flat, name)
 
 
 #: How far a plausible principal point lies from the image's centre (a fraction of the image's size), and
@@ -118,7 +137,7 @@ class Camera:
         distortion: object = None,
     ) -> "Camera":
         """Camera from focal lengths and principal point (pixels)."""
-        K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
+        K = intrinsics_matrix([fx, fy, cx, cy])
         return cls(K, width, height, None if distortion is None else np.asarray(distortion))
 
     @classmethod

@@ -50,7 +50,7 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
            "window_picture", "write_window", "earlier_results", "FOLDER_LOCK",
-           "intrinsics_matrix", "run_prediction", "predict_file", "add_arguments",
+           "run_prediction", "predict_file", "add_arguments",
            "run", "main"]
 
 #: Windows with fewer events are skipped (counted in the summary).
@@ -431,26 +431,6 @@ def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarra
     return recording.K
 
 
-def intrinsics_matrix(K: object, name: str = "K") -> np.ndarray:
-    """``K`` given as ``[fx, fy, cx, cy]`` [px] or a (3, 3) pinhole matrix, as the checked (3, 3) float64 matrix
-    (:func:`cmax.camera.check_intrinsics`, which ``--K`` and :func:`cmax.fit` use too): TypeError / ValueError in
-    one line naming ``name`` for anything else (NaN, a focal length <= 0, a transposed or non-pinhole matrix).
-
-    >>> intrinsics_matrix([200, 210, 120, 90]).tolist()
-    [[200.0, 0.0, 120.0], [0.0, 210.0, 90.0], [0.0, 0.0, 1.0]]
-    """
-    from cmax.camera import check_intrinsics
-
-    try:
-        flat = np.asarray(K, dtype=np.float64)
-    except (TypeError, ValueError):
-        raise TypeError(f"{name} must be [fx, fy, cx, cy] or a 3x3 matrix of numbers, got {K!r}") from None
-    if flat.shape == (4,):
-        fx, fy, cx, cy = flat
-        flat = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
-    return check_intrinsics(flat, name)
-
-
 def _check_seconds(name: str, value: object, *, positive: bool) -> None:
     """TypeError / ValueError (one line naming ``name``) unless ``value`` is None or a finite number of seconds,
     > 0 (``positive``) or >= 0."""
@@ -475,6 +455,8 @@ def _check_arguments(K: object, window_s: object, t0_s: object, t1_s: object,
         if isinstance(depth_range, (str, bytes)) or not hasattr(depth_range, "__len__") or len(depth_range) != 2:
             raise TypeError(f"depth_range must be (near, far) in metres, got {depth_range!r}")
         viz.DepthScale(*depth_range)   # 0 < near < far, finite numbers
+    from cmax.camera import intrinsics_matrix
+
     return None if K is None else intrinsics_matrix(K)
 
 
@@ -494,7 +476,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         A :mod:`learned.checkpoint` file (default: :func:`learned.pretrained.shipped_checkpoint`).
     K : array_like (3, 3) or (4,), optional
         Intrinsics [px], the pinhole matrix or ``[fx, fy, cx, cy]`` (checked as ``--K`` is:
-        :func:`intrinsics_matrix`); ``calib`` (ECD calib.txt or DSEC cam_to_cam.yaml, camera ``calib_camera``)
+        :func:`cmax.camera.intrinsics_matrix`); ``calib`` (ECD calib.txt or DSEC cam_to_cam.yaml, camera ``calib_camera``)
         instead; neither: the file's ``gt/K``.
     distortion : ndarray (4,) or (5,), optional
         OpenCV ``k1, k2, p1, p2[, k3]`` of ``K`` (with ``K`` only; a ``calib`` file brings its own): the

@@ -502,11 +502,13 @@ class Trainer:
         self.saved_step = self.step
         return written
 
-    def _kept(self) -> str:
-        """What stays in ``train.out`` when the run stops (the end of a :class:`TrainingDiverged` message)."""
-        if self.saved_step is None:
-            return "no checkpoint had been written yet"
-        return f"the last good checkpoint {self.out / 'last.pt'} (step {self.saved_step}) is kept"
+    def _diverged(self, what: str) -> TrainingDiverged:
+        """The :class:`TrainingDiverged` of a step where ``what`` went non-finite: what stays in ``train.out``, and
+        what may keep the run stable."""
+        kept = ("no checkpoint had been written yet" if self.saved_step is None
+                else f"the last good checkpoint {self.out / 'last.pt'} (step {self.saved_step}) is kept")
+        return TrainingDiverged(f"{what}: training stopped and nothing was saved; {kept}; a lower train.lr or "
+                                "gradient clipping (train.clip_grad_norm) may keep the run stable")
 
     def _check_loss(self, terms: dict[str, float]) -> None:
         """Raise :class:`TrainingDiverged` when a loss term (:func:`global_mean` over the ranks: every rank decides
@@ -515,9 +517,7 @@ class Trainer:
         bad = nonfinite_terms(terms)
         if bad:
             values = ", ".join(f"loss/{name}={terms[name]:g}" for name in bad)
-            raise TrainingDiverged(f"step {self.step + 1}: the loss is not finite ({values}): training stopped and "
-                                   f"nothing was saved; {self._kept()}; a lower train.lr or gradient clipping "
-                                   f"(train.clip_grad_norm) may keep the run stable")
+            raise self._diverged(f"step {self.step + 1}: the loss is not finite ({values})")
 
     def _check_weights(self) -> None:
         """Raise :class:`TrainingDiverged` when the update of step ``self.step`` left a weight non-finite (the same
@@ -527,10 +527,8 @@ class Trainer:
         if bool(torch.stack([torch.isfinite(tensor).all() for tensor in floats]).all()):   # one device sync
             return
         bad = nonfinite_tensors(state)
-        if bad:
-            raise TrainingDiverged(f"step {self.step}: the update made {len(bad)} weight tensors non-finite (e.g. "
-                                   f"{bad[0]}): training stopped and nothing was saved; {self._kept()}; a lower "
-                                   f"train.lr or gradient clipping (train.clip_grad_norm) may keep the run stable")
+        raise self._diverged(f"step {self.step}: the update made {len(bad)} weight tensors non-finite (e.g. "
+                             f"{bad[0]})")
 
     def run(self) -> list[float]:
         """Train from the current step to ``train.steps``; returns the losses of the steps run (each the global

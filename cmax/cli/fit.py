@@ -374,7 +374,8 @@ def run(args: argparse.Namespace) -> int:
         options["hot_pixels"] = None
     # None above: the library's default (one source: fit_sequence / fit / FitSettings)
     try:
-        FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})
+        settings = FitSettings(**{key: value for key, value in options.items()
+                                  if key in FitSettings.__dataclass_fields__})
     except ValueError as error:
         raise ValueError(option_words(str(error))) from None
     min_events = args.min_events or _sequence_default("min_events")()
@@ -387,21 +388,21 @@ def run(args: argparse.Namespace) -> int:
     step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
     with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
                                what="depth_*.npz, summary.json, ...") as stage:
-        status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, min_events=min_events,
-                           depth_grid=depth_grid, window_us=window_us, step_us=step_us)
-    return status
+        return _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
+                         min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us)
 
 
 def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_model: str, options: dict,
-              min_events: int, depth_grid: tuple[int, int], window_us: int, step_us: int) -> int:
-    """:func:`run`'s work once the options are checked: read, fit, and write every result into the empty folder
-    ``stage`` (moved into ``out`` by :func:`run`); returns the exit status."""
+              settings, min_events: int, depth_grid: tuple[int, int], window_us: int, step_us: int) -> int:
+    """:func:`run`'s work once the options are checked (``options``, the keywords of :func:`cmax.fit_sequence`;
+    ``settings``, the :class:`cmax.FitSettings` they make): read, fit, and write every result into the empty
+    folder ``stage`` (moved into ``out`` by :func:`run`); returns the exit status."""
     from tqdm.auto import tqdm
 
     from cmax import viz
     import cmax.events as cmax_events
     from cmax.events import EventLimitError, uncovered_tail, window_starts
-    from cmax.fitting import FitSettings, fit_sequence
+    from cmax.fitting import fit_sequence
     from cmax.fitting.api import MIN_WINDOW_EVENTS
     from cmax.fitting.quality import LowMotionCause, Verdict
     from cmax.fitting.sequence import check_gyro, constant_gyro
@@ -505,7 +506,6 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     unresolved = [r.quality for r in sequence.results if r.verdict is Verdict.AMBIGUOUS and not r.quality.resolved]
     unsteady = sum(q.unsteady for q in unresolved)
     sparse = sum(q.sparse for q in unresolved)     # never unsteady too: verdict_of marks only an ok one sparse
-    settings = FitSettings(**{key: value for key, value in options.items() if key in FitSettings.__dataclass_fields__})
     needs = math.ceil(settings.quality.min_event_density * events.width * events.height)
     late_notes += advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None,
                          no_motion, cell_noise, unsteady, sparse, single_window=single_window,

@@ -22,7 +22,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import float_list, nonnegative_float, sensor_size
-from cmax.camera import check_intrinsics
+from cmax.camera import check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "distortion_argument", "read_calibration",
@@ -231,9 +231,8 @@ def intrinsics_argument(text: str) -> np.ndarray:
         fx, fy, cx, cy = (float(v) for v in text.split(","))
     except ValueError:
         raise argparse.ArgumentTypeError(f"--K must be fx,fy,cx,cy (four numbers), got {text!r}") from None
-    K = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     try:
-        return check_intrinsics(K)
+        return intrinsics_matrix([fx, fy, cx, cy])
     except ValueError as error:
         raise argparse.ArgumentTypeError(f"--K: {error}") from None
 
@@ -299,7 +298,7 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray
         (fx, fy, cx, cy), distortion, size = numbers[:4], numbers[4:] or None, None
     if distortion is not None and (len(distortion) not in (4, 5) or not np.isfinite(distortion).all()):
         raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])")
-    K = check_intrinsics(np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]]))
+    K = intrinsics_matrix([fx, fy, cx, cy])
     return K, None if distortion is None else np.asarray(distortion, float), size
 
 
