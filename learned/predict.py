@@ -94,18 +94,6 @@ class Recording:
     close: Callable[[], None]
 
 
-def _file_intrinsics(file: Any, path: Path) -> np.ndarray | None:
-    """``gt/K`` of an open h5 file, validated (None when it has none)."""
-    from cmax.camera import check_intrinsics
-
-    if "gt" not in file or "K" not in file["gt"]:
-        return None
-    try:
-        return check_intrinsics(np.asarray(file["gt/K"][()]), f"{path}: gt/K")
-    except TypeError as error:
-        raise ValueError(str(error)) from None
-
-
 def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, time_unit: str | None = None,
                    polarity: str | None = None, t0_s: float | None = None,
                    t1_s: float | None = None, sort: bool = False) -> Recording:
@@ -119,7 +107,7 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
     (:class:`cmax.io.prophesee.RawWindows`); other formats are decoded whole. Raises FileNotFoundError,
     :class:`cmax.io.FormatError` or ValueError (one line each) for a missing, unreadable or empty file.
     """
-    from cmax.cli.recording import file_span_us
+    from cmax.cli.recording import file_span_us, h5_intrinsics
     from cmax.events import EventLimitError
     from cmax.io import H5Reader, check_sortable, detect_format, read
     from cmax.io.prophesee import RawWindows
@@ -132,7 +120,7 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
     if kind == "dsec":
         reader = H5Reader(path, width=width, height=height, time_unit=time_unit, **options)
         try:
-            K = _file_intrinsics(reader.file, path)
+            K = h5_intrinsics(reader.file, path)
             first, last = reader.t_start, reader.t_end   # "holds no events" when empty
         except BaseException:
             reader.close()

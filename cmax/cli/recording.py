@@ -25,7 +25,7 @@ from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
-           "read_calibrated", "intrinsics_argument", "file_intrinsics", "distortion_argument", "read_calibration",
+           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "distortion_argument", "read_calibration",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
 
@@ -243,14 +243,20 @@ def file_intrinsics(path: str | Path) -> np.ndarray | None:
     import h5py
 
     try:
-        with h5py.File(path, "r") as file:
-            if "gt" not in file or "K" not in file["gt"]:
-                return None
-            matrix = np.asarray(file["gt/K"][()])
+        file = h5py.File(path, "r")
     except OSError:                     # not an h5 file
         return None
+    with file:
+        return h5_intrinsics(file, path)
+
+
+def h5_intrinsics(file, path: str | Path) -> np.ndarray | None:
+    """``gt/K`` (3, 3) [px] of an open h5 file (``h5py.File``), validated; None when it stores none (ValueError,
+    naming ``path``, when it stores a bad one)."""
+    if "gt" not in file or "K" not in file["gt"]:
+        return None
     try:
-        return check_intrinsics(matrix, f"{path}: gt/K")
+        return check_intrinsics(np.asarray(file["gt/K"][()]), f"{path}: gt/K")
     except TypeError as error:
         raise ValueError(str(error)) from None
 
