@@ -299,11 +299,12 @@ def test_a_run_whose_every_window_failed_exits_1_and_the_summary_records_what_wa
                  "--quiet"]) == 1
     err = capsys.readouterr().err
     assert err.count("LowParallaxWarning") == 1
-    assert "cmax fit: warning: LowParallaxWarning (4 times; the first): parallax 0.25 px" in err
+    assert "cmax fit: warning: LowParallaxWarning (4 times, windows 0-3; the first): window 0: parallax 0.25 px" in err
     assert "cmax fit: note: every fitted window failed (4)" in err
     summary = json.loads((out / "summary.json").read_text())
     assert summary["verdicts"]["failed"] == 4 and len(summary["windows"]) == 4
-    assert summary["warnings"] == [{"category": "LowParallaxWarning", "count": 4, "message": "parallax 0.25 px"}]
+    assert summary["warnings"] == [{"category": "LowParallaxWarning", "count": 4, "windows": [0, 1, 2, 3],
+                                    "message": "window 0: parallax 0.25 px"}]
     printed_notes = [line.removeprefix("cmax fit: note: ") for line in err.splitlines() if "cmax fit: note: " in line]
     assert summary["notes"] == printed_notes and len(printed_notes) >= 2          # the tail note and the failure
     assert summary["depth_range"] == list(FitSettings().depth_range)

@@ -346,6 +346,22 @@ def test_parallel_sequence_equals_the_cold_serial_sequence_bit_for_bit():
     assert np.array_equal(parallel.poses, serial.poses) and np.array_equal(parallel.times_us, serial.times_us)
 
 
+@pytest.mark.parametrize("jobs", [1, 2])
+def test_a_sequence_names_the_window_of_each_warning(jobs):
+    """Four 0.1 s windows, the second and fourth moving half a pixel: their LowMotionWarning comes back
+    prefixed ``window 1:`` / ``window 3:``, fitted serially (warm starts off) or in parallel alike (serially it
+    came without the window, so ``cmax fit``'s summary could not say which windows were warned)."""
+    from cmax.events import concatenate
+
+    flows = [(300.0, 0.0), (5.0, 0.0), (0.0, 250.0), (0.0, 4.0)]
+    recording = concatenate([translating_edges(flow, seed, t0_us=100_000 * seed) for seed, flow in enumerate(flows)])
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        cmax.fit_sequence(recording, K, "flow", window_us=100_000, min_events=100, jobs=jobs, warm_start=False)
+    named = [str(c.message).split(":")[0] for c in caught if c.category is LowMotionWarning]
+    assert named == ["window 1", "window 3"]
+
+
 def test_sequence_warm_starts_by_default_and_refuses_them_in_parallel():
     """jobs=1 (the default) chains the windows: each equals cmax.fit warm-started from the one before."""
     events = _recording()

@@ -292,14 +292,17 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
 
 def grouped_warnings(caught: list) -> list[dict]:
     """The warnings of a run (``warnings.catch_warnings(record=True)``), one entry per kind: the same category and
-    the same words once the numbers are left out (a warning of every window is said once, with how often it came).
-    Each entry: ``category`` (class name), ``count`` (how many times it came), ``message`` (the first one) and
-    ``text`` (the line to print).
+    the same words once the numbers are left out (a warning of every window is said once, with how often it came
+    and, for a window's warning (``window i: ...``, as :func:`~cmax.fitting.fit_sequence` words them), which windows).
+    Each entry: ``category`` (class name), ``count`` (how many times it came), ``windows`` (the windows' numbers,
+    ascending, each once; empty for a warning of the run), ``message`` (the first one) and ``text`` (the line to
+    print).
 
     >>> import warnings
-    >>> caught = [warnings.WarningMessage(UserWarning(f"parallax {p} px"), UserWarning, "f.py", 1) for p in (0.4, 0.7)]
+    >>> caught = [warnings.WarningMessage(UserWarning(f"window {i}: parallax 0.{i} px"), UserWarning, "f.py", 1)
+    ...           for i in (0, 1, 2, 5)]
     >>> [line["text"] for line in grouped_warnings(caught)]
-    ['UserWarning (2 times; the first): parallax 0.4 px']
+    ['UserWarning (4 times, windows 0-2, 5; the first): window 0: parallax 0.0 px']
     """
     import re
 
@@ -307,12 +310,27 @@ def grouped_warnings(caught: list) -> list[dict]:
     for item in caught:
         message = str(item.message)
         key = (item.category.__name__, re.sub(r"[-+]?\d[\d.,:e+-]*", "#", message))
-        entry = groups.setdefault(key, {"category": key[0], "count": 0, "message": message})
+        entry = groups.setdefault(key, {"category": key[0], "count": 0, "windows": [], "message": message})
         entry["count"] += 1
+        if (window := re.match(r"window (\d+): ", message)) is not None:
+            entry["windows"].append(int(window.group(1)))
     for entry in groups.values():
-        times = f" ({entry['count']} times; the first)" if entry["count"] > 1 else ""
+        entry["windows"] = sorted(set(entry["windows"]))
+        which = f", windows {_ranges(entry['windows'])}" if len(entry["windows"]) > 1 else ""
+        times = f" ({entry['count']} times{which}; the first)" if entry["count"] > 1 else ""
         entry["text"] = f"{entry['category']}{times}: {entry['message']}"
     return list(groups.values())
+
+
+def _ranges(numbers: list[int]) -> str:
+    """Ascending distinct whole numbers in a few words: ``[0, 1, 2, 5]`` -> ``'0-2, 5'``."""
+    runs: list[list[int]] = []
+    for n in numbers:
+        if runs and n == runs[-1][-1] + 1:
+            runs[-1].append(n)
+        else:
+            runs.append([n])
+    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in runs)
 
 
 def window_line(index: int, result, first_us: int) -> str:
@@ -532,7 +550,8 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
                "members": args.members or _settings_default("motion_members")(),
                "polish": args.polish or _settings_default("polish")().value,
                "warm_start": args.jobs == 1, "keep_hot_pixels": args.keep_hot_pixels, "notes": notes + late_notes,
-               "warnings": [{key: line[key] for key in ("category", "count", "message")} for line in warned],
+               "warnings": [{key: line[key] for key in ("category", "count", "windows", "message")}
+                            for line in warned],
                "windows_total": n_windows, "skipped_us": sequence.skipped_us.tolist(),
                "uncovered_us": None if sequence.uncovered_us is None else list(sequence.uncovered_us),
                "verdicts": sequence.counts(), "windows": windows}

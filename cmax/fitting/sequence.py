@@ -185,11 +185,14 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         fitted), ``window_us``, ``step_us``, ``min_events``, ``jobs`` or ``gyro``.
     cmax.fitting.batch.WindowFitError
         ``jobs`` other than 1: a window's fit raised; ``index`` is its place among the fitted windows,
-        the original exception is ``__cause__`` (the warnings of the workers' fits are re-issued here,
-        prefixed with ``window i:``). With ``jobs=1`` a window's exception propagates as it is.
+        the original exception is ``__cause__``. With ``jobs=1`` a window's exception propagates as it is.
 
     Warns
     -----
+    Warning
+        Each window's fit's warnings (e.g. :class:`~cmax.fitting.LowParallaxWarning`), in window order, each
+        prefixed with ``window i:`` (``i``: its place among the fitted windows, as in ``results``), for any
+        ``jobs``.
     UserWarning
         No window was fitted: the recording is shorter than one window, or no window holds ``min_events``
         events (the result then holds no window). Some windows were skipped: how many, and that the
@@ -254,7 +257,12 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     if jobs == 1:
         results, previous = [], None
         for task in tqdm(tasks(), desc="windows", unit="window", total=len(starts), disable=not progress):
-            previous = fit(task.events, task.K, task.model, init=previous if warm_start else None, **task.options)
+            with warnings.catch_warnings(record=True) as caught:     # said again naming the window, as jobs > 1
+                warnings.simplefilter("always")
+                previous = fit(task.events, task.K, task.model, init=previous if warm_start else None,
+                               **task.options)
+            for item in caught:
+                warnings.warn(f"window {task.index}: {item.message}", item.category, stacklevel=2)
             results.append(previous)
     else:
         results = run_tasks(tasks(), min(jobs, max(1, len(starts))), total=len(starts), progress=progress)
