@@ -68,7 +68,7 @@ THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RESUMABLE",
-           "config_differences", "Trainer", "check_output", "main"]
+           "config_differences", "resolved_paths", "Trainer", "check_output", "main"]
 
 def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
     """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
@@ -134,20 +134,40 @@ RESUMABLE = frozenset({"train.steps", "train.out", "train.device", "train.checkp
                        "train.image_every", "train.val_every", "data.val_files", "data.val_windows"})
 
 
-def _fields(config: Config) -> dict[str, object]:
+def _fields(config: Config, paths: dict | None = None) -> dict[str, object]:
     """``{"mode": ..., "model.width": ..., ...}``: every field of ``config`` under its dotted key, as plain JSON
-    data (tuples as lists)."""
+    data (tuples as lists); with ``paths`` (:func:`resolved_paths`), the data files and the teacher by the absolute
+    paths it gives in place of the paths as typed."""
     values = json.loads(json.dumps(config.to_dict(), default=str))
     flat: dict[str, object] = {"mode": values.pop("mode")}
     for section, fields in values.items():
         flat.update({f"{section}.{name}": value for name, value in fields.items()})
+    if paths is not None:
+        flat["data.files"] = [{**entry, "path": path} if isinstance(entry, dict) else path
+                              for entry, path in zip(flat["data.files"], paths["data.files"])]
+        flat["train.teacher"] = paths["train.teacher"]
     return flat
 
 
-def config_differences(recorded: Config, now: Config) -> list[str]:
+def resolved_paths(config: Config) -> dict[str, object]:
+    """``{"data.files": [absolute path, ...], "train.teacher": absolute path or ""}``: the files a run reads, as
+    a checkpoint records them so that ``--resume`` compares files, not spellings (``a.h5`` and ``./a.h5`` are one
+    file; ``a.h5`` typed in another folder is another)."""
+    def absolute(path: object) -> str:
+        return str(Path(path).expanduser().resolve())
+
+    return {"data.files": [absolute(entry["path"] if isinstance(entry, dict) else entry)
+                           for entry in config.data.files],
+            "train.teacher": absolute(config.train.teacher) if config.train.teacher else ""}
+
+
+def config_differences(recorded: Config, now: Config, recorded_paths: dict | None = None) -> list[str]:
     """``"key=RECORDED (now NOW)"`` for each field outside :data:`RESUMABLE` in which ``now`` differs from
-    ``recorded`` (a checkpoint's config), in the config's order (``mode``, ``model.*``, ``data.*``, ``train.*``)."""
-    before, after = _fields(recorded), _fields(now)
+    ``recorded`` (a checkpoint's config), in the config's order (``mode``, ``model.*``, ``data.*``, ``train.*``).
+    With ``recorded_paths`` (the checkpoint's :func:`resolved_paths`), the data files and the teacher are compared
+    as the files they name; without (a checkpoint of an earlier version), as typed."""
+    paths_now = None if recorded_paths is None else resolved_paths(now)
+    before, after = _fields(recorded, recorded_paths), _fields(now, paths_now)
     return [f"{key}={json.dumps(before[key])} (now {json.dumps(after[key])})" for key in before
             if key not in RESUMABLE and before[key] != after.get(key)]
 
@@ -364,7 +384,13 @@ class Trainer:
             recorded = config_from_dict(ckpt["config"])
         except (TypeError, ValueError) as error:
             raise CheckpointError(f"{path}: its config is not valid: {error}") from None
-        differ = config_differences(recorded, self.config)
+        order = ckpt.get("data_order")
+        paths = order.get("paths") if isinstance(order, dict) else None
+        if paths is not None and not (isinstance(paths, dict) and isinstance(paths.get("train.teacher"), str)
+                                      and isinstance(paths.get("data.files"), list)
+                                      and len(paths["data.files"]) == len(recorded.data.files)):
+            raise CheckpointError(f"{path}: its data_order.paths is not valid: {paths!r}")
+        differ = config_differences(recorded, self.config, paths)
         if differ:
             raise ValueError(f"--resume: {path} was written with other settings than this run's: "
                              f"{', '.join(differ)}; repeat the settings of the run that wrote it, or start afresh "
@@ -497,7 +523,7 @@ class Trainer:
         payload = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "step": self.step,
                    "config": self.config.to_dict(), "rng": rng_state(),
                    "data_order": {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
-                                  "dataset_size": len(self.dataset)}}
+                                  "dataset_size": len(self.dataset), "paths": resolved_paths(self.config)}}
         written = save_checkpoint(self.out / "last.pt", payload)
         self.saved_step = self.step
         return written

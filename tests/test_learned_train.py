@@ -354,6 +354,30 @@ def test_a_diverging_run_stops_and_keeps_the_last_good_checkpoint(scene_file, tm
     assert max(logged) < step                        # the failed step is not in the learning curve
 
 
+def test_resume_compares_the_files_not_their_spelling(scene_file, tmp_path, capsys, monkeypatch):
+    """A run started with data.files=["data.h5"] resumed as ["./data.h5"] or by its absolute path reads the same
+    file: it resumes (it was refused, the paths compared as typed). The same relative name typed in another
+    folder names another file: refused, naming both absolute paths."""
+    from conftest import one_line_error
+
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    shutil.copyfile(scene_file, tmp_path / "a" / "data.h5")
+    shutil.copyfile(scene_file, tmp_path / "b" / "data.h5")
+    out = tmp_path / "run"
+    monkeypatch.chdir(tmp_path / "a")
+    assert main(["--mode", "teacher", "--no-progress", *tiny(Path("data.h5"), out, "train.steps=2")]) == 0
+    for spelling, steps in (("./data.h5", 3), (tmp_path / "a" / "data.h5", 4)):
+        assert main(["--mode", "teacher", "--no-progress", "--resume",
+                     *tiny(spelling, out, f"train.steps={steps}")]) == 0, spelling
+        assert load_checkpoint(out / "last.pt")["step"] == steps
+    capsys.readouterr()
+    monkeypatch.chdir(tmp_path / "b")
+    status, err = one_line_error(lambda: main(["--mode", "teacher", "--no-progress", "--resume",
+                                               *tiny(Path("data.h5"), out, "train.steps=5")]), capsys)
+    assert status == 2 and "was written with other settings than this run's" in err, err
+    assert f'data.files=["{tmp_path / "a" / "data.h5"}"] (now ["{tmp_path / "b" / "data.h5"}"])' in err, err
+
+
 def test_resume_refuses_a_run_that_differs_from_the_checkpoint(scene_file, slider_file, tmp_path, capsys):
     """--resume continued a teacher run as a student, or with other data, seed, batch and lr, with exit 0 and no
     note (and overwrote config.json); another model config gave a raw load_state_dict dump. Each is refused in
