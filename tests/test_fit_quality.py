@@ -251,8 +251,31 @@ def test_a_run_without_any_alternative_within_noise_is_not_resolved_by_agreeing_
                          (Alternative("mirrored", -plus_x, np.zeros(3), 3.0, 1.0, False),), sparse=True)
                  for _ in motions]
     chosen = choose_from_run(motions, qualities, [0.1] * 2, 45.0)
-    assert all(c is None and not q.resolved and "none has an alternative within noise" in q.resolution
+    assert all(c is None and not q.resolved and "none of them has an alternative within noise" in q.resolution
                for c, q in chosen)
+
+
+def test_a_run_whose_winner_is_unrivalled_only_through_unweighed_windows_is_not_resolved():
+    """Three ambiguous windows fitted one from the other (+x): the first and last have their mirrored -x within
+    noise (gains 0.1, 0.1), the middle one is sparse (its mirrored worse beyond noise, so only its fit is a
+    candidate). -x then has no candidate in the middle window and +x was called "the only motion with a candidate
+    in every window": resolved, though the one window that excludes -x weighed nothing (an audit's sequence:
+    10 of 10 windows "resolved", 5-79 deg off). The run stays unresolved and says why."""
+    plus_x = np.array([1.0, 0.0, 0.0])
+    motions = [(plus_x, np.zeros(3))] * 3
+    within = (Alternative("mirrored", -plus_x, np.zeros(3), 0.1, 0.4, True),)
+    beyond = (Alternative("mirrored", -plus_x, np.zeros(3), 3.0, 0.4, False),)
+    qualities = [Quality(Verdict.AMBIGUOUS, "mirrored within noise", within),
+                 Quality(Verdict.AMBIGUOUS, "sparse", beyond, sparse=True),
+                 Quality(Verdict.AMBIGUOUS, "mirrored within noise", within)]
+    chosen = choose_from_run(motions, qualities, [0.1] * 3, 45.0)
+    assert all(c is None and not q.resolved for c, q in chosen)
+    assert "but 1 of them has no alternative within noise" in chosen[0][1].resolution
+    # the middle window weighed too (its mirrored within noise, gain 0.1): +x and -x both cover the run, their
+    # evidence 0 and -0.3 within the pooled noise 0.69: unresolved as before, for that reason
+    qualities[1] = Quality(Verdict.AMBIGUOUS, "mirrored within noise", within)
+    chosen = choose_from_run(motions, qualities, [0.1] * 3, 45.0)
+    assert all(c is None and not q.resolved and "within the pooled noise" in q.resolution for c, q in chosen)
 
 
 def _constructed_sequence(monkeypatch, count: int, motion_of):

@@ -554,9 +554,9 @@ def choose_from_run(motions: Sequence[tuple[np.ndarray, np.ndarray]], qualities:
     every hypothesis farther than ``max_resolve_deg`` from it by more than the run's pooled noise,
     ``sqrt(sum_i noise_i^2)`` (``noise_i``: the largest noise of window ``i``'s alternatives), and each window
     takes its candidate near it; otherwise the whole run stays unresolved, and says why. A run of one window
-    cannot gain on its own noise: it stays unresolved; nor can a run none of whose windows has an alternative
-    within noise (ambiguous as sparse or untested): its fits agreeing is all there is, and neighbours fitted one
-    from the other agree by construction.
+    cannot gain on its own noise: it stays unresolved; so does a run whose winner has no rival only because some
+    of its windows have no alternative within noise (ambiguous as sparse or untested): they hold their fit alone,
+    so no rival can cover them, and neighbours fitted one from the other agree by construction.
 
     Returns, per window, the chosen alternative (None: keep the fit, or unresolved) and the quality with
     ``resolution``/``resolved`` filled in.
@@ -586,12 +586,17 @@ def choose_from_run(motions: Sequence[tuple[np.ndarray, np.ndarray]], qualities:
     duration = float(np.median(durations_s))
     rival = max((e for h, _, e in covered
                  if _distance_deg(h.v, h.omega, best.v, best.omega, duration) > max_resolve_deg), default=-math.inf)
-    if not math.isfinite(rival) and all(len(window) == 1 for window in candidates):
-        # Nothing was weighed: no window has an alternative within noise (each is ambiguous for another reason:
-        # too few events per pixel, too few patches to test), and warm-started neighbours agree by construction.
-        return [(None, _with(q, f"{NO_CONFIDENT_NEIGHBOUR}; the run's {count} ambiguous windows agree on one motion, "
-                                "but none has an alternative within noise to weigh it against, and neighbours "
-                                "fitted one from the other agreeing is no evidence", False)) for q in qualities]
+    unweighed = sum(len(window) == 1 for window in candidates)
+    if not math.isfinite(rival) and unweighed:
+        # No other motion covers the run only because some windows hold their fit alone: no alternative within
+        # noise (each is ambiguous for another reason: too few events per pixel, too few patches to test), so
+        # they support no rival, and warm-started neighbours agree with each other by construction.
+        some = ("none of them has an" if unweighed == count
+                else f"{unweighed} of them {'has' if unweighed == 1 else 'have'} no")
+        return [(None, _with(q, f"{NO_CONFIDENT_NEIGHBOUR}; no other motion has a candidate in each of the run's "
+                                f"{count} ambiguous windows, but {some} alternative within noise to weigh "
+                                "their fit against, and neighbours fitted one from the other agreeing is no "
+                                "evidence", False)) for q in qualities]
     if not evidence - rival > noise:
         return [(None, _with(q, f"{NO_CONFIDENT_NEIGHBOUR}; pooled over the run of {count} ambiguous windows the "
                                 f"best motion's evidence {evidence:.3g} is within the pooled noise {noise:.3g} of "
