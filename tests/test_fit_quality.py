@@ -431,3 +431,44 @@ def test_a_fit_on_few_events_per_pixel_is_flagged_sparse_with_its_motion_unchang
     assert oks >= 1                                   # the rule was exercised
     dense = fit(w.events[np.sort(rng.choice(len(w.events), 30_000, replace=False))], w.K, speed=speed)
     assert not dense.quality.sparse
+
+
+def _dots_on_a_plane(depth_m: float, v: tuple[float, float, float], seed: int, width: int = 240, height: int = 180,
+                     focal: float = 200.0, events: int = 40_000, duration_s: float = 0.1) -> tuple[Events, np.ndarray]:
+    """Events of random dots on a fronto-parallel plane ``depth_m`` ahead, the camera translating at ``v`` [m/s]
+    (no rotation): each event a dot seen at a random time, its projection rounded to a pixel. And K."""
+    rng = np.random.default_rng(seed)
+    K = np.array([[focal, 0, (width - 1) / 2], [0, focal, (height - 1) / 2], [0, 0, 1.0]])
+    u, w = rng.uniform(-0.3 * width, 1.3 * width, 4000), rng.uniform(-0.3 * height, 1.3 * height, 4000)
+    dots = np.stack([(u - K[0, 2]) / focal * depth_m, (w - K[1, 2]) / focal * depth_m, np.full(4000, depth_m)], 1)
+    t = np.sort(rng.uniform(0, duration_s, events))
+    camera = dots[rng.integers(0, 4000, events)] - t[:, None] * np.asarray(v)     # the dot in the camera's frame
+    x, y = np.rint(focal * camera[:, 0] / camera[:, 2] + K[0, 2]), np.rint(focal * camera[:, 1] / camera[:, 2] + K[1, 2])
+    inside = (x >= 0) & (x < width) & (y >= 0) & (y < height)
+    return Events(x[inside].astype(int), y[inside].astype(int), np.rint(t[inside] * 1e6).astype(np.int64),
+                  rng.integers(0, 2, int(inside.sum())), width, height), K
+
+
+def test_a_free_motion_that_keeps_just_under_half_the_depth_off_a_bound_is_not_ok():
+    """A wall at 120 m seen at 20 m/s sideways (3.3 px of parallax), fitted with the default depth_range
+    (0.5-60 m) and only the speed: the motion tilted 34 deg until 48% of the events' depth sat on the far end,
+    just under the 50% that fails a fit, and came back ok, success True, without a warning (an audit's case).
+    Now ambiguous and on_bound, with a BoundWarning naming the share; with the range widened past the wall it is
+    not on_bound. With the pose given the 50% rule fails it (as before)."""
+    events, K = _dots_on_a_plane(120.0, (20.0, 0.0, 0.0), seed=4)
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        r = fit(events, K, speed=20.0)
+    bound = [str(c.message) for c in caught if c.category.__name__ == "BoundWarning"]
+    assert r.verdict is Verdict.AMBIGUOUS and r.quality.on_bound and r.quality.summary()["on_bound"], r.quality
+    assert len(bound) == 1 and "of the events' depth on the far end (60 m) of depth_range" in bound[0], bound
+    share = float(r.quality.reason.split("%")[0])
+    assert QualitySettings().max_bound_share * 100 <= share < FitSettings().depth_bound_fraction * 100, r.quality
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        wide = fit(events, K, speed=20.0, depth_range=(0.5, 500.0))
+        off = fit(events, K, speed=20.0, quality=QualitySettings(max_bound_share=1.0))
+    assert not wide.quality.on_bound and "depth_range" not in wide.quality.reason
+    assert not off.quality.on_bound
+    with pytest.raises(ValueError, match="max_bound_share must lie in"):
+        QualitySettings(max_bound_share=0)

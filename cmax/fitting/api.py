@@ -20,9 +20,9 @@ from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events, require_events
 from cmax.hot_pixels import no_pixels
 from cmax.geometry import se3_exp, se3_log
-from cmax.fitting.pipeline import Motion, StageLog, run_stages, stages_for
-from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, motion_within_noise,
-                                  rate_change, shuffled_gain_test, sparse_reason, verdict_of)
+from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages, stages_for
+from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
+                                  motion_within_noise, rate_change, shuffled_gain_test, sparse_reason, verdict_of)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -59,7 +59,10 @@ class LowMotionWarning(UserWarning):
 
 class BoundWarning(UserWarning):
     """A motion parameter ended on its bound (``FitResult.stages[i].at_bound``; ``success`` is False):
-    the true value is probably beyond it. Raise the bound (e.g. ``FitSettings.max_omega``)."""
+    the true value is probably beyond it. Raise the bound (e.g. ``FitSettings.max_omega``). Also: at least
+    ``FitSettings.depth_bound_fraction`` of the events' depth on an end of ``depth_range`` (``success`` False),
+    or, with the motion fitted, at least ``QualitySettings.max_bound_share`` (the verdict ambiguous,
+    ``quality.on_bound``)."""
 
 
 MODELS = ("flow", "rotation", "se3")
@@ -458,11 +461,12 @@ def fit(
                          seconds=time.perf_counter() - start)
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
+        on_bound = _on_bound(w, result, low, pose_known=pose is not None)
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
                                                   hold_omega=known_omega is not None, speed=scale,
-                                                  given=len(events), rate=rate),
+                                                  given=len(events), rate=rate, on_bound=on_bound),
                          hot_pixels=hot, seconds=time.perf_counter() - start)
-    _warn(result, settings, low, pose is not None)
+    _warn(result, settings, low, pose is not None, on_bound)
     return result
 
 
@@ -557,11 +561,23 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
     return None
 
 
+def _on_bound(w: Window, result: FitResult, low: LowMotion | None, pose_known: bool) -> str:
+    """Why too much of a fitted se3 motion's depth lies on an end of ``depth_range``
+    (:func:`cmax.fitting.quality.bound_reason`), "" when it does not, or when the pose is given, the fit failed
+    or its motion is too small to trust (their own verdicts then)."""
+    if result.model != "se3" or pose_known or not result.success or low is not None:
+        return ""
+    near, far = w.settings.depth_range
+    shares = depth_on_bounds(result.inverse_depth_grid.reshape(-1), w.index, w.weight, (1.0 / far, 1.0 / near),
+                             w.settings.depth_candidates)
+    return bound_reason(shares, (near, far), w.settings.quality.max_bound_share)
+
+
 def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver, *, pose_known: bool,
-             hold_omega: bool, speed: float, given: int, rate: float | None = None) -> Quality:
+             hold_omega: bool, speed: float, given: int, rate: float | None = None, on_bound: str = "") -> Quality:
     """The verdict of a finished fit (:class:`QualitySettings` ``w.settings.quality``) with the low-motion
-    rule that fired, ``low`` (:func:`_low_motion`), and the window's :func:`cmax.fitting.quality.rate_change`
-    ``rate`` (None: not measured); the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on se3 fits
+    rule that fired, ``low`` (:func:`_low_motion`), the window's :func:`cmax.fitting.quality.rate_change`
+    ``rate`` (None: not measured) and :func:`_on_bound`'s reason; the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on se3 fits
     with a fitted direction that did not fail and have parallax, and so does the rule of sparse windows
     (:func:`cmax.fitting.quality.sparse_reason`; ``given``: the events of the window before subsampling)."""
     quality = w.settings.quality
@@ -575,12 +591,14 @@ def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver
         sparse = sparse_reason(result.events_used, given, w.ev.width, w.ev.height, quality.min_event_density)
     return verdict_of(success=result.success, failed_stages=failed, low_motion=low, alternatives=alternatives,
                       note=note, untestable=not tested, rate=rate, max_rate_change=quality.max_rate_change,
-                      sparse=sparse)
+                      sparse=sparse, on_bound=on_bound)
 
 
-def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_known: bool) -> None:
+def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_known: bool,
+          on_bound: str = "") -> None:
     """The warnings of a finished fit: low parallax (se3), low motion (flow, rotation), bounds. ``low`` is
-    :func:`_low_motion`'s rule, that of the ``low_parallax`` verdict too."""
+    :func:`_low_motion`'s rule, that of the ``low_parallax`` verdict too; ``on_bound`` :func:`_on_bound`'s
+    reason."""
     if low is not None and result.parallax_px is not None:
         unknown = "the depth is" if pose_known else "the depth and the translation direction are"
         if low.cause is LowMotionCause.PARALLAX:
@@ -608,6 +626,8 @@ def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_
                f"({low.reason}: a longer window gives more motion)")
         warnings.warn(f"cmax.fit: {', '.join(f'{n} ({s})' for s, n in bounds)} ended on its bound: {why}; success "
                       "is False", BoundWarning, stacklevel=3)
+    if on_bound:
+        warnings.warn(f"cmax.fit: {on_bound}; the verdict is ambiguous, not ok", BoundWarning, stacklevel=3)
     depth = [name for log in result.stages for name in log.at_bound if name.startswith("depth_")]
     if depth:
         lo, hi = settings.depth_range

@@ -163,6 +163,10 @@ class Quality:
     sparse : bool
         The window was fitted on fewer events per pixel than ``QualitySettings.min_event_density``
         (:func:`sparse_reason`): ambiguous, since the ambiguity test cannot vouch for its direction.
+    on_bound : bool
+        At least ``QualitySettings.max_bound_share`` of the events' depth lies on one end of the depth range
+        (:func:`bound_reason`): ambiguous, since the depth is clipped and the motion may be bent to keep the
+        rest inside.
     """
 
     verdict: Verdict
@@ -175,6 +179,7 @@ class Quality:
     rate_change: float | None = None
     unsteady: bool = False
     sparse: bool = False
+    on_bound: bool = False
 
     def summary(self) -> dict:
         """A JSON-ready dict (an infinite ``rate_change``, one half of the window without events, as None with
@@ -182,7 +187,7 @@ class Quality:
         rate = None if self.rate_change is None or not math.isfinite(self.rate_change) else self.rate_change
         return {"verdict": self.verdict.value, "reason": self.reason,
                 "cause": None if self.cause is None else self.cause.value,
-                "rate_change": rate, "unsteady": self.unsteady, "sparse": self.sparse,
+                "rate_change": rate, "unsteady": self.unsteady, "sparse": self.sparse, "on_bound": self.on_bound,
                 "alternatives": [{"name": a.name, "v": a.v.tolist(), "omega": a.omega.tolist(), "gain": a.gain,
                                   "noise": a.noise, "within_noise": a.within_noise} for a in self.alternatives],
                 "resolution": self.resolution, "resolved": self.resolved,
@@ -434,19 +439,43 @@ def sparse_reason(fitted: int, given: int, width: int, height: int, min_event_de
             f"{min_event_density:g}): too sparse for the contrast to vouch for the direction{more}")
 
 
+def bound_reason(shares: dict[str, float], depth_range: tuple[float, float], max_bound_share: float) -> str:
+    """The reason of a window with too much of its depth on an end of ``depth_range`` (near, far) [m], "" otherwise:
+    ``shares`` as :func:`cmax.fitting.pipeline.depth_on_bounds` gives them (``{"depth_near": ..., "depth_far":
+    ...}``, shares of the events' depth), at least ``max_bound_share`` on one end.
+
+    >>> bound_reason({"depth_near": 0.0, "depth_far": 0.48}, (0.5, 60.0), 0.25)[:61]
+    "48% of the events' depth on the far end (60 m) of depth_range"
+    >>> bound_reason({"depth_near": 0.1, "depth_far": 0.0}, (0.5, 60.0), 0.25)
+    ''
+    """
+    name, share = max(shares.items(), key=lambda item: item[1])
+    if share < max_bound_share:
+        return ""
+    end = "near" if name == "depth_near" else "far"
+    metres = depth_range[0] if end == "near" else depth_range[1]
+    beyond = "nearer" if end == "near" else "farther"
+    return (f"{share:.0%} of the events' depth on the {end} end ({metres:g} m) of depth_range (at least "
+            f"max_bound_share={max_bound_share:g}): the depth is clipped there and the motion may be bent to keep "
+            f"the rest inside; the scene may lie {beyond} (widen depth_range) or the speed be in other units")
+
+
 # ----------------------------------------------------------------------------------------------
 # The verdict
 # ----------------------------------------------------------------------------------------------
 def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMotion | None,
                alternatives: Sequence[Alternative], note: str = "", untestable: bool = False,
-               rate: float | None = None, max_rate_change: float = math.inf, sparse: str = "") -> Quality:
+               rate: float | None = None, max_rate_change: float = math.inf, sparse: str = "",
+               on_bound: str = "") -> Quality:
     """The verdict from the fit's ``success`` (and the names of its failed stages), why its motion is too
     small to trust (None when it is not), the ambiguity test's ``alternatives`` and the window's
     :func:`rate_change` ``rate`` (None: not measured); the worst one wins (failed, low parallax, ambiguous,
     ok). ``untestable``: the ambiguity test was due but the window could not hold it (:func:`assess`'s
     ``tested`` False): ambiguous, since nothing tells the fitted direction from its mirror. A ``rate`` over
     ``max_rate_change``: ambiguous and ``unsteady``, the motion is not steady over the window. ``sparse``: the
-    :func:`sparse_reason` of the window ("" when it is not sparse): an ``ok`` becomes ambiguous and ``sparse``."""
+    :func:`sparse_reason` of the window ("" when it is not sparse): an ``ok`` becomes ambiguous and ``sparse``.
+    ``on_bound``: why too much of the depth lies on an end of the depth range (:func:`bound_reason`; "" when it
+    does not): an ``ok`` or ambiguous window is ambiguous and ``on_bound``."""
     unsteady = "" if rate is None else _unsteady_reason(rate, max_rate_change)
     measured = dict(rate_change=rate, unsteady=bool(unsteady))
     if not success:
@@ -473,6 +502,9 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
         verdict, reason = Verdict.OK, note or "no alternative tested"
     if unsteady:
         verdict, reason = Verdict.AMBIGUOUS, f"{unsteady}; {reason}"
+    if on_bound:
+        verdict, reason = Verdict.AMBIGUOUS, f"{on_bound}; {reason}"
+        measured["on_bound"] = True
     if sparse and verdict is Verdict.OK:
         return Quality(Verdict.AMBIGUOUS, f"{sparse}; {reason}", tuple(alternatives), sparse=True, **measured)
     return Quality(verdict, reason, tuple(alternatives), **measured)

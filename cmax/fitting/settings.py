@@ -339,6 +339,12 @@ class QualitySettings:
         ``FitSettings.max_events``) is at best ``ambiguous`` and ``sparse``: its image of warped events holds
         too few coincidences for the ambiguity test to vouch for the direction (docs/quality.md: the
         measurement behind the value). 0 turns the rule off.
+    max_bound_share : float
+        se3 with a fitted motion: a window with at least this share of its events' depth on one end of
+        ``FitSettings.depth_range`` (but under ``FitSettings.depth_bound_fraction``, which fails the fit) is at
+        best ``ambiguous``, with a ``BoundWarning``: a free motion can tilt until just under that fraction of the
+        events leave the bound, so the depth is clipped and the direction bent without the fit failing. In
+        (0, 1]; 1 turns the rule off (docs/quality.md).
     """
 
     ambiguity_test: bool = True
@@ -360,6 +366,7 @@ class QualitySettings:
     smoothing_min_deg: float = 1.0
     max_rate_change: float = 6.0
     min_event_density: float = 0.25
+    max_bound_share: float = 0.25
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "smoothing"):
@@ -374,8 +381,10 @@ class QualitySettings:
         if isinstance(self.max_rate_change, bool) or not (isinstance(self.max_rate_change, (int, float))
                                                           and self.max_rate_change > 1):
             raise ValueError(f"max_rate_change must be a number > 1 (math.inf: no test), got {self.max_rate_change!r}")
-        if not (isinstance(self.shuffle_fraction, (int, float)) and 0 < self.shuffle_fraction <= 1):
-            raise ValueError(f"shuffle_fraction must lie in (0, 1], got {self.shuffle_fraction!r}")
+        for name in ("shuffle_fraction", "max_bound_share"):
+            value = getattr(self, name)
+            if isinstance(value, bool) or not (isinstance(value, (int, float)) and 0 < value <= 1):
+                raise ValueError(f"{name} must lie in (0, 1], got {value!r}")
         if not (isinstance(self.polish_iterations, int) and self.polish_iterations >= 0):
             raise ValueError(f"polish_iterations must be an int >= 0, got {self.polish_iterations!r}")
         _positive_int("shuffle_events", self.shuffle_events, 100)
