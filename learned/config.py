@@ -310,8 +310,11 @@ def apply_overrides(values: dict[str, Any], overrides: list[str]) -> dict[str, A
     return values
 
 
-def load_config(path: str | Path | None, overrides: list[str] = (), *, mode: str | None = None) -> Config:
-    """Read a ``.json`` or ``.toml`` config (or start from the defaults), apply overrides and ``mode``."""
+def load_config(path: str | Path | None, overrides: list[str] = (), *, mode: str | None = None,
+                require_mode: bool = False) -> Config:
+    """Read a ``.json`` or ``.toml`` config (or start from the defaults), apply overrides and ``mode`` (None: the
+    config's own, else :class:`Config`'s default; ValueError when ``mode`` differs from the one the config or the
+    overrides state, and, with ``require_mode``, when neither ``mode`` nor the config states one)."""
     values: dict[str, Any] = {}
     if path is not None:
         path = Path(path)
@@ -328,7 +331,14 @@ def load_config(path: str | Path | None, overrides: list[str] = (), *, mode: str
             raise TypeError(f"{path} must hold a table of sections, got {type(values).__name__}")
     values = apply_overrides(values, list(overrides))
     if mode is not None:
+        stated = values.get("mode")
+        if stated is not None and stated != mode:
+            where = f"{path}" if path is not None else "the overrides"
+            raise ValueError(f"--mode {mode}, but {where} says mode = {stated!r}: give the mode once, or make them "
+                             "agree")
         values["mode"] = mode
+    elif require_mode and "mode" not in values:
+        raise ValueError("no mode: give --mode teacher|finetune|student, or a config that states mode = ...")
     return config_from_dict(values)
 
 

@@ -1,4 +1,4 @@
-"""``python -m learned.train --mode teacher|finetune|student --config CONFIG [key=value ...] [--resume]``.
+"""``python -m learned.train [--mode teacher|finetune|student] --config CONFIG [key=value ...] [--resume]``.
 
 Modes (EvtSlowTV section 5):
 
@@ -624,7 +624,8 @@ def main(argv: list[str] | None = None) -> int:
         "(the teacher's weights, contrast loss) or student (a fresh network, contrast + the frozen teacher). "
         "section.key=value overrides of the config may stand anywhere on the line (e.g. "
         "'data.files=[\"a.h5\"]' train.steps=100 train.out=runs/teacher); see docs/learned.md.")
-    parser.add_argument("--mode", choices=("teacher", "finetune", "student"), required=True, help="what to train")
+    parser.add_argument("--mode", choices=("teacher", "finetune", "student"), default=None,
+                        help="what to train (default: the config's mode; refused when the two differ)")
     parser.add_argument("--config", type=Path, default=None,
                         help="a .json or .toml config (default: the defaults of learned.config)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt when it exists")
@@ -665,7 +666,7 @@ def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "")
 
 
 def _run(args: argparse.Namespace) -> int:
-    config = load_config(args.config, args.overrides, mode=args.mode)
+    config = load_config(args.config, args.overrides, mode=args.mode, require_mode=True)
     out = Path(config.train.out)
     teacher = config.train.teacher if config.mode in ("finetune", "student") else ""
     check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)

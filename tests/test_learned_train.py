@@ -533,3 +533,24 @@ def test_settings_that_did_nothing_or_said_the_wrong_thing(scene_file, tmp_path,
         H5WindowDataset([{"path": str(scene_file), "K": other}], window_us=100_000)
     hidden = H5WindowDataset([{"path": str(scene_file), "K": other, "use_gt": False}], window_us=100_000)
     assert np.allclose(hidden.sample(0).K, [[50, 0, 24], [0, 50, 18], [0, 0, 1]])
+
+
+def test_the_mode_comes_from_the_command_or_the_config_and_they_must_agree(scene_file, tmp_path, capsys):
+    """--mode finetune with a config that says mode = "teacher" trained a finetune without a word; --mode was
+    required even though every shipped config states its mode. Now: the config's mode when --mode is absent,
+    a one-line refusal when they differ, and one when neither states a mode."""
+    from conftest import one_line_error
+
+    config = tmp_path / "teacher.toml"
+    config.write_text('mode = "teacher"\n')
+    out = tmp_path / "run"
+    assert main(["--config", str(config), "--no-progress", *tiny(scene_file, out, "train.steps=1")]) == 0
+    assert capsys.readouterr().out.startswith("teacher: 1 steps")
+    status, err = one_line_error(lambda: main(["--mode", "finetune", "--config", str(config), "--no-progress",
+                                               *tiny(scene_file, tmp_path / "ft", "train.steps=1",
+                                                     f"train.teacher={out / 'last.pt'}")]), capsys)
+    assert status == 2 and f"--mode finetune, but {config} says mode = 'teacher'" in err, err
+    status, err = one_line_error(lambda: main(["--no-progress", *tiny(scene_file, tmp_path / "none",
+                                                                      "train.steps=1")]), capsys)
+    assert status == 2 and "no mode: give --mode teacher|finetune|student" in err, err
+    assert not (tmp_path / "ft").exists() and not (tmp_path / "none").exists()
