@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import sys
@@ -292,6 +293,15 @@ def with_teacher_model(config: Config) -> Config:
     return dataclasses.replace(config, model=teacher)
 
 
+def _sha256(path: Path) -> str:
+    """SHA-256 (hex) of the file at ``path``, read in 1 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 20), b""):
+            digest.update(block)
+    return digest.hexdigest()
+
+
 def _no_window(dataset: H5WindowDataset) -> str:
     """Why ``dataset`` holds no window, and what to change (the end of an error message)."""
     return (f"each needs {dataset.window_us * 1e-3:g} ms of events (data.window_us) with at least 100 of them "
@@ -318,6 +328,9 @@ class Trainer:
         torch.manual_seed(tc.seed)
         self.model = DepthPoseNet(config.model).to(self.device)
         self.teacher = None
+        # what the teacher file holds, so that --resume notices one replaced under the same path
+        self.teacher_sha256 = (_sha256(Path(tc.teacher)) if tc.teacher and config.mode != "teacher"
+                               and Path(tc.teacher).is_file() else "")
         if config.mode in ("finetune", "student"):
             from learned.evaluate import load_model
 
@@ -360,6 +373,7 @@ class Trainer:
                              "step; give labelled files, or train --mode finetune / student on unlabelled ones")
         if ckpt is not None:
             self._check_data_order(ckpt.get("data_order"))
+            self._check_teacher(ckpt.get("data_order"))
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model).to(self.device)
         self.validation = None
@@ -391,10 +405,27 @@ class Trainer:
                                       and len(paths["data.files"]) == len(recorded.data.files)):
             raise CheckpointError(f"{path}: its data_order.paths is not valid: {paths!r}")
         differ = config_differences(recorded, self.config, paths)
+        if not differ and recorded.train.schedule == "cosine" and recorded.train.steps != self.config.train.steps:
+            step = int(ckpt.get("step", 0))
+            raise ValueError(f"--resume: {path}'s cosine schedule spans train.steps={recorded.train.steps}; "
+                             f"train.steps={self.config.train.steps} would move the learning rate of the steps "
+                             f"still to run (step {step}: {learning_rate(step, self.config):.3g}, not "
+                             f"{learning_rate(step, recorded):.3g}); resume with train.steps={recorded.train.steps}, "
+                             "or train further as a new run: --mode finetune train.teacher=" + str(path))
         if differ:
             raise ValueError(f"--resume: {path} was written with other settings than this run's: "
                              f"{', '.join(differ)}; repeat the settings of the run that wrote it, or start afresh "
                              f"with --overwrite or another train.out")
+
+    def _check_teacher(self, order: object) -> None:
+        """Refuse to resume when ``train.teacher`` holds another file than the one the checkpoint was trained
+        with (its SHA-256 in ``data_order``; checkpoints of earlier versions store none)."""
+        recorded = order.get("teacher_sha256") if isinstance(order, dict) else None
+        if recorded and recorded != self.teacher_sha256:
+            raise ValueError(f"--resume: train.teacher {self.config.train.teacher} is not the file "
+                             f"{self.out / 'last.pt'} was trained with (its contents changed since): the resumed steps "
+                             "would learn from another teacher; restore it, or start afresh with --overwrite or "
+                             "another train.out")
 
     def _check_data_order(self, order: object) -> None:
         """Refuse to resume when the checkpoint's ``data_order`` (seed, batch size, windows in the data set) is not
@@ -523,7 +554,8 @@ class Trainer:
         payload = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "step": self.step,
                    "config": self.config.to_dict(), "rng": rng_state(),
                    "data_order": {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
-                                  "dataset_size": len(self.dataset), "paths": resolved_paths(self.config)}}
+                                  "dataset_size": len(self.dataset), "paths": resolved_paths(self.config),
+                                  "teacher_sha256": self.teacher_sha256}}
         written = save_checkpoint(self.out / "last.pt", payload)
         self.saved_step = self.step
         return written
@@ -693,8 +725,11 @@ def _train(args: argparse.Namespace, config: Config, out: Path) -> int:
     elif trainer.rank == 0 and trainer.saved_step is None:   # train.steps=0, nothing resumed
         print(f"{config.mode}: nothing to train: train.steps={config.train.steps}; give train.steps=N (N >= 1)")
     elif trainer.rank == 0:
+        further = ("raise train.steps to train further" if config.train.schedule == "constant" else
+                   f"its cosine schedule has ended: train further as a new run (--mode finetune "
+                   f"train.teacher={trainer.out / 'last.pt'} and another train.out)")
         print(f"{config.mode}: nothing to train: {trainer.out / 'last.pt'} is at step {trainer.step} of "
-              f"train.steps={config.train.steps}; raise train.steps to train further")
+              f"train.steps={config.train.steps}; {further}")
     if torch.distributed.is_initialized():
         torch.distributed.destroy_process_group()
     return 0

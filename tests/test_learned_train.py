@@ -15,7 +15,7 @@ import torch
 
 from learned.checkpoint import load_checkpoint
 from learned.config import load_config
-from learned.train import Trainer, batch_indices, main
+from learned.train import Trainer, batch_indices, learning_rate, main
 
 ROOT = Path(__file__).resolve().parents[1]
 
@@ -554,3 +554,49 @@ def test_the_mode_comes_from_the_command_or_the_config_and_they_must_agree(scene
                                                                       "train.steps=1")]), capsys)
     assert status == 2 and "no mode: give --mode teacher|finetune|student" in err, err
     assert not (tmp_path / "ft").exists() and not (tmp_path / "none").exists()
+
+
+def test_resume_refuses_to_stretch_a_cosine_schedule(scene_file, tmp_path, capsys):
+    """A cosine run of 4 steps resumed with train.steps=8: the schedule's horizon moved, so step 4 ran at a
+    learning rate back near the peak, not at the end of the decay (an audit's loss doubled). Refused, naming
+    both rates; the constant schedule may still be extended; the 'nothing to train' line of a finished cosine
+    run no longer advises raising train.steps."""
+    from conftest import one_line_error
+
+    out = tmp_path / "run"
+    cosine = ("train.schedule=cosine", "train.warmup_steps=1")
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=4", *cosine)]) == 0
+    capsys.readouterr()
+    status, err = one_line_error(lambda: main(["--mode", "teacher", "--no-progress", "--resume",
+                                               *tiny(scene_file, out, "train.steps=8", *cosine)]), capsys)
+    recorded = load_config(None, tiny(scene_file, out, "train.steps=4", *cosine), mode="teacher")
+    stretched = load_config(None, tiny(scene_file, out, "train.steps=8", *cosine), mode="teacher")
+    assert status == 2 and "cosine schedule spans train.steps=4; train.steps=8 would move" in err, err
+    assert (f"(step 4: {learning_rate(4, stretched):.3g}, not {learning_rate(4, recorded):.3g})" in err
+            and learning_rate(4, stretched) > 10 * learning_rate(4, recorded)), err
+    assert load_checkpoint(out / "last.pt")["step"] == 4
+    assert main(["--mode", "teacher", "--no-progress", "--resume", *tiny(scene_file, out, "train.steps=4", *cosine)]) == 0
+    assert "its cosine schedule has ended: train further as a new run" in capsys.readouterr().out
+
+
+def test_resume_refuses_a_teacher_replaced_under_the_same_path(scene_file, tmp_path, capsys):
+    """A student resumed after its train.teacher file was overwritten by another network went on learning from
+    the new teacher without a word (the config only names the path). The checkpoint records the teacher's
+    SHA-256: refused, in one line."""
+    from conftest import one_line_error
+
+    teacher, other = tmp_path / "t1", tmp_path / "t2"
+    for out, seed in ((teacher, 0), (other, 1)):
+        assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=1",
+                                                                 f"train.seed={seed}")]) == 0
+    path = tmp_path / "teacher.pt"
+    shutil.copyfile(teacher / "last.pt", path)
+    student = ("--mode", "student", "--no-progress")
+    assert main([*student, *tiny(scene_file, tmp_path / "s", "train.steps=1", f"train.teacher={path}")]) == 0
+    capsys.readouterr()
+    shutil.copyfile(other / "last.pt", path)
+    status, err = one_line_error(lambda: main([*student, "--resume", *tiny(scene_file, tmp_path / "s", "train.steps=2",
+                                                                           f"train.teacher={path}")]), capsys)
+    assert status == 2 and f"train.teacher {path} is not the file" in err and "contents changed" in err, err
+    shutil.copyfile(teacher / "last.pt", path)      # restored: resumes
+    assert main([*student, "--resume", *tiny(scene_file, tmp_path / "s", "train.steps=2", f"train.teacher={path}")]) == 0
