@@ -2,7 +2,7 @@
 
 Modules: :mod:`learned.model` (encoder-decoder with skips, multi-scale bounded inverse depth,
 pose head), :mod:`learned.losses` (scale-invariant, gradient matching, teacher and student losses;
-the contrast loss is :mod:`cmax.loss`, the batched ``cmax.fit`` objective), :mod:`learned.data`
+the contrast loss is :data:`cmax.contrast.SHARED_OBJECTIVE`, the objective of ``cmax.fit``'s shared polish), :mod:`learned.data`
 (windows of h5 / MVSEC files, augmentations), :mod:`learned.config`, :mod:`learned.checkpoint`,
 and the commands ``python -m learned.train``, ``python -m learned.evaluate``, ``python -m learned.predict``.
 """

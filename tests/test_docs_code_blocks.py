@@ -74,17 +74,26 @@ def _environment() -> dict[str, str]:
     return env
 
 
+def _installed_environment() -> dict[str, str]:
+    """The environment of a user who installed the package: this checkout is not on ``PYTHONPATH`` (a block that
+    imports ``benchmarks`` or ``tests``, which are not installed, fails as it would for them)."""
+    env = _environment()
+    env["PYTHONPATH"] = os.pathsep.join(p for p in env["PYTHONPATH"].split(os.pathsep)
+                                        if p and Path(p).resolve() != ROOT.resolve())
+    return env
+
+
 def run_block(block: Block, folder: Path) -> None:
-    """Run one block in ``folder``; raise AssertionError naming the block when it fails."""
+    """Run one block in ``folder``; raise AssertionError naming the block when it fails. A python block runs as a
+    user runs a copied example: a script of its own (``__name__ == "__main__"``, worker processes that import it),
+    started from ``folder`` with the installed package, not this checkout, on the path."""
     if block.language == "python":
-        previous = Path.cwd()
-        os.chdir(folder)
-        try:
-            exec(compile(block.code, str(block), "exec"), {"__name__": "__docs__"})  # noqa: S102
-        except Exception as error:  # noqa: BLE001 - report which block failed, with the error
-            raise AssertionError(f"{block} failed: {type(error).__name__}: {error}") from error
-        finally:
-            os.chdir(previous)
+        script = folder / "block.py"
+        script.write_text(block.code)
+        done = subprocess.run([sys.executable, str(script)], cwd=folder, env=_installed_environment(),
+                              capture_output=True, text=True, timeout=300)
+        if done.returncode != 0:
+            raise AssertionError(f"{block} failed (exit {done.returncode}): {done.stderr[-3000:]}")
         return
     done = subprocess.run(["bash", "-euo", "pipefail", "-c", block.code], cwd=folder, env=_environment(),
                           capture_output=True, text=True, timeout=300)

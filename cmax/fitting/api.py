@@ -123,7 +123,6 @@ class FitResult:
     parallax_px : float or None
         se3: median over the events of how far the fitted translation alone
         moves each event over the whole window at its fitted depth [px]. The
-        translation direction and the depth rest on this displacement: on the
         translation direction and the depth rest on this displacement
         (``docs/fitting.md``). A wrong motion can also claim a large
         parallax: a small value is a warning, a large one no guarantee. None
@@ -361,7 +360,9 @@ def fit(
         and the low-motion test behind ``FitResult.quality``, :mod:`cmax.fitting.quality`).
     **options
         Alternatively, fields of :class:`FitSettings` as keywords (e.g.
-        ``fit(..., contrast="gradient", max_events=20000)`` or
+        ``fit(..., depth_range=(1.0, 6.5))``, the scene's depth range [m], near and far: the one that
+        matters most for se3, where the depth sweep and the bound rules use it; ``fit(..., contrast="gradient",
+        max_events=20000)`` or
         ``fit(..., quality=QualitySettings(ambiguity_test=False))``); not together with ``settings``
         (a TypeError: no keyword silently overrides a field of ``settings``).
     num_threads : int or None

@@ -1,15 +1,15 @@
 """Event file formats: one :func:`read` that detects the format, and one writer layout.
 
-==================  ==========================  =====================================
+==================  ==========================  ========================================================================
 format              detected by                 reader
-==================  ==========================  =====================================
+==================  ==========================  ========================================================================
 DSEC HDF5           ``events/{x,y,t,p}``        :func:`read_h5`, :class:`H5Reader`
 MVSEC HDF5          ``davis/<cam>/events``      :func:`read_mvsec`
 ECD text            ``.txt``                    :func:`read_txt` (width/height, or a ``W H`` first line)
-AEDAT 4.0           ``#!AER-DAT4.0`` magic      :func:`read_aedat4`, :func:`read_aedat4_imu`
+AEDAT 4.0           ``#!AER-DAT4.0`` magic      :func:`read_aedat4`, :func:`read_aedat4_imu`, :func:`read_aedat4_frames`
 Prophesee EVT2/3    ``%`` header, ``.raw``      :func:`read_raw`, :func:`read_evt2`, :func:`read_evt3`
 NumPy               ``.npy`` structured x,y,t,p :meth:`Events.from_structured`
-==================  ==========================  =====================================
+==================  ==========================  ========================================================================
 
 Every reader raises :class:`FormatError` (a :class:`ValueError`) on bytes it
 cannot decode. Files are written in the DSEC layout only (:func:`write_h5`,
@@ -27,7 +27,7 @@ import numpy as np
 from cmax.events import Events, check_event_count, structured_fields
 from cmax.io._checks import (check_polarity_encoding, check_stated_size, check_time_unit, polarity_01,
                              times_to_us)
-from cmax.io.aedat4 import read_aedat4, read_aedat4_imu
+from cmax.io.aedat4 import read_aedat4, read_aedat4_frames, read_aedat4_imu
 from cmax.io.errors import FormatError
 from cmax.io.gyro import read_gyro
 from cmax.io.h5 import H5_ERRORS, H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
@@ -38,7 +38,7 @@ from cmax.io.text import read_txt, write_txt
 __all__ = [
     "FormatError", "SORTABLE_FORMATS", "check_sortable", "detect_format", "read",
     "H5Reader", "H5Writer", "read_h5", "write_h5",
-    "read_mvsec", "read_txt", "write_txt", "read_aedat4", "read_aedat4_imu", "read_gyro",
+    "read_mvsec", "read_txt", "write_txt", "read_aedat4", "read_aedat4_imu", "read_aedat4_frames", "read_gyro",
     "read_raw", "read_evt2", "read_evt3", "write_evt2", "write_evt3",
 ]
 
