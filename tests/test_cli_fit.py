@@ -362,6 +362,24 @@ def test_an_h5_file_with_its_own_intrinsics_needs_no_K(tmp_path, capsys):
     np.testing.assert_array_equal(summary["K"], K)
 
 
+def test_se3_takes_the_depth_range_the_file_records_for_its_scene(slider_file, tmp_path, capsys):
+    """``cmax emvs`` took the depth range a ``cmax scene`` file records, ``cmax fit`` the library's 0.5-60 m (an
+    audit: abs_rel 0.290 against 0.211 with the room's range). Both take it now, with a note; --depth-range wins."""
+    import h5py
+
+    with h5py.File(slider_file, "r") as file:
+        recorded = json.loads(file.attrs["scene"])["depth_range_m"]
+    argv = ["fit", str(slider_file), "--speed", "0.3", "--window-ms", "150", "--quiet"]
+    assert main([*argv, "-o", str(tmp_path / "a")]) in (0, 1)
+    err = capsys.readouterr().err
+    assert f"note: depth over {recorded[0]:g}-{recorded[1]:g} m, the depth range the file records" in err, err
+    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
+    assert summary["depth_range"] == recorded and any("the file records" in n for n in summary["notes"])
+    assert main([*argv, "-o", str(tmp_path / "b"), "--depth-range", "0.5,9"]) in (0, 1)
+    assert "the file records" not in capsys.readouterr().err
+    assert json.loads((tmp_path / "b" / "summary.json").read_text())["depth_range"] == [0.5, 9.0]
+
+
 def test_the_advice_names_what_helps_when_half_the_windows_are_unmeasured():
     from cmax.cli.fit import advice
 

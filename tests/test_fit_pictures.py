@@ -21,7 +21,7 @@ def test_one_scale_pools_every_window_and_the_same_depth_gets_the_same_colour():
     far = _window(np.full((8, 10), 4.0), np.ones((8, 10), bool))
     far.mask[:, :5] = False  # off the mask: not part of the scale
     far.depth[:, :5] = 100.0
-    scale = _depth_scale([near, far, _window(None, None)], None)
+    scale = _depth_scale([near, far, _window(None, None)])
     assert scale == viz.DepthScale.from_depths([np.full((8, 10), 1.0), np.full((8, 5), 4.0)])
     assert scale.far < 100.0
     # a wall at 2 m is drawn alike in both windows, whatever else each window holds
@@ -30,12 +30,15 @@ def test_one_scale_pools_every_window_and_the_same_depth_gets_the_same_colour():
     assert np.array_equal(viz.depth_image(a, scale)[4, 4], viz.depth_image(b, scale)[4, 4])
 
 
-def test_depth_range_given_is_the_scale_and_no_depth_gives_none():
-    w = _window(np.full((4, 4), 2.0), np.ones((4, 4), bool))
-    assert _depth_scale([w], (0.5, 8.0)) == viz.DepthScale(0.5, 8.0)
+def test_the_scale_is_the_windows_depths_whatever_the_search_range_and_no_depth_gives_none():
+    """The scale came from --depth-range when given: a search over 0.05-50 m drew a scene at 0.5-5 m in one
+    colour (an audit's Gen4 picture, almost all black). It is the windows' own depths, and None without any."""
+    w = _window(np.geomspace(0.5, 5.0, 16).reshape(4, 4), np.ones((4, 4), bool))
+    scale = _depth_scale([w])
+    assert 0.5 <= scale.near < 0.6 and 4.5 < scale.far <= 5.0
     empty = _window(np.full((4, 4), 2.0), np.zeros((4, 4), bool))
-    assert _depth_scale([empty], None) is None
-    assert _depth_scale([], None) is None
+    assert _depth_scale([empty]) is None
+    assert _depth_scale([]) is None
 
 
 def test_fit_result_plot_has_a_colour_bar_and_hatches_pixels_without_depth(tmp_path):

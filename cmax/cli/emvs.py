@@ -20,7 +20,7 @@ import numpy as np
 from cmax._args import api_default, float_list, int_at_least, nonnegative_float
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
-                                file_intrinsics, overlap, read_calibrated)
+                                file_depth_range, file_intrinsics, overlap, read_calibrated)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic
 
@@ -98,25 +98,6 @@ def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distor
         if K is None:
             raise ValueError(f"{path} holds no gt/K; give the intrinsics with --K fx,fy,cx,cy")
     return Camera(K, width, height, distortion)
-
-
-def file_depth_range(path: Path) -> tuple[float, float] | None:
-    """``(near, far)`` [m] that an h5 file of ``cmax scene`` records for its scene (attribute ``scene``,
-    ``depth_range_m``); None for any other file, or a record without a valid range."""
-    import json
-
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as file:
-            record = file.attrs.get("scene")
-    except OSError:                     # not an h5 file
-        return None
-    try:
-        near, far = (float(v) for v in json.loads(record)["depth_range_m"])
-    except (TypeError, ValueError, KeyError):
-        return None
-    return (near, far) if 0 < near < far < float("inf") else None
 
 
 def file_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray] | None:

@@ -27,8 +27,8 @@ import numpy as np
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
-                                calibration_of, event_span, file_intrinsics, open_streamed, overlap, read_calibrated,
-                                tail_note)
+                                calibration_of, event_span, file_depth_range, file_intrinsics, open_streamed, overlap,
+                                read_calibrated, tail_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
@@ -203,13 +203,12 @@ class _CountedWindows:
         self.bar.close()
 
 
-def _depth_scale(results, depth_range) -> "object":
-    """One colour scale for every depth picture of a run: ``--depth-range`` when given, else the
-    1-99th percentiles of all windows' depths on their masks (None when no window has a depth)."""
+def _depth_scale(results) -> "object":
+    """One colour scale for every depth picture of a run: the 1-99th percentiles of all windows' depths on their
+    masks (None when no window has a depth). Not ``--depth-range``: a wide search range (0.05-50 m) drew a scene
+    at 0.5-5 m in one colour."""
     from cmax import viz
 
-    if depth_range is not None:
-        return viz.DepthScale(*depth_range)
     maps = [np.where(r.mask, r.depth, np.nan) for r in results if r.depth is not None]
     try:
         return viz.DepthScale.from_depths(maps) if maps else None
@@ -383,6 +382,12 @@ def run(args: argparse.Namespace) -> int:
             parse_axes(args.gyro_axes)
         except ValueError as error:
             raise ValueError(f"--gyro-axes: {error}") from None
+    range_note = None
+    if args.depth_range is None and sequence_model == "se3":
+        args.depth_range = file_depth_range(args.file)
+        if args.depth_range is not None:
+            range_note = (f"depth over {args.depth_range[0]:g}-{args.depth_range[1]:g} m, the depth range the file "
+                          "records for its scene (--depth-range to change it)")
     options = {key: value for key, value in (("solver", args.solver), ("depth_grid", args.depth_grid),
                                              ("max_events", args.max_events),
                                              ("motion_members", args.members), ("depth_range", args.depth_range),
@@ -407,14 +412,17 @@ def run(args: argparse.Namespace) -> int:
     with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
                                what="depth_*.npz, summary.json, ...") as stage:
         return _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
-                         min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us)
+                         min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
+                         notes=[range_note] if range_note else [])
 
 
 def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_model: str, options: dict,
-              settings, min_events: int, depth_grid: tuple[int, int], window_us: int, step_us: int) -> int:
+              settings, min_events: int, depth_grid: tuple[int, int], window_us: int, step_us: int,
+              notes: list[str]) -> int:
     """:func:`run`'s work once the options are checked (``options``, the keywords of :func:`cmax.fit_sequence`;
-    ``settings``, the :class:`cmax.FitSettings` they make): read, fit, and write every result into the empty
-    folder ``stage`` (moved into ``out`` by :func:`run`); returns the exit status."""
+    ``settings``, the :class:`cmax.FitSettings` they make; ``notes``, :func:`run`'s notes to print and record):
+    read, fit, and write every result into the empty folder ``stage`` (moved into ``out`` by :func:`run`); returns
+    the exit status."""
     from tqdm.auto import tqdm
 
     from cmax import viz
@@ -432,7 +440,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         K = file_intrinsics(args.file)
         if K is None:
             raise ValueError(f"{args.file} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib")
-    notes = [hint] if (hint := calibration_hint(args)) else []
+    notes = notes + ([hint] if (hint := calibration_hint(args)) else [])
     try:
         events, origin_us = read_calibrated(args, calib_size)   # --t0/--t1 applied; times print from the file's start
     except EventLimitError:                  # a whole DSEC-layout h5 file too long to hold: window by window
@@ -498,7 +506,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     for line in warned:
         print(f"cmax fit: warning: {option_words(line['text'])}", file=sys.stderr)
     windows = []
-    scale = _depth_scale(sequence.results, args.depth_range)
+    scale = _depth_scale(sequence.results)
     for i, r in enumerate(sequence.results):
         if r.depth is not None:
             save_npz_atomic(stage / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask, depth_spread=r.depth_spread,

@@ -25,7 +25,7 @@ from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
-           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "distortion_argument", "read_calibration",
+           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "file_depth_range", "distortion_argument", "read_calibration",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
 
@@ -248,6 +248,25 @@ def file_intrinsics(path: str | Path) -> np.ndarray | None:
         return None
     with file:
         return h5_intrinsics(file, path)
+
+
+def file_depth_range(path: str | Path) -> tuple[float, float] | None:
+    """``(near, far)`` [m] that an h5 file of ``cmax scene`` records for its scene (attribute ``scene``,
+    ``depth_range_m``); None for any other file, or a record without a valid range."""
+    import json
+
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as file:
+            record = file.attrs.get("scene")
+    except OSError:                     # not an h5 file
+        return None
+    try:
+        near, far = (float(v) for v in json.loads(record)["depth_range_m"])
+    except (TypeError, ValueError, KeyError):
+        return None
+    return (near, far) if 0 < near < far < float("inf") else None
 
 
 def h5_intrinsics(file, path: str | Path) -> np.ndarray | None:
