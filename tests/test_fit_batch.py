@@ -322,6 +322,46 @@ def test_ctrl_c_leaves_no_orphan_process(tmp_path):
     assert not [pid for pid in seen if _alive(pid)]
 
 
+@pytest.mark.skipif(not Path("/proc/self/stat").exists(), reason="needs /proc")
+def test_sigkill_of_the_caller_leaves_no_worker_running(tmp_path):
+    """SIGKILL of the calling process alone (an OOM kill, ``kill -9`` of ``cmax fit --jobs 2``): its workers
+    went on running, orphaned (about 1 GB per killed run); they now die with it."""
+    script = tmp_path / "killed.py"
+    script.write_text(textwrap.dedent(f"""
+        import sys
+        sys.path[:0] = [{str(ROOT)!r}, {str(Path(__file__).parent)!r}]
+        from test_fit_batch import K_PLANE, approaching_plane
+        import cmax
+        if __name__ == "__main__":
+            windows = [approaching_plane(seed % 8) for seed in range(400)]   # far more work than the test waits
+            print("fitting", flush=True)
+            cmax.fit_windows(windows, K_PLANE, speed=4.0, depth_grid=(3, 4), jobs=2, progress=False)
+    """))
+    process = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.DEVNULL,
+                               text=True, start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
+    seen: set[int] = set()
+    try:
+        assert process.stdout.readline().strip() == "fitting"
+        deadline = time.monotonic() + 120
+        while len(seen) < 3 and time.monotonic() < deadline:      # the forkserver and two workers
+            seen |= _descendants(process.pid)
+            time.sleep(0.2)
+        assert len(seen) >= 3, seen
+        time.sleep(1.0)
+        process.kill()                                             # the caller alone, not its group
+        process.wait()
+        deadline = time.monotonic() + 15
+        while any(_alive(pid) for pid in seen) and time.monotonic() < deadline:
+            time.sleep(0.2)
+        assert not [pid for pid in seen if _alive(pid)]
+    finally:
+        for pid in seen:
+            try:
+                os.kill(pid, signal.SIGKILL)
+            except ProcessLookupError:
+                pass
+
+
 def _alive(pid: int) -> bool:
     """Whether ``pid`` is a running (not zombie) process."""
     try:

@@ -52,6 +52,7 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cmax._threads import available_cores, set_blas_threads
+from cmax._workers import die_with_parent
 from cmax.camera import camera_and_intrinsics, pinhole_events
 from cmax.events import Events
 from cmax.fitting.api import (MODELS, FitResult, _check_inputs, _check_speed, _known_omega, _pose_twist, _settings,
@@ -251,10 +252,12 @@ def _guarded(task: FitTask) -> tuple[FitResult, tuple]:
     return result, caught
 
 
-def _init_worker() -> None:
-    """Each worker: torch on one thread (intra- and inter-op), ``CMAX_TORCH_THREADS=1`` for
-    :mod:`cmax._threads`, BLAS on one thread (:func:`one_blas_thread`), SIGINT left to the calling
-    process (which terminates the workers)."""
+def _init_worker(main_pid: int) -> None:
+    """Each worker: killed when the calling process ``main_pid`` dies (:func:`cmax._workers.die_with_parent`: a
+    SIGKILL of ``cmax fit --jobs N`` left its workers running, about 1 GB), torch on one thread (intra- and
+    inter-op), ``CMAX_TORCH_THREADS=1`` for :mod:`cmax._threads`, BLAS on one thread (:func:`one_blas_thread`),
+    SIGINT left to the calling process (which terminates the workers)."""
+    die_with_parent(main_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)
     os.environ["CMAX_TORCH_THREADS"] = "1"
     import torch
@@ -299,7 +302,8 @@ def _context() -> multiprocessing.context.BaseContext:
 def _in_workers(tasks: Iterable[FitTask], workers: int) -> Iterator[tuple[int, tuple[FitResult, tuple]]]:
     """``(index, (result, warnings))`` of each task as the workers finish them, at most ``_AHEAD``
     tasks per worker in flight; on any exception or interrupt the workers are terminated first."""
-    pool = ProcessPoolExecutor(max_workers=workers, mp_context=_context(), initializer=_init_worker)
+    pool = ProcessPoolExecutor(max_workers=workers, mp_context=_context(), initializer=_init_worker,
+                               initargs=(os.getpid(),))
     pending: dict[Future, FitTask] = {}
     source = iter(tasks)
     try:
