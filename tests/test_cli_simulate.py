@@ -46,6 +46,33 @@ def test_a_foreign_file_under_the_output_name_is_not_replaced(tmp_path, capsys):
     assert (tmp_path / "clip.h5").read_bytes() == b"precious"
 
 
+def test_a_folder_conversion_refuses_files_its_manifest_does_not_list(tmp_path, capsys):
+    """A user's own a.h5 (real events beside a.avi) and an unrelated b.h5 in -o (was: both replaced by the
+    conversions of a.avi and b.avi without --overwrite, exit 0): refused before any work, naming them, exit 2;
+    --overwrite replaces them; the outputs the manifest then lists are resumed or redone without it."""
+    videos, out = tmp_path / "videos", tmp_path / "out"
+    videos.mkdir()
+    out.mkdir()
+    for name in "abc":
+        write_video(videos / f"{name}.avi")
+    (out / "a.h5").write_bytes(b"real events")
+    (out / "b.h5").write_bytes(b"user text")
+    base = ["simulate", str(videos), "-o", str(out), *FAST, "--quiet"]
+    assert main(base) == 2
+    err = capsys.readouterr().err
+    assert "2 output file(s) already exist" in err and "a.h5, b.h5" in err and "pass --overwrite" in err
+    assert len(err.strip().splitlines()) == 1
+    assert (out / "a.h5").read_bytes() == b"real events" and (out / "b.h5").read_bytes() == b"user text"
+    assert sorted(p.name for p in out.iterdir()) == ["a.h5", "b.h5"]      # no c.h5, no manifest: nothing done
+    assert main([*base, "--overwrite"]) == 0
+    manifest = load_manifest(out / "manifest.json")
+    assert all(manifest["videos"][name]["status"] == "ok" for name in "abc") and len(read(out / "a.h5")) > 0
+    # listed outputs keep the resume's behaviour: one damaged in place is redone without --overwrite
+    (out / "b.h5").write_bytes(b"damaged")
+    assert main(base) == 0
+    assert "output not verified" in capsys.readouterr().err and len(read(out / "b.h5")) > 0
+
+
 def test_a_video_without_events_says_so_and_exits_1(tmp_path, capsys):
     write_video(tmp_path / "still.avi", n_frames=1)
     assert main(["simulate", str(tmp_path / "still.avi"), "-o", str(tmp_path / "still.h5"), *FAST, "--quiet"]) == 1
