@@ -227,6 +227,30 @@ def test_merge_refuses_two_different_conversions_of_one_video(tmp_path, capsys):
     assert main(["manifest", "merge", one, one, "-o", str(tmp_path / "all.json")]) == 0
 
 
+def test_merge_refuses_an_existing_output_and_a_folder_being_converted(tmp_path, capsys):
+    """merge -o onto an existing manifest (was: replaced without --overwrite, its videos' records gone) is refused
+    unless --overwrite; a merge into a folder whose conversion lock is held (was: written meanwhile, then lost or
+    erasing the conversion's records) is refused at once; both change nothing."""
+    from cmax.io.atomic import PathLock
+
+    one = _manifest(tmp_path, "one.json", {"a": _entry("ok", 10)})
+    two = _manifest(tmp_path, "two.json", {"b": _entry("ok", 5, "b.h5")})
+    out = tmp_path / "manifest.json"
+    assert main(["manifest", "merge", one, "-o", str(out)]) == 0
+    before = out.read_bytes()
+    assert main(["manifest", "merge", two, "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "manifest.json exists: pass --overwrite" in err and len(err.strip().splitlines()) == 1
+    assert out.read_bytes() == before
+    with PathLock(tmp_path / ".conversion.lock", tmp_path):    # what convert_collection holds on its folder
+        assert main(["manifest", "merge", str(out), two, "-o", str(out), "--overwrite"]) == 2
+        assert "being written by another writer (lock .conversion.lock held)" in capsys.readouterr().err
+        assert main(["manifest", "merge", two, "-o", str(tmp_path / "other.json")]) == 2
+    assert out.read_bytes() == before and not (tmp_path / "other.json").exists()
+    assert main(["manifest", "merge", str(out), two, "-o", str(out), "--overwrite"]) == 0
+    assert sorted(json.loads(out.read_text())["videos"]) == ["a", "b"]
+
+
 def test_overwrite_keeps_the_old_file_when_the_new_conversion_fails(tmp_path, capsys):
     write_video(tmp_path / "clip.avi")
     out = tmp_path / "clip.h5"
