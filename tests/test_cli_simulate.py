@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -431,3 +432,71 @@ def test_flow_on_frames_under_32_pixels_is_explained_in_the_commands_words(tmp_p
     assert not (tmp_path / "out").exists()
     assert main(["simulate", str(tmp_path), "-o", str(tmp_path / "out"), "--size", "20x20", "--method", "linear",
                  "--quiet"]) == 0
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_a_video_whose_name_is_not_utf8_fails_alone_instead_of_crashing(tmp_path, workers):
+    """A video named cl\\xffip.avi (was: OpenCV's VideoCapture segfaulted on the surrogate-escaped name: exit 139
+    with --workers 1, the videos after it never converted, no manifest record) fails alone, recorded in the
+    manifest with its name's bytes and "rename it"; the others are converted. In a subprocess: a crash must
+    fail this test, not end the test run."""
+    import subprocess
+    import sys
+
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    write_video(videos / "d.avi")
+    bad = os.path.join(os.fsencode(videos), b"cl\xffip.avi")           # sorted before d and e
+    try:
+        os.rename(os.fsencode(videos / "d.avi"), bad)
+    except (OSError, UnicodeError):
+        pytest.skip("this file system refuses names that are not UTF-8")
+    write_video(videos / "d.avi")
+    write_video(videos / "e.avi")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    done = subprocess.run([sys.executable, "-m", "cmax.cli", "simulate", str(videos), "-o", str(tmp_path / "out"),
+                           *FAST, "--quiet", "--workers", workers], capture_output=True, text=True, env=env,
+                          timeout=300)
+    assert done.returncode == 1, done.stderr
+    manifest = load_manifest(tmp_path / "out" / "manifest.json")
+    assert {name: entry["status"] for name, entry in manifest["videos"].items()} == {
+        "d": "ok", "e": "ok", os.fsdecode(b"cl\xffip"): "failed"}
+    error = manifest["videos"][os.fsdecode(b"cl\xffip")]["error"]
+    assert "cl\\xffip.avi' has a name that is not valid UTF-8" in error and "rename it" in error
+    assert len(read(tmp_path / "out" / "e.h5")) > 0
+
+
+_NOT_UTF8_SCRIPT = """
+import os, sys
+from pathlib import Path
+from cmax.sim.video import VideoFileSource, _imread
+for read in (VideoFileSource, _imread):
+    try:
+        read(Path(os.fsdecode(sys.argv[1])))
+    except ValueError as error:
+        print(error)
+"""
+
+
+def test_opencv_is_never_given_a_path_that_is_not_utf8(tmp_path):
+    """The video source and the image reader refuse such a path in one line naming its bytes (in a
+    subprocess: the old code crashed there)."""
+    import subprocess
+    import sys
+
+    bad = os.path.join(os.fsencode(tmp_path), b"cl\xffip.jpg")
+    try:
+        with open(bad, "wb") as file:
+            file.write(b"not an image")
+    except (OSError, UnicodeError):
+        pytest.skip("this file system refuses names that are not UTF-8")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    done = subprocess.run([sys.executable, "-c", _NOT_UTF8_SCRIPT, bad], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert [line.split(" b'")[0] for line in lines] == ["the video", "the image"]
+    assert all("cl\\xffip.jpg' has a name that is not valid UTF-8" in line and line.endswith("rename it")
+               for line in lines)
