@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import json
 import os
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -44,6 +45,33 @@ def test_a_foreign_file_under_the_output_name_is_not_replaced(tmp_path, capsys):
     assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(tmp_path / "clip.h5"), *FAST]) == 2
     assert "pass --overwrite" in capsys.readouterr().err
     assert (tmp_path / "clip.h5").read_bytes() == b"precious"
+
+
+def test_a_folder_conversion_refuses_files_its_manifest_does_not_list(tmp_path, capsys):
+    """A user's own a.h5 (real events beside a.avi) and an unrelated b.h5 in -o (was: both replaced by the
+    conversions of a.avi and b.avi without --overwrite, exit 0): refused before any work, naming them, exit 2;
+    --overwrite replaces them; the outputs the manifest then lists are resumed or redone without it."""
+    videos, out = tmp_path / "videos", tmp_path / "out"
+    videos.mkdir()
+    out.mkdir()
+    for name in "abc":
+        write_video(videos / f"{name}.avi")
+    (out / "a.h5").write_bytes(b"real events")
+    (out / "b.h5").write_bytes(b"user text")
+    base = ["simulate", str(videos), "-o", str(out), *FAST, "--quiet"]
+    assert main(base) == 2
+    err = capsys.readouterr().err
+    assert "2 output file(s) already exist" in err and "a.h5, b.h5" in err and "pass --overwrite" in err
+    assert len(err.strip().splitlines()) == 1
+    assert (out / "a.h5").read_bytes() == b"real events" and (out / "b.h5").read_bytes() == b"user text"
+    assert sorted(p.name for p in out.iterdir()) == ["a.h5", "b.h5"]      # no c.h5, no manifest: nothing done
+    assert main([*base, "--overwrite"]) == 0
+    manifest = load_manifest(out / "manifest.json")
+    assert all(manifest["videos"][name]["status"] == "ok" for name in "abc") and len(read(out / "a.h5")) > 0
+    # listed outputs keep the resume's behaviour: one damaged in place is redone without --overwrite
+    (out / "b.h5").write_bytes(b"damaged")
+    assert main(base) == 0
+    assert "output not verified" in capsys.readouterr().err and len(read(out / "b.h5")) > 0
 
 
 def test_a_video_without_events_says_so_and_exits_1(tmp_path, capsys):
@@ -198,6 +226,30 @@ def test_merge_refuses_two_different_conversions_of_one_video(tmp_path, capsys):
     assert not (tmp_path / "all.json").exists()
     # The same manifest twice (same entries) is not a conflict.
     assert main(["manifest", "merge", one, one, "-o", str(tmp_path / "all.json")]) == 0
+
+
+def test_merge_refuses_an_existing_output_and_a_folder_being_converted(tmp_path, capsys):
+    """merge -o onto an existing manifest (was: replaced without --overwrite, its videos' records gone) is refused
+    unless --overwrite; a merge into a folder whose conversion lock is held (was: written meanwhile, then lost or
+    erasing the conversion's records) is refused at once; both change nothing."""
+    from cmax.io.atomic import PathLock
+
+    one = _manifest(tmp_path, "one.json", {"a": _entry("ok", 10)})
+    two = _manifest(tmp_path, "two.json", {"b": _entry("ok", 5, "b.h5")})
+    out = tmp_path / "manifest.json"
+    assert main(["manifest", "merge", one, "-o", str(out)]) == 0
+    before = out.read_bytes()
+    assert main(["manifest", "merge", two, "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert "manifest.json exists: pass --overwrite" in err and len(err.strip().splitlines()) == 1
+    assert out.read_bytes() == before
+    with PathLock(tmp_path / ".conversion.lock", tmp_path):    # what convert_collection holds on its folder
+        assert main(["manifest", "merge", str(out), two, "-o", str(out), "--overwrite"]) == 2
+        assert "being written by another writer (lock .conversion.lock held)" in capsys.readouterr().err
+        assert main(["manifest", "merge", two, "-o", str(tmp_path / "other.json")]) == 2
+    assert out.read_bytes() == before and not (tmp_path / "other.json").exists()
+    assert main(["manifest", "merge", str(out), two, "-o", str(out), "--overwrite"]) == 0
+    assert sorted(json.loads(out.read_text())["videos"]) == ["a", "b"]
 
 
 def test_overwrite_keeps_the_old_file_when_the_new_conversion_fails(tmp_path, capsys):
@@ -380,3 +432,71 @@ def test_flow_on_frames_under_32_pixels_is_explained_in_the_commands_words(tmp_p
     assert not (tmp_path / "out").exists()
     assert main(["simulate", str(tmp_path), "-o", str(tmp_path / "out"), "--size", "20x20", "--method", "linear",
                  "--quiet"]) == 0
+
+
+@pytest.mark.parametrize("workers", ["1", "2"])
+def test_a_video_whose_name_is_not_utf8_fails_alone_instead_of_crashing(tmp_path, workers):
+    """A video named cl\\xffip.avi (was: OpenCV's VideoCapture segfaulted on the surrogate-escaped name: exit 139
+    with --workers 1, the videos after it never converted, no manifest record) fails alone, recorded in the
+    manifest with its name's bytes and "rename it"; the others are converted. In a subprocess: a crash must
+    fail this test, not end the test run."""
+    import subprocess
+    import sys
+
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    write_video(videos / "d.avi")
+    bad = os.path.join(os.fsencode(videos), b"cl\xffip.avi")           # sorted before d and e
+    try:
+        os.rename(os.fsencode(videos / "d.avi"), bad)
+    except (OSError, UnicodeError):
+        pytest.skip("this file system refuses names that are not UTF-8")
+    write_video(videos / "d.avi")
+    write_video(videos / "e.avi")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    done = subprocess.run([sys.executable, "-m", "cmax.cli", "simulate", str(videos), "-o", str(tmp_path / "out"),
+                           *FAST, "--quiet", "--workers", workers], capture_output=True, text=True, env=env,
+                          timeout=300)
+    assert done.returncode == 1, done.stderr
+    manifest = load_manifest(tmp_path / "out" / "manifest.json")
+    assert {name: entry["status"] for name, entry in manifest["videos"].items()} == {
+        "d": "ok", "e": "ok", os.fsdecode(b"cl\xffip"): "failed"}
+    error = manifest["videos"][os.fsdecode(b"cl\xffip")]["error"]
+    assert "cl\\xffip.avi' has a name that is not valid UTF-8" in error and "rename it" in error
+    assert len(read(tmp_path / "out" / "e.h5")) > 0
+
+
+_NOT_UTF8_SCRIPT = """
+import os, sys
+from pathlib import Path
+from cmax.sim.video import VideoFileSource, _imread
+for read in (VideoFileSource, _imread):
+    try:
+        read(Path(os.fsdecode(sys.argv[1])))
+    except ValueError as error:
+        print(error)
+"""
+
+
+def test_opencv_is_never_given_a_path_that_is_not_utf8(tmp_path):
+    """The video source and the image reader refuse such a path in one line naming its bytes (in a
+    subprocess: the old code crashed there)."""
+    import subprocess
+    import sys
+
+    bad = os.path.join(os.fsencode(tmp_path), b"cl\xffip.jpg")
+    try:
+        with open(bad, "wb") as file:
+            file.write(b"not an image")
+    except (OSError, UnicodeError):
+        pytest.skip("this file system refuses names that are not UTF-8")
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    done = subprocess.run([sys.executable, "-c", _NOT_UTF8_SCRIPT, bad], capture_output=True, text=True, env=env,
+                          timeout=120)
+    assert done.returncode == 0, done.stderr
+    lines = done.stdout.splitlines()
+    assert [line.split(" b'")[0] for line in lines] == ["the video", "the image"]
+    assert all("cl\\xffip.jpg' has a name that is not valid UTF-8" in line and line.endswith("rename it")
+               for line in lines)

@@ -312,6 +312,54 @@ def test_simulate_scene_and_file_round_trip(tmp_path):
         simulate_scene(scene, 0.1, simulator, lam=1.5)
 
 
+_KILLED_SAVE = """
+import os, sys
+import cmax.sim.synthetic as synthetic
+from cmax.sim.esim import EventSimulator
+from cmax.sim.presets import make_scene
+scene = make_scene("slider", seed=0, width=64, height=48, texture_size=64)
+sequence = synthetic.simulate_scene(scene, 0.05, EventSimulator(**scene.recommended_simulator, seed=0),
+                                    depth_times_s=[0.0, 0.05], max_step_s=5e-3)
+synthetic.write_ground_truth = lambda file, sequence: os._exit(9)   # killed before the ground truth is written
+sequence.save(sys.argv[1])
+"""
+
+
+def test_a_save_touches_no_user_file_and_a_killed_one_leaves_nothing_that_looks_complete(tmp_path):
+    """SyntheticSequence.save (cmax scene -o) used a fixed <path>.tmp (was: a user's room.h5.tmp deleted; a save
+    killed before its ground truth left an events-only room.h5.tmp that passed verify_h5): now the private
+    exclusive temporary of cmax.io.atomic, with gt/ written before the completion record."""
+    import os
+    import subprocess
+    import sys
+    from pathlib import Path
+
+    from cmax.io.h5 import verify_h5
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.synthetic import load_sequence, simulate_scene
+
+    path = tmp_path / "room.h5"
+    env = dict(os.environ, PYTHONPATH=os.pathsep.join([str(Path(__file__).resolve().parents[1]),
+                                                       os.environ.get("PYTHONPATH", "")]))
+    done = subprocess.run([sys.executable, "-c", _KILLED_SAVE, str(path)], capture_output=True, text=True, env=env,
+                          timeout=300)
+    assert done.returncode == 9, done.stderr
+    left = list(tmp_path.iterdir())
+    assert not path.exists() and not any(p.name.endswith(".tmp") for p in left)
+    assert any(p.name.endswith(".partial") for p in left)    # the private temporary, under no user's name
+    for leftover in left:   # whatever the kill left (the temporary, the lock file) is refused as incomplete
+        with pytest.raises((ValueError, OSError)):
+            verify_h5(leftover)
+    (tmp_path / "room.h5.tmp").write_text("user data")
+    scene = make_scene("slider", seed=0, width=64, height=48, texture_size=64)
+    sequence = simulate_scene(scene, 0.05, EventSimulator(**scene.recommended_simulator, seed=0),
+                              depth_times_s=[0.0, 0.05], max_step_s=5e-3)
+    sequence.save(path)
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["room.h5", "room.h5.tmp"]   # the leftover removed
+    assert (tmp_path / "room.h5.tmp").read_text() == "user data"
+    assert verify_h5(path) == len(sequence.events) and load_sequence(path).depth.shape == (2, 48, 64)
+
+
 def test_a_loaded_sequence_gives_the_motion_and_depth_of_a_window(tmp_path):
     """pose_at / motion / depth_at of a saved and loaded sequence against the scene itself (analytic poses,
     rendered depth): exact at the stored times, geodesic interpolation in between."""

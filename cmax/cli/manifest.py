@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import argparse
+import os
 import sys
+from contextlib import nullcontext
 from pathlib import Path
 from typing import Sequence
 
@@ -30,7 +32,27 @@ def _duplicates(paths: Sequence[Path], manifests: Sequence[dict]) -> tuple[list[
 
 
 def run(args: argparse.Namespace) -> int:
-    """Merge the manifests and write the result; returns the exit status (0)."""
+    """Merge the manifests and write the result; returns the exit status (0).
+
+    The merge holds the lock a conversion takes on the folder of ``-o`` (``.conversion.lock``), from the
+    check of ``-o`` to its rename: a merge into a folder being converted (or a conversion started during a
+    merge) is refused at once, so neither replaces the other's manifest. An existing ``-o`` is refused
+    (FileExistsError) unless ``--overwrite``.
+    """
+    from cmax.io.atomic import PathLock
+    from cmax.sim.convert import FOLDER_LOCK
+
+    folder = args.output.parent
+    # a missing folder is being converted by no one; the merge then says what else is wrong, or that it is missing
+    with PathLock(folder / FOLDER_LOCK, folder) if folder.is_dir() else nullcontext():
+        if os.path.lexists(args.output) and not args.overwrite:
+            raise FileExistsError(f"{args.output} exists: pass --overwrite to replace it (to keep its videos, "
+                                  "list it among the manifests to merge)")
+        return _merge(args)
+
+
+def _merge(args: argparse.Namespace) -> int:
+    """Merge and write, under the folder's lock (see :func:`run`)."""
     from cmax.sim.convert import load_manifest, merge_manifests, write_manifest
 
     manifests = [load_manifest(path) for path in args.manifests]  # each checked: one line naming the file
@@ -61,8 +83,11 @@ def add_command(subparsers) -> argparse.ArgumentParser:
         description="Merge manifest.json files (shards, machines). A video listed by several manifests keeps its "
         "ok entry and is reported; two different ok entries of one video are refused (exit 2). Outputs are "
         "listed relative to the folder of -o (shard0/00000.h5), which must hold the manifests' folders; a "
-        "conversion resumed into that folder verifies and skips them.")
+        "conversion resumed into that folder verifies and skips them. An existing -o is refused without "
+        "--overwrite; a merge into a folder being converted is refused (its lock .conversion.lock is held).")
     merge.add_argument("manifests", nargs="+", type=Path, help="manifest.json files")
     merge.add_argument("-o", "--output", type=Path, required=True, help="merged manifest to write")
+    merge.add_argument("--overwrite", action="store_true",
+                       help="replace an existing -o (list it among the manifests to keep its videos)")
     merge.set_defaults(run=run)
     return parser

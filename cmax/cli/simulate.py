@@ -119,7 +119,7 @@ def _run(args: argparse.Namespace) -> int:
     converted: set[str] = set()
     manifest = convert_collection(jobs, args.output, settings, workers=args.workers, missing=missing,
                                   catalogue=args.catalogue, shard=shard, progress=not args.quiet,
-                                  on_result=_converted(converted))
+                                  on_result=_converted(converted), overwrite=args.overwrite)
     status = _report_manifest(args.output / "manifest.json", manifest, [job.name for job in jobs], converted)
     if missing:
         print(f"  missing from {args.input}: {', '.join(missing)}", file=sys.stderr)
@@ -261,7 +261,7 @@ def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     # changes nothing); the old file is replaced atomically when the new one is complete.
     converted: set[str] = set()
     manifest = convert_collection([job], output.parent, settings, workers=1, progress=not args.quiet,
-                                  redo=[job.name] if args.overwrite else (),
+                                  redo=[job.name] if args.overwrite else (), overwrite=args.overwrite,
                                   on_result=_converted(converted))
     return _report_manifest(manifest_path, manifest, [job.name], converted)
 
@@ -344,7 +344,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="INPUT is the folder of a catalogue's videos named by index (00000.mp4)")
     parser.add_argument("--shard", default=None, metavar="i/n",
                         help="convert shard i of n (0-based; default: all)")
-    parser.add_argument("--overwrite", action="store_true", help="replace an existing output .h5")
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace an existing output .h5 (-o F.h5: convert it again); a folder: replace the "
+                        "files at its videos' outputs that its manifest does not list (refused without it)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=run)
     return parser

@@ -23,7 +23,7 @@ import json
 import os
 import stat
 from pathlib import Path
-from typing import Any, Iterator
+from typing import Any, Callable, Iterator
 
 import h5py
 import hdf5plugin
@@ -329,24 +329,32 @@ class H5Writer:
         self._ms_filled = last_ms + 1
 
     # -- closing ----------------------------------------------------------------------
-    def close(self) -> Path:
-        """Flush, write ``ms_to_idx``, ``t_offset`` and the completion record, rename to the final path."""
+    def close(self, *, extra: Callable[[h5py.File], None] | None = None) -> Path:
+        """Flush, write ``ms_to_idx``, ``t_offset`` and the completion record, rename to the final path.
+
+        ``extra``, if given, is called with the open ``h5py.File`` after the events, ``ms_to_idx`` and
+        ``t_offset`` and before the completion record, to add more datasets (``cmax scene``'s ground truth
+        ``gt/``): they are part of the file that appears at ``path``, and a file cut short before them
+        never passes :func:`verify_h5`. An error of ``extra`` aborts the writer (nothing appears).
+        """
         if self._closed:
             return self.path
-        self._guarded(self._finish)
+        self._guarded(self._finish, extra)
         self._closed = True
         try:
             return self._output.commit()
         except OSError as error:
             raise write_error(error, self.path) from None
 
-    def _finish(self) -> None:
+    def _finish(self, extra: Callable[[h5py.File], None] | None = None) -> None:
         self._flush()
         # One closing entry pointing past the last event: windows ending after it resolve.
         closing = np.array([self._count], dtype=np.uint64)
         ms_to_idx = np.concatenate(self._ms_to_idx + [closing])
         self._file.create_dataset("ms_to_idx", data=ms_to_idx, **self._filters)
         self._file.create_dataset("t_offset", data=np.int64(self._t_offset or 0)).attrs["unit"] = "us"
+        if extra is not None:
+            extra(self._file)
         self._file.attrs["event_count"] = np.int64(self._count)
         self._file.attrs["complete"] = True  # the last thing written
         self._file.close()

@@ -23,7 +23,9 @@ size, completion record, event count and SHA-256 (each skipped file is read
 once) and whose source still has the recorded signature (files, bytes, latest
 mtime: :mod:`cmax.sim.signature`; a moved source keeps it), and redoes the others
 (failed, crashed, missing, truncated, damaged or foreign output; a source replaced,
-re-exported, copied or touched). A failing video (full disk, file-size limit, bad video) is
+re-exported, copied or touched). A file at a video's output that the manifest does
+not list as that video's (a user's own ``a.h5`` beside ``a.mp4``) is refused before
+any work unless ``overwrite=True``. A failing video (full disk, file-size limit, bad video) is
 recorded and does not stop the others. An interrupted parallel run kills its
 workers and removes their temporary files.
 
@@ -671,7 +673,8 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
 
             bar = tqdm(desc=job.name, unit="frame", position=position, leave=False, mininterval=1.0)
         # overwrite: under the folder's lock, an output the manifest does not list as verified is redone
-        # (replaced atomically when the new file is complete)
+        # (replaced atomically when the new file is complete); a file it does not list at all was refused
+        # before the conversion started, unless the caller asked to overwrite (convert_collection)
         result = convert_video(job.source, output, settings, category=job.category,
                                progress=None if bar is None else bar.update, overwrite=True)
         result = _verified(replace(result, name=job.name))
@@ -696,6 +699,7 @@ def convert_collection(
     progress: bool = True,
     on_result: Callable[[VideoResult], None] | None = None,
     redo: Sequence[str] = (),
+    overwrite: bool = False,
 ) -> dict[str, Any]:
     """Convert many videos to ``output_dir/<name>.h5`` with a resumable manifest.
 
@@ -726,6 +730,14 @@ def convert_collection(
         overwrite): their entries are dropped only under the folder's lock, after
         the settings were compared, so a refused conversion changes nothing; the
         old file is replaced atomically when the new one is complete.
+    overwrite : bool
+        Replace files at the outputs of ``jobs`` that the folder's manifest does
+        not list as this video's output. Default False: such files (a user's own
+        ``a.h5`` beside ``a.mp4``, a file of another run) raise
+        ``FileExistsError`` naming them, under the lock and before anything is
+        converted or written. Outputs the manifest lists (an ``ok`` entry, or one
+        it marked failed because the output or the source changed) are the
+        conversion's own and are verified, skipped or redone as described above.
 
     Returns
     -------
@@ -741,7 +753,7 @@ def convert_collection(
     output_dir.mkdir(parents=True, exist_ok=True)
     with PathLock(output_dir / FOLDER_LOCK, output_dir):
         return _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, shard, progress, on_result,
-                               set(redo))
+                               set(redo), overwrite)
 
 
 def entry_output(entry: dict, folder: str | os.PathLike, *, relative: bool = True) -> Path:
@@ -771,16 +783,47 @@ def _manifest_entry(result: VideoResult) -> dict[str, Any]:
     return dict(asdict(result), output=Path(result.output).name)
 
 
-def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, shard, progress, on_result, redo):
+def _listed_output(entry: dict | None, output: Path, folder: Path) -> bool:
+    """Whether the manifest ``entry`` (of a manifest in ``folder``) lists ``output`` as its verified output:
+    an ``ok`` entry, or one that records a checksum (an ``ok`` entry marked failed because its output or its
+    source changed), whose output is ``output``."""
+    if not entry or not (entry.get("status") == "ok" or entry.get("sha256")):
+        return False
+    try:
+        return entry_output(entry, folder) == output
+    except (KeyError, ValueError):
+        return False
+
+
+def _check_unlisted_outputs(jobs, videos: dict, output_dir: Path, path: Path, redo) -> None:
+    """Refuse (FileExistsError, naming them) files at the outputs of ``jobs`` that the manifest ``videos``
+    does not list as theirs (see :func:`_listed_output`); ``redo`` names are being overwritten on purpose."""
+    foreign = [output for job in jobs if job.name not in redo
+               for output in [output_dir / f"{job.name}.h5"]
+               if os.path.lexists(output) and not _listed_output(videos.get(job.name), output, output_dir)]
+    if foreign:
+        names = ", ".join(output.name for output in foreign[:5]) + (" ..." if len(foreign) > 5 else "")
+        listed = f"{path} does not list" if os.path.lexists(path) else f"there is no {MANIFEST} listing"
+        raise FileExistsError(f"{len(foreign)} output file(s) already exist in {output_dir} and {listed} them as "
+                              f"converted: {names}; nothing was converted; pass --overwrite (overwrite=True) to "
+                              "replace them, or convert into another folder")
+
+
+def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, shard, progress, on_result, redo,
+                    overwrite=False):
     path = output_dir / MANIFEST
     manifest = _new_manifest(settings, catalogue, shard, missing)
+    previous_videos: dict = {}
     if os.path.lexists(path):
         previous = load_manifest(path)
         if previous["settings"] != manifest["settings"]:
             difference = settings_difference(previous["settings"], manifest["settings"])
             raise ValueError(f"{path} was written with other settings ({difference}); "
                              "convert into another folder or remove it")
+        previous_videos = previous["videos"]
         manifest["videos"] = {name: entry for name, entry in previous["videos"].items() if name not in redo}
+    if not overwrite:  # a file the manifest does not list is a user's or another run's: never replaced unasked
+        _check_unlisted_outputs(jobs, previous_videos, output_dir, path, redo)
     sources = {job.name: job.source for job in jobs}
     names = set(sources)
     for name, entry in manifest["videos"].items():  # never skip a video whose source changed

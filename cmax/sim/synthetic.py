@@ -37,7 +37,6 @@ import numpy as np
 from tqdm.auto import tqdm
 
 from cmax.events import Events, concatenate
-from cmax.io.atomic import PathLock, lock_path
 from cmax.io.h5 import H5Writer, decode_attrs, read_h5
 from cmax.sim.esim import EventSimulator
 from cmax.sim.scenes import Scene
@@ -131,31 +130,25 @@ class SyntheticSequence:
     def save(self, path: str | os.PathLike, *, overwrite: bool = False, compression: str = "blosc") -> Path:
         """Write events (DSEC layout, :class:`cmax.io.H5Writer`) and ``gt/`` into one HDF5 file.
 
-        The file appears at ``path`` only when complete: under the lock of
-        ``path`` (a second writer fails with
-        :class:`~cmax.io.atomic.OutputLockedError`), the events are written to
-        ``<path>.tmp`` (itself written as a private ``.partial`` and renamed by
-        the writer), the ground truth is added, and the file is renamed.
+        The file appears at ``path`` only when complete, ground truth included:
+        :class:`~cmax.io.H5Writer` holds the lock of ``path`` (a second writer
+        fails with :class:`~cmax.io.atomic.OutputLockedError`) and writes a
+        private ``<path>.<hex>.partial`` (:mod:`cmax.io.atomic`: created
+        exclusively, so no file of the user's is opened or removed); the events,
+        then ``gt/``, then the completion record are written, and the file is
+        renamed. A save killed before the end leaves only that temporary, which
+        :func:`cmax.io.h5.verify_h5` refuses and the next save of ``path``
+        removes. An existing ``path`` raises ``FileExistsError`` unless
+        ``overwrite`` (then it is replaced only when the new file is complete).
         Returns the path.
         """
         path = Path(path)
-        # The lock of ``path`` is held from the check to the rename, so that a second writer of the same
-        # path cannot replace or remove ``<path>.tmp`` between its events and its ground truth.
-        with PathLock(lock_path(path), path):
-            if path.exists() and not overwrite:
-                raise FileExistsError(f"{path} exists (pass overwrite=True to replace it)")
-            temporary = path.with_name(path.name + ".tmp")
-            try:
-                t_offset = int(self.frame_t_us[0]) if len(self.frame_t_us) else 0
-                with H5Writer(temporary, self.width, self.height, t_offset_us=t_offset, overwrite=True,
-                              compression=compression, **self.attrs) as writer:
-                    for start in range(0, len(self.events), 1 << 20):
-                        writer.append(self.events[start: start + (1 << 20)])
-                with h5py.File(temporary, "a") as file:
-                    write_ground_truth(file, self)
-                os.replace(temporary, path)
-            finally:
-                temporary.unlink(missing_ok=True)
+        t_offset = int(self.frame_t_us[0]) if len(self.frame_t_us) else 0
+        with H5Writer(path, self.width, self.height, t_offset_us=t_offset, overwrite=overwrite,
+                      compression=compression, **self.attrs) as writer:
+            for start in range(0, len(self.events), 1 << 20):
+                writer.append(self.events[start: start + (1 << 20)])
+            writer.close(extra=lambda file: write_ground_truth(file, self))
         return path
 
 

@@ -37,11 +37,15 @@ cannot decode (no frames, an unreadable image, a video that ends well before
 its container says) or a truncated or corrupt PNG raises :class:`DecodeError`
 naming the file; zero frames,
 frames of different sizes in a folder and non-increasing times raise
-:class:`ValueError`.
+:class:`ValueError`. A path that is not valid UTF-8 (a file name in another
+encoding, read by Python with surrogate escapes) raises :class:`ValueError`
+naming its bytes before OpenCV sees it: OpenCV crashes the process on it
+(a segmentation fault), so such a video or image has to be renamed.
 """
 from __future__ import annotations
 
 import math
+import os
 import re
 from pathlib import Path
 from typing import Iterator, Protocol, Union, runtime_checkable
@@ -333,6 +337,28 @@ def _find_timestamps(folder: Path) -> Path:
                             f"{', '.join(_TIMESTAMP_FILES)} in the folder or its parent")
 
 
+def _opencv_path(path: str | os.PathLike, what: str = "file") -> str:
+    r"""``path`` as the ``str`` given to OpenCV; a path that is not valid UTF-8 is a one-line ValueError.
+
+    Python reads a file name in another encoding (``cl\xffip.avi``) as a ``str``
+    with surrogate escapes; ``cv2.VideoCapture`` and ``cv2.imread`` crash the
+    process on such a string (a segmentation fault, no error), so it is refused
+    here, naming the bytes of the path.
+
+    >>> _opencv_path(os.fsdecode(b"cl\xffip.avi"), "video")
+    Traceback (most recent call last):
+    ...
+    ValueError: the video b'cl\xffip.avi' has a name that is not valid UTF-8, which OpenCV cannot open (it would crash): rename it
+    """
+    text = os.fspath(path)
+    try:
+        text.encode("utf-8")
+    except UnicodeEncodeError:
+        raise ValueError(f"the {what} {os.fsencode(text)!r} has a name that is not valid UTF-8, which OpenCV cannot "
+                         "open (it would crash): rename it") from None
+    return text
+
+
 def _imread(path: Path) -> np.ndarray:
     """The image as stored (``IMREAD_UNCHANGED``: grey stays grey, no colour conversion).
 
@@ -349,7 +375,7 @@ def _imread(path: Path) -> np.ndarray:
         if image is not None:
             return image
     try:
-        image = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+        image = cv2.imread(_opencv_path(path, "image"), cv2.IMREAD_UNCHANGED)
     except cv2.error as error:
         raise DecodeError(f"OpenCV cannot decode the image {path}: {error}") from error
     if image is None:
@@ -520,8 +546,9 @@ class VideoFileSource:
     strictly increasing.
 
     Decoding errors: a file OpenCV cannot open or that yields no frame raises
-    :class:`DecodeError` at construction. When the decoder stops more than
-    ``max(1, 1%)`` frames before the container's frame count, iteration raises
+    :class:`DecodeError` at construction; a path that is not valid UTF-8 raises
+    :class:`ValueError` (:func:`_opencv_path`: OpenCV would crash on it). When
+    the decoder stops more than ``max(1, 1%)`` frames before the container's frame count, iteration raises
     :class:`DecodeError` after the frames it could decode (a truncated or
     corrupt stream). ``frame_count`` is the container's count (None when
     unknown or when ``t0_s``/``t1_s`` cut the video).
@@ -554,7 +581,7 @@ class VideoFileSource:
         self.height, self.width = first.shape
 
     def _open(self) -> cv2.VideoCapture:
-        capture = cv2.VideoCapture(str(self.path))
+        capture = cv2.VideoCapture(_opencv_path(self.path, "video"))
         if not capture.isOpened():
             capture.release()
             raise DecodeError(f"OpenCV cannot decode the video {self.path} "
