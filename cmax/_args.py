@@ -205,6 +205,8 @@ class ArgumentParser(argparse.ArgumentParser):
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs.setdefault("formatter_class", HelpFormatter)
+        if isinstance(kwargs.get("description"), str):   # module docstrings: ``code`` reads as code in --help
+            kwargs["description"] = kwargs["description"].replace("``", "")
         super().__init__(*args, **kwargs)
         # a value such as -0.1,0,0 (--omega) or -1e-3 is a value, not an unknown option: argparse's own
         # pattern takes only -5 and -.5, and said 'expected one argument' for the others

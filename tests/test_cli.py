@@ -254,3 +254,15 @@ def test_fit_with_the_zero_rotation_start(tmp_path, capsys):
     # test_cli_fit's constructed run prints one of each verdict)
     low = sum(w["parallax_px"] < 1.0 and w["verdict"] != "failed" for w in both["windows"])
     assert f", {low} low parallax, " in capsys.readouterr().out.splitlines()[-1]
+
+
+@pytest.mark.parametrize("command", ["info", "show", "scene", "fit", "depth", "emvs", "demo", "simulate"])
+def test_every_command_describes_itself_in_plain_text(command, capsys):
+    """``cmax fit --help`` showed the module docstring's reST (````cmax fit````), ``cmax info --help`` no
+    description at all."""
+    with pytest.raises(SystemExit) as stop:
+        main([command, "--help"])
+    assert stop.value.code == 0
+    text = capsys.readouterr().out
+    description = text.split("\n\n")[1]
+    assert "``" not in text and len(description.split()) >= 5, text[:400]

@@ -186,5 +186,5 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     median = f"{np.median(depths):.3f} m" if depths.size else "n/a"
     print(f"emvs: {len(events):,} events, {result.n_planes} planes, {int(result.mask.sum()):,} px in the mask "
           f"({result.mask.mean():.1%}), median depth {median}, {result.seconds:.2f} s "
-          f"({len(events) / max(result.seconds, 1e-9) / 1e6:.2f} Mev/s); results in {out}")
+          f"({len(events) / max(result.seconds, 1e-9) / 1e6:.3g} Mev/s); results in {out}")
     return 0

@@ -20,7 +20,9 @@ def run(args: argparse.Namespace) -> int:
 
 def add_command(subparsers) -> argparse.ArgumentParser:
     """Add ``info`` to an ``argparse`` sub-parser collection; returns the new parser."""
-    parser = subparsers.add_parser("info", help="summary of event files")
+    parser = subparsers.add_parser("info", help="summary of event files",
+                                   description="Counts, duration, rate, resolution, polarity balance and hot pixels "
+                                   "of event files (any format cmax.io.read reads), one block per file.")
     parser.add_argument("files", nargs="+", type=Path, help="event files (any supported format)")
     add_file_options(parser)
     parser.set_defaults(run=run)

@@ -314,7 +314,7 @@ def simulate_scene(
     required = list(depth_times_s) + [t_end]
     events, depths, frame_times = [], [], []
     t, next_required = float(t0_s), 0
-    bar = tqdm(total=round(duration_s * 1e3), unit="ms", desc="simulating", disable=not progress)
+    bar = tqdm(total=round(duration_s * 1e3), unit="ms", desc="simulating (ms of scene)", disable=not progress)
     while True:
         intensity, depth = scene.render(t)
         t_us = to_us(t)
