@@ -401,13 +401,11 @@ class DepthRun:
 
 
 def earlier_results(out: Path) -> list[Path]:
-    """The files of an earlier :func:`run_prediction` in the folder ``out`` (``window_<k>.npz`` / ``.png``,
-    ``twists.csv``, ``summary.json``); empty when there are none (or no folder)."""
-    if not out.is_dir():
-        return []
-    named = [out / "twists.csv", out / "summary.json"]
-    return sorted([path for path in named if path.is_file()] + [path for pattern in ("window_*.npz", "window_*.png")
-                                                               for path in out.glob(pattern) if path.is_file()])
+    """The files of an earlier :func:`run_prediction` in the folder ``out``: ``window_<k>.npz`` / ``.png`` (``k``
+    five digits or more, as it names them), ``twists.csv``, ``summary.json``
+    (:data:`cmax.io.run_folder.RESULT_NAMES`); empty when there are none (or no folder). Other files, such as a
+    user's ``window_seat_photo.png``, are not."""
+    return run_folder.run_results(out, ("depth",))
 
 
 def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarray:
@@ -487,8 +485,9 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     note : callable, optional
         Receives each note (default: printed on stderr).
     overwrite : bool
-        Replace the results of an earlier run in ``out`` (its ``window_*`` files, ``twists.csv``,
+        Replace the results of an earlier run in ``out`` (its ``window_<k>`` files, ``twists.csv``,
         ``summary.json``); without it such a folder is refused, as its windows would mix with this run's.
+        Other files in ``out`` are never touched.
         The earlier results stay as they are until this run has succeeded.
 
     The run holds ``out`` from its first look at it to its end (the lock ``out/.depth.lock``,

@@ -152,7 +152,7 @@ def run(args: argparse.Namespace) -> int:
 
 def earlier_results(out: Path) -> list[Path]:
     """The files of an earlier ``cmax emvs`` in the folder ``out`` (:data:`RESULTS`); empty when none (or no folder)."""
-    return [out / name for name in RESULTS if (out / name).is_file()]
+    return run_folder.run_results(out, ("emvs",))
 
 
 def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> int:

@@ -137,13 +137,10 @@ def _settings_default(name: str):
 
 
 def earlier_results(out: Path) -> list[Path]:
-    """The files of an earlier ``cmax fit`` in the folder ``out`` (``depth_<k>.npz`` / ``.png``, ``trajectory.txt``,
-    ``summary.json``); empty when there are none (or no folder)."""
-    if not out.is_dir():
-        return []
-    named = [path for path in (out / "trajectory.txt", out / "summary.json") if path.is_file()]
-    return sorted(named + [path for pattern in ("depth_*.npz", "depth_*.png") for path in out.glob(pattern)
-                           if path.is_file()])
+    """The files of an earlier ``cmax fit`` in the folder ``out``: ``depth_<k>.npz`` / ``.png`` (``k`` five digits
+    or more, as fit names them), ``trajectory.txt``, ``summary.json`` (:data:`cmax.io.run_folder.RESULT_NAMES`);
+    empty when there are none (or no folder). Other files, such as a user's ``depth_groundtruth.png``, are not."""
+    return run_folder.run_results(out, ("fit",))
 
 
 def tum_lines(times_us: np.ndarray, poses: np.ndarray) -> list[str]:

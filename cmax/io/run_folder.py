@@ -1,6 +1,10 @@
 """The output folder of a run (``cmax fit -o``, ``cmax emvs -o``, ``cmax depth -o``, ``train.out``): held by one
 run at a time, its results written into a private stage and moved in together, so that an interrupted run leaves
-the folder as it was and an earlier run's files never mix with a new run's."""
+the folder as it was and an earlier run's files never mix with a new run's.
+
+An earlier run's results are the files these commands write, by their exact names (:data:`RESULT_NAMES`:
+``depth_00000.npz``, ``window_00000.png``, ``summary.json``, ...; never a user's ``depth_groundtruth.png``): only
+they make a folder refused without ``--overwrite``, and only they are removed by it."""
 from __future__ import annotations
 
 import os
@@ -13,9 +17,27 @@ from typing import Callable, Iterator, Sequence
 
 from cmax.io.atomic import PathLock
 
-__all__ = ["locked_folder", "staged_run", "new_stage", "discard_stages", "publish"]
+__all__ = ["RESULT_NAMES", "run_results", "locked_folder", "staged_run", "new_stage", "discard_stages", "publish"]
 
 _STAGE_SUFFIX = ".partial"
+#: The names (whole names, :func:`re.fullmatch`) of the files each command writes into its output folder.
+RESULT_NAMES: dict[str, re.Pattern] = {
+    "fit": re.compile(r"depth_\d{5,}\.(?:npz|png)|trajectory\.txt|summary\.json"),
+    "depth": re.compile(r"window_\d{5,}\.(?:npz|png)|twists\.csv|summary\.json"),
+    "emvs": re.compile(r"depth\.(?:npz|png)|points\.ply"),
+}
+
+
+def run_results(out: str | os.PathLike, commands: Sequence[str] | None = None) -> list[Path]:
+    """The files in the folder ``out`` named as the ``commands`` (keys of :data:`RESULT_NAMES`; default: all of
+    them) name their results, sorted; empty when there are none (or no folder). A user's ``depth_groundtruth.png``
+    or ``window_seat.png`` is none of them."""
+    out = Path(out)
+    if not out.is_dir():
+        return []
+    patterns = [RESULT_NAMES[command] for command in (RESULT_NAMES if commands is None else commands)]
+    return sorted(path for path in out.iterdir()
+                  if any(pattern.fullmatch(path.name) for pattern in patterns) and path.is_file())
 
 
 @contextmanager
