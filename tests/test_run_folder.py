@@ -1,7 +1,10 @@
 """The output folder of ``cmax fit``, ``cmax emvs`` and ``cmax depth`` (:mod:`cmax.io.run_folder`): only the files
-these commands write count as (and are replaced as) an earlier run's results."""
+these commands write count as (and are replaced as) an earlier run's results, and ``summary.json`` moved in last so
+that an interrupted move never looks complete."""
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 
 import pytest
@@ -61,7 +64,7 @@ def test_run_results_match_only_the_names_the_commands_write(tmp_path):
           for command in run_folder.RESULT_NAMES}
     assert by["fit"] == ["depth_00000.npz", "depth_00012.png", "depth_123456.npz", "summary.json", "trajectory.txt"]
     assert by["depth"] == ["summary.json", "twists.csv", "window_00003.npz", "window_00003.png"]
-    assert by["emvs"] == ["depth.npz", "depth.png", "points.ply"]
+    assert by["emvs"] == ["depth.npz", "depth.png", "points.ply", "summary.json"]
 
 
 def test_fit_neither_counts_nor_removes_a_users_depth_files(slider_file, tmp_path, capsys):
@@ -85,3 +88,63 @@ def test_depth_neither_counts_nor_removes_a_users_window_files(slider_file, tiny
     assert cmax_main(_depth(slider_file, out, tiny_checkpoint, "--overwrite", "--window", "0.1")) == 0
     assert _kept(out)
     assert sorted(p.name for p in out.glob("window_0*.npz")) == ["window_00000.npz", "window_00001.npz"]
+
+
+# -- 3. an interrupted publish never looks complete ----------------------------------------------------------------
+def _earlier_and_stage(tmp_path: Path) -> tuple[Path, Path, list[Path]]:
+    out = tmp_path / "out"
+    out.mkdir()
+    for name in ("depth_00000.npz", "depth_00001.npz", "depth_00002.npz"):
+        (out / name).write_text("old")
+    (out / "summary.json").write_text('{"run": "old"}')
+    earlier = sorted(out.iterdir())
+    stage = run_folder.new_stage(out, "fit")
+    for name in ("depth_00000.npz", "depth_00001.npz"):
+        (stage / name).write_text("new")
+    (stage / "summary.json").write_text('{"run": "new"}')
+    return out, stage, earlier
+
+
+@pytest.mark.parametrize("moves", [0, 1, 2])
+def test_a_publish_killed_part_way_leaves_no_summary(tmp_path, monkeypatch, moves):
+    """Was: the new files renamed one by one under the earlier run's summary.json, which was replaced last: a kill
+    after the first rename left new and old windows under the old summary, a folder that looked complete."""
+    out, stage, earlier = _earlier_and_stage(tmp_path)
+    done = []
+    real_replace = os.replace
+
+    def replace(source, target):
+        if len(done) == moves:
+            raise KeyboardInterrupt("killed")      # the process dies between two renames
+        done.append(target)
+        real_replace(source, target)
+
+    monkeypatch.setattr(run_folder.os, "replace", replace)
+    with pytest.raises(KeyboardInterrupt):
+        run_folder.publish(stage, out, earlier)
+    assert not (out / "summary.json").exists()                # no record of completion: not a complete run
+    assert not (out / "depth_00002.npz").exists()             # the earlier run's window the new one does not have
+    assert sorted(p.name for p in out.glob("depth_*.npz") if p.read_text() == "new") == \
+        sorted(Path(target).name for target in done)
+
+
+def test_a_whole_publish_moves_the_summary_last_and_removes_the_earlier_files(tmp_path, monkeypatch):
+    out, stage, earlier = _earlier_and_stage(tmp_path)
+    order = []
+    real_replace = os.replace
+    monkeypatch.setattr(run_folder.os, "replace", lambda s, t: (order.append(Path(t).name), real_replace(s, t)))
+    run_folder.publish(stage, out, earlier)
+    assert order == ["depth_00000.npz", "depth_00001.npz", "summary.json"]
+    assert sorted(p.name for p in out.iterdir() if not p.name.startswith(".")) == \
+        ["depth_00000.npz", "depth_00001.npz", "summary.json"]
+    assert json.loads((out / "summary.json").read_text()) == {"run": "new"}
+
+
+def test_emvs_writes_a_summary_as_its_record_of_completion(slider_file, tmp_path, capsys):
+    """Was: no summary.json, nothing to tell a complete emvs folder from one killed while its files moved in."""
+    out = tmp_path / "e"
+    assert cmax_main(_emvs(slider_file, out)) == 0
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["command"] == "emvs" and summary["file"] == str(slider_file) and summary["n_planes"] == 20
+    assert summary["files"] == ["depth.npz", "depth.png", "points.ply", "summary.json"]
+    assert sorted(p.name for p in out.iterdir()) == sorted(summary["files"])

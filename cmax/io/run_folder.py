@@ -1,10 +1,19 @@
 """The output folder of a run (``cmax fit -o``, ``cmax emvs -o``, ``cmax depth -o``, ``train.out``): held by one
-run at a time, its results written into a private stage and moved in together, so that an interrupted run leaves
-the folder as it was and an earlier run's files never mix with a new run's.
+run at a time, its results written into a private stage and moved in together, so that an interrupted run never
+leaves a folder that looks complete with an earlier run's files mixed into a new run's.
 
-An earlier run's results are the files these commands write, by their exact names (:data:`RESULT_NAMES`:
-``depth_00000.npz``, ``window_00000.png``, ``summary.json``, ...; never a user's ``depth_groundtruth.png``): only
-they make a folder refused without ``--overwrite``, and only they are removed by it."""
+The rules of :func:`staged_run` (``cmax fit``, ``cmax emvs``, ``cmax depth`` / ``learned.predict``):
+
+* an earlier run's results are the files any of these commands writes (:data:`RESULT_NAMES`: ``depth_00000.npz``,
+  ``window_00000.png``, ``summary.json``, ... by their exact names, never ``depth_groundtruth.png``): a folder
+  holding them is refused without ``--overwrite``, and ``--overwrite`` removes only them;
+* ``summary.json`` (:data:`COMPLETION_MARKER`) is every run's record of completion, and :func:`publish` moves it
+  in last: it first removes the earlier run's ``summary.json``, then the earlier run's files that the new run does
+  not replace, then moves the new files in, and the new ``summary.json`` last. A run interrupted before
+  :func:`publish` leaves the folder as it was; one interrupted during it leaves a folder without
+  ``summary.json``: **a folder without summary.json holds no complete run** (and the next run into it is refused
+  without ``--overwrite``).
+"""
 from __future__ import annotations
 
 import os
@@ -15,16 +24,19 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
-from cmax.io.atomic import PathLock
+from cmax.io.atomic import PathLock, _fsync_folder
 
-__all__ = ["RESULT_NAMES", "run_results", "locked_folder", "staged_run", "new_stage", "discard_stages", "publish"]
+__all__ = ["COMPLETION_MARKER", "RESULT_NAMES", "run_results", "locked_folder", "staged_run",
+           "new_stage", "discard_stages", "publish"]
 
 _STAGE_SUFFIX = ".partial"
+#: The file a run of :func:`staged_run` writes last (:func:`publish`): a folder without it holds no complete run.
+COMPLETION_MARKER = "summary.json"
 #: The names (whole names, :func:`re.fullmatch`) of the files each command writes into its output folder.
 RESULT_NAMES: dict[str, re.Pattern] = {
     "fit": re.compile(r"depth_\d{5,}\.(?:npz|png)|trajectory\.txt|summary\.json"),
     "depth": re.compile(r"window_\d{5,}\.(?:npz|png)|twists\.csv|summary\.json"),
-    "emvs": re.compile(r"depth\.(?:npz|png)|points\.ply"),
+    "emvs": re.compile(r"depth\.(?:npz|png)|points\.ply|summary\.json"),
 }
 
 
@@ -85,19 +97,33 @@ def discard_stages(out: Path, prefix: str) -> list[Path]:
     return stale
 
 
-def publish(stage: Path, out: Path, earlier: Sequence[Path], *, last: Sequence[str] = ("summary.json",)) -> list[Path]:
-    """Move the files of ``stage`` into ``out`` (renames within one folder tree; the names in ``last``, a run's
-    record of completion, after the others), then remove the files of ``earlier`` (an earlier run's) that none
-    of them replaced; returns the files now in ``out``."""
+def publish(stage: Path, out: Path, earlier: Sequence[Path], *,
+            last: Sequence[str] = (COMPLETION_MARKER,)) -> list[Path]:
+    """Move the files of ``stage`` into ``out`` (renames within one folder tree) in place of ``earlier`` (an
+    earlier run's files); returns the files now in ``out``.
+
+    The order keeps an interrupted move from looking complete: first the earlier run's record of completion (its
+    files named in ``last``, and any file of ``out`` a new one of those names would replace) is removed, then the
+    earlier files that no new one replaces, then the new files are moved in, and those named in ``last`` after all
+    the others (the folder synced between the steps)."""
+    out = Path(out)
     new = sorted((file for file in Path(stage).iterdir() if file.is_file() and not file.is_symlink()),
                  key=lambda file: (file.name in last, file.name))
     names = {file.name for file in new}
-    for file in new:
-        os.replace(file, Path(out) / file.name)
+    markers = {file for file in earlier if file.name in last} | {out / name for name in last if name in names}
+    for marker in sorted(markers):
+        if os.path.lexists(marker):
+            marker.unlink()
+    _fsync_folder(out)   # the earlier record gone before anything else changes
     for stale in earlier:
         if stale.name not in names:
             stale.unlink(missing_ok=True)
-    return [Path(out) / file.name for file in new]
+    for file in new:
+        if file.name in last:
+            _fsync_folder(out)   # every other file in place before the record of completion
+        os.replace(file, out / file.name)
+    _fsync_folder(out)
+    return [out / file.name for file in new]
 
 
 @contextmanager
@@ -105,9 +131,10 @@ def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[P
                overwrite: bool, what: str, why: str = "that would mix with this run's",
                option: str = "--overwrite") -> Iterator[Path]:
     """Hold ``out`` for one run (the lock ``out/.<prefix>.lock``, :func:`locked_folder`) and yield an empty private
-    folder for its results; when the block ends without an error, move them into ``out`` (:func:`publish`) and
-    remove the earlier run's files (``earlier_results(out)``) that they did not replace. An error, or a kill,
-    leaves ``out`` as it was (a killed run's private folder is removed by the next run).
+    folder for its results; when the block ends without an error, move them into ``out`` (:func:`publish`: the new
+    ``summary.json`` last) in place of the earlier run's files (``earlier_results(out)``). An error, or a kill,
+    before the move leaves ``out`` as it was (a killed run's private folder is removed by the next run); a kill
+    during the move leaves it without ``summary.json``.
 
     Raises FileExistsError, before any work, when ``out`` holds an earlier run's results and ``overwrite`` is
     False (``what`` names them for the message, ``why`` says what this run would do to them, ``option`` is the flag
