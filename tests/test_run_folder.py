@@ -1,6 +1,6 @@
 """The output folder of ``cmax fit``, ``cmax emvs`` and ``cmax depth`` (:mod:`cmax.io.run_folder`): only the files
-these commands write count as (and are replaced as) an earlier run's results, and ``summary.json`` moved in last so
-that an interrupted move never looks complete."""
+these commands write count as (and are replaced as) an earlier run's results, one lock per folder for all three,
+and ``summary.json`` moved in last so that an interrupted move never looks complete."""
 from __future__ import annotations
 
 import json
@@ -11,6 +11,7 @@ import pytest
 
 from cmax.cli import main as cmax_main
 from cmax.io import run_folder
+from conftest import one_line_error
 
 #: User files whose names look like results (depth_*.png, window_*.png, depth.*) but are not the commands' own.
 USER_FILES = {"notes.txt": b"notes", "depth_groundtruth.png": b"a user's picture", "depth_of_field_study.npz": b"mine",
@@ -148,3 +149,47 @@ def test_emvs_writes_a_summary_as_its_record_of_completion(slider_file, tmp_path
     assert summary["command"] == "emvs" and summary["file"] == str(slider_file) and summary["n_planes"] == 20
     assert summary["files"] == ["depth.npz", "depth.png", "points.ply", "summary.json"]
     assert sorted(p.name for p in out.iterdir()) == sorted(summary["files"])
+
+
+# -- 4. one lock per folder for fit, emvs and depth; another command's results are an earlier run's ------------------
+def test_emvs_and_depth_into_a_folder_fit_is_writing_are_refused(slider_file, tiny_checkpoint, tmp_path, capsys,
+                                                                 monkeypatch):
+    """Was: each command took its own lock (.fit.lock, .emvs.lock, .depth.lock): all three ran into one folder at
+    once, exit 0, and fit's summary.json was replaced by depth's."""
+    import cmax.cli.fit as fit
+
+    out = tmp_path / "cc"
+    others = {}
+    real_fit_into = fit._fit_into
+
+    def fit_into(stage, out_, *args, **kwargs):   # while fit holds the folder: the other two commands into it
+        for name, argv in (("emvs", _emvs(slider_file, out)), ("depth", _depth(slider_file, out, tiny_checkpoint))):
+            others[name] = one_line_error(lambda: cmax_main(argv), capsys)
+        return real_fit_into(stage, out_, *args, **kwargs)
+
+    monkeypatch.setattr(fit, "_fit_into", fit_into)
+    assert cmax_main(_fit(slider_file, out)) in (0, 1)
+    for name, (status, err) in others.items():
+        assert status == 2 and "is being written by another writer" in err and ".results.lock" in err, (name, err)
+    assert "windows" in json.loads((out / "summary.json").read_text())             # fit's summary, whole
+    assert not list(out.glob("window_*")) and not (out / "points.ply").exists()
+
+
+def test_another_commands_results_are_an_earlier_run(slider_file, tiny_checkpoint, tmp_path, capsys):
+    """Was: ``cmax emvs`` into a folder holding ``cmax fit``'s results ran without ``--overwrite`` (it counted only
+    depth.npz, depth.png, points.ply), and ``cmax fit`` into an emvs folder likewise."""
+    out = tmp_path / "mixed"
+    assert cmax_main(_fit(slider_file, out)) in (0, 1)
+    _user_files(out)
+    capsys.readouterr()
+    before = {p.name: p.read_bytes() for p in out.iterdir()}
+    for argv in (_emvs(slider_file, out), _depth(slider_file, out, tiny_checkpoint)):
+        status, err = one_line_error(lambda: cmax_main(argv), capsys)
+        assert status == 2 and "holds the results of an earlier run" in err and "--overwrite" in err, err
+        assert {p.name: p.read_bytes() for p in out.iterdir()} == before
+    assert cmax_main(_emvs(slider_file, out, "--overwrite")) == 0   # fit's results replaced, the user's kept
+    assert _kept(out) and not list(out.glob("depth_0000*")) and not (out / "trajectory.txt").exists()
+    assert json.loads((out / "summary.json").read_text())["command"] == "emvs"
+    capsys.readouterr()
+    status, err = one_line_error(lambda: cmax_main(_fit(slider_file, out)), capsys)
+    assert status == 2 and "depth.npz" in err, err                 # the files named as they are

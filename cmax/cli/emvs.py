@@ -142,9 +142,10 @@ def file_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status. The results are written as ``cmax fit`` writes its own
-    (:func:`cmax.io.run_folder.staged_run`): a folder with an earlier run's results is refused without
-    ``--overwrite``, a second run into the same folder meanwhile is refused, a failed run changes nothing, and one
-    interrupted while its files move in leaves no summary.json."""
+    (:func:`cmax.io.run_folder.staged_run`): a folder with an earlier run's results (of ``cmax emvs``, ``cmax fit``
+    or ``cmax depth``) is refused without ``--overwrite``, a second run into the same folder meanwhile (of any of
+    them) is refused, a failed run changes nothing, and one interrupted while its files move in leaves no
+    summary.json."""
     from cmax.emvs import read_tum_trajectory
 
     out = output_folder(args.output, "depth.npz, depth.png and points.ply")

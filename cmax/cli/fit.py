@@ -35,7 +35,7 @@ from cmax.io.atomic import save_npz_atomic, write_text_atomic
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
            "hot_pixel_note", "option_words", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
 
-#: A run's lock ``-o/.fit.lock`` and private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
+#: A run's private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
 _STAGE_PREFIX = "fit"
 
 
@@ -355,11 +355,12 @@ def hot_pixel_note(results) -> str | None:
 def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status (1 when no window could be fitted, or every fitted one failed).
 
-    The run holds ``-o`` (the lock ``.fit.lock`` in it) from its look at earlier results to its last file: a second
-    run into the same folder meanwhile is refused at once. A folder with an earlier run's results is refused without
-    ``--overwrite``. The results are written into a private folder and moved in once all are written, then the
-    earlier run's files that this run did not replace are removed: a failed or interrupted run leaves ``-o`` as it
-    was, and two runs' windows never mix."""
+    The run holds ``-o`` (the lock ``.results.lock`` in it, shared with ``cmax emvs`` and ``cmax depth``) from its
+    look at earlier results to its last file: a second run into the same folder meanwhile is refused at once. A
+    folder with an earlier run's results (of any of the three) is refused without ``--overwrite``. The results are
+    written into a private folder and moved in once all are written (:func:`cmax.io.run_folder.publish`:
+    summary.json last): a failed run leaves ``-o`` as it was, one interrupted while moving its files in leaves no
+    summary.json, and two runs' windows never mix."""
     from cmax.fitting import FitSettings
     from cmax.fitting.api import MIN_WINDOW_EVENTS
     from cmax.io.gyro import parse_axes

@@ -4,9 +4,12 @@ leaves a folder that looks complete with an earlier run's files mixed into a new
 
 The rules of :func:`staged_run` (``cmax fit``, ``cmax emvs``, ``cmax depth`` / ``learned.predict``):
 
+* one lock per folder, :data:`FOLDER_LOCK`, whichever of these commands writes: a second run into the folder, of
+  the same command or another, is refused at once (:class:`cmax.io.atomic.OutputLockedError`);
 * an earlier run's results are the files any of these commands writes (:data:`RESULT_NAMES`: ``depth_00000.npz``,
   ``window_00000.png``, ``summary.json``, ... by their exact names, never ``depth_groundtruth.png``): a folder
-  holding them is refused without ``--overwrite``, and ``--overwrite`` removes only them;
+  holding them, of the same command or another, is refused without ``--overwrite``, and ``--overwrite`` removes
+  only them;
 * ``summary.json`` (:data:`COMPLETION_MARKER`) is every run's record of completion, and :func:`publish` moves it
   in last: it first removes the earlier run's ``summary.json``, then the earlier run's files that the new run does
   not replace, then moves the new files in, and the new ``summary.json`` last. A run interrupted before
@@ -26,10 +29,12 @@ from typing import Callable, Iterator, Sequence
 
 from cmax.io.atomic import PathLock, _fsync_folder
 
-__all__ = ["COMPLETION_MARKER", "RESULT_NAMES", "run_results", "locked_folder", "staged_run",
+__all__ = ["FOLDER_LOCK", "COMPLETION_MARKER", "RESULT_NAMES", "run_results", "locked_folder", "staged_run",
            "new_stage", "discard_stages", "publish"]
 
 _STAGE_SUFFIX = ".partial"
+#: The lock of an output folder that :func:`staged_run` holds, the same for every command that writes through it.
+FOLDER_LOCK = ".results.lock"
 #: The file a run of :func:`staged_run` writes last (:func:`publish`): a folder without it holds no complete run.
 COMPLETION_MARKER = "summary.json"
 #: The names (whole names, :func:`re.fullmatch`) of the files each command writes into its output folder.
@@ -130,22 +135,26 @@ def publish(stage: Path, out: Path, earlier: Sequence[Path], *,
 def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[Path], list[Path]], *,
                overwrite: bool, what: str, why: str = "that would mix with this run's",
                option: str = "--overwrite") -> Iterator[Path]:
-    """Hold ``out`` for one run (the lock ``out/.<prefix>.lock``, :func:`locked_folder`) and yield an empty private
-    folder for its results; when the block ends without an error, move them into ``out`` (:func:`publish`: the new
-    ``summary.json`` last) in place of the earlier run's files (``earlier_results(out)``). An error, or a kill,
-    before the move leaves ``out`` as it was (a killed run's private folder is removed by the next run); a kill
-    during the move leaves it without ``summary.json``.
+    """Hold ``out`` for one run (the lock ``out/``:data:`FOLDER_LOCK`, :func:`locked_folder`, shared by every
+    command that writes through this function) and yield an empty private folder ``out/.<prefix>.<hex>.partial``
+    for its results; when the block ends without an error, move them into ``out`` (:func:`publish`: the new
+    ``summary.json`` last) in place of the earlier results: ``earlier_results(out)`` (the command's own) and any
+    other command's (:func:`run_results`). An error, or a kill, before the move leaves ``out`` as it was (a killed
+    run's private folder is removed by the next run); a kill during the move leaves it without ``summary.json``.
 
-    Raises FileExistsError, before any work, when ``out`` holds an earlier run's results and ``overwrite`` is
-    False (``what`` names them for the message, ``why`` says what this run would do to them, ``option`` is the flag
-    that allows it), and
-    :class:`cmax.io.atomic.OutputLockedError` when another run holds ``out``.
+    Raises FileExistsError, before any work, when ``out`` holds an earlier run's results, of this command or
+    another, and ``overwrite`` is False (``what`` names the command's own results for the message, ``why`` says
+    what this run would do to them, ``option`` is the flag that allows it), and
+    :class:`cmax.io.atomic.OutputLockedError` when another run, of any of these commands, holds ``out``.
     """
     out = Path(out)
-    with locked_folder(out, f".{prefix}.lock"):   # from the look at earlier results to the last file moved in
+    with locked_folder(out, FOLDER_LOCK):   # from the look at earlier results to the last file moved in
         discard_stages(out, prefix)
-        earlier = earlier_results(out)
+        own = set(earlier_results(out))
+        earlier = sorted(own | set(run_results(out)))
         if earlier and not overwrite:
+            if not own.issuperset(earlier):   # another command's results: name them as they are
+                what = ", ".join(path.name for path in earlier[:3]) + (", ..." if len(earlier) > 3 else "")
             raise FileExistsError(f"{out} holds the results of an earlier run ({len(earlier)} files: {what}) {why}: "
                                   f"{option} replaces them, or give another -o")
         stage = new_stage(out, prefix)
