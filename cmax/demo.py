@@ -28,7 +28,7 @@ import numpy as np
 
 from cmax.io.atomic import write_text_atomic
 
-__all__ = ["DemoSettings", "DemoReport", "run_demo"]
+__all__ = ["DemoSettings", "DemoReport", "run_demo", "demo_outputs"]
 
 
 @dataclass(frozen=True)
@@ -115,9 +115,17 @@ class DemoReport:
     seconds: dict
 
 
+def demo_outputs(output_dir: str | os.PathLike, scene_name: str = DemoSettings.scene_name) -> list[Path]:
+    """The files :func:`run_demo` writes into ``output_dir`` (``<scene_name>.h5``, ``report.png``, ``report.md``,
+    ``summary.txt``) that exist there already (any kind of file, a link too)."""
+    output_dir = Path(output_dir)
+    names = (f"{scene_name}.h5", "report.png", "report.md", "summary.txt")
+    return [output_dir / name for name in names if os.path.lexists(output_dir / name)]
+
+
 def run_demo(
     output_dir: str | os.PathLike = "demo_output", *, settings: DemoSettings | None = None,
-    log: Callable[[str], None] = print, **overrides,
+    log: Callable[[str], None] = print, overwrite: bool = False, **overrides,
 ) -> DemoReport:
     """Run the demo, writing into ``output_dir``.
 
@@ -125,6 +133,10 @@ def run_demo(
     ----------
     output_dir : path
         Created if needed; receives ``<scene>.h5``, ``report.png``, ``report.md``, ``summary.txt``.
+    overwrite : bool
+        Replace those files when ``output_dir`` holds any of them (an earlier demo's, or a user's own
+        ``report.md``); without it such a folder is refused, before any work, with a FileExistsError naming
+        them (``cmax demo --overwrite``). Other files in ``output_dir`` are never touched.
     settings : DemoSettings, optional
         Defaults: indoor_flying, 240x180, 0.5 s, a 0.1665 s window.
     log : callable
@@ -140,6 +152,9 @@ def run_demo(
 
     settings = replace(settings or DemoSettings(), **overrides)
     output_dir = Path(output_dir)
+    if (existing := demo_outputs(output_dir, settings.scene_name)) and not overwrite:
+        raise FileExistsError(f"{output_dir} already holds {', '.join(path.name for path in existing)}: the demo "
+                              "would replace them; --overwrite replaces them, or give another -o")
     output_dir.mkdir(parents=True, exist_ok=True)
     from cmax._threads import torch_threads_scope
 

@@ -57,8 +57,9 @@ __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds
 MIN_EVENTS = 10
 #: The private folders of a run's results: ``out/.depth.<16 hex>.partial`` (:mod:`cmax.io.run_folder`).
 _STAGE_PREFIX = "depth"
-#: The lock a run holds on its output folder (:func:`cmax.io.run_folder.staged_run`), inside that folder.
-FOLDER_LOCK = f".{_STAGE_PREFIX}.lock"
+#: The lock a run holds on its output folder (:func:`cmax.io.run_folder.staged_run`), inside that folder: the same
+#: lock as ``cmax fit`` and ``cmax emvs`` take, so that no two of them write into one folder at once.
+FOLDER_LOCK = run_folder.FOLDER_LOCK
 _CSV_HEADER = "window,t0_us,t1_us,events,vx,vy,vz,wx,wy,wz"
 
 
@@ -401,13 +402,11 @@ class DepthRun:
 
 
 def earlier_results(out: Path) -> list[Path]:
-    """The files of an earlier :func:`run_prediction` in the folder ``out`` (``window_<k>.npz`` / ``.png``,
-    ``twists.csv``, ``summary.json``); empty when there are none (or no folder)."""
-    if not out.is_dir():
-        return []
-    named = [out / "twists.csv", out / "summary.json"]
-    return sorted([path for path in named if path.is_file()] + [path for pattern in ("window_*.npz", "window_*.png")
-                                                               for path in out.glob(pattern) if path.is_file()])
+    """The files of an earlier :func:`run_prediction` in the folder ``out``: ``window_<k>.npz`` / ``.png`` (``k``
+    five digits or more, as it names them), ``twists.csv``, ``summary.json``
+    (:data:`cmax.io.run_folder.RESULT_NAMES`); empty when there are none (or no folder). Other files, such as a
+    user's ``window_seat_photo.png``, are not."""
+    return run_folder.run_results(out, ("depth",))
 
 
 def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarray:
@@ -487,16 +486,19 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     note : callable, optional
         Receives each note (default: printed on stderr).
     overwrite : bool
-        Replace the results of an earlier run in ``out`` (its ``window_*`` files, ``twists.csv``,
-        ``summary.json``); without it such a folder is refused, as its windows would mix with this run's.
+        Replace the results of an earlier run in ``out`` (its ``window_<k>`` files, ``twists.csv``,
+        ``summary.json``, or those of a ``cmax fit`` / ``cmax emvs`` run); without it such a folder is refused,
+        as its windows would mix with this run's. Other files in ``out`` are never touched.
         The earlier results stay as they are until this run has succeeded.
 
-    The run holds ``out`` from its first look at it to its end (the lock ``out/.depth.lock``,
-    :func:`cmax.io.run_folder.staged_run`): a second run into the same folder meanwhile is refused at once
-    (:class:`cmax.io.atomic.OutputLockedError`, an OSError) and changes nothing. The results are written into
-    a private folder ``out/.depth.<hex>.partial`` and moved into ``out`` once all of them are written (then the
-    earlier run's files that this run did not replace are removed): a failed or interrupted run leaves ``out``
-    as it was (a killed run's private folder is removed by the next run).
+    The run holds ``out`` from its first look at it to its end (the lock ``out/.results.lock``,
+    :data:`FOLDER_LOCK`, :func:`cmax.io.run_folder.staged_run`): a second run into the same folder meanwhile, or
+    a ``cmax fit`` / ``cmax emvs`` run, is refused at once (:class:`cmax.io.atomic.OutputLockedError`, an
+    OSError) and changes nothing; the results of those commands count as an earlier run's too. The results are
+    written into a private folder ``out/.depth.<hex>.partial`` and moved into ``out`` once all of them are
+    written (:func:`cmax.io.run_folder.publish`: the earlier ``summary.json`` removed first, the new one moved in
+    last): a failed run leaves ``out`` as it was, one interrupted while its files move in leaves no
+    ``summary.json`` (a killed run's private folder is removed by the next run).
 
     Raises FileNotFoundError, ValueError (including :class:`cmax.io.FormatError` and
     :class:`learned.checkpoint.CheckpointError`), OSError with a one-line message for every input a user can

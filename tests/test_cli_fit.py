@@ -638,6 +638,7 @@ def test_a_second_run_into_the_same_folder_never_mixes_with_the_first(tmp_path, 
     them, and the earlier run's windows that the new run does not have are removed (was: windows 0-1 overwritten,
     2-3 of the earlier run left beside them, summary.json listing 2); a run into a folder another run holds is
     refused; no private folder or lock is left behind."""
+    from cmax.io import run_folder
     from cmax.io.atomic import PathLock
 
     events = noise_events(2400, 50_000, seed=3)
@@ -660,7 +661,7 @@ def test_a_second_run_into_the_same_folder_never_mixes_with_the_first(tmp_path, 
     assert sorted(p.name for p in out.glob("depth_*.npz")) == ["depth_00000.npz", "depth_00001.npz"]
     assert sorted(p.name for p in out.glob("depth_*.png")) == ["depth_00000.png", "depth_00001.png"]
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
-    with PathLock(out / ".fit.lock", out):
+    with PathLock(out / run_folder.FOLDER_LOCK, out):   # the lock of cmax fit, emvs and depth
         capsys.readouterr()
         assert main([*base, "--window-ms", "25", "--overwrite"]) == 2
         assert "being written by another writer" in capsys.readouterr().err

@@ -147,3 +147,26 @@ def test_full_default_demo(tmp_path: Path) -> None:
                    f"EMVS with the true poses: {report.emvs_depth['abs_rel']:.3f} on "
                    f"{report.emvs_depth['coverage']:.0%} of the pixels"):
         assert quoted in caption, quoted
+
+
+def test_cli_demo_refuses_a_folder_holding_its_files(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Was: ``cmax demo -o DIR`` replaced a user's report.md, summary.txt and indoor_flying.h5 without a word.
+    Refused before any work (exit 2, one line naming them); ``--overwrite`` replaces them, other files untouched."""
+    from cmax.cli import main
+
+    (tmp_path / "report.md").write_text("# My paper draft\n")
+    (tmp_path / "summary.txt").write_text("mine\n")
+    (tmp_path / "notes.txt").write_text("notes\n")
+    argv = ["demo", "-o", str(tmp_path), "--size", "96x72", "--duration", "0.25", "--window", "0.1", "--seed", "3"]
+    assert main(argv) == 2
+    captured = capsys.readouterr()
+    assert "[1/5]" not in captured.out                                   # refused before any work
+    err = captured.err.strip()
+    assert len(err.splitlines()) == 1 and "report.md, summary.txt" in err and "--overwrite" in err, err
+    assert (tmp_path / "report.md").read_text() == "# My paper draft\n" and not (tmp_path / "report.png").exists()
+    assert main([*argv, "--overwrite"]) == 0
+    assert (tmp_path / "report.md").read_text().startswith("# cmax demo") and (tmp_path / "report.png").is_file()
+    assert (tmp_path / "notes.txt").read_text() == "notes\n"
+    capsys.readouterr()
+    assert main(argv) == 2                                               # a second demo run into the same folder
+    assert "indoor_flying.h5, report.png, report.md, summary.txt" in capsys.readouterr().err

@@ -42,11 +42,14 @@ def settings_of(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the demo and print where its report is; returns the exit status (0)."""
+    """Run the demo and print where its report is; returns the exit status (0). A folder that already holds any
+    of the demo's files (``<scene>.h5``, ``report.png``, ``report.md``, ``summary.txt``: an earlier demo's or a
+    user's own) is refused before any work (exit 2, one line naming them) unless ``--overwrite``."""
     from cmax.demo import run_demo
 
     settings = settings_of(args)
-    report = run_demo(output_folder(args.output, "the demo's h5 file and report"), settings=settings)
+    report = run_demo(output_folder(args.output, "the demo's h5 file and report"), settings=settings,
+                      overwrite=args.overwrite)
     print(f"demo report: {report.report_png}")
     return 0
 
@@ -75,5 +78,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                                     help="seconds of the window cmax.fit fits"), _demo_default("window_s"))
     api_default(parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
                                     help="sensor WIDTHxHEIGHT"), _demo_default("size"))
+    parser.add_argument("--overwrite", action="store_true",
+                        help="replace the demo's files (indoor_flying.h5, report.png, report.md, summary.txt) when "
+                             "-o holds them already, from an earlier demo or not (else refused)")
     parser.set_defaults(run=run)
     return parser

@@ -4,14 +4,17 @@ Registered by :func:`cmax.cli.build_parser` through :func:`add_command`; :func:`
 
 Outputs in ``-o outdir/``: ``depth.npz`` (``depth``, ``confidence``, ``mask``,
 ``t_ref_us``, ``T_w_ref``, ``K``, ``depth_range``), ``depth.png`` (confidence
-and coloured depth with a scale bar in metres) and ``points.ply`` (the
-semi-dense point cloud in the world frame); one summary line on stdout. The poses come from
+and coloured depth with a scale bar in metres), ``points.ply`` (the
+semi-dense point cloud in the world frame) and, moved in last, ``summary.json`` (the run's record of
+completion: its input, settings and files; a folder without it holds no complete run,
+:mod:`cmax.io.run_folder`); one summary line on stdout. The poses come from
 ``--poses`` (a TUM file) or, without it, from the ground truth an h5 file stores (``gt/poses``,
 ``gt/poses_t``: what ``cmax scene`` writes).
 """
 from __future__ import annotations
 
 import argparse
+import json
 import sys
 from pathlib import Path
 
@@ -22,12 +25,12 @@ from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
                                 file_depth_range, file_intrinsics, overlap, read_calibrated)
 from cmax.io import run_folder
-from cmax.io.atomic import save_npz_atomic
+from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 #: ``cmax emvs`` notes the share of the depth map on the nearest or farthest plane from this share on.
 EMVS_BOUND_NOTE = 0.05
-#: The files a run writes into ``-o``.
-RESULTS = ("depth.npz", "depth.png", "points.ply")
+#: The files a run writes into ``-o`` (``summary.json``, its record of completion, last).
+RESULTS = ("depth.npz", "depth.png", "points.ply", "summary.json")
 
 __all__ = ["RESULTS", "add_command", "run", "camera_for", "earlier_results", "file_trajectory"]
 
@@ -61,8 +64,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
         description="EMVS (Rebecq et al., IJCV 2018): vote the events into a Disparity Space Image on the "
         "reference view at the middle of their time span, using the poses of a TUM trajectory file "
         "(t[s] tx ty tz qx qy qz qw, camera-to-world, on the events' clock: what `cmax fit` writes, or "
-        "ground truth) or, without --poses, the file's own gt/poses (cmax scene); write depth.npz, depth.png "
-        "and points.ply to the output folder.")
+        "ground truth) or, without --poses, the file's own gt/poses (cmax scene); write depth.npz, depth.png, "
+        "points.ply and, last, summary.json (a folder without it holds no complete run) to the output folder.")
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
     parser.add_argument("--poses", type=Path, default=None,
                         help="TUM trajectory file (default: gt/poses of an h5 file, as cmax scene writes it)")
@@ -120,8 +123,10 @@ def file_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
 
 def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status. The results are written as ``cmax fit`` writes its own
-    (:func:`cmax.io.run_folder.staged_run`): a folder with an earlier run's results is refused without
-    ``--overwrite``, a second run into the same folder meanwhile is refused, an interrupted run changes nothing."""
+    (:func:`cmax.io.run_folder.staged_run`): a folder with an earlier run's results (of ``cmax emvs``, ``cmax fit``
+    or ``cmax depth``) is refused without ``--overwrite``, a second run into the same folder meanwhile (of any of
+    them) is refused, a failed run changes nothing, and one interrupted while its files move in leaves no
+    summary.json."""
     from cmax.emvs import read_tum_trajectory
 
     out = output_folder(args.output, "depth.npz, depth.png and points.ply")
@@ -133,7 +138,7 @@ def run(args: argparse.Namespace) -> int:
 
 def earlier_results(out: Path) -> list[Path]:
     """The files of an earlier ``cmax emvs`` in the folder ``out`` (:data:`RESULTS`); empty when none (or no folder)."""
-    return [out / name for name in RESULTS if (out / name).is_file()]
+    return run_folder.run_results(out, ("emvs",))
 
 
 def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> int:
@@ -173,6 +178,12 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     result.plot(stage / "depth.png", zoom=viz.readable_zoom(events.width))   # small sensors enlarged
     result.save_ply(stage / "points.ply")
     depths = result.depth[result.mask]
+    median_m = float(np.median(depths)) if depths.size else None
+    record = {"command": "emvs", "file": str(args.file), "poses": str(args.poses or f"{args.file}: gt/poses"),
+              "events": len(events), "t_ref_us": int(result.t_ref_us), "n_planes": int(result.n_planes),
+              "depth_range": [float(v) for v in result.depth_range], "mask_pixels": int(result.mask.sum()),
+              "median_depth_m": median_m, "files": list(RESULTS)}
+    write_text_atomic(stage / "summary.json", json.dumps(record, indent=2) + "\n")   # moved in last (publish)
     if len(result.hot_pixels):
         print(f"cmax emvs: note: {len(result.hot_pixels)} hot pixel(s) fire far more than the scene's edges make any "
               f"pixel fire ({named_pixels(result.hot_pixels)}): their events did not vote (--keep-hot-pixels keeps "

@@ -35,7 +35,7 @@ from cmax.io.atomic import save_npz_atomic, write_text_atomic
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
            "hot_pixel_note", "option_words", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
 
-#: A run's lock ``-o/.fit.lock`` and private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
+#: A run's private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
 _STAGE_PREFIX = "fit"
 
 
@@ -137,13 +137,10 @@ def _settings_default(name: str):
 
 
 def earlier_results(out: Path) -> list[Path]:
-    """The files of an earlier ``cmax fit`` in the folder ``out`` (``depth_<k>.npz`` / ``.png``, ``trajectory.txt``,
-    ``summary.json``); empty when there are none (or no folder)."""
-    if not out.is_dir():
-        return []
-    named = [path for path in (out / "trajectory.txt", out / "summary.json") if path.is_file()]
-    return sorted(named + [path for pattern in ("depth_*.npz", "depth_*.png") for path in out.glob(pattern)
-                           if path.is_file()])
+    """The files of an earlier ``cmax fit`` in the folder ``out``: ``depth_<k>.npz`` / ``.png`` (``k`` five digits
+    or more, as fit names them), ``trajectory.txt``, ``summary.json`` (:data:`cmax.io.run_folder.RESULT_NAMES`);
+    empty when there are none (or no folder). Other files, such as a user's ``depth_groundtruth.png``, are not."""
+    return run_folder.run_results(out, ("fit",))
 
 
 def tum_lines(times_us: np.ndarray, poses: np.ndarray) -> list[str]:
@@ -357,11 +354,12 @@ def hot_pixel_note(results) -> str | None:
 def run(args: argparse.Namespace) -> int:
     """Run the command; returns the exit status (1 when no window could be fitted, or every fitted one failed).
 
-    The run holds ``-o`` (the lock ``.fit.lock`` in it) from its look at earlier results to its last file: a second
-    run into the same folder meanwhile is refused at once. A folder with an earlier run's results is refused without
-    ``--overwrite``. The results are written into a private folder and moved in once all are written, then the
-    earlier run's files that this run did not replace are removed: a failed or interrupted run leaves ``-o`` as it
-    was, and two runs' windows never mix."""
+    The run holds ``-o`` (the lock ``.results.lock`` in it, shared with ``cmax emvs`` and ``cmax depth``) from its
+    look at earlier results to its last file: a second run into the same folder meanwhile is refused at once. A
+    folder with an earlier run's results (of any of the three) is refused without ``--overwrite``. The results are
+    written into a private folder and moved in once all are written (:func:`cmax.io.run_folder.publish`:
+    summary.json last): a failed run leaves ``-o`` as it was, one interrupted while moving its files in leaves no
+    summary.json, and two runs' windows never mix."""
     from cmax.fitting import FitSettings
     from cmax.fitting.api import MIN_WINDOW_EVENTS
     from cmax.io.gyro import parse_axes

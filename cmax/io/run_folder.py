@@ -1,6 +1,22 @@
 """The output folder of a run (``cmax fit -o``, ``cmax emvs -o``, ``cmax depth -o``, ``train.out``): held by one
-run at a time, its results written into a private stage and moved in together, so that an interrupted run leaves
-the folder as it was and an earlier run's files never mix with a new run's."""
+run at a time, its results written into a private stage and moved in together, so that an interrupted run never
+leaves a folder that looks complete with an earlier run's files mixed into a new run's.
+
+The rules of :func:`staged_run` (``cmax fit``, ``cmax emvs``, ``cmax depth`` / ``learned.predict``):
+
+* one lock per folder, :data:`FOLDER_LOCK`, whichever of these commands writes: a second run into the folder, of
+  the same command or another, is refused at once (:class:`cmax.io.atomic.OutputLockedError`);
+* an earlier run's results are the files any of these commands writes (:data:`RESULT_NAMES`: ``depth_00000.npz``,
+  ``window_00000.png``, ``summary.json``, ... by their exact names, never ``depth_groundtruth.png``): a folder
+  holding them, of the same command or another, is refused without ``--overwrite``, and ``--overwrite`` removes
+  only them;
+* ``summary.json`` (:data:`COMPLETION_MARKER`) is every run's record of completion, and :func:`publish` moves it
+  in last: it first removes the earlier run's ``summary.json``, then the earlier run's files that the new run does
+  not replace, then moves the new files in, and the new ``summary.json`` last. A run interrupted before
+  :func:`publish` leaves the folder as it was; one interrupted during it leaves a folder without
+  ``summary.json``: **a folder without summary.json holds no complete run** (and the next run into it is refused
+  without ``--overwrite``).
+"""
 from __future__ import annotations
 
 import os
@@ -11,11 +27,34 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
-from cmax.io.atomic import PathLock
+from cmax.io.atomic import PathLock, _fsync_folder
 
-__all__ = ["locked_folder", "staged_run", "new_stage", "discard_stages", "publish"]
+__all__ = ["FOLDER_LOCK", "COMPLETION_MARKER", "RESULT_NAMES", "run_results", "locked_folder", "staged_run",
+           "new_stage", "discard_stages", "publish"]
 
 _STAGE_SUFFIX = ".partial"
+#: The lock of an output folder that :func:`staged_run` holds, the same for every command that writes through it.
+FOLDER_LOCK = ".results.lock"
+#: The file a run of :func:`staged_run` writes last (:func:`publish`): a folder without it holds no complete run.
+COMPLETION_MARKER = "summary.json"
+#: The names (whole names, :func:`re.fullmatch`) of the files each command writes into its output folder.
+RESULT_NAMES: dict[str, re.Pattern] = {
+    "fit": re.compile(r"depth_\d{5,}\.(?:npz|png)|trajectory\.txt|summary\.json"),
+    "depth": re.compile(r"window_\d{5,}\.(?:npz|png)|twists\.csv|summary\.json"),
+    "emvs": re.compile(r"depth\.(?:npz|png)|points\.ply|summary\.json"),
+}
+
+
+def run_results(out: str | os.PathLike, commands: Sequence[str] | None = None) -> list[Path]:
+    """The files in the folder ``out`` named as the ``commands`` (keys of :data:`RESULT_NAMES`; default: all of
+    them) name their results, sorted; empty when there are none (or no folder). A user's ``depth_groundtruth.png``
+    or ``window_seat.png`` is none of them."""
+    out = Path(out)
+    if not out.is_dir():
+        return []
+    patterns = [RESULT_NAMES[command] for command in (RESULT_NAMES if commands is None else commands)]
+    return sorted(path for path in out.iterdir()
+                  if any(pattern.fullmatch(path.name) for pattern in patterns) and path.is_file())
 
 
 @contextmanager
@@ -63,40 +102,59 @@ def discard_stages(out: Path, prefix: str) -> list[Path]:
     return stale
 
 
-def publish(stage: Path, out: Path, earlier: Sequence[Path], *, last: Sequence[str] = ("summary.json",)) -> list[Path]:
-    """Move the files of ``stage`` into ``out`` (renames within one folder tree; the names in ``last``, a run's
-    record of completion, after the others), then remove the files of ``earlier`` (an earlier run's) that none
-    of them replaced; returns the files now in ``out``."""
+def publish(stage: Path, out: Path, earlier: Sequence[Path], *,
+            last: Sequence[str] = (COMPLETION_MARKER,)) -> list[Path]:
+    """Move the files of ``stage`` into ``out`` (renames within one folder tree) in place of ``earlier`` (an
+    earlier run's files); returns the files now in ``out``.
+
+    The order keeps an interrupted move from looking complete: first the earlier run's record of completion (its
+    files named in ``last``, and any file of ``out`` a new one of those names would replace) is removed, then the
+    earlier files that no new one replaces, then the new files are moved in, and those named in ``last`` after all
+    the others (the folder synced between the steps)."""
+    out = Path(out)
     new = sorted((file for file in Path(stage).iterdir() if file.is_file() and not file.is_symlink()),
                  key=lambda file: (file.name in last, file.name))
     names = {file.name for file in new}
-    for file in new:
-        os.replace(file, Path(out) / file.name)
+    markers = {file for file in earlier if file.name in last} | {out / name for name in last if name in names}
+    for marker in sorted(markers):
+        if os.path.lexists(marker):
+            marker.unlink()
+    _fsync_folder(out)   # the earlier record gone before anything else changes
     for stale in earlier:
         if stale.name not in names:
             stale.unlink(missing_ok=True)
-    return [Path(out) / file.name for file in new]
+    for file in new:
+        if file.name in last:
+            _fsync_folder(out)   # every other file in place before the record of completion
+        os.replace(file, out / file.name)
+    _fsync_folder(out)
+    return [out / file.name for file in new]
 
 
 @contextmanager
 def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[Path], list[Path]], *,
                overwrite: bool, what: str, why: str = "that would mix with this run's",
                option: str = "--overwrite") -> Iterator[Path]:
-    """Hold ``out`` for one run (the lock ``out/.<prefix>.lock``, :func:`locked_folder`) and yield an empty private
-    folder for its results; when the block ends without an error, move them into ``out`` (:func:`publish`) and
-    remove the earlier run's files (``earlier_results(out)``) that they did not replace. An error, or a kill,
-    leaves ``out`` as it was (a killed run's private folder is removed by the next run).
+    """Hold ``out`` for one run (the lock ``out/``:data:`FOLDER_LOCK`, :func:`locked_folder`, shared by every
+    command that writes through this function) and yield an empty private folder ``out/.<prefix>.<hex>.partial``
+    for its results; when the block ends without an error, move them into ``out`` (:func:`publish`: the new
+    ``summary.json`` last) in place of the earlier results: ``earlier_results(out)`` (the command's own) and any
+    other command's (:func:`run_results`). An error, or a kill, before the move leaves ``out`` as it was (a killed
+    run's private folder is removed by the next run); a kill during the move leaves it without ``summary.json``.
 
-    Raises FileExistsError, before any work, when ``out`` holds an earlier run's results and ``overwrite`` is
-    False (``what`` names them for the message, ``why`` says what this run would do to them, ``option`` is the flag
-    that allows it), and
-    :class:`cmax.io.atomic.OutputLockedError` when another run holds ``out``.
+    Raises FileExistsError, before any work, when ``out`` holds an earlier run's results, of this command or
+    another, and ``overwrite`` is False (``what`` names the command's own results for the message, ``why`` says
+    what this run would do to them, ``option`` is the flag that allows it), and
+    :class:`cmax.io.atomic.OutputLockedError` when another run, of any of these commands, holds ``out``.
     """
     out = Path(out)
-    with locked_folder(out, f".{prefix}.lock"):   # from the look at earlier results to the last file moved in
+    with locked_folder(out, FOLDER_LOCK):   # from the look at earlier results to the last file moved in
         discard_stages(out, prefix)
-        earlier = earlier_results(out)
+        own = set(earlier_results(out))
+        earlier = sorted(own | set(run_results(out)))
         if earlier and not overwrite:
+            if not own.issuperset(earlier):   # another command's results: name them as they are
+                what = ", ".join(path.name for path in earlier[:3]) + (", ..." if len(earlier) > 3 else "")
             raise FileExistsError(f"{out} holds the results of an earlier run ({len(earlier)} files: {what}) {why}: "
                                   f"{option} replaces them, or give another -o")
         stage = new_stage(out, prefix)
