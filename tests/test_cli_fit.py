@@ -303,6 +303,10 @@ def test_a_run_whose_every_window_failed_exits_1_and_the_summary_records_what_wa
     assert "cmax fit: note: every fitted window failed (4)" in err
     summary = json.loads((out / "summary.json").read_text())
     assert summary["verdicts"]["failed"] == 4 and len(summary["windows"]) == 4
+    # each window names itself, its depth file and whether its fit succeeded (an audit: neither was recorded)
+    assert [(w["index"], w["depth_file"], w["success"]) for w in summary["windows"]] == \
+        [(i, f"depth_{i:05d}.npz", base.success) for i in range(4)]
+    assert all((out / w["depth_file"]).is_file() for w in summary["windows"])
     assert summary["warnings"] == [{"category": "LowParallaxWarning", "count": 4, "windows": [0, 1, 2, 3],
                                     "message": "window 0: parallax 0.25 px"}]
     printed_notes = [line.removeprefix("cmax fit: note: ") for line in err.splitlines() if "cmax fit: note: " in line]

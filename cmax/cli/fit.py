@@ -515,10 +515,11 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
             depth = viz.enlarge(np.where(r.mask, r.depth, np.nan), viz.readable_zoom(r.depth.shape[1]))
             viz.save_png(stage / f"depth_{i:05d}.png", viz.depth_panel(depth, scale, title,
                                                                        unit="m" if r.scale_known else ""))
-        windows.append({"t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
+        windows.append({"index": i, "depth_file": f"depth_{i:05d}.npz" if r.depth is not None else None,
+                        "t0_us": r.t0_us, "t1_us": r.t1_us, "t_ref_us": r.t_ref_us, "v": r.v.tolist(),
                         "omega": r.omega.tolist(), "flow": None if r.flow is None else r.flow.tolist(),
                         "objective_after": r.objective_after, "seconds": r.seconds, "iterations": r.iterations,
-                        "message": r.message,
+                        "message": r.message, "success": r.success,
                         "scale_known": r.scale_known, "parallax_px": r.parallax_px,
                         "hot_pixels": r.hot_pixels.tolist(),
                         **(r.quality.summary() if r.quality is not None else {"verdict": None})})
