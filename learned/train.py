@@ -12,7 +12,8 @@ Data order: the global batch of step ``s`` is a fixed function of ``(seed, s)``
 ``torchrun`` job rank ``r`` of ``R`` takes entries ``r, r + R, ...`` of each
 global batch (the role of a ``DistributedSampler``), gradients are averaged by
 ``DistributedDataParallel`` (gloo on the CPU; with ``train.device=cuda`` nccl, each rank on the GPU of its
-``LOCAL_RANK``), and only rank 0 writes.
+``LOCAL_RANK``), and only rank 0 writes (a ``RANK`` that no ``torchrun`` job set is refused:
+:func:`distributed_rank`).
 Checkpoints (``out/last.pt``) hold the model, optimiser, step, config and RNG
 states and are written atomically; ``--resume`` continues bit-for-bit on CPU, and refuses a config that
 differs from the checkpoint's in a field that changes the steps still to run (:func:`config_differences`,
@@ -69,7 +70,7 @@ THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RESUMABLE",
-           "config_differences", "resolved_paths", "Trainer", "check_output", "main"]
+           "config_differences", "resolved_paths", "distributed_rank", "Trainer", "check_output", "main"]
 
 def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
     """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
@@ -293,6 +294,29 @@ def with_teacher_model(config: Config) -> Config:
     return dataclasses.replace(config, model=teacher)
 
 
+def distributed_rank() -> tuple[int, int]:
+    """``(rank, world)`` of this process from the environment ``torchrun`` sets (``RANK``, ``WORLD_SIZE``);
+    ``(0, 1)`` outside a ``torchrun`` job.
+
+    A rank other than 0 writes nothing, so a ``RANK`` that no ``torchrun`` job set (a scheduler's or an MPI
+    wrapper's, left in the environment) would make a run train and save nothing: a ``RANK`` outside
+    ``[0, WORLD_SIZE)`` -- ``RANK=1`` without ``WORLD_SIZE``, or with ``WORLD_SIZE=1`` -- and values that are not
+    whole numbers are refused (ValueError, one line naming the variables).
+    """
+    text = {name: os.environ.get(name) for name in ("RANK", "WORLD_SIZE")}
+    try:
+        rank, world = int(text["RANK"] or 0), int(text["WORLD_SIZE"] or 1)
+    except ValueError:
+        rank = world = -1
+    if world < 1 or not 0 <= rank < world:
+        shown = ", ".join(f"{name}={value}" if value is not None else f"{name} not set"
+                          for name, value in text.items())
+        raise ValueError(f"the environment says {shown}: not a rank of a torchrun job (torchrun sets WORLD_SIZE > 1 "
+                         "and 0 <= RANK < WORLD_SIZE), and a rank other than 0 would train and write nothing; unset "
+                         "RANK (and WORLD_SIZE) to train in one process, or start the job with torchrun")
+    return rank, world
+
+
 def _sha256(path: Path) -> str:
     """SHA-256 (hex) of the file at ``path``, read in 1 MiB blocks."""
     digest = hashlib.sha256()
@@ -314,8 +338,7 @@ class Trainer:
     def __init__(self, config: Config, *, resume: bool = False, progress: bool = True) -> None:
         config = with_teacher_model(config)
         self.config, self.progress = config, progress
-        self.world = int(os.environ.get("WORLD_SIZE", "1"))
-        self.rank = int(os.environ.get("RANK", "0"))
+        self.rank, self.world = distributed_rank()
         self.device = resolve_device(config.train.device, int(os.environ.get("LOCAL_RANK", "0")))
         if self.device.type == "cuda":
             torch.cuda.set_device(self.device)
@@ -698,11 +721,12 @@ def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "")
 
 
 def _run(args: argparse.Namespace) -> int:
+    rank, _ = distributed_rank()   # a stray RANK (no torchrun job) is refused first, before anything is read
     config = load_config(args.config, args.overrides, mode=args.mode, require_mode=True)
     out = Path(config.train.out)
     teacher = config.train.teacher if config.mode in ("finetune", "student") else ""
     check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)
-    if int(os.environ.get("RANK", "0")) != 0:   # the other ranks of a torchrun job write nothing
+    if rank != 0:   # the other ranks of a torchrun job write nothing
         return _train(args, config, out)
     with locked_folder(out, FOLDER_LOCK):   # one run at a time, from the look at last.pt to the last write
         check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)
@@ -710,7 +734,7 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace, config: Config, out: Path) -> int:
-    rank0 = int(os.environ.get("RANK", "0")) == 0
+    rank0 = distributed_rank()[0] == 0
     if args.overwrite and rank0:   # the new run's learning curves alone
         (out / "log.jsonl").unlink(missing_ok=True)
         clear_tensorboard(out / "tb")

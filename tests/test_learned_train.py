@@ -181,6 +181,28 @@ def test_torchrun_two_processes_match_one(scene_file, tmp_path):
             assert ddp[key] == pytest.approx(one[key], rel=1e-4, abs=1e-6), (key, ddp, one)
 
 
+@pytest.mark.parametrize("env", [{"RANK": "1"}, {"RANK": "1", "WORLD_SIZE": "1"}, {"RANK": "2", "WORLD_SIZE": "2"}])
+def test_a_stray_rank_outside_a_torchrun_job_is_refused(scene_file, tmp_path, capsys, monkeypatch, env):
+    """RANK=1 left in the environment by a scheduler, without WORLD_SIZE (or WORLD_SIZE=1): the run took itself for
+    rank 1 of a torchrun job, trained, wrote nothing (no folder) and exited 0. Now refused in one line naming the
+    variables, by the command and by Trainer; nothing is written. (torchrun itself: the test above.)"""
+    from conftest import one_line_error
+
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    out = tmp_path / "run"
+    status, err = one_line_error(lambda: main(["--mode", "teacher", "--no-progress",
+                                               *tiny(scene_file, out, "train.steps=2")]), capsys)
+    assert status == 2, err
+    world = f"WORLD_SIZE={env['WORLD_SIZE']}" if "WORLD_SIZE" in env else "WORLD_SIZE not set"
+    assert f"the environment says RANK={env['RANK']}, {world}: not a rank of a torchrun job" in err, err
+    assert "unset RANK" in err and not out.exists()
+    with pytest.raises(ValueError, match="not a rank of a torchrun job"):
+        Trainer(load_config(None, tiny(scene_file, out, "train.steps=2"), mode="teacher"), progress=False)
+    assert not out.exists()
+
+
 def test_links_planted_in_the_output_folder_are_not_followed(scene_file, tmp_path):
     """config.json was written with Path.write_text, which followed a planted link out of the folder."""
     outside = tmp_path / "outside.txt"
