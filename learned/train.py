@@ -69,7 +69,8 @@ FOLDER_LOCK = ".train.lock"
 THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
-           "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RESUMABLE",
+           "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
+           "clear_earlier_run", "RESUMABLE",
            "config_differences", "resolved_paths", "distributed_rank", "Trainer", "check_output", "main"]
 
 def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
@@ -129,6 +130,28 @@ def clear_tensorboard(folder: Path) -> list[Path]:
     return removed
 
 
+#: The files a run writes in its ``train.out`` besides TensorBoard's ``tb/``: what ``--overwrite`` removes of an
+#: earlier run (:func:`clear_earlier_run`).
+RUN_FILES = ("last.pt", "config.json", "log.jsonl")
+
+
+def clear_earlier_run(out: Path) -> list[Path]:
+    """Remove an earlier run's outputs from ``out`` (``--overwrite``): :data:`RUN_FILES` (a link at one of those
+    names is removed itself, never followed; a folder is left) and TensorBoard's event files
+    (:func:`clear_tensorboard`). Returns the paths removed.
+
+    The command calls it under the folder's lock once the new run's config and data are checked, before the first
+    step: a new run that fails before its first checkpoint then leaves no checkpoint of another run beside its own
+    ``config.json`` and ``log.jsonl``."""
+    removed = []
+    for name in RUN_FILES:
+        path = out / name
+        if path.is_symlink() or path.is_file():
+            path.unlink()
+            removed.append(path)
+    return removed + clear_tensorboard(out / "tb")
+
+
 #: The config fields a ``--resume`` may change: how far the run goes, where it runs and writes, and how often it
 #: logs, validates and saves. Any other field (the mode, the model, the data, the seed, the batch, the
 #: optimisation) changes the steps still to run, so a resumed run that sets it otherwise is refused.
@@ -176,7 +199,8 @@ def config_differences(recorded: Config, now: Config, recorded_paths: dict | Non
 
 class TrainingDiverged(ValueError):
     """A step's loss or weights went non-finite: the run stops and saves nothing (``last.pt`` stays the last
-    good checkpoint). A ValueError, so the command prints it as one line and exits with status 2."""
+    good checkpoint of this run, if it wrote one; the message says which ``last.pt``, if any, is there). A
+    ValueError, so the command prints it as one line and exits with status 2."""
 
 
 def nonfinite_terms(terms: dict[str, float]) -> list[str]:
@@ -586,8 +610,13 @@ class Trainer:
     def _diverged(self, what: str) -> TrainingDiverged:
         """The :class:`TrainingDiverged` of a step where ``what`` went non-finite: what stays in ``train.out``, and
         what may keep the run stable."""
-        kept = ("no checkpoint had been written yet" if self.saved_step is None
-                else f"the last good checkpoint {self.out / 'last.pt'} (step {self.saved_step}) is kept")
+        path = self.out / "last.pt"
+        if self.saved_step is not None:
+            kept = f"the last good checkpoint {path} (step {self.saved_step}) is kept"
+        elif path.exists() or path.is_symlink():   # Trainer used directly over an earlier run's folder
+            kept = f"this run had written no checkpoint yet ({path} is an earlier run's, left as it was)"
+        else:
+            kept = "no checkpoint had been written yet"
         return TrainingDiverged(f"{what}: training stopped and nothing was saved; {kept}; a lower train.lr or "
                                 "gradient clipping (train.clip_grad_norm) may keep the run stable")
 
@@ -685,7 +714,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="a .json or .toml config (default: the defaults of learned.config)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt when it exists")
     parser.add_argument("--overwrite", action="store_true",
-                        help="start afresh over an earlier run in train.out (its last.pt and log.jsonl replaced)")
+                        help="start afresh over an earlier run in train.out: its last.pt, config.json, log.jsonl "
+                        "and TensorBoard events are removed before the first step (once this run's config and data "
+                        "are checked), so a new run that fails early leaves no checkpoint of the old one")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("overrides", nargs="*", help="section.key=value (e.g. train.steps=100)")
     return run_main(parser, _run, argv)
@@ -735,13 +766,12 @@ def _run(args: argparse.Namespace) -> int:
 
 def _train(args: argparse.Namespace, config: Config, out: Path) -> int:
     rank0 = distributed_rank()[0] == 0
-    if args.overwrite and rank0:   # the new run's learning curves alone
-        (out / "log.jsonl").unlink(missing_ok=True)
-        clear_tensorboard(out / "tb")
     if args.resume and rank0 and not (out / "last.pt").is_file():
         print(f"python -m learned.train: note: --resume, but {out / 'last.pt'} does not exist: starting at step 0",
               file=sys.stderr)
     trainer = Trainer(config, resume=args.resume, progress=not args.no_progress)
+    if args.overwrite and rank0:   # config and data checked: the earlier run goes before the first step
+        clear_earlier_run(out)
     losses = trainer.run()
     if trainer.rank == 0 and losses:
         print(f"{config.mode}: {len(losses)} steps, loss {losses[0]:.4f} -> {losses[-1]:.4f}; "

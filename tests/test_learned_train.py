@@ -519,6 +519,40 @@ def test_overwrite_and_resume_keep_one_run_in_the_learning_curves(scene_file, tm
     assert [step for step, _ in _tensorboard(out / "tb", "loss/total")] == [1, 2, 3, 4, 5, 6]
 
 
+def test_overwrite_removes_the_earlier_run_before_the_first_step(scene_file, tmp_path, capsys):
+    """--overwrite removed log.jsonl and tb/ and wrote the new config.json at once, but left the earlier run's
+    last.pt until the new run's first checkpoint: a new run that diverged before it left the old last.pt beside
+    the new config.json and log.jsonl, and said "no checkpoint had been written yet". Now the earlier run's files
+    go before the first step, and the message about last.pt is true (Trainer used directly over an old folder)."""
+    import json
+
+    from conftest import one_line_error
+    from learned.train import TrainingDiverged
+
+    out = tmp_path / "run"
+    run = ["--mode", "teacher", "--no-progress"]
+    assert main([*run, *tiny(scene_file, out, "train.steps=4")]) == 0
+    old = (out / "last.pt").read_bytes()
+    capsys.readouterr()
+    diverging = ("train.steps=12", "train.lr=1e8", "train.clip_grad_norm=0", "train.checkpoint_every=20")
+    status, err = one_line_error(lambda: main([*run, "--overwrite", *tiny(scene_file, out, *diverging)]), capsys)
+    assert status == 2 and "training stopped and nothing was saved; no checkpoint had been written yet" in err, err
+    assert not (out / "last.pt").exists()                         # the earlier run's checkpoint is gone too
+    assert json.loads((out / "config.json").read_text())["train"]["lr"] == 1e8
+    lines = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert lines and all(line["lr"] > 1 for line in lines)        # the new run's curves alone
+    # the Python API over a folder that holds an earlier run's last.pt (no --overwrite to remove it)
+    (out / "last.pt").write_bytes(old)
+    with pytest.raises(TrainingDiverged, match=r"this run had written no checkpoint yet \(.*last\.pt is an "
+                                               r"earlier run's, left as it was\)"):
+        Trainer(load_config(None, tiny(scene_file, out, *diverging), mode="teacher"), progress=False).run()
+    assert (out / "last.pt").read_bytes() == old
+    # a run refused before training (no window) does not touch the earlier run
+    status, err = one_line_error(lambda: main([*run, "--overwrite", *tiny(scene_file, out, "train.steps=2",
+                                                                          "data.window_us=5000000")]), capsys)
+    assert status == 2 and "hold no window" in err and (out / "last.pt").read_bytes() == old
+
+
 def test_settings_that_did_nothing_or_said_the_wrong_thing(scene_file, tmp_path, capsys):
     """data.workers was checked and never used; a run shorter than train.log_every logged nothing (the last step
     only when steps % log_every == 0); train.steps=0 spoke of a last.pt that did not exist; a labelled file's
