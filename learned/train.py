@@ -28,6 +28,8 @@ import hashlib
 import json
 import os
 import sys
+import threading
+import warnings
 from pathlib import Path
 from typing import Iterator
 
@@ -356,6 +358,24 @@ def _no_window(dataset: H5WindowDataset) -> str:
             f"({dataset.skipped} window(s) had fewer); give longer recordings or a shorter data.window_us")
 
 
+def _quiet_tensorboard_thread_errors() -> None:
+    """Keep an :class:`OSError` of TensorBoard's writer thread (a full disk, a file-size limit) from printing a
+    traceback: TensorBoard raises the same error at the trainer's next call, which reports it in one line
+    (:meth:`Trainer._tensorboard_failed`). Installed once in :data:`threading.excepthook`; every other thread's
+    exception goes to the hook that was there before."""
+    previous = threading.excepthook
+    if getattr(previous, "learned_quiet_tensorboard", False):
+        return
+
+    def hook(args) -> None:
+        if isinstance(args.exc_value, OSError) and type(args.thread).__module__.startswith("tensorboard."):
+            return
+        previous(args)
+
+    hook.learned_quiet_tensorboard = True
+    threading.excepthook = hook
+
+
 class Trainer:
     """One training run (a rank of it under ``torchrun``); :meth:`run` trains to ``config.train.steps``."""
 
@@ -491,25 +511,51 @@ class Trainer:
     # -- logging ------------------------------------------------------------------------------
     def _logger(self):
         """TensorBoard's writer on ``out/tb`` when it is installed (scalars always go to ``log.jsonl`` too), else
-        None."""
+        None (also when it cannot start: :meth:`_tensorboard_failed`)."""
         try:
             from torch.utils.tensorboard import SummaryWriter
-            # resumed: TensorBoard drops the events of the steps after the checkpoint (a killed run's)
-            return SummaryWriter(str(self.out / "tb"), purge_step=self.step + 1 if self.resumed else None)
         except ImportError:
             return None
+        _quiet_tensorboard_thread_errors()
+        try:
+            # resumed: TensorBoard drops the events of the steps after the checkpoint (a killed run's)
+            return SummaryWriter(str(self.out / "tb"), purge_step=self.step + 1 if self.resumed else None)
+        except OSError as error:
+            self._tensorboard_failed(error)
+            return None
+
+    def _tensorboard_failed(self, error: OSError) -> None:
+        """TensorBoard could not write (a full disk, a file-size limit: the error of its writer thread, raised at
+        the next call): a warning naming its folder, and TensorBoard off for the rest of the run; the learning
+        curves go on in ``log.jsonl``, whose own write errors stop the run (:meth:`_scalars`)."""
+        self.log = None
+        reason = f"[Errno {error.errno}] {os.strerror(error.errno)}" if error.errno else str(error)
+        warnings.warn(f"TensorBoard could not write in {self.out / 'tb'} ({reason}): it is off for the rest of this "
+                      f"run; the learning curves go on in {self.out / 'log.jsonl'}", RuntimeWarning, stacklevel=2)
 
     def _scalars(self, values: dict[str, float]) -> None:
-        """One line ``{"step", **values}`` in ``out/log.jsonl`` (the learning curves), and TensorBoard."""
+        """One line ``{"step", **values}`` in ``out/log.jsonl`` (the learning curves), and TensorBoard.
+
+        A write error of ``log.jsonl`` (a full disk, a file-size limit) is an :class:`OSError` naming it (its
+        errno kept); TensorBoard's is a warning (:meth:`_tensorboard_failed`)."""
         if self.rank != 0:
             return
         if self.log is not None:
-            for key, value in values.items():
-                self.log.add_scalar(key, value, self.step)
+            try:
+                for key, value in values.items():
+                    self.log.add_scalar(key, value, self.step)
+            except OSError as error:
+                self._tensorboard_failed(error)
         self.out.mkdir(parents=True, exist_ok=True)
+        path = self.out / "log.jsonl"
         flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)  # never a planted link
-        with os.fdopen(os.open(self.out / "log.jsonl", flags, 0o644), "a") as f:
-            f.write(json.dumps({"step": self.step, **values}) + "\n")
+        try:
+            with os.fdopen(os.open(path, flags, 0o644), "a") as f:
+                f.write(json.dumps({"step": self.step, **values}) + "\n")
+        except OSError as error:
+            reason = os.strerror(error.errno) if error.errno else str(error)
+            raise OSError(error.errno, f"{reason} while appending step {self.step} to the learning curves (a line "
+                                       "cut short there is dropped by --resume)", str(path)) from None
 
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
@@ -683,12 +729,18 @@ class Trainer:
             if tc.val_every and (self.step % tc.val_every == 0 or self.step == tc.steps) and self.rank == 0:
                 self._scalars(self.validate())
             if self.step % tc.image_every == 0:
-                self._images(batch, output)
+                try:
+                    self._images(batch, output)
+                except OSError as error:
+                    self._tensorboard_failed(error)
             if self.step % tc.checkpoint_every == 0 or self.step == tc.steps:
                 self.save()
         bar.close()
         if self.log is not None:
-            self.log.flush()
+            try:
+                self.log.flush()
+            except OSError as error:
+                self._tensorboard_failed(error)
         return losses
 
 

@@ -217,6 +217,41 @@ def test_links_planted_in_the_output_folder_are_not_followed(scene_file, tmp_pat
     assert load_checkpoint(out / "last.pt")["step"] == 2
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="RLIMIT_FSIZE is POSIX")
+def test_a_file_size_limit_stops_training_with_one_line_naming_the_file(scene_file, tmp_path):
+    """Under `ulimit -f 1` TensorBoard's writer thread printed a traceback, then the run ended with
+    `error: [Errno 27] File too large`, naming no file (log.jsonl was appended unguarded; torch.save's zip writer
+    turned last.pt's error into a RuntimeError with a traceback). Now TensorBoard's failure is one warning naming
+    its folder (TensorBoard off, the run goes on), and log.jsonl's or last.pt's is one error naming the file."""
+    import resource
+
+    def limited(limit: int, out: Path, *extra: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "learned.train", "--mode", "teacher", "--no-progress",
+                               *tiny(scene_file, out, *extra)], cwd=ROOT, capture_output=True, text=True,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=120,
+                              preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)))
+
+    # 2 KiB (config.json, with its long paths, fits): TensorBoard's event file outgrows it at the first images,
+    # log.jsonl some steps later
+    out = tmp_path / "small"
+    done = limited(2048, out, "train.steps=40", "train.checkpoint_every=100", "train.image_every=1")
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    warning, error = done.stderr.strip().splitlines()
+    assert warning == (f"python -m learned.train: warning: TensorBoard could not write in {out / 'tb'} ([Errno 27] "
+                       f"File too large): it is off for the rest of this run; the learning curves go on in "
+                       f"{out / 'log.jsonl'}"), warning
+    assert error.startswith("python -m learned.train: error: File too large while appending step ") and \
+        error.endswith(f"to the learning curves (a line cut short there is dropped by --resume): {out / 'log.jsonl'}")
+    # 2 KiB again, TensorBoard and log.jsonl writing little: the checkpoint outgrows it in its first record (where
+    # torch.save turned the OSError into a RuntimeError); nothing of it is left
+    out = tmp_path / "checkpoint"
+    done = limited(2048, out, "train.steps=2", "train.log_every=100", "train.image_every=100")
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.strip() == ("python -m learned.train: error: File too large while writing; nothing was written "
+                                   f"under this name (the temporary file was removed): {out / 'last.pt'}")
+    assert sorted(path.name for path in out.iterdir()) == ["config.json", "log.jsonl", "tb"]
+
+
 def test_twist_scale_is_one_rms_per_vector_with_a_floor_from_the_bounds():
     from types import SimpleNamespace
 
