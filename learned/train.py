@@ -353,9 +353,37 @@ def _sha256(path: Path) -> str:
 
 
 def _no_window(dataset: H5WindowDataset) -> str:
-    """Why ``dataset`` holds no window, and what to change (the end of an error message)."""
-    return (f"each needs {dataset.window_us * 1e-3:g} ms of events (data.window_us) with at least 100 of them "
-            f"({dataset.skipped} window(s) had fewer); give longer recordings or a shorter data.window_us")
+    """Why ``dataset`` holds no window, and what to change (the end of an error message): the windows with too few
+    events, and the labelled windows (centred on ``gt/depth_t``) that reach beyond their recording, with their
+    centres, the recordings' spans and, when those are the only reason, the longest ``data.window_us`` that fits
+    one of them."""
+    from learned.data import longest_centred_window_us
+
+    ms = lambda us: f"{us * 1e-3:g}"  # noqa: E731
+    off = dataset.off_recording
+    files: dict[int, list[int]] = {}
+    for index, centre in off:
+        files.setdefault(index, []).append(centre)
+    shown = []
+    for index, centres in list(files.items())[:3]:
+        start, end = dataset.spans[index]
+        listed = ", ".join(ms(c) for c in centres[:4]) + (", ..." if len(centres) > 4 else "")
+        shown.append(f"{dataset.specs[index].path.name}: centres at {listed} ms, events from {ms(start)} to "
+                     f"{ms(end)} ms")
+    where = "; ".join(shown) + ("; ..." if len(files) > 3 else "")
+    if off and not dataset.skipped:   # the centres alone: every window reaches beyond its recording
+        longest = max(longest_centred_window_us(centre, *dataset.spans[index]) for index, centre in off)
+        fix = (f"data.window_us={longest} or shorter fits at least one of them" if longest > 0 else
+               "no window length fits a centre at an end of its recording: give labelled recordings with depth "
+               "times inside their events (cmax scene: a higher --depth-rate or a longer --duration)")
+        return (f"labelled windows are centred on their file's gt/depth_t, and each of the {len(off)} "
+                f"window(s) of {ms(dataset.window_us)} ms (data.window_us) reaches beyond its recording by more than "
+                f"{ms(dataset.window_us // 10)} ms, a tenth of a window ({where}); {fix}")
+    beyond = (f"; {len(off)} more, labelled windows centred on gt/depth_t, reach beyond their recording ({where})"
+              if off else "")
+    return (f"each needs {ms(dataset.window_us)} ms of events (data.window_us) with at least {dataset.min_events} "
+            f"of them ({dataset.skipped} window(s) had fewer){beyond}; give longer recordings or a shorter "
+            "data.window_us")
 
 
 def _quiet_tensorboard_thread_errors() -> None:

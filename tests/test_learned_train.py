@@ -626,6 +626,40 @@ def test_settings_that_did_nothing_or_said_the_wrong_thing(scene_file, tmp_path,
     assert np.allclose(hidden.sample(0).K, [[50, 0, 24], [0, 50, 18], [0, 0, 1]])
 
 
+def test_no_window_says_the_labelled_centres_fall_off_the_recording(scene_file, tmp_path, capsys):
+    """A short labelled file (cmax scene --duration 0.25 --depth-rate 4: depth at 0 and 250 ms only) was refused
+    with "each needs 166.5 ms of events ... with at least 100 of them (0 window(s) had fewer)": the file holds
+    250 ms of events; the real reason is that labelled windows are centred on gt/depth_t and those centres lie at
+    the ends of the recording. Now that reason, with the centres and the events' span, and the longest
+    data.window_us that fits one when there is one."""
+    from conftest import one_line_error
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+    from learned.data import H5WindowDataset
+
+    scene = make_scene("slider", seed=51, width=48, height=36, duration_s=1.0, texture_size=64)
+    short = simulate_scene(scene, 0.25, EventSimulator(**{**scene.recommended_simulator, "seed": 51}),
+                           depth_rate_hz=4).save(tmp_path / "one.h5")
+    run = ["--mode", "teacher", "--no-progress", "train.steps=1"]
+    status, err = one_line_error(lambda: main([*run, *tiny(short, tmp_path / "a", "data.window_us=166500")]), capsys)
+    assert status == 2 and "had fewer" not in err, err
+    assert ("data.files hold no window: labelled windows are centred on their file's gt/depth_t, and each of the 2 "
+            "window(s) of 166.5 ms (data.window_us) reaches beyond its recording by more than 16.65 ms, a tenth of a "
+            "window (one.h5: centres at 0, 250 ms, events from ") in err, err
+    assert err.strip().endswith("no window length fits a centre at an end of its recording: give labelled "
+                                "recordings with depth times inside their events (cmax scene: a higher --depth-rate "
+                                "or a longer --duration)"), err
+    # a window longer than the recording (0.6 s, depth every 50 ms): the longest one that fits is named, and fits
+    status, err = one_line_error(lambda: main([*run, *tiny(scene_file, tmp_path / "b", "data.window_us=1000000")]),
+                                 capsys)
+    assert status == 2 and "each of the 13 window(s) of 1000 ms (data.window_us) reaches beyond" in err, err
+    longest = int(err.split("data.window_us=")[1].split(" or shorter fits at least one of them")[0])
+    assert 0 < longest < 1_000_000
+    assert len(H5WindowDataset([scene_file], window_us=longest).off_recording) < 13
+    assert len(H5WindowDataset([scene_file], window_us=longest + 1000).off_recording) == 13
+
+
 def test_the_mode_comes_from_the_command_or_the_config_and_they_must_agree(scene_file, tmp_path, capsys):
     """--mode finetune with a config that says mode = "teacher" trained a finetune without a word; --mode was
     required even though every shipped config states its mode. Now: the config's mode when --mode is absent,
