@@ -119,7 +119,8 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     ``payload`` needs the keys ``model``, ``optimizer``, ``step``, ``config``, ``rng``; its
     ``config`` is stored through :func:`plain_data` and ``format`` is set to :data:`FORMAT`. Weights that hold
     a NaN or an infinity (:func:`nonfinite_tensors`) raise ValueError and write nothing: a diverged run never
-    replaces a good checkpoint.
+    replaces a good checkpoint. A write error (a full disk, a file-size limit) is an :class:`OSError` naming
+    ``path`` (the temporary file removed), also where ``torch.save`` hid it behind a RuntimeError of its zip writer.
     """
     missing = _KEYS - set(payload)
     if missing:
@@ -135,7 +136,12 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
 
     def fill(output: AtomicOutput) -> None:
         with os.fdopen(os.dup(output.fd), "wb") as file:
-            torch.save(payload, file)
+            try:
+                torch.save(payload, file)
+            except RuntimeError as error:   # torch's zip writer failing to end after a failed write (a full disk,
+                if isinstance(error.__context__, OSError):   # a file-size limit): that write's error, which
+                    raise error.__context__ from None         # write_with reports naming the path
+                raise
 
     return write_with(path, fill)
 

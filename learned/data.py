@@ -30,7 +30,7 @@ from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
 
 __all__ = ["Sample", "flip_horizontal", "flip_polarity", "reverse_time", "augment", "to_item", "collate",
-           "H5WindowDataset", "MVSECDataset", "FileSpec"]
+           "H5WindowDataset", "MVSECDataset", "FileSpec", "reaches_beyond", "longest_centred_window_us"]
 
 
 @dataclass(frozen=True, eq=False)
@@ -196,6 +196,35 @@ def _as_spec(entry: object) -> FileSpec:
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
+def reaches_beyond(t0_us: int, window_us: int, t_start_us: int, t_end_us: int) -> bool:
+    """Whether the window ``[t0_us, t0_us + window_us)`` reaches further beyond the events ``[t_start_us,
+    t_end_us]`` of its recording than a tenth of its length (the slack :class:`H5WindowDataset` allows): such a
+    window is left out.
+
+    >>> reaches_beyond(-10_000, 100_000, 0, 200_000), reaches_beyond(-20_000, 100_000, 0, 200_000)
+    (False, True)
+    """
+    slack = window_us // 10
+    return t0_us < t_start_us - slack or t0_us + window_us > t_end_us + 1 + slack
+
+
+def longest_centred_window_us(centre_us: int, t_start_us: int, t_end_us: int) -> int:
+    """The longest window [µs] centred on ``centre_us`` (as a labelled window is, on its ``gt/depth_t``) that does
+    not :func:`reach beyond <reaches_beyond>` the events ``[t_start_us, t_end_us]``; 0 when none does (a centre at
+    or outside an end of the recording).
+
+    >>> longest_centred_window_us(50_000, 0, 1_000_000), longest_centred_window_us(0, 1_970, 249_995)
+    (125001, 0)
+    """
+    room = min(centre_us - t_start_us, t_end_us + 1 - centre_us)
+    if room <= 0:
+        return 0
+    window = int(2.5 * room) + 4   # half a window less its tenth: 0.4 w <= room, give or take the rounding
+    while window > 0 and reaches_beyond(centre_us - window // 2, window, t_start_us, t_end_us):
+        window -= 1
+    return window
+
+
 def _training_file(path: Path) -> H5Reader:
     """``H5Reader(path)``; a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``, ``.npy``, ...)
     is refused with the one-line conversion that makes it one."""
@@ -223,6 +252,11 @@ class H5WindowDataset(torch.utils.data.Dataset):
     seed : int
     min_events : int
         Windows with fewer events are left out of the index (reported by ``skipped``).
+
+    Labelled windows (files with ``gt/``) are centred on the file's ``gt/depth_t``; a window that
+    :func:`reaches beyond <reaches_beyond>` its recording is left out too, and reported by ``off_recording``
+    (``(file index, centre µs)`` each) with the recordings' event spans in ``spans`` (``(t_start, t_end)`` µs per
+    file): the reasons ``learned.train`` gives for a data set without a window.
     """
 
     def __init__(self, files: Sequence[object], *, window_us: int = 166_500, max_events: int = 20_000,
@@ -237,7 +271,9 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self.index: list[tuple[int, int]] = []
         self._gt: list[dict | None] = []
         self._known_motion: list[tuple[np.ndarray, np.ndarray] | None] = []
-        self.skipped = 0
+        self.skipped, self.min_events = 0, int(min_events)
+        self.off_recording: list[tuple[int, int]] = []
+        self.spans: list[tuple[int, int]] = []
         self._readers: dict[int, H5Reader] = {}
         size = None
         for i, spec in enumerate(self.specs):
@@ -254,6 +290,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 if spec.K is None and gt is None and "gt/K" in reader.file:   # calibration, not ground truth
                     spec = self.specs[i] = replace(spec, K=reader.file["gt/K"][:])
                 self._gt.append(gt)
+                self.spans.append((int(reader.t_start), int(reader.t_end)))
                 self._known_motion.append(self._load_known_motion(reader.file, spec))
                 if gt is not None:
                     starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]
@@ -263,9 +300,9 @@ class H5WindowDataset(torch.utils.data.Dataset):
                                      f"\"K\": [fx, fy, cx, cy]}}]'")
                 else:
                     starts = list(range(reader.t_start, reader.t_end - self.window_us + 1, self.window_us))
-                slack = self.window_us // 10   # windows may reach 10% beyond the recorded events
-                for t0 in starts:
-                    if t0 < reader.t_start - slack or t0 + self.window_us > reader.t_end + 1 + slack:
+                for t0 in starts:   # windows may reach 10% beyond the recorded events
+                    if reaches_beyond(t0, self.window_us, reader.t_start, reader.t_end):   # labelled ones only
+                        self.off_recording.append((i, t0 + self.window_us // 2))
                         continue
                     if len(reader.window(t0, t0 + self.window_us)) < min_events:
                         self.skipped += 1

@@ -12,7 +12,8 @@ Data order: the global batch of step ``s`` is a fixed function of ``(seed, s)``
 ``torchrun`` job rank ``r`` of ``R`` takes entries ``r, r + R, ...`` of each
 global batch (the role of a ``DistributedSampler``), gradients are averaged by
 ``DistributedDataParallel`` (gloo on the CPU; with ``train.device=cuda`` nccl, each rank on the GPU of its
-``LOCAL_RANK``), and only rank 0 writes.
+``LOCAL_RANK``), and only rank 0 writes (a ``RANK`` that no ``torchrun`` job set is refused:
+:func:`distributed_rank`).
 Checkpoints (``out/last.pt``) hold the model, optimiser, step, config and RNG
 states and are written atomically; ``--resume`` continues bit-for-bit on CPU, and refuses a config that
 differs from the checkpoint's in a field that changes the steps still to run (:func:`config_differences`,
@@ -27,6 +28,8 @@ import hashlib
 import json
 import os
 import sys
+import threading
+import warnings
 from pathlib import Path
 from typing import Iterator
 
@@ -68,8 +71,9 @@ FOLDER_LOCK = ".train.lock"
 THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
-           "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RESUMABLE",
-           "config_differences", "resolved_paths", "Trainer", "check_output", "main"]
+           "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
+           "clear_earlier_run", "RESUMABLE",
+           "config_differences", "resolved_paths", "distributed_rank", "Trainer", "check_output", "main"]
 
 def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
     """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
@@ -128,6 +132,28 @@ def clear_tensorboard(folder: Path) -> list[Path]:
     return removed
 
 
+#: The files a run writes in its ``train.out`` besides TensorBoard's ``tb/``: what ``--overwrite`` removes of an
+#: earlier run (:func:`clear_earlier_run`).
+RUN_FILES = ("last.pt", "config.json", "log.jsonl")
+
+
+def clear_earlier_run(out: Path) -> list[Path]:
+    """Remove an earlier run's outputs from ``out`` (``--overwrite``): :data:`RUN_FILES` (a link at one of those
+    names is removed itself, never followed; a folder is left) and TensorBoard's event files
+    (:func:`clear_tensorboard`). Returns the paths removed.
+
+    The command calls it under the folder's lock once the new run's config and data are checked, before the first
+    step: a new run that fails before its first checkpoint then leaves no checkpoint of another run beside its own
+    ``config.json`` and ``log.jsonl``."""
+    removed = []
+    for name in RUN_FILES:
+        path = out / name
+        if path.is_symlink() or path.is_file():
+            path.unlink()
+            removed.append(path)
+    return removed + clear_tensorboard(out / "tb")
+
+
 #: The config fields a ``--resume`` may change: how far the run goes, where it runs and writes, and how often it
 #: logs, validates and saves. Any other field (the mode, the model, the data, the seed, the batch, the
 #: optimisation) changes the steps still to run, so a resumed run that sets it otherwise is refused.
@@ -175,7 +201,8 @@ def config_differences(recorded: Config, now: Config, recorded_paths: dict | Non
 
 class TrainingDiverged(ValueError):
     """A step's loss or weights went non-finite: the run stops and saves nothing (``last.pt`` stays the last
-    good checkpoint). A ValueError, so the command prints it as one line and exits with status 2."""
+    good checkpoint of this run, if it wrote one; the message says which ``last.pt``, if any, is there). A
+    ValueError, so the command prints it as one line and exits with status 2."""
 
 
 def nonfinite_terms(terms: dict[str, float]) -> list[str]:
@@ -293,6 +320,29 @@ def with_teacher_model(config: Config) -> Config:
     return dataclasses.replace(config, model=teacher)
 
 
+def distributed_rank() -> tuple[int, int]:
+    """``(rank, world)`` of this process from the environment ``torchrun`` sets (``RANK``, ``WORLD_SIZE``);
+    ``(0, 1)`` outside a ``torchrun`` job.
+
+    A rank other than 0 writes nothing, so a ``RANK`` that no ``torchrun`` job set (a scheduler's or an MPI
+    wrapper's, left in the environment) would make a run train and save nothing: a ``RANK`` outside
+    ``[0, WORLD_SIZE)`` -- ``RANK=1`` without ``WORLD_SIZE``, or with ``WORLD_SIZE=1`` -- and values that are not
+    whole numbers are refused (ValueError, one line naming the variables).
+    """
+    text = {name: os.environ.get(name) for name in ("RANK", "WORLD_SIZE")}
+    try:
+        rank, world = int(text["RANK"] or 0), int(text["WORLD_SIZE"] or 1)
+    except ValueError:
+        rank = world = -1
+    if world < 1 or not 0 <= rank < world:
+        shown = ", ".join(f"{name}={value}" if value is not None else f"{name} not set"
+                          for name, value in text.items())
+        raise ValueError(f"the environment says {shown}: not a rank of a torchrun job (torchrun sets WORLD_SIZE > 1 "
+                         "and 0 <= RANK < WORLD_SIZE), and a rank other than 0 would train and write nothing; unset "
+                         "RANK (and WORLD_SIZE) to train in one process, or start the job with torchrun")
+    return rank, world
+
+
 def _sha256(path: Path) -> str:
     """SHA-256 (hex) of the file at ``path``, read in 1 MiB blocks."""
     digest = hashlib.sha256()
@@ -303,9 +353,55 @@ def _sha256(path: Path) -> str:
 
 
 def _no_window(dataset: H5WindowDataset) -> str:
-    """Why ``dataset`` holds no window, and what to change (the end of an error message)."""
-    return (f"each needs {dataset.window_us * 1e-3:g} ms of events (data.window_us) with at least 100 of them "
-            f"({dataset.skipped} window(s) had fewer); give longer recordings or a shorter data.window_us")
+    """Why ``dataset`` holds no window, and what to change (the end of an error message): the windows with too few
+    events, and the labelled windows (centred on ``gt/depth_t``) that reach beyond their recording, with their
+    centres, the recordings' spans and, when those are the only reason, the longest ``data.window_us`` that fits
+    one of them."""
+    from learned.data import longest_centred_window_us
+
+    ms = lambda us: f"{us * 1e-3:g}"  # noqa: E731
+    off = dataset.off_recording
+    files: dict[int, list[int]] = {}
+    for index, centre in off:
+        files.setdefault(index, []).append(centre)
+    shown = []
+    for index, centres in list(files.items())[:3]:
+        start, end = dataset.spans[index]
+        listed = ", ".join(ms(c) for c in centres[:4]) + (", ..." if len(centres) > 4 else "")
+        shown.append(f"{dataset.specs[index].path.name}: centres at {listed} ms, events from {ms(start)} to "
+                     f"{ms(end)} ms")
+    where = "; ".join(shown) + ("; ..." if len(files) > 3 else "")
+    if off and not dataset.skipped:   # the centres alone: every window reaches beyond its recording
+        longest = max(longest_centred_window_us(centre, *dataset.spans[index]) for index, centre in off)
+        fix = (f"data.window_us={longest} or shorter fits at least one of them" if longest > 0 else
+               "no window length fits a centre at an end of its recording: give labelled recordings with depth "
+               "times inside their events (cmax scene: a higher --depth-rate or a longer --duration)")
+        return (f"labelled windows are centred on their file's gt/depth_t, and each of the {len(off)} "
+                f"window(s) of {ms(dataset.window_us)} ms (data.window_us) reaches beyond its recording by more than "
+                f"{ms(dataset.window_us // 10)} ms, a tenth of a window ({where}); {fix}")
+    beyond = (f"; {len(off)} more, labelled windows centred on gt/depth_t, reach beyond their recording ({where})"
+              if off else "")
+    return (f"each needs {ms(dataset.window_us)} ms of events (data.window_us) with at least {dataset.min_events} "
+            f"of them ({dataset.skipped} window(s) had fewer){beyond}; give longer recordings or a shorter "
+            "data.window_us")
+
+
+def _quiet_tensorboard_thread_errors() -> None:
+    """Keep an :class:`OSError` of TensorBoard's writer thread (a full disk, a file-size limit) from printing a
+    traceback: TensorBoard raises the same error at the trainer's next call, which reports it in one line
+    (:meth:`Trainer._tensorboard_failed`). Installed once in :data:`threading.excepthook`; every other thread's
+    exception goes to the hook that was there before."""
+    previous = threading.excepthook
+    if getattr(previous, "learned_quiet_tensorboard", False):
+        return
+
+    def hook(args) -> None:
+        if isinstance(args.exc_value, OSError) and type(args.thread).__module__.startswith("tensorboard."):
+            return
+        previous(args)
+
+    hook.learned_quiet_tensorboard = True
+    threading.excepthook = hook
 
 
 class Trainer:
@@ -314,8 +410,7 @@ class Trainer:
     def __init__(self, config: Config, *, resume: bool = False, progress: bool = True) -> None:
         config = with_teacher_model(config)
         self.config, self.progress = config, progress
-        self.world = int(os.environ.get("WORLD_SIZE", "1"))
-        self.rank = int(os.environ.get("RANK", "0"))
+        self.rank, self.world = distributed_rank()
         self.device = resolve_device(config.train.device, int(os.environ.get("LOCAL_RANK", "0")))
         if self.device.type == "cuda":
             torch.cuda.set_device(self.device)
@@ -444,25 +539,51 @@ class Trainer:
     # -- logging ------------------------------------------------------------------------------
     def _logger(self):
         """TensorBoard's writer on ``out/tb`` when it is installed (scalars always go to ``log.jsonl`` too), else
-        None."""
+        None (also when it cannot start: :meth:`_tensorboard_failed`)."""
         try:
             from torch.utils.tensorboard import SummaryWriter
-            # resumed: TensorBoard drops the events of the steps after the checkpoint (a killed run's)
-            return SummaryWriter(str(self.out / "tb"), purge_step=self.step + 1 if self.resumed else None)
         except ImportError:
             return None
+        _quiet_tensorboard_thread_errors()
+        try:
+            # resumed: TensorBoard drops the events of the steps after the checkpoint (a killed run's)
+            return SummaryWriter(str(self.out / "tb"), purge_step=self.step + 1 if self.resumed else None)
+        except OSError as error:
+            self._tensorboard_failed(error)
+            return None
+
+    def _tensorboard_failed(self, error: OSError) -> None:
+        """TensorBoard could not write (a full disk, a file-size limit: the error of its writer thread, raised at
+        the next call): a warning naming its folder, and TensorBoard off for the rest of the run; the learning
+        curves go on in ``log.jsonl``, whose own write errors stop the run (:meth:`_scalars`)."""
+        self.log = None
+        reason = f"[Errno {error.errno}] {os.strerror(error.errno)}" if error.errno else str(error)
+        warnings.warn(f"TensorBoard could not write in {self.out / 'tb'} ({reason}): it is off for the rest of this "
+                      f"run; the learning curves go on in {self.out / 'log.jsonl'}", RuntimeWarning, stacklevel=2)
 
     def _scalars(self, values: dict[str, float]) -> None:
-        """One line ``{"step", **values}`` in ``out/log.jsonl`` (the learning curves), and TensorBoard."""
+        """One line ``{"step", **values}`` in ``out/log.jsonl`` (the learning curves), and TensorBoard.
+
+        A write error of ``log.jsonl`` (a full disk, a file-size limit) is an :class:`OSError` naming it (its
+        errno kept); TensorBoard's is a warning (:meth:`_tensorboard_failed`)."""
         if self.rank != 0:
             return
         if self.log is not None:
-            for key, value in values.items():
-                self.log.add_scalar(key, value, self.step)
+            try:
+                for key, value in values.items():
+                    self.log.add_scalar(key, value, self.step)
+            except OSError as error:
+                self._tensorboard_failed(error)
         self.out.mkdir(parents=True, exist_ok=True)
+        path = self.out / "log.jsonl"
         flags = os.O_WRONLY | os.O_APPEND | os.O_CREAT | getattr(os, "O_NOFOLLOW", 0)  # never a planted link
-        with os.fdopen(os.open(self.out / "log.jsonl", flags, 0o644), "a") as f:
-            f.write(json.dumps({"step": self.step, **values}) + "\n")
+        try:
+            with os.fdopen(os.open(path, flags, 0o644), "a") as f:
+                f.write(json.dumps({"step": self.step, **values}) + "\n")
+        except OSError as error:
+            reason = os.strerror(error.errno) if error.errno else str(error)
+            raise OSError(error.errno, f"{reason} while appending step {self.step} to the learning curves (a line "
+                                       "cut short there is dropped by --resume)", str(path)) from None
 
     @torch.no_grad()
     def validate(self) -> dict[str, float]:
@@ -563,8 +684,13 @@ class Trainer:
     def _diverged(self, what: str) -> TrainingDiverged:
         """The :class:`TrainingDiverged` of a step where ``what`` went non-finite: what stays in ``train.out``, and
         what may keep the run stable."""
-        kept = ("no checkpoint had been written yet" if self.saved_step is None
-                else f"the last good checkpoint {self.out / 'last.pt'} (step {self.saved_step}) is kept")
+        path = self.out / "last.pt"
+        if self.saved_step is not None:
+            kept = f"the last good checkpoint {path} (step {self.saved_step}) is kept"
+        elif path.exists() or path.is_symlink():   # Trainer used directly over an earlier run's folder
+            kept = f"this run had written no checkpoint yet ({path} is an earlier run's, left as it was)"
+        else:
+            kept = "no checkpoint had been written yet"
         return TrainingDiverged(f"{what}: training stopped and nothing was saved; {kept}; a lower train.lr or "
                                 "gradient clipping (train.clip_grad_norm) may keep the run stable")
 
@@ -631,12 +757,18 @@ class Trainer:
             if tc.val_every and (self.step % tc.val_every == 0 or self.step == tc.steps) and self.rank == 0:
                 self._scalars(self.validate())
             if self.step % tc.image_every == 0:
-                self._images(batch, output)
+                try:
+                    self._images(batch, output)
+                except OSError as error:
+                    self._tensorboard_failed(error)
             if self.step % tc.checkpoint_every == 0 or self.step == tc.steps:
                 self.save()
         bar.close()
         if self.log is not None:
-            self.log.flush()
+            try:
+                self.log.flush()
+            except OSError as error:
+                self._tensorboard_failed(error)
         return losses
 
 
@@ -662,7 +794,9 @@ def main(argv: list[str] | None = None) -> int:
                         help="a .json or .toml config (default: the defaults of learned.config)")
     parser.add_argument("--resume", action="store_true", help="continue from OUT/last.pt when it exists")
     parser.add_argument("--overwrite", action="store_true",
-                        help="start afresh over an earlier run in train.out (its last.pt and log.jsonl replaced)")
+                        help="start afresh over an earlier run in train.out: its last.pt, config.json, log.jsonl "
+                        "and TensorBoard events are removed before the first step (once this run's config and data "
+                        "are checked), so a new run that fails early leaves no checkpoint of the old one")
     parser.add_argument("--no-progress", action="store_true", help="no progress bar")
     parser.add_argument("overrides", nargs="*", help="section.key=value (e.g. train.steps=100)")
     return run_main(parser, _run, argv)
@@ -698,11 +832,12 @@ def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "")
 
 
 def _run(args: argparse.Namespace) -> int:
+    rank, _ = distributed_rank()   # a stray RANK (no torchrun job) is refused first, before anything is read
     config = load_config(args.config, args.overrides, mode=args.mode, require_mode=True)
     out = Path(config.train.out)
     teacher = config.train.teacher if config.mode in ("finetune", "student") else ""
     check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)
-    if int(os.environ.get("RANK", "0")) != 0:   # the other ranks of a torchrun job write nothing
+    if rank != 0:   # the other ranks of a torchrun job write nothing
         return _train(args, config, out)
     with locked_folder(out, FOLDER_LOCK):   # one run at a time, from the look at last.pt to the last write
         check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)
@@ -710,14 +845,13 @@ def _run(args: argparse.Namespace) -> int:
 
 
 def _train(args: argparse.Namespace, config: Config, out: Path) -> int:
-    rank0 = int(os.environ.get("RANK", "0")) == 0
-    if args.overwrite and rank0:   # the new run's learning curves alone
-        (out / "log.jsonl").unlink(missing_ok=True)
-        clear_tensorboard(out / "tb")
+    rank0 = distributed_rank()[0] == 0
     if args.resume and rank0 and not (out / "last.pt").is_file():
         print(f"python -m learned.train: note: --resume, but {out / 'last.pt'} does not exist: starting at step 0",
               file=sys.stderr)
     trainer = Trainer(config, resume=args.resume, progress=not args.no_progress)
+    if args.overwrite and rank0:   # config and data checked: the earlier run goes before the first step
+        clear_earlier_run(out)
     losses = trainer.run()
     if trainer.rank == 0 and losses:
         print(f"{config.mode}: {len(losses)} steps, loss {losses[0]:.4f} -> {losses[-1]:.4f}; "

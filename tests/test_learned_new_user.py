@@ -40,7 +40,8 @@ def test_train_keeps_an_earlier_run_unless_told(slider_file, tmp_path, capsys):
 @pytest.mark.parametrize("extra, message", [
     (["train.val_every=5"], "or turn validation off with train.val_every=0"),
     (["data.files=[]"], "data.files is empty: give the training event files, e.g. 'data.files="),
-    (["data.window_us=2000000"], "data.files hold no window: each needs 2000 ms of events (data.window_us)"),
+    (["data.window_us=2000000"], "data.files hold no window: labelled windows are centred on their file's "
+     "gt/depth_t, and each of the 4 window(s) of 2000 ms (data.window_us) reaches beyond its recording"),
     (["train.out=FILE"], "is a file: give a folder for last.pt"),
     # the index of a bad val_files entry (it was data.files[1], counted over files + val_files)
     (['data.val_files=[{"path": "v.h5", "K": [1, 2]}]'], "data.val_files[0].K must be [fx, fy, cx, cy]"),

@@ -181,6 +181,28 @@ def test_torchrun_two_processes_match_one(scene_file, tmp_path):
             assert ddp[key] == pytest.approx(one[key], rel=1e-4, abs=1e-6), (key, ddp, one)
 
 
+@pytest.mark.parametrize("env", [{"RANK": "1"}, {"RANK": "1", "WORLD_SIZE": "1"}, {"RANK": "2", "WORLD_SIZE": "2"}])
+def test_a_stray_rank_outside_a_torchrun_job_is_refused(scene_file, tmp_path, capsys, monkeypatch, env):
+    """RANK=1 left in the environment by a scheduler, without WORLD_SIZE (or WORLD_SIZE=1): the run took itself for
+    rank 1 of a torchrun job, trained, wrote nothing (no folder) and exited 0. Now refused in one line naming the
+    variables, by the command and by Trainer; nothing is written. (torchrun itself: the test above.)"""
+    from conftest import one_line_error
+
+    monkeypatch.delenv("WORLD_SIZE", raising=False)
+    for name, value in env.items():
+        monkeypatch.setenv(name, value)
+    out = tmp_path / "run"
+    status, err = one_line_error(lambda: main(["--mode", "teacher", "--no-progress",
+                                               *tiny(scene_file, out, "train.steps=2")]), capsys)
+    assert status == 2, err
+    world = f"WORLD_SIZE={env['WORLD_SIZE']}" if "WORLD_SIZE" in env else "WORLD_SIZE not set"
+    assert f"the environment says RANK={env['RANK']}, {world}: not a rank of a torchrun job" in err, err
+    assert "unset RANK" in err and not out.exists()
+    with pytest.raises(ValueError, match="not a rank of a torchrun job"):
+        Trainer(load_config(None, tiny(scene_file, out, "train.steps=2"), mode="teacher"), progress=False)
+    assert not out.exists()
+
+
 def test_links_planted_in_the_output_folder_are_not_followed(scene_file, tmp_path):
     """config.json was written with Path.write_text, which followed a planted link out of the folder."""
     outside = tmp_path / "outside.txt"
@@ -193,6 +215,41 @@ def test_links_planted_in_the_output_folder_are_not_followed(scene_file, tmp_pat
     assert outside.read_text() == "precious\n"
     assert not (out / "config.json").is_symlink() and '"mode": "teacher"' in (out / "config.json").read_text()
     assert load_checkpoint(out / "last.pt")["step"] == 2
+
+
+@pytest.mark.skipif(sys.platform == "win32", reason="RLIMIT_FSIZE is POSIX")
+def test_a_file_size_limit_stops_training_with_one_line_naming_the_file(scene_file, tmp_path):
+    """Under `ulimit -f 1` TensorBoard's writer thread printed a traceback, then the run ended with
+    `error: [Errno 27] File too large`, naming no file (log.jsonl was appended unguarded; torch.save's zip writer
+    turned last.pt's error into a RuntimeError with a traceback). Now TensorBoard's failure is one warning naming
+    its folder (TensorBoard off, the run goes on), and log.jsonl's or last.pt's is one error naming the file."""
+    import resource
+
+    def limited(limit: int, out: Path, *extra: str) -> subprocess.CompletedProcess:
+        return subprocess.run([sys.executable, "-m", "learned.train", "--mode", "teacher", "--no-progress",
+                               *tiny(scene_file, out, *extra)], cwd=ROOT, capture_output=True, text=True,
+                              env={**os.environ, "OMP_NUM_THREADS": "1"}, timeout=120,
+                              preexec_fn=lambda: resource.setrlimit(resource.RLIMIT_FSIZE, (limit, limit)))
+
+    # 2 KiB (config.json, with its long paths, fits): TensorBoard's event file outgrows it at the first images,
+    # log.jsonl some steps later
+    out = tmp_path / "small"
+    done = limited(2048, out, "train.steps=40", "train.checkpoint_every=100", "train.image_every=1")
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    warning, error = done.stderr.strip().splitlines()
+    assert warning == (f"python -m learned.train: warning: TensorBoard could not write in {out / 'tb'} ([Errno 27] "
+                       f"File too large): it is off for the rest of this run; the learning curves go on in "
+                       f"{out / 'log.jsonl'}"), warning
+    assert error.startswith("python -m learned.train: error: File too large while appending step ") and \
+        error.endswith(f"to the learning curves (a line cut short there is dropped by --resume): {out / 'log.jsonl'}")
+    # 2 KiB again, TensorBoard and log.jsonl writing little: the checkpoint outgrows it in its first record (where
+    # torch.save turned the OSError into a RuntimeError); nothing of it is left
+    out = tmp_path / "checkpoint"
+    done = limited(2048, out, "train.steps=2", "train.log_every=100", "train.image_every=100")
+    assert done.returncode == 2 and "Traceback" not in done.stderr, done.stderr
+    assert done.stderr.strip() == ("python -m learned.train: error: File too large while writing; nothing was written "
+                                   f"under this name (the temporary file was removed): {out / 'last.pt'}")
+    assert sorted(path.name for path in out.iterdir()) == ["config.json", "log.jsonl", "tb"]
 
 
 def test_twist_scale_is_one_rms_per_vector_with_a_floor_from_the_bounds():
@@ -497,6 +554,40 @@ def test_overwrite_and_resume_keep_one_run_in_the_learning_curves(scene_file, tm
     assert [step for step, _ in _tensorboard(out / "tb", "loss/total")] == [1, 2, 3, 4, 5, 6]
 
 
+def test_overwrite_removes_the_earlier_run_before_the_first_step(scene_file, tmp_path, capsys):
+    """--overwrite removed log.jsonl and tb/ and wrote the new config.json at once, but left the earlier run's
+    last.pt until the new run's first checkpoint: a new run that diverged before it left the old last.pt beside
+    the new config.json and log.jsonl, and said "no checkpoint had been written yet". Now the earlier run's files
+    go before the first step, and the message about last.pt is true (Trainer used directly over an old folder)."""
+    import json
+
+    from conftest import one_line_error
+    from learned.train import TrainingDiverged
+
+    out = tmp_path / "run"
+    run = ["--mode", "teacher", "--no-progress"]
+    assert main([*run, *tiny(scene_file, out, "train.steps=4")]) == 0
+    old = (out / "last.pt").read_bytes()
+    capsys.readouterr()
+    diverging = ("train.steps=12", "train.lr=1e8", "train.clip_grad_norm=0", "train.checkpoint_every=20")
+    status, err = one_line_error(lambda: main([*run, "--overwrite", *tiny(scene_file, out, *diverging)]), capsys)
+    assert status == 2 and "training stopped and nothing was saved; no checkpoint had been written yet" in err, err
+    assert not (out / "last.pt").exists()                         # the earlier run's checkpoint is gone too
+    assert json.loads((out / "config.json").read_text())["train"]["lr"] == 1e8
+    lines = [json.loads(line) for line in (out / "log.jsonl").read_text().splitlines()]
+    assert lines and all(line["lr"] > 1 for line in lines)        # the new run's curves alone
+    # the Python API over a folder that holds an earlier run's last.pt (no --overwrite to remove it)
+    (out / "last.pt").write_bytes(old)
+    with pytest.raises(TrainingDiverged, match=r"this run had written no checkpoint yet \(.*last\.pt is an "
+                                               r"earlier run's, left as it was\)"):
+        Trainer(load_config(None, tiny(scene_file, out, *diverging), mode="teacher"), progress=False).run()
+    assert (out / "last.pt").read_bytes() == old
+    # a run refused before training (no window) does not touch the earlier run
+    status, err = one_line_error(lambda: main([*run, "--overwrite", *tiny(scene_file, out, "train.steps=2",
+                                                                          "data.window_us=5000000")]), capsys)
+    assert status == 2 and "hold no window" in err and (out / "last.pt").read_bytes() == old
+
+
 def test_settings_that_did_nothing_or_said_the_wrong_thing(scene_file, tmp_path, capsys):
     """data.workers was checked and never used; a run shorter than train.log_every logged nothing (the last step
     only when steps % log_every == 0); train.steps=0 spoke of a last.pt that did not exist; a labelled file's
@@ -533,6 +624,40 @@ def test_settings_that_did_nothing_or_said_the_wrong_thing(scene_file, tmp_path,
         H5WindowDataset([{"path": str(scene_file), "K": other}], window_us=100_000)
     hidden = H5WindowDataset([{"path": str(scene_file), "K": other, "use_gt": False}], window_us=100_000)
     assert np.allclose(hidden.sample(0).K, [[50, 0, 24], [0, 50, 18], [0, 0, 1]])
+
+
+def test_no_window_says_the_labelled_centres_fall_off_the_recording(scene_file, tmp_path, capsys):
+    """A short labelled file (cmax scene --duration 0.25 --depth-rate 4: depth at 0 and 250 ms only) was refused
+    with "each needs 166.5 ms of events ... with at least 100 of them (0 window(s) had fewer)": the file holds
+    250 ms of events; the real reason is that labelled windows are centred on gt/depth_t and those centres lie at
+    the ends of the recording. Now that reason, with the centres and the events' span, and the longest
+    data.window_us that fits one when there is one."""
+    from conftest import one_line_error
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.presets import make_scene
+    from cmax.sim.synthetic import simulate_scene
+    from learned.data import H5WindowDataset
+
+    scene = make_scene("slider", seed=51, width=48, height=36, duration_s=1.0, texture_size=64)
+    short = simulate_scene(scene, 0.25, EventSimulator(**{**scene.recommended_simulator, "seed": 51}),
+                           depth_rate_hz=4).save(tmp_path / "one.h5")
+    run = ["--mode", "teacher", "--no-progress", "train.steps=1"]
+    status, err = one_line_error(lambda: main([*run, *tiny(short, tmp_path / "a", "data.window_us=166500")]), capsys)
+    assert status == 2 and "had fewer" not in err, err
+    assert ("data.files hold no window: labelled windows are centred on their file's gt/depth_t, and each of the 2 "
+            "window(s) of 166.5 ms (data.window_us) reaches beyond its recording by more than 16.65 ms, a tenth of a "
+            "window (one.h5: centres at 0, 250 ms, events from ") in err, err
+    assert err.strip().endswith("no window length fits a centre at an end of its recording: give labelled "
+                                "recordings with depth times inside their events (cmax scene: a higher --depth-rate "
+                                "or a longer --duration)"), err
+    # a window longer than the recording (0.6 s, depth every 50 ms): the longest one that fits is named, and fits
+    status, err = one_line_error(lambda: main([*run, *tiny(scene_file, tmp_path / "b", "data.window_us=1000000")]),
+                                 capsys)
+    assert status == 2 and "each of the 13 window(s) of 1000 ms (data.window_us) reaches beyond" in err, err
+    longest = int(err.split("data.window_us=")[1].split(" or shorter fits at least one of them")[0])
+    assert 0 < longest < 1_000_000
+    assert len(H5WindowDataset([scene_file], window_us=longest).off_recording) < 13
+    assert len(H5WindowDataset([scene_file], window_us=longest + 1000).off_recording) == 13
 
 
 def test_the_mode_comes_from_the_command_or_the_config_and_they_must_agree(scene_file, tmp_path, capsys):
