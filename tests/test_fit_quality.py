@@ -472,3 +472,30 @@ def test_a_free_motion_that_keeps_just_under_half_the_depth_off_a_bound_is_not_o
     assert not off.quality.on_bound
     with pytest.raises(ValueError, match="max_bound_share must lie in"):
         QualitySettings(max_bound_share=0)
+
+
+def test_the_planar_dual_moves_a_plane_as_the_fit_does():
+    """Closed form (Longuet-Higgins 1984): a plane rho = q . ray under (v, omega) moves its points as the plane
+    q' = |q| v / s under v' = s q / |q| (s = |v|) with another rotation. Pixels of a 240x180 camera, a wall 2 m
+    ahead tilted 20 deg, the audit's diagonal motion: the dual's direction is the wall's normal, and its flow
+    (the exact warp over 1 ms) equals the fit's to 1% of the flow's size."""
+    import torch
+
+    from cmax.fitting.quality import _planar_dual, _unit_flows
+
+    K = torch.tensor([[200.0, 0, 119.5], [0, 200.0, 89.5], [0, 0, 1]], dtype=torch.float64)
+    u, w = np.meshgrid(np.linspace(0, 239, 24), np.linspace(0, 179, 18))
+    rays = torch.as_tensor(np.stack([(u.ravel() - 119.5) / 200, (w.ravel() - 89.5) / 200, np.ones(u.size)], 1))
+    normal = np.array([np.sin(np.radians(20)), 0.0, np.cos(np.radians(20))])
+    q = normal / 2.0                                              # n . X = 2 m
+    rho = rays.numpy() @ q
+    v, omega = np.array([0.3, -0.3, 0.4]), np.array([0.1, 0.2, -0.3])
+    translation, rotation = _unit_flows(rays, K, torch.as_tensor(rho), v, 1e-3)
+    v_dual, omega_dual = _planar_dual(rays, K, torch.as_tensor(rho), v, omega, translation, rotation, 1e-3)
+    np.testing.assert_allclose(v_dual, np.linalg.norm(v) * normal, atol=1e-9)
+    rho_dual = rays.numpy() @ (np.linalg.norm(q) * v / np.linalg.norm(v))
+    moved, _ = _unit_flows(rays, K, torch.as_tensor(rho_dual), v_dual, 1e-3)
+    fitted = translation + rotation @ omega
+    dual = moved + rotation @ omega_dual
+    assert np.abs(dual - fitted).max() < 0.01 * np.abs(fitted).max()
+    assert np.degrees(np.arccos(v_dual @ v / np.linalg.norm(v) ** 2)) > 30     # another motion, not the fit

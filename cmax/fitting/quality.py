@@ -221,7 +221,7 @@ def alternative_motions(objective: LocalMotionObjective, v: np.ndarray, omega: n
     ``mirrored`` ``(-v, omega)``; unless ``hold_omega``, ``rotation_flipped`` ``(v, -omega)`` and
     ``bas_relief`` ``(-v, omega + d)`` with ``d`` the rotation whose flow best matches (least squares
     over the patches' events) twice the translation's flow, so that ``-v`` with it moves the events as
-    the fit does."""
+    the fit does; and ``planar_dual`` (:func:`_planar_dual`), the other motion of the patches' best plane."""
     v, omega = np.asarray(v, float), np.asarray(omega, float)
     out = [("mirrored", -v, omega.copy())]
     if hold_omega:
@@ -235,7 +235,36 @@ def alternative_motions(objective: LocalMotionObjective, v: np.ndarray, omega: n
     translation, rotation = _unit_flows(rays, objective.K, rho_events, v, dt)
     d, *_ = np.linalg.lstsq(rotation, 2.0 * translation, rcond=None)
     out.append(("bas_relief", -v, omega + d))
+    dual = _planar_dual(rays, objective.K, rho_events, v, omega, translation, rotation, dt)
+    if dual is not None:
+        out.append(("planar_dual", *dual))
     return out
+
+
+def _planar_dual(rays: torch.Tensor, K: torch.Tensor, rho: torch.Tensor, v: np.ndarray, omega: np.ndarray,
+                 translation: np.ndarray, rotation: np.ndarray, dt: float) -> tuple[np.ndarray, np.ndarray] | None:
+    """The other motion of a planar scene: a plane ``rho = q . ray`` (the least-squares plane of the events'
+    inverse depths ``rho`` (M,) [1/m] on their ``rays`` (M, 3), ``K^-1 (x, y, 1)``) seen under ``(v, omega)``
+    moves its points as the plane ``q' = sigma |q| v / s`` seen under ``v' = sigma s q / |q|`` (``s = |v|``,
+    ``sigma`` the sign that keeps most of ``q'`` in front), with a rotation that makes up the rest: the two
+    solutions of the planar motion field (Longuet-Higgins, Proc. R. Soc. B 1984; Subbarao and Waxman, CVGIP
+    1986): the image motion of a plane depends on ``v`` and its normal only through ``v q^T``, whose symmetric
+    part is the same for both. The rotation is fitted (least squares over the events) so that ``(v', omega')``
+    at ``q'`` moves the events as the fit does, by the exact warp's flows: ``translation`` (2M,) of ``v`` at
+    ``rho`` and the unit rotations' ``rotation`` (2M, 3), over ``dt`` [s]. A fronto-parallel wall under a sideways
+    slide has the forward motion as its dual: the fit can settle there, turning the slide into rotation. None when
+    the plane or the speed is degenerate."""
+    A, r = rays.double().numpy(), rho.double().numpy()
+    q, *_ = np.linalg.lstsq(A, r, rcond=None)
+    s, size = float(np.linalg.norm(v)), float(np.linalg.norm(q))
+    if not (s > 0 and size > 0 and np.isfinite(size)):
+        return None
+    sigma = 1.0 if float(np.median(A @ v)) >= 0 else -1.0
+    v_dual = sigma * s * q / size
+    rho_dual = np.maximum(sigma * size / s * (A @ v), 1e-6 * float(np.median(np.abs(r))))   # in front
+    moved, _ = _unit_flows(rays, K, torch.as_tensor(rho_dual, dtype=rays.dtype), v_dual, dt)
+    d, *_ = np.linalg.lstsq(rotation, translation - moved, rcond=None)
+    return v_dual, np.asarray(omega, float) + d
 
 
 def _patch_contrast(objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray,
