@@ -63,3 +63,16 @@ def slider_file(tmp_path_factory) -> Path:
     sequence = simulate_scene(scene, 0.3, EventSimulator(**{**scene.recommended_simulator, "seed": 1}),
                               depth_rate_hz=10)
     return sequence.save(tmp_path_factory.mktemp("new_user") / "slider.h5")
+
+
+@pytest.fixture(scope="module")
+def tiny_checkpoint(tmp_path_factory) -> Path:
+    """A checkpoint of a tiny network (width 2, one level, windows of 50 ms)."""
+    from learned.checkpoint import rng_state, save_checkpoint
+    from learned.config import Config, DataConfig
+    from learned.model import DepthPoseNet, ModelConfig
+
+    config = Config(model=ModelConfig(width=2, levels=1), data=DataConfig(window_us=50_000))
+    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt",
+                           {"model": DepthPoseNet(config.model).state_dict(), "optimizer": {}, "step": 0,
+                            "config": config.to_dict(), "rng": rng_state()})

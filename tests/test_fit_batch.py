@@ -294,14 +294,7 @@ def test_ctrl_c_leaves_no_orphan_process(tmp_path):
     process = subprocess.Popen([sys.executable, str(script)], stdout=subprocess.PIPE, stderr=subprocess.PIPE,
                                text=True, start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
     try:
-        assert process.stdout.readline().strip() == "fitting"
-        seen: set[int] = set()
-        deadline = time.monotonic() + 120
-        while len(seen) < 3 and time.monotonic() < deadline:      # the forkserver and two workers
-            seen |= _descendants(process.pid)
-            time.sleep(0.2)
-        assert len(seen) >= 3, seen
-        time.sleep(1.0)
+        seen = _started_workers(process)
         os.killpg(process.pid, signal.SIGINT)
         try:
             _, stderr = process.communicate(timeout=60)
@@ -341,13 +334,7 @@ def test_sigkill_of_the_caller_leaves_no_worker_running(tmp_path):
                                text=True, start_new_session=True, env={**os.environ, "PYTHONPATH": str(ROOT)})
     seen: set[int] = set()
     try:
-        assert process.stdout.readline().strip() == "fitting"
-        deadline = time.monotonic() + 120
-        while len(seen) < 3 and time.monotonic() < deadline:      # the forkserver and two workers
-            seen |= _descendants(process.pid)
-            time.sleep(0.2)
-        assert len(seen) >= 3, seen
-        time.sleep(1.0)
+        seen = _started_workers(process)
         process.kill()                                             # the caller alone, not its group
         process.wait()
         deadline = time.monotonic() + 15
@@ -360,6 +347,20 @@ def test_sigkill_of_the_caller_leaves_no_worker_running(tmp_path):
                 os.kill(pid, signal.SIGKILL)
             except ProcessLookupError:
                 pass
+
+
+def _started_workers(process: subprocess.Popen) -> set[int]:
+    """The processes that ``process`` (a script printing ``fitting`` before ``fit_windows(jobs=2)``) started, once
+    the forkserver and two workers run and have fitted for a second."""
+    assert process.stdout.readline().strip() == "fitting"
+    seen: set[int] = set()
+    deadline = time.monotonic() + 120
+    while len(seen) < 3 and time.monotonic() < deadline:      # the forkserver and two workers
+        seen |= _descendants(process.pid)
+        time.sleep(0.2)
+    assert len(seen) >= 3, seen
+    time.sleep(1.0)
+    return seen
 
 
 def _alive(pid: int) -> bool:

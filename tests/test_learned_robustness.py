@@ -23,19 +23,6 @@ def _files(folder: Path) -> dict[str, bytes]:
     return {str(p.relative_to(folder)): p.read_bytes() for p in sorted(folder.rglob("*")) if p.is_file()}
 
 
-@pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory) -> Path:
-    """A checkpoint of a tiny network (width 2, one level, windows of 50 ms)."""
-    from learned.checkpoint import rng_state, save_checkpoint
-    from learned.config import Config, DataConfig
-    from learned.model import DepthPoseNet, ModelConfig
-
-    config = Config(model=ModelConfig(width=2, levels=1), data=DataConfig(window_us=50_000))
-    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt",
-                           {"model": DepthPoseNet(config.model).state_dict(), "optimizer": {}, "step": 0,
-                            "config": config.to_dict(), "rng": rng_state()})
-
-
 def _crafted(source: Path, target: Path, **model: int) -> Path:
     """``source`` with keys of its config's ``model`` changed (its weights kept), as a crafted file would be."""
     import torch

@@ -18,19 +18,6 @@ USER_FILES = {"notes.txt": b"notes", "depth_groundtruth.png": b"a user's picture
               "window_seat_photo.png": b"a photo", "depth_0001.npz": b"four digits", "depth.npz.bak": b"backup"}
 
 
-@pytest.fixture(scope="module")
-def tiny_checkpoint(tmp_path_factory) -> Path:
-    """A checkpoint of a tiny network (width 2, one level, windows of 50 ms)."""
-    from learned.checkpoint import rng_state, save_checkpoint
-    from learned.config import Config, DataConfig
-    from learned.model import DepthPoseNet, ModelConfig
-
-    config = Config(model=ModelConfig(width=2, levels=1), data=DataConfig(window_us=50_000))
-    return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt",
-                           {"model": DepthPoseNet(config.model).state_dict(), "optimizer": {}, "step": 0,
-                            "config": config.to_dict(), "rng": rng_state()})
-
-
 def _fit(slider_file: Path, out: Path, *extra: str) -> list[str]:
     return ["fit", str(slider_file), "-o", str(out), "--quiet", "--window-ms", "100", "--min-events", "200",
             "--depth-grid", "6,8", *extra]

@@ -320,13 +320,9 @@ def grouped_warnings(caught: list) -> list[dict]:
 
 def _ranges(numbers: list[int]) -> str:
     """Ascending distinct whole numbers in a few words: ``[0, 1, 2, 5]`` -> ``'0-2, 5'``."""
-    runs: list[list[int]] = []
-    for n in numbers:
-        if runs and n == runs[-1][-1] + 1:
-            runs[-1].append(n)
-        else:
-            runs.append([n])
-    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in runs)
+    from cmax.fitting.sequence import _runs
+
+    return ", ".join(str(r[0]) if len(r) == 1 else f"{r[0]}-{r[-1]}" for r in _runs(numbers))
 
 
 def window_line(index: int, result, first_us: int) -> str:
