@@ -89,14 +89,18 @@ nonnegative_int = int_at_least(0)
 
 
 def sensor_size(text: str) -> tuple[int, int]:
-    """``WIDTHxHEIGHT`` (or ``WIDTH,HEIGHT``) in pixels, each in [1, 65535]."""
+    """``WIDTHxHEIGHT`` (or ``WIDTH,HEIGHT``) in pixels, each in [1, 65535], at most
+    :data:`cmax.events.MAX_SENSOR_PIXELS` in all (the rules of :class:`cmax.Events`)."""
+    from cmax.events import _check_sensor_size
+
     try:
         width, height = (int(part) for part in text.lower().replace(",", "x").split("x"))
     except ValueError:
         raise argparse.ArgumentTypeError(f"expected WIDTHxHEIGHT such as 346x260, got {text!r}") from None
-    if not (0 < width <= 65535 and 0 < height <= 65535):
-        raise argparse.ArgumentTypeError(f"width and height must be in [1, 65535] pixels, got {text!r}")
-    return width, height
+    try:
+        return _check_sensor_size(width, height)
+    except ValueError as error:
+        raise argparse.ArgumentTypeError(f"{error} (got {text!r})") from None
 
 
 def grid_shape(text: str) -> tuple[int, int]:

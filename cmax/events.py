@@ -49,6 +49,10 @@ def structured_fields(names: Sequence[str]) -> dict[str, str | None]:
     return {name: name if name in names else FIELD_ALIASES.get(name) for name in "xytp"}
 
 _MAX_SENSOR_SIZE = 65535
+#: Most pixels a sensor may have (8192 x 8192): the largest event cameras hold about a million. A size read from a
+#: file drives per-pixel arrays (counts, images, hot-pixel maps), so a corrupt or crafted header declaring
+#: 65535 x 65535 would ask for tens of GB: refused with the other size checks.
+MAX_SENSOR_PIXELS = 1 << 26
 
 #: Most events one in-memory :class:`Events` may hold (2**28, about 3.5 GB of columns).
 #: Larger requests (a whole long recording, a huge window) raise :class:`EventLimitError`
@@ -143,6 +147,10 @@ def _check_sensor_size(width: object, height: object) -> tuple[int, int]:
             raise TypeError(f"{name} must be an integer number of pixels, got {value!r}")
         if not 0 < int(value) <= _MAX_SENSOR_SIZE:
             raise ValueError(f"{name} must be in [1, {_MAX_SENSOR_SIZE}] pixels, got {value}")
+    if int(width) * int(height) > MAX_SENSOR_PIXELS:
+        raise ValueError(f"a {int(width)}x{int(height)} sensor ({int(width) * int(height):,} pixels) is larger than "
+                         f"any event camera (cmax.events.MAX_SENSOR_PIXELS = {MAX_SENSOR_PIXELS:,}): a corrupt or "
+                         "crafted size?")
     return int(width), int(height)
 
 

@@ -452,12 +452,11 @@ def test_whole_file_read_beyond_the_limit_is_refused(tmp_path, monkeypatch):
 
 @pytest.mark.parametrize("call, match", [
     pytest.param(lambda: voxel_grid(_events(), bins=10**9), r"bins=1000000000 on a 64x48 sensor", id="voxel-1e9-bins"),
-    pytest.param(lambda: voxel_grid(Events.empty(65535, 65535), bins=5), r"bins=5 on a 65535x65535",
+    pytest.param(lambda: voxel_grid(Events.empty(8192, 8192), bins=20), r"bins=20 on a 8192x8192",
                  id="voxel-huge-sensor"),
-    pytest.param(lambda: event_frame(Events.empty(65535, 65535)), r"event frame of a 65535x65535",
-                 id="frame-huge-sensor"),
-    pytest.param(lambda: time_surface(Events.empty(65535, 40000)), r"time surface of a 65535x40000",
-                 id="time-surface-huge-sensor"),
+    pytest.param(lambda: Events.empty(65535, 65535), r"a 65535x65535 sensor \(4,294,836,225 pixels\) is larger "
+                 r"than any event camera", id="events-huge-sensor"),
+    pytest.param(lambda: Events.empty(65535, 40000), r"larger than any event camera", id="events-huge-sensor-2"),
     pytest.param(lambda: voxel_grid_batch([_events().to_torch()] * 4, bins=10**8), r"4 samples of bins=100000000",
                  id="voxel-batch-huge"),
 ])
@@ -661,7 +660,8 @@ CLI_CASES = [
     ("unknown-option", ["info", "{file}", "--frobnicate"], r"unrecognized arguments: --frobnicate"),
     ("info-missing-file", ["info", "{dir}/nope.h5"], r"cmax info: error: no such event file"),
     ("info-size-malformed", ["info", "{file}", "--size", "12"], r"argument --size: expected WIDTHxHEIGHT"),
-    ("info-size-zero", ["info", "{file}", "--size", "0x0"], r"argument --size: width and height must be in"),
+    ("info-size-zero", ["info", "{file}", "--size", "0x0"], r"argument --size: width must be in \[1, 65535\]"),
+    ("info-size-huge", ["info", "{file}", "--size", "60000x60000"], r"argument --size: a 60000x60000 sensor .* is larger than any event camera"),
     ("show-dt-nan", ["show", "{file}", "--dt", "nan"], r"cmax show: error: dt must be a finite number"),
     ("show-dt-inf", ["show", "{file}", "--dt", "inf"], r"cmax show: error: dt must be a finite number"),
     ("show-dt-negative", ["show", "{file}", "--dt", "-1"], r"dt must be positive"),
@@ -736,3 +736,20 @@ def test_console_script_exit_status(cli_file):
     )
     assert done.returncode == 2
     assert done.stderr.strip().splitlines()[-1].startswith("cmax show: error: dt must be a finite")
+
+
+def test_a_file_declaring_a_huge_sensor_is_refused_before_any_per_pixel_array(tmp_path):
+    """A 70 kB h5 file declaring 16000 x 16000 pixels made ``cmax info`` build a 256-million-pixel count map per
+    chunk (4 GB, 22 s for 5,000 events); 65535 x 65535 asked for tens of GB. Refused when the size is read."""
+    import h5py
+
+    from cmax.io import H5Reader, read
+
+    with h5py.File(tmp_path / "big.h5", "w") as file:
+        file.attrs["width"] = file.attrs["height"] = 16000
+        for name, values in (("x", [1, 2]), ("y", [1, 2]), ("p", [0, 1]), ("t", [0, 10])):
+            file[f"events/{name}"] = np.asarray(values, "u2" if name in "xy" else "u1" if name == "p" else "i8")
+        file["ms_to_idx"] = np.zeros(2, "u8")
+        file["t_offset"] = np.int64(0)
+    for call in (lambda: read(tmp_path / "big.h5"), lambda: H5Reader(tmp_path / "big.h5")):
+        _refused_within(50_000_000, call, ValueError, r"16000x16000 sensor \(256,000,000 pixels\) is larger than any")
