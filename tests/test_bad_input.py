@@ -753,3 +753,34 @@ def test_a_file_declaring_a_huge_sensor_is_refused_before_any_per_pixel_array(tm
         file["t_offset"] = np.int64(0)
     for call in (lambda: read(tmp_path / "big.h5"), lambda: H5Reader(tmp_path / "big.h5")):
         _refused_within(50_000_000, call, ValueError, r"16000x16000 sensor \(256,000,000 pixels\) is larger than any")
+
+
+@pytest.mark.parametrize("width, accepted", [(80.5, False), ("80.5", False), ([80, 2], False), (80.0, True),
+                                             ("80", True), ([80], True)])
+def test_an_h5_width_attribute_is_a_whole_number_or_refused(tmp_path, width, accepted):
+    """A ``width`` of 80.5 was read as 80 without a word (``int()``); whole numbers in any form a writer stores
+    them (80.0, "80", [80]) are read, anything else refused naming the file and the attribute."""
+    import h5py
+
+    from cmax.io import FormatError, read
+
+    with h5py.File(tmp_path / "w.h5", "w") as file:
+        file.attrs["width"], file.attrs["height"] = width, 60
+        for name, values in (("x", [1, 2]), ("y", [1, 2]), ("p", [0, 1]), ("t", [0, 10])):
+            file[f"events/{name}"] = np.asarray(values, "u2" if name in "xy" else "u1" if name == "p" else "i8")
+        file["ms_to_idx"] = np.zeros(2, "u8")
+        file["t_offset"] = np.int64(0)
+    if accepted:
+        assert read(tmp_path / "w.h5").width == 80
+    else:
+        with pytest.raises(FormatError, match=r"w.h5: its width attribute must be a whole number of pixels"):
+            read(tmp_path / "w.h5")
+
+
+@pytest.mark.skipif(not Path("/dev/zero").exists(), reason="needs /dev/zero")
+def test_a_device_is_not_called_missing(capsys):
+    """``cmax info /dev/zero`` said 'no such event file' about a path that exists."""
+    from cmax.cli import main
+
+    assert main(["info", "/dev/zero"]) == 2
+    assert "/dev/zero is not a regular file (a device, a pipe or a socket)" in capsys.readouterr().err

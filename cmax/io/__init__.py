@@ -62,6 +62,8 @@ def detect_format(path: str | os.PathLike) -> str:
     if path.is_dir():
         raise FormatError(_folder_message(path))
     if not path.is_file():
+        if path.exists():                                # a device, a FIFO, a socket: exists, holds no file
+            raise FormatError(f"{path} is not a regular file (a device, a pipe or a socket): give an event file")
         raise FileNotFoundError(f"no such event file: {path}")
     with open(path, "rb") as handle:
         head = handle.read(16)

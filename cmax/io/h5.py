@@ -478,6 +478,19 @@ class _CallerError(ValueError):
     """A caller's argument that contradicts the file (kept apart from h5py's errors on corrupt files)."""
 
 
+def _whole_size(value: object, name: str, path: Path) -> int:
+    """An h5 file's ``width`` / ``height`` attribute as a whole number of pixels (FormatError, naming the file, for
+    80.5, a string or an array: never rounded)."""
+    array = np.asarray(value.decode() if isinstance(value, bytes) else value)
+    if array.size == 1:                                  # [346], as some writers (MATLAB) store a scalar
+        array = array.reshape(())
+    if array.shape == () and array.dtype.kind == "U" and str(array).strip().isdigit():   # "346", as some tools write
+        return int(str(array))
+    if array.shape != () or array.dtype.kind not in "iuf" or not np.isfinite(array) or float(array) != int(array):
+        raise FormatError(f"{path}: its {name} attribute must be a whole number of pixels, got {value!r}")
+    return int(array)
+
+
 class H5Reader:
     """Random access to a DSEC-layout HDF5 event file.
 
@@ -561,7 +574,7 @@ class H5Reader:
             check_allocated(column, f"{self.path}: events/{name}")
         attrs = self._file.attrs
         if "width" in attrs and "height" in attrs:
-            stated = int(attrs["width"]), int(attrs["height"])
+            stated = _whole_size(attrs["width"], "width", self.path), _whole_size(attrs["height"], "height", self.path)
             try:
                 width, height = check_stated_size(width, height, stated, self.path)
             except ValueError as error:
