@@ -1,4 +1,6 @@
 """cmax.io.atomic: small outputs appear under their final name only when complete."""
+import os
+
 import numpy as np
 import pytest
 
@@ -73,3 +75,32 @@ def test_temporaries_of_a_killed_writer_are_removed_by_the_next_one_only(tmp_pat
     assert temporaries(tmp_path / "a.bin") == [stale]
     write_text_atomic(tmp_path / "a.bin", "done")
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "a.bin.backup.partial", other.name]
+
+
+def test_a_replaced_file_keeps_its_permissions(tmp_path):
+    """--overwrite of a 0600 file (a private recording, a checkpoint) came back 0644 (less umask)."""
+    import stat as stat_module
+
+    from cmax.io.atomic import write_text_atomic
+
+    path = tmp_path / "private.txt"
+    write_text_atomic(path, "first")
+    os.chmod(path, 0o600)
+    write_text_atomic(path, "second")
+    assert path.read_text() == "second" and stat_module.S_IMODE(path.stat().st_mode) == 0o600
+
+
+def test_a_file_named_like_a_lock_that_holds_data_is_refused_not_removed(tmp_path):
+    """A user's ``data.h5.lock`` (holding data) was taken as the lock of ``data.h5`` and deleted on release."""
+    from cmax.io.atomic import PathLock, lock_path
+
+    user = lock_path(tmp_path / "data.h5")
+    user.write_text("important")
+    with pytest.raises(FileExistsError, match="holds data, so it is not a lock file of cmax"):
+        PathLock(user, tmp_path / "data.h5")
+    assert user.read_text() == "important"
+    empty = lock_path(tmp_path / "other.h5")
+    empty.touch()                                   # a killed writer's leftover: empty, reused and removed
+    with PathLock(empty, tmp_path / "other.h5"):
+        pass
+    assert not empty.exists()

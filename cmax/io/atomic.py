@@ -142,7 +142,8 @@ class PathLock:
     Taken at construction without waiting (:class:`OutputLockedError` when held
     elsewhere, ``what`` names the thing protected); :meth:`release` removes the
     lock file while still holding it, then lets go. A lock file left by a killed
-    process holds no lock and is reused.
+    process holds no lock and is reused; a file of that name that holds data is no
+    lock file (they are empty) and is refused (FileExistsError), never removed.
     """
 
     def __init__(self, lock_path: str | os.PathLike, what: str | os.PathLike | None = None) -> None:
@@ -162,6 +163,10 @@ class PathLock:
                 info = os.fstat(fd)
                 if not stat.S_ISREG(info.st_mode):
                     raise OSError(errno.EINVAL, "lock file is not a regular file", str(self.path))
+                if info.st_size:   # a lock file is empty: this one is someone's data, which release() would delete
+                    raise FileExistsError(errno.EEXIST, f"{self.path.name} exists and holds data, so it is not a "
+                                          "lock file of cmax (those are empty): move it, nothing was changed",
+                                          str(self.path))
                 try:
                     fcntl.flock(fd, fcntl.LOCK_EX | fcntl.LOCK_NB)
                 except BlockingIOError:
@@ -267,6 +272,12 @@ class AtomicOutput:
         if self.state != "open":
             raise ValueError(f"the output {self.path} is {self.state}")
         try:
+            try:   # a replaced file keeps its permission bits: a 0600 file does not come back 0644
+                replaced = os.lstat(self.path)
+                if stat.S_ISREG(replaced.st_mode):
+                    os.fchmod(self.fd, stat.S_IMODE(replaced.st_mode))
+            except FileNotFoundError:
+                pass
             os.fsync(self.fd)
             os.close(self.fd)
             self.fd = None
