@@ -180,3 +180,21 @@ def test_another_commands_results_are_an_earlier_run(slider_file, tiny_checkpoin
     capsys.readouterr()
     status, err = one_line_error(lambda: cmax_main(_fit(slider_file, out)), capsys)
     assert status == 2 and "depth.npz" in err, err                 # the files named as they are
+
+
+def test_a_write_error_in_the_stage_names_the_output_folder(tmp_path):
+    """A full disk under ``cmax fit -o F`` named the private ``F/.fit.<hex>.partial/depth_00002.npz``; the error
+    names ``F/depth_00002.npz`` and says ``F`` is as it was."""
+    import errno
+
+    from cmax.io import run_folder
+    from cmax.io.atomic import write_error
+
+    out = tmp_path / "F"
+    out.mkdir()
+    with pytest.raises(OSError) as caught:
+        with run_folder.staged_run(out, "fit", lambda folder: [], overwrite=False, what="depth_*.npz") as stage:
+            raise write_error(OSError(errno.ENOSPC, "No space left on device"), stage / "depth_00002.npz")
+    assert caught.value.errno == errno.ENOSPC and caught.value.filename == str(out / "depth_00002.npz")
+    assert f"{out} is as it was" in str(caught.value) and ".partial" not in str(caught.value)
+    assert [p.name for p in out.iterdir()] == []

@@ -159,7 +159,21 @@ def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[P
                                   f"{option} replaces them, or give another -o")
         stage = new_stage(out, prefix)
         try:
-            yield stage
+            try:
+                yield stage
+            except OSError as error:   # before publish: out is untouched
+                raise _named_in_out(error, stage, out) from None
             publish(stage, out, earlier)
         finally:
             shutil.rmtree(stage, ignore_errors=True)
+
+
+def _named_in_out(error: OSError, stage: Path, out: Path) -> OSError:
+    """``error`` of a file in the private ``stage`` (a full disk, a file-size limit) as the same error naming the
+    file it would have become in ``out``, and saying that ``out`` is as it was; other errors unchanged."""
+    name = getattr(error, "filename", None)
+    if not name or Path(name).parent != stage:
+        return error
+    reason = os.strerror(error.errno) if error.errno else str(error)
+    return type(error)(error.errno, f"{reason} while writing the results; {out} is as it was (nothing of this run "
+                                    "was moved into it)", str(out / Path(name).name))
