@@ -546,3 +546,24 @@ def test_one_wrong_timestamp_is_refused_before_the_index_is_allocated(tmp_path):
     assert _listing(tmp_path) == []
     long = Events(events.x[:2], events.y[:2], np.array([0, 2**24 * 1000 - 1]), events.p[:2], 64, 48)
     assert verify_h5(write_h5(tmp_path / "long.h5", long)) == 2  # 4.6 hours: allowed whatever the count
+
+
+def test_a_writer_dropped_without_close_says_so_and_leaves_nothing(tmp_path):
+    """A script that made an H5Writer and ended without close() (no ``with``) left ``X.h5.<hex>.partial`` and
+    ``X.h5.lock`` and no output, without a word. Now a warning, and neither file stays."""
+    import gc
+    import warnings
+
+    import numpy as np
+
+    from cmax import Events
+    from cmax.io import H5Writer
+
+    writer = H5Writer(tmp_path / "x.h5", 64, 48)
+    writer.append(Events(np.array([1]), np.array([1]), np.array([0]), np.array([1]), 64, 48))
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        del writer
+        gc.collect()
+    assert any("was never closed: nothing was written there" in str(c.message) for c in caught), caught
+    assert sorted(p.name for p in tmp_path.iterdir()) == []

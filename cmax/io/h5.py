@@ -22,6 +22,7 @@ from __future__ import annotations
 import json
 import os
 import stat
+import warnings
 from pathlib import Path
 from typing import Any, Callable, Iterator
 
@@ -386,6 +387,19 @@ class H5Writer:
             self.close()
         else:
             self.abort()
+
+    def __del__(self) -> None:
+        """A writer dropped without :meth:`close` (a script without ``with`` that ends): say so, and remove its
+        temporary file and lock (they were left without a word, and no output appeared)."""
+        if getattr(self, "_closed", True):   # closed, aborted, or never opened (its __init__ raised)
+            return
+        try:
+            warnings.warn(f"H5Writer of {self.path} was never closed: nothing was written there (its temporary file "
+                          "is removed); call close() or use 'with H5Writer(...) as writer:'", UserWarning,
+                          stacklevel=2)
+            self.abort()
+        except Exception:  # noqa: BLE001 - at interpreter shutdown the modules it needs may be gone
+            pass
 
 
 #: ``ms_to_idx`` may hold up to this many entries whatever the event count (2**24 ms, 4.7 hours) ...
