@@ -194,7 +194,7 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
             print(f"cmax emvs: note: {share:.1%} of the depth map lies on the {end} plane ({plane:g} m): the range's "
                   f"end rather than a measurement (the scene {'nearer' if end == 'near' else 'farther'} than the "
                   f"range, or too little parallax to tell); --depth-range widens it", file=sys.stderr)
-    median = f"{np.median(depths):.3f} m" if depths.size else "n/a"
+    median = "n/a" if median_m is None else f"{median_m:.3f} m"
     print(f"emvs: {len(events):,} events, {result.n_planes} planes, {int(result.mask.sum()):,} px in the mask "
           f"({result.mask.mean():.1%}), median depth {median}, {result.seconds:.2f} s "
           f"({len(events) / max(result.seconds, 1e-9) / 1e6:.3g} Mev/s); results in {out}")

@@ -25,7 +25,8 @@ from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
-           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "file_depth_range", "distortion_argument", "read_calibration",
+           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "file_depth_range",
+           "distortion_argument", "read_calibration",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
 

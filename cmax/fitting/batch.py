@@ -46,7 +46,7 @@ import warnings
 from contextlib import closing
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from typing import Iterable, Iterator, Sequence
+from typing import Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
@@ -225,17 +225,30 @@ def run_tasks(tasks: Iterable[FitTask], jobs: int, *, total: int | None = None, 
                     done[index] = outcome
                     bar.update(1)
     for index in sorted(done):
-        for category, message in done[index][1]:
-            warnings.warn(f"window {index}: {message}", category, stacklevel=3)
+        reissue_warnings(index, done[index][1], stacklevel=3)
     return [done[index][0] for index in sorted(done)]
+
+
+def reissue_warnings(index: int, caught: tuple, *, stacklevel: int) -> None:
+    """Warn again the ``(category, message)`` pairs ``caught`` (:func:`recorded`'s) of the window ``index``, each
+    prefixed with ``window i:``; ``stacklevel`` as :func:`warnings.warn` takes it from the caller's frame."""
+    for category, message in caught:
+        warnings.warn(f"window {index}: {message}", category, stacklevel=stacklevel + 1)
+
+
+def recorded(call: Callable[[], FitResult]) -> tuple[FitResult, tuple]:
+    """``call()`` (a fit) with its warnings recorded, not shown: ``(result, ((category, message), ...))``, for
+    :func:`reissue_warnings`."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = call()
+    return result, tuple((w.category, str(w.message)) for w in caught)
 
 
 def _fit_task(task: FitTask) -> tuple[int, FitResult, tuple]:
     """One task's fit with its warnings recorded: ``(index, result, ((category, message), ...))``."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        result = fit(task.events, task.K, task.model, **task.options)
-    return task.index, result, tuple((w.category, str(w.message)) for w in caught)
+    result, caught = recorded(lambda: fit(task.events, task.K, task.model, **task.options))
+    return task.index, result, caught
 
 
 def _failure(task_index: int, events: Events | None, error: BaseException) -> WindowFitError:
