@@ -44,7 +44,6 @@ from __future__ import annotations
 import argparse
 import csv
 import dataclasses
-import hashlib
 import io
 import json
 import math
@@ -58,7 +57,7 @@ from typing import Mapping, Sequence
 import h5py
 import numpy as np
 
-from cmax.io.atomic import write_text_atomic
+from cmax.io.atomic import file_sha256, write_text_atomic
 from cmax.metrics import DepthMetrics, MotionMetrics
 
 RESULTS = Path(__file__).resolve().parent / "results"
@@ -177,15 +176,6 @@ def emvs_windows(windows: Sequence, poses: tuple[np.ndarray, np.ndarray], depth_
 
 
 # -- the cache of baseline rows -----------------------------------------------------------------
-def file_sha256(path: str | Path) -> str:
-    """SHA-256 (hex) of a file's bytes."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as f:
-        for block in iter(lambda: f.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def cache_key(sha256: str, window_us: int, method: str, settings: Mapping[str, object]) -> str:
     """Key of a baseline's rows on one file: content hash, window length, method and its settings."""
     return json.dumps([CACHE_VERSION, sha256, int(window_us), method, dict(sorted(settings.items()))])

@@ -24,7 +24,6 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
-import hashlib
 import json
 import os
 import sys
@@ -40,7 +39,7 @@ from tqdm import tqdm
 from cmax._args import ArgumentParser, run_main
 from cmax._threads import torch_threads
 from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, WeightedSum
-from cmax.io.atomic import write_text_atomic
+from cmax.io.atomic import file_sha256, write_text_atomic
 from learned._output import locked_folder
 from learned.checkpoint import (CheckpointError, load_checkpoint, nonfinite_tensors, rng_state, save_checkpoint,
                                 set_rng_state)
@@ -343,15 +342,6 @@ def distributed_rank() -> tuple[int, int]:
     return rank, world
 
 
-def _sha256(path: Path) -> str:
-    """SHA-256 (hex) of the file at ``path``, read in 1 MiB blocks."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:
-        for block in iter(lambda: file.read(1 << 20), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _no_window(dataset: H5WindowDataset) -> str:
     """Why ``dataset`` holds no window, and what to change (the end of an error message): the windows with too few
     events, and the labelled windows (centred on ``gt/depth_t``) that reach beyond their recording, with their
@@ -424,7 +414,7 @@ class Trainer:
         self.model = DepthPoseNet(config.model).to(self.device)
         self.teacher = None
         # what the teacher file holds, so that --resume notices one replaced under the same path
-        self.teacher_sha256 = (_sha256(Path(tc.teacher)) if tc.teacher and config.mode != "teacher"
+        self.teacher_sha256 = (file_sha256(tc.teacher) if tc.teacher and config.mode != "teacher"
                                and Path(tc.teacher).is_file() else "")
         if config.mode in ("finetune", "student"):
             from learned.evaluate import load_model

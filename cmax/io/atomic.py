@@ -23,6 +23,7 @@ target; the temporary file is gone by then.
 from __future__ import annotations
 
 import errno
+import hashlib
 import os
 import re
 import secrets
@@ -37,6 +38,7 @@ import numpy as np
 __all__ = [
     "AtomicOutput", "OutputLockedError", "write_with", "write_text_atomic", "save_npz_atomic", "write_bytes_atomic",
     "ignore_file_size_signal", "PathLock", "lock_path", "temporaries", "discard_leftovers", "write_error",
+    "file_sha256",
 ]
 
 _TEMP_SUFFIX = ".partial"
@@ -126,6 +128,15 @@ def _fsync_folder(folder: Path) -> None:
             raise
     finally:
         os.close(fd)
+
+
+def file_sha256(path: str | os.PathLike) -> str:
+    """SHA-256 (hex) of a file's bytes, read in 4 MiB blocks."""
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        for block in iter(lambda: file.read(1 << 22), b""):
+            digest.update(block)
+    return digest.hexdigest()
 
 
 def write_error(error: OSError, path: Path, what: str = "writing") -> OSError:

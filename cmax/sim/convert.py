@@ -36,7 +36,6 @@ index, optionally one ``shard`` ``(i, n)`` of it.
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import math
 import numbers
@@ -54,7 +53,7 @@ import numpy as np
 
 from cmax._workers import die_with_parent
 from cmax.io import VIDEO_SUFFIXES
-from cmax.io.atomic import PathLock, discard_leftovers, write_text_atomic
+from cmax.io.atomic import PathLock, discard_leftovers, file_sha256, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
 from cmax.sim.esim import EsimSettings, EventSimulator
 from cmax.sim.signature import signature_problem, source_signature
@@ -588,15 +587,6 @@ def _outputs_relative_to(manifest: dict[str, Any], folder: Path, into: Path) -> 
 
 
 # -- verification -----------------------------------------------------------------------
-def file_sha256(path: str | os.PathLike) -> str:
-    """SHA-256 (hex) of a file's bytes, read in 4 MiB blocks."""
-    digest = hashlib.sha256()
-    with open(path, "rb") as file:
-        for block in iter(lambda: file.read(1 << 22), b""):
-            digest.update(block)
-    return digest.hexdigest()
-
-
 def _verified(result: VideoResult) -> VideoResult:
     """``result`` with the byte size and SHA-256 of its output, after checking the file is complete."""
     from cmax.io.h5 import verify_h5
