@@ -27,6 +27,8 @@ import sys
 import warnings
 from typing import Any, Callable, Sequence
 
+from cmax._signals import TERMINATED_STATUS, Terminated, sigterm_as_interrupt, stop_if_terminated
+
 __all__ = [
     "ArgumentParser", "HelpFormatter", "USER_ERRORS", "DEBUG_ENV", "api_default", "run_main", "one_line",
     "finite_float", "positive_float", "nonnegative_float", "positive_int", "nonnegative_int", "sensor_size",
@@ -267,7 +269,10 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
             if not debug:   # a warning of the library: one line, no source file and line of code
                 warnings.showwarning = lambda message, *_, **__: print(
                     f"{label}: warning: {one_line(str(message))}", file=sys.stderr)
-            return int(command(args) or 0)
+            with sigterm_as_interrupt():
+                status = int(command(args) or 0)
+            stop_if_terminated()   # a SIGTERM whose exception Python dropped (in a finalizer) still ends the run
+            return status
     except BrokenPipeError:  # the reader of stdout left (cmax info ... | head): not an error of the input
         if debug:
             raise
@@ -278,6 +283,11 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
             raise
         print(f"{label}: error: {one_line(error)}", file=sys.stderr)
         return 2
+    except Terminated:
+        if debug:
+            raise
+        print(f"{label}: terminated (SIGTERM)", file=sys.stderr)
+        return TERMINATED_STATUS
     except KeyboardInterrupt:
         if debug:
             raise

@@ -7,14 +7,12 @@ DSEC-layout h5 files in a folder; resumable through the manifest, in ``--workers
 from __future__ import annotations
 
 import argparse
-import signal
 import sys
-import threading
-from contextlib import contextmanager
 from pathlib import Path
-from typing import Collection, Iterator, Sequence
+from typing import Collection, Sequence
 
 from cmax._args import api_default, library_default, nonnegative_int, positive_float, positive_int, sensor_size
+from cmax._signals import TERMINATED_STATUS, Terminated, sigterm_as_interrupt, stop_if_terminated
 from cmax.cli._common import given
 
 __all__ = ["add_command", "run"]
@@ -28,66 +26,18 @@ _CONVERT_OPTIONS = {"size": "size", "adaptive": "adaptive", "lam": "lam", "metho
                     "t1": "t1_s"}
 
 
-class Terminated(KeyboardInterrupt):
-    """SIGTERM (``timeout``, a SLURM time limit), raised where Ctrl-C's ``KeyboardInterrupt`` would be, so that the
-    same clean-up runs: workers stopped, temporary and lock files removed."""
-
-
-#: Set by the SIGTERM handler of :func:`_sigterm_as_interrupt`: the run was told to stop.
-_SIGTERM_RECEIVED = threading.Event()
-
-
-@contextmanager
-def _sigterm_as_interrupt() -> Iterator[None]:
-    """Within the block, SIGTERM raises :class:`Terminated` in the main thread (once: a second one is ignored, so
-    it cannot cut the clean-up short); the previous handler is restored afterwards.
-
-    A signal handler runs between any two bytecodes, also inside a finalizer or a weakref callback, where Python
-    drops the exception it raises ("Exception ignored in ..."). The signal is remembered as well
-    (:data:`_SIGTERM_RECEIVED`): such a dropped :class:`Terminated` is not printed, :func:`stop_if_terminated`
-    raises it again after the video being converted, and :func:`run` reports the run as terminated."""
-    if threading.current_thread() is not threading.main_thread():
-        yield
-        return
-    _SIGTERM_RECEIVED.clear()
-
-    def terminate(signum, frame) -> None:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        _SIGTERM_RECEIVED.set()
-        raise Terminated()
-
-    def unraisable(info) -> None:
-        if not isinstance(info.exc_value, Terminated):   # a dropped Terminated is remembered, not printed
-            hook(info)
-
-    previous, hook = signal.signal(signal.SIGTERM, terminate), sys.unraisablehook
-    sys.unraisablehook = unraisable
-    try:
-        yield
-    finally:
-        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
-        sys.unraisablehook = hook
-
-
-def stop_if_terminated() -> None:
-    """Raise :class:`Terminated` when SIGTERM came but its exception was dropped (see :func:`_sigterm_as_interrupt`);
-    called after each video, where the Ctrl-C clean-up can run."""
-    if _SIGTERM_RECEIVED.is_set():
-        raise Terminated()
-
-
 def run(args: argparse.Namespace) -> int:
     """Convert the input; returns the exit status (1 when a video failed or yielded no events, or a catalogue's
     folder holds none of its videos; 143 after SIGTERM, once the clean-up is done)."""
     try:
-        with _sigterm_as_interrupt():
+        with sigterm_as_interrupt():
             status = _run(args)
         stop_if_terminated()     # a SIGTERM whose exception was dropped while the last video was converted
         return status
     except Terminated:
         print("cmax simulate: terminated (SIGTERM): the finished videos are kept and listed in the manifest; "
               "a rerun converts the others", file=sys.stderr)
-        return 128 + int(signal.SIGTERM)
+        return TERMINATED_STATUS
 
 
 def _converted(names: set[str]):
