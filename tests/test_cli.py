@@ -94,6 +94,19 @@ def test_show_writes_picture_of_the_window(h5_file, tmp_path):
     assert coloured == np.unique(window.y.astype(int) * 64 + window.x).size
 
 
+def test_show_refuses_to_replace_a_picture_without_overwrite(h5_file, tmp_path, capsys):
+    """Was: ``cmax show rec.h5`` replaced a user's own ``rec.png`` beside the recording without a word."""
+    path, _ = h5_file
+    own = path.with_suffix(".png")
+    own.write_bytes(b"the user's picture")
+    assert main(["show", str(path), "--mode", "frame"]) == 2
+    assert f"cmax show: error: {own} exists: --overwrite replaces it" in capsys.readouterr().err
+    assert own.read_bytes() == b"the user's picture"
+    assert main(["show", str(path), "--mode", "frame", "--overwrite"]) == 0
+    assert cv2.imread(str(own)) is not None
+    own.unlink()
+
+
 def test_show_voxel_mode(h5_file, tmp_path):
     path, _ = h5_file
     out = tmp_path / "voxel.png"

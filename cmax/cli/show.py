@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import argparse
+import os
 from pathlib import Path
 
 from cmax.cli.recording import add_file_options, file_kwargs
@@ -10,15 +11,18 @@ __all__ = ["add_command", "run"]
 
 
 def run(args: argparse.Namespace) -> int:
-    """Draw the window and write the picture; returns the exit status (0)."""
+    """Draw the window and write the picture; returns the exit status (0). An existing picture at the output
+    (a user's own ``FILE.png`` beside the recording) is refused before any work unless ``--overwrite``."""
     from cmax.show import render_window
 
+    output = args.output or args.file.with_suffix(".png")
+    if os.path.lexists(output) and not args.overwrite:
+        raise FileExistsError(f"{output} exists: --overwrite replaces it, or give another -o")
     image = render_window(
         args.file, t0_s=args.t0, dt_s=args.dt, mode=args.mode, bins=args.bins, **file_kwargs(args)
     )
     from cmax.viz import save_image
 
-    output = args.output or args.file.with_suffix(".png")
     save_image(output, image)
     print(f"wrote {output}")
     return 0
@@ -39,6 +43,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="event frame, event-volume bins, or both")
     parser.add_argument("--bins", type=int, default=5, help="bins of the event volume")
     parser.add_argument("-o", "--output", type=Path, default=None, help="picture path, .png, .jpg or .jpeg (default: FILE with .png)")
+    parser.add_argument("--overwrite", action="store_true", help="replace an existing picture at the output")
     add_file_options(parser)
     parser.set_defaults(run=run)
     return parser
