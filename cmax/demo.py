@@ -28,7 +28,10 @@ import numpy as np
 
 from cmax.io.atomic import write_text_atomic
 
-__all__ = ["DemoSettings", "DemoReport", "run_demo", "demo_outputs"]
+__all__ = ["DemoSettings", "DemoReport", "run_demo", "demo_outputs", "DEMO_LOCK"]
+
+#: The lock file :func:`run_demo` holds in its output folder while it runs.
+DEMO_LOCK = ".demo.lock"
 
 
 @dataclass(frozen=True)
@@ -136,7 +139,9 @@ def run_demo(
     overwrite : bool
         Replace those files when ``output_dir`` holds any of them (an earlier demo's, or a user's own
         ``report.md``); without it such a folder is refused, before any work, with a FileExistsError naming
-        them (``cmax demo --overwrite``). Other files in ``output_dir`` are never touched.
+        them (``cmax demo --overwrite``). Other files in ``output_dir`` are never touched. The run holds
+        ``output_dir`` (the lock :data:`DEMO_LOCK` in it): a second demo into it meanwhile is refused at once
+        with :class:`cmax.io.atomic.OutputLockedError`.
     settings : DemoSettings, optional
         Defaults: indoor_flying, 240x180, 0.5 s, a 0.1665 s window.
     log : callable
@@ -151,15 +156,15 @@ def run_demo(
     from dataclasses import replace
 
     settings = replace(settings or DemoSettings(), **overrides)
-    output_dir = Path(output_dir)
-    if (existing := demo_outputs(output_dir, settings.scene_name)) and not overwrite:
-        raise FileExistsError(f"{output_dir} already holds {', '.join(path.name for path in existing)}: the demo "
-                              "would replace them; --overwrite replaces them, or give another -o")
-    output_dir.mkdir(parents=True, exist_ok=True)
     from cmax._threads import torch_threads_scope
+    from cmax.io.run_folder import locked_folder
 
-    with torch_threads_scope(threads=1):  # one thread: fastest on a busy 2-core machine
-        return _run(output_dir, settings, log)
+    with locked_folder(Path(output_dir), DEMO_LOCK) as output_dir:   # a second demo into it meanwhile: refused
+        if (existing := demo_outputs(output_dir, settings.scene_name)) and not overwrite:
+            raise FileExistsError(f"{output_dir} already holds {', '.join(path.name for path in existing)}: the "
+                                  "demo would replace them; --overwrite replaces them, or give another -o")
+        with torch_threads_scope(threads=1):  # one thread: fastest on a busy 2-core machine
+            return _run(output_dir, settings, log)
 
 
 def _run(output_dir: Path, s: DemoSettings, log: Callable[[str], None]) -> DemoReport:

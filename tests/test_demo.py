@@ -170,3 +170,21 @@ def test_cli_demo_refuses_a_folder_holding_its_files(tmp_path: Path, capsys: pyt
     capsys.readouterr()
     assert main(argv) == 2                                               # a second demo run into the same folder
     assert "indoor_flying.h5, report.png, report.md, summary.txt" in capsys.readouterr().err
+
+
+def test_a_second_demo_into_a_folder_a_demo_is_writing_is_refused(tmp_path: Path, capsys: pytest.CaptureFixture[str]) -> None:
+    """Was: two ``cmax demo -o DIR`` at once both ran and wrote into DIR, the h5 file of one beside the report of the
+    other. The running demo holds ``DIR/.demo.lock``: the second is refused at once (exit 2, one line), DIR
+    untouched; the lock file goes when the holder ends."""
+    from cmax.cli import main
+    from cmax.demo import DEMO_LOCK
+    from cmax.io.run_folder import locked_folder
+
+    argv = ["demo", "-o", str(tmp_path), "--size", "96x72", "--duration", "0.25", "--window", "0.1", "--seed", "3"]
+    with locked_folder(tmp_path, DEMO_LOCK):             # as a running demo holds it
+        assert main(argv) == 2
+        captured = capsys.readouterr()
+        assert "[1/5]" not in captured.out and len(captured.err.strip().splitlines()) == 1, captured.err
+        assert "cmax demo: error:" in captured.err and str(tmp_path) in captured.err
+        assert sorted(path.name for path in tmp_path.iterdir()) == [DEMO_LOCK]
+    assert list(tmp_path.iterdir()) == []
