@@ -38,7 +38,7 @@ import numpy as np
 __all__ = [
     "AtomicOutput", "OutputLockedError", "write_with", "write_text_atomic", "save_npz_atomic", "write_bytes_atomic",
     "ignore_file_size_signal", "PathLock", "lock_path", "temporaries", "discard_leftovers", "write_error",
-    "file_sha256",
+    "file_sha256", "fsync_folder",
 ]
 
 _TEMP_SUFFIX = ".partial"
@@ -116,7 +116,7 @@ def _create_exclusive(path: Path) -> int:
     return os.open(path, os.O_RDWR | os.O_CREAT | os.O_EXCL | _NOFOLLOW | _CLOEXEC, 0o644)
 
 
-def _fsync_folder(folder: Path) -> None:
+def fsync_folder(folder: Path) -> None:
     try:
         fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _CLOEXEC)
     except OSError:
@@ -295,7 +295,7 @@ class AtomicOutput:
             self._check_target()
             os.replace(self.temp, self.path)
             self.state = "committed"
-            _fsync_folder(self.path.parent)
+            fsync_folder(self.path.parent)
         except BaseException:
             self.abort()
             raise

@@ -27,7 +27,7 @@ from contextlib import contextmanager
 from pathlib import Path
 from typing import Callable, Iterator, Sequence
 
-from cmax.io.atomic import PathLock, _fsync_folder
+from cmax.io.atomic import PathLock, fsync_folder
 
 __all__ = ["FOLDER_LOCK", "COMPLETION_MARKER", "RESULT_NAMES", "run_results", "locked_folder", "staged_run",
            "new_stage", "discard_stages", "publish"]
@@ -119,15 +119,15 @@ def publish(stage: Path, out: Path, earlier: Sequence[Path], *,
     for marker in sorted(markers):
         if os.path.lexists(marker):
             marker.unlink()
-    _fsync_folder(out)   # the earlier record gone before anything else changes
+    fsync_folder(out)   # the earlier record gone before anything else changes
     for stale in earlier:
         if stale.name not in names:
             stale.unlink(missing_ok=True)
     for file in new:
         if file.name in last:
-            _fsync_folder(out)   # every other file in place before the record of completion
+            fsync_folder(out)   # every other file in place before the record of completion
         os.replace(file, out / file.name)
-    _fsync_folder(out)
+    fsync_folder(out)
     return [out / file.name for file in new]
 
 
