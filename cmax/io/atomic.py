@@ -117,6 +117,8 @@ def _create_exclusive(path: Path) -> int:
 
 
 def fsync_folder(folder: Path) -> None:
+    """Make the names in ``folder`` durable (files created, renamed or removed in it): fsync the folder itself,
+    where the system lets a folder be opened; nothing happens where it does not."""
     try:
         fd = os.open(folder, os.O_RDONLY | getattr(os, "O_DIRECTORY", 0) | _CLOEXEC)
     except OSError:
