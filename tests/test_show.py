@@ -109,3 +109,23 @@ def test_the_title_gives_the_span_the_events_cover(tmp_path, monkeypatch):
     monkeypatch.setattr(show, "render_events", lambda *a, title="", **k: titles.append(title))
     show.render_window(path)
     assert titles == ["short.h5, 0 s + 50 ms (events over 8.8 ms): "]
+
+
+def test_show_of_a_raw_file_too_long_to_hold_reads_only_its_window(tmp_path, monkeypatch, capsys):
+    """``cmax show`` of a Prophesee RAW file over cmax.events.MAX_EVENTS (lowered here under its 400k events, over
+    one chunk's): the window is decoded holding only itself (the whole file was decoded and refused with
+    EventLimitError), equal to the file cut to the window; a window past the last event is still refused."""
+    from cmax.io import write_evt3
+    from cmax.show import read_window
+
+    events = random_events(400_000, seed=9, t_span_us=2_000_000)
+    path = write_evt3(tmp_path / "long.raw", events)
+    monkeypatch.setattr("cmax.events.MAX_EVENTS", 150_000)
+    window, depth = read_window(path, 1.0, 0.05)
+    start = events.t_start + 1_000_000
+    assert window == events.slice_time(start, start + 50_000) and len(window) > 9_000 and depth is None
+    assert main(["show", str(path), "--t0", "1", "-o", str(tmp_path / "w.png")]) == 0
+    assert main(["show", str(path), "--t0", "2.5", "-o", str(tmp_path / "late.png")]) == 2
+    span = f"{(events.t_end - events.t_start) * 1e-6:.6g}"
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"cmax show: error: t0 = 2.5 s is past the end of long.raw: its events span {span} s")
