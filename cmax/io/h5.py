@@ -505,6 +505,20 @@ def _whole_size(value: object, name: str, path: Path) -> int:
     return int(array)
 
 
+def _check_half_size(attrs: Any, width: int | None, height: int | None, path: Path) -> None:
+    """For a file whose attributes state one of ``width`` / ``height``: the caller's size must agree with it
+    (:class:`_CallerError`), and without a caller's size :class:`FormatError` names the missing half."""
+    name, missing = ("width", "height") if "width" in attrs else ("height", "width")
+    value = _whole_size(attrs[name], name, path)
+    given = width if name == "width" else height
+    if width is None or height is None:
+        raise FormatError(f"{path} states its sensor's {name} ({value}) but not its {missing}; pass width= and "
+                          f"height= (cmax: --size WxH) with {name}={value}")
+    if given != value:
+        raise _CallerError(f"width={width}, height={height} contradicts the {name} {value} that {path} states; "
+                           f"give {name}={value} (the file states no {missing})")
+
+
 class H5Reader:
     """Random access to a DSEC-layout HDF5 event file.
 
@@ -593,6 +607,8 @@ class H5Reader:
                 width, height = check_stated_size(width, height, stated, self.path)
             except ValueError as error:
                 raise _CallerError(str(error)) from None
+        elif "width" in attrs or "height" in attrs:      # half a size: the half stated still binds the caller's
+            _check_half_size(attrs, width, height, self.path)
         if width is None or height is None:
             raise FormatError(
                 f"{self.path} stores no sensor size; pass width= and height= (cmax: --size WxH; DSEC: 640x480)"
