@@ -53,9 +53,9 @@ def read_window(
 
     ``time_unit``: the unit of the file's time stamps where it is not implied (see :func:`cmax.io.read`);
     ``options`` (e.g. ``polarity='signed'``) go to the reader.
-    A DSEC-layout h5 file is read from disk over the window only, a Prophesee RAW file decoded up to the
-    window's end holding only the window (a recording longer than :data:`cmax.events.MAX_EVENTS` can be
-    drawn); other formats are read whole, then cut.
+    A DSEC-layout h5 or MVSEC file is read from disk over the window only, a Prophesee RAW file decoded up
+    to the window's end holding only the window (a recording longer than :data:`cmax.events.MAX_EVENTS` can
+    be drawn); other formats are read whole, then cut.
     Raises ``ValueError`` when ``t0`` lies after the file's last event.
     """
     from cmax.io import H5Reader, detect_format, read
@@ -70,6 +70,8 @@ def read_window(
     kind = detect_format(path)
     if kind == "raw" and time_unit in (None, "us") and not options:
         return _read_raw_window(path, t0_s, dt_s, width, height), None
+    if kind == "mvsec":
+        return _read_mvsec_window(path, t0_s, dt_s, width, height, time_unit, options), None
     if kind != "dsec":
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
         if not len(events):
@@ -111,6 +113,25 @@ def _read_raw_window(path: Path, t0_s: float, dt_s: float, width: int | None, he
     if not len(events):
         _check_start(path, t0_s, t_start, scan_raw(path, width=width, height=height).last_us)
     return events
+
+
+def _read_mvsec_window(
+    path: Path, t0_s: float, dt_s: float, width: int | None, height: int | None, time_unit: str | None,
+    options: dict[str, Any],
+) -> Events:
+    """Events of ``[t0, t0 + dt)`` seconds after the first event of an MVSEC file: the first and last rows give
+    the span, a bisection on disk the window's rows (:func:`cmax.io.read` with ``t0_us``/``t1_us``), so only
+    those are read, not the camera's whole (N, 4) float64 table."""
+    from cmax.io import read
+    from cmax.io.mvsec import mvsec_time_span
+
+    span = mvsec_time_span(path, camera=options.get("camera", "left"), time_unit=time_unit)
+    if span is None:
+        return read(path, width=width, height=height, time_unit=time_unit, **options)
+    _check_start(path, t0_s, *span)
+    start = span[0] + round(t0_s * 1e6)
+    return read(path, width=width, height=height, time_unit=time_unit, t0_us=start,
+                t1_us=start + round(dt_s * 1e6), **options)
 
 
 def render_events(
