@@ -501,6 +501,8 @@ def test_file_info_of_a_raw_file_too_long_to_hold(tmp_path: Path, monkeypatch) -
      r"its 'format' line states a 640x480 sensor, its 'geometry' line 1280x720"),
     (b"% evt 3.0\n% format EVT2;height=480;width=640\n",
      r"its 'evt 3.0' line and its 'format EVT2;height=480;width=640' line declare different event formats"),
+    (b"% evt 2.0\n% evt 3.0\n% format EVT3;height=480;width=640\n",
+     r"it has the lines 'evt 2.0' and 'evt 3.0'"),
 ])
 def test_a_header_that_contradicts_itself_is_refused(tmp_path: Path, lines: bytes, match: str) -> None:
     """A header stating 640x480 in its format line and 1280x720 in its geometry line was read as 640x480

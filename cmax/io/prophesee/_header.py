@@ -24,6 +24,8 @@ from cmax.io._checks import check_stated_size
 PathLike = Union[str, "os.PathLike[str]"]
 
 _MAX_HEADER_BYTES = 1 << 20
+#: Header keys that decide how the words are decoded: each may appear on several lines only with one value.
+_DECODING_KEYS = ("evt", "format", "geometry")
 #: Tab and carriage return, the control characters a header line may hold (removed by ``str.translate``).
 _TAB_CR = {0x09: None, 0x0D: None}
 
@@ -159,8 +161,12 @@ def _read_header(path: Path) -> _Header:
         if line.lower() == "end":
             break
         key, _, value = line.partition(" ")
+        key, value = key.lower(), value.strip()
+        if key in _DECODING_KEYS and fields.get(key, value) != value:   # two lines of one key, read by the last
+            raise FormatError(f"{path}: the header contradicts itself: it has the lines '{key} {fields[key]}' and "
+                              f"'{key} {value}' (a corrupt or hand-edited header; correct the wrong line)")
         if key:
-            fields[key.lower()] = value.strip()
+            fields[key] = value
         if pos > _MAX_HEADER_BYTES:
             raise FormatError(f"{path}: header longer than {_MAX_HEADER_BYTES} bytes")
     header = _Header(fields, pos)
