@@ -53,6 +53,9 @@ def read_window(
 
     ``time_unit``: the unit of the file's time stamps where it is not implied (see :func:`cmax.io.read`);
     ``options`` (e.g. ``polarity='signed'``) go to the reader.
+    A DSEC-layout h5 or MVSEC file is read from disk over the window only, a Prophesee RAW file decoded up
+    to the window's end holding only the window (a recording longer than :data:`cmax.events.MAX_EVENTS` can
+    be drawn); other formats are read whole, then cut.
     Raises ``ValueError`` when ``t0`` lies after the file's last event.
     """
     from cmax.io import H5Reader, detect_format, read
@@ -64,7 +67,12 @@ def read_window(
     if t0_s < 0:
         raise ValueError(f"t0 must be >= 0 seconds after the first event, got {t0_s}")
     path = Path(path)
-    if detect_format(path) != "dsec":
+    kind = detect_format(path)
+    if kind == "raw" and time_unit in (None, "us") and not options:
+        return _read_raw_window(path, t0_s, dt_s, width, height), None
+    if kind == "mvsec":
+        return _read_mvsec_window(path, t0_s, dt_s, width, height, time_unit, options), None
+    if kind != "dsec":
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
         if not len(events):
             return events, None
@@ -86,6 +94,44 @@ def read_window(
             if start <= times[index] < stop:
                 depth = gt["depth"][index]
     return events, depth
+
+
+def _read_raw_window(path: Path, t0_s: float, dt_s: float, width: int | None, height: int | None) -> Events:
+    """Events of ``[t0, t0 + dt)`` seconds after the first event of a Prophesee RAW file, decoded chunk by chunk
+    up to the window's end (:func:`cmax.io.read` with ``t0_us``/``t1_us``): memory holds the window and one chunk,
+    not the recording. Only for an empty window is the file decoded to its end (bounded memory,
+    :func:`cmax.io.prophesee.scan_raw`), to tell a window past the last event (ValueError) from a gap."""
+    from cmax.io import read
+    from cmax.io.prophesee import iter_raw, scan_raw
+
+    first = next(iter_raw(path, width=width, height=height), None)
+    if first is None:                                    # no events: as read() gives them
+        return read(path, width=width, height=height)
+    t_start = int(first.t[0])
+    start = t_start + round(t0_s * 1e6)
+    events = read(path, width=width, height=height, t0_us=start, t1_us=start + round(dt_s * 1e6))
+    if not len(events):
+        _check_start(path, t0_s, t_start, scan_raw(path, width=width, height=height).last_us)
+    return events
+
+
+def _read_mvsec_window(
+    path: Path, t0_s: float, dt_s: float, width: int | None, height: int | None, time_unit: str | None,
+    options: dict[str, Any],
+) -> Events:
+    """Events of ``[t0, t0 + dt)`` seconds after the first event of an MVSEC file: the first and last rows give
+    the span, a bisection on disk the window's rows (:func:`cmax.io.read` with ``t0_us``/``t1_us``), so only
+    those are read, not the camera's whole (N, 4) float64 table."""
+    from cmax.io import read
+    from cmax.io.mvsec import mvsec_time_span
+
+    span = mvsec_time_span(path, camera=options.get("camera", "left"), time_unit=time_unit)
+    if span is None:
+        return read(path, width=width, height=height, time_unit=time_unit, **options)
+    _check_start(path, t0_s, *span)
+    start = span[0] + round(t0_s * 1e6)
+    return read(path, width=width, height=height, time_unit=time_unit, t0_us=start,
+                t1_us=start + round(dt_s * 1e6), **options)
 
 
 def render_events(

@@ -43,6 +43,17 @@ def test_info_of_one_event_says_the_rate_is_not_available(tmp_path, capsys):
         assert "rate        n/a (the events span 0 µs)" in out and "nan" not in out
 
 
+def test_info_of_a_sparse_recording_gives_its_rate_in_events_per_second(tmp_path, capsys):
+    """2,000 events over 40 s printed `rate        0.000 Mev/s`, which reads as a file without events."""
+    from cmax import Events
+
+    events = Events(np.arange(2_000) % 8, np.zeros(2_000, int), np.arange(2_000) * 20_000, np.ones(2_000, int),
+                    width=8, height=8)                 # 1,999 intervals of 20 ms: 2,000 events / 39.98 s
+    assert main(["info", str(write_h5(tmp_path / "sparse.h5", events))]) == 0
+    out = capsys.readouterr().out
+    assert "rate        50.0 ev/s" in out and "Mev/s" not in out
+
+
 def test_info_of_an_ecd_folder_points_to_its_events_txt(tmp_path, capsys):
     """Report userC item 7: `cmax info FOLDER` of an ECD sequence advised only `cmax simulate FOLDER`."""
     folder = tmp_path / "slider_depth"

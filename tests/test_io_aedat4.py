@@ -445,3 +445,28 @@ def test_a_uniform_frame_that_compresses_far_below_its_size_is_read(tmp_path: Pa
     path.write_bytes(_aedat4([(3, "FRME", "frames", (160, 120))], [(3, _frame_packet(200, image))]))
     frames = read_aedat4_frames(path)
     assert frames.images.shape == (1, 120, 160) and not frames.images.any()
+
+
+def test_a_file_of_two_event_streams_says_which_one_it_read(tmp_path: Path) -> None:
+    """A stereo recording (two EVTS streams) was read as its first camera's events without a word about the
+    second; now a UserWarning names both and stream= reads either, a file of one stream stays silent."""
+    import warnings
+
+    from cmax.io import read
+
+    streams = [(0, "EVTS", "events", (5, 4)), (1, "EVTS", "events_1", (5, 4))]
+    packets = [(0, _event_packet([100, 200], [0, 1], [0, 0], [1, 1])),
+               (1, _event_packet([150, 250], [2, 3], [1, 1], [0, 0]))]
+    path = tmp_path / "stereo.aedat4"
+    path.write_bytes(_aedat4(streams, packets))
+    with pytest.warns(UserWarning, match=r"stereo.aedat4 holds 2 EVTS streams \[\(0, 'events'\), \(1, 'events_1'\)\]: "
+                                         r"read the first, 0 'events'; pass stream="):
+        first = read(path)
+    assert first.t.tolist() == [100, 200]
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read_aedat4(path, stream="events_1").t.tolist() == [150, 250]
+        assert read(path, stream=1).x.tolist() == [2, 3]
+        single = tmp_path / "single.aedat4"
+        single.write_bytes(_aedat4(streams[:1], packets[:1]))
+        assert len(read(single)) == 2

@@ -494,3 +494,26 @@ def test_file_info_of_a_raw_file_too_long_to_hold(tmp_path: Path, monkeypatch) -
     write_evt3(empty, Events([], [], [], [], 32, 16))
     info = file_info(empty)
     assert (info.count, info.width, info.height, info.t_start_us) == (0, 32, 16, None)
+
+
+@pytest.mark.parametrize("lines, match", [
+    (b"% evt 3.0\n% format EVT3;height=480;width=640\n% geometry 1280x720\n",
+     r"its 'format' line states a 640x480 sensor, its 'geometry' line 1280x720"),
+    (b"% evt 3.0\n% format EVT2;height=480;width=640\n",
+     r"its 'evt 3.0' line and its 'format EVT2;height=480;width=640' line declare different event formats"),
+    (b"% evt 2.0\n% evt 3.0\n% format EVT3;height=480;width=640\n",
+     r"it has the lines 'evt 2.0' and 'evt 3.0'"),
+])
+def test_a_header_that_contradicts_itself_is_refused(tmp_path: Path, lines: bytes, match: str) -> None:
+    """A header stating 640x480 in its format line and 1280x720 in its geometry line was read as 640x480
+    without a word; 'evt 3.0' beside 'format EVT2' was decoded as EVT2 and failed on a 'reserved EVT 2.0 word'."""
+    events = Events([1, 600], [2, 400], [10, 20], [1, 0], width=640, height=480)
+    data = write_evt3(tmp_path / "ok.raw", events).read_bytes().split(b"% end\n", 1)[1]
+    path = tmp_path / "contradicting.raw"
+    path.write_bytes(lines + b"% end\n" + data)
+    for call in (lambda: read_raw(path), lambda: read_raw(path, width=640, height=480), lambda: read_evt3(path)):
+        with pytest.raises(FormatError, match=rf"contradicting.raw: the header contradicts itself: {match}"):
+            call()
+    agreeing = tmp_path / "agreeing.raw"
+    agreeing.write_bytes(b"% evt 3.0\n% format EVT3;height=480;width=640\n% geometry 640x480\n% end\n" + data)
+    assert read_raw(agreeing) == events

@@ -53,6 +53,28 @@ def test_h5_accepts_its_own_size_and_a_size_where_it_states_none(tmp_path: Path,
     assert read(path, width=100, height=90).sensor_size == (100, 90)
 
 
+@pytest.mark.parametrize("kept", ["width", "height"])
+def test_h5_stating_half_a_size_binds_that_half(tmp_path: Path, events: Events, kept: str) -> None:
+    """An h5 file with a width attribute and no height (or the other way round) was read with any caller's size,
+    the stated half ignored without a word (128x48 for a file stating width 64), and refused as one that
+    "stores no sensor size" without one."""
+    path = write_h5(tmp_path / "half.h5", events)
+    with h5py.File(path, "a") as file:
+        del file.attrs["height" if kept == "width" else "width"]
+    missing = "height" if kept == "width" else "width"
+    value = W if kept == "width" else H
+    wrong = (128, H) if kept == "width" else (W, 40)
+    with pytest.raises(ValueError, match=rf"width={wrong[0]}, height={wrong[1]} contradicts the {kept} {value} "
+                                         rf"that .*half.h5 states; give {kept}={value} \(the file states no {missing}\)"
+                       ) as error:
+        read(path, width=wrong[0], height=wrong[1])
+    assert not isinstance(error.value, FormatError)
+    with pytest.raises(FormatError, match=rf"half.h5 states its sensor's {kept} \({value}\) but not its {missing}; "
+                                          r"pass width= and height="):
+        read(path)
+    assert read(path, width=W, height=H) == events
+
+
 @pytest.mark.parametrize("fmt", ["evt3", "evt2"])
 def test_raw_refuses_a_size_other_than_its_header(tmp_path: Path, events: Events, fmt: str) -> None:
     writer, reader = {"evt3": (write_evt3, read_evt3), "evt2": (write_evt2, read_evt2)}[fmt]

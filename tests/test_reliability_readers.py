@@ -113,6 +113,26 @@ def test_t_offset_must_be_one_number(tmp_path):
         H5Reader(path)
 
 
+def test_a_fractional_float_t_offset_needs_a_stated_unit(tmp_path):
+    """A float t_offset in seconds beside integer µs events/t (as a re-export may write it) was read as µs and
+    rounded: 1600000000.123456 became 1,600,000,000 µs, the absolute times 10^6 too small, without a word."""
+    t = np.array([0, 5, 9], np.uint32)
+    path = _dsec(tmp_path / "seconds.h5", t, t_offset=np.float64(1600000000.123456))
+    with pytest.raises(FormatError, match=r"t_offset holds the fractional number 1600000000.123456, not whole "
+                                          r"microseconds .* state it with a 'unit' attribute on t_offset"):
+        read(path)
+    with h5py.File(path, "r+") as file:
+        file["t_offset"].attrs["unit"] = "s"
+    assert read(path).t.tolist() == [1600000000123456, 1600000000123461, 1600000000123465]
+    # whole floats are µs as integers are; a stated unit rounds a fraction (half to even), as for events/t
+    whole = _dsec(tmp_path / "whole.h5", t, t_offset=np.float64(1600000000123456.0))
+    assert read(whole).t.tolist() == [1600000000123456, 1600000000123461, 1600000000123465]
+    half = _dsec(tmp_path / "half.h5", t, t_offset=np.float64(123.5))
+    with pytest.raises(FormatError, match="fractional number 123.5"):
+        read(half)
+    assert read(half, time_unit="us").t.tolist() == [124, 129, 133]
+
+
 # -- ms_to_idx against t --------------------------------------------------------------------
 def test_an_index_that_disagrees_with_t_is_named_not_an_empty_window(tmp_path):
     events = Events(np.zeros(3000, int), np.zeros(3000, int), np.arange(3000) * 10, np.ones(3000, int), W, H)

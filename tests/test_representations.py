@@ -303,6 +303,37 @@ def test_validation_errors_name_the_argument():
         TimeSurface(tau_us=0)
 
 
+@pytest.mark.parametrize("p", [[2, 0, 1], [0.3, 0.0, 1.0], [-1, 0, 1], [-1, 0, 0]], ids=["2", "0.3", "-1,0,1", "-1,0"])
+def test_torch_polarity_outside_both_encodings_is_refused_as_numpy_refuses_it(p):
+    """Torch polarities were mapped by their sign (2 -> ON, 0.3 -> ON, -3 -> OFF) where Events refuses them."""
+    x, y, t = torch.tensor([0, 1, 2]), torch.tensor([0, 0, 0]), torch.tensor([0, 10, 20])
+    tensors = EventTensors(x, y, t, torch.tensor(p), 3, 1)
+    with pytest.raises(ValueError, match=r"p must hold (polarities|whole numbers)"):
+        Events(x.numpy(), y.numpy(), t.numpy(), np.array(p), 3, 1)
+    for call in (lambda: voxel_grid(tensors, 2), lambda: event_frame(tensors), lambda: time_surface(tensors),
+                 lambda: voxel_grid_batch([tensors])):
+        with pytest.raises(ValueError, match=r"p must hold polarities as \{0, 1\}, \{-1, \+1\} or bool; got"):
+            call()
+    # uint8 255 (a signed -1 cast to uint8) is not -1: refused, not counted as ON
+    cast = EventTensors(x, y, t, torch.tensor([255, 1, 0], dtype=torch.uint8), 3, 1)
+    with pytest.raises(ValueError, match=r"got the values \[0, 1, 255\]"):
+        event_frame(cast)
+
+
+def test_voxel_grid_batch_reads_each_samples_own_polarity_encoding():
+    """A bool sample first made a signed sample's -1.0 True (ON) once cast to its dtype: the batch's second grid
+    held only ON weights where voxel_grid of that sample has OFF ones."""
+    ev = Events([0, 1, 0, 1], [0, 0, 0, 0], [0, 10, 20, 30], [1, 0, 0, 1], 2, 1)
+    as_bool = ev.to_torch()._replace(p=ev.to_torch().p.bool())
+    signed = ev.to_torch(signed_polarity=True)
+    expected = voxel_grid(ev, 2)      # t* = 0, 1/3, 2/3, 1: bin 0 = [1 - 1/3, -2/3], bin 1 = [-2/3, -1/3 + 1]
+    np.testing.assert_allclose(expected[:, 0], [[2 / 3, -2 / 3], [-2 / 3, 2 / 3]], atol=1e-6)
+    for samples in ([as_bool, signed], [signed, as_bool], [ev.to_torch(), signed]):
+        batch = voxel_grid_batch(samples, bins=2)
+        for grid in batch:
+            np.testing.assert_allclose(grid.numpy(), expected, atol=1e-6)
+
+
 def test_settings_objects_call_the_functions():
     ev = random_events(300)
     np.testing.assert_array_equal(VoxelGrid(bins=3)(ev), voxel_grid(ev, 3))

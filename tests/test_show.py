@@ -109,3 +109,48 @@ def test_the_title_gives_the_span_the_events_cover(tmp_path, monkeypatch):
     monkeypatch.setattr(show, "render_events", lambda *a, title="", **k: titles.append(title))
     show.render_window(path)
     assert titles == ["short.h5, 0 s + 50 ms (events over 8.8 ms): "]
+
+
+def test_show_of_a_raw_file_too_long_to_hold_reads_only_its_window(tmp_path, monkeypatch, capsys):
+    """``cmax show`` of a Prophesee RAW file over cmax.events.MAX_EVENTS (lowered here under its 400k events, over
+    one chunk's): the window is decoded holding only itself (the whole file was decoded and refused with
+    EventLimitError), equal to the file cut to the window; a window past the last event is still refused."""
+    from cmax.io import write_evt3
+    from cmax.show import read_window
+
+    events = random_events(400_000, seed=9, t_span_us=2_000_000)
+    path = write_evt3(tmp_path / "long.raw", events)
+    monkeypatch.setattr("cmax.events.MAX_EVENTS", 150_000)
+    window, depth = read_window(path, 1.0, 0.05)
+    start = events.t_start + 1_000_000
+    assert window == events.slice_time(start, start + 50_000) and len(window) > 9_000 and depth is None
+    assert main(["show", str(path), "--t0", "1", "-o", str(tmp_path / "w.png")]) == 0
+    assert main(["show", str(path), "--t0", "2.5", "-o", str(tmp_path / "late.png")]) == 2
+    span = f"{(events.t_end - events.t_start) * 1e-6:.6g}"
+    assert capsys.readouterr().err.strip().splitlines()[-1] == (
+        f"cmax show: error: t0 = 2.5 s is past the end of long.raw: its events span {span} s")
+
+
+def test_show_of_an_mvsec_file_reads_only_its_window(tmp_path, monkeypatch):
+    """``cmax show`` of an MVSEC file read the camera's whole (N, 4) float64 table for one window (refused over
+    cmax.events.MAX_EVENTS, lowered here under its 5,000 events): now its first and last rows and the window's."""
+    import h5py
+
+    from cmax.io import read
+    from cmax.show import read_window
+
+    rng = np.random.default_rng(2)
+    n = 5_000
+    t = 1504645177.0 + np.sort(rng.uniform(0, 2, n))
+    table = np.column_stack([rng.integers(0, 346, n), rng.integers(0, 260, n), t, rng.choice([-1.0, 1.0], n)])
+    path = tmp_path / "indoor_flying.hdf5"
+    with h5py.File(path, "w") as file:
+        file["davis/left/events"] = table
+    events = read(path)
+    assert events.t.tolist() == np.rint(t * 1e6).astype(np.int64).tolist()   # seconds, rounded to µs
+    monkeypatch.setattr("cmax.events.MAX_EVENTS", 1_000)
+    window, depth = read_window(path, 1.0, 0.05)
+    start = events.t_start + 1_000_000
+    assert window == events.slice_time(start, start + 50_000) and 0 < len(window) < 1_000 and depth is None
+    with pytest.raises(ValueError, match=r"t0 = 3 s is past the end of indoor_flying.hdf5: its events span 1.99"):
+        read_window(path, 3.0, 0.05)

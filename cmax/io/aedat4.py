@@ -43,6 +43,7 @@ from __future__ import annotations
 
 import os
 import struct
+import warnings
 import xml.etree.ElementTree as ElementTree
 from dataclasses import dataclass
 from pathlib import Path
@@ -350,6 +351,13 @@ def _select(file: _File, stream: int | str | None, kind: str) -> Aedat4Stream:
         if not candidates:
             raise ValueError(f"{file.where} has no {kind} stream; it has "
                              f"{[(s.id, s.type_identifier, s.name) for s in file.streams]}")
+        if len(candidates) > 1:   # two cameras (a stereo rig): the others' data would be left out unsaid
+            warnings.warn(
+                f"{file.where} holds {len(candidates)} {kind} streams {[(s.id, s.name) for s in candidates]}: "
+                f"read the first, {candidates[0].id} {candidates[0].name!r}; pass stream= (an id or a name, "
+                "e.g. cmax.io.read(path, stream=1)) to read another",
+                UserWarning, stacklevel=3,
+            )
         return candidates[0]
     if isinstance(stream, (bool, np.bool_)) or not isinstance(stream, (int, np.integer, str)):
         raise TypeError(f"stream must be a stream id (int), a name (str) or None, got {stream!r}")
@@ -424,7 +432,7 @@ def read_aedat4(
         The ``.aedat4`` file (read whole into memory).
     stream : int, str or None, keyword-only
         Stream id or DV output name (e.g. ``"events"``); ``None`` takes the
-        first ``EVTS`` stream.
+        first ``EVTS`` stream (a ``UserWarning`` names the others where there are several).
     sort : bool, keyword-only
         DV writes each stream in time order and so this reader by default
         raises :class:`FormatError` if time ever decreases; ``sort=True``
@@ -494,7 +502,7 @@ def read_aedat4_imu(
         The ``.aedat4`` file.
     stream : int, str or None, keyword-only
         Stream id or DV output name (e.g. ``"imu"``); ``None`` takes the first
-        ``IMUS`` stream.
+        ``IMUS`` stream (a ``UserWarning`` names the others where there are several).
     sort : bool, keyword-only
         Sort by time instead of raising :class:`FormatError` when time decreases.
 
@@ -554,7 +562,7 @@ def read_aedat4_frames(
         The ``.aedat4`` file.
     stream : int, str or None, keyword-only
         Stream id or DV output name (e.g. ``"frames"``); ``None`` takes the
-        first ``FRME`` stream.
+        first ``FRME`` stream (a ``UserWarning`` names the others where there are several).
 
     Returns
     -------

@@ -505,6 +505,20 @@ def _whole_size(value: object, name: str, path: Path) -> int:
     return int(array)
 
 
+def _check_half_size(attrs: Any, width: int | None, height: int | None, path: Path) -> None:
+    """For a file whose attributes state one of ``width`` / ``height``: the caller's size must agree with it
+    (:class:`_CallerError`), and without a caller's size :class:`FormatError` names the missing half."""
+    name, missing = ("width", "height") if "width" in attrs else ("height", "width")
+    value = _whole_size(attrs[name], name, path)
+    given = width if name == "width" else height
+    if width is None or height is None:
+        raise FormatError(f"{path} states its sensor's {name} ({value}) but not its {missing}; pass width= and "
+                          f"height= (cmax: --size WxH) with {name}={value}")
+    if given != value:
+        raise _CallerError(f"width={width}, height={height} contradicts the {name} {value} that {path} states; "
+                           f"give {name}={value} (the file states no {missing})")
+
+
 class H5Reader:
     """Random access to a DSEC-layout HDF5 event file.
 
@@ -593,6 +607,8 @@ class H5Reader:
                 width, height = check_stated_size(width, height, stated, self.path)
             except ValueError as error:
                 raise _CallerError(str(error)) from None
+        elif "width" in attrs or "height" in attrs:      # half a size: the half stated still binds the caller's
+            _check_half_size(attrs, width, height, self.path)
         if width is None or height is None:
             raise FormatError(
                 f"{self.path} stores no sensor size; pass width= and height= (cmax: --size WxH; DSEC: 640x480)"
@@ -604,10 +620,20 @@ class H5Reader:
         try:
             if "t_offset" in self._file:
                 offset = self._dataset("t_offset")
-                unit = unit_from_attrs(offset.attrs, f"{self.path}: t_offset") or self.time_unit
-                self.t_offset_us = scalar_to_us(offset[()], unit, f"{self.path}: t_offset")
+                own_unit = unit_from_attrs(offset.attrs, f"{self.path}: t_offset")
+                value = offset[()]
+                if own_unit is None and not self._unit_stated and _fractional_float(value):
+                    raise _FractionalOffset(value)
+                self.t_offset_us = scalar_to_us(value, own_unit or self.time_unit, f"{self.path}: t_offset")
             if "ms_to_idx" in self._file:
                 self._ms_to_idx = self._dataset("ms_to_idx")[:]
+        except _FractionalOffset as error:
+            raise FormatError(
+                f"{self.path}: t_offset holds the fractional number {error.value!r}, not whole microseconds (the "
+                "layout's unit), and neither t_offset, the file nor the caller states its unit; state it with a "
+                "'unit' attribute on t_offset ('s', 'ms' or 'us'), or time_unit= (cmax: --time-unit) when events/t "
+                "has the same unit"
+            ) from None
         except H5_ERRORS as error:
             raise FormatError(f"{self.path}: unreadable t_offset or ms_to_idx ({error})") from None
         if self._ms_to_idx is not None:
@@ -639,6 +665,7 @@ class H5Reader:
                 "layout='dsec') stores integer µs; leave time_unit out"
             )
         unit = stated or in_file
+        self._unit_stated = unit is not None     # else integer times are µs by the layout, unstated
         if unit is None:
             if column.dtype.kind == "f":
                 raise FormatError(
@@ -880,6 +907,26 @@ def _sorted_plus_offset(t: np.ndarray, offset: int, where: str, first_row: int) 
             )
         if shift:
             t[start:stop] += shift
+
+
+class _FractionalOffset(Exception):
+    """A float ``t_offset`` with a fraction, read where no unit is stated (see :func:`_fractional_float`)."""
+
+    def __init__(self, value: Any) -> None:
+        super().__init__(value)
+        self.value = float(np.asarray(value).reshape(()))
+
+
+def _fractional_float(value: Any) -> bool:
+    """Whether a stored ``t_offset`` is one finite float with a fraction: not whole µs, the layout's unit, so
+    it cannot be read without a stated unit (seconds, as a re-export may store them, read as µs would be 10^6
+    too small). A whole float (1.6e15) is µs as an integer would be; other shapes are left to
+    :func:`~cmax.io._checks.scalar_to_us`."""
+    array = np.asarray(value)
+    if array.size != 1 or array.dtype.kind != "f":
+        return False
+    number = float(array.reshape(()))
+    return bool(np.isfinite(number)) and not number.is_integer()
 
 
 def _checked_ms_to_idx(ms_to_idx: np.ndarray, count: int, path: Path) -> np.ndarray:

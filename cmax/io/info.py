@@ -68,6 +68,8 @@ class EventFileInfo:
 
     def _rate_line(self) -> str:
         """The event rate, or n/a where the events span no time (one event, or all at one time stamp)."""
+        if self.duration_s > 0 and self.rate_hz < 500:   # "0.000 Mev/s" would read as no events
+            return f"rate        {self.rate_hz:,.1f} ev/s"
         if self.duration_s > 0:
             return f"rate        {self.rate_hz / 1e6:.3f} Mev/s"
         return "rate        n/a (the events span 0 µs)"

@@ -17,7 +17,7 @@ from cmax.io._checks import TIME_UNITS, check_allocated, check_polarity_encoding
 from cmax.io.errors import FormatError
 from cmax.io.h5 import H5_ERRORS
 
-__all__ = ["read_mvsec", "MVSEC_WIDTH", "MVSEC_HEIGHT"]
+__all__ = ["read_mvsec", "mvsec_time_span", "MVSEC_WIDTH", "MVSEC_HEIGHT"]
 
 MVSEC_WIDTH, MVSEC_HEIGHT = 346, 260
 
@@ -87,6 +87,34 @@ def read_mvsec(
     return events.slice_time(
         -(2**62) if t0_us is None else t0_us, 2**62 if t1_us is None else t1_us
     )
+
+
+def mvsec_time_span(
+    path: str | os.PathLike, *, camera: str = "left", time_unit: str | None = None,
+) -> tuple[int, int] | None:
+    """``(first_us, last_us)``: the times of the first and last events of one MVSEC camera, from those two rows
+    alone (the rows are in time order, as :func:`read_mvsec` checks where it reads), rounded as
+    :func:`read_mvsec` rounds them; None for a camera without events."""
+    if camera not in ("left", "right"):
+        raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
+    unit = check_time_unit(time_unit) or "s"
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such event file: {path}")
+    try:
+        with h5py.File(path, "r") as file:
+            dataset = _events_dataset(file, path, camera)
+            if not dataset.shape[0]:
+                return None
+            ends = np.array([dataset[0, 2], dataset[-1, 2]], dtype=dataset.dtype)
+    except FormatError:
+        raise
+    except H5_ERRORS as error:  # truncated or corrupt HDF5
+        raise FormatError(
+            f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})"
+        ) from None
+    first, last = times_to_us(ends, unit, f"{path}: davis/{camera}/events[[0, -1], 2] (t)").tolist()
+    return int(first), int(last)
 
 
 def _first_at_or_after(dataset: h5py.Dataset, t_s: float) -> int:

@@ -65,7 +65,8 @@ def _check_optional_time(name: str, value: object) -> int | None:
 def _stats_torch(events: EventTensors) -> tuple[int, int] | None:
     """Validate tensors; return (t_min, t_max) in µs, or None when there are no events.
 
-    Costs one device synchronisation (bounds of x, y, t read back at once).
+    Costs one device synchronisation (bounds of x, y, t and whether p holds {0, 1}, {-1, +1} or bool,
+    read back at once).
     """
     import torch
 
@@ -92,11 +93,35 @@ def _stats_torch(events: EventTensors) -> tuple[int, int] | None:
     if lengths["t"] == 0:
         return None
     bounds = [b.to(torch.int64) for name in "xyt" for b in torch.aminmax(getattr(events, name))]
-    x_lo, x_hi, y_lo, y_hi, t_lo, t_hi = torch.stack(bounds).tolist()
+    x_lo, x_hi, y_lo, y_hi, t_lo, t_hi, p_ok = torch.stack([*bounds, _polarity_ok(events.p)]).tolist()
     for name, low, high, size in (("x", x_lo, x_hi, events.width), ("y", y_lo, y_hi, events.height)):
         if low < 0 or high >= size:
             raise ValueError(f"events.{name} must lie in [0, {size}), got values in [{low}, {high}]")
+    if not p_ok:
+        _refuse_polarity("events.p", events.p)
     return t_lo, t_hi
+
+
+def _polarity_ok(p: "torch.Tensor") -> "torch.Tensor":
+    """0-d int64 tensor on ``p``'s device: 1 when ``p`` holds polarities in one encoding, {0, 1} or {-1, +1}
+    (bool: always), else 0. Unsigned integers take {0, 1} only (``uint8 255 == -1`` is true in torch)."""
+    import torch
+
+    if p.dtype == torch.bool:
+        return torch.ones((), dtype=torch.int64, device=p.device)
+    binary = ((p == 0) | (p == 1)).all()
+    if p.dtype.is_signed:
+        binary |= ((p == -1) | (p == 1)).all()
+    return binary.to(torch.int64)
+
+
+def _refuse_polarity(name: str, p: "torch.Tensor") -> None:
+    """ValueError naming ``name`` and (up to ten of) the values of ``p`` that fit neither encoding."""
+    import torch
+
+    values = torch.unique(p).tolist()
+    shown = values[:10] + (["..."] if len(values) > 10 else [])
+    raise ValueError(f"{name} must hold polarities as {{0, 1}}, {{-1, +1}} or bool; got the values {shown}")
 
 
 def _inspect(events: object) -> tuple[str, tuple[int, int] | None]:

@@ -21,7 +21,7 @@ from cmax.events import Events, EventTensors
 from cmax.representations import _common
 from cmax.representations._common import (
     Array, EventsLike, _check_int, _check_optional_time, _check_output_size, _chunks,
-    _index_numpy, _inspect, _on_torch, _pixel_counts, _stats_torch,
+    _index_numpy, _inspect, _on_torch, _pixel_counts, _polarity_ok, _refuse_polarity, _stats_torch,
 )
 
 if TYPE_CHECKING:  # pragma: no cover
@@ -83,7 +83,8 @@ def voxel_grid(
     ----------
     events : Events or EventTensors
         N events. Numpy in gives a numpy array; torch in gives a tensor on the
-        events' device. Torch polarity may be int {0, 1}, bool, or float {-1, +1}.
+        events' device. Torch polarity may be {0, 1} or {-1, +1} (integer or float), or bool;
+        other values raise :class:`ValueError`, as :class:`~cmax.events.Events` does.
     bins : int
         Number of time bins B >= 1. ``bins=1`` gives the signed event frame.
     t0_us, t1_us : int, optional, keyword-only
@@ -350,7 +351,8 @@ def voxel_grid_batch(samples: Sequence[EventTensors], bins: int = 5) -> "torch.T
     Equivalent to ``torch.stack([voxel_grid(s, bins) for s in samples])`` (each
     window normalised by its own first and last event time) but built with one
     ``index_add_`` pass over the concatenated events. All samples must share the
-    sensor size and device; empty samples give zeros.
+    sensor size and device; each sample's polarity is read in its own encoding
+    (one bool, another float {-1, +1}); empty samples give zeros.
 
     Examples
     --------
@@ -379,9 +381,17 @@ def voxel_grid_batch(samples: Sequence[EventTensors], bins: int = 5) -> "torch.T
         (len(samples), bins, samples[0].height, samples[0].width),
         f"{len(samples)} samples of bins={bins} on a {samples[0].width}x{samples[0].height} sensor",
     )
+    for i, sample in enumerate(samples):      # one column's dtype for all: a bool p would make -1.0 True (ON)
+        if sample.p.dtype.is_complex:
+            raise TypeError(f"samples[{i}].p must be integer, bool or real, got {sample.p.dtype}")
+    polarity_ok = torch.stack([_polarity_ok(s.p) for s in samples]).tolist()   # one device synchronisation
+    for i, ok in enumerate(polarity_ok):
+        if not ok:
+            _refuse_polarity(f"samples[{i}].p", samples[i].p)
     joined = EventTensors(
         *(torch.cat([getattr(s, name).to(getattr(samples[0], name).dtype) for s in samples])
-          for name in "xytp"),
+          for name in "xyt"),
+        torch.cat([_on_torch(s.p) for s in samples]),   # each sample's own encoding, as voxel_grid reads it
         samples[0].width, samples[0].height,
     )
     _stats_torch(joined)  # validates dtypes, devices and bounds once

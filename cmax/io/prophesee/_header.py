@@ -24,6 +24,8 @@ from cmax.io._checks import check_stated_size
 PathLike = Union[str, "os.PathLike[str]"]
 
 _MAX_HEADER_BYTES = 1 << 20
+#: Header keys that decide how the words are decoded: each may appear on several lines only with one value.
+_DECODING_KEYS = ("evt", "format", "geometry")
 #: Tab and carriage return, the control characters a header line may hold (removed by ``str.translate``).
 _TAB_CR = {0x09: None, 0x0D: None}
 
@@ -61,15 +63,42 @@ class _Header:
 
     def stated_size(self) -> tuple[int, int] | None:
         """(width, height) that a ``format ...;width=;height=`` or ``geometry WxH`` line states, or None."""
+        return self._format_size() or self._geometry_size()
+
+    def _format_size(self) -> tuple[int, int] | None:
+        """(width, height) of the ``format ...;width=;height=`` line, or None (ValueError: not integers)."""
         options = dict(
             part.split("=", 1) for part in self.fields.get("format", "").split(";") if "=" in part
         )
         options = {key.strip().lower(): value.strip() for key, value in options.items()}
         if "width" in options and "height" in options:
             return int(options["width"]), int(options["height"])
+        return None
+
+    def _geometry_size(self) -> tuple[int, int] | None:
+        """(width, height) of the ``geometry WxH`` line, or None (ValueError: not integers)."""
         geometry = self.fields.get("geometry", "").lower().split("x")
         if len(geometry) == 2:
             return int(geometry[0]), int(geometry[1])
+        return None
+
+    def contradiction(self) -> str | None:
+        """What two lines of the header state differently (the event format of the ``evt`` and ``format``
+        lines, the size of the ``format`` and ``geometry`` lines), or None: a header that contradicts itself
+        cannot be read by trusting one of its lines."""
+        names = {"3.0": "evt3", "3": "evt3", "2.0": "evt2", "2": "evt2"}
+        by_evt = names.get(self.fields.get("evt", "").strip())
+        by_format = {"evt3": "evt3", "evt2": "evt2"}.get(self.fields.get("format", "").split(";")[0].strip().lower())
+        if by_evt and by_format and by_evt != by_format:
+            return (f"its 'evt {self.fields['evt'].strip()}' line and its 'format {self.fields['format']}' line "
+                    "declare different event formats")
+        try:
+            by_format_size, by_geometry = self._format_size(), self._geometry_size()
+        except ValueError:                              # unreadable numbers: refused (or replaced) where read
+            return None
+        if by_format_size and by_geometry and by_format_size != by_geometry:
+            return (f"its 'format' line states a {by_format_size[0]}x{by_format_size[1]} sensor, its "
+                    f"'geometry' line {by_geometry[0]}x{by_geometry[1]}")
         return None
 
     def inferred_size(self) -> tuple[tuple[int, int], str] | None:
@@ -132,11 +161,20 @@ def _read_header(path: Path) -> _Header:
         if line.lower() == "end":
             break
         key, _, value = line.partition(" ")
+        key, value = key.lower(), value.strip()
+        if key in _DECODING_KEYS and fields.get(key, value) != value:   # two lines of one key, read by the last
+            raise FormatError(f"{path}: the header contradicts itself: it has the lines '{key} {fields[key]}' and "
+                              f"'{key} {value}' (a corrupt or hand-edited header; correct the wrong line)")
         if key:
-            fields[key.lower()] = value.strip()
+            fields[key] = value
         if pos > _MAX_HEADER_BYTES:
             raise FormatError(f"{path}: header longer than {_MAX_HEADER_BYTES} bytes")
-    return _Header(fields, pos)
+    header = _Header(fields, pos)
+    contradiction = header.contradiction()
+    if contradiction is not None:
+        raise FormatError(f"{path}: the header contradicts itself: {contradiction} (a corrupt or hand-edited "
+                          "header; correct the wrong line)")
+    return header
 
 
 @dataclass(frozen=True)
