@@ -145,11 +145,15 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     assert "pass a longer window_us or a lower min_events" in captured.err         # fit_sequence's own warning
     assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet", "--min-events", "9"]) == 2
     assert "--min-events must be at least 10" in capsys.readouterr().err
-    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet", "--min-events", "300",
-                 "--max-events", "300", "--depth-grid", "6,8", "--overwrite"]) == 0
+    status = main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet", "--min-events", "300",
+                   "--max-events", "300", "--depth-grid", "6,8", "--overwrite"])
     summary = json.loads((tmp_path / "o" / "summary.json").read_text())
     assert summary["min_events"] == 300 and len(summary["windows"]) == 1 and summary["skipped_us"] == []
-    assert summary["windows"][0]["verdict"] != "ok"                                # noise: nothing to be sure of
+    # Noise: nothing to be sure of. Whether the window fails or is called low parallax turns on the last bits of
+    # the solvers (it differs between scipy / numba releases); the exit status follows the verdict either way.
+    verdict = summary["windows"][0]["verdict"]
+    assert verdict in ("failed", "low parallax", "ambiguous")
+    assert status == (1 if verdict == "failed" else 0)
 
 
 @pytest.mark.parametrize("extra, message", [
@@ -462,14 +466,18 @@ def test_a_calibration_file_beside_the_events_is_named_not_read(tmp_path, capsys
     path = write_h5(tmp_path / "ev.h5", events)
     calib = tmp_path / "calib.txt"
     calib.write_text("60 60 32 24 -0.1 0.05 0 0 0\n")
-    # Random events: the one window fails, so the run exits 1 (every window failed); the note is the point here.
-    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "a"), "--quiet"]) == 1
-    err = capsys.readouterr().err
-    assert f"{calib} lies beside the events but was not read: pass --calib {calib}" in err
-    summary = json.loads((tmp_path / "a" / "summary.json").read_text())
-    assert summary["distortion"] is None and summary["calib"] is None and summary["verdicts"]["failed"] == 1
-    assert main(["fit", str(path), "--calib", str(calib), "-o", str(tmp_path / "b"), "--quiet"]) == 0  # low parallax
-    assert "lies beside the events" not in capsys.readouterr().err
+    # Random events: the one window fails or is low parallax (which of the two turns on the solvers' last bits and
+    # differs between scipy / numba releases), never ok; the exit status follows the verdict; the note is the point.
+    for out, option in (("a", ["--K", "60,60,32,24"]), ("b", ["--calib", str(calib)])):
+        status = main(["fit", str(path), *option, "-o", str(tmp_path / out), "--quiet"])
+        err = capsys.readouterr().err
+        summary = json.loads((tmp_path / out / "summary.json").read_text())
+        assert summary["verdicts"]["ok"] == 0 and status == (1 if summary["verdicts"]["failed"] == 1 else 0)
+        if out == "a":
+            assert f"{calib} lies beside the events but was not read: pass --calib {calib}" in err
+            assert summary["distortion"] is None and summary["calib"] is None
+        else:
+            assert "lies beside the events" not in err and summary["calib"] is not None
 
 
 def test_the_end_that_no_whole_window_covers_is_named_with_a_window_that_tiles(tmp_path, capsys, monkeypatch):
