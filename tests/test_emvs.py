@@ -340,6 +340,38 @@ def test_bad_tum_files_raise(tmp_path):
         read_tum_trajectory(tmp_path / "missing.txt")
 
 
+def test_a_header_stating_another_layout_is_refused(tmp_path):
+    """A header naming the quaternion w first, or times in ns, is refused; a TUM header is read as before."""
+    poses = np.stack([np.eye(4)] * 2)
+    poses[1, 0, 3] = 0.1
+    rows = "0.0 0 0 0 0 0 0 1\n0.1 0.1 0 0 0 0 0 1\n"
+    path = tmp_path / "traj.txt"
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n" + rows)
+    times, read = read_tum_trajectory(path)
+    np.testing.assert_array_equal(times, [0, 100_000])
+    np.testing.assert_allclose(read, poses)
+    # the same numbers, but the header says qw comes first: reading them as qx qy qz qw would turn the camera
+    # 180 degrees about z (q = (0, 0, 1, 0) as xyzw) instead of the identity
+    path.write_text("# timestamp tx ty tz qw qx qy qz\n" + "0.0 0 0 0 1 0 0 0\n0.1 0.1 0 0 1 0 0 0\n")
+    with pytest.raises(ValueError, match=r"traj.txt: its header .* puts the quaternion's w first"):
+        read_tum_trajectory(path)
+    euroc = "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []\n"
+    path.write_text(euroc + "1403715273262142976,0,0,0,1,0,0,0\n1403715273267142912,0.1,0,0,1,0,0,0\n")
+    with pytest.raises(ValueError, match=r"gives times in ns .* and puts the quaternion's w first"):
+        read_tum_trajectory(path)
+
+
+def test_a_time_out_of_range_is_one_error_naming_the_line(tmp_path):
+    """Nanoseconds since 1970 read as seconds overflow int64 µs (was: OverflowError from NumPy)."""
+    path = tmp_path / "ns.txt"
+    path.write_text("1403715273262142976 0 0 0 0 0 0 1\n1403715273267142912 0.1 0 0 0 0 0 1\n")
+    with pytest.raises(ValueError, match=r"ns.txt:1: the time 1403715273262142976 s is out of range"):
+        read_tum_trajectory(path)
+    path.write_text("0 0 0 0 0 0 0 1\ninf 0.1 0 0 0 0 0 1\n")
+    with pytest.raises(ValueError, match=r"ns.txt:2: the time 'inf' is not a finite number"):
+        read_tum_trajectory(path)
+
+
 def test_as_trajectory_reads_a_synthetic_sequence_s_ground_truth():
     from cmax.sim.synthetic import SyntheticSequence
 
