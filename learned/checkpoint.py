@@ -223,14 +223,28 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     return _check_payload(path, payload)
 
 
+def _kind(tensor: torch.Tensor) -> str:
+    """The kind of number a tensor holds, as :func:`check_weights` compares them: ``"real floating point"`` (any
+    precision: a float16 or float64 copy of float32 weights loads the same), ``"integer"``, ``"bool"`` or
+    ``"complex"`` (``load_state_dict`` would cast the others silently: a complex weight losing its imaginary part,
+    a bool weight becoming 0 or 1)."""
+    if tensor.is_complex():
+        return "complex"
+    if tensor.is_floating_point():
+        return "real floating point"
+    return "bool" if tensor.dtype == torch.bool else "integer"
+
+
 def check_weights(model_config: Any, state: dict[str, torch.Tensor], source: str | Path) -> None:
     """Refuse weights that do not fit the network of ``model_config`` before that network is built.
 
     The network (:class:`learned.model.DepthPoseNet`) is built on torch's ``meta`` device, which
     allocates no memory, and the name and shape of each of its parameters and buffers is compared with
     ``state`` (a checkpoint's ``"model"``): a crafted config (``model.levels=24`` beside small weights) would
-    otherwise allocate many GB before its weights were checked. Raises :class:`CheckpointError` (one line,
-    naming ``source``) on a mismatch or on a network that torch cannot even describe.
+    otherwise allocate many GB before its weights were checked. The kind of number of each tensor is compared
+    too (:func:`_kind`: real floating point of any precision, integer, bool, complex). Raises
+    :class:`CheckpointError` (one line, naming ``source``) on a mismatch or on a network that torch cannot even
+    describe.
 
     >>> from learned.model import DepthPoseNet, ModelConfig
     >>> check_weights(ModelConfig(width=2, levels=1), DepthPoseNet(ModelConfig(width=2, levels=1)).state_dict(), "x")
@@ -245,7 +259,8 @@ def check_weights(model_config: Any, state: dict[str, torch.Tensor], source: str
 
     try:
         with torch.device("meta"):
-            expected = {name: tuple(tensor.shape) for name, tensor in DepthPoseNet(model_config).state_dict().items()}
+            network = DepthPoseNet(model_config).state_dict()
+        expected = {name: tuple(tensor.shape) for name, tensor in network.items()}
     except (RuntimeError, ValueError, OverflowError, MemoryError) as error:   # sizes past int64
         raise CheckpointError(f"{source}: its model config describes a network torch cannot build "
                               f"({' '.join(str(error).split())[:200]})") from None
@@ -253,12 +268,15 @@ def check_weights(model_config: Any, state: dict[str, torch.Tensor], source: str
     missing = sorted(set(expected) - set(stored))
     unexpected = sorted(set(stored) - set(expected))
     other = [name for name in expected if name in stored and stored[name] != expected[name]]
-    if not (missing or unexpected or other):
+    kinds = [name for name in expected if name in state and _kind(state[name]) != _kind(network[name])]
+    if not (missing or unexpected or other or kinds):
         return
     parts = [f"{len(missing)} of its {len(expected)} tensors missing (e.g. {missing[0]})" if missing else "",
              f"{len(unexpected)} unexpected (e.g. {unexpected[0]})" if unexpected else "",
              f"{len(other)} of another shape (e.g. {other[0]}: {list(stored[other[0]])}, the config's "
-             f"{list(expected[other[0]])})" if other else ""]
+             f"{list(expected[other[0]])})" if other else "",
+             f"{len(kinds)} of another kind of number (e.g. {kinds[0]}: {state[kinds[0]].dtype}, the network's "
+             f"{_kind(network[kinds[0]])})" if kinds else ""]
     raise CheckpointError(f"{source}: its weights do not fit its model config ({'; '.join(p for p in parts if p)})")
 
 
