@@ -168,6 +168,48 @@ def _refused(path: Path, error: BaseException) -> CheckpointError:
     return CheckpointError(f"{path} is not a learned checkpoint (torch.load: {type(error).__name__}: {detail[:200]})")
 
 
+def _inflated_tensors(value: Any, where: str = "") -> list[tuple[str, torch.Tensor]]:
+    """``(where, tensor)`` for each tensor in ``value`` (nested dicts, lists, tuples) whose numbers do not fit in its
+    own storage: a view with zero or overlapping strides, which a file of a few kB can make claim 10^12 numbers
+    that any elementwise check (``torch.isfinite``) or copy would then allocate. ``torch.save`` of a checkpoint's
+    contiguous weights writes none.
+
+    >>> [name for name, _ in _inflated_tensors({"a": torch.ones(3), "b": [torch.ones(4)[:2], torch.zeros(1).expand(9)]})]
+    ['b[1]']
+    """
+    if isinstance(value, torch.Tensor):
+        return [] if value.numel() * value.element_size() <= value.untyped_storage().nbytes() else [(where, value)]
+    if isinstance(value, dict):
+        items = ((f"{where}.{key}" if where else str(key), item) for key, item in value.items())
+    elif isinstance(value, (list, tuple)):
+        items = ((f"{where}[{i}]", item) for i, item in enumerate(value))
+    else:
+        return []
+    return [found for name, item in items for found in _inflated_tensors(item, name)]
+
+
+#: A checkpoint's zip entries may expand to at most this many times the file's size (plus
+#: :data:`_EXPANSION_SLACK` bytes): ``torch.save`` stores them uncompressed, so a real checkpoint expands to about
+#: its own size, and a crafted one of compressed zeros to hundreds of times it.
+_MAX_EXPANSION = 2
+_EXPANSION_SLACK = 1 << 20
+
+
+def _check_expansion(path: Path) -> None:
+    """Refuse a zip checkpoint whose entries, as its directory declares them, expand to far more than the file's
+    size (compressed storages: a 250 kB file holding 200 MB of zeros), before ``torch.load`` allocates them."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            declared = sum(info.file_size for info in archive.infolist())
+    except (zipfile.BadZipFile, OSError, ValueError):   # not a zip (torch's legacy format, or no checkpoint at all):
+        return                                          # torch.load says what it is
+    size = path.stat().st_size
+    if declared > _MAX_EXPANSION * size + _EXPANSION_SLACK:
+        raise CheckpointError(f"{path} was refused: its zip entries expand to {declared:,} bytes from a file of "
+                              f"{size:,} (compressed; torch.save stores them as they are): a crafted file that "
+                              "would fill the memory")
+
+
 def _check_payload(path: Path, payload: object) -> dict[str, Any]:
     if not isinstance(payload, dict):
         raise CheckpointError(f"{path} is not a learned checkpoint (it holds a {type(payload).__name__}, not a dict)")
@@ -181,6 +223,13 @@ def _check_payload(path: Path, payload: object) -> dict[str, Any]:
     if not (isinstance(model, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                             for k, v in model.items())):
         raise CheckpointError(f"{path}: 'model' must map parameter names to tensors")
+    inflated = _inflated_tensors(payload)
+    if inflated:
+        name, tensor = inflated[0]
+        raise CheckpointError(
+            f"{path} was refused: {len(inflated)} of its tensors claim more numbers than the file stores (e.g. "
+            f"{name}: {tensor.numel():,} numbers over {tensor.untyped_storage().nbytes():,} bytes of storage, a "
+            "repeating view); torch.save writes no such tensor: a crafted file that would fill the memory")
     bad = nonfinite_tensors(model)
     if bad:
         raise CheckpointError(f"{path} was refused: {_nonfinite_message(bad, len(model))}; use an earlier checkpoint")
@@ -214,6 +263,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise FileNotFoundError(f"no checkpoint at {path}: it is a folder ({hint})")
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
+    _check_expansion(path)
     try:
         with warnings.catch_warnings():  # e.g. torch's note on an unusual pickle protocol
             warnings.simplefilter("ignore")
