@@ -361,6 +361,21 @@ def test_a_header_stating_another_layout_is_refused(tmp_path):
         read_tum_trajectory(path)
 
 
+def test_a_headerless_first_pose_that_is_the_identity_written_wxyz_is_named(tmp_path, recwarn):
+    """A trajectory starting at the identity, written qw qx qy qz without a header, read as (1, 0, 0, 0) in x y z w:
+    a half turn about x, without a word (on a 6-DoF scene: median abs_rel 0.43 instead of 0.13)."""
+    path = tmp_path / "wxyz.txt"
+    path.write_text("0.0 0 0 0 1 0 0 0\n0.1 0.1 0 0 0.99875 0.04998 0 0\n")
+    with pytest.warns(UserWarning, match=r"wxyz.txt: the first pose's quaternion \(qx qy qz qw\) is \(1, 0, 0, 0\), a "
+                                         r"half turn about x, read as given; it is the identity if the columns are qw"):
+        _, poses = read_tum_trajectory(path)
+    np.testing.assert_allclose(poses[0, :3, :3], np.diag([1.0, -1.0, -1.0]), atol=1e-12)   # read as documented
+    path.write_text("0.0 0 0 0 0 0 0 1\n0.1 0.1 0 0 0.04998 0 0 0.99875\n")
+    recwarn.clear()
+    read_tum_trajectory(path)
+    assert not [w for w in recwarn if "quaternion" in str(w.message)]
+
+
 def test_a_time_out_of_range_is_one_error_naming_the_line(tmp_path):
     """Nanoseconds since 1970 read as seconds overflow int64 µs (was: OverflowError from NumPy)."""
     path = tmp_path / "ns.txt"

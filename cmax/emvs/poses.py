@@ -13,6 +13,7 @@ from __future__ import annotations
 
 import os
 import re
+import warnings
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
@@ -178,7 +179,9 @@ def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     first pose that names another layout (the quaternion's ``w`` first, times in
     ns, µs or ms) is refused (:func:`check_header`): a quaternion order or a time
     unit is never guessed. A file without a header cannot say its order: ``qw qx
-    qy qz`` columns there are read as ``qx qy qz qw``.
+    qy qz`` columns there are read as ``qx qy qz qw``, with a ``UserWarning``
+    when the first pose reads as ``(1, 0, 0, 0)``: a half turn about x, or the
+    identity written ``w x y z`` (the usual first pose of a trajectory).
 
     Returns
     -------
@@ -221,6 +224,10 @@ def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     if np.any(np.abs(norms - 1.0) > 1e-3):
         bad = int(np.argmax(np.abs(norms - 1.0)))
         raise ValueError(f"{path}: quaternion of pose {bad} has norm {norms[bad]:.6f}, expected 1")
+    if np.allclose(np.abs(values[0, 3:]), [1.0, 0.0, 0.0, 0.0], atol=1e-9):
+        warnings.warn(f"{path}: the first pose's quaternion (qx qy qz qw) is ({values[0, 3]:g}, 0, 0, 0), a half turn "
+                      "about x, read as given; it is the identity if the columns are qw qx qy qz: check the file's "
+                      "order (TUM: qx qy qz qw)", UserWarning, stacklevel=2)
     T = np.tile(np.eye(4), (len(times), 1, 1))
     T[:, :3, :3] = Rotation.from_quat(values[:, 3:] / norms[:, None]).as_matrix()
     T[:, :3, 3] = values[:, :3]
