@@ -112,7 +112,7 @@ def _nonfinite_message(bad: Sequence[str], total: int) -> str:
             "run that wrote them diverged")
 
 
-def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
+def save_checkpoint(path: str | Path, payload: dict[str, Any], *, overwrite: bool = True) -> Path:
     """``torch.save`` through :func:`cmax.io.atomic.write_with` (a lock, a private ``O_EXCL | O_NOFOLLOW``
     temporary file, fsync, rename): never a partial file under ``path``, never a planted link followed.
 
@@ -121,6 +121,7 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     a NaN or an infinity (:func:`nonfinite_tensors`) raise ValueError and write nothing: a diverged run never
     replaces a good checkpoint. A write error (a full disk, a file-size limit) is an :class:`OSError` naming
     ``path`` (the temporary file removed), also where ``torch.save`` hid it behind a RuntimeError of its zip writer.
+    With ``overwrite=False`` an existing ``path`` raises :class:`FileExistsError` (checked again at the rename).
     """
     missing = _KEYS - set(payload)
     if missing:
@@ -143,7 +144,7 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
                     raise error.__context__ from None         # write_with reports naming the path
                 raise
 
-    return write_with(path, fill)
+    return write_with(path, fill, overwrite=overwrite)
 
 
 #: What ``torch.load`` raises for a file that is not a whole checkpoint (truncated, empty, foreign, crafted); an
@@ -339,19 +340,24 @@ def _upgraded_rng(rng: dict[str, Any]) -> dict[str, Any]:
     return {"python": rng["python"], "numpy": numpy_state, "torch": rng["torch"]}
 
 
-def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False) -> Path:
+def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False, overwrite: bool = False) -> Path:
     """Convert a TRUSTED checkpoint of format 1 to the current format (plain data, loads with ``weights_only=True``).
 
     This unpickles ``old`` with ``weights_only=False``, which runs any code the file
     holds: pass ``trust=True`` only for a file you wrote yourself. A file that is not a whole checkpoint
-    (truncated, empty) raises :class:`CheckpointError` in one line naming it.
+    (truncated, empty) raises :class:`CheckpointError` in one line naming it. An existing ``new`` (``old`` itself
+    too) raises :class:`FileExistsError` before ``old`` is read, unless ``overwrite=True``.
     """
     if trust is not True:
         raise ValueError("upgrade_checkpoint unpickles the file with weights_only=False, which runs any code it "
                          "holds: pass trust=True (--trust-this-file) only for a checkpoint you wrote yourself")
-    old = Path(old)
+    old, new = Path(old), Path(new)
     if not old.is_file():
         raise FileNotFoundError(f"no checkpoint at {old}")
+    if os.path.lexists(new) and not overwrite:
+        same = " (the checkpoint being converted: its format-1 original would be gone)" if new.exists() and \
+            os.path.samefile(old, new) else ""
+        raise FileExistsError(f"{new} exists{same}: --overwrite replaces it, or give another NEW")
     try:
         payload = torch.load(old, map_location="cpu", weights_only=False)
     except _LOAD_ERRORS as error:   # truncated, empty, not a torch.save file
@@ -360,7 +366,7 @@ def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False)
     if not isinstance(payload, dict) or _KEYS - set(payload):
         raise CheckpointError(f"{old} is not a learned checkpoint")
     payload = {**payload, "rng": _upgraded_rng(payload["rng"]), "step": int(payload["step"])}
-    written = save_checkpoint(new, payload)
+    written = save_checkpoint(new, payload, overwrite=overwrite)
     load_checkpoint(written)  # proves it now loads safely
     return written
 
@@ -377,9 +383,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     upgrade.add_argument("new", type=Path, help="output path")
     upgrade.add_argument("--trust-this-file", action="store_true",
                          help="required: OLD is unpickled with weights_only=False and can run code")
+    upgrade.add_argument("--overwrite", action="store_true", help="replace an existing NEW (else refused)")
 
     def run(args: argparse.Namespace) -> int:
-        written = upgrade_checkpoint(args.old, args.new, trust=args.trust_this_file)
+        written = upgrade_checkpoint(args.old, args.new, trust=args.trust_this_file, overwrite=args.overwrite)
         print(f"wrote {written} (checkpoint format {FORMAT})")
         return 0
 

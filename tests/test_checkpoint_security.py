@@ -278,3 +278,22 @@ def test_a_checkpoint_of_compressed_entries_is_refused_before_loading(tmp_path):
     with pytest.raises(CheckpointError, match=r"deflated\.pt was refused: its zip entries expand to 2\d,\d{3},\d{3} "
                                               r"bytes from a file of \d+,\d{3} \(compressed"):
         load_checkpoint(tmp_path / "deflated.pt")
+
+
+def test_upgrade_never_replaces_an_existing_file_without_overwrite(tmp_path, capsys):
+    """`upgrade OLD NEW` replaced an existing NEW (another checkpoint) without a word, and `upgrade OLD OLD`
+    replaced the format-1 original."""
+    from learned.checkpoint import main
+
+    old = _payload()
+    old["rng"] = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    torch.save(old, tmp_path / "old.pt")
+    other = save_checkpoint(tmp_path / "other.pt", {**_payload(), "step": 7})
+    before = {name: (tmp_path / name).read_bytes() for name in ("old.pt", "other.pt")}
+    assert main(["upgrade", str(tmp_path / "old.pt"), str(other), "--trust-this-file"]) == 2
+    assert f"{other} exists: --overwrite replaces it, or give another NEW" in _one_error_line(capsys)
+    assert main(["upgrade", str(tmp_path / "old.pt"), str(tmp_path / "old.pt"), "--trust-this-file"]) == 2
+    assert "the checkpoint being converted" in _one_error_line(capsys)
+    assert before == {name: (tmp_path / name).read_bytes() for name in ("old.pt", "other.pt")}
+    assert main(["upgrade", str(tmp_path / "old.pt"), str(other), "--trust-this-file", "--overwrite"]) == 0
+    assert load_checkpoint(other)["step"] == 3
