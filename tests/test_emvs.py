@@ -296,6 +296,17 @@ def test_bad_settings_raise(kwargs, match):
         EMVS(camera, **kwargs)
 
 
+def test_a_dsi_larger_than_memory_is_refused_before_any_work():
+    """100000 planes of a 240x180 sensor asked numpy for 16 GiB (a lazily touched calloc: the OOM killer, not an
+    error, on a machine with less)."""
+    camera = Camera.from_intrinsics(100, 100, 120, 90, 240, 180)
+    with pytest.raises(ValueError, match=r"n_planes=100000 planes of 240x180 make a Disparity Space Image of 16\.1 GiB"
+                                         r", more than cmax\.emvs\.core\.MAX_DSI_BYTES \(4 GiB\): give at most "
+                                         r"24,855 planes"):
+        EMVS(camera, n_planes=100_000)
+    EMVS(camera, n_planes=24_855)      # 3.99999 GiB: allowed (nothing is allocated before run)
+
+
 def test_camera_must_be_a_camera():
     with pytest.raises(TypeError, match="camera"):
         EMVS(np.eye(3))
