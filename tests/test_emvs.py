@@ -370,6 +370,8 @@ def test_a_header_stating_another_layout_is_refused(tmp_path):
     path.write_text(euroc + "1403715273262142976,0,0,0,1,0,0,0\n1403715273267142912,0.1,0,0,1,0,0,0\n")
     with pytest.raises(ValueError, match=r"gives times in ns .* and puts the quaternion's w first"):
         read_tum_trajectory(path)
+    path.write_text("# poses every 5 [ms] from the motion capture\n# t[s] tx ty tz qx qy qz qw\n" + rows)
+    assert read_tum_trajectory(path)[0].tolist() == [0, 100_000]   # a unit in a remark is not the time column's
 
 
 def test_a_headerless_first_pose_that_is_the_identity_written_wxyz_is_named(tmp_path, recwarn):

@@ -138,7 +138,7 @@ def _seconds_to_us(token: str, path: Path, line_number: int) -> int:
 #: A column name of a quaternion component in a header line: ``qw``, ``q_w``, ``q_RS_w`` (EuRoC), ``quat_w``.
 _QUATERNION_COLUMN = re.compile(r"^q[a-z]*(?:_[a-z]+)*_?([wxyz])$", re.IGNORECASE)
 #: A time unit other than seconds stated in a header line: ``timestamp [ns]`` (EuRoC), ``t[us]``, ``t [ms]``.
-_OTHER_TIME_UNIT = re.compile(r"\[(ns|us|µs|ms)\]", re.IGNORECASE)
+_OTHER_TIME_UNIT = re.compile(r"\b(?:t|time|times|timestamp|timestamps|stamp)\s*\[(ns|us|µs|ms)\]", re.IGNORECASE)
 
 
 def check_header(line: str, path: str | os.PathLike) -> None:
