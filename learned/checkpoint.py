@@ -112,7 +112,7 @@ def _nonfinite_message(bad: Sequence[str], total: int) -> str:
             "run that wrote them diverged")
 
 
-def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
+def save_checkpoint(path: str | Path, payload: dict[str, Any], *, overwrite: bool = True) -> Path:
     """``torch.save`` through :func:`cmax.io.atomic.write_with` (a lock, a private ``O_EXCL | O_NOFOLLOW``
     temporary file, fsync, rename): never a partial file under ``path``, never a planted link followed.
 
@@ -121,6 +121,7 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
     a NaN or an infinity (:func:`nonfinite_tensors`) raise ValueError and write nothing: a diverged run never
     replaces a good checkpoint. A write error (a full disk, a file-size limit) is an :class:`OSError` naming
     ``path`` (the temporary file removed), also where ``torch.save`` hid it behind a RuntimeError of its zip writer.
+    With ``overwrite=False`` an existing ``path`` raises :class:`FileExistsError` (checked again at the rename).
     """
     missing = _KEYS - set(payload)
     if missing:
@@ -143,7 +144,7 @@ def save_checkpoint(path: str | Path, payload: dict[str, Any]) -> Path:
                     raise error.__context__ from None         # write_with reports naming the path
                 raise
 
-    return write_with(path, fill)
+    return write_with(path, fill, overwrite=overwrite)
 
 
 #: What ``torch.load`` raises for a file that is not a whole checkpoint (truncated, empty, foreign, crafted); an
@@ -168,6 +169,48 @@ def _refused(path: Path, error: BaseException) -> CheckpointError:
     return CheckpointError(f"{path} is not a learned checkpoint (torch.load: {type(error).__name__}: {detail[:200]})")
 
 
+def _inflated_tensors(value: Any, where: str = "") -> list[tuple[str, torch.Tensor]]:
+    """``(where, tensor)`` for each tensor in ``value`` (nested dicts, lists, tuples) whose numbers do not fit in its
+    own storage: a view with zero or overlapping strides, which a file of a few kB can make claim 10^12 numbers
+    that any elementwise check (``torch.isfinite``) or copy would then allocate. ``torch.save`` of a checkpoint's
+    contiguous weights writes none.
+
+    >>> [name for name, _ in _inflated_tensors({"a": torch.ones(3), "b": [torch.ones(4)[:2], torch.zeros(1).expand(9)]})]
+    ['b[1]']
+    """
+    if isinstance(value, torch.Tensor):
+        return [] if value.numel() * value.element_size() <= value.untyped_storage().nbytes() else [(where, value)]
+    if isinstance(value, dict):
+        items = ((f"{where}.{key}" if where else str(key), item) for key, item in value.items())
+    elif isinstance(value, (list, tuple)):
+        items = ((f"{where}[{i}]", item) for i, item in enumerate(value))
+    else:
+        return []
+    return [found for name, item in items for found in _inflated_tensors(item, name)]
+
+
+#: A checkpoint's zip entries may expand to at most this many times the file's size (plus
+#: :data:`_EXPANSION_SLACK` bytes): ``torch.save`` stores them uncompressed, so a real checkpoint expands to about
+#: its own size, and a crafted one of compressed zeros to hundreds of times it.
+_MAX_EXPANSION = 2
+_EXPANSION_SLACK = 1 << 20
+
+
+def _check_expansion(path: Path) -> None:
+    """Refuse a zip checkpoint whose entries, as its directory declares them, expand to far more than the file's
+    size (compressed storages: a 250 kB file holding 200 MB of zeros), before ``torch.load`` allocates them."""
+    try:
+        with zipfile.ZipFile(path) as archive:
+            declared = sum(info.file_size for info in archive.infolist())
+    except (zipfile.BadZipFile, OSError, ValueError):   # not a zip (torch's legacy format, or no checkpoint at all):
+        return                                          # torch.load says what it is
+    size = path.stat().st_size
+    if declared > _MAX_EXPANSION * size + _EXPANSION_SLACK:
+        raise CheckpointError(f"{path} was refused: its zip entries expand to {declared:,} bytes from a file of "
+                              f"{size:,} (compressed; torch.save stores them as they are): a crafted file that "
+                              "would fill the memory")
+
+
 def _check_payload(path: Path, payload: object) -> dict[str, Any]:
     if not isinstance(payload, dict):
         raise CheckpointError(f"{path} is not a learned checkpoint (it holds a {type(payload).__name__}, not a dict)")
@@ -181,6 +224,13 @@ def _check_payload(path: Path, payload: object) -> dict[str, Any]:
     if not (isinstance(model, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                             for k, v in model.items())):
         raise CheckpointError(f"{path}: 'model' must map parameter names to tensors")
+    inflated = _inflated_tensors(payload)
+    if inflated:
+        name, tensor = inflated[0]
+        raise CheckpointError(
+            f"{path} was refused: {len(inflated)} of its tensors claim more numbers than the file stores (e.g. "
+            f"{name}: {tensor.numel():,} numbers over {tensor.untyped_storage().nbytes():,} bytes of storage, a "
+            "repeating view); torch.save writes no such tensor: a crafted file that would fill the memory")
     bad = nonfinite_tensors(model)
     if bad:
         raise CheckpointError(f"{path} was refused: {_nonfinite_message(bad, len(model))}; use an earlier checkpoint")
@@ -214,6 +264,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
         raise FileNotFoundError(f"no checkpoint at {path}: it is a folder ({hint})")
     if not path.is_file():
         raise FileNotFoundError(f"no checkpoint at {path}")
+    _check_expansion(path)
     try:
         with warnings.catch_warnings():  # e.g. torch's note on an unusual pickle protocol
             warnings.simplefilter("ignore")
@@ -223,14 +274,28 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     return _check_payload(path, payload)
 
 
+def _kind(tensor: torch.Tensor) -> str:
+    """The kind of number a tensor holds, as :func:`check_weights` compares them: ``"real floating point"`` (any
+    precision: a float16 or float64 copy of float32 weights loads the same), ``"integer"``, ``"bool"`` or
+    ``"complex"`` (``load_state_dict`` would cast the others silently: a complex weight losing its imaginary part,
+    a bool weight becoming 0 or 1)."""
+    if tensor.is_complex():
+        return "complex"
+    if tensor.is_floating_point():
+        return "real floating point"
+    return "bool" if tensor.dtype == torch.bool else "integer"
+
+
 def check_weights(model_config: Any, state: dict[str, torch.Tensor], source: str | Path) -> None:
     """Refuse weights that do not fit the network of ``model_config`` before that network is built.
 
     The network (:class:`learned.model.DepthPoseNet`) is built on torch's ``meta`` device, which
     allocates no memory, and the name and shape of each of its parameters and buffers is compared with
     ``state`` (a checkpoint's ``"model"``): a crafted config (``model.levels=24`` beside small weights) would
-    otherwise allocate many GB before its weights were checked. Raises :class:`CheckpointError` (one line,
-    naming ``source``) on a mismatch or on a network that torch cannot even describe.
+    otherwise allocate many GB before its weights were checked. The kind of number of each tensor is compared
+    too (:func:`_kind`: real floating point of any precision, integer, bool, complex). Raises
+    :class:`CheckpointError` (one line, naming ``source``) on a mismatch or on a network that torch cannot even
+    describe.
 
     >>> from learned.model import DepthPoseNet, ModelConfig
     >>> check_weights(ModelConfig(width=2, levels=1), DepthPoseNet(ModelConfig(width=2, levels=1)).state_dict(), "x")
@@ -245,7 +310,8 @@ def check_weights(model_config: Any, state: dict[str, torch.Tensor], source: str
 
     try:
         with torch.device("meta"):
-            expected = {name: tuple(tensor.shape) for name, tensor in DepthPoseNet(model_config).state_dict().items()}
+            network = DepthPoseNet(model_config).state_dict()
+        expected = {name: tuple(tensor.shape) for name, tensor in network.items()}
     except (RuntimeError, ValueError, OverflowError, MemoryError) as error:   # sizes past int64
         raise CheckpointError(f"{source}: its model config describes a network torch cannot build "
                               f"({' '.join(str(error).split())[:200]})") from None
@@ -253,12 +319,15 @@ def check_weights(model_config: Any, state: dict[str, torch.Tensor], source: str
     missing = sorted(set(expected) - set(stored))
     unexpected = sorted(set(stored) - set(expected))
     other = [name for name in expected if name in stored and stored[name] != expected[name]]
-    if not (missing or unexpected or other):
+    kinds = [name for name in expected if name in state and _kind(state[name]) != _kind(network[name])]
+    if not (missing or unexpected or other or kinds):
         return
     parts = [f"{len(missing)} of its {len(expected)} tensors missing (e.g. {missing[0]})" if missing else "",
              f"{len(unexpected)} unexpected (e.g. {unexpected[0]})" if unexpected else "",
              f"{len(other)} of another shape (e.g. {other[0]}: {list(stored[other[0]])}, the config's "
-             f"{list(expected[other[0]])})" if other else ""]
+             f"{list(expected[other[0]])})" if other else "",
+             f"{len(kinds)} of another kind of number (e.g. {kinds[0]}: {state[kinds[0]].dtype}, the network's "
+             f"{_kind(network[kinds[0]])})" if kinds else ""]
     raise CheckpointError(f"{source}: its weights do not fit its model config ({'; '.join(p for p in parts if p)})")
 
 
@@ -271,19 +340,24 @@ def _upgraded_rng(rng: dict[str, Any]) -> dict[str, Any]:
     return {"python": rng["python"], "numpy": numpy_state, "torch": rng["torch"]}
 
 
-def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False) -> Path:
+def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False, overwrite: bool = False) -> Path:
     """Convert a TRUSTED checkpoint of format 1 to the current format (plain data, loads with ``weights_only=True``).
 
     This unpickles ``old`` with ``weights_only=False``, which runs any code the file
     holds: pass ``trust=True`` only for a file you wrote yourself. A file that is not a whole checkpoint
-    (truncated, empty) raises :class:`CheckpointError` in one line naming it.
+    (truncated, empty) raises :class:`CheckpointError` in one line naming it. An existing ``new`` (``old`` itself
+    too) raises :class:`FileExistsError` before ``old`` is read, unless ``overwrite=True``.
     """
     if trust is not True:
         raise ValueError("upgrade_checkpoint unpickles the file with weights_only=False, which runs any code it "
                          "holds: pass trust=True (--trust-this-file) only for a checkpoint you wrote yourself")
-    old = Path(old)
+    old, new = Path(old), Path(new)
     if not old.is_file():
         raise FileNotFoundError(f"no checkpoint at {old}")
+    if os.path.lexists(new) and not overwrite:
+        same = " (the checkpoint being converted: its format-1 original would be gone)" if new.exists() and \
+            os.path.samefile(old, new) else ""
+        raise FileExistsError(f"{new} exists{same}: --overwrite replaces it, or give another NEW")
     try:
         payload = torch.load(old, map_location="cpu", weights_only=False)
     except _LOAD_ERRORS as error:   # truncated, empty, not a torch.save file
@@ -292,7 +366,7 @@ def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False)
     if not isinstance(payload, dict) or _KEYS - set(payload):
         raise CheckpointError(f"{old} is not a learned checkpoint")
     payload = {**payload, "rng": _upgraded_rng(payload["rng"]), "step": int(payload["step"])}
-    written = save_checkpoint(new, payload)
+    written = save_checkpoint(new, payload, overwrite=overwrite)
     load_checkpoint(written)  # proves it now loads safely
     return written
 
@@ -309,9 +383,10 @@ def main(argv: Sequence[str] | None = None) -> int:
     upgrade.add_argument("new", type=Path, help="output path")
     upgrade.add_argument("--trust-this-file", action="store_true",
                          help="required: OLD is unpickled with weights_only=False and can run code")
+    upgrade.add_argument("--overwrite", action="store_true", help="replace an existing NEW (else refused)")
 
     def run(args: argparse.Namespace) -> int:
-        written = upgrade_checkpoint(args.old, args.new, trust=args.trust_this_file)
+        written = upgrade_checkpoint(args.old, args.new, trust=args.trust_this_file, overwrite=args.overwrite)
         print(f"wrote {written} (checkpoint format {FORMAT})")
         return 0
 

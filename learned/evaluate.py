@@ -279,6 +279,12 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
     for path in map(Path, files):
         windows = held_out_windows(path, window_us)
         depth, twist = predict_windows(model, windows, batch_size)
+        if not (np.isfinite(depth).all() and np.isfinite(twist).all()):   # finite weights that overflow
+            bad = sorted({int(i) for i in np.flatnonzero(~np.isfinite(depth).all(axis=(1, 2)))}
+                         | {int(i) for i in np.flatnonzero(~np.isfinite(twist).all(axis=1))})
+            raise ValueError(f"{checkpoint} gives a non-finite output (NaN or infinite depth or twist) on {len(bad)} "
+                             f"of the {len(windows)} windows of {path} (e.g. window {bad[0]}): its weights overflow "
+                             "on these events (a diverged or corrupt checkpoint?); no metric can be computed")
         metrics = score_depth(depth, windows, "dense")
         first = windows[0].sample
         notes = camera_notes(card, first.events.width, first.events.height, np.asarray(first.K, float),

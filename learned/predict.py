@@ -298,10 +298,15 @@ class WindowPrediction:
 
 def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"], starts: Sequence[int],
                     window_us: int, *, batch: int = 8,
-                    transform: Callable[["Events"], "Events"] | None = None) -> Iterator[WindowPrediction | None]:
+                    transform: Callable[["Events"], "Events"] | None = None,
+                    source: str = "the network") -> Iterator[WindowPrediction | None]:
     """For each start [µs] in order: the :class:`WindowPrediction` of ``[t0, t0 + window_us)``, or None when the
     window (read with ``window(t0, t1)``, then ``transform``) holds fewer than :data:`MIN_EVENTS` events.
-    ``batch`` windows go through the network at a time."""
+    ``batch`` windows go through the network at a time.
+
+    A window whose inverse depth or twist holds a NaN or an infinity (finite weights that overflow, e.g. a
+    diverged run's saved just before its loss went non-finite) raises ``ValueError`` naming ``source`` (the
+    checkpoint) and the window: such an output is never yielded, so never written as a depth map."""
     for first in range(0, len(starts), batch):
         chunk = []
         for index in range(first, min(first + batch, len(starts))):
@@ -316,6 +321,13 @@ def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"
                 yield None
             else:
                 inverse, twist = next(outputs)
+                if not (np.isfinite(inverse).all() and np.isfinite(twist).all()):
+                    share = float(np.mean(~np.isfinite(inverse)))
+                    raise ValueError(
+                        f"{source} gives a non-finite output on window {index} ({t0}-{t0 + window_us} µs, "
+                        f"{len(events):,} events): {share:.0%} of its inverse depth and "
+                        f"{int(np.sum(~np.isfinite(twist)))} of 6 twist components are NaN or infinite; its weights "
+                        "overflow on these events (a diverged or corrupt checkpoint?): nothing was written")
                 yield WindowPrediction(index, t0, t0 + window_us, len(events), inverse, twist)
 
 
@@ -579,7 +591,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         lines, skipped, samples, indices = [_CSV_HEADER], 0, [], []
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
             for prediction in predict_windows(model, recording.window, starts, window_us, batch=batch,
-                                              transform=undistort):
+                                              transform=undistort, source=str(checkpoint)):
                 bar.update(1)
                 if prediction is None:
                     skipped += 1

@@ -245,3 +245,55 @@ def test_numpy_scalars_in_config_and_optimizer_are_stored_as_plain_numbers(tmp_p
                                                "step": 1, "config": {"lr": np.float64(5e-4)}, "rng": {}})
     ckpt = load_checkpoint(path)
     assert type(ckpt["optimizer"]["param_groups"][0]["lr"]) is float and ckpt["config"]["lr"] == 5e-4
+
+
+# -- files that would fill the memory before any check ---------------------------------------------------------------
+def test_a_tensor_claiming_more_numbers_than_its_storage_is_refused(tmp_path):
+    """A stride-0 view of one stored number, claiming 10^12 of them, is a 70 kB file; its NaN check asked for
+    4 TB (was: `RuntimeError: ... DefaultCPUAllocator: can't allocate memory` traceback; at 3e8 numbers 2.3 GB
+    used loading a 68 kB file)."""
+    payload = _payload()
+    payload["model"]["stem.0.weight"] = torch.zeros(1).as_strided((10**12,), (0,))
+    torch.save({**payload, "format": 2}, tmp_path / "repeat.pt")
+    with pytest.raises(CheckpointError, match=r"repeat\.pt was refused: 1 of its tensors claim more numbers than "
+                                              r"the file stores \(e\.g\. model\.stem\.0\.weight: 1,000,000,000,000 "
+                                              r"numbers over 4 bytes of storage"):
+        load_checkpoint(tmp_path / "repeat.pt")
+
+
+def test_a_checkpoint_of_compressed_entries_is_refused_before_loading(tmp_path):
+    """torch.save stores its zip entries uncompressed; the same checkpoint re-zipped with deflate and 20 MB of zeros
+    is a file of about 60 kB that expanded to 20 MB on loading (200 MB from 250 kB, and so on)."""
+    import zipfile
+
+    payload = _payload()
+    payload["optimizer"]["padding"] = torch.zeros(5_000_000)
+    torch.save({**payload, "format": 2}, tmp_path / "stored.pt")
+    assert load_checkpoint(tmp_path / "stored.pt")["step"] == 3     # uncompressed: its own size, loads
+    with zipfile.ZipFile(tmp_path / "stored.pt") as src, \
+            zipfile.ZipFile(tmp_path / "deflated.pt", "w", zipfile.ZIP_DEFLATED, compresslevel=9) as dst:
+        for info in src.infolist():
+            dst.writestr(info.filename, src.read(info.filename))
+    assert (tmp_path / "deflated.pt").stat().st_size < 200_000
+    with pytest.raises(CheckpointError, match=r"deflated\.pt was refused: its zip entries expand to 2\d,\d{3},\d{3} "
+                                              r"bytes from a file of \d+,\d{3} \(compressed"):
+        load_checkpoint(tmp_path / "deflated.pt")
+
+
+def test_upgrade_never_replaces_an_existing_file_without_overwrite(tmp_path, capsys):
+    """`upgrade OLD NEW` replaced an existing NEW (another checkpoint) without a word, and `upgrade OLD OLD`
+    replaced the format-1 original."""
+    from learned.checkpoint import main
+
+    old = _payload()
+    old["rng"] = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
+    torch.save(old, tmp_path / "old.pt")
+    other = save_checkpoint(tmp_path / "other.pt", {**_payload(), "step": 7})
+    before = {name: (tmp_path / name).read_bytes() for name in ("old.pt", "other.pt")}
+    assert main(["upgrade", str(tmp_path / "old.pt"), str(other), "--trust-this-file"]) == 2
+    assert f"{other} exists: --overwrite replaces it, or give another NEW" in _one_error_line(capsys)
+    assert main(["upgrade", str(tmp_path / "old.pt"), str(tmp_path / "old.pt"), "--trust-this-file"]) == 2
+    assert "the checkpoint being converted" in _one_error_line(capsys)
+    assert before == {name: (tmp_path / name).read_bytes() for name in ("old.pt", "other.pt")}
+    assert main(["upgrade", str(tmp_path / "old.pt"), str(other), "--trust-this-file", "--overwrite"]) == 0
+    assert load_checkpoint(other)["step"] == 3

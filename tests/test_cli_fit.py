@@ -43,6 +43,70 @@ def noise_events(n: int, span_us: int, seed: int) -> Events:
                   rng.integers(0, 2, n), 64, 48)
 
 
+#: The layout of DSEC's own cam_to_cam.yaml (and PyYAML's safe_dump): block lists, one ``- value`` line per number,
+#: nested block lists for the matrices, a camera's keys in another order than DSEC_YAML's.
+DSEC_BLOCK_YAML = """\
+intrinsics:
+  cam0:
+    camera_type: event
+    is_rectified: false
+    camera_model: pinhole
+    distortion_coeffs:
+    - -0.0936
+    - 0.1945
+    - 7.6e-05
+    - 0.00196
+    distortion_model: radtan
+    resolution:
+    - 640
+    - 480
+    camera_matrix:
+    - 553.47
+    - 553.40
+    - 346.65
+    - 216.52
+  camRect0:
+    camera_matrix:
+    - 569.76
+    - 569.76
+    - 335.10
+    - 221.24
+    resolution:
+    - 640
+    - 480
+  cam1:
+    T_cn_cnm1:
+    - - 0.99
+      - 0.01
+    camera_matrix:
+    - 1188.2
+    - 1187.9
+    - 720.6
+    - 567.3
+extrinsics:
+  R_rect0:
+  - - 1.0
+    - 0.0
+"""
+
+
+def test_dsec_block_lists_are_read(tmp_path):
+    """DSEC writes its lists in block style; they were refused as 'no intrinsics/cam0 (cameras found: cam0,
+    camRect0, camera_matrix, distortion_coeffs, resolution)': the keys with a block list below them counted as
+    cameras."""
+    yaml = tmp_path / "cam_to_cam.yaml"
+    yaml.write_text(DSEC_BLOCK_YAML)
+    K, distortion, size = read_calibration(yaml)
+    assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (553.47, 553.40, 346.65, 216.52) and size == (640, 480)
+    np.testing.assert_array_equal(distortion, [-0.0936, 0.1945, 7.6e-05, 0.00196])
+    K, distortion, size = read_calibration(yaml, "camRect0")
+    assert K[0, 0] == 569.76 and K[1, 2] == 221.24 and distortion is None and size == (640, 480)
+    K, _, size = read_calibration(yaml, "cam1")
+    assert K[0, 0] == 1188.2 and size is None
+    with pytest.raises(ValueError, match=r"no intrinsics/cam9 \(cameras found: cam0, cam1, camRect0\)"):
+        read_calibration(yaml, "cam9")
+
+
 def test_calibration_files(tmp_path):
     ecd = tmp_path / "calib.txt"
     ecd.write_text("199.09 199.09 132.19 110.14 -0.368 0.150 -0.0003 -0.0002 0.0\n")

@@ -296,6 +296,17 @@ def test_bad_settings_raise(kwargs, match):
         EMVS(camera, **kwargs)
 
 
+def test_a_dsi_larger_than_memory_is_refused_before_any_work():
+    """100000 planes of a 240x180 sensor asked numpy for 16 GiB (a lazily touched calloc: the OOM killer, not an
+    error, on a machine with less)."""
+    camera = Camera.from_intrinsics(100, 100, 120, 90, 240, 180)
+    with pytest.raises(ValueError, match=r"n_planes=100000 planes of 240x180 make a Disparity Space Image of 16\.1 GiB"
+                                         r", more than cmax\.emvs\.core\.MAX_DSI_BYTES \(4 GiB\): give at most "
+                                         r"24,855 planes"):
+        EMVS(camera, n_planes=100_000)
+    EMVS(camera, n_planes=24_855)      # 3.99999 GiB: allowed (nothing is allocated before run)
+
+
 def test_camera_must_be_a_camera():
     with pytest.raises(TypeError, match="camera"):
         EMVS(np.eye(3))
@@ -338,6 +349,55 @@ def test_bad_tum_files_raise(tmp_path):
         read_tum_trajectory(path)
     with pytest.raises(FileNotFoundError):
         read_tum_trajectory(tmp_path / "missing.txt")
+
+
+def test_a_header_stating_another_layout_is_refused(tmp_path):
+    """A header naming the quaternion w first, or times in ns, is refused; a TUM header is read as before."""
+    poses = np.stack([np.eye(4)] * 2)
+    poses[1, 0, 3] = 0.1
+    rows = "0.0 0 0 0 0 0 0 1\n0.1 0.1 0 0 0 0 0 1\n"
+    path = tmp_path / "traj.txt"
+    path.write_text("# timestamp tx ty tz qx qy qz qw\n" + rows)
+    times, read = read_tum_trajectory(path)
+    np.testing.assert_array_equal(times, [0, 100_000])
+    np.testing.assert_allclose(read, poses)
+    # the same numbers, but the header says qw comes first: reading them as qx qy qz qw would turn the camera
+    # 180 degrees about z (q = (0, 0, 1, 0) as xyzw) instead of the identity
+    path.write_text("# timestamp tx ty tz qw qx qy qz\n" + "0.0 0 0 0 1 0 0 0\n0.1 0.1 0 0 1 0 0 0\n")
+    with pytest.raises(ValueError, match=r"traj.txt: its header .* puts the quaternion's w first"):
+        read_tum_trajectory(path)
+    euroc = "#timestamp [ns],p_RS_R_x [m],p_RS_R_y [m],p_RS_R_z [m],q_RS_w [],q_RS_x [],q_RS_y [],q_RS_z []\n"
+    path.write_text(euroc + "1403715273262142976,0,0,0,1,0,0,0\n1403715273267142912,0.1,0,0,1,0,0,0\n")
+    with pytest.raises(ValueError, match=r"gives times in ns .* and puts the quaternion's w first"):
+        read_tum_trajectory(path)
+    path.write_text("# poses every 5 [ms] from the motion capture\n# t[s] tx ty tz qx qy qz qw\n" + rows)
+    assert read_tum_trajectory(path)[0].tolist() == [0, 100_000]   # a unit in a remark is not the time column's
+
+
+def test_a_headerless_first_pose_that_is_the_identity_written_wxyz_is_named(tmp_path, recwarn):
+    """A trajectory starting at the identity, written qw qx qy qz without a header, read as (1, 0, 0, 0) in x y z w:
+    a half turn about x, without a word (on a 6-DoF scene: median abs_rel 0.43 instead of 0.13)."""
+    path = tmp_path / "wxyz.txt"
+    path.write_text("0.0 0 0 0 1 0 0 0\n0.1 0.1 0 0 0.99875 0.04998 0 0\n")
+    with pytest.warns(UserWarning, match=r"wxyz.txt: the first pose's quaternion \(qx qy qz qw\) is \(1, 0, 0, 0\), a "
+                                         r"half turn about x, read as given; it is the identity if the columns are qw"):
+        _, poses = read_tum_trajectory(path)
+    np.testing.assert_allclose(poses[0, :3, :3], np.diag([1.0, -1.0, -1.0]), atol=1e-12)   # read as documented
+    path.write_text("0.0 0 0 0 0 0 0 1\n0.1 0.1 0 0 0.04998 0 0 0.99875\n")
+    recwarn.clear()
+    read_tum_trajectory(path)
+    assert not [w for w in recwarn if "quaternion" in str(w.message)]
+
+
+def test_a_time_out_of_range_is_one_error_naming_the_line(tmp_path):
+    """Nanoseconds since 1970 read as seconds overflow int64 µs (was: OverflowError from NumPy)."""
+    path = tmp_path / "ns.txt"
+    path.write_text("1403715273262142976 0 0 0 0 0 0 1\n1403715273267142912 0.1 0 0 0 0 0 1\n")
+    with pytest.raises(ValueError, match=r"ns.txt:1: the time 1403715273262142976 s is out of range"):
+        read_tum_trajectory(path)
+    path.write_text("0 0 0 0 0 0 0 1\ninf 0.1 0 0 0 0 0 1\n")
+    with pytest.raises(ValueError, match=r"ns.txt:2: the time 'inf' is not a finite number"):
+        read_tum_trajectory(path)
 
 
 def test_as_trajectory_reads_a_synthetic_sequence_s_ground_truth():

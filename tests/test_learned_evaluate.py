@@ -269,3 +269,19 @@ def test_training_statistics_of_a_plane(tmp_path):
     assert stats.median_depth_m == pytest.approx(PLANE_M)        # the NaN and beyond-far columns left out
     assert stats.mean_twist == pytest.approx(tuple(TRUE_TWIST))
     assert stats.depth_samples == 2 * 2 * H * (W - 2) and stats.twists == 2 * 81
+
+
+def test_a_network_output_that_overflows_is_one_error_naming_the_checkpoint(tmp_path):
+    """Finite weights scaled by 1e30 (not refused as NaN weights) gave `v_pred must be finite, got 27 non-finite
+    entries`, naming neither the checkpoint nor the file."""
+    from learned.evaluate import evaluate_files
+
+    path, _ = plane_file(tmp_path / "plane.h5")
+    good = constant_checkpoint(tmp_path / "good.pt", PLANE_M, TRUE_TWIST)
+    assert evaluate_files(good, [path], window_s=WINDOW_S)[0].depth.abs_rel == pytest.approx(0, abs=1e-4)
+    ckpt = torch.load(good, weights_only=True)
+    ckpt["model"] = {name: tensor * 1e30 for name, tensor in ckpt["model"].items()}
+    torch.save(ckpt, tmp_path / "huge.pt")
+    with pytest.raises(ValueError, match=r"huge\.pt gives a non-finite output \(NaN or infinite depth or twist\) on "
+                                         r"\d of the 2 windows of .*plane\.h5"):
+        evaluate_files(tmp_path / "huge.pt", [path], window_s=WINDOW_S)

@@ -260,3 +260,44 @@ def test_run_prediction_checks_K_and_the_times_as_the_command_line_does(tiny_che
             run_prediction(slider_file, out, checkpoint=tiny_checkpoint, progress=False, note=lambda text: None,
                            **kwargs)
         assert "\n" not in str(caught.value) and not out.exists(), (kwargs, caught.value)
+
+
+# -- 5. weights of another kind of number, and weights that overflow --------------------------------------------------
+@pytest.mark.parametrize("dtype", ["complex64", "bool", "int32"])
+def test_weights_of_another_kind_of_number_are_refused(tiny_checkpoint, tmp_path, dtype):
+    """Complex, bool or integer weights of the right shapes were cast by load_state_dict without a word (a complex
+    weight lost its imaginary part with only torch's own warning; bool weights gave depths of 0.5-0.8 m, exit 0)."""
+    import torch
+
+    from learned.checkpoint import CheckpointError
+    from learned.evaluate import load_model
+
+    ckpt = torch.load(tiny_checkpoint, weights_only=True)
+    ckpt["model"] = {name: tensor.to(getattr(torch, dtype)) for name, tensor in ckpt["model"].items()}
+    torch.save(ckpt, tmp_path / "other.pt")
+    with pytest.raises(CheckpointError, match=rf"other\.pt: its weights do not fit its model config \(24 of another "
+                                              rf"kind of number \(e\.g\. \S+: torch\.{dtype}, the network's real "
+                                              r"floating point\)\)"):
+        load_model(tmp_path / "other.pt")
+    ckpt = torch.load(tiny_checkpoint, weights_only=True)
+    ckpt["model"] = {name: tensor.to(torch.float16) for name, tensor in ckpt["model"].items()}
+    torch.save(ckpt, tmp_path / "half.pt")
+    load_model(tmp_path / "half.pt")            # another precision of real numbers loads
+
+
+def test_weights_that_overflow_write_no_depth_map(tiny_checkpoint, slider_file, tmp_path, capsys):
+    """Finite weights scaled by 1e30 (not refused as NaN weights) made the network's output NaN: with --depth-range
+    every window_*.npz held NaN depth and twists.csv 'nan', exit 0; without it an error about the colour scale."""
+    import torch
+
+    from learned.predict import main
+
+    ckpt = torch.load(tiny_checkpoint, weights_only=True)
+    ckpt["model"] = {name: tensor * 1e30 for name, tensor in ckpt["model"].items()}
+    torch.save(ckpt, tmp_path / "huge.pt")
+    for extra in ((), ("--depth-range", "0.5,10")):
+        out = tmp_path / f"out{len(extra)}"
+        status, err = one_line_error(lambda: main([str(slider_file), "-o", str(out), "--checkpoint",
+                                                   str(tmp_path / "huge.pt"), "--quiet", *extra]), capsys)
+        assert status == 2 and "huge.pt gives a non-finite output on window 0" in err, err
+        assert not out.exists() or not any(out.glob("*.npz")), sorted(out.iterdir())

@@ -329,22 +329,42 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray
 
 
 def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
-    """The ``key: value`` lines under ``intrinsics:`` / ``<camera>:`` of a DSEC cam_to_cam.yaml (no YAML library)."""
-    section, current, indents, values = None, None, {}, {}
+    r"""The ``key: value`` lines under ``intrinsics:`` / ``<camera>:`` of a DSEC cam_to_cam.yaml (no YAML library).
+
+    A list may be written in flow style (``camera_matrix: [fx, fy, cx, cy]``) or, as DSEC's own files and
+    PyYAML's ``safe_dump`` write it, in block style (the key alone on its line, then one ``- value`` line per
+    number): both give the numbers as one string, ``"fx fy cx cy"`` for block style.
+
+    >>> _yaml_intrinsics(Path("c.yaml"), "intrinsics:\n  cam0:\n    camera_matrix:\n    - 5\n    - 6\n"
+    ...                  "    - 3\n    - 2\n    distortion_model: radtan\n", "cam0")
+    {'camera_matrix': '5 6 3 2', 'distortion_model': 'radtan'}
+    """
+    section, current, camera_indent, cameras, values, open_key = None, None, None, [], {}, None
     for raw in text.splitlines():
         line = raw.split("#", 1)[0].rstrip()
-        if not line.strip() or line.lstrip().startswith("-"):
+        if not line.strip():
             continue
         indent = len(line) - len(line.lstrip())
-        key, _, value = line.strip().partition(":")
+        item = line.strip()
         if indent == 0:
-            section, current = key, None
-        elif section == "intrinsics" and not value.strip():
-            current, indents[key] = key, indent
-        elif section == "intrinsics" and current == camera and indent > indents.get(camera, 0):
+            section, current, open_key = item.partition(":")[0], None, None
+            continue
+        if section != "intrinsics":
+            continue
+        if item.startswith("-"):                      # an item of a block list: of the key opened above it
+            if current == camera and open_key is not None:
+                values[open_key] = f"{values[open_key]} {item[1:].strip()}".strip()
+            continue
+        key, _, value = item.partition(":")
+        camera_indent = indent if camera_indent is None else camera_indent
+        if indent <= camera_indent:                   # a camera: cam0, camRect0, ...
+            current, open_key = key, None
+            cameras.append(key)
+        elif current == camera:
             values[key] = value.strip()
+            open_key = key if not value.strip() else None
     if not values:
-        found = sorted(indents) or ["none"]
+        found = sorted(cameras) or ["none"]
         raise ValueError(f"{path}: no intrinsics/{camera} (cameras found: {', '.join(found)}); "
                          "choose one with --calib-camera")
     return values

@@ -100,6 +100,11 @@ def _parallax_px(centres: np.ndarray, camera: Camera, depths: np.ndarray) -> flo
     return float((1.0 / depths[0] - 1.0 / depths[-1]) * travel.max()) if len(travel) else 0.0
 
 
+#: Largest Disparity Space Image :class:`EMVS` allocates (``n_planes x height x width`` float32) [bytes]: a mistyped
+#: ``n_planes`` (100000 planes of a 240x180 sensor: 16 GiB) is refused before any work, not met by the OOM killer.
+MAX_DSI_BYTES = 4 << 30
+
+
 @dataclass(frozen=True, eq=False)
 class EMVS:
     """EMVS: semi-dense depth from events and known camera poses by voting in a Disparity Space Image.
@@ -113,7 +118,8 @@ class EMVS:
     depth_range : (float, float)
         ``(near, far)`` [m] of the planes, ``0 < near < far``.
     n_planes : int
-        Planes of the DSI, uniform in inverse depth (>= 2).
+        Planes of the DSI, uniform in inverse depth (>= 2; the DSI, ``n_planes x H x W`` float32, must fit
+        in :data:`MAX_DSI_BYTES`).
     events_per_pose : int
         Events of one packet, sharing one camera pose interpolated on SE(3)
         at the packet's middle time; each packet is mapped to the base plane
@@ -176,6 +182,12 @@ class EMVS:
             raise ValueError(f"depth_range must satisfy 0 < near < far (metres), got {self.depth_range!r}")
         object.__setattr__(self, "depth_range", (near, far))
         _positive_int("n_planes", self.n_planes, minimum=2)
+        size = int(self.n_planes) * self.camera.width * self.camera.height * np.dtype(np.float32).itemsize
+        if size > MAX_DSI_BYTES:
+            raise ValueError(f"n_planes={self.n_planes} planes of {self.camera.width}x{self.camera.height} make a "
+                             f"Disparity Space Image of {size / 2**30:.1f} GiB, more than cmax.emvs.core.MAX_DSI_BYTES "
+                             f"({MAX_DSI_BYTES >> 30} GiB): give at most {MAX_DSI_BYTES // (size // self.n_planes):,} "
+                             "planes (EMVS uses 100)")
         _positive_int("events_per_pose", self.events_per_pose)
         _positive_int("events_per_transfer", self.events_per_transfer)
         _positive_float("transfer_tolerance_px", self.transfer_tolerance_px)

@@ -12,12 +12,14 @@ returns). :func:`read_tum_trajectory` reads the TUM text format
 from __future__ import annotations
 
 import os
+import re
+import warnings
 from decimal import Decimal, InvalidOperation
 from pathlib import Path
 
 import numpy as np
 
-__all__ = ["as_trajectory", "read_tum_trajectory", "check_coverage"]
+__all__ = ["as_trajectory", "read_tum_trajectory", "check_coverage", "check_header"]
 
 #: Largest tolerated deviation of R^T R from the identity in a pose.
 _ROTATION_TOLERANCE = 1e-4
@@ -117,11 +119,53 @@ def check_coverage(times_us: np.ndarray, t_first_us: int, t_last_us: int, name: 
         )
 
 
+#: Largest |time| [µs] a trajectory may hold: int64's range (about 292,000 years).
+_MAX_TIME_US = 2 ** 63 - 1
+
+
 def _seconds_to_us(token: str, path: Path, line_number: int) -> int:
     try:
-        return int((Decimal(token) * 1_000_000).to_integral_value())
-    except InvalidOperation:
-        raise ValueError(f"{path}:{line_number}: the time {token!r} is not a number") from None
+        value = Decimal(token) * 1_000_000
+        micros = int(value.to_integral_value())
+    except (InvalidOperation, OverflowError, ValueError):   # 'abc'; 'inf', 'nan' cannot be made integral
+        raise ValueError(f"{path}:{line_number}: the time {token!r} is not a finite number") from None
+    if abs(micros) > _MAX_TIME_US:
+        raise ValueError(f"{path}:{line_number}: the time {token} s is out of range (over 292,000 years in µs): "
+                         "TUM times are seconds; are these nanoseconds (as EuRoC's)?")
+    return micros
+
+
+#: A column name of a quaternion component in a header line: ``qw``, ``q_w``, ``q_RS_w`` (EuRoC), ``quat_w``.
+_QUATERNION_COLUMN = re.compile(r"^q[a-z]*(?:_[a-z]+)*_?([wxyz])$", re.IGNORECASE)
+#: A time unit other than seconds stated in a header line: ``timestamp [ns]`` (EuRoC), ``t[us]``, ``t [ms]``.
+_OTHER_TIME_UNIT = re.compile(r"\b(?:t|time|times|timestamp|timestamps|stamp)\s*\[(ns|us|µs|ms)\]", re.IGNORECASE)
+
+
+def check_header(line: str, path: str | os.PathLike) -> None:
+    """Refuse a trajectory whose header comment states a layout other than TUM's ``t[s] tx ty tz qx qy qz qw``.
+
+    ``line`` is a comment line before the first pose. When it names the quaternion's columns with ``w``
+    before ``x`` (``# timestamp tx ty tz qw qx qy qz``, EuRoC's ``q_RS_w [], q_RS_x [] ...``), or gives the
+    time in ns, µs or ms (``#timestamp [ns]``), the numbers would be read in another order or unit than the
+    file says: ``ValueError`` naming the file. A comment that names no such column is ignored.
+
+    >>> check_header("# timestamp tx ty tz qx qy qz qw", "ok.txt")
+    >>> check_header("# t x y z qw qx qy qz", "wxyz.txt")
+    Traceback (most recent call last):
+    ...
+    ValueError: wxyz.txt: its header '# t x y z qw qx qy qz' puts the quaternion's w first (qw qx qy qz; a TUM trajectory is read as 't tx ty tz qx qy qz qw', w last: reorder the columns to qx qy qz qw)
+    """
+    text = line.strip()
+    problems = []
+    if unit := _OTHER_TIME_UNIT.search(text):
+        problems.append(f"gives times in {unit.group(1)} (a TUM trajectory has seconds: convert the time column)")
+    tokens = [token.strip("[]#") for token in re.split(r"[\s,;]+", text)]
+    order = [found.group(1).lower() for token in tokens if (found := _QUATERNION_COLUMN.match(token))]
+    if "w" in order and "x" in order and order.index("w") < order.index("x"):
+        problems.append("puts the quaternion's w first (qw qx qy qz; a TUM trajectory is read as "
+                        "'t tx ty tz qx qy qz qw', w last: reorder the columns to qx qy qz qw)")
+    if problems:
+        raise ValueError(f"{path}: its header {text!r} " + " and ".join(problems))
 
 
 def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
@@ -131,7 +175,13 @@ def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     microseconds), the translation in metres, the unit quaternion in
     ``x y z w`` order (as ``cmax fit`` writes it and as the Event Camera
     Dataset's ``groundtruth.txt``); the pose is camera-to-world. Blank lines
-    and lines starting with ``#`` are skipped.
+    and lines starting with ``#`` are skipped, but a header comment before the
+    first pose that names another layout (the quaternion's ``w`` first, times in
+    ns, µs or ms) is refused (:func:`check_header`): a quaternion order or a time
+    unit is never guessed. A file without a header cannot say its order: ``qw qx
+    qy qz`` columns there are read as ``qx qy qz qw``, with a ``UserWarning``
+    when the first pose reads as ``(1, 0, 0, 0)``: a half turn about x, or the
+    identity written ``w x y z`` (the usual first pose of a trajectory).
 
     Returns
     -------
@@ -151,7 +201,11 @@ def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     times, values = [], []
     for number, line in enumerate(text_lines, start=1):
         text = line.strip()
-        if not text or text.startswith("#"):
+        if not text:
+            continue
+        if text.startswith("#"):
+            if not times:                      # a header: it must not state another layout
+                check_header(text, path)
             continue
         tokens = text.replace(",", " ").split()
         if len(tokens) != 8:
@@ -170,6 +224,10 @@ def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     if np.any(np.abs(norms - 1.0) > 1e-3):
         bad = int(np.argmax(np.abs(norms - 1.0)))
         raise ValueError(f"{path}: quaternion of pose {bad} has norm {norms[bad]:.6f}, expected 1")
+    if np.allclose(np.abs(values[0, 3:]), [1.0, 0.0, 0.0, 0.0], atol=1e-9):
+        warnings.warn(f"{path}: the first pose's quaternion (qx qy qz qw) is ({values[0, 3]:g}, 0, 0, 0), a half turn "
+                      "about x, read as given; it is the identity if the columns are qw qx qy qz: check the file's "
+                      "order (TUM: qx qy qz qw)", UserWarning, stacklevel=2)
     T = np.tile(np.eye(4), (len(times), 1, 1))
     T[:, :3, :3] = Rotation.from_quat(values[:, 3:] / norms[:, None]).as_matrix()
     T[:, :3, 3] = values[:, :3]
