@@ -546,7 +546,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
     from cmax import viz
     from cmax.io.atomic import write_text_atomic
     from learned.evaluate import load_model
-    from learned.pretrained import checkpoint_card, shipped_checkpoint
+    from learned.pretrained import card_limits, checkpoint_card, shipped_checkpoint
 
     started = time.perf_counter()
     checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
@@ -582,7 +582,8 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                              f"events come from a {recording.width}x{recording.height} sensor")
         K = _resolve_intrinsics(recording, K)
         undistort = None if distortion is None else undistortion(K, distortion, recording.width, recording.height)
-        notes = camera_notes(card, recording.width, recording.height, K, f"the card of {checkpoint}")
+        notes = [f"{checkpoint.name}: {limit}" for limit in card_limits(card, f"the card of {checkpoint}")]
+        notes += camera_notes(card, recording.width, recording.height, K, f"the card of {checkpoint}")
         start, end = time_bounds(recording.first_us, recording.last_us, t0_s, t1_s)
         window_us, starts, short = window_plan(start, end, window_us, explicit=explicit)
         notes += [short] if short else []

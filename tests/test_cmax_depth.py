@@ -551,3 +551,28 @@ def test_raw_windows_equal_the_whole_file_cut_and_read_forward(tmp_path):
         assert windows.window(t0, t0 + length) == events.slice_time(int(t0), int(t0 + length))
     with pytest.raises(ValueError, match="reads forward"):
         windows.window(int(starts[-1]) - 1, int(starts[-1]) + 10)
+
+
+def test_the_limits_on_a_checkpoints_card_are_said_and_recorded(checkpoint, events, tmp_path, capsys):
+    """Was: ``cmax depth`` wrote the shipped student's twists without a word, though its translation points
+    130-155 deg off on held-out scenes. A card's ``limits`` are printed as notes and kept in summary.json; the
+    shipped card states that limit; a malformed ``limits`` is one line."""
+    import shutil
+
+    from learned import pretrained
+
+    assert any("translation direction is not usable" in text
+               for text in pretrained.card_limits(pretrained.checkpoint_card(pretrained.CARD)))
+    card_ckpt = tmp_path / "model.pt"
+    shutil.copy(checkpoint, card_ckpt)
+    card_ckpt.with_suffix(".json").write_text(json.dumps({"limits": ["its twist points backwards"]}))
+    write_h5(tmp_path / "e.h5", events)
+    argv = ["depth", str(tmp_path / "e.h5"), "--checkpoint", str(card_ckpt), "--K", K_TEXT, "--quiet"]
+    assert cmax_main([*argv, "-o", str(tmp_path / "out")]) == 0
+    assert "cmax depth: note: model.pt: its twist points backwards" in capsys.readouterr().err.splitlines()
+    summary = json.loads((tmp_path / "out" / "summary.json").read_text())
+    assert "model.pt: its twist points backwards" in summary["notes"]
+    card_ckpt.with_suffix(".json").write_text(json.dumps({"limits": "backwards"}))
+    assert cmax_main([*argv, "-o", str(tmp_path / "out2")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "'limits' must be a list of sentences" in err and not (tmp_path / "out2").exists()
