@@ -228,3 +228,47 @@ def test_the_identifiability_benchmark_fixes_the_planes_of_every_term_of_a_weigh
     assert isinstance(fixed, WeightedSum) and fixed.terms[0][1] is combined.terms[0][1]
     assert fixed.terms[1][1].values is not None and fixed.terms[1][0] == 0.5
     torch.testing.assert_close(fixed(batch, params), combined(batch, params))
+
+
+def _two_tiny() -> tuple[EventWindows, DepthMotion]:
+    """Two windows of :func:`_tiny` (seeds 0 and 1) in one batch, their parameters stacked (no gradient)."""
+    (a, pa), (b, pb) = _tiny(seed=0), _tiny(seed=1)
+    batch = EventWindows(torch.cat([a.x, b.x]), torch.cat([a.y, b.y]), torch.cat([a.t, b.t]),
+                         torch.cat([a.polarity, b.polarity]), torch.cat([a.window, b.window + 1]),
+                         torch.cat([a.K, b.K]), torch.cat([a.duration_s, b.duration_s]), 16, 12)
+    return batch, DepthMotion(torch.cat([pa.inverse_depth, pb.inverse_depth]).detach(),
+                              torch.cat([pa.twist, pb.twist]).detach())
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
+@pytest.mark.parametrize("bad", ["twist_nan", "twist_inf", "depth_nan", "depth_inf"])
+@pytest.mark.parametrize("name", sorted(OBJECTIVES))
+def test_a_non_finite_parameter_scores_nan_for_its_window_only(name, bad, compiled, monkeypatch):
+    """A NaN or infinite twist or inverse-depth node scores NaN for its window (was: 3e-6 from the compiled
+    shared objective, near its minimum, or IndexError from the images), and the other window keeps its value."""
+    monkeypatch.setattr("cmax.contrast.objectives._COMPILED", compiled)
+    objective = OBJECTIVES[name]
+    batch, params = _two_tiny()
+    clean = objective(batch, params)
+    twist, rho = params.twist.clone(), params.inverse_depth.clone()
+    value = {"nan": float("nan"), "inf": float("inf")}[bad.split("_")[1]]
+    if bad.startswith("twist"):
+        twist[1, 3] = value
+    else:
+        rho[1, 0, 1, 2] = value
+    scored = objective(batch, DepthMotion(rho.requires_grad_(True), twist.requires_grad_(True)))
+    assert torch.isnan(scored[1])
+    assert float(scored[0]) == pytest.approx(float(clean[0]), rel=1e-12, abs=1e-15)
+    scored[0].backward()
+    assert torch.isfinite(twist.grad).all() and torch.isfinite(rho.grad).all()
+
+
+def test_event_windows_refuses_a_non_finite_or_singular_K():
+    batch, _ = _tiny()
+    with pytest.raises(ValueError, match="K must be finite"):
+        EventWindows(batch.x, batch.y, batch.t, batch.polarity, batch.window, torch.full_like(batch.K, float("nan")),
+                     batch.duration_s, 16, 12)
+    with pytest.raises(ValueError, match="positive focal lengths"):
+        EventWindows(batch.x, batch.y, batch.t, batch.polarity, batch.window, torch.zeros_like(batch.K),
+                     batch.duration_s, 16, 12)
+

@@ -80,6 +80,11 @@ class EventWindows:
                              f"{sorted(devices)} (EventWindows.to(device=...) moves them all)")
         if self.x.device.type == "meta":   # shapes only: meta tensors hold no values to check
             return
+        if not bool(torch.isfinite(self.K).all()):
+            raise ValueError(f"K must be finite (no NaN or inf), got {self.K.tolist()}")
+        if not bool(((self.K[:, 0, 0] > 0) & (self.K[:, 1, 1] > 0)).all()):
+            raise ValueError(f"K must have positive focal lengths fx = K[:, 0, 0], fy = K[:, 1, 1] [px], got "
+                             f"{self.K[:, 0, 0].tolist()}, {self.K[:, 1, 1].tolist()}")
         if not bool((self.duration_s > 0).all()):
             raise ValueError(f"duration_s must be ({B},) and > 0 s, got {self.duration_s.tolist()}")
         if self.speed is not None and not bool((torch.isnan(self.speed) | (self.speed >= 0)).all()):

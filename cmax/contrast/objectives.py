@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
 from dataclasses import dataclass
 from typing import NamedTuple
@@ -30,7 +31,7 @@ import torch
 from cmax.contrast._timestamp_kernels import EDGE_TOLERANCE_PX, average_timestamp_images, compiled_images_apply
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.contrast.batch import EventWindows
-from cmax.iwe import accumulate_bilinear_indexed, blur
+from cmax.iwe import _finite_corner, accumulate_bilinear_indexed, blur
 from cmax.objectives import contrast_of_images, deformation, local_contrast, total_variation
 from cmax.warp import DepthGrid, project, se3_parts, warp_se3
 
@@ -85,6 +86,27 @@ def _check(batch: EventWindows, params: DepthMotion) -> None:
         raise ValueError(f"inverse_depth grid {h}x{w} is finer than the image {batch.height}x{batch.width}")
     if len(batch) == 0:
         raise ValueError("batch: holds no events")
+
+
+def _non_finite_scores_nan(call):
+    """Wrap an objective's ``__call__(batch, params)``: the inputs are checked (:func:`_check`), and a window whose
+    twist or inverse depth holds a NaN or an infinity scores NaN (an optimiser or a network that produced it
+    sees NaN, as from any torch operation, never a good-looking value; was: near the loss's minimum, or an
+    ``IndexError`` from the images). The objective itself runs on the parameters with those entries set to 0,
+    so nothing downstream indexes with NaN; the other windows' values and gradients are unchanged. No
+    host-device synchronisation."""
+
+    @functools.wraps(call)
+    def wrapped(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
+        _check(batch, params)
+        finite = (torch.isfinite(params.twist).all(1)
+                  & torch.isfinite(params.inverse_depth).flatten(1).all(1))
+        safe = DepthMotion(torch.nan_to_num(params.inverse_depth, nan=0.0, posinf=0.0, neginf=0.0),
+                           torch.nan_to_num(params.twist, nan=0.0, posinf=0.0, neginf=0.0))
+        loss = call(self, batch, safe)
+        return torch.where(finite.to(loss.device), loss, torch.full_like(loss, math.nan))
+
+    return wrapped
 
 
 def twist_at_speed(twist: torch.Tensor, speed: torch.Tensor | None) -> torch.Tensor:
@@ -215,8 +237,8 @@ class AverageTimestamp:
         if not self.smoothness >= 0:
             raise ValueError(f"smoothness must be >= 0, got {self.smoothness}")
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         B, H, W, b = batch.count, batch.height, batch.width, batch.window
         duration = batch.duration_s.to(batch.dtype)[b]
         tau = (batch.t / duration).clamp(0.0, 1.0)
@@ -252,6 +274,7 @@ def _sample_indexed(images: torch.Tensor, image: torch.Tensor, x: torch.Tensor, 
     x0, y0 = torch.floor(x.detach()), torch.floor(y.detach())
     fx, fy = x - x0, y - y0
     valid = ((x0 >= -1) & (x0 <= W - 1) & (y0 >= -1) & (y0 <= H - 1)).to(images.dtype)
+    x0, y0 = _finite_corner(x0), _finite_corner(y0)
     corner = image * (Hp * Wp) + (y0.clamp(-1, H - 1).long() + 1) * Wp + x0.clamp(-1, W - 1).long() + 1
     value = ((1 - fx) * (1 - fy) * canvas[corner] + fx * (1 - fy) * canvas[corner + 1]
              + (1 - fx) * fy * canvas[corner + Wp] + fx * fy * canvas[corner + Wp + 1])
@@ -343,8 +366,8 @@ class SweepVote:
         at every call."""
         return dataclasses.replace(self, scale=self.normaliser(batch, twist))
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         if self.scale is not None and self.scale.shape != (len(batch),):
             raise ValueError(f"scale holds {self.scale.shape[0]} events, the batch {len(batch)}")
         scale = self.normaliser(batch, params.twist) if self.scale is None else self.scale
@@ -508,8 +531,8 @@ class PlaneVote:
             total, count = batch.window_sum(unwarped), batch.window_sum(kept)
             return (total / count.clamp(min=1.0)).clamp(min=1e-12)[batch.window]
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         values, kept, scale = self.plane_values(batch, params.twist) if self.values is None else self.values
         if values.shape != (self.planes, len(batch)):
             raise ValueError(f"the fixed plane values hold {values.shape[1]} events, the batch {len(batch)}")
@@ -589,8 +612,8 @@ class LocalContrast:
             raise ValueError(f"margin, smoothness and sigma must be >= 0, got {self.margin}, {self.smoothness}, "
                              f"{self.sigma}")
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         B, H, W = batch.count, batch.height, batch.width
         gh, gw = self.cells
         ch, cw = -(-H // gh), -(-W // gw)
@@ -656,8 +679,8 @@ class GlobalContrast:
                                                   batch.width), self.sigma)
         return contrast_of_images(images, self.kind).view(R, B).mean(0)
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         fractions = torch.tensor(self.references, dtype=torch.float64, device=batch.device)
         refs = (fractions[:, None] * batch.duration_s.to(torch.float64)[None, :]).to(batch.dtype)   # (R, B)
         x, y = warp_windows(batch, params, batch.t[None, :] - refs[:, batch.window])
@@ -695,8 +718,8 @@ class CollapseGuard:
         if not self.times:
             raise ValueError("times: need at least one probe time")
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         B, H, W, dtype, device = batch.count, batch.height, batch.width, batch.dtype, batch.device
         twist = twist_at_speed(params.twist.to(dtype), batch.speed)
         rows, cols = self.lattice
