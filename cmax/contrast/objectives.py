@@ -291,7 +291,10 @@ def _own_image_values(batch: EventWindows, x: torch.Tensor, y: torch.Tensor, sig
 
 @dataclass(frozen=True, eq=False)
 class SweepVote:
-    """The depth sweep's per-event normalised vote, differentiable in depth and twist (lower is better).
+    """The depth sweep's per-event normalised vote (lower is better): differentiable in depth; in the twist, with
+    the normaliser held (below), so its twist gradient is not the objective's (finite differences of the twist
+    move the normaliser too). Fix the normaliser for one twist with :meth:`with_motion` (the gradient is then
+    exact), or optimise a motion with :class:`PlaneVote`, whose normaliser carries a gradient.
 
     Each event is warped to the window's ``reference`` time with its inverse
     depth; the blurred image of the warped events of its polarity is read back at
