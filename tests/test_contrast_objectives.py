@@ -301,3 +301,29 @@ def test_shared_objective_differentiates_event_pixels_and_intrinsics_on_the_cpu(
     step[0, 0, 0] = eps
     numeric = (loss(batch.x, batch.K + step) - loss(batch.x, batch.K - step)) / (2 * eps)
     assert float(grads[True][1][0, 0, 0]) == pytest.approx(float(numeric), rel=1e-4, abs=1e-9)
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: AverageTimestamp(eps=0.0), r"AverageTimestamp: eps must be a finite number > 0, got 0.0"),
+    (lambda: AverageTimestamp(eps=-1.0), r"eps must be a finite number > 0"),
+    (lambda: SweepVote(sigma=-1.0), r"SweepVote: sigma must be a finite number >= 0, got -1.0"),
+    (lambda: SweepVote(reference=float("nan")), r"SweepVote: reference must be a finite number"),
+    (lambda: SweepVote(candidates=2.5), r"SweepVote: candidates must be an integer >= 2, got 2.5"),
+    (lambda: PlaneVote(planes=2.5), r"PlaneVote: planes must be an integer >= 2, got 2.5"),
+    (lambda: PlaneVote(sigma=float("nan")), r"PlaneVote: sigma must be a finite number >= 0"),
+    (lambda: LocalContrast(cells=(2.5, 3)), r"LocalContrast: cells \(rows, cols\) must be an integer >= 1, got 2.5"),
+    (lambda: LocalContrast(margin=2.5), r"LocalContrast: margin must be an integer >= 0, got 2.5"),
+    (lambda: LocalContrast(smoothness=float("nan")), r"LocalContrast: smoothness must be a finite number >= 0"),
+    (lambda: GlobalContrast(references=(0.0, float("nan"))), r"GlobalContrast: references must be a finite number"),
+    (lambda: GlobalContrast(sigma=-1.0), r"GlobalContrast: sigma must be a finite number >= 0"),
+    (lambda: CollapseGuard(lattice=(1, 3)), r"CollapseGuard: lattice \(rows, cols\) must be an integer >= 2, got 1"),
+    (lambda: CollapseGuard(times=(float("nan"),)), r"CollapseGuard: times must be a finite number"),
+], ids=["at-eps-zero", "at-eps-negative", "sweep-sigma", "sweep-reference", "sweep-candidates", "plane-planes",
+        "plane-sigma", "local-cells", "local-margin", "local-smoothness", "global-references", "global-sigma",
+        "guard-lattice", "guard-times"])
+def test_objective_settings_are_refused_by_name(make, match):
+    """Settings that gave a ZeroDivisionError (eps 0), an absurd loss (eps -1: 346), NaN (a NaN reference or
+    smoothness, one row of collapse probes), IndexError / TypeError deep in torch (2.5 cells, margin 2.5), or
+    a silently unblurred image (sigma -1) are refused when the objective is made, naming the setting."""
+    with pytest.raises(ValueError, match=match):
+        make()

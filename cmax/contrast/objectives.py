@@ -23,6 +23,7 @@ import dataclasses
 import enum
 import functools
 import math
+import numbers
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -86,6 +87,33 @@ def _check(batch: EventWindows, params: DepthMotion) -> None:
         raise ValueError(f"inverse_depth grid {h}x{w} is finer than the image {batch.height}x{batch.width}")
     if len(batch) == 0:
         raise ValueError("batch: holds no events")
+
+
+def _require_int(owner: str, name: str, value: object, minimum: int) -> None:
+    """``owner.name`` must be an integer (not a bool) >= ``minimum``, else a ValueError naming it."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        raise ValueError(f"{owner}: {name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _require_number(owner: str, name: str, value: object, minimum: float | None = None, *,
+                    above: bool = False) -> None:
+    """``owner.name`` must be a finite number, ``>= minimum`` (``> minimum`` with ``above``) when given, else a
+    ValueError naming it (NaN, a negative blur or a zero ``eps`` gave NaN, a silently unblurred image or a
+    ZeroDivisionError at the first call)."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and minimum is not None:
+        ok = value > minimum if above else value >= minimum
+    if not ok:
+        bound = "" if minimum is None else f" {'>' if above else '>='} {minimum:g}"
+        raise ValueError(f"{owner}: {name} must be a finite number{bound}, got {value!r}")
+
+
+def _require_grid(owner: str, name: str, value: object, minimum: int) -> None:
+    """``owner.name`` must be two integers >= ``minimum`` (rows, cols)."""
+    if not (isinstance(value, (tuple, list)) and len(value) == 2):
+        raise ValueError(f"{owner}: {name} must be two integers >= {minimum} (rows, cols), got {value!r}")
+    for n in value:
+        _require_int(owner, f"{name} (rows, cols)", n, minimum)
 
 
 def _non_finite_scores_nan(call):
@@ -234,8 +262,8 @@ class AverageTimestamp:
     eps: float = 1e-9
 
     def __post_init__(self) -> None:
-        if not self.smoothness >= 0:
-            raise ValueError(f"smoothness must be >= 0, got {self.smoothness}")
+        _require_number("AverageTimestamp", "smoothness", self.smoothness, 0.0)
+        _require_number("AverageTimestamp", "eps", self.eps, 0.0, above=True)
 
     @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
@@ -330,10 +358,11 @@ class SweepVote:
     scale: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
-        if not (0 <= self.rho_range[0] < self.rho_range[1]):
-            raise ValueError(f"rho_range must be increasing and >= 0 [1/m], got {self.rho_range}")
-        if self.candidates < 2:
-            raise ValueError(f"candidates must be >= 2, got {self.candidates}")
+        if not (0 <= self.rho_range[0] < self.rho_range[1] < math.inf):
+            raise ValueError(f"rho_range must be increasing, finite and >= 0 [1/m], got {self.rho_range}")
+        _require_int("SweepVote", "candidates", self.candidates, 2)
+        _require_number("SweepVote", "sigma", self.sigma, 0.0)
+        _require_number("SweepVote", "reference", self.reference)
 
     def _scores(self, batch: EventWindows, params: DepthMotion, dt: torch.Tensor, rays: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -467,10 +496,10 @@ class PlaneVote:
         if not (0 < lo < hi):
             raise ValueError(f"rho_range must be increasing and > 0 [1/m] (the planes are log-spaced), got "
                              f"{self.rho_range}")
-        if self.planes < 2:
-            raise ValueError(f"planes must be >= 2, got {self.planes}")
-        if not self.smoothness >= 0:
-            raise ValueError(f"smoothness must be >= 0, got {self.smoothness}")
+        _require_int("PlaneVote", "planes", self.planes, 2)
+        _require_number("PlaneVote", "smoothness", self.smoothness, 0.0)
+        _require_number("PlaneVote", "sigma", self.sigma, 0.0)
+        _require_number("PlaneVote", "reference", self.reference)
         if not (isinstance(self.motion_weight, (int, float)) and math.isfinite(self.motion_weight)
                 and self.motion_weight >= 0):
             raise ValueError(f"motion_weight must be a finite number >= 0, got {self.motion_weight!r}")
@@ -609,11 +638,11 @@ class LocalContrast:
     smoothness: float = 0.0
 
     def __post_init__(self) -> None:
-        if len(self.cells) != 2 or min(self.cells) < 1:
-            raise ValueError(f"cells must be two positive integers, got {self.cells}")
-        if self.margin < 0 or self.smoothness < 0 or self.sigma < 0:
-            raise ValueError(f"margin, smoothness and sigma must be >= 0, got {self.margin}, {self.smoothness}, "
-                             f"{self.sigma}")
+        _require_grid("LocalContrast", "cells", self.cells, 1)
+        _require_int("LocalContrast", "margin", self.margin, 0)
+        _require_number("LocalContrast", "smoothness", self.smoothness, 0.0)
+        _require_number("LocalContrast", "sigma", self.sigma, 0.0)
+        _require_number("LocalContrast", "reference", self.reference)
 
     @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
@@ -674,6 +703,9 @@ class GlobalContrast:
         contrast_of_images(torch.zeros(1, 1, 1), self.kind)      # validates the name
         if not self.references:
             raise ValueError("references: need at least one reference time")
+        for reference in self.references:
+            _require_number("GlobalContrast", "references", reference)
+        _require_number("GlobalContrast", "sigma", self.sigma, 0.0)
 
     def _per_window(self, batch: EventWindows, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         R, B = x.shape[0], batch.count
@@ -716,10 +748,11 @@ class CollapseGuard:
     times: tuple[float, ...] = PROBE_TIMES
 
     def __post_init__(self) -> None:
-        if len(self.lattice) != 2 or min(self.lattice) < 1:
-            raise ValueError(f"lattice must be two positive integers (rows, cols), got {self.lattice}")
+        _require_grid("CollapseGuard", "lattice", self.lattice, 2)   # one row or column of probes holds no cell
         if not self.times:
             raise ValueError("times: need at least one probe time")
+        for time in self.times:
+            _require_number("CollapseGuard", "times", time)
 
     @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
