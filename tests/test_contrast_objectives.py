@@ -327,3 +327,22 @@ def test_objective_settings_are_refused_by_name(make, match):
     a silently unblurred image (sigma -1) are refused when the objective is made, naming the setting."""
     with pytest.raises(ValueError, match=match):
         make()
+
+
+def test_event_windows_take_a_camera_as_fit_does():
+    """``EventWindows.from_events`` / ``from_windows`` take a :class:`cmax.Camera` as :func:`cmax.fit` does: the
+    events undistorted by the camera, with its K (was: ``TypeError: K must be a 3x3 matrix of numbers, got
+    Camera(...)``)."""
+    import cmax
+    from conftest import random_events
+
+    events = random_events(500, width=64, height=48, seed=5)
+    camera = cmax.Camera(np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]), 64, 48,
+                         distortion=[-0.2, 0.05, 0.0, 0.0])
+    expected = EventWindows.from_events(camera.undistort_events(events), camera.K, dtype=torch.float64)
+    for batch in (EventWindows.from_events(events, camera, dtype=torch.float64),
+                  EventWindows.from_windows([(events, camera)], dtype=torch.float64)):
+        torch.testing.assert_close(batch.x, expected.x)
+        torch.testing.assert_close(batch.y, expected.y)
+        torch.testing.assert_close(batch.K, expected.K)
+    assert len(expected) < len(events)          # the barrel lens moves some corner events out of the image
