@@ -57,19 +57,30 @@ def accumulate_bilinear(
     return image if batched else image[0]
 
 
+def _finite_corner(corner: torch.Tensor) -> torch.Tensor:
+    """``corner`` (floored coordinates) with NaN and infinities replaced by -1, so that the integer index made
+    from it stays on the padded canvas (NaN cast to int64 is its smallest value); the point's own vote or
+    value stays NaN."""
+    return torch.where(torch.isfinite(corner), corner, torch.full_like(corner, -1.0))
+
+
 def _splat(x: torch.Tensor, y: torch.Tensor, weights: torch.Tensor | None, image_index: torch.Tensor,
            count: int, height: int, width: int) -> torch.Tensor:
     """Bilinear votes (N,) into ``count`` images (H, W), one ``index_add`` on a padded canvas.
 
     The canvas has one extra row and column on each side, so the four corners of
     a point are ``i, i + 1, i + Wp, i + Wp + 1``; a point whose corners leave the
-    padded canvas votes nothing (its corners would all be outside the image).
+    padded canvas votes nothing (its corners would all be outside the image). A
+    point with a NaN or infinite coordinate makes the image NaN (its vote lands on
+    pixel (0, 0)), as NaN spreads through any torch operation; it never indexes
+    outside the canvas.
     """
     Hp, Wp = height + 2, width + 2
     x0 = torch.floor(x.detach())
     y0 = torch.floor(y.detach())
     fx, fy = x - x0, y - y0
     valid = (x0 >= -1) & (x0 <= width - 1) & (y0 >= -1) & (y0 <= height - 1)
+    x0, y0 = _finite_corner(x0), _finite_corner(y0)
     x0 = x0.clamp(-1, width - 1).long() + 1
     y0 = y0.clamp(-1, height - 1).long() + 1
     corner = image_index * (Hp * Wp) + y0 * Wp + x0
@@ -120,7 +131,8 @@ def sample_bilinear(images: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> t
     -------
     Tensor, shape (B, N)
         ``sum_u I_b(u) b(u - x_k)``: for a point that voted into an image with
-        :func:`accumulate_bilinear`, the image it "sees" through its own kernel.
+        :func:`accumulate_bilinear`, the image it "sees" through its own kernel;
+        NaN at a point with a NaN or infinite coordinate.
 
     Examples
     --------
@@ -137,6 +149,7 @@ def sample_bilinear(images: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> t
     x0, y0 = torch.floor(x.detach()), torch.floor(y.detach())
     fx, fy = x - x0, y - y0
     valid = ((x0 >= -1) & (x0 <= W - 1) & (y0 >= -1) & (y0 <= H - 1)).to(images.dtype)
+    x0, y0 = _finite_corner(x0), _finite_corner(y0)
     corner = (y0.clamp(-1, H - 1).long() + 1) * Wp + x0.clamp(-1, W - 1).long() + 1
     value = ((1 - fx) * (1 - fy) * canvas.gather(1, corner) + fx * (1 - fy) * canvas.gather(1, corner + 1)
              + (1 - fx) * fy * canvas.gather(1, corner + Wp) + fx * fy * canvas.gather(1, corner + Wp + 1))

@@ -16,6 +16,8 @@ The user-facing table of all this is ``docs/bad_input.md``.
 """
 from __future__ import annotations
 
+import dataclasses
+import functools
 import re
 import subprocess
 import sys
@@ -48,6 +50,18 @@ K_GOOD = np.array([[50.0, 0.0, 32.0], [0.0, 50.0, 24.0], [0.0, 0.0, 1.0]])
 
 def _events(n: int = 200) -> Events:
     return random_events(n, width=64, height=48, seed=3)
+
+
+@functools.lru_cache(maxsize=1)
+def _flow_fit():
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        return cmax.fit(_events(), K_GOOD, model="flow")
+
+
+def _init(**changes):
+    """A warm start for ``cmax.fit(init=)``: a flow fit of :func:`_events` with ``changes`` to its fields."""
+    return dataclasses.replace(_flow_fit(), **changes)
 
 
 _POSES = (np.array([0, 100_000]), np.stack([np.eye(4), np.eye(4) + np.eye(4, k=3) * 0.1]))
@@ -211,6 +225,14 @@ API_CASES = [
     ("fit-pose-contradicting-speed", lambda: cmax.fit(_events(), K_GOOD, pose=[0.5, 0, 0, 0, 0, 0], speed=2.0),
      ValueError, r"pose moves at 0.5 m/s but speed=2 m/s: give one of them"),
     ("fit-unknown-option", lambda: cmax.fit(_events(), K_GOOD, foo=1), TypeError, r"unexpected keyword"),
+    ("fit-init-flow-shape", lambda: cmax.fit(_events(), K_GOOD, model="flow", init=_init(flow=np.ones(3))),
+     ValueError, r"init.flow must have shape \(2,\) \[px/s\], got shape \(3,\)"),
+    ("fit-init-flow-one-number", lambda: cmax.fit(_events(), K_GOOD, model="flow", init=_init(flow=np.ones(1))),
+     ValueError, r"init.flow must have shape \(2,\)"),
+    ("fit-init-omega-shape", lambda: cmax.fit(_events(), K_GOOD, model="rotation", init=_init(omega=np.zeros(2))),
+     ValueError, r"init.omega must have shape \(3,\) \[rad/s\], got shape \(2,\)"),
+    ("fit-init-v-shape", lambda: cmax.fit(_events(), K_GOOD, speed=1.0, init=_init(v=np.zeros(2))),
+     ValueError, r"init.v must have shape \(3,\) \[m/s\], got shape \(2,\)"),
     ("fit-depth-range-three", lambda: cmax.fit(_events(), K_GOOD, depth_range=(1, 3, 6)), ValueError,
      r"depth_range must be two numbers \(near, far\) in metres, got \(1, 3, 6\)"),
     ("fit-depth-range-infinite", lambda: cmax.fit(_events(), K_GOOD, depth_range=(1, float("inf"))), ValueError,

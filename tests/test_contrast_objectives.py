@@ -228,3 +228,121 @@ def test_the_identifiability_benchmark_fixes_the_planes_of_every_term_of_a_weigh
     assert isinstance(fixed, WeightedSum) and fixed.terms[0][1] is combined.terms[0][1]
     assert fixed.terms[1][1].values is not None and fixed.terms[1][0] == 0.5
     torch.testing.assert_close(fixed(batch, params), combined(batch, params))
+
+
+def _two_tiny() -> tuple[EventWindows, DepthMotion]:
+    """Two windows of :func:`_tiny` (seeds 0 and 1) in one batch, their parameters stacked (no gradient)."""
+    (a, pa), (b, pb) = _tiny(seed=0), _tiny(seed=1)
+    batch = EventWindows(torch.cat([a.x, b.x]), torch.cat([a.y, b.y]), torch.cat([a.t, b.t]),
+                         torch.cat([a.polarity, b.polarity]), torch.cat([a.window, b.window + 1]),
+                         torch.cat([a.K, b.K]), torch.cat([a.duration_s, b.duration_s]), 16, 12)
+    return batch, DepthMotion(torch.cat([pa.inverse_depth, pb.inverse_depth]).detach(),
+                              torch.cat([pa.twist, pb.twist]).detach())
+
+
+@pytest.mark.parametrize("compiled", [True, False], ids=["compiled", "torch"])
+@pytest.mark.parametrize("bad", ["twist_nan", "twist_inf", "depth_nan", "depth_inf"])
+@pytest.mark.parametrize("name", sorted(OBJECTIVES))
+def test_a_non_finite_parameter_scores_nan_for_its_window_only(name, bad, compiled, monkeypatch):
+    """A NaN or infinite twist or inverse-depth node scores NaN for its window (was: 3e-6 from the compiled
+    shared objective, near its minimum, or IndexError from the images), and the other window keeps its value."""
+    monkeypatch.setattr("cmax.contrast.objectives._COMPILED", compiled)
+    objective = OBJECTIVES[name]
+    batch, params = _two_tiny()
+    clean = objective(batch, params)
+    twist, rho = params.twist.clone(), params.inverse_depth.clone()
+    value = {"nan": float("nan"), "inf": float("inf")}[bad.split("_")[1]]
+    if bad.startswith("twist"):
+        twist[1, 3] = value
+    else:
+        rho[1, 0, 1, 2] = value
+    scored = objective(batch, DepthMotion(rho.requires_grad_(True), twist.requires_grad_(True)))
+    assert torch.isnan(scored[1])
+    assert float(scored[0]) == pytest.approx(float(clean[0]), rel=1e-12, abs=1e-15)
+    scored[0].backward()
+    assert torch.isfinite(twist.grad).all() and torch.isfinite(rho.grad).all()
+
+
+def test_event_windows_refuses_a_non_finite_or_singular_K():
+    batch, _ = _tiny()
+    with pytest.raises(ValueError, match="K must be finite"):
+        EventWindows(batch.x, batch.y, batch.t, batch.polarity, batch.window, torch.full_like(batch.K, float("nan")),
+                     batch.duration_s, 16, 12)
+    with pytest.raises(ValueError, match="positive focal lengths"):
+        EventWindows(batch.x, batch.y, batch.t, batch.polarity, batch.window, torch.zeros_like(batch.K),
+                     batch.duration_s, 16, 12)
+
+
+def test_shared_objective_differentiates_event_pixels_and_intrinsics_on_the_cpu():
+    """The compiled CPU path gives the gradient in the events' pixels and in K that the torch path gives and
+    finite differences confirm (was: zero for the pixels, none for K: the compiled warp has no gradient for
+    the rays, so a batch whose pixels or K need one takes the torch warp)."""
+    import cmax.contrast.objectives as objectives
+
+    batch, params = _tiny(n=40, seed=3)
+    params = DepthMotion(params.inverse_depth.detach(), params.twist.detach())
+
+    def loss(x: torch.Tensor, K: torch.Tensor) -> torch.Tensor:
+        moved = EventWindows(x, batch.y, batch.t, batch.polarity, batch.window, K, batch.duration_s, 16, 12)
+        return SHARED_OBJECTIVE(moved, params).sum()
+
+    grads = {}
+    for compiled in (True, False):
+        objectives._COMPILED, saved = compiled, objectives._COMPILED
+        try:
+            x, K = batch.x.clone().requires_grad_(True), batch.K.clone().requires_grad_(True)
+            grads[compiled] = torch.autograd.grad(loss(x, K), (x, K))
+        finally:
+            objectives._COMPILED = saved
+    torch.testing.assert_close(grads[True][0], grads[False][0], rtol=1e-6, atol=1e-12)
+    torch.testing.assert_close(grads[True][1], grads[False][1], rtol=1e-6, atol=1e-12)
+    assert grads[True][0].abs().max() > 1e-4
+    eps, step = 1e-6, torch.zeros_like(batch.K)
+    step[0, 0, 0] = eps
+    numeric = (loss(batch.x, batch.K + step) - loss(batch.x, batch.K - step)) / (2 * eps)
+    assert float(grads[True][1][0, 0, 0]) == pytest.approx(float(numeric), rel=1e-4, abs=1e-9)
+
+
+@pytest.mark.parametrize("make, match", [
+    (lambda: AverageTimestamp(eps=0.0), r"AverageTimestamp: eps must be a finite number > 0, got 0.0"),
+    (lambda: AverageTimestamp(eps=-1.0), r"eps must be a finite number > 0"),
+    (lambda: SweepVote(sigma=-1.0), r"SweepVote: sigma must be a finite number >= 0, got -1.0"),
+    (lambda: SweepVote(reference=float("nan")), r"SweepVote: reference must be a finite number"),
+    (lambda: SweepVote(candidates=2.5), r"SweepVote: candidates must be an integer >= 2, got 2.5"),
+    (lambda: PlaneVote(planes=2.5), r"PlaneVote: planes must be an integer >= 2, got 2.5"),
+    (lambda: PlaneVote(sigma=float("nan")), r"PlaneVote: sigma must be a finite number >= 0"),
+    (lambda: LocalContrast(cells=(2.5, 3)), r"LocalContrast: cells \(rows, cols\) must be an integer >= 1, got 2.5"),
+    (lambda: LocalContrast(margin=2.5), r"LocalContrast: margin must be an integer >= 0, got 2.5"),
+    (lambda: LocalContrast(smoothness=float("nan")), r"LocalContrast: smoothness must be a finite number >= 0"),
+    (lambda: GlobalContrast(references=(0.0, float("nan"))), r"GlobalContrast: references must be a finite number"),
+    (lambda: GlobalContrast(sigma=-1.0), r"GlobalContrast: sigma must be a finite number >= 0"),
+    (lambda: CollapseGuard(lattice=(1, 3)), r"CollapseGuard: lattice \(rows, cols\) must be an integer >= 2, got 1"),
+    (lambda: CollapseGuard(times=(float("nan"),)), r"CollapseGuard: times must be a finite number"),
+], ids=["at-eps-zero", "at-eps-negative", "sweep-sigma", "sweep-reference", "sweep-candidates", "plane-planes",
+        "plane-sigma", "local-cells", "local-margin", "local-smoothness", "global-references", "global-sigma",
+        "guard-lattice", "guard-times"])
+def test_objective_settings_are_refused_by_name(make, match):
+    """Settings that gave a ZeroDivisionError (eps 0), an absurd loss (eps -1: 346), NaN (a NaN reference or
+    smoothness, one row of collapse probes), IndexError / TypeError deep in torch (2.5 cells, margin 2.5), or
+    a silently unblurred image (sigma -1) are refused when the objective is made, naming the setting."""
+    with pytest.raises(ValueError, match=match):
+        make()
+
+
+def test_event_windows_take_a_camera_as_fit_does():
+    """``EventWindows.from_events`` / ``from_windows`` take a :class:`cmax.Camera` as :func:`cmax.fit` does: the
+    events undistorted by the camera, with its K (was: ``TypeError: K must be a 3x3 matrix of numbers, got
+    Camera(...)``)."""
+    import cmax
+    from conftest import random_events
+
+    events = random_events(500, width=64, height=48, seed=5)
+    camera = cmax.Camera(np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]), 64, 48,
+                         distortion=[-0.2, 0.05, 0.0, 0.0])
+    expected = EventWindows.from_events(camera.undistort_events(events), camera.K, dtype=torch.float64)
+    for batch in (EventWindows.from_events(events, camera, dtype=torch.float64),
+                  EventWindows.from_windows([(events, camera)], dtype=torch.float64)):
+        torch.testing.assert_close(batch.x, expected.x)
+        torch.testing.assert_close(batch.y, expected.y)
+        torch.testing.assert_close(batch.K, expected.K)
+    assert len(expected) < len(events)          # the barrel lens moves some corner events out of the image

@@ -112,3 +112,17 @@ def test_polarity_images_are_the_iwes_of_each_polarity_alone():
         torch.testing.assert_close(images[2 + b], expected_off)
     weights = torch.full_like(x, 2.0)
     torch.testing.assert_close(polarity_images(x, y, on, 16, 21, 1.0, weights), 2 * images)
+
+
+def test_a_non_finite_coordinate_makes_the_image_nan_without_indexing_outside():
+    """NaN or inf coordinates (a NaN motion) give NaN in the image and in the sampled value, as NaN spreads in
+    torch (was: IndexError: index out of range, a device-side assert on CUDA)."""
+    from cmax.iwe import accumulate_bilinear, sample_bilinear
+
+    for bad in (float("nan"), float("inf"), -float("inf")):
+        x = torch.tensor([1.5, bad, 2.0], dtype=torch.float64)
+        y = torch.tensor([1.0, 2.0, bad], dtype=torch.float64)
+        image = accumulate_bilinear(x, y, None, 4, 5)
+        assert image.shape == (4, 5) and torch.isnan(image).any()
+        values = sample_bilinear(torch.ones(1, 4, 5, dtype=torch.float64), x[None], y[None])
+        assert float(values[0, 0]) == pytest.approx(1.0) and torch.isnan(values[0, 1:]).all()

@@ -311,10 +311,13 @@ class _Se3Warp(torch.autograd.Function):
 def compiled_warp_applies(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torch.Tensor,
                           rho: torch.Tensor) -> bool:
     """Whether :func:`warp_se3_compiled` takes these inputs: CPU float32/float64 rays (N, 3), ``dt`` and
-    ``rho`` (N,) of the same dtype, ``v`` and ``omega`` (3,) (any float dtype)."""
+    ``rho`` (N,) of the same dtype, ``v`` and ``omega`` (3,) (any float dtype), and neither the rays nor
+    ``dt`` needing a gradient (the kernel gives none for them: event pixels or intrinsics being learned
+    take the torch warp)."""
     n = rays.shape[0] if rays.dim() == 2 else -1
     tensors = (rays, dt, v, omega, rho)
     return (all(t.device.type == "cpu" for t in tensors) and rays.dtype in (torch.float32, torch.float64)
+            and not rays.requires_grad and not dt.requires_grad
             and rays.shape == (n, 3) and dt.shape == (n,) and rho.shape == (n,) and dt.dtype == rays.dtype
             and rho.dtype == rays.dtype and v.shape == (3,) and omega.shape == (3,)
             and v.is_floating_point() and omega.is_floating_point())
@@ -343,7 +346,7 @@ def warp_se3_compiled(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, ome
     """
     if not compiled_warp_applies(rays, dt, v, omega, rho):
         raise ValueError("warp_se3_compiled needs CPU float32/float64 rays (N, 3), dt and rho (N,) of their dtype "
-                         f"and v, omega (3,); got {tuple(rays.shape)} {rays.dtype}, {tuple(dt.shape)} {dt.dtype}, "
+                         "(rays and dt without a gradient) and v, omega (3,); got {tuple(rays.shape)} {rays.dtype}, {tuple(dt.shape)} {dt.dtype}, "
                          f"{tuple(rho.shape)} {rho.dtype}, {tuple(v.shape)}, {tuple(omega.shape)}")
     return _Se3Warp.apply(rays, dt, v, omega, rho, K)
 

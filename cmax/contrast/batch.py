@@ -12,6 +12,7 @@ from typing import Sequence
 
 import torch
 
+from cmax.camera import pinhole_events
 from cmax.events import Events
 from cmax.warp import DepthGrid, WarpEvents
 
@@ -80,6 +81,11 @@ class EventWindows:
                              f"{sorted(devices)} (EventWindows.to(device=...) moves them all)")
         if self.x.device.type == "meta":   # shapes only: meta tensors hold no values to check
             return
+        if not bool(torch.isfinite(self.K).all()):
+            raise ValueError(f"K must be finite (no NaN or inf), got {self.K.tolist()}")
+        if not bool(((self.K[:, 0, 0] > 0) & (self.K[:, 1, 1] > 0)).all()):
+            raise ValueError(f"K must have positive focal lengths fx = K[:, 0, 0], fy = K[:, 1, 1] [px], got "
+                             f"{self.K[:, 0, 0].tolist()}, {self.K[:, 1, 1].tolist()}")
         if not bool((self.duration_s > 0).all()):
             raise ValueError(f"duration_s must be ({B},) and > 0 s, got {self.duration_s.tolist()}")
         if self.speed is not None and not bool((torch.isnan(self.speed) | (self.speed >= 0)).all()):
@@ -202,12 +208,14 @@ class EventWindows:
 
     @classmethod
     def from_events(cls, events: Events, K: object, *, speed: float | None = None, **prepare) -> "EventWindows":
-        """One window (B = 1) from :class:`cmax.Events` and intrinsics ``K`` (3, 3).
+        """One window (B = 1) from :class:`cmax.Events` and intrinsics ``K`` (3, 3), or the :class:`cmax.Camera`
+        of their sensor, whose distortion is undone first (:func:`cmax.camera.pinhole_events`, as
+        :func:`cmax.fit` does).
 
         ``prepare`` goes to :meth:`cmax.warp.WarpEvents.from_events` (``max_events``,
         ``seed``, ``dtype``, ``pixels``, ``dither``); ``speed`` is the known ``|v|`` [m/s].
         """
-        warp_events = WarpEvents.from_events(events, K, **prepare)
+        warp_events = WarpEvents.from_events(*pinhole_events(events, K), **prepare)
         if len(warp_events) < 2 or warp_events.duration_s <= 0:
             raise ValueError(f"events: need at least 2 events spanning a non-zero time, got {len(warp_events)}")
         return cls.from_warp_events([warp_events], speed=None if speed is None else [float(speed)])
@@ -215,10 +223,12 @@ class EventWindows:
     @classmethod
     def from_windows(cls, windows: Sequence[tuple[Events, object]], *, speed: Sequence[float] | None = None,
                      **prepare) -> "EventWindows":
-        """B windows from a list of ``(events, K)`` pairs of one sensor size (see :meth:`from_events`)."""
+        """B windows from a list of ``(events, K)`` pairs of one sensor size, ``K`` (3, 3) or a :class:`cmax.Camera`
+        (see :meth:`from_events`)."""
         if not windows:
             raise ValueError("windows: need at least one (events, K) pair")
-        return cls.from_warp_events([WarpEvents.from_events(ev, K, **prepare) for ev, K in windows], speed=speed)
+        return cls.from_warp_events([WarpEvents.from_events(*pinhole_events(ev, K), **prepare) for ev, K in windows],
+                                    speed=speed)
 
     @classmethod
     def from_padded(cls, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, polarity: torch.Tensor,

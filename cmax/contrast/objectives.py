@@ -21,7 +21,9 @@ from __future__ import annotations
 
 import dataclasses
 import enum
+import functools
 import math
+import numbers
 from dataclasses import dataclass
 from typing import NamedTuple
 
@@ -30,7 +32,7 @@ import torch
 from cmax.contrast._timestamp_kernels import EDGE_TOLERANCE_PX, average_timestamp_images, compiled_images_apply
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.contrast.batch import EventWindows
-from cmax.iwe import accumulate_bilinear_indexed, blur
+from cmax.iwe import _finite_corner, accumulate_bilinear_indexed, blur
 from cmax.objectives import contrast_of_images, deformation, local_contrast, total_variation
 from cmax.warp import DepthGrid, project, se3_parts, warp_se3
 
@@ -85,6 +87,54 @@ def _check(batch: EventWindows, params: DepthMotion) -> None:
         raise ValueError(f"inverse_depth grid {h}x{w} is finer than the image {batch.height}x{batch.width}")
     if len(batch) == 0:
         raise ValueError("batch: holds no events")
+
+
+def _require_int(owner: str, name: str, value: object, minimum: int) -> None:
+    """``owner.name`` must be an integer (not a bool) >= ``minimum``, else a ValueError naming it."""
+    if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < minimum:
+        raise ValueError(f"{owner}: {name} must be an integer >= {minimum}, got {value!r}")
+
+
+def _require_number(owner: str, name: str, value: object, minimum: float | None = None, *,
+                    above: bool = False) -> None:
+    """``owner.name`` must be a finite number, ``>= minimum`` (``> minimum`` with ``above``) when given, else a
+    ValueError naming it (NaN, a negative blur or a zero ``eps`` gave NaN, a silently unblurred image or a
+    ZeroDivisionError at the first call)."""
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool) and math.isfinite(value)
+    if ok and minimum is not None:
+        ok = value > minimum if above else value >= minimum
+    if not ok:
+        bound = "" if minimum is None else f" {'>' if above else '>='} {minimum:g}"
+        raise ValueError(f"{owner}: {name} must be a finite number{bound}, got {value!r}")
+
+
+def _require_grid(owner: str, name: str, value: object, minimum: int) -> None:
+    """``owner.name`` must be two integers >= ``minimum`` (rows, cols)."""
+    if not (isinstance(value, (tuple, list)) and len(value) == 2):
+        raise ValueError(f"{owner}: {name} must be two integers >= {minimum} (rows, cols), got {value!r}")
+    for n in value:
+        _require_int(owner, f"{name} (rows, cols)", n, minimum)
+
+
+def _non_finite_scores_nan(call):
+    """Wrap an objective's ``__call__(batch, params)``: the inputs are checked (:func:`_check`), and a window whose
+    twist or inverse depth holds a NaN or an infinity scores NaN (an optimiser or a network that produced it
+    sees NaN, as from any torch operation, never a good-looking value; was: near the loss's minimum, or an
+    ``IndexError`` from the images). The objective itself runs on the parameters with those entries set to 0,
+    so nothing downstream indexes with NaN; the other windows' values and gradients are unchanged. No
+    host-device synchronisation."""
+
+    @functools.wraps(call)
+    def wrapped(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
+        _check(batch, params)
+        finite = (torch.isfinite(params.twist).all(1)
+                  & torch.isfinite(params.inverse_depth).flatten(1).all(1))
+        safe = DepthMotion(torch.nan_to_num(params.inverse_depth, nan=0.0, posinf=0.0, neginf=0.0),
+                           torch.nan_to_num(params.twist, nan=0.0, posinf=0.0, neginf=0.0))
+        loss = call(self, batch, safe)
+        return torch.where(finite.to(loss.device), loss, torch.full_like(loss, math.nan))
+
+    return wrapped
 
 
 def twist_at_speed(twist: torch.Tensor, speed: torch.Tensor | None) -> torch.Tensor:
@@ -212,11 +262,11 @@ class AverageTimestamp:
     eps: float = 1e-9
 
     def __post_init__(self) -> None:
-        if not self.smoothness >= 0:
-            raise ValueError(f"smoothness must be >= 0, got {self.smoothness}")
+        _require_number("AverageTimestamp", "smoothness", self.smoothness, 0.0)
+        _require_number("AverageTimestamp", "eps", self.eps, 0.0, above=True)
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         B, H, W, b = batch.count, batch.height, batch.width, batch.window
         duration = batch.duration_s.to(batch.dtype)[b]
         tau = (batch.t / duration).clamp(0.0, 1.0)
@@ -252,6 +302,7 @@ def _sample_indexed(images: torch.Tensor, image: torch.Tensor, x: torch.Tensor, 
     x0, y0 = torch.floor(x.detach()), torch.floor(y.detach())
     fx, fy = x - x0, y - y0
     valid = ((x0 >= -1) & (x0 <= W - 1) & (y0 >= -1) & (y0 <= H - 1)).to(images.dtype)
+    x0, y0 = _finite_corner(x0), _finite_corner(y0)
     corner = image * (Hp * Wp) + (y0.clamp(-1, H - 1).long() + 1) * Wp + x0.clamp(-1, W - 1).long() + 1
     value = ((1 - fx) * (1 - fy) * canvas[corner] + fx * (1 - fy) * canvas[corner + 1]
              + (1 - fx) * fy * canvas[corner + Wp] + fx * fy * canvas[corner + Wp + 1])
@@ -268,7 +319,10 @@ def _own_image_values(batch: EventWindows, x: torch.Tensor, y: torch.Tensor, sig
 
 @dataclass(frozen=True, eq=False)
 class SweepVote:
-    """The depth sweep's per-event normalised vote, differentiable in depth and twist (lower is better).
+    """The depth sweep's per-event normalised vote (lower is better): differentiable in depth; in the twist, with
+    the normaliser held (below), so its twist gradient is not the objective's (finite differences of the twist
+    move the normaliser too). Fix the normaliser for one twist with :meth:`with_motion` (the gradient is then
+    exact), or optimise a motion with :class:`PlaneVote`, whose normaliser carries a gradient.
 
     Each event is warped to the window's ``reference`` time with its inverse
     depth; the blurred image of the warped events of its polarity is read back at
@@ -304,10 +358,11 @@ class SweepVote:
     scale: torch.Tensor | None = None
 
     def __post_init__(self) -> None:
-        if not (0 <= self.rho_range[0] < self.rho_range[1]):
-            raise ValueError(f"rho_range must be increasing and >= 0 [1/m], got {self.rho_range}")
-        if self.candidates < 2:
-            raise ValueError(f"candidates must be >= 2, got {self.candidates}")
+        if not (0 <= self.rho_range[0] < self.rho_range[1] < math.inf):
+            raise ValueError(f"rho_range must be increasing, finite and >= 0 [1/m], got {self.rho_range}")
+        _require_int("SweepVote", "candidates", self.candidates, 2)
+        _require_number("SweepVote", "sigma", self.sigma, 0.0)
+        _require_number("SweepVote", "reference", self.reference)
 
     def _scores(self, batch: EventWindows, params: DepthMotion, dt: torch.Tensor, rays: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -343,8 +398,8 @@ class SweepVote:
         at every call."""
         return dataclasses.replace(self, scale=self.normaliser(batch, twist))
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         if self.scale is not None and self.scale.shape != (len(batch),):
             raise ValueError(f"scale holds {self.scale.shape[0]} events, the batch {len(batch)}")
         scale = self.normaliser(batch, params.twist) if self.scale is None else self.scale
@@ -441,10 +496,10 @@ class PlaneVote:
         if not (0 < lo < hi):
             raise ValueError(f"rho_range must be increasing and > 0 [1/m] (the planes are log-spaced), got "
                              f"{self.rho_range}")
-        if self.planes < 2:
-            raise ValueError(f"planes must be >= 2, got {self.planes}")
-        if not self.smoothness >= 0:
-            raise ValueError(f"smoothness must be >= 0, got {self.smoothness}")
+        _require_int("PlaneVote", "planes", self.planes, 2)
+        _require_number("PlaneVote", "smoothness", self.smoothness, 0.0)
+        _require_number("PlaneVote", "sigma", self.sigma, 0.0)
+        _require_number("PlaneVote", "reference", self.reference)
         if not (isinstance(self.motion_weight, (int, float)) and math.isfinite(self.motion_weight)
                 and self.motion_weight >= 0):
             raise ValueError(f"motion_weight must be a finite number >= 0, got {self.motion_weight!r}")
@@ -508,8 +563,8 @@ class PlaneVote:
             total, count = batch.window_sum(unwarped), batch.window_sum(kept)
             return (total / count.clamp(min=1.0)).clamp(min=1e-12)[batch.window]
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         values, kept, scale = self.plane_values(batch, params.twist) if self.values is None else self.values
         if values.shape != (self.planes, len(batch)):
             raise ValueError(f"the fixed plane values hold {values.shape[1]} events, the batch {len(batch)}")
@@ -583,14 +638,14 @@ class LocalContrast:
     smoothness: float = 0.0
 
     def __post_init__(self) -> None:
-        if len(self.cells) != 2 or min(self.cells) < 1:
-            raise ValueError(f"cells must be two positive integers, got {self.cells}")
-        if self.margin < 0 or self.smoothness < 0 or self.sigma < 0:
-            raise ValueError(f"margin, smoothness and sigma must be >= 0, got {self.margin}, {self.smoothness}, "
-                             f"{self.sigma}")
+        _require_grid("LocalContrast", "cells", self.cells, 1)
+        _require_int("LocalContrast", "margin", self.margin, 0)
+        _require_number("LocalContrast", "smoothness", self.smoothness, 0.0)
+        _require_number("LocalContrast", "sigma", self.sigma, 0.0)
+        _require_number("LocalContrast", "reference", self.reference)
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         B, H, W = batch.count, batch.height, batch.width
         gh, gw = self.cells
         ch, cw = -(-H // gh), -(-W // gw)
@@ -648,6 +703,9 @@ class GlobalContrast:
         contrast_of_images(torch.zeros(1, 1, 1), self.kind)      # validates the name
         if not self.references:
             raise ValueError("references: need at least one reference time")
+        for reference in self.references:
+            _require_number("GlobalContrast", "references", reference)
+        _require_number("GlobalContrast", "sigma", self.sigma, 0.0)
 
     def _per_window(self, batch: EventWindows, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
         R, B = x.shape[0], batch.count
@@ -656,8 +714,8 @@ class GlobalContrast:
                                                   batch.width), self.sigma)
         return contrast_of_images(images, self.kind).view(R, B).mean(0)
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         fractions = torch.tensor(self.references, dtype=torch.float64, device=batch.device)
         refs = (fractions[:, None] * batch.duration_s.to(torch.float64)[None, :]).to(batch.dtype)   # (R, B)
         x, y = warp_windows(batch, params, batch.t[None, :] - refs[:, batch.window])
@@ -690,13 +748,14 @@ class CollapseGuard:
     times: tuple[float, ...] = PROBE_TIMES
 
     def __post_init__(self) -> None:
-        if len(self.lattice) != 2 or min(self.lattice) < 1:
-            raise ValueError(f"lattice must be two positive integers (rows, cols), got {self.lattice}")
+        _require_grid("CollapseGuard", "lattice", self.lattice, 2)   # one row or column of probes holds no cell
         if not self.times:
             raise ValueError("times: need at least one probe time")
+        for time in self.times:
+            _require_number("CollapseGuard", "times", time)
 
+    @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
-        _check(batch, params)
         B, H, W, dtype, device = batch.count, batch.height, batch.width, batch.dtype, batch.device
         twist = twist_at_speed(params.twist.to(dtype), batch.speed)
         rows, cols = self.lattice

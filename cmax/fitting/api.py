@@ -268,6 +268,28 @@ def _check_speed(speed: object) -> float | None:
     return value
 
 
+def _check_init(init: object) -> None:
+    """A warm start: None or a :class:`FitResult` whose ``flow`` (2,) [px/s] (or None), ``v`` (3,) and ``omega``
+    (3,) are finite numbers of those shapes (an edited or hand-made result of other shapes was broadcast or
+    failed deep in the fit)."""
+    if init is None:
+        return
+    if not isinstance(init, FitResult):
+        raise TypeError(f"init must be a FitResult, got {type(init).__name__}")
+    for name, shape, unit in (("flow", (2,), "px/s"), ("v", (3,), "m/s"), ("omega", (3,), "rad/s")):
+        part = getattr(init, name)
+        if part is None and name == "flow":
+            continue
+        try:
+            array = np.asarray(part, dtype=np.float64)
+        except (TypeError, ValueError):
+            raise ValueError(f"init.{name} must be numbers of shape {shape}, got {part!r}") from None
+        if array.shape != shape:
+            raise ValueError(f"init.{name} must have shape {shape} [{unit}], got shape {array.shape}")
+        if not np.isfinite(array).all():
+            raise ValueError("init holds a non-finite motion (NaN or inf in v, omega or flow): it cannot start a fit")
+
+
 def _known_omega(omega: object, pose: object) -> np.ndarray:
     """A known angular velocity (3,) [rad/s], checked."""
     if pose is not None:
@@ -436,11 +458,7 @@ def fit(
     if (speed is not None or pose is not None or omega is not None) and model != "se3":
         raise ValueError(f"speed, pose and omega apply to model='se3', not {model!r}")
     known_omega = None if omega is None else _known_omega(omega, pose)
-    if init is not None and not isinstance(init, FitResult):
-        raise TypeError(f"init must be a FitResult, got {type(init).__name__}")
-    if init is not None and not all(np.isfinite(np.asarray(part, dtype=np.float64)).all()
-                                    for part in (init.v, init.omega, init.flow) if part is not None):
-        raise ValueError("init holds a non-finite motion (NaN or inf in v, omega or flow): it cannot start a fit")
+    _check_init(init)
     backend = make_solver(solver)
     pose_xi = None if pose is None else _pose_twist(pose, (int(events.t[-1]) - int(events.t[0])) * 1e-6)
     scale = float(np.linalg.norm(pose_xi[:3])) if pose_xi is not None else (speed or 1.0)
