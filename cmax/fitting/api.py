@@ -22,7 +22,8 @@ from cmax.hot_pixels import no_pixels
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
-                                  motion_within_noise, rate_change, shuffled_gain_test, sparse_reason, verdict_of)
+                                  motion_within_noise, rate_change, shuffled_gain_test, small_parallax_reason,
+                                  sparse_reason, verdict_of)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -597,20 +598,22 @@ def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver
     """The verdict of a finished fit (:class:`QualitySettings` ``w.settings.quality``) with the low-motion
     rule that fired, ``low`` (:func:`_low_motion`), the window's :func:`cmax.fitting.quality.rate_change`
     ``rate`` (None: not measured) and :func:`_on_bound`'s reason; the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on se3 fits
-    with a fitted direction that did not fail and have parallax, and so does the rule of sparse windows
-    (:func:`cmax.fitting.quality.sparse_reason`; ``given``: the events of the window before subsampling)."""
+    with a fitted direction that did not fail and have parallax, and so do the rules of sparse windows
+    (:func:`cmax.fitting.quality.sparse_reason`; ``given``: the events of the window before subsampling) and of
+    small parallax with the rotation free (:func:`cmax.fitting.quality.small_parallax_reason`)."""
     quality = w.settings.quality
     failed = [log.stage for log in result.stages if not log.success]
     alternatives, note = (), ("ambiguity not tested: the pose is given" if pose_known else
                               "ambiguity not tested: a model without translation" if result.model != "se3" else
                               "ambiguity not tested (QualitySettings.ambiguity_test False)")
-    tested, sparse = True, ""
+    tested, sparse, small = True, "", ""
     if result.model == "se3" and not pose_known and quality.ambiguity_test and result.success and low is None:
         alternatives, note, tested = assess(w, result.v, result.omega, speed, quality, solver, hold_omega=hold_omega)
         sparse = sparse_reason(result.events_used, given, w.ev.width, w.ev.height, quality.min_event_density)
+        small = "" if hold_omega else small_parallax_reason(result.parallax_px, quality.min_ok_parallax_px)
     return verdict_of(success=result.success, failed_stages=failed, low_motion=low, alternatives=alternatives,
                       note=note, untestable=not tested, rate=rate, max_rate_change=quality.max_rate_change,
-                      sparse=sparse, on_bound=on_bound)
+                      sparse=sparse, on_bound=on_bound, small_parallax=small)
 
 
 def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_known: bool,

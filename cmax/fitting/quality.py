@@ -74,7 +74,8 @@ from cmax.warp import warp_se3
 
 __all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alternative", "Quality", "MotionScorer",
            "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
-           "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change", "sparse_reason"]
+           "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change", "sparse_reason",
+           "small_parallax_reason"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
@@ -167,6 +168,10 @@ class Quality:
         At least ``QualitySettings.max_bound_share`` of the events' depth lies on one end of the depth range
         (:func:`bound_reason`): ambiguous, since the depth is clipped and the motion may be bent to keep the
         rest inside.
+    small_parallax : bool
+        se3 with a free rotation: ``parallax_px`` under ``QualitySettings.min_ok_parallax_px``
+        (:func:`small_parallax_reason`): ambiguous, since a rotation absorbs most of what a turn of so little
+        translation changes in the image.
     """
 
     verdict: Verdict
@@ -180,6 +185,7 @@ class Quality:
     unsteady: bool = False
     sparse: bool = False
     on_bound: bool = False
+    small_parallax: bool = False
 
     def summary(self) -> dict:
         """A JSON-ready dict (an infinite ``rate_change``, one half of the window without events, as None with
@@ -188,6 +194,7 @@ class Quality:
         return {"verdict": self.verdict.value, "reason": self.reason,
                 "cause": None if self.cause is None else self.cause.value,
                 "rate_change": rate, "unsteady": self.unsteady, "sparse": self.sparse, "on_bound": self.on_bound,
+                "small_parallax": self.small_parallax,
                 "alternatives": [{"name": a.name, "v": a.v.tolist(), "omega": a.omega.tolist(), "gain": a.gain,
                                   "noise": a.noise, "within_noise": a.within_noise} for a in self.alternatives],
                 "resolution": self.resolution, "resolved": self.resolved,
@@ -468,6 +475,27 @@ def sparse_reason(fitted: int, given: int, width: int, height: int, min_event_de
             f"{min_event_density:g}): too sparse for the contrast to vouch for the direction{more}")
 
 
+def small_parallax_reason(parallax_px: float | None, min_ok_parallax_px: float) -> str:
+    """The reason of a window whose translation moved the events too little to vouch for its direction with the
+    rotation free, "" otherwise (``parallax_px`` None, or not under ``min_ok_parallax_px``).
+
+    Over ``P`` px of parallax, turning the translation direction by an angle ``a`` changes the translational
+    image motion by about ``P a`` px, and a rotation takes up its part that is nearly uniform over the image (the
+    bas-relief ambiguity of short baselines): what remains is a fraction of a pixel for tens of degrees when
+    ``P`` is a few pixels, less than the contrast's own blur, so the fit's direction can be far off while no
+    alternative scores within its noise.
+
+    >>> small_parallax_reason(2.0, 3.0)[:62]
+    'parallax 2.00 px, under min_ok_parallax_px=3: too little for t'
+    >>> small_parallax_reason(4.0, 3.0)
+    ''
+    """
+    if parallax_px is None or not parallax_px < min_ok_parallax_px:
+        return ""
+    return (f"parallax {parallax_px:.2f} px, under min_ok_parallax_px={min_ok_parallax_px:g}: too little for the "
+            "contrast to tell the translation direction from a rotation (the bas-relief ambiguity)")
+
+
 def bound_reason(shares: dict[str, float], depth_range: tuple[float, float], max_bound_share: float) -> str:
     """The reason of a window with too much of its depth on an end of ``depth_range`` (near, far) [m], "" otherwise:
     ``shares`` as :func:`cmax.fitting.pipeline.depth_on_bounds` gives them (``{"depth_near": ..., "depth_far":
@@ -495,7 +523,7 @@ def bound_reason(shares: dict[str, float], depth_range: tuple[float, float], max
 def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMotion | None,
                alternatives: Sequence[Alternative], note: str = "", untestable: bool = False,
                rate: float | None = None, max_rate_change: float = math.inf, sparse: str = "",
-               on_bound: str = "") -> Quality:
+               on_bound: str = "", small_parallax: str = "") -> Quality:
     """The verdict from the fit's ``success`` (and the names of its failed stages), why its motion is too
     small to trust (None when it is not), the ambiguity test's ``alternatives`` and the window's
     :func:`rate_change` ``rate`` (None: not measured); the worst one wins (failed, low parallax, ambiguous,
@@ -504,7 +532,9 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
     ``max_rate_change``: ambiguous and ``unsteady``, the motion is not steady over the window. ``sparse``: the
     :func:`sparse_reason` of the window ("" when it is not sparse): an ``ok`` becomes ambiguous and ``sparse``.
     ``on_bound``: why too much of the depth lies on an end of the depth range (:func:`bound_reason`; "" when it
-    does not): an ``ok`` or ambiguous window is ambiguous and ``on_bound``."""
+    does not): an ``ok`` or ambiguous window is ambiguous and ``on_bound``. ``small_parallax``: the
+    :func:`small_parallax_reason` of the window ("" when it has parallax enough): an ``ok`` becomes ambiguous and
+    ``small_parallax``."""
     unsteady = "" if rate is None else _unsteady_reason(rate, max_rate_change)
     measured = dict(rate_change=rate, unsteady=bool(unsteady))
     if not success:
@@ -536,6 +566,9 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
         measured["on_bound"] = True
     if sparse and verdict is Verdict.OK:
         return Quality(Verdict.AMBIGUOUS, f"{sparse}; {reason}", tuple(alternatives), sparse=True, **measured)
+    if small_parallax and verdict is Verdict.OK:
+        return Quality(Verdict.AMBIGUOUS, f"{small_parallax}; {reason}", tuple(alternatives), small_parallax=True,
+                       **measured)
     return Quality(verdict, reason, tuple(alternatives), **measured)
 
 

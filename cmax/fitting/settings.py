@@ -345,6 +345,13 @@ class QualitySettings:
         best ``ambiguous``, with a ``BoundWarning``: a free motion can tilt until just under that fraction of the
         events leave the bound, so the depth is clipped and the direction bent without the fit failing. In
         (0, 1]; 1 turns the rule off (docs/quality.md).
+    min_ok_parallax_px : float
+        se3 with a fitted direction and a free rotation: a window whose ``FitResult.parallax_px`` is under this
+        (but not under ``FitSettings.low_parallax_px``, which makes it ``low_parallax``) is at best ``ambiguous``
+        and ``small_parallax``: over a few pixels of parallax a rotation absorbs most of what a turn of the
+        translation direction changes in the image (the bas-relief ambiguity), so the contrast can prefer a
+        direction tens of degrees off beyond its noise and no alternative of the test flags it. Not applied with
+        the rotation held (``omega=``, a gyroscope). 0 turns the rule off (docs/quality.md).
     """
 
     ambiguity_test: bool = True
@@ -367,6 +374,7 @@ class QualitySettings:
     max_rate_change: float = 6.0
     min_event_density: float = 0.25
     max_bound_share: float = 0.25
+    min_ok_parallax_px: float = 3.0
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "smoothing"):
@@ -374,7 +382,7 @@ class QualitySettings:
                 raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
         object.__setattr__(self, "motion_cells", _grid("motion_cells", self.motion_cells))
         for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg", "motion_noise_sigmas",
-                     "smoothing_min_deg", "smoothing_span_s", "min_event_density"):
+                     "smoothing_min_deg", "smoothing_span_s", "min_event_density", "min_ok_parallax_px"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
