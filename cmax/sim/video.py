@@ -517,6 +517,42 @@ class ImageFolderSource:
 
 
 # -- video files --------------------------------------------------------------------------
+def _stream_position(capture: cv2.VideoCapture, fps: float | None) -> float | None:
+    """The last decoded frame's position in the stream, in frames, or None when OpenCV tells neither.
+
+    The larger of OpenCV's ``CAP_PROP_PTS`` (the timestamp times the frame rate, from the stream's
+    zero, not shifted to the first frame; some demuxers give none) and ``CAP_PROP_POS_MSEC`` (from the
+    first frame) times ``fps``.
+    """
+    values = []
+    prop = getattr(cv2, "CAP_PROP_PTS", None)
+    if prop is not None:
+        values.append(capture.get(prop))
+    if fps:
+        values.append(capture.get(cv2.CAP_PROP_POS_MSEC) * 1e-3 * fps)
+    values = [float(v) for v in values if math.isfinite(v) and v >= 0]
+    return max(values) if values else None
+
+
+def _stopped_early(decoded: int, position: float | None, count: int) -> bool:
+    """Whether a stream ended well before the ``count`` frames its container lists (truncated or corrupt).
+
+    ``decoded`` frames were decoded, the last at stream ``position`` (frames from the stream's zero,
+    :func:`_stream_position`; None: unknown). Short means more than ``max(1, 1%)`` frames short. Matroska
+    and WebM store no frame count: OpenCV estimates it from the duration and the stream's frame rate, which
+    exceeds the frames of a variable-frame-rate stream or of one whose timestamps start after 0 (a cut
+    segment); there the last frame still lies at the end of the stream. A truncated stream falls short on
+    both counts.
+
+    >>> _stopped_early(8, 51.0, 52), _stopped_early(25, 149.0, 150), _stopped_early(13, 12.0, 30)
+    (False, False, True)
+    """
+    short = count - max(1, round(0.01 * count))
+    if decoded >= short:
+        return False
+    return position is None or position + 1 < short
+
+
 class VideoFileSource:
     """Frames of a video file (mp4, avi, mkv, ... whatever OpenCV's FFmpeg reads).
 
@@ -548,7 +584,9 @@ class VideoFileSource:
     Decoding errors: a file OpenCV cannot open or that yields no frame raises
     :class:`DecodeError` at construction; a path that is not valid UTF-8 raises
     :class:`ValueError` (:func:`_opencv_path`: OpenCV would crash on it). When
-    the decoder stops more than ``max(1, 1%)`` frames before the container's frame count, iteration raises
+    the decoder stops more than ``max(1, 1%)`` frames before the container's frame count, and the last
+    frame decoded lies that far before the stream's end too (:func:`_stopped_early`: a Matroska count is
+    an estimate, too large for a variable frame rate or a stream starting after 0), iteration raises
     :class:`DecodeError` after the frames it could decode (a truncated or
     corrupt stream). ``frame_count`` is the container's count (None when
     unknown or when ``t0_s``/``t1_s`` cut the video).
@@ -610,12 +648,13 @@ class VideoFileSource:
         try:
             if t0_us:
                 capture.set(cv2.CAP_PROP_POS_MSEC, t0_us / 1000)
-            previous, decoded, yielded = None, 0, 0
+            previous, decoded, yielded, position = None, 0, 0, None
             while True:
                 ok, image = capture.read()
                 if not ok or image is None:
                     break
                 decoded = max(decoded, int(capture.get(cv2.CAP_PROP_POS_FRAMES)))
+                position = _stream_position(capture, self.fps)
                 t = self._time_us(capture, first=previous is None and not t0_us)
                 t = t if previous is None or t > previous else previous + 1
                 previous = t
@@ -628,8 +667,7 @@ class VideoFileSource:
             count = self._container_count
             finished = t1_us is None or (previous is not None and previous < t1_us)
             seek_past_end = bool(t0_us) and decoded == 0
-            if (finished and not seek_past_end and count is not None
-                    and decoded < count - max(1, round(0.01 * count))):
+            if finished and not seek_past_end and count is not None and _stopped_early(decoded, position, count):
                 raise DecodeError(f"{self.path}: decoding stopped after frame {decoded} of the "
                                   f"{count} the container lists (truncated or corrupt video)")
             if yielded == 0:
