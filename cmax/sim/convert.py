@@ -44,10 +44,11 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -184,7 +185,9 @@ def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
     """The frames of a video (or of an image folder / timestamp file) in the settings' size and time range.
 
     Frames are uint8 grey (H, W) (the 8-bit values the reference ESIM works
-    on), decoded ``prefetch`` frames ahead in a background thread; times are
+    on), or float32 in [0, 255] for an image sequence of 16-bit images (rounding
+    them to whole grey values would lose the steps between, most of a dark
+    image's), decoded ``prefetch`` frames ahead in a background thread; times are
     the container's presentation times (or the image sequence's timestamps) in
     µs, from ``t0_s`` to ``t1_s`` seconds after the first frame.
 
@@ -199,8 +202,12 @@ def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
         No frame in the time range (while iterating).
     """
     # A folder or a .txt timestamp file is an image sequence (ECD images.txt, ESIM timestamps.txt).
-    return open_source(source, size=settings.size, t0_s=settings.t0_s, t1_s=settings.t1_s,
-                       dtype=np.uint8, prefetch=prefetch)
+    frames = open_source(source, size=settings.size, t0_s=settings.t0_s, t1_s=settings.t1_s,
+                         dtype=np.uint8, prefetch=prefetch)
+    if getattr(frames, "bit_depth", 8) > 8:
+        frames = open_source(source, size=settings.size, t0_s=settings.t0_s, t1_s=settings.t1_s,
+                             dtype=np.float32, prefetch=prefetch)
+    return frames
 
 
 def _counted(frames: Iterable[tuple[np.ndarray, int]], counter: list[int]):
@@ -262,7 +269,7 @@ def convert_video(
     source, output = Path(source), Path(output)
     if not overwrite and os.path.lexists(output):  # before any frame is read (the writer checks again)
         raise FileExistsError(f"{output} exists (pass overwrite=True to replace it)")
-    signature = None
+    signature, decoded = None, frames is None
     if frames is None:
         if not source.exists():
             raise FileNotFoundError(f"video not found: {source}")
@@ -283,19 +290,20 @@ def convert_video(
     simulator = EventSimulator.from_settings(settings.esim)
     writer, samples, reported = None, 0, 0
     try:
-        for frame, t_us in stream:
-            events = simulator.step(frame, t_us)
-            if writer is None:
-                writer = H5Writer(
-                    output, events.width, events.height, t_offset_us=int(t_us), overwrite=overwrite,
-                    source=str(source), category=category or "", simulator=f"cmax {__version__}",
-                    settings=settings.to_dict(),
-                )
-            writer.append(events)
-            samples += 1
-            if progress is not None and counter[0] > reported:
-                progress(counter[0] - reported)
-                reported = counter[0]
+        with _frames_on_the_grey_scale(decoded):
+            for frame, t_us in stream:
+                events = simulator.step(frame, t_us)
+                if writer is None:
+                    writer = H5Writer(
+                        output, events.width, events.height, t_offset_us=int(t_us), overwrite=overwrite,
+                        source=str(source), category=category or "", simulator=f"cmax {__version__}",
+                        settings=settings.to_dict(),
+                    )
+                writer.append(events)
+                samples += 1
+                if progress is not None and counter[0] > reported:
+                    progress(counter[0] - reported)
+                    reported = counter[0]
         if writer is None:
             raise ValueError(f"{source}: no frames" + _range_note(settings))
         writer.close()
@@ -311,6 +319,20 @@ def convert_video(
         events_per_s=writer.count / duration if duration > 0 else 0.0,
         wall_s=time.perf_counter() - started, source_signature=signature,
     )
+
+
+@contextmanager
+def _frames_on_the_grey_scale(decoded: bool) -> Iterator[None]:
+    """Silence the "[0, 1] image?" warning (:func:`cmax.sim.esim.unit_range_note`) for frames decoded from a file.
+
+    Decoded frames are grey values in [0, 255] whatever their range: a dark 16-bit image (values up to 257 of
+    65535) is float32 frames within [0, 1], which the warning would take for a [0, 1] image and advise to
+    multiply by 255. Frames a caller passes (``frames=``) keep the warning.
+    """
+    with warnings.catch_warnings():
+        if decoded:
+            warnings.filterwarnings("ignore", message=r"frames are floats in \[", category=UserWarning)
+        yield
 
 
 def _range_note(settings: ConvertSettings) -> str:

@@ -455,8 +455,10 @@ class ImageFolderSource:
         :func:`cmax.sim.prefetch.default_decoders` (the available cores, at
         most 4).
 
-    The first image is read at construction (for ``width``/``height``); the
-    others when iterated, where an image of another size raises ValueError.
+    The first image is read at construction (for ``width``/``height``, and
+    ``bit_depth``: 8, or 16 for a 16-bit first image, whose grey values
+    ``v * 255 / 65535`` only float32 frames hold exactly); the others when
+    iterated, where an image of another size raises ValueError.
     """
 
     def __init__(self, folder: PathLike, *, timestamps: PathLike | np.ndarray | None = None,
@@ -494,7 +496,9 @@ class ImageFolderSource:
                                  f"{len(self.images)} images span {(last - first) * 1e-6:.6f} s{clock}")
             self.timestamps_us = self.timestamps_us[keep]
             self.images = [image for image, kept in zip(self.images, keep) if kept]
-        first = _read_image(self.images[0], None)
+        stored = _imread(self.images[0])
+        first = _to_grey(stored, None, str(self.images[0]))
+        self.bit_depth = 16 if stored.dtype == np.uint16 else 8
         self._shape = first.shape
         self.width, self.height = self._size or (first.shape[1], first.shape[0])
         self.fps, self.frame_count = _mean_fps(self.timestamps_us), len(self.images)
