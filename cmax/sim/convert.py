@@ -205,8 +205,7 @@ def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
     frames = open_source(source, size=settings.size, t0_s=settings.t0_s, t1_s=settings.t1_s,
                          dtype=np.uint8, prefetch=prefetch)
     if getattr(frames, "bit_depth", 8) > 8:
-        frames = open_source(source, size=settings.size, t0_s=settings.t0_s, t1_s=settings.t1_s,
-                             dtype=np.float32, prefetch=prefetch)
+        frames.dtype = np.float32  # an ImageFolderSource decodes its images when iterated, to this type
     return frames
 
 
