@@ -396,6 +396,29 @@ def test_timestamps_too_large_for_seconds_are_refused_naming_the_unit(tmp_path, 
     assert not list((tmp_path / "out").glob("*.h5"))
 
 
+def test_whole_number_frame_times_far_apart_are_named_as_another_unit(tmp_path, capsys):
+    """timestamps.txt of milliseconds since the start (0 33 67 ...) was read as seconds without a word: a video
+    of 0.17 s converted as one of 167 s (event times 1000x), exit 0."""
+    import warnings
+
+    from cmax.sim.video import read_timestamps
+
+    seq = tmp_path / "dump"
+    seq.mkdir()
+    for k, frame in enumerate(_frames(6)):
+        cv2.imwrite(str(seq / f"{k:03d}.png"), frame)
+    (seq / "timestamps.txt").write_text("".join(f"{round(k * 1000 / 30)}\n" for k in range(6)))
+    assert main(["simulate", str(seq), "-o", str(tmp_path / "out" / "a.h5"), *FAST, "--quiet"]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert len(lines) == 1 and "timestamps.txt: every time is a whole number, 33 apart" in lines[0]
+    assert "the 6 frames span 167 s; if they are milliseconds (0.167 s)" in lines[0]
+    with warnings.catch_warnings():  # seconds with decimals, and whole seconds of a 1 fps time-lapse: silent
+        warnings.simplefilter("error")
+        for text in ("".join(f"{k / 30:.6f}\n" for k in range(6)), "0\n1\n2\n3\n4\n5\n"):
+            (seq / "timestamps.txt").write_text(text)
+            assert len(read_timestamps(seq / "timestamps.txt")[0]) == 6
+
+
 def test_non_finite_timestamps_are_refused(tmp_path):
     from cmax.sim.video import read_timestamps
 

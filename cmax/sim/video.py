@@ -47,6 +47,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import warnings
 from pathlib import Path
 from typing import Iterator, Protocol, Union, runtime_checkable
 
@@ -301,6 +302,7 @@ def read_timestamps(path: PathLike, folder: PathLike | None = None) -> tuple[np.
     if len(kinds) != 1 or "bad" in kinds:
         raise ValueError(f"{path}: expected lines 't', 'index t' or 't path' (one format per file)")
     kind = kinds.pop()
+    tokens = [r[1] if kind == "index t" else r[0] for r in rows]  # the time column as written
     if kind == "t path":
         seconds = [float(r[0]) for r in rows]
         images = []
@@ -323,9 +325,42 @@ def read_timestamps(path: PathLike, folder: PathLike | None = None) -> tuple[np.
         if min(indices) < 0 or max(indices) >= len(listed):
             raise ValueError(f"{path}: image index out of range [0, {len(listed)}) of {folder}")
         images = [listed[i] for i in indices]
-    t_us = _seconds_to_us(_checked_seconds(np.array(seconds, dtype=np.float64), str(path)))
+    seconds = _checked_seconds(np.array(seconds, dtype=np.float64), str(path))
+    note = _whole_number_note(tokens, seconds, str(path))
+    if note is not None:
+        warnings.warn(note, UserWarning, stacklevel=2)
+    t_us = _seconds_to_us(seconds)
     _strictly_increasing(t_us, str(path))
     return t_us, images
+
+
+#: Median step between frames, in seconds, from which whole-number times are taken for another unit (a warning).
+WHOLE_STEP_S = 10.0
+
+
+def _whole_number_note(tokens: list[str], seconds: np.ndarray, what: str) -> str | None:
+    """The warning for a time column of whole numbers whose frames would lie ``WHOLE_STEP_S`` or more apart.
+
+    ``tokens`` are the times as written, ``seconds`` (T,) their values. Frame times written as integers
+    ``0 33 67 100`` are milliseconds (or µs) since the start far more often than seconds of a time-lapse
+    (nothing in the file says which); read as seconds they stretch a second of video over half a minute.
+    Times with a decimal point, and whole seconds less than ``WHOLE_STEP_S`` apart, give None.
+
+    >>> _whole_number_note(["0", "33", "67"], np.array([0.0, 33.0, 67.0]), "t.txt")[:62]
+    't.txt: every time is a whole number, 33.5 apart (the median): '
+    >>> _whole_number_note(["0.000", "0.033"], np.array([0.0, 0.033]), "t.txt") is None
+    True
+    """
+    if seconds.size < 2 or not all(re.fullmatch(r"[+-]?\d+", token) for token in tokens):
+        return None
+    step = float(np.median(np.diff(seconds)))
+    if step < WHOLE_STEP_S:
+        return None
+    span = float(seconds[-1] - seconds[0])
+    hours = f" ({span / 3600:.3g} h)" if span >= 3600 else ""
+    return (f"{what}: every time is a whole number, {step:g} apart (the median): read as seconds, the "
+            f"{seconds.size} frames span {span:g} s{hours}; if they are milliseconds ({span * 1e-3:g} s) "
+            f"or microseconds ({span * 1e-6:g} s), write the times in seconds with a decimal point")
 
 
 def _find_timestamps(folder: Path) -> Path:
