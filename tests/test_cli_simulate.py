@@ -419,6 +419,38 @@ def test_whole_number_frame_times_far_apart_are_named_as_another_unit(tmp_path, 
             assert len(read_timestamps(seq / "timestamps.txt")[0]) == 6
 
 
+def test_a_warning_in_a_worker_process_reaches_the_caller_naming_its_video(tmp_path, capsys):
+    """With --workers 2 a worker's warning was printed by the worker in Python's own format (two lines:
+    `/.../video.py:511: UserWarning: ...` and the source line), out of reach of the caller's filters."""
+    import warnings
+
+    from cmax.sim.convert import collect_jobs, convert_collection
+
+    seq = tmp_path / "dump" / "images"
+    seq.mkdir(parents=True)
+    for k, frame in enumerate(_frames(4)):
+        cv2.imwrite(str(seq / f"{k:03d}.png"), frame)
+    (seq / "timestamps.txt").write_text("0\n33\n67\n100\n")
+    write_video(tmp_path / "clip.avi")
+    (tmp_path / "list.txt").write_text("dump/images\nclip.avi\n")
+    jobs, _ = collect_jobs(tmp_path / "list.txt")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        manifest = convert_collection(jobs, tmp_path / "api", ConvertSettings(adaptive=False), workers=2,
+                                      progress=False)
+    assert [v["status"] for v in manifest["videos"].values()] == ["ok", "ok"]
+    messages = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    assert len(messages) == 1 and messages[0].startswith("images: ") and "whole number, 33 apart" in messages[0]
+    capsys.readouterr()
+    assert main(["simulate", str(tmp_path / "list.txt"), "-o", str(tmp_path / "cli"), *FAST, "--quiet",
+                 "--workers", "2"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert [line for line in err if "warning" in line.lower()] == [
+        line for line in err if line.startswith("cmax simulate: warning: images: ")]
+    assert len([line for line in err if "warning" in line.lower()]) == 1
+    assert not any("UserWarning" in line or "read_timestamps(" in line for line in err)
+
+
 def test_non_finite_timestamps_are_refused(tmp_path):
     from cmax.sim.video import read_timestamps
 

@@ -898,9 +898,18 @@ def _worker(connection, main_pid: int, job: VideoJob, output: Path, settings: Co
     """Entry point of a worker process: one video, the result sent back through ``connection``."""
     die_with_parent(main_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the workers itself
-    result = _run_job(job, output, settings, position)
-    connection.send(result)
+    with warnings.catch_warnings(record=True) as caught:  # re-issued by the parent (its filters, its format)
+        result = _run_job(job, output, settings, position)
+    connection.send((result, [(w.category, str(w.message)) for w in caught]))
     connection.close()
+
+
+def _reissue(job: VideoJob, caught: Sequence[tuple[type, str]]) -> None:
+    """The warnings a worker caught converting ``job``, issued again in this process, naming the video."""
+    for category, message in caught:
+        if not (isinstance(category, type) and issubclass(category, Warning)):
+            category = UserWarning
+        warnings.warn(f"{job.name}: {message}", category, stacklevel=2)
 
 
 def _worker_context():
@@ -951,11 +960,12 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
             for receive in wait(list(running)):
                 process, job = running.pop(receive)
                 try:
-                    result = receive.recv()
+                    result, caught = receive.recv()
                 except Exception:  # EOFError: died without a result; or a message cut short
-                    result = None
+                    result, caught = None, []
                 finally:
                     receive.close()
+                _reissue(job, caught)
                 process.join(timeout=60)
                 if process.exitcode is None:  # sent its result but does not exit
                     process.kill()
