@@ -156,6 +156,29 @@ def test_a_matroska_video_whose_estimated_count_is_too_large_is_read_whole(tmp_p
         list(VideoFileSource(cut))
 
 
+def test_frames_whose_container_times_do_not_increase_are_counted_in_a_warning(tmp_path):
+    """Frames at 0, 40, 40, 40, 80 ms (and 60 after 80) were moved to 40.001, 40.002 ms (80.001) without a
+    word: two changes of the picture crammed into 2 µs, a burst of events at the wrong time."""
+    import warnings
+
+    path = tmp_path / "dup.mkv"
+    write_mkv(path, [0, 40, 40, 40, 80, 120, 160, 200], 240)
+    with pytest.warns(UserWarning) as caught:
+        times = [t for _, t in VideoFileSource(path, prefetch=0)]
+    assert times == [0, 40_000, 40_001, 40_002, 80_000, 120_000, 160_000, 200_000]
+    assert [str(w.message) for w in caught] == [
+        f"{path}: 2 of its 8 frames have a time not after the frame before (duplicated or reordered timestamps "
+        "in the container; the first: frame 2 at 40.000 ms, after 40.000 ms): each was placed 1 µs after the "
+        "frame before, so the change to it happens within 1 µs"]
+    write_mkv(path, [0, 40, 80, 60, 100, 140], 180)
+    with pytest.warns(UserWarning, match=r"1 of its 6 frames has a time .* frame 3 at 60.000 ms, after 80.000 ms"):
+        list(VideoFileSource(path))
+    write_mkv(path, [0, 40, 80, 120], 160)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert [t for _, t in VideoFileSource(path)] == [0, 40_000, 80_000, 120_000]
+
+
 def test_random_bytes_are_not_a_video(tmp_path):
     noise = tmp_path / "noise.mp4"
     noise.write_bytes(np.random.default_rng(0).integers(0, 256, 20_000, dtype=np.uint8).tobytes())

@@ -592,6 +592,21 @@ def _stopped_early(decoded: int, position: float | None, count: int) -> bool:
     return position is None or position + 1 < short
 
 
+def _moved_note(path: str, moved: list[tuple[int, int, int]], frames: int) -> str:
+    """The warning for frames whose container time was not after the frame before (``moved``: frame index,
+    stated time, time before, in µs; ``frames`` read in all).
+
+    >>> _moved_note("a.mkv", [(2, 40000, 40000)], 8)
+    'a.mkv: 1 of its 8 frames has a time not after the frame before (duplicated or reordered timestamps in the container; the first: frame 2 at 40.000 ms, after 40.000 ms): each was placed 1 µs after the frame before, so the change to it happens within 1 µs'
+    """
+    index, stated, before = moved[0]
+    verb = "has" if len(moved) == 1 else "have"
+    return (f"{path}: {len(moved)} of its {frames} frames {verb} a time not after the frame before (duplicated or "
+            f"reordered timestamps in the container; the first: frame {index} at {stated * 1e-3:.3f} ms, after "
+            f"{before * 1e-3:.3f} ms): each was placed 1 µs after the frame before, so the change to it happens "
+            "within 1 µs")
+
+
 class VideoFileSource:
     """Frames of a video file (mp4, avi, mkv, ... whatever OpenCV's FFmpeg reads).
 
@@ -618,7 +633,8 @@ class VideoFileSource:
     the time is ``frame_index * 1e6 / fps`` (30 fps when the rate is unknown
     too). A time not after the previous one (duplicated or reordered
     timestamps) becomes the previous time + 1 µs, so times are always
-    strictly increasing.
+    strictly increasing; a ``UserWarning`` at the end of the stream counts
+    such frames and names the first.
 
     Decoding errors: a file OpenCV cannot open or that yields no frame raises
     :class:`DecodeError` at construction; a path that is not valid UTF-8 raises
@@ -687,15 +703,17 @@ class VideoFileSource:
         try:
             if t0_us:
                 capture.set(cv2.CAP_PROP_POS_MSEC, t0_us / 1000)
-            previous, decoded, yielded, position = None, 0, 0, None
+            previous, decoded, yielded, position, moved = None, 0, 0, None, []
             while True:
                 ok, image = capture.read()
                 if not ok or image is None:
                     break
                 decoded = max(decoded, int(capture.get(cv2.CAP_PROP_POS_FRAMES)))
                 position = _stream_position(capture, self.fps)
-                t = self._time_us(capture, first=previous is None and not t0_us)
-                t = t if previous is None or t > previous else previous + 1
+                stated = self._time_us(capture, first=previous is None and not t0_us)
+                t = stated if previous is None or stated > previous else previous + 1
+                if t != stated:
+                    moved.append((yielded, stated, previous))
                 previous = t
                 if t0_us is not None and t < t0_us:
                     continue
@@ -703,6 +721,8 @@ class VideoFileSource:
                     break
                 yielded += 1
                 yield _to_grey(image, self._size, str(self.path), self.dtype), t
+            if moved:
+                warnings.warn(_moved_note(str(self.path), moved, yielded), UserWarning, stacklevel=2)
             count = self._container_count
             finished = t1_us is None or (previous is not None and previous < t1_us)
             seek_past_end = bool(t0_us) and decoded == 0
