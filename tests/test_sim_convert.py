@@ -276,3 +276,23 @@ def test_a_16_bit_image_sequence_is_simulated_on_its_own_values(tmp_path, capsys
                  "--quiet"]) == 0
     assert "warning" not in capsys.readouterr().err
     assert len(read_h5(tmp_path / "cli" / "render.h5")) == 384
+
+
+def test_merging_manifests_of_other_settings_names_the_files_and_the_keys(tmp_path, capsys):
+    """Was: `manifests differ in 'settings': {'esim': {...}, 'size': None, ...} vs {...}`, both tables whole
+    and neither file named."""
+    write_video(tmp_path / "a.avi")
+    write_video(tmp_path / "b.avi", shift=3)
+    assert main(["simulate", str(tmp_path / "a.avi"), "-o", str(tmp_path / "s0" / "a.h5"), "--no-adaptive",
+                 "--quiet"]) == 0
+    assert main(["simulate", str(tmp_path / "b.avi"), "-o", str(tmp_path / "s1" / "b.h5"), "--no-adaptive",
+                 "--quiet", "--cp", "0.5"]) == 0
+    capsys.readouterr()
+    one, two = tmp_path / "s0" / "manifest.json", tmp_path / "s1" / "manifest.json"
+    assert main(["manifest", "merge", str(one), str(two), "-o", str(tmp_path / "all.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"cmax manifest: error: {two} differs from {one} in 'settings' (esim.cp: 0.2 ({one}) vs 0.5 "
+                   f"({two})): merge only conversions made with the same settings and simulator")
+    assert not (tmp_path / "all.json").exists()
+    with pytest.raises(ValueError, match=r"^manifest 2 differs from manifest 1 in 'settings' \(esim.cp: 0.2 "):
+        merge_manifests([load_manifest(one), load_manifest(two)])

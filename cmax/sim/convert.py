@@ -495,9 +495,10 @@ def _with_relative_outputs(manifest: dict[str, Any]) -> dict[str, Any]:
     return dict(manifest, videos=videos, output_paths=_RELATIVE)
 
 
-def settings_difference(recorded: dict[str, Any], now: dict[str, Any]) -> str:
+def settings_difference(recorded: dict[str, Any], now: dict[str, Any],
+                        labels: tuple[str, str] = ("recorded", "now")) -> str:
     """The keys where two settings dicts (:meth:`ConvertSettings.to_dict`) differ, as ``key: old (recorded) vs
-    new (now)``; nested keys joined by dots.
+    new (now)`` (``labels`` name the two); nested keys joined by dots.
 
     >>> settings_difference({"esim": {"cp": 0.2}, "size": None}, {"esim": {"cp": 0.3}, "size": [64, 48]})
     'esim.cp: 0.2 (recorded) vs 0.3 (now), size: None (recorded) vs [64, 48] (now)'
@@ -513,7 +514,7 @@ def settings_difference(recorded: dict[str, Any], now: dict[str, Any]) -> str:
     old, new = flat(recorded), flat(now)
     missing = object()
     keys = [key for key in dict.fromkeys([*old, *new]) if old.get(key, missing) != new.get(key, missing)]
-    return ", ".join(f"{key}: {old.get(key, 'absent')!r} (recorded) vs {new.get(key, 'absent')!r} (now)"
+    return ", ".join(f"{key}: {old.get(key, 'absent')!r} ({labels[0]}) vs {new.get(key, 'absent')!r} ({labels[1]})"
                      for key in keys)
 
 
@@ -539,7 +540,8 @@ def _totals(videos: dict[str, dict]) -> dict[str, Any]:
 
 def merge_manifests(manifests: Sequence[dict[str, Any]], *,
                     folders: Sequence[str | os.PathLike] | None = None,
-                    into: str | os.PathLike | None = None) -> dict[str, Any]:
+                    into: str | os.PathLike | None = None,
+                    names: Sequence[str] | None = None) -> dict[str, Any]:
     """Join the manifests of several shards or machines into one.
 
     Settings and simulator version must agree. A video present in several
@@ -561,6 +563,8 @@ def merge_manifests(manifests: Sequence[dict[str, Any]], *,
         folder does not lie inside ``into`` is refused (ValueError). Without them
         the outputs are kept as they are (right only for manifests already in
         ``into``).
+    names : sequence of str, optional
+        How errors name each manifest (its file); default ``manifest i``.
     """
     if not manifests:
         raise ValueError("merge_manifests needs at least one manifest")
@@ -574,11 +578,16 @@ def merge_manifests(manifests: Sequence[dict[str, Any]], *,
     if folders is not None:
         manifests = [_outputs_relative_to(manifest, Path(folder), Path(into))
                      for manifest, folder in zip(manifests, folders)]
+    names = [f"manifest {i}" for i in range(1, len(manifests) + 1)] if names is None else [str(n) for n in names]
     first = manifests[0]
-    for other in manifests[1:]:
+    for name, other in zip(names[1:], manifests[1:]):
         for key in ("settings", "simulator", "catalogue"):
             if other.get(key) != first.get(key):
-                raise ValueError(f"manifests differ in {key!r}: {first.get(key)} vs {other.get(key)}")
+                labels = (names[0], name)
+                difference = (settings_difference(first[key], other[key], labels) if key == "settings" else
+                              f"{first.get(key)!r} ({labels[0]}) vs {other.get(key)!r} ({labels[1]})")
+                raise ValueError(f"{name} differs from {names[0]} in {key!r} ({difference}): merge only "
+                                 "conversions made with the same settings and simulator")
     videos: dict[str, dict] = {}
     missing: set[str] = set()
     for manifest in manifests:
