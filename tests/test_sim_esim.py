@@ -416,3 +416,24 @@ def test_an_interval_with_more_crossings_than_memory_holds_is_refused_before_all
         np.stack([black, white]), np.array([0, 1000]))
     assert all(np.array_equal(getattr(events, k), getattr(fresh, k)) for k in "xytp")
     assert len(events) == 64 * 48 * per_pixel or refractory_us  # the refractory period drops some
+
+
+def test_shot_noise_over_a_long_interval_is_refused_before_it_is_drawn(monkeypatch):
+    """Frames 10^4 s apart (times in ms read as seconds) with 1 Hz of shot noise on a 640x480 sensor: was a
+    draw of 3e9 noise events (24 GB of pixel indices alone)."""
+    import cmax.events
+    from cmax.events import EventLimitError
+
+    monkeypatch.setattr(cmax.events, "MAX_EVENTS", 10_000)
+    frame = np.full((30, 40), 100, np.uint8)
+    sim = EventSimulator(shot_noise_rate_hz=10.0, seed=0)
+    sim.step(frame, 0)
+    with pytest.raises(EventLimitError, match=r"is 100 s long: shot noise of 10 Hz per pixel over the 40x30 sensor "
+                       r"adds about 1,200,000 events to it, more than cmax.events.MAX_EVENTS=10,000 .*check the "
+                       r"frame times"):
+        sim.step(frame, 100_000_000)
+    events = sim.step(frame, 500_000)  # the generator was not drawn from: as a fresh simulator's
+    fresh = EventSimulator(shot_noise_rate_hz=10.0, seed=0).simulate(np.stack([frame, frame]),
+                                                                       np.array([0, 500_000]))
+    assert len(events) == len(fresh) > 0
+    assert all(np.array_equal(getattr(events, k), getattr(fresh, k)) for k in "xytp")

@@ -358,8 +358,9 @@ class EventSimulator:
         rows = near_pixels(ref, log1, self._near_on, self._near_off)
         limit = int(cmax.events.MAX_EVENTS)
         bound = crossing_bound(rows, ref, log1, self._c_on, self._c_off)
-        if bound > limit:
-            raise self._too_many(bound, limit, t_us)
+        noise = s.shot_noise_rate_hz * height * width * dt * 1e-6  # the expected count of shot-noise events
+        if bound + noise > limit:
+            raise self._too_many(bound, limit, t_us, noise)
         refractory = self._last_t is not None
         pixel, level, polarity = fire(rows, ref, log0, log1, self._c_on, self._c_off,
                                       by_pixel=refractory)
@@ -380,14 +381,22 @@ class EventSimulator:
         t_rel += t_us - dt
         return Events._trusted(self._x_of[pixel], self._y_of[pixel], t_rel, polarity, width, height)
 
-    def _too_many(self, bound: int, limit: int, t_us: int) -> EventLimitError:
-        """The error for an interval whose crossings could exceed ``limit`` events (nothing was changed)."""
+    def _too_many(self, bound: int, limit: int, t_us: int, noise: float = 0.0) -> EventLimitError:
+        """The error for an interval whose events could exceed ``limit`` (``bound`` crossings at most, ``noise``
+        shot-noise events expected); nothing was changed."""
         height, width = self._shape
+        if noise > limit / 2:
+            return EventLimitError(
+                f"the interval from {self._t_us} µs to the frame at {t_us} µs is {(t_us - self._t_us) * 1e-6:g} s "
+                f"long: shot noise of {self.settings.shot_noise_rate_hz:g} Hz per pixel over the {width}x{height} "
+                f"sensor adds about {noise:,.0f} events to it, more than cmax.events.MAX_EVENTS={limit:,} that fit "
+                "in memory at once (one interval's events are held together): check the frame times, lower the "
+                "rate, or raise cmax.events.MAX_EVENTS deliberately")
         return EventLimitError(
             f"the frame at {t_us} µs changes so much since the one at {self._t_us} µs that its interval may hold "
-            f"up to {bound:,} events over the {width}x{height} sensor, more than cmax.events.MAX_EVENTS="
-            f"{limit:,} that fit in memory at once (one interval's events are held together): insert frames "
-            "between the two (adaptive sampling: cmax simulate without --no-adaptive, "
+            f"up to {bound + round(noise):,} events over the {width}x{height} sensor, more than "
+            f"cmax.events.MAX_EVENTS={limit:,} that fit in memory at once (one interval's events are held "
+            "together): insert frames between the two (adaptive sampling: cmax simulate without --no-adaptive, "
             "cmax.sim.iter_upsample), raise the thresholds, or raise cmax.events.MAX_EVENTS deliberately")
 
     # -- public ---------------------------------------------------------------------------
