@@ -429,7 +429,7 @@ def test_shot_noise_over_a_long_interval_is_refused_before_it_is_drawn(monkeypat
     sim = EventSimulator(shot_noise_rate_hz=10.0, seed=0)
     sim.step(frame, 0)
     with pytest.raises(EventLimitError, match=r"is 100 s long: shot noise of 10 Hz per pixel over the 40x30 sensor "
-                       r"adds about 1,200,000 events to it, more than cmax.events.MAX_EVENTS=10,000 .*check the "
+                       r"add about 1,200,000 events to it, more than cmax.events.MAX_EVENTS=10,000 .*check the "
                        r"frame times"):
         sim.step(frame, 100_000_000)
     events = sim.step(frame, 500_000)  # the generator was not drawn from: as a fresh simulator's
@@ -437,3 +437,19 @@ def test_shot_noise_over_a_long_interval_is_refused_before_it_is_drawn(monkeypat
                                                                        np.array([0, 500_000]))
     assert len(events) == len(fresh) > 0
     assert all(np.array_equal(getattr(events, k), getattr(fresh, k)) for k in "xytp")
+
+
+def test_leak_events_over_a_long_interval_are_refused_naming_the_leak(monkeypatch):
+    """A still video with a leak rate too high for its frame interval: the refusal named the frames
+    ('changes so much since ...: insert frames') though nothing in them changed."""
+    import cmax.events
+    from cmax.events import EventLimitError
+
+    monkeypatch.setattr(cmax.events, "MAX_EVENTS", 10_000)
+    frame = np.full((30, 40), 100, np.uint8)
+    for kwargs in ({}, {"refractory_us": 5}):
+        sim = EventSimulator(leak_rate_hz=1000.0, seed=0, **kwargs)
+        sim.step(frame, 0)
+        with pytest.raises(EventLimitError, match=r"is 0.1 s long: leak events of 1000 Hz per pixel over the 40x30 "
+                           r"sensor add about 120,000 events to it, more than cmax.events.MAX_EVENTS=10,000"):
+            sim.step(frame, 100_000)

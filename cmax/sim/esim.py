@@ -385,13 +385,17 @@ class EventSimulator:
         """The error for an interval whose events could exceed ``limit`` (``bound`` crossings at most, ``noise``
         shot-noise events expected); nothing was changed."""
         height, width = self._shape
-        if noise > limit / 2:
-            return EventLimitError(
-                f"the interval from {self._t_us} µs to the frame at {t_us} µs is {(t_us - self._t_us) * 1e-6:g} s "
-                f"long: shot noise of {self.settings.shot_noise_rate_hz:g} Hz per pixel over the {width}x{height} "
-                f"sensor adds about {noise:,.0f} events to it, more than cmax.events.MAX_EVENTS={limit:,} that fit "
-                "in memory at once (one interval's events are held together): check the frame times, lower the "
-                "rate, or raise cmax.events.MAX_EVENTS deliberately")
+        seconds = (t_us - self._t_us) * 1e-6
+        leak = self.settings.leak_rate_hz * seconds * height * width  # leak crossings, about
+        for rate, count, name in ((self.settings.shot_noise_rate_hz, noise, "shot noise"),
+                                  (self.settings.leak_rate_hz, leak, "leak events")):
+            if count > limit / 2:
+                return EventLimitError(
+                    f"the interval from {self._t_us} µs to the frame at {t_us} µs is {seconds:g} s long: {name} of "
+                    f"{rate:g} Hz per pixel over the {width}x{height} sensor add about {count:,.0f} events to it, "
+                    f"more than cmax.events.MAX_EVENTS={limit:,} that fit in memory at once (one interval's events "
+                    "are held together): check the frame times, lower the rate, or raise cmax.events.MAX_EVENTS "
+                    "deliberately")
         return EventLimitError(
             f"the frame at {t_us} µs changes so much since the one at {self._t_us} µs that its interval may hold "
             f"up to {bound + round(noise):,} events over the {width}x{height} sensor, more than "
