@@ -907,7 +907,8 @@ def _worker(connection, main_pid: int, job: VideoJob, output: Path, settings: Co
     """Entry point of a worker process: one video, the result sent back through ``connection``."""
     die_with_parent(main_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the workers itself
-    with warnings.catch_warnings(record=True) as caught:  # re-issued by the parent (its filters, its format)
+    with warnings.catch_warnings(record=True) as caught:  # re-issued by the parent (its filters, its format),
+        warnings.simplefilter("always")                      # as cmax.fitting.batch.recorded does for fits
         result = _run_job(job, output, settings, position)
     connection.send((result, [(w.category, str(w.message)) for w in caught]))
     connection.close()
