@@ -156,6 +156,22 @@ def test_a_matroska_video_whose_estimated_count_is_too_large_is_read_whole(tmp_p
         list(VideoFileSource(cut))
 
 
+@pytest.mark.parametrize("t0_s, t1_s", [(1.9, None), (2.62, None), (1.4, 2.65), (4.5, None)])
+def test_a_time_range_of_a_variable_frame_rate_video_keeps_every_frame_in_it(tmp_path, t0_s, t1_s):
+    """OpenCV seeks a variable-rate stream by frame number (time x its estimated rate): asked for 1.9 s it
+    landed at 4.5 s, and the frames between were dropped without a word (or, past the end, `no frames`)."""
+    times_ms = list(range(0, 2000, 100)) + [2600, 2610, 2620, 2630] + list(range(3000, 5000, 500))
+    path = tmp_path / "vfr.mkv"
+    write_mkv(path, times_ms, 5000)
+    whole = list(VideoFileSource(path, dtype=np.uint8))
+    assert [t for _, t in whole] == [1000 * t for t in times_ms]  # the last frame shows for 500 ms: not cut
+    upper = np.inf if t1_s is None else 1e6 * t1_s
+    expected = [(frame, t) for frame, t in whole if 1e6 * t0_s <= t < upper]
+    got = list(VideoFileSource(path, t0_s=t0_s, t1_s=t1_s, dtype=np.uint8))
+    assert [t for _, t in got] == [t for _, t in expected] and got
+    assert all(np.array_equal(a, b) for (a, _), (b, _) in zip(got, expected))
+
+
 def test_frames_whose_container_times_do_not_increase_are_counted_in_a_warning(tmp_path):
     """Frames at 0, 40, 40, 40, 80 ms (and 60 after 80) were moved to 40.001, 40.002 ms (80.001) without a
     word: two changes of the picture crammed into 2 µs, a burst of events at the wrong time."""

@@ -73,6 +73,8 @@ __all__ = [
 
 #: Image files an :class:`ImageFolderSource` lists (lower-case suffixes).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
+#: How far before ``t0_s`` a :class:`VideoFileSource` seeks, in µs (the frames between are decoded and skipped).
+SEEK_MARGIN_US = 1_000_000
 #: Timestamp files looked for, in this order, in the folder and then its parent.
 _TIMESTAMP_FILES = ("images.txt", "timestamps.txt")
 
@@ -573,23 +575,26 @@ def _stream_position(capture: cv2.VideoCapture, fps: float | None) -> float | No
     return max(values) if values else None
 
 
-def _stopped_early(decoded: int, position: float | None, count: int) -> bool:
+def _stopped_early(decoded: int, position: float | None, count: int, step: float | None = None) -> bool:
     """Whether a stream ended well before the ``count`` frames its container lists (truncated or corrupt).
 
     ``decoded`` frames were decoded, the last at stream ``position`` (frames from the stream's zero,
-    :func:`_stream_position`; None: unknown). Short means more than ``max(1, 1%)`` frames short. Matroska
-    and WebM store no frame count: OpenCV estimates it from the duration and the stream's frame rate, which
-    exceeds the frames of a variable-frame-rate stream or of one whose timestamps start after 0 (a cut
-    segment); there the last frame still lies at the end of the stream. A truncated stream falls short on
-    both counts.
+    :func:`_stream_position`; None: unknown), ``step`` frames after the one before it (None: unknown).
+    Short means more than ``max(1, 1%)`` frames short. Matroska and WebM store no frame count: OpenCV
+    estimates it from the duration and the stream's frame rate, which exceeds the frames of a
+    variable-frame-rate stream or of one whose timestamps start after 0 (a cut segment); there the last
+    frame still lies at the end of the stream, within its own display time (taken as long as the step
+    before it). A truncated stream falls short on both counts.
 
     >>> _stopped_early(8, 51.0, 52), _stopped_early(25, 149.0, 150), _stopped_early(13, 12.0, 30)
     (False, False, True)
+    >>> _stopped_early(28, 450.0, 500, step=50.0), _stopped_early(13, 12.0, 30, step=1.0)
+    (False, True)
     """
     short = count - max(1, round(0.01 * count))
     if decoded >= short:
         return False
-    return position is None or position + 1 < short
+    return position is None or position + max(1.0, step or 0.0) < short
 
 
 def _moved_note(path: str, moved: list[tuple[int, int, int]], frames: int) -> str:
@@ -697,23 +702,34 @@ class VideoFileSource:
         return prefetched(self._frames, self.prefetch)
 
     def _frames(self) -> Iterator[tuple[np.ndarray, int]]:
-        capture = self._open()
         t0_us = None if self.t0_s is None else self._first_us + int(round(self.t0_s * 1e6))
         t1_us = None if self.t1_s is None else self._first_us + int(round(self.t1_s * 1e6))
+        # OpenCV seeks by frame number (time x frame rate): in a variable-frame-rate stream it can land seconds
+        # past the time asked for. Seek SEEK_MARGIN_US before t0; a first frame after t0 (or none) means frames
+        # from t0 on may have been passed over, and the stream is decoded from its start instead.
+        seek_us = None if t0_us is None or t0_us - SEEK_MARGIN_US <= self._first_us else t0_us - SEEK_MARGIN_US
+        capture = self._open()
         try:
-            if t0_us:
-                capture.set(cv2.CAP_PROP_POS_MSEC, t0_us / 1000)
-            previous, decoded, yielded, position, moved = None, 0, 0, None, []
+            if seek_us is not None:
+                capture.set(cv2.CAP_PROP_POS_MSEC, seek_us / 1000)
+            previous, decoded, yielded, position, moved, step = None, 0, 0, None, [], None
             while True:
                 ok, image = capture.read()
-                if not ok or image is None:
+                got = ok and image is not None
+                if previous is None and seek_us is not None and (not got or self._time_us(capture, False) > t0_us):
+                    capture.release()  # the seek went too far (or past the end): from the start
+                    capture, seek_us = self._open(), None
+                    continue
+                if not got:
                     break
+                stated = self._time_us(capture, first=previous is None and seek_us is None)
                 decoded = max(decoded, int(capture.get(cv2.CAP_PROP_POS_FRAMES)))
                 position = _stream_position(capture, self.fps)
-                stated = self._time_us(capture, first=previous is None and not t0_us)
                 t = stated if previous is None or stated > previous else previous + 1
                 if t != stated:
                     moved.append((yielded, stated, previous))
+                if previous is not None and self.fps:
+                    step = (t - previous) * 1e-6 * self.fps  # the last interval, in frames
                 previous = t
                 if t0_us is not None and t < t0_us:
                     continue
@@ -725,8 +741,7 @@ class VideoFileSource:
                 warnings.warn(_moved_note(str(self.path), moved, yielded), UserWarning, stacklevel=2)
             count = self._container_count
             finished = t1_us is None or (previous is not None and previous < t1_us)
-            seek_past_end = bool(t0_us) and decoded == 0
-            if finished and not seek_past_end and count is not None and _stopped_early(decoded, position, count):
+            if finished and count is not None and _stopped_early(decoded, position, count, step):
                 raise DecodeError(f"{self.path}: decoding stopped after frame {decoded} of the "
                                   f"{count} the container lists (truncated or corrupt video)")
             if yielded == 0:
