@@ -451,6 +451,21 @@ def test_a_warning_in_a_worker_process_reaches_the_caller_naming_its_video(tmp_p
     assert not any("UserWarning" in line or "read_timestamps(" in line for line in err)
 
 
+def test_a_size_of_another_aspect_ratio_is_named_as_a_stretch(tmp_path, capsys):
+    """--size 24x32 on a 48x32 video halved the picture across and kept it down, without a word (the
+    intrinsics a fit is later given are then anisotropic)."""
+    write_video(tmp_path / "clip.avi")  # 48x32
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(tmp_path / "a" / "a.h5"), *FAST, "--quiet",
+                 "--size", "24x32"]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert lines == [f"cmax simulate: warning: {tmp_path / 'clip.avi'}: its 48x32 frames are resized to 24x32, by "
+                     "0.5 across and 1 down: the picture is stretched (pixels are no longer square: fx scales by 0.5, "
+                     "fy by 1); 24x16 (--size) keeps its shape"]
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(tmp_path / "b" / "b.h5"), *FAST, "--quiet",
+                 "--size", "24x16"]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
 def test_non_finite_timestamps_are_refused(tmp_path):
     from cmax.sim.video import read_timestamps
 

@@ -206,7 +206,29 @@ def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
                          dtype=np.uint8, prefetch=prefetch)
     if getattr(frames, "bit_depth", 8) > 8:
         frames.dtype = np.float32  # an ImageFolderSource decodes its images when iterated, to this type
+    stored = getattr(frames, "stored_size", None)
+    note = None if settings.size is None or stored is None else stretch_note(source, stored, settings.size)
+    if note is not None:
+        warnings.warn(note, UserWarning, stacklevel=2)
     return frames
+
+
+def stretch_note(source: str | os.PathLike, stored: tuple[int, int], size: tuple[int, int]) -> str | None:
+    """The warning for frames of ``stored`` (width, height) resized to a ``size`` of another aspect ratio (more
+    than 1% apart), or None.
+
+    >>> stretch_note("clip.mp4", (1280, 720), (346, 260))
+    'clip.mp4: its 1280x720 frames are resized to 346x260, by 0.27 across and 0.361 down: the picture is stretched (pixels are no longer square: fx scales by 0.27, fy by 0.361); 346x195 (--size) keeps its shape'
+    >>> stretch_note("clip.mp4", (1280, 720), (640, 360)) is None
+    True
+    """
+    (w, h), (width, height) = stored, size
+    across, down = width / w, height / h
+    if abs(across / down - 1) <= 0.01:
+        return None
+    return (f"{source}: its {w}x{h} frames are resized to {width}x{height}, by {across:.3g} across and {down:.3g} "
+            f"down: the picture is stretched (pixels are no longer square: fx scales by {across:.3g}, fy by "
+            f"{down:.3g}); {width}x{max(1, round(width * h / w))} (--size) keeps its shape")
 
 
 def _counted(frames: Iterable[tuple[np.ndarray, int]], counter: list[int]):

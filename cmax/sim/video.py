@@ -538,6 +538,7 @@ class ImageFolderSource:
         self.bit_depth = 16 if stored.dtype == np.uint16 else 8
         self._shape = first.shape
         self.width, self.height = self._size or (first.shape[1], first.shape[0])
+        self.stored_size = (int(first.shape[1]), int(first.shape[0]))  # (width, height) before resizing
         self.fps, self.frame_count = _mean_fps(self.timestamps_us), len(self.images)
 
     def __len__(self) -> int:
@@ -677,6 +678,7 @@ class VideoFileSource:
         self.frame_count = self._container_count if t0_s is None and t1_s is None else None
         first = _to_grey(image, self._size, str(self.path))
         self.height, self.width = first.shape
+        self.stored_size = (int(image.shape[1]), int(image.shape[0]))  # (width, height) before resizing
 
     def _open(self) -> cv2.VideoCapture:
         capture = cv2.VideoCapture(_opencv_path(self.path, "video"))
