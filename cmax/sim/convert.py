@@ -932,16 +932,39 @@ def _worker(connection, main_pid: int, job: VideoJob, output: Path, settings: Co
     with warnings.catch_warnings(record=True) as caught:  # re-issued by the parent (its filters, its format),
         warnings.simplefilter("always")                      # as cmax.fitting.batch.recorded does for fits
         result = _run_job(job, output, settings, position)
-    connection.send((result, [(w.category, str(w.message)) for w in caught]))
+    connection.send((result, [(_category_name(w.category), str(w.message)) for w in caught]))
     connection.close()
 
 
-def _reissue(job: VideoJob, caught: Sequence[tuple[type, str]]) -> None:
-    """The warnings a worker caught converting ``job``, issued again in this process, naming the video."""
-    for category, message in caught:
-        if not (isinstance(category, type) and issubclass(category, Warning)):
-            category = UserWarning
-        warnings.warn(f"{job.name}: {message}", category, stacklevel=2)
+def _category_name(category: type) -> str:
+    """``module:qualname`` of a warning class: sent as text, so that a class the parent cannot import costs
+    the video nothing (:func:`_category_of` falls back to UserWarning)."""
+    return f"{category.__module__}:{category.__qualname__}"
+
+
+def _category_of(name: str) -> type:
+    """The warning class :func:`_category_name` named, or UserWarning when it cannot be found here.
+
+    >>> _category_of("builtins:RuntimeWarning"), _category_of("nowhere:Gone")
+    (<class 'RuntimeWarning'>, <class 'UserWarning'>)
+    """
+    import importlib
+
+    module, _, qualname = name.partition(":")
+    try:
+        found: Any = importlib.import_module(module)
+        for part in qualname.split("."):
+            found = getattr(found, part)
+    except Exception:
+        return UserWarning
+    return found if isinstance(found, type) and issubclass(found, Warning) else UserWarning
+
+
+def _reissue(job: VideoJob, caught: Sequence[tuple[str, str]]) -> None:
+    """The warnings a worker caught converting ``job`` (category names, messages), issued again in this
+    process, naming the video."""
+    for name, message in caught:
+        warnings.warn(f"{job.name}: {message}", _category_of(name), stacklevel=2)
 
 
 def _worker_context():
