@@ -396,6 +396,76 @@ def test_timestamps_too_large_for_seconds_are_refused_naming_the_unit(tmp_path, 
     assert not list((tmp_path / "out").glob("*.h5"))
 
 
+def test_whole_number_frame_times_far_apart_are_named_as_another_unit(tmp_path, capsys):
+    """timestamps.txt of milliseconds since the start (0 33 67 ...) was read as seconds without a word: a video
+    of 0.17 s converted as one of 167 s (event times 1000x), exit 0."""
+    import warnings
+
+    from cmax.sim.video import read_timestamps
+
+    seq = tmp_path / "dump"
+    seq.mkdir()
+    for k, frame in enumerate(_frames(6)):
+        cv2.imwrite(str(seq / f"{k:03d}.png"), frame)
+    (seq / "timestamps.txt").write_text("".join(f"{round(k * 1000 / 30)}\n" for k in range(6)))
+    assert main(["simulate", str(seq), "-o", str(tmp_path / "out" / "a.h5"), *FAST, "--quiet"]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert len(lines) == 1 and "timestamps.txt: every time is a whole number, 33 apart" in lines[0]
+    assert "the 6 frames span 167 s; if they are milliseconds (0.167 s)" in lines[0]
+    with warnings.catch_warnings():  # seconds with decimals, and whole seconds of a 1 fps time-lapse: silent
+        warnings.simplefilter("error")
+        for text in ("".join(f"{k / 30:.6f}\n" for k in range(6)), "0\n1\n2\n3\n4\n5\n"):
+            (seq / "timestamps.txt").write_text(text)
+            assert len(read_timestamps(seq / "timestamps.txt")[0]) == 6
+
+
+def test_a_warning_in_a_worker_process_reaches_the_caller_naming_its_video(tmp_path, capsys):
+    """With --workers 2 a worker's warning was printed by the worker in Python's own format (two lines:
+    `/.../video.py:511: UserWarning: ...` and the source line), out of reach of the caller's filters."""
+    import warnings
+
+    from cmax.sim.convert import collect_jobs, convert_collection
+
+    seq = tmp_path / "dump" / "images"
+    seq.mkdir(parents=True)
+    for k, frame in enumerate(_frames(4)):
+        cv2.imwrite(str(seq / f"{k:03d}.png"), frame)
+    (seq / "timestamps.txt").write_text("0\n33\n67\n100\n")
+    write_video(tmp_path / "clip.avi")
+    (tmp_path / "list.txt").write_text("dump/images\nclip.avi\n")
+    jobs, _ = collect_jobs(tmp_path / "list.txt")
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        manifest = convert_collection(jobs, tmp_path / "api", ConvertSettings(adaptive=False), workers=2,
+                                      progress=False)
+    assert [v["status"] for v in manifest["videos"].values()] == ["ok", "ok"]
+    messages = [str(w.message) for w in caught if issubclass(w.category, UserWarning)]
+    assert len(messages) == 1 and messages[0].startswith("images: ") and "whole number, 33 apart" in messages[0]
+    capsys.readouterr()
+    assert main(["simulate", str(tmp_path / "list.txt"), "-o", str(tmp_path / "cli"), *FAST, "--quiet",
+                 "--workers", "2"]) == 0
+    err = capsys.readouterr().err.splitlines()
+    assert [line for line in err if "warning" in line.lower()] == [
+        line for line in err if line.startswith("cmax simulate: warning: images: ")]
+    assert len([line for line in err if "warning" in line.lower()]) == 1
+    assert not any("UserWarning" in line or "read_timestamps(" in line for line in err)
+
+
+def test_a_size_of_another_aspect_ratio_is_named_as_a_stretch(tmp_path, capsys):
+    """--size 24x32 on a 48x32 video halved the picture across and kept it down, without a word (the
+    intrinsics a fit is later given are then anisotropic)."""
+    write_video(tmp_path / "clip.avi")  # 48x32
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(tmp_path / "a" / "a.h5"), *FAST, "--quiet",
+                 "--size", "24x32"]) == 0
+    lines = [line for line in capsys.readouterr().err.splitlines() if "warning" in line]
+    assert lines == [f"cmax simulate: warning: {tmp_path / 'clip.avi'}: its 48x32 frames are resized to 24x32, by "
+                     "0.5 across and 1 down: the picture is stretched (pixels are no longer square: fx scales by 0.5, "
+                     "fy by 1); 24x16 (--size) keeps its shape"]
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(tmp_path / "b" / "b.h5"), *FAST, "--quiet",
+                 "--size", "24x16"]) == 0
+    assert "warning" not in capsys.readouterr().err
+
+
 def test_non_finite_timestamps_are_refused(tmp_path):
     from cmax.sim.video import read_timestamps
 

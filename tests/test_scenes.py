@@ -446,3 +446,25 @@ def test_ground_truth_covers_the_last_events(duration_s):
     assert seq.poses_t_us[-1] == end_us >= seq.events.t_end and seq.depth_t_us[-1] == end_us
     assert len(seq.poses_t_us) >= 2
     np.testing.assert_allclose(seq.pose_at(seq.events.t_end), scene.pose(seq.events.t_end * 1e-6), atol=1e-9)
+
+
+def test_a_scene_whose_events_outgrow_memory_stops_when_they_do(monkeypatch, tmp_path, capsys):
+    """`cmax scene indoor_flying --duration 600` makes about 1.3 M events/s, all held until saved: was 7.8e8
+    events (about 20 GB with the final concatenation) after hours of work, past cmax.events.MAX_EVENTS."""
+    import cmax.events
+    from cmax.cli import main
+    from cmax.events import EventLimitError
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.synthetic import simulate_scene
+
+    scene = make_scene("rotation", seed=0, width=64, height=48, duration_s=1.0)
+    whole = simulate_scene(scene, 0.2, EventSimulator(**scene.recommended_simulator))
+    monkeypatch.setattr(cmax.events, "MAX_EVENTS", len(whole.events) // 4)
+    with pytest.raises(EventLimitError, match=r"the scene made [\d,]+ events in its first 0\.0\d+ s of 0\.2 s, "
+                       r"more than cmax.events.MAX_EVENTS=[\d,]+ .*simulate about 0\.0\d+ s or less"):
+        simulate_scene(scene, 0.2, EventSimulator(**scene.recommended_simulator))
+    output = tmp_path / "room.h5"
+    assert main(["scene", "rotation", "-o", str(output), "--duration", "0.2", "--size", "64x48"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert err.startswith("cmax scene: error: the scene made ") and "MAX_EVENTS" in err
+    assert not output.exists() and not list(tmp_path.iterdir())

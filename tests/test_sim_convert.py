@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import json
+import warnings
 
 import numpy as np
 import pytest
@@ -245,3 +246,53 @@ def test_convert_video_does_not_replace_an_existing_file_unless_told(tmp_path):
     assert (tmp_path / "a.h5").read_bytes() == b"precious" and not list(tmp_path.glob("a.h5.*"))
     result = convert_video(tmp_path / "a.avi", tmp_path / "a.h5", FAST, overwrite=True)
     assert len(read_h5(tmp_path / "a.h5")) == result.events > 0
+
+
+def test_a_16_bit_image_sequence_is_simulated_on_its_own_values(tmp_path, capsys):
+    """Was: rounded to 8 bits (5,376 events of 6,144 here: 16-bit 200 and 350 both became grey 1), and read
+    as floats a dark 16-bit frame drew `frames are floats in [0.778, 0.778]: ... multiply it by 255`."""
+    folder = tmp_path / "render"
+    folder.mkdir()
+    values = 200 + 150 * np.arange(8)  # uniform 16-bit frames, grey 0.78 .. 4.9 of 255
+    for i, value in enumerate(values):
+        cv2.imwrite(str(folder / f"{i:04d}.png"), np.full((6, 8), value, np.uint16))
+    (folder / "timestamps.txt").write_text("".join(f"{0.01 * i:.2f}\n" for i in range(8)))
+    # independent: L = log(v / 65535 + eps) rises through levels L0 + k C; each crossing at the linear
+    # interpolation of L between the two frames around it
+    level = np.log(values / 65535 + 1e-3)
+    crossings = np.arange(1, int((level[-1] - level[0]) / 0.2) + 1) * 0.2 + level[0]
+    assert np.all(np.abs((crossings - level[0]) / 0.2 - np.rint((crossings - level[0]) / 0.2)) < 1e-9)
+    index = np.searchsorted(level, crossings) - 1
+    expected_t = np.rint(1e4 * (index + (crossings - level[index]) / (level[index + 1] - level[index])))
+    assert expected_t.size == 8 and ((level[-1] - level[0]) / 0.2) % 1 > 0.001  # not on a level
+    settings = ConvertSettings(adaptive=False)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        result = convert_video(folder, tmp_path / "render.h5", settings)
+    events = read_h5(tmp_path / "render.h5")
+    assert result.events == len(events) == 8 * 6 * 8 and events.p.all()
+    np.testing.assert_array_equal(np.unique(events.t), expected_t)
+    assert main(["simulate", str(folder), "-o", str(tmp_path / "cli" / "render.h5"), "--no-adaptive",
+                 "--quiet"]) == 0
+    assert "warning" not in capsys.readouterr().err
+    assert len(read_h5(tmp_path / "cli" / "render.h5")) == 384
+
+
+def test_merging_manifests_of_other_settings_names_the_files_and_the_keys(tmp_path, capsys):
+    """Was: `manifests differ in 'settings': {'esim': {...}, 'size': None, ...} vs {...}`, both tables whole
+    and neither file named."""
+    write_video(tmp_path / "a.avi")
+    write_video(tmp_path / "b.avi", shift=3)
+    assert main(["simulate", str(tmp_path / "a.avi"), "-o", str(tmp_path / "s0" / "a.h5"), "--no-adaptive",
+                 "--quiet"]) == 0
+    assert main(["simulate", str(tmp_path / "b.avi"), "-o", str(tmp_path / "s1" / "b.h5"), "--no-adaptive",
+                 "--quiet", "--cp", "0.5"]) == 0
+    capsys.readouterr()
+    one, two = tmp_path / "s0" / "manifest.json", tmp_path / "s1" / "manifest.json"
+    assert main(["manifest", "merge", str(one), str(two), "-o", str(tmp_path / "all.json")]) == 2
+    err = capsys.readouterr().err.strip()
+    assert err == (f"cmax manifest: error: {two} differs from {one} in 'settings' (esim.cp: 0.2 ({one}) vs 0.5 "
+                   f"({two})): merge only conversions made with the same settings and simulator")
+    assert not (tmp_path / "all.json").exists()
+    with pytest.raises(ValueError, match=r"^manifest 2 differs from manifest 1 in 'settings' \(esim.cp: 0.2 "):
+        merge_manifests([load_manifest(one), load_manifest(two)])

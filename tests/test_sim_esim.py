@@ -387,3 +387,69 @@ def test_reversing_the_video_flips_polarities():
         np.testing.assert_array_equal(np.sign(signed) * sign, np.sign(change.ravel()) * (counts > 0))
     np.testing.assert_array_equal(np.bincount(forward.y.astype(int) * 7 + forward.x, minlength=42),
                                   np.bincount(backward.y.astype(int) * 7 + backward.x, minlength=42))
+
+
+@pytest.mark.parametrize("refractory_us", [0, 10])  # the compiled kernel, and the numpy path
+def test_an_interval_with_more_crossings_than_memory_holds_is_refused_before_allocating(monkeypatch, refractory_us):
+    """A 640x480 frame flashing from black to white at cp = cn = 0.001 crosses 6,908 levels a pixel, 2.1e9
+    events: was an allocation of 36 GB (MemoryError under a limit, else the OOM killer), and intervals of more
+    than MAX_EVENTS events became an Events past the limit the rest of the package refuses."""
+    import cmax.events
+    from cmax.events import EventLimitError
+
+    black, white = np.zeros((48, 64), np.uint8), np.full((48, 64), 255, np.uint8)
+    per_pixel = math.floor((math.log(1 + 1e-3) - math.log(1e-3)) / 0.01)  # closed form: levels crossed
+    assert per_pixel == 690
+    monkeypatch.setattr(cmax.events, "MAX_EVENTS", 64 * 48 * per_pixel)  # the events fit, the bound does not
+    sim = EventSimulator(cp=0.01, cn=0.01, refractory_us=refractory_us)
+    sim.step(black, 0)
+    before = sim.reference
+    with pytest.raises(EventLimitError, match=r"the frame at 1000 µs changes so much since the one at 0 µs that "
+                       r"its interval may hold up to 2,125,824 events over the 64x48 sensor, more than "
+                       r"cmax.events.MAX_EVENTS=2,119,680 .*\(adaptive sampling"):
+        sim.step(white, 1000)
+    np.testing.assert_array_equal(sim.reference, before)  # nothing moved: the simulator goes on
+    assert sim.t_us == 0
+    monkeypatch.setattr(cmax.events, "MAX_EVENTS", 64 * 48 * (per_pixel + 2))
+    events = sim.step(white, 1000)
+    fresh = EventSimulator(cp=0.01, cn=0.01, refractory_us=refractory_us).simulate(
+        np.stack([black, white]), np.array([0, 1000]))
+    assert all(np.array_equal(getattr(events, k), getattr(fresh, k)) for k in "xytp")
+    assert len(events) == 64 * 48 * per_pixel or refractory_us  # the refractory period drops some
+
+
+def test_shot_noise_over_a_long_interval_is_refused_before_it_is_drawn(monkeypatch):
+    """Frames 10^4 s apart (times in ms read as seconds) with 1 Hz of shot noise on a 640x480 sensor: was a
+    draw of 3e9 noise events (24 GB of pixel indices alone)."""
+    import cmax.events
+    from cmax.events import EventLimitError
+
+    monkeypatch.setattr(cmax.events, "MAX_EVENTS", 10_000)
+    frame = np.full((30, 40), 100, np.uint8)
+    sim = EventSimulator(shot_noise_rate_hz=10.0, seed=0)
+    sim.step(frame, 0)
+    with pytest.raises(EventLimitError, match=r"is 100 s long: shot noise of 10 Hz per pixel over the 40x30 sensor "
+                       r"add about 1,200,000 events to it, more than cmax.events.MAX_EVENTS=10,000 .*check the "
+                       r"frame times"):
+        sim.step(frame, 100_000_000)
+    events = sim.step(frame, 500_000)  # the generator was not drawn from: as a fresh simulator's
+    fresh = EventSimulator(shot_noise_rate_hz=10.0, seed=0).simulate(np.stack([frame, frame]),
+                                                                       np.array([0, 500_000]))
+    assert len(events) == len(fresh) > 0
+    assert all(np.array_equal(getattr(events, k), getattr(fresh, k)) for k in "xytp")
+
+
+def test_leak_events_over_a_long_interval_are_refused_naming_the_leak(monkeypatch):
+    """A still video with a leak rate too high for its frame interval: the refusal named the frames
+    ('changes so much since ...: insert frames') though nothing in them changed."""
+    import cmax.events
+    from cmax.events import EventLimitError
+
+    monkeypatch.setattr(cmax.events, "MAX_EVENTS", 10_000)
+    frame = np.full((30, 40), 100, np.uint8)
+    for kwargs in ({}, {"refractory_us": 5}):
+        sim = EventSimulator(leak_rate_hz=1000.0, seed=0, **kwargs)
+        sim.step(frame, 0)
+        with pytest.raises(EventLimitError, match=r"is 0.1 s long: leak events of 1000 Hz per pixel over the 40x30 "
+                           r"sensor add about 120,000 events to it, more than cmax.events.MAX_EVENTS=10,000"):
+            sim.step(frame, 100_000)

@@ -1,6 +1,7 @@
 """Frame sources (cmax.sim.video): video files, image folders with timestamps, arrays."""
 from __future__ import annotations
 
+import struct
 from pathlib import Path
 
 import cv2
@@ -40,6 +41,42 @@ def write_avi(path: Path, count: int = 30, fps: float = 20.0) -> None:
         frame[:, : 2 * i + 2] = (30, 120, 220)
         writer.write(frame)
     writer.release()
+
+
+def _ebml(ident: bytes, data: bytes) -> bytes:
+    """One EBML element: its ID, an 8-byte size, the data."""
+    return ident + b"\x01" + len(data).to_bytes(7, "big") + data
+
+
+def _ebml_uint(value: int) -> bytes:
+    return value.to_bytes(max(1, (value.bit_length() + 7) // 8), "big")
+
+
+def write_mkv(path: Path, times_ms: list[int], duration_ms: float, size=(64, 48)) -> list[np.ndarray]:
+    """A Matroska file of MJPEG frames at the given presentation times (ms), written by hand.
+
+    Matroska stores no frame count: OpenCV estimates it from ``duration_ms`` and the frame rate. The
+    frames' times (a variable rate, a first time after 0) are free, which OpenCV's VideoWriter cannot
+    write. Returns the grey frames.
+    """
+    width, height = size
+    blocks, greys = [], []
+    for i, t in enumerate(times_ms):
+        frame = np.full((height, width, 3), 40, np.uint8)
+        frame[:, 4 * i: 4 * i + 10] = 220
+        greys.append(cv2.cvtColor(frame, cv2.COLOR_BGR2GRAY))
+        jpeg = cv2.imencode(".jpg", frame)[1].tobytes()  # track 1, time after the cluster's, key frame
+        blocks.append(_ebml(b"\xa3", b"\x81" + struct.pack(">hB", t - times_ms[0], 0x80) + jpeg))
+    header = _ebml(b"\x1a\x45\xdf\xa3", _ebml(b"\x42\x82", b"matroska") + _ebml(b"\x42\x87", _ebml_uint(4))
+                   + _ebml(b"\x42\x85", _ebml_uint(2)))
+    info = _ebml(b"\x15\x49\xa9\x66", _ebml(b"\x2a\xd7\xb1", _ebml_uint(1_000_000))  # ms ticks
+                 + _ebml(b"\x44\x89", struct.pack(">d", duration_ms)))
+    video = _ebml(b"\xe0", _ebml(b"\xb0", _ebml_uint(width)) + _ebml(b"\xba", _ebml_uint(height)))
+    track = _ebml(b"\xae", _ebml(b"\xd7", _ebml_uint(1)) + _ebml(b"\x73\xc5", _ebml_uint(1))
+                  + _ebml(b"\x83", _ebml_uint(1)) + _ebml(b"\x86", b"V_MJPEG") + video)
+    cluster = _ebml(b"\x1f\x43\xb6\x75", _ebml(b"\xe7", _ebml_uint(times_ms[0])) + b"".join(blocks))
+    path.write_bytes(header + _ebml(b"\x18\x53\x80\x67", info + _ebml(b"\x16\x54\xae\x6b", track) + cluster))
+    return greys
 
 
 # -- video files --------------------------------------------------------------------------
@@ -89,6 +126,73 @@ def test_written_avi_and_its_truncated_copy(tmp_path):
     truncated.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
     with pytest.raises(DecodeError, match="clip_truncated.avi"):
         list(VideoFileSource(truncated))
+
+
+@pytest.mark.parametrize("times_ms, duration_ms", [
+    ([0, 10, 50, 60, 200, 210, 500, 510], 520),  # a variable frame rate: OpenCV estimated 10 frames
+    ([5000 + 40 * i for i in range(25)], 6000),  # a segment cut at 5 s: OpenCV estimated 150 frames
+], ids=["vfr", "starts-at-5s"])
+def test_a_matroska_video_whose_estimated_count_is_too_large_is_read_whole(tmp_path, times_ms, duration_ms):
+    """Was: `decoding stopped after frame 8 of the 10 the container lists (truncated or corrupt video)`."""
+    path = tmp_path / "clip.mkv"
+    greys = write_mkv(path, times_ms, duration_ms)
+    capture = cv2.VideoCapture(str(path))
+    listed = capture.get(cv2.CAP_PROP_FRAME_COUNT)
+    capture.release()
+    assert listed > len(times_ms) + 1  # the estimate the old check believed
+    items = list(VideoFileSource(path, dtype=np.uint8))
+    assert [t for _, t in items] == [1000 * (t - times_ms[0]) for t in times_ms]
+    for (frame, _), grey in zip(items, greys):
+        assert np.abs(frame.astype(int) - grey).max() <= 8  # JPEG
+    cut = tmp_path / "cut.mkv"  # the same file cut in half is still refused
+    cut.write_bytes(path.read_bytes()[: path.stat().st_size // 2])
+    with pytest.raises(DecodeError, match="cut.mkv: decoding stopped"):
+        list(VideoFileSource(cut))
+    whole = tmp_path / "cfr.mkv"  # a constant rate from 0, cut: refused as before
+    write_mkv(whole, [40 * i for i in range(25)], 1000)
+    assert len(list(VideoFileSource(whole))) == 25
+    cut.write_bytes(whole.read_bytes()[: whole.stat().st_size // 2])
+    with pytest.raises(DecodeError, match="decoding stopped after frame"):
+        list(VideoFileSource(cut))
+
+
+@pytest.mark.parametrize("t0_s, t1_s", [(1.9, None), (2.62, None), (1.4, 2.65), (4.5, None)])
+def test_a_time_range_of_a_variable_frame_rate_video_keeps_every_frame_in_it(tmp_path, t0_s, t1_s):
+    """OpenCV seeks a variable-rate stream by frame number (time x its estimated rate): asked for 1.9 s it
+    landed at 4.5 s, and the frames between were dropped without a word (or, past the end, `no frames`)."""
+    times_ms = list(range(0, 2000, 100)) + [2600, 2610, 2620, 2630] + list(range(3000, 5000, 500))
+    path = tmp_path / "vfr.mkv"
+    write_mkv(path, times_ms, 5000)
+    whole = list(VideoFileSource(path, dtype=np.uint8))
+    assert [t for _, t in whole] == [1000 * t for t in times_ms]  # the last frame shows for 500 ms: not cut
+    upper = np.inf if t1_s is None else 1e6 * t1_s
+    expected = [(frame, t) for frame, t in whole if 1e6 * t0_s <= t < upper]
+    got = list(VideoFileSource(path, t0_s=t0_s, t1_s=t1_s, dtype=np.uint8))
+    assert [t for _, t in got] == [t for _, t in expected] and got
+    assert all(np.array_equal(a, b) for (a, _), (b, _) in zip(got, expected))
+
+
+def test_frames_whose_container_times_do_not_increase_are_counted_in_a_warning(tmp_path):
+    """Frames at 0, 40, 40, 40, 80 ms (and 60 after 80) were moved to 40.001, 40.002 ms (80.001) without a
+    word: two changes of the picture crammed into 2 µs, a burst of events at the wrong time."""
+    import warnings
+
+    path = tmp_path / "dup.mkv"
+    write_mkv(path, [0, 40, 40, 40, 80, 120, 160, 200], 240)
+    with pytest.warns(UserWarning) as caught:
+        times = [t for _, t in VideoFileSource(path, prefetch=0)]
+    assert times == [0, 40_000, 40_001, 40_002, 80_000, 120_000, 160_000, 200_000]
+    assert [str(w.message) for w in caught] == [
+        f"{path}: 2 of its 8 frames have a time not after the frame before (duplicated or reordered timestamps "
+        "in the container; the first: frame 2 at 40.000 ms, after 40.000 ms): each was placed 1 µs after the "
+        "frame before, so the change to it happens within 1 µs"]
+    write_mkv(path, [0, 40, 80, 60, 100, 140], 180)
+    with pytest.warns(UserWarning, match=r"1 of its 6 frames has a time .* frame 3 at 60.000 ms, after 80.000 ms"):
+        list(VideoFileSource(path))
+    write_mkv(path, [0, 40, 80, 120], 160)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert [t for _, t in VideoFileSource(path)] == [0, 40_000, 80_000, 120_000]
 
 
 def test_random_bytes_are_not_a_video(tmp_path):

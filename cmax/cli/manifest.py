@@ -62,7 +62,8 @@ def _merge(args: argparse.Namespace) -> int:
                          f"{'; '.join(conflicts[:5])}{' ...' if len(conflicts) > 5 else ''}; "
                          "merge only one conversion of each video")
     # outputs relative to the merged manifest's folder (shard0/00000.h5), where a resume looks for them
-    merged = merge_manifests(manifests, folders=[path.parent for path in args.manifests], into=args.output.parent)
+    merged = merge_manifests(manifests, folders=[path.parent for path in args.manifests], into=args.output.parent,
+                             names=[str(path) for path in args.manifests])
     write_manifest(args.output, merged)
     totals = merged["totals"]
     for note in notes:

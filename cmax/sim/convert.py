@@ -44,10 +44,11 @@ import signal
 import sys
 import threading
 import time
+import warnings
 from contextlib import contextmanager
 from dataclasses import asdict, dataclass, field, replace
 from pathlib import Path
-from typing import Any, Callable, Iterable, Sequence
+from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
@@ -184,7 +185,9 @@ def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
     """The frames of a video (or of an image folder / timestamp file) in the settings' size and time range.
 
     Frames are uint8 grey (H, W) (the 8-bit values the reference ESIM works
-    on), decoded ``prefetch`` frames ahead in a background thread; times are
+    on), or float32 in [0, 255] for an image sequence of 16-bit images (rounding
+    them to whole grey values would lose the steps between, most of a dark
+    image's), decoded ``prefetch`` frames ahead in a background thread; times are
     the container's presentation times (or the image sequence's timestamps) in
     µs, from ``t0_s`` to ``t1_s`` seconds after the first frame.
 
@@ -199,8 +202,33 @@ def open_frames(source: str | os.PathLike, settings: ConvertSettings, *,
         No frame in the time range (while iterating).
     """
     # A folder or a .txt timestamp file is an image sequence (ECD images.txt, ESIM timestamps.txt).
-    return open_source(source, size=settings.size, t0_s=settings.t0_s, t1_s=settings.t1_s,
-                       dtype=np.uint8, prefetch=prefetch)
+    frames = open_source(source, size=settings.size, t0_s=settings.t0_s, t1_s=settings.t1_s,
+                         dtype=np.uint8, prefetch=prefetch)
+    if getattr(frames, "bit_depth", 8) > 8:
+        frames.dtype = np.float32  # an ImageFolderSource decodes its images when iterated, to this type
+    stored = getattr(frames, "stored_size", None)
+    note = None if settings.size is None or stored is None else stretch_note(source, stored, settings.size)
+    if note is not None:
+        warnings.warn(note, UserWarning, stacklevel=2)
+    return frames
+
+
+def stretch_note(source: str | os.PathLike, stored: tuple[int, int], size: tuple[int, int]) -> str | None:
+    """The warning for frames of ``stored`` (width, height) resized to a ``size`` of another aspect ratio (more
+    than 1% apart), or None.
+
+    >>> stretch_note("clip.mp4", (1280, 720), (346, 260))
+    'clip.mp4: its 1280x720 frames are resized to 346x260, by 0.27 across and 0.361 down: the picture is stretched (pixels are no longer square: fx scales by 0.27, fy by 0.361); 346x195 (--size) keeps its shape'
+    >>> stretch_note("clip.mp4", (1280, 720), (640, 360)) is None
+    True
+    """
+    (w, h), (width, height) = stored, size
+    across, down = width / w, height / h
+    if abs(across / down - 1) <= 0.01:
+        return None
+    return (f"{source}: its {w}x{h} frames are resized to {width}x{height}, by {across:.3g} across and {down:.3g} "
+            f"down: the picture is stretched (pixels are no longer square: fx scales by {across:.3g}, fy by "
+            f"{down:.3g}); {width}x{max(1, round(width * h / w))} (--size) keeps its shape")
 
 
 def _counted(frames: Iterable[tuple[np.ndarray, int]], counter: list[int]):
@@ -262,7 +290,7 @@ def convert_video(
     source, output = Path(source), Path(output)
     if not overwrite and os.path.lexists(output):  # before any frame is read (the writer checks again)
         raise FileExistsError(f"{output} exists (pass overwrite=True to replace it)")
-    signature = None
+    signature, decoded = None, frames is None
     if frames is None:
         if not source.exists():
             raise FileNotFoundError(f"video not found: {source}")
@@ -283,19 +311,20 @@ def convert_video(
     simulator = EventSimulator.from_settings(settings.esim)
     writer, samples, reported = None, 0, 0
     try:
-        for frame, t_us in stream:
-            events = simulator.step(frame, t_us)
-            if writer is None:
-                writer = H5Writer(
-                    output, events.width, events.height, t_offset_us=int(t_us), overwrite=overwrite,
-                    source=str(source), category=category or "", simulator=f"cmax {__version__}",
-                    settings=settings.to_dict(),
-                )
-            writer.append(events)
-            samples += 1
-            if progress is not None and counter[0] > reported:
-                progress(counter[0] - reported)
-                reported = counter[0]
+        with _frames_on_the_grey_scale(decoded):
+            for frame, t_us in stream:
+                events = simulator.step(frame, t_us)
+                if writer is None:
+                    writer = H5Writer(
+                        output, events.width, events.height, t_offset_us=int(t_us), overwrite=overwrite,
+                        source=str(source), category=category or "", simulator=f"cmax {__version__}",
+                        settings=settings.to_dict(),
+                    )
+                writer.append(events)
+                samples += 1
+                if progress is not None and counter[0] > reported:
+                    progress(counter[0] - reported)
+                    reported = counter[0]
         if writer is None:
             raise ValueError(f"{source}: no frames" + _range_note(settings))
         writer.close()
@@ -311,6 +340,20 @@ def convert_video(
         events_per_s=writer.count / duration if duration > 0 else 0.0,
         wall_s=time.perf_counter() - started, source_signature=signature,
     )
+
+
+@contextmanager
+def _frames_on_the_grey_scale(decoded: bool) -> Iterator[None]:
+    """Silence the "[0, 1] image?" warning (:func:`cmax.sim.esim.unit_range_note`) for frames decoded from a file.
+
+    Decoded frames are grey values in [0, 255] whatever their range: a dark 16-bit image (values up to 257 of
+    65535) is float32 frames within [0, 1], which the warning would take for a [0, 1] image and advise to
+    multiply by 255. Frames a caller passes (``frames=``) keep the warning.
+    """
+    with warnings.catch_warnings():
+        if decoded:
+            warnings.filterwarnings("ignore", message=r"frames are floats in \[", category=UserWarning)
+        yield
 
 
 def _range_note(settings: ConvertSettings) -> str:
@@ -474,9 +517,10 @@ def _with_relative_outputs(manifest: dict[str, Any]) -> dict[str, Any]:
     return dict(manifest, videos=videos, output_paths=_RELATIVE)
 
 
-def settings_difference(recorded: dict[str, Any], now: dict[str, Any]) -> str:
+def settings_difference(recorded: dict[str, Any], now: dict[str, Any],
+                        labels: tuple[str, str] = ("recorded", "now")) -> str:
     """The keys where two settings dicts (:meth:`ConvertSettings.to_dict`) differ, as ``key: old (recorded) vs
-    new (now)``; nested keys joined by dots.
+    new (now)`` (``labels`` name the two); nested keys joined by dots.
 
     >>> settings_difference({"esim": {"cp": 0.2}, "size": None}, {"esim": {"cp": 0.3}, "size": [64, 48]})
     'esim.cp: 0.2 (recorded) vs 0.3 (now), size: None (recorded) vs [64, 48] (now)'
@@ -492,7 +536,7 @@ def settings_difference(recorded: dict[str, Any], now: dict[str, Any]) -> str:
     old, new = flat(recorded), flat(now)
     missing = object()
     keys = [key for key in dict.fromkeys([*old, *new]) if old.get(key, missing) != new.get(key, missing)]
-    return ", ".join(f"{key}: {old.get(key, 'absent')!r} (recorded) vs {new.get(key, 'absent')!r} (now)"
+    return ", ".join(f"{key}: {old.get(key, 'absent')!r} ({labels[0]}) vs {new.get(key, 'absent')!r} ({labels[1]})"
                      for key in keys)
 
 
@@ -518,7 +562,8 @@ def _totals(videos: dict[str, dict]) -> dict[str, Any]:
 
 def merge_manifests(manifests: Sequence[dict[str, Any]], *,
                     folders: Sequence[str | os.PathLike] | None = None,
-                    into: str | os.PathLike | None = None) -> dict[str, Any]:
+                    into: str | os.PathLike | None = None,
+                    names: Sequence[str] | None = None) -> dict[str, Any]:
     """Join the manifests of several shards or machines into one.
 
     Settings and simulator version must agree. A video present in several
@@ -540,6 +585,8 @@ def merge_manifests(manifests: Sequence[dict[str, Any]], *,
         folder does not lie inside ``into`` is refused (ValueError). Without them
         the outputs are kept as they are (right only for manifests already in
         ``into``).
+    names : sequence of str, optional
+        How errors name each manifest (its file); default ``manifest i``.
     """
     if not manifests:
         raise ValueError("merge_manifests needs at least one manifest")
@@ -553,11 +600,16 @@ def merge_manifests(manifests: Sequence[dict[str, Any]], *,
     if folders is not None:
         manifests = [_outputs_relative_to(manifest, Path(folder), Path(into))
                      for manifest, folder in zip(manifests, folders)]
+    names = [f"manifest {i}" for i in range(1, len(manifests) + 1)] if names is None else [str(n) for n in names]
     first = manifests[0]
-    for other in manifests[1:]:
+    for name, other in zip(names[1:], manifests[1:]):
         for key in ("settings", "simulator", "catalogue"):
             if other.get(key) != first.get(key):
-                raise ValueError(f"manifests differ in {key!r}: {first.get(key)} vs {other.get(key)}")
+                labels = (names[0], name)
+                difference = (settings_difference(first[key], other[key], labels) if key == "settings" else
+                              f"{first.get(key)!r} ({labels[0]}) vs {other.get(key)!r} ({labels[1]})")
+                raise ValueError(f"{name} differs from {names[0]} in {key!r} ({difference}): merge only "
+                                 "conversions made with the same settings and simulator")
     videos: dict[str, dict] = {}
     missing: set[str] = set()
     for manifest in manifests:
@@ -877,9 +929,42 @@ def _worker(connection, main_pid: int, job: VideoJob, output: Path, settings: Co
     """Entry point of a worker process: one video, the result sent back through ``connection``."""
     die_with_parent(main_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the workers itself
-    result = _run_job(job, output, settings, position)
-    connection.send(result)
+    with warnings.catch_warnings(record=True) as caught:  # re-issued by the parent (its filters, its format),
+        warnings.simplefilter("always")                      # as cmax.fitting.batch.recorded does for fits
+        result = _run_job(job, output, settings, position)
+    connection.send((result, [(_category_name(w.category), str(w.message)) for w in caught]))
     connection.close()
+
+
+def _category_name(category: type) -> str:
+    """``module:qualname`` of a warning class: sent as text, so that a class the parent cannot import costs
+    the video nothing (:func:`_category_of` falls back to UserWarning)."""
+    return f"{category.__module__}:{category.__qualname__}"
+
+
+def _category_of(name: str) -> type:
+    """The warning class :func:`_category_name` named, or UserWarning when it cannot be found here.
+
+    >>> _category_of("builtins:RuntimeWarning"), _category_of("nowhere:Gone")
+    (<class 'RuntimeWarning'>, <class 'UserWarning'>)
+    """
+    import importlib
+
+    module, _, qualname = name.partition(":")
+    try:
+        found: Any = importlib.import_module(module)
+        for part in qualname.split("."):
+            found = getattr(found, part)
+    except Exception:
+        return UserWarning
+    return found if isinstance(found, type) and issubclass(found, Warning) else UserWarning
+
+
+def _reissue(job: VideoJob, caught: Sequence[tuple[str, str]]) -> None:
+    """The warnings a worker caught converting ``job`` (category names, messages), issued again in this
+    process, naming the video."""
+    for name, message in caught:
+        warnings.warn(f"{job.name}: {message}", _category_of(name), stacklevel=2)
 
 
 def _worker_context():
@@ -930,11 +1015,12 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
             for receive in wait(list(running)):
                 process, job = running.pop(receive)
                 try:
-                    result = receive.recv()
+                    result, caught = receive.recv()
                 except Exception:  # EOFError: died without a result; or a message cut short
-                    result = None
+                    result, caught = None, []
                 finally:
                     receive.close()
+                _reissue(job, caught)
                 process.join(timeout=60)
                 if process.exitcode is None:  # sent its result but does not exit
                     process.kill()

@@ -342,7 +342,7 @@ def sort_events(pixel: np.ndarray, t_rel: np.ndarray, polarity: np.ndarray, n_pi
 
 # -- compiled interval kernel -----------------------------------------------------------------
 @kernel
-def _interval_crossings(ref, log0, log1, c_on, c_off, near_on, near_off, dt_us):
+def _interval_crossings(ref, log0, log1, c_on, c_off, near_on, near_off, dt_us, limit):
     """Crossings of every pixel in one interval, pixel by pixel; moves ``ref`` in place.
 
     ``c_on``, ``c_off``, ``near_on``, ``near_off`` are float32 arrays of length 1
@@ -353,7 +353,9 @@ def _interval_crossings(ref, log0, log1, c_on, c_off, near_on, near_off, dt_us):
     the float32 running sums of :func:`fire` in signed space and the times as
     :func:`crossing_times`. Returns (pixel int64, t_rel int64, polarity int8),
     (M,) each, grouped by pixel in raster order, each pixel's crossings in
-    order, and whether the bound held (it always should; the caller raises if not).
+    order, whether the bound held (it always should; the caller raises if not),
+    and the bound. A bound over ``limit`` returns at once, before allocating:
+    no crossings, ``ref`` untouched.
     """
     n = ref.size
     per_pixel = c_on.size > 1
@@ -367,6 +369,8 @@ def _interval_crossings(ref, log0, log1, c_on, c_off, near_on, near_off, dt_us):
             n_rows += 1
             step = c_on[k] if beyond > 0 else c_off[k]
             bound += np.int64(abs(np.float64(beyond)) / np.float64(step)) + 2
+    if bound > limit:
+        return np.empty(0, np.int64), np.empty(0, np.int64), np.empty(0, np.int8), True, bound
     pixel = np.empty(bound, np.int64)
     t_rel = np.empty(bound, np.int64)
     polarity = np.empty(bound, np.int8)
@@ -396,7 +400,17 @@ def _interval_crossings(ref, log0, log1, c_on, c_off, near_on, near_off, dt_us):
                 break
             level = following
         ref[i] = level * sign
-    return pixel[:m], t_rel[:m], polarity[:m], held
+    return pixel[:m], t_rel[:m], polarity[:m], held, bound
+
+
+def crossing_bound(rows: np.ndarray, ref: np.ndarray, log1: np.ndarray, c_on, c_off) -> int:
+    """At most how many crossings pixels ``rows`` make from ``ref`` to ``log1``: ``floor(|log1 - ref| / C) + 2``
+    each (the margin of :func:`_bucketed`), summed; the bound :func:`_interval_crossings` allocates."""
+    beyond = log1[rows].astype(np.float64) - ref[rows]
+    c_on_r = c_on[rows] if np.ndim(c_on) else c_on
+    c_off_r = c_off[rows] if np.ndim(c_off) else c_off
+    step = np.where(beyond > 0, c_on_r, c_off_r).astype(np.float64)
+    return int(np.sum(np.floor(np.abs(beyond) / step).astype(np.int64) + 2))
 
 
 @kernel

@@ -62,11 +62,13 @@ import warnings
 import cv2
 import numpy as np
 
-from cmax.events import Events
+import cmax.events
+from cmax.events import EventLimitError, Events
 from cmax.sim._cvlog import _cv_log32f
 from cmax.sim.crossings import (
     Crossings,
     _interval_crossings,
+    crossing_bound,
     _sorted_by_time,
     crossing_times,
     fire,
@@ -327,8 +329,11 @@ class EventSimulator:
             drift = leak_drift(s.leak_rate_hz, dt, self._c_on)
             log1 = (log1 + drift).astype(np.float32)
         if self._last_t is None and s.shot_noise_rate_hz <= 0:
-            pixel, t_rel, polarity, held = _interval_crossings(
-                self._ref, self._log, log1, *self._kernel_thresholds, dt)
+            limit = int(cmax.events.MAX_EVENTS)
+            pixel, t_rel, polarity, held, bound = _interval_crossings(
+                self._ref, self._log, log1, *self._kernel_thresholds, dt, limit)
+            if bound > limit:
+                raise self._too_many(bound, limit, t_us)
             if not held:  # pragma: no cover - the bound has a margin of two levels
                 raise RuntimeError("ESIM: more crossings than the bound allows (a bug)")
             if drift is not None:
@@ -351,6 +356,11 @@ class EventSimulator:
         height, width = self._shape
         log0, ref = self._log, self._ref  # ref (owned) moves in place
         rows = near_pixels(ref, log1, self._near_on, self._near_off)
+        limit = int(cmax.events.MAX_EVENTS)
+        bound = crossing_bound(rows, ref, log1, self._c_on, self._c_off)
+        noise = s.shot_noise_rate_hz * height * width * dt * 1e-6  # the expected count of shot-noise events
+        if bound + noise > limit:
+            raise self._too_many(bound, limit, t_us, noise)
         refractory = self._last_t is not None
         pixel, level, polarity = fire(rows, ref, log0, log1, self._c_on, self._c_off,
                                       by_pixel=refractory)
@@ -371,6 +381,28 @@ class EventSimulator:
         t_rel += t_us - dt
         return Events._trusted(self._x_of[pixel], self._y_of[pixel], t_rel, polarity, width, height)
 
+    def _too_many(self, bound: int, limit: int, t_us: int, noise: float = 0.0) -> EventLimitError:
+        """The error for an interval whose events could exceed ``limit`` (``bound`` crossings at most, ``noise``
+        shot-noise events expected); nothing was changed."""
+        height, width = self._shape
+        seconds = (t_us - self._t_us) * 1e-6
+        leak = self.settings.leak_rate_hz * seconds * height * width  # leak crossings, about
+        for rate, count, name in ((self.settings.shot_noise_rate_hz, noise, "shot noise"),
+                                  (self.settings.leak_rate_hz, leak, "leak events")):
+            if count > limit / 2:
+                return EventLimitError(
+                    f"the interval from {self._t_us} µs to the frame at {t_us} µs is {seconds:g} s long: {name} of "
+                    f"{rate:g} Hz per pixel over the {width}x{height} sensor add about {count:,.0f} events to it, "
+                    f"more than cmax.events.MAX_EVENTS={limit:,} that fit in memory at once (one interval's events "
+                    "are held together): check the frame times, lower the rate, or raise cmax.events.MAX_EVENTS "
+                    "deliberately")
+        return EventLimitError(
+            f"the frame at {t_us} µs changes so much since the one at {self._t_us} µs that its interval may hold "
+            f"up to {bound + round(noise):,} events over the {width}x{height} sensor, more than "
+            f"cmax.events.MAX_EVENTS={limit:,} that fit in memory at once (one interval's events are held "
+            "together): insert frames between the two (adaptive sampling: cmax simulate without --no-adaptive, "
+            "cmax.sim.iter_upsample), raise the thresholds, or raise cmax.events.MAX_EVENTS deliberately")
+
     # -- public ---------------------------------------------------------------------------
     def step(self, frame: object, t_us: int) -> Events:
         """Feed one frame taken at ``t_us``; return the events since the previous frame.
@@ -387,6 +419,13 @@ class EventSimulator:
         Events
             Events with ``t_prev <= t <= t_us``, sorted by time; none for the
             first frame, which only initialises ``L_ref``.
+
+        Raises
+        ------
+        cmax.events.EventLimitError
+            When the interval's crossings could exceed ``cmax.events.MAX_EVENTS``
+            (a 4K frame flashing to white at 35 thresholds a pixel), before
+            anything is allocated; the simulator is left as it was.
 
         Warns
         -----

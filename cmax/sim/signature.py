@@ -23,6 +23,7 @@ True
 from __future__ import annotations
 
 import os
+import warnings
 from pathlib import Path
 from typing import Any
 
@@ -41,12 +42,12 @@ def source_files(source: str | os.PathLike) -> list[Path]:
     path = Path(source)
     if not path.exists():
         raise FileNotFoundError(f"no such file or folder: {path}")
-    if path.is_dir():
-        stamps = _find_timestamps(path)
-        return [stamps, *read_timestamps(stamps, path)[1]]
-    if path.suffix.lower() == ".txt":
-        return [path, *read_timestamps(path, path.parent)[1]]
-    return [path]
+    if not path.is_dir() and path.suffix.lower() != ".txt":
+        return [path]
+    stamps = _find_timestamps(path) if path.is_dir() else path
+    with warnings.catch_warnings():  # a note on the times is the conversion's to give, once
+        warnings.simplefilter("ignore")
+        return [stamps, *read_timestamps(stamps, path if path.is_dir() else path.parent)[1]]
 
 
 def source_signature(source: str | os.PathLike) -> dict[str, Any]:

@@ -36,7 +36,8 @@ import h5py
 import numpy as np
 from tqdm.auto import tqdm
 
-from cmax.events import Events, concatenate
+import cmax.events
+from cmax.events import EventLimitError, Events, concatenate
 from cmax.io.h5 import H5Writer, decode_attrs, read_h5
 from cmax.sim.esim import EventSimulator
 from cmax.sim.scenes import Scene
@@ -238,6 +239,21 @@ def _times_to_end(t0_s: float, t_end_s: float, rate_hz: float) -> np.ndarray:
     return times if t_end_s - times[-1] <= 5e-7 else np.append(times, t_end_s)
 
 
+def _too_many_events(total: int, reached_s: float, duration_s: float) -> EventLimitError:
+    """The error for a scene whose events outgrow ``cmax.events.MAX_EVENTS`` after ``reached_s`` of ``duration_s``.
+
+    >>> str(_too_many_events(300, 0.5, 2.0)).startswith("the scene made 300 events in its first 0.5 s of 2 s")
+    True
+    """
+    limit = int(cmax.events.MAX_EVENTS)
+    fits = reached_s * limit / total
+    return EventLimitError(
+        f"the scene made {total:,} events in its first {reached_s:.3g} s of {duration_s:g} s, more than "
+        f"cmax.events.MAX_EVENTS={limit:,} that fit in memory at once (a scene's events are held until it is "
+        f"saved): simulate about {fits:.3g} s or less at a time (cmax scene --duration; simulate_scene(t0_s=) "
+        "starts a part later in the scene), or raise cmax.events.MAX_EVENTS deliberately")
+
+
 def simulate_scene(
     scene: Scene,
     duration_s: float,
@@ -282,6 +298,13 @@ def simulate_scene(
     Returns
     -------
     SyntheticSequence
+
+    Raises
+    ------
+    cmax.events.EventLimitError
+        As soon as the events made so far (all held in memory) exceed
+        ``cmax.events.MAX_EVENTS``, naming the scene time reached: a shorter
+        ``duration_s`` fits.
     """
     duration_s = _check_positive("duration_s", duration_s)
     lam = _check_positive("lam", lam)
@@ -313,12 +336,16 @@ def simulate_scene(
     simulator.reset()
     required = list(depth_times_s) + [t_end]
     events, depths, frame_times = [], [], []
-    t, next_required = float(t0_s), 0
+    t, next_required, total = float(t0_s), 0, 0
     bar = tqdm(total=round(duration_s * 1e3), unit="ms", desc="simulating (ms of scene)", disable=not progress)
     while True:
         intensity, depth = scene.render(t)
         t_us = to_us(t)
         events.append(simulator.step(intensity, t_us))
+        total += len(events[-1])
+        if total > cmax.events.MAX_EVENTS:
+            bar.close()
+            raise _too_many_events(total, t - t0_s, duration_s)
         frame_times.append(t_us)
         while next_required < len(depth_times_s) and depth_times_s[next_required] <= t + 5e-7:
             depths.append(depth)

@@ -47,6 +47,7 @@ from __future__ import annotations
 import math
 import os
 import re
+import warnings
 from pathlib import Path
 from typing import Iterator, Protocol, Union, runtime_checkable
 
@@ -72,6 +73,8 @@ __all__ = [
 
 #: Image files an :class:`ImageFolderSource` lists (lower-case suffixes).
 IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".pgm", ".ppm", ".webp")
+#: How far before ``t0_s`` a :class:`VideoFileSource` seeks, in µs (the frames between are decoded and skipped).
+SEEK_MARGIN_US = 1_000_000
 #: Timestamp files looked for, in this order, in the folder and then its parent.
 _TIMESTAMP_FILES = ("images.txt", "timestamps.txt")
 
@@ -301,6 +304,7 @@ def read_timestamps(path: PathLike, folder: PathLike | None = None) -> tuple[np.
     if len(kinds) != 1 or "bad" in kinds:
         raise ValueError(f"{path}: expected lines 't', 'index t' or 't path' (one format per file)")
     kind = kinds.pop()
+    tokens = [r[1] if kind == "index t" else r[0] for r in rows]  # the time column as written
     if kind == "t path":
         seconds = [float(r[0]) for r in rows]
         images = []
@@ -323,9 +327,42 @@ def read_timestamps(path: PathLike, folder: PathLike | None = None) -> tuple[np.
         if min(indices) < 0 or max(indices) >= len(listed):
             raise ValueError(f"{path}: image index out of range [0, {len(listed)}) of {folder}")
         images = [listed[i] for i in indices]
-    t_us = _seconds_to_us(_checked_seconds(np.array(seconds, dtype=np.float64), str(path)))
+    seconds = _checked_seconds(np.array(seconds, dtype=np.float64), str(path))
+    note = _whole_number_note(tokens, seconds, str(path))
+    if note is not None:
+        warnings.warn(note, UserWarning, stacklevel=2)
+    t_us = _seconds_to_us(seconds)
     _strictly_increasing(t_us, str(path))
     return t_us, images
+
+
+#: Median step between frames, in seconds, from which whole-number times are taken for another unit (a warning).
+WHOLE_STEP_S = 10.0
+
+
+def _whole_number_note(tokens: list[str], seconds: np.ndarray, what: str) -> str | None:
+    """The warning for a time column of whole numbers whose frames would lie ``WHOLE_STEP_S`` or more apart.
+
+    ``tokens`` are the times as written, ``seconds`` (T,) their values. Frame times written as integers
+    ``0 33 67 100`` are milliseconds (or µs) since the start far more often than seconds of a time-lapse
+    (nothing in the file says which); read as seconds they stretch a second of video over half a minute.
+    Times with a decimal point, and whole seconds less than ``WHOLE_STEP_S`` apart, give None.
+
+    >>> _whole_number_note(["0", "33", "67"], np.array([0.0, 33.0, 67.0]), "t.txt")[:62]
+    't.txt: every time is a whole number, 33.5 apart (the median): '
+    >>> _whole_number_note(["0.000", "0.033"], np.array([0.0, 0.033]), "t.txt") is None
+    True
+    """
+    if seconds.size < 2 or not all(re.fullmatch(r"[+-]?\d+", token) for token in tokens):
+        return None
+    step = float(np.median(np.diff(seconds)))
+    if step < WHOLE_STEP_S:
+        return None
+    span = float(seconds[-1] - seconds[0])
+    hours = f" ({span / 3600:.3g} h)" if span >= 3600 else ""
+    return (f"{what}: every time is a whole number, {step:g} apart (the median): read as seconds, the "
+            f"{seconds.size} frames span {span:g} s{hours}; if they are milliseconds ({span * 1e-3:g} s) "
+            f"or microseconds ({span * 1e-6:g} s), write the times in seconds with a decimal point")
 
 
 def _find_timestamps(folder: Path) -> Path:
@@ -455,8 +492,10 @@ class ImageFolderSource:
         :func:`cmax.sim.prefetch.default_decoders` (the available cores, at
         most 4).
 
-    The first image is read at construction (for ``width``/``height``); the
-    others when iterated, where an image of another size raises ValueError.
+    The first image is read at construction (for ``width``/``height``, and
+    ``bit_depth``: 8, or 16 for a 16-bit first image, whose grey values
+    ``v * 255 / 65535`` only float32 frames hold exactly); the others when
+    iterated, where an image of another size raises ValueError.
     """
 
     def __init__(self, folder: PathLike, *, timestamps: PathLike | np.ndarray | None = None,
@@ -494,9 +533,12 @@ class ImageFolderSource:
                                  f"{len(self.images)} images span {(last - first) * 1e-6:.6f} s{clock}")
             self.timestamps_us = self.timestamps_us[keep]
             self.images = [image for image, kept in zip(self.images, keep) if kept]
-        first = _read_image(self.images[0], None)
+        stored = _imread(self.images[0])
+        first = _to_grey(stored, None, str(self.images[0]))
+        self.bit_depth = 16 if stored.dtype == np.uint16 else 8
         self._shape = first.shape
         self.width, self.height = self._size or (first.shape[1], first.shape[0])
+        self.stored_size = (int(first.shape[1]), int(first.shape[0]))  # (width, height) before resizing
         self.fps, self.frame_count = _mean_fps(self.timestamps_us), len(self.images)
 
     def __len__(self) -> int:
@@ -517,6 +559,60 @@ class ImageFolderSource:
 
 
 # -- video files --------------------------------------------------------------------------
+def _stream_position(capture: cv2.VideoCapture, fps: float | None) -> float | None:
+    """The last decoded frame's position in the stream, in frames, or None when OpenCV tells neither.
+
+    The larger of OpenCV's ``CAP_PROP_PTS`` (the timestamp times the frame rate, from the stream's
+    zero, not shifted to the first frame; some demuxers give none) and ``CAP_PROP_POS_MSEC`` (from the
+    first frame) times ``fps``.
+    """
+    values = []
+    prop = getattr(cv2, "CAP_PROP_PTS", None)
+    if prop is not None:
+        values.append(capture.get(prop))
+    if fps:
+        values.append(capture.get(cv2.CAP_PROP_POS_MSEC) * 1e-3 * fps)
+    values = [float(v) for v in values if math.isfinite(v) and v >= 0]
+    return max(values) if values else None
+
+
+def _stopped_early(decoded: int, position: float | None, count: int, step: float | None = None) -> bool:
+    """Whether a stream ended well before the ``count`` frames its container lists (truncated or corrupt).
+
+    ``decoded`` frames were decoded, the last at stream ``position`` (frames from the stream's zero,
+    :func:`_stream_position`; None: unknown), ``step`` frames after the one before it (None: unknown).
+    Short means more than ``max(1, 1%)`` frames short. Matroska and WebM store no frame count: OpenCV
+    estimates it from the duration and the stream's frame rate, which exceeds the frames of a
+    variable-frame-rate stream or of one whose timestamps start after 0 (a cut segment); there the last
+    frame still lies at the end of the stream, within its own display time (taken as long as the step
+    before it). A truncated stream falls short on both counts.
+
+    >>> _stopped_early(8, 51.0, 52), _stopped_early(25, 149.0, 150), _stopped_early(13, 12.0, 30)
+    (False, False, True)
+    >>> _stopped_early(28, 450.0, 500, step=50.0), _stopped_early(13, 12.0, 30, step=1.0)
+    (False, True)
+    """
+    short = count - max(1, round(0.01 * count))
+    if decoded >= short:
+        return False
+    return position is None or position + max(1.0, step or 0.0) < short
+
+
+def _moved_note(path: str, moved: list[tuple[int, int, int]], frames: int) -> str:
+    """The warning for frames whose container time was not after the frame before (``moved``: frame index,
+    stated time, time before, in µs; ``frames`` read in all).
+
+    >>> _moved_note("a.mkv", [(2, 40000, 40000)], 8)
+    'a.mkv: 1 of its 8 frames has a time not after the frame before (duplicated or reordered timestamps in the container; the first: frame 2 at 40.000 ms, after 40.000 ms): each was placed 1 µs after the frame before, so the change to it happens within 1 µs'
+    """
+    index, stated, before = moved[0]
+    verb = "has" if len(moved) == 1 else "have"
+    return (f"{path}: {len(moved)} of its {frames} frames {verb} a time not after the frame before (duplicated or "
+            f"reordered timestamps in the container; the first: frame {index} at {stated * 1e-3:.3f} ms, after "
+            f"{before * 1e-3:.3f} ms): each was placed 1 µs after the frame before, so the change to it happens "
+            "within 1 µs")
+
+
 class VideoFileSource:
     """Frames of a video file (mp4, avi, mkv, ... whatever OpenCV's FFmpeg reads).
 
@@ -543,12 +639,15 @@ class VideoFileSource:
     the time is ``frame_index * 1e6 / fps`` (30 fps when the rate is unknown
     too). A time not after the previous one (duplicated or reordered
     timestamps) becomes the previous time + 1 µs, so times are always
-    strictly increasing.
+    strictly increasing; a ``UserWarning`` at the end of the stream counts
+    such frames and names the first.
 
     Decoding errors: a file OpenCV cannot open or that yields no frame raises
     :class:`DecodeError` at construction; a path that is not valid UTF-8 raises
     :class:`ValueError` (:func:`_opencv_path`: OpenCV would crash on it). When
-    the decoder stops more than ``max(1, 1%)`` frames before the container's frame count, iteration raises
+    the decoder stops more than ``max(1, 1%)`` frames before the container's frame count, and the last
+    frame decoded lies that far before the stream's end too (:func:`_stopped_early`: a Matroska count is
+    an estimate, too large for a variable frame rate or a stream starting after 0), iteration raises
     :class:`DecodeError` after the frames it could decode (a truncated or
     corrupt stream). ``frame_count`` is the container's count (None when
     unknown or when ``t0_s``/``t1_s`` cut the video).
@@ -579,6 +678,7 @@ class VideoFileSource:
         self.frame_count = self._container_count if t0_s is None and t1_s is None else None
         first = _to_grey(image, self._size, str(self.path))
         self.height, self.width = first.shape
+        self.stored_size = (int(image.shape[1]), int(image.shape[0]))  # (width, height) before resizing
 
     def _open(self) -> cv2.VideoCapture:
         capture = cv2.VideoCapture(_opencv_path(self.path, "video"))
@@ -604,20 +704,34 @@ class VideoFileSource:
         return prefetched(self._frames, self.prefetch)
 
     def _frames(self) -> Iterator[tuple[np.ndarray, int]]:
-        capture = self._open()
         t0_us = None if self.t0_s is None else self._first_us + int(round(self.t0_s * 1e6))
         t1_us = None if self.t1_s is None else self._first_us + int(round(self.t1_s * 1e6))
+        # OpenCV seeks by frame number (time x frame rate): in a variable-frame-rate stream it can land seconds
+        # past the time asked for. Seek SEEK_MARGIN_US before t0; a first frame after t0 (or none) means frames
+        # from t0 on may have been passed over, and the stream is decoded from its start instead.
+        seek_us = None if t0_us is None or t0_us - SEEK_MARGIN_US <= self._first_us else t0_us - SEEK_MARGIN_US
+        capture = self._open()
         try:
-            if t0_us:
-                capture.set(cv2.CAP_PROP_POS_MSEC, t0_us / 1000)
-            previous, decoded, yielded = None, 0, 0
+            if seek_us is not None:
+                capture.set(cv2.CAP_PROP_POS_MSEC, seek_us / 1000)
+            previous, decoded, yielded, position, moved, step = None, 0, 0, None, [], None
             while True:
                 ok, image = capture.read()
-                if not ok or image is None:
+                got = ok and image is not None
+                if previous is None and seek_us is not None and (not got or self._time_us(capture, False) > t0_us):
+                    capture.release()  # the seek went too far (or past the end): from the start
+                    capture, seek_us = self._open(), None
+                    continue
+                if not got:
                     break
+                stated = self._time_us(capture, first=previous is None and seek_us is None)
                 decoded = max(decoded, int(capture.get(cv2.CAP_PROP_POS_FRAMES)))
-                t = self._time_us(capture, first=previous is None and not t0_us)
-                t = t if previous is None or t > previous else previous + 1
+                position = _stream_position(capture, self.fps)
+                t = stated if previous is None or stated > previous else previous + 1
+                if t != stated:
+                    moved.append((yielded, stated, previous))
+                if previous is not None and self.fps:
+                    step = (t - previous) * 1e-6 * self.fps  # the last interval, in frames
                 previous = t
                 if t0_us is not None and t < t0_us:
                     continue
@@ -625,11 +739,11 @@ class VideoFileSource:
                     break
                 yielded += 1
                 yield _to_grey(image, self._size, str(self.path), self.dtype), t
+            if moved:
+                warnings.warn(_moved_note(str(self.path), moved, yielded), UserWarning, stacklevel=2)
             count = self._container_count
             finished = t1_us is None or (previous is not None and previous < t1_us)
-            seek_past_end = bool(t0_us) and decoded == 0
-            if (finished and not seek_past_end and count is not None
-                    and decoded < count - max(1, round(0.01 * count))):
+            if finished and count is not None and _stopped_early(decoded, position, count, step):
                 raise DecodeError(f"{self.path}: decoding stopped after frame {decoded} of the "
                                   f"{count} the container lists (truncated or corrupt video)")
             if yielded == 0:
