@@ -453,7 +453,8 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         total = len(events)
         events = undistort(events)
         if len(events) < total:
-            notes.append(f"{total - len(events):,} events fall outside the image once undistorted (dropped)")
+            notes.append(f"{total - len(events):,} events fall outside the image once undistorted, or lie beyond the "
+                         "radius the distortion model reaches (dropped)")
     gyro = None
     if args.omega is not None:
         first_us, last_us = event_span(events)
