@@ -683,3 +683,42 @@ def test_a_signed_polarity_file_is_fitted_with_polarity_signed(tmp_path, capsys)
     assert "--polarity signed" in capsys.readouterr().err
     main([*base, "-o", str(tmp_path / "b"), "--polarity", "signed"])
     assert json.loads((tmp_path / "b" / "summary.json").read_text())["windows"]
+
+
+@pytest.mark.parametrize("speed", [None, 8.0])
+def test_an_up_to_scale_trajectory_says_so_and_emvs_does_not_call_its_depths_metres(tmp_path, capsys, monkeypatch,
+                                                                                     speed):
+    """Without --speed each window's v is a unit vector (1 m/s): trajectory.txt was written as if in metres, with
+    no word, and ``cmax emvs --poses trajectory.txt`` printed 'median depth 0.651 m' (on a 0.29 m/s slider). Its
+    '#' header now states the frame and the unit; emvs reads it and says the depths are up to scale."""
+    from dataclasses import replace
+
+    from benchmarks.synthetic_windows import make_window
+    from cmax.emvs import read_tum_trajectory
+    from cmax.fitting import QualitySettings, fit
+    from cmax.fitting import sequence as sequence_module
+
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    base = fit(w.events, w.K, speed=8.0, depth_range=(1.0, 20.0), max_events=1000,
+               quality=QualitySettings(ambiguity_test=False))
+    monkeypatch.setattr(sequence_module, "fit", lambda events, K, model="se3", **options: replace(
+        base, t0_us=int(events.t[0]), t1_us=int(events.t[-1]), scale_known=options.get("speed") is not None))
+    path = write_h5(tmp_path / "drive.h5", w.events)
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    out = tmp_path / "out"
+    assert main(["fit", str(path), "--K", K, "-o", str(out), "--window-ms", "25", "--min-events", "10", "--quiet",
+                 *([] if speed is None else ["--speed", str(speed)])]) == 0
+    header = [line for line in (out / "trajectory.txt").read_text().splitlines() if line.startswith("#")]
+    assert header[0] == "# t[s] tx ty tz qx qy qz qw (TUM)"
+    assert ("translation up to scale" in header[1]) == (speed is None)
+    assert ("translation in metres" in header[1]) == (speed is not None)
+    times, poses = read_tum_trajectory(out / "trajectory.txt")          # the header is skipped, as evo skips it
+    assert len(times) == 4 and np.allclose(poses[0], np.eye(4))
+    capsys.readouterr()
+    assert main(["emvs", str(path), "--K", K, "-o", str(tmp_path / "emvs"), "--poses", str(out / "trajectory.txt"),
+                 "--depth-range", "1,20", "--planes", "20"]) == 0
+    captured = capsys.readouterr()
+    summary = json.loads((tmp_path / "emvs" / "summary.json").read_text())
+    assert summary["scale_known"] == (speed is not None)
+    assert ("are up to scale (its header says so" in captured.err) == (speed is None)
+    assert ("(up to scale)" in captured.out) == (speed is None)

@@ -7,7 +7,8 @@ accepts that pair or any object with attributes ``times_us`` and ``poses``
 returns). :func:`read_tum_trajectory` reads the TUM text format
 ``t tx ty tz qx qy qz qw`` (``t`` in seconds) that ``cmax fit`` writes
 (``trajectory.txt``) and that the Event Camera Dataset ships as
-``groundtruth.txt``.
+``groundtruth.txt``. :func:`tum_header` gives the ``#`` lines ``cmax fit`` writes above its poses (the
+frame, the units, and whether the translation is metric); :func:`trajectory_up_to_scale` reads them back.
 """
 from __future__ import annotations
 
@@ -17,7 +18,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["as_trajectory", "read_tum_trajectory", "check_coverage"]
+__all__ = ["as_trajectory", "read_tum_trajectory", "check_coverage", "tum_header", "trajectory_up_to_scale",
+           "UP_TO_SCALE"]
 
 #: Largest tolerated deviation of R^T R from the identity in a pose.
 _ROTATION_TOLERANCE = 1e-4
@@ -174,3 +176,28 @@ def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     T[:, :3, :3] = Rotation.from_quat(values[:, 3:] / norms[:, None]).as_matrix()
     T[:, :3, 3] = values[:, :3]
     return as_trajectory((np.asarray(times, dtype=np.int64), T), name=str(path))
+
+
+#: The words of a trajectory file's ``#`` line that mark its translation as known only up to scale (``cmax fit``
+#: without a speed); :func:`trajectory_up_to_scale` looks for them.
+UP_TO_SCALE = "translation up to scale"
+
+
+def tum_header(scale_known: bool) -> list[str]:
+    """The ``#`` lines above the poses of a TUM trajectory that ``cmax fit`` writes: the columns, the frame
+    (camera-to-world) and the unit of the translation, metres when ``scale_known``, else :data:`UP_TO_SCALE`
+    (each window's speed taken as 1 m/s). TUM readers (evo, :func:`read_tum_trajectory`) skip ``#`` lines.
+
+    >>> tum_header(True)
+    ['# t[s] tx ty tz qx qy qz qw (TUM)', '# T_w_c (camera-to-world); translation in metres']
+    """
+    unit = ("translation in metres" if scale_known else
+            f"{UP_TO_SCALE}: no speed was given, each window's speed is taken as 1 m/s, not metres")
+    return ["# t[s] tx ty tz qx qy qz qw (TUM)", f"# T_w_c (camera-to-world); {unit}"]
+
+
+def trajectory_up_to_scale(path: str | os.PathLike) -> bool:
+    """True when a ``#`` line of the TUM trajectory file at ``path`` says its translation is up to scale
+    (:data:`UP_TO_SCALE`, as :func:`tum_header` writes it without a speed)."""
+    with open(path, encoding="utf-8", errors="replace") as file:
+        return any(line.lstrip().startswith("#") and UP_TO_SCALE in line for line in file)
