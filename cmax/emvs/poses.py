@@ -119,11 +119,28 @@ def check_coverage(times_us: np.ndarray, t_first_us: int, t_last_us: int, name: 
         )
 
 
+#: Largest time [s] a TUM file may state (about the year 5100 as seconds since 1970); larger ones are another unit
+#: (nanoseconds since 1970: 1.7e18; microseconds: 1.7e15), refused by :func:`read_tum_trajectory`.
+MAX_TUM_SECONDS = 10**11
+
+_SMALLER_UNITS = (("nanoseconds", Decimal("1e-9")), ("microseconds", Decimal("1e-6")),
+                  ("milliseconds", Decimal("1e-3")))
+
+
 def _seconds_to_us(token: str, path: Path, line_number: int) -> int:
     try:
-        return int((Decimal(token) * 1_000_000).to_integral_value())
+        seconds = Decimal(token)
     except InvalidOperation:
         raise ValueError(f"{path}:{line_number}: the time {token!r} is not a number") from None
+    if not seconds.is_finite():
+        raise ValueError(f"{path}:{line_number}: the time {token!r} is not a finite number of seconds")
+    if abs(seconds) > MAX_TUM_SECONDS:
+        unit = next((name for name, size in _SMALLER_UNITS if 10**8 <= abs(seconds) * size <= MAX_TUM_SECONDS), None)
+        guess = ("another unit" if unit is None else
+                 f"{unit} ({float(seconds * dict(_SMALLER_UNITS)[unit]):.6f} s since 1970 if so)")
+        raise ValueError(f"{path}:{line_number}: the time {token} is too large for seconds (TUM's unit): these look "
+                         f"like {guess}; write the times in seconds")
+    return int((seconds * 1_000_000).to_integral_value())
 
 
 def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
