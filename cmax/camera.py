@@ -16,6 +16,13 @@ __all__ = ["Camera", "camera_and_intrinsics", "check_intrinsics", "intrinsics_ma
 
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 
+#: Undistortion: OpenCV's fixed-point iterations for every pixel, the iterations for the pixels that have not
+#: converged after those, and the distance [px] between a pixel and the re-distorted image of its undistorted
+#: position under which it counts as solved (:meth:`Camera.undistort_points`).
+UNDISTORT_ITERATIONS = 40
+UNDISTORT_MAX_ITERATIONS = 2000
+UNDISTORT_TOLERANCE_PX = 0.01
+
 
 def check_intrinsics(K: object, name: str = "K") -> np.ndarray:
     """Validate a pinhole matrix; returns it as a (3, 3) float64 array.
@@ -85,6 +92,30 @@ def intrinsics_oddity(K: np.ndarray, width: int, height: int) -> str | None:
             f"the principal point is {off:.0%} of the image from its centre and fy / fx = {aspect:.2f} (cameras: "
             "within a few per cent of the centre, fy / fx near 1); check the order of the numbers (fx, fy, cx, cy; "
             "ROS's rows read fx, cx, fy, cy)")
+
+
+def _distort_normalised(xy: np.ndarray, distortion: np.ndarray) -> np.ndarray:
+    """OpenCV's distortion of normalised coordinates (N, 2) -> (N, 2) (``cv2.projectPoints`` with ``K = I``).
+
+    Closed form for 4, 5, 8 and 12 coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, s1, s2, s3, s4]]])``:
+    ``radial = (1 + k1 r^2 + k2 r^4 + k3 r^6) / (1 + k4 r^2 + k5 r^4 + k6 r^6)``,
+    ``x' = x radial + 2 p1 x y + p2 (r^2 + 2 x^2) + s1 r^2 + s2 r^4`` and
+    ``y' = y radial + p1 (r^2 + 2 y^2) + 2 p2 x y + s3 r^2 + s4 r^4``; the tilted model (14) through OpenCV.
+    """
+    if distortion.size == 14:
+        points = np.column_stack([xy, np.ones(len(xy))]).reshape(-1, 1, 3)
+        return cv2.projectPoints(points, np.zeros(3), np.zeros(3), np.eye(3), distortion)[0].reshape(-1, 2)
+    k = np.zeros(12)
+    k[: distortion.size] = distortion
+    k1, k2, p1, p2, k3, k4, k5, k6, s1, s2, s3, s4 = k
+    x, y = xy[:, 0], xy[:, 1]
+    r2 = x * x + y * y
+    with np.errstate(invalid="ignore", divide="ignore", over="ignore"):
+        radial = (1 + r2 * (k1 + r2 * (k2 + r2 * k3))) / (1 + r2 * (k4 + r2 * (k5 + r2 * k6)))
+        return np.column_stack([
+            x * radial + 2 * p1 * x * y + p2 * (r2 + 2 * x * x) + r2 * (s1 + s2 * r2),
+            y * radial + p1 * (r2 + 2 * y * y) + 2 * p2 * x * y + r2 * (s3 + s4 * r2),
+        ])
 
 
 @dataclass(frozen=True, eq=False)
@@ -211,12 +242,19 @@ class Camera:
         return rays * depth[:, None]
 
     def undistort_points(self, pixels: np.ndarray) -> np.ndarray:
-        """Undistorted pixel coordinates (N, 2) float64 of distorted pixels (N, 2) (same K).
+        """Undistorted pixel coordinates (N, 2) float64 of distorted pixels (N, 2) (same K); NaN rows for pixels
+        that have no undistorted position.
 
         The model is ``pixel = K [distort(x_n); 1]`` with the full ``K``, skew
         included: pixels are normalised by ``K^-1`` and OpenCV's iterative
         ``undistortPoints`` runs on normalised coordinates (given ``K`` itself,
         OpenCV would read only fx, fy, cx, cy and drop the skew ``K[0, 1]``).
+
+        Every result is checked with the forward model (``cv2.projectPoints``): a pixel whose undistorted
+        position does not distort back to within :data:`UNDISTORT_TOLERANCE_PX` of it is solved again with
+        :data:`UNDISTORT_MAX_ITERATIONS` iterations (strong distortion converges slowly), and stays NaN if it
+        still does not: beyond the largest radius the model reaches (a polynomial that folds back, e.g. a
+        strong negative k1 with a negative k3) no undistorted position maps onto the pixel.
         """
         pixels = np.asarray(pixels, dtype=np.float64)
         if pixels.ndim != 2 or pixels.shape[1] != 2:
@@ -225,17 +263,37 @@ class Camera:
             return pixels.copy()
         ones = np.ones((len(pixels), 1))
         normalised = (np.hstack([pixels, ones]) @ np.linalg.inv(self.K).T)[:, :2]
-        undistorted = cv2.undistortPoints(
+        undistorted = self._undistort_normalised(normalised, UNDISTORT_ITERATIONS)
+        unsolved = np.flatnonzero(self._residual_px(undistorted, pixels) > UNDISTORT_TOLERANCE_PX)
+        if unsolved.size:
+            undistorted[unsolved] = self._undistort_normalised(normalised[unsolved], UNDISTORT_MAX_ITERATIONS)
+            still = unsolved[self._residual_px(undistorted[unsolved], pixels[unsolved]) > UNDISTORT_TOLERANCE_PX]
+            undistorted[still] = np.nan
+        return (np.hstack([undistorted, ones]) @ self.K.T)[:, :2]
+
+    def _undistort_normalised(self, normalised: np.ndarray, iterations: int) -> np.ndarray:
+        """OpenCV's iterative inverse of the distortion on normalised coordinates (N, 2) -> (N, 2)."""
+        out = cv2.undistortPoints(
             np.ascontiguousarray(normalised).reshape(-1, 1, 2), np.eye(3), self.distortion, R=None, P=np.eye(3),
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-12),
+            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-12),
         )
-        return (np.hstack([undistorted.reshape(-1, 2), ones]) @ self.K.T)[:, :2]
+        return out.reshape(-1, 2).astype(np.float64)
+
+    def _residual_px(self, undistorted: np.ndarray, pixels: np.ndarray) -> np.ndarray:
+        """Distance [px] (N,) between ``pixels`` (N, 2) and the forward model's image of their normalised
+        ``undistorted`` positions (N, 2); inf where that image is not finite."""
+        distorted = _distort_normalised(undistorted, self.distortion)
+        back = (np.column_stack([distorted, np.ones(len(distorted))]) @ self.K.T)[:, :2]
+        with np.errstate(invalid="ignore"):
+            residual = np.linalg.norm(back - pixels, axis=1)
+        return np.where(np.isfinite(residual), residual, np.inf)
 
     @cached_property
     def undistortion_map(self) -> np.ndarray:
-        """(H, W, 2) float32: the undistorted coordinates of every integer pixel.
+        """(H, W, 2) float32: the undistorted coordinates of every integer pixel, NaN for the pixels that have
+        none (beyond the radius the distortion model reaches: :meth:`undistort_points`).
 
-        Computed once per camera (OpenCV's iterative ``undistortPoints``);
+        Computed once per camera (OpenCV's iterative ``undistortPoints``, checked with the forward model);
         :meth:`undistort` then looks events up in it.
         """
         ys, xs = np.mgrid[0: self.height, 0: self.width]
@@ -246,7 +304,8 @@ class Camera:
         """Undistorted, sub-pixel coordinates (N, 2) float32 ``(x, y)`` of the events.
 
         A table lookup in :attr:`undistortion_map` (no per-event solve). The
-        result may fall outside the image for strongly distorted borders.
+        result may fall outside the image for strongly distorted borders, and is NaN for an event on a pixel
+        that has no undistorted position (:meth:`undistort_points`).
         """
         self._check_events(events)
         if not self.is_distorted:
@@ -263,16 +322,19 @@ class Camera:
 
     def undistort_events(self, events: Events) -> Events:
         """The events at their undistorted pixels, the nearest integer ones, for a pinhole model with
-        :attr:`K` (what ``cmax fit --calib`` fits); events whose undistorted pixel lies outside the image
-        are dropped. A camera without distortion returns ``events`` themselves.
+        :attr:`K` (what ``cmax fit --calib`` fits); events whose undistorted pixel lies outside the image, or
+        that have none (NaN in :attr:`undistortion_map`), are dropped. A camera without distortion returns
+        ``events`` themselves.
 
         Raises ``ValueError`` when the events come from a sensor of another size than the camera's.
         """
         self._check_events(events)
         if not self.is_distorted:
             return events
-        xy = np.rint(self.undistortion_map[events.y, events.x]).astype(np.int64)
-        inside = (xy[:, 0] >= 0) & (xy[:, 0] < self.width) & (xy[:, 1] >= 0) & (xy[:, 1] < self.height)
+        undistorted = self.undistortion_map[events.y, events.x]
+        solved = np.isfinite(undistorted).all(axis=1)
+        xy = np.rint(np.where(solved[:, None], undistorted, -1.0)).astype(np.int64)
+        inside = solved & (xy[:, 0] >= 0) & (xy[:, 0] < self.width) & (xy[:, 1] >= 0) & (xy[:, 1] < self.height)
         return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], self.width, self.height)
 
     def scaled(self, width: int, height: int) -> "Camera":

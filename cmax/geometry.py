@@ -27,6 +27,10 @@ __all__ = [
 # Below this angle (rad) the series expansions replace the closed forms.
 _SMALL_ANGLE = 1e-4
 
+# Above this angle (rad) so3_log takes the axis from the symmetric part of R: ``theta / (2 sin theta)`` of the
+# skew part amplifies the rounding of R by ``1 / sin theta`` (a float32 R at pi - 1e-3: 5e-5 rad off).
+_SYMMETRIC_ANGLE = 2.0
+
 
 # A rotation's ``R^T R`` may differ from the identity by this much (float32 round trips).
 _ROTATION_TOLERANCE = 1e-3
@@ -142,8 +146,9 @@ def so3_log(R: object) -> np.ndarray:
     """Rotation vectors (..., 3) [rad] of rotation matrices (..., 3, 3), angle in [0, pi].
 
     ``t = atan2(|vee(R - R^T)|/2, (tr R - 1)/2)``, ``omega = t / (2 sin t) vee(R - R^T)``;
-    near ``t = 0`` the series ``omega = (1/2 + t^2/12) vee(R - R^T)``, near
-    ``t = pi`` the axis from the diagonal of ``(R + I)/2 = a a^T``.
+    near ``t = 0`` the series ``omega = (1/2 + t^2/12) vee(R - R^T)``; above ``t = 2`` rad
+    the axis from the symmetric part ``((R + R^T)/2 - cos t I) / (1 - cos t) = a a^T``, its sign
+    from the skew part (accurate up to ``t = pi``, where ``1 / sin t`` is not).
     """
     R = _matrices(R, 3, "R")
     _check_rotations(R, "R")
@@ -152,12 +157,12 @@ def so3_log(R: object) -> np.ndarray:
     theta = np.arctan2(np.linalg.norm(skew, axis=-1) / 2.0, (np.trace(R, axis1=-2, axis2=-1) - 1.0) / 2.0)
     sin = np.sin(theta)
     small = theta < _SMALL_ANGLE
-    near_pi = np.pi - theta < 1e-3
+    near_pi = theta > _SYMMETRIC_ANGLE
     regular = ~(small | near_pi)
     factor = np.where(small, 0.5 + theta * theta / 12.0, theta / (2.0 * np.where(regular, sin, 1.0)))
     omega = factor[..., None] * skew
-    if np.any(near_pi):
-        omega = np.where(near_pi[..., None], _so3_log_near_pi(R, theta, skew), omega)
+    if np.any(near_pi):    # only where it applies: elsewhere 1 - cos t may be 0
+        omega[near_pi] = _so3_log_near_pi(R[near_pi], theta[near_pi], skew[near_pi])
     return omega
 
 

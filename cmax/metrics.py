@@ -24,6 +24,7 @@ Functions are pure: inputs are never modified.
 """
 from __future__ import annotations
 
+import warnings
 from dataclasses import asdict, dataclass, field
 from typing import Any
 
@@ -33,6 +34,10 @@ __all__ = ["DepthMetrics", "MotionMetrics", "depth_metrics", "motion_metrics", "
 
 #: Threshold base of the delta accuracies: ``max(d/g, g/d) < 1.25^k``.
 DELTA_BASE = 1.25
+
+#: An integer depth map whose largest value exceeds this many metres is warned about: no event data set's depth
+#: reaches a kilometre, while integer maps of millimetres or of depth x 256 (KITTI's PNGs) do.
+INTEGER_DEPTH_WARN_M = 1000
 
 
 @dataclass(frozen=True)
@@ -140,6 +145,10 @@ def _as_depth_stack(array: Any, name: str) -> np.ndarray:
         raise TypeError(f"{name} must hold real numbers (depth in metres), got dtype {values.dtype}")
     if values.ndim not in (2, 3) or values.size == 0:
         raise ValueError(f"{name} must have shape (H, W) or (N, H, W) with no empty axis, got {values.shape}")
+    if np.issubdtype(values.dtype, np.integer) and values.max() > INTEGER_DEPTH_WARN_M:
+        warnings.warn(f"depth_metrics: {name} holds integers ({values.dtype}) up to {values.max():,}, read as metres: "
+                      "a depth map of millimetres or of depth x 256 (a KITTI-style PNG)? Convert it to metres first",
+                      UserWarning, stacklevel=3)
     values = values.astype(np.float64, copy=False)
     return values[None] if values.ndim == 2 else values
 
@@ -198,10 +207,16 @@ def depth_metrics(
     ----------
     pred : array_like, shape (H, W) or (N, H, W)
         Predicted z-depth [m]. NaN (also +-inf and values <= 0) means "not
-        predicted": such pixels are not evaluated and lower ``coverage``.
+        predicted": such pixels are not evaluated and lower ``coverage``; negative
+        depths where the ground truth is valid are warned about (a sign error is
+        not an absent prediction). Predictions are not clipped to
+        ``[min_depth, max_depth]`` (monodepth2's evaluation clips them to
+        [1e-3, 80] m: clip them first to compare with its figures).
     gt : array_like, same shape as ``pred``
         Ground-truth z-depth [m]. Valid where finite and ``> min_depth`` (and
         ``<= max_depth`` if given); other pixels (NaN sky, holes) are ignored.
+        An integer map (of either) beyond :data:`INTEGER_DEPTH_WARN_M` is warned
+        about (millimetres, or KITTI's depth x 256, read as metres).
     mask : array_like of bool, shape (H, W) or like ``gt``, optional
         Pixels to evaluate (e.g. the event mask); a (H, W) mask applies to every frame.
     median_scaling : bool
@@ -245,13 +260,22 @@ def depth_metrics(
         if mask is not None:
             valid_gt &= _as_mask_stack(mask, gt_stack.shape)
         evaluated = valid_gt & np.isfinite(pred_stack) & (pred_stack > 0)
+        negative = valid_gt & (pred_stack < 0) & np.isfinite(pred_stack)
     n_valid_gt = int(valid_gt.sum())
     n_pixels = int(evaluated.sum())
     if n_pixels == 0:
+        with np.errstate(invalid="ignore"):
+            positive = int((np.isfinite(pred_stack) & (pred_stack > 0)).sum())
         raise ValueError(
             f"no pixel has both valid ground truth and a prediction ({n_valid_gt} pixels of valid ground truth"
-            f"{' inside mask' if mask is not None else ''}, {int(np.isfinite(pred_stack).sum())} finite predictions)"
+            f"{' inside mask' if mask is not None else ''}, {positive} positive finite predictions"
+            f"{f', {int(negative.sum())} negative ones' if negative.any() else ''})"
         )
+    if negative.any():
+        warnings.warn(f"depth_metrics: pred holds {int(negative.sum()):,} negative depths (down to "
+                      f"{float(pred_stack[negative].min()):.3g} m) where the ground truth is valid: they count as not "
+                      f"predicted (coverage {n_pixels / n_valid_gt:.3f}), not as errors; a sign error, or an inverse "
+                      "depth or disparity of the wrong sign?", UserWarning, stacklevel=2)
 
     frames = [(pred_stack[i][evaluated[i]], gt_stack[i][evaluated[i]]) for i in range(len(gt_stack))]
     frame_scales: tuple[float, ...] = ()

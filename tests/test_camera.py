@@ -80,3 +80,42 @@ def test_scaled_camera_projects_consistently():
     point = np.array([[0.3, 0.2, 2.0]])
     # Pixel centres map as x' + 0.5 = (x + 0.5) / 2.
     np.testing.assert_allclose(half.project(point) + 0.5, (cam.project(point) + 0.5) / 2)
+
+
+def _redistorted(cam: Camera, undistorted: np.ndarray) -> np.ndarray:
+    """OpenCV's forward model (``cv2.projectPoints``) applied to undistorted pixels (N, 2): the pixels they come from."""
+    normalised = np.column_stack([undistorted, np.ones(len(undistorted))]) @ np.linalg.inv(cam.K).T
+    distorted, _ = cv2.projectPoints(normalised, np.zeros(3), np.zeros(3), cam.K, cam.distortion)
+    return distorted.reshape(-1, 2)
+
+
+def test_strong_distortion_is_undistorted_to_pixels_that_distort_back():
+    """k1 = -0.9, k2 = 0.4: an invertible (monotonic) radial model on which OpenCV's fixed-point iteration
+    converges slowly: 40 iterations left 977 of the 240x180 pixels more than 0.01 px off, up to 2.5 px (the
+    events placed there without a word); every pixel now distorts back onto itself."""
+    cam = Camera(np.array([[200.0, 0, 120], [0, 200, 90], [0, 0, 1]]), 240, 180, [-0.9, 0.4, 0.0, 0.0])
+    ys, xs = np.mgrid[0:180, 0:240]
+    pixels = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+    undistorted = cam.undistort_points(pixels)
+    assert np.isfinite(undistorted).all()
+    assert np.linalg.norm(_redistorted(cam, undistorted) - pixels, axis=1).max() < 0.02
+
+
+def test_pixels_beyond_the_reach_of_the_distortion_have_no_undistorted_position():
+    """k1 = -0.5, k2 = 0.3, k3 = -0.1: the distorted radius peaks at 0.727 (at r = 1.157), the image's corners
+    lie at 0.75: no point distorts onto them. They were given positions 6-8 px off; now NaN, and their events
+    are dropped by undistort_events and kept out of EMVS (undistort gives NaN)."""
+    distortion = [-0.5, 0.3, 0.0, 0.0, -0.1]
+    cam = Camera(np.array([[200.0, 0, 120], [0, 200, 90], [0, 0, 1]]), 240, 180, distortion)
+    ys, xs = np.mgrid[0:180, 0:240]
+    pixels = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+    undistorted = cam.undistort_points(pixels)
+    solved = np.isfinite(undistorted).all(axis=1)
+    radius = np.linalg.norm((pixels - [120, 90]) / 200.0, axis=1)
+    assert not solved[radius > 0.7275].any()              # beyond the model's largest distorted radius
+    assert solved[radius < 0.70].all()
+    assert np.linalg.norm(_redistorted(cam, undistorted[solved]) - pixels[solved], axis=1).max() < 0.02
+    corner = Events([0, 120], [0, 90], [0, 1], [1, 1], 240, 180)
+    assert np.isnan(cam.undistort(corner)[0]).all() and np.isfinite(cam.undistort(corner)[1]).all()
+    kept = cam.undistort_events(corner)
+    assert len(kept) == 1 and (kept.x[0], kept.y[0]) == (120, 90)

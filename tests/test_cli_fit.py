@@ -755,3 +755,81 @@ def test_a_signed_polarity_file_is_fitted_with_polarity_signed(tmp_path, capsys)
     assert "--polarity signed" in capsys.readouterr().err
     main([*base, "-o", str(tmp_path / "b"), "--polarity", "signed"])
     assert json.loads((tmp_path / "b" / "summary.json").read_text())["windows"]
+
+
+@pytest.mark.parametrize("speed", [None, 8.0])
+def test_an_up_to_scale_trajectory_says_so_and_emvs_does_not_call_its_depths_metres(tmp_path, capsys, monkeypatch,
+                                                                                     speed):
+    """Without --speed each window's v is a unit vector (1 m/s): trajectory.txt was written as if in metres, with
+    no word, and ``cmax emvs --poses trajectory.txt`` printed 'median depth 0.651 m' (on a 0.29 m/s slider). Its
+    '#' header now states the frame and the unit; emvs reads it and says the depths are up to scale."""
+    from dataclasses import replace
+
+    from benchmarks.synthetic_windows import make_window
+    from cmax.emvs import read_tum_trajectory
+    from cmax.fitting import QualitySettings, fit
+    from cmax.fitting import sequence as sequence_module
+
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    base = fit(w.events, w.K, speed=8.0, depth_range=(1.0, 20.0), max_events=1000,
+               quality=QualitySettings(ambiguity_test=False))
+    monkeypatch.setattr(sequence_module, "fit", lambda events, K, model="se3", **options: replace(
+        base, t0_us=int(events.t[0]), t1_us=int(events.t[-1]), scale_known=options.get("speed") is not None))
+    path = write_h5(tmp_path / "drive.h5", w.events)
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    out = tmp_path / "out"
+    assert main(["fit", str(path), "--K", K, "-o", str(out), "--window-ms", "25", "--min-events", "10", "--quiet",
+                 *([] if speed is None else ["--speed", str(speed)])]) == 0
+    header = [line for line in (out / "trajectory.txt").read_text().splitlines() if line.startswith("#")]
+    assert header[0] == "# t[s] tx ty tz qx qy qz qw (TUM)"
+    assert ("translation up to scale" in header[1]) == (speed is None)
+    assert ("translation in metres" in header[1]) == (speed is not None)
+    times, poses = read_tum_trajectory(out / "trajectory.txt")          # the header is skipped, as evo skips it
+    assert len(times) == 4 and np.allclose(poses[0], np.eye(4))
+    capsys.readouterr()
+    assert main(["emvs", str(path), "--K", K, "-o", str(tmp_path / "emvs"), "--poses", str(out / "trajectory.txt"),
+                 "--depth-range", "1,20", "--planes", "20"]) == 0
+    captured = capsys.readouterr()
+    summary = json.loads((tmp_path / "emvs" / "summary.json").read_text())
+    assert summary["scale_known"] == (speed is not None)
+    assert ("are up to scale (its header says so" in captured.err) == (speed is None)
+    assert ("(up to scale)" in captured.out) == (speed is None)
+
+
+def test_calibration_yaml_in_block_style_and_kalibr_camchains_are_read(tmp_path):
+    """A cam_to_cam.yaml whose lists are written as '- value' lines (PyYAML's default block style) was refused
+    with 'no intrinsics/cam0 (cameras found: cam0, camRect0, camera_matrix, distortion_coeffs, resolution)';
+    a Kalibr camchain (cam0: intrinsics: [...], as MVSEC and DAVIS rigs ship) with 'cameras found: none',
+    even for its fisheye model. Both now read to the numbers written, or refuse naming the model."""
+    flow_K, flow_distortion, flow_size = read_calibration(_write(tmp_path / "flow.yaml", DSEC_YAML))
+    block = tmp_path / "block.yaml"
+    block.write_text("disparity_to_depth:\n  cams_03:\n  - - 1.0\n    - 0.0\nintrinsics:\n  cam0:\n    camera_matrix:\n"
+                     "    - 553.47\n    - 553.40\n    - 346.65\n    - 216.52\n    camera_model: pinhole\n"
+                     "    distortion_coeffs:\n    - -0.0936\n    - 0.1945\n    - 7.6e-05\n    - 0.00196\n"
+                     "    distortion_model: radtan\n    resolution:\n    - 640\n    - 480\n  camRect0:\n"
+                     "    camera_matrix:\n    - 569.76\n    - 569.76\n    - 335.10\n    - 221.24\n")
+    K, distortion, size = read_calibration(block)
+    np.testing.assert_array_equal(K, flow_K)
+    np.testing.assert_array_equal(distortion, flow_distortion)
+    assert size == flow_size == (640, 480)
+    assert read_calibration(block, "camRect0")[0][0, 2] == 335.10
+    with pytest.raises(ValueError, match=r"cameras found: cam0, camRect0\)"):
+        read_calibration(block, "cam9")
+    camchain = ("cam0:\n  T_cam_imu:\n  - [1, 0, 0, 0]\n  - [0, 1, 0, 0]\n  camera_model: pinhole\n"
+                "  distortion_coeffs: [-0.0484, 0.0094, 0.001, 0.002]\n  distortion_model: radtan\n"
+                "  intrinsics: [226.38, 226.15, 173.64, 133.73]\n  resolution: [346, 260]\n"
+                "cam1:\n  camera_model: pinhole\n  distortion_coeffs: [0.1, 0.2, 0.3, 0.4]\n"
+                "  distortion_model: equidistant\n  intrinsics: [226.0, 226.0, 173.0, 133.0]\n")
+    path = _write(tmp_path / "camchain.yaml", camchain)
+    K, distortion, size = read_calibration(path)
+    assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (226.38, 226.15, 173.64, 133.73) and size == (346, 260)
+    np.testing.assert_array_equal(distortion, [-0.0484, 0.0094, 0.001, 0.002])
+    with pytest.raises(ValueError, match="distortion_model 'equidistant' is not supported"):
+        read_calibration(path, "cam1")
+    with pytest.raises(ValueError, match=r"cameras found: cam0, cam1\)"):
+        read_calibration(path, "cam2")
+
+
+def _write(path, text):
+    path.write_text(text)
+    return path

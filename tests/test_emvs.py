@@ -393,7 +393,8 @@ def test_a_time_out_of_range_is_one_error_naming_the_line(tmp_path):
     """Nanoseconds since 1970 read as seconds overflow int64 µs (was: OverflowError from NumPy)."""
     path = tmp_path / "ns.txt"
     path.write_text("1403715273262142976 0 0 0 0 0 0 1\n1403715273267142912 0.1 0 0 0 0 0 1\n")
-    with pytest.raises(ValueError, match=r"ns.txt:1: the time 1403715273262142976 s is out of range"):
+    with pytest.raises(ValueError, match=r"ns.txt:1: the time 1403715273262142976 is too large for seconds .* look "
+                                         r"like nanoseconds \(1403715273\.262143 s since 1970 if so\)"):
         read_tum_trajectory(path)
     path.write_text("0 0 0 0 0 0 0 1\ninf 0.1 0 0 0 0 0 1\n")
     with pytest.raises(ValueError, match=r"ns.txt:2: the time 'inf' is not a finite number"):
@@ -536,3 +537,19 @@ def test_a_trajectory_in_microseconds_read_as_seconds_is_refused(plane, tmp_path
                  "--depth-range", "1,4"]) == 2
     err = capsys.readouterr().err
     assert "lies between two poses" in err and "times in µs read as seconds" in err and len(err.splitlines()) == 1
+
+
+@pytest.mark.parametrize("time, message", [
+    ("1403636579763555584", r"the time 1403636579763555584 is too large for seconds \(TUM's unit\): these look like "
+                            r"nanoseconds \(1403636579.763556 s since 1970 if so\)"),
+    ("1403636579763555", r"the time 1403636579763555 is too large for seconds .*: these look like microseconds"),
+    ("nan", "the time 'nan' is not a finite number of seconds"),
+    ("inf", "the time 'inf' is not a finite number of seconds"),
+])
+def test_tum_times_in_nanoseconds_or_not_finite_are_refused_naming_the_line(tmp_path, time, message):
+    """A TUM file of nanosecond times (a EuRoC / ROS export) failed with 'OverflowError: Python int too large to
+    convert to C long' (a traceback in cmax emvs); NaN with 'cannot convert NaN to integer', naming nothing."""
+    path = tmp_path / "traj.txt"
+    path.write_text(f"{time} 0 0 0 0 0 0 1\n")
+    with pytest.raises(ValueError, match=r"traj.txt:1: " + message):
+        read_tum_trajectory(path)

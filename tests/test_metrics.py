@@ -63,7 +63,8 @@ def test_coverage_counts_missing_predictions() -> None:
 def test_non_positive_and_infinite_predictions_are_not_predicted() -> None:
     gt = np.ones((1, 4))
     pred = np.array([[0.0, -1.0, np.inf, 2.0]])
-    m = depth_metrics(pred, gt)
+    with pytest.warns(UserWarning, match="1 negative depths"):       # -1: left out, but not without a word
+        m = depth_metrics(pred, gt)
     assert m.n_pixels == 1 and m.coverage == pytest.approx(0.25) and m.abs_mean == pytest.approx(1.0)
 
 
@@ -251,3 +252,33 @@ def test_window_twist_recovers_a_constant_twist() -> None:
     np.testing.assert_allclose(window_twist(np.eye(4), T_w_1, 2.0), [0.5, 0, 0, 0, 0, 0], atol=1e-12)
     with pytest.raises(ValueError, match="duration_s must be a positive"):
         window_twist(T_w_0, T_w_1, 0.0)
+
+
+def test_negative_predicted_depths_are_warned_about_not_scored_silently() -> None:
+    """A pixel predicted at -1 m (a sign error) was left out without a word: abs_rel 0, delta1 1.0 on
+    [[-1, 1], [1, 1]] against ones, only coverage 0.75 hinting. It still does not enter the errors (no log of a
+    negative depth) but is warned about; zeros stay the silent 'no prediction' of dense maps."""
+    gt = np.ones((2, 2))
+    with pytest.warns(UserWarning, match=r"pred holds 1 negative depths \(down to -1 m\).*coverage 0.750"):
+        m = depth_metrics(np.array([[-1.0, 1.0], [1.0, 1.0]]), gt)
+    assert m.coverage == 0.75 and m.abs_rel == 0.0
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert depth_metrics(np.array([[0.0, 1.0], [NAN, 1.0]]), gt).coverage == 0.5
+    with pytest.raises(ValueError, match="0 positive finite predictions, 4 negative ones"):
+        depth_metrics(-gt, gt)
+
+
+def test_an_integer_depth_map_of_millimetres_is_warned_about() -> None:
+    """A uint16 ground truth of millimetres (or KITTI's depth x 256) was read as metres without a word
+    (abs_rel 0.999 against the right prediction)."""
+    metres = np.array([[1.0, 2.0], [4.0, 8.0]])
+    with pytest.warns(UserWarning, match=r"gt holds integers \(uint16\) up to 8,000, read as metres"):
+        depth_metrics(metres, (metres * 1000).astype(np.uint16))
+    import warnings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert depth_metrics(metres, metres.astype(np.uint16)).abs_rel == 0.0    # whole metres: no warning

@@ -146,6 +146,7 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     folder ``stage`` (moved into ``out`` by :func:`run`); returns the exit status."""
     from cmax import viz
     from cmax.emvs import EMVS
+    from cmax.emvs.poses import trajectory_up_to_scale
 
     K, distortion, calib_size = calibration_of(args)
     events, _ = read_calibrated(args, calib_size)    # --t0 / --t1 applied
@@ -171,6 +172,11 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
         options["hot_pixels"] = None
     if hint := calibration_hint(args):
         print(f"cmax emvs: note: {hint}", file=sys.stderr)
+    metric = args.poses is None or not trajectory_up_to_scale(args.poses)
+    if not metric:
+        print(f"cmax emvs: note: the poses of {args.poses} are up to scale (its header says so: cmax fit without "
+              "--speed moves each window at 1 m/s): the depths, the planes' range and points.ply are in the "
+              "trajectory's unit, not metres", file=sys.stderr)
     result = EMVS(camera, **options).run(events, trajectory)
     save_npz_atomic(stage / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
               t_ref_us=np.int64(result.t_ref_us), T_w_ref=result.T_w_ref, K=result.K,
@@ -182,7 +188,7 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     record = {"command": "emvs", "file": str(args.file), "poses": str(args.poses or f"{args.file}: gt/poses"),
               "events": len(events), "t_ref_us": int(result.t_ref_us), "n_planes": int(result.n_planes),
               "depth_range": [float(v) for v in result.depth_range], "mask_pixels": int(result.mask.sum()),
-              "median_depth_m": median_m, "files": list(RESULTS)}
+              "median_depth_m": median_m, "scale_known": metric, "files": list(RESULTS)}
     write_text_atomic(stage / "summary.json", json.dumps(record, indent=2) + "\n")   # moved in last (publish)
     if len(result.hot_pixels):
         print(f"cmax emvs: note: {len(result.hot_pixels)} hot pixel(s) fire far more than the scene's edges make any "
@@ -194,7 +200,7 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
             print(f"cmax emvs: note: {share:.1%} of the depth map lies on the {end} plane ({plane:g} m): the range's "
                   f"end rather than a measurement (the scene {'nearer' if end == 'near' else 'farther'} than the "
                   f"range, or too little parallax to tell); --depth-range widens it", file=sys.stderr)
-    median = "n/a" if median_m is None else f"{median_m:.3f} m"
+    median = "n/a" if median_m is None else f"{median_m:.3f} {'m' if metric else '(up to scale)'}"
     print(f"emvs: {len(events):,} events, {result.n_planes} planes, {int(result.mask.sum()):,} px in the mask "
           f"({result.mask.mean():.1%}), median depth {median}, {result.seconds:.2f} s "
           f"({len(events) / max(result.seconds, 1e-9) / 1e6:.3g} Mev/s); results in {out}")

@@ -5,7 +5,8 @@ Registered by :func:`cmax.cli.build_parser` through :func:`add_command`; :func:`
 Outputs in ``-o outdir/``: ``depth_XXXXX.npz`` (``depth``, ``mask``,
 ``depth_spread``, ``inverse_depth_grid``, ``t_ref_us``, ``K``) and ``depth_XXXXX.png`` per
 window (se3; the map with a colour bar in metres, unlabelled without ``--speed``), ``trajectory.txt`` in TUM format (``t[s] tx ty tz qx qy qz qw``,
-camera-to-world, the first window's start as the origin) and
+camera-to-world, the first window's start as the origin; ``#`` lines on top state the frame and the unit of the
+translation: metres with ``--speed``, else up to scale, each window at 1 m/s) and
 ``summary.json`` (settings, per-window twist, objective, parallax, seconds, quality verdict with its
 reason, low-motion cause and alternatives, the counts of each verdict, the starts of the windows
 skipped for too few events, across which the trajectory carries the last fitted twist, and the end of the
@@ -429,6 +430,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     from cmax import viz
     import cmax.events as cmax_events
     from cmax.events import EventLimitError, uncovered_tail, window_starts
+    from cmax.emvs.poses import tum_header
     from cmax.fitting import fit_sequence
     from cmax.fitting.api import MIN_WINDOW_EVENTS
     from cmax.fitting.quality import LowMotionCause, Verdict
@@ -460,7 +462,8 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         total = len(events)
         events = undistort(events)
         if len(events) < total:
-            notes.append(f"{total - len(events):,} events fall outside the image once undistorted (dropped)")
+            notes.append(f"{total - len(events):,} events fall outside the image once undistorted, or lie beyond the "
+                         "radius the distortion model reaches (dropped)")
     gyro = None
     if args.omega is not None:
         first_us, last_us = event_span(events)
@@ -527,7 +530,9 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
                         "hot_pixels": r.hot_pixels.tolist(),
                         **(r.quality.summary() if r.quality is not None else {"verdict": None})})
         print(window_line(i, r, origin_us))
-    write_text_atomic(stage / "trajectory.txt", "\n".join(tum_lines(sequence.times_us, sequence.poses)) + "\n")
+    scale_known = bool(sequence.results) and all(r.scale_known for r in sequence.results)
+    write_text_atomic(stage / "trajectory.txt",
+                      "\n".join(tum_header(scale_known) + tum_lines(sequence.times_us, sequence.poses)) + "\n")
     late_notes = [hot_note] if (hot_note := hot_pixel_note(sequence.results)) else []
     causes = [None if r.quality is None else r.quality.cause for r in sequence.results]
     no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)

@@ -104,10 +104,10 @@ def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str 
                         help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file, e.g. one cmax scene wrote)")
     camera.add_argument("--calib", type=Path, default=None,
                         help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
-                             "k3) or DSEC cam_to_cam.yaml (intrinsics of --calib-camera)")
+                             "k3), DSEC cam_to_cam.yaml or a Kalibr camchain .yaml (pinhole, radtan; the camera --calib-camera)")
     parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
                         help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
-                             "(rectified events)")
+                             "(rectified events); of a Kalibr camchain: cam0, cam1, ...")
     parser.add_argument("--distortion", type=distortion_argument, default=None,
                         help=f"OpenCV k1,k2,p1,p2[,k3] of --K{distortion_help} (default: none, a pinhole camera)")
 
@@ -291,7 +291,12 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray
 
     * ECD ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or only ``fx fy cx cy``);
     * DSEC ``cam_to_cam.yaml``: ``intrinsics/<camera>`` with ``camera_matrix: [fx, fy, cx, cy]``,
-      optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``.
+      optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``;
+    * a Kalibr camchain (``camchain.yaml``, as MVSEC and many DAVIS rigs ship): ``<camera>`` with
+      ``intrinsics: [fx, fy, cx, cy]`` and the same keys; a pinhole camera, radtan distortion (Kalibr's
+      ``equidistant`` fisheye model is refused, naming it).
+
+    Lists may be written ``[a, b]`` or as ``- a`` lines (YAML's block style).
 
     Raises FileNotFoundError, or ValueError naming the file and what is missing.
     """
@@ -328,46 +333,69 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray
     return K, None if distortion is None else np.asarray(distortion, float), size
 
 
-def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
-    r"""The ``key: value`` lines under ``intrinsics:`` / ``<camera>:`` of a DSEC cam_to_cam.yaml (no YAML library).
-
-    A list may be written in flow style (``camera_matrix: [fx, fy, cx, cy]``) or, as DSEC's own files and
-    PyYAML's ``safe_dump`` write it, in block style (the key alone on its line, then one ``- value`` line per
-    number): both give the numbers as one string, ``"fx fy cx cy"`` for block style.
-
-    >>> _yaml_intrinsics(Path("c.yaml"), "intrinsics:\n  cam0:\n    camera_matrix:\n    - 5\n    - 6\n"
-    ...                  "    - 3\n    - 2\n    distortion_model: radtan\n", "cam0")
-    {'camera_matrix': '5 6 3 2', 'distortion_model': 'radtan'}
-    """
-    section, current, camera_indent, cameras, values, open_key = None, None, None, [], {}, None
+def _yaml_tree(text: str) -> dict:
+    """The nested mappings of a small YAML file as dicts of strings (no YAML library): ``key: value`` lines by
+    their indentation; a key without a value opens a mapping, or a list when ``- item`` lines follow it (block
+    style, as PyYAML writes by default). A list becomes the text ``[item, item, ...]``."""
+    root: dict = {}
+    stack: list[tuple[int, dict]] = [(-1, root)]      # (indentation of the key that opened it, mapping)
+    opened: tuple[dict, str, int] | None = None       # the last key without a value: (its mapping, key, indentation)
     for raw in text.splitlines():
         line = raw.split("#", 1)[0].rstrip()
         if not line.strip():
             continue
         indent = len(line) - len(line.lstrip())
         item = line.strip()
-        if indent == 0:
-            section, current, open_key = item.partition(":")[0], None, None
+        if item.startswith("-"):
+            if opened is not None and indent >= opened[2]:
+                parent, key, _ = opened
+                if isinstance(parent[key], dict) and not parent[key]:
+                    stack = [entry for entry in stack if entry[1] is not parent[key]]
+                    parent[key] = []
+                if isinstance(parent[key], list):
+                    parent[key].append(item[1:].strip())
             continue
-        if section != "intrinsics":
-            continue
-        if item.startswith("-"):                      # an item of a block list: of the key opened above it
-            if current == camera and open_key is not None:
-                values[open_key] = f"{values[open_key]} {item[1:].strip()}".strip()
-            continue
+        while stack[-1][0] >= indent:
+            stack.pop()
         key, _, value = item.partition(":")
-        camera_indent = indent if camera_indent is None else camera_indent
-        if indent <= camera_indent:                   # a camera: cam0, camRect0, ...
-            current, open_key = key, None
-            cameras.append(key)
-        elif current == camera:
-            values[key] = value.strip()
-            open_key = key if not value.strip() else None
-    if not values:
-        found = sorted(cameras) or ["none"]
-        raise ValueError(f"{path}: no intrinsics/{camera} (cameras found: {', '.join(found)}); "
-                         "choose one with --calib-camera")
-    return values
+        mapping = stack[-1][1]
+        if value.strip():
+            mapping[key.strip()] = value.strip()
+            opened = None
+        else:
+            mapping[key.strip()] = {}
+            stack.append((indent, mapping[key.strip()]))
+            opened = (mapping, key.strip(), indent)
+    return root
+
+
+def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
+    """The intrinsics of ``camera`` in a DSEC ``cam_to_cam.yaml`` (``intrinsics/<camera>``, with
+    ``camera_matrix``) or a Kalibr camchain (``<camera>`` with ``intrinsics: [fx, fy, cx, cy]``, given back as
+    ``camera_matrix``), as ``key: text``; lists in flow or block style."""
+    tree = _yaml_tree(text)
+
+    def flat(values: dict) -> dict[str, str]:
+        return {key: "[" + ", ".join(value) + "]" if isinstance(value, list) else value
+                for key, value in values.items() if not isinstance(value, dict)}
+
+    dsec = tree.get("intrinsics")
+    if isinstance(dsec, dict):
+        if isinstance(dsec.get(camera), dict):
+            return flat(dsec[camera])
+        found = sorted(key for key, value in dsec.items() if isinstance(value, dict)) or ["none"]
+    else:
+        kalibr = {key: value for key, value in tree.items() if isinstance(value, dict) and "intrinsics" in value}
+        if camera in kalibr:
+            values = flat(kalibr[camera])
+            model = values.get("camera_model", "pinhole").strip()
+            if model != "pinhole":
+                raise ValueError(f"{path}: {camera} has camera_model {model!r}; only pinhole cameras are supported")
+            values["camera_matrix"] = values.pop("intrinsics")
+            return values
+        found = sorted(kalibr) or ["none"]
+    raise ValueError(f"{path}: no intrinsics/{camera} (cameras found: {', '.join(found)}); "
+                     "choose one with --calib-camera")
 
 
 def time_span_us(first_us: int, last_us: int | None, t0_s: float | None,

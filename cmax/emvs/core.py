@@ -259,7 +259,9 @@ class EMVS:
         # Every packet maps to its group's base plane: all homographies and projections in one pass each.
         z_base = np.array([depths[transfer.base] if transfer else depths[-1] for transfer in transfers])
         homographies = base_plane_homographies(T_ref_c, np.repeat(z_base, np.diff(np.append(first, len(sizes)))), K)
-        positions, hits = project_packets(self.camera.undistort(events), homographies, sizes)
+        pixels = self.camera.undistort(events)
+        positions, hits = project_packets(pixels, homographies, sizes)
+        hits &= np.isfinite(pixels).all(axis=1)    # NaN: a pixel the distortion model has no inverse for
         votes = np.zeros((len(depths), self.camera.height, self.camera.width), np.float32)
         pending = ShiftedAdditions(votes)
         vote = (partial(gather_votes, subpixel=self.subpixel, pending=pending) if self.voting == "gather"

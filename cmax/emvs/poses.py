@@ -7,7 +7,8 @@ accepts that pair or any object with attributes ``times_us`` and ``poses``
 returns). :func:`read_tum_trajectory` reads the TUM text format
 ``t tx ty tz qx qy qz qw`` (``t`` in seconds) that ``cmax fit`` writes
 (``trajectory.txt``) and that the Event Camera Dataset ships as
-``groundtruth.txt``.
+``groundtruth.txt``. :func:`tum_header` gives the ``#`` lines ``cmax fit`` writes above its poses (the
+frame, the units, and whether the translation is metric); :func:`trajectory_up_to_scale` reads them back.
 """
 from __future__ import annotations
 
@@ -19,7 +20,8 @@ from pathlib import Path
 
 import numpy as np
 
-__all__ = ["as_trajectory", "read_tum_trajectory", "check_coverage", "check_header"]
+__all__ = ["as_trajectory", "read_tum_trajectory", "check_coverage", "check_header", "tum_header",
+           "trajectory_up_to_scale", "UP_TO_SCALE"]
 
 #: Largest tolerated deviation of R^T R from the identity in a pose.
 _ROTATION_TOLERANCE = 1e-4
@@ -119,20 +121,28 @@ def check_coverage(times_us: np.ndarray, t_first_us: int, t_last_us: int, name: 
         )
 
 
-#: Largest |time| [µs] a trajectory may hold: int64's range (about 292,000 years).
-_MAX_TIME_US = 2 ** 63 - 1
+#: Largest time [s] a TUM file may state (about the year 5100 as seconds since 1970); larger ones are another unit
+#: (nanoseconds since 1970: 1.7e18; microseconds: 1.7e15), refused by :func:`read_tum_trajectory`.
+MAX_TUM_SECONDS = 10**11
+
+_SMALLER_UNITS = (("nanoseconds", Decimal("1e-9")), ("microseconds", Decimal("1e-6")),
+                  ("milliseconds", Decimal("1e-3")))
 
 
 def _seconds_to_us(token: str, path: Path, line_number: int) -> int:
     try:
-        value = Decimal(token) * 1_000_000
-        micros = int(value.to_integral_value())
-    except (InvalidOperation, OverflowError, ValueError):   # 'abc'; 'inf', 'nan' cannot be made integral
-        raise ValueError(f"{path}:{line_number}: the time {token!r} is not a finite number") from None
-    if abs(micros) > _MAX_TIME_US:
-        raise ValueError(f"{path}:{line_number}: the time {token} s is out of range (over 292,000 years in µs): "
-                         "TUM times are seconds; are these nanoseconds (as EuRoC's)?")
-    return micros
+        seconds = Decimal(token)
+    except InvalidOperation:
+        raise ValueError(f"{path}:{line_number}: the time {token!r} is not a number") from None
+    if not seconds.is_finite():
+        raise ValueError(f"{path}:{line_number}: the time {token!r} is not a finite number of seconds")
+    if abs(seconds) > MAX_TUM_SECONDS:
+        unit = next((name for name, size in _SMALLER_UNITS if 10**8 <= abs(seconds) * size <= MAX_TUM_SECONDS), None)
+        guess = ("another unit" if unit is None else
+                 f"{unit} ({float(seconds * dict(_SMALLER_UNITS)[unit]):.6f} s since 1970 if so)")
+        raise ValueError(f"{path}:{line_number}: the time {token} is too large for seconds (TUM's unit): these look "
+                         f"like {guess}; write the times in seconds")
+    return int((seconds * 1_000_000).to_integral_value())
 
 
 #: A column name of a quaternion component in a header line: ``qw``, ``q_w``, ``q_RS_w`` (EuRoC), ``quat_w``.
@@ -232,3 +242,28 @@ def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray
     T[:, :3, :3] = Rotation.from_quat(values[:, 3:] / norms[:, None]).as_matrix()
     T[:, :3, 3] = values[:, :3]
     return as_trajectory((np.asarray(times, dtype=np.int64), T), name=str(path))
+
+
+#: The words of a trajectory file's ``#`` line that mark its translation as known only up to scale (``cmax fit``
+#: without a speed); :func:`trajectory_up_to_scale` looks for them.
+UP_TO_SCALE = "translation up to scale"
+
+
+def tum_header(scale_known: bool) -> list[str]:
+    """The ``#`` lines above the poses of a TUM trajectory that ``cmax fit`` writes: the columns, the frame
+    (camera-to-world) and the unit of the translation, metres when ``scale_known``, else :data:`UP_TO_SCALE`
+    (each window's speed taken as 1 m/s). TUM readers (evo, :func:`read_tum_trajectory`) skip ``#`` lines.
+
+    >>> tum_header(True)
+    ['# t[s] tx ty tz qx qy qz qw (TUM)', '# T_w_c (camera-to-world); translation in metres']
+    """
+    unit = ("translation in metres" if scale_known else
+            f"{UP_TO_SCALE}: no speed was given, each window's speed is taken as 1 m/s, not metres")
+    return ["# t[s] tx ty tz qx qy qz qw (TUM)", f"# T_w_c (camera-to-world); {unit}"]
+
+
+def trajectory_up_to_scale(path: str | os.PathLike) -> bool:
+    """True when a ``#`` line of the TUM trajectory file at ``path`` says its translation is up to scale
+    (:data:`UP_TO_SCALE`, as :func:`tum_header` writes it without a speed)."""
+    with open(path, encoding="utf-8", errors="replace") as file:
+        return any(line.lstrip().startswith("#") and UP_TO_SCALE in line for line in file)
