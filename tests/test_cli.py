@@ -197,7 +197,9 @@ def test_fit_writes_depth_trajectory_and_summary(tmp_path):
     assert np.all(np.isfinite(inside)) and inside.min() >= 0.5 * 0.999 and inside.max() <= 60.0 * 1.001
     picture = cv2.imread(str(out / "depth_00000.png"))
     assert picture.shape[1] > 120 + 30 and picture.shape[0] > 90   # the map, its title and its colour bar
-    rows = [line.split() for line in (out / "trajectory.txt").read_text().splitlines()]
+    lines = (out / "trajectory.txt").read_text().splitlines()
+    assert lines[:2] == ["# t[s] tx ty tz qx qy qz qw (TUM)", "# T_w_c (camera-to-world); translation in metres"]
+    rows = [line.split() for line in lines[2:]]
     times = np.array([float(r[0]) for r in rows])
     positions = np.array([[float(v) for v in r[1:4]] for r in rows])
     path_length = np.linalg.norm(np.diff(positions, axis=0), axis=1).sum()
