@@ -208,9 +208,12 @@ def blur(image: torch.Tensor, sigma: float) -> torch.Tensor:
     """Gaussian blur of (H, W) or (B, H, W) images with standard deviation ``sigma`` px.
 
     Separable, zero padding (mass near the border leaks out, as kornia's
-    ``border_type="constant"``), kernel radius ``ceil(3 sigma)``; differentiable.
+    ``border_type="constant"``), kernel radius ``ceil(3 sigma)``; differentiable. ``sigma`` 0: the image
+    unchanged; a negative or non-finite ``sigma`` is refused (ValueError).
     """
-    if sigma <= 0:
+    if not (math.isfinite(sigma) and sigma >= 0):
+        raise ValueError(f"blur: sigma must be a finite number of pixels >= 0, got {sigma!r}")
+    if sigma == 0:
         return image
     kernel = _gaussian_kernel(sigma, image.dtype, image.device)
     batched = image.dim() == 3

@@ -56,6 +56,10 @@ def test_event_windows_rejects_bad_input():
         EventWindows(batch.x, batch.y, batch.t, batch.polarity, batch.window, batch.K, -batch.duration_s, 16, 12)
     with pytest.raises(TypeError, match="int64"):
         EventWindows(batch.x, batch.y, batch.t, batch.polarity, batch.window.int(), batch.K, batch.duration_s, 16, 12)
+    # half precision (was: accepted, then "linalg.inv: Low precision dtypes not supported" inside an objective)
+    with pytest.raises(TypeError, match=r"x must be a float32 or float64 tensor, got torch.float16"):
+        EventWindows(batch.x.half(), batch.y.half(), batch.t.half(), batch.polarity.half(), batch.window, batch.K,
+                     batch.duration_s, 16, 12)
     with pytest.raises(ValueError, match="speed"):
         batch.with_speed([-1.0])
     with pytest.raises(ValueError, match="twist"):

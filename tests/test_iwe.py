@@ -126,3 +126,18 @@ def test_a_non_finite_coordinate_makes_the_image_nan_without_indexing_outside():
         assert image.shape == (4, 5) and torch.isnan(image).any()
         values = sample_bilinear(torch.ones(1, 4, 5, dtype=torch.float64), x[None], y[None])
         assert float(values[0, 0]) == pytest.approx(1.0) and torch.isnan(values[0, 1:]).all()
+
+
+def test_blur_refuses_a_negative_or_non_finite_sigma_and_keeps_the_image_at_zero():
+    """Was: a negative sigma returned the image unblurred without a word (as sigma 0 does)."""
+    from cmax.iwe import blur
+
+    image = torch.rand(5, 6, dtype=torch.float64)
+    assert torch.equal(blur(image, 0.0), image)
+    for sigma in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="sigma must be a finite number of pixels >= 0"):
+            blur(image, sigma)
+    blurred = blur(image, 1.0)          # mass conserved away from the border: an interior impulse keeps its sum
+    impulse = torch.zeros(21, 21, dtype=torch.float64)
+    impulse[10, 10] = 1.0
+    assert blur(impulse, 1.0).sum().item() == pytest.approx(1.0, rel=1e-6) and blurred.shape == image.shape

@@ -62,8 +62,8 @@ class EventWindows:
         if self.x.dim() != 1 or not (self.y.shape == self.t.shape == self.polarity.shape == self.window.shape == n):
             raise ValueError("x, y, t, polarity, window must share one shape (N,), got "
                              f"{[tuple(a.shape) for a in (self.x, self.y, self.t, self.polarity, self.window)]}")
-        if not self.x.is_floating_point():
-            raise TypeError(f"x must be a floating-point tensor, got {self.x.dtype}")
+        if self.x.dtype not in (torch.float32, torch.float64):   # half types: torch.linalg.inv of K has none
+            raise TypeError(f"x must be a float32 or float64 tensor, got {self.x.dtype} (.to(torch.float32))")
         if self.window.dtype != torch.int64:
             raise TypeError(f"window must be an int64 tensor, got {self.window.dtype}")
         B = self.K.shape[0] if self.K.dim() == 3 else -1
