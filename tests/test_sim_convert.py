@@ -296,3 +296,46 @@ def test_merging_manifests_of_other_settings_names_the_files_and_the_keys(tmp_pa
     assert not (tmp_path / "all.json").exists()
     with pytest.raises(ValueError, match=r"^manifest 2 differs from manifest 1 in 'settings' \(esim.cp: 0.2 "):
         merge_manifests([load_manifest(one), load_manifest(two)])
+
+
+def test_each_video_of_a_collection_gets_noise_of_its_own_reproducibly(tmp_path):
+    """Was: every video of a conversion seeded its simulator with the same --seed, so two still videos of one size
+    got byte-identical shot noise (a pattern a network can learn across a data set). Each video's seed now comes
+    from the collection's seed and its name (``video_seed``): the two differ, a rerun is identical, and
+    ``convert_video`` with the settings the h5 file records reproduces it; ``seed_per_video=False`` gives the
+    shared seed (and the manifest settings of before); settings whose events do not depend on the seed read as
+    before."""
+    from cmax.sim.convert import video_seed
+
+    still = np.full((4, 32, 48), 128, np.uint8)
+    for name in ("a", "b"):
+        writer = cv2.VideoWriter(str(tmp_path / f"{name}.avi"), cv2.VideoWriter_fourcc(*"MJPG"), FPS, (48, 32))
+        for frame in still:
+            writer.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
+        writer.release()
+    (tmp_path / "videos").mkdir()
+    for name in ("a", "b"):
+        (tmp_path / f"{name}.avi").rename(tmp_path / "videos" / f"{name}.avi")
+    jobs, _ = collect_jobs(tmp_path / "videos")
+    noisy = ConvertSettings(EsimSettings(seed=7, shot_noise_rate_hz=20.0), adaptive=False)
+    assert noisy.to_dict()["seed_per_video"] is True and "seed_per_video" not in FAST.to_dict()
+    convert_collection(jobs, tmp_path / "own", noisy, progress=False)
+    a, b = read_h5(tmp_path / "own" / "a.h5"), read_h5(tmp_path / "own" / "b.h5")
+    assert len(a) > 20 and len(b) > 20 and not (len(a) == len(b) and np.array_equal(a.x, b.x))
+    convert_collection(jobs, tmp_path / "again", noisy, progress=False)
+    assert read_h5(tmp_path / "again" / "a.h5") == a and read_h5(tmp_path / "again" / "b.h5") == b
+    import h5py
+
+    with h5py.File(tmp_path / "own" / "a.h5") as file:
+        recorded = json.loads(file.attrs["settings"])
+    assert recorded["esim"]["seed"] == video_seed(7, "a") != 7 and "seed_per_video" not in recorded
+    alone = ConvertSettings(EsimSettings(**recorded["esim"]), adaptive=False)
+    convert_video(tmp_path / "videos" / "a.avi", tmp_path / "alone.h5", alone)
+    assert read_h5(tmp_path / "alone.h5") == a
+    shared = ConvertSettings(EsimSettings(seed=7, shot_noise_rate_hz=20.0), adaptive=False, seed_per_video=False)
+    convert_collection(jobs, tmp_path / "shared", shared, progress=False)
+    assert read_h5(tmp_path / "shared" / "a.h5").t.tolist() == read_h5(tmp_path / "shared" / "b.h5").t.tolist()
+    assert "seed_per_video" not in load_manifest(tmp_path / "shared" / "manifest.json")["settings"]
+    # a collection converted before per-video seeds (its settings lack the key) is not resumed with them
+    with pytest.raises(ValueError, match=r"seed_per_video: 'absent' \(recorded\) vs True \(now\)"):
+        convert_collection(jobs, tmp_path / "shared", noisy, progress=False)

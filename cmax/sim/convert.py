@@ -36,6 +36,7 @@ index, optionally one ``shard`` ``(i, n)`` of it.
 """
 from __future__ import annotations
 
+import hashlib
 import json
 import math
 import numbers
@@ -63,6 +64,7 @@ from cmax.sim.video import DEFAULT_PREFETCH, VideoFileSource, open_source
 __all__ = [
     "ConvertSettings", "VideoJob", "VideoResult", "VIDEO_SUFFIXES", "collect_jobs",
     "convert_video", "convert_collection", "entry_output", "load_manifest", "merge_manifests", "write_manifest",
+    "video_seed",
 ]
 
 MANIFEST = "manifest.json"
@@ -98,6 +100,12 @@ class ConvertSettings:
         ``t_first + t0_s <= t < t_first + t1_s`` (:class:`cmax.sim.video.VideoFileSource`,
         :class:`cmax.sim.video.ImageFolderSource`); ``t0_s >= 0``, ``t1_s > 0`` and
         ``t1_s > t0_s``. A range that selects no frame fails the conversion.
+    seed_per_video : bool
+        :func:`convert_collection`: seed each video's simulator from ``esim.seed`` and the video's name
+        (:meth:`for_video`), so that the videos of a collection get noise and threshold mismatch of their own,
+        reproducibly; False gives every video ``esim.seed`` itself (the same noise in every video, as conversions
+        before this option did). It matters only where the seed does (a seed and ``threshold_sigma``,
+        ``shot_noise_rate_hz`` or ``leak_rate_hz`` above 0): only then does :meth:`to_dict` record it.
     """
 
     esim: EsimSettings = field(default_factory=EsimSettings)
@@ -107,6 +115,7 @@ class ConvertSettings:
     method: str = "flow"
     t0_s: float | None = None
     t1_s: float | None = None
+    seed_per_video: bool = True
 
     def __post_init__(self) -> None:
         if not isinstance(self.esim, EsimSettings):
@@ -128,12 +137,42 @@ class ConvertSettings:
             raise ValueError(f"t1_s must be > 0 seconds (frames with t < t1_s are converted), got {self.t1_s}")
         if self.t0_s is not None and self.t1_s is not None and self.t1_s <= self.t0_s:
             raise ValueError(f"t1_s ({self.t1_s}) must be larger than t0_s ({self.t0_s})")
+        if not isinstance(self.seed_per_video, bool):
+            raise TypeError(f"seed_per_video must be a bool, got {self.seed_per_video!r}")
+
+    @property
+    def seeded_noise(self) -> bool:
+        """Whether the events depend on ``esim.seed``: a seed, and threshold mismatch, shot noise or leak."""
+        e = self.esim
+        return e.seed is not None and (e.threshold_sigma > 0 or e.shot_noise_rate_hz > 0 or e.leak_rate_hz > 0)
+
+    def for_video(self, name: str) -> "ConvertSettings":
+        """The settings one video of a collection is converted with: with ``seed_per_video`` and
+        :attr:`seeded_noise`, ``esim.seed`` replaced by :func:`video_seed` of it and ``name`` (and
+        ``seed_per_video`` False: these settings are one video's); otherwise these settings unchanged."""
+        if not (self.seed_per_video and self.seeded_noise):
+            return self
+        return replace(self, esim=replace(self.esim, seed=video_seed(self.esim.seed, name)), seed_per_video=False)
 
     def to_dict(self) -> dict[str, Any]:
-        """JSON-ready settings (as stored in the manifest and the h5 attributes)."""
+        """JSON-ready settings (as stored in the manifest and the h5 attributes); ``seed_per_video`` only where it
+        changes the events (:attr:`seeded_noise`) and is on, so that settings without it read as before it."""
         out = asdict(self)
         out["size"] = list(self.size) if self.size else None
+        if not (self.seed_per_video and self.seeded_noise):
+            del out["seed_per_video"]
         return out
+
+
+def video_seed(seed: int, name: str) -> int:
+    """The simulator's seed of the video ``name`` in a collection seeded with ``seed``: 63 bits drawn by NumPy's
+    ``SeedSequence`` from the seed and the SHA-256 of the name (UTF-8), the same on every machine and run.
+
+    >>> video_seed(0, "a") == video_seed(0, "a") != video_seed(0, "b")
+    True
+    """
+    digest = int.from_bytes(hashlib.sha256(name.encode("utf-8")).digest()[:16], "little")
+    return int(np.random.SeedSequence([int(seed), digest]).generate_state(1, np.uint64)[0] >> np.uint64(1))
 
 
 @dataclass(frozen=True)
@@ -717,7 +756,7 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
         # overwrite: under the folder's lock, an output the manifest does not list as verified is redone
         # (replaced atomically when the new file is complete); a file it does not list at all was refused
         # before the conversion started, unless the caller asked to overwrite (convert_collection)
-        result = convert_video(job.source, output, settings, category=job.category,
+        result = convert_video(job.source, output, settings.for_video(job.name), category=job.category,
                                progress=None if bar is None else bar.update, overwrite=True)
         result = _verified(replace(result, name=job.name))
     except Exception as error:  # reported in the manifest; the other videos go on
