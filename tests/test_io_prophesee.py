@@ -314,6 +314,14 @@ def test_write_empty_and_invalid(tmp_path: Path) -> None:
             write(tmp_path / "x.raw", Events([0], [0], [-1], [0], 10, 10))
     with pytest.raises(ValueError, match="below"):
         write_evt3(tmp_path / "x.raw", Events([0], [0], [1 << 41], [0], 10, 10))
+    # EVT 2.0 too (was: two events at 1.6e15 µs, epoch-like, written as 745 kB of TIME_HIGH words from 0)
+    with pytest.raises(ValueError, match=r"below 1099511627776 µs .* for EVT 2.0, got 1600000000000500: times since"):
+        write_evt2(tmp_path / "x.raw", Events([1, 2], [1, 2], [1_600_000_000_000_000, 1_600_000_000_000_500], [1, 0],
+                                             640, 480))
+    last = (1 << 40) - 1                  # the largest time both write, and read back exactly
+    for write, read in ((write_evt3, read_evt3), (write_evt2, read_evt2)):
+        events = Events([1, 2], [1, 2], [last - 100, last], [1, 0], 640, 480)
+        assert read(write(tmp_path / f"last{write.__name__}.raw", events)) == events
     assert not (tmp_path / "x.raw").exists()
     assert not list(tmp_path.glob("*.partial"))
 

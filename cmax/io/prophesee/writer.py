@@ -23,7 +23,7 @@ from cmax.io.prophesee._header import PathLike
 __all__ = ["write_evt3", "write_evt2"]
 
 _MAX_COORDINATE = 2048            # both formats carry 11-bit coordinates
-_EVT3_MAX_T = 1 << 40             # encoder limit (µs), see write_evt3
+_MAX_T = 1 << 40             # encoder limit (µs), see write_evt3
 _ENCODE_BLOCK = 1 << 18           # events encoded at a time
 
 
@@ -182,7 +182,8 @@ def _write(path: PathLike, events: Events, version: str, encode, t_limit: int | 
     if len(events) and events.t[0] < 0:
         raise ValueError(f"EVT formats hold times >= 0 µs, got t[0]={int(events.t[0])}")
     if t_limit is not None and len(events) and events.t[-1] >= t_limit:
-        raise ValueError(f"times must be below {t_limit} µs for EVT 3.0, got {int(events.t[-1])}")
+        raise ValueError(f"times must be below {t_limit} µs (2**40, 12.7 days of a sensor's clock) for EVT {version}, "
+                         f"got {int(events.t[-1])}: times since the epoch? write t - t[0]")
     header = (
         f"% evt {version}\n% format EVT{version[0]};height={height};width={width}\n"
         f"% geometry {width}x{height}\n% generator evtslowtv\n% end\n"
@@ -224,14 +225,15 @@ def write_evt3(path: PathLike, events: Events, *, overwrite: bool = False) -> Pa
     Path
         The file written.
     """
-    return _write(path, events, "3.0", _encode_evt3, _EVT3_MAX_T, overwrite)
+    return _write(path, events, "3.0", _encode_evt3, _MAX_T, overwrite)
 
 
 def write_evt2(path: PathLike, events: Events, *, overwrite: bool = False) -> Path:
     """Write events as a Prophesee EVT 2.0 RAW file (atomically), one CD word per event.
 
-    ``events``: sensor at most 2048x2048, times ``t >= 0`` µs. :func:`read_evt2`
-    gives back exactly ``events``. An existing ``path`` raises
-    :class:`FileExistsError` unless ``overwrite=True``; returns the path written.
+    ``events``: sensor at most 2048x2048, times ``0 <= t < 2**40`` µs (a sensor's clock: the 28-bit TIME_HIGH
+    wraps every 2**34 µs, and each wrap from 0 to ``t`` costs words, about 750 kB for epoch-like times, which
+    other readers unwrap as they see fit). :func:`read_evt2` gives back exactly ``events``. An existing ``path``
+    raises :class:`FileExistsError` unless ``overwrite=True``; returns the path written.
     """
-    return _write(path, events, "2.0", _encode_evt2, None, overwrite)
+    return _write(path, events, "2.0", _encode_evt2, _MAX_T, overwrite)
