@@ -93,13 +93,17 @@ def add_command(subparsers) -> argparse.ArgumentParser:
 
 
 def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distortion: np.ndarray | None):
-    """The :class:`cmax.Camera` of a recording: ``--K`` (3, 3) or, for an h5 file, its ``gt/K``."""
-    from cmax.camera import Camera
+    """The :class:`cmax.Camera` of a recording: ``--K`` (3, 3) or, for an h5 file, its ``gt/K``; ValueError when
+    its principal point lies outside the ``width`` x ``height`` sensor (another size's K, as ``cmax fit``)."""
+    from cmax.camera import Camera, check_principal_point
 
+    name = "K"
     if K is None:
         K = file_intrinsics(path)
         if K is None:
             raise ValueError(f"{path} holds no gt/K; give the intrinsics with --K fx,fy,cx,cy")
+        name = f"{path}: gt/K"
+    check_principal_point(K, width, height, name)
     return Camera(K, width, height, distortion)
 
 
