@@ -115,6 +115,22 @@ def test_dataset_rejects_bad_input(scene_file, tmp_path):
         H5WindowDataset([3])
 
 
+def test_a_K_of_another_sensor_size_or_no_camera_is_refused_naming_the_file(scene_file, tmp_path):
+    """The calibration of 120x90 frames (a conversion at --size 48x36): its principal point lies off the 48x36
+    sensor; refused before any window is read (was: trained on without a word). A focal
+    length of 0 is named with the file (was: a bare 'K must have positive focal lengths' after training began)."""
+    path, sequence, _ = scene_file
+    from cmax.io import write_h5
+
+    bare = write_h5(tmp_path / "bare.h5", sequence.events)
+    with pytest.raises(ValueError, match=r"bare.h5: K's principal point \(59.5, 44.5\) lies outside the 48x36 image"):
+        H5WindowDataset([{"path": bare, "K": [100.0, 100.0, 59.5, 44.5]}], window_us=100_000)
+    with pytest.raises(ValueError, match=r"bare.h5: K must have positive focal lengths"):
+        H5WindowDataset([{"path": bare, "K": [0.0, 0.0, 23.5, 17.5]}], window_us=100_000)
+    ok = H5WindowDataset([{"path": bare, "K": [40.0, 40.0, 23.5, 17.5]}], window_us=100_000)
+    np.testing.assert_array_equal(ok.specs[0].K, [[40, 0, 23.5], [0, 40, 17.5], [0, 0, 1]])
+
+
 def test_an_event_file_of_another_format_is_refused_with_its_conversion(scene_file, tmp_path):
     """A ``.npy`` (or ``.raw``, ``.aedat4``) in ``data.files``: the error gives the conversion, which works."""
     import cmax
