@@ -23,7 +23,8 @@ import numpy as np
 from cmax._args import api_default, float_list, int_at_least, nonnegative_float
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
-                                file_depth_range, file_intrinsics, overlap, read_calibrated)
+                                file_depth_range, file_intrinsics, no_intrinsics_message, overlap,
+                                read_calibrated)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
@@ -101,7 +102,7 @@ def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distor
     if K is None:
         K = file_intrinsics(path)
         if K is None:
-            raise ValueError(f"{path} holds no gt/K; give the intrinsics with --K fx,fy,cx,cy")
+            raise ValueError(no_intrinsics_message(path))
         name = f"{path}: gt/K"
     check_principal_point(K, width, height, name)
     return Camera(K, width, height, distortion)

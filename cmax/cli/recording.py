@@ -25,7 +25,7 @@ from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
-           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "file_depth_range",
+           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message", "file_depth_range",
            "distortion_argument", "read_calibration",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
@@ -249,6 +249,33 @@ def file_intrinsics(path: str | Path) -> np.ndarray | None:
         return None
     with file:
         return h5_intrinsics(file, path)
+
+
+def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
+    """The error for an event file that stores no ``gt/K`` and was given no ``--K`` / ``--calib``: what to pass
+    and, for a ``cmax simulate`` conversion whose frames were resized (h5 attribute ``source_size`` unlike its
+    sensor), how a calibration of those frames scales to its pixels (``cv2.resize``'s pixel centres: ``cx' = (cx
+    + 0.5) sx - 0.5``)."""
+    import json
+
+    import h5py
+
+    message = f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or {calib}"
+    try:
+        with h5py.File(path, "r") as file:
+            stored = [int(v) for v in json.loads(file.attrs["source_size"])]
+            size = (int(file.attrs["width"]), int(file.attrs["height"]))
+    except (OSError, KeyError, TypeError, ValueError):   # not h5, not a conversion, or one of unknown frames
+        return message
+    if len(stored) != 2 or min(stored) <= 0:
+        return message
+    if tuple(stored) == size:
+        return (f"{message} (a conversion of frames by cmax simulate: the intrinsics of the camera that shot them, "
+                "when known; a video carries none)")
+    sx, sy = size[0] / stored[0], size[1] / stored[1]
+    return (f"{message}; it was simulated from {stored[0]}x{stored[1]} frames resized to {size[0]}x{size[1]} "
+            f"(--size): a K of those frames scales to fx*{sx:.6g}, fy*{sy:.6g}, (cx+0.5)*{sx:.6g}-0.5, "
+            f"(cy+0.5)*{sy:.6g}-0.5")
 
 
 def file_depth_range(path: str | Path) -> tuple[float, float] | None:
