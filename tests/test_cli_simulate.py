@@ -592,6 +592,12 @@ def test_a_conversion_at_another_size_says_how_a_calibration_of_its_frames_scale
         assert main(command) == 2
         err = capsys.readouterr().err
         assert "stores no intrinsics (gt/K)" in err and scale in err and err.count("\n") == 1, (command, err)
+    # the frames' K, unscaled: its principal point (36, 24) lies off the 24x16 sensor; the same scale is named
+    for command in (["fit", str(out), "-o", str(tmp_path / "fit")],
+                    ["emvs", str(out), "--poses", str(tmp_path / "traj.txt"), "-o", str(tmp_path / "emvs")]):
+        assert main([*command, "--K", "60,60,36,24"]) == 2
+        err = capsys.readouterr().err
+        assert "principal point (36, 24) lies outside the 24x16 image" in err and scale in err, (command, err)
     # at the frames' own size: no scale, but the origin of such a file said
     same = tmp_path / "same" / "clip.h5"
     assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(same), *FAST, "--quiet"]) == 0

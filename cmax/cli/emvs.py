@@ -23,8 +23,8 @@ import numpy as np
 from cmax._args import api_default, float_list, int_at_least, nonnegative_float
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
-                                file_depth_range, file_intrinsics, no_intrinsics_message, overlap,
-                                read_calibrated)
+                                check_file_principal_point, file_depth_range, file_intrinsics,
+                                no_intrinsics_message, overlap, read_calibrated)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
@@ -96,7 +96,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
 def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distortion: np.ndarray | None):
     """The :class:`cmax.Camera` of a recording: ``--K`` (3, 3) or, for an h5 file, its ``gt/K``; ValueError when
     its principal point lies outside the ``width`` x ``height`` sensor (another size's K, as ``cmax fit``)."""
-    from cmax.camera import Camera, check_principal_point
+    from cmax.camera import Camera
 
     name = "K"
     if K is None:
@@ -104,7 +104,7 @@ def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distor
         if K is None:
             raise ValueError(no_intrinsics_message(path))
         name = f"{path}: gt/K"
-    check_principal_point(K, width, height, name)
+    check_file_principal_point(K, path, width, height, name)
     return Camera(K, width, height, distortion)
 
 
