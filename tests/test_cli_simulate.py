@@ -605,3 +605,20 @@ def test_a_conversion_at_another_size_says_how_a_calibration_of_its_frames_scale
     assert main(["fit", str(same), "-o", str(tmp_path / "fit2")]) == 2
     err = capsys.readouterr().err
     assert "a conversion of frames by cmax simulate" in err and "resized" not in err
+
+
+def test_a_calibration_beside_the_simulated_frames_is_named_when_no_k_is_given(tmp_path, capsys):
+    """An ECD folder's calib.txt beside images.txt: fit without K names it (was: only 'give --K or --calib')."""
+    frames = _frames()
+    seq = tmp_path / "seq"
+    (seq / "images").mkdir(parents=True)
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(seq / "images" / f"frame_{k:08d}.png"), frame)
+    (seq / "images.txt").write_text("".join(f"{k * 0.04:.6f} images/frame_{k:08d}.png\n" for k in range(len(frames))))
+    (seq / "calib.txt").write_text("50 50 19.5 14.5 0 0 0 0 0\n")
+    out = tmp_path / "events" / "seq.h5"
+    assert main(["simulate", str(seq), "-o", str(out), *FAST, "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["fit", str(out), "-o", str(tmp_path / "fit")]) == 2
+    err = capsys.readouterr().err
+    assert f"{seq / 'calib.txt'} lies beside the frames it was simulated from: --calib {seq / 'calib.txt'}" in err, err

@@ -26,7 +26,7 @@ from cmax.camera import check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
-           "simulated_sizes", "resized_note", "check_file_principal_point", "file_depth_range",
+           "simulated_sizes", "resized_note", "source_calibration", "check_file_principal_point", "file_depth_range",
            "distortion_argument", "read_calibration",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
@@ -290,10 +290,31 @@ def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
     sizes = simulated_sizes(path)
     if sizes is None:
         return message
+    beside = source_calibration(path)
+    if beside is not None:
+        message += f"; {beside} lies beside the frames it was simulated from"
     if sizes[0] == sizes[1]:
         return (f"{message} (a conversion of frames by cmax simulate: the intrinsics of the camera that shot them, "
-                "when known; a video carries none)")
+                "when known; a video carries none)" if beside is None else f"{message}: --calib {beside}")
     return f"{message}; {resized_note(path)}"
+
+
+def source_calibration(path: str | Path) -> Path | None:
+    """A calibration file (:data:`CALIBRATION_NAMES`) in the folder a ``cmax simulate`` conversion was made from
+    (h5 attribute ``source``: an ECD or rpg_vid2e image folder, its ``images/``, or a timestamp file), or None."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as file:
+            source = Path(str(file.attrs["source"]))
+    except (OSError, KeyError):
+        return None
+    folder = source if source.is_dir() else source.parent
+    for place in (folder, folder.parent):
+        for name in CALIBRATION_NAMES:
+            if (place / name).is_file():
+                return place / name
+    return None
 
 
 def check_file_principal_point(K: np.ndarray, path: str | Path, width: int, height: int, name: str = "K") -> None:
