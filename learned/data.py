@@ -308,9 +308,12 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 if gt is not None:
                     starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]
                 elif spec.K is None:
+                    from cmax.cli.recording import resized_note
+
+                    note = resized_note(spec.path)   # a conversion at --size: how its frames' K scales
                     raise ValueError(f"{spec.path} has no gt/K: give its intrinsics in its entry of the config's "
                                      f"data.files, e.g. 'data.files=[{{\"path\": \"{spec.path}\", "
-                                     f"\"K\": [fx, fy, cx, cy]}}]'")
+                                     f"\"K\": [fx, fy, cx, cy]}}]'" + (f"; {note}" if note else ""))
                 else:
                     starts = list(range(reader.t_start, reader.t_end - self.window_us + 1, self.window_us))
                 for t0 in starts:   # windows may reach 10% beyond the recorded events

@@ -178,3 +178,22 @@ def test_mvsec_dataset_reads_events_and_depth(tmp_path):
     assert item["volume"].sum().item() == pytest.approx(float((2 * events.p.astype(int) - 1).sum()), abs=1e-3)
     with pytest.raises(ValueError, match="K"):
         MVSECDataset(tmp_path / "x_data.hdf5", np.eye(2), gt_file=tmp_path / "x_gt.hdf5")
+
+
+def test_a_file_simulated_at_another_size_without_K_says_how_its_frames_K_scales(tmp_path):
+    """A conversion at --size: the refusal for its missing K gives the scale (was: only 'give its intrinsics')."""
+    cv2 = pytest.importorskip("cv2")
+    from cmax.cli import main
+
+    y, x = np.mgrid[0:32, 0:48]
+    video = cv2.VideoWriter(str(tmp_path / "clip.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25, (48, 32))
+    for k in range(8):
+        frame = (128 + 90 * np.sin(0.3 * (x - 2 * k)) * np.cos(0.2 * y)).astype(np.uint8)
+        video.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
+    video.release()
+    out = tmp_path / "clip.h5"
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(out), "--no-adaptive", "--quiet",
+                 "--size", "24x16"]) == 0
+    with pytest.raises(ValueError, match=r"has no gt/K: .*was simulated from 48x32 frames resized to 24x16 \(--size\): "
+                                         r"a K of those frames scales to fx\*0.5, fy\*0.5"):
+        H5WindowDataset([out], window_us=100_000)
