@@ -11,8 +11,8 @@ import numpy as np
 
 from cmax.events import Events, _check_sensor_size, require_events
 
-__all__ = ["Camera", "camera_and_intrinsics", "check_intrinsics", "intrinsics_matrix", "intrinsics_oddity",
-           "pinhole_events"]
+__all__ = ["Camera", "camera_and_intrinsics", "check_intrinsics", "check_principal_point", "intrinsics_matrix",
+           "intrinsics_oddity", "pinhole_events"]
 
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 
@@ -63,6 +63,23 @@ def intrinsics_matrix(K: object, name: str = "K") -> np.ndarray:
         fx, fy, cx, cy = flat
         flat = np.array([[fx, 0.0, cx], [0.0, fy, cy], [0.0, 0.0, 1.0]])
     return check_intrinsics(flat, name)
+
+
+def check_principal_point(K: np.ndarray, width: int, height: int, name: str = "K") -> None:
+    """ValueError naming ``name`` when the principal point of ``K`` (3, 3) [px] lies outside the ``width`` x
+    ``height`` image (beyond half a pixel past its edge pixels' centres): such a K is another sensor size's or
+    crop's, e.g. the calibration of frames that ``cmax simulate --size`` resized (``cmax.fit`` refuses it too).
+
+    >>> check_principal_point(np.array([[335.4, 0, 129.9], [0, 335.4, 99.2], [0, 0, 1]]), 240, 180)
+    >>> check_principal_point(np.array([[335.4, 0, 129.9], [0, 335.4, 99.2], [0, 0, 1]]), 120, 90)
+    Traceback (most recent call last):
+    ...
+    ValueError: K's principal point (129.9, 99.2) lies outside the 120x90 image: K belongs to another sensor size or crop (give the K of these pixels)
+    """
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    if not (-0.5 <= cx <= width - 0.5 and -0.5 <= cy <= height - 0.5):
+        raise ValueError(f"{name}'s principal point ({cx:g}, {cy:g}) lies outside the {width}x{height} image: "
+                         f"{name} belongs to another sensor size or crop (give the K of these pixels)")
 
 
 #: How far a plausible principal point lies from the image's centre (a fraction of the image's size), and

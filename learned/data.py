@@ -196,6 +196,17 @@ def _as_spec(entry: object) -> FileSpec:
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
+def _file_K(K: object, path: Path, width: int, height: int) -> np.ndarray:
+    """The checked (3, 3) float64 ``K`` [px] of the ``width`` x ``height`` event file ``path``: ValueError naming
+    the file for a matrix that is no camera's (a focal length <= 0) or whose principal point lies outside the
+    sensor (another sensor size's K, e.g. the calibration of frames that ``cmax simulate --size`` resized)."""
+    from cmax.camera import check_principal_point, intrinsics_matrix
+
+    matrix = intrinsics_matrix(K, f"{path}: K")
+    check_principal_point(matrix, width, height, f"{path}: K")
+    return matrix
+
+
 def reaches_beyond(t0_us: int, window_us: int, t_start_us: int, t_end_us: int) -> bool:
     """Whether the window ``[t0_us, t0_us + window_us)`` reaches further beyond the events ``[t_start_us,
     t_end_us]`` of its recording than a tenth of its length (the slack :class:`H5WindowDataset` allows): such a
@@ -289,15 +300,20 @@ class H5WindowDataset(torch.utils.data.Dataset):
                                      f"the entry's K, or read the file with \"use_gt\": false to use your K")
                 if spec.K is None and gt is None and "gt/K" in reader.file:   # calibration, not ground truth
                     spec = self.specs[i] = replace(spec, K=reader.file["gt/K"][:])
+                if spec.K is not None:   # another sensor size's K (a calibration of frames simulated at --size)
+                    spec = self.specs[i] = replace(spec, K=_file_K(spec.K, spec.path, reader.width, reader.height))
                 self._gt.append(gt)
                 self.spans.append((int(reader.t_start), int(reader.t_end)))
                 self._known_motion.append(self._load_known_motion(reader.file, spec))
                 if gt is not None:
                     starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]
                 elif spec.K is None:
+                    from cmax.cli.recording import resized_note
+
+                    note = resized_note(spec.path)   # a conversion at --size: how its frames' K scales
                     raise ValueError(f"{spec.path} has no gt/K: give its intrinsics in its entry of the config's "
                                      f"data.files, e.g. 'data.files=[{{\"path\": \"{spec.path}\", "
-                                     f"\"K\": [fx, fy, cx, cy]}}]'")
+                                     f"\"K\": [fx, fy, cx, cy]}}]'" + (f"; {note}" if note else ""))
                 else:
                     starts = list(range(reader.t_start, reader.t_end - self.window_us + 1, self.window_us))
                 for t0 in starts:   # windows may reach 10% beyond the recorded events

@@ -38,8 +38,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import (add_camera_options, add_recording_arguments, read_calibration, tail_note,
-                                time_span_us)
+from cmax.cli.recording import (add_camera_options, add_recording_arguments, no_intrinsics_message,
+                                read_calibration, tail_note, time_span_us)
 from cmax.events import window_starts
 from cmax.io import run_folder
 
@@ -425,8 +425,7 @@ def _resolve_intrinsics(recording: Recording, K: np.ndarray | None) -> np.ndarra
     if K is not None:
         return np.asarray(K, float)
     if recording.K is None:
-        raise ValueError(f"{recording.path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or "
-                         "--calib FILE")
+        raise ValueError(no_intrinsics_message(recording.path))
     return recording.K
 
 

@@ -570,3 +570,55 @@ def test_opencv_is_never_given_a_path_that_is_not_utf8(tmp_path):
     assert [line.split(" b'")[0] for line in lines] == ["the video", "the image"]
     assert all("cl\\xffip.jpg' has a name that is not valid UTF-8" in line and line.endswith("rename it")
                for line in lines)
+
+
+def test_a_conversion_at_another_size_says_how_a_calibration_of_its_frames_scales(tmp_path, capsys):
+    """A video converted at --size half its frames': the h5 records the frames' size (source_size), and fit, emvs
+    and depth, given no K, say how a K of those frames scales to its pixels (was: only 'give --K', with nothing
+    recording that the pixels are not the frames')."""
+    import h5py
+
+    write_video(tmp_path / "clip.avi", width=48, height=32)
+    out = tmp_path / "out" / "clip.h5"
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(out), *FAST, "--quiet", "--size", "24x16"]) == 0
+    with h5py.File(out, "r") as file:
+        assert json.loads(file.attrs["source_size"]) == [48, 32]
+    (tmp_path / "traj.txt").write_text("0 0 0 0 0 0 0 1\n10 0.1 0 0 0 0 0 1\n")   # TUM, covering the events
+    capsys.readouterr()
+    scale = "simulated from 48x32 frames resized to 24x16 (--size): a K of those frames scales to fx*0.5, fy*0.5"
+    for command in (["fit", str(out), "-o", str(tmp_path / "fit")],
+                    ["emvs", str(out), "--poses", str(tmp_path / "traj.txt"), "-o", str(tmp_path / "emvs")],
+                    ["depth", str(out), "-o", str(tmp_path / "depth")]):
+        assert main(command) == 2
+        err = capsys.readouterr().err
+        assert "stores no intrinsics (gt/K)" in err and scale in err and err.count("\n") == 1, (command, err)
+    # the frames' K, unscaled: its principal point (36, 24) lies off the 24x16 sensor; the same scale is named
+    for command in (["fit", str(out), "-o", str(tmp_path / "fit")],
+                    ["emvs", str(out), "--poses", str(tmp_path / "traj.txt"), "-o", str(tmp_path / "emvs")]):
+        assert main([*command, "--K", "60,60,36,24"]) == 2
+        err = capsys.readouterr().err
+        assert "principal point (36, 24) lies outside the 24x16 image" in err and scale in err, (command, err)
+    # at the frames' own size: no scale, but the origin of such a file said
+    same = tmp_path / "same" / "clip.h5"
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(same), *FAST, "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["fit", str(same), "-o", str(tmp_path / "fit2")]) == 2
+    err = capsys.readouterr().err
+    assert "a conversion of frames by cmax simulate" in err and "resized" not in err
+
+
+def test_a_calibration_beside_the_simulated_frames_is_named_when_no_k_is_given(tmp_path, capsys):
+    """An ECD folder's calib.txt beside images.txt: fit without K names it (was: only 'give --K or --calib')."""
+    frames = _frames()
+    seq = tmp_path / "seq"
+    (seq / "images").mkdir(parents=True)
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(seq / "images" / f"frame_{k:08d}.png"), frame)
+    (seq / "images.txt").write_text("".join(f"{k * 0.04:.6f} images/frame_{k:08d}.png\n" for k in range(len(frames))))
+    (seq / "calib.txt").write_text("50 50 19.5 14.5 0 0 0 0 0\n")
+    out = tmp_path / "events" / "seq.h5"
+    assert main(["simulate", str(seq), "-o", str(out), *FAST, "--quiet"]) == 0
+    capsys.readouterr()
+    assert main(["fit", str(out), "-o", str(tmp_path / "fit")]) == 2
+    err = capsys.readouterr().err
+    assert f"{seq / 'calib.txt'} lies beside the frames it was simulated from: --calib {seq / 'calib.txt'}" in err, err

@@ -490,6 +490,43 @@ def test_cli_errors_exit_2(plane, tmp_path, capsys):
         main(["emvs", str(path), "--poses", str(traj), "-o", "o", "--depth-range", "1"])
 
 
+def test_a_k_of_another_sensor_size_is_refused(plane, tmp_path, capsys):
+    """The calibration of 240x180 frames given for events simulated at --size 120x90: its principal point lies off
+    the sensor; refused as cmax fit refuses it (was: a depth map and exit 0, without a word)."""
+    from cmax.cli import main
+    from cmax.cli.fit import tum_lines
+    from cmax.io import write_h5
+
+    events, camera, (times, poses) = plane
+    path = write_h5(tmp_path / "plane.h5", events)
+    (tmp_path / "traj.txt").write_text("\n".join(tum_lines(times, poses)) + "\n")
+    common = ["emvs", str(path), "--poses", str(tmp_path / "traj.txt"), "--depth-range", "1,4", "--planes", "20"]
+    doubled = f"{2 * camera.fx},{2 * camera.fy},{2 * camera.cx + 1},{2 * camera.cy + 1}"   # the 240x180 frames' K
+    assert main([*common, "-o", str(tmp_path / "o"), "--K", doubled]) == 2
+    err = capsys.readouterr().err
+    assert "principal point (120, 90) lies outside the 120x90 image" in err and err.count("\n") == 1, err
+    assert not (tmp_path / "o").exists()
+    assert main([*common, "-o", str(tmp_path / "o"), "--K", f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}"]) == 0
+
+
+def test_a_k_unlike_a_camera_s_for_the_sensor_is_noted(plane, tmp_path, capsys):
+    """The K of frames twice this size (a --size half the video's) with its principal point just inside the
+    sensor: run, with the note cmax fit warns (was: nothing)."""
+    from cmax.cli import main
+    from cmax.cli.fit import tum_lines
+    from cmax.io import write_h5
+
+    events, camera, (times, poses) = plane
+    path = write_h5(tmp_path / "plane.h5", events)
+    (tmp_path / "traj.txt").write_text("\n".join(tum_lines(times, poses)) + "\n")
+    common = ["emvs", str(path), "--poses", str(tmp_path / "traj.txt"), "--depth-range", "1,4", "--planes", "20"]
+    assert main([*common, "-o", str(tmp_path / "o"), "--K", f"{2 * camera.fx},{2 * camera.fy},119,89"]) == 0
+    err = capsys.readouterr().err
+    assert "note: K (fx 300, fy 300, cx 119, cy 89) is unlike a camera's for a 120x90 sensor" in err, err
+    assert main([*common, "-o", str(tmp_path / "p"), "--K", f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}"]) == 0
+    assert "unlike a camera's" not in capsys.readouterr().err
+
+
 # -- real frames (slow) ---------------------------------------------------------------------------
 @pytest.mark.slow
 def test_ecd_slider_depth_structures(shared_data, tmp_path):

@@ -115,6 +115,22 @@ def test_dataset_rejects_bad_input(scene_file, tmp_path):
         H5WindowDataset([3])
 
 
+def test_a_K_of_another_sensor_size_or_no_camera_is_refused_naming_the_file(scene_file, tmp_path):
+    """The calibration of 120x90 frames (a conversion at --size 48x36): its principal point lies off the 48x36
+    sensor; refused before any window is read (was: trained on without a word). A focal
+    length of 0 is named with the file (was: a bare 'K must have positive focal lengths' after training began)."""
+    path, sequence, _ = scene_file
+    from cmax.io import write_h5
+
+    bare = write_h5(tmp_path / "bare.h5", sequence.events)
+    with pytest.raises(ValueError, match=r"bare.h5: K's principal point \(59.5, 44.5\) lies outside the 48x36 image"):
+        H5WindowDataset([{"path": bare, "K": [100.0, 100.0, 59.5, 44.5]}], window_us=100_000)
+    with pytest.raises(ValueError, match=r"bare.h5: K must have positive focal lengths"):
+        H5WindowDataset([{"path": bare, "K": [0.0, 0.0, 23.5, 17.5]}], window_us=100_000)
+    ok = H5WindowDataset([{"path": bare, "K": [40.0, 40.0, 23.5, 17.5]}], window_us=100_000)
+    np.testing.assert_array_equal(ok.specs[0].K, [[40, 0, 23.5], [0, 40, 17.5], [0, 0, 1]])
+
+
 def test_an_event_file_of_another_format_is_refused_with_its_conversion(scene_file, tmp_path):
     """A ``.npy`` (or ``.raw``, ``.aedat4``) in ``data.files``: the error gives the conversion, which works."""
     import cmax
@@ -162,3 +178,22 @@ def test_mvsec_dataset_reads_events_and_depth(tmp_path):
     assert item["volume"].sum().item() == pytest.approx(float((2 * events.p.astype(int) - 1).sum()), abs=1e-3)
     with pytest.raises(ValueError, match="K"):
         MVSECDataset(tmp_path / "x_data.hdf5", np.eye(2), gt_file=tmp_path / "x_gt.hdf5")
+
+
+def test_a_file_simulated_at_another_size_without_K_says_how_its_frames_K_scales(tmp_path):
+    """A conversion at --size: the refusal for its missing K gives the scale (was: only 'give its intrinsics')."""
+    cv2 = pytest.importorskip("cv2")
+    from cmax.cli import main
+
+    y, x = np.mgrid[0:32, 0:48]
+    video = cv2.VideoWriter(str(tmp_path / "clip.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25, (48, 32))
+    for k in range(8):
+        frame = (128 + 90 * np.sin(0.3 * (x - 2 * k)) * np.cos(0.2 * y)).astype(np.uint8)
+        video.write(cv2.cvtColor(frame, cv2.COLOR_GRAY2BGR))
+    video.release()
+    out = tmp_path / "clip.h5"
+    assert main(["simulate", str(tmp_path / "clip.avi"), "-o", str(out), "--no-adaptive", "--quiet",
+                 "--size", "24x16"]) == 0
+    with pytest.raises(ValueError, match=r"has no gt/K: .*was simulated from 48x32 frames resized to 24x16 \(--size\): "
+                                         r"a K of those frames scales to fx\*0.5, fy\*0.5"):
+        H5WindowDataset([out], window_us=100_000)

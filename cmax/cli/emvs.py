@@ -21,9 +21,11 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import api_default, float_list, int_at_least, nonnegative_float
+from cmax.camera import intrinsics_oddity
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
-                                file_depth_range, file_intrinsics, overlap, read_calibrated)
+                                check_file_principal_point, file_depth_range, file_intrinsics,
+                                no_intrinsics_message, overlap, read_calibrated, resized_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
@@ -93,13 +95,17 @@ def add_command(subparsers) -> argparse.ArgumentParser:
 
 
 def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distortion: np.ndarray | None):
-    """The :class:`cmax.Camera` of a recording: ``--K`` (3, 3) or, for an h5 file, its ``gt/K``."""
+    """The :class:`cmax.Camera` of a recording: ``--K`` (3, 3) or, for an h5 file, its ``gt/K``; ValueError when
+    its principal point lies outside the ``width`` x ``height`` sensor (another size's K, as ``cmax fit``)."""
     from cmax.camera import Camera
 
+    name = "K"
     if K is None:
         K = file_intrinsics(path)
         if K is None:
-            raise ValueError(f"{path} holds no gt/K; give the intrinsics with --K fx,fy,cx,cy")
+            raise ValueError(no_intrinsics_message(path))
+        name = f"{path}: gt/K"
+    check_file_principal_point(K, path, width, height, name)
     return Camera(K, width, height, distortion)
 
 
@@ -160,6 +166,9 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     if cut:
         print(f"cmax emvs: note: {cut}", file=sys.stderr)
     camera = camera_for(args.file, events.width, events.height, K, distortion)
+    if (odd := intrinsics_oddity(camera.K, camera.width, camera.height)) is not None:   # as cmax fit warns
+        resized = resized_note(args.file)
+        print(f"cmax emvs: note: {odd}" + (f"; {resized}" if resized else ""), file=sys.stderr)
     depth_range = args.depth_range
     if depth_range is None:
         depth_range = file_depth_range(args.file)

@@ -28,8 +28,9 @@ import numpy as np
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
-                                calibration_of, event_span, file_depth_range, file_intrinsics, open_streamed, overlap,
-                                read_calibrated, tail_note)
+                                calibration_of, check_file_principal_point, event_span, file_depth_range,
+                                file_intrinsics, no_intrinsics_message, open_streamed, overlap, read_calibrated,
+                                tail_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
@@ -442,7 +443,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     if K is None:
         K = file_intrinsics(args.file)
         if K is None:
-            raise ValueError(f"{args.file} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib")
+            raise ValueError(no_intrinsics_message(args.file, "--calib"))
     notes = notes + ([hint] if (hint := calibration_hint(args)) else [])
     try:
         events, origin_us = read_calibrated(args, calib_size)   # --t0/--t1 applied; times print from the file's start
@@ -452,6 +453,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         origin_us = events.t_start
         notes.append(f"{args.file} holds {len(events.reader):,} events, more than cmax.events.MAX_EVENTS="
                      f"{cmax_events.MAX_EVENTS:,}: fitting it window by window from the file")
+    check_file_principal_point(K, args.file, events.width, events.height)   # cmax.fit's check, with --size's scale
     if distortion is not None:          # one camera, its undistortion map computed once for every window
         from cmax.camera import Camera
 

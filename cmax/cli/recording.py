@@ -25,7 +25,8 @@ from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
-           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "file_depth_range",
+           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
+           "simulated_sizes", "resized_note", "source_calibration", "check_file_principal_point", "file_depth_range",
            "distortion_argument", "read_calibration",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
@@ -249,6 +250,83 @@ def file_intrinsics(path: str | Path) -> np.ndarray | None:
         return None
     with file:
         return h5_intrinsics(file, path)
+
+
+def simulated_sizes(path: str | Path) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """``((W, H) of the frames, (w, h) of the sensor)`` of a ``cmax simulate`` conversion (h5 attribute
+    ``source_size``: the frames' size before ``--size``), or None for any other file."""
+    import json
+
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as file:
+            stored = [int(v) for v in json.loads(file.attrs["source_size"])]
+            size = (int(file.attrs["width"]), int(file.attrs["height"]))
+    except (OSError, KeyError, TypeError, ValueError):   # not h5, not a conversion, or one of unknown frames
+        return None
+    if len(stored) != 2 or min(stored) <= 0:
+        return None
+    return (stored[0], stored[1]), size
+
+
+def resized_note(path: str | Path) -> str | None:
+    """For a ``cmax simulate`` conversion whose frames ``--size`` resized (:func:`simulated_sizes`): how a K of
+    those frames scales to its pixels (``cv2.resize``'s pixel centres: ``cx' = (cx + 0.5) sx - 0.5``); else None.
+    """
+    sizes = simulated_sizes(path)
+    if sizes is None or sizes[0] == sizes[1]:
+        return None
+    (W, H), (w, h) = sizes
+    sx, sy = w / W, h / H
+    return (f"{path} was simulated from {W}x{H} frames resized to {w}x{h} (--size): a K of those frames scales "
+            f"to fx*{sx:.6g}, fy*{sy:.6g}, (cx+0.5)*{sx:.6g}-0.5, (cy+0.5)*{sy:.6g}-0.5")
+
+
+def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
+    """The error for an event file that stores no ``gt/K`` and was given no ``--K`` / ``--calib``: what to pass,
+    and for a ``cmax simulate`` conversion where its K comes from (:func:`resized_note`)."""
+    message = f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or {calib}"
+    sizes = simulated_sizes(path)
+    if sizes is None:
+        return message
+    beside = source_calibration(path)
+    if beside is not None:
+        message += f"; {beside} lies beside the frames it was simulated from"
+    if sizes[0] == sizes[1]:
+        return (f"{message} (a conversion of frames by cmax simulate: the intrinsics of the camera that shot them, "
+                "when known; a video carries none)" if beside is None else f"{message}: --calib {beside}")
+    return f"{message}; {resized_note(path)}"
+
+
+def source_calibration(path: str | Path) -> Path | None:
+    """A calibration file (:data:`CALIBRATION_NAMES`) in the folder a ``cmax simulate`` conversion was made from
+    (h5 attribute ``source``: an ECD or rpg_vid2e image folder, its ``images/``, or a timestamp file), or None."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as file:
+            source = Path(str(file.attrs["source"]))
+    except (OSError, KeyError):
+        return None
+    folder = source if source.is_dir() else source.parent
+    for place in (folder, folder.parent):
+        for name in CALIBRATION_NAMES:
+            if (place / name).is_file():
+                return place / name
+    return None
+
+
+def check_file_principal_point(K: np.ndarray, path: str | Path, width: int, height: int, name: str = "K") -> None:
+    """:func:`cmax.camera.check_principal_point` for the event file ``path``, its error followed by
+    :func:`resized_note` when ``--size`` resized its frames (the usual cause: the frames' calibration, unscaled)."""
+    from cmax.camera import check_principal_point
+
+    try:
+        check_principal_point(K, width, height, name)
+    except ValueError as error:
+        note = resized_note(path)
+        raise ValueError(str(error) if note is None else f"{error}; {note}") from None
 
 
 def file_depth_range(path: str | Path) -> tuple[float, float] | None:

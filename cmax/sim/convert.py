@@ -348,6 +348,8 @@ def convert_video(
         stream = iter_upsample(stream, threshold, lam=settings.lam, method=settings.method,
                                report=count_capped)
     simulator = EventSimulator.from_settings(settings.esim)
+    stored = getattr(frames, "stored_size", None)   # the frames' (width, height) before --size resized them
+    frame_size = {} if stored is None else {"source_size": [int(stored[0]), int(stored[1])]}
     writer, samples, reported = None, 0, 0
     try:
         with _frames_on_the_grey_scale(decoded):
@@ -357,7 +359,7 @@ def convert_video(
                     writer = H5Writer(
                         output, events.width, events.height, t_offset_us=int(t_us), overwrite=overwrite,
                         source=str(source), category=category or "", simulator=f"cmax {__version__}",
-                        settings=settings.to_dict(),
+                        settings=settings.to_dict(), **frame_size,
                     )
                 writer.append(events)
                 samples += 1
