@@ -38,8 +38,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import (add_camera_options, add_recording_arguments, no_intrinsics_message,
-                                read_calibration, tail_note, time_span_us)
+from cmax.cli.recording import (add_camera_options, add_recording_arguments, check_file_principal_point,
+                                no_intrinsics_message, read_calibration, tail_note, time_span_us)
 from cmax.events import window_starts
 from cmax.io import run_folder
 
@@ -580,6 +580,8 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
             raise ValueError(f"{calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({calib_camera}), the "
                              f"events come from a {recording.width}x{recording.height} sensor")
         K = _resolve_intrinsics(recording, K)
+        # refused as cmax fit / emvs / learned.train refuse it: the network's depth assumes these pixels' K
+        check_file_principal_point(K, path, recording.width, recording.height)
         undistort = None if distortion is None else undistortion(K, distortion, recording.width, recording.height)
         notes = [f"{checkpoint.name}: {limit}" for limit in card_limits(card, f"the card of {checkpoint}")]
         notes += camera_notes(card, recording.width, recording.height, K, f"the card of {checkpoint}")

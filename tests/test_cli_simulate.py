@@ -594,7 +594,8 @@ def test_a_conversion_at_another_size_says_how_a_calibration_of_its_frames_scale
         assert "stores no intrinsics (gt/K)" in err and scale in err and err.count("\n") == 1, (command, err)
     # the frames' K, unscaled: its principal point (36, 24) lies off the 24x16 sensor; the same scale is named
     for command in (["fit", str(out), "-o", str(tmp_path / "fit")],
-                    ["emvs", str(out), "--poses", str(tmp_path / "traj.txt"), "-o", str(tmp_path / "emvs")]):
+                    ["emvs", str(out), "--poses", str(tmp_path / "traj.txt"), "-o", str(tmp_path / "emvs")],
+                    ["depth", str(out), "-o", str(tmp_path / "depth")]):
         assert main([*command, "--K", "60,60,36,24"]) == 2
         err = capsys.readouterr().err
         assert "principal point (36, 24) lies outside the 24x16 image" in err and scale in err, (command, err)

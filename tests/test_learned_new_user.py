@@ -111,8 +111,8 @@ def test_predict_keeps_an_earlier_runs_windows_from_mixing_with_new_ones(slider_
     assert json.loads((out / "summary.json").read_text())["windows"] == 1
 
 
-def test_predict_notes_a_principal_point_off_the_sensor(slider_file, tmp_path, capsys):
-    """--K of another camera (here a 1280x720 one on a 64x48 file) is noted, not taken silently."""
+def test_predict_refuses_a_principal_point_off_the_sensor(slider_file, tmp_path, capsys):
+    """--K of another camera (here a 1280x720 one on a 64x48 file) is refused, not taken silently."""
     from learned.checkpoint import rng_state, save_checkpoint
     from learned.config import Config, DataConfig
     from learned.model import DepthPoseNet, ModelConfig
@@ -125,9 +125,11 @@ def test_predict_notes_a_principal_point_off_the_sensor(slider_file, tmp_path, c
     base = [str(slider_file), "--checkpoint", str(checkpoint), "--quiet"]
     assert main([*base, "-o", str(tmp_path / "a"), "--K", "60,60,32,24"]) == 0
     assert "principal point" not in capsys.readouterr().err
-    assert main([*base, "-o", str(tmp_path / "b"), "--K", "900,900,640,360"]) == 0
-    assert ("note: the principal point (640.0, 360.0) px lies off the 64x48 sensor: are these the intrinsics of "
-            "this camera?") in capsys.readouterr().err
+    # refused, as cmax fit, cmax emvs and learned.train refuse it (was: a note, and depth maps written)
+    assert main([*base, "-o", str(tmp_path / "b"), "--K", "900,900,640,360"]) == 2
+    err = capsys.readouterr().err
+    assert "K's principal point (640, 360) lies outside the 64x48 image" in err and err.count("\n") == 1
+    assert not (tmp_path / "b").exists()
 
 
 def test_teacher_refuses_files_without_ground_truth(slider_file, tmp_path, capsys):
