@@ -335,6 +335,8 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, *, binary: bool = Tru
     path = Path(path)
     kind = "binary_little_endian" if binary else "ascii"
     header = (f"ply\nformat {kind} 1.0\ncomment written by cmax.emvs (EMVS semi-dense depth)\n"
+              "comment x y z: world frame of the poses (T_w_ref of depth.npz maps the reference camera to it), "
+              "in the poses' length unit (metres unless they are up to scale)\n"
               f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
     from cmax.io.atomic import write_with  # a lock and a private temporary: no planted link followed
 
