@@ -210,6 +210,13 @@ def test_plot_and_ply(plane_result, tmp_path):
     assert not list(tmp_path.glob("*.partial"))
 
 
+def test_confidence_panel_title_says_which_grey_is_which():
+    """Was: "confidence 0-291 votes" over a grey map: white or black for many votes left to guess."""
+    from cmax.emvs.result import confidence_title
+
+    assert confidence_title(291.0) == "votes: black >= 291"
+
+
 def test_ply_header_names_the_frame_its_points_are_in(plane_result, tmp_path):
     """Was: points.ply said only "written by cmax.emvs": camera or world frame, metres or not, left to guess.
     The header names the world frame of the poses, and the points are that: T_w_ref of each masked pixel's

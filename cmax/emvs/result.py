@@ -141,7 +141,7 @@ class SemiDenseDepth:
         grey = viz.enlarge((255 * (1.0 - np.clip(confidence / top, 0, 1))).astype(np.uint8), zoom)
         depth = viz.enlarge(np.where(self.mask, self.depth, np.nan), zoom)
         return viz.hstack([
-            viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), f"confidence 0-{top:.3g} votes"),
+            viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), confidence_title(top)),
             viz.depth_panel(depth, self._own_scale() if scale is None else scale,
                             f"semi-dense depth, {int(self.mask.sum())} px"),
         ])
@@ -316,6 +316,17 @@ def semi_dense_depth(dsi: DSI, *, threshold_kernel: int = 5, threshold_c: float 
         seconds=float(dsi.seconds if seconds is None else seconds), K=dsi.K.copy(), n_events=int(dsi.n_events),
         hot_pixels=dsi.hot_pixels,
     )
+
+
+def confidence_title(top: float) -> str:
+    """Title of the confidence map's grey panel (the DSI's votes; white none): which grey is which (it has no
+    colour bar), ``top`` the votes drawn black (the 99th percentile; more saturate). Short: a small sensor's
+    panel is narrow.
+
+    >>> confidence_title(291.0)
+    'votes: black >= 291'
+    """
+    return f"votes: black >= {top:.3g}"
 
 
 def depth_scale_bar(height: int, depth_range: tuple[float, float], *, ticks: int = 5) -> np.ndarray:
