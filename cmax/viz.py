@@ -341,10 +341,25 @@ def _text_width(text: str, font_scale: float) -> int:
     return cv2.getTextSize(text, _FONT, font_scale, _thickness(font_scale))[0][0]
 
 
+def depth_bar_labels(depths: np.ndarray, unit: str = "m") -> list[str]:
+    """Labels of a depth colour bar's ticks, near to far: the ends read ``<=`` and ``>=``, because
+    :meth:`DepthScale.level` clips, so a depth nearer than the near end takes its colour (and one farther
+    than the far end the far colour).
+
+    >>> depth_bar_labels(np.array([1.0, 2.0, 4.0]))
+    ['<= 1 m', '2 m', '>= 4 m']
+    """
+    labels = [f"{d:.3g} {unit}".rstrip() for d in depths]
+    if len(labels) >= 2:
+        labels[0], labels[-1] = f"<= {labels[0]}", f">= {labels[-1]}"
+    return labels
+
+
 def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_scale: float = 0.4,
                      unit: str = "m") -> np.ndarray:
     """Vertical colour bar (height, w, 3) of ``scale`` labelled in ``unit`` (metres; ``""`` for
-    depth up to scale), near at the top, with the "no estimate" swatch below it labelled ``n/a``."""
+    depth up to scale), near at the top, with the "no estimate" swatch below it labelled ``n/a``; its
+    ends saturate (``<=`` near, ``>=`` far: :func:`depth_bar_labels`)."""
     if isinstance(height, bool) or not isinstance(height, (int, np.integer)) or height < 40:
         raise ValueError(f"height must be an integer >= 40 px, got {height!r}")
     if not isinstance(scale, DepthScale):
@@ -357,7 +372,7 @@ def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_sca
     depths = scale.ticks(ticks)
     if not isinstance(unit, str):
         raise TypeError(f"unit must be a string, got {type(unit).__name__}")
-    labels = [f"{d:.3g} {unit}".rstrip() for d in depths] + ["n/a"]
+    labels = depth_bar_labels(depths, unit) + ["n/a"]
     width = bar_width + 8 + max(_text_width(text, font_scale) for text in labels) + 4
     image = np.full((height, width, 3), _WHITE, np.uint8)
     top = line // 2

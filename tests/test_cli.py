@@ -208,6 +208,11 @@ def test_fit_writes_depth_trajectory_and_summary(tmp_path):
     assert len(summary["windows"]) == len(rows) - 1 >= 2
     assert all(window["parallax_px"] > 0 and window["scale_known"] for window in summary["windows"])
     assert summary["zero_rotation_start"] is False
+    # Every number says its unit: v is the given speed in m/s, depth and the trajectory in metres.
+    units = summary["units"]
+    assert units["v"].startswith("m/s") and units["omega"].startswith("rad/s")
+    assert all(np.linalg.norm(window["v"]) == pytest.approx(speed, rel=1e-6) for window in summary["windows"])
+    assert units["depth_range"] == "m" and "z-depth [m]" in units["depth_NNNNN.npz"]
 
 
 def test_fit_with_members_reaches_the_fit(tmp_path):

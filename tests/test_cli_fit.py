@@ -183,6 +183,10 @@ def test_fit_options_short_recording_and_gyro_overlap(slider, tmp_path, capsys):
     assert window["t0_us"] >= times[0] and window["t1_us"] <= first + 150_000     # the gyro overlap of [t0, t1)
     assert window["t1_us"] - window["t0_us"] > 60_000                              # the whole overlap
     np.testing.assert_allclose(window["omega"], 0.0)                               # held at the gyro's
+    # No --speed: v is a direction (a unit vector) and the units say so, as trajectory.txt's header does.
+    assert np.linalg.norm(window["v"]) == pytest.approx(1.0, rel=1e-6)
+    assert summary["units"]["v"].startswith("unit vector (no --speed")
+    assert summary["units"]["depth_range"] == "m at a speed of 1 m/s (no --speed: up to scale)"
     assert summary["depth_range"] == [1.0, 4.0] and summary["calib"] == str(calib)
     assert summary["depth_grid"] == [12, 16]
     depth = np.load(out / "depth_00000.npz")

@@ -210,6 +210,26 @@ def test_plot_and_ply(plane_result, tmp_path):
     assert not list(tmp_path.glob("*.partial"))
 
 
+def test_confidence_panel_title_says_which_grey_is_which():
+    """Was: "confidence 0-291 votes" over a grey map: white or black for many votes left to guess."""
+    from cmax.emvs.result import confidence_title
+
+    assert confidence_title(291.0) == "votes: black >= 291"
+
+
+def test_ply_header_names_the_frame_its_points_are_in(plane_result, tmp_path):
+    """Was: points.ply said only "written by cmax.emvs": camera or world frame, metres or not, left to guess.
+    The header names the world frame of the poses, and the points are that: T_w_ref of each masked pixel's
+    back-projected depth."""
+    header = plane_result.save_ply(tmp_path / "p.ply").read_bytes().split(b"end_header\n", 1)[0].decode()
+    assert "comment x y z: world frame of the poses (T_w_ref of depth.npz" in header
+    rows, cols = np.nonzero(plane_result.mask)
+    rays = np.linalg.solve(plane_result.K, np.stack([cols, rows, np.ones_like(cols)]).astype(float))
+    camera = rays * plane_result.depth[rows, cols]
+    world = (plane_result.T_w_ref[:3, :3] @ camera + plane_result.T_w_ref[:3, 3:]).T
+    np.testing.assert_allclose(np.sort(world, axis=0), np.sort(plane_result.points, axis=0), atol=1e-4)
+
+
 def test_picture_takes_its_colour_scale_from_the_map_not_from_the_planes_range():
     """A DSI over 0.5-200 m (a hike's range) with its depths within 1.8-2.7 m: drawn on the DSI's range, all
     of it fell in the darkest fifth of the colours; the picture takes the map's own percentiles."""

@@ -180,3 +180,25 @@ def test_rpg_e2vid_text_states_its_size_on_its_first_line(tmp_path):
             read(swapped, width=64, height=48, sort=sort)
     with pytest.raises(ValueError, match=r"stores no sensor size: pass width= and height= \(cmax: --size WxH\)"):
         read(tmp_path / "ragged.txt")
+
+
+@pytest.mark.parametrize("text, columns", [
+    ("0.000000000 images/frame_00000000.png\n0.038766001 images/frame_00000001.png\n", 2),   # ECD images.txt
+    ("# timestamps\n0.000000000\n0.001866000\n", 1),                                       # ESIM timestamps.txt
+    ("335.4 335.3 129.9 99.2 -0.13 0.06 0 0 0\n", 9),                                      # ECD calib.txt
+    ("0.0223 0.1117 0.0 0.0 0.0 0.0 0.0 1.0\n", 8),                                        # a TUM trajectory
+])
+def test_a_text_file_that_holds_no_events_is_named_so_before_a_size_is_asked(tmp_path, capsys, text, columns):
+    """Was: `cmax info images.txt` said "stores no sensor size: pass --size WxH"; given a size, it said the file is
+    not an event file. The first line that is not a comment is checked first: the error says what the file is."""
+    from cmax.cli import main
+
+    path = tmp_path / "frames.txt"
+    path.write_text(text)
+    with pytest.raises(FormatError, match=rf"is not an ECD text file of 't x y p' lines: its first line reads .* "
+                                          rf"\({columns} column\(s\) where 4 columns are expected\)"):
+        read(path)
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "stores no sensor size" not in err and "its first line reads" in err
+    assert ("cmax simulate FOLDER" in err) == (columns <= 2)

@@ -164,6 +164,17 @@ def test_depth_colour_bar_states_its_unit_or_none_for_depth_up_to_scale():
     assert viz.depth_panel(np.full((60, 80), 2.0, np.float32), scale, "depth (up to scale)", unit="").shape[1] > 80 + 30
 
 
+def test_depth_colour_bar_ends_say_they_saturate():
+    """Was: the ends read "1.83 m" and "5.86 m" although every nearer (farther) depth takes the end's colour
+    (the demo's cmax.fit map holds many pixels nearer than its shared scale): the ends now read <= and >=."""
+    scale = viz.DepthScale(1.0, 4.0)
+    assert viz.depth_bar_labels(scale.ticks(3)) == ["<= 1 m", "1.6 m", ">= 4 m"]
+    assert viz.depth_bar_labels(scale.ticks(3), "") == ["<= 1", "1.6", ">= 4"]
+    # the clipping it names: a depth at half the near end is drawn in the near end's colour
+    near = viz.depth_image(np.array([[0.5, 1.0]], np.float32), scale)
+    assert (near[0, 0] == near[0, 1]).all()
+
+
 def test_wrapped_titles_of_wide_pictures_stay_inside_the_picture():
     # at widths where the text is drawn with a 2 px stroke, wrapping measures with that stroke too
     for width in (1400, 1817, 2600):

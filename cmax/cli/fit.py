@@ -215,6 +215,39 @@ def _depth_scale(results) -> "object":
         return None
 
 
+def summary_units(scale_known: bool) -> dict[str, str]:
+    """The units and frames of what ``cmax fit`` writes, keyed by field (``summary.json``'s ``units``).
+
+    Lengths are metres when ``scale_known`` (``--speed`` given), else metres at a speed of 1 m/s (each
+    window's ``v`` a unit vector): the same convention as ``trajectory.txt``'s header (:func:`tum_header`).
+
+    >>> summary_units(True)["v"]
+    'm/s, camera frame (x right, y down, z forward)'
+    >>> summary_units(False)["depth_range"]
+    'm at a speed of 1 m/s (no --speed: up to scale)'
+    """
+    length = "m" if scale_known else "m at a speed of 1 m/s (no --speed: up to scale)"
+    axes = "camera frame (x right, y down, z forward)"
+    return {
+        "t0_us, t1_us, t_ref_us, skipped_us, uncovered_us": "µs on the file's clock (t0_us, t1_us: the window's "
+                                                            "first and last events; t_ref_us: the depth map's time)",
+        "t0_s, t1_s": "s after the first event (--t0, --t1)",
+        "window_ms, step_ms": "ms",
+        "v": f"m/s, {axes}" if scale_known else f"unit vector (no --speed: direction only), {axes}",
+        "omega": f"rad/s, {axes}",
+        "flow": "px/s (x, y)",
+        "depth_range": length,
+        "K": "px",
+        "parallax_px": "px: median over the events of how far the fitted translation moves each over the window",
+        "objective_after": "contrast of the warped events, 1 = the unwarped events' (unitless)",
+        "seconds": "wall-clock seconds of the window's fit",
+        "depth_NNNNN.npz": f"depth (H, W): z-depth [{length}] seen at t_ref_us, valid where mask; depth_spread: "
+                           "range of log inverse depth over the 3x3 grid nodes around each pixel (large at depth "
+                           "edges); inverse_depth_grid: the grid's nodes [1/depth unit]; K [px]",
+        "trajectory.txt": f"TUM: t [s] tx ty tz [{length}] qx qy qz qw, camera-to-world",
+    }
+
+
 def verdict_counts(counts: dict[str, int]) -> str:
     """The summary line's verdict counts, e.g. ``3 ok, 2 ambiguous (1 resolved), 0 low parallax, 1 failed``."""
     resolved = f" ({counts['resolved']} resolved)" if counts.get("ambiguous") else ""
@@ -572,7 +605,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
                             for line in warned],
                "windows_total": n_windows, "skipped_us": sequence.skipped_us.tolist(),
                "uncovered_us": None if sequence.uncovered_us is None else list(sequence.uncovered_us),
-               "verdicts": sequence.counts(), "windows": windows}
+               "verdicts": sequence.counts(), "units": summary_units(scale_known), "windows": windows}
     write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2))
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""

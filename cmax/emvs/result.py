@@ -141,7 +141,7 @@ class SemiDenseDepth:
         grey = viz.enlarge((255 * (1.0 - np.clip(confidence / top, 0, 1))).astype(np.uint8), zoom)
         depth = viz.enlarge(np.where(self.mask, self.depth, np.nan), zoom)
         return viz.hstack([
-            viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), f"confidence 0-{top:.3g} votes"),
+            viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), confidence_title(top)),
             viz.depth_panel(depth, self._own_scale() if scale is None else scale,
                             f"semi-dense depth, {int(self.mask.sum())} px"),
         ])
@@ -318,6 +318,17 @@ def semi_dense_depth(dsi: DSI, *, threshold_kernel: int = 5, threshold_c: float 
     )
 
 
+def confidence_title(top: float) -> str:
+    """Title of the confidence map's grey panel (the DSI's votes; white none): which grey is which (it has no
+    colour bar), ``top`` the votes drawn black (the 99th percentile; more saturate). Short: a small sensor's
+    panel is narrow.
+
+    >>> confidence_title(291.0)
+    'votes: black >= 291'
+    """
+    return f"votes: black >= {top:.3g}"
+
+
 def depth_scale_bar(height: int, depth_range: tuple[float, float], *, ticks: int = 5) -> np.ndarray:
     """Vertical colour bar (height, w, 3) BGR of ``depth_range`` [m]: :func:`cmax.viz.depth_colour_bar`."""
     from cmax import viz
@@ -335,6 +346,8 @@ def write_ply(path: str | os.PathLike, points: np.ndarray, *, binary: bool = Tru
     path = Path(path)
     kind = "binary_little_endian" if binary else "ascii"
     header = (f"ply\nformat {kind} 1.0\ncomment written by cmax.emvs (EMVS semi-dense depth)\n"
+              "comment x y z: world frame of the poses (T_w_ref of depth.npz maps the reference camera to it), "
+              "in the poses' length unit (metres unless they are up to scale)\n"
               f"element vertex {len(points)}\nproperty float x\nproperty float y\nproperty float z\nend_header\n")
     from cmax.io.atomic import write_with  # a lock and a private temporary: no planted link followed
 

@@ -88,8 +88,30 @@ def _size_header(path: Path) -> tuple[tuple[int, int] | None, int]:
             continue
         if len(words) == 2 and all(word.isdigit() and int(word) > 0 for word in words):
             return (int(words[0]), int(words[1])), number + 1
+        _check_event_line(path, words)
         return None, 0
     return None, 0
+
+
+def _check_event_line(path: Path, words: list[bytes]) -> None:
+    """Refuse a text file whose first line that is not a comment is not four numbers ``t x y p``, before a
+    missing sensor size is asked for: a frame list (``images.txt``), ``timestamps.txt``, ``calib.txt`` or a
+    trajectory is no event file, whatever size is given."""
+    def number(word: bytes) -> bool:
+        try:
+            float(word)
+        except ValueError:
+            return False
+        return True
+
+    if len(words) == 4 and all(number(word) for word in words):
+        return
+    line = b" ".join(words).decode("utf-8", "replace")
+    shown = line if len(line) <= 60 else line[:57] + "..."
+    hint = ("; a list of frames (ECD images.txt, ESIM timestamps.txt) becomes events with "
+            "`cmax simulate FOLDER -o events.h5`" if len(words) <= 2 else "")
+    raise FormatError(f"{path} is not an ECD text file of 't x y p' lines: its first line reads {shown!r} "
+                      f"({len(words)} column(s) where 4 columns are expected){hint}")
 
 
 #: Bytes of a text file's start that :func:`_size_header` reads.
