@@ -52,6 +52,24 @@ def one_line_error(call, capsys) -> tuple[int, str]:
     return status, err
 
 
+def sigterm_once(argv: list[str], folder: Path, pattern: str, what: str) -> tuple[int, str]:
+    """Run ``argv`` in a subprocess, send it SIGTERM as soon as ``folder`` holds a file matching ``pattern`` (its
+    private temporary or stage), and return its exit status and stderr. Fails when the run ends first (``what``:
+    what it should have been doing)."""
+    import signal
+    import subprocess
+    import time
+
+    process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    deadline = time.monotonic() + 120
+    while not list(folder.glob(pattern)) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.002)
+    assert process.poll() is None, f"the run ended before {what}"
+    process.send_signal(signal.SIGTERM)
+    _, err = process.communicate(timeout=60)
+    return process.returncode, err
+
+
 @pytest.fixture(scope="session")
 def slider_file(tmp_path_factory) -> Path:
     """0.3 s of a small slider scene (64x48) with its ground truth (gt/K, gt/poses), as `cmax scene` writes it."""

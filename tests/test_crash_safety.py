@@ -34,6 +34,7 @@ import pytest
 from cmax.io import read_h5
 from cmax.sim.convert import ConvertSettings, convert_video
 from cmax.sim.esim import EsimSettings
+from conftest import sigterm_once
 
 pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGKILL"), reason="needs POSIX SIGKILL")
 
@@ -153,15 +154,9 @@ def test_sigterm_cleans_up_like_ctrl_c(tmp_path, workers):
     for seed, name in enumerate(NAMES):
         _write_video(videos / f"{name}.avi", 600, seed)
     output = tmp_path / "events"
-    process = subprocess.Popen([*_command(videos, output), "--workers", str(workers)],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 120
-    while not list(output.glob("*.h5.*.partial")) and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.002)
-    assert process.poll() is None, "the conversion ended before a video was being written"
-    process.send_signal(signal.SIGTERM)
-    _, err = process.communicate(timeout=60)
-    assert process.returncode == 143, err
+    status, err = sigterm_once([*_command(videos, output), "--workers", str(workers)], output, "*.h5.*.partial",
+                               "a video was being written")
+    assert status == 143, err
     assert "cmax simulate: terminated (SIGTERM)" in err and "Traceback" not in err
     left = sorted(path.name for path in output.iterdir())
     assert not [name for name in left if name.endswith((".partial", ".lock"))], left

@@ -206,23 +206,16 @@ def test_sigterm_of_a_fit_leaves_the_folder_as_it_was(slider_file, tmp_path, cap
     """Was: ``timeout``/``kill`` of ``cmax fit -o F`` (default SIGTERM) left ``F/.results.lock`` and the private
     ``F/.fit.<hex>.partial`` folder behind, and exited without a word. SIGTERM now runs the clean-up of Ctrl-C: exit
     143 with one line, ``F`` exactly as the earlier complete run left it, no lock file, no stage."""
-    import signal
-    import subprocess
     import sys
-    import time
+
+    from conftest import sigterm_once
 
     out = tmp_path / "F"
     assert cmax_main(_fit(slider_file, out)) == 0
     before = {path.name: path.read_bytes() for path in out.iterdir()}
     assert "summary.json" in before
-    process = subprocess.Popen([sys.executable, "-m", "cmax.cli", *_fit(slider_file, out, "--overwrite")],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
-    deadline = time.monotonic() + 120
-    while not list(out.glob(".fit.*.partial")) and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.002)
-    assert process.poll() is None, "the fit ended before its stage folder was seen"
-    process.send_signal(signal.SIGTERM)
-    _, err = process.communicate(timeout=60)
-    assert process.returncode == 143, err
+    status, err = sigterm_once([sys.executable, "-m", "cmax.cli", *_fit(slider_file, out, "--overwrite")], out,
+                               ".fit.*.partial", "its stage folder was seen")
+    assert status == 143, err
     assert "cmax fit: terminated (SIGTERM)" in err and "Traceback" not in err
     assert {path.name: path.read_bytes() for path in out.iterdir()} == before
