@@ -1,4 +1,9 @@
-"""Worker processes that do not outlive the process that started them."""
+"""Worker processes that do not outlive the process that started them, and whose warnings reach the caller.
+
+:func:`recorded` runs a task with its warnings recorded, as plain data a pipe can carry; :func:`reissue` warns
+them again in the calling process, under its filters and in its format, each naming its task (a fit's window,
+a conversion's video). The serial paths use the same pair, so a warning reads the same with or without workers.
+"""
 from __future__ import annotations
 
 import os
@@ -6,8 +11,12 @@ import signal
 import sys
 import threading
 import time
+import warnings
+from typing import Any, Callable, Sequence, TypeVar
 
-__all__ = ["die_with_parent"]
+__all__ = ["die_with_parent", "recorded", "reissue"]
+
+T = TypeVar("T")
 
 _PR_SET_PDEATHSIG = 1
 
@@ -50,3 +59,38 @@ def die_with_parent(main_pid: int) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+
+
+def recorded(call: Callable[[], T]) -> tuple[T, tuple[tuple[str, str], ...]]:
+    """``call()`` with every warning it raises recorded, not shown: ``(result, ((category, message), ...))``, the
+    category as the text ``module:qualname`` (plain data: a class the caller cannot import costs the task
+    nothing, :func:`reissue` falls back to UserWarning), for :func:`reissue`."""
+    with warnings.catch_warnings(record=True) as caught:
+        warnings.simplefilter("always")
+        result = call()
+    return result, tuple((f"{w.category.__module__}:{w.category.__qualname__}", str(w.message)) for w in caught)
+
+
+def reissue(prefix: str, caught: Sequence[tuple[str, str]], *, stacklevel: int) -> None:
+    """Warn again the ``(category, message)`` pairs ``caught`` (:func:`recorded`'s), each message prefixed with
+    ``prefix: ``; ``stacklevel`` as :func:`warnings.warn` takes it, counted from the caller's frame."""
+    for name, message in caught:
+        warnings.warn(f"{prefix}: {message}", _category_of(name), stacklevel=stacklevel + 1)
+
+
+def _category_of(name: str) -> type:
+    """The warning class that :func:`recorded` named ``module:qualname``, or UserWarning when it cannot be found.
+
+    >>> _category_of("builtins:RuntimeWarning"), _category_of("nowhere:Gone")
+    (<class 'RuntimeWarning'>, <class 'UserWarning'>)
+    """
+    import importlib
+
+    module, _, qualname = name.partition(":")
+    try:
+        found: Any = importlib.import_module(module)
+        for part in qualname.split("."):
+            found = getattr(found, part)
+    except Exception:
+        return UserWarning
+    return found if isinstance(found, type) and issubclass(found, Warning) else UserWarning

@@ -42,17 +42,16 @@ from __future__ import annotations
 import multiprocessing
 import os
 import signal
-import warnings
 from contextlib import closing
 from concurrent.futures import FIRST_COMPLETED, Future, ProcessPoolExecutor, wait
 from dataclasses import dataclass, field
-from typing import Callable, Iterable, Iterator, Sequence
+from typing import Iterable, Iterator, Sequence
 
 import numpy as np
 from tqdm.auto import tqdm
 
 from cmax._threads import available_cores, set_blas_threads
-from cmax._workers import die_with_parent
+from cmax._workers import die_with_parent, recorded, reissue
 from cmax.camera import camera_and_intrinsics, pinhole_events
 from cmax.events import Events
 from cmax.fitting.api import (MODELS, FitResult, _check_inputs, _check_speed, _known_omega, _pose_twist, _settings,
@@ -225,24 +224,8 @@ def run_tasks(tasks: Iterable[FitTask], jobs: int, *, total: int | None = None, 
                     done[index] = outcome
                     bar.update(1)
     for index in sorted(done):
-        reissue_warnings(index, done[index][1], stacklevel=3)
+        reissue(f"window {index}", done[index][1], stacklevel=3)
     return [done[index][0] for index in sorted(done)]
-
-
-def reissue_warnings(index: int, caught: tuple, *, stacklevel: int) -> None:
-    """Warn again the ``(category, message)`` pairs ``caught`` (:func:`recorded`'s) of the window ``index``, each
-    prefixed with ``window i:``; ``stacklevel`` as :func:`warnings.warn` takes it from the caller's frame."""
-    for category, message in caught:
-        warnings.warn(f"window {index}: {message}", category, stacklevel=stacklevel + 1)
-
-
-def recorded(call: Callable[[], FitResult]) -> tuple[FitResult, tuple]:
-    """``call()`` (a fit) with its warnings recorded, not shown: ``(result, ((category, message), ...))``, for
-    :func:`reissue_warnings`."""
-    with warnings.catch_warnings(record=True) as caught:
-        warnings.simplefilter("always")
-        result = call()
-    return result, tuple((w.category, str(w.message)) for w in caught)
 
 
 def _fit_task(task: FitTask) -> tuple[int, FitResult, tuple]:

@@ -11,7 +11,8 @@ from cmax._threads import torch_threads_scope
 from cmax.camera import camera_and_intrinsics, pinhole_events
 from cmax.events import Events, check_time_us, uncovered_tail, window_starts
 from cmax.fitting.api import MIN_WINDOW_EVENTS, FitResult, _check_inputs, _check_speed, _settings, fit
-from cmax.fitting.batch import FitTask, check_jobs, check_options, recorded, reissue_warnings, run_tasks
+from cmax._workers import recorded, reissue
+from cmax.fitting.batch import FitTask, check_jobs, check_options, run_tasks
 from cmax.fitting.quality import MotionScorer, Verdict, _distance_deg, choose_from_neighbours, choose_from_run
 from cmax.fitting.settings import FitSettings
 from cmax.fitting.window import Window
@@ -259,7 +260,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         for task in tqdm(tasks(), desc="windows", unit="window", total=len(starts), disable=not progress):
             start = previous if warm_start else None
             previous, caught = recorded(lambda: fit(task.events, task.K, task.model, init=start, **task.options))
-            reissue_warnings(task.index, caught, stacklevel=2)       # naming the window, as jobs > 1 does
+            reissue(f"window {task.index}", caught, stacklevel=2)     # naming the window, as jobs > 1 does
             results.append(previous)
     else:
         results = run_tasks(tasks(), min(jobs, max(1, len(starts))), total=len(starts), progress=progress)

@@ -53,7 +53,7 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from cmax._workers import die_with_parent
+from cmax._workers import die_with_parent, recorded, reissue
 from cmax.io import VIDEO_SUFFIXES
 from cmax.io.atomic import PathLock, discard_leftovers, file_sha256, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
@@ -970,42 +970,9 @@ def _worker(connection, main_pid: int, job: VideoJob, output: Path, settings: Co
     """Entry point of a worker process: one video, the result sent back through ``connection``."""
     die_with_parent(main_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the workers itself
-    with warnings.catch_warnings(record=True) as caught:  # re-issued by the parent (its filters, its format),
-        warnings.simplefilter("always")                      # as cmax.fitting.batch.recorded does for fits
-        result = _run_job(job, output, settings, position)
-    connection.send((result, [(_category_name(w.category), str(w.message)) for w in caught]))
+    result, caught = recorded(lambda: _run_job(job, output, settings, position))   # re-issued by the parent
+    connection.send((result, caught))
     connection.close()
-
-
-def _category_name(category: type) -> str:
-    """``module:qualname`` of a warning class: sent as text, so that a class the parent cannot import costs
-    the video nothing (:func:`_category_of` falls back to UserWarning)."""
-    return f"{category.__module__}:{category.__qualname__}"
-
-
-def _category_of(name: str) -> type:
-    """The warning class :func:`_category_name` named, or UserWarning when it cannot be found here.
-
-    >>> _category_of("builtins:RuntimeWarning"), _category_of("nowhere:Gone")
-    (<class 'RuntimeWarning'>, <class 'UserWarning'>)
-    """
-    import importlib
-
-    module, _, qualname = name.partition(":")
-    try:
-        found: Any = importlib.import_module(module)
-        for part in qualname.split("."):
-            found = getattr(found, part)
-    except Exception:
-        return UserWarning
-    return found if isinstance(found, type) and issubclass(found, Warning) else UserWarning
-
-
-def _reissue(job: VideoJob, caught: Sequence[tuple[str, str]]) -> None:
-    """The warnings a worker caught converting ``job`` (category names, messages), issued again in this
-    process, naming the video."""
-    for name, message in caught:
-        warnings.warn(f"{job.name}: {message}", _category_of(name), stacklevel=2)
 
 
 def _worker_context():
@@ -1061,7 +1028,7 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
                     result, caught = None, []
                 finally:
                     receive.close()
-                _reissue(job, caught)
+                reissue(job.name, caught, stacklevel=1)
                 process.join(timeout=60)
                 if process.exitcode is None:  # sent its result but does not exit
                     process.kill()
