@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from cmax._threads import blas_threads_scope, torch_threads_scope
-from cmax.camera import check_intrinsics, intrinsics_oddity, pinhole_events
+from cmax.camera import check_intrinsics, check_principal_point, intrinsics_oddity, pinhole_events
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events, require_events
 from cmax.hot_pixels import no_pixels
@@ -227,10 +227,7 @@ def _check_inputs(events: object, K: object, model: str) -> np.ndarray:
     K = check_intrinsics(K)
     if abs(np.linalg.det(K)) < 1e-12:
         raise ValueError(f"K must be invertible, got {K.tolist()}")
-    cx, cy = float(K[0, 2]), float(K[1, 2])
-    if not (-0.5 <= cx <= events.width - 0.5 and -0.5 <= cy <= events.height - 0.5):
-        raise ValueError(f"K's principal point ({cx:g}, {cy:g}) lies outside the {events.width}x{events.height} "
-                         "image: K belongs to another sensor size or crop (give the K of these pixels)")
+    check_principal_point(K, events.width, events.height)
     if len(events) < MIN_WINDOW_EVENTS:
         raise ValueError(f"events: a window needs at least {MIN_WINDOW_EVENTS} events to fit a motion, got "
                          f"{len(events)}")
