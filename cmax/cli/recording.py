@@ -414,7 +414,8 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray
 def _yaml_tree(text: str) -> dict:
     """The nested mappings of a small YAML file as dicts of strings (no YAML library): ``key: value`` lines by
     their indentation; a key without a value opens a mapping, or a list when ``- item`` lines follow it (block
-    style, as PyYAML writes by default). A list becomes the text ``[item, item, ...]``."""
+    style, as PyYAML writes by default), held as the list of its items' text (a flow list ``[a, b]`` stays one
+    string); :func:`_yaml_intrinsics` writes a block list back as ``[a, b, ...]``."""
     root: dict = {}
     stack: list[tuple[int, dict]] = [(-1, root)]      # (indentation of the key that opened it, mapping)
     opened: tuple[dict, str, int] | None = None       # the last key without a value: (its mapping, key, indentation)
