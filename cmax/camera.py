@@ -184,13 +184,15 @@ class Camera:
         cls, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
         distortion: object = None,
     ) -> "Camera":
-        """Camera from focal lengths and principal point (pixels)."""
+        """Camera from focal lengths ``fx``, ``fy`` and principal point ``cx``, ``cy`` [px], the sensor's ``width`` x
+        ``height`` [px] and OpenCV's ``distortion`` coefficients ``(k1, k2, p1, p2[, k3, ...])`` (None: a pinhole)."""
         K = intrinsics_matrix([fx, fy, cx, cy])
         return cls(K, width, height, None if distortion is None else np.asarray(distortion))
 
     @classmethod
     def from_ecd_calib(cls, path: str | os.PathLike, width: int = 240, height: int = 180) -> "Camera":
-        """Camera from an ECD ``calib.txt`` (``fx fy cx cy k1 k2 p1 p2 k3``)."""
+        """Camera from an ECD ``calib.txt`` at ``path`` (``fx fy cx cy k1 k2 p1 p2 k3``), of a sensor ``width`` x
+        ``height`` [px] (the file states no size; ECD's DAVIS240C: 240 x 180)."""
         values = np.loadtxt(Path(path), dtype=np.float64).ravel()
         if values.size not in (4, 8, 9):
             raise ValueError(f"{path}: expected 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got {values.size} numbers")
@@ -219,7 +221,7 @@ class Camera:
 
     # -- geometry ---------------------------------------------------------------------
     def project(self, points_c: np.ndarray) -> np.ndarray:
-        """Pinhole projection of camera-frame points (N, 3) [m] to pixels (N, 2) (no distortion).
+        """Pinhole projection of camera-frame points ``points_c`` (N, 3) [m] to pixels (N, 2) float64 (no distortion).
 
         Points must be finite and in front of the camera (z > 0); others have no
         image and raise :class:`ValueError`.

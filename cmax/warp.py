@@ -134,7 +134,8 @@ class DepthGrid:
     of the image: ``x = (j + 1/2) W / gw - 1/2``, ``y = (i + 1/2) H / gh - 1/2``
     (the convention of ``cv2.resize(..., INTER_LINEAR)``); beyond the outer nodes
     the values are held constant. The interpolation weights of fixed pixels are
-    computed once (:meth:`weights`), then :meth:`sample` is a gather.
+    computed once (:meth:`weights`), then :meth:`sample` is a gather. ``shape``: (gh, gw), at most the image's
+    ``height`` x ``width`` [px].
     """
 
     shape: tuple[int, int]
@@ -166,11 +167,12 @@ class DepthGrid:
 
     @staticmethod
     def sample(values: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-        """Interpolated values (N,) of a grid ``values`` (gh, gw) or (gh*gw,) at precomputed weights."""
+        """Interpolated values (N,) of a grid ``values`` (gh, gw) or (gh*gw,) at the precomputed ``index`` and
+        ``weight`` (N, 4) of :meth:`weights`."""
         return (values.reshape(-1)[index] * weight).sum(-1)
 
     def cell_of(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        """Flat index (N,) of the cell holding each pixel (the nearest node)."""
+        """Flat index (N,) of the cell holding each pixel ``x, y`` (N,) (the nearest node)."""
         gh, gw = self.shape
         j = (x * gw / self.width).long().clamp(0, gw - 1)
         i = (y * gh / self.height).long().clamp(0, gh - 1)
@@ -249,7 +251,8 @@ class WarpEvents:
         adds a seeded uniform offset in [-0.5, 0.5) px to each coordinate: an
         event stands for its whole pixel, and without it every warp that keeps
         events on integer positions (zero flow along an axis) gets a spuriously
-        high contrast from unsplit bilinear votes.
+        high contrast from unsplit bilinear votes. ``seed`` seeds the subset and the dither; ``dtype`` is
+        that of the tensors (float32 or float64).
         """
         K = check_intrinsics(K)
         n = len(events)
@@ -271,6 +274,7 @@ class WarpEvents:
                    as_t(K), events.width, events.height, t0, t1)
 
     def dt(self, reference_fractions: tuple[float, ...]) -> torch.Tensor:
-        """``t_i - t_ref`` (B, N) [s] for reference times at fractions of the window (0 = start, 1 = end)."""
+        """``t_i - t_ref`` (R, N) [s] for R reference times at ``reference_fractions`` of the window (0 = start,
+        1 = end)."""
         refs = torch.tensor([f * self.duration_s for f in reference_fractions], dtype=self.t.dtype)
         return self.t[None, :] - refs[:, None]

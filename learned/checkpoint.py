@@ -63,7 +63,7 @@ def rng_state() -> dict[str, Any]:
 
 
 def set_rng_state(state: dict[str, Any]) -> None:
-    """Restore the generators from :func:`rng_state`."""
+    """Restore the generators from ``state``, as :func:`rng_state` returns it."""
     random.setstate(state["python"])
     saved = state["numpy"]
     np.random.set_state({"bit_generator": saved["bit_generator"],
@@ -372,7 +372,8 @@ def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m learned.checkpoint upgrade OLD NEW --trust-this-file``."""
+    """``python -m learned.checkpoint upgrade OLD NEW --trust-this-file``; ``argv``: the arguments (None: the
+    command line's); returns the exit status."""
     from cmax._args import ArgumentParser, run_main
 
     parser = ArgumentParser(prog="python -m learned.checkpoint",

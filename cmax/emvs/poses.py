@@ -179,7 +179,7 @@ def check_header(line: str, path: str | os.PathLike) -> None:
 
 
 def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory file: one pose per line, ``t tx ty tz qx qy qz qw``.
+    """Read the TUM trajectory file at ``path``: one pose per line, ``t tx ty tz qx qy qz qw``.
 
     ``t`` is in seconds (read as a decimal, so absolute times keep their
     microseconds), the translation in metres, the unit quaternion in

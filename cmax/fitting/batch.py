@@ -75,8 +75,8 @@ _AHEAD = 2
 
 
 class WindowFitError(RuntimeError):
-    """The fit of one window of :func:`fit_windows` raised; ``index`` is its position in the input and
-    the original exception is ``__cause__``."""
+    """The fit of one window of :func:`fit_windows` raised; ``index`` is its position in the input,
+    ``message`` names it and the original exception, which is ``__cause__``."""
 
     def __init__(self, index: int, message: str) -> None:
         super().__init__(message)

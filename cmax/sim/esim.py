@@ -252,7 +252,7 @@ class EventSimulator:
 
     @classmethod
     def from_settings(cls, settings: EsimSettings) -> "EventSimulator":
-        """A simulator with the given :class:`EsimSettings`."""
+        """A simulator with the given ``settings`` (:class:`EsimSettings`)."""
         if not isinstance(settings, EsimSettings):
             raise TypeError(f"settings must be EsimSettings, got {type(settings).__name__}")
         s = settings

@@ -130,7 +130,8 @@ class PlanarScene:
         return self.renderer.render(self.pose(_check_time(t_s)))
 
     def render_pose(self, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Intensity and depth seen from any pose ``T_w_c`` (4, 4)."""
+        """Intensity (H, W) float32 [0, 255] and z-depth (H, W) float32 [m, NaN = sky] seen from any camera-to-world
+        pose ``T_w_c`` (4, 4)."""
         return self.renderer.render(T_w_c)
 
     def pose(self, t_s: float) -> np.ndarray:
@@ -338,6 +339,8 @@ class RGBDScene:
         return self.render_pose(self.pose(t_s))
 
     def render_pose(self, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Intensity (H, W) float32 and z-depth (H, W) float32 [m, NaN where unknown] seen from any camera-to-world
+        pose ``T_w_c`` (4, 4): the reference image warped by its depth, occluded pixels NaN."""
         T_c_ref = invert_pose(T_w_c) @ self.T_w_ref
         depth = self._forward_depth(T_c_ref)
         T_ref_c = invert_pose(T_c_ref)
