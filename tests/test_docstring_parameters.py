@@ -16,7 +16,8 @@ import pytest
 
 MODULES = (
     "cmax", "cmax.io", "cmax.representations", "cmax.sim", "cmax.contrast", "cmax.fitting", "cmax.emvs",
-    "learned.model", "learned.losses", "learned.data", "learned.config", "learned.checkpoint",
+    "learned.model", "learned.losses", "learned.data", "learned.config", "learned.checkpoint", "learned.train",
+    "learned.evaluate", "learned.predict",
 )
 SECTION = re.compile(r"^(?P<name>[A-Z][A-Za-z ]+)\n-{3,}\n", re.MULTILINE)
 
@@ -69,9 +70,9 @@ def listed_parameters(text: str) -> list[str]:
         end = sections[i + 1].start() if i + 1 < len(sections) else len(text)
         names = []
         for line in text[section.end():end].splitlines():
-            if line and not line[0].isspace():
-                head = line.split(" : ")[0]
-                names += [n.strip().lstrip("*") for n in head.split(",") if re.fullmatch(r"\**\w+", n.strip())]
+            entry = re.fullmatch(r"(?P<names>\**\w+(?:, \**\w+)*)(?: : .*)?", line)
+            if entry:                    # ``name : type`` or ``a, b : type`` (prose lines of the section are not)
+                names += [n.strip().lstrip("*") for n in entry.group("names").split(",")]
         return names
     return []
 
