@@ -268,7 +268,8 @@ def iwe_numpy(
     x: np.ndarray, y: np.ndarray, *, height: int, width: int,
     weights: np.ndarray | None = None, sigma: float = 1.0,
 ) -> np.ndarray:
-    """NumPy entry point of :func:`image_of_warped_events`: (N,) arrays in, (H, W) float32 out."""
+    """NumPy entry point of :func:`image_of_warped_events`: ``x``, ``y`` [px] and ``weights`` (N,) arrays in,
+    (``height``, ``width``) float32 out, blurred by ``sigma`` [px]."""
     def tensor(values: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32))
 

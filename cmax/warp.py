@@ -113,7 +113,8 @@ def se3_parts(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torc
               ) -> tuple[torch.Tensor, torch.Tensor]:
     """The two depth-free parts of :func:`warp_se3`: ``R(omega dt) ray`` and ``J(omega dt) v dt``, each
     (..., N, 3), so that ``warp_se3 = project(rotated + rho * moved, K)`` for any inverse depth ``rho``
-    (a sweep over depths computes them once). Shapes and units as :func:`warp_se3`."""
+    (a sweep over depths computes them once). ``rays`` (N, 3), ``dt`` (N,) or (B, N) [s], ``v`` (3,) [m/s],
+    ``omega`` (3,) [rad/s]: shapes and units as :func:`warp_se3`."""
     w = omega * dt[..., None]
     shape = w.shape
     rays = rays.expand(shape)
