@@ -180,7 +180,7 @@ def render_window(
 ) -> np.ndarray:
     """Picture of ``[t0_s, t0_s + dt_s)`` seconds after the first event of the file at ``path`` (see
     :func:`render_events`: ``mode``, ``bins``); ``width``, ``height``, ``time_unit`` and ``options`` (e.g.
-    ``polarity='signed'``) go to the reader, as in :func:`read_window`."""
+    ``polarity='signed'``) go to the reader, as in :func:`read_window`. Returns a BGR uint8 picture (h, w, 3)."""
     events, depth = read_window(path, t0_s, dt_s, width=width, height=height, time_unit=time_unit, **options)
     span = f" (events over {(int(events.t[-1]) - int(events.t[0])) * 1e-3:.3g} ms)" if len(events) else ""
     title = f"{Path(path).name}, {t0_s:g} s + {dt_s * 1e3:g} ms{span}: "   # a file may end within the window

@@ -395,8 +395,9 @@ def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_sca
 
 def depth_panel(depth: np.ndarray, scale: "DepthScale | tuple[float, float] | None" = None,
                 title: str = "depth", *, unit: str = "m") -> np.ndarray:
-    """A depth map with its title and a colour bar in ``unit`` (metres by default; ``""`` for depth
-    up to scale) (``scale`` as in :func:`depth_image`)."""
+    """A depth map ``depth`` (H, W) [``unit``, NaN: no estimate] with its ``title`` and a colour bar in ``unit``
+    (metres by default; ``""`` for depth up to scale) (``scale`` as in :func:`depth_image`): a BGR uint8
+    picture (h, w, 3)."""
     depth = np.asarray(depth, dtype=np.float32)
     if depth.ndim != 2:
         raise ValueError(f"depth must have shape (H, W), got {depth.shape}")
@@ -498,7 +499,8 @@ def vstack(images: list[np.ndarray], *, gap: int = 4) -> np.ndarray:
 
 
 def grid(images: list[np.ndarray], columns: int, *, gap: int = 4) -> np.ndarray:
-    """``images`` in rows of ``columns``, left to right then top to bottom, ``gap`` px apart."""
+    """``images`` (BGR uint8) in rows of ``columns``, left to right then top to bottom, ``gap`` px apart: one
+    (h, w, 3) uint8 picture."""
     images = _check_pictures(images)
     if isinstance(columns, bool) or not isinstance(columns, (int, np.integer)) or columns < 1:
         raise ValueError(f"columns must be an integer >= 1, got {columns!r}")
@@ -507,7 +509,7 @@ def grid(images: list[np.ndarray], columns: int, *, gap: int = 4) -> np.ndarray:
 
 
 def save_image(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write a BGR or grey uint8 image atomically in the format of ``path``'s extension
+    """Write ``image``, (H, W, 3) BGR or (H, W) grey uint8, atomically in the format of ``path``'s extension
     (``.png``, or JPEG for ``.jpg``/``.jpeg``); any other extension is refused with ``ValueError``."""
     path = Path(path)
     suffix = path.suffix.lower()

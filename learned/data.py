@@ -157,7 +157,7 @@ def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0) ->
 
 
 def collate(items: Sequence[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-    """Stack ``items``, entries of :func:`to_item` (all of one sensor size and ``max_events``), into (B, ...) tensors."""
+    """Stack ``items``, entries of :func:`to_item` (all of one sensor size and ``max_events``), into (B, ...) tensors (e.g. ``volume`` (B, bins, H, W))."""
     return {key: torch.stack([item[key] for item in items]) for key in items[0]}
 
 

@@ -95,8 +95,9 @@ def gradient_matching_loss(pred_depths: tuple[torch.Tensor, ...] | list[torch.Te
 
 def teacher_loss(pred_depths, gt_depth: torch.Tensor, mask: torch.Tensor, *, lam: float = LAMBDA,
                  variance_weight: float = 1.0) -> torch.Tensor:
-    """``L_si + lam * L_grad`` (EvtSlowTV eq. 14) on the finest prediction and all scales: ``pred_depths`` and
-    ``gt_depth``, ``mask`` as :func:`gradient_matching_loss`; ``variance_weight`` as :func:`scale_invariant_loss`."""
+    """``L_si + lam * L_grad`` (EvtSlowTV eq. 14) on the finest prediction and all scales, a scalar tensor ():
+    ``pred_depths`` ((B, 1, H_s, W_s) [m], finest first) and ``gt_depth`` (B, 1, H, W) [m], ``mask`` (B, 1, H, W)
+    bool as :func:`gradient_matching_loss`; ``variance_weight`` as :func:`scale_invariant_loss`."""
     return (scale_invariant_loss(pred_depths[0], gt_depth, mask, variance_weight=variance_weight)
             + lam * gradient_matching_loss(pred_depths, gt_depth, mask))
 

@@ -640,7 +640,7 @@ def predict_file(checkpoint: str | Path | None, path: str | Path, out: str | Pat
                  window_us: int | None = None, depth_range: tuple[float, float] | None = None,
                  progress: bool = True, **options: Any) -> int:
     """:func:`run_prediction` of ``checkpoint`` on the file ``path`` into ``out``, with the window ``window_us`` in µs
-    (None: the checkpoint's); ``K``, ``depth_range``, ``progress`` and ``**options`` as there. Returns the number
+    (None: the checkpoint's); ``K`` (3, 3) or (4,) [px], ``depth_range``, ``progress`` and ``**options`` as there. Returns the number
     of windows written."""
     window_s = None if window_us is None else int(window_us) * 1e-6
     return run_prediction(path, out, checkpoint=checkpoint, K=K, window_s=window_s, depth_range=depth_range,

@@ -111,3 +111,19 @@ def test_the_checks_catch_a_missing_and_a_stale_parameter():
 
     assert listed_parameters(docstring(documented)) == ["a", "c"]
     assert "b" not in docstring(documented)
+
+
+ARRAY = re.compile(r"ndarray|Tensor")
+SHAPE = re.compile(r"\((?:\.\.\., ?)?[\w+* -]+(?:, ?[\w+* -]*)*\)|shape")
+
+
+@pytest.mark.parametrize("name, obj", CALLABLES, ids=[name for name, _ in CALLABLES])
+def test_a_callable_taking_or_giving_arrays_states_a_shape(name, obj):
+    """An array argument or result comes with its shape, e.g. ``(N,)``, ``(B, H, W)`` or ``shape (3, 3)``."""
+    try:
+        signature = inspect.signature(obj)
+    except ValueError:
+        return
+    arrays = [p.name for p in signature.parameters.values() if ARRAY.search(str(p.annotation))]
+    if arrays or ARRAY.search(str(signature.return_annotation)):
+        assert SHAPE.search(docstring(obj)), f"{name}: arrays ({arrays or 'its result'}) but no shape in its docstring"

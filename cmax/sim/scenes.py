@@ -255,7 +255,7 @@ class TimeScaledScene:
             f"{info.description} (played {self.factor:g}x faster)".strip())
 
     def render(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """Intensity and z-depth of the wrapped scene at ``factor * t_s``."""
+        """Intensity (H, W) float32 and z-depth (H, W) float32 [m] of the wrapped scene at ``factor * t_s`` [s]."""
         return self.scene.render(self.factor * _check_time(t_s))
 
     def pose(self, t_s: float) -> np.ndarray:
@@ -263,7 +263,7 @@ class TimeScaledScene:
         return self.scene.pose(self.factor * _check_time(t_s))
 
     def twist(self, t_s: float) -> np.ndarray:
-        """``factor`` x the wrapped scene's body twist at ``factor * t_s`` [m/s, rad/s]."""
+        """``factor`` x the wrapped scene's body twist ``(v, omega)`` (6,) at ``factor * t_s`` [m/s, rad/s]."""
         return self.factor * np.asarray(self.scene.twist(self.factor * _check_time(t_s)), dtype=np.float64)
 
     def __repr__(self) -> str:
