@@ -70,6 +70,7 @@ def check_principal_point(K: np.ndarray, width: int, height: int, name: str = "K
     ``height`` image (beyond half a pixel past its edge pixels' centres): such a K is another sensor size's or
     crop's, e.g. the calibration of frames that ``cmax simulate --size`` resized (``cmax.fit`` refuses it too).
 
+    >>> import numpy as np
     >>> check_principal_point(np.array([[335.4, 0, 129.9], [0, 335.4, 99.2], [0, 0, 1]]), 240, 180)
     >>> check_principal_point(np.array([[335.4, 0, 129.9], [0, 335.4, 99.2], [0, 0, 1]]), 120, 90)
     Traceback (most recent call last):
@@ -95,6 +96,7 @@ def intrinsics_oddity(K: np.ndarray, width: int, height: int) -> str | None:
     against ROS's row order ``fx, cx, fy, cy``, or ``cx, cy, fx, fy``); a crop can move the centre, so
     callers warn, they do not refuse.
 
+    >>> import numpy as np
     >>> intrinsics_oddity(np.array([[226.38, 0, 173.64], [0, 226.15, 133.73], [0, 0, 1]]), 346, 260) is None
     True
     >>> intrinsics_oddity(np.array([[226.38, 0, 226.15], [0, 173.64, 133.73], [0, 0, 1]]), 346, 260)[:40]
@@ -151,6 +153,7 @@ class Camera:
 
     Examples
     --------
+    >>> import numpy as np
     >>> cam = Camera.from_intrinsics(200.0, 200.0, 120.0, 90.0, 240, 180)
     >>> cam.project(np.array([[0.0, 0.0, 2.0]])).tolist()
     [[120.0, 90.0]]

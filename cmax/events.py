@@ -206,6 +206,7 @@ def float_step(values: np.ndarray) -> tuple[int, float]:
     it to the next value its dtype holds below it (in ``values``' unit): times whose step exceeds 1 µs have lost
     microseconds.
 
+    >>> import numpy as np
     >>> float_step(np.array([3.0, 2.0**24 + 2], np.float32))
     (1, 2.0)
     """

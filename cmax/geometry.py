@@ -83,6 +83,7 @@ def hat(x: object) -> np.ndarray:
 
     Examples
     --------
+    >>> import numpy as np
     >>> hat([0.0, 0.0, 1.0]) @ np.array([1.0, 0.0, 0.0])
     array([0., 1., 0.])
     """
@@ -132,6 +133,7 @@ def so3_exp(omega: object) -> np.ndarray:
 
     Examples
     --------
+    >>> import numpy as np
     >>> np.round(so3_exp([0.0, 0.0, np.pi / 2]) @ [1.0, 0.0, 0.0], 12)
     array([0., 1., 0.])
     """

@@ -136,6 +136,7 @@ def sample_bilinear(images: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> t
 
     Examples
     --------
+    >>> import torch
     >>> image = torch.tensor([[[0.0, 2.0], [4.0, 6.0]]])
     >>> sample_bilinear(image, torch.tensor([[0.5]]), torch.tensor([[0.5]])).tolist()
     [[3.0]]
@@ -245,6 +246,7 @@ def image_of_warped_events(
 
     Examples
     --------
+    >>> import torch
     >>> x = torch.tensor([1.5]); y = torch.tensor([2.0])
     >>> image_of_warped_events(x, y, height=4, width=4, sigma=0)[2].tolist()
     [0.0, 0.5, 0.5, 0.0]

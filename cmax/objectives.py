@@ -55,6 +55,7 @@ def variance(images: torch.Tensor) -> torch.Tensor:
 
     Examples
     --------
+    >>> import torch
     >>> float(variance(torch.tensor([[0.0, 2.0], [0.0, 2.0]])))
     1.0
     """
@@ -70,6 +71,7 @@ def gradient_magnitude(images: torch.Tensor) -> torch.Tensor:
 
     Examples
     --------
+    >>> import torch
     >>> float(gradient_magnitude(torch.tensor([[0.0, 2.0, 4.0]] * 3)))
     4.0
     """
@@ -168,6 +170,7 @@ def total_variation(grid: torch.Tensor, *, epsilon: float = 1e-3) -> torch.Tenso
 
     Examples
     --------
+    >>> import torch
     >>> round(float(total_variation(torch.zeros(4, 4))), 6)
     0.001
     """

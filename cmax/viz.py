@@ -65,6 +65,7 @@ def readable_zoom(width: int) -> int:
 def enlarge(values: np.ndarray, zoom: int) -> np.ndarray:
     """``values`` (H, W) with each pixel a ``zoom x zoom`` block (H zoom, W zoom); ``zoom`` a whole number >= 1.
 
+    >>> import numpy as np
     >>> enlarge(np.array([[1, 2]]), 2).tolist()
     [[1, 1, 2, 2], [1, 1, 2, 2]]
     """
@@ -348,6 +349,7 @@ def depth_bar_labels(depths: np.ndarray, unit: str = "m") -> list[str]:
     :meth:`DepthScale.level` clips, so a depth nearer than the near end takes its colour (and one farther
     than the far end the far colour).
 
+    >>> import numpy as np
     >>> depth_bar_labels(np.array([1.0, 2.0, 4.0]))
     ['<= 1 m', '2 m', '>= 4 m']
     """

@@ -66,6 +66,7 @@ def warp_flow(x: torch.Tensor, y: torch.Tensor, dt: torch.Tensor, flow: torch.Te
 
     Examples
     --------
+    >>> import torch
     >>> warp_flow(torch.tensor([10.0]), torch.tensor([5.0]), torch.tensor([0.1]), torch.tensor([20.0, -10.0]))
     (tensor([8.]), tensor([6.]))
     """

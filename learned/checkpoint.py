@@ -100,6 +100,7 @@ def nonfinite_tensors(state: dict[str, torch.Tensor]) -> list[str]:
     in ``state``'s order (integer tensors, e.g. a step counter, are never non-finite; entries that are not
     tensors are left to the caller).
 
+    >>> import torch
     >>> nonfinite_tensors({"a": torch.ones(2), "b": torch.tensor([1.0, float("nan")]), "n": torch.tensor(3)})
     ['b']
     """

@@ -177,6 +177,7 @@ class DepthPoseNet(nn.Module):
 
     Examples
     --------
+    >>> import torch
     >>> net = DepthPoseNet(ModelConfig(width=4, levels=2))
     >>> out = net(torch.zeros(2, 5, 30, 41))
     >>> out.inverse_depth.shape, out.twist.shape

@@ -206,6 +206,7 @@ def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, wher
     numbers in another order?); empty when they agree or nothing is recorded. ``width``, ``height``: this
     sensor's size [px]; ``K`` (3, 3): its intrinsics [px]; ``where``: how the notes name the card.
 
+    >>> import numpy as np
     >>> K = np.array([[200.0, 0, 32], [0, 200, 24], [0, 0, 1]])
     >>> camera_notes(None, 64, 48, K)
     []
@@ -341,6 +342,7 @@ def window_picture(depth: np.ndarray, scale, title: str) -> np.ndarray:
     ``z x z`` block when the sensor is narrower than :data:`cmax.viz.MIN_PICTURE_WIDTH`
     (``z = cmax.viz.readable_zoom(W)``).
 
+    >>> import numpy as np
     >>> window_picture(np.ones((48, 64), np.float32), (0.5, 60.0), "depth").shape[1] >= 5 * 64
     True
     """
@@ -375,6 +377,7 @@ def run_scale(samples: list[np.ndarray], depth_range: tuple[float, float] | None
     """The colour scale of every picture of a run: ``depth_range`` [m] when given, else the 1st-99th
     percentiles of the windows' sampled depths (:meth:`cmax.viz.DepthScale.from_depths`).
 
+    >>> import numpy as np
     >>> run_scale([np.array([1.0, 2.0]), np.array([3.0])], (0.5, 9.0))
     DepthScale(near=0.5, far=9.0)
     >>> run_scale([np.linspace(1.0, 3.0, 101), np.linspace(2.0, 4.0, 101)], None)   # pooled: 1.0-4.0

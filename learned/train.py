@@ -81,6 +81,7 @@ def global_mean(values: dict[str, float], *, world: int, device: torch.device) -
     optimise). A collective: every rank calls it with the same keys in the same order. ``values`` as they are
     when ``world`` is 1. A NaN or an infinity on any rank makes that term non-finite on every rank.
 
+    >>> import torch
     >>> global_mean({"total": 0.5}, world=1, device=torch.device("cpu"))
     {'total': 0.5}
     """

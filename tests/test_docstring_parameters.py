@@ -7,6 +7,7 @@ left out.
 """
 from __future__ import annotations
 
+import doctest
 import enum
 import importlib
 import inspect
@@ -127,3 +128,16 @@ def test_a_callable_taking_or_giving_arrays_states_a_shape(name, obj):
     arrays = [p.name for p in signature.parameters.values() if ARRAY.search(str(p.annotation))]
     if arrays or ARRAY.search(str(signature.return_annotation)):
         assert SHAPE.search(docstring(obj)), f"{name}: arrays ({arrays or 'its result'}) but no shape in its docstring"
+
+
+LIBRARIES = {"np": (re.compile(r"\bnp\."), re.compile(r"import numpy as np")),
+             "torch": (re.compile(r"\btorch\."), re.compile(r"import (?:.*, )?torch\b"))}
+
+
+@pytest.mark.parametrize("name, obj", CALLABLES, ids=[name for name, _ in CALLABLES])
+def test_an_example_imports_numpy_and_torch_itself(name, obj):
+    """An example copied from ``help(...)`` runs in a fresh session: the module's own ``np`` or ``torch``, which
+    doctest lends it, is not there."""
+    source = "".join(example.source for example in doctest.DocTestParser().get_examples(inspect.getdoc(obj) or ""))
+    for library, (used, imported) in LIBRARIES.items():
+        assert not used.search(source) or imported.search(source), f"{name}: its example uses {library} unimported"

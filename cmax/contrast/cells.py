@@ -39,6 +39,7 @@ def contrast_by_cell(images: torch.Tensor, kind: str, cells: tuple[int, int]) ->
 
     Examples
     --------
+    >>> import torch
     >>> images = torch.tensor([[[0.0, 2.0], [0.0, 2.0]]])
     >>> contrast_by_cell(images, "variance", (1, 2)).tolist()
     [[0.5, 0.5]]

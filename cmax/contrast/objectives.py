@@ -143,6 +143,7 @@ def twist_at_speed(twist: torch.Tensor, speed: torch.Tensor | None) -> torch.Ten
 
     Examples
     --------
+    >>> import torch
     >>> twist_at_speed(torch.tensor([[3.0, 0, 4, 0, 0, 1]]), torch.tensor([10.0])).tolist()
     [[6.0, 0.0, 8.0, 0.0, 0.0, 1.0]]
     """

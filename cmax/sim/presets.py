@@ -433,6 +433,7 @@ def make_scene(name: str, seed: int = 0, width: int = 346, height: int = 260, *,
 
     Examples
     --------
+    >>> import numpy as np
     >>> scene = make_scene("slider", seed=1, width=64, height=48, texture_size=64)
     >>> intensity, depth = scene.render(0.5)
     >>> intensity.shape, intensity.dtype.name, bool(np.nanmax(depth) <= 3.0)

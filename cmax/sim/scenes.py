@@ -105,6 +105,7 @@ class PlanarScene:
 
     Examples
     --------
+    >>> import numpy as np
     >>> from cmax.sim.presets import make_scene
     >>> scene = make_scene("indoor_flying", width=64, height=48, texture_size=64)
     >>> intensity, depth = scene.render(0.5)
@@ -231,6 +232,7 @@ class TimeScaledScene:
 
     Examples
     --------
+    >>> import numpy as np
     >>> from cmax.sim.presets import make_scene
     >>> base = make_scene("slider", seed=1, width=32, height=24, duration_s=2.0, texture_size=64)
     >>> fast = TimeScaledScene(base, 2.0)
