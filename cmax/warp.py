@@ -64,6 +64,11 @@ def warp_flow(x: torch.Tensor, y: torch.Tensor, dt: torch.Tensor, flow: torch.Te
     flow : Tensor, shape (2,)
         ``(u_x, u_y)`` [px/s].
 
+    Returns
+    -------
+    x_ref, y_ref : Tensor, shape of ``dt`` ((N,) or (B, N))
+        The events' pixels [px] at ``t_ref``.
+
     Examples
     --------
     >>> import torch
@@ -86,6 +91,11 @@ def warp_rotation(rays: torch.Tensor, dt: torch.Tensor, omega: torch.Tensor, K: 
     omega : Tensor, shape (3,)
         Angular velocity [rad/s], camera frame.
     K : Tensor, shape (3, 3)
+
+    Returns
+    -------
+    x_ref, y_ref : Tensor, shape of ``dt`` ((N,) or (B, N))
+        The events' pixels [px] at ``t_ref``.
     """
     return project(so3_rotate(omega * dt[..., None], rays), K)
 
@@ -105,6 +115,11 @@ def warp_se3(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torch
     inv_depth : Tensor, shape (N,)
         Inverse z-depth ``rho_i`` [1/m] of each event (>= 0).
     K : Tensor, shape (3, 3)
+
+    Returns
+    -------
+    x_ref, y_ref : Tensor, shape of ``dt`` ((N,) or (B, N))
+        The events' pixels [px] at ``t_ref``.
     """
     rotated, moved = se3_parts(rays, dt, v, omega)
     return project(rotated + inv_depth[..., None] * moved, K)

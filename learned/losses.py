@@ -57,6 +57,10 @@ def scale_invariant_loss(pred_depth: torch.Tensor, gt_depth: torch.Tensor, mask:
         Depths [m] (> 0 where ``mask``).
     mask : Tensor (B, 1, H, W) bool
         Valid ground truth. Images without valid pixels contribute 0.
+
+    Returns
+    -------
+    Tensor, shape ()
     """
     _check(pred_depth, gt_depth, mask)
     R = _log_residual(pred_depth, gt_depth, mask).flatten(1)
@@ -114,6 +118,10 @@ def speed_loss(twist: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
     ----------
     twist : Tensor (B, 6) [m/s, rad/s]
     speed : Tensor (B,) [m/s], NaN where unknown.
+
+    Returns
+    -------
+    Tensor, shape ()
     """
     known = ~torch.isnan(speed)
     if not bool(known.any()):
