@@ -70,6 +70,7 @@ def check_principal_point(K: np.ndarray, width: int, height: int, name: str = "K
     ``height`` image (beyond half a pixel past its edge pixels' centres): such a K is another sensor size's or
     crop's, e.g. the calibration of frames that ``cmax simulate --size`` resized (``cmax.fit`` refuses it too).
 
+    >>> import numpy as np
     >>> check_principal_point(np.array([[335.4, 0, 129.9], [0, 335.4, 99.2], [0, 0, 1]]), 240, 180)
     >>> check_principal_point(np.array([[335.4, 0, 129.9], [0, 335.4, 99.2], [0, 0, 1]]), 120, 90)
     Traceback (most recent call last):
@@ -95,6 +96,7 @@ def intrinsics_oddity(K: np.ndarray, width: int, height: int) -> str | None:
     against ROS's row order ``fx, cx, fy, cy``, or ``cx, cy, fx, fy``); a crop can move the centre, so
     callers warn, they do not refuse.
 
+    >>> import numpy as np
     >>> intrinsics_oddity(np.array([[226.38, 0, 173.64], [0, 226.15, 133.73], [0, 0, 1]]), 346, 260) is None
     True
     >>> intrinsics_oddity(np.array([[226.38, 0, 226.15], [0, 173.64, 133.73], [0, 0, 1]]), 346, 260)[:40]
@@ -151,6 +153,7 @@ class Camera:
 
     Examples
     --------
+    >>> import numpy as np
     >>> cam = Camera.from_intrinsics(200.0, 200.0, 120.0, 90.0, 240, 180)
     >>> cam.project(np.array([[0.0, 0.0, 2.0]])).tolist()
     [[120.0, 90.0]]
@@ -184,13 +187,15 @@ class Camera:
         cls, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
         distortion: object = None,
     ) -> "Camera":
-        """Camera from focal lengths and principal point (pixels)."""
+        """Camera from focal lengths ``fx``, ``fy`` and principal point ``cx``, ``cy`` [px], the sensor's ``width`` x
+        ``height`` [px] and OpenCV's ``distortion`` coefficients ``(k1, k2, p1, p2[, k3, ...])`` (None: a pinhole)."""
         K = intrinsics_matrix([fx, fy, cx, cy])
         return cls(K, width, height, None if distortion is None else np.asarray(distortion))
 
     @classmethod
     def from_ecd_calib(cls, path: str | os.PathLike, width: int = 240, height: int = 180) -> "Camera":
-        """Camera from an ECD ``calib.txt`` (``fx fy cx cy k1 k2 p1 p2 k3``)."""
+        """Camera from an ECD ``calib.txt`` at ``path`` (``fx fy cx cy k1 k2 p1 p2 k3``), of a sensor ``width`` x
+        ``height`` [px] (the file states no size; ECD's DAVIS240C: 240 x 180)."""
         values = np.loadtxt(Path(path), dtype=np.float64).ravel()
         if values.size not in (4, 8, 9):
             raise ValueError(f"{path}: expected 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got {values.size} numbers")
@@ -219,7 +224,7 @@ class Camera:
 
     # -- geometry ---------------------------------------------------------------------
     def project(self, points_c: np.ndarray) -> np.ndarray:
-        """Pinhole projection of camera-frame points (N, 3) [m] to pixels (N, 2) (no distortion).
+        """Pinhole projection of camera-frame points ``points_c`` (N, 3) [m] to pixels (N, 2) float64 (no distortion).
 
         Points must be finite and in front of the camera (z > 0); others have no
         image and raise :class:`ValueError`.

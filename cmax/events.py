@@ -206,6 +206,7 @@ def float_step(values: np.ndarray) -> tuple[int, float]:
     it to the next value its dtype holds below it (in ``values``' unit): times whose step exceeds 1 µs have lost
     microseconds.
 
+    >>> import numpy as np
     >>> float_step(np.array([3.0, 2.0**24 + 2], np.float32))
     (1, 2.0)
     """
@@ -356,7 +357,8 @@ class Events:
 
     @classmethod
     def concatenate(cls, parts: Sequence["Events"]) -> "Events":
-        """Join events of the same sensor, in order (:func:`cmax.concatenate`); raises if time would decrease."""
+        """Join ``parts`` (a sequence of Events of the same sensor), in order (:func:`cmax.concatenate`); raises if
+        time would decrease."""
         return concatenate(parts)
 
     @classmethod
@@ -368,7 +370,8 @@ class Events:
         and ``p`` where those are absent (:data:`FIELD_ALIASES`).
 
         Fields may have any integer or bool dtype (``t`` in microseconds);
-        polarity may be {0, 1}, {-1, +1} or bool. Extra fields are ignored.
+        polarity may be {0, 1}, {-1, +1} or bool. Extra fields are ignored. ``width``, ``height``: the
+        sensor size [px]; ``sort``: sort the events by time (stable) where it goes back, else refused.
         """
         array = np.asarray(array)
         names = array.dtype.names
@@ -393,7 +396,8 @@ class Events:
         ``order`` is a permutation of ``"xytp"``, e.g. ``"txyp"`` for the ECD
         text layout. Time must already be in integer microseconds. A
         structured array (named fields, e.g. a tonic data set's events) is read
-        by its field names (:meth:`from_structured`), not by ``order``.
+        by its field names (:meth:`from_structured`), not by ``order``. ``width``, ``height``: the sensor
+        size [px]; ``sort``: sort the events by time (stable) where it goes back, else refused.
         """
         if sorted(order) != sorted("xytp") or len(order) != 4:
             raise ValueError(f"order must be a permutation of 'xytp', got {order!r}")
@@ -421,11 +425,12 @@ class Events:
         return np.stack([getattr(self, name).astype(np.int64) for name in order], axis=1)
 
     def signed_polarity(self, dtype: np.dtype | type = np.float32) -> np.ndarray:
-        """Polarity as -1 (OFF) / +1 (ON), shape (N,), the paper's ``p_i``."""
+        """Polarity as -1 (OFF) / +1 (ON), shape (N,) of ``dtype`` (default float32), the paper's ``p_i``."""
         return (2 * self.p.astype(dtype) - 1).astype(dtype, copy=False)
 
     def to_torch(self, device: object = None, *, signed_polarity: bool = False) -> EventTensors:
-        """The columns as torch tensors (x, y, t int64; p int8, or float32 ±1 if signed)."""
+        """The columns as torch tensors on ``device`` (None: the CPU): x, y, t int64 (t in µs); p int8 in {0, 1},
+        or float32 ±1 with ``signed_polarity``."""
         import torch
 
         p = (
@@ -551,8 +556,8 @@ class Events:
     ) -> Iterator["Events"]:
         """Iterate over windows of fixed duration or of a fixed number of events.
 
-        Give exactly one of ``duration_us`` (windows ``[t0 + k*step, t0 + k*step + duration)``,
-        ``step_us`` defaulting to ``duration_us``, ``t0`` to the first event) or
+        Give exactly one of ``duration_us`` (windows ``[t0 + k*step, t0 + k*step + duration)`` [µs],
+        ``step_us`` defaulting to ``duration_us``, ``t0`` = ``t_start_us`` defaulting to the first event) or
         ``count`` (consecutive windows of ``count`` events; the last may be shorter).
         """
         if (duration_us is None) == (count is None):
@@ -627,7 +632,7 @@ def uncovered_tail(first_us: int, last_us: int, window_us: int, step_us: int) ->
 
 
 def concatenate(parts: Sequence[Events]) -> Events:
-    """Join events of the same sensor, in order; raises if time would decrease."""
+    """Join ``parts`` (a sequence of :class:`Events` of the same sensor), in order; raises if time would decrease."""
     parts = list(parts)
     if not parts:
         raise ValueError("parts must hold at least one Events object")

@@ -71,9 +71,9 @@ def _check_rotations(R: np.ndarray, name: str) -> None:
 
 
 def hat(x: object) -> np.ndarray:
-    """The Lie-algebra matrix of a rotation vector or a twist.
+    """The Lie-algebra matrix of ``x``, a rotation vector or a twist.
 
-    ``omega`` (..., 3) gives the skew-symmetric (..., 3, 3) matrix with
+    A rotation vector ``x = omega`` (..., 3) gives the skew-symmetric (..., 3, 3) matrix with
     ``hat(omega) @ u = cross(omega, u)``::
 
         hat(w) = [[0, -w3, w2], [w3, 0, -w1], [-w2, w1, 0]]
@@ -83,6 +83,7 @@ def hat(x: object) -> np.ndarray:
 
     Examples
     --------
+    >>> import numpy as np
     >>> hat([0.0, 0.0, 1.0]) @ np.array([1.0, 0.0, 0.0])
     array([0., 1., 0.])
     """
@@ -103,7 +104,7 @@ def hat(x: object) -> np.ndarray:
 
 
 def vee(X: object) -> np.ndarray:
-    """Inverse of :func:`hat`: (..., 3, 3) -> (..., 3) and (..., 4, 4) -> (..., 6)."""
+    """Inverse of :func:`hat`: ``X`` (..., 3, 3) -> (..., 3) and (..., 4, 4) -> (..., 6)."""
     array = np.asarray(X, dtype=np.float64)
     if array.ndim < 2 or array.shape[-2:] not in ((3, 3), (4, 4)):
         raise ValueError(f"X must have shape (..., 3, 3) or (..., 4, 4), got {array.shape}")
@@ -132,6 +133,7 @@ def so3_exp(omega: object) -> np.ndarray:
 
     Examples
     --------
+    >>> import numpy as np
     >>> np.round(so3_exp([0.0, 0.0, np.pi / 2]) @ [1.0, 0.0, 0.0], 12)
     array([0., 1., 0.])
     """
@@ -202,7 +204,7 @@ def so3_right_jacobian(omega: object) -> np.ndarray:
 
 
 def so3_left_jacobian_inv(omega: object) -> np.ndarray:
-    """Inverse of :func:`so3_left_jacobian` (..., 3, 3).
+    """Inverse of :func:`so3_left_jacobian` (..., 3, 3) at rotation vectors ``omega`` (..., 3) [rad].
 
     ``J^-1 = I - W/2 + (1/t^2 - (1 + cos t)/(2 t sin t)) W^2``; series
     ``1/12 + t^2/720`` for the last coefficient near 0.
@@ -239,7 +241,7 @@ def se3_exp(xi: object) -> np.ndarray:
 
 
 def se3_log(T: object) -> np.ndarray:
-    """Twists ``(v, omega)`` (..., 6) of poses (..., 4, 4); inverse of :func:`se3_exp`.
+    """Twists ``(v, omega)`` (..., 6) of poses ``T`` (..., 4, 4); inverse of :func:`se3_exp`.
 
     ``omega = so3_log(R)``, ``v = J(omega)^-1 t``.
     """
@@ -272,7 +274,8 @@ def relative_pose(T_w_a: object, T_w_b: object) -> np.ndarray:
 
 
 def transform_points(T_a_b: object, points_b: object) -> np.ndarray:
-    """Points (..., N, 3) of frame b expressed in frame a: ``R_a_b X_b + t_a_b``."""
+    """Points ``points_b`` (..., N, 3) of frame b expressed in frame a by the pose ``T_a_b`` (..., 4, 4):
+    ``R_a_b X_b + t_a_b``, (..., N, 3)."""
     T_a_b = _matrices(T_a_b, 4, "T_a_b")
     points_b = _vectors(points_b, 3, "points_b")
     return points_b @ np.swapaxes(T_a_b[..., :3, :3], -1, -2) + T_a_b[..., None, :3, 3]

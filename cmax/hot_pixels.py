@@ -82,6 +82,7 @@ def hot_pixels(events: Events, factor: float = 8.0, min_events: int = 30) -> np.
     A pixel is hot when it holds more than ``factor`` times the 99th percentile of the event counts of
     the pixels with events, and more than ``min_events`` events (module docstring).
 
+    >>> import numpy as np
     >>> x = np.r_[np.arange(100) % 10, np.full(50, 3)]           # 100 pixels with one event, one with 51
     >>> events = Events(x, np.r_[np.arange(100) // 10, np.full(50, 2)], np.arange(150), np.ones(150), 10, 10)
     >>> hot_pixels(events).tolist()

@@ -136,6 +136,7 @@ def sample_bilinear(images: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> t
 
     Examples
     --------
+    >>> import torch
     >>> image = torch.tensor([[[0.0, 2.0], [4.0, 6.0]]])
     >>> sample_bilinear(image, torch.tensor([[0.5]]), torch.tensor([[0.5]])).tolist()
     [[3.0]]
@@ -166,9 +167,8 @@ def _gaussian_kernel(sigma: float, dtype: torch.dtype, device: torch.device) -> 
 def _separable(stack: torch.Tensor, kernel: torch.Tensor) -> torch.Tensor:
     """Zero-padded separable convolution of (B, 1, H, W) with a symmetric 1-D kernel.
 
-    On the CPU, OpenCV's ``sepFilter2D`` (``BORDER_CONSTANT``): 16 images of
-    346 x 260 in 2 ms against 93 ms for ``conv2d`` with one torch thread
-    (``benchmarks/speed_cmax.py``); the two agree to float rounding. The
+    On the CPU, OpenCV's ``sepFilter2D`` (``BORDER_CONSTANT``), far faster than ``conv2d`` with one
+    torch thread (``benchmarks/speed_cmax.py`` times both); the two agree to float rounding. The
     autograd of :class:`_SymmetricBlur` does not need torch ops here.
     """
     if stack.device.type == "cpu" and stack.dtype in (torch.float32, torch.float64) and stack.numel():
@@ -226,7 +226,8 @@ def polarity_images(x: torch.Tensor, y: torch.Tensor, on: torch.Tensor, height: 
                     weights: torch.Tensor | None = None) -> torch.Tensor:
     """Blurred IWEs of the ON and of the OFF events apart: (2B, H, W), the B ON images first.
 
-    ``x, y`` (B, N) are warped coordinates [px]; ``on`` (N,) or (B, N) is 1 for
+    ``x, y`` (B, N) are warped coordinates [px] on a ``height`` x ``width`` image, blurred by ``sigma`` [px];
+    ``on`` (N,) or (B, N) is 1 for
     ON events and 0 for OFF (all ones: the OFF images are empty); ``weights``
     (B, N) or None scale every vote. Differentiable like :func:`accumulate_bilinear`.
     """
@@ -241,10 +242,11 @@ def image_of_warped_events(
 ) -> torch.Tensor:
     """IWE of warped coordinates: bilinear votes, then a Gaussian blur of ``sigma`` px.
 
-    Shapes as :func:`accumulate_bilinear`; ``sigma=0`` disables the blur.
+    Shapes as :func:`accumulate_bilinear` (``weights`` (B, N) or None: every vote 1); ``sigma=0`` disables the blur.
 
     Examples
     --------
+    >>> import torch
     >>> x = torch.tensor([1.5]); y = torch.tensor([2.0])
     >>> image_of_warped_events(x, y, height=4, width=4, sigma=0)[2].tolist()
     [0.0, 0.5, 0.5, 0.0]
@@ -268,7 +270,8 @@ def iwe_numpy(
     x: np.ndarray, y: np.ndarray, *, height: int, width: int,
     weights: np.ndarray | None = None, sigma: float = 1.0,
 ) -> np.ndarray:
-    """NumPy entry point of :func:`image_of_warped_events`: (N,) arrays in, (H, W) float32 out."""
+    """NumPy entry point of :func:`image_of_warped_events`: ``x``, ``y`` [px] and ``weights`` (N,) arrays in,
+    (``height``, ``width``) float32 out, blurred by ``sigma`` [px]."""
     def tensor(values: np.ndarray) -> torch.Tensor:
         return torch.from_numpy(np.ascontiguousarray(values, dtype=np.float32))
 

@@ -355,6 +355,7 @@ def motion_metrics(v_pred: Any, omega_pred: Any, v_gt: Any, omega_gt: Any) -> Mo
 
     Examples
     --------
+    >>> import numpy as np
     >>> m = motion_metrics([1, 0, 0], [0, 0, 0], [0, 1, 0], [0, 0, np.radians(2)])
     >>> round(m.direction_error_deg, 6), round(m.omega_rms_deg_s ** 2 * 3, 6)
     (90.0, 4.0)

@@ -55,6 +55,7 @@ def variance(images: torch.Tensor) -> torch.Tensor:
 
     Examples
     --------
+    >>> import torch
     >>> float(variance(torch.tensor([[0.0, 2.0], [0.0, 2.0]])))
     1.0
     """
@@ -65,10 +66,12 @@ def variance(images: torch.Tensor) -> torch.Tensor:
 
 
 def gradient_magnitude(images: torch.Tensor) -> torch.Tensor:
-    """Mean squared gradient ``mean(|dI/dx|^2 + |dI/dy|^2)`` (central differences), shape () or (B,).
+    """Mean squared gradient ``mean(|dI/dx|^2 + |dI/dy|^2)`` (central differences) of ``images`` (H, W) or
+    (B, H, W): shape () or (B,).
 
     Examples
     --------
+    >>> import torch
     >>> float(gradient_magnitude(torch.tensor([[0.0, 2.0, 4.0]] * 3)))
     4.0
     """
@@ -87,7 +90,7 @@ CONTRASTS: dict[str, Callable[[torch.Tensor], torch.Tensor]] = {
 
 
 def contrast_of_images(images: torch.Tensor, kind: str = "variance") -> torch.Tensor:
-    """Contrast (B,) of images (B, H, W) by name: ``"variance"`` or ``"gradient"``."""
+    """Contrast (B,) of ``images`` (B, H, W) by the name ``kind``: ``"variance"`` or ``"gradient"``."""
     if kind not in CONTRASTS:
         raise ValueError(f"contrast must be one of {sorted(CONTRASTS)}, got {kind!r}")
     return CONTRASTS[kind](images)
@@ -103,7 +106,7 @@ def multi_reference_contrast(
     Parameters
     ----------
     x, y : Tensor, shape (B, N)
-        Coordinates warped to B reference times.
+        Coordinates warped to B reference times [px], on an image of ``height`` x ``width`` px.
     weights : Tensor (N,) or None
         Votes (signed polarity) or None for counts.
     sigma : float
@@ -167,6 +170,7 @@ def total_variation(grid: torch.Tensor, *, epsilon: float = 1e-3) -> torch.Tenso
 
     Examples
     --------
+    >>> import torch
     >>> round(float(total_variation(torch.zeros(4, 4))), 6)
     0.001
     """

@@ -47,12 +47,13 @@ def read_window(
     path: str | os.PathLike, t0_s: float, dt_s: float, *,
     width: int | None = None, height: int | None = None, time_unit: str | None = None, **options: Any,
 ) -> tuple[Events, np.ndarray | None]:
-    """Events of ``[t0, t0 + dt)`` seconds after the first event, and the ground-truth
+    """Events of the file at ``path`` in ``[t0_s, t0_s + dt_s)`` seconds after its first event, and the ground-truth
     depth (H, W) nearest to the window's middle when the file has a ``gt/`` group and that map's time lies
     within the window (None otherwise: a map of another time would be drawn as this window's).
 
-    ``time_unit``: the unit of the file's time stamps where it is not implied (see :func:`cmax.io.read`);
-    ``options`` (e.g. ``polarity='signed'``) go to the reader.
+    ``width``, ``height`` [px]: the sensor size of a file that does not store it; ``time_unit``: the unit of the
+    file's time stamps where it is not implied (see :func:`cmax.io.read`); ``options`` (e.g.
+    ``polarity='signed'``) go to the reader.
     A DSEC-layout h5 or MVSEC file is read from disk over the window only, a Prophesee RAW file decoded up
     to the window's end holding only the window (a recording longer than :data:`cmax.events.MAX_EVENTS` can
     be drawn); other formats are read whole, then cut.
@@ -139,7 +140,8 @@ def render_events(
     title: str = "",
 ) -> np.ndarray:
     """Picture (BGR uint8) of events: event frame (with its ON/OFF legend), event-volume bins,
-    or both; plus the depth with its colour bar in metres.
+    or both (``mode``: ``"frame"``, ``"voxel"`` or ``"both"``, ``bins`` of the volume); plus the ``depth``
+    (H, W) [m] with its colour bar in metres; ``title`` above the picture.
 
     Contrast: :data:`SHOW_PERCENTILE` and :data:`SHOW_GAMMA`. Layout: the event frame
     and the depth side by side when they fit in about 1800 px, else one above the other; the
@@ -176,8 +178,9 @@ def render_window(
     bins: int = 5, width: int | None = None, height: int | None = None, time_unit: str | None = None,
     **options: Any,
 ) -> np.ndarray:
-    """Picture of ``[t0, t0 + dt)`` seconds after the first event of a file (see :func:`render_events`);
-    ``options`` (e.g. ``polarity='signed'``) go to the reader."""
+    """Picture of ``[t0_s, t0_s + dt_s)`` seconds after the first event of the file at ``path`` (see
+    :func:`render_events`: ``mode``, ``bins``); ``width``, ``height``, ``time_unit`` and ``options`` (e.g.
+    ``polarity='signed'``) go to the reader, as in :func:`read_window`. Returns a BGR uint8 picture (h, w, 3)."""
     events, depth = read_window(path, t0_s, dt_s, width=width, height=height, time_unit=time_unit, **options)
     span = f" (events over {(int(events.t[-1]) - int(events.t[0])) * 1e-3:.3g} ms)" if len(events) else ""
     title = f"{Path(path).name}, {t0_s:g} s + {dt_s * 1e3:g} ms{span}: "   # a file may end within the window

@@ -65,6 +65,7 @@ def readable_zoom(width: int) -> int:
 def enlarge(values: np.ndarray, zoom: int) -> np.ndarray:
     """``values`` (H, W) with each pixel a ``zoom x zoom`` block (H zoom, W zoom); ``zoom`` a whole number >= 1.
 
+    >>> import numpy as np
     >>> enlarge(np.array([[1, 2]]), 2).tolist()
     [[1, 1, 2, 2], [1, 1, 2, 2]]
     """
@@ -171,7 +172,8 @@ def signed_image(values: np.ndarray, *, scale: float | None = None, gamma: float
 def signed_colour_bar(height: int, scale: float, *, gamma: float = 1.0, font_scale: float = 0.4,
                       unit: str = "") -> np.ndarray:
     """Vertical colour bar (height, w, 3) of :func:`signed_image`'s map: ``+scale`` (blue, top), 0 (white), and
-    ``-scale`` (red, bottom), labelled at the ends and at zero in ``unit``; the ends saturate (``>=``)."""
+    ``-scale`` (red, bottom), labelled at the ends and at zero in ``unit`` (text of ``font_scale``); the ends saturate (``>=``); ``gamma``
+    as :func:`signed_image`."""
     if isinstance(height, bool) or not isinstance(height, (int, np.integer)) or height < 40:
         raise ValueError(f"height must be an integer >= 40 px, got {height!r}")
     if not (np.isfinite(scale) and scale > 0):
@@ -199,7 +201,8 @@ def voxel_grid_image(volume: np.ndarray, *, gap: int = 4, columns: int | None = 
                      percentile: float = 99.0, gamma: float = 1.0, shrink: int = 1,
                      unit: str | None = "events") -> np.ndarray:
     """The B bins of an event volume (B, H, W) on one symmetric colour scale (the ``percentile`` of
-    the non-zero ``|values|`` of all bins), side by side or in rows of ``columns``, each bin
+    the non-zero ``|values|`` of all bins, ``gamma`` as :func:`signed_image`), side by side or in rows of ``columns``
+    ``gap`` px apart, each bin
     reduced ``shrink`` times (area average of the picture) for wide sensors; with a colour bar of that
     scale labelled in ``unit`` beside them (None: no bar)."""
     volume = np.asarray(volume, dtype=np.float32)
@@ -346,6 +349,7 @@ def depth_bar_labels(depths: np.ndarray, unit: str = "m") -> list[str]:
     :meth:`DepthScale.level` clips, so a depth nearer than the near end takes its colour (and one farther
     than the far end the far colour).
 
+    >>> import numpy as np
     >>> depth_bar_labels(np.array([1.0, 2.0, 4.0]))
     ['<= 1 m', '2 m', '>= 4 m']
     """
@@ -358,7 +362,8 @@ def depth_bar_labels(depths: np.ndarray, unit: str = "m") -> list[str]:
 def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_scale: float = 0.4,
                      unit: str = "m") -> np.ndarray:
     """Vertical colour bar (height, w, 3) of ``scale`` labelled in ``unit`` (metres; ``""`` for
-    depth up to scale), near at the top, with the "no estimate" swatch below it labelled ``n/a``; its
+    depth up to scale; ``ticks`` labels, text of ``font_scale``), near at the top, with the "no estimate" swatch
+    below it labelled ``n/a``; its
     ends saturate (``<=`` near, ``>=`` far: :func:`depth_bar_labels`)."""
     if isinstance(height, bool) or not isinstance(height, (int, np.integer)) or height < 40:
         raise ValueError(f"height must be an integer >= 40 px, got {height!r}")
@@ -392,8 +397,9 @@ def depth_colour_bar(height: int, scale: DepthScale, *, ticks: int = 5, font_sca
 
 def depth_panel(depth: np.ndarray, scale: "DepthScale | tuple[float, float] | None" = None,
                 title: str = "depth", *, unit: str = "m") -> np.ndarray:
-    """A depth map with its title and a colour bar in ``unit`` (metres by default; ``""`` for depth
-    up to scale) (``scale`` as in :func:`depth_image`)."""
+    """A depth map ``depth`` (H, W) [``unit``, NaN: no estimate] with its ``title`` and a colour bar in ``unit``
+    (metres by default; ``""`` for depth up to scale) (``scale`` as in :func:`depth_image`): a BGR uint8
+    picture (h, w, 3)."""
     depth = np.asarray(depth, dtype=np.float32)
     if depth.ndim != 2:
         raise ValueError(f"depth must have shape (H, W), got {depth.shape}")
@@ -406,7 +412,8 @@ def depth_panel(depth: np.ndarray, scale: "DepthScale | tuple[float, float] | No
 
 def event_panel(counts: np.ndarray, title: str = "events", *, percentile: float = 99.0,
                 gamma: float = 1.0) -> np.ndarray:
-    """:func:`event_frame_image` of per-polarity counts (2, H, W) with its title and an ON/OFF legend."""
+    """:func:`event_frame_image` of per-polarity ``counts`` (2, H, W) (``percentile``, ``gamma`` as there) with its
+    ``title`` and an ON/OFF legend."""
     return titled(event_frame_image(counts, percentile=percentile, gamma=gamma), title,
                   legend=(("ON", ON_BGR), ("OFF", OFF_BGR)))
 
@@ -470,7 +477,7 @@ def _check_pictures(images: list[np.ndarray]) -> list[np.ndarray]:
 
 
 def hstack(images: list[np.ndarray], *, gap: int = 4) -> np.ndarray:
-    """Images side by side, top-aligned, separated by ``gap`` white pixels."""
+    """``images`` (BGR uint8) side by side, top-aligned, separated by ``gap`` white pixels."""
     images = _check_pictures(images)
     height = max(image.shape[0] for image in images)
     parts: list[np.ndarray] = []
@@ -482,7 +489,7 @@ def hstack(images: list[np.ndarray], *, gap: int = 4) -> np.ndarray:
 
 
 def vstack(images: list[np.ndarray], *, gap: int = 4) -> np.ndarray:
-    """Images one above the other, left-aligned, separated by ``gap`` white pixels."""
+    """``images`` (BGR uint8) one above the other, left-aligned, separated by ``gap`` white pixels."""
     images = _check_pictures(images)
     width = max(image.shape[1] for image in images)
     parts: list[np.ndarray] = []
@@ -494,7 +501,8 @@ def vstack(images: list[np.ndarray], *, gap: int = 4) -> np.ndarray:
 
 
 def grid(images: list[np.ndarray], columns: int, *, gap: int = 4) -> np.ndarray:
-    """Images in rows of ``columns``, left to right then top to bottom."""
+    """``images`` (BGR uint8) in rows of ``columns``, left to right then top to bottom, ``gap`` px apart: one
+    (h, w, 3) uint8 picture."""
     images = _check_pictures(images)
     if isinstance(columns, bool) or not isinstance(columns, (int, np.integer)) or columns < 1:
         raise ValueError(f"columns must be an integer >= 1, got {columns!r}")
@@ -503,7 +511,7 @@ def grid(images: list[np.ndarray], columns: int, *, gap: int = 4) -> np.ndarray:
 
 
 def save_image(path: str | os.PathLike, image: np.ndarray) -> Path:
-    """Write a BGR or grey uint8 image atomically in the format of ``path``'s extension
+    """Write ``image``, (H, W, 3) BGR or (H, W) grey uint8, atomically in the format of ``path``'s extension
     (``.png``, or JPEG for ``.jpg``/``.jpeg``); any other extension is refused with ``ValueError``."""
     path = Path(path)
     suffix = path.suffix.lower()

@@ -64,8 +64,14 @@ def warp_flow(x: torch.Tensor, y: torch.Tensor, dt: torch.Tensor, flow: torch.Te
     flow : Tensor, shape (2,)
         ``(u_x, u_y)`` [px/s].
 
+    Returns
+    -------
+    x_ref, y_ref : Tensor, shape of ``dt`` ((N,) or (B, N))
+        The events' pixels [px] at ``t_ref``.
+
     Examples
     --------
+    >>> import torch
     >>> warp_flow(torch.tensor([10.0]), torch.tensor([5.0]), torch.tensor([0.1]), torch.tensor([20.0, -10.0]))
     (tensor([8.]), tensor([6.]))
     """
@@ -85,6 +91,11 @@ def warp_rotation(rays: torch.Tensor, dt: torch.Tensor, omega: torch.Tensor, K: 
     omega : Tensor, shape (3,)
         Angular velocity [rad/s], camera frame.
     K : Tensor, shape (3, 3)
+
+    Returns
+    -------
+    x_ref, y_ref : Tensor, shape of ``dt`` ((N,) or (B, N))
+        The events' pixels [px] at ``t_ref``.
     """
     return project(so3_rotate(omega * dt[..., None], rays), K)
 
@@ -104,6 +115,11 @@ def warp_se3(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torch
     inv_depth : Tensor, shape (N,)
         Inverse z-depth ``rho_i`` [1/m] of each event (>= 0).
     K : Tensor, shape (3, 3)
+
+    Returns
+    -------
+    x_ref, y_ref : Tensor, shape of ``dt`` ((N,) or (B, N))
+        The events' pixels [px] at ``t_ref``.
     """
     rotated, moved = se3_parts(rays, dt, v, omega)
     return project(rotated + inv_depth[..., None] * moved, K)
@@ -113,7 +129,8 @@ def se3_parts(rays: torch.Tensor, dt: torch.Tensor, v: torch.Tensor, omega: torc
               ) -> tuple[torch.Tensor, torch.Tensor]:
     """The two depth-free parts of :func:`warp_se3`: ``R(omega dt) ray`` and ``J(omega dt) v dt``, each
     (..., N, 3), so that ``warp_se3 = project(rotated + rho * moved, K)`` for any inverse depth ``rho``
-    (a sweep over depths computes them once). Shapes and units as :func:`warp_se3`."""
+    (a sweep over depths computes them once). ``rays`` (N, 3), ``dt`` (N,) or (B, N) [s], ``v`` (3,) [m/s],
+    ``omega`` (3,) [rad/s]: shapes and units as :func:`warp_se3`."""
     w = omega * dt[..., None]
     shape = w.shape
     rays = rays.expand(shape)
@@ -134,7 +151,8 @@ class DepthGrid:
     of the image: ``x = (j + 1/2) W / gw - 1/2``, ``y = (i + 1/2) H / gh - 1/2``
     (the convention of ``cv2.resize(..., INTER_LINEAR)``); beyond the outer nodes
     the values are held constant. The interpolation weights of fixed pixels are
-    computed once (:meth:`weights`), then :meth:`sample` is a gather.
+    computed once (:meth:`weights`), then :meth:`sample` is a gather. ``shape``: (gh, gw), at most the image's
+    ``height`` x ``width`` [px].
     """
 
     shape: tuple[int, int]
@@ -166,11 +184,12 @@ class DepthGrid:
 
     @staticmethod
     def sample(values: torch.Tensor, index: torch.Tensor, weight: torch.Tensor) -> torch.Tensor:
-        """Interpolated values (N,) of a grid ``values`` (gh, gw) or (gh*gw,) at precomputed weights."""
+        """Interpolated values (N,) of a grid ``values`` (gh, gw) or (gh*gw,) at the precomputed ``index`` and
+        ``weight`` (N, 4) of :meth:`weights`."""
         return (values.reshape(-1)[index] * weight).sum(-1)
 
     def cell_of(self, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
-        """Flat index (N,) of the cell holding each pixel (the nearest node)."""
+        """Flat index (N,) of the cell holding each pixel ``x, y`` (N,) (the nearest node)."""
         gh, gw = self.shape
         j = (x * gw / self.width).long().clamp(0, gw - 1)
         i = (y * gh / self.height).long().clamp(0, gh - 1)
@@ -249,7 +268,8 @@ class WarpEvents:
         adds a seeded uniform offset in [-0.5, 0.5) px to each coordinate: an
         event stands for its whole pixel, and without it every warp that keeps
         events on integer positions (zero flow along an axis) gets a spuriously
-        high contrast from unsplit bilinear votes.
+        high contrast from unsplit bilinear votes. ``seed`` seeds the subset and the dither; ``dtype`` is
+        that of the tensors (float32 or float64).
         """
         K = check_intrinsics(K)
         n = len(events)
@@ -271,6 +291,7 @@ class WarpEvents:
                    as_t(K), events.width, events.height, t0, t1)
 
     def dt(self, reference_fractions: tuple[float, ...]) -> torch.Tensor:
-        """``t_i - t_ref`` (B, N) [s] for reference times at fractions of the window (0 = start, 1 = end)."""
+        """``t_i - t_ref`` (R, N) [s] for R reference times at ``reference_fractions`` of the window (0 = start,
+        1 = end)."""
         refs = torch.tensor([f * self.duration_s for f in reference_fractions], dtype=self.t.dtype)
         return self.t[None, :] - refs[:, None]

@@ -63,7 +63,7 @@ def rng_state() -> dict[str, Any]:
 
 
 def set_rng_state(state: dict[str, Any]) -> None:
-    """Restore the generators from :func:`rng_state`."""
+    """Restore the generators from ``state``, as :func:`rng_state` returns it."""
     random.setstate(state["python"])
     saved = state["numpy"]
     np.random.set_state({"bit_generator": saved["bit_generator"],
@@ -100,6 +100,7 @@ def nonfinite_tensors(state: dict[str, torch.Tensor]) -> list[str]:
     in ``state``'s order (integer tensors, e.g. a step counter, are never non-finite; entries that are not
     tensors are left to the caller).
 
+    >>> import torch
     >>> nonfinite_tensors({"a": torch.ones(2), "b": torch.tensor([1.0, float("nan")]), "n": torch.tensor(3)})
     ['b']
     """
@@ -372,7 +373,8 @@ def upgrade_checkpoint(old: str | Path, new: str | Path, *, trust: bool = False,
 
 
 def main(argv: Sequence[str] | None = None) -> int:
-    """``python -m learned.checkpoint upgrade OLD NEW --trust-this-file``."""
+    """``python -m learned.checkpoint upgrade OLD NEW --trust-this-file``; ``argv``: the arguments (None: the
+    command line's); returns the exit status."""
     from cmax._args import ArgumentParser, run_main
 
     parser = ArgumentParser(prog="python -m learned.checkpoint",

@@ -231,6 +231,7 @@ class Config:
                              "'data.val_files=[\"val.h5\"]', or turn validation off with train.val_every=0")
 
     def to_dict(self) -> dict[str, Any]:
+        """The config as nested plain dicts (``mode`` and ``{section: {key: value}}``), as ``config.json`` stores it."""
         return asdict(self)
 
 
@@ -294,7 +295,7 @@ def _parse(value: str) -> Any:
 
 
 def apply_overrides(values: dict[str, Any], overrides: list[str]) -> dict[str, Any]:
-    """Set dotted keys (``train.steps=10``) in nested dicts; returns a new dict."""
+    """Set the dotted keys of ``overrides`` (``train.steps=10``) in ``values``, nested dicts; returns a new dict."""
     values = json.loads(json.dumps(values))
     for item in overrides:
         key, sep, raw = item.partition("=")
@@ -312,7 +313,7 @@ def apply_overrides(values: dict[str, Any], overrides: list[str]) -> dict[str, A
 
 def load_config(path: str | Path | None, overrides: list[str] = (), *, mode: str | None = None,
                 require_mode: bool = False) -> Config:
-    """Read a ``.json`` or ``.toml`` config (or start from the defaults), apply overrides and ``mode`` (None: the
+    """Read a ``.json`` or ``.toml`` config at ``path`` (None: start from the defaults), apply ``overrides`` and ``mode`` (None: the
     config's own, else :class:`Config`'s default; ValueError when ``mode`` differs from the one the config or the
     overrides state, and, with ``require_mode``, when neither ``mode`` nor the config states one)."""
     values: dict[str, Any] = {}

@@ -75,7 +75,7 @@ _MIRROR_OMEGA = np.array([1.0, -1.0, -1.0])
 
 
 def flip_horizontal(sample: Sample) -> Sample:
-    """Mirror left-right: ``x -> W-1-x``, ``cx -> W-1-cx``, depth flipped, twist mirrored (vx, wy, wz negated)."""
+    """Mirror ``sample`` left-right: ``x -> W-1-x``, ``cx -> W-1-cx``, depth flipped, twist mirrored (vx, wy, wz negated)."""
     ev = sample.events
     events = Events(ev.width - 1 - ev.x.astype(np.int64), ev.y, ev.t, ev.p, ev.width, ev.height)
     K = sample.K.copy()
@@ -87,13 +87,13 @@ def flip_horizontal(sample: Sample) -> Sample:
 
 
 def flip_polarity(sample: Sample) -> Sample:
-    """Swap ON and OFF (geometry and ground truth unchanged)."""
+    """Swap ON and OFF of ``sample`` (geometry and ground truth unchanged)."""
     ev = sample.events
     return replace(sample, events=Events(ev.x, ev.y, ev.t, 1 - ev.p, ev.width, ev.height))
 
 
 def reverse_time(sample: Sample) -> Sample:
-    """Play the window backwards: ``t -> t0 + t1 - t``, order reversed, polarity swapped, twist negated.
+    """Play the window ``sample`` backwards: ``t -> t0 + t1 - t``, order reversed, polarity swapped, twist negated.
 
     Valid because the depth belongs to the window's middle, which stays in place.
     """
@@ -105,7 +105,8 @@ def reverse_time(sample: Sample) -> Sample:
 
 def augment(sample: Sample, rng: np.random.Generator, *, flip: bool = True, polarity: bool = True,
             time_reversal: bool = True) -> Sample:
-    """Each enabled augmentation with probability 1/2 (draws from ``rng`` in a fixed order)."""
+    """Each enabled augmentation of ``sample`` (``flip``: :func:`flip_horizontal`, ``polarity``: :func:`flip_polarity`,
+    ``time_reversal``: :func:`reverse_time`) with probability 1/2 (draws from ``rng`` in a fixed order)."""
     draws = rng.random(3)
     if flip and draws[0] < 0.5:
         sample = flip_horizontal(sample)
@@ -117,7 +118,7 @@ def augment(sample: Sample, rng: np.random.Generator, *, flip: bool = True, pola
 
 
 def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0) -> dict[str, torch.Tensor]:
-    """Tensors of one batch entry.
+    """Tensors of one batch entry from ``sample`` (``seed``: of the event subset and its dither).
 
     Returns
     -------
@@ -156,13 +157,13 @@ def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0) ->
 
 
 def collate(items: Sequence[dict[str, torch.Tensor]]) -> dict[str, torch.Tensor]:
-    """Stack the entries of :func:`to_item` (all of one sensor size and ``max_events``)."""
+    """Stack ``items``, entries of :func:`to_item` (all of one sensor size and ``max_events``), into (B, ...) tensors (e.g. ``volume`` (B, bins, H, W))."""
     return {key: torch.stack([item[key] for item in items]) for key in items[0]}
 
 
 @dataclass(frozen=True)
 class FileSpec:
-    """An event file and how to read it: ``K`` (3, 3) for files without ``gt/K``.
+    """An event file at ``path`` and how to read it: ``K`` (3, 3) for files without ``gt/K``.
 
     ``use_gt`` False hides the ground truth (depth, poses) of ``gt/``; its ``gt/K`` (the
     calibration) is still used when no ``K`` is given. With the ground truth used, a ``K`` other than the
@@ -258,6 +259,8 @@ class H5WindowDataset(torch.utils.data.Dataset):
         Window length [µs].
     max_events : int
         Raw events kept per window for the contrast loss.
+    bins : int
+        Time bins B of each window's event volume (B, H, W).
     augment : bool
         Random flips and time reversal (seeded per epoch and item: see :meth:`set_epoch`).
     seed : int

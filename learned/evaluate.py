@@ -54,7 +54,8 @@ FAR_LIMIT_M = 80.0
 
 @dataclass(frozen=True, eq=False)
 class FileReport:
-    """Metrics of one file: its stem, the pooled depth metrics, the motion metrics (or None), windows, and the
+    """Metrics of one file: its stem (``sequence``), the pooled ``depth`` metrics, the ``motion`` metrics (or None),
+    the number of ``windows``, and the
     notes on how its camera differs from the one the network was trained with (:func:`learned.predict.camera_notes`:
     the depth a network infers from image motion scales with the focal length)."""
 
@@ -93,14 +94,14 @@ def load_model(checkpoint: str | Path) -> tuple[DepthPoseNet, dict]:
 
 @torch.no_grad()
 def predict_batches(model: DepthPoseNet, dataset: torch.utils.data.Dataset, batch_size: int = 8):
-    """Yield (batch, output) over a dataset in order."""
+    """Yield (batch, output) of ``model`` over ``dataset`` in order, ``batch_size`` windows at a time."""
     for start in range(0, len(dataset), batch_size):
         batch = collate([dataset[i] for i in range(start, min(start + batch_size, len(dataset)))])
         yield batch, model(batch["volume"])
 
 
 def far_limit(path: str | Path) -> float:
-    """The far end [m] of the depth evaluated in a file: its scene's ``depth_range_m[1]`` capped at
+    """The far end [m] of the depth evaluated in the file at ``path``: its scene's ``depth_range_m[1]`` capped at
     :data:`FAR_LIMIT_M` (80 m, as ``benchmarks/accuracy.py``); :data:`FAR_LIMIT_M` when the file states none."""
     with h5py.File(path, "r") as f:
         scene = f.attrs.get("scene")
@@ -113,7 +114,7 @@ def far_limit(path: str | Path) -> float:
 
 
 def depth_range(path: str | Path) -> tuple[float, float]:
-    """``(near, far)`` [m] of a file's scene (``depth_range_m``), far capped as :func:`far_limit`; raises a
+    """``(near, far)`` [m] of the scene of the file at ``path`` (``depth_range_m``), far capped as :func:`far_limit`; raises a
     ValueError when the file does not state its range (a depth sweep over a guessed range would not be fair)."""
     with h5py.File(path, "r") as f:
         scene = f.attrs.get("scene")
@@ -169,7 +170,7 @@ def event_mask(events: Events) -> np.ndarray:
 
 def window_masks(depth: np.ndarray, events: Events, far_m: float) -> tuple[np.ndarray, np.ndarray]:
     """The dense mask (valid true ``depth`` (H, W) [m]: finite, > 1 mm, <= ``far_m``) and the event mask
-    (dense and an event of the window at the pixel), each (H, W) bool."""
+    (dense and an event of the window's ``events`` at the pixel), each (H, W) bool."""
     depth = np.asarray(depth)
     if depth.shape != (events.height, events.width):
         raise ValueError(f"depth is {depth.shape}, the events' sensor {(events.height, events.width)}")
@@ -179,7 +180,8 @@ def window_masks(depth: np.ndarray, events: Events, far_m: float) -> tuple[np.nd
 
 
 def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) -> list[HeldOutWindow]:
-    """The windows of a file with ground truth, centred on its depth times (:class:`learned.data.H5WindowDataset`,
+    """The windows (``window_us`` [µs] long, at least ``min_events`` events) of the file at ``path`` with ground
+    truth, centred on its depth times (:class:`learned.data.H5WindowDataset`,
     no augmentation), with their masks. Raises a ValueError for a file without ``gt/`` or without a window."""
     path = Path(path)
     try:
@@ -213,7 +215,7 @@ def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) 
 def predict_windows(model: DepthPoseNet, windows: Sequence[HeldOutWindow], batch_size: int = 8
                     ) -> tuple[np.ndarray, np.ndarray]:
     """The network's full-resolution z-depth (N, H, W) float32 [m] and twist (N, 6) ``(v m/s, omega rad/s)``
-    of each window (its event volume, :func:`learned.data.to_item`)."""
+    of ``model`` for each of ``windows`` (its event volume, :func:`learned.data.to_item`), ``batch_size`` at a time."""
     depths, twists = [], []
     for start in range(0, len(windows), batch_size):
         volume = np.stack([voxel_grid(w.sample.events, model.config.bins) for w in windows[start:start + batch_size]])
@@ -223,7 +225,8 @@ def predict_windows(model: DepthPoseNet, windows: Sequence[HeldOutWindow], batch
 
 
 def no_pixels(cutoffs: tuple[float, ...] = (10.0, 20.0, 30.0)) -> DepthMetrics:
-    """Metrics of a method with no estimate on any pixel of the mask: NaN errors, coverage 0."""
+    """Metrics of a method with no estimate on any pixel of the mask: NaN errors (also within each of ``cutoffs``
+    [m]), coverage 0."""
     nan = float("nan")
     return DepthMetrics(nan, nan, nan, nan, nan, nan, nan, nan, {c: nan for c in cutoffs}, n_pixels=0,
                         coverage=0.0, n_frames=0)
@@ -247,7 +250,7 @@ def score_depth(pred: np.ndarray, windows: Sequence[HeldOutWindow], mask: str) -
 
 
 def true_twists(windows: Sequence[HeldOutWindow]) -> np.ndarray | None:
-    """The true twist (N, 6) at each window's middle; None when the file has no twists."""
+    """The true twist (N, 6) at the middle of each of ``windows``; None when the file has no twists."""
     if any(w.sample.twist is None for w in windows):
         return None
     return np.stack([np.asarray(w.sample.twist, np.float64) for w in windows])
@@ -255,7 +258,7 @@ def true_twists(windows: Sequence[HeldOutWindow]) -> np.ndarray | None:
 
 def score_motion(twists: np.ndarray, windows: Sequence[HeldOutWindow]) -> MotionMetrics | None:
     """:func:`cmax.metrics.motion_metrics` of predicted twists (N, 6) or one twist (6,) for every window
-    against the true twist at each window's middle; None when the file has no twists."""
+    against the true twist at the middle of each of ``windows``; None when the file has no twists."""
     truth = true_twists(windows)
     if truth is None:
         return None
@@ -265,8 +268,9 @@ def score_motion(twists: np.ndarray, windows: Sequence[HeldOutWindow]) -> Motion
 
 def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, window_s: float | None = None,
                    batch_size: int = 8) -> list[FileReport]:
-    """Metrics of ``checkpoint`` on each file with ground truth (window length from the checkpoint's config),
-    on the dense mask (:func:`held_out_windows`)."""
+    """Metrics of ``checkpoint`` on each of ``files`` (with ground truth), on the dense mask
+    (:func:`held_out_windows`); windows of ``window_s`` [s] (None: the checkpoint config's ``data.window_us``),
+    ``batch_size`` at a time."""
     from learned.predict import camera_notes
     from learned.pretrained import checkpoint_card
 
@@ -299,7 +303,8 @@ CANDIDATES = ("truth", "network", "network depth + true twist", "constant depth 
 
 @dataclass(frozen=True)
 class WindowPreference:
-    """The objective's value (lower is better) at each candidate of one window, and the lowest candidate.
+    """The objective's value (lower is better) at each candidate of one window (of file ``sequence``, ``[t0_us,
+    t1_us)`` [µs]), and the ``lowest`` candidate.
 
     ``values`` maps each of :data:`CANDIDATES` to the objective's value; ``speed_m_s`` is the known speed
     [m/s] the objective scaled every twist to (the true ``|v|`` at the window's middle).
@@ -315,7 +320,8 @@ class WindowPreference:
 
 @dataclass(frozen=True)
 class ObjectivePreferences:
-    """:func:`objective_preferences` over all windows: each window's values and how often each candidate won."""
+    """:func:`objective_preferences` over all windows: each window's values and how often each candidate won
+    (``counts``: candidate -> windows)."""
 
     windows: tuple[WindowPreference, ...]
     counts: dict[str, int]
@@ -323,7 +329,8 @@ class ObjectivePreferences:
 
 def candidate_parameters(window: HeldOutWindow, network_depth: np.ndarray, network_twist: np.ndarray
                          ) -> dict[str, tuple[np.ndarray, np.ndarray]]:
-    """Inverse depth (H, W) [1/m] and twist (6,) of each of :data:`CANDIDATES` for one window.
+    """Inverse depth (H, W) [1/m] and twist (6,) of each of :data:`CANDIDATES` for one window, given the
+    network's ``network_depth`` (H, W) [m] and ``network_twist`` (6,).
 
     The true inverse depth takes the far limit where the truth is invalid (NaN sky, beyond ``far_m``); the
     constant is the median of the valid true depth; the network's depth is clipped to ``(0, far_m]`` likewise.
@@ -392,7 +399,8 @@ def csv_row(method: str, report: FileReport) -> dict[str, object]:
 
 
 def write_accuracy_csv(path: str | Path, rows: Sequence[tuple[str, FileReport]]) -> Path:
-    """The rows (method, report) as ``accuracy_learned.csv`` (columns of ``benchmarks/accuracy.py``), atomically."""
+    """The rows (method, report) as ``accuracy_learned.csv`` at ``path`` (columns of ``benchmarks/accuracy.py``),
+    atomically."""
     buffer = io.StringIO()
     writer = csv.DictWriter(buffer, fieldnames=CSV_COLUMNS, lineterminator="\n")
     writer.writeheader()
@@ -402,7 +410,8 @@ def write_accuracy_csv(path: str | Path, rows: Sequence[tuple[str, FileReport]])
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point; returns the exit status (2 and one line for a bad argument or file)."""
+    """Entry point of ``python -m learned.evaluate`` with the arguments ``argv`` (None: the command line's); returns
+    the exit status (2 and one line for a bad argument or file)."""
     parser = ArgumentParser(prog="python -m learned.evaluate", description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", type=Path, required=True, help="checkpoint of learned.train (last.pt)")
     parser.add_argument("--data", type=Path, nargs="+", required=True, help="h5 files with gt/")

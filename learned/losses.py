@@ -57,6 +57,10 @@ def scale_invariant_loss(pred_depth: torch.Tensor, gt_depth: torch.Tensor, mask:
         Depths [m] (> 0 where ``mask``).
     mask : Tensor (B, 1, H, W) bool
         Valid ground truth. Images without valid pixels contribute 0.
+
+    Returns
+    -------
+    Tensor, shape ()
     """
     _check(pred_depth, gt_depth, mask)
     R = _log_residual(pred_depth, gt_depth, mask).flatten(1)
@@ -68,7 +72,8 @@ def gradient_matching_loss(pred_depths: tuple[torch.Tensor, ...] | list[torch.Te
                            mask: torch.Tensor) -> torch.Tensor:
     """Multi-scale gradient matching of the log-depth residual (Sobel), summed over scales.
 
-    ``pred_depths`` (B, 1, H_s, W_s) finest first; the ground truth is brought to
+    ``pred_depths`` (B, 1, H_s, W_s) [m] finest first; the ground truth ``gt_depth`` (B, 1, H, W) [m], valid where
+    ``mask`` (B, 1, H, W) bool, is brought to
     each scale by averaging its valid log depths in blocks (``avg_pool``).
     """
     _check(pred_depths[0], gt_depth, mask)
@@ -94,7 +99,9 @@ def gradient_matching_loss(pred_depths: tuple[torch.Tensor, ...] | list[torch.Te
 
 def teacher_loss(pred_depths, gt_depth: torch.Tensor, mask: torch.Tensor, *, lam: float = LAMBDA,
                  variance_weight: float = 1.0) -> torch.Tensor:
-    """``L_si + lam * L_grad`` (EvtSlowTV eq. 14) on the finest prediction and all scales."""
+    """``L_si + lam * L_grad`` (EvtSlowTV eq. 14) on the finest prediction and all scales, a scalar tensor ():
+    ``pred_depths`` ((B, 1, H_s, W_s) [m], finest first) and ``gt_depth`` (B, 1, H, W) [m], ``mask`` (B, 1, H, W)
+    bool as :func:`gradient_matching_loss`; ``variance_weight`` as :func:`scale_invariant_loss`."""
     return (scale_invariant_loss(pred_depths[0], gt_depth, mask, variance_weight=variance_weight)
             + lam * gradient_matching_loss(pred_depths, gt_depth, mask))
 
@@ -111,6 +118,10 @@ def speed_loss(twist: torch.Tensor, speed: torch.Tensor) -> torch.Tensor:
     ----------
     twist : Tensor (B, 6) [m/s, rad/s]
     speed : Tensor (B,) [m/s], NaN where unknown.
+
+    Returns
+    -------
+    Tensor, shape ()
     """
     known = ~torch.isnan(speed)
     if not bool(known.any()):

@@ -172,10 +172,12 @@ def _block(cin: int, cout: int, stride: int, block: str = "dense", norm: str = "
 
 
 class DepthPoseNet(nn.Module):
-    """U-Net depth decoder and bottleneck pose head (see the module docstring).
+    """U-Net depth decoder and bottleneck pose head (see the module docstring), shaped by ``config``;
+    ``channels_last``: run the convolutions in that memory format (faster on the CPU).
 
     Examples
     --------
+    >>> import torch
     >>> net = DepthPoseNet(ModelConfig(width=4, levels=2))
     >>> out = net(torch.zeros(2, 5, 30, 41))
     >>> out.inverse_depth.shape, out.twist.shape
@@ -209,7 +211,7 @@ class DepthPoseNet(nn.Module):
         return lo + (hi - lo) * torch.sigmoid(logits)
 
     def forward(self, volume: torch.Tensor) -> NetOutput:
-        """Inverse depths and twist of event volumes (B, bins, H, W) float32."""
+        """Inverse depths and twist of event volumes ``volume`` (B, bins, H, W) float32."""
         if volume.dim() != 4 or volume.shape[1] != self.config.bins:
             raise ValueError(f"volume must have shape (B, {self.config.bins}, H, W), got {tuple(volume.shape)}")
         H, W = volume.shape[-2:]

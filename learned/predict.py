@@ -98,7 +98,7 @@ class Recording:
 def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, time_unit: str | None = None,
                    polarity: str | None = None, t0_s: float | None = None,
                    t1_s: float | None = None, sort: bool = False) -> Recording:
-    """Open an event file of any format :func:`cmax.io.read` reads.
+    """Open the event file at ``path``, of any format :func:`cmax.io.read` reads.
 
     ``size`` (width, height) [px], ``time_unit``, ``polarity`` and ``sort`` as :func:`cmax.io.read` takes them
     (for files that do not state them; never guessed). A DSEC-layout h5 file is read window by
@@ -152,7 +152,8 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
 
 def time_bounds(first_us: int, last_us: int, t0_s: float | None, t1_s: float | None) -> tuple[int, int]:
     """``(start, end)`` [µs], both inclusive: the part of a recording from ``t0_s`` to ``t1_s`` seconds after
-    its first event (None: its first / last event), :func:`cmax.cli.recording.time_span_us` with its end made
+    its first event (None: its first / last event) of a recording whose events span ``first_us`` to ``last_us``
+    [µs], :func:`cmax.cli.recording.time_span_us` with its end made
     inclusive and clipped to the recording. ValueError when that part is empty or out of the recording."""
     start, stop = time_span_us(first_us, last_us, t0_s, t1_s)
     if start > last_us:
@@ -202,8 +203,10 @@ def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, wher
     """Notes on how this camera differs from the one the network was trained with (from its card:
     ``"size": [W, H]`` [px], ``"K": [fx, fy, cx, cy]`` [px]), on a principal point off this sensor (the
     intrinsics of another camera?) and on a K unlike any camera's (:func:`cmax.camera.intrinsics_oddity`: the
-    numbers in another order?); empty when they agree or nothing is recorded.
+    numbers in another order?); empty when they agree or nothing is recorded. ``width``, ``height``: this
+    sensor's size [px]; ``K`` (3, 3): its intrinsics [px]; ``where``: how the notes name the card.
 
+    >>> import numpy as np
     >>> K = np.array([[200.0, 0, 32], [0, 200, 24], [0, 0, 1]])
     >>> camera_notes(None, 64, 48, K)
     []
@@ -240,14 +243,15 @@ def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, wher
 def undistortion(K: np.ndarray, distortion: np.ndarray, width: int, height: int) -> Callable[["Events"], "Events"]:
     """``events -> events`` at their undistorted pixel (nearest integer; those that land outside the sensor are
     dropped), as ``cmax fit --calib`` does: :meth:`cmax.Camera.undistort_events` of one camera, whose undistortion
-    map is computed once for all windows."""
+    map is computed once for all windows. ``K`` (3, 3) [px] and OpenCV ``distortion`` ``(k1, k2, p1, p2[, k3])`` of
+    a ``width`` x ``height`` [px] sensor."""
     from cmax.camera import Camera
 
     return Camera(K, width, height, distortion).undistort_events
 
 
 def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:
-    """The network input of each window: (B, bins, H, W) float32, the event volume over each window's own
+    """The network input of each of ``windows``: (B, bins, H, W) float32, the event volume over each window's own
     first..last event time, as :func:`learned.data.to_item` builds it in training with
     :func:`cmax.representations.voxel_grid`; computed by the compiled :func:`learned.volume.event_volume`,
     which equals it to float32 rounding and is faster (``benchmarks/results/speed_learned.md``)."""
@@ -258,7 +262,7 @@ def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:
 
 def forward(model: "DepthPoseNet", volumes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(inverse depth (B, H, W) float32 [1/m], twist (B, 6) float32 (v [m/s], omega [rad/s]))`` of the network
-    on event volumes (B, bins, H, W), on the device of its weights (on the CPU with the threads
+    ``model`` on event volumes ``volumes`` (B, bins, H, W) float32, on the device of its weights (on the CPU with the threads
     :func:`cmax._threads.torch_threads` allows now)."""
     import torch
 
@@ -300,7 +304,8 @@ def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"
                     window_us: int, *, batch: int = 8,
                     transform: Callable[["Events"], "Events"] | None = None,
                     source: str = "the network") -> Iterator[WindowPrediction | None]:
-    """For each start [µs] in order: the :class:`WindowPrediction` of ``[t0, t0 + window_us)``, or None when the
+    """For each of ``starts`` [µs] in order: the :class:`WindowPrediction` of the network ``model`` on
+    ``[t0, t0 + window_us)``, or None when the
     window (read with ``window(t0, t1)``, then ``transform``) holds fewer than :data:`MIN_EVENTS` events.
     ``batch`` windows go through the network at a time.
 
@@ -332,10 +337,12 @@ def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"
 
 
 def window_picture(depth: np.ndarray, scale, title: str) -> np.ndarray:
-    """The picture of a window's depth (H, W) [m]: :func:`cmax.viz.depth_panel` on ``scale``, each pixel a
+    """The picture (titled ``title``) of a window's ``depth`` (H, W) [m]: :func:`cmax.viz.depth_panel` on ``scale``
+    (a :class:`cmax.viz.DepthScale` or ``(near, far)`` [m]), each pixel a
     ``z x z`` block when the sensor is narrower than :data:`cmax.viz.MIN_PICTURE_WIDTH`
     (``z = cmax.viz.readable_zoom(W)``).
 
+    >>> import numpy as np
     >>> window_picture(np.ones((48, 64), np.float32), (0.5, 60.0), "depth").shape[1] >= 5 * 64
     True
     """
@@ -349,7 +356,8 @@ SCALE_SAMPLES = 4096
 
 
 def write_window(out: Path, prediction: WindowPrediction, K: np.ndarray) -> tuple[str, np.ndarray]:
-    """Write ``window_<k>.npz`` (atomically) into ``out``; returns the window's ``twists.csv`` line and up to
+    """Write ``window_<k>.npz`` of ``prediction`` (a :class:`WindowPrediction`) and the intrinsics ``K`` (3, 3) [px]
+    (atomically) into ``out``; returns the window's ``twists.csv`` line and up to
     :data:`SCALE_SAMPLES` of its depths [m] (an even subsample, every depth of a small map) for
     :func:`run_scale`. The picture comes later (:func:`draw_window`), on the run's scale."""
     from cmax.io.atomic import save_npz_atomic
@@ -369,6 +377,7 @@ def run_scale(samples: list[np.ndarray], depth_range: tuple[float, float] | None
     """The colour scale of every picture of a run: ``depth_range`` [m] when given, else the 1st-99th
     percentiles of the windows' sampled depths (:meth:`cmax.viz.DepthScale.from_depths`).
 
+    >>> import numpy as np
     >>> run_scale([np.array([1.0, 2.0]), np.array([3.0])], (0.5, 9.0))
     DepthScale(near=0.5, far=9.0)
     >>> run_scale([np.linspace(1.0, 3.0, 101), np.linspace(2.0, 4.0, 101)], None)   # pooled: 1.0-4.0
@@ -395,7 +404,8 @@ def draw_window(out: Path, index: int, scale) -> None:
 
 @dataclass(frozen=True)
 class DepthRun:
-    """What :func:`run_prediction` did: windows written and skipped, the window [µs], notes, seconds, folder."""
+    """What :func:`run_prediction` did: ``windows`` written and ``skipped``, the window length ``window_us`` [µs],
+    ``notes``, wall ``seconds`` and the ``output`` folder."""
 
     windows: int
     skipped: int
@@ -494,6 +504,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     device : str
         Where the network runs: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"auto"`` (a GPU when torch sees
         one); the events are read and their volumes built on the CPU.
+    progress : bool
+        A progress bar over the windows.
     note : callable, optional
         Receives each note (default: printed on stderr).
     overwrite : bool
@@ -630,7 +642,9 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
 def predict_file(checkpoint: str | Path | None, path: str | Path, out: str | Path, *, K: np.ndarray | None = None,
                  window_us: int | None = None, depth_range: tuple[float, float] | None = None,
                  progress: bool = True, **options: Any) -> int:
-    """:func:`run_prediction` with the window in µs; returns the number of windows written."""
+    """:func:`run_prediction` of ``checkpoint`` on the file ``path`` into ``out``, with the window ``window_us`` in µs
+    (None: the checkpoint's); ``K`` (3, 3) or (4,) [px], ``depth_range``, ``progress`` and ``**options`` as there. Returns the number
+    of windows written."""
     window_s = None if window_us is None else int(window_us) * 1e-6
     return run_prediction(path, out, checkpoint=checkpoint, K=K, window_s=window_s, depth_range=depth_range,
                           progress=progress, **options).windows
@@ -661,7 +675,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
 
 
 def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> int:
-    """Run the command of :func:`add_arguments`' options; prints notes on stderr and the summary line."""
+    """Run the command of :func:`add_arguments`' options (``args``, as parsed); prints notes on stderr, prefixed
+    by ``label``, and the summary line."""
     result = run_prediction(
         args.file, args.output, checkpoint=args.checkpoint, K=args.K, calib=args.calib,
         calib_camera=args.calib_camera, distortion=args.distortion, size=args.size, time_unit=args.time_unit,
@@ -675,7 +690,8 @@ def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> i
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point; returns the exit status (2 and one line for a bad argument or file)."""
+    """Entry point of ``python -m learned.predict`` with the arguments ``argv`` (None: the command line's); returns
+    the exit status (2 and one line for a bad argument or file)."""
     parser = add_arguments(ArgumentParser(
         prog="python -m learned.predict",
         description="Depth [m] and twist of every window of an event file by the depth-pose network (the shipped "

@@ -81,6 +81,7 @@ def global_mean(values: dict[str, float], *, world: int, device: torch.device) -
     optimise). A collective: every rank calls it with the same keys in the same order. ``values`` as they are
     when ``world`` is 1. A NaN or an infinity on any rank makes that term non-finite on every rank.
 
+    >>> import torch
     >>> global_mean({"total": 0.5}, world=1, device=torch.device("cpu"))
     {'total': 0.5}
     """
@@ -176,7 +177,8 @@ def _fields(config: Config, paths: dict | None = None) -> dict[str, object]:
 
 
 def resolved_paths(config: Config) -> dict[str, object]:
-    """``{"data.files": [absolute path, ...], "train.teacher": absolute path or ""}``: the files a run reads, as
+    """``{"data.files": [absolute path, ...], "train.teacher": absolute path or ""}``: the files a run of ``config``
+    reads, as
     a checkpoint records them so that ``--resume`` compares files, not spellings (``a.h5`` and ``./a.h5`` are one
     file; ``a.h5`` typed in another folder is another)."""
     def absolute(path: object) -> str:
@@ -214,7 +216,8 @@ def nonfinite_terms(terms: dict[str, float]) -> list[str]:
 
 
 def batch_indices(step: int, *, size: int, batch_size: int, seed: int) -> list[int]:
-    """Dataset indices of the global batch of ``step``: consecutive slices of per-epoch seeded permutations."""
+    """Dataset indices (``batch_size`` of them) of the global batch of ``step``: consecutive slices of per-epoch
+    permutations of ``range(size)`` seeded by ``seed`` and the epoch."""
     if size < 1:
         raise ValueError("the dataset is empty")
     start = step * batch_size
@@ -395,7 +398,9 @@ def _quiet_tensorboard_thread_errors() -> None:
 
 
 class Trainer:
-    """One training run (a rank of it under ``torchrun``); :meth:`run` trains to ``config.train.steps``."""
+    """One training run (a rank of it under ``torchrun``); :meth:`run` trains to ``config.train.steps``.
+
+    ``resume``: continue from ``train.out/last.pt`` (checked against ``config``); ``progress``: a progress bar."""
 
     def __init__(self, config: Config, *, resume: bool = False, progress: bool = True) -> None:
         config = with_teacher_model(config)
@@ -660,6 +665,8 @@ class Trainer:
         return loss, terms, output
 
     def save(self) -> Path | None:
+        """Write ``last.pt`` (model, optimizer, step, config, RNG and data order) atomically on rank 0; its path, or
+        None on the other ranks."""
         if self.rank != 0:
             return None
         payload = {"model": self.model.state_dict(), "optimizer": self.optimizer.state_dict(), "step": self.step,
@@ -771,7 +778,8 @@ class _IntermixedParser(ArgumentParser):
 
 
 def main(argv: list[str] | None = None) -> int:
-    """Entry point; returns the exit status (2 and one line for a bad argument, config or checkpoint)."""
+    """Entry point of ``python -m learned.train`` with the arguments ``argv`` (None: the command line's); returns the
+    exit status (2 and one line for a bad argument, config or checkpoint)."""
     parser = _IntermixedParser(
         prog="python -m learned.train",
         description="Train the depth-pose network: --mode teacher (supervised, files with ground truth), finetune "
@@ -801,7 +809,7 @@ def _same_file(a: Path, b: Path) -> bool:
 
 
 def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "") -> None:
-    """Refuse ``train.out`` when it is a file, when its ``last.pt`` is ``teacher`` (the checkpoint a finetune or
+    """Refuse ``train.out`` (``out``) when it is a file, when its ``last.pt`` is ``teacher`` (the checkpoint a finetune or
     student run reads: with ``--overwrite`` the run would replace its own teacher, with ``--resume`` continue
     the teacher's run in another mode), or when it holds an earlier run's ``last.pt`` and neither ``--resume``
     (continue it) nor ``--overwrite`` (replace it) says what to do with it.

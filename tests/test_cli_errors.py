@@ -292,8 +292,8 @@ def test_help_shows_the_librarys_defaults(capsys):
     with pytest.raises(SystemExit):
         main(["simulate", "--help"])
     sim_help = " ".join(capsys.readouterr().out.split())
-    assert f"ON threshold (default: {EsimSettings().cp:g})" in sim_help
-    assert f"lambda of adaptive sampling (default: {ConvertSettings().lam:g})" in sim_help
+    assert f"ON threshold [log intensity] (default: {EsimSettings().cp:g})" in sim_help
+    assert f"a fraction of min(--cp, --cn) (default: {ConvertSettings().lam:g})" in sim_help
 
 
 def test_polarity_option_reads_a_signed_file_and_is_refused_where_the_format_states_it(tmp_path, capsys):

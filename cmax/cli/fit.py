@@ -68,7 +68,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--gyro", type=Path, default=None,
                         help="gyroscope samples (se3): an .aedat4 file (its IMU stream) or a text file of "
                              "'t wx wy wz' lines [s, rad/s], camera axes, the events' clock; each window's "
-                             "rotation is held at their mean, only direction and depth are fitted")
+                             "rotation is held at their mean, only direction and depth are fitted (default: none, the rotation is fitted)")
     parser.add_argument("--gyro-axes", default=None, metavar="AXES",
                         help="the camera's x,y,z as signed axes of --gyro's IMU, e.g. --gyro-axes=-x,y,-z (with '=': "
                              "the value starts with '-') (default: a DAVIS's AEDAT4 IMU is turned by -x,y,-z, as "
@@ -76,7 +76,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--omega", type=float_list((3,), "--omega (wx,wy,wz)"), default=None, metavar="WX,WY,WZ",
                         help="se3: a known, constant angular velocity [rad/s] of every window, camera axes (e.g. "
                              "0,0,0 for a linear stage or a straight drive): held like --gyro's, only direction and "
-                             "depth are fitted; not with --gyro")
+                             "depth are fitted; not with --gyro (default: none, the rotation is fitted)")
     parser.add_argument("--zero-rotation-start", action="store_true",
                         help="se3: also start the motion refinement from the flows explained without rotation "
                              "and keep the better (vehicles: on a forward drive it found forward motion where the "

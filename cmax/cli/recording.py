@@ -40,10 +40,12 @@ def add_file_options(parser: argparse.ArgumentParser) -> None:
     (``cmax info``, ``cmax show``); :func:`file_kwargs` turns them into :func:`cmax.io.read` keywords."""
     parser.add_argument(
         "--size", type=sensor_size, default=None, metavar="WxH",
-        help="sensor size, for files that do not store it (ECD text, .npy, original DSEC)",
+        help="sensor size [px], for files that do not store it (ECD text, .npy, original DSEC) "
+             "(default: the file's own; a file without one is refused)",
     )
     parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
-                        help="unit of the file's time stamps where the file does not state it (never guessed)")
+                        help="unit of the file's time stamps where the file does not state it (default: the format's "
+                             "own, e.g. s for ECD text, µs for h5; never guessed where it states none)")
     _add_polarity(parser)
     _add_sort(parser)
 
@@ -85,10 +87,11 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
     """``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1``, ``--sort``: what a command reading any
     recording needs (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
     parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
-                        help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
-                             "shipped)")
+                        help="sensor size [px] (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
+                             "shipped) (default: the file's own; a file without one is refused)")
     parser.add_argument("--time-unit", choices=("us", "ms", "s"), default=None,
-                        help="unit of the file's time stamps where the file does not state it (never guessed)")
+                        help="unit of the file's time stamps where the file does not state it (default: the format's "
+                             "own, e.g. s for ECD text, µs for h5; never guessed where it states none)")
     _add_polarity(parser)
     parser.add_argument("--t0", type=nonnegative_float, default=None,
                         help="start, seconds after the first event (default: the first event)")
@@ -105,7 +108,8 @@ def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str 
                         help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file, e.g. one cmax scene wrote)")
     camera.add_argument("--calib", type=Path, default=None,
                         help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
-                             "k3), DSEC cam_to_cam.yaml or a Kalibr camchain .yaml (pinhole, radtan; the camera --calib-camera)")
+                             "k3), DSEC cam_to_cam.yaml or a Kalibr camchain .yaml (pinhole, radtan; the camera --calib-camera) "
+                             "(default: none, --K)")
     parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
                         help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
                              "(rectified events); of a Kalibr camchain: cam0, cam1, ...")

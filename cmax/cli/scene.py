@@ -125,10 +125,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help=f"seconds to simulate (at most {MAX_DURATION_S:g})")
     parser.add_argument("--seed", type=nonnegative_int, default=default_of(make_scene, "seed"),
                         help="seed of the scene and of the simulator")
-    parser.add_argument("--size", type=sensor_size, metavar="WxH", help="sensor size (a DAVIS346)",
+    parser.add_argument("--size", type=sensor_size, metavar="WxH", help="sensor size [px] (a DAVIS346)",
                         default=(default_of(make_scene, "width"), default_of(make_scene, "height")))
-    parser.add_argument("--cp", type=positive_float, default=None, help="ON threshold (default: the preset's)")
-    parser.add_argument("--cn", type=positive_float, default=None, help="OFF threshold (default: the preset's)")
+    parser.add_argument("--cp", type=positive_float, default=None, help="ON threshold [log intensity] (default: the preset's)")
+    parser.add_argument("--cn", type=positive_float, default=None, help="OFF threshold [log intensity] (default: the preset's)")
     api_default(parser.add_argument("--depth-rate", type=positive_float, default=None,
                                     help="ground-truth depth maps per second (held in memory: 4 GiB of them at most)"),
                 depth_rate)

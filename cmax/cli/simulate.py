@@ -267,8 +267,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="video file, image folder, timestamp file, folder of videos, or list file")
     parser.add_argument("-o", "--output", type=Path, required=True, help="output .h5 file or folder")
     # Simulator settings are validated by EsimSettings / ConvertSettings (one-line errors naming the value).
-    esim = (("--cp", float, "cp", "ON threshold"), ("--cn", float, "cn", "OFF threshold"),
-            ("--threshold-sigma", float, "threshold_sigma", "per-pixel threshold mismatch (std)"),
+    esim = (("--cp", float, "cp", "ON threshold [log intensity]"), ("--cn", float, "cn", "OFF threshold [log intensity]"),
+            ("--threshold-sigma", float, "threshold_sigma", "per-pixel threshold mismatch: standard deviation, a fraction of --cp/--cn"),
             ("--refractory-us", int, "refractory_us", "refractory period in µs"),
             ("--shot-noise", float, "shot_noise_rate_hz", "shot-noise rate per pixel (Hz)"),
             ("--leak", float, "leak_rate_hz", "leak-event rate per pixel (Hz)"))
@@ -280,7 +280,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="resize frames (default: the video's size)")
     api_default(parser.add_argument("--adaptive", action=argparse.BooleanOptionalAction, default=None,
                                     help="insert interpolated frames (adaptive sampling)"), library_default(_CONVERT, "adaptive"))
-    api_default(parser.add_argument("--lam", type=float, default=None, help="lambda of adaptive sampling"),
+    api_default(parser.add_argument("--lam", type=float, default=None, help="lambda of adaptive sampling: the largest change of a pixel's log intensity between frames, a fraction of min(--cp, --cn)"),
                 library_default(_CONVERT, "lam"))
     api_default(parser.add_argument("--method", choices=("flow", "linear"), default=None,
                                     help="interpolation of adaptive sampling"), library_default(_CONVERT, "method"))
@@ -289,9 +289,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         "its times are on (default: its start)")
     parser.add_argument("--t1", type=positive_float, default=None,
                         help="end, seconds after the first frame, after --t0 (default: its end)")
-    parser.add_argument("--workers", type=positive_int, default=1, help="parallel processes")
+    parser.add_argument("--workers", type=positive_int, default=1, help="parallel processes (one video each)")
     parser.add_argument("--catalogue", choices=("slowtv",), default=None,
-                        help="INPUT is the folder of a catalogue's videos named by index (00000.mp4)")
+                        help="INPUT is the folder of a catalogue's videos named by index (00000.mp4) (default: none, INPUT is "
+                        "a video, an image folder, a folder of videos or a list file)")
     parser.add_argument("--shard", default=None, metavar="i/n",
                         help="convert shard i of n (0-based; default: all)")
     parser.add_argument("--overwrite", action="store_true",

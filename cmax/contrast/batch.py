@@ -190,7 +190,8 @@ class EventWindows:
     @classmethod
     def from_warp_events(cls, windows: Sequence[WarpEvents], *, speed: Sequence[float] | None = None
                          ) -> "EventWindows":
-        """Concatenate prepared windows (:meth:`cmax.warp.WarpEvents.from_events`) of one sensor size."""
+        """Concatenate prepared ``windows`` (:meth:`cmax.warp.WarpEvents.from_events`) of one sensor size; ``speed``:
+        the known ``|v|`` [m/s] of each window, or None."""
         if not windows or not all(isinstance(w, WarpEvents) for w in windows):
             raise TypeError("windows must be a non-empty sequence of cmax.warp.WarpEvents")
         size = (windows[0].width, windows[0].height)
@@ -208,7 +209,7 @@ class EventWindows:
 
     @classmethod
     def from_events(cls, events: Events, K: object, *, speed: float | None = None, **prepare) -> "EventWindows":
-        """One window (B = 1) from :class:`cmax.Events` and intrinsics ``K`` (3, 3), or the :class:`cmax.Camera`
+        """One window (B = 1) from ``events`` (:class:`cmax.Events`) and intrinsics ``K`` (3, 3), or the :class:`cmax.Camera`
         of their sensor, whose distortion is undone first (:func:`cmax.camera.pinhole_events`, as
         :func:`cmax.fit` does).
 
@@ -223,8 +224,8 @@ class EventWindows:
     @classmethod
     def from_windows(cls, windows: Sequence[tuple[Events, object]], *, speed: Sequence[float] | None = None,
                      **prepare) -> "EventWindows":
-        """B windows from a list of ``(events, K)`` pairs of one sensor size, ``K`` (3, 3) or a :class:`cmax.Camera`
-        (see :meth:`from_events`)."""
+        """B windows from ``windows``, a list of ``(events, K)`` pairs of one sensor size, ``K`` (3, 3) or a
+        :class:`cmax.Camera`; ``speed`` (B,) [m/s] or None and ``**prepare`` as :meth:`from_events`."""
         if not windows:
             raise ValueError("windows: need at least one (events, K) pair")
         return cls.from_warp_events([WarpEvents.from_events(*pinhole_events(ev, K), **prepare) for ev, K in windows],
@@ -234,9 +235,10 @@ class EventWindows:
     def from_padded(cls, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, polarity: torch.Tensor,
                     valid: torch.Tensor, duration_s: torch.Tensor, K: torch.Tensor, *, width: int, height: int,
                     speed: torch.Tensor | None = None) -> "EventWindows":
-        """From padded (B, Nmax) tensors (a collated data loader batch) and a (B, Nmax) bool mask of real events.
+        """From padded (B, Nmax) tensors (a collated data loader batch) and ``valid``, a (B, Nmax) bool mask of real events.
 
-        ``polarity`` is signed (-1/+1); ``t`` in seconds since each window's start;
+        ``x``, ``y`` [px]; ``polarity`` is signed (-1/+1); ``t`` in seconds since each window's start;
+        ``width``, ``height``: the sensor size [px];
         ``duration_s`` (B,); ``K`` (B, 3, 3); ``speed`` (B,) [m/s] or None.
         """
         if x.dim() != 2 or not (x.shape == y.shape == t.shape == polarity.shape == valid.shape):

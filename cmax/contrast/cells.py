@@ -30,7 +30,8 @@ def cell_index(height: int, width: int, cells: tuple[int, int]) -> torch.Tensor:
 
 
 def contrast_by_cell(images: torch.Tensor, kind: str, cells: tuple[int, int]) -> torch.Tensor:
-    """Each cell's share (B, C) of the contrast of images (B, H, W); ``sum(-1)`` is the contrast (B,).
+    """Each cell's share (B, C) of the contrast of ``images`` (B, H, W) over a ``cells`` = (rows, cols) grid;
+    ``sum(-1)`` is the contrast (B,).
 
     ``kind`` ``"variance"``: ``(I - mean I)^2 / (H W)`` summed over the cell's pixels (the image's own
     mean); ``"gradient"``: the central differences' squares, ``gx^2 / (H (W - 2)) + gy^2 / ((H - 2) W)``,
@@ -38,6 +39,7 @@ def contrast_by_cell(images: torch.Tensor, kind: str, cells: tuple[int, int]) ->
 
     Examples
     --------
+    >>> import torch
     >>> images = torch.tensor([[[0.0, 2.0], [0.0, 2.0]]])
     >>> contrast_by_cell(images, "variance", (1, 2)).tolist()
     [[0.5, 0.5]]

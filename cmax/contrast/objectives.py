@@ -143,6 +143,7 @@ def twist_at_speed(twist: torch.Tensor, speed: torch.Tensor | None) -> torch.Ten
 
     Examples
     --------
+    >>> import torch
     >>> twist_at_speed(torch.tensor([[3.0, 0, 4, 0, 0, 1]]), torch.tensor([10.0])).tolist()
     [[6.0, 0.0, 8.0, 0.0, 0.0, 1.0]]
     """
@@ -157,7 +158,8 @@ def twist_at_speed(twist: torch.Tensor, speed: torch.Tensor | None) -> torch.Ten
 
 
 def event_inverse_depth(batch: EventWindows, inverse_depth: torch.Tensor) -> torch.Tensor:
-    """Inverse depth (N,) [1/m] of each event, read at its own pixel on its window's grid (B, 1, h, w)."""
+    """Inverse depth (N,) [1/m] of each event of ``batch``, read at its own pixel on its window's grid
+    ``inverse_depth`` (B, 1, h, w) [1/m]."""
     index, weight = batch.grid_weights(tuple(inverse_depth.shape[-2:]))
     return DepthGrid.sample(inverse_depth.to(batch.dtype).reshape(-1), index, weight)
 
@@ -165,7 +167,8 @@ def event_inverse_depth(batch: EventWindows, inverse_depth: torch.Tensor) -> tor
 def warp_windows(batch: EventWindows, params: DepthMotion, dt: torch.Tensor, rays: torch.Tensor | None = None,
                  *, compiled: bool = False) -> tuple[torch.Tensor, torch.Tensor]:
     """Warped pixels (R, N) of every event for ``dt = t_i - t_ref`` (R, N) [s] (:func:`cmax.warp.warp_se3`,
-    each event with its window's twist, at the batch's speed, and intrinsics). With ``compiled``, a CPU
+    each event with its window's twist in ``params``, at the batch's speed, and intrinsics; ``rays`` (N, 3): the
+    events' back-projected pixels when the caller has them, else computed). With ``compiled``, a CPU
     batch whose windows' events are contiguous runs is warped by
     :func:`cmax.contrast._warp_kernels.warp_se3_compiled`, window by window (equal to float rounding)."""
     dtype = batch.dtype
@@ -374,8 +377,8 @@ class SweepVote:
         return (batch.t - self.reference * batch.duration_s.to(batch.dtype)[batch.window])[None]
 
     def normaliser(self, batch: EventWindows, twist: torch.Tensor) -> torch.Tensor:
-        """What each event's vote is divided by (N,): its largest value over the constant-depth sweep with
-        the windows' ``twist`` (B, 6), or the window's median largest value for an event some candidate
+        """What each event of ``batch`` has its vote divided by (N,): its largest value over the constant-depth sweep
+        with the windows' ``twist`` (B, 6), or the window's median largest value for an event some candidate
         pushes out of the image. No gradient."""
         B, rays, dt = batch.count, batch.rays(), self._dt(batch)
         with torch.no_grad():
@@ -512,12 +515,13 @@ class PlaneVote:
                              f"{self.normaliser!r}") from None
 
     def plane_inverse_depths(self, dtype: torch.dtype = torch.float64) -> torch.Tensor:
-        """The planes' inverse depths (C,) [1/m], log-spaced over ``rho_range``."""
+        """The planes' inverse depths (C,) [1/m] of ``dtype``, log-spaced over ``rho_range``."""
         lo, hi = self.rho_range
         return torch.exp(torch.linspace(math.log(lo), math.log(hi), self.planes, dtype=dtype))
 
     def plane_values(self, batch: EventWindows, twist: torch.Tensor) -> PlaneValues:
-        """:class:`PlaneValues` of the windows' ``twist`` (B, 6): the planes' values are differentiable in it.
+        """:class:`PlaneValues` of the windows of ``batch`` at their ``twist`` (B, 6): the planes' values are
+        differentiable in it.
 
         All planes at once: the depth-free parts of the warp (:func:`cmax.warp.se3_parts`) once, every plane's
         points as ``rotated + rho_c moved`` (C, N), one splat into the ``C x 2B`` images (plane, polarity,
@@ -586,8 +590,8 @@ class PlaneVote:
         return _plus_smoothness(loss, self.smoothness, batch, params)
 
     def motion_profile(self, batch: EventWindows, values: torch.Tensor, kept: torch.Tensor) -> torch.Tensor:
-        """The depth-free motion term (B,) of ``motion_weight`` (see the class docstring) from the planes'
-        ``values`` (C, N) and ``kept`` (N,) of one motion; differentiable in the values."""
+        """The depth-free motion term (B,) of ``motion_weight`` (see the class docstring) of the windows of ``batch``,
+        from the planes' ``values`` (C, N) and ``kept`` (N,) of one motion; differentiable in the values."""
         B, (rows, cols) = batch.count, self.motion_cells
         scale = self._window_scale(batch, values, kept)
         with torch.no_grad():

@@ -113,14 +113,14 @@ class Patches:
     def variance_work(self, x: np.ndarray, y: np.ndarray, sigma: float) -> _Workspace:
         """The compiled per-patch variances of events at pixels ``x, y`` (M,) (arrays of the events' dtype):
         ``.forward() -> (P,)`` float64, then ``.backward(scale (P,)) -> (dx (M,), dy (M,))`` of
-        ``sum_p scale_p Var_p``."""
+        ``sum_p scale_p Var_p``; ``sigma``: the blur [px]."""
         patch, offset, grouping = self.kernel_arrays
         _check_length("x", x.shape, patch.shape)
         _check_length("y", y.shape, patch.shape)
         return _Workspace(x, y, patch, offset, self.size, sigma, grouping)
 
     def images(self, x: torch.Tensor, y: torch.Tensor, sigma: float) -> torch.Tensor:
-        """Blurred count images (P, H, W) of the events at full-image pixels ``x, y`` (M,)."""
+        """Count images (P, H, W) of the events at full-image pixels ``x, y`` (M,), blurred by ``sigma`` [px]."""
         H, W = self.size
         ox, oy = self.offset[self.patch, 0], self.offset[self.patch, 1]
         return blur(accumulate_bilinear_indexed(x - ox, y - oy, None, self.patch, self.count, H, W), sigma)
@@ -331,7 +331,7 @@ class PatchMotionContrast:
 
     def at_depths(self, v: torch.Tensor, omega: torch.Tensor, rho_rows: torch.Tensor,
                   parts: tuple[torch.Tensor, torch.Tensor] | None = None) -> torch.Tensor:
-        """``c_p`` (C, P) for one motion and each row of per-event inverse depths ``rho_rows`` (C, M) [1/m]:
+        """``c_p`` (C, P) for one motion (``v`` (3,), ``omega`` (3,) [rad/s]) and each row of per-event inverse depths ``rho_rows`` (C, M) [1/m]:
         the rows of :meth:`__call__` with the depth-free part of the warp (:meth:`depth_free_parts`, or
         ``parts`` when the caller has them for this motion) computed once (a sweep over depths). No gradient."""
         _check_length("each row of rho_rows", tuple(rho_rows.shape[1:]), (len(self.rays),))

@@ -7,6 +7,7 @@ doi:10.1007/s11263-018-1106-2.
 Events of 2000 points on a plane 2 m away, seen by a camera sliding 0.3 m along x, and the depth
 EMVS finds with the camera-to-world poses ``(times_us, T_w_c)``:
 
+>>> import numpy as np
 >>> from cmax.events import Events
 >>> rng = np.random.default_rng(0)
 >>> camera = Camera.from_intrinsics(100.0, 100.0, 47.5, 35.5, 96, 72)      # fx, fy, cx, cy [px], W, H

@@ -193,6 +193,7 @@ def add_shifted(dsi: np.ndarray, pool: np.ndarray, layer_start: np.ndarray, laye
     --------
     One 2 x 3 image added to plane 1, read one column to the right (``qx = 1``):
 
+    >>> import numpy as np
     >>> dsi = np.zeros((2, 2, 3), np.float32)
     >>> pool = np.arange(1, 7, dtype=np.float32)  # the image [[1, 2, 3], [4, 5, 6]]
     >>> add_shifted(dsi, pool, np.array([0]), np.array([[2, 3]]), np.array([1]), np.array([0]), np.array([[1, 0]]))

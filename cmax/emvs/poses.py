@@ -48,6 +48,7 @@ def as_trajectory(poses: object, name: str = "poses") -> tuple[np.ndarray, np.nd
 
     Examples
     --------
+    >>> import numpy as np
     >>> times, T = as_trajectory(([0, 10], np.stack([np.eye(4)] * 2)))
     >>> times.dtype.name, T.shape
     ('int64', (2, 4, 4))
@@ -98,6 +99,7 @@ def check_coverage(times_us: np.ndarray, t_first_us: int, t_last_us: int, name: 
     every event lies between two consecutive poses more than :data:`SPARSE_POSES_RATIO` times the events' span
     apart (a trajectory whose times are in µs or ms read as seconds: the camera would barely move).
 
+    >>> import numpy as np
     >>> check_coverage(np.array([0, 5_000_000_000]), 0, 300_000)
     Traceback (most recent call last):
     ...
@@ -179,7 +181,7 @@ def check_header(line: str, path: str | os.PathLike) -> None:
 
 
 def read_tum_trajectory(path: str | os.PathLike) -> tuple[np.ndarray, np.ndarray]:
-    """Read a TUM trajectory file: one pose per line, ``t tx ty tz qx qy qz qw``.
+    """Read the TUM trajectory file at ``path``: one pose per line, ``t tx ty tz qx qy qz qw``.
 
     ``t`` is in seconds (read as a decimal, so absolute times keep their
     microseconds), the translation in metres, the unit quaternion in

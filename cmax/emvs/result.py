@@ -175,7 +175,8 @@ class SemiDenseDepth:
         return viz.save_png(path, self.image(zoom=zoom))
 
     def save_ply(self, path: str | os.PathLike, *, binary: bool = True) -> Path:
-        """Write :attr:`points` (world frame, metres) as a PLY point cloud (atomically); returns the path."""
+        """Write :attr:`points` (world frame, metres) as a PLY point cloud at ``path`` (atomically; ``binary``:
+        little-endian float32, else ASCII); returns the path."""
         return write_ply(path, self.points, binary=binary)
 
 
@@ -337,7 +338,8 @@ def depth_scale_bar(height: int, depth_range: tuple[float, float], *, ticks: int
 
 
 def write_ply(path: str | os.PathLike, points: np.ndarray, *, binary: bool = True) -> Path:
-    """Write points (P, 3) [m] as a PLY file (binary little-endian float32 or ASCII), atomically."""
+    """Write ``points`` (P, 3) [m] as a PLY file at ``path`` (``binary``: little-endian float32, else ASCII),
+    atomically; returns the path."""
     points = np.asarray(points, dtype=np.float64)
     if points.ndim != 2 or points.shape[1] != 3:
         raise ValueError(f"points must have shape (P, 3), got {points.shape}")

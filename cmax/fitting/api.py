@@ -435,7 +435,7 @@ def fit(
     --------
     Events of 300 points moving at (40, -20) px/s for 0.1 s, and the flow ``fit`` finds:
 
-    >>> import cmax
+    >>> import numpy as np, cmax
     >>> rng = np.random.default_rng(0)
     >>> x0, y0 = rng.uniform(5, 50, 300), rng.uniform(5, 43, 300)           # the points [px]
     >>> t_s = np.sort(rng.uniform(0, 0.1, 6000)); point = rng.integers(0, 300, 6000)

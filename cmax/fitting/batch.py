@@ -75,8 +75,8 @@ _AHEAD = 2
 
 
 class WindowFitError(RuntimeError):
-    """The fit of one window of :func:`fit_windows` raised; ``index`` is its position in the input and
-    the original exception is ``__cause__``."""
+    """The fit of one window of :func:`fit_windows` raised; ``index`` is its position in the input,
+    ``message`` names it and the original exception, which is ``__cause__``."""
 
     def __init__(self, index: int, message: str) -> None:
         super().__init__(message)
@@ -152,6 +152,7 @@ def fit_windows(windows: Sequence[Events], K: object, model: str = "se3", *, job
     Two windows of 300 points moving at (40, -20) and (-30, 10) px/s, fitted in this process (``jobs=2``
     would fit them in two worker processes, with the same results):
 
+    >>> import numpy as np
     >>> import cmax
     >>> rng = np.random.default_rng(0)
     >>> K = np.array([[60.0, 0.0, 32.0], [0.0, 60.0, 24.0], [0.0, 0.0, 1.0]])

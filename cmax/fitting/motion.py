@@ -173,6 +173,7 @@ def strided_argmax(values: Callable[[np.ndarray], np.ndarray], count: int, colum
 
     Examples
     --------
+    >>> import numpy as np
     >>> table = np.array([[0.0, 1.0, 5.0, 2.0, 1.0, 0.0, 0.0]]).T       # one column, one peak at row 2
     >>> strided_argmax(lambda index: np.take_along_axis(table, index, 0), 7, 1, 3).tolist()
     [2]

@@ -64,9 +64,10 @@ class Motion:
 
 @dataclass(frozen=True)
 class StageLog:
-    """One stage of one fit: its objective (lower is better; NaN where it has none) at its start and at
-    its end, the solver's counts, seconds and last message, whether it succeeded, and which parameters
-    ended on a bound."""
+    """One stage of one fit: the ``stage``'s name; its objective (lower is better; NaN where it has none) at its
+    start and at its end (``objective_before``, ``objective_after``); the solver's ``iterations`` and
+    ``evaluations``, wall ``seconds`` and last ``message``; its ``success``; and the parameters that ended on a
+    bound (``at_bound``, their names)."""
 
     stage: str
     objective_before: float

@@ -432,6 +432,7 @@ def rate_change(t_us: np.ndarray) -> float:
     those in the other half (an event at the midpoint counts in the second). 1 for a steady rate; inf when one
     half holds none; 1 for fewer than two events or a single time stamp. ``t_us`` (N,) sorted [µs].
 
+    >>> import numpy as np
     >>> rate_change(np.array([0, 10, 20, 30, 40, 50, 60, 70, 80, 100]))      # 5 and 5 events
     1.0
     >>> rate_change(np.array([0, 1, 2, 3, 4, 5, 6, 7, 8, 100]))              # a stop: 9 events, then 1

@@ -29,13 +29,13 @@ class SequenceResult:
     Attributes
     ----------
     results : tuple of FitResult
-    times_us : ndarray (M + 1,)
-        Start of every window, then the end of the last.
-    poses : ndarray (M + 1, 4, 4)
-        ``T_w_c`` at ``times_us``, the first the identity; between two starts the
+    times_us : ndarray (M + 1,) int64
+        Start [µs] of every fitted window, then the end of the last (M: ``len(results)``).
+    poses : ndarray (M + 1, 4, 4) float64
+        ``T_w_c`` (translation [m], or up to scale) at ``times_us``, the first the identity; between two starts the
         camera moves with the window's constant twist (metric only when every
         window's ``scale_known``).
-    skipped_us : ndarray (S,)
+    skipped_us : ndarray (S,) int64
         Start [µs] of every window not fitted (fewer than ``min_events`` events): over those the
         poses carry the last fitted window's twist (constant velocity; before the first fit they stand
         still), an assumption, not a measurement.
@@ -121,7 +121,8 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     K : array_like (3, 3) or cmax.Camera
         Pinhole intrinsics [px] of the events; or the :class:`cmax.Camera` of their sensor, whose
         distortion (if any) is undone in every window first (as :func:`cmax.fit` does).
-    model : str
+    model : {"se3", "rotation", "flow"}
+        The motion model of every window, as in :func:`cmax.fit`.
     window_us, step_us : int
         Window length and the step between window starts [µs] (``step_us`` defaults to ``window_us``).
         Only whole windows are fitted (:func:`cmax.events.window_starts`: those that end by the last event, or
@@ -150,8 +151,7 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         Without warm starts every window is fitted on its own, in parallel over ``jobs`` workers,
         and the result equals ``fit_sequence(..., jobs=1, warm_start=False)`` bit for bit; the
         resolution of the ambiguous windows then runs after all of them, its re-fits in parallel
-        too. On held-out se3 windows a warm start left the accuracy unchanged and cost about 30%
-        more time (``docs/fitting.md``).
+        too. What a warm start changes in accuracy and time on held-out windows: ``docs/fitting.md``.
     progress : bool
         A progress bar over the windows.
     **fit_options
@@ -179,6 +179,14 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
     (``quality.unsteady``: a start or a stop inside it, :func:`cmax.fitting.quality.rate_change`) takes
     the consensus without the test: its own fit is no evidence (without ``quality.smoothing`` it stays
     unresolved).
+
+    Returns
+    -------
+    SequenceResult
+        ``results`` (one :class:`FitResult` per fitted window, in time order), the integrated trajectory
+        ``poses`` at ``times_us``, the windows skipped (``skipped_us``) and the end not covered
+        (``uncovered_us``).
+
     Raises
     ------
     ValueError

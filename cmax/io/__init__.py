@@ -183,7 +183,8 @@ def read(
 
 
 def check_sortable(path: str | os.PathLike, kind: str, sort: object) -> None:
-    """Refuse ``sort`` other than a bool, and ``sort=True`` for a ``kind`` of file not in :data:`SORTABLE_FORMATS`."""
+    """Refuse ``sort`` other than a bool, and ``sort=True`` for a ``kind`` of file (:func:`detect_format`'s name)
+    not in :data:`SORTABLE_FORMATS`; ``path`` names the file in the error."""
     if not isinstance(sort, (bool, np.bool_)):
         raise TypeError(f"sort must be True or False, got {sort!r}")
     if sort and kind not in SORTABLE_FORMATS:

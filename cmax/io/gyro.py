@@ -33,6 +33,7 @@ def parse_axes(text: str) -> np.ndarray:
     """The signed permutation (3, 3) that turns IMU readings into the camera's axes, from ``"-x,y,-z"``: the
     camera's x, y and z, each as a signed IMU axis (``omega_camera = M @ omega_imu``).
 
+    >>> import numpy as np
     >>> parse_axes("-x,y,-z").tolist()
     [[-1.0, 0.0, 0.0], [0.0, 1.0, 0.0], [0.0, 0.0, -1.0]]
     >>> parse_axes("y,x,-z") @ np.array([1.0, 2.0, 3.0])

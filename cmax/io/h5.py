@@ -430,7 +430,11 @@ def write_h5(
     path: str | os.PathLike, events: Events, *, overwrite: bool = False,
     compression: str = "blosc", **attrs: Any,
 ) -> Path:
-    """Write ``events`` to a DSEC-layout HDF5 file (atomically); returns the path."""
+    """Write ``events`` to a DSEC-layout HDF5 file at ``path`` (atomically); returns the path.
+
+    ``overwrite``: replace an existing file (only once the new one is complete; else ``FileExistsError``);
+    ``compression``: ``'blosc'``, ``'gzip'`` or ``'none'``; ``**attrs``: file attributes, as :class:`H5Writer`.
+    """
     require_events(events)
     t_offset = events.t_start if len(events) else 0
     with H5Writer(
@@ -828,7 +832,8 @@ class H5Reader:
         return self.read_rows(0, len(self))
 
     def windows(self, duration_us: int, *, step_us: int | None = None) -> Iterator[Events]:
-        """Consecutive windows of ``duration_us`` from the first event (step defaults to it)."""
+        """Consecutive windows of ``duration_us`` [µs] from the first event, starting every ``step_us`` [µs]
+        (default: ``duration_us``)."""
         duration, step = window_steps(duration_us, step_us)
         if not len(self):
             return
@@ -838,6 +843,7 @@ class H5Reader:
             start += step
 
     def close(self) -> None:
+        """Close the file (also on leaving a ``with`` block)."""
         self._file.close()
 
     def __enter__(self) -> "H5Reader":
@@ -949,8 +955,9 @@ def read_h5(
     t0_us: int | None = None, t1_us: int | None = None, time_unit: str | None = None,
     polarity: str = "01",
 ) -> Events:
-    """Read a DSEC-layout file, whole or the window ``[t0_us, t1_us)``.
+    """Read the DSEC-layout file at ``path``, whole or the window ``[t0_us, t1_us)`` [µs].
 
+    ``width``, ``height`` [px]: for a file that stores no sensor size (DSEC as shipped: 640 x 480);
     ``time_unit`` and ``polarity`` as for :class:`H5Reader` (float times need a
     stated unit; polarity is never mapped silently).
     """

@@ -38,7 +38,8 @@ def read_mvsec(
     t0_us: int | None = None, t1_us: int | None = None, time_unit: str | None = None,
     polarity: str = "signed",
 ) -> Events:
-    """Read the events of one MVSEC camera, optionally only ``[t0_us, t1_us)``.
+    """Read the events of one MVSEC ``camera`` (``'left'`` or ``'right'``) from the ``*_data.hdf5`` at ``path``,
+    optionally only ``[t0_us, t1_us)`` [µs].
 
     Time stamps (MVSEC: seconds since the epoch; ``time_unit`` states another
     unit) become integer microseconds by rounding to the nearest µs (half to

@@ -24,7 +24,7 @@ def read_txt(
     path: str | os.PathLike, *, width: int | None = None, height: int | None = None, time_unit: str | None = None,
     polarity: str = "01", sort: bool = False,
 ) -> Events:
-    """Read an ECD ``events.txt`` (``t[s] x y p`` per line) into :class:`Events`.
+    """Read an ECD ``events.txt`` at ``path`` (``t[s] x y p`` per line) into :class:`Events`.
 
     Time stamps are in seconds (ECD's unit) unless ``time_unit`` states another
     (``'ms'``, ``'us'``), and are rounded to the nearest microsecond (half to

@@ -151,7 +151,8 @@ def time_surface(
 # -- settings objects ------------------------------------------------------------------------
 @dataclass(frozen=True)
 class EventFrame:
-    """Stored settings for :func:`event_frame`; (2, H, W), or (H, W) when signed."""
+    """Stored settings for :func:`event_frame`; calling it on events returns (2, H, W) float32 counts, or (H, W)
+    when ``signed``."""
 
     signed: bool = False
 
@@ -164,7 +165,8 @@ class EventFrame:
 
 @dataclass(frozen=True)
 class TimeSurface:
-    """Stored settings for :func:`time_surface` (reference time: the last event)."""
+    """Stored settings for :func:`time_surface`: the decay ``tau_us`` [µs] (reference time: the last event);
+    calling it on events returns (2, H, W) float32."""
 
     tau_us: float = 50_000.0
 

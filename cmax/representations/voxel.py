@@ -416,7 +416,8 @@ def voxel_grid_batch(samples: Sequence[EventTensors], bins: int = 5) -> "torch.T
 
 @dataclass(frozen=True)
 class VoxelGrid:
-    """Stored settings for :func:`voxel_grid`; calling it on events returns (B, H, W)."""
+    """Stored settings for :func:`voxel_grid`: ``bins`` (B) and the time ``normalization`` (``"paper"`` or
+    ``"tonic"``); calling it on events returns (B, H, W) float32."""
 
     bins: int = 5
     normalization: str = "paper"

@@ -246,6 +246,7 @@ def threshold_crossings(
 
     Examples
     --------
+    >>> import numpy as np
     >>> c = np.float32(0.1)
     >>> out = threshold_crossings(np.zeros(1, np.float32), np.zeros(1, np.float32),
     ...                           np.full(1, 0.25, np.float32), c, c)

@@ -134,6 +134,7 @@ def unit_range_note(frame: np.ndarray, what: str = "frames") -> str | None:
     numbers (0/1 values are as likely a dark 8-bit frame): ESIM takes grey
     values in [0, 255], so to it such frames are nearly black.
 
+    >>> import numpy as np
     >>> unit_range_note(np.array([[0.2, 0.9]], np.float32)) is not None, unit_range_note(np.array([[0.0, 1.0]]))
     (True, None)
     """
@@ -193,6 +194,7 @@ def log_intensity(frame: object, log_eps: float = 1e-3) -> np.ndarray:
 
     Examples
     --------
+    >>> import numpy as np
     >>> log_intensity(np.full((2, 3), 255, np.uint8)).shape
     (2, 3)
     """
@@ -224,6 +226,7 @@ class EventSimulator:
 
     Examples
     --------
+    >>> import numpy as np
     >>> frames = np.stack([np.full((2, 2), v, np.uint8) for v in (50, 100, 50)])
     >>> events = EventSimulator(cp=0.2, cn=0.2).simulate(frames, np.array([0, 1000, 2000]))
     >>> len(events), int(events.p.sum()), events.t[:4].tolist()
@@ -252,7 +255,7 @@ class EventSimulator:
 
     @classmethod
     def from_settings(cls, settings: EsimSettings) -> "EventSimulator":
-        """A simulator with the given :class:`EsimSettings`."""
+        """A simulator with the given ``settings`` (:class:`EsimSettings`)."""
         if not isinstance(settings, EsimSettings):
             raise TypeError(f"settings must be EsimSettings, got {type(settings).__name__}")
         s = settings

@@ -259,6 +259,7 @@ def interpolate_frames(
 
     Examples
     --------
+    >>> import numpy as np
     >>> a, b = np.zeros((32, 32), np.float32), np.full((32, 32), 100, np.float32)
     >>> interpolate_frames(a, b, [0.25], method="linear")[0, 0, 0]
     np.float32(25.0)

@@ -419,7 +419,7 @@ def make_scene(name: str, seed: int = 0, width: int = 346, height: int = 260, *,
     seed : int
         Seed of the world, its textures and the trajectory (>= 0).
     width, height : int
-        Image size; the intrinsics are a DAVIS346's scaled to it.
+        Image size [px]; the intrinsics are a DAVIS346's scaled to it.
     duration_s : float
         Length of the trajectory the world is built for [s]; the stated
         ranges hold on ``[0, duration_s]``.
@@ -433,6 +433,7 @@ def make_scene(name: str, seed: int = 0, width: int = 346, height: int = 260, *,
 
     Examples
     --------
+    >>> import numpy as np
     >>> scene = make_scene("slider", seed=1, width=64, height=48, texture_size=64)
     >>> intensity, depth = scene.render(0.5)
     >>> intensity.shape, intensity.dtype.name, bool(np.nanmax(depth) <= 3.0)

@@ -386,6 +386,7 @@ def iter_upsample(
 
     Examples
     --------
+    >>> import numpy as np
     >>> frames = np.zeros((2, 32, 32), np.float32); frames[1] += 100
     >>> out = list(iter_upsample(zip(frames, [0, 1_000_000]), 0.2, method="linear"))
     >>> len(out) > 2, out[0][1], out[-1][1]
@@ -425,6 +426,7 @@ def upsample(
 
     Examples
     --------
+    >>> import numpy as np
     >>> frames = np.zeros((2, 32, 32), np.float32); frames[1] += 100
     >>> result = upsample(frames, np.array([0, 1_000_000]), 0.2, method="linear")
     >>> result.frames.shape[0] == 2 + result.inserted, result.bound_met

@@ -105,6 +105,7 @@ class PlanarScene:
 
     Examples
     --------
+    >>> import numpy as np
     >>> from cmax.sim.presets import make_scene
     >>> scene = make_scene("indoor_flying", width=64, height=48, texture_size=64)
     >>> intensity, depth = scene.render(0.5)
@@ -130,7 +131,8 @@ class PlanarScene:
         return self.renderer.render(self.pose(_check_time(t_s)))
 
     def render_pose(self, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
-        """Intensity and depth seen from any pose ``T_w_c`` (4, 4)."""
+        """Intensity (H, W) float32 [0, 255] and z-depth (H, W) float32 [m, NaN = sky] seen from any camera-to-world
+        pose ``T_w_c`` (4, 4)."""
         return self.renderer.render(T_w_c)
 
     def pose(self, t_s: float) -> np.ndarray:
@@ -230,6 +232,7 @@ class TimeScaledScene:
 
     Examples
     --------
+    >>> import numpy as np
     >>> from cmax.sim.presets import make_scene
     >>> base = make_scene("slider", seed=1, width=32, height=24, duration_s=2.0, texture_size=64)
     >>> fast = TimeScaledScene(base, 2.0)
@@ -254,7 +257,7 @@ class TimeScaledScene:
             f"{info.description} (played {self.factor:g}x faster)".strip())
 
     def render(self, t_s: float) -> tuple[np.ndarray, np.ndarray]:
-        """Intensity and z-depth of the wrapped scene at ``factor * t_s``."""
+        """Intensity (H, W) float32 and z-depth (H, W) float32 [m] of the wrapped scene at ``factor * t_s`` [s]."""
         return self.scene.render(self.factor * _check_time(t_s))
 
     def pose(self, t_s: float) -> np.ndarray:
@@ -262,7 +265,7 @@ class TimeScaledScene:
         return self.scene.pose(self.factor * _check_time(t_s))
 
     def twist(self, t_s: float) -> np.ndarray:
-        """``factor`` x the wrapped scene's body twist at ``factor * t_s`` [m/s, rad/s]."""
+        """``factor`` x the wrapped scene's body twist ``(v, omega)`` (6,) at ``factor * t_s`` [m/s, rad/s]."""
         return self.factor * np.asarray(self.scene.twist(self.factor * _check_time(t_s)), dtype=np.float64)
 
     def __repr__(self) -> str:
@@ -338,6 +341,8 @@ class RGBDScene:
         return self.render_pose(self.pose(t_s))
 
     def render_pose(self, T_w_c: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
+        """Intensity (H, W) float32 and z-depth (H, W) float32 [m, NaN where unknown] seen from any camera-to-world
+        pose ``T_w_c`` (4, 4): the reference image warped by its depth, occluded pixels NaN."""
         T_c_ref = invert_pose(T_w_c) @ self.T_w_ref
         depth = self._forward_depth(T_c_ref)
         T_ref_c = invert_pose(T_c_ref)

@@ -141,7 +141,7 @@ class SyntheticSequence:
         :func:`cmax.io.h5.verify_h5` refuses and the next save of ``path``
         removes. An existing ``path`` raises ``FileExistsError`` unless
         ``overwrite`` (then it is replaced only when the new file is complete).
-        Returns the path.
+        ``compression``: of the event columns, ``'blosc'``, ``'gzip'`` or ``'none'``. Returns the path.
         """
         path = Path(path)
         t_offset = int(self.frame_t_us[0]) if len(self.frame_t_us) else 0
@@ -173,7 +173,7 @@ def write_ground_truth(file: h5py.File, sequence: SyntheticSequence) -> None:
 
 
 def load_sequence(path: str | os.PathLike) -> SyntheticSequence:
-    """Read a file written by :meth:`SyntheticSequence.save`."""
+    """Read the file at ``path`` written by :meth:`SyntheticSequence.save` (events and ``gt/``)."""
     path = Path(path)
     events = read_h5(path)
     with h5py.File(path, "r") as file:

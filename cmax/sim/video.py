@@ -768,6 +768,7 @@ def open_source(source: PathLike | np.ndarray | FrameSource, *,
     * any other file: :class:`VideoFileSource` (``t0_s``, ``t1_s`` apply to files and folders);
     * a frame source: returned unchanged (no other argument allowed).
 
+    ``size``: ``(width, height)`` [px] to resize every frame to (``cv2.INTER_AREA``; None: the frames' own).
     ``dtype`` (np.float32 or np.uint8) and ``prefetch`` (frames decoded ahead
     in background threads; files only) are passed on; ``decoders`` (threads
     decoding images at once) applies to image folders only.

@@ -230,7 +230,8 @@ def read_evt2(
     path: PathLike, *, width: int | None = None, height: int | None = None,
     sort: bool = False, chunk_bytes: int = CHUNK_BYTES,
 ) -> Events:
-    """Read a Prophesee EVT 2.0 RAW file (32-bit words); as :func:`read_evt3`.
+    """Read a Prophesee EVT 2.0 RAW file (32-bit words); ``path``, ``width``, ``height``, ``sort`` and
+    ``chunk_bytes`` as for :func:`read_evt3`.
 
     Times are 34-bit (TIME_HIGH 28 bits of 64 µs plus 6 bits per event),
     unrolled across wraparounds into int64 µs.
@@ -269,8 +270,8 @@ def read_raw(
     """Read a Prophesee RAW file in the format its header declares.
 
     Dispatches on ``% evt 3.0`` / ``% format EVT3...`` to :func:`read_evt3` and
-    on ``% evt 2.0`` / ``% format EVT2...`` to :func:`read_evt2`; other options
-    as there. Raises :class:`FormatError` when the header declares no format
+    on ``% evt 2.0`` / ``% format EVT2...`` to :func:`read_evt2`; ``path``, ``width``, ``height``, ``sort`` and
+    ``chunk_bytes`` as there. Raises :class:`FormatError` when the header declares no format
     or one that is not supported (e.g. EVT 2.1).
 
     ``t0_us``, ``t1_us`` (absolute µs, None: no bound): only the events with ``t0_us <= t < t1_us``, decoded
