@@ -1,9 +1,10 @@
 """Options shared by the commands that read a recording, and the calibration and time-slice helpers behind them.
 
-* :func:`add_file_options` / :func:`file_kwargs`: ``--size``, ``--time-unit``, ``--polarity`` of the file
-  tools (``cmax info``, ``cmax show``), passed to :func:`cmax.io.read` as keywords;
-* :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1`` of the commands that fit or
-  predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``; :func:`tail_note` says
+* :func:`add_file_options` / :func:`file_kwargs`: ``--size``, ``--time-unit``, ``--polarity``, ``--sort``,
+  ``--camera`` (an MVSEC file's) of the file tools (``cmax info``, ``cmax show``), passed to :func:`cmax.io.read`
+  as keywords;
+* :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1``, ``--camera`` of
+  the commands that fit or predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``; :func:`tail_note` says
   what their windows leave out at the end; :func:`overlap` cuts the events to the span of a gyroscope's samples
   or of poses; :func:`open_streamed`: a DSEC-layout h5 file too long to hold, read window by window;
 * :func:`add_camera_options`: ``--K`` or ``--calib`` (with ``--calib-camera``), and ``--distortion``, of the
@@ -36,8 +37,8 @@ distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
 
 
 def add_file_options(parser: argparse.ArgumentParser) -> None:
-    """``--size``, ``--time-unit``, ``--polarity``, ``--sort``: what reading a file that does not state them needs
-    (``cmax info``, ``cmax show``); :func:`file_kwargs` turns them into :func:`cmax.io.read` keywords."""
+    """``--size``, ``--time-unit``, ``--polarity``, ``--sort``, ``--camera``: what reading a file that does not
+    state them needs (``cmax info``, ``cmax show``); :func:`file_kwargs` turns them into :func:`cmax.io.read` keywords."""
     parser.add_argument(
         "--size", type=sensor_size, default=None, metavar="WxH",
         help="sensor size, for files that do not store it (ECD text, .npy, original DSEC)",
@@ -46,6 +47,13 @@ def add_file_options(parser: argparse.ArgumentParser) -> None:
                         help="unit of the file's time stamps where the file does not state it (never guessed)")
     _add_polarity(parser)
     _add_sort(parser)
+    _add_camera(parser)
+
+
+def _add_camera(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--camera", choices=("left", "right"), default=None,
+                        help="camera of an MVSEC file, which holds a left and a right one (davis/left/events, "
+                             "davis/right/events; default: left; cmax info names the cameras a file holds)")
 
 
 def _add_polarity(parser: argparse.ArgumentParser) -> None:
@@ -63,7 +71,8 @@ def _add_sort(parser: argparse.ArgumentParser) -> None:
 def file_kwargs(args: argparse.Namespace, path: Path | None = None) -> dict[str, int | str | None]:
     """The :func:`cmax.io.read` keywords of :func:`add_file_options`' options, or of
     :func:`add_recording_arguments`' (``polarity`` only when given; ``sort`` only when given,
-    and refused for a ``path`` (default ``args.file``) of a format read by time span from disk).
+    and refused for a ``path`` (default ``args.file``) of a format read by time span from disk; ``camera`` only
+    when given, and refused for a ``path`` that is not an MVSEC file).
 
     >>> file_kwargs(argparse.Namespace(size=(346, 260), time_unit="us", polarity=None))
     {'width': 346, 'height': 260, 'time_unit': 'us'}
@@ -78,12 +87,20 @@ def file_kwargs(args: argparse.Namespace, path: Path | None = None) -> dict[str,
         path = args.file if path is None else path
         check_sortable(path, detect_format(path), True)
         options["sort"] = True
+    if getattr(args, "camera", None) is not None:
+        from cmax.io import detect_format
+
+        path = args.file if path is None else path
+        if (kind := detect_format(path)) != "mvsec":
+            raise ValueError(f"--camera applies to MVSEC files (a left and a right camera); {path} is a {kind} "
+                             "file of one camera")
+        options["camera"] = args.camera
     return options
 
 
 def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1``, ``--sort``: what a command reading any
-    recording needs (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
+    """``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1``, ``--sort``, ``--camera``: what a command
+    reading any recording needs (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
     parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
                         help="sensor size (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
                              "shipped)")
@@ -95,6 +112,7 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--t1", type=nonnegative_float, default=None,
                         help="end, seconds after the first event (default: the last event)")
     _add_sort(parser)
+    _add_camera(parser)
 
 
 def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str = "") -> None:

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -22,7 +22,8 @@ class EventFileInfo:
 
     Times in µs; ``rate_hz`` in events per second; ``on_fraction`` is the
     share of ON events (0.5 = balanced); ``pixel_counts`` (height, width)
-    the events of each pixel (its hot pixels: :meth:`hot_pixels`).
+    the events of each pixel (its hot pixels: :meth:`hot_pixels`); ``camera``: the camera summarised in a
+    file of several (MVSEC), ``cameras`` its cameras and their events (None for other files).
     """
 
     path: str
@@ -35,6 +36,8 @@ class EventFileInfo:
     on_count: int
     attrs: dict[str, Any] = field(default_factory=dict)
     pixel_counts: np.ndarray | None = None
+    camera: str | None = None
+    cameras: dict[str, int] | None = None
 
     @property
     def duration_s(self) -> float:
@@ -74,11 +77,24 @@ class EventFileInfo:
             return f"rate        {self.rate_hz / 1e6:.3f} Mev/s"
         return "rate        n/a (the events span 0 µs)"
 
+    def _camera_line(self) -> str:
+        """Which camera of a file of several the block summarises, and how to read the others.
+
+        >>> EventFileInfo("rig.hdf5", "mvsec", 5, 346, 260, 0, 9, 2, camera="left",
+        ...               cameras={"left": 5, "right": 7})._camera_line()
+        'camera      left (davis/left/events); the file also holds right (7 events): --camera right reads it'
+        """
+        others = [f"{name} ({count:,} events): --camera {name} reads it"
+                  for name, count in (self.cameras or {}).items() if name != self.camera]
+        held = "; the file also holds " + ", ".join(others) if others else "; the file holds no other camera"
+        return f"camera      {self.camera} (davis/{self.camera}/events){held}"
+
     def lines(self) -> list[str]:
         """Human-readable lines, one fact each."""
         out = [
             f"file        {self.path}",
             f"format      {self.format}",
+            *([self._camera_line()] if self.camera is not None else []),
             f"sensor      {self.width} x {self.height}",
             f"events      {self.count:,}",
         ]
@@ -116,7 +132,8 @@ def file_info(
     checked as the readers check it (a NaN time or a step back in the middle raises FormatError);
     Prophesee RAW files are decoded chunk by chunk (:func:`cmax.io.prophesee.iter_raw`).
 
-    ``time_unit`` and ``options`` (e.g. ``polarity='signed'``) go to the reader:
+    ``time_unit`` and ``options`` (e.g. ``polarity='signed'``, an MVSEC file's ``camera='right'``) go to the
+    reader (an MVSEC file's summary names its camera and the other one it holds):
     times are never guessed and polarities never mapped silently, so a file
     whose ``events/p`` holds -1/+1 is refused unless ``polarity='signed'`` is given.
     """
@@ -128,7 +145,12 @@ def file_info(
         return _raw_info(path, width, height)
     if kind != "dsec":
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
-        return events_info(events, path=str(path), format=kind)
+        summary = events_info(events, path=str(path), format=kind)
+        if kind != "mvsec":
+            return summary
+        from cmax.io.mvsec import mvsec_cameras
+
+        return replace(summary, camera=options.get("camera", "left"), cameras=mvsec_cameras(path))
     with H5Reader(path, width=width, height=height, time_unit=time_unit, **options) as reader:
         # Every row is read and checked (coordinates, finite and sorted times, polarity), chunk by
         # chunk, so a NaN or a step back in the middle is named here as the readers name it.

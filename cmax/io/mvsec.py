@@ -17,9 +17,11 @@ from cmax.io._checks import TIME_UNITS, check_allocated, check_polarity_encoding
 from cmax.io.errors import FormatError
 from cmax.io.h5 import H5_ERRORS
 
-__all__ = ["read_mvsec", "mvsec_time_span", "MVSEC_WIDTH", "MVSEC_HEIGHT"]
+__all__ = ["read_mvsec", "mvsec_time_span", "mvsec_cameras", "MVSEC_CAMERAS", "MVSEC_WIDTH", "MVSEC_HEIGHT"]
 
 MVSEC_WIDTH, MVSEC_HEIGHT = 346, 260
+#: The cameras of an MVSEC rig, as its files name them (``davis/<camera>/events``); ``read_mvsec``'s default first.
+MVSEC_CAMERAS = ("left", "right")
 
 
 def _events_dataset(file: h5py.File, path: Path, camera: str) -> h5py.Dataset:
@@ -46,7 +48,7 @@ def read_mvsec(
     becomes 0/1, any other value raises :class:`FormatError`. A time window is
     located by binary search on the time column on disk, so only that slice is read.
     """
-    if camera not in ("left", "right"):
+    if camera not in MVSEC_CAMERAS:
         raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
     unit = check_time_unit(time_unit) or "s"
     polarity = check_polarity_encoding(polarity)
@@ -95,7 +97,7 @@ def mvsec_time_span(
     """``(first_us, last_us)``: the times of the first and last events of one MVSEC camera, from those two rows
     alone (the rows are in time order, as :func:`read_mvsec` checks where it reads), rounded as
     :func:`read_mvsec` rounds them; None for a camera without events."""
-    if camera not in ("left", "right"):
+    if camera not in MVSEC_CAMERAS:
         raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
     unit = check_time_unit(time_unit) or "s"
     path = Path(path)
@@ -115,6 +117,30 @@ def mvsec_time_span(
         ) from None
     first, last = times_to_us(ends, unit, f"{path}: davis/{camera}/events[[0, -1], 2] (t)").tolist()
     return int(first), int(last)
+
+
+def mvsec_cameras(path: str | os.PathLike) -> dict[str, int]:
+    """``{camera: rows}``: the cameras of :data:`MVSEC_CAMERAS` whose ``davis/<camera>/events`` an MVSEC file
+    holds, and how many events each stores (its rows; nothing else is read). Raises FormatError for a file that
+    is not a readable HDF5 file.
+
+    >>> import h5py, numpy as np, tempfile
+    >>> path = Path(tempfile.mkdtemp()) / "rig.hdf5"
+    >>> with h5py.File(path, "w") as file:
+    ...     file["davis/left/events"], file["davis/right/events"] = np.zeros((3, 4)), np.zeros((5, 4))
+    >>> mvsec_cameras(path)
+    {'left': 3, 'right': 5}
+    """
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as file:
+            found = {camera: file.get(f"davis/{camera}/events") for camera in MVSEC_CAMERAS}
+            return {camera: int(dataset.shape[0]) for camera, dataset in found.items()
+                    if isinstance(dataset, h5py.Dataset) and dataset.ndim == 2}
+    except H5_ERRORS as error:  # truncated or corrupt HDF5
+        raise FormatError(
+            f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})"
+        ) from None
 
 
 def _first_at_or_after(dataset: h5py.Dataset, t_s: float) -> int:
