@@ -623,3 +623,29 @@ def test_a_calibration_beside_the_simulated_frames_is_named_when_no_k_is_given(t
     assert main(["fit", str(out), "-o", str(tmp_path / "fit")]) == 2
     err = capsys.readouterr().err
     assert f"{seq / 'calib.txt'} lies beside the frames it was simulated from: --calib {seq / 'calib.txt'}" in err, err
+
+
+def _bare_mjpeg(path: Path, frames: int = 12) -> Path:
+    """JPEG images one after another, no container (what IP cameras and `ffmpeg -f mjpeg` write)."""
+    with open(path, "wb") as file:
+        for k in range(frames):
+            image = np.zeros((48, 64), np.uint8)
+            cv2.circle(image, (10 + 3 * k, 24), 8, 255, -1)
+            file.write(cv2.imencode(".jpg", image)[1].tobytes())
+    return path
+
+
+@pytest.mark.parametrize("name", ["clip.mjpeg", "clip.avi"])
+def test_a_bare_mjpeg_stream_is_refused_rather_than_timed_at_25_fps(tmp_path, capsys, name):
+    """Was: a bare MJPEG stream (named .avi; .mjpeg was refused as "not a video") converted with FFmpeg's invented
+    25 frames/s: 12 frames became 0.44 s of events whatever the camera's rate, without a word."""
+    from cmax.sim.video import DecodeError, VideoFileSource
+
+    source = _bare_mjpeg(tmp_path / name)
+    out = tmp_path / "out" / "clip.h5"
+    status = main(["simulate", str(source), "-o", str(out), *FAST, "--quiet"])
+    err = capsys.readouterr().err
+    assert status in (1, 2) and "a bare MJPEG stream" in err and "ffmpeg -framerate RATE" in err, err
+    assert not out.exists()
+    with pytest.raises(DecodeError, match="its frame rate would be guessed"):
+        VideoFileSource(source)
