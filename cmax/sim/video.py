@@ -99,7 +99,7 @@ def bare_stream_problem(path: PathLike) -> str | None:
 
     >>> import tempfile
     >>> clip = Path(tempfile.mkdtemp()) / "clip.avi"
-    >>> _ = clip.write_bytes(b"\xff\xd8\xff\xe0" + bytes(60))
+    >>> _ = clip.write_bytes(bytes([0xFF, 0xD8, 0xFF, 0xE0]) + bytes(60))   # a JPEG image's first bytes
     >>> bare_stream_problem(clip).split(":")[1]
     ' a bare MJPEG stream (JPEG images one after another, no container)'
     """
