@@ -649,3 +649,27 @@ def test_a_bare_mjpeg_stream_is_refused_rather_than_timed_at_25_fps(tmp_path, ca
     assert not out.exists()
     with pytest.raises(DecodeError, match="its frame rate would be guessed"):
         VideoFileSource(source)
+
+
+def test_the_no_intrinsics_message_opens_the_file_once(tmp_path, monkeypatch):
+    """`no_intrinsics_message` opened the h5 three times on its error path (simulated_sizes, source_calibration,
+    resized_note's own simulated_sizes); the message is the same from one opening."""
+    import h5py
+
+    from cmax.cli import recording
+
+    seq = tmp_path / "seq"
+    (seq / "images").mkdir(parents=True)
+    (seq / "calib.txt").write_text("50 50 23.5 15.5 0 0 0 0 0\n")
+    path = tmp_path / "conv.h5"
+    with h5py.File(path, "w") as file:       # the attributes of a conversion of 48x32 frames at --size 24x16
+        file.attrs.update(width=24, height=16, source_size="[48, 32]", source=str(seq / "images.txt"))
+    opened = []
+    real = h5py.File
+    monkeypatch.setattr(h5py, "File", lambda *args, **kwargs: opened.append(args[0]) or real(*args, **kwargs))
+    message = recording.no_intrinsics_message(path, "--calib")
+    assert opened == [path]
+    assert message == (f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib; "
+                       f"{seq / 'calib.txt'} lies beside the frames it was simulated from; {path} was simulated "
+                       "from 48x32 frames resized to 24x16 (--size): a K of those frames scales to fx*0.5, fy*0.5, "
+                       "(cx+0.5)*0.5-0.5, (cy+0.5)*0.5-0.5")

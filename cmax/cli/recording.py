@@ -273,26 +273,71 @@ def file_intrinsics(path: str | Path) -> np.ndarray | None:
 def simulated_sizes(path: str | Path) -> tuple[tuple[int, int], tuple[int, int]] | None:
     """``((W, H) of the frames, (w, h) of the sensor)`` of a ``cmax simulate`` conversion (h5 attribute
     ``source_size``: the frames' size before ``--size``), or None for any other file."""
-    import json
-
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as file:
-            stored = [int(v) for v in json.loads(file.attrs["source_size"])]
-            size = (int(file.attrs["width"]), int(file.attrs["height"]))
-    except (OSError, KeyError, TypeError, ValueError):   # not h5, not a conversion, or one of unknown frames
-        return None
-    if len(stored) != 2 or min(stored) <= 0:
-        return None
-    return (stored[0], stored[1]), size
+    return _sizes_of(_conversion_attrs(path))
 
 
 def resized_note(path: str | Path) -> str | None:
     """For a ``cmax simulate`` conversion whose frames ``--size`` resized (:func:`simulated_sizes`): how a K of
     those frames scales to its pixels (``cv2.resize``'s pixel centres: ``cx' = (cx + 0.5) sx - 0.5``); else None.
     """
-    sizes = simulated_sizes(path)
+    return _resized_text(path, simulated_sizes(path))
+
+
+def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
+    """The error for an event file that stores no ``gt/K`` and was given no ``--K`` / ``--calib``: what to pass,
+    and for a ``cmax simulate`` conversion where its K comes from (:func:`resized_note`); the file is opened once."""
+    message = f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or {calib}"
+    attrs = _conversion_attrs(path)
+    sizes = _sizes_of(attrs)
+    if sizes is None:
+        return message
+    beside = _calibration_beside(attrs)
+    if beside is not None:
+        message += f"; {beside} lies beside the frames it was simulated from"
+    if sizes[0] == sizes[1]:
+        return (f"{message} (a conversion of frames by cmax simulate: the intrinsics of the camera that shot them, "
+                "when known; a video carries none)" if beside is None else f"{message}: --calib {beside}")
+    return f"{message}; {_resized_text(path, sizes)}"
+
+
+def source_calibration(path: str | Path) -> Path | None:
+    """A calibration file (:data:`CALIBRATION_NAMES`) in the folder a ``cmax simulate`` conversion was made from
+    (h5 attribute ``source``: an ECD or rpg_vid2e image folder, its ``images/``, or a timestamp file), or None."""
+    return _calibration_beside(_conversion_attrs(path))
+
+
+#: The h5 attributes of a ``cmax simulate`` conversion that say where its frames came from.
+_CONVERSION_ATTRS = ("source_size", "width", "height", "source")
+
+
+def _conversion_attrs(path: str | Path) -> dict:
+    """The attributes of :data:`_CONVERSION_ATTRS` that the h5 file ``path`` holds, read in one opening (empty for
+    a file that is not h5)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as file:
+            return {key: file.attrs[key] for key in _CONVERSION_ATTRS if key in file.attrs}
+    except (OSError, KeyError, TypeError, ValueError):   # not an h5 file, or unreadable attributes
+        return {}
+
+
+def _sizes_of(attrs: dict) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """:func:`simulated_sizes` of a file's :func:`_conversion_attrs`."""
+    import json
+
+    try:
+        stored = [int(v) for v in json.loads(attrs["source_size"])]
+        size = (int(attrs["width"]), int(attrs["height"]))
+    except (KeyError, TypeError, ValueError):   # not a conversion, or one of unknown frames
+        return None
+    if len(stored) != 2 or min(stored) <= 0:
+        return None
+    return (stored[0], stored[1]), size
+
+
+def _resized_text(path: str | Path, sizes: tuple[tuple[int, int], tuple[int, int]] | None) -> str | None:
+    """:func:`resized_note` of a file ``path`` whose :func:`simulated_sizes` are ``sizes``."""
     if sizes is None or sizes[0] == sizes[1]:
         return None
     (W, H), (w, h) = sizes
@@ -301,32 +346,11 @@ def resized_note(path: str | Path) -> str | None:
             f"to fx*{sx:.6g}, fy*{sy:.6g}, (cx+0.5)*{sx:.6g}-0.5, (cy+0.5)*{sy:.6g}-0.5")
 
 
-def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
-    """The error for an event file that stores no ``gt/K`` and was given no ``--K`` / ``--calib``: what to pass,
-    and for a ``cmax simulate`` conversion where its K comes from (:func:`resized_note`)."""
-    message = f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or {calib}"
-    sizes = simulated_sizes(path)
-    if sizes is None:
-        return message
-    beside = source_calibration(path)
-    if beside is not None:
-        message += f"; {beside} lies beside the frames it was simulated from"
-    if sizes[0] == sizes[1]:
-        return (f"{message} (a conversion of frames by cmax simulate: the intrinsics of the camera that shot them, "
-                "when known; a video carries none)" if beside is None else f"{message}: --calib {beside}")
-    return f"{message}; {resized_note(path)}"
-
-
-def source_calibration(path: str | Path) -> Path | None:
-    """A calibration file (:data:`CALIBRATION_NAMES`) in the folder a ``cmax simulate`` conversion was made from
-    (h5 attribute ``source``: an ECD or rpg_vid2e image folder, its ``images/``, or a timestamp file), or None."""
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as file:
-            source = Path(str(file.attrs["source"]))
-    except (OSError, KeyError):
+def _calibration_beside(attrs: dict) -> Path | None:
+    """:func:`source_calibration` of a file's :func:`_conversion_attrs`."""
+    if "source" not in attrs:
         return None
+    source = Path(str(attrs["source"]))
     folder = source if source.is_dir() else source.parent
     for place in (folder, folder.parent):
         for name in CALIBRATION_NAMES:
