@@ -495,8 +495,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         Window length [s] (default: the checkpoint config's ``data.window_us``). ``window_s``, ``t0_s`` and
         ``t1_s`` must be finite numbers (``window_s`` > 0, the others >= 0), ``depth_range`` a pair of them.
     depth_range : (near, far) [m], optional
-        Colour scale of every picture of the run (default: the 1st-99th percentiles of all its windows'
-        depths, :func:`run_scale`).
+        Colour scale of every picture of the run, and nothing else: the predicted depth is neither clamped nor
+        conditioned by it (default: the 1st-99th percentiles of all its windows' depths, :func:`run_scale`).
     batch : int
         Windows per forward pass.
     device : str
@@ -657,8 +657,10 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--window", type=positive_float, default=None,
                         help="window length [s] (default: the checkpoint config's data.window_us)")
     parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
-                        metavar="NEAR,FAR", help="colour scale of the depth pictures [m], one for the whole run "
-                        "(default: the 1st-99th percentiles of all its windows' depths)")
+                        metavar="NEAR,FAR", help="colour scale of the depth pictures (window_*.png) [m], one for "
+                        "the whole run, and nothing else: the predicted depth (window_*.npz) is neither clamped nor "
+                        "conditioned by it, unlike cmax fit's and cmax emvs's --depth-range, which bound the depth "
+                        "they search (default: the 1st-99th percentiles of all its windows' depths)")
     parser.add_argument("--batch", type=positive_int, default=8, help="windows per forward pass")
     parser.add_argument("--device", default="cpu", metavar="DEVICE",
                         help="where the network runs: cpu, cuda, cuda:N or auto (a GPU when torch sees one); "
