@@ -38,7 +38,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import (add_camera_options, add_recording_arguments, check_file_principal_point,
+from cmax.cli.recording import (add_camera_options, add_recording_arguments, check_calibration_of_frames,
+                                check_file_principal_point,
                                 no_intrinsics_message, read_calibration, tail_note, time_span_us)
 from cmax.events import window_starts
 from cmax.io import run_folder
@@ -576,6 +577,8 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         if K is not None:
             raise ValueError("give the intrinsics with --K or --calib, not both")
         K, distortion, calib_size = read_calibration(calib, calib_camera)
+        if calib_size is None:   # the calibration of the frames a conversion resized: refused, the scaled K said
+            check_calibration_of_frames(calib, K, distortion, path)
     try:
         recording = open_recording(path, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s, t1_s=t1_s,
                                    sort=sort, camera=camera)

@@ -673,3 +673,39 @@ def test_the_no_intrinsics_message_opens_the_file_once(tmp_path, monkeypatch):
                        f"{seq / 'calib.txt'} lies beside the frames it was simulated from; {path} was simulated "
                        "from 48x32 frames resized to 24x16 (--size): a K of those frames scales to fx*0.5, fy*0.5, "
                        "(cx+0.5)*0.5-0.5, (cy+0.5)*0.5-0.5")
+
+
+def test_the_calibration_of_frames_that_size_resized_is_refused_with_the_scaled_k(tmp_path, capsys):
+    """An ECD folder (calib.txt beside images.txt) simulated at --size 20x15, half its 40x30 frames; `--calib
+    calib.txt` then gave the frames' K to the half-size pixels as it was (focal lengths and principal point twice
+    too large), without a word: an ECD calib.txt states no resolution, so nothing refused it."""
+    frames = _frames()
+    seq = tmp_path / "seq"
+    (seq / "images").mkdir(parents=True)
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(seq / "images" / f"frame_{k:08d}.png"), frame)
+    (seq / "images.txt").write_text("".join(f"{k * 0.04:.6f} images/frame_{k:08d}.png\n" for k in range(len(frames))))
+    (seq / "calib.txt").write_text("50 52 19.5 14.5 -0.1 0.02 0 0 0\n")
+    out = tmp_path / "events" / "seq.h5"
+    assert main(["simulate", str(seq), "-o", str(out), *FAST, "--quiet", "--size", "20x15"]) == 0
+    (tmp_path / "traj.txt").write_text("0 0 0 0 0 0 0 1\n10 0.1 0 0 0 0 0 1\n")
+    capsys.readouterr()
+    # half size: fx 25, fy 26, cx (19.5 + 0.5) / 2 - 0.5 = 9.5, cy (14.5 + 0.5) / 2 - 0.5 = 7
+    scaled = "give them scaled: --K 25,26,9.5,7 --distortion -0.1,0.02,0,0,0"
+    for command in (["fit", str(out), "-o", str(tmp_path / "fit")],
+                    ["emvs", str(out), "--poses", str(tmp_path / "traj.txt"), "-o", str(tmp_path / "emvs")],
+                    ["depth", str(out), "-o", str(tmp_path / "depth")]):
+        assert main([*command, "--calib", str(seq / "calib.txt")]) == 2
+        err = capsys.readouterr().err
+        assert f"calibrates the 40x30 frames that {out} was simulated from, but --size resized them to 20x15" in err
+        assert scaled in err and err.count("\n") == 1, (command, err)
+    # at the frames' own size the same calibration is taken as it is (no refusal from this check)
+    same = tmp_path / "same" / "seq.h5"
+    assert main(["simulate", str(seq), "-o", str(same), *FAST, "--quiet"]) == 0
+    import argparse
+
+    from cmax.cli.recording import calibration_of
+
+    args = argparse.Namespace(calib=seq / "calib.txt", calib_camera="cam0", distortion=None, K=None, file=same)
+    K, distortion, _ = calibration_of(args)
+    assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (50, 52, 19.5, 14.5)

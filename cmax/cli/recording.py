@@ -27,7 +27,7 @@ from cmax.camera import check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
-           "simulated_sizes", "resized_note", "source_calibration", "check_file_principal_point", "file_depth_range",
+           "simulated_sizes", "resized_note", "source_calibration", "check_calibration_of_frames", "check_file_principal_point", "file_depth_range",
            "distortion_argument", "read_calibration",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
@@ -139,7 +139,10 @@ def calibration_of(args: argparse.Namespace) -> tuple[np.ndarray | None, np.ndar
         return args.K, None if args.distortion is None else np.asarray(args.distortion, dtype=np.float64), None
     if args.distortion is not None:
         raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
-    return read_calibration(args.calib, args.calib_camera)
+    K, distortion, size = read_calibration(args.calib, args.calib_camera)
+    if size is None:
+        check_calibration_of_frames(args.calib, K, distortion, args.file)
+    return K, distortion, size
 
 
 #: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.
@@ -298,6 +301,37 @@ def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
         return (f"{message} (a conversion of frames by cmax simulate: the intrinsics of the camera that shot them, "
                 "when known; a video carries none)" if beside is None else f"{message}: --calib {beside}")
     return f"{message}; {_resized_text(path, sizes)}"
+
+
+def check_calibration_of_frames(calib: str | Path, K: np.ndarray, distortion: np.ndarray | None,
+                                path: str | Path) -> None:
+    """Refuse the calibration file ``calib`` (intrinsics ``K`` (3, 3) [px], OpenCV ``distortion``) for the event
+    file ``path`` when ``calib`` is the one beside the frames a ``cmax simulate`` conversion was made from
+    (:func:`source_calibration`) and ``--size`` resized those frames (:func:`simulated_sizes`): it calibrates the
+    frames, not the file's pixels, and used as it is every focal length and the principal point would be off by
+    the scale (an ECD ``calib.txt`` states no resolution, so nothing else tells). The error gives the scaled
+    ``--K`` (``cv2.resize``'s pixel centres: ``cx' = (cx + 0.5) sx - 0.5``) and the same ``--distortion`` (its
+    coefficients act on normalised coordinates, which a scaling leaves alone)."""
+    attrs = _conversion_attrs(path)
+    sizes, beside = _sizes_of(attrs), _calibration_beside(attrs)
+    if sizes is None or sizes[0] == sizes[1] or beside is None or not _same_file(beside, calib):
+        return
+    (W, H), (w, h) = sizes
+    sx, sy = w / W, h / H
+    fx, fy, cx, cy = K[0, 0] * sx, K[1, 1] * sy, (K[0, 2] + 0.5) * sx - 0.5, (K[1, 2] + 0.5) * sy - 0.5
+    scaled = f"--K {fx:.6g},{fy:.6g},{cx:.6g},{cy:.6g}"
+    if distortion is not None and np.any(distortion):
+        scaled += " --distortion " + ",".join(f"{v:.9g}" for v in distortion)
+    raise ValueError(f"{calib} calibrates the {W}x{H} frames that {path} was simulated from, but --size resized "
+                     f"them to {w}x{h}: its intrinsics do not fit these pixels; give them scaled: {scaled}")
+
+
+def _same_file(a: str | Path, b: str | Path) -> bool:
+    """Whether two paths name one file (False when either is missing)."""
+    try:
+        return Path(a).samefile(b)
+    except OSError:
+        return False
 
 
 def source_calibration(path: str | Path) -> Path | None:
