@@ -360,3 +360,17 @@ def test_camera_option_reaches_the_reader_of_fit_and_depth(tmp_path):
     dsec = write_h5(tmp_path / "one.h5", random_events(50))
     with pytest.raises(ValueError, match="applies to MVSEC files"):
         open_recording(dsec, camera="right")
+
+
+def test_an_mvsec_file_of_the_right_camera_alone_names_it(tmp_path, capsys):
+    """Was: `davis/left/events` missing read as "not an MVSEC data file?", though the file held the right camera."""
+    import h5py
+
+    path = tmp_path / "right.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/right/events", data=np.array([[1, 2, 10.0, -1], [3, 4, 10.5, 1]]))
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "it holds the events of the right camera: read them with camera='right' (cmax: --camera right)" in err
+    assert main(["info", str(path), "--camera", "right"]) == 0
+    assert "events      2\n" in capsys.readouterr().out

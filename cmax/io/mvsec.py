@@ -27,7 +27,12 @@ MVSEC_CAMERAS = ("left", "right")
 def _events_dataset(file: h5py.File, path: Path, camera: str) -> h5py.Dataset:
     key = f"davis/{camera}/events"
     if key not in file:
-        raise FormatError(f"{path} has no dataset {key!r} (not an MVSEC data file?)")
+        others = [name for name in MVSEC_CAMERAS if name != camera and f"davis/{name}/events" in file]
+        if others:
+            raise FormatError(f"{path} has no dataset {key!r}; it holds the events of the {others[0]} camera: read "
+                              f"them with camera={others[0]!r} (cmax: --camera {others[0]})")
+        raise FormatError(f"{path} has no dataset {key!r} (not an MVSEC data file? MVSEC keeps its events in the "
+                          "*_data.hdf5 files, the depth and poses in *_gt.hdf5)")
     dataset = file[key]
     if not isinstance(dataset, h5py.Dataset) or dataset.ndim != 2 or dataset.shape[1] != 4:
         raise FormatError(f"{path}:{key} must be a dataset of shape (N, 4), got {getattr(dataset, 'shape', dataset)}")
