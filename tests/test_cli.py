@@ -129,6 +129,7 @@ def test_show_voxel_mode(h5_file, tmp_path):
 @pytest.mark.parametrize("argv, message", [
     (["show", "MISSING.h5"], "no such event file"),
     (["show", "FILE", "--dt", "0"], "dt must be positive"),
+    (["show", "FILE", "--dt", "1e-9"], "dt must be at least 1e-06 s (one microsecond"),  # was: a 0 µs window drawn
     (["show", "FILE", "--t0", "-1"], "t0 must be >= 0"),
     (["info", "BAD"], "cannot tell the event format"),
 ])
