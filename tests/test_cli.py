@@ -375,3 +375,36 @@ def test_an_mvsec_file_of_the_right_camera_alone_names_it(tmp_path, capsys):
     assert "it holds the events of the right camera: read them with camera='right' (cmax: --camera right)" in err
     assert main(["info", str(path), "--camera", "right"]) == 0
     assert "events      2\n" in capsys.readouterr().out
+
+
+def test_info_reads_an_mvsec_camera_a_chunk_at_a_time(tmp_path, monkeypatch):
+    """`cmax info` promised bounded memory but read an MVSEC camera whole (32 bytes a row on disk, several GB for
+    a long recording; past MAX_EVENTS an EventLimitError). Chunk by chunk it gives what the whole read gives, and a
+    time going back across a chunk boundary is still refused."""
+    import h5py
+
+    import cmax.events
+    import cmax.io.info
+    from cmax.io import FormatError, read
+    from cmax.io.info import events_info, file_info
+
+    rng = np.random.default_rng(2)
+    n = 50
+    table = np.stack([rng.integers(0, 346, n), rng.integers(0, 260, n), 20.0 + np.sort(rng.random(n)),
+                      rng.choice([-1.0, 1.0], n)], axis=1)
+    path = tmp_path / "rig.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    whole = events_info(read(path), path=str(path), format="mvsec")
+    monkeypatch.setattr(cmax.io.info, "_CHUNK", 7)
+    monkeypatch.setattr(cmax.events, "MAX_EVENTS", 10)         # the camera does not fit; a chunk does
+    summary = file_info(path)
+    assert whole.count == n
+    assert (summary.count, summary.t_start_us, summary.t_end_us, summary.on_count) == \
+           (whole.count, whole.t_start_us, whole.t_end_us, whole.on_count)
+    np.testing.assert_array_equal(summary.pixel_counts, whole.pixel_counts)
+    table[7, 2], table[6, 2] = table[6, 2], table[7, 2] + 0.5    # row 7 (a chunk's first) before row 6
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    with pytest.raises(FormatError, match="corrupt events at row 7"):
+        file_info(path)

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field, replace
+from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
 
@@ -128,7 +128,7 @@ def file_info(
     path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
     time_unit: str | None = None, **options: Any,
 ) -> EventFileInfo:
-    """Summary of an event file; DSEC files are read in chunks (bounded memory) and every row is
+    """Summary of an event file; DSEC and MVSEC files are read in chunks (bounded memory) and every row is
     checked as the readers check it (a NaN time or a step back in the middle raises FormatError);
     Prophesee RAW files are decoded chunk by chunk (:func:`cmax.io.prophesee.iter_raw`).
 
@@ -143,14 +143,11 @@ def file_info(
     kind = detect_format(path)
     if kind == "raw" and time_unit in (None, "us") and not options:
         return _raw_info(path, width, height)
+    if kind == "mvsec":
+        return _mvsec_info(path, width, height, time_unit, options)
     if kind != "dsec":
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
-        summary = events_info(events, path=str(path), format=kind)
-        if kind != "mvsec":
-            return summary
-        from cmax.io.mvsec import mvsec_cameras
-
-        return replace(summary, camera=options.get("camera", "left"), cameras=mvsec_cameras(path))
+        return events_info(events, path=str(path), format=kind)
     with H5Reader(path, width=width, height=height, time_unit=time_unit, **options) as reader:
         # Every row is read and checked (coordinates, finite and sorted times, polarity), chunk by
         # chunk, so a NaN or a step back in the middle is named here as the readers name it.
@@ -172,6 +169,31 @@ def file_info(
             t_end_us=reader.t_end if len(reader) else None, on_count=on_count,
             attrs=reader.attrs, pixel_counts=pixels,
         )
+
+
+def _mvsec_info(path: Path, width: int | None, height: int | None, time_unit: str | None,
+                options: dict[str, Any]) -> EventFileInfo:
+    """:func:`file_info` of one camera of an MVSEC file (``options``: ``camera``, ``polarity``), read :data:`_CHUNK`
+    rows at a time (:func:`cmax.io.mvsec.iter_mvsec`: a camera of any length), naming the cameras the file holds."""
+    from cmax.io import check_sortable
+    from cmax.io._checks import check_stated_size
+    from cmax.io.mvsec import MVSEC_HEIGHT, MVSEC_WIDTH, iter_mvsec, mvsec_cameras
+
+    options = dict(options)
+    check_sortable(path, "mvsec", options.pop("sort", False))
+    check_stated_size(width, height, (MVSEC_WIDTH, MVSEC_HEIGHT), f"{path} (MVSEC, a DAVIS346)")
+    count, on_count, first, last = 0, 0, None, None
+    pixels = np.zeros((MVSEC_HEIGHT, MVSEC_WIDTH), np.int64)
+    for chunk in iter_mvsec(path, time_unit=time_unit, chunk_rows=_CHUNK, **options):
+        if len(chunk):
+            first = int(chunk.t[0]) if first is None else first
+            last = int(chunk.t[-1])
+        count += len(chunk)
+        on_count += int(np.count_nonzero(chunk.p))
+        pixels += pixel_counts(chunk)
+    return EventFileInfo(path=str(path), format="mvsec", count=count, width=MVSEC_WIDTH, height=MVSEC_HEIGHT,
+                         t_start_us=first, t_end_us=last, on_count=on_count, pixel_counts=pixels,
+                         camera=options.get("camera", "left"), cameras=mvsec_cameras(path))
 
 
 def _raw_info(path: Path, width: int | None, height: int | None) -> EventFileInfo:

@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Iterator
 
 import h5py
 import numpy as np
@@ -17,7 +18,7 @@ from cmax.io._checks import TIME_UNITS, check_allocated, check_polarity_encoding
 from cmax.io.errors import FormatError
 from cmax.io.h5 import H5_ERRORS
 
-__all__ = ["read_mvsec", "mvsec_time_span", "mvsec_cameras", "MVSEC_CAMERAS", "MVSEC_WIDTH", "MVSEC_HEIGHT"]
+__all__ = ["read_mvsec", "iter_mvsec", "mvsec_time_span", "mvsec_cameras", "MVSEC_CAMERAS", "MVSEC_WIDTH", "MVSEC_HEIGHT"]
 
 MVSEC_WIDTH, MVSEC_HEIGHT = 346, 260
 #: The cameras of an MVSEC rig, as its files name them (``davis/<camera>/events``); ``read_mvsec``'s default first.
@@ -80,20 +81,70 @@ def read_mvsec(
         raise FormatError(
             f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})"
         ) from None
+    events = _table_events(table, path, camera, unit, polarity)
+    if t0_us is None and t1_us is None:
+        return events
+    return events.slice_time(
+        -(2**62) if t0_us is None else t0_us, 2**62 if t1_us is None else t1_us
+    )
+
+
+def _table_events(table: np.ndarray, path: Path, camera: str, unit: str, polarity: str) -> Events:
+    """The events of rows (N, 4) ``x, y, t, p`` of ``davis/<camera>/events``: finite, times in ``unit`` rounded to
+    µs, polarities in the encoding ``polarity`` mapped to 0/1, in time order (FormatError naming the file)."""
     where = f"{path}: davis/{camera}/events"
     if not np.isfinite(table[:, [0, 1, 3]]).all():
         raise FormatError(f"{where} contains non-finite values")
     t_us = times_to_us(table[:, 2], unit, f"{where}[:, 2] (t)")
     p = polarity_01(table[:, 3], polarity, f"{where}[:, 3] (p)")
     try:
-        events = Events(table[:, 0], table[:, 1], t_us, p, MVSEC_WIDTH, MVSEC_HEIGHT)
+        return Events(table[:, 0], table[:, 1], t_us, p, MVSEC_WIDTH, MVSEC_HEIGHT)
     except ValueError as error:
         raise FormatError(f"{path}: {error}") from None
-    if t0_us is None and t1_us is None:
-        return events
-    return events.slice_time(
-        -(2**62) if t0_us is None else t0_us, 2**62 if t1_us is None else t1_us
-    )
+
+
+def iter_mvsec(
+    path: str | os.PathLike, *, camera: str = "left", time_unit: str | None = None, polarity: str = "signed",
+    chunk_rows: int = 1 << 22,
+) -> Iterator[Events]:
+    """The events of one MVSEC camera, ``chunk_rows`` rows at a time: memory holds one chunk (a camera of a long
+    recording, 32 bytes a row as float64 on disk, need not fit). Each chunk is read and checked as
+    :func:`read_mvsec` reads its rows, and a time that goes back from one chunk to the next raises FormatError.
+
+    >>> import h5py, tempfile
+    >>> path = Path(tempfile.mkdtemp()) / "rig.hdf5"
+    >>> with h5py.File(path, "w") as file:
+    ...     file["davis/left/events"] = [[1, 2, 10.0, -1], [3, 4, 10.5, 1], [5, 6, 11.0, 1]]
+    >>> [chunk.t.tolist() for chunk in iter_mvsec(path, chunk_rows=2)]
+    [[10000000, 10500000], [11000000]]
+    """
+    if camera not in MVSEC_CAMERAS:
+        raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
+    if isinstance(chunk_rows, bool) or not isinstance(chunk_rows, (int, np.integer)) or chunk_rows < 1:
+        raise ValueError(f"chunk_rows must be a whole number >= 1, got {chunk_rows!r}")
+    unit = check_time_unit(time_unit) or "s"
+    polarity = check_polarity_encoding(polarity)
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such event file: {path}")
+    try:
+        file = h5py.File(path, "r")
+    except H5_ERRORS as error:  # truncated or corrupt HDF5
+        raise FormatError(f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})") from None
+    with file:
+        dataset, last = _events_dataset(file, path, camera), None
+        for start in range(0, dataset.shape[0], int(chunk_rows)):
+            try:
+                table = dataset[start:start + int(chunk_rows)]
+            except H5_ERRORS as error:
+                raise FormatError(f"{path}: davis/{camera}/events: unreadable rows from {start} "
+                                  f"({type(error).__name__}: {error})") from None
+            events = _table_events(table, path, camera, unit, polarity)
+            if last is not None and int(events.t[0]) < last:
+                raise FormatError(f"{path}: davis/{camera}/events: corrupt events at row {start}: t must be sorted "
+                                  f"in non-decreasing order ({int(events.t[0])} µs comes after {last} µs)")
+            last = int(events.t[-1])
+            yield events
 
 
 def mvsec_time_span(
