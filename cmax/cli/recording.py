@@ -53,7 +53,9 @@ def add_file_options(parser: argparse.ArgumentParser) -> None:
 def _add_camera(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--camera", choices=("left", "right"), default=None,
                         help="camera of an MVSEC file, which holds a left and a right one (davis/left/events, "
-                             "davis/right/events; default: left; cmax info names the cameras a file holds)")
+                             "davis/right/events; default: left; cmax info names the cameras a file holds); with "
+                             "--calib of MVSEC's Kalibr camchain, choose the same camera with --calib-camera "
+                             "(cam0 left, cam1 right)")
 
 
 def _add_polarity(parser: argparse.ArgumentParser) -> None:
