@@ -4,9 +4,10 @@
   ``--camera`` (an MVSEC file's) of the file tools (``cmax info``, ``cmax show``), passed to :func:`cmax.io.read`
   as keywords;
 * :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1``, ``--camera`` of
-  the commands that fit or predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``; :func:`tail_note` says
-  what their windows leave out at the end; :func:`overlap` cuts the events to the span of a gyroscope's samples
-  or of poses; :func:`open_streamed`: a DSEC-layout h5 file too long to hold, read window by window;
+  the commands that fit or predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` /
+  ``--t1``; :func:`tail_note` says what their windows leave out at the end; :func:`overlap` cuts the events to
+  the span of a gyroscope's samples or of poses; :func:`open_streamed`: a DSEC-layout h5 file too long to hold,
+  read window by window;
 * :func:`add_camera_options`: ``--K`` or ``--calib`` (with ``--calib-camera``), and ``--distortion``, of the
   commands that need the intrinsics (``cmax fit``, ``cmax emvs``), :func:`calibration_of` and
   :func:`read_calibrated` behind them; :func:`intrinsics_argument`,
@@ -27,7 +28,8 @@ from cmax.camera import check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
-           "simulated_sizes", "resized_note", "source_calibration", "check_calibration_of_frames", "check_file_principal_point", "file_depth_range",
+           "simulated_sizes", "resized_note", "source_calibration", "check_calibration_of_frames",
+           "check_file_principal_point", "file_depth_range",
            "distortion_argument", "read_calibration",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
@@ -38,7 +40,8 @@ distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
 
 def add_file_options(parser: argparse.ArgumentParser) -> None:
     """``--size``, ``--time-unit``, ``--polarity``, ``--sort``, ``--camera``: what reading a file that does not
-    state them needs (``cmax info``, ``cmax show``); :func:`file_kwargs` turns them into :func:`cmax.io.read` keywords."""
+    state them needs (``cmax info``, ``cmax show``); :func:`file_kwargs` turns them into :func:`cmax.io.read`
+    keywords."""
     parser.add_argument(
         "--size", type=sensor_size, default=None, metavar="WxH",
         help="sensor size, for files that do not store it (ECD text, .npy, original DSEC)",

@@ -45,10 +45,10 @@ def scene_duration(text: str) -> float:
 def scene_size(text: str) -> tuple[int, int]:
     """``argparse`` type of ``--size``: a sensor size (:func:`cmax._args.sensor_size`) of at least :data:`MIN_SIZE`.
 
-    >>> scene_size("10x10")
+    >>> scene_size("10x10")  # doctest: +ELLIPSIS
     Traceback (most recent call last):
     ...
-    argparse.ArgumentTypeError: expected at least 32x24 pixels (the smallest sensor cmax fit's default 24x32 depth grid fits), got '10x10'
+    argparse.ArgumentTypeError: expected at least 32x24 pixels (the smallest sensor cmax fit's default ...), got '10x10'
     """
     width, height = sensor_size(text)
     if width < MIN_SIZE[0] or height < MIN_SIZE[1]:

@@ -18,7 +18,8 @@ from cmax.io._checks import TIME_UNITS, check_allocated, check_polarity_encoding
 from cmax.io.errors import FormatError
 from cmax.io.h5 import H5_ERRORS
 
-__all__ = ["read_mvsec", "iter_mvsec", "mvsec_time_span", "mvsec_cameras", "MVSEC_CAMERAS", "MVSEC_WIDTH", "MVSEC_HEIGHT"]
+__all__ = ["read_mvsec", "iter_mvsec", "mvsec_time_span", "mvsec_cameras", "MVSEC_CAMERAS", "MVSEC_WIDTH",
+           "MVSEC_HEIGHT"]
 
 MVSEC_WIDTH, MVSEC_HEIGHT = 346, 260
 #: The cameras of an MVSEC rig, as its files name them (``davis/<camera>/events``); ``read_mvsec``'s default first.

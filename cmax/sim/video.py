@@ -671,9 +671,9 @@ class VideoFileSource:
     strictly increasing; a ``UserWarning`` at the end of the stream counts
     such frames and names the first.
 
-    Decoding errors: a file OpenCV cannot open or that yields no frame, and a bare MJPEG stream (no container,
-    no frame times: :func:`bare_stream_problem`) raise :class:`DecodeError` at construction; a path that is not valid UTF-8 raises
-    :class:`ValueError` (:func:`_opencv_path`: OpenCV would crash on it). When
+    Decoding errors: a file OpenCV cannot open or that yields no frame, and a bare MJPEG stream (no
+    container, no frame times: :func:`bare_stream_problem`) raise :class:`DecodeError` at construction; a
+    path that is not valid UTF-8 raises :class:`ValueError` (:func:`_opencv_path`: OpenCV would crash on it). When
     the decoder stops more than ``max(1, 1%)`` frames before the container's frame count, and the last
     frame decoded lies that far before the stream's end too (:func:`_stopped_early`: a Matroska count is
     an estimate, too large for a variable frame rate or a stream starting after 0), iteration raises
