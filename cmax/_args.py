@@ -271,7 +271,8 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
                     f"{label}: warning: {one_line(str(message))}", file=sys.stderr)
             with sigterm_as_interrupt():
                 status = int(command(args) or 0)
-            stop_if_terminated()   # a SIGTERM whose exception Python dropped (in a finalizer) still ends the run
+            if status != TERMINATED_STATUS:   # 143: the command stopped on SIGTERM and said so itself
+                stop_if_terminated()   # a SIGTERM whose exception Python dropped (in a finalizer) still ends the run
             return status
     except BrokenPipeError:  # the reader of stdout left (cmax info ... | head): not an error of the input
         if debug:

@@ -14,7 +14,7 @@ import threading
 from contextlib import contextmanager
 from typing import Iterator
 
-__all__ = ["Terminated", "sigterm_as_interrupt", "stop_if_terminated", "TERMINATED_STATUS"]
+__all__ = ["Terminated", "sigterm_as_interrupt", "sigterm_deferred", "stop_if_terminated", "TERMINATED_STATUS"]
 
 #: The exit status of a run stopped by SIGTERM, as a shell reports a process killed by it.
 TERMINATED_STATUS = 128 + int(signal.SIGTERM)
@@ -26,6 +26,8 @@ class Terminated(KeyboardInterrupt):
 
 #: Set by the SIGTERM handler of :func:`sigterm_as_interrupt`: the run was told to stop.
 _SIGTERM_RECEIVED = threading.Event()
+#: Open :func:`sigterm_deferred` blocks (main thread), and whether a SIGTERM came inside one.
+_DEFERRAL = {"depth": 0, "pending": False}
 
 
 @contextmanager
@@ -42,10 +44,14 @@ def sigterm_as_interrupt() -> Iterator[None]:
         yield
         return
     _SIGTERM_RECEIVED.clear()
+    _DEFERRAL["pending"] = False
 
     def terminate(signum, frame) -> None:
         signal.signal(signal.SIGTERM, signal.SIG_IGN)
         _SIGTERM_RECEIVED.set()
+        if _DEFERRAL["depth"]:            # inside sigterm_deferred: raised when the block ends
+            _DEFERRAL["pending"] = True
+            return
         raise Terminated()
 
     def unraisable(info) -> None:
@@ -59,6 +65,33 @@ def sigterm_as_interrupt() -> Iterator[None]:
     finally:
         signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
         sys.unraisablehook = hook
+
+
+@contextmanager
+def sigterm_deferred() -> Iterator[None]:
+    """Within the block, a SIGTERM that :func:`sigterm_as_interrupt` turns into :class:`Terminated` is held back
+    and raised when the block ends, so that a step the clean-up relies on is not cut in two: a worker process
+    started AND recorded as running (one started but not yet recorded would be neither stopped nor cleaned up
+    after). A block left by an exception while a SIGTERM is held back raises :class:`Terminated` instead: the
+    failure is the signal's doing (the ``forkserver``, signalled with the process group by ``timeout`` or a batch
+    system, dies under ``Process.start``: ``EOFError``), and the run stops on the signal, in one line. Outside
+    :func:`sigterm_as_interrupt` (or outside the main thread) the block runs unchanged."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    _DEFERRAL["depth"] += 1
+    try:
+        yield
+    except BaseException:
+        if _DEFERRAL["depth"] == 1 and _DEFERRAL["pending"]:
+            _DEFERRAL["pending"] = False
+            raise Terminated() from None
+        raise
+    finally:
+        _DEFERRAL["depth"] -= 1
+    if not _DEFERRAL["depth"] and _DEFERRAL["pending"]:
+        _DEFERRAL["pending"] = False
+        raise Terminated()
 
 
 def stop_if_terminated() -> None:

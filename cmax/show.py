@@ -65,6 +65,8 @@ def read_window(
         _check_seconds(name, value)
     if dt_s <= 0:
         raise ValueError(f"dt must be positive seconds, got {dt_s}")
+    if round(dt_s * 1e6) < 1:   # a window of 0 µs after rounding to the events' resolution: never any event
+        raise ValueError(f"dt must be at least 1e-06 s (one microsecond, the time resolution of events), got {dt_s}")
     if t0_s < 0:
         raise ValueError(f"t0 must be >= 0 seconds after the first event, got {t0_s}")
     path = Path(path)

@@ -38,7 +38,8 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import (add_camera_options, add_recording_arguments, check_file_principal_point,
+from cmax.cli.recording import (add_camera_options, add_recording_arguments, check_calibration_of_frames,
+                                check_file_principal_point,
                                 no_intrinsics_message, read_calibration, tail_note, time_span_us)
 from cmax.events import window_starts
 from cmax.io import run_folder
@@ -97,11 +98,12 @@ class Recording:
 
 def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, time_unit: str | None = None,
                    polarity: str | None = None, t0_s: float | None = None,
-                   t1_s: float | None = None, sort: bool = False) -> Recording:
+                   t1_s: float | None = None, sort: bool = False, camera: str | None = None) -> Recording:
     """Open the event file at ``path``, of any format :func:`cmax.io.read` reads.
 
     ``size`` (width, height) [px], ``time_unit``, ``polarity`` and ``sort`` as :func:`cmax.io.read` takes them
-    (for files that do not state them; never guessed). A DSEC-layout h5 file is read window by
+    (for files that do not state them; never guessed); ``camera``: an MVSEC file's ``'left'`` (default) or
+    ``'right'`` camera (refused for other files). A DSEC-layout h5 file is read window by
     window (:class:`cmax.io.H5Reader`); a Prophesee RAW file with ``t0_s`` / ``t1_s`` (seconds after its
     first event, as ``--t0`` / ``--t1``) is decoded holding only that span (its ``first_us`` stays the
     file's), and one too long to hold (:data:`cmax.events.MAX_EVENTS`) window after window
@@ -118,6 +120,11 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
     check_sortable(path, kind, sort)
     width, height = size if size is not None else (None, None)
     options = {} if polarity is None else {"polarity": polarity}
+    if camera is not None:
+        if kind != "mvsec":
+            raise ValueError(f"camera={camera!r} (cmax: --camera) applies to MVSEC files (a left and a right "
+                             f"camera); {path} is a {kind} file of one camera")
+        options["camera"] = camera
     if kind == "dsec":
         reader = H5Reader(path, width=width, height=height, time_unit=time_unit, **options)
         try:
@@ -472,6 +479,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                    K: np.ndarray | None = None, calib: str | Path | None = None, calib_camera: str = "cam0",
                    distortion: np.ndarray | None = None, size: tuple[int, int] | None = None,
                    time_unit: str | None = None, polarity: str | None = None, sort: bool = False,
+                   camera: str | None = None,
                    t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
                    depth_range: tuple[float, float] | None = None, batch: int = 8, progress: bool = True,
                    note: Callable[[str], None] | None = None, overwrite: bool = False,
@@ -489,7 +497,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     distortion : ndarray (4,) or (5,), optional
         OpenCV ``k1, k2, p1, p2[, k3]`` of ``K`` (with ``K`` only; a ``calib`` file brings its own): the
         events are undistorted to the nearest pixel before the network sees them.
-    size, time_unit, polarity, sort : as :func:`cmax.io.read` (for files that do not state them; ``sort``: a
+    size, time_unit, polarity, sort, camera : as :func:`cmax.io.read` (for files that do not state them;
+        ``camera``: an MVSEC file's ``'left'`` or ``'right'``; ``sort``: a
         file whose time goes back, sorted).
     t0_s, t1_s : float, optional
         Part to predict, seconds after the first event.
@@ -497,8 +506,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         Window length [s] (default: the checkpoint config's ``data.window_us``). ``window_s``, ``t0_s`` and
         ``t1_s`` must be finite numbers (``window_s`` > 0, the others >= 0), ``depth_range`` a pair of them.
     depth_range : (near, far) [m], optional
-        Colour scale of every picture of the run (default: the 1st-99th percentiles of all its windows'
-        depths, :func:`run_scale`).
+        Colour scale of every picture of the run, and nothing else: the predicted depth is neither clamped nor
+        conditioned by it (default: the 1st-99th percentiles of all its windows' depths, :func:`run_scale`).
     batch : int
         Windows per forward pass.
     device : str
@@ -543,13 +552,14 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                                what="window_*.npz, twists.csv, ...") as stage:
         run = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
                             distortion=distortion, size=size, time_unit=time_unit, polarity=polarity, sort=sort,
+                            camera=camera,
                             t0_s=t0_s, t1_s=t1_s, window_s=window_s, depth_range=depth_range, batch=batch,
                             progress=progress, note=note, device=device)
     return replace(run, seconds=time.perf_counter() - started, output=out)
 
 
 def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_camera, distortion, size,
-                  time_unit, polarity, sort, t0_s, t1_s, window_s, depth_range, batch, progress, note,
+                  time_unit, polarity, sort, camera, t0_s, t1_s, window_s, depth_range, batch, progress, note,
                   device) -> DepthRun:
     """:func:`run_prediction`'s work, every result written into the empty folder ``stage``."""
     from tqdm.auto import tqdm
@@ -579,14 +589,16 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         if K is not None:
             raise ValueError("give the intrinsics with --K or --calib, not both")
         K, distortion, calib_size = read_calibration(calib, calib_camera)
+        if calib_size is None:   # the calibration of the frames a conversion resized: refused, the scaled K said
+            check_calibration_of_frames(calib, K, distortion, path)
     try:
         recording = open_recording(path, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s, t1_s=t1_s,
-                                   sort=sort)
+                                   sort=sort, camera=camera)
     except ValueError as error:   # a file that stores no size: the calibration's resolution, when it has one
         if calib_size is None or size is not None or "width=" not in str(error):
             raise
         recording = open_recording(path, size=calib_size, time_unit=time_unit, polarity=polarity, t0_s=t0_s,
-                                   t1_s=t1_s, sort=sort)
+                                   t1_s=t1_s, sort=sort, camera=camera)
     try:
         if calib_size is not None and (recording.width, recording.height) != tuple(calib_size):
             raise ValueError(f"{calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({calib_camera}), the "
@@ -658,12 +670,14 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="checkpoint of learned.train (default: the model shipped in learned/pretrained)")
     add_camera_options(parser, distortion_help=": events are undistorted to the nearest pixel first")
-    add_recording_arguments(parser)      # --size, --time-unit, --polarity, --t0, --t1, --sort
+    add_recording_arguments(parser)      # --size, --time-unit, --polarity, --t0, --t1, --sort, --camera
     parser.add_argument("--window", type=positive_float, default=None,
                         help="window length [s] (default: the checkpoint config's data.window_us)")
     parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
-                        metavar="NEAR,FAR", help="colour scale of the depth pictures [m], one for the whole run "
-                        "(default: the 1st-99th percentiles of all its windows' depths)")
+                        metavar="NEAR,FAR", help="colour scale of the depth pictures (window_*.png) [m], one for "
+                        "the whole run, and nothing else: the predicted depth (window_*.npz) is neither clamped nor "
+                        "conditioned by it, unlike cmax fit's and cmax emvs's --depth-range, which bound the depth "
+                        "they search (default: the 1st-99th percentiles of all its windows' depths)")
     parser.add_argument("--batch", type=positive_int, default=8, help="windows per forward pass")
     parser.add_argument("--device", default="cpu", metavar="DEVICE",
                         help="where the network runs: cpu, cuda, cuda:N or auto (a GPU when torch sees one); "
@@ -680,7 +694,7 @@ def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> i
     result = run_prediction(
         args.file, args.output, checkpoint=args.checkpoint, K=args.K, calib=args.calib,
         calib_camera=args.calib_camera, distortion=args.distortion, size=args.size, time_unit=args.time_unit,
-        polarity=args.polarity, sort=args.sort,
+        polarity=args.polarity, sort=args.sort, camera=args.camera,
         t0_s=args.t0, t1_s=args.t1, window_s=args.window,
         depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
         progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),

@@ -129,6 +129,7 @@ def test_show_voxel_mode(h5_file, tmp_path):
 @pytest.mark.parametrize("argv, message", [
     (["show", "MISSING.h5"], "no such event file"),
     (["show", "FILE", "--dt", "0"], "dt must be positive"),
+    (["show", "FILE", "--dt", "1e-9"], "dt must be at least 1e-06 s (one microsecond"),  # was: a 0 µs window drawn
     (["show", "FILE", "--t0", "-1"], "t0 must be >= 0"),
     (["info", "BAD"], "cannot tell the event format"),
 ])
@@ -297,3 +298,113 @@ def test_every_command_describes_itself_in_plain_text(command, capsys):
     text = capsys.readouterr().out
     description = text.split("\n\n")[1]
     assert "``" not in text and len(description.split()) >= 5, text[:400]
+
+
+def _two_camera_mvsec(path, left: int = 5, right: int = 7):
+    """An MVSEC-layout file with ``left`` events on davis/left and ``right`` on davis/right (all ON at (1, 2) on the
+    left, all OFF at (3, 4) on the right), one per 10 ms from t = 10 s."""
+    import h5py
+
+    def table(count, x, y, p):
+        return np.array([[x, y, 10.0 + 0.01 * i, p] for i in range(count)])
+
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table(left, 1, 2, 1))
+        file.create_dataset("davis/right/events", data=table(right, 3, 4, -1))
+    return path
+
+
+def test_info_names_the_mvsec_camera_and_reads_the_right_one(tmp_path, capsys):
+    """Was: `cmax info` on an MVSEC file summarised its left camera without saying so, never mentioned the right
+    camera, and no command could read the right one (only `cmax.io.read(..., camera='right')`)."""
+    path = _two_camera_mvsec(tmp_path / "rig.hdf5")
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    assert "events      5\n" in out and "5 ON / 0 OFF" in out
+    assert "camera      left (davis/left/events); the file also holds right (7 events): --camera right" in out
+    assert main(["info", str(path), "--camera", "right"]) == 0
+    out = capsys.readouterr().out
+    assert "events      7\n" in out and "0 ON / 7 OFF" in out
+    assert "camera      right (davis/right/events); the file also holds left (5 events)" in out
+
+
+def test_camera_option_reaches_show_and_is_refused_for_other_formats(h5_file, tmp_path, capsys):
+    path = _two_camera_mvsec(tmp_path / "rig.hdf5", left=3, right=40)
+    out = tmp_path / "right.png"
+    assert main(["show", str(path), "--camera", "right", "--dt", "1", "--mode", "frame", "-o", str(out)]) == 0
+    assert cv2.imread(str(out)) is not None
+    capsys.readouterr()
+    dsec, _ = h5_file
+    assert main(["info", str(dsec), "--camera", "right"]) == 2
+    err = capsys.readouterr().err
+    assert "--camera applies to MVSEC files" in err and err.count("\n") == 1
+
+
+def test_camera_option_reaches_the_reader_of_fit_and_depth(tmp_path):
+    """`cmax fit` / `cmax emvs` read through `read_calibrated`, `cmax depth` through `learned.predict`'s
+    `open_recording`: both must give the right camera's events when asked."""
+    import argparse
+
+    from cmax.cli.recording import read_calibrated
+    from learned.predict import open_recording
+
+    path = _two_camera_mvsec(tmp_path / "rig.hdf5", left=3, right=40)
+    args = argparse.Namespace(file=path, size=None, time_unit=None, polarity=None, sort=False, camera="right",
+                              t0=None, t1=None)
+    events, _ = read_calibrated(args, None)
+    assert len(events) == 40 and set(events.x.tolist()) == {3}
+    recording = open_recording(path, camera="right")
+    try:
+        assert recording.last_us - recording.first_us == 390_000
+    finally:
+        recording.close()
+    dsec = write_h5(tmp_path / "one.h5", random_events(50))
+    with pytest.raises(ValueError, match="applies to MVSEC files"):
+        open_recording(dsec, camera="right")
+
+
+def test_an_mvsec_file_of_the_right_camera_alone_names_it(tmp_path, capsys):
+    """Was: `davis/left/events` missing read as "not an MVSEC data file?", though the file held the right camera."""
+    import h5py
+
+    path = tmp_path / "right.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/right/events", data=np.array([[1, 2, 10.0, -1], [3, 4, 10.5, 1]]))
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert "it holds the events of the right camera: read them with camera='right' (cmax: --camera right)" in err
+    assert main(["info", str(path), "--camera", "right"]) == 0
+    assert "events      2\n" in capsys.readouterr().out
+
+
+def test_info_reads_an_mvsec_camera_a_chunk_at_a_time(tmp_path, monkeypatch):
+    """`cmax info` promised bounded memory but read an MVSEC camera whole (32 bytes a row on disk, several GB for
+    a long recording; past MAX_EVENTS an EventLimitError). Chunk by chunk it gives what the whole read gives, and a
+    time going back across a chunk boundary is still refused."""
+    import h5py
+
+    import cmax.events
+    import cmax.io.info
+    from cmax.io import FormatError, read
+    from cmax.io.info import events_info, file_info
+
+    rng = np.random.default_rng(2)
+    n = 50
+    table = np.stack([rng.integers(0, 346, n), rng.integers(0, 260, n), 20.0 + np.sort(rng.random(n)),
+                      rng.choice([-1.0, 1.0], n)], axis=1)
+    path = tmp_path / "rig.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    whole = events_info(read(path), path=str(path), format="mvsec")
+    monkeypatch.setattr(cmax.io.info, "_CHUNK", 7)
+    monkeypatch.setattr(cmax.events, "MAX_EVENTS", 10)         # the camera does not fit; a chunk does
+    summary = file_info(path)
+    assert whole.count == n
+    assert (summary.count, summary.t_start_us, summary.t_end_us, summary.on_count) == \
+           (whole.count, whole.t_start_us, whole.t_end_us, whole.on_count)
+    np.testing.assert_array_equal(summary.pixel_counts, whole.pixel_counts)
+    table[7, 2], table[6, 2] = table[6, 2], table[7, 2] + 0.5    # row 7 (a chunk's first) before row 6
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    with pytest.raises(FormatError, match="corrupt events at row 7"):
+        file_info(path)

@@ -40,6 +40,28 @@ def test_scene_refuses_its_output_before_simulating(tmp_path, capsys, monkeypatc
     assert (tmp_path / "EXISTING.h5").read_bytes() == b"an earlier result"
 
 
+@pytest.mark.parametrize("size", ["10x10", "1x1", "31x24", "346x23"])
+def test_scene_refuses_a_sensor_too_small_to_fit_before_simulating(tmp_path, capsys, no_simulation, size):
+    """Was: `--size 10x10` wrote a file of 17 events (exit 0, no word); `--size 1x1` failed after building the
+    scene with numpy's "Shape of array too small to calculate a numerical gradient"."""
+    status, err = one_line_error(lambda: cmax_main(["scene", "slider", "-o", str(tmp_path / "s.h5"), "--size", size]),
+                                 capsys)
+    assert status == 2 and "argument --size: expected at least 32x24 pixels" in err and repr(size) in err, err
+    assert not (tmp_path / "s.h5").exists()
+
+
+def test_scene_minimum_size_is_what_the_default_fit_needs():
+    """`MIN_SIZE` is the smallest sensor `cmax.fit`'s default depth grid (rows, columns) fits."""
+    import inspect
+
+    import cmax
+    from cmax.cli.scene import MIN_SIZE, scene_size
+
+    rows, cols = inspect.signature(cmax.fit).parameters["depth_grid"].default
+    assert MIN_SIZE == (cols, rows)
+    assert scene_size(f"{cols}x{rows}") == (cols, rows)
+
+
 def test_scene_depth_map_budget_is_the_memory_they_take():
     from cmax.cli.scene import MAX_DEPTH_BYTES, check_depth_maps
 

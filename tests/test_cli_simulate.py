@@ -623,3 +623,89 @@ def test_a_calibration_beside_the_simulated_frames_is_named_when_no_k_is_given(t
     assert main(["fit", str(out), "-o", str(tmp_path / "fit")]) == 2
     err = capsys.readouterr().err
     assert f"{seq / 'calib.txt'} lies beside the frames it was simulated from: --calib {seq / 'calib.txt'}" in err, err
+
+
+def _bare_mjpeg(path: Path, frames: int = 12) -> Path:
+    """JPEG images one after another, no container (what IP cameras and `ffmpeg -f mjpeg` write)."""
+    with open(path, "wb") as file:
+        for k in range(frames):
+            image = np.zeros((48, 64), np.uint8)
+            cv2.circle(image, (10 + 3 * k, 24), 8, 255, -1)
+            file.write(cv2.imencode(".jpg", image)[1].tobytes())
+    return path
+
+
+@pytest.mark.parametrize("name", ["clip.mjpeg", "clip.avi"])
+def test_a_bare_mjpeg_stream_is_refused_rather_than_timed_at_25_fps(tmp_path, capsys, name):
+    """Was: a bare MJPEG stream (named .avi; .mjpeg was refused as "not a video") converted with FFmpeg's invented
+    25 frames/s: 12 frames became 0.44 s of events whatever the camera's rate, without a word."""
+    from cmax.sim.video import DecodeError, VideoFileSource
+
+    source = _bare_mjpeg(tmp_path / name)
+    out = tmp_path / "out" / "clip.h5"
+    status = main(["simulate", str(source), "-o", str(out), *FAST, "--quiet"])
+    err = capsys.readouterr().err
+    assert status in (1, 2) and "a bare MJPEG stream" in err and "ffmpeg -framerate RATE" in err, err
+    assert not out.exists()
+    with pytest.raises(DecodeError, match="its frame rate would be guessed"):
+        VideoFileSource(source)
+
+
+def test_the_no_intrinsics_message_opens_the_file_once(tmp_path, monkeypatch):
+    """`no_intrinsics_message` opened the h5 three times on its error path (simulated_sizes, source_calibration,
+    resized_note's own simulated_sizes); the message is the same from one opening."""
+    import h5py
+
+    from cmax.cli import recording
+
+    seq = tmp_path / "seq"
+    (seq / "images").mkdir(parents=True)
+    (seq / "calib.txt").write_text("50 50 23.5 15.5 0 0 0 0 0\n")
+    path = tmp_path / "conv.h5"
+    with h5py.File(path, "w") as file:       # the attributes of a conversion of 48x32 frames at --size 24x16
+        file.attrs.update(width=24, height=16, source_size="[48, 32]", source=str(seq / "images.txt"))
+    opened = []
+    real = h5py.File
+    monkeypatch.setattr(h5py, "File", lambda *args, **kwargs: opened.append(args[0]) or real(*args, **kwargs))
+    message = recording.no_intrinsics_message(path, "--calib")
+    assert opened == [path]
+    assert message == (f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or --calib; "
+                       f"{seq / 'calib.txt'} lies beside the frames it was simulated from; {path} was simulated "
+                       "from 48x32 frames resized to 24x16 (--size): a K of those frames scales to fx*0.5, fy*0.5, "
+                       "(cx+0.5)*0.5-0.5, (cy+0.5)*0.5-0.5")
+
+
+def test_the_calibration_of_frames_that_size_resized_is_refused_with_the_scaled_k(tmp_path, capsys):
+    """An ECD folder (calib.txt beside images.txt) simulated at --size 20x15, half its 40x30 frames; `--calib
+    calib.txt` then gave the frames' K to the half-size pixels as it was (focal lengths and principal point twice
+    too large), without a word: an ECD calib.txt states no resolution, so nothing refused it."""
+    frames = _frames()
+    seq = tmp_path / "seq"
+    (seq / "images").mkdir(parents=True)
+    for k, frame in enumerate(frames):
+        cv2.imwrite(str(seq / "images" / f"frame_{k:08d}.png"), frame)
+    (seq / "images.txt").write_text("".join(f"{k * 0.04:.6f} images/frame_{k:08d}.png\n" for k in range(len(frames))))
+    (seq / "calib.txt").write_text("50 52 19.5 14.5 -0.1 0.02 0 0 0\n")
+    out = tmp_path / "events" / "seq.h5"
+    assert main(["simulate", str(seq), "-o", str(out), *FAST, "--quiet", "--size", "20x15"]) == 0
+    (tmp_path / "traj.txt").write_text("0 0 0 0 0 0 0 1\n10 0.1 0 0 0 0 0 1\n")
+    capsys.readouterr()
+    # half size: fx 25, fy 26, cx (19.5 + 0.5) / 2 - 0.5 = 9.5, cy (14.5 + 0.5) / 2 - 0.5 = 7
+    scaled = "give them scaled: --K 25,26,9.5,7 --distortion -0.1,0.02,0,0,0"
+    for command in (["fit", str(out), "-o", str(tmp_path / "fit")],
+                    ["emvs", str(out), "--poses", str(tmp_path / "traj.txt"), "-o", str(tmp_path / "emvs")],
+                    ["depth", str(out), "-o", str(tmp_path / "depth")]):
+        assert main([*command, "--calib", str(seq / "calib.txt")]) == 2
+        err = capsys.readouterr().err
+        assert f"calibrates the 40x30 frames that {out} was simulated from, but --size resized them to 20x15" in err
+        assert scaled in err and err.count("\n") == 1, (command, err)
+    # at the frames' own size the same calibration is taken as it is (no refusal from this check)
+    same = tmp_path / "same" / "seq.h5"
+    assert main(["simulate", str(seq), "-o", str(same), *FAST, "--quiet"]) == 0
+    import argparse
+
+    from cmax.cli.recording import calibration_of
+
+    args = argparse.Namespace(calib=seq / "calib.txt", calib_camera="cam0", distortion=None, K=None, file=same)
+    K, distortion, _ = calibration_of(args)
+    assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (50, 52, 19.5, 14.5)

@@ -576,3 +576,13 @@ def test_the_limits_on_a_checkpoints_card_are_said_and_recorded(checkpoint, even
     assert cmax_main([*argv, "-o", str(tmp_path / "out2")]) == 2
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "'limits' must be a list of sentences" in err and not (tmp_path / "out2").exists()
+
+
+def test_depth_range_help_says_it_is_the_colour_scale_only(capsys):
+    """`--depth-range` bounds the searched depth in `cmax fit` and `cmax emvs`; in `cmax depth` it colours the
+    pictures only (the npz depth is the network's, `test_t0_t1_window_and_depth_range`): the help must say so,
+    not leave a user to expect a clamp."""
+    with pytest.raises(SystemExit):
+        cmax_main(["depth", "--help"])
+    help_text = " ".join(capsys.readouterr().out.split())
+    assert "neither clamped nor conditioned by it" in help_text

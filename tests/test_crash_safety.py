@@ -167,3 +167,80 @@ def test_sigterm_cleans_up_like_ctrl_c(tmp_path, workers):
                           timeout=300)
     assert done.returncode == 0, done.stderr
     assert sorted(path.name for path in output.iterdir()) == ["a.h5", "b.h5", "c.h5", "manifest.json"]
+
+
+def test_sigterm_to_the_process_group_leaves_no_temporaries_and_one_line(tmp_path):
+    """`timeout -s TERM` (and batch systems) signal the whole process group: the workers and their forkserver too.
+    Was: the forkserver's death made `join` return while the killed workers still held their output's lock, so
+    the clean-up left `b.h5.<hex>.partial` and `b.h5.lock`; and stderr had two lines (the command's own and
+    `cmax simulate: terminated (SIGTERM)` again from `run_main`)."""
+    import os
+
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    for seed, name in enumerate(NAMES):
+        _write_video(videos / f"{name}.avi", 600, seed)
+    output = tmp_path / "events"
+    process = subprocess.Popen([*_command(videos, output), "--workers", "2"], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not list(output.glob("*.h5.*.partial")) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.002)
+    assert process.poll() is None, "the run ended before a video was being written"
+    os.killpg(process.pid, signal.SIGTERM)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 143, err
+    assert err.count("\n") == 1 and err.startswith("cmax simulate: terminated (SIGTERM)"), err
+    left = sorted(path.name for path in output.iterdir())
+    assert not [name for name in left if name.endswith((".partial", ".lock"))], left
+
+
+def test_a_sigterm_held_back_by_sigterm_deferred_stops_the_run_at_the_blocks_end():
+    """A SIGTERM while a worker starts (`cmax.sim.convert._run_parallel`) must not land between `Process.start` and
+    the worker's record (a started worker nobody stops or cleans up after); one that makes the block fail (the
+    forkserver dying under `start`: EOFError, a traceback) stops the run as SIGTERM."""
+    import os
+
+    from cmax._signals import Terminated, sigterm_as_interrupt, sigterm_deferred
+
+    steps = []
+    with pytest.raises(Terminated):
+        with sigterm_as_interrupt():
+            with sigterm_deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)       # the handler has run by now: held back, not raised
+                steps.append("recorded")
+            steps.append("after the block")
+    assert steps == ["recorded"]
+    with pytest.raises(Terminated):
+        with sigterm_as_interrupt():
+            with sigterm_deferred():
+                os.kill(os.getpid(), signal.SIGTERM)
+                time.sleep(0.05)
+                raise EOFError("unexpected EOF")
+    with sigterm_as_interrupt():                     # no signal: the block runs as written
+        with sigterm_deferred():
+            steps.append("quiet")
+    assert steps == ["recorded", "quiet"]
+
+
+def test_a_command_that_reports_its_own_sigterm_prints_one_line(capsys):
+    """`cmax simulate` catches Terminated, says what it kept and returns 143; `run_main` then raised it again
+    from the remembered signal and printed a second line."""
+    import argparse
+    import os
+
+    from cmax._args import ArgumentParser, run_main
+    from cmax._signals import TERMINATED_STATUS, Terminated
+
+    def command(args: argparse.Namespace) -> int:
+        try:
+            os.kill(os.getpid(), signal.SIGTERM)
+            time.sleep(1)
+        except Terminated:
+            print("demo: terminated (SIGTERM): kept what was finished", file=sys.stderr)
+            return TERMINATED_STATUS
+        return 0
+
+    assert run_main(ArgumentParser(prog="demo"), command, []) == TERMINATED_STATUS
+    assert capsys.readouterr().err == "demo: terminated (SIGTERM): kept what was finished\n"

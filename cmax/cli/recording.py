@@ -1,11 +1,13 @@
 """Options shared by the commands that read a recording, and the calibration and time-slice helpers behind them.
 
-* :func:`add_file_options` / :func:`file_kwargs`: ``--size``, ``--time-unit``, ``--polarity`` of the file
-  tools (``cmax info``, ``cmax show``), passed to :func:`cmax.io.read` as keywords;
-* :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1`` of the commands that fit or
-  predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` / ``--t1``; :func:`tail_note` says
-  what their windows leave out at the end; :func:`overlap` cuts the events to the span of a gyroscope's samples
-  or of poses; :func:`open_streamed`: a DSEC-layout h5 file too long to hold, read window by window;
+* :func:`add_file_options` / :func:`file_kwargs`: ``--size``, ``--time-unit``, ``--polarity``, ``--sort``,
+  ``--camera`` (an MVSEC file's) of the file tools (``cmax info``, ``cmax show``), passed to :func:`cmax.io.read`
+  as keywords;
+* :func:`add_recording_arguments`: ``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1``, ``--camera`` of
+  the commands that fit or predict (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0`` /
+  ``--t1``; :func:`tail_note` says what their windows leave out at the end; :func:`overlap` cuts the events to
+  the span of a gyroscope's samples or of poses; :func:`open_streamed`: a DSEC-layout h5 file too long to hold,
+  read window by window;
 * :func:`add_camera_options`: ``--K`` or ``--calib`` (with ``--calib-camera``), and ``--distortion``, of the
   commands that need the intrinsics (``cmax fit``, ``cmax emvs``), :func:`calibration_of` and
   :func:`read_calibrated` behind them; :func:`intrinsics_argument`,
@@ -26,7 +28,8 @@ from cmax.camera import check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
-           "simulated_sizes", "resized_note", "source_calibration", "check_file_principal_point", "file_depth_range",
+           "simulated_sizes", "resized_note", "source_calibration", "check_calibration_of_frames",
+           "check_file_principal_point", "file_depth_range",
            "distortion_argument", "read_calibration",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
@@ -36,8 +39,9 @@ distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
 
 
 def add_file_options(parser: argparse.ArgumentParser) -> None:
-    """``--size``, ``--time-unit``, ``--polarity``, ``--sort``: what reading a file that does not state them needs
-    (``cmax info``, ``cmax show``); :func:`file_kwargs` turns them into :func:`cmax.io.read` keywords."""
+    """``--size``, ``--time-unit``, ``--polarity``, ``--sort``, ``--camera``: what reading a file that does not
+    state them needs (``cmax info``, ``cmax show``); :func:`file_kwargs` turns them into :func:`cmax.io.read`
+    keywords."""
     parser.add_argument(
         "--size", type=sensor_size, default=None, metavar="WxH",
         help="sensor size [px], for files that do not store it (ECD text, .npy, original DSEC) "
@@ -48,6 +52,15 @@ def add_file_options(parser: argparse.ArgumentParser) -> None:
                              "own, e.g. s for ECD text, µs for h5; never guessed where it states none)")
     _add_polarity(parser)
     _add_sort(parser)
+    _add_camera(parser)
+
+
+def _add_camera(parser: argparse.ArgumentParser) -> None:
+    parser.add_argument("--camera", choices=("left", "right"), default=None,
+                        help="camera of an MVSEC file, which holds a left and a right one (davis/left/events, "
+                             "davis/right/events; default: left; cmax info names the cameras a file holds); with "
+                             "--calib of MVSEC's Kalibr camchain, choose the same camera with --calib-camera "
+                             "(cam0 left, cam1 right)")
 
 
 def _add_polarity(parser: argparse.ArgumentParser) -> None:
@@ -65,7 +78,8 @@ def _add_sort(parser: argparse.ArgumentParser) -> None:
 def file_kwargs(args: argparse.Namespace, path: Path | None = None) -> dict[str, int | str | None]:
     """The :func:`cmax.io.read` keywords of :func:`add_file_options`' options, or of
     :func:`add_recording_arguments`' (``polarity`` only when given; ``sort`` only when given,
-    and refused for a ``path`` (default ``args.file``) of a format read by time span from disk).
+    and refused for a ``path`` (default ``args.file``) of a format read by time span from disk; ``camera`` only
+    when given, and refused for a ``path`` that is not an MVSEC file).
 
     >>> file_kwargs(argparse.Namespace(size=(346, 260), time_unit="us", polarity=None))
     {'width': 346, 'height': 260, 'time_unit': 'us'}
@@ -80,12 +94,20 @@ def file_kwargs(args: argparse.Namespace, path: Path | None = None) -> dict[str,
         path = args.file if path is None else path
         check_sortable(path, detect_format(path), True)
         options["sort"] = True
+    if getattr(args, "camera", None) is not None:
+        from cmax.io import detect_format
+
+        path = args.file if path is None else path
+        if (kind := detect_format(path)) != "mvsec":
+            raise ValueError(f"--camera applies to MVSEC files (a left and a right camera); {path} is a {kind} "
+                             "file of one camera")
+        options["camera"] = args.camera
     return options
 
 
 def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
-    """``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1``, ``--sort``: what a command reading any
-    recording needs (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
+    """``--size``, ``--time-unit``, ``--polarity``, ``--t0``, ``--t1``, ``--sort``, ``--camera``: what a command
+    reading any recording needs (``cmax fit``, ``cmax depth``); :func:`time_slice` applies ``--t0``/``--t1``."""
     parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
                         help="sensor size [px] (also W,H), for files that do not store it (ECD .txt, .npy, DSEC as "
                              "shipped) (default: the file's own; a file without one is refused)")
@@ -98,6 +120,7 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
     parser.add_argument("--t1", type=nonnegative_float, default=None,
                         help="end, seconds after the first event (default: the last event)")
     _add_sort(parser)
+    _add_camera(parser)
 
 
 def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str = "") -> None:
@@ -125,7 +148,10 @@ def calibration_of(args: argparse.Namespace) -> tuple[np.ndarray | None, np.ndar
         return args.K, None if args.distortion is None else np.asarray(args.distortion, dtype=np.float64), None
     if args.distortion is not None:
         raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
-    return read_calibration(args.calib, args.calib_camera)
+    K, distortion, size = read_calibration(args.calib, args.calib_camera)
+    if size is None:
+        check_calibration_of_frames(args.calib, K, distortion, args.file)
+    return K, distortion, size
 
 
 #: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.
@@ -259,26 +285,102 @@ def file_intrinsics(path: str | Path) -> np.ndarray | None:
 def simulated_sizes(path: str | Path) -> tuple[tuple[int, int], tuple[int, int]] | None:
     """``((W, H) of the frames, (w, h) of the sensor)`` of a ``cmax simulate`` conversion (h5 attribute
     ``source_size``: the frames' size before ``--size``), or None for any other file."""
-    import json
-
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as file:
-            stored = [int(v) for v in json.loads(file.attrs["source_size"])]
-            size = (int(file.attrs["width"]), int(file.attrs["height"]))
-    except (OSError, KeyError, TypeError, ValueError):   # not h5, not a conversion, or one of unknown frames
-        return None
-    if len(stored) != 2 or min(stored) <= 0:
-        return None
-    return (stored[0], stored[1]), size
+    return _sizes_of(_conversion_attrs(path))
 
 
 def resized_note(path: str | Path) -> str | None:
     """For a ``cmax simulate`` conversion whose frames ``--size`` resized (:func:`simulated_sizes`): how a K of
     those frames scales to its pixels (``cv2.resize``'s pixel centres: ``cx' = (cx + 0.5) sx - 0.5``); else None.
     """
-    sizes = simulated_sizes(path)
+    return _resized_text(path, simulated_sizes(path))
+
+
+def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
+    """The error for an event file that stores no ``gt/K`` and was given no ``--K`` / ``--calib``: what to pass,
+    and for a ``cmax simulate`` conversion where its K comes from (:func:`resized_note`); the file is opened once."""
+    message = f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or {calib}"
+    attrs = _conversion_attrs(path)
+    sizes = _sizes_of(attrs)
+    if sizes is None:
+        return message
+    beside = _calibration_beside(attrs)
+    if beside is not None:
+        message += f"; {beside} lies beside the frames it was simulated from"
+    if sizes[0] == sizes[1]:
+        return (f"{message} (a conversion of frames by cmax simulate: the intrinsics of the camera that shot them, "
+                "when known; a video carries none)" if beside is None else f"{message}: --calib {beside}")
+    return f"{message}; {_resized_text(path, sizes)}"
+
+
+def check_calibration_of_frames(calib: str | Path, K: np.ndarray, distortion: np.ndarray | None,
+                                path: str | Path) -> None:
+    """Refuse the calibration file ``calib`` (intrinsics ``K`` (3, 3) [px], OpenCV ``distortion``) for the event
+    file ``path`` when ``calib`` is the one beside the frames a ``cmax simulate`` conversion was made from
+    (:func:`source_calibration`) and ``--size`` resized those frames (:func:`simulated_sizes`): it calibrates the
+    frames, not the file's pixels, and used as it is every focal length and the principal point would be off by
+    the scale (an ECD ``calib.txt`` states no resolution, so nothing else tells). The error gives the scaled
+    ``--K`` (``cv2.resize``'s pixel centres: ``cx' = (cx + 0.5) sx - 0.5``) and the same ``--distortion`` (its
+    coefficients act on normalised coordinates, which a scaling leaves alone)."""
+    attrs = _conversion_attrs(path)
+    sizes, beside = _sizes_of(attrs), _calibration_beside(attrs)
+    if sizes is None or sizes[0] == sizes[1] or beside is None or not _same_file(beside, calib):
+        return
+    (W, H), (w, h) = sizes
+    sx, sy = w / W, h / H
+    fx, fy, cx, cy = K[0, 0] * sx, K[1, 1] * sy, (K[0, 2] + 0.5) * sx - 0.5, (K[1, 2] + 0.5) * sy - 0.5
+    scaled = f"--K {fx:.6g},{fy:.6g},{cx:.6g},{cy:.6g}"
+    if distortion is not None and np.any(distortion):
+        scaled += " --distortion " + ",".join(f"{v:.9g}" for v in distortion)
+    raise ValueError(f"{calib} calibrates the {W}x{H} frames that {path} was simulated from, but --size resized "
+                     f"them to {w}x{h}: its intrinsics do not fit these pixels; give them scaled: {scaled}")
+
+
+def _same_file(a: str | Path, b: str | Path) -> bool:
+    """Whether two paths name one file (False when either is missing)."""
+    try:
+        return Path(a).samefile(b)
+    except OSError:
+        return False
+
+
+def source_calibration(path: str | Path) -> Path | None:
+    """A calibration file (:data:`CALIBRATION_NAMES`) in the folder a ``cmax simulate`` conversion was made from
+    (h5 attribute ``source``: an ECD or rpg_vid2e image folder, its ``images/``, or a timestamp file), or None."""
+    return _calibration_beside(_conversion_attrs(path))
+
+
+#: The h5 attributes of a ``cmax simulate`` conversion that say where its frames came from.
+_CONVERSION_ATTRS = ("source_size", "width", "height", "source")
+
+
+def _conversion_attrs(path: str | Path) -> dict:
+    """The attributes of :data:`_CONVERSION_ATTRS` that the h5 file ``path`` holds, read in one opening (empty for
+    a file that is not h5)."""
+    import h5py
+
+    try:
+        with h5py.File(path, "r") as file:
+            return {key: file.attrs[key] for key in _CONVERSION_ATTRS if key in file.attrs}
+    except (OSError, KeyError, TypeError, ValueError):   # not an h5 file, or unreadable attributes
+        return {}
+
+
+def _sizes_of(attrs: dict) -> tuple[tuple[int, int], tuple[int, int]] | None:
+    """:func:`simulated_sizes` of a file's :func:`_conversion_attrs`."""
+    import json
+
+    try:
+        stored = [int(v) for v in json.loads(attrs["source_size"])]
+        size = (int(attrs["width"]), int(attrs["height"]))
+    except (KeyError, TypeError, ValueError):   # not a conversion, or one of unknown frames
+        return None
+    if len(stored) != 2 or min(stored) <= 0:
+        return None
+    return (stored[0], stored[1]), size
+
+
+def _resized_text(path: str | Path, sizes: tuple[tuple[int, int], tuple[int, int]] | None) -> str | None:
+    """:func:`resized_note` of a file ``path`` whose :func:`simulated_sizes` are ``sizes``."""
     if sizes is None or sizes[0] == sizes[1]:
         return None
     (W, H), (w, h) = sizes
@@ -287,32 +389,11 @@ def resized_note(path: str | Path) -> str | None:
             f"to fx*{sx:.6g}, fy*{sy:.6g}, (cx+0.5)*{sx:.6g}-0.5, (cy+0.5)*{sy:.6g}-0.5")
 
 
-def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
-    """The error for an event file that stores no ``gt/K`` and was given no ``--K`` / ``--calib``: what to pass,
-    and for a ``cmax simulate`` conversion where its K comes from (:func:`resized_note`)."""
-    message = f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or {calib}"
-    sizes = simulated_sizes(path)
-    if sizes is None:
-        return message
-    beside = source_calibration(path)
-    if beside is not None:
-        message += f"; {beside} lies beside the frames it was simulated from"
-    if sizes[0] == sizes[1]:
-        return (f"{message} (a conversion of frames by cmax simulate: the intrinsics of the camera that shot them, "
-                "when known; a video carries none)" if beside is None else f"{message}: --calib {beside}")
-    return f"{message}; {resized_note(path)}"
-
-
-def source_calibration(path: str | Path) -> Path | None:
-    """A calibration file (:data:`CALIBRATION_NAMES`) in the folder a ``cmax simulate`` conversion was made from
-    (h5 attribute ``source``: an ECD or rpg_vid2e image folder, its ``images/``, or a timestamp file), or None."""
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as file:
-            source = Path(str(file.attrs["source"]))
-    except (OSError, KeyError):
+def _calibration_beside(attrs: dict) -> Path | None:
+    """:func:`source_calibration` of a file's :func:`_conversion_attrs`."""
+    if "source" not in attrs:
         return None
+    source = Path(str(attrs["source"]))
     folder = source if source.is_dir() else source.parent
     for place in (folder, folder.parent):
         for name in CALIBRATION_NAMES:

@@ -7,7 +7,7 @@ from pathlib import Path
 
 from cmax._args import api_default, default_of, library_default, nonnegative_int, positive_float, sensor_size
 
-__all__ = ["add_command", "run", "scene_duration", "check_output", "check_depth_maps"]
+__all__ = ["add_command", "run", "scene_duration", "scene_size", "check_output", "check_depth_maps", "MIN_SIZE"]
 
 #: Suffixes of the HDF5 file ``cmax scene`` writes.
 H5_SUFFIXES = (".h5", ".hdf5")
@@ -17,6 +17,10 @@ MAX_DEPTH_BYTES = 4 << 30
 
 #: Longest scene [s] (that of :func:`cmax.sim.presets.make_scene`).
 MAX_DURATION_S = 600.0
+#: Smallest sensor (width, height) [px] of a scene: the smallest that ``cmax fit``'s default depth grid (24 rows x
+#: 32 columns) fits; a smaller one gives a handful of events (10x10: 17 in 0.5 s of the slider) that no command
+#: here can fit, and 1x1 failed inside the renderer.
+MIN_SIZE = (32, 24)
 #: Shortest scene [s]: one microsecond, the time resolution of events (a shorter one renders a single frame).
 MIN_DURATION_S = 1e-6
 
@@ -36,6 +40,21 @@ def scene_duration(text: str) -> float:
         raise argparse.ArgumentTypeError(f"expected at least {MIN_DURATION_S:g} s (one microsecond, the time "
                                          f"resolution of events), got {text!r}")
     return value
+
+
+def scene_size(text: str) -> tuple[int, int]:
+    """``argparse`` type of ``--size``: a sensor size (:func:`cmax._args.sensor_size`) of at least :data:`MIN_SIZE`.
+
+    >>> scene_size("10x10")  # doctest: +ELLIPSIS
+    Traceback (most recent call last):
+    ...
+    argparse.ArgumentTypeError: expected at least 32x24 pixels (the smallest sensor cmax fit's default ...), got '10x10'
+    """
+    width, height = sensor_size(text)
+    if width < MIN_SIZE[0] or height < MIN_SIZE[1]:
+        raise argparse.ArgumentTypeError(f"expected at least {MIN_SIZE[0]}x{MIN_SIZE[1]} pixels (the smallest sensor "
+                                         f"cmax fit's default 24x32 depth grid fits), got {text!r}")
+    return width, height
 
 
 def check_output(path: Path, overwrite: bool) -> None:
@@ -125,7 +144,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help=f"seconds to simulate (at most {MAX_DURATION_S:g})")
     parser.add_argument("--seed", type=nonnegative_int, default=default_of(make_scene, "seed"),
                         help="seed of the scene and of the simulator")
-    parser.add_argument("--size", type=sensor_size, metavar="WxH", help="sensor size [px] (a DAVIS346)",
+    parser.add_argument("--size", type=scene_size, metavar="WxH",
+                        help=f"sensor size [px] (a DAVIS346), at least {MIN_SIZE[0]}x{MIN_SIZE[1]}",
                         default=(default_of(make_scene, "width"), default_of(make_scene, "height")))
     parser.add_argument("--cp", type=positive_float, default=None, help="ON threshold [log intensity] (default: the preset's)")
     parser.add_argument("--cn", type=positive_float, default=None, help="OFF threshold [log intensity] (default: the preset's)")

@@ -124,6 +124,10 @@ def _single_input(args: argparse.Namespace) -> Path | None:
     if not source.exists():
         raise FileNotFoundError(f"input not found: {source}")
     if source.suffix.lower() not in VIDEO_SUFFIXES:
+        from cmax.sim.video import bare_stream_problem
+
+        if source.is_file() and (problem := bare_stream_problem(source)) is not None:   # clip.mjpeg
+            raise ValueError(problem)
         raise ValueError(f"INPUT must be a video ({', '.join(VIDEO_SUFFIXES)}), an image folder with images.txt or "
                          "images/ (or imgs/) + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, "
                          f"got {source}")

@@ -22,7 +22,8 @@ class EventFileInfo:
 
     Times in µs; ``rate_hz`` in events per second; ``on_fraction`` is the
     share of ON events (0.5 = balanced); ``pixel_counts`` (height, width)
-    the events of each pixel (its hot pixels: :meth:`hot_pixels`).
+    the events of each pixel (its hot pixels: :meth:`hot_pixels`); ``camera``: the camera summarised in a
+    file of several (MVSEC), ``cameras`` its cameras and their events (None for other files).
     """
 
     path: str
@@ -35,6 +36,8 @@ class EventFileInfo:
     on_count: int
     attrs: dict[str, Any] = field(default_factory=dict)
     pixel_counts: np.ndarray | None = None
+    camera: str | None = None
+    cameras: dict[str, int] | None = None
 
     @property
     def duration_s(self) -> float:
@@ -74,11 +77,24 @@ class EventFileInfo:
             return f"rate        {self.rate_hz / 1e6:.3f} Mev/s"
         return "rate        n/a (the events span 0 µs)"
 
+    def _camera_line(self) -> str:
+        """Which camera of a file of several the block summarises, and how to read the others.
+
+        >>> EventFileInfo("rig.hdf5", "mvsec", 5, 346, 260, 0, 9, 2, camera="left",
+        ...               cameras={"left": 5, "right": 7})._camera_line()
+        'camera      left (davis/left/events); the file also holds right (7 events): --camera right reads it'
+        """
+        others = [f"{name} ({count:,} events): --camera {name} reads it"
+                  for name, count in (self.cameras or {}).items() if name != self.camera]
+        held = "; the file also holds " + ", ".join(others) if others else "; the file holds no other camera"
+        return f"camera      {self.camera} (davis/{self.camera}/events){held}"
+
     def lines(self) -> list[str]:
         """Human-readable lines, one fact each."""
         out = [
             f"file        {self.path}",
             f"format      {self.format}",
+            *([self._camera_line()] if self.camera is not None else []),
             f"sensor      {self.width} x {self.height}",
             f"events      {self.count:,}",
         ]
@@ -112,11 +128,12 @@ def file_info(
     path: str | os.PathLike, *, width: int | None = None, height: int | None = None,
     time_unit: str | None = None, **options: Any,
 ) -> EventFileInfo:
-    """Summary of an event file; DSEC files are read in chunks (bounded memory) and every row is
+    """Summary of an event file; DSEC and MVSEC files are read in chunks (bounded memory) and every row is
     checked as the readers check it (a NaN time or a step back in the middle raises FormatError);
     Prophesee RAW files are decoded chunk by chunk (:func:`cmax.io.prophesee.iter_raw`).
 
-    ``time_unit`` and ``options`` (e.g. ``polarity='signed'``) go to the reader:
+    ``time_unit`` and ``options`` (e.g. ``polarity='signed'``, an MVSEC file's ``camera='right'``) go to the
+    reader (an MVSEC file's summary names its camera and the other one it holds):
     times are never guessed and polarities never mapped silently, so a file
     whose ``events/p`` holds -1/+1 is refused unless ``polarity='signed'`` is given.
     """
@@ -126,6 +143,8 @@ def file_info(
     kind = detect_format(path)
     if kind == "raw" and time_unit in (None, "us") and not options:
         return _raw_info(path, width, height)
+    if kind == "mvsec":
+        return _mvsec_info(path, width, height, time_unit, options)
     if kind != "dsec":
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
         return events_info(events, path=str(path), format=kind)
@@ -150,6 +169,31 @@ def file_info(
             t_end_us=reader.t_end if len(reader) else None, on_count=on_count,
             attrs=reader.attrs, pixel_counts=pixels,
         )
+
+
+def _mvsec_info(path: Path, width: int | None, height: int | None, time_unit: str | None,
+                options: dict[str, Any]) -> EventFileInfo:
+    """:func:`file_info` of one camera of an MVSEC file (``options``: ``camera``, ``polarity``), read :data:`_CHUNK`
+    rows at a time (:func:`cmax.io.mvsec.iter_mvsec`: a camera of any length), naming the cameras the file holds."""
+    from cmax.io import check_sortable
+    from cmax.io._checks import check_stated_size
+    from cmax.io.mvsec import MVSEC_HEIGHT, MVSEC_WIDTH, iter_mvsec, mvsec_cameras
+
+    options = dict(options)
+    check_sortable(path, "mvsec", options.pop("sort", False))
+    check_stated_size(width, height, (MVSEC_WIDTH, MVSEC_HEIGHT), f"{path} (MVSEC, a DAVIS346)")
+    count, on_count, first, last = 0, 0, None, None
+    pixels = np.zeros((MVSEC_HEIGHT, MVSEC_WIDTH), np.int64)
+    for chunk in iter_mvsec(path, time_unit=time_unit, chunk_rows=_CHUNK, **options):
+        if len(chunk):
+            first = int(chunk.t[0]) if first is None else first
+            last = int(chunk.t[-1])
+        count += len(chunk)
+        on_count += int(np.count_nonzero(chunk.p))
+        pixels += pixel_counts(chunk)
+    return EventFileInfo(path=str(path), format="mvsec", count=count, width=MVSEC_WIDTH, height=MVSEC_HEIGHT,
+                         t_start_us=first, t_end_us=last, on_count=on_count, pixel_counts=pixels,
+                         camera=options.get("camera", "left"), cameras=mvsec_cameras(path))
 
 
 def _raw_info(path: Path, width: int | None, height: int | None) -> EventFileInfo:

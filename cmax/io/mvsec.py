@@ -8,6 +8,7 @@ from __future__ import annotations
 
 import os
 from pathlib import Path
+from typing import Iterator
 
 import h5py
 import numpy as np
@@ -17,15 +18,23 @@ from cmax.io._checks import TIME_UNITS, check_allocated, check_polarity_encoding
 from cmax.io.errors import FormatError
 from cmax.io.h5 import H5_ERRORS
 
-__all__ = ["read_mvsec", "mvsec_time_span", "MVSEC_WIDTH", "MVSEC_HEIGHT"]
+__all__ = ["read_mvsec", "iter_mvsec", "mvsec_time_span", "mvsec_cameras", "MVSEC_CAMERAS", "MVSEC_WIDTH",
+           "MVSEC_HEIGHT"]
 
 MVSEC_WIDTH, MVSEC_HEIGHT = 346, 260
+#: The cameras of an MVSEC rig, as its files name them (``davis/<camera>/events``); ``read_mvsec``'s default first.
+MVSEC_CAMERAS = ("left", "right")
 
 
 def _events_dataset(file: h5py.File, path: Path, camera: str) -> h5py.Dataset:
     key = f"davis/{camera}/events"
     if key not in file:
-        raise FormatError(f"{path} has no dataset {key!r} (not an MVSEC data file?)")
+        others = [name for name in MVSEC_CAMERAS if name != camera and f"davis/{name}/events" in file]
+        if others:
+            raise FormatError(f"{path} has no dataset {key!r}; it holds the events of the {others[0]} camera: read "
+                              f"them with camera={others[0]!r} (cmax: --camera {others[0]})")
+        raise FormatError(f"{path} has no dataset {key!r} (not an MVSEC data file? MVSEC keeps its events in the "
+                          "*_data.hdf5 files, the depth and poses in *_gt.hdf5)")
     dataset = file[key]
     if not isinstance(dataset, h5py.Dataset) or dataset.ndim != 2 or dataset.shape[1] != 4:
         raise FormatError(f"{path}:{key} must be a dataset of shape (N, 4), got {getattr(dataset, 'shape', dataset)}")
@@ -47,7 +56,7 @@ def read_mvsec(
     becomes 0/1, any other value raises :class:`FormatError`. A time window is
     located by binary search on the time column on disk, so only that slice is read.
     """
-    if camera not in ("left", "right"):
+    if camera not in MVSEC_CAMERAS:
         raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
     unit = check_time_unit(time_unit) or "s"
     polarity = check_polarity_encoding(polarity)
@@ -74,20 +83,70 @@ def read_mvsec(
         raise FormatError(
             f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})"
         ) from None
+    events = _table_events(table, path, camera, unit, polarity)
+    if t0_us is None and t1_us is None:
+        return events
+    return events.slice_time(
+        -(2**62) if t0_us is None else t0_us, 2**62 if t1_us is None else t1_us
+    )
+
+
+def _table_events(table: np.ndarray, path: Path, camera: str, unit: str, polarity: str) -> Events:
+    """The events of rows (N, 4) ``x, y, t, p`` of ``davis/<camera>/events``: finite, times in ``unit`` rounded to
+    µs, polarities in the encoding ``polarity`` mapped to 0/1, in time order (FormatError naming the file)."""
     where = f"{path}: davis/{camera}/events"
     if not np.isfinite(table[:, [0, 1, 3]]).all():
         raise FormatError(f"{where} contains non-finite values")
     t_us = times_to_us(table[:, 2], unit, f"{where}[:, 2] (t)")
     p = polarity_01(table[:, 3], polarity, f"{where}[:, 3] (p)")
     try:
-        events = Events(table[:, 0], table[:, 1], t_us, p, MVSEC_WIDTH, MVSEC_HEIGHT)
+        return Events(table[:, 0], table[:, 1], t_us, p, MVSEC_WIDTH, MVSEC_HEIGHT)
     except ValueError as error:
         raise FormatError(f"{path}: {error}") from None
-    if t0_us is None and t1_us is None:
-        return events
-    return events.slice_time(
-        -(2**62) if t0_us is None else t0_us, 2**62 if t1_us is None else t1_us
-    )
+
+
+def iter_mvsec(
+    path: str | os.PathLike, *, camera: str = "left", time_unit: str | None = None, polarity: str = "signed",
+    chunk_rows: int = 1 << 22,
+) -> Iterator[Events]:
+    """The events of one MVSEC camera, ``chunk_rows`` rows at a time: memory holds one chunk (a camera of a long
+    recording, 32 bytes a row as float64 on disk, need not fit). Each chunk is read and checked as
+    :func:`read_mvsec` reads its rows, and a time that goes back from one chunk to the next raises FormatError.
+
+    >>> import h5py, tempfile
+    >>> path = Path(tempfile.mkdtemp()) / "rig.hdf5"
+    >>> with h5py.File(path, "w") as file:
+    ...     file["davis/left/events"] = [[1, 2, 10.0, -1], [3, 4, 10.5, 1], [5, 6, 11.0, 1]]
+    >>> [chunk.t.tolist() for chunk in iter_mvsec(path, chunk_rows=2)]
+    [[10000000, 10500000], [11000000]]
+    """
+    if camera not in MVSEC_CAMERAS:
+        raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
+    if isinstance(chunk_rows, bool) or not isinstance(chunk_rows, (int, np.integer)) or chunk_rows < 1:
+        raise ValueError(f"chunk_rows must be a whole number >= 1, got {chunk_rows!r}")
+    unit = check_time_unit(time_unit) or "s"
+    polarity = check_polarity_encoding(polarity)
+    path = Path(path)
+    if not path.is_file():
+        raise FileNotFoundError(f"no such event file: {path}")
+    try:
+        file = h5py.File(path, "r")
+    except H5_ERRORS as error:  # truncated or corrupt HDF5
+        raise FormatError(f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})") from None
+    with file:
+        dataset, last = _events_dataset(file, path, camera), None
+        for start in range(0, dataset.shape[0], int(chunk_rows)):
+            try:
+                table = dataset[start:start + int(chunk_rows)]
+            except H5_ERRORS as error:
+                raise FormatError(f"{path}: davis/{camera}/events: unreadable rows from {start} "
+                                  f"({type(error).__name__}: {error})") from None
+            events = _table_events(table, path, camera, unit, polarity)
+            if last is not None and int(events.t[0]) < last:
+                raise FormatError(f"{path}: davis/{camera}/events: corrupt events at row {start}: t must be sorted "
+                                  f"in non-decreasing order ({int(events.t[0])} µs comes after {last} µs)")
+            last = int(events.t[-1])
+            yield events
 
 
 def mvsec_time_span(
@@ -96,7 +155,7 @@ def mvsec_time_span(
     """``(first_us, last_us)``: the times of the first and last events of one MVSEC camera, from those two rows
     alone (the rows are in time order, as :func:`read_mvsec` checks where it reads), rounded as
     :func:`read_mvsec` rounds them; None for a camera without events."""
-    if camera not in ("left", "right"):
+    if camera not in MVSEC_CAMERAS:
         raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
     unit = check_time_unit(time_unit) or "s"
     path = Path(path)
@@ -116,6 +175,30 @@ def mvsec_time_span(
         ) from None
     first, last = times_to_us(ends, unit, f"{path}: davis/{camera}/events[[0, -1], 2] (t)").tolist()
     return int(first), int(last)
+
+
+def mvsec_cameras(path: str | os.PathLike) -> dict[str, int]:
+    """``{camera: rows}``: the cameras of :data:`MVSEC_CAMERAS` whose ``davis/<camera>/events`` an MVSEC file
+    holds, and how many events each stores (its rows; nothing else is read). Raises FormatError for a file that
+    is not a readable HDF5 file.
+
+    >>> import h5py, numpy as np, tempfile
+    >>> path = Path(tempfile.mkdtemp()) / "rig.hdf5"
+    >>> with h5py.File(path, "w") as file:
+    ...     file["davis/left/events"], file["davis/right/events"] = np.zeros((3, 4)), np.zeros((5, 4))
+    >>> mvsec_cameras(path)
+    {'left': 3, 'right': 5}
+    """
+    path = Path(path)
+    try:
+        with h5py.File(path, "r") as file:
+            found = {camera: file.get(f"davis/{camera}/events") for camera in MVSEC_CAMERAS}
+            return {camera: int(dataset.shape[0]) for camera, dataset in found.items()
+                    if isinstance(dataset, h5py.Dataset) and dataset.ndim == 2}
+    except H5_ERRORS as error:  # truncated or corrupt HDF5
+        raise FormatError(
+            f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})"
+        ) from None
 
 
 def _first_at_or_after(dataset: h5py.Dataset, t_s: float) -> int:

@@ -53,9 +53,10 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
+from cmax._signals import sigterm_deferred
 from cmax._workers import die_with_parent, recorded, reissue
 from cmax.io import VIDEO_SUFFIXES
-from cmax.io.atomic import PathLock, discard_leftovers, file_sha256, write_text_atomic
+from cmax.io.atomic import OutputLockedError, PathLock, discard_leftovers, file_sha256, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
 from cmax.sim.esim import EsimSettings, EventSimulator
 from cmax.sim.signature import signature_problem, source_signature
@@ -1017,9 +1018,10 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
                     args=(send, os.getpid(), job, output_dir / f"{job.name}.h5", settings,
                           1 + number % workers if progress else None),
                 )
-                process.start()
-                send.close()  # the worker holds the only writing end: its death reads as end-of-file
-                running[receive] = (process, job)
+                with sigterm_deferred():  # a SIGTERM now stops the run once the worker is recorded (stopped below)
+                    process.start()
+                    send.close()  # the worker holds the only writing end: its death reads as end-of-file
+                    running[receive] = (process, job)
             for receive in wait(list(running)):
                 process, job = running.pop(receive)
                 try:
@@ -1035,10 +1037,7 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
                     process.join()
                 if not isinstance(result, VideoResult):
                     output = output_dir / f"{job.name}.h5"
-                    try:
-                        discard_leftovers(output)
-                    except OSError:
-                        pass
+                    _discard_after_stop(output)
                     result = _failed(job, output, f"worker process {_describe_exit(process.exitcode)}")
                 record(result)
     finally:  # interrupted (Ctrl-C) or failed: stop the workers, remove what they were writing
@@ -1048,10 +1047,30 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
             for receive, (process, job) in running.items():
                 process.join()
                 receive.close()
-                try:  # under the output's lock: a file of another live writer is left alone
-                    discard_leftovers(output_dir / f"{job.name}.h5")
-                except OSError:
-                    pass
+                _discard_after_stop(output_dir / f"{job.name}.h5")
+
+
+#: Longest wait [s] for the lock of a stopped worker's output before its temporaries are left to the next run.
+STOPPED_WORKER_WAIT_S = 5.0
+
+
+def _discard_after_stop(output: Path, wait_s: float = STOPPED_WORKER_WAIT_S) -> None:
+    """Remove the temporaries (``.partial``, lock) of a worker that was killed or died while writing ``output``,
+    under the output's lock (:func:`cmax.io.atomic.discard_leftovers`: a file of another live writer is left
+    alone). ``join`` can return before the worker is gone: a worker is the child of the ``forkserver``, and when a
+    SIGTERM to the process group (``timeout``, a batch system) ended the server too, ``join`` returns at once while
+    the killed worker still holds its lock; so the lock is waited for up to ``wait_s`` seconds."""
+    deadline = time.monotonic() + wait_s
+    while True:
+        try:
+            discard_leftovers(output)
+            return
+        except OutputLockedError:
+            if time.monotonic() >= deadline:
+                return
+            time.sleep(0.02)
+        except OSError:
+            return
 
 
 @contextmanager

@@ -66,6 +66,7 @@ __all__ = [
     "FrameSource",
     "ImageFolderSource",
     "VideoFileSource",
+    "bare_stream_problem",
     "open_source",
     "prefetched",
     "read_timestamps",
@@ -84,6 +85,34 @@ Size = tuple[int, int]
 
 class DecodeError(ValueError):
     """A video or image file could not be decoded (named in the message)."""
+
+
+#: The first bytes of a JPEG image: a file that starts with them and is read as a video is a bare MJPEG stream.
+_JPEG_START = b"\xff\xd8\xff"
+
+
+def bare_stream_problem(path: PathLike) -> str | None:
+    """Why the video file ``path`` cannot be converted when it is a bare MJPEG stream (JPEG images one after
+    another, no container: ``.mjpeg`` as IP cameras and ``ffmpeg -f mjpeg`` write it, whatever its suffix): it
+    stores no frame times, and FFmpeg's decoder invents 25 frames/s, so its times would be guessed. None for any
+    other file (the container's times are used).
+
+    >>> import tempfile
+    >>> clip = Path(tempfile.mkdtemp()) / "clip.avi"
+    >>> _ = clip.write_bytes(bytes([0xFF, 0xD8, 0xFF, 0xE0]) + bytes(60))   # a JPEG image's first bytes
+    >>> bare_stream_problem(clip).split(":")[1]
+    ' a bare MJPEG stream (JPEG images one after another, no container)'
+    """
+    path = Path(path)
+    with open(path, "rb") as file:
+        head = file.read(len(_JPEG_START))
+    if head != _JPEG_START:
+        return None
+    framed = path.with_suffix(".mkv") if path.suffix.lower() != ".mkv" else path.with_name(f"{path.stem}_framed.mkv")
+    return (f"{path}: a bare MJPEG stream (JPEG images one after another, no container): it stores no frame times "
+            "and its frame rate would be guessed (the decoder assumes 25 frames/s); put it in a container at its "
+            f"real rate, e.g. ffmpeg -framerate RATE -i {path} -c copy {framed}, or write its "
+            "frames as images with a timestamps.txt (one time in seconds per image) and convert that folder")
 
 
 @runtime_checkable
@@ -642,9 +671,9 @@ class VideoFileSource:
     strictly increasing; a ``UserWarning`` at the end of the stream counts
     such frames and names the first.
 
-    Decoding errors: a file OpenCV cannot open or that yields no frame raises
-    :class:`DecodeError` at construction; a path that is not valid UTF-8 raises
-    :class:`ValueError` (:func:`_opencv_path`: OpenCV would crash on it). When
+    Decoding errors: a file OpenCV cannot open or that yields no frame, and a bare MJPEG stream (no
+    container, no frame times: :func:`bare_stream_problem`) raise :class:`DecodeError` at construction; a
+    path that is not valid UTF-8 raises :class:`ValueError` (:func:`_opencv_path`: OpenCV would crash on it). When
     the decoder stops more than ``max(1, 1%)`` frames before the container's frame count, and the last
     frame decoded lies that far before the stream's end too (:func:`_stopped_early`: a Matroska count is
     an estimate, too large for a variable frame rate or a stream starting after 0), iteration raises
@@ -663,6 +692,8 @@ class VideoFileSource:
         self.dtype, self.prefetch = _check_dtype(dtype), _check_prefetch(prefetch)
         _check_time_range(t0_s, t1_s)
         self.t0_s, self.t1_s = t0_s, t1_s
+        if (problem := bare_stream_problem(self.path)) is not None:   # times never guessed
+            raise DecodeError(problem)
         capture = self._open()
         try:
             fps = capture.get(cv2.CAP_PROP_FPS)
