@@ -75,7 +75,7 @@ from cmax.warp import warp_se3
 __all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alternative", "Quality", "MotionScorer",
            "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change", "sparse_reason",
-           "small_parallax_reason"]
+           "small_parallax_reason", "min_ok_parallax"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
@@ -169,9 +169,9 @@ class Quality:
         (:func:`bound_reason`): ambiguous, since the depth is clipped and the motion may be bent to keep the
         rest inside.
     small_parallax : bool
-        se3 with a free rotation: ``parallax_px`` under ``QualitySettings.min_ok_parallax_px``
-        (:func:`small_parallax_reason`): ambiguous, since a rotation absorbs most of what a turn of so little
-        translation changes in the image.
+        se3 with a free rotation: ``parallax_px`` under ``QualitySettings.min_ok_parallax_px``, more on an image
+        of fewer pixels than ``min_ok_parallax_area`` (:func:`small_parallax_reason`, :func:`min_ok_parallax`):
+        ambiguous, since a rotation absorbs most of what a turn of so little translation changes in the image.
     """
 
     verdict: Verdict
@@ -476,9 +476,35 @@ def sparse_reason(fitted: int, given: int, width: int, height: int, min_event_de
             f"{min_event_density:g}): too sparse for the contrast to vouch for the direction{more}")
 
 
-def small_parallax_reason(parallax_px: float | None, min_ok_parallax_px: float) -> str:
+def min_ok_parallax(min_ok_parallax_px: float, width: int, height: int, reference_area: int) -> float:
+    """The least parallax [px] of an ``ok`` window with the rotation free on a ``width`` x ``height`` image:
+    ``min_ok_parallax_px`` on an image of ``reference_area`` pixels or more, ``sqrt(reference_area / (width
+    height))`` times it on a smaller one (never less than ``min_ok_parallax_px``).
+
+    On a smaller image the contrast's optimum itself lies off the truth more often: the same scenes at 160x120
+    and 96x72 score the true motion worse than the fit beyond the test's noise on about half and four fifths of
+    their windows, at 346x260 on none (docs/quality.md), so a few pixels of parallax that vouch for the
+    direction at 346x260 do not on a quarter of the pixels.
+
+    >>> min_ok_parallax(3.0, 346, 260, 346 * 260)
+    3.0
+    >>> round(min_ok_parallax(3.0, 173, 130, 346 * 260), 6)     # a quarter of the pixels: twice the parallax
+    6.0
+    >>> min_ok_parallax(3.0, 1280, 720, 346 * 260)              # a larger image: unchanged
+    3.0
+    """
+    area = int(width) * int(height)
+    if area <= 0:
+        raise ValueError(f"the image must have pixels, got {width}x{height}")
+    return float(min_ok_parallax_px) * math.sqrt(max(1.0, reference_area / area))
+
+
+def small_parallax_reason(parallax_px: float | None, min_ok_parallax_px: float,
+                          image_size: tuple[int, int] | None = None, reference_area: int = 346 * 260) -> str:
     """The reason of a window whose translation moved the events too little to vouch for its direction with the
-    rotation free, "" otherwise (``parallax_px`` None, or not under ``min_ok_parallax_px``).
+    rotation free, "" otherwise (``parallax_px`` None, or not under the threshold). The threshold is
+    ``min_ok_parallax_px``, scaled to an ``image_size`` ``(width, height)`` smaller than ``reference_area``
+    pixels by :func:`min_ok_parallax` (None: not scaled).
 
     Over ``P`` px of parallax, turning the translation direction by an angle ``a`` changes the translational
     image motion by about ``P a`` px, and a rotation takes up its part that is nearly uniform over the image (the
@@ -490,10 +516,20 @@ def small_parallax_reason(parallax_px: float | None, min_ok_parallax_px: float) 
     'parallax 2.00 px, under min_ok_parallax_px=3: too little for t'
     >>> small_parallax_reason(4.0, 3.0)
     ''
+    >>> small_parallax_reason(4.75, 3.0, (160, 120))[:90]
+    'parallax 4.75 px, under 6.49 px (min_ok_parallax_px=3 scaled to a 160x120 image of 19,200 '
     """
-    if parallax_px is None or not parallax_px < min_ok_parallax_px:
+    threshold, scaled = min_ok_parallax_px, ""
+    if image_size is not None:
+        threshold = min_ok_parallax(min_ok_parallax_px, image_size[0], image_size[1], reference_area)
+        if threshold > min_ok_parallax_px:
+            scaled = (f"{threshold:.2f} px (min_ok_parallax_px={min_ok_parallax_px:g} scaled to a "
+                      f"{image_size[0]}x{image_size[1]} image of {image_size[0] * image_size[1]:,} pixels by the square "
+                      f"root of min_ok_parallax_area={reference_area:,} over them)")
+    if parallax_px is None or not parallax_px < threshold:
         return ""
-    return (f"parallax {parallax_px:.2f} px, under min_ok_parallax_px={min_ok_parallax_px:g}: too little for the "
+    under = scaled or f"min_ok_parallax_px={min_ok_parallax_px:g}"
+    return (f"parallax {parallax_px:.2f} px, under {under}: too little for the "
             "contrast to tell the translation direction from a rotation (the bas-relief ambiguity)")
 
 

@@ -351,7 +351,13 @@ class QualitySettings:
         and ``small_parallax``: over a few pixels of parallax a rotation absorbs most of what a turn of the
         translation direction changes in the image (the bas-relief ambiguity), so the contrast can prefer a
         direction tens of degrees off beyond its noise and no alternative of the test flags it. Not applied with
-        the rotation held (``omega=``, a gyroscope). 0 turns the rule off (docs/quality.md).
+        the rotation held (``omega=``, a gyroscope). 0 turns the rule off (docs/quality.md). On an image of fewer
+        pixels than ``min_ok_parallax_area`` the threshold grows (:func:`cmax.fitting.quality.min_ok_parallax`).
+    min_ok_parallax_area : int
+        The image area [pixels] (346x260) at and above which ``min_ok_parallax_px`` applies as it is; on a smaller
+        image it is multiplied by ``sqrt(min_ok_parallax_area / (width height))``: on a quarter of the pixels the
+        contrast's optimum lies off the truth beyond its noise far more often, and ``ok`` windows 37-98 deg off
+        came with 3.0-5.5 px of parallax at 160x120 (docs/quality.md: the measurement). 1 turns the scaling off.
     """
 
     ambiguity_test: bool = True
@@ -375,6 +381,7 @@ class QualitySettings:
     min_event_density: float = 0.25
     max_bound_share: float = 0.25
     min_ok_parallax_px: float = 3.0
+    min_ok_parallax_area: int = 346 * 260
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "smoothing"):
@@ -386,6 +393,9 @@ class QualitySettings:
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
+        if isinstance(self.min_ok_parallax_area, bool) or not (isinstance(self.min_ok_parallax_area, int)
+                                                               and self.min_ok_parallax_area >= 1):
+            raise ValueError(f"min_ok_parallax_area must be an int >= 1 (pixels), got {self.min_ok_parallax_area!r}")
         if isinstance(self.max_rate_change, bool) or not (isinstance(self.max_rate_change, (int, float))
                                                           and self.max_rate_change > 1):
             raise ValueError(f"max_rate_change must be a number > 1 (math.inf: no test), got {self.max_rate_change!r}")
