@@ -328,11 +328,22 @@ class H5WindowDataset(torch.utils.data.Dataset):
 
     @staticmethod
     def _load_gt(file: h5py.File, spec: FileSpec) -> dict | None:
+        """The ground truth of ``gt/``: ``depth_t`` (D,) µs, ``K`` (3, 3), and ``twists`` (M, 6) with their
+        ``poses_t`` (M,) µs, or None for those when the file stores no twists; None for a file without depth
+        (no ``gt/depth`` or ``gt/depth_t``: a ``gt/K`` alone is the calibration). ValueError naming the file for
+        a depth without the ``gt/K`` it was made with."""
         if "gt" not in file or not spec.use_gt:
             return None
         gt = file["gt"]
-        return {"depth_t": gt["depth_t"][:], "poses_t": gt["poses_t"][:],
-                "twists": gt["twists"][:] if "twists" in gt else None, "K": gt["K"][:]}
+        if "depth" not in gt or "depth_t" not in gt:
+            return None
+        if "K" not in gt:
+            raise ValueError(f"{spec.path} holds gt/depth but no gt/K, the intrinsics that depth was made with: "
+                             "add gt/K to the file, or read it with \"use_gt\": false and its K in its data.files "
+                             "entry")
+        timed = "twists" in gt and "poses_t" in gt
+        return {"depth_t": gt["depth_t"][:], "poses_t": gt["poses_t"][:] if timed else None,
+                "twists": gt["twists"][:] if timed else None, "K": gt["K"][:]}
 
     @staticmethod
     def _load_known_motion(file: h5py.File, spec: FileSpec) -> tuple[np.ndarray, np.ndarray] | None:

@@ -195,6 +195,9 @@ def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) 
         raise ValueError(f"{path} has no {'gt/depth' if K else 'gt/K nor gt/depth'}: no ground truth to evaluate "
                          f"the network against (files of cmax scene hold it); to predict depth on this file, run "
                          f"cmax depth {path} -o OUT --K fx,fy,cx,cy")
+    if not K:
+        raise ValueError(f"{path} holds gt/depth but no gt/K, the intrinsics that depth was made with: add gt/K "
+                         "(3x3, as cmax scene writes it) to evaluate against that depth")
     dataset = H5WindowDataset([path], window_us=int(window_us), max_events=1000, min_events=min_events)
     if dataset._gt[0] is None:
         raise ValueError(f"{path} has no gt/: evaluation needs ground truth")

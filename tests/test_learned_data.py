@@ -115,6 +115,60 @@ def test_dataset_rejects_bad_input(scene_file, tmp_path):
         H5WindowDataset([3])
 
 
+def _copy_without(path, tmp_path, name: str, *keys: str):
+    import shutil
+
+    import h5py
+
+    copy = shutil.copy(path, tmp_path / name)
+    with h5py.File(copy, "a") as file:
+        for key in keys:
+            del file[key]
+    return copy
+
+
+def test_a_gt_group_with_part_of_the_ground_truth_is_read_as_far_as_it_goes(scene_file, tmp_path):
+    """A user's own labelled file need not hold everything cmax scene writes. Was a KeyError traceback
+    ("object 'depth_t' doesn't exist" / "'poses_t' doesn't exist") from learned.train and learned.evaluate."""
+    path, sequence, _ = scene_file
+    calibrated = _copy_without(path, tmp_path, "k_only.h5", "gt/depth", "gt/depth_t", "gt/poses", "gt/poses_t",
+                               "gt/twists")
+    ds = H5WindowDataset([calibrated], window_us=100_000, max_events=100)   # gt/K alone: its calibration
+    assert len(ds) > 0 and ds.sample(0).depth is None and ds.sample(0).twist is None
+    assert (ds.sample(0).t0_us - ds.spans[0][0]) % 100_000 == 0   # consecutive from the first event, as unlabelled
+    np.testing.assert_array_equal(ds.sample(0).K, sequence.K)
+    no_motion = _copy_without(path, tmp_path, "no_poses.h5", "gt/poses", "gt/poses_t", "gt/twists")
+    ds = H5WindowDataset([no_motion], window_us=100_000, max_events=100)   # depth without twists
+    labelled = H5WindowDataset([path], window_us=100_000, max_events=100)
+    assert len(ds) == len(labelled) > 0
+    np.testing.assert_array_equal(ds.sample(0).depth, labelled.sample(0).depth)
+    assert ds.sample(0).twist is None and ds[0]["has_twist"].item() is False
+    no_K = _copy_without(path, tmp_path, "no_k.h5", "gt/K")
+    with pytest.raises(ValueError, match="no_k.h5 holds gt/depth but no gt/K"):
+        H5WindowDataset([no_K], window_us=100_000)
+
+
+def test_evaluate_scores_the_depth_of_a_file_without_twists(scene_file, tmp_path):
+    """learned.evaluate on a file with depth but no poses: depth metrics, no motion metrics; without gt/K: one
+    line naming the file."""
+    from learned.checkpoint import rng_state, save_checkpoint
+    from learned.config import Config, DataConfig
+    from learned.evaluate import evaluate_files
+    from learned.model import DepthPoseNet, ModelConfig
+
+    path, _, _ = scene_file
+    config = Config(model=ModelConfig(width=4, levels=2), data=DataConfig(window_us=100_000))
+    checkpoint = tmp_path / "tiny.pt"
+    save_checkpoint(checkpoint, {"model": DepthPoseNet(config.model).state_dict(), "optimizer": {}, "step": 0,
+                                 "config": config.to_dict(), "rng": rng_state()})
+    no_motion = _copy_without(path, tmp_path, "no_poses.h5", "gt/poses", "gt/poses_t", "gt/twists")
+    (report,), (full,) = evaluate_files(checkpoint, [no_motion]), evaluate_files(checkpoint, [path])
+    assert report.motion is None and full.motion is not None
+    assert report.windows == full.windows and report.depth == full.depth
+    with pytest.raises(ValueError, match="no_k.h5 holds gt/depth but no gt/K"):
+        evaluate_files(checkpoint, [_copy_without(path, tmp_path, "no_k.h5", "gt/K")])
+
+
 def test_a_K_of_another_sensor_size_or_no_camera_is_refused_naming_the_file(scene_file, tmp_path):
     """The calibration of 120x90 frames (a conversion at --size 48x36): its principal point lies off the 48x36
     sensor; refused before any window is read (was: trained on without a word). A focal
