@@ -16,9 +16,10 @@ entry (the event volume computed after augmentation). Datasets:
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import h5py
 import numpy as np
@@ -170,7 +171,8 @@ class FileSpec:
     the camera speed ``|v|`` of each window (what odometry or a speedometer would give a real
     recording) as the contrast loss's metric anchor; the depth and the twist stay hidden.
     ``known_twist`` (with ``use_gt`` False; an ablation: the motion known, the depth hidden) keeps the
-    whole twist of each window.
+    whole twist of each window. ``polarity``: the encoding of the file's ``events/p``, ``"01"`` (0 OFF, 1 ON, as
+    cmax writes it) or ``"signed"`` (-1 OFF, +1 ON), never guessed (:class:`cmax.io.H5Reader`).
     """
 
     path: Path
@@ -178,6 +180,7 @@ class FileSpec:
     use_gt: bool = True
     known_speed: bool = False
     known_twist: bool = False
+    polarity: str = "01"
 
 
 def _as_spec(entry: object) -> FileSpec:
@@ -192,7 +195,7 @@ def _as_spec(entry: object) -> FileSpec:
             if K.shape == (4,):
                 K = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
         return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
-                        bool(entry.get("known_twist", False)))
+                        bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
@@ -236,15 +239,31 @@ def longest_centred_window_us(centre_us: int, t_start_us: int, t_end_us: int) ->
     return window
 
 
-def _training_file(path: Path) -> H5Reader:
-    """``H5Reader(path)``; a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``, ``.npy``, ...)
-    is refused with the one-line conversion that makes it one."""
+def _training_file(path: Path, polarity: str = "01") -> H5Reader:
+    """``H5Reader(path, polarity=polarity)``; a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``,
+    ``.npy``, ...) is refused with the one-line conversion that makes it one."""
     try:
-        return H5Reader(path)
+        return H5Reader(path, polarity=polarity)
     except FormatError as error:
         raise FormatError(f"{error}; training reads DSEC-layout h5 files: convert it once with "
                           f"cmax.io.write_h5('events.h5', cmax.io.read('{path}'[, width=, height=])) and give its K "
                           "in data.files") from None
+
+
+@contextmanager
+def _polarity_hint(spec: FileSpec) -> Iterator[None]:
+    """Reword the reader's refusal of a polarity encoding other than ``spec.polarity`` (it advises the reader's
+    ``polarity=`` argument) with the key of ``data.files`` that states it."""
+    try:
+        yield
+    except FormatError as error:
+        if "polarity values" not in str(error) or "pass polarity=" not in str(error):
+            raise
+        other = "01" if spec.polarity == "signed" else "signed"
+        raise FormatError(f"{spec.path}: its events/p holds the polarities {'0/1' if other == '01' else '-1/+1'}, "
+                          f"not the \"{spec.polarity}\" encoding its data.files entry states: add \"polarity\": "
+                          f"\"{other}\" to its entry ({{\"path\": \"{spec.path}\", \"polarity\": \"{other}\", ...}})"
+                          ) from None
 
 
 class H5WindowDataset(torch.utils.data.Dataset):
@@ -288,7 +307,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self._readers: dict[int, H5Reader] = {}
         size = None
         for i, spec in enumerate(self.specs):
-            with _training_file(spec.path) as reader:
+            with _training_file(spec.path, spec.polarity) as reader, _polarity_hint(spec):
                 if size is None:
                     size = (reader.width, reader.height)
                 elif size != (reader.width, reader.height):
@@ -368,7 +387,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         spec, gt = self.specs[file_index], self._gt[file_index]
         reader = self._readers.get(file_index)
         if reader is None:
-            reader = self._readers[file_index] = H5Reader(spec.path)
+            reader = self._readers[file_index] = H5Reader(spec.path, polarity=spec.polarity)
         events = reader.window(t0, t0 + self.window_us)
         if gt is None:
             speed = twist = None

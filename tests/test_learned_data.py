@@ -169,6 +169,36 @@ def test_evaluate_scores_the_depth_of_a_file_without_twists(scene_file, tmp_path
         evaluate_files(checkpoint, [_copy_without(path, tmp_path, "no_k.h5", "gt/K")])
 
 
+def test_a_file_of_signed_polarities_is_read_as_its_data_files_entry_states(scene_file, tmp_path):
+    """An h5 file whose events/p holds -1/+1 (a user's own writer): read with "polarity": "signed" in its entry,
+    its windows equal those of the 0/1 file. Was: the reader's refusal advised `pass polarity='signed' (cmax:
+    --polarity signed)`, which neither data.files nor learned.train could take: such a file could not be used."""
+    import shutil
+
+    import h5py
+
+    from cmax.io import FormatError
+    from learned.config import load_config
+
+    path, _, _ = scene_file
+    signed = shutil.copy(path, tmp_path / "signed.h5")
+    with h5py.File(signed, "a") as file:
+        p = file["events/p"][:].astype(np.int8)
+        del file["events/p"]
+        file["events/p"] = 2 * p - 1
+    original = H5WindowDataset([path], window_us=100_000, max_events=300)
+    read = H5WindowDataset([{"path": str(signed), "polarity": "signed"}], window_us=100_000, max_events=300)
+    assert len(read) == len(original) > 0
+    for key, value in original[0].items():
+        torch.testing.assert_close(read[0][key], value, rtol=0, atol=0, equal_nan=True)
+    with pytest.raises(FormatError, match='-1/\\+1, not the "01" encoding .* add "polarity": "signed" to its entry'):
+        H5WindowDataset([signed], window_us=100_000)
+    with pytest.raises(FormatError, match='0/1, not the "signed" encoding .* add "polarity": "01"'):
+        H5WindowDataset([{"path": str(path), "polarity": "signed"}], window_us=100_000)
+    with pytest.raises(ValueError, match=r'data.files\[0\].polarity must be "01" .* or "signed"'):
+        load_config(None, [f'data.files=[{{"path": "{signed}", "polarity": "pm1"}}]'], mode="teacher")
+
+
 def test_a_K_of_another_sensor_size_or_no_camera_is_refused_naming_the_file(scene_file, tmp_path):
     """The calibration of 120x90 frames (a conversion at --size 48x36): its principal point lies off the 48x36
     sensor; refused before any window is read (was: trained on without a word). A focal
