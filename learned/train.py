@@ -72,7 +72,8 @@ THREAD_CHECK_EVERY = 25
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
            "clear_earlier_run", "RESUMABLE",
-           "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer", "check_output", "main"]
+           "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
+           "check_output", "main"]
 
 def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
     """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
