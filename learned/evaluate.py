@@ -266,6 +266,21 @@ def score_motion(twists: np.ndarray, windows: Sequence[HeldOutWindow]) -> Motion
     return motion_metrics(twists[:, :3], twists[:, 3:], truth[:, :3], truth[:, 3:])
 
 
+def no_valid_depth_note(windows: Sequence[HeldOutWindow]) -> str | None:
+    """A note for windows none of whose true depth pixels is valid (finite, above 1 mm, at most the far limit),
+    whose depth metrics are therefore NaN: the span of the finite true depths [m], which tells depth in another
+    unit (millimetres beyond the far limit) from a map of NaN; None when some pixel is valid."""
+    if any(w.dense.any() for w in windows):
+        return None
+    finite = np.concatenate([np.asarray(w.sample.depth, np.float64)[np.isfinite(w.sample.depth)] for w in windows])
+    far = max(w.far_m for w in windows)
+    held = (f"its finite true depths span {finite.min():g} to {finite.max():g}" if finite.size
+            else "its true depth is NaN or infinite everywhere")
+    return (f"no pixel of its ground-truth depth (gt/depth) is valid in any of the {len(windows)} windows (finite, "
+            f"above {MIN_DEPTH_M * 1e3:g} mm, at most the far limit {far:g} m; {held}): no depth metric can be "
+            "computed (NaN); gt/depth must hold z-depth in metres")
+
+
 def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, window_s: float | None = None,
                    batch_size: int = 8) -> list[FileReport]:
     """Metrics of ``checkpoint`` on each file with ground truth (window length from the checkpoint's config),
@@ -292,6 +307,8 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
         first = windows[0].sample
         notes = camera_notes(card, first.events.width, first.events.height, np.asarray(first.K, float),
                              f"the card of {checkpoint}")
+        invalid = no_valid_depth_note(windows)
+        notes = [*notes, *([invalid] if invalid else [])]
         reports.append(FileReport(path.stem, metrics, score_motion(twist, windows), len(windows), tuple(notes)))
     return reports
 

@@ -148,25 +148,61 @@ def test_a_gt_group_with_part_of_the_ground_truth_is_read_as_far_as_it_goes(scen
         H5WindowDataset([no_K], window_us=100_000)
 
 
-def test_evaluate_scores_the_depth_of_a_file_without_twists(scene_file, tmp_path):
-    """learned.evaluate on a file with depth but no poses: depth metrics, no motion metrics; without gt/K: one
-    line naming the file."""
+def _tiny_checkpoint(tmp_path):
     from learned.checkpoint import rng_state, save_checkpoint
     from learned.config import Config, DataConfig
-    from learned.evaluate import evaluate_files
     from learned.model import DepthPoseNet, ModelConfig
 
-    path, _, _ = scene_file
     config = Config(model=ModelConfig(width=4, levels=2), data=DataConfig(window_us=100_000))
     checkpoint = tmp_path / "tiny.pt"
     save_checkpoint(checkpoint, {"model": DepthPoseNet(config.model).state_dict(), "optimizer": {}, "step": 0,
                                  "config": config.to_dict(), "rng": rng_state()})
+    return checkpoint
+
+
+def test_evaluate_scores_the_depth_of_a_file_without_twists(scene_file, tmp_path):
+    """learned.evaluate on a file with depth but no poses: depth metrics, no motion metrics; without gt/K: one
+    line naming the file."""
+    from learned.evaluate import evaluate_files
+
+    path, _, _ = scene_file
+    checkpoint = _tiny_checkpoint(tmp_path)
     no_motion = _copy_without(path, tmp_path, "no_poses.h5", "gt/poses", "gt/poses_t", "gt/twists")
     (report,), (full,) = evaluate_files(checkpoint, [no_motion]), evaluate_files(checkpoint, [path])
     assert report.motion is None and full.motion is not None
     assert report.windows == full.windows and report.depth == full.depth
     with pytest.raises(ValueError, match="no_k.h5 holds gt/depth but no gt/K"):
         evaluate_files(checkpoint, [_copy_without(path, tmp_path, "no_k.h5", "gt/K")])
+
+
+@pytest.mark.parametrize("scale", [1000.0, float("nan")])
+def test_evaluate_says_why_a_file_has_no_depth_metric(scene_file, tmp_path, scale):
+    """A user's gt/depth in millimetres (all beyond the far limit) or all NaN: no valid pixel. Was: `abs_mean nan m
+    abs_rel nan ...` printed as a result, without a word; now a note names the rule and the depths' span."""
+    import shutil
+
+    import h5py
+
+    from learned.evaluate import evaluate_files
+
+    path, sequence, _ = scene_file
+    copy = shutil.copy(path, tmp_path / "mm.h5")
+    with h5py.File(copy, "a") as file:
+        file["gt/depth"][...] = file["gt/depth"][()] * scale
+    checkpoint = _tiny_checkpoint(tmp_path)
+    (report,) = evaluate_files(checkpoint, [copy])
+    assert np.isnan(report.depth.abs_rel)
+    (note,) = [n for n in report.notes if "no pixel of its ground-truth depth" in n]
+    if scale == 1000.0:
+        import re
+
+        finite = sequence.depth[np.isfinite(sequence.depth)] * scale
+        low, high = map(float, re.search(r"span (\S+) to (\S+)\)", note).groups())
+        assert finite.min() * 0.999 <= low <= high <= finite.max() * 1.001 and "metres" in note
+    else:
+        assert "NaN or infinite everywhere" in note
+    (report,) = evaluate_files(checkpoint, [path])
+    assert np.isfinite(report.depth.abs_rel) and not any("no pixel" in n for n in report.notes)
 
 
 def test_a_file_of_signed_polarities_is_read_as_its_data_files_entry_states(scene_file, tmp_path):
