@@ -864,6 +864,9 @@ def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "")
 def _run(args: argparse.Namespace) -> int:
     rank, _ = distributed_rank()   # a stray RANK (no torchrun job) is refused first, before anything is read
     config = load_config(args.config, args.overrides, mode=args.mode, require_mode=True)
+    if not config.train.out.strip():   # Path("") is the current folder
+        raise ValueError("train.out is empty (an unset shell variable, train.out=$OUT?): give the folder for "
+                         "last.pt, config.json and log.jsonl, e.g. train.out=runs/teacher (train.out=. for this one)")
     out = Path(config.train.out)
     teacher = config.train.teacher if config.mode in ("finetune", "student") else ""
     check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)

@@ -236,6 +236,16 @@ def test_ddp_sees_as_outputs_exactly_the_parameters_the_loss_trains(scene_file, 
     assert (by_loss == everything) == (all_scales and twist)
 
 
+def test_an_empty_train_out_is_refused_not_taken_for_the_current_folder(scene_file, tmp_path, monkeypatch, capsys):
+    """`train.out=$OUT` with OUT unset: was a run that wrote last.pt, config.json, log.jsonl and tb/ into the
+    current folder (Path("") is "."), exit 0."""
+    monkeypatch.chdir(tmp_path)
+    args = [a for a in tiny(scene_file, tmp_path) if not a.startswith("train.out=")]
+    assert main(["--mode", "teacher", "--no-progress", *args, "train.steps=1", "train.out="]) == 2
+    assert "train.out is empty" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("env", [{"RANK": "1"}, {"RANK": "1", "WORLD_SIZE": "1"}, {"RANK": "2", "WORLD_SIZE": "2"}])
 def test_a_stray_rank_outside_a_torchrun_job_is_refused(scene_file, tmp_path, capsys, monkeypatch, env):
     """RANK=1 left in the environment by a scheduler, without WORLD_SIZE (or WORLD_SIZE=1): the run took itself for
