@@ -82,6 +82,38 @@ def test_time_reversal_reverses_bins_and_negates_twist(window):
     assert _loss(Sample(rev, window.K, window.depth, window.twist, 0, window.t1_us)) > _loss(reversed_) + 0.01
 
 
+def _training_loss(sample: Sample, twist) -> float:
+    """The contrast term learned.train minimises (cmax.contrast.SHARED_OBJECTIVE on to_item's events, the
+    speed anchor off) at ``sample``'s true inverse depth and ``twist``."""
+    import dataclasses
+
+    from cmax.contrast import SHARED_OBJECTIVE, DepthMotion
+    from learned.train import _events
+
+    item = collate([to_item(sample, max_events=20000)])
+    events = dataclasses.replace(_events(item, sample.events.width, sample.events.height), speed=None)
+    rho = item["inverse_depth"].clamp(min=1e-3)
+    return float(SHARED_OBJECTIVE(events, DepthMotion(rho, torch.as_tensor(twist, dtype=torch.float32)[None])))
+
+
+@pytest.mark.parametrize("augmentation, mirror", [(flip_horizontal, [-1, 1, 1, 1, -1, -1]),
+                                                  (reverse_time, [-1, -1, -1, -1, -1, -1]),
+                                                  (flip_polarity, [1, 1, 1, 1, 1, 1])])
+def test_each_augmentation_moves_the_training_losss_minimum_to_the_closed_form_twist(window, augmentation, mirror):
+    """The shared objective (the loss a finetune or student trains on, not the older ContrastLoss of the tests
+    above) scores the augmented window at the closed-form transformed twist (the flip: v_x, omega_y, omega_z
+    negated; time reversal: the twist negated; polarity: unchanged) as it scores the window at its true twist,
+    and clearly better than at the untransformed and at the opposite twist: no augmentation teaches a sign."""
+    transformed = window.twist * np.asarray(mirror, float)
+    augmented = augmentation(window)
+    np.testing.assert_allclose(augmented.twist, transformed)
+    at_truth = _training_loss(augmented, transformed)
+    assert at_truth == pytest.approx(_training_loss(window, window.twist), rel=0.02)
+    assert at_truth + 0.03 < _training_loss(augmented, -transformed)
+    if augmentation is not flip_polarity:
+        assert at_truth + 0.03 < _training_loss(augmented, window.twist)
+
+
 def test_dataset_windows_are_centred_on_ground_truth(scene_file):
     path, sequence, scene = scene_file
     ds = H5WindowDataset([path], window_us=100_000, max_events=500)
