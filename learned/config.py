@@ -55,15 +55,19 @@ def _require(condition: bool, section: str, name: str, rule: str, value: object)
 
 def _check_file_entry(entry: object, where: str) -> None:
     """TypeError naming ``where`` (``data.files[2]``, ``data.val_files[0]``) for an entry of a list of data files
-    that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist"}`` of the right types."""
+    that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist", "polarity"}`` of the right
+    types; ValueError for a ``polarity`` other than ``"01"`` or ``"signed"``."""
     if isinstance(entry, (str, Path)):
         return
     if not isinstance(entry, dict):
         raise TypeError(f"{where} must be a path or {{\"path\", \"K\", \"use_gt\"}}, got {entry!r}")
-    unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist"}
+    unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist", "polarity"}
     if unknown or not isinstance(entry.get("path"), (str, Path)):
-        raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\", \"known_speed\" and "
-                        f"\"known_twist\" only, got {entry!r}")
+        raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\", \"known_speed\", "
+                        f"\"known_twist\" and \"polarity\" only, got {entry!r}")
+    if entry.get("polarity", "01") not in ("01", "signed"):
+        raise ValueError(f"{where}.polarity must be \"01\" (0 OFF, 1 ON) or \"signed\" (-1 OFF, +1 ON), "
+                         f"got {entry['polarity']!r}")
     K = entry.get("K")
     if K is not None:
         flat = [v for row in K for v in row] if K and isinstance(K[0], (list, tuple)) else list(K) \

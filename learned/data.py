@@ -16,9 +16,10 @@ entry (the event volume computed after augmentation). Datasets:
 """
 from __future__ import annotations
 
+from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Sequence
+from typing import Iterator, Sequence
 
 import h5py
 import numpy as np
@@ -171,7 +172,8 @@ class FileSpec:
     the camera speed ``|v|`` of each window (what odometry or a speedometer would give a real
     recording) as the contrast loss's metric anchor; the depth and the twist stay hidden.
     ``known_twist`` (with ``use_gt`` False; an ablation: the motion known, the depth hidden) keeps the
-    whole twist of each window.
+    whole twist of each window. ``polarity``: the encoding of the file's ``events/p``, ``"01"`` (0 OFF, 1 ON, as
+    cmax writes it) or ``"signed"`` (-1 OFF, +1 ON), never guessed (:class:`cmax.io.H5Reader`).
     """
 
     path: Path
@@ -179,6 +181,7 @@ class FileSpec:
     use_gt: bool = True
     known_speed: bool = False
     known_twist: bool = False
+    polarity: str = "01"
 
 
 def _as_spec(entry: object) -> FileSpec:
@@ -193,7 +196,7 @@ def _as_spec(entry: object) -> FileSpec:
             if K.shape == (4,):
                 K = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
         return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
-                        bool(entry.get("known_twist", False)))
+                        bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
@@ -237,15 +240,31 @@ def longest_centred_window_us(centre_us: int, t_start_us: int, t_end_us: int) ->
     return window
 
 
-def _training_file(path: Path) -> H5Reader:
-    """``H5Reader(path)``; a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``, ``.npy``, ...)
-    is refused with the one-line conversion that makes it one."""
+def _training_file(path: Path, polarity: str = "01") -> H5Reader:
+    """``H5Reader(path, polarity=polarity)``; a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``,
+    ``.npy``, ...) is refused with the one-line conversion that makes it one."""
     try:
-        return H5Reader(path)
+        return H5Reader(path, polarity=polarity)
     except FormatError as error:
         raise FormatError(f"{error}; training reads DSEC-layout h5 files: convert it once with "
                           f"cmax.io.write_h5('events.h5', cmax.io.read('{path}'[, width=, height=])) and give its K "
                           "in data.files") from None
+
+
+@contextmanager
+def _polarity_hint(spec: FileSpec) -> Iterator[None]:
+    """Reword the reader's refusal of a polarity encoding other than ``spec.polarity`` (it advises the reader's
+    ``polarity=`` argument) with the key of ``data.files`` that states it."""
+    try:
+        yield
+    except FormatError as error:
+        if "polarity values" not in str(error) or "pass polarity=" not in str(error):
+            raise
+        other = "01" if spec.polarity == "signed" else "signed"
+        raise FormatError(f"{spec.path}: its events/p holds the polarities {'0/1' if other == '01' else '-1/+1'}, "
+                          f"not the \"{spec.polarity}\" encoding its data.files entry states: add \"polarity\": "
+                          f"\"{other}\" to its entry ({{\"path\": \"{spec.path}\", \"polarity\": \"{other}\", ...}})"
+                          ) from None
 
 
 class H5WindowDataset(torch.utils.data.Dataset):
@@ -291,7 +310,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self._readers: dict[int, H5Reader] = {}
         size = None
         for i, spec in enumerate(self.specs):
-            with _training_file(spec.path) as reader:
+            with _training_file(spec.path, spec.polarity) as reader, _polarity_hint(spec):
                 if size is None:
                     size = (reader.width, reader.height)
                 elif size != (reader.width, reader.height):
@@ -331,11 +350,22 @@ class H5WindowDataset(torch.utils.data.Dataset):
 
     @staticmethod
     def _load_gt(file: h5py.File, spec: FileSpec) -> dict | None:
+        """The ground truth of ``gt/``: ``depth_t`` (D,) µs, ``K`` (3, 3), and ``twists`` (M, 6) with their
+        ``poses_t`` (M,) µs, or None for those when the file stores no twists; None for a file without depth
+        (no ``gt/depth`` or ``gt/depth_t``: a ``gt/K`` alone is the calibration). ValueError naming the file for
+        a depth without the ``gt/K`` it was made with."""
         if "gt" not in file or not spec.use_gt:
             return None
         gt = file["gt"]
-        return {"depth_t": gt["depth_t"][:], "poses_t": gt["poses_t"][:],
-                "twists": gt["twists"][:] if "twists" in gt else None, "K": gt["K"][:]}
+        if "depth" not in gt or "depth_t" not in gt:
+            return None
+        if "K" not in gt:
+            raise ValueError(f"{spec.path} holds gt/depth but no gt/K, the intrinsics that depth was made with: "
+                             "add gt/K to the file, or read it with \"use_gt\": false and its K in its data.files "
+                             "entry")
+        timed = "twists" in gt and "poses_t" in gt
+        return {"depth_t": gt["depth_t"][:], "poses_t": gt["poses_t"][:] if timed else None,
+                "twists": gt["twists"][:] if timed else None, "K": gt["K"][:]}
 
     @staticmethod
     def _load_known_motion(file: h5py.File, spec: FileSpec) -> tuple[np.ndarray, np.ndarray] | None:
@@ -360,7 +390,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         spec, gt = self.specs[file_index], self._gt[file_index]
         reader = self._readers.get(file_index)
         if reader is None:
-            reader = self._readers[file_index] = H5Reader(spec.path)
+            reader = self._readers[file_index] = H5Reader(spec.path, polarity=spec.polarity)
         events = reader.window(t0, t0 + self.window_us)
         if gt is None:
             speed = twist = None

@@ -197,6 +197,9 @@ def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) 
         raise ValueError(f"{path} has no {'gt/depth' if K else 'gt/K nor gt/depth'}: no ground truth to evaluate "
                          f"the network against (files of cmax scene hold it); to predict depth on this file, run "
                          f"cmax depth {path} -o OUT --K fx,fy,cx,cy")
+    if not K:
+        raise ValueError(f"{path} holds gt/depth but no gt/K, the intrinsics that depth was made with: add gt/K "
+                         "(3x3, as cmax scene writes it) to evaluate against that depth")
     dataset = H5WindowDataset([path], window_us=int(window_us), max_events=1000, min_events=min_events)
     if dataset._gt[0] is None:
         raise ValueError(f"{path} has no gt/: evaluation needs ground truth")
@@ -266,6 +269,21 @@ def score_motion(twists: np.ndarray, windows: Sequence[HeldOutWindow]) -> Motion
     return motion_metrics(twists[:, :3], twists[:, 3:], truth[:, :3], truth[:, 3:])
 
 
+def no_valid_depth_note(windows: Sequence[HeldOutWindow]) -> str | None:
+    """A note for windows none of whose true depth pixels is valid (finite, above 1 mm, at most the far limit),
+    whose depth metrics are therefore NaN: the span of the finite true depths [m], which tells depth in another
+    unit (millimetres beyond the far limit) from a map of NaN; None when some pixel is valid."""
+    if any(w.dense.any() for w in windows):
+        return None
+    finite = np.concatenate([np.asarray(w.sample.depth, np.float64)[np.isfinite(w.sample.depth)] for w in windows])
+    far = max(w.far_m for w in windows)
+    held = (f"its finite true depths span {finite.min():g} to {finite.max():g}" if finite.size
+            else "its true depth is NaN or infinite everywhere")
+    return (f"no pixel of its ground-truth depth (gt/depth) is valid in any of the {len(windows)} windows (finite, "
+            f"above {MIN_DEPTH_M * 1e3:g} mm, at most the far limit {far:g} m; {held}): no depth metric can be "
+            "computed (NaN); gt/depth must hold z-depth in metres")
+
+
 def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, window_s: float | None = None,
                    batch_size: int = 8) -> list[FileReport]:
     """Metrics of ``checkpoint`` on each of ``files`` (with ground truth), on the dense mask
@@ -293,6 +311,8 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
         first = windows[0].sample
         notes = camera_notes(card, first.events.width, first.events.height, np.asarray(first.K, float),
                              f"the card of {checkpoint}")
+        invalid = no_valid_depth_note(windows)
+        notes = [*notes, *([invalid] if invalid else [])]
         reports.append(FileReport(path.stem, metrics, score_motion(twist, windows), len(windows), tuple(notes)))
     return reports
 

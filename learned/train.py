@@ -47,7 +47,7 @@ from learned.config import Config, config_from_dict, load_config
 from learned.data import H5WindowDataset, collate
 from learned.device import resolve_device
 from learned.losses import student_loss, teacher_loss
-from learned.model import DepthPoseNet, ModelConfig
+from learned.model import DepthPoseNet, ModelConfig, NetOutput
 
 
 def ddp_backend(device: torch.device) -> str:
@@ -72,7 +72,8 @@ THREAD_CHECK_EVERY = 25
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
            "clear_earlier_run", "RESUMABLE",
-           "config_differences", "resolved_paths", "distributed_rank", "Trainer", "check_output", "main"]
+           "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
+           "check_output", "main"]
 
 def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
     """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
@@ -345,6 +346,42 @@ def distributed_rank() -> tuple[int, int]:
     return rank, world
 
 
+def loss_outputs(config: Config) -> tuple[bool, bool]:
+    """``(all_scales, twist)``: which outputs of the network the loss of ``config``'s run reads. The teacher loss
+    reads the inverse depth at every scale, the contrast (finetune, student) only the finest; the twist is read
+    by the contrast, and by the teacher loss when ``train.twist_weight > 0``.
+
+    >>> from learned.config import Config, TrainConfig
+    >>> loss_outputs(Config()), loss_outputs(Config(train=TrainConfig(twist_weight=0.0)))
+    ((True, True), (True, False))
+    >>> loss_outputs(Config(mode="student", train=TrainConfig(teacher="teacher.pt")))
+    (False, True)
+    """
+    teacher = config.mode == "teacher"
+    return teacher, not teacher or config.train.twist_weight > 0
+
+
+class LossOutputs(torch.nn.Module):
+    """The network as ``DistributedDataParallel`` wraps it: its forward gives only the outputs the run's loss
+    reads (:func:`loss_outputs`), the inverse depths of the other scales left out and an unread twist detached.
+
+    DDP's ``find_unused_parameters`` looks for the parameters without a gradient by walking the autograd graph
+    back from the tensors the forward returns: a returned output that the loss leaves out (the coarse decoder
+    heads of a student, the pose head of a teacher without a twist term) counts as used, DDP waits for its
+    gradients, and the second step fails with "Expected to have finished reduction in the prior iteration".
+    """
+
+    def __init__(self, model: DepthPoseNet, *, all_scales: bool, twist: bool) -> None:
+        super().__init__()
+        self.model, self.all_scales, self.twist = model, all_scales, twist
+
+    def forward(self, volume: torch.Tensor) -> NetOutput:
+        """:meth:`DepthPoseNet.forward` of ``volume`` (B, bins, H, W), keeping what the loss reads."""
+        out = self.model(volume)
+        return NetOutput(out.inverse_depths if self.all_scales else out.inverse_depths[:1],
+                         out.twist if self.twist else out.twist.detach())
+
+
 def _no_window(dataset: H5WindowDataset) -> str:
     """Why ``dataset`` holds no window, and what to change (the end of an error message): the windows with too few
     events, and the labelled windows (centred on ``gt/depth_t``) that reach beyond their recording, with their
@@ -446,9 +483,12 @@ class Trainer:
             set_rng_state(ckpt["rng"])
         self.net = self.model
         if self.world > 1:
+            all_scales, twist = loss_outputs(config)
+            # every parameter has a gradient when the loss reads every output: no search for unused ones then
             self.net = torch.nn.parallel.DistributedDataParallel(
-                self.model, device_ids=[self.device.index] if self.device.type == "cuda" else None,
-                find_unused_parameters=True)
+                LossOutputs(self.model, all_scales=all_scales, twist=twist),
+                device_ids=[self.device.index] if self.device.type == "cuda" else None,
+                find_unused_parameters=not (all_scales and twist))
         dc = config.data
         if not dc.files:
             raise ValueError("data.files is empty: give the training event files, e.g. 'data.files=[\"a.h5\", "
@@ -832,6 +872,9 @@ def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "")
 def _run(args: argparse.Namespace) -> int:
     rank, _ = distributed_rank()   # a stray RANK (no torchrun job) is refused first, before anything is read
     config = load_config(args.config, args.overrides, mode=args.mode, require_mode=True)
+    if not config.train.out.strip():   # Path("") is the current folder
+        raise ValueError("train.out is empty (an unset shell variable, train.out=$OUT?): give the folder for "
+                         "last.pt, config.json and log.jsonl, e.g. train.out=runs/teacher (train.out=. for this one)")
     out = Path(config.train.out)
     teacher = config.train.teacher if config.mode in ("finetune", "student") else ""
     check_output(out, resume=args.resume, overwrite=args.overwrite, teacher=teacher)

@@ -82,6 +82,38 @@ def test_time_reversal_reverses_bins_and_negates_twist(window):
     assert _loss(Sample(rev, window.K, window.depth, window.twist, 0, window.t1_us)) > _loss(reversed_) + 0.01
 
 
+def _training_loss(sample: Sample, twist) -> float:
+    """The contrast term learned.train minimises (cmax.contrast.SHARED_OBJECTIVE on to_item's events, the
+    speed anchor off) at ``sample``'s true inverse depth and ``twist``."""
+    import dataclasses
+
+    from cmax.contrast import SHARED_OBJECTIVE, DepthMotion
+    from learned.train import _events
+
+    item = collate([to_item(sample, max_events=20000)])
+    events = dataclasses.replace(_events(item, sample.events.width, sample.events.height), speed=None)
+    rho = item["inverse_depth"].clamp(min=1e-3)
+    return float(SHARED_OBJECTIVE(events, DepthMotion(rho, torch.as_tensor(twist, dtype=torch.float32)[None])))
+
+
+@pytest.mark.parametrize("augmentation, mirror", [(flip_horizontal, [-1, 1, 1, 1, -1, -1]),
+                                                  (reverse_time, [-1, -1, -1, -1, -1, -1]),
+                                                  (flip_polarity, [1, 1, 1, 1, 1, 1])])
+def test_each_augmentation_moves_the_training_losss_minimum_to_the_closed_form_twist(window, augmentation, mirror):
+    """The shared objective (the loss a finetune or student trains on, not the older ContrastLoss of the tests
+    above) scores the augmented window at the closed-form transformed twist (the flip: v_x, omega_y, omega_z
+    negated; time reversal: the twist negated; polarity: unchanged) as it scores the window at its true twist,
+    and clearly better than at the untransformed and at the opposite twist: no augmentation teaches a sign."""
+    transformed = window.twist * np.asarray(mirror, float)
+    augmented = augmentation(window)
+    np.testing.assert_allclose(augmented.twist, transformed)
+    at_truth = _training_loss(augmented, transformed)
+    assert at_truth == pytest.approx(_training_loss(window, window.twist), rel=0.02)
+    assert at_truth + 0.03 < _training_loss(augmented, -transformed)
+    if augmentation is not flip_polarity:
+        assert at_truth + 0.03 < _training_loss(augmented, window.twist)
+
+
 def test_dataset_windows_are_centred_on_ground_truth(scene_file):
     path, sequence, scene = scene_file
     ds = H5WindowDataset([path], window_us=100_000, max_events=500)
@@ -113,6 +145,126 @@ def test_dataset_rejects_bad_input(scene_file, tmp_path):
         H5WindowDataset([])
     with pytest.raises(TypeError, match="data file"):
         H5WindowDataset([3])
+
+
+def _copy_without(path, tmp_path, name: str, *keys: str):
+    import shutil
+
+    import h5py
+
+    copy = shutil.copy(path, tmp_path / name)
+    with h5py.File(copy, "a") as file:
+        for key in keys:
+            del file[key]
+    return copy
+
+
+def test_a_gt_group_with_part_of_the_ground_truth_is_read_as_far_as_it_goes(scene_file, tmp_path):
+    """A user's own labelled file need not hold everything cmax scene writes. Was a KeyError traceback
+    ("object 'depth_t' doesn't exist" / "'poses_t' doesn't exist") from learned.train and learned.evaluate."""
+    path, sequence, _ = scene_file
+    calibrated = _copy_without(path, tmp_path, "k_only.h5", "gt/depth", "gt/depth_t", "gt/poses", "gt/poses_t",
+                               "gt/twists")
+    ds = H5WindowDataset([calibrated], window_us=100_000, max_events=100)   # gt/K alone: its calibration
+    assert len(ds) > 0 and ds.sample(0).depth is None and ds.sample(0).twist is None
+    assert (ds.sample(0).t0_us - ds.spans[0][0]) % 100_000 == 0   # consecutive from the first event, as unlabelled
+    np.testing.assert_array_equal(ds.sample(0).K, sequence.K)
+    no_motion = _copy_without(path, tmp_path, "no_poses.h5", "gt/poses", "gt/poses_t", "gt/twists")
+    ds = H5WindowDataset([no_motion], window_us=100_000, max_events=100)   # depth without twists
+    labelled = H5WindowDataset([path], window_us=100_000, max_events=100)
+    assert len(ds) == len(labelled) > 0
+    np.testing.assert_array_equal(ds.sample(0).depth, labelled.sample(0).depth)
+    assert ds.sample(0).twist is None and ds[0]["has_twist"].item() is False
+    no_K = _copy_without(path, tmp_path, "no_k.h5", "gt/K")
+    with pytest.raises(ValueError, match="no_k.h5 holds gt/depth but no gt/K"):
+        H5WindowDataset([no_K], window_us=100_000)
+
+
+def _tiny_checkpoint(tmp_path):
+    from learned.checkpoint import rng_state, save_checkpoint
+    from learned.config import Config, DataConfig
+    from learned.model import DepthPoseNet, ModelConfig
+
+    config = Config(model=ModelConfig(width=4, levels=2), data=DataConfig(window_us=100_000))
+    checkpoint = tmp_path / "tiny.pt"
+    save_checkpoint(checkpoint, {"model": DepthPoseNet(config.model).state_dict(), "optimizer": {}, "step": 0,
+                                 "config": config.to_dict(), "rng": rng_state()})
+    return checkpoint
+
+
+def test_evaluate_scores_the_depth_of_a_file_without_twists(scene_file, tmp_path):
+    """learned.evaluate on a file with depth but no poses: depth metrics, no motion metrics; without gt/K: one
+    line naming the file."""
+    from learned.evaluate import evaluate_files
+
+    path, _, _ = scene_file
+    checkpoint = _tiny_checkpoint(tmp_path)
+    no_motion = _copy_without(path, tmp_path, "no_poses.h5", "gt/poses", "gt/poses_t", "gt/twists")
+    (report,), (full,) = evaluate_files(checkpoint, [no_motion]), evaluate_files(checkpoint, [path])
+    assert report.motion is None and full.motion is not None
+    assert report.windows == full.windows and report.depth == full.depth
+    with pytest.raises(ValueError, match="no_k.h5 holds gt/depth but no gt/K"):
+        evaluate_files(checkpoint, [_copy_without(path, tmp_path, "no_k.h5", "gt/K")])
+
+
+@pytest.mark.parametrize("scale", [1000.0, float("nan")])
+def test_evaluate_says_why_a_file_has_no_depth_metric(scene_file, tmp_path, scale):
+    """A user's gt/depth in millimetres (all beyond the far limit) or all NaN: no valid pixel. Was: `abs_mean nan m
+    abs_rel nan ...` printed as a result, without a word; now a note names the rule and the depths' span."""
+    import shutil
+
+    import h5py
+
+    from learned.evaluate import evaluate_files
+
+    path, sequence, _ = scene_file
+    copy = shutil.copy(path, tmp_path / "mm.h5")
+    with h5py.File(copy, "a") as file:
+        file["gt/depth"][...] = file["gt/depth"][()] * scale
+    checkpoint = _tiny_checkpoint(tmp_path)
+    (report,) = evaluate_files(checkpoint, [copy])
+    assert np.isnan(report.depth.abs_rel)
+    (note,) = [n for n in report.notes if "no pixel of its ground-truth depth" in n]
+    if scale == 1000.0:
+        import re
+
+        finite = sequence.depth[np.isfinite(sequence.depth)] * scale
+        low, high = map(float, re.search(r"span (\S+) to (\S+)\)", note).groups())
+        assert finite.min() * 0.999 <= low <= high <= finite.max() * 1.001 and "metres" in note
+    else:
+        assert "NaN or infinite everywhere" in note
+    (report,) = evaluate_files(checkpoint, [path])
+    assert np.isfinite(report.depth.abs_rel) and not any("no pixel" in n for n in report.notes)
+
+
+def test_a_file_of_signed_polarities_is_read_as_its_data_files_entry_states(scene_file, tmp_path):
+    """An h5 file whose events/p holds -1/+1 (a user's own writer): read with "polarity": "signed" in its entry,
+    its windows equal those of the 0/1 file. Was: the reader's refusal advised `pass polarity='signed' (cmax:
+    --polarity signed)`, which neither data.files nor learned.train could take: such a file could not be used."""
+    import shutil
+
+    import h5py
+
+    from cmax.io import FormatError
+    from learned.config import load_config
+
+    path, _, _ = scene_file
+    signed = shutil.copy(path, tmp_path / "signed.h5")
+    with h5py.File(signed, "a") as file:
+        p = file["events/p"][:].astype(np.int8)
+        del file["events/p"]
+        file["events/p"] = 2 * p - 1
+    original = H5WindowDataset([path], window_us=100_000, max_events=300)
+    read = H5WindowDataset([{"path": str(signed), "polarity": "signed"}], window_us=100_000, max_events=300)
+    assert len(read) == len(original) > 0
+    for key, value in original[0].items():
+        torch.testing.assert_close(read[0][key], value, rtol=0, atol=0, equal_nan=True)
+    with pytest.raises(FormatError, match='-1/\\+1, not the "01" encoding .* add "polarity": "signed" to its entry'):
+        H5WindowDataset([signed], window_us=100_000)
+    with pytest.raises(FormatError, match='0/1, not the "signed" encoding .* add "polarity": "01"'):
+        H5WindowDataset([{"path": str(path), "polarity": "signed"}], window_us=100_000)
+    with pytest.raises(ValueError, match=r'data.files\[0\].polarity must be "01" .* or "signed"'):
+        load_config(None, [f'data.files=[{{"path": "{signed}", "polarity": "pm1"}}]'], mode="teacher")
 
 
 def test_a_K_of_another_sensor_size_or_no_camera_is_refused_naming_the_file(scene_file, tmp_path):

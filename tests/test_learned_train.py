@@ -181,6 +181,71 @@ def test_torchrun_two_processes_match_one(scene_file, tmp_path):
             assert ddp[key] == pytest.approx(one[key], rel=1e-4, abs=1e-6), (key, ddp, one)
 
 
+@pytest.mark.skipif(shutil.which("torchrun", path=os.path.dirname(sys.executable)) is None,
+                    reason="torchrun not installed beside the Python interpreter")
+def test_torchrun_student_two_processes_match_one(scene_file, tmp_path):
+    """A student under torchrun: its loss reads only the finest inverse depth, so the coarse decoder heads get
+    no gradient. It failed at the second step (DDP: "Expected to have finished reduction in the prior
+    iteration ... Parameter indices which did not receive grad for rank 0: 30 31"); now two gloo ranks train
+    and equal one process with the global batch."""
+    teacher = tmp_path / "teacher"
+    Trainer(load_config(None, tiny(scene_file, teacher, "train.steps=1"), mode="teacher"), progress=False).run()
+    extra = ("train.steps=2", "data.augment=false", f"train.teacher={teacher / 'last.pt'}")
+    torchrun = os.path.join(os.path.dirname(sys.executable), "torchrun")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", "-m", "learned.train", "--mode",
+                             "student", "--no-progress", *tiny(scene_file, tmp_path / "ddp", *extra)],
+                            cwd=ROOT, env=env, capture_output=True, text=True, timeout=180)
+    assert result.returncode == 0, result.stderr[-3000:]
+    Trainer(load_config(None, tiny(scene_file, tmp_path / "one", *extra), mode="student"), progress=False).run()
+    a, b = params(tmp_path / "ddp" / "last.pt"), params(tmp_path / "one" / "last.pt")
+    assert load_checkpoint(tmp_path / "ddp" / "last.pt")["step"] == 2
+    for key in a:
+        torch.testing.assert_close(a[key], b[key], rtol=1e-4, atol=1e-5)
+
+
+@pytest.mark.parametrize("mode, extra", [("teacher", ()), ("teacher", ("train.twist_weight=0",)),
+                                         ("student", ()), ("finetune", ())])
+def test_ddp_sees_as_outputs_exactly_the_parameters_the_loss_trains(scene_file, tmp_path, mode, extra):
+    """What DDP's find_unused_parameters relies on: the parameters reached back from the outputs of the module it
+    wraps (Trainer.net's forward under torchrun) are those the run's loss gives a gradient; and it searches for
+    unused ones only where some exist."""
+    from learned.data import collate
+    from learned.train import LossOutputs, loss_outputs
+
+    teacher = tmp_path / "teacher"
+    if mode != "teacher":
+        Trainer(load_config(None, tiny(scene_file, teacher, "train.steps=1"), mode="teacher"), progress=False).run()
+        extra = (*extra, f"train.teacher={teacher / 'last.pt'}")
+    trainer = Trainer(load_config(None, tiny(scene_file, tmp_path / "run", "train.steps=1", *extra), mode=mode),
+                      progress=False)
+    all_scales, twist = loss_outputs(trainer.config)
+    batch = collate([trainer.dataset[i] for i in range(2)])
+
+    def trained(backward) -> set[str]:
+        trainer.model.zero_grad(set_to_none=True)
+        backward()
+        return {name for name, p in trainer.model.named_parameters() if p.grad is not None}
+
+    wrapped = LossOutputs(trainer.model, all_scales=all_scales, twist=twist)
+    reached = trained(lambda: sum(t.sum() for t in (*wrapped(batch["volume"]).inverse_depths,
+                                                    wrapped(batch["volume"]).twist) if t.requires_grad).backward())
+    by_loss = trained(lambda: trainer.loss(batch)[0].backward())
+    assert reached == by_loss
+    everything = {name for name, _ in trainer.model.named_parameters()}
+    assert (by_loss == everything) == (all_scales and twist)
+
+
+def test_an_empty_train_out_is_refused_not_taken_for_the_current_folder(scene_file, tmp_path, monkeypatch, capsys):
+    """`train.out=$OUT` with OUT unset: was a run that wrote last.pt, config.json, log.jsonl and tb/ into the
+    current folder (Path("") is "."), exit 0."""
+    monkeypatch.chdir(tmp_path)
+    args = [a for a in tiny(scene_file, tmp_path) if not a.startswith("train.out=")]
+    assert main(["--mode", "teacher", "--no-progress", *args, "train.steps=1", "train.out="]) == 2
+    assert "train.out is empty" in capsys.readouterr().err
+    assert list(tmp_path.iterdir()) == []
+
+
 @pytest.mark.parametrize("env", [{"RANK": "1"}, {"RANK": "1", "WORLD_SIZE": "1"}, {"RANK": "2", "WORLD_SIZE": "2"}])
 def test_a_stray_rank_outside_a_torchrun_job_is_refused(scene_file, tmp_path, capsys, monkeypatch, env):
     """RANK=1 left in the environment by a scheduler, without WORLD_SIZE (or WORLD_SIZE=1): the run took itself for
