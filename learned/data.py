@@ -29,8 +29,14 @@ from cmax.io import FormatError, H5Reader
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
 
-__all__ = ["Sample", "flip_horizontal", "flip_polarity", "reverse_time", "augment", "to_item", "collate",
+__all__ = ["MAX_OPEN_FILES", "Sample", "flip_horizontal", "flip_polarity", "reverse_time", "augment", "to_item", "collate",
            "H5WindowDataset", "MVSECDataset", "FileSpec", "reaches_beyond", "longest_centred_window_us"]
+
+
+#: Files an :class:`H5WindowDataset` keeps open at once, the least recently read closed first: each open file
+#: holds a descriptor and h5py's chunk caches (about 4 MB), in every DataLoader worker; a file opened again
+#: costs its opening and the decompression of its window's chunks once more.
+MAX_OPEN_FILES = 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -355,9 +361,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         """The window ``i`` without augmentation."""
         file_index, t0 = self.index[i]
         spec, gt = self.specs[file_index], self._gt[file_index]
-        reader = self._readers.get(file_index)
-        if reader is None:
-            reader = self._readers[file_index] = H5Reader(spec.path)
+        reader = self._reader(file_index)
         events = reader.window(t0, t0 + self.window_us)
         if gt is None:
             speed = twist = None
@@ -374,6 +378,17 @@ class H5WindowDataset(torch.utils.data.Dataset):
         if gt["twists"] is not None:
             twist = gt["twists"][int(np.argmin(np.abs(gt["poses_t"] - middle)))]
         return Sample(events, gt["K"], depth, twist, t0, t0 + self.window_us)
+
+    def _reader(self, file_index: int) -> H5Reader:
+        """The open reader of file ``file_index``, opened on first use; at most :data:`MAX_OPEN_FILES` stay open
+        (the least recently used closed first)."""
+        reader = self._readers.pop(file_index, None)       # put back last: the dict's order is the order of use
+        if reader is None:
+            while self._readers and len(self._readers) >= MAX_OPEN_FILES:
+                self._readers.pop(next(iter(self._readers))).close()
+            reader = H5Reader(self.specs[file_index].path)
+        self._readers[file_index] = reader
+        return reader
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         sample = self.sample(i)

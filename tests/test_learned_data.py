@@ -197,3 +197,32 @@ def test_a_file_simulated_at_another_size_without_K_says_how_its_frames_K_scales
     with pytest.raises(ValueError, match=r"has no gt/K: .*was simulated from 48x32 frames resized to 24x16 \(--size\): "
                                          r"a K of those frames scales to fx\*0.5, fy\*0.5"):
         H5WindowDataset([out], window_us=100_000)
+
+
+def test_a_data_set_of_many_files_keeps_only_a_few_open(tmp_path, monkeypatch):
+    """Every file sampled stayed open (about 4 MB of h5py caches and a descriptor each): over 300 files an epoch
+    grew by 1 GB and, under `ulimit -n 200`, died with `FormatError: ... is not a readable HDF5 file (... Too many
+    open files)`. At most MAX_OPEN_FILES stay open, the least recently read closed; the windows are unchanged."""
+    import learned.data
+    from cmax.events import Events
+    from cmax.io import write_h5
+
+    rng = np.random.default_rng(0)
+    files = []
+    for k in range(5):
+        t = np.sort(rng.integers(0, 400_000, 3000))
+        files.append({"path": write_h5(tmp_path / f"f{k}.h5", Events(rng.integers(0, 32, 3000), rng.integers(0, 24, 3000),
+                                                                    t, rng.integers(0, 2, 3000), 32, 24)),
+                      "K": [30.0, 30.0, 16.0, 12.0]})
+    expected = [ds.sample(i).events for ds in [H5WindowDataset(files, window_us=100_000, max_events=500)]
+                for i in range(len(ds))]
+    monkeypatch.setattr(learned.data, "MAX_OPEN_FILES", 2)
+    ds = H5WindowDataset(files, window_us=100_000, max_events=500)
+    assert len(ds) == len(expected) >= 10
+    for i in [*range(len(ds)), *reversed(range(len(ds)))]:
+        events = ds.sample(i).events
+        assert len(ds._readers) <= 2, sorted(ds._readers)
+        np.testing.assert_array_equal(events.t, expected[i].t)
+        np.testing.assert_array_equal(events.x, expected[i].x)
+    closed = [r for r in [*ds._readers.values()] if not r.file.id.valid]
+    assert not closed                                            # the readers kept are open ones
