@@ -109,7 +109,8 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
 
     ``size`` (width, height) [px], ``time_unit``, ``polarity`` and ``sort`` as :func:`cmax.io.read` takes them
     (for files that do not state them; never guessed). A DSEC-layout h5 file is read window by
-    window (:class:`cmax.io.H5Reader`); a Prophesee RAW file with ``t0_s`` / ``t1_s`` (seconds after its
+    window (:class:`cmax.io.H5Reader`), and so is a structured ``.npy`` (not ``sort``: only each window's rows
+    are read); a Prophesee RAW file with ``t0_s`` / ``t1_s`` (seconds after its
     first event, as ``--t0`` / ``--t1``) is decoded holding only that span (its ``first_us`` stays the
     file's), and one too long to hold (:data:`cmax.events.MAX_EVENTS`) window after window
     (:class:`cmax.io.prophesee.RawWindows`); other formats are decoded whole. Raises FileNotFoundError,
@@ -134,6 +135,8 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
             reader.close()
             raise
         return Recording(path, kind, reader.width, reader.height, first, last, K, reader.window, reader.close)
+    if kind == "npy" and not sort:    # its windows' rows alone, by a binary search of its memory-mapped times
+        return _npy_recording(path, width, height, time_unit, options)
     first = None
     if kind == "raw":      # a span of it decoded alone (a DSEC-layout h5 file is read window by window above)
         span = file_span_us(path, dict(width=width, height=height, time_unit=time_unit, **options), t0_s, t1_s)
@@ -155,6 +158,22 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
         raise ValueError(f"{path} holds no events")
     return Recording(path, kind, events.width, events.height, int(events.t[0]) if first is None else first,
                      int(events.t[-1]), None, events.slice_time, lambda: None)
+
+
+def _npy_recording(path: Path, width: int | None, height: int | None, time_unit: str | None,
+                   options: dict[str, Any]) -> Recording:
+    """A structured ``.npy`` read window by window (:func:`cmax.io.read` with ``t0_us`` / ``t1_us`` reads only the
+    window's rows), its span from its first and last rows (:func:`cmax.io.npy_time_span`)."""
+    from cmax.io import npy_time_span, read
+
+    def window(t0_us: int, t1_us: int) -> "Events":
+        return read(path, width=width, height=height, time_unit=time_unit, t0_us=t0_us, t1_us=t1_us, **options)
+
+    span = npy_time_span(path, time_unit=time_unit)
+    if span is None:
+        raise ValueError(f"{path} holds no events")
+    first = window(span[0], span[0] + 1)     # the arguments checked as a whole read checks them, before any work
+    return Recording(path, "npy", first.width, first.height, span[0], span[1], None, window, lambda: None)
 
 
 def time_bounds(first_us: int, last_us: int, t0_s: float | None, t1_s: float | None) -> tuple[int, int]:
