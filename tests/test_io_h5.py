@@ -200,3 +200,13 @@ def test_a_long_recordings_index_is_read_an_entry_at_a_time(tmp_path, monkeypatc
         file["ms_to_idx"][1_000_000] = 10 * len(ev)
     with H5Reader(path) as reader, pytest.raises(FormatError, match=r"corrupt ms_to_idx \(entry 1000000 is 200000"):
         reader.window(int(ev.t[0]) + 1_000_000_000, int(ev.t[0]) + 1_000_000_400)   # uses ms_to_idx[1000000]
+
+
+def test_a_small_uncompressed_file_is_not_padded_to_a_whole_chunk(tmp_path):
+    """write_h5(compression='none') of 20,000 events (260 kB of columns) made a 3.3 MB file: every column
+    allocated a whole chunk of 2**18 events. The file is now about the size of its columns."""
+    ev = random_events(20_000, width=64, height=48, t_span_us=1_000_000)
+    path = write_h5(tmp_path / "small.h5", ev, compression="none")
+    columns = 20_000 * (2 + 2 + 8 + 1)
+    assert path.stat().st_size < 2 * columns + 100_000, path.stat().st_size
+    assert read_h5(path) == ev

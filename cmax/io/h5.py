@@ -434,12 +434,13 @@ def write_h5(
     path: str | os.PathLike, events: Events, *, overwrite: bool = False,
     compression: str = "blosc", **attrs: Any,
 ) -> Path:
-    """Write ``events`` to a DSEC-layout HDF5 file (atomically); returns the path."""
+    """Write ``events`` to a DSEC-layout HDF5 file (atomically); returns the path. The HDF5 chunks are as long as
+    the events when they are fewer than :class:`H5Writer`'s default (a small file is not padded to a whole chunk)."""
     require_events(events)
     t_offset = events.t_start if len(events) else 0
     with H5Writer(
         path, events.width, events.height, t_offset_us=t_offset, overwrite=overwrite,
-        compression=compression, **attrs,
+        chunk_size=min(_DEFAULT_CHUNK, max(len(events), 1)), compression=compression, **attrs,
     ) as writer:
         for start in range(0, len(events), writer._chunk_size):
             writer.append(events[start: start + writer._chunk_size])
