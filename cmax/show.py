@@ -56,7 +56,7 @@ def read_window(
     ``polarity='signed'``) go to the reader.
     A DSEC-layout h5 or MVSEC file is read from disk over the window only, a Prophesee RAW file decoded up
     to the window's end holding only the window (a recording longer than :data:`cmax.events.MAX_EVENTS` can
-    be drawn); other formats are read whole, then cut.
+    be drawn), a ``.npy`` (without ``sort``) over the window's rows only; other formats are read whole, then cut.
     Raises ``ValueError`` when ``t0`` lies after the file's last event.
     """
     from cmax.io import H5Reader, detect_format, read
@@ -75,6 +75,8 @@ def read_window(
         return _read_raw_window(path, t0_s, dt_s, width, height), None
     if kind == "mvsec":
         return _read_mvsec_window(path, t0_s, dt_s, width, height, time_unit, options), None
+    if kind == "npy" and not options.get("sort"):
+        return _read_npy_window(path, t0_s, dt_s, width, height, time_unit, options), None
     if kind != "dsec":
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
         if not len(events):
@@ -116,6 +118,22 @@ def _read_raw_window(path: Path, t0_s: float, dt_s: float, width: int | None, he
     if not len(events):
         _check_start(path, t0_s, t_start, scan_raw(path, width=width, height=height).last_us)
     return events
+
+
+def _read_npy_window(path: Path, t0_s: float, dt_s: float, width: int | None, height: int | None,
+                     time_unit: str | None, options: dict[str, Any]) -> Events:
+    """Events of ``[t0, t0 + dt)`` seconds after the first event of a structured ``.npy``: its first and last times
+    from those two rows (:func:`cmax.io.npy_time_span`), the window's rows by a binary search of the
+    memory-mapped times (:func:`cmax.io.read` with ``t0_us``/``t1_us``), not the whole file."""
+    from cmax.io import npy_time_span, read
+
+    span = npy_time_span(path, time_unit=time_unit)
+    if span is None:                                     # no events: as read() gives them
+        return read(path, width=width, height=height, time_unit=time_unit, **options)
+    _check_start(path, t0_s, *span)
+    start = span[0] + round(t0_s * 1e6)
+    return read(path, width=width, height=height, time_unit=time_unit, t0_us=start,
+                t1_us=start + round(dt_s * 1e6), **options)
 
 
 def _read_mvsec_window(

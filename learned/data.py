@@ -30,8 +30,14 @@ from cmax.io import FormatError, H5Reader
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
 
-__all__ = ["Sample", "flip_horizontal", "flip_polarity", "reverse_time", "augment", "to_item", "collate",
+__all__ = ["MAX_OPEN_FILES", "Sample", "flip_horizontal", "flip_polarity", "reverse_time", "augment", "to_item", "collate",
            "H5WindowDataset", "MVSECDataset", "FileSpec", "reaches_beyond", "longest_centred_window_us"]
+
+
+#: Files an :class:`H5WindowDataset` keeps open at once, the least recently read closed first: each open file
+#: holds a descriptor and h5py's chunk caches (about 4 MB), in every DataLoader worker; a file opened again
+#: costs its opening and the decompression of its window's chunks once more.
+MAX_OPEN_FILES = 64
 
 
 @dataclass(frozen=True, eq=False)
@@ -388,9 +394,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         """The window ``i`` without augmentation."""
         file_index, t0 = self.index[i]
         spec, gt = self.specs[file_index], self._gt[file_index]
-        reader = self._readers.get(file_index)
-        if reader is None:
-            reader = self._readers[file_index] = H5Reader(spec.path, polarity=spec.polarity)
+        reader = self._reader(file_index)
         events = reader.window(t0, t0 + self.window_us)
         if gt is None:
             speed = twist = None
@@ -407,6 +411,17 @@ class H5WindowDataset(torch.utils.data.Dataset):
         if gt["twists"] is not None:
             twist = gt["twists"][int(np.argmin(np.abs(gt["poses_t"] - middle)))]
         return Sample(events, gt["K"], depth, twist, t0, t0 + self.window_us)
+
+    def _reader(self, file_index: int) -> H5Reader:
+        """The open reader of file ``file_index``, opened on first use; at most :data:`MAX_OPEN_FILES` stay open
+        (the least recently used closed first)."""
+        reader = self._readers.pop(file_index, None)       # put back last: the dict's order is the order of use
+        if reader is None:
+            while self._readers and len(self._readers) >= MAX_OPEN_FILES:
+                self._readers.pop(next(iter(self._readers))).close()
+            reader = H5Reader(self.specs[file_index].path, polarity=self.specs[file_index].polarity)
+        self._readers[file_index] = reader
+        return reader
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         sample = self.sample(i)
@@ -436,22 +451,22 @@ class MVSECDataset(torch.utils.data.Dataset):
 
     def __init__(self, data_file: str | Path, K: object, *, gt_file: str | Path | None = None,
                  window_us: int = 166_500, max_events: int = 20_000, bins: int = 5) -> None:
-        from cmax.io.mvsec import read_mvsec
+        from cmax.io.mvsec import mvsec_time_span, read_mvsec
 
         self.data_file, self.K = Path(data_file), np.asarray(K, float)
         if self.K.shape != (3, 3):
             raise ValueError(f"K must be (3, 3), got {self.K.shape}")
         self.window_us, self.max_events, self.bins = int(window_us), int(max_events), bins
         self._read = read_mvsec
-        self.depth = self.middles = None
-        if gt_file is not None:
-            with h5py.File(gt_file, "r") as f:
-                self.depth = f["davis/left/depth_image_rect"][:].astype(np.float32)
+        self.gt_file = None if gt_file is None else Path(gt_file)
+        if self.gt_file is not None:   # the times only: each depth map is read with its window (GBs in all)
+            with h5py.File(self.gt_file, "r") as f:
                 self.middles = np.rint(f["davis/left/depth_image_rect_ts"][:] * 1e6).astype(np.int64)
-        else:
-            events = read_mvsec(self.data_file)
-            self.middles = np.arange(int(events.t[0]) + self.window_us // 2, int(events.t[-1]) - self.window_us // 2,
-                                     self.window_us)
+        else:                          # the first and last events' times only, not the file's events
+            span = mvsec_time_span(self.data_file)
+            if span is None:
+                raise ValueError(f"{self.data_file} holds no events of davis/left")
+            self.middles = np.arange(span[0] + self.window_us // 2, span[1] - self.window_us // 2, self.window_us)
 
     def __len__(self) -> int:
         return len(self.middles)
@@ -459,6 +474,9 @@ class MVSECDataset(torch.utils.data.Dataset):
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         t0 = int(self.middles[i]) - self.window_us // 2
         events = self._read(self.data_file, t0_us=t0, t1_us=t0 + self.window_us)
-        depth = None if self.depth is None else self.depth[i]
+        depth = None
+        if self.gt_file is not None:
+            with h5py.File(self.gt_file, "r") as f:
+                depth = np.asarray(f["davis/left/depth_image_rect"][i], np.float32)
         return to_item(Sample(events, self.K, depth, None, t0, t0 + self.window_us), max_events=self.max_events,
                        bins=self.bins, seed=i)

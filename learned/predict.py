@@ -46,11 +46,12 @@ from cmax.io import run_folder
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
     from cmax.events import Events
-    from learned.model import DepthPoseNet
+    from learned.model import DepthPoseNet, ModelConfig
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
-           "window_picture", "write_window", "earlier_results", "FOLDER_LOCK",
+           "window_picture", "write_window", "earlier_results", "FOLDER_LOCK", "DEFAULT_BATCH", "MAX_BATCH_BYTES",
+           "batch_bytes", "batch_that_fits",
            "run_prediction", "predict_file", "add_arguments",
            "run", "main"]
 
@@ -62,6 +63,12 @@ _STAGE_PREFIX = "depth"
 #: lock as ``cmax fit`` and ``cmax emvs`` take, so that no two of them write into one folder at once.
 FOLDER_LOCK = run_folder.FOLDER_LOCK
 _CSV_HEADER = "window,t0_us,t1_us,events,vx,vy,vz,wx,wy,wz"
+#: Windows per forward pass when ``batch`` is not given (fewer where they would exceed :data:`MAX_BATCH_BYTES`).
+DEFAULT_BATCH = 8
+#: The most memory [bytes] one forward pass may take by :func:`batch_bytes`'s estimate (4 GiB): a ``batch`` of
+#: windows that would take more is refused before any window is read. A module attribute: raise it deliberately
+#: on a machine (or a GPU) with the memory for more.
+MAX_BATCH_BYTES = 4 << 30
 
 
 @dataclass(frozen=True, eq=False)
@@ -104,7 +111,8 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
     ``size`` (width, height) [px], ``time_unit``, ``polarity`` and ``sort`` as :func:`cmax.io.read` takes them
     (for files that do not state them; never guessed); ``camera``: an MVSEC file's ``'left'`` (default) or
     ``'right'`` camera (refused for other files). A DSEC-layout h5 file is read window by
-    window (:class:`cmax.io.H5Reader`); a Prophesee RAW file with ``t0_s`` / ``t1_s`` (seconds after its
+    window (:class:`cmax.io.H5Reader`), and so is a structured ``.npy`` (not ``sort``: only each window's rows
+    are read); a Prophesee RAW file with ``t0_s`` / ``t1_s`` (seconds after its
     first event, as ``--t0`` / ``--t1``) is decoded holding only that span (its ``first_us`` stays the
     file's), and one too long to hold (:data:`cmax.events.MAX_EVENTS`) window after window
     (:class:`cmax.io.prophesee.RawWindows`); other formats are decoded whole. Raises FileNotFoundError,
@@ -134,6 +142,8 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
             reader.close()
             raise
         return Recording(path, kind, reader.width, reader.height, first, last, K, reader.window, reader.close)
+    if kind == "npy" and not sort:    # its windows' rows alone, by a binary search of its memory-mapped times
+        return _npy_recording(path, width, height, time_unit, options)
     first = None
     if kind == "raw":      # a span of it decoded alone (a DSEC-layout h5 file is read window by window above)
         span = file_span_us(path, dict(width=width, height=height, time_unit=time_unit, **options), t0_s, t1_s)
@@ -155,6 +165,22 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
         raise ValueError(f"{path} holds no events")
     return Recording(path, kind, events.width, events.height, int(events.t[0]) if first is None else first,
                      int(events.t[-1]), None, events.slice_time, lambda: None)
+
+
+def _npy_recording(path: Path, width: int | None, height: int | None, time_unit: str | None,
+                   options: dict[str, Any]) -> Recording:
+    """A structured ``.npy`` read window by window (:func:`cmax.io.read` with ``t0_us`` / ``t1_us`` reads only the
+    window's rows), its span from its first and last rows (:func:`cmax.io.npy_time_span`)."""
+    from cmax.io import npy_time_span, read
+
+    def window(t0_us: int, t1_us: int) -> "Events":
+        return read(path, width=width, height=height, time_unit=time_unit, t0_us=t0_us, t1_us=t1_us, **options)
+
+    span = npy_time_span(path, time_unit=time_unit)
+    if span is None:
+        raise ValueError(f"{path} holds no events")
+    first = window(span[0], span[0] + 1)     # the arguments checked as a whole read checks them, before any work
+    return Recording(path, "npy", first.width, first.height, span[0], span[1], None, window, lambda: None)
 
 
 def time_bounds(first_us: int, last_us: int, t0_s: float | None, t1_s: float | None) -> tuple[int, int]:
@@ -267,18 +293,77 @@ def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:
     return np.stack([event_volume(events, bins) for events in windows])
 
 
+def batch_bytes(config: "ModelConfig", width: int, height: int, batch: int) -> int:
+    """An upper estimate of the memory [bytes] of one forward pass of ``batch`` windows of ``width x height`` px.
+
+    Per pixel and window, in 4-byte numbers: ``2 * bins`` for the event volume and its copy on the way in,
+    8 for the full-resolution outputs, and ``16 * width`` for the U-Net's feature maps per pixel of its finest
+    level (a quarter of the pixels with ``space_to_depth``): the feature maps of the levels below halve, and a
+    level holds its skip, its block's two convolutions and the decoder's concatenation.
+
+    >>> from learned.model import ModelConfig
+    >>> round(batch_bytes(ModelConfig(width=16, space_to_depth=True), 640, 480, 8) / 2**30, 2)   # 82 numbers a pixel
+    0.75
+    >>> batch_bytes(ModelConfig(width=16), 640, 480, 8) == 8 * batch_bytes(ModelConfig(width=16), 640, 480, 1)
+    True
+    """
+    finest = 0.25 if config.space_to_depth else 1.0
+    numbers = 2 * config.bins + 8 + 16 * config.width * finest
+    return int(round(int(batch) * int(width) * int(height) * numbers * 4))
+
+
+def batch_that_fits(config: "ModelConfig", width: int, height: int, batch: int | None) -> int:
+    """The windows per forward pass: ``batch``, or :data:`DEFAULT_BATCH` (fewer where that many would exceed
+    :data:`MAX_BATCH_BYTES`) when None. ValueError naming ``batch`` (``--batch``) when the given one, or a single
+    window, would take more than :data:`MAX_BATCH_BYTES` by :func:`batch_bytes`'s estimate, with the largest
+    batch that fits; the results do not depend on the batch."""
+    one = batch_bytes(config, width, height, 1)
+    fits = MAX_BATCH_BYTES // one
+    limit = f"learned.predict.MAX_BATCH_BYTES ({MAX_BATCH_BYTES / 2**30:g} GiB)"
+    if fits < 1:
+        raise ValueError(f"one window of {width}x{height} px takes about {one / 2**30:.1f} GiB in the network (an upper "
+                         f"estimate), more than {limit}: a sensor this large does not fit; raise "
+                         "learned.predict.MAX_BATCH_BYTES deliberately if the memory is there")
+    if batch is None:
+        return int(min(DEFAULT_BATCH, fits))
+    if batch > fits:
+        raise ValueError(f"batch={batch} (--batch) windows of {width}x{height} px take about "
+                         f"{batch * one / 2**30:.1f} GiB in the network (an upper estimate), more than {limit}: give "
+                         f"--batch {fits} or fewer (the results do not depend on it), or raise "
+                         "learned.predict.MAX_BATCH_BYTES deliberately if the memory is there")
+    return int(batch)
+
+
 def forward(model: "DepthPoseNet", volumes: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
     """``(inverse depth (B, H, W) float32 [1/m], twist (B, 6) float32 (v [m/s], omega [rad/s]))`` of the network
-    ``model`` on event volumes ``volumes`` (B, bins, H, W) float32, on the device of its weights (on the CPU with the threads
-    :func:`cmax._threads.torch_threads` allows now)."""
+    ``model`` on event volumes ``volumes`` (B, bins, H, W) float32, on the device of its weights (on the CPU with the
+    threads :func:`cmax._threads.torch_threads` allows now). torch's failure to allocate (on the CPU or the GPU) is
+    raised as a one-line MemoryError naming the batch."""
     import torch
 
     from cmax._threads import torch_threads_scope
 
     device = next(model.parameters()).device
-    with torch_threads_scope(volumes.size * model.config.width), torch.inference_mode():
-        out = model(torch.from_numpy(np.ascontiguousarray(volumes, np.float32)).to(device))
+    try:
+        with torch_threads_scope(volumes.size * model.config.width), torch.inference_mode():
+            out = model(torch.from_numpy(np.ascontiguousarray(volumes, np.float32)).to(device))
+    except RuntimeError as error:     # torch.OutOfMemoryError (a GPU) is one too
+        if not _out_of_memory(error):
+            raise
+        batch, _, height, width = volumes.shape
+        raise MemoryError(f"the network ran out of memory on {device} with {batch} windows of {width}x{height} px at "
+                          "once: give a smaller --batch") from None
     return out.inverse_depth[:, 0].cpu().numpy().copy(), out.twist.cpu().numpy().copy()
+
+
+def _out_of_memory(error: RuntimeError) -> bool:
+    """Whether ``error`` is torch's failure to allocate (``DefaultCPUAllocator: can't allocate memory``, CUDA's
+    ``out of memory``)."""
+    import torch
+
+    text = str(error)
+    return (isinstance(error, getattr(torch, "OutOfMemoryError", ())) or "can't allocate memory" in text
+            or "out of memory" in text.lower())
 
 
 @dataclass(frozen=True, eq=False)
@@ -481,7 +566,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                    time_unit: str | None = None, polarity: str | None = None, sort: bool = False,
                    camera: str | None = None,
                    t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
-                   depth_range: tuple[float, float] | None = None, batch: int = 8, progress: bool = True,
+                   depth_range: tuple[float, float] | None = None, batch: int | None = None, progress: bool = True,
                    note: Callable[[str], None] | None = None, overwrite: bool = False,
                    device: str = "cpu") -> DepthRun:
     """Predict depth and twist for every window of the event file ``path`` into the folder ``out``.
@@ -508,8 +593,10 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     depth_range : (near, far) [m], optional
         Colour scale of every picture of the run, and nothing else: the predicted depth is neither clamped nor
         conditioned by it (default: the 1st-99th percentiles of all its windows' depths, :func:`run_scale`).
-    batch : int
-        Windows per forward pass.
+    batch : int, optional
+        Windows per forward pass (default :data:`DEFAULT_BATCH`, fewer where they would exceed
+        :data:`MAX_BATCH_BYTES`); a batch that would take more than :data:`MAX_BATCH_BYTES`
+        (:func:`batch_bytes`'s estimate) is refused before any window is read (:func:`batch_that_fits`).
     device : str
         Where the network runs: ``"cpu"``, ``"cuda"``, ``"cuda:N"`` or ``"auto"`` (a GPU when torch sees
         one); the events are read and their volumes built on the CPU.
@@ -539,7 +626,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     started = time.perf_counter()
     note = note or (lambda text: print(f"learned.predict: note: {text}", file=sys.stderr))
     K = _check_arguments(K, window_s, t0_s, t1_s, depth_range)
-    if isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1:
+    if batch is not None and (isinstance(batch, bool) or not isinstance(batch, (int, np.integer)) or batch < 1):
         raise ValueError(f"batch must be a whole number >= 1, got {batch!r}")
     from learned.device import resolve_device
 
@@ -606,6 +693,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         K = _resolve_intrinsics(recording, K)
         # refused as cmax fit / emvs / learned.train refuse it: the network's depth assumes these pixels' K
         check_file_principal_point(K, path, recording.width, recording.height)
+        batch = batch_that_fits(model.config, recording.width, recording.height, batch)   # before any window is read
         undistort = None if distortion is None else undistortion(K, distortion, recording.width, recording.height)
         notes = [f"{checkpoint.name}: {limit}" for limit in card_limits(card, f"the card of {checkpoint}")]
         notes += camera_notes(card, recording.width, recording.height, K, f"the card of {checkpoint}")
@@ -637,7 +725,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         note(tail)                           # after the run: a mistake found during it stays one line
         notes.append(tail)
     scale = run_scale(samples, depth_range)
-    for index in indices:
+    for index in tqdm(indices, desc="pictures", unit="picture", disable=not progress):   # ~0.1 s each at 640x480
         draw_window(stage, index, scale)
     write_text_atomic(stage / "twists.csv", "\n".join(lines) + "\n")
     run = DepthRun(written, skipped, window_us, tuple(notes), time.perf_counter() - started, stage)
@@ -678,7 +766,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         "the whole run, and nothing else: the predicted depth (window_*.npz) is neither clamped nor "
                         "conditioned by it, unlike cmax fit's and cmax emvs's --depth-range, which bound the depth "
                         "they search (default: the 1st-99th percentiles of all its windows' depths)")
-    parser.add_argument("--batch", type=positive_int, default=8, help="windows per forward pass")
+    parser.add_argument("--batch", type=positive_int, default=None,
+                        help=f"windows per forward pass (default {DEFAULT_BATCH}, fewer where that many would take "
+                        f"more than {MAX_BATCH_BYTES >> 30} GiB; more is refused)")
     parser.add_argument("--device", default="cpu", metavar="DEVICE",
                         help="where the network runs: cpu, cuda, cuda:N or auto (a GPU when torch sees one); "
                              "default cpu")

@@ -837,3 +837,26 @@ def test_calibration_yaml_in_block_style_and_kalibr_camchains_are_read(tmp_path)
 def _write(path, text):
     path.write_text(text)
     return path
+
+
+def test_a_long_h5_file_under_the_event_limit_is_fitted_from_the_file_too(tmp_path, capsys, monkeypatch):
+    """cmax fit read a whole h5 file into memory unless it held more than MAX_EVENTS (2**28): 1.49 GB for 60 M
+    events, growing with the recording. Past STREAM_ABOVE_EVENTS (lowered here) it reads one window at a time
+    (read_calibrated, the whole read, is never called), and every window's fit is the one of the held file."""
+    import cmax.cli.fit as fit
+    from conftest import random_events
+
+    events = random_events(200_000, width=120, height=90, seed=5, t_span_us=600_000)
+    path = write_h5(tmp_path / "recording.h5", events)
+    argv = ["fit", str(path), "--K", "90,90,59.5,44.5", "--model", "flow", "--max-events", "3000", "--quiet"]
+    assert main([*argv, "-o", str(tmp_path / "held")]) == 0
+    capsys.readouterr()
+    monkeypatch.setattr(fit, "STREAM_ABOVE_EVENTS", 100_000)
+    monkeypatch.setattr(fit, "read_calibrated", lambda *a, **k: pytest.fail("the whole file was read"))
+    assert main([*argv, "-o", str(tmp_path / "streamed")]) == 0
+    assert "holds 200,000 events: fitting it window by window from the file" in capsys.readouterr().err
+    held, streamed = (json.loads((tmp_path / name / "summary.json").read_text())["windows"]
+                      for name in ("held", "streamed"))
+    assert len(held) == len(streamed) >= 3
+    for a, b in zip(held, streamed):
+        assert (a["t0_us"], a["t1_us"], a["flow"]) == (b["t0_us"], b["t1_us"], b["flow"])

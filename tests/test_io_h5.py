@@ -169,3 +169,44 @@ def test_corrupt_files_raise_format_error(tmp_path):
         H5Reader(tmp_path / "other.h5")
     with pytest.raises(FileNotFoundError):
         H5Reader(tmp_path / "nothing.h5")
+
+
+def test_a_long_recordings_index_is_read_an_entry_at_a_time(tmp_path, monkeypatch):
+    """H5Reader loaded and checked the whole ms_to_idx when it opened a file: an hour of recording (3.6 M entries)
+    took 0.26 s and 86 MB at every opening (cmax show of 50 ms, each file a training set reopens), ten hours ten
+    times that. An index longer than MAX_INDEX_IN_MEMORY is read an entry at a time: the windows are the same."""
+    import tracemalloc
+
+    import cmax.io.h5 as h5
+    from cmax.io import FormatError, H5Reader
+
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.integers(0, 2_100_000_000, 20_000))         # 35 minutes: an index of 2.1 M entries, 17 MB
+    ev = Events(rng.integers(0, 64, t.size), rng.integers(0, 48, t.size), t, rng.integers(0, 2, t.size), 64, 48)
+    path = write_h5(tmp_path / "long.h5", ev)
+    monkeypatch.setattr(h5, "MAX_INDEX_IN_MEMORY", 1 << 20, raising=False)   # the default, pinned
+    tracemalloc.start()
+    try:
+        reader = H5Reader(path)
+        peak = tracemalloc.get_traced_memory()[1]
+    finally:
+        tracemalloc.stop()
+    assert peak < 2e6, peak                                         # the index alone: 17 MB
+    with reader:
+        for t0, t1 in ((0, 1_000), (1_000_000_123, 1_000_900_456), (2_099_000_000, 2**40), (-7, 5), (3, 3)):
+            assert reader.window(int(ev.t[0]) + t0, int(ev.t[0]) + t1) == ev.slice_time(int(ev.t[0]) + t0,
+                                                                                           int(ev.t[0]) + t1)
+    with h5py.File(path, "r+") as file:                            # an entry past the events' rows
+        file["ms_to_idx"][1_000_000] = 10 * len(ev)
+    with H5Reader(path) as reader, pytest.raises(FormatError, match=r"corrupt ms_to_idx \(entry 1000000 is 200000"):
+        reader.window(int(ev.t[0]) + 1_000_000_000, int(ev.t[0]) + 1_000_000_400)   # uses ms_to_idx[1000000]
+
+
+def test_a_small_uncompressed_file_is_not_padded_to_a_whole_chunk(tmp_path):
+    """write_h5(compression='none') of 20,000 events (260 kB of columns) made a 3.3 MB file: every column
+    allocated a whole chunk of 2**18 events. The file is now about the size of its columns."""
+    ev = random_events(20_000, width=64, height=48, t_span_us=1_000_000)
+    path = write_h5(tmp_path / "small.h5", ev, compression="none")
+    columns = 20_000 * (2 + 2 + 8 + 1)
+    assert path.stat().st_size < 2 * columns + 100_000, path.stat().st_size
+    assert read_h5(path) == ev

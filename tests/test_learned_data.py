@@ -349,3 +349,70 @@ def test_a_file_simulated_at_another_size_without_K_says_how_its_frames_K_scales
     with pytest.raises(ValueError, match=r"has no gt/K: .*was simulated from 48x32 frames resized to 24x16 \(--size\): "
                                          r"a K of those frames scales to fx\*0.5, fy\*0.5"):
         H5WindowDataset([out], window_us=100_000)
+
+
+def test_a_data_set_of_many_files_keeps_only_a_few_open(tmp_path, monkeypatch):
+    """Every file sampled stayed open (about 4 MB of h5py caches and a descriptor each): over 300 files an epoch
+    grew by 1 GB and, under `ulimit -n 200`, died with `FormatError: ... is not a readable HDF5 file (... Too many
+    open files)`. At most MAX_OPEN_FILES stay open, the least recently read closed; the windows are unchanged."""
+    import learned.data
+    from cmax.events import Events
+    from cmax.io import write_h5
+
+    rng = np.random.default_rng(0)
+    files = []
+    for k in range(5):
+        t = np.sort(rng.integers(0, 400_000, 3000))
+        files.append({"path": write_h5(tmp_path / f"f{k}.h5", Events(rng.integers(0, 32, 3000), rng.integers(0, 24, 3000),
+                                                                    t, rng.integers(0, 2, 3000), 32, 24)),
+                      "K": [30.0, 30.0, 16.0, 12.0]})
+    expected = [ds.sample(i).events for ds in [H5WindowDataset(files, window_us=100_000, max_events=500)]
+                for i in range(len(ds))]
+    monkeypatch.setattr(learned.data, "MAX_OPEN_FILES", 2)
+    ds = H5WindowDataset(files, window_us=100_000, max_events=500)
+    assert len(ds) == len(expected) >= 10
+    for i in [*range(len(ds)), *reversed(range(len(ds)))]:
+        events = ds.sample(i).events
+        assert len(ds._readers) <= 2, sorted(ds._readers)
+        np.testing.assert_array_equal(events.t, expected[i].t)
+        np.testing.assert_array_equal(events.x, expected[i].x)
+    closed = [r for r in [*ds._readers.values()] if not r.file.id.valid]
+    assert not closed                                            # the readers kept are open ones
+
+
+def test_mvsec_dataset_reads_one_depth_map_per_window_not_the_whole_file(tmp_path):
+    """MVSECDataset loaded every depth map of the gt file at construction, twice (`[:]` then `astype`): 2.4 GB
+    peak for 3,000 maps of 346x260, ~9 GB for outdoor_day2's ~12,000; without a gt file it read every event to
+    learn the first and last times. Here 100 maps (36 MB) and 400,000 events (12.8 MB): a few MB are allocated."""
+    import tracemalloc
+
+    import h5py
+
+    from learned.data import MVSECDataset
+
+    rng = np.random.default_rng(1)
+    n, maps = 400_000, 100
+    t = np.sort(rng.uniform(100.0, 110.0, n))
+    with h5py.File(tmp_path / "x_data.hdf5", "w") as f:
+        f["davis/left/events"] = np.column_stack([rng.integers(0, 346, n), rng.integers(0, 260, n), t,
+                                                  rng.choice([-1.0, 1.0], n)])
+    depth = rng.uniform(1, 5, (maps, 260, 346)).astype(np.float32)
+    with h5py.File(tmp_path / "x_gt.hdf5", "w") as f:
+        f.create_dataset("davis/left/depth_image_rect", data=depth, chunks=(1, 260, 346))
+        f["davis/left/depth_image_rect_ts"] = np.linspace(100.2, 109.8, maps)
+    K = np.array([[226.0, 0, 173.0], [0, 226.0, 130.0], [0, 0, 1]])
+    for gt in (tmp_path / "x_gt.hdf5", None):
+        tracemalloc.start()
+        try:
+            ds = MVSECDataset(tmp_path / "x_data.hdf5", K, gt_file=gt, window_us=50_000, max_events=2000)
+            item = ds[7]
+            peak = tracemalloc.get_traced_memory()[1]
+        finally:
+            tracemalloc.stop()
+        assert peak < 8e6, (gt, peak)                              # the whole depth: 36 MB; the events 12.8 MB
+        if gt is not None:
+            assert len(ds) == maps
+            mask = item["depth_mask"][0].numpy()
+            np.testing.assert_allclose(item["inverse_depth"][0].numpy()[mask], 1.0 / depth[7][mask], rtol=1e-6)
+        else:                                                       # consecutive windows over the events' span
+            assert len(ds) == len(np.arange(round(t[0] * 1e6) + 25_000, round(t[-1] * 1e6) - 25_000, 50_000))

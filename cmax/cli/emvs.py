@@ -89,6 +89,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the results of an earlier run in -o (else refused); they stay until this run "
                              "has written all of its own")
+    parser.add_argument("--quiet", action="store_true",
+                        help="no progress bar (shown only when stderr is a terminal)")
     add_file_options(parser)   # --size, --time-unit, --polarity
     parser.set_defaults(run=run)
     return parser
@@ -186,7 +188,8 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
         print(f"cmax emvs: note: the poses of {args.poses} are up to scale (its header says so: cmax fit without "
               "--speed moves each window at 1 m/s): the depths, the planes' range and points.ply are in the "
               "trajectory's unit, not metres", file=sys.stderr)
-    result = EMVS(camera, **options).run(events, trajectory)
+    progress = not args.quiet and sys.stderr.isatty()   # a bar in a terminal, not in a log
+    result = EMVS(camera, progress=progress, **options).run(events, trajectory)
     save_npz_atomic(stage / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
               t_ref_us=np.int64(result.t_ref_us), T_w_ref=result.T_w_ref, K=result.K,
               depth_range=np.array(result.depth_range))

@@ -39,6 +39,9 @@ __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "gro
 
 #: A run's private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
 _STAGE_PREFIX = "fit"
+#: A whole DSEC-layout h5 file (no ``--t0`` / ``--t1``) with more events than this (2**25, about 440 MB of them) is
+#: fitted window by window from the file, holding one window at a time, not read whole first (the fits are the same).
+STREAM_ABOVE_EVENTS = 1 << 25
 
 
 def add_command(subparsers) -> argparse.ArgumentParser:
@@ -478,8 +481,21 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         if K is None:
             raise ValueError(no_intrinsics_message(args.file, "--calib"))
     notes = notes + ([hint] if (hint := calibration_hint(args)) else [])
+    events = streamed = None
     try:
-        events, origin_us = read_calibrated(args, calib_size)   # --t0/--t1 applied; times print from the file's start
+        streamed = open_streamed(args, calib_size) if args.t0 is None and args.t1 is None else None
+    except (ValueError, OSError):   # read_calibrated below says what is wrong with the file, in its own words
+        pass
+    if streamed is not None:
+        if STREAM_ABOVE_EVENTS < len(streamed.reader) <= cmax_events.MAX_EVENTS:   # past it: the note below
+            events, origin_us = streamed, streamed.t_start      # one window in memory at a time, not all of them
+            notes.append(f"{args.file} holds {len(streamed.reader):,} events: fitting it window by window from the "
+                         "file, one window in memory at a time")
+        else:
+            streamed.close()
+    try:
+        if events is None:
+            events, origin_us = read_calibrated(args, calib_size)   # --t0/--t1 applied; times print from the start
     except EventLimitError:                  # a whole DSEC-layout h5 file too long to hold: window by window
         if args.t0 is not None or args.t1 is not None or (events := open_streamed(args, calib_size)) is None:
             raise

@@ -101,6 +101,29 @@ def _parallax_px(centres: np.ndarray, camera: Camera, depths: np.ndarray) -> flo
     return float((1.0 / depths[0] - 1.0 / depths[-1]) * travel.max()) if len(travel) else 0.0
 
 
+#: Events whose pixels :meth:`EMVS.dsi` undistorts and projects at once (whole groups of packets; one group may hold
+#: more): memory holds the events and one such block's pixels and positions (about 25 bytes an event), not those
+#: of every event of the span.
+PROJECT_CHUNK_EVENTS = 1 << 22
+
+
+def _blocks(groups: list[tuple[int, int]], starts: np.ndarray, max_events: int) -> list[tuple[int, int]]:
+    """Consecutive groups ``[a, b)`` (indices into ``groups``) whose events (``starts``: packet start rows) number at
+    most ``max_events``, or one group.
+
+    >>> _blocks([(0, 1), (1, 2), (2, 4)], np.array([0, 10, 20, 30, 40]), 25)
+    [(0, 2), (2, 3)]
+    """
+    blocks, a = [], 0
+    while a < len(groups):
+        b = a + 1
+        while b < len(groups) and starts[groups[b][1]] - starts[groups[a][0]] <= max_events:
+            b += 1
+        blocks.append((a, b))
+        a = b
+    return blocks
+
+
 #: Largest Disparity Space Image :class:`EMVS` allocates (``n_planes x height x width`` float32) [bytes]: a mistyped
 #: ``n_planes`` (100000 planes of a 240x180 sensor: 16 GiB) is refused before any work, not met by the OOM killer.
 MAX_DSI_BYTES = 4 << 30
@@ -260,23 +283,28 @@ class EMVS:
         # Every packet maps to its group's base plane: all homographies and projections in one pass each.
         z_base = np.array([depths[transfer.base] if transfer else depths[-1] for transfer in transfers])
         homographies = base_plane_homographies(T_ref_c, np.repeat(z_base, np.diff(np.append(first, len(sizes)))), K)
-        pixels = self.camera.undistort(events)
-        positions, hits = project_packets(pixels, homographies, sizes)
-        hits &= np.isfinite(pixels).all(axis=1)    # NaN: a pixel the distortion model has no inverse for
         votes = np.zeros((len(depths), self.camera.height, self.camera.width), np.float32)
         pending = ShiftedAdditions(votes)
         vote = (partial(gather_votes, subpixel=self.subpixel, pending=pending) if self.voting == "gather"
                 else splat_votes)
         voted = 0
-        for (j, m), transfer in tqdm(zip(groups, transfers), total=len(groups), desc="EMVS", unit="group",
-                                     disable=not self.progress):
-            if transfer is None:
-                continue
-            group, group_hits = positions[starts[j]: starts[m]], hits[starts[j]: starts[m]]
-            if not group_hits.all():
-                group = group[group_hits]
-            voted += len(group)
-            vote(votes, group, transfer)
+        with tqdm(total=len(groups), desc="EMVS", unit="group", disable=not self.progress) as bar:
+            for a, b in _blocks(groups, starts, PROJECT_CHUNK_EVENTS):   # projected a block of groups at a time
+                j0, m1 = groups[a][0], groups[b - 1][1]
+                lo = starts[j0]
+                pixels = self.camera.undistort(events[lo: starts[m1]])
+                positions, hits = project_packets(pixels, homographies[j0:m1], sizes[j0:m1])
+                hits &= np.isfinite(pixels).all(axis=1)    # NaN: a pixel the distortion model has no inverse for
+                del pixels
+                for (j, m), transfer in zip(groups[a:b], transfers[a:b]):
+                    bar.update(1)
+                    if transfer is None:
+                        continue
+                    group, group_hits = positions[starts[j] - lo: starts[m] - lo], hits[starts[j] - lo: starts[m] - lo]
+                    if not group_hits.all():
+                        group = group[group_hits]
+                    voted += len(group)
+                    vote(votes, group, transfer)
         pending.flush()
         return DSI(votes, depths, K.copy(), t_ref_us, T_w_ref, voted, time.perf_counter() - start,
                    parallax_px=parallax_px, hot_pixels=hot)

@@ -39,7 +39,7 @@ __all__ = [
     "FormatError", "SORTABLE_FORMATS", "check_sortable", "detect_format", "read",
     "H5Reader", "H5Writer", "read_h5", "write_h5",
     "read_mvsec", "read_txt", "write_txt", "read_aedat4", "read_aedat4_imu", "read_aedat4_frames", "read_gyro",
-    "read_raw", "read_evt2", "read_evt3", "write_evt2", "write_evt3",
+    "read_raw", "read_evt2", "read_evt3", "write_evt2", "write_evt3", "npy_time_span",
 ]
 
 FORMATS = ("dsec", "mvsec", "txt", "aedat4", "raw", "npy")
@@ -133,7 +133,8 @@ def read(
     t0_us, t1_us : int, optional
         Keep only ``t0_us <= t < t1_us`` (absolute µs). HDF5 files read only
         that slice from disk, Prophesee RAW files decode chunk by chunk up to its
-        end holding only the slice; other formats are decoded whole, then cut.
+        end holding only the slice, a ``.npy`` (without ``sort``) only its rows, found by a
+        binary search of its memory-mapped times; other formats are decoded whole, then cut.
     time_unit : {'us', 'ms', 's'}, optional
         Unit of the file's time stamps where the format leaves it open (DSEC
         HDF5 with float times, ECD text or MVSEC in another unit than seconds,
@@ -174,7 +175,7 @@ def read(
     else:
         if width is None or height is None:
             raise ValueError(f"{path} ({kind}) stores no sensor size: pass width= and height= (cmax: --size WxH)")
-        events = _read_npy(path, width, height, time_unit=time_unit, sort=sort, **options)
+        events = _read_npy(path, width, height, time_unit=time_unit, sort=sort, t0_us=t0_us, t1_us=t1_us, **options)
     if t0_us is None and t1_us is None:
         return events
     return events.slice_time(
@@ -193,12 +194,30 @@ def check_sortable(path: str | os.PathLike, kind: str, sort: object) -> None:
 
 
 def _read_npy(
-    path: Path, width: int, height: int, *, time_unit: str | None = None, polarity: str = "01", sort: bool = False
+    path: Path, width: int, height: int, *, time_unit: str | None = None, polarity: str = "01", sort: bool = False,
+    t0_us: int | None = None, t1_us: int | None = None,
 ) -> Events:
     """A structured ``.npy`` (fields x, y, t, p): integer ``t`` is µs unless ``time_unit`` says
     otherwise, float ``t`` needs ``time_unit``; ``p`` in the stated encoding (0/1 by default); ``sort``: sort
-    by time (stable) instead of refusing a time that goes back."""
+    by time (stable) instead of refusing a time that goes back. With ``t0_us`` / ``t1_us`` (and not ``sort``)
+    only the rows of ``[t0_us, t1_us)`` are read (:func:`_npy_rows`)."""
     polarity = check_polarity_encoding(polarity)
+    array, fields = _npy_table(path, time_unit)
+    if (t0_us is not None or t1_us is not None) and not sort:
+        array = array[_npy_rows(array[fields["t"]], time_unit or "us", t0_us, t1_us, f"{path}: field {fields['t']}")]
+    check_event_count(array.shape[0], f"{path}")
+    t = np.asarray(array[fields["t"]])
+    t_us = times_to_us(t, time_unit or "us", f"{path}: field {fields['t']}")
+    p = polarity_01(np.asarray(array[fields["p"]]), polarity, f"{path}: field {fields['p']}")
+    try:
+        return Events(array["x"], array["y"], t_us, p, width, height, sort=sort)
+    except (TypeError, ValueError) as error:
+        raise FormatError(f"{path}: {error}") from None
+
+
+def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str, str]]:
+    """The memory-mapped structured array of a ``.npy`` event file and its field names (``structured_fields``),
+    checked: 1-D, fields x, y, t, p, float times only with a stated ``time_unit``."""
     try:
         array = np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as error:
@@ -208,14 +227,44 @@ def _read_npy(
     if array.ndim != 1 or any(field not in names for field in fields.values()):
         raise FormatError(f"{path}: expected a 1-D structured array with fields x, y, t, p (or dv-processing's "
                           f"timestamp, polarity); got dtype {array.dtype}, shape {array.shape}")
-    check_event_count(array.shape[0], f"{path}")
-    t = np.asarray(array[fields["t"]])
-    if t.dtype.kind == "f" and time_unit is None:
-        raise FormatError(f"{path}: field {fields['t']} holds {t.dtype} times; state their unit with time_unit='s', "
+    t_dtype = array.dtype[fields["t"]]
+    if t_dtype.kind == "f" and time_unit is None:
+        raise FormatError(f"{path}: field {fields['t']} holds {t_dtype} times; state their unit with time_unit='s', "
                           "'ms' or 'us' (cmax: --time-unit; times are never guessed)")
-    t_us = times_to_us(t, time_unit or "us", f"{path}: field {fields['t']}")
-    p = polarity_01(np.asarray(array[fields["p"]]), polarity, f"{path}: field {fields['p']}")
-    try:
-        return Events(array["x"], array["y"], t_us, p, width, height, sort=sort)
-    except (TypeError, ValueError) as error:
-        raise FormatError(f"{path}: {error}") from None
+    return array, fields
+
+
+def npy_time_span(path: str | os.PathLike, *, time_unit: str | None = None) -> tuple[int, int] | None:
+    """``(first_us, last_us)``: the times of the first and last rows of a structured ``.npy`` event file, from
+    those two rows alone (in time order, as :func:`read` checks where it reads); None for a file of no events.
+    ``time_unit`` as :func:`read` takes it."""
+    path = Path(path)
+    if detect_format(path) != "npy":
+        raise FormatError(f"{path} is not a NumPy .npy file")
+    array, fields = _npy_table(path, check_time_unit(time_unit))
+    if not len(array):
+        return None
+    ends = np.array(array[fields["t"]][[0, -1]])
+    first, last = times_to_us(ends, time_unit or "us", f"{path}: field {fields['t']}").tolist()
+    return int(first), int(last)
+
+
+def _npy_rows(t: np.ndarray, unit: str, t0_us: int | None, t1_us: int | None, where: str) -> slice:
+    """Rows of the time column ``t`` (memory-mapped, in ``unit``, in time order) whose times in µs lie in
+    ``[t0_us, t1_us)`` (None: unbounded), by binary search: O(log N) single rows read, not the column."""
+    def at(row: int) -> int:
+        return int(times_to_us(np.array(t[row: row + 1]), unit, where)[0])
+
+    def first_at_or_after(bound: int) -> int:
+        lo, hi = 0, len(t)
+        while lo < hi:
+            mid = (lo + hi) // 2
+            if at(mid) < bound:
+                lo = mid + 1
+            else:
+                hi = mid
+        return lo
+
+    start = 0 if t0_us is None else first_at_or_after(int(t0_us))
+    stop = len(t) if t1_us is None else max(start, first_at_or_after(int(t1_us)))
+    return slice(start, stop)

@@ -47,6 +47,10 @@ _COMPLETION_ATTRS = ("event_count", "complete")
 H5_ERRORS = (OSError, KeyError, RuntimeError, TypeError, ValueError, IndexError)
 _INT64_MAX = int(np.iinfo(np.int64).max)
 _INT64_MIN = int(np.iinfo(np.int64).min)
+#: ``ms_to_idx`` entries an :class:`H5Reader` loads and checks whole when it opens a file (2**20 ms: 17 minutes of
+#: recording, 8 MB); a longer index (an hour-long video's) is read an entry at a time as windows need them, each
+#: entry checked as it is read (:class:`_IndexOnDisk`), so opening costs neither its memory nor its reading.
+MAX_INDEX_IN_MEMORY = 1 << 20
 
 
 def _compression(name: str) -> dict[str, Any]:
@@ -434,12 +438,14 @@ def write_h5(
 
     ``overwrite``: replace an existing file (only once the new one is complete; else ``FileExistsError``);
     ``compression``: ``'blosc'``, ``'gzip'`` or ``'none'``; ``**attrs``: file attributes, as :class:`H5Writer`.
+    The HDF5 chunks are as long as the events when they are fewer than :class:`H5Writer`'s default (a small file
+    is not padded to a whole chunk).
     """
     require_events(events)
     t_offset = events.t_start if len(events) else 0
     with H5Writer(
         path, events.width, events.height, t_offset_us=t_offset, overwrite=overwrite,
-        compression=compression, **attrs,
+        chunk_size=min(_DEFAULT_CHUNK, max(len(events), 1)), compression=compression, **attrs,
     ) as writer:
         for start in range(0, len(events), writer._chunk_size):
             writer.append(events[start: start + writer._chunk_size])
@@ -630,7 +636,9 @@ class H5Reader:
                     raise _FractionalOffset(value)
                 self.t_offset_us = scalar_to_us(value, own_unit or self.time_unit, f"{self.path}: t_offset")
             if "ms_to_idx" in self._file:
-                self._ms_to_idx = self._dataset("ms_to_idx")[:]
+                index = self._dataset("ms_to_idx")
+                long = index.ndim == 1 and index.shape[0] > MAX_INDEX_IN_MEMORY
+                self._ms_to_idx = _IndexOnDisk(index, len(self), self.path) if long else index[:]
         except _FractionalOffset as error:
             raise FormatError(
                 f"{self.path}: t_offset holds the fractional number {error.value!r}, not whole microseconds (the "
@@ -640,7 +648,7 @@ class H5Reader:
             ) from None
         except H5_ERRORS as error:
             raise FormatError(f"{self.path}: unreadable t_offset or ms_to_idx ({error})") from None
-        if self._ms_to_idx is not None:
+        if isinstance(self._ms_to_idx, np.ndarray):
             self._ms_to_idx = _checked_ms_to_idx(self._ms_to_idx, len(self), self.path)
 
     def _dataset(self, name: str) -> h5py.Dataset:
@@ -933,6 +941,28 @@ def _fractional_float(value: Any) -> bool:
         return False
     number = float(array.reshape(()))
     return bool(np.isfinite(number)) and not number.is_integer()
+
+
+class _IndexOnDisk:
+    """``ms_to_idx`` of a long recording (more than :data:`MAX_INDEX_IN_MEMORY` entries), read an entry at a time:
+    ``index[k]`` (``k`` may be negative) is the row of the first event at or after ``k`` ms, checked to lie in
+    ``[0, count]``; :meth:`H5Reader.window` checks the entries it uses against the times it reads."""
+
+    def __init__(self, dataset: h5py.Dataset, count: int, path: Path) -> None:
+        if dataset.dtype.kind not in "iu":
+            raise FormatError(f"{path}: ms_to_idx must be a 1-D integer array, got {dataset.dtype} {dataset.shape}")
+        self._dataset, self._count, self._path, self._size = dataset, int(count), path, int(dataset.shape[0])
+
+    def __len__(self) -> int:
+        return self._size
+
+    def __getitem__(self, k: int) -> int:
+        k = int(k) + (self._size if k < 0 else 0)
+        value = int(self._dataset[k])
+        if not 0 <= value <= self._count:
+            raise FormatError(f"{self._path}: corrupt ms_to_idx (entry {k} is {value}, not a row index in "
+                              f"[0, {self._count}])")
+        return value
 
 
 def _checked_ms_to_idx(ms_to_idx: np.ndarray, count: int, path: Path) -> np.ndarray:
