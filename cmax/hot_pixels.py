@@ -10,7 +10,22 @@ filters) but without a calibration recording:
 
     hot  <=>  count > max(factor * p99(counts of the active pixels), min_events)
 
-By construction at most 1% of the active pixels can exceed it.
+By construction at most 1% of the active pixels can exceed it. That rule alone misses a hot pixel that
+fires less than about 1% of a window's events (its count stays under 8 times the 99th percentile), and
+such pixels still pull the fit. A second rule finds them by what sets them apart besides their count
+(:func:`lone_steady_pixels`, when the events' times are at hand): a moving edge that makes a pixel fire
+passes over its neighbours too, so a scene pixel shares its count with at least two of its eight
+neighbours, while a hot pixel fires alone; and a steady rate spreads a pixel's events over the whole
+window one at a time, while an edge passes a pixel in a fraction of it and makes it fire a burst of events
+(its contrast over the threshold) each time. So a pixel is also hot when
+
+    count >= neighbour_min_events  and  count > neighbour_factor * (busiest neighbour's count + 1)
+    and  its event times pass a Kolmogorov-Smirnov test of a constant rate over the window
+         (sqrt(count) * D < 1.63, the 1% level)
+    and  its gaps are not bursty: the number of gaps shorter than half the mean gap (a share
+         1 - exp(-1/2) of a constant rate's) stays within 2.5 binomial standard deviations of that share
+
+(two hot pixels side by side hide each other: rare, as they lie at random).
 """
 from __future__ import annotations
 
@@ -20,13 +35,19 @@ import numpy as np
 
 from cmax.events import Events, require_events
 
-__all__ = ["HotPixelFilter", "check_filter", "hot_pixels", "hot_pixels_of_counts", "no_pixels", "pixel_counts",
-           "without_pixels"]
+__all__ = ["HotPixelFilter", "check_filter", "hot_pixels", "hot_pixels_of_counts", "lone_steady_pixels", "no_pixels",
+           "pixel_counts", "without_pixels"]
+
+#: The Kolmogorov-Smirnov statistic ``sqrt(n) * D`` above which ``n`` event times are not those of a constant
+#: rate, at the 1% level (the asymptotic critical value; conservative for small ``n``).
+KS_CRITICAL_1PCT = 1.63
+#: The binomial z-score of a pixel's short gaps (under half its mean gap) above which it fires in bursts.
+BURST_Z = 2.5
 
 
 @dataclass(frozen=True)
 class HotPixelFilter:
-    """The rule of :func:`hot_pixels` with its two constants, as the fit (``FitSettings.hot_pixels``) and
+    """The rules of :func:`hot_pixels` with their constants, as the fit (``FitSettings.hot_pixels``) and
     EMVS (``EMVS.hot_pixels``) take it; ``None`` in their place keeps every event.
 
     >>> HotPixelFilter(factor=0)
@@ -37,13 +58,18 @@ class HotPixelFilter:
 
     factor: float = 8.0
     min_events: int = 30
+    #: The rule of lone, steady pixels (:func:`lone_steady_pixels`); None: the count rule alone.
+    neighbour_factor: float | None = 8.0
+    neighbour_min_events: int = 20
 
     def __post_init__(self) -> None:
         _check(self.factor, self.min_events)
+        if self.neighbour_factor is not None:
+            _check(self.neighbour_factor, self.neighbour_min_events, "neighbour_")
 
     def find(self, events: Events) -> np.ndarray:
         """The hot pixels of ``events``: ``(K, 2)`` int64 ``(x, y)`` (:func:`hot_pixels`)."""
-        return hot_pixels(events, self.factor, self.min_events)
+        return hot_pixels(events, self.factor, self.min_events, self.neighbour_factor, self.neighbour_min_events)
 
     def apply(self, events: Events) -> tuple[Events, np.ndarray]:
         """``events`` without the events of their hot pixels, and those pixels ``(K, 2)`` ``(x, y)``."""
@@ -68,19 +94,22 @@ def pixel_counts(events: Events) -> np.ndarray:
     return np.bincount(flat, minlength=events.width * events.height).reshape(events.height, events.width)
 
 
-def _check(factor: object, min_events: object) -> None:
+def _check(factor: object, min_events: object, prefix: str = "") -> None:
     if isinstance(factor, bool) or not (isinstance(factor, (int, float, np.number)) and np.isfinite(factor)
                                         and factor > 0):
-        raise ValueError(f"factor must be a positive number, got {factor!r}")
+        raise ValueError(f"{prefix}factor must be a positive number, got {factor!r}")
     if not (isinstance(min_events, (int, np.integer)) and not isinstance(min_events, bool) and min_events >= 0):
-        raise ValueError(f"min_events must be a whole number >= 0, got {min_events!r}")
+        raise ValueError(f"{prefix}min_events must be a whole number >= 0, got {min_events!r}")
 
 
-def hot_pixels(events: Events, factor: float = 8.0, min_events: int = 30) -> np.ndarray:
+def hot_pixels(events: Events, factor: float = 8.0, min_events: int = 30, neighbour_factor: float | None = 8.0,
+               neighbour_min_events: int = 20) -> np.ndarray:
     """The hot pixels of ``events``: ``(K, 2)`` int64 ``(x, y)``, sorted by ``y * width + x``.
 
     A pixel is hot when it holds more than ``factor`` times the 99th percentile of the event counts of
-    the pixels with events, and more than ``min_events`` events (module docstring).
+    the pixels with events, and more than ``min_events`` events; or when it fires alone at a steady rate
+    (:func:`lone_steady_pixels` with ``neighbour_factor`` and ``neighbour_min_events``; None: not tested).
+    Module docstring.
 
     >>> x = np.r_[np.arange(100) % 10, np.full(50, 3)]           # 100 pixels with one event, one with 51
     >>> events = Events(x, np.r_[np.arange(100) // 10, np.full(50, 2)], np.arange(150), np.ones(150), 10, 10)
@@ -88,7 +117,75 @@ def hot_pixels(events: Events, factor: float = 8.0, min_events: int = 30) -> np.
     [[3, 2]]
     """
     require_events(events)
-    return hot_pixels_of_counts(pixel_counts(events), factor, min_events)
+    counts = pixel_counts(events)
+    by_count = hot_pixels_of_counts(counts, factor, min_events)
+    if neighbour_factor is None:
+        return by_count
+    lone = lone_steady_pixels(events, neighbour_factor, neighbour_min_events, counts=counts)
+    flat = np.union1d(by_count[:, 1] * events.width + by_count[:, 0], lone[:, 1] * events.width + lone[:, 0])
+    return np.column_stack([flat % events.width, flat // events.width]).astype(np.int64)
+
+
+def lone_steady_pixels(events: Events, neighbour_factor: float = 8.0, min_events: int = 20, *,
+                       counts: np.ndarray | None = None) -> np.ndarray:
+    """The pixels of ``events`` that fire alone at a steady rate: ``(K, 2)`` int64 ``(x, y)``, sorted by
+    ``y * width + x``.
+
+    A pixel qualifies when it holds at least ``min_events`` events, more than ``neighbour_factor`` times
+    ``1 +`` the count of its busiest of 8 neighbours (pixels outside the sensor count 0), its event times
+    pass a Kolmogorov-Smirnov test of a constant rate over the window ``[t[0], t[-1]]``
+    (``sqrt(n) * D < KS_CRITICAL_1PCT``), and its gaps are not bursty (:func:`_burst_z` below ``BURST_Z``).
+    ``counts`` (H, W): :func:`pixel_counts` of ``events`` if known.
+
+    >>> rng = np.random.default_rng(0)                      # 400 pixels with one event each, one steady pixel
+    >>> x = np.r_[np.arange(400) % 20, np.full(25, 7)]
+    >>> y = np.r_[np.arange(400) // 20, np.full(25, 3)]
+    >>> t = np.r_[rng.integers(0, 10_000, 400), np.arange(25) * 400]
+    >>> lone_steady_pixels(Events(x, y, t, np.ones(425), 20, 20, sort=True)).tolist()
+    [[7, 3]]
+    """
+    require_events(events)
+    _check(neighbour_factor, min_events, "neighbour_")
+    counts = pixel_counts(events) if counts is None else counts
+    height, width = counts.shape
+    ys, xs = np.nonzero(counts >= max(min_events, 1))
+    if not len(ys):
+        return no_pixels()
+    padded = np.pad(counts, 1)
+    neighbours = np.stack([padded[ys + 1 + dy, xs + 1 + dx] for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx])
+    alone = counts[ys, xs] > neighbour_factor * (neighbours.max(axis=0) + 1)
+    candidates = ys[alone].astype(np.int64) * width + xs[alone]
+    if not len(candidates) or len(events) < 2 or events.t[-1] == events.t[0]:
+        return no_pixels()
+    flat = events.y.astype(np.int64) * width + events.x
+    chosen = np.isin(flat, candidates)
+    order = np.argsort(flat[chosen], kind="stable")           # by pixel, each pixel's times in time order
+    pixel, times = flat[chosen][order], events.t[chosen][order]
+    starts = np.searchsorted(pixel, candidates)
+    ends = np.searchsorted(pixel, candidates, side="right")
+    t0, span = float(events.t[0]), float(events.t[-1] - events.t[0])
+    steady = [_ks_uniform((times[a:b] - t0) / span) < KS_CRITICAL_1PCT and _burst_z(times[a:b], span) < BURST_Z
+              for a, b in zip(starts, ends)]
+    kept = candidates[np.asarray(steady, bool)]
+    return np.column_stack([kept % width, kept // width]).astype(np.int64)
+
+
+def _burst_z(times: np.ndarray, span: float) -> float:
+    """How bursty the sorted times ``times`` (n,) [µs] of one pixel over a window ``span`` µs long are: the
+    binomial z-score of the number of its n - 1 gaps shorter than half the mean gap ``span / n``, whose share
+    at a constant rate is ``1 - exp(-1/2)``."""
+    gaps = np.diff(times.astype(np.float64))
+    share = 1.0 - np.exp(-0.5)
+    expected = share * len(gaps)
+    return float((np.sum(gaps < 0.5 * span / len(times)) - expected) / np.sqrt(expected * (1.0 - share)))
+
+
+def _ks_uniform(u: np.ndarray) -> float:
+    """``sqrt(n) * D``: the Kolmogorov-Smirnov statistic of the sorted values ``u`` (n,) in [0, 1] against the
+    uniform distribution."""
+    n = len(u)
+    i = np.arange(1, n + 1)
+    return float(max((i / n - u).max(), (u - (i - 1) / n).max()) * np.sqrt(n))
 
 
 def hot_pixels_of_counts(counts: np.ndarray, factor: float = 8.0, min_events: int = 30) -> np.ndarray:

@@ -10,7 +10,7 @@ import pytest
 import cmax
 from cmax import Camera, Events
 from cmax.fitting import FitSettings
-from cmax.hot_pixels import HotPixelFilter, hot_pixels, without_pixels
+from cmax.hot_pixels import HotPixelFilter, hot_pixels, lone_steady_pixels, without_pixels
 from cmax.metrics import depth_metrics
 
 #: Events per hot pixel over the 0.1665 s window (about 4.8 kHz), and how many hot pixels.
@@ -76,7 +76,7 @@ def test_hot_pixel_settings_are_checked():
         FitSettings(hot_pixels=8.0)
     with pytest.raises(ValueError, match="factor must be a positive number"):
         hot_pixels(Events.empty(4, 4), factor=0.0)
-    assert FitSettings().hot_pixels == HotPixelFilter(8.0, 30)
+    assert FitSettings().hot_pixels == HotPixelFilter(8.0, 30, 8.0, 20)
 
 
 def test_a_window_that_only_its_hot_pixel_moves_is_refused_with_the_way_out():
@@ -173,3 +173,59 @@ def test_cmax_info_names_the_hot_pixels_of_a_recording(window, tmp_path, suffix)
     line = next(text for text in info.lines() if text.startswith("hot pixels"))
     assert line.startswith(f"hot pixels  {HOT_COUNT}: (") and " events, " in line and " Hz" in line
     assert "hot pixels  none (no pixel fires far more than the others)" in saved(window.events, "clean").lines()
+
+
+def _with_pixels_at_share(events: Events, share: float, count: int, seed: int) -> tuple[Events, set]:
+    """``events`` plus ``count`` random pixels each firing ``share`` of the window's events at uniform random times
+    (a steady rate), and those pixels as a set of ``(x, y)``."""
+    rng = np.random.default_rng(seed)
+    flat = rng.choice(events.width * events.height, count, replace=False)
+    n = int(round(share * len(events)))
+    x, y = flat % events.width, flat // events.width
+    noisy = Events(np.r_[events.x, np.repeat(x, n)], np.r_[events.y, np.repeat(y, n)],
+                   np.r_[events.t, rng.integers(events.t[0], events.t[-1], n * count)],
+                   np.r_[events.p, rng.integers(0, 2, n * count)], events.width, events.height, sort=True)
+    return noisy, set(zip(x.tolist(), y.tolist()))
+
+
+def test_hot_pixels_under_the_count_rule_are_found_by_firing_alone_and_steadily(window):
+    """Pixels at 0.5% of the window's events each (about 8 times fewer than the count rule needs) stay under
+    ``8 x p99``: the count rule alone finds none, the rule of lone steady pixels finds nearly all (a pixel that
+    lands beside busy ones may hide) and flags nothing on the clean window."""
+    assert hot_pixels(window.events).shape == (0, 2)
+    found = missed_by_count = 0
+    for seed in range(3):
+        noisy, injected = _with_pixels_at_share(window.events, 0.005, 10, seed)
+        by_count = set(map(tuple, hot_pixels(noisy, neighbour_factor=None).tolist()))
+        both = set(map(tuple, hot_pixels(noisy).tolist()))
+        missed_by_count += len(injected - by_count)
+        found += len(both & injected)
+        assert both <= injected | by_count, both - injected     # nothing of the scene flagged
+    assert missed_by_count == 30
+    assert found >= 25, found
+
+
+def test_a_moving_edge_and_a_short_burst_are_not_lone_steady_pixels():
+    """A bar sweeping across the sensor makes each pixel it passes fire 40 times (far above the others' counts)
+    but its neighbours along the bar fire as often; a pixel firing 40 times alone within 1 ms of a 100 ms window
+    is not steady. A pixel firing 40 times alone over the window is."""
+    rng = np.random.default_rng(1)
+    width = height = 40
+    bar_x = np.repeat(np.arange(10, 30), 40 * 10)                  # columns 10..29, rows 15..24, 40 events each
+    bar_y = np.tile(np.repeat(np.arange(15, 25), 40), 20)
+    bar_t = (bar_x - 10) * 5000 + rng.integers(0, 500, len(bar_x))  # the edge reaches column c at 5 ms * (c - 10)
+    noise = rng.integers(0, width * height, 2000)
+    x = np.r_[bar_x, noise % width, np.full(40, 3), np.full(40, 36)]
+    y = np.r_[bar_y, noise // width, np.full(40, 3), np.full(40, 36)]
+    t = np.r_[bar_t, rng.integers(0, 100_000, 2000), 50_000 + rng.integers(0, 1000, 40), np.linspace(0, 99_999, 40)]
+    events = Events(x, y, t.astype(np.int64), np.ones(len(x)), width, height, sort=True)
+    assert lone_steady_pixels(events).tolist() == [[36, 36]]
+    assert hot_pixels(events, factor=100.0).tolist() == [[36, 36]]
+
+
+def test_the_lone_steady_rule_can_be_switched_off_and_is_checked():
+    assert HotPixelFilter(neighbour_factor=None).neighbour_factor is None
+    with pytest.raises(ValueError, match="neighbour_factor must be a positive number"):
+        HotPixelFilter(neighbour_factor=0.0)
+    with pytest.raises(ValueError, match="neighbour_min_events must be a whole number >= 0"):
+        HotPixelFilter(neighbour_min_events=-2)
