@@ -10,7 +10,7 @@ import pytest
 import cmax
 from cmax import Camera, Events
 from cmax.fitting import FitSettings
-from cmax.hot_pixels import HotPixelFilter, hot_pixels, lone_steady_pixels, without_pixels
+from cmax.hot_pixels import HotPixelFilter, flicker_pixels, hot_pixels, lone_steady_pixels, without_pixels
 from cmax.metrics import depth_metrics
 
 #: Events per hot pixel over the 0.1665 s window (about 4.8 kHz), and how many hot pixels.
@@ -76,7 +76,7 @@ def test_hot_pixel_settings_are_checked():
         FitSettings(hot_pixels=8.0)
     with pytest.raises(ValueError, match="factor must be a positive number"):
         hot_pixels(Events.empty(4, 4), factor=0.0)
-    assert FitSettings().hot_pixels == HotPixelFilter(8.0, 30, 8.0, 20)
+    assert FitSettings().hot_pixels == HotPixelFilter(8.0, 30, 8.0, 20, (100.0, 120.0))
 
 
 def test_a_window_that_only_its_hot_pixel_moves_is_refused_with_the_way_out():
@@ -229,3 +229,71 @@ def test_the_lone_steady_rule_can_be_switched_off_and_is_checked():
         HotPixelFilter(neighbour_factor=0.0)
     with pytest.raises(ValueError, match="neighbour_min_events must be a whole number >= 0"):
         HotPixelFilter(neighbour_min_events=-2)
+
+
+def _lamp(events: Events, x0: int, y0: int, size: int, hz: float, seed: int = 0) -> Events:
+    """``events`` plus a ``size`` x ``size`` square at ``(x0, y0)`` on a lamp whose log intensity swings by
+    0.3 at ``hz``: each pixel fires at every crossing of the levels -0.2, 0, 0.2 (ON rising, OFF falling), with
+    a little jitter of phase (0.05 rad) and time (50 µs)."""
+    rng = np.random.default_rng(seed)
+    ys, xs = np.mgrid[y0:y0 + size, x0:x0 + size]
+    xs, ys = xs.ravel(), ys.ravel()
+    t0, t1 = int(events.t[0]), int(events.t[-1])
+    columns = []
+    for level in (-0.2, 0.0, 0.2):
+        rising = np.arcsin(level / 0.3)
+        for phase, polarity in ((rising, 1), (np.pi - rising, 0)):
+            for cycle in range(-1, int((t1 - t0) * 1e-6 * hz) + 2):
+                jitter = rng.normal(0, 0.05, len(xs))
+                t = t0 + (phase + 2 * np.pi * cycle - jitter) / (2 * np.pi * hz) * 1e6 + rng.normal(0, 50, len(xs))
+                inside = (t >= t0) & (t <= t1)
+                columns.append((xs[inside], ys[inside], np.rint(t[inside]).astype(np.int64),
+                                np.full(inside.sum(), polarity)))
+    x, y, t, p = (np.concatenate(parts) for parts in zip(*columns))
+    return Events(np.r_[events.x, x], np.r_[events.y, y], np.r_[events.t, t], np.r_[events.p, p], events.width,
+                  events.height, sort=True)
+
+
+@pytest.mark.parametrize("hz", [100.0, 120.0])
+def test_pixels_on_a_mains_flickering_lamp_are_hot(window, hz):
+    """A 6x6 lamp flickering at 100 Hz (120 Hz) fires as often as its neighbours, so the count and lone-pixel rules
+    miss it; its pixels' events lock to the flicker's phase: all 36 are found, none of the clean window."""
+    lit = _lamp(window.events, 30, 40, 6, hz)
+    lamp = {(x, y) for x in range(30, 36) for y in range(40, 46)}
+    assert not lamp & set(map(tuple, hot_pixels(lit, flicker_hz=None).tolist()))
+    assert set(map(tuple, flicker_pixels(lit).tolist())) == lamp
+    assert flicker_pixels(window.events).shape == (0, 2)
+    with pytest.raises(ValueError, match="flicker_hz must be a tuple of positive frequencies in Hz, got 100"):
+        HotPixelFilter(flicker_hz=100)
+
+
+def test_a_flickering_lamp_no_longer_pulls_a_rotation_fit():
+    """A 6x6 lamp at 100 Hz (10% of the events) on a rotating scene pulled the rotation by 22% (verdict ok,
+    measured; clean 1.3%); its pixels left out, the error is the clean one's."""
+    from benchmarks.synthetic_windows import preset_window
+
+    w = preset_window("rotation", 100, width=160, height=120, duration_s=0.1, texture_size=128)
+    lit = _lamp(w.events, 20, 20, 6, 100.0)
+
+    def error(result) -> float:
+        return float(np.linalg.norm(result.omega - w.twist[3:]) / np.linalg.norm(w.twist[3:]))
+
+    clean = error(cmax.fit(w.events, w.K, model="rotation"))
+    old_rule = error(cmax.fit(lit, w.K, model="rotation", hot_pixels=HotPixelFilter(neighbour_factor=None,
+                                                                                    flicker_hz=None)))
+    now = cmax.fit(lit, w.K, model="rotation")
+    assert len(now.hot_pixels) == 36
+    assert old_rule > 0.1 > clean + 0.03 > error(now), (clean, old_rule, error(now))
+
+
+def test_the_lamps_of_the_real_pegboard_recording_flicker(shared_data):
+    """The DAVIS346 pegboard recording (0.13 s) sees two ceiling lamps, discs of about 10 px radius near
+    (60, 9) and (213, 17), under 50 Hz mains: its event rate peaks at 100 Hz. Their pixels are found (238 and
+    189 measured), and few others (37 of 464 measured, small lit parts of the scene)."""
+    from cmax.io import read
+
+    events = read(shared_data / "davis346_pegboard" / "davis.aedat4")
+    found = flicker_pixels(events)
+    on_lamp = [np.hypot(found[:, 0] - cx, found[:, 1] - cy) < 12 for cx, cy in ((60, 9), (213, 17))]
+    assert on_lamp[0].sum() > 150 and on_lamp[1].sum() > 120, [m.sum() for m in on_lamp]
+    assert (~(on_lamp[0] | on_lamp[1])).sum() < 0.2 * len(found)
