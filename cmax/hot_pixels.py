@@ -185,23 +185,26 @@ def flicker_pixels(events: Events, flicker_hz: tuple[float, ...] = MAINS_FLICKER
     if len(events) < 2:
         return no_pixels()
     flat = events.y.astype(np.int64) * width + events.x
-    seconds = (events.t - events.t[0]) * 1e-6
+    span_s = float(events.t[-1] - events.t[0]) * 1e-6
+    by_polarity = []
+    for polarity in (0, 1):                          # n R^2 >= FLICKER_RAYLEIGH needs at least as many events
+        chosen = events.p == polarity
+        n = np.bincount(flat[chosen], minlength=size)
+        chosen &= n[flat] >= FLICKER_RAYLEIGH
+        by_polarity.append((n, flat[chosen], (events.t[chosen] - events.t[0]) * 1e-6))
     flickering = np.zeros(size, bool)
     for f in flicker_hz:
-        cycles = float(seconds[-1]) * f
+        cycles = span_s * f
         if cycles < 3:
             continue
-        turns = seconds * f
-        cycle = np.floor(turns).astype(np.int64)
-        for polarity in (0, 1):
-            chosen = events.p == polarity
-            pixel = flat[chosen]
-            n = np.bincount(pixel, minlength=size)
-            angle = 2 * np.pi * turns[chosen]
+        for n, pixel, seconds in by_polarity:
+            turns = seconds * f
+            cycle = np.floor(turns).astype(np.int64)
+            angle = 2 * np.pi * turns
             resultant = np.hypot(np.bincount(pixel, np.cos(angle), size), np.bincount(pixel, np.sin(angle), size))
             r = resultant / np.maximum(n, 1)
             # each cycle's mean phase as one unit vector: a burst within one cycle counts once
-            pairs, pair_of = np.unique(pixel * (int(cycles) + 1) + cycle[chosen], return_inverse=True)
+            pairs, pair_of = np.unique(pixel * (int(cycles) + 1) + cycle, return_inverse=True)
             pair_x = np.bincount(pair_of, np.cos(angle), len(pairs))
             pair_y = np.bincount(pair_of, np.sin(angle), len(pairs))
             norm = np.maximum(np.hypot(pair_x, pair_y), 1e-12)
