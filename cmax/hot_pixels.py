@@ -33,8 +33,8 @@ rotation fit by 15-20% with an ``ok`` verdict. Its events of one polarity come a
 flicker in cycle after cycle, which a moving edge's do not: a third rule (:func:`flicker_pixels`) calls a
 pixel hot when, for 100 or 120 Hz, its events of one polarity hold a Rayleigh statistic of phase locking
 ``n R^2 >= 9.2`` (p = 1e-4 for times at random) with a mean resultant length ``R >= 0.7``, and fall in at
-least half of the window's cycles (at least 3 of them), their phases locked from cycle to cycle, and at
-least 2 of its 8 neighbours flicker too.
+least half of the window's cycles (at least 3 of them), their phases locked from cycle to cycle, and it
+belongs to a 2 x 2 square of such pixels (a lamp lights an area; a line 1 px wide is a moving texture).
 """
 from __future__ import annotations
 
@@ -56,10 +56,6 @@ MAINS_FLICKER_HZ = (100.0, 120.0)
 FLICKER_RAYLEIGH = 9.2
 #: The least mean resultant length ``R`` of a flickering pixel's phases (1: all at one phase).
 FLICKER_MIN_R = 0.7
-
-#: The fewest of its 8 neighbours that must flicker too: a lamp lights an area, while a pixel whose moving
-#: texture happens to repeat at 100 Hz stands alone.
-FLICKER_MIN_NEIGHBOURS = 2
 
 #: The binomial z-score of a pixel's short gaps (under half its mean gap) above which it fires in bursts.
 BURST_Z = 2.5
@@ -169,9 +165,9 @@ def flicker_pixels(events: Events, flicker_hz: tuple[float, ...] = MAINS_FLICKER
     one phase, about ``1 / sqrt(n)`` for times at random); the pixel flickers when ``n R^2 >=
     FLICKER_RAYLEIGH``, ``R >= FLICKER_MIN_R``, its events fall in at least half of the window's cycles, and
     the mean phases of those cycles (one unit vector each, so that one burst of an edge counts once) have a
-    mean resultant length ``>= FLICKER_MIN_R`` too; and at least ``FLICKER_MIN_NEIGHBOURS`` of its 8
-    neighbours flicker as well (a lamp lights an area: a lone pixel on a texture that repeats at 100 Hz as it
-    moves is not taken for one).
+    mean resultant length ``>= FLICKER_MIN_R`` too; and it belongs to a 2 x 2 square of such pixels (a lamp
+    lights an area, while a moving texture that happens to repeat at 100 Hz, e.g. a dashed road marking, locks a
+    lone pixel or a line one pixel wide).
 
     >>> t = np.r_[np.arange(10) * 10_000 + 2_000, np.arange(10) * 10_000 + 7_000]   # ON, then OFF, at 100 Hz
     >>> x, y = np.repeat([1, 2, 1, 2], 20), np.repeat([1, 1, 2, 2], 20)           # on 2x2 pixels of a lamp
@@ -214,10 +210,10 @@ def flicker_pixels(events: Events, flicker_hz: tuple[float, ...] = MAINS_FLICKER
             r_cycles /= np.maximum(cycles_hit, 1)
             flickering |= ((n * r**2 >= FLICKER_RAYLEIGH) & (r >= FLICKER_MIN_R) & (r_cycles >= FLICKER_MIN_R)
                            & (cycles_hit >= max(3, cycles / 2)))
-    lit = np.pad(flickering.reshape(events.height, width), 1).astype(np.int8)
-    around = sum(lit[1 + dy:lit.shape[0] - 1 + dy, 1 + dx:lit.shape[1] - 1 + dx]
-                 for dy in (-1, 0, 1) for dx in (-1, 0, 1) if dy or dx)
-    kept = np.flatnonzero(flickering & (around.ravel() >= FLICKER_MIN_NEIGHBOURS))
+    lit = flickering.reshape(events.height, width)
+    square = np.pad(lit[:-1, :-1] & lit[1:, :-1] & lit[:-1, 1:] & lit[1:, 1:], 1)   # 2x2 squares, by top-left
+    in_square = square[1:, 1:] | square[:-1, 1:] | square[1:, :-1] | square[:-1, :-1]
+    kept = np.flatnonzero(lit & in_square)
     return np.column_stack([kept % width, kept // width]).astype(np.int64)
 
 

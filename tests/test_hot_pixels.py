@@ -288,8 +288,8 @@ def test_a_flickering_lamp_no_longer_pulls_a_rotation_fit():
 
 def test_the_lamps_of_the_real_pegboard_recording_flicker(shared_data):
     """The DAVIS346 pegboard recording (0.13 s) sees two ceiling lamps, discs of about 10 px radius near
-    (60, 9) and (213, 17), under 50 Hz mains: its event rate peaks at 100 Hz. Their pixels are found (238 and
-    189 measured), and few others (37 of 464 measured, small lit parts of the scene)."""
+    (60, 9) and (213, 17), under 50 Hz mains: its event rate peaks at 100 Hz. Their pixels are found (232 and
+    183 measured), and few others (10 of 425 measured, small lit parts of the scene)."""
     from cmax.io import read
 
     events = read(shared_data / "davis346_pegboard" / "davis.aedat4")
@@ -297,3 +297,14 @@ def test_the_lamps_of_the_real_pegboard_recording_flicker(shared_data):
     on_lamp = [np.hypot(found[:, 0] - cx, found[:, 1] - cy) < 12 for cx, cy in ((60, 9), (213, 17))]
     assert on_lamp[0].sum() > 150 and on_lamp[1].sum() > 120, [m.sum() for m in on_lamp]
     assert (~(on_lamp[0] | on_lamp[1])).sum() < 0.2 * len(found)
+
+
+def test_a_line_one_pixel_wide_locked_to_100_hz_is_not_a_lamp(window):
+    """A moving texture that repeats at 100 Hz (a dashed road marking passing at the right speed) locks a line of
+    pixels one pixel wide; a lamp lights an area. The staircase line below flickers like the lamp but is not
+    taken for one; the 2x2 lamp beside it is."""
+    lit = window.events
+    for x, y in [(60 + i // 2 + i % 2, 20 + i // 2) for i in range(12)]:    # (60, 20), (61, 20), (61, 21), ...
+        lit = _lamp(lit, x, y, 1, 100.0, seed=x * 1000 + y)
+    lit = _lamp(lit, 90, 60, 2, 100.0)
+    assert flicker_pixels(lit).tolist() == [[90, 60], [91, 60], [90, 61], [91, 61]]
