@@ -33,6 +33,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "FIELD_ALIASES", "concatenate",
     "check_event_count", "window_starts", "uncovered_tail", "require_events", "structured_fields", "float_step",
+    "wrap_index",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
@@ -215,6 +216,33 @@ def float_step(values: np.ndarray) -> tuple[int, float]:
     return i, float(largest - np.nextafter(largest, values.dtype.type(0)))
 
 
+#: A uint32 microsecond clock wraps after this many µs (71.6 min).
+UINT32_WRAP_US = 2**32
+
+
+def wrap_index(t: np.ndarray) -> int | None:
+    """The first index ``i`` of the int64 times ``t`` (µs) where they drop as a uint32 microsecond clock does when
+    it wraps: ``t[i - 1]`` in ``[2**31, 2**32)``, ``t[i]`` in ``[0, 2**32)`` and more than ``2**31`` µs
+    (35.8 min) below it; None if they never do.
+
+    >>> wrap_index(np.array([4294967000, 4294967290, 4, 300]))
+    2
+    >>> wrap_index(np.array([5, 3, 10])) is None
+    True
+    """
+    t = np.asarray(t)
+    drop = np.flatnonzero((t[:-1] >= 2**31) & (t[:-1] < UINT32_WRAP_US) & (t[1:] >= 0) & (t[1:] < t[:-1] - 2**31))
+    return int(drop[0]) + 1 if drop.size else None
+
+
+def wrap_message(t: np.ndarray, i: int) -> str:
+    """Why the times ``t`` (µs) that drop at index ``i`` (:func:`wrap_index`) cannot be sorted, and how to unwrap."""
+    return (f"t drops from {int(t[i - 1])} µs at index {i - 1} to {int(t[i])} µs at index {i}, "
+            f"{(int(t[i - 1]) - int(t[i])) / 60e6:.1f} min back: a uint32 microsecond clock that wrapped at "
+            f"2**32 µs (71.6 min), not events out of order (sorting would put the later ones first); unwrap the "
+            f"times: t = t.astype(np.int64) + 2**32 * np.cumsum(np.r_[0, np.diff(t.astype(np.int64)) < -2**31])")
+
+
 def _timestamps(values: object) -> np.ndarray:
     array = _as_column("t", values)
     if array.dtype.kind == "u" and array.size and array.max() > np.iinfo(np.int64).max:
@@ -231,6 +259,9 @@ def _timestamps(values: object) -> np.ndarray:
         decreasing = np.flatnonzero(array[1:] < array[:-1])
         if decreasing.size:
             i = int(decreasing[0])
+            wrapped = wrap_index(array)
+            if wrapped is not None:
+                raise ValueError(wrap_message(array, wrapped))
             raise ValueError(
                 f"t must be sorted in non-decreasing order; t[{i + 1}]={array[i + 1]} µs comes "
                 f"after t[{i}]={array[i]} µs (pass sort=True to sort by time explicitly; cmax: --sort)"
@@ -318,6 +349,10 @@ class Events:
         if len(set(lengths.values())) != 1:
             raise ValueError(f"x, y, t and p must have the same length, got {lengths}")
         if sort:
+            if t_checked.dtype.kind in "iu" and t_checked.size > 1:
+                wrapped = wrap_index(t_checked)
+                if wrapped is not None:
+                    raise ValueError(wrap_message(t_checked, wrapped))
             order = np.argsort(t_checked, kind="stable")
             x, y, p, t_checked = x[order], y[order], p[order], t_checked[order]
         t = _timestamps(t_checked)

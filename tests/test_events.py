@@ -236,3 +236,18 @@ def test_validated_columns_cannot_change_behind_the_events_back():
     xt += 100
     assert from_tensor.x.max() < 64
     assert not ev.slice_time(0, 5_000).x.flags.writeable
+
+
+def test_times_of_a_uint32_clock_that_wrapped_are_named_not_sorted():
+    """A recorder's uint32 µs clock wraps every 2**32 µs (71.6 min): the times drop from near 2**32 to near 0.
+    Sorting them would put the events after the wrap first and span 71.6 min; the error names the wrap and
+    the unwrapped times (+ 2**32 after the drop) are the true ones. A small step back is still 'out of order'."""
+    t = np.array([2**32 - 20, 2**32 - 10, 2**32 - 3, 5, 12], np.uint32)
+    for sort in (False, True):
+        with pytest.raises(ValueError, match=r"t drops from 4294967293 µs at index 2 to 5 µs at index 3, 71\.6 min "
+                                             r"back: a uint32 microsecond clock that wrapped"):
+            Events(np.zeros(5), np.zeros(5), t, np.ones(5), 4, 4, sort=sort)
+    unwrapped = t.astype(np.int64) + 2**32 * np.cumsum(np.r_[0, np.diff(t.astype(np.int64)) < -2**31])
+    assert np.diff(Events(np.zeros(5), np.zeros(5), unwrapped, np.ones(5), 4, 4).t).tolist() == [10, 7, 8, 7]
+    with pytest.raises(ValueError, match=r"t must be sorted in non-decreasing order; t\[1\]=3 µs comes after"):
+        Events([0, 0], [0, 0], [5, 3], [1, 1], 4, 4)

@@ -84,7 +84,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="end, seconds after the first event (default: the last event)")
     parser.add_argument("--keep-hot-pixels", action="store_true",
                         help="every event votes; by default the events of hot pixels (far more events than the "
-                             "scene's edges give any pixel: a defect or a flickering light) do not, and a note names "
+                             "scene's edges give any pixel, or firing alone at a steady rate: a defect; or locked to a "
+                             "100/120 Hz mains flicker: a lamp) do not, and a note names "
                              "them (cmax.EMVS.hot_pixels)")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the results of an earlier run in -o (else refused); they stay until this run "
@@ -203,8 +204,9 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
               "median_depth_m": median_m, "scale_known": metric, "files": list(RESULTS)}
     write_text_atomic(stage / "summary.json", json.dumps(record, indent=2) + "\n")   # moved in last (publish)
     if len(result.hot_pixels):
-        print(f"cmax emvs: note: {len(result.hot_pixels)} hot pixel(s) fire far more than the scene's edges make any "
-              f"pixel fire ({named_pixels(result.hot_pixels)}): their events did not vote (--keep-hot-pixels keeps "
+        print(f"cmax emvs: note: {len(result.hot_pixels)} hot pixel(s) fire without motion (far more than the "
+              f"scene's edges make any pixel fire, alone at a steady rate, or with a lamp's 100/120 Hz flicker) "
+              f"({named_pixels(result.hot_pixels)}): their events did not vote (--keep-hot-pixels keeps "
               "them)", file=sys.stderr)
     for end, share in result.on_bounds().items():
         if share >= EMVS_BOUND_NOTE:

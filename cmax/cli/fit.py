@@ -115,7 +115,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                              "this run's); they stay until this run has written all of its own")
     parser.add_argument("--keep-hot-pixels", action="store_true",
                         help="fit every event; by default the events of hot pixels (far more events than the scene's "
-                             "edges give any pixel: a defect or a flickering light) are left out and named in a note "
+                             "edges give any pixel, or firing alone at a steady rate: a defect; or locked to a 100/120 "
+                             "Hz mains flicker: a lamp) are left out and named in a note "
                              "(cmax.FitSettings.hot_pixels)")
     parser.set_defaults(run=run)
     return parser
@@ -387,7 +388,8 @@ def hot_pixel_note(results) -> str | None:
         return None
     pixels, counts = np.unique(np.concatenate(hot), axis=0, return_counts=True)
     pixels = pixels[np.argsort(-counts, kind="stable")]          # the pixels hot in most windows first
-    return (f"{len(pixels)} hot pixel(s) fire far more than the scene's edges make any pixel fire, in {len(hot)} of "
+    return (f"{len(pixels)} hot pixel(s) fire without motion (far more than the scene's edges make any pixel fire, "
+            f"alone at a steady rate, or with a lamp's 100/120 Hz flicker), in {len(hot)} of "
             f"{len(results)} windows ({named_pixels(pixels)}): their events were left out of those windows' fits "
             "(--keep-hot-pixels keeps them)")
 

@@ -174,7 +174,8 @@ class EMVS:
         Show a progress bar over the packet groups.
     hot_pixels : HotPixelFilter or None
         Which pixels are hot (:class:`cmax.hot_pixels.HotPixelFilter`: far more events than the scene's
-        edges give any pixel; a defect or a flickering light): their events do not vote
+        edges give any pixel, firing alone at a steady rate, or locked to a mains flicker; a defect or a
+        flickering light): their events do not vote
         (``SemiDenseDepth.hot_pixels`` lists them). None: every event votes.
     """
 

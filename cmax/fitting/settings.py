@@ -516,8 +516,9 @@ class FitSettings:
         Depth cells with fewer events are outside the mask.
     hot_pixels : HotPixelFilter or None
         Which pixels are hot (:class:`cmax.hot_pixels.HotPixelFilter`: more than ``factor`` (8) times the
-        99th percentile of the window's per-pixel event counts and more than ``min_events`` (30); a defect
-        or a flickering light, firing without motion): their events are left out of the fit
+        99th percentile of the window's per-pixel event counts and more than ``min_events`` (30), or firing
+        alone at a steady rate (``neighbour_factor``); a defect or a flickering light, firing without
+        motion): their events are left out of the fit
         (``FitResult.hot_pixels`` lists them). None keeps every event.
     seed : int
         Seed of the subsampling.

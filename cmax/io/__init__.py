@@ -189,8 +189,10 @@ def check_sortable(path: str | os.PathLike, kind: str, sort: object) -> None:
     if not isinstance(sort, (bool, np.bool_)):
         raise TypeError(f"sort must be True or False, got {sort!r}")
     if sort and kind not in SORTABLE_FORMATS:
+        way_out = ("; a RAW file that fits in memory can be sorted once into a copy: python -c \"import cmax.io as io; "
+                   f"io.write_evt3('sorted.raw', io.read_raw({str(path)!r}, sort=True))\"" if kind == "raw" else "")
         raise ValueError(f"{path} ({kind}) is read a time span at a time from disk, so its events must be stored in "
-                         "time order; sorting applies to ECD text, .npy and AEDAT4 files")
+                         f"time order; sorting applies to ECD text, .npy and AEDAT4 files{way_out}")
 
 
 def _read_npy(

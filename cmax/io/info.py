@@ -54,8 +54,9 @@ class EventFileInfo:
         return self.on_count / self.count if self.count else float("nan")
 
     def hot_pixels(self) -> np.ndarray:
-        """``(K, 2)`` ``(x, y)`` of the pixels that :class:`cmax.hot_pixels.HotPixelFilter`'s default rule calls
-        hot over the whole recording (empty without counts)."""
+        """``(K, 2)`` ``(x, y)`` of the pixels that :class:`cmax.hot_pixels.HotPixelFilter`'s default count rule
+        calls hot over the whole recording (empty without counts; its rule of lone steady pixels needs the
+        events' times, which this summary does not keep)."""
         return no_pixels() if self.pixel_counts is None else hot_pixels_of_counts(self.pixel_counts)
 
     def _hot_line(self) -> str:
