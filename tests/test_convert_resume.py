@@ -152,6 +152,7 @@ def test_an_interrupt_leaves_the_files_of_another_writer_alone(tmp_path, monkeyp
 
         class Process:
             exitcode = None
+            pid = None          # gone: a lock still held is another writer's, left at once (no wait)
 
             def kill(self):
                 pass
@@ -322,3 +323,30 @@ def test_a_moved_source_is_not_converted_again(tmp_path, capsys):
     convert_collection(collect_jobs(tmp_path / "there" / "a.avi")[0], out, FAST, progress=False,
                        on_result=lambda r: seen.append(r.name))
     assert seen == [] and "converting it again" not in capsys.readouterr().err
+
+
+def test_a_stopped_worker_s_lock_is_waited_for_only_while_the_worker_exists(tmp_path):
+    """The clean-up after a stopped worker retries while process ``pid`` still exists (a killed worker can
+    still hold its output's lock when ``join`` returns) and gives up at ``wait_s``; once that process is gone,
+    a lock still held is another live writer's: left at once, its files kept."""
+    import subprocess
+    import sys
+    import time
+
+    from cmax.io.atomic import AtomicOutput
+    import cmax.sim.convert as convert
+
+    out = tmp_path / "a.h5"
+    other = AtomicOutput(out, overwrite=True)          # the live writer that holds the lock throughout
+    try:
+        start = time.monotonic()
+        convert._discard_after_stop(out, os.getpid(), wait_s=0.3)     # "the worker" exists: waited for
+        waited = time.monotonic() - start
+        gone = subprocess.Popen([sys.executable, "-c", "pass"])
+        gone.wait()
+        start = time.monotonic()
+        convert._discard_after_stop(out, gone.pid, wait_s=5.0)         # gone: another writer's lock
+        assert 0.3 <= waited < 3.0 and time.monotonic() - start < 0.25
+        assert other.temp.exists() and (tmp_path / "a.h5.lock").exists()
+    finally:
+        other.abort()

@@ -1037,7 +1037,7 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
                     process.join()
                 if not isinstance(result, VideoResult):
                     output = output_dir / f"{job.name}.h5"
-                    _discard_after_stop(output)
+                    _discard_after_stop(output, process.pid)
                     result = _failed(job, output, f"worker process {_describe_exit(process.exitcode)}")
                 record(result)
     finally:  # interrupted (Ctrl-C) or failed: stop the workers, remove what they were writing
@@ -1047,30 +1047,44 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
             for receive, (process, job) in running.items():
                 process.join()
                 receive.close()
-                _discard_after_stop(output_dir / f"{job.name}.h5")
+                _discard_after_stop(output_dir / f"{job.name}.h5", process.pid)
 
 
 #: Longest wait [s] for the lock of a stopped worker's output before its temporaries are left to the next run.
 STOPPED_WORKER_WAIT_S = 5.0
 
 
-def _discard_after_stop(output: Path, wait_s: float = STOPPED_WORKER_WAIT_S) -> None:
-    """Remove the temporaries (``.partial``, lock) of a worker that was killed or died while writing ``output``,
-    under the output's lock (:func:`cmax.io.atomic.discard_leftovers`: a file of another live writer is left
-    alone). ``join`` can return before the worker is gone: a worker is the child of the ``forkserver``, and when a
-    SIGTERM to the process group (``timeout``, a batch system) ended the server too, ``join`` returns at once while
-    the killed worker still holds its lock; so the lock is waited for up to ``wait_s`` seconds."""
+def _discard_after_stop(output: Path, pid: int | None, wait_s: float = STOPPED_WORKER_WAIT_S) -> None:
+    """Remove the temporaries (``.partial``, lock) of a worker (process ``pid``) that was killed or died while
+    writing ``output``, under the output's lock (:func:`cmax.io.atomic.discard_leftovers`: a file of another live
+    writer is left alone). ``join`` can return before the worker is gone: a worker is the child of the
+    ``forkserver``, and when a SIGTERM to the process group (``timeout``, a batch system) ended the server too,
+    ``join`` returns at once while the killed worker still holds its lock; so while process ``pid`` still exists
+    the lock is waited for, up to ``wait_s`` seconds. A lock still held once it is gone (or when ``pid`` is None)
+    is another writer's: left at once."""
     deadline = time.monotonic() + wait_s
     while True:
+        worker_alive = pid is not None and _process_exists(pid)
         try:
             discard_leftovers(output)
             return
         except OutputLockedError:
-            if time.monotonic() >= deadline:
+            if not worker_alive or time.monotonic() >= deadline:
                 return
             time.sleep(0.02)
         except OSError:
             return
+
+
+def _process_exists(pid: int) -> bool:
+    """Whether a process ``pid`` exists (a zombie too): ``kill(pid, 0)``."""
+    try:
+        os.kill(pid, 0)
+    except ProcessLookupError:
+        return False
+    except PermissionError:
+        return True
+    return True
 
 
 @contextmanager
