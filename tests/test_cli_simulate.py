@@ -483,7 +483,7 @@ def test_an_hdf5_suffix_other_than_h5_is_refused_not_made_a_folder(tmp_path, cap
     for source in (tmp_path / "clip.avi", tmp_path):                  # one video, a folder of videos
         assert main(["simulate", str(source), "-o", str(tmp_path / "o" / name), *FAST, "--quiet"]) == 2
         err = capsys.readouterr().err
-        assert f"cmax simulate writes .h5 files (manifest entries are NAME.h5): give -o " in err
+        assert "cmax simulate writes .h5 files (manifest entries are NAME.h5): give -o " in err
         assert err.strip().endswith(str(tmp_path / "o" / name[:-len(name.split(".")[-1])]) + "h5")
     assert not (tmp_path / "o").exists()
 
@@ -608,15 +608,21 @@ def test_a_conversion_at_another_size_says_how_a_calibration_of_its_frames_scale
     assert "a conversion of frames by cmax simulate" in err and "resized" not in err
 
 
-def test_a_calibration_beside_the_simulated_frames_is_named_when_no_k_is_given(tmp_path, capsys):
-    """An ECD folder's calib.txt beside images.txt: fit without K names it (was: only 'give --K or --calib')."""
+def _ecd_folder(tmp_path, calib: str):
+    """An ECD-layout folder ``tmp_path/seq`` of :func:`_frames` (six 40x30 frames, 25 frames/s) with ``calib`` as its calib.txt."""
     frames = _frames()
     seq = tmp_path / "seq"
     (seq / "images").mkdir(parents=True)
     for k, frame in enumerate(frames):
         cv2.imwrite(str(seq / "images" / f"frame_{k:08d}.png"), frame)
     (seq / "images.txt").write_text("".join(f"{k * 0.04:.6f} images/frame_{k:08d}.png\n" for k in range(len(frames))))
-    (seq / "calib.txt").write_text("50 50 19.5 14.5 0 0 0 0 0\n")
+    (seq / "calib.txt").write_text(calib + "\n")
+    return seq
+
+
+def test_a_calibration_beside_the_simulated_frames_is_named_when_no_k_is_given(tmp_path, capsys):
+    """An ECD folder's calib.txt beside images.txt: fit without K names it (was: only 'give --K or --calib')."""
+    seq = _ecd_folder(tmp_path, "50 50 19.5 14.5 0 0 0 0 0")
     out = tmp_path / "events" / "seq.h5"
     assert main(["simulate", str(seq), "-o", str(out), *FAST, "--quiet"]) == 0
     capsys.readouterr()
@@ -679,13 +685,7 @@ def test_the_calibration_of_frames_that_size_resized_is_refused_with_the_scaled_
     """An ECD folder (calib.txt beside images.txt) simulated at --size 20x15, half its 40x30 frames; `--calib
     calib.txt` then gave the frames' K to the half-size pixels as it was (focal lengths and principal point twice
     too large), without a word: an ECD calib.txt states no resolution, so nothing refused it."""
-    frames = _frames()
-    seq = tmp_path / "seq"
-    (seq / "images").mkdir(parents=True)
-    for k, frame in enumerate(frames):
-        cv2.imwrite(str(seq / "images" / f"frame_{k:08d}.png"), frame)
-    (seq / "images.txt").write_text("".join(f"{k * 0.04:.6f} images/frame_{k:08d}.png\n" for k in range(len(frames))))
-    (seq / "calib.txt").write_text("50 52 19.5 14.5 -0.1 0.02 0 0 0\n")
+    seq = _ecd_folder(tmp_path, "50 52 19.5 14.5 -0.1 0.02 0 0 0")
     out = tmp_path / "events" / "seq.h5"
     assert main(["simulate", str(seq), "-o", str(out), *FAST, "--quiet", "--size", "20x15"]) == 0
     (tmp_path / "traj.txt").write_text("0 0 0 0 0 0 0 1\n10 0.1 0 0 0 0 0 1\n")

@@ -152,18 +152,24 @@ def test_sigkill_leaves_a_loadable_checkpoint_and_resume_continues(scene_file, t
     assert load_checkpoint(tmp_path / "last.pt")["step"] == step + 2
 
 
+def torchrun_two_ranks(mode: str, overrides, timeout: float) -> None:
+    """``torchrun --standalone --nproc_per_node 2 -m learned.train --mode MODE`` (gloo, one thread a rank) with
+    the config ``overrides``; asserts it exits 0."""
+    torchrun = os.path.join(os.path.dirname(sys.executable), "torchrun")
+    env = {**os.environ, "OMP_NUM_THREADS": "1"}
+    result = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", "-m", "learned.train", "--mode",
+                             mode, "--no-progress", *overrides],
+                            cwd=ROOT, env=env, capture_output=True, text=True, timeout=timeout)
+    assert result.returncode == 0, result.stderr[-3000:]
+
+
 @pytest.mark.skipif(shutil.which("torchrun", path=os.path.dirname(sys.executable)) is None,
                     reason="torchrun not installed beside the Python interpreter")
 def test_torchrun_two_processes_match_one(scene_file, tmp_path):
     """Two gloo ranks, 2 windows each, equal one process with the global batch of 4 (to float tolerance): the
     weights, and the losses logged in log.jsonl."""
     extra = ("train.steps=3", "data.augment=false")
-    torchrun = os.path.join(os.path.dirname(sys.executable), "torchrun")
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    result = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", "-m", "learned.train", "--mode",
-                             "teacher", "--no-progress", *tiny(scene_file, tmp_path / "ddp", *extra)],
-                            cwd=ROOT, env=env, capture_output=True, text=True, timeout=120)
-    assert result.returncode == 0, result.stderr[-3000:]
+    torchrun_two_ranks("teacher", tiny(scene_file, tmp_path / "ddp", *extra), timeout=120)
     Trainer(load_config(None, tiny(scene_file, tmp_path / "one", *extra), mode="teacher"), progress=False).run()
     a, b = params(tmp_path / "ddp" / "last.pt"), params(tmp_path / "one" / "last.pt")
     for key in a:
@@ -191,12 +197,7 @@ def test_torchrun_student_two_processes_match_one(scene_file, tmp_path):
     teacher = tmp_path / "teacher"
     Trainer(load_config(None, tiny(scene_file, teacher, "train.steps=1"), mode="teacher"), progress=False).run()
     extra = ("train.steps=2", "data.augment=false", f"train.teacher={teacher / 'last.pt'}")
-    torchrun = os.path.join(os.path.dirname(sys.executable), "torchrun")
-    env = {**os.environ, "OMP_NUM_THREADS": "1"}
-    result = subprocess.run([torchrun, "--standalone", "--nproc_per_node", "2", "-m", "learned.train", "--mode",
-                             "student", "--no-progress", *tiny(scene_file, tmp_path / "ddp", *extra)],
-                            cwd=ROOT, env=env, capture_output=True, text=True, timeout=180)
-    assert result.returncode == 0, result.stderr[-3000:]
+    torchrun_two_ranks("student", tiny(scene_file, tmp_path / "ddp", *extra), timeout=180)
     Trainer(load_config(None, tiny(scene_file, tmp_path / "one", *extra), mode="student"), progress=False).run()
     a, b = params(tmp_path / "ddp" / "last.pt"), params(tmp_path / "one" / "last.pt")
     assert load_checkpoint(tmp_path / "ddp" / "last.pt")["step"] == 2
