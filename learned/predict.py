@@ -294,7 +294,8 @@ def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:
 
 
 def batch_bytes(config: "ModelConfig", width: int, height: int, batch: int) -> int:
-    """An upper estimate of the memory [bytes] of one forward pass of ``batch`` windows of ``width x height`` px.
+    """An upper estimate of the memory [bytes] of one forward pass of ``batch`` windows of ``width x height`` px
+    through a network of ``config`` (its ``bins``, ``width`` and ``space_to_depth``).
 
     Per pixel and window, in 4-byte numbers: ``2 * bins`` for the event volume and its copy on the way in,
     8 for the full-resolution outputs, and ``16 * width`` for the U-Net's feature maps per pixel of its finest
@@ -313,8 +314,8 @@ def batch_bytes(config: "ModelConfig", width: int, height: int, batch: int) -> i
 
 
 def batch_that_fits(config: "ModelConfig", width: int, height: int, batch: int | None) -> int:
-    """The windows per forward pass: ``batch``, or :data:`DEFAULT_BATCH` (fewer where that many would exceed
-    :data:`MAX_BATCH_BYTES`) when None. ValueError naming ``batch`` (``--batch``) when the given one, or a single
+    """The windows of ``width x height`` px per forward pass through a network of ``config``: ``batch``, or
+    :data:`DEFAULT_BATCH` (fewer where that many would exceed :data:`MAX_BATCH_BYTES`) when None. ValueError naming ``batch`` (``--batch``) when the given one, or a single
     window, would take more than :data:`MAX_BATCH_BYTES` by :func:`batch_bytes`'s estimate, with the largest
     batch that fits; the results do not depend on the batch."""
     one = batch_bytes(config, width, height, 1)

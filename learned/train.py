@@ -362,8 +362,9 @@ def loss_outputs(config: Config) -> tuple[bool, bool]:
 
 
 class LossOutputs(torch.nn.Module):
-    """The network as ``DistributedDataParallel`` wraps it: its forward gives only the outputs the run's loss
-    reads (:func:`loss_outputs`), the inverse depths of the other scales left out and an unread twist detached.
+    """The network ``model`` as ``DistributedDataParallel`` wraps it: its forward gives only the outputs the run's
+    loss reads (:func:`loss_outputs`): the inverse depth of every scale when ``all_scales``, else the finest alone;
+    the twist as it is when ``twist``, else detached.
 
     DDP's ``find_unused_parameters`` looks for the parameters without a gradient by walking the autograd graph
     back from the tensors the forward returns: a returned output that the loss leaves out (the coarse decoder

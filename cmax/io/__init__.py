@@ -237,8 +237,8 @@ def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str,
 
 
 def npy_time_span(path: str | os.PathLike, *, time_unit: str | None = None) -> tuple[int, int] | None:
-    """``(first_us, last_us)``: the times of the first and last rows of a structured ``.npy`` event file, from
-    those two rows alone (in time order, as :func:`read` checks where it reads); None for a file of no events.
+    """``(first_us, last_us)``: the times of the first and last rows of the structured ``.npy`` event file at
+    ``path``, from those two rows alone (in time order, as :func:`read` checks where it reads); None for a file of no events.
     ``time_unit`` as :func:`read` takes it."""
     path = Path(path)
     if detect_format(path) != "npy":
