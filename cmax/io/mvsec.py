@@ -26,6 +26,17 @@ MVSEC_WIDTH, MVSEC_HEIGHT = 346, 260
 MVSEC_CAMERAS = ("left", "right")
 
 
+def _check_camera(camera: object) -> None:
+    """ValueError unless ``camera`` is one of :data:`MVSEC_CAMERAS`."""
+    if camera not in MVSEC_CAMERAS:
+        raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
+
+
+def _unreadable(path: Path, error: BaseException) -> FormatError:
+    """The FormatError of an MVSEC file that h5py cannot read (truncated or corrupt HDF5), naming ``error``."""
+    return FormatError(f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})")
+
+
 def _events_dataset(file: h5py.File, path: Path, camera: str) -> h5py.Dataset:
     key = f"davis/{camera}/events"
     if key not in file:
@@ -56,8 +67,7 @@ def read_mvsec(
     becomes 0/1, any other value raises :class:`FormatError`. A time window is
     located by binary search on the time column on disk, so only that slice is read.
     """
-    if camera not in MVSEC_CAMERAS:
-        raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
+    _check_camera(camera)
     unit = check_time_unit(time_unit) or "s"
     polarity = check_polarity_encoding(polarity)
     per_us = 1.0 / TIME_UNITS[unit]
@@ -80,9 +90,7 @@ def read_mvsec(
     except (FormatError, EventLimitError):
         raise
     except H5_ERRORS as error:  # truncated or corrupt HDF5
-        raise FormatError(
-            f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})"
-        ) from None
+        raise _unreadable(path, error) from None
     events = _table_events(table, path, camera, unit, polarity)
     if t0_us is None and t1_us is None:
         return events
@@ -120,8 +128,7 @@ def iter_mvsec(
     >>> [chunk.t.tolist() for chunk in iter_mvsec(path, chunk_rows=2)]
     [[10000000, 10500000], [11000000]]
     """
-    if camera not in MVSEC_CAMERAS:
-        raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
+    _check_camera(camera)
     if isinstance(chunk_rows, bool) or not isinstance(chunk_rows, (int, np.integer)) or chunk_rows < 1:
         raise ValueError(f"chunk_rows must be a whole number >= 1, got {chunk_rows!r}")
     unit = check_time_unit(time_unit) or "s"
@@ -132,7 +139,7 @@ def iter_mvsec(
     try:
         file = h5py.File(path, "r")
     except H5_ERRORS as error:  # truncated or corrupt HDF5
-        raise FormatError(f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})") from None
+        raise _unreadable(path, error) from None
     with file:
         dataset, last = _events_dataset(file, path, camera), None
         for start in range(0, dataset.shape[0], int(chunk_rows)):
@@ -155,8 +162,7 @@ def mvsec_time_span(
     """``(first_us, last_us)``: the times of the first and last events of one MVSEC camera, from those two rows
     alone (the rows are in time order, as :func:`read_mvsec` checks where it reads), rounded as
     :func:`read_mvsec` rounds them; None for a camera without events."""
-    if camera not in MVSEC_CAMERAS:
-        raise ValueError(f"camera must be 'left' or 'right', got {camera!r}")
+    _check_camera(camera)
     unit = check_time_unit(time_unit) or "s"
     path = Path(path)
     if not path.is_file():
@@ -170,9 +176,7 @@ def mvsec_time_span(
     except FormatError:
         raise
     except H5_ERRORS as error:  # truncated or corrupt HDF5
-        raise FormatError(
-            f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})"
-        ) from None
+        raise _unreadable(path, error) from None
     first, last = times_to_us(ends, unit, f"{path}: davis/{camera}/events[[0, -1], 2] (t)").tolist()
     return int(first), int(last)
 
@@ -196,9 +200,7 @@ def mvsec_cameras(path: str | os.PathLike) -> dict[str, int]:
             return {camera: int(dataset.shape[0]) for camera, dataset in found.items()
                     if isinstance(dataset, h5py.Dataset) and dataset.ndim == 2}
     except H5_ERRORS as error:  # truncated or corrupt HDF5
-        raise FormatError(
-            f"{path} is not a readable MVSEC HDF5 file ({type(error).__name__}: {error})"
-        ) from None
+        raise _unreadable(path, error) from None
 
 
 def _first_at_or_after(dataset: h5py.Dataset, t_s: float) -> int:
