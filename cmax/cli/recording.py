@@ -24,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import float_list, nonnegative_float, sensor_size
-from cmax.camera import check_intrinsics, intrinsics_matrix
+from cmax.camera import Camera, check_intrinsics, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
@@ -319,16 +319,15 @@ def check_calibration_of_frames(calib: str | Path, K: np.ndarray, distortion: np
     (:func:`source_calibration`) and ``--size`` resized those frames (:func:`simulated_sizes`): it calibrates the
     frames, not the file's pixels, and used as it is every focal length and the principal point would be off by
     the scale (an ECD ``calib.txt`` states no resolution, so nothing else tells). The error gives the scaled
-    ``--K`` (``cv2.resize``'s pixel centres: ``cx' = (cx + 0.5) sx - 0.5``) and the same ``--distortion`` (its
+    ``--K`` (:meth:`cmax.camera.Camera.scaled`, ``cv2.resize``'s pixel centres) and the same ``--distortion`` (its
     coefficients act on normalised coordinates, which a scaling leaves alone)."""
     attrs = _conversion_attrs(path)
     sizes, beside = _sizes_of(attrs), _calibration_beside(attrs)
     if sizes is None or sizes[0] == sizes[1] or beside is None or not _same_file(beside, calib):
         return
     (W, H), (w, h) = sizes
-    sx, sy = w / W, h / H
-    fx, fy, cx, cy = K[0, 0] * sx, K[1, 1] * sy, (K[0, 2] + 0.5) * sx - 0.5, (K[1, 2] + 0.5) * sy - 0.5
-    scaled = f"--K {fx:.6g},{fy:.6g},{cx:.6g},{cy:.6g}"
+    frames = Camera(K, W, H).scaled(w, h)
+    scaled = f"--K {frames.fx:.6g},{frames.fy:.6g},{frames.cx:.6g},{frames.cy:.6g}"
     if distortion is not None and np.any(distortion):
         scaled += " --distortion " + ",".join(f"{v:.9g}" for v in distortion)
     raise ValueError(f"{calib} calibrates the {W}x{H} frames that {path} was simulated from, but --size resized "
