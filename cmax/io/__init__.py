@@ -17,6 +17,7 @@ cannot decode. Files are written in the DSEC layout only (:func:`write_h5`,
 """
 from __future__ import annotations
 
+import bisect
 import os
 from pathlib import Path
 from typing import Any
@@ -257,16 +258,7 @@ def _npy_rows(t: np.ndarray, unit: str, t0_us: int | None, t1_us: int | None, wh
     def at(row: int) -> int:
         return int(times_to_us(np.array(t[row: row + 1]), unit, where)[0])
 
-    def first_at_or_after(bound: int) -> int:
-        lo, hi = 0, len(t)
-        while lo < hi:
-            mid = (lo + hi) // 2
-            if at(mid) < bound:
-                lo = mid + 1
-            else:
-                hi = mid
-        return lo
-
-    start = 0 if t0_us is None else first_at_or_after(int(t0_us))
-    stop = len(t) if t1_us is None else max(start, first_at_or_after(int(t1_us)))
+    rows = range(len(t))
+    start = 0 if t0_us is None else bisect.bisect_left(rows, int(t0_us), key=at)
+    stop = len(t) if t1_us is None else max(start, bisect.bisect_left(rows, int(t1_us), key=at))
     return slice(start, stop)
