@@ -675,6 +675,12 @@ def test_a_whole_h5_file_too_long_to_hold_is_fitted_window_by_window(tmp_path, c
 @pytest.mark.parametrize("options, message", [
     (["--model", "flow", "--speed", "1.5"], "--speed applies to --model se3, not flow"),
     (["--model", "rotation", "--zero-rotation-start"], "--zero-rotation-start applies to --model se3, not rotation"),
+    # se3's options beside another model were taken and did nothing (the fit ran, exit 0):
+    (["--model", "flow", "--members", "3"], "--members applies to --model se3, not flow"),
+    (["--model", "rotation", "--depth-grid", "4,4"], "--depth-grid applies to --model se3, not rotation"),
+    (["--model", "rotation", "--polish", "depth"], "--polish applies to --model se3, not rotation"),
+    (["--model", "rotation", "--depth-range", "1,2"], "--depth-range applies to --model se3, not rotation"),
+    (["--model", "flow", "--max-omega", "1"], "--max-omega applies to --model se3 and rotation, not flow"),
     (["--omega", "0,0,0", "--gyro", "g.txt"], "--omega is a constant rotation, --gyro a measured one"),
     (["--depth-range", "3,1"], "--depth-range must satisfy 0 < near < far (metres), got (3.0, 1.0)"),
     (["--max-events", "5"], "--max-events must be >= 10, got 5"),

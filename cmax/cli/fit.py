@@ -53,8 +53,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
     add_recording_arguments(parser)
     api_default(parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
-                                    metavar="NEAR,FAR", help="depth bounds [m] (in units of --speed x 1 s without "
-                                    "it); give the scene's own range when known: it matters for se3"),
+                                    metavar="NEAR,FAR", help="se3: depth bounds [m] (in units of --speed x 1 s "
+                                    "without it); give the scene's own range when known"),
                 _settings_default("depth_range"))
     api_default(parser.add_argument("--model", choices=("se3", "rotation", "flow"), default=None,
                                     help="motion model"), _sequence_default("model"))
@@ -411,9 +411,13 @@ def run(args: argparse.Namespace) -> int:
     # The options are checked before the file is read (a mistake is named at once, in the options' words):
     sequence_model = args.model or _sequence_default("model")()
     for option, given in (("--omega", args.omega is not None), ("--speed", args.speed is not None),
-                          ("--gyro", args.gyro is not None), ("--zero-rotation-start", args.zero_rotation_start)):
-        if given and sequence_model != "se3":
+                          ("--gyro", args.gyro is not None), ("--zero-rotation-start", args.zero_rotation_start),
+                          ("--members", args.members is not None), ("--depth-grid", args.depth_grid is not None),
+                          ("--polish", args.polish is not None), ("--depth-range", args.depth_range is not None)):
+        if given and sequence_model != "se3":   # the other models fit no depth: taken, it would do nothing
             raise ValueError(f"{option} applies to --model se3, not {sequence_model}")
+    if args.max_omega is not None and sequence_model == "flow":
+        raise ValueError("--max-omega applies to --model se3 and rotation, not flow (a flow has no rotation)")
     if args.omega is not None and args.gyro is not None:
         raise ValueError("--omega is a constant rotation, --gyro a measured one: pass one of them")
     if args.gyro_axes is not None:
