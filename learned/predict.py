@@ -669,6 +669,9 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
     if depth_range is not None:
         viz.DepthScale(*depth_range)   # checked before any work
     calib_size = None
+    if calib is None and calib_camera != "cam0":   # else taken and ignored: --K or the file's gt/K would be used
+        raise ValueError(f"--calib-camera {calib_camera} chooses a camera of a --calib file (a DSEC cam_to_cam.yaml "
+                         "or a Kalibr camchain): give --calib too")
     if distortion is not None:
         if K is None:
             raise ValueError("--distortion applies to --K: give both (a --calib file brings its own distortion)")

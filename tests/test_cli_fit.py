@@ -228,6 +228,9 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     (["--calib", "CALIB", "--distortion", "0,0,0,0"], "pass --calib or --K with --distortion, not both"),
     (["--calib", "YAML"], "calibrates a 640x480 camera (cam0), the events come from a 64x48 sensor"),
     (["--calib", "YAML", "--calib-camera", "left"], "no intrinsics/left"),
+    # --calib-camera where it chooses nothing (was: taken and ignored, the fit ran on the only camera there is):
+    (["--calib", "CALIB", "--calib-camera", "camRect0"], "calibrates one camera (ECD calib.txt): camera 'camRect0'"),
+    (["--K", "60,60,32,24", "--calib-camera", "cam1"], "--calib-camera cam1 chooses a camera of a --calib file"),
     (["--K", "60,60,32,24", "--gyro", "GYRO"], "do not overlap the events"),
     (["--K", "60,60,32,24", "--t0", "1", "--t1", "0.5"], "--t1 must be after --t0"),
     (["--K", "60,60,32,24", "--t0", "0.2"], "--t0 0.2 s is past the recording's last event ("),

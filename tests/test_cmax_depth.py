@@ -380,8 +380,9 @@ def _bad_files(tmp: Path, events: Events) -> dict[str, Path]:
     _npy_float_seconds(tmp / "float.npy", events)
     write_txt(tmp / "e.txt", events)
     (tmp / "notes.pt").write_text("not a checkpoint\n")
+    (tmp / "calib.txt").write_text(K_TEXT.replace(",", " ") + "\n")
     return {"FILE": tmp / "e.h5", "BIN": tmp / "x.bin", "FLOAT": tmp / "float.npy", "TEXT": tmp / "e.txt",
-            "BADCKPT": tmp / "notes.pt", "MISSING": tmp / "missing.h5"}
+            "BADCKPT": tmp / "notes.pt", "MISSING": tmp / "missing.h5", "CALIB": tmp / "calib.txt"}
 
 
 MISTAKES = [
@@ -400,6 +401,9 @@ MISTAKES = [
     (["FILE", "--K", "1,2,3"], "argument --K: --K must be fx,fy,cx,cy"),
     (["FILE", "--K", K_TEXT, "--batch", "0"], "argument --batch: expected a whole number >= 1"),
     (["FILE", "--K", K_TEXT, "--polarity", "signed"], "the stated encoding is -1 (OFF) / +1 (ON)"),  # 0/1 stored
+    # --calib-camera where it chooses nothing (was: taken and ignored, depth maps written with the one K there is):
+    (["FILE", "--K", K_TEXT, "--calib-camera", "cam1"], "--calib-camera cam1 chooses a camera of a --calib file"),
+    (["FILE", "--calib", "CALIB", "--calib-camera", "camRect0"], "calibrates one camera (ECD calib.txt)"),
 ]
 
 
