@@ -108,6 +108,26 @@ def test_the_volume_alone_is_titled_with_the_file_window_and_events(tmp_path):
     assert (strip != 255).any()                               # the strip holds the text, not only white
 
 
+def test_bins_with_the_frame_alone_is_refused_not_ignored(tmp_path, capsys):
+    """`cmax show --mode frame --bins 7` drew the frame and dropped --bins without a word (exit 0). Now refused
+    before any work; the volume's modes take it, and without it they draw the library's 5 bins."""
+    events = random_events(300, width=64, height=48, t_span_us=10_000, seed=3)
+    path = write_h5(tmp_path / "rec.h5", events)
+    out = tmp_path / "f.png"
+    assert main(["show", str(path), "--mode", "frame", "--bins", "7", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cmax show: error: --bins applies to the event volume") and err.count("\n") == 1, err
+    assert not out.exists()
+    assert main(["show", str(path), "--mode", "frame", "-o", str(out)]) == 0
+    for bins, name in ((7, "seven.png"), (None, "default.png")):
+        argv = ["show", str(path), "--mode", "voxel", "-o", str(tmp_path / name)]
+        assert main(argv + ([] if bins is None else ["--bins", str(bins)])) == 0
+        expected = render_events(events.slice_time(int(events.t[0]), int(events.t[0]) + 50_000), mode="voxel",
+                                 bins=5 if bins is None else bins,
+                                 title=f"rec.h5, 0 s + 50 ms (events over {events.duration_us * 1e-3:.3g} ms): ")
+        np.testing.assert_array_equal(cv2.imread(str(tmp_path / name)), expected)
+
+
 def test_the_ground_truth_depth_is_drawn_only_for_a_window_that_holds_its_time(tmp_path):
     """A scene with one depth map a second: a window at 0.45-0.5 s drew the map of t=0 as "ground-truth depth"."""
     from cmax.show import read_window
