@@ -233,6 +233,7 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     (["--K", "60,60,32,24", "--calib-camera", "cam1"], "--calib-camera cam1 chooses a camera of a --calib file"),
     (["--K", "60,60,32,24", "--gyro", "GYRO"], "do not overlap the events"),
     (["--K", "60,60,32,24", "--t0", "1", "--t1", "0.5"], "--t1 must be after --t0"),
+    (["--K", "60,60,32,24", "--t1", "0"], "--t1 must be after --t0, got 0.0 (the first event, --t0 left out) and 0.0"),
     (["--K", "60,60,32,24", "--t0", "0.2"], "--t0 0.2 s is past the recording's last event ("),
     (["--K", "60,60,32,24", "-o", "CALIB"], "is a file, not a folder"),
     (["--K", "60,60,32,24", "--depth-range", "3,nan"], "argument --depth-range"),

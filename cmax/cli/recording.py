@@ -585,7 +585,8 @@ def time_span_us(first_us: int, last_us: int | None, t0_s: float | None,
         raise ValueError(f"--t0 {t0_s} s is past the recording's last event ({(last_us - first_us) * 1e-6:.6f} s "
                          "after its first)")
     if t1 <= t0:
-        raise ValueError(f"--t1 must be after --t0, got {t0_s} and {t1_s}")
+        start = "0.0 (the first event, --t0 left out)" if t0_s is None else t0_s   # was: "got None and 0.0"
+        raise ValueError(f"--t1 must be after --t0, got {start} and {t1_s}")
     return t0, t1
 
 
