@@ -195,6 +195,23 @@ def test_fit_options_short_recording_and_gyro_overlap(slider, tmp_path, capsys):
     assert inside.size and inside.min() >= 1.0 - 1e-6 and inside.max() <= 4.0 + 1e-6
 
 
+def test_a_depth_range_without_speed_is_said_to_be_in_units_of_the_speed(tmp_path, capsys):
+    """`--depth-range 0.47,2.4` (the ECD slider's range in metres) without --speed bounded depths that the fit
+    measures at 1 m/s: the slider moves at about 0.3 m/s, so its scene lay at 1.6-8 in those units, 44% of the
+    depth on the far bound and 4 of 5 windows ambiguous, without a word on the unit. Now a note says so; with
+    --speed (metres) there is none."""
+    path = write_h5(tmp_path / "few.h5", noise_events(300, 50_000, seed=1))
+    base = ["fit", str(path), "--K", "60,60,32,24", "--quiet", "--depth-range", "0.5,2"]
+    main([*base, "-o", str(tmp_path / "a")])
+    err = capsys.readouterr().err
+    assert "note: without --speed the fit's depths are in units of the speed x 1 s" in err, err
+    assert "at 0.3 m/s a scene at 0.5-2 m lies at 1.67-6.67 in these units" in err, err        # 0.5 / 0.3, 2 / 0.3
+    notes = json.loads((tmp_path / "a" / "summary.json").read_text())["notes"]
+    assert any(note.startswith("without --speed the fit's depths") for note in notes)
+    main([*base, "--speed", "0.3", "-o", str(tmp_path / "b")])
+    assert "without --speed" not in capsys.readouterr().err
+
+
 def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     events = noise_events(300, 50_000, seed=1)
     path = write_h5(tmp_path / "few.h5", events)
