@@ -122,6 +122,10 @@ def _check_outputs(out: Path, expected: list[tuple[int, np.ndarray, np.ndarray]]
         assert np.array_equal(cv2.imread(str(out / f"window_{k:05d}.png")), panel)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["windows"] == len(expected) and summary["size"][0] in (W, 346)
+    # twists.csv's header gives no units (was: nowhere in the run's files): summary.json names them, as cmax fit's
+    units = summary["units"]
+    assert units["twists.csv vx, vy, vz"].startswith("m/s") and units["twists.csv wx, wy, wz"].startswith("rad/s")
+    assert set(rows[0].split(",")[4:]) == {"vx", "vy", "vz", "wx", "wy", "wz"}
 
 
 # -- writers of each format ------------------------------------------------------------------
