@@ -28,10 +28,12 @@ import numpy as np
 
 from cmax.io.atomic import write_text_atomic
 
-__all__ = ["DemoSettings", "DemoReport", "run_demo", "demo_outputs", "DEMO_LOCK"]
+__all__ = ["DemoSettings", "DemoReport", "run_demo", "demo_outputs", "DEMO_LOCK", "MAX_SCENE_S"]
 
 #: The lock file :func:`run_demo` holds in its output folder while it runs.
 DEMO_LOCK = ".demo.lock"
+#: The longest scene :func:`cmax.sim.make_scene` builds [s]: ``start_s + duration_s`` of the demo must fit in it.
+MAX_SCENE_S = 600.0
 
 
 def _fit_depth_grid() -> tuple[int, int]:
@@ -95,6 +97,10 @@ class DemoSettings:
             raise ValueError(f"window_s must be in (0, duration_s={self.duration_s}], got {self.window_s}")
         if not self.start_s >= 0:
             raise ValueError(f"start_s must be >= 0 seconds, got {self.start_s}")
+        if self.start_s + self.duration_s > MAX_SCENE_S:   # was refused after "[1/5] rendering", as start + duration
+            raise ValueError(f"duration_s must be at most {MAX_SCENE_S - self.start_s:g} seconds (a scene lasts at most "
+                             f"{MAX_SCENE_S:g} s and the demo simulates it from start_s={self.start_s:g} s), got "
+                             f"{self.duration_s:g}")
 
 
 @dataclass(frozen=True)

@@ -134,6 +134,25 @@ def test_demo_refuses_a_sensor_smaller_than_the_fit_grid_before_any_work(tmp_pat
     DemoSettings(width=32, height=24)
 
 
+def test_a_duration_past_the_longest_scene_is_refused_in_the_users_number(tmp_path: Path, capsys) -> None:
+    """`cmax demo --duration 599.9` printed "[1/5] rendering ..." and then `duration_s must be in (0, 600] seconds,
+    got 600.1`: the scene's 0.2 s start added to a number the user never typed. Refused first, naming the most
+    --duration can be: the longest scene make_scene builds less the demo's start."""
+    from cmax.cli import main
+    from cmax.sim import make_scene
+
+    start = DemoSettings().start_s
+    with pytest.raises(ValueError, match="duration_s must be in"):
+        make_scene("indoor_flying", duration_s=start + 599.9, width=32, height=24)   # what the demo asked for
+    with pytest.raises(ValueError, match=f"duration_s must be at most {600 - start:g} seconds"):
+        DemoSettings(duration_s=599.9)
+    assert main(["demo", "-o", str(tmp_path / "d"), "--duration", "599.9"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"cmax demo: error: --duration must be at most {600 - start:g} seconds")
+    assert "[1/5]" not in captured.out and not (tmp_path / "d").exists()
+    DemoSettings(duration_s=600 - start)                  # the longest the demo can simulate
+
+
 def test_run_demo_rejects_unknown_settings(tmp_path: Path) -> None:
     with pytest.raises(TypeError):
         run_demo(tmp_path, colour="red")
