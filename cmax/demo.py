@@ -28,10 +28,23 @@ import numpy as np
 
 from cmax.io.atomic import write_text_atomic
 
-__all__ = ["DemoSettings", "DemoReport", "run_demo", "demo_outputs", "DEMO_LOCK"]
+__all__ = ["DemoSettings", "DemoReport", "run_demo", "demo_outputs", "DEMO_LOCK", "MAX_SCENE_S"]
 
 #: The lock file :func:`run_demo` holds in its output folder while it runs.
 DEMO_LOCK = ".demo.lock"
+#: The longest scene :func:`cmax.sim.make_scene` builds [s]: ``start_s + duration_s`` of the demo must fit in it.
+MAX_SCENE_S = 600.0
+
+
+def _fit_depth_grid() -> tuple[int, int]:
+    """``(rows, columns)`` of :func:`cmax.fit`'s default inverse-depth grid, which the demo fits on: the smallest
+    sensor [px] the demo can fit is ``columns`` wide and ``rows`` high (:class:`cmax.warp.DepthGrid`)."""
+    import inspect
+
+    from cmax.fitting.api import fit
+
+    rows, columns = inspect.signature(fit).parameters["depth_grid"].default
+    return int(rows), int(columns)
 
 
 @dataclass(frozen=True)
@@ -44,7 +57,7 @@ class DemoSettings:
         A preset of :func:`cmax.sim.make_scene`.
     seed : int
     width, height : int
-        Sensor size [px].
+        Sensor size [px]: at least 32 x 24, the size of :func:`cmax.fit`'s default depth grid (24 x 32 nodes).
     duration_s : float
         Simulated time [s] (EMVS uses all of it).
     window_s : float
@@ -73,15 +86,21 @@ class DemoSettings:
     texture_size: int = 256
 
     def __post_init__(self) -> None:
-        for name, minimum in (("width", 16), ("height", 16), ("texture_size", 16), ("n_planes", 2),
-                              ("n_windows", 1)):
+        rows, columns = _fit_depth_grid()     # the windows are fitted on it: a smaller sensor failed after simulating
+        why = f" (cmax.fit's default depth grid of {rows}x{columns} nodes needs a sensor of {columns}x{rows} px)"
+        for name, minimum, reason in (("width", columns, why), ("height", rows, why), ("texture_size", 16, ""),
+                                      ("n_planes", 2, ""), ("n_windows", 1, "")):
             value = getattr(self, name)
             if isinstance(value, bool) or not isinstance(value, (int, np.integer)) or value < minimum:
-                raise ValueError(f"{name} must be an integer >= {minimum}, got {value!r}")
+                raise ValueError(f"{name} must be an integer >= {minimum}{reason}, got {value!r}")
         if not 0 < self.window_s <= self.duration_s:
             raise ValueError(f"window_s must be in (0, duration_s={self.duration_s}], got {self.window_s}")
         if not self.start_s >= 0:
             raise ValueError(f"start_s must be >= 0 seconds, got {self.start_s}")
+        if self.start_s + self.duration_s > MAX_SCENE_S:   # was refused after "[1/5] rendering", as start + duration
+            raise ValueError(f"duration_s must be at most {MAX_SCENE_S - self.start_s:g} seconds (a scene lasts at most "
+                             f"{MAX_SCENE_S:g} s and the demo simulates it from start_s={self.start_s:g} s), got "
+                             f"{self.duration_s:g}")
 
 
 @dataclass(frozen=True)

@@ -9,7 +9,7 @@ import numpy as np
 
 from cmax.events import Events
 from cmax.representations import event_frame, voxel_grid
-from cmax.viz import depth_panel, enlarge, event_panel, hstack, readable_zoom, vstack, voxel_grid_image
+from cmax.viz import depth_panel, enlarge, event_panel, hstack, readable_zoom, titled, vstack, voxel_grid_image
 
 __all__ = ["read_window", "render_window", "render_events", "SHOW_PERCENTILE", "SHOW_GAMMA"]
 
@@ -161,7 +161,8 @@ def render_events(
 ) -> np.ndarray:
     """Picture (BGR uint8) of events: event frame (with its ON/OFF legend), event-volume bins,
     or both (``mode``: ``"frame"``, ``"voxel"`` or ``"both"``, ``bins`` of the volume); plus the ``depth``
-    (H, W) [m] with its colour bar in metres; ``title`` above the picture.
+    (H, W) [m] with its colour bar in metres; ``title``, followed by the number of events, above the event frame,
+    or above the whole picture when there is none (``"voxel"``).
 
     Contrast: :data:`SHOW_PERCENTILE` and :data:`SHOW_GAMMA`. Layout: the event frame
     and the depth side by side when they fit in about 1800 px, else one above the other; the
@@ -190,6 +191,8 @@ def render_events(
         volume = np.stack([enlarge(b, zoom) for b in volume]) if zoom > 1 else volume
         rows.append(voxel_grid_image(volume, columns=columns, shrink=shrink, percentile=SHOW_PERCENTILE,
                                      gamma=SHOW_GAMMA))
+    if mode == "voxel":   # no event frame to carry the title: above the picture (was: none, no file or window)
+        return titled(vstack(rows), f"{title}{len(events):,} events")
     return vstack(rows)
 
 

@@ -51,7 +51,7 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
            "window_picture", "write_window", "earlier_results", "FOLDER_LOCK", "DEFAULT_BATCH", "MAX_BATCH_BYTES",
-           "batch_bytes", "batch_that_fits",
+           "batch_bytes", "batch_that_fits", "SUMMARY_UNITS",
            "run_prediction", "predict_file", "add_arguments",
            "run", "main"]
 
@@ -63,6 +63,19 @@ _STAGE_PREFIX = "depth"
 #: lock as ``cmax fit`` and ``cmax emvs`` take, so that no two of them write into one folder at once.
 FOLDER_LOCK = run_folder.FOLDER_LOCK
 _CSV_HEADER = "window,t0_us,t1_us,events,vx,vy,vz,wx,wy,wz"
+#: The units and frames of what a run writes, keyed by field or column (``summary.json``'s ``units``, as
+#: ``cmax fit`` writes its own): twists.csv's header names its columns without them.
+SUMMARY_UNITS = {
+    "twists.csv vx, vy, vz": "m/s, camera frame (x right, y down, z forward)",
+    "twists.csv wx, wy, wz": "rad/s, camera frame (x right, y down, z forward)",
+    "twists.csv t0_us, t1_us; start_us, end_us": "µs on the file's clock (a window's ends; the span of the run)",
+    "window_us": "µs",
+    "t0_s, t1_s": "s after the first event (--t0, --t1)",
+    "depth_range_m": "m: the colour scale of window_*.png (the depth itself is not bounded by it)",
+    "K": "px",
+    "window_NNNNN.npz": "depth (H, W) [m], inverse_depth (H, W) [1/m], twist (6,) (v [m/s], omega [rad/s], camera "
+                        "frame), t0_us, t1_us [µs], K [px]",
+}
 #: Windows per forward pass when ``batch`` is not given (fewer where they would exceed :data:`MAX_BATCH_BYTES`).
 DEFAULT_BATCH = 8
 #: The most memory [bytes] one forward pass may take by :func:`batch_bytes`'s estimate (4 GiB): a ``batch`` of
@@ -669,6 +682,9 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
     if depth_range is not None:
         viz.DepthScale(*depth_range)   # checked before any work
     calib_size = None
+    if calib is None and calib_camera != "cam0":   # else taken and ignored: --K or the file's gt/K would be used
+        raise ValueError(f"--calib-camera {calib_camera} chooses a camera of a --calib file (a DSEC cam_to_cam.yaml "
+                         "or a Kalibr camchain): give --calib too")
     if distortion is not None:
         if K is None:
             raise ValueError("--distortion applies to --K: give both (a --calib file brings its own distortion)")
@@ -735,7 +751,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                "distortion": None if distortion is None else distortion.tolist(), "window_us": window_us,
                "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],
                "windows_total": len(starts), "windows": written, "skipped": skipped, "min_events": MIN_EVENTS,
-               "notes": list(notes), "device": str(device), "seconds": run.seconds}
+               "notes": list(notes), "device": str(device), "seconds": run.seconds, "units": SUMMARY_UNITS}
     write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2) + "\n")
     return run
 

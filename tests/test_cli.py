@@ -32,6 +32,30 @@ def test_info_reports_counts_rate_and_balance(h5_file, capsys):
     assert "source = unit test" in out
 
 
+def test_info_summarises_the_files_after_one_it_cannot_read(h5_file, tmp_path, capsys):
+    """`cmax info A BAD C` stopped at BAD: C was never summarised (`cmax info *.raw` over a folder holding one
+    truncated recording). Every readable file now gets its block, each bad one a line on stderr, exit status 2."""
+    from cmax import Events
+
+    path, ev = h5_file
+    later = write_h5(tmp_path / "later.h5", Events([1, 3], [2, 4], [5, 9], [1, 0], width=8, height=8))
+    assert main(["info", str(later)]) == 0
+    alone = capsys.readouterr().out                       # C summarised on its own: the block expected after BAD
+    cut = tmp_path / "cut.h5"
+    cut.write_bytes(path.read_bytes()[:3000])             # a copy cut short: not a readable HDF5 file
+    missing = tmp_path / "missing.h5"
+    assert main(["info", str(path), str(cut), str(missing), str(later)]) == 2
+    captured = capsys.readouterr()
+    assert captured.out.count("file        ") == 2
+    assert captured.out.startswith(f"file        {path}\n") and captured.out.endswith(alone)
+    errors = captured.err.splitlines()
+    assert len(errors) == 2 and errors[0].startswith("cmax info: error: ") and str(cut) in errors[0]
+    assert errors[1].startswith("cmax info: error: ") and str(missing) in errors[1]
+    assert main(["info", str(path), str(later)]) == 0     # all readable: exit 0 as before
+    with pytest.raises(ValueError, match="cut.h5"):       # --debug: the first error (FormatError), raised
+        main(["info", "--debug", str(cut), str(later)])
+
+
 def test_info_of_one_event_says_the_rate_is_not_available(tmp_path, capsys):
     """Report userC item 7: a file whose events span 0 µs printed `rate        nan Mev/s`."""
     from cmax import Events

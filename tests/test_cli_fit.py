@@ -195,6 +195,23 @@ def test_fit_options_short_recording_and_gyro_overlap(slider, tmp_path, capsys):
     assert inside.size and inside.min() >= 1.0 - 1e-6 and inside.max() <= 4.0 + 1e-6
 
 
+def test_a_depth_range_without_speed_is_said_to_be_in_units_of_the_speed(tmp_path, capsys):
+    """`--depth-range 0.47,2.4` (the ECD slider's range in metres) without --speed bounded depths that the fit
+    measures at 1 m/s: the slider moves at about 0.3 m/s, so its scene lay at 1.6-8 in those units, 44% of the
+    depth on the far bound and 4 of 5 windows ambiguous, without a word on the unit. Now a note says so; with
+    --speed (metres) there is none."""
+    path = write_h5(tmp_path / "few.h5", noise_events(300, 50_000, seed=1))
+    base = ["fit", str(path), "--K", "60,60,32,24", "--quiet", "--depth-range", "0.5,2"]
+    main([*base, "-o", str(tmp_path / "a")])
+    err = capsys.readouterr().err
+    assert "note: without --speed the fit's depths are in units of the speed x 1 s" in err, err
+    assert "at 0.3 m/s a scene at 0.5-2 m lies at 1.67-6.67 in these units" in err, err        # 0.5 / 0.3, 2 / 0.3
+    notes = json.loads((tmp_path / "a" / "summary.json").read_text())["notes"]
+    assert any(note.startswith("without --speed the fit's depths") for note in notes)
+    main([*base, "--speed", "0.3", "-o", str(tmp_path / "b")])
+    assert "without --speed" not in capsys.readouterr().err
+
+
 def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     events = noise_events(300, 50_000, seed=1)
     path = write_h5(tmp_path / "few.h5", events)
@@ -228,8 +245,12 @@ def test_no_window_with_enough_events_exits_1(tmp_path, capsys):
     (["--calib", "CALIB", "--distortion", "0,0,0,0"], "pass --calib or --K with --distortion, not both"),
     (["--calib", "YAML"], "calibrates a 640x480 camera (cam0), the events come from a 64x48 sensor"),
     (["--calib", "YAML", "--calib-camera", "left"], "no intrinsics/left"),
+    # --calib-camera where it chooses nothing (was: taken and ignored, the fit ran on the only camera there is):
+    (["--calib", "CALIB", "--calib-camera", "camRect0"], "calibrates one camera (ECD calib.txt): camera 'camRect0'"),
+    (["--K", "60,60,32,24", "--calib-camera", "cam1"], "--calib-camera cam1 chooses a camera of a --calib file"),
     (["--K", "60,60,32,24", "--gyro", "GYRO"], "do not overlap the events"),
     (["--K", "60,60,32,24", "--t0", "1", "--t1", "0.5"], "--t1 must be after --t0"),
+    (["--K", "60,60,32,24", "--t1", "0"], "--t1 must be after --t0, got 0.0 (the first event, --t0 left out) and 0.0"),
     (["--K", "60,60,32,24", "--t0", "0.2"], "--t0 0.2 s is past the recording's last event ("),
     (["--K", "60,60,32,24", "-o", "CALIB"], "is a file, not a folder"),
     (["--K", "60,60,32,24", "--depth-range", "3,nan"], "argument --depth-range"),
@@ -675,6 +696,12 @@ def test_a_whole_h5_file_too_long_to_hold_is_fitted_window_by_window(tmp_path, c
 @pytest.mark.parametrize("options, message", [
     (["--model", "flow", "--speed", "1.5"], "--speed applies to --model se3, not flow"),
     (["--model", "rotation", "--zero-rotation-start"], "--zero-rotation-start applies to --model se3, not rotation"),
+    # se3's options beside another model were taken and did nothing (the fit ran, exit 0):
+    (["--model", "flow", "--members", "3"], "--members applies to --model se3, not flow"),
+    (["--model", "rotation", "--depth-grid", "4,4"], "--depth-grid applies to --model se3, not rotation"),
+    (["--model", "rotation", "--polish", "depth"], "--polish applies to --model se3, not rotation"),
+    (["--model", "rotation", "--depth-range", "1,2"], "--depth-range applies to --model se3, not rotation"),
+    (["--model", "flow", "--max-omega", "1"], "--max-omega applies to --model se3 and rotation, not flow"),
     (["--omega", "0,0,0", "--gyro", "g.txt"], "--omega is a constant rotation, --gyro a measured one"),
     (["--depth-range", "3,1"], "--depth-range must satisfy 0 < near < far (metres), got (3.0, 1.0)"),
     (["--max-events", "5"], "--max-events must be >= 10, got 5"),

@@ -488,6 +488,20 @@ def test_an_hdf5_suffix_other_than_h5_is_refused_not_made_a_folder(tmp_path, cap
     assert not (tmp_path / "o").exists()
 
 
+def test_an_existing_file_as_the_output_folder_is_named_as_such(tmp_path, capsys):
+    """`cmax simulate clip.avi -o notes.txt` with notes.txt a file: `cmax simulate: error: File exists: notes.txt`,
+    from the folder's mkdir, which reads as a refusal to replace notes.txt rather than a file given for a folder."""
+    write_video(tmp_path / "clip.avi")
+    (tmp_path / "notes.txt").write_text("mine\n")
+    for source in (tmp_path / "clip.avi", tmp_path):                  # one video, a folder of videos
+        assert main(["simulate", str(source), "-o", str(tmp_path / "notes.txt"), *FAST, "--quiet"]) == 2
+        err = capsys.readouterr().err
+        assert err.startswith(f"cmax simulate: error: -o {tmp_path / 'notes.txt'} is a file, not a folder: ")
+        assert "-o NAME.h5 for one video" in err and err.count("\n") == 1, err
+    assert (tmp_path / "notes.txt").read_text() == "mine\n"
+    assert not (tmp_path / "manifest.json").exists()
+
+
 def test_flow_on_frames_under_32_pixels_is_explained_in_the_commands_words(tmp_path, capsys):
     """'needs frames of at least 32x32 pixels, got (16, 24); use method='linear'' gave (H, W) and the API's
     words, once per video; with --size it is refused before any video is decoded."""

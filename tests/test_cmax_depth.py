@@ -122,6 +122,10 @@ def _check_outputs(out: Path, expected: list[tuple[int, np.ndarray, np.ndarray]]
         assert np.array_equal(cv2.imread(str(out / f"window_{k:05d}.png")), panel)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["windows"] == len(expected) and summary["size"][0] in (W, 346)
+    # twists.csv's header gives no units (was: nowhere in the run's files): summary.json names them, as cmax fit's
+    units = summary["units"]
+    assert units["twists.csv vx, vy, vz"].startswith("m/s") and units["twists.csv wx, wy, wz"].startswith("rad/s")
+    assert set(rows[0].split(",")[4:]) == {"vx", "vy", "vz", "wx", "wy", "wz"}
 
 
 # -- writers of each format ------------------------------------------------------------------
@@ -380,8 +384,9 @@ def _bad_files(tmp: Path, events: Events) -> dict[str, Path]:
     _npy_float_seconds(tmp / "float.npy", events)
     write_txt(tmp / "e.txt", events)
     (tmp / "notes.pt").write_text("not a checkpoint\n")
+    (tmp / "calib.txt").write_text(K_TEXT.replace(",", " ") + "\n")
     return {"FILE": tmp / "e.h5", "BIN": tmp / "x.bin", "FLOAT": tmp / "float.npy", "TEXT": tmp / "e.txt",
-            "BADCKPT": tmp / "notes.pt", "MISSING": tmp / "missing.h5"}
+            "BADCKPT": tmp / "notes.pt", "MISSING": tmp / "missing.h5", "CALIB": tmp / "calib.txt"}
 
 
 MISTAKES = [
@@ -400,6 +405,9 @@ MISTAKES = [
     (["FILE", "--K", "1,2,3"], "argument --K: --K must be fx,fy,cx,cy"),
     (["FILE", "--K", K_TEXT, "--batch", "0"], "argument --batch: expected a whole number >= 1"),
     (["FILE", "--K", K_TEXT, "--polarity", "signed"], "the stated encoding is -1 (OFF) / +1 (ON)"),  # 0/1 stored
+    # --calib-camera where it chooses nothing (was: taken and ignored, depth maps written with the one K there is):
+    (["FILE", "--K", K_TEXT, "--calib-camera", "cam1"], "--calib-camera cam1 chooses a camera of a --calib file"),
+    (["FILE", "--calib", "CALIB", "--calib-camera", "camRect0"], "calibrates one camera (ECD calib.txt)"),
 ]
 
 

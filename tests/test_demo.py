@@ -103,7 +103,7 @@ def test_demo_h5_holds_events_and_ground_truth(small_demo: tuple[DemoReport, lis
 
 
 @pytest.mark.parametrize("field, value, message", [
-    ("width", 8, "width must be an integer >= 16"),
+    ("width", 8, "width must be an integer >= 32"),
     ("n_planes", 1, "n_planes must be an integer >= 2"),
     ("window_s", 1.0, "window_s must be in"),
     ("start_s", -1.0, "start_s must be >= 0"),
@@ -112,6 +112,45 @@ def test_demo_h5_holds_events_and_ground_truth(small_demo: tuple[DemoReport, lis
 def test_demo_settings_validate(field: str, value: object, message: str) -> None:
     with pytest.raises(ValueError, match=message):
         DemoSettings(**{field: value})
+
+
+def test_demo_refuses_a_sensor_smaller_than_the_fit_grid_before_any_work(tmp_path: Path, capsys) -> None:
+    """`cmax demo --size 31x24` (any width 16-31 or height 16-23) rendered and simulated the scene, then failed in
+    cmax.fit (`depth_grid (24, 32) is finer than the image 24x31`, naming `cmax fit: --depth-grid`), leaving
+    indoor_flying.h5, which made the rerun refused. The limit is where cmax.warp.DepthGrid takes the fit's grid."""
+    from cmax.cli import main
+    from cmax.warp import DepthGrid
+
+    DepthGrid((24, 32), 32, 24)                          # the smallest sensor the fit's default grid fits ...
+    for width, height in ((31, 24), (32, 23)):
+        with pytest.raises(ValueError, match="finer than the image"):
+            DepthGrid((24, 32), width, height)           # ... and one pixel less either way does not
+        with pytest.raises(ValueError, match="must be an integer >= (32|24)"):
+            DemoSettings(width=width, height=height)
+        out = tmp_path / f"d{width}x{height}"
+        assert main(["demo", "-o", str(out), "--size", f"{width}x{height}", "--duration", "0.2"]) == 2
+        assert "--size" in capsys.readouterr().err
+        assert not out.exists() or not any(out.iterdir())   # nothing simulated, nothing left to block a rerun
+    DemoSettings(width=32, height=24)
+
+
+def test_a_duration_past_the_longest_scene_is_refused_in_the_users_number(tmp_path: Path, capsys) -> None:
+    """`cmax demo --duration 599.9` printed "[1/5] rendering ..." and then `duration_s must be in (0, 600] seconds,
+    got 600.1`: the scene's 0.2 s start added to a number the user never typed. Refused first, naming the most
+    --duration can be: the longest scene make_scene builds less the demo's start."""
+    from cmax.cli import main
+    from cmax.sim import make_scene
+
+    start = DemoSettings().start_s
+    with pytest.raises(ValueError, match="duration_s must be in"):
+        make_scene("indoor_flying", duration_s=start + 599.9, width=32, height=24)   # what the demo asked for
+    with pytest.raises(ValueError, match=f"duration_s must be at most {600 - start:g} seconds"):
+        DemoSettings(duration_s=599.9)
+    assert main(["demo", "-o", str(tmp_path / "d"), "--duration", "599.9"]) == 2
+    captured = capsys.readouterr()
+    assert captured.err.startswith(f"cmax demo: error: --duration must be at most {600 - start:g} seconds")
+    assert "[1/5]" not in captured.out and not (tmp_path / "d").exists()
+    DemoSettings(duration_s=600 - start)                  # the longest the demo can simulate
 
 
 def test_run_demo_rejects_unknown_settings(tmp_path: Path) -> None:

@@ -508,6 +508,16 @@ def test_cli_errors_exit_2(plane, tmp_path, capsys):
                  "--K", "150,150,60,45"]) == 2
     with pytest.raises(SystemExit):
         main(["emvs", str(path), "--poses", str(traj), "-o", "o", "--depth-range", "1"])
+    # --calib-camera where it chooses nothing (was: taken and ignored, the map made with the one K there is):
+    (tmp_path / "calib.txt").write_text("150 150 60 45\n")
+    capsys.readouterr()
+    for camera in (["--calib", str(tmp_path / "calib.txt"), "--calib-camera", "camRect0"],
+                   ["--K", "150,150,60,45", "--calib-camera", "cam1"]):
+        assert main(["emvs", str(path), "--poses", str(traj), "-o", str(tmp_path / "c"), *camera]) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and ("calibrates one camera (ECD calib.txt)" in err
+                                         or "--calib-camera cam1 chooses a camera of a --calib file" in err), err
+    assert not (tmp_path / "c").exists()
 
 
 def test_a_k_of_another_sensor_size_is_refused(plane, tmp_path, capsys):

@@ -86,6 +86,48 @@ def test_a_small_sensor_is_drawn_enlarged_by_a_whole_factor():
     assert both.shape[1] >= 5 * (5 * 64)
 
 
+def test_the_volume_alone_is_titled_with_the_file_window_and_events(tmp_path):
+    """`cmax show --mode voxel` drew the bins and their colour bar without a title (no file, no window, no event
+    count; the frame's title carried them in the other modes): several pictures of one recording could not be
+    told apart. The picture now starts with the strip `titled` draws for that text, as the frame's does."""
+    from cmax.viz import titled
+
+    rng = np.random.default_rng(2)
+    n = 400
+    events = Events(rng.integers(0, 64, n), rng.integers(0, 48, n), np.sort(rng.integers(0, 40_000, n)),
+                    rng.integers(0, 2, n), width=64, height=48)
+    path = write_h5(tmp_path / "rec.h5", events)
+    out = tmp_path / "v.png"
+    assert main(["show", str(path), "--mode", "voxel", "--dt", "0.02", "-o", str(out)]) == 0
+    picture = cv2.imread(str(out))
+    shown = events.slice_time(int(events.t[0]), int(events.t[0]) + 20_000)
+    span = (int(shown.t[-1]) - int(shown.t[0])) * 1e-3
+    text = f"rec.h5, 0 s + 20 ms (events over {span:.3g} ms): {len(shown):,} events"
+    strip = titled(np.full((1, picture.shape[1], 3), 255, np.uint8), text)[:-1]
+    np.testing.assert_array_equal(picture[:len(strip)], strip)
+    assert (strip != 255).any()                               # the strip holds the text, not only white
+
+
+def test_bins_with_the_frame_alone_is_refused_not_ignored(tmp_path, capsys):
+    """`cmax show --mode frame --bins 7` drew the frame and dropped --bins without a word (exit 0). Now refused
+    before any work; the volume's modes take it, and without it they draw the library's 5 bins."""
+    events = random_events(300, width=64, height=48, t_span_us=10_000, seed=3)
+    path = write_h5(tmp_path / "rec.h5", events)
+    out = tmp_path / "f.png"
+    assert main(["show", str(path), "--mode", "frame", "--bins", "7", "-o", str(out)]) == 2
+    err = capsys.readouterr().err
+    assert err.startswith("cmax show: error: --bins applies to the event volume") and err.count("\n") == 1, err
+    assert not out.exists()
+    assert main(["show", str(path), "--mode", "frame", "-o", str(out)]) == 0
+    for bins, name in ((7, "seven.png"), (None, "default.png")):
+        argv = ["show", str(path), "--mode", "voxel", "-o", str(tmp_path / name)]
+        assert main(argv + ([] if bins is None else ["--bins", str(bins)])) == 0
+        expected = render_events(events.slice_time(int(events.t[0]), int(events.t[0]) + 50_000), mode="voxel",
+                                 bins=5 if bins is None else bins,
+                                 title=f"rec.h5, 0 s + 50 ms (events over {events.duration_us * 1e-3:.3g} ms): ")
+        np.testing.assert_array_equal(cv2.imread(str(tmp_path / name)), expected)
+
+
 def test_the_ground_truth_depth_is_drawn_only_for_a_window_that_holds_its_time(tmp_path):
     """A scene with one depth map a second: a window at 0.45-0.5 s drew the map of t=0 as "ground-truth depth"."""
     from cmax.show import read_window

@@ -35,7 +35,8 @@ from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
-           "hot_pixel_note", "option_words", "run", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
+           "hot_pixel_note", "option_words", "run", "tum_lines", "unscaled_range_note", "undistorted_events",
+           "verdict_counts", "window_line"]
 
 #: A run's private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
 _STAGE_PREFIX = "fit"
@@ -53,8 +54,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
     add_recording_arguments(parser)
     api_default(parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
-                                    metavar="NEAR,FAR", help="depth bounds [m] (in units of --speed x 1 s without "
-                                    "it); give the scene's own range when known: it matters for se3"),
+                                    metavar="NEAR,FAR", help="se3: depth bounds [m] (in units of --speed x 1 s "
+                                    "without it); give the scene's own range when known"),
                 _settings_default("depth_range"))
     api_default(parser.add_argument("--model", choices=("se3", "rotation", "flow"), default=None,
                                     help="motion model"), _sequence_default("model"))
@@ -252,6 +253,20 @@ def summary_units(scale_known: bool) -> dict[str, str]:
     }
 
 
+def unscaled_range_note(near: float, far: float) -> str:
+    """The note for a depth range ``near``-``far`` [m] (``--depth-range``, or the one a scene file records) bounding
+    an se3 fit without ``--speed``: the fit's depths are then in units of the speed x 1 s (each window at 1 m/s), so the
+    range bounds the scene in metres only for a camera moving at about 1 m/s.
+
+    >>> unscaled_range_note(0.5, 2.0)[:60]
+    "without --speed the fit's depths are in units of the speed x"
+    """
+    return (f"without --speed the fit's depths are in units of the speed x 1 s (each window is fitted at 1 m/s), not "
+            f"metres: the depth range {near:g}-{far:g} bounds the scene in metres only for a camera moving at about "
+            f"1 m/s (at 0.3 m/s a scene at {near:g}-{far:g} m lies at {near / 0.3:.3g}-{far / 0.3:.3g} in these "
+            "units, partly beyond the range); --speed gives metres")
+
+
 def verdict_counts(counts: dict[str, int]) -> str:
     """The summary line's verdict counts, e.g. ``3 ok, 2 ambiguous (1 resolved), 0 low parallax, 1 failed``."""
     resolved = f" ({counts['resolved']} resolved)" if counts.get("ambiguous") else ""
@@ -411,9 +426,13 @@ def run(args: argparse.Namespace) -> int:
     # The options are checked before the file is read (a mistake is named at once, in the options' words):
     sequence_model = args.model or _sequence_default("model")()
     for option, given in (("--omega", args.omega is not None), ("--speed", args.speed is not None),
-                          ("--gyro", args.gyro is not None), ("--zero-rotation-start", args.zero_rotation_start)):
-        if given and sequence_model != "se3":
+                          ("--gyro", args.gyro is not None), ("--zero-rotation-start", args.zero_rotation_start),
+                          ("--members", args.members is not None), ("--depth-grid", args.depth_grid is not None),
+                          ("--polish", args.polish is not None), ("--depth-range", args.depth_range is not None)):
+        if given and sequence_model != "se3":   # the other models fit no depth: taken, it would do nothing
             raise ValueError(f"{option} applies to --model se3, not {sequence_model}")
+    if args.max_omega is not None and sequence_model == "flow":
+        raise ValueError("--max-omega applies to --model se3 and rotation, not flow (a flow has no rotation)")
     if args.omega is not None and args.gyro is not None:
         raise ValueError("--omega is a constant rotation, --gyro a measured one: pass one of them")
     if args.gyro_axes is not None:
@@ -429,6 +448,9 @@ def run(args: argparse.Namespace) -> int:
         if args.depth_range is not None:
             range_note = (f"depth over {args.depth_range[0]:g}-{args.depth_range[1]:g} m, the depth range the file "
                           "records for its scene (--depth-range to change it)")
+    notes = [range_note] if range_note else []
+    if args.depth_range is not None and args.speed is None and sequence_model == "se3":
+        notes.append(unscaled_range_note(*args.depth_range))
     options = {key: value for key, value in (("solver", args.solver), ("depth_grid", args.depth_grid),
                                              ("max_events", args.max_events),
                                              ("motion_members", args.members), ("depth_range", args.depth_range),
@@ -454,7 +476,7 @@ def run(args: argparse.Namespace) -> int:
                                what="depth_*.npz, summary.json, ...") as stage:
         return _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
                          min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
-                         notes=[range_note] if range_note else [])
+                         notes=notes)
 
 
 def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_model: str, options: dict,

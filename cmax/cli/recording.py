@@ -145,6 +145,9 @@ def calibration_of(args: argparse.Namespace) -> tuple[np.ndarray | None, np.ndar
     as given (no size), or those of the ``--calib`` file (:func:`read_calibration`), which refuses
     ``--distortion`` beside it."""
     if args.calib is None:
+        if args.calib_camera != "cam0":     # else taken and ignored: the --K (or the file's gt/K) would be used
+            raise ValueError(f"--calib-camera {args.calib_camera} chooses a camera of a --calib file (a DSEC "
+                             "cam_to_cam.yaml or a Kalibr camchain): give --calib too")
         return args.K, None if args.distortion is None else np.asarray(args.distortion, dtype=np.float64), None
     if args.distortion is not None:
         raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
@@ -451,7 +454,8 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray
                                                                       tuple[int, int] | None]:
     """``(K (3, 3), distortion (4,) or (5,) or None, (width, height) or None)`` of a calibration file.
 
-    * ECD ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or only ``fx fy cx cy``);
+    * ECD ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or only ``fx fy cx cy``), one camera (a
+      ``camera`` other than ``"cam0"`` is refused: it was read as this one without a word);
     * DSEC ``cam_to_cam.yaml``: ``intrinsics/<camera>`` with ``camera_matrix: [fx, fy, cx, cy]``,
       optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``;
     * a Kalibr camchain (``camchain.yaml``, as MVSEC and many DAVIS rigs ship): ``<camera>`` with
@@ -488,6 +492,9 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray
             numbers = []
         if len(numbers) not in (4, 8, 9):
             raise ValueError(f"{path}: expected one line 'fx fy cx cy [k1 k2 p1 p2 [k3]]' (ECD calib.txt)")
+        if camera != "cam0":     # one camera: another name was read as this one without a word
+            raise ValueError(f"{path} calibrates one camera (ECD calib.txt): camera {camera!r} (--calib-camera) "
+                             "chooses one of a DSEC cam_to_cam.yaml or a Kalibr camchain .yaml; leave it out")
         (fx, fy, cx, cy), distortion, size = numbers[:4], numbers[4:] or None, None
     if distortion is not None and (len(distortion) not in (4, 5) or not np.isfinite(distortion).all()):
         raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])")
@@ -578,7 +585,8 @@ def time_span_us(first_us: int, last_us: int | None, t0_s: float | None,
         raise ValueError(f"--t0 {t0_s} s is past the recording's last event ({(last_us - first_us) * 1e-6:.6f} s "
                          "after its first)")
     if t1 <= t0:
-        raise ValueError(f"--t1 must be after --t0, got {t0_s} and {t1_s}")
+        start = "0.0 (the first event, --t0 left out)" if t0_s is None else t0_s   # was: "got None and 0.0"
+        raise ValueError(f"--t1 must be after --t0, got {start} and {t1_s}")
     return t0, t1
 
 

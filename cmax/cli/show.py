@@ -5,6 +5,7 @@ import argparse
 import os
 from pathlib import Path
 
+from cmax._args import api_default, library_default
 from cmax.cli.recording import add_file_options, file_kwargs
 
 __all__ = ["add_command", "run"]
@@ -15,11 +16,15 @@ def run(args: argparse.Namespace) -> int:
     (a user's own ``FILE.png`` beside the recording) is refused before any work unless ``--overwrite``."""
     from cmax.show import render_window
 
+    if args.bins is not None and args.mode == "frame":   # else taken and ignored: the frame has no bins
+        raise ValueError(f"--bins applies to the event volume (--mode voxel or both), not --mode frame; got --bins "
+                         f"{args.bins} with --mode frame")
     output = args.output or args.file.with_suffix(".png")
     if os.path.lexists(output) and not args.overwrite:
         raise FileExistsError(f"{output} exists: --overwrite replaces it, or give another -o")
     image = render_window(
-        args.file, t0_s=args.t0, dt_s=args.dt, mode=args.mode, bins=args.bins, **file_kwargs(args)
+        args.file, t0_s=args.t0, dt_s=args.dt, mode=args.mode, **({} if args.bins is None else {"bins": args.bins}),
+        **file_kwargs(args)
     )
     from cmax.viz import save_image
 
@@ -41,7 +46,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--dt", type=float, default=0.05, help="window length in seconds")
     parser.add_argument("--mode", choices=("frame", "voxel", "both"), default="both",
                         help="event frame, event-volume bins, or both")
-    parser.add_argument("--bins", type=int, default=5, help="bins of the event volume")
+    api_default(parser.add_argument("--bins", type=int, default=None,
+                                    help="bins of the event volume (--mode voxel or both)"),
+                library_default("cmax.show:render_window", "bins"))
     parser.add_argument("-o", "--output", type=Path, default=None, help="picture path, .png, .jpg or .jpeg (default: FILE with .png)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing picture at the output")
     add_file_options(parser)

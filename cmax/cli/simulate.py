@@ -61,6 +61,9 @@ def _run(args: argparse.Namespace) -> int:
     single = _single_input(args)
     if single is not None:
         return _simulate_one(args, single, settings)
+    if args.output.exists() and not args.output.is_dir():   # was: "File exists: notes.txt", from the folder's mkdir
+        raise FileExistsError(f"-o {args.output} is a file, not a folder: the outputs of {args.input} (NAME.h5 and "
+                              "manifest.json) go into a folder; give a folder, or -o NAME.h5 for one video")
     jobs, missing = collect_jobs(args.input, catalogue=args.catalogue, shard=shard)
     if not jobs:  # a catalogue none of whose videos is there: a wrong folder or naming, not a success
         print(f"cmax simulate: error: {_nothing_found(args.input, missing, args.catalogue, args.shard)}",
