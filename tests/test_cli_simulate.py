@@ -709,3 +709,15 @@ def test_the_calibration_of_frames_that_size_resized_is_refused_with_the_scaled_
     args = argparse.Namespace(calib=seq / "calib.txt", calib_camera="cam0", distortion=None, K=None, file=same)
     K, distortion, _ = calibration_of(args)
     assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (50, 52, 19.5, 14.5)
+
+
+def test_an_avi_whose_headers_state_no_frame_rate_is_one_line_exit_2(tmp_path, capsys):
+    """Was: `cmax simulate` converted it at FFmpeg's invented 25 frames/s, exit 0 (a 20 fps clip 20% short)."""
+    from test_sim_video import _avi_without_rate
+
+    source = _avi_without_rate(tmp_path / "clip.avi")
+    out = tmp_path / "out" / "clip.h5"
+    assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "its AVI headers state no frame rate" in err and "ffmpeg -r RATE" in err, err
+    assert not out.exists()

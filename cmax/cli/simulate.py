@@ -131,6 +131,10 @@ def _single_input(args: argparse.Namespace) -> Path | None:
         raise ValueError(f"INPUT must be a video ({', '.join(VIDEO_SUFFIXES)}), an image folder with images.txt or "
                          "images/ (or imgs/) + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, "
                          f"got {source}")
+    from cmax.sim.video import avi_rate_problem
+
+    if source.is_file() and (problem := avi_rate_problem(source)) is not None:    # FFmpeg would assume 25 fps
+        raise ValueError(problem)
     return source
 
 

@@ -66,6 +66,7 @@ __all__ = [
     "FrameSource",
     "ImageFolderSource",
     "VideoFileSource",
+    "avi_rate_problem",
     "bare_stream_problem",
     "open_source",
     "prefetched",
@@ -113,6 +114,62 @@ def bare_stream_problem(path: PathLike) -> str | None:
             "and its frame rate would be guessed (the decoder assumes 25 frames/s); put it in a container at its "
             f"real rate, e.g. ffmpeg -framerate RATE -i {path} -c copy {framed}, or write its "
             "frames as images with a timestamps.txt (one time in seconds per image) and convert that folder")
+
+
+def _avi_rate_fields(head: bytes) -> tuple[int, int, int] | None:
+    """``(frame period [µs] of the main header avih, dwScale, dwRate of the first video stream header strh)`` of
+    an AVI file's first bytes ``head``; None for another file, or an AVI whose headers are not in ``head``.
+
+    >>> import struct
+    >>> avih = b"avih" + struct.pack("<II", 56, 0) + bytes(52)
+    >>> strh = b"strh" + struct.pack("<I", 56) + b"vidsMJPG" + bytes(12) + struct.pack("<II", 1, 0)
+    >>> _avi_rate_fields(b"RIFF" + bytes(4) + b"AVI LIST" + bytes(8) + avih + strh + bytes(28))
+    (0, 1, 0)
+    """
+    if head[:4] != b"RIFF" or head[8:12] != b"AVI ":
+        return None
+    main = head.find(b"avih")
+    if main < 0 or main + 12 > len(head):
+        return None
+    period = int.from_bytes(head[main + 8: main + 12], "little")
+    stream = head.find(b"strh")
+    while 0 <= stream and stream + 36 <= len(head):
+        if head[stream + 8: stream + 12] == b"vids":
+            return (period, int.from_bytes(head[stream + 28: stream + 32], "little"),
+                    int.from_bytes(head[stream + 32: stream + 36], "little"))
+        stream = head.find(b"strh", stream + 4)
+    return None
+
+
+def avi_rate_problem(path: PathLike) -> str | None:
+    """Why the video file ``path`` cannot be converted when it is an AVI whose headers state no frame rate: its
+    video stream's ``dwScale`` or ``dwRate`` is 0 and the main header's frame period too (broken writers leave
+    them so). FFmpeg then assumes 25 frames/s and OpenCV reports that rate and times from it, so the frames' times
+    would be guessed. None for any other file, and for an AVI that states its rate in either header (FFmpeg takes
+    the frame period when the stream's rate is 0).
+
+    >>> import struct, tempfile
+    >>> clip = Path(tempfile.mkdtemp()) / "clip.avi"
+    >>> avih = b"avih" + struct.pack("<II", 56, 0) + bytes(52)
+    >>> strh = b"strh" + struct.pack("<I", 56) + b"vidsMJPG" + bytes(12) + struct.pack("<II", 1, 0)
+    >>> _ = clip.write_bytes(b"RIFF" + bytes(4) + b"AVI LIST" + bytes(8) + avih + strh + bytes(28))
+    >>> avi_rate_problem(clip).split(":")[1]
+    " its AVI headers state no frame rate (the video stream's scale/rate 1/0, the main header's frame period 0 µs)"
+    """
+    path = Path(path)
+    with open(path, "rb") as file:
+        fields = _avi_rate_fields(file.read(1 << 16))
+    if fields is None:
+        return None
+    period, scale, rate = fields
+    if (scale and rate) or period:
+        return None
+    fixed = path.with_suffix(".mkv")
+    return (f"{path}: its AVI headers state no frame rate (the video stream's scale/rate {scale}/{rate}, the main "
+            "header's frame period 0 µs): the decoder would assume 25 frames/s and the frames' times would be "
+            f"guessed; state its real rate with ffmpeg's -r before the input, e.g. ffmpeg -r RATE -i {path} -c copy "
+            f"{fixed}, or write its frames as images with a timestamps.txt (one time in seconds per image) and "
+            "convert that folder")
 
 
 @runtime_checkable
@@ -665,14 +722,15 @@ class VideoFileSource:
     Times: each frame's presentation time from the container
     (``CAP_PROP_POS_MSEC`` after reading it), rounded to whole µs. When the
     container gives none (not finite, negative, or 0 after the first frame)
-    the time is ``frame_index * 1e6 / fps`` (30 fps when the rate is unknown
-    too). A time not after the previous one (duplicated or reordered
+    the time is ``frame_index * 1e6 / fps``; when the rate is unknown too,
+    iteration raises :class:`DecodeError` (times are never guessed). A time not after the previous one (duplicated or reordered
     timestamps) becomes the previous time + 1 µs, so times are always
     strictly increasing; a ``UserWarning`` at the end of the stream counts
     such frames and names the first.
 
     Decoding errors: a file OpenCV cannot open or that yields no frame, and a bare MJPEG stream (no
-    container, no frame times: :func:`bare_stream_problem`) raise :class:`DecodeError` at construction; a
+    container, no frame times: :func:`bare_stream_problem`) or an AVI whose headers state no frame rate
+    (:func:`avi_rate_problem`: FFmpeg would assume 25 frames/s) raise :class:`DecodeError` at construction; a
     path that is not valid UTF-8 raises :class:`ValueError` (:func:`_opencv_path`: OpenCV would crash on it). When
     the decoder stops more than ``max(1, 1%)`` frames before the container's frame count, and the last
     frame decoded lies that far before the stream's end too (:func:`_stopped_early`: a Matroska count is
@@ -692,8 +750,8 @@ class VideoFileSource:
         self.dtype, self.prefetch = _check_dtype(dtype), _check_prefetch(prefetch)
         _check_time_range(t0_s, t1_s)
         self.t0_s, self.t1_s = t0_s, t1_s
-        if (problem := bare_stream_problem(self.path)) is not None:   # times never guessed
-            raise DecodeError(problem)
+        if (problem := bare_stream_problem(self.path) or avi_rate_problem(self.path)) is not None:
+            raise DecodeError(problem)                                 # times never guessed
         capture = self._open()
         try:
             fps = capture.get(cv2.CAP_PROP_FPS)
@@ -729,7 +787,11 @@ class VideoFileSource:
         if math.isfinite(msec) and msec >= 0 and (msec > 0 or first):
             return int(round(msec * 1000))
         index = max(0, int(capture.get(cv2.CAP_PROP_POS_FRAMES)) - 1)
-        return int(round(index * 1e6 / (self.fps or 30.0)))
+        if not self.fps:
+            raise DecodeError(f"{self.path}: frame {index} has no time in the container, which states no frame "
+                              "rate either: its time would be guessed; write its frames as images with a "
+                              "timestamps.txt (one time in seconds per image) and convert that folder")
+        return int(round(index * 1e6 / self.fps))
 
     def __iter__(self) -> Iterator[tuple[np.ndarray, int]]:
         return prefetched(self._frames, self.prefetch)
