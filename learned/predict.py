@@ -730,7 +730,10 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         draw_window(stage, index, scale)
     write_text_atomic(stage / "twists.csv", "\n".join(lines) + "\n")
     run = DepthRun(written, skipped, window_us, tuple(notes), time.perf_counter() - started, stage)
-    summary = {"file": str(path), "format": recording.format, "checkpoint": str(checkpoint),
+    from cmax.cli.recording import camera_read
+
+    summary = {"file": str(path), "format": recording.format, "camera": camera_read(recording.format, camera),
+               "checkpoint": str(checkpoint),
                "size": [recording.width, recording.height], "K": np.asarray(K).tolist(),
                "distortion": None if distortion is None else distortion.tolist(), "window_us": window_us,
                "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],

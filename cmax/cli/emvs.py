@@ -198,7 +198,11 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     result.save_ply(stage / "points.ply")
     depths = result.depth[result.mask]
     median_m = float(np.median(depths)) if depths.size else None
-    record = {"command": "emvs", "file": str(args.file), "poses": str(args.poses or f"{args.file}: gt/poses"),
+    from cmax.cli.recording import camera_read
+    from cmax.io import detect_format
+
+    record = {"command": "emvs", "file": str(args.file),
+              "camera": camera_read(detect_format(args.file), getattr(args, "camera", None)), "poses": str(args.poses or f"{args.file}: gt/poses"),
               "events": len(events), "t_ref_us": int(result.t_ref_us), "n_planes": int(result.n_planes),
               "depth_range": [float(v) for v in result.depth_range], "mask_pixels": int(result.mask.sum()),
               "median_depth_m": median_m, "scale_known": metric, "files": list(RESULTS)}

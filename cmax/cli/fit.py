@@ -28,7 +28,7 @@ import numpy as np
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
-                                calibration_of, check_file_principal_point, event_span, file_depth_range,
+                                calibration_of, camera_read, check_file_principal_point, event_span, file_depth_range,
                                 file_intrinsics, no_intrinsics_message, open_streamed, overlap, read_calibrated,
                                 tail_note)
 from cmax.io import run_folder
@@ -605,7 +605,10 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     elif failed == len(windows):
         late_notes.append(f"every fitted window failed ({failed}): no depth or motion of this run can be trusted "
                           "(each window's line says why)")
-    summary = {"file": str(args.file), "model": sequence_model, "K": K.tolist(),
+    from cmax.io import detect_format
+
+    summary = {"file": str(args.file), "camera": camera_read(detect_format(args.file), args.camera),
+               "model": sequence_model, "K": K.tolist(),
                "distortion": None if distortion is None else distortion.tolist(),
                "calib": None if args.calib is None else str(args.calib),
                "window_ms": window_us / 1000, "step_ms": step_us / 1000, "min_events": min_events,

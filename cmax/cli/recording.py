@@ -26,7 +26,7 @@ import numpy as np
 from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import Camera, check_intrinsics, intrinsics_matrix
 
-__all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
+__all__ = ["add_file_options", "file_kwargs", "camera_read", "add_recording_arguments", "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
            "simulated_sizes", "resized_note", "source_calibration", "check_calibration_of_frames",
            "check_file_principal_point", "file_depth_range",
@@ -103,6 +103,17 @@ def file_kwargs(args: argparse.Namespace, path: Path | None = None) -> dict[str,
                              "file of one camera")
         options["camera"] = args.camera
     return options
+
+
+def camera_read(kind: str, camera: str | None) -> str | None:
+    """The camera whose events a command read from a file of format ``kind`` (:func:`cmax.io.detect_format`), for
+    its record (``summary.json``): an MVSEC file's ``camera`` (``--camera``; None: its default, ``'left'``), None
+    for a file of one camera.
+
+    >>> camera_read("mvsec", None), camera_read("mvsec", "right"), camera_read("dsec", None)
+    ('left', 'right', None)
+    """
+    return (camera or "left") if kind == "mvsec" else None
 
 
 def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
