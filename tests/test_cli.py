@@ -408,3 +408,34 @@ def test_info_reads_an_mvsec_camera_a_chunk_at_a_time(tmp_path, monkeypatch):
         file.create_dataset("davis/left/events", data=table)
     with pytest.raises(FormatError, match="corrupt events at row 7"):
         file_info(path)
+
+
+def test_info_counts_events_that_repeat_an_earlier_one_exactly(tmp_path, capsys):
+    """Was: a file whose every event was written twice summarised as a clean recording of twice the rate."""
+    from cmax.events import Events
+
+    events = random_events(500, 64, 48, seed=4)
+    twice = Events(*(np.repeat(column, 2) for column in (events.x, events.y, events.t, events.p)), 64, 48)
+    path = write_h5(tmp_path / "twice.h5", twice)
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    expected = len(twice) - len(set(zip(twice.x.tolist(), twice.y.tolist(), twice.t.tolist(), twice.p.tolist())))
+    assert expected >= 500 and f"duplicates  {expected:,} events (" in out, out
+    assert main(["info", str(write_h5(tmp_path / "once.h5", events))]) == 0
+    assert "duplicates" not in capsys.readouterr().out       # random events on distinct µs: none
+
+
+def test_duplicates_split_between_chunks_are_counted_once(tmp_path, monkeypatch):
+    """The summary reads a file in chunks; rows of one time stamp on both sides of a chunk's end are compared."""
+    import cmax.io.info
+    from cmax.events import Events
+    from cmax.io.info import file_info
+
+    rng = np.random.default_rng(5)
+    n = 400
+    t = np.sort(rng.integers(0, 40, n))                     # ~10 events a µs, on 3 pixels, both polarities
+    x, y, p = rng.integers(0, 3, n), np.zeros(n, np.int64), rng.integers(0, 2, n)
+    path = write_h5(tmp_path / "dense.h5", Events(x, y, t, p, 4, 2))
+    expected = n - len(set(zip(x.tolist(), y.tolist(), t.tolist(), p.tolist())))
+    monkeypatch.setattr(cmax.io.info, "_CHUNK", 7)
+    assert expected > 100 and file_info(path).duplicates == expected
