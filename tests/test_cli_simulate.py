@@ -721,3 +721,50 @@ def test_an_avi_whose_headers_state_no_frame_rate_is_one_line_exit_2(tmp_path, c
     err = capsys.readouterr().err
     assert err.count("\n") == 1 and "its AVI headers state no frame rate" in err and "ffmpeg -r RATE" in err, err
     assert not out.exists()
+
+
+def test_simulate_stores_the_frames_k_scaled_to_its_pixels_for_fit(tmp_path, capsys):
+    """Was: `cmax simulate` had no --K / --calib and wrote no gt/K, so every `cmax fit` of the file needed --K again
+    (and the K of frames that --size resized, scaled by hand)."""
+    import h5py
+
+    source = tmp_path / "clip.avi"
+    write_video(source, n_frames=12, width=48, height=32)
+    out = tmp_path / "k" / "clip.h5"
+    assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet", "--K", "60,62,23.5,15.5",
+                 "--size", "24x16"]) == 0
+    with h5py.File(out, "r") as file:
+        K = file["gt/K"][()]
+    # cv2.resize's pixel centres: x' + 0.5 = s (x + 0.5), s = 0.5 on both axes: cx = 24 * 0.5 - 0.5
+    np.testing.assert_allclose(K, [[30.0, 0, 11.5], [0, 31.0, 7.5], [0, 0, 1]], rtol=0, atol=1e-12)
+    capsys.readouterr()
+    status = main(["fit", str(out), "-o", str(tmp_path / "fit"), "--quiet", "--min-events", "10", "--depth-grid", "4,6"])
+    assert status in (0, 1), capsys.readouterr().err                # fitted without --K (no "stores no intrinsics")
+    np.testing.assert_allclose(json.loads((tmp_path / "fit" / "summary.json").read_text())["K"], K)
+    assert "K" not in ConvertSettings().to_dict()                   # settings without K read as before
+
+
+def test_simulate_calib_is_read_and_a_lens_distortion_refused(tmp_path, capsys):
+    import h5py
+
+    source = tmp_path / "clip.avi"
+    write_video(source, n_frames=6, width=48, height=32)
+    (tmp_path / "pinhole.txt").write_text("60 62 23.5 15.5 0 0 0 0 0\n")
+    (tmp_path / "lens.txt").write_text("60 62 23.5 15.5 -0.1 0.02 0 0 0\n")
+    out = tmp_path / "a" / "clip.h5"
+    assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet", "--calib",
+                 str(tmp_path / "pinhole.txt")]) == 0
+    with h5py.File(out, "r") as file:
+        np.testing.assert_array_equal(file["gt/K"][()], [[60.0, 0, 23.5], [0, 62.0, 15.5], [0, 0, 1]])
+    capsys.readouterr()
+    lens = tmp_path / "b" / "clip.h5"
+    assert main(["simulate", str(source), "-o", str(lens), *FAST, "--quiet", "--calib",
+                 str(tmp_path / "lens.txt")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "states a lens distortion (-0.1, 0.02, 0, 0, 0)" in err and \
+        f"give --calib {tmp_path / 'lens.txt'} to cmax fit" in err, err
+    assert not lens.exists()
+    off = tmp_path / "c" / "clip.h5"                                  # another sensor's K: that video fails
+    assert main(["simulate", str(source), "-o", str(off), *FAST, "--quiet", "--K", "600,600,320,240"]) == 1
+    assert "K's principal point (320, 240) lies outside the 48x32 image" in capsys.readouterr().err
+    assert not off.exists()
