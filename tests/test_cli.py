@@ -439,3 +439,20 @@ def test_duplicates_split_between_chunks_are_counted_once(tmp_path, monkeypatch)
     expected = n - len(set(zip(x.tolist(), y.tolist(), t.tolist(), p.tolist())))
     monkeypatch.setattr(cmax.io.info, "_CHUNK", 7)
     assert expected > 100 and file_info(path).duplicates == expected
+
+
+def test_info_says_a_raw_sensor_size_is_only_inferred_from_the_camera_name(tmp_path, capsys):
+    """Was: `sensor      640 x 480` for a Gen4 (1280x720) recording whose events lie in its top-left 640x480 (an
+    ROI) saved by expelliarmus, whose header names `hal_plugin_gen3_fx3` for every file: a guess shown as a fact."""
+    from cmax.events import Events
+    from cmax.io import write_evt2
+
+    events = Events([100, 5], [200, 3], [10, 20], [1, 0], width=1280, height=720)
+    data = write_evt2(tmp_path / "gen4.raw", events).read_bytes().split(b"% end\n", 1)[1]
+    path = tmp_path / "saved_by_expelliarmus.raw"
+    path.write_bytes(b"% evt 2.0\n% plugin_name hal_plugin_gen3_fx3\n" + data)
+    assert main(["info", str(path)]) == 0
+    assert ("sensor      640 x 480 (not stated by the file: inferred from its 'plugin_name hal_plugin_gen3_fx3' "
+            "line; --size WxH gives the sensor's)\n") in capsys.readouterr().out
+    assert main(["info", str(path), "--size", "1280x720"]) == 0
+    assert "sensor      1280 x 720\n" in capsys.readouterr().out

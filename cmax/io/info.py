@@ -76,7 +76,9 @@ class EventFileInfo:
     share of ON events (0.5 = balanced); ``pixel_counts`` (height, width)
     the events of each pixel (its hot pixels: :meth:`hot_pixels`); ``camera``: the camera summarised in a
     file of several (MVSEC), ``cameras`` its cameras and their events (None for other files); ``duplicates``: the
-    events that repeat an earlier one exactly (:func:`duplicate_count`; None where not counted: Prophesee RAW).
+    events that repeat an earlier one exactly (:func:`duplicate_count`; None where not counted: Prophesee RAW);
+    ``size_inferred_from``: the header line of a RAW file that does not state its sensor size from which the size
+    was inferred (a camera's name: a guess, said on the sensor line), None for a stated or given size.
     """
 
     path: str
@@ -92,6 +94,7 @@ class EventFileInfo:
     camera: str | None = None
     cameras: dict[str, int] | None = None
     duplicates: int | None = None
+    size_inferred_from: str | None = None
 
     @property
     def duration_s(self) -> float:
@@ -144,6 +147,18 @@ class EventFileInfo:
         held = "; the file also holds " + ", ".join(others) if others else "; the file holds no other camera"
         return f"camera      {self.camera} (davis/{self.camera}/events){held}"
 
+    def _inferred_note(self) -> str:
+        """After the sensor size, when the file does not state it and it was inferred from a camera's name.
+
+        >>> EventFileInfo("a.raw", "raw", 1, 640, 480, 0, 0, 1,
+        ...               size_inferred_from="plugin_name hal_plugin_gen3_fx3")._inferred_note()
+        " (not stated by the file: inferred from its 'plugin_name hal_plugin_gen3_fx3' line; --size WxH gives the sensor's)"
+        """
+        if self.size_inferred_from is None:
+            return ""
+        return (f" (not stated by the file: inferred from its '{self.size_inferred_from}' line; --size WxH gives "
+                "the sensor's)")
+
     def _duplicates_line(self) -> str:
         """The events that repeat an earlier one exactly (only printed when there are some).
 
@@ -160,7 +175,7 @@ class EventFileInfo:
             f"file        {self.path}",
             f"format      {self.format}",
             *([self._camera_line()] if self.camera is not None else []),
-            f"sensor      {self.width} x {self.height}",
+            f"sensor      {self.width} x {self.height}{self._inferred_note()}",
             f"events      {self.count:,}",
         ]
         if self.count:
@@ -274,4 +289,4 @@ def _raw_info(path: Path, width: int | None, height: int | None) -> EventFileInf
     scan = scan_raw(path, width=width, height=height)
     return EventFileInfo(path=str(path), format="raw", count=scan.count, width=scan.width, height=scan.height,
                          t_start_us=scan.first_us, t_end_us=scan.last_us, on_count=scan.on_count,
-                         pixel_counts=scan.pixel_counts)
+                         pixel_counts=scan.pixel_counts, size_inferred_from=scan.size_inferred_from)
