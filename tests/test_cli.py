@@ -456,3 +456,21 @@ def test_info_says_a_raw_sensor_size_is_only_inferred_from_the_camera_name(tmp_p
             "line; --size WxH gives the sensor's)\n") in capsys.readouterr().out
     assert main(["info", str(path), "--size", "1280x720"]) == 0
     assert "sensor      1280 x 720\n" in capsys.readouterr().out
+
+
+def test_mvsec_times_in_microseconds_name_the_unit_that_reads_them(tmp_path, capsys):
+    """Was: `... = 1500000000000099.0 s does not fit into int64 microseconds`, without saying that the column holds
+    microseconds since 1970 (a converted MVSEC file), nor which option reads it."""
+    import h5py
+
+    t_us = 1_500_000_000_000_000 + np.arange(100, dtype=np.int64)
+    table = np.stack([np.full(100, 3), np.full(100, 4), t_us, np.ones(100)], axis=1).astype(np.float64)
+    path = tmp_path / "us.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "does not fit into int64 microseconds; as us it is 1500000000.000099 s since " \
+        "1970: state the unit with time_unit='us' (cmax: --time-unit us)" in err, err
+    assert main(["info", str(path), "--time-unit", "us"]) == 0
+    assert "time        1500000000000000 .. 1500000000000099 µs" in capsys.readouterr().out
