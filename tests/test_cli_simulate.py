@@ -768,3 +768,22 @@ def test_simulate_calib_is_read_and_a_lens_distortion_refused(tmp_path, capsys):
     assert main(["simulate", str(source), "-o", str(off), *FAST, "--quiet", "--K", "600,600,320,240"]) == 1
     assert "K's principal point (320, 240) lies outside the 48x32 image" in capsys.readouterr().err
     assert not off.exists()
+
+
+def test_a_k_given_over_the_file_s_own_gt_k_is_named_in_a_note(tmp_path, capsys):
+    """Was: `cmax fit --K` on a file storing another gt/K (cmax simulate --K, cmax scene) used the given K without a
+    word; the file's was never looked at."""
+    source = tmp_path / "clip.avi"
+    write_video(source, n_frames=12, width=48, height=32)
+    out = tmp_path / "k" / "clip.h5"
+    assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet", "--K", "60,62,23.5,15.5"]) == 0
+    capsys.readouterr()
+    fit = ["fit", str(out), "--quiet", "--min-events", "10", "--depth-grid", "4,6"]
+    assert main([*fit, "-o", str(tmp_path / "other"), "--K", "80,80,23.5,15.5"]) in (0, 1)
+    note = (f"note: {out} stores gt/K (fx 60, fy 62, cx 23.5, cy 15.5) unlike the K given (fx 80, fy 80, cx 23.5, "
+            "cy 15.5): the given one is used")
+    assert note in capsys.readouterr().err
+    summary = json.loads((tmp_path / "other" / "summary.json").read_text())
+    assert summary["K"][0][0] == 80.0 and any("unlike the K given" in text for text in summary["notes"])
+    assert main([*fit, "-o", str(tmp_path / "same"), "--K", "60,62,23.5,15.5"]) in (0, 1)
+    assert "unlike the K given" not in capsys.readouterr().err

@@ -24,7 +24,7 @@ from cmax._args import api_default, float_list, int_at_least, nonnegative_float
 from cmax.camera import intrinsics_oddity
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
-                                check_file_principal_point, file_depth_range, file_intrinsics,
+                                check_file_principal_point, file_depth_range, file_intrinsics, given_k_note,
                                 no_intrinsics_message, overlap, read_calibrated, resized_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
@@ -158,6 +158,8 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     from cmax.emvs.poses import trajectory_up_to_scale
 
     K, distortion, calib_size = calibration_of(args)
+    if (unlike := given_k_note(args.file, K)) is not None:
+        print(f"cmax emvs: note: {unlike}", file=sys.stderr)
     events, _ = read_calibrated(args, calib_size)    # --t0 / --t1 applied
     if trajectory is None:
         trajectory = file_trajectory(args.file)

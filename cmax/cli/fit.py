@@ -29,8 +29,8 @@ from cmax._args import api_default, float_list, grid_shape, library_default, pos
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
                                 calibration_of, camera_read, check_file_principal_point, event_span, file_depth_range,
-                                file_intrinsics, no_intrinsics_message, open_streamed, overlap, read_calibrated,
-                                tail_note)
+                                file_intrinsics, given_k_note, no_intrinsics_message, open_streamed, overlap,
+                                read_calibrated, tail_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
@@ -478,6 +478,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     from cmax.warp import DepthGrid
 
     K, distortion, calib_size = calibration_of(args)
+    notes = notes + ([unlike] if (unlike := given_k_note(args.file, K)) else [])
     if K is None:
         K = file_intrinsics(args.file)
         if K is None:
