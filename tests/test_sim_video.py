@@ -538,3 +538,25 @@ def test_frames_without_times_in_a_stream_without_a_rate_are_refused_not_timed_a
     assert frames.fps is None
     with pytest.raises(DecodeError, match="frame 1 has no time in the container, which states no frame rate"):
         list(frames)
+
+
+def test_an_mp4_whose_frames_last_zero_is_refused_not_timed_at_an_invented_rate(tmp_path):
+    """Was: an mp4 whose stts table gives every sample a duration of 0 read at the rate FFmpeg/OpenCV made up:
+    this 20 fps clip came out at 0.5 fps (frames 2 s apart instead of 50 ms), without a word."""
+    source = tmp_path / "clip.mp4"
+    writer = cv2.VideoWriter(str(source), cv2.VideoWriter_fourcc(*"mp4v"), 20.0, (64, 48))
+    assert writer.isOpened()
+    for i in range(10):
+        frame = np.zeros((48, 64, 3), np.uint8)
+        frame[:, 4 * i: 4 * i + 8] = 255
+        writer.write(frame)
+    writer.release()
+    assert [t for _, t in VideoFileSource(source, prefetch=0)] == [50_000 * k for k in range(10)]   # intact
+    data = bytearray(source.read_bytes())
+    table = data.find(b"stts")
+    assert struct.unpack_from(">II", data, table + 8) == (1, 10)       # one entry of 10 samples
+    struct.pack_into(">I", data, table + 16, 0)                        # their duration: 0
+    source.write_bytes(bytes(data))
+    with pytest.raises(DecodeError, match=r"clip.mp4: its video track states no frame durations \(each of its 10 "
+                                          r"samples lasts 0 in its stts table\)"):
+        VideoFileSource(source)

@@ -151,10 +151,10 @@ def _single_input(args: argparse.Namespace) -> Path | None:
         raise ValueError(f"INPUT must be a video ({', '.join(VIDEO_SUFFIXES)}), an image folder with images.txt or "
                          "images/ (or imgs/) + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, "
                          f"got {source}")
-    from cmax.sim.video import avi_rate_problem
+    from cmax.sim.video import avi_rate_problem, mp4_timing_problem
 
-    if source.is_file() and (problem := avi_rate_problem(source)) is not None:    # FFmpeg would assume 25 fps
-        raise ValueError(problem)
+    if source.is_file() and (problem := avi_rate_problem(source) or mp4_timing_problem(source)) is not None:
+        raise ValueError(problem)                         # no frame rate or durations: the times would be made up
     return source
 
 

@@ -68,6 +68,7 @@ __all__ = [
     "VideoFileSource",
     "avi_rate_problem",
     "bare_stream_problem",
+    "mp4_timing_problem",
     "open_source",
     "prefetched",
     "read_timestamps",
@@ -170,6 +171,102 @@ def avi_rate_problem(path: PathLike) -> str | None:
             f"guessed; state its real rate with ffmpeg's -r before the input, e.g. ffmpeg -r RATE -i {path} -c copy "
             f"{fixed}, or write its frames as images with a timestamps.txt (one time in seconds per image) and "
             "convert that folder")
+
+
+#: The largest ``moov`` box :func:`mp4_timing_problem` reads (bytes); a larger one is not checked.
+_MAX_MOOV_BYTES = 1 << 26
+#: ISO base media (mp4, mov, 3gp) container boxes :func:`_mp4_boxes` descends into on the way to a track's ``stts``.
+_MP4_CONTAINERS = (b"trak", b"mdia", b"minf", b"stbl")
+
+
+def _mp4_boxes(data: bytes, start: int, end: int) -> Iterator[tuple[bytes, int, int]]:
+    """``(type, payload start, box end)`` of the ISO base media boxes in ``data[start:end]``, in order; stops at a
+    box whose size does not fit (a truncated or foreign file).
+
+    >>> list(_mp4_boxes(b"\\x00\\x00\\x00\\x0cstts\\x00\\x00\\x00\\x00", 0, 12))
+    [(b'stts', 8, 12)]
+    """
+    i = start
+    while i + 8 <= end:
+        size, kind = int.from_bytes(data[i: i + 4], "big"), data[i + 4: i + 8]
+        header = 8
+        if size == 1 and i + 16 <= end:
+            size, header = int.from_bytes(data[i + 8: i + 16], "big"), 16
+        elif size == 0:
+            size = end - i
+        if size < header or i + size > end:
+            return
+        yield kind, i + header, i + size
+        i += size
+
+
+def _video_sample_durations(moov: bytes) -> tuple[int, int] | None:
+    """``(samples, summed duration in the track's timescale)`` of the ``stts`` of the first video track (``hdlr``
+    ``vide``) in the payload of a ``moov`` box; None without one (or with an empty ``stts``: a fragmented file,
+    whose times are in its fragments)."""
+    for kind, start, end in _mp4_boxes(moov, 0, len(moov)):
+        if kind != b"trak":
+            continue
+        handler, stts = None, None
+        pending = [(start, end)]
+        while pending:
+            low, high = pending.pop()
+            for inner, a, b in _mp4_boxes(moov, low, high):
+                if inner in _MP4_CONTAINERS:
+                    pending.append((a, b))
+                elif inner == b"hdlr" and b - a >= 12:
+                    handler = moov[a + 8: a + 12]
+                elif inner == b"stts" and b - a >= 8:
+                    stts = moov[a: b]
+        if handler != b"vide" or stts is None:
+            continue
+        count = min(int.from_bytes(stts[4:8], "big"), (len(stts) - 8) // 8)
+        entries = [(int.from_bytes(stts[8 + 8 * k: 12 + 8 * k], "big"),         # (sample count, sample duration)
+                    int.from_bytes(stts[12 + 8 * k: 16 + 8 * k], "big")) for k in range(count)]
+        if not entries:
+            return None
+        return sum(n for n, _ in entries), sum(n * d for n, d in entries)
+    return None
+
+
+def mp4_timing_problem(path: PathLike) -> str | None:
+    """Why the video file ``path`` cannot be converted when it is an mp4/mov whose video track states no frame
+    durations: every sample of its ``stts`` table lasts 0 (broken writers leave it so). FFmpeg and OpenCV then
+    make up a frame rate and times from it (a 10 fps clip came out at 0.5 fps, its frames 2 s apart), so the
+    frames' times would be guessed. None for any other file, for a fragmented mp4 (times in its fragments) and
+    for one whose ``moov`` box is larger than :data:`_MAX_MOOV_BYTES` (not checked).
+    """
+    path = Path(path)
+    with open(path, "rb") as file:
+        head = file.read(12)
+        if head[4:8] != b"ftyp":
+            return None
+        size, offset = file.seek(0, os.SEEK_END), 0
+        while offset + 8 <= size:                          # the top-level boxes: ftyp, mdat, moov, ... in any order
+            file.seek(offset)
+            header = file.read(16)
+            length, kind = int.from_bytes(header[:4], "big"), header[4:8]
+            skip = 8
+            if length == 1 and len(header) == 16:
+                length, skip = int.from_bytes(header[8:16], "big"), 16
+            elif length == 0:
+                length = size - offset
+            if length < skip:
+                return None
+            if kind == b"moov":
+                if length > _MAX_MOOV_BYTES:
+                    return None
+                file.seek(offset + skip)
+                durations = _video_sample_durations(file.read(length - skip))
+                if durations is None or durations[0] < 2 or durations[1] > 0:
+                    return None
+                return (f"{path}: its video track states no frame durations (each of its {durations[0]} samples "
+                        "lasts 0 in its stts table): the decoder would make up a frame rate and the frames' times "
+                        f"would be guessed; state its real rate with ffmpeg's -r before the input, e.g. ffmpeg -r RATE "
+                        f"-i {path} -c copy {path.with_suffix('.mkv')}, or write its frames as images with a "
+                        "timestamps.txt (one time in seconds per image) and convert that folder")
+            offset += length
+    return None
 
 
 @runtime_checkable
@@ -730,7 +827,8 @@ class VideoFileSource:
 
     Decoding errors: a file OpenCV cannot open or that yields no frame, and a bare MJPEG stream (no
     container, no frame times: :func:`bare_stream_problem`) or an AVI whose headers state no frame rate
-    (:func:`avi_rate_problem`: FFmpeg would assume 25 frames/s) raise :class:`DecodeError` at construction; a
+    (:func:`avi_rate_problem`: FFmpeg would assume 25 frames/s) or an mp4 whose video track states no frame
+    durations (:func:`mp4_timing_problem`) raise :class:`DecodeError` at construction; a
     path that is not valid UTF-8 raises :class:`ValueError` (:func:`_opencv_path`: OpenCV would crash on it). When
     the decoder stops more than ``max(1, 1%)`` frames before the container's frame count, and the last
     frame decoded lies that far before the stream's end too (:func:`_stopped_early`: a Matroska count is
@@ -750,7 +848,8 @@ class VideoFileSource:
         self.dtype, self.prefetch = _check_dtype(dtype), _check_prefetch(prefetch)
         _check_time_range(t0_s, t1_s)
         self.t0_s, self.t1_s = t0_s, t1_s
-        if (problem := bare_stream_problem(self.path) or avi_rate_problem(self.path)) is not None:
+        if (problem := bare_stream_problem(self.path) or avi_rate_problem(self.path)
+                or mp4_timing_problem(self.path)) is not None:
             raise DecodeError(problem)                                 # times never guessed
         capture = self._open()
         try:
