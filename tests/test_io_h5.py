@@ -229,7 +229,7 @@ def test_an_h5_file_of_another_tool_s_layout_is_named_in_the_refusal(tmp_path):
         file["foo"], file["bar"] = [1], [2]
     for path, words in ((v2e, "it holds a table 'events' of shape (5, 4) (as v2e writes)"),
                         (event_utils, "it holds events/xs, ys, ts, ps (the event_utils / E2VID layout)"),
-                        (metavision, "it holds CD/events (Metavision's HDF5 event file)"),
+                        (metavision, "it holds CD/events (Metavision's HDF5 event file, compressed with its ECF codec)"),
                         (other, "its top-level names: bar, foo")):
         with pytest.raises(FormatError, match=r"neither DSEC .* nor MVSEC \(davis/\.\.\.\); " + re.escape(words)):
             read(path, width=8, height=8)

@@ -66,8 +66,8 @@ def _other_h5_layout(file: h5py.File) -> str:
         return ("; it holds events/xs, ys, ts, ps (the event_utils / E2VID layout): build cmax.Events(x, y, t, p, "
                 "width, height) from them, with ts converted to integer µs (the file does not state its unit)")
     if isinstance(file.get("CD"), h5py.Group) and "events" in file["CD"]:
-        return ("; it holds CD/events (Metavision's HDF5 event file): convert it to a RAW (EVT 3.0) file with "
-                "Metavision's tools, which cmax reads")
+        return ("; it holds CD/events (Metavision's HDF5 event file, compressed with its ECF codec): read it with "
+                "Metavision's SDK and build cmax.Events(x, y, t, p, width, height) from its columns (t in µs)")
     return f"; its top-level names: {', '.join(names[:8]) or 'none'}{', ...' if len(names) > 8 else ''}"
 
 
