@@ -876,3 +876,18 @@ def test_the_summary_of_an_mvsec_fit_names_the_camera_fitted(tmp_path, capsys, c
     dsec = write_h5(tmp_path / "one.h5", noise_events(300, 50_000, seed=1))
     assert main(["fit", str(dsec), "--K", "60,60,32,24", "-o", str(tmp_path / "d"), "--quiet"]) == 1
     assert json.loads((tmp_path / "d" / "summary.json").read_text())["camera"] is None
+
+
+def test_fit_notes_events_that_repeat_an_earlier_one_exactly(tmp_path, capsys):
+    """Was: a recording whose every event was written twice fitted without a word (each copy counted)."""
+    events = noise_events(300, 50_000, seed=1)
+    twice = Events(*(np.repeat(column, 2) for column in (events.x, events.y, events.t, events.p)), 64, 48)
+    expected = len(twice) - len(set(zip(twice.x.tolist(), twice.y.tolist(), twice.t.tolist(), twice.p.tolist())))
+    path = write_h5(tmp_path / "twice.h5", twice)
+    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet"]) == 1
+    note = f"{expected:,} of the 600 events repeat an earlier event exactly"
+    assert expected >= 300 and note in capsys.readouterr().err
+    assert any(note in text for text in json.loads((tmp_path / "o" / "summary.json").read_text())["notes"])
+    assert main(["fit", str(write_h5(tmp_path / "once.h5", events)), "--K", "60,60,32,24", "-o",
+                 str(tmp_path / "p"), "--quiet"]) == 1
+    assert "repeat an earlier event" not in capsys.readouterr().err

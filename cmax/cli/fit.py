@@ -506,6 +506,13 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         notes.append(f"{args.file} holds {len(events.reader):,} events, more than cmax.events.MAX_EVENTS="
                      f"{cmax_events.MAX_EVENTS:,}: fitting it window by window from the file")
     check_file_principal_point(K, args.file, events.width, events.height)   # cmax.fit's check, with --size's scale
+    if not isinstance(events, StreamedEvents):          # in memory: counted as cmax info counts them (never dropped)
+        from cmax.io.info import duplicate_count
+
+        if repeated := duplicate_count(events):
+            notes.append(f"{repeated:,} of the {len(events):,} events repeat an earlier event exactly (same x, y, t "
+                         "and polarity: a file written twice or merged with itself?): fitted as they are, each "
+                         "copy counted")
     if distortion is not None:          # one camera, its undistortion map computed once for every window
         from cmax.camera import Camera
 
