@@ -39,7 +39,7 @@ import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
 from cmax.cli.recording import (add_camera_options, add_recording_arguments, check_calibration_of_frames,
-                                check_file_principal_point,
+                                check_file_principal_point, given_k_note,
                                 no_intrinsics_message, read_calibration, tail_note, time_span_us)
 from cmax.events import window_starts
 from cmax.io import run_folder
@@ -707,13 +707,16 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         if calib_size is not None and (recording.width, recording.height) != tuple(calib_size):
             raise ValueError(f"{calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({calib_camera}), the "
                              f"events come from a {recording.width}x{recording.height} sensor")
+        stated = K is not None
         K = _resolve_intrinsics(recording, K)
+        given = given_k_note(path, K) if stated else None   # a K given over the file's own gt/K: said in a note
         # refused as cmax fit / emvs / learned.train refuse it: the network's depth assumes these pixels' K
         check_file_principal_point(K, path, recording.width, recording.height)
         batch = batch_that_fits(model.config, recording.width, recording.height, batch)   # before any window is read
         undistort = None if distortion is None else undistortion(K, distortion, recording.width, recording.height)
         notes = [f"{checkpoint.name}: {limit}" for limit in card_limits(card, f"the card of {checkpoint}")]
         notes += camera_notes(card, recording.width, recording.height, K, f"the card of {checkpoint}")
+        notes += [given] if given else []
         start, end = time_bounds(recording.first_us, recording.last_us, t0_s, t1_s)
         window_us, starts, short = window_plan(start, end, window_us, explicit=explicit)
         notes += [short] if short else []
@@ -746,7 +749,10 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         draw_window(stage, index, scale)
     write_text_atomic(stage / "twists.csv", "\n".join(lines) + "\n")
     run = DepthRun(written, skipped, window_us, tuple(notes), time.perf_counter() - started, stage)
-    summary = {"file": str(path), "format": recording.format, "checkpoint": str(checkpoint),
+    from cmax.cli.recording import camera_read
+
+    summary = {"file": str(path), "format": recording.format, "camera": camera_read(recording.format, camera),
+               "checkpoint": str(checkpoint),
                "size": [recording.width, recording.height], "K": np.asarray(K).tolist(),
                "distortion": None if distortion is None else distortion.tolist(), "window_us": window_us,
                "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],

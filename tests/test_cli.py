@@ -432,3 +432,69 @@ def test_info_reads_an_mvsec_camera_a_chunk_at_a_time(tmp_path, monkeypatch):
         file.create_dataset("davis/left/events", data=table)
     with pytest.raises(FormatError, match="corrupt events at row 7"):
         file_info(path)
+
+
+def test_info_counts_events_that_repeat_an_earlier_one_exactly(tmp_path, capsys):
+    """Was: a file whose every event was written twice summarised as a clean recording of twice the rate."""
+    from cmax.events import Events
+
+    events = random_events(500, 64, 48, seed=4)
+    twice = Events(*(np.repeat(column, 2) for column in (events.x, events.y, events.t, events.p)), 64, 48)
+    path = write_h5(tmp_path / "twice.h5", twice)
+    assert main(["info", str(path)]) == 0
+    out = capsys.readouterr().out
+    expected = len(twice) - len(set(zip(twice.x.tolist(), twice.y.tolist(), twice.t.tolist(), twice.p.tolist())))
+    assert expected >= 500 and f"duplicates  {expected:,} events (" in out, out
+    assert main(["info", str(write_h5(tmp_path / "once.h5", events))]) == 0
+    assert "duplicates" not in capsys.readouterr().out       # random events on distinct µs: none
+
+
+def test_duplicates_split_between_chunks_are_counted_once(tmp_path, monkeypatch):
+    """The summary reads a file in chunks; rows of one time stamp on both sides of a chunk's end are compared."""
+    import cmax.io.info
+    from cmax.events import Events
+    from cmax.io.info import file_info
+
+    rng = np.random.default_rng(5)
+    n = 400
+    t = np.sort(rng.integers(0, 40, n))                     # ~10 events a µs, on 3 pixels, both polarities
+    x, y, p = rng.integers(0, 3, n), np.zeros(n, np.int64), rng.integers(0, 2, n)
+    path = write_h5(tmp_path / "dense.h5", Events(x, y, t, p, 4, 2))
+    expected = n - len(set(zip(x.tolist(), y.tolist(), t.tolist(), p.tolist())))
+    monkeypatch.setattr(cmax.io.info, "_CHUNK", 7)
+    assert expected > 100 and file_info(path).duplicates == expected
+
+
+def test_info_says_a_raw_sensor_size_is_only_inferred_from_the_camera_name(tmp_path, capsys):
+    """Was: `sensor      640 x 480` for a Gen4 (1280x720) recording whose events lie in its top-left 640x480 (an
+    ROI) saved by expelliarmus, whose header names `hal_plugin_gen3_fx3` for every file: a guess shown as a fact."""
+    from cmax.events import Events
+    from cmax.io import write_evt2
+
+    events = Events([100, 5], [200, 3], [10, 20], [1, 0], width=1280, height=720)
+    data = write_evt2(tmp_path / "gen4.raw", events).read_bytes().split(b"% end\n", 1)[1]
+    path = tmp_path / "saved_by_expelliarmus.raw"
+    path.write_bytes(b"% evt 2.0\n% plugin_name hal_plugin_gen3_fx3\n" + data)
+    assert main(["info", str(path)]) == 0
+    assert ("sensor      640 x 480 (not stated by the file: inferred from its 'plugin_name hal_plugin_gen3_fx3' "
+            "line; --size WxH gives the sensor's)\n") in capsys.readouterr().out
+    assert main(["info", str(path), "--size", "1280x720"]) == 0
+    assert "sensor      1280 x 720\n" in capsys.readouterr().out
+
+
+def test_mvsec_times_in_microseconds_name_the_unit_that_reads_them(tmp_path, capsys):
+    """Was: `... = 1500000000000099.0 s does not fit into int64 microseconds`, without saying that the column holds
+    microseconds since 1970 (a converted MVSEC file), nor which option reads it."""
+    import h5py
+
+    t_us = 1_500_000_000_000_000 + np.arange(100, dtype=np.int64)
+    table = np.stack([np.full(100, 3), np.full(100, 4), t_us, np.ones(100)], axis=1).astype(np.float64)
+    path = tmp_path / "us.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    assert main(["info", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "does not fit into int64 microseconds; as us it is 1500000000.000099 s since " \
+        "1970: state the unit with time_unit='us' (cmax: --time-unit us)" in err, err
+    assert main(["info", str(path), "--time-unit", "us"]) == 0
+    assert "time        1500000000000000 .. 1500000000000099 µs" in capsys.readouterr().out

@@ -887,3 +887,34 @@ def test_a_long_h5_file_under_the_event_limit_is_fitted_from_the_file_too(tmp_pa
     assert len(held) == len(streamed) >= 3
     for a, b in zip(held, streamed):
         assert (a["t0_us"], a["t1_us"], a["flow"]) == (b["t0_us"], b["t1_us"], b["flow"])
+
+
+@pytest.mark.parametrize("camera", [None, "right"])
+def test_the_summary_of_an_mvsec_fit_names_the_camera_fitted(tmp_path, capsys, camera):
+    """Was: summary.json of `cmax fit rig.hdf5 --camera right` did not say which camera was fitted: the left and
+    the right run of one file gave records that could not be told apart."""
+    from test_cli import _two_camera_mvsec
+
+    path = _two_camera_mvsec(tmp_path / "rig.hdf5", left=20, right=30)
+    chosen = [] if camera is None else ["--camera", camera]
+    assert main(["fit", str(path), "--K", "200,200,173,130", "-o", str(tmp_path / "o"), "--quiet", *chosen]) == 1
+    capsys.readouterr()                                # no window has 1,000 events: the summary alone is written
+    assert json.loads((tmp_path / "o" / "summary.json").read_text())["camera"] == (camera or "left")
+    dsec = write_h5(tmp_path / "one.h5", noise_events(300, 50_000, seed=1))
+    assert main(["fit", str(dsec), "--K", "60,60,32,24", "-o", str(tmp_path / "d"), "--quiet"]) == 1
+    assert json.loads((tmp_path / "d" / "summary.json").read_text())["camera"] is None
+
+
+def test_fit_notes_events_that_repeat_an_earlier_one_exactly(tmp_path, capsys):
+    """Was: a recording whose every event was written twice fitted without a word (each copy counted)."""
+    events = noise_events(300, 50_000, seed=1)
+    twice = Events(*(np.repeat(column, 2) for column in (events.x, events.y, events.t, events.p)), 64, 48)
+    expected = len(twice) - len(set(zip(twice.x.tolist(), twice.y.tolist(), twice.t.tolist(), twice.p.tolist())))
+    path = write_h5(tmp_path / "twice.h5", twice)
+    assert main(["fit", str(path), "--K", "60,60,32,24", "-o", str(tmp_path / "o"), "--quiet"]) == 1
+    note = f"{expected:,} of the 600 events repeat an earlier event exactly"
+    assert expected >= 300 and note in capsys.readouterr().err
+    assert any(note in text for text in json.loads((tmp_path / "o" / "summary.json").read_text())["notes"])
+    assert main(["fit", str(write_h5(tmp_path / "once.h5", events)), "--K", "60,60,32,24", "-o",
+                 str(tmp_path / "p"), "--quiet"]) == 1
+    assert "repeat an earlier event" not in capsys.readouterr().err

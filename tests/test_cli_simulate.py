@@ -723,3 +723,81 @@ def test_the_calibration_of_frames_that_size_resized_is_refused_with_the_scaled_
     args = argparse.Namespace(calib=seq / "calib.txt", calib_camera="cam0", distortion=None, K=None, file=same)
     K, distortion, _ = calibration_of(args)
     assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (50, 52, 19.5, 14.5)
+
+
+def test_an_avi_whose_headers_state_no_frame_rate_is_one_line_exit_2(tmp_path, capsys):
+    """Was: `cmax simulate` converted it at FFmpeg's invented 25 frames/s, exit 0 (a 20 fps clip 20% short)."""
+    from test_sim_video import _avi_without_rate
+
+    source = _avi_without_rate(tmp_path / "clip.avi")
+    out = tmp_path / "out" / "clip.h5"
+    assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "its AVI headers state no frame rate" in err and "ffmpeg -r RATE" in err, err
+    assert not out.exists()
+
+
+def test_simulate_stores_the_frames_k_scaled_to_its_pixels_for_fit(tmp_path, capsys):
+    """Was: `cmax simulate` had no --K / --calib and wrote no gt/K, so every `cmax fit` of the file needed --K again
+    (and the K of frames that --size resized, scaled by hand)."""
+    import h5py
+
+    source = tmp_path / "clip.avi"
+    write_video(source, n_frames=12, width=48, height=32)
+    out = tmp_path / "k" / "clip.h5"
+    assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet", "--K", "60,62,23.5,15.5",
+                 "--size", "24x16"]) == 0
+    with h5py.File(out, "r") as file:
+        K = file["gt/K"][()]
+    # cv2.resize's pixel centres: x' + 0.5 = s (x + 0.5), s = 0.5 on both axes: cx = 24 * 0.5 - 0.5
+    np.testing.assert_allclose(K, [[30.0, 0, 11.5], [0, 31.0, 7.5], [0, 0, 1]], rtol=0, atol=1e-12)
+    capsys.readouterr()
+    status = main(["fit", str(out), "-o", str(tmp_path / "fit"), "--quiet", "--min-events", "10", "--depth-grid", "4,6"])
+    assert status in (0, 1), capsys.readouterr().err                # fitted without --K (no "stores no intrinsics")
+    np.testing.assert_allclose(json.loads((tmp_path / "fit" / "summary.json").read_text())["K"], K)
+    assert "K" not in ConvertSettings().to_dict()                   # settings without K read as before
+
+
+def test_simulate_calib_is_read_and_a_lens_distortion_refused(tmp_path, capsys):
+    import h5py
+
+    source = tmp_path / "clip.avi"
+    write_video(source, n_frames=6, width=48, height=32)
+    (tmp_path / "pinhole.txt").write_text("60 62 23.5 15.5 0 0 0 0 0\n")
+    (tmp_path / "lens.txt").write_text("60 62 23.5 15.5 -0.1 0.02 0 0 0\n")
+    out = tmp_path / "a" / "clip.h5"
+    assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet", "--calib",
+                 str(tmp_path / "pinhole.txt")]) == 0
+    with h5py.File(out, "r") as file:
+        np.testing.assert_array_equal(file["gt/K"][()], [[60.0, 0, 23.5], [0, 62.0, 15.5], [0, 0, 1]])
+    capsys.readouterr()
+    lens = tmp_path / "b" / "clip.h5"
+    assert main(["simulate", str(source), "-o", str(lens), *FAST, "--quiet", "--calib",
+                 str(tmp_path / "lens.txt")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "states a lens distortion (-0.1, 0.02, 0, 0, 0)" in err and \
+        f"give --calib {tmp_path / 'lens.txt'} to cmax fit" in err, err
+    assert not lens.exists()
+    off = tmp_path / "c" / "clip.h5"                                  # another sensor's K: that video fails
+    assert main(["simulate", str(source), "-o", str(off), *FAST, "--quiet", "--K", "600,600,320,240"]) == 1
+    assert "K's principal point (320, 240) lies outside the 48x32 image" in capsys.readouterr().err
+    assert not off.exists()
+
+
+def test_a_k_given_over_the_file_s_own_gt_k_is_named_in_a_note(tmp_path, capsys):
+    """Was: `cmax fit --K` on a file storing another gt/K (cmax simulate --K, cmax scene) used the given K without a
+    word; the file's was never looked at."""
+    source = tmp_path / "clip.avi"
+    write_video(source, n_frames=12, width=48, height=32)
+    out = tmp_path / "k" / "clip.h5"
+    assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet", "--K", "60,62,23.5,15.5"]) == 0
+    capsys.readouterr()
+    fit = ["fit", str(out), "--quiet", "--min-events", "10", "--depth-grid", "4,6"]
+    assert main([*fit, "-o", str(tmp_path / "other"), "--K", "80,80,23.5,15.5"]) in (0, 1)
+    note = (f"note: {out} stores gt/K (fx 60, fy 62, cx 23.5, cy 15.5) unlike the K given (fx 80, fy 80, cx 23.5, "
+            "cy 15.5): the given one is used")
+    assert note in capsys.readouterr().err
+    summary = json.loads((tmp_path / "other" / "summary.json").read_text())
+    assert summary["K"][0][0] == 80.0 and any("unlike the K given" in text for text in summary["notes"])
+    assert main([*fit, "-o", str(tmp_path / "same"), "--K", "60,62,23.5,15.5"]) in (0, 1)
+    assert "unlike the K given" not in capsys.readouterr().err

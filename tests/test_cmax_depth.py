@@ -222,6 +222,8 @@ def test_cmax_depth_on_each_format_equals_a_direct_forward(name, checkpoint, net
         expected_events = Events(events.x, events.y, events.t + MVSEC_T0, events.p, 346, 260)
     expected = _expected(network, expected_events)
     _check_outputs(out, expected)
+    # the camera read: an MVSEC file's (left without --camera), none for a file of one camera
+    assert json.loads((out / "summary.json").read_text())["camera"] == ("left" if name == "mvsec" else None)
     assert re.fullmatch(rf"{len(expected)} windows of 50 ms predicted in [\d.]+ s \([\d.]+ windows/s\); "
                         rf"results in {re.escape(str(out))}\n", captured.out), captured.out
     # the events end 194 µs (0.4% of a window) before the fourth window's end: that window is whole, no note

@@ -1,6 +1,8 @@
 """DSEC-layout HDF5: round trips, windowed reads, ms_to_idx, atomic writes."""
 from __future__ import annotations
 
+import re
+
 import h5py
 import numpy as np
 import pytest
@@ -210,3 +212,24 @@ def test_a_small_uncompressed_file_is_not_padded_to_a_whole_chunk(tmp_path):
     columns = 20_000 * (2 + 2 + 8 + 1)
     assert path.stat().st_size < 2 * columns + 100_000, path.stat().st_size
     assert read_h5(path) == ev
+
+
+def test_an_h5_file_of_another_tool_s_layout_is_named_in_the_refusal(tmp_path):
+    """Was: `is HDF5 but neither DSEC (events/x..p) nor MVSEC (davis/...)` for v2e's, event_utils' and Metavision's
+    HDF5 files alike, nothing said about what the file holds; still refused (their unit or order is not stated)."""
+    v2e, event_utils, metavision, other = (tmp_path / name for name in ("v2e.h5", "eu.h5", "cd.h5", "other.h5"))
+    with h5py.File(v2e, "w") as file:
+        file["events"] = np.zeros((5, 4), np.int32)
+    with h5py.File(event_utils, "w") as file:
+        for name in ("xs", "ys", "ts", "ps"):
+            file[f"events/{name}"] = np.zeros(5)
+    with h5py.File(metavision, "w") as file:
+        file["CD/events"] = np.zeros(5, [("x", "<u2"), ("y", "<u2"), ("p", "<i2"), ("t", "<i8")])
+    with h5py.File(other, "w") as file:
+        file["foo"], file["bar"] = [1], [2]
+    for path, words in ((v2e, "it holds a table 'events' of shape (5, 4) (as v2e writes)"),
+                        (event_utils, "it holds events/xs, ys, ts, ps (the event_utils / E2VID layout)"),
+                        (metavision, "it holds CD/events (Metavision's HDF5 event file, compressed with its ECF codec)"),
+                        (other, "its top-level names: bar, foo")):
+        with pytest.raises(FormatError, match=r"neither DSEC .* nor MVSEC \(davis/\.\.\.\); " + re.escape(words)):
+            read(path, width=8, height=8)

@@ -438,3 +438,16 @@ def test_file_info_checks_the_order_across_its_chunks(tmp_path, monkeypatch):
     good = _dsec(tmp_path / "good.h5", np.arange(40, dtype=np.int64))
     summary = file_info(good)
     assert (summary.count, summary.t_start_us, summary.t_end_us, summary.on_count) == (40, 0, 39, 20)
+
+
+def test_uint32_times_of_an_h5_file_that_wrapped_are_named_as_a_wrapped_clock(tmp_path):
+    """Was: `t must be sorted in non-decreasing order (4 µs comes after 4294967290 µs, before t_offset)` only,
+    where the .npy and text readers name a uint32 microsecond clock that wrapped and how to unwrap it."""
+    t = np.array([4294967000, 4294967290, 4, 300], np.uint32)
+    path = _dsec(tmp_path / "wrapped.h5", t)
+    with pytest.raises(FormatError, match=r"row 2: t must be sorted .*; a drop of 71\.6 min from near 2\*\*32 µs: "
+                                          r"a uint32 microsecond clock that wrapped"):
+        read(path)
+    stepped_back = _dsec(tmp_path / "back.h5", np.array([10, 20, 5, 30], np.uint32))
+    with pytest.raises(FormatError, match=r"\(5 µs comes after 20 µs, before t_offset\)$"):
+        read(stepped_back)                                              # a step back is not a wrap

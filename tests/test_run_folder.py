@@ -134,6 +134,7 @@ def test_emvs_writes_a_summary_as_its_record_of_completion(slider_file, tmp_path
     assert cmax_main(_emvs(slider_file, out)) == 0
     summary = json.loads((out / "summary.json").read_text())
     assert summary["command"] == "emvs" and summary["file"] == str(slider_file) and summary["n_planes"] == 20
+    assert summary["camera"] is None                   # a file of one camera (an MVSEC file's: "left" / "right")
     assert summary["files"] == ["depth.npz", "depth.png", "points.ply", "summary.json"]
     assert sorted(p.name for p in out.iterdir()) == sorted(summary["files"])
 

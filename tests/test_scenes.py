@@ -468,3 +468,20 @@ def test_a_scene_whose_events_outgrow_memory_stops_when_they_do(monkeypatch, tmp
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert err.startswith("cmax scene: error: the scene made ") and "MAX_EVENTS" in err
     assert not output.exists() and not list(tmp_path.iterdir())
+
+
+@pytest.mark.parametrize("width, height", [(1, 48), (64, 1), (1, 1)])
+def test_make_scene_refuses_an_image_one_pixel_across(width, height):
+    """Was: accepted; simulating it then failed inside torch (`self.stride(-1) must be 1 to view Long as Int`)
+    or numpy (`Shape of array too small to calculate a numerical gradient`)."""
+    with pytest.raises(ValueError, match=rf"width and height must be at least 2 pixels .* got {width}x{height}"):
+        make_scene("slider", width=width, height=height, texture_size=64)
+
+
+def test_the_smallest_scene_make_scene_accepts_simulates():
+    from cmax.sim.esim import EventSimulator
+    from cmax.sim.synthetic import simulate_scene
+
+    scene = make_scene("slider", width=2, height=2, duration_s=0.05, texture_size=64)
+    sequence = simulate_scene(scene, 0.02, EventSimulator(**scene.recommended_simulator))
+    assert (sequence.events.width, sequence.events.height) == (2, 2)

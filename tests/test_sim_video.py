@@ -472,3 +472,91 @@ def test_t0_t1_count_seconds_after_the_first_frame_for_videos_and_image_folders(
         assert (source.timestamps_us - start_us).tolist() == [100_000, 150_000]
         with pytest.raises(ValueError, match=r"images span 0\.250000 s"):
             ImageFolderSource(folder, t0_s=0.3)
+
+
+def _avi_without_rate(path: Path, keep_frame_period: bool = False) -> Path:
+    """An MJPG AVI of 30 frames written at 20 fps whose video stream header (strh) states rate 0, and whose main
+    header (avih) states frame period 0 unless ``keep_frame_period`` (what broken writers leave)."""
+    write_avi(path, count=30, fps=20.0)
+    data = bytearray(path.read_bytes())
+    main, stream = data.find(b"avih"), data.find(b"strh")
+    assert struct.unpack_from("<I", data, main + 8) == (50_000,) and data[stream + 8: stream + 12] == b"vids"
+    if not keep_frame_period:
+        struct.pack_into("<I", data, main + 8, 0)
+    struct.pack_into("<I", data, stream + 32, 0)                   # dwRate
+    path.write_bytes(bytes(data))
+    return path
+
+
+def test_an_avi_whose_headers_state_no_frame_rate_is_refused_not_timed_at_25_fps(tmp_path):
+    """Was: FFmpeg's 25 frames/s taken as the rate without a word: the 1.5 s of this 20 fps clip (30 frames)
+    converted as 1.16 s, every interval 40 ms instead of 50 ms."""
+    source = _avi_without_rate(tmp_path / "clip.avi")
+    with pytest.raises(DecodeError, match=r"clip.avi: its AVI headers state no frame rate .* ffmpeg -r RATE -i"):
+        VideoFileSource(source)
+    # the main header's frame period alone states the rate: FFmpeg takes it, and so the times are the true ones
+    kept = _avi_without_rate(tmp_path / "kept.avi", keep_frame_period=True)
+    times = [t for _, t in VideoFileSource(kept, prefetch=0)]
+    assert times == [50_000 * k for k in range(30)]
+
+
+class _CaptureWithoutTimes:
+    """A stand-in for cv2.VideoCapture of a stream that states neither frame times nor a frame rate."""
+
+    def __init__(self, *args) -> None:
+        self.read_frames = 0
+
+    def isOpened(self) -> bool:
+        return True
+
+    def read(self):
+        if self.read_frames == 3:
+            return False, None
+        self.read_frames += 1
+        return True, np.full((48, 64, 3), 40 * self.read_frames, np.uint8)
+
+    def get(self, prop: int) -> float:
+        if prop == cv2.CAP_PROP_POS_FRAMES:
+            return float(self.read_frames)
+        return 0.0 if prop in (cv2.CAP_PROP_FPS, cv2.CAP_PROP_POS_MSEC) else float("nan")
+
+    def set(self, prop: int, value: float) -> bool:
+        return False
+
+    def release(self) -> None:
+        pass
+
+
+def test_frames_without_times_in_a_stream_without_a_rate_are_refused_not_timed_at_30_fps(tmp_path, monkeypatch):
+    """Was: frame k placed at k / 30 s when the container gave neither a time nor a rate."""
+    import cmax.sim.video as video
+
+    source = tmp_path / "clip.mkv"
+    source.write_bytes(b"\x1a\x45\xdf\xa3" + bytes(60))               # opened by the stand-in, never decoded
+    monkeypatch.setattr(video.cv2, "VideoCapture", _CaptureWithoutTimes)
+    frames = VideoFileSource(source, prefetch=0)
+    assert frames.fps is None
+    with pytest.raises(DecodeError, match="frame 1 has no time in the container, which states no frame rate"):
+        list(frames)
+
+
+def test_an_mp4_whose_frames_last_zero_is_refused_not_timed_at_an_invented_rate(tmp_path):
+    """Was: an mp4 whose stts table gives every sample a duration of 0 read at the rate FFmpeg/OpenCV made up:
+    this 20 fps clip came out at 0.5 fps (frames 2 s apart instead of 50 ms), without a word."""
+    source = tmp_path / "clip.mp4"
+    writer = cv2.VideoWriter(str(source), cv2.VideoWriter_fourcc(*"mp4v"), 20.0, (64, 48))
+    assert writer.isOpened()
+    for i in range(10):
+        frame = np.zeros((48, 64, 3), np.uint8)
+        frame[:, 4 * i: 4 * i + 8] = 255
+        writer.write(frame)
+    writer.release()
+    assert [t for _, t in VideoFileSource(source, prefetch=0)] == [50_000 * k for k in range(10)]   # intact
+    data = bytearray(source.read_bytes())
+    table = data.find(b"stts")
+    assert struct.unpack_from(">II", data, table + 8) == (1, 10)       # one entry of 10 samples
+    struct.pack_into(">I", data, table + 16, 0)                        # their duration: 0
+    source.write_bytes(bytes(data))
+    with pytest.raises(DecodeError, match=r"clip.mp4: its video track states no frame durations \(each of its 10 "
+                                          r"samples lasts 0 in its stts table\)"):
+        VideoFileSource(source)

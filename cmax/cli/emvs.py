@@ -24,7 +24,7 @@ from cmax._args import api_default, float_list, int_at_least, nonnegative_float
 from cmax.camera import intrinsics_oddity
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
-                                check_file_principal_point, file_depth_range, file_intrinsics,
+                                check_file_principal_point, file_depth_range, file_intrinsics, given_k_note,
                                 no_intrinsics_message, overlap, read_calibrated, resized_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
@@ -158,6 +158,8 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     from cmax.emvs.poses import trajectory_up_to_scale
 
     K, distortion, calib_size = calibration_of(args)
+    if (unlike := given_k_note(args.file, K)) is not None:
+        print(f"cmax emvs: note: {unlike}", file=sys.stderr)
     events, _ = read_calibrated(args, calib_size)    # --t0 / --t1 applied
     if trajectory is None:
         trajectory = file_trajectory(args.file)
@@ -198,7 +200,11 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     result.save_ply(stage / "points.ply")
     depths = result.depth[result.mask]
     median_m = float(np.median(depths)) if depths.size else None
-    record = {"command": "emvs", "file": str(args.file), "poses": str(args.poses or f"{args.file}: gt/poses"),
+    from cmax.cli.recording import camera_read
+    from cmax.io import detect_format
+
+    record = {"command": "emvs", "file": str(args.file),
+              "camera": camera_read(detect_format(args.file), getattr(args, "camera", None)), "poses": str(args.poses or f"{args.file}: gt/poses"),
               "events": len(events), "t_ref_us": int(result.t_ref_us), "n_planes": int(result.n_planes),
               "depth_range": [float(v) for v in result.depth_range], "mask_pixels": int(result.mask.sum()),
               "median_depth_m": median_m, "scale_known": metric, "files": list(RESULTS)}

@@ -28,9 +28,9 @@ import numpy as np
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
-                                calibration_of, check_file_principal_point, event_span, file_depth_range,
-                                file_intrinsics, no_intrinsics_message, open_streamed, overlap, read_calibrated,
-                                tail_note)
+                                calibration_of, camera_read, check_file_principal_point, event_span, file_depth_range,
+                                file_intrinsics, given_k_note, no_intrinsics_message, open_streamed, overlap,
+                                read_calibrated, tail_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
@@ -500,6 +500,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     from cmax.warp import DepthGrid
 
     K, distortion, calib_size = calibration_of(args)
+    notes = notes + ([unlike] if (unlike := given_k_note(args.file, K)) else [])
     if K is None:
         K = file_intrinsics(args.file)
         if K is None:
@@ -527,6 +528,13 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         notes.append(f"{args.file} holds {len(events.reader):,} events, more than cmax.events.MAX_EVENTS="
                      f"{cmax_events.MAX_EVENTS:,}: fitting it window by window from the file")
     check_file_principal_point(K, args.file, events.width, events.height)   # cmax.fit's check, with --size's scale
+    if not isinstance(events, StreamedEvents):          # in memory: counted as cmax info counts them (never dropped)
+        from cmax.io.info import duplicate_count
+
+        if repeated := duplicate_count(events):
+            notes.append(f"{repeated:,} of the {len(events):,} events repeat an earlier event exactly (same x, y, t "
+                         "and polarity: a file written twice or merged with itself?): fitted as they are, each "
+                         "copy counted")
     if distortion is not None:          # one camera, its undistortion map computed once for every window
         from cmax.camera import Camera
 
@@ -627,7 +635,10 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     elif failed == len(windows):
         late_notes.append(f"every fitted window failed ({failed}): no depth or motion of this run can be trusted "
                           "(each window's line says why)")
-    summary = {"file": str(args.file), "model": sequence_model, "K": K.tolist(),
+    from cmax.io import detect_format
+
+    summary = {"file": str(args.file), "camera": camera_read(detect_format(args.file), args.camera),
+               "model": sequence_model, "K": K.tolist(),
                "distortion": None if distortion is None else distortion.tolist(),
                "calib": None if args.calib is None else str(args.calib),
                "window_ms": window_us / 1000, "step_ms": step_us / 1000, "min_events": min_events,

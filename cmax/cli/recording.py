@@ -26,7 +26,8 @@ import numpy as np
 from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import Camera, check_intrinsics, intrinsics_matrix
 
-__all__ = ["add_file_options", "file_kwargs", "add_recording_arguments", "add_camera_options", "calibration_of",
+__all__ = ["add_file_options", "file_kwargs", "camera_read", "given_k_note", "add_recording_arguments",
+           "add_camera_options", "calibration_of",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
            "simulated_sizes", "resized_note", "source_calibration", "check_calibration_of_frames",
            "check_file_principal_point", "file_depth_range",
@@ -103,6 +104,17 @@ def file_kwargs(args: argparse.Namespace, path: Path | None = None) -> dict[str,
                              "file of one camera")
         options["camera"] = args.camera
     return options
+
+
+def camera_read(kind: str, camera: str | None) -> str | None:
+    """The camera whose events a command read from a file of format ``kind`` (:func:`cmax.io.detect_format`), for
+    its record (``summary.json``): an MVSEC file's ``camera`` (``--camera``; None: its default, ``'left'``), None
+    for a file of one camera.
+
+    >>> camera_read("mvsec", None), camera_read("mvsec", "right"), camera_read("dsec", None)
+    ('left', 'right', None)
+    """
+    return (camera or "left") if kind == "mvsec" else None
 
 
 def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
@@ -283,6 +295,30 @@ def file_intrinsics(path: str | Path) -> np.ndarray | None:
         return None
     with file:
         return h5_intrinsics(file, path)
+
+
+def given_k_note(path: str | Path, given: np.ndarray | None) -> str | None:
+    """A note when the h5 file ``path`` stores a ``gt/K`` (3, 3) [px] other than the ``given`` one (``--K`` /
+    ``--calib``), which is used: the file's is the camera it was rendered or simulated with (``cmax scene``,
+    ``cmax simulate --K``). None when either is missing (or the stored one is invalid) or they agree.
+
+    >>> given_k_note("missing.h5", np.eye(3)) is None
+    True
+    """
+    if given is None:
+        return None
+    try:
+        stored = file_intrinsics(path)
+    except (ValueError, OSError):
+        return None
+    if stored is None or np.allclose(stored, given, rtol=1e-6, atol=1e-9):
+        return None
+
+    def words(K: np.ndarray) -> str:
+        return f"fx {K[0, 0]:g}, fy {K[1, 1]:g}, cx {K[0, 2]:g}, cy {K[1, 2]:g}"
+
+    return (f"{path} stores gt/K ({words(stored)}) unlike the K given ({words(np.asarray(given))}): the given one is "
+            "used; leave --K / --calib out to use the file's")
 
 
 def simulated_sizes(path: str | Path) -> tuple[tuple[int, int], tuple[int, int]] | None:

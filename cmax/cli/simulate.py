@@ -55,7 +55,7 @@ def _run(args: argparse.Namespace) -> int:
     from cmax.sim.esim import EsimSettings
 
     esim = EsimSettings(**given(args, _ESIM_OPTIONS))
-    settings = ConvertSettings(esim, **given(args, _CONVERT_OPTIONS))
+    settings = ConvertSettings(esim, **given(args, _CONVERT_OPTIONS), K=_frames_intrinsics(args))
     _check_flow_size(settings, method_given=args.method is not None)
     shard = parse_shard(args.shard) if args.shard else None
     single = _single_input(args)
@@ -77,6 +77,26 @@ def _run(args: argparse.Namespace) -> int:
     if missing:
         print(f"  missing from {args.input}: {', '.join(missing)}", file=sys.stderr)
     return status
+
+
+def _frames_intrinsics(args: argparse.Namespace) -> tuple[float, float, float, float] | None:
+    """``(fx, fy, cx, cy)`` [px] of the frames from ``--K`` or ``--calib`` (with ``--calib-camera``), or None.
+
+    The output stores a pinhole ``gt/K`` only: a calibration with lens distortion is refused (the events keep the
+    lens's distortion, which a fit must undo: give that calibration to cmax fit/emvs/depth instead)."""
+    if getattr(args, "calib", None) is None:
+        K = getattr(args, "K", None)
+        return None if K is None else (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    import numpy as np
+
+    from cmax.cli.recording import read_calibration
+
+    K, distortion, _ = read_calibration(args.calib, args.calib_camera)
+    if distortion is not None and np.any(np.asarray(distortion) != 0):
+        raise ValueError(f"{args.calib} states a lens distortion ({', '.join(f'{v:g}' for v in distortion)}), which "
+                         "the output's gt/K (a pinhole K) cannot hold: convert without --calib and give "
+                         f"--calib {args.calib} to cmax fit, emvs or depth (it undistorts the events)")
+    return float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])
 
 
 def _check_flow_size(settings, *, method_given: bool) -> None:
@@ -134,6 +154,10 @@ def _single_input(args: argparse.Namespace) -> Path | None:
         raise ValueError(f"INPUT must be a video ({', '.join(VIDEO_SUFFIXES)}), an image folder with images.txt or "
                          "images/ (or imgs/) + timestamps.txt, or a timestamp file when OUTPUT is one .h5 file, "
                          f"got {source}")
+    from cmax.sim.video import avi_rate_problem, mp4_timing_problem
+
+    if source.is_file() and (problem := avi_rate_problem(source) or mp4_timing_problem(source)) is not None:
+        raise ValueError(problem)                         # no frame rate or durations: the times would be made up
     return source
 
 
@@ -296,6 +320,19 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         "its times are on (default: its start)")
     parser.add_argument("--t1", type=positive_float, default=None,
                         help="end, seconds after the first frame, after --t0 (default: its end)")
+    from cmax.cli.recording import intrinsics_argument
+
+    camera = parser.add_mutually_exclusive_group()
+    camera.add_argument("--K", type=intrinsics_argument, default=None,
+                        help="pinhole intrinsics fx,fy,cx,cy [px] of the frames as stored (before --size): each "
+                        "output stores them as gt/K, scaled to its pixels, which cmax fit/emvs/depth read without "
+                        "--K (default: none stored)")
+    camera.add_argument("--calib", type=Path, default=None,
+                        help="calibration file of the frames instead of --K: ECD calib.txt (fx fy cx cy, no "
+                        "distortion), DSEC cam_to_cam.yaml or a Kalibr camchain .yaml (the camera --calib-camera); "
+                        "one with lens distortion is refused (default: none)")
+    parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
+                        help="camera of --calib's .yaml: cam0, camRect0, cam1, ... (default cam0)")
     parser.add_argument("--workers", type=positive_int, default=1, help="parallel processes (one video each)")
     parser.add_argument("--catalogue", choices=("slowtv",), default=None,
                         help="INPUT is the folder of a catalogue's videos named by index (00000.mp4) (default: none, INPUT is "

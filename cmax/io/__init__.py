@@ -52,6 +52,25 @@ SORTABLE_FORMATS = ("txt", "npy", "aedat4")
 VIDEO_SUFFIXES = (".mp4", ".avi", ".mkv", ".mov", ".m4v", ".webm", ".mpg", ".mpeg", ".wmv", ".flv", ".ts")
 
 
+def _other_h5_layout(file: h5py.File) -> str:
+    """What an HDF5 file that is neither DSEC nor MVSEC holds, for the refusal: an ``events`` table of 4 columns
+    (v2e's layout), ``events/xs, ys, ts, ps`` (event_utils' and E2VID's), ``CD/events`` (Metavision's), else its
+    top-level names; nothing in them is read as events, as their column order or time unit is not stated."""
+    names = sorted(file.keys())
+    events = file.get("events")
+    if isinstance(events, h5py.Dataset) and events.ndim == 2 and events.shape[1] == 4:
+        return (f"; it holds a table 'events' of shape {events.shape} (as v2e writes), whose column order and time "
+                "unit the file does not state: once you know them, cmax.Events.from_array(table, width, height, "
+                "order='txyp') reads it (times in integer µs)")
+    if isinstance(events, h5py.Group) and all(name in events for name in ("xs", "ys", "ts", "ps")):
+        return ("; it holds events/xs, ys, ts, ps (the event_utils / E2VID layout): build cmax.Events(x, y, t, p, "
+                "width, height) from them, with ts converted to integer µs (the file does not state its unit)")
+    if isinstance(file.get("CD"), h5py.Group) and "events" in file["CD"]:
+        return ("; it holds CD/events (Metavision's HDF5 event file, compressed with its ECF codec): read it with "
+                "Metavision's SDK and build cmax.Events(x, y, t, p, width, height) from its columns (t in µs)")
+    return f"; its top-level names: {', '.join(names[:8]) or 'none'}{', ...' if len(names) > 8 else ''}"
+
+
 def detect_format(path: str | os.PathLike) -> str:
     """Name of the event format of ``path`` (one of :data:`FORMATS`), from its bytes.
 
@@ -79,9 +98,10 @@ def detect_format(path: str | os.PathLike) -> str:
                     return "dsec"
                 if "davis" in file:
                     return "mvsec"
+                layout = _other_h5_layout(file)
         except H5_ERRORS as error:  # truncated or corrupt HDF5 (h5py raises OSError, KeyError, ...)
             raise FormatError(f"{path} is not a readable HDF5 file ({error})") from None
-        raise FormatError(f"{path} is HDF5 but neither DSEC (events/x..p) nor MVSEC (davis/...)")
+        raise FormatError(f"{path} is HDF5 but neither DSEC (events/x..p) nor MVSEC (davis/...){layout}")
     if head.startswith(b"#!AER-DAT4"):
         return "aedat4"
     if head.startswith(b"\x93NUMPY"):

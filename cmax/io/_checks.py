@@ -64,6 +64,20 @@ def unit_from_attrs(attrs: Any, where: str, keys: tuple[str, ...] = ("unit", "un
 _COLLAPSE = 100
 
 
+def _smaller_unit_note(value: float, unit: str) -> str:
+    """For a time ``value`` stated in ``unit`` too large for int64 µs: the smaller unit of :data:`TIME_UNITS` that
+    puts it between 1973 and 2100 as seconds since 1970 (a recording's clock), and how to state it; "" if none does.
+
+    >>> _smaller_unit_note(1500000000997210.0, "s")
+    "; as us it is 1500000000.997210 s since 1970: state the unit with time_unit='us' (cmax: --time-unit us)"
+    """
+    for smaller in ("ms", "us"):
+        if TIME_UNITS[smaller] < TIME_UNITS[unit] and 1e8 <= abs(value) * TIME_UNITS[smaller] * 1e-6 < 4.1e9:
+            return (f"; as {smaller} it is {value * TIME_UNITS[smaller] * 1e-6:.6f} s since 1970: state the unit with "
+                    f"time_unit='{smaller}' (cmax: --time-unit {smaller})")
+    return ""
+
+
 def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
     """A raw time column as int64 µs under ``unit`` (canonical); may return ``t`` itself, modified.
 
@@ -87,7 +101,8 @@ def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
             low, high = int(t.min()), int(t.max())
             if high * factor > _INT64_MAX or low * factor < _INT64_MIN:
                 i = int(np.argmax(t)) if high * factor > _INT64_MAX else int(np.argmin(t))
-                raise FormatError(f"{where}[{i}] = {int(t[i])} {unit} does not fit into int64 microseconds")
+                raise FormatError(f"{where}[{i}] = {int(t[i])} {unit} does not fit into int64 microseconds"
+                                  f"{_smaller_unit_note(float(t[i]), unit)}")
             return t.astype(np.int64) * factor
         return t if t.dtype == np.int64 else t.astype(np.int64)
     if kind == "f":
@@ -98,7 +113,8 @@ def times_to_us(t: np.ndarray, unit: str, where: str) -> np.ndarray:
             raise FormatError(f"{where}[{i}] is {t[i]}, a non-finite time (times must be finite)")
         if scaled.size and np.abs(scaled).max() > _FLOAT_US_LIMIT:
             i = int(np.argmax(np.abs(scaled)))
-            raise FormatError(f"{where}[{i}] = {t[i]} {unit} does not fit into int64 microseconds")
+            raise FormatError(f"{where}[{i}] = {t[i]} {unit} does not fit into int64 microseconds"
+                              f"{_smaller_unit_note(float(t[i]), unit)}")
         if scaled.size:
             i, step = float_step(t)
             step_us = step * factor

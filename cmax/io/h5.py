@@ -31,7 +31,7 @@ import hdf5plugin
 import numpy as np
 
 from cmax.events import (Events, _check_sensor_size, check_event_count, check_time_us, require_events,
-                         window_steps)
+                         window_steps, wrap_index)
 from cmax.io._checks import (add_offset, check_allocated, check_offset, check_polarity_encoding, check_stated_size,
                              check_time_unit, polarity_01, scalar_to_us, times_to_us, unit_from_attrs)
 from cmax.io.atomic import AtomicOutput, write_error
@@ -915,9 +915,13 @@ def _sorted_plus_offset(t: np.ndarray, offset: int, where: str, first_row: int) 
         went_back = np.less(after, t[start: start + after.size], out=back[: after.size])
         if went_back.any():
             i = start + int(np.flatnonzero(went_back)[0])
+            wrapped = "" if wrap_index(t[i: i + 2]) is None else (
+                f"; a drop of {(int(t[i]) - int(t[i + 1])) / 60e6:.1f} min from near 2**32 µs: a uint32 microsecond "
+                "clock that wrapped at 2**32 µs (71.6 min), not events out of order; unwrap the times: t = "
+                "t.astype(np.int64) + 2**32 * np.cumsum(np.r_[0, np.diff(t.astype(np.int64)) < -2**31])")
             raise FormatError(
                 f"{where}: corrupt events at row {first_row + i + 1}: t must be sorted in non-decreasing order "
-                f"({int(t[i + 1])} µs comes after {int(t[i])} µs, before t_offset)"
+                f"({int(t[i + 1])} µs comes after {int(t[i])} µs, before t_offset){wrapped}"
             )
         if shift:
             t[start:stop] += shift

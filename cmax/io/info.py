@@ -11,9 +11,61 @@ import numpy as np
 from cmax.events import Events
 from cmax.hot_pixels import hot_pixels_of_counts, no_pixels, pixel_counts
 
-__all__ = ["EventFileInfo", "file_info", "events_info"]
+__all__ = ["EventFileInfo", "file_info", "events_info", "duplicate_count"]
 
 _CHUNK = 1 << 22
+
+
+def duplicate_count(events: Events) -> int:
+    """How many of ``events`` (sorted by time, as :class:`cmax.events.Events` holds them) repeat an earlier event
+    exactly: the same ``x``, ``y``, ``t`` [µs] and polarity. A sensor's pixel fires at most once at a time stamp,
+    so such rows come from a file written twice or merged with itself; they are counted, never dropped.
+
+    >>> ev = Events([1, 1, 2, 1], [0, 0, 0, 0], [5, 5, 5, 6], [1, 1, 1, 1], 4, 2)
+    >>> duplicate_count(ev)
+    1
+    """
+    return _DuplicateCounter().add(events).total()
+
+
+class _DuplicateCounter:
+    """:func:`duplicate_count` over time-sorted chunks of one recording: the rows of a chunk's last time stamp are
+    held back and counted with the next chunk, so a time stamp split between two chunks is counted whole."""
+
+    def __init__(self) -> None:
+        self._count = 0
+        self._held: tuple[np.ndarray, np.ndarray] | None = None     # (t, pixel-polarity cell) of the last stamp
+
+    def add(self, events: Events) -> "_DuplicateCounter":
+        if not len(events):
+            return self
+        t = events.t.astype(np.int64)
+        cell = (events.y.astype(np.int64) * events.width + events.x) * 2 + (events.p > 0)
+        if self._held is not None:
+            t, cell = np.concatenate([self._held[0], t]), np.concatenate([self._held[1], cell])
+        last = int(np.searchsorted(t, t[-1]))                    # the rows of the last time stamp start here
+        self._count += _duplicates(t[:last], cell[:last], 2 * events.width * events.height)
+        self._held = (t[last:], cell[last:])
+        return self
+
+    def total(self) -> int:
+        if self._held is not None:
+            self._count += int(len(self._held[1]) - len(np.unique(self._held[1])))
+            self._held = None
+        return self._count
+
+
+def _duplicates(t: np.ndarray, cell: np.ndarray, cells: int) -> int:
+    """Rows of ``(t, cell)`` (``t`` sorted int64 µs, ``cell`` in ``[0, cells)``) equal to an earlier row."""
+    if t.size < 2:
+        return 0
+    span = int(t[-1] - t[0]) + 1
+    if span * cells < 2 ** 62:                                  # one int64 key: a single sort
+        key = np.sort((t - t[0]) * cells + cell)
+        return int(np.count_nonzero(key[1:] == key[:-1]))
+    order = np.lexsort((cell, t))
+    t, cell = t[order], cell[order]
+    return int(np.count_nonzero((t[1:] == t[:-1]) & (cell[1:] == cell[:-1])))
 
 
 @dataclass(frozen=True)
@@ -23,7 +75,10 @@ class EventFileInfo:
     Times in µs; ``rate_hz`` in events per second; ``on_fraction`` is the
     share of ON events (0.5 = balanced); ``pixel_counts`` (height, width)
     the events of each pixel (its hot pixels: :meth:`hot_pixels`); ``camera``: the camera summarised in a
-    file of several (MVSEC), ``cameras`` its cameras and their events (None for other files).
+    file of several (MVSEC), ``cameras`` its cameras and their events (None for other files); ``duplicates``: the
+    events that repeat an earlier one exactly (:func:`duplicate_count`; None where not counted: Prophesee RAW);
+    ``size_inferred_from``: the header line of a RAW file that does not state its sensor size from which the size
+    was inferred (a camera's name: a guess, said on the sensor line), None for a stated or given size.
     """
 
     path: str
@@ -38,6 +93,8 @@ class EventFileInfo:
     pixel_counts: np.ndarray | None = None
     camera: str | None = None
     cameras: dict[str, int] | None = None
+    duplicates: int | None = None
+    size_inferred_from: str | None = None
 
     @property
     def duration_s(self) -> float:
@@ -90,13 +147,35 @@ class EventFileInfo:
         held = "; the file also holds " + ", ".join(others) if others else "; the file holds no other camera"
         return f"camera      {self.camera} (davis/{self.camera}/events){held}"
 
+    def _inferred_note(self) -> str:
+        """After the sensor size, when the file does not state it and it was inferred from a camera's name.
+
+        >>> EventFileInfo("a.raw", "raw", 1, 640, 480, 0, 0, 1,
+        ...               size_inferred_from="plugin_name hal_plugin_gen3_fx3")._inferred_note()
+        " (not stated by the file: inferred from its 'plugin_name hal_plugin_gen3_fx3' line; --size WxH gives the sensor's)"
+        """
+        if self.size_inferred_from is None:
+            return ""
+        return (f" (not stated by the file: inferred from its '{self.size_inferred_from}' line; --size WxH gives "
+                "the sensor's)")
+
+    def _duplicates_line(self) -> str:
+        """The events that repeat an earlier one exactly (only printed when there are some).
+
+        >>> EventFileInfo("a.h5", "dsec", 2000, 64, 48, 0, 9, 900, duplicates=1000)._duplicates_line()
+        'duplicates  1,000 events (50.0%) repeat an earlier event exactly (same x, y, t and polarity): a file written twice or merged with itself? They are read as they are (counted twice); a pixel fires once at a time stamp'
+        """
+        return (f"duplicates  {self.duplicates:,} events ({100 * self.duplicates / self.count:.1f}%) repeat an earlier "
+                "event exactly (same x, y, t and polarity): a file written twice or merged with itself? They are "
+                "read as they are (counted twice); a pixel fires once at a time stamp")
+
     def lines(self) -> list[str]:
         """Human-readable lines, one fact each."""
         out = [
             f"file        {self.path}",
             f"format      {self.format}",
             *([self._camera_line()] if self.camera is not None else []),
-            f"sensor      {self.width} x {self.height}",
+            f"sensor      {self.width} x {self.height}{self._inferred_note()}",
             f"events      {self.count:,}",
         ]
         if self.count:
@@ -109,6 +188,8 @@ class EventFileInfo:
             ]
             if self.pixel_counts is not None:
                 out.append(self._hot_line())
+            if self.duplicates:
+                out.append(self._duplicates_line())
         for key, value in sorted(self.attrs.items()):
             if key not in ("width", "height"):
                 out.append(f"attr        {key} = {value}")
@@ -122,6 +203,7 @@ def events_info(events: Events, *, path: str = "", format: str = "") -> EventFil
         t_start_us=events.t_start if len(events) else None,
         t_end_us=events.t_end if len(events) else None,
         on_count=int(np.count_nonzero(events.p)), pixel_counts=pixel_counts(events),
+        duplicates=duplicate_count(events),
     )
 
 
@@ -152,7 +234,7 @@ def file_info(
     with H5Reader(path, width=width, height=height, time_unit=time_unit, **options) as reader:
         # Every row is read and checked (coordinates, finite and sorted times, polarity), chunk by
         # chunk, so a NaN or a step back in the middle is named here as the readers name it.
-        on_count, last_t = 0, None
+        on_count, last_t, duplicates = 0, None, _DuplicateCounter()
         pixels = np.zeros((reader.height, reader.width), np.int64)
         for start in range(0, len(reader), _CHUNK):
             chunk = reader.read_rows(start, start + _CHUNK)
@@ -164,11 +246,12 @@ def file_info(
             last_t = int(chunk.t[-1])
             on_count += int(np.count_nonzero(chunk.p))
             pixels += pixel_counts(chunk)
+            duplicates.add(chunk)
         return EventFileInfo(
             path=str(path), format="dsec", count=len(reader), width=reader.width,
             height=reader.height, t_start_us=reader.t_start if len(reader) else None,
             t_end_us=reader.t_end if len(reader) else None, on_count=on_count,
-            attrs=reader.attrs, pixel_counts=pixels,
+            attrs=reader.attrs, pixel_counts=pixels, duplicates=duplicates.total(),
         )
 
 
@@ -183,7 +266,7 @@ def _mvsec_info(path: Path, width: int | None, height: int | None, time_unit: st
     options = dict(options)
     check_sortable(path, "mvsec", options.pop("sort", False))
     check_stated_size(width, height, (MVSEC_WIDTH, MVSEC_HEIGHT), f"{path} (MVSEC, a DAVIS346)")
-    count, on_count, first, last = 0, 0, None, None
+    count, on_count, first, last, duplicates = 0, 0, None, None, _DuplicateCounter()
     pixels = np.zeros((MVSEC_HEIGHT, MVSEC_WIDTH), np.int64)
     for chunk in iter_mvsec(path, time_unit=time_unit, chunk_rows=_CHUNK, **options):
         if len(chunk):
@@ -192,8 +275,10 @@ def _mvsec_info(path: Path, width: int | None, height: int | None, time_unit: st
         count += len(chunk)
         on_count += int(np.count_nonzero(chunk.p))
         pixels += pixel_counts(chunk)
+        duplicates.add(chunk)
     return EventFileInfo(path=str(path), format="mvsec", count=count, width=MVSEC_WIDTH, height=MVSEC_HEIGHT,
                          t_start_us=first, t_end_us=last, on_count=on_count, pixel_counts=pixels,
+                         duplicates=duplicates.total(),
                          camera=options.get("camera", "left"), cameras=mvsec_cameras(path))
 
 
@@ -204,4 +289,4 @@ def _raw_info(path: Path, width: int | None, height: int | None) -> EventFileInf
     scan = scan_raw(path, width=width, height=height)
     return EventFileInfo(path=str(path), format="raw", count=scan.count, width=scan.width, height=scan.height,
                          t_start_us=scan.first_us, t_end_us=scan.last_us, on_count=scan.on_count,
-                         pixel_counts=scan.pixel_counts)
+                         pixel_counts=scan.pixel_counts, size_inferred_from=scan.size_inferred_from)

@@ -107,6 +107,12 @@ class ConvertSettings:
         reproducibly; False gives every video ``esim.seed`` itself (the same noise in every video, as conversions
         before this option did). It matters only where the seed does (a seed and ``threshold_sigma``,
         ``shot_noise_rate_hz`` or ``leak_rate_hz`` above 0): only then does :meth:`to_dict` record it.
+    K : (fx, fy, cx, cy) or None
+        Pinhole intrinsics [px] of the frames as stored (before ``size`` resizes them): each output file then
+        stores ``gt/K`` (3, 3), scaled to its pixels as ``cv2.resize`` moves pixel centres
+        (:meth:`cmax.Camera.scaled`), which ``cmax fit``, ``emvs`` and ``depth`` read without ``--K``. A
+        principal point outside a video's frames fails that video. None (the default): no ``gt/K``, and
+        :meth:`to_dict` leaves it out (settings without it read as before it).
     """
 
     esim: EsimSettings = field(default_factory=EsimSettings)
@@ -117,10 +123,18 @@ class ConvertSettings:
     t0_s: float | None = None
     t1_s: float | None = None
     seed_per_video: bool = True
+    K: tuple[float, float, float, float] | None = None
 
     def __post_init__(self) -> None:
         if not isinstance(self.esim, EsimSettings):
             raise TypeError(f"esim must be EsimSettings, got {type(self.esim).__name__}")
+        if self.K is not None:
+            from cmax.camera import intrinsics_matrix
+
+            matrix = intrinsics_matrix(self.K, "K")
+            if matrix[0, 1] != 0:
+                raise ValueError(f"K must have no skew (the four numbers fx, fy, cx, cy), got {matrix.tolist()}")
+            object.__setattr__(self, "K", tuple(float(v) for v in matrix[[0, 1, 0, 1], [0, 1, 2, 2]]))
         if self.size is not None:
             width, height = (int(v) for v in self.size)
             if width <= 0 or height <= 0:
@@ -162,7 +176,27 @@ class ConvertSettings:
         out["size"] = list(self.size) if self.size else None
         if not (self.seed_per_video and self.seeded_noise):
             del out["seed_per_video"]
+        if self.K is None:
+            del out["K"]
+        else:
+            out["K"] = list(self.K)
         return out
+
+    def output_K(self, stored: tuple[int, int], width: int, height: int) -> np.ndarray | None:
+        """``gt/K`` (3, 3) [px] of an output of ``width`` x ``height`` pixels made from frames stored at
+        ``stored`` (width, height): :attr:`K` scaled to the output's pixels (None without :attr:`K`); ValueError
+        when its principal point lies outside the stored frames (another size's or crop's K).
+
+        >>> ConvertSettings(K=(200.0, 200.0, 119.5, 89.5)).output_K((240, 180), 120, 90).tolist()
+        [[100.0, 0.0, 59.5], [0.0, 100.0, 44.5], [0.0, 0.0, 1.0]]
+        """
+        if self.K is None:
+            return None
+        from cmax.camera import Camera, check_principal_point, intrinsics_matrix
+
+        K = intrinsics_matrix(self.K, "K")
+        check_principal_point(K, stored[0], stored[1])           # of the frames as stored
+        return Camera(K, stored[0], stored[1]).scaled(width, height).K
 
 
 def video_seed(seed: int, name: str) -> int:
@@ -351,12 +385,13 @@ def convert_video(
     simulator = EventSimulator.from_settings(settings.esim)
     stored = getattr(frames, "stored_size", None)   # the frames' (width, height) before --size resized them
     frame_size = {} if stored is None else {"source_size": [int(stored[0]), int(stored[1])]}
-    writer, samples, reported = None, 0, 0
+    writer, samples, reported, K = None, 0, 0, None
     try:
         with _frames_on_the_grey_scale(decoded):
             for frame, t_us in stream:
                 events = simulator.step(frame, t_us)
-                if writer is None:
+                if writer is None:   # the frames' K on the output's pixels, checked before anything is written
+                    K = settings.output_K(stored or (events.width, events.height), events.width, events.height)
                     writer = H5Writer(
                         output, events.width, events.height, t_offset_us=int(t_us), overwrite=overwrite,
                         source=str(source), category=category or "", simulator=f"cmax {__version__}",
@@ -369,7 +404,7 @@ def convert_video(
                     reported = counter[0]
         if writer is None:
             raise ValueError(f"{source}: no frames" + _range_note(settings))
-        writer.close()
+        writer.close(extra=None if K is None else lambda file: file.create_dataset("gt/K", data=K))
     except BaseException:
         if writer is not None:
             writer.abort()

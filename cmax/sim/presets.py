@@ -407,6 +407,10 @@ PRESETS: dict[str, Callable[..., PlanarScene]] = {
 }
 
 
+#: The smallest image side [px] of a preset scene (:func:`make_scene`): its images' gradients need two pixels a side.
+MIN_SCENE_SIZE = 2
+
+
 def make_scene(name: str, seed: int = 0, width: int = 346, height: int = 260, *,
                duration_s: float = 10.0, texture_size: int = 512) -> PlanarScene:
     """One of the preset scenes (:data:`PRESETS`), different for every ``seed``.
@@ -419,7 +423,7 @@ def make_scene(name: str, seed: int = 0, width: int = 346, height: int = 260, *,
     seed : int
         Seed of the world, its textures and the trajectory (>= 0).
     width, height : int
-        Image size [px]; the intrinsics are a DAVIS346's scaled to it.
+        Image size [px], at least :data:`MIN_SCENE_SIZE` (2) each; the intrinsics are a DAVIS346's scaled to it.
     duration_s : float
         Length of the trajectory the world is built for [s]; the stated
         ranges hold on ``[0, duration_s]``.
@@ -446,6 +450,9 @@ def make_scene(name: str, seed: int = 0, width: int = 346, height: int = 260, *,
     if not (isinstance(duration_s, (int, float, np.integer, np.floating)) and 0 < duration_s <= 600):
         raise ValueError(f"duration_s must be in (0, 600] seconds, got {duration_s!r}")
     width, height = _check_sensor_size(width, height)
+    if min(width, height) < MIN_SCENE_SIZE:
+        raise ValueError(f"width and height must be at least {MIN_SCENE_SIZE} pixels (the scene's images are "
+                         f"differentiated across both axes), got {width}x{height}")
     camera = davis346_camera(width, height)
     rng = np.random.default_rng([int(seed), sorted(PRESETS).index(name)])
     return PRESETS[name](rng, camera, float(duration_s), int(texture_size))

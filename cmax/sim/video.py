@@ -66,7 +66,9 @@ __all__ = [
     "FrameSource",
     "ImageFolderSource",
     "VideoFileSource",
+    "avi_rate_problem",
     "bare_stream_problem",
+    "mp4_timing_problem",
     "open_source",
     "prefetched",
     "read_timestamps",
@@ -113,6 +115,158 @@ def bare_stream_problem(path: PathLike) -> str | None:
             "and its frame rate would be guessed (the decoder assumes 25 frames/s); put it in a container at its "
             f"real rate, e.g. ffmpeg -framerate RATE -i {path} -c copy {framed}, or write its "
             "frames as images with a timestamps.txt (one time in seconds per image) and convert that folder")
+
+
+def _avi_rate_fields(head: bytes) -> tuple[int, int, int] | None:
+    """``(frame period [µs] of the main header avih, dwScale, dwRate of the first video stream header strh)`` of
+    an AVI file's first bytes ``head``; None for another file, or an AVI whose headers are not in ``head``.
+
+    >>> import struct
+    >>> avih = b"avih" + struct.pack("<II", 56, 0) + bytes(52)
+    >>> strh = b"strh" + struct.pack("<I", 56) + b"vidsMJPG" + bytes(12) + struct.pack("<II", 1, 0)
+    >>> _avi_rate_fields(b"RIFF" + bytes(4) + b"AVI LIST" + bytes(8) + avih + strh + bytes(28))
+    (0, 1, 0)
+    """
+    if head[:4] != b"RIFF" or head[8:12] != b"AVI ":
+        return None
+    main = head.find(b"avih")
+    if main < 0 or main + 12 > len(head):
+        return None
+    period = int.from_bytes(head[main + 8: main + 12], "little")
+    stream = head.find(b"strh")
+    while 0 <= stream and stream + 36 <= len(head):
+        if head[stream + 8: stream + 12] == b"vids":
+            return (period, int.from_bytes(head[stream + 28: stream + 32], "little"),
+                    int.from_bytes(head[stream + 32: stream + 36], "little"))
+        stream = head.find(b"strh", stream + 4)
+    return None
+
+
+def avi_rate_problem(path: PathLike) -> str | None:
+    """Why the video file ``path`` cannot be converted when it is an AVI whose headers state no frame rate: its
+    video stream's ``dwScale`` or ``dwRate`` is 0 and the main header's frame period too (broken writers leave
+    them so). FFmpeg then assumes 25 frames/s and OpenCV reports that rate and times from it, so the frames' times
+    would be guessed. None for any other file, and for an AVI that states its rate in either header (FFmpeg takes
+    the frame period when the stream's rate is 0).
+
+    >>> import struct, tempfile
+    >>> clip = Path(tempfile.mkdtemp()) / "clip.avi"
+    >>> avih = b"avih" + struct.pack("<II", 56, 0) + bytes(52)
+    >>> strh = b"strh" + struct.pack("<I", 56) + b"vidsMJPG" + bytes(12) + struct.pack("<II", 1, 0)
+    >>> _ = clip.write_bytes(b"RIFF" + bytes(4) + b"AVI LIST" + bytes(8) + avih + strh + bytes(28))
+    >>> avi_rate_problem(clip).split(":")[1]
+    " its AVI headers state no frame rate (the video stream's scale/rate 1/0, the main header's frame period 0 µs)"
+    """
+    path = Path(path)
+    with open(path, "rb") as file:
+        fields = _avi_rate_fields(file.read(1 << 16))
+    if fields is None:
+        return None
+    period, scale, rate = fields
+    if (scale and rate) or period:
+        return None
+    fixed = path.with_suffix(".mkv")
+    return (f"{path}: its AVI headers state no frame rate (the video stream's scale/rate {scale}/{rate}, the main "
+            "header's frame period 0 µs): the decoder would assume 25 frames/s and the frames' times would be "
+            f"guessed; state its real rate with ffmpeg's -r before the input, e.g. ffmpeg -r RATE -i {path} -c copy "
+            f"{fixed}, or write its frames as images with a timestamps.txt (one time in seconds per image) and "
+            "convert that folder")
+
+
+#: The largest ``moov`` box :func:`mp4_timing_problem` reads (bytes); a larger one is not checked.
+_MAX_MOOV_BYTES = 1 << 26
+#: ISO base media (mp4, mov, 3gp) container boxes :func:`_mp4_boxes` descends into on the way to a track's ``stts``.
+_MP4_CONTAINERS = (b"trak", b"mdia", b"minf", b"stbl")
+
+
+def _mp4_boxes(data: bytes, start: int, end: int) -> Iterator[tuple[bytes, int, int]]:
+    """``(type, payload start, box end)`` of the ISO base media boxes in ``data[start:end]``, in order; stops at a
+    box whose size does not fit (a truncated or foreign file).
+
+    >>> list(_mp4_boxes(b"\\x00\\x00\\x00\\x0cstts\\x00\\x00\\x00\\x00", 0, 12))
+    [(b'stts', 8, 12)]
+    """
+    i = start
+    while i + 8 <= end:
+        size, kind = int.from_bytes(data[i: i + 4], "big"), data[i + 4: i + 8]
+        header = 8
+        if size == 1 and i + 16 <= end:
+            size, header = int.from_bytes(data[i + 8: i + 16], "big"), 16
+        elif size == 0:
+            size = end - i
+        if size < header or i + size > end:
+            return
+        yield kind, i + header, i + size
+        i += size
+
+
+def _video_sample_durations(moov: bytes) -> tuple[int, int] | None:
+    """``(samples, summed duration in the track's timescale)`` of the ``stts`` of the first video track (``hdlr``
+    ``vide``) in the payload of a ``moov`` box; None without one (or with an empty ``stts``: a fragmented file,
+    whose times are in its fragments)."""
+    for kind, start, end in _mp4_boxes(moov, 0, len(moov)):
+        if kind != b"trak":
+            continue
+        handler, stts = None, None
+        pending = [(start, end)]
+        while pending:
+            low, high = pending.pop()
+            for inner, a, b in _mp4_boxes(moov, low, high):
+                if inner in _MP4_CONTAINERS:
+                    pending.append((a, b))
+                elif inner == b"hdlr" and b - a >= 12:
+                    handler = moov[a + 8: a + 12]
+                elif inner == b"stts" and b - a >= 8:
+                    stts = moov[a: b]
+        if handler != b"vide" or stts is None:
+            continue
+        count = min(int.from_bytes(stts[4:8], "big"), (len(stts) - 8) // 8)
+        entries = [(int.from_bytes(stts[8 + 8 * k: 12 + 8 * k], "big"),         # (sample count, sample duration)
+                    int.from_bytes(stts[12 + 8 * k: 16 + 8 * k], "big")) for k in range(count)]
+        if not entries:
+            return None
+        return sum(n for n, _ in entries), sum(n * d for n, d in entries)
+    return None
+
+
+def mp4_timing_problem(path: PathLike) -> str | None:
+    """Why the video file ``path`` cannot be converted when it is an mp4/mov whose video track states no frame
+    durations: every sample of its ``stts`` table lasts 0 (broken writers leave it so). FFmpeg and OpenCV then
+    make up a frame rate and times from it (a 10 fps clip came out at 0.5 fps, its frames 2 s apart), so the
+    frames' times would be guessed. None for any other file, for a fragmented mp4 (times in its fragments) and
+    for one whose ``moov`` box is larger than :data:`_MAX_MOOV_BYTES` (not checked).
+    """
+    path = Path(path)
+    with open(path, "rb") as file:
+        head = file.read(12)
+        if head[4:8] != b"ftyp":
+            return None
+        size, offset = file.seek(0, os.SEEK_END), 0
+        while offset + 8 <= size:                          # the top-level boxes: ftyp, mdat, moov, ... in any order
+            file.seek(offset)
+            header = file.read(16)
+            length, kind = int.from_bytes(header[:4], "big"), header[4:8]
+            skip = 8
+            if length == 1 and len(header) == 16:
+                length, skip = int.from_bytes(header[8:16], "big"), 16
+            elif length == 0:
+                length = size - offset
+            if length < skip:
+                return None
+            if kind == b"moov":
+                if length > _MAX_MOOV_BYTES:
+                    return None
+                file.seek(offset + skip)
+                durations = _video_sample_durations(file.read(length - skip))
+                if durations is None or durations[0] < 2 or durations[1] > 0:
+                    return None
+                return (f"{path}: its video track states no frame durations (each of its {durations[0]} samples "
+                        "lasts 0 in its stts table): the decoder would make up a frame rate and the frames' times "
+                        f"would be guessed; state its real rate with ffmpeg's -r before the input, e.g. ffmpeg -r RATE "
+                        f"-i {path} -c copy {path.with_suffix('.mkv')}, or write its frames as images with a "
+                        "timestamps.txt (one time in seconds per image) and convert that folder")
+            offset += length
+    return None
 
 
 @runtime_checkable
@@ -665,14 +819,16 @@ class VideoFileSource:
     Times: each frame's presentation time from the container
     (``CAP_PROP_POS_MSEC`` after reading it), rounded to whole µs. When the
     container gives none (not finite, negative, or 0 after the first frame)
-    the time is ``frame_index * 1e6 / fps`` (30 fps when the rate is unknown
-    too). A time not after the previous one (duplicated or reordered
+    the time is ``frame_index * 1e6 / fps``; when the rate is unknown too,
+    iteration raises :class:`DecodeError` (times are never guessed). A time not after the previous one (duplicated or reordered
     timestamps) becomes the previous time + 1 µs, so times are always
     strictly increasing; a ``UserWarning`` at the end of the stream counts
     such frames and names the first.
 
     Decoding errors: a file OpenCV cannot open or that yields no frame, and a bare MJPEG stream (no
-    container, no frame times: :func:`bare_stream_problem`) raise :class:`DecodeError` at construction; a
+    container, no frame times: :func:`bare_stream_problem`) or an AVI whose headers state no frame rate
+    (:func:`avi_rate_problem`: FFmpeg would assume 25 frames/s) or an mp4 whose video track states no frame
+    durations (:func:`mp4_timing_problem`) raise :class:`DecodeError` at construction; a
     path that is not valid UTF-8 raises :class:`ValueError` (:func:`_opencv_path`: OpenCV would crash on it). When
     the decoder stops more than ``max(1, 1%)`` frames before the container's frame count, and the last
     frame decoded lies that far before the stream's end too (:func:`_stopped_early`: a Matroska count is
@@ -692,8 +848,9 @@ class VideoFileSource:
         self.dtype, self.prefetch = _check_dtype(dtype), _check_prefetch(prefetch)
         _check_time_range(t0_s, t1_s)
         self.t0_s, self.t1_s = t0_s, t1_s
-        if (problem := bare_stream_problem(self.path)) is not None:   # times never guessed
-            raise DecodeError(problem)
+        if (problem := bare_stream_problem(self.path) or avi_rate_problem(self.path)
+                or mp4_timing_problem(self.path)) is not None:
+            raise DecodeError(problem)                                 # times never guessed
         capture = self._open()
         try:
             fps = capture.get(cv2.CAP_PROP_FPS)
@@ -729,7 +886,11 @@ class VideoFileSource:
         if math.isfinite(msec) and msec >= 0 and (msec > 0 or first):
             return int(round(msec * 1000))
         index = max(0, int(capture.get(cv2.CAP_PROP_POS_FRAMES)) - 1)
-        return int(round(index * 1e6 / (self.fps or 30.0)))
+        if not self.fps:
+            raise DecodeError(f"{self.path}: frame {index} has no time in the container, which states no frame "
+                              "rate either: its time would be guessed; write its frames as images with a "
+                              "timestamps.txt (one time in seconds per image) and convert that folder")
+        return int(round(index * 1e6 / self.fps))
 
     def __iter__(self) -> Iterator[tuple[np.ndarray, int]]:
         return prefetched(self._frames, self.prefetch)

@@ -295,7 +295,9 @@ def iter_raw(
 @dataclass(frozen=True)
 class RawScan:
     """What one decoding pass over a RAW file finds: the sensor size [px], the event and ON-event counts, the
-    first and last events' times [µs] (None without events) and the events of each pixel, (height, width)."""
+    first and last events' times [µs] (None without events) and the events of each pixel, (height, width);
+    ``size_inferred_from``: the header line a size the header does not state was inferred from (a known
+    ``plugin_name`` / ``sensor_generation``: a guess), None for a stated or given size."""
 
     width: int
     height: int
@@ -304,6 +306,7 @@ class RawScan:
     first_us: int | None
     last_us: int | None
     pixel_counts: np.ndarray | None = None
+    size_inferred_from: str | None = None
 
 
 def scan_raw(path: PathLike, *, width: int | None = None, height: int | None = None,
@@ -317,7 +320,7 @@ def scan_raw(path: PathLike, *, width: int | None = None, height: int | None = N
         first = int(chunk.t[0]) if first is None else first
         last, count, on = int(chunk.t[-1]), count + len(chunk), on + int(np.count_nonzero(chunk.p))
         pixels += pixel_counts(chunk)
-    return RawScan(limits.width, limits.height, count, on, first, last, pixels)
+    return RawScan(limits.width, limits.height, count, on, first, last, pixels, limits.inferred_from)
 
 
 class RawWindows:
