@@ -358,6 +358,14 @@ class QualitySettings:
         image it is multiplied by ``sqrt(min_ok_parallax_area / (width height))``: on a quarter of the pixels the
         contrast's optimum lies off the truth beyond its noise far more often, and ``ok`` windows 37-98 deg off
         came with 3.0-5.5 px of parallax at 160x120 (docs/quality.md: the measurement). 1 turns the scaling off.
+    max_noise_share : float
+        se3, with a given pose too: a window whose events are estimated to be more than this share of uniform
+        background-activity noise (:func:`cmax.fitting.quality.noise_share`: isolated events, none other within
+        1 px and ``noise_window_us``) is at best ``ambiguous`` and ``noisy``: the noise's pixels enter the depth
+        map and pull the depth sweep, with no sign of it in the contrast. In (0, 1]; 1 turns the rule off
+        (docs/quality.md: the measurement behind the value).
+    noise_window_us : int
+        Half the time span [µs] of that test's neighbourhood (the background-activity filter's window).
     """
 
     ambiguity_test: bool = True
@@ -382,6 +390,8 @@ class QualitySettings:
     max_bound_share: float = 0.25
     min_ok_parallax_px: float = 3.0
     min_ok_parallax_area: int = 346 * 260
+    max_noise_share: float = 0.3
+    noise_window_us: int = 10_000
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "smoothing"):
@@ -399,7 +409,8 @@ class QualitySettings:
         if isinstance(self.max_rate_change, bool) or not (isinstance(self.max_rate_change, (int, float))
                                                           and self.max_rate_change > 1):
             raise ValueError(f"max_rate_change must be a number > 1 (math.inf: no test), got {self.max_rate_change!r}")
-        for name in ("shuffle_fraction", "max_bound_share"):
+        _positive_int("noise_window_us", self.noise_window_us, 1)
+        for name in ("shuffle_fraction", "max_bound_share", "max_noise_share"):
             value = getattr(self, name)
             if isinstance(value, bool) or not (isinstance(value, (int, float)) and 0 < value <= 1):
                 raise ValueError(f"{name} must lie in (0, 1], got {value!r}")

@@ -1,0 +1,90 @@
+"""Background-activity noise: the isolated-event test, the noise-share estimate and the ``noisy`` verdict."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from benchmarks.synthetic_windows import make_window
+from cmax import Events
+from cmax.fitting import FitSettings, QualitySettings, Verdict, fit
+from cmax.fitting.quality import isolated_events, noise_share
+
+
+def _with_noise(events: Events, rate_hz: float, seed: int) -> tuple[Events, int]:
+    """``events`` plus uniform noise of ``rate_hz`` per pixel over their span (random polarity), and its count."""
+    rng = np.random.default_rng(seed)
+    t0, t1 = int(events.t[0]), int(events.t[-1])
+    n = rng.poisson(rate_hz * events.width * events.height * (t1 - t0) * 1e-6)
+    x = np.r_[events.x, rng.integers(0, events.width, n)]
+    y = np.r_[events.y, rng.integers(0, events.height, n)]
+    t = np.r_[events.t, rng.integers(t0, t1 + 1, n)]
+    p = np.r_[events.p, rng.integers(0, 2, n)]
+    order = np.argsort(t, kind="stable")
+    return Events(x[order], y[order], t[order], p[order], events.width, events.height), n
+
+
+def test_isolated_events_agree_with_the_pairwise_definition():
+    rng = np.random.default_rng(3)
+    n, width, height, window = 400, 14, 10, 4_000
+    x, y = rng.integers(0, width, n), rng.integers(0, height, n)
+    t = np.sort(rng.integers(0, 60_000, n))
+    near = ((np.abs(x[:, None] - x[None]) <= 1) & (np.abs(y[:, None] - y[None]) <= 1)
+            & (np.abs(t[:, None] - t[None]) <= window))
+    expected = near.sum(1) == 1                                 # only the event itself
+    assert 0 < expected.sum() < n
+    np.testing.assert_array_equal(isolated_events(x, y, t, width, height, window), expected)
+
+
+def _points(seed: int) -> Events:
+    """300 points moving at (40, -20) px/s over 0.1 s on a 160x120 image: edges, no isolated events to speak of."""
+    rng = np.random.default_rng(seed)
+    x0, y0 = rng.uniform(10, 140, 300), rng.uniform(10, 110, 300)
+    t_s = np.sort(rng.uniform(0, 0.1, 6000))
+    point = rng.integers(0, 300, 6000)
+    return Events(np.rint(x0[point] + 40 * t_s), np.rint(y0[point] - 20 * t_s), np.rint(t_s * 1e6).astype(np.int64),
+                  rng.integers(0, 2, 6000), width=160, height=120)
+
+
+@pytest.mark.parametrize("rate_hz", [0.3, 1.0, 2.0])
+def test_noise_share_follows_the_injected_noise(rate_hz):
+    clean = _points(0)
+    assert noise_share(clean.x, clean.y, clean.t, 160, 120, 10_000) < 0.05
+    noisy, n = _with_noise(clean, rate_hz, 1)
+    share = noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000)
+    assert abs(share - n / len(noisy)) < 0.08                  # the true share: 0.09, 0.24, 0.39
+
+
+def test_a_noise_dominated_window_is_never_ok_with_its_pose_given():
+    """Was: uniform noise of 10 Hz per pixel, half of a window's events, and the depth swept for the true pose came
+    back ``ok`` (the noise's pixels in the depth map with depths of their own). Over
+    ``QualitySettings.max_noise_share`` an ``ok`` becomes ambiguous and ``noisy``; the depth is unchanged; 1 turns
+    the rule off; the clean window keeps its ``ok``."""
+    w = make_window("slider", 4, width=120, height=90, focal=200.0, duration_s=0.3, max_frames=40)
+    noisy, n = _with_noise(w.events, 10.0, 2)
+    off = FitSettings(depth_range=(1.0, 20.0), quality=QualitySettings(max_noise_share=1.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        clean = fit(w.events, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+        default = fit(noisy, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+        without = fit(noisy, w.K, pose=w.twist, settings=off)
+    assert n / len(noisy) > 0.4
+    assert clean.verdict is Verdict.OK and not clean.quality.noisy and clean.quality.noise_share < 0.3
+    assert without.verdict is Verdict.OK and not without.quality.noisy
+    assert default.quality.noise_share > 0.3
+    assert default.verdict is Verdict.AMBIGUOUS and default.quality.noisy
+    assert "background-activity noise" in default.quality.reason
+    np.testing.assert_array_equal(default.depth, without.depth)
+    assert default.quality.summary()["noisy"] is True
+
+
+@pytest.mark.parametrize("value", [0.0, -0.1, 1.5, float("nan"), True])
+def test_max_noise_share_outside_its_range_is_refused(value):
+    with pytest.raises(ValueError, match="max_noise_share"):
+        QualitySettings(max_noise_share=value)
+
+
+def test_noise_window_us_must_be_a_whole_number_of_microseconds():
+    with pytest.raises(ValueError, match="noise_window_us"):
+        QualitySettings(noise_window_us=0)
