@@ -88,3 +88,49 @@ def test_max_noise_share_outside_its_range_is_refused(value):
 def test_noise_window_us_must_be_a_whole_number_of_microseconds():
     with pytest.raises(ValueError, match="noise_window_us"):
         QualitySettings(noise_window_us=0)
+
+
+def _isolated_noise(events: Events, count: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Up to ``count`` noise events ``(x, y, t)`` drawn uniformly over ``events``' sensor and span, kept only where no
+    event of ``events`` nor another noise event lies within 1 px and 10 ms (checked pair by pair)."""
+    rng = np.random.default_rng(seed)
+    x, y = rng.integers(0, events.width, count), rng.integers(0, events.height, count)
+    t = rng.integers(int(events.t[0]), int(events.t[-1]), count)
+
+    def near(xs, ys, ts):
+        return (np.abs(x[:, None] - xs[None]) <= 1) & (np.abs(y[:, None] - ys[None]) <= 1) & (
+            np.abs(t[:, None] - ts[None]) <= 10_000)
+
+    alone = near(x, y, t).sum(1) == 1
+    for i in range(0, len(events), 5000):
+        part = events[i:i + 5000]
+        alone &= ~near(part.x.astype(np.int64), part.y.astype(np.int64), part.t.astype(np.int64)).any(1)
+    return x[alone], y[alone], t[alone]
+
+
+def test_events_without_neighbours_give_the_depth_mask_no_pixels():
+    """Was: every pixel that a warped noise event reached joined ``FitResult.mask`` (with a depth of its own): a 3 Hz
+    noise took a 160x120 window's mask from 10% of the image to 33%. Noise events placed apart from every other
+    event (none within 1 px and 10 ms) now add few pixels to the mask; with ``mask_isolated_us=0`` (the old mask)
+    they add a pixel for every few of them."""
+    w = make_window("slider", 4, width=120, height=90, focal=200.0, duration_s=0.3, max_frames=40)
+    e = w.events
+    x, y, t = _isolated_noise(e, 3000, 5)
+    order = np.argsort(np.r_[e.t, t], kind="stable")
+    noisy = Events(np.r_[e.x, x][order], np.r_[e.y, y][order], np.r_[e.t, t][order],
+                   np.r_[e.p, np.ones(len(x), e.p.dtype)][order], e.width, e.height)
+    old = FitSettings(depth_range=(1.0, 20.0), mask_isolated_us=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        clean = fit(e, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+        default = fit(noisy, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+        clean_old = fit(e, w.K, pose=w.twist, settings=old)
+        noisy_old = fit(noisy, w.K, pose=w.twist, settings=old)
+    assert len(x) > 1000
+    assert (noisy_old.mask & ~clean_old.mask).sum() > len(x) / 4            # the old mask: the noise's own pixels
+    assert (default.mask & ~clean.mask).sum() < len(x) / 8
+
+
+def test_mask_isolated_us_must_be_a_whole_number_of_microseconds():
+    with pytest.raises(ValueError, match="mask_isolated_us"):
+        FitSettings(mask_isolated_us=-1)

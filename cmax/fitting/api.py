@@ -23,7 +23,7 @@ from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
                                   motion_within_noise, rate_change, shuffled_gain_test, small_parallax_reason,
-                                  noise_reason, noise_share, sparse_reason, verdict_of)
+                                  isolated_events, noise_reason, noise_share, sparse_reason, verdict_of)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -102,8 +102,10 @@ class FitResult:
         The event pixels of the reference view: pixels that hold at least one
         event once the events are warped to ``t_ref_us`` with the fitted
         motion and depth (:func:`event_pixels`), in cells with at least
-        ``min_cell_events`` events. Like EMVS's semi-dense map, on the edges
-        seen at ``t_ref_us``.
+        ``min_cell_events`` events; events without a neighbour within 1 px
+        and ``FitSettings.mask_isolated_us`` (background-activity noise)
+        leave no pixel of their own. Like EMVS's semi-dense map, on the
+        edges seen at ``t_ref_us``.
     inverse_depth_grid : ndarray (gh, gw) or None
         The optimised inverse depths [1/m] at the grid nodes.
     scale_known : bool
@@ -742,6 +744,9 @@ def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion
         supported = counts.reshape(grid.shape) >= s.min_cell_events
         cell_map = w.grid.cell_of(*[torch.from_numpy(a.ravel().astype(np.float64)) for a in np.mgrid[0:H, 0:W][::-1]])
         x_ref, y_ref = _all_events_at_reference(events, K, w, v, omega, grid)
+        if s.mask_isolated_us:                       # background-activity noise: no pixel of its own in the mask
+            kept = ~isolated_events(events.x, events.y, events.t, W, H, s.mask_isolated_us)
+            x_ref, y_ref = x_ref[kept], y_ref[kept]
         mask = event_pixels(x_ref, y_ref, H, W) & supported.ravel()[cell_map.numpy()].reshape(H, W)
     failed = [log for log in logs if not log.success]
     last = logs[-1].message if logs else ""

@@ -525,6 +525,11 @@ class FitSettings:
         verdict is ``low_parallax``.
     min_cell_events : int
         Depth cells with fewer events are outside the mask.
+    mask_isolated_us : int
+        Pixels that only isolated events reach (none other within 1 px and this many µs:
+        :func:`cmax.fitting.quality.isolated_events`, the background-activity filter's test) are outside the
+        mask: uniform sensor noise would otherwise put its own pixels into it, each with a depth of its own
+        (docs/quality.md). 0 keeps every event pixel.
     hot_pixels : HotPixelFilter or None
         Which pixels are hot (:class:`cmax.hot_pixels.HotPixelFilter`: more than ``factor`` (8) times the
         99th percentile of the window's per-pixel event counts and more than ``min_events`` (30), or firing
@@ -574,6 +579,7 @@ class FitSettings:
     low_motion_px: float = 2.0
     low_parallax_px: float = LOW_PARALLAX_PX
     min_cell_events: int = 15
+    mask_isolated_us: int = 10_000
     hot_pixels: HotPixelFilter | None = field(default_factory=HotPixelFilter)
     seed: int = 0
     patch_flow: PatchFlowSettings = field(default_factory=PatchFlowSettings)
@@ -648,6 +654,7 @@ class FitSettings:
         _positive_int("coarse_iterations", self.coarse_iterations)
         _positive_int("start_iterations", self.start_iterations)
         _positive_int("min_cell_events", self.min_cell_events, 0)
+        _positive_int("mask_isolated_us", self.mask_isolated_us, 0)
         check_filter(self.hot_pixels)
         for name, kind in (("patch_flow", PatchFlowSettings), ("refine", RefineSettings), ("sweep", SweepSettings),
                            ("quality", QualitySettings)):
