@@ -56,6 +56,19 @@ def test_noise_share_follows_the_injected_noise(rate_hz):
     assert abs(share - n / len(noisy)) < 0.08                  # the true share: 0.09, 0.24, 0.39
 
 
+@pytest.mark.parametrize("duration_us", [100_000, 20_000])
+def test_heavy_noise_is_not_read_as_clean(duration_us):
+    """Was (during this change): noise so dense that few of its events lie alone read as 1-9% noise (the isolated
+    count alone has two rates; the longer time window meant to tell them apart could not on a window shorter than
+    it). 30 Hz per pixel, 66-91% of the events, over 0.1 s and 20 ms windows of the moving points."""
+    clean = _points(0)
+    scale = duration_us / 100_000
+    points = Events(clean.x, clean.y, np.rint(clean.t * scale).astype(np.int64), clean.p, 160, 120)
+    noisy, n = _with_noise(points, 30.0, 1)
+    share = noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000)
+    assert n / len(noisy) > 0.6 and share > 0.5
+
+
 def test_a_noise_dominated_window_is_never_ok_with_its_pose_given():
     """Was: uniform noise of 10 Hz per pixel, half of a window's events, and the depth swept for the true pose came
     back ``ok`` (the noise's pixels in the depth map with depths of their own). Over

@@ -494,24 +494,39 @@ def isolated_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, hei
     >>> isolated_events(np.array([0, 1, 5]), np.array([0, 0, 5]), np.array([0, 500, 600]), 8, 8, 1000).tolist()
     [False, False, True]
     """
+    x, y, keys, order, span = _sorted_events(x, y, t, width, window_us)
+    isolated = np.empty(x.size, bool)
+    isolated[order] = _neighbours(keys, x, y, keys, width, height, window_us, radius, span) <= 1   # itself only
+    return isolated
+
+
+def _sorted_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, window_us: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The events ``x, y, t`` (N,) [px, px, µs] sorted by pixel, then time: ``(x, y, keys, order, span)``, each
+    key ``pixel * span + t`` (int64; the times shifted so that two pixels' keys never overlap within
+    ``window_us``), ``order`` the sorting permutation."""
     x, y, t = (np.asarray(a, np.int64) for a in (x, y, t))
-    if x.size == 0:
-        return np.zeros(0, bool)
-    t = t - int(t.min()) + window_us + 1
-    span = int(t.max()) + window_us + 1                  # keys of two pixels never overlap
+    if x.size:
+        t = t - int(t.min()) + window_us + 1
+    span = (int(t.max()) if t.size else 0) + window_us + 1
     keys = (y * width + x) * span + t
     order = np.argsort(keys, kind="stable")
-    keys, x, y = keys[order], x[order], y[order]
-    count = np.zeros(x.size, np.int64)
+    return x[order], y[order], keys[order], order, span
+
+
+def _neighbours(keys: np.ndarray, x: np.ndarray, y: np.ndarray, query: np.ndarray, width: int, height: int,
+                window_us: int, radius: int, span: int) -> np.ndarray:
+    """How many of the events of sorted ``keys`` (:func:`_sorted_events`) lie within ``radius`` pixels and
+    ``window_us`` µs of each queried event (its pixel ``x, y`` and key ``query``, (Q,), sorted as the keys:
+    the searches then run in order), itself included: (Q,) int64."""
+    count = np.zeros(query.size, np.int64)
     for dy in range(-radius, radius + 1):
         for dx in range(-radius, radius + 1):
             inside = (x + dx >= 0) & (x + dx < width) & (y + dy >= 0) & (y + dy < height)
-            base = keys + (dy * width + dx) * span       # sorted, as the keys: a faster search
+            base = query + (dy * width + dx) * span
             found = np.searchsorted(keys, base + window_us, "right") - np.searchsorted(keys, base - window_us, "left")
             count += np.where(inside, found, 0)
-    isolated = np.empty(x.size, bool)
-    isolated[order] = count <= 1                         # the event itself only
-    return isolated
+    return count
 
 
 def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int, window_us: int,
@@ -520,11 +535,13 @@ def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height:
     [px, px, µs] on a ``width`` x ``height`` image, in [0, 1].
 
     Noise of ``r`` Hz per pixel, uniform in space and time, leaves an event without a neighbour
-    (:func:`isolated_events`) with probability ``exp(-r V)``, ``V = (2 radius + 1)^2 * 2 window_us`` [px s];
+    (:func:`isolated_events`) with probability ``exp(-r V)``, ``V = (2 radius + 1)^2 * 2 window_us`` [px s]
+    (the time span cut by the window's ends: less on a window shorter than a few ``window_us``);
     so the isolated events per pixel and second, ``m``, satisfy ``m = r exp(-r V)``: two rates, ``-W0(-m V) / V``
     and ``-W-1(-m V) / V`` (the two branches of Lambert W; one rate, ``1 / V``, past ``m V = 1/e``), since heavy
-    noise leaves few events alone. The isolated events within twice ``window_us`` tell them apart: the rate
-    whose predicted count of those lies closer (in ratio) to the measured one is taken. The share is that
+    noise leaves few events alone. The events isolated within ``radius + 1`` pixels tell them apart (a wider
+    square, not a longer time, so that it works on windows shorter than ``window_us`` too): the rate whose
+    predicted count of those lies closer (in ratio) to the measured one is taken. The share is that
     rate times the pixels and the window's duration over ``N``. Events of the scene that lie alone (sparse edges,
     a slow scene) count as noise, so a clean window reads above 0 (0.01-0.12 on the synthetic presets at
     160x120, 0.04-0.06 at 346x260, 0.05 and 0.09 on the real DAVIS346 and Gen4 samples); noise near events of the
@@ -545,14 +562,20 @@ def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height:
         return 0.0
     duration_s = (int(t.max()) - int(t.min())) * 1e-6
     area_s = width * height * duration_s                                    # px s
-    volume = (2 * radius + 1) ** 2 * 2 * window_us * 1e-6                # px s
-    m = np.count_nonzero(isolated_events(x, y, t, width, height, window_us, radius)) / area_s
-    if m * volume >= math.exp(-1):
-        rate = 1.0 / volume
+
+    span_s = float(np.mean(np.minimum(t + window_us, t.max()) - np.maximum(t - window_us, t.min()))) * 1e-6
+    near, far = (2 * radius + 1) ** 2 * span_s, (2 * radius + 3) ** 2 * span_s    # px s: cut by the window's ends
+    xs, ys, keys, _, key_span = _sorted_events(x, y, t, width, window_us)
+    alone = _neighbours(keys, xs, ys, keys, width, height, window_us, radius, key_span) <= 1
+    m = np.count_nonzero(alone) / area_s
+    if m * near >= math.exp(-1):
+        rate = 1.0 / near
     else:
-        low, high = (float(-lambertw(-m * volume, k).real) / volume for k in (0, -1))
-        m_long = max(np.count_nonzero(isolated_events(x, y, t, width, height, 2 * window_us, radius)), 1) / area_s
-        rate = min((low, high), key=lambda r: abs(math.log(max(r * math.exp(-2 * r * volume), 1e-300) / m_long)))
+        low, high = (float(-lambertw(-m * near, k).real) / near for k in (0, -1))
+        far_alone = _neighbours(keys, xs[alone], ys[alone], keys[alone], width, height, window_us, radius + 1,
+                                key_span) <= 1            # alone in the wider square: alone in the narrow one too
+        m_far = max(np.count_nonzero(far_alone), 1) / area_s
+        rate = min((low, high), key=lambda r: abs(math.log(max(r * math.exp(-r * far), 1e-300) / m_far)))
     return float(min(1.0, rate * width * height * duration_s / t.size))
 
 
