@@ -147,3 +147,15 @@ def test_events_without_neighbours_give_the_depth_mask_no_pixels():
 def test_mask_isolated_us_must_be_a_whole_number_of_microseconds():
     with pytest.raises(ValueError, match="mask_isolated_us"):
         FitSettings(mask_isolated_us=-1)
+
+
+def test_cmax_fit_advice_names_noise_not_a_longer_window_for_noisy_windows():
+    """Was: a run whose windows were ambiguous for their noise was told that a known rotation or a longer window tells
+    the alternatives apart; now the noisy ones are counted apart, with the cure for noise."""
+    from cmax.cli.fit import advice
+
+    lines = advice({"ok": 1, "ambiguous": 3, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", noisy=3)
+    assert len(lines) == 1 and lines[0].startswith("3 of 4 windows stay ambiguous because too many of their events")
+    assert "isolated_events" in lines[0] and "does not help" in lines[0]
+    mixed = advice({"ok": 0, "ambiguous": 4, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", noisy=1)
+    assert mixed[0].startswith("3 of 4 windows stay ambiguous (an alternative") and mixed[1].startswith("1 of 4")
