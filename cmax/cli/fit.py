@@ -276,7 +276,7 @@ def verdict_counts(counts: dict[str, int]) -> str:
 
 def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_motion: int = 0,
            cell_noise: int = 0, unsteady: int = 0, sparse: int = 0, *, single_window: bool = False,
-           sparse_needs: int | None = None, small_parallax: int = 0) -> list[str]:
+           sparse_needs: int | None = None, small_parallax: int = 0, noisy: int = 0) -> list[str]:
     """What to try when at least half of the fitted windows are low parallax or ambiguous and unresolved (one
     line each; none otherwise); ``rotation_known``: the run held the rotation (``--gyro``, ``--omega``);
     ``no_motion``: how many of the low-parallax windows show no motion at all (the permutation test,
@@ -292,7 +292,8 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     more than ``--max-events`` lets through (then only a larger ``--max-events`` helps a sparse window);
     ``small_parallax`` (se3): how many of the other unresolved ambiguous windows are so because their parallax is
     under ``QualitySettings.min_ok_parallax_px`` (``Quality.small_parallax``), for which more parallax or a known
-    rotation is the cure.
+    rotation is the cure; ``noisy`` (se3): how many of the other unresolved ambiguous windows are so because too many
+    of their events are background-activity noise (``Quality.noisy``), for which a longer window is no cure.
 
     >>> advice({"ok": 0, "ambiguous": 0, "resolved": 0, "low_parallax": 1, "failed": 0}, "se3", True, single_window=True)
     ['1 of 1 windows have too little parallax: their translation and depth are not measured; a longer span of events (the run is one window over all of them) gives more parallax']
@@ -327,9 +328,14 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     if total and model == "se3" and 2 * unresolved >= total:
         known = "" if rotation_known else ("a known rotation (--gyro, or --omega 0,0,0 for a rig that does not "
                                            "rotate) or ")
-        if unresolved > unsteady + sparse + small_parallax:
-            lines.append(f"{unresolved - unsteady - sparse - small_parallax} of {total} windows stay ambiguous (an "
-                         f"alternative motion scores as well): {known}{longer} tells them apart")
+        if unresolved > unsteady + sparse + small_parallax + noisy:
+            lines.append(f"{unresolved - unsteady - sparse - small_parallax - noisy} of {total} windows stay ambiguous "
+                         f"(an alternative motion scores as well): {known}{longer} tells them apart")
+        if noisy:
+            lines.append(f"{noisy} of {total} windows stay ambiguous because too many of their events are "
+                         "background-activity noise (QualitySettings.max_noise_share): leave the isolated events out "
+                         "before fitting (cmax.fitting.quality.isolated_events) or lower the sensor's background "
+                         f"activity; {longer} does not help (the noise grows with it)")
         if small_parallax:
             lines.append(f"{small_parallax} of {total} windows stay ambiguous because their parallax is too small to "
                          "tell the translation direction from a rotation (QualitySettings.min_ok_parallax_px): "
@@ -623,10 +629,12 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     unsteady = sum(q.unsteady for q in unresolved)
     sparse = sum(q.sparse for q in unresolved)     # never unsteady too: verdict_of marks only an ok one sparse
     small = sum(q.small_parallax for q in unresolved)   # nor sparse: an ok one, once
+    noisy = sum(q.noisy for q in unresolved)            # nor small parallax: an ok one, once
     needs = math.ceil(settings.quality.min_event_density * events.width * events.height)
     late_notes += advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None,
                          no_motion, cell_noise, unsteady, sparse, single_window=single_window,
-                         sparse_needs=needs if needs > settings.max_events else None, small_parallax=small)
+                         sparse_needs=needs if needs > settings.max_events else None, small_parallax=small,
+                         noisy=noisy)
     failed = sum(r.verdict is Verdict.FAILED for r in sequence.results)
     if not windows:
         late_notes.append(f"no window was fitted: each has fewer than {min_events:,} events (over more than one "

@@ -23,7 +23,7 @@ from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
                                   motion_within_noise, rate_change, shuffled_gain_test, small_parallax_reason,
-                                  sparse_reason, verdict_of)
+                                  isolated_events, noise_reason, noise_share, sparse_reason, verdict_of)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -102,8 +102,10 @@ class FitResult:
         The event pixels of the reference view: pixels that hold at least one
         event once the events are warped to ``t_ref_us`` with the fitted
         motion and depth (:func:`event_pixels`), in cells with at least
-        ``min_cell_events`` events. Like EMVS's semi-dense map, on the edges
-        seen at ``t_ref_us``.
+        ``min_cell_events`` events; events without a neighbour within 1 px
+        and ``FitSettings.mask_isolated_us`` (background-activity noise)
+        leave no pixel of their own. Like EMVS's semi-dense map, on the
+        edges seen at ``t_ref_us``.
     inverse_depth_grid : ndarray (gh, gw) or None
         The optimised inverse depths [1/m] at the grid nodes.
     scale_known : bool
@@ -479,9 +481,12 @@ def fit(
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         on_bound = _on_bound(w, result, low, pose_known=pose is not None)
+        noise = (noise_share(events.x, events.y, events.t, events.width, events.height,
+                             settings.quality.noise_window_us) if model == "se3" else None)
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
                                                   hold_omega=known_omega is not None, speed=scale,
-                                                  given=len(events), rate=rate, on_bound=on_bound),
+                                                  given=len(events), rate=rate, on_bound=on_bound,
+                                                  noise=noise),
                          hot_pixels=hot, seconds=time.perf_counter() - start)
     _warn(result, settings, low, pose is not None, on_bound)
     return result
@@ -591,13 +596,16 @@ def _on_bound(w: Window, result: FitResult, low: LowMotion | None, pose_known: b
 
 
 def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver, *, pose_known: bool,
-             hold_omega: bool, speed: float, given: int, rate: float | None = None, on_bound: str = "") -> Quality:
+             hold_omega: bool, speed: float, given: int, rate: float | None = None, on_bound: str = "",
+             noise: float | None = None) -> Quality:
     """The verdict of a finished fit (:class:`QualitySettings` ``w.settings.quality``) with the low-motion
     rule that fired, ``low`` (:func:`_low_motion`), the window's :func:`cmax.fitting.quality.rate_change`
     ``rate`` (None: not measured) and :func:`_on_bound`'s reason; the ambiguity test (:func:`cmax.fitting.quality.assess`) runs on se3 fits
     with a fitted direction that did not fail and have parallax, and so do the rules of sparse windows
     (:func:`cmax.fitting.quality.sparse_reason`; ``given``: the events of the window before subsampling) and of
-    small parallax with the rotation free (:func:`cmax.fitting.quality.small_parallax_reason`)."""
+    small parallax with the rotation free (:func:`cmax.fitting.quality.small_parallax_reason`); ``noise``: the
+    window's :func:`cmax.fitting.quality.noise_share` (None: not measured), judged by
+    :func:`cmax.fitting.quality.noise_reason`."""
     quality = w.settings.quality
     failed = [log.stage for log in result.stages if not log.success]
     alternatives, note = (), ("ambiguity not tested: the pose is given" if pose_known else
@@ -611,7 +619,9 @@ def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver
                                                             (w.ev.width, w.ev.height), quality.min_ok_parallax_area)
     return verdict_of(success=result.success, failed_stages=failed, low_motion=low, alternatives=alternatives,
                       note=note, untestable=not tested, rate=rate, max_rate_change=quality.max_rate_change,
-                      sparse=sparse, on_bound=on_bound, small_parallax=small)
+                      sparse=sparse, on_bound=on_bound, small_parallax=small, noise_share=noise,
+                      noisy="" if noise is None else noise_reason(noise, quality.max_noise_share,
+                                                                  quality.noise_window_us))
 
 
 def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_known: bool,
@@ -734,6 +744,9 @@ def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion
         supported = counts.reshape(grid.shape) >= s.min_cell_events
         cell_map = w.grid.cell_of(*[torch.from_numpy(a.ravel().astype(np.float64)) for a in np.mgrid[0:H, 0:W][::-1]])
         x_ref, y_ref = _all_events_at_reference(events, K, w, v, omega, grid)
+        if s.mask_isolated_us:                       # background-activity noise: no pixel of its own in the mask
+            kept = ~isolated_events(events.x, events.y, events.t, W, H, s.mask_isolated_us)
+            x_ref, y_ref = x_ref[kept], y_ref[kept]
         mask = event_pixels(x_ref, y_ref, H, W) & supported.ravel()[cell_map.numpy()].reshape(H, W)
     failed = [log for log in logs if not log.success]
     last = logs[-1].message if logs else ""

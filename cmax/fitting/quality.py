@@ -75,7 +75,7 @@ from cmax.warp import warp_se3
 __all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alternative", "Quality", "MotionScorer",
            "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change", "sparse_reason",
-           "small_parallax_reason", "min_ok_parallax"]
+           "small_parallax_reason", "min_ok_parallax", "isolated_events", "noise_share", "noise_reason"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
@@ -172,6 +172,11 @@ class Quality:
         se3 with a free rotation: ``parallax_px`` under ``QualitySettings.min_ok_parallax_px``, more on an image
         of fewer pixels than ``min_ok_parallax_area`` (:func:`small_parallax_reason`, :func:`min_ok_parallax`):
         ambiguous, since a rotation absorbs most of what a turn of so little translation changes in the image.
+    noisy : bool
+        More than ``QualitySettings.max_noise_share`` of the events are estimated to be background-activity noise
+        (:func:`noise_reason`): ambiguous, since noise pixels enter the depth map and pull the depth sweep.
+    noise_share : float or None
+        The window's :func:`noise_share` (se3, with a given pose too; None when not measured).
     """
 
     verdict: Verdict
@@ -186,6 +191,8 @@ class Quality:
     sparse: bool = False
     on_bound: bool = False
     small_parallax: bool = False
+    noisy: bool = False
+    noise_share: float | None = None
 
     def summary(self) -> dict:
         """A JSON-ready dict (an infinite ``rate_change``, one half of the window without events, as None with
@@ -194,7 +201,7 @@ class Quality:
         return {"verdict": self.verdict.value, "reason": self.reason,
                 "cause": None if self.cause is None else self.cause.value,
                 "rate_change": rate, "unsteady": self.unsteady, "sparse": self.sparse, "on_bound": self.on_bound,
-                "small_parallax": self.small_parallax,
+                "small_parallax": self.small_parallax, "noisy": self.noisy, "noise_share": self.noise_share,
                 "alternatives": [{"name": a.name, "v": a.v.tolist(), "omega": a.omega.tolist(), "gain": a.gain,
                                   "noise": a.noise, "within_noise": a.within_noise} for a in self.alternatives],
                 "resolution": self.resolution, "resolved": self.resolved,
@@ -476,6 +483,121 @@ def sparse_reason(fitted: int, given: int, width: int, height: int, min_event_de
             f"{min_event_density:g}): too sparse for the contrast to vouch for the direction{more}")
 
 
+def isolated_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int, window_us: int,
+                    radius: int = 1) -> np.ndarray:
+    """Events (N,) bool with no other event within ``radius`` pixels (a ``2 radius + 1`` square, their own pixel
+    included) and ``window_us`` µs on either side: the test of the background-activity filter (Delbruck 2008;
+    Guo & Delbruck 2022), exact rather than with a timestamp map. ``x, y`` (N,) integer pixels inside the
+    ``width`` x ``height`` image, ``t`` (N,) µs. Vectorized: a sorted key per event and one binary search per
+    neighbour pixel.
+
+    >>> isolated_events(np.array([0, 1, 5]), np.array([0, 0, 5]), np.array([0, 500, 600]), 8, 8, 1000).tolist()
+    [False, False, True]
+    """
+    x, y, keys, order, span = _sorted_events(x, y, t, width, window_us)
+    isolated = np.empty(x.size, bool)
+    isolated[order] = _neighbours(keys, x, y, keys, width, height, window_us, radius, span) <= 1   # itself only
+    return isolated
+
+
+def _sorted_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, window_us: int
+                   ) -> tuple[np.ndarray, np.ndarray, np.ndarray, np.ndarray, int]:
+    """The events ``x, y, t`` (N,) [px, px, µs] sorted by pixel, then time: ``(x, y, keys, order, span)``, each
+    key ``pixel * span + t`` (int64; the times shifted so that two pixels' keys never overlap within
+    ``window_us``), ``order`` the sorting permutation."""
+    x, y, t = (np.asarray(a, np.int64) for a in (x, y, t))
+    if x.size:
+        t = t - int(t.min()) + window_us + 1
+    span = (int(t.max()) if t.size else 0) + window_us + 1
+    keys = (y * width + x) * span + t
+    order = np.argsort(keys, kind="stable")
+    return x[order], y[order], keys[order], order, span
+
+
+def _neighbours(keys: np.ndarray, x: np.ndarray, y: np.ndarray, query: np.ndarray, width: int, height: int,
+                window_us: int, radius: int, span: int) -> np.ndarray:
+    """How many of the events of sorted ``keys`` (:func:`_sorted_events`) lie within ``radius`` pixels and
+    ``window_us`` µs of each queried event (its pixel ``x, y`` and key ``query``, (Q,), sorted as the keys:
+    the searches then run in order), itself included: (Q,) int64."""
+    count = np.zeros(query.size, np.int64)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            inside = (x + dx >= 0) & (x + dx < width) & (y + dy >= 0) & (y + dy < height)
+            base = query + (dy * width + dx) * span
+            found = np.searchsorted(keys, base + window_us, "right") - np.searchsorted(keys, base - window_us, "left")
+            count += np.where(inside, found, 0)
+    return count
+
+
+def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int, window_us: int,
+                radius: int = 1) -> float:
+    """Estimated share of uniform background-activity (shot) noise among the window's events ``x, y, t`` (N,)
+    [px, px, µs] on a ``width`` x ``height`` image, in [0, 1].
+
+    Noise of ``r`` Hz per pixel, uniform in space and time, leaves an event without a neighbour
+    (:func:`isolated_events`) with probability ``exp(-r V)``, ``V = (2 radius + 1)^2 * 2 window_us`` [px s]
+    (the time span cut by the window's ends: less on a window shorter than a few ``window_us``);
+    so the isolated events per pixel and second, ``m``, satisfy ``m = r exp(-r V)``: two rates, ``-W0(-m V) / V``
+    and ``-W-1(-m V) / V`` (the two branches of Lambert W; one rate, ``1 / V``, past ``m V = 1/e``), since heavy
+    noise leaves few events alone. The events isolated within ``radius + 1`` pixels tell them apart (a wider
+    square, not a longer time, so that it works on windows shorter than ``window_us`` too): the rate whose
+    predicted count of those lies closer (in ratio) to the measured one is taken. The share is that
+    rate times the pixels and the window's duration over ``N``. Events of the scene that lie alone (sparse edges,
+    a slow scene) count as noise, so a clean window reads above 0 (0.01-0.12 on the synthetic presets at
+    160x120, 0.04-0.06 at 346x260, 0.05 and 0.09 on the real DAVIS346 and Gen4 samples); noise near events of the
+    scene goes unseen, and more of it does at high rates, so a noisy window can read below its true share
+    (docs/quality.md: the measurement).
+
+    >>> rng = np.random.default_rng(0)
+    >>> n = rng.poisson(1.0 * 160 * 120 * 0.1)                              # 1 Hz per pixel over 0.1 s
+    >>> share = noise_share(rng.integers(0, 160, n), rng.integers(0, 120, n), np.sort(rng.integers(0, 100_000, n)),
+    ...                     160, 120, 10_000)
+    >>> 0.8 < share <= 1.0
+    True
+    """
+    from scipy.special import lambertw
+
+    t = np.asarray(t, np.int64)
+    if t.size < 2 or t[-1] == t[0]:
+        return 0.0
+    duration_s = (int(t.max()) - int(t.min())) * 1e-6
+    area_s = width * height * duration_s                                    # px s
+
+    span_s = float(np.mean(np.minimum(t + window_us, t.max()) - np.maximum(t - window_us, t.min()))) * 1e-6
+    near, far = (2 * radius + 1) ** 2 * span_s, (2 * radius + 3) ** 2 * span_s    # px s: cut by the window's ends
+    xs, ys, keys, _, key_span = _sorted_events(x, y, t, width, window_us)
+    alone = _neighbours(keys, xs, ys, keys, width, height, window_us, radius, key_span) <= 1
+    m = np.count_nonzero(alone) / area_s
+    if m * near >= math.exp(-1):
+        rate = 1.0 / near
+    else:
+        low, high = (float(-lambertw(-m * near, k).real) / near for k in (0, -1))
+        far_alone = _neighbours(keys, xs[alone], ys[alone], keys[alone], width, height, window_us, radius + 1,
+                                key_span) <= 1            # alone in the wider square: alone in the narrow one too
+        m_far = max(np.count_nonzero(far_alone), 1) / area_s
+        rate = min((low, high), key=lambda r: abs(math.log(max(r * math.exp(-r * far), 1e-300) / m_far)))
+    return float(min(1.0, rate * width * height * duration_s / t.size))
+
+
+def noise_reason(share: float, max_noise_share: float, window_us: int) -> str:
+    """The reason of a window whose events are too much background-activity noise to vouch for its depth and
+    motion ("" when ``share`` (:func:`noise_share`) is not over ``max_noise_share``); ``window_us`` [µs]: the
+    isolated-event test's window, named in the reason.
+
+    >>> noise_reason(0.5, 0.3, 10_000)[:72]
+    'about 50% of the events are background-activity noise (isolated events: '
+    >>> noise_reason(0.1, 0.3, 10_000)
+    ''
+    """
+    if not share > max_noise_share:
+        return ""
+    return (f"about {share:.0%} of the events are background-activity noise (isolated events: none other within "
+            f"1 px and {window_us / 1000:g} ms; max_noise_share={max_noise_share:g}): the noise's depth cells and "
+            "pixels are fitted as if they were the scene's; leave the isolated events out before fitting "
+            "(cmax.fitting.quality.isolated_events) or lower the sensor's background activity (its biases, more "
+            "light)")
+
+
 def min_ok_parallax(min_ok_parallax_px: float, width: int, height: int, reference_area: int) -> float:
     """The least parallax [px] of an ``ok`` window with the rotation free on a ``width`` x ``height`` image:
     ``min_ok_parallax_px`` on an image of ``reference_area`` pixels or more, ``sqrt(reference_area / (width
@@ -560,7 +682,8 @@ def bound_reason(shares: dict[str, float], depth_range: tuple[float, float], max
 def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMotion | None,
                alternatives: Sequence[Alternative], note: str = "", untestable: bool = False,
                rate: float | None = None, max_rate_change: float = math.inf, sparse: str = "",
-               on_bound: str = "", small_parallax: str = "") -> Quality:
+               on_bound: str = "", small_parallax: str = "", noisy: str = "",
+               noise_share: float | None = None) -> Quality:
     """The verdict from the fit's ``success`` (and the names of its failed stages), why its motion is too
     small to trust (None when it is not), the ambiguity test's ``alternatives`` and the window's
     :func:`rate_change` ``rate`` (None: not measured); the worst one wins (failed, low parallax, ambiguous,
@@ -571,9 +694,10 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
     ``on_bound``: why too much of the depth lies on an end of the depth range (:func:`bound_reason`; "" when it
     does not): an ``ok`` or ambiguous window is ambiguous and ``on_bound``. ``small_parallax``: the
     :func:`small_parallax_reason` of the window ("" when it has parallax enough): an ``ok`` becomes ambiguous and
-    ``small_parallax``."""
+    ``small_parallax``. ``noisy``: the :func:`noise_reason` of the window ("" when its estimated noise share,
+    ``noise_share`` (None: not measured), is not too high): an ``ok`` becomes ambiguous and ``noisy``."""
     unsteady = "" if rate is None else _unsteady_reason(rate, max_rate_change)
-    measured = dict(rate_change=rate, unsteady=bool(unsteady))
+    measured = dict(rate_change=rate, unsteady=bool(unsteady), noise_share=noise_share)
     if not success:
         return Quality(Verdict.FAILED, f"stage(s) failed: {', '.join(failed_stages) or 'unknown'}",
                        tuple(alternatives), **measured)
@@ -606,6 +730,8 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
     if small_parallax and verdict is Verdict.OK:
         return Quality(Verdict.AMBIGUOUS, f"{small_parallax}; {reason}", tuple(alternatives), small_parallax=True,
                        **measured)
+    if noisy and verdict is Verdict.OK:
+        return Quality(Verdict.AMBIGUOUS, f"{noisy}; {reason}", tuple(alternatives), noisy=True, **measured)
     return Quality(verdict, reason, tuple(alternatives), **measured)
 
 

@@ -358,6 +358,14 @@ class QualitySettings:
         image it is multiplied by ``sqrt(min_ok_parallax_area / (width height))``: on a quarter of the pixels the
         contrast's optimum lies off the truth beyond its noise far more often, and ``ok`` windows 37-98 deg off
         came with 3.0-5.5 px of parallax at 160x120 (docs/quality.md: the measurement). 1 turns the scaling off.
+    max_noise_share : float
+        se3, with a given pose too: a window whose events are estimated to be more than this share of uniform
+        background-activity noise (:func:`cmax.fitting.quality.noise_share`: isolated events, none other within
+        1 px and ``noise_window_us``) is at best ``ambiguous`` and ``noisy``: the noise's pixels enter the depth
+        map and pull the depth sweep, with no sign of it in the contrast. In (0, 1]; 1 turns the rule off
+        (docs/quality.md: the measurement behind the value).
+    noise_window_us : int
+        Half the time span [µs] of that test's neighbourhood (the background-activity filter's window).
     """
 
     ambiguity_test: bool = True
@@ -382,6 +390,8 @@ class QualitySettings:
     max_bound_share: float = 0.25
     min_ok_parallax_px: float = 3.0
     min_ok_parallax_area: int = 346 * 260
+    max_noise_share: float = 0.3
+    noise_window_us: int = 10_000
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "smoothing"):
@@ -399,7 +409,8 @@ class QualitySettings:
         if isinstance(self.max_rate_change, bool) or not (isinstance(self.max_rate_change, (int, float))
                                                           and self.max_rate_change > 1):
             raise ValueError(f"max_rate_change must be a number > 1 (math.inf: no test), got {self.max_rate_change!r}")
-        for name in ("shuffle_fraction", "max_bound_share"):
+        _positive_int("noise_window_us", self.noise_window_us, 1)
+        for name in ("shuffle_fraction", "max_bound_share", "max_noise_share"):
             value = getattr(self, name)
             if isinstance(value, bool) or not (isinstance(value, (int, float)) and 0 < value <= 1):
                 raise ValueError(f"{name} must lie in (0, 1], got {value!r}")
@@ -514,6 +525,11 @@ class FitSettings:
         verdict is ``low_parallax``.
     min_cell_events : int
         Depth cells with fewer events are outside the mask.
+    mask_isolated_us : int
+        Pixels that only isolated events reach (none other within 1 px and this many µs:
+        :func:`cmax.fitting.quality.isolated_events`, the background-activity filter's test) are outside the
+        mask: uniform sensor noise would otherwise put its own pixels into it, each with a depth of its own
+        (docs/quality.md). 0 keeps every event pixel.
     hot_pixels : HotPixelFilter or None
         Which pixels are hot (:class:`cmax.hot_pixels.HotPixelFilter`: more than ``factor`` (8) times the
         99th percentile of the window's per-pixel event counts and more than ``min_events`` (30), or firing
@@ -563,6 +579,7 @@ class FitSettings:
     low_motion_px: float = 2.0
     low_parallax_px: float = LOW_PARALLAX_PX
     min_cell_events: int = 15
+    mask_isolated_us: int = 10_000
     hot_pixels: HotPixelFilter | None = field(default_factory=HotPixelFilter)
     seed: int = 0
     patch_flow: PatchFlowSettings = field(default_factory=PatchFlowSettings)
@@ -637,6 +654,7 @@ class FitSettings:
         _positive_int("coarse_iterations", self.coarse_iterations)
         _positive_int("start_iterations", self.start_iterations)
         _positive_int("min_cell_events", self.min_cell_events, 0)
+        _positive_int("mask_isolated_us", self.mask_isolated_us, 0)
         check_filter(self.hot_pixels)
         for name, kind in (("patch_flow", PatchFlowSettings), ("refine", RefineSettings), ("sweep", SweepSettings),
                            ("quality", QualitySettings)):

@@ -1,0 +1,161 @@
+"""Background-activity noise: the isolated-event test, the noise-share estimate and the ``noisy`` verdict."""
+from __future__ import annotations
+
+import warnings
+
+import numpy as np
+import pytest
+
+from benchmarks.synthetic_windows import make_window
+from cmax import Events
+from cmax.fitting import FitSettings, QualitySettings, Verdict, fit
+from cmax.fitting.quality import isolated_events, noise_share
+
+
+def _with_noise(events: Events, rate_hz: float, seed: int) -> tuple[Events, int]:
+    """``events`` plus uniform noise of ``rate_hz`` per pixel over their span (random polarity), and its count."""
+    rng = np.random.default_rng(seed)
+    t0, t1 = int(events.t[0]), int(events.t[-1])
+    n = rng.poisson(rate_hz * events.width * events.height * (t1 - t0) * 1e-6)
+    x = np.r_[events.x, rng.integers(0, events.width, n)]
+    y = np.r_[events.y, rng.integers(0, events.height, n)]
+    t = np.r_[events.t, rng.integers(t0, t1 + 1, n)]
+    p = np.r_[events.p, rng.integers(0, 2, n)]
+    order = np.argsort(t, kind="stable")
+    return Events(x[order], y[order], t[order], p[order], events.width, events.height), n
+
+
+def test_isolated_events_agree_with_the_pairwise_definition():
+    rng = np.random.default_rng(3)
+    n, width, height, window = 400, 14, 10, 4_000
+    x, y = rng.integers(0, width, n), rng.integers(0, height, n)
+    t = np.sort(rng.integers(0, 60_000, n))
+    near = ((np.abs(x[:, None] - x[None]) <= 1) & (np.abs(y[:, None] - y[None]) <= 1)
+            & (np.abs(t[:, None] - t[None]) <= window))
+    expected = near.sum(1) == 1                                 # only the event itself
+    assert 0 < expected.sum() < n
+    np.testing.assert_array_equal(isolated_events(x, y, t, width, height, window), expected)
+
+
+def _points(seed: int) -> Events:
+    """300 points moving at (40, -20) px/s over 0.1 s on a 160x120 image: edges, no isolated events to speak of."""
+    rng = np.random.default_rng(seed)
+    x0, y0 = rng.uniform(10, 140, 300), rng.uniform(10, 110, 300)
+    t_s = np.sort(rng.uniform(0, 0.1, 6000))
+    point = rng.integers(0, 300, 6000)
+    return Events(np.rint(x0[point] + 40 * t_s), np.rint(y0[point] - 20 * t_s), np.rint(t_s * 1e6).astype(np.int64),
+                  rng.integers(0, 2, 6000), width=160, height=120)
+
+
+@pytest.mark.parametrize("rate_hz", [0.3, 1.0, 2.0])
+def test_noise_share_follows_the_injected_noise(rate_hz):
+    clean = _points(0)
+    assert noise_share(clean.x, clean.y, clean.t, 160, 120, 10_000) < 0.05
+    noisy, n = _with_noise(clean, rate_hz, 1)
+    share = noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000)
+    assert abs(share - n / len(noisy)) < 0.08                  # the true share: 0.09, 0.24, 0.39
+
+
+@pytest.mark.parametrize("duration_us", [100_000, 20_000])
+def test_heavy_noise_is_not_read_as_clean(duration_us):
+    """Was (during this change): noise so dense that few of its events lie alone read as 1-9% noise (the isolated
+    count alone has two rates; the longer time window meant to tell them apart could not on a window shorter than
+    it). 30 Hz per pixel, 66-91% of the events, over 0.1 s and 20 ms windows of the moving points."""
+    clean = _points(0)
+    scale = duration_us / 100_000
+    points = Events(clean.x, clean.y, np.rint(clean.t * scale).astype(np.int64), clean.p, 160, 120)
+    noisy, n = _with_noise(points, 30.0, 1)
+    share = noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000)
+    assert n / len(noisy) > 0.6 and share > 0.5
+
+
+def test_a_noise_dominated_window_is_never_ok_with_its_pose_given():
+    """Was: uniform noise of 10 Hz per pixel, half of a window's events, and the depth swept for the true pose came
+    back ``ok`` (the noise's pixels in the depth map with depths of their own). Over
+    ``QualitySettings.max_noise_share`` an ``ok`` becomes ambiguous and ``noisy``; the depth is unchanged; 1 turns
+    the rule off; the clean window keeps its ``ok``."""
+    w = make_window("slider", 4, width=120, height=90, focal=200.0, duration_s=0.3, max_frames=40)
+    noisy, n = _with_noise(w.events, 10.0, 2)
+    off = FitSettings(depth_range=(1.0, 20.0), quality=QualitySettings(max_noise_share=1.0))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        clean = fit(w.events, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+        default = fit(noisy, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+        without = fit(noisy, w.K, pose=w.twist, settings=off)
+    assert n / len(noisy) > 0.4
+    assert clean.verdict is Verdict.OK and not clean.quality.noisy and clean.quality.noise_share < 0.3
+    assert without.verdict is Verdict.OK and not without.quality.noisy
+    assert default.quality.noise_share > 0.3
+    assert default.verdict is Verdict.AMBIGUOUS and default.quality.noisy
+    assert "background-activity noise" in default.quality.reason
+    np.testing.assert_array_equal(default.depth, without.depth)
+    assert default.quality.summary()["noisy"] is True
+
+
+@pytest.mark.parametrize("value", [0.0, -0.1, 1.5, float("nan"), True])
+def test_max_noise_share_outside_its_range_is_refused(value):
+    with pytest.raises(ValueError, match="max_noise_share"):
+        QualitySettings(max_noise_share=value)
+
+
+def test_noise_window_us_must_be_a_whole_number_of_microseconds():
+    with pytest.raises(ValueError, match="noise_window_us"):
+        QualitySettings(noise_window_us=0)
+
+
+def _isolated_noise(events: Events, count: int, seed: int) -> tuple[np.ndarray, np.ndarray, np.ndarray]:
+    """Up to ``count`` noise events ``(x, y, t)`` drawn uniformly over ``events``' sensor and span, kept only where no
+    event of ``events`` nor another noise event lies within 1 px and 10 ms (checked pair by pair)."""
+    rng = np.random.default_rng(seed)
+    x, y = rng.integers(0, events.width, count), rng.integers(0, events.height, count)
+    t = rng.integers(int(events.t[0]), int(events.t[-1]), count)
+
+    def near(xs, ys, ts):
+        return (np.abs(x[:, None] - xs[None]) <= 1) & (np.abs(y[:, None] - ys[None]) <= 1) & (
+            np.abs(t[:, None] - ts[None]) <= 10_000)
+
+    alone = near(x, y, t).sum(1) == 1
+    for i in range(0, len(events), 5000):
+        part = events[i:i + 5000]
+        alone &= ~near(part.x.astype(np.int64), part.y.astype(np.int64), part.t.astype(np.int64)).any(1)
+    return x[alone], y[alone], t[alone]
+
+
+def test_events_without_neighbours_give_the_depth_mask_no_pixels():
+    """Was: every pixel that a warped noise event reached joined ``FitResult.mask`` (with a depth of its own): a 3 Hz
+    noise took a 160x120 window's mask from 10% of the image to 33%. Noise events placed apart from every other
+    event (none within 1 px and 10 ms) now add few pixels to the mask; with ``mask_isolated_us=0`` (the old mask)
+    they add a pixel for every few of them."""
+    w = make_window("slider", 4, width=120, height=90, focal=200.0, duration_s=0.3, max_frames=40)
+    e = w.events
+    x, y, t = _isolated_noise(e, 3000, 5)
+    order = np.argsort(np.r_[e.t, t], kind="stable")
+    noisy = Events(np.r_[e.x, x][order], np.r_[e.y, y][order], np.r_[e.t, t][order],
+                   np.r_[e.p, np.ones(len(x), e.p.dtype)][order], e.width, e.height)
+    old = FitSettings(depth_range=(1.0, 20.0), mask_isolated_us=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        clean = fit(e, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+        default = fit(noisy, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+        clean_old = fit(e, w.K, pose=w.twist, settings=old)
+        noisy_old = fit(noisy, w.K, pose=w.twist, settings=old)
+    assert len(x) > 1000
+    assert (noisy_old.mask & ~clean_old.mask).sum() > len(x) / 4            # the old mask: the noise's own pixels
+    assert (default.mask & ~clean.mask).sum() < len(x) / 8
+
+
+def test_mask_isolated_us_must_be_a_whole_number_of_microseconds():
+    with pytest.raises(ValueError, match="mask_isolated_us"):
+        FitSettings(mask_isolated_us=-1)
+
+
+def test_cmax_fit_advice_names_noise_not_a_longer_window_for_noisy_windows():
+    """Was: a run whose windows were ambiguous for their noise was told that a known rotation or a longer window tells
+    the alternatives apart; now the noisy ones are counted apart, with the cure for noise."""
+    from cmax.cli.fit import advice
+
+    lines = advice({"ok": 1, "ambiguous": 3, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", noisy=3)
+    assert len(lines) == 1 and lines[0].startswith("3 of 4 windows stay ambiguous because too many of their events")
+    assert "isolated_events" in lines[0] and "does not help" in lines[0]
+    mixed = advice({"ok": 0, "ambiguous": 4, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", noisy=1)
+    assert mixed[0].startswith("3 of 4 windows stay ambiguous (an alternative") and mixed[1].startswith("1 of 4")
