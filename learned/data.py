@@ -295,7 +295,8 @@ class H5WindowDataset(torch.utils.data.Dataset):
     Labelled windows (files with ``gt/``) are centred on the file's ``gt/depth_t``; a window that
     :func:`reaches beyond <reaches_beyond>` its recording is left out too, and reported by ``off_recording``
     (``(file index, centre µs)`` each) with the recordings' event spans in ``spans`` (``(t_start, t_end)`` µs per
-    file): the reasons ``learned.train`` gives for a data set without a window.
+    file): the reasons ``learned.train`` gives for a data set without a window. ``counts`` holds each file's
+    number of events (with ``spans``, what ``--resume`` compares of a file: :func:`learned.train.file_fingerprint`).
     """
 
     def __init__(self, files: Sequence[object], *, window_us: int = 166_500, max_events: int = 20_000,
@@ -313,6 +314,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self.skipped, self.min_events = 0, int(min_events)
         self.off_recording: list[tuple[int, int]] = []
         self.spans: list[tuple[int, int]] = []
+        self.counts: list[int] = []
         self._readers: dict[int, H5Reader] = {}
         size = None
         for i, spec in enumerate(self.specs):
@@ -332,6 +334,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
                     spec = self.specs[i] = replace(spec, K=_file_K(spec.K, spec.path, reader.width, reader.height))
                 self._gt.append(gt)
                 self.spans.append((int(reader.t_start), int(reader.t_end)))
+                self.counts.append(len(reader))
                 self._known_motion.append(self._load_known_motion(reader.file, spec))
                 if gt is not None:
                     starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]

@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import sys
@@ -71,7 +72,7 @@ THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
-           "clear_earlier_run", "RESUMABLE",
+           "clear_earlier_run", "RESUMABLE", "file_fingerprint", "fingerprint_differences",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
            "check_output", "main"]
 
@@ -199,6 +200,47 @@ def config_differences(recorded: Config, now: Config, recorded_paths: dict | Non
     before, after = _fields(recorded, recorded_paths), _fields(now, paths_now)
     return [f"{key}={json.dumps(before[key])} (now {json.dumps(after[key])})" for key in before
             if key not in RESUMABLE and before[key] != after.get(key)]
+
+
+#: Bytes read from each end of a data file for its :func:`file_fingerprint` (the whole of a smaller file).
+FINGERPRINT_BYTES = 1 << 20
+
+
+def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int]) -> dict[str, object]:
+    """What ``--resume`` compares of one data file at ``path``: ``{"bytes": size, "events": events, "span_us":
+    [first, last], "ends_sha256": ...}``, the file's size [bytes], its number of ``events`` and their time span
+    ``span_us`` (first, last) [µs] (as :class:`learned.data.H5WindowDataset` read them), and the SHA-256 of its first
+    and last :data:`FINGERPRINT_BYTES` (a data file may hold GBs: it is not read whole). Another recording copied
+    over the file changes them, its path and number of windows staying the same."""
+    path = Path(path)
+    size = path.stat().st_size
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        digest.update(file.read(FINGERPRINT_BYTES))
+        if size > FINGERPRINT_BYTES:
+            file.seek(max(FINGERPRINT_BYTES, size - FINGERPRINT_BYTES))
+            digest.update(file.read())
+    return {"bytes": int(size), "events": int(events), "span_us": [int(span_us[0]), int(span_us[1])],
+            "ends_sha256": digest.hexdigest()}
+
+
+def fingerprint_differences(recorded: object, now: list[dict[str, object]], names: list[str]) -> list[str]:
+    """``"data.files[i] NAME: events 6282 (now 8693), ..."`` for each data file (called ``names[i]``) whose
+    :func:`file_fingerprint` ``now`` differs from the ``recorded`` one (a checkpoint's ``data_order["files"]``);
+    empty when they agree or nothing (a checkpoint of an earlier version) or another number of files is recorded."""
+    if not isinstance(recorded, list) or len(recorded) != len(now):
+        return []
+    differ = []
+    for i, (before, after) in enumerate(zip(recorded, now)):
+        if not isinstance(before, dict):
+            continue
+        changed = [f"{key} {json.dumps(before.get(key))} (now {json.dumps(value)})" for key, value in after.items()
+                   if key != "ends_sha256" and before.get(key) != value]
+        if not changed and before.get("ends_sha256") != after["ends_sha256"]:
+            changed = ["its contents (the SHA-256 of its first and last MiB)"]
+        if changed:
+            differ.append(f"data.files[{i}] {names[i]}: {', '.join(changed)}")
+    return differ
 
 
 class TrainingDiverged(ValueError):
@@ -502,8 +544,11 @@ class Trainer:
             raise ValueError("--mode teacher learns from ground-truth depth (gt/depth, as cmax scene writes it) and "
                              "none of data.files holds it (or each says use_gt: false): its loss would be 0 at every "
                              "step; give labelled files, or train --mode finetune / student on unlabelled ones")
+        self.fingerprints = [file_fingerprint(spec.path, count, span) for spec, count, span
+                             in zip(self.dataset.specs, self.dataset.counts, self.dataset.spans)]
         if ckpt is not None:
             self._check_data_order(ckpt.get("data_order"))
+            self._check_data_files(ckpt.get("data_order"))
             self._check_teacher(ckpt.get("data_order"))
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model).to(self.device)
@@ -557,6 +602,17 @@ class Trainer:
                              f"{self.out / 'last.pt'} was trained with (its contents changed since): the resumed steps "
                              "would learn from another teacher; restore it, or start afresh with --overwrite or "
                              "another train.out")
+
+    def _check_data_files(self, order: object) -> None:
+        """Refuse to resume when a data file is not the one the checkpoint was trained on (its
+        :func:`file_fingerprint` in ``data_order["files"]``; checkpoints of earlier versions store none): another
+        recording copied over it keeps its path and may keep its number of windows."""
+        differ = fingerprint_differences(order.get("files") if isinstance(order, dict) else None, self.fingerprints,
+                                         [str(spec.path) for spec in self.dataset.specs])
+        if differ:
+            raise ValueError(f"--resume: {self.out / 'last.pt'} was trained on other data files than the ones at "
+                             f"these paths now: {'; '.join(differ)}: the resumed steps would learn from other "
+                             "events; restore the files, or start afresh with --overwrite or another train.out")
 
     def _check_data_order(self, order: object) -> None:
         """Refuse to resume when the checkpoint's ``data_order`` (seed, batch size, windows in the data set) is not
@@ -714,7 +770,7 @@ class Trainer:
                    "config": self.config.to_dict(), "rng": rng_state(),
                    "data_order": {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
                                   "dataset_size": len(self.dataset), "paths": resolved_paths(self.config),
-                                  "teacher_sha256": self.teacher_sha256}}
+                                  "teacher_sha256": self.teacher_sha256, "files": self.fingerprints}}
         written = save_checkpoint(self.out / "last.pt", payload)
         self.saved_step = self.step
         return written

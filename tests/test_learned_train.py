@@ -791,3 +791,35 @@ def test_resume_refuses_a_teacher_replaced_under_the_same_path(scene_file, tmp_p
     assert status == 2 and f"train.teacher {path} is not the file" in err and "contents changed" in err, err
     shutil.copyfile(teacher / "last.pt", path)      # restored: resumes
     assert main([*student, "--resume", *tiny(scene_file, tmp_path / "s", "train.steps=2", f"train.teacher={path}")]) == 0
+
+
+def test_resume_refuses_a_data_file_replaced_by_another_recording_of_as_many_windows(scene_file, tmp_path, capsys):
+    """--resume compared only the number of windows of data.files: another recording copied over a data file,
+    as long and so with as many windows, was trained on without a word (exit 0). The checkpoint records each
+    file's size, events, time span and the SHA-256 of its ends: refused in one line naming the file."""
+    import h5py
+
+    from cmax.io import H5Reader, write_h5
+    from conftest import one_line_error
+    from learned.data import H5WindowDataset
+
+    data, other = tmp_path / "data.h5", tmp_path / "other.h5"
+    shutil.copyfile(scene_file, data)
+    with H5Reader(scene_file) as reader:     # the same times, the image mirrored: another recording
+        ev = reader.window(reader.t_start, reader.t_end + 1)
+    from cmax.events import Events
+    write_h5(other, Events(ev.width - 1 - ev.x.astype(np.int64), ev.y, ev.t, ev.p, ev.width, ev.height))
+    with h5py.File(scene_file, "r") as source, h5py.File(other, "a") as target:
+        source.copy("gt", target)
+    assert len(H5WindowDataset([data], window_us=100_000)) == len(H5WindowDataset([other], window_us=100_000))
+    out = tmp_path / "run"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(data, out, "train.steps=2")]) == 0
+    capsys.readouterr()
+    shutil.copyfile(other, data)
+    resume = ["--mode", "teacher", "--no-progress", "--resume", *tiny(data, out, "train.steps=4")]
+    status, err = one_line_error(lambda: main(resume), capsys)
+    assert status == 2 and "was trained on other data files" in err and f"data.files[0] {data}: " in err, err
+    assert load_checkpoint(out / "last.pt")["step"] == 2
+    shutil.copyfile(scene_file, data)        # the file restored (a copy: the same bytes): resumes
+    assert main(resume) == 0
+    assert load_checkpoint(out / "last.pt")["step"] == 4
