@@ -72,7 +72,7 @@ THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
-           "clear_earlier_run", "RESUMABLE", "file_fingerprint", "fingerprint_differences",
+           "clear_earlier_run", "RESUMABLE", "file_fingerprint", "fingerprint_differences", "repeated_files",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
            "check_output", "main"]
 
@@ -241,6 +241,38 @@ def fingerprint_differences(recorded: object, now: list[dict[str, object]], name
         if changed:
             differ.append(f"data.files[{i}] {names[i]}: {', '.join(changed)}")
     return differ
+
+
+def _entry_path(entry: object) -> Path:
+    return Path(entry["path"] if isinstance(entry, dict) else entry)
+
+
+def _same_existing_file(a: Path, b: Path) -> bool:
+    try:
+        return os.path.samefile(a, b)
+    except OSError:   # missing: the dataset names it
+        return False
+
+
+def repeated_files(files: tuple, val_files: tuple) -> list[str]:
+    """Why the data files ``files`` (``data.files``) and ``val_files`` (``data.val_files``) are not what they say,
+    one sentence each: a training file given twice (its windows weigh twice), and a validation file that is one
+    of the training files (its loss is measured on windows the network trains on: no held-out learning curve).
+    Files are compared as files (``a.h5`` and ``./a.h5`` are one); empty when there is nothing to say."""
+    said = []
+    for j, entry in enumerate(files):
+        first = next((i for i in range(j) if _same_existing_file(_entry_path(files[i]), _entry_path(entry))), None)
+        if first is not None:
+            said.append(f"data.files[{j}] {_entry_path(entry)} is data.files[{first}]: its windows are drawn twice "
+                        "as often as the other files'")
+    for j, entry in enumerate(val_files):
+        first = next((i for i, train in enumerate(files) if _same_existing_file(_entry_path(train),
+                                                                                 _entry_path(entry))), None)
+        if first is not None:
+            said.append(f"data.val_files[{j}] {_entry_path(entry)} is data.files[{first}], a training file: its "
+                        "validation loss is measured on windows the network trains on, not held-out ones "
+                        "(give files that are not in data.files)")
+    return said
 
 
 class TrainingDiverged(ValueError):
@@ -553,6 +585,9 @@ class Trainer:
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model).to(self.device)
         self.validation = None
+        if self.rank == 0:
+            for sentence in repeated_files(dc.files, dc.val_files if tc.val_every else ()):
+                warnings.warn(sentence, stacklevel=2)
         if tc.val_every:
             val = H5WindowDataset(dc.val_files, window_us=dc.window_us, max_events=dc.max_events,
                                   bins=config.model.bins, augment=False, seed=tc.seed)

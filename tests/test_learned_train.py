@@ -823,3 +823,29 @@ def test_resume_refuses_a_data_file_replaced_by_another_recording_of_as_many_win
     shutil.copyfile(scene_file, data)        # the file restored (a copy: the same bytes): resumes
     assert main(resume) == 0
     assert load_checkpoint(out / "last.pt")["step"] == 4
+
+
+def test_a_validation_file_that_is_a_training_file_is_named(scene_file, slider_file, tmp_path, monkeypatch):
+    """data.val_files holding a file of data.files gave a "held-out" learning curve measured on training windows,
+    and a file given twice in data.files weighed twice, both without a word. Each is a warning naming the files
+    (compared as files: ./a.h5 is a.h5); held-out validation files stay silent."""
+    import warnings
+
+    from learned.train import repeated_files
+
+    monkeypatch.chdir(scene_file.parent)
+    name = scene_file.name
+    said = repeated_files((name, f"./{name}"), ({"path": str(slider_file)}, str(scene_file)))
+    assert len(said) == 2, said
+    assert said[0].startswith(f"data.files[1] {name} is data.files[0]"), said
+    assert said[1].startswith(f"data.val_files[1] {scene_file} is data.files[0], a training file"), said
+    assert repeated_files((name,), (str(slider_file), "missing.h5")) == []
+    config = load_config(None, tiny(scene_file, tmp_path / "run", "train.steps=1", "train.val_every=1",
+                                    f'data.val_files=["{scene_file}"]'), mode="teacher")
+    with pytest.warns(UserWarning, match=r"data.val_files\[0\] .* is data.files\[0\], a training file"):
+        Trainer(config, progress=False)
+    config = load_config(None, tiny(scene_file, tmp_path / "run2", "train.steps=1", "train.val_every=1",
+                                    f'data.val_files=["{slider_file}"]'), mode="teacher")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Trainer(config, progress=False)
