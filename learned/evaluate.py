@@ -42,7 +42,8 @@ from learned.config import config_from_dict
 from learned.data import H5WindowDataset, Sample, collate
 from learned.model import DepthPoseNet
 
-__all__ = ["FileReport", "HeldOutWindow", "WindowPreference", "ObjectivePreferences", "load_model", "predict_batches",
+__all__ = ["FileReport", "HeldOutWindow", "WindowPreference", "ObjectivePreferences", "load_model", "load_network",
+           "predict_batches",
            "far_limit", "depth_range", "event_mask", "window_masks", "held_out_windows", "predict_windows",
            "no_pixels", "score_depth", "true_twists", "score_motion", "evaluate_files", "candidate_parameters",
            "objective_preferences", "write_accuracy_csv", "main"]
@@ -72,6 +73,18 @@ def load_model(checkpoint: str | Path) -> tuple[DepthPoseNet, dict]:
     Raises FileNotFoundError or :class:`learned.checkpoint.CheckpointError` (a ValueError) for a
     missing, foreign, crafted or inconsistent checkpoint (see :func:`learned.checkpoint.load_checkpoint`).
     """
+    model, config, _ = load_network(checkpoint)
+    return model, config
+
+
+def load_network(checkpoint: str | Path) -> tuple[DepthPoseNet, dict, dict | None]:
+    """The network of a checkpoint (eval mode), its config dict (validated) and its card: the JSON file beside it
+    (:func:`learned.pretrained.checkpoint_card`, ``student.json`` of the shipped ``student.pt``), else the record
+    of its training data that ``learned.train`` stores in the checkpoint (``"card"``: ``"size": [W, H]`` [px], ``"K":
+    [fx, fy, cx, cy]`` [px] when the training files share one focal length, ``"window_s"`` [s]), else None (a
+    checkpoint of an earlier version). Raises as :func:`load_model`."""
+    from learned.pretrained import checkpoint_card
+
     ckpt = load_checkpoint(checkpoint)
     stated = ckpt["config"].get("model")
     levels = stated.get("levels") if isinstance(stated, dict) else None
@@ -89,7 +102,10 @@ def load_model(checkpoint: str | Path) -> tuple[DepthPoseNet, dict]:
     except RuntimeError as error:  # missing / unexpected keys, shapes that do not match the config
         raise CheckpointError(f"{checkpoint}: the weights do not match its model config "
                               f"({' '.join(str(error).split())[:300]})") from None
-    return model.eval(), config.to_dict()
+    card = checkpoint_card(checkpoint)
+    if card is None and isinstance(ckpt.get("card"), dict):
+        card = ckpt["card"]
+    return model.eval(), config.to_dict(), card
 
 
 @torch.no_grad()
@@ -289,14 +305,13 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
     """Metrics of ``checkpoint`` on each of ``files`` (with ground truth), on the dense mask
     (:func:`held_out_windows`); windows of ``window_s`` [s] (None: the checkpoint config's ``data.window_us``),
     ``batch_size`` at a time."""
-    from learned.predict import camera_notes
-    from learned.pretrained import checkpoint_card
+    from learned.predict import camera_notes, window_note
 
-    model, config = load_model(checkpoint)
-    card = checkpoint_card(checkpoint)
+    model, config, card = load_network(checkpoint)
     window_us = int(round(window_s * 1e6)) if window_s is not None else int(config["data"]["window_us"])
     if window_us < 1:
         raise ValueError(f"the window must be at least 1 µs long, got {window_s} s")
+    window = window_note(int(config["data"]["window_us"]), window_us)
     reports = []
     for path in map(Path, files):
         windows = held_out_windows(path, window_us)
@@ -310,7 +325,7 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
         metrics = score_depth(depth, windows, "dense")
         first = windows[0].sample
         notes = camera_notes(card, first.events.width, first.events.height, np.asarray(first.K, float),
-                             f"the card of {checkpoint}")
+                             f"the card of {checkpoint}") + ([window] if window else [])
         invalid = no_valid_depth_note(windows)
         notes = [*notes, *([invalid] if invalid else [])]
         reports.append(FileReport(path.stem, metrics, score_motion(twist, windows), len(windows), tuple(notes)))

@@ -73,6 +73,7 @@ THREAD_CHECK_EVERY = 25
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
            "clear_earlier_run", "RESUMABLE", "file_fingerprint", "fingerprint_differences", "repeated_files",
+           "training_card",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
            "check_output", "main"]
 
@@ -241,6 +242,24 @@ def fingerprint_differences(recorded: object, now: list[dict[str, object]], name
         if changed:
             differ.append(f"data.files[{i}] {names[i]}: {', '.join(changed)}")
     return differ
+
+
+def training_card(dataset: H5WindowDataset, window_us: int, tolerance: float = 0.05) -> dict[str, object]:
+    """The camera and window a network trained on ``dataset`` with windows of ``window_us`` [µs] learned from, as a
+    card (the keys of the shipped ``student.json``: ``"size": [W, H]`` [px], ``"K": [fx, fy, cx, cy]`` [px] of the
+    first file, ``"window_s"`` [s]); ``"K"`` is left out when the files' focal lengths differ by more than
+    ``tolerance`` (a fraction). Checkpoints store it, so that ``cmax depth`` and ``learned.evaluate`` note another
+    camera or window (:func:`learned.predict.camera_notes`, :func:`learned.predict.window_note`)."""
+    Ks = [np.asarray(gt["K"] if gt is not None else spec.K, float) for spec, gt in zip(dataset.specs, dataset._gt)
+          if gt is not None or spec.K is not None]
+    card: dict[str, object] = {"size": [int(dataset.width), int(dataset.height)]}
+    if Ks:
+        fx = np.array([[K[0, 0], K[1, 1]] for K in Ks])
+        if np.all(np.abs(fx / fx[0] - 1.0) <= tolerance):
+            K = Ks[0]
+            card["K"] = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+    card["window_s"] = window_us / 1_000_000
+    return card
 
 
 def _entry_path(entry: object) -> Path:
@@ -805,7 +824,8 @@ class Trainer:
                    "config": self.config.to_dict(), "rng": rng_state(),
                    "data_order": {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
                                   "dataset_size": len(self.dataset), "paths": resolved_paths(self.config),
-                                  "teacher_sha256": self.teacher_sha256, "files": self.fingerprints}}
+                                  "teacher_sha256": self.teacher_sha256, "files": self.fingerprints},
+                   "card": training_card(self.dataset, self.config.data.window_us)}
         written = save_checkpoint(self.out / "last.pt", payload)
         self.saved_step = self.step
         return written

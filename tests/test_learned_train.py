@@ -849,3 +849,40 @@ def test_a_validation_file_that_is_a_training_file_is_named(scene_file, slider_f
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         Trainer(config, progress=False)
+
+
+def test_a_trained_checkpoint_records_its_camera_and_window_for_the_notes_of_depth_and_evaluate(
+        scene_file, slider_file, tmp_path, capsys):
+    """cmax depth and learned.evaluate noted another sensor size or focal length only from a card beside the
+    shipped checkpoint: a network the user trained (its last.pt) on a 48x36 camera ran on another camera without a
+    word, and no checkpoint's window length was compared with --window. learned.train now records the training
+    camera and window in the checkpoint ("card"), and both commands note a camera or a window that differ."""
+    import json
+
+    from learned.evaluate import main as evaluate
+    from learned.predict import main as predict
+
+    out = tmp_path / "run"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=1")]) == 0
+    card = load_checkpoint(out / "last.pt")["card"]
+    import h5py
+    with h5py.File(scene_file, "r") as f:
+        K = f["gt/K"][:]
+    assert card["size"] == [48, 36] and card["window_s"] == pytest.approx(0.1)
+    assert card["K"] == pytest.approx([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    capsys.readouterr()
+    base = ["--checkpoint", str(out / "last.pt"), "--quiet"]
+    assert predict([str(scene_file), "-o", str(tmp_path / "same"), *base]) == 0     # its own camera and window
+    err = capsys.readouterr().err
+    assert "the network was trained" not in err and "focal length" not in err, err
+    fx = 2 * K[0, 0]   # another camera: the slider file (64x48) with twice the focal length
+    assert predict([str(slider_file), "-o", str(tmp_path / "other"), *base, "--K", f"{fx},{fx},31.5,23.5"]) == 0
+    err = capsys.readouterr().err
+    assert "the network was trained on a 48x36 sensor, this file is 64x48" in err, err
+    assert f"the network was trained at {K[0, 0]:.1f} px" in err and "predicted x 2" in err, err
+    assert predict([str(scene_file), "-o", str(tmp_path / "short"), *base, "--window", "0.05"]) == 0
+    err = capsys.readouterr().err
+    assert "the network was trained on windows of 100 ms, these are 50 ms" in err, err
+    assert json.loads((tmp_path / "short" / "summary.json").read_text())["window_us"] == 50_000
+    assert evaluate(["--checkpoint", str(out / "last.pt"), "--data", str(scene_file), "--window", "0.05"]) == 0
+    assert "trained on windows of 100 ms, these are 50 ms" in capsys.readouterr().err
