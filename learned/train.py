@@ -73,7 +73,7 @@ THREAD_CHECK_EVERY = 25
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
            "clear_earlier_run", "RESUMABLE", "file_fingerprint", "fingerprint_differences", "repeated_files",
-           "training_card",
+           "training_card", "schedule_note",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
            "check_output", "main"]
 
@@ -260,6 +260,25 @@ def training_card(dataset: H5WindowDataset, window_us: int, tolerance: float = 0
             card["K"] = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
     card["window_s"] = window_us / 1_000_000
     return card
+
+
+def schedule_note(config: Config) -> str | None:
+    """A sentence for a cosine schedule (``train.schedule``) whose warm-up (``train.warmup_steps``) lasts the whole
+    run (``train.steps``): its learning rate only rises and the run ends at its peak, never decaying (the shipped
+    configs warm up over 30 steps: a short trial run of theirs); None otherwise.
+
+    >>> from learned.config import load_config
+    >>> schedule_note(load_config(None, ["train.schedule=cosine", "train.warmup_steps=10", "train.steps=100"]))
+    >>> schedule_note(load_config(None, ["train.schedule=cosine", "train.warmup_steps=30", "train.steps=20"]))[:54]
+    'train.warmup_steps=30 is not shorter than train.steps='
+    """
+    tc = config.train
+    if tc.schedule != "cosine" or tc.steps == 0 or tc.warmup_steps < tc.steps:
+        return None
+    return (f"train.warmup_steps={tc.warmup_steps} is not shorter than train.steps={tc.steps}: the whole run is the "
+            f"cosine schedule's linear warm-up, its learning rate rising to {learning_rate(tc.steps - 1, config):.3g} "
+            f"at the last step and never decaying; give fewer train.warmup_steps (a tenth of the steps, say) or "
+            f"train.schedule=constant")
 
 
 def _entry_path(entry: object) -> Path:
@@ -606,6 +625,8 @@ class Trainer:
         self.validation = None
         if self.rank == 0:
             for sentence in repeated_files(dc.files, dc.val_files if tc.val_every else ()):
+                warnings.warn(sentence, stacklevel=2)
+            if (sentence := schedule_note(config)) is not None:
                 warnings.warn(sentence, stacklevel=2)
         if tc.val_every:
             val = H5WindowDataset(dc.val_files, window_us=dc.window_us, max_events=dc.max_events,

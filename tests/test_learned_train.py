@@ -886,3 +886,21 @@ def test_a_trained_checkpoint_records_its_camera_and_window_for_the_notes_of_dep
     assert json.loads((tmp_path / "short" / "summary.json").read_text())["window_us"] == 50_000
     assert evaluate(["--checkpoint", str(out / "last.pt"), "--data", str(scene_file), "--window", "0.05"]) == 0
     assert "trained on windows of 100 ms, these are 50 ms" in capsys.readouterr().err
+
+
+def test_a_cosine_warm_up_as_long_as_the_run_is_named(scene_file, tmp_path):
+    """A short run of a shipped config (warm-up 30 steps, train.steps=20) rose in learning rate at every step and
+    ended at its peak, schedule = "cosine" notwithstanding, without a word. A warning names both settings."""
+    import warnings
+
+    config = load_config(None, tiny(scene_file, tmp_path / "a", "train.steps=3", "train.schedule=cosine",
+                                    "train.warmup_steps=3"), mode="teacher")
+    assert [learning_rate(s, config) for s in range(3)] == pytest.approx([1e-3, 2e-3, 3e-3])   # only rising
+    with pytest.warns(UserWarning, match=r"train.warmup_steps=3 is not shorter than train.steps=3: .* rising to "
+                                         r"0.003 at the last step"):
+        Trainer(config, progress=False)
+    config = load_config(None, tiny(scene_file, tmp_path / "b", "train.steps=3", "train.schedule=cosine",
+                                    "train.warmup_steps=1"), mode="teacher")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Trainer(config, progress=False)
