@@ -43,8 +43,8 @@ from learned.data import H5WindowDataset, Sample, collate
 from learned.model import DepthPoseNet
 
 __all__ = ["FileReport", "HeldOutWindow", "WindowPreference", "ObjectivePreferences", "load_model", "load_network",
-           "predict_batches",
-           "far_limit", "depth_range", "event_mask", "window_masks", "held_out_windows", "predict_windows",
+           "predict_batches", "far_limit", "depth_range", "event_mask", "window_masks", "check_ground_truth",
+           "held_out_windows", "predict_windows",
            "no_pixels", "score_depth", "true_twists", "score_motion", "evaluate_files", "candidate_parameters",
            "objective_preferences", "write_accuracy_csv", "main"]
 
@@ -195,15 +195,18 @@ def window_masks(depth: np.ndarray, events: Events, far_m: float) -> tuple[np.nd
     return dense, dense & event_mask(events)
 
 
-def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) -> list[HeldOutWindow]:
-    """The windows (``window_us`` [µs] long, at least ``min_events`` events) of the file at ``path`` with ground
-    truth, centred on its depth times (:class:`learned.data.H5WindowDataset`,
-    no augmentation), with their masks. Raises a ValueError for a file without ``gt/`` or without a window."""
+def check_ground_truth(path: str | Path) -> None:
+    """Raise a ValueError naming the file at ``path`` when it is no h5 file or holds no ground truth to evaluate
+    against (``gt/depth`` and the ``gt/K`` it was made with); a FileNotFoundError when there is nothing at
+    ``path``. Cheap (the file's index only): :func:`evaluate_files` checks every file
+    with it before the network runs, so that a bad last file does not discard the others' metrics."""
     path = Path(path)
     try:
         with h5py.File(path, "r") as file:
             depth, K = "gt/depth" in file, "gt/K" in file
-    except OSError:   # missing (H5WindowDataset says so), or not an h5 file
+    except OSError:   # missing, or not an h5 file (a folder: H5WindowDataset names it)
+        if not path.exists():
+            raise FileNotFoundError(f"no such event file: {path}") from None
         if path.is_file():
             raise ValueError(f"{path} is not an HDF5 file: learned.evaluate scores the network against the ground "
                              f"truth (gt/depth, gt/K) of h5 files as cmax scene writes them; to predict depth on "
@@ -216,6 +219,14 @@ def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) 
     if not K:
         raise ValueError(f"{path} holds gt/depth but no gt/K, the intrinsics that depth was made with: add gt/K "
                          "(3x3, as cmax scene writes it) to evaluate against that depth")
+
+
+def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) -> list[HeldOutWindow]:
+    """The windows (``window_us`` [µs] long, at least ``min_events`` events) of the file at ``path`` with ground
+    truth, centred on its depth times (:class:`learned.data.H5WindowDataset`,
+    no augmentation), with their masks. Raises a ValueError for a file without ``gt/`` or without a window."""
+    path = Path(path)
+    check_ground_truth(path)
     dataset = H5WindowDataset([path], window_us=int(window_us), max_events=1000, min_events=min_events)
     if dataset._gt[0] is None:
         raise ValueError(f"{path} has no gt/: evaluation needs ground truth")
@@ -307,6 +318,8 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
     ``batch_size`` at a time."""
     from learned.predict import camera_notes, window_note
 
+    for path in files:   # every file checked before the network runs on any
+        check_ground_truth(path)
     model, config, card = load_network(checkpoint)
     window_us = int(round(window_s * 1e6)) if window_s is not None else int(config["data"]["window_us"])
     if window_us < 1:
