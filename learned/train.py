@@ -73,7 +73,7 @@ THREAD_CHECK_EVERY = 25
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
            "clear_earlier_run", "RESUMABLE", "file_fingerprint", "fingerprint_differences", "repeated_files",
-           "training_card", "schedule_note",
+           "training_card", "schedule_note", "unread_settings",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
            "check_output", "main"]
 
@@ -260,6 +260,32 @@ def training_card(dataset: H5WindowDataset, window_us: int, tolerance: float = 0
             card["K"] = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
     card["window_s"] = window_us / 1_000_000
     return card
+
+
+#: The settings of ``train`` that a mode does not read, and what reads them.
+UNREAD = {"teacher": {"teacher": "the teacher trains a fresh network on the ground truth; --mode finetune starts "
+                                 "from a checkpoint",
+                      "contrast_twist": "only finetune and student have a contrast term",
+                      "collapse_weight": "only finetune and student have a contrast term",
+                      "speed_weight": "only finetune and student have a speed term"},
+          "finetune": {"twist_weight": "only the teacher has a twist term",
+                       "si_variance_weight": "only the teacher has the scale-invariant term"},
+          "student": {"twist_weight": "only the teacher has a twist term",
+                      "si_variance_weight": "only the teacher has the scale-invariant term"}}
+
+
+def unread_settings(config: Config) -> list[str]:
+    """One sentence for each setting of ``config.train`` that its mode does not read (:data:`UNREAD`) and that is
+    set to other than its default (e.g. ``train.teacher`` of a ``--mode teacher`` run: a fresh network, not the one
+    the user named); empty when there is none.
+
+    >>> from learned.config import load_config
+    >>> unread_settings(load_config(None, ["train.teacher=t.pt"], mode="teacher"))[0][:56]
+    "train.teacher='t.pt' is not read by --mode teacher: the "
+    """
+    defaults = type(config.train)()
+    return [f"train.{key}={getattr(config.train, key)!r} is not read by --mode {config.mode}: {why}"
+            for key, why in UNREAD[config.mode].items() if getattr(config.train, key) != getattr(defaults, key)]
 
 
 def schedule_note(config: Config) -> str | None:
@@ -627,6 +653,8 @@ class Trainer:
             for sentence in repeated_files(dc.files, dc.val_files if tc.val_every else ()):
                 warnings.warn(sentence, stacklevel=2)
             if (sentence := schedule_note(config)) is not None:
+                warnings.warn(sentence, stacklevel=2)
+            for sentence in unread_settings(config):
                 warnings.warn(sentence, stacklevel=2)
         if tc.val_every:
             val = H5WindowDataset(dc.val_files, window_us=dc.window_us, max_events=dc.max_events,

@@ -904,3 +904,31 @@ def test_a_cosine_warm_up_as_long_as_the_run_is_named(scene_file, tmp_path):
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         Trainer(config, progress=False)
+
+
+@pytest.mark.parametrize("mode", ["teacher", "finetune", "student"])
+def test_settings_the_mode_does_not_read_are_named(scene_file, tmp_path, mode):
+    """--mode teacher train.teacher=runs/t/last.pt trained a fresh network (the checkpoint, even a missing file,
+    never read), and train.speed_weight / collapse_weight / contrast_twist of a teacher, twist_weight of a student,
+    changed nothing, all without a word. Each is a warning naming the key; the shipped configs raise none."""
+    import warnings
+
+    from learned.train import unread_settings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        shipped = load_config(ROOT / "learned" / "configs" / f"{mode}.toml", [f'data.files=["{scene_file}"]',
+                                                                          "train.val_every=0"])
+    assert unread_settings(shipped) == []
+    if mode == "teacher":
+        config = load_config(None, tiny(scene_file, tmp_path / "t", "train.steps=1", "train.teacher=missing.pt",
+                                        "train.speed_weight=5", "train.contrast_twist=truth"), mode="teacher")
+        with pytest.warns(UserWarning) as said:
+            Trainer(config, progress=False)
+        text = [str(w.message) for w in said]
+        assert any(t.startswith("train.teacher='missing.pt' is not read by --mode teacher") for t in text), text
+        assert any(t.startswith("train.speed_weight=5 is not read by --mode teacher") for t in text), text
+        assert any(t.startswith("train.contrast_twist='truth' is not read by --mode teacher") for t in text), text
+    else:
+        config = load_config(None, ["train.teacher=t.pt", "train.twist_weight=3"], mode=mode)
+        assert [t[:45] for t in unread_settings(config)] == [f"train.twist_weight=3 is not read by --mode {mode}"[:45]]
