@@ -16,6 +16,7 @@ entry (the event volume computed after augmentation). Datasets:
 """
 from __future__ import annotations
 
+import json
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -249,6 +250,12 @@ def longest_centred_window_us(centre_us: int, t_start_us: int, t_end_us: int) ->
 def _training_file(path: Path, polarity: str = "01") -> H5Reader:
     """``H5Reader(path, polarity=polarity)``; a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``,
     ``.npy``, ...) is refused with the one-line conversion that makes it one."""
+    if Path(path).is_dir():   # the reader said "no such event file" of a folder that exists
+        found = sorted(Path(path).glob("*.h5"))
+        listed = (f": the {len(found)} .h5 files in it are data.files="
+                  f"{json.dumps([str(p) for p in found[:3]] + (['...'] if len(found) > 3 else []))}" if found
+                  else " (it holds no .h5 file)")
+        raise ValueError(f"{path} is a folder, not an event file: data.files lists h5 files one by one{listed}")
     try:
         return H5Reader(path, polarity=polarity)
     except FormatError as error:

@@ -416,3 +416,20 @@ def test_mvsec_dataset_reads_one_depth_map_per_window_not_the_whole_file(tmp_pat
             np.testing.assert_allclose(item["inverse_depth"][0].numpy()[mask], 1.0 / depth[7][mask], rtol=1e-6)
         else:                                                       # consecutive windows over the events' span
             assert len(ds) == len(np.arange(round(t[0] * 1e6) + 25_000, round(t[-1] * 1e6) - 25_000, 50_000))
+
+
+def test_a_folder_in_data_files_is_named_as_a_folder_with_its_h5_files(scene_file, tmp_path):
+    """The output folder of `cmax simulate FOLDER -o OUT` given as a data file was refused as 'no such event file:
+    OUT', of a folder that exists. It is named as a folder, with the .h5 files in it to list instead."""
+    import shutil
+
+    path, _, _ = scene_file
+    folder = tmp_path / "converted"
+    folder.mkdir()
+    with pytest.raises(ValueError, match=r"converted is a folder, not an event file: .* \(it holds no \.h5 file\)"):
+        H5WindowDataset([folder], window_us=100_000)
+    shutil.copyfile(path, folder / "a.h5")
+    with pytest.raises(ValueError, match=r"converted is a folder, not an event file: data.files lists h5 files one "
+                                         r"by one: the 1 \.h5 files in it are data.files=\[\".*converted/a.h5\"\]"):
+        H5WindowDataset([{"path": str(folder), "K": [40.0, 40.0, 23.5, 17.5]}], window_us=100_000)
+    assert len(H5WindowDataset([folder / "a.h5"], window_us=100_000)) > 0
