@@ -684,11 +684,11 @@ class Trainer:
                                       and len(paths["data.files"]) == len(recorded.data.files)):
             raise CheckpointError(f"{path}: its data_order.paths is not valid: {paths!r}")
         differ = config_differences(recorded, self.config, paths)
-        if not differ and recorded.train.schedule == "cosine" and recorded.train.steps != self.config.train.steps:
-            step = int(ckpt.get("step", 0))
-            # the first step still to run whose rate moves (in the warm-up the rates agree: name a later one)
-            step = next((k for k in range(step, max(recorded.train.steps, self.config.train.steps))
-                         if f"{learning_rate(k, self.config):.3g}" != f"{learning_rate(k, recorded):.3g}"), step)
+        step = int(ckpt.get("step", 0))
+        # a raised train.steps stretches a cosine schedule; a run stopped in its warm-up ran every step at the
+        # rate the longer schedule gives it: resuming that run is the longer run, bit for bit
+        if (not differ and recorded.train.schedule == "cosine" and recorded.train.steps != self.config.train.steps
+                and any(learning_rate(k, recorded) != learning_rate(k, self.config) for k in range(step))):
             raise ValueError(f"--resume: {path}'s cosine schedule spans train.steps={recorded.train.steps}; "
                              f"train.steps={self.config.train.steps} would move the learning rate of the steps "
                              f"still to run (step {step}: {learning_rate(step, self.config):.3g}, not "
