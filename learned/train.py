@@ -289,8 +289,8 @@ def unread_settings(config: Config) -> list[str]:
 
 
 def schedule_note(config: Config) -> str | None:
-    """A sentence for a cosine schedule (``train.schedule``) whose warm-up (``train.warmup_steps``) lasts the whole
-    run (``train.steps``): its learning rate only rises and the run ends at its peak, never decaying (the shipped
+    """A sentence for a ``config`` whose cosine schedule (``train.schedule``) has a warm-up (``train.warmup_steps``)
+    that lasts the whole run (``train.steps``): its learning rate only rises and the run ends at its peak, never decaying (the shipped
     configs warm up over 30 steps: a short trial run of theirs); None otherwise.
 
     >>> from learned.config import load_config
