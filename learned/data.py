@@ -452,10 +452,13 @@ class MVSECDataset(torch.utils.data.Dataset):
     ----------
     data_file : path
         ``*_data.hdf5`` (events of ``davis/left``).
-    K : array_like (3, 3)
-        Intrinsics of the left DAVIS (rectified; from the data set's calibration).
+    K : array_like (3, 3) or (4,)
+        Intrinsics [px] of the left DAVIS (rectified; from the data set's calibration), or ``[fx, fy, cx, cy]``; its
+        principal point must lie on the 346x260 sensor.
     gt_file : path, optional
-        ``*_gt.hdf5`` with ``davis/left/depth_image_rect`` (N, H, W) and ``..._ts`` [s].
+        ``*_gt.hdf5`` with ``davis/left/depth_image_rect`` (N, H, W) and ``..._ts`` [s]; at least one of its depth
+        times must lie within the events of ``data_file`` (ValueError naming both spans: a gt file of another
+        sequence). The events are read as recorded, not rectified, while the depth maps are rectified.
     window_us, max_events, bins : as :class:`H5WindowDataset`.
     """
 
@@ -463,15 +466,28 @@ class MVSECDataset(torch.utils.data.Dataset):
                  window_us: int = 166_500, max_events: int = 20_000, bins: int = 5) -> None:
         from cmax.io.mvsec import mvsec_time_span, read_mvsec
 
+        from cmax.io.mvsec import MVSEC_HEIGHT, MVSEC_WIDTH
+
         self.data_file, self.K = Path(data_file), np.asarray(K, float)
+        if self.K.shape == (4,):
+            self.K = np.array([[self.K[0], 0, self.K[2]], [0, self.K[1], self.K[3]], [0, 0, 1.0]])
         if self.K.shape != (3, 3):
-            raise ValueError(f"K must be (3, 3), got {self.K.shape}")
+            raise ValueError(f"K must be (3, 3) or [fx, fy, cx, cy], got shape {self.K.shape}")
+        self.K = _file_K(self.K, self.data_file, MVSEC_WIDTH, MVSEC_HEIGHT)
         self.window_us, self.max_events, self.bins = int(window_us), int(max_events), bins
         self._read = read_mvsec
         self.gt_file = None if gt_file is None else Path(gt_file)
         if self.gt_file is not None:   # the times only: each depth map is read with its window (GBs in all)
             with h5py.File(self.gt_file, "r") as f:
                 self.middles = np.rint(f["davis/left/depth_image_rect_ts"][:] * 1e6).astype(np.int64)
+            span = mvsec_time_span(self.data_file)
+            if span is None:
+                raise ValueError(f"{self.data_file} holds no events of davis/left")
+            if len(self.middles) and not ((self.middles >= span[0]) & (self.middles <= span[1])).any():
+                raise ValueError(f"{self.gt_file}: none of its {len(self.middles)} depth times "
+                                 f"({self.middles.min() * 1e-6:.6f} to {self.middles.max() * 1e-6:.6f} s) lies within "
+                                 f"the events of {self.data_file} ({span[0] * 1e-6:.6f} to {span[1] * 1e-6:.6f} s): "
+                                 "a gt file of another sequence?")
         else:                          # the first and last events' times only, not the file's events
             span = mvsec_time_span(self.data_file)
             if span is None:
