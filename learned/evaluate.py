@@ -45,7 +45,8 @@ from learned.model import DepthPoseNet
 __all__ = ["FileReport", "HeldOutWindow", "WindowPreference", "ObjectivePreferences", "load_model", "load_network",
            "predict_batches", "far_limit", "depth_range", "event_mask", "window_masks", "check_ground_truth",
            "held_out_windows", "predict_windows",
-           "no_pixels", "score_depth", "true_twists", "score_motion", "evaluate_files", "candidate_parameters",
+           "no_pixels", "score_depth", "true_twists", "score_motion", "flat_depth_note", "evaluate_files",
+           "candidate_parameters",
            "objective_preferences", "write_accuracy_csv", "main"]
 
 CSV_COLUMNS = ("method", "sequence", "abs_mean_m", "rmse_log", "abs_rel", "err_10m", "err_20m", "err_30m",
@@ -311,6 +312,27 @@ def no_valid_depth_note(windows: Sequence[HeldOutWindow]) -> str | None:
             "computed (NaN); gt/depth must hold z-depth in metres")
 
 
+def flat_depth_note(pred: np.ndarray, windows: Sequence[HeldOutWindow], metrics: DepthMetrics) -> str | None:
+    """A note when the predicted z-depths ``pred`` (N, H, W) [m] of ``windows`` score worse (abs_rel and rmse_log
+    both) on the dense mask than one constant depth, the median of ``pred`` itself there: the per-pixel structure of
+    the maps adds nothing to their overall scale (an untrained or collapsed network), which the metrics ``metrics``
+    (:func:`score_depth` of ``pred``) alone do not tell. The constant takes no ground truth; None otherwise."""
+    pred = np.asarray(pred)
+    masks = np.stack([w.dense for w in windows])
+    with np.errstate(invalid="ignore"):
+        values = pred[masks & np.isfinite(pred) & (pred > 0)]
+    if values.size == 0:
+        return None
+    level = float(np.median(values))
+    flat = score_depth(np.full(pred.shape, level, np.float32), windows, "dense")
+    if not (flat.abs_rel < metrics.abs_rel and flat.rmse_log < metrics.rmse_log):
+        return None
+    return (f"one constant depth, the median of the network's own depths ({level:.3g} m), scores abs_rel "
+            f"{flat.abs_rel:.3f} and rmse_log {flat.rmse_log:.3f}, better than the network's {metrics.abs_rel:.3f} "
+            f"and {metrics.rmse_log:.3f}: its depth maps carry nothing here beyond their overall scale (an untrained "
+            "or collapsed network?)")
+
+
 def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, window_s: float | None = None,
                    batch_size: int = 8) -> list[FileReport]:
     """Metrics of ``checkpoint`` on each of ``files`` (with ground truth), on the dense mask
@@ -340,7 +362,8 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
         notes = camera_notes(card, first.events.width, first.events.height, np.asarray(first.K, float),
                              f"the card of {checkpoint}") + ([window] if window else [])
         invalid = no_valid_depth_note(windows)
-        notes = [*notes, *([invalid] if invalid else [])]
+        flat = flat_depth_note(depth, windows, metrics)
+        notes = [*notes, *([invalid] if invalid else []), *([flat] if flat else [])]
         reports.append(FileReport(path.stem, metrics, score_motion(twist, windows), len(windows), tuple(notes)))
     return reports
 
