@@ -600,7 +600,13 @@ class Trainer:
         if config.mode in ("finetune", "student"):
             from learned.evaluate import load_model
 
-            teacher, _ = load_model(tc.teacher)
+            from learned.predict import window_note
+
+            teacher, teacher_config = load_model(tc.teacher)
+            trained_us = int(teacher_config["data"]["window_us"])
+            if self.rank == 0 and (other := window_note(trained_us, config.data.window_us)) is not None:
+                warnings.warn(f"train.teacher {tc.teacher}: {other}; data.window_us={trained_us} trains on the "
+                              "teacher's windows", stacklevel=2)
             if config.mode == "finetune":
                 _load_weights(self.model, teacher.state_dict(), f"the teacher {tc.teacher}")
             else:

@@ -948,3 +948,24 @@ def test_a_run_stopped_in_its_warm_up_resumes_with_a_raised_train_steps(scene_fi
     assert load_checkpoint(out / "last.pt")["step"] == 6
     for name, tensor in fresh.items():
         torch.testing.assert_close(resumed[name], tensor, rtol=0, atol=0)
+
+
+def test_a_student_on_windows_of_another_length_than_its_teacher_s_is_named(scene_file, tmp_path):
+    """A student (or finetune) with data.window_us=50000 under a teacher trained on 100 ms windows: the frozen
+    teacher read volumes of half the image motion it was trained on, its inverse depth the student's target,
+    without a word. A warning names the teacher and both lengths; equal windows stay silent."""
+    import warnings
+
+    teacher = tmp_path / "t"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, teacher, "train.steps=1")]) == 0
+    for mode in ("student", "finetune"):
+        config = load_config(None, tiny(scene_file, tmp_path / f"{mode}50", "train.steps=1", "data.window_us=50000",
+                                        f"train.teacher={teacher / 'last.pt'}"), mode=mode)
+        with pytest.warns(UserWarning, match=r"train.teacher .*last.pt: the network was trained on windows of 100 ms, "
+                                             r"these are 50 ms: .*; data.window_us=100000 trains on the teacher's"):
+            Trainer(config, progress=False)
+    config = load_config(None, tiny(scene_file, tmp_path / "same", "train.steps=1",
+                                    f"train.teacher={teacher / 'last.pt'}"), mode="student")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Trainer(config, progress=False)
