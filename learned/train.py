@@ -311,11 +311,13 @@ def _entry_path(entry: object) -> Path:
     return Path(entry["path"] if isinstance(entry, dict) else entry)
 
 
-def _same_existing_file(a: Path, b: Path) -> bool:
+def _file_key(entry: object) -> tuple[int, int] | None:
+    """``(device, inode)`` of the file a data entry names (one file under any spelling), None when it is missing."""
     try:
-        return os.path.samefile(a, b)
+        status = os.stat(_entry_path(entry))
     except OSError:   # missing: the dataset names it
-        return False
+        return None
+    return status.st_dev, status.st_ino
 
 
 def repeated_files(files: tuple, val_files: tuple) -> list[str]:
@@ -323,18 +325,19 @@ def repeated_files(files: tuple, val_files: tuple) -> list[str]:
     one sentence each: a training file given twice (its windows weigh twice), and a validation file that is one
     of the training files (its loss is measured on windows the network trains on: no held-out learning curve).
     Files are compared as files (``a.h5`` and ``./a.h5`` are one); empty when there is nothing to say."""
-    said = []
+    said, first_of = [], {}
     for j, entry in enumerate(files):
-        first = next((i for i in range(j) if _same_existing_file(_entry_path(files[i]), _entry_path(entry))), None)
-        if first is not None:
-            said.append(f"data.files[{j}] {_entry_path(entry)} is data.files[{first}]: its windows are drawn twice "
-                        "as often as the other files'")
+        key = _file_key(entry)
+        if key is not None and key in first_of:
+            said.append(f"data.files[{j}] {_entry_path(entry)} is data.files[{first_of[key]}]: its windows are drawn "
+                        "twice as often as the other files'")
+        elif key is not None:
+            first_of[key] = j
     for j, entry in enumerate(val_files):
-        first = next((i for i, train in enumerate(files) if _same_existing_file(_entry_path(train),
-                                                                                 _entry_path(entry))), None)
-        if first is not None:
-            said.append(f"data.val_files[{j}] {_entry_path(entry)} is data.files[{first}], a training file: its "
-                        "validation loss is measured on windows the network trains on, not held-out ones "
+        key = _file_key(entry)
+        if key is not None and key in first_of:
+            said.append(f"data.val_files[{j}] {_entry_path(entry)} is data.files[{first_of[key]}], a training file: "
+                        "its validation loss is measured on windows the network trains on, not held-out ones "
                         "(give files that are not in data.files)")
     return said
 
