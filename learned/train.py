@@ -204,7 +204,7 @@ def config_differences(recorded: Config, now: Config, recorded_paths: dict | Non
 
 
 #: Bytes read from each end of a data file for its :func:`file_fingerprint` (the whole of a smaller file).
-FINGERPRINT_BYTES = 1 << 20
+FINGERPRINT_BYTES = 1 << 16
 
 
 def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int]) -> dict[str, object]:
@@ -238,7 +238,7 @@ def fingerprint_differences(recorded: object, now: list[dict[str, object]], name
         changed = [f"{key} {json.dumps(before.get(key))} (now {json.dumps(value)})" for key, value in after.items()
                    if key != "ends_sha256" and before.get(key) != value]
         if not changed and before.get("ends_sha256") != after["ends_sha256"]:
-            changed = ["its contents (the SHA-256 of its first and last MiB)"]
+            changed = ["its contents (the SHA-256 of its first and last 64 KiB)"]
         if changed:
             differ.append(f"data.files[{i}] {names[i]}: {', '.join(changed)}")
     return differ

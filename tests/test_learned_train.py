@@ -823,6 +823,14 @@ def test_resume_refuses_a_data_file_replaced_by_another_recording_of_as_many_win
     shutil.copyfile(scene_file, data)        # the file restored (a copy: the same bytes): resumes
     assert main(resume) == 0
     assert load_checkpoint(out / "last.pt")["step"] == 4
+    # the same size, events and span, other bytes at an end: named by the SHA-256 of the ends
+    from learned.train import file_fingerprint, fingerprint_differences
+
+    a, b = tmp_path / "a.bin", tmp_path / "b.bin"
+    a.write_bytes(b"x" * 200_000)
+    b.write_bytes(b"y" + b"x" * 199_999)
+    said = fingerprint_differences([file_fingerprint(a, 10, (0, 5))], [file_fingerprint(b, 10, (0, 5))], ["b.bin"])
+    assert said == ["data.files[0] b.bin: its contents (the SHA-256 of its first and last 64 KiB)"], said
 
 
 def test_a_validation_file_that_is_a_training_file_is_named(scene_file, slider_file, tmp_path, monkeypatch):
