@@ -597,6 +597,7 @@ class Trainer:
         torch.manual_seed(tc.seed)
         self.model = DepthPoseNet(config.model).to(self.device)
         self.teacher = None
+        teacher_window = None
         # what the teacher file holds, so that --resume notices one replaced under the same path
         self.teacher_sha256 = (file_sha256(tc.teacher) if tc.teacher and config.mode != "teacher"
                                and Path(tc.teacher).is_file() else "")
@@ -607,9 +608,9 @@ class Trainer:
 
             teacher, teacher_config = load_model(tc.teacher)
             trained_us = int(teacher_config["data"]["window_us"])
-            if self.rank == 0 and (other := window_note(trained_us, config.data.window_us)) is not None:
-                warnings.warn(f"train.teacher {tc.teacher}: {other}; data.window_us={trained_us} trains on the "
-                              "teacher's windows", stacklevel=2)
+            if (other := window_note(trained_us, config.data.window_us)) is not None:   # said once the run is checked
+                teacher_window = (f"train.teacher {tc.teacher}: {other}; data.window_us={trained_us} trains on the "
+                                  "teacher's windows")
             if config.mode == "finetune":
                 _load_weights(self.model, teacher.state_dict(), f"the teacher {tc.teacher}")
             else:
@@ -663,7 +664,7 @@ class Trainer:
                 warnings.warn(sentence, stacklevel=2)
             if (sentence := schedule_note(config)) is not None:
                 warnings.warn(sentence, stacklevel=2)
-            for sentence in unread_settings(config):
+            for sentence in unread_settings(config) + ([teacher_window] if teacher_window else []):
                 warnings.warn(sentence, stacklevel=2)
         if tc.val_every:
             val = H5WindowDataset(dc.val_files, window_us=dc.window_us, max_events=dc.max_events,
