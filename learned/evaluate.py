@@ -340,9 +340,9 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
     ``batch_size`` at a time."""
     from learned.predict import camera_notes, window_note
 
+    model, config, card = load_network(checkpoint)   # first: a refused checkpoint is named before any file
     for path in files:   # every file checked before the network runs on any
         check_ground_truth(path)
-    model, config, card = load_network(checkpoint)
     window_us = int(round(window_s * 1e6)) if window_s is not None else int(config["data"]["window_us"])
     if window_us < 1:
         raise ValueError(f"the window must be at least 1 µs long, got {window_s} s")
