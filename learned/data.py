@@ -16,6 +16,7 @@ entry (the event volume computed after augmentation). Datasets:
 """
 from __future__ import annotations
 
+import json
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
@@ -249,6 +250,12 @@ def longest_centred_window_us(centre_us: int, t_start_us: int, t_end_us: int) ->
 def _training_file(path: Path, polarity: str = "01") -> H5Reader:
     """``H5Reader(path, polarity=polarity)``; a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``,
     ``.npy``, ...) is refused with the one-line conversion that makes it one."""
+    if Path(path).is_dir():   # the reader said "no such event file" of a folder that exists
+        found = sorted(Path(path).glob("*.h5"))
+        listed = (f": the {len(found)} .h5 files in it are data.files="
+                  f"{json.dumps([str(p) for p in found[:3]] + (['...'] if len(found) > 3 else []))}" if found
+                  else " (it holds no .h5 file)")
+        raise ValueError(f"{path} is a folder, not an event file: data.files lists h5 files one by one{listed}")
     try:
         return H5Reader(path, polarity=polarity)
     except FormatError as error:
@@ -295,7 +302,8 @@ class H5WindowDataset(torch.utils.data.Dataset):
     Labelled windows (files with ``gt/``) are centred on the file's ``gt/depth_t``; a window that
     :func:`reaches beyond <reaches_beyond>` its recording is left out too, and reported by ``off_recording``
     (``(file index, centre µs)`` each) with the recordings' event spans in ``spans`` (``(t_start, t_end)`` µs per
-    file): the reasons ``learned.train`` gives for a data set without a window.
+    file): the reasons ``learned.train`` gives for a data set without a window. ``counts`` holds each file's
+    number of events (with ``spans``, what ``--resume`` compares of a file: :func:`learned.train.file_fingerprint`).
     """
 
     def __init__(self, files: Sequence[object], *, window_us: int = 166_500, max_events: int = 20_000,
@@ -313,6 +321,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self.skipped, self.min_events = 0, int(min_events)
         self.off_recording: list[tuple[int, int]] = []
         self.spans: list[tuple[int, int]] = []
+        self.counts: list[int] = []
         self._readers: dict[int, H5Reader] = {}
         size = None
         for i, spec in enumerate(self.specs):
@@ -332,6 +341,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
                     spec = self.specs[i] = replace(spec, K=_file_K(spec.K, spec.path, reader.width, reader.height))
                 self._gt.append(gt)
                 self.spans.append((int(reader.t_start), int(reader.t_end)))
+                self.counts.append(len(reader))
                 self._known_motion.append(self._load_known_motion(reader.file, spec))
                 if gt is not None:
                     starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]
@@ -442,10 +452,13 @@ class MVSECDataset(torch.utils.data.Dataset):
     ----------
     data_file : path
         ``*_data.hdf5`` (events of ``davis/left``).
-    K : array_like (3, 3)
-        Intrinsics of the left DAVIS (rectified; from the data set's calibration).
+    K : array_like (3, 3) or (4,)
+        Intrinsics [px] of the left DAVIS (rectified; from the data set's calibration), or ``[fx, fy, cx, cy]``; its
+        principal point must lie on the 346x260 sensor.
     gt_file : path, optional
-        ``*_gt.hdf5`` with ``davis/left/depth_image_rect`` (N, H, W) and ``..._ts`` [s].
+        ``*_gt.hdf5`` with ``davis/left/depth_image_rect`` (N, H, W) and ``..._ts`` [s]; at least one of its depth
+        times must lie within the events of ``data_file`` (ValueError naming both spans: a gt file of another
+        sequence). The events are read as recorded, not rectified, while the depth maps are rectified.
     window_us, max_events, bins : as :class:`H5WindowDataset`.
     """
 
@@ -453,15 +466,28 @@ class MVSECDataset(torch.utils.data.Dataset):
                  window_us: int = 166_500, max_events: int = 20_000, bins: int = 5) -> None:
         from cmax.io.mvsec import mvsec_time_span, read_mvsec
 
+        from cmax.io.mvsec import MVSEC_HEIGHT, MVSEC_WIDTH
+
         self.data_file, self.K = Path(data_file), np.asarray(K, float)
+        if self.K.shape == (4,):
+            self.K = np.array([[self.K[0], 0, self.K[2]], [0, self.K[1], self.K[3]], [0, 0, 1.0]])
         if self.K.shape != (3, 3):
-            raise ValueError(f"K must be (3, 3), got {self.K.shape}")
+            raise ValueError(f"K must be (3, 3) or [fx, fy, cx, cy], got shape {self.K.shape}")
+        self.K = _file_K(self.K, self.data_file, MVSEC_WIDTH, MVSEC_HEIGHT)
         self.window_us, self.max_events, self.bins = int(window_us), int(max_events), bins
         self._read = read_mvsec
         self.gt_file = None if gt_file is None else Path(gt_file)
         if self.gt_file is not None:   # the times only: each depth map is read with its window (GBs in all)
             with h5py.File(self.gt_file, "r") as f:
                 self.middles = np.rint(f["davis/left/depth_image_rect_ts"][:] * 1e6).astype(np.int64)
+            span = mvsec_time_span(self.data_file)
+            if span is None:
+                raise ValueError(f"{self.data_file} holds no events of davis/left")
+            if len(self.middles) and not ((self.middles >= span[0]) & (self.middles <= span[1])).any():
+                raise ValueError(f"{self.gt_file}: none of its {len(self.middles)} depth times "
+                                 f"({self.middles.min() * 1e-6:.6f} to {self.middles.max() * 1e-6:.6f} s) lies within "
+                                 f"the events of {self.data_file} ({span[0] * 1e-6:.6f} to {span[1] * 1e-6:.6f} s): "
+                                 "a gt file of another sequence?")
         else:                          # the first and last events' times only, not the file's events
             span = mvsec_time_span(self.data_file)
             if span is None:

@@ -42,9 +42,11 @@ from learned.config import config_from_dict
 from learned.data import H5WindowDataset, Sample, collate
 from learned.model import DepthPoseNet
 
-__all__ = ["FileReport", "HeldOutWindow", "WindowPreference", "ObjectivePreferences", "load_model", "predict_batches",
-           "far_limit", "depth_range", "event_mask", "window_masks", "held_out_windows", "predict_windows",
-           "no_pixels", "score_depth", "true_twists", "score_motion", "evaluate_files", "candidate_parameters",
+__all__ = ["FileReport", "HeldOutWindow", "WindowPreference", "ObjectivePreferences", "load_model", "load_network",
+           "predict_batches", "far_limit", "depth_range", "event_mask", "window_masks", "check_ground_truth",
+           "held_out_windows", "predict_windows",
+           "no_pixels", "score_depth", "true_twists", "score_motion", "flat_depth_note", "evaluate_files",
+           "candidate_parameters",
            "objective_preferences", "write_accuracy_csv", "main"]
 
 CSV_COLUMNS = ("method", "sequence", "abs_mean_m", "rmse_log", "abs_rel", "err_10m", "err_20m", "err_30m",
@@ -72,6 +74,18 @@ def load_model(checkpoint: str | Path) -> tuple[DepthPoseNet, dict]:
     Raises FileNotFoundError or :class:`learned.checkpoint.CheckpointError` (a ValueError) for a
     missing, foreign, crafted or inconsistent checkpoint (see :func:`learned.checkpoint.load_checkpoint`).
     """
+    model, config, _ = load_network(checkpoint)
+    return model, config
+
+
+def load_network(checkpoint: str | Path) -> tuple[DepthPoseNet, dict, dict | None]:
+    """The network of a checkpoint (eval mode), its config dict (validated) and its card: the JSON file beside it
+    (:func:`learned.pretrained.checkpoint_card`, ``student.json`` of the shipped ``student.pt``), else the record
+    of its training data that ``learned.train`` stores in the checkpoint (``"card"``: ``"size": [W, H]`` [px], ``"K":
+    [fx, fy, cx, cy]`` [px] when the training files share one focal length, ``"window_s"`` [s]), else None (a
+    checkpoint of an earlier version). Raises as :func:`load_model`."""
+    from learned.pretrained import checkpoint_card
+
     ckpt = load_checkpoint(checkpoint)
     stated = ckpt["config"].get("model")
     levels = stated.get("levels") if isinstance(stated, dict) else None
@@ -89,7 +103,10 @@ def load_model(checkpoint: str | Path) -> tuple[DepthPoseNet, dict]:
     except RuntimeError as error:  # missing / unexpected keys, shapes that do not match the config
         raise CheckpointError(f"{checkpoint}: the weights do not match its model config "
                               f"({' '.join(str(error).split())[:300]})") from None
-    return model.eval(), config.to_dict()
+    card = checkpoint_card(checkpoint)
+    if card is None and isinstance(ckpt.get("card"), dict):
+        card = ckpt["card"]
+    return model.eval(), config.to_dict(), card
 
 
 @torch.no_grad()
@@ -179,15 +196,18 @@ def window_masks(depth: np.ndarray, events: Events, far_m: float) -> tuple[np.nd
     return dense, dense & event_mask(events)
 
 
-def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) -> list[HeldOutWindow]:
-    """The windows (``window_us`` [µs] long, at least ``min_events`` events) of the file at ``path`` with ground
-    truth, centred on its depth times (:class:`learned.data.H5WindowDataset`,
-    no augmentation), with their masks. Raises a ValueError for a file without ``gt/`` or without a window."""
+def check_ground_truth(path: str | Path) -> None:
+    """Raise a ValueError naming the file at ``path`` when it is no h5 file or holds no ground truth to evaluate
+    against (``gt/depth`` and the ``gt/K`` it was made with); a FileNotFoundError when there is nothing at
+    ``path``. Cheap (the file's index only): :func:`evaluate_files` checks every file
+    with it before the network runs, so that a bad last file does not discard the others' metrics."""
     path = Path(path)
     try:
         with h5py.File(path, "r") as file:
             depth, K = "gt/depth" in file, "gt/K" in file
-    except OSError:   # missing (H5WindowDataset says so), or not an h5 file
+    except OSError:   # missing, or not an h5 file (a folder: H5WindowDataset names it)
+        if not path.exists():
+            raise FileNotFoundError(f"no such event file: {path}") from None
         if path.is_file():
             raise ValueError(f"{path} is not an HDF5 file: learned.evaluate scores the network against the ground "
                              f"truth (gt/depth, gt/K) of h5 files as cmax scene writes them; to predict depth on "
@@ -200,6 +220,14 @@ def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) 
     if not K:
         raise ValueError(f"{path} holds gt/depth but no gt/K, the intrinsics that depth was made with: add gt/K "
                          "(3x3, as cmax scene writes it) to evaluate against that depth")
+
+
+def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) -> list[HeldOutWindow]:
+    """The windows (``window_us`` [µs] long, at least ``min_events`` events) of the file at ``path`` with ground
+    truth, centred on its depth times (:class:`learned.data.H5WindowDataset`,
+    no augmentation), with their masks. Raises a ValueError for a file without ``gt/`` or without a window."""
+    path = Path(path)
+    check_ground_truth(path)
     dataset = H5WindowDataset([path], window_us=int(window_us), max_events=1000, min_events=min_events)
     if dataset._gt[0] is None:
         raise ValueError(f"{path} has no gt/: evaluation needs ground truth")
@@ -284,19 +312,41 @@ def no_valid_depth_note(windows: Sequence[HeldOutWindow]) -> str | None:
             "computed (NaN); gt/depth must hold z-depth in metres")
 
 
+def flat_depth_note(pred: np.ndarray, windows: Sequence[HeldOutWindow], metrics: DepthMetrics) -> str | None:
+    """A note when the predicted z-depths ``pred`` (N, H, W) [m] of ``windows`` score worse (abs_rel and rmse_log
+    both) on the dense mask than one constant depth, the median of ``pred`` itself there: the per-pixel structure of
+    the maps adds nothing to their overall scale (an untrained or collapsed network), which the metrics ``metrics``
+    (:func:`score_depth` of ``pred``) alone do not tell. The constant takes no ground truth; None otherwise."""
+    pred = np.asarray(pred)
+    masks = np.stack([w.dense for w in windows])
+    with np.errstate(invalid="ignore"):
+        values = pred[masks & np.isfinite(pred) & (pred > 0)]
+    if values.size == 0:
+        return None
+    level = float(np.median(values))
+    flat = score_depth(np.full(pred.shape, level, np.float32), windows, "dense")
+    if not (flat.abs_rel < metrics.abs_rel and flat.rmse_log < metrics.rmse_log):
+        return None
+    return (f"one constant depth, the median of the network's own depths ({level:.3g} m), scores abs_rel "
+            f"{flat.abs_rel:.3f} and rmse_log {flat.rmse_log:.3f}, better than the network's {metrics.abs_rel:.3f} "
+            f"and {metrics.rmse_log:.3f}: its depth maps carry nothing here beyond their overall scale (an untrained "
+            "or collapsed network?)")
+
+
 def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, window_s: float | None = None,
                    batch_size: int = 8) -> list[FileReport]:
     """Metrics of ``checkpoint`` on each of ``files`` (with ground truth), on the dense mask
     (:func:`held_out_windows`); windows of ``window_s`` [s] (None: the checkpoint config's ``data.window_us``),
     ``batch_size`` at a time."""
-    from learned.predict import camera_notes
-    from learned.pretrained import checkpoint_card
+    from learned.predict import camera_notes, window_note
 
-    model, config = load_model(checkpoint)
-    card = checkpoint_card(checkpoint)
+    model, config, card = load_network(checkpoint)   # first: a refused checkpoint is named before any file
+    for path in files:   # every file checked before the network runs on any
+        check_ground_truth(path)
     window_us = int(round(window_s * 1e6)) if window_s is not None else int(config["data"]["window_us"])
     if window_us < 1:
         raise ValueError(f"the window must be at least 1 µs long, got {window_s} s")
+    window = window_note(int(config["data"]["window_us"]), window_us)
     reports = []
     for path in map(Path, files):
         windows = held_out_windows(path, window_us)
@@ -310,9 +360,10 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
         metrics = score_depth(depth, windows, "dense")
         first = windows[0].sample
         notes = camera_notes(card, first.events.width, first.events.height, np.asarray(first.K, float),
-                             f"the card of {checkpoint}")
+                             f"the card of {checkpoint}") + ([window] if window else [])
         invalid = no_valid_depth_note(windows)
-        notes = [*notes, *([invalid] if invalid else [])]
+        flat = flat_depth_note(depth, windows, metrics)
+        notes = [*notes, *([invalid] if invalid else []), *([flat] if flat else [])]
         reports.append(FileReport(path.stem, metrics, score_motion(twist, windows), len(windows), tuple(notes)))
     return reports
 

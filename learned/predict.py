@@ -23,7 +23,9 @@ Intrinsics come from ``--K`` (with ``--distortion``, the events are undistorted 
 distortion, when it has one, undistorts the events first) or the file's own ``gt/K``. The network is fully
 convolutional and runs at any sensor size, but the depth it reads from the events' motion assumes the camera it
 was trained with: a sensor size or focal length unlike the one in the checkpoint's card
-(:mod:`learned.pretrained`) is noted once. The checkpoint defaults to the model shipped in the package.
+(:mod:`learned.pretrained`, or the card ``learned.train`` stores in its checkpoints:
+:func:`learned.evaluate.load_network`) is noted once, as is a window of another length than the checkpoint's
+(:func:`window_note`). The checkpoint defaults to the model shipped in the package.
 """
 from __future__ import annotations
 
@@ -49,6 +51,7 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
     from learned.model import DepthPoseNet, ModelConfig
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
+           "window_note",
            "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
            "window_picture", "write_window", "earlier_results", "FOLDER_LOCK", "DEFAULT_BATCH", "MAX_BATCH_BYTES",
            "batch_bytes", "batch_that_fits", "SUMMARY_UNITS",
@@ -243,6 +246,25 @@ def _card_numbers(card: dict, key: str, count: int, where: str) -> list[float] |
                        for v in values[:2])):
         raise ValueError(f"{where}: \"{key}\" must be a list of {count} numbers, got {values!r}")
     return [float(v) for v in values]
+
+
+def window_note(trained_us: int, window_us: int, tolerance: float = 0.05) -> str | None:
+    """A note for windows of ``window_us`` [µs] more than ``tolerance`` (a fraction) longer or shorter than the
+    ``trained_us`` [µs] the network was trained on (its config's ``data.window_us``); None otherwise. The network
+    reads depth and motion from the image motion over a window, which scales with its length, as with the focal
+    length (:func:`camera_notes`).
+
+    >>> window_note(166_500, 166_500) is None
+    True
+    >>> window_note(166_500, 50_000)[:60]
+    'the network was trained on windows of 166.5 ms, these are 50'
+    """
+    ratio = window_us / trained_us
+    if abs(ratio - 1.0) <= tolerance:
+        return None
+    return (f"the network was trained on windows of {trained_us * 1e-3:g} ms, these are {window_us * 1e-3:g} ms: the "
+            f"image motion over a window scales with its length ({ratio:.3g}x a training window's), and the depth "
+            f"and speed the network infers from it assume the trained length")
 
 
 def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, where: str = "the card") -> list[str]:
@@ -667,14 +689,13 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
 
     from cmax import viz
     from cmax.io.atomic import write_text_atomic
-    from learned.evaluate import load_model
-    from learned.pretrained import card_limits, checkpoint_card, shipped_checkpoint
+    from learned.evaluate import load_network
+    from learned.pretrained import card_limits, shipped_checkpoint
 
     started = time.perf_counter()
     checkpoint = Path(checkpoint) if checkpoint is not None else shipped_checkpoint()
-    model, config = load_model(checkpoint)   # first: a refused checkpoint writes nothing
+    model, config, card = load_network(checkpoint)   # first: a refused checkpoint writes nothing
     model = model.to(device)
-    card = checkpoint_card(checkpoint)
     explicit = window_s is not None
     window_us = int(config["data"]["window_us"]) if window_s is None else int(round(window_s * 1e6))
     if window_us < 1:
@@ -720,6 +741,8 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         start, end = time_bounds(recording.first_us, recording.last_us, t0_s, t1_s)
         window_us, starts, short = window_plan(start, end, window_us, explicit=explicit)
         notes += [short] if short else []
+        if (other := window_note(int(config["data"]["window_us"]), window_us)) is not None:
+            notes.append(other)
         for text in notes:
             note(text)
         lines, skipped, samples, indices = [_CSV_HEADER], 0, [], []

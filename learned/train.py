@@ -24,6 +24,7 @@ from __future__ import annotations
 
 import argparse
 import dataclasses
+import hashlib
 import json
 import os
 import sys
@@ -71,7 +72,8 @@ THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
-           "clear_earlier_run", "RESUMABLE",
+           "clear_earlier_run", "RESUMABLE", "file_fingerprint", "fingerprint_differences", "repeated_files",
+           "training_card", "schedule_note", "unread_settings",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
            "check_output", "main"]
 
@@ -199,6 +201,145 @@ def config_differences(recorded: Config, now: Config, recorded_paths: dict | Non
     before, after = _fields(recorded, recorded_paths), _fields(now, paths_now)
     return [f"{key}={json.dumps(before[key])} (now {json.dumps(after[key])})" for key in before
             if key not in RESUMABLE and before[key] != after.get(key)]
+
+
+#: Bytes read from each end of a data file for its :func:`file_fingerprint` (the whole of a smaller file).
+FINGERPRINT_BYTES = 1 << 16
+
+
+def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int]) -> dict[str, object]:
+    """What ``--resume`` compares of one data file at ``path``: ``{"bytes": size, "events": events, "span_us":
+    [first, last], "ends_sha256": ...}``, the file's size [bytes], its number of ``events`` and their time span
+    ``span_us`` (first, last) [µs] (as :class:`learned.data.H5WindowDataset` read them), and the SHA-256 of its first
+    and last :data:`FINGERPRINT_BYTES` (a data file may hold GBs: it is not read whole). Another recording copied
+    over the file changes them, its path and number of windows staying the same."""
+    path = Path(path)
+    size = path.stat().st_size
+    digest = hashlib.sha256()
+    with open(path, "rb") as file:
+        digest.update(file.read(FINGERPRINT_BYTES))
+        if size > FINGERPRINT_BYTES:
+            file.seek(max(FINGERPRINT_BYTES, size - FINGERPRINT_BYTES))
+            digest.update(file.read())
+    return {"bytes": int(size), "events": int(events), "span_us": [int(span_us[0]), int(span_us[1])],
+            "ends_sha256": digest.hexdigest()}
+
+
+def fingerprint_differences(recorded: object, now: list[dict[str, object]], names: list[str]) -> list[str]:
+    """``"data.files[i] NAME: events 6282 (now 8693), ..."`` for each data file (called ``names[i]``) whose
+    :func:`file_fingerprint` ``now`` differs from the ``recorded`` one (a checkpoint's ``data_order["files"]``);
+    empty when they agree or nothing (a checkpoint of an earlier version) or another number of files is recorded."""
+    if not isinstance(recorded, list) or len(recorded) != len(now):
+        return []
+    differ = []
+    for i, (before, after) in enumerate(zip(recorded, now)):
+        if not isinstance(before, dict):
+            continue
+        changed = [f"{key} {json.dumps(before.get(key))} (now {json.dumps(value)})" for key, value in after.items()
+                   if key != "ends_sha256" and before.get(key) != value]
+        if not changed and before.get("ends_sha256") != after["ends_sha256"]:
+            changed = ["its contents (the SHA-256 of its first and last 64 KiB)"]
+        if changed:
+            differ.append(f"data.files[{i}] {names[i]}: {', '.join(changed)}")
+    return differ
+
+
+def training_card(dataset: H5WindowDataset, window_us: int, tolerance: float = 0.05) -> dict[str, object]:
+    """The camera and window a network trained on ``dataset`` with windows of ``window_us`` [µs] learned from, as a
+    card (the keys of the shipped ``student.json``: ``"size": [W, H]`` [px], ``"K": [fx, fy, cx, cy]`` [px] of the
+    first file, ``"window_s"`` [s]); ``"K"`` is left out when the files' focal lengths differ by more than
+    ``tolerance`` (a fraction). Checkpoints store it, so that ``cmax depth`` and ``learned.evaluate`` note another
+    camera or window (:func:`learned.predict.camera_notes`, :func:`learned.predict.window_note`)."""
+    Ks = [np.asarray(gt["K"] if gt is not None else spec.K, float) for spec, gt in zip(dataset.specs, dataset._gt)
+          if gt is not None or spec.K is not None]
+    card: dict[str, object] = {"size": [int(dataset.width), int(dataset.height)]}
+    if Ks:
+        fx = np.array([[K[0, 0], K[1, 1]] for K in Ks])
+        if np.all(np.abs(fx / fx[0] - 1.0) <= tolerance):
+            K = Ks[0]
+            card["K"] = [float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2])]
+    card["window_s"] = window_us / 1_000_000
+    return card
+
+
+#: The settings of ``train`` that a mode does not read, and what reads them.
+UNREAD = {"teacher": {"teacher": "the teacher trains a fresh network on the ground truth; --mode finetune starts "
+                                 "from a checkpoint",
+                      "contrast_twist": "only finetune and student have a contrast term",
+                      "collapse_weight": "only finetune and student have a contrast term",
+                      "speed_weight": "only finetune and student have a speed term"},
+          "finetune": {"twist_weight": "only the teacher has a twist term",
+                       "si_variance_weight": "only the teacher has the scale-invariant term"},
+          "student": {"twist_weight": "only the teacher has a twist term",
+                      "si_variance_weight": "only the teacher has the scale-invariant term"}}
+
+
+def unread_settings(config: Config) -> list[str]:
+    """One sentence for each setting of ``config.train`` that its mode does not read (:data:`UNREAD`) and that is
+    set to other than its default (e.g. ``train.teacher`` of a ``--mode teacher`` run: a fresh network, not the one
+    the user named); empty when there is none.
+
+    >>> from learned.config import load_config
+    >>> unread_settings(load_config(None, ["train.teacher=t.pt"], mode="teacher"))[0][:56]
+    "train.teacher='t.pt' is not read by --mode teacher: the "
+    """
+    defaults = type(config.train)()
+    return [f"train.{key}={getattr(config.train, key)!r} is not read by --mode {config.mode}: {why}"
+            for key, why in UNREAD[config.mode].items() if getattr(config.train, key) != getattr(defaults, key)]
+
+
+def schedule_note(config: Config) -> str | None:
+    """A sentence for a ``config`` whose cosine schedule (``train.schedule``) has a warm-up (``train.warmup_steps``)
+    that lasts the whole run (``train.steps``): its learning rate only rises and the run ends at its peak, never decaying (the shipped
+    configs warm up over 30 steps: a short trial run of theirs); None otherwise.
+
+    >>> from learned.config import load_config
+    >>> schedule_note(load_config(None, ["train.schedule=cosine", "train.warmup_steps=10", "train.steps=100"]))
+    >>> schedule_note(load_config(None, ["train.schedule=cosine", "train.warmup_steps=30", "train.steps=20"]))[:54]
+    'train.warmup_steps=30 is not shorter than train.steps='
+    """
+    tc = config.train
+    if tc.schedule != "cosine" or tc.steps == 0 or tc.warmup_steps < tc.steps:
+        return None
+    return (f"train.warmup_steps={tc.warmup_steps} is not shorter than train.steps={tc.steps}: the whole run is the "
+            f"cosine schedule's linear warm-up, its learning rate rising to {learning_rate(tc.steps - 1, config):.3g} "
+            f"at the last step and never decaying; give fewer train.warmup_steps (a tenth of the steps, say) or "
+            f"train.schedule=constant")
+
+
+def _entry_path(entry: object) -> Path:
+    return Path(entry["path"] if isinstance(entry, dict) else entry)
+
+
+def _file_key(entry: object) -> tuple[int, int] | None:
+    """``(device, inode)`` of the file a data entry names (one file under any spelling), None when it is missing."""
+    try:
+        status = os.stat(_entry_path(entry))
+    except OSError:   # missing: the dataset names it
+        return None
+    return status.st_dev, status.st_ino
+
+
+def repeated_files(files: tuple, val_files: tuple) -> list[str]:
+    """Why the data files ``files`` (``data.files``) and ``val_files`` (``data.val_files``) are not what they say,
+    one sentence each: a training file given twice (its windows weigh twice), and a validation file that is one
+    of the training files (its loss is measured on windows the network trains on: no held-out learning curve).
+    Files are compared as files (``a.h5`` and ``./a.h5`` are one); empty when there is nothing to say."""
+    said, first_of = [], {}
+    for j, entry in enumerate(files):
+        key = _file_key(entry)
+        if key is not None and key in first_of:
+            said.append(f"data.files[{j}] {_entry_path(entry)} is data.files[{first_of[key]}]: its windows are drawn "
+                        "twice as often as the other files'")
+        elif key is not None:
+            first_of[key] = j
+    for j, entry in enumerate(val_files):
+        key = _file_key(entry)
+        if key is not None and key in first_of:
+            said.append(f"data.val_files[{j}] {_entry_path(entry)} is data.files[{first_of[key]}], a training file: "
+                        "its validation loss is measured on windows the network trains on, not held-out ones "
+                        "(give files that are not in data.files)")
+    return said
 
 
 class TrainingDiverged(ValueError):
@@ -456,13 +597,20 @@ class Trainer:
         torch.manual_seed(tc.seed)
         self.model = DepthPoseNet(config.model).to(self.device)
         self.teacher = None
+        teacher_window = None
         # what the teacher file holds, so that --resume notices one replaced under the same path
         self.teacher_sha256 = (file_sha256(tc.teacher) if tc.teacher and config.mode != "teacher"
                                and Path(tc.teacher).is_file() else "")
         if config.mode in ("finetune", "student"):
             from learned.evaluate import load_model
 
-            teacher, _ = load_model(tc.teacher)
+            from learned.predict import window_note
+
+            teacher, teacher_config = load_model(tc.teacher)
+            trained_us = int(teacher_config["data"]["window_us"])
+            if (other := window_note(trained_us, config.data.window_us)) is not None:   # said once the run is checked
+                teacher_window = (f"train.teacher {tc.teacher}: {other}; data.window_us={trained_us} trains on the "
+                                  "teacher's windows")
             if config.mode == "finetune":
                 _load_weights(self.model, teacher.state_dict(), f"the teacher {tc.teacher}")
             else:
@@ -502,12 +650,22 @@ class Trainer:
             raise ValueError("--mode teacher learns from ground-truth depth (gt/depth, as cmax scene writes it) and "
                              "none of data.files holds it (or each says use_gt: false): its loss would be 0 at every "
                              "step; give labelled files, or train --mode finetune / student on unlabelled ones")
+        self.fingerprints = [file_fingerprint(spec.path, count, span) for spec, count, span
+                             in zip(self.dataset.specs, self.dataset.counts, self.dataset.spans)]
         if ckpt is not None:
             self._check_data_order(ckpt.get("data_order"))
+            self._check_data_files(ckpt.get("data_order"))
             self._check_teacher(ckpt.get("data_order"))
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model).to(self.device)
         self.validation = None
+        if self.rank == 0:
+            for sentence in repeated_files(dc.files, dc.val_files if tc.val_every else ()):
+                warnings.warn(sentence, stacklevel=2)
+            if (sentence := schedule_note(config)) is not None:
+                warnings.warn(sentence, stacklevel=2)
+            for sentence in unread_settings(config) + ([teacher_window] if teacher_window else []):
+                warnings.warn(sentence, stacklevel=2)
         if tc.val_every:
             val = H5WindowDataset(dc.val_files, window_us=dc.window_us, max_events=dc.max_events,
                                   bins=config.model.bins, augment=False, seed=tc.seed)
@@ -536,8 +694,11 @@ class Trainer:
                                       and len(paths["data.files"]) == len(recorded.data.files)):
             raise CheckpointError(f"{path}: its data_order.paths is not valid: {paths!r}")
         differ = config_differences(recorded, self.config, paths)
-        if not differ and recorded.train.schedule == "cosine" and recorded.train.steps != self.config.train.steps:
-            step = int(ckpt.get("step", 0))
+        step = int(ckpt.get("step", 0))
+        # a raised train.steps stretches a cosine schedule; a run stopped in its warm-up ran every step at the
+        # rate the longer schedule gives it: resuming that run is the longer run, bit for bit
+        if (not differ and recorded.train.schedule == "cosine" and recorded.train.steps != self.config.train.steps
+                and any(learning_rate(k, recorded) != learning_rate(k, self.config) for k in range(step))):
             raise ValueError(f"--resume: {path}'s cosine schedule spans train.steps={recorded.train.steps}; "
                              f"train.steps={self.config.train.steps} would move the learning rate of the steps "
                              f"still to run (step {step}: {learning_rate(step, self.config):.3g}, not "
@@ -557,6 +718,17 @@ class Trainer:
                              f"{self.out / 'last.pt'} was trained with (its contents changed since): the resumed steps "
                              "would learn from another teacher; restore it, or start afresh with --overwrite or "
                              "another train.out")
+
+    def _check_data_files(self, order: object) -> None:
+        """Refuse to resume when a data file is not the one the checkpoint was trained on (its
+        :func:`file_fingerprint` in ``data_order["files"]``; checkpoints of earlier versions store none): another
+        recording copied over it keeps its path and may keep its number of windows."""
+        differ = fingerprint_differences(order.get("files") if isinstance(order, dict) else None, self.fingerprints,
+                                         [str(spec.path) for spec in self.dataset.specs])
+        if differ:
+            raise ValueError(f"--resume: {self.out / 'last.pt'} was trained on other data files than the ones at "
+                             f"these paths now: {'; '.join(differ)}: the resumed steps would learn from other "
+                             "events; restore the files, or start afresh with --overwrite or another train.out")
 
     def _check_data_order(self, order: object) -> None:
         """Refuse to resume when the checkpoint's ``data_order`` (seed, batch size, windows in the data set) is not
@@ -714,7 +886,8 @@ class Trainer:
                    "config": self.config.to_dict(), "rng": rng_state(),
                    "data_order": {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
                                   "dataset_size": len(self.dataset), "paths": resolved_paths(self.config),
-                                  "teacher_sha256": self.teacher_sha256}}
+                                  "teacher_sha256": self.teacher_sha256, "files": self.fingerprints},
+                   "card": training_card(self.dataset, self.config.data.window_us)}
         written = save_checkpoint(self.out / "last.pt", payload)
         self.saved_step = self.step
         return written

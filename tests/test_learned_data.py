@@ -416,3 +416,49 @@ def test_mvsec_dataset_reads_one_depth_map_per_window_not_the_whole_file(tmp_pat
             np.testing.assert_allclose(item["inverse_depth"][0].numpy()[mask], 1.0 / depth[7][mask], rtol=1e-6)
         else:                                                       # consecutive windows over the events' span
             assert len(ds) == len(np.arange(round(t[0] * 1e6) + 25_000, round(t[-1] * 1e6) - 25_000, 50_000))
+
+
+def test_a_folder_in_data_files_is_named_as_a_folder_with_its_h5_files(scene_file, tmp_path):
+    """The output folder of `cmax simulate FOLDER -o OUT` given as a data file was refused as 'no such event file:
+    OUT', of a folder that exists. It is named as a folder, with the .h5 files in it to list instead."""
+    import shutil
+
+    path, _, _ = scene_file
+    folder = tmp_path / "converted"
+    folder.mkdir()
+    with pytest.raises(ValueError, match=r"converted is a folder, not an event file: .* \(it holds no \.h5 file\)"):
+        H5WindowDataset([folder], window_us=100_000)
+    shutil.copyfile(path, folder / "a.h5")
+    with pytest.raises(ValueError, match=r"converted is a folder, not an event file: data.files lists h5 files one "
+                                         r"by one: the 1 \.h5 files in it are data.files=\[\".*converted/a.h5\"\]"):
+        H5WindowDataset([{"path": str(folder), "K": [40.0, 40.0, 23.5, 17.5]}], window_us=100_000)
+    assert len(H5WindowDataset([folder / "a.h5"], window_us=100_000)) > 0
+
+
+def test_mvsec_dataset_refuses_a_gt_file_of_another_sequence_and_checks_K(tmp_path):
+    """MVSECDataset with the gt file of another sequence (its depth times 100 s after the events) was built, then
+    failed at its first window with 'the window [...) µs holds 0 events; need >= 2'; a K of another sensor
+    (principal point off the 346x260 sensor) was taken without a word, and [fx, fy, cx, cy] was refused."""
+    import h5py
+
+    from learned.data import MVSECDataset
+
+    rng = np.random.default_rng(0)
+    n = 2000
+    t = np.sort(rng.uniform(100.0, 100.5, n))
+    with h5py.File(tmp_path / "x_data.hdf5", "w") as f:
+        f["davis/left/events"] = np.column_stack([rng.integers(0, 346, n), rng.integers(0, 260, n), t,
+                                                  rng.choice([-1.0, 1.0], n)])
+    for name, times in (("other_gt.hdf5", [200.2, 200.3]), ("x_gt.hdf5", [100.2, 100.3])):
+        with h5py.File(tmp_path / name, "w") as f:
+            f["davis/left/depth_image_rect"] = np.full((2, 260, 346), 3.0, np.float32)
+            f["davis/left/depth_image_rect_ts"] = np.array(times)
+    K = [226.0, 226.0, 173.0, 130.0]
+    with pytest.raises(ValueError, match=r"other_gt.hdf5: none of its 2 depth times \(200.200000 to 200.300000 s\) "
+                                         r"lies within the events of .*x_data.hdf5 \(100.0\d+ to 100.4\d+ s\)"):
+        MVSECDataset(tmp_path / "x_data.hdf5", K, gt_file=tmp_path / "other_gt.hdf5", window_us=100_000)
+    with pytest.raises(ValueError, match=r"K's principal point \(640, 360\) lies outside the 346x260 image"):
+        MVSECDataset(tmp_path / "x_data.hdf5", [900.0, 900.0, 640.0, 360.0], gt_file=tmp_path / "x_gt.hdf5")
+    ds = MVSECDataset(tmp_path / "x_data.hdf5", K, gt_file=tmp_path / "x_gt.hdf5", window_us=100_000)
+    np.testing.assert_array_equal(ds.K, [[226, 0, 173], [0, 226, 130], [0, 0, 1]])
+    assert len(ds) == 2 and int(ds[0]["valid"].sum()) > 100

@@ -285,3 +285,51 @@ def test_a_network_output_that_overflows_is_one_error_naming_the_checkpoint(tmp_
     with pytest.raises(ValueError, match=r"huge\.pt gives a non-finite output \(NaN or infinite depth or twist\) on "
                                          r"\d of the 2 windows of .*plane\.h5"):
         evaluate_files(tmp_path / "huge.pt", [path], window_s=WINDOW_S)
+
+
+def test_every_file_is_checked_before_the_network_runs(tmp_path, monkeypatch, capsys):
+    """learned.evaluate --data a.h5 b.h5 bare.h5 ran the network over every window of a.h5 and b.h5 (minutes on a
+    test set), then refused bare.h5 (no ground truth) and exited 2: the metrics computed were never printed. Each
+    file's ground truth is now checked first, and nothing runs when one lacks it."""
+    import learned.evaluate as evaluate
+    from cmax.io import write_h5
+
+    path, events = plane_file(tmp_path / "plane.h5")
+    bare = write_h5(tmp_path / "bare.h5", events)          # the same events, no gt/
+    ckpt = constant_checkpoint(tmp_path / "c.pt", PLANE_M, TRUE_TWIST)
+    ran = []
+    real = evaluate.predict_windows
+    monkeypatch.setattr(evaluate, "predict_windows", lambda *a, **k: ran.append(1) or real(*a, **k))
+    status = evaluate.main(["--checkpoint", str(ckpt), "--data", str(path), str(bare), "--window", str(WINDOW_S)])
+    err = capsys.readouterr().err
+    assert status == 2 and f"{bare} has no gt/K nor gt/depth" in err and err.count("\n") == 1, err
+    assert ran == []                                        # refused before the network ran on plane.h5
+    status = evaluate.main(["--checkpoint", str(ckpt), "--data", str(path), str(tmp_path / "gone.h5")])
+    assert status == 2 and f"no such event file: {tmp_path / 'gone.h5'}" in capsys.readouterr().err and ran == []
+    assert evaluate.main(["--checkpoint", str(ckpt), "--data", str(path), "--window", str(WINDOW_S)]) == 0
+    assert ran == [1] and capsys.readouterr().out.startswith("plane: 2 windows")
+
+
+def test_depth_maps_no_better_than_their_own_median_constant_are_noted(tmp_path, monkeypatch):
+    """A network whose depth maps score worse than one constant depth printed its metrics without a word (the
+    shipped student on a slider scene: abs_rel 2.93, the constant at its own median 1.86): nothing told a trained
+    network from an untrained one. A note compares the maps with the constant at their own median (no ground
+    truth in it); maps that follow the truth (here a constant: a plane) stay silent."""
+    import learned.evaluate as evaluate
+
+    path, _ = plane_file(tmp_path / "plane.h5")
+    ckpt = constant_checkpoint(tmp_path / "c.pt", PLANE_M, TRUE_TWIST)
+    real = evaluate.predict_windows
+
+    def checkerboard(*args, **kwargs):     # 2 m and 4.5 m about the true 3 m: abs_rel 0.42, its median 0.08
+        depth, twist = real(*args, **kwargs)
+        rows, cols = np.indices(depth.shape[1:])
+        return np.where((rows + cols) % 2 == 0, 2.0, 4.5).astype(np.float32)[None].repeat(len(depth), 0), twist
+
+    (plain,) = evaluate.evaluate_files(ckpt, [path], window_s=WINDOW_S)
+    assert plain.depth.abs_rel == pytest.approx(0, abs=1e-4) and not any("constant" in n for n in plain.notes)
+    monkeypatch.setattr(evaluate, "predict_windows", checkerboard)
+    (board,) = evaluate.evaluate_files(ckpt, [path], window_s=WINDOW_S)
+    assert board.depth.abs_rel == pytest.approx((1 / 3 + 1.5 / 3) / 2, rel=0.05)
+    notes = [n for n in board.notes if n.startswith("one constant depth, the median of the network's own depths")]
+    assert len(notes) == 1 and f"better than the network's {board.depth.abs_rel:.3f}" in notes[0], board.notes

@@ -791,3 +791,189 @@ def test_resume_refuses_a_teacher_replaced_under_the_same_path(scene_file, tmp_p
     assert status == 2 and f"train.teacher {path} is not the file" in err and "contents changed" in err, err
     shutil.copyfile(teacher / "last.pt", path)      # restored: resumes
     assert main([*student, "--resume", *tiny(scene_file, tmp_path / "s", "train.steps=2", f"train.teacher={path}")]) == 0
+
+
+def test_resume_refuses_a_data_file_replaced_by_another_recording_of_as_many_windows(scene_file, tmp_path, capsys):
+    """--resume compared only the number of windows of data.files: another recording copied over a data file,
+    as long and so with as many windows, was trained on without a word (exit 0). The checkpoint records each
+    file's size, events, time span and the SHA-256 of its ends: refused in one line naming the file."""
+    import h5py
+
+    from cmax.io import H5Reader, write_h5
+    from conftest import one_line_error
+    from learned.data import H5WindowDataset
+
+    data, other = tmp_path / "data.h5", tmp_path / "other.h5"
+    shutil.copyfile(scene_file, data)
+    with H5Reader(scene_file) as reader:     # the same times, the image mirrored: another recording
+        ev = reader.window(reader.t_start, reader.t_end + 1)
+    from cmax.events import Events
+    write_h5(other, Events(ev.width - 1 - ev.x.astype(np.int64), ev.y, ev.t, ev.p, ev.width, ev.height))
+    with h5py.File(scene_file, "r") as source, h5py.File(other, "a") as target:
+        source.copy("gt", target)
+    assert len(H5WindowDataset([data], window_us=100_000)) == len(H5WindowDataset([other], window_us=100_000))
+    out = tmp_path / "run"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(data, out, "train.steps=2")]) == 0
+    capsys.readouterr()
+    shutil.copyfile(other, data)
+    resume = ["--mode", "teacher", "--no-progress", "--resume", *tiny(data, out, "train.steps=4")]
+    status, err = one_line_error(lambda: main(resume), capsys)
+    assert status == 2 and "was trained on other data files" in err and f"data.files[0] {data}: " in err, err
+    assert load_checkpoint(out / "last.pt")["step"] == 2
+    shutil.copyfile(scene_file, data)        # the file restored (a copy: the same bytes): resumes
+    assert main(resume) == 0
+    assert load_checkpoint(out / "last.pt")["step"] == 4
+    # the same size, events and span, other bytes at an end: named by the SHA-256 of the ends
+    from learned.train import file_fingerprint, fingerprint_differences
+
+    a, b = tmp_path / "a.bin", tmp_path / "b.bin"
+    a.write_bytes(b"x" * 200_000)
+    b.write_bytes(b"y" + b"x" * 199_999)
+    said = fingerprint_differences([file_fingerprint(a, 10, (0, 5))], [file_fingerprint(b, 10, (0, 5))], ["b.bin"])
+    assert said == ["data.files[0] b.bin: its contents (the SHA-256 of its first and last 64 KiB)"], said
+
+
+def test_a_validation_file_that_is_a_training_file_is_named(scene_file, slider_file, tmp_path, monkeypatch):
+    """data.val_files holding a file of data.files gave a "held-out" learning curve measured on training windows,
+    and a file given twice in data.files weighed twice, both without a word. Each is a warning naming the files
+    (compared as files: ./a.h5 is a.h5); held-out validation files stay silent."""
+    import warnings
+
+    from learned.train import repeated_files
+
+    monkeypatch.chdir(scene_file.parent)
+    name = scene_file.name
+    said = repeated_files((name, f"./{name}"), ({"path": str(slider_file)}, str(scene_file)))
+    assert len(said) == 2, said
+    assert said[0].startswith(f"data.files[1] {name} is data.files[0]"), said
+    assert said[1].startswith(f"data.val_files[1] {scene_file} is data.files[0], a training file"), said
+    assert repeated_files((name,), (str(slider_file), "missing.h5")) == []
+    config = load_config(None, tiny(scene_file, tmp_path / "run", "train.steps=1", "train.val_every=1",
+                                    f'data.val_files=["{scene_file}"]'), mode="teacher")
+    with pytest.warns(UserWarning, match=r"data.val_files\[0\] .* is data.files\[0\], a training file"):
+        Trainer(config, progress=False)
+    config = load_config(None, tiny(scene_file, tmp_path / "run2", "train.steps=1", "train.val_every=1",
+                                    f'data.val_files=["{slider_file}"]'), mode="teacher")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Trainer(config, progress=False)
+
+
+def test_a_trained_checkpoint_records_its_camera_and_window_for_the_notes_of_depth_and_evaluate(
+        scene_file, slider_file, tmp_path, capsys):
+    """cmax depth and learned.evaluate noted another sensor size or focal length only from a card beside the
+    shipped checkpoint: a network the user trained (its last.pt) on a 48x36 camera ran on another camera without a
+    word, and no checkpoint's window length was compared with --window. learned.train now records the training
+    camera and window in the checkpoint ("card"), and both commands note a camera or a window that differ."""
+    import json
+
+    from learned.evaluate import main as evaluate
+    from learned.predict import main as predict
+
+    out = tmp_path / "run"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=1")]) == 0
+    card = load_checkpoint(out / "last.pt")["card"]
+    import h5py
+    with h5py.File(scene_file, "r") as f:
+        K = f["gt/K"][:]
+    assert card["size"] == [48, 36] and card["window_s"] == pytest.approx(0.1)
+    assert card["K"] == pytest.approx([K[0, 0], K[1, 1], K[0, 2], K[1, 2]])
+    capsys.readouterr()
+    base = ["--checkpoint", str(out / "last.pt"), "--quiet"]
+    assert predict([str(scene_file), "-o", str(tmp_path / "same"), *base]) == 0     # its own camera and window
+    err = capsys.readouterr().err
+    assert "the network was trained" not in err and "focal length" not in err, err
+    fx = 2 * K[0, 0]   # another camera: the slider file (64x48) with twice the focal length
+    assert predict([str(slider_file), "-o", str(tmp_path / "other"), *base, "--K", f"{fx},{fx},31.5,23.5"]) == 0
+    err = capsys.readouterr().err
+    assert "the network was trained on a 48x36 sensor, this file is 64x48" in err, err
+    assert f"the network was trained at {K[0, 0]:.1f} px" in err and "predicted x 2" in err, err
+    assert predict([str(scene_file), "-o", str(tmp_path / "short"), *base, "--window", "0.05"]) == 0
+    err = capsys.readouterr().err
+    assert "the network was trained on windows of 100 ms, these are 50 ms" in err, err
+    assert json.loads((tmp_path / "short" / "summary.json").read_text())["window_us"] == 50_000
+    assert evaluate(["--checkpoint", str(out / "last.pt"), "--data", str(scene_file), "--window", "0.05"]) == 0
+    assert "trained on windows of 100 ms, these are 50 ms" in capsys.readouterr().err
+
+
+def test_a_cosine_warm_up_as_long_as_the_run_is_named(scene_file, tmp_path):
+    """A short run of a shipped config (warm-up 30 steps, train.steps=20) rose in learning rate at every step and
+    ended at its peak, schedule = "cosine" notwithstanding, without a word. A warning names both settings."""
+    import warnings
+
+    config = load_config(None, tiny(scene_file, tmp_path / "a", "train.steps=3", "train.schedule=cosine",
+                                    "train.warmup_steps=3"), mode="teacher")
+    assert [learning_rate(s, config) for s in range(3)] == pytest.approx([1e-3, 2e-3, 3e-3])   # only rising
+    with pytest.warns(UserWarning, match=r"train.warmup_steps=3 is not shorter than train.steps=3: .* rising to "
+                                         r"0.003 at the last step"):
+        Trainer(config, progress=False)
+    config = load_config(None, tiny(scene_file, tmp_path / "b", "train.steps=3", "train.schedule=cosine",
+                                    "train.warmup_steps=1"), mode="teacher")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Trainer(config, progress=False)
+
+
+@pytest.mark.parametrize("mode", ["teacher", "finetune", "student"])
+def test_settings_the_mode_does_not_read_are_named(scene_file, tmp_path, mode):
+    """--mode teacher train.teacher=runs/t/last.pt trained a fresh network (the checkpoint, even a missing file,
+    never read), and train.speed_weight / collapse_weight / contrast_twist of a teacher, twist_weight of a student,
+    changed nothing, all without a word. Each is a warning naming the key; the shipped configs raise none."""
+    import warnings
+
+    from learned.train import unread_settings
+
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        shipped = load_config(ROOT / "learned" / "configs" / f"{mode}.toml", [f'data.files=["{scene_file}"]',
+                                                                          "train.val_every=0"])
+    assert unread_settings(shipped) == []
+    if mode == "teacher":
+        config = load_config(None, tiny(scene_file, tmp_path / "t", "train.steps=1", "train.teacher=missing.pt",
+                                        "train.speed_weight=5", "train.contrast_twist=truth"), mode="teacher")
+        with pytest.warns(UserWarning) as said:
+            Trainer(config, progress=False)
+        text = [str(w.message) for w in said]
+        assert any(t.startswith("train.teacher='missing.pt' is not read by --mode teacher") for t in text), text
+        assert any(t.startswith("train.speed_weight=5 is not read by --mode teacher") for t in text), text
+        assert any(t.startswith("train.contrast_twist='truth' is not read by --mode teacher") for t in text), text
+    else:
+        config = load_config(None, ["train.teacher=t.pt", "train.twist_weight=3"], mode=mode)
+        assert [t[:45] for t in unread_settings(config)] == [f"train.twist_weight=3 is not read by --mode {mode}"[:45]]
+
+
+def test_a_run_stopped_in_its_warm_up_resumes_with_a_raised_train_steps(scene_file, tmp_path, capsys):
+    """--resume with a raised train.steps of a cosine run stopped in its warm-up was refused with the reason
+    'step 2: 0.00225, not 0.00225': every step it ran had the rate the longer schedule gives it (the warm-up does
+    not depend on train.steps). It resumes, and equals a run of the longer schedule from the start."""
+    out, whole = tmp_path / "run", tmp_path / "whole"
+    cosine = ("train.schedule=cosine", "train.warmup_steps=4")
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=2", *cosine)]) == 0
+    assert main(["--mode", "teacher", "--no-progress", "--resume", *tiny(scene_file, out, "train.steps=6", *cosine)]) == 0
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, whole, "train.steps=6", *cosine)]) == 0
+    capsys.readouterr()
+    resumed, fresh = params(out / "last.pt"), params(whole / "last.pt")
+    assert load_checkpoint(out / "last.pt")["step"] == 6
+    for name, tensor in fresh.items():
+        torch.testing.assert_close(resumed[name], tensor, rtol=0, atol=0)
+
+
+def test_a_student_on_windows_of_another_length_than_its_teacher_s_is_named(scene_file, tmp_path):
+    """A student (or finetune) with data.window_us=50000 under a teacher trained on 100 ms windows: the frozen
+    teacher read volumes of half the image motion it was trained on, its inverse depth the student's target,
+    without a word. A warning names the teacher and both lengths; equal windows stay silent."""
+    import warnings
+
+    teacher = tmp_path / "t"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, teacher, "train.steps=1")]) == 0
+    for mode in ("student", "finetune"):
+        config = load_config(None, tiny(scene_file, tmp_path / f"{mode}50", "train.steps=1", "data.window_us=50000",
+                                        f"train.teacher={teacher / 'last.pt'}"), mode=mode)
+        with pytest.warns(UserWarning, match=r"train.teacher .*last.pt: the network was trained on windows of 100 ms, "
+                                             r"these are 50 ms: .*; data.window_us=100000 trains on the teacher's"):
+            Trainer(config, progress=False)
+    config = load_config(None, tiny(scene_file, tmp_path / "same", "train.steps=1",
+                                    f"train.teacher={teacher / 'last.pt'}"), mode="student")
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        Trainer(config, progress=False)
