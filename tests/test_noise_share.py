@@ -56,6 +56,17 @@ def test_noise_share_follows_the_injected_noise(rate_hz):
     assert abs(share - n / len(noisy)) < 0.08                  # the true share: 0.09, 0.24, 0.39
 
 
+@pytest.mark.parametrize("rate_hz", [0.3, 2.0, 30.0])
+def test_a_subset_of_tested_events_estimates_the_share_of_all(rate_hz):
+    """``max_queries`` tests a seeded subset of the events against all of them: the share stays that of testing
+    every event (a binomial estimate of the isolated count: 2,000 of about 7,000-35,000 events)."""
+    noisy, _ = _with_noise(_points(0), rate_hz, 1)
+    every = noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, max_queries=None)
+    subset = noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, max_queries=2_000)
+    assert len(noisy) > 3 * 2_000 and abs(subset - every) < 0.05, (subset, every)
+    assert noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, max_queries=len(noisy)) == every
+
+
 @pytest.mark.parametrize("duration_us", [100_000, 20_000])
 def test_heavy_noise_is_not_read_as_clean(duration_us):
     """Was (during this change): noise so dense that few of its events lie alone read as 1-9% noise (the isolated

@@ -482,7 +482,8 @@ def fit(
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         on_bound = _on_bound(w, result, low, pose_known=pose is not None)
         noise = (noise_share(events.x, events.y, events.t, events.width, events.height,
-                             settings.quality.noise_window_us) if model == "se3" else None)
+                             settings.quality.noise_window_us, max_queries=settings.max_events)
+                 if model == "se3" else None)
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
                                                   hold_omega=known_omega is not None, speed=scale,
                                                   given=len(events), rate=rate, on_bound=on_bound,

@@ -530,9 +530,12 @@ def _neighbours(keys: np.ndarray, x: np.ndarray, y: np.ndarray, query: np.ndarra
 
 
 def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int, window_us: int,
-                radius: int = 1) -> float:
+                radius: int = 1, max_queries: int | None = 60_000) -> float:
     """Estimated share of uniform background-activity (shot) noise among the window's events ``x, y, t`` (N,)
-    [px, px, µs] on a ``width`` x ``height`` image, in [0, 1].
+    [px, px, µs] on a ``width`` x ``height`` image, in [0, 1]. ``max_queries``: at most this many events (a seeded
+    uniform subset; None: all) are tested for neighbours, each against all N events, and the isolated counts are
+    scaled by N over their number (an unbiased estimate: the test of one event does not depend on which others
+    are tested), so a window of millions of events costs one sort and that many searches.
 
     Noise of ``r`` Hz per pixel, uniform in space and time, leaves an event without a neighbour
     (:func:`isolated_events`) with probability ``exp(-r V)``, ``V = (2 radius + 1)^2 * 2 window_us`` [px s]
@@ -566,15 +569,20 @@ def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height:
     span_s = float(np.mean(np.minimum(t + window_us, t.max()) - np.maximum(t - window_us, t.min()))) * 1e-6
     near, far = (2 * radius + 1) ** 2 * span_s, (2 * radius + 3) ** 2 * span_s    # px s: cut by the window's ends
     xs, ys, keys, _, key_span = _sorted_events(x, y, t, width, window_us)
-    alone = _neighbours(keys, xs, ys, keys, width, height, window_us, radius, key_span) <= 1
-    m = np.count_nonzero(alone) / area_s
+    tested = np.arange(keys.size)
+    if max_queries is not None and keys.size > max_queries:
+        tested = np.sort(np.random.default_rng(0).choice(keys.size, max_queries, replace=False))
+    scale = keys.size / tested.size                                          # N over the tested events
+    alone = _neighbours(keys, xs[tested], ys[tested], keys[tested], width, height, window_us, radius, key_span) <= 1
+    tested = tested[alone]
+    m = np.count_nonzero(alone) * scale / area_s
     if m * near >= math.exp(-1):
         rate = 1.0 / near
     else:
         low, high = (float(-lambertw(-m * near, k).real) / near for k in (0, -1))
-        far_alone = _neighbours(keys, xs[alone], ys[alone], keys[alone], width, height, window_us, radius + 1,
+        far_alone = _neighbours(keys, xs[tested], ys[tested], keys[tested], width, height, window_us, radius + 1,
                                 key_span) <= 1            # alone in the wider square: alone in the narrow one too
-        m_far = max(np.count_nonzero(far_alone), 1) / area_s
+        m_far = max(np.count_nonzero(far_alone) * scale, 1) / area_s
         rate = min((low, high), key=lambda r: abs(math.log(max(r * math.exp(-r * far), 1e-300) / m_far)))
     return float(min(1.0, rate * width * height * duration_s / t.size))
 
