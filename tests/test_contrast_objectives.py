@@ -112,9 +112,11 @@ def test_plane_vote_without_motion_is_minus_one_for_any_depth():
             assert float(objective(batch, DepthMotion(rho, still))[0]) == pytest.approx(-1.0, rel=1e-12)
 
 
-def test_plane_vote_with_motion_fixes_the_planes_and_gives_the_same_values():
+@pytest.mark.parametrize("cross_fit", [None, CrossFit("random"), CrossFit("leave_one_out")],
+                         ids=["plain", "halves", "loo"])
+def test_plane_vote_with_motion_fixes_the_planes_and_gives_the_same_values(cross_fit):
     batch, params = _tiny()
-    objective = PlaneVote(rho_range=(0.2, 1.0), planes=6, smoothness=0.01)
+    objective = PlaneVote(rho_range=(0.2, 1.0), planes=6, smoothness=0.01, cross_fit=cross_fit)
     fixed = objective.with_motion(batch, params.twist)
     assert fixed.values[0].shape == (6, len(batch)) and not fixed.values[0].requires_grad
     torch.testing.assert_close(fixed(batch, params), objective(batch, params))
@@ -409,3 +411,14 @@ def test_cross_fit_random_deal_is_seeded_and_balanced(windows):
     for k in range(2):
         share = float(first[batch.window == k].double().mean())
         assert 0.45 < share < 0.55
+
+
+def test_sweep_vote_with_motion_keeps_its_cross_fit():
+    """The sweep vote's fixed normaliser (what the identifiability benchmark's depth-only descent uses) gives the
+    cross-fitted objective's own values, not the plain one's."""
+    batch, params = _tiny()
+    objective = SweepVote(rho_range=(0.2, 1.0), candidates=6, cross_fit=CrossFit("leave_one_out"))
+    fixed = objective.with_motion(batch, params.twist)
+    torch.testing.assert_close(fixed(batch, params), objective(batch, params))
+    plain = SweepVote(rho_range=(0.2, 1.0), candidates=6)
+    assert abs(float(fixed(batch, params)[0]) - float(plain(batch, params)[0])) > 1e-3
