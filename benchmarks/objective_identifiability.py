@@ -53,7 +53,7 @@ import numpy as np
 import torch
 
 from benchmarks.accuracy_cmax import cached, parse_seeds, preset_depth_range, with_truth
-from cmax.contrast import (AverageTimestamp, CollapseGuard, DepthMotion, EventWindows, GlobalContrast,
+from cmax.contrast import (AverageTimestamp, CollapseGuard, CrossFit, DepthMotion, EventWindows, GlobalContrast,
                            LocalContrast, PlaneVote, SweepVote, WeightedSum)
 from cmax.fitting import FitSettings, fit
 from cmax.fitting.api import event_pixels
@@ -85,6 +85,12 @@ WORSE_BY = 0.05
 PLANE_VOTE_WEIGHTS = (0.5,)
 
 
+#: Cross-fitted variants of the read-at-event objectives (``<objective>_<split>``; :class:`cmax.contrast.CrossFit`):
+#: ``halves``, two random folds (seed 0); ``loo``, each event's own vote left out; ``pixels``, a one-pixel
+#: checkerboard (the events of one pixel never read each other).
+CROSS_FITS = {"halves": CrossFit("random"), "loo": CrossFit("leave_one_out"), "pixels": CrossFit("pixels")}
+
+
 def objectives(rho_range: tuple[float, float]) -> dict[str, object]:
     """The candidates, by name (settings chosen on the tuning seeds)."""
     return {
@@ -99,6 +105,10 @@ def objectives(rho_range: tuple[float, float]) -> dict[str, object]:
         **{f"average_timestamp_tv+{weight:g}plane_vote": WeightedSum(
             ((1.0, AverageTimestamp(smoothness=0.003)), (weight, PlaneVote(rho_range=rho_range))))
            for weight in PLANE_VOTE_WEIGHTS},
+        **{f"plane_vote_tv_{split}": PlaneVote(rho_range=rho_range, smoothness=0.003, cross_fit=cross_fit)
+           for split, cross_fit in CROSS_FITS.items()},
+        **{f"sweep_vote_{split}": SweepVote(rho_range=rho_range, cross_fit=cross_fit)
+           for split, cross_fit in CROSS_FITS.items()},
     }
 
 

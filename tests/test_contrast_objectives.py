@@ -5,7 +5,7 @@ import numpy as np
 import pytest
 import torch
 
-from cmax.contrast import (SHARED_OBJECTIVE, AverageTimestamp, CollapseGuard, DepthMotion, EventWindows,
+from cmax.contrast import (SHARED_OBJECTIVE, AverageTimestamp, CollapseGuard, CrossFit, DepthMotion, EventWindows,
                            GlobalContrast, LocalContrast, PlaneVote, SweepVote, VoteNormaliser, WeightedSum,
                            twist_at_speed)
 from benchmarks.synthetic_windows import make_window
@@ -21,6 +21,9 @@ OBJECTIVES = {
     "local_contrast": LocalContrast(cells=(2, 3), margin=3, smoothness=0.01),
     "global_contrast": GlobalContrast(),
     "collapse_guard": CollapseGuard(lattice=(3, 4)),
+    **{f"{name}_{split}": kind(rho_range=(0.2, 1.0), cross_fit=CrossFit(split), **{size: 6})
+       for name, kind, size in (("sweep_vote", SweepVote, "candidates"), ("plane_vote", PlaneVote, "planes"))
+       for split in ("random", "pixels", "leave_one_out")},
 }
 
 
@@ -109,9 +112,11 @@ def test_plane_vote_without_motion_is_minus_one_for_any_depth():
             assert float(objective(batch, DepthMotion(rho, still))[0]) == pytest.approx(-1.0, rel=1e-12)
 
 
-def test_plane_vote_with_motion_fixes_the_planes_and_gives_the_same_values():
+@pytest.mark.parametrize("cross_fit", [None, CrossFit("random"), CrossFit("leave_one_out")],
+                         ids=["plain", "halves", "loo"])
+def test_plane_vote_with_motion_fixes_the_planes_and_gives_the_same_values(cross_fit):
     batch, params = _tiny()
-    objective = PlaneVote(rho_range=(0.2, 1.0), planes=6, smoothness=0.01)
+    objective = PlaneVote(rho_range=(0.2, 1.0), planes=6, smoothness=0.01, cross_fit=cross_fit)
     fixed = objective.with_motion(batch, params.twist)
     assert fixed.values[0].shape == (6, len(batch)) and not fixed.values[0].requires_grad
     torch.testing.assert_close(fixed(batch, params), objective(batch, params))
@@ -350,3 +355,70 @@ def test_event_windows_take_a_camera_as_fit_does():
         torch.testing.assert_close(batch.y, expected.y)
         torch.testing.assert_close(batch.K, expected.K)
     assert len(expected) < len(events)          # the barrel lens moves some corner events out of the image
+
+
+@pytest.mark.parametrize("split", ["random", "pixels", "leave_one_out"])
+def test_cross_fit_reads_each_event_in_an_image_without_its_fold(windows, split):
+    """With a :class:`CrossFit`, each event's value on each plane is its value in the blurred image of the events
+    of its window and polarity that are not in its fold (times ``folds / (folds - 1)``), or, leaving one out, of
+    all the others: built here event by event with the public image functions."""
+    from cmax.contrast import image_of_warped_events, sample_bilinear, warp_windows
+
+    batch = EventWindows.from_windows([(w.events, w.K) for w in windows], dtype=torch.float64, max_events=150)
+    twist = torch.as_tensor(np.stack([w.twist for w in windows]))
+    cross_fit = CrossFit(split)
+    objective = PlaneVote(rho_range=(0.2, 1.0), planes=3, cross_fit=cross_fit)
+    values = objective.plane_values(batch, twist).values
+    fold = cross_fit.fold(batch)
+    if split == "pixels":   # the events of one pixel share their fold
+        pixel = batch.y.floor().long() * batch.width + batch.x.floor().long()
+        for p in pixel.unique():
+            assert fold[pixel == p].unique().numel() == 1
+    dt = (batch.t - objective.reference * batch.duration_s.to(torch.float64)[batch.window])[None]
+    checked = 0
+    for c, rho in enumerate(objective.plane_inverse_depths()):
+        x, y = warp_windows(batch, DepthMotion(torch.full((2, 1, 1, 1), float(rho), dtype=torch.float64), twist),
+                            dt)
+        x, y = x[0], y[0]
+        for i in range(0, len(batch), 7):
+            same = (batch.window == batch.window[i]) & ((batch.polarity > 0) == (batch.polarity[i] > 0))
+            others = same & (torch.arange(len(batch)) != i if fold is None else fold != fold[i])
+            image = image_of_warped_events(x[others][None], y[others][None], height=batch.height,
+                                           width=batch.width, sigma=objective.sigma)
+            expected = float(sample_bilinear(image, x[i:i + 1][None], y[i:i + 1][None])[0, 0])
+            if fold is not None:
+                expected *= cross_fit.folds / (cross_fit.folds - 1)
+            assert float(values[c, i]) == pytest.approx(expected, rel=1e-9, abs=1e-12)
+            checked += expected > 0
+    assert checked > 10
+
+
+def test_cross_fit_settings_are_checked():
+    with pytest.raises(ValueError, match=r"CrossFit: split must be one of \['random', 'pixels', 'leave_one_out'\]"):
+        CrossFit("halves")
+    with pytest.raises(ValueError, match=r"CrossFit: folds must be an integer >= 2, got 1"):
+        CrossFit(folds=1)
+    with pytest.raises(ValueError, match=r"CrossFit: block must be an integer >= 1, got 0"):
+        CrossFit("pixels", block=0)
+
+
+def test_cross_fit_random_deal_is_seeded_and_balanced(windows):
+    """The random deal depends on the seed alone (not on the call), and puts about half the events in each fold."""
+    batch = EventWindows.from_windows([(w.events, w.K) for w in windows], dtype=torch.float64, max_events=3000)
+    first, again = CrossFit(seed=3).fold(batch), CrossFit(seed=3).fold(batch)
+    assert torch.equal(first, again)
+    assert not torch.equal(first, CrossFit(seed=4).fold(batch))
+    for k in range(2):
+        share = float(first[batch.window == k].double().mean())
+        assert 0.45 < share < 0.55
+
+
+def test_sweep_vote_with_motion_keeps_its_cross_fit():
+    """The sweep vote's fixed normaliser (what the identifiability benchmark's depth-only descent uses) gives the
+    cross-fitted objective's own values, not the plain one's."""
+    batch, params = _tiny()
+    objective = SweepVote(rho_range=(0.2, 1.0), candidates=6, cross_fit=CrossFit("leave_one_out"))
+    fixed = objective.with_motion(batch, params.twist)
+    torch.testing.assert_close(fixed(batch, params), objective(batch, params))
+    plain = SweepVote(rho_range=(0.2, 1.0), candidates=6)
+    assert abs(float(fixed(batch, params)[0]) - float(plain(batch, params)[0])) > 1e-3

@@ -14,8 +14,9 @@ and the plane sweep's cost of :mod:`cmax.contrast.sweep` (:class:`SweepNodeCost`
 from cmax.contrast.batch import EventWindows
 from cmax.contrast.cells import contrast_by_cell
 from cmax.contrast.objectives import (
-    SHARED_OBJECTIVE, AverageTimestamp, CollapseGuard, DepthMotion, GlobalContrast, LocalContrast, PlaneVote,
-    SweepVote, VoteNormaliser, WeightedSum, event_inverse_depth, twist_at_speed, warp_windows,
+    SHARED_OBJECTIVE, AverageTimestamp, CollapseGuard, CrossFit, DepthMotion, GlobalContrast, HeldOutSplit,
+    LocalContrast, PlaneVote, SweepVote, VoteNormaliser, WeightedSum, event_inverse_depth, twist_at_speed,
+    warp_windows,
 )
 from cmax.contrast.patches import Patches, PatchFlowContrast, PatchMotionContrast, cut_patches
 from cmax.contrast.sweep import SweepNodeCost
@@ -25,7 +26,7 @@ from cmax.warp import DepthGrid, WarpEvents, project, warp_flow, warp_rotation, 
 
 __all__ = [
     "EventWindows", "DepthMotion", "SHARED_OBJECTIVE", "AverageTimestamp", "SweepVote", "PlaneVote",
-    "VoteNormaliser", "LocalContrast",
+    "VoteNormaliser", "CrossFit", "HeldOutSplit", "LocalContrast",
     "GlobalContrast", "CollapseGuard", "WeightedSum", "event_inverse_depth", "twist_at_speed", "warp_windows",
     "Patches", "cut_patches", "PatchFlowContrast", "PatchMotionContrast", "SweepNodeCost", "contrast_by_cell",
     "accumulate_bilinear", "accumulate_bilinear_indexed", "blur", "image_of_warped_events", "polarity_images",
