@@ -67,6 +67,17 @@ def test_a_subset_of_tested_events_estimates_the_share_of_all(rate_hz):
     assert noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, max_queries=len(noisy)) == every
 
 
+def test_the_isolation_flags_of_the_caller_give_the_share_of_testing_anew():
+    """The fit hands its depth mask's :func:`isolated_events` to :func:`noise_share`: the same share, to the bit,
+    as testing every event again; flags of another length are refused."""
+    noisy, _ = _with_noise(_points(0), 2.0, 1)
+    flags = isolated_events(noisy.x, noisy.y, noisy.t, 160, 120, 10_000)
+    every = noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, max_queries=None)
+    assert noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, isolated=flags) == every
+    with pytest.raises(ValueError, match="one flag per event"):
+        noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, isolated=flags[1:])
+
+
 @pytest.mark.parametrize("duration_us", [100_000, 20_000])
 def test_heavy_noise_is_not_read_as_clean(duration_us):
     """Was (during this change): noise so dense that few of its events lie alone read as 1-9% noise (the isolated

@@ -476,13 +476,18 @@ def fit(
         motion, logs = run_stages(stages, w, motion, backend)
         if known_omega is not None:
             motion = replace(motion, omega=known_omega)
+        shared_test = model == "se3" and settings.mask_isolated_us == settings.quality.noise_window_us
+        isolated = (isolated_events(events.x, events.y, events.t, events.width, events.height,
+                                    settings.mask_isolated_us) if shared_test else None)   # the mask's and the noise's
         result = _result(w, events, K, model, motion, logs, scale_known=pose is not None or speed is not None,
+                         isolated=isolated,
                          seconds=time.perf_counter() - start)
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         on_bound = _on_bound(w, result, low, pose_known=pose is not None)
         noise = (noise_share(events.x, events.y, events.t, events.width, events.height,
-                             settings.quality.noise_window_us, max_queries=settings.max_events)
+                             settings.quality.noise_window_us, max_queries=settings.max_events,
+                             isolated=isolated)
                  if model == "se3" else None)
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
                                                   hold_omega=known_omega is not None, speed=scale,
@@ -725,7 +730,7 @@ def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega,
 
 
 def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion, logs: tuple[StageLog, ...], *,
-            scale_known: bool, seconds: float) -> FitResult:
+            scale_known: bool, seconds: float, isolated: np.ndarray | None = None) -> FitResult:
     ev, s = w.ev, w.settings
     H, W = ev.height, ev.width
     flow, grid = motion.flow, motion.inverse_depth
@@ -746,7 +751,8 @@ def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion
         cell_map = w.grid.cell_of(*[torch.from_numpy(a.ravel().astype(np.float64)) for a in np.mgrid[0:H, 0:W][::-1]])
         x_ref, y_ref = _all_events_at_reference(events, K, w, v, omega, grid)
         if s.mask_isolated_us:                       # background-activity noise: no pixel of its own in the mask
-            kept = ~isolated_events(events.x, events.y, events.t, W, H, s.mask_isolated_us)
+            kept = ~(isolated_events(events.x, events.y, events.t, W, H, s.mask_isolated_us)
+                     if isolated is None else isolated)
             x_ref, y_ref = x_ref[kept], y_ref[kept]
         mask = event_pixels(x_ref, y_ref, H, W) & supported.ravel()[cell_map.numpy()].reshape(H, W)
     failed = [log for log in logs if not log.success]

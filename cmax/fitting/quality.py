@@ -530,12 +530,14 @@ def _neighbours(keys: np.ndarray, x: np.ndarray, y: np.ndarray, query: np.ndarra
 
 
 def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int, window_us: int,
-                radius: int = 1, max_queries: int | None = 60_000) -> float:
+                radius: int = 1, max_queries: int | None = 60_000, isolated: np.ndarray | None = None) -> float:
     """Estimated share of uniform background-activity (shot) noise among the window's events ``x, y, t`` (N,)
     [px, px, µs] on a ``width`` x ``height`` image, in [0, 1]. ``max_queries``: at most this many events (a seeded
     uniform subset; None: all) are tested for neighbours, each against all N events, and the isolated counts are
     scaled by N over their number (an unbiased estimate: the test of one event does not depend on which others
-    are tested), so a window of millions of events costs one sort and that many searches.
+    are tested), so a window of millions of events costs one sort and that many searches. ``isolated`` (N,) bool:
+    :func:`isolated_events` of these events with this ``window_us`` and ``radius``, when the caller has it (the
+    fit's depth mask does): taken as is, none tested again.
 
     Noise of ``r`` Hz per pixel, uniform in space and time, leaves an event without a neighbour
     (:func:`isolated_events`) with probability ``exp(-r V)``, ``V = (2 radius + 1)^2 * 2 window_us`` [px s]
@@ -568,14 +570,19 @@ def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height:
 
     span_s = float(np.mean(np.minimum(t + window_us, t.max()) - np.maximum(t - window_us, t.min()))) * 1e-6
     near, far = (2 * radius + 1) ** 2 * span_s, (2 * radius + 3) ** 2 * span_s    # px s: cut by the window's ends
-    xs, ys, keys, _, key_span = _sorted_events(x, y, t, width, window_us)
-    tested = np.arange(keys.size)
-    if max_queries is not None and keys.size > max_queries:
-        tested = np.sort(np.random.default_rng(0).choice(keys.size, max_queries, replace=False))
-    scale = keys.size / tested.size                                          # N over the tested events
-    alone = _neighbours(keys, xs[tested], ys[tested], keys[tested], width, height, window_us, radius, key_span) <= 1
-    tested = tested[alone]
-    m = np.count_nonzero(alone) * scale / area_s
+    xs, ys, keys, order, key_span = _sorted_events(x, y, t, width, window_us)
+    if isolated is not None:
+        if np.shape(isolated) != (keys.size,):
+            raise ValueError(f"isolated must hold one flag per event, shape ({keys.size},), got {np.shape(isolated)}")
+        tested, scale = np.flatnonzero(np.asarray(isolated, bool)[order]), 1.0
+    else:
+        tested = np.arange(keys.size)
+        if max_queries is not None and keys.size > max_queries:
+            tested = np.sort(np.random.default_rng(0).choice(keys.size, max_queries, replace=False))
+        scale = keys.size / tested.size                                      # N over the tested events
+        tested = tested[_neighbours(keys, xs[tested], ys[tested], keys[tested], width, height, window_us, radius,
+                                    key_span) <= 1]
+    m = tested.size * scale / area_s
     if m * near >= math.exp(-1):
         rate = 1.0 / near
     else:
