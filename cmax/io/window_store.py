@@ -32,7 +32,8 @@ import numpy as np
 
 from cmax.io.atomic import fsync_folder, write_bytes_atomic, write_text_atomic
 
-__all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "settings_record"]
+__all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "settings_record", "open_kept",
+           "write_run_record"]
 
 #: The folder in ``-o`` that holds the finished windows of a run of ``cmax fit`` until its results are in.
 WINDOWS_FOLDER = ".fit.windows"
@@ -97,6 +98,45 @@ def _differences(recorded: dict, now: dict) -> list[str]:
     return found
 
 
+def open_kept(folder: Path, run: dict, *, found: int, resume: bool, overwrite: bool, command: str) -> None:
+    """Check the folder of an interrupted run's finished windows (``folder``: ``-o/.fit.windows``,
+    ``-o/.depth.windows``) against the new ``run`` (JSON-ready, as ``folder/run.json`` records it); ``found``: how
+    many finished windows it holds. The folder is removed when ``overwrite`` or when it holds none (a ``run.json``
+    alone); kept when ``resume`` and the runs match. ``command`` names the command in messages.
+
+    Raises
+    ------
+    FileExistsError
+        It holds windows and neither ``resume`` nor ``overwrite`` is set.
+    ValueError
+        ``resume``, and ``run.json`` is unreadable or records another run (each difference named).
+    """
+    out = folder.parent
+    if folder.exists() and (overwrite or not found):
+        shutil.rmtree(folder)
+    elif found and not resume:
+        raise FileExistsError(f"{out} holds {found} finished window(s) of an interrupted {command}: --resume "
+                              "continues that run, --overwrite starts over")
+    elif found:
+        try:
+            recorded = json.loads((folder / _RUN_FILE).read_text())
+        except (OSError, ValueError):
+            recorded = None
+        if not isinstance(recorded, dict):
+            raise ValueError(f"cannot --resume: {folder / _RUN_FILE} is missing or unreadable, so the finished "
+                             "windows cannot be checked: --overwrite starts over")
+        if differences := _differences(recorded, run):
+            raise ValueError(f"cannot --resume the run in {out}: it was another run (" + "; ".join(differences)
+                             + "): give the same file and options, or --overwrite to start over")
+
+
+def write_run_record(folder: Path, run: dict) -> None:
+    """Create ``folder`` and write ``folder/run.json`` (``run``, JSON-ready) atomically, unless it is there."""
+    if not (folder / _RUN_FILE).is_file():
+        folder.mkdir(exist_ok=True)
+        write_text_atomic(folder / _RUN_FILE, json.dumps(run, indent=2, sort_keys=True))
+
+
 class WindowStore:
     """The finished windows of one ``cmax fit`` run in ``out/.fit.windows`` (the ``store`` of
     :func:`cmax.fit_sequence`). Open it holding ``out``'s lock (:func:`cmax.io.run_folder.staged_run`).
@@ -127,28 +167,8 @@ class WindowStore:
         self.run, self.digest = run, _digest(run)
         self.resumed = self.unreadable = 0
         self._with_maps: set[int] = set()
-        found = interrupted_windows(out)
-        if self.folder.exists() and (overwrite or not found):
-            shutil.rmtree(self.folder)
-        elif found and not resume:
-            raise FileExistsError(f"{out} holds {found} finished window(s) of an interrupted cmax fit: --resume "
-                                  "continues that run, --overwrite starts over")
-        elif found:
-            recorded = self._recorded()
-            if recorded is None:
-                raise ValueError(f"cannot --resume: {self.folder / _RUN_FILE} is missing or unreadable, so the "
-                                 "finished windows cannot be checked: --overwrite starts over")
-            if differences := _differences(recorded, run):
-                raise ValueError(f"cannot --resume the run in {out}: it was another run ("
-                                 + "; ".join(differences) + "): give the same file and options, or --overwrite "
-                                 "to start over")
-
-    def _recorded(self) -> dict | None:
-        try:
-            recorded = json.loads((self.folder / _RUN_FILE).read_text())
-        except (OSError, ValueError):
-            return None
-        return recorded if isinstance(recorded, dict) else None
+        open_kept(self.folder, run, found=interrupted_windows(out), resume=resume, overwrite=overwrite,
+                  command="cmax fit")
 
     def _path(self, index: int) -> Path:
         return self.folder / f"window_{index:05d}.pickle"
@@ -183,9 +203,7 @@ class WindowStore:
         returns ``result`` without its (H, W) maps (``depth``, ``mask``, ``depth_spread``, ``iwe_before``,
         ``iwe_after`` set to None; :meth:`maps` reads them back), so that a long run's memory does not grow
         with them."""
-        if not (self.folder / _RUN_FILE).is_file():    # the first window: what the run is, before any window
-            self.folder.mkdir(exist_ok=True)
-            write_text_atomic(self.folder / _RUN_FILE, json.dumps(self.run, indent=2, sort_keys=True))
+        write_run_record(self.folder, self.run)      # with the first window: what the run is
         record = {"run": self.digest, "start_us": int(start_us), "result": result, "caught": tuple(caught)}
         write_bytes_atomic(self._path(index), pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL))
         return self._slim(index, result)
