@@ -219,3 +219,24 @@ def test_a_run_killed_at_a_random_window_resumes_to_the_uninterrupted_results(tm
     assert f"resumed: {done} of {n} fitted windows" in resumed.stderr
     assert_same(results_of(out), results_of(whole))
     assert not kept.exists()
+
+
+def test_a_full_disk_at_the_first_window_is_one_line_and_leaves_no_kept_folder(tmp_path, monkeypatch, capsys):
+    """A window that cannot be written (full disk) stops the run with one line naming the file, exit 2; a kept
+    folder without any window (only run.json) is not left behind to be taken for an interrupted run."""
+    import errno
+
+    import cmax.io.window_store as window_store
+
+    def full(path, data):
+        raise OSError(errno.ENOSPC, f"No space left on device while writing: {path}")
+
+    monkeypatch.setattr(window_store, "write_bytes_atomic", full)
+    path = write_h5(tmp_path / "ev.h5", noise_events(3000, 30_000, seed=5))
+    out = tmp_path / "o"
+    capsys.readouterr()
+    assert main(["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--model", "flow", "--window-ms",
+                 "7.5", "--min-events", "300"]) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "window_00000.pickle" in err and len(err.strip().splitlines()) == 1
+    assert not (out / WINDOWS_FOLDER).exists()

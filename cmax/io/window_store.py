@@ -203,9 +203,14 @@ class WindowStore:
         returns ``result`` without its (H, W) maps (``depth``, ``mask``, ``depth_spread``, ``iwe_before``,
         ``iwe_after`` set to None; :meth:`maps` reads them back), so that a long run's memory does not grow
         with them."""
-        write_run_record(self.folder, self.run)      # with the first window: what the run is
         record = {"run": self.digest, "start_us": int(start_us), "result": result, "caught": tuple(caught)}
-        write_bytes_atomic(self._path(index), pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL))
+        try:
+            write_run_record(self.folder, self.run)      # with the first window: what the run is
+            write_bytes_atomic(self._path(index), pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL))
+        except BaseException:   # a full disk: a folder without a window is no interrupted run to resume
+            if not interrupted_windows(self.folder.parent):
+                shutil.rmtree(self.folder, ignore_errors=True)
+            raise
         return self._slim(index, result)
 
     def _slim(self, index: int, result):
