@@ -47,7 +47,7 @@ class KeptBlocks:
     resume : bool
         Take the blocks an interrupted run with the same ``run`` left (else they are an error).
     overwrite : bool
-        Remove the blocks an interrupted run left and start over.
+        Without ``resume``: remove the blocks an interrupted run left and start over.
 
     Raises
     ------

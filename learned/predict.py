@@ -628,7 +628,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         with the same file, checkpoint and options are taken after their files are checked, and the others
         predicted, in the same blocks (the results equal an uninterrupted run's). Another run's blocks are
         refused (ValueError naming what differs); without ``resume`` or ``overwrite`` a folder holding them is
-        refused (FileExistsError). Not with ``overwrite``.
+        refused (FileExistsError); ``overwrite`` alone drops them. With both, the interrupted run is continued
+        and an earlier complete run's results in ``out`` are replaced once it succeeds.
 
     The run holds ``out`` from its first look at it to its end (the lock ``out/.results.lock``,
     :data:`FOLDER_LOCK`, :func:`cmax.io.run_folder.staged_run`): a second run into the same folder meanwhile, or
@@ -651,8 +652,6 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     from learned.device import resolve_device
 
     device = resolve_device(device)   # before any work
-    if resume and overwrite:
-        raise ValueError("--resume continues an interrupted run, --overwrite starts over: pass one of them")
     out = Path(out)
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"the output {out} is a file: give a folder (for window_*.npz, window_*.png, "
@@ -841,7 +840,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                         help="continue an interrupted run into the output folder: its finished blocks of windows "
                              "(kept in .depth.windows as each is done) are checked (the same event file, checkpoint "
                              "and options) and taken, the others predicted (default: off; a folder holding an "
-                             "interrupted run's windows is refused without --resume or --overwrite)")
+                             "interrupted run's windows is refused without --resume or --overwrite; with "
+                             "--overwrite too, an earlier complete run's results are replaced at the end)")
     return parser
 
 

@@ -124,8 +124,6 @@ def test_resume_refuses_another_run_and_a_changed_file(recording, tmp_path, caps
     err = capsys.readouterr().err
     assert "ev.h5 was modified since" in err and len(err.strip().splitlines()) == 1
     assert (store.folder / "window_00000.pickle").exists()
-    assert main([*argv, "--resume", "--overwrite"]) == 2
-    assert "pass one of them" in capsys.readouterr().err
     main([*argv, "--overwrite"])
     assert not (out / WINDOWS_FOLDER).exists() and (out / "summary.json").is_file()
 
@@ -240,3 +238,35 @@ def test_a_full_disk_at_the_first_window_is_one_line_and_leaves_no_kept_folder(t
     err = capsys.readouterr().err
     assert "No space left on device" in err and "window_00000.pickle" in err and len(err.strip().splitlines()) == 1
     assert not (out / WINDOWS_FOLDER).exists()
+
+
+def test_an_interrupted_overwrite_resumes_over_the_earlier_complete_run(tmp_path, monkeypatch, capsys):
+    """``--overwrite`` of a folder with a complete run, interrupted: the earlier results stay as they were, beside
+    the kept windows; ``--resume`` alone is refused (the earlier results), ``--resume --overwrite`` continues the
+    interrupted run (fitting only the windows it had not finished) and replaces them."""
+    path = write_h5(tmp_path / "ev.h5", noise_events(4000, 40_000, seed=9))
+    out = tmp_path / "o"
+    argv = ["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--model", "flow", "--min-events", "300"]
+    status = main([*argv, "--window-ms", "10"])
+    earlier = (out / "summary.json").read_bytes()
+    real_fit, calls = sequence_module.fit, []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real_fit(*args, **kwargs)
+
+    monkeypatch.setattr(sequence_module, "fit", interrupted)
+    assert main([*argv, "--window-ms", "5", "--overwrite"]) == 130
+    assert (out / "summary.json").read_bytes() == earlier and len(list((out / WINDOWS_FOLDER).glob("*.pickle"))) == 2
+    capsys.readouterr()
+    assert main([*argv, "--window-ms", "5", "--resume"]) == 2
+    assert "holds the results of an earlier run" in capsys.readouterr().err
+    calls.clear()
+    monkeypatch.setattr(sequence_module, "fit", lambda *a, **k: calls.append(1) or real_fit(*a, **k))
+    assert main([*argv, "--window-ms", "5", "--resume", "--overwrite"]) in (0, 1)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["window_ms"] == 5 and len(summary["windows"]) == 8 and len(calls) == 6
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+    assert status in (0, 1)

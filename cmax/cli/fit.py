@@ -118,7 +118,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="continue an interrupted run into -o: its finished windows (kept in -o/.fit.windows as "
                              "each is done) are checked (the same event file by size and modification time, the "
                              "same options) and taken, the others fitted (default: off; a folder holding an "
-                             "interrupted run's windows is refused without --resume or --overwrite)")
+                             "interrupted run's windows is refused without --resume or --overwrite; with "
+                             "--overwrite too, an earlier complete run's results in -o are replaced at the end)")
     parser.add_argument("--keep-hot-pixels", action="store_true",
                         help="fit every event; by default the events of hot pixels (far more events than the scene's "
                              "edges give any pixel, or firing alone at a steady rate: a defect; or locked to a 100/120 "
@@ -456,8 +457,6 @@ def run(args: argparse.Namespace) -> int:
     window_us = (_sequence_default("window_us")() if args.window_ms is None
                  else _microseconds(args.window_ms, "--window-ms"))
     step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
-    if args.resume and args.overwrite:
-        raise ValueError("--resume continues an interrupted run, --overwrite starts over: pass one of them")
     with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
                                what="depth_*.npz, summary.json, ...") as stage:
         store = WindowStore(out, run_record(args), resume=args.resume, overwrite=args.overwrite)

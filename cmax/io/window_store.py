@@ -101,8 +101,9 @@ def _differences(recorded: dict, now: dict) -> list[str]:
 def open_kept(folder: Path, run: dict, *, found: int, resume: bool, overwrite: bool, command: str) -> None:
     """Check the folder of an interrupted run's finished windows (``folder``: ``-o/.fit.windows``,
     ``-o/.depth.windows``) against the new ``run`` (JSON-ready, as ``folder/run.json`` records it); ``found``: how
-    many finished windows it holds. The folder is removed when ``overwrite`` or when it holds none (a ``run.json``
-    alone); kept when ``resume`` and the runs match. ``command`` names the command in messages.
+    many finished windows it holds. The folder is removed when it holds none (a ``run.json`` alone) or with
+    ``overwrite`` alone; kept when ``resume`` (with or without ``overwrite``, which is then about an earlier complete
+    run's results) and the runs match. ``command`` names the command in messages.
 
     Raises
     ------
@@ -112,7 +113,7 @@ def open_kept(folder: Path, run: dict, *, found: int, resume: bool, overwrite: b
         ``resume``, and ``run.json`` is unreadable or records another run (each difference named).
     """
     out = folder.parent
-    if folder.exists() and (overwrite or not found):
+    if folder.exists() and (not found or (overwrite and not resume)):
         shutil.rmtree(folder)
     elif found and not resume:
         raise FileExistsError(f"{out} holds {found} finished window(s) of an interrupted {command}: --resume "
@@ -151,7 +152,7 @@ class WindowStore:
     resume : bool
         Take the windows an interrupted run with the same ``run`` left (else they are an error).
     overwrite : bool
-        Remove the windows an interrupted run left and start over.
+        Without ``resume``: remove the windows an interrupted run left and start over.
 
     Raises
     ------
