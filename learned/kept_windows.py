@@ -27,11 +27,37 @@ import numpy as np
 from cmax.io.atomic import file_sha256, fsync_folder, write_text_atomic
 from cmax.io.window_store import open_kept, write_run_record
 
-__all__ = ["KEPT_FOLDER", "KeptBlocks"]
+__all__ = ["KEPT_FOLDER", "KeptBlocks", "kept_windows"]
 
 #: The folder in ``-o`` that holds the finished blocks of a run of ``cmax depth`` until its results are in.
 KEPT_FOLDER = ".depth.windows"
 _BLOCK_NAME = re.compile(r"block_(\d+)\.json")
+
+
+def kept_windows(out: str | os.PathLike) -> int:
+    """How many windows the finished blocks an interrupted ``cmax depth`` left in the folder ``out`` hold (0 when
+    none).
+
+    Parameters
+    ----------
+    out : path
+        The run's output folder (``-o``).
+    """
+    folder = Path(out) / KEPT_FOLDER
+    return sum(len(record.get("windows", ())) for record in _records(folder)) if folder.is_dir() else 0
+
+
+def _records(folder: Path) -> list[dict]:
+    """The readable block records in ``folder``."""
+    records = []
+    for path in sorted(folder.iterdir()):
+        if _BLOCK_NAME.fullmatch(path.name):
+            try:
+                record = json.loads(path.read_text())
+            except (OSError, ValueError):
+                continue
+            records.append(record if isinstance(record, dict) else {})
+    return records
 
 
 class KeptBlocks:
@@ -60,19 +86,8 @@ class KeptBlocks:
         self.run = run
         self.digest = hashlib.sha256(json.dumps(run, sort_keys=True).encode()).hexdigest()
         self.resumed = self.unverified = 0
-        found = sum(len(record.get("windows", ())) for record in self._records()) if self.folder.is_dir() else 0
-        open_kept(self.folder, run, found=found, resume=resume, overwrite=overwrite, command="cmax depth")
-
-    def _records(self) -> list[dict]:
-        records = []
-        for path in sorted(self.folder.iterdir()):
-            if _BLOCK_NAME.fullmatch(path.name):
-                try:
-                    record = json.loads(path.read_text())
-                except (OSError, ValueError):
-                    continue
-                records.append(record if isinstance(record, dict) else {})
-        return records
+        open_kept(self.folder, run, found=kept_windows(out), resume=resume, overwrite=overwrite,
+                  command="cmax depth")
 
     def load(self, first: int) -> tuple[list[int], list[str], int] | None:
         """``(indices, lines, skipped)`` of the finished block whose first window is ``first``: the windows it

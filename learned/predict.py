@@ -43,7 +43,7 @@ from cmax.cli.recording import (add_camera_options, add_recording_arguments, che
                                 no_intrinsics_message, read_calibration, tail_note, time_span_us)
 from cmax.events import window_starts
 from cmax.io import run_folder
-from learned.kept_windows import KeptBlocks
+from learned.kept_windows import KEPT_FOLDER, KeptBlocks
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
     from cmax.events import Events
@@ -848,14 +848,24 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
 def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> int:
     """Run the command of :func:`add_arguments`' options (``args``, as parsed); prints notes on stderr, prefixed
     by ``label``, and the summary line."""
-    result = run_prediction(
-        args.file, args.output, checkpoint=args.checkpoint, K=args.K, calib=args.calib,
-        calib_camera=args.calib_camera, distortion=args.distortion, size=args.size, time_unit=args.time_unit,
-        polarity=args.polarity, sort=args.sort, camera=args.camera,
-        t0_s=args.t0, t1_s=args.t1, window_s=args.window,
-        depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
-        progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),
-        overwrite=args.overwrite, device=args.device, resume=args.resume)
+    try:
+        result = run_prediction(
+            args.file, args.output, checkpoint=args.checkpoint, K=args.K, calib=args.calib,
+            calib_camera=args.calib_camera, distortion=args.distortion, size=args.size, time_unit=args.time_unit,
+            polarity=args.polarity, sort=args.sort, camera=args.camera,
+            t0_s=args.t0, t1_s=args.t1, window_s=args.window,
+            depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
+            progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),
+            overwrite=args.overwrite, device=args.device, resume=args.resume)
+    except KeyboardInterrupt as stop:   # Ctrl-C, or SIGTERM (cmax._signals): say what is kept
+        from cmax.io.window_store import stopped_line
+        from learned.kept_windows import kept_windows
+
+        if not (kept := kept_windows(args.output)):
+            raise
+        line, status = stopped_line(label, stop, kept, Path(args.output) / KEPT_FOLDER)
+        print(line, file=sys.stderr)
+        return status
     print(result.summary_line())
     return 0
 

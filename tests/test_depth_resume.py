@@ -71,8 +71,11 @@ def test_an_interrupted_depth_run_resumes_to_the_results_of_an_uninterrupted_one
 
     out = tmp_path / "o"
     monkeypatch.setattr(predict, "forward", interrupted)
+    capsys.readouterr()
     assert predict.main(argv(recording, out, tiny_checkpoint)) == 130
     kept = out / KEPT_FOLDER
+    assert capsys.readouterr().err.strip() == (f"python -m learned.predict: interrupted: 4 finished window(s) kept in "
+                                               f"{kept}: the same command with --resume continues the run")
     assert sorted(p.name for p in kept.glob("block_*.json")) == ["block_0.json", "block_2.json"]
     assert not (out / "summary.json").exists()
     capsys.readouterr()

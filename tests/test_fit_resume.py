@@ -80,7 +80,11 @@ def test_an_interrupted_se3_run_resumes_to_the_results_of_an_uninterrupted_one(r
 
     out = tmp_path / "o"
     monkeypatch.setattr(sequence_module, "fit", interrupted_fit)
+    capsys.readouterr()
     assert main(se3_argv(recording, out)) == 130
+    err = capsys.readouterr().err
+    assert err.strip() == (f"cmax fit: interrupted: 2 finished window(s) kept in {out / WINDOWS_FOLDER}: the same "
+                           "command with --resume continues the run")
     assert not (out / "summary.json").exists()
     assert sorted(p.name for p in (out / WINDOWS_FOLDER).glob("window_*")) == ["window_00000.pickle",
                                                                                "window_00001.pickle"]

@@ -33,7 +33,8 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
                                 tail_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
-from cmax.io.window_store import WindowStore, file_signature, settings_record
+from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, file_signature, interrupted_windows, settings_record,
+                                  stopped_line)
 
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
            "hot_pixel_note", "option_words", "run", "run_record", "tum_lines", "undistorted_events", "verdict_counts", "window_line"]
@@ -457,12 +458,19 @@ def run(args: argparse.Namespace) -> int:
     window_us = (_sequence_default("window_us")() if args.window_ms is None
                  else _microseconds(args.window_ms, "--window-ms"))
     step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
-    with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
-                               what="depth_*.npz, summary.json, ...") as stage:
-        store = WindowStore(out, run_record(args), resume=args.resume, overwrite=args.overwrite)
-        status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
-                           min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
-                           notes=[range_note] if range_note else [], store=store)
+    try:
+        with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
+                                   what="depth_*.npz, summary.json, ...") as stage:
+            store = WindowStore(out, run_record(args), resume=args.resume, overwrite=args.overwrite)
+            status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
+                               min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
+                               notes=[range_note] if range_note else [], store=store)
+    except KeyboardInterrupt as stop:   # Ctrl-C, or SIGTERM (cmax._signals): say what is kept
+        if not (kept := interrupted_windows(out)):
+            raise
+        line, status = stopped_line("cmax fit", stop, kept, out / WINDOWS_FOLDER)
+        print(line, file=sys.stderr)
+        return status
     store.remove()   # the results are in out: the finished windows are no longer needed
     return status
 

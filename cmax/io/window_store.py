@@ -33,7 +33,7 @@ import numpy as np
 from cmax.io.atomic import fsync_folder, write_bytes_atomic, write_text_atomic
 
 __all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "settings_record", "open_kept",
-           "write_run_record"]
+           "write_run_record", "stopped_line"]
 
 #: The folder in ``-o`` that holds the finished windows of a run of ``cmax fit`` until its results are in.
 WINDOWS_FOLDER = ".fit.windows"
@@ -271,3 +271,18 @@ def settings_record(values: dict) -> dict:
         return value
 
     return json.loads(json.dumps({key: plain(value) for key, value in values.items()}))
+
+
+def stopped_line(label: str, stop: KeyboardInterrupt, kept: int, folder: Path) -> tuple[str, int]:
+    """The one line and the exit status of a run stopped by Ctrl-C or SIGTERM (``stop``, a
+    :class:`cmax._signals.Terminated` for SIGTERM) that kept ``kept`` finished windows in ``folder``; ``label``:
+    the command's name.
+
+    >>> stopped_line("cmax fit", KeyboardInterrupt(), 3, Path("o/.fit.windows"))
+    ('cmax fit: interrupted: 3 finished window(s) kept in o/.fit.windows: the same command with --resume continues the run', 130)
+    """
+    from cmax._signals import TERMINATED_STATUS, Terminated
+
+    what, status = ("terminated (SIGTERM)", TERMINATED_STATUS) if isinstance(stop, Terminated) else ("interrupted", 130)
+    return (f"{label}: {what}: {kept} finished window(s) kept in {folder}: the same command with --resume continues "
+            "the run", status)
