@@ -790,9 +790,9 @@ def _run_record(path, checkpoint, calib, K, distortion, size, time_unit, polarit
     the calibration's signatures (size, modification time) and every option that changes a window, with the
     resolved window length [µs], number of windows and batch (the blocks of the forward passes)."""
     import cmax
-    from cmax.io.window_store import file_signature, settings_record
+    from cmax.io.window_store import code_digest, file_signature, settings_record
 
-    return {"cmax": cmax.__version__, "file": file_signature(path), "checkpoint": file_signature(checkpoint),
+    return {"cmax": cmax.__version__, "code": code_digest("cmax", "learned"), "file": file_signature(path), "checkpoint": file_signature(checkpoint),
             "calib": file_signature(calib),
             "settings": settings_record({"K": K, "distortion": distortion, "size": size, "time_unit": time_unit,
                                          "polarity": polarity, "sort": sort, "camera": camera, "t0_s": t0_s,

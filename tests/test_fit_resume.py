@@ -127,6 +127,10 @@ def test_resume_refuses_another_run_and_a_changed_file(recording, tmp_path, caps
     assert main([*argv, "--resume"]) == 2
     err = capsys.readouterr().err
     assert "ev.h5 was modified since" in err and len(err.strip().splitlines()) == 1
+    record = json.loads((store.folder / "run.json").read_text())
+    (store.folder / "run.json").write_text(json.dumps({**record, "code": "0" * 64}))   # windows of other code
+    assert main([*argv, "--resume"]) == 2
+    assert "the code of cmax (or learned) changed" in capsys.readouterr().err
     assert (store.folder / "window_00000.pickle").exists()
     main([*argv, "--overwrite"])
     assert not (out / WINDOWS_FOLDER).exists() and (out / "summary.json").is_file()

@@ -33,7 +33,7 @@ import numpy as np
 from cmax.io.atomic import fsync_folder, write_bytes_atomic, write_text_atomic
 
 __all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "settings_record", "open_kept",
-           "write_run_record", "stopped_line"]
+           "write_run_record", "stopped_line", "code_digest"]
 
 #: The folder in ``-o`` that holds the finished windows of a run of ``cmax fit`` until its results are in.
 WINDOWS_FOLDER = ".fit.windows"
@@ -93,6 +93,9 @@ def _differences(recorded: dict, now: dict) -> list[str]:
         elif key == "settings" and isinstance(before, dict) and isinstance(after, dict):
             found += [f"{name} was {before.get(name)!r}, now {after.get(name)!r}"
                       for name in sorted(set(before) | set(after)) if before.get(name) != after.get(name)]
+        elif key == "code" and before != after:
+            found.append("the code of cmax (or learned) changed since those windows were computed (another version, "
+                         "or an edited install)")
         elif before != after:
             found.append(f"{key} was {before!r}, now {after!r}")
     return found
@@ -286,3 +289,22 @@ def stopped_line(label: str, stop: KeyboardInterrupt, kept: int, folder: Path) -
     what, status = ("terminated (SIGTERM)", TERMINATED_STATUS) if isinstance(stop, Terminated) else ("interrupted", 130)
     return (f"{label}: {what}: {kept} finished window(s) kept in {folder}: the same command with --resume continues "
             "the run", status)
+
+
+def code_digest(*packages: str) -> str:
+    """SHA-256 (hex) of the Python files of the imported ``packages`` (e.g. ``"cmax"``, ``"learned"``), by path and
+    bytes: a resumed run takes windows only from the same code, also where the version number did not change.
+
+    Parameters
+    ----------
+    packages : str
+        Names of imported packages.
+    """
+    import importlib
+
+    digest = hashlib.sha256()
+    for name in packages:
+        root = Path(importlib.import_module(name).__file__).parent
+        for path in sorted(root.rglob("*.py")):
+            digest.update(str(path.relative_to(root.parent)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()
