@@ -45,6 +45,7 @@ from cmax.cli.recording import (add_camera_options, add_recording_arguments, che
                                 no_intrinsics_message, read_calibration, tail_note, time_span_us)
 from cmax.events import window_starts
 from cmax.io import run_folder
+from learned.kept_windows import KEPT_FOLDER, KeptBlocks
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
     from cmax.events import Events
@@ -431,11 +432,12 @@ class WindowPrediction:
 def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"], starts: Sequence[int],
                     window_us: int, *, batch: int = 8,
                     transform: Callable[["Events"], "Events"] | None = None,
-                    source: str = "the network") -> Iterator[WindowPrediction | None]:
+                    source: str = "the network", offset: int = 0) -> Iterator[WindowPrediction | None]:
     """For each of ``starts`` [µs] in order: the :class:`WindowPrediction` of the network ``model`` on
     ``[t0, t0 + window_us)``, or None when the
     window (read with ``window(t0, t1)``, then ``transform``) holds fewer than :data:`MIN_EVENTS` events.
-    ``batch`` windows go through the network at a time.
+    ``batch`` windows go through the network at a time. ``offset``: the index of the first of ``starts`` in the
+    recording (``WindowPrediction.index`` is ``offset`` plus the place in ``starts``).
 
     A window whose inverse depth or twist holds a NaN or an infinity (finite weights that overflow, e.g. a
     diverged run's saved just before its loss went non-finite) raises ``ValueError`` naming ``source`` (the
@@ -446,7 +448,7 @@ def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"
             t0 = int(starts[index])
             events = window(t0, t0 + window_us)
             events = events if transform is None else transform(events)
-            chunk.append((index, t0, events if len(events) >= MIN_EVENTS else None))
+            chunk.append((offset + index, t0, events if len(events) >= MIN_EVENTS else None))
         kept = [events for _, _, events in chunk if events is not None]
         outputs = iter(zip(*forward(model, event_volumes(kept, model.config.bins)))) if kept else iter(())
         for index, t0, events in chunk:
@@ -495,10 +497,20 @@ def write_window(out: Path, prediction: WindowPrediction, K: np.ndarray) -> tupl
     save_npz_atomic(out / f"window_{p.index:05d}.npz", depth=depth, inverse_depth=p.inverse_depth.astype(np.float32),
                     twist=p.twist.astype(np.float32), t0_us=np.int64(p.t0_us), t1_us=np.int64(p.t1_us),
                     K=np.asarray(K, float))
-    flat = depth.ravel()
-    sample = flat[::-(-flat.size // SCALE_SAMPLES)]
+    sample = depth_sample(depth)
     line = ",".join([str(p.index), str(p.t0_us), str(p.t1_us), str(p.events)] + [f"{v:.6g}" for v in p.twist])
     return line, sample
+
+
+def depth_sample(depth: np.ndarray) -> np.ndarray:
+    """Up to :data:`SCALE_SAMPLES` of the depths ``depth`` (H, W) [m] of a window, an even subsample (every depth
+    of a small map), for :func:`run_scale`.
+
+    >>> depth_sample(np.ones((480, 640), np.float32)).shape
+    (4096,)
+    """
+    flat = depth.ravel()
+    return flat[::-(-flat.size // SCALE_SAMPLES)]
 
 
 def run_scale(samples: list[np.ndarray], depth_range: tuple[float, float] | None):
@@ -604,7 +616,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                    t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
                    depth_range: tuple[float, float] | None = None, batch: int | None = None, progress: bool = True,
                    note: Callable[[str], None] | None = None, overwrite: bool = False,
-                   device: str = "cpu") -> DepthRun:
+                   device: str = "cpu", resume: bool = False) -> DepthRun:
     """Predict depth and twist for every window of the event file ``path`` into the folder ``out``.
 
     Parameters
@@ -645,6 +657,14 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         ``summary.json``, or those of a ``cmax fit`` / ``cmax emvs`` run); without it such a folder is refused,
         as its windows would mix with this run's. Other files in ``out`` are never touched.
         The earlier results stay as they are until this run has succeeded.
+    resume : bool
+        Continue an interrupted run into ``out``: each finished block of windows (one forward pass) is kept in
+        ``out/.depth.windows`` as it is done (:mod:`learned.kept_windows`); with ``resume`` the blocks of a run
+        with the same file, checkpoint and options are taken after their files are checked, and the others
+        predicted, in the same blocks (the results equal an uninterrupted run's). Another run's blocks are
+        refused (ValueError naming what differs); without ``resume`` or ``overwrite`` a folder holding them is
+        refused (FileExistsError); ``overwrite`` alone drops them. With both, the interrupted run is continued
+        and an earlier complete run's results in ``out`` are replaced once it succeeds.
 
     The run holds ``out`` from its first look at it to its end (the lock ``out/.results.lock``,
     :data:`FOLDER_LOCK`, :func:`cmax.io.run_folder.staged_run`): a second run into the same folder meanwhile, or
@@ -673,18 +693,20 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                               "twists.csv, summary.json)")
     with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=overwrite,
                                what="window_*.npz, twists.csv, ...") as stage:
-        run = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
-                            distortion=distortion, size=size, time_unit=time_unit, polarity=polarity, sort=sort,
-                            camera=camera,
-                            t0_s=t0_s, t1_s=t1_s, window_s=window_s, depth_range=depth_range, batch=batch,
-                            progress=progress, note=note, device=device)
+        run, kept = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
+                                  distortion=distortion, size=size, time_unit=time_unit, polarity=polarity,
+                                  sort=sort, camera=camera, t0_s=t0_s, t1_s=t1_s, window_s=window_s,
+                                  depth_range=depth_range, batch=batch, progress=progress, note=note, device=device,
+                                  resume=resume, overwrite=overwrite)
+    kept.remove()   # the results are in out: the finished blocks are no longer needed
     return replace(run, seconds=time.perf_counter() - started, output=out)
 
 
 def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_camera, distortion, size,
                   time_unit, polarity, sort, camera, t0_s, t1_s, window_s, depth_range, batch, progress, note,
-                  device) -> DepthRun:
-    """:func:`run_prediction`'s work, every result written into the empty folder ``stage``."""
+                  device, resume, overwrite) -> tuple[DepthRun, KeptBlocks]:
+    """:func:`run_prediction`'s work, every result written into the empty folder ``stage`` (each block of windows
+    kept as it is done, :class:`learned.kept_windows.KeptBlocks`, returned too)."""
     from tqdm.auto import tqdm
 
     from cmax import viz
@@ -745,20 +767,42 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
             notes.append(other)
         for text in notes:
             note(text)
+        kept = KeptBlocks(stage.parent, _run_record(path, checkpoint, calib, K, distortion, size, time_unit,
+                                                    polarity, sort, camera, t0_s, t1_s, window_us, len(starts), batch,
+                                                    device), resume=resume, overwrite=overwrite)
         lines, skipped, samples, indices = [_CSV_HEADER], 0, [], []
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
-            for prediction in predict_windows(model, recording.window, starts, window_us, batch=batch,
-                                              transform=undistort, source=str(checkpoint)):
-                bar.update(1)
-                if prediction is None:
-                    skipped += 1
+            for first in range(0, len(starts), batch):   # one forward pass each, kept once all its windows are
+                block = starts[first:first + batch]
+                done = kept.load(first)
+                if done is None:
+                    done = ([], [], 0)
+                    for prediction in predict_windows(model, recording.window, block, window_us, batch=batch,
+                                                      transform=undistort, source=str(checkpoint), offset=first):
+                        bar.update(1)
+                        if prediction is None:
+                            done = (done[0], done[1], done[2] + 1)
+                        else:
+                            line, sample = write_window(stage, prediction, K)
+                            done[0].append(prediction.index)
+                            done[1].append(line)
+                            samples.append(sample)
+                    kept.save(first, *done, stage)
                 else:
-                    line, sample = write_window(stage, prediction, K)
-                    lines.append(line)
-                    samples.append(sample)
-                    indices.append(prediction.index)
+                    bar.update(len(block))
+                    for index in done[0]:
+                        kept.place(index, stage)
+                        samples.append(depth_sample(kept.sample_of(index)))
+                indices += done[0]
+                lines += done[1]
+                skipped += done[2]
     finally:
         recording.close()
+    if kept.resumed or kept.unverified:
+        redone = f"; {kept.unverified} block(s) not verified, predicted again" if kept.unverified else ""
+        note(f"resumed: {kept.resumed} of {len(indices)} windows taken from the interrupted run in "
+             f"{stage.parent} (same file, checkpoint and options){redone}")
+        notes.append(f"resumed: {kept.resumed} windows taken from the interrupted run{redone}")
     written = len(lines) - 1
     if not written:
         raise ValueError(f"{path}: none of its {len(starts)} windows of {window_us * 1e-3:g} ms holds "
@@ -782,7 +826,23 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                "windows_total": len(starts), "windows": written, "skipped": skipped, "min_events": MIN_EVENTS,
                "notes": list(notes), "device": str(device), "seconds": run.seconds, "units": SUMMARY_UNITS}
     write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2) + "\n")
-    return run
+    return run, kept
+
+
+def _run_record(path, checkpoint, calib, K, distortion, size, time_unit, polarity, sort, camera, t0_s, t1_s,
+                window_us: int, windows: int, batch: int, device) -> dict:
+    """What a run of :func:`run_prediction` is, for ``resume`` to check: the event file's, the checkpoint's and
+    the calibration's signatures (size, modification time) and every option that changes a window, with the
+    resolved window length [µs], number of windows and batch (the blocks of the forward passes)."""
+    import cmax
+    from cmax.io.window_store import code_digest, file_signature, settings_record
+
+    return {"cmax": cmax.__version__, "code": code_digest("cmax", "learned"), "file": file_signature(path), "checkpoint": file_signature(checkpoint),
+            "calib": file_signature(calib),
+            "settings": settings_record({"K": K, "distortion": distortion, "size": size, "time_unit": time_unit,
+                                         "polarity": polarity, "sort": sort, "camera": camera, "t0_s": t0_s,
+                                         "t1_s": t1_s, "window_us": window_us, "windows": windows, "batch": batch,
+                                         "device": str(device)})}
 
 
 def predict_file(checkpoint: str | Path | None, path: str | Path, out: str | Path, *, K: np.ndarray | None = None,
@@ -821,20 +881,36 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the results of an earlier run in the output folder (else refused)")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue an interrupted run into the output folder: its finished blocks of windows "
+                             "(kept in .depth.windows as each is done) are checked (the same event file, checkpoint "
+                             "and options) and taken, the others predicted (default: off; a folder holding an "
+                             "interrupted run's windows is refused without --resume or --overwrite; with "
+                             "--overwrite too, an earlier complete run's results are replaced at the end)")
     return parser
 
 
 def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> int:
     """Run the command of :func:`add_arguments`' options (``args``, as parsed); prints notes on stderr, prefixed
     by ``label``, and the summary line."""
-    result = run_prediction(
-        args.file, args.output, checkpoint=args.checkpoint, K=args.K, calib=args.calib,
-        calib_camera=args.calib_camera, distortion=args.distortion, size=args.size, time_unit=args.time_unit,
-        polarity=args.polarity, sort=args.sort, camera=args.camera,
-        t0_s=args.t0, t1_s=args.t1, window_s=args.window,
-        depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
-        progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),
-        overwrite=args.overwrite, device=args.device)
+    try:
+        result = run_prediction(
+            args.file, args.output, checkpoint=args.checkpoint, K=args.K, calib=args.calib,
+            calib_camera=args.calib_camera, distortion=args.distortion, size=args.size, time_unit=args.time_unit,
+            polarity=args.polarity, sort=args.sort, camera=args.camera,
+            t0_s=args.t0, t1_s=args.t1, window_s=args.window,
+            depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
+            progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),
+            overwrite=args.overwrite, device=args.device, resume=args.resume)
+    except KeyboardInterrupt as stop:   # Ctrl-C, or SIGTERM (cmax._signals): say what is kept
+        from cmax.io.window_store import stopped_line
+        from learned.kept_windows import kept_windows
+
+        if not (kept := kept_windows(args.output)):
+            raise
+        line, status = stopped_line(label, stop, kept, Path(args.output) / KEPT_FOLDER)
+        print(line, file=sys.stderr)
+        return status
     print(result.summary_line())
     return 0
 

@@ -33,10 +33,12 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
                                 read_calibrated, tail_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
+from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, code_digest, file_signature, interrupted_windows,
+                                  settings_record, stopped_line)
 
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
-           "hot_pixel_note", "option_words", "run", "tum_lines", "unscaled_range_note", "undistorted_events",
-           "verdict_counts", "window_line"]
+           "hot_pixel_note", "option_words", "run", "run_record", "tum_lines", "unscaled_range_note",
+           "undistorted_events", "verdict_counts", "window_line"]
 
 #: A run's private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
 _STAGE_PREFIX = "fit"
@@ -114,6 +116,12 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the results of an earlier run in -o (else refused: its windows would mix with "
                              "this run's); they stay until this run has written all of its own")
+    parser.add_argument("--resume", action="store_true",
+                        help="continue an interrupted run into -o: its finished windows (kept in -o/.fit.windows as "
+                             "each is done) are checked (the same event file by size and modification time, the "
+                             "same options) and taken, the others fitted (default: off; a folder holding an "
+                             "interrupted run's windows is refused without --resume or --overwrite; with "
+                             "--overwrite too, an earlier complete run's results in -o are replaced at the end)")
     parser.add_argument("--keep-hot-pixels", action="store_true",
                         help="fit every event; by default the events of hot pixels (far more events than the scene's "
                              "edges give any pixel, or firing alone at a steady rate: a defect; or locked to a 100/120 "
@@ -213,7 +221,7 @@ def _depth_scale(results) -> "object":
     at 0.5-5 m in one colour."""
     from cmax import viz
 
-    maps = [np.where(r.mask, r.depth, np.nan) for r in results if r.depth is not None]
+    maps = [r.depth[r.mask] for r in results if r.depth is not None]   # the depths on the masks: all it needs
     try:
         return viz.DepthScale.from_depths(maps) if maps else None
     except ValueError:  # no window holds a depth on its mask
@@ -478,20 +486,49 @@ def run(args: argparse.Namespace) -> int:
     window_us = (_sequence_default("window_us")() if args.window_ms is None
                  else _microseconds(args.window_ms, "--window-ms"))
     step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
-    with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
-                               what="depth_*.npz, summary.json, ...") as stage:
-        return _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
-                         min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
-                         notes=notes)
+    try:
+        with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
+                                   what="depth_*.npz, summary.json, ...") as stage:
+            store = WindowStore(out, run_record(args), resume=args.resume, overwrite=args.overwrite)
+            status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
+                               min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
+                               notes=notes, store=store)
+    except KeyboardInterrupt as stop:   # Ctrl-C, or SIGTERM (cmax._signals): say what is kept
+        if not (kept := interrupted_windows(out)):
+            raise
+        line, status = stopped_line("cmax fit", stop, kept, out / WINDOWS_FOLDER)
+        print(line, file=sys.stderr)
+        return status
+    store.remove()   # the results are in out: the finished windows are no longer needed
+    return status
+
+
+#: The options of ``cmax fit`` that change no result: left out of :func:`run_record`.
+_NOT_RESULTS = ("command", "output", "quiet", "overwrite", "resume", "run", "jobs")
+
+
+def run_record(args: argparse.Namespace) -> dict:
+    """What a run of ``cmax fit`` is, for ``--resume`` to check (:class:`cmax.io.window_store.WindowStore`): the
+    signatures (size, modification time) of the event file and of ``--calib`` / ``--gyro``, the version of
+    cmax and a digest of its code, and every option that changes a window's fit (``args``, the parsed options; ``--jobs`` only as
+    whether the windows are warm-started, ``jobs == 1``)."""
+    import cmax
+
+    settings = {key: value for key, value in vars(args).items() if key not in _NOT_RESULTS}
+    settings["warm_start"] = args.jobs == 1
+    return {"cmax": cmax.__version__, "code": code_digest("cmax"), "file": file_signature(args.file),
+            "calib": file_signature(args.calib),
+            "gyro": file_signature(args.gyro), "settings": settings_record(settings)}
 
 
 def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_model: str, options: dict,
               settings, min_events: int, depth_grid: tuple[int, int], window_us: int, step_us: int,
-              notes: list[str]) -> int:
+              notes: list[str], store: WindowStore) -> int:
     """:func:`run`'s work once the options are checked (``options``, the keywords of :func:`cmax.fit_sequence`;
     ``settings``, the :class:`cmax.FitSettings` they make; ``notes``, :func:`run`'s notes to print and record):
-    read, fit, and write every result into the empty folder ``stage`` (moved into ``out`` by :func:`run`); returns
-    the exit status."""
+    read, fit, and write every result into the empty folder ``stage`` (moved into ``out`` by :func:`run`), each
+    window's fit kept in ``store`` as it is done (and taken from it when an interrupted run left it); returns the
+    exit status."""
     from tqdm.auto import tqdm
 
     from cmax import viz
@@ -589,18 +626,24 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
             sequence = fit_sequence(source, K, sequence_model, window_us=window_us, step_us=step_us,
                                     speed=args.speed, gyro=gyro, zero_rotation_start=args.zero_rotation_start,
                                     jobs=args.jobs, min_events=min_events,
-                                    progress=args.jobs > 1 and not args.quiet, **options)
+                                    progress=args.jobs > 1 and not args.quiet, store=store, **options)
     finally:
         if args.jobs == 1:
             source.finish()
         if isinstance(events, StreamedEvents):
             events.close()
+    if store.resumed or store.unreadable:
+        redone = f"; {store.unreadable} unreadable window file(s) fitted again" if store.unreadable else ""
+        notes.append(f"resumed: {store.resumed} of {len(sequence.results)} fitted windows taken from the "
+                     f"interrupted run in {out} (same file and options){redone}")
+        print(f"cmax fit: note: {notes[-1]}", file=sys.stderr)
     warned = grouped_warnings(caught)
     for line in warned:
         print(f"cmax fit: warning: {option_words(line['text'])}", file=sys.stderr)
     windows = []
-    scale = _depth_scale(sequence.results)
+    scale = _depth_scale(store.maps(i, r) for i, r in enumerate(sequence.results))
     for i, r in enumerate(sequence.results):
+        r = store.maps(i, r)      # one window's maps in memory at a time
         if r.depth is not None:
             save_npz_atomic(stage / f"depth_{i:05d}.npz", depth=r.depth, mask=r.mask, depth_spread=r.depth_spread,
                             inverse_depth_grid=r.inverse_depth_grid, t_ref_us=r.t_ref_us, K=K)

@@ -205,26 +205,30 @@ def check_options(model: str, options: dict, workers: int) -> None:
 
 
 def run_tasks(tasks: Iterable[FitTask], jobs: int, *, total: int | None = None, progress: bool = False,
-              desc: str = "windows") -> list[FitResult]:
+              desc: str = "windows", on_result=None) -> list[FitResult]:
     """Run fit tasks (an iterable, consumed lazily) on ``jobs`` workers (1: in this process).
 
     The core of :func:`fit_windows` and of ``fit_sequence(jobs=)``; the tasks are trusted (checked by
-    the caller), ``total`` only sizes the progress bar. Returns the results sorted by
-    ``FitTask.index``; raises :class:`WindowFitError` on the first task whose fit raised; re-issues
-    the fits' warnings in index order.
+    the caller), ``total`` only sizes the progress bar. ``on_result(index, result, caught)``, when given, is
+    called in this process as each fit finishes (``caught``: its warnings, ``((category, message), ...)``) and
+    returns the result to keep in its place (e.g. one whose large maps were written to a file); the warnings are
+    then the caller's to issue. Returns the results sorted by ``FitTask.index``; raises :class:`WindowFitError`
+    on the first task whose fit raised; without ``on_result``, re-issues the fits' warnings in index order.
     """
     done: dict[int, tuple[FitResult, tuple]] = {}
+    keep = (lambda index, outcome: outcome) if on_result is None else \
+        (lambda index, outcome: (on_result(index, *outcome), outcome[1]))
     with tqdm(total=total, desc=desc, unit="window", disable=not progress) as bar:
         if jobs == 1:
             for task in tasks:
-                done[task.index] = _guarded(task)
+                done[task.index] = keep(task.index, _guarded(task))
                 bar.update(1)
         else:
             with closing(_in_workers(tasks, jobs)) as outcomes:
                 for index, outcome in outcomes:
-                    done[index] = outcome
+                    done[index] = keep(index, outcome)
                     bar.update(1)
-    for index in sorted(done):
+    for index in sorted(done) if on_result is None else ():
         reissue(f"window {index}", done[index][1], stacklevel=3)
     return [done[index][0] for index in sorted(done)]
 

@@ -110,7 +110,7 @@ def window_gyro(gyro: tuple[np.ndarray, np.ndarray], t0_us: int, t1_us: int) -> 
 def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_500, step_us: int | None = None,
                  speed: float | None = None, gyro: object = None, min_events: int = 1000,
                  jobs: int | None = 1, warm_start: bool | None = None, progress: bool = False,
-                 **fit_options) -> SequenceResult:
+                 store=None, **fit_options) -> SequenceResult:
     """Fit consecutive windows of a recording, warm-starting each from the previous (or all of them in
     parallel, cold); resolve the ambiguous windows from their neighbours; smooth the motion across windows.
 
@@ -154,6 +154,15 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         too. What a warm start changes in accuracy and time on held-out windows: ``docs/fitting.md``.
     progress : bool
         A progress bar over the windows.
+    store : object, optional
+        Keeps each window's first fit as soon as it is done and gives back those of an earlier, interrupted run
+        (``cmax fit``: :class:`cmax.io.window_store.WindowStore`). ``store.load(index, start_us)`` returns
+        ``(result, caught)`` for the fitted window ``index`` whose window starts at ``start_us`` [µs] when it is
+        already done (``caught``: its warnings, ``((category, message), ...)``, issued again), else None: that
+        window is fitted. ``store.save(index, start_us, result, caught)`` is called with each new fit and returns
+        the result to keep in memory in its place. The resolution of ambiguous windows and the smoothing run
+        after all windows, on the kept results, as without a store; a warm start takes the loaded fit of the
+        window before. Default None: nothing is kept outside memory.
     **fit_options
         Passed to :func:`fit`: ``settings=`` or fields of :class:`FitSettings` as keywords (not both),
         ``solver``, ``depth_grid``, ``num_threads``. ``pose``, ``omega`` and ``init`` are set per window
@@ -248,30 +257,52 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         _check_gyro_covers(gyro, t_start, starts[-1] + window_us - 1)
     steps, times = [], [t_start]                # steps: the index of the result each step moves with
     skipped: list[int] = []
+    loaded: dict[int, tuple[FitResult, tuple]] = {}   # the windows the store already holds
+    window_start: dict[int, int] = {}
 
     def tasks():                                 # taken one by one as the fits need them
         fitted = 0
         for t0 in starts.tolist():
             events = take(t0, t0 + window_us)
             if len(events) >= min_events and events.t[-1] > events.t[0]:
-                omega = None if gyro is None else window_gyro(gyro, int(events.t[0]), int(events.t[-1]))
-                yield FitTask(fitted, events, K, model, dict(speed=speed, omega=omega, settings=settings,
-                                                              **fit_options))
+                window_start[fitted] = t0
+                if store is not None and (done := store.load(fitted, t0)) is not None:
+                    loaded[fitted] = done
+                else:
+                    omega = None if gyro is None else window_gyro(gyro, int(events.t[0]), int(events.t[-1]))
+                    yield FitTask(fitted, events, K, model, dict(speed=speed, omega=omega, settings=settings,
+                                                                  **fit_options))
                 fitted += 1
             else:
                 skipped.append(t0)
             steps.append(fitted - 1)
             times.append(t0 + step_us)
 
+    caught_of: dict[int, tuple] = {}
+
+    def kept(index: int, result: FitResult, caught: tuple) -> FitResult:
+        caught_of[index] = caught
+        return result if store is None else store.save(index, window_start[index], result, caught)
+
     if jobs == 1:
-        results, previous = [], None
+        fitted, first = {}, {}                   # first: each window's fit as it came, the warm start of the next
         for task in tqdm(tasks(), desc="windows", unit="window", total=len(starts), disable=not progress):
+            previous = first.get(task.index - 1, loaded.get(task.index - 1, (None,))[0])
             start = previous if warm_start else None
-            previous, caught = recorded(lambda: fit(task.events, task.K, task.model, init=start, **task.options))
-            reissue(f"window {task.index}", caught, stacklevel=2)     # naming the window, as jobs > 1 does
-            results.append(previous)
+            first[task.index], caught = recorded(lambda: fit(task.events, task.K, task.model, init=start,
+                                                             **task.options))
+            fitted[task.index] = (kept(task.index, first[task.index], caught), caught)
+            first.pop(task.index - 1, None)      # only the window before is needed in full
     else:
-        results = run_tasks(tasks(), min(jobs, max(1, len(starts))), total=len(starts), progress=progress)
+        indices = []
+        listed = (indices.append(task.index) or task for task in tasks())
+        fitted = dict(zip(indices, run_tasks(listed, min(jobs, max(1, len(starts))), total=len(starts),
+                                             progress=progress, on_result=kept)))
+        fitted = {index: (result, caught_of[index]) for index, result in fitted.items()}
+    done = {**loaded, **fitted}
+    results = [done[index][0] for index in sorted(done)]
+    for index in sorted(done):                   # in window order, each naming its window
+        reissue(f"window {index}", done[index][1], stacklevel=2)
     if not results:
         why = (f"the recording ({(t_end - t_start + 1) * 1e-3:.1f} ms) is shorter than one window "
                f"({window_us * 1e-3:.1f} ms); pass a shorter window_us" if not len(starts) else

@@ -1,0 +1,310 @@
+"""The windows a long ``cmax fit`` has finished, kept on disk as it goes, so that a killed run loses at most the
+window it was fitting and ``cmax fit --resume`` continues it.
+
+The folder ``-o/.fit.windows/`` holds ``run.json`` (what the run is: the event file's signature, the other input
+files' and every setting that changes a fit; written with the first window) and one file per finished window,
+``window_<index>.pickle``: the window's first fit (:class:`cmax.FitResult`, before the resolution and the smoothing
+across windows, which run again over all windows) and its warnings. Each file is written atomically
+(:func:`cmax.io.atomic.write_bytes_atomic`: private temporary file, fsync, rename), so a file of that name is
+complete; each also records the run's digest and the window's start, and is read back with an unpickler that
+builds only the project's result classes and numpy arrays (a planted file runs no code).
+
+A resumed run takes a window only when ``run.json`` matches the new run (the same event file by size and
+modification time, the same settings: else the run is refused, naming what differs) and the window's file names
+the same run and window start; a window file that cannot be read is fitted again. The folder is removed once the
+run's results are in ``-o`` (``summary.json`` is the record of completion, :mod:`cmax.io.run_folder`).
+"""
+from __future__ import annotations
+
+import dataclasses
+import enum
+import hashlib
+import io
+import json
+import os
+import pickle
+import re
+import shutil
+from pathlib import Path
+from typing import Any
+
+import numpy as np
+
+from cmax.io.atomic import fsync_folder, write_bytes_atomic, write_text_atomic
+
+__all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "settings_record", "open_kept",
+           "write_run_record", "stopped_line", "code_digest"]
+
+#: The folder in ``-o`` that holds the finished windows of a run of ``cmax fit`` until its results are in.
+WINDOWS_FOLDER = ".fit.windows"
+_RUN_FILE = "run.json"
+_WINDOW_NAME = re.compile(r"window_(\d{5,})\.pickle")
+#: The maps of a :class:`cmax.FitResult` (H, W) kept on disk, not in memory, once the window is saved.
+_MAPS = ("depth", "mask", "depth_spread", "iwe_before", "iwe_after")
+
+
+def interrupted_windows(out: str | os.PathLike) -> int:
+    """How many finished windows an interrupted ``cmax fit`` left in the folder ``out`` (0 when none).
+
+    Parameters
+    ----------
+    out : path
+        The run's output folder (``-o``).
+    """
+    folder = Path(out) / WINDOWS_FOLDER
+    return sum(1 for path in folder.iterdir() if _WINDOW_NAME.fullmatch(path.name)) if folder.is_dir() else 0
+
+
+class _ResultUnpickler(pickle.Unpickler):
+    """Builds the classes a window file holds and nothing else: the dataclasses and enums of ``cmax.fitting``,
+    numpy arrays and dtypes."""
+
+    _NUMPY = {("numpy", "dtype"), ("numpy", "ndarray"), ("numpy._core.numeric", "_frombuffer"),
+              ("numpy.core.numeric", "_frombuffer"), ("numpy._core.multiarray", "_reconstruct"),
+              ("numpy.core.multiarray", "_reconstruct"), ("numpy._core.multiarray", "scalar"),
+              ("numpy.core.multiarray", "scalar")}
+
+    def find_class(self, module: str, name: str) -> Any:
+        if (module, name) in self._NUMPY:
+            return super().find_class(module, name)
+        if module.startswith("cmax.fitting."):
+            found = super().find_class(module, name)
+            if isinstance(found, type) and (dataclasses.is_dataclass(found) or issubclass(found, enum.Enum)):
+                return found
+        raise pickle.UnpicklingError(f"a window file may not build {module}.{name}")
+
+
+def _digest(run: dict) -> str:
+    return hashlib.sha256(json.dumps(run, sort_keys=True).encode()).hexdigest()
+
+
+def _differences(recorded: dict, now: dict) -> list[str]:
+    """What differs between two ``run.json`` records, in words (empty when they match)."""
+    found = []
+    for key in sorted(set(recorded) | set(now)):
+        before, after = recorded.get(key), now.get(key)
+        if isinstance(before, dict) and isinstance(after, dict) and "mtime_ns" in after:
+            name = Path(str(after.get("path"))).name
+            if before.get("bytes") != after.get("bytes"):
+                found.append(f"{name} has {after.get('bytes')} bytes, it had {before.get('bytes')}")
+            elif before.get("mtime_ns") != after.get("mtime_ns"):
+                found.append(f"{name} was modified since (mtime {after.get('mtime_ns')} ns, was "
+                             f"{before.get('mtime_ns')} ns)")
+        elif key == "settings" and isinstance(before, dict) and isinstance(after, dict):
+            found += [f"{name} was {before.get(name)!r}, now {after.get(name)!r}"
+                      for name in sorted(set(before) | set(after)) if before.get(name) != after.get(name)]
+        elif key == "code" and before != after:
+            found.append("the code of cmax (or learned) changed since those windows were computed (another version, "
+                         "or an edited install)")
+        elif before != after:
+            found.append(f"{key} was {before!r}, now {after!r}")
+    return found
+
+
+def open_kept(folder: Path, run: dict, *, found: int, resume: bool, overwrite: bool, command: str) -> None:
+    """Check the folder of an interrupted run's finished windows (``folder``: ``-o/.fit.windows``,
+    ``-o/.depth.windows``) against the new ``run`` (JSON-ready, as ``folder/run.json`` records it); ``found``: how
+    many finished windows it holds. The folder is removed when it holds none (a ``run.json`` alone) or with
+    ``overwrite`` alone; kept when ``resume`` (with or without ``overwrite``, which is then about an earlier complete
+    run's results) and the runs match. ``command`` names the command in messages.
+
+    Raises
+    ------
+    FileExistsError
+        It holds windows and neither ``resume`` nor ``overwrite`` is set.
+    ValueError
+        ``resume``, and ``run.json`` is unreadable or records another run (each difference named).
+    """
+    out = folder.parent
+    if folder.exists() and (not found or (overwrite and not resume)):
+        shutil.rmtree(folder)
+    elif found and not resume:
+        raise FileExistsError(f"{out} holds {found} finished window(s) of an interrupted {command}: --resume "
+                              "continues that run, --overwrite starts over")
+    elif found:
+        try:
+            recorded = json.loads((folder / _RUN_FILE).read_text())
+        except (OSError, ValueError):
+            recorded = None
+        if not isinstance(recorded, dict):
+            raise ValueError(f"cannot --resume: {folder / _RUN_FILE} is missing or unreadable, so the finished "
+                             "windows cannot be checked: --overwrite starts over")
+        if differences := _differences(recorded, run):
+            raise ValueError(f"cannot --resume the run in {out}: it was another run (" + "; ".join(differences)
+                             + "): give the same file and options, or --overwrite to start over")
+
+
+def write_run_record(folder: Path, run: dict) -> None:
+    """Create ``folder`` and write ``folder/run.json`` (``run``, JSON-ready) atomically, unless it is there."""
+    if not (folder / _RUN_FILE).is_file():
+        folder.mkdir(exist_ok=True)
+        write_text_atomic(folder / _RUN_FILE, json.dumps(run, indent=2, sort_keys=True))
+
+
+class WindowStore:
+    """The finished windows of one ``cmax fit`` run in ``out/.fit.windows`` (the ``store`` of
+    :func:`cmax.fit_sequence`). Open it holding ``out``'s lock (:func:`cmax.io.run_folder.staged_run`).
+
+    Parameters
+    ----------
+    out : path
+        The run's output folder (``-o``).
+    run : dict
+        What the run is, JSON-ready: ``{"file": signature, ..., "settings": {...}}`` (a signature as
+        :func:`cmax.sim.signature.source_signature` gives it; compared by size and modification time).
+    resume : bool
+        Take the windows an interrupted run with the same ``run`` left (else they are an error).
+    overwrite : bool
+        Without ``resume``: remove the windows an interrupted run left and start over.
+
+    Raises
+    ------
+    FileExistsError
+        ``out`` holds windows of an interrupted run and neither ``resume`` nor ``overwrite`` is set.
+    ValueError
+        ``resume``, and the interrupted run was another (another event file, or other settings): the message
+        names each difference.
+    """
+
+    def __init__(self, out: str | os.PathLike, run: dict, *, resume: bool, overwrite: bool) -> None:
+        self.folder = Path(out) / WINDOWS_FOLDER
+        self.run, self.digest = run, _digest(run)
+        self.resumed = self.unreadable = 0
+        self._with_maps: set[int] = set()
+        open_kept(self.folder, run, found=interrupted_windows(out), resume=resume, overwrite=overwrite,
+                  command="cmax fit")
+
+    def _path(self, index: int) -> Path:
+        return self.folder / f"window_{index:05d}.pickle"
+
+    def _read(self, index: int, start_us: int):
+        """The saved ``(result, caught)`` of window ``index`` (None: not saved, another window's, or unreadable)."""
+        path = self._path(index)
+        try:
+            data = path.read_bytes()
+        except FileNotFoundError:
+            return None
+        try:
+            record = _ResultUnpickler(io.BytesIO(data)).load()
+            if record["run"] != self.digest or record["start_us"] != start_us:
+                raise ValueError("another run's window")
+            return record["result"], tuple(tuple(item) for item in record["caught"])
+        except Exception:   # a damaged or foreign file: the window is fitted again
+            self.unreadable += 1
+            return None
+
+    def load(self, index: int, start_us: int):
+        """``(result, caught)`` of the finished window ``index`` starting at ``start_us`` [µs], its maps left on
+        disk (see :meth:`save`), or None when it is not finished."""
+        record = self._read(index, start_us)
+        if record is None:
+            return None
+        self.resumed += 1
+        return self._slim(index, record[0]), record[1]
+
+    def save(self, index: int, start_us: int, result, caught: tuple):
+        """Write the finished window ``index`` (starting at ``start_us`` [µs]) with its warnings ``caught``;
+        returns ``result`` without its (H, W) maps (``depth``, ``mask``, ``depth_spread``, ``iwe_before``,
+        ``iwe_after`` set to None; :meth:`maps` reads them back), so that a long run's memory does not grow
+        with them."""
+        record = {"run": self.digest, "start_us": int(start_us), "result": result, "caught": tuple(caught)}
+        try:
+            write_run_record(self.folder, self.run)      # with the first window: what the run is
+            write_bytes_atomic(self._path(index), pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL))
+        except BaseException:   # a full disk: a folder without a window is no interrupted run to resume
+            if not interrupted_windows(self.folder.parent):
+                shutil.rmtree(self.folder, ignore_errors=True)
+            raise
+        return self._slim(index, result)
+
+    def _slim(self, index: int, result):
+        if result.depth is not None:
+            self._with_maps.add(index)
+        return dataclasses.replace(result, **{name: None for name in _MAPS})
+
+    def maps(self, index: int, result):
+        """``result`` (a kept result of window ``index``, perhaps re-fitted since) with the maps of its first fit
+        read back when :meth:`save` or :meth:`load` left them out; a result that holds its own maps (a re-fit)
+        is returned as it is."""
+        if result.depth is not None or index not in self._with_maps:
+            return result
+        with open(self._path(index), "rb") as file:
+            first = _ResultUnpickler(file).load()["result"]
+        return dataclasses.replace(result, **{name: getattr(first, name) for name in _MAPS})
+
+    def remove(self) -> None:
+        """Remove the folder (the run's results are in ``out``)."""
+        shutil.rmtree(self.folder, ignore_errors=True)
+        fsync_folder(self.folder.parent)
+
+
+def file_signature(path: str | os.PathLike | None) -> dict | None:
+    """The signature of an input file: ``{"path": resolved path, "files": 1, "bytes": size, "mtime_ns":
+    modification time [ns]}`` (as :func:`cmax.sim.signature.source_signature` gives a video's), or None when
+    ``path`` is None.
+
+    Parameters
+    ----------
+    path : path or None
+        An input file of the run (the events, ``--gyro``, ``--calib``); None as well when it is not a file.
+    """
+    if path is None or not os.path.isfile(path):    # a missing file is for its reader to name
+        return None
+    info = os.stat(path)
+    return {"path": str(Path(path).resolve()), "files": 1, "bytes": info.st_size, "mtime_ns": info.st_mtime_ns}
+
+
+def settings_record(values: dict) -> dict:
+    """``values`` as JSON-ready data: paths as text, tuples and arrays as lists, numpy scalars as numbers.
+
+    Parameters
+    ----------
+    values : dict
+        A command's options by name (``vars(args)``, less what does not change a result).
+    """
+    def plain(value):
+        if isinstance(value, (Path, os.PathLike)):
+            return str(value)
+        if isinstance(value, np.ndarray):
+            return value.tolist()
+        if isinstance(value, (tuple, list)):
+            return [plain(item) for item in value]
+        if isinstance(value, np.generic):
+            return value.item()
+        return value
+
+    return json.loads(json.dumps({key: plain(value) for key, value in values.items()}))
+
+
+def stopped_line(label: str, stop: KeyboardInterrupt, kept: int, folder: Path) -> tuple[str, int]:
+    """The one line and the exit status of a run stopped by Ctrl-C or SIGTERM (``stop``, a
+    :class:`cmax._signals.Terminated` for SIGTERM) that kept ``kept`` finished windows in ``folder``; ``label``:
+    the command's name.
+
+    >>> stopped_line("cmax fit", KeyboardInterrupt(), 3, Path("o/.fit.windows"))
+    ('cmax fit: interrupted: 3 finished window(s) kept in o/.fit.windows: the same command with --resume continues the run', 130)
+    """
+    from cmax._signals import TERMINATED_STATUS, Terminated
+
+    what, status = ("terminated (SIGTERM)", TERMINATED_STATUS) if isinstance(stop, Terminated) else ("interrupted", 130)
+    return (f"{label}: {what}: {kept} finished window(s) kept in {folder}: the same command with --resume continues "
+            "the run", status)
+
+
+def code_digest(*packages: str) -> str:
+    """SHA-256 (hex) of the Python files of the imported ``packages`` (e.g. ``"cmax"``, ``"learned"``), by path and
+    bytes: a resumed run takes windows only from the same code, also where the version number did not change.
+
+    Parameters
+    ----------
+    packages : str
+        Names of imported packages.
+    """
+    import importlib
+
+    digest = hashlib.sha256()
+    for name in packages:
+        root = Path(importlib.import_module(name).__file__).parent
+        for path in sorted(root.rglob("*.py")):
+            digest.update(str(path.relative_to(root.parent)).encode() + b"\0" + path.read_bytes() + b"\0")
+    return digest.hexdigest()

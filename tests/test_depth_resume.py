@@ -1,0 +1,152 @@
+"""A long ``cmax depth`` / ``python -m learned.predict`` keeps each finished block of windows
+(``-o/.depth.windows``) and ``--resume`` continues a killed run, in the same blocks, only after checking that it is
+the same run: the resumed results equal an uninterrupted run's bit for bit; a mismatch is refused."""
+from __future__ import annotations
+
+import os
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import learned.predict as predict
+from cmax.events import Events
+from cmax.io import write_h5
+from learned.kept_windows import KEPT_FOLDER
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    """0.6 s of random events of a 64x48 sensor with gt/K-free intrinsics given by --K: 12 windows of 50 ms."""
+    rng = np.random.default_rng(7)
+    n = 24_000
+    events = Events(rng.integers(0, 64, n), rng.integers(0, 48, n), np.sort(rng.integers(0, 600_000, n)),
+                    rng.integers(0, 2, n), 64, 48)
+    return write_h5(tmp_path_factory.mktemp("depth_resume") / "ev.h5", events)
+
+
+def argv(recording, out, checkpoint, *extra):
+    return [str(recording), "-o", str(out), "--checkpoint", str(checkpoint), "--K", "60,60,32,24", "--quiet",
+            "--batch", "2", *extra]
+
+
+def outputs(out) -> dict:
+    """Every result file's bytes but summary.json's and the pictures' (their bytes hold no extra information)."""
+    return {p.name: (dict(np.load(p)) if p.suffix == ".npz" else p.read_bytes())
+            for p in sorted(out.iterdir()) if p.suffix in (".npz", ".csv")}
+
+
+def assert_same(a: dict, b: dict) -> None:
+    assert a.keys() == b.keys()
+    for name in a:
+        if name.endswith(".npz"):
+            for key in a[name]:
+                np.testing.assert_array_equal(a[name][key], b[name][key], err_msg=f"{name}:{key}")
+        else:
+            assert a[name] == b[name], name
+
+
+def test_an_interrupted_depth_run_resumes_to_the_results_of_an_uninterrupted_one(recording, tiny_checkpoint,
+                                                                                  tmp_path, monkeypatch, capsys):
+    """Interrupted in its third forward pass, a run keeps the two blocks it finished (was: nothing: the private
+    stage is removed by the next run); without --resume the folder is refused in one line; another option is
+    refused naming it; ``--resume`` predicts only the other blocks and every result equals an uninterrupted
+    run's, bit for bit; the kept blocks are removed once the results are in."""
+    whole = tmp_path / "whole"
+    assert predict.main(argv(recording, whole, tiny_checkpoint)) == 0
+    expected = outputs(whole)
+    assert len([name for name in expected if name.endswith(".npz")]) == 12
+
+    real_forward, calls = predict.forward, []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real_forward(*args, **kwargs)
+
+    out = tmp_path / "o"
+    monkeypatch.setattr(predict, "forward", interrupted)
+    capsys.readouterr()
+    assert predict.main(argv(recording, out, tiny_checkpoint)) == 130
+    kept = out / KEPT_FOLDER
+    assert capsys.readouterr().err.strip() == (f"python -m learned.predict: interrupted: 4 finished window(s) kept in "
+                                               f"{kept}: the same command with --resume continues the run")
+    assert sorted(p.name for p in kept.glob("block_*.json")) == ["block_0.json", "block_2.json"]
+    assert not (out / "summary.json").exists()
+    capsys.readouterr()
+    assert predict.main(argv(recording, out, tiny_checkpoint)) == 2
+    err = capsys.readouterr().err
+    assert "4 finished window(s) of an interrupted cmax depth" in err and len(err.strip().splitlines()) == 1
+    assert predict.main(argv(recording, out, tiny_checkpoint, "--resume", "--window", "0.04")) == 2
+    err = capsys.readouterr().err
+    assert "window_us was 50000, now 40000" in err and len(err.strip().splitlines()) == 1
+
+    calls.clear()
+    monkeypatch.setattr(predict, "forward", lambda *a, **k: calls.append(1) or real_forward(*a, **k))
+    assert predict.main(argv(recording, out, tiny_checkpoint, "--resume")) == 0
+    assert len(calls) == 4                       # blocks 4-5, 6-7, 8-9, 10-11
+    assert "resumed: 4 of 12 windows taken" in capsys.readouterr().err
+    assert_same(outputs(out), expected)
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+
+
+def test_a_changed_window_file_is_predicted_again(recording, tiny_checkpoint, tmp_path, monkeypatch, capsys):
+    """A kept window file changed after its block was recorded fails its SHA-256: that block is predicted again,
+    and the results equal an uninterrupted run's."""
+    whole = tmp_path / "whole"
+    assert predict.main(argv(recording, whole, tiny_checkpoint)) == 0
+    real_forward, calls = predict.forward, []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 2:
+            raise KeyboardInterrupt
+        return real_forward(*args, **kwargs)
+
+    out = tmp_path / "o"
+    monkeypatch.setattr(predict, "forward", interrupted)
+    assert predict.main(argv(recording, out, tiny_checkpoint)) == 130
+    damaged = out / KEPT_FOLDER / "window_00001.npz"
+    data = bytearray(damaged.read_bytes())
+    data[-40] ^= 0xFF
+    damaged.write_bytes(bytes(data))
+    monkeypatch.setattr(predict, "forward", real_forward)
+    capsys.readouterr()
+    assert predict.main(argv(recording, out, tiny_checkpoint, "--resume")) == 0
+    assert "1 block(s) not verified, predicted again" in capsys.readouterr().err
+    assert_same(outputs(out), outputs(whole))
+
+
+def test_a_depth_run_killed_at_a_random_block_resumes_to_the_uninterrupted_results(recording, tiny_checkpoint,
+                                                                                    tmp_path):
+    """SIGKILL (no clean-up) once a random number of blocks are kept; ``--resume`` ends with the uninterrupted
+    run's results, bit for bit."""
+    command = [sys.executable, "-m", "learned.predict"]
+    whole = tmp_path / "whole"
+    subprocess.run([*command, *argv(recording, whole, tiny_checkpoint)], check=True, capture_output=True)
+    kill_after = random.Random().randint(1, 4)
+    out = tmp_path / "o"
+    process = subprocess.Popen([*command, *argv(recording, out, tiny_checkpoint)], stdout=subprocess.DEVNULL,
+                               stderr=subprocess.DEVNULL)
+    kept = out / KEPT_FOLDER
+    deadline = time.monotonic() + 120
+    while len(list(kept.glob("block_*.json"))) < kill_after and process.poll() is None \
+            and time.monotonic() < deadline:
+        time.sleep(0.001)
+    if process.poll() is not None:
+        pytest.skip("the run ended before it could be killed (a very fast machine)")
+    process.send_signal(signal.SIGKILL)
+    process.wait(timeout=60)
+    assert not (out / "summary.json").exists()
+    resumed = subprocess.run([*command, *argv(recording, out, tiny_checkpoint, "--resume")], capture_output=True,
+                             text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert "resumed: " in resumed.stderr
+    assert_same(outputs(out), outputs(whole))
+    assert not kept.exists() and not any(p.name.endswith(".lock") for p in out.iterdir())
+    assert os.listdir(out)

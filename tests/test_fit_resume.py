@@ -1,0 +1,280 @@
+"""A long ``cmax fit`` keeps each window it finished (``-o/.fit.windows``) and ``--resume`` continues a killed run
+only after checking that it is the same run: the resumed results equal an uninterrupted run's; a mismatch is
+refused; a damaged or planted window file is fitted again, never executed; kept results hold no (H, W) maps."""
+from __future__ import annotations
+
+import json
+import os
+import pickle
+import random
+import signal
+import subprocess
+import sys
+import time
+
+import numpy as np
+import pytest
+
+import cmax.fitting.sequence as sequence_module
+from cmax.cli import main
+from cmax.events import Events
+from cmax.io import write_h5
+from cmax.io.window_store import WINDOWS_FOLDER, WindowStore
+
+K_OPTION = "60,60,32,24"
+
+
+def noise_events(n: int, span_us: int, seed: int) -> Events:
+    """``n`` events at random pixels of a 64x48 sensor and random times in ``[0, span_us)`` µs."""
+    rng = np.random.default_rng(seed)
+    return Events(rng.integers(0, 64, n), rng.integers(0, 48, n), np.sort(rng.integers(0, span_us, n)),
+                  rng.integers(0, 2, n), 64, 48)
+
+
+def results_of(out) -> dict:
+    """What a run wrote, less the wall-clock seconds and the notes: the trajectory, the windows of the summary,
+    every depth file's arrays."""
+    summary = json.loads((out / "summary.json").read_text())
+    windows = [{key: value for key, value in w.items() if key != "seconds"} for w in summary["windows"]]
+    depths = {path.name: {key: value for key, value in np.load(path).items()} for path in sorted(out.glob("*.npz"))}
+    return {"trajectory": (out / "trajectory.txt").read_text(), "windows": windows, "depths": depths,
+            "warnings": summary["warnings"]}
+
+
+def assert_same(a: dict, b: dict) -> None:
+    assert a["trajectory"] == b["trajectory"] and a["windows"] == b["windows"] and a["warnings"] == b["warnings"]
+    assert a["depths"].keys() == b["depths"].keys()
+    for name in a["depths"]:
+        for key in a["depths"][name]:
+            np.testing.assert_array_equal(a["depths"][name][key], b["depths"][name][key], err_msg=f"{name}:{key}")
+
+
+@pytest.fixture(scope="module")
+def recording(tmp_path_factory):
+    folder = tmp_path_factory.mktemp("resume")
+    return write_h5(folder / "ev.h5", noise_events(3000, 50_000, seed=3))
+
+
+def se3_argv(path, out):
+    return ["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--min-events", "300", "--depth-grid",
+            "6,8", "--window-ms", "12.5"]
+
+
+def test_an_interrupted_se3_run_resumes_to_the_results_of_an_uninterrupted_one(recording, tmp_path, monkeypatch,
+                                                                                capsys):
+    """Interrupted (Ctrl-C) in its third window, a run keeps the two it finished (was: nothing); a rerun without
+    --resume is refused in one line, ``--resume`` fits only the two others, and every result equals an
+    uninterrupted run's; the kept windows are removed once the results are in."""
+    whole = tmp_path / "whole"
+    status = main(se3_argv(recording, whole))     # 1 when every window failed: noise holds no motion
+    expected = results_of(whole)
+    assert len(expected["depths"]) == 4 and not (whole / WINDOWS_FOLDER).exists()
+
+    real_fit, calls = sequence_module.fit, []
+
+    def interrupted_fit(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real_fit(*args, **kwargs)
+
+    out = tmp_path / "o"
+    monkeypatch.setattr(sequence_module, "fit", interrupted_fit)
+    capsys.readouterr()
+    assert main(se3_argv(recording, out)) == 130
+    err = capsys.readouterr().err
+    assert err.strip() == (f"cmax fit: interrupted: 2 finished window(s) kept in {out / WINDOWS_FOLDER}: the same "
+                           "command with --resume continues the run")
+    assert not (out / "summary.json").exists()
+    assert sorted(p.name for p in (out / WINDOWS_FOLDER).glob("window_*")) == ["window_00000.pickle",
+                                                                               "window_00001.pickle"]
+    capsys.readouterr()
+    assert main(se3_argv(recording, out)) == 2
+    err = capsys.readouterr().err
+    assert "2 finished window(s) of an interrupted cmax fit" in err and "--resume" in err
+    assert len(err.strip().splitlines()) == 1
+
+    calls.clear()
+    monkeypatch.setattr(sequence_module, "fit", lambda *a, **k: calls.append(1) or real_fit(*a, **k))
+    assert main([*se3_argv(recording, out), "--resume"]) == status
+    assert len(calls) == 2                                   # windows 2 and 3 (no re-fit: noise is never resolved)
+    assert "resumed: 2 of 4 fitted windows taken" in capsys.readouterr().err
+    assert_same(results_of(out), expected)
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+
+
+def test_resume_refuses_another_run_and_a_changed_file(recording, tmp_path, capsys):
+    """``--resume`` of a folder whose windows come from other options, or from an event file changed since, is
+    refused in one line naming what differs, and the kept windows stay; with --overwrite they are dropped."""
+    path = tmp_path / "ev.h5"
+    path.write_bytes(recording.read_bytes())
+    out = tmp_path / "o"
+    out.mkdir()
+    store = WindowStore(out, {"file": None}, resume=False, overwrite=False)
+    store.folder.mkdir()
+    (store.folder / "window_00000.pickle").write_bytes(b"left by a killed run")
+    argv = se3_argv(path, out)
+    from cmax.cli.fit import run_record
+    from cmax.cli import build_parser
+
+    (store.folder / "run.json").write_text(json.dumps(run_record(build_parser().parse_args([*argv, "--resume"]))))
+    capsys.readouterr()
+    argv_other = [*argv[:-1], "25", "--resume"]
+    assert main(argv_other) == 2
+    err = capsys.readouterr().err
+    assert "window_ms was 12.5, now 25.0" in err and len(err.strip().splitlines()) == 1
+    os.utime(path, ns=(time.time_ns(), time.time_ns() + 10**9))
+    assert main([*argv, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "ev.h5 was modified since" in err and len(err.strip().splitlines()) == 1
+    record = json.loads((store.folder / "run.json").read_text())
+    (store.folder / "run.json").write_text(json.dumps({**record, "code": "0" * 64}))   # windows of other code
+    assert main([*argv, "--resume"]) == 2
+    assert "the code of cmax (or learned) changed" in capsys.readouterr().err
+    assert (store.folder / "window_00000.pickle").exists()
+    main([*argv, "--overwrite"])
+    assert not (out / WINDOWS_FOLDER).exists() and (out / "summary.json").is_file()
+
+
+class _Planted:
+    """A pickle that would run a command when loaded by a plain unpickler."""
+
+    def __init__(self, marker) -> None:
+        self.marker = marker
+
+    def __reduce__(self):
+        return os.system, (f"touch {self.marker}",)
+
+
+def test_a_damaged_or_planted_window_file_is_fitted_again_never_run(recording, tmp_path, capsys):
+    """A window file that is not a window of this run (garbage, or a pickle that would run a command) is fitted
+    again, and nothing in it runs; the results equal an uninterrupted run's."""
+    whole = tmp_path / "whole"
+    status = main(se3_argv(recording, whole))
+    out = tmp_path / "o"
+    from cmax.cli import build_parser
+    from cmax.cli.fit import run_record
+
+    record = run_record(build_parser().parse_args([*se3_argv(recording, out), "--resume"]))
+    out.mkdir()
+    store = WindowStore(out, record, resume=False, overwrite=False)
+    store.folder.mkdir()
+    (store.folder / "run.json").write_text(json.dumps(record))
+    marker = tmp_path / "ran"
+    (store.folder / "window_00000.pickle").write_bytes(pickle.dumps({"run": store.digest, "start_us": 0,
+                                                                      "result": _Planted(marker), "caught": ()}))
+    (store.folder / "window_00001.pickle").write_bytes(b"\x80\x05garbage")
+    capsys.readouterr()
+    assert main([*se3_argv(recording, out), "--resume"]) == status
+    assert not marker.exists()
+    assert "2 unreadable window file(s) fitted again" in capsys.readouterr().err
+    assert_same(results_of(out), results_of(whole))
+
+
+def test_kept_results_hold_no_maps_and_give_them_back(recording, tmp_path):
+    """With a store, the results fit_sequence keeps in memory hold none of the (H, W) maps (was: five per window,
+    about 5 MB at 640x480, for the whole run); :meth:`WindowStore.maps` gives back the same maps as a run
+    without a store."""
+    from cmax.fitting import fit_sequence
+    from cmax.io import read
+
+    events = read(recording)
+    K = np.array([[60.0, 0, 32], [0, 60.0, 24], [0, 0, 1]])
+    options = dict(window_us=12_500, min_events=300, depth_grid=(6, 8))
+    alone = fit_sequence(events, K, "se3", **options)
+    store = WindowStore(tmp_path, {"test": 1}, resume=False, overwrite=False)
+    kept = fit_sequence(events, K, "se3", store=store, **options)
+    assert len(kept.results) == len(alone.results) == 4
+    for i, (a, b) in enumerate(zip(alone.results, kept.results)):
+        assert b.depth is None and b.mask is None and b.iwe_before is None and b.iwe_after is None
+        full = store.maps(i, b)
+        for name in ("depth", "mask", "depth_spread", "iwe_before", "iwe_after"):
+            np.testing.assert_array_equal(getattr(full, name), getattr(a, name))
+        np.testing.assert_array_equal(b.v, a.v)
+
+
+@pytest.mark.parametrize("jobs", ["1", "2"])
+def test_a_run_killed_at_a_random_window_resumes_to_the_uninterrupted_results(tmp_path, jobs):
+    """SIGKILL (no clean-up at all) once a random number of windows are kept: the folder holds no summary.json,
+    and ``--resume`` ends with the uninterrupted run's results, its warnings too (with ``--jobs 2`` as well)."""
+    path = write_h5(tmp_path / "ev.h5", noise_events(6000, 60_000, seed=5))
+    argv = [sys.executable, "-m", "cmax.cli", "fit", str(path), "--K", K_OPTION, "--quiet", "--model", "flow",
+            "--window-ms", "7.5", "--min-events", "300", "--jobs", jobs]
+    whole = tmp_path / "whole"
+    status = subprocess.run([*argv, "-o", str(whole)], capture_output=True).returncode
+    assert status in (0, 1)
+    n = len(json.loads((whole / "summary.json").read_text())["windows"])
+    assert n == 8
+    kill_after = random.Random().randint(1, n - 2)
+    out = tmp_path / "o"
+    process = subprocess.Popen([*argv, "-o", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    kept = out / WINDOWS_FOLDER
+    deadline = time.monotonic() + 120
+    while len(list(kept.glob("window_*.pickle"))) < kill_after and process.poll() is None \
+            and time.monotonic() < deadline:
+        time.sleep(0.001)
+    if process.poll() is not None:
+        pytest.skip("the run ended before it could be killed (a very fast machine)")
+    process.send_signal(signal.SIGKILL)
+    process.wait(timeout=60)
+    assert not (out / "summary.json").exists()
+    done = len(list(kept.glob("window_*.pickle")))
+    assert kill_after <= done < n, (kill_after, done)
+    resumed = subprocess.run([*argv, "-o", str(out), "--resume"], capture_output=True, text=True)
+    assert resumed.returncode == status, resumed.stderr
+    assert f"resumed: {done} of {n} fitted windows" in resumed.stderr
+    assert_same(results_of(out), results_of(whole))
+    assert not kept.exists()
+
+
+def test_a_full_disk_at_the_first_window_is_one_line_and_leaves_no_kept_folder(tmp_path, monkeypatch, capsys):
+    """A window that cannot be written (full disk) stops the run with one line naming the file, exit 2; a kept
+    folder without any window (only run.json) is not left behind to be taken for an interrupted run."""
+    import errno
+
+    import cmax.io.window_store as window_store
+
+    def full(path, data):
+        raise OSError(errno.ENOSPC, f"No space left on device while writing: {path}")
+
+    monkeypatch.setattr(window_store, "write_bytes_atomic", full)
+    path = write_h5(tmp_path / "ev.h5", noise_events(3000, 30_000, seed=5))
+    out = tmp_path / "o"
+    capsys.readouterr()
+    assert main(["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--model", "flow", "--window-ms",
+                 "7.5", "--min-events", "300"]) == 2
+    err = capsys.readouterr().err
+    assert "No space left on device" in err and "window_00000.pickle" in err and len(err.strip().splitlines()) == 1
+    assert not (out / WINDOWS_FOLDER).exists()
+
+
+def test_an_interrupted_overwrite_resumes_over_the_earlier_complete_run(tmp_path, monkeypatch, capsys):
+    """``--overwrite`` of a folder with a complete run, interrupted: the earlier results stay as they were, beside
+    the kept windows; ``--resume`` alone is refused (the earlier results), ``--resume --overwrite`` continues the
+    interrupted run (fitting only the windows it had not finished) and replaces them."""
+    path = write_h5(tmp_path / "ev.h5", noise_events(4000, 40_000, seed=9))
+    out = tmp_path / "o"
+    argv = ["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--model", "flow", "--min-events", "300"]
+    status = main([*argv, "--window-ms", "10"])
+    earlier = (out / "summary.json").read_bytes()
+    real_fit, calls = sequence_module.fit, []
+
+    def interrupted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == 3:
+            raise KeyboardInterrupt
+        return real_fit(*args, **kwargs)
+
+    monkeypatch.setattr(sequence_module, "fit", interrupted)
+    assert main([*argv, "--window-ms", "5", "--overwrite"]) == 130
+    assert (out / "summary.json").read_bytes() == earlier and len(list((out / WINDOWS_FOLDER).glob("*.pickle"))) == 2
+    capsys.readouterr()
+    assert main([*argv, "--window-ms", "5", "--resume"]) == 2
+    assert "holds the results of an earlier run" in capsys.readouterr().err
+    calls.clear()
+    monkeypatch.setattr(sequence_module, "fit", lambda *a, **k: calls.append(1) or real_fit(*a, **k))
+    assert main([*argv, "--window-ms", "5", "--resume", "--overwrite"]) in (0, 1)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["window_ms"] == 5 and len(summary["windows"]) == 8 and len(calls) == 6
+    assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
+    assert status in (0, 1)
