@@ -149,7 +149,7 @@ def test_a_library_warning_is_one_line_and_debug_shows_pythons_format(capsys):
 @pytest.mark.parametrize("argv, message", [
     (["--window", "2"], "--window must be in (0, --duration=0.5], got 2.0"),
     (["--duration", "0.05"], "--window must be in (0, --duration=0.05], got 0.1665"),
-    (["--size", "8x8"], "--size width must be an integer >= 16, got 8"),
+    (["--size", "8x8"], "--size width must be an integer >= 32 (cmax.fit's default depth grid of 24x32 nodes needs a sensor of 32x24 px), got 8"),
     (["-o", "FILE"], "is a file, not a folder: give a folder for the demo's h5 file and report"),
 ])
 def test_demo_refusals_name_the_options(tmp_path, capsys, argv, message):

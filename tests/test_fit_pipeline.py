@@ -403,12 +403,15 @@ def test_sensor_noise_is_never_a_confident_motion(model):
         r = fit(events, NOISE_K, **options)
     assert r.verdict is Verdict.LOW_PARALLAX and "not measured" in r.quality.reason and r.success
     assert r.quality.cause is LowMotionCause.NO_MOTION
-    if model != "se3":   # the permutation test is what catches it: without it the verdict is ok
-        off = FitSettings(quality=QualitySettings(shuffle_test=False))
+    if model != "se3":   # the permutation test is what catches it: without it (and the noise rule) the verdict is ok
+        off = FitSettings(quality=QualitySettings(shuffle_test=False, max_noise_share=1.0))
         r_off = fit(events, NOISE_K, settings=off, **options)
         field = "depth" if model == "depth" else "flow"          # the test judges the fit, it does not change it
         np.testing.assert_array_equal(getattr(r_off, field), getattr(r, field))
         assert r_off.verdict is Verdict.OK and r_off.quality.cause is None
+        if model == "depth":   # the noise rule alone (se3 fits, a pose given too) says it as well: all noise
+            noisy = fit(events, NOISE_K, settings=FitSettings(quality=QualitySettings(shuffle_test=False)), **options)
+            assert noisy.verdict is Verdict.AMBIGUOUS and noisy.quality.noisy and noisy.quality.noise_share > 0.8
         if model == "flow":
             assert r_off.motion_px > 20.0
 

@@ -383,13 +383,14 @@ class CrossFit:
             col = torch.floor(batch.x.detach() / self.block).long()
             row = torch.floor(batch.y.detach() / self.block).long()
             return torch.remainder(col + row, self.folds)
-        counts = torch.bincount(batch.window, minlength=batch.count)
+        counts = torch.zeros(batch.count, dtype=torch.long, device=batch.device).index_add_(
+            0, batch.window, torch.ones_like(batch.window))                   # bincount, also on the meta device
         first = torch.cumsum(counts, 0) - counts
         order = torch.argsort(batch.window, stable=True)
         place = torch.empty_like(order)
         place[order] = torch.arange(len(batch), device=batch.device) - first[batch.window[order]]
         generator = torch.Generator().manual_seed(self.seed)
-        deal = torch.randint(self.folds, (max(int(counts.max()), 1),), generator=generator)
+        deal = torch.randint(self.folds, (max(len(batch), 1),), generator=generator)   # a window's deal: a prefix
         return deal.to(batch.device)[place]
 
 
@@ -423,8 +424,12 @@ HELD_OUT_FLOOR = 0.1
 def _floored(batch: EventWindows, peak: torch.Tensor) -> torch.Tensor:
     """Each event's normaliser ``peak`` (N,), at least :data:`HELD_OUT_FLOOR` times its window's median
     (differentiable in ``peak``, the floor too)."""
-    median = torch.stack([peak[batch.window == k].median() if bool((batch.window == k).any())
-                          else peak.new_zeros(()) for k in range(batch.count)])
+    by_peak = torch.argsort(peak, stable=True)
+    order = by_peak[torch.argsort(batch.window[by_peak], stable=True)]      # by window, then by peak
+    counts = torch.zeros(batch.count, dtype=torch.long, device=peak.device).index_add_(
+        0, batch.window, torch.ones_like(batch.window))
+    lower = torch.cumsum(counts, 0) - counts + (counts - 1).clamp(min=0) // 2  # torch.median's (lower) middle
+    median = torch.where(counts > 0, peak[order][lower.clamp(max=max(peak.numel() - 1, 0))], peak.new_zeros(()))
     floor = (HELD_OUT_FLOOR * median).clamp(min=1e-12)[batch.window]
     return torch.maximum(peak, floor)
 

@@ -183,7 +183,7 @@ def _mp4_boxes(data: bytes, start: int, end: int) -> Iterator[tuple[bytes, int, 
     """``(type, payload start, box end)`` of the ISO base media boxes in ``data[start:end]``, in order; stops at a
     box whose size does not fit (a truncated or foreign file).
 
-    >>> list(_mp4_boxes(b"\\x00\\x00\\x00\\x0cstts\\x00\\x00\\x00\\x00", 0, 12))
+    >>> list(_mp4_boxes((12).to_bytes(4, "big") + b"stts" + bytes(4), 0, 12))
     [(b'stts', 8, 12)]
     """
     i = start
