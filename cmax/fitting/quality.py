@@ -496,7 +496,7 @@ def isolated_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, hei
     """
     x, y, keys, order, span = _sorted_events(x, y, t, width, window_us)
     isolated = np.empty(x.size, bool)
-    isolated[order] = _neighbours(keys, x, y, keys, width, height, window_us, radius, span) <= 1   # itself only
+    isolated[order] = _alone(keys, x, y, keys, width, height, window_us, radius, span)
     return isolated
 
 
@@ -514,19 +514,28 @@ def _sorted_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, wind
     return x[order], y[order], keys[order], order, span
 
 
-def _neighbours(keys: np.ndarray, x: np.ndarray, y: np.ndarray, query: np.ndarray, width: int, height: int,
-                window_us: int, radius: int, span: int) -> np.ndarray:
-    """How many of the events of sorted ``keys`` (:func:`_sorted_events`) lie within ``radius`` pixels and
-    ``window_us`` µs of each queried event (its pixel ``x, y`` and key ``query``, (Q,), sorted as the keys:
-    the searches then run in order), itself included: (Q,) int64."""
-    count = np.zeros(query.size, np.int64)
-    for dy in range(-radius, radius + 1):
-        for dx in range(-radius, radius + 1):
-            inside = (x + dx >= 0) & (x + dx < width) & (y + dy >= 0) & (y + dy < height)
-            base = query + (dy * width + dx) * span
-            found = np.searchsorted(keys, base + window_us, "right") - np.searchsorted(keys, base - window_us, "left")
-            count += np.where(inside, found, 0)
-    return count
+def _alone(keys: np.ndarray, x: np.ndarray, y: np.ndarray, query: np.ndarray, width: int, height: int,
+           window_us: int, radius: int, span: int) -> np.ndarray:
+    """Whether each queried event (its pixel ``x, y`` and key ``query``, (Q,), sorted as ``keys``) has no event of
+    the sorted ``keys`` (:func:`_sorted_events`) but itself within ``radius`` pixels and ``window_us`` µs: (Q,) bool.
+    One search per neighbour pixel, the own pixel first, each only for the events still alone: the first key at or
+    after ``t - window_us`` in that pixel lies within ``t + window_us`` exactly when the pixel holds such an event
+    (in the own pixel that event may be the query itself, so the next key is read too)."""
+    alone = np.ones(query.size, bool)
+    offsets = sorted(((dy, dx) for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)),
+                     key=lambda o: abs(o[0]) + abs(o[1]))                  # (0, 0) first: it settles most events
+    last = keys.size - 1
+    for dy, dx in offsets:
+        todo = np.flatnonzero(alone & (x + dx >= 0) & (x + dx < width) & (y + dy >= 0) & (y + dy < height))
+        if not todo.size:
+            continue
+        base = query[todo] + (dy * width + dx) * span
+        first = np.searchsorted(keys, base - window_us, "left")
+        found = (first <= last) & (keys[np.minimum(first, last)] <= base + window_us)
+        if (dy, dx) == (0, 0):                   # the query itself is one of them: a second one is needed
+            found &= (first + 1 <= last) & (keys[np.minimum(first + 1, last)] <= base + window_us)
+        alone[todo[found]] = False
+    return alone
 
 
 def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int, window_us: int,
@@ -580,15 +589,15 @@ def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height:
         if max_queries is not None and keys.size > max_queries:
             tested = np.sort(np.random.default_rng(0).choice(keys.size, max_queries, replace=False))
         scale = keys.size / tested.size                                      # N over the tested events
-        tested = tested[_neighbours(keys, xs[tested], ys[tested], keys[tested], width, height, window_us, radius,
-                                    key_span) <= 1]
+        tested = tested[_alone(keys, xs[tested], ys[tested], keys[tested], width, height, window_us, radius,
+                               key_span)]
     m = tested.size * scale / area_s
     if m * near >= math.exp(-1):
         rate = 1.0 / near
     else:
         low, high = (float(-lambertw(-m * near, k).real) / near for k in (0, -1))
-        far_alone = _neighbours(keys, xs[tested], ys[tested], keys[tested], width, height, window_us, radius + 1,
-                                key_span) <= 1            # alone in the wider square: alone in the narrow one too
+        far_alone = _alone(keys, xs[tested], ys[tested], keys[tested], width, height, window_us, radius + 1,
+                           key_span)                      # alone in the wider square: alone in the narrow one too
         m_far = max(np.count_nonzero(far_alone) * scale, 1) / area_s
         rate = min((low, high), key=lambda r: abs(math.log(max(r * math.exp(-r * far), 1e-300) / m_far)))
     return float(min(1.0, rate * width * height * duration_s / t.size))
