@@ -52,6 +52,24 @@ def one_line_error(call, capsys) -> tuple[int, str]:
     return status, err
 
 
+def counted_calls(monkeypatch, owner, name: str, interrupt_at: int | None = None) -> list:
+    """Replace ``owner.name`` (a function, through ``monkeypatch``) by one that counts its calls and, at call number
+    ``interrupt_at``, raises KeyboardInterrupt (a Ctrl-C in the middle of a run) instead of calling it; returns the
+    list of calls (one item each). Counting again wraps the original function, not an earlier count."""
+    real = getattr(getattr(owner, name), "counted_original", getattr(owner, name))
+    calls: list = []
+
+    def counted(*args, **kwargs):
+        calls.append(1)
+        if len(calls) == interrupt_at:
+            raise KeyboardInterrupt
+        return real(*args, **kwargs)
+
+    counted.counted_original = real
+    monkeypatch.setattr(owner, name, counted)
+    return calls
+
+
 def sigterm_once(argv: list[str], folder: Path, pattern: str, what: str) -> tuple[int, str]:
     """Run ``argv`` in a subprocess, send it SIGTERM as soon as ``folder`` holds a file matching ``pattern`` (its
     private temporary or stage), and return its exit status and stderr. Fails when the run ends first (``what``:

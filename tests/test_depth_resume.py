@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import learned.predict as predict
+from conftest import counted_calls
 from cmax.events import Events
 from cmax.io import write_h5
 from learned.kept_windows import KEPT_FOLDER
@@ -61,16 +62,8 @@ def test_an_interrupted_depth_run_resumes_to_the_results_of_an_uninterrupted_one
     expected = outputs(whole)
     assert len([name for name in expected if name.endswith(".npz")]) == 12
 
-    real_forward, calls = predict.forward, []
-
-    def interrupted(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return real_forward(*args, **kwargs)
-
     out = tmp_path / "o"
-    monkeypatch.setattr(predict, "forward", interrupted)
+    counted_calls(monkeypatch, predict, "forward", interrupt_at=3)
     capsys.readouterr()
     assert predict.main(argv(recording, out, tiny_checkpoint)) == 130
     kept = out / KEPT_FOLDER
@@ -87,8 +80,7 @@ def test_an_interrupted_depth_run_resumes_to_the_results_of_an_uninterrupted_one
     *notes, error = err.strip().splitlines()   # the checkpoint's note on the other window length, then the error
     assert "window_us was 50000, now 40000" in error and all(": note: " in line for line in notes)
 
-    calls.clear()
-    monkeypatch.setattr(predict, "forward", lambda *a, **k: calls.append(1) or real_forward(*a, **k))
+    calls = counted_calls(monkeypatch, predict, "forward")
     assert predict.main(argv(recording, out, tiny_checkpoint, "--resume")) == 0
     assert len(calls) == 4                       # blocks 4-5, 6-7, 8-9, 10-11
     assert "resumed: 4 of 12 windows taken" in capsys.readouterr().err
@@ -101,22 +93,14 @@ def test_a_changed_window_file_is_predicted_again(recording, tiny_checkpoint, tm
     and the results equal an uninterrupted run's."""
     whole = tmp_path / "whole"
     assert predict.main(argv(recording, whole, tiny_checkpoint)) == 0
-    real_forward, calls = predict.forward, []
-
-    def interrupted(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 2:
-            raise KeyboardInterrupt
-        return real_forward(*args, **kwargs)
-
     out = tmp_path / "o"
-    monkeypatch.setattr(predict, "forward", interrupted)
+    counted_calls(monkeypatch, predict, "forward", interrupt_at=2)
     assert predict.main(argv(recording, out, tiny_checkpoint)) == 130
     damaged = out / KEPT_FOLDER / "window_00001.npz"
     data = bytearray(damaged.read_bytes())
     data[-40] ^= 0xFF
     damaged.write_bytes(bytes(data))
-    monkeypatch.setattr(predict, "forward", real_forward)
+    counted_calls(monkeypatch, predict, "forward")       # the real forward pass again
     capsys.readouterr()
     assert predict.main(argv(recording, out, tiny_checkpoint, "--resume")) == 0
     assert "1 block(s) not verified, predicted again" in capsys.readouterr().err

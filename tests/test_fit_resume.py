@@ -16,6 +16,7 @@ import numpy as np
 import pytest
 
 import cmax.fitting.sequence as sequence_module
+from conftest import counted_calls
 from cmax.cli import main
 from cmax.events import Events
 from cmax.io import write_h5
@@ -70,16 +71,8 @@ def test_an_interrupted_se3_run_resumes_to_the_results_of_an_uninterrupted_one(r
     expected = results_of(whole)
     assert len(expected["depths"]) == 4 and not (whole / WINDOWS_FOLDER).exists()
 
-    real_fit, calls = sequence_module.fit, []
-
-    def interrupted_fit(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return real_fit(*args, **kwargs)
-
     out = tmp_path / "o"
-    monkeypatch.setattr(sequence_module, "fit", interrupted_fit)
+    counted_calls(monkeypatch, sequence_module, "fit", interrupt_at=3)
     capsys.readouterr()
     assert main(se3_argv(recording, out)) == 130
     err = capsys.readouterr().err
@@ -94,8 +87,7 @@ def test_an_interrupted_se3_run_resumes_to_the_results_of_an_uninterrupted_one(r
     assert "2 finished window(s) of an interrupted cmax fit" in err and "--resume" in err
     assert len(err.strip().splitlines()) == 1
 
-    calls.clear()
-    monkeypatch.setattr(sequence_module, "fit", lambda *a, **k: calls.append(1) or real_fit(*a, **k))
+    calls = counted_calls(monkeypatch, sequence_module, "fit")
     assert main([*se3_argv(recording, out), "--resume"]) == status
     assert len(calls) == 2                                   # windows 2 and 3 (no re-fit: noise is never resolved)
     assert "resumed: 2 of 4 fitted windows taken" in capsys.readouterr().err
@@ -257,22 +249,13 @@ def test_an_interrupted_overwrite_resumes_over_the_earlier_complete_run(tmp_path
     argv = ["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--model", "flow", "--min-events", "300"]
     status = main([*argv, "--window-ms", "10"])
     earlier = (out / "summary.json").read_bytes()
-    real_fit, calls = sequence_module.fit, []
-
-    def interrupted(*args, **kwargs):
-        calls.append(1)
-        if len(calls) == 3:
-            raise KeyboardInterrupt
-        return real_fit(*args, **kwargs)
-
-    monkeypatch.setattr(sequence_module, "fit", interrupted)
+    counted_calls(monkeypatch, sequence_module, "fit", interrupt_at=3)
     assert main([*argv, "--window-ms", "5", "--overwrite"]) == 130
     assert (out / "summary.json").read_bytes() == earlier and len(list((out / WINDOWS_FOLDER).glob("*.pickle"))) == 2
     capsys.readouterr()
     assert main([*argv, "--window-ms", "5", "--resume"]) == 2
     assert "holds the results of an earlier run" in capsys.readouterr().err
-    calls.clear()
-    monkeypatch.setattr(sequence_module, "fit", lambda *a, **k: calls.append(1) or real_fit(*a, **k))
+    calls = counted_calls(monkeypatch, sequence_module, "fit")
     assert main([*argv, "--window-ms", "5", "--resume", "--overwrite"]) in (0, 1)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["window_ms"] == 5 and len(summary["windows"]) == 8 and len(calls) == 6
