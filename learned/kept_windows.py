@@ -15,7 +15,6 @@ sees the windows an uninterrupted run gives it and the results are the same bit 
 """
 from __future__ import annotations
 
-import hashlib
 import json
 import os
 import re
@@ -25,7 +24,7 @@ from pathlib import Path
 import numpy as np
 
 from cmax.io.atomic import file_sha256, fsync_folder, write_text_atomic
-from cmax.io.window_store import open_kept, write_run_record
+from cmax.io.window_store import open_kept, run_digest, write_run_record
 
 __all__ = ["KEPT_FOLDER", "KeptBlocks", "kept_windows"]
 
@@ -84,7 +83,7 @@ class KeptBlocks:
     def __init__(self, out: str | os.PathLike, run: dict, *, resume: bool, overwrite: bool) -> None:
         self.folder = Path(out) / KEPT_FOLDER
         self.run = run
-        self.digest = hashlib.sha256(json.dumps(run, sort_keys=True).encode()).hexdigest()
+        self.digest = run_digest(run)
         self.resumed = self.unverified = 0
         open_kept(self.folder, run, found=kept_windows(out), resume=resume, overwrite=overwrite,
                   command="cmax depth")

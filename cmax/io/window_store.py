@@ -31,9 +31,10 @@ from typing import Any
 import numpy as np
 
 from cmax.io.atomic import fsync_folder, write_bytes_atomic, write_text_atomic
+from cmax.sim.signature import signature_problem
 
 __all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "settings_record", "open_kept",
-           "write_run_record", "stopped_line", "code_digest"]
+           "write_run_record", "stopped_line", "code_digest", "run_digest"]
 
 #: The folder in ``-o`` that holds the finished windows of a run of ``cmax fit`` until its results are in.
 WINDOWS_FOLDER = ".fit.windows"
@@ -74,7 +75,15 @@ class _ResultUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"a window file may not build {module}.{name}")
 
 
-def _digest(run: dict) -> str:
+def run_digest(run: dict) -> str:
+    """The SHA-256 (hex) of a run's record ``run`` (JSON-ready, keys sorted): what each kept window or block file
+    names, so that a file of another run is never taken for one of this run.
+
+    Parameters
+    ----------
+    run : dict
+        What the run is (``run.json``'s contents).
+    """
     return hashlib.sha256(json.dumps(run, sort_keys=True).encode()).hexdigest()
 
 
@@ -84,12 +93,7 @@ def _differences(recorded: dict, now: dict) -> list[str]:
     for key in sorted(set(recorded) | set(now)):
         before, after = recorded.get(key), now.get(key)
         if isinstance(before, dict) and isinstance(after, dict) and "mtime_ns" in after:
-            name = Path(str(after.get("path"))).name
-            if before.get("bytes") != after.get("bytes"):
-                found.append(f"{name} has {after.get('bytes')} bytes, it had {before.get('bytes')}")
-            elif before.get("mtime_ns") != after.get("mtime_ns"):
-                found.append(f"{name} was modified since (mtime {after.get('mtime_ns')} ns, was "
-                             f"{before.get('mtime_ns')} ns)")
+            found += [problem] if (problem := signature_problem(before, after, modified="since")) else []
         elif key == "settings" and isinstance(before, dict) and isinstance(after, dict):
             found += [f"{name} was {before.get(name)!r}, now {after.get(name)!r}"
                       for name in sorted(set(before) | set(after)) if before.get(name) != after.get(name)]
@@ -168,7 +172,7 @@ class WindowStore:
 
     def __init__(self, out: str | os.PathLike, run: dict, *, resume: bool, overwrite: bool) -> None:
         self.folder = Path(out) / WINDOWS_FOLDER
-        self.run, self.digest = run, _digest(run)
+        self.run, self.digest = run, run_digest(run)
         self.resumed = self.unreadable = 0
         self._with_maps: set[int] = set()
         open_kept(self.folder, run, found=interrupted_windows(out), resume=resume, overwrite=overwrite,

@@ -59,17 +59,19 @@ def source_signature(source: str | os.PathLike) -> dict[str, Any]:
             "mtime_ns": max(s.st_mtime_ns for s in stats)}
 
 
-def signature_problem(recorded: dict[str, Any], now: dict[str, Any]) -> str | None:
+def signature_problem(recorded: dict[str, Any], now: dict[str, Any],
+                      modified: str = "after it was converted") -> str | None:
     """How the signature ``now`` differs from ``recorded`` in files, bytes or latest mtime (a short phrase, which
     names both paths when they differ too), or None when it does not (the paths may differ: a moved source is the
-    same source)."""
+    same source); ``modified`` says when a changed mtime was modified (``"{name} was modified {modified} (mtime
+    ...)"``)."""
     name = Path(str(now.get("path", ""))).name
     if recorded.get("files") != now.get("files"):
         problem = f"{name} has {now.get('files')} files, it had {recorded.get('files')}"
     elif recorded.get("bytes") != now.get("bytes"):
         problem = f"{name} has {now.get('bytes')} bytes, it had {recorded.get('bytes')}"
     elif recorded.get("mtime_ns") != now.get("mtime_ns"):
-        problem = (f"{name} was modified after it was converted (mtime {now.get('mtime_ns')} ns, was "
+        problem = (f"{name} was modified {modified} (mtime {now.get('mtime_ns')} ns, was "
                    f"{recorded.get('mtime_ns')} ns)")
     else:
         return None
