@@ -88,6 +88,24 @@ def sigterm_once(argv: list[str], folder: Path, pattern: str, what: str) -> tupl
     return process.returncode, err
 
 
+def sigkill_after(argv: list[str], folder: Path, pattern: str, count: int) -> bool:
+    """Run ``argv`` in a subprocess and SIGKILL it (no clean-up) as soon as ``folder`` holds ``count`` files
+    matching ``pattern``; True once it is killed, False when the run ended first (a very fast machine)."""
+    import signal
+    import subprocess
+    import time
+
+    process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
+    deadline = time.monotonic() + 120
+    while len(list(folder.glob(pattern))) < count and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.001)
+    if process.poll() is not None:
+        return False
+    process.send_signal(signal.SIGKILL)
+    process.wait(timeout=60)
+    return True
+
+
 @pytest.fixture(scope="session")
 def slider_file(tmp_path_factory) -> Path:
     """0.3 s of a small slider scene (64x48) with its ground truth (gt/K, gt/poses), as `cmax scene` writes it."""

@@ -5,16 +5,14 @@ from __future__ import annotations
 
 import os
 import random
-import signal
 import subprocess
 import sys
-import time
 
 import numpy as np
 import pytest
 
 import learned.predict as predict
-from conftest import counted_calls
+from conftest import counted_calls, sigkill_after
 from cmax.events import Events
 from cmax.io import write_h5
 from learned.kept_windows import KEPT_FOLDER
@@ -116,17 +114,9 @@ def test_a_depth_run_killed_at_a_random_block_resumes_to_the_uninterrupted_resul
     subprocess.run([*command, *argv(recording, whole, tiny_checkpoint)], check=True, capture_output=True)
     kill_after = random.Random().randint(1, 4)
     out = tmp_path / "o"
-    process = subprocess.Popen([*command, *argv(recording, out, tiny_checkpoint)], stdout=subprocess.DEVNULL,
-                               stderr=subprocess.DEVNULL)
     kept = out / KEPT_FOLDER
-    deadline = time.monotonic() + 120
-    while len(list(kept.glob("block_*.json"))) < kill_after and process.poll() is None \
-            and time.monotonic() < deadline:
-        time.sleep(0.001)
-    if process.poll() is not None:
+    if not sigkill_after([*command, *argv(recording, out, tiny_checkpoint)], kept, "block_*.json", kill_after):
         pytest.skip("the run ended before it could be killed (a very fast machine)")
-    process.send_signal(signal.SIGKILL)
-    process.wait(timeout=60)
     assert not (out / "summary.json").exists()
     resumed = subprocess.run([*command, *argv(recording, out, tiny_checkpoint, "--resume")], capture_output=True,
                              text=True)

@@ -7,7 +7,6 @@ import json
 import os
 import pickle
 import random
-import signal
 import subprocess
 import sys
 import time
@@ -16,7 +15,7 @@ import numpy as np
 import pytest
 
 import cmax.fitting.sequence as sequence_module
-from conftest import counted_calls
+from conftest import counted_calls, sigkill_after
 from cmax.cli import main
 from cmax.events import Events
 from cmax.io import write_h5
@@ -199,16 +198,9 @@ def test_a_run_killed_at_a_random_window_resumes_to_the_uninterrupted_results(tm
     assert n == 8
     kill_after = random.Random().randint(1, n - 2)
     out = tmp_path / "o"
-    process = subprocess.Popen([*argv, "-o", str(out)], stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL)
     kept = out / WINDOWS_FOLDER
-    deadline = time.monotonic() + 120
-    while len(list(kept.glob("window_*.pickle"))) < kill_after and process.poll() is None \
-            and time.monotonic() < deadline:
-        time.sleep(0.001)
-    if process.poll() is not None:
+    if not sigkill_after([*argv, "-o", str(out)], kept, "window_*.pickle", kill_after):
         pytest.skip("the run ended before it could be killed (a very fast machine)")
-    process.send_signal(signal.SIGKILL)
-    process.wait(timeout=60)
     assert not (out / "summary.json").exists()
     done = len(list(kept.glob("window_*.pickle")))
     assert kill_after <= done < n, (kill_after, done)
