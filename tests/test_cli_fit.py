@@ -96,12 +96,12 @@ def test_dsec_block_lists_are_read(tmp_path):
     cameras."""
     yaml = tmp_path / "cam_to_cam.yaml"
     yaml.write_text(DSEC_BLOCK_YAML)
-    K, distortion, size = read_calibration(yaml)
+    K, distortion, size = read_calibration(yaml)[:3]
     assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (553.47, 553.40, 346.65, 216.52) and size == (640, 480)
     np.testing.assert_array_equal(distortion, [-0.0936, 0.1945, 7.6e-05, 0.00196])
-    K, distortion, size = read_calibration(yaml, "camRect0")
+    K, distortion, size = read_calibration(yaml, "camRect0")[:3]
     assert K[0, 0] == 569.76 and K[1, 2] == 221.24 and distortion is None and size == (640, 480)
-    K, _, size = read_calibration(yaml, "cam1")
+    K, _, size = read_calibration(yaml, "cam1")[:3]
     assert K[0, 0] == 1188.2 and size is None
     with pytest.raises(ValueError, match=r"no intrinsics/cam9 \(cameras found: cam0, cam1, camRect0\)"):
         read_calibration(yaml, "cam9")
@@ -110,15 +110,15 @@ def test_dsec_block_lists_are_read(tmp_path):
 def test_calibration_files(tmp_path):
     ecd = tmp_path / "calib.txt"
     ecd.write_text("199.09 199.09 132.19 110.14 -0.368 0.150 -0.0003 -0.0002 0.0\n")
-    K, distortion, size = read_calibration(ecd)
+    K, distortion, size = read_calibration(ecd)[:3]
     assert K[0, 0] == 199.09 and K[1, 2] == 110.14 and size is None
     np.testing.assert_array_equal(distortion, [-0.368, 0.150, -0.0003, -0.0002, 0.0])
     yaml = tmp_path / "cam_to_cam.yaml"
     yaml.write_text(DSEC_YAML)
-    K, distortion, size = read_calibration(yaml)
+    K, distortion, size = read_calibration(yaml)[:3]
     assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (553.47, 553.40, 346.65, 216.52) and size == (640, 480)
     np.testing.assert_array_equal(distortion, [-0.0936, 0.1945, 7.6e-05, 0.00196])
-    K, distortion, size = read_calibration(yaml, "camRect0")
+    K, distortion, size = read_calibration(yaml, "camRect0")[:3]
     assert K[0, 0] == 569.76 and distortion is None
     with pytest.raises(ValueError, match=r"no intrinsics/cam9 \(cameras found: cam0, camRect0\)"):
         read_calibration(yaml, "cam9")
@@ -832,14 +832,14 @@ def test_calibration_yaml_in_block_style_and_kalibr_camchains_are_read(tmp_path)
     with 'no intrinsics/cam0 (cameras found: cam0, camRect0, camera_matrix, distortion_coeffs, resolution)';
     a Kalibr camchain (cam0: intrinsics: [...], as MVSEC and DAVIS rigs ship) with 'cameras found: none',
     even for its fisheye model. Both now read to the numbers written, or refuse naming the model."""
-    flow_K, flow_distortion, flow_size = read_calibration(_write(tmp_path / "flow.yaml", DSEC_YAML))
+    flow_K, flow_distortion, flow_size = read_calibration(_write(tmp_path / "flow.yaml", DSEC_YAML))[:3]
     block = tmp_path / "block.yaml"
     block.write_text("disparity_to_depth:\n  cams_03:\n  - - 1.0\n    - 0.0\nintrinsics:\n  cam0:\n    camera_matrix:\n"
                      "    - 553.47\n    - 553.40\n    - 346.65\n    - 216.52\n    camera_model: pinhole\n"
                      "    distortion_coeffs:\n    - -0.0936\n    - 0.1945\n    - 7.6e-05\n    - 0.00196\n"
                      "    distortion_model: radtan\n    resolution:\n    - 640\n    - 480\n  camRect0:\n"
                      "    camera_matrix:\n    - 569.76\n    - 569.76\n    - 335.10\n    - 221.24\n")
-    K, distortion, size = read_calibration(block)
+    K, distortion, size = read_calibration(block)[:3]
     np.testing.assert_array_equal(K, flow_K)
     np.testing.assert_array_equal(distortion, flow_distortion)
     assert size == flow_size == (640, 480)
@@ -852,11 +852,12 @@ def test_calibration_yaml_in_block_style_and_kalibr_camchains_are_read(tmp_path)
                 "cam1:\n  camera_model: pinhole\n  distortion_coeffs: [0.1, 0.2, 0.3, 0.4]\n"
                 "  distortion_model: equidistant\n  intrinsics: [226.0, 226.0, 173.0, 133.0]\n")
     path = _write(tmp_path / "camchain.yaml", camchain)
-    K, distortion, size = read_calibration(path)
+    K, distortion, size = read_calibration(path)[:3]
     assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (226.38, 226.15, 173.64, 133.73) and size == (346, 260)
     np.testing.assert_array_equal(distortion, [-0.0484, 0.0094, 0.001, 0.002])
-    with pytest.raises(ValueError, match="distortion_model 'equidistant' is not supported"):
-        read_calibration(path, "cam1")
+    fisheye = read_calibration(path, "cam1")     # was refused: "distortion_model 'equidistant' is not supported"
+    assert fisheye.model == "equidistant" and fisheye.distortion.tolist() == [0.1, 0.2, 0.3, 0.4]
+    assert fisheye.rectification is None and fisheye.rectified_K is None and fisheye.size is None
     with pytest.raises(ValueError, match=r"cameras found: cam0, cam1\)"):
         read_calibration(path, "cam2")
 

@@ -721,7 +721,7 @@ def test_the_calibration_of_frames_that_size_resized_is_refused_with_the_scaled_
     from cmax.cli.recording import calibration_of
 
     args = argparse.Namespace(calib=seq / "calib.txt", calib_camera="cam0", distortion=None, K=None, file=same)
-    K, distortion, _ = calibration_of(args)
+    K, distortion, _ = calibration_of(args)[:3]
     assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (50, 52, 19.5, 14.5)
 
 

@@ -28,7 +28,7 @@ import numpy as np
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
-                                calibration_of, camera_read, check_file_principal_point, event_span, file_depth_range,
+                                calibration_note, calibration_of, camera_read, check_file_principal_point, event_span, file_depth_range,
                                 file_intrinsics, given_k_note, no_intrinsics_message, open_streamed, overlap,
                                 read_calibrated, tail_note)
 from cmax.io import run_folder
@@ -250,7 +250,8 @@ def summary_units(scale_known: bool) -> dict[str, str]:
         "omega": f"rad/s, {axes}",
         "flow": "px/s (x, y)",
         "depth_range": length,
-        "K": "px",
+        "K": "px: the pinhole of the fitted pixels (with --calib of a rectified camera, MVSEC's: the rectified "
+             "frame's, in which v, omega and the depth maps are too)",
         "parallax_px": "px: median over the events of how far the fitted translation moves each over the window",
         "objective_after": "contrast of the warped events, 1 = the unwarped events' (unitless)",
         "seconds": "wall-clock seconds of the window's fit",
@@ -542,13 +543,16 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     from cmax.io import read_gyro
     from cmax.warp import DepthGrid
 
-    K, distortion, calib_size = calibration_of(args)
+    calibration = calibration_of(args)
+    K, calib_size = calibration.K, calibration.size
     notes = notes + ([unlike] if (unlike := given_k_note(args.file, K)) else [])
     if K is None:
         K = file_intrinsics(args.file)
         if K is None:
             raise ValueError(no_intrinsics_message(args.file, "--calib"))
     notes = notes + ([hint] if (hint := calibration_hint(args)) else [])
+    if args.calib is not None and (said := calibration_note(calibration, args.calib, args.calib_camera)):
+        notes.append(said)
     events = streamed = None
     try:
         streamed = open_streamed(args, calib_size) if args.t0 is None and args.t1 is None else None
@@ -578,13 +582,12 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
             notes.append(f"{repeated:,} of the {len(events):,} events repeat an earlier event exactly (same x, y, t "
                          "and polarity: a file written twice or merged with itself?): fitted as they are, each "
                          "copy counted")
-    if distortion is not None:          # one camera, its undistortion map computed once for every window
-        from cmax.camera import Camera
-
-        undistort = Camera(K, events.width, events.height, distortion).undistort_events
-    if distortion is not None and isinstance(events, StreamedEvents):
+    if calibration.undistorts:          # one camera, its undistortion map computed once for every window
+        camera = calibration.camera(events.width, events.height, K)
+        undistort, K = camera.undistort_events, camera.pinhole_K   # the fit's K: the pixels' the events land on
+    if calibration.undistorts and isinstance(events, StreamedEvents):
         events = events.with_transform(undistort)
-    elif distortion is not None:
+    elif calibration.undistorts:
         total = len(events)
         events = undistort(events)
         if len(events) < total:
@@ -690,7 +693,9 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
 
     summary = {"file": str(args.file), "camera": camera_read(detect_format(args.file), args.camera),
                "model": sequence_model, "K": K.tolist(),
-               "distortion": None if distortion is None else distortion.tolist(),
+               "distortion": None if calibration.distortion is None else calibration.distortion.tolist(),
+               "distortion_model": None if calibration.distortion is None else calibration.model,
+               "rectified": calibration.rectification is not None or calibration.rectified_K is not None,
                "calib": None if args.calib is None else str(args.calib),
                "window_ms": window_us / 1000, "step_ms": step_us / 1000, "min_events": min_events,
                "t0_s": args.t0, "t1_s": args.t1,
