@@ -919,3 +919,47 @@ def test_fit_notes_events_that_repeat_an_earlier_one_exactly(tmp_path, capsys):
     assert main(["fit", str(write_h5(tmp_path / "once.h5", events)), "--K", "60,60,32,24", "-o",
                  str(tmp_path / "p"), "--quiet"]) == 1
     assert "repeat an earlier event" not in capsys.readouterr().err
+
+
+MVSEC_CAMCHAIN = """cam0:
+  camera_model: pinhole
+  distortion_coeffs: [-0.048031442223833355, 0.011330957517194437, -0.055378166304281135, 0.021500973881459395]
+  distortion_model: equidistant
+  intrinsics: [226.38018519795807, 226.15002947047415, 173.6470807871759, 133.73271487507847]
+  resolution: [346, 260]
+  projection_matrix:
+  - [199.6530123165822, 0.0, 177.43276376280926, 0.0]
+  - [0.0, 199.6530123165822, 126.81215684365904, 0.0]
+  - [0.0, 0.0, 1.0, 0.0]
+  rectification_matrix:
+  - [0.999877311526236, 0.015019439766575743, -0.004447282784398257]
+  - [-0.014996983873604017, 0.9998748347535599, 0.005040367172759556]
+  - [0.004522429630305261, -0.004973052949604937, 0.9999774079320989]
+"""
+
+
+def test_fit_with_mvsec_s_fisheye_camchain_fits_in_the_rectified_frame(tmp_path, capsys):
+    """`cmax fit --calib camchain-imucam-indoor_flying.yaml` was refused ("distortion_model 'equidistant' is not
+    supported"). Now the events are undistorted and rectified, the fit's K is P_rect's and a note says so."""
+    rng = np.random.default_rng(3)
+    events = Events(rng.integers(0, 346, 300), rng.integers(0, 260, 300), np.sort(rng.integers(0, 50_000, 300)),
+                    rng.integers(0, 2, 300), 346, 260)
+    path = write_txt(tmp_path / "ev.txt", events)
+    calib = _write(tmp_path / "camchain-imucam-indoor_flying.yaml", MVSEC_CAMCHAIN)
+    status = main(["fit", str(path), "--calib", str(calib), "-o", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert status in (0, 1), err           # 300 random events: too few to fit, but read, mapped and run
+    assert f"{calib} (cam0): an equidistant (fisheye) lens; the events are undistorted and rectified" in err
+    assert "K = fx 199.653, fy 199.653, cx 177.433, cy 126.812" in err
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    np.testing.assert_allclose(summary["K"], [[199.6530123165822, 0, 177.43276376280926],
+                                              [0, 199.6530123165822, 126.81215684365904], [0, 0, 1]])
+    assert summary["distortion_model"] == "equidistant" and summary["rectified"] is True
+    bad = _write(tmp_path / "bad.yaml", MVSEC_CAMCHAIN.replace("0.021500973881459395]", "0.0215, 0.0]"))
+    assert main(["fit", str(path), "--calib", str(bad), "-o", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err
+    assert "equidistant (fisheye) distortion of cam0 must be 4 finite numbers" in err and err.count("\n") == 1
+    flipped = _write(tmp_path / "flip.yaml", MVSEC_CAMCHAIN.replace("0.9999774079320989]", "-0.9999774079320989]"))
+    assert main(["fit", str(path), "--calib", str(flipped), "-o", str(tmp_path / "o3")]) == 2
+    err = capsys.readouterr().err
+    assert "cam0's rectification_matrix must be a rotation" in err and err.count("\n") == 1
