@@ -955,6 +955,17 @@ def test_fit_with_mvsec_s_fisheye_camchain_fits_in_the_rectified_frame(tmp_path,
     np.testing.assert_allclose(summary["K"], [[199.6530123165822, 0, 177.43276376280926],
                                               [0, 199.6530123165822, 126.81215684365904], [0, 0, 1]])
     assert summary["distortion_model"] == "equidistant" and summary["rectified"] is True
+    # trajectory.txt in the lens's own frame (what MVSEC's poses and cmax emvs --calib take): its first pose, the
+    # rectified frame's identity, is T_w_c = [R_rect | 0]
+    lines = (tmp_path / "o" / "trajectory.txt").read_text().splitlines()
+    assert any(line.startswith("# the camera's own frame") for line in lines)
+    qx, qy, qz, qw = map(float, next(line for line in lines if not line.startswith("#")).split()[4:])
+    R = np.array(_numbers_of(MVSEC_CAMCHAIN.split("rectification_matrix:")[1])).reshape(3, 3)
+    w, x, y, z = qw, qx, qy, qz
+    quaternion_R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    np.testing.assert_allclose(quaternion_R, R, atol=1e-6)
     bad = _write(tmp_path / "bad.yaml", MVSEC_CAMCHAIN.replace("0.021500973881459395]", "0.0215, 0.0]"))
     assert main(["fit", str(path), "--calib", str(bad), "-o", str(tmp_path / "o2")]) == 2
     err = capsys.readouterr().err
@@ -963,3 +974,7 @@ def test_fit_with_mvsec_s_fisheye_camchain_fits_in_the_rectified_frame(tmp_path,
     assert main(["fit", str(path), "--calib", str(flipped), "-o", str(tmp_path / "o3")]) == 2
     err = capsys.readouterr().err
     assert "cam0's rectification_matrix must be a rotation" in err and err.count("\n") == 1
+
+
+def _numbers_of(text):
+    return [float(v) for v in text.replace("[", " ").replace("]", " ").replace(",", " ").replace("- ", " ").split()]

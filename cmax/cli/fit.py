@@ -258,7 +258,8 @@ def summary_units(scale_known: bool) -> dict[str, str]:
         "depth_NNNNN.npz": f"depth (H, W): z-depth [{length}] seen at t_ref_us, valid where mask; depth_spread: "
                            "range of log inverse depth over the 3x3 grid nodes around each pixel (large at depth "
                            "edges); inverse_depth_grid: the grid's nodes [1/depth unit]; K [px]",
-        "trajectory.txt": f"TUM: t [s] tx ty tz [{length}] qx qy qz qw, camera-to-world",
+        "trajectory.txt": f"TUM: t [s] tx ty tz [{length}] qx qy qz qw, camera-to-world (the lens's own frame, also "
+                          "when --calib rectifies the events: its header says so)",
     }
 
 
@@ -666,8 +667,14 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
                         **(r.quality.summary() if r.quality is not None else {"verdict": None})})
         print(window_line(i, r, origin_us))
     scale_known = bool(sequence.results) and all(r.scale_known for r in sequence.results)
-    write_text_atomic(stage / "trajectory.txt",
-                      "\n".join(tum_header(scale_known) + tum_lines(sequence.times_us, sequence.poses)) + "\n")
+    poses, header = sequence.poses, tum_header(scale_known)
+    if calibration.rectification is not None:   # the lens's own frame, as MVSEC's poses and cmax emvs --calib take it
+        T_rect_c = np.eye(4)
+        T_rect_c[:3, :3] = calibration.rectification
+        poses = poses @ T_rect_c
+        header.append(f"# the camera's own frame: the fit's rectified frame turned back by {args.calib}'s "
+                      "rectification_matrix (T_w_c = T_w_rect [R_rect | 0])")
+    write_text_atomic(stage / "trajectory.txt", "\n".join(header + tum_lines(sequence.times_us, poses)) + "\n")
     late_notes = [hot_note] if (hot_note := hot_pixel_note(sequence.results)) else []
     causes = [None if r.quality is None else r.quality.cause for r in sequence.results]
     no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)
