@@ -227,9 +227,12 @@ def _mvsec_camera(calib: "str | Path | Camera | None", calib_camera: str, width:
         return calib
     if not isinstance(calib, (str, Path)):
         raise TypeError(f"calib must be a camchain path or a cmax.Camera, got {type(calib).__name__}")
-    from cmax.cli.recording import read_calibration
+    from cmax.cli.recording import read_calibration, topic_side
 
     calibration = read_calibration(calib, calib_camera)
+    if topic_side(calibration.topic) == "right":
+        raise ValueError(f"{calib}: {calib_camera} is the right camera (rostopic {calibration.topic.strip()}); "
+                         "MVSECDataset reads davis/left: choose the left camera with calib_camera (MVSEC: cam0)")
     if calibration.size is not None and tuple(calibration.size) != (width, height):
         raise ValueError(f"{calib} calibrates a {calibration.size[0]}x{calibration.size[1]} camera ({calib_camera}); "
                          f"MVSEC's DAVIS is {width}x{height}")

@@ -42,7 +42,7 @@ import numpy as np
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
 from cmax.cli.recording import (Calibration, add_camera_options, add_recording_arguments, check_calibration_of_frames,
                                 check_file_principal_point, given_k_note,
-                                calibration_note, no_intrinsics_message, read_calibration, tail_note, time_span_us)
+                                calibration_note, check_calibration_camera, no_intrinsics_message, read_calibration, tail_note, time_span_us)
 from cmax.events import window_starts
 from cmax.io import run_folder
 from learned.kept_windows import KEPT_FOLDER, KeptBlocks
@@ -737,6 +737,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
             raise ValueError("give the intrinsics with --K or --calib, not both")
         calibration = read_calibration(calib, calib_camera)
         K, distortion, calib_size = calibration.K, calibration.distortion, calibration.size
+        check_calibration_camera(calibration, calib, calib_camera, path, camera)
         if calib_size is None:   # the calibration of the frames a conversion resized: refused, the scaled K said
             check_calibration_of_frames(calib, K, distortion, path)
     try:

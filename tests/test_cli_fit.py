@@ -978,3 +978,38 @@ def test_fit_with_mvsec_s_fisheye_camchain_fits_in_the_rectified_frame(tmp_path,
 
 def _numbers_of(text):
     return [float(v) for v in text.replace("[", " ").replace("]", " ").replace(",", " ").replace("- ", " ").split()]
+
+
+def test_the_camchain_camera_must_be_the_mvsec_camera_read(tmp_path, capsys):
+    """`cmax fit rig.hdf5 --camera right --calib camchain.yaml` (--calib-camera left at cam0) undistorted and
+    rectified the right camera's events with the left camera's lens, exit 0, without a word. The camchain's
+    rostopic (/davis/left/image_raw) says which camera each entry is: a mismatch is one line, exit 2."""
+    import argparse
+
+    import h5py
+
+    from cmax.cli.recording import calibration_of
+
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.uniform(10.0, 10.1, 500))
+    with h5py.File(tmp_path / "rig_data.hdf5", "w") as f:
+        for side in ("left", "right"):
+            f[f"davis/{side}/events"] = np.column_stack([rng.integers(0, 346, 500), rng.integers(0, 260, 500), t,
+                                                         rng.choice([-1.0, 1.0], 500)])
+    chain = MVSEC_CAMCHAIN + "  rostopic: /davis/left/image_raw\n" + MVSEC_CAMCHAIN.replace("cam0:", "cam1:") + (
+        "  rostopic: /davis/right/image_raw\n")
+    calib = _write(tmp_path / "camchain.yaml", chain)
+    rig = tmp_path / "rig_data.hdf5"
+    for options, message in (
+            (["--camera", "right"], "cam0 is the left camera (rostopic /davis/left/image_raw), but the events of "
+                                    f"{rig} are the right camera's (--camera right): choose the camchain's right camera "
+                                    "with --calib-camera"),
+            (["--calib-camera", "cam1"], "cam1 is the right camera (rostopic /davis/right/image_raw), but the events of "
+                                         f"{rig} are the left camera's (--camera left, the default)")):
+        assert main(["fit", str(rig), "--calib", str(calib), "-o", str(tmp_path / "o"), *options]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+    for camera, calib_camera in ((None, "cam0"), ("right", "cam1"), ("left", "cam0")):
+        args = argparse.Namespace(calib=calib, calib_camera=calib_camera, distortion=None, K=None, file=rig,
+                                  camera=camera)
+        assert calibration_of(args).topic == f"/davis/{camera or 'left'}/image_raw"

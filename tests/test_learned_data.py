@@ -587,3 +587,15 @@ def test_mvsec_dataset_without_calibration_warns_once_and_checks_the_calibration
     calib.write_text(MVSEC_CAMCHAIN.replace("resolution: [346, 260]", "resolution: [640, 480]"))
     with pytest.raises(ValueError, match=r"calibrates a 640x480 camera \(cam0\); MVSEC's DAVIS is 346x260"):
         MVSECDataset(path, calib=calib)
+
+
+def test_mvsec_dataset_refuses_the_right_camera_s_calibration(tmp_path):
+    from learned.data import MVSECDataset
+
+    path, _, _ = _fisheye_scene(tmp_path, np.random.default_rng(7), n=200)
+    calib = tmp_path / "camchain.yaml"
+    calib.write_text(MVSEC_CAMCHAIN + MVSEC_CAMCHAIN.replace("cam0:", "cam1:").replace("/davis/left/", "/davis/right/"))
+    with pytest.raises(ValueError, match=r"cam1 is the right camera \(rostopic /davis/right/image_raw\); MVSECDataset "
+                                         r"reads davis/left"):
+        MVSECDataset(path, calib=calib, calib_camera="cam1")
+    assert MVSECDataset(path, calib=calib, window_us=100_000).camera.model == "equidistant"

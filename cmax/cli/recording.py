@@ -29,7 +29,8 @@ from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import Camera, check_intrinsics, check_rotation, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "camera_read", "given_k_note", "add_recording_arguments",
-           "add_camera_options", "calibration_of", "Calibration", "calibration_note",
+           "add_camera_options", "calibration_of", "Calibration", "calibration_note", "check_calibration_camera",
+           "topic_side",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
            "simulated_sizes", "resized_note", "source_calibration", "check_calibration_of_frames",
            "check_file_principal_point", "file_depth_range",
@@ -163,7 +164,8 @@ class Calibration(NamedTuple):
     coefficients (radtan (4,) or (5,), equidistant (4,)) or None; ``size``: ``(width, height)`` [px] the file
     states, or None; ``model``: ``"radtan"`` or ``"equidistant"``; ``rectification`` (3, 3) and ``rectified_K``
     (3, 3) [px]: a stereo rectification the file gives (Kalibr's ``rectification_matrix``, the left 3x3 of its
-    ``projection_matrix``), into whose frame the events are undistorted, or None.
+    ``projection_matrix``), into whose frame the events are undistorted, or None; ``topic``: the camera's
+    ``rostopic`` in a Kalibr camchain (``/davis/left/image_raw``: which camera of a rig it is), or None.
     """
 
     K: np.ndarray | None
@@ -172,6 +174,7 @@ class Calibration(NamedTuple):
     model: str = "radtan"
     rectification: np.ndarray | None = None
     rectified_K: np.ndarray | None = None
+    topic: str | None = None
 
     @property
     def pinhole_K(self) -> np.ndarray | None:
@@ -224,7 +227,44 @@ def calibration_of(args: argparse.Namespace) -> Calibration:
     calibration = read_calibration(args.calib, args.calib_camera)
     if calibration.size is None:
         check_calibration_of_frames(args.calib, calibration.K, calibration.distortion, args.file)
+    check_calibration_camera(calibration, args.calib, args.calib_camera, args.file, getattr(args, "camera", None))
     return calibration
+
+
+def topic_side(topic: str | None) -> str | None:
+    """``'left'`` or ``'right'`` when a camchain camera's ``rostopic`` names that camera of a stereo rig (a path
+    component ``left`` / ``right``, as MVSEC's ``/davis/left/image_raw``), else None.
+
+    >>> topic_side("/davis/right/image_raw"), topic_side("/cam0/image_raw"), topic_side(None)
+    ('right', None, None)
+    """
+    parts = set((topic or "").strip().strip("'\"").lower().split("/"))
+    sides = [side for side in ("left", "right") if side in parts]
+    return sides[0] if len(sides) == 1 else None
+
+
+def check_calibration_camera(calibration: Calibration, calib: str | Path, calib_camera: str, path: str | Path,
+                             camera: str | None) -> None:
+    """ValueError when the ``--calib`` camera ``calib_camera`` of ``calib`` is, by its ``rostopic``
+    (:func:`topic_side`), the other camera of the stereo rig than the one whose events are read from the MVSEC file
+    ``path`` (``camera``, ``--camera``; None: left): the left camera's lens and rectification would be applied to the
+    right camera's events without a word. Files of other formats hold one camera: nothing to check."""
+    side = topic_side(calibration.topic)
+    if side is None:
+        return
+    from cmax.io import detect_format
+
+    try:
+        if detect_format(path) != "mvsec":
+            return
+    except (OSError, ValueError):
+        return                                   # the reader says what is wrong with the file, in its own words
+    read = camera or "left"
+    if side != read:
+        raise ValueError(f"{calib}: {calib_camera} is the {side} camera (rostopic {calibration.topic.strip()}), but the "
+                         f"events of {path} are the {read} camera's (--camera {read}"
+                         f"{'' if camera else ', the default'}): choose the camchain's {read} camera with --calib-camera "
+                         "(MVSEC: cam0 left, cam1 right), or --camera " + side)
 
 
 #: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.
@@ -593,7 +633,7 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
                                  f"distortion_coeffs: [k1, k2, k3, k4], got {distortion}")
             K = intrinsics_matrix([fx, fy, cx, cy], f"{path}: {camera} intrinsics")
             return Calibration(K, np.asarray(distortion, float), size, model, *_rectification(
-                path, camera, rectification, projection))
+                path, camera, rectification, projection), values.get("rostopic"))
     else:
         lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
         try:
@@ -606,12 +646,13 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
             raise ValueError(f"{path} calibrates one camera (ECD calib.txt): camera {camera!r} (--calib-camera) "
                              "chooses one of a DSEC cam_to_cam.yaml or a Kalibr camchain .yaml; leave it out")
         (fx, fy, cx, cy), distortion, size = numbers[:4], numbers[4:] or None, None
-        rectification = projection = None
+        rectification = projection = values = None
     if distortion is not None and (len(distortion) not in (4, 5) or not np.isfinite(distortion).all()):
         raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])")
     K = intrinsics_matrix([fx, fy, cx, cy])
     return Calibration(K, None if distortion is None else np.asarray(distortion, float), size, "radtan",
-                       *_rectification(path, camera, rectification, projection))
+                       *_rectification(path, camera, rectification, projection),
+                       None if values is None else values.get("rostopic"))
 
 
 def _yaml_matrix(path: Path, camera: str, values: dict[str, str], key: str,
