@@ -1013,3 +1013,28 @@ def test_the_camchain_camera_must_be_the_mvsec_camera_read(tmp_path, capsys):
         args = argparse.Namespace(calib=calib, calib_camera=calib_camera, distortion=None, K=None, file=rig,
                                   camera=camera)
         assert calibration_of(args).topic == f"/davis/{camera or 'left'}/image_raw"
+
+
+def test_a_ros_camera_info_yaml_is_read(tmp_path):
+    """ROS camera_info YAML (camera_calibration's and rpg_dvs_ros's format: matrices as `data: [...]`) was refused
+    as 'no intrinsics/cam0 (cameras found: none)'. Read now, a fisheye model and a rectification included; a
+    monocular file's R = I, P = [K | 0] moves nothing and is dropped."""
+    fisheye = ("image_width: 346\nimage_height: 260\ncamera_name: davis_left\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+               "  data: [226.38, 0, 173.65, 0, 226.15, 133.73, 0, 0, 1]\ndistortion_model: equidistant\n"
+               "distortion_coefficients:\n  rows: 1\n  cols: 4\n  data: [-0.048, 0.0113, -0.0554, 0.0215]\n"
+               "rectification_matrix:\n  rows: 3\n  cols: 3\n  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n"
+               "projection_matrix:\n  rows: 3\n  cols: 4\n  data: [199.65, 0, 177.43, 0, 0, 199.65, 126.81, 0, 0, 0, 1, 0]\n")
+    calibration = read_calibration(_write(tmp_path / "davis.yaml", fisheye))
+    np.testing.assert_array_equal(calibration.K, [[226.38, 0, 173.65], [0, 226.15, 133.73], [0, 0, 1]])
+    assert calibration.model == "equidistant" and calibration.size == (346, 260)
+    np.testing.assert_array_equal(calibration.distortion, [-0.048, 0.0113, -0.0554, 0.0215])
+    np.testing.assert_array_equal(calibration.rectified_K, [[199.65, 0, 177.43], [0, 199.65, 126.81], [0, 0, 1]])
+    assert calibration.rectification is None                               # the identity: nothing to turn
+    mono = (fisheye.replace("equidistant", "plumb_bob").replace("[-0.048, 0.0113, -0.0554, 0.0215]", "[-0.1, 0.02, 0, 0, 0]")
+            .replace("199.65, 0, 177.43, 0, 0, 199.65, 126.81", "226.38, 0, 173.65, 0, 0, 226.15, 133.73"))
+    calibration = read_calibration(_write(tmp_path / "mono.yaml", mono))
+    assert calibration.model == "radtan" and calibration.rectification is None and calibration.rectified_K is None
+    with pytest.raises(ValueError, match=r"calibrates one camera \(ROS camera_info\): camera 'cam1'"):
+        read_calibration(tmp_path / "mono.yaml", "cam1")
+    with pytest.raises(ValueError, match=r"camera_matrix data must be the 9 numbers"):
+        read_calibration(_write(tmp_path / "skew.yaml", mono.replace("data: [226.38, 0, 173.65", "data: [226.38, 2, 173.65")))

@@ -146,7 +146,8 @@ def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str 
                         help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file, e.g. one cmax scene wrote)")
     camera.add_argument("--calib", type=Path, default=None,
                         help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
-                             "k3), DSEC cam_to_cam.yaml or a Kalibr camchain .yaml (pinhole; radtan or equidistant "
+                             "k3), DSEC cam_to_cam.yaml, ROS camera_info .yaml or a Kalibr camchain .yaml (pinhole; "
+                             "radtan or equidistant "
                              "fisheye; the camera --calib-camera); a camchain camera with rectification_matrix and "
                              "projection_matrix (MVSEC's) maps the events into that rectified frame and fits with its "
                              "K [px] (a note says so) (default: none, --K)")
@@ -593,13 +594,17 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
       ``camera`` other than ``"cam0"`` is refused: it was read as this one without a word);
     * DSEC ``cam_to_cam.yaml``: ``intrinsics/<camera>`` with ``camera_matrix: [fx, fy, cx, cy]``,
       optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``;
+    * a ROS ``camera_info`` YAML (``camera_calibration``'s, ``rpg_dvs_ros``'s): ``camera_matrix``,
+      ``distortion_model``, ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix`` as
+      ``data: [...]``, ``image_width`` / ``image_height``; one camera;
     * a Kalibr camchain (``camchain.yaml``, as MVSEC and many DAVIS rigs ship): ``<camera>`` with
       ``intrinsics: [fx, fy, cx, cy]`` and the same keys; a pinhole camera with ``distortion_model: radtan``
       (``plumb_bob``; 4 or 5 coefficients) or ``equidistant`` (Kannala-Brandt fisheye, exactly 4: ``k1 k2 k3
       k4``). MVSEC's camchains also give each camera a ``rectification_matrix`` (3x3 ``R_rect``) and a
       ``projection_matrix`` (3x4 ``P_rect``): read as ``rectification`` and ``rectified_K`` (``P_rect``'s left
       3x3; its last column, a stereo baseline, does not move a camera's own rays), the frame of MVSEC's
-      ``depth_image_rect``, into which ``--calib`` undistorts the events (:class:`cmax.Camera`).
+      ``depth_image_rect``, into which ``--calib`` undistorts the events (:class:`cmax.Camera`). A rectification
+      that moves nothing (``R = I``, ``P``'s K equal to K: a monocular camera's) is dropped.
 
     Lists may be written ``[a, b]`` or as ``- a`` lines (YAML's block style).
 
@@ -632,8 +637,8 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
                 raise ValueError(f"{path}: the equidistant (fisheye) distortion of {camera} must be 4 finite numbers "
                                  f"distortion_coeffs: [k1, k2, k3, k4], got {distortion}")
             K = intrinsics_matrix([fx, fy, cx, cy], f"{path}: {camera} intrinsics")
-            return Calibration(K, np.asarray(distortion, float), size, model, *_rectification(
-                path, camera, rectification, projection), values.get("rostopic"))
+            return _no_rectification(Calibration(K, np.asarray(distortion, float), size, model, *_rectification(
+                path, camera, rectification, projection), values.get("rostopic")))
     else:
         lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
         try:
@@ -650,9 +655,9 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
     if distortion is not None and (len(distortion) not in (4, 5) or not np.isfinite(distortion).all()):
         raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])")
     K = intrinsics_matrix([fx, fy, cx, cy])
-    return Calibration(K, None if distortion is None else np.asarray(distortion, float), size, "radtan",
-                       *_rectification(path, camera, rectification, projection),
-                       None if values is None else values.get("rostopic"))
+    return _no_rectification(Calibration(K, None if distortion is None else np.asarray(distortion, float), size,
+                                         "radtan", *_rectification(path, camera, rectification, projection),
+                                         None if values is None else values.get("rostopic")))
 
 
 def _yaml_matrix(path: Path, camera: str, values: dict[str, str], key: str,
@@ -688,6 +693,17 @@ def _rectification(path: Path, camera: str, rectification: np.ndarray | None,
     except TypeError as error:
         raise ValueError(str(error)) from None
     return R, K
+
+
+def _no_rectification(calibration: Calibration) -> Calibration:
+    """``calibration`` without a rectification that moves nothing: an identity ``R`` and a ``rectified_K`` equal
+    to ``K`` (a monocular ROS camera_info's usual ``R = I``, ``P = [K | 0]``) are dropped."""
+    R, K_rect = calibration.rectification, calibration.rectified_K
+    if R is not None and np.array_equal(R, np.eye(3)):
+        R = None
+    if K_rect is not None and calibration.K is not None and np.array_equal(K_rect, calibration.K):
+        K_rect = None
+    return calibration._replace(rectification=R, rectified_K=K_rect)
 
 
 def _yaml_tree(text: str) -> dict:
@@ -727,16 +743,54 @@ def _yaml_tree(text: str) -> dict:
     return root
 
 
+def _ros_camera_info(path: Path, tree: dict, camera: str, flat) -> dict[str, str]:
+    """The keys :func:`read_calibration` reads, of a ROS ``camera_info`` YAML (what ``camera_calibration`` and
+    ``rpg_dvs_ros`` write: ``image_width``, ``image_height``, ``camera_matrix``, ``distortion_model``,
+    ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix``, each matrix as ``data: [...]``,
+    row-major): one camera (``camera`` other than ``cam0`` refused); a skewed ``camera_matrix`` refused."""
+    if camera != "cam0":
+        raise ValueError(f"{path} calibrates one camera (ROS camera_info): camera {camera!r} (--calib-camera) chooses "
+                         "one of a DSEC cam_to_cam.yaml or a Kalibr camchain .yaml; leave it out")
+
+    def data(key: str) -> str | None:
+        entry = tree.get(key)
+        return flat(entry).get("data") if isinstance(entry, dict) else None
+
+    try:
+        m = _numbers(data("camera_matrix") or "")
+    except ValueError:
+        m = []
+    if len(m) != 9 or m[1] != 0 or m[3] != 0 or m[6:] != [0, 0, 1]:
+        raise ValueError(f"{path}: camera_matrix data must be the 9 numbers of [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] "
+                         f"(ROS camera_info), got {data('camera_matrix')!r}")
+    values = {"camera_matrix": f"[{m[0]!r}, {m[4]!r}, {m[2]!r}, {m[5]!r}]"}
+    if (coefficients := data("distortion_coefficients")) is not None:
+        values["distortion_coeffs"] = coefficients
+    if "distortion_model" in tree and isinstance(tree["distortion_model"], str):
+        values["distortion_model"] = tree["distortion_model"]
+    if "image_width" in tree and "image_height" in tree:
+        values["resolution"] = f"[{tree['image_width']}, {tree['image_height']}]"
+    for key in ("rectification_matrix", "projection_matrix"):
+        if (matrix := data(key)) is not None:
+            values[key] = matrix
+    if "rostopic" in tree and isinstance(tree["rostopic"], str):
+        values["rostopic"] = tree["rostopic"]
+    return values
+
+
 def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
     """The intrinsics of ``camera`` in a DSEC ``cam_to_cam.yaml`` (``intrinsics/<camera>``, with
-    ``camera_matrix``) or a Kalibr camchain (``<camera>`` with ``intrinsics: [fx, fy, cx, cy]``, given back as
-    ``camera_matrix``), as ``key: text``; lists in flow or block style."""
+    ``camera_matrix``), a Kalibr camchain (``<camera>`` with ``intrinsics: [fx, fy, cx, cy]``, given back as
+    ``camera_matrix``) or a ROS ``camera_info`` YAML (:func:`_ros_camera_info`), as ``key: text``; lists in flow
+    or block style."""
     tree = _yaml_tree(text)
 
     def flat(values: dict) -> dict[str, str]:
         return {key: "[" + ", ".join(value) + "]" if isinstance(value, list) else value
                 for key, value in values.items() if not isinstance(value, dict)}
 
+    if isinstance(tree.get("camera_matrix"), dict) and "data" in tree["camera_matrix"]:
+        return _ros_camera_info(path, tree, camera, flat)
     dsec = tree.get("intrinsics")
     if isinstance(dsec, dict):
         if isinstance(dsec.get(camera), dict):
