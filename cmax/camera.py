@@ -225,7 +225,8 @@ class Camera:
             lengths = (4,) if model == "equidistant" else _DISTORTION_LENGTHS
             if coefficients.size not in lengths:
                 what = "k1, k2, k3, k4" if model == "equidistant" else "k1, k2, p1, p2[, k3, ...]"
-                raise ValueError(f"distortion of {'an' if model == 'equidistant' else 'a'} {model} camera must have {' or '.join(map(str, lengths))} "
+                article = "an" if model == "equidistant" else "a"
+                raise ValueError(f"distortion of {article} {model} camera must have {' or '.join(map(str, lengths))} "
                                  f"coefficients ({what}), got {coefficients.size}")
             if not np.isfinite(coefficients).all():
                 raise ValueError(f"distortion must be finite, got {coefficients.tolist()}")

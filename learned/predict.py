@@ -40,9 +40,9 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import (Calibration, add_camera_options, add_recording_arguments, check_calibration_of_frames,
-                                check_file_principal_point, given_k_note,
-                                calibration_note, check_calibration_camera, no_intrinsics_message, read_calibration, tail_note, time_span_us)
+from cmax.cli.recording import (Calibration, add_camera_options, add_recording_arguments, calibration_note,
+                                check_calibration_camera, check_calibration_of_frames, check_file_principal_point,
+                                given_k_note, no_intrinsics_message, read_calibration, tail_note, time_span_us)
 from cmax.events import window_starts
 from cmax.io import run_folder
 from learned.kept_windows import KEPT_FOLDER, KeptBlocks

@@ -813,7 +813,7 @@ def test_a_fisheye_or_rectified_calibration_is_refused_for_the_output_s_pinhole_
     calib = tmp_path / "camchain.yaml"
     calib.write_text("cam0:\n  camera_model: pinhole\n  distortion_coeffs: [-0.048, 0.0113, -0.0554, 0.0215]\n"
                      "  distortion_model: equidistant\n  intrinsics: [226.38, 226.15, 173.65, 133.73]\n"
-                     "  resolution: [346, 260]\n  rectification_matrix:\n  - [1, 0, 0]\n  - [0, 1, 0]\n  - [0, 0, 1]\n")
+                     "  resolution: [346, 260]\n  rectification_matrix:\n  - [0, -1, 0]\n  - [1, 0, 0]\n  - [0, 0, 1]\n")
     with pytest.raises(ValueError, match=r"\(cam0\) states an equidistant \(fisheye\) lens and a rectification, which "
                                          r"the output's gt/K"):
         _frames_intrinsics(argparse.Namespace(calib=calib, calib_camera="cam0"))

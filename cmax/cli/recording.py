@@ -206,7 +206,8 @@ def calibration_note(calibration: Calibration, path: str | Path, camera: str) ->
     if calibration.rectified_K is not None or calibration.rectification is not None:
         where = (f"undistorted and rectified (its rectification_matrix / projection_matrix) into the rectified frame, "
                  f"K = fx {K[0, 0]:g}, fy {K[1, 1]:g}, cx {K[0, 2]:g}, cy {K[1, 2]:g} (the frame of a stereo rig's "
-                 "rectified depth, e.g. MVSEC's depth_image_rect); the fit's K and depth are that frame's")
+                 "rectified depth, e.g. MVSEC's depth_image_rect); the K and depth maps of the results are that "
+                 "frame's")
     else:
         where = (f"undistorted onto a pinhole with the lens's K = fx {K[0, 0]:g}, fy {K[1, 1]:g}, cx {K[0, 2]:g}, "
                  f"cy {K[1, 2]:g}")
@@ -262,10 +263,11 @@ def check_calibration_camera(calibration: Calibration, calib: str | Path, calib_
         return                                   # the reader says what is wrong with the file, in its own words
     read = camera or "left"
     if side != read:
-        raise ValueError(f"{calib}: {calib_camera} is the {side} camera (rostopic {calibration.topic.strip()}), but the "
-                         f"events of {path} are the {read} camera's (--camera {read}"
-                         f"{'' if camera else ', the default'}): choose the camchain's {read} camera with --calib-camera "
-                         "(MVSEC: cam0 left, cam1 right), or --camera " + side)
+        default = "" if camera else ", the default"
+        raise ValueError(f"{calib}: {calib_camera} is the {side} camera (rostopic {calibration.topic.strip()}), "
+                         f"but the events of {path} are the {read} camera's (--camera {read}{default}): choose the "
+                         f"camchain's {read} camera with --calib-camera (MVSEC: cam0 left, cam1 right), or --camera "
+                         f"{side}")
 
 
 #: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.

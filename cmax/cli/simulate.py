@@ -96,7 +96,8 @@ def _frames_intrinsics(args: argparse.Namespace) -> tuple[float, float, float, f
     rectified = calibration.rectified_K is not None or calibration.rectification is not None
     if calibration.model == "equidistant" or rectified:
         lens = "an equidistant (fisheye) lens" if calibration.model == "equidistant" else "a lens"
-        raise ValueError(f"{args.calib} ({args.calib_camera}) states {lens}{' and a rectification' if rectified else ''}, "
+        lens += " and a rectification" if rectified else ""
+        raise ValueError(f"{args.calib} ({args.calib_camera}) states {lens}, "
                          "which the output's gt/K (a pinhole K) cannot hold: convert without --calib and give "
                          f"--calib {args.calib} to cmax fit, emvs or depth (it undistorts the events)")
     if distortion is not None and np.any(np.asarray(distortion) != 0):
