@@ -1038,3 +1038,29 @@ def test_a_ros_camera_info_yaml_is_read(tmp_path):
         read_calibration(tmp_path / "mono.yaml", "cam1")
     with pytest.raises(ValueError, match=r"camera_matrix data must be the 9 numbers"):
         read_calibration(_write(tmp_path / "skew.yaml", mono.replace("data: [226.38, 0, 173.65", "data: [226.38, 2, 173.65")))
+
+
+def test_an_mvsec_file_without_calib_names_the_camchain_to_pass(tmp_path):
+    """`cmax fit/emvs indoor_flying1_data.hdf5 --K ...` fitted MVSEC's fisheye events as a pinhole's without a
+    word; a camchain-imucam-*.yaml beside the file was not named either (only calib.txt / cam_to_cam.yaml were)."""
+    import argparse
+
+    import h5py
+
+    from cmax.cli.recording import calibration_hint
+
+    rng = np.random.default_rng(8)
+    with h5py.File(tmp_path / "indoor_flying1_data.hdf5", "w") as f:
+        f["davis/left/events"] = np.column_stack([rng.integers(0, 346, 50), rng.integers(0, 260, 50),
+                                                  np.sort(rng.uniform(1.0, 1.1, 50)), rng.choice([-1.0, 1.0], 50)])
+    args = argparse.Namespace(file=tmp_path / "indoor_flying1_data.hdf5", calib=None, distortion=None)
+    hint = calibration_hint(args)
+    assert "MVSEC's DAVIS cameras look through fisheye lenses" in hint and "camchain-imucam-<sequence>.yaml" in hint
+    chain = _write(tmp_path / "camchain-imucam-indoor_flying.yaml", MVSEC_CAMCHAIN)
+    assert calibration_hint(args).startswith(f"{chain} lies beside the events but was not read: pass --calib {chain}")
+    assert calibration_hint(argparse.Namespace(file=args.file, calib=chain, distortion=None)) is None
+    events = Events(rng.integers(0, 346, 50), rng.integers(0, 260, 50), np.arange(50), rng.integers(0, 2, 50), 346, 260)
+    other = tmp_path / "x" / "y"      # two levels down: the camchain is not beside it
+    other.mkdir(parents=True)
+    assert calibration_hint(argparse.Namespace(file=write_txt(other / "ev.txt", events), calib=None,
+                                               distortion=None)) is None        # not MVSEC: nothing to say

@@ -272,21 +272,35 @@ def check_calibration_camera(calibration: Calibration, calib: str | Path, calib_
 
 #: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.
 CALIBRATION_NAMES = ("calib.txt", "cam_to_cam.yaml")
+#: MVSEC's Kalibr camchains (``camchain-imucam-indoor_flying.yaml``, ...), which :func:`calibration_hint` names too.
+MVSEC_CAMCHAIN_GLOB = "camchain-imucam-*.yaml"
 
 
 def calibration_hint(args: argparse.Namespace) -> str | None:
     """A note when no ``--calib`` or ``--distortion`` was given but a data set's calibration file lies beside
-    ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either), or None. It is not read
-    (never guessed): the note says how to use it."""
+    ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either; an MVSEC camchain
+    :data:`MVSEC_CAMCHAIN_GLOB` too), or the file is MVSEC's (whose fisheye lenses a pinhole misses: the note names
+    the camchain to pass), or None. It is not read (never guessed): the note says how to use it."""
     if args.calib is not None or args.distortion is not None:
         return None
     folder = Path(args.file).resolve().parent
     for place in (folder, folder / "calibration", folder.parent, folder.parent / "calibration"):
-        for name in CALIBRATION_NAMES:
+        for name in (*CALIBRATION_NAMES, *sorted(p.name for p in place.glob(MVSEC_CAMCHAIN_GLOB))):
             if (place / name).is_file():
                 return (f"{place / name} lies beside the events but was not read: pass --calib {place / name} to "
                         "use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
                         "distortion biases the fitted rotation and depth, docs/limits.md)")
+    from cmax.io import detect_format
+
+    try:
+        mvsec = detect_format(args.file) == "mvsec"
+    except (OSError, ValueError):
+        return None
+    if mvsec:
+        return ("MVSEC's DAVIS cameras look through fisheye lenses (Kalibr equidistant: far from a pinhole's "
+                "image toward the corners) and its depth maps are rectified: without --calib the events are "
+                "fitted as a pinhole's; pass --calib camchain-imucam-<sequence>.yaml, MVSEC's calibration of the "
+                "sequence (--calib-camera cam0 left, cam1 right), to undistort and rectify them")
     return None
 
 
