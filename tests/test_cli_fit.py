@@ -1064,3 +1064,21 @@ def test_an_mvsec_file_without_calib_names_the_camchain_to_pass(tmp_path):
     other.mkdir(parents=True)
     assert calibration_hint(argparse.Namespace(file=write_txt(other / "ev.txt", events), calib=None,
                                                distortion=None)) is None        # not MVSEC: nothing to say
+
+
+def test_a_known_rotation_is_turned_into_the_rectified_frame(slider, tmp_path):
+    """--omega / --gyro are in the camera's axes; with a rectifying --calib the fit's frame is the rectified one,
+    so the held rotation must be R_rect omega (was: held as given, in the wrong axes)."""
+    w, path, _ = slider
+    R = cv2.Rodrigues(np.array([0.0, 0.0, np.deg2rad(5.0)]))[0]
+    fx, fy, cx, cy = w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]
+    calib = _write(tmp_path / "camchain.yaml",
+                   "cam0:\n  camera_model: pinhole\n  distortion_model: radtan\n  distortion_coeffs: [0, 0, 0, 0]\n"
+                   f"  intrinsics: [{fx}, {fy}, {cx}, {cy}]\n  resolution: [96, 72]\n  rectification_matrix:\n"
+                   + "".join(f"  - [{', '.join(map(repr, row.tolist()))}]\n" for row in R))
+    omega = np.array([0.0, 0.5, 0.0])
+    out = tmp_path / "out"
+    main(["fit", str(path), "--size", "96,72", "--calib", str(calib), "-o", str(out), "--window-ms", "500",
+          "--omega", ",".join(map(str, omega)), "--max-events", "3000", "--depth-grid", "8,10", "--quiet"])
+    (window,) = json.loads((out / "summary.json").read_text())["windows"]
+    np.testing.assert_allclose(window["omega"], R @ omega, atol=1e-9)

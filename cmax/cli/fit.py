@@ -73,14 +73,16 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="known speed [m/s] (metric depth; default: unknown, depth up to scale)")
     parser.add_argument("--gyro", type=Path, default=None,
                         help="gyroscope samples (se3): an .aedat4 file (its IMU stream) or a text file of "
-                             "'t wx wy wz' lines [s, rad/s], camera axes, the events' clock; each window's "
+                             "'t wx wy wz' lines [s, rad/s], camera axes (turned into the rectified frame with a "
+                             "rectifying --calib), the events' clock; each window's "
                              "rotation is held at their mean, only direction and depth are fitted (default: none, the rotation is fitted)")
     parser.add_argument("--gyro-axes", default=None, metavar="AXES",
                         help="the camera's x,y,z as signed axes of --gyro's IMU, e.g. --gyro-axes=-x,y,-z (with '=': "
                              "the value starts with '-') (default: a DAVIS's AEDAT4 IMU is turned by -x,y,-z, as "
                              "rpg_dvs_ros does; another camera's must be stated; a text file is in camera axes already)")
     parser.add_argument("--omega", type=float_list((3,), "--omega (wx,wy,wz)"), default=None, metavar="WX,WY,WZ",
-                        help="se3: a known, constant angular velocity [rad/s] of every window, camera axes (e.g. "
+                        help="se3: a known, constant angular velocity [rad/s] of every window, camera axes (turned "
+                             "into the rectified frame with a rectifying --calib) (e.g. "
                              "0,0,0 for a linear stage or a straight drive): held like --gyro's, only direction and "
                              "depth are fitted; not with --gyro (default: none, the rotation is fitted)")
     parser.add_argument("--zero-rotation-start", action="store_true",
@@ -602,6 +604,8 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         gyro = check_gyro(read_gyro(args.gyro, axes=args.gyro_axes))
         events, note = overlap(events, gyro[0], "gyro samples", args.gyro, "fitting the overlap")
         notes += [note] if note else []
+    if gyro is not None and calibration.rectification is not None:   # camera axes -> the rectified frame fitted
+        gyro = (gyro[0], gyro[1] @ calibration.rectification.T)
     if sequence_model == "se3":
         DepthGrid(depth_grid, events.width, events.height)
     first_us, last_us = event_span(events)
