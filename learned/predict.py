@@ -76,7 +76,7 @@ SUMMARY_UNITS = {
     "window_us": "µs",
     "t0_s, t1_s": "s after the first event (--t0, --t1)",
     "depth_range_m": "m: the colour scale of window_*.png (the depth itself is not bounded by it)",
-    "K": "px",
+    "K": "px: the pinhole of the pixels the network saw (with --calib of a rectified camera: the rectified frame's)",
     "window_NNNNN.npz": "depth (H, W) [m], inverse_depth (H, W) [1/m], twist (6,) (v [m/s], omega [rad/s], camera "
                         "frame), t0_us, t1_us [µs], K [px]",
 }
@@ -829,7 +829,9 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
     summary = {"file": str(path), "format": recording.format, "camera": camera_read(recording.format, camera),
                "checkpoint": str(checkpoint),
                "size": [recording.width, recording.height], "K": np.asarray(K).tolist(),
-               "distortion": None if distortion is None else distortion.tolist(), "window_us": window_us,
+               "distortion": None if distortion is None else distortion.tolist(),
+               "distortion_model": None if distortion is None else lens.model,
+               "rectified": lens.rectification is not None or lens.rectified_K is not None, "window_us": window_us,
                "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],
                "windows_total": len(starts), "windows": written, "skipped": skipped, "min_events": MIN_EVENTS,
                "notes": list(notes), "device": str(device), "seconds": run.seconds, "units": SUMMARY_UNITS}

@@ -624,3 +624,6 @@ def test_a_fisheye_camchain_with_a_rectification_maps_the_events_into_the_rectif
     rectified = Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], W, H)
     assert not np.array_equal(rectified.x, events.x[inside])                               # it moved events
     _check_outputs(out, _expected(network, rectified, start=int(events.t[0]), end=int(events.t[-1])), K_expected=P)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["distortion_model"] == "equidistant" and summary["rectified"] is True
+    np.testing.assert_array_equal(summary["K"], P)
