@@ -292,7 +292,8 @@ class Camera:
 
     # -- geometry ---------------------------------------------------------------------
     def project(self, points_c: np.ndarray) -> np.ndarray:
-        """Pinhole projection of camera-frame points ``points_c`` (N, 3) [m] to pixels (N, 2) float64 (no distortion).
+        """Pinhole projection of camera-frame points ``points_c`` (N, 3) [m] to pixels (N, 2) float64 with ``K`` (no
+        distortion, no rectification: :meth:`distort_points` gives the sensor's pixel of a rectified pinhole's).
 
         Points must be finite and in front of the camera (z > 0); others have no
         image and raise :class:`ValueError`.
@@ -414,8 +415,9 @@ class Camera:
 
     @cached_property
     def undistortion_map(self) -> np.ndarray:
-        """(H, W, 2) float32: the undistorted coordinates of every integer pixel, NaN for the pixels that have
-        none (beyond the radius the distortion model reaches: :meth:`undistort_points`).
+        """(H, W, 2) float32: the undistorted (and rectified) coordinates [px of :attr:`pinhole_K`] of every integer
+        pixel, NaN for the pixels that have none (beyond the radius the distortion model reaches:
+        :meth:`undistort_points`).
 
         Computed once per camera (OpenCV's iterative ``undistortPoints``, checked with the forward model);
         :meth:`undistort` then looks events up in it.
