@@ -21,6 +21,10 @@ _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 #: and Kannala-Brandt's ``equidistant`` fisheye model (Kalibr's name; OpenCV's ``cv2.fisheye``; 4 coefficients).
 DISTORTION_MODELS = ("radtan", "equidistant")
 
+#: How far ``R R^T`` of a rectification may lie from the identity (entries; a rotation printed with 4 decimals is
+#: about 1e-4 off): within it :func:`check_rotation` takes the nearest rotation, beyond it refuses the matrix.
+ROTATION_TOLERANCE = 1e-3
+
 #: Undistortion: OpenCV's fixed-point iterations for every pixel, the iterations for the pixels that have not
 #: converged after those, and the distance [px] between a pixel and the re-distorted image of its undistorted
 #: position under which it counts as solved (:meth:`Camera.undistort_points`).
@@ -483,8 +487,10 @@ def _scaled_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
 
 
 def check_rotation(R: object, name: str = "R") -> np.ndarray:
-    """Validate a rotation matrix; returns it as a (3, 3) float64 array: finite, orthonormal to 1e-6 and with
-    determinant +1 (a reflection or a scaled matrix is refused, naming ``name``).
+    """Validate a rotation matrix ``R`` (3, 3); returns it, or the nearest rotation to it (SVD) where it is not one
+    to 1e-12, as a (3, 3) float64 array. It must be finite, ``R R^T`` within :data:`ROTATION_TOLERANCE` of the
+    identity (a matrix printed with 4 or more decimals, as calibration files print them) and its determinant +1 (a
+    reflection or a scaled matrix is refused, naming ``name``).
 
     >>> check_rotation(np.eye(3)).tolist()[0]
     [1.0, 0.0, 0.0]
@@ -497,9 +503,12 @@ def check_rotation(R: object, name: str = "R") -> np.ndarray:
         raise ValueError(f"{name} must be a 3x3 rotation matrix, got shape {matrix.shape}")
     if not np.isfinite(matrix).all():
         raise ValueError(f"{name} must be finite, got {matrix.tolist()}")
-    if not np.allclose(matrix @ matrix.T, np.eye(3), atol=1e-6) or np.linalg.det(matrix) < 0:
+    if not np.allclose(matrix @ matrix.T, np.eye(3), rtol=0, atol=ROTATION_TOLERANCE) or np.linalg.det(matrix) < 0:
         raise ValueError(f"{name} must be a rotation (R R^T = I, det R = +1), got {matrix.tolist()}")
-    return matrix
+    if np.allclose(matrix @ matrix.T, np.eye(3), rtol=0, atol=1e-12):
+        return matrix                      # a rotation to the digits given: kept as it is
+    u, _, vt = np.linalg.svd(matrix)
+    return u @ vt
 
 
 def camera_and_intrinsics(K: object) -> tuple["Camera | None", np.ndarray]:

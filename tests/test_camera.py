@@ -203,3 +203,16 @@ def test_scaled_rectified_camera_keeps_its_model():
     cam = Camera(MVSEC_K, 346, 260, MVSEC_D, "equidistant", MVSEC_R, MVSEC_P).scaled(173, 130)
     assert cam.model == "equidistant" and cam.rectified_K[0, 0] == pytest.approx(MVSEC_P[0, 0] / 2)
     np.testing.assert_array_equal(cam.rectification, MVSEC_R)
+
+
+def test_a_rectification_printed_with_few_decimals_is_taken_as_the_nearest_rotation():
+    """A rectification_matrix printed with 6 decimals is 8e-7 from orthonormal (4 decimals: 7e-5): refused at a
+    1e-6 tolerance, it would hang on the digits a tool prints. Taken now, as the nearest rotation."""
+    from cmax.camera import check_rotation
+
+    rounded = np.round(MVSEC_R, 4)
+    R = check_rotation(rounded)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0) and np.abs(R - MVSEC_R).max() < 1e-4
+    with pytest.raises(ValueError, match="must be a rotation"):
+        check_rotation(1.01 * MVSEC_R)             # R R^T 2% off: not a rotation
