@@ -584,6 +584,15 @@ def test_mvsec_dataset_without_calibration_warns_once_and_checks_the_calibration
                                                                           177.43276376280926])  # K rounded: taken
     with pytest.raises(ValueError, match=r"calib is a camera of a 240x180 sensor; MVSEC's DAVIS is 346x260"):
         MVSECDataset(path, calib=Camera.from_intrinsics(200, 200, 120, 90, 240, 180))
+    import h5py
+
+    with h5py.File(tmp_path / "gt.hdf5", "w") as f:
+        f["davis/left/depth_image_rect"] = np.full((1, 260, 346), 2.0, np.float32)
+        f["davis/left/depth_image_rect_ts"] = np.array([100.25])
+    unrectified = Camera(np.array([[226.38, 0, 173.65], [0, 226.15, 133.73], [0, 0, 1]]), 346, 260,
+                         [-0.048, 0.0113, -0.0554, 0.0215], "equidistant")
+    with pytest.warns(UserWarning, match=r"calib gives no rectification .* MVSEC's depth maps lie in the rectified"):
+        MVSECDataset(path, calib=unrectified, gt_file=tmp_path / "gt.hdf5")
     calib.write_text(MVSEC_CAMCHAIN.replace("resolution: [346, 260]", "resolution: [640, 480]"))
     with pytest.raises(ValueError, match=r"calibrates a 640x480 camera \(cam0\); MVSEC's DAVIS is 346x260"):
         MVSECDataset(path, calib=calib)
