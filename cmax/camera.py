@@ -246,12 +246,13 @@ class Camera:
     @classmethod
     def from_intrinsics(
         cls, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-        distortion: object = None,
+        distortion: object = None, model: str = "radtan",
     ) -> "Camera":
         """Camera from focal lengths ``fx``, ``fy`` and principal point ``cx``, ``cy`` [px], the sensor's ``width`` x
-        ``height`` [px] and OpenCV's ``distortion`` coefficients ``(k1, k2, p1, p2[, k3, ...])`` (None: a pinhole)."""
+        ``height`` [px] and the ``distortion`` coefficients of ``model``: OpenCV's ``(k1, k2, p1, p2[, k3, ...])``
+        for ``"radtan"`` (None: a pinhole), Kannala-Brandt's ``(k1, k2, k3, k4)`` for ``"equidistant"``."""
         K = intrinsics_matrix([fx, fy, cx, cy])
-        return cls(K, width, height, None if distortion is None else np.asarray(distortion))
+        return cls(K, width, height, None if distortion is None else np.asarray(distortion), model)
 
     @classmethod
     def from_ecd_calib(cls, path: str | os.PathLike, width: int = 240, height: int = 180) -> "Camera":

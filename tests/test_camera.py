@@ -153,6 +153,8 @@ def test_equidistant_distortion_is_the_kannala_brandt_formula():
     np.testing.assert_allclose(cam.distort_points(undistorted_px), expected, atol=1e-9)
     # zero coefficients are still a fisheye (r_d = atan r), not a pinhole
     assert not Camera(MVSEC_K, 346, 260, np.zeros(4), "equidistant").is_pinhole
+    same = Camera.from_intrinsics(*MVSEC_K[[0, 1, 0, 1], [0, 1, 2, 2]], 346, 260, MVSEC_D, model="equidistant")
+    np.testing.assert_array_equal(same.distort_points(undistorted_px), cam.distort_points(undistorted_px))
 
 
 @pytest.mark.parametrize("rectified", [False, True])
