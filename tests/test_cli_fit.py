@@ -1034,6 +1034,12 @@ def test_a_ros_camera_info_yaml_is_read(tmp_path):
             .replace("199.65, 0, 177.43, 0, 0, 199.65, 126.81", "226.38, 0, 173.65, 0, 0, 226.15, 133.73"))
     calibration = read_calibration(_write(tmp_path / "mono.yaml", mono))
     assert calibration.model == "radtan" and calibration.rectification is None and calibration.rectified_K is None
+    from cmax.cli.recording import calibration_note
+
+    assert calibration_note(calibration, "mono.yaml", "cam0") is None         # a radtan pinhole: nothing to say
+    radtan_rectified = read_calibration(_write(tmp_path / "stereo.yaml", fisheye.replace("equidistant", "plumb_bob")))
+    assert calibration_note(radtan_rectified, "stereo.yaml", "cam0").startswith(
+        "stereo.yaml (cam0): a radtan lens; the events are undistorted and rectified")
     with pytest.raises(ValueError, match=r"calibrates one camera \(ROS camera_info\): camera 'cam1'"):
         read_calibration(tmp_path / "mono.yaml", "cam1")
     with pytest.raises(ValueError, match=r"camera_matrix data must be the 9 numbers"):

@@ -202,7 +202,7 @@ def calibration_note(calibration: Calibration, path: str | Path, camera: str) ->
     if calibration.model != "equidistant" and calibration.rectified_K is None and calibration.rectification is None:
         return None
     K = calibration.pinhole_K
-    lens = "equidistant (fisheye) lens" if calibration.model == "equidistant" else "lens"
+    lens = "an equidistant (fisheye) lens" if calibration.model == "equidistant" else f"a {calibration.model} lens"
     if calibration.rectified_K is not None or calibration.rectification is not None:
         where = (f"undistorted and rectified (its rectification_matrix / projection_matrix) into the rectified frame, "
                  f"K = fx {K[0, 0]:g}, fy {K[1, 1]:g}, cx {K[0, 2]:g}, cy {K[1, 2]:g} (the frame of a stereo rig's "
@@ -211,7 +211,7 @@ def calibration_note(calibration: Calibration, path: str | Path, camera: str) ->
     else:
         where = (f"undistorted onto a pinhole with the lens's K = fx {K[0, 0]:g}, fy {K[1, 1]:g}, cx {K[0, 2]:g}, "
                  f"cy {K[1, 2]:g}")
-    return f"{path} ({camera}): an {lens}; the events are {where}"
+    return f"{path} ({camera}): {lens}; the events are {where}"
 
 
 def calibration_of(args: argparse.Namespace) -> Calibration:
