@@ -1,4 +1,5 @@
-"""Pinhole camera with OpenCV distortion, and undistortion of event coordinates."""
+"""Pinhole camera with OpenCV (radtan) or Kannala-Brandt (Kalibr ``equidistant``, ``cv2.fisheye``) distortion and
+an optional stereo rectification, and undistortion of event coordinates."""
 from __future__ import annotations
 
 import os
@@ -11,10 +12,18 @@ import numpy as np
 
 from cmax.events import Events, _check_sensor_size, require_events
 
-__all__ = ["Camera", "camera_and_intrinsics", "check_intrinsics", "check_principal_point", "intrinsics_matrix",
-           "intrinsics_oddity", "pinhole_events"]
+__all__ = ["Camera", "DISTORTION_MODELS", "camera_and_intrinsics", "check_intrinsics", "check_principal_point",
+           "check_rotation", "distort_equidistant", "intrinsics_matrix", "intrinsics_oddity", "pinhole_events"]
 
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
+
+#: Distortion models a :class:`Camera` knows: OpenCV's ``radtan`` (``plumb_bob``; 4, 5, 8, 12 or 14 coefficients)
+#: and Kannala-Brandt's ``equidistant`` fisheye model (Kalibr's name; OpenCV's ``cv2.fisheye``; 4 coefficients).
+DISTORTION_MODELS = ("radtan", "equidistant")
+
+#: How far ``R R^T`` of a rectification may lie from the identity (entries; a rotation printed with 4 decimals is
+#: about 1e-4 off): within it :func:`check_rotation` takes the nearest rotation, beyond it refuses the matrix.
+ROTATION_TOLERANCE = 1e-3
 
 #: Undistortion: OpenCV's fixed-point iterations for every pixel, the iterations for the pixels that have not
 #: converged after those, and the distance [px] between a pixel and the re-distorted image of its undistorted
@@ -113,6 +122,25 @@ def intrinsics_oddity(K: np.ndarray, width: int, height: int) -> str | None:
             "ROS's rows read fx, cx, fy, cy)")
 
 
+def distort_equidistant(xy: np.ndarray, distortion: np.ndarray) -> np.ndarray:
+    """Kannala-Brandt (Kalibr ``equidistant``, ``cv2.fisheye``) distortion of normalised coordinates ``xy`` (N, 2)
+    (a ray ``(x, y, 1)``) -> (N, 2), with ``distortion = (k1, k2, k3, k4)``: the ray's angle from the optical
+    axis ``theta = atan(r)``, ``r = |xy|``, becomes ``theta_d = theta (1 + k1 theta^2 + k2 theta^4 + k3 theta^6 +
+    k4 theta^8)`` and the point ``xy theta_d / r`` (``xy`` itself at ``r = 0``).
+
+    >>> distort_equidistant(np.array([[1.0, 0.0]]), np.zeros(4)).round(6).tolist()   # 45 degrees: pi / 4
+    [[0.785398, 0.0]]
+    """
+    k1, k2, k3, k4 = np.asarray(distortion, dtype=np.float64).ravel()
+    r = np.hypot(xy[:, 0], xy[:, 1])
+    theta = np.arctan(r)
+    t2 = theta * theta
+    theta_d = theta * (1 + t2 * (k1 + t2 * (k2 + t2 * (k3 + t2 * k4))))
+    with np.errstate(invalid="ignore", divide="ignore"):
+        scale = np.where(r > 0, theta_d / np.where(r > 0, r, 1.0), 1.0)
+    return xy * scale[:, None]
+
+
 def _distort_normalised(xy: np.ndarray, distortion: np.ndarray) -> np.ndarray:
     """OpenCV's distortion of normalised coordinates (N, 2) -> (N, 2) (``cv2.projectPoints`` with ``K = I``).
 
@@ -139,17 +167,33 @@ def _distort_normalised(xy: np.ndarray, distortion: np.ndarray) -> np.ndarray:
 
 @dataclass(frozen=True, eq=False)
 class Camera:
-    """A pinhole camera of ``width`` x ``height`` pixels with optional OpenCV distortion.
+    """A pinhole camera of ``width`` x ``height`` pixels with optional lens distortion and rectification.
+
+    A point's ray ``(x, y, 1)`` in the camera frame reaches the sensor at the pixel ``K [distort(x, y); 1]``.
+    Undistortion (:meth:`undistort_points`, :meth:`undistort`, :meth:`undistort_events`) inverts that and gives
+    the pixel of an ideal pinhole with :attr:`pinhole_K`: ``rectified_K [R x; 1]`` (up to scale) with
+    ``R = rectification``, as ``cv2.undistortPoints(..., R, P)`` and ``cv2.fisheye.undistortPoints`` give it (a
+    stereo rig's rectified frame, e.g. MVSEC's ``depth_image_rect``); ``K`` itself without them.
 
     Parameters
     ----------
     K : array_like, shape (3, 3)
-        Intrinsic matrix in pixels.
+        Intrinsic matrix of the (distorted) lens in pixels.
     width, height : int
         Image size in pixels.
-    distortion : array_like, shape (4,), (5,), (8,), (12,) or (14,), optional
-        OpenCV coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, ...]]])``;
-        ``None`` for an ideal pinhole.
+    distortion : array_like, optional
+        ``model="radtan"``: OpenCV coefficients ``(k1, k2, p1, p2[, k3[, k4, k5, k6[, ...]]])``, shape (4,), (5,),
+        (8,), (12,) or (14,); ``None`` (or all zero) for an ideal pinhole. ``model="equidistant"``: exactly the
+        four Kannala-Brandt coefficients ``(k1, k2, k3, k4)`` (:func:`distort_equidistant`; all zero is still a
+        fisheye, not a pinhole).
+    model : str
+        ``"radtan"`` (default; ``"plumb_bob"`` is read as it) or ``"equidistant"`` (:data:`DISTORTION_MODELS`).
+    rectification : array_like, shape (3, 3), optional
+        Rotation ``R`` [unitless] from the camera frame to the rectified frame (Kalibr's / ROS's
+        ``rectification_matrix``); ``None``: no rotation.
+    rectified_K : array_like, shape (3, 3), optional
+        Pinhole matrix [px] of the rectified frame (the left 3x3 of Kalibr's / ROS's ``projection_matrix``);
+        ``None``: ``K``.
 
     Examples
     --------
@@ -163,34 +207,52 @@ class Camera:
     width: int
     height: int
     distortion: np.ndarray | None = field(default=None)
+    model: str = "radtan"
+    rectification: np.ndarray | None = field(default=None)
+    rectified_K: np.ndarray | None = field(default=None)
 
     def __post_init__(self) -> None:
         object.__setattr__(self, "K", check_intrinsics(self.K))
         width, height = _check_sensor_size(self.width, self.height)
         object.__setattr__(self, "width", width)
         object.__setattr__(self, "height", height)
+        model = "radtan" if self.model == "plumb_bob" else self.model
+        if model not in DISTORTION_MODELS:
+            raise ValueError(f"model must be one of {DISTORTION_MODELS} (OpenCV's radtan / plumb_bob, Kannala-Brandt's "
+                             f"equidistant fisheye), got {self.model!r}")
+        object.__setattr__(self, "model", model)
+        if model == "equidistant" and self.distortion is None:
+            raise ValueError("distortion of an equidistant (fisheye) camera must be its 4 coefficients k1, k2, k3, k4, "
+                             "got None")
         if self.distortion is not None:
             coefficients = np.asarray(self.distortion, dtype=np.float64).ravel()
-            if coefficients.size not in _DISTORTION_LENGTHS:
-                raise ValueError(
-                    f"distortion must have {_DISTORTION_LENGTHS} coefficients, got {coefficients.size}"
-                )
+            lengths = (4,) if model == "equidistant" else _DISTORTION_LENGTHS
+            if coefficients.size not in lengths:
+                what = "k1, k2, k3, k4" if model == "equidistant" else "k1, k2, p1, p2[, k3, ...]"
+                article = "an" if model == "equidistant" else "a"
+                raise ValueError(f"distortion of {article} {model} camera must have {' or '.join(map(str, lengths))} "
+                                 f"coefficients ({what}), got {coefficients.size}")
             if not np.isfinite(coefficients).all():
                 raise ValueError(f"distortion must be finite, got {coefficients.tolist()}")
             object.__setattr__(
-                self, "distortion", None if not coefficients.any() else coefficients
+                self, "distortion", None if model == "radtan" and not coefficients.any() else coefficients
             )
+        if self.rectification is not None:
+            object.__setattr__(self, "rectification", check_rotation(self.rectification, "rectification"))
+        if self.rectified_K is not None:
+            object.__setattr__(self, "rectified_K", check_intrinsics(self.rectified_K, "rectified_K"))
 
     # -- constructors -----------------------------------------------------------------
     @classmethod
     def from_intrinsics(
         cls, fx: float, fy: float, cx: float, cy: float, width: int, height: int,
-        distortion: object = None,
+        distortion: object = None, model: str = "radtan",
     ) -> "Camera":
         """Camera from focal lengths ``fx``, ``fy`` and principal point ``cx``, ``cy`` [px], the sensor's ``width`` x
-        ``height`` [px] and OpenCV's ``distortion`` coefficients ``(k1, k2, p1, p2[, k3, ...])`` (None: a pinhole)."""
+        ``height`` [px] and the ``distortion`` coefficients of ``model``: OpenCV's ``(k1, k2, p1, p2[, k3, ...])``
+        for ``"radtan"`` (None: a pinhole), Kannala-Brandt's ``(k1, k2, k3, k4)`` for ``"equidistant"``."""
         K = intrinsics_matrix([fx, fy, cx, cy])
-        return cls(K, width, height, None if distortion is None else np.asarray(distortion))
+        return cls(K, width, height, None if distortion is None else np.asarray(distortion), model)
 
     @classmethod
     def from_ecd_calib(cls, path: str | os.PathLike, width: int = 240, height: int = 180) -> "Camera":
@@ -222,9 +284,21 @@ class Camera:
     def is_distorted(self) -> bool:
         return self.distortion is not None
 
+    @property
+    def pinhole_K(self) -> np.ndarray:
+        """(3, 3) [px]: the pinhole matrix of the undistorted (and rectified) pixels: ``rectified_K`` or ``K``."""
+        return self.K if self.rectified_K is None else self.rectified_K
+
+    @property
+    def is_pinhole(self) -> bool:
+        """True when the events' pixels are already the pinhole's of :attr:`pinhole_K`: no distortion, no
+        rectification, no other K (undistortion then returns them as they are)."""
+        return self.distortion is None and self.rectification is None and self.rectified_K is None
+
     # -- geometry ---------------------------------------------------------------------
     def project(self, points_c: np.ndarray) -> np.ndarray:
-        """Pinhole projection of camera-frame points ``points_c`` (N, 3) [m] to pixels (N, 2) float64 (no distortion).
+        """Pinhole projection of camera-frame points ``points_c`` (N, 3) [m] to pixels (N, 2) float64 with ``K`` (no
+        distortion, no rectification: :meth:`distort_points` gives the sensor's pixel of a rectified pinhole's).
 
         Points must be finite and in front of the camera (z > 0); others have no
         image and raise :class:`ValueError`.
@@ -281,30 +355,64 @@ class Camera:
         pixels = np.asarray(pixels, dtype=np.float64)
         if pixels.ndim != 2 or pixels.shape[1] != 2:
             raise ValueError(f"pixels must have shape (N, 2), got {pixels.shape}")
-        if not self.is_distorted or not len(pixels):
+        if self.is_pinhole or not len(pixels):
             return pixels.copy()
         ones = np.ones((len(pixels), 1))
         normalised = (np.hstack([pixels, ones]) @ np.linalg.inv(self.K).T)[:, :2]
-        undistorted = self._undistort_normalised(normalised, UNDISTORT_ITERATIONS)
-        unsolved = np.flatnonzero(self._residual_px(undistorted, pixels) > UNDISTORT_TOLERANCE_PX)
-        if unsolved.size:
-            undistorted[unsolved] = self._undistort_normalised(normalised[unsolved], UNDISTORT_MAX_ITERATIONS)
-            still = unsolved[self._residual_px(undistorted[unsolved], pixels[unsolved]) > UNDISTORT_TOLERANCE_PX]
-            undistorted[still] = np.nan
-        return (np.hstack([undistorted, ones]) @ self.K.T)[:, :2]
+        if self.distortion is None:
+            undistorted = normalised
+        else:
+            undistorted = self._undistort_normalised(normalised, UNDISTORT_ITERATIONS)
+            unsolved = np.flatnonzero(self._residual_px(undistorted, pixels) > UNDISTORT_TOLERANCE_PX)
+            if unsolved.size:
+                undistorted[unsolved] = self._undistort_normalised(normalised[unsolved], UNDISTORT_MAX_ITERATIONS)
+                still = unsolved[self._residual_px(undistorted[unsolved], pixels[unsolved]) > UNDISTORT_TOLERANCE_PX]
+                undistorted[still] = np.nan
+        rays = np.hstack([undistorted, ones])
+        if self.rectification is not None:
+            rays = rays @ self.rectification.T
+            with np.errstate(invalid="ignore", divide="ignore"):
+                rays = np.where(rays[:, 2:3] > 0, rays / rays[:, 2:3], np.nan)   # behind the rectified camera: none
+        return (rays @ self.pinhole_K.T)[:, :2]
+
+    def distort_points(self, pixels: np.ndarray) -> np.ndarray:
+        """The forward model: the sensor's pixels (N, 2) float64 of undistorted pixels ``pixels`` (N, 2) of
+        :attr:`pinhole_K` (rectified when the camera has a rectification), the inverse of
+        :meth:`undistort_points`; NaN rows for pixels whose rays point behind the camera."""
+        pixels = np.asarray(pixels, dtype=np.float64)
+        if pixels.ndim != 2 or pixels.shape[1] != 2:
+            raise ValueError(f"pixels must have shape (N, 2), got {pixels.shape}")
+        rays = np.hstack([pixels, np.ones((len(pixels), 1))]) @ np.linalg.inv(self.pinhole_K).T
+        if self.rectification is not None:
+            rays = rays @ self.rectification      # R^-1 = R^T, applied to row vectors
+        with np.errstate(invalid="ignore", divide="ignore"):
+            normalised = np.where(rays[:, 2:3] > 0, rays[:, :2] / rays[:, 2:3], np.nan)
+        if self.distortion is not None:
+            normalised = self._distort(normalised)
+        return (np.hstack([normalised, np.ones((len(pixels), 1))]) @ self.K.T)[:, :2]
+
+    def _distort(self, normalised: np.ndarray) -> np.ndarray:
+        """The lens model's distortion of normalised coordinates (N, 2) -> (N, 2)."""
+        if self.model == "equidistant":
+            return distort_equidistant(normalised, self.distortion)
+        return _distort_normalised(normalised, self.distortion)
 
     def _undistort_normalised(self, normalised: np.ndarray, iterations: int) -> np.ndarray:
-        """OpenCV's iterative inverse of the distortion on normalised coordinates (N, 2) -> (N, 2)."""
-        out = cv2.undistortPoints(
-            np.ascontiguousarray(normalised).reshape(-1, 1, 2), np.eye(3), self.distortion, R=None, P=np.eye(3),
-            criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-12),
-        )
+        """OpenCV's iterative inverse of the distortion on normalised coordinates (N, 2) -> (N, 2)
+        (``cv2.fisheye.undistortPoints`` for the equidistant model)."""
+        points = np.ascontiguousarray(normalised).reshape(-1, 1, 2)
+        criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, iterations, 1e-12)
+        if self.model == "equidistant":
+            out = cv2.fisheye.undistortPoints(points, np.eye(3), self.distortion, R=np.eye(3), P=np.eye(3),
+                                              criteria=criteria)
+        else:
+            out = cv2.undistortPoints(points, np.eye(3), self.distortion, R=None, P=np.eye(3), criteria=criteria)
         return out.reshape(-1, 2).astype(np.float64)
 
     def _residual_px(self, undistorted: np.ndarray, pixels: np.ndarray) -> np.ndarray:
         """Distance [px] (N,) between ``pixels`` (N, 2) and the forward model's image of their normalised
         ``undistorted`` positions (N, 2); inf where that image is not finite."""
-        distorted = _distort_normalised(undistorted, self.distortion)
+        distorted = self._distort(undistorted)
         back = (np.column_stack([distorted, np.ones(len(distorted))]) @ self.K.T)[:, :2]
         with np.errstate(invalid="ignore"):
             residual = np.linalg.norm(back - pixels, axis=1)
@@ -312,8 +420,9 @@ class Camera:
 
     @cached_property
     def undistortion_map(self) -> np.ndarray:
-        """(H, W, 2) float32: the undistorted coordinates of every integer pixel, NaN for the pixels that have
-        none (beyond the radius the distortion model reaches: :meth:`undistort_points`).
+        """(H, W, 2) float32: the undistorted (and rectified) coordinates [px of :attr:`pinhole_K`] of every integer
+        pixel, NaN for the pixels that have none (beyond the radius the distortion model reaches:
+        :meth:`undistort_points`).
 
         Computed once per camera (OpenCV's iterative ``undistortPoints``, checked with the forward model);
         :meth:`undistort` then looks events up in it.
@@ -330,7 +439,7 @@ class Camera:
         that has no undistorted position (:meth:`undistort_points`).
         """
         self._check_events(events)
-        if not self.is_distorted:
+        if self.is_pinhole:
             return np.column_stack([events.x, events.y]).astype(np.float32)
         return self.undistortion_map[events.y, events.x]
 
@@ -343,15 +452,15 @@ class Camera:
             )
 
     def undistort_events(self, events: Events) -> Events:
-        """The events at their undistorted pixels, the nearest integer ones, for a pinhole model with
-        :attr:`K` (what ``cmax fit --calib`` fits); events whose undistorted pixel lies outside the image, or
-        that have none (NaN in :attr:`undistortion_map`), are dropped. A camera without distortion returns
-        ``events`` themselves.
+        """The events at their undistorted (and rectified) pixels, the nearest integer ones, for a pinhole model
+        with :attr:`pinhole_K` (what ``cmax fit --calib`` fits); events whose undistorted pixel lies outside the
+        image, or that have none (NaN in :attr:`undistortion_map`), are dropped. A pinhole camera
+        (:attr:`is_pinhole`) returns ``events`` themselves.
 
         Raises ``ValueError`` when the events come from a sensor of another size than the camera's.
         """
         self._check_events(events)
-        if not self.is_distorted:
+        if self.is_pinhole:
             return events
         undistorted = self.undistortion_map[events.y, events.x]
         solved = np.isfinite(undistorted).all(axis=1)
@@ -360,27 +469,60 @@ class Camera:
         return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], self.width, self.height)
 
     def scaled(self, width: int, height: int) -> "Camera":
-        """The same camera resampled to ``width`` x ``height`` pixels (distortion kept)."""
+        """The same camera resampled to ``width`` x ``height`` pixels (distortion, model and rectification kept;
+        ``rectified_K`` scaled as ``K``)."""
         sx, sy = width / self.width, height / self.height
-        K = self.K.copy()
-        K[0] *= sx
-        K[1] *= sy
-        # Pixel centres: x' + 0.5 = sx * (x + 0.5).
-        K[0, 2] = sx * (self.cx + 0.5) - 0.5
-        K[1, 2] = sy * (self.cy + 0.5) - 0.5
-        return Camera(K, width, height, self.distortion)
+        return Camera(_scaled_K(self.K, sx, sy), width, height, self.distortion, self.model, self.rectification,
+                      None if self.rectified_K is None else _scaled_K(self.rectified_K, sx, sy))
+
+
+def _scaled_K(K: np.ndarray, sx: float, sy: float) -> np.ndarray:
+    """``K`` (3, 3) [px] of an image resampled by ``sx``, ``sy``; pixel centres: ``x' + 0.5 = sx (x + 0.5)``."""
+    cx, cy = float(K[0, 2]), float(K[1, 2])
+    K = K.copy()
+    K[0] *= sx
+    K[1] *= sy
+    K[0, 2] = sx * (cx + 0.5) - 0.5
+    K[1, 2] = sy * (cy + 0.5) - 0.5
+    return K
+
+
+def check_rotation(R: object, name: str = "R") -> np.ndarray:
+    """Validate a rotation matrix ``R`` (3, 3); returns it, or the nearest rotation to it (SVD) where it is not one
+    to 1e-12, as a (3, 3) float64 array. It must be finite, ``R R^T`` within :data:`ROTATION_TOLERANCE` of the
+    identity (a matrix printed with 4 or more decimals, as calibration files print them) and its determinant +1 (a
+    reflection or a scaled matrix is refused, naming ``name``).
+
+    >>> check_rotation(np.eye(3)).tolist()[0]
+    [1.0, 0.0, 0.0]
+    """
+    try:
+        matrix = np.asarray(R, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"{name} must be a 3x3 rotation matrix of numbers, got {R!r}") from None
+    if matrix.shape != (3, 3):
+        raise ValueError(f"{name} must be a 3x3 rotation matrix, got shape {matrix.shape}")
+    if not np.isfinite(matrix).all():
+        raise ValueError(f"{name} must be finite, got {matrix.tolist()}")
+    if not np.allclose(matrix @ matrix.T, np.eye(3), rtol=0, atol=ROTATION_TOLERANCE) or np.linalg.det(matrix) < 0:
+        raise ValueError(f"{name} must be a rotation (R R^T = I, det R = +1), got {matrix.tolist()}")
+    if np.allclose(matrix @ matrix.T, np.eye(3), rtol=0, atol=1e-12):
+        return matrix                      # a rotation to the digits given: kept as it is
+    u, _, vt = np.linalg.svd(matrix)
+    return u @ vt
 
 
 def camera_and_intrinsics(K: object) -> tuple["Camera | None", np.ndarray]:
     """``(camera, K (3, 3))`` of a ``K`` that is a matrix (checked; camera None) or a :class:`Camera` (its ``K``)."""
     camera = K if isinstance(K, Camera) else None
-    return camera, check_intrinsics(K.K if camera is not None else K)
+    return camera, check_intrinsics(K.pinhole_K if camera is not None else K)
 
 
 def pinhole_events(events: Events, K: object) -> tuple[Events, np.ndarray]:
     """``(events, K (3, 3))`` for a pinhole fit: a matrix ``K`` is returned as given (checked later by the
-    caller); a :class:`Camera` gives its ``K`` and the events through :meth:`Camera.undistort_events`
-    (undistorted when it has a distortion; refused when they come from a sensor of another size)."""
+    caller); a :class:`Camera` gives its :attr:`Camera.pinhole_K` and the events through
+    :meth:`Camera.undistort_events` (undistorted and rectified when it has a distortion or a rectification;
+    refused when they come from a sensor of another size)."""
     if isinstance(K, Camera):
-        return K.undistort_events(events), K.K
+        return K.undistort_events(events), K.pinhole_K
     return events, K

@@ -17,10 +17,11 @@ entry (the event volume computed after augmentation). Datasets:
 from __future__ import annotations
 
 import json
+import warnings
 from contextlib import contextmanager
 from dataclasses import dataclass, replace
 from pathlib import Path
-from typing import Iterator, Sequence
+from typing import TYPE_CHECKING, Iterator, Sequence
 
 import h5py
 import numpy as np
@@ -30,6 +31,9 @@ from cmax.events import Events
 from cmax.io import FormatError, H5Reader
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
+
+if TYPE_CHECKING:
+    from cmax.camera import Camera
 
 __all__ = ["MAX_OPEN_FILES", "Sample", "flip_horizontal", "flip_polarity", "reverse_time", "augment", "to_item", "collate",
            "H5WindowDataset", "MVSECDataset", "FileSpec", "reaches_beyond", "longest_centred_window_us"]
@@ -205,6 +209,34 @@ def _as_spec(entry: object) -> FileSpec:
         return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
                         bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
+
+
+def _mvsec_camera(calib: "str | Path | Camera | None", calib_camera: str, width: int,
+                  height: int) -> "Camera | None":
+    """The :class:`cmax.Camera` of :class:`MVSECDataset`'s ``calib``: a camchain path read with
+    :func:`cmax.cli.recording.read_calibration` (camera ``calib_camera``), or a Camera of the ``width`` x
+    ``height`` [px] sensor as given; None without one. ValueError naming the file or the size otherwise."""
+    from cmax.camera import Camera
+
+    if calib is None:
+        return None
+    if isinstance(calib, Camera):
+        if (calib.width, calib.height) != (width, height):
+            raise ValueError(f"calib is a camera of a {calib.width}x{calib.height} sensor; MVSEC's DAVIS is "
+                             f"{width}x{height}")
+        return calib
+    if not isinstance(calib, (str, Path)):
+        raise TypeError(f"calib must be a camchain path or a cmax.Camera, got {type(calib).__name__}")
+    from cmax.cli.recording import read_calibration, topic_side
+
+    calibration = read_calibration(calib, calib_camera)
+    if topic_side(calibration.topic) == "right":
+        raise ValueError(f"{calib}: {calib_camera} is the right camera (rostopic {calibration.topic.strip()}); "
+                         "MVSECDataset reads davis/left: choose the left camera with calib_camera (MVSEC: cam0)")
+    if calibration.size is not None and tuple(calibration.size) != (width, height):
+        raise ValueError(f"{calib} calibrates a {calibration.size[0]}x{calibration.size[1]} camera ({calib_camera}); "
+                         f"MVSEC's DAVIS is {width}x{height}")
+    return calibration.camera(width, height)
 
 
 def _file_K(K: object, path: Path, width: int, height: int) -> np.ndarray:
@@ -448,32 +480,72 @@ class H5WindowDataset(torch.utils.data.Dataset):
 class MVSECDataset(torch.utils.data.Dataset):
     """Windows of an MVSEC data file, centred on its ground-truth depth times when a gt file is given.
 
+    MVSEC's depth maps (``depth_image_rect``) and the K that goes with them lie in the RECTIFIED frame of its
+    camchain (``P_rect``), while the events are recorded through the fisheye (Kalibr ``equidistant``) lens: given
+    ``calib``, each window's events are undistorted and rectified into the depth's frame (to the nearest pixel;
+    those that land outside the sensor are dropped), as MVSEC's baselines do with its rectify maps or
+    ``cv2.fisheye.undistortPoints(..., R_rect, P_rect)``. Without it the events are read as recorded (today's
+    behaviour) and a warning says once that they and the depth lie in different frames.
+
     Parameters
     ----------
     data_file : path
         ``*_data.hdf5`` (events of ``davis/left``).
-    K : array_like (3, 3) or (4,)
-        Intrinsics [px] of the left DAVIS (rectified; from the data set's calibration), or ``[fx, fy, cx, cy]``; its
-        principal point must lie on the 346x260 sensor.
+    K : array_like (3, 3) or (4,), optional
+        Intrinsics [px] of the depth maps' (rectified) frame, or ``[fx, fy, cx, cy]``; its principal point must lie
+        on the 346x260 sensor. With ``calib`` it may be left out (the calibration's rectified K is used), and must
+        otherwise equal that K (to 0.01 px: rounded figures are taken, the lens's unrectified K is refused).
+    calib : path or cmax.Camera, optional
+        The left camera's calibration: MVSEC's Kalibr camchain (``camchain-imucam-<sequence>.yaml``; its camera
+        ``calib_camera``, ``rectification_matrix`` and ``projection_matrix`` included), or a :class:`cmax.Camera`
+        of the 346x260 sensor with ``model="equidistant"``, ``rectification=R_rect`` and ``rectified_K`` (the left
+        3x3 of ``P_rect``) (explicit arrays). A calibration without a rectification is used as it is, with a
+        warning when a gt file is given (its depth lies in the rectified frame).
+    calib_camera : str
+        The camera of a camchain ``calib``: ``cam0`` (MVSEC's left DAVIS, default).
     gt_file : path, optional
         ``*_gt.hdf5`` with ``davis/left/depth_image_rect`` (N, H, W) and ``..._ts`` [s]; at least one of its depth
         times must lie within the events of ``data_file`` (ValueError naming both spans: a gt file of another
-        sequence). The events are read as recorded, not rectified, while the depth maps are rectified.
+        sequence).
     window_us, max_events, bins : as :class:`H5WindowDataset`.
     """
 
-    def __init__(self, data_file: str | Path, K: object, *, gt_file: str | Path | None = None,
-                 window_us: int = 166_500, max_events: int = 20_000, bins: int = 5) -> None:
+    def __init__(self, data_file: str | Path, K: object = None, *, calib: "str | Path | Camera | None" = None,
+                 calib_camera: str = "cam0", gt_file: str | Path | None = None, window_us: int = 166_500,
+                 max_events: int = 20_000, bins: int = 5) -> None:
         from cmax.io.mvsec import mvsec_time_span, read_mvsec
 
         from cmax.io.mvsec import MVSEC_HEIGHT, MVSEC_WIDTH
 
-        self.data_file, self.K = Path(data_file), np.asarray(K, float)
-        if self.K.shape == (4,):
-            self.K = np.array([[self.K[0], 0, self.K[2]], [0, self.K[1], self.K[3]], [0, 0, 1.0]])
-        if self.K.shape != (3, 3):
-            raise ValueError(f"K must be (3, 3) or [fx, fy, cx, cy], got shape {self.K.shape}")
-        self.K = _file_K(self.K, self.data_file, MVSEC_WIDTH, MVSEC_HEIGHT)
+        self.data_file = Path(data_file)
+        self.camera = _mvsec_camera(calib, calib_camera, MVSEC_WIDTH, MVSEC_HEIGHT)
+        if self.camera is None:
+            if K is None:
+                raise ValueError(f"{self.data_file}: give K (the rectified intrinsics of the depth maps) or calib "
+                                 "(MVSEC's camchain, which also rectifies the events)")
+            self.K = np.asarray(K, float)
+            if self.K.shape == (4,):
+                self.K = np.array([[self.K[0], 0, self.K[2]], [0, self.K[1], self.K[3]], [0, 0, 1.0]])
+            if self.K.shape != (3, 3):
+                raise ValueError(f"K must be (3, 3) or [fx, fy, cx, cy], got shape {self.K.shape}")
+            self.K = _file_K(self.K, self.data_file, MVSEC_WIDTH, MVSEC_HEIGHT)
+            warnings.warn(f"{self.data_file}: MVSECDataset without calib reads the events as recorded (through "
+                          "MVSEC's fisheye lens, not rectified) but pairs them with the rectified K and depth maps "
+                          "(depth_image_rect): events and depth lie in different frames, far apart toward the "
+                          "corners; pass calib= MVSEC's camchain-imucam-<sequence>.yaml (or a cmax.Camera with its "
+                          "rectification) to rectify the events into the depth's frame", UserWarning, stacklevel=2)
+        else:
+            pinhole = self.camera.pinhole_K
+            if K is not None and not np.allclose(_file_K(K, self.data_file, MVSEC_WIDTH, MVSEC_HEIGHT), pinhole,
+                                                 rtol=0, atol=0.01):
+                raise ValueError(f"{self.data_file}: K {np.asarray(K, float).tolist()} is not the K of the frame calib "
+                                 f"maps the events into ({pinhole.tolist()}); leave K out to use it")
+            self.K = _file_K(pinhole, self.data_file, MVSEC_WIDTH, MVSEC_HEIGHT)
+            if gt_file is not None and self.camera.rectification is None and self.camera.rectified_K is None:
+                warnings.warn(f"{self.data_file}: calib gives no rectification (rectification_matrix, "
+                              "projection_matrix): the events are undistorted onto the lens's own pinhole, but "
+                              "MVSEC's depth maps lie in the rectified frame; give the camchain's rectification",
+                              UserWarning, stacklevel=2)
         self.window_us, self.max_events, self.bins = int(window_us), int(max_events), bins
         self._read = read_mvsec
         self.gt_file = None if gt_file is None else Path(gt_file)
@@ -494,12 +566,19 @@ class MVSECDataset(torch.utils.data.Dataset):
                 raise ValueError(f"{self.data_file} holds no events of davis/left")
             self.middles = np.arange(span[0] + self.window_us // 2, span[1] - self.window_us // 2, self.window_us)
 
+    def events(self, i: int) -> Events:
+        """The events of window ``i`` as the network sees them: rectified into the depth's frame when the dataset
+        has a calibration (to the nearest pixel, those outside dropped), as recorded otherwise."""
+        t0 = int(self.middles[i]) - self.window_us // 2
+        events = self._read(self.data_file, t0_us=t0, t1_us=t0 + self.window_us)
+        return events if self.camera is None else self.camera.undistort_events(events)
+
     def __len__(self) -> int:
         return len(self.middles)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         t0 = int(self.middles[i]) - self.window_us // 2
-        events = self._read(self.data_file, t0_us=t0, t1_us=t0 + self.window_us)
+        events = self.events(i)
         depth = None
         if self.gt_file is not None:
             with h5py.File(self.gt_file, "r") as f:

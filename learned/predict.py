@@ -40,9 +40,9 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import (add_camera_options, add_recording_arguments, check_calibration_of_frames,
-                                check_file_principal_point, given_k_note,
-                                no_intrinsics_message, read_calibration, tail_note, time_span_us)
+from cmax.cli.recording import (Calibration, add_camera_options, add_recording_arguments, calibration_note,
+                                check_calibration_camera, check_calibration_of_frames, check_file_principal_point,
+                                given_k_note, no_intrinsics_message, read_calibration, tail_note, time_span_us)
 from cmax.events import window_starts
 from cmax.io import run_folder
 from learned.kept_windows import KEPT_FOLDER, KeptBlocks
@@ -76,7 +76,7 @@ SUMMARY_UNITS = {
     "window_us": "µs",
     "t0_s, t1_s": "s after the first event (--t0, --t1)",
     "depth_range_m": "m: the colour scale of window_*.png (the depth itself is not bounded by it)",
-    "K": "px",
+    "K": "px: the pinhole of the pixels the network saw (with --calib of a rectified camera: the rectified frame's)",
     "window_NNNNN.npz": "depth (H, W) [m], inverse_depth (H, W) [1/m], twist (6,) (v [m/s], omega [rad/s], camera "
                         "frame), t0_us, t1_us [µs], K [px]",
 }
@@ -724,7 +724,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         raise ValueError(f"the window must be at least 1 µs long, got {window_us} µs")
     if depth_range is not None:
         viz.DepthScale(*depth_range)   # checked before any work
-    calib_size = None
+    calib_size = calibration = None
     if calib is None and calib_camera != "cam0":   # else taken and ignored: --K or the file's gt/K would be used
         raise ValueError(f"--calib-camera {calib_camera} chooses a camera of a --calib file (a DSEC cam_to_cam.yaml "
                          "or a Kalibr camchain): give --calib too")
@@ -735,7 +735,9 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
     if calib is not None:
         if K is not None:
             raise ValueError("give the intrinsics with --K or --calib, not both")
-        K, distortion, calib_size = read_calibration(calib, calib_camera)
+        calibration = read_calibration(calib, calib_camera)
+        K, distortion, calib_size = calibration.K, calibration.distortion, calibration.size
+        check_calibration_camera(calibration, calib, calib_camera, path, camera)
         if calib_size is None:   # the calibration of the frames a conversion resized: refused, the scaled K said
             check_calibration_of_frames(calib, K, distortion, path)
     try:
@@ -756,8 +758,14 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         # refused as cmax fit / emvs / learned.train refuse it: the network's depth assumes these pixels' K
         check_file_principal_point(K, path, recording.width, recording.height)
         batch = batch_that_fits(model.config, recording.width, recording.height, batch)   # before any window is read
-        undistort = None if distortion is None else undistortion(K, distortion, recording.width, recording.height)
+        lens = calibration if calibration is not None else Calibration(K, distortion, None)
+        undistort = None
+        if lens.undistorts:   # the network sees the pixels of the pinhole the events are mapped to (rectified: its K)
+            lens_camera = lens.camera(recording.width, recording.height, K)
+            undistort, K = lens_camera.undistort_events, lens_camera.pinhole_K
         notes = [f"{checkpoint.name}: {limit}" for limit in card_limits(card, f"the card of {checkpoint}")]
+        if calibration is not None and (said := calibration_note(calibration, calib, calib_camera)):
+            notes.append(said)
         notes += camera_notes(card, recording.width, recording.height, K, f"the card of {checkpoint}")
         notes += [given] if given else []
         start, end = time_bounds(recording.first_us, recording.last_us, t0_s, t1_s)
@@ -821,7 +829,9 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
     summary = {"file": str(path), "format": recording.format, "camera": camera_read(recording.format, camera),
                "checkpoint": str(checkpoint),
                "size": [recording.width, recording.height], "K": np.asarray(K).tolist(),
-               "distortion": None if distortion is None else distortion.tolist(), "window_us": window_us,
+               "distortion": None if distortion is None else distortion.tolist(),
+               "distortion_model": None if distortion is None else lens.model,
+               "rectified": lens.rectification is not None or lens.rectified_K is not None, "window_us": window_us,
                "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],
                "windows_total": len(starts), "windows": written, "skipped": skipped, "min_events": MIN_EVENTS,
                "notes": list(notes), "device": str(device), "seconds": run.seconds, "units": SUMMARY_UNITS}

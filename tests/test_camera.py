@@ -119,3 +119,102 @@ def test_pixels_beyond_the_reach_of_the_distortion_have_no_undistorted_position(
     assert np.isnan(cam.undistort(corner)[0]).all() and np.isfinite(cam.undistort(corner)[1]).all()
     kept = cam.undistort_events(corner)
     assert len(kept) == 1 and (kept.x[0], kept.y[0]) == (120, 90)
+
+
+# The left DAVIS of MVSEC's indoor_flying camchain (camchain-imucam-indoor_flying.yaml, cam0), as published
+# by several public MVSEC loaders: Kalibr's equidistant (Kannala-Brandt) model, its rectification and projection.
+MVSEC_K = np.array([[226.38018519795807, 0.0, 173.6470807871759], [0.0, 226.15002947047415, 133.73271487507847],
+                    [0.0, 0.0, 1.0]])
+MVSEC_D = np.array([-0.048031442223833355, 0.011330957517194437, -0.055378166304281135, 0.021500973881459395])
+MVSEC_R = np.array([[0.999877311526236, 0.015019439766575743, -0.004447282784398257],
+                    [-0.014996983873604017, 0.9998748347535599, 0.005040367172759556],
+                    [0.004522429630305261, -0.004973052949604937, 0.9999774079320989]])
+MVSEC_P = np.array([[199.6530123165822, 0.0, 177.43276376280926], [0.0, 199.6530123165822, 126.81215684365904],
+                    [0.0, 0.0, 1.0]])
+
+
+def _every_pixel(width, height):
+    ys, xs = np.mgrid[0:height, 0:width]
+    return np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+
+
+def test_equidistant_distortion_is_the_kannala_brandt_formula():
+    """Camera had only OpenCV's radtan model: MVSEC's fisheye calibration could not be stated at all."""
+    cam = Camera(MVSEC_K, 346, 260, MVSEC_D, "equidistant")
+    rng = np.random.default_rng(1)
+    xn = rng.uniform(-0.9, 0.9, (400, 2))
+    k1, k2, k3, k4 = MVSEC_D
+    r = np.sqrt(xn[:, 0] ** 2 + xn[:, 1] ** 2)
+    theta = np.arctan(r)
+    theta_d = theta * (1 + k1 * theta ** 2 + k2 * theta ** 4 + k3 * theta ** 6 + k4 * theta ** 8)
+    expected = np.column_stack([MVSEC_K[0, 0] * xn[:, 0] * theta_d / r + MVSEC_K[0, 2],
+                                MVSEC_K[1, 1] * xn[:, 1] * theta_d / r + MVSEC_K[1, 2]])
+    undistorted_px = np.column_stack([MVSEC_K[0, 0] * xn[:, 0] + MVSEC_K[0, 2], MVSEC_K[1, 1] * xn[:, 1] + MVSEC_K[1, 2]])
+    np.testing.assert_allclose(cam.distort_points(undistorted_px), expected, atol=1e-9)
+    # zero coefficients are still a fisheye (r_d = atan r), not a pinhole
+    assert not Camera(MVSEC_K, 346, 260, np.zeros(4), "equidistant").is_pinhole
+    same = Camera.from_intrinsics(*MVSEC_K[[0, 1, 0, 1], [0, 1, 2, 2]], 346, 260, MVSEC_D, model="equidistant")
+    np.testing.assert_array_equal(same.distort_points(undistorted_px), cam.distort_points(undistorted_px))
+
+
+@pytest.mark.parametrize("rectified", [False, True])
+def test_equidistant_undistortion_round_trips_over_the_image(rectified):
+    rect = (MVSEC_R, MVSEC_P) if rectified else (None, None)
+    cam = Camera(MVSEC_K, 346, 260, MVSEC_D, "equidistant", *rect)
+    pixels = _every_pixel(346, 260)
+    undistorted = cam.undistort_points(pixels)
+    assert np.isfinite(undistorted).all()
+    np.testing.assert_allclose(cam.distort_points(undistorted), pixels, atol=1e-6)
+    # the same map as the one MVSEC users build with OpenCV (cv2.fisheye.undistortPoints with R_rect, P_rect)
+    reference = cv2.fisheye.undistortPoints(pixels.reshape(-1, 1, 2), MVSEC_K, MVSEC_D,
+                                            R=MVSEC_R if rectified else np.eye(3),
+                                            P=MVSEC_P if rectified else MVSEC_K).reshape(-1, 2)
+    np.testing.assert_allclose(undistorted, reference, atol=1e-4)
+    table = cam.undistort(Events(pixels[:, 0], pixels[:, 1], np.arange(len(pixels)), np.ones(len(pixels)), 346, 260))
+    np.testing.assert_allclose(table, reference, atol=1e-3)     # float32 lookup
+
+
+def test_rectified_camera_puts_a_point_where_the_rectified_pinhole_projects_it():
+    cam = Camera(MVSEC_K, 346, 260, MVSEC_D, "equidistant", MVSEC_R, MVSEC_P)
+    rng = np.random.default_rng(2)
+    points = np.column_stack([rng.uniform(-1, 1, 200), rng.uniform(-0.8, 0.8, 200), rng.uniform(1.5, 4, 200)])
+    # the sensor's pixel: K [distort(x / z, y / z)] with OpenCV's own fisheye projection
+    sensor = cv2.fisheye.projectPoints(points.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), MVSEC_K,
+                                       MVSEC_D)[0].reshape(-1, 2)
+    rectified = (points @ MVSEC_R.T) @ MVSEC_P.T
+    np.testing.assert_allclose(cam.undistort_points(sensor), rectified[:, :2] / rectified[:, 2:], atol=1e-6)
+    np.testing.assert_array_equal(cam.pinhole_K, MVSEC_P)
+
+
+@pytest.mark.parametrize("kwargs, match", [
+    ({"distortion": MVSEC_D[:3], "model": "equidistant"}, r"equidistant camera must have 4 coefficients .*got 3"),
+    ({"distortion": np.r_[MVSEC_D, 0.0], "model": "equidistant"}, r"must have 4 coefficients .*got 5"),
+    ({"distortion": None, "model": "equidistant"}, r"4 coefficients k1, k2, k3, k4, got None"),
+    ({"distortion": np.zeros(6)}, r"radtan camera must have 4 or 5 or 8 or 12 or 14 coefficients .*got 6"),
+    ({"distortion": MVSEC_D, "model": "fisheye"}, r"model must be one of \('radtan', 'equidistant'\)"),
+    ({"distortion": MVSEC_D, "model": "equidistant", "rectification": 2 * np.eye(3)}, "rectification must be a rotation"),
+    ({"distortion": MVSEC_D, "model": "equidistant", "rectification": np.diag([1.0, 1.0, -1.0])}, "must be a rotation"),
+    ({"distortion": MVSEC_D, "model": "equidistant", "rectified_K": np.eye(3)[:, ::-1]}, "rectified_K must"),
+])
+def test_camera_models_are_validated_at_construction(kwargs, match):
+    with pytest.raises(ValueError, match=match):
+        Camera(MVSEC_K, 346, 260, **kwargs)
+
+
+def test_scaled_rectified_camera_keeps_its_model():
+    cam = Camera(MVSEC_K, 346, 260, MVSEC_D, "equidistant", MVSEC_R, MVSEC_P).scaled(173, 130)
+    assert cam.model == "equidistant" and cam.rectified_K[0, 0] == pytest.approx(MVSEC_P[0, 0] / 2)
+    np.testing.assert_array_equal(cam.rectification, MVSEC_R)
+
+
+def test_a_rectification_printed_with_few_decimals_is_taken_as_the_nearest_rotation():
+    """A rectification_matrix printed with 6 decimals is 8e-7 from orthonormal (4 decimals: 7e-5): refused at a
+    1e-6 tolerance, it would hang on the digits a tool prints. Taken now, as the nearest rotation."""
+    from cmax.camera import check_rotation
+
+    rounded = np.round(MVSEC_R, 4)
+    R = check_rotation(rounded)
+    np.testing.assert_allclose(R @ R.T, np.eye(3), atol=1e-12)
+    assert np.linalg.det(R) == pytest.approx(1.0) and np.abs(R - MVSEC_R).max() < 1e-4
+    with pytest.raises(ValueError, match="must be a rotation"):
+        check_rotation(1.01 * MVSEC_R)             # R R^T 2% off: not a rotation

@@ -96,12 +96,12 @@ def test_dsec_block_lists_are_read(tmp_path):
     cameras."""
     yaml = tmp_path / "cam_to_cam.yaml"
     yaml.write_text(DSEC_BLOCK_YAML)
-    K, distortion, size = read_calibration(yaml)
+    K, distortion, size = read_calibration(yaml)[:3]
     assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (553.47, 553.40, 346.65, 216.52) and size == (640, 480)
     np.testing.assert_array_equal(distortion, [-0.0936, 0.1945, 7.6e-05, 0.00196])
-    K, distortion, size = read_calibration(yaml, "camRect0")
+    K, distortion, size = read_calibration(yaml, "camRect0")[:3]
     assert K[0, 0] == 569.76 and K[1, 2] == 221.24 and distortion is None and size == (640, 480)
-    K, _, size = read_calibration(yaml, "cam1")
+    K, _, size = read_calibration(yaml, "cam1")[:3]
     assert K[0, 0] == 1188.2 and size is None
     with pytest.raises(ValueError, match=r"no intrinsics/cam9 \(cameras found: cam0, cam1, camRect0\)"):
         read_calibration(yaml, "cam9")
@@ -110,15 +110,15 @@ def test_dsec_block_lists_are_read(tmp_path):
 def test_calibration_files(tmp_path):
     ecd = tmp_path / "calib.txt"
     ecd.write_text("199.09 199.09 132.19 110.14 -0.368 0.150 -0.0003 -0.0002 0.0\n")
-    K, distortion, size = read_calibration(ecd)
+    K, distortion, size = read_calibration(ecd)[:3]
     assert K[0, 0] == 199.09 and K[1, 2] == 110.14 and size is None
     np.testing.assert_array_equal(distortion, [-0.368, 0.150, -0.0003, -0.0002, 0.0])
     yaml = tmp_path / "cam_to_cam.yaml"
     yaml.write_text(DSEC_YAML)
-    K, distortion, size = read_calibration(yaml)
+    K, distortion, size = read_calibration(yaml)[:3]
     assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (553.47, 553.40, 346.65, 216.52) and size == (640, 480)
     np.testing.assert_array_equal(distortion, [-0.0936, 0.1945, 7.6e-05, 0.00196])
-    K, distortion, size = read_calibration(yaml, "camRect0")
+    K, distortion, size = read_calibration(yaml, "camRect0")[:3]
     assert K[0, 0] == 569.76 and distortion is None
     with pytest.raises(ValueError, match=r"no intrinsics/cam9 \(cameras found: cam0, camRect0\)"):
         read_calibration(yaml, "cam9")
@@ -832,14 +832,14 @@ def test_calibration_yaml_in_block_style_and_kalibr_camchains_are_read(tmp_path)
     with 'no intrinsics/cam0 (cameras found: cam0, camRect0, camera_matrix, distortion_coeffs, resolution)';
     a Kalibr camchain (cam0: intrinsics: [...], as MVSEC and DAVIS rigs ship) with 'cameras found: none',
     even for its fisheye model. Both now read to the numbers written, or refuse naming the model."""
-    flow_K, flow_distortion, flow_size = read_calibration(_write(tmp_path / "flow.yaml", DSEC_YAML))
+    flow_K, flow_distortion, flow_size = read_calibration(_write(tmp_path / "flow.yaml", DSEC_YAML))[:3]
     block = tmp_path / "block.yaml"
     block.write_text("disparity_to_depth:\n  cams_03:\n  - - 1.0\n    - 0.0\nintrinsics:\n  cam0:\n    camera_matrix:\n"
                      "    - 553.47\n    - 553.40\n    - 346.65\n    - 216.52\n    camera_model: pinhole\n"
                      "    distortion_coeffs:\n    - -0.0936\n    - 0.1945\n    - 7.6e-05\n    - 0.00196\n"
                      "    distortion_model: radtan\n    resolution:\n    - 640\n    - 480\n  camRect0:\n"
                      "    camera_matrix:\n    - 569.76\n    - 569.76\n    - 335.10\n    - 221.24\n")
-    K, distortion, size = read_calibration(block)
+    K, distortion, size = read_calibration(block)[:3]
     np.testing.assert_array_equal(K, flow_K)
     np.testing.assert_array_equal(distortion, flow_distortion)
     assert size == flow_size == (640, 480)
@@ -852,11 +852,12 @@ def test_calibration_yaml_in_block_style_and_kalibr_camchains_are_read(tmp_path)
                 "cam1:\n  camera_model: pinhole\n  distortion_coeffs: [0.1, 0.2, 0.3, 0.4]\n"
                 "  distortion_model: equidistant\n  intrinsics: [226.0, 226.0, 173.0, 133.0]\n")
     path = _write(tmp_path / "camchain.yaml", camchain)
-    K, distortion, size = read_calibration(path)
+    K, distortion, size = read_calibration(path)[:3]
     assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (226.38, 226.15, 173.64, 133.73) and size == (346, 260)
     np.testing.assert_array_equal(distortion, [-0.0484, 0.0094, 0.001, 0.002])
-    with pytest.raises(ValueError, match="distortion_model 'equidistant' is not supported"):
-        read_calibration(path, "cam1")
+    fisheye = read_calibration(path, "cam1")     # was refused: "distortion_model 'equidistant' is not supported"
+    assert fisheye.model == "equidistant" and fisheye.distortion.tolist() == [0.1, 0.2, 0.3, 0.4]
+    assert fisheye.rectification is None and fisheye.rectified_K is None and fisheye.size is None
     with pytest.raises(ValueError, match=r"cameras found: cam0, cam1\)"):
         read_calibration(path, "cam2")
 
@@ -918,3 +919,172 @@ def test_fit_notes_events_that_repeat_an_earlier_one_exactly(tmp_path, capsys):
     assert main(["fit", str(write_h5(tmp_path / "once.h5", events)), "--K", "60,60,32,24", "-o",
                  str(tmp_path / "p"), "--quiet"]) == 1
     assert "repeat an earlier event" not in capsys.readouterr().err
+
+
+MVSEC_CAMCHAIN = """cam0:
+  camera_model: pinhole
+  distortion_coeffs: [-0.048031442223833355, 0.011330957517194437, -0.055378166304281135, 0.021500973881459395]
+  distortion_model: equidistant
+  intrinsics: [226.38018519795807, 226.15002947047415, 173.6470807871759, 133.73271487507847]
+  resolution: [346, 260]
+  projection_matrix:
+  - [199.6530123165822, 0.0, 177.43276376280926, 0.0]
+  - [0.0, 199.6530123165822, 126.81215684365904, 0.0]
+  - [0.0, 0.0, 1.0, 0.0]
+  rectification_matrix:
+  - [0.999877311526236, 0.015019439766575743, -0.004447282784398257]
+  - [-0.014996983873604017, 0.9998748347535599, 0.005040367172759556]
+  - [0.004522429630305261, -0.004973052949604937, 0.9999774079320989]
+"""
+
+
+def test_fit_with_mvsec_s_fisheye_camchain_fits_in_the_rectified_frame(tmp_path, capsys):
+    """`cmax fit --calib camchain-imucam-indoor_flying.yaml` was refused ("distortion_model 'equidistant' is not
+    supported"). Now the events are undistorted and rectified, the fit's K is P_rect's and a note says so."""
+    rng = np.random.default_rng(3)
+    events = Events(rng.integers(0, 346, 300), rng.integers(0, 260, 300), np.sort(rng.integers(0, 50_000, 300)),
+                    rng.integers(0, 2, 300), 346, 260)
+    path = write_txt(tmp_path / "ev.txt", events)
+    calib = _write(tmp_path / "camchain-imucam-indoor_flying.yaml", MVSEC_CAMCHAIN)
+    status = main(["fit", str(path), "--calib", str(calib), "-o", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert status in (0, 1), err           # 300 random events: too few to fit, but read, mapped and run
+    assert f"{calib} (cam0): an equidistant (fisheye) lens; the events are undistorted and rectified" in err
+    assert "K = fx 199.653, fy 199.653, cx 177.433, cy 126.812" in err
+    summary = json.loads((tmp_path / "o" / "summary.json").read_text())
+    np.testing.assert_allclose(summary["K"], [[199.6530123165822, 0, 177.43276376280926],
+                                              [0, 199.6530123165822, 126.81215684365904], [0, 0, 1]])
+    assert summary["distortion_model"] == "equidistant" and summary["rectified"] is True
+    # trajectory.txt in the lens's own frame (what MVSEC's poses and cmax emvs --calib take): its first pose, the
+    # rectified frame's identity, is T_w_c = [R_rect | 0]
+    lines = (tmp_path / "o" / "trajectory.txt").read_text().splitlines()
+    assert any(line.startswith("# the camera's own frame") for line in lines)
+    qx, qy, qz, qw = map(float, next(line for line in lines if not line.startswith("#")).split()[4:])
+    R = np.array(_numbers_of(MVSEC_CAMCHAIN.split("rectification_matrix:")[1])).reshape(3, 3)
+    w, x, y, z = qw, qx, qy, qz
+    quaternion_R = np.array([[1 - 2 * (y * y + z * z), 2 * (x * y - z * w), 2 * (x * z + y * w)],
+                             [2 * (x * y + z * w), 1 - 2 * (x * x + z * z), 2 * (y * z - x * w)],
+                             [2 * (x * z - y * w), 2 * (y * z + x * w), 1 - 2 * (x * x + y * y)]])
+    np.testing.assert_allclose(quaternion_R, R, atol=1e-6)
+    bad = _write(tmp_path / "bad.yaml", MVSEC_CAMCHAIN.replace("0.021500973881459395]", "0.0215, 0.0]"))
+    assert main(["fit", str(path), "--calib", str(bad), "-o", str(tmp_path / "o2")]) == 2
+    err = capsys.readouterr().err
+    assert "equidistant (fisheye) distortion of cam0 must be 4 finite numbers" in err and err.count("\n") == 1
+    flipped = _write(tmp_path / "flip.yaml", MVSEC_CAMCHAIN.replace("0.9999774079320989]", "-0.9999774079320989]"))
+    assert main(["fit", str(path), "--calib", str(flipped), "-o", str(tmp_path / "o3")]) == 2
+    err = capsys.readouterr().err
+    assert "cam0's rectification_matrix must be a rotation" in err and err.count("\n") == 1
+
+
+def _numbers_of(text):
+    return [float(v) for v in text.replace("[", " ").replace("]", " ").replace(",", " ").replace("- ", " ").split()]
+
+
+def test_the_camchain_camera_must_be_the_mvsec_camera_read(tmp_path, capsys):
+    """`cmax fit rig.hdf5 --camera right --calib camchain.yaml` (--calib-camera left at cam0) undistorted and
+    rectified the right camera's events with the left camera's lens, exit 0, without a word. The camchain's
+    rostopic (/davis/left/image_raw) says which camera each entry is: a mismatch is one line, exit 2."""
+    import argparse
+
+    import h5py
+
+    from cmax.cli.recording import calibration_of
+
+    rng = np.random.default_rng(4)
+    t = np.sort(rng.uniform(10.0, 10.1, 500))
+    with h5py.File(tmp_path / "rig_data.hdf5", "w") as f:
+        for side in ("left", "right"):
+            f[f"davis/{side}/events"] = np.column_stack([rng.integers(0, 346, 500), rng.integers(0, 260, 500), t,
+                                                         rng.choice([-1.0, 1.0], 500)])
+    chain = MVSEC_CAMCHAIN + "  rostopic: /davis/left/image_raw\n" + MVSEC_CAMCHAIN.replace("cam0:", "cam1:") + (
+        "  rostopic: /davis/right/image_raw\n")
+    calib = _write(tmp_path / "camchain.yaml", chain)
+    rig = tmp_path / "rig_data.hdf5"
+    for options, message in (
+            (["--camera", "right"], "cam0 is the left camera (rostopic /davis/left/image_raw), but the events of "
+                                    f"{rig} are the right camera's (--camera right): choose the camchain's right camera "
+                                    "with --calib-camera"),
+            (["--calib-camera", "cam1"], "cam1 is the right camera (rostopic /davis/right/image_raw), but the events of "
+                                         f"{rig} are the left camera's (--camera left, the default)")):
+        assert main(["fit", str(rig), "--calib", str(calib), "-o", str(tmp_path / "o"), *options]) == 2
+        err = capsys.readouterr().err
+        assert message in err and err.count("\n") == 1, err
+    for camera, calib_camera in ((None, "cam0"), ("right", "cam1"), ("left", "cam0")):
+        args = argparse.Namespace(calib=calib, calib_camera=calib_camera, distortion=None, K=None, file=rig,
+                                  camera=camera)
+        assert calibration_of(args).topic == f"/davis/{camera or 'left'}/image_raw"
+
+
+def test_a_ros_camera_info_yaml_is_read(tmp_path):
+    """ROS camera_info YAML (camera_calibration's and rpg_dvs_ros's format: matrices as `data: [...]`) was refused
+    as 'no intrinsics/cam0 (cameras found: none)'. Read now, a fisheye model and a rectification included; a
+    monocular file's R = I, P = [K | 0] moves nothing and is dropped."""
+    fisheye = ("image_width: 346\nimage_height: 260\ncamera_name: davis_left\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+               "  data: [226.38, 0, 173.65, 0, 226.15, 133.73, 0, 0, 1]\ndistortion_model: equidistant\n"
+               "distortion_coefficients:\n  rows: 1\n  cols: 4\n  data: [-0.048, 0.0113, -0.0554, 0.0215]\n"
+               "rectification_matrix:\n  rows: 3\n  cols: 3\n  data: [1, 0, 0, 0, 1, 0, 0, 0, 1]\n"
+               "projection_matrix:\n  rows: 3\n  cols: 4\n  data: [199.65, 0, 177.43, 0, 0, 199.65, 126.81, 0, 0, 0, 1, 0]\n")
+    calibration = read_calibration(_write(tmp_path / "davis.yaml", fisheye))
+    np.testing.assert_array_equal(calibration.K, [[226.38, 0, 173.65], [0, 226.15, 133.73], [0, 0, 1]])
+    assert calibration.model == "equidistant" and calibration.size == (346, 260)
+    np.testing.assert_array_equal(calibration.distortion, [-0.048, 0.0113, -0.0554, 0.0215])
+    np.testing.assert_array_equal(calibration.rectified_K, [[199.65, 0, 177.43], [0, 199.65, 126.81], [0, 0, 1]])
+    assert calibration.rectification is None                               # the identity: nothing to turn
+    mono = (fisheye.replace("equidistant", "plumb_bob").replace("[-0.048, 0.0113, -0.0554, 0.0215]", "[-0.1, 0.02, 0, 0, 0]")
+            .replace("199.65, 0, 177.43, 0, 0, 199.65, 126.81", "226.38, 0, 173.65, 0, 0, 226.15, 133.73"))
+    calibration = read_calibration(_write(tmp_path / "mono.yaml", mono))
+    assert calibration.model == "radtan" and calibration.rectification is None and calibration.rectified_K is None
+    from cmax.cli.recording import calibration_note
+
+    assert calibration_note(calibration, "mono.yaml", "cam0") is None         # a radtan pinhole: nothing to say
+    radtan_rectified = read_calibration(_write(tmp_path / "stereo.yaml", fisheye.replace("equidistant", "plumb_bob")))
+    assert calibration_note(radtan_rectified, "stereo.yaml", "cam0").startswith(
+        "stereo.yaml (cam0): a radtan lens; the events are undistorted and rectified")
+    with pytest.raises(ValueError, match=r"calibrates one camera \(ROS camera_info\): camera 'cam1'"):
+        read_calibration(tmp_path / "mono.yaml", "cam1")
+    with pytest.raises(ValueError, match=r"camera_matrix data must be the 9 numbers"):
+        read_calibration(_write(tmp_path / "skew.yaml", mono.replace("data: [226.38, 0, 173.65", "data: [226.38, 2, 173.65")))
+
+
+def test_an_mvsec_file_without_calib_names_the_camchain_to_pass(tmp_path):
+    """`cmax fit/emvs indoor_flying1_data.hdf5 --K ...` fitted MVSEC's fisheye events as a pinhole's without a
+    word; a camchain-imucam-*.yaml beside the file was not named either (only calib.txt / cam_to_cam.yaml were)."""
+    import argparse
+
+    import h5py
+
+    from cmax.cli.recording import calibration_hint
+
+    rng = np.random.default_rng(8)
+    with h5py.File(tmp_path / "indoor_flying1_data.hdf5", "w") as f:
+        f["davis/left/events"] = np.column_stack([rng.integers(0, 346, 50), rng.integers(0, 260, 50),
+                                                  np.sort(rng.uniform(1.0, 1.1, 50)), rng.choice([-1.0, 1.0], 50)])
+    args = argparse.Namespace(file=tmp_path / "indoor_flying1_data.hdf5", calib=None, distortion=None)
+    hint = calibration_hint(args)
+    assert "MVSEC's DAVIS cameras look through fisheye lenses" in hint and "camchain-imucam-<sequence>.yaml" in hint
+    chain = _write(tmp_path / "camchain-imucam-indoor_flying.yaml", MVSEC_CAMCHAIN)
+    assert calibration_hint(args).startswith(f"{chain} lies beside the events but was not read: pass --calib {chain}")
+    assert calibration_hint(argparse.Namespace(file=args.file, calib=chain, distortion=None)) is None
+    events = Events(rng.integers(0, 346, 50), rng.integers(0, 260, 50), np.arange(50), rng.integers(0, 2, 50), 346, 260)
+    other = tmp_path / "x" / "y"      # two levels down: the camchain is not beside it
+    other.mkdir(parents=True)
+    assert calibration_hint(argparse.Namespace(file=write_txt(other / "ev.txt", events), calib=None,
+                                               distortion=None)) is None        # not MVSEC: nothing to say
+
+
+def test_a_known_rotation_is_turned_into_the_rectified_frame(slider, tmp_path):
+    """--omega / --gyro are in the camera's axes; with a rectifying --calib the fit's frame is the rectified one,
+    so the held rotation must be R_rect omega (was: held as given, in the wrong axes)."""
+    w, path, _ = slider
+    R = cv2.Rodrigues(np.array([0.0, 0.0, np.deg2rad(5.0)]))[0]
+    fx, fy, cx, cy = w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]
+    calib = _write(tmp_path / "camchain.yaml",
+                   "cam0:\n  camera_model: pinhole\n  distortion_model: radtan\n  distortion_coeffs: [0, 0, 0, 0]\n"
+                   f"  intrinsics: [{fx}, {fy}, {cx}, {cy}]\n  resolution: [96, 72]\n  rectification_matrix:\n"
+                   + "".join(f"  - [{', '.join(map(repr, row.tolist()))}]\n" for row in R))
+    omega = np.array([0.0, 0.5, 0.0])
+    out = tmp_path / "out"
+    main(["fit", str(path), "--size", "96,72", "--calib", str(calib), "-o", str(out), "--window-ms", "500",
+          "--omega", ",".join(map(str, omega)), "--max-events", "3000", "--depth-grid", "8,10", "--quiet"])
+    (window,) = json.loads((out / "summary.json").read_text())["windows"]
+    np.testing.assert_allclose(window["omega"], R @ omega, atol=1e-9)

@@ -721,7 +721,7 @@ def test_the_calibration_of_frames_that_size_resized_is_refused_with_the_scaled_
     from cmax.cli.recording import calibration_of
 
     args = argparse.Namespace(calib=seq / "calib.txt", calib_camera="cam0", distortion=None, K=None, file=same)
-    K, distortion, _ = calibration_of(args)
+    K, distortion, _ = calibration_of(args)[:3]
     assert (K[0, 0], K[1, 1], K[0, 2], K[1, 2]) == (50, 52, 19.5, 14.5)
 
 
@@ -801,3 +801,19 @@ def test_a_k_given_over_the_file_s_own_gt_k_is_named_in_a_note(tmp_path, capsys)
     assert summary["K"][0][0] == 80.0 and any("unlike the K given" in text for text in summary["notes"])
     assert main([*fit, "-o", str(tmp_path / "same"), "--K", "60,62,23.5,15.5"]) in (0, 1)
     assert "unlike the K given" not in capsys.readouterr().err
+
+
+def test_a_fisheye_or_rectified_calibration_is_refused_for_the_output_s_pinhole_k(tmp_path):
+    """A Kalibr camchain of MVSEC's fisheye (equidistant) camera with its rectification: gt/K (a pinhole) cannot
+    hold it, as it cannot hold a radtan distortion; refused naming both (was: refused as an unsupported model)."""
+    import argparse
+
+    from cmax.cli.simulate import _frames_intrinsics
+
+    calib = tmp_path / "camchain.yaml"
+    calib.write_text("cam0:\n  camera_model: pinhole\n  distortion_coeffs: [-0.048, 0.0113, -0.0554, 0.0215]\n"
+                     "  distortion_model: equidistant\n  intrinsics: [226.38, 226.15, 173.65, 133.73]\n"
+                     "  resolution: [346, 260]\n  rectification_matrix:\n  - [0, -1, 0]\n  - [1, 0, 0]\n  - [0, 0, 1]\n")
+    with pytest.raises(ValueError, match=r"\(cam0\) states an equidistant \(fisheye\) lens and a rectification, which "
+                                         r"the output's gt/K"):
+        _frames_intrinsics(argparse.Namespace(calib=calib, calib_camera="cam0"))

@@ -596,3 +596,34 @@ def test_depth_range_help_says_it_is_the_colour_scale_only(capsys):
         cmax_main(["depth", "--help"])
     help_text = " ".join(capsys.readouterr().out.split())
     assert "neither clamped nor conditioned by it" in help_text
+
+
+def test_a_fisheye_camchain_with_a_rectification_maps_the_events_into_the_rectified_frame(checkpoint, network, events,
+                                                                                      tmp_path, capsys):
+    """A Kalibr camchain of an equidistant (fisheye) camera with rectification_matrix / projection_matrix (MVSEC's
+    layout) was refused; the network now sees the events at their rectified pixels, as
+    cv2.fisheye.undistortPoints(R, P) puts them, and every depth map records P's K."""
+    R = cv2.Rodrigues(np.array([0.01, -0.02, 0.015]))[0]
+    P = np.array([[55.0, 0, 32.0], [0, 55.0, 24.0], [0, 0, 1]])
+    D = np.array([-0.05, 0.01, 0.0, 0.0])
+    path = tmp_path / "e.h5"
+    write_h5(path, events)
+    calib = tmp_path / "camchain.yaml"
+    calib.write_text("cam0:\n  camera_model: pinhole\n  distortion_model: equidistant\n"
+                     f"  distortion_coeffs: [{', '.join(map(str, D))}]\n  intrinsics: [60, 58, 31.5, 23.5]\n"
+                     "  resolution: [64, 48]\n  projection_matrix:\n"
+                     + "".join(f"  - [{', '.join(map(str, row))}, 0.0]\n" for row in P)
+                     + "  rectification_matrix:\n" + "".join(f"  - [{', '.join(map(repr, row.tolist()))}]\n" for row in R))
+    out = tmp_path / "out"
+    assert cmax_main(["depth", str(path), "-o", str(out), "--checkpoint", str(checkpoint), "--quiet",
+                      "--calib", str(calib)]) == 0
+    assert "an equidistant (fisheye) lens; the events are undistorted and rectified" in capsys.readouterr().err
+    pixels = np.column_stack([events.x, events.y]).astype(np.float64).reshape(-1, 1, 2)
+    xy = np.rint(cv2.fisheye.undistortPoints(pixels, K, D, R=R, P=P).reshape(-1, 2)).astype(np.int64)
+    inside = (xy[:, 0] >= 0) & (xy[:, 0] < W) & (xy[:, 1] >= 0) & (xy[:, 1] < H)
+    rectified = Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], W, H)
+    assert not np.array_equal(rectified.x, events.x[inside])                               # it moved events
+    _check_outputs(out, _expected(network, rectified, start=int(events.t[0]), end=int(events.t[-1])), K_expected=P)
+    summary = json.loads((out / "summary.json").read_text())
+    assert summary["distortion_model"] == "equidistant" and summary["rectified"] is True
+    np.testing.assert_array_equal(summary["K"], P)

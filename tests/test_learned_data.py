@@ -462,3 +462,149 @@ def test_mvsec_dataset_refuses_a_gt_file_of_another_sequence_and_checks_K(tmp_pa
     ds = MVSECDataset(tmp_path / "x_data.hdf5", K, gt_file=tmp_path / "x_gt.hdf5", window_us=100_000)
     np.testing.assert_array_equal(ds.K, [[226, 0, 173], [0, 226, 130], [0, 0, 1]])
     assert len(ds) == 2 and int(ds[0]["valid"].sum()) > 100
+
+
+# MVSEC's indoor_flying left camera (camchain-imucam-indoor_flying.yaml, cam0), as public MVSEC loaders give it.
+MVSEC_CAMCHAIN = """cam0:
+  T_cam_imu:
+  - [1.0, 0.0, 0.0, 0.0]
+  - [0.0, 1.0, 0.0, 0.0]
+  - [0.0, 0.0, 1.0, 0.0]
+  - [0.0, 0.0, 0.0, 1.0]
+  cam_overlaps: [1]
+  camera_model: pinhole
+  distortion_coeffs: [-0.048031442223833355, 0.011330957517194437, -0.055378166304281135, 0.021500973881459395]
+  distortion_model: equidistant
+  intrinsics: [226.38018519795807, 226.15002947047415, 173.6470807871759, 133.73271487507847]
+  resolution: [346, 260]
+  rostopic: /davis/left/image_raw
+  projection_matrix:
+  - [199.6530123165822, 0.0, 177.43276376280926, 0.0]
+  - [0.0, 199.6530123165822, 126.81215684365904, 0.0]
+  - [0.0, 0.0, 1.0, 0.0]
+  rectification_matrix:
+  - [0.999877311526236, 0.015019439766575743, -0.004447282784398257]
+  - [-0.014996983873604017, 0.9998748347535599, 0.005040367172759556]
+  - [0.004522429630305261, -0.004973052949604937, 0.9999774079320989]
+"""
+
+
+def _fisheye_scene(tmp_path, rng, n=3000):
+    """An MVSEC data file whose events are the sensor pixels of known 3-D points seen through the camchain's
+    fisheye lens: ``(path, points (n, 3) [m] in the camera frame)``. Each event is put on an integer pixel and
+    its point on that pixel's ray, found with the Kannala-Brandt formula written out and solved by bisection."""
+    import h5py
+
+    K = np.array([[226.38018519795807, 0.0, 173.6470807871759], [0.0, 226.15002947047415, 133.73271487507847],
+                  [0, 0, 1]])
+    k1, k2, k3, k4 = -0.048031442223833355, 0.011330957517194437, -0.055378166304281135, 0.021500973881459395
+    x, y = rng.integers(0, 346, n), rng.integers(0, 260, n)
+    xd, yd = (x - K[0, 2]) / K[0, 0], (y - K[1, 2]) / K[1, 1]
+    r_d = np.hypot(xd, yd)
+    lo, hi = np.zeros(n), np.full(n, 1.5)           # theta_d(theta) rises over [0, 1.5] rad for these coefficients
+    for _ in range(80):
+        theta = (lo + hi) / 2
+        above = theta * (1 + k1 * theta ** 2 + k2 * theta ** 4 + k3 * theta ** 6 + k4 * theta ** 8) > r_d
+        hi, lo = np.where(above, theta, hi), np.where(above, lo, theta)
+    scale = np.tan((lo + hi) / 2) / np.where(r_d > 0, r_d, 1.0)
+    depth = rng.uniform(1.0, 5.0, n)
+    points = np.column_stack([xd * scale, yd * scale, np.ones(n)]) * depth[:, None]
+    t = np.sort(rng.uniform(100.0, 100.5, n))
+    with h5py.File(tmp_path / "fish_data.hdf5", "w") as f:
+        f["davis/left/events"] = np.column_stack([x, y, t, rng.choice([-1.0, 1.0], n)])
+    return tmp_path / "fish_data.hdf5", points, t
+
+
+def test_mvsec_dataset_rectifies_the_events_into_the_depth_frame(tmp_path):
+    """MVSECDataset read the events as recorded (fisheye, unrectified) and paired them with the rectified K and
+    depth: up to about 100 px apart toward the corners with MVSEC's lens. Given the camchain, each event now lands
+    where the rectified pinhole (R_rect, P_rect) projects its 3-D point, to the nearest pixel."""
+    import warnings
+
+    from cmax.camera import Camera
+    from learned.data import MVSECDataset
+
+    path, points, t = _fisheye_scene(tmp_path, np.random.default_rng(5))
+    calib = tmp_path / "camchain-imucam-indoor_flying.yaml"
+    calib.write_text(MVSEC_CAMCHAIN)
+    R = np.array([[0.999877311526236, 0.015019439766575743, -0.004447282784398257],
+                  [-0.014996983873604017, 0.9998748347535599, 0.005040367172759556],
+                  [0.004522429630305261, -0.004973052949604937, 0.9999774079320989]])
+    P = np.array([[199.6530123165822, 0.0, 177.43276376280926], [0.0, 199.6530123165822, 126.81215684365904],
+                  [0, 0, 1]])
+    rectified = (points @ R.T) @ P.T
+    expected = rectified[:, :2] / rectified[:, 2:]
+    import h5py
+
+    with h5py.File(tmp_path / "fish_gt.hdf5", "w") as f:    # one depth time: one window over every event
+        f["davis/left/depth_image_rect"] = np.full((1, 260, 346), 2.0, np.float32)
+        f["davis/left/depth_image_rect_ts"] = np.array([100.25])
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")        # a calibrated dataset says nothing
+        ds = MVSECDataset(path, calib=calib, gt_file=tmp_path / "fish_gt.hdf5", window_us=600_000, max_events=5000)
+        events = ds.events(0)
+        assert int(ds[0]["valid"].sum()) == len(events)
+    np.testing.assert_array_equal(ds.K, P)
+    order = np.argsort(t, kind="stable")           # read_mvsec keeps the file's (sorted) order
+    inside = np.all((np.rint(expected) >= 0) & (np.rint(expected) < [346, 260]), axis=1)[order]
+    assert len(events) == int(inside.sum()) > 2000
+    got = np.column_stack([events.x, events.y])
+    assert np.abs(got - expected[order][inside]).max() <= 0.5 + 1e-6      # the nearest pixel of the true one
+    raw_shift = np.abs(np.column_stack([ds._read(path).x, ds._read(path).y])[inside] - expected[order][inside]).max()
+    assert raw_shift > 20                           # what the events were without the calibration
+    # the same with the camera given as arrays
+    camera = Camera(np.array([[226.38018519795807, 0.0, 173.6470807871759],
+                              [0.0, 226.15002947047415, 133.73271487507847], [0, 0, 1]]), 346, 260,
+                    [-0.048031442223833355, 0.011330957517194437, -0.055378166304281135, 0.021500973881459395],
+                    "equidistant", R, P)
+    same = MVSECDataset(path, P, calib=camera, gt_file=tmp_path / "fish_gt.hdf5", window_us=600_000).events(0)
+    assert same == events
+
+
+def test_mvsec_dataset_without_calibration_warns_once_and_checks_the_calibration(tmp_path):
+    import warnings
+
+    from cmax.camera import Camera
+    from learned.data import MVSECDataset
+
+    path, _, _ = _fisheye_scene(tmp_path, np.random.default_rng(6), n=500)
+    K = [199.65, 199.65, 177.43, 126.81]
+    with pytest.warns(UserWarning, match=r"different frames.*pass calib="):
+        ds = MVSECDataset(path, K, window_us=100_000)
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        ds[0]                                       # said once, at construction, not per window
+    with pytest.raises(ValueError, match=r"give K .* or calib"):
+        MVSECDataset(path)
+    calib = tmp_path / "camchain.yaml"
+    calib.write_text(MVSEC_CAMCHAIN)
+    with pytest.raises(ValueError, match=r"K \[226.38, .* is not the K of the frame calib maps the events into"):
+        MVSECDataset(path, [226.38, 226.15, 173.65, 133.73], calib=calib)    # the lens's K, not the rectified one
+    np.testing.assert_array_equal(MVSECDataset(path, K, calib=calib).K[0], [199.6530123165822, 0.0,
+                                                                          177.43276376280926])  # K rounded: taken
+    with pytest.raises(ValueError, match=r"calib is a camera of a 240x180 sensor; MVSEC's DAVIS is 346x260"):
+        MVSECDataset(path, calib=Camera.from_intrinsics(200, 200, 120, 90, 240, 180))
+    import h5py
+
+    with h5py.File(tmp_path / "gt.hdf5", "w") as f:
+        f["davis/left/depth_image_rect"] = np.full((1, 260, 346), 2.0, np.float32)
+        f["davis/left/depth_image_rect_ts"] = np.array([100.25])
+    unrectified = Camera(np.array([[226.38, 0, 173.65], [0, 226.15, 133.73], [0, 0, 1]]), 346, 260,
+                         [-0.048, 0.0113, -0.0554, 0.0215], "equidistant")
+    with pytest.warns(UserWarning, match=r"calib gives no rectification .* MVSEC's depth maps lie in the rectified"):
+        MVSECDataset(path, calib=unrectified, gt_file=tmp_path / "gt.hdf5")
+    calib.write_text(MVSEC_CAMCHAIN.replace("resolution: [346, 260]", "resolution: [640, 480]"))
+    with pytest.raises(ValueError, match=r"calibrates a 640x480 camera \(cam0\); MVSEC's DAVIS is 346x260"):
+        MVSECDataset(path, calib=calib)
+
+
+def test_mvsec_dataset_refuses_the_right_camera_s_calibration(tmp_path):
+    from learned.data import MVSECDataset
+
+    path, _, _ = _fisheye_scene(tmp_path, np.random.default_rng(7), n=200)
+    calib = tmp_path / "camchain.yaml"
+    calib.write_text(MVSEC_CAMCHAIN + MVSEC_CAMCHAIN.replace("cam0:", "cam1:").replace("/davis/left/", "/davis/right/"))
+    with pytest.raises(ValueError, match=r"cam1 is the right camera \(rostopic /davis/right/image_raw\); MVSECDataset "
+                                         r"reads davis/left"):
+        MVSECDataset(path, calib=calib, calib_camera="cam1")
+    assert MVSECDataset(path, calib=calib, window_us=100_000).camera.model == "equidistant"

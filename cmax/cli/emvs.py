@@ -23,9 +23,9 @@ import numpy as np
 from cmax._args import api_default, float_list, int_at_least, nonnegative_float
 from cmax.camera import intrinsics_oddity
 from cmax.cli._common import named_pixels, output_folder
-from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_of,
-                                check_file_principal_point, file_depth_range, file_intrinsics, given_k_note,
-                                no_intrinsics_message, overlap, read_calibrated, resized_note)
+from cmax.cli.recording import (Calibration, add_camera_options, add_file_options, calibration_hint, calibration_note,
+                                calibration_of, check_file_principal_point, file_depth_range, file_intrinsics,
+                                given_k_note, no_intrinsics_message, overlap, read_calibrated, resized_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 
@@ -97,11 +97,11 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     return parser
 
 
-def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distortion: np.ndarray | None):
-    """The :class:`cmax.Camera` of a recording: ``--K`` (3, 3) or, for an h5 file, its ``gt/K``; ValueError when
-    its principal point lies outside the ``width`` x ``height`` sensor (another size's K, as ``cmax fit``)."""
-    from cmax.camera import Camera
-
+def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, calibration: Calibration):
+    """The :class:`cmax.Camera` of a recording of a ``width`` x ``height`` [px] sensor: ``--K`` (3, 3) [px] or, for
+    an h5 file, its ``gt/K``, with the distortion (and rectification) of ``calibration``
+    (:func:`cmax.cli.recording.calibration_of`); ValueError when its principal point lies outside the sensor
+    (another size's K, as ``cmax fit``)."""
     name = "K"
     if K is None:
         K = file_intrinsics(path)
@@ -109,7 +109,7 @@ def camera_for(path: Path, width: int, height: int, K: np.ndarray | None, distor
             raise ValueError(no_intrinsics_message(path))
         name = f"{path}: gt/K"
     check_file_principal_point(K, path, width, height, name)
-    return Camera(K, width, height, distortion)
+    return calibration.camera(width, height, K)
 
 
 def file_trajectory(path: Path) -> tuple[np.ndarray, np.ndarray] | None:
@@ -157,9 +157,12 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     from cmax.emvs import EMVS
     from cmax.emvs.poses import trajectory_up_to_scale
 
-    K, distortion, calib_size = calibration_of(args)
+    calibration = calibration_of(args)
+    K, calib_size = calibration.K, calibration.size
     if (unlike := given_k_note(args.file, K)) is not None:
         print(f"cmax emvs: note: {unlike}", file=sys.stderr)
+    if args.calib is not None and (said := calibration_note(calibration, args.calib, args.calib_camera)):
+        print(f"cmax emvs: note: {said}", file=sys.stderr)
     events, _ = read_calibrated(args, calib_size)    # --t0 / --t1 applied
     if trajectory is None:
         trajectory = file_trajectory(args.file)
@@ -170,7 +173,7 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
                           "EMVS on the overlap")
     if cut:
         print(f"cmax emvs: note: {cut}", file=sys.stderr)
-    camera = camera_for(args.file, events.width, events.height, K, distortion)
+    camera = camera_for(args.file, events.width, events.height, K, calibration)
     if (odd := intrinsics_oddity(camera.K, camera.width, camera.height)) is not None:   # as cmax fit warns
         resized = resized_note(args.file)
         print(f"cmax emvs: note: {odd}" + (f"; {resized}" if resized else ""), file=sys.stderr)

@@ -28,9 +28,9 @@ import numpy as np
 from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
-                                calibration_of, camera_read, check_file_principal_point, event_span, file_depth_range,
-                                file_intrinsics, given_k_note, no_intrinsics_message, open_streamed, overlap,
-                                read_calibrated, tail_note)
+                                calibration_note, calibration_of, camera_read, check_file_principal_point, event_span,
+                                file_depth_range, file_intrinsics, given_k_note, no_intrinsics_message, open_streamed,
+                                overlap, read_calibrated, tail_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, code_digest, file_signature, interrupted_windows,
@@ -73,14 +73,16 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         help="known speed [m/s] (metric depth; default: unknown, depth up to scale)")
     parser.add_argument("--gyro", type=Path, default=None,
                         help="gyroscope samples (se3): an .aedat4 file (its IMU stream) or a text file of "
-                             "'t wx wy wz' lines [s, rad/s], camera axes, the events' clock; each window's "
+                             "'t wx wy wz' lines [s, rad/s], camera axes (turned into the rectified frame with a "
+                             "rectifying --calib), the events' clock; each window's "
                              "rotation is held at their mean, only direction and depth are fitted (default: none, the rotation is fitted)")
     parser.add_argument("--gyro-axes", default=None, metavar="AXES",
                         help="the camera's x,y,z as signed axes of --gyro's IMU, e.g. --gyro-axes=-x,y,-z (with '=': "
                              "the value starts with '-') (default: a DAVIS's AEDAT4 IMU is turned by -x,y,-z, as "
                              "rpg_dvs_ros does; another camera's must be stated; a text file is in camera axes already)")
     parser.add_argument("--omega", type=float_list((3,), "--omega (wx,wy,wz)"), default=None, metavar="WX,WY,WZ",
-                        help="se3: a known, constant angular velocity [rad/s] of every window, camera axes (e.g. "
+                        help="se3: a known, constant angular velocity [rad/s] of every window, camera axes (turned "
+                             "into the rectified frame with a rectifying --calib) (e.g. "
                              "0,0,0 for a linear stage or a straight drive): held like --gyro's, only direction and "
                              "depth are fitted; not with --gyro (default: none, the rotation is fitted)")
     parser.add_argument("--zero-rotation-start", action="store_true",
@@ -250,14 +252,16 @@ def summary_units(scale_known: bool) -> dict[str, str]:
         "omega": f"rad/s, {axes}",
         "flow": "px/s (x, y)",
         "depth_range": length,
-        "K": "px",
+        "K": "px: the pinhole of the fitted pixels (with --calib of a rectified camera, MVSEC's: the rectified "
+             "frame's, in which v, omega and the depth maps are too)",
         "parallax_px": "px: median over the events of how far the fitted translation moves each over the window",
         "objective_after": "contrast of the warped events, 1 = the unwarped events' (unitless)",
         "seconds": "wall-clock seconds of the window's fit",
         "depth_NNNNN.npz": f"depth (H, W): z-depth [{length}] seen at t_ref_us, valid where mask; depth_spread: "
                            "range of log inverse depth over the 3x3 grid nodes around each pixel (large at depth "
                            "edges); inverse_depth_grid: the grid's nodes [1/depth unit]; K [px]",
-        "trajectory.txt": f"TUM: t [s] tx ty tz [{length}] qx qy qz qw, camera-to-world",
+        "trajectory.txt": f"TUM: t [s] tx ty tz [{length}] qx qy qz qw, camera-to-world (the lens's own frame, also "
+                          "when --calib rectifies the events: its header says so)",
     }
 
 
@@ -542,13 +546,16 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     from cmax.io import read_gyro
     from cmax.warp import DepthGrid
 
-    K, distortion, calib_size = calibration_of(args)
+    calibration = calibration_of(args)
+    K, calib_size = calibration.K, calibration.size
     notes = notes + ([unlike] if (unlike := given_k_note(args.file, K)) else [])
     if K is None:
         K = file_intrinsics(args.file)
         if K is None:
             raise ValueError(no_intrinsics_message(args.file, "--calib"))
     notes = notes + ([hint] if (hint := calibration_hint(args)) else [])
+    if args.calib is not None and (said := calibration_note(calibration, args.calib, args.calib_camera)):
+        notes.append(said)
     events = streamed = None
     try:
         streamed = open_streamed(args, calib_size) if args.t0 is None and args.t1 is None else None
@@ -578,13 +585,12 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
             notes.append(f"{repeated:,} of the {len(events):,} events repeat an earlier event exactly (same x, y, t "
                          "and polarity: a file written twice or merged with itself?): fitted as they are, each "
                          "copy counted")
-    if distortion is not None:          # one camera, its undistortion map computed once for every window
-        from cmax.camera import Camera
-
-        undistort = Camera(K, events.width, events.height, distortion).undistort_events
-    if distortion is not None and isinstance(events, StreamedEvents):
+    if calibration.undistorts:          # one camera, its undistortion map computed once for every window
+        camera = calibration.camera(events.width, events.height, K)
+        undistort, K = camera.undistort_events, camera.pinhole_K   # the fit's K: the pixels' the events land on
+    if calibration.undistorts and isinstance(events, StreamedEvents):
         events = events.with_transform(undistort)
-    elif distortion is not None:
+    elif calibration.undistorts:
         total = len(events)
         events = undistort(events)
         if len(events) < total:
@@ -598,6 +604,8 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         gyro = check_gyro(read_gyro(args.gyro, axes=args.gyro_axes))
         events, note = overlap(events, gyro[0], "gyro samples", args.gyro, "fitting the overlap")
         notes += [note] if note else []
+    if gyro is not None and calibration.rectification is not None:   # camera axes -> the rectified frame fitted
+        gyro = (gyro[0], gyro[1] @ calibration.rectification.T)
     if sequence_model == "se3":
         DepthGrid(depth_grid, events.width, events.height)
     first_us, last_us = event_span(events)
@@ -663,8 +671,14 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
                         **(r.quality.summary() if r.quality is not None else {"verdict": None})})
         print(window_line(i, r, origin_us))
     scale_known = bool(sequence.results) and all(r.scale_known for r in sequence.results)
-    write_text_atomic(stage / "trajectory.txt",
-                      "\n".join(tum_header(scale_known) + tum_lines(sequence.times_us, sequence.poses)) + "\n")
+    poses, header = sequence.poses, tum_header(scale_known)
+    if calibration.rectification is not None:   # the lens's own frame, as MVSEC's poses and cmax emvs --calib take it
+        T_rect_c = np.eye(4)
+        T_rect_c[:3, :3] = calibration.rectification
+        poses = poses @ T_rect_c
+        header.append(f"# the camera's own frame: the fit's rectified frame turned back by {args.calib}'s "
+                      "rectification_matrix (T_w_c = T_w_rect [R_rect | 0])")
+    write_text_atomic(stage / "trajectory.txt", "\n".join(header + tum_lines(sequence.times_us, poses)) + "\n")
     late_notes = [hot_note] if (hot_note := hot_pixel_note(sequence.results)) else []
     causes = [None if r.quality is None else r.quality.cause for r in sequence.results]
     no_motion, cell_noise = causes.count(LowMotionCause.NO_MOTION), causes.count(LowMotionCause.CELL_NOISE)
@@ -690,7 +704,9 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
 
     summary = {"file": str(args.file), "camera": camera_read(detect_format(args.file), args.camera),
                "model": sequence_model, "K": K.tolist(),
-               "distortion": None if distortion is None else distortion.tolist(),
+               "distortion": None if calibration.distortion is None else calibration.distortion.tolist(),
+               "distortion_model": None if calibration.distortion is None else calibration.model,
+               "rectified": calibration.rectification is not None or calibration.rectified_K is not None,
                "calib": None if args.calib is None else str(args.calib),
                "window_ms": window_us / 1000, "step_ms": step_us / 1000, "min_events": min_events,
                "t0_s": args.t0, "t1_s": args.t1,

@@ -12,7 +12,8 @@
   commands that need the intrinsics (``cmax fit``, ``cmax emvs``), :func:`calibration_of` and
   :func:`read_calibrated` behind them; :func:`intrinsics_argument`,
   :data:`distortion_argument`: their ``argparse`` types; :func:`read_calibration`: ``--calib`` (ECD
-  ``calib.txt``, DSEC ``cam_to_cam.yaml``).
+  ``calib.txt``, DSEC ``cam_to_cam.yaml``, a Kalibr camchain: radtan or equidistant, rectified when it gives
+  ``rectification_matrix`` / ``projection_matrix``), a :class:`Calibration`.
 
 No import here loads torch (the parsers are built at start-up).
 """
@@ -20,14 +21,16 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
+from typing import NamedTuple
 
 import numpy as np
 
 from cmax._args import float_list, nonnegative_float, sensor_size
-from cmax.camera import Camera, check_intrinsics, intrinsics_matrix
+from cmax.camera import Camera, check_intrinsics, check_rotation, intrinsics_matrix
 
 __all__ = ["add_file_options", "file_kwargs", "camera_read", "given_k_note", "add_recording_arguments",
-           "add_camera_options", "calibration_of",
+           "add_camera_options", "calibration_of", "Calibration", "calibration_note", "check_calibration_camera",
+           "topic_side",
            "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
            "simulated_sizes", "resized_note", "source_calibration", "check_calibration_of_frames",
            "check_file_principal_point", "file_depth_range",
@@ -143,8 +146,11 @@ def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str 
                         help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file, e.g. one cmax scene wrote)")
     camera.add_argument("--calib", type=Path, default=None,
                         help="calibration file instead of --K/--distortion: ECD calib.txt (fx fy cx cy k1 k2 p1 p2 "
-                             "k3), DSEC cam_to_cam.yaml or a Kalibr camchain .yaml (pinhole, radtan; the camera --calib-camera) "
-                             "(default: none, --K)")
+                             "k3), DSEC cam_to_cam.yaml, ROS camera_info .yaml or a Kalibr camchain .yaml (pinhole; "
+                             "radtan or equidistant "
+                             "fisheye; the camera --calib-camera); a camchain camera with rectification_matrix and "
+                             "projection_matrix (MVSEC's) maps the events into that rectified frame and fits with its "
+                             "K [px] (a note says so) (default: none, --K)")
     parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
                         help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
                              "(rectified events); of a Kalibr camchain: cam0, cam1, ...")
@@ -152,40 +158,149 @@ def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str 
                         help=f"OpenCV k1,k2,p1,p2[,k3] of --K{distortion_help} (default: none, a pinhole camera)")
 
 
-def calibration_of(args: argparse.Namespace) -> tuple[np.ndarray | None, np.ndarray | None, tuple[int, int] | None]:
-    """``(K, distortion, calibrated size)`` of :func:`add_camera_options`' options: ``--K`` and ``--distortion``
+class Calibration(NamedTuple):
+    """A camera as a calibration file (or ``--K`` / ``--distortion``) states it; :func:`read_calibration`.
+
+    ``K`` (3, 3) [px] of the lens (None: not given, the file's ``gt/K`` is used); ``distortion``: its
+    coefficients (radtan (4,) or (5,), equidistant (4,)) or None; ``size``: ``(width, height)`` [px] the file
+    states, or None; ``model``: ``"radtan"`` or ``"equidistant"``; ``rectification`` (3, 3) and ``rectified_K``
+    (3, 3) [px]: a stereo rectification the file gives (Kalibr's ``rectification_matrix``, the left 3x3 of its
+    ``projection_matrix``), into whose frame the events are undistorted, or None; ``topic``: the camera's
+    ``rostopic`` in a Kalibr camchain (``/davis/left/image_raw``: which camera of a rig it is), or None.
+    """
+
+    K: np.ndarray | None
+    distortion: np.ndarray | None
+    size: tuple[int, int] | None
+    model: str = "radtan"
+    rectification: np.ndarray | None = None
+    rectified_K: np.ndarray | None = None
+    topic: str | None = None
+
+    @property
+    def pinhole_K(self) -> np.ndarray | None:
+        """(3, 3) [px]: the K of the pixels the events are undistorted to, the one to fit with: ``rectified_K``
+        or ``K``."""
+        return self.K if self.rectified_K is None else self.rectified_K
+
+    @property
+    def undistorts(self) -> bool:
+        """Whether the events must be mapped before a pinhole fit (a distortion, a rectification)."""
+        return self.distortion is not None or self.rectification is not None or self.rectified_K is not None
+
+    def camera(self, width: int, height: int, K: np.ndarray | None = None) -> Camera:
+        """The :class:`cmax.Camera` of a ``width`` x ``height`` [px] sensor (``K`` (3, 3) [px] when the
+        calibration gives none: a file's ``gt/K``)."""
+        return Camera(self.K if K is None else K, width, height, self.distortion, self.model, self.rectification,
+                      self.rectified_K)
+
+
+def calibration_note(calibration: Calibration, path: str | Path, camera: str) -> str | None:
+    """What a command says when the ``--calib`` file ``path`` (camera ``camera``) maps the events into another
+    frame than its lens's pinhole: the fisheye model, the rectification and the K the events then have (the one
+    fitted); None for a radtan camera without rectification."""
+    if calibration.model != "equidistant" and calibration.rectified_K is None and calibration.rectification is None:
+        return None
+    K = calibration.pinhole_K
+    lens = "an equidistant (fisheye) lens" if calibration.model == "equidistant" else f"a {calibration.model} lens"
+    if calibration.rectified_K is not None or calibration.rectification is not None:
+        where = (f"undistorted and rectified (its rectification_matrix / projection_matrix) into the rectified frame, "
+                 f"K = fx {K[0, 0]:g}, fy {K[1, 1]:g}, cx {K[0, 2]:g}, cy {K[1, 2]:g} (the frame of a stereo rig's "
+                 "rectified depth, e.g. MVSEC's depth_image_rect); the K and depth maps of the results are that "
+                 "frame's")
+    else:
+        where = (f"undistorted onto a pinhole with the lens's K = fx {K[0, 0]:g}, fy {K[1, 1]:g}, cx {K[0, 2]:g}, "
+                 f"cy {K[1, 2]:g}")
+    return f"{path} ({camera}): {lens}; the events are {where}"
+
+
+def calibration_of(args: argparse.Namespace) -> Calibration:
+    """The :class:`Calibration` of :func:`add_camera_options`' options: ``--K`` and ``--distortion`` (radtan)
     as given (no size), or those of the ``--calib`` file (:func:`read_calibration`), which refuses
     ``--distortion`` beside it."""
     if args.calib is None:
         if args.calib_camera != "cam0":     # else taken and ignored: the --K (or the file's gt/K) would be used
             raise ValueError(f"--calib-camera {args.calib_camera} chooses a camera of a --calib file (a DSEC "
                              "cam_to_cam.yaml or a Kalibr camchain): give --calib too")
-        return args.K, None if args.distortion is None else np.asarray(args.distortion, dtype=np.float64), None
+        return Calibration(args.K, None if args.distortion is None else np.asarray(args.distortion, dtype=np.float64),
+                           None)
     if args.distortion is not None:
         raise ValueError("--calib gives the distortion: pass --calib or --K with --distortion, not both")
-    K, distortion, size = read_calibration(args.calib, args.calib_camera)
-    if size is None:
-        check_calibration_of_frames(args.calib, K, distortion, args.file)
-    return K, distortion, size
+    calibration = read_calibration(args.calib, args.calib_camera)
+    if calibration.size is None:
+        check_calibration_of_frames(args.calib, calibration.K, calibration.distortion, args.file)
+    check_calibration_camera(calibration, args.calib, args.calib_camera, args.file, getattr(args, "camera", None))
+    return calibration
+
+
+def topic_side(topic: str | None) -> str | None:
+    """``'left'`` or ``'right'`` when a camchain camera's ``rostopic`` names that camera of a stereo rig (a path
+    component ``left`` / ``right``, as MVSEC's ``/davis/left/image_raw``), else None.
+
+    >>> topic_side("/davis/right/image_raw"), topic_side("/cam0/image_raw"), topic_side(None)
+    ('right', None, None)
+    """
+    parts = set((topic or "").strip().strip("'\"").lower().split("/"))
+    sides = [side for side in ("left", "right") if side in parts]
+    return sides[0] if len(sides) == 1 else None
+
+
+def check_calibration_camera(calibration: Calibration, calib: str | Path, calib_camera: str, path: str | Path,
+                             camera: str | None) -> None:
+    """ValueError when the ``--calib`` camera ``calib_camera`` of ``calib`` is, by its ``rostopic``
+    (:func:`topic_side`), the other camera of the stereo rig than the one whose events are read from the MVSEC file
+    ``path`` (``camera``, ``--camera``; None: left): the left camera's lens and rectification would be applied to the
+    right camera's events without a word. Files of other formats hold one camera: nothing to check."""
+    side = topic_side(calibration.topic)
+    if side is None:
+        return
+    from cmax.io import detect_format
+
+    try:
+        if detect_format(path) != "mvsec":
+            return
+    except (OSError, ValueError):
+        return                                   # the reader says what is wrong with the file, in its own words
+    read = camera or "left"
+    if side != read:
+        default = "" if camera else ", the default"
+        raise ValueError(f"{calib}: {calib_camera} is the {side} camera (rostopic {calibration.topic.strip()}), "
+                         f"but the events of {path} are the {read} camera's (--camera {read}{default}): choose the "
+                         f"camchain's {read} camera with --calib-camera (MVSEC: cam0 left, cam1 right), or --camera "
+                         f"{side}")
 
 
 #: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.
 CALIBRATION_NAMES = ("calib.txt", "cam_to_cam.yaml")
+#: MVSEC's Kalibr camchains (``camchain-imucam-indoor_flying.yaml``, ...), which :func:`calibration_hint` names too.
+MVSEC_CAMCHAIN_GLOB = "camchain-imucam-*.yaml"
 
 
 def calibration_hint(args: argparse.Namespace) -> str | None:
     """A note when no ``--calib`` or ``--distortion`` was given but a data set's calibration file lies beside
-    ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either), or None. It is not read
-    (never guessed): the note says how to use it."""
+    ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either; an MVSEC camchain
+    :data:`MVSEC_CAMCHAIN_GLOB` too), or the file is MVSEC's (whose fisheye lenses a pinhole misses: the note names
+    the camchain to pass), or None. It is not read (never guessed): the note says how to use it."""
     if args.calib is not None or args.distortion is not None:
         return None
     folder = Path(args.file).resolve().parent
     for place in (folder, folder / "calibration", folder.parent, folder.parent / "calibration"):
-        for name in CALIBRATION_NAMES:
+        for name in (*CALIBRATION_NAMES, *sorted(p.name for p in place.glob(MVSEC_CAMCHAIN_GLOB))):
             if (place / name).is_file():
                 return (f"{place / name} lies beside the events but was not read: pass --calib {place / name} to "
                         "use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
                         "distortion biases the fitted rotation and depth, docs/limits.md)")
+    from cmax.io import detect_format
+
+    try:
+        mvsec = detect_format(args.file) == "mvsec"
+    except (OSError, ValueError):
+        return None
+    if mvsec:
+        return ("MVSEC's DAVIS cameras look through fisheye lenses (Kalibr equidistant: far from a pinhole's "
+                "image toward the corners) and its depth maps are rectified: without --calib the events are "
+                "fitted as a pinhole's; pass --calib camchain-imucam-<sequence>.yaml, MVSEC's calibration of the "
+                "sequence (--calib-camera cam0 left, cam1 right), to undistort and rectify them")
     return None
 
 
@@ -486,17 +601,26 @@ def _numbers(text: str) -> list[float]:
     return [float(v) for v in text.replace("[", " ").replace("]", " ").replace(",", " ").split()]
 
 
-def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray, np.ndarray | None,
-                                                                      tuple[int, int] | None]:
-    """``(K (3, 3), distortion (4,) or (5,) or None, (width, height) or None)`` of a calibration file.
+def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
+    """The :class:`Calibration` of ``camera`` in the calibration file ``path``: ``(K (3, 3) [px], distortion or
+    None, (width, height) [px] or None, model, rectification (3, 3) or None, rectified_K (3, 3) [px] or None)``
+    (a named tuple: ``K, distortion, size = read_calibration(path)[:3]``).
 
     * ECD ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or only ``fx fy cx cy``), one camera (a
       ``camera`` other than ``"cam0"`` is refused: it was read as this one without a word);
     * DSEC ``cam_to_cam.yaml``: ``intrinsics/<camera>`` with ``camera_matrix: [fx, fy, cx, cy]``,
       optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``;
+    * a ROS ``camera_info`` YAML (``camera_calibration``'s, ``rpg_dvs_ros``'s): ``camera_matrix``,
+      ``distortion_model``, ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix`` as
+      ``data: [...]``, ``image_width`` / ``image_height``; one camera;
     * a Kalibr camchain (``camchain.yaml``, as MVSEC and many DAVIS rigs ship): ``<camera>`` with
-      ``intrinsics: [fx, fy, cx, cy]`` and the same keys; a pinhole camera, radtan distortion (Kalibr's
-      ``equidistant`` fisheye model is refused, naming it).
+      ``intrinsics: [fx, fy, cx, cy]`` and the same keys; a pinhole camera with ``distortion_model: radtan``
+      (``plumb_bob``; 4 or 5 coefficients) or ``equidistant`` (Kannala-Brandt fisheye, exactly 4: ``k1 k2 k3
+      k4``). MVSEC's camchains also give each camera a ``rectification_matrix`` (3x3 ``R_rect``) and a
+      ``projection_matrix`` (3x4 ``P_rect``): read as ``rectification`` and ``rectified_K`` (``P_rect``'s left
+      3x3; its last column, a stereo baseline, does not move a camera's own rays), the frame of MVSEC's
+      ``depth_image_rect``, into which ``--calib`` undistorts the events (:class:`cmax.Camera`). A rectification
+      that moves nothing (``R = I``, ``P``'s K equal to K: a monocular camera's) is dropped.
 
     Lists may be written ``[a, b]`` or as ``- a`` lines (YAML's block style).
 
@@ -515,11 +639,22 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray
         except (KeyError, ValueError, TypeError):
             raise ValueError(f"{path}: intrinsics/{camera} needs camera_matrix: [fx, fy, cx, cy] (and optionally "
                              "distortion_coeffs, resolution: [w, h])") from None
-        if values.get("distortion_model", "radtan").strip() not in ("radtan", "plumb_bob"):
-            raise ValueError(f"{path}: distortion_model {values['distortion_model'].strip()!r} is not supported "
-                             "(radtan / plumb_bob)")
+        model = values.get("distortion_model", "radtan").strip()
+        model = "radtan" if model == "plumb_bob" else model
+        if model not in ("radtan", "equidistant"):
+            raise ValueError(f"{path}: distortion_model {model!r} of {camera} is not supported (radtan / plumb_bob, "
+                             "equidistant)")
         if size is not None and len(size) != 2:
             raise ValueError(f"{path}: resolution must be [width, height]")
+        rectification = _yaml_matrix(path, camera, values, "rectification_matrix", (9,))
+        projection = _yaml_matrix(path, camera, values, "projection_matrix", (12, 9))
+        if model == "equidistant":
+            if distortion is None or len(distortion) != 4 or not np.isfinite(distortion).all():
+                raise ValueError(f"{path}: the equidistant (fisheye) distortion of {camera} must be 4 finite numbers "
+                                 f"distortion_coeffs: [k1, k2, k3, k4], got {distortion}")
+            K = intrinsics_matrix([fx, fy, cx, cy], f"{path}: {camera} intrinsics")
+            return _no_rectification(Calibration(K, np.asarray(distortion, float), size, model, *_rectification(
+                path, camera, rectification, projection), values.get("rostopic")))
     else:
         lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
         try:
@@ -532,10 +667,59 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> tuple[np.ndarray
             raise ValueError(f"{path} calibrates one camera (ECD calib.txt): camera {camera!r} (--calib-camera) "
                              "chooses one of a DSEC cam_to_cam.yaml or a Kalibr camchain .yaml; leave it out")
         (fx, fy, cx, cy), distortion, size = numbers[:4], numbers[4:] or None, None
+        rectification = projection = values = None
     if distortion is not None and (len(distortion) not in (4, 5) or not np.isfinite(distortion).all()):
         raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])")
     K = intrinsics_matrix([fx, fy, cx, cy])
-    return K, None if distortion is None else np.asarray(distortion, float), size
+    return _no_rectification(Calibration(K, None if distortion is None else np.asarray(distortion, float), size,
+                                         "radtan", *_rectification(path, camera, rectification, projection),
+                                         None if values is None else values.get("rostopic")))
+
+
+def _yaml_matrix(path: Path, camera: str, values: dict[str, str], key: str,
+                 sizes: tuple[int, ...]) -> np.ndarray | None:
+    """The numbers of ``values[key]`` (a matrix written as nested lists, flow or block style), or None when the
+    camera has no such key; ValueError naming the file, camera and key when they are not ``sizes`` numbers."""
+    if key not in values:
+        return None
+    try:
+        numbers = [v for v in values[key].replace("[", " ").replace("]", " ").replace(",", " ").split() if v != "-"]
+        matrix = np.array([float(v) for v in numbers])
+    except ValueError:
+        matrix = np.zeros(0)
+    if matrix.size not in sizes or not np.isfinite(matrix).all():
+        shapes = " or ".join({9: "3x3", 12: "3x4"}[n] for n in sizes)
+        raise ValueError(f"{path}: {camera}'s {key} must be a {shapes} matrix of finite numbers, got "
+                         f"{values[key]!r}")
+    return matrix
+
+
+def _rectification(path: Path, camera: str, rectification: np.ndarray | None,
+                   projection: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
+    """``(R (3, 3), rectified K (3, 3) [px])`` of a camera's ``rectification_matrix`` (9 numbers) and
+    ``projection_matrix`` (12: 3x4, or 9), None where not given; ValueError naming the file when R is not a
+    rotation or P's left 3x3 not a pinhole matrix."""
+    R = K = None
+    try:
+        if rectification is not None:
+            R = check_rotation(rectification.reshape(3, 3), f"{path}: {camera}'s rectification_matrix")
+        if projection is not None:
+            P = projection.reshape(3, -1)
+            K = check_intrinsics(P[:, :3], f"{path}: {camera}'s projection_matrix (its left 3x3)")
+    except TypeError as error:
+        raise ValueError(str(error)) from None
+    return R, K
+
+
+def _no_rectification(calibration: Calibration) -> Calibration:
+    """``calibration`` without a rectification that moves nothing: an identity ``R`` and a ``rectified_K`` equal
+    to ``K`` (a monocular ROS camera_info's usual ``R = I``, ``P = [K | 0]``) are dropped."""
+    R, K_rect = calibration.rectification, calibration.rectified_K
+    if R is not None and np.array_equal(R, np.eye(3)):
+        R = None
+    if K_rect is not None and calibration.K is not None and np.array_equal(K_rect, calibration.K):
+        K_rect = None
+    return calibration._replace(rectification=R, rectified_K=K_rect)
 
 
 def _yaml_tree(text: str) -> dict:
@@ -575,16 +759,54 @@ def _yaml_tree(text: str) -> dict:
     return root
 
 
+def _ros_camera_info(path: Path, tree: dict, camera: str, flat) -> dict[str, str]:
+    """The keys :func:`read_calibration` reads, of a ROS ``camera_info`` YAML (what ``camera_calibration`` and
+    ``rpg_dvs_ros`` write: ``image_width``, ``image_height``, ``camera_matrix``, ``distortion_model``,
+    ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix``, each matrix as ``data: [...]``,
+    row-major): one camera (``camera`` other than ``cam0`` refused); a skewed ``camera_matrix`` refused."""
+    if camera != "cam0":
+        raise ValueError(f"{path} calibrates one camera (ROS camera_info): camera {camera!r} (--calib-camera) chooses "
+                         "one of a DSEC cam_to_cam.yaml or a Kalibr camchain .yaml; leave it out")
+
+    def data(key: str) -> str | None:
+        entry = tree.get(key)
+        return flat(entry).get("data") if isinstance(entry, dict) else None
+
+    try:
+        m = _numbers(data("camera_matrix") or "")
+    except ValueError:
+        m = []
+    if len(m) != 9 or m[1] != 0 or m[3] != 0 or m[6:] != [0, 0, 1]:
+        raise ValueError(f"{path}: camera_matrix data must be the 9 numbers of [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] "
+                         f"(ROS camera_info), got {data('camera_matrix')!r}")
+    values = {"camera_matrix": f"[{m[0]!r}, {m[4]!r}, {m[2]!r}, {m[5]!r}]"}
+    if (coefficients := data("distortion_coefficients")) is not None:
+        values["distortion_coeffs"] = coefficients
+    if "distortion_model" in tree and isinstance(tree["distortion_model"], str):
+        values["distortion_model"] = tree["distortion_model"]
+    if "image_width" in tree and "image_height" in tree:
+        values["resolution"] = f"[{tree['image_width']}, {tree['image_height']}]"
+    for key in ("rectification_matrix", "projection_matrix"):
+        if (matrix := data(key)) is not None:
+            values[key] = matrix
+    if "rostopic" in tree and isinstance(tree["rostopic"], str):
+        values["rostopic"] = tree["rostopic"]
+    return values
+
+
 def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
     """The intrinsics of ``camera`` in a DSEC ``cam_to_cam.yaml`` (``intrinsics/<camera>``, with
-    ``camera_matrix``) or a Kalibr camchain (``<camera>`` with ``intrinsics: [fx, fy, cx, cy]``, given back as
-    ``camera_matrix``), as ``key: text``; lists in flow or block style."""
+    ``camera_matrix``), a Kalibr camchain (``<camera>`` with ``intrinsics: [fx, fy, cx, cy]``, given back as
+    ``camera_matrix``) or a ROS ``camera_info`` YAML (:func:`_ros_camera_info`), as ``key: text``; lists in flow
+    or block style."""
     tree = _yaml_tree(text)
 
     def flat(values: dict) -> dict[str, str]:
         return {key: "[" + ", ".join(value) + "]" if isinstance(value, list) else value
                 for key, value in values.items() if not isinstance(value, dict)}
 
+    if isinstance(tree.get("camera_matrix"), dict) and "data" in tree["camera_matrix"]:
+        return _ros_camera_info(path, tree, camera, flat)
     dsec = tree.get("intrinsics")
     if isinstance(dsec, dict):
         if isinstance(dsec.get(camera), dict):

@@ -91,7 +91,15 @@ def _frames_intrinsics(args: argparse.Namespace) -> tuple[float, float, float, f
 
     from cmax.cli.recording import read_calibration
 
-    K, distortion, _ = read_calibration(args.calib, args.calib_camera)
+    calibration = read_calibration(args.calib, args.calib_camera)
+    K, distortion = calibration.K, calibration.distortion
+    rectified = calibration.rectified_K is not None or calibration.rectification is not None
+    if calibration.model == "equidistant" or rectified:
+        lens = "an equidistant (fisheye) lens" if calibration.model == "equidistant" else "a lens"
+        lens += " and a rectification" if rectified else ""
+        raise ValueError(f"{args.calib} ({args.calib_camera}) states {lens}, "
+                         "which the output's gt/K (a pinhole K) cannot hold: convert without --calib and give "
+                         f"--calib {args.calib} to cmax fit, emvs or depth (it undistorts the events)")
     if distortion is not None and np.any(np.asarray(distortion) != 0):
         raise ValueError(f"{args.calib} states a lens distortion ({', '.join(f'{v:g}' for v in distortion)}), which "
                          "the output's gt/K (a pinhole K) cannot hold: convert without --calib and give "

@@ -94,7 +94,7 @@ def _parallax_px(centres: np.ndarray, camera: Camera, depths: np.ndarray) -> flo
 
     ``centres`` (K, 3): camera centres of the packets in the reference frame [m].
     """
-    K = camera.K
+    K = camera.pinhole_K
     focal = max(K[0, 0], K[1, 1])
     radius = max(K[0, 2], camera.width - K[0, 2], K[1, 2], camera.height - K[1, 2])
     travel = focal * np.hypot(centres[:, 0], centres[:, 1]) + radius * np.abs(centres[:, 2])
@@ -136,9 +136,11 @@ class EMVS:
     Parameters
     ----------
     camera : Camera
-        Intrinsics, sensor size and optional distortion; event coordinates are
+        Intrinsics, sensor size and optional distortion and rectification; event coordinates are
         undistorted with the camera's lookup table, and the DSI lives on an
-        ideal pinhole view with the same ``K`` and size.
+        ideal pinhole view with its :attr:`~cmax.Camera.pinhole_K` (``K``, or ``rectified_K``) and size. With a
+        rectification ``R`` the view is the rectified camera's: the poses (of the camera) are turned into its
+        ``T_w_rect = T_w_c [R^T | 0]``, and the depth map is the rectified frame's z-depth.
     depth_range : (float, float)
         ``(near, far)`` [m] of the planes, ``0 < near < far``.
     n_planes : int
@@ -263,11 +265,15 @@ class EMVS:
         if self.hot_pixels is not None:
             events, hot = self.hot_pixels.apply(events)
         times, T_w_c = as_trajectory(poses)
+        if self.camera.rectification is not None:   # the DSI's view is the rectified camera: T_w_rect = T_w_c [R^T | 0]
+            T_c_rect = np.eye(4)
+            T_c_rect[:3, :3] = self.camera.rectification.T
+            T_w_c = T_w_c @ T_c_rect
         t = events.t
         check_coverage(times, int(t[0]), int(t[-1]))
         t_ref_us = (int(t[0]) + int(t[-1])) // 2 if t_ref_us is None else int(t_ref_us)
         T_w_ref = interpolate_poses(times, T_w_c, np.array([t_ref_us]))[0]
-        K = self.camera.K
+        K = self.camera.pinhole_K
         depths = self.depths
         starts, packet_t = _packets(t, self.events_per_pose)
         T_ref_c = invert_pose(T_w_ref) @ interpolate_poses(times, T_w_c, packet_t)
