@@ -300,6 +300,7 @@ def test_an_event_file_of_another_format_is_refused_with_its_conversion(scene_fi
         dataset.sample(0).t0_us, dataset.sample(0).t1_us)
 
 
+@pytest.mark.filterwarnings("ignore:.*MVSECDataset without calib:UserWarning")   # calib=: its own tests below
 def test_mvsec_dataset_reads_events_and_depth(tmp_path):
     import h5py
 
@@ -380,6 +381,7 @@ def test_a_data_set_of_many_files_keeps_only_a_few_open(tmp_path, monkeypatch):
     assert not closed                                            # the readers kept are open ones
 
 
+@pytest.mark.filterwarnings("ignore:.*MVSECDataset without calib:UserWarning")   # calib=: its own tests below
 def test_mvsec_dataset_reads_one_depth_map_per_window_not_the_whole_file(tmp_path):
     """MVSECDataset loaded every depth map of the gt file at construction, twice (`[:]` then `astype`): 2.4 GB
     peak for 3,000 maps of 346x260, ~9 GB for outdoor_day2's ~12,000; without a gt file it read every event to
@@ -435,6 +437,7 @@ def test_a_folder_in_data_files_is_named_as_a_folder_with_its_h5_files(scene_fil
     assert len(H5WindowDataset([folder / "a.h5"], window_us=100_000)) > 0
 
 
+@pytest.mark.filterwarnings("ignore:.*MVSECDataset without calib:UserWarning")   # calib=: its own tests below
 def test_mvsec_dataset_refuses_a_gt_file_of_another_sequence_and_checks_K(tmp_path):
     """MVSECDataset with the gt file of another sequence (its depth times 100 s after the events) was built, then
     failed at its first window with 'the window [...) µs holds 0 events; need >= 2'; a K of another sensor
