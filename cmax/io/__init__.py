@@ -26,8 +26,8 @@ import h5py
 import numpy as np
 
 from cmax.events import Events, check_event_count, structured_fields
-from cmax.io._checks import (check_polarity_encoding, check_stated_size, check_time_unit, polarity_01,
-                             times_to_us)
+from cmax.io._checks import (check_implied_rate, check_polarity_encoding, check_stated_size, check_time_unit,
+                             polarity_01, times_to_us)
 from cmax.io.aedat4 import read_aedat4, read_aedat4_frames, read_aedat4_imu
 from cmax.io.errors import FormatError
 from cmax.io.gyro import read_gyro
@@ -159,7 +159,10 @@ def read(
     time_unit : {'us', 'ms', 's'}, optional
         Unit of the file's time stamps where the format leaves it open (DSEC
         HDF5 with float times, ECD text or MVSEC in another unit than seconds,
-        NumPy). Never guessed: float times without a stated unit are refused.
+        NumPy). Never guessed: float times without a stated unit are refused;
+        integer ones (DSEC HDF5, NumPy) are µs by the format, refused where the
+        file contradicts it (an ``ms_to_idx`` spanning far more, a mean rate no
+        sensor produces: times in ms?).
         AEDAT4 and Prophesee files store integer µs; another unit is refused.
     sort : bool
         Sort the events by time (stable) instead of refusing a file whose
@@ -221,11 +224,15 @@ def _read_npy(
     t0_us: int | None = None, t1_us: int | None = None,
 ) -> Events:
     """A structured ``.npy`` (fields x, y, t, p): integer ``t`` is µs unless ``time_unit`` says
-    otherwise, float ``t`` needs ``time_unit``; ``p`` in the stated encoding (0/1 by default); ``sort``: sort
+    otherwise (refused where that makes a mean rate no sensor reaches: :func:`check_implied_rate`), float ``t``
+    needs ``time_unit``; ``p`` in the stated encoding (0/1 by default); ``sort``: sort
     by time (stable) instead of refusing a time that goes back. With ``t0_us`` / ``t1_us`` (and not ``sort``)
     only the rows of ``[t0_us, t1_us)`` are read (:func:`_npy_rows`)."""
     polarity = check_polarity_encoding(polarity)
     array, fields = _npy_table(path, time_unit)
+    if time_unit is None and len(array):               # integer times, µs by assumption: a rate no sensor makes?
+        ends = np.array(array[fields["t"]][[0, -1]]).astype(np.int64)
+        check_implied_rate(len(array), int(ends[0]), int(ends[1]), f"{path}: field {fields['t']}")
     if (t0_us is not None or t1_us is not None) and not sort:
         array = array[_npy_rows(array[fields["t"]], time_unit or "us", t0_us, t1_us, f"{path}: field {fields['t']}")]
     check_event_count(array.shape[0], f"{path}")
