@@ -22,7 +22,7 @@ def run(args: argparse.Namespace) -> int:
     output = args.output or args.file.with_suffix(".png")
     if os.path.lexists(output) and not args.overwrite:
         raise FileExistsError(f"{output} exists: --overwrite replaces it, or give another -o")
-    if not os.access(output.parent, os.W_OK | os.X_OK):         # before the work, not after it
+    if output.parent.is_dir() and not os.access(output.parent, os.W_OK | os.X_OK):   # before the work, not after
         raise PermissionError(_unwritable(output, args.output is None))
     image = render_window(
         args.file, t0_s=args.t0, dt_s=args.dt, mode=args.mode, **({} if args.bins is None else {"bins": args.bins}),
@@ -30,10 +30,7 @@ def run(args: argparse.Namespace) -> int:
     )
     from cmax.viz import save_image
 
-    try:
-        save_image(output, image)
-    except PermissionError:
-        raise PermissionError(_unwritable(output, args.output is None)) from None
+    save_image(output, image)
     print(f"wrote {output}")
     return 0
 
@@ -41,9 +38,8 @@ def run(args: argparse.Namespace) -> int:
 def _unwritable(output: Path, beside: bool) -> str:
     """Why the picture ``output`` cannot be written (its folder refuses it), naming ``-o`` / ``--output``;
     ``beside``: ``output`` is the default, the recording's name with ``.png``."""
-    folder = output.parent if str(output.parent) else Path(".")
     where = ", beside the recording (the default)," if beside else ""
-    return (f"cannot write the picture {output}{where} as its folder {folder} is not writable (a read-only data "
+    return (f"cannot write the picture {output}{where} as its folder {output.parent} is not writable (a read-only data "
             "folder?); give -o/--output PATH.png in a folder you can write to")
 
 
