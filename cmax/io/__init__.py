@@ -34,6 +34,7 @@ from cmax.io.gyro import read_gyro
 from cmax.io.h5 import H5_ERRORS, H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
 from cmax.io.mvsec import MVSEC_HEIGHT, MVSEC_WIDTH, read_mvsec
 from cmax.io.prophesee import read_evt2, read_evt3, read_raw, write_evt2, write_evt3
+from cmax.io.prophesee.reader import sorted_copy_line
 from cmax.io.text import read_txt, write_txt
 
 __all__ = [
@@ -213,8 +214,7 @@ def check_sortable(path: str | os.PathLike, kind: str, sort: object) -> None:
     if not isinstance(sort, (bool, np.bool_)):
         raise TypeError(f"sort must be True or False, got {sort!r}")
     if sort and kind not in SORTABLE_FORMATS:
-        way_out = ("; a RAW file that fits in memory can be sorted once into a copy: python -c \"import cmax.io as io; "
-                   f"io.write_evt3('sorted.raw', io.read_raw({str(path)!r}, sort=True))\"" if kind == "raw" else "")
+        way_out = f"; {sorted_copy_line(path)}" if kind == "raw" else ""
         raise ValueError(f"{path} ({kind}) is read a time span at a time from disk, so its events must be stored in "
                          f"time order; sorting applies to ECD text, .npy and AEDAT4 files{way_out}")
 
