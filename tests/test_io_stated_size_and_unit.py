@@ -327,3 +327,26 @@ def test_integer_times_of_a_plausible_rate_and_files_of_this_writer_read_as_befo
     np.save(tmp_path / "ms.npy", array)
     with pytest.raises(FormatError, match=r"ms.npy: field t, read as microseconds .* 2.0e\+09 events/s"):
         read(tmp_path / "ms.npy", width=8, height=8)
+
+
+def test_integer_nanoseconds_since_1970_read_as_microseconds_are_refused(tmp_path: Path) -> None:
+    # a 2 s recording in ns since 1970 (a ROS / Metavision export): as µs it lay in the year 55,000 and lasted
+    # 2000 s at 10 events/s (was: read so, without a word, `cmax info` exit 0)
+    rng = np.random.default_rng(4)
+    t = 1_700_000_000_000_000_000 + np.sort(rng.integers(0, 2 * 10**9, 20_000))
+    array = np.zeros(t.size, dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1")])
+    array["t"] = t
+    np.save(tmp_path / "ns.npy", array)
+    with pytest.raises(FormatError, match=r"ns.npy: field t: the time 17000000019\d+, read as microseconds .* lies "
+                                          r"after the year 2100 as µs since 1970: these look like nanoseconds "
+                                          r"\(1700000002.000 s since 1970 if so\)"):
+        read(tmp_path / "ns.npy", width=8, height=8)
+    with h5py.File(tmp_path / "ns.h5", "w") as file:             # DSEC layout: t_offset in ns, events/t from 0
+        for name, column in zip("xytp", (array["x"], array["y"], t - t[0], array["p"])):
+            file.create_dataset(f"events/{name}", data=column)
+        file.create_dataset("t_offset", data=np.int64(t[0]))
+    with pytest.raises(FormatError, match=r"ns.h5: events/t: the time 17000000019\d+, .*nanoseconds"):
+        read(tmp_path / "ns.h5", width=8, height=8)
+    array["t"] = (t - t[0]) // 1000 + 1_700_000_000_000_000                 # the same in µs since 1970: read
+    np.save(tmp_path / "us.npy", array)
+    assert read(tmp_path / "us.npy", width=8, height=8).t[0] == 1_700_000_000_000_000

@@ -26,8 +26,8 @@ import h5py
 import numpy as np
 
 from cmax.events import Events, check_event_count, structured_fields
-from cmax.io._checks import (check_implied_rate, check_polarity_encoding, check_stated_size, check_time_unit,
-                             polarity_01, times_to_us)
+from cmax.io._checks import (check_implied_rate, check_not_nanoseconds, check_polarity_encoding, check_stated_size,
+                             check_time_unit, polarity_01, times_to_us)
 from cmax.io.aedat4 import read_aedat4, read_aedat4_frames, read_aedat4_imu
 from cmax.io.errors import FormatError
 from cmax.io.gyro import read_gyro
@@ -224,15 +224,16 @@ def _read_npy(
     t0_us: int | None = None, t1_us: int | None = None,
 ) -> Events:
     """A structured ``.npy`` (fields x, y, t, p): integer ``t`` is µs unless ``time_unit`` says
-    otherwise (refused where that makes a mean rate no sensor reaches: :func:`check_implied_rate`), float ``t``
-    needs ``time_unit``; ``p`` in the stated encoding (0/1 by default); ``sort``: sort
-    by time (stable) instead of refusing a time that goes back. With ``t0_us`` / ``t1_us`` (and not ``sort``)
-    only the rows of ``[t0_us, t1_us)`` are read (:func:`_npy_rows`)."""
+    otherwise (refused where that makes a mean rate no sensor reaches, :func:`check_implied_rate`, or a time after
+    the year 2100, :func:`check_not_nanoseconds`), float ``t`` needs ``time_unit``; ``p`` in the stated encoding
+    (0/1 by default); ``sort``: sort by time (stable) instead of refusing a time that goes back. With ``t0_us`` /
+    ``t1_us`` (and not ``sort``) only the rows of ``[t0_us, t1_us)`` are read (:func:`_npy_rows`)."""
     polarity = check_polarity_encoding(polarity)
     array, fields = _npy_table(path, time_unit)
     if time_unit is None and len(array):               # integer times, µs by assumption: a rate no sensor makes?
         ends = np.array(array[fields["t"]][[0, -1]]).astype(np.int64)
         check_implied_rate(len(array), int(ends[0]), int(ends[1]), f"{path}: field {fields['t']}")
+        check_not_nanoseconds(max(int(ends[0]), int(ends[1]), key=abs), f"{path}: field {fields['t']}")
     if (t0_us is not None or t1_us is not None) and not sort:
         array = array[_npy_rows(array[fields["t"]], time_unit or "us", t0_us, t1_us, f"{path}: field {fields['t']}")]
     check_event_count(array.shape[0], f"{path}")

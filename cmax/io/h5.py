@@ -32,9 +32,9 @@ import numpy as np
 
 from cmax.events import (Events, _check_sensor_size, check_event_count, check_time_us, require_events,
                          window_steps, wrap_index)
-from cmax.io._checks import (add_offset, check_allocated, check_implied_rate, check_offset, check_polarity_encoding,
-                             check_stated_size, check_time_unit, polarity_01, scalar_to_us, times_to_us,
-                             unit_from_attrs)
+from cmax.io._checks import (add_offset, check_allocated, check_implied_rate, check_not_nanoseconds, check_offset,
+                             check_polarity_encoding, check_stated_size, check_time_unit, polarity_01, scalar_to_us,
+                             times_to_us, unit_from_attrs)
 from cmax.io.atomic import AtomicOutput, write_error
 from cmax.io.errors import FormatError
 
@@ -657,8 +657,9 @@ class H5Reader:
         """Check the last event's time against ``ms_to_idx`` (an index whose last entry holds every row must end
         after it: else windows past the index's end would come out empty) and, for integer ``events/t`` whose unit
         neither the file nor the caller states (µs by the layout), refuse it where the file contradicts that unit:
-        an ``ms_to_idx`` (one entry a millisecond) far longer than the times span as µs, or a mean rate no sensor
-        reaches (:func:`check_implied_rate`). Reads two rows and one index entry. Not seen: times in ms of a slow
+        an ``ms_to_idx`` (one entry a millisecond) far longer than the times span as µs, a mean rate no sensor
+        reaches (:func:`check_implied_rate`), or times after the year 2100 (nanoseconds:
+        :func:`check_not_nanoseconds`). Reads two rows and one index entry. Not seen: times in ms of a slow
         recording whose ``ms_to_idx`` was built as if they were µs."""
         n, index = len(self), self._ms_to_idx
         if not n:
@@ -689,6 +690,7 @@ class H5Reader:
                 f"{self.path}: ms_to_idx has {entries:,} entries (one a millisecond: {entries / 1000:,.1f} s) but "
                 f"events/t ends {last / 1000:,.1f} ms after t_offset{unit_note}; else the index is corrupt"
             )
+        check_not_nanoseconds(self.t_offset_us + max(first, last, key=abs), where)
         check_implied_rate(n, first, last, where)
 
     def _dataset(self, name: str) -> h5py.Dataset:
