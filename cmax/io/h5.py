@@ -656,7 +656,8 @@ class H5Reader:
     def _check_times_against_index(self) -> None:
         """Check the last event's time against ``ms_to_idx`` (an index whose last entry holds every row must end
         after it: else windows past the index's end would come out empty) and, for integer ``events/t`` whose unit
-        neither the file nor the caller states (µs by the layout), refuse it where the file contradicts that unit:
+        neither the file nor the caller states (µs by the layout; not one :class:`H5Writer` wrote, µs in every
+        version), refuse it where the file contradicts that unit:
         an ``ms_to_idx`` (one entry a millisecond) far longer than the times span as µs, a mean rate no sensor
         reaches (:func:`check_implied_rate`), or times after the year 2100 (nanoseconds:
         :func:`check_not_nanoseconds`). Reads two rows and one index entry. Not seen: times in ms of a slow
@@ -681,7 +682,7 @@ class H5Reader:
                 f"{self.path}: ms_to_idx ends at {len(index) - 1} ms with every row before it, but the last event of "
                 f"events/t lies {last_us / 1000:,.3f} ms after t_offset{unit_note}; else the index is corrupt"
             )
-        if self._unit_stated:
+        if self._unit_stated or self._written_here():   # H5Writer's files are µs, with or without the attribute
             return
         first, last = int(raw_first[0]), int(raw_last[0])        # µs after t_offset, if µs they are
         entries, span_ms = (0 if index is None else len(index)), max(last, 0) // 1000 + 2
