@@ -5,6 +5,7 @@
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import h5py
@@ -355,3 +356,19 @@ def test_integer_nanoseconds_since_1970_read_as_microseconds_are_refused(tmp_pat
     array["t"] = (t - t[0]) // 1000 + 1_700_000_000_000_000                 # the same in µs since 1970: read
     np.save(tmp_path / "us.npy", array)
     assert read(tmp_path / "us.npy", width=8, height=8).t[0] == 1_700_000_000_000_000
+
+
+def test_cmax_info_says_when_integer_times_are_microseconds_by_assumption(tmp_path: Path, events: Events,
+                                                                          capsys) -> None:
+    # what no check can tell apart (a slow recording in ms, no index) is at least said (was: a plain µs line)
+    path, _ = _dsec_in_ms(tmp_path / "slow.h5", 2_000, 2000, None)
+    assert main(["info", str(path), "--size", "640x480"]) == 0
+    assumed = "(the file states no unit: integer times read as µs, the format's default; --time-unit ms or s"
+    assert assumed in capsys.readouterr().out
+    assert main(["info", str(path), "--size", "640x480", "--time-unit", "ms"]) == 0
+    assert re.search(r"\ntime        \d+000 \.\. \d+000 µs\n", capsys.readouterr().out)
+    assert main(["info", str(write_h5(tmp_path / "ours.h5", events))]) == 0            # H5Writer's: µs, stated
+    assert "states no unit" not in capsys.readouterr().out
+    np.save(tmp_path / "ev.npy", events.to_structured())
+    assert main(["info", str(tmp_path / "ev.npy"), "--size", f"{W}x{H}"]) == 0
+    assert assumed in capsys.readouterr().out

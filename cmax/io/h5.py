@@ -682,7 +682,7 @@ class H5Reader:
                 f"{self.path}: ms_to_idx ends at {len(index) - 1} ms with every row before it, but the last event of "
                 f"events/t lies {last_us / 1000:,.3f} ms after t_offset{unit_note}; else the index is corrupt"
             )
-        if self._unit_stated or self._written_here():   # H5Writer's files are µs, with or without the attribute
+        if not self.time_unit_assumed:     # stated, or H5Writer's (µs, with or without the attribute)
             return
         first, last = int(raw_first[0]), int(raw_last[0])        # µs after t_offset, if µs they are
         entries, span_ms = (0 if index is None else len(index)), max(last, 0) // 1000 + 2
@@ -744,6 +744,12 @@ class H5Reader:
     # -- metadata ---------------------------------------------------------------------
     def __len__(self) -> int:
         return int(self._columns["t"].shape[0])
+
+    @property
+    def time_unit_assumed(self) -> bool:
+        """Whether ``events/t`` is read as µs by the layout alone: neither the file (a unit attribute, or the
+        ``layout='dsec'`` of :class:`H5Writer`, µs in every version) nor the caller states its unit."""
+        return not self._unit_stated and not self._written_here()
 
     @property
     def attrs(self) -> dict[str, Any]:
