@@ -372,3 +372,28 @@ def test_cmax_info_says_when_integer_times_are_microseconds_by_assumption(tmp_pa
     np.save(tmp_path / "ev.npy", events.to_structured())
     assert main(["info", str(tmp_path / "ev.npy"), "--size", f"{W}x{H}"]) == 0
     assert assumed in capsys.readouterr().out
+
+
+def test_mvsec_times_that_are_whole_numbers_are_not_read_as_seconds(tmp_path: Path, capsys) -> None:
+    # MVSEC stores float seconds since 1970 (decimals); a table of float µs from 0 read as seconds lasted 23 days
+    # at 0.0 events/s (was: `cmax info` and `cmax show` without a word)
+    rng = np.random.default_rng(5)
+    t_us = np.unique(rng.integers(0, 2_000_000, 1000)).astype(float)
+    table = np.stack([rng.integers(0, 346, t_us.size), rng.integers(0, 260, t_us.size), t_us,
+                      rng.choice([-1.0, 1.0], t_us.size)], axis=1)
+    path = tmp_path / "us_data.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    refused = r"us_data.hdf5: davis/left/events\[:, 2\] \(t\): every time is a whole number \([\d,]+ distinct, .* " \
+              r"these look like integer microseconds. State the unit: time_unit='us'"
+    with pytest.raises(FormatError, match=refused):
+        read(path)
+    with pytest.raises(FormatError, match=refused):                 # a window's one event alone would not show it
+        read(path, t0_us=int(t_us[0]) * 10**6, t1_us=int(t_us[0]) * 10**6 + 50_000)
+    assert main(["show", str(path), "-o", str(tmp_path / "w.png")]) == 2
+    assert "look like integer microseconds" in capsys.readouterr().err and not (tmp_path / "w.png").exists()
+    assert read(path, time_unit="us").t.tolist() == t_us.astype(np.int64).tolist()
+    table[:, 2] = 1.5e9 + t_us * 1e-6                                 # seconds since 1970, as MVSEC: read
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    assert len(read(path)) == t_us.size
