@@ -124,6 +124,23 @@ def _refuse_whole_seconds(t: np.ndarray, where: str) -> None:
         )
 
 
+def _refuse_time_going_back(t_us: np.ndarray, path: Path, camera: str) -> None:
+    """Refuse times ``t_us`` (µs, of rows read from ``davis/<camera>/events`` of ``path``) that go back, with the way
+    through: MVSEC files are read a time span at a time (bisection on disk), so ``sort`` / ``--sort`` do not apply
+    to them (the generic refusal of :class:`Events` pointed at ``--sort``, which then refused MVSEC files)."""
+    back = np.flatnonzero(t_us[1:] < t_us[:-1])
+    if not back.size:
+        return
+    i = int(back[0])
+    raise FormatError(
+        f"{path}: davis/{camera}/events[:, 2] (t): the time goes back from {int(t_us[i])} µs to {int(t_us[i + 1])} µs "
+        f"(rows {i} and {i + 1} of those read); MVSEC files are read a time span at a time, so their rows must be in "
+        "time order and --sort does not apply: write a sorted copy once: python -c \"import h5py, numpy as np; "
+        f"e = h5py.File({str(path)!r})['davis/{camera}/events'][:]; h5py.File('sorted.hdf5', 'w')"
+        f"['davis/{camera}/events'] = e[np.argsort(e[:, 2], kind='stable')]\""
+    )
+
+
 def _table_events(table: np.ndarray, path: Path, camera: str, unit: str, polarity: str,
                   unit_stated: bool = True) -> Events:
     """The events of rows (N, 4) ``x, y, t, p`` of ``davis/<camera>/events``: finite, times in ``unit`` rounded to
@@ -136,6 +153,7 @@ def _table_events(table: np.ndarray, path: Path, camera: str, unit: str, polarit
     if not unit_stated:
         _refuse_whole_seconds(table[:, 2], where)
     t_us = times_to_us(table[:, 2], unit, f"{where}[:, 2] (t)")
+    _refuse_time_going_back(t_us, path, camera)
     p = polarity_01(table[:, 3], polarity, f"{where}[:, 3] (p)")
     try:
         return Events(table[:, 0], table[:, 1], t_us, p, MVSEC_WIDTH, MVSEC_HEIGHT)
