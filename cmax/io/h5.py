@@ -656,10 +656,9 @@ class H5Reader:
     def _check_times_against_index(self) -> None:
         """Check the last event's time against ``ms_to_idx`` (an index whose last entry holds every row must end
         after it: else windows past the index's end would come out empty) and, for integer ``events/t`` whose unit
-        neither the file nor the caller states (µs by the layout; not one :class:`H5Writer` wrote, µs in every
-        version), refuse it where the file contradicts that unit:
-        an ``ms_to_idx`` (one entry a millisecond) far longer than the times span as µs, a mean rate no sensor
-        reaches (:func:`check_implied_rate`), or times after the year 2100 (nanoseconds:
+        neither the file nor the caller states (:attr:`time_unit_assumed`: µs by the layout), refuse it where the
+        file contradicts that unit: an ``ms_to_idx`` (one entry a millisecond) far longer than the times span as µs,
+        a mean rate no sensor reaches (:func:`check_implied_rate`), or times after the year 2100 (nanoseconds:
         :func:`check_not_nanoseconds`). Reads two rows and one index entry. Not seen: times in ms of a slow
         recording whose ``ms_to_idx`` was built as if they were µs."""
         n, index = len(self), self._ms_to_idx
@@ -670,7 +669,7 @@ class H5Reader:
             raw_first, raw_last = column[0:1], column[n - 1: n]
         except H5_ERRORS as error:
             raise FormatError(f"{self.path}: cannot read events/t ({error})") from None
-        unit_note = ("" if self._unit_stated else
+        unit_note = ("" if not self.time_unit_assumed else
                      " (read as microseconds, the layout's unit, which neither the file nor the caller states: "
                      "in milliseconds? pass time_unit='ms', cmax: --time-unit ms)")
         try:
