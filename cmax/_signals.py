@@ -14,7 +14,8 @@ import threading
 from contextlib import contextmanager
 from typing import Iterator
 
-__all__ = ["Terminated", "sigterm_as_interrupt", "sigterm_deferred", "stop_if_terminated", "TERMINATED_STATUS"]
+__all__ = ["Terminated", "sigterm_as_interrupt", "sigterm_deferred", "sigint_deferred", "stop_if_terminated",
+           "TERMINATED_STATUS"]
 
 #: The exit status of a run stopped by SIGTERM, as a shell reports a process killed by it.
 TERMINATED_STATUS = 128 + int(signal.SIGTERM)
@@ -92,6 +93,30 @@ def sigterm_deferred() -> Iterator[None]:
     if not _DEFERRAL["depth"] and _DEFERRAL["pending"]:
         _DEFERRAL["pending"] = False
         raise Terminated()
+
+
+@contextmanager
+def sigint_deferred() -> Iterator[None]:
+    """Within the block, Ctrl-C (SIGINT) is held back and its ``KeyboardInterrupt`` raised when the block ends, as
+    :func:`sigterm_deferred` holds SIGTERM: a worker process started AND recorded, so that the clean-up stops it
+    (one started but not recorded was left to fail on its own, printing a traceback once the caller had exited). A
+    block left by an exception while a Ctrl-C is held raises ``KeyboardInterrupt`` instead. The previous handler is
+    restored afterwards; outside the main thread (where Python cannot set a handler) the block runs unchanged."""
+    if threading.current_thread() is not threading.main_thread():
+        yield
+        return
+    held: list[int] = []
+    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+    try:
+        yield
+    except BaseException:
+        if held:
+            raise KeyboardInterrupt() from None
+        raise
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
+    if held:
+        raise KeyboardInterrupt()
 
 
 def stop_if_terminated() -> None:

@@ -14,7 +14,7 @@ import time
 import warnings
 from typing import Any, Callable, Sequence, TypeVar
 
-__all__ = ["die_with_parent", "recorded", "reissue"]
+__all__ = ["die_with_parent", "recorded", "reissue", "start_forkserver"]
 
 T = TypeVar("T")
 
@@ -59,6 +59,33 @@ def die_with_parent(main_pid: int) -> None:
         os._exit(1)
 
     threading.Thread(target=watch, name="parent-watchdog", daemon=True).start()
+
+
+def start_forkserver(context: Any) -> None:
+    """Start the server of a ``forkserver`` multiprocessing ``context`` now, ignoring SIGINT (a no-op for another
+    start method, or where the server runs already). Ctrl-C goes to the terminal's whole process group: the server,
+    importing its preloaded modules for seconds, printed the traceback of a ``KeyboardInterrupt`` in the middle of
+    that import, dozens of lines under the caller's one line. Started with SIGINT ignored (a disposition that
+    survives ``exec``), the server and the workers it forks never see Ctrl-C: the calling process stops its workers
+    itself. The caller's own SIGINT is blocked meanwhile (on Linux a blocked signal stays pending even while
+    ignored), its handler restored, then unblocked: a Ctrl-C that came meanwhile reaches it when this returns.
+    Outside the main thread (where no handler can be set) the server is started as it is."""
+    if context.get_start_method() != "forkserver":
+        return
+    from multiprocessing import forkserver
+
+    if threading.current_thread() is not threading.main_thread():
+        forkserver.ensure_running()
+        return
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    try:
+        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        try:
+            forkserver.ensure_running()
+        finally:
+            signal.signal(signal.SIGINT, handler if handler is not None else signal.SIG_DFL)
+    finally:
+        signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 
 
 def recorded(call: Callable[[], T]) -> tuple[T, tuple[tuple[str, str], ...]]:

@@ -203,32 +203,56 @@ def config_differences(recorded: Config, now: Config, recorded_paths: dict | Non
             if key not in RESUMABLE and before[key] != after.get(key)]
 
 
-#: Bytes read from each end of a data file for its :func:`file_fingerprint` (the whole of a smaller file).
+#: Bytes read from each end of a data file for the ``ends_sha256`` of its :func:`file_fingerprint` (the whole of a
+#: smaller file), which checkpoints of earlier versions record alone.
 FINGERPRINT_BYTES = 1 << 16
+#: Bytes read at a time while hashing a whole data file.
+_HASH_CHUNK = 1 << 20
 
 
-def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int]) -> dict[str, object]:
+def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int], *,
+                     recorded: object = None) -> dict[str, object]:
     """What ``--resume`` compares of one data file at ``path``: ``{"bytes": size, "events": events, "span_us":
-    [first, last], "ends_sha256": ...}``, the file's size [bytes], its number of ``events`` and their time span
-    ``span_us`` (first, last) [µs] (as :class:`learned.data.H5WindowDataset` read them), and the SHA-256 of its first
-    and last :data:`FINGERPRINT_BYTES` (a data file may hold GBs: it is not read whole). Another recording copied
-    over the file changes them, its path and number of windows staying the same."""
+    [first, last], "sha256": ..., "ends_sha256": ..., "stat": [mtime_ns, inode]}``: the file's size [bytes], its
+    number of ``events`` and their time span ``span_us`` (first, last) [µs] (as :class:`learned.data.H5WindowDataset`
+    read them), the SHA-256 of the whole file (read in 1 MiB chunks), that of its first and last
+    :data:`FINGERPRINT_BYTES` (what earlier versions recorded), and its modification time [ns] and inode.
+
+    ``recorded``: this file's fingerprint in the checkpoint being resumed; when its size, modification time and
+    inode equal the file's now, its ``sha256`` is taken instead of reading the file again. What this cannot see: a
+    file rewritten in place whose modification time was then set back (``touch -d``, ``cp -p`` onto the same inode).
+    Another recording copied over the file, or any byte of it changed, changes the whole file's SHA-256."""
     path = Path(path)
-    size = path.stat().st_size
-    digest = hashlib.sha256()
+    stat = path.stat()
+    size, marks = int(stat.st_size), [int(stat.st_mtime_ns), int(stat.st_ino)]
+    ends, whole = hashlib.sha256(), hashlib.sha256()
+    known = (recorded.get("sha256") if isinstance(recorded, dict) and recorded.get("bytes") == size
+             and recorded.get("stat") == marks else None)
     with open(path, "rb") as file:
-        digest.update(file.read(FINGERPRINT_BYTES))
+        ends.update(file.read(FINGERPRINT_BYTES))
         if size > FINGERPRINT_BYTES:
             file.seek(max(FINGERPRINT_BYTES, size - FINGERPRINT_BYTES))
-            digest.update(file.read())
-    return {"bytes": int(size), "events": int(events), "span_us": [int(span_us[0]), int(span_us[1])],
-            "ends_sha256": digest.hexdigest()}
+            ends.update(file.read())
+        if not isinstance(known, str):
+            file.seek(0)
+            while chunk := file.read(_HASH_CHUNK):
+                whole.update(chunk)
+            known = whole.hexdigest()
+    return {"bytes": size, "events": int(events), "span_us": [int(span_us[0]), int(span_us[1])],
+            "sha256": known, "ends_sha256": ends.hexdigest(), "stat": marks}
+
+
+#: Keys of a :func:`file_fingerprint` that are not compared as such: the contents' hashes (compared in
+#: :func:`fingerprint_differences`) and the modification time and inode (a copy of the same bytes differs in them).
+_NOT_COMPARED = ("sha256", "ends_sha256", "stat")
 
 
 def fingerprint_differences(recorded: object, now: list[dict[str, object]], names: list[str]) -> list[str]:
     """``"data.files[i] NAME: events 6282 (now 8693), ..."`` for each data file (called ``names[i]``) whose
-    :func:`file_fingerprint` ``now`` differs from the ``recorded`` one (a checkpoint's ``data_order["files"]``);
-    empty when they agree or nothing (a checkpoint of an earlier version) or another number of files is recorded."""
+    :func:`file_fingerprint` ``now`` differs from the ``recorded`` one (a checkpoint's ``data_order["files"]``):
+    in size, events or span, else in the SHA-256 of the whole file (of its first and last 64 KiB where the checkpoint,
+    of an earlier version, records only those); empty when they agree or nothing (a checkpoint of an earlier
+    version) or another number of files is recorded."""
     if not isinstance(recorded, list) or len(recorded) != len(now):
         return []
     differ = []
@@ -236,8 +260,11 @@ def fingerprint_differences(recorded: object, now: list[dict[str, object]], name
         if not isinstance(before, dict):
             continue
         changed = [f"{key} {json.dumps(before.get(key))} (now {json.dumps(value)})" for key, value in after.items()
-                   if key != "ends_sha256" and before.get(key) != value]
-        if not changed and before.get("ends_sha256") != after["ends_sha256"]:
+                   if key not in _NOT_COMPARED and before.get(key) != value]
+        if not changed and "sha256" in before:
+            if before["sha256"] != after["sha256"]:
+                changed = ["its contents (the SHA-256 of the whole file)"]
+        elif not changed and before.get("ends_sha256") != after["ends_sha256"]:
             changed = ["its contents (the SHA-256 of its first and last 64 KiB)"]
         if changed:
             differ.append(f"data.files[{i}] {names[i]}: {', '.join(changed)}")
@@ -650,8 +677,12 @@ class Trainer:
             raise ValueError("--mode teacher learns from ground-truth depth (gt/depth, as cmax scene writes it) and "
                              "none of data.files holds it (or each says use_gt: false): its loss would be 0 at every "
                              "step; give labelled files, or train --mode finetune / student on unlabelled ones")
-        self.fingerprints = [file_fingerprint(spec.path, count, span) for spec, count, span
-                             in zip(self.dataset.specs, self.dataset.counts, self.dataset.spans)]
+        order = ckpt.get("data_order") if ckpt is not None else None
+        recorded = order.get("files") if isinstance(order, dict) else None
+        if not isinstance(recorded, list) or len(recorded) != len(self.dataset.specs):
+            recorded = [None] * len(self.dataset.specs)
+        self.fingerprints = [file_fingerprint(spec.path, count, span, recorded=known) for spec, count, span, known
+                             in zip(self.dataset.specs, self.dataset.counts, self.dataset.spans, recorded)]
         if ckpt is not None:
             self._check_data_order(ckpt.get("data_order"))
             self._check_data_files(ckpt.get("data_order"))

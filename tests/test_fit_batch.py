@@ -459,3 +459,43 @@ def test_the_forkserver_warms_the_kernels_with_one_small_fit(monkeypatch):
     warm()
     assert torch.get_num_threads() == before
     assert {"patch_flow", "local_refine", "depth_sweep"} <= set(stages)
+
+
+@pytest.mark.skipif(not Path("/proc/self/status").exists() or "forkserver" not in multiprocessing.get_all_start_methods(),
+                    reason="reads the forkserver's signal dispositions from /proc (Linux)")
+@pytest.mark.parametrize("module, context", [("cmax.fitting.batch", "_context"), ("cmax.sim.convert", "_worker_context")])
+def test_the_forkserver_of_the_workers_ignores_ctrl_c(module: str, context: str) -> None:
+    """Ctrl-C reaches the terminal's whole process group: the forkserver of ``cmax fit --jobs 2`` (and of ``cmax
+    simulate --workers 2``), importing its preloaded modules for seconds, printed the traceback of its
+    ``KeyboardInterrupt`` (some 30 lines under ``cmax fit: interrupted``). It is started with SIGINT ignored now
+    (its workers inherit that; the calling process stops them)."""
+    script = textwrap.dedent(f"""
+        import signal
+        from multiprocessing import forkserver
+        from {module} import {context}
+        {context}()
+        pid = forkserver._forkserver._forkserver_pid
+        assert pid is not None, "the forkserver was not started"
+        ignored = next(int(line.split()[1], 16) for line in open(f"/proc/{{pid}}/status") if line.startswith("SigIgn"))
+        print(bool(ignored >> (int(signal.SIGINT) - 1) & 1), signal.getsignal(signal.SIGINT) is signal.default_int_handler)
+    """)
+    done = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=120,
+                          env={**os.environ, "PYTHONPATH": os.pathsep.join(sys.path)})
+    assert done.returncode == 0 and done.stdout.split() == ["True", "True"], done.stderr[-2000:]
+
+
+def test_ctrl_c_while_a_worker_starts_is_raised_once_the_worker_is_recorded() -> None:
+    """``sigint_deferred`` holds Ctrl-C back over a worker's start and recording (a worker the pool started but had
+    not recorded was left running when ``cmax fit --jobs 2`` stopped, and printed a traceback once it had exited)."""
+    from cmax._signals import sigint_deferred
+
+    steps = []
+    with pytest.raises(KeyboardInterrupt):
+        with sigint_deferred():
+            os.kill(os.getpid(), signal.SIGINT)
+            time.sleep(0.05)                          # the signal is handled (held) here, between bytecodes
+            steps.append("recorded")
+    assert steps == ["recorded"] and signal.getsignal(signal.SIGINT) is signal.default_int_handler
+    with sigint_deferred():                           # no Ctrl-C: nothing raised
+        steps.append("quiet")
+    assert steps == ["recorded", "quiet"]

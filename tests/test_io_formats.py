@@ -264,7 +264,9 @@ def test_a_raw_file_whose_time_goes_back_a_few_us_has_a_way_out(tmp_path, capsys
     _evt3_going_back(tmp_path / "rec.raw", t, x, y, p)
     monkeypatch.chdir(tmp_path)
     assert main(["info", "rec.raw"]) == 2
-    assert "time goes back" in capsys.readouterr().err
+    first = capsys.readouterr().err           # the first refusal gives the way through too (was: 'pass sort=True'
+    assert "time goes back" in first and "--sort does not apply to RAW files" in first   # alone, then --sort refused)
+    assert first.count("\n") == 1 and "io.read_raw('rec.raw', sort=True)" in first
     assert main(["info", "rec.raw", "--sort"]) == 2
     err = capsys.readouterr().err
     assert "sorting applies to ECD text, .npy and AEDAT4 files" in err
@@ -275,3 +277,27 @@ def test_a_raw_file_whose_time_goes_back_a_few_us_has_a_way_out(tmp_path, capsys
     copy = read(tmp_path / "sorted.raw")
     assert copy.t.tolist() == sorted(t.tolist())
     assert sorted(zip(copy.t, copy.x, copy.y, copy.p)) == sorted(zip(t, x, y, p))
+
+
+def test_an_mvsec_file_whose_time_goes_back_has_a_way_out(tmp_path, capsys, monkeypatch):
+    """An MVSEC file whose rows go back in time: the refusal said '(pass sort=True ...; cmax: --sort)', and --sort
+    was then refused for MVSEC files (read a time span at a time): a dead end. It names the rows and the line that
+    writes a sorted copy, which reads with every event in time order."""
+    import h5py
+
+    from cmax.cli import main
+
+    rng = np.random.default_rng(6)
+    t = 1.5e9 + np.round(rng.random(300), 6)
+    table = np.stack([rng.integers(0, 346, 300), rng.integers(0, 260, 300), t, rng.choice([-1.0, 1.0], 300)], 1)
+    monkeypatch.chdir(tmp_path)
+    with h5py.File("rig.hdf5", "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    assert main(["info", "rig.hdf5"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "the time goes back from" in err and "--sort does not apply" in err, err
+    assert "cmax: --sort" not in err
+    exec(err.split('python -c "', 1)[1].rsplit('"', 1)[0], {})
+    copy = read(tmp_path / "sorted.hdf5")
+    assert len(copy) == 300 and np.all(np.diff(copy.t) >= 0)
+    assert sorted(zip(copy.x.tolist(), copy.y.tolist())) == sorted(zip(table[:, 0].tolist(), table[:, 1].tolist()))

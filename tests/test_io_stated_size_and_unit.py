@@ -5,6 +5,7 @@
 """
 from __future__ import annotations
 
+import re
 from pathlib import Path
 
 import h5py
@@ -260,3 +261,139 @@ def test_float32_times_that_already_lost_microseconds_are_refused(tmp_path: Path
     seconds["t"] = events.t / 1e6                                          # below 16.8 s: within a microsecond
     np.save(tmp_path / "s.npy", seconds)
     assert np.abs(read(tmp_path / "s.npy", width=W, height=H, time_unit="s").t - events.t).max() <= 1
+
+
+# -- integer times whose unit nobody states: µs by the format, checked against the file ----------------------------
+def _dsec_in_ms(path: Path, n: int, span_ms: int, index: str | None) -> tuple[Path, np.ndarray]:
+    """A DSEC-layout file (no unit attribute) whose integer events/t is in MILLISECONDS over ``span_ms``, with an
+    ``ms_to_idx`` built for ms times (``index='ms'``), DSEC's recipe applied to the ms values (``'us'``), or none."""
+    rng = np.random.default_rng(3)
+    t = np.sort(rng.integers(0, span_ms, n)).astype(np.uint32)
+    with h5py.File(path, "w") as file:
+        for name, column in zip("xytp", (rng.integers(0, 640, n).astype(np.uint16),
+                                         rng.integers(0, 480, n).astype(np.uint16), t,
+                                         rng.integers(0, 2, n).astype(np.uint8))):
+            file.create_dataset(f"events/{name}", data=column)
+        file.create_dataset("t_offset", data=np.int64(0))
+        if index is not None:
+            step = 1 if index == "ms" else 1000
+            file.create_dataset("ms_to_idx", data=np.searchsorted(t, step * np.arange(int(t[-1]) // step + 2)))
+    return path, t
+
+
+def test_integer_milliseconds_in_a_dsec_file_are_refused_where_the_file_shows_them(tmp_path: Path, capsys) -> None:
+    # 200,000 events over 2 s (100 kev/s) in ms, with an index of one entry a millisecond: read as µs (the layout's
+    # default) the recording lasted 2 ms, while its index spans 2 s (was: read as 2 ms, 100 Mev/s, exit 0)
+    path, t = _dsec_in_ms(tmp_path / "ms_index.h5", 200_000, 2000, "ms")
+    with pytest.raises(FormatError, match=r"ms_index.h5: ms_to_idx has 2,00\d entries .* but events/t ends "
+                                          r"2.0 ms after t_offset .*pass time_unit='ms'"):
+        read(path, width=640, height=480)
+    assert main(["info", str(path), "--size", "640x480"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "--time-unit ms" in err
+    stated = read(path, width=640, height=480, time_unit="ms")       # the stated unit reads it, index and all
+    assert stated.t[-1] == int(t[-1]) * 1000 and len(stated) == len(t)
+    window = read(path, width=640, height=480, time_unit="ms", t0_us=500_000, t1_us=600_000)
+    assert len(window) == int(np.sum((t >= 500) & (t < 600)))
+    # no index, 3 M events in ms over 2 s (1.5 Mev/s): as µs a mean of 1.5e9 events/s, which no sensor produces
+    path, _ = _dsec_in_ms(tmp_path / "ms_fast.h5", 3_000_000, 2000, None)
+    with pytest.raises(FormatError, match=r"ms_fast.h5: events/t, read as microseconds .* puts 3,000,000 events in "
+                                          r"2.0 ms: a mean of 1.5e\+09 events/s.*time_unit='ms'"):
+        read(path, width=640, height=480)
+    assert read(path, width=640, height=480, time_unit="us").t[-1] == 1999   # stated µs (a simulation): as told
+
+
+def test_an_index_that_ends_before_the_last_event_is_refused_not_read_as_empty_windows(tmp_path: Path) -> None:
+    # DSEC's ms_to_idx recipe applied to ms values, the unit then stated: the index (3 entries) ends long before
+    # the events (2 s) (was: every window after 2 ms held 0 events without a word)
+    path, t = _dsec_in_ms(tmp_path / "index_us.h5", 20_000, 2000, "us")
+    with pytest.raises(FormatError, match=r"index_us.h5: ms_to_idx ends at 2 ms with every row before it, but the "
+                                          r"last event of events/t lies 1,99\d.000 ms after t_offset"):
+        read(path, width=640, height=480, time_unit="ms", t0_us=500_000, t1_us=600_000)
+
+
+def test_integer_times_of_a_plausible_rate_and_files_of_this_writer_read_as_before(tmp_path: Path,
+                                                                                   events: Events) -> None:
+    assert read(write_h5(tmp_path / "ev.h5", events)) == events
+    dense = Events(np.zeros(20_000, int), np.zeros(20_000, int), np.arange(20_000) // 5000, np.zeros(20_000, int),
+                   8, 8)                                                 # 5000 events a µs: a simulation's burst
+    path = write_h5(tmp_path / "dense.h5", dense)
+    assert len(read(path)) == 20_000                                     # unit stated: not checked
+    with h5py.File(path, "a") as file:                                   # an earlier H5Writer's file: µs all the same
+        del file["events/t"].attrs["unit"], file["t_offset"].attrs["unit"]
+    assert len(read(path)) == 20_000
+    array = np.zeros(20_000, dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1")])
+    array["t"] = np.arange(20_000) * 10                                    # 100 kev/s as µs: plausible
+    np.save(tmp_path / "plain.npy", array)
+    assert len(read(tmp_path / "plain.npy", width=8, height=8)) == 20_000
+    array["t"] = np.arange(20_000) // 100                                  # 20,000 events in 200 "µs": 1e8 ev/s
+    np.save(tmp_path / "dense.npy", array)
+    assert len(read(tmp_path / "dense.npy", width=8, height=8)) == 20_000  # below the limit: read as µs
+    array["t"] = np.arange(20_000) // 2000                                 # 20,000 events in 10 "µs": 2e9 ev/s
+    np.save(tmp_path / "ms.npy", array)
+    with pytest.raises(FormatError, match=r"ms.npy: field t, read as microseconds .* 2.0e\+09 events/s"):
+        read(tmp_path / "ms.npy", width=8, height=8)
+
+
+def test_integer_nanoseconds_since_1970_read_as_microseconds_are_refused(tmp_path: Path) -> None:
+    # a 2 s recording in ns since 1970 (a ROS / Metavision export): as µs it lay in the year 55,000 and lasted
+    # 2000 s at 10 events/s (was: read so, without a word, `cmax info` exit 0)
+    rng = np.random.default_rng(4)
+    t = 1_700_000_000_000_000_000 + np.sort(rng.integers(0, 2 * 10**9, 20_000))
+    array = np.zeros(t.size, dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1")])
+    array["t"] = t
+    np.save(tmp_path / "ns.npy", array)
+    with pytest.raises(FormatError, match=r"ns.npy: field t: the time 17000000019\d+, read as microseconds .* lies "
+                                          r"after the year 2100 as µs since 1970: these look like nanoseconds "
+                                          r"\(1700000002.000 s since 1970 if so\)"):
+        read(tmp_path / "ns.npy", width=8, height=8)
+    with h5py.File(tmp_path / "ns.h5", "w") as file:             # DSEC layout: t_offset in ns, events/t from 0
+        for name, column in zip("xytp", (array["x"], array["y"], t - t[0], array["p"])):
+            file.create_dataset(f"events/{name}", data=column)
+        file.create_dataset("t_offset", data=np.int64(t[0]))
+    with pytest.raises(FormatError, match=r"ns.h5: events/t: the time 17000000019\d+, .*nanoseconds"):
+        read(tmp_path / "ns.h5", width=8, height=8)
+    array["t"] = (t - t[0]) // 1000 + 1_700_000_000_000_000                 # the same in µs since 1970: read
+    np.save(tmp_path / "us.npy", array)
+    assert read(tmp_path / "us.npy", width=8, height=8).t[0] == 1_700_000_000_000_000
+
+
+def test_cmax_info_says_when_integer_times_are_microseconds_by_assumption(tmp_path: Path, events: Events,
+                                                                          capsys) -> None:
+    # what no check can tell apart (a slow recording in ms, no index) is at least said (was: a plain µs line)
+    path, _ = _dsec_in_ms(tmp_path / "slow.h5", 2_000, 2000, None)
+    assert main(["info", str(path), "--size", "640x480"]) == 0
+    assumed = "(the file states no unit: integer times read as µs, the format's default; --time-unit ms or s"
+    assert assumed in capsys.readouterr().out
+    assert main(["info", str(path), "--size", "640x480", "--time-unit", "ms"]) == 0
+    assert re.search(r"\ntime        \d+000 \.\. \d+000 µs\n", capsys.readouterr().out)
+    assert main(["info", str(write_h5(tmp_path / "ours.h5", events))]) == 0            # H5Writer's: µs, stated
+    assert "states no unit" not in capsys.readouterr().out
+    np.save(tmp_path / "ev.npy", events.to_structured())
+    assert main(["info", str(tmp_path / "ev.npy"), "--size", f"{W}x{H}"]) == 0
+    assert assumed in capsys.readouterr().out
+
+
+def test_mvsec_times_that_are_whole_numbers_are_not_read_as_seconds(tmp_path: Path, capsys) -> None:
+    # MVSEC stores float seconds since 1970 (decimals); a table of float µs from 0 read as seconds lasted 23 days
+    # at 0.0 events/s (was: `cmax info` and `cmax show` without a word)
+    rng = np.random.default_rng(5)
+    t_us = np.unique(rng.integers(0, 2_000_000, 1000)).astype(float)
+    table = np.stack([rng.integers(0, 346, t_us.size), rng.integers(0, 260, t_us.size), t_us,
+                      rng.choice([-1.0, 1.0], t_us.size)], axis=1)
+    path = tmp_path / "us_data.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    refused = r"us_data.hdf5: davis/left/events\[:, 2\] \(t\): every time is a whole number \([\d,]+ distinct, .* " \
+              r"these look like integer microseconds. State the unit: time_unit='us'"
+    with pytest.raises(FormatError, match=refused):
+        read(path)
+    with pytest.raises(FormatError, match=refused):                 # a window's one event alone would not show it
+        read(path, t0_us=int(t_us[0]) * 10**6, t1_us=int(t_us[0]) * 10**6 + 50_000)
+    assert main(["show", str(path), "-o", str(tmp_path / "w.png")]) == 2
+    assert "look like integer microseconds" in capsys.readouterr().err and not (tmp_path / "w.png").exists()
+    assert read(path, time_unit="us").t.tolist() == t_us.astype(np.int64).tolist()
+    table[:, 2] = 1.5e9 + t_us * 1e-6                                 # seconds since 1970, as MVSEC: read
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    assert len(read(path)) == t_us.size

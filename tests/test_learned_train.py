@@ -830,7 +830,36 @@ def test_resume_refuses_a_data_file_replaced_by_another_recording_of_as_many_win
     a.write_bytes(b"x" * 200_000)
     b.write_bytes(b"y" + b"x" * 199_999)
     said = fingerprint_differences([file_fingerprint(a, 10, (0, 5))], [file_fingerprint(b, 10, (0, 5))], ["b.bin"])
-    assert said == ["data.files[0] b.bin: its contents (the SHA-256 of its first and last 64 KiB)"], said
+    assert said == ["data.files[0] b.bin: its contents (the SHA-256 of the whole file)"], said
+
+
+def test_a_data_file_changed_in_its_middle_is_not_trusted_on_resume(tmp_path):
+    """The fingerprint hashed only the first and last 64 KiB of a data file: an h5 rewritten in place, of the same
+    size, events and span, with other bytes in its middle, was trusted by --resume. The whole file is hashed now (the
+    hash reused, without reading, only where size, modification time and inode are the recorded ones); a checkpoint
+    of an earlier version, which records the ends alone, is compared by them as before."""
+    import os
+
+    from learned.train import file_fingerprint, fingerprint_differences
+
+    path = tmp_path / "a.h5"
+    path.write_bytes(bytes(range(256)) * 4000)                     # 1,024,000 bytes
+    before = file_fingerprint(path, 10, (0, 5))
+    with open(path, "r+b") as file:                                # one byte in the middle, in place
+        file.seek(512_000)
+        file.write(b"\xff")
+    after = file_fingerprint(path, 10, (0, 5), recorded=before)
+    assert fingerprint_differences([before], [after], ["a.h5"]) == [
+        "data.files[0] a.h5: its contents (the SHA-256 of the whole file)"]
+    legacy = {key: value for key, value in before.items() if key in ("bytes", "events", "span_us", "ends_sha256")}
+    assert fingerprint_differences([legacy], [after], ["a.h5"]) == []           # what the ends alone cannot see
+    assert fingerprint_differences([after], [file_fingerprint(path, 10, (0, 5))], ["a.h5"]) == []
+    copy = tmp_path / "copy.h5"                                    # the same bytes elsewhere (another inode): agree
+    copy.write_bytes(path.read_bytes())
+    assert fingerprint_differences([after], [file_fingerprint(copy, 10, (0, 5), recorded=after)], ["a.h5"]) == []
+    stat = path.stat()                                             # size, mtime and inode unchanged: the hash reused
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert file_fingerprint(path, 10, (0, 5), recorded={**after, "sha256": "recorded"})["sha256"] == "recorded"
 
 
 def test_a_validation_file_that_is_a_training_file_is_named(scene_file, slider_file, tmp_path, monkeypatch):

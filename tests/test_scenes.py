@@ -200,6 +200,20 @@ def test_davis346_intrinsics_scale_with_size():
     assert abs(davis346_camera(173, 130).fx - 113.19) < 1e-9
 
 
+@pytest.mark.parametrize("width, height", [(640, 360), (128, 128), (346, 100), (200, 400)])
+def test_a_scene_of_another_shape_than_the_davis346_keeps_square_pixels(width, height):
+    # (was: each axis scaled apart: 640x360 gave fx 418.7, fy 313.1, pixels 1.34 times wider than tall, unsaid)
+    camera, native = davis346_camera(width, height), davis346_camera()
+    assert camera.fx / camera.fy == pytest.approx(native.fx / native.fy, rel=1e-12)
+    assert camera.fx == pytest.approx(native.fx * width / 346, rel=1e-12)      # the horizontal field of view kept
+    assert (camera.cx + 0.5) / width == pytest.approx((native.cx + 0.5) / 346, rel=1e-12)
+    assert (camera.cy + 0.5) / height == pytest.approx((native.cy + 0.5) / 260, rel=1e-12)
+    scene = make_scene("slider", width=width, height=height, texture_size=16, duration_s=1.0)
+    assert np.allclose(scene.camera.K, camera.K)
+    # a size of the DAVIS346's own shape, rounded to whole pixels, is the sensor resampled, as before
+    assert np.allclose(davis346_camera(640, 480).K, native.scaled(640, 480).K)
+
+
 def test_make_scene_rejects_bad_arguments():
     with pytest.raises(ValueError, match="name"):
         make_scene("moon_landing")

@@ -40,6 +40,30 @@ def test_show_refuses_an_unknown_extension(tmp_path, capsys):
     assert not (tmp_path / "w.bmp").exists()
 
 
+def test_show_beside_a_recording_in_a_read_only_folder_names_output_before_any_work(tmp_path, capsys, monkeypatch):
+    """``cmax show`` writes FILE.png beside the recording by default; in a read-only data folder it failed after
+    drawing, with ``cmax show: error: Permission denied: .../ev.png.lock`` (the lock file), not naming ``-o``. The
+    folder is checked first now (a user who can write there anyway, as root can, is unaffected)."""
+    import os
+
+    import cmax.show
+
+    data = tmp_path / "data"
+    data.mkdir()
+    path = write_h5(data / "ev.h5", random_events(500, width=64, height=48, seed=2))
+    real_access = os.access
+    monkeypatch.setattr(os, "access", lambda p, mode, **kw: False if os.fspath(p) == str(data) else
+                        real_access(p, mode, **kw))
+    drawn = []
+    monkeypatch.setattr(cmax.show, "render_window", lambda *a, **k: drawn.append(1))
+    assert main(["show", str(path)]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "-o/--output" in err and f"its folder {data} is not writable" in err, err
+    assert "beside the recording" in err and not drawn and sorted(p.name for p in data.iterdir()) == ["ev.h5"]
+    monkeypatch.undo()
+    assert main(["show", str(path), "-o", str(tmp_path / "elsewhere.png")]) == 0
+
+
 def test_wide_sensor_is_laid_out_in_rows_with_a_large_title():
     rng = np.random.default_rng(0)
     n = 20_000

@@ -22,6 +22,8 @@ def run(args: argparse.Namespace) -> int:
     output = args.output or args.file.with_suffix(".png")
     if os.path.lexists(output) and not args.overwrite:
         raise FileExistsError(f"{output} exists: --overwrite replaces it, or give another -o")
+    if output.parent.is_dir() and not os.access(output.parent, os.W_OK | os.X_OK):   # before the work, not after
+        raise PermissionError(_unwritable(output, args.output is None))
     image = render_window(
         args.file, t0_s=args.t0, dt_s=args.dt, mode=args.mode, **({} if args.bins is None else {"bins": args.bins}),
         **file_kwargs(args)
@@ -31,6 +33,14 @@ def run(args: argparse.Namespace) -> int:
     save_image(output, image)
     print(f"wrote {output}")
     return 0
+
+
+def _unwritable(output: Path, beside: bool) -> str:
+    """Why the picture ``output`` cannot be written (its folder refuses it), naming ``-o`` / ``--output``;
+    ``beside``: ``output`` is the default, the recording's name with ``.png``."""
+    where = ", beside the recording (the default)," if beside else ""
+    return (f"cannot write the picture {output}{where} as its folder {output.parent} is not writable (a read-only data "
+            "folder?); give -o/--output PATH.png in a folder you can write to")
 
 
 def add_command(subparsers) -> argparse.ArgumentParser:
@@ -49,7 +59,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     api_default(parser.add_argument("--bins", type=int, default=None,
                                     help="bins of the event volume (--mode voxel or both)"),
                 library_default("cmax.show:render_window", "bins"))
-    parser.add_argument("-o", "--output", type=Path, default=None, help="picture path, .png, .jpg or .jpeg (default: FILE with .png)")
+    parser.add_argument("-o", "--output", type=Path, default=None, help="picture path, .png, .jpg or .jpeg (default: FILE with .png, beside the recording)")
     parser.add_argument("--overwrite", action="store_true", help="replace an existing picture at the output")
     add_file_options(parser)
     parser.set_defaults(run=run)

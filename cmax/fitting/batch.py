@@ -50,8 +50,9 @@ from typing import Iterable, Iterator, Sequence
 import numpy as np
 from tqdm.auto import tqdm
 
+from cmax._signals import sigint_deferred
 from cmax._threads import available_cores, set_blas_threads
-from cmax._workers import die_with_parent, recorded, reissue
+from cmax._workers import die_with_parent, recorded, reissue, start_forkserver
 from cmax.camera import camera_and_intrinsics, pinhole_events
 from cmax.events import Events
 from cmax.fitting.api import (MODELS, FitResult, _check_inputs, _check_speed, _known_omega, _pose_twist, _settings,
@@ -296,6 +297,7 @@ def _context() -> multiprocessing.context.BaseContext:
     if "forkserver" in multiprocessing.get_all_start_methods():
         context = multiprocessing.get_context("forkserver")
         context.set_forkserver_preload(_PRELOAD)
+        start_forkserver(context)       # Ctrl-C while it imports: no traceback of the server's
         return context
     return multiprocessing.get_context("spawn")  # pragma: no cover - not on Linux
 
@@ -310,7 +312,9 @@ def _in_workers(tasks: Iterable[FitTask], workers: int) -> Iterator[tuple[int, t
     try:
         while True:
             for task in source:
-                pending[pool.submit(_fit_task, task)] = task
+                with sigint_deferred():   # a worker the pool starts here is recorded (and stopped below)
+                    future = pool.submit(_fit_task, task)
+                pending[future] = task
                 if len(pending) >= _AHEAD * workers:
                     break
             if not pending:

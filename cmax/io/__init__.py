@@ -26,14 +26,15 @@ import h5py
 import numpy as np
 
 from cmax.events import Events, check_event_count, structured_fields
-from cmax.io._checks import (check_polarity_encoding, check_stated_size, check_time_unit, polarity_01,
-                             times_to_us)
+from cmax.io._checks import (check_implied_rate, check_not_nanoseconds, check_polarity_encoding, check_stated_size,
+                             check_time_unit, polarity_01, times_to_us)
 from cmax.io.aedat4 import read_aedat4, read_aedat4_frames, read_aedat4_imu
 from cmax.io.errors import FormatError
 from cmax.io.gyro import read_gyro
 from cmax.io.h5 import H5_ERRORS, H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
 from cmax.io.mvsec import MVSEC_HEIGHT, MVSEC_WIDTH, read_mvsec
 from cmax.io.prophesee import read_evt2, read_evt3, read_raw, write_evt2, write_evt3
+from cmax.io.prophesee.reader import sorted_copy_line
 from cmax.io.text import read_txt, write_txt
 
 __all__ = [
@@ -159,7 +160,10 @@ def read(
     time_unit : {'us', 'ms', 's'}, optional
         Unit of the file's time stamps where the format leaves it open (DSEC
         HDF5 with float times, ECD text or MVSEC in another unit than seconds,
-        NumPy). Never guessed: float times without a stated unit are refused.
+        NumPy). Never guessed: float times without a stated unit are refused;
+        integer ones (DSEC HDF5, NumPy) are µs by the format, refused where the
+        file contradicts it (an ``ms_to_idx`` spanning far more, a mean rate no
+        sensor produces: times in ms?).
         AEDAT4 and Prophesee files store integer µs; another unit is refused.
     sort : bool
         Sort the events by time (stable) instead of refusing a file whose
@@ -210,8 +214,7 @@ def check_sortable(path: str | os.PathLike, kind: str, sort: object) -> None:
     if not isinstance(sort, (bool, np.bool_)):
         raise TypeError(f"sort must be True or False, got {sort!r}")
     if sort and kind not in SORTABLE_FORMATS:
-        way_out = ("; a RAW file that fits in memory can be sorted once into a copy: python -c \"import cmax.io as io; "
-                   f"io.write_evt3('sorted.raw', io.read_raw({str(path)!r}, sort=True))\"" if kind == "raw" else "")
+        way_out = f"; {sorted_copy_line(path)}" if kind == "raw" else ""
         raise ValueError(f"{path} ({kind}) is read a time span at a time from disk, so its events must be stored in "
                          f"time order; sorting applies to ECD text, .npy and AEDAT4 files{way_out}")
 
@@ -221,11 +224,16 @@ def _read_npy(
     t0_us: int | None = None, t1_us: int | None = None,
 ) -> Events:
     """A structured ``.npy`` (fields x, y, t, p): integer ``t`` is µs unless ``time_unit`` says
-    otherwise, float ``t`` needs ``time_unit``; ``p`` in the stated encoding (0/1 by default); ``sort``: sort
-    by time (stable) instead of refusing a time that goes back. With ``t0_us`` / ``t1_us`` (and not ``sort``)
-    only the rows of ``[t0_us, t1_us)`` are read (:func:`_npy_rows`)."""
+    otherwise (refused where that makes a mean rate no sensor reaches, :func:`check_implied_rate`, or a time after
+    the year 2100, :func:`check_not_nanoseconds`), float ``t`` needs ``time_unit``; ``p`` in the stated encoding
+    (0/1 by default); ``sort``: sort by time (stable) instead of refusing a time that goes back. With ``t0_us`` /
+    ``t1_us`` (and not ``sort``) only the rows of ``[t0_us, t1_us)`` are read (:func:`_npy_rows`)."""
     polarity = check_polarity_encoding(polarity)
     array, fields = _npy_table(path, time_unit)
+    if time_unit is None and len(array):               # integer times, µs by assumption: a rate no sensor makes?
+        ends = np.array(array[fields["t"]][[0, -1]]).astype(np.int64)
+        check_implied_rate(len(array), int(ends[0]), int(ends[1]), f"{path}: field {fields['t']}")
+        check_not_nanoseconds(max(int(ends[0]), int(ends[1]), key=abs), f"{path}: field {fields['t']}")
     if (t0_us is not None or t1_us is not None) and not sort:
         array = array[_npy_rows(array[fields["t"]], time_unit or "us", t0_us, t1_us, f"{path}: field {fields['t']}")]
     check_event_count(array.shape[0], f"{path}")

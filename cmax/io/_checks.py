@@ -20,7 +20,8 @@ from cmax.io.errors import FormatError
 
 __all__ = [
     "TIME_UNITS", "POLARITY_ENCODINGS", "check_time_unit", "unit_from_attrs", "times_to_us",
-    "scalar_to_us", "check_offset", "add_offset", "polarity_01", "check_allocated",
+    "scalar_to_us", "check_offset", "add_offset", "polarity_01", "check_allocated", "check_implied_rate",
+    "check_not_nanoseconds", "MAX_EVENT_RATE_HZ",
 ]
 
 #: Microseconds per unit of a stated time unit.
@@ -202,6 +203,65 @@ def polarity_01(p: np.ndarray, encoding: str, where: str) -> np.ndarray:
     raise FormatError(
         f"{where} holds the polarity values {shown}{' ...' if values.size > 6 else ''}, but the "
         f"stated encoding is {stated}; {advice} (polarities are never mapped silently)"
+    )
+
+
+#: The highest mean event rate [events/s] a recording read in an assumed time unit may imply: the fastest event
+#: sensors read out of the order of 1e9 events/s at their peak, and a recording's mean lies below its peak.
+MAX_EVENT_RATE_HZ = 1e9
+#: Recordings of fewer events than this are never refused for their rate (a short burst proves nothing).
+_RATE_MIN_EVENTS = 10_000
+
+
+def check_implied_rate(count: int, first_us: int, last_us: int, where: str) -> None:
+    """Refuse ``count`` events from ``first_us`` to ``last_us`` [µs], times whose unit was ASSUMED to be µs (the
+    format's default, stated by neither the file nor the caller), when their mean rate exceeds
+    :data:`MAX_EVENT_RATE_HZ`: no sensor produces it, and integer times in milliseconds read as µs (a user's export)
+    make a recording 1000 times shorter and its rate 1000 times higher. ``where`` names the file and column.
+    Not seen: milliseconds of a recording slow enough that 1000 times its rate stays below the limit.
+
+    >>> check_implied_rate(3_000_000, 0, 1_999, "a.h5: events/t")   # 3 M events in 2 ms
+    Traceback (most recent call last):
+    ...
+    cmax.io.errors.FormatError: a.h5: events/t, read as microseconds ... a mean of 1.5e+09 events/s, ...
+    """
+    span_us = int(last_us) - int(first_us) + 1
+    if count < _RATE_MIN_EVENTS or span_us <= 0:
+        return
+    rate = count / (span_us * 1e-6)
+    if rate > MAX_EVENT_RATE_HZ:
+        raise FormatError(
+            f"{where}, read as microseconds (the format's default unit, which neither the file nor the caller states), "
+            f"puts {count:,} events in {span_us / 1000:.1f} ms: a mean of {rate:.1e} events/s, more than any event "
+            f"sensor produces (MAX_EVENT_RATE_HZ = {MAX_EVENT_RATE_HZ:g}); if these times are milliseconds pass "
+            "time_unit='ms' (cmax: --time-unit ms), if they are microseconds (a simulation) time_unit='us'"
+        )
+
+
+#: 2100-01-01 in µs since 1970: a time in µs beyond it belongs to no clock (neither since 1970 nor since boot).
+_YEAR_2100_US = 4_102_444_800 * 1_000_000
+
+
+def check_not_nanoseconds(t_us: int, where: str) -> None:
+    """Refuse a time ``t_us`` [µs] whose unit was ASSUMED to be µs (stated by neither the file nor the caller) when
+    it lies after the year 2100 as µs since 1970 and between 1973 and 2103 as nanoseconds since 1970: integer
+    nanoseconds (a ROS or Metavision export; since 1970 about 1.7e18) read as µs put a recording in the year 55,000
+    and make it 1000 times longer. ``where`` names the file and column. Other huge times are left to the checks of
+    int64 overflow.
+
+    >>> check_not_nanoseconds(1_700_000_000_000_000_000, "a.npy: field t")
+    Traceback (most recent call last):
+    ...
+    cmax.io.errors.FormatError: a.npy: field t: the time 1700000000000000000, read as microseconds ...: these look
+    like nanoseconds (1700000000.000 s since 1970 if so); ...
+    """
+    seconds = int(t_us) / 1e9
+    if abs(int(t_us)) < _YEAR_2100_US or not 1e8 <= seconds < 4.2e9:   # µs, or not nanoseconds since 1970 either
+        return
+    raise FormatError(
+        f"{where}: the time {int(t_us)}, read as microseconds (the format's default unit, which neither the file nor "
+        f"the caller states), lies after the year 2100 as µs since 1970: these look like nanoseconds ({seconds:.3f} "
+        "s since 1970 if so); convert the times to integer microseconds (t // 1000) and read them again"
     )
 
 

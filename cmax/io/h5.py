@@ -32,8 +32,9 @@ import numpy as np
 
 from cmax.events import (Events, _check_sensor_size, check_event_count, check_time_us, require_events,
                          window_steps, wrap_index)
-from cmax.io._checks import (add_offset, check_allocated, check_offset, check_polarity_encoding, check_stated_size,
-                             check_time_unit, polarity_01, scalar_to_us, times_to_us, unit_from_attrs)
+from cmax.io._checks import (add_offset, check_allocated, check_implied_rate, check_not_nanoseconds, check_offset,
+                             check_polarity_encoding, check_stated_size, check_time_unit, polarity_01, scalar_to_us,
+                             times_to_us, unit_from_attrs)
 from cmax.io.atomic import AtomicOutput, write_error
 from cmax.io.errors import FormatError
 
@@ -650,6 +651,47 @@ class H5Reader:
             raise FormatError(f"{self.path}: unreadable t_offset or ms_to_idx ({error})") from None
         if isinstance(self._ms_to_idx, np.ndarray):
             self._ms_to_idx = _checked_ms_to_idx(self._ms_to_idx, len(self), self.path)
+        self._check_times_against_index()
+
+    def _check_times_against_index(self) -> None:
+        """Check the last event's time against ``ms_to_idx`` (an index whose last entry holds every row must end
+        after it: else windows past the index's end would come out empty) and, for integer ``events/t`` whose unit
+        neither the file nor the caller states (:attr:`time_unit_assumed`: µs by the layout), refuse it where the
+        file contradicts that unit: an ``ms_to_idx`` (one entry a millisecond) far longer than the times span as µs,
+        a mean rate no sensor reaches (:func:`check_implied_rate`), or times after the year 2100 (nanoseconds:
+        :func:`check_not_nanoseconds`). Reads two rows and one index entry. Not seen: times in ms of a slow
+        recording whose ``ms_to_idx`` was built as if they were µs."""
+        n, index = len(self), self._ms_to_idx
+        if not n:
+            return
+        column, where = self._columns["t"], f"{self.path}: events/t"
+        try:
+            raw_first, raw_last = column[0:1], column[n - 1: n]
+        except H5_ERRORS as error:
+            raise FormatError(f"{self.path}: cannot read events/t ({error})") from None
+        unit_note = ("" if not self.time_unit_assumed else
+                     " (read as microseconds, the layout's unit, which neither the file nor the caller states: "
+                     "in milliseconds? pass time_unit='ms', cmax: --time-unit ms)")
+        try:
+            last_us = int(self._t_us(raw_last, where)[0])
+        except ValueError:            # NaN, fractional, beyond int64: refused by the read, naming the row
+            return
+        if index is not None and len(index) and int(index[-1]) == n and last_us >= 1000 * (len(index) - 1):
+            raise FormatError(
+                f"{self.path}: ms_to_idx ends at {len(index) - 1} ms with every row before it, but the last event of "
+                f"events/t lies {last_us / 1000:,.3f} ms after t_offset{unit_note}; else the index is corrupt"
+            )
+        if not self.time_unit_assumed:     # stated, or H5Writer's (µs, with or without the attribute)
+            return
+        first, last = int(raw_first[0]), int(raw_last[0])        # µs after t_offset, if µs they are
+        entries, span_ms = (0 if index is None else len(index)), max(last, 0) // 1000 + 2
+        if entries > 10 * span_ms + 10:
+            raise FormatError(
+                f"{self.path}: ms_to_idx has {entries:,} entries (one a millisecond: {entries / 1000:,.1f} s) but "
+                f"events/t ends {last / 1000:,.1f} ms after t_offset{unit_note}; else the index is corrupt"
+            )
+        check_not_nanoseconds(self.t_offset_us + max(first, last, key=abs), where)
+        check_implied_rate(n, first, last, where)
 
     def _dataset(self, name: str) -> h5py.Dataset:
         """A top-level dataset, checked to be one and to store the data it declares."""
@@ -701,6 +743,12 @@ class H5Reader:
     # -- metadata ---------------------------------------------------------------------
     def __len__(self) -> int:
         return int(self._columns["t"].shape[0])
+
+    @property
+    def time_unit_assumed(self) -> bool:
+        """Whether ``events/t`` is read as µs by the layout alone: neither the file (a unit attribute, or the
+        ``layout='dsec'`` of :class:`H5Writer`, µs in every version) nor the caller states its unit."""
+        return not self._unit_stated and not self._written_here()
 
     @property
     def attrs(self) -> dict[str, Any]:

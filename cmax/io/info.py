@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 import os
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 from pathlib import Path
 from typing import Any
 
@@ -78,7 +78,9 @@ class EventFileInfo:
     file of several (MVSEC), ``cameras`` its cameras and their events (None for other files); ``duplicates``: the
     events that repeat an earlier one exactly (:func:`duplicate_count`; None where not counted: Prophesee RAW);
     ``size_inferred_from``: the header line of a RAW file that does not state its sensor size from which the size
-    was inferred (a camera's name: a guess, said on the sensor line), None for a stated or given size.
+    was inferred (a camera's name: a guess, said on the sensor line), None for a stated or given size;
+    ``time_unit_assumed``: the file's integer times were read as µs, its format's default, with neither the file nor
+    the caller stating a unit (said on the time line: the readers refuse only the units they can tell apart).
     """
 
     path: str
@@ -95,6 +97,7 @@ class EventFileInfo:
     cameras: dict[str, int] | None = None
     duplicates: int | None = None
     size_inferred_from: str | None = None
+    time_unit_assumed: bool = False
 
     @property
     def duration_s(self) -> float:
@@ -159,6 +162,17 @@ class EventFileInfo:
         return (f" (not stated by the file: inferred from its '{self.size_inferred_from}' line; --size WxH gives "
                 "the sensor's)")
 
+    def _assumed_note(self) -> str:
+        """After the times, when their unit was assumed (µs) rather than stated.
+
+        >>> EventFileInfo("a.h5", "dsec", 1, 8, 8, 0, 1999, 1, time_unit_assumed=True)._assumed_note()
+        " (the file states no unit: integer times read as µs, the format's default; --time-unit ms or s if they are not)"
+        """
+        if not self.time_unit_assumed:
+            return ""
+        return (" (the file states no unit: integer times read as µs, the format's default; --time-unit ms or s if "
+                "they are not)")
+
     def _duplicates_line(self) -> str:
         """The events that repeat an earlier one exactly (only printed when there are some).
 
@@ -180,7 +194,7 @@ class EventFileInfo:
         ]
         if self.count:
             out += [
-                f"time        {self.t_start_us} .. {self.t_end_us} µs",
+                f"time        {self.t_start_us} .. {self.t_end_us} µs{self._assumed_note()}",
                 f"duration    {self.duration_s:.6f} s",
                 self._rate_line(),
                 f"polarity    {self.on_count:,} ON / {self.count - self.on_count:,} OFF "
@@ -230,7 +244,9 @@ def file_info(
         return _mvsec_info(path, width, height, time_unit, options)
     if kind != "dsec":
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
-        return events_info(events, path=str(path), format=kind)
+        info = events_info(events, path=str(path), format=kind)
+        # a .npy's float times need a stated unit; its integer ones are µs when none is stated
+        return replace(info, time_unit_assumed=kind == "npy" and time_unit is None)
     with H5Reader(path, width=width, height=height, time_unit=time_unit, **options) as reader:
         # Every row is read and checked (coordinates, finite and sorted times, polarity), chunk by
         # chunk, so a NaN or a step back in the middle is named here as the readers name it.
@@ -252,6 +268,7 @@ def file_info(
             height=reader.height, t_start_us=reader.t_start if len(reader) else None,
             t_end_us=reader.t_end if len(reader) else None, on_count=on_count,
             attrs=reader.attrs, pixel_counts=pixels, duplicates=duplicates.total(),
+            time_unit_assumed=reader.time_unit_assumed,
         )
 
 

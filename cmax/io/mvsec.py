@@ -66,6 +66,8 @@ def read_mvsec(
     even); polarity -1/+1 (MVSEC's encoding; ``polarity='01'`` states 0/1)
     becomes 0/1, any other value raises :class:`FormatError`. A time window is
     located by binary search on the time column on disk, so only that slice is read.
+    Without ``time_unit``, times that are all whole numbers (at least 100 distinct, in the rows read or the file's
+    first 4096) are refused as integer microseconds stored as floats, not read as seconds (days of recording).
     """
     _check_camera(camera)
     unit = check_time_unit(time_unit) or "s"
@@ -79,6 +81,8 @@ def read_mvsec(
     try:
         with h5py.File(path, "r") as file:
             dataset = _events_dataset(file, path, camera)
+            if time_unit is None:          # a window's few rows may not show it: the file's first rows do
+                _refuse_whole_seconds(dataset[:_SAMPLE_ROWS, 2], f"{path}: davis/{camera}/events")
             # Read with a 2 µs margin, then cut exactly on the rounded integer times.
             start, stop = 0, dataset.shape[0]
             if t0_us is not None:
@@ -91,7 +95,7 @@ def read_mvsec(
         raise
     except H5_ERRORS as error:  # truncated or corrupt HDF5
         raise _unreadable(path, error) from None
-    events = _table_events(table, path, camera, unit, polarity)
+    events = _table_events(table, path, camera, unit, polarity, time_unit is not None)
     if t0_us is None and t1_us is None:
         return events
     return events.slice_time(
@@ -99,13 +103,57 @@ def read_mvsec(
     )
 
 
-def _table_events(table: np.ndarray, path: Path, camera: str, unit: str, polarity: str) -> Events:
+#: This many distinct times, every one a whole number, are not MVSEC's seconds (which carry decimals).
+_WHOLE_TIMES = 100
+#: Rows from a file's start whose times are checked for whole numbers where a window or its ends alone are read.
+_SAMPLE_ROWS = 4096
+
+
+def _refuse_whole_seconds(t: np.ndarray, where: str) -> None:
+    """Refuse a time column ``t`` read as MVSEC's seconds by default (no unit stated) whose every value is a whole
+    number, at least :data:`_WHOLE_TIMES` of them distinct: integer µs (or ms, ns) stored as floats, which would read
+    as days of recording. ``where`` names the file and dataset."""
+    if t.size < _WHOLE_TIMES or not np.array_equal(t, np.round(t)) or np.abs(t).max() * 1e6 >= 2.0**62:
+        return                          # (times too large for µs as seconds: named by times_to_us with their unit)
+    distinct = int(np.count_nonzero(np.diff(t))) + 1
+    if distinct >= _WHOLE_TIMES:
+        raise FormatError(
+            f"{where}[:, 2] (t): every time is a whole number ({distinct:,} distinct, from {t[0]:.0f} to {t[-1]:.0f}), "
+            "but MVSEC states seconds with decimals: these look like integer microseconds. State the unit: "
+            "time_unit='us' (cmax: --time-unit us), or time_unit='s' if they are whole seconds"
+        )
+
+
+def _refuse_time_going_back(t_us: np.ndarray, path: Path, camera: str) -> None:
+    """Refuse times ``t_us`` (µs, of rows read from ``davis/<camera>/events`` of ``path``) that go back, with the way
+    through: MVSEC files are read a time span at a time (bisection on disk), so ``sort`` / ``--sort`` do not apply
+    to them (the generic refusal of :class:`Events` pointed at ``--sort``, which then refused MVSEC files)."""
+    back = np.flatnonzero(t_us[1:] < t_us[:-1])
+    if not back.size:
+        return
+    i = int(back[0])
+    raise FormatError(
+        f"{path}: davis/{camera}/events[:, 2] (t): the time goes back from {int(t_us[i])} µs to {int(t_us[i + 1])} µs "
+        f"(rows {i} and {i + 1} of those read); MVSEC files are read a time span at a time, so their rows must be in "
+        "time order and --sort does not apply: write a sorted copy once: python -c \"import h5py, numpy as np; "
+        f"e = h5py.File({str(path)!r})['davis/{camera}/events'][:]; h5py.File('sorted.hdf5', 'w')"
+        f"['davis/{camera}/events'] = e[np.argsort(e[:, 2], kind='stable')]\""
+    )
+
+
+def _table_events(table: np.ndarray, path: Path, camera: str, unit: str, polarity: str,
+                  unit_stated: bool = True) -> Events:
     """The events of rows (N, 4) ``x, y, t, p`` of ``davis/<camera>/events``: finite, times in ``unit`` rounded to
-    µs, polarities in the encoding ``polarity`` mapped to 0/1, in time order (FormatError naming the file)."""
+    µs (refused when ``unit_stated`` is False, seconds by default, and every time is a whole number:
+    :func:`_refuse_whole_seconds`), polarities in the encoding ``polarity`` mapped to 0/1, in time order
+    (FormatError naming the file)."""
     where = f"{path}: davis/{camera}/events"
     if not np.isfinite(table[:, [0, 1, 3]]).all():
         raise FormatError(f"{where} contains non-finite values")
+    if not unit_stated:
+        _refuse_whole_seconds(table[:, 2], where)
     t_us = times_to_us(table[:, 2], unit, f"{where}[:, 2] (t)")
+    _refuse_time_going_back(t_us, path, camera)
     p = polarity_01(table[:, 3], polarity, f"{where}[:, 3] (p)")
     try:
         return Events(table[:, 0], table[:, 1], t_us, p, MVSEC_WIDTH, MVSEC_HEIGHT)
@@ -148,7 +196,7 @@ def iter_mvsec(
             except H5_ERRORS as error:
                 raise FormatError(f"{path}: davis/{camera}/events: unreadable rows from {start} "
                                   f"({type(error).__name__}: {error})") from None
-            events = _table_events(table, path, camera, unit, polarity)
+            events = _table_events(table, path, camera, unit, polarity, time_unit is not None)
             if last is not None and int(events.t[0]) < last:
                 raise FormatError(f"{path}: davis/{camera}/events: corrupt events at row {start}: t must be sorted "
                                   f"in non-decreasing order ({int(events.t[0])} µs comes after {last} µs)")
@@ -161,7 +209,8 @@ def mvsec_time_span(
 ) -> tuple[int, int] | None:
     """``(first_us, last_us)``: the times of the first and last events of one MVSEC camera, from those two rows
     alone (the rows are in time order, as :func:`read_mvsec` checks where it reads), rounded as
-    :func:`read_mvsec` rounds them; None for a camera without events."""
+    :func:`read_mvsec` rounds them, and the file's first rows checked as it checks them (whole-number times without
+    ``time_unit``); None for a camera without events."""
     _check_camera(camera)
     unit = check_time_unit(time_unit) or "s"
     path = Path(path)
@@ -172,6 +221,8 @@ def mvsec_time_span(
             dataset = _events_dataset(file, path, camera)
             if not dataset.shape[0]:
                 return None
+            if time_unit is None:
+                _refuse_whole_seconds(dataset[:_SAMPLE_ROWS, 2], f"{path}: davis/{camera}/events")
             ends = np.array([dataset[0, 2], dataset[-1, 2]], dtype=dataset.dtype)
     except FormatError:
         raise

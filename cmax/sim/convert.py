@@ -53,8 +53,8 @@ from typing import Any, Callable, Iterable, Iterator, Sequence
 
 import numpy as np
 
-from cmax._signals import sigterm_deferred
-from cmax._workers import die_with_parent, recorded, reissue
+from cmax._signals import sigint_deferred, sigterm_deferred
+from cmax._workers import die_with_parent, recorded, reissue, start_forkserver
 from cmax.io import VIDEO_SUFFIXES
 from cmax.io.atomic import OutputLockedError, PathLock, discard_leftovers, file_sha256, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
@@ -1019,6 +1019,7 @@ def _worker_context():
     if "forkserver" in multiprocessing.get_all_start_methods():
         context = multiprocessing.get_context("forkserver")
         context.set_forkserver_preload([__name__])
+        start_forkserver(context)       # Ctrl-C while it imports: no traceback of the server's
         return context
     return multiprocessing.get_context("spawn")
 
@@ -1053,7 +1054,8 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
                     args=(send, os.getpid(), job, output_dir / f"{job.name}.h5", settings,
                           1 + number % workers if progress else None),
                 )
-                with sigterm_deferred():  # a SIGTERM now stops the run once the worker is recorded (stopped below)
+                # a SIGTERM or Ctrl-C now stops the run once the worker is recorded (stopped below)
+                with sigterm_deferred(), sigint_deferred():
                     process.start()
                     send.close()  # the worker holds the only writing end: its death reads as end-of-file
                     running[receive] = (process, job)

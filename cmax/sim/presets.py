@@ -3,7 +3,7 @@
 ``make_scene(name, seed=0, width=346, height=260)`` builds one of
 :data:`PRESETS`; every seed gives a different world and trajectory. The
 camera resembles a DAVIS346 (fx about 226 px at 346 x 260, scaled with the
-size). World frame: z up, metres. Each scene's :class:`SceneInfo` states its
+width; square pixels at any size: :func:`davis346_camera`). World frame: z up, metres. Each scene's :class:`SceneInfo` states its
 depth and speed ranges over ``[0, duration_s]`` (checked by the tests), and
 ``scene.recommended_simulator`` gives :class:`cmax.sim.esim.EventSimulator`
 keyword arguments that suit it.
@@ -57,8 +57,17 @@ _NIGHT_SIMULATOR = {"cp": 0.25, "cn": 0.25, "threshold_sigma": 0.05,
 
 
 def davis346_camera(width: int = 346, height: int = 260) -> Camera:
-    """A DAVIS346-like pinhole (MVSEC's left camera, fx = 226.4 px at 346 x 260), scaled to the size."""
-    return Camera.from_intrinsics(226.38, 226.15, 173.64, 133.73, 346, 260).scaled(width, height)
+    """A DAVIS346-like pinhole (MVSEC's left camera, fx = 226.4 px at 346 x 260) for a ``width`` x ``height`` [px]
+    sensor. A size of the DAVIS346's shape (346:260 to the pixel: ``height`` within 1 px of ``width * 260 / 346``)
+    resamples it (:meth:`Camera.scaled`); any other shape keeps its square pixels and horizontal field of view: fx
+    and fy both scale by ``width / 346``, the principal point stays at the same fraction of the image (a 640 x 360
+    sensor sees the DAVIS346's width and less of its height; scaling each axis apart made fy / fx = 0.75 there)."""
+    native = Camera.from_intrinsics(226.38, 226.15, 173.64, 133.73, 346, 260)
+    if abs(round(width * 260 / 346) - height) <= 1:
+        return native.scaled(width, height)
+    sx, sy = width / 346, height / 260
+    return Camera.from_intrinsics(226.38 * sx, 226.15 * sx, sx * (173.64 + 0.5) - 0.5, sy * (133.73 + 0.5) - 0.5,
+                                  width, height)
 
 
 def _limit_speeds(trajectory: SinusoidalTrajectory, duration_s: float, max_v: float, max_w: float,
@@ -423,7 +432,8 @@ def make_scene(name: str, seed: int = 0, width: int = 346, height: int = 260, *,
     seed : int
         Seed of the world, its textures and the trajectory (>= 0).
     width, height : int
-        Image size [px], at least :data:`MIN_SCENE_SIZE` (2) each; the intrinsics are a DAVIS346's scaled to it.
+        Image size [px], at least :data:`MIN_SCENE_SIZE` (2) each; the intrinsics are a DAVIS346's scaled to it
+        (square pixels at any shape: :func:`davis346_camera`).
     duration_s : float
         Length of the trajectory the world is built for [s]; the stated
         ranges hold on ``[0, duration_s]``.

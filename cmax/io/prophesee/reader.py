@@ -66,6 +66,14 @@ def _open_data(
     return path, _Limits(size.width, size.height, check_order, size.inferred_from), header.data_offset, n_bytes // word
 
 
+def sorted_copy_line(path: PathLike) -> str:
+    """The way through for a RAW file at ``path`` whose time goes back: the ``cmax`` commands read RAW files a time
+    span at a time (``--sort`` does not apply), so the events of one that fits in memory are sorted once into a copy.
+    """
+    return ("a RAW file that fits in memory can be sorted once into a copy: python -c \"import cmax.io as io; "
+            f"io.write_evt3('sorted.raw', io.read_raw({str(path)!r}, sort=True))\"")
+
+
 def _decode_words(
     path: Path, codec: _Codec, words: np.ndarray, state: np.ndarray, limits: _Limits,
     offset: int,
@@ -78,8 +86,13 @@ def _decode_words(
         end = _decode(codec, words, state, limits, columns, 0)
     except _WordError as error:
         at = offset + codec.dtype.itemsize * error.index
+        if error.reason.startswith("time goes back"):     # cmax's --sort refuses RAW: the way through, here
+            hint = f"{error.hint}; cmax's --sort does not apply to RAW files (read a time span at a time): " \
+                   f"{sorted_copy_line(path)}"
+        else:
+            hint = error.hint
         raise FormatError(
-            f"{path}: {error.reason}, at byte offset {at} ({codec.title} word){error.hint}"
+            f"{path}: {error.reason}, at byte offset {at} ({codec.title} word){hint}"
         ) from None
     return columns if end == bound else tuple(column[:end] for column in columns)
 
