@@ -23,7 +23,8 @@ from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
                                   motion_within_noise, rate_change, shuffled_gain_test, small_parallax_reason,
-                                  isolated_events, noise_reason, noise_share, sparse_reason, verdict_of)
+                                  isolated_events, noise_reason, noise_share, sparse_reason, verdict_of,
+                                  _isolated_and_noise_share)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -477,18 +478,18 @@ def fit(
         if known_omega is not None:
             motion = replace(motion, omega=known_omega)
         shared_test = model == "se3" and settings.mask_isolated_us == settings.quality.noise_window_us
-        isolated = (isolated_events(events.x, events.y, events.t, events.width, events.height,
-                                    settings.mask_isolated_us) if shared_test else None)   # the mask's and the noise's
+        isolated, noise = (_isolated_and_noise_share(events.x, events.y, events.t, events.width, events.height,
+                                                     settings.mask_isolated_us, settings.max_events)
+                           if shared_test else (None, None))   # the mask's and the noise's test, sorted once
         result = _result(w, events, K, model, motion, logs, scale_known=pose is not None or speed is not None,
                          isolated=isolated,
                          seconds=time.perf_counter() - start)
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         on_bound = _on_bound(w, result, low, pose_known=pose is not None)
-        noise = (noise_share(events.x, events.y, events.t, events.width, events.height,
-                             settings.quality.noise_window_us, max_queries=settings.max_events,
-                             isolated=isolated)
-                 if model == "se3" else None)
+        if model == "se3" and not shared_test:
+            noise = noise_share(events.x, events.y, events.t, events.width, events.height,
+                                settings.quality.noise_window_us, max_queries=settings.max_events)
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
                                                   hold_omega=known_omega is not None, speed=scale,
                                                   given=len(events), rate=rate, on_bound=on_bound,
