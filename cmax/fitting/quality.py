@@ -532,8 +532,9 @@ def _pixel_time_order(pixel: np.ndarray, t: np.ndarray) -> np.ndarray:
     """The stable sorting permutation (N,) of the events by ``pixel`` (N,) int64 >= 0, then ``t`` (N,): the same
     as ``np.argsort(pixel * span + t, kind="stable")`` (the keys of :func:`_sorted_events`), by a least-significant-
     digit radix sort: the time order first (none when ``t`` is sorted already, as an ``Events``' times are), then
-    stable passes over the pixel's 16-bit digits. Written out because numpy sorts 16-bit integers by radix but
-    int64 keys by timsort: on 331k events of a 346x260 window 6.5 ms against 34 ms for the argsort of the keys."""
+    stable passes over the pixel's 16-bit digits."""
+    # Written out instead of np.argsort(keys, kind="stable") because numpy sorts 16-bit integers by radix but int64
+    # keys by timsort: on 331k events of a 346x260 window 6.5 ms against 34 ms (Xeon, 2026-12-05); the same order.
     order = np.arange(t.size) if t.size < 2 or bool(np.all(t[1:] >= t[:-1])) else np.argsort(t, kind="stable")
     top = int(pixel.max()) if pixel.size else 0
     shift = 0
