@@ -1,8 +1,8 @@
-"""``cmax.fit`` se3 seconds per window of two checkouts of the project, interleaved window by window.
+"""``cmax.fit`` se3 (or depth) seconds per window of two checkouts of the project, interleaved window by window.
 
 What a change to the fit's code buys in time, measured the way the accuracy benchmark fits (held-out
-``indoor_flying`` windows, 346x260, ``speed=|v|`` and the preset's depth range, fit seed 0, one torch
-thread, verdict included): each checkout runs in a worker process of its own (its own modules and numba
+``indoor_flying`` windows, 346x260, ``speed=|v|`` (``--model depth``: ``pose=`` the true motion) and the
+preset's depth range, fit seed 0, one torch thread, verdict included): each checkout runs in a worker process of its own (its own modules and numba
 cache), both warmed up by one fit, then every window is fitted by both, the order alternating from
 window to window so that both see the same load. Reported: the medians, and the median per-window ratio.
 The two sides' fits are not compared here (``benchmarks.se3_variants`` and ``benchmarks.accuracy_cmax``
@@ -12,6 +12,7 @@ Usage::
 
     git worktree add /tmp/before <rev>
     python -m benchmarks.speed_fit_ab --before /tmp/before [--after .] [--seeds 100-119] [--cache DIR]
+        [--model se3|depth]
 
 Writes ``benchmarks/results/speed_fit_ab.md``.
 """
@@ -30,7 +31,7 @@ from benchmarks.machine import describe
 from cmax.io.atomic import write_text_atomic
 
 #: The worker, run with ``python -c`` in a checkout (so it needs nothing of this file there): reads window
-#: seeds on stdin, prints one JSON line per fit.
+#: seeds on stdin, prints one JSON line per fit; argv: the cache folder (or -), the warm-up seed, the model.
 WORKER = """
 import json, sys, time, warnings
 from pathlib import Path
@@ -39,15 +40,19 @@ torch.set_num_threads(1)
 from benchmarks.accuracy_cmax import _room, windows
 from cmax import fit
 cache = None if sys.argv[1] == "-" else Path(sys.argv[1])
+def given(w):
+    if sys.argv[3] == "depth":
+        return {"pose": w.T01}
+    return {"speed": float(np.linalg.norm(w.twist[:3]))}
 w = windows("se3", int(sys.argv[2]), cache)
-fit(w.events, w.K, speed=1.0, **_room())
+fit(w.events, w.K, **given(w), **_room())
 print("ready", flush=True)
 for line in sys.stdin:
     w = windows("se3", int(line), cache)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
         start = time.perf_counter()
-        fit(w.events, w.K, speed=float(np.linalg.norm(w.twist[:3])), **_room())
+        fit(w.events, w.K, **given(w), **_room())
     print(json.dumps({"seconds": time.perf_counter() - start}), flush=True)
 """
 
@@ -59,9 +64,9 @@ def _revision(root: Path) -> str:
     return (out.stdout.strip() or "unknown") + (" + uncommitted changes to cmax/" if dirty else "")
 
 
-def _worker(root: Path, cache: Path | None, warm_seed: int) -> subprocess.Popen:
+def _worker(root: Path, cache: Path | None, warm_seed: int, model: str) -> subprocess.Popen:
     env = dict(os.environ, PYTHONPATH=str(root), OMP_NUM_THREADS="1")
-    process = subprocess.Popen([sys.executable, "-c", WORKER, str(cache) if cache else "-", str(warm_seed)],
+    process = subprocess.Popen([sys.executable, "-c", WORKER, str(cache) if cache else "-", str(warm_seed), model],
                                cwd=root, env=env, stdin=subprocess.PIPE, stdout=subprocess.PIPE, text=True)
     line = process.stdout.readline().strip()
     if line != "ready":
@@ -76,9 +81,10 @@ def _fit(process: subprocess.Popen, seed: int) -> float:
     return float(json.loads(process.stdout.readline())["seconds"])
 
 
-def run(roots: dict[str, Path], seeds: list[int], cache: Path | None) -> dict[str, list[float]]:
-    """Seconds per window of each checkout, the order of the two alternating from window to window."""
-    workers = {name: _worker(root, cache, seeds[0]) for name, root in roots.items()}
+def run(roots: dict[str, Path], seeds: list[int], cache: Path | None, model: str = "se3") -> dict[str, list[float]]:
+    """Seconds per window of each checkout fitting ``model`` (``se3`` with the speed, ``depth`` with the pose),
+    the order of the two alternating from window to window."""
+    workers = {name: _worker(root, cache, seeds[0], model) for name, root in roots.items()}
     seconds: dict[str, list[float]] = {name: [] for name in roots}
     try:
         for i, seed in enumerate(seeds):
@@ -93,12 +99,12 @@ def run(roots: dict[str, Path], seeds: list[int], cache: Path | None) -> dict[st
 
 
 def report(roots: dict[str, Path], seconds: dict[str, list[float]], seeds: list[int], loads: tuple[float, float],
-           command: str) -> str:
+           command: str, model: str = "se3") -> str:
     before, after = seconds["before"], seconds["after"]
     ratios = [b / a for b, a in zip(before, after)]
-    lines = ["# `cmax.fit` se3 seconds per window: two checkouts, interleaved", "",
+    lines = [f"# `cmax.fit` {model} seconds per window: two checkouts, interleaved", "",
              f"Written by `{command}`: `indoor_flying` seeds {seeds[0]}-{seeds[-1]} (held out), 346x260, "
-             "`speed=|v|`, the preset's depth range, fit seed 0, one torch thread, verdict included; each checkout "
+             f"{'`pose=` the true motion' if model == 'depth' else '`speed=|v|`'}, the preset's depth range, fit seed 0, one torch thread, verdict included; each checkout "
              "in a worker process of its own, warmed up by one fit, the two fitting each window in turn (the order "
              f"alternating). Machine: {describe()}; load "
              f"average (1 min) {loads[0]:.2f} before, {loads[1]:.2f} after.", "",
@@ -122,6 +128,8 @@ def main(argv: list[str] | None = None) -> int:
     parser.add_argument("--seeds", default="100-119")
     parser.add_argument("--cache", type=Path, default=None, help="folder of simulated windows (shared by both)")
     parser.add_argument("--output", type=Path, default=RESULTS / "speed_fit_ab.md")
+    parser.add_argument("--model", choices=("se3", "depth"), default="se3",
+                        help="se3: fit with the speed (default); depth: with the pose (the true motion)")
     args = parser.parse_args(argv)
     seeds = parse_seeds(parser, args.seeds)
     roots = {"before": args.before.resolve(), "after": args.after.resolve()}
@@ -129,9 +137,9 @@ def main(argv: list[str] | None = None) -> int:
         if not (root / "cmax" / "__init__.py").is_file():
             parser.error(f"--{name} {root} is not a checkout of this project (no cmax/__init__.py)")
     load_before = os.getloadavg()[0]
-    seconds = run(roots, seeds, args.cache)
+    seconds = run(roots, seeds, args.cache, args.model)
     command = "python -m benchmarks.speed_fit_ab " + " ".join(sys.argv[1:] if argv is None else argv)
-    text = report(roots, seconds, seeds, (load_before, os.getloadavg()[0]), command)
+    text = report(roots, seconds, seeds, (load_before, os.getloadavg()[0]), command, args.model)
     write_text_atomic(args.output, text)
     print(text)
     return 0
