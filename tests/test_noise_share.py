@@ -72,6 +72,19 @@ def test_the_fit_sorts_its_events_once_for_the_mask_and_the_noise_share(monkeypa
                                                      max_queries=FitSettings().max_events)
 
 
+@pytest.mark.parametrize("x, message", [([0, 346], "x must hold pixels in \\[0, 345\\] of the 346x260 image, got 0 to 346"),
+                                        ([-1, 5], "x must hold pixels in \\[0, 345\\]"),
+                                        ([0.0, 0.6], "x must hold whole pixels, got 0.6"),
+                                        ([0, 1, 2], "one length, got shapes \\(3,\\), \\(2,\\) and \\(2,\\)")])
+def test_pixels_off_the_image_or_between_pixels_are_refused(x, message):
+    """Was: a column off the image was read as a pixel of the next row (``x=346`` on a 346-wide image: the
+    neighbour of ``(0, 1)``), and ``x=0.6`` as pixel 0, with no word; now both functions name the argument."""
+    for test in (lambda: isolated_events(np.array(x), np.array([0, 0]), np.array([0, 10]), 346, 260, 1000),
+                 lambda: noise_share(np.array(x), np.array([0, 0]), np.array([0, 10]), 346, 260, 1000)):
+        with pytest.raises(ValueError, match=message):
+            test()
+
+
 def _points(seed: int) -> Events:
     """300 points moving at (40, -20) px/s over 0.1 s on a 160x120 image: edges, no isolated events to speak of."""
     rng = np.random.default_rng(seed)

@@ -494,7 +494,30 @@ def isolated_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, hei
     >>> isolated_events(np.array([0, 1, 5]), np.array([0, 0, 5]), np.array([0, 500, 600]), 8, 8, 1000).tolist()
     [False, False, True]
     """
+    _check_pixels(x, y, t, width, height)
     return _isolated(_sorted_events(x, y, t, width, window_us), width, height, window_us, radius)
+
+
+def _check_pixels(x: object, y: object, t: object, width: int, height: int) -> None:
+    """Refuse events ``x, y, t`` that are not three 1-D arrays of one length, or pixels ``x, y`` that are not whole
+    numbers inside the ``width`` x ``height`` image (a pixel off the image would be read as one of the next row's)."""
+    shapes = [np.shape(a) for a in (x, y, t)]
+    if len(shapes[0]) != 1 or len(set(shapes)) != 1:
+        raise ValueError(f"x, y and t must be 1-D arrays of one length, got shapes {shapes[0]}, {shapes[1]} and "
+                         f"{shapes[2]}")
+    for name, values, size in (("x", np.asarray(x), width), ("y", np.asarray(y), height)):
+        if not values.size:
+            continue
+        if values.dtype == bool or not np.issubdtype(values.dtype, np.number):
+            raise ValueError(f"{name} must hold whole pixels, got {values.dtype} values")
+        if not np.issubdtype(values.dtype, np.integer):
+            fractional = np.flatnonzero(values != np.floor(values))
+            if fractional.size:
+                raise ValueError(f"{name} must hold whole pixels, got {values[fractional[0]]:g}")
+        low, high = values.min(), values.max()
+        if low < 0 or high >= size:
+            raise ValueError(f"{name} must hold pixels in [0, {size - 1}] of the {width}x{height} image, got "
+                             f"{low:g} to {high:g}")
 
 
 class _Sorted(NamedTuple):
@@ -542,7 +565,7 @@ def _pixel_time_order(pixel: np.ndarray, t: np.ndarray) -> np.ndarray:
         digit = ((pixel[order] >> shift) & 0xFFFF).astype(np.uint16)
         order = order[np.argsort(digit, kind="stable")]
         shift += 16
-        if top >> shift == 0:
+        if top >> shift <= 0:
             return order
 
 
@@ -606,6 +629,7 @@ def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height:
     >>> 0.8 < share <= 1.0
     True
     """
+    _check_pixels(x, y, t, width, height)
     t = np.asarray(t, np.int64)
     if t.size < 2 or t[-1] == t[0]:
         return 0.0
