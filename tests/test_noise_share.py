@@ -85,6 +85,22 @@ def test_pixels_off_the_image_or_between_pixels_are_refused(x, message):
             test()
 
 
+@pytest.mark.parametrize("options, message", [({"radius": -1}, "radius must be a whole number >= 0, got -1"),
+                                              ({"window_us": 2.5}, "window_us must be a whole number >= 0, got 2.5"),
+                                              ({"max_queries": 0}, "max_queries must be a whole number >= 1 or None")])
+def test_a_negative_radius_a_fractional_window_or_no_queries_are_refused(options, message):
+    """Was: ``max_queries=0`` ended in a ZeroDivisionError, ``radius=-1`` tested no neighbour pixel at all and a
+    window of 2.5 µs was used as given; now each is named."""
+    x, y, t = np.array([0, 0, 5]), np.array([0, 0, 5]), np.array([0, 10, 20])
+    options = dict(options)
+    window = options.pop("window_us", 100)
+    with pytest.raises(ValueError, match=message):
+        noise_share(x, y, t, 8, 8, window, **options)
+    if "max_queries" not in options:
+        with pytest.raises(ValueError, match=message):
+            isolated_events(x, y, t, 8, 8, window, **options)
+
+
 def _points(seed: int) -> Events:
     """300 points moving at (40, -20) px/s over 0.1 s on a 160x120 image: edges, no isolated events to speak of."""
     rng = np.random.default_rng(seed)

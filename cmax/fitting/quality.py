@@ -494,13 +494,20 @@ def isolated_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, hei
     >>> isolated_events(np.array([0, 1, 5]), np.array([0, 0, 5]), np.array([0, 500, 600]), 8, 8, 1000).tolist()
     [False, False, True]
     """
-    _check_pixels(x, y, t, width, height)
+    _check_pixels(x, y, t, width, height, window_us, radius)
     return _isolated(_sorted_events(x, y, t, width, window_us), width, height, window_us, radius)
 
 
-def _check_pixels(x: object, y: object, t: object, width: int, height: int) -> None:
-    """Refuse events ``x, y, t`` that are not three 1-D arrays of one length, or pixels ``x, y`` that are not whole
-    numbers inside the ``width`` x ``height`` image (a pixel off the image would be read as one of the next row's)."""
+def _check_pixels(x: object, y: object, t: object, width: int, height: int, window_us: object = 0,
+                  radius: object = 0, max_queries: object = None) -> None:
+    """Refuse events ``x, y, t`` that are not three 1-D arrays of one length, pixels ``x, y`` that are not whole
+    numbers inside the ``width`` x ``height`` image (a pixel off the image would be read as one of the next row's),
+    a ``window_us`` or ``radius`` that is not a whole number >= 0, or a ``max_queries`` that is not None or >= 1."""
+    for name, value, least in (("window_us", window_us, 0), ("radius", radius, 0),
+                               ("max_queries", 1 if max_queries is None else max_queries, 1)):
+        if not (isinstance(value, (int, np.integer)) and not isinstance(value, bool) and value >= least):
+            raise ValueError(f"{name} must be a whole number >= {least}{' or None' if name == 'max_queries' else ''}, "
+                             f"got {value!r}")
     shapes = [np.shape(a) for a in (x, y, t)]
     if len(shapes[0]) != 1 or len(set(shapes)) != 1:
         raise ValueError(f"x, y and t must be 1-D arrays of one length, got shapes {shapes[0]}, {shapes[1]} and "
@@ -629,7 +636,7 @@ def noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height:
     >>> 0.8 < share <= 1.0
     True
     """
-    _check_pixels(x, y, t, width, height)
+    _check_pixels(x, y, t, width, height, window_us, radius, max_queries)
     t = np.asarray(t, np.int64)
     if t.size < 2 or t[-1] == t[0]:
         return 0.0
