@@ -51,9 +51,9 @@ for line in sys.stdin:
     w = windows("se3", int(line), cache)
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        start = time.perf_counter()
+        start, cpu = time.perf_counter(), time.process_time()
         fit(w.events, w.K, **given(w), **_room())
-    print(json.dumps({"seconds": time.perf_counter() - start}), flush=True)
+    print(json.dumps({"seconds": time.perf_counter() - start, "cpu_seconds": time.process_time() - cpu}), flush=True)
 """
 
 
@@ -75,21 +75,27 @@ def _worker(root: Path, cache: Path | None, warm_seed: int, model: str) -> subpr
     return process
 
 
-def _fit(process: subprocess.Popen, seed: int) -> float:
+def _fit(process: subprocess.Popen, seed: int) -> tuple[float, float]:
     process.stdin.write(f"{seed}\n")
     process.stdin.flush()
-    return float(json.loads(process.stdout.readline())["seconds"])
+    line = json.loads(process.stdout.readline())
+    return float(line["seconds"]), float(line.get("cpu_seconds", float("nan")))
 
 
-def run(roots: dict[str, Path], seeds: list[int], cache: Path | None, model: str = "se3") -> dict[str, list[float]]:
-    """Seconds per window of each checkout fitting ``model`` (``se3`` with the speed, ``depth`` with the pose),
-    the order of the two alternating from window to window."""
+def run(roots: dict[str, Path], seeds: list[int], cache: Path | None, model: str = "se3",
+        cpu: dict[str, list[float]] | None = None) -> dict[str, list[float]]:
+    """Wall seconds per window of each checkout fitting ``model`` (``se3`` with the speed, ``depth`` with the
+    pose), the order of the two alternating from window to window; each fit's CPU seconds of the worker process
+    (``time.process_time``) appended to ``cpu`` (per checkout) when given."""
     workers = {name: _worker(root, cache, seeds[0], model) for name, root in roots.items()}
     seconds: dict[str, list[float]] = {name: [] for name in roots}
     try:
         for i, seed in enumerate(seeds):
             for name in (list(workers) if i % 2 == 0 else list(workers)[::-1]):
-                seconds[name].append(_fit(workers[name], seed))
+                wall, used = _fit(workers[name], seed)
+                seconds[name].append(wall)
+                if cpu is not None:
+                    cpu.setdefault(name, []).append(used)
             print(seed, {name: round(values[-1], 2) for name, values in seconds.items()}, flush=True)
     finally:
         for process in workers.values():
@@ -99,7 +105,7 @@ def run(roots: dict[str, Path], seeds: list[int], cache: Path | None, model: str
 
 
 def report(roots: dict[str, Path], seconds: dict[str, list[float]], seeds: list[int], loads: tuple[float, float],
-           command: str, model: str = "se3") -> str:
+           command: str, model: str = "se3", cpu: dict[str, list[float]] | None = None) -> str:
     before, after = seconds["before"], seconds["after"]
     ratios = [b / a for b, a in zip(before, after)]
     lines = [f"# `cmax.fit` {model} seconds per window: two checkouts, interleaved", "",
@@ -117,6 +123,12 @@ def report(roots: dict[str, Path], seconds: dict[str, list[float]], seeds: list[
               f"{min(ratios):.2f}-{max(ratios):.2f}.", "",
               "Per window [s] (seed: before, after): "
               + "; ".join(f"{s}: {b:.2f}, {a:.2f}" for s, b, a in zip(seeds, before, after)), ""]
+    if cpu is not None and all(cpu.get(name) for name in ("before", "after")):
+        cpu_ratios = [b / a for b, a in zip(cpu["before"], cpu["after"])]
+        lines += [f"CPU seconds of each worker process per window (`time.process_time`: less moved by other "
+                  f"processes' load than the wall clock): median {statistics.median(cpu['before']):.3f} before, "
+                  f"{statistics.median(cpu['after']):.3f} after; per-window ratio before / after: median "
+                  f"{statistics.median(cpu_ratios):.2f}, range {min(cpu_ratios):.2f}-{max(cpu_ratios):.2f}.", ""]
     return "\n".join(lines)
 
 
@@ -137,9 +149,10 @@ def main(argv: list[str] | None = None) -> int:
         if not (root / "cmax" / "__init__.py").is_file():
             parser.error(f"--{name} {root} is not a checkout of this project (no cmax/__init__.py)")
     load_before = os.getloadavg()[0]
-    seconds = run(roots, seeds, args.cache, args.model)
+    cpu: dict[str, list[float]] = {}
+    seconds = run(roots, seeds, args.cache, args.model, cpu)
     command = "python -m benchmarks.speed_fit_ab " + " ".join(sys.argv[1:] if argv is None else argv)
-    text = report(roots, seconds, seeds, (load_before, os.getloadavg()[0]), command, args.model)
+    text = report(roots, seconds, seeds, (load_before, os.getloadavg()[0]), command, args.model, cpu)
     write_text_atomic(args.output, text)
     print(text)
     return 0
