@@ -695,12 +695,23 @@ def event_pixels(x: np.ndarray, y: np.ndarray, height: int, width: int) -> np.nd
     return hits
 
 
-def _warp_with_grid(ev: WarpEvents, index: torch.Tensor, weight: torch.Tensor, dt: torch.Tensor, v, omega,
-                    grid) -> tuple[torch.Tensor, torch.Tensor]:
+def _events_rho(w: Window, grid) -> torch.Tensor:
+    """The inverse depth (N,) [1/m] of each of the window's events, interpolated from ``grid`` (gh, gw) [1/m] at its
+    node ``w.index, w.weight`` (:meth:`DepthGrid.sample`), in the events' dtype. The window keeps the last grid's
+    (read only): a finished fit warps its events by one grid five times (its objective, its reference image, its
+    parallax and the permutation test's two warps)."""
+    key = np.asarray(grid, np.float64).tobytes()
+    kept = getattr(w, "_rho_kept", None)
+    if kept is None or kept[0] != key:
+        kept = (key, DepthGrid.sample(torch.as_tensor(grid, dtype=w.ev.x.dtype), w.index, w.weight))
+        object.__setattr__(w, "_rho_kept", kept)
+    return kept[1]
+
+
+def _warp_with_grid(ev: WarpEvents, dt: torch.Tensor, v, omega, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """se3 warp of the events ``ev`` by ``dt`` (N,) or (B, N) [s] with twist ``v, omega`` and each event's
-    inverse depth interpolated from ``grid`` (gh, gw) [1/m] at its node ``index, weight`` (N, 4)."""
+    inverse depth ``rho`` (N,) [1/m] (interpolated from the depth grid: :func:`_events_rho`)."""
     dtype = ev.x.dtype
-    rho = DepthGrid.sample(torch.as_tensor(grid, dtype=dtype), index, weight)
     v, omega = torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype)
     rows = dt.reshape(-1, dt.shape[-1])
     if all(compiled_warp_applies(ev.rays, row, v, omega, rho) for row in rows):   # the compiled warp, per row
@@ -717,7 +728,7 @@ def _warped(w: Window, motion: Motion, dt: torch.Tensor) -> tuple[torch.Tensor, 
             return warp_flow(ev.x, ev.y, dt, torch.as_tensor(motion.flow, dtype=ev.x.dtype))
         if motion.inverse_depth is None:
             return warp_rotation(ev.rays, dt, torch.as_tensor(motion.omega, dtype=ev.x.dtype), ev.K)
-        return _warp_with_grid(ev, w.index, w.weight, dt, motion.v, motion.omega, motion.inverse_depth)
+        return _warp_with_grid(ev, dt, motion.v, motion.omega, _events_rho(w, motion.inverse_depth))
 
 
 def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega, grid) -> tuple[np.ndarray, np.ndarray]:
@@ -726,7 +737,8 @@ def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega,
     ev = WarpEvents.from_events(events, K, dither=False, dtype=torch.float64)
     index, weight = w.grid.weights(ev.x, ev.y)
     with torch.no_grad():
-        x, y = _warp_with_grid(ev, index, weight, ev.dt((0.5,))[0], v, omega, grid)
+        rho = DepthGrid.sample(torch.as_tensor(grid, dtype=ev.x.dtype), index, weight)
+        x, y = _warp_with_grid(ev, ev.dt((0.5,))[0], v, omega, rho)
     return x.numpy(), y.numpy()
 
 
@@ -799,5 +811,5 @@ def _parallax_px(w: Window, v: np.ndarray, grid: np.ndarray) -> float:
     """Median displacement [px] of the events by the translation ``v T`` alone, at their fitted inverse depth."""
     ev = w.ev
     with torch.no_grad():
-        x, y = _warp_with_grid(ev, w.index, w.weight, torch.full_like(ev.x, ev.duration_s), v, np.zeros(3), grid)
+        x, y = _warp_with_grid(ev, torch.full_like(ev.x, ev.duration_s), v, np.zeros(3), _events_rho(w, grid))
         return float(torch.hypot(x - ev.x, y - ev.y).median())
