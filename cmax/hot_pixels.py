@@ -188,29 +188,33 @@ def flicker_pixels(events: Events, flicker_hz: tuple[float, ...] = MAINS_FLICKER
         chosen = events.p == polarity
         n = np.bincount(flat[chosen], minlength=size)
         chosen &= n[flat] >= FLICKER_RAYLEIGH
-        by_polarity.append((n, flat[chosen], (events.t[chosen] - events.t[0]) * 1e-6))
+        # the candidate pixels and each event's among them: the sums below run over these, not the whole sensor
+        candidates, pixel = np.unique(flat[chosen], return_inverse=True)
+        by_polarity.append((candidates, n[candidates], pixel, (events.t[chosen] - events.t[0]) * 1e-6))
     flickering = np.zeros(size, bool)
     for f in flicker_hz:
         cycles = span_s * f
         if cycles < 3:
             continue
-        for n, pixel, seconds in by_polarity:
+        for candidates, n, pixel, seconds in by_polarity:
+            m = candidates.size
             turns = seconds * f
             cycle = np.floor(turns).astype(np.int64)
             angle = 2 * np.pi * turns
-            resultant = np.hypot(np.bincount(pixel, np.cos(angle), size), np.bincount(pixel, np.sin(angle), size))
+            cos, sin = np.cos(angle), np.sin(angle)
+            resultant = np.hypot(np.bincount(pixel, cos, m), np.bincount(pixel, sin, m))
             r = resultant / np.maximum(n, 1)
             # each cycle's mean phase as one unit vector: a burst within one cycle counts once
             pairs, pair_of = np.unique(pixel * (int(cycles) + 1) + cycle, return_inverse=True)
-            pair_x = np.bincount(pair_of, np.cos(angle), len(pairs))
-            pair_y = np.bincount(pair_of, np.sin(angle), len(pairs))
+            pair_x = np.bincount(pair_of, cos, len(pairs))
+            pair_y = np.bincount(pair_of, sin, len(pairs))
             norm = np.maximum(np.hypot(pair_x, pair_y), 1e-12)
             owner = pairs // (int(cycles) + 1)
-            cycles_hit = np.bincount(owner, minlength=size)
-            r_cycles = np.hypot(np.bincount(owner, pair_x / norm, size), np.bincount(owner, pair_y / norm, size))
+            cycles_hit = np.bincount(owner, minlength=m)
+            r_cycles = np.hypot(np.bincount(owner, pair_x / norm, m), np.bincount(owner, pair_y / norm, m))
             r_cycles /= np.maximum(cycles_hit, 1)
-            flickering |= ((n * r**2 >= FLICKER_RAYLEIGH) & (r >= FLICKER_MIN_R) & (r_cycles >= FLICKER_MIN_R)
-                           & (cycles_hit >= max(3, cycles / 2)))
+            flickering[candidates] |= ((n * r**2 >= FLICKER_RAYLEIGH) & (r >= FLICKER_MIN_R)
+                                       & (r_cycles >= FLICKER_MIN_R) & (cycles_hit >= max(3, cycles / 2)))
     lit = flickering.reshape(events.height, width)
     square = np.pad(lit[:-1, :-1] & lit[1:, :-1] & lit[:-1, 1:] & lit[1:, 1:], 1)   # 2x2 squares, by top-left
     in_square = square[1:, 1:] | square[:-1, 1:] | square[1:, :-1] | square[:-1, :-1]

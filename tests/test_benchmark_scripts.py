@@ -364,7 +364,12 @@ def test_speed_fit_ab_reports_both_checkouts_and_refuses_a_folder_that_is_not_on
     text = speed_fit_ab.report({"before": root, "after": root}, seconds, [100, 101, 102], (0.5, 0.7), "cmd")
     assert "| before |" in text and "| after |" in text and "`cmd`" in text
     assert "median 2.00, range 1.00-3.00" in text                       # per-window ratios 2, 3, 1
-    assert "100: 2.00, 1.00; 101: 3.00, 1.00; 102: 1.00, 1.00" in text
+    assert "100: 2.00, 1.00; 101: 3.00, 1.00; 102: 1.00, 1.00" in text and "CPU seconds" not in text
+    cpu = {"before": [1.0, 4.0, 1.5], "after": [1.0, 2.0, 1.0]}                 # CPU ratios 1, 2, 1.5
+    text = speed_fit_ab.report({"before": root, "after": root}, seconds, [100, 101, 102], (0.5, 0.7), "cmd",
+                               "depth", cpu)
+    assert "# `cmax.fit` depth seconds" in text and "`pose=` the true motion" in text
+    assert "median 1.500 before, 1.000 after; per-window ratio before / after: median 1.50, range 1.00-2.00" in text
     with pytest.raises(SystemExit):
         speed_fit_ab.main(["--before", str(tmp_path), "--output", str(tmp_path / "out.md")])
     assert not (tmp_path / "out.md").exists()

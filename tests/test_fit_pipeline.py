@@ -613,3 +613,24 @@ def test_fit_sequence_names_gyro_when_given_a_constant_omega():
     w = small_rotation()
     with pytest.raises(TypeError, match=r"give gyro= \(a constant one: gyro=cmax\.fitting\.sequence\.constant_gyro"):
         fit_sequence(w.events, w.K, omega=[0.0, 0.0, 0.0])
+
+
+def test_a_finished_fit_interpolates_its_events_inverse_depth_once_per_grid(monkeypatch):
+    """Was: the finished fit interpolated the same grid at the same events five times (its objective, its reference
+    image, its parallax and the permutation test's two warps); now once for the fit's events and once for all the
+    events warped to the reference view, the result unchanged (the other tests of this file)."""
+    from cmax.warp import DepthGrid
+
+    real, sizes = DepthGrid.sample, []
+
+    def sample(values, index, weight):
+        sizes.append(index.shape[0])
+        return real(values, index, weight)
+
+    monkeypatch.setattr(DepthGrid, "sample", staticmethod(sample))
+    w = make_window("slider", 4, width=120, height=90, focal=200.0, duration_s=0.3, max_frames=40)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = fit(w.events, w.K, pose=w.twist, depth_range=(1.0, 20.0))
+    assert result.events_used == len(w.events) and result.depth is not None
+    assert sizes.count(len(w.events)) == 2

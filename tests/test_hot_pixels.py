@@ -267,6 +267,29 @@ def test_pixels_on_a_mains_flickering_lamp_are_hot(window, hz):
         HotPixelFilter(flicker_hz=100)
 
 
+def test_the_flicker_test_sums_over_its_candidate_pixels_not_the_whole_sensor(monkeypatch):
+    """Was: each frequency and polarity summed the phases into sensor-sized arrays (a 1280x720 sensor: seven
+    arrays of 921,600 per frequency and polarity, however few pixels had enough events); now over the pixels
+    with at least FLICKER_RAYLEIGH events of a polarity, and the lamp on that sensor is found as before."""
+    rng = np.random.default_rng(4)
+    n = 20_000
+    background = Events(rng.integers(0, 1280, n), rng.integers(0, 720, n), np.sort(rng.integers(0, 100_000, n)),
+                        rng.integers(0, 2, n), 1280, 720)
+    lit = _lamp(background, 600, 300, 3, 100.0)
+    lengths = []
+    real = np.bincount
+
+    def bincount(*args, **kwargs):
+        out = real(*args, **kwargs)
+        lengths.append(out.size)
+        return out
+
+    monkeypatch.setattr(np, "bincount", bincount)
+    found = flicker_pixels(lit)
+    assert set(map(tuple, found.tolist())) == {(x, y) for y in range(300, 303) for x in range(600, 603)}
+    assert sum(size >= 1280 * 720 for size in lengths) <= 2          # the two polarities' counts per pixel
+
+
 def test_a_flickering_lamp_no_longer_pulls_a_rotation_fit():
     """A 6x6 lamp at 100 Hz (10% of the events) on a rotating scene pulled the rotation by 22% (verdict ok,
     measured; clean 1.3%); its pixels left out, the error is the clean one's."""

@@ -37,6 +37,70 @@ def test_isolated_events_agree_with_the_pairwise_definition():
     np.testing.assert_array_equal(isolated_events(x, y, t, width, height, window), expected)
 
 
+def test_the_pixel_then_time_order_is_the_stable_sort_of_the_keys():
+    """The isolation test's order (a radix sort by pixel over the time order) is ``np.argsort`` of the keys
+    ``pixel * span + t`` (stable), on sorted and unsorted times, repeated events and more than 2**16 pixels."""
+    from cmax.fitting.quality import _pixel_time_order
+
+    rng = np.random.default_rng(2)
+    for pixels, n, sort in [(1, 50, True), (300, 2_000, False), (346 * 260, 50_000, True), (1280 * 720, 50_000, False),
+                            (70_000, 0, True), (70_000, 1, False)]:
+        pixel, t = rng.integers(0, pixels, n), rng.integers(0, 5_000, n)
+        t = np.sort(t) if sort else t
+        span = int(t.max(initial=0)) + 1
+        np.testing.assert_array_equal(_pixel_time_order(pixel, t), np.argsort(pixel * span + t, kind="stable"))
+
+
+def test_the_fit_sorts_its_events_once_for_the_mask_and_the_noise_share(monkeypatch):
+    """Was: the depth mask's isolation test and the noise share each sorted all the window's events by pixel and
+    time (the same sort twice); now one sort serves both, and each flag and the share are those of the public
+    functions."""
+    from cmax.fitting import quality
+    from conftest import counted_calls
+
+    noisy, _ = _with_noise(_points(0), 2.0, 1)
+    K = np.array([[100.0, 0.0, 80.0], [0.0, 100.0, 60.0], [0.0, 0.0, 1.0]])
+    calls = counted_calls(monkeypatch, quality, "_sorted_events")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = fit(noisy, K, pose=np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.0]), depth_range=(1.0, 10.0))
+    assert len(calls) == 1
+    flags, share = quality._isolated_and_noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, None)
+    np.testing.assert_array_equal(flags, isolated_events(noisy.x, noisy.y, noisy.t, 160, 120, 10_000))
+    assert share == noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, max_queries=None)
+    assert result.quality.noise_share == noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000,
+                                                     max_queries=FitSettings().max_events)
+
+
+@pytest.mark.parametrize("x, message", [([0, 346], "x must hold pixels in \\[0, 345\\] of the 346x260 image, got 0 to 346"),
+                                        ([-1, 5], "x must hold pixels in \\[0, 345\\]"),
+                                        ([0.0, 0.6], "x must hold whole pixels, got 0.6"),
+                                        ([0, 1, 2], "one length, got shapes \\(3,\\), \\(2,\\) and \\(2,\\)")])
+def test_pixels_off_the_image_or_between_pixels_are_refused(x, message):
+    """Was: a column off the image was read as a pixel of the next row (``x=346`` on a 346-wide image: the
+    neighbour of ``(0, 1)``), and ``x=0.6`` as pixel 0, with no word; now both functions name the argument."""
+    for test in (lambda: isolated_events(np.array(x), np.array([0, 0]), np.array([0, 10]), 346, 260, 1000),
+                 lambda: noise_share(np.array(x), np.array([0, 0]), np.array([0, 10]), 346, 260, 1000)):
+        with pytest.raises(ValueError, match=message):
+            test()
+
+
+@pytest.mark.parametrize("options, message", [({"radius": -1}, "radius must be a whole number >= 0, got -1"),
+                                              ({"window_us": 2.5}, "window_us must be a whole number >= 0, got 2.5"),
+                                              ({"max_queries": 0}, "max_queries must be a whole number >= 1 or None")])
+def test_a_negative_radius_a_fractional_window_or_no_queries_are_refused(options, message):
+    """Was: ``max_queries=0`` ended in a ZeroDivisionError, ``radius=-1`` tested no neighbour pixel at all and a
+    window of 2.5 µs was used as given; now each is named."""
+    x, y, t = np.array([0, 0, 5]), np.array([0, 0, 5]), np.array([0, 10, 20])
+    options = dict(options)
+    window = options.pop("window_us", 100)
+    with pytest.raises(ValueError, match=message):
+        noise_share(x, y, t, 8, 8, window, **options)
+    if "max_queries" not in options:
+        with pytest.raises(ValueError, match=message):
+            isolated_events(x, y, t, 8, 8, window, **options)
+
+
 def _points(seed: int) -> Events:
     """300 points moving at (40, -20) px/s over 0.1 s on a 160x120 image: edges, no isolated events to speak of."""
     rng = np.random.default_rng(seed)

@@ -119,6 +119,22 @@ def test_depth_grid_interpolation_closed_form_and_upsample():
         DepthGrid((8, 3), 4, 4)
 
 
+def test_upsample_weighs_the_pixels_once_per_grid_and_image_size(monkeypatch):
+    """Was: every upsample computed the interpolation weights (H*W, 4) of all the pixels again (a fit upsamples its
+    depth and its depth spread on one grid); now at most once per grid shape and image size, the maps still
+    those of cv2.resize's bilinear interpolation, for any values and grid objects of that shape."""
+    import cv2
+    from conftest import counted_calls
+
+    calls = counted_calls(monkeypatch, DepthGrid, "weights")
+    rng = np.random.default_rng(5)
+    for _ in range(3):
+        values = rng.uniform(0.1, 2.0, (5, 7))
+        dense = DepthGrid((5, 7), width=70, height=40).upsample(values)
+        np.testing.assert_allclose(dense, cv2.resize(values, (70, 40), interpolation=cv2.INTER_LINEAR), atol=1e-9)
+    assert len(calls) <= 1
+
+
 def test_warp_events_preparation():
     events = random_events(500, seed=4)
     ev = WarpEvents.from_events(events, K, max_events=200, dither=False)

@@ -23,7 +23,8 @@ from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
                                   motion_within_noise, rate_change, shuffled_gain_test, small_parallax_reason,
-                                  isolated_events, noise_reason, noise_share, sparse_reason, verdict_of)
+                                  isolated_events, noise_reason, noise_share, sparse_reason, verdict_of,
+                                  _isolated_and_noise_share)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -477,18 +478,18 @@ def fit(
         if known_omega is not None:
             motion = replace(motion, omega=known_omega)
         shared_test = model == "se3" and settings.mask_isolated_us == settings.quality.noise_window_us
-        isolated = (isolated_events(events.x, events.y, events.t, events.width, events.height,
-                                    settings.mask_isolated_us) if shared_test else None)   # the mask's and the noise's
+        isolated, noise = (_isolated_and_noise_share(events.x, events.y, events.t, events.width, events.height,
+                                                     settings.mask_isolated_us, settings.max_events)
+                           if shared_test else (None, None))   # the mask's and the noise's test, sorted once
         result = _result(w, events, K, model, motion, logs, scale_known=pose is not None or speed is not None,
                          isolated=isolated,
                          seconds=time.perf_counter() - start)
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         on_bound = _on_bound(w, result, low, pose_known=pose is not None)
-        noise = (noise_share(events.x, events.y, events.t, events.width, events.height,
-                             settings.quality.noise_window_us, max_queries=settings.max_events,
-                             isolated=isolated)
-                 if model == "se3" else None)
+        if model == "se3" and not shared_test:
+            noise = noise_share(events.x, events.y, events.t, events.width, events.height,
+                                settings.quality.noise_window_us, max_queries=settings.max_events)
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
                                                   hold_omega=known_omega is not None, speed=scale,
                                                   given=len(events), rate=rate, on_bound=on_bound,
@@ -694,12 +695,23 @@ def event_pixels(x: np.ndarray, y: np.ndarray, height: int, width: int) -> np.nd
     return hits
 
 
-def _warp_with_grid(ev: WarpEvents, index: torch.Tensor, weight: torch.Tensor, dt: torch.Tensor, v, omega,
-                    grid) -> tuple[torch.Tensor, torch.Tensor]:
+def _events_rho(w: Window, grid) -> torch.Tensor:
+    """The inverse depth (N,) [1/m] of each of the window's events, interpolated from ``grid`` (gh, gw) [1/m] at its
+    node ``w.index, w.weight`` (:meth:`DepthGrid.sample`), in the events' dtype. The window keeps the last grid's
+    (read only): a finished fit warps its events by one grid five times (its objective, its reference image, its
+    parallax and the permutation test's two warps)."""
+    key = np.asarray(grid, np.float64).tobytes()
+    kept = getattr(w, "_rho_kept", None)
+    if kept is None or kept[0] != key:
+        kept = (key, DepthGrid.sample(torch.as_tensor(grid, dtype=w.ev.x.dtype), w.index, w.weight))
+        object.__setattr__(w, "_rho_kept", kept)
+    return kept[1]
+
+
+def _warp_with_grid(ev: WarpEvents, dt: torch.Tensor, v, omega, rho: torch.Tensor) -> tuple[torch.Tensor, torch.Tensor]:
     """se3 warp of the events ``ev`` by ``dt`` (N,) or (B, N) [s] with twist ``v, omega`` and each event's
-    inverse depth interpolated from ``grid`` (gh, gw) [1/m] at its node ``index, weight`` (N, 4)."""
+    inverse depth ``rho`` (N,) [1/m] (interpolated from the depth grid: :func:`_events_rho`)."""
     dtype = ev.x.dtype
-    rho = DepthGrid.sample(torch.as_tensor(grid, dtype=dtype), index, weight)
     v, omega = torch.as_tensor(v, dtype=dtype), torch.as_tensor(omega, dtype=dtype)
     rows = dt.reshape(-1, dt.shape[-1])
     if all(compiled_warp_applies(ev.rays, row, v, omega, rho) for row in rows):   # the compiled warp, per row
@@ -716,7 +728,7 @@ def _warped(w: Window, motion: Motion, dt: torch.Tensor) -> tuple[torch.Tensor, 
             return warp_flow(ev.x, ev.y, dt, torch.as_tensor(motion.flow, dtype=ev.x.dtype))
         if motion.inverse_depth is None:
             return warp_rotation(ev.rays, dt, torch.as_tensor(motion.omega, dtype=ev.x.dtype), ev.K)
-        return _warp_with_grid(ev, w.index, w.weight, dt, motion.v, motion.omega, motion.inverse_depth)
+        return _warp_with_grid(ev, dt, motion.v, motion.omega, _events_rho(w, motion.inverse_depth))
 
 
 def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega, grid) -> tuple[np.ndarray, np.ndarray]:
@@ -725,7 +737,8 @@ def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega,
     ev = WarpEvents.from_events(events, K, dither=False, dtype=torch.float64)
     index, weight = w.grid.weights(ev.x, ev.y)
     with torch.no_grad():
-        x, y = _warp_with_grid(ev, index, weight, ev.dt((0.5,))[0], v, omega, grid)
+        rho = DepthGrid.sample(torch.as_tensor(grid, dtype=ev.x.dtype), index, weight)
+        x, y = _warp_with_grid(ev, ev.dt((0.5,))[0], v, omega, rho)
     return x.numpy(), y.numpy()
 
 
@@ -798,5 +811,5 @@ def _parallax_px(w: Window, v: np.ndarray, grid: np.ndarray) -> float:
     """Median displacement [px] of the events by the translation ``v T`` alone, at their fitted inverse depth."""
     ev = w.ev
     with torch.no_grad():
-        x, y = _warp_with_grid(ev, w.index, w.weight, torch.full_like(ev.x, ev.duration_s), v, np.zeros(3), grid)
+        x, y = _warp_with_grid(ev, torch.full_like(ev.x, ev.duration_s), v, np.zeros(3), _events_rho(w, grid))
         return float(torch.hypot(x - ev.x, y - ev.y).median())
