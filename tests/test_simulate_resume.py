@@ -212,3 +212,37 @@ def test_an_output_written_from_its_chunks_but_not_recorded_is_written_again_not
     assert main(argv) == 0, capsys.readouterr().err
     assert "20 frame(s)" in capsys.readouterr().err
     assert same_events(read_h5(tmp_path / "v.h5"), first) and not chunk_folder(tmp_path / "v.h5").exists()
+
+
+def test_an_interrupted_overwrite_keeps_the_old_file_and_continues_with_overwrite_again(tmp_path):
+    """``-o F.h5 --overwrite`` killed part-way: the old F.h5 stays until the new one is complete, and the same
+    command again continues the kept chunks (was it to start over, the hours already simulated were lost)."""
+    write_video(tmp_path / "v.avi", 72)
+    out = tmp_path / "o"
+    argv = [sys.executable, "-m", "cmax.cli", "simulate", str(tmp_path / "v.avi"), "-o", str(out / "v.h5"),
+            "--quiet", "--chunk-frames", "6", "--method", "linear"]
+    assert subprocess.run(argv, capture_output=True).returncode == 0
+    old = (out / "v.h5").read_bytes()
+    if not sigkill_after([*argv, "--overwrite"], chunk_folder(out / "v.h5"), "chunk_*.json", 3):
+        pytest.skip("the run ended before it could be killed (a very fast machine)")
+    assert (out / "v.h5").read_bytes() == old
+    kept = len(list(chunk_folder(out / "v.h5").glob("chunk_*.json")))
+    again = subprocess.run([*argv, "--overwrite"], capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    assert f"continuing an interrupted conversion: {6 * kept} frame(s)" in again.stderr
+    clean = convert_video(tmp_path / "v.avi", tmp_path / "clean.h5", LINEAR)
+    assert same_events(read_h5(out / "v.h5"), read_h5(tmp_path / "clean.h5")) and clean.frames == 72
+
+
+def test_kept_chunks_whose_last_frame_decodes_otherwise_are_not_continued(tmp_path, monkeypatch):
+    """The last kept frame is decoded again and checked (another OpenCV could decode it otherwise): refused with
+    ``kept="resume"``; with ``"resume_or_restart"`` a warning and the whole video is converted again."""
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=3)
+    record = json.loads((folder / "chunk_000001.json").read_text())
+    record["frame_sha256"] = "0" * 64                      # as if the frame had decoded to other pixels
+    (folder / "chunk_000001.json").write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="decodes differently .* pass --overwrite"):
+        convert_video(tmp_path / "v.avi", output, LINEAR, chunk_frames=6)
+    with pytest.warns(UserWarning, match="converting it from its first frame"):
+        convert_video(tmp_path / "v.avi", output, LINEAR, chunk_frames=6, kept="resume_or_restart")
+    assert same_events(read_h5(output), whole) and not folder.exists()

@@ -361,10 +361,10 @@ def add_command(subparsers) -> argparse.ArgumentParser:
         "when it is done), so that a killed conversion continues from its last chunk when run again, with the "
         "same events, bit for bit; 0: no chunks, a killed video starts over"), _default_chunk_frames)
     parser.add_argument("--overwrite", action="store_true",
-                        help="replace an existing output .h5 (-o F.h5: convert it again, from the first frame); a "
-                        "folder: replace the files at its videos' outputs that its manifest does not list, and "
-                        "start over the videos whose kept chunks are of another video or settings (each refused "
-                        "without it)")
+                        help="replace an existing output .h5 (-o F.h5: convert it again); a folder: replace the "
+                        "files at its videos' outputs that its manifest does not list; and start over the videos "
+                        "whose kept chunks are of another video or settings (each refused without it; chunks of "
+                        "the same video and settings are continued: the same events)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=run)
     return parser

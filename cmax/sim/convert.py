@@ -325,9 +325,14 @@ def _counted(frames: Iterable[tuple[np.ndarray, int]], count: _Count):
         yield frame, t_us
 
 
+class _NotContinued(ValueError):
+    """The kept chunks cannot be continued: the source decodes to other frames than when they were kept."""
+
+
 def _skip_kept(frames: Iterable[tuple[np.ndarray, int]], kept: int, record: dict, source: Path):
     """``frames`` from frame ``kept - 1`` on (the last frame of the kept chunks, whose ``record`` is given),
-    after checking that this frame is the one the chunks ended on (time and pixels); a ValueError otherwise."""
+    after checking that this frame is the one the chunks ended on (time and pixels); :class:`_NotContinued`
+    otherwise."""
     from cmax.sim.chunks import frame_digest
 
     stream = iter(frames)
@@ -335,14 +340,14 @@ def _skip_kept(frames: Iterable[tuple[np.ndarray, int]], kept: int, record: dict
         if number < kept - 1:
             continue
         if int(t_us) != record["last_t_us"] or frame_digest(frame) != record["frame_sha256"]:
-            raise ValueError(f"{source}: frame {kept - 1} decodes differently from when its chunk was kept (at "
-                             f"{t_us} µs, then {record['last_t_us']} µs, or other pixels): the chunks cannot be "
-                             "continued; pass --overwrite (kept='restart') to start over")
+            raise _NotContinued(f"{source}: frame {kept - 1} decodes differently from when its chunk was kept (at "
+                                f"{t_us} µs, then {record['last_t_us']} µs, or to other pixels: another OpenCV or "
+                                "FFmpeg?), so the kept chunks cannot be continued")
         yield frame, t_us
         yield from stream
         return
-    raise ValueError(f"{source} has fewer frames than the {kept} its kept chunks cover: pass --overwrite "
-                     "(kept='restart') to start over")
+    raise _NotContinued(f"{source} decodes to fewer frames than the {kept} its kept chunks cover (another "
+                        "OpenCV or FFmpeg?), so they cannot be continued")
 
 
 def _chunk_run(signature: dict, settings: ConvertSettings) -> dict[str, Any]:
@@ -400,7 +405,9 @@ def convert_video(
         them when they are of this run (the same source by size and modification time, the same settings and
         code; a chunk that fails its check is simulated again), and raise ValueError naming what differs when
         they are another's (``"resume"``, the default) or start over then (``"resume_or_restart"``); or start
-        over whatever they are (``"restart"``).
+        over whatever they are (``"restart"``). Kept chunks whose last video frame decodes to other pixels now
+        (another OpenCV or FFmpeg) are another run's too (with ``"resume_or_restart"``: a UserWarning, and
+        the video is converted from its first frame).
     keep_chunks : bool
         Leave the chunks in place once ``output`` is written (the caller removes them with
         :meth:`cmax.sim.chunks.KeptChunks.remove`, e.g. once the output is verified and recorded); default
@@ -447,6 +454,13 @@ def convert_video(
             if chunks is None or not chunks.records or not chunks.records[-1]["final"]:
                 run.simulate(frames, chunk_frames, progress)
             run.finish()
+    except _NotContinued as error:
+        run.abort()
+        if kept == "resume":
+            raise ValueError(f"{error}: pass --overwrite (kept='resume_or_restart') to start over") from None
+        warnings.warn(f"{error}: converting it from its first frame", UserWarning, stacklevel=2)
+        return convert_video(source, output, settings, category=category, progress=progress, overwrite=overwrite,
+                             chunk_frames=chunk_frames, kept="restart", keep_chunks=keep_chunks)
     except BaseException:
         run.abort()
         raise
@@ -1030,7 +1044,9 @@ def convert_collection(
         Names of jobs to convert again even if their entry is ``ok`` (an
         overwrite): their entries are dropped only under the folder's lock, after
         the settings were compared, so a refused conversion changes nothing; the
-        old file is replaced atomically when the new one is complete.
+        old file is replaced atomically when the new one is complete. Chunks an
+        interrupted conversion of the same source and settings kept are continued
+        (the same events), those of another run removed.
     overwrite : bool
         Replace files at the outputs of ``jobs`` that the folder's manifest does
         not list as this video's output. Default False: such files (a user's own
@@ -1047,8 +1063,8 @@ def convert_collection(
         was killed continues from its last verified chunk, with the same events, bit for bit, as an
         uninterrupted conversion; the chunks are removed once its output is recorded as ``ok``. Chunks of
         another run (its source, settings or code changed since) raise ValueError naming them, under the lock
-        and before anything is converted, unless ``overwrite`` (or the video is in ``redo``, which starts it
-        over). None: no chunks, an interrupted video starts over.
+        and before anything is converted, unless ``overwrite`` (or the video is in ``redo``): then that video
+        starts over. None: no chunks, an interrupted video starts over.
 
     Returns
     -------
@@ -1211,7 +1227,8 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
             on_result(result)
 
     def chunking(job: VideoJob) -> _Chunking:
-        kept = "restart" if job.name in redo else "resume_or_restart" if overwrite else "resume"
+        # redo (--overwrite of one file): chunks of the same run continue (the same events as starting over)
+        kept = "resume_or_restart" if overwrite or job.name in redo else "resume"
         return _Chunking(chunk_frames, kept)
 
     try:
