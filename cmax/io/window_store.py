@@ -98,7 +98,7 @@ def _differences(recorded: dict, now: dict) -> list[str]:
             found += [f"{name} was {before.get(name)!r}, now {after.get(name)!r}"
                       for name in sorted(set(before) | set(after)) if before.get(name) != after.get(name)]
         elif key == "code" and before != after:
-            found.append("the code of cmax (or learned) changed since those windows were computed (another version, "
+            found.append("the code of cmax (or learned) changed since those results were kept (another version, "
                          "or an edited install)")
         elif before != after:
             found.append(f"{key} was {before!r}, now {after!r}")
