@@ -182,7 +182,7 @@ def test_an_interrupt_leaves_the_files_of_another_writer_alone(tmp_path, monkeyp
         jobs = [convert.VideoJob("a", tmp_path / "a.avi"), convert.VideoJob("b", tmp_path / "b.avi")]
         with pytest.raises(KeyboardInterrupt):
             convert._run_parallel(jobs, out, FAST, 2, False, lambda result: None)
-        assert sorted(calls) == ["a.h5", "b.h5"]
+        assert sorted(calls) == [".a.h5.chunks", ".b.h5.chunks", "a.h5", "b.h5"]   # outputs, chunk-folder locks
         assert other.temp.exists() and (out / "a.h5.lock").exists()   # the live writer's files are kept
     finally:
         other.abort()

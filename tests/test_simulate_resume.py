@@ -246,3 +246,17 @@ def test_kept_chunks_whose_last_frame_decodes_otherwise_are_not_continued(tmp_pa
     with pytest.warns(UserWarning, match="converting it from its first frame"):
         convert_video(tmp_path / "v.avi", output, LINEAR, chunk_frames=6, kept="resume_or_restart")
     assert same_events(read_h5(output), whole) and not folder.exists()
+
+
+def test_a_second_conversion_into_the_same_output_is_refused_while_one_runs(tmp_path):
+    """The chunks are one conversion's: while it runs (its lock held) another one into the same output fails at
+    once and changes nothing (without the lock it would have taken the running one's chunks as its own)."""
+    from cmax.io.atomic import OutputLockedError, PathLock, lock_path
+
+    write_video(tmp_path / "v.avi", 12)
+    with PathLock(lock_path(chunk_folder(tmp_path / "v.h5"))):
+        with pytest.raises(OutputLockedError, match="being written by another writer"):
+            convert_video(tmp_path / "v.avi", tmp_path / "v.h5", LINEAR, chunk_frames=4)
+    assert sorted(os.listdir(tmp_path)) == ["v.avi"]
+    convert_video(tmp_path / "v.avi", tmp_path / "v.h5", LINEAR, chunk_frames=4)
+    assert sorted(os.listdir(tmp_path)) == ["v.avi", "v.h5"]

@@ -17,6 +17,8 @@ source's signature, the settings, the digest of cmax's code; :mod:`cmax.io.windo
   frame's pixels and of both files, and whether it is the final chunk (the source ended).
 
 Every file is written atomically (:mod:`cmax.io.atomic`), the record last, so a chunk with a record is complete.
+A conversion holds the lock ``.<name>.h5.chunks.lock`` (beside the folder) while it runs, so a second conversion
+into the same output fails at once rather than sharing the chunks.
 A resumed conversion takes the chunks in order while each one's record names this run and the next frame, and
 both its files have the recorded SHA-256; the first that fails (and every later one) is removed and simulated
 again. A folder of another run (another source, other settings, other code) is refused, or removed when the

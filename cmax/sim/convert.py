@@ -57,7 +57,7 @@ import numpy as np
 from cmax._signals import sigterm_deferred
 from cmax._workers import die_with_parent, recorded, reissue
 from cmax.io import VIDEO_SUFFIXES
-from cmax.io.atomic import OutputLockedError, PathLock, discard_leftovers, file_sha256, write_text_atomic
+from cmax.io.atomic import OutputLockedError, PathLock, discard_leftovers, file_sha256, lock_path, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
 from cmax.sim.chunks import DEFAULT_CHUNK_FRAMES, holds_final_chunk
 from cmax.sim.esim import EsimSettings, EventSimulator
@@ -424,9 +424,10 @@ def convert_video(
         ``overwrite`` is False), ``ValueError`` for a video without frames in the
         range, unreadable or inconsistent frames, kept chunks of another run,
         ``OSError`` naming the output for a full disk or file-size limit,
-        :class:`cmax.io.atomic.OutputLockedError` when another writer is writing ``output``.
+        :class:`cmax.io.atomic.OutputLockedError` when another writer is writing ``output`` (with
+        ``chunk_frames``: another conversion into ``output`` is running, its lock ``.<name>.h5.chunks.lock``).
     """
-    from cmax.sim.chunks import KEPT_MODES, KeptChunks
+    from cmax.sim.chunks import KEPT_MODES, KeptChunks, chunk_folder
 
     settings = ConvertSettings() if settings is None else settings
     started = time.perf_counter()
@@ -439,33 +440,42 @@ def convert_video(
     if not overwrite and os.path.lexists(output):  # before any frame is read (the writer checks again)
         raise FileExistsError(f"{output} exists (pass overwrite=True to replace it)")
     signature, decoded = None, frames is None
-    if frames is None:
-        if not source.exists():
-            raise FileNotFoundError(f"video not found: {source}")
-        signature = source_signature(source)  # before reading: a source changed meanwhile is redone on resume
-        frames = open_frames(source, settings)
-    chunks = None if chunk_frames is None or not decoded else KeptChunks(
-        output, _chunk_run(signature, settings), kept=kept)
-    run = _Run(source, output, settings, chunks, frames, category, overwrite)
-    if chunks is not None and chunks.records and resumed is not None:
-        resumed(chunks.frames, chunks.events)
+    if frames is None and not source.exists():
+        raise FileNotFoundError(f"video not found: {source}")
+    # chunks: one conversion into output at a time, for the whole run (the output's own lock is taken only
+    # when it is written from them)
+    guard = PathLock(lock_path(chunk_folder(output)), output) if chunk_frames is not None and decoded else None
+    not_continued = None
     try:
-        with _frames_on_the_grey_scale(decoded):
-            if chunks is None or not chunks.records or not chunks.records[-1]["final"]:
-                run.simulate(frames, chunk_frames, progress)
-            run.finish()
-    except _NotContinued as error:
-        run.abort()
+        if frames is None:
+            signature = source_signature(source)  # before reading: a source changed meanwhile is redone on resume
+            frames = open_frames(source, settings)
+        chunks = None if guard is None else KeptChunks(output, _chunk_run(signature, settings), kept=kept)
+        run = _Run(source, output, settings, chunks, frames, category, overwrite)
+        if chunks is not None and chunks.records and resumed is not None:
+            resumed(chunks.frames, chunks.events)
+        try:
+            with _frames_on_the_grey_scale(decoded):
+                if chunks is None or not chunks.records or not chunks.records[-1]["final"]:
+                    run.simulate(frames, chunk_frames, progress)
+                run.finish()
+        except _NotContinued as error:
+            run.abort()
+            not_continued = error
+        except BaseException:
+            run.abort()
+            raise
+        if chunks is not None and not keep_chunks and not_continued is None:
+            chunks.remove()
+    finally:
+        if guard is not None:
+            guard.release()
+    if not_continued is not None:
         if kept == "resume":
-            raise ValueError(f"{error}: pass --overwrite (kept='resume_or_restart') to start over") from None
-        warnings.warn(f"{error}: converting it from its first frame", UserWarning, stacklevel=2)
+            raise ValueError(f"{not_continued}: pass --overwrite (kept='resume_or_restart') to start over")
+        warnings.warn(f"{not_continued}: converting it from its first frame", UserWarning, stacklevel=2)
         return convert_video(source, output, settings, category=category, progress=progress, overwrite=overwrite,
                              chunk_frames=chunk_frames, kept="restart", keep_chunks=keep_chunks)
-    except BaseException:
-        run.abort()
-        raise
-    if chunks is not None and not keep_chunks:
-        chunks.remove()
     count, duration = run.count, (run.count.last_t - run.count.first_t) * 1e-6
     return VideoResult(
         name=output.stem, source=str(source), output=str(output), category=category, status="ok",
@@ -1356,8 +1366,8 @@ def _discard_after_stop(output: Path, pid: int | None, wait_s: float = STOPPED_W
 
     deadline = time.monotonic() + wait_s
     chunks = chunk_folder(output)
-    targets = [output, *sorted({chunks / name.rsplit(".", 2)[0] for name in
-                                (os.listdir(chunks) if chunks.is_dir() else ()) if name.endswith(".partial")})]
+    targets = [output, chunks, *sorted({chunks / name.rsplit(".", 2)[0] for name in
+                                        (os.listdir(chunks) if chunks.is_dir() else ()) if name.endswith(".partial")})]
     for target in targets:
         while True:
             worker_alive = pid is not None and _process_exists(pid)
