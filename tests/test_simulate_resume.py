@@ -260,3 +260,15 @@ def test_a_second_conversion_into_the_same_output_is_refused_while_one_runs(tmp_
     assert sorted(os.listdir(tmp_path)) == ["v.avi"]
     convert_video(tmp_path / "v.avi", tmp_path / "v.h5", LINEAR, chunk_frames=4)
     assert sorted(os.listdir(tmp_path)) == ["v.avi", "v.h5"]
+
+
+def test_chunks_of_a_video_this_run_does_not_convert_are_named(tmp_path, monkeypatch, capsys):
+    """Chunks left by an interrupted conversion of another video hold disk space (as much as its output) that no
+    run would free: a conversion into the folder names them."""
+    output, folder, _ = _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=2)
+    write_video(tmp_path / "w.avi", 8)
+    jobs, _ = collect_jobs(tmp_path / "w.avi")
+    convert_collection(jobs, tmp_path, LINEAR, progress=False)
+    err = capsys.readouterr().err
+    assert "kept chunks of 1 interrupted conversion(s) of other videos than this run's (.v.h5.chunks)" in err
+    assert folder.is_dir()                                 # named, not removed

@@ -1213,6 +1213,8 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
     todo = [job for job in jobs if manifest["videos"].get(job.name, {}).get("status") != "ok"]
     manifest["totals"] = _totals(manifest["videos"])
     write_manifest(path, manifest)
+    if (note := _other_chunks_note(output_dir, names)) is not None:
+        print(note, file=sys.stderr)
     from tqdm.auto import tqdm
 
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="videos", unit="video",
@@ -1253,6 +1255,20 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
     if unsaved:
         write_manifest(path, manifest)  # a last try; raises when the disk is still full
     return manifest
+
+
+def _other_chunks_note(output_dir: Path, names: set[str]) -> str | None:
+    """A note naming the chunk folders in ``output_dir`` of videos other than ``names`` (interrupted conversions
+    this one does not continue: they hold disk space until their videos are converted), or None."""
+    suffix = ".h5.chunks"
+    others = sorted(path.name for path in output_dir.glob(f".*{suffix}")
+                    if path.is_dir() and path.name[1:-len(suffix)] not in names)
+    if not others:
+        return None
+    listed = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
+    return (f"cmax: note: {output_dir} holds the kept chunks of {len(others)} interrupted conversion(s) of other "
+            f"videos than this run's ({listed}): convert those videos into it to continue them, or remove the "
+            "folders")
 
 
 def _remove_chunks(output: Path) -> None:
