@@ -1197,6 +1197,10 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
     names = set(sources)
     for name, entry in manifest["videos"].items():  # never skip a video whose source changed
         if entry["status"] == "ok" and name in sources:
+            if not os.path.lexists(sources[name]):  # deleted after its conversion (to free space): nothing to redo
+                print(f"cmax: note: {name}: its source {sources[name]} is not there (deleted or moved since it was "
+                      "converted); its output is kept as converted, once verified", file=sys.stderr)
+                continue
             problem = source_problem(entry, sources[name])
             if problem is not None:
                 manifest["videos"][name] = dict(entry, status="failed",
