@@ -99,19 +99,23 @@ def _interrupted(tmp_path, monkeypatch, settings, stop_at: int):
     return tmp_path / "v.h5", chunk_folder(tmp_path / "v.h5"), read_h5(tmp_path / "whole.h5")
 
 
-@pytest.mark.parametrize("damaged", ["chunk_000001.events", "chunk_000001.state.npz", "chunk_000001.json"])
-def test_a_damaged_chunk_is_simulated_again_never_trusted(tmp_path, monkeypatch, damaged):
+@pytest.mark.parametrize("damaged, kept_frames", [
+    ("chunk_000004.events", 24), ("chunk_000004.state.npz", 24), ("chunk_000004.json", 24),   # from chunk 3
+    ("chunk_000001.events", None),        # before the kept states: simulated again from the first frame
+])
+def test_a_damaged_chunk_is_simulated_again_never_trusted(tmp_path, monkeypatch, damaged, kept_frames):
     settings = ConvertSettings(esim=NOISY)                 # adaptive sampling with optical flow
-    output, folder, whole = _interrupted(tmp_path, monkeypatch, settings, stop_at=4)
-    assert sorted(p.name for p in folder.glob("chunk_*.json")) == [f"chunk_00000{i}.json" for i in range(3)]
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, settings, stop_at=6)
+    assert sorted(p.name for p in folder.glob("chunk_*.json")) == [f"chunk_00000{i}.json" for i in range(5)]
+    assert sorted(p.name for p in folder.glob("*.state.npz")) == ["chunk_000003.state.npz", "chunk_000004.state.npz"]
     data = bytearray((folder / damaged).read_bytes())
     data[len(data) // 2] ^= 0x01                           # one bit, size unchanged
     (folder / damaged).write_bytes(bytes(data))
     resumed = []
-    with pytest.warns(UserWarning, match="2 kept chunk.s. failed their check"):
+    with pytest.warns(UserWarning, match="kept chunk.s. are simulated again: a chunk failed its check"):
         result = convert_video(tmp_path / "v.avi", output, settings, chunk_frames=6,
                                resumed=lambda frames, events: resumed.append(frames))
-    assert resumed == [6]                                  # chunk 0 only: chunk 1 failed its check, 2 came after it
+    assert resumed == ([] if kept_frames is None else [kept_frames])
     assert same_events(read_h5(output), whole) and result.frames == 40
     assert not folder.exists()
 

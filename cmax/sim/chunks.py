@@ -12,7 +12,8 @@ source's signature, the settings, the digest of cmax's code; :mod:`cmax.io.windo
   first, and ``p`` (n,) int8, little-endian;
 * ``chunk_<k>.state.npz``: what the conversion carries into the next chunk: the simulator's state
   (:meth:`cmax.sim.esim.EventSimulator.state`: reference log intensity, last-crossing times, thresholds, the
-  noise generator); the adaptive sampler restarts from the chunk's last video frame, decoded again;
+  noise generator; several bytes a pixel, so it is kept for the last :data:`KEPT_STATES` chunks only); the
+  adaptive sampler restarts from the chunk's last video frame, decoded again;
 * ``chunk_<k>.json``, written last: the run's digest, the chunk's video frames ``[first_frame, end_frame)``, the
   counts so far (samples, capped intervals), the first and last frame times [µs], the SHA-256 of the last video
   frame's pixels and of both files, and whether it is the final chunk (the source ended).
@@ -21,9 +22,10 @@ Every file is written atomically (:mod:`cmax.io.atomic`), the record last, so a 
 A conversion holds the lock ``.<name>.h5.chunks.lock`` (beside the folder) while it runs, so a second conversion
 into the same output fails at once rather than sharing the chunks.
 A resumed conversion takes the chunks in order while each one's record names this run and the next frame, and
-both its files have the recorded SHA-256; the first that fails (and every later one) is removed and simulated
-again. A folder of another run (another source, other settings, other code) is refused, or removed when the
-caller asks to start over. The folder is removed once the output is complete.
+its files have the recorded SHA-256; the first that fails (and every later one) is removed and simulated
+again, from the last chunk before it whose state is kept (the first frame when none is). A folder of another
+run (another source, other settings, other code) is refused, or removed when the caller asks to start over.
+The folder is removed once the output is complete.
 """
 from __future__ import annotations
 
@@ -49,7 +51,7 @@ try:    # ISA-L's deflate and inflate: the zlib format, several times faster (a 
 except ImportError:  # pragma: no cover - machines without isal wheels
     _deflate = zlib
 
-__all__ = ["DEFAULT_CHUNK_FRAMES", "KEPT_MODES", "KeptChunks", "ChunkWriter", "chunk_folder", "frame_digest",
+__all__ = ["DEFAULT_CHUNK_FRAMES", "KEPT_MODES", "KEPT_STATES", "KeptChunks", "ChunkWriter", "chunk_folder", "frame_digest",
            "holds_final_chunk", "kept_problem"]
 
 #: Video frames per kept chunk by default (10 s of a 30 frames/s video).
@@ -57,6 +59,9 @@ DEFAULT_CHUNK_FRAMES = 300
 #: What a conversion does with kept chunks: take them (another run's: ValueError), take them (another run's:
 #: removed), or remove them all and start from the first frame.
 KEPT_MODES = ("resume", "resume_or_restart", "restart")
+#: Chunks whose simulator state is kept (the last ones): a resumed run continues from the last of them that
+#: passes its check; a damaged chunk before them is simulated again from the first frame.
+KEPT_STATES = 2
 _RUN_FILE = "run.json"
 _RECORD = re.compile(r"chunk_(\d{6})\.json")
 #: Most events in one compressed block of a chunk's events file.
@@ -220,6 +225,9 @@ class KeptChunks:
             records.append(record)
             if record["final"]:
                 break
+        if records and not records[-1]["final"]:    # continued from the last chunk whose state is kept
+            while records and not self._state_path(len(records) - 1).is_file():
+                records.pop()
         for path in sorted(self.folder.iterdir()):
             match = _RECORD.fullmatch(path.name)
             if match and int(match.group(1)) >= len(records):
@@ -238,8 +246,9 @@ class KeptChunks:
             if (record["run"] != self.digest or record["index"] != index or record["first_frame"] != first
                     or record["end_frame"] < first or not isinstance(record["final"], bool)):
                 return None
+            state = self._state_path(index)       # kept for the last KEPT_STATES chunks only
             if (file_sha256(self._events_path(index)) != record["events_sha256"]
-                    or file_sha256(self._state_path(index)) != record["state_sha256"]):
+                    or (os.path.lexists(state) and file_sha256(state) != record["state_sha256"])):
                 return None
         except (OSError, ValueError, KeyError, TypeError):
             return None
@@ -305,6 +314,8 @@ class KeptChunks:
                     events_sha256=events_sha, state_sha256=hashlib.sha256(state_bytes).hexdigest())
         write_text_atomic(self.folder / f"chunk_{index:06d}.json", json.dumps(full, indent=1))
         self.records.append(full)
+        if index >= KEPT_STATES:                   # a state as large as a few frames: the last ones are enough
+            self._state_path(index - KEPT_STATES).unlink(missing_ok=True)
         return full
 
     def remove(self) -> None:

@@ -453,8 +453,9 @@ def convert_video(
         chunks = None if guard is None else KeptChunks(output, _chunk_run(signature, settings), kept=kept)
         run = _Run(source, output, settings, chunks, frames, category, overwrite)
         if chunks is not None and chunks.redone:
-            warnings.warn(f"{output}: {chunks.redone} kept chunk(s) failed their check (changed since they were "
-                          f"written, or after one that did) and are simulated again", UserWarning, stacklevel=2)
+            warnings.warn(f"{output}: {chunks.redone} kept chunk(s) are simulated again: a chunk failed its check "
+                          "(changed since it was written), and the chunks after it (and those since the last kept "
+                          "simulator state before it) depend on it", UserWarning, stacklevel=2)
         if chunks is not None and chunks.records and resumed is not None:
             resumed(chunks.frames, chunks.events)
         try:
