@@ -182,7 +182,7 @@ def test_an_interrupt_leaves_the_files_of_another_writer_alone(tmp_path, monkeyp
         jobs = [convert.VideoJob("a", tmp_path / "a.avi"), convert.VideoJob("b", tmp_path / "b.avi")]
         with pytest.raises(KeyboardInterrupt):
             convert._run_parallel(jobs, out, FAST, 2, False, lambda result: None)
-        assert sorted(calls) == ["a.h5", "b.h5"]
+        assert sorted(calls) == [".a.h5.chunks", ".b.h5.chunks", "a.h5", "b.h5"]   # outputs, chunk-folder locks
         assert other.temp.exists() and (out / "a.h5.lock").exists()   # the live writer's files are kept
     finally:
         other.abort()
@@ -350,3 +350,21 @@ def test_a_stopped_worker_s_lock_is_waited_for_only_while_the_worker_exists(tmp_
         assert other.temp.exists() and (tmp_path / "a.h5.lock").exists()
     finally:
         other.abort()
+
+
+def test_a_source_deleted_after_its_conversion_keeps_its_verified_output_ok(tmp_path, capsys):
+    """Sources are often deleted once converted (disk space): a rerun of the list marked the intact output
+    `failed` (`video not found`), exit 1, and the totals lost its events; the output stays `ok` once verified."""
+    write_video(tmp_path / "a.avi")
+    write_video(tmp_path / "b.avi", shift=3)
+    (tmp_path / "list.txt").write_text("a.avi\nb.avi\n")
+    out = tmp_path / "out"
+    first = convert_collection(collect_jobs(tmp_path / "list.txt")[0], out, FAST, progress=False)
+    (tmp_path / "a.avi").unlink()
+    capsys.readouterr()
+    again = convert_collection(collect_jobs(tmp_path / "list.txt")[0], out, FAST, progress=False)
+    assert again["videos"]["a"] == first["videos"]["a"] and again["totals"] == first["totals"]
+    assert "a: its source" in capsys.readouterr().err
+    (out / "a.h5").write_bytes(b"damaged")                  # not verified, and nothing to convert it from
+    damaged = convert_collection(collect_jobs(tmp_path / "list.txt")[0], out, FAST, progress=False)
+    assert damaged["videos"]["a"]["status"] == "failed"

@@ -471,7 +471,8 @@ def test_killing_the_parent_of_two_workers_leaves_no_process(tmp_path):
     for seed, name in enumerate("abc"):     # long enough that no video is done between the checks below
         _write_video(videos / f"{name}.avi", 1200, seed)
     parent = subprocess.Popen(_cmax("simulate", str(videos), "-o", str(out), "--quiet", "--method", "linear",
-                                    "--workers", "2"), env=_env(), stdout=subprocess.DEVNULL,
+                                    "--workers", "2", "--chunk-frames", "0"),   # the outputs written as they go
+                              env=_env(), stdout=subprocess.DEVNULL,
                               stderr=subprocess.PIPE)
     try:
         partials = _wait_for(lambda: (lambda found: found if len(found) == 2 or parent.poll() is not None
@@ -517,7 +518,7 @@ def test_a_killed_worker_fails_its_own_video_only(tmp_path):
     killer = threading.Thread(target=kill_the_worker_of_a, daemon=True)
     killer.start()
     settings = ConvertSettings(method="linear")
-    manifest = convert_collection(jobs, out, settings, workers=2, progress=False)
+    manifest = convert_collection(jobs, out, settings, workers=2, progress=False, chunk_frames=None)  # no chunks kept
     killer.join(timeout=10)
     assert killed and not _alive(killed[0])
     assert {name: entry["status"] for name, entry in manifest["videos"].items()} == {

@@ -72,11 +72,24 @@ def _run(args: argparse.Namespace) -> int:
     converted: set[str] = set()
     manifest = convert_collection(jobs, args.output, settings, workers=args.workers, missing=missing,
                                   catalogue=args.catalogue, shard=shard, progress=not args.quiet,
-                                  on_result=_converted(converted), overwrite=args.overwrite)
+                                  on_result=_converted(converted), overwrite=args.overwrite,
+                                  chunk_frames=_chunk_frames(args))
     status = _report_manifest(args.output / "manifest.json", manifest, [job.name for job in jobs], converted)
     if missing:
         print(f"  missing from {args.input}: {', '.join(missing)}", file=sys.stderr)
     return status
+
+
+def _default_chunk_frames() -> int:
+    """The library's video frames per kept chunk (:data:`cmax.sim.chunks.DEFAULT_CHUNK_FRAMES`)."""
+    from cmax.sim.chunks import DEFAULT_CHUNK_FRAMES
+
+    return DEFAULT_CHUNK_FRAMES
+
+
+def _chunk_frames(args: argparse.Namespace) -> int | None:
+    """``--chunk-frames``: video frames per kept chunk, None for no chunks (0)."""
+    return _default_chunk_frames() if args.chunk_frames is None else args.chunk_frames or None
 
 
 def _frames_intrinsics(args: argparse.Namespace) -> tuple[float, float, float, float] | None:
@@ -236,13 +249,15 @@ def _image_folder(source: Path) -> Path | None:
 
 def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     """``cmax simulate SOURCE -o F.h5``: one conversion with progress and a manifest beside F.h5."""
+    from cmax.sim.chunks import holds_final_chunk
     from cmax.sim.convert import VideoJob, convert_collection, load_manifest
 
     output = args.output
     manifest_path = output.parent / "manifest.json"
     manifest = load_manifest(manifest_path) if manifest_path.is_file() else None
     listed = manifest["videos"].get(output.stem) if manifest else None
-    if output.exists() and not args.overwrite and not (listed and listed.get("status") == "ok"):
+    if (output.exists() and not args.overwrite and not (listed and listed.get("status") == "ok")
+            and not holds_final_chunk(output)):    # written from its kept chunks, then killed: written again
         raise FileExistsError(f"{output} exists and is not a finished conversion of {manifest_path}; "
                               "pass --overwrite to replace it")
     job = VideoJob(output.stem, source)
@@ -251,7 +266,7 @@ def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     converted: set[str] = set()
     manifest = convert_collection([job], output.parent, settings, workers=1, progress=not args.quiet,
                                   redo=[job.name] if args.overwrite else (), overwrite=args.overwrite,
-                                  on_result=_converted(converted))
+                                  on_result=_converted(converted), chunk_frames=_chunk_frames(args))
     return _report_manifest(manifest_path, manifest, [job.name], converted)
 
 
@@ -299,7 +314,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
         "timestamps.txt) or a timestamp file to one h5 file (-o F.h5, with manifest.json beside it); or a "
         "folder of videos, a list file (one video per line, optional tab and category) or a catalogue's "
         "folder (--catalogue slowtv) to DSEC-layout h5 files in the folder -o, with manifest.json; "
-        "resumable, in --workers processes. Exit status 1 when a video fails or yields no events, or when "
+        "resumable (finished videos are verified and skipped; a video killed part-way continues from its last "
+        "kept chunk, see --chunk-frames), in --workers processes. Exit status 1 when a video fails or yields no events, or when "
         "none of a catalogue's videos (of its shard) is found.",
     )
     parser.add_argument("input", type=Path,
@@ -347,9 +363,16 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                         "a video, an image folder, a folder of videos or a list file)")
     parser.add_argument("--shard", default=None, metavar="i/n",
                         help="convert shard i of n (0-based; default: all)")
+    api_default(parser.add_argument(
+        "--chunk-frames", type=nonnegative_int, default=None, metavar="N",
+        help="keep each video's events in chunks of N video frames (in .NAME.h5.chunks beside its output, removed "
+        "when it is done), so that a killed conversion continues from its last chunk when run again, with the "
+        "same events, bit for bit; 0: no chunks, a killed video starts over"), _default_chunk_frames)
     parser.add_argument("--overwrite", action="store_true",
                         help="replace an existing output .h5 (-o F.h5: convert it again); a folder: replace the "
-                        "files at its videos' outputs that its manifest does not list (refused without it)")
+                        "files at its videos' outputs that its manifest does not list; and start over the videos "
+                        "whose kept chunks are of another video or settings (each refused without it; chunks of "
+                        "the same video and settings are continued: the same events)")
     parser.add_argument("--quiet", action="store_true", help="no progress bars")
     parser.set_defaults(run=run)
     return parser

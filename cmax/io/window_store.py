@@ -34,7 +34,7 @@ from cmax.io.atomic import fsync_folder, write_bytes_atomic, write_text_atomic
 from cmax.sim.signature import signature_problem
 
 __all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "settings_record", "open_kept",
-           "write_run_record", "stopped_line", "code_digest", "run_digest"]
+           "write_run_record", "stopped_line", "code_digest", "run_digest", "run_differences"]
 
 #: The folder in ``-o`` that holds the finished windows of a run of ``cmax fit`` until its results are in.
 WINDOWS_FOLDER = ".fit.windows"
@@ -98,11 +98,23 @@ def _differences(recorded: dict, now: dict) -> list[str]:
             found += [f"{name} was {before.get(name)!r}, now {after.get(name)!r}"
                       for name in sorted(set(before) | set(after)) if before.get(name) != after.get(name)]
         elif key == "code" and before != after:
-            found.append("the code of cmax (or learned) changed since those windows were computed (another version, "
+            found.append("the code of cmax (or learned) changed since those results were kept (another version, "
                          "or an edited install)")
         elif before != after:
             found.append(f"{key} was {before!r}, now {after!r}")
     return found
+
+
+def run_differences(recorded: dict, now: dict) -> list[str]:
+    """What differs between two records of a run (``run.json``: signatures of its files, ``settings``, ``code``),
+    one phrase each (empty when they match; a moved file with the same size and modification time matches).
+
+    Parameters
+    ----------
+    recorded, now : dict
+        The kept run's record and the new run's, JSON-ready.
+    """
+    return _differences(recorded, now)
 
 
 def open_kept(folder: Path, run: dict, *, found: int, resume: bool, overwrite: bool, command: str) -> None:

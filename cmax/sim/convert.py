@@ -41,6 +41,7 @@ import json
 import math
 import numbers
 import os
+import shutil
 import signal
 import sys
 import threading
@@ -56,8 +57,9 @@ import numpy as np
 from cmax._signals import sigint_deferred, sigterm_deferred
 from cmax._workers import die_with_parent, recorded, reissue, start_forkserver
 from cmax.io import VIDEO_SUFFIXES
-from cmax.io.atomic import OutputLockedError, PathLock, discard_leftovers, file_sha256, write_text_atomic
+from cmax.io.atomic import OutputLockedError, PathLock, discard_leftovers, file_sha256, lock_path, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
+from cmax.sim.chunks import DEFAULT_CHUNK_FRAMES, holds_final_chunk
 from cmax.sim.esim import EsimSettings, EventSimulator
 from cmax.sim.signature import signature_problem, source_signature
 from cmax.sim.video import DEFAULT_PREFETCH, VideoFileSource, open_source
@@ -305,13 +307,56 @@ def stretch_note(source: str | os.PathLike, stored: tuple[int, int], size: tuple
             f"{down:.3g}); {width}x{max(1, round(width * h / w))} (--size) keeps its shape")
 
 
-def _counted(frames: Iterable[tuple[np.ndarray, int]], counter: list[int]):
+class _Count:
+    """What a conversion has read so far: video frames, the first and last frame times [µs], intervals where
+    adaptive sampling was capped, and the last frame (as decoded)."""
+
+    def __init__(self, frames: int = 0, first_t: int = 0, last_t: int = 0, capped: int = 0) -> None:
+        self.frames, self.first_t, self.last_t, self.capped = frames, first_t, last_t, capped
+        self.last_frame: np.ndarray | None = None
+
+
+def _counted(frames: Iterable[tuple[np.ndarray, int]], count: _Count):
     for frame, t_us in frames:
-        if not counter[0]:
-            counter[1] = t_us
-        counter[0] += 1
-        counter[2] = t_us
+        if not count.frames:
+            count.first_t = t_us
+        count.frames += 1
+        count.last_t, count.last_frame = t_us, frame
         yield frame, t_us
+
+
+class _NotContinued(ValueError):
+    """The kept chunks cannot be continued: the source decodes to other frames than when they were kept."""
+
+
+def _skip_kept(frames: Iterable[tuple[np.ndarray, int]], kept: int, record: dict, source: Path):
+    """``frames`` from frame ``kept - 1`` on (the last frame of the kept chunks, whose ``record`` is given),
+    after checking that this frame is the one the chunks ended on (time and pixels); :class:`_NotContinued`
+    otherwise."""
+    from cmax.sim.chunks import frame_digest
+
+    stream = iter(frames)
+    for number, (frame, t_us) in enumerate(stream):
+        if number < kept - 1:
+            continue
+        if int(t_us) != record["last_t_us"] or frame_digest(frame) != record["frame_sha256"]:
+            raise _NotContinued(f"{source}: frame {kept - 1} decodes differently from when its chunk was kept (at "
+                                f"{t_us} µs, then {record['last_t_us']} µs, or to other pixels: another OpenCV or "
+                                "FFmpeg?), so the kept chunks cannot be continued")
+        yield frame, t_us
+        yield from stream
+        return
+    raise _NotContinued(f"{source} decodes to fewer frames than the {kept} its kept chunks cover (another "
+                        "OpenCV or FFmpeg?), so they cannot be continued")
+
+
+def _chunk_run(signature: dict, settings: ConvertSettings) -> dict[str, Any]:
+    """What a chunked conversion is (``run.json`` of :mod:`cmax.sim.chunks`): the source's signature, the
+    settings and the code of cmax (the events change with any of them)."""
+    from cmax.io.window_store import code_digest
+
+    return {"format": "evtslowtv-chunks/1", "source": signature, "settings": _flat(settings.to_dict()),
+            "code": code_digest("cmax")}
 
 
 def convert_video(
@@ -323,6 +368,10 @@ def convert_video(
     frames: Iterable[tuple[np.ndarray, int]] | None = None,
     progress: Callable[[int], None] | None = None,
     overwrite: bool = False,
+    chunk_frames: int | None = None,
+    kept: str = "resume",
+    keep_chunks: bool = False,
+    resumed: Callable[[int, int], None] | None = None,
 ) -> VideoResult:
     """Convert one video to a DSEC-layout event file, streaming (constant memory).
 
@@ -337,7 +386,7 @@ def convert_video(
     category : str, optional
         Stored in the file attributes and the result.
     frames : iterable of (frame, t_us), optional
-        Frames to use instead of reading ``source`` (grey or BGR, µs).
+        Frames to use instead of reading ``source`` (grey or BGR, µs); nothing is kept to resume then.
     progress : callable, optional
         Called with the number of new video frames read, now and then.
     overwrite : bool
@@ -345,78 +394,210 @@ def convert_video(
         complete; a failed conversion keeps the old one). Default False: an
         existing ``output`` raises ``FileExistsError`` before anything is read,
         as :func:`cmax.io.h5.write_h5` and ``cmax simulate`` do.
+    chunk_frames : int, optional
+        Keep the events in chunks of this many video frames (>= 1), each with the simulator's state after it
+        (:mod:`cmax.sim.chunks`: ``.<name>.h5.chunks`` beside ``output``), so that a conversion killed part-way
+        continues from its last kept chunk when it is run again, with the same events, bit for bit, as an
+        uninterrupted one; ``output`` is then written from the chunks once the video has ended. None (the
+        default): events go straight into ``output`` and an interrupted conversion starts over.
+    kept : {"resume", "resume_or_restart", "restart"}
+        With ``chunk_frames``, what to do with chunks a killed conversion into ``output`` kept: continue from
+        them when they are of this run (the same source by size and modification time, the same settings and
+        code; a chunk that fails its check is simulated again), and raise ValueError naming what differs when
+        they are another's (``"resume"``, the default) or start over then (``"resume_or_restart"``); or start
+        over whatever they are (``"restart"``). Kept chunks whose last video frame decodes to other pixels now
+        (another OpenCV or FFmpeg) are another run's too (with ``"resume_or_restart"``: a UserWarning, and
+        the video is converted from its first frame).
+    keep_chunks : bool
+        Leave the chunks in place once ``output`` is written (the caller removes them with
+        :meth:`cmax.sim.chunks.KeptChunks.remove`, e.g. once the output is verified and recorded); default
+        False: removed then.
+    resumed : callable, optional
+        Called once, with the video frames and the events the kept chunks hold, when the conversion continues
+        from them.
 
     Returns
     -------
     VideoResult
-        With ``status="ok"``. Errors raise (the temporary file is removed):
+        With ``status="ok"``. Errors raise (the temporary file is removed; kept chunks stay, to resume):
         ``FileNotFoundError``, ``FileExistsError`` (``output`` exists and
         ``overwrite`` is False), ``ValueError`` for a video without frames in the
-        range, unreadable or inconsistent frames, ``OSError`` naming the output
-        for a full disk or file-size limit, :class:`cmax.io.atomic.OutputLockedError`
-        when another writer is writing ``output``.
+        range, unreadable or inconsistent frames, kept chunks of another run,
+        ``OSError`` naming the output for a full disk or file-size limit,
+        :class:`cmax.io.atomic.OutputLockedError` when another writer is writing ``output`` (with
+        ``chunk_frames``: another conversion into ``output`` is running, its lock ``.<name>.h5.chunks.lock``).
     """
-    from cmax import __version__
-    from cmax.io.h5 import H5Writer
+    from cmax.sim.chunks import KEPT_MODES, KeptChunks, chunk_folder
 
     settings = ConvertSettings() if settings is None else settings
     started = time.perf_counter()
     source, output = Path(source), Path(output)
+    if chunk_frames is not None and (isinstance(chunk_frames, bool) or not isinstance(chunk_frames, numbers.Integral)
+                                     or chunk_frames < 1):
+        raise ValueError(f"chunk_frames must be an integer >= 1 or None, got {chunk_frames!r}")
+    if kept not in KEPT_MODES:
+        raise ValueError(f"kept must be one of {', '.join(KEPT_MODES)}, got {kept!r}")
     if not overwrite and os.path.lexists(output):  # before any frame is read (the writer checks again)
         raise FileExistsError(f"{output} exists (pass overwrite=True to replace it)")
     signature, decoded = None, frames is None
-    if frames is None:
-        if not source.exists():
-            raise FileNotFoundError(f"video not found: {source}")
-        signature = source_signature(source)  # before reading: a source changed meanwhile is redone on resume
-        frames = open_frames(source, settings)
-    counter = [0, 0, 0, 0]  # frames read, first and last time, capped intervals
-    stream: Iterable = _counted(frames, counter)
-    if settings.adaptive:
-        from cmax.sim.sampling import iter_upsample
-
-        threshold = min(settings.esim.cp, settings.esim.cn)
-
-        def count_capped(interval) -> None:
-            counter[3] += int(interval.capped)
-
-        stream = iter_upsample(stream, threshold, lam=settings.lam, method=settings.method,
-                               report=count_capped)
-    simulator = EventSimulator.from_settings(settings.esim)
-    stored = getattr(frames, "stored_size", None)   # the frames' (width, height) before --size resized them
-    frame_size = {} if stored is None else {"source_size": [int(stored[0]), int(stored[1])]}
-    writer, samples, reported, K = None, 0, 0, None
+    if frames is None and not source.exists():
+        raise FileNotFoundError(f"video not found: {source}")
+    # chunks: one conversion into output at a time, for the whole run (the output's own lock is taken only
+    # when it is written from them)
+    guard = PathLock(lock_path(chunk_folder(output)), output) if chunk_frames is not None and decoded else None
+    not_continued = None
     try:
-        with _frames_on_the_grey_scale(decoded):
-            for frame, t_us in stream:
-                events = simulator.step(frame, t_us)
-                if writer is None:   # the frames' K on the output's pixels, checked before anything is written
-                    K = settings.output_K(stored or (events.width, events.height), events.width, events.height)
-                    writer = H5Writer(
-                        output, events.width, events.height, t_offset_us=int(t_us), overwrite=overwrite,
-                        source=str(source), category=category or "", simulator=f"cmax {__version__}",
-                        settings=settings.to_dict(), **frame_size,
-                    )
-                writer.append(events)
-                samples += 1
-                if progress is not None and counter[0] > reported:
-                    progress(counter[0] - reported)
-                    reported = counter[0]
-        if writer is None:
-            raise ValueError(f"{source}: no frames" + _range_note(settings))
-        writer.close(extra=None if K is None else lambda file: file.create_dataset("gt/K", data=K))
-    except BaseException:
-        if writer is not None:
-            writer.abort()
-        raise
-    duration = (counter[2] - counter[1]) * 1e-6
+        if frames is None:
+            signature = source_signature(source)  # before reading: a source changed meanwhile is redone on resume
+            frames = open_frames(source, settings)
+        chunks = None if guard is None else KeptChunks(output, _chunk_run(signature, settings), kept=kept)
+        run = _Run(source, output, settings, chunks, frames, category, overwrite)
+        if chunks is not None and chunks.redone:
+            warnings.warn(f"{output}: {chunks.redone} kept chunk(s) are simulated again: a chunk failed its check "
+                          "(changed since it was written), and the chunks after it (and those since the last kept "
+                          "simulator state before it) depend on it", UserWarning, stacklevel=2)
+        if chunks is not None and chunks.records and resumed is not None:
+            resumed(chunks.frames, chunks.events)
+        try:
+            with _frames_on_the_grey_scale(decoded):
+                if chunks is None or not chunks.records or not chunks.records[-1]["final"]:
+                    run.simulate(frames, chunk_frames, progress)
+                run.finish()
+        except _NotContinued as error:
+            run.abort()
+            not_continued = error
+        except BaseException:
+            run.abort()
+            raise
+        if chunks is not None and not keep_chunks and not_continued is None:
+            chunks.remove()
+    finally:
+        if guard is not None:
+            guard.release()
+    if not_continued is not None:
+        if kept == "resume":
+            raise ValueError(f"{not_continued}: pass --overwrite (kept='resume_or_restart') to start over")
+        warnings.warn(f"{not_continued}: converting it from its first frame", UserWarning, stacklevel=2)
+        return convert_video(source, output, settings, category=category, progress=progress, overwrite=overwrite,
+                             chunk_frames=chunk_frames, kept="restart", keep_chunks=keep_chunks)
+    count, duration = run.count, (run.count.last_t - run.count.first_t) * 1e-6
     return VideoResult(
         name=output.stem, source=str(source), output=str(output), category=category, status="ok",
-        frames=counter[0], samples=samples, capped_intervals=counter[3],
-        events=writer.count, duration_s=duration,
-        events_per_s=writer.count / duration if duration > 0 else 0.0,
+        frames=count.frames, samples=run.samples, capped_intervals=count.capped,
+        events=run.events, duration_s=duration,
+        events_per_s=run.events / duration if duration > 0 else 0.0,
         wall_s=time.perf_counter() - started, source_signature=signature,
     )
+
+
+class _Run:
+    """One video's conversion: the simulation (into the output, or into kept chunks) and the output's writing."""
+
+    def __init__(self, source: Path, output: Path, settings: ConvertSettings, chunks, frames, category, overwrite):
+        self.source, self.output, self.settings, self.chunks = source, output, settings, chunks
+        self.category, self.overwrite = category, overwrite
+        self.stored = getattr(frames, "stored_size", None)   # the frames' (width, height) before --size resized them
+        self.count, self.samples, self.size = _Count(), 0, None
+        self.writer = self.chunk = self.K = None
+        self.events = 0
+        last = chunks.records[-1] if chunks is not None and chunks.records else None
+        if last is not None:
+            self.count = _Count(last["end_frame"], last["first_t_us"], last["last_t_us"], last["capped"])
+            self.samples, self.size = last["samples"], (last["width"], last["height"])
+
+    def _open_output(self, width: int, height: int, t_offset_us: int):
+        """The output's writer (its K checked first)."""
+        from cmax import __version__
+        from cmax.io.h5 import H5Writer
+
+        self.K = self.settings.output_K(self.stored or (width, height), width, height)
+        frame_size = {} if self.stored is None else {"source_size": [int(self.stored[0]), int(self.stored[1])]}
+        writer = H5Writer(
+            self.output, width, height, t_offset_us=int(t_offset_us), overwrite=self.overwrite,
+            source=str(self.source), category=self.category or "", simulator=f"cmax {__version__}",
+            settings=self.settings.to_dict(), **frame_size,
+        )
+        return writer
+
+    def simulate(self, frames, chunk_frames: int | None, progress) -> None:
+        """Feed the frames (from the kept chunks' end on) to the simulator, keeping chunks or writing the output."""
+        settings, chunks = self.settings, self.chunks
+        resume = chunks is not None and bool(chunks.records)
+        count = self.count
+        if resume:
+            count.frames -= 1                    # the chunks' last frame is read again, to restart the sampler
+            frames = _skip_kept(frames, chunks.frames, chunks.records[-1], self.source)
+        stream: Iterable = _counted(frames, count)
+        if settings.adaptive:
+            from cmax.sim.sampling import iter_upsample
+
+            def count_capped(interval) -> None:
+                count.capped += int(interval.capped)
+
+            stream = iter_upsample(stream, min(settings.esim.cp, settings.esim.cn), lam=settings.lam,
+                                   method=settings.method, report=count_capped)
+        simulator = EventSimulator.from_settings(settings.esim)
+        if resume:
+            simulator.restore(chunks.state())
+        reported = count.frames + int(resume)
+        for frame, t_us in stream:
+            if resume:                            # the chunks' last frame: the simulator has seen it
+                resume = False
+                continue
+            events = simulator.step(frame, t_us)
+            if self.size is None:                 # the first frame: K checked before anything is written
+                self.size = (events.width, events.height)
+                self.settings.output_K(self.stored or self.size, *self.size)
+                if chunks is None:
+                    self.writer = self._open_output(events.width, events.height, t_us)
+            if chunks is not None and self.chunk is None:
+                self.chunk = chunks.open_chunk()
+            (self.chunk or self.writer).append(events)
+            self.samples += 1
+            if chunks is not None and t_us == count.last_t and count.frames - chunks.frames >= chunk_frames:
+                self._keep(simulator, final=False)  # a video frame, chunk_frames after the last kept chunk
+            if progress is not None and count.frames > reported:
+                progress(count.frames - reported)
+                reported = count.frames
+        if self.size is None:
+            raise ValueError(f"{self.source}: no frames" + _range_note(settings))
+        if chunks is not None:
+            self._keep(simulator, final=True)
+
+    def _keep(self, simulator: EventSimulator, *, final: bool) -> None:
+        """Keep the chunk written so far with the simulator's state after it."""
+        from cmax.sim.chunks import frame_digest
+
+        if self.chunk is None:
+            self.chunk = self.chunks.open_chunk()
+        count = self.count
+        self.chunks.save(self.chunk, simulator.state(), {
+            "end_frame": count.frames, "samples": self.samples, "capped": count.capped,
+            "first_t_us": int(count.first_t), "last_t_us": int(count.last_t),
+            "frame_sha256": frame_digest(count.last_frame), "final": final,
+            "width": self.size[0], "height": self.size[1]})
+        self.chunk = None
+
+    def finish(self) -> None:
+        """Write the output (from the kept chunks, when there are), complete, and rename it into place."""
+        if self.chunks is not None:
+            width, height = self.size
+            self.writer = self._open_output(width, height, self.count.first_t)
+            for events in self.chunks.iter_events(width, height):
+                self.writer.append(events)
+        K = self.K
+        self.writer.close(extra=None if K is None else lambda file: file.create_dataset("gt/K", data=K))
+        self.events = self.writer.count
+
+    def abort(self) -> None:
+        """Remove the temporary output and the chunk being written; the kept chunks stay (a folder without one
+        is removed)."""
+        if self.writer is not None:
+            self.writer.abort()
+        if self.chunk is not None:
+            self.chunk.abort()
+        if self.chunks is not None and not self.chunks.records:
+            self.chunks.remove()
 
 
 @contextmanager
@@ -594,6 +775,16 @@ def _with_relative_outputs(manifest: dict[str, Any]) -> dict[str, Any]:
     return dict(manifest, videos=videos, output_paths=_RELATIVE)
 
 
+def _flat(settings: Any, prefix: str = "") -> dict[str, Any]:
+    """A settings dict with nested keys joined by dots (``{"esim": {"cp": 0.2}}`` -> ``{"esim.cp": 0.2}``)."""
+    if not isinstance(settings, dict):
+        return {prefix: settings}
+    out: dict[str, Any] = {}
+    for key, value in settings.items():
+        out.update(_flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
+    return out
+
+
 def settings_difference(recorded: dict[str, Any], now: dict[str, Any],
                         labels: tuple[str, str] = ("recorded", "now")) -> str:
     """The keys where two settings dicts (:meth:`ConvertSettings.to_dict`) differ, as ``key: old (recorded) vs
@@ -602,15 +793,7 @@ def settings_difference(recorded: dict[str, Any], now: dict[str, Any],
     >>> settings_difference({"esim": {"cp": 0.2}, "size": None}, {"esim": {"cp": 0.3}, "size": [64, 48]})
     'esim.cp: 0.2 (recorded) vs 0.3 (now), size: None (recorded) vs [64, 48] (now)'
     """
-    def flat(settings: Any, prefix: str = "") -> dict[str, Any]:
-        if not isinstance(settings, dict):
-            return {prefix: settings}
-        out: dict[str, Any] = {}
-        for key, value in settings.items():
-            out.update(flat(value, f"{prefix}{key}.") if isinstance(value, dict) else {f"{prefix}{key}": value})
-        return out
-
-    old, new = flat(recorded), flat(now)
+    old, new = _flat(recorded), _flat(now)
     missing = object()
     keys = [key for key in dict.fromkeys([*old, *new]) if old.get(key, missing) != new.get(key, missing)]
     return ", ".join(f"{key}: {old.get(key, 'absent')!r} ({labels[0]}) vs {new.get(key, 'absent')!r} ({labels[1]})"
@@ -782,8 +965,32 @@ def _failed(job: VideoJob, output: Path, error: str, started: float | None = Non
     return VideoResult(job.name, str(job.source), str(output), job.category, "failed", wall_s=wall, error=error)
 
 
-def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: int | None) -> VideoResult:
-    """Worker: convert one job and verify its file, turning an error into a failed result."""
+@dataclass(frozen=True)
+class _Chunking:
+    """How one job keeps chunks: ``frames`` video frames a chunk (None: no chunks) and the ``kept`` mode of
+    :func:`convert_video`."""
+
+    frames: int | None = None
+    kept: str = "resume"
+
+
+def _resumed_note(name: str, bar) -> Callable[[int, int], None]:
+    """The ``resumed`` of :func:`convert_video` for the job ``name``: a note on stderr, and the frame bar (when
+    there is one) starts at the kept frames and says so."""
+    def note(frames: int, events: int) -> None:
+        print(f"cmax: note: {name}: continuing an interrupted conversion: {frames} frame(s) and {events:,} events "
+              "kept (verified)", file=sys.stderr)
+        if bar is not None:
+            bar.update(frames)
+            bar.set_postfix_str(f"{frames} kept")
+
+    return note
+
+
+def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: int | None,
+             chunking: _Chunking = _Chunking()) -> VideoResult:
+    """Worker: convert one job and verify its file, turning an error into a failed result; the chunks it
+    keeps stay until the caller has recorded the result."""
     started = time.perf_counter()
     bar = None
     try:
@@ -795,7 +1002,9 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
         # (replaced atomically when the new file is complete); a file it does not list at all was refused
         # before the conversion started, unless the caller asked to overwrite (convert_collection)
         result = convert_video(job.source, output, settings.for_video(job.name), category=job.category,
-                               progress=None if bar is None else bar.update, overwrite=True)
+                               progress=None if bar is None else bar.update, overwrite=True,
+                               chunk_frames=chunking.frames, kept=chunking.kept, keep_chunks=True,
+                               resumed=_resumed_note(job.name, bar))
         result = _verified(replace(result, name=job.name))
     except Exception as error:  # reported in the manifest; the other videos go on
         message = " ".join(f"{type(error).__name__}: {error}".split())
@@ -819,6 +1028,7 @@ def convert_collection(
     on_result: Callable[[VideoResult], None] | None = None,
     redo: Sequence[str] = (),
     overwrite: bool = False,
+    chunk_frames: int | None = DEFAULT_CHUNK_FRAMES,
 ) -> dict[str, Any]:
     """Convert many videos to ``output_dir/<name>.h5`` with a resumable manifest.
 
@@ -848,7 +1058,9 @@ def convert_collection(
         Names of jobs to convert again even if their entry is ``ok`` (an
         overwrite): their entries are dropped only under the folder's lock, after
         the settings were compared, so a refused conversion changes nothing; the
-        old file is replaced atomically when the new one is complete.
+        old file is replaced atomically when the new one is complete. Chunks an
+        interrupted conversion of the same source and settings kept are continued
+        (the same events), those of another run removed.
     overwrite : bool
         Replace files at the outputs of ``jobs`` that the folder's manifest does
         not list as this video's output. Default False: such files (a user's own
@@ -857,6 +1069,16 @@ def convert_collection(
         converted or written. Outputs the manifest lists (an ``ok`` entry, or one
         it marked failed because the output or the source changed) are the
         conversion's own and are verified, skipped or redone as described above.
+        With ``overwrite``, chunks a killed conversion kept for a video of another source, settings or code are
+        removed and that video starts over (without it they are refused, see ``chunk_frames``).
+    chunk_frames : int or None
+        Each video's events are kept in chunks of this many video frames (default
+        :data:`cmax.sim.chunks.DEFAULT_CHUNK_FRAMES`; :func:`convert_video`), so that a video whose conversion
+        was killed continues from its last verified chunk, with the same events, bit for bit, as an
+        uninterrupted conversion; the chunks are removed once its output is recorded as ``ok``. Chunks of
+        another run (its source, settings or code changed since) raise ValueError naming them, under the lock
+        and before anything is converted, unless ``overwrite`` (or the video is in ``redo``): then that video
+        starts over. None: no chunks, an interrupted video starts over.
 
     Returns
     -------
@@ -868,11 +1090,14 @@ def convert_collection(
     if isinstance(workers, bool) or not isinstance(workers, numbers.Integral) or workers < 1:
         raise ValueError(f"workers must be an integer >= 1, got {workers!r}")
     workers = int(workers)
+    if chunk_frames is not None and (isinstance(chunk_frames, bool) or not isinstance(chunk_frames, numbers.Integral)
+                                     or chunk_frames < 1):
+        raise ValueError(f"chunk_frames must be an integer >= 1 or None, got {chunk_frames!r}")
     output_dir = Path(output_dir)
     output_dir.mkdir(parents=True, exist_ok=True)
     with PathLock(output_dir / FOLDER_LOCK, output_dir):
         return _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, shard, progress, on_result,
-                               set(redo), overwrite)
+                               set(redo), overwrite, chunk_frames)
 
 
 def entry_output(entry: dict, folder: str | os.PathLike, *, relative: bool = True) -> Path:
@@ -916,10 +1141,13 @@ def _listed_output(entry: dict | None, output: Path, folder: Path) -> bool:
 
 def _check_unlisted_outputs(jobs, videos: dict, output_dir: Path, path: Path, redo) -> None:
     """Refuse (FileExistsError, naming them) files at the outputs of ``jobs`` that the manifest ``videos``
-    does not list as theirs (see :func:`_listed_output`); ``redo`` names are being overwritten on purpose."""
+    does not list as theirs (see :func:`_listed_output`), but for outputs written from the chunks still kept
+    beside them (:func:`cmax.sim.chunks.holds_final_chunk`: written again from them); ``redo`` names are being overwritten
+    on purpose."""
     foreign = [output for job in jobs if job.name not in redo
                for output in [output_dir / f"{job.name}.h5"]
-               if os.path.lexists(output) and not _listed_output(videos.get(job.name), output, output_dir)]
+               if os.path.lexists(output) and not _listed_output(videos.get(job.name), output, output_dir)
+               and not holds_final_chunk(output)]
     if foreign:
         names = ", ".join(output.name for output in foreign[:5]) + (" ..." if len(foreign) > 5 else "")
         listed = f"{path} does not list" if os.path.lexists(path) else f"there is no {MANIFEST} listing"
@@ -928,8 +1156,29 @@ def _check_unlisted_outputs(jobs, videos: dict, output_dir: Path, path: Path, re
                               "replace them, or convert into another folder")
 
 
+def _check_kept_chunks(jobs, output_dir: Path, settings: ConvertSettings, redo) -> None:
+    """Refuse (ValueError, one line naming each video and what differs) chunks kept beside the outputs of
+    ``jobs`` by a conversion of another source, settings or code; ``redo`` names start over on purpose."""
+    from cmax.sim.chunks import chunk_folder, kept_problem
+
+    problems = []
+    for job in jobs:
+        output = output_dir / f"{job.name}.h5"
+        if job.name in redo or not chunk_folder(output).is_dir():
+            continue
+        try:
+            run = _chunk_run(source_signature(job.source), settings.for_video(job.name))
+        except (OSError, ValueError):
+            continue                              # an unreadable source fails its own video
+        if (problem := kept_problem(output, run)) is not None:
+            problems.append(f"{job.name}: {problem}")
+    if problems:
+        raise ValueError(f"{len(problems)} video(s) have chunks of an interrupted conversion that differs from this "
+                         "one; nothing was converted: " + " | ".join(problems))
+
+
 def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, shard, progress, on_result, redo,
-                    overwrite=False):
+                    overwrite=False, chunk_frames=None):
     path = output_dir / MANIFEST
     manifest = _new_manifest(settings, catalogue, shard, missing)
     previous_videos: dict = {}
@@ -943,10 +1192,16 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
         manifest["videos"] = {name: entry for name, entry in previous["videos"].items() if name not in redo}
     if not overwrite:  # a file the manifest does not list is a user's or another run's: never replaced unasked
         _check_unlisted_outputs(jobs, previous_videos, output_dir, path, redo)
+        if chunk_frames is not None:      # nor are kept chunks of another run thrown away unasked
+            _check_kept_chunks(jobs, output_dir, settings, redo)
     sources = {job.name: job.source for job in jobs}
     names = set(sources)
     for name, entry in manifest["videos"].items():  # never skip a video whose source changed
         if entry["status"] == "ok" and name in sources:
+            if not os.path.lexists(sources[name]):  # deleted after its conversion (to free space): nothing to redo
+                print(f"cmax: note: {name}: its source {sources[name]} is not there (deleted or moved since it was "
+                      "converted); its output is kept as converted, once verified", file=sys.stderr)
+                continue
             problem = source_problem(entry, sources[name])
             if problem is not None:
                 manifest["videos"][name] = dict(entry, status="failed",
@@ -966,6 +1221,8 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
     todo = [job for job in jobs if manifest["videos"].get(job.name, {}).get("status") != "ok"]
     manifest["totals"] = _totals(manifest["videos"])
     write_manifest(path, manifest)
+    if (note := _other_chunks_note(output_dir, names)) is not None:
+        print(note, file=sys.stderr)
     from tqdm.auto import tqdm
 
     bar = tqdm(total=len(jobs), initial=len(jobs) - len(todo), desc="videos", unit="video",
@@ -979,6 +1236,8 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
         try:
             write_manifest(path, manifest)
             unsaved.clear()
+            if result.status == "ok":     # recorded as verified: its kept chunks are done with
+                _remove_chunks(output_dir / f"{result.name}.h5")
         except OSError as error:  # a full disk: go on, the next record retries
             unsaved[:] = [error]
             print(f"cmax: warning: could not write {path}: {error}", file=sys.stderr)
@@ -987,12 +1246,18 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
         if on_result is not None:
             on_result(result)
 
+    def chunking(job: VideoJob) -> _Chunking:
+        # redo (--overwrite of one file): chunks of the same run continue (the same events as starting over)
+        kept = "resume_or_restart" if overwrite or job.name in redo else "resume"
+        return _Chunking(chunk_frames, kept)
+
     try:
         if workers == 1 or len(todo) <= 1:
             for job in todo:
-                record(_run_job(job, output_dir / f"{job.name}.h5", settings, 1 if progress else None))
+                record(_run_job(job, output_dir / f"{job.name}.h5", settings, 1 if progress else None,
+                                chunking(job)))
         else:
-            _run_parallel(todo, output_dir, settings, workers, progress, record)
+            _run_parallel(todo, output_dir, settings, workers, progress, record, chunking)
     finally:
         bar.close()
     if unsaved:
@@ -1000,13 +1265,36 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
     return manifest
 
 
+def _other_chunks_note(output_dir: Path, names: set[str]) -> str | None:
+    """A note naming the chunk folders in ``output_dir`` of videos other than ``names`` (interrupted conversions
+    this one does not continue: they hold disk space until their videos are converted), or None."""
+    suffix = ".h5.chunks"
+    others = sorted(path.name for path in output_dir.glob(f".*{suffix}")
+                    if path.is_dir() and path.name[1:-len(suffix)] not in names)
+    if not others:
+        return None
+    listed = ", ".join(others[:5]) + (", ..." if len(others) > 5 else "")
+    return (f"cmax: note: {output_dir} holds the kept chunks of {len(others)} interrupted conversion(s) of other "
+            f"videos than this run's ({listed}): convert those videos into it to continue them, or remove the "
+            "folders")
+
+
+def _remove_chunks(output: Path) -> None:
+    """Remove the chunks kept beside ``output`` (its conversion is recorded as verified)."""
+    from cmax.sim.chunks import chunk_folder
+
+    folder = chunk_folder(output)
+    if folder.is_dir():
+        shutil.rmtree(folder, ignore_errors=True)
+
+
 # -- worker processes -------------------------------------------------------------------
 def _worker(connection, main_pid: int, job: VideoJob, output: Path, settings: ConvertSettings,
-            position: int | None) -> None:
+            position: int | None, chunking: _Chunking = _Chunking()) -> None:
     """Entry point of a worker process: one video, the result sent back through ``connection``."""
     die_with_parent(main_pid)
     signal.signal(signal.SIGINT, signal.SIG_IGN)  # the parent stops the workers itself
-    result, caught = recorded(lambda: _run_job(job, output, settings, position))   # re-issued by the parent
+    result, caught = recorded(lambda: _run_job(job, output, settings, position, chunking))   # re-issued by the parent
     connection.send((result, caught))
     connection.close()
 
@@ -1033,7 +1321,7 @@ def _describe_exit(exitcode: int | None) -> str:
     return f"exited with status {exitcode} without a result"
 
 
-def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None:
+def _run_parallel(todo, output_dir, settings, workers, progress, record, chunking=lambda job: _Chunking()) -> None:
     """Each job in its own worker process, at most ``workers`` at once; all killed if this one stops.
 
     The parent waits on each worker's pipe: it becomes readable with the result,
@@ -1052,7 +1340,7 @@ def _run_parallel(todo, output_dir, settings, workers, progress, record) -> None
                 process = context.Process(
                     target=_worker, name=f"cmax-simulate-{job.name}", daemon=True,
                     args=(send, os.getpid(), job, output_dir / f"{job.name}.h5", settings,
-                          1 + number % workers if progress else None),
+                          1 + number % workers if progress else None, chunking(job)),
                 )
                 # a SIGTERM or Ctrl-C now stops the run once the worker is recorded (stopped below)
                 with sigterm_deferred(), sigint_deferred():
@@ -1098,19 +1386,26 @@ def _discard_after_stop(output: Path, pid: int | None, wait_s: float = STOPPED_W
     ``forkserver``, and when a SIGTERM to the process group (``timeout``, a batch system) ended the server too,
     ``join`` returns at once while the killed worker still holds its lock; so while process ``pid`` still exists
     the lock is waited for, up to ``wait_s`` seconds. A lock still held once it is gone (or when ``pid`` is None)
-    is another writer's: left at once."""
+    is another writer's: left at once. The same holds for the chunk it was keeping (:mod:`cmax.sim.chunks`); the
+    chunks it kept stay, to be continued."""
+    from cmax.sim.chunks import chunk_folder
+
     deadline = time.monotonic() + wait_s
-    while True:
-        worker_alive = pid is not None and _process_exists(pid)
-        try:
-            discard_leftovers(output)
-            return
-        except OutputLockedError:
-            if not worker_alive or time.monotonic() >= deadline:
-                return
-            time.sleep(0.02)
-        except OSError:
-            return
+    chunks = chunk_folder(output)
+    targets = [output, chunks, *sorted({chunks / name.rsplit(".", 2)[0] for name in
+                                        (os.listdir(chunks) if chunks.is_dir() else ()) if name.endswith(".partial")})]
+    for target in targets:
+        while True:
+            worker_alive = pid is not None and _process_exists(pid)
+            try:
+                discard_leftovers(target)
+                break
+            except OutputLockedError:
+                if not worker_alive or time.monotonic() >= deadline:
+                    break
+                time.sleep(0.02)
+            except OSError:
+                break
 
 
 def _process_exists(pid: int) -> bool:

@@ -301,6 +301,73 @@ class EventSimulator:
         if s.leak_rate_hz > 0:  # random phase of the leak: L_ref in (L - Cp, L]
             self._ref = leak_phase(self._rng, self._ref, self._c_on)
         self._last_t = np.full(n, _NEVER, np.int64) if s.refractory_us > 0 else None
+        self._derive()
+
+    def state(self) -> dict[str, np.ndarray]:
+        """Everything the simulator carries from one frame to the next, as arrays (copies), so that
+        :meth:`restore` on a fresh simulator of the same settings continues exactly (the same events, bit for bit).
+
+        Returns
+        -------
+        dict of str to ndarray
+            ``shape`` (2,) int64 ``(H, W)``; ``t_us`` () int64, the last frame's time [µs]; ``log`` and
+            ``reference`` (H*W,) float32, the last frame's log intensity and ``L_ref``; ``c_on``, ``c_off`` ()
+            or (H*W,) float32, the thresholds [log intensity]; ``last_t`` (H*W,) int64 [µs] with a refractory
+            period (else absent); ``rng`` () the JSON text of the noise generator's state. ValueError before
+            the first frame (there is no state yet).
+        """
+        import json
+
+        if not self.initialized:
+            raise ValueError("the simulator has no state before its first frame")
+        out = {"shape": np.array(self._shape, np.int64), "t_us": np.array(self._t_us, np.int64),
+               "log": self._log.copy(), "reference": self._ref.copy(),
+               "c_on": np.array(self._c_on, np.float32), "c_off": np.array(self._c_off, np.float32),
+               "rng": np.array(json.dumps(self._rng.bit_generator.state))}
+        if self._last_t is not None:
+            out["last_t"] = self._last_t.copy()
+        return out
+
+    def restore(self, state: dict[str, np.ndarray]) -> None:
+        """Continue from ``state`` (:meth:`state` of a simulator with the same settings): the next :meth:`step`
+        gives the events that simulator's next step would.
+
+        Parameters
+        ----------
+        state : dict of str to ndarray
+            As :meth:`state` returns it (also read back from an ``.npz`` file): ``log``, ``reference`` (H*W,)
+            float32 and the rest. A state of another sensor size, refractory setting or threshold mismatch than
+            these settings raises ValueError.
+        """
+        import json
+
+        s = self.settings
+        try:
+            height, width = (int(v) for v in np.asarray(state["shape"]).ravel())
+            n = height * width
+            arrays = {name: np.ascontiguousarray(state[name], dtype) for name, dtype in
+                      (("log", np.float32), ("reference", np.float32), ("c_on", np.float32), ("c_off", np.float32))}
+            last_t = state.get("last_t")
+            rng = json.loads(str(np.asarray(state["rng"])))
+        except (KeyError, TypeError, ValueError) as error:
+            raise ValueError(f"not a simulator state: {error}") from None
+        sizes = {name: array.size for name, array in arrays.items()}
+        mismatch = s.threshold_sigma > 0
+        if (sizes["log"] != n or sizes["reference"] != n or n == 0
+                or {sizes["c_on"], sizes["c_off"]} != {n if mismatch else 1}
+                or (last_t is None) != (s.refractory_us <= 0) or (last_t is not None and np.size(last_t) != n)):
+            raise ValueError(f"the state does not fit these settings ({s}) on a {width}x{height} sensor")
+        self.reset()
+        self._rng.bit_generator.state = rng
+        self._shape, self._t_us = (height, width), int(np.asarray(state["t_us"]))
+        self._log, self._ref = arrays["log"].ravel().copy(), arrays["reference"].ravel().copy()
+        self._c_on = arrays["c_on"].ravel().copy() if mismatch else np.float32(arrays["c_on"].ravel()[0])
+        self._c_off = arrays["c_off"].ravel().copy() if mismatch else np.float32(arrays["c_off"].ravel()[0])
+        self._last_t = None if last_t is None else np.ascontiguousarray(last_t, np.int64).ravel().copy()
+        self._derive()
+
+    def _derive(self) -> None:
+        """The thresholds' derived forms and the pixel look-ups, from ``_c_on``, ``_c_off`` and ``_shape``."""
         self._near_on = _NEAR * self._c_on
         self._near_off = -_NEAR * self._c_off
         # the compiled kernel's form: float32 arrays of length 1 (one value) or N
@@ -308,7 +375,7 @@ class EventSimulator:
             np.atleast_1d(np.asarray(value, np.float32))
             for value in (self._c_on, self._c_off, self._near_on, self._near_off)
         )
-        height, width = log.shape  # pixel index -> (x, y), looked up instead of divmod
+        height, width = self._shape  # pixel index -> (x, y), looked up instead of divmod
         self._x_of = np.tile(np.arange(width, dtype=np.uint16), height)
         self._y_of = np.repeat(np.arange(height, dtype=np.uint16), width)
 

@@ -1,0 +1,279 @@
+"""A long ``cmax simulate`` killed part-way continues from its last kept chunk (cmax/sim/chunks.py) and ends with
+the events of an uninterrupted conversion, bit for bit; a chunk that fails its check is simulated again; chunks of
+another source or other settings are refused unless the run starts over."""
+from __future__ import annotations
+
+import io
+import json
+import os
+import random
+import subprocess
+import sys
+
+import numpy as np
+import pytest
+
+import cmax.sim.chunks as chunks_module
+from cmax.cli import main
+from cmax.io.h5 import read_h5
+from cmax.sim.chunks import KeptChunks, chunk_folder
+from cmax.sim.convert import ConvertSettings, collect_jobs, convert_collection, convert_video
+from cmax.sim.esim import EsimSettings, EventSimulator
+from conftest import counted_calls, one_line_error, sigkill_after
+
+cv2 = pytest.importorskip("cv2")
+#: Noise and mismatch on: the generator's state, the thresholds and the refractory times must carry over too.
+NOISY = EsimSettings(threshold_sigma=0.05, refractory_us=200, shot_noise_rate_hz=2.0, seed=3)
+NOISY_OPTIONS = ["--threshold-sigma", "0.05", "--refractory-us", "200", "--shot-noise", "2", "--seed", "3"]
+#: The settings ``cmax simulate --method linear`` converts with (its --seed is 0 by default).
+LINEAR = ConvertSettings(method="linear", esim=EsimSettings(seed=0))
+
+
+def write_video(path, n_frames: int = 48, width: int = 64, height: int = 48, phase: float = 0.0) -> None:
+    """A small MJPG video (25 frames/s) of a pattern that drifts and changes, so that every frame has events."""
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter_fourcc(*"MJPG"), 25, (width, height))
+    assert writer.isOpened()
+    y, x = np.mgrid[0:height, 0:width]
+    for k in range(n_frames):
+        value = 128 + 90 * np.sin(0.3 * (x - 2 * k) + phase) * np.cos(0.2 * y + 0.1 * k)
+        writer.write(cv2.cvtColor(value.astype(np.uint8), cv2.COLOR_GRAY2BGR))
+    writer.release()
+
+
+def same_events(a, b) -> bool:
+    return len(a) == len(b) and a.sensor_size == b.sensor_size and all(
+        np.array_equal(getattr(a, name), getattr(b, name)) for name in "xytp")
+
+
+@pytest.mark.parametrize("kw", [{}, {"threshold_sigma": 0.1, "seed": 3}, {"refractory_us": 100},
+                                {"shot_noise_rate_hz": 50.0, "seed": 1, "leak_rate_hz": 5.0}])
+def test_a_restored_simulator_continues_with_the_events_of_one_that_ran_on(kw):
+    rng = np.random.default_rng(0)
+    frames, times = rng.integers(0, 256, (10, 12, 16)).astype(np.uint8), np.arange(10) * 1000
+    whole = EventSimulator(**kw).simulate(frames, times)
+    first = EventSimulator(**kw)
+    parts = [first.step(frame, t) for frame, t in zip(frames[:4], times[:4])]
+    buffer = io.BytesIO()
+    np.savez(buffer, **first.state())                      # as a chunk keeps it
+    buffer.seek(0)
+    second = EventSimulator(**kw)
+    second.restore(dict(np.load(buffer)))
+    parts += [second.step(frame, t) for frame, t in zip(frames[4:], times[4:])]
+    from cmax.events import Events
+
+    assert same_events(Events.concatenate(parts), whole)
+
+
+def test_a_state_of_other_settings_is_refused():
+    simulator = EventSimulator(threshold_sigma=0.1, seed=1)
+    simulator.step(np.zeros((4, 5), np.uint8), 0)
+    with pytest.raises(ValueError, match="does not fit these settings"):
+        EventSimulator().restore(simulator.state())
+    with pytest.raises(ValueError, match="no state before its first frame"):
+        EventSimulator().state()
+
+
+def test_chunks_of_many_blocks_give_the_events_of_one_pass(tmp_path, monkeypatch):
+    """Chunks are written as compressed blocks with time differences: they must read back whole (was: each
+    block's times restarted from 0, so the output was refused as out of time order)."""
+    monkeypatch.setattr(chunks_module, "BLOCK_EVENTS", 500)
+    write_video(tmp_path / "v.avi", 30)
+    settings = ConvertSettings(method="linear", esim=NOISY)
+    convert_video(tmp_path / "v.avi", tmp_path / "whole.h5", settings)
+    result = convert_video(tmp_path / "v.avi", tmp_path / "chunked.h5", settings, chunk_frames=7)
+    assert result.events > 5000                            # many blocks per chunk
+    assert same_events(read_h5(tmp_path / "chunked.h5"), read_h5(tmp_path / "whole.h5"))
+    assert not chunk_folder(tmp_path / "chunked.h5").exists()
+
+
+def _interrupted(tmp_path, monkeypatch, settings, stop_at: int):
+    """Convert ``v.avi`` in chunks of 6 frames and stop it (Ctrl-C) at the ``stop_at``-th chunk; returns the
+    output path, the chunk folder and the uninterrupted conversion's events."""
+    write_video(tmp_path / "v.avi", 40)
+    convert_video(tmp_path / "v.avi", tmp_path / "whole.h5", settings)
+    counted_calls(monkeypatch, KeptChunks, "save", interrupt_at=stop_at)
+    with pytest.raises(KeyboardInterrupt):
+        convert_video(tmp_path / "v.avi", tmp_path / "v.h5", settings, chunk_frames=6)
+    monkeypatch.undo()
+    assert not (tmp_path / "v.h5").exists()
+    return tmp_path / "v.h5", chunk_folder(tmp_path / "v.h5"), read_h5(tmp_path / "whole.h5")
+
+
+@pytest.mark.parametrize("damaged, kept_frames", [
+    ("chunk_000004.events", 24), ("chunk_000004.state.npz", 24), ("chunk_000004.json", 24),   # from chunk 3
+    ("chunk_000001.events", None),        # before the kept states: simulated again from the first frame
+])
+def test_a_damaged_chunk_is_simulated_again_never_trusted(tmp_path, monkeypatch, damaged, kept_frames):
+    settings = ConvertSettings(esim=NOISY)                 # adaptive sampling with optical flow
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, settings, stop_at=6)
+    assert sorted(p.name for p in folder.glob("chunk_*.json")) == [f"chunk_00000{i}.json" for i in range(5)]
+    assert sorted(p.name for p in folder.glob("*.state.npz")) == ["chunk_000003.state.npz", "chunk_000004.state.npz"]
+    data = bytearray((folder / damaged).read_bytes())
+    data[len(data) // 2] ^= 0x01                           # one bit, size unchanged
+    (folder / damaged).write_bytes(bytes(data))
+    resumed = []
+    with pytest.warns(UserWarning, match="kept chunk.s. are simulated again: a chunk failed its check"):
+        result = convert_video(tmp_path / "v.avi", output, settings, chunk_frames=6,
+                               resumed=lambda frames, events: resumed.append(frames))
+    assert resumed == ([] if kept_frames is None else [kept_frames])
+    assert same_events(read_h5(output), whole) and result.frames == 40
+    assert not folder.exists()
+
+
+def test_kept_chunks_of_other_settings_or_another_source_are_refused(tmp_path, monkeypatch):
+    settings = LINEAR
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, settings, stop_at=3)
+    other = ConvertSettings(method="linear", esim=EsimSettings(cp=0.3, seed=0))
+    with pytest.raises(ValueError, match=r"another run \(esim.cp was 0.2, now 0.3\)"):
+        convert_video(tmp_path / "v.avi", output, other, chunk_frames=6)
+    os.utime(tmp_path / "v.avi", ns=(1, 1))                # the source touched (re-exported, replaced)
+    with pytest.raises(ValueError, match=r"v.avi was modified since"):
+        convert_video(tmp_path / "v.avi", output, settings, chunk_frames=6)
+    assert len(list(folder.glob("chunk_*.json"))) == 2     # nothing was thrown away
+    resumed = []
+    convert_video(tmp_path / "v.avi", output, settings, chunk_frames=6, kept="resume_or_restart",
+                  resumed=lambda frames, events: resumed.append(frames))
+    assert resumed == [] and same_events(read_h5(output), whole)
+
+
+def test_cmax_simulate_killed_part_way_continues_to_the_events_of_an_uninterrupted_run(tmp_path):
+    """SIGKILL (no clean-up at all) once a random number of chunks are kept; the same command continues from
+    them (the progress note says how many frames were kept) and ends with the uninterrupted run's events."""
+    write_video(tmp_path / "v.avi", 72)
+    argv = [sys.executable, "-m", "cmax.cli", "simulate", str(tmp_path / "v.avi"), "--quiet", "--chunk-frames", "6",
+            *NOISY_OPTIONS]
+    whole = subprocess.run([*argv, "-o", str(tmp_path / "whole" / "v.h5")], capture_output=True, text=True)
+    assert whole.returncode == 0, whole.stderr
+    out = tmp_path / "o"
+    out.mkdir()
+    kill_after = random.Random().randint(1, 10)
+    folder = chunk_folder(out / "v.h5")
+    if not sigkill_after([*argv, "-o", str(out / "v.h5")], folder, "chunk_*.json", kill_after):
+        pytest.skip("the run ended before it could be killed (a very fast machine)")
+    assert not (out / "v.h5").exists()
+    kept = len(list(folder.glob("chunk_*.json")))
+    assert kill_after <= kept < 12
+    resumed = subprocess.run([*argv, "-o", str(out / "v.h5")], capture_output=True, text=True)
+    assert resumed.returncode == 0, resumed.stderr
+    assert f"continuing an interrupted conversion: {6 * kept} frame(s)" in resumed.stderr
+    assert same_events(read_h5(out / "v.h5"), read_h5(tmp_path / "whole" / "v.h5"))
+    assert sorted(os.listdir(out)) == ["manifest.json", "v.h5"]
+    manifest = json.loads((out / "manifest.json").read_text())
+    assert manifest["videos"]["v"]["frames"] == 72 and manifest["videos"]["v"]["status"] == "ok"
+
+
+def test_cmax_simulate_refuses_kept_chunks_of_a_changed_video_in_one_line(tmp_path, monkeypatch, capsys):
+    settings = LINEAR
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, settings, stop_at=3)
+    os.utime(tmp_path / "v.avi", ns=(1, 1))
+    argv = ["simulate", str(tmp_path / "v.avi"), "-o", str(output), "--quiet", "--method", "linear",
+            "--chunk-frames", "6"]
+    status, err = one_line_error(lambda: main(argv), capsys)
+    assert status == 2 and "v.avi was modified since" in err and "--overwrite" in err
+    assert len(list(folder.glob("chunk_*.json"))) == 2
+    assert main([*argv, "--overwrite"]) == 0               # starts over
+    assert same_events(read_h5(output), whole) and not folder.exists()
+
+
+def test_a_folder_killed_in_its_second_video_continues_that_video_and_verifies_the_first(tmp_path, capsys):
+    videos, out = tmp_path / "videos", tmp_path / "out"
+    videos.mkdir()
+    for number, name in enumerate("abc"):
+        write_video(videos / f"{name}.avi", 36, phase=number)
+    argv = [sys.executable, "-m", "cmax.cli", "simulate", str(videos), "-o", str(out), "--quiet", "--method",
+            "linear", "--chunk-frames", "6"]
+    if not sigkill_after(argv, chunk_folder(out / "b.h5"), "chunk_*.json", 2):
+        pytest.skip("the run ended before it could be killed (a very fast machine)")
+    assert (out / "a.h5").exists() and not (out / "b.h5").exists()
+    a_bytes = (out / "a.h5").read_bytes()
+    data = bytearray(a_bytes)
+    data[len(data) // 2] ^= 0x01                           # a finished file damaged in place
+    (out / "a.h5").write_bytes(bytes(data))
+    jobs, _ = collect_jobs(videos)
+    converted = []
+    manifest = convert_collection(jobs, out, LINEAR, progress=False, chunk_frames=6,
+                                  on_result=lambda result: converted.append(result.name))
+    err = capsys.readouterr().err
+    assert converted == ["a", "b", "c"] and "a: output not verified" in err   # its checksum, not its existence
+    assert "b: continuing an interrupted conversion" in err
+    assert (out / "a.h5").read_bytes() == a_bytes
+    for name in "bc":
+        clean = convert_video(videos / f"{name}.avi", tmp_path / f"{name}.h5", LINEAR)
+        assert same_events(read_h5(out / f"{name}.h5"), read_h5(tmp_path / f"{name}.h5"))
+        assert manifest["videos"][name]["events"] == clean.events
+    assert sorted(os.listdir(out)) == ["a.h5", "b.h5", "c.h5", "manifest.json"]
+
+
+def test_an_output_written_from_its_chunks_but_not_recorded_is_written_again_not_refused(tmp_path, capsys):
+    """Killed after the output was renamed into place and before the manifest recorded it: the rerun would have
+    refused the file as not its own (--overwrite, which starts over); the chunks are still there, so it is
+    written again from them."""
+    write_video(tmp_path / "v.avi", 20)
+    settings = LINEAR
+    convert_video(tmp_path / "v.avi", tmp_path / "v.h5", settings, chunk_frames=6, keep_chunks=True)
+    first = read_h5(tmp_path / "v.h5")
+    argv = ["simulate", str(tmp_path / "v.avi"), "-o", str(tmp_path / "v.h5"), "--quiet", "--method", "linear",
+            "--chunk-frames", "6"]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "20 frame(s)" in capsys.readouterr().err
+    assert same_events(read_h5(tmp_path / "v.h5"), first) and not chunk_folder(tmp_path / "v.h5").exists()
+
+
+def test_an_interrupted_overwrite_keeps_the_old_file_and_continues_with_overwrite_again(tmp_path):
+    """``-o F.h5 --overwrite`` killed part-way: the old F.h5 stays until the new one is complete, and the same
+    command again continues the kept chunks (was it to start over, the hours already simulated were lost)."""
+    write_video(tmp_path / "v.avi", 72)
+    out = tmp_path / "o"
+    argv = [sys.executable, "-m", "cmax.cli", "simulate", str(tmp_path / "v.avi"), "-o", str(out / "v.h5"),
+            "--quiet", "--chunk-frames", "6", "--method", "linear"]
+    assert subprocess.run(argv, capture_output=True).returncode == 0
+    old = (out / "v.h5").read_bytes()
+    if not sigkill_after([*argv, "--overwrite"], chunk_folder(out / "v.h5"), "chunk_*.json", 3):
+        pytest.skip("the run ended before it could be killed (a very fast machine)")
+    assert (out / "v.h5").read_bytes() == old
+    kept = len(list(chunk_folder(out / "v.h5").glob("chunk_*.json")))
+    again = subprocess.run([*argv, "--overwrite"], capture_output=True, text=True)
+    assert again.returncode == 0, again.stderr
+    assert f"continuing an interrupted conversion: {6 * kept} frame(s)" in again.stderr
+    clean = convert_video(tmp_path / "v.avi", tmp_path / "clean.h5", LINEAR)
+    assert same_events(read_h5(out / "v.h5"), read_h5(tmp_path / "clean.h5")) and clean.frames == 72
+
+
+def test_kept_chunks_whose_last_frame_decodes_otherwise_are_not_continued(tmp_path, monkeypatch):
+    """The last kept frame is decoded again and checked (another OpenCV could decode it otherwise): refused with
+    ``kept="resume"``; with ``"resume_or_restart"`` a warning and the whole video is converted again."""
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=3)
+    record = json.loads((folder / "chunk_000001.json").read_text())
+    record["frame_sha256"] = "0" * 64                      # as if the frame had decoded to other pixels
+    (folder / "chunk_000001.json").write_text(json.dumps(record))
+    with pytest.raises(ValueError, match="decodes differently .* pass --overwrite"):
+        convert_video(tmp_path / "v.avi", output, LINEAR, chunk_frames=6)
+    with pytest.warns(UserWarning, match="converting it from its first frame"):
+        convert_video(tmp_path / "v.avi", output, LINEAR, chunk_frames=6, kept="resume_or_restart")
+    assert same_events(read_h5(output), whole) and not folder.exists()
+
+
+def test_a_second_conversion_into_the_same_output_is_refused_while_one_runs(tmp_path):
+    """The chunks are one conversion's: while it runs (its lock held) another one into the same output fails at
+    once and changes nothing (without the lock it would have taken the running one's chunks as its own)."""
+    from cmax.io.atomic import OutputLockedError, PathLock, lock_path
+
+    write_video(tmp_path / "v.avi", 12)
+    with PathLock(lock_path(chunk_folder(tmp_path / "v.h5"))):
+        with pytest.raises(OutputLockedError, match="being written by another writer"):
+            convert_video(tmp_path / "v.avi", tmp_path / "v.h5", LINEAR, chunk_frames=4)
+    assert sorted(os.listdir(tmp_path)) == ["v.avi"]
+    convert_video(tmp_path / "v.avi", tmp_path / "v.h5", LINEAR, chunk_frames=4)
+    assert sorted(os.listdir(tmp_path)) == ["v.avi", "v.h5"]
+
+
+def test_chunks_of_a_video_this_run_does_not_convert_are_named(tmp_path, monkeypatch, capsys):
+    """Chunks left by an interrupted conversion of another video hold disk space (as much as its output) that no
+    run would free: a conversion into the folder names them."""
+    output, folder, _ = _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=2)
+    write_video(tmp_path / "w.avi", 8)
+    jobs, _ = collect_jobs(tmp_path / "w.avi")
+    convert_collection(jobs, tmp_path, LINEAR, progress=False)
+    err = capsys.readouterr().err
+    assert "kept chunks of 1 interrupted conversion(s) of other videos than this run's (.v.h5.chunks)" in err
+    assert folder.is_dir()                                 # named, not removed
