@@ -168,7 +168,7 @@ API_CASES = [
     ("K-strings", lambda: Camera("fx fy cx cy", 64, 48), TypeError, r"K must be a 3x3 matrix of numbers"),
     ("K-not-pinhole", lambda: Camera(np.ones((3, 3)), 64, 48), ValueError, r"K must have the form"),
     ("distortion-length", lambda: Camera(K_GOOD, 64, 48, distortion=[0.1] * 3), ValueError,
-     r"distortion must have"),
+     r"distortion of a radtan camera must have 4 or 5 or 8 or 12 or 14 coefficients"),
     ("distortion-nan", lambda: Camera(K_GOOD, 64, 48, distortion=[np.nan] * 5), ValueError,
      r"distortion must be finite"),
     ("project-behind-camera", lambda: Camera(K_GOOD, 64, 48).project([[0.0, 0.0, -1.0]]), ValueError,
