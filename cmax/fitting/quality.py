@@ -75,7 +75,8 @@ from cmax.warp import warp_se3
 __all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alternative", "Quality", "MotionScorer",
            "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change", "sparse_reason",
-           "small_parallax_reason", "min_ok_parallax", "isolated_events", "noise_share", "noise_reason"]
+           "small_parallax_reason", "min_ok_parallax", "isolated_events", "neighbour_counts", "noise_share",
+           "noise_reason"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
@@ -498,6 +499,30 @@ def isolated_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, hei
     isolated = np.empty(x.size, bool)
     isolated[order] = _alone(keys, x, y, keys, width, height, window_us, radius, span)
     return isolated
+
+
+def neighbour_counts(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int, window_us: int,
+                     radius: int = 1) -> np.ndarray:
+    """How many other events (N,) int64 each event has within ``radius`` pixels (a ``2 radius + 1`` square, its own
+    pixel included) and ``window_us`` µs on either side: the neighbour support of the background-activity filter
+    (Delbruck 2008; Guo & Delbruck 2022), 0 exactly where :func:`isolated_events` is True. ``x, y`` (N,) integer
+    pixels inside the ``width`` x ``height`` image, ``t`` (N,) µs. Two binary searches per neighbour pixel.
+
+    >>> neighbour_counts(np.array([0, 1, 1, 5]), np.array([0, 0, 1, 5]), np.array([0, 500, 900, 600]), 8, 8,
+    ...                  1000).tolist()
+    [2, 2, 2, 0]
+    """
+    x, y, keys, order, span = _sorted_events(x, y, t, width, window_us)
+    counts = np.zeros(keys.size, np.int64)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            inside = (x + dx >= 0) & (x + dx < width) & (y + dy >= 0) & (y + dy < height)
+            base = keys + (dy * width + dx) * span
+            found = np.searchsorted(keys, base + window_us, "right") - np.searchsorted(keys, base - window_us, "left")
+            counts += np.where(inside, found, 0)
+    out = np.empty_like(counts)
+    out[order] = counts - 1                                                # not the event itself
+    return out
 
 
 def _sorted_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, window_us: int

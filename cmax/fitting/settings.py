@@ -530,6 +530,22 @@ class FitSettings:
         :func:`cmax.fitting.quality.isolated_events`, the background-activity filter's test) are outside the
         mask: uniform sensor noise would otherwise put its own pixels into it, each with a depth of its own
         (docs/quality.md). 0 keeps every event pixel.
+    min_neighbours : int
+        se3: events with fewer than this many other events within 1 px and ``mask_isolated_us`` µs
+        (:func:`cmax.fitting.quality.neighbour_counts`, the background-activity filter's support) are left out of
+        the fit, motion, depth and mask (``FitResult.events_used`` counts the rest): uniform sensor noise next to
+        the scene is not isolated, and without this filter it pulls the depth of the cells it falls in and fills
+        cells of its own (docs/quality.md: the measurement). 0 (or ``mask_isolated_us`` 0) keeps every event.
+    denoise_min_rate_hz : float
+        That filter applies only to a window whose estimated background-activity rate [Hz per pixel] is at least
+        this: the share of noise that :func:`cmax.fitting.quality.noise_share` reads, times the events, over the
+        pixels and the window's duration. Clean windows read a rate too, their scene's own isolated events
+        (0.17-0.55 Hz on the synthetic presets at 160x120), and are fitted on every event; 1 Hz per pixel of added
+        noise reads 0.78-1.28 Hz (docs/quality.md: the measurement). 0 filters every se3 window.
+    max_denoised_share : float
+        When that filter would leave out more than this share of the window's events it leaves out none: the
+        window is then mostly noise or too sparse for the test, and its verdict says so (``quality.noisy``,
+        ``quality.sparse``). In (0, 1].
     hot_pixels : HotPixelFilter or None
         Which pixels are hot (:class:`cmax.hot_pixels.HotPixelFilter`: more than ``factor`` (8) times the
         99th percentile of the window's per-pixel event counts and more than ``min_events`` (30), or firing
@@ -580,6 +596,9 @@ class FitSettings:
     low_parallax_px: float = LOW_PARALLAX_PX
     min_cell_events: int = 15
     mask_isolated_us: int = 10_000
+    min_neighbours: int = 2
+    denoise_min_rate_hz: float = 0.7
+    max_denoised_share: float = 0.5
     hot_pixels: HotPixelFilter | None = field(default_factory=HotPixelFilter)
     seed: int = 0
     patch_flow: PatchFlowSettings = field(default_factory=PatchFlowSettings)
@@ -655,6 +674,13 @@ class FitSettings:
         _positive_int("start_iterations", self.start_iterations)
         _positive_int("min_cell_events", self.min_cell_events, 0)
         _positive_int("mask_isolated_us", self.mask_isolated_us, 0)
+        _positive_int("min_neighbours", self.min_neighbours, 0)
+        if isinstance(self.denoise_min_rate_hz, bool) or not (isinstance(self.denoise_min_rate_hz, (int, float))
+                                                                and 0 <= self.denoise_min_rate_hz < math.inf):
+            raise ValueError(f"denoise_min_rate_hz must be a number >= 0 [Hz per pixel], got {self.denoise_min_rate_hz!r}")
+        if isinstance(self.max_denoised_share, bool) or not (isinstance(self.max_denoised_share, (int, float))
+                                                               and 0 < self.max_denoised_share <= 1):
+            raise ValueError(f"max_denoised_share must lie in (0, 1], got {self.max_denoised_share!r}")
         check_filter(self.hot_pixels)
         for name, kind in (("patch_flow", PatchFlowSettings), ("refine", RefineSettings), ("sweep", SweepSettings),
                            ("quality", QualitySettings)):
