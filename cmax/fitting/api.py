@@ -124,6 +124,9 @@ class FitResult:
     iwe_before, iwe_after : ndarray (H, W) float32
         Event-count IWEs at ``t_ref_us`` without and with the fitted warp (blur sigma).
     events_used : int
+        The events the fit used: the window's, without its hot pixels' (``hot_pixels``), without the events of
+        too little neighbour support on a noisy se3 window (``FitSettings.min_neighbours``,
+        ``denoise_min_rate_hz``), subsampled to ``FitSettings.max_events``.
     parallax_px : float or None
         se3: median over the events of how far the fitted translation alone
         moves each event over the whole window at its fitted depth [px]. The
@@ -471,17 +474,13 @@ def fit(
         raise ValueError("pose has no translation: depth is unobservable under a pure rotation")
     with torch_threads_scope(len(events), threads=num_threads) as threads, blas_threads_scope(threads):
         shared_test = model == "se3" and settings.mask_isolated_us == settings.quality.noise_window_us
-        support = (neighbour_counts(events.x, events.y, events.t, events.width, events.height,
-                                    settings.mask_isolated_us)
-                   if model == "se3" and settings.mask_isolated_us and (settings.min_neighbours or shared_test)
-                   else None)                                   # the filter's, the mask's and the noise's test
-        isolated = support == 0 if shared_test and support is not None else None
+        isolated = (isolated_events(events.x, events.y, events.t, events.width, events.height,
+                                    settings.mask_isolated_us) if shared_test else None)   # the mask's and the noise's
         noise = (noise_share(events.x, events.y, events.t, events.width, events.height,
                              settings.quality.noise_window_us, max_queries=settings.max_events,
                              isolated=isolated)
                  if model == "se3" else None)
-        fitted = (events if support is None or noise is None else
-                  _without_weak_events(events, support, _noise_rate_hz(events, noise), settings))
+        fitted = events if noise is None else _without_weak_events(events, _noise_rate_hz(events, noise), settings)
         w = Window.from_events(fitted, K, settings, depth_grid)
         motion = _start(model, init, pose_xi, known_omega, scale)
         stages = stages_for(model, w, pose_known=pose_xi is not None, hold_omega=known_omega is not None,
@@ -547,17 +546,18 @@ def _noise_rate_hz(events: Events, share: float) -> float:
     return share * len(events) / (events.width * events.height * duration_s) if duration_s > 0 else 0.0
 
 
-def _without_weak_events(events: Events, support: np.ndarray, rate_hz: float, settings: FitSettings) -> Events:
-    """``events`` without those of too little neighbour support to be the scene's: ``support`` (N,), their other
-    events within 1 px and ``settings.mask_isolated_us`` µs (:func:`cmax.fitting.quality.neighbour_counts`), under
-    ``settings.min_neighbours`` (background-activity noise next to the scene has one at most, mostly), when the
-    window's estimated noise rate ``rate_hz`` [Hz per pixel] (:func:`_noise_rate_hz`) is at least
-    ``settings.denoise_min_rate_hz``. ``events`` itself when the filter is off (either setting 0), below that
-    rate, when it would leave out more than ``settings.max_denoised_share`` of them (a window of mostly noise, or
-    too sparse: its verdict says so), or fewer than ``MIN_WINDOW_EVENTS`` over more than one time stamp would
-    remain."""
+def _without_weak_events(events: Events, rate_hz: float, settings: FitSettings) -> Events:
+    """``events`` without those of too little neighbour support to be the scene's: fewer than
+    ``settings.min_neighbours`` other events within 1 px and ``settings.mask_isolated_us`` µs
+    (:func:`cmax.fitting.quality.neighbour_counts`; background-activity noise next to the scene has one at most,
+    mostly), when the window's estimated noise rate ``rate_hz`` [Hz per pixel] (:func:`_noise_rate_hz`) is at
+    least ``settings.denoise_min_rate_hz`` (below it nothing is counted). ``events`` itself when the filter is off
+    (either setting 0), below that rate, when it would leave out more than ``settings.max_denoised_share`` of them
+    (a window of mostly noise, or too sparse: its verdict says so), or fewer than ``MIN_WINDOW_EVENTS`` over more
+    than one time stamp would remain."""
     if not (settings.min_neighbours and settings.mask_isolated_us) or rate_hz < settings.denoise_min_rate_hz:
         return events
+    support = neighbour_counts(events.x, events.y, events.t, events.width, events.height, settings.mask_isolated_us)
     keep = support >= settings.min_neighbours
     kept = int(np.count_nonzero(keep))
     if kept == len(events) or len(events) - kept > settings.max_denoised_share * len(events) or \
