@@ -346,7 +346,9 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
     Returns ``(alternatives, note, tested)``: ``tested`` False, no alternatives and ``note`` saying why when
     the window has fewer than ``w.settings.refine.min_patches`` patches with events (nothing to test on: the
     verdict cannot be ``ok``); ``note`` also names the alternatives dropped because their polish ended on
-    the fit (within ``settings.distinct_deg``).
+    the fit (within ``settings.distinct_deg``), but for those that end at least ``settings.recheck_deg`` from it
+    and score better than the fit by more than ``settings.margin`` times its own gain (more than a tie): they are
+    kept (the fit is then not the optimum of its own objective).
     """
     scorer = MotionScorer.build(w, v, omega, speed, settings)
     if scorer is None:
@@ -354,14 +356,20 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
                     "events"), False
     refine = w.settings.refine
     alternatives, merged = [], []
+    self_margin = settings.margin * max(scorer.own_gain, 0.0)     # "better than the fit" beyond a tie
     for name, v_alt, omega_alt in alternative_motions(scorer.objective, v, omega, scorer.rho, hold_omega=hold_omega):
         if settings.polish_iterations:
             polished = refine_motion_local(w, v_alt, omega_alt, speed,
                                            replace(refine, iterations=settings.polish_iterations),
                                            solver, hold_omega=hold_omega, objective=scorer.objective)
             v_alt, omega_alt = polished.v, polished.omega
-            if _distance_deg(v_alt, omega_alt, v, omega, w.T) < settings.distinct_deg:
-                merged.append(name)
+            distance = _distance_deg(v_alt, omega_alt, v, omega, w.T)
+            if distance < settings.distinct_deg:
+                scored = scorer.score(name, v_alt, omega_alt) if distance >= settings.recheck_deg else None
+                if scored is None or not scored.gain < -self_margin:
+                    merged.append(name)
+                    continue
+                alternatives.append(scored)                 # near the fit, but better: the fit is no optimum
                 continue
         alternatives.append(scorer.score(name, v_alt, omega_alt))
     note = f"the {', '.join(merged)} alternative(s) polished back onto the fit" if merged else ""

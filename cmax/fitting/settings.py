@@ -287,7 +287,15 @@ class QualitySettings:
         compared at its own optimum as the fit is at its.
     distinct_deg : float
         A polished alternative that ends within this distance of the fit (direction angle plus rotation
-        over the window, degrees) is the fit itself, not an alternative: it is dropped.
+        over the window, degrees) is the fit itself, not an alternative: it is dropped, unless it lies at least
+        ``recheck_deg`` from the fit and scores better than it beyond a tie.
+    recheck_deg : float
+        A polished alternative that ends within ``distinct_deg`` of the fit but at least this far from it
+        (degrees, the same distance) is scored; when it scores better than the fit by more than ``margin`` times the
+        fit's own gain it is kept as an alternative, so that the window is at best ``ambiguous``: the fit is then
+        not the optimum of its own objective, and its direction may be off by that much or more (on 160x120 street
+        windows with a little noise, ``ok`` fits 37-39 deg off had such an alternative 21-29 deg away;
+        docs/quality.md). ``distinct_deg`` or more turns the check off.
     neighbours : int
         ``fit_sequence``: windows on each side searched for confident (``ok``) neighbours.
     max_resolve_deg : float
@@ -373,6 +381,7 @@ class QualitySettings:
     noise_sigmas: float = 1.0
     polish_iterations: int = 20
     distinct_deg: float = 30.0
+    recheck_deg: float = 15.0
     neighbours: int = 2
     max_resolve_deg: float = 45.0
     motion_test: bool = True
@@ -398,8 +407,9 @@ class QualitySettings:
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
         object.__setattr__(self, "motion_cells", _grid("motion_cells", self.motion_cells))
-        for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg", "motion_noise_sigmas",
-                     "smoothing_min_deg", "smoothing_span_s", "min_event_density", "min_ok_parallax_px"):
+        for name in ("margin", "noise_sigmas", "distinct_deg", "recheck_deg", "max_resolve_deg",
+                     "motion_noise_sigmas", "smoothing_min_deg", "smoothing_span_s", "min_event_density",
+                     "min_ok_parallax_px"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -677,7 +687,8 @@ class FitSettings:
         _positive_int("min_neighbours", self.min_neighbours, 0)
         if isinstance(self.denoise_min_rate_hz, bool) or not (isinstance(self.denoise_min_rate_hz, (int, float))
                                                                 and 0 <= self.denoise_min_rate_hz < math.inf):
-            raise ValueError(f"denoise_min_rate_hz must be a number >= 0 [Hz per pixel], got {self.denoise_min_rate_hz!r}")
+            raise ValueError("denoise_min_rate_hz must be a number >= 0 [Hz per pixel], "
+                             f"got {self.denoise_min_rate_hz!r}")
         if isinstance(self.max_denoised_share, bool) or not (isinstance(self.max_denoised_share, (int, float))
                                                                and 0 < self.max_denoised_share <= 1):
             raise ValueError(f"max_denoised_share must lie in (0, 1], got {self.max_denoised_share!r}")
