@@ -480,7 +480,7 @@ def fit(
                              settings.quality.noise_window_us, max_queries=settings.max_events,
                              isolated=isolated)
                  if model == "se3" else None)
-        fitted = events if noise is None else _without_weak_events(events, _noise_rate_hz(events, noise), settings)
+        fitted = events if noise is None else _without_weak_events(events, noise, settings)
         w = Window.from_events(fitted, K, settings, depth_grid)
         motion = _start(model, init, pose_xi, known_omega, scale)
         stages = stages_for(model, w, pose_known=pose_xi is not None, hold_omega=known_omega is not None,
@@ -546,16 +546,18 @@ def _noise_rate_hz(events: Events, share: float) -> float:
     return share * len(events) / (events.width * events.height * duration_s) if duration_s > 0 else 0.0
 
 
-def _without_weak_events(events: Events, rate_hz: float, settings: FitSettings) -> Events:
+def _without_weak_events(events: Events, share: float, settings: FitSettings) -> Events:
     """``events`` without those of too little neighbour support to be the scene's: fewer than
     ``settings.min_neighbours`` other events within 1 px and ``settings.mask_isolated_us`` µs
     (:func:`cmax.fitting.quality.neighbour_counts`; background-activity noise next to the scene has one at most,
-    mostly), when the window's estimated noise rate ``rate_hz`` [Hz per pixel] (:func:`_noise_rate_hz`) is at
-    least ``settings.denoise_min_rate_hz`` (below it nothing is counted). ``events`` itself when the filter is off
-    (either setting 0), below that rate, when it would leave out more than ``settings.max_denoised_share`` of them
-    (a window of mostly noise, or too sparse: its verdict says so), or fewer than ``MIN_WINDOW_EVENTS`` over more
-    than one time stamp would remain."""
-    if not (settings.min_neighbours and settings.mask_isolated_us) or rate_hz < settings.denoise_min_rate_hz:
+    mostly), when the window's estimated noise rate [Hz per pixel] (:func:`_noise_rate_hz` of its estimated noise
+    ``share``, :func:`cmax.fitting.quality.noise_share`) is at least ``settings.denoise_min_rate_hz`` (below it
+    nothing is counted). ``events`` itself when the filter is off (either setting 0), below that rate, when the
+    estimated ``share`` or the share the filter would leave out is over ``settings.max_denoised_share`` (a window
+    of mostly noise, or too sparse: its verdict says so; the few noise events that have neighbours would be kept
+    and read as a scene), or when fewer than ``MIN_WINDOW_EVENTS`` over more than one time stamp would remain."""
+    if not (settings.min_neighbours and settings.mask_isolated_us) or share > settings.max_denoised_share or \
+            _noise_rate_hz(events, share) < settings.denoise_min_rate_hz:
         return events
     support = neighbour_counts(events.x, events.y, events.t, events.width, events.height, settings.mask_isolated_us)
     keep = support >= settings.min_neighbours

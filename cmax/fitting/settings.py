@@ -553,9 +553,10 @@ class FitSettings:
         (0.17-0.55 Hz on the synthetic presets at 160x120), and are fitted on every event; 1 Hz per pixel of added
         noise reads 0.78-1.28 Hz (docs/quality.md: the measurement). 0 filters every se3 window.
     max_denoised_share : float
-        When that filter would leave out more than this share of the window's events it leaves out none: the
-        window is then mostly noise or too sparse for the test, and its verdict says so (``quality.noisy``,
-        ``quality.sparse``). In (0, 1].
+        When the window's estimated share of noise, or the share of its events that filter would leave out, is
+        over this, the filter leaves out none: the window is then mostly noise or too sparse for the test, and its
+        verdict says so (``quality.noisy``, ``quality.sparse``; on pure noise the few events with neighbours would
+        be kept and read as a scene). In (0, 1].
     hot_pixels : HotPixelFilter or None
         Which pixels are hot (:class:`cmax.hot_pixels.HotPixelFilter`: more than ``factor`` (8) times the
         99th percentile of the window's per-pixel event counts and more than ``min_events`` (30), or firing
