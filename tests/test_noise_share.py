@@ -210,7 +210,8 @@ def test_noise_next_to_the_scene_no_longer_pulls_the_depth():
     with fewer than ``FitSettings.min_neighbours`` (2) other events within 1 px and 10 ms are now left out of the
     fit when the window's estimated noise rate is at least ``FitSettings.denoise_min_rate_hz`` (0.7 Hz per pixel):
     the depth is within a few hundredths of the clean window's (against the ground truth), and the clean window,
-    reading a lower rate, is fitted on every event as before."""
+    reading a lower rate, is fitted on every event as before; so is a window shorter than
+    ``FitSettings.denoise_min_window_us`` (20 ms)."""
     w = make_window("driving", 1, width=160, height=120, focal=130.0, duration_s=0.1, max_frames=40)
     noisy, n = _with_noise(w.events, 3.0, 2)
     off = FitSettings(depth_range=(2.0, 60.0), min_neighbours=0)
@@ -226,6 +227,10 @@ def test_noise_next_to_the_scene_no_longer_pulls_the_depth():
     kept_all = fit(w.events, w.K, pose=w.twist, settings=off)
     assert clean.events_used == len(w.events)            # a clean window reads a low noise rate: not filtered
     np.testing.assert_array_equal(clean.depth, kept_all.depth)
+    short = noisy[noisy.t < noisy.t[0] + 15_000]         # 15 ms: the scene's own events lie alone too often
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert fit(short, w.K, pose=w.twist, depth_range=(2.0, 60.0)).events_used == len(short)
 
 
 def test_a_window_of_mostly_noise_is_not_filtered_away():
@@ -247,6 +252,7 @@ def test_a_window_of_mostly_noise_is_not_filtered_away():
 
 @pytest.mark.parametrize("name, value", [("min_neighbours", -1), ("min_neighbours", 1.5),
                                          ("denoise_min_rate_hz", -0.1), ("denoise_min_rate_hz", float("nan")),
+                                         ("denoise_min_window_us", -1),
                                          ("max_denoised_share", 0.0), ("max_denoised_share", 1.5),
                                          ("max_denoised_share", True)])
 def test_the_neighbour_filter_settings_outside_their_range_are_refused(name, value):

@@ -552,11 +552,13 @@ def _without_weak_events(events: Events, share: float, settings: FitSettings) ->
     (:func:`cmax.fitting.quality.neighbour_counts`; background-activity noise next to the scene has one at most,
     mostly), when the window's estimated noise rate [Hz per pixel] (:func:`_noise_rate_hz` of its estimated noise
     ``share``, :func:`cmax.fitting.quality.noise_share`) is at least ``settings.denoise_min_rate_hz`` (below it
-    nothing is counted). ``events`` itself when the filter is off (either setting 0), below that rate, when the
+    nothing is counted). ``events`` itself when the filter is off (either setting 0), below that rate, on a window
+    shorter than ``settings.denoise_min_window_us`` (whose scene's own events lie alone too often), when the
     estimated ``share`` or the share the filter would leave out is over ``settings.max_denoised_share`` (a window
     of mostly noise, or too sparse: its verdict says so; the few noise events that have neighbours would be kept
     and read as a scene), or when fewer than ``MIN_WINDOW_EVENTS`` over more than one time stamp would remain."""
     if not (settings.min_neighbours and settings.mask_isolated_us) or share > settings.max_denoised_share or \
+            int(events.t[-1]) - int(events.t[0]) < settings.denoise_min_window_us or \
             _noise_rate_hz(events, share) < settings.denoise_min_rate_hz:
         return events
     support = neighbour_counts(events.x, events.y, events.t, events.width, events.height, settings.mask_isolated_us)
