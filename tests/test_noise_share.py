@@ -9,7 +9,7 @@ import pytest
 from benchmarks.synthetic_windows import make_window
 from cmax import Events
 from cmax.fitting import FitSettings, QualitySettings, Verdict, fit
-from cmax.fitting.quality import isolated_events, noise_share
+from cmax.fitting.quality import isolated_events, neighbour_counts, noise_share
 
 
 def _with_noise(events: Events, rate_hz: float, seed: int) -> tuple[Events, int]:
@@ -54,7 +54,8 @@ def test_the_pixel_then_time_order_is_the_stable_sort_of_the_keys():
 def test_the_fit_sorts_its_events_once_for_the_mask_and_the_noise_share(monkeypatch):
     """Was: the depth mask's isolation test and the noise share each sorted all the window's events by pixel and
     time (the same sort twice); now one sort serves both, and each flag and the share are those of the public
-    functions."""
+    functions (the noise filter, ``FitSettings.min_neighbours``, counts neighbours with a sort of its own on the
+    noisy windows it applies to)."""
     from cmax.fitting import quality
     from conftest import counted_calls
 
@@ -63,7 +64,8 @@ def test_the_fit_sorts_its_events_once_for_the_mask_and_the_noise_share(monkeypa
     calls = counted_calls(monkeypatch, quality, "_sorted_events")
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
-        result = fit(noisy, K, pose=np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.0]), depth_range=(1.0, 10.0))
+        result = fit(noisy, K, pose=np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.0]), depth_range=(1.0, 10.0),
+                     min_neighbours=0)          # the noise filter off: its neighbour count is a sort of its own
     assert len(calls) == 1
     flags, share = quality._isolated_and_noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, None)
     np.testing.assert_array_equal(flags, isolated_events(noisy.x, noisy.y, noisy.t, 160, 120, 10_000))
@@ -99,6 +101,20 @@ def test_a_negative_radius_a_fractional_window_or_no_queries_are_refused(options
     if "max_queries" not in options:
         with pytest.raises(ValueError, match=message):
             isolated_events(x, y, t, 8, 8, window, **options)
+
+
+def test_neighbour_counts_agree_with_the_pairwise_definition():
+    rng = np.random.default_rng(4)
+    n, width, height, window = 500, 12, 9, 5_000
+    x, y = rng.integers(0, width, n), rng.integers(0, height, n)
+    t = np.sort(rng.integers(0, 60_000, n))
+    near = ((np.abs(x[:, None] - x[None]) <= 1) & (np.abs(y[:, None] - y[None]) <= 1)
+            & (np.abs(t[:, None] - t[None]) <= window))
+    expected = near.sum(1) - 1                                  # not the event itself
+    assert expected.max() >= 3 and (expected == 0).any()
+    np.testing.assert_array_equal(neighbour_counts(x, y, t, width, height, window), expected)
+    np.testing.assert_array_equal(neighbour_counts(x, y, t, width, height, window) == 0,
+                                  isolated_events(x, y, t, width, height, window))
 
 
 def _points(seed: int) -> Events:
@@ -245,3 +261,66 @@ def test_cmax_fit_advice_names_noise_not_a_longer_window_for_noisy_windows():
     assert "isolated_events" in lines[0] and "does not help" in lines[0]
     mixed = advice({"ok": 0, "ambiguous": 4, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", noisy=1)
     assert mixed[0].startswith("3 of 4 windows stay ambiguous (an alternative") and mixed[1].startswith("1 of 4")
+
+
+def _abs_rel(result, depth: np.ndarray) -> float:
+    """abs_rel of a fit's depth on its mask's pixels with ground truth."""
+    m = result.mask & np.isfinite(depth)
+    return float(np.mean(np.abs(result.depth[m] - depth[m]) / depth[m]))
+
+
+def test_noise_next_to_the_scene_no_longer_pulls_the_depth():
+    """Was: uniform noise of 3 Hz per pixel (a third of the events, read as under ``max_noise_share``) raised the
+    depth's abs_rel of a street window with its pose given from 0.15 to 0.23-0.24, verdict ``ok``: noise events next
+    to the scene are not isolated, so they filled cells of their own and pulled the sweep of the scene's. Events
+    with fewer than ``FitSettings.min_neighbours`` (2) other events within 1 px and 10 ms are now left out of the
+    fit when the window's estimated noise rate is at least ``FitSettings.denoise_min_rate_hz`` (0.7 Hz per pixel):
+    the depth is within a few hundredths of the clean window's (against the ground truth), and the clean window,
+    reading a lower rate, is fitted on every event as before; so is a window shorter than
+    ``FitSettings.denoise_min_window_us`` (20 ms)."""
+    w = make_window("driving", 1, width=160, height=120, focal=130.0, duration_s=0.1, max_frames=40)
+    noisy, n = _with_noise(w.events, 3.0, 2)
+    off = FitSettings(depth_range=(2.0, 60.0), min_neighbours=0)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        clean = fit(w.events, w.K, pose=w.twist, depth_range=(2.0, 60.0))
+        default = fit(noisy, w.K, pose=w.twist, depth_range=(2.0, 60.0))
+        without = fit(noisy, w.K, pose=w.twist, settings=off)
+    assert n / len(noisy) > 0.25 and without.verdict is Verdict.OK
+    assert _abs_rel(without, w.depth) > _abs_rel(clean, w.depth) + 0.05          # the old behaviour: pulled
+    assert _abs_rel(default, w.depth) < _abs_rel(clean, w.depth) + 0.03
+    assert without.events_used == len(noisy) and default.events_used < len(noisy) - n / 2
+    kept_all = fit(w.events, w.K, pose=w.twist, settings=off)
+    assert clean.events_used == len(w.events)            # a clean window reads a low noise rate: not filtered
+    np.testing.assert_array_equal(clean.depth, kept_all.depth)
+    short = noisy[noisy.t < noisy.t[0] + 15_000]         # 15 ms: the scene's own events lie alone too often
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        assert fit(short, w.K, pose=w.twist, depth_range=(2.0, 60.0)).events_used == len(short)
+
+
+def test_a_window_of_mostly_noise_is_not_filtered_away():
+    """The filter leaves out none of a window's events when it would leave out more than ``max_denoised_share``
+    of them (here pure noise, nearly every event without two neighbours): the fit sees them all and its verdict
+    judges them (:func:`cmax.fitting.quality.noise_share`)."""
+    rng = np.random.default_rng(7)
+    n = rng.poisson(1.0 * 160 * 120 * 0.1)
+    noise = Events(rng.integers(0, 160, n), rng.integers(0, 120, n), np.sort(rng.integers(0, 100_000, n)),
+                   rng.integers(0, 2, n), 160, 120)
+    support = neighbour_counts(noise.x, noise.y, noise.t, 160, 120, 10_000)
+    assert np.mean(support < 2) > 0.5
+    K = np.array([[130.0, 0, 80], [0, 130.0, 60], [0, 0, 1]])
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = fit(noise, K, pose=np.r_[0.5, 0, 0, 0, 0, 0] * 10, depth_range=(1.0, 20.0))
+    assert r.events_used == n and r.verdict is not Verdict.OK
+
+
+@pytest.mark.parametrize("name, value", [("min_neighbours", -1), ("min_neighbours", 1.5),
+                                         ("denoise_min_rate_hz", -0.1), ("denoise_min_rate_hz", float("nan")),
+                                         ("denoise_min_window_us", -1),
+                                         ("max_denoised_share", 0.0), ("max_denoised_share", 1.5),
+                                         ("max_denoised_share", True)])
+def test_the_neighbour_filter_settings_outside_their_range_are_refused(name, value):
+    with pytest.raises(ValueError, match=name):
+        FitSettings(**{name: value})

@@ -23,8 +23,8 @@ from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
                                   motion_within_noise, rate_change, shuffled_gain_test, small_parallax_reason,
-                                  isolated_events, noise_reason, noise_share, sparse_reason, verdict_of,
-                                  _isolated_and_noise_share)
+                                  isolated_events, neighbour_counts, noise_reason, noise_share, sparse_reason,
+                                  verdict_of, _isolated_and_noise_share)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -124,6 +124,9 @@ class FitResult:
     iwe_before, iwe_after : ndarray (H, W) float32
         Event-count IWEs at ``t_ref_us`` without and with the fitted warp (blur sigma).
     events_used : int
+        The events the fit used: the window's, without its hot pixels' (``hot_pixels``), without the events of
+        too little neighbour support on a noisy se3 window (``FitSettings.min_neighbours``,
+        ``denoise_min_rate_hz``), subsampled to ``FitSettings.max_events``.
     parallax_px : float or None
         se3: median over the events of how far the fitted translation alone
         moves each event over the whole window at its fitted depth [px]. The
@@ -470,29 +473,32 @@ def fit(
     if model == "se3" and scale <= 0:
         raise ValueError("pose has no translation: depth is unobservable under a pure rotation")
     with torch_threads_scope(len(events), threads=num_threads) as threads, blas_threads_scope(threads):
-        w = Window.from_events(events, K, settings, depth_grid)
+        shared_test = model == "se3" and settings.mask_isolated_us == settings.quality.noise_window_us
+        if shared_test:     # the mask's and the noise's test, the events sorted once for both
+            isolated, noise = _isolated_and_noise_share(events.x, events.y, events.t, events.width, events.height,
+                                                        settings.mask_isolated_us, settings.max_events)
+        else:
+            isolated = None
+            noise = (noise_share(events.x, events.y, events.t, events.width, events.height,
+                                 settings.quality.noise_window_us, max_queries=settings.max_events)
+                     if model == "se3" else None)
+        fitted = events if noise is None else _without_weak_events(events, noise, settings)
+        w = Window.from_events(fitted, K, settings, depth_grid)
         motion = _start(model, init, pose_xi, known_omega, scale)
         stages = stages_for(model, w, pose_known=pose_xi is not None, hold_omega=known_omega is not None,
                             warm_v=init.v if init is not None and model == "se3" else None)
         motion, logs = run_stages(stages, w, motion, backend)
         if known_omega is not None:
             motion = replace(motion, omega=known_omega)
-        shared_test = model == "se3" and settings.mask_isolated_us == settings.quality.noise_window_us
-        isolated, noise = (_isolated_and_noise_share(events.x, events.y, events.t, events.width, events.height,
-                                                     settings.mask_isolated_us, settings.max_events)
-                           if shared_test else (None, None))   # the mask's and the noise's test, sorted once
-        result = _result(w, events, K, model, motion, logs, scale_known=pose is not None or speed is not None,
-                         isolated=isolated,
+        result = _result(w, fitted, K, model, motion, logs, scale_known=pose is not None or speed is not None,
+                         isolated=isolated if fitted is events else None,   # the fitted events' own test
                          seconds=time.perf_counter() - start)
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         on_bound = _on_bound(w, result, low, pose_known=pose is not None)
-        if model == "se3" and not shared_test:
-            noise = noise_share(events.x, events.y, events.t, events.width, events.height,
-                                settings.quality.noise_window_us, max_queries=settings.max_events)
         result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
                                                   hold_omega=known_omega is not None, speed=scale,
-                                                  given=len(events), rate=rate, on_bound=on_bound,
+                                                  given=len(fitted), rate=rate, on_bound=on_bound,
                                                   noise=noise),
                          hot_pixels=hot, seconds=time.perf_counter() - start)
     _warn(result, settings, low, pose is not None, on_bound)
@@ -532,6 +538,38 @@ def _without_hot_pixels(events: Events, settings: FitSettings) -> tuple[Events, 
                          f"window holds {len(kept)} events over {span} µs: too few to fit a motion "
                          "(hot_pixels=None keeps every event)")
     return kept, hot
+
+
+def _noise_rate_hz(events: Events, share: float) -> float:
+    """The background-activity rate [Hz per pixel] of a window whose events are an estimated ``share`` of noise
+    (:func:`cmax.fitting.quality.noise_share`): that share of its events over its pixels and duration (0 for a
+    window of one time stamp)."""
+    duration_s = (int(events.t[-1]) - int(events.t[0])) * 1e-6
+    return share * len(events) / (events.width * events.height * duration_s) if duration_s > 0 else 0.0
+
+
+def _without_weak_events(events: Events, share: float, settings: FitSettings) -> Events:
+    """``events`` without those of too little neighbour support to be the scene's: fewer than
+    ``settings.min_neighbours`` other events within 1 px and ``settings.mask_isolated_us`` µs
+    (:func:`cmax.fitting.quality.neighbour_counts`; background-activity noise next to the scene has one at most,
+    mostly), when the window's estimated noise rate [Hz per pixel] (:func:`_noise_rate_hz` of its estimated noise
+    ``share``, :func:`cmax.fitting.quality.noise_share`) is at least ``settings.denoise_min_rate_hz`` (below it
+    nothing is counted). ``events`` itself when the filter is off (either setting 0), below that rate, on a window
+    shorter than ``settings.denoise_min_window_us`` (whose scene's own events lie alone too often), when the
+    estimated ``share`` or the share the filter would leave out is over ``settings.max_denoised_share`` (a window
+    of mostly noise, or too sparse: its verdict says so; the few noise events that have neighbours would be kept
+    and read as a scene), or when fewer than ``MIN_WINDOW_EVENTS`` over more than one time stamp would remain."""
+    if not (settings.min_neighbours and settings.mask_isolated_us) or share > settings.max_denoised_share or \
+            int(events.t[-1]) - int(events.t[0]) < settings.denoise_min_window_us or \
+            _noise_rate_hz(events, share) < settings.denoise_min_rate_hz:
+        return events
+    support = neighbour_counts(events.x, events.y, events.t, events.width, events.height, settings.mask_isolated_us)
+    keep = support >= settings.min_neighbours
+    kept = int(np.count_nonzero(keep))
+    if kept == len(events) or len(events) - kept > settings.max_denoised_share * len(events) or \
+            kept < MIN_WINDOW_EVENTS or events.t[keep][-1] == events.t[keep][0]:
+        return events
+    return Events(events.x[keep], events.y[keep], events.t[keep], events.p[keep], events.width, events.height)
 
 
 def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, known_omega: np.ndarray | None,

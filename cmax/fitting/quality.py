@@ -75,7 +75,8 @@ from cmax.warp import warp_se3
 __all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alternative", "Quality", "MotionScorer",
            "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change", "sparse_reason",
-           "small_parallax_reason", "min_ok_parallax", "isolated_events", "noise_share", "noise_reason"]
+           "small_parallax_reason", "min_ok_parallax", "isolated_events", "neighbour_counts", "noise_share",
+           "noise_reason"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
@@ -345,7 +346,9 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
     Returns ``(alternatives, note, tested)``: ``tested`` False, no alternatives and ``note`` saying why when
     the window has fewer than ``w.settings.refine.min_patches`` patches with events (nothing to test on: the
     verdict cannot be ``ok``); ``note`` also names the alternatives dropped because their polish ended on
-    the fit (within ``settings.distinct_deg``).
+    the fit (within ``settings.distinct_deg``), but for those that end at least ``settings.recheck_deg`` from it
+    and score better than the fit by more than ``settings.margin`` times its own gain (more than a tie): they are
+    kept (the fit is then not the optimum of its own objective).
     """
     scorer = MotionScorer.build(w, v, omega, speed, settings)
     if scorer is None:
@@ -353,14 +356,20 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
                     "events"), False
     refine = w.settings.refine
     alternatives, merged = [], []
+    self_margin = settings.margin * max(scorer.own_gain, 0.0)     # "better than the fit" beyond a tie
     for name, v_alt, omega_alt in alternative_motions(scorer.objective, v, omega, scorer.rho, hold_omega=hold_omega):
         if settings.polish_iterations:
             polished = refine_motion_local(w, v_alt, omega_alt, speed,
                                            replace(refine, iterations=settings.polish_iterations),
                                            solver, hold_omega=hold_omega, objective=scorer.objective)
             v_alt, omega_alt = polished.v, polished.omega
-            if _distance_deg(v_alt, omega_alt, v, omega, w.T) < settings.distinct_deg:
-                merged.append(name)
+            distance = _distance_deg(v_alt, omega_alt, v, omega, w.T)
+            if distance < settings.distinct_deg:
+                scored = scorer.score(name, v_alt, omega_alt) if distance >= settings.recheck_deg else None
+                if scored is None or not scored.gain < -self_margin:
+                    merged.append(name)
+                    continue
+                alternatives.append(scored)                 # near the fit, but better: the fit is no optimum
                 continue
         alternatives.append(scorer.score(name, v_alt, omega_alt))
     note = f"the {', '.join(merged)} alternative(s) polished back onto the fit" if merged else ""
@@ -545,6 +554,32 @@ def _isolated(events: _Sorted, width: int, height: int, window_us: int, radius: 
     isolated = np.empty(events.keys.size, bool)
     isolated[events.order] = _alone(events, np.arange(events.keys.size), width, height, window_us, radius)
     return isolated
+
+
+def neighbour_counts(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int, window_us: int,
+                     radius: int = 1) -> np.ndarray:
+    """How many other events (N,) int64 each event has within ``radius`` pixels (a ``2 radius + 1`` square, its own
+    pixel included) and ``window_us`` µs on either side: the neighbour support of the background-activity filter
+    (Delbruck 2008; Guo & Delbruck 2022), 0 exactly where :func:`isolated_events` is True. ``x, y`` (N,) integer
+    pixels inside the ``width`` x ``height`` image, ``t`` (N,) µs. Two binary searches per neighbour pixel.
+
+    >>> neighbour_counts(np.array([0, 1, 1, 5]), np.array([0, 0, 1, 5]), np.array([0, 500, 900, 600]), 8, 8,
+    ...                  1000).tolist()
+    [2, 2, 2, 0]
+    """
+    _check_pixels(x, y, t, width, height, window_us, radius)
+    events = _sorted_events(x, y, t, width, window_us)
+    keys, x, y = events.keys, events.x, events.y
+    counts = np.zeros(keys.size, np.int64)
+    for dy in range(-radius, radius + 1):
+        for dx in range(-radius, radius + 1):
+            inside = (x + dx >= 0) & (x + dx < width) & (y + dy >= 0) & (y + dy < height)
+            base = keys + (dy * width + dx) * events.span
+            found = np.searchsorted(keys, base + window_us, "right") - np.searchsorted(keys, base - window_us, "left")
+            counts += np.where(inside, found, 0)
+    out = np.empty_like(counts)
+    out[events.order] = counts - 1                                         # not the event itself
+    return out
 
 
 def _sorted_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, window_us: int) -> _Sorted:

@@ -287,7 +287,15 @@ class QualitySettings:
         compared at its own optimum as the fit is at its.
     distinct_deg : float
         A polished alternative that ends within this distance of the fit (direction angle plus rotation
-        over the window, degrees) is the fit itself, not an alternative: it is dropped.
+        over the window, degrees) is the fit itself, not an alternative: it is dropped, unless it lies at least
+        ``recheck_deg`` from the fit and scores better than it beyond a tie.
+    recheck_deg : float
+        A polished alternative that ends within ``distinct_deg`` of the fit but at least this far from it
+        (degrees, the same distance) is scored; when it scores better than the fit by more than ``margin`` times the
+        fit's own gain it is kept as an alternative, so that the window is at best ``ambiguous``: the fit is then
+        not the optimum of its own objective, and its direction may be off by that much or more (on 160x120 street
+        windows with a little noise, ``ok`` fits 37-39 deg off had such an alternative 21-29 deg away;
+        docs/quality.md). ``distinct_deg`` or more turns the check off.
     neighbours : int
         ``fit_sequence``: windows on each side searched for confident (``ok``) neighbours.
     max_resolve_deg : float
@@ -373,6 +381,7 @@ class QualitySettings:
     noise_sigmas: float = 1.0
     polish_iterations: int = 20
     distinct_deg: float = 30.0
+    recheck_deg: float = 15.0
     neighbours: int = 2
     max_resolve_deg: float = 45.0
     motion_test: bool = True
@@ -398,8 +407,9 @@ class QualitySettings:
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
         object.__setattr__(self, "motion_cells", _grid("motion_cells", self.motion_cells))
-        for name in ("margin", "noise_sigmas", "distinct_deg", "max_resolve_deg", "motion_noise_sigmas",
-                     "smoothing_min_deg", "smoothing_span_s", "min_event_density", "min_ok_parallax_px"):
+        for name in ("margin", "noise_sigmas", "distinct_deg", "recheck_deg", "max_resolve_deg",
+                     "motion_noise_sigmas", "smoothing_min_deg", "smoothing_span_s", "min_event_density",
+                     "min_ok_parallax_px"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
@@ -530,6 +540,28 @@ class FitSettings:
         :func:`cmax.fitting.quality.isolated_events`, the background-activity filter's test) are outside the
         mask: uniform sensor noise would otherwise put its own pixels into it, each with a depth of its own
         (docs/quality.md). 0 keeps every event pixel.
+    min_neighbours : int
+        se3: events with fewer than this many other events within 1 px and ``mask_isolated_us`` µs
+        (:func:`cmax.fitting.quality.neighbour_counts`, the background-activity filter's support) are left out of
+        the fit, motion, depth and mask (``FitResult.events_used`` counts the rest): uniform sensor noise next to
+        the scene is not isolated, and without this filter it pulls the depth of the cells it falls in and fills
+        cells of its own (docs/quality.md: the measurement). 0 (or ``mask_isolated_us`` 0) keeps every event.
+    denoise_min_rate_hz : float
+        That filter applies only to a window whose estimated background-activity rate [Hz per pixel] is at least
+        this: the share of noise that :func:`cmax.fitting.quality.noise_share` reads, times the events, over the
+        pixels and the window's duration. Clean windows read a rate too, their scene's own isolated events
+        (0.17-0.55 Hz on the synthetic presets at 160x120), and are fitted on every event; 1 Hz per pixel of added
+        noise reads 0.78-1.28 Hz (docs/quality.md: the measurement). 0 filters every se3 window.
+    denoise_min_window_us : int
+        Nor to a window shorter than this [µs]: the isolated-event test looks ``mask_isolated_us`` either side, and
+        on a shorter window the scene's own events lie alone so often that its noise rate reads high (10 and 5 ms
+        of the real DAVIS346 pegboard read 1.4 and 2.9 Hz, the 8.8 ms Gen4 drive at half size 1.0 Hz; the filter
+        turned the latter's fitted direction from 5 to 73 deg off forward, leaving out 2% of its events).
+    max_denoised_share : float
+        When the window's estimated share of noise, or the share of its events that filter would leave out, is
+        over this, the filter leaves out none: the window is then mostly noise or too sparse for the test, and its
+        verdict says so (``quality.noisy``, ``quality.sparse``; on pure noise the few events with neighbours would
+        be kept and read as a scene). In (0, 1].
     hot_pixels : HotPixelFilter or None
         Which pixels are hot (:class:`cmax.hot_pixels.HotPixelFilter`: more than ``factor`` (8) times the
         99th percentile of the window's per-pixel event counts and more than ``min_events`` (30), or firing
@@ -580,6 +612,10 @@ class FitSettings:
     low_parallax_px: float = LOW_PARALLAX_PX
     min_cell_events: int = 15
     mask_isolated_us: int = 10_000
+    min_neighbours: int = 2
+    denoise_min_rate_hz: float = 0.7
+    denoise_min_window_us: int = 20_000
+    max_denoised_share: float = 0.5
     hot_pixels: HotPixelFilter | None = field(default_factory=HotPixelFilter)
     seed: int = 0
     patch_flow: PatchFlowSettings = field(default_factory=PatchFlowSettings)
@@ -655,6 +691,15 @@ class FitSettings:
         _positive_int("start_iterations", self.start_iterations)
         _positive_int("min_cell_events", self.min_cell_events, 0)
         _positive_int("mask_isolated_us", self.mask_isolated_us, 0)
+        _positive_int("min_neighbours", self.min_neighbours, 0)
+        _positive_int("denoise_min_window_us", self.denoise_min_window_us, 0)
+        if isinstance(self.denoise_min_rate_hz, bool) or not (isinstance(self.denoise_min_rate_hz, (int, float))
+                                                                and 0 <= self.denoise_min_rate_hz < math.inf):
+            raise ValueError("denoise_min_rate_hz must be a number >= 0 [Hz per pixel], "
+                             f"got {self.denoise_min_rate_hz!r}")
+        if isinstance(self.max_denoised_share, bool) or not (isinstance(self.max_denoised_share, (int, float))
+                                                               and 0 < self.max_denoised_share <= 1):
+            raise ValueError(f"max_denoised_share must lie in (0, 1], got {self.max_denoised_share!r}")
         check_filter(self.hot_pixels)
         for name, kind in (("patch_flow", PatchFlowSettings), ("refine", RefineSettings), ("sweep", SweepSettings),
                            ("quality", QualitySettings)):
