@@ -554,7 +554,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         if K is None:
             raise ValueError(no_intrinsics_message(args.file, "--calib"))
     notes = notes + ([hint] if (hint := calibration_hint(args)) else [])
-    if args.calib is not None and (said := calibration_note(calibration, args.calib, args.calib_camera)):
+    if args.calib is not None and (said := calibration_note(calibration, args.calib, args.calib_camera, args.file)):
         notes.append(said)
     events = streamed = None
     try:
