@@ -1167,3 +1167,22 @@ def test_camrect_on_raw_dsec_events_with_rectify_map_beside_is_refused(tmp_path,
     (tmp_path / "rectify_map.h5").unlink()
     main(args + ["--quiet"])
     assert "taken as already undistorted and rectified" in capsys.readouterr().err
+
+
+def test_dsec_calibration_folder_two_levels_above_the_events_is_named(tmp_path):
+    """DSEC ships <sequence>/events/left/events.h5 and <sequence>/calibration/cam_to_cam.yaml: the note that names a
+    calibration beside the events looked one folder up only, so a DSEC user fitting with --K heard nothing."""
+    import argparse
+
+    from cmax.cli.recording import calibration_hint
+
+    left = tmp_path / "zurich_city_04_a" / "events" / "left"
+    left.mkdir(parents=True)
+    path = write_h5(left / "events.h5", noise_events(300, 50_000, seed=4))
+    args = argparse.Namespace(file=path, calib=None, distortion=None)
+    assert calibration_hint(args) is None
+    (tmp_path / "zurich_city_04_a" / "calibration").mkdir()
+    yaml = _write(tmp_path / "zurich_city_04_a" / "calibration" / "cam_to_cam.yaml", DSEC_RECTIFIED_YAML)
+    hint = calibration_hint(args)
+    assert hint.startswith(f"{yaml.resolve()} lies beside the events but was not read: pass --calib {yaml.resolve()} "
+                           "(DSEC: --calib-camera cam0"), hint

@@ -310,17 +310,21 @@ MVSEC_CAMCHAIN_GLOB = "camchain-imucam-*.yaml"
 
 def calibration_hint(args: argparse.Namespace) -> str | None:
     """A note when no ``--calib`` or ``--distortion`` was given but a data set's calibration file lies beside
-    ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either; an MVSEC camchain
+    ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either or two folders above, as in
+    DSEC's ``<sequence>/events/left/events.h5`` and ``<sequence>/calibration/cam_to_cam.yaml``; an MVSEC camchain
     :data:`MVSEC_CAMCHAIN_GLOB` too), or the file is MVSEC's (whose fisheye lenses a pinhole misses: the note names
     the camchain to pass), or None. It is not read (never guessed): the note says how to use it."""
     if args.calib is not None or args.distortion is not None:
         return None
     folder = Path(args.file).resolve().parent
-    for place in (folder, folder / "calibration", folder.parent, folder.parent / "calibration"):
+    for place in (folder, folder / "calibration", folder.parent, folder.parent / "calibration",
+                  folder.parent.parent / "calibration"):
         for name in (*CALIBRATION_NAMES, *sorted(p.name for p in place.glob(MVSEC_CAMCHAIN_GLOB))):
             if (place / name).is_file():
-                return (f"{place / name} lies beside the events but was not read: pass --calib {place / name} to "
-                        "use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
+                dsec = (" (DSEC: --calib-camera cam0, the default, for its raw events, which it rectifies into "
+                        "camRect0's frame)" if name == "cam_to_cam.yaml" else "")
+                return (f"{place / name} lies beside the events but was not read: pass --calib {place / name}{dsec} "
+                        "to use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
                         "distortion biases the fitted rotation and depth, docs/limits.md)")
     from cmax.io import detect_format
 
