@@ -438,3 +438,11 @@ def test_a_sensor_resolution_attribute_is_read_in_the_order_the_events_allow(tmp
     assert main(["info", str(small)]) == 2
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "does not state its order" in err[0]
+    with h5py.File(small, "a") as file:            # width and height beside it: they must be one of its orders
+        file.attrs["width"], file.attrs["height"] = 346, 260
+    assert read(small).sensor_size == (346, 260)
+    with h5py.File(small, "a") as file:
+        file.attrs["width"], file.attrs["height"] = 640, 480
+    with pytest.raises(FormatError, match=r"contradicts itself: its width and height attributes state a 640x480 "
+                                          r"sensor, its sensor_resolution attribute 260, 346"):
+        read(small)

@@ -551,6 +551,19 @@ def _coordinate_extent(columns: dict, path: Path) -> tuple[int, int] | None:
     return top[0], top[1]
 
 
+def _resolution_numbers(value: object, path: Path) -> tuple[int, int]:
+    """The two whole numbers [px] of a ``sensor_resolution`` attribute ``value`` (in an order it does not state);
+    FormatError naming the file for anything else."""
+    try:
+        numbers = [_whole_size(v, "sensor_resolution", path) for v in np.asarray(value).ravel()]
+    except (TypeError, ValueError):
+        numbers = []
+    if len(numbers) != 2 or min(numbers) < 1:
+        raise FormatError(f"{path}: its sensor_resolution attribute must be two whole numbers of pixels (height, "
+                          f"width or width, height), got {value!r}; pass width= and height= (cmax: --size WxH)")
+    return numbers[0], numbers[1]
+
+
 def _sensor_resolution(value: object, columns: dict, width: int | None, height: int | None,
                        path: Path) -> tuple[int | None, int | None]:
     """``(width, height)`` [px] of a file whose only size is a ``sensor_resolution`` attribute ``value`` (two whole
@@ -559,14 +572,7 @@ def _sensor_resolution(value: object, columns: dict, width: int | None, height: 
     ``events/y`` below the height, from ``columns``): that order. A caller's ``width``, ``height`` must be one of
     the two orders (:class:`_CallerError` otherwise) and chooses it. Both orders holding every event, or neither:
     FormatError naming the attribute and both readings (never guessed)."""
-    try:
-        numbers = [_whole_size(v, "sensor_resolution", path) for v in np.asarray(value).ravel()]
-    except (TypeError, ValueError):
-        numbers = []
-    if len(numbers) != 2 or min(numbers) < 1:
-        raise FormatError(f"{path}: its sensor_resolution attribute must be two whole numbers of pixels (height, "
-                          f"width or width, height), got {value!r}; pass width= and height= (cmax: --size WxH)")
-    a, b = numbers
+    a, b = _resolution_numbers(value, path)
     orders = {(b, a): f"(height, width), a {b}x{a} sensor", (a, b): f"(width, height), a {a}x{b} sensor"}
     if width is not None and height is not None:
         if (width, height) not in orders:
@@ -674,6 +680,11 @@ class H5Reader:
         attrs = self._file.attrs
         if "width" in attrs and "height" in attrs:
             stated = _whole_size(attrs["width"], "width", self.path), _whole_size(attrs["height"], "height", self.path)
+            if "sensor_resolution" in attrs and stated not in (
+                    resolution := _resolution_numbers(attrs["sensor_resolution"], self.path), resolution[::-1]):
+                raise FormatError(f"{self.path} contradicts itself: its width and height attributes state a "
+                                  f"{stated[0]}x{stated[1]} sensor, its sensor_resolution attribute {resolution[0]}, "
+                                  f"{resolution[1]} (in either order) another; fix the file's attributes")
             try:
                 width, height = check_stated_size(width, height, stated, self.path)
             except ValueError as error:
