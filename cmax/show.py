@@ -199,12 +199,28 @@ def render_events(
 def render_window(
     path: str | os.PathLike, *, t0_s: float = 0.0, dt_s: float = 0.05, mode: str = "both",
     bins: int = 5, width: int | None = None, height: int | None = None, time_unit: str | None = None,
-    **options: Any,
+    require_events: bool = False, **options: Any,
 ) -> np.ndarray:
     """Picture of ``[t0_s, t0_s + dt_s)`` seconds after the first event of the file at ``path`` (see
     :func:`render_events`: ``mode``, ``bins``); ``width``, ``height``, ``time_unit`` and ``options`` (e.g.
-    ``polarity='signed'``) go to the reader, as in :func:`read_window`. Returns a BGR uint8 picture (h, w, 3)."""
+    ``polarity='signed'``) go to the reader, as in :func:`read_window`. Returns a BGR uint8 picture (h, w, 3).
+
+    ``require_events``: raise ``ValueError`` naming the file and the window when the window holds no event (an
+    empty file, or a gap in the recording) instead of drawing a blank picture (``cmax show`` sets it)."""
     events, depth = read_window(path, t0_s, dt_s, width=width, height=height, time_unit=time_unit, **options)
+    if require_events and not len(events):
+        raise ValueError(_no_events(Path(path), t0_s, dt_s, width=width, height=height, time_unit=time_unit,
+                                    **options))
     span = f" (events over {(int(events.t[-1]) - int(events.t[0])) * 1e-3:.3g} ms)" if len(events) else ""
     title = f"{Path(path).name}, {t0_s:g} s + {dt_s * 1e3:g} ms{span}: "   # a file may end within the window
     return render_events(events, mode=mode, bins=bins, depth=depth, title=title)
+
+
+def _no_events(path: Path, t0_s: float, dt_s: float, **reader: Any) -> str:
+    """Why the window ``[t0_s, t0_s + dt_s)`` s of ``path`` (``reader``: :func:`read_window`'s keywords) has
+    nothing to draw: the file holds no events (its first microsecond, where every other file has its first event,
+    is empty too), or the window falls in a gap of the recording."""
+    if not len(read_window(path, 0.0, 1e-6, **reader)[0]):
+        return f"{path.name} holds no events: nothing to draw"
+    return (f"no events in the window [{t0_s:g}, {t0_s + dt_s:g}) s after the first event of {path.name} (a gap in "
+            "the recording): nothing to draw; choose another t0 or a longer dt")

@@ -764,7 +764,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
             lens_camera = lens.camera(recording.width, recording.height, K)
             undistort, K = lens_camera.undistort_events, lens_camera.pinhole_K
         notes = [f"{checkpoint.name}: {limit}" for limit in card_limits(card, f"the card of {checkpoint}")]
-        if calibration is not None and (said := calibration_note(calibration, calib, calib_camera)):
+        if calibration is not None and (said := calibration_note(calibration, calib, calib_camera, path)):
             notes.append(said)
         notes += camera_notes(card, recording.width, recording.height, K, f"the card of {checkpoint}")
         notes += [given] if given else []

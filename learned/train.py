@@ -31,7 +31,7 @@ import sys
 import threading
 import warnings
 from pathlib import Path
-from typing import Iterator
+from typing import Callable, Iterator
 
 import numpy as np
 import torch
@@ -72,7 +72,8 @@ THREAD_CHECK_EVERY = 25
 
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
-           "clear_earlier_run", "RESUMABLE", "file_fingerprint", "fingerprint_differences", "repeated_files",
+           "clear_earlier_run", "RESUMABLE", "file_fingerprint", "data_fingerprints", "bytes_to_hash",
+           "HASH_PROGRESS_BYTES", "fingerprint_differences", "repeated_files",
            "training_card", "schedule_note", "unread_settings",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
            "check_output", "main"]
@@ -210,8 +211,41 @@ FINGERPRINT_BYTES = 1 << 16
 _HASH_CHUNK = 1 << 20
 
 
+#: Bytes of data files to hash at start above which a progress bar shows it (about 1.5 s a GB on one core).
+HASH_PROGRESS_BYTES = 1 << 30
+
+
+def _recorded_sha256(size: int, marks: list[int], recorded: object) -> str | None:
+    """The ``sha256`` of a file's ``recorded`` fingerprint when its size [bytes] and ``marks`` (modification time
+    [ns], inode) equal the file's ``size`` and ``marks`` now (the file need not be read again), else None."""
+    known = (recorded.get("sha256") if isinstance(recorded, dict) and recorded.get("bytes") == size
+             and recorded.get("stat") == marks else None)
+    return known if isinstance(known, str) else None
+
+
+def bytes_to_hash(path: str | Path, recorded: object = None) -> int:
+    """Bytes [B] that :func:`file_fingerprint` reads to hash the whole file at ``path``: its size, or 0 when its
+    ``recorded`` fingerprint's SHA-256 is taken instead."""
+    stat = Path(path).stat()
+    known = _recorded_sha256(int(stat.st_size), [int(stat.st_mtime_ns), int(stat.st_ino)], recorded)
+    return 0 if known is not None else int(stat.st_size)
+
+
+def data_fingerprints(paths: list, counts: list[int], spans: list[tuple[int, int]], recorded: list, *,
+                      progress: bool = True) -> list[dict[str, object]]:
+    """The :func:`file_fingerprint` of each data file ``paths[i]`` (``counts[i]`` events over ``spans[i]`` [µs],
+    ``recorded[i]``: its fingerprint in the checkpoint resumed, or None), with a progress bar [bytes] on stderr
+    while the whole files are hashed when they hold more than :data:`HASH_PROGRESS_BYTES` (``progress``: allowed)."""
+    total = sum(bytes_to_hash(path, known) for path, known in zip(paths, recorded))
+    bar = tqdm(total=total, desc="hashing data files (checked by --resume)", unit="B", unit_scale=True,
+               unit_divisor=1024, disable=not progress or total <= HASH_PROGRESS_BYTES)
+    with bar:
+        return [file_fingerprint(path, count, span, recorded=known, read=bar.update)
+                for path, count, span, known in zip(paths, counts, spans, recorded)]
+
+
 def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int], *,
-                     recorded: object = None) -> dict[str, object]:
+                     recorded: object = None, read: Callable[[int], None] | None = None) -> dict[str, object]:
     """What ``--resume`` compares of one data file at ``path``: ``{"bytes": size, "events": events, "span_us":
     [first, last], "sha256": ..., "ends_sha256": ..., "stat": [mtime_ns, inode]}``: the file's size [bytes], its
     number of ``events`` and their time span ``span_us`` (first, last) [µs] (as :class:`learned.data.H5WindowDataset`
@@ -221,13 +255,13 @@ def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int], *,
     ``recorded``: this file's fingerprint in the checkpoint being resumed; when its size, modification time and
     inode equal the file's now, its ``sha256`` is taken instead of reading the file again. What this cannot see: a
     file rewritten in place whose modification time was then set back (``touch -d``, ``cp -p`` onto the same inode).
-    Another recording copied over the file, or any byte of it changed, changes the whole file's SHA-256."""
+    Another recording copied over the file, or any byte of it changed, changes the whole file's SHA-256.
+    ``read``: called with the bytes [B] of each chunk hashed (a progress bar's ``update``), or None."""
     path = Path(path)
     stat = path.stat()
     size, marks = int(stat.st_size), [int(stat.st_mtime_ns), int(stat.st_ino)]
     ends, whole = hashlib.sha256(), hashlib.sha256()
-    known = (recorded.get("sha256") if isinstance(recorded, dict) and recorded.get("bytes") == size
-             and recorded.get("stat") == marks else None)
+    known = _recorded_sha256(size, marks, recorded)
     with open(path, "rb") as file:
         ends.update(file.read(FINGERPRINT_BYTES))
         if size > FINGERPRINT_BYTES:
@@ -237,6 +271,8 @@ def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int], *,
             file.seek(0)
             while chunk := file.read(_HASH_CHUNK):
                 whole.update(chunk)
+                if read is not None:
+                    read(len(chunk))
             known = whole.hexdigest()
     return {"bytes": size, "events": int(events), "span_us": [int(span_us[0]), int(span_us[1])],
             "sha256": known, "ends_sha256": ends.hexdigest(), "stat": marks}
@@ -681,8 +717,9 @@ class Trainer:
         recorded = order.get("files") if isinstance(order, dict) else None
         if not isinstance(recorded, list) or len(recorded) != len(self.dataset.specs):
             recorded = [None] * len(self.dataset.specs)
-        self.fingerprints = [file_fingerprint(spec.path, count, span, recorded=known) for spec, count, span, known
-                             in zip(self.dataset.specs, self.dataset.counts, self.dataset.spans, recorded)]
+        self.fingerprints = data_fingerprints([spec.path for spec in self.dataset.specs], self.dataset.counts,
+                                              self.dataset.spans, recorded,
+                                              progress=self.progress and self.rank == 0)
         if ckpt is not None:
             self._check_data_order(ckpt.get("data_order"))
             self._check_data_files(ckpt.get("data_order"))

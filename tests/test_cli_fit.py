@@ -9,7 +9,7 @@ import pytest
 
 from cmax.cli import main
 from cmax.cli.fit import undistorted_events
-from cmax.cli.recording import read_calibration
+from cmax.cli.recording import calibration_note, read_calibration
 from cmax.events import Events
 from cmax.io import write_h5, write_txt
 
@@ -22,6 +22,8 @@ disparity_to_depth:
 extrinsics:
   R_rect0:
   - [1.0, 0.0, 0.0]
+  - [0.0, 1.0, 0.0]
+  - [0.0, 0.0, 1.0]
 intrinsics:
   cam0:
     camera_matrix: [553.47, 553.40, 346.65, 216.52]
@@ -87,6 +89,13 @@ extrinsics:
   R_rect0:
   - - 1.0
     - 0.0
+    - 0.0
+  - - 0.0
+    - 1.0
+    - 0.0
+  - - 0.0
+    - 0.0
+    - 1.0
 """
 
 
@@ -1088,3 +1097,92 @@ def test_a_known_rotation_is_turned_into_the_rectified_frame(slider, tmp_path):
           "--omega", ",".join(map(str, omega)), "--max-events", "3000", "--depth-grid", "8,10", "--quiet"])
     (window,) = json.loads((out / "summary.json").read_text())["windows"]
     np.testing.assert_allclose(window["omega"], R @ omega, atol=1e-9)
+
+
+#: A DSEC cam_to_cam.yaml of a rig whose rectification turns cam0 by about 1 degree (DSEC's own are of that size).
+DSEC_RECTIFIED_YAML = """\
+extrinsics:
+  R_rect0:
+  - [0.99991301, -0.00860511, 0.00999626]
+  - [0.00859561, 0.99996256, 0.00099302]
+  - [-0.01000443, -0.00090701, 0.99994954]
+intrinsics:
+  cam0:
+    camera_matrix: [553.47, 553.40, 346.65, 216.52]
+    distortion_coeffs: [-0.0936, 0.1945, 7.6e-05, 0.00196]
+    distortion_model: radtan
+    resolution: [640, 480]
+  camRect0:
+    camera_matrix: [569.76, 569.76, 335.10, 221.24]
+    resolution: [640, 480]
+"""
+
+
+def test_dsec_raw_camera_is_rectified_into_camrect_frame_as_opencv_does(tmp_path):
+    """DSEC ships its events raw; its disparity maps (and rectify_map.h5) are in camRect0's frame, made with
+    cv2.undistortPoints(..., R=R_rect0, P=K_rect0). --calib-camera cam0 was undistorted onto cam0's own pinhole
+    (K 553.47, not rotated): a frame 1 degree and 16 px of focal length away from the ground truth's."""
+    yaml = _write(tmp_path / "cam_to_cam.yaml", DSEC_RECTIFIED_YAML)
+    calibration = read_calibration(yaml, "cam0")
+    R = np.array([[0.99991301, -0.00860511, 0.00999626], [0.00859561, 0.99996256, 0.00099302],
+                  [-0.01000443, -0.00090701, 0.99994954]])
+    K_rect = np.array([[569.76, 0, 335.10], [0, 569.76, 221.24], [0, 0, 1]])
+    K = np.array([[553.47, 0, 346.65], [0, 553.40, 216.52], [0, 0, 1]])
+    distortion = np.array([-0.0936, 0.1945, 7.6e-05, 0.00196])
+    camera = calibration.camera(640, 480)
+    np.testing.assert_array_equal(camera.pinhole_K, K_rect)
+    ys, xs = np.mgrid[0:480:37, 0:640:41]
+    pixels = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    expected = cv2.undistortPoints(pixels.reshape(-1, 1, 2), K, distortion, R=R, P=K_rect,
+                                   criteria=criteria).reshape(-1, 2)
+    np.testing.assert_allclose(camera.undistort_points(pixels), expected, atol=1e-3)
+    note = calibration_note(calibration, yaml, "cam0", "events.h5")
+    assert "extrinsics/R_rect0 and intrinsics/camRect0" in note and "fx 569.76" in note
+    # camRect0 stays a pinhole without distortion (events already rectified), and says what it assumes
+    rectified = read_calibration(yaml, "camRect0")
+    assert rectified.distortion is None and rectified.rectification is None
+    assert "taken as already undistorted and rectified" in calibration_note(rectified, yaml, "camRect0", "ev.h5")
+    # a malformed R_rect0 is refused naming it, not read as no rectification
+    bad = _write(tmp_path / "bad.yaml", DSEC_RECTIFIED_YAML.replace("  - [-0.01000443, -0.00090701, 0.99994954]\n",
+                                                                     ""))
+    with pytest.raises(ValueError, match=r"extrinsics/R_rect0 \(the rectification of cam0\) must be a 3x3"):
+        read_calibration(bad, "cam0")
+
+
+def test_camrect_on_raw_dsec_events_with_rectify_map_beside_is_refused(tmp_path, capsys):
+    """DSEC's events/left/events.h5 lies beside rectify_map.h5 and is raw: camRect0 fitted it as rectified without
+    a word. Now exit 2 naming cam0; without the map, a note says what camRect0 assumes."""
+    rng = np.random.default_rng(3)
+    events = Events(rng.integers(0, 640, 300), rng.integers(0, 480, 300), np.sort(rng.integers(0, 50_000, 300)),
+                    rng.integers(0, 2, 300), 640, 480)
+    path = write_h5(tmp_path / "events.h5", events)
+    yaml = _write(tmp_path / "cam_to_cam.yaml", DSEC_RECTIFIED_YAML)
+    (tmp_path / "rectify_map.h5").write_bytes(b"")
+    args = ["fit", str(path), "--calib", str(yaml), "--calib-camera", "camRect0", "-o", str(tmp_path / "o")]
+    assert main(args) == 2
+    err = capsys.readouterr().err
+    assert "camRect0 is the rectified camera" in err and "--calib-camera cam0" in err
+    assert len(err.strip().splitlines()) == 1, err
+    (tmp_path / "rectify_map.h5").unlink()
+    main(args + ["--quiet"])
+    assert "taken as already undistorted and rectified" in capsys.readouterr().err
+
+
+def test_dsec_calibration_folder_two_levels_above_the_events_is_named(tmp_path):
+    """DSEC ships <sequence>/events/left/events.h5 and <sequence>/calibration/cam_to_cam.yaml: the note that names a
+    calibration beside the events looked one folder up only, so a DSEC user fitting with --K heard nothing."""
+    import argparse
+
+    from cmax.cli.recording import calibration_hint
+
+    left = tmp_path / "zurich_city_04_a" / "events" / "left"
+    left.mkdir(parents=True)
+    path = write_h5(left / "events.h5", noise_events(300, 50_000, seed=4))
+    args = argparse.Namespace(file=path, calib=None, distortion=None)
+    assert calibration_hint(args) is None
+    (tmp_path / "zurich_city_04_a" / "calibration").mkdir()
+    yaml = _write(tmp_path / "zurich_city_04_a" / "calibration" / "cam_to_cam.yaml", DSEC_RECTIFIED_YAML)
+    hint = calibration_hint(args)
+    assert hint.startswith(f"{yaml.resolve()} lies beside the events but was not read: pass --calib {yaml.resolve()} "
+                           "(DSEC: --calib-camera cam0"), hint

@@ -178,3 +178,39 @@ def test_stated_axes_turn_a_text_files_readings(tmp_path):
     for bad in ("x,y", "x,y,w", "-x,-x,z"):
         with pytest.raises(ValueError, match="name each IMU axis once"):
             read_gyro(path, axes=bad)
+
+
+def test_an_hdf5_file_as_gyro_is_refused_in_one_line_naming_mvsec(tmp_path, capsys):
+    """`cmax fit --gyro data.hdf5` with MVSEC's data file failed with "'utf-8' codec can't decode byte 0x89",
+    naming neither HDF5 nor MVSEC; its IMU's columns and axes are stated nowhere, so it is refused, naming what to
+    pass. Another binary file is named as not text."""
+    h5py = pytest.importorskip("h5py")
+    mvsec = tmp_path / "indoor_flying1_data.hdf5"
+    rng = np.random.default_rng(0)
+    with h5py.File(mvsec, "w") as file:
+        left = file.create_group("davis/left")
+        left["events"] = np.column_stack([rng.integers(0, 346, 400), rng.integers(0, 260, 400),
+                                          np.sort(rng.uniform(1.5e9, 1.5e9 + 0.2, 400)),
+                                          rng.choice([-1, 1], 400)]).astype(float)
+        left["imu"] = rng.normal(size=(50, 6))
+        left["imu_ts"] = np.linspace(1.5e9, 1.5e9 + 0.2, 50)
+    with pytest.raises(FormatError, match=r"is an MVSEC data file \(IMU davis/left/imu\): its IMU is not read"):
+        read_gyro(mvsec)
+    other = write_h5(tmp_path / "ev.h5", point_scene_events())
+    with pytest.raises(FormatError, match="is an HDF5 file, not a gyro file"):
+        read_gyro(other)
+    (tmp_path / "noise.bin").write_bytes(bytes([0xF0, 0x28, 0x8C, 0x28]) * 64)
+    with pytest.raises(FormatError, match="is not a text file"):
+        read_gyro(tmp_path / "noise.bin")
+    status = main(["fit", str(other), "--K", "60,60,32,24", "--gyro", str(mvsec), "-o", str(tmp_path / "o")])
+    err = capsys.readouterr().err
+    assert status == 2 and "MVSEC data file" in err and "utf-8" not in err and len(err.strip().splitlines()) == 1
+
+
+def point_scene_events():
+    """A few events of a 64x48 sensor over 0.1 s (the gyro refusal comes before any fit)."""
+    from cmax.events import Events
+
+    rng = np.random.default_rng(1)
+    return Events(rng.integers(0, 64, 300), rng.integers(0, 48, 300), np.sort(rng.integers(0, 100_000, 300)),
+                  rng.integers(0, 2, 300), 64, 48)

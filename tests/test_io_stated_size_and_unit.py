@@ -397,3 +397,52 @@ def test_mvsec_times_that_are_whole_numbers_are_not_read_as_seconds(tmp_path: Pa
     with h5py.File(path, "w") as file:
         file.create_dataset("davis/left/events", data=table)
     assert len(read(path)) == t_us.size
+
+
+def _with_sensor_resolution(path: Path, events: Events, value) -> Path:
+    """A DSEC-layout h5 of ``events`` whose only size is a ``sensor_resolution`` attribute ``value``."""
+    with h5py.File(path, "w") as file:
+        for name, column in (("x", events.x), ("y", events.y), ("t", events.t), ("p", events.p)):
+            file[f"events/{name}"] = column
+        file.attrs["sensor_resolution"] = value
+    return path
+
+
+def test_a_sensor_resolution_attribute_is_read_in_the_order_the_events_allow(tmp_path: Path, capsys) -> None:
+    """`sensor_resolution` (event_utils / HQF write (height, width), other converters (width, height)) was
+    ignored: 'stores no sensor size; pass width= and height='. It is read where only one order holds every event,
+    refused naming both orders where both do, and where none does; a caller's size must be one of them."""
+    rng = np.random.default_rng(5)
+    wide = Events(rng.integers(0, 346, 800), rng.integers(0, 260, 800), np.sort(rng.integers(0, 50_000, 800)),
+                  rng.integers(0, 2, 800), 346, 260)
+    wide = Events(np.r_[wide.x, 345], np.r_[wide.y, 0], np.r_[wide.t, 50_000], np.r_[wide.p, 1], 346, 260)
+    for value in ([260, 346], [346, 260]):      # (height, width) and (width, height): x reaches 345 > 259
+        path = _with_sensor_resolution(tmp_path / f"{value[0]}.h5", wide, np.array(value, dtype=np.int32))
+        assert read(path).sensor_size == (346, 260)
+    square = _with_sensor_resolution(tmp_path / "square.h5", random_events(300, width=64, height=64), [64, 64])
+    assert read(square).sensor_size == (64, 64)
+    small = _with_sensor_resolution(tmp_path / "small.h5", random_events(300, width=200, height=200),
+                                    np.array([260, 346]))
+    with pytest.raises(FormatError, match=r"sensor_resolution attribute 260, 346 does not state its order, and both "
+                                          r"\(height, width\), a 346x260 sensor and \(width, height\), a 260x346"):
+        read(small)
+    assert read(small, width=260, height=346).sensor_size == (260, 346)     # the caller's order chooses
+    with pytest.raises(ValueError, match="width=640, height=480 contradicts the sensor_resolution attribute"):
+        read(small, width=640, height=480)
+    beyond = _with_sensor_resolution(tmp_path / "beyond.h5", random_events(300, width=400, height=400), [260, 346])
+    with pytest.raises(FormatError, match="holds none of its events in either order"):
+        read(beyond)
+    odd = _with_sensor_resolution(tmp_path / "odd.h5", wide, [260, 346, 1])
+    with pytest.raises(FormatError, match="sensor_resolution attribute must be two whole numbers"):
+        read(odd)
+    assert main(["info", str(small)]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "does not state its order" in err[0]
+    with h5py.File(small, "a") as file:            # width and height beside it: they must be one of its orders
+        file.attrs["width"], file.attrs["height"] = 346, 260
+    assert read(small).sensor_size == (346, 260)
+    with h5py.File(small, "a") as file:
+        file.attrs["width"], file.attrs["height"] = 640, 480
+    with pytest.raises(FormatError, match=r"contradicts itself: its width and height attributes state a 640x480 "
+                                          r"sensor, its sensor_resolution attribute 260, 346"):
+        read(small)

@@ -862,6 +862,31 @@ def test_a_data_file_changed_in_its_middle_is_not_trusted_on_resume(tmp_path):
     assert file_fingerprint(path, 10, (0, 5), recorded={**after, "sha256": "recorded"})["sha256"] == "recorded"
 
 
+def test_hashing_large_data_files_at_start_shows_a_progress_bar(tmp_path, capsys, monkeypatch):
+    """Each start hashes every data file whole (about 1.5 s a GB) with nothing on screen: hundreds of GB looked like
+    a hung run. Above HASH_PROGRESS_BYTES a bar [bytes] shows it on stderr; files whose recorded hash is reused
+    (size, mtime, inode unchanged) are not read and count nothing; --no-progress (progress=False) shows none."""
+    import learned.train as train
+
+    monkeypatch.setattr(train, "HASH_PROGRESS_BYTES", 1 << 20)
+    a, b = tmp_path / "a.h5", tmp_path / "b.h5"
+    a.write_bytes(b"a" * (2 << 20))
+    b.write_bytes(b"b" * (1 << 20))
+    spans = [(0, 5), (0, 7)]
+    found = train.data_fingerprints([a, b], [10, 20], spans, [None, None])
+    assert found == [train.file_fingerprint(a, 10, (0, 5)), train.file_fingerprint(b, 20, (0, 7))]
+    err = capsys.readouterr().err
+    assert "hashing data files" in err and "3.00M" in err, err
+    assert train.bytes_to_hash(a, found[0]) == 0 and train.bytes_to_hash(b, None) == 1 << 20
+    assert train.data_fingerprints([a, b], [10, 20], spans, found) == found      # reused: nothing read, no bar
+    assert "hashing" not in capsys.readouterr().err
+    train.data_fingerprints([a, b], [10, 20], spans, [None, None], progress=False)
+    assert "hashing" not in capsys.readouterr().err
+    monkeypatch.setattr(train, "HASH_PROGRESS_BYTES", 4 << 20)                   # small files: no bar
+    train.data_fingerprints([a, b], [10, 20], spans, [None, None])
+    assert "hashing" not in capsys.readouterr().err
+
+
 def test_a_validation_file_that_is_a_training_file_is_named(scene_file, slider_file, tmp_path, monkeypatch):
     """data.val_files holding a file of data.files gave a "held-out" learning curve measured on training windows,
     and a file given twice in data.files weighed twice, both without a word. Each is a warning naming the files

@@ -220,3 +220,28 @@ def test_show_of_an_mvsec_file_reads_only_its_window(tmp_path, monkeypatch):
     assert window == events.slice_time(start, start + 50_000) and 0 < len(window) < 1_000 and depth is None
     with pytest.raises(ValueError, match=r"t0 = 3 s is past the end of indoor_flying.hdf5: its events span 1.99"):
         read_window(path, 3.0, 0.05)
+
+
+@pytest.mark.parametrize("kind", ["h5", "txt"])
+def test_show_of_an_empty_file_or_an_empty_window_is_refused_not_drawn_blank(tmp_path, capsys, kind):
+    """An empty file, or a window in a gap of the recording, was drawn as a blank picture with exit 0; cmax fit
+    refuses both (exit 2), and so does cmax show now, naming the file or the window; the picture is not written."""
+    from cmax.io import write_txt
+
+    write = write_h5 if kind == "h5" else write_txt
+    none = np.zeros(0, dtype=np.int64)
+    empty = write(tmp_path / f"empty.{kind}", Events(none, none, none, none, 64, 48))
+    rng = np.random.default_rng(4)
+    t = np.r_[np.sort(rng.integers(0, 10_000, 100)), np.sort(rng.integers(900_000, 1_000_000, 100))]
+    gap = write(tmp_path / f"gap.{kind}", Events(rng.integers(0, 64, 200), rng.integers(0, 48, 200), t,
+                                                 rng.integers(0, 2, 200), 64, 48))
+    size = [] if kind == "h5" else ["--size", "64x48"]
+    out = tmp_path / "w.png"
+    assert main(["show", str(empty), "-o", str(out), *size]) == 2
+    assert capsys.readouterr().err.strip().splitlines() == [f"cmax show: error: empty.{kind} holds no events: "
+                                                             "nothing to draw"]
+    assert main(["show", str(gap), "--t0", "0.3", "-o", str(out), *size]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and f"no events in the window [0.3, 0.35) s after the first event of gap.{kind}" in err[0]
+    assert not out.exists()
+    assert main(["show", str(gap), "--t0", "0.9", "-o", str(out), *size]) == 0 and out.exists()

@@ -161,7 +161,7 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     K, calib_size = calibration.K, calibration.size
     if (unlike := given_k_note(args.file, K)) is not None:
         print(f"cmax emvs: note: {unlike}", file=sys.stderr)
-    if args.calib is not None and (said := calibration_note(calibration, args.calib, args.calib_camera)):
+    if args.calib is not None and (said := calibration_note(calibration, args.calib, args.calib_camera, args.file)):
         print(f"cmax emvs: note: {said}", file=sys.stderr)
     events, _ = read_calibrated(args, calib_size)    # --t0 / --t1 applied
     if trajectory is None:

@@ -554,7 +554,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         if K is None:
             raise ValueError(no_intrinsics_message(args.file, "--calib"))
     notes = notes + ([hint] if (hint := calibration_hint(args)) else [])
-    if args.calib is not None and (said := calibration_note(calibration, args.calib, args.calib_camera)):
+    if args.calib is not None and (said := calibration_note(calibration, args.calib, args.calib_camera, args.file)):
         notes.append(said)
     events = streamed = None
     try:
@@ -676,8 +676,9 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         T_rect_c = np.eye(4)
         T_rect_c[:3, :3] = calibration.rectification
         poses = poses @ T_rect_c
+        source = (calibration.rectified_from or "rectification_matrix").split(" and ")[0]   # DSEC: extrinsics/R_rect0
         header.append(f"# the camera's own frame: the fit's rectified frame turned back by {args.calib}'s "
-                      "rectification_matrix (T_w_c = T_w_rect [R_rect | 0])")
+                      f"{source} (T_w_c = T_w_rect [R_rect | 0])")
     write_text_atomic(stage / "trajectory.txt", "\n".join(header + tum_lines(sequence.times_us, poses)) + "\n")
     late_notes = [hot_note] if (hot_note := hot_pixel_note(sequence.results)) else []
     causes = [None if r.quality is None else r.quality.cause for r in sequence.results]

@@ -152,8 +152,10 @@ def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str 
                              "projection_matrix (MVSEC's) maps the events into that rectified frame and fits with its "
                              "K [px] (a note says so) (default: none, --K)")
     parser.add_argument("--calib-camera", default="cam0", metavar="NAME",
-                        help="camera of a cam_to_cam.yaml: cam0 (raw events, with distortion) or camRect0 "
-                             "(rectified events); of a Kalibr camchain: cam0, cam1, ...")
+                        help="camera of a cam_to_cam.yaml: cam0 (raw events, DSEC's own: undistorted and "
+                             "rectified with R_rect0 into camRect0's frame, that of DSEC's disparity maps) or camRect0 "
+                             "(events already rectified; refused beside DSEC's rectify_map.h5); of a Kalibr camchain: "
+                             "cam0, cam1, ... (default cam0)")
     parser.add_argument("--distortion", type=distortion_argument, default=None,
                         help=f"OpenCV k1,k2,p1,p2[,k3] of --K{distortion_help} (default: none, a pinhole camera)")
 
@@ -166,7 +168,9 @@ class Calibration(NamedTuple):
     states, or None; ``model``: ``"radtan"`` or ``"equidistant"``; ``rectification`` (3, 3) and ``rectified_K``
     (3, 3) [px]: a stereo rectification the file gives (Kalibr's ``rectification_matrix``, the left 3x3 of its
     ``projection_matrix``), into whose frame the events are undistorted, or None; ``topic``: the camera's
-    ``rostopic`` in a Kalibr camchain (``/davis/left/image_raw``: which camera of a rig it is), or None.
+    ``rostopic`` in a Kalibr camchain (``/davis/left/image_raw``: which camera of a rig it is), or None;
+    ``rectified_from``: where a DSEC ``cam_to_cam.yaml`` gave the rectification (``"extrinsics/R_rect0 and
+    intrinsics/camRect0"``), None for a camchain's ``rectification_matrix`` / ``projection_matrix`` or none.
     """
 
     K: np.ndarray | None
@@ -176,6 +180,7 @@ class Calibration(NamedTuple):
     rectification: np.ndarray | None = None
     rectified_K: np.ndarray | None = None
     topic: str | None = None
+    rectified_from: str | None = None
 
     @property
     def pinhole_K(self) -> np.ndarray | None:
@@ -195,15 +200,27 @@ class Calibration(NamedTuple):
                       self.rectified_K)
 
 
-def calibration_note(calibration: Calibration, path: str | Path, camera: str) -> str | None:
+def calibration_note(calibration: Calibration, path: str | Path, camera: str,
+                     events: str | Path | None = None) -> str | None:
     """What a command says when the ``--calib`` file ``path`` (camera ``camera``) maps the events into another
     frame than its lens's pinhole: the fisheye model, the rectification and the K the events then have (the one
-    fitted); None for a radtan camera without rectification."""
+    fitted); or when a DSEC rectified camera ``camRectN`` takes the events of ``events`` (the recording) as
+    already rectified, which no event file states (DSEC ships its events raw); None for a radtan camera without
+    rectification."""
+    if _is_dsec_rectified(camera, calibration):
+        return (f"{path} ({camera}): {camera} is the rectified camera: the events of {events or 'the recording'} are "
+                f"taken as already undistorted and rectified (the file cannot say); DSEC's own events "
+                f"(events/left/events.h5) are raw: for those pass --calib-camera cam{camera[7:]}, which rectifies "
+                f"them into {camera}'s frame")
     if calibration.model != "equidistant" and calibration.rectified_K is None and calibration.rectification is None:
         return None
     K = calibration.pinhole_K
     lens = "an equidistant (fisheye) lens" if calibration.model == "equidistant" else f"a {calibration.model} lens"
-    if calibration.rectified_K is not None or calibration.rectification is not None:
+    if calibration.rectified_from is not None:
+        where = (f"undistorted and rectified (its {calibration.rectified_from}) into the rectified frame, "
+                 f"K = fx {K[0, 0]:g}, fy {K[1, 1]:g}, cx {K[0, 2]:g}, cy {K[1, 2]:g} (the frame of DSEC's disparity "
+                 "maps and rectify_map.h5); the K and depth maps of the results are that frame's")
+    elif calibration.rectified_K is not None or calibration.rectification is not None:
         where = (f"undistorted and rectified (its rectification_matrix / projection_matrix) into the rectified frame, "
                  f"K = fx {K[0, 0]:g}, fy {K[1, 1]:g}, cx {K[0, 2]:g}, cy {K[1, 2]:g} (the frame of a stereo rig's "
                  "rectified depth, e.g. MVSEC's depth_image_rect); the K and depth maps of the results are that "
@@ -212,6 +229,15 @@ def calibration_note(calibration: Calibration, path: str | Path, camera: str) ->
         where = (f"undistorted onto a pinhole with the lens's K = fx {K[0, 0]:g}, fy {K[1, 1]:g}, cx {K[0, 2]:g}, "
                  f"cy {K[1, 2]:g}")
     return f"{path} ({camera}): {lens}; the events are {where}"
+
+
+def _is_dsec_rectified(camera: str, calibration: Calibration) -> bool:
+    """Whether ``camera`` is a DSEC ``cam_to_cam.yaml``'s rectified camera ``camRectN`` (no distortion)."""
+    return camera.startswith("camRect") and camera[7:].isdigit() and calibration.distortion is None
+
+
+#: The file DSEC ships beside its raw events (``events/left/rectify_map.h5``): the rectified pixel of each raw one.
+DSEC_RECTIFY_MAP = "rectify_map.h5"
 
 
 def calibration_of(args: argparse.Namespace) -> Calibration:
@@ -250,7 +276,13 @@ def check_calibration_camera(calibration: Calibration, calib: str | Path, calib_
     """ValueError when the ``--calib`` camera ``calib_camera`` of ``calib`` is, by its ``rostopic``
     (:func:`topic_side`), the other camera of the stereo rig than the one whose events are read from the MVSEC file
     ``path`` (``camera``, ``--camera``; None: left): the left camera's lens and rectification would be applied to the
-    right camera's events without a word. Files of other formats hold one camera: nothing to check."""
+    right camera's events without a word. Files of other formats hold one camera: nothing to check. ValueError
+    too when ``calib_camera`` is a DSEC rectified camera ``camRectN`` and DSEC's :data:`DSEC_RECTIFY_MAP` lies
+    beside ``path``: those events are raw (distorted, unrectified), and ``camN`` rectifies them."""
+    if _is_dsec_rectified(calib_camera, calibration) and (Path(path).parent / DSEC_RECTIFY_MAP).is_file():
+        raise ValueError(f"{calib}: {calib_camera} is the rectified camera, but {Path(path).parent / DSEC_RECTIFY_MAP} "
+                         f"lies beside {path}: DSEC's events are raw (distorted, not rectified); pass --calib-camera "
+                         f"cam{calib_camera[7:]} to undistort and rectify them into {calib_camera}'s frame")
     side = topic_side(calibration.topic)
     if side is None:
         return
@@ -278,17 +310,21 @@ MVSEC_CAMCHAIN_GLOB = "camchain-imucam-*.yaml"
 
 def calibration_hint(args: argparse.Namespace) -> str | None:
     """A note when no ``--calib`` or ``--distortion`` was given but a data set's calibration file lies beside
-    ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either; an MVSEC camchain
+    ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either or two folders above, as in
+    DSEC's ``<sequence>/events/left/events.h5`` and ``<sequence>/calibration/cam_to_cam.yaml``; an MVSEC camchain
     :data:`MVSEC_CAMCHAIN_GLOB` too), or the file is MVSEC's (whose fisheye lenses a pinhole misses: the note names
     the camchain to pass), or None. It is not read (never guessed): the note says how to use it."""
     if args.calib is not None or args.distortion is not None:
         return None
     folder = Path(args.file).resolve().parent
-    for place in (folder, folder / "calibration", folder.parent, folder.parent / "calibration"):
+    for place in (folder, folder / "calibration", folder.parent, folder.parent / "calibration",
+                  folder.parent.parent / "calibration"):
         for name in (*CALIBRATION_NAMES, *sorted(p.name for p in place.glob(MVSEC_CAMCHAIN_GLOB))):
             if (place / name).is_file():
-                return (f"{place / name} lies beside the events but was not read: pass --calib {place / name} to "
-                        "use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
+                dsec = (" (DSEC: --calib-camera cam0, the default, for its raw events, which it rectifies into "
+                        "camRect0's frame)" if name == "cam_to_cam.yaml" else "")
+                return (f"{place / name} lies beside the events but was not read: pass --calib {place / name}{dsec} "
+                        "to use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
                         "distortion biases the fitted rotation and depth, docs/limits.md)")
     from cmax.io import detect_format
 
@@ -609,7 +645,10 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
     * ECD ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or only ``fx fy cx cy``), one camera (a
       ``camera`` other than ``"cam0"`` is refused: it was read as this one without a word);
     * DSEC ``cam_to_cam.yaml``: ``intrinsics/<camera>`` with ``camera_matrix: [fx, fy, cx, cy]``,
-      optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``;
+      optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``; a raw camera ``camN``
+      (DSEC's events are raw) with ``extrinsics/R_rectN`` and ``intrinsics/camRectN`` beside it is rectified into
+      camRectN's frame, that of DSEC's disparity maps (``rectification`` = ``R_rectN``, ``rectified_K`` =
+      camRectN's K); ``camRectN`` itself is a pinhole without distortion, for events already rectified;
     * a ROS ``camera_info`` YAML (``camera_calibration``'s, ``rpg_dvs_ros``'s): ``camera_matrix``,
       ``distortion_model``, ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix`` as
       ``data: [...]``, ``image_width`` / ``image_height``; one camera;
@@ -654,7 +693,7 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
                                  f"distortion_coeffs: [k1, k2, k3, k4], got {distortion}")
             K = intrinsics_matrix([fx, fy, cx, cy], f"{path}: {camera} intrinsics")
             return _no_rectification(Calibration(K, np.asarray(distortion, float), size, model, *_rectification(
-                path, camera, rectification, projection), values.get("rostopic")))
+                path, camera, rectification, projection), values.get("rostopic"), values.get("rectified_from")))
     else:
         lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
         try:
@@ -673,7 +712,8 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
     K = intrinsics_matrix([fx, fy, cx, cy])
     return _no_rectification(Calibration(K, None if distortion is None else np.asarray(distortion, float), size,
                                          "radtan", *_rectification(path, camera, rectification, projection),
-                                         None if values is None else values.get("rostopic")))
+                                         None if values is None else values.get("rostopic"),
+                                         None if values is None else values.get("rectified_from")))
 
 
 def _yaml_matrix(path: Path, camera: str, values: dict[str, str], key: str,
@@ -689,8 +729,8 @@ def _yaml_matrix(path: Path, camera: str, values: dict[str, str], key: str,
         matrix = np.zeros(0)
     if matrix.size not in sizes or not np.isfinite(matrix).all():
         shapes = " or ".join({9: "3x3", 12: "3x4"}[n] for n in sizes)
-        raise ValueError(f"{path}: {camera}'s {key} must be a {shapes} matrix of finite numbers, got "
-                         f"{values[key]!r}")
+        name = values.get(f"{key}_name", f"{camera}'s {key}")
+        raise ValueError(f"{path}: {name} must be a {shapes} matrix of finite numbers, got {values[key]!r}")
     return matrix
 
 
@@ -719,7 +759,8 @@ def _no_rectification(calibration: Calibration) -> Calibration:
         R = None
     if K_rect is not None and calibration.K is not None and np.array_equal(K_rect, calibration.K):
         K_rect = None
-    return calibration._replace(rectification=R, rectified_K=K_rect)
+    return calibration._replace(rectification=R, rectified_K=K_rect,
+                                rectified_from=None if R is None and K_rect is None else calibration.rectified_from)
 
 
 def _yaml_tree(text: str) -> dict:
@@ -794,6 +835,31 @@ def _ros_camera_info(path: Path, tree: dict, camera: str, flat) -> dict[str, str
     return values
 
 
+def _dsec_rectification(tree: dict, camera: str, flat) -> dict[str, str]:
+    """The rectification of a raw camera ``camN`` of a DSEC ``cam_to_cam.yaml`` (``tree``, :func:`_yaml_tree`) as
+    :func:`read_calibration` reads a camchain's: ``rectification_matrix`` = ``extrinsics/R_rectN`` (3x3, camN to
+    camRectN) and ``projection_matrix`` = the pinhole matrix of ``intrinsics/camRectN``'s ``camera_matrix: [fx, fy,
+    cx, cy]`` [px], the frame of DSEC's disparity maps and ``rectify_map.h5`` (``cv2.undistortPoints(..., R=R_rectN,
+    P=K_rectN)``); empty for another camera (``camRectN``: already rectified) or a file without both."""
+    number = camera[3:] if camera.startswith("cam") and camera[3:].isdigit() else None
+    extrinsics, intrinsics = tree.get("extrinsics"), tree.get("intrinsics")
+    if number is None or not isinstance(extrinsics, dict) or not isinstance(intrinsics, dict):
+        return {}
+    rotation, rectified = extrinsics.get(f"R_rect{number}"), intrinsics.get(f"camRect{number}")
+    if rotation is None or not isinstance(rectified, dict) or "camera_matrix" not in flat(rectified):
+        return {}
+    try:
+        fx, fy, cx, cy = _numbers(flat(rectified)["camera_matrix"])
+    except ValueError:
+        return {"projection_matrix": flat(rectified)["camera_matrix"],   # refused by read_calibration, named
+                "projection_matrix_name": f"intrinsics/camRect{number}'s camera_matrix"}
+    rows = "[" + ", ".join(rotation) + "]" if isinstance(rotation, list) else str(rotation)
+    return {"rectification_matrix": rows, "projection_matrix": f"[{fx!r}, 0, {cx!r}, 0, {fy!r}, {cy!r}, 0, 0, 1]",
+            "rectified_from": f"extrinsics/R_rect{number} and intrinsics/camRect{number}",
+            "rectification_matrix_name": f"extrinsics/R_rect{number} (the rectification of {camera})",
+            "projection_matrix_name": f"intrinsics/camRect{number}'s camera_matrix"}
+
+
 def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
     """The intrinsics of ``camera`` in a DSEC ``cam_to_cam.yaml`` (``intrinsics/<camera>``, with
     ``camera_matrix``), a Kalibr camchain (``<camera>`` with ``intrinsics: [fx, fy, cx, cy]``, given back as
@@ -810,7 +876,7 @@ def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
     dsec = tree.get("intrinsics")
     if isinstance(dsec, dict):
         if isinstance(dsec.get(camera), dict):
-            return flat(dsec[camera])
+            return {**flat(dsec[camera]), **_dsec_rectification(tree, camera, flat)}
         found = sorted(key for key, value in dsec.items() if isinstance(value, dict)) or ["none"]
     else:
         kalibr = {key: value for key, value in tree.items() if isinstance(value, dict) and "intrinsics" in value}

@@ -13,7 +13,8 @@ __all__ = ["add_command", "run"]
 
 def run(args: argparse.Namespace) -> int:
     """Draw the window and write the picture; returns the exit status (0). An existing picture at the output
-    (a user's own ``FILE.png`` beside the recording) is refused before any work unless ``--overwrite``."""
+    (a user's own ``FILE.png`` beside the recording) is refused before any work unless ``--overwrite``; a window
+    without events (an empty file, a gap) is refused, as ``cmax fit`` refuses it, not drawn blank."""
     from cmax.show import render_window
 
     if args.bins is not None and args.mode == "frame":   # else taken and ignored: the frame has no bins
@@ -26,6 +27,7 @@ def run(args: argparse.Namespace) -> int:
         raise PermissionError(_unwritable(output, args.output is None))
     image = render_window(
         args.file, t0_s=args.t0, dt_s=args.dt, mode=args.mode, **({} if args.bins is None else {"bins": args.bins}),
+        require_events=True,
         **file_kwargs(args)
     )
     from cmax.viz import save_image

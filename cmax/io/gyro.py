@@ -62,6 +62,35 @@ def _known_axes(path: Path) -> str:
                      "(cmax fit --gyro-axes=...), e.g. '-x,y,-z' for a DAVIS")
 
 
+#: The first bytes of every HDF5 file.
+HDF5_SIGNATURE = b"\x89HDF\r\n\x1a\n"
+
+
+def _refuse_binary(path: Path) -> None:
+    """FormatError naming what ``path`` is when it is an HDF5 file (not a gyro text file): an MVSEC data file's IMU
+    (``davis/<camera>/imu``) is not read, its column order and its axes against the camera (the camchain's
+    ``T_cam_imu``) being stated nowhere in the file; OSError when it cannot be read."""
+    with open(path, "rb") as file:
+        if file.read(len(HDF5_SIGNATURE)) != HDF5_SIGNATURE:
+            return
+    imus = []
+    try:
+        import h5py
+
+        with h5py.File(path, "r") as file:
+            davis = file.get("davis")
+            imus = [f"davis/{name}/imu" for name in sorted(davis) if "imu" in davis[name]] \
+                if isinstance(davis, h5py.Group) else []
+    except (ImportError, OSError, KeyError, TypeError):
+        pass                                       # the refusal below names an HDF5 file all the same
+    what = (f"an MVSEC data file (IMU {', '.join(imus)}): its IMU is not read, since neither its column order nor "
+            "its axes against the camera (the camchain's T_cam_imu) are stated in the file" if imus
+            else "an HDF5 file, not a gyro file")
+    raise FormatError(f"{path} is {what}; --gyro reads an AEDAT4 file's IMU (.aedat4) or text lines 't wx wy wz' "
+                      "(s, rad/s, in the camera's axes: x right, y down, z forward): write those, or pass --omega "
+                      "wx,wy,wz")
+
+
 def read_gyro(path: str | os.PathLike, *, time_unit: str | None = None,
               axes: str | None = None) -> tuple[np.ndarray, np.ndarray]:
     """Gyroscope samples of ``path``: ``times_us`` (N,) int64 and ``omega`` (N, 3) float64 [rad/s] in the camera's
@@ -78,7 +107,7 @@ def read_gyro(path: str | os.PathLike, *, time_unit: str | None = None,
     ------
     FormatError
         A text file whose lines are not four numbers, or holding a non-finite
-        time or angular velocity.
+        time or angular velocity; a file that is not text (an HDF5 file, e.g. MVSEC's, whose IMU is not read).
     ValueError
         An AEDAT4 file without an IMU stream, or from a camera whose IMU axes are not known, without
         ``axes``; ``axes`` that are not a signed permutation.
@@ -93,8 +122,12 @@ def read_gyro(path: str | os.PathLike, *, time_unit: str | None = None,
         imu = read_aedat4_imu(path, sort=True)
         turn = parse_axes(axes if axes is not None else _known_axes(path))
         return imu.t.astype(np.int64), np.radians(imu.gyroscope.astype(np.float64)) @ turn.T
+    _refuse_binary(path)
     try:
         table = np.loadtxt(path, comments="#", ndmin=2, dtype=np.float64)
+    except UnicodeDecodeError:
+        raise FormatError(f"{path} is not a text file (its bytes are not UTF-8): a gyro file is an AEDAT4 file's IMU "
+                          "(.aedat4) or text lines 't wx wy wz' (s, rad/s, the camera's axes)") from None
     except ValueError as error:
         raise FormatError(f"{path}: gyro lines must be 't wx wy wz' (s, rad/s): {error}") from None
     if table.shape[1] != 4:

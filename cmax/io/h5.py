@@ -530,6 +530,72 @@ def _check_half_size(attrs: Any, width: int | None, height: int | None, path: Pa
                            f"give {name}={value} (the file states no {missing})")
 
 
+#: Rows of ``events/x`` / ``events/y`` read at a time by :func:`_sensor_resolution` (bounded memory).
+_EXTENT_CHUNK = 1 << 22
+
+
+def _coordinate_extent(columns: dict, path: Path) -> tuple[int, int] | None:
+    """``(max x, max y)`` [px] of the ``events/x`` and ``events/y`` datasets in ``columns``, read
+    :data:`_EXTENT_CHUNK` rows at a time; None for a file without events."""
+    n = columns["x"].shape[0]
+    if not n:
+        return None
+    top = [-1, -1]
+    try:
+        for start in range(0, n, _EXTENT_CHUNK):
+            for axis, name in enumerate("xy"):
+                chunk = columns[name][start: start + _EXTENT_CHUNK]
+                top[axis] = max(top[axis], int(np.max(chunk)))
+    except H5_ERRORS as error:
+        raise FormatError(f"{path}: cannot read events/x, events/y ({error})") from None
+    return top[0], top[1]
+
+
+def _resolution_numbers(value: object, path: Path) -> tuple[int, int]:
+    """The two whole numbers [px] of a ``sensor_resolution`` attribute ``value`` (in an order it does not state);
+    FormatError naming the file for anything else."""
+    try:
+        numbers = [_whole_size(v, "sensor_resolution", path) for v in np.asarray(value).ravel()]
+    except (TypeError, ValueError):
+        numbers = []
+    if len(numbers) != 2 or min(numbers) < 1:
+        raise FormatError(f"{path}: its sensor_resolution attribute must be two whole numbers of pixels (height, "
+                          f"width or width, height), got {value!r}; pass width= and height= (cmax: --size WxH)")
+    return numbers[0], numbers[1]
+
+
+def _sensor_resolution(value: object, columns: dict, width: int | None, height: int | None,
+                       path: Path) -> tuple[int | None, int | None]:
+    """``(width, height)`` [px] of a file whose only size is a ``sensor_resolution`` attribute ``value`` (two whole
+    numbers, written ``(height, width)`` by event_utils / HQF converters, ``(width, height)`` by others: the file
+    does not say which). Square, or only one order holding every event (``events/x`` below the width,
+    ``events/y`` below the height, from ``columns``): that order. A caller's ``width``, ``height`` must be one of
+    the two orders (:class:`_CallerError` otherwise) and chooses it. Both orders holding every event, or neither:
+    FormatError naming the attribute and both readings (never guessed)."""
+    a, b = _resolution_numbers(value, path)
+    orders = {(b, a): f"(height, width), a {b}x{a} sensor", (a, b): f"(width, height), a {a}x{b} sensor"}
+    if width is not None and height is not None:
+        if (width, height) not in orders:
+            raise _CallerError(f"width={width}, height={height} contradicts the sensor_resolution attribute {a}, {b} "
+                               f"that {path} states (either order: {' or '.join(orders.values())})")
+        return width, height
+    extent = _coordinate_extent(columns, path)
+    if a == b:
+        fit = [(a, a)]
+    else:
+        fit = [size for size in orders if extent is not None and extent[0] < size[0] and extent[1] < size[1]]
+    if len(fit) == 1:
+        return fit[0]
+    reach = "it holds no events" if extent is None else f"its events reach x = {extent[0]}, y = {extent[1]}"
+    if not fit:
+        raise FormatError(f"{path}: its sensor_resolution attribute {a}, {b} holds none of its events in either "
+                          f"order ({' or '.join(orders.values())}): {reach}; pass width= and height= (cmax: --size "
+                          "WxH)")
+    raise FormatError(f"{path}: its sensor_resolution attribute {a}, {b} does not state its order, and both "
+                      f"{' and '.join(orders.values())} hold every event ({reach}); pass width= and height= (cmax: "
+                      "--size WxH)")
+
+
 class H5Reader:
     """Random access to a DSEC-layout HDF5 event file.
 
@@ -614,12 +680,19 @@ class H5Reader:
         attrs = self._file.attrs
         if "width" in attrs and "height" in attrs:
             stated = _whole_size(attrs["width"], "width", self.path), _whole_size(attrs["height"], "height", self.path)
+            if "sensor_resolution" in attrs and stated not in (
+                    resolution := _resolution_numbers(attrs["sensor_resolution"], self.path), resolution[::-1]):
+                raise FormatError(f"{self.path} contradicts itself: its width and height attributes state a "
+                                  f"{stated[0]}x{stated[1]} sensor, its sensor_resolution attribute {resolution[0]}, "
+                                  f"{resolution[1]} (in either order) another; fix the file's attributes")
             try:
                 width, height = check_stated_size(width, height, stated, self.path)
             except ValueError as error:
                 raise _CallerError(str(error)) from None
         elif "width" in attrs or "height" in attrs:      # half a size: the half stated still binds the caller's
             _check_half_size(attrs, width, height, self.path)
+        elif "sensor_resolution" in attrs:               # event_utils' / HQF's (height, width), others' (width, height)
+            width, height = _sensor_resolution(attrs["sensor_resolution"], self._columns, width, height, self.path)
         if width is None or height is None:
             raise FormatError(
                 f"{self.path} stores no sensor size; pass width= and height= (cmax: --size WxH; DSEC: 640x480)"
