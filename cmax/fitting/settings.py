@@ -293,9 +293,8 @@ class QualitySettings:
         A polished alternative that ends within ``distinct_deg`` of the fit but at least this far from it
         (degrees, the same distance) is scored; when it scores better than the fit by more than ``margin`` times the
         fit's own gain it is kept as an alternative, so that the window is at best ``ambiguous``: the fit is then
-        not the optimum of its own objective, and its direction may be off by that much or more (on 160x120 street
-        windows with a little noise, ``ok`` fits 37-39 deg off had such an alternative 21-29 deg away;
-        docs/quality.md). ``distinct_deg`` or more turns the check off.
+        not the optimum of its own objective, and its direction may be off by that much or more (docs/quality.md:
+        the windows that showed it). ``distinct_deg`` or more turns the check off.
     neighbours : int
         ``fit_sequence``: windows on each side searched for confident (``ok``) neighbours.
     max_resolve_deg : float
@@ -549,14 +548,13 @@ class FitSettings:
     denoise_min_rate_hz : float
         That filter applies only to a window whose estimated background-activity rate [Hz per pixel] is at least
         this: the share of noise that :func:`cmax.fitting.quality.noise_share` reads, times the events, over the
-        pixels and the window's duration. Clean windows read a rate too, their scene's own isolated events
-        (0.17-0.55 Hz on the synthetic presets at 160x120), and are fitted on every event; 1 Hz per pixel of added
-        noise reads 0.78-1.28 Hz (docs/quality.md: the measurement). 0 filters every se3 window.
+        pixels and the window's duration. Clean windows read a rate too, their scene's own isolated events, lower
+        than this, and are fitted on every event (docs/quality.md: the rates measured on clean and noisy windows).
+        0 filters every se3 window.
     denoise_min_window_us : int
         Nor to a window shorter than this [µs]: the isolated-event test looks ``mask_isolated_us`` either side, and
-        on a shorter window the scene's own events lie alone so often that its noise rate reads high (10 and 5 ms
-        of the real DAVIS346 pegboard read 1.4 and 2.9 Hz, the 8.8 ms Gen4 drive at half size 1.0 Hz; the filter
-        turned the latter's fitted direction from 5 to 73 deg off forward, leaving out 2% of its events).
+        on a shorter window the scene's own events lie alone so often that its noise rate reads high, and leaving
+        them out can bend the motion (docs/quality.md: the real recordings that showed it).
     max_denoised_share : float
         When the window's estimated share of noise, or the share of its events that filter would leave out, is
         over this, the filter leaves out none: the window is then mostly noise or too sparse for the test, and its
