@@ -480,3 +480,30 @@ def test_quality_sparse_table_counts_the_ok_and_the_bad_ok_verdicts_of_each_rule
     lines = table(rows)
     assert lines[2] == ("| 3,000 | 0.033 | 3 | 50.0 | 2 (1 bad: 50, 10 deg) | 0 (0 bad) | 2 | 3 of 3 |")
     assert lines[3] == ("| 40,000 | 0.445 | 1 | 5.0 | 1 (0 bad: 5 deg) | 1 (0 bad: 5 deg) | 0 | 1 of 1 |")
+
+
+def test_background_noise_adds_the_rate_asked_and_reports_both_settings_of_each_window():
+    """The added noise's count is Poisson with mean rate x pixels x span (closed form, within 4 sigma), its pixels
+    and times lie in the image and the window, the scene's events are all kept; the report's medians and counts
+    are those of the rows (off -> filter)."""
+    from argparse import Namespace
+
+    from benchmarks.background_noise import summarise, with_noise
+    from cmax import Events
+
+    rng = np.random.default_rng(0)
+    t = np.sort(rng.integers(0, 100_000, 5_000))
+    scene = Events(rng.integers(0, 64, 5_000), rng.integers(0, 48, 5_000), t, rng.integers(0, 2, 5_000), 64, 48)
+    noisy, added = with_noise(scene, 2.0, 7)
+    expected = 2.0 * 64 * 48 * (int(t[-1]) - int(t[0])) * 1e-6
+    assert abs(added - expected) < 4 * np.sqrt(expected)
+    assert len(noisy) == len(scene) + added and np.all(np.diff(noisy.t) >= 0)
+    assert noisy.t[0] == t[0] and noisy.t[-1] == t[-1]
+    assert with_noise(scene, 0.0, 7)[1] == 0
+    rows = [dict(preset="slider", seed=s, rate=1.0, setting=setting, abs_rel=a, direction=d, ok_wrong=w,
+                 estimated=0.1, filtered=setting == "filter", added=0.2)
+            for s, setting, a, d, w in [(1, "off", 0.3, 40.0, True), (1, "filter", 0.1, 5.0, False),
+                                        (2, "off", 0.5, 10.0, False), (2, "filter", 0.2, 6.0, False)]]
+    text = summarise(rows, Namespace(seeds="1-2", presets="slider", rates="1", size="64x48"), 1.0)
+    assert "| slider | 1 | 0.400 -> 0.150 | 25.0 -> 5.5 | 1 -> 0 | 0.20 / 0.10 | 2 of 2 |" in text
+    assert "made worse by more than 0.02: 0 of 2." in text
