@@ -1055,6 +1055,41 @@ def test_a_ros_camera_info_yaml_is_read(tmp_path):
         read_calibration(_write(tmp_path / "skew.yaml", mono.replace("data: [226.38, 0, 173.65", "data: [226.38, 2, 173.65")))
 
 
+def test_quoted_values_wrapped_lists_and_opencv_matrices_are_read(tmp_path):
+    """Three spellings of valid calibration YAML were refused with a wrong reason: a quoted scalar
+    (`distortion_model: "plumb_bob"`: "'\"plumb_bob\"' is not supported"), a flow list PyYAML wrapped over two
+    lines at 80 columns (only the first line's numbers read: "needs camera_matrix: [fx, fy, cx, cy]"), and
+    OpenCV FileStorage's `camera_matrix: !!opencv-matrix` ("cameras found: none"). Each is read now, with the
+    numbers the file writes."""
+    K = [[226.38, 0, 173.64], [0, 226.15, 133.73], [0, 0, 1]]
+    quoted = ("image_width: 346\nimage_height: 260\ncamera_name: 'davis'\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+              "  data: [226.38, 0, 173.64, 0, 226.15, 133.73, 0, 0, 1]\ndistortion_model: \"plumb_bob\"\n"
+              "distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [-0.1, 0.05, 0.001, -0.002, 0.0]\n")
+    calibration = read_calibration(_write(tmp_path / "quoted.yaml", quoted))
+    assert calibration.model == "radtan" and calibration.size == (346, 260)
+    np.testing.assert_array_equal(calibration.K, K)
+    np.testing.assert_array_equal(calibration.distortion, [-0.1, 0.05, 0.001, -0.002, 0.0])
+    chain = MVSEC_CAMCHAIN.replace("camera_model: pinhole", "camera_model: 'pinhole'").replace(
+        "distortion_model: equidistant", 'distortion_model: "equidistant"')
+    assert read_calibration(_write(tmp_path / "chain.yaml", chain)).model == "equidistant"
+    wrapped = ("intrinsics:\n  cam0:\n    camera_matrix: [553.4686750102932, 553.3994078799127, 346.65339162053317,\n"
+               "      216.28132394742444]\n    distortion_coeffs: [-0.09356476362537607, 0.19445779814646236,\n"
+               "      7.642434242733646e-05, 0.0019563864604273664]\n    resolution: [640, 480]\n")
+    calibration = read_calibration(_write(tmp_path / "wrapped.yaml", wrapped))
+    np.testing.assert_allclose(calibration.K, [[553.4686750102932, 0, 346.65339162053317],
+                                               [0, 553.3994078799127, 216.28132394742444], [0, 0, 1]], rtol=1e-15)
+    np.testing.assert_array_equal(calibration.distortion, [-0.09356476362537607, 0.19445779814646236,
+                                                           7.642434242733646e-05, 0.0019563864604273664])
+    opencv = ("%YAML:1.0\n---\nimage_width: 346\nimage_height: 260\ncamera_matrix: !!opencv-matrix\n   rows: 3\n"
+              "   cols: 3\n   dt: d\n   data: [ 2.2638e+02, 0., 1.7364e+02, 0., 2.2615e+02, 1.3373e+02, 0.,\n"
+              "       0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n   rows: 5\n   cols: 1\n   dt: d\n"
+              "   data: [ -0.1, 0.05, 1.e-03, -2.e-03, 0. ]\n")
+    calibration = read_calibration(_write(tmp_path / "opencv.yml", opencv))
+    np.testing.assert_array_equal(calibration.K, K)
+    np.testing.assert_array_equal(calibration.distortion, [-0.1, 0.05, 0.001, -0.002, 0.0])
+    assert calibration.size == (346, 260)
+
+
 def test_an_mvsec_file_without_calib_names_the_camchain_to_pass(tmp_path):
     """`cmax fit/emvs indoor_flying1_data.hdf5 --K ...` fitted MVSEC's fisheye events as a pinhole's without a
     word; a camchain-imucam-*.yaml beside the file was not named either (only calib.txt / cam_to_cam.yaml were)."""

@@ -767,14 +767,13 @@ def _yaml_tree(text: str) -> dict:
     """The nested mappings of a small YAML file as dicts of strings (no YAML library): ``key: value`` lines by
     their indentation; a key without a value opens a mapping, or a list when ``- item`` lines follow it (block
     style, as PyYAML writes by default), held as the list of its items' text (a flow list ``[a, b]`` stays one
-    string); :func:`_yaml_intrinsics` writes a block list back as ``[a, b, ...]``."""
+    string, also when it goes on over several lines: :func:`_yaml_lines`); quoted scalars without their quotes; a
+    key whose value is a tag (OpenCV FileStorage's ``camera_matrix: !!opencv-matrix``) opens a mapping;
+    :func:`_yaml_intrinsics` writes a block list back as ``[a, b, ...]``."""
     root: dict = {}
     stack: list[tuple[int, dict]] = [(-1, root)]      # (indentation of the key that opened it, mapping)
     opened: tuple[dict, str, int] | None = None       # the last key without a value: (its mapping, key, indentation)
-    for raw in text.splitlines():
-        line = raw.split("#", 1)[0].rstrip()
-        if not line.strip():
-            continue
+    for line in _yaml_lines(text):
         indent = len(line) - len(line.lstrip())
         item = line.strip()
         if item.startswith("-"):
@@ -784,20 +783,45 @@ def _yaml_tree(text: str) -> dict:
                     stack = [entry for entry in stack if entry[1] is not parent[key]]
                     parent[key] = []
                 if isinstance(parent[key], list):
-                    parent[key].append(item[1:].strip())
+                    parent[key].append(_unquoted(item[1:].strip()))
             continue
         while stack[-1][0] >= indent:
             stack.pop()
         key, _, value = item.partition(":")
         mapping = stack[-1][1]
-        if value.strip():
-            mapping[key.strip()] = value.strip()
+        value = _unquoted(value.strip())
+        if value and not value.startswith("!!"):      # "!!opencv-matrix" (OpenCV's FileStorage): a tagged mapping
+            mapping[key.strip()] = value
             opened = None
         else:
             mapping[key.strip()] = {}
             stack.append((indent, mapping[key.strip()]))
             opened = (mapping, key.strip(), indent)
     return root
+
+
+def _yaml_lines(text: str) -> list[str]:
+    """The lines of a small YAML file without comments and blank lines, a flow list ``[...]`` that goes on over
+    several lines (PyYAML wraps them at 80 columns, OpenCV's FileStorage too) joined into its first line."""
+    lines: list[str] = []
+    depth = 0                                         # "[" not closed yet on the lines joined so far
+    for raw in text.splitlines():
+        line = raw.split("#", 1)[0].rstrip()
+        if not line.strip():
+            continue
+        if depth > 0:
+            lines[-1] += " " + line.strip()
+        else:
+            lines.append(line)
+        depth += line.count("[") - line.count("]")
+    return lines
+
+
+def _unquoted(value: str) -> str:
+    """A YAML scalar ``value`` without the quotes around it (``"plumb_bob"``, ``'pinhole'``)."""
+    if len(value) >= 2 and value[0] == value[-1] and value[0] in "\"'":
+        return value[1:-1]
+    return value
 
 
 def _ros_camera_info(path: Path, tree: dict, camera: str, flat) -> dict[str, str]:
