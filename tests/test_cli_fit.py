@@ -1090,6 +1090,49 @@ def test_quoted_values_wrapped_lists_and_opencv_matrices_are_read(tmp_path):
     assert calibration.size == (346, 260)
 
 
+def test_ros_rational_polynomial_empty_d_and_echoed_camera_info_are_read(tmp_path):
+    """ROS's camera_info names OpenCV's model plumb_bob or rational_polynomial (8 coefficients) and hands D to
+    OpenCV as it is: rational_polynomial was refused ("not supported"), plumb_bob with 8 or with an empty D (no
+    distortion) too ("must be 4 or 5 finite numbers"), and a CameraInfo as `rostopic echo` / `ros2 topic echo`
+    print it (K, D, R, P / k, d, r, p) as "cameras found: none". Read now; the 8 coefficients undistort as
+    cv2.undistortPoints does with them."""
+    D = [-0.3, 0.12, 0.001, -0.002, 0.01, 0.05, 0.02, 0.003]
+    info = ("image_width: 346\nimage_height: 260\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+            "  data: [226.38, 0, 173.64, 0, 226.15, 133.73, 0, 0, 1]\ndistortion_model: rational_polynomial\n"
+            f"distortion_coefficients:\n  rows: 1\n  cols: 8\n  data: {D}\n"
+            "projection_matrix:\n  rows: 3\n  cols: 4\n  data: [200.5, 0, 175.2, 0, 0, 201.3, 130.1, 0, 0, 0, 1, 0]\n")
+    calibration = read_calibration(_write(tmp_path / "rational.yaml", info))
+    np.testing.assert_array_equal(calibration.distortion, D)
+    camera = calibration.camera(346, 260)
+    ys, xs = np.mgrid[0:260:13, 0:346:17]
+    pixels = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+    K = np.array([[226.38, 0, 173.64], [0, 226.15, 133.73], [0, 0, 1]])
+    P = np.array([[200.5, 0, 175.2], [0, 201.3, 130.1], [0, 0, 1]])
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    expected = cv2.undistortPoints(pixels.reshape(-1, 1, 2), K, np.array(D), P=P, criteria=criteria).reshape(-1, 2)
+    np.testing.assert_allclose(camera.undistort_points(pixels), expected, atol=1e-3)
+    plumb8 = read_calibration(_write(tmp_path / "plumb8.yaml", info.replace("rational_polynomial", "plumb_bob")))
+    np.testing.assert_array_equal(plumb8.distortion, D)
+    empty = info.replace("rational_polynomial", "plumb_bob").replace(f"cols: 8\n  data: {D}", "cols: 0\n  data: []")
+    assert read_calibration(_write(tmp_path / "empty.yaml", empty)).distortion is None
+    with pytest.raises(ValueError, match=r"or 8 \(k1 k2 p1 p2 k3 k4 k5 k6: ROS's rational_polynomial\); got 6"):
+        read_calibration(_write(tmp_path / "six.yaml", info.replace(f"data: {D}", f"data: {D[:6]}")))
+    echoed = ("header:\n  seq: 0\n  frame_id: ''\nheight: 260\nwidth: 346\ndistortion_model: \"plumb_bob\"\n"
+              "D: [-0.1, 0.05, 0.001, -0.002, 0.0]\nK: [226.38, 0.0, 173.64, 0.0, 226.15, 133.73, 0.0, 0.0, 1.0]\n"
+              "R: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]\n"
+              "P: [226.38, 0.0, 173.64, 0.0, 0.0, 226.15, 133.73, 0.0, 0.0, 0.0, 1.0, 0.0]\nbinning_x: 0\n"
+              "roi:\n  x_offset: 0\n  height: 0\n  width: 0\n  do_rectify: False\n---\n")
+    ros2 = ("height: 260\nwidth: 346\ndistortion_model: plumb_bob\nd:\n" + "".join(
+        f"- {v}\n" for v in [-0.1, 0.05, 0.001, -0.002, 0.0]) + "k:\n" + "".join(
+        f"- {v}\n" for v in [226.38, 0.0, 173.64, 0.0, 226.15, 133.73, 0.0, 0.0, 1.0]) + "p:\n" + "".join(
+        f"- {v}\n" for v in [226.38, 0.0, 173.64, 0.0, 0.0, 226.15, 133.73, 0.0, 0.0, 0.0, 1.0, 0.0]))
+    for name, text in (("echo.yaml", echoed), ("echo2.yaml", ros2)):
+        calibration = read_calibration(_write(tmp_path / name, text))
+        np.testing.assert_array_equal(calibration.K, K)
+        np.testing.assert_array_equal(calibration.distortion, [-0.1, 0.05, 0.001, -0.002, 0.0])
+        assert calibration.size == (346, 260) and calibration.rectified_K is None, name
+
+
 def test_an_mvsec_file_without_calib_names_the_camchain_to_pass(tmp_path):
     """`cmax fit/emvs indoor_flying1_data.hdf5 --K ...` fitted MVSEC's fisheye events as a pinhole's without a
     word; a camchain-imucam-*.yaml beside the file was not named either (only calib.txt / cam_to_cam.yaml were)."""
