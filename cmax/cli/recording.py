@@ -796,9 +796,8 @@ def _yaml_tree(text: str) -> dict:
             stack.pop()
         key, _, value = item.partition(":")
         mapping = stack[-1][1]
-        value = _unquoted(value.strip())
-        if value and not value.startswith("!!"):      # "!!opencv-matrix" (OpenCV's FileStorage): a tagged mapping
-            mapping[key.strip()] = value
+        if value.strip() and not value.strip().startswith("!!"):   # a tag ("!!opencv-matrix"): a mapping follows
+            mapping[key.strip()] = _unquoted(value.strip())          # '' too is a value (an empty one)
             opened = None
         else:
             mapping[key.strip()] = {}
