@@ -899,6 +899,41 @@ def test_a_long_h5_file_under_the_event_limit_is_fitted_from_the_file_too(tmp_pa
         assert (a["t0_us"], a["t1_us"], a["flow"]) == (b["t0_us"], b["t1_us"], b["flow"])
 
 
+def test_a_streamed_fit_through_a_rectifying_calib_names_the_pixels_whose_events_are_dropped(tmp_path, capsys,
+                                                                                             monkeypatch):
+    """A DSEC recording (more events than STREAM_ABOVE_EVENTS: DSEC's are) is fitted window by window; with
+    --calib cam0 the events that rectify to outside camRect0's image were dropped without a word there (an
+    in-memory fit counts them). Now a note names the sensor's pixels whose events are dropped, as many as
+    cv2.undistortPoints(R=R_rect0, P=K_rect0) maps outside the image."""
+    import cmax.cli.fit as fit
+    from conftest import random_events
+
+    events = random_events(20_000, width=640, height=480, seed=6, t_span_us=300_000)
+    path = write_h5(tmp_path / "events.h5", events)
+    yaml = _write(tmp_path / "cam_to_cam.yaml", DSEC_RECTIFIED_YAML)
+    monkeypatch.setattr(fit, "STREAM_ABOVE_EVENTS", 10_000)
+    main(["fit", str(path), "--calib", str(yaml), "--model", "flow", "-o", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert "fitting it window by window from the file" in err, err
+    R = np.array([[0.99991301, -0.00860511, 0.00999626], [0.00859561, 0.99996256, 0.00099302],
+                  [-0.01000443, -0.00090701, 0.99994954]])
+    ys, xs = np.mgrid[0:480, 0:640]
+    pixels = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64).reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    mapped = np.rint(cv2.undistortPoints(pixels, np.array([[553.47, 0, 346.65], [0, 553.40, 216.52], [0, 0, 1]]),
+                                         np.array([-0.0936, 0.1945, 7.6e-05, 0.00196]), R=R,
+                                         P=np.array([[569.76, 0, 335.10], [0, 569.76, 221.24], [0, 0, 1]]),
+                                         criteria=criteria).reshape(-1, 2))
+    outside = int(((mapped[:, 0] < 0) | (mapped[:, 0] >= 640) | (mapped[:, 1] < 0) | (mapped[:, 1] >= 480)).sum())
+    assert outside > 1000                       # camRect0's K (569.76) is longer than cam0's: the border is cut
+    import re
+
+    note = re.search(r"([\d,]+) of the sensor's 307,200 pixels fall outside the image once undistorted, or lie "
+                     r"beyond the radius the distortion model reaches: their events are dropped", err)
+    assert note is not None, err
+    assert abs(int(note.group(1).replace(",", "")) - outside) <= 0.01 * outside   # a pixel on a rounding edge
+
+
 @pytest.mark.parametrize("camera", [None, "right"])
 def test_the_summary_of_an_mvsec_fit_names_the_camera_fitted(tmp_path, capsys, camera):
     """Was: summary.json of `cmax fit rig.hdf5 --camera right` did not say which camera was fitted: the left and
