@@ -899,6 +899,41 @@ def test_a_long_h5_file_under_the_event_limit_is_fitted_from_the_file_too(tmp_pa
         assert (a["t0_us"], a["t1_us"], a["flow"]) == (b["t0_us"], b["t1_us"], b["flow"])
 
 
+def test_a_streamed_fit_through_a_rectifying_calib_names_the_pixels_whose_events_are_dropped(tmp_path, capsys,
+                                                                                             monkeypatch):
+    """A DSEC recording (more events than STREAM_ABOVE_EVENTS: DSEC's are) is fitted window by window; with
+    --calib cam0 the events that rectify to outside camRect0's image were dropped without a word there (an
+    in-memory fit counts them). Now a note names the sensor's pixels whose events are dropped, as many as
+    cv2.undistortPoints(R=R_rect0, P=K_rect0) maps outside the image."""
+    import cmax.cli.fit as fit
+    from conftest import random_events
+
+    events = random_events(20_000, width=640, height=480, seed=6, t_span_us=300_000)
+    path = write_h5(tmp_path / "events.h5", events)
+    yaml = _write(tmp_path / "cam_to_cam.yaml", DSEC_RECTIFIED_YAML)
+    monkeypatch.setattr(fit, "STREAM_ABOVE_EVENTS", 10_000)
+    main(["fit", str(path), "--calib", str(yaml), "--model", "flow", "-o", str(tmp_path / "o"), "--quiet"])
+    err = capsys.readouterr().err
+    assert "fitting it window by window from the file" in err, err
+    R = np.array([[0.99991301, -0.00860511, 0.00999626], [0.00859561, 0.99996256, 0.00099302],
+                  [-0.01000443, -0.00090701, 0.99994954]])
+    ys, xs = np.mgrid[0:480, 0:640]
+    pixels = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64).reshape(-1, 1, 2)
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-12)
+    mapped = np.rint(cv2.undistortPoints(pixels, np.array([[553.47, 0, 346.65], [0, 553.40, 216.52], [0, 0, 1]]),
+                                         np.array([-0.0936, 0.1945, 7.6e-05, 0.00196]), R=R,
+                                         P=np.array([[569.76, 0, 335.10], [0, 569.76, 221.24], [0, 0, 1]]),
+                                         criteria=criteria).reshape(-1, 2))
+    outside = int(((mapped[:, 0] < 0) | (mapped[:, 0] >= 640) | (mapped[:, 1] < 0) | (mapped[:, 1] >= 480)).sum())
+    assert outside > 1000                       # camRect0's K (569.76) is longer than cam0's: the border is cut
+    import re
+
+    note = re.search(r"([\d,]+) of the sensor's 307,200 pixels fall outside the image once undistorted, or lie "
+                     r"beyond the radius the distortion model reaches: their events are dropped", err)
+    assert note is not None, err
+    assert abs(int(note.group(1).replace(",", "")) - outside) <= 0.01 * outside   # a pixel on a rounding edge
+
+
 @pytest.mark.parametrize("camera", [None, "right"])
 def test_the_summary_of_an_mvsec_fit_names_the_camera_fitted(tmp_path, capsys, camera):
     """Was: summary.json of `cmax fit rig.hdf5 --camera right` did not say which camera was fitted: the left and
@@ -1053,6 +1088,84 @@ def test_a_ros_camera_info_yaml_is_read(tmp_path):
         read_calibration(tmp_path / "mono.yaml", "cam1")
     with pytest.raises(ValueError, match=r"camera_matrix data must be the 9 numbers"):
         read_calibration(_write(tmp_path / "skew.yaml", mono.replace("data: [226.38, 0, 173.65", "data: [226.38, 2, 173.65")))
+
+
+def test_quoted_values_wrapped_lists_and_opencv_matrices_are_read(tmp_path):
+    """Three spellings of valid calibration YAML were refused with a wrong reason: a quoted scalar
+    (`distortion_model: "plumb_bob"`: "'\"plumb_bob\"' is not supported"), a flow list PyYAML wrapped over two
+    lines at 80 columns (only the first line's numbers read: "needs camera_matrix: [fx, fy, cx, cy]"), and
+    OpenCV FileStorage's `camera_matrix: !!opencv-matrix` ("cameras found: none"). Each is read now, with the
+    numbers the file writes."""
+    K = [[226.38, 0, 173.64], [0, 226.15, 133.73], [0, 0, 1]]
+    quoted = ("image_width: 346\nimage_height: 260\ncamera_name: 'davis'\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+              "  data: [226.38, 0, 173.64, 0, 226.15, 133.73, 0, 0, 1]\ndistortion_model: \"plumb_bob\"\n"
+              "distortion_coefficients:\n  rows: 1\n  cols: 5\n  data: [-0.1, 0.05, 0.001, -0.002, 0.0]\n")
+    calibration = read_calibration(_write(tmp_path / "quoted.yaml", quoted))
+    assert calibration.model == "radtan" and calibration.size == (346, 260)
+    np.testing.assert_array_equal(calibration.K, K)
+    np.testing.assert_array_equal(calibration.distortion, [-0.1, 0.05, 0.001, -0.002, 0.0])
+    chain = MVSEC_CAMCHAIN.replace("camera_model: pinhole", "camera_model: 'pinhole'").replace(
+        "distortion_model: equidistant", 'distortion_model: "equidistant"')
+    assert read_calibration(_write(tmp_path / "chain.yaml", chain)).model == "equidistant"
+    wrapped = ("intrinsics:\n  cam0:\n    camera_matrix: [553.4686750102932, 553.3994078799127, 346.65339162053317,\n"
+               "      216.28132394742444]\n    distortion_coeffs: [-0.09356476362537607, 0.19445779814646236,\n"
+               "      7.642434242733646e-05, 0.0019563864604273664]\n    resolution: [640, 480]\n")
+    calibration = read_calibration(_write(tmp_path / "wrapped.yaml", wrapped))
+    np.testing.assert_allclose(calibration.K, [[553.4686750102932, 0, 346.65339162053317],
+                                               [0, 553.3994078799127, 216.28132394742444], [0, 0, 1]], rtol=1e-15)
+    np.testing.assert_array_equal(calibration.distortion, [-0.09356476362537607, 0.19445779814646236,
+                                                           7.642434242733646e-05, 0.0019563864604273664])
+    opencv = ("%YAML:1.0\n---\nimage_width: 346\nimage_height: 260\ncamera_matrix: !!opencv-matrix\n   rows: 3\n"
+              "   cols: 3\n   dt: d\n   data: [ 2.2638e+02, 0., 1.7364e+02, 0., 2.2615e+02, 1.3373e+02, 0.,\n"
+              "       0., 1. ]\ndistortion_coefficients: !!opencv-matrix\n   rows: 5\n   cols: 1\n   dt: d\n"
+              "   data: [ -0.1, 0.05, 1.e-03, -2.e-03, 0. ]\n")
+    calibration = read_calibration(_write(tmp_path / "opencv.yml", opencv))
+    np.testing.assert_array_equal(calibration.K, K)
+    np.testing.assert_array_equal(calibration.distortion, [-0.1, 0.05, 0.001, -0.002, 0.0])
+    assert calibration.size == (346, 260)
+
+
+def test_ros_rational_polynomial_empty_d_and_echoed_camera_info_are_read(tmp_path):
+    """ROS's camera_info names OpenCV's model plumb_bob or rational_polynomial (8 coefficients) and hands D to
+    OpenCV as it is: rational_polynomial was refused ("not supported"), plumb_bob with 8 or with an empty D (no
+    distortion) too ("must be 4 or 5 finite numbers"), and a CameraInfo as `rostopic echo` / `ros2 topic echo`
+    print it (K, D, R, P / k, d, r, p) as "cameras found: none". Read now; the 8 coefficients undistort as
+    cv2.undistortPoints does with them."""
+    D = [-0.3, 0.12, 0.001, -0.002, 0.01, 0.05, 0.02, 0.003]
+    info = ("image_width: 346\nimage_height: 260\ncamera_matrix:\n  rows: 3\n  cols: 3\n"
+            "  data: [226.38, 0, 173.64, 0, 226.15, 133.73, 0, 0, 1]\ndistortion_model: rational_polynomial\n"
+            f"distortion_coefficients:\n  rows: 1\n  cols: 8\n  data: {D}\n"
+            "projection_matrix:\n  rows: 3\n  cols: 4\n  data: [200.5, 0, 175.2, 0, 0, 201.3, 130.1, 0, 0, 0, 1, 0]\n")
+    calibration = read_calibration(_write(tmp_path / "rational.yaml", info))
+    np.testing.assert_array_equal(calibration.distortion, D)
+    camera = calibration.camera(346, 260)
+    ys, xs = np.mgrid[0:260:13, 0:346:17]
+    pixels = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+    K = np.array([[226.38, 0, 173.64], [0, 226.15, 133.73], [0, 0, 1]])
+    P = np.array([[200.5, 0, 175.2], [0, 201.3, 130.1], [0, 0, 1]])
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-12)
+    expected = cv2.undistortPoints(pixels.reshape(-1, 1, 2), K, np.array(D), P=P, criteria=criteria).reshape(-1, 2)
+    np.testing.assert_allclose(camera.undistort_points(pixels), expected, atol=1e-3)
+    plumb8 = read_calibration(_write(tmp_path / "plumb8.yaml", info.replace("rational_polynomial", "plumb_bob")))
+    np.testing.assert_array_equal(plumb8.distortion, D)
+    empty = info.replace("rational_polynomial", "plumb_bob").replace(f"cols: 8\n  data: {D}", "cols: 0\n  data: []")
+    assert read_calibration(_write(tmp_path / "empty.yaml", empty)).distortion is None
+    with pytest.raises(ValueError, match=r"or 8 \(k1 k2 p1 p2 k3 k4 k5 k6: ROS's rational_polynomial\); got 6"):
+        read_calibration(_write(tmp_path / "six.yaml", info.replace(f"data: {D}", f"data: {D[:6]}")))
+    echoed = ("header:\n  seq: 0\n  frame_id: ''\nheight: 260\nwidth: 346\ndistortion_model: \"plumb_bob\"\n"
+              "D: [-0.1, 0.05, 0.001, -0.002, 0.0]\nK: [226.38, 0.0, 173.64, 0.0, 226.15, 133.73, 0.0, 0.0, 1.0]\n"
+              "R: [1.0, 0.0, 0.0, 0.0, 1.0, 0.0, 0.0, 0.0, 1.0]\n"
+              "P: [226.38, 0.0, 173.64, 0.0, 0.0, 226.15, 133.73, 0.0, 0.0, 0.0, 1.0, 0.0]\nbinning_x: 0\n"
+              "roi:\n  x_offset: 0\n  height: 0\n  width: 0\n  do_rectify: False\n---\n")
+    ros2 = ("height: 260\nwidth: 346\ndistortion_model: plumb_bob\nd:\n" + "".join(
+        f"- {v}\n" for v in [-0.1, 0.05, 0.001, -0.002, 0.0]) + "k:\n" + "".join(
+        f"- {v}\n" for v in [226.38, 0.0, 173.64, 0.0, 226.15, 133.73, 0.0, 0.0, 1.0]) + "p:\n" + "".join(
+        f"- {v}\n" for v in [226.38, 0.0, 173.64, 0.0, 0.0, 226.15, 133.73, 0.0, 0.0, 0.0, 1.0, 0.0]))
+    for name, text in (("echo.yaml", echoed), ("echo2.yaml", ros2)):
+        calibration = read_calibration(_write(tmp_path / name, text))
+        np.testing.assert_array_equal(calibration.K, K)
+        np.testing.assert_array_equal(calibration.distortion, [-0.1, 0.05, 0.001, -0.002, 0.0])
+        assert calibration.size == (346, 260) and calibration.rectified_K is None, name
 
 
 def test_an_mvsec_file_without_calib_names_the_camchain_to_pass(tmp_path):

@@ -38,7 +38,7 @@ from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, code_digest, file
 
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
            "hot_pixel_note", "option_words", "run", "run_record", "tum_lines", "unscaled_range_note",
-           "undistorted_events", "verdict_counts", "window_line"]
+           "undistorted_events", "unmapped_pixels", "verdict_counts", "window_line"]
 
 #: A run's private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
 _STAGE_PREFIX = "fit"
@@ -228,6 +228,17 @@ def _depth_scale(results) -> "object":
         return viz.DepthScale.from_depths(maps) if maps else None
     except ValueError:  # no window holds a depth on its mask
         return None
+
+
+def unmapped_pixels(camera) -> int:
+    """How many of the ``camera``'s (:class:`cmax.Camera`) sensor pixels have no pixel of the undistorted (and
+    rectified) image: none (NaN in :attr:`~cmax.Camera.undistortion_map`) or the nearest one outside the
+    ``width`` x ``height`` image; :meth:`~cmax.Camera.undistort_events` drops their events."""
+    xy = np.rint(camera.undistortion_map)
+    with np.errstate(invalid="ignore"):
+        inside = (np.isfinite(xy).all(axis=2) & (xy[..., 0] >= 0) & (xy[..., 0] < camera.width)
+                  & (xy[..., 1] >= 0) & (xy[..., 1] < camera.height))
+    return int(inside.size - inside.sum())
 
 
 def summary_units(scale_known: bool) -> dict[str, str]:
@@ -590,6 +601,10 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         undistort, K = camera.undistort_events, camera.pinhole_K   # the fit's K: the pixels' the events land on
     if calibration.undistorts and isinstance(events, StreamedEvents):
         events = events.with_transform(undistort)
+        if lost := unmapped_pixels(camera):        # window by window: the pixels whose events are dropped, not counted
+            notes.append(f"{lost:,} of the sensor's {camera.width * camera.height:,} pixels fall outside the image "
+                         "once undistorted, or lie beyond the radius the distortion model reaches: their events are "
+                         "dropped")
     elif calibration.undistorts:
         total = len(events)
         events = undistort(events)

@@ -164,8 +164,8 @@ class Calibration(NamedTuple):
     """A camera as a calibration file (or ``--K`` / ``--distortion``) states it; :func:`read_calibration`.
 
     ``K`` (3, 3) [px] of the lens (None: not given, the file's ``gt/K`` is used); ``distortion``: its
-    coefficients (radtan (4,) or (5,), equidistant (4,)) or None; ``size``: ``(width, height)`` [px] the file
-    states, or None; ``model``: ``"radtan"`` or ``"equidistant"``; ``rectification`` (3, 3) and ``rectified_K``
+    coefficients (radtan (4,) or (5,), (8,) of ROS's rational_polynomial, equidistant (4,)) or None; ``size``:
+    ``(width, height)`` [px] the file states, or None; ``model``: ``"radtan"`` or ``"equidistant"``; ``rectification`` (3, 3) and ``rectified_K``
     (3, 3) [px]: a stereo rectification the file gives (Kalibr's ``rectification_matrix``, the left 3x3 of its
     ``projection_matrix``), into whose frame the events are undistorted, or None; ``topic``: the camera's
     ``rostopic`` in a Kalibr camchain (``/davis/left/image_raw``: which camera of a rig it is), or None;
@@ -651,7 +651,9 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
       camRectN's K); ``camRectN`` itself is a pinhole without distortion, for events already rectified;
     * a ROS ``camera_info`` YAML (``camera_calibration``'s, ``rpg_dvs_ros``'s): ``camera_matrix``,
       ``distortion_model``, ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix`` as
-      ``data: [...]``, ``image_width`` / ``image_height``; one camera;
+      ``data: [...]``, ``image_width`` / ``image_height``; one camera; ``plumb_bob`` or ``rational_polynomial``
+      with 4, 5 or 8 coefficients (an empty ``D``: none), ``equidistant`` with 4; also a CameraInfo message as
+      ``rostopic echo`` / ``ros2 topic echo`` print it (``K``, ``D``, ``R``, ``P``, ``width``, ``height``);
     * a Kalibr camchain (``camchain.yaml``, as MVSEC and many DAVIS rigs ship): ``<camera>`` with
       ``intrinsics: [fx, fy, cx, cy]`` and the same keys; a pinhole camera with ``distortion_model: radtan``
       (``plumb_bob``; 4 or 5 coefficients) or ``equidistant`` (Kannala-Brandt fisheye, exactly 4: ``k1 k2 k3
@@ -707,8 +709,13 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
                              "chooses one of a DSEC cam_to_cam.yaml or a Kalibr camchain .yaml; leave it out")
         (fx, fy, cx, cy), distortion, size = numbers[:4], numbers[4:] or None, None
         rectification = projection = values = None
-    if distortion is not None and (len(distortion) not in (4, 5) or not np.isfinite(distortion).all()):
-        raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])")
+    rational = values is not None and values.get("distortion_model_ros") in ROS_RADTAN_MODELS
+    if distortion is not None and rational and not distortion:     # ROS's D: [] of a camera without distortion
+        distortion = None
+    if distortion is not None and (len(distortion) not in ((4, 5, 8) if rational else (4, 5))
+                                   or not np.isfinite(distortion).all()):
+        raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])" + (
+            f", or 8 (k1 k2 p1 p2 k3 k4 k5 k6: ROS's rational_polynomial); got {len(distortion)}" if rational else ""))
     K = intrinsics_matrix([fx, fy, cx, cy])
     return _no_rectification(Calibration(K, None if distortion is None else np.asarray(distortion, float), size,
                                          "radtan", *_rectification(path, camera, rectification, projection),
@@ -767,14 +774,13 @@ def _yaml_tree(text: str) -> dict:
     """The nested mappings of a small YAML file as dicts of strings (no YAML library): ``key: value`` lines by
     their indentation; a key without a value opens a mapping, or a list when ``- item`` lines follow it (block
     style, as PyYAML writes by default), held as the list of its items' text (a flow list ``[a, b]`` stays one
-    string); :func:`_yaml_intrinsics` writes a block list back as ``[a, b, ...]``."""
+    string, also when it goes on over several lines: :func:`_yaml_lines`); quoted scalars without their quotes; a
+    key whose value is a tag (OpenCV FileStorage's ``camera_matrix: !!opencv-matrix``) opens a mapping;
+    :func:`_yaml_intrinsics` writes a block list back as ``[a, b, ...]``."""
     root: dict = {}
     stack: list[tuple[int, dict]] = [(-1, root)]      # (indentation of the key that opened it, mapping)
     opened: tuple[dict, str, int] | None = None       # the last key without a value: (its mapping, key, indentation)
-    for raw in text.splitlines():
-        line = raw.split("#", 1)[0].rstrip()
-        if not line.strip():
-            continue
+    for line in _yaml_lines(text):
         indent = len(line) - len(line.lstrip())
         item = line.strip()
         if item.startswith("-"):
@@ -784,20 +790,50 @@ def _yaml_tree(text: str) -> dict:
                     stack = [entry for entry in stack if entry[1] is not parent[key]]
                     parent[key] = []
                 if isinstance(parent[key], list):
-                    parent[key].append(item[1:].strip())
+                    parent[key].append(_unquoted(item[1:].strip()))
             continue
         while stack[-1][0] >= indent:
             stack.pop()
         key, _, value = item.partition(":")
         mapping = stack[-1][1]
-        if value.strip():
-            mapping[key.strip()] = value.strip()
+        if value.strip() and not value.strip().startswith("!!"):   # a tag ("!!opencv-matrix"): a mapping follows
+            mapping[key.strip()] = _unquoted(value.strip())          # '' too is a value (an empty one)
             opened = None
         else:
             mapping[key.strip()] = {}
             stack.append((indent, mapping[key.strip()]))
             opened = (mapping, key.strip(), indent)
     return root
+
+
+def _yaml_lines(text: str) -> list[str]:
+    """The lines of a small YAML file without comments and blank lines, a flow list ``[...]`` that goes on over
+    several lines (PyYAML wraps them at 80 columns, OpenCV's FileStorage too) joined into its first line."""
+    lines: list[str] = []
+    depth = 0                                         # "[" not closed yet on the lines joined so far
+    for raw in text.splitlines():
+        line = raw.split("#", 1)[0].rstrip()
+        if not line.strip():
+            continue
+        if depth > 0:
+            lines[-1] += " " + line.strip()
+        else:
+            lines.append(line)
+        depth += line.count("[") - line.count("]")
+    return lines
+
+
+def _unquoted(value: str) -> str:
+    """A YAML scalar ``value`` without the quotes around it (``"plumb_bob"``, ``'pinhole'``)."""
+    if len(value) >= 2 and value[0] == value[-1] and value[0] in "\"'":
+        return value[1:-1]
+    return value
+
+
+#: ROS camera_info's names of OpenCV's radtan model (sensor_msgs/distortion_models.h): ``plumb_bob`` (k1 k2 p1 p2
+#: k3) and ``rational_polynomial`` (k1 k2 p1 p2 k3 k4 k5 k6); ROS's ``image_geometry`` hands either's ``D`` to
+#: OpenCV as it is (empty: no distortion), so 4, 5 or 8 coefficients are read for both.
+ROS_RADTAN_MODELS = ("plumb_bob", "rational_polynomial")
 
 
 def _ros_camera_info(path: Path, tree: dict, camera: str, flat) -> dict[str, str]:
@@ -825,6 +861,8 @@ def _ros_camera_info(path: Path, tree: dict, camera: str, flat) -> dict[str, str
         values["distortion_coeffs"] = coefficients
     if "distortion_model" in tree and isinstance(tree["distortion_model"], str):
         values["distortion_model"] = tree["distortion_model"]
+        if tree["distortion_model"] in ROS_RADTAN_MODELS:     # OpenCV's coefficients, read by their number
+            values["distortion_model"], values["distortion_model_ros"] = "radtan", tree["distortion_model"]
     if "image_width" in tree and "image_height" in tree:
         values["resolution"] = f"[{tree['image_width']}, {tree['image_height']}]"
     for key in ("rectification_matrix", "projection_matrix"):
@@ -860,6 +898,28 @@ def _dsec_rectification(tree: dict, camera: str, flat) -> dict[str, str]:
             "projection_matrix_name": f"intrinsics/camRect{number}'s camera_matrix"}
 
 
+def _echoed_camera_info(tree: dict) -> dict:
+    """``tree`` (:func:`_yaml_tree`) of a CameraInfo message as ``rostopic echo`` (``K``, ``D``, ``R``, ``P``,
+    ``width``, ``height``) or ``ros2 topic echo`` (lower case) print it, in the layout of a camera_info YAML
+    (``camera_matrix: {data: ...}``, ...); any other tree as it is."""
+    names = {key.lower(): key for key in tree if key in ("K", "D", "R", "P", "k", "d", "r", "p")}
+    if not {"k", "d", "p"} <= set(names) or "camera_matrix" in tree:
+        return tree
+
+    def data(key: str) -> dict[str, str]:
+        value = tree[names[key]]
+        return {"data": "[" + ", ".join(value) + "]" if isinstance(value, list) else str(value)}
+
+    echoed = {"camera_matrix": data("k"), "distortion_coefficients": data("d"), "projection_matrix": data("p")}
+    if "r" in names:
+        echoed["rectification_matrix"] = data("r")
+    if isinstance(tree.get("distortion_model"), str):
+        echoed["distortion_model"] = tree["distortion_model"]
+    if isinstance(tree.get("width"), str) and isinstance(tree.get("height"), str):
+        echoed["image_width"], echoed["image_height"] = tree["width"], tree["height"]
+    return echoed
+
+
 def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
     """The intrinsics of ``camera`` in a DSEC ``cam_to_cam.yaml`` (``intrinsics/<camera>``, with
     ``camera_matrix``), a Kalibr camchain (``<camera>`` with ``intrinsics: [fx, fy, cx, cy]``, given back as
@@ -871,6 +931,7 @@ def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
         return {key: "[" + ", ".join(value) + "]" if isinstance(value, list) else value
                 for key, value in values.items() if not isinstance(value, dict)}
 
+    tree = _echoed_camera_info(tree)
     if isinstance(tree.get("camera_matrix"), dict) and "data" in tree["camera_matrix"]:
         return _ros_camera_info(path, tree, camera, flat)
     dsec = tree.get("intrinsics")
