@@ -446,3 +446,23 @@ def test_a_sensor_resolution_attribute_is_read_in_the_order_the_events_allow(tmp
     with pytest.raises(FormatError, match=r"contradicts itself: its width and height attributes state a 640x480 "
                                           r"sensor, its sensor_resolution attribute 260, 346"):
         read(small)
+
+
+def test_nanoseconds_with_their_index_are_not_advised_to_be_read_as_milliseconds(tmp_path: Path) -> None:
+    # 20,000 events over 2 s in integer NANOSECONDS (a ROS export) with DSEC's ms_to_idx built for them (one entry
+    # per 1e6 ns): read as µs the events run 1000 times past the index's end. Reading them as ms would make them
+    # longer still, so the refusal must point at nanoseconds (was: 'in milliseconds? pass time_unit='ms'', and
+    # --time-unit ms then refused them at 1,999,999,000 ms)
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.integers(0, 2_000_000_000, 20_000))
+    path = tmp_path / "ns.h5"
+    with h5py.File(path, "w") as file:
+        for name, column in zip("xytp", (rng.integers(0, 640, t.size).astype(np.uint16),
+                                         rng.integers(0, 480, t.size).astype(np.uint16), t,
+                                         rng.integers(0, 2, t.size).astype(np.uint8))):
+            file.create_dataset(f"events/{name}", data=column)
+        file.create_dataset("t_offset", data=np.int64(0))
+        file.create_dataset("ms_to_idx", data=np.searchsorted(t, 1_000_000 * np.arange(int(t[-1]) // 1_000_000 + 2)))
+    with pytest.raises(FormatError, match=r"ns.h5: ms_to_idx ends at 200\d ms .* in nanoseconds.*t // 1000") as error:
+        read(path, width=640, height=480)
+    assert "time_unit='ms'" not in str(error.value)
