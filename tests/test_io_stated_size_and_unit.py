@@ -466,3 +466,20 @@ def test_nanoseconds_with_their_index_are_not_advised_to_be_read_as_milliseconds
     with pytest.raises(FormatError, match=r"ns.h5: ms_to_idx ends at 200\d ms .* in nanoseconds.*t // 1000") as error:
         read(path, width=640, height=480)
     assert "time_unit='ms'" not in str(error.value)
+
+
+def test_a_burst_at_the_fastest_sensors_rated_peak_is_read_as_microseconds(tmp_path: Path) -> None:
+    # a Prophesee IMX636 (Gen4.1) reads out up to 1.066e9 events/s: a recording of one 10 µs burst at that rate,
+    # 10,660 events in t = 0..9 µs, is a legitimate recording in µs (was: refused as 'a mean of 1.1e+09 events/s,
+    # more than any event sensor produces'); 1000 times that rate (times in ms) is still refused
+    rng = np.random.default_rng(6)
+    array = np.zeros(10_660, dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1")])
+    array["t"] = np.repeat(np.arange(10), 1066)
+    array["x"], array["y"] = rng.integers(0, 1280, array.size), rng.integers(0, 720, array.size)
+    np.save(tmp_path / "burst.npy", array)
+    events = read(tmp_path / "burst.npy", width=1280, height=720)
+    assert len(events) == 10_660 and int(events.t[-1]) == 9
+    array["t"] = np.arange(array.size) // 10_000                 # 10,000 events a µs: 1e10 events/s
+    np.save(tmp_path / "faster.npy", array)
+    with pytest.raises(FormatError, match=r"faster.npy: field t, read as microseconds .* events/s"):
+        read(tmp_path / "faster.npy", width=1280, height=720)
