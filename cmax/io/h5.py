@@ -588,7 +588,7 @@ def _sensor_resolution(value: object, columns: dict, width: int | None, height: 
         return fit[0]
     reach = "it holds no events" if extent is None else f"its events reach x = {extent[0]}, y = {extent[1]}"
     if not fit:
-        raise FormatError(f"{path}: its sensor_resolution attribute {a}, {b} holds none of its events in either "
+        raise FormatError(f"{path}: its sensor_resolution attribute {a}, {b} does not hold every event in either "
                           f"order ({' or '.join(orders.values())}): {reach}; pass width= and height= (cmax: --size "
                           "WxH)")
     raise FormatError(f"{path}: its sensor_resolution attribute {a}, {b} does not state its order, and both "
