@@ -215,9 +215,16 @@ _HASH_CHUNK = 1 << 20
 HASH_PROGRESS_BYTES = 1 << 30
 
 
+def _marks(stat: os.stat_result) -> list[int]:
+    """What a file's ``stat`` says changed it, besides its size: its modification time [ns], inode and status
+    change time [ns] (``st_ctime_ns``: set by the system on any write, and on setting the modification time back,
+    never to a chosen value)."""
+    return [int(stat.st_mtime_ns), int(stat.st_ino), int(stat.st_ctime_ns)]
+
+
 def _recorded_sha256(size: int, marks: list[int], recorded: object) -> str | None:
-    """The ``sha256`` of a file's ``recorded`` fingerprint when its size [bytes] and ``marks`` (modification time
-    [ns], inode) equal the file's ``size`` and ``marks`` now (the file need not be read again), else None."""
+    """The ``sha256`` of a file's ``recorded`` fingerprint when its size [bytes] and ``marks`` (:func:`_marks`)
+    equal the file's ``size`` and ``marks`` now (the file need not be read again), else None."""
     known = (recorded.get("sha256") if isinstance(recorded, dict) and recorded.get("bytes") == size
              and recorded.get("stat") == marks else None)
     return known if isinstance(known, str) else None
@@ -227,7 +234,7 @@ def bytes_to_hash(path: str | Path, recorded: object = None) -> int:
     """Bytes [B] that :func:`file_fingerprint` reads to hash the whole file at ``path``: its size, or 0 when its
     ``recorded`` fingerprint's SHA-256 is taken instead."""
     stat = Path(path).stat()
-    known = _recorded_sha256(int(stat.st_size), [int(stat.st_mtime_ns), int(stat.st_ino)], recorded)
+    known = _recorded_sha256(int(stat.st_size), _marks(stat), recorded)
     return 0 if known is not None else int(stat.st_size)
 
 
@@ -247,19 +254,21 @@ def data_fingerprints(paths: list, counts: list[int], spans: list[tuple[int, int
 def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int], *,
                      recorded: object = None, read: Callable[[int], None] | None = None) -> dict[str, object]:
     """What ``--resume`` compares of one data file at ``path``: ``{"bytes": size, "events": events, "span_us":
-    [first, last], "sha256": ..., "ends_sha256": ..., "stat": [mtime_ns, inode]}``: the file's size [bytes], its
+    [first, last], "sha256": ..., "ends_sha256": ..., "stat": [mtime_ns, inode, ctime_ns]}``: the file's size [bytes], its
     number of ``events`` and their time span ``span_us`` (first, last) [µs] (as :class:`learned.data.H5WindowDataset`
     read them), the SHA-256 of the whole file (read in 1 MiB chunks), that of its first and last
-    :data:`FINGERPRINT_BYTES` (what earlier versions recorded), and its modification time [ns] and inode.
+    :data:`FINGERPRINT_BYTES` (what earlier versions recorded), and its modification time [ns], inode and status
+    change time [ns].
 
-    ``recorded``: this file's fingerprint in the checkpoint being resumed; when its size, modification time and
-    inode equal the file's now, its ``sha256`` is taken instead of reading the file again. What this cannot see: a
-    file rewritten in place whose modification time was then set back (``touch -d``, ``cp -p`` onto the same inode).
+    ``recorded``: this file's fingerprint in the checkpoint being resumed; when its size, modification time, inode
+    and status change time equal the file's now, its ``sha256`` is taken instead of reading the file again (a file
+    rewritten in place whose modification time was then set back, ``touch -d`` or ``cp -p`` onto the same inode,
+    has another status change time: it is read again; so is a file whose mode or owner changed).
     Another recording copied over the file, or any byte of it changed, changes the whole file's SHA-256.
     ``read``: called with the bytes [B] of each chunk hashed (a progress bar's ``update``), or None."""
     path = Path(path)
     stat = path.stat()
-    size, marks = int(stat.st_size), [int(stat.st_mtime_ns), int(stat.st_ino)]
+    size, marks = int(stat.st_size), _marks(stat)
     ends, whole = hashlib.sha256(), hashlib.sha256()
     known = _recorded_sha256(size, marks, recorded)
     with open(path, "rb") as file:

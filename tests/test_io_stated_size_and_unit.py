@@ -430,8 +430,9 @@ def test_a_sensor_resolution_attribute_is_read_in_the_order_the_events_allow(tmp
     with pytest.raises(ValueError, match="width=640, height=480 contradicts the sensor_resolution attribute"):
         read(small, width=640, height=480)
     beyond = _with_sensor_resolution(tmp_path / "beyond.h5", random_events(300, width=400, height=400), [260, 346])
-    with pytest.raises(FormatError, match="holds none of its events in either order"):
-        read(beyond)
+    with pytest.raises(FormatError, match="does not hold every event in either order") as error:
+        read(beyond)                      # most of its events lie within 346x260 (was: 'holds none of its events')
+    assert "holds none" not in str(error.value)
     odd = _with_sensor_resolution(tmp_path / "odd.h5", wide, [260, 346, 1])
     with pytest.raises(FormatError, match="sensor_resolution attribute must be two whole numbers"):
         read(odd)
@@ -446,3 +447,40 @@ def test_a_sensor_resolution_attribute_is_read_in_the_order_the_events_allow(tmp
     with pytest.raises(FormatError, match=r"contradicts itself: its width and height attributes state a 640x480 "
                                           r"sensor, its sensor_resolution attribute 260, 346"):
         read(small)
+
+
+def test_nanoseconds_with_their_index_are_not_advised_to_be_read_as_milliseconds(tmp_path: Path) -> None:
+    # 20,000 events over 2 s in integer NANOSECONDS (a ROS export) with DSEC's ms_to_idx built for them (one entry
+    # per 1e6 ns): read as µs the events run 1000 times past the index's end. Reading them as ms would make them
+    # longer still, so the refusal must point at nanoseconds (was: 'in milliseconds? pass time_unit='ms'', and
+    # --time-unit ms then refused them at 1,999,999,000 ms)
+    rng = np.random.default_rng(5)
+    t = np.sort(rng.integers(0, 2_000_000_000, 20_000))
+    path = tmp_path / "ns.h5"
+    with h5py.File(path, "w") as file:
+        for name, column in zip("xytp", (rng.integers(0, 640, t.size).astype(np.uint16),
+                                         rng.integers(0, 480, t.size).astype(np.uint16), t,
+                                         rng.integers(0, 2, t.size).astype(np.uint8))):
+            file.create_dataset(f"events/{name}", data=column)
+        file.create_dataset("t_offset", data=np.int64(0))
+        file.create_dataset("ms_to_idx", data=np.searchsorted(t, 1_000_000 * np.arange(int(t[-1]) // 1_000_000 + 2)))
+    with pytest.raises(FormatError, match=r"ns.h5: ms_to_idx ends at 200\d ms .* in nanoseconds.*t // 1000") as error:
+        read(path, width=640, height=480)
+    assert "time_unit='ms'" not in str(error.value)
+
+
+def test_a_burst_at_the_fastest_sensors_rated_peak_is_read_as_microseconds(tmp_path: Path) -> None:
+    # a Prophesee IMX636 (Gen4.1) reads out up to 1.066e9 events/s: a recording of one 10 µs burst at that rate,
+    # 10,660 events in t = 0..9 µs, is a legitimate recording in µs (was: refused as 'a mean of 1.1e+09 events/s,
+    # more than any event sensor produces'); 1000 times that rate (times in ms) is still refused
+    rng = np.random.default_rng(6)
+    array = np.zeros(10_660, dtype=[("t", "<i8"), ("x", "<u2"), ("y", "<u2"), ("p", "u1")])
+    array["t"] = np.repeat(np.arange(10), 1066)
+    array["x"], array["y"] = rng.integers(0, 1280, array.size), rng.integers(0, 720, array.size)
+    np.save(tmp_path / "burst.npy", array)
+    events = read(tmp_path / "burst.npy", width=1280, height=720)
+    assert len(events) == 10_660 and int(events.t[-1]) == 9
+    array["t"] = np.arange(array.size) // 10_000                 # 10,000 events a µs: 1e10 events/s
+    np.save(tmp_path / "faster.npy", array)
+    with pytest.raises(FormatError, match=r"faster.npy: field t, read as microseconds .* events/s"):
+        read(tmp_path / "faster.npy", width=1280, height=720)

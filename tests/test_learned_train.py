@@ -836,10 +836,8 @@ def test_resume_refuses_a_data_file_replaced_by_another_recording_of_as_many_win
 def test_a_data_file_changed_in_its_middle_is_not_trusted_on_resume(tmp_path):
     """The fingerprint hashed only the first and last 64 KiB of a data file: an h5 rewritten in place, of the same
     size, events and span, with other bytes in its middle, was trusted by --resume. The whole file is hashed now (the
-    hash reused, without reading, only where size, modification time and inode are the recorded ones); a checkpoint
+    hash reused, without reading, only where size, modification time, inode and status change time are the recorded ones); a checkpoint
     of an earlier version, which records the ends alone, is compared by them as before."""
-    import os
-
     from learned.train import file_fingerprint, fingerprint_differences
 
     path = tmp_path / "a.h5"
@@ -857,9 +855,33 @@ def test_a_data_file_changed_in_its_middle_is_not_trusted_on_resume(tmp_path):
     copy = tmp_path / "copy.h5"                                    # the same bytes elsewhere (another inode): agree
     copy.write_bytes(path.read_bytes())
     assert fingerprint_differences([after], [file_fingerprint(copy, 10, (0, 5), recorded=after)], ["a.h5"]) == []
-    stat = path.stat()                                             # size, mtime and inode unchanged: the hash reused
-    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    # the file untouched since (size, mtime, inode, status change time): the hash reused
     assert file_fingerprint(path, 10, (0, 5), recorded={**after, "sha256": "recorded"})["sha256"] == "recorded"
+
+
+def test_a_data_file_rewritten_in_place_with_its_mtime_set_back_is_read_again_on_resume(tmp_path):
+    """The recorded hash was reused where size, modification time and inode were the recorded ones: a byte changed
+    in place and the mtime set back (touch -d, cp -p onto the file) kept all three, and --resume trusted the old
+    hash. The status change time, which no one can set back, is compared too: the file is read again."""
+    import hashlib
+    import os
+
+    from learned.train import file_fingerprint, fingerprint_differences
+
+    path = tmp_path / "a.h5"
+    path.write_bytes(bytes(range(256)) * 4000)
+    before = file_fingerprint(path, 10, (0, 5))
+    stat = path.stat()
+    with open(path, "r+b") as file:                                # one byte in the middle, in place
+        file.seek(512_000)
+        file.write(b"\xff")
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))        # its mtime set back
+    assert (path.stat().st_size, path.stat().st_mtime_ns, path.stat().st_ino) == (
+        stat.st_size, stat.st_mtime_ns, stat.st_ino)
+    after = file_fingerprint(path, 10, (0, 5), recorded=before)
+    assert after["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest() != before["sha256"]
+    assert fingerprint_differences([before], [after], ["a.h5"]) == [
+        "data.files[0] a.h5: its contents (the SHA-256 of the whole file)"]
 
 
 def test_hashing_large_data_files_at_start_shows_a_progress_bar(tmp_path, capsys, monkeypatch):

@@ -277,3 +277,33 @@ def test_chunks_of_a_video_this_run_does_not_convert_are_named(tmp_path, monkeyp
     err = capsys.readouterr().err
     assert "kept chunks of 1 interrupted conversion(s) of other videos than this run's (.v.h5.chunks)" in err
     assert folder.is_dir()                                 # named, not removed
+
+
+def test_a_video_replaced_by_one_of_the_same_size_and_mtime_is_not_continued(tmp_path, monkeypatch):
+    """The source's signature is its size and mtime: a video replaced in place by another of the same size and
+    mtime (a re-download keeping the server's time) passed it, and only the kept chunks' last frame was checked,
+    so a change before it went unseen (was: the output held the old video's events up to there and the new one's
+    after, without a word). Each chunk records the digest of its frames, which a resumed conversion checks."""
+    output, folder, _ = _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=4)
+    assert len(list(folder.glob("chunk_*.json"))) == 3                # frames 0..17 kept
+    video = tmp_path / "v.avi"
+    stat = video.stat()
+    capture = cv2.VideoCapture(str(video))
+    frames = [capture.read()[1] for _ in range(40)]
+    capture.release()
+    frames[2] = np.full_like(frames[2], 128)                          # one early frame differs; the last kept one not
+    writer = cv2.VideoWriter(str(tmp_path / "new.avi"), cv2.VideoWriter_fourcc(*"MJPG"), 25, frames[0].shape[1::-1])
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    data = (tmp_path / "new.avi").read_bytes()
+    assert len(data) < stat.st_size                                   # a flat frame compresses better
+    video.write_bytes(data + bytes(stat.st_size - len(data)))         # padded to the same size after its end
+    os.utime(video, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    (tmp_path / "new.avi").unlink()
+    convert_video(video, tmp_path / "fresh.h5", LINEAR)               # the replaced video, converted whole
+    with pytest.raises(ValueError, match=r"v.avi: frames 0 to 5 decode to other pixels .* pass --overwrite"):
+        convert_video(video, output, LINEAR, chunk_frames=6)
+    with pytest.warns(UserWarning, match="converting it from its first frame"):
+        convert_video(video, output, LINEAR, chunk_frames=6, kept="resume_or_restart")
+    assert same_events(read_h5(output), read_h5(tmp_path / "fresh.h5")) and not folder.exists()

@@ -588,7 +588,7 @@ def _sensor_resolution(value: object, columns: dict, width: int | None, height: 
         return fit[0]
     reach = "it holds no events" if extent is None else f"its events reach x = {extent[0]}, y = {extent[1]}"
     if not fit:
-        raise FormatError(f"{path}: its sensor_resolution attribute {a}, {b} holds none of its events in either "
+        raise FormatError(f"{path}: its sensor_resolution attribute {a}, {b} does not hold every event in either "
                           f"order ({' or '.join(orders.values())}): {reach}; pass width= and height= (cmax: --size "
                           "WxH)")
     raise FormatError(f"{path}: its sensor_resolution attribute {a}, {b} does not state its order, and both "
@@ -750,9 +750,14 @@ class H5Reader:
         except ValueError:            # NaN, fractional, beyond int64: refused by the read, naming the row
             return
         if index is not None and len(index) and int(index[-1]) == n and last_us >= 1000 * (len(index) - 1):
+            # events past the index's end: as µs the times are too LONG, so milliseconds cannot be the way out
+            finer = ("" if not self.time_unit_assumed else
+                     " (read as microseconds, the layout's unit, which neither the file nor the caller states: in "
+                     "nanoseconds, 1000 times the index's span? convert events/t to integer µs, t // 1000, and "
+                     "read it again)")
             raise FormatError(
                 f"{self.path}: ms_to_idx ends at {len(index) - 1} ms with every row before it, but the last event of "
-                f"events/t lies {last_us / 1000:,.3f} ms after t_offset{unit_note}; else the index is corrupt"
+                f"events/t lies {last_us / 1000:,.3f} ms after t_offset{finer}; else the index is corrupt"
             )
         if not self.time_unit_assumed:     # stated, or H5Writer's (µs, with or without the attribute)
             return

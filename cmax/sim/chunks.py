@@ -16,7 +16,9 @@ source's signature, the settings, the digest of cmax's code; :mod:`cmax.io.windo
   adaptive sampler restarts from the chunk's last video frame, decoded again;
 * ``chunk_<k>.json``, written last: the run's digest, the chunk's video frames ``[first_frame, end_frame)``, the
   counts so far (samples, capped intervals), the first and last frame times [µs], the SHA-256 of the last video
-  frame's pixels and of both files, and whether it is the final chunk (the source ended).
+  frame's pixels, of all the chunk's frames (times and pixels: a resumed conversion decodes them again and
+  compares, so a video replaced by another of the same size and modification time is not continued) and of both
+  files, and whether it is the final chunk (the source ended).
 
 Every file is written atomically (:mod:`cmax.io.atomic`), the record last, so a chunk with a record is complete.
 A conversion holds the lock ``.<name>.h5.chunks.lock`` (beside the folder) while it runs, so a second conversion
@@ -303,7 +305,7 @@ class KeptChunks:
     def save(self, writer: "ChunkWriter", state: dict[str, np.ndarray], record: dict) -> dict:
         """Keep the chunk whose events ``writer`` holds, with the simulator's ``state`` after it; ``record`` holds
         its frames and counts (``end_frame``, ``samples``, ``capped``, ``first_t_us``, ``last_t_us``,
-        ``frame_sha256``, ``final``, ``width``, ``height``). Returns the full record, written last."""
+        ``frame_sha256``, ``frames_sha256``, ``final``, ``width``, ``height``). Returns the full record, written last."""
         index = len(self.records)
         events_sha = writer.commit()
         buffer = io.BytesIO()

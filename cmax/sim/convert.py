@@ -309,11 +309,20 @@ def stretch_note(source: str | os.PathLike, stored: tuple[int, int], size: tuple
 
 class _Count:
     """What a conversion has read so far: video frames, the first and last frame times [µs], intervals where
-    adaptive sampling was capped, and the last frame (as decoded)."""
+    adaptive sampling was capped, the last frame (as decoded), and the SHA-256 of the frames (times and pixels)
+    from frame ``chunk_start`` on (those of the chunk being simulated)."""
 
     def __init__(self, frames: int = 0, first_t: int = 0, last_t: int = 0, capped: int = 0) -> None:
         self.frames, self.first_t, self.last_t, self.capped = frames, first_t, last_t, capped
         self.last_frame: np.ndarray | None = None
+        self.chunk_start, self.digest = frames, hashlib.sha256()
+
+
+def _frames_update(digest: "hashlib._Hash", frame: np.ndarray, t_us: int) -> None:
+    """Add a video frame (its time [µs] and pixels, :func:`cmax.sim.chunks.frame_digest`) to ``digest``."""
+    from cmax.sim.chunks import frame_digest
+
+    digest.update(f"{int(t_us)}:{frame_digest(frame)};".encode())
 
 
 def _counted(frames: Iterable[tuple[np.ndarray, int]], count: _Count):
@@ -322,6 +331,8 @@ def _counted(frames: Iterable[tuple[np.ndarray, int]], count: _Count):
             count.first_t = t_us
         count.frames += 1
         count.last_t, count.last_frame = t_us, frame
+        if count.frames > count.chunk_start:      # not the kept chunks' last frame, read again on resume
+            _frames_update(count.digest, frame, t_us)
         yield frame, t_us
 
 
@@ -329,14 +340,26 @@ class _NotContinued(ValueError):
     """The kept chunks cannot be continued: the source decodes to other frames than when they were kept."""
 
 
-def _skip_kept(frames: Iterable[tuple[np.ndarray, int]], kept: int, record: dict, source: Path):
-    """``frames`` from frame ``kept - 1`` on (the last frame of the kept chunks, whose ``record`` is given),
-    after checking that this frame is the one the chunks ended on (time and pixels); :class:`_NotContinued`
-    otherwise."""
+def _skip_kept(frames: Iterable[tuple[np.ndarray, int]], kept: int, records: list[dict], source: Path):
+    """``frames`` from frame ``kept - 1`` on (the last frame of the kept chunks, whose ``records`` are given),
+    after checking that the frames of each chunk are the ones it was simulated from (their SHA-256, where the
+    record holds it: the video may have been replaced by another of the same size and modification time) and that
+    this frame is the one the chunks ended on (time and pixels); :class:`_NotContinued` otherwise."""
     from cmax.sim.chunks import frame_digest
 
-    stream = iter(frames)
+    record, stream = records[-1], iter(frames)
+    ends = {int(r["end_frame"]) - 1: r for r in records if "frames_sha256" in r}
+    digest = hashlib.sha256()
     for number, (frame, t_us) in enumerate(stream):
+        _frames_update(digest, frame, t_us)
+        if number in ends:
+            chunk = ends[number]
+            if digest.hexdigest() != chunk["frames_sha256"]:
+                raise _NotContinued(
+                    f"{source}: frames {chunk['first_frame']} to {number} decode to other pixels or times than when "
+                    f"their chunk was kept (the video replaced by another of the same size and modification time?), "
+                    "so the kept chunks cannot be continued")
+            digest = hashlib.sha256()
         if number < kept - 1:
             continue
         if int(t_us) != record["last_t_us"] or frame_digest(frame) != record["frame_sha256"]:
@@ -405,8 +428,9 @@ def convert_video(
         them when they are of this run (the same source by size and modification time, the same settings and
         code; a chunk that fails its check is simulated again), and raise ValueError naming what differs when
         they are another's (``"resume"``, the default) or start over then (``"resume_or_restart"``); or start
-        over whatever they are (``"restart"``). Kept chunks whose last video frame decodes to other pixels now
-        (another OpenCV or FFmpeg) are another run's too (with ``"resume_or_restart"``: a UserWarning, and
+        over whatever they are (``"restart"``). Kept chunks whose video frames decode to other pixels now
+        (another OpenCV or FFmpeg; a video replaced by another of the same size and modification time) are
+        another run's too (with ``"resume_or_restart"``: a UserWarning, and
         the video is converted from its first frame).
     keep_chunks : bool
         Leave the chunks in place once ``output`` is written (the caller removes them with
@@ -526,7 +550,7 @@ class _Run:
         count = self.count
         if resume:
             count.frames -= 1                    # the chunks' last frame is read again, to restart the sampler
-            frames = _skip_kept(frames, chunks.frames, chunks.records[-1], self.source)
+            frames = _skip_kept(frames, chunks.frames, chunks.records, self.source)
         stream: Iterable = _counted(frames, count)
         if settings.adaptive:
             from cmax.sim.sampling import iter_upsample
@@ -574,9 +598,10 @@ class _Run:
         self.chunks.save(self.chunk, simulator.state(), {
             "end_frame": count.frames, "samples": self.samples, "capped": count.capped,
             "first_t_us": int(count.first_t), "last_t_us": int(count.last_t),
-            "frame_sha256": frame_digest(count.last_frame), "final": final,
-            "width": self.size[0], "height": self.size[1]})
+            "frame_sha256": frame_digest(count.last_frame), "frames_sha256": count.digest.hexdigest(),
+            "final": final, "width": self.size[0], "height": self.size[1]})
         self.chunk = None
+        count.chunk_start, count.digest = count.frames, hashlib.sha256()
 
     def finish(self) -> None:
         """Write the output (from the kept chunks, when there are), complete, and rename it into place."""
