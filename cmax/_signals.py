@@ -101,8 +101,10 @@ def sigint_deferred() -> Iterator[None]:
     :func:`sigterm_deferred` holds SIGTERM: a worker process started AND recorded, so that the clean-up stops it
     (one started but not recorded was left to fail on its own, printing a traceback once the caller had exited). A
     block left by an exception while a Ctrl-C is held raises ``KeyboardInterrupt`` instead. The previous handler is
-    restored afterwards; outside the main thread (where Python cannot set a handler) the block runs unchanged."""
-    if threading.current_thread() is not threading.main_thread():
+    restored afterwards, and a held Ctrl-C goes to it when it is a handler of the caller's own (not Python's
+    default); outside the main thread (where Python cannot set a handler), or where SIGINT is ignored (a command
+    started with ``nohup`` or in the background of a script), the block runs unchanged."""
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) == signal.SIG_IGN:
         yield
         return
     held: list[int] = []
@@ -116,7 +118,10 @@ def sigint_deferred() -> Iterator[None]:
     finally:
         signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
     if held:
-        raise KeyboardInterrupt()
+        if callable(previous) and previous is not signal.default_int_handler:
+            previous(signal.SIGINT, None)
+        else:
+            raise KeyboardInterrupt()
 
 
 def stop_if_terminated() -> None:
