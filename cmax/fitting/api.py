@@ -476,7 +476,7 @@ def fit(
         shared_test = model == "se3" and settings.mask_isolated_us == settings.quality.noise_window_us
         if shared_test:     # the mask's and the noise's test, the events sorted once for both
             isolated, noise = _isolated_and_noise_share(events.x, events.y, events.t, events.width, events.height,
-                                                        settings.mask_isolated_us, settings.max_events)
+                                                        settings.mask_isolated_us)
         else:
             isolated = None
             noise = (noise_share(events.x, events.y, events.t, events.width, events.height,

@@ -713,17 +713,18 @@ def _noise_share(events: _Sorted, t: np.ndarray, width: int, height: int, window
     return float(min(1.0, rate * width * height * duration_s / t.size))
 
 
-def _isolated_and_noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int, window_us: int,
-                              max_queries: int | None) -> tuple[np.ndarray, float]:
+def _isolated_and_noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int,
+                              window_us: int) -> tuple[np.ndarray, float]:
     """:func:`isolated_events` (N,) bool and :func:`noise_share` (radius 1) of the events ``x, y, t`` (N,) [px, px,
-    µs], the share from those flags: the same two results, the events sorted once for both (the fit's depth mask
-    and its noise verdict, when their windows agree)."""
+    µs], the share from those flags (every event's, as ``noise_share(..., isolated=)``: no subset of queries): the
+    same two results, the events sorted once for both (the fit's depth mask and its noise verdict, when their
+    windows agree)."""
     events = _sorted_events(x, y, t, width, window_us)
     isolated = _isolated(events, width, height, window_us, 1)
     t = np.asarray(t, np.int64)
     if t.size < 2 or t[-1] == t[0]:
         return isolated, 0.0
-    return isolated, _noise_share(events, t, width, height, window_us, 1, max_queries, isolated)
+    return isolated, _noise_share(events, t, width, height, window_us, 1, None, isolated)
 
 
 def noise_reason(share: float, max_noise_share: float, window_us: int) -> str:
