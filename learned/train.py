@@ -207,8 +207,6 @@ def config_differences(recorded: Config, now: Config, recorded_paths: dict | Non
 #: Bytes read from each end of a data file for the ``ends_sha256`` of its :func:`file_fingerprint` (the whole of a
 #: smaller file), which checkpoints of earlier versions record alone.
 FINGERPRINT_BYTES = 1 << 16
-#: Bytes read at a time while hashing a whole data file.
-_HASH_CHUNK = 1 << 20
 
 
 #: Bytes of data files to hash at start above which a progress bar shows it (about 1.5 s a GB on one core).
@@ -256,7 +254,7 @@ def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int], *,
     """What ``--resume`` compares of one data file at ``path``: ``{"bytes": size, "events": events, "span_us":
     [first, last], "sha256": ..., "ends_sha256": ..., "stat": [mtime_ns, inode, ctime_ns]}``: the file's size [bytes], its
     number of ``events`` and their time span ``span_us`` (first, last) [µs] (as :class:`learned.data.H5WindowDataset`
-    read them), the SHA-256 of the whole file (read in 1 MiB chunks), that of its first and last
+    read them), the SHA-256 of the whole file (:func:`cmax.io.atomic.file_sha256`), that of its first and last
     :data:`FINGERPRINT_BYTES` (what earlier versions recorded), and its modification time [ns], inode and status
     change time [ns].
 
@@ -269,20 +267,15 @@ def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int], *,
     path = Path(path)
     stat = path.stat()
     size, marks = int(stat.st_size), _marks(stat)
-    ends, whole = hashlib.sha256(), hashlib.sha256()
+    ends = hashlib.sha256()
     known = _recorded_sha256(size, marks, recorded)
     with open(path, "rb") as file:
         ends.update(file.read(FINGERPRINT_BYTES))
         if size > FINGERPRINT_BYTES:
             file.seek(max(FINGERPRINT_BYTES, size - FINGERPRINT_BYTES))
             ends.update(file.read())
-        if not isinstance(known, str):
-            file.seek(0)
-            while chunk := file.read(_HASH_CHUNK):
-                whole.update(chunk)
-                if read is not None:
-                    read(len(chunk))
-            known = whole.hexdigest()
+    if not isinstance(known, str):
+        known = file_sha256(path, read)
     return {"bytes": size, "events": int(events), "span_us": [int(span_us[0]), int(span_us[1])],
             "sha256": known, "ends_sha256": ends.hexdigest(), "stat": marks}
 

@@ -132,12 +132,15 @@ def fsync_folder(folder: Path) -> None:
         os.close(fd)
 
 
-def file_sha256(path: str | os.PathLike) -> str:
-    """SHA-256 (hex) of a file's bytes, read in 4 MiB blocks."""
+def file_sha256(path: str | os.PathLike, read: Callable[[int], None] | None = None) -> str:
+    """SHA-256 (hex) of a file's bytes at ``path``, read in 4 MiB blocks; ``read``: called with the bytes [B] of
+    each block hashed (a progress bar's ``update``), or None."""
     digest = hashlib.sha256()
     with open(path, "rb") as file:
         for block in iter(lambda: file.read(1 << 22), b""):
             digest.update(block)
+            if read is not None:
+                read(len(block))
     return digest.hexdigest()
 
 
