@@ -28,7 +28,8 @@ import numpy as np
 import torch
 
 from cmax.events import Events
-from cmax.io import FormatError, H5Reader
+from cmax.io import FormatError, H5Reader, read_calibration
+from cmax.io.calibration import topic_side
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
 
@@ -214,7 +215,7 @@ def _as_spec(entry: object) -> FileSpec:
 def _mvsec_camera(calib: "str | Path | Camera | None", calib_camera: str, width: int,
                   height: int) -> "Camera | None":
     """The :class:`cmax.Camera` of :class:`MVSECDataset`'s ``calib``: a camchain path read with
-    :func:`cmax.cli.recording.read_calibration` (camera ``calib_camera``), or a Camera of the ``width`` x
+    :func:`cmax.io.read_calibration` (camera ``calib_camera``), or a Camera of the ``width`` x
     ``height`` [px] sensor as given; None without one. ValueError naming the file or the size otherwise."""
     from cmax.camera import Camera
 
@@ -227,8 +228,6 @@ def _mvsec_camera(calib: "str | Path | Camera | None", calib_camera: str, width:
         return calib
     if not isinstance(calib, (str, Path)):
         raise TypeError(f"calib must be a camchain path or a cmax.Camera, got {type(calib).__name__}")
-    from cmax.cli.recording import read_calibration, topic_side
-
     calibration = read_calibration(calib, calib_camera)
     if topic_side(calibration.topic) == "right":
         raise ValueError(f"{calib}: {calib_camera} is the right camera (rostopic {calibration.topic.strip()}); "

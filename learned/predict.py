@@ -40,11 +40,11 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import (Calibration, add_camera_options, add_recording_arguments, calibration_note,
+from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_note,
                                 check_calibration_camera, check_calibration_of_frames, check_file_principal_point,
-                                given_k_note, no_intrinsics_message, read_calibration, tail_note, time_span_us)
+                                given_k_note, no_intrinsics_message, tail_note, time_span_us)
 from cmax.events import window_starts
-from cmax.io import run_folder
+from cmax.io import Calibration, read_calibration, run_folder
 from learned.kept_windows import KEPT_FOLDER, KeptBlocks
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)

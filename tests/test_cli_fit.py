@@ -9,7 +9,8 @@ import pytest
 
 from cmax.cli import main
 from cmax.cli.fit import undistorted_events
-from cmax.cli.recording import calibration_note, read_calibration
+from cmax.cli.recording import calibration_note
+from cmax.io import read_calibration
 from cmax.events import Events
 from cmax.io import write_h5, write_txt
 
