@@ -522,12 +522,7 @@ class MVSECDataset(torch.utils.data.Dataset):
             if K is None:
                 raise ValueError(f"{self.data_file}: give K (the rectified intrinsics of the depth maps) or calib "
                                  "(MVSEC's camchain, which also rectifies the events)")
-            self.K = np.asarray(K, float)
-            if self.K.shape == (4,):
-                self.K = np.array([[self.K[0], 0, self.K[2]], [0, self.K[1], self.K[3]], [0, 0, 1.0]])
-            if self.K.shape != (3, 3):
-                raise ValueError(f"K must be (3, 3) or [fx, fy, cx, cy], got shape {self.K.shape}")
-            self.K = _file_K(self.K, self.data_file, MVSEC_WIDTH, MVSEC_HEIGHT)
+            self.K = _file_K(K, self.data_file, MVSEC_WIDTH, MVSEC_HEIGHT)   # as the other data sets check it
             warnings.warn(f"{self.data_file}: MVSECDataset without calib reads the events as recorded (through "
                           "MVSEC's fisheye lens, not rectified) but pairs them with the rectified K and depth maps "
                           "(depth_image_rect): events and depth lie in different frames, far apart toward the "

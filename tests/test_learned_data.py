@@ -467,6 +467,37 @@ def test_mvsec_dataset_refuses_a_gt_file_of_another_sequence_and_checks_K(tmp_pa
     assert len(ds) == 2 and int(ds[0]["valid"].sum()) > 100
 
 
+@pytest.mark.filterwarnings("ignore:.*MVSECDataset without calib:UserWarning")
+def test_mvsec_dataset_refuses_a_bad_k_as_the_other_data_sets_do(tmp_path):
+    """MVSECDataset built its K from [fx, fy, cx, cy] by hand: a K of 3 numbers gave 'K must be (3, 3) or [fx, fy,
+    cx, cy], got shape (3,)' (no file named), one of text numpy's 'could not convert string to float'. Now each
+    gives the message of cmax.camera.intrinsics_matrix / check_principal_point naming the file, as
+    H5WindowDataset's data files do."""
+    import h5py
+
+    from cmax.camera import check_principal_point, intrinsics_matrix
+    from learned.data import MVSECDataset
+
+    rng = np.random.default_rng(0)
+    n = 500
+    data = tmp_path / "x_data.hdf5"
+    with h5py.File(data, "w") as f:
+        f["davis/left/events"] = np.column_stack([rng.integers(0, 346, n), rng.integers(0, 260, n),
+                                                  np.sort(rng.uniform(100.0, 100.5, n)), rng.choice([-1.0, 1.0], n)])
+    for K in ([226.0, 226.0, 173.0], [["fx", 0, 173.0], [0, 226.0, 130.0], [0, 0, 1]], [226.0, -226.0, 173.0, 130.0]):
+        with pytest.raises((TypeError, ValueError)) as shared:
+            intrinsics_matrix(K, f"{data}: K")
+        with pytest.raises(shared.type) as raised:
+            MVSECDataset(data, K)
+        assert str(raised.value) == str(shared.value) and str(data) in str(raised.value)
+    outside = [[226.0, 0, 640.0], [0, 226.0, 360.0], [0, 0, 1]]
+    with pytest.raises(ValueError) as shared:
+        check_principal_point(np.array(outside), 346, 260, f"{data}: K")
+    with pytest.raises(ValueError) as raised:
+        MVSECDataset(data, outside)
+    assert str(raised.value) == str(shared.value)
+
+
 # MVSEC's indoor_flying left camera (camchain-imucam-indoor_flying.yaml, cam0), as public MVSEC loaders give it.
 MVSEC_CAMCHAIN = """cam0:
   T_cam_imu:
