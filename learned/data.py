@@ -30,6 +30,7 @@ import torch
 from cmax.events import Events
 from cmax.io import FormatError, H5Reader, read_calibration
 from cmax.io.calibration import topic_side
+from cmax.io.provenance import resized_note
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
 
@@ -377,8 +378,6 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 if gt is not None:
                     starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]
                 elif spec.K is None:
-                    from cmax.cli.recording import resized_note
-
                     note = resized_note(spec.path)   # a conversion at --size: how its frames' K scales
                     raise ValueError(f"{spec.path} has no gt/K: give its intrinsics in its entry of the config's "
                                      f"data.files, e.g. 'data.files=[{{\"path\": \"{spec.path}\", "

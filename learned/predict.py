@@ -135,7 +135,8 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
     (:class:`cmax.io.prophesee.RawWindows`); other formats are decoded whole. Raises FileNotFoundError,
     :class:`cmax.io.FormatError` or ValueError (one line each) for a missing, unreadable or empty file.
     """
-    from cmax.cli.recording import file_span_us, h5_intrinsics
+    from cmax.cli.recording import file_span_us
+    from cmax.io.provenance import h5_intrinsics
     from cmax.events import EventLimitError
     from cmax.io import H5Reader, check_sortable, detect_format, read
     from cmax.io.prophesee import RawWindows

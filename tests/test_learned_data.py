@@ -642,3 +642,39 @@ def test_mvsec_dataset_refuses_the_right_camera_s_calibration(tmp_path):
                                          r"reads davis/left"):
         MVSECDataset(path, calib=calib, calib_camera="cam1")
     assert MVSECDataset(path, calib=calib, window_us=100_000).camera.model == "equidistant"
+
+
+def test_the_data_set_reads_a_conversion_s_record_without_the_command_line(tmp_path):
+    """Building an ``H5WindowDataset`` (its refusal of a ``cmax simulate --size`` conversion without K, which says
+    how the frames' K scales, and the same file with a K) loads no ``cmax.cli`` module (was: learned.data
+    imported ``cmax.cli.recording.resized_note`` for that note)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    import h5py
+
+    from cmax.events import Events
+    from cmax.io import write_h5
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    events = Events(rng.integers(0, 24, n), rng.integers(0, 16, n), np.sort(rng.integers(0, 400_000, n)),
+                    rng.integers(0, 2, n), 24, 16)
+    path = write_h5(tmp_path / "conv.h5", events)
+    with h5py.File(path, "a") as file:       # the attributes of a conversion of 48x32 frames at --size 24x16
+        file.attrs.update(width=24, height=16, source_size="[48, 32]", source=str(tmp_path / "clip.avi"))
+    script = textwrap.dedent(f"""
+        import sys
+        from learned.data import H5WindowDataset
+        try:
+            H5WindowDataset([{str(path)!r}], window_us=100_000)
+        except ValueError as error:
+            print("refused:", "resized to 24x16 (--size): a K of those frames scales to fx*0.5" in str(error))
+        ds = H5WindowDataset([{{"path": {str(path)!r}, "K": [20.0, 20.0, 11.5, 7.5]}}], window_us=100_000)
+        print("windows:", len(ds) > 0)
+        print("cli:", sorted(m for m in sys.modules if m.startswith("cmax.cli")))
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == ["refused: True", "windows: True", "cli: []"], result.stdout

@@ -29,10 +29,11 @@ from cmax._args import api_default, float_list, grid_shape, library_default, pos
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
                                 calibration_note, calibration_of, camera_read, check_file_principal_point, event_span,
-                                file_depth_range, file_intrinsics, given_k_note, no_intrinsics_message, open_streamed,
-                                overlap, read_calibrated, tail_note)
+                                given_k_note, no_intrinsics_message, open_streamed, overlap, read_calibrated,
+                                tail_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
+from cmax.io.provenance import file_depth_range, file_intrinsics
 from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, code_digest, file_signature, interrupted_windows,
                                   settings_record, stopped_line)
 

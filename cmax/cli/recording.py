@@ -25,14 +25,14 @@ from pathlib import Path
 import numpy as np
 
 from cmax._args import float_list, nonnegative_float, sensor_size
-from cmax.camera import Camera, check_intrinsics, intrinsics_matrix
+from cmax.camera import Camera, intrinsics_matrix
 from cmax.io.calibration import Calibration, read_calibration, topic_side
+from cmax.io.provenance import CALIBRATION_NAMES, file_intrinsics, resize_note, resized_note, simulated_frames
 
 __all__ = ["add_file_options", "file_kwargs", "camera_read", "given_k_note", "add_recording_arguments",
            "add_camera_options", "calibration_of", "calibration_note", "check_calibration_camera",
-           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
-           "simulated_sizes", "resized_note", "source_calibration", "check_calibration_of_frames",
-           "check_file_principal_point", "file_depth_range",
+           "read_calibrated", "intrinsics_argument", "no_intrinsics_message", "check_calibration_of_frames",
+           "check_file_principal_point",
            "distortion_argument",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
@@ -249,8 +249,6 @@ def check_calibration_camera(calibration: Calibration, calib: str | Path, calib_
                          f"{side}")
 
 
-#: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.
-CALIBRATION_NAMES = ("calib.txt", "cam_to_cam.yaml")
 #: MVSEC's Kalibr camchains (``camchain-imucam-indoor_flying.yaml``, ...), which :func:`calibration_hint` names too.
 MVSEC_CAMCHAIN_GLOB = "camchain-imucam-*.yaml"
 
@@ -382,19 +380,6 @@ def intrinsics_argument(text: str) -> np.ndarray:
         raise argparse.ArgumentTypeError(f"--K: {error}") from None
 
 
-def file_intrinsics(path: str | Path) -> np.ndarray | None:
-    """``gt/K`` (3, 3) [px] of an h5 event file (as ``cmax scene`` and the simulator write it), validated;
-    None when the file is not h5 or stores none (ValueError when it stores a bad one)."""
-    import h5py
-
-    try:
-        file = h5py.File(path, "r")
-    except OSError:                     # not an h5 file
-        return None
-    with file:
-        return h5_intrinsics(file, path)
-
-
 def given_k_note(path: str | Path, given: np.ndarray | None) -> str | None:
     """A note when the h5 file ``path`` stores a ``gt/K`` (3, 3) [px] other than the ``given`` one (``--K`` /
     ``--calib``), which is used: the file's is the camera it was rendered or simulated with (``cmax scene``,
@@ -419,47 +404,32 @@ def given_k_note(path: str | Path, given: np.ndarray | None) -> str | None:
             "used; leave --K / --calib out to use the file's")
 
 
-def simulated_sizes(path: str | Path) -> tuple[tuple[int, int], tuple[int, int]] | None:
-    """``((W, H) of the frames, (w, h) of the sensor)`` of a ``cmax simulate`` conversion (h5 attribute
-    ``source_size``: the frames' size before ``--size``), or None for any other file."""
-    return _sizes_of(_conversion_attrs(path))
-
-
-def resized_note(path: str | Path) -> str | None:
-    """For a ``cmax simulate`` conversion whose frames ``--size`` resized (:func:`simulated_sizes`): how a K of
-    those frames scales to its pixels (``cv2.resize``'s pixel centres: ``cx' = (cx + 0.5) sx - 0.5``); else None.
-    """
-    return _resized_text(path, simulated_sizes(path))
-
-
 def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
     """The error for an event file that stores no ``gt/K`` and was given no ``--K`` / ``--calib``: what to pass,
-    and for a ``cmax simulate`` conversion where its K comes from (:func:`resized_note`); the file is opened once."""
+    and for a ``cmax simulate`` conversion where its K comes from (:func:`cmax.io.provenance.resized_note`); the
+    file is opened once."""
     message = f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or {calib}"
-    attrs = _conversion_attrs(path)
-    sizes = _sizes_of(attrs)
+    sizes, beside = simulated_frames(path)
     if sizes is None:
         return message
-    beside = _calibration_beside(attrs)
     if beside is not None:
         message += f"; {beside} lies beside the frames it was simulated from"
     if sizes[0] == sizes[1]:
         return (f"{message} (a conversion of frames by cmax simulate: the intrinsics of the camera that shot them, "
                 "when known; a video carries none)" if beside is None else f"{message}: --calib {beside}")
-    return f"{message}; {_resized_text(path, sizes)}"
+    return f"{message}; {resize_note(path, sizes)}"
 
 
 def check_calibration_of_frames(calib: str | Path, K: np.ndarray, distortion: np.ndarray | None,
                                 path: str | Path) -> None:
     """Refuse the calibration file ``calib`` (intrinsics ``K`` (3, 3) [px], OpenCV ``distortion``) for the event
     file ``path`` when ``calib`` is the one beside the frames a ``cmax simulate`` conversion was made from
-    (:func:`source_calibration`) and ``--size`` resized those frames (:func:`simulated_sizes`): it calibrates the
-    frames, not the file's pixels, and used as it is every focal length and the principal point would be off by
+    (:func:`cmax.io.provenance.source_calibration`) and ``--size`` resized those frames
+    (:func:`cmax.io.provenance.simulated_sizes`): it calibrates the frames, not the file's pixels, and used as it is every focal length and the principal point would be off by
     the scale (an ECD ``calib.txt`` states no resolution, so nothing else tells). The error gives the scaled
     ``--K`` (:meth:`cmax.camera.Camera.scaled`, ``cv2.resize``'s pixel centres) and the same ``--distortion`` (its
     coefficients act on normalised coordinates, which a scaling leaves alone)."""
-    attrs = _conversion_attrs(path)
-    sizes, beside = _sizes_of(attrs), _calibration_beside(attrs)
+    sizes, beside = simulated_frames(path)
     if sizes is None or sizes[0] == sizes[1] or beside is None or not _same_file(beside, calib):
         return
     (W, H), (w, h) = sizes
@@ -479,68 +449,10 @@ def _same_file(a: str | Path, b: str | Path) -> bool:
         return False
 
 
-def source_calibration(path: str | Path) -> Path | None:
-    """A calibration file (:data:`CALIBRATION_NAMES`) in the folder a ``cmax simulate`` conversion was made from
-    (h5 attribute ``source``: an ECD or rpg_vid2e image folder, its ``images/``, or a timestamp file), or None."""
-    return _calibration_beside(_conversion_attrs(path))
-
-
-#: The h5 attributes of a ``cmax simulate`` conversion that say where its frames came from.
-_CONVERSION_ATTRS = ("source_size", "width", "height", "source")
-
-
-def _conversion_attrs(path: str | Path) -> dict:
-    """The attributes of :data:`_CONVERSION_ATTRS` that the h5 file ``path`` holds, read in one opening (empty for
-    a file that is not h5)."""
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as file:
-            return {key: file.attrs[key] for key in _CONVERSION_ATTRS if key in file.attrs}
-    except (OSError, KeyError, TypeError, ValueError):   # not an h5 file, or unreadable attributes
-        return {}
-
-
-def _sizes_of(attrs: dict) -> tuple[tuple[int, int], tuple[int, int]] | None:
-    """:func:`simulated_sizes` of a file's :func:`_conversion_attrs`."""
-    import json
-
-    try:
-        stored = [int(v) for v in json.loads(attrs["source_size"])]
-        size = (int(attrs["width"]), int(attrs["height"]))
-    except (KeyError, TypeError, ValueError):   # not a conversion, or one of unknown frames
-        return None
-    if len(stored) != 2 or min(stored) <= 0:
-        return None
-    return (stored[0], stored[1]), size
-
-
-def _resized_text(path: str | Path, sizes: tuple[tuple[int, int], tuple[int, int]] | None) -> str | None:
-    """:func:`resized_note` of a file ``path`` whose :func:`simulated_sizes` are ``sizes``."""
-    if sizes is None or sizes[0] == sizes[1]:
-        return None
-    (W, H), (w, h) = sizes
-    sx, sy = w / W, h / H
-    return (f"{path} was simulated from {W}x{H} frames resized to {w}x{h} (--size): a K of those frames scales "
-            f"to fx*{sx:.6g}, fy*{sy:.6g}, (cx+0.5)*{sx:.6g}-0.5, (cy+0.5)*{sy:.6g}-0.5")
-
-
-def _calibration_beside(attrs: dict) -> Path | None:
-    """:func:`source_calibration` of a file's :func:`_conversion_attrs`."""
-    if "source" not in attrs:
-        return None
-    source = Path(str(attrs["source"]))
-    folder = source if source.is_dir() else source.parent
-    for place in (folder, folder.parent):
-        for name in CALIBRATION_NAMES:
-            if (place / name).is_file():
-                return place / name
-    return None
-
-
 def check_file_principal_point(K: np.ndarray, path: str | Path, width: int, height: int, name: str = "K") -> None:
     """:func:`cmax.camera.check_principal_point` for the event file ``path``, its error followed by
-    :func:`resized_note` when ``--size`` resized its frames (the usual cause: the frames' calibration, unscaled)."""
+    :func:`cmax.io.provenance.resized_note` when ``--size`` resized its frames (the usual cause: the frames'
+    calibration, unscaled)."""
     from cmax.camera import check_principal_point
 
     try:
@@ -548,36 +460,6 @@ def check_file_principal_point(K: np.ndarray, path: str | Path, width: int, heig
     except ValueError as error:
         note = resized_note(path)
         raise ValueError(str(error) if note is None else f"{error}; {note}") from None
-
-
-def file_depth_range(path: str | Path) -> tuple[float, float] | None:
-    """``(near, far)`` [m] that an h5 file of ``cmax scene`` records for its scene (attribute ``scene``,
-    ``depth_range_m``); None for any other file, or a record without a valid range."""
-    import json
-
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as file:
-            record = file.attrs.get("scene")
-    except OSError:                     # not an h5 file
-        return None
-    try:
-        near, far = (float(v) for v in json.loads(record)["depth_range_m"])
-    except (TypeError, ValueError, KeyError):
-        return None
-    return (near, far) if 0 < near < far < float("inf") else None
-
-
-def h5_intrinsics(file, path: str | Path) -> np.ndarray | None:
-    """``gt/K`` (3, 3) [px] of an open h5 file (``h5py.File``), validated; None when it stores none (ValueError,
-    naming ``path``, when it stores a bad one)."""
-    if "gt" not in file or "K" not in file["gt"]:
-        return None
-    try:
-        return check_intrinsics(np.asarray(file["gt/K"][()]), f"{path}: gt/K")
-    except TypeError as error:
-        raise ValueError(str(error)) from None
 
 
 def time_span_us(first_us: int, last_us: int | None, t0_s: float | None,
