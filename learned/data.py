@@ -204,10 +204,10 @@ def _as_spec(entry: object) -> FileSpec:
         return FileSpec(Path(entry))
     if isinstance(entry, dict):
         K = entry.get("K")
-        if K is not None:
-            K = np.asarray(K, float)
-            if K.shape == (4,):
-                K = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
+        if K is not None:   # the principal point is checked once the file's size is known (_file_K)
+            from cmax.camera import intrinsics_matrix
+
+            K = intrinsics_matrix(K, f"{entry['path']}: K")
         return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
                         bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")

@@ -283,6 +283,22 @@ def test_a_K_of_another_sensor_size_or_no_camera_is_refused_naming_the_file(scen
     np.testing.assert_array_equal(ok.specs[0].K, [[40, 0, 23.5], [0, 40, 17.5], [0, 0, 1]])
 
 
+@pytest.mark.parametrize("K", [[["fx", 0, 23.5], [0, 40, 17.5], [0, 0, 1]], ["40", "40", "cx", "cy"],
+                               [40.0, 40.0, 23.5], [[40.0, 0, 23.5], [0, 40.0, 17.5]]])
+def test_a_data_files_entry_s_K_is_refused_as_intrinsics_matrix_refuses_it(scene_file, K):
+    """A ``data.files`` entry's K holding text or of the wrong size, on a file with ground truth: the message of
+    :func:`cmax.camera.intrinsics_matrix` naming the file (was: numpy's ``could not convert string to float`` or
+    ``operands could not be broadcast`` from the comparison with gt/K)."""
+    from cmax.camera import intrinsics_matrix
+
+    path, _, _ = scene_file
+    with pytest.raises((TypeError, ValueError)) as expected:
+        intrinsics_matrix(K, f"{path}: K")
+    with pytest.raises(type(expected.value)) as raised:
+        H5WindowDataset([{"path": str(path), "K": K}], window_us=100_000)
+    assert str(raised.value) == str(expected.value)
+
+
 def test_an_event_file_of_another_format_is_refused_with_its_conversion(scene_file, tmp_path):
     """A ``.npy`` (or ``.raw``, ``.aedat4``) in ``data.files``: the error gives the conversion, which works."""
     import cmax
