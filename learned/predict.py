@@ -53,7 +53,7 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "window_note",
-           "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
+           "event_volumes", "forward", "WindowPrediction", "predict_windows",
            "window_picture", "write_window", "earlier_results", "FOLDER_LOCK", "DEFAULT_BATCH", "MAX_BATCH_BYTES",
            "batch_bytes", "batch_that_fits", "SUMMARY_UNITS",
            "run_prediction", "predict_file", "add_arguments",
@@ -308,16 +308,6 @@ def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, wher
                          f"the depth it infers from image motion scales with it (to first order, true depth = "
                          f"predicted x {ratio:.3g})")
     return notes
-
-
-def undistortion(K: np.ndarray, distortion: np.ndarray, width: int, height: int) -> Callable[["Events"], "Events"]:
-    """``events -> events`` at their undistorted pixel (nearest integer; those that land outside the sensor are
-    dropped), as ``cmax fit --calib`` does: :meth:`cmax.Camera.undistort_events` of one camera, whose undistortion
-    map is computed once for all windows. ``K`` (3, 3) [px] and OpenCV ``distortion`` ``(k1, k2, p1, p2[, k3])`` of
-    a ``width`` x ``height`` [px] sensor."""
-    from cmax.camera import Camera
-
-    return Camera(K, width, height, distortion).undistort_events
 
 
 def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:

@@ -39,7 +39,7 @@ from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, code_digest, file
 
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
            "hot_pixel_note", "option_words", "run", "run_record", "tum_lines", "unscaled_range_note",
-           "undistorted_events", "unmapped_pixels", "verdict_counts", "window_line"]
+           "unmapped_pixels", "verdict_counts", "window_line"]
 
 #: A run's private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
 _STAGE_PREFIX = "fit"
@@ -132,14 +132,6 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                              "(cmax.FitSettings.hot_pixels)")
     parser.set_defaults(run=run)
     return parser
-
-
-def undistorted_events(events, K: np.ndarray, distortion: np.ndarray):
-    """The events at their undistorted pixel (nearest integer; events that land outside are dropped):
-    :meth:`cmax.Camera.undistort_events` of the camera ``K``, ``distortion`` of the events' sensor."""
-    from cmax.camera import Camera
-
-    return Camera(K, events.width, events.height, distortion).undistort_events(events)
 
 
 def _sequence_default(name: str):
