@@ -472,7 +472,7 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     ``seed``: ``FitSettings.seed`` (the fit's subsample and dither).
     ``calibration``: an ECD ``calib.txt``; the events are undistorted with its lens distortion first and fitted
     with its K (unrounded: :data:`K_ECD` is the issue's command line's, to two decimals), as ``cmax fit --calib``
-    does (:func:`cmax.cli.fit.undistorted_events`: each event to its undistorted pixel).
+    does (:meth:`cmax.Camera.undistort_events`: each event to its undistorted pixel).
 
     With ``cache`` the result is pickled there (atomically) and read back by a later call on the same events
     file (same resolved path, size and modification time) fitted by the same library code (a hash of the
@@ -506,10 +506,9 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     K = K_ECD
     if calibration is not None:   # as cmax fit --calib: undistorted, then fitted with the file's own K
         from cmax import Camera
-        from cmax.cli.fit import undistorted_events
 
         camera = Camera.from_ecd_calib(calibration, events.width, events.height)
-        events = undistorted_events(events, camera.K, camera.distortion)
+        events = camera.undistort_events(events)
         K = camera.K
     gyro = None if omega is None else constant_gyro(omega, int(events.t[0]), int(events.t[-1]) + 1)
     load = os.getloadavg()[0]
@@ -762,7 +761,7 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
         "ECD ships each recording's `calib.txt` (`fx fy cx cy k1 k2 p1 p2 k3`; here k1 = -0.139, k2 = 0.093): "
         "`cmax fit slider.h5 --calib calib.txt --speed 0.317` undistorts every event to its pinhole pixel before "
         "fitting, as a user of ECD data would run it (here `fit_sequence` on the events undistorted by "
-        "`cmax.cli.fit.undistorted_events`, " f"{sum(c[1] for c in calibrated.values()):.0f} s for the "
+        "`cmax.Camera.undistort_events`, " f"{sum(c[1] for c in calibrated.values()):.0f} s for the "
         f"{len(calibrated)} seeds). Its far wall is compared with EMVS with the true poses and the calibrated "
         "camera, on the same undistorted pixels.",
         "Part of the rotation the pinhole fits invent is the lens: the barrel distortion shrinks the translation's "

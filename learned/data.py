@@ -28,7 +28,9 @@ import numpy as np
 import torch
 
 from cmax.events import Events
-from cmax.io import FormatError, H5Reader
+from cmax.io import FormatError, H5Reader, read_calibration
+from cmax.io.calibration import topic_side
+from cmax.io.provenance import resized_note
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
 
@@ -202,10 +204,10 @@ def _as_spec(entry: object) -> FileSpec:
         return FileSpec(Path(entry))
     if isinstance(entry, dict):
         K = entry.get("K")
-        if K is not None:
-            K = np.asarray(K, float)
-            if K.shape == (4,):
-                K = np.array([[K[0], 0, K[2]], [0, K[1], K[3]], [0, 0, 1.0]])
+        if K is not None:   # the principal point is checked once the file's size is known (_file_K)
+            from cmax.camera import intrinsics_matrix
+
+            K = intrinsics_matrix(K, f"{entry['path']}: K")
         return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
                         bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
@@ -214,7 +216,7 @@ def _as_spec(entry: object) -> FileSpec:
 def _mvsec_camera(calib: "str | Path | Camera | None", calib_camera: str, width: int,
                   height: int) -> "Camera | None":
     """The :class:`cmax.Camera` of :class:`MVSECDataset`'s ``calib``: a camchain path read with
-    :func:`cmax.cli.recording.read_calibration` (camera ``calib_camera``), or a Camera of the ``width`` x
+    :func:`cmax.io.read_calibration` (camera ``calib_camera``), or a Camera of the ``width`` x
     ``height`` [px] sensor as given; None without one. ValueError naming the file or the size otherwise."""
     from cmax.camera import Camera
 
@@ -227,8 +229,6 @@ def _mvsec_camera(calib: "str | Path | Camera | None", calib_camera: str, width:
         return calib
     if not isinstance(calib, (str, Path)):
         raise TypeError(f"calib must be a camchain path or a cmax.Camera, got {type(calib).__name__}")
-    from cmax.cli.recording import read_calibration, topic_side
-
     calibration = read_calibration(calib, calib_camera)
     if topic_side(calibration.topic) == "right":
         raise ValueError(f"{calib}: {calib_camera} is the right camera (rostopic {calibration.topic.strip()}); "
@@ -378,8 +378,6 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 if gt is not None:
                     starts = [int(t) - self.window_us // 2 for t in gt["depth_t"]]
                 elif spec.K is None:
-                    from cmax.cli.recording import resized_note
-
                     note = resized_note(spec.path)   # a conversion at --size: how its frames' K scales
                     raise ValueError(f"{spec.path} has no gt/K: give its intrinsics in its entry of the config's "
                                      f"data.files, e.g. 'data.files=[{{\"path\": \"{spec.path}\", "
@@ -523,12 +521,7 @@ class MVSECDataset(torch.utils.data.Dataset):
             if K is None:
                 raise ValueError(f"{self.data_file}: give K (the rectified intrinsics of the depth maps) or calib "
                                  "(MVSEC's camchain, which also rectifies the events)")
-            self.K = np.asarray(K, float)
-            if self.K.shape == (4,):
-                self.K = np.array([[self.K[0], 0, self.K[2]], [0, self.K[1], self.K[3]], [0, 0, 1.0]])
-            if self.K.shape != (3, 3):
-                raise ValueError(f"K must be (3, 3) or [fx, fy, cx, cy], got shape {self.K.shape}")
-            self.K = _file_K(self.K, self.data_file, MVSEC_WIDTH, MVSEC_HEIGHT)
+            self.K = _file_K(K, self.data_file, MVSEC_WIDTH, MVSEC_HEIGHT)   # as the other data sets check it
             warnings.warn(f"{self.data_file}: MVSECDataset without calib reads the events as recorded (through "
                           "MVSEC's fisheye lens, not rectified) but pairs them with the rectified K and depth maps "
                           "(depth_image_rect): events and depth lie in different frames, far apart toward the "

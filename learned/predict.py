@@ -40,11 +40,11 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import (Calibration, add_camera_options, add_recording_arguments, calibration_note,
+from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_note,
                                 check_calibration_camera, check_calibration_of_frames, check_file_principal_point,
-                                given_k_note, no_intrinsics_message, read_calibration, tail_note, time_span_us)
+                                given_k_note, no_intrinsics_message, tail_note, time_span_us)
 from cmax.events import window_starts
-from cmax.io import run_folder
+from cmax.io import Calibration, read_calibration, run_folder
 from learned.kept_windows import KEPT_FOLDER, KeptBlocks
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
@@ -53,7 +53,7 @@ if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at s
 
 __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds", "window_plan", "camera_notes",
            "window_note",
-           "undistortion", "event_volumes", "forward", "WindowPrediction", "predict_windows",
+           "event_volumes", "forward", "WindowPrediction", "predict_windows",
            "window_picture", "write_window", "earlier_results", "FOLDER_LOCK", "DEFAULT_BATCH", "MAX_BATCH_BYTES",
            "batch_bytes", "batch_that_fits", "SUMMARY_UNITS",
            "run_prediction", "predict_file", "add_arguments",
@@ -135,7 +135,8 @@ def open_recording(path: str | Path, *, size: tuple[int, int] | None = None, tim
     (:class:`cmax.io.prophesee.RawWindows`); other formats are decoded whole. Raises FileNotFoundError,
     :class:`cmax.io.FormatError` or ValueError (one line each) for a missing, unreadable or empty file.
     """
-    from cmax.cli.recording import file_span_us, h5_intrinsics
+    from cmax.cli.recording import file_span_us
+    from cmax.io.provenance import h5_intrinsics
     from cmax.events import EventLimitError
     from cmax.io import H5Reader, check_sortable, detect_format, read
     from cmax.io.prophesee import RawWindows
@@ -307,16 +308,6 @@ def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, wher
                          f"the depth it infers from image motion scales with it (to first order, true depth = "
                          f"predicted x {ratio:.3g})")
     return notes
-
-
-def undistortion(K: np.ndarray, distortion: np.ndarray, width: int, height: int) -> Callable[["Events"], "Events"]:
-    """``events -> events`` at their undistorted pixel (nearest integer; those that land outside the sensor are
-    dropped), as ``cmax fit --calib`` does: :meth:`cmax.Camera.undistort_events` of one camera, whose undistortion
-    map is computed once for all windows. ``K`` (3, 3) [px] and OpenCV ``distortion`` ``(k1, k2, p1, p2[, k3])`` of
-    a ``width`` x ``height`` [px] sensor."""
-    from cmax.camera import Camera
-
-    return Camera(K, width, height, distortion).undistort_events
 
 
 def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:

@@ -9,6 +9,25 @@ from cmax import Events
 from cmax.camera import Camera
 
 
+def test_undistort_events_matches_opencv():
+    """Each event to its undistorted pixel (nearest integer), those landing outside dropped: as
+    ``cv2.undistortPoints(..., P=K)`` rounds them (what ``cmax fit --calib`` does to the events)."""
+    rng = np.random.default_rng(0)
+    K = np.array([[200.0, 0, 120], [0, 200.0, 90], [0, 0, 1]])
+    distortion = np.array([-0.3, 0.1, 0.001, -0.002])
+    x, y = rng.integers(0, 240, 500), rng.integers(0, 180, 500)
+    events = Events(x, y, np.arange(500), rng.integers(0, 2, 500), 240, 180)
+    out = Camera(K, 240, 180, distortion).undistort_events(events)
+    expected = cv2.undistortPoints(np.column_stack([x, y]).astype(np.float64).reshape(-1, 1, 2), K, distortion,
+                                   P=K, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9))
+    expected = np.rint(expected.reshape(-1, 2))
+    inside = (expected[:, 0] >= 0) & (expected[:, 0] < 240) & (expected[:, 1] >= 0) & (expected[:, 1] < 180)
+    np.testing.assert_array_equal(out.x, expected[inside, 0])
+    np.testing.assert_array_equal(out.y, expected[inside, 1])
+    np.testing.assert_array_equal(out.t, events.t[inside])
+    assert 0 < len(out) <= 500 and np.abs(out.x.astype(int) - x[inside]).max() > 1   # it did move them
+
+
 def test_project_backproject_round_trip():
     cam = Camera.from_intrinsics(200.0, 210.0, 120.0, 90.0, 240, 180)
     points = np.array([[0.1, -0.2, 2.0], [1.0, 0.5, 4.0], [0.0, 0.0, 1.0]])

@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 
 from cmax.cli import main
-from cmax.cli.fit import undistorted_events
-from cmax.cli.recording import calibration_note, read_calibration
+from cmax.cli.recording import calibration_note
+from cmax.io import read_calibration
 from cmax.events import Events
 from cmax.io import write_h5, write_txt
 
@@ -136,23 +136,6 @@ def test_calibration_files(tmp_path):
         read_calibration(tmp_path / "bad.txt")
     with pytest.raises(FileNotFoundError):
         read_calibration(tmp_path / "none.txt")
-
-
-def test_undistorted_events_match_opencv(tmp_path):
-    rng = np.random.default_rng(0)
-    K = np.array([[200.0, 0, 120], [0, 200.0, 90], [0, 0, 1]])
-    distortion = np.array([-0.3, 0.1, 0.001, -0.002])
-    x, y = rng.integers(0, 240, 500), rng.integers(0, 180, 500)
-    events = Events(x, y, np.arange(500), rng.integers(0, 2, 500), 240, 180)
-    out = undistorted_events(events, K, distortion)
-    expected = cv2.undistortPoints(np.column_stack([x, y]).astype(np.float64).reshape(-1, 1, 2), K, distortion,
-                                   P=K, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9))
-    expected = np.rint(expected.reshape(-1, 2))
-    inside = (expected[:, 0] >= 0) & (expected[:, 0] < 240) & (expected[:, 1] >= 0) & (expected[:, 1] < 180)
-    np.testing.assert_array_equal(out.x, expected[inside, 0])
-    np.testing.assert_array_equal(out.y, expected[inside, 1])
-    np.testing.assert_array_equal(out.t, events.t[inside])
-    assert 0 < len(out) <= 500 and np.abs(out.x.astype(int) - x[inside]).max() > 1   # it did move them
 
 
 @pytest.fixture(scope="module")

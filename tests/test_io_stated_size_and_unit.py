@@ -399,6 +399,42 @@ def test_mvsec_times_that_are_whole_numbers_are_not_read_as_seconds(tmp_path: Pa
     assert len(read(path)) == t_us.size
 
 
+def test_mvsec_seconds_of_a_slow_recording_stated_as_milliseconds_are_refused(tmp_path: Path, capsys) -> None:
+    """MVSEC's float seconds since 1970 (2017) with time_unit='ms': at 1,000 events/s no two events round to one µs,
+    so the rounding check let it through and 20 s of events were read as 20 ms (was: read without a word, by
+    read, read_mvsec's windows, iter_mvsec, mvsec_time_span and `cmax info --time-unit ms`). The file still reads
+    as seconds without a unit; whole-number milliseconds and milliseconds since 1970 still read as ms."""
+    from cmax.io.mvsec import iter_mvsec, mvsec_time_span, read_mvsec
+
+    rng = np.random.default_rng(7)
+    t_s = 1504645177.0 + np.sort(rng.uniform(0.0, 20.0, 20_000))       # 20 s at 1,000 events/s
+    table = np.stack([rng.integers(0, 346, t_s.size), rng.integers(0, 260, t_s.size), t_s,
+                      rng.choice([-1.0, 1.0], t_s.size)], axis=1)
+    path = tmp_path / "slow_data.hdf5"
+    with h5py.File(path, "w") as file:
+        file.create_dataset("davis/left/events", data=table)
+    refused = r"slow_data.hdf5: davis/left/events\[:, 2\] \(t\): time_unit='ms' states milliseconds, but these " \
+              r"times .* are seconds since 1970 as MVSEC records them \(2017-09-05 .*\): read as milliseconds"
+    first_us = int(np.rint(t_s[0] * 1e3 * 1e3))
+    for reading in (lambda: read(path, time_unit="ms"), lambda: read_mvsec(path, time_unit="ms"),
+                    lambda: read_mvsec(path, time_unit="ms", t0_us=first_us, t1_us=first_us + 10),
+                    lambda: list(iter_mvsec(path, time_unit="ms", chunk_rows=5000)),
+                    lambda: mvsec_time_span(path, time_unit="ms")):
+        with pytest.raises(FormatError, match=refused):
+            reading()
+    assert main(["info", str(path), "--time-unit", "ms"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "are seconds since 1970 as MVSEC records them" in err, err
+    events = read(path)                                                 # MVSEC's own unit: read, 20 s long
+    np.testing.assert_array_equal(events.t, np.rint(t_s * 1e6).astype(np.int64))
+    for t_ms in (1.2e9 + np.arange(t_s.size, dtype=float),              # whole milliseconds of a clock 14 days old
+                 1504645177000.0 + (t_s - t_s[0]) * 1e3):               # milliseconds since 1970, with decimals
+        table[:, 2] = t_ms
+        with h5py.File(path, "w") as file:
+            file.create_dataset("davis/left/events", data=table)
+        np.testing.assert_array_equal(read(path, time_unit="ms").t, np.rint(t_ms * 1e3).astype(np.int64))
+
+
 def _with_sensor_resolution(path: Path, events: Events, value) -> Path:
     """A DSEC-layout h5 of ``events`` whose only size is a ``sensor_resolution`` attribute ``value``."""
     with h5py.File(path, "w") as file:

@@ -283,6 +283,22 @@ def test_a_K_of_another_sensor_size_or_no_camera_is_refused_naming_the_file(scen
     np.testing.assert_array_equal(ok.specs[0].K, [[40, 0, 23.5], [0, 40, 17.5], [0, 0, 1]])
 
 
+@pytest.mark.parametrize("K", [[["fx", 0, 23.5], [0, 40, 17.5], [0, 0, 1]], ["40", "40", "cx", "cy"],
+                               [40.0, 40.0, 23.5], [[40.0, 0, 23.5], [0, 40.0, 17.5]]])
+def test_a_data_files_entry_s_K_is_refused_as_intrinsics_matrix_refuses_it(scene_file, K):
+    """A ``data.files`` entry's K holding text or of the wrong size, on a file with ground truth: the message of
+    :func:`cmax.camera.intrinsics_matrix` naming the file (was: numpy's ``could not convert string to float`` or
+    ``operands could not be broadcast`` from the comparison with gt/K)."""
+    from cmax.camera import intrinsics_matrix
+
+    path, _, _ = scene_file
+    with pytest.raises((TypeError, ValueError)) as expected:
+        intrinsics_matrix(K, f"{path}: K")
+    with pytest.raises(type(expected.value)) as raised:
+        H5WindowDataset([{"path": str(path), "K": K}], window_us=100_000)
+    assert str(raised.value) == str(expected.value)
+
+
 def test_an_event_file_of_another_format_is_refused_with_its_conversion(scene_file, tmp_path):
     """A ``.npy`` (or ``.raw``, ``.aedat4``) in ``data.files``: the error gives the conversion, which works."""
     import cmax
@@ -467,6 +483,37 @@ def test_mvsec_dataset_refuses_a_gt_file_of_another_sequence_and_checks_K(tmp_pa
     assert len(ds) == 2 and int(ds[0]["valid"].sum()) > 100
 
 
+@pytest.mark.filterwarnings("ignore:.*MVSECDataset without calib:UserWarning")
+def test_mvsec_dataset_refuses_a_bad_k_as_the_other_data_sets_do(tmp_path):
+    """MVSECDataset built its K from [fx, fy, cx, cy] by hand: a K of 3 numbers gave 'K must be (3, 3) or [fx, fy,
+    cx, cy], got shape (3,)' (no file named), one of text numpy's 'could not convert string to float'. Now each
+    gives the message of cmax.camera.intrinsics_matrix / check_principal_point naming the file, as
+    H5WindowDataset's data files do."""
+    import h5py
+
+    from cmax.camera import check_principal_point, intrinsics_matrix
+    from learned.data import MVSECDataset
+
+    rng = np.random.default_rng(0)
+    n = 500
+    data = tmp_path / "x_data.hdf5"
+    with h5py.File(data, "w") as f:
+        f["davis/left/events"] = np.column_stack([rng.integers(0, 346, n), rng.integers(0, 260, n),
+                                                  np.sort(rng.uniform(100.0, 100.5, n)), rng.choice([-1.0, 1.0], n)])
+    for K in ([226.0, 226.0, 173.0], [["fx", 0, 173.0], [0, 226.0, 130.0], [0, 0, 1]], [226.0, -226.0, 173.0, 130.0]):
+        with pytest.raises((TypeError, ValueError)) as shared:
+            intrinsics_matrix(K, f"{data}: K")
+        with pytest.raises(shared.type) as raised:
+            MVSECDataset(data, K)
+        assert str(raised.value) == str(shared.value) and str(data) in str(raised.value)
+    outside = [[226.0, 0, 640.0], [0, 226.0, 360.0], [0, 0, 1]]
+    with pytest.raises(ValueError) as shared:
+        check_principal_point(np.array(outside), 346, 260, f"{data}: K")
+    with pytest.raises(ValueError) as raised:
+        MVSECDataset(data, outside)
+    assert str(raised.value) == str(shared.value)
+
+
 # MVSEC's indoor_flying left camera (camchain-imucam-indoor_flying.yaml, cam0), as public MVSEC loaders give it.
 MVSEC_CAMCHAIN = """cam0:
   T_cam_imu:
@@ -611,3 +658,39 @@ def test_mvsec_dataset_refuses_the_right_camera_s_calibration(tmp_path):
                                          r"reads davis/left"):
         MVSECDataset(path, calib=calib, calib_camera="cam1")
     assert MVSECDataset(path, calib=calib, window_us=100_000).camera.model == "equidistant"
+
+
+def test_the_data_set_reads_a_conversion_s_record_without_the_command_line(tmp_path):
+    """Building an ``H5WindowDataset`` (its refusal of a ``cmax simulate --size`` conversion without K, which says
+    how the frames' K scales, and the same file with a K) loads no ``cmax.cli`` module (was: learned.data
+    imported ``cmax.cli.recording.resized_note`` for that note)."""
+    import subprocess
+    import sys
+    import textwrap
+
+    import h5py
+
+    from cmax.events import Events
+    from cmax.io import write_h5
+
+    rng = np.random.default_rng(0)
+    n = 4000
+    events = Events(rng.integers(0, 24, n), rng.integers(0, 16, n), np.sort(rng.integers(0, 400_000, n)),
+                    rng.integers(0, 2, n), 24, 16)
+    path = write_h5(tmp_path / "conv.h5", events)
+    with h5py.File(path, "a") as file:       # the attributes of a conversion of 48x32 frames at --size 24x16
+        file.attrs.update(width=24, height=16, source_size="[48, 32]", source=str(tmp_path / "clip.avi"))
+    script = textwrap.dedent(f"""
+        import sys
+        from learned.data import H5WindowDataset
+        try:
+            H5WindowDataset([{str(path)!r}], window_us=100_000)
+        except ValueError as error:
+            print("refused:", "resized to 24x16 (--size): a K of those frames scales to fx*0.5" in str(error))
+        ds = H5WindowDataset([{{"path": {str(path)!r}, "K": [20.0, 20.0, 11.5, 7.5]}}], window_us=100_000)
+        print("windows:", len(ds) > 0)
+        print("cli:", sorted(m for m in sys.modules if m.startswith("cmax.cli")))
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.splitlines() == ["refused: True", "windows: True", "cli: []"], result.stdout

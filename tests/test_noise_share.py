@@ -54,8 +54,8 @@ def test_the_pixel_then_time_order_is_the_stable_sort_of_the_keys():
 def test_the_fit_sorts_its_events_once_for_the_mask_and_the_noise_share(monkeypatch):
     """Was: the depth mask's isolation test and the noise share each sorted all the window's events by pixel and
     time (the same sort twice); now one sort serves both, and each flag and the share are those of the public
-    functions (the noise filter, ``FitSettings.min_neighbours``, counts neighbours with a sort of its own on the
-    noisy windows it applies to)."""
+    functions (the noise filter, ``FitSettings.min_neighbours``, counts on that sort too:
+    test_a_noisy_window_is_sorted_once_and_filtered_as_before)."""
     from cmax.fitting import quality
     from conftest import counted_calls
 
@@ -72,6 +72,56 @@ def test_the_fit_sorts_its_events_once_for_the_mask_and_the_noise_share(monkeypa
     assert share == noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, max_queries=None)
     assert result.quality.noise_share == noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000,
                                                      max_queries=FitSettings().max_events)
+
+
+def test_a_noisy_window_is_sorted_once_and_filtered_as_before(monkeypatch):
+    """Was: on a window whose noise the neighbour filter (``FitSettings.min_neighbours``) thins, the fit sorted the
+    events by pixel and time three times: for the isolation test and noise share, again in ``neighbour_counts``, and
+    the kept events again for the depth mask's isolation test. Now once: the filter counts on that sort and the
+    kept events' test runs on its subsequence. The kept events and the mask's flags are those of the public
+    functions, each sorting anew (``neighbour_counts``, ``isolated_events``), bit for bit."""
+    from cmax.fitting import api, quality
+    from conftest import counted_calls
+
+    w = make_window("driving", 1, width=160, height=120, focal=130.0, duration_s=0.1, max_frames=40)
+    noisy, _ = _with_noise(w.events, 3.0, 2)                            # uniform noise of 3 Hz per pixel
+    settings = FitSettings(depth_range=(2.0, 60.0))
+    isolated, share, ordered = quality._isolated_noise_share_and_sorted(noisy.x, noisy.y, noisy.t, 160, 120,
+                                                                        settings.mask_isolated_us)
+    fitted, keep = api._without_weak_events(noisy, share, settings, ordered)
+    support = neighbour_counts(noisy.x, noisy.y, noisy.t, 160, 120, settings.mask_isolated_us)
+    expected = support >= settings.min_neighbours
+    assert keep is not None and 0 < np.count_nonzero(~expected)            # the filter thins this window
+    np.testing.assert_array_equal(keep, expected)
+    for field in "xytp":
+        np.testing.assert_array_equal(getattr(fitted, field), getattr(noisy, field)[expected])
+    np.testing.assert_array_equal(api._fitted_isolated(isolated, keep, ordered, noisy, settings),
+                                  isolated_events(fitted.x, fitted.y, fitted.t, 160, 120, settings.mask_isolated_us))
+    calls = counted_calls(monkeypatch, quality, "_sorted_events")
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        result = fit(noisy, w.K, pose=w.twist, settings=settings)
+    assert len(calls) == 1 and result.events_used == np.count_nonzero(expected)
+
+
+def test_a_sorted_subset_gives_what_sorting_the_subset_gives():
+    """:func:`cmax.fitting.quality._sorted_subset` (the kept events' sort taken from the window's) gives the isolation
+    flags and neighbour counts of the pairwise definition on the subset, at another time origin and span."""
+    from cmax.fitting.quality import _isolated, _neighbour_counts, _sorted_events, _sorted_subset
+
+    rng = np.random.default_rng(6)
+    n, width, height, window = 600, 12, 9, 4_000
+    x, y = rng.integers(0, width, n), rng.integers(0, height, n)
+    t = np.sort(rng.integers(0, 80_000, n))
+    keep = rng.random(n) < 0.6
+    keep[0] = False                                                      # the subset starts later than the set
+    sub = _sorted_subset(_sorted_events(x, y, t, width, window), keep)
+    xs, ys, ts = x[keep], y[keep], t[keep]
+    near = ((np.abs(xs[:, None] - xs[None]) <= 1) & (np.abs(ys[:, None] - ys[None]) <= 1)
+            & (np.abs(ts[:, None] - ts[None]) <= window))
+    assert 0 < np.count_nonzero(near.sum(1) == 1) < keep.sum()
+    np.testing.assert_array_equal(_isolated(sub, width, height, window, 1), near.sum(1) == 1)
+    np.testing.assert_array_equal(_neighbour_counts(sub, width, height, window, 1), near.sum(1) - 1)
 
 
 @pytest.mark.parametrize("x, message", [([0, 346], "x must hold pixels in \\[0, 345\\] of the 346x260 image, got 0 to 346"),

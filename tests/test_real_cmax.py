@@ -121,15 +121,15 @@ def test_slider_fit_is_cached_per_events_file(tmp_path, monkeypatch):
     real_cmax.slider_sequence(paths[1], cache)
     assert len(calls) == 10
     # with a calibration: another fit, of the events undistorted as cmax fit --calib does
-    from cmax.cli.fit import undistorted_events
+    from cmax import Camera
     from cmax.io import read
 
     calib = tmp_path / "calib.txt"
     calib.write_text("6 6 3.5 3.5 -0.4 0 0 0 0\n")
     calibrated, _, _ = real_cmax.slider_sequence(paths[1], cache, calibration=calib)
-    expected = undistorted_events(read(paths[1]), np.array([[6, 0, 3.5], [0, 6, 3.5], [0, 0, 1.0]]),
-                                  np.array([-0.4, 0, 0, 0, 0]))
     raw = read(paths[1])
+    expected = Camera(np.array([[6, 0, 3.5], [0, 6, 3.5], [0, 0, 1.0]]), raw.width, raw.height,
+                      np.array([-0.4, 0, 0, 0, 0])).undistort_events(raw)
     assert len(calls) == 11 and calibrated.n == len(expected)
     np.testing.assert_array_equal(seen[-1].x, expected.x)
     np.testing.assert_array_equal(seen[-1].y, expected.y)

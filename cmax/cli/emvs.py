@@ -23,11 +23,12 @@ import numpy as np
 from cmax._args import api_default, float_list, int_at_least, nonnegative_float
 from cmax.camera import intrinsics_oddity
 from cmax.cli._common import named_pixels, output_folder
-from cmax.cli.recording import (Calibration, add_camera_options, add_file_options, calibration_hint, calibration_note,
-                                calibration_of, check_file_principal_point, file_depth_range, file_intrinsics,
-                                given_k_note, no_intrinsics_message, overlap, read_calibrated, resized_note)
-from cmax.io import run_folder
+from cmax.cli.recording import (add_camera_options, add_file_options, calibration_hint, calibration_note,
+                                calibration_of, check_file_principal_point, given_k_note, no_intrinsics_message,
+                                overlap, read_calibrated)
+from cmax.io import Calibration, run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
+from cmax.io.provenance import file_depth_range, file_intrinsics, resized_note
 
 #: ``cmax emvs`` notes the share of the depth map on the nearest or farthest plane from this share on.
 EMVS_BOUND_NOTE = 0.05

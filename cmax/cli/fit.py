@@ -29,16 +29,17 @@ from cmax._args import api_default, float_list, grid_shape, library_default, pos
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
                                 calibration_note, calibration_of, camera_read, check_file_principal_point, event_span,
-                                file_depth_range, file_intrinsics, given_k_note, no_intrinsics_message, open_streamed,
-                                overlap, read_calibrated, tail_note)
+                                given_k_note, no_intrinsics_message, open_streamed, overlap, read_calibrated,
+                                tail_note)
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
+from cmax.io.provenance import file_depth_range, file_intrinsics
 from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, code_digest, file_signature, interrupted_windows,
                                   settings_record, stopped_line)
 
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
            "hot_pixel_note", "option_words", "run", "run_record", "tum_lines", "unscaled_range_note",
-           "undistorted_events", "unmapped_pixels", "verdict_counts", "window_line"]
+           "unmapped_pixels", "verdict_counts", "window_line"]
 
 #: A run's private folders ``-o/.fit.<16 hex>.partial`` (:func:`cmax.io.run_folder.staged_run`).
 _STAGE_PREFIX = "fit"
@@ -131,14 +132,6 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                              "(cmax.FitSettings.hot_pixels)")
     parser.set_defaults(run=run)
     return parser
-
-
-def undistorted_events(events, K: np.ndarray, distortion: np.ndarray):
-    """The events at their undistorted pixel (nearest integer; events that land outside are dropped):
-    :meth:`cmax.Camera.undistort_events` of the camera ``K``, ``distortion`` of the events' sensor."""
-    from cmax.camera import Camera
-
-    return Camera(K, events.width, events.height, distortion).undistort_events(events)
 
 
 def _sequence_default(name: str):

@@ -11,9 +11,9 @@
 * :func:`add_camera_options`: ``--K`` or ``--calib`` (with ``--calib-camera``), and ``--distortion``, of the
   commands that need the intrinsics (``cmax fit``, ``cmax emvs``), :func:`calibration_of` and
   :func:`read_calibrated` behind them; :func:`intrinsics_argument`,
-  :data:`distortion_argument`: their ``argparse`` types; :func:`read_calibration`: ``--calib`` (ECD
-  ``calib.txt``, DSEC ``cam_to_cam.yaml``, a Kalibr camchain: radtan or equidistant, rectified when it gives
-  ``rectification_matrix`` / ``projection_matrix``), a :class:`Calibration`.
+  :data:`distortion_argument`: their ``argparse`` types; ``--calib`` is read by :func:`cmax.io.read_calibration`
+  (ECD ``calib.txt``, DSEC ``cam_to_cam.yaml``, a Kalibr camchain: radtan or equidistant, rectified when it gives
+  ``rectification_matrix`` / ``projection_matrix``), a :class:`cmax.io.Calibration`.
 
 No import here loads torch (the parsers are built at start-up).
 """
@@ -21,20 +21,19 @@ from __future__ import annotations
 
 import argparse
 from pathlib import Path
-from typing import NamedTuple
 
 import numpy as np
 
 from cmax._args import float_list, nonnegative_float, sensor_size
-from cmax.camera import Camera, check_intrinsics, check_rotation, intrinsics_matrix
+from cmax.camera import Camera, intrinsics_matrix
+from cmax.io.calibration import Calibration, read_calibration, topic_side
+from cmax.io.provenance import CALIBRATION_NAMES, file_intrinsics, resize_note, resized_note, simulated_frames
 
 __all__ = ["add_file_options", "file_kwargs", "camera_read", "given_k_note", "add_recording_arguments",
-           "add_camera_options", "calibration_of", "Calibration", "calibration_note", "check_calibration_camera",
-           "topic_side",
-           "read_calibrated", "intrinsics_argument", "file_intrinsics", "h5_intrinsics", "no_intrinsics_message",
-           "simulated_sizes", "resized_note", "source_calibration", "check_calibration_of_frames",
-           "check_file_principal_point", "file_depth_range",
-           "distortion_argument", "read_calibration",
+           "add_camera_options", "calibration_of", "calibration_note", "check_calibration_camera",
+           "read_calibrated", "intrinsics_argument", "no_intrinsics_message", "check_calibration_of_frames",
+           "check_file_principal_point",
+           "distortion_argument",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
 
@@ -160,46 +159,6 @@ def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str 
                         help=f"OpenCV k1,k2,p1,p2[,k3] of --K{distortion_help} (default: none, a pinhole camera)")
 
 
-class Calibration(NamedTuple):
-    """A camera as a calibration file (or ``--K`` / ``--distortion``) states it; :func:`read_calibration`.
-
-    ``K`` (3, 3) [px] of the lens (None: not given, the file's ``gt/K`` is used); ``distortion``: its
-    coefficients (radtan (4,) or (5,), (8,) of ROS's rational_polynomial, equidistant (4,)) or None; ``size``:
-    ``(width, height)`` [px] the file states, or None; ``model``: ``"radtan"`` or ``"equidistant"``; ``rectification`` (3, 3) and ``rectified_K``
-    (3, 3) [px]: a stereo rectification the file gives (Kalibr's ``rectification_matrix``, the left 3x3 of its
-    ``projection_matrix``), into whose frame the events are undistorted, or None; ``topic``: the camera's
-    ``rostopic`` in a Kalibr camchain (``/davis/left/image_raw``: which camera of a rig it is), or None;
-    ``rectified_from``: where a DSEC ``cam_to_cam.yaml`` gave the rectification (``"extrinsics/R_rect0 and
-    intrinsics/camRect0"``), None for a camchain's ``rectification_matrix`` / ``projection_matrix`` or none.
-    """
-
-    K: np.ndarray | None
-    distortion: np.ndarray | None
-    size: tuple[int, int] | None
-    model: str = "radtan"
-    rectification: np.ndarray | None = None
-    rectified_K: np.ndarray | None = None
-    topic: str | None = None
-    rectified_from: str | None = None
-
-    @property
-    def pinhole_K(self) -> np.ndarray | None:
-        """(3, 3) [px]: the K of the pixels the events are undistorted to, the one to fit with: ``rectified_K``
-        or ``K``."""
-        return self.K if self.rectified_K is None else self.rectified_K
-
-    @property
-    def undistorts(self) -> bool:
-        """Whether the events must be mapped before a pinhole fit (a distortion, a rectification)."""
-        return self.distortion is not None or self.rectification is not None or self.rectified_K is not None
-
-    def camera(self, width: int, height: int, K: np.ndarray | None = None) -> Camera:
-        """The :class:`cmax.Camera` of a ``width`` x ``height`` [px] sensor (``K`` (3, 3) [px] when the
-        calibration gives none: a file's ``gt/K``)."""
-        return Camera(self.K if K is None else K, width, height, self.distortion, self.model, self.rectification,
-                      self.rectified_K)
-
-
 def calibration_note(calibration: Calibration, path: str | Path, camera: str,
                      events: str | Path | None = None) -> str | None:
     """What a command says when the ``--calib`` file ``path`` (camera ``camera``) maps the events into another
@@ -242,7 +201,7 @@ DSEC_RECTIFY_MAP = "rectify_map.h5"
 
 def calibration_of(args: argparse.Namespace) -> Calibration:
     """The :class:`Calibration` of :func:`add_camera_options`' options: ``--K`` and ``--distortion`` (radtan)
-    as given (no size), or those of the ``--calib`` file (:func:`read_calibration`), which refuses
+    as given (no size), or those of the ``--calib`` file (:func:`cmax.io.read_calibration`), which refuses
     ``--distortion`` beside it."""
     if args.calib is None:
         if args.calib_camera != "cam0":     # else taken and ignored: the --K (or the file's gt/K) would be used
@@ -259,22 +218,10 @@ def calibration_of(args: argparse.Namespace) -> Calibration:
     return calibration
 
 
-def topic_side(topic: str | None) -> str | None:
-    """``'left'`` or ``'right'`` when a camchain camera's ``rostopic`` names that camera of a stereo rig (a path
-    component ``left`` / ``right``, as MVSEC's ``/davis/left/image_raw``), else None.
-
-    >>> topic_side("/davis/right/image_raw"), topic_side("/cam0/image_raw"), topic_side(None)
-    ('right', None, None)
-    """
-    parts = set((topic or "").strip().strip("'\"").lower().split("/"))
-    sides = [side for side in ("left", "right") if side in parts]
-    return sides[0] if len(sides) == 1 else None
-
-
 def check_calibration_camera(calibration: Calibration, calib: str | Path, calib_camera: str, path: str | Path,
                              camera: str | None) -> None:
     """ValueError when the ``--calib`` camera ``calib_camera`` of ``calib`` is, by its ``rostopic``
-    (:func:`topic_side`), the other camera of the stereo rig than the one whose events are read from the MVSEC file
+    (:func:`cmax.io.calibration.topic_side`), the other camera of the stereo rig than the one whose events are read from the MVSEC file
     ``path`` (``camera``, ``--camera``; None: left): the left camera's lens and rectification would be applied to the
     right camera's events without a word. Files of other formats hold one camera: nothing to check. ValueError
     too when ``calib_camera`` is a DSEC rectified camera ``camRectN`` and DSEC's :data:`DSEC_RECTIFY_MAP` lies
@@ -302,8 +249,6 @@ def check_calibration_camera(calibration: Calibration, calib: str | Path, calib_
                          f"{side}")
 
 
-#: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.
-CALIBRATION_NAMES = ("calib.txt", "cam_to_cam.yaml")
 #: MVSEC's Kalibr camchains (``camchain-imucam-indoor_flying.yaml``, ...), which :func:`calibration_hint` names too.
 MVSEC_CAMCHAIN_GLOB = "camchain-imucam-*.yaml"
 
@@ -435,19 +380,6 @@ def intrinsics_argument(text: str) -> np.ndarray:
         raise argparse.ArgumentTypeError(f"--K: {error}") from None
 
 
-def file_intrinsics(path: str | Path) -> np.ndarray | None:
-    """``gt/K`` (3, 3) [px] of an h5 event file (as ``cmax scene`` and the simulator write it), validated;
-    None when the file is not h5 or stores none (ValueError when it stores a bad one)."""
-    import h5py
-
-    try:
-        file = h5py.File(path, "r")
-    except OSError:                     # not an h5 file
-        return None
-    with file:
-        return h5_intrinsics(file, path)
-
-
 def given_k_note(path: str | Path, given: np.ndarray | None) -> str | None:
     """A note when the h5 file ``path`` stores a ``gt/K`` (3, 3) [px] other than the ``given`` one (``--K`` /
     ``--calib``), which is used: the file's is the camera it was rendered or simulated with (``cmax scene``,
@@ -472,47 +404,32 @@ def given_k_note(path: str | Path, given: np.ndarray | None) -> str | None:
             "used; leave --K / --calib out to use the file's")
 
 
-def simulated_sizes(path: str | Path) -> tuple[tuple[int, int], tuple[int, int]] | None:
-    """``((W, H) of the frames, (w, h) of the sensor)`` of a ``cmax simulate`` conversion (h5 attribute
-    ``source_size``: the frames' size before ``--size``), or None for any other file."""
-    return _sizes_of(_conversion_attrs(path))
-
-
-def resized_note(path: str | Path) -> str | None:
-    """For a ``cmax simulate`` conversion whose frames ``--size`` resized (:func:`simulated_sizes`): how a K of
-    those frames scales to its pixels (``cv2.resize``'s pixel centres: ``cx' = (cx + 0.5) sx - 0.5``); else None.
-    """
-    return _resized_text(path, simulated_sizes(path))
-
-
 def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
     """The error for an event file that stores no ``gt/K`` and was given no ``--K`` / ``--calib``: what to pass,
-    and for a ``cmax simulate`` conversion where its K comes from (:func:`resized_note`); the file is opened once."""
+    and for a ``cmax simulate`` conversion where its K comes from (:func:`cmax.io.provenance.resized_note`); the
+    file is opened once."""
     message = f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or {calib}"
-    attrs = _conversion_attrs(path)
-    sizes = _sizes_of(attrs)
+    sizes, beside = simulated_frames(path)
     if sizes is None:
         return message
-    beside = _calibration_beside(attrs)
     if beside is not None:
         message += f"; {beside} lies beside the frames it was simulated from"
     if sizes[0] == sizes[1]:
         return (f"{message} (a conversion of frames by cmax simulate: the intrinsics of the camera that shot them, "
                 "when known; a video carries none)" if beside is None else f"{message}: --calib {beside}")
-    return f"{message}; {_resized_text(path, sizes)}"
+    return f"{message}; {resize_note(path, sizes)}"
 
 
 def check_calibration_of_frames(calib: str | Path, K: np.ndarray, distortion: np.ndarray | None,
                                 path: str | Path) -> None:
     """Refuse the calibration file ``calib`` (intrinsics ``K`` (3, 3) [px], OpenCV ``distortion``) for the event
     file ``path`` when ``calib`` is the one beside the frames a ``cmax simulate`` conversion was made from
-    (:func:`source_calibration`) and ``--size`` resized those frames (:func:`simulated_sizes`): it calibrates the
-    frames, not the file's pixels, and used as it is every focal length and the principal point would be off by
+    (:func:`cmax.io.provenance.source_calibration`) and ``--size`` resized those frames
+    (:func:`cmax.io.provenance.simulated_sizes`): it calibrates the frames, not the file's pixels, and used as it is every focal length and the principal point would be off by
     the scale (an ECD ``calib.txt`` states no resolution, so nothing else tells). The error gives the scaled
     ``--K`` (:meth:`cmax.camera.Camera.scaled`, ``cv2.resize``'s pixel centres) and the same ``--distortion`` (its
     coefficients act on normalised coordinates, which a scaling leaves alone)."""
-    attrs = _conversion_attrs(path)
-    sizes, beside = _sizes_of(attrs), _calibration_beside(attrs)
+    sizes, beside = simulated_frames(path)
     if sizes is None or sizes[0] == sizes[1] or beside is None or not _same_file(beside, calib):
         return
     (W, H), (w, h) = sizes
@@ -532,68 +449,10 @@ def _same_file(a: str | Path, b: str | Path) -> bool:
         return False
 
 
-def source_calibration(path: str | Path) -> Path | None:
-    """A calibration file (:data:`CALIBRATION_NAMES`) in the folder a ``cmax simulate`` conversion was made from
-    (h5 attribute ``source``: an ECD or rpg_vid2e image folder, its ``images/``, or a timestamp file), or None."""
-    return _calibration_beside(_conversion_attrs(path))
-
-
-#: The h5 attributes of a ``cmax simulate`` conversion that say where its frames came from.
-_CONVERSION_ATTRS = ("source_size", "width", "height", "source")
-
-
-def _conversion_attrs(path: str | Path) -> dict:
-    """The attributes of :data:`_CONVERSION_ATTRS` that the h5 file ``path`` holds, read in one opening (empty for
-    a file that is not h5)."""
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as file:
-            return {key: file.attrs[key] for key in _CONVERSION_ATTRS if key in file.attrs}
-    except (OSError, KeyError, TypeError, ValueError):   # not an h5 file, or unreadable attributes
-        return {}
-
-
-def _sizes_of(attrs: dict) -> tuple[tuple[int, int], tuple[int, int]] | None:
-    """:func:`simulated_sizes` of a file's :func:`_conversion_attrs`."""
-    import json
-
-    try:
-        stored = [int(v) for v in json.loads(attrs["source_size"])]
-        size = (int(attrs["width"]), int(attrs["height"]))
-    except (KeyError, TypeError, ValueError):   # not a conversion, or one of unknown frames
-        return None
-    if len(stored) != 2 or min(stored) <= 0:
-        return None
-    return (stored[0], stored[1]), size
-
-
-def _resized_text(path: str | Path, sizes: tuple[tuple[int, int], tuple[int, int]] | None) -> str | None:
-    """:func:`resized_note` of a file ``path`` whose :func:`simulated_sizes` are ``sizes``."""
-    if sizes is None or sizes[0] == sizes[1]:
-        return None
-    (W, H), (w, h) = sizes
-    sx, sy = w / W, h / H
-    return (f"{path} was simulated from {W}x{H} frames resized to {w}x{h} (--size): a K of those frames scales "
-            f"to fx*{sx:.6g}, fy*{sy:.6g}, (cx+0.5)*{sx:.6g}-0.5, (cy+0.5)*{sy:.6g}-0.5")
-
-
-def _calibration_beside(attrs: dict) -> Path | None:
-    """:func:`source_calibration` of a file's :func:`_conversion_attrs`."""
-    if "source" not in attrs:
-        return None
-    source = Path(str(attrs["source"]))
-    folder = source if source.is_dir() else source.parent
-    for place in (folder, folder.parent):
-        for name in CALIBRATION_NAMES:
-            if (place / name).is_file():
-                return place / name
-    return None
-
-
 def check_file_principal_point(K: np.ndarray, path: str | Path, width: int, height: int, name: str = "K") -> None:
     """:func:`cmax.camera.check_principal_point` for the event file ``path``, its error followed by
-    :func:`resized_note` when ``--size`` resized its frames (the usual cause: the frames' calibration, unscaled)."""
+    :func:`cmax.io.provenance.resized_note` when ``--size`` resized its frames (the usual cause: the frames'
+    calibration, unscaled)."""
     from cmax.camera import check_principal_point
 
     try:
@@ -601,356 +460,6 @@ def check_file_principal_point(K: np.ndarray, path: str | Path, width: int, heig
     except ValueError as error:
         note = resized_note(path)
         raise ValueError(str(error) if note is None else f"{error}; {note}") from None
-
-
-def file_depth_range(path: str | Path) -> tuple[float, float] | None:
-    """``(near, far)`` [m] that an h5 file of ``cmax scene`` records for its scene (attribute ``scene``,
-    ``depth_range_m``); None for any other file, or a record without a valid range."""
-    import json
-
-    import h5py
-
-    try:
-        with h5py.File(path, "r") as file:
-            record = file.attrs.get("scene")
-    except OSError:                     # not an h5 file
-        return None
-    try:
-        near, far = (float(v) for v in json.loads(record)["depth_range_m"])
-    except (TypeError, ValueError, KeyError):
-        return None
-    return (near, far) if 0 < near < far < float("inf") else None
-
-
-def h5_intrinsics(file, path: str | Path) -> np.ndarray | None:
-    """``gt/K`` (3, 3) [px] of an open h5 file (``h5py.File``), validated; None when it stores none (ValueError,
-    naming ``path``, when it stores a bad one)."""
-    if "gt" not in file or "K" not in file["gt"]:
-        return None
-    try:
-        return check_intrinsics(np.asarray(file["gt/K"][()]), f"{path}: gt/K")
-    except TypeError as error:
-        raise ValueError(str(error)) from None
-
-
-def _numbers(text: str) -> list[float]:
-    return [float(v) for v in text.replace("[", " ").replace("]", " ").replace(",", " ").split()]
-
-
-def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
-    """The :class:`Calibration` of ``camera`` in the calibration file ``path``: ``(K (3, 3) [px], distortion or
-    None, (width, height) [px] or None, model, rectification (3, 3) or None, rectified_K (3, 3) [px] or None)``
-    (a named tuple: ``K, distortion, size = read_calibration(path)[:3]``).
-
-    * ECD ``calib.txt``: one line ``fx fy cx cy k1 k2 p1 p2 k3`` (or only ``fx fy cx cy``), one camera (a
-      ``camera`` other than ``"cam0"`` is refused: it was read as this one without a word);
-    * DSEC ``cam_to_cam.yaml``: ``intrinsics/<camera>`` with ``camera_matrix: [fx, fy, cx, cy]``,
-      optional ``distortion_coeffs: [k1, k2, p1, p2]`` (radtan) and ``resolution: [w, h]``; a raw camera ``camN``
-      (DSEC's events are raw) with ``extrinsics/R_rectN`` and ``intrinsics/camRectN`` beside it is rectified into
-      camRectN's frame, that of DSEC's disparity maps (``rectification`` = ``R_rectN``, ``rectified_K`` =
-      camRectN's K); ``camRectN`` itself is a pinhole without distortion, for events already rectified;
-    * a ROS ``camera_info`` YAML (``camera_calibration``'s, ``rpg_dvs_ros``'s): ``camera_matrix``,
-      ``distortion_model``, ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix`` as
-      ``data: [...]``, ``image_width`` / ``image_height``; one camera; ``plumb_bob`` or ``rational_polynomial``
-      with 4, 5 or 8 coefficients (an empty ``D``: none), ``equidistant`` with 4; also a CameraInfo message as
-      ``rostopic echo`` / ``ros2 topic echo`` print it (``K``, ``D``, ``R``, ``P``, ``width``, ``height``);
-    * a Kalibr camchain (``camchain.yaml``, as MVSEC and many DAVIS rigs ship): ``<camera>`` with
-      ``intrinsics: [fx, fy, cx, cy]`` and the same keys; a pinhole camera with ``distortion_model: radtan``
-      (``plumb_bob``; 4 or 5 coefficients) or ``equidistant`` (Kannala-Brandt fisheye, exactly 4: ``k1 k2 k3
-      k4``). MVSEC's camchains also give each camera a ``rectification_matrix`` (3x3 ``R_rect``) and a
-      ``projection_matrix`` (3x4 ``P_rect``): read as ``rectification`` and ``rectified_K`` (``P_rect``'s left
-      3x3; its last column, a stereo baseline, does not move a camera's own rays), the frame of MVSEC's
-      ``depth_image_rect``, into which ``--calib`` undistorts the events (:class:`cmax.Camera`). A rectification
-      that moves nothing (``R = I``, ``P``'s K equal to K: a monocular camera's) is dropped.
-
-    Lists may be written ``[a, b]`` or as ``- a`` lines (YAML's block style).
-
-    Raises FileNotFoundError, or ValueError naming the file and what is missing.
-    """
-    path = Path(path)
-    if not path.is_file():
-        raise FileNotFoundError(f"no calibration file at {path}")
-    text = path.read_text("utf-8", errors="replace")
-    if path.suffix.lower() in (".yaml", ".yml"):
-        values = _yaml_intrinsics(path, text, camera)
-        try:
-            fx, fy, cx, cy = _numbers(values["camera_matrix"])
-            distortion = _numbers(values["distortion_coeffs"]) if "distortion_coeffs" in values else None
-            size = tuple(int(v) for v in _numbers(values["resolution"])) if "resolution" in values else None
-        except (KeyError, ValueError, TypeError):
-            raise ValueError(f"{path}: intrinsics/{camera} needs camera_matrix: [fx, fy, cx, cy] (and optionally "
-                             "distortion_coeffs, resolution: [w, h])") from None
-        model = values.get("distortion_model", "radtan").strip()
-        model = "radtan" if model == "plumb_bob" else model
-        if model not in ("radtan", "equidistant"):
-            raise ValueError(f"{path}: distortion_model {model!r} of {camera} is not supported (radtan / plumb_bob, "
-                             "equidistant)")
-        if size is not None and len(size) != 2:
-            raise ValueError(f"{path}: resolution must be [width, height]")
-        rectification = _yaml_matrix(path, camera, values, "rectification_matrix", (9,))
-        projection = _yaml_matrix(path, camera, values, "projection_matrix", (12, 9))
-        if model == "equidistant":
-            if distortion is None or len(distortion) != 4 or not np.isfinite(distortion).all():
-                raise ValueError(f"{path}: the equidistant (fisheye) distortion of {camera} must be 4 finite numbers "
-                                 f"distortion_coeffs: [k1, k2, k3, k4], got {distortion}")
-            K = intrinsics_matrix([fx, fy, cx, cy], f"{path}: {camera} intrinsics")
-            return _no_rectification(Calibration(K, np.asarray(distortion, float), size, model, *_rectification(
-                path, camera, rectification, projection), values.get("rostopic"), values.get("rectified_from")))
-    else:
-        lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
-        try:
-            numbers = _numbers(lines[0]) if len(lines) == 1 else []
-        except ValueError:
-            numbers = []
-        if len(numbers) not in (4, 8, 9):
-            raise ValueError(f"{path}: expected one line 'fx fy cx cy [k1 k2 p1 p2 [k3]]' (ECD calib.txt)")
-        if camera != "cam0":     # one camera: another name was read as this one without a word
-            raise ValueError(f"{path} calibrates one camera (ECD calib.txt): camera {camera!r} (--calib-camera) "
-                             "chooses one of a DSEC cam_to_cam.yaml or a Kalibr camchain .yaml; leave it out")
-        (fx, fy, cx, cy), distortion, size = numbers[:4], numbers[4:] or None, None
-        rectification = projection = values = None
-    rational = values is not None and values.get("distortion_model_ros") in ROS_RADTAN_MODELS
-    if distortion is not None and rational and not distortion:     # ROS's D: [] of a camera without distortion
-        distortion = None
-    if distortion is not None and (len(distortion) not in ((4, 5, 8) if rational else (4, 5))
-                                   or not np.isfinite(distortion).all()):
-        raise ValueError(f"{path}: the distortion must be 4 or 5 finite numbers (k1 k2 p1 p2 [k3])" + (
-            f", or 8 (k1 k2 p1 p2 k3 k4 k5 k6: ROS's rational_polynomial); got {len(distortion)}" if rational else ""))
-    K = intrinsics_matrix([fx, fy, cx, cy])
-    return _no_rectification(Calibration(K, None if distortion is None else np.asarray(distortion, float), size,
-                                         "radtan", *_rectification(path, camera, rectification, projection),
-                                         None if values is None else values.get("rostopic"),
-                                         None if values is None else values.get("rectified_from")))
-
-
-def _yaml_matrix(path: Path, camera: str, values: dict[str, str], key: str,
-                 sizes: tuple[int, ...]) -> np.ndarray | None:
-    """The numbers of ``values[key]`` (a matrix written as nested lists, flow or block style), or None when the
-    camera has no such key; ValueError naming the file, camera and key when they are not ``sizes`` numbers."""
-    if key not in values:
-        return None
-    try:
-        numbers = [v for v in values[key].replace("[", " ").replace("]", " ").replace(",", " ").split() if v != "-"]
-        matrix = np.array([float(v) for v in numbers])
-    except ValueError:
-        matrix = np.zeros(0)
-    if matrix.size not in sizes or not np.isfinite(matrix).all():
-        shapes = " or ".join({9: "3x3", 12: "3x4"}[n] for n in sizes)
-        name = values.get(f"{key}_name", f"{camera}'s {key}")
-        raise ValueError(f"{path}: {name} must be a {shapes} matrix of finite numbers, got {values[key]!r}")
-    return matrix
-
-
-def _rectification(path: Path, camera: str, rectification: np.ndarray | None,
-                   projection: np.ndarray | None) -> tuple[np.ndarray | None, np.ndarray | None]:
-    """``(R (3, 3), rectified K (3, 3) [px])`` of a camera's ``rectification_matrix`` (9 numbers) and
-    ``projection_matrix`` (12: 3x4, or 9), None where not given; ValueError naming the file when R is not a
-    rotation or P's left 3x3 not a pinhole matrix."""
-    R = K = None
-    try:
-        if rectification is not None:
-            R = check_rotation(rectification.reshape(3, 3), f"{path}: {camera}'s rectification_matrix")
-        if projection is not None:
-            P = projection.reshape(3, -1)
-            K = check_intrinsics(P[:, :3], f"{path}: {camera}'s projection_matrix (its left 3x3)")
-    except TypeError as error:
-        raise ValueError(str(error)) from None
-    return R, K
-
-
-def _no_rectification(calibration: Calibration) -> Calibration:
-    """``calibration`` without a rectification that moves nothing: an identity ``R`` and a ``rectified_K`` equal
-    to ``K`` (a monocular ROS camera_info's usual ``R = I``, ``P = [K | 0]``) are dropped."""
-    R, K_rect = calibration.rectification, calibration.rectified_K
-    if R is not None and np.array_equal(R, np.eye(3)):
-        R = None
-    if K_rect is not None and calibration.K is not None and np.array_equal(K_rect, calibration.K):
-        K_rect = None
-    return calibration._replace(rectification=R, rectified_K=K_rect,
-                                rectified_from=None if R is None and K_rect is None else calibration.rectified_from)
-
-
-def _yaml_tree(text: str) -> dict:
-    """The nested mappings of a small YAML file as dicts of strings (no YAML library): ``key: value`` lines by
-    their indentation; a key without a value opens a mapping, or a list when ``- item`` lines follow it (block
-    style, as PyYAML writes by default), held as the list of its items' text (a flow list ``[a, b]`` stays one
-    string, also when it goes on over several lines: :func:`_yaml_lines`); quoted scalars without their quotes; a
-    key whose value is a tag (OpenCV FileStorage's ``camera_matrix: !!opencv-matrix``) opens a mapping;
-    :func:`_yaml_intrinsics` writes a block list back as ``[a, b, ...]``."""
-    root: dict = {}
-    stack: list[tuple[int, dict]] = [(-1, root)]      # (indentation of the key that opened it, mapping)
-    opened: tuple[dict, str, int] | None = None       # the last key without a value: (its mapping, key, indentation)
-    for line in _yaml_lines(text):
-        indent = len(line) - len(line.lstrip())
-        item = line.strip()
-        if item.startswith("-"):
-            if opened is not None and indent >= opened[2]:
-                parent, key, _ = opened
-                if isinstance(parent[key], dict) and not parent[key]:
-                    stack = [entry for entry in stack if entry[1] is not parent[key]]
-                    parent[key] = []
-                if isinstance(parent[key], list):
-                    parent[key].append(_unquoted(item[1:].strip()))
-            continue
-        while stack[-1][0] >= indent:
-            stack.pop()
-        key, _, value = item.partition(":")
-        mapping = stack[-1][1]
-        if value.strip() and not value.strip().startswith("!!"):   # a tag ("!!opencv-matrix"): a mapping follows
-            mapping[key.strip()] = _unquoted(value.strip())          # '' too is a value (an empty one)
-            opened = None
-        else:
-            mapping[key.strip()] = {}
-            stack.append((indent, mapping[key.strip()]))
-            opened = (mapping, key.strip(), indent)
-    return root
-
-
-def _yaml_lines(text: str) -> list[str]:
-    """The lines of a small YAML file without comments and blank lines, a flow list ``[...]`` that goes on over
-    several lines (PyYAML wraps them at 80 columns, OpenCV's FileStorage too) joined into its first line."""
-    lines: list[str] = []
-    depth = 0                                         # "[" not closed yet on the lines joined so far
-    for raw in text.splitlines():
-        line = raw.split("#", 1)[0].rstrip()
-        if not line.strip():
-            continue
-        if depth > 0:
-            lines[-1] += " " + line.strip()
-        else:
-            lines.append(line)
-        depth += line.count("[") - line.count("]")
-    return lines
-
-
-def _unquoted(value: str) -> str:
-    """A YAML scalar ``value`` without the quotes around it (``"plumb_bob"``, ``'pinhole'``)."""
-    if len(value) >= 2 and value[0] == value[-1] and value[0] in "\"'":
-        return value[1:-1]
-    return value
-
-
-#: ROS camera_info's names of OpenCV's radtan model (sensor_msgs/distortion_models.h): ``plumb_bob`` (k1 k2 p1 p2
-#: k3) and ``rational_polynomial`` (k1 k2 p1 p2 k3 k4 k5 k6); ROS's ``image_geometry`` hands either's ``D`` to
-#: OpenCV as it is (empty: no distortion), so 4, 5 or 8 coefficients are read for both.
-ROS_RADTAN_MODELS = ("plumb_bob", "rational_polynomial")
-
-
-def _ros_camera_info(path: Path, tree: dict, camera: str, flat) -> dict[str, str]:
-    """The keys :func:`read_calibration` reads, of a ROS ``camera_info`` YAML (what ``camera_calibration`` and
-    ``rpg_dvs_ros`` write: ``image_width``, ``image_height``, ``camera_matrix``, ``distortion_model``,
-    ``distortion_coefficients``, ``rectification_matrix``, ``projection_matrix``, each matrix as ``data: [...]``,
-    row-major): one camera (``camera`` other than ``cam0`` refused); a skewed ``camera_matrix`` refused."""
-    if camera != "cam0":
-        raise ValueError(f"{path} calibrates one camera (ROS camera_info): camera {camera!r} (--calib-camera) chooses "
-                         "one of a DSEC cam_to_cam.yaml or a Kalibr camchain .yaml; leave it out")
-
-    def data(key: str) -> str | None:
-        entry = tree.get(key)
-        return flat(entry).get("data") if isinstance(entry, dict) else None
-
-    try:
-        m = _numbers(data("camera_matrix") or "")
-    except ValueError:
-        m = []
-    if len(m) != 9 or m[1] != 0 or m[3] != 0 or m[6:] != [0, 0, 1]:
-        raise ValueError(f"{path}: camera_matrix data must be the 9 numbers of [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] "
-                         f"(ROS camera_info), got {data('camera_matrix')!r}")
-    values = {"camera_matrix": f"[{m[0]!r}, {m[4]!r}, {m[2]!r}, {m[5]!r}]"}
-    if (coefficients := data("distortion_coefficients")) is not None:
-        values["distortion_coeffs"] = coefficients
-    if "distortion_model" in tree and isinstance(tree["distortion_model"], str):
-        values["distortion_model"] = tree["distortion_model"]
-        if tree["distortion_model"] in ROS_RADTAN_MODELS:     # OpenCV's coefficients, read by their number
-            values["distortion_model"], values["distortion_model_ros"] = "radtan", tree["distortion_model"]
-    if "image_width" in tree and "image_height" in tree:
-        values["resolution"] = f"[{tree['image_width']}, {tree['image_height']}]"
-    for key in ("rectification_matrix", "projection_matrix"):
-        if (matrix := data(key)) is not None:
-            values[key] = matrix
-    if "rostopic" in tree and isinstance(tree["rostopic"], str):
-        values["rostopic"] = tree["rostopic"]
-    return values
-
-
-def _dsec_rectification(tree: dict, camera: str, flat) -> dict[str, str]:
-    """The rectification of a raw camera ``camN`` of a DSEC ``cam_to_cam.yaml`` (``tree``, :func:`_yaml_tree`) as
-    :func:`read_calibration` reads a camchain's: ``rectification_matrix`` = ``extrinsics/R_rectN`` (3x3, camN to
-    camRectN) and ``projection_matrix`` = the pinhole matrix of ``intrinsics/camRectN``'s ``camera_matrix: [fx, fy,
-    cx, cy]`` [px], the frame of DSEC's disparity maps and ``rectify_map.h5`` (``cv2.undistortPoints(..., R=R_rectN,
-    P=K_rectN)``); empty for another camera (``camRectN``: already rectified) or a file without both."""
-    number = camera[3:] if camera.startswith("cam") and camera[3:].isdigit() else None
-    extrinsics, intrinsics = tree.get("extrinsics"), tree.get("intrinsics")
-    if number is None or not isinstance(extrinsics, dict) or not isinstance(intrinsics, dict):
-        return {}
-    rotation, rectified = extrinsics.get(f"R_rect{number}"), intrinsics.get(f"camRect{number}")
-    if rotation is None or not isinstance(rectified, dict) or "camera_matrix" not in flat(rectified):
-        return {}
-    try:
-        fx, fy, cx, cy = _numbers(flat(rectified)["camera_matrix"])
-    except ValueError:
-        return {"projection_matrix": flat(rectified)["camera_matrix"],   # refused by read_calibration, named
-                "projection_matrix_name": f"intrinsics/camRect{number}'s camera_matrix"}
-    rows = "[" + ", ".join(rotation) + "]" if isinstance(rotation, list) else str(rotation)
-    return {"rectification_matrix": rows, "projection_matrix": f"[{fx!r}, 0, {cx!r}, 0, {fy!r}, {cy!r}, 0, 0, 1]",
-            "rectified_from": f"extrinsics/R_rect{number} and intrinsics/camRect{number}",
-            "rectification_matrix_name": f"extrinsics/R_rect{number} (the rectification of {camera})",
-            "projection_matrix_name": f"intrinsics/camRect{number}'s camera_matrix"}
-
-
-def _echoed_camera_info(tree: dict) -> dict:
-    """``tree`` (:func:`_yaml_tree`) of a CameraInfo message as ``rostopic echo`` (``K``, ``D``, ``R``, ``P``,
-    ``width``, ``height``) or ``ros2 topic echo`` (lower case) print it, in the layout of a camera_info YAML
-    (``camera_matrix: {data: ...}``, ...); any other tree as it is."""
-    names = {key.lower(): key for key in tree if key in ("K", "D", "R", "P", "k", "d", "r", "p")}
-    if not {"k", "d", "p"} <= set(names) or "camera_matrix" in tree:
-        return tree
-
-    def data(key: str) -> dict[str, str]:
-        value = tree[names[key]]
-        return {"data": "[" + ", ".join(value) + "]" if isinstance(value, list) else str(value)}
-
-    echoed = {"camera_matrix": data("k"), "distortion_coefficients": data("d"), "projection_matrix": data("p")}
-    if "r" in names:
-        echoed["rectification_matrix"] = data("r")
-    if isinstance(tree.get("distortion_model"), str):
-        echoed["distortion_model"] = tree["distortion_model"]
-    if isinstance(tree.get("width"), str) and isinstance(tree.get("height"), str):
-        echoed["image_width"], echoed["image_height"] = tree["width"], tree["height"]
-    return echoed
-
-
-def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
-    """The intrinsics of ``camera`` in a DSEC ``cam_to_cam.yaml`` (``intrinsics/<camera>``, with
-    ``camera_matrix``), a Kalibr camchain (``<camera>`` with ``intrinsics: [fx, fy, cx, cy]``, given back as
-    ``camera_matrix``) or a ROS ``camera_info`` YAML (:func:`_ros_camera_info`), as ``key: text``; lists in flow
-    or block style."""
-    tree = _yaml_tree(text)
-
-    def flat(values: dict) -> dict[str, str]:
-        return {key: "[" + ", ".join(value) + "]" if isinstance(value, list) else value
-                for key, value in values.items() if not isinstance(value, dict)}
-
-    tree = _echoed_camera_info(tree)
-    if isinstance(tree.get("camera_matrix"), dict) and "data" in tree["camera_matrix"]:
-        return _ros_camera_info(path, tree, camera, flat)
-    dsec = tree.get("intrinsics")
-    if isinstance(dsec, dict):
-        if isinstance(dsec.get(camera), dict):
-            return {**flat(dsec[camera]), **_dsec_rectification(tree, camera, flat)}
-        found = sorted(key for key, value in dsec.items() if isinstance(value, dict)) or ["none"]
-    else:
-        kalibr = {key: value for key, value in tree.items() if isinstance(value, dict) and "intrinsics" in value}
-        if camera in kalibr:
-            values = flat(kalibr[camera])
-            model = values.get("camera_model", "pinhole").strip()
-            if model != "pinhole":
-                raise ValueError(f"{path}: {camera} has camera_model {model!r}; only pinhole cameras are supported")
-            values["camera_matrix"] = values.pop("intrinsics")
-            return values
-        found = sorted(kalibr) or ["none"]
-    raise ValueError(f"{path}: no intrinsics/{camera} (cameras found: {', '.join(found)}); "
-                     "choose one with --calib-camera")
 
 
 def time_span_us(first_us: int, last_us: int | None, t0_s: float | None,

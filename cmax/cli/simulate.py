@@ -102,7 +102,7 @@ def _frames_intrinsics(args: argparse.Namespace) -> tuple[float, float, float, f
         return None if K is None else (float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
     import numpy as np
 
-    from cmax.cli.recording import read_calibration
+    from cmax.io import read_calibration
 
     calibration = read_calibration(args.calib, args.calib_camera)
     K, distortion = calibration.K, calibration.distortion

@@ -24,7 +24,8 @@ from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages,
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
                                   motion_within_noise, rate_change, shuffled_gain_test, small_parallax_reason,
                                   isolated_events, neighbour_counts, noise_reason, noise_share, sparse_reason,
-                                  verdict_of, _isolated_and_noise_share)
+                                  verdict_of, _isolated, _isolated_noise_share_and_sorted, _neighbour_counts,
+                                  _Sorted, _sorted_subset)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import Window
@@ -474,15 +475,15 @@ def fit(
         raise ValueError("pose has no translation: depth is unobservable under a pure rotation")
     with torch_threads_scope(len(events), threads=num_threads) as threads, blas_threads_scope(threads):
         shared_test = model == "se3" and settings.mask_isolated_us == settings.quality.noise_window_us
-        if shared_test:     # the mask's and the noise's test, the events sorted once for both
-            isolated, noise = _isolated_and_noise_share(events.x, events.y, events.t, events.width, events.height,
-                                                        settings.mask_isolated_us)
+        if shared_test:     # the mask's and the noise's test and the neighbour filter, the events sorted once for all
+            isolated, noise, ordered = _isolated_noise_share_and_sorted(events.x, events.y, events.t, events.width,
+                                                                        events.height, settings.mask_isolated_us)
         else:
-            isolated = None
+            isolated = ordered = None
             noise = (noise_share(events.x, events.y, events.t, events.width, events.height,
                                  settings.quality.noise_window_us, max_queries=settings.max_events)
                      if model == "se3" else None)
-        fitted = events if noise is None else _without_weak_events(events, noise, settings)
+        fitted, keep = (events, None) if noise is None else _without_weak_events(events, noise, settings, ordered)
         w = Window.from_events(fitted, K, settings, depth_grid)
         motion = _start(model, init, pose_xi, known_omega, scale)
         stages = stages_for(model, w, pose_known=pose_xi is not None, hold_omega=known_omega is not None,
@@ -491,7 +492,7 @@ def fit(
         if known_omega is not None:
             motion = replace(motion, omega=known_omega)
         result = _result(w, fitted, K, model, motion, logs, scale_known=pose is not None or speed is not None,
-                         isolated=isolated if fitted is events else None,   # the fitted events' own test
+                         isolated=_fitted_isolated(isolated, keep, ordered, events, settings),
                          seconds=time.perf_counter() - start)
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
@@ -548,8 +549,10 @@ def _noise_rate_hz(events: Events, share: float) -> float:
     return share * len(events) / (events.width * events.height * duration_s) if duration_s > 0 else 0.0
 
 
-def _without_weak_events(events: Events, share: float, settings: FitSettings) -> Events:
-    """``events`` without those of too little neighbour support to be the scene's: fewer than
+def _without_weak_events(events: Events, share: float, settings: FitSettings,
+                         ordered: _Sorted | None = None) -> tuple[Events, np.ndarray | None]:
+    """``(fitted, keep)``: ``events`` without those of too little neighbour support to be the scene's (``keep``
+    (N,) bool: the events left; None when all are): fewer than
     ``settings.min_neighbours`` other events within 1 px and ``settings.mask_isolated_us`` µs
     (:func:`cmax.fitting.quality.neighbour_counts`; background-activity noise next to the scene has one at most,
     mostly), when the window's estimated noise rate [Hz per pixel] (:func:`_noise_rate_hz` of its estimated noise
@@ -558,18 +561,36 @@ def _without_weak_events(events: Events, share: float, settings: FitSettings) ->
     shorter than ``settings.denoise_min_window_us`` (whose scene's own events lie alone too often), when the
     estimated ``share`` or the share the filter would leave out is over ``settings.max_denoised_share`` (a window
     of mostly noise, or too sparse: its verdict says so; the few noise events that have neighbours would be kept
-    and read as a scene), or when fewer than ``MIN_WINDOW_EVENTS`` over more than one time stamp would remain."""
+    and read as a scene), or when fewer than ``MIN_WINDOW_EVENTS`` over more than one time stamp would remain.
+    ``ordered``: the events already sorted by pixel and time with ``settings.mask_isolated_us``
+    (:func:`cmax.fitting.quality._isolated_noise_share_and_sorted`), counted on instead of sorting them again."""
     if not (settings.min_neighbours and settings.mask_isolated_us) or share > settings.max_denoised_share or \
             int(events.t[-1]) - int(events.t[0]) < settings.denoise_min_window_us or \
             _noise_rate_hz(events, share) < settings.denoise_min_rate_hz:
-        return events
-    support = neighbour_counts(events.x, events.y, events.t, events.width, events.height, settings.mask_isolated_us)
+        return events, None
+    support = (neighbour_counts(events.x, events.y, events.t, events.width, events.height, settings.mask_isolated_us)
+               if ordered is None else _neighbour_counts(ordered, events.width, events.height,
+                                                         settings.mask_isolated_us, 1))
     keep = support >= settings.min_neighbours
     kept = int(np.count_nonzero(keep))
     if kept == len(events) or len(events) - kept > settings.max_denoised_share * len(events) or \
             kept < MIN_WINDOW_EVENTS or events.t[keep][-1] == events.t[keep][0]:
-        return events
-    return Events(events.x[keep], events.y[keep], events.t[keep], events.p[keep], events.width, events.height)
+        return events, None
+    return Events(events.x[keep], events.y[keep], events.t[keep], events.p[keep], events.width, events.height), keep
+
+
+def _fitted_isolated(isolated: np.ndarray | None, keep: np.ndarray | None, ordered: _Sorted | None,
+                     events: Events, settings: FitSettings) -> np.ndarray | None:
+    """The isolation test (:func:`cmax.fitting.quality.isolated_events`, ``settings.mask_isolated_us``, 1 px) of the
+    fitted events, (M,) bool, from what the fit has of the window ``events``: its flags ``isolated`` (N,) when
+    nothing was left out (``keep`` None), else those of the subset ``keep`` (N,) bool on the window's sort
+    ``ordered`` (:func:`cmax.fitting.quality._sorted_subset`: not sorted again); None when neither is at hand (the
+    depth mask then tests the fitted events itself)."""
+    if keep is None:
+        return isolated
+    if ordered is None:
+        return None
+    return _isolated(_sorted_subset(ordered, keep), events.width, events.height, settings.mask_isolated_us, 1)
 
 
 def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, known_omega: np.ndarray | None,

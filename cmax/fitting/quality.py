@@ -568,7 +568,12 @@ def neighbour_counts(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, he
     [2, 2, 2, 0]
     """
     _check_pixels(x, y, t, width, height, window_us, radius)
-    events = _sorted_events(x, y, t, width, window_us)
+    return _neighbour_counts(_sorted_events(x, y, t, width, window_us), width, height, window_us, radius)
+
+
+def _neighbour_counts(events: _Sorted, width: int, height: int, window_us: int, radius: int) -> np.ndarray:
+    """:func:`neighbour_counts` (N,) int64 of the sorted ``events`` (:func:`_sorted_events` with this
+    ``window_us``), in the events' given order."""
     keys, x, y = events.keys, events.x, events.y
     counts = np.zeros(keys.size, np.int64)
     for dy in range(-radius, radius + 1):
@@ -591,6 +596,18 @@ def _sorted_events(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, wind
     pixel = y * width + x
     order = _pixel_time_order(pixel, t)
     return _Sorted(x[order], y[order], (pixel * span + t)[order], order, span)
+
+
+def _sorted_subset(events: _Sorted, keep: np.ndarray) -> _Sorted:
+    """The sorted ``events`` (:func:`_sorted_events`) of the subset ``keep`` (N,) bool (in the events' given order),
+    without sorting again: a subsequence of the sorted keys is sorted, and the keys keep the whole set's time shift
+    and ``span``, which hold the subset's times apart per pixel as well, so :func:`_alone` and
+    :func:`_neighbour_counts` give what they give on the subset sorted anew; ``order`` indexes the subset."""
+    keep = np.asarray(keep, bool)
+    chosen = keep[events.order]                                          # in the sorted order
+    position = np.cumsum(keep) - 1                                       # index of each kept event in the subset
+    return _Sorted(events.x[chosen], events.y[chosen], events.keys[chosen], position[events.order[chosen]],
+                   events.span)
 
 
 def _pixel_time_order(pixel: np.ndarray, t: np.ndarray) -> np.ndarray:
@@ -719,12 +736,20 @@ def _isolated_and_noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width
     µs], the share from those flags (every event's, as ``noise_share(..., isolated=)``: no subset of queries): the
     same two results, the events sorted once for both (the fit's depth mask and its noise verdict, when their
     windows agree)."""
+    return _isolated_noise_share_and_sorted(x, y, t, width, height, window_us)[:2]
+
+
+def _isolated_noise_share_and_sorted(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int,
+                                     window_us: int) -> tuple[np.ndarray, float, _Sorted]:
+    """:func:`_isolated_and_noise_share` of the events ``x, y, t`` (N,) [px, px, µs], and the events sorted for it
+    (:func:`_sorted_events` with this ``window_us``), which :func:`_neighbour_counts` takes: the fit's neighbour
+    filter counts on the same sort."""
     events = _sorted_events(x, y, t, width, window_us)
     isolated = _isolated(events, width, height, window_us, 1)
     t = np.asarray(t, np.int64)
     if t.size < 2 or t[-1] == t[0]:
-        return isolated, 0.0
-    return isolated, _noise_share(events, t, width, height, window_us, 1, None, isolated)
+        return isolated, 0.0, events
+    return isolated, _noise_share(events, t, width, height, window_us, 1, None, isolated), events
 
 
 def noise_reason(share: float, max_noise_share: float, window_us: int) -> str:

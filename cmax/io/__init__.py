@@ -13,7 +13,9 @@ NumPy               ``.npy`` structured x,y,t,p :meth:`Events.from_structured`
 
 Every reader raises :class:`FormatError` (a :class:`ValueError`) on bytes it
 cannot decode. Files are written in the DSEC layout only (:func:`write_h5`,
-:class:`H5Writer`).
+:class:`H5Writer`). Calibration files (ECD ``calib.txt``, DSEC ``cam_to_cam.yaml``,
+Kalibr camchains, ROS ``camera_info``) are read by :func:`read_calibration` into a
+:class:`Calibration` (:mod:`cmax.io.calibration`).
 """
 from __future__ import annotations
 
@@ -29,6 +31,7 @@ from cmax.events import Events, check_event_count, structured_fields
 from cmax.io._checks import (check_implied_rate, check_not_nanoseconds, check_polarity_encoding, check_stated_size,
                              check_time_unit, polarity_01, times_to_us)
 from cmax.io.aedat4 import read_aedat4, read_aedat4_frames, read_aedat4_imu
+from cmax.io.calibration import Calibration, read_calibration
 from cmax.io.errors import FormatError
 from cmax.io.gyro import read_gyro
 from cmax.io.h5 import H5_ERRORS, H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
@@ -42,6 +45,7 @@ __all__ = [
     "H5Reader", "H5Writer", "read_h5", "write_h5",
     "read_mvsec", "read_txt", "write_txt", "read_aedat4", "read_aedat4_imu", "read_aedat4_frames", "read_gyro",
     "read_raw", "read_evt2", "read_evt3", "write_evt2", "write_evt3", "npy_time_span",
+    "Calibration", "read_calibration",
 ]
 
 FORMATS = ("dsec", "mvsec", "txt", "aedat4", "raw", "npy")

@@ -67,7 +67,9 @@ def read_mvsec(
     becomes 0/1, any other value raises :class:`FormatError`. A time window is
     located by binary search on the time column on disk, so only that slice is read.
     Without ``time_unit``, times that are all whole numbers (at least 100 distinct, in the rows read or the file's
-    first 4096) are refused as integer microseconds stored as floats, not read as seconds (days of recording).
+    first 4096) are refused as integer microseconds stored as floats, not read as seconds (days of recording);
+    with ``time_unit='ms'``, times with decimals that all lie where MVSEC's seconds since 1970 lie (1973 to 2103,
+    :data:`_UNIX_SECONDS`) are refused as such seconds, not read as milliseconds (a recording 1000 times shorter).
     """
     _check_camera(camera)
     unit = check_time_unit(time_unit) or "s"
@@ -83,6 +85,8 @@ def read_mvsec(
             dataset = _events_dataset(file, path, camera)
             if time_unit is None:          # a window's few rows may not show it: the file's first rows do
                 _refuse_whole_seconds(dataset[:_SAMPLE_ROWS, 2], f"{path}: davis/{camera}/events")
+            elif unit == "ms":
+                _refuse_unix_seconds_as_ms(dataset[:_SAMPLE_ROWS, 2], f"{path}: davis/{camera}/events")
             # Read with a 2 µs margin, then cut exactly on the rounded integer times.
             start, stop = 0, dataset.shape[0]
             if t0_us is not None:
@@ -124,6 +128,35 @@ def _refuse_whole_seconds(t: np.ndarray, where: str) -> None:
         )
 
 
+#: Seconds since 1970 of March 1973 and of 2103: a time column whose values all lie between them, with decimals, holds
+#: UNIX seconds, MVSEC's own clock (its recordings of 2017-2018: about 1.5e9 s).
+_UNIX_SECONDS = (1e8, 4.2e9)
+
+
+def _refuse_unix_seconds_as_ms(t: np.ndarray, where: str) -> None:
+    """Refuse a time column ``t`` stated to be milliseconds (``time_unit='ms'``) whose values carry decimals and
+    all lie within :data:`_UNIX_SECONDS`: MVSEC's seconds since 1970, which as milliseconds would make the
+    recording 1000 times shorter on a clock started 1 to 49 days before it. The rounding check of
+    :func:`cmax.io._checks.times_to_us` refuses such times only at high event rates (where whole µs merge them);
+    a slow recording passed it. Whole-number times (integer milliseconds stored as floats) are not refused.
+    ``where`` names the file and dataset."""
+    if not t.size or not np.isfinite(t).all():
+        return                          # (non-finite times: named by times_to_us)
+    low, high = float(t.min()), float(t.max())
+    if not (_UNIX_SECONDS[0] <= low and high < _UNIX_SECONDS[1]) or np.array_equal(t, np.round(t)):
+        return
+    from datetime import datetime, timezone
+
+    date = datetime.fromtimestamp(low, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+    raise FormatError(
+        f"{where}[:, 2] (t): time_unit='ms' states milliseconds, but these times ({low!r} to {high!r}, with "
+        f"decimals) are seconds since 1970 as MVSEC records them ({date}): read as milliseconds, {t.size:,} events of "
+        f"{high - low:.6g} s would last {high - low:.6g} ms. Leave time_unit out (MVSEC's seconds; cmax: no "
+        "--time-unit); if they really are milliseconds, store them as microseconds (t * 1000) and pass "
+        "time_unit='us'"
+    )
+
+
 def _refuse_time_going_back(t_us: np.ndarray, path: Path, camera: str) -> None:
     """Refuse times ``t_us`` (µs, of rows read from ``davis/<camera>/events`` of ``path``) that go back, with the way
     through: MVSEC files are read a time span at a time (bisection on disk), so ``sort`` / ``--sort`` do not apply
@@ -152,6 +185,8 @@ def _table_events(table: np.ndarray, path: Path, camera: str, unit: str, polarit
         raise FormatError(f"{where} contains non-finite values")
     if not unit_stated:
         _refuse_whole_seconds(table[:, 2], where)
+    elif unit == "ms":
+        _refuse_unix_seconds_as_ms(table[:, 2], where)
     t_us = times_to_us(table[:, 2], unit, f"{where}[:, 2] (t)")
     _refuse_time_going_back(t_us, path, camera)
     p = polarity_01(table[:, 3], polarity, f"{where}[:, 3] (p)")
@@ -223,6 +258,8 @@ def mvsec_time_span(
                 return None
             if time_unit is None:
                 _refuse_whole_seconds(dataset[:_SAMPLE_ROWS, 2], f"{path}: davis/{camera}/events")
+            elif unit == "ms":
+                _refuse_unix_seconds_as_ms(dataset[:_SAMPLE_ROWS, 2], f"{path}: davis/{camera}/events")
             ends = np.array([dataset[0, 2], dataset[-1, 2]], dtype=dataset.dtype)
     except FormatError:
         raise

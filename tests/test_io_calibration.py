@@ -1,0 +1,61 @@
+"""Calibration files are read by the library (:mod:`cmax.io.calibration`), not by the command line."""
+from __future__ import annotations
+
+import subprocess
+import sys
+import textwrap
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+CAMCHAIN = """cam0:
+  camera_model: pinhole
+  distortion_coeffs: [-0.048031442223833355, 0.011330957517194437, -0.055378166304281135, 0.021500973881459395]
+  distortion_model: equidistant
+  intrinsics: [226.38018519795807, 226.15002947047415, 173.6470807871759, 133.73271487507847]
+  resolution: [346, 260]
+  rostopic: /davis/left/image_raw
+  projection_matrix:
+  - [199.6530123165822, 0.0, 177.43276376280926, 0.0]
+  - [0.0, 199.6530123165822, 126.81215684365904, 0.0]
+  - [0.0, 0.0, 1.0, 0.0]
+  rectification_matrix:
+  - [0.999877311526236, 0.015019439766575743, -0.004447282784398257]
+  - [-0.014996983873604017, 0.9998748347535599, 0.005040367172759556]
+  - [0.004522429630305261, -0.004973052949604937, 0.9999774079320989]
+"""
+
+
+def test_a_camchain_is_read_by_the_library_without_the_command_line(tmp_path: Path) -> None:
+    """``cmax.io.read_calibration`` reads a Kalibr camchain, and ``learned.data``'s MVSEC camera is built from it,
+    without importing ``cmax.cli`` (was: the parser lived in ``cmax.cli.recording``, which learned.data imported)."""
+    path = tmp_path / "camchain.yaml"
+    path.write_text(CAMCHAIN)
+    script = textwrap.dedent(f"""
+        import sys
+        import cmax.io
+        from learned.data import _mvsec_camera
+        calibration = cmax.io.read_calibration({str(path)!r}, "cam0")
+        camera = _mvsec_camera({str(path)!r}, "cam0", 346, 260)
+        print(calibration.model, calibration.size, camera.model, sorted(m for m in sys.modules if m.startswith("cmax.cli")))
+    """)
+    result = subprocess.run([sys.executable, "-c", script], capture_output=True, text=True, timeout=300)
+    assert result.returncode == 0, result.stderr
+    assert result.stdout.split() == ["equidistant", "(346,", "260)", "equidistant", "[]"]
+
+
+def test_the_calibration_s_camera_undistorts_as_opencv_s_fisheye_with_its_rectification(tmp_path: Path) -> None:
+    """:meth:`cmax.io.Calibration.camera` of a rectified fisheye camchain maps pixels where
+    ``cv2.fisheye.undistortPoints(..., R=R_rect, P=P_rect)`` does (an independent implementation)."""
+    from cmax.io import read_calibration
+
+    path = tmp_path / "camchain.yaml"
+    path.write_text(CAMCHAIN)
+    calibration = read_calibration(path, "cam0")
+    camera = calibration.camera(346, 260)
+    pixels = np.array([[10.0, 12.0], [173.0, 133.0], [300.0, 240.0], [50.0, 200.0]])
+    expected = cv2.fisheye.undistortPoints(pixels.reshape(-1, 1, 2), calibration.K, calibration.distortion,
+                                           R=calibration.rectification, P=calibration.rectified_K).reshape(-1, 2)
+    np.testing.assert_allclose(camera.undistort_points(pixels), expected, atol=1e-3)
+    np.testing.assert_array_equal(camera.pinhole_K, calibration.rectified_K)
