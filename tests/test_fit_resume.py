@@ -19,7 +19,7 @@ from conftest import counted_calls, sigkill_after
 from cmax.cli import main
 from cmax.events import Events
 from cmax.io import write_h5
-from cmax.io.window_store import WINDOWS_FOLDER, WindowStore
+from cmax.io.window_store import WINDOWS_FOLDER, WindowStore, _sealed
 
 K_OPTION = "60,60,32,24"
 
@@ -152,8 +152,8 @@ def test_a_damaged_or_planted_window_file_is_fitted_again_never_run(recording, t
     store.folder.mkdir()
     (store.folder / "run.json").write_text(json.dumps(record))
     marker = tmp_path / "ran"
-    (store.folder / "window_00000.pickle").write_bytes(pickle.dumps({"run": store.digest, "start_us": 0,
-                                                                      "result": _Planted(marker), "caught": ()}))
+    planted = pickle.dumps({"run": store.digest, "start_us": 0, "result": _Planted(marker), "caught": ()})
+    (store.folder / "window_00000.pickle").write_bytes(_sealed(planted))    # its SHA-256 right: the unpickler stops it
     (store.folder / "window_00001.pickle").write_bytes(b"\x80\x05garbage")
     capsys.readouterr()
     assert main([*se3_argv(recording, out), "--resume"]) == status
@@ -303,3 +303,30 @@ def test_resume_refuses_windows_kept_without_a_sha256_of_the_file(recording, tmp
     err = capsys.readouterr().err
     assert "recorded no SHA-256" in err and "the code of cmax (or learned) changed" in err
     assert main([*argv, "--overwrite"]) in (0, 1) and not (out / WINDOWS_FOLDER).exists()
+
+
+def test_a_window_file_changed_in_its_numbers_is_fitted_again(recording, tmp_path, monkeypatch, capsys):
+    """One byte of a kept window's depth map changed on disk (a bad sector, a stray write): the file still
+    unpickled to a window of this run, and its wrong depths went into the results (was). Each window file now
+    holds the SHA-256 of its pickle, checked before it is read: the window is fitted again and the results equal an
+    uninterrupted run's."""
+    import io
+
+    from cmax.io.window_store import _ResultUnpickler
+
+    status = main(se3_argv(recording, tmp_path / "whole"))
+    out = tmp_path / "o"
+    counted_calls(monkeypatch, sequence_module, "fit", interrupt_at=3)
+    assert main(se3_argv(recording, out)) == 130
+    monkeypatch.undo()
+    path = out / WINDOWS_FOLDER / "window_00000.pickle"
+    data = bytearray(path.read_bytes())
+    depth = _ResultUnpickler(io.BytesIO(bytes(data[data.index(b"\x80"):]))).load()["result"].depth
+    where = bytes(data).find(depth.tobytes())
+    assert where > 0 and np.isfinite(depth).all()
+    data[where + depth.nbytes // 2 + 2] ^= 0x40             # one depth, a bit of its exponent
+    path.write_bytes(bytes(data))
+    capsys.readouterr()
+    assert main([*se3_argv(recording, out), "--resume"]) == status
+    assert "1 unreadable window file(s) fitted again" in capsys.readouterr().err
+    assert_same(results_of(out), results_of(tmp_path / "whole"))

@@ -6,8 +6,10 @@ files' and every setting that changes a fit; written with the first window) and 
 ``window_<index>.pickle``: the window's first fit (:class:`cmax.FitResult`, before the resolution and the smoothing
 across windows, which run again over all windows) and its warnings. Each file is written atomically
 (:func:`cmax.io.atomic.write_bytes_atomic`: private temporary file, fsync, rename), so a file of that name is
-complete; each also records the run's digest and the window's start, and is read back with an unpickler that
-builds only the project's result classes and numpy arrays (a planted file runs no code).
+complete; each also records the run's digest and the window's start, opens with a line holding the SHA-256 of the
+pickle that follows (checked before it is read: a byte changed on disk since makes it a window to fit again), and
+is read back with an unpickler that builds only the project's result classes and numpy arrays (a planted file runs
+no code).
 
 A resumed run takes a window only when ``run.json`` matches the new run (the same event file by size,
 modification time and SHA-256 of its bytes, the same settings: else the run is refused, naming what differs; a
@@ -47,6 +49,8 @@ _WINDOW_NAME = re.compile(r"window_(\d{5,})\.pickle")
 _MAPS = ("depth", "mask", "depth_spread", "iwe_before", "iwe_after")
 #: Bytes of input files to hash at the start of a run above which a progress bar shows it.
 HASH_PROGRESS_BYTES = 1 << 30
+#: The first bytes of a window file, followed by the SHA-256 (hex) of its pickle and a newline.
+_SEAL = b"cmax-window sha256="
 
 
 def interrupted_windows(out: str | os.PathLike) -> int:
@@ -78,6 +82,20 @@ class _ResultUnpickler(pickle.Unpickler):
             if isinstance(found, type) and (dataclasses.is_dataclass(found) or issubclass(found, enum.Enum)):
                 return found
         raise pickle.UnpicklingError(f"a window file may not build {module}.{name}")
+
+
+def _sealed(payload: bytes) -> bytes:
+    """A window file's bytes: :data:`_SEAL`, the SHA-256 (hex) of ``payload`` (a pickle), a newline, ``payload``."""
+    return _SEAL + hashlib.sha256(payload).hexdigest().encode() + b"\n" + payload
+
+
+def _opened(data: bytes) -> bytes:
+    """The pickle in a window file's bytes ``data`` (:func:`_sealed`); ValueError when it does not have the
+    SHA-256 its first line records (changed on disk), or no such line."""
+    head, _, payload = data.partition(b"\n")
+    if not head.startswith(_SEAL) or head[len(_SEAL):] != hashlib.sha256(payload).hexdigest().encode():
+        raise ValueError("not a window file, or changed since it was written")
+    return payload
 
 
 def run_digest(run: dict) -> str:
@@ -211,7 +229,7 @@ class WindowStore:
         except FileNotFoundError:
             return None
         try:
-            record = _ResultUnpickler(io.BytesIO(data)).load()
+            record = _ResultUnpickler(io.BytesIO(_opened(data))).load()
             if record["run"] != self.digest or record["start_us"] != start_us:
                 raise ValueError("another run's window")
             return record["result"], tuple(tuple(item) for item in record["caught"])
@@ -236,7 +254,7 @@ class WindowStore:
         record = {"run": self.digest, "start_us": int(start_us), "result": result, "caught": tuple(caught)}
         try:
             write_run_record(self.folder, self.run)      # with the first window: what the run is
-            write_bytes_atomic(self._path(index), pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL))
+            write_bytes_atomic(self._path(index), _sealed(pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL)))
         except BaseException:   # a full disk: a folder without a window is no interrupted run to resume
             if not interrupted_windows(self.folder.parent):
                 shutil.rmtree(self.folder, ignore_errors=True)
@@ -254,8 +272,7 @@ class WindowStore:
         is returned as it is."""
         if result.depth is not None or index not in self._with_maps:
             return result
-        with open(self._path(index), "rb") as file:
-            first = _ResultUnpickler(file).load()["result"]
+        first = _ResultUnpickler(io.BytesIO(_opened(self._path(index).read_bytes()))).load()["result"]
         return dataclasses.replace(result, **{name: getattr(first, name) for name in _MAPS})
 
     def remove(self) -> None:
