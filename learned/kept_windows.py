@@ -1,8 +1,8 @@
 """The windows a long ``cmax depth`` / ``python -m learned.predict`` has finished, kept on disk as it goes, so that
 a killed run loses at most the block of windows it was predicting and ``--resume`` continues it.
 
-The folder ``-o/.depth.windows/`` holds ``run.json`` (what the run is: the event file's and the checkpoint's size
-and modification time, every option that changes a window, the batch; written with the first block) and, per
+The folder ``-o/.depth.windows/`` holds ``run.json`` (what the run is: the event file's and the checkpoint's size,
+modification time and SHA-256, every option that changes a window, the batch; written with the first block) and, per
 finished block of windows (one forward pass of the network, ``batch`` windows) that wrote any, their
 ``window_<k>.npz`` (as the results name them, linked from the run's private stage) and then ``block_<first>.json``: the run's digest, the block's windows with their
 ``twists.csv`` lines and each file's SHA-256, and how many of its windows were skipped. Every file is written

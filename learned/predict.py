@@ -768,7 +768,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
             note(text)
         kept = KeptBlocks(stage.parent, _run_record(path, checkpoint, calib, K, distortion, size, time_unit,
                                                     polarity, sort, camera, t0_s, t1_s, window_us, len(starts), batch,
-                                                    device), resume=resume, overwrite=overwrite)
+                                                    device, progress), resume=resume, overwrite=overwrite)
         lines, skipped, samples, indices = [_CSV_HEADER], 0, [], []
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
             for first in range(0, len(starts), batch):   # one forward pass each, kept once all its windows are
@@ -831,15 +831,16 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
 
 
 def _run_record(path, checkpoint, calib, K, distortion, size, time_unit, polarity, sort, camera, t0_s, t1_s,
-                window_us: int, windows: int, batch: int, device) -> dict:
+                window_us: int, windows: int, batch: int, device, progress: bool = True) -> dict:
     """What a run of :func:`run_prediction` is, for ``resume`` to check: the event file's, the checkpoint's and
-    the calibration's signatures (size, modification time) and every option that changes a window, with the
+    the calibration's signatures (size, modification time, SHA-256: a progress bar while they are hashed when they
+    hold more than 1 GiB and ``progress``) and every option that changes a window, with the
     resolved window length [µs], number of windows and batch (the blocks of the forward passes)."""
     import cmax
-    from cmax.io.window_store import code_digest, file_signature, settings_record
+    from cmax.io.window_store import code_digest, file_signatures, settings_record
 
-    return {"cmax": cmax.__version__, "code": code_digest("cmax", "learned"), "file": file_signature(path), "checkpoint": file_signature(checkpoint),
-            "calib": file_signature(calib),
+    files = file_signatures({"file": path, "checkpoint": checkpoint, "calib": calib}, progress=progress)
+    return {"cmax": cmax.__version__, "code": code_digest("cmax", "learned"), **files,
             "settings": settings_record({"K": K, "distortion": distortion, "size": size, "time_unit": time_unit,
                                          "polarity": polarity, "sort": sort, "camera": camera, "t0_s": t0_s,
                                          "t1_s": t1_s, "window_us": window_us, "windows": windows, "batch": batch,

@@ -368,3 +368,35 @@ def test_a_source_deleted_after_its_conversion_keeps_its_verified_output_ok(tmp_
     (out / "a.h5").write_bytes(b"damaged")                  # not verified, and nothing to convert it from
     damaged = convert_collection(collect_jobs(tmp_path / "list.txt")[0], out, FAST, progress=False)
     assert damaged["videos"]["a"]["status"] == "failed"
+
+
+def test_a_source_replaced_by_one_of_the_same_size_and_mtime_is_converted_again(tmp_path, capsys):
+    """A converted video replaced by another of the same size, its modification time set back (``cp -p``, a
+    re-download keeping the server's time): the manifest entry's signature (files, bytes, mtime) passed, and the
+    rerun skipped it as ``ok``: the manifest and the output held the old video's events under the new video's name
+    (was). The signature holds the SHA-256 of the source's bytes: the video is converted again, and its output
+    equals a fresh conversion of the new video."""
+    videos, scratch, out = tmp_path / "videos", tmp_path / "scratch", tmp_path / "out"
+    videos.mkdir(), scratch.mkdir()
+    write_video(scratch / "old.avi", n_frames=10)
+    write_video(scratch / "new.avi", n_frames=10, shift=4)
+    old, new = (scratch / "old.avi").read_bytes(), (scratch / "new.avi").read_bytes()
+    size = max(len(old), len(new))
+    (videos / "v.avi").write_bytes(old + bytes(size - len(old)))      # padded after the end: both of one size
+    (scratch / "new.avi").write_bytes(new + bytes(size - len(new)))
+    jobs, _ = collect_jobs(videos)
+    convert_collection(jobs, out, FAST, progress=False)
+    before = (videos / "v.avi").stat()
+    (videos / "v.avi").write_bytes((scratch / "new.avi").read_bytes())
+    os.utime(videos / "v.avi", ns=(before.st_atime_ns, before.st_mtime_ns))
+    assert (videos / "v.avi").stat().st_size == before.st_size
+    fresh = convert_collection(*collect_jobs(scratch)[:1], tmp_path / "fresh", FAST, progress=False)
+    old_events, new_events = read_h5(tmp_path / "fresh" / "old.h5"), read_h5(tmp_path / "fresh" / "new.h5")
+    assert len(old_events) != len(new_events) or not np.array_equal(old_events.x, new_events.x)   # not vacuous
+    capsys.readouterr()
+    manifest = convert_collection(jobs, out, FAST, progress=False)
+    err = capsys.readouterr().err
+    assert "v: the source changed since it was converted (v.avi holds other bytes than it did" in err
+    np.testing.assert_array_equal(read_h5(out / "v.h5").x, read_h5(tmp_path / "fresh" / "new.h5").x)
+    np.testing.assert_array_equal(read_h5(out / "v.h5").t, read_h5(tmp_path / "fresh" / "new.h5").t)
+    assert manifest["videos"]["v"]["events"] == fresh["videos"]["new"]["events"]

@@ -125,3 +125,29 @@ def test_a_depth_run_killed_at_a_random_block_resumes_to_the_uninterrupted_resul
     assert_same(outputs(out), outputs(whole))
     assert not kept.exists() and not any(p.name.endswith(".lock") for p in out.iterdir())
     assert os.listdir(out)
+
+
+def test_resume_refuses_an_event_file_replaced_by_one_of_the_same_size_and_mtime(tiny_checkpoint, tmp_path,
+                                                                                  monkeypatch, capsys):
+    """The event file re-written with other events of the same count (the same size, uncompressed) and its
+    modification time set back after the run was killed: --resume took the kept blocks of the old file (was);
+    the run's record holds the file's SHA-256: refused in one line naming it, exit 2, the blocks kept."""
+    def noise(seed: int) -> Events:
+        rng = np.random.default_rng(seed)
+        return Events(rng.integers(0, 64, 6000), rng.integers(0, 48, 6000), np.sort(rng.integers(0, 300_000, 6000)),
+                      rng.integers(0, 2, 6000), 64, 48)
+
+    path = write_h5(tmp_path / "ev.h5", noise(1), compression="none")
+    out = tmp_path / "o"
+    counted_calls(monkeypatch, predict, "forward", interrupt_at=2)
+    assert predict.main(argv(path, out, tiny_checkpoint)) == 130
+    monkeypatch.undo()
+    before = path.stat()
+    write_h5(path, noise(2), compression="none", overwrite=True)
+    os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns))
+    assert (path.stat().st_size, path.stat().st_mtime_ns) == (before.st_size, before.st_mtime_ns)
+    capsys.readouterr()
+    assert predict.main(argv(path, out, tiny_checkpoint, "--resume")) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "ev.h5 holds other bytes than it did" in err and "--overwrite" in err
+    assert sorted(p.name for p in (out / KEPT_FOLDER).glob("block_*.json")) == ["block_0.json"]

@@ -19,7 +19,7 @@ from conftest import counted_calls, sigkill_after
 from cmax.cli import main
 from cmax.events import Events
 from cmax.io import write_h5
-from cmax.io.window_store import WINDOWS_FOLDER, WindowStore
+from cmax.io.window_store import WINDOWS_FOLDER, WindowStore, _sealed
 
 K_OPTION = "60,60,32,24"
 
@@ -152,8 +152,8 @@ def test_a_damaged_or_planted_window_file_is_fitted_again_never_run(recording, t
     store.folder.mkdir()
     (store.folder / "run.json").write_text(json.dumps(record))
     marker = tmp_path / "ran"
-    (store.folder / "window_00000.pickle").write_bytes(pickle.dumps({"run": store.digest, "start_us": 0,
-                                                                      "result": _Planted(marker), "caught": ()}))
+    planted = pickle.dumps({"run": store.digest, "start_us": 0, "result": _Planted(marker), "caught": ()})
+    (store.folder / "window_00000.pickle").write_bytes(_sealed(planted))    # its SHA-256 right: the unpickler stops it
     (store.folder / "window_00001.pickle").write_bytes(b"\x80\x05garbage")
     capsys.readouterr()
     assert main([*se3_argv(recording, out), "--resume"]) == status
@@ -253,3 +253,80 @@ def test_an_interrupted_overwrite_resumes_over_the_earlier_complete_run(tmp_path
     assert summary["window_ms"] == 5 and len(summary["windows"]) == 8 and len(calls) == 6
     assert sorted(p.name for p in out.iterdir() if p.name.startswith(".")) == []
     assert status in (0, 1)
+
+
+def test_resume_refuses_an_event_file_replaced_by_one_of_the_same_size_and_mtime(tmp_path, monkeypatch, capsys):
+    """Interrupted after two windows, then the event file re-written (``write_h5`` of another scene with as many
+    events: the same size) and its modification time set back (``cp -p``, ``rsync -t``, ``touch -r``): the file's
+    size and mtime passed the check, and the run mixed the old file's two windows with the new file's others, exit
+    as if nothing happened (was). The signature holds the SHA-256 of the file's bytes: refused in one line naming
+    the file, the windows kept; ``--overwrite`` starts over and gives the new file's uninterrupted results."""
+    path = write_h5(tmp_path / "ev.h5", noise_events(3000, 50_000, seed=3), compression="none")
+    out = tmp_path / "o"
+    counted_calls(monkeypatch, sequence_module, "fit", interrupt_at=3)
+    assert main(se3_argv(path, out)) == 130
+    monkeypatch.undo()
+    before = path.stat()
+    write_h5(path, noise_events(3000, 50_000, seed=4), compression="none", overwrite=True)
+    os.utime(path, ns=(before.st_atime_ns, before.st_mtime_ns))
+    assert (path.stat().st_size, path.stat().st_mtime_ns) == (before.st_size, before.st_mtime_ns)
+    capsys.readouterr()
+    assert main([*se3_argv(path, out), "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "ev.h5 holds other bytes than it did" in err and "--overwrite" in err and len(err.strip().splitlines()) == 1
+    assert len(list((out / WINDOWS_FOLDER).glob("window_*.pickle"))) == 2
+    main([*se3_argv(path, tmp_path / "whole")])
+    main([*se3_argv(path, out), "--overwrite"])
+    assert_same(results_of(out), results_of(tmp_path / "whole"))
+
+
+def test_resume_refuses_windows_kept_without_a_sha256_of_the_file(recording, tmp_path, capsys):
+    """A ``run.json`` written before signatures held a SHA-256 (size and mtime only) cannot say whether the file
+    changed since: refused, naming the file (it would be refused for its other code as well, named too), not
+    upgraded on trust; ``--overwrite`` starts over."""
+    from cmax.cli import build_parser
+    from cmax.cli.fit import run_record
+
+    out = tmp_path / "o"
+    (out / WINDOWS_FOLDER).mkdir(parents=True)
+    (out / WINDOWS_FOLDER / "window_00000.pickle").write_bytes(b"left by a killed run")
+    argv = se3_argv(recording, out)
+    record = run_record(build_parser().parse_args([*argv, "--resume"]))
+    old_signature = {key: value for key, value in record["file"].items() if key != "sha256"}
+    (out / WINDOWS_FOLDER / "run.json").write_text(json.dumps({**record, "file": old_signature}))
+    capsys.readouterr()
+    assert main([*argv, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "ev.h5: the kept run recorded no SHA-256 of its bytes" in err and len(err.strip().splitlines()) == 1
+    (out / WINDOWS_FOLDER / "run.json").write_text(json.dumps({**record, "file": old_signature, "code": "0" * 64}))
+    assert main([*argv, "--resume"]) == 2
+    err = capsys.readouterr().err
+    assert "recorded no SHA-256" in err and "the code of cmax (or learned) changed" in err
+    assert main([*argv, "--overwrite"]) in (0, 1) and not (out / WINDOWS_FOLDER).exists()
+
+
+def test_a_window_file_changed_in_its_numbers_is_fitted_again(recording, tmp_path, monkeypatch, capsys):
+    """One byte of a kept window's depth map changed on disk (a bad sector, a stray write): the file still
+    unpickled to a window of this run, and its wrong depths went into the results (was). Each window file now
+    holds the SHA-256 of its pickle, checked before it is read: the window is fitted again and the results equal an
+    uninterrupted run's."""
+    import io
+
+    from cmax.io.window_store import _ResultUnpickler
+
+    status = main(se3_argv(recording, tmp_path / "whole"))
+    out = tmp_path / "o"
+    counted_calls(monkeypatch, sequence_module, "fit", interrupt_at=3)
+    assert main(se3_argv(recording, out)) == 130
+    monkeypatch.undo()
+    path = out / WINDOWS_FOLDER / "window_00000.pickle"
+    data = bytearray(path.read_bytes())
+    depth = _ResultUnpickler(io.BytesIO(bytes(data[data.index(b"\x80"):]))).load()["result"].depth
+    where = bytes(data).find(depth.tobytes())
+    assert where > 0 and np.isfinite(depth).all()
+    data[where + depth.nbytes // 2 + 2] ^= 0x40             # one depth, a bit of its exponent
+    path.write_bytes(bytes(data))
+    capsys.readouterr()
+    assert main([*se3_argv(recording, out), "--resume"]) == status
+    assert "1 unreadable window file(s) fitted again" in capsys.readouterr().err
+    assert_same(results_of(out), results_of(tmp_path / "whole"))

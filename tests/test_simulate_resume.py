@@ -14,6 +14,7 @@ import numpy as np
 import pytest
 
 import cmax.sim.chunks as chunks_module
+import cmax.sim.convert as convert_module
 from cmax.cli import main
 from cmax.io.h5 import read_h5
 from cmax.sim.chunks import KeptChunks, chunk_folder
@@ -283,7 +284,9 @@ def test_a_video_replaced_by_one_of_the_same_size_and_mtime_is_not_continued(tmp
     """The source's signature is its size and mtime: a video replaced in place by another of the same size and
     mtime (a re-download keeping the server's time) passed it, and only the kept chunks' last frame was checked,
     so a change before it went unseen (was: the output held the old video's events up to there and the new one's
-    after, without a word). Each chunk records the digest of its frames, which a resumed conversion checks."""
+    after, without a word). The source's signature now holds the SHA-256 of its bytes, so the kept chunks are
+    another run's (was, before that: each chunk's digest of its frames caught it, and still catches frames that
+    decode otherwise, another OpenCV or FFmpeg)."""
     output, folder, _ = _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=4)
     assert len(list(folder.glob("chunk_*.json"))) == 3                # frames 0..17 kept
     video = tmp_path / "v.avi"
@@ -302,8 +305,56 @@ def test_a_video_replaced_by_one_of_the_same_size_and_mtime_is_not_continued(tmp
     os.utime(video, ns=(stat.st_atime_ns, stat.st_mtime_ns))
     (tmp_path / "new.avi").unlink()
     convert_video(video, tmp_path / "fresh.h5", LINEAR)               # the replaced video, converted whole
+    with pytest.raises(ValueError, match=r"another run \(v.avi holds other bytes .* --overwrite"):
+        convert_video(video, output, LINEAR, chunk_frames=6)
+    recorded = json.loads((folder / "run.json").read_text())["source"]   # as if the bytes were the same
+    monkeypatch.setattr(convert_module, "source_signature", lambda source, read=None: recorded)
     with pytest.raises(ValueError, match=r"v.avi: frames 0 to 5 decode to other pixels .* pass --overwrite"):
         convert_video(video, output, LINEAR, chunk_frames=6)
-    with pytest.warns(UserWarning, match="converting it from its first frame"):
-        convert_video(video, output, LINEAR, chunk_frames=6, kept="resume_or_restart")
+    monkeypatch.undo()
+    convert_video(video, output, LINEAR, chunk_frames=6, kept="resume_or_restart")
+    assert same_events(read_h5(output), read_h5(tmp_path / "fresh.h5")) and not folder.exists()
+
+
+def replace_with_same_size_and_mtime(video, n_frames: int = 40, flat: int = 2) -> None:
+    """Replace ``video`` in place by the same frames with frame ``flat`` made flat grey, padded after its end to the
+    old size, and its modification time set back (``cp -p``, ``rsync -t``, a re-download keeping the server's
+    time)."""
+    stat = video.stat()
+    capture = cv2.VideoCapture(str(video))
+    frames = [capture.read()[1] for _ in range(n_frames)]
+    capture.release()
+    frames[flat] = np.full_like(frames[flat], 128)
+    other = video.with_name("other_" + video.name)
+    writer = cv2.VideoWriter(str(other), cv2.VideoWriter_fourcc(*"MJPG"), 25, frames[0].shape[1::-1])
+    for frame in frames:
+        writer.write(frame)
+    writer.release()
+    data = other.read_bytes()
+    other.unlink()
+    assert len(data) < stat.st_size                                   # a flat frame compresses better
+    video.write_bytes(data + bytes(stat.st_size - len(data)))
+    os.utime(video, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert (video.stat().st_size, video.stat().st_mtime_ns) == (stat.st_size, stat.st_mtime_ns)
+
+
+def test_a_video_replaced_after_its_last_chunk_was_kept_is_not_assembled_from_the_old_chunks(tmp_path, monkeypatch):
+    """Killed after every chunk was kept (while the output was written from them), then the video replaced by
+    another of the same size and mtime: the rerun decoded no frame (the chunks hold the whole video) and wrote the
+    old video's events under the new one's name, exit 0 (was). The source's content (SHA-256) is part of what a
+    chunked conversion is: refused; starting over gives the new video's events."""
+    video, output = tmp_path / "v.avi", tmp_path / "v.h5"
+    write_video(video, 40)
+    counted_calls(monkeypatch, chunks_module.KeptChunks, "iter_events", interrupt_at=1)   # killed in assembly
+    with pytest.raises(KeyboardInterrupt):
+        convert_video(video, output, LINEAR, chunk_frames=6)
+    monkeypatch.undo()
+    folder = chunk_folder(output)
+    assert not output.exists() and json.loads((folder / "chunk_000006.json").read_text())["final"] is True
+    replace_with_same_size_and_mtime(video)
+    convert_video(video, tmp_path / "fresh.h5", LINEAR)               # the new video, converted whole
+    with pytest.raises(ValueError, match=r"another run \(v.avi holds other bytes .*--overwrite"):
+        convert_video(video, output, LINEAR, chunk_frames=6)
+    assert not output.exists() and len(list(folder.glob("chunk_*.json"))) == 7   # nothing thrown away unasked
+    convert_video(video, output, LINEAR, chunk_frames=6, kept="resume_or_restart")
     assert same_events(read_h5(output), read_h5(tmp_path / "fresh.h5")) and not folder.exists()

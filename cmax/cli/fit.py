@@ -34,7 +34,7 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 from cmax.io.provenance import file_depth_range, file_intrinsics
-from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, code_digest, file_signature, interrupted_windows,
+from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, code_digest, file_signatures, interrupted_windows,
                                   settings_record, stopped_line)
 
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
@@ -517,16 +517,15 @@ _NOT_RESULTS = ("command", "output", "quiet", "overwrite", "resume", "run", "job
 
 def run_record(args: argparse.Namespace) -> dict:
     """What a run of ``cmax fit`` is, for ``--resume`` to check (:class:`cmax.io.window_store.WindowStore`): the
-    signatures (size, modification time) of the event file and of ``--calib`` / ``--gyro``, the version of
+    signatures (size, modification time, SHA-256) of the event file and of ``--calib`` / ``--gyro``, the version of
     cmax and a digest of its code, and every option that changes a window's fit (``args``, the parsed options; ``--jobs`` only as
     whether the windows are warm-started, ``jobs == 1``)."""
     import cmax
 
     settings = {key: value for key, value in vars(args).items() if key not in _NOT_RESULTS}
     settings["warm_start"] = args.jobs == 1
-    return {"cmax": cmax.__version__, "code": code_digest("cmax"), "file": file_signature(args.file),
-            "calib": file_signature(args.calib),
-            "gyro": file_signature(args.gyro), "settings": settings_record(settings)}
+    files = file_signatures({"file": args.file, "calib": args.calib, "gyro": args.gyro}, progress=not args.quiet)
+    return {"cmax": cmax.__version__, "code": code_digest("cmax"), **files, "settings": settings_record(settings)}
 
 
 def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_model: str, options: dict,

@@ -6,11 +6,15 @@ files' and every setting that changes a fit; written with the first window) and 
 ``window_<index>.pickle``: the window's first fit (:class:`cmax.FitResult`, before the resolution and the smoothing
 across windows, which run again over all windows) and its warnings. Each file is written atomically
 (:func:`cmax.io.atomic.write_bytes_atomic`: private temporary file, fsync, rename), so a file of that name is
-complete; each also records the run's digest and the window's start, and is read back with an unpickler that
-builds only the project's result classes and numpy arrays (a planted file runs no code).
+complete; each also records the run's digest and the window's start, opens with a line holding the SHA-256 of the
+pickle that follows (checked before it is read: a byte changed on disk since makes it a window to fit again), and
+is read back with an unpickler that builds only the project's result classes and numpy arrays (a planted file runs
+no code).
 
-A resumed run takes a window only when ``run.json`` matches the new run (the same event file by size and
-modification time, the same settings: else the run is refused, naming what differs) and the window's file names
+A resumed run takes a window only when ``run.json`` matches the new run (the same event file by size,
+modification time and SHA-256 of its bytes, the same settings: else the run is refused, naming what differs; a
+``run.json`` of an earlier version, which recorded no SHA-256, is refused too: what the windows were fitted on cannot
+be checked) and the window's file names
 the same run and window start; a window file that cannot be read is fitted again. The folder is removed once the
 run's results are in ``-o`` (``summary.json`` is the record of completion, :mod:`cmax.io.run_folder`).
 """
@@ -26,15 +30,16 @@ import pickle
 import re
 import shutil
 from pathlib import Path
-from typing import Any
+from typing import Any, Callable
 
 import numpy as np
 
-from cmax.io.atomic import fsync_folder, write_bytes_atomic, write_text_atomic
+from cmax.io.atomic import file_sha256, fsync_folder, write_bytes_atomic, write_text_atomic
 from cmax.sim.signature import signature_problem
 
-__all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "settings_record", "open_kept",
-           "write_run_record", "stopped_line", "code_digest", "run_digest", "run_differences"]
+__all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "file_signatures",
+           "settings_record", "open_kept", "write_run_record", "stopped_line", "code_digest", "run_digest",
+           "run_differences"]
 
 #: The folder in ``-o`` that holds the finished windows of a run of ``cmax fit`` until its results are in.
 WINDOWS_FOLDER = ".fit.windows"
@@ -42,6 +47,10 @@ _RUN_FILE = "run.json"
 _WINDOW_NAME = re.compile(r"window_(\d{5,})\.pickle")
 #: The maps of a :class:`cmax.FitResult` (H, W) kept on disk, not in memory, once the window is saved.
 _MAPS = ("depth", "mask", "depth_spread", "iwe_before", "iwe_after")
+#: Bytes of input files to hash at the start of a run above which a progress bar shows it.
+HASH_PROGRESS_BYTES = 1 << 30
+#: The first bytes of a window file, followed by the SHA-256 (hex) of its pickle and a newline.
+_SEAL = b"cmax-window sha256="
 
 
 def interrupted_windows(out: str | os.PathLike) -> int:
@@ -75,6 +84,20 @@ class _ResultUnpickler(pickle.Unpickler):
         raise pickle.UnpicklingError(f"a window file may not build {module}.{name}")
 
 
+def _sealed(payload: bytes) -> bytes:
+    """A window file's bytes: :data:`_SEAL`, the SHA-256 (hex) of ``payload`` (a pickle), a newline, ``payload``."""
+    return _SEAL + hashlib.sha256(payload).hexdigest().encode() + b"\n" + payload
+
+
+def _opened(data: bytes) -> bytes:
+    """The pickle in a window file's bytes ``data`` (:func:`_sealed`); ValueError when it does not have the
+    SHA-256 its first line records (changed on disk), or no such line."""
+    head, _, payload = data.partition(b"\n")
+    if not head.startswith(_SEAL) or head[len(_SEAL):] != hashlib.sha256(payload).hexdigest().encode():
+        raise ValueError("not a window file, or changed since it was written")
+    return payload
+
+
 def run_digest(run: dict) -> str:
     """The SHA-256 (hex) of a run's record ``run`` (JSON-ready, keys sorted): what each kept window or block file
     names, so that a file of another run is never taken for one of this run.
@@ -93,7 +116,11 @@ def _differences(recorded: dict, now: dict) -> list[str]:
     for key in sorted(set(recorded) | set(now)):
         before, after = recorded.get(key), now.get(key)
         if isinstance(before, dict) and isinstance(after, dict) and "mtime_ns" in after:
-            found += [problem] if (problem := signature_problem(before, after, modified="since")) else []
+            if problem := signature_problem(before, after, modified="since"):
+                found.append(problem)
+            elif "sha256" in after and "sha256" not in before:
+                found.append(f"{Path(str(after.get('path', ''))).name}: the kept run recorded no SHA-256 of its bytes "
+                             "(an earlier version of cmax), so whether it changed since cannot be checked")
         elif key == "settings" and isinstance(before, dict) and isinstance(after, dict):
             found += [f"{name} was {before.get(name)!r}, now {after.get(name)!r}"
                       for name in sorted(set(before) | set(after)) if before.get(name) != after.get(name)]
@@ -107,7 +134,8 @@ def _differences(recorded: dict, now: dict) -> list[str]:
 
 def run_differences(recorded: dict, now: dict) -> list[str]:
     """What differs between two records of a run (``run.json``: signatures of its files, ``settings``, ``code``),
-    one phrase each (empty when they match; a moved file with the same size and modification time matches).
+    one phrase each (empty when they match; a moved file with the same size, modification time and SHA-256
+    matches; a signature of ``now`` with a SHA-256 where ``recorded``'s has none does not).
 
     Parameters
     ----------
@@ -167,7 +195,7 @@ class WindowStore:
         The run's output folder (``-o``).
     run : dict
         What the run is, JSON-ready: ``{"file": signature, ..., "settings": {...}}`` (a signature as
-        :func:`cmax.sim.signature.source_signature` gives it; compared by size and modification time).
+        :func:`file_signature` gives it; compared by size, modification time and SHA-256).
     resume : bool
         Take the windows an interrupted run with the same ``run`` left (else they are an error).
     overwrite : bool
@@ -201,7 +229,7 @@ class WindowStore:
         except FileNotFoundError:
             return None
         try:
-            record = _ResultUnpickler(io.BytesIO(data)).load()
+            record = _ResultUnpickler(io.BytesIO(_opened(data))).load()
             if record["run"] != self.digest or record["start_us"] != start_us:
                 raise ValueError("another run's window")
             return record["result"], tuple(tuple(item) for item in record["caught"])
@@ -226,7 +254,7 @@ class WindowStore:
         record = {"run": self.digest, "start_us": int(start_us), "result": result, "caught": tuple(caught)}
         try:
             write_run_record(self.folder, self.run)      # with the first window: what the run is
-            write_bytes_atomic(self._path(index), pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL))
+            write_bytes_atomic(self._path(index), _sealed(pickle.dumps(record, protocol=pickle.HIGHEST_PROTOCOL)))
         except BaseException:   # a full disk: a folder without a window is no interrupted run to resume
             if not interrupted_windows(self.folder.parent):
                 shutil.rmtree(self.folder, ignore_errors=True)
@@ -244,8 +272,7 @@ class WindowStore:
         is returned as it is."""
         if result.depth is not None or index not in self._with_maps:
             return result
-        with open(self._path(index), "rb") as file:
-            first = _ResultUnpickler(file).load()["result"]
+        first = _ResultUnpickler(io.BytesIO(_opened(self._path(index).read_bytes()))).load()["result"]
         return dataclasses.replace(result, **{name: getattr(first, name) for name in _MAPS})
 
     def remove(self) -> None:
@@ -254,20 +281,44 @@ class WindowStore:
         fsync_folder(self.folder.parent)
 
 
-def file_signature(path: str | os.PathLike | None) -> dict | None:
+def file_signature(path: str | os.PathLike | None, read: Callable[[int], None] | None = None) -> dict | None:
     """The signature of an input file: ``{"path": resolved path, "files": 1, "bytes": size, "mtime_ns":
-    modification time [ns]}`` (as :func:`cmax.sim.signature.source_signature` gives a video's), or None when
-    ``path`` is None.
+    modification time [ns], "sha256": SHA-256 (hex) of its bytes}`` (as :func:`cmax.sim.signature.source_signature`
+    gives a video's), or None when ``path`` is None. The whole file is read (:func:`cmax.io.atomic.file_sha256`),
+    after its ``stat``: another file of the same size given the old modification time (``cp -p``, ``rsync -t``) has
+    another signature.
 
     Parameters
     ----------
     path : path or None
         An input file of the run (the events, ``--gyro``, ``--calib``); None as well when it is not a file.
+    read : callable, optional
+        Called with the bytes [B] of each block hashed (a progress bar's ``update``).
     """
     if path is None or not os.path.isfile(path):    # a missing file is for its reader to name
         return None
     info = os.stat(path)
-    return {"path": str(Path(path).resolve()), "files": 1, "bytes": info.st_size, "mtime_ns": info.st_mtime_ns}
+    return {"path": str(Path(path).resolve()), "files": 1, "bytes": info.st_size, "mtime_ns": info.st_mtime_ns,
+            "sha256": file_sha256(path, read)}
+
+
+def file_signatures(paths: dict[str, str | os.PathLike | None], *, progress: bool = True) -> dict[str, dict | None]:
+    """:func:`file_signature` of each of ``paths`` (by name: ``{"file": events, "gyro": ..., ...}``), with a
+    progress bar [bytes] on stderr while they are hashed when they hold more than :data:`HASH_PROGRESS_BYTES`.
+
+    Parameters
+    ----------
+    paths : dict of str to path or None
+        A run's input files by the name its record gives them.
+    progress : bool
+        Allow the progress bar (off for ``--quiet``).
+    """
+    from tqdm.auto import tqdm
+
+    total = sum(os.path.getsize(path) for path in paths.values() if path is not None and os.path.isfile(path))
+    with tqdm(total=total, desc="hashing input files (checked by --resume)", unit="B", unit_scale=True,
+              unit_divisor=1024, disable=not progress or total <= HASH_PROGRESS_BYTES) as bar:
+        return {name: file_signature(path, bar.update) for name, path in paths.items()}
 
 
 def settings_record(values: dict) -> dict:

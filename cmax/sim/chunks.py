@@ -2,7 +2,8 @@
 loses at most the chunk it was simulating and the next run continues it, with the same events, bit for bit.
 
 Beside the output ``<name>.h5`` the folder ``.<name>.h5.chunks/`` holds ``run.json`` (what the conversion is: the
-source's signature, the settings, the digest of cmax's code; :mod:`cmax.io.window_store`) and, per chunk of
+source's signature with the SHA-256 of its bytes, the settings, the digest of cmax's code; :mod:`cmax.io.window_store`)
+and, per chunk of
 ``chunk_frames`` video frames:
 
 * ``chunk_<k>.events``: the chunk's events in time order, as blocks of at most :data:`BLOCK_EVENTS` events:

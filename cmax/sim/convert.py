@@ -21,9 +21,9 @@ simulator version. An entry is ``ok`` only once its file has been verified
 skips the videos whose entry is ``ok`` and whose file still has the recorded
 size, completion record, event count and SHA-256 (each skipped file is read
 once) and whose source still has the recorded signature (files, bytes, latest
-mtime: :mod:`cmax.sim.signature`; a moved source keeps it), and redoes the others
-(failed, crashed, missing, truncated, damaged or foreign output; a source replaced,
-re-exported, copied or touched). A file at a video's output that the manifest does
+mtime, SHA-256 of its bytes: :mod:`cmax.sim.signature`; a moved source keeps it), and redoes
+the others (failed, crashed, missing, truncated, damaged or foreign output; a source replaced,
+re-exported, copied or touched, or replaced by other bytes of the same size and mtime). A file at a video's output that the manifest does
 not list as that video's (a user's own ``a.h5`` beside ``a.mp4``) is refused before
 any work unless ``overwrite=True``. A failing video (full disk, file-size limit, bad video) is
 recorded and does not stop the others. An interrupted parallel run kills its
@@ -425,7 +425,7 @@ def convert_video(
         default): events go straight into ``output`` and an interrupted conversion starts over.
     kept : {"resume", "resume_or_restart", "restart"}
         With ``chunk_frames``, what to do with chunks a killed conversion into ``output`` kept: continue from
-        them when they are of this run (the same source by size and modification time, the same settings and
+        them when they are of this run (the same source by size, modification time and SHA-256, the same settings and
         code; a chunk that fails its check is simulated again), and raise ValueError naming what differs when
         they are another's (``"resume"``, the default) or start over then (``"resume_or_restart"``); or start
         over whatever they are (``"restart"``). Kept chunks whose video frames decode to other pixels now
@@ -968,7 +968,8 @@ def source_problem(entry: dict, source: str | os.PathLike) -> str | None:
     """Why ``source`` is not the source the manifest ``entry`` was converted from (None when it is).
 
     Compared: the entry's ``source_signature`` with the source's now (number of files, bytes,
-    latest mtime in ns; :mod:`cmax.sim.signature`: a moved source is the same); an entry of an older manifest,
+    latest mtime in ns, and the SHA-256 of its bytes where the entry holds one: the source is read once;
+    :mod:`cmax.sim.signature`: a moved source is the same); an entry of an older manifest,
     without a signature, by its ``source`` path alone (as typed, or resolved from this folder).
     """
     recorded = entry.get("source_signature")
