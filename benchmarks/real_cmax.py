@@ -472,7 +472,8 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     ``seed``: ``FitSettings.seed`` (the fit's subsample and dither).
     ``calibration``: an ECD ``calib.txt``; the events are undistorted with its lens distortion first and fitted
     with its K (unrounded: :data:`K_ECD` is the issue's command line's, to two decimals), as ``cmax fit --calib``
-    does (:func:`cmax.cli.fit.undistorted_events`: each event to its undistorted pixel).
+    did before it warped sub-pixel positions (:func:`cmax.cli.fit.undistorted_events`: each event to its nearest
+    undistorted pixel).
 
     With ``cache`` the result is pickled there (atomically) and read back by a later call on the same events
     file (same resolved path, size and modification time) fitted by the same library code (a hash of the

@@ -312,8 +312,8 @@ def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, wher
 
 def undistortion(K: np.ndarray, distortion: np.ndarray, width: int, height: int) -> Callable[["Events"], "Events"]:
     """``events -> events`` at their undistorted pixel (nearest integer; those that land outside the sensor are
-    dropped), as ``cmax fit --calib`` does: :meth:`cmax.Camera.undistort_events` of one camera, whose undistortion
-    map is computed once for all windows. ``K`` (3, 3) [px] and OpenCV ``distortion`` ``(k1, k2, p1, p2[, k3])`` of
+    dropped): :meth:`cmax.Camera.undistort_events` of one camera, whose undistortion map is computed once for all
+    windows (``cmax depth`` and ``cmax fit`` take the unrounded positions: :meth:`cmax.Camera.undistorted_pixels`). ``K`` (3, 3) [px] and OpenCV ``distortion`` ``(k1, k2, p1, p2[, k3])`` of
     a ``width`` x ``height`` [px] sensor."""
     from cmax.camera import Camera
 
