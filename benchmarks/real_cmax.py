@@ -470,9 +470,10 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
     ``zero_rotation_start``: ``FitSettings.zero_rotation_start`` (``cmax fit --zero-rotation-start``).
     ``polish``: ``FitSettings.polish`` (``cmax fit --polish``).
     ``seed``: ``FitSettings.seed`` (the fit's subsample and dither).
-    ``calibration``: an ECD ``calib.txt``; the events are undistorted with its lens distortion first and fitted
-    with its K (unrounded: :data:`K_ECD` is the issue's command line's, to two decimals), as ``cmax fit --calib``
-    does (:meth:`cmax.Camera.undistort_events`: each event to its undistorted pixel).
+    ``calibration``: an ECD ``calib.txt``; the events are fitted with its camera (its K, unrounded:
+    :data:`K_ECD` is the issue's command line's, to two decimals, and its lens distortion), as ``cmax fit
+    --calib`` does (each event dithered over its sensor pixel and mapped through the lens, unrounded:
+    :meth:`cmax.Camera.undistorted_pixels`).
 
     With ``cache`` the result is pickled there (atomically) and read back by a later call on the same events
     file (same resolved path, size and modification time) fitted by the same library code (a hash of the
@@ -504,12 +505,10 @@ def slider_sequence(events_path: Path, cache: Path | None = None, *, omega: tupl
                 + ("not recorded" if load is None else f"{load:.2f}"))
     events = read(events_path)
     K = K_ECD
-    if calibration is not None:   # as cmax fit --calib: undistorted, then fitted with the file's own K
+    if calibration is not None:   # as cmax fit --calib: the recorded events and the camera of the file (its K)
         from cmax import Camera
 
-        camera = Camera.from_ecd_calib(calibration, events.width, events.height)
-        events = camera.undistort_events(events)
-        K = camera.K
+        K = Camera.from_ecd_calib(calibration, events.width, events.height)
     gyro = None if omega is None else constant_gyro(omega, int(events.t[0]), int(events.t[-1]) + 1)
     load = os.getloadavg()[0]
     start = time.perf_counter()
@@ -638,7 +637,7 @@ def calibrated_far_wall_mode(events_path: Path, folder: Path) -> float:
 def calibrated_far_walls(events_path: Path, folder: Path, sequences: list,
                          span_us: int | None = REFERENCE_SPAN_US) -> list[list]:
     """Far-wall depth of every window of each of ``sequences`` (fitted on the events undistorted with
-    ``calib.txt``, :func:`slider_sequence` ``calibration=``) against EMVS with the ground-truth poses and the
+    ``calib.txt``'s camera, :func:`slider_sequence` ``calibration=``) against EMVS with the ground-truth poses and the
     calibrated camera (its distortion: EMVS undistorts the events itself), at each window's reference time
     on the events within ``span_us`` of it, on the same undistorted pixel grid (the calibration's K). Returns the
     :class:`FarWall` lists, one per sequence."""
@@ -759,9 +758,9 @@ def slider(events_path: Path, folder: Path, cache: Path | None = None) -> tuple[
          in zip(calibrated, calibrated_walls, blind_calibrated)},
         "With the camera's calibration (`--calib calib.txt`)",
         "ECD ships each recording's `calib.txt` (`fx fy cx cy k1 k2 p1 p2 k3`; here k1 = -0.139, k2 = 0.093): "
-        "`cmax fit slider.h5 --calib calib.txt --speed 0.317` undistorts every event to its pinhole pixel before "
-        "fitting, as a user of ECD data would run it (here `fit_sequence` on the events undistorted by "
-        "`cmax.Camera.undistort_events`, " f"{sum(c[1] for c in calibrated.values()):.0f} s for the "
+        "`cmax fit slider.h5 --calib calib.txt --speed 0.317` warps every event from its sensor pixel through the "
+        "lens (unrounded, since 2026-12-05 afternoon; before, each event was rounded to its nearest undistorted "
+        "pixel), as a user of ECD data would run it (here `fit_sequence(events, camera, ...)`, " f"{sum(c[1] for c in calibrated.values()):.0f} s for the "
         f"{len(calibrated)} seeds). Its far wall is compared with EMVS with the true poses and the calibrated "
         "camera, on the same undistorted pixels.",
         "Part of the rotation the pinhole fits invent is the lens: the barrel distortion shrinks the translation's "

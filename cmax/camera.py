@@ -427,9 +427,14 @@ class Camera:
         Computed once per camera (OpenCV's iterative ``undistortPoints``, checked with the forward model);
         :meth:`undistort` then looks events up in it.
         """
+        return self._undistortion_map64.astype(np.float32)
+
+    @cached_property
+    def _undistortion_map64(self) -> np.ndarray:
+        """(H, W, 2) float64: :attr:`undistortion_map` before its rounding to float32."""
         ys, xs = np.mgrid[0: self.height, 0: self.width]
         pixels = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
-        return self.undistort_points(pixels).reshape(self.height, self.width, 2).astype(np.float32)
+        return self.undistort_points(pixels).reshape(self.height, self.width, 2)
 
     def undistort(self, events: Events) -> np.ndarray:
         """Undistorted, sub-pixel coordinates (N, 2) float32 ``(x, y)`` of the events.
@@ -451,21 +456,56 @@ class Camera:
                 f"the camera is {self.width}x{self.height}"
             )
 
+    def undistorted_pixels(self, events: Events) -> np.ndarray:
+        """The exact undistorted (and rectified) position (N, 2) float64 ``(x, y)`` [px of :attr:`pinhole_K`] of
+        each event's pixel centre, unrounded: ``cv2.undistortPoints`` (``cv2.fisheye.undistortPoints`` for the
+        equidistant model) with ``R = rectification`` and ``P = pinhole_K``, checked with the forward model
+        (:meth:`undistort_points`, looked up per pixel); NaN rows for events on pixels that have none. Positions
+        may lie outside the image (a strongly distorted border). A pinhole camera gives the events' own pixels.
+
+        Raises ``ValueError`` when the events come from a sensor of another size than the camera's.
+        """
+        self._check_events(events)
+        if self.is_pinhole:
+            return np.column_stack([events.x, events.y]).astype(np.float64)
+        return self._undistortion_map64[events.y, events.x]
+
+    def undistorted_kept(self, events: Events) -> np.ndarray:
+        """Indices (M,) int64, increasing, of the events that :meth:`undistort_events` keeps: those whose nearest
+        undistorted pixel lies inside the image (all of them for a pinhole camera); ``events[kept]`` pairs them
+        with their exact positions ``undistorted_pixels(events)[kept]``.
+
+        Raises ``ValueError`` when the events come from a sensor of another size than the camera's.
+        """
+        self._check_events(events)
+        if self.is_pinhole:
+            return np.arange(len(events), dtype=np.int64)
+        return np.flatnonzero(self._nearest_pixels(events)[1]).astype(np.int64)
+
+    def _nearest_pixels(self, events: Events) -> tuple[np.ndarray, np.ndarray]:
+        """The nearest integer undistorted pixel (N, 2) int64 of each event (-1 where none) and whether it lies
+        inside the image (N,) bool."""
+        undistorted = self.undistortion_map[events.y, events.x]
+        solved = np.isfinite(undistorted).all(axis=1)
+        xy = np.rint(np.where(solved[:, None], undistorted, -1.0)).astype(np.int64)
+        inside = solved & (xy[:, 0] >= 0) & (xy[:, 0] < self.width) & (xy[:, 1] >= 0) & (xy[:, 1] < self.height)
+        return xy, inside
+
     def undistort_events(self, events: Events) -> Events:
-        """The events at their undistorted (and rectified) pixels, the nearest integer ones, for a pinhole model
-        with :attr:`pinhole_K` (what ``cmax fit --calib`` fits); events whose undistorted pixel lies outside the
-        image, or that have none (NaN in :attr:`undistortion_map`), are dropped. A pinhole camera
-        (:attr:`is_pinhole`) returns ``events`` themselves.
+        """The events at their undistorted (and rectified) pixels rounded to the nearest integer ones, for a
+        pinhole model with :attr:`pinhole_K`: the integer positions of the pixel tests (masks, hot pixels,
+        neighbour counts); events whose undistorted pixel lies outside the image, or that have none (NaN in
+        :attr:`undistortion_map`), are dropped. :meth:`undistorted_pixels` gives the unrounded positions (what
+        :func:`cmax.fit` warps and what ``cmax.representations.voxel_grid(..., pixels=)`` spreads bilinearly), and
+        :meth:`undistorted_kept` which events are kept. A pinhole camera (:attr:`is_pinhole`) returns ``events``
+        themselves.
 
         Raises ``ValueError`` when the events come from a sensor of another size than the camera's.
         """
         self._check_events(events)
         if self.is_pinhole:
             return events
-        undistorted = self.undistortion_map[events.y, events.x]
-        solved = np.isfinite(undistorted).all(axis=1)
-        xy = np.rint(np.where(solved[:, None], undistorted, -1.0)).astype(np.int64)
-        inside = solved & (xy[:, 0] >= 0) & (xy[:, 0] < self.width) & (xy[:, 1] >= 0) & (xy[:, 1] < self.height)
+        xy, inside = self._nearest_pixels(events)
         return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], self.width, self.height)
 
     def scaled(self, width: int, height: int) -> "Camera":

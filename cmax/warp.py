@@ -25,6 +25,7 @@ coordinates of the same shape; everything is differentiable.
 """
 from __future__ import annotations
 
+from collections.abc import Callable
 from dataclasses import dataclass
 from functools import lru_cache
 
@@ -269,7 +270,8 @@ class WarpEvents:
     @classmethod
     def from_events(cls, events: Events, K: object, *, max_events: int | None = None, seed: int = 0,
                     dtype: torch.dtype = torch.float32, pixels: np.ndarray | None = None,
-                    dither: bool = True) -> "WarpEvents":
+                    dither: bool = True,
+                    lens: Callable[[np.ndarray], np.ndarray] | None = None) -> "WarpEvents":
         """Prepare ``events`` (a :class:`cmax.Events`) with intrinsics ``K`` (3, 3).
 
         ``max_events`` keeps a uniformly random subset (seeded, sorted) when the
@@ -279,7 +281,10 @@ class WarpEvents:
         event stands for its whole pixel, and without it every warp that keeps
         events on integer positions (zero flow along an axis) gets a spuriously
         high contrast from unsplit bilinear votes. ``seed`` seeds the subset and the dither; ``dtype`` is
-        that of the tensors (float32 or float64).
+        that of the tensors (float32 or float64). ``lens`` maps positions (M, 2) [px] on the sensor, after the
+        dither, to the pixels of ``K``'s pinhole (M, 2) [px] (e.g. :meth:`cmax.Camera.undistort_points`, with
+        ``pixels`` the events' sensor pixels): an event stands for its sensor pixel's area, dithered there and
+        then mapped through the lens; a dithered position the lens cannot map (NaN) takes its pixel centre's.
         """
         K = check_intrinsics(K)
         n = len(events)
@@ -291,7 +296,15 @@ class WarpEvents:
         else:
             xy = np.asarray(pixels, dtype=np.float64)[keep]
         if dither:
-            xy = xy + np.random.default_rng([seed, 1]).uniform(-0.5, 0.5, xy.shape)
+            centres, xy = xy, xy + np.random.default_rng([seed, 1]).uniform(-0.5, 0.5, xy.shape)
+        else:
+            centres = xy
+        if lens is not None:
+            mapped = np.array(lens(xy), dtype=np.float64)
+            unmapped = ~np.isfinite(mapped).all(axis=1)
+            if unmapped.any():
+                mapped[unmapped] = lens(centres[unmapped])
+            xy = mapped
         t0 = int(events.t[0]) if n else 0
         t1 = int(events.t[-1]) if n else 0
         t = (events.t[keep] - t0).astype(np.float64) * 1e-6

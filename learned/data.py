@@ -131,8 +131,12 @@ def augment(sample: Sample, rng: np.random.Generator, *, flip: bool = True, pola
     return sample
 
 
-def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0) -> dict[str, torch.Tensor]:
-    """Tensors of one batch entry from ``sample`` (``seed``: of the event subset and its dither).
+def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0,
+            pixels: np.ndarray | None = None) -> dict[str, torch.Tensor]:
+    """Tensors of one batch entry from ``sample`` (``seed``: of the event subset and its dither; ``pixels``
+    (N, 2) float64 [px], optional: the events' exact sub-pixel positions, e.g. undistorted and rectified ones
+    (:meth:`cmax.Camera.undistorted_pixels`), from which the volume spreads each event bilinearly over 4 pixels:
+    ``cmax.representations.voxel_grid(..., pixels=)``).
 
     Returns
     -------
@@ -147,7 +151,7 @@ def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0) ->
     ev = sample.events
     if len(ev) < 2:
         raise ValueError(f"the window [{sample.t0_us}, {sample.t1_us}) µs holds {len(ev)} events; need >= 2")
-    volume = torch.from_numpy(voxel_grid(ev, bins))
+    volume = torch.from_numpy(voxel_grid(ev, bins, pixels=pixels))
     prepared = WarpEvents.from_events(ev, sample.K, max_events=max_events, seed=seed)
     n = len(prepared)
     pad = lambda a: torch.cat([a, a.new_zeros(max_events - n)])  # noqa: E731
@@ -480,9 +484,11 @@ class MVSECDataset(torch.utils.data.Dataset):
 
     MVSEC's depth maps (``depth_image_rect``) and the K that goes with them lie in the RECTIFIED frame of its
     camchain (``P_rect``), while the events are recorded through the fisheye (Kalibr ``equidistant``) lens: given
-    ``calib``, each window's events are undistorted and rectified into the depth's frame (to the nearest pixel;
-    those that land outside the sensor are dropped), as MVSEC's baselines do with its rectify maps or
-    ``cv2.fisheye.undistortPoints(..., R_rect, P_rect)``. Without it the events are read as recorded (today's
+    ``calib``, each window's events are undistorted and rectified into the depth's frame, as MVSEC's baselines do
+    with its rectify maps or ``cv2.fisheye.undistortPoints(..., R_rect, P_rect)``: the event volume spreads each
+    event bilinearly from its exact position (:meth:`cmax.Camera.undistorted_pixels`, no pixel left without
+    events by rounding), the events of the contrast loss sit at their nearest pixels (those that land outside the
+    sensor are dropped). Without it the events are read as recorded (today's
     behaviour) and a warning says once that they and the depth lie in different frames.
 
     Parameters
@@ -560,21 +566,34 @@ class MVSECDataset(torch.utils.data.Dataset):
             self.middles = np.arange(span[0] + self.window_us // 2, span[1] - self.window_us // 2, self.window_us)
 
     def events(self, i: int) -> Events:
-        """The events of window ``i`` as the network sees them: rectified into the depth's frame when the dataset
-        has a calibration (to the nearest pixel, those outside dropped), as recorded otherwise."""
+        """The events of window ``i``: rectified into the depth's frame when the dataset has a calibration (at
+        their nearest pixels, those outside dropped; :meth:`pixels` gives their exact positions), as recorded
+        otherwise."""
+        return self._events_and_pixels(i)[0]
+
+    def pixels(self, i: int) -> np.ndarray:
+        """The exact positions (N, 2) float64 [px of the depth's frame] of the events of window ``i``
+        (:meth:`events`): undistorted and rectified, unrounded, when the dataset has a calibration
+        (:meth:`cmax.Camera.undistorted_pixels`); their integer pixels otherwise."""
+        return self._events_and_pixels(i)[1]
+
+    def _events_and_pixels(self, i: int) -> tuple[Events, np.ndarray]:
         t0 = int(self.middles[i]) - self.window_us // 2
         events = self._read(self.data_file, t0_us=t0, t1_us=t0 + self.window_us)
-        return events if self.camera is None else self.camera.undistort_events(events)
+        if self.camera is None:
+            return events, np.column_stack([events.x, events.y]).astype(np.float64)
+        kept = self.camera.undistorted_kept(events)
+        return self.camera.undistort_events(events), self.camera.undistorted_pixels(events)[kept]
 
     def __len__(self) -> int:
         return len(self.middles)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         t0 = int(self.middles[i]) - self.window_us // 2
-        events = self.events(i)
+        events, pixels = self._events_and_pixels(i)
         depth = None
         if self.gt_file is not None:
             with h5py.File(self.gt_file, "r") as f:
                 depth = np.asarray(f["davis/left/depth_image_rect"][i], np.float32)
         return to_item(Sample(events, self.K, depth, None, t0, t0 + self.window_us), max_events=self.max_events,
-                       bins=self.bins, seed=i)
+                       bins=self.bins, seed=i, pixels=None if self.camera is None else pixels)

@@ -48,6 +48,7 @@ from cmax.io import Calibration, read_calibration, run_folder
 from learned.kept_windows import KEPT_FOLDER, KeptBlocks
 
 if TYPE_CHECKING:  # torch is imported only to predict (the parser is built at start-up)
+    from cmax.camera import Camera
     from cmax.events import Events
     from learned.model import DepthPoseNet, ModelConfig
 
@@ -310,14 +311,20 @@ def camera_notes(card: dict | None, width: int, height: int, K: np.ndarray, wher
     return notes
 
 
-def event_volumes(windows: Sequence["Events"], bins: int) -> np.ndarray:
+def event_volumes(windows: Sequence["Events"], bins: int,
+                  pixels: Sequence[np.ndarray | None] | None = None) -> np.ndarray:
     """The network input of each of ``windows``: (B, bins, H, W) float32, the event volume over each window's own
     first..last event time, as :func:`learned.data.to_item` builds it in training with
     :func:`cmax.representations.voxel_grid`; computed by the compiled :func:`learned.volume.event_volume`,
-    which equals it to float32 rounding and is faster (``benchmarks/results/speed_learned.md``)."""
+    which equals it to float32 rounding and is faster (``benchmarks/results/speed_learned.md``). ``pixels``: for
+    each window, None or its events' exact positions (N, 2) float64 [px] (undistorted and rectified:
+    :meth:`cmax.Camera.undistorted_pixels`), spread bilinearly by ``voxel_grid(..., pixels=)``."""
+    from cmax.representations import voxel_grid
     from learned.volume import event_volume
 
-    return np.stack([event_volume(events, bins) for events in windows])
+    pixels = [None] * len(windows) if pixels is None else pixels
+    return np.stack([event_volume(events, bins) if xy is None else voxel_grid(events, bins, pixels=xy)
+                     for events, xy in zip(windows, pixels)])
 
 
 def batch_bytes(config: "ModelConfig", width: int, height: int, batch: int) -> int:
@@ -423,10 +430,14 @@ class WindowPrediction:
 def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"], starts: Sequence[int],
                     window_us: int, *, batch: int = 8,
                     transform: Callable[["Events"], "Events"] | None = None,
-                    source: str = "the network", offset: int = 0) -> Iterator[WindowPrediction | None]:
+                    source: str = "the network", offset: int = 0,
+                    camera: "Camera | None" = None) -> Iterator[WindowPrediction | None]:
     """For each of ``starts`` [µs] in order: the :class:`WindowPrediction` of the network ``model`` on
     ``[t0, t0 + window_us)``, or None when the
     window (read with ``window(t0, t1)``, then ``transform``) holds fewer than :data:`MIN_EVENTS` events.
+    ``camera`` (a :class:`cmax.Camera` of the sensor, in place of ``transform``): the events are undistorted
+    (and rectified) by it, and the volume spreads each one bilinearly from its exact position
+    (:meth:`cmax.Camera.undistorted_pixels`; :meth:`cmax.Camera.undistort_events` keeps which).
     ``batch`` windows go through the network at a time. ``offset``: the index of the first of ``starts`` in the
     recording (``WindowPrediction.index`` is ``offset`` plus the place in ``starts``).
 
@@ -434,14 +445,20 @@ def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"
     diverged run's saved just before its loss went non-finite) raises ``ValueError`` naming ``source`` (the
     checkpoint) and the window: such an output is never yielded, so never written as a depth map."""
     for first in range(0, len(starts), batch):
-        chunk = []
+        chunk, positions = [], []
         for index in range(first, min(first + batch, len(starts))):
             t0 = int(starts[index])
             events = window(t0, t0 + window_us)
             events = events if transform is None else transform(events)
+            xy = None
+            if camera is not None and not camera.is_pinhole:
+                xy = camera.undistorted_pixels(events)[camera.undistorted_kept(events)]
+                events = camera.undistort_events(events)
             chunk.append((offset + index, t0, events if len(events) >= MIN_EVENTS else None))
+            positions += [xy] if len(events) >= MIN_EVENTS else []
         kept = [events for _, _, events in chunk if events is not None]
-        outputs = iter(zip(*forward(model, event_volumes(kept, model.config.bins)))) if kept else iter(())
+        outputs = (iter(zip(*forward(model, event_volumes(kept, model.config.bins, positions)))) if kept
+                   else iter(()))
         for index, t0, events in chunk:
             if events is None:
                 yield None
@@ -620,7 +637,8 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
         instead; neither: the file's ``gt/K``.
     distortion : ndarray (4,) or (5,), optional
         OpenCV ``k1, k2, p1, p2[, k3]`` of ``K`` (with ``K`` only; a ``calib`` file brings its own): the
-        events are undistorted to the nearest pixel before the network sees them.
+        events are undistorted (the volume spreads each one bilinearly from its exact undistorted position)
+        before the network sees them.
     size, time_unit, polarity, sort, camera : as :func:`cmax.io.read` (for files that do not state them;
         ``camera``: an MVSEC file's ``'left'`` or ``'right'``; ``sort``: a
         file whose time goes back, sorted).
@@ -750,10 +768,10 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         check_file_principal_point(K, path, recording.width, recording.height)
         batch = batch_that_fits(model.config, recording.width, recording.height, batch)   # before any window is read
         lens = calibration if calibration is not None else Calibration(K, distortion, None)
-        undistort = None
+        lens_camera = None
         if lens.undistorts:   # the network sees the pixels of the pinhole the events are mapped to (rectified: its K)
             lens_camera = lens.camera(recording.width, recording.height, K)
-            undistort, K = lens_camera.undistort_events, lens_camera.pinhole_K
+            K = lens_camera.pinhole_K
         notes = [f"{checkpoint.name}: {limit}" for limit in card_limits(card, f"the card of {checkpoint}")]
         if calibration is not None and (said := calibration_note(calibration, calib, calib_camera, path)):
             notes.append(said)
@@ -777,7 +795,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                 if done is None:
                     done = ([], [], 0)
                     for prediction in predict_windows(model, recording.window, block, window_us, batch=batch,
-                                                      transform=undistort, source=str(checkpoint), offset=first):
+                                                      camera=lens_camera, source=str(checkpoint), offset=first):
                         bar.update(1)
                         if prediction is None:
                             done = (done[0], done[1], done[2] + 1)
@@ -865,7 +883,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     parser.add_argument("-o", "--output", type=Path, required=True, help="output folder")
     parser.add_argument("--checkpoint", type=Path, default=None,
                         help="checkpoint of learned.train (default: the model shipped in learned/pretrained)")
-    add_camera_options(parser, distortion_help=": events are undistorted to the nearest pixel first")
+    add_camera_options(parser, distortion_help=": events are undistorted first (the volume spreads each "
+                                               "bilinearly from its exact undistorted position)")
     add_recording_arguments(parser)      # --size, --time-unit, --polarity, --t0, --t1, --sort, --camera
     parser.add_argument("--window", type=positive_float, default=None,
                         help="window length [s] (default: the checkpoint config's data.window_us)")

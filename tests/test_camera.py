@@ -237,3 +237,43 @@ def test_a_rectification_printed_with_few_decimals_is_taken_as_the_nearest_rotat
     assert np.linalg.det(R) == pytest.approx(1.0) and np.abs(R - MVSEC_R).max() < 1e-4
     with pytest.raises(ValueError, match="must be a rotation"):
         check_rotation(1.01 * MVSEC_R)             # R R^T 2% off: not a rotation
+
+
+_TIGHT = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+
+
+@pytest.mark.parametrize("model", ["radtan", "equidistant"])
+def test_undistorted_pixels_are_opencvs_unrounded_positions(model):
+    """Camera.undistorted_pixels: each event's exact undistorted and rectified position (float64, not rounded to
+    a pixel), OpenCV's undistortPoints with R and P on the event's sensor pixel; undistorted_kept pairs them with
+    the events undistort_events keeps, whose integer pixels are those positions rounded."""
+    if model == "equidistant":
+        cam = Camera(MVSEC_K, 346, 260, MVSEC_D, "equidistant", MVSEC_R, MVSEC_P)
+    else:
+        cam = Camera(MVSEC_K, 346, 260, np.array([-0.3, 0.09, 0.001, -0.002, 0.0]), "radtan", MVSEC_R, MVSEC_P)
+    rng = np.random.default_rng(11)
+    n = 3000
+    ev = Events(rng.integers(0, 346, n), rng.integers(0, 260, n), np.arange(n), rng.integers(0, 2, n), 346, 260)
+    pixels = np.column_stack([ev.x, ev.y]).astype(np.float64).reshape(-1, 1, 2)
+    if model == "equidistant":
+        reference = cv2.fisheye.undistortPoints(pixels, MVSEC_K, MVSEC_D, R=MVSEC_R, P=MVSEC_P, criteria=_TIGHT)
+    else:
+        reference = cv2.undistortPoints(pixels, MVSEC_K, cam.distortion, R=MVSEC_R, P=MVSEC_P, criteria=_TIGHT)
+    exact = cam.undistorted_pixels(ev)
+    assert exact.shape == (n, 2) and exact.dtype == np.float64
+    np.testing.assert_allclose(exact, reference.reshape(-1, 2), atol=1e-6)
+    assert np.abs(exact - np.rint(exact)).max() > 0.4          # not rounded: positions between pixels
+    kept = cam.undistorted_kept(ev)
+    rounded = cam.undistort_events(ev)
+    assert len(kept) == len(rounded) and np.all(np.diff(kept) > 0)
+    np.testing.assert_array_equal(np.column_stack([rounded.x, rounded.y]), np.rint(exact[kept]))
+    np.testing.assert_array_equal(rounded.t, ev.t[kept])
+
+
+def test_undistorted_pixels_of_a_pinhole_are_the_events_pixels():
+    cam = Camera.from_intrinsics(200.0, 200.0, 120.0, 90.0, 240, 180)
+    ev = Events([3, 239], [0, 179], [0, 1], [1, 0], 240, 180)
+    np.testing.assert_array_equal(cam.undistorted_pixels(ev), [[3.0, 0.0], [239.0, 179.0]])
+    np.testing.assert_array_equal(cam.undistorted_kept(ev), [0, 1])
+    with pytest.raises(ValueError, match="events come from a 240x180 sensor, the camera is 241x180"):
+        Camera.from_intrinsics(200.0, 200.0, 120.0, 90.0, 241, 180).undistorted_pixels(ev)

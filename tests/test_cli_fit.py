@@ -685,6 +685,41 @@ def test_a_whole_h5_file_too_long_to_hold_is_fitted_window_by_window(tmp_path, c
         assert (a["t0_us"], a["t1_us"], a["flow"]) == (b["t0_us"], b["t1_us"], b["flow"])
 
 
+@pytest.mark.parametrize("streamed", [False, True])
+def test_fit_through_a_lens_warps_each_event_from_its_sub_pixel_position(tmp_path, monkeypatch, streamed):
+    """``cmax fit --distortion`` (or a --calib with a lens) fitted each event at its nearest undistorted pixel,
+    dithered there. Now every window's fit (held in memory or read window by window) warps each event dithered
+    over its sensor pixel and mapped through the lens, as OpenCV's undistortPoints maps that position."""
+    from conftest import random_events
+
+    from cmax.camera import Camera
+    from cmax.fitting import api
+
+    events = random_events(60_000, width=120, height=90, seed=6, t_span_us=300_000)
+    path = write_h5(tmp_path / "recording.h5", events)
+    K, distortion = np.array([[90.0, 0, 59.5], [0, 90.0, 44.5], [0, 0, 1]]), np.array([-0.1, 0.02, 0.0, 0.0])
+    built = []
+    real = api.Window.from_events.__func__
+    monkeypatch.setattr(api.Window, "from_events",
+                        classmethod(lambda cls, *a, **k: built.append(real(cls, *a, **k)) or built[-1]))
+    if streamed:
+        monkeypatch.setattr("cmax.events.MAX_EVENTS", 30_000)
+    assert main(["fit", str(path), "--K", "90,90,59.5,44.5", "--model", "flow", "--max-events", "3000",
+                 "--distortion", "-0.1,0.02,0,0", "--quiet", "--window-ms", "100", "-o", str(tmp_path / "out")]) == 0
+    assert len(built) >= 3 and all(w.sensor is not None for w in built)
+    camera = Camera(K, 120, 90, distortion)
+    for w in built[:2]:
+        pixels = w.sensor.pixels
+        np.testing.assert_array_equal(np.rint(camera.undistortion_map[pixels[:, 1], pixels[:, 0]]),
+                                      np.column_stack([w.source.x, w.source.y]))
+        seed, n = w.settings.seed, len(w.source)
+        keep = np.sort(np.random.default_rng(seed).choice(n, 3000, replace=False))
+        dithered = pixels[keep] + np.random.default_rng([seed, 1]).uniform(-0.5, 0.5, (3000, 2))
+        expected = cv2.undistortPoints(dithered.reshape(-1, 1, 2), K, distortion, P=K, criteria=(
+            cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)).reshape(-1, 2)
+        np.testing.assert_allclose(np.column_stack([w.ev.x.numpy(), w.ev.y.numpy()]), expected, atol=1e-4)
+
+
 @pytest.mark.parametrize("options, message", [
     (["--model", "flow", "--speed", "1.5"], "--speed applies to --model se3, not flow"),
     (["--model", "rotation", "--zero-rotation-start"], "--zero-rotation-start applies to --model se3, not rotation"),

@@ -78,17 +78,20 @@ def events() -> Events:
 
 
 def _expected(model: DepthPoseNet, events: Events, window_us: int = WINDOW_US, start: int | None = None,
-              end: int | None = None) -> list[tuple[int, np.ndarray, np.ndarray]]:
+              end: int | None = None, pixels: np.ndarray | None = None) -> list[tuple[int, np.ndarray, np.ndarray]]:
     """``(t0_us, depth (H, W), twist (6,))`` of each window [t0, t0 + window_us) inside [start, end] (inclusive),
-    or ending at most 1% of a window after ``end`` (:data:`cmax.events.WINDOW_END_TOLERANCE`)."""
+    or ending at most 1% of a window after ``end`` (:data:`cmax.events.WINDOW_END_TOLERANCE`); ``pixels`` (N, 2):
+    the events' sub-pixel positions, spread bilinearly in the volume."""
     start = int(events.t[0]) if start is None else start
     end = int(events.t[-1]) if end is None else end
     results = []
     for k in range((end - start + 1 + window_us // 100) // window_us):
         t0 = start + k * window_us
         window = events.slice_time(t0, t0 + window_us)
+        a, b = np.searchsorted(events.t, [t0, t0 + window_us])
+        volume = voxel_grid(window, 5, pixels=None if pixels is None else pixels[a:b])
         with torch.no_grad():
-            out = model(torch.from_numpy(voxel_grid(window, 5))[None])
+            out = model(torch.from_numpy(volume)[None])
         results.append((t0, out.depth[0, 0].numpy(), out.twist[0].numpy()))
     return results
 
@@ -241,20 +244,23 @@ def test_cmax_depth_on_each_format_equals_a_direct_forward(name, checkpoint, net
 DISTORTION = np.array([-0.12, 0.03, 0.002, -0.001])
 
 
-def _undistorted(events: Events) -> Events:
-    """The events at their undistorted pixel by OpenCV directly (nearest integer, those outside dropped)."""
+def _undistorted(events: Events) -> tuple[Events, np.ndarray]:
+    """The events at their undistorted pixel by OpenCV directly (nearest integer, those outside dropped), and
+    their exact undistorted positions (N, 2) [px]."""
     pixels = np.column_stack([events.x, events.y]).astype(np.float64).reshape(-1, 1, 2)
-    xy = np.rint(cv2.undistortPoints(pixels, K, DISTORTION, P=K, criteria=(
-        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9)).reshape(-1, 2)).astype(np.int64)
+    exact = cv2.undistortPoints(pixels, K, DISTORTION, P=K, criteria=(
+        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 40, 1e-9)).reshape(-1, 2)
+    xy = np.rint(exact).astype(np.int64)
     inside = (xy[:, 0] >= 0) & (xy[:, 0] < W) & (xy[:, 1] >= 0) & (xy[:, 1] < H)
-    return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], W, H)
+    return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], W, H), exact[inside]
 
 
 @pytest.mark.parametrize("calibration", ["calib.txt", "cam_to_cam.yaml", "--distortion"])
 def test_a_calibration_with_distortion_undistorts_the_events(calibration, checkpoint, network, events, tmp_path,
                                                             capsys):
     """ECD calib.txt (with --size), a DSEC cam_to_cam.yaml whose resolution stands for the missing size
-    attributes, or --K with --distortion: the same undistorted events."""
+    attributes, or --K with --distortion: the same undistorted events, each spread bilinearly in the volume from
+    its exact undistorted position (the volume was that of the events rounded to their nearest pixels)."""
     path = tmp_path / "e.h5"
     _h5_without_size(path, events)
     calib = tmp_path / calibration
@@ -271,10 +277,10 @@ def test_a_calibration_with_distortion_undistorts_the_events(calibration, checkp
     out = tmp_path / "out"
     assert cmax_main(["depth", str(path), "-o", str(out), "--checkpoint", str(checkpoint), "--quiet",
                       *options]) == 0
-    undistorted = _undistorted(events)
+    undistorted, exact = _undistorted(events)
     assert len(undistorted) < len(events) or not np.array_equal(undistorted.x, events.x)   # it moved events
     first = int(events.t[0])
-    _check_outputs(out, _expected(network, undistorted, start=first, end=int(events.t[-1])))
+    _check_outputs(out, _expected(network, undistorted, start=first, end=int(events.t[-1]), pixels=exact))
     assert json.loads((out / "summary.json").read_text())["distortion"] == pytest.approx(
         list(DISTORTION) + ([0.0] if calibration == "calib.txt" else []))
 
@@ -601,8 +607,9 @@ def test_depth_range_help_says_it_is_the_colour_scale_only(capsys):
 def test_a_fisheye_camchain_with_a_rectification_maps_the_events_into_the_rectified_frame(checkpoint, network, events,
                                                                                       tmp_path, capsys):
     """A Kalibr camchain of an equidistant (fisheye) camera with rectification_matrix / projection_matrix (MVSEC's
-    layout) was refused; the network now sees the events at their rectified pixels, as
-    cv2.fisheye.undistortPoints(R, P) puts them, and every depth map records P's K."""
+    layout) was refused; the network now sees the events at their rectified positions, as
+    cv2.fisheye.undistortPoints(R, P) puts them (spread bilinearly in the volume), and every depth map records
+    P's K."""
     R = cv2.Rodrigues(np.array([0.01, -0.02, 0.015]))[0]
     P = np.array([[55.0, 0, 32.0], [0, 55.0, 24.0], [0, 0, 1]])
     D = np.array([-0.05, 0.01, 0.0, 0.0])
@@ -619,11 +626,14 @@ def test_a_fisheye_camchain_with_a_rectification_maps_the_events_into_the_rectif
                       "--calib", str(calib)]) == 0
     assert "an equidistant (fisheye) lens; the events are undistorted and rectified" in capsys.readouterr().err
     pixels = np.column_stack([events.x, events.y]).astype(np.float64).reshape(-1, 1, 2)
-    xy = np.rint(cv2.fisheye.undistortPoints(pixels, K, D, R=R, P=P).reshape(-1, 2)).astype(np.int64)
+    exact = cv2.fisheye.undistortPoints(pixels, K, D, R=R, P=P, criteria=(
+        cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 100, 1e-14)).reshape(-1, 2)
+    xy = np.rint(exact).astype(np.int64)
     inside = (xy[:, 0] >= 0) & (xy[:, 0] < W) & (xy[:, 1] >= 0) & (xy[:, 1] < H)
     rectified = Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], W, H)
     assert not np.array_equal(rectified.x, events.x[inside])                               # it moved events
-    _check_outputs(out, _expected(network, rectified, start=int(events.t[0]), end=int(events.t[-1])), K_expected=P)
+    _check_outputs(out, _expected(network, rectified, start=int(events.t[0]), end=int(events.t[-1]),
+                                  pixels=exact[inside]), K_expected=P)   # spread from the exact positions
     summary = json.loads((out / "summary.json").read_text())
     assert summary["distortion_model"] == "equidistant" and summary["rectified"] is True
     np.testing.assert_array_equal(summary["K"], P)

@@ -611,6 +611,35 @@ def test_mvsec_dataset_rectifies_the_events_into_the_depth_frame(tmp_path):
     assert same == events
 
 
+def test_mvsec_dataset_volume_spreads_each_event_from_its_exact_rectified_position(tmp_path):
+    """The volume was built from the events at their nearest rectified pixels (up to 0.5 px off, holes in a
+    regular pattern); now each event sits where the rectified pinhole projects its 3-D point (to 1e-3 px) and
+    its weight is split bilinearly around it: the volume is that of the true positions."""
+    from cmax.representations import voxel_grid
+    from learned.data import MVSECDataset
+
+    path, points, t = _fisheye_scene(tmp_path, np.random.default_rng(7))
+    calib = tmp_path / "camchain.yaml"
+    calib.write_text(MVSEC_CAMCHAIN)
+    R = np.array([[0.999877311526236, 0.015019439766575743, -0.004447282784398257],
+                  [-0.014996983873604017, 0.9998748347535599, 0.005040367172759556],
+                  [0.004522429630305261, -0.004973052949604937, 0.9999774079320989]])
+    P = np.array([[199.6530123165822, 0.0, 177.43276376280926], [0.0, 199.6530123165822, 126.81215684365904],
+                  [0, 0, 1]])
+    rectified = (points @ R.T) @ P.T
+    order = np.argsort(t, kind="stable")
+    expected = (rectified[:, :2] / rectified[:, 2:])[order]
+    inside = np.all((np.rint(expected) >= 0) & (np.rint(expected) < [346, 260]), axis=1)
+    ds = MVSECDataset(path, calib=calib, window_us=600_000, max_events=5000)
+    ds.middles = np.array([int(round(100.25e6))])          # one window over every event
+    events, pixels = ds.events(0), ds.pixels(0)
+    assert len(events) == len(pixels) == int(inside.sum()) > 2000
+    np.testing.assert_allclose(pixels, expected[inside], atol=1e-3)
+    np.testing.assert_allclose(ds[0]["volume"].numpy(), voxel_grid(events, ds.bins, pixels=expected[inside]),
+                               atol=1e-3)
+    assert not np.allclose(ds[0]["volume"].numpy(), voxel_grid(events, ds.bins), atol=0.1)   # not the rounded one
+
+
 def test_mvsec_dataset_without_calibration_warns_once_and_checks_the_calibration(tmp_path):
     import warnings
 

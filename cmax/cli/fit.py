@@ -53,7 +53,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser = subparsers.add_parser("fit", help="depth and motion per window by contrast maximization",
                                    description=__doc__.split("\n\n")[0])
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
-    add_camera_options(parser, distortion_help=": events are undistorted to the nearest pixel before the fit")
+    add_camera_options(parser, distortion_help=": each event is warped from its undistorted position (unrounded)")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
     add_recording_arguments(parser)
     api_default(parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
@@ -591,14 +591,15 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     if calibration.undistorts:          # one camera, its undistortion map computed once for every window
         camera = calibration.camera(events.width, events.height, K)
         undistort, K = camera.undistort_events, camera.pinhole_K   # the fit's K: the pixels' the events land on
+    raw = None               # through a lens: the recorded events, which each window's fit undistorts itself
     if calibration.undistorts and isinstance(events, StreamedEvents):
-        events = events.with_transform(undistort)
+        raw, events = events, events.with_transform(undistort)
         if lost := unmapped_pixels(camera):        # window by window: the pixels whose events are dropped, not counted
             notes.append(f"{lost:,} of the sensor's {camera.width * camera.height:,} pixels fall outside the image "
                          "once undistorted, or lie beyond the radius the distortion model reaches: their events are "
                          "dropped")
-    elif calibration.undistorts:
-        total = len(events)
+    if calibration.undistorts and not isinstance(events, StreamedEvents):
+        raw, total = events, len(events)
         events = undistort(events)
         if len(events) < total:
             notes.append(f"{total - len(events):,} events fall outside the image once undistorted, or lie beyond the "
@@ -631,14 +632,18 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
         notes += [note] if note else []     # None: too short an end to name
     for note in notes:
         print(f"cmax fit: note: {note}", file=sys.stderr)
+    fitted, fit_K = events, K
+    if raw is not None:    # the recorded events over the same span, and the camera: each event warped from its
+        span = (events.t_start, events.t_end) if isinstance(events, StreamedEvents) else (first_us, last_us)
+        fitted, fit_K = raw.slice_time(span[0], span[1] + 1), camera    # sub-pixel position (cmax.fit's)
     if args.jobs == 1:     # the bar ticks as each window is taken, i.e. when the one before is done
-        source = _CountedWindows(events, tqdm(total=n_windows, desc="windows", unit="window", disable=args.quiet))
+        source = _CountedWindows(fitted, tqdm(total=n_windows, desc="windows", unit="window", disable=args.quiet))
     else:                  # workers take windows ahead of their fits: fit_sequence's own bar counts results
-        source = events
+        source = fitted
     try:
         with warnings.catch_warnings(record=True) as caught:   # said once each, after the bar, and recorded
             warnings.simplefilter("always")
-            sequence = fit_sequence(source, K, sequence_model, window_us=window_us, step_us=step_us,
+            sequence = fit_sequence(source, fit_K, sequence_model, window_us=window_us, step_us=step_us,
                                     speed=args.speed, gyro=gyro, zero_rotation_start=args.zero_rotation_start,
                                     jobs=args.jobs, min_events=min_events,
                                     progress=args.jobs > 1 and not args.quiet, store=store, **options)

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from cmax._threads import blas_threads_scope, torch_threads_scope
-from cmax.camera import check_intrinsics, check_principal_point, intrinsics_oddity, pinhole_events
+from cmax.camera import Camera, check_intrinsics, check_principal_point, intrinsics_oddity, pinhole_events
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events, require_events
 from cmax.hot_pixels import no_pixels
@@ -28,7 +28,7 @@ from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality,
                                   _Sorted, _sorted_subset)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
-from cmax.fitting.window import Window
+from cmax.fitting.window import SensorPixels, Window
 from cmax.iwe import accumulate_bilinear, blur
 from cmax.warp import DepthGrid, WarpEvents, warp_flow, warp_rotation, warp_se3
 
@@ -350,10 +350,14 @@ def fit(
         one polarity is fine.
     K : array_like (3, 3) or cmax.Camera
         Pinhole intrinsics [px] of the (undistorted) events; or the
-        :class:`cmax.Camera` of the events' sensor, whose distortion (if any)
-        is undone first (:meth:`cmax.Camera.undistort_events`: each event to
-        its undistorted pixel, as ``cmax fit --calib`` does), so that the
-        depth and masks are maps of the undistorted image.
+        :class:`cmax.Camera` of the events' sensor, whose distortion (and
+        rectification, if any) is undone, as ``cmax fit --calib`` does: the
+        warp takes each event dithered over its sensor pixel and mapped
+        through the lens, unrounded (:meth:`cmax.Camera.undistort_points`),
+        the masks and pixel tests its nearest undistorted pixel
+        (:meth:`cmax.Camera.undistort_events`; events that land outside are
+        dropped), so that the depth and masks are maps of the undistorted
+        image.
     model : {"se3", "rotation", "flow"}
         ``flow``: a constant optical flow [px/s]; ``rotation``: an angular
         velocity [rad/s]; ``se3``: linear and angular velocity plus an
@@ -454,11 +458,15 @@ def fit(
     (array([ 40., -20.]), True)
     """
     start = time.perf_counter()
+    sensor = _sensor_pixels(events, K)
     events, K = pinhole_events(events, K)
     K = _check_inputs(events, K, model)
     _warn_odd_intrinsics(K, events.width, events.height)
     settings = _settings(settings, options, model)
+    unfiltered = events
     events, hot = _without_hot_pixels(events, settings)
+    if sensor is not None and events is not unfiltered:
+        sensor = replace(sensor, pixels=sensor.pixels[_off_pixels(unfiltered, hot)])
     speed = _check_speed(speed)
     if (speed is not None or pose is not None or omega is not None) and model != "se3":
         raise ValueError(f"speed, pose and omega apply to model='se3', not {model!r}")
@@ -484,7 +492,9 @@ def fit(
                                  settings.quality.noise_window_us, max_queries=settings.max_events)
                      if model == "se3" else None)
         fitted, keep = (events, None) if noise is None else _without_weak_events(events, noise, settings, ordered)
-        w = Window.from_events(fitted, K, settings, depth_grid)
+        if sensor is not None and keep is not None:
+            sensor = replace(sensor, pixels=sensor.pixels[keep])
+        w = Window.from_events(fitted, K, settings, depth_grid, sensor)
         motion = _start(model, init, pose_xi, known_omega, scale)
         stages = stages_for(model, w, pose_known=pose_xi is not None, hold_omega=known_omega is not None,
                             warm_v=init.v if init is not None and model == "se3" else None)
@@ -523,6 +533,24 @@ def _settings(settings: FitSettings | None, options: dict, model: str) -> FitSet
     if settings.polarity_split is None:
         settings = replace(settings, polarity_split=DEFAULT_POLARITY_SPLIT[model])
     return settings
+
+
+def _sensor_pixels(events: Events, K: object) -> SensorPixels | None:
+    """For a ``K`` that is a :class:`cmax.Camera` with a lens (not :attr:`~cmax.Camera.is_pinhole`): the sensor
+    pixels (M, 2) of the events its :meth:`~cmax.Camera.undistort_events` keeps, in their order, and the camera;
+    None otherwise (the events' checks are :func:`cmax.camera.pinhole_events`'s)."""
+    if not isinstance(K, Camera) or K.is_pinhole or not isinstance(events, Events) or \
+            events.sensor_size != (K.width, K.height):
+        return None
+    kept = K.undistorted_kept(events)
+    return SensorPixels(np.column_stack([events.x[kept], events.y[kept]]), K)
+
+
+def _off_pixels(events: Events, pixels: np.ndarray) -> np.ndarray:
+    """Which of ``events`` (N,) bool lie off ``pixels`` (K, 2) ``(x, y)``: those :func:`cmax.hot_pixels.without_pixels`
+    keeps."""
+    flat = events.y.astype(np.int64) * events.width + events.x
+    return ~np.isin(flat, pixels[:, 1].astype(np.int64) * events.width + pixels[:, 0])
 
 
 def _without_hot_pixels(events: Events, settings: FitSettings) -> tuple[Events, np.ndarray]:

@@ -53,7 +53,7 @@ from tqdm.auto import tqdm
 from cmax._signals import sigint_deferred
 from cmax._threads import available_cores, set_blas_threads
 from cmax._workers import die_with_parent, recorded, reissue, start_forkserver
-from cmax.camera import camera_and_intrinsics, pinhole_events
+from cmax.camera import Camera, camera_and_intrinsics, pinhole_events
 from cmax.events import Events
 from cmax.fitting.api import (MODELS, FitResult, _check_inputs, _check_speed, _known_omega, _pose_twist, _settings,
                               fit)
@@ -90,7 +90,7 @@ class FitTask:
 
     index: int
     events: Events
-    K: np.ndarray
+    K: "np.ndarray | Camera"
     model: str
     options: dict = field(default_factory=dict)
 
@@ -175,12 +175,11 @@ def fit_windows(windows: Sequence[Events], K: object, model: str = "se3", *, job
     windows = list(windows)
     for i, events in enumerate(windows):
         try:
-            if camera is not None:
-                windows[i], _ = pinhole_events(events, camera)
-            _check_inputs(windows[i], K, model)
+            _check_inputs(events if camera is None else pinhole_events(events, camera)[0], K, model)
         except (TypeError, ValueError) as error:
             raise type(error)(f"windows[{i}]: {error}") from None
-    tasks = (FitTask(i, events, K, model, dict(fit_options)) for i, events in enumerate(windows))
+    fitted_K = K if camera is None else camera          # each fit undoes the lens itself, as cmax.fit does
+    tasks = (FitTask(i, events, fitted_K, model, dict(fit_options)) for i, events in enumerate(windows))
     return run_tasks(tasks, min(workers, max(1, len(windows))), total=len(windows), progress=progress)
 
 

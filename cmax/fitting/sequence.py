@@ -10,7 +10,7 @@ from tqdm.auto import tqdm
 from cmax._threads import torch_threads_scope
 from cmax.camera import camera_and_intrinsics, pinhole_events
 from cmax.events import Events, check_time_us, uncovered_tail, window_starts
-from cmax.fitting.api import MIN_WINDOW_EVENTS, FitResult, _check_inputs, _check_speed, _settings, fit
+from cmax.fitting.api import MIN_WINDOW_EVENTS, FitResult, _check_inputs, _check_speed, _sensor_pixels, _settings, fit
 from cmax._workers import recorded, reissue
 from cmax.fitting.batch import FitTask, check_jobs, check_options, run_tasks
 from cmax.fitting.quality import MotionScorer, Verdict, _distance_deg, choose_from_neighbours, choose_from_run
@@ -120,7 +120,9 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         Anything with ``window(t0_us, t1_us)`` (a reader) or an :class:`Events`.
     K : array_like (3, 3) or cmax.Camera
         Pinhole intrinsics [px] of the events; or the :class:`cmax.Camera` of their sensor, whose
-        distortion (if any) is undone in every window first (as :func:`cmax.fit` does).
+        distortion (if any) each window's fit undoes as :func:`cmax.fit` does (sub-pixel positions for the
+        warp, nearest undistorted pixels for the masks; a window's event count is that of its events that
+        land inside the undistorted image).
     model : {"se3", "rotation", "flow"}
         The motion model of every window, as in :func:`cmax.fit`.
     window_us, step_us : int
@@ -250,8 +252,10 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         take = source.window
     else:
         raise TypeError(f"source must be Events or a reader with window(t0_us, t1_us), got {type(source).__name__}")
-    if camera is not None:                       # every window, also those the resolution reads again
-        take = lambda a, b, read=take: pinhole_events(read(a, b), camera)[0]  # noqa: E731
+    # each window's fit (also those the resolution runs again) undoes the lens itself, as cmax.fit does; the
+    # windows' event counts and times are those of their undistorted events
+    fit_K = K if camera is None else camera
+    undistorted = (lambda events: events) if camera is None else (lambda events: pinhole_events(events, camera)[0])
     starts = window_starts(t_start, t_end, window_us, step_us)
     if gyro is not None and len(starts):
         _check_gyro_covers(gyro, t_start, starts[-1] + window_us - 1)
@@ -264,14 +268,15 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
         fitted = 0
         for t0 in starts.tolist():
             events = take(t0, t0 + window_us)
-            if len(events) >= min_events and events.t[-1] > events.t[0]:
+            counted = undistorted(events)
+            if len(counted) >= min_events and counted.t[-1] > counted.t[0]:
                 window_start[fitted] = t0
                 if store is not None and (done := store.load(fitted, t0)) is not None:
                     loaded[fitted] = done
                 else:
-                    omega = None if gyro is None else window_gyro(gyro, int(events.t[0]), int(events.t[-1]))
-                    yield FitTask(fitted, events, K, model, dict(speed=speed, omega=omega, settings=settings,
-                                                                  **fit_options))
+                    omega = None if gyro is None else window_gyro(gyro, int(counted.t[0]), int(counted.t[-1]))
+                    yield FitTask(fitted, events, fit_K, model, dict(speed=speed, omega=omega, settings=settings,
+                                                                      **fit_options))
                 fitted += 1
             else:
                 skipped.append(t0)
@@ -315,9 +320,9 @@ def fit_sequence(source, K: object, model: str = "se3", *, window_us: int = 166_
                       f"{(skipped[0] - t_start) * 1e-6:.3f} s): across them the trajectory carries the last fitted "
                       "window's twist, a constant velocity that nothing measured (SequenceResult.skipped_us)",
                       UserWarning, stacklevel=2)
-    results = _resolve_ambiguous(results, take, K, speed, settings, fit_options, jobs)
+    results = _resolve_ambiguous(results, take, fit_K, speed, settings, fit_options, jobs)
     if settings.quality.smoothing and model == "se3":
-        results = smooth_from_neighbours(results, take, K, settings, fit_options, hold_omega=gyro is not None,
+        results = smooth_from_neighbours(results, take, fit_K, settings, fit_options, hold_omega=gyro is not None,
                                          neighbours=prior_neighbours(settings.quality, step_us))
     else:
         results = [_unresolved_unsteady(r, "the motion prior (QualitySettings.smoothing) is off")
@@ -542,9 +547,11 @@ def _score_prior(events: Events, K, result: FitResult, v: np.ndarray, omega: np.
     """The prior motion ``(v, omega)`` scored as an alternative of ``result`` on the window's own objective
     (an :class:`~cmax.fitting.quality.Alternative`), or None when the window has too few patches."""
     settings = _settings(settings, {}, "se3")
+    sensor = _sensor_pixels(events, K)                  # K a Camera with a lens: the events' sub-pixel positions
+    events, K = pinhole_events(events, K)
     with torch_threads_scope(len(events), threads=fit_options.get("num_threads", 1)):
         w = Window.from_events(events, _check_inputs(events, K, "se3"), settings,
-                               fit_options.get("depth_grid", (24, 32)))
+                               fit_options.get("depth_grid", (24, 32)), sensor)
         scorer = MotionScorer.build(w, result.v, result.omega, float(np.linalg.norm(result.v)), settings.quality)
         return None if scorer is None else scorer.score("neighbours", v, omega)
 

@@ -18,10 +18,21 @@ from cmax.objectives import deformation, multi_reference_contrast
 from cmax.warp import DepthGrid, WarpEvents, warp_se3
 
 if TYPE_CHECKING:  # pragma: no cover
+    from cmax.camera import Camera
     from cmax.events import Events
     from cmax.fitting.settings import FitSettings
 
-__all__ = ["Window", "SE3Model", "LOW_PARALLAX_PX"]
+__all__ = ["Window", "SE3Model", "SensorPixels", "LOW_PARALLAX_PX"]
+
+
+@dataclass(frozen=True, eq=False)
+class SensorPixels:
+    """Where a window's events were recorded, for a fit through a lens: each event's sensor pixel ``pixels``
+    (N, 2) [px], in the order of the window's (undistorted, integer) events, and the ``camera`` whose
+    :meth:`~cmax.Camera.undistort_points` maps a sensor position to the fit's pinhole pixels (sub-pixel)."""
+
+    pixels: np.ndarray
+    camera: "Camera"
 
 
 @dataclass(frozen=True, eq=False)
@@ -52,12 +63,17 @@ class Window:
         Depth-grid cell of each event.
     on : Tensor (N,) bool or None
         ON events when the contrast images polarities apart; None when merged.
+    sensor : SensorPixels or None
+        The sensor pixels of :attr:`source` and the camera through whose lens they were recorded: ``ev`` then
+        holds each event dithered over its sensor pixel and mapped through the lens (unrounded), while
+        :attr:`source` holds the nearest undistorted pixels; None for a pinhole.
     """
 
     ev: WarpEvents
     settings: "FitSettings"
     grid: DepthGrid
     source: "Events | None" = field(default=None, repr=False)
+    sensor: SensorPixels | None = field(default=None, repr=False)
     dt: torch.Tensor = field(init=False)
     dt_mid: torch.Tensor = field(init=False)
     focal: float = field(init=False)
@@ -78,17 +94,24 @@ class Window:
 
     @classmethod
     def from_events(cls, events: "Events", K: np.ndarray, settings: "FitSettings",
-                    depth_grid: tuple[int, int] = (24, 32)) -> "Window":
-        """The window of ``events`` with intrinsics ``K`` (3, 3), subsampled and dithered as ``settings`` say."""
-        ev = WarpEvents.from_events(events, K, max_events=settings.max_events, seed=settings.seed)
-        return cls(ev, settings, DepthGrid(tuple(depth_grid), events.width, events.height), events)
+                    depth_grid: tuple[int, int] = (24, 32), sensor: SensorPixels | None = None) -> "Window":
+        """The window of ``events`` with intrinsics ``K`` (3, 3), subsampled and dithered as ``settings`` say;
+        with ``sensor`` (the events' sensor pixels and lens), each event is dithered over its sensor pixel and
+        mapped through the lens to ``K``'s pixels, unrounded."""
+        if sensor is None:
+            ev = WarpEvents.from_events(events, K, max_events=settings.max_events, seed=settings.seed)
+        else:
+            ev = WarpEvents.from_events(events, K, max_events=settings.max_events, seed=settings.seed,
+                                        pixels=sensor.pixels, lens=sensor.camera.undistort_points)
+        return cls(ev, settings, DepthGrid(tuple(depth_grid), events.width, events.height), events, sensor)
 
     def with_seed(self, seed: int) -> "Window":
         """The same window drawn again from :attr:`source` with another subsampling and dither ``seed``."""
         if self.source is None:
             raise ValueError("this window keeps no source events to draw again from (built from prepared events)")
         K = self.ev.K.double().numpy()
-        return Window.from_events(self.source, K, replace(self.settings, seed=int(seed)), self.grid.shape)
+        return Window.from_events(self.source, K, replace(self.settings, seed=int(seed)), self.grid.shape,
+                                  self.sensor)
 
     @property
     def T(self) -> float:

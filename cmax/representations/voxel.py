@@ -65,6 +65,7 @@ def voxel_grid(
     t0_us: int | None = None,
     t1_us: int | None = None,
     normalization: str = "paper",
+    pixels: np.ndarray | None = None,
 ) -> Array:
     r"""The event volume of Zhu et al. (2019): signed polarities spread linearly over time bins.
 
@@ -97,6 +98,13 @@ def voxel_grid(
         whose weight above bin B-1 is dropped (the last event is lost): the first B
         bins of the paper's volume with B+1 bins. When ``t_N == t_0`` both put every
         event in bin 0 (tonic divides by zero there).
+    pixels : array_like, shape (N, 2), optional, keyword-only
+        Sub-pixel positions ``(x, y)`` [px] of the events (numpy :class:`Events` only), e.g. their exact
+        undistorted and rectified positions (:meth:`cmax.Camera.undistorted_pixels`) in place of their integer
+        pixels: each event's weight is also split bilinearly over the 4 pixels around its position (as DSEC's
+        and E-RAFT's loaders do after ``rectify_map.h5``), so a lens that spreads the pixels apart leaves no
+        pixels without events. Weight falling outside the image is dropped; rows with a NaN (no position) are
+        left out. Inside the image, the sum over bins and pixels is the sum of signed polarities.
 
     Returns
     -------
@@ -125,7 +133,7 @@ def voxel_grid(
     if normalization not in NORMALIZATIONS:
         raise ValueError(f"normalization must be one of {NORMALIZATIONS}, got {normalization!r}")
     if normalization == "tonic":
-        return voxel_grid(events, bins + 1, t0_us=t0_us, t1_us=t1_us)[:bins]
+        return voxel_grid(events, bins + 1, t0_us=t0_us, t1_us=t1_us, pixels=pixels)[:bins]
     t0_us = _check_optional_time("t0_us", t0_us)
     t1_us = _check_optional_time("t1_us", t1_us)
     kind, t_range = _inspect(events)
@@ -133,9 +141,59 @@ def voxel_grid(
         (bins, events.height, events.width), f"bins={bins} on a {events.width}x{events.height} sensor"
     )
     t0, span = _window(t_range, t0_us, t1_us)
+    if pixels is not None:
+        if kind != "numpy":
+            raise TypeError("pixels= takes numpy cmax.Events; the torch path spreads integer pixels only")
+        return _voxel_grid_bilinear(events, _check_pixels(pixels, len(events)), bins, t0, span)
     if kind == "numpy":
         return _voxel_grid_numpy(events, bins, t0, span)
     return _voxel_grid_torch(events, bins, t0, span)
+
+
+def _check_pixels(pixels: object, n: int) -> np.ndarray:
+    """``pixels`` as an (n, 2) float64 array [px]; ValueError naming ``pixels`` otherwise."""
+    try:
+        xy = np.asarray(pixels, dtype=np.float64)
+    except (TypeError, ValueError):
+        raise TypeError(f"pixels must be an (N, 2) array of numbers [px], got {type(pixels).__name__}") from None
+    if xy.shape != (n, 2):
+        raise ValueError(f"pixels must have shape ({n}, 2), one (x, y) [px] per event, got {xy.shape}")
+    return xy
+
+
+def _voxel_grid_bilinear(events: Events, pixels: np.ndarray, bins: int, t0: int, span: int) -> np.ndarray:
+    """(B, H, W) float32: each event's signed polarity spread linearly over the two time bins around ``t*`` and
+    bilinearly over the 4 pixels around its position ``pixels`` (N, 2) [px]; weight outside the image, and
+    events with a non-finite position, are dropped."""
+    height, width = events.height, events.width
+    plane = height * width
+    grid = np.zeros(bins * plane, np.float64)
+    signs = np.array([-1.0, 1.0])
+    for run in _chunks(0, len(events)):
+        xy = pixels[run]
+        keep = np.isfinite(xy).all(axis=1)
+        xy, t, p = xy[keep], events.t[run][keep], events.p[run][keep]
+        if bins == 1 or span == 0:
+            low, fraction = np.zeros(len(t), np.intp), np.zeros(len(t))
+        else:
+            t_star = _elapsed(t, t0, np.empty(len(t), np.float64)) * (bins - 1) / span
+            low = np.minimum(np.floor(t_star).astype(np.intp), bins - 2)
+            fraction = t_star - low
+        corner = np.floor(xy)
+        dx, dy = xy[:, 0] - corner[:, 0], xy[:, 1] - corner[:, 1]
+        col, row = corner[:, 0].astype(np.intp), corner[:, 1].astype(np.intp)
+        signed = signs[p]
+        for ox, oy, w_xy in ((0, 0, (1 - dx) * (1 - dy)), (1, 0, dx * (1 - dy)), (0, 1, (1 - dx) * dy),
+                             (1, 1, dx * dy)):
+            c, r = col + ox, row + oy
+            inside = (c >= 0) & (c < width) & (r >= 0) & (r < height)
+            flat = (r * width + c)[inside]
+            w = (signed * w_xy)[inside]
+            f, b = fraction[inside], low[inside]
+            grid += np.bincount(b * plane + flat, weights=w * (1 - f), minlength=bins * plane)
+            if bins > 1:
+                grid += np.bincount((b + 1) * plane + flat, weights=w * f, minlength=bins * plane)
+    return grid.astype(np.float32).reshape(bins, height, width)
 
 
 def _voxel_grid_numpy(
