@@ -16,7 +16,7 @@ import re
 import pytest
 
 MODULES = (
-    "cmax", "cmax.io", "cmax.representations", "cmax.sim", "cmax.contrast", "cmax.fitting", "cmax.emvs",
+    "cmax", "cmax.io", "cmax.io.provenance", "cmax.io.calibration", "cmax.representations", "cmax.sim", "cmax.contrast", "cmax.fitting", "cmax.emvs",
     "cmax.metrics", "cmax.geometry", "cmax.warp", "cmax.iwe", "cmax.objectives", "cmax.viz", "cmax.show",
     "learned.model", "learned.losses", "learned.data", "learned.config", "learned.checkpoint", "learned.train",
     "learned.evaluate", "learned.predict",

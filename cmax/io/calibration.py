@@ -63,8 +63,8 @@ class Calibration(NamedTuple):
 
 
 def topic_side(topic: str | None) -> str | None:
-    """``'left'`` or ``'right'`` when a camchain camera's ``rostopic`` names that camera of a stereo rig (a path
-    component ``left`` / ``right``, as MVSEC's ``/davis/left/image_raw``), else None.
+    """``'left'`` or ``'right'`` when a camchain camera's ``rostopic``, ``topic``, names that camera of a stereo rig
+    (a path component ``left`` / ``right``, as MVSEC's ``/davis/left/image_raw``), else None.
 
     >>> topic_side("/davis/right/image_raw"), topic_side("/cam0/image_raw"), topic_side(None)
     ('right', None, None)
