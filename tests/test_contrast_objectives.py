@@ -1,6 +1,8 @@
 """cmax.contrast: the event batch, the objectives' batching, gradients, metric scale, and the shared loss."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -21,6 +23,8 @@ OBJECTIVES = {
     "local_contrast": LocalContrast(cells=(2, 3), margin=3, smoothness=0.01),
     "global_contrast": GlobalContrast(),
     "collapse_guard": CollapseGuard(lattice=(3, 4)),
+    "average_timestamp_tv_random": AverageTimestamp(smoothness=0.01, cross_fit=CrossFit("random")),
+    "average_timestamp_pixels": AverageTimestamp(cross_fit=CrossFit("pixels")),
     **{f"{name}_{split}": kind(rho_range=(0.2, 1.0), cross_fit=CrossFit(split), **{size: 6})
        for name, kind, size in (("sweep_vote", SweepVote, "candidates"), ("plane_vote", PlaneVote, "planes"))
        for split in ("random", "pixels", "leave_one_out")},
@@ -315,6 +319,9 @@ def test_shared_objective_differentiates_event_pixels_and_intrinsics_on_the_cpu(
 @pytest.mark.parametrize("make, match", [
     (lambda: AverageTimestamp(eps=0.0), r"AverageTimestamp: eps must be a finite number > 0, got 0.0"),
     (lambda: AverageTimestamp(eps=-1.0), r"eps must be a finite number > 0"),
+    (lambda: AverageTimestamp(cross_fit=CrossFit("leave_one_out")),
+     r"AverageTimestamp: cross_fit must be None or a CrossFit with split 'random' or 'pixels'"),
+    (lambda: AverageTimestamp(cross_fit="random"), r"AverageTimestamp: cross_fit must be None or a CrossFit"),
     (lambda: SweepVote(sigma=-1.0), r"SweepVote: sigma must be a finite number >= 0, got -1.0"),
     (lambda: SweepVote(reference=float("nan")), r"SweepVote: reference must be a finite number"),
     (lambda: SweepVote(candidates=2.5), r"SweepVote: candidates must be an integer >= 2, got 2.5"),
@@ -327,7 +334,7 @@ def test_shared_objective_differentiates_event_pixels_and_intrinsics_on_the_cpu(
     (lambda: GlobalContrast(sigma=-1.0), r"GlobalContrast: sigma must be a finite number >= 0"),
     (lambda: CollapseGuard(lattice=(1, 3)), r"CollapseGuard: lattice \(rows, cols\) must be an integer >= 2, got 1"),
     (lambda: CollapseGuard(times=(float("nan"),)), r"CollapseGuard: times must be a finite number"),
-], ids=["at-eps-zero", "at-eps-negative", "sweep-sigma", "sweep-reference", "sweep-candidates", "plane-planes",
+], ids=["at-eps-zero", "at-eps-negative", "at-cross-fit-loo", "at-cross-fit-str", "sweep-sigma", "sweep-reference", "sweep-candidates", "plane-planes",
         "plane-sigma", "local-cells", "local-margin", "local-smoothness", "global-references", "global-sigma",
         "guard-lattice", "guard-times"])
 def test_objective_settings_are_refused_by_name(make, match):
@@ -422,3 +429,70 @@ def test_sweep_vote_with_motion_keeps_its_cross_fit():
     torch.testing.assert_close(fixed(batch, params), objective(batch, params))
     plain = SweepVote(rho_range=(0.2, 1.0), candidates=6)
     assert abs(float(fixed(batch, params)[0]) - float(plain(batch, params)[0])) > 1e-3
+
+
+@pytest.mark.parametrize("split, folds", [("random", 2), ("pixels", 2), ("random", 3)])
+def test_cross_fitted_average_timestamp_reads_each_fold_against_the_others(split, folds):
+    """The held-out average timestamp, built here event by event: each event of fold k, at each pixel its
+    bilinear vote reaches, contributes its share of fold k's votes there times its weight times fold l's average
+    timestamp there, summed over ordered pairs k != l and divided by their number; per reference, over the
+    pixels where two folds vote in one polarity."""
+    from cmax.contrast import warp_windows
+
+    batch, params = _tiny(80, seed=3)
+    params = DepthMotion(params.inverse_depth.detach(), params.twist.detach() * 6)   # some events leave
+    cross_fit = CrossFit(split, folds=folds)
+    value = float(AverageTimestamp(cross_fit=cross_fit)(batch, params)[0])
+    fold = cross_fit.fold(batch).tolist()
+    tau = (batch.t / batch.duration_s[0]).tolist()
+    dt = torch.stack([batch.t - batch.duration_s[0], batch.t])
+    with torch.no_grad():
+        x, y = warp_windows(batch, params, dt)
+    H, W = batch.height, batch.width
+    kept = [all(-1e-3 <= float(x[r, i]) <= W - 1 + 1e-3 and -1e-3 <= float(y[r, i]) <= H - 1 + 1e-3
+                for r in range(2)) for i in range(len(batch))]
+    assert 20 < sum(kept) < len(batch)                              # some events purged, most kept
+    expected = 0.0
+    for r in range(2):
+        votes = {}                                                  # (polarity, fold, pixel) -> [(event, vote)]
+        for i in range(len(batch)):
+            if not kept[i]:
+                continue
+            x0, y0 = math.floor(float(x[r, i])), math.floor(float(y[r, i]))
+            fx, fy = float(x[r, i]) - x0, float(y[r, i]) - y0
+            for u, v, share in ((x0, y0, (1 - fx) * (1 - fy)), (x0 + 1, y0, fx * (1 - fy)),
+                                (x0, y0 + 1, (1 - fx) * fy), (x0 + 1, y0 + 1, fx * fy)):
+                if 0 <= u < W and 0 <= v < H:
+                    votes.setdefault((float(batch.polarity[i]) > 0, fold[i], (u, v)), []).append((i, share))
+        weight = [tau[i] if r == 0 else 1 - tau[i] for i in range(len(batch))]
+        count = {key: sum(s for _, s in vs) for key, vs in votes.items()}
+        average = {key: sum(s * weight[i] for i, s in vs) / count[key] for key, vs in votes.items()}
+        total = 0.0
+        for (on, k, pixel), vs in votes.items():
+            for i, share in vs:
+                for m in range(folds):
+                    if m != k:
+                        total += share / count[(on, k, pixel)] * weight[i] * average.get((on, m, pixel), 0.0)
+        pixels = {pixel for (on, k, pixel) in votes
+                  if sum((on, m, pixel) in votes for m in range(folds)) >= 2}
+        assert len(pixels) > 5
+        expected += total / (folds * (folds - 1)) / len(pixels)
+    assert value == pytest.approx(expected, rel=1e-7)
+
+
+def test_cross_fitted_average_timestamp_by_hand():
+    """Two events of one polarity on one pixel, in different folds, no motion: the plain loss squares each
+    reference's average (0.5^2 + 0.5^2), the held-out one multiplies the two folds' averages, 0 x 1 and 1 x 0."""
+    K = torch.eye(3, dtype=torch.float64)[None]
+    batch = EventWindows(torch.tensor([2.0, 2.0], dtype=torch.float64), torch.tensor([3.0, 3.0], dtype=torch.float64),
+                         torch.tensor([0.0, 0.1], dtype=torch.float64), torch.ones(2, dtype=torch.float64),
+                         torch.zeros(2, dtype=torch.int64), K, torch.tensor([0.1], dtype=torch.float64), 6, 5)
+    params = DepthMotion(torch.zeros(1, 1, 1, 1, dtype=torch.float64), torch.zeros(1, 6, dtype=torch.float64))
+    cross_fit = next(CrossFit(seed=s) for s in range(20) if len(set(CrossFit(seed=s).fold(batch).tolist())) == 2)
+    assert float(AverageTimestamp()(batch, params)[0]) == pytest.approx(0.5)
+    assert float(AverageTimestamp(cross_fit=cross_fit)(batch, params)[0]) == pytest.approx(0.0, abs=1e-12)
+    # one event alone: the plain loss scores its own weight squared (0^2 + 1^2), the held-out one has no pixel
+    one = EventWindows(batch.x[1:], batch.y[1:], batch.t[1:], batch.polarity[1:], batch.window[1:], K,
+                       batch.duration_s, 6, 5)
+    assert float(AverageTimestamp()(one, params)[0]) == pytest.approx(1.0)
+    assert float(AverageTimestamp(cross_fit=cross_fit)(one, params)[0]) == 0.0
