@@ -116,6 +116,7 @@ def objectives(rho_range: tuple[float, float]) -> dict[str, object]:
            for split, cross_fit in CROSS_FITS.items()},
         **{f"average_timestamp_tv_{split}": AverageTimestamp(smoothness=0.003, cross_fit=cross_fit)
            for split, cross_fit in TIMESTAMP_CROSS_FITS.items()},
+        "average_timestamp_tv_3ref": AverageTimestamp(smoothness=0.003, references=(1.0, 0.5, 0.0)),
     }
 
 
