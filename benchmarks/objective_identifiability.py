@@ -90,6 +90,11 @@ PLANE_VOTE_WEIGHTS = (0.5,)
 #: checkerboard (the events of one pixel never read each other).
 CROSS_FITS = {"halves": CrossFit("random"), "loo": CrossFit("leave_one_out"), "pixels": CrossFit("pixels")}
 
+#: Cross-fitted variants of the shared objective (``average_timestamp_tv_<split>``; ``AverageTimestamp(cross_fit=)``):
+#: the folds' average timestamps multiplied pairwise instead of each pixel's own average squared (``halves``: two
+#: random folds; ``pixels``: a one-pixel checkerboard). Leaving one out is not defined for it.
+TIMESTAMP_CROSS_FITS = {"halves": CrossFit("random"), "pixels": CrossFit("pixels")}
+
 
 def objectives(rho_range: tuple[float, float]) -> dict[str, object]:
     """The candidates, by name (settings chosen on the tuning seeds)."""
@@ -109,6 +114,9 @@ def objectives(rho_range: tuple[float, float]) -> dict[str, object]:
            for split, cross_fit in CROSS_FITS.items()},
         **{f"sweep_vote_{split}": SweepVote(rho_range=rho_range, cross_fit=cross_fit)
            for split, cross_fit in CROSS_FITS.items()},
+        **{f"average_timestamp_tv_{split}": AverageTimestamp(smoothness=0.003, cross_fit=cross_fit)
+           for split, cross_fit in TIMESTAMP_CROSS_FITS.items()},
+        "average_timestamp_tv_3ref": AverageTimestamp(smoothness=0.003, references=(1.0, 0.5, 0.0)),
     }
 
 

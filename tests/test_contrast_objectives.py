@@ -1,6 +1,8 @@
 """cmax.contrast: the event batch, the objectives' batching, gradients, metric scale, and the shared loss."""
 from __future__ import annotations
 
+import math
+
 import numpy as np
 import pytest
 import torch
@@ -21,6 +23,9 @@ OBJECTIVES = {
     "local_contrast": LocalContrast(cells=(2, 3), margin=3, smoothness=0.01),
     "global_contrast": GlobalContrast(),
     "collapse_guard": CollapseGuard(lattice=(3, 4)),
+    "average_timestamp_tv_random": AverageTimestamp(smoothness=0.01, cross_fit=CrossFit("random")),
+    "average_timestamp_pixels": AverageTimestamp(cross_fit=CrossFit("pixels")),
+    "average_timestamp_multi_reference": AverageTimestamp(smoothness=0.01, references=(1.0, 0.5, 0.0)),
     **{f"{name}_{split}": kind(rho_range=(0.2, 1.0), cross_fit=CrossFit(split), **{size: 6})
        for name, kind, size in (("sweep_vote", SweepVote, "candidates"), ("plane_vote", PlaneVote, "planes"))
        for split in ("random", "pixels", "leave_one_out")},
@@ -315,6 +320,12 @@ def test_shared_objective_differentiates_event_pixels_and_intrinsics_on_the_cpu(
 @pytest.mark.parametrize("make, match", [
     (lambda: AverageTimestamp(eps=0.0), r"AverageTimestamp: eps must be a finite number > 0, got 0.0"),
     (lambda: AverageTimestamp(eps=-1.0), r"eps must be a finite number > 0"),
+    (lambda: AverageTimestamp(cross_fit=CrossFit("leave_one_out")),
+     r"AverageTimestamp: cross_fit must be None or a CrossFit with split 'random' or 'pixels'"),
+    (lambda: AverageTimestamp(cross_fit="random"), r"AverageTimestamp: cross_fit must be None or a CrossFit"),
+    (lambda: AverageTimestamp(references=(0.5, 1.5)),
+     r"AverageTimestamp: references must be a non-empty tuple of distinct numbers in \[0, 1\]"),
+    (lambda: AverageTimestamp(references=()), r"AverageTimestamp: references must be a non-empty tuple"),
     (lambda: SweepVote(sigma=-1.0), r"SweepVote: sigma must be a finite number >= 0, got -1.0"),
     (lambda: SweepVote(reference=float("nan")), r"SweepVote: reference must be a finite number"),
     (lambda: SweepVote(candidates=2.5), r"SweepVote: candidates must be an integer >= 2, got 2.5"),
@@ -327,7 +338,8 @@ def test_shared_objective_differentiates_event_pixels_and_intrinsics_on_the_cpu(
     (lambda: GlobalContrast(sigma=-1.0), r"GlobalContrast: sigma must be a finite number >= 0"),
     (lambda: CollapseGuard(lattice=(1, 3)), r"CollapseGuard: lattice \(rows, cols\) must be an integer >= 2, got 1"),
     (lambda: CollapseGuard(times=(float("nan"),)), r"CollapseGuard: times must be a finite number"),
-], ids=["at-eps-zero", "at-eps-negative", "sweep-sigma", "sweep-reference", "sweep-candidates", "plane-planes",
+], ids=["at-eps-zero", "at-eps-negative", "at-cross-fit-loo", "at-cross-fit-str", "at-references",
+        "at-references-empty", "sweep-sigma", "sweep-reference", "sweep-candidates", "plane-planes",
         "plane-sigma", "local-cells", "local-margin", "local-smoothness", "global-references", "global-sigma",
         "guard-lattice", "guard-times"])
 def test_objective_settings_are_refused_by_name(make, match):
@@ -422,3 +434,104 @@ def test_sweep_vote_with_motion_keeps_its_cross_fit():
     torch.testing.assert_close(fixed(batch, params), objective(batch, params))
     plain = SweepVote(rho_range=(0.2, 1.0), candidates=6)
     assert abs(float(fixed(batch, params)[0]) - float(plain(batch, params)[0])) > 1e-3
+
+
+def _average_timestamp_event_by_event(batch: EventWindows, params: DepthMotion, references: tuple[float, ...],
+                                      fold: list[int] | None, folds: int) -> float:
+    """The average-timestamp loss of one window built event by event (no smoothness): warped to each reference
+    ``r T``, each event weighted by ``1 - |tau - r| / max(r, 1 - r)``, purged when a warp leaves the image, its
+    bilinear shares voted pixel by pixel. Plain (``fold`` None): each pixel's average squared, over the pixels
+    with a vote. Held out: each event of fold k contributes its share of fold k's votes times its weight times
+    fold l's average there, over ordered pairs k != l, divided by their number, over the pixels where two folds
+    vote in one polarity. The references' sum times ``2 / len(references)``."""
+    from cmax.contrast import warp_windows
+
+    T = float(batch.duration_s[0])
+    tau = [float(t) / T for t in batch.t]
+    dt = torch.stack([batch.t - r * T for r in references])
+    with torch.no_grad():
+        x, y = warp_windows(batch, params, dt)
+    H, W, n = batch.height, batch.width, len(batch)
+    kept = [all(-1e-3 <= float(x[r, i]) <= W - 1 + 1e-3 and -1e-3 <= float(y[r, i]) <= H - 1 + 1e-3
+                for r in range(len(references))) for i in range(n)]
+    assert 20 < sum(kept) < n                                       # some events purged, most kept
+    fold = [0] * n if fold is None else fold
+    expected = 0.0
+    for r, reference in enumerate(references):
+        votes = {}                                                  # (polarity, fold, pixel) -> [(event, vote)]
+        for i in range(n):
+            if not kept[i]:
+                continue
+            x0, y0 = math.floor(float(x[r, i])), math.floor(float(y[r, i]))
+            fx, fy = float(x[r, i]) - x0, float(y[r, i]) - y0
+            for u, v, share in ((x0, y0, (1 - fx) * (1 - fy)), (x0 + 1, y0, fx * (1 - fy)),
+                                (x0, y0 + 1, (1 - fx) * fy), (x0 + 1, y0 + 1, fx * fy)):
+                if 0 <= u < W and 0 <= v < H:
+                    votes.setdefault((float(batch.polarity[i]) > 0, fold[i], (u, v)), []).append((i, share))
+        weight = [1 - abs(tau[i] - reference) / max(reference, 1 - reference) for i in range(n)]
+        count = {key: sum(s for _, s in vs) for key, vs in votes.items()}
+        average = {key: sum(s * weight[i] for i, s in vs) / count[key] for key, vs in votes.items()}
+        if folds == 1:
+            total = sum(a * a for a in average.values())
+            pixels = {pixel for (_, _, pixel) in votes}
+        else:
+            total = 0.0
+            for (on, k, pixel), vs in votes.items():
+                for i, share in vs:
+                    for m in range(folds):
+                        if m != k:
+                            total += share / count[(on, k, pixel)] * weight[i] * average.get((on, m, pixel), 0.0)
+            total /= folds * (folds - 1)
+            pixels = {pixel for (on, k, pixel) in votes if sum((on, m, pixel) in votes for m in range(folds)) >= 2}
+        assert len(pixels) > 5
+        expected += total / len(pixels)
+    return expected * 2 / len(references)
+
+
+@pytest.mark.parametrize("split, folds, references", [
+    ("random", 2, (1.0, 0.0)), ("pixels", 2, (1.0, 0.0)), ("random", 3, (1.0, 0.0)), (None, 1, (1.0, 0.5, 0.0)),
+    ("random", 2, (0.25, 1.0, 0.0))])
+def test_average_timestamp_cross_fitted_or_multi_reference_equals_an_event_by_event_construction(split, folds,
+                                                                                                  references):
+    """The held-out average timestamp (one fold's timestamps read against the others' per-pixel averages) and
+    the multi-reference one equal :func:`_average_timestamp_event_by_event`."""
+    batch, params = _tiny(80, seed=3)
+    params = DepthMotion(params.inverse_depth.detach(), params.twist.detach() * 6)   # some events leave
+    cross_fit = None if split is None else CrossFit(split, folds=folds)
+    value = float(AverageTimestamp(cross_fit=cross_fit, references=references)(batch, params)[0])
+    fold = None if cross_fit is None else cross_fit.fold(batch).tolist()
+    expected = _average_timestamp_event_by_event(batch, params, references, fold, folds)
+    assert value == pytest.approx(expected, rel=1e-7)
+
+
+def test_multi_reference_average_timestamp_by_hand():
+    """Three events of one polarity on one pixel at tau = 0, 0.5, 1, no motion: at the middle reference the
+    weights are 0, 1, 0 (average 1/3), at the end 0, 0.5, 1 and at the start 1, 0.5, 0 (average 1/2); the sum over
+    references is scaled by 2 / their number."""
+    K = torch.eye(3, dtype=torch.float64)[None]
+    batch = EventWindows(torch.full((3,), 2.0, dtype=torch.float64), torch.full((3,), 3.0, dtype=torch.float64),
+                         torch.tensor([0.0, 0.05, 0.1], dtype=torch.float64), torch.ones(3, dtype=torch.float64),
+                         torch.zeros(3, dtype=torch.int64), K, torch.tensor([0.1], dtype=torch.float64), 6, 5)
+    params = DepthMotion(torch.zeros(1, 1, 1, 1, dtype=torch.float64), torch.zeros(1, 6, dtype=torch.float64))
+    assert float(AverageTimestamp(references=(0.5,))(batch, params)[0]) == pytest.approx(2 / 9)
+    assert float(AverageTimestamp(references=(1.0, 0.5, 0.0))(batch, params)[0]) == pytest.approx(
+        (0.25 + 1 / 9 + 0.25) * 2 / 3)
+    assert float(AverageTimestamp(references=(1.0, 0.0))(batch, params)[0]) == pytest.approx(0.5)
+
+
+def test_cross_fitted_average_timestamp_by_hand():
+    """Two events of one polarity on one pixel, in different folds, no motion: the plain loss squares each
+    reference's average (0.5^2 + 0.5^2), the held-out one multiplies the two folds' averages, 0 x 1 and 1 x 0."""
+    K = torch.eye(3, dtype=torch.float64)[None]
+    batch = EventWindows(torch.tensor([2.0, 2.0], dtype=torch.float64), torch.tensor([3.0, 3.0], dtype=torch.float64),
+                         torch.tensor([0.0, 0.1], dtype=torch.float64), torch.ones(2, dtype=torch.float64),
+                         torch.zeros(2, dtype=torch.int64), K, torch.tensor([0.1], dtype=torch.float64), 6, 5)
+    params = DepthMotion(torch.zeros(1, 1, 1, 1, dtype=torch.float64), torch.zeros(1, 6, dtype=torch.float64))
+    cross_fit = next(CrossFit(seed=s) for s in range(20) if len(set(CrossFit(seed=s).fold(batch).tolist())) == 2)
+    assert float(AverageTimestamp()(batch, params)[0]) == pytest.approx(0.5)
+    assert float(AverageTimestamp(cross_fit=cross_fit)(batch, params)[0]) == pytest.approx(0.0, abs=1e-12)
+    # one event alone: the plain loss scores its own weight squared (0^2 + 1^2), the held-out one has no pixel
+    one = EventWindows(batch.x[1:], batch.y[1:], batch.t[1:], batch.polarity[1:], batch.window[1:], K,
+                       batch.duration_s, 6, 5)
+    assert float(AverageTimestamp()(one, params)[0]) == pytest.approx(1.0)
+    assert float(AverageTimestamp(cross_fit=cross_fit)(one, params)[0]) == 0.0

@@ -251,50 +251,123 @@ class AverageTimestamp:
     (:func:`log_depth_variation`): without it a per-pixel map lets every pixel
     place its few events wherever they score best.
 
+    With ``cross_fit`` (:class:`CrossFit`, ``random`` or ``pixels``; the held-out analogue) the events are dealt
+    into folds and each fold imaged on its own: ``A^k_p(x)`` is the average timestamp of fold ``k``'s events,
+    and ``T_p(x)^2`` becomes the mean over pairs of different folds of ``A^k_p(x) A^l_p(x)`` (with two folds,
+    one half's timestamps read against the other half's per-pixel average: ``sum_x A^1 A^2 = sum_{i in 1}
+    sum_x (share of event i in x) tau_i A^2(x)``), summed over the pixels where at least two folds vote in one
+    polarity and divided by their number. An event's own timestamp is never squared: a pixel that holds one
+    event (or the events of one fold) scores nothing instead of ``tau_i^2``; the product of two independent
+    averages is the squared mean without the average's variance (the cross-fitting of Chernozhukov et al.,
+    Econometrics Journal 2018, see :class:`CrossFit`). It takes the torch operations, not the compiled
+    images.
+
+    With ``references`` other than the end and the start (1, 0), the events are warped to each reference time
+    ``r T`` and weighted by their closeness to it in time, ``1 - |tau_i - r| / max(r, 1 - r)`` (``tau_i`` at
+    the end, ``1 - tau_i`` at the start), and the sum over references is scaled by ``2 / len(references)``
+    (the smoothness weight keeps its meaning): the multi-reference focus of Shiba, Aoki, Gallego, "Secrets of
+    event-based optical flow", ECCV 2022, applied to the average timestamp. Like ``cross_fit``, it takes the
+    torch operations.
+
     Attributes
     ----------
     purge : bool
-        Drop events that either warp moves out of the image.
+        Drop events that any warp moves out of the image.
     smoothness : float
         Weight of :func:`log_depth_variation` (0: none).
     eps : float
         Added to the vote count before dividing.
+    cross_fit : CrossFit or None
+        The held-out form above (``random`` or ``pixels`` split); None: each pixel's own average squared.
+    references : tuple of float
+        Reference times, fractions of the window in [0, 1] (distinct); (1, 0): the end and the start.
     """
 
     purge: bool = True
     smoothness: float = 0.0
     eps: float = 1e-9
+    cross_fit: CrossFit | None = None
+    references: tuple[float, ...] = (1.0, 0.0)
 
     def __post_init__(self) -> None:
         _require_number("AverageTimestamp", "smoothness", self.smoothness, 0.0)
         _require_number("AverageTimestamp", "eps", self.eps, 0.0, above=True)
+        if self.cross_fit is not None and not (isinstance(self.cross_fit, CrossFit)
+                                               and self.cross_fit.split is not HeldOutSplit.LEAVE_ONE_OUT):
+            raise ValueError(f"AverageTimestamp: cross_fit must be None or a CrossFit with split 'random' or "
+                             f"'pixels', got {self.cross_fit!r}")
+        refs = self.references
+        if not (isinstance(refs, tuple) and refs and len(set(refs)) == len(refs)
+                and all(isinstance(r, numbers.Real) and not isinstance(r, bool) and 0 <= r <= 1 for r in refs)):
+            raise ValueError(f"AverageTimestamp: references must be a non-empty tuple of distinct numbers in "
+                             f"[0, 1] (fractions of the window), got {refs!r}")
+
+    def _weights(self, tau: torch.Tensor) -> torch.Tensor:
+        """Each event's weight (R, N) at each reference: its closeness in time (class docstring) for normalised
+        times ``tau`` (N,) in [0, 1]; ``tau`` itself at the end, ``1 - tau`` at the start."""
+        rows = [tau if r == 1 else 1.0 - tau if r == 0 else 1.0 - (tau - r).abs() / max(r, 1.0 - r)
+                for r in self.references]
+        return torch.stack(rows)
 
     @_non_finite_scores_nan
     def __call__(self, batch: EventWindows, params: DepthMotion) -> torch.Tensor:
         B, H, W, b = batch.count, batch.height, batch.width, batch.window
         duration = batch.duration_s.to(batch.dtype)[b]
         tau = (batch.t / duration).clamp(0.0, 1.0)
-        dt = torch.stack([batch.t - duration, batch.t])                          # forward (end), backward (start)
+        R = len(self.references)
+        dt = torch.stack([batch.t - duration if r == 1 else batch.t if r == 0 else batch.t - r * duration
+                          for r in self.references])                            # (R, N); (1, 0): end, start
         x, y = warp_windows(batch, params, dt, compiled=_COMPILED)
-        if _COMPILED and compiled_images_apply(x, y):
+        if self.cross_fit is not None:
+            loss = self._held_out(batch, x, y, self._weights(tau)) * (2.0 / R)
+            return _plus_smoothness(loss, self.smoothness, batch, params)
+        if _COMPILED and self.references == (1.0, 0.0) and compiled_images_apply(x, y):
             base = (batch.polarity > 0).long() * B + b
             loss = average_timestamp_images(x, y, tau, base, B, (H, W), self.eps, self.purge)
             return _plus_smoothness(loss, self.smoothness, batch, params)
         keep = torch.ones_like(x)
         if self.purge:
             keep = _inside(batch, x.detach(), y.detach()).all(0).to(x.dtype).expand_as(x)
-        weights = torch.stack([tau, 1.0 - tau])                                  # (2, N)
+        weights = self._weights(tau)                                             # (R, N)
         on = (batch.polarity > 0).long()
-        image = ((torch.arange(2, device=x.device)[:, None] * 2 + on[None]) * B + b[None]).reshape(-1)
-        counts = accumulate_bilinear_indexed(x.reshape(-1), y.reshape(-1), keep.reshape(-1), image, 4 * B, H, W)
+        image = ((torch.arange(R, device=x.device)[:, None] * 2 + on[None]) * B + b[None]).reshape(-1)
+        counts = accumulate_bilinear_indexed(x.reshape(-1), y.reshape(-1), keep.reshape(-1), image, 2 * R * B, H, W)
         stamps = accumulate_bilinear_indexed(x.reshape(-1), y.reshape(-1), (keep * weights).reshape(-1), image,
-                                             4 * B, H, W)
-        counts, stamps = counts.reshape(2, 2, B, H * W), stamps.reshape(2, 2, B, H * W)
+                                             2 * R * B, H, W)
+        counts, stamps = counts.reshape(R, 2, B, H * W), stamps.reshape(R, 2, B, H * W)
         average = stamps / (counts + self.eps)
         square = (average * average).sum((1, 3))                              # (refs, B)
         active = (counts.detach().sum(1) > 0).sum(-1)                          # (refs, B)
-        loss = (square / active.clamp(min=1).to(square.dtype)).sum(0)
+        loss = (square / active.clamp(min=1).to(square.dtype)).sum(0) * (2.0 / R)
         return _plus_smoothness(loss, self.smoothness, batch, params)
+
+    def _held_out(self, batch: EventWindows, x: torch.Tensor, y: torch.Tensor, weights: torch.Tensor
+                  ) -> torch.Tensor:
+        """The cross-fitted data term (B,) (class docstring), summed over references, of events warped to ``x, y``
+        (R, N) [px] with their weights ``weights`` (R, N): per reference, pixel and polarity the mean over
+        ordered pairs of different folds of the folds' average timestamps' product, ``((sum_k A^k)^2 - sum_k
+        (A^k)^2) / (F (F - 1))``, summed over the pixels where at least two folds vote in one polarity, over
+        their number."""
+        B, H, W, b = batch.count, batch.height, batch.width, batch.window
+        R = x.shape[0]
+        folds = self.cross_fit.folds
+        fold = self.cross_fit.fold(batch)
+        keep = torch.ones_like(x)
+        if self.purge:
+            keep = _inside(batch, x.detach(), y.detach()).all(0).to(x.dtype).expand_as(x)
+        on = (batch.polarity > 0).long()
+        own = (on * folds + fold) * B + b                                        # (N,): polarity, fold, window
+        image = (torch.arange(R, device=x.device)[:, None] * (2 * folds * B) + own[None]).reshape(-1)
+        count = 2 * R * folds * B
+        counts = accumulate_bilinear_indexed(x.reshape(-1), y.reshape(-1), keep.reshape(-1), image, count, H, W)
+        stamps = accumulate_bilinear_indexed(x.reshape(-1), y.reshape(-1), (keep * weights).reshape(-1), image,
+                                             count, H, W)
+        counts, stamps = counts.reshape(R, 2, folds, B, H * W), stamps.reshape(R, 2, folds, B, H * W)
+        average = stamps / (counts + self.eps)                                   # (refs, polarity, fold, B, HW)
+        pairs = (average.sum(2) ** 2 - (average * average).sum(2)) / (folds * (folds - 1))
+        square = pairs.sum((1, 3))                                               # (refs, B)
+        voting = ((counts.detach() > 0).sum(2) >= 2).any(1)                     # (refs, B, HW): 2 folds, 1 polarity
+        return (square / voting.sum(-1).clamp(min=1).to(square.dtype)).sum(0)
 
 
 def _sample_indexed(images: torch.Tensor, image: torch.Tensor, x: torch.Tensor, y: torch.Tensor) -> torch.Tensor:
