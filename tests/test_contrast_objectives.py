@@ -331,6 +331,8 @@ def test_shared_objective_differentiates_event_pixels_and_intrinsics_on_the_cpu(
     (lambda: SweepVote(candidates=2.5), r"SweepVote: candidates must be an integer >= 2, got 2.5"),
     (lambda: PlaneVote(planes=2.5), r"PlaneVote: planes must be an integer >= 2, got 2.5"),
     (lambda: PlaneVote(sigma=float("nan")), r"PlaneVote: sigma must be a finite number >= 0"),
+    (lambda: SweepVote(cross_fit="random"), r"SweepVote: cross_fit must be None or a CrossFit"),
+    (lambda: PlaneVote(cross_fit="pixels"), r"PlaneVote: cross_fit must be None or a CrossFit"),
     (lambda: LocalContrast(cells=(2.5, 3)), r"LocalContrast: cells \(rows, cols\) must be an integer >= 1, got 2.5"),
     (lambda: LocalContrast(margin=2.5), r"LocalContrast: margin must be an integer >= 0, got 2.5"),
     (lambda: LocalContrast(smoothness=float("nan")), r"LocalContrast: smoothness must be a finite number >= 0"),
@@ -340,7 +342,7 @@ def test_shared_objective_differentiates_event_pixels_and_intrinsics_on_the_cpu(
     (lambda: CollapseGuard(times=(float("nan"),)), r"CollapseGuard: times must be a finite number"),
 ], ids=["at-eps-zero", "at-eps-negative", "at-cross-fit-loo", "at-cross-fit-str", "at-references",
         "at-references-empty", "sweep-sigma", "sweep-reference", "sweep-candidates", "plane-planes",
-        "plane-sigma", "local-cells", "local-margin", "local-smoothness", "global-references", "global-sigma",
+        "plane-sigma", "sweep-cross-fit-str", "plane-cross-fit-str", "local-cells", "local-margin", "local-smoothness", "global-references", "global-sigma",
         "guard-lattice", "guard-times"])
 def test_objective_settings_are_refused_by_name(make, match):
     """Settings that gave a ZeroDivisionError (eps 0), an absurd loss (eps -1: 346), NaN (a NaN reference or
