@@ -13,7 +13,8 @@ import numpy as np
 from cmax.events import Events, _check_sensor_size, require_events
 
 __all__ = ["Camera", "DISTORTION_MODELS", "camera_and_intrinsics", "check_intrinsics", "check_principal_point",
-           "check_rotation", "distort_equidistant", "intrinsics_matrix", "intrinsics_oddity", "pinhole_events"]
+           "check_rotation", "distort_equidistant", "intrinsics_matrix", "intrinsics_oddity", "pinhole_events",
+           "sensor_pixels"]
 
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 
@@ -566,3 +567,19 @@ def pinhole_events(events: Events, K: object) -> tuple[Events, np.ndarray]:
     if isinstance(K, Camera):
         return K.undistort_events(events), K.pinhole_K
     return events, K
+
+
+def sensor_pixels(events: Events, K: object) -> np.ndarray | None:
+    """The sensor pixels (M, 2) ``(x, y)`` [px] (integers, the events' dtype) of the events that ``pinhole_events(events, K)`` keeps, in
+    their order, when ``K`` is a :class:`Camera` with a lens (not :attr:`Camera.is_pinhole`): with
+    ``lens=K.undistort_points`` they are the ``pixels`` from which :meth:`cmax.warp.WarpEvents.from_events` dithers
+    each event over its sensor pixel and maps it through the lens, unrounded (what :func:`cmax.fit` warps). None for
+    a matrix ``K``, a pinhole camera, or events :func:`pinhole_events` refuses (it says why).
+
+    ``events``: :class:`cmax.Events` of the camera's sensor; ``K``: (3, 3) [px] or a :class:`Camera`.
+    """
+    if not isinstance(K, Camera) or K.is_pinhole or not isinstance(events, Events) or \
+            events.sensor_size != (K.width, K.height):
+        return None
+    kept = K.undistorted_kept(events)
+    return np.column_stack([events.x[kept], events.y[kept]])

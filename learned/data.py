@@ -27,7 +27,9 @@ import h5py
 import numpy as np
 import torch
 
+from cmax.camera import sensor_pixels
 from cmax.events import Events
+from cmax.fitting.window import SensorPixels
 from cmax.io import FormatError, H5Reader, read_calibration
 from cmax.io.calibration import topic_side
 from cmax.io.provenance import resized_note
@@ -132,18 +134,24 @@ def augment(sample: Sample, rng: np.random.Generator, *, flip: bool = True, pola
 
 
 def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0,
-            pixels: np.ndarray | None = None) -> dict[str, torch.Tensor]:
+            pixels: np.ndarray | None = None, sensor: SensorPixels | None = None) -> dict[str, torch.Tensor]:
     """Tensors of one batch entry from ``sample`` (``seed``: of the event subset and its dither; ``pixels``
     (N, 2) float64 [px], optional: the events' exact sub-pixel positions, e.g. undistorted and rectified ones
     (:meth:`cmax.Camera.undistorted_pixels`), from which the volume spreads each event bilinearly over 4 pixels:
-    ``cmax.representations.voxel_grid(..., pixels=)``).
+    ``cmax.representations.voxel_grid(..., pixels=)``; ``sensor``, optional, for events undistorted by a lens
+    (``sample.events`` at their nearest undistorted pixels, ``sample.K`` the camera's ``pinhole_K``): each
+    event's sensor pixel (N, 2) [px] and the :class:`cmax.Camera` (:class:`cmax.fitting.window.SensorPixels`,
+    :func:`cmax.camera.sensor_pixels`), so that the contrast loss's events are dithered over their sensor pixels
+    and mapped through the lens, unrounded, as :func:`cmax.fit` and ``cmax.contrast.EventWindows.from_events(
+    events, camera)`` take them; without it they are dithered around the events' integer pixels).
 
     Returns
     -------
     dict
         ``volume`` (bins, H, W) float32; ``x, y, t, polarity`` (max_events,) float32 padded,
         ``valid`` (max_events,) bool (the raw events for the contrast loss: a seeded uniform
-        subset of at most ``max_events``, dithered, t in seconds since the first event);
+        subset of at most ``max_events``, dithered (through the lens with ``sensor``), t in seconds since the
+        first event);
         ``duration_s`` () float32; ``K`` (3, 3) float32; ``speed`` () float32 [m/s] (NaN: unknown); ``inverse_depth`` (1, H, W) float32
         (0 where unknown), ``depth_mask`` (1, H, W) bool; ``twist`` (6,) float32 and
         ``has_twist`` () bool.
@@ -151,8 +159,16 @@ def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0,
     ev = sample.events
     if len(ev) < 2:
         raise ValueError(f"the window [{sample.t0_us}, {sample.t1_us}) µs holds {len(ev)} events; need >= 2")
+    lens = {}
+    if sensor is not None:
+        if not isinstance(sensor, SensorPixels):
+            raise TypeError(f"sensor must be a cmax.fitting.window.SensorPixels or None, got {type(sensor).__name__}")
+        if np.shape(sensor.pixels) != (len(ev), 2):
+            raise ValueError(f"sensor.pixels must be ({len(ev)}, 2), one sensor pixel per event of the window, got "
+                             f"{np.shape(sensor.pixels)}")
+        lens = dict(pixels=sensor.pixels, lens=sensor.camera.undistort_points)
     volume = torch.from_numpy(voxel_grid(ev, bins, pixels=pixels))
-    prepared = WarpEvents.from_events(ev, sample.K, max_events=max_events, seed=seed)
+    prepared = WarpEvents.from_events(ev, sample.K, max_events=max_events, seed=seed, **lens)
     n = len(prepared)
     pad = lambda a: torch.cat([a, a.new_zeros(max_events - n)])  # noqa: E731
     H, W = ev.height, ev.width
@@ -487,8 +503,10 @@ class MVSECDataset(torch.utils.data.Dataset):
     ``calib``, each window's events are undistorted and rectified into the depth's frame, as MVSEC's baselines do
     with its rectify maps or ``cv2.fisheye.undistortPoints(..., R_rect, P_rect)``: the event volume spreads each
     event bilinearly from its exact position (:meth:`cmax.Camera.undistorted_pixels`, no pixel left without
-    events by rounding), the events of the contrast loss sit at their nearest pixels (those that land outside the
-    sensor are dropped). Without it the events are read as recorded (today's
+    events by rounding), the events of the contrast loss are dithered over their sensor pixels and mapped through
+    the lens, unrounded, as :func:`cmax.fit` and ``cmax.contrast.EventWindows.from_events(events, camera)`` take
+    them (:func:`to_item` with ``sensor``); those whose nearest rectified pixel lies outside the sensor are
+    dropped. Without it the events are read as recorded (today's
     behaviour) and a warning says once that they and the depth lie in different frames.
 
     Parameters
@@ -569,31 +587,35 @@ class MVSECDataset(torch.utils.data.Dataset):
         """The events of window ``i``: rectified into the depth's frame when the dataset has a calibration (at
         their nearest pixels, those outside dropped; :meth:`pixels` gives their exact positions), as recorded
         otherwise."""
-        return self._events_and_pixels(i)[0]
+        return self._window(i)[0]
 
     def pixels(self, i: int) -> np.ndarray:
         """The exact positions (N, 2) float64 [px of the depth's frame] of the events of window ``i``
         (:meth:`events`): undistorted and rectified, unrounded, when the dataset has a calibration
         (:meth:`cmax.Camera.undistorted_pixels`); their integer pixels otherwise."""
-        return self._events_and_pixels(i)[1]
+        return self._window(i)[1]
 
-    def _events_and_pixels(self, i: int) -> tuple[Events, np.ndarray]:
+    def _window(self, i: int) -> tuple[Events, np.ndarray, SensorPixels | None]:
+        """The events of window ``i`` (:meth:`events`), their exact positions (:meth:`pixels`) and, through a
+        lens, their sensor pixels and the camera (None without a calibration or for a pinhole one)."""
         t0 = int(self.middles[i]) - self.window_us // 2
         events = self._read(self.data_file, t0_us=t0, t1_us=t0 + self.window_us)
         if self.camera is None:
-            return events, np.column_stack([events.x, events.y]).astype(np.float64)
+            return events, np.column_stack([events.x, events.y]).astype(np.float64), None
         kept = self.camera.undistorted_kept(events)
-        return self.camera.undistort_events(events), self.camera.undistorted_pixels(events)[kept]
+        sensor = sensor_pixels(events, self.camera)
+        return (self.camera.undistort_events(events), self.camera.undistorted_pixels(events)[kept],
+                None if sensor is None else SensorPixels(sensor, self.camera))
 
     def __len__(self) -> int:
         return len(self.middles)
 
     def __getitem__(self, i: int) -> dict[str, torch.Tensor]:
         t0 = int(self.middles[i]) - self.window_us // 2
-        events, pixels = self._events_and_pixels(i)
+        events, pixels, sensor = self._window(i)
         depth = None
         if self.gt_file is not None:
             with h5py.File(self.gt_file, "r") as f:
                 depth = np.asarray(f["davis/left/depth_image_rect"][i], np.float32)
         return to_item(Sample(events, self.K, depth, None, t0, t0 + self.window_us), max_events=self.max_events,
-                       bins=self.bins, seed=i, pixels=None if self.camera is None else pixels)
+                       bins=self.bins, seed=i, pixels=None if self.camera is None else pixels, sensor=sensor)

@@ -331,6 +331,8 @@ def test_shared_objective_differentiates_event_pixels_and_intrinsics_on_the_cpu(
     (lambda: SweepVote(candidates=2.5), r"SweepVote: candidates must be an integer >= 2, got 2.5"),
     (lambda: PlaneVote(planes=2.5), r"PlaneVote: planes must be an integer >= 2, got 2.5"),
     (lambda: PlaneVote(sigma=float("nan")), r"PlaneVote: sigma must be a finite number >= 0"),
+    (lambda: SweepVote(cross_fit="random"), r"SweepVote: cross_fit must be None or a CrossFit"),
+    (lambda: PlaneVote(cross_fit="pixels"), r"PlaneVote: cross_fit must be None or a CrossFit"),
     (lambda: LocalContrast(cells=(2.5, 3)), r"LocalContrast: cells \(rows, cols\) must be an integer >= 1, got 2.5"),
     (lambda: LocalContrast(margin=2.5), r"LocalContrast: margin must be an integer >= 0, got 2.5"),
     (lambda: LocalContrast(smoothness=float("nan")), r"LocalContrast: smoothness must be a finite number >= 0"),
@@ -340,7 +342,7 @@ def test_shared_objective_differentiates_event_pixels_and_intrinsics_on_the_cpu(
     (lambda: CollapseGuard(times=(float("nan"),)), r"CollapseGuard: times must be a finite number"),
 ], ids=["at-eps-zero", "at-eps-negative", "at-cross-fit-loo", "at-cross-fit-str", "at-references",
         "at-references-empty", "sweep-sigma", "sweep-reference", "sweep-candidates", "plane-planes",
-        "plane-sigma", "local-cells", "local-margin", "local-smoothness", "global-references", "global-sigma",
+        "plane-sigma", "sweep-cross-fit-str", "plane-cross-fit-str", "local-cells", "local-margin", "local-smoothness", "global-references", "global-sigma",
         "guard-lattice", "guard-times"])
 def test_objective_settings_are_refused_by_name(make, match):
     """Settings that gave a ZeroDivisionError (eps 0), an absurd loss (eps -1: 346), NaN (a NaN reference or
@@ -351,22 +353,65 @@ def test_objective_settings_are_refused_by_name(make, match):
 
 
 def test_event_windows_take_a_camera_as_fit_does():
-    """``EventWindows.from_events`` / ``from_windows`` take a :class:`cmax.Camera` as :func:`cmax.fit` does: the
-    events undistorted by the camera, with its K (was: ``TypeError: K must be a 3x3 matrix of numbers, got
-    Camera(...)``)."""
+    """``EventWindows.from_events`` / ``from_windows`` take a :class:`cmax.Camera` as :func:`cmax.fit` does (was:
+    ``TypeError: K must be a 3x3 matrix of numbers, got Camera(...)``). Through a lens they took each event at its
+    nearest undistorted pixel and dithered it there; now each event is dithered over its SENSOR pixel with the
+    fit's seeded subset and dither and mapped through the lens, unrounded: OpenCV's undistortPoints of the dithered
+    sensor pixels, and the very positions the fit's window holds (:func:`cmax.fitting.polish.window_events`)."""
+    import cv2
+
     import cmax
     from conftest import random_events
+    from cmax.fitting import FitSettings
+    from cmax.fitting.polish import window_events
+    from cmax.fitting.window import SensorPixels, Window
 
-    events = random_events(500, width=64, height=48, seed=5)
-    camera = cmax.Camera(np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]), 64, 48,
-                         distortion=[-0.2, 0.05, 0.0, 0.0])
-    expected = EventWindows.from_events(camera.undistort_events(events), camera.K, dtype=torch.float64)
-    for batch in (EventWindows.from_events(events, camera, dtype=torch.float64),
-                  EventWindows.from_windows([(events, camera)], dtype=torch.float64)):
-        torch.testing.assert_close(batch.x, expected.x)
-        torch.testing.assert_close(batch.y, expected.y)
-        torch.testing.assert_close(batch.K, expected.K)
-    assert len(expected) < len(events)          # the barrel lens moves some corner events out of the image
+    events = random_events(3000, width=64, height=48, seed=5)
+    K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+    distortion = np.array([-0.2, 0.05, 0.0, 0.0])
+    camera = cmax.Camera(K, 64, 48, distortion=distortion)
+    rounded = camera.undistort_events(events)
+    kept = camera.undistorted_kept(events)
+    assert len(rounded) == len(kept) < len(events)     # the barrel lens moves some corner events out of the image
+    seed, n = 3, 1500
+    batches = (EventWindows.from_events(events, camera, max_events=n, seed=seed, dtype=torch.float64),
+               EventWindows.from_windows([(events, camera)], max_events=n, seed=seed, dtype=torch.float64))
+    sensor = np.column_stack([events.x[kept], events.y[kept]]).astype(np.float64)
+    keep = np.sort(np.random.default_rng(seed).choice(len(kept), n, replace=False))
+    dithered = sensor[keep] + np.random.default_rng([seed, 1]).uniform(-0.5, 0.5, (n, 2))
+    criteria = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14)
+    expected = cv2.undistortPoints(dithered.reshape(-1, 1, 2), K, distortion, P=camera.pinhole_K,
+                                   criteria=criteria).reshape(-1, 2)
+    fit_window = Window.from_events(rounded, camera.pinhole_K, FitSettings(max_events=n, seed=seed), (6, 8),
+                                    SensorPixels(sensor, camera))
+    fitted = window_events(fit_window, 1.0)
+    for batch in batches:
+        np.testing.assert_allclose(np.column_stack([batch.x.numpy(), batch.y.numpy()]), expected, atol=1e-6)
+        torch.testing.assert_close(batch.x.float(), fitted.x.float(), rtol=0, atol=0)   # the fit's float32 ones
+        torch.testing.assert_close(batch.y.float(), fitted.y.float(), rtol=0, atol=0)
+        torch.testing.assert_close(batch.t.float(), fitted.t.float(), rtol=0, atol=0)
+        torch.testing.assert_close(batch.K, torch.as_tensor(camera.pinhole_K)[None])
+    old = EventWindows.from_events(rounded, camera.pinhole_K, max_events=n, seed=seed, dtype=torch.float64)
+    assert float((batches[0].x - old.x).abs().max()) > 0.3          # no longer the rounded pixel's dither
+    with pytest.raises(ValueError, match=r"pixels: not with a cmax.Camera with a lens"):
+        EventWindows.from_events(events, camera, pixels=sensor)
+
+
+def test_event_windows_of_a_pinhole_camera_or_a_K_are_unchanged():
+    """A camera without a lens and a plain K give the events as before, bit for bit: the integer pixels with the
+    seeded subset and dither of ``WarpEvents.from_events``."""
+    import cmax
+    from conftest import random_events
+    from cmax.warp import WarpEvents
+
+    events = random_events(3000, width=64, height=48, seed=5)
+    K = np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]])
+    before = WarpEvents.from_events(events, K, max_events=1500, seed=3)
+    for given in (K, cmax.Camera(K, 64, 48)):
+        for batch in (EventWindows.from_events(events, given, max_events=1500, seed=3),
+                      EventWindows.from_windows([(events, given)], max_events=1500, seed=3)):
+            for name in ("x", "y", "t", "polarity"):
+                assert torch.equal(getattr(batch, name), getattr(before, name)), name
 
 
 @pytest.mark.parametrize("split", ["random", "pixels", "leave_one_out"])

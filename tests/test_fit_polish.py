@@ -11,6 +11,8 @@ import pytest
 import torch
 
 from benchmarks.synthetic_windows import make_window
+from cmax import Camera, Events
+from cmax.camera import sensor_pixels
 from cmax.contrast import SHARED_OBJECTIVE, EventWindows
 from cmax.fitting import FitSettings, fit
 from cmax.geometry import se3_exp
@@ -18,7 +20,7 @@ from cmax.fitting.pipeline import Motion, stages_for
 from cmax.fitting.polish import SharedPolishStage, polish_layout, polish_loss, window_events
 from cmax.fitting.settings import Polish
 from cmax.fitting.solvers import Solver, SolveResult
-from cmax.fitting.window import Window
+from cmax.fitting.window import SensorPixels, Window
 from learned.losses import student_loss
 
 GRID = (6, 8)
@@ -75,6 +77,49 @@ def test_the_polish_optimises_learned_student_loss():
     assert abs(log.objective_before - student_value(start)) <= 1e-6 * abs(log.objective_before)
     assert abs(log.objective_after - student_value(motion)) <= 1e-6 * abs(log.objective_after)
     assert log.objective_after < log.objective_before and log.success and log.stage == "shared_polish"
+
+
+@functools.lru_cache(maxsize=None)
+def lens_window():
+    """``small_window``'s events as a camera with a barrel lens records them (OpenCV's projectPoints, nearest
+    sensor pixel, those leaving the image dropped) and that camera (k1 = -0.25: up to about 10 px at the corners)."""
+    import cv2
+
+    sw = small_window()
+    distortion = np.array([-0.25, 0.06, 0.0, 0.0])
+    ev = sw.events
+    rays = np.column_stack([ev.x, ev.y, np.ones(len(ev))]) @ np.linalg.inv(sw.K).T
+    pixels, _ = cv2.projectPoints(rays.reshape(-1, 1, 3), np.zeros(3), np.zeros(3), sw.K, distortion)
+    xy = np.rint(pixels.reshape(-1, 2)).astype(np.int64)
+    inside = (xy[:, 0] >= 0) & (xy[:, 0] < ev.width) & (xy[:, 1] >= 0) & (xy[:, 1] < ev.height)
+    events = Events(xy[inside, 0], xy[inside, 1], ev.t[inside], ev.p[inside], ev.width, ev.height)
+    return events, Camera(sw.K, ev.width, ev.height, distortion)
+
+
+def test_the_polish_optimises_learned_student_loss_through_a_lens():
+    """The same through a lens: the fit's window holds each event dithered over its sensor pixel and mapped
+    through the lens (cmax.fit with a Camera), and learned reads the same events (EventWindows.from_events with
+    the camera), so the stage's objective is learned's loss to 1e-6 at its start and end; learned's events
+    were the nearest undistorted pixels with a dither around them, whose loss is not the stage's."""
+    events, camera = lens_window()
+    w0, start = prepared()
+    w = Window.from_events(camera.undistort_events(events), camera.pinhole_K, w0.settings, GRID,
+                           SensorPixels(sensor_pixels(events, camera), camera))
+    motion, log = SharedPolishStage(motion_free=True).run(w, start, _solver("scipy"))
+
+    def student(motion: Motion, batch: EventWindows) -> float:
+        inverse_depth = torch.as_tensor(np.asarray(motion.inverse_depth, float)).reshape(1, 1, *GRID)
+        twist = torch.as_tensor(np.r_[motion.v, motion.omega], dtype=torch.float64)[None]
+        return float(student_loss(inverse_depth, twist, batch.with_speed([motion.speed]),
+                                  teacher_inverse_depth=None)[0])
+
+    prepare = dict(max_events=w.settings.max_events, seed=w.settings.seed)
+    learned_reads = EventWindows.from_events(events, camera, **prepare).to(torch.float64)
+    assert abs(log.objective_before - student(start, learned_reads)) <= 1e-6 * abs(log.objective_before)
+    assert abs(log.objective_after - student(motion, learned_reads)) <= 1e-6 * abs(log.objective_after)
+    assert log.objective_after < log.objective_before and log.success
+    rounded = EventWindows.from_events(camera.undistort_events(events), camera.pinhole_K, **prepare)
+    assert abs(log.objective_after - student(motion, rounded.to(torch.float64))) > 1e-4 * abs(log.objective_after)
 
 
 def _loss_at(motion_free: bool, motion: Motion):

@@ -640,6 +640,60 @@ def test_mvsec_dataset_volume_spreads_each_event_from_its_exact_rectified_positi
     assert not np.allclose(ds[0]["volume"].numpy(), voxel_grid(events, ds.bins), atol=0.1)   # not the rounded one
 
 
+def test_mvsec_item_loss_events_are_dithered_over_the_sensor_pixel_and_mapped_through_the_lens(tmp_path):
+    """The contrast loss's events of an MVSEC item were the events at their nearest rectified pixels with a dither
+    around them (two quantisations), while the volume used the exact positions. Now each event is dithered over
+    its SENSOR pixel and mapped through the fisheye and the rectification, unrounded: OpenCV's
+    fisheye.undistortPoints (R_rect, P_rect) of the dithered sensor pixels, and the very events
+    EventWindows.from_events(events, camera) (what cmax.fit warps) gives for the same subset and seed."""
+    import cv2
+
+    from cmax.contrast import EventWindows
+    from cmax.io.mvsec import read_mvsec
+    from learned.data import MVSECDataset
+
+    path, _, _ = _fisheye_scene(tmp_path, np.random.default_rng(8))
+    calib = tmp_path / "camchain.yaml"
+    calib.write_text(MVSEC_CAMCHAIN)
+    ds = MVSECDataset(path, calib=calib, window_us=600_000, max_events=2000)
+    ds.middles = np.array([int(round(100.25e6))])          # one window over every event
+    item = ds[0]
+    valid = item["valid"].numpy()
+    got = np.column_stack([item["x"].numpy()[valid], item["y"].numpy()[valid]])
+    raw = read_mvsec(path, t0_us=int(ds.middles[0]) - 300_000, t1_us=int(ds.middles[0]) + 300_000)
+    events = ds.events(0)
+    assert len(raw) == 3000 and 2000 < len(events) < 3000 and valid.sum() == 2000   # a subset: the lens drops some
+    batch = EventWindows.from_events(raw, ds.camera, max_events=2000, seed=0)
+    np.testing.assert_allclose(got, np.column_stack([batch.x.numpy(), batch.y.numpy()]), rtol=0, atol=1e-5)
+    np.testing.assert_allclose(item["t"].numpy()[valid], batch.t.numpy(), rtol=0, atol=1e-6)
+    np.testing.assert_allclose(item["K"].numpy(), batch.K[0].numpy(), rtol=1e-6)
+    kept = ds.camera.undistorted_kept(raw)                 # independently: OpenCV through the camchain
+    keep = np.sort(np.random.default_rng(0).choice(len(kept), 2000, replace=False))
+    dithered = np.column_stack([raw.x[kept], raw.y[kept]])[keep] + \
+        np.random.default_rng([0, 1]).uniform(-0.5, 0.5, (2000, 2))
+    expected = cv2.fisheye.undistortPoints(dithered.reshape(-1, 1, 2), ds.camera.K, ds.camera.distortion,
+                                           R=ds.camera.rectification, P=ds.K,
+                                           criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 200, 1e-14))
+    np.testing.assert_allclose(got, expected.reshape(-1, 2), atol=1e-4)
+    rounded = np.column_stack([events.x, events.y])[keep]  # the old loss events: rounded pixel + dither
+    assert np.abs(got - rounded).max() > 0.6               # beyond any dither around the rounded pixel
+    assert np.mean(np.abs(got - rounded).max(axis=1) > 0.5) > 0.1
+
+
+def test_to_item_checks_its_sensor_pixels():
+    from cmax import Events
+    from cmax.camera import Camera
+    from cmax.fitting.window import SensorPixels
+
+    camera = Camera(np.array([[50.0, 0, 31.5], [0, 50.0, 23.5], [0, 0, 1]]), 64, 48, [-0.2, 0.05, 0.0, 0.0])
+    events = Events(np.array([10, 20, 30]), np.array([5, 6, 7]), np.array([0, 10, 20]), np.array([0, 1, 1]), 64, 48)
+    sample = Sample(events, camera.pinhole_K, None, None, 0, 30)
+    with pytest.raises(ValueError, match=r"sensor.pixels must be \(3, 2\), one sensor pixel per event"):
+        to_item(sample, max_events=8, sensor=SensorPixels(np.zeros((2, 2)), camera))
+    with pytest.raises(TypeError, match=r"sensor must be a cmax.fitting.window.SensorPixels or None, got ndarray"):
+        to_item(sample, max_events=8, sensor=np.zeros((3, 2)))
+
+
 def test_mvsec_dataset_without_calibration_warns_once_and_checks_the_calibration(tmp_path):
     import warnings
 

@@ -12,7 +12,7 @@ from typing import Sequence
 
 import torch
 
-from cmax.camera import pinhole_events
+from cmax.camera import pinhole_events, sensor_pixels
 from cmax.events import Events
 from cmax.warp import DepthGrid, WarpEvents
 
@@ -210,13 +210,16 @@ class EventWindows:
     @classmethod
     def from_events(cls, events: Events, K: object, *, speed: float | None = None, **prepare) -> "EventWindows":
         """One window (B = 1) from ``events`` (:class:`cmax.Events`) and intrinsics ``K`` (3, 3), or the :class:`cmax.Camera`
-        of their sensor, whose distortion is undone first (:func:`cmax.camera.pinhole_events`, as
-        :func:`cmax.fit` does).
+        of their sensor, whose distortion is undone as :func:`cmax.fit` undoes it: each event the camera keeps
+        (:func:`cmax.camera.pinhole_events`) is dithered over its sensor pixel and mapped through the lens,
+        unrounded (:func:`cmax.camera.sensor_pixels`, :meth:`cmax.Camera.undistort_points`), with the fit's
+        seeded subset and dither, so that both read the same positions.
 
         ``prepare`` goes to :meth:`cmax.warp.WarpEvents.from_events` (``max_events``,
-        ``seed``, ``dtype``, ``pixels``, ``dither``); ``speed`` is the known ``|v|`` [m/s].
+        ``seed``, ``dtype``, ``pixels``, ``dither``; ``pixels`` and ``lens`` not with a lens camera, which
+        gives them); ``speed`` is the known ``|v|`` [m/s].
         """
-        warp_events = WarpEvents.from_events(*pinhole_events(events, K), **prepare)
+        warp_events = _prepared(events, K, prepare)
         if len(warp_events) < 2 or warp_events.duration_s <= 0:
             raise ValueError(f"events: need at least 2 events spanning a non-zero time, got {len(warp_events)}")
         return cls.from_warp_events([warp_events], speed=None if speed is None else [float(speed)])
@@ -225,11 +228,11 @@ class EventWindows:
     def from_windows(cls, windows: Sequence[tuple[Events, object]], *, speed: Sequence[float] | None = None,
                      **prepare) -> "EventWindows":
         """B windows from ``windows``, a list of ``(events, K)`` pairs of one sensor size, ``K`` (3, 3) or a
-        :class:`cmax.Camera`; ``speed`` (B,) [m/s] or None and ``**prepare`` as :meth:`from_events`."""
+        :class:`cmax.Camera` (its events prepared as :meth:`from_events` prepares them); ``speed`` (B,) [m/s] or
+        None and ``**prepare`` as :meth:`from_events`."""
         if not windows:
             raise ValueError("windows: need at least one (events, K) pair")
-        return cls.from_warp_events([WarpEvents.from_events(*pinhole_events(ev, K), **prepare) for ev, K in windows],
-                                    speed=speed)
+        return cls.from_warp_events([_prepared(ev, K, prepare) for ev, K in windows], speed=speed)
 
     @classmethod
     def from_padded(cls, x: torch.Tensor, y: torch.Tensor, t: torch.Tensor, polarity: torch.Tensor,
@@ -251,3 +254,19 @@ class EventWindows:
                    duration_s.to(x.dtype), int(width), int(height),
                    None if speed is None else speed.to(x.dtype))
 
+
+def _prepared(events: Events, K: object, prepare: dict) -> WarpEvents:
+    """``events`` with intrinsics ``K`` (3, 3) or a :class:`cmax.Camera` as :func:`cmax.fit` warps them: through
+    :func:`cmax.camera.pinhole_events`, and for a camera with a lens each event dithered over its sensor pixel
+    and mapped through the lens (:meth:`cmax.warp.WarpEvents.from_events` with ``pixels`` and ``lens``, the
+    fit's one code path); ``prepare``: the other keywords of that method."""
+    sensor = sensor_pixels(events, K)
+    if sensor is None:
+        return WarpEvents.from_events(*pinhole_events(events, K), **prepare)
+    given = sorted({"pixels", "lens"} & set(prepare))
+    if given:
+        raise ValueError(f"{', '.join(given)}: not with a cmax.Camera with a lens, whose events are dithered over "
+                         "their sensor pixels and mapped through the lens (give the undistorted events and the "
+                         "camera's pinhole_K to pass your own positions)")
+    undistorted, pinhole = pinhole_events(events, K)
+    return WarpEvents.from_events(undistorted, pinhole, pixels=sensor, lens=K.undistort_points, **prepare)

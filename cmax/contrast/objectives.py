@@ -109,6 +109,13 @@ def _require_number(owner: str, name: str, value: object, minimum: float | None 
         raise ValueError(f"{owner}: {name} must be a finite number{bound}, got {value!r}")
 
 
+def _require_cross_fit(owner: str, cross_fit: object) -> None:
+    """``owner.cross_fit`` must be None or a :class:`CrossFit`, else a ValueError naming it (a string such as
+    ``"random"`` was accepted and failed with an AttributeError at the first call)."""
+    if cross_fit is not None and not isinstance(cross_fit, CrossFit):
+        raise ValueError(f"{owner}: cross_fit must be None or a CrossFit (e.g. CrossFit('random')), got {cross_fit!r}")
+
+
 def _require_grid(owner: str, name: str, value: object, minimum: int) -> None:
     """``owner.name`` must be two integers >= ``minimum`` (rows, cols)."""
     if not (isinstance(value, (tuple, list)) and len(value) == 2):
@@ -574,6 +581,7 @@ class SweepVote:
         _require_int("SweepVote", "candidates", self.candidates, 2)
         _require_number("SweepVote", "sigma", self.sigma, 0.0)
         _require_number("SweepVote", "reference", self.reference)
+        _require_cross_fit("SweepVote", self.cross_fit)
 
     def _scores(self, batch: EventWindows, params: DepthMotion, dt: torch.Tensor, rays: torch.Tensor
                 ) -> tuple[torch.Tensor, torch.Tensor]:
@@ -721,6 +729,7 @@ class PlaneVote:
         _require_number("PlaneVote", "smoothness", self.smoothness, 0.0)
         _require_number("PlaneVote", "sigma", self.sigma, 0.0)
         _require_number("PlaneVote", "reference", self.reference)
+        _require_cross_fit("PlaneVote", self.cross_fit)
         if not (isinstance(self.motion_weight, (int, float)) and math.isfinite(self.motion_weight)
                 and self.motion_weight >= 0):
             raise ValueError(f"motion_weight must be a finite number >= 0, got {self.motion_weight!r}")

@@ -15,7 +15,7 @@ import numpy as np
 import torch
 
 from cmax._threads import blas_threads_scope, torch_threads_scope
-from cmax.camera import Camera, check_intrinsics, check_principal_point, intrinsics_oddity, pinhole_events
+from cmax.camera import check_intrinsics, check_principal_point, intrinsics_oddity, pinhole_events, sensor_pixels
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events, require_events
 from cmax.hot_pixels import no_pixels
@@ -539,11 +539,8 @@ def _sensor_pixels(events: Events, K: object) -> SensorPixels | None:
     """For a ``K`` that is a :class:`cmax.Camera` with a lens (not :attr:`~cmax.Camera.is_pinhole`): the sensor
     pixels (M, 2) of the events its :meth:`~cmax.Camera.undistort_events` keeps, in their order, and the camera;
     None otherwise (the events' checks are :func:`cmax.camera.pinhole_events`'s)."""
-    if not isinstance(K, Camera) or K.is_pinhole or not isinstance(events, Events) or \
-            events.sensor_size != (K.width, K.height):
-        return None
-    kept = K.undistorted_kept(events)
-    return SensorPixels(np.column_stack([events.x[kept], events.y[kept]]), K)
+    pixels = sensor_pixels(events, K)
+    return None if pixels is None else SensorPixels(pixels, K)
 
 
 def _off_pixels(events: Events, pixels: np.ndarray) -> np.ndarray:
