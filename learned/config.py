@@ -55,16 +55,24 @@ def _require(condition: bool, section: str, name: str, rule: str, value: object)
 
 def _check_file_entry(entry: object, where: str) -> None:
     """TypeError naming ``where`` (``data.files[2]``, ``data.val_files[0]``) for an entry of a list of data files
-    that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist", "polarity"}`` of the right
-    types; ValueError for a ``polarity`` other than ``"01"`` or ``"signed"``."""
+    that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist", "polarity", "calib",
+    "calib_camera"}`` of the right types; ValueError for a ``polarity`` other than ``"01"`` or ``"signed"``, and for a
+    ``calib_camera`` without ``calib``."""
     if isinstance(entry, (str, Path)):
         return
     if not isinstance(entry, dict):
         raise TypeError(f"{where} must be a path or {{\"path\", \"K\", \"use_gt\"}}, got {entry!r}")
-    unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist", "polarity"}
+    unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist", "polarity", "calib", "calib_camera"}
     if unknown or not isinstance(entry.get("path"), (str, Path)):
         raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\", \"known_speed\", "
-                        f"\"known_twist\" and \"polarity\" only, got {entry!r}")
+                        f"\"known_twist\", \"polarity\", \"calib\" and \"calib_camera\" only, got {entry!r}")
+    for key in ("calib", "calib_camera"):
+        if key in entry and (not isinstance(entry[key], (str, Path)) or not str(entry[key]).strip()):
+            raise TypeError(f"{where}.{key} must be a non-empty string (calib: a calibration file such as DSEC's "
+                            f"cam_to_cam.yaml; calib_camera: its camera, e.g. cam0), got {entry[key]!r}")
+    if "calib_camera" in entry and "calib" not in entry:
+        raise ValueError(f"{where}.calib_camera {entry['calib_camera']!r} chooses a camera of a calibration file: "
+                         "give \"calib\" too (e.g. DSEC's cam_to_cam.yaml)")
     if entry.get("polarity", "01") not in ("01", "signed"):
         raise ValueError(f"{where}.polarity must be \"01\" (0 OFF, 1 ON) or \"signed\" (-1 OFF, +1 ON), "
                          f"got {entry['polarity']!r}")
@@ -87,7 +95,8 @@ class DataConfig:
     Attributes
     ----------
     files : list
-        Paths, or ``{"path", "K": [fx, fy, cx, cy], "use_gt": bool}`` (see :class:`learned.data.FileSpec`).
+        Paths, or ``{"path", "K": [fx, fy, cx, cy], "use_gt": bool}``, with ``"calib"`` (and ``"calib_camera"``) for
+        raw events to undistort and rectify, e.g. DSEC's (see :class:`learned.data.FileSpec`).
     window_us : int
         Window length [µs] (the paper's 0.1665 s).
     max_events : int

@@ -29,7 +29,7 @@ import torch
 
 from cmax.events import Events
 from cmax.io import FormatError, H5Reader, read_calibration
-from cmax.io.calibration import topic_side
+from cmax.io.calibration import DSEC_RECTIFY_MAP, topic_side
 from cmax.io.provenance import resized_note
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
@@ -65,6 +65,9 @@ class Sample:
     speed : float or None
         Known camera speed ``|v|`` [m/s] at the middle (the contrast loss's metric anchor), also where the
         twist is hidden; None: ``|v|`` of ``twist`` when it is given, else unknown.
+    pixels : ndarray (N, 2) float64 or None
+        The exact sub-pixel positions ``(x, y)`` [px of ``K``] of ``events`` (undistorted and rectified:
+        :meth:`cmax.Camera.undistorted_pixels`), row for row; None: the events' own integer pixels.
     """
 
     events: Events
@@ -74,6 +77,7 @@ class Sample:
     t0_us: int
     t1_us: int
     speed: float | None = None
+    pixels: np.ndarray | None = None
 
     @property
     def known_speed(self) -> float:
@@ -97,7 +101,9 @@ def flip_horizontal(sample: Sample) -> Sample:
     K[0, 1] = -K[0, 1]
     twist = None if sample.twist is None else sample.twist * np.r_[_MIRROR_V, _MIRROR_OMEGA]
     depth = None if sample.depth is None else np.ascontiguousarray(sample.depth[:, ::-1])
-    return replace(sample, events=events, K=K, depth=depth, twist=twist)
+    pixels = None if sample.pixels is None else np.column_stack([ev.width - 1 - sample.pixels[:, 0],
+                                                                 sample.pixels[:, 1]])
+    return replace(sample, events=events, K=K, depth=depth, twist=twist, pixels=pixels)
 
 
 def flip_polarity(sample: Sample) -> Sample:
@@ -114,7 +120,8 @@ def reverse_time(sample: Sample) -> Sample:
     ev = sample.events
     t = (sample.t0_us + sample.t1_us) - ev.t[::-1]
     events = Events(ev.x[::-1], ev.y[::-1], t, 1 - ev.p[::-1], ev.width, ev.height)
-    return replace(sample, events=events, twist=None if sample.twist is None else -sample.twist)
+    pixels = None if sample.pixels is None else np.ascontiguousarray(sample.pixels[::-1])
+    return replace(sample, events=events, twist=None if sample.twist is None else -sample.twist, pixels=pixels)
 
 
 def augment(sample: Sample, rng: np.random.Generator, *, flip: bool = True, polarity: bool = True,
@@ -191,6 +198,13 @@ class FileSpec:
     ``known_twist`` (with ``use_gt`` False; an ablation: the motion known, the depth hidden) keeps the
     whole twist of each window. ``polarity``: the encoding of the file's ``events/p``, ``"01"`` (0 OFF, 1 ON, as
     cmax writes it) or ``"signed"`` (-1 OFF, +1 ON), never guessed (:class:`cmax.io.H5Reader`).
+
+    ``calib``: a calibration file (:func:`cmax.io.read_calibration`: a DSEC ``cam_to_cam.yaml``, a Kalibr
+    camchain, ...) of the camera ``calib_camera`` that recorded the events: each window's events are undistorted
+    (and rectified, for DSEC's raw ``cam0``: into ``camRect0``'s frame, that of its disparity maps and
+    ``rectify_map.h5``) as ``cmax depth --calib`` maps them; the volume spreads each event bilinearly from its exact
+    position, and ``K`` is that frame's (an entry's ``K`` must equal it). Its resolution gives the size of a file
+    that stores none (DSEC's ``events.h5``).
     """
 
     path: Path
@@ -199,6 +213,8 @@ class FileSpec:
     known_speed: bool = False
     known_twist: bool = False
     polarity: str = "01"
+    calib: Path | None = None
+    calib_camera: str = "cam0"
 
 
 def _as_spec(entry: object) -> FileSpec:
@@ -212,8 +228,10 @@ def _as_spec(entry: object) -> FileSpec:
             from cmax.camera import intrinsics_matrix
 
             K = intrinsics_matrix(K, f"{entry['path']}: K")
+        calib = entry.get("calib")
         return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
-                        bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")))
+                        bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")),
+                        None if calib is None else Path(calib), str(entry.get("calib_camera", "cam0")))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
@@ -283,8 +301,9 @@ def longest_centred_window_us(centre_us: int, t_start_us: int, t_end_us: int) ->
     return window
 
 
-def _training_file(path: Path, polarity: str = "01") -> H5Reader:
-    """``H5Reader(path, polarity=polarity)``; a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``,
+def _training_file(path: Path, polarity: str = "01", size: tuple[int, int] | None = None) -> H5Reader:
+    """``H5Reader(path, polarity=polarity)``, of the sensor ``size`` (width, height) [px] (a calibration's) when the
+    file stores none (DSEC's own ``events.h5``); a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``,
     ``.npy``, ...) is refused with the one-line conversion that makes it one."""
     if Path(path).is_dir():   # the reader said "no such event file" of a folder that exists
         found = sorted(Path(path).glob("*.h5"))
@@ -293,11 +312,72 @@ def _training_file(path: Path, polarity: str = "01") -> H5Reader:
                   else " (it holds no .h5 file)")
         raise ValueError(f"{path} is a folder, not an event file: data.files lists h5 files one by one{listed}")
     try:
-        return H5Reader(path, polarity=polarity)
+        try:
+            return H5Reader(path, polarity=polarity)
+        except FormatError as error:
+            if size is None or "stores no sensor size" not in str(error):
+                raise
+            return H5Reader(path, polarity=polarity, width=size[0], height=size[1])
     except FormatError as error:
+        dsec = ("stores no sensor size" in str(error)) * (
+            "; DSEC's own events.h5: give its calibration in its entry instead, \"calib\": \"<sequence>/calibration/"
+            "cam_to_cam.yaml\" (its size, and the raw events rectified into camRect0's frame)")
         raise FormatError(f"{error}; training reads DSEC-layout h5 files: convert it once with "
                           f"cmax.io.write_h5('events.h5', cmax.io.read('{path}'[, width=, height=])) and give its K "
-                          "in data.files") from None
+                          f"in data.files{dsec}") from None
+
+
+def _entry_calibration(spec: FileSpec):
+    """The :class:`cmax.io.Calibration` of ``spec.calib`` (camera ``spec.calib_camera``), None without one.
+    ValueError naming the file: a DSEC rectified camera ``camRectN`` (events taken as already rectified) for events
+    beside DSEC's ``rectify_map.h5`` (raw ones)."""
+    if spec.calib is None:
+        return None
+    calibration = read_calibration(spec.calib, spec.calib_camera)
+    camera = spec.calib_camera
+    if camera.startswith("camRect") and calibration.distortion is None and \
+            (spec.path.parent / DSEC_RECTIFY_MAP).is_file():
+        raise ValueError(f"{spec.path}: its entry's calib_camera {camera} of {spec.calib} is the rectified camera, but "
+                         f"{spec.path.parent / DSEC_RECTIFY_MAP} lies beside it: DSEC's events are raw (distorted, not "
+                         f"rectified); give \"calib_camera\": \"cam{camera[7:]}\" to undistort and rectify them "
+                         f"into {camera}'s frame")
+    return calibration
+
+
+def _calibrated_camera(spec: FileSpec, calibration, width: int, height: int) -> "Camera":
+    """The :class:`cmax.Camera` of ``calibration`` (``spec.calib``'s) on the ``width`` x ``height`` [px] sensor of
+    ``spec.path``. ValueError naming the files: a calibration of another sensor size, or an entry's ``K`` other than
+    the K of the frame the calibration maps the events into (to 0.01 px: rounded figures are taken)."""
+    if calibration.size is not None and tuple(calibration.size) != (width, height):
+        raise ValueError(f"{spec.calib} calibrates a {calibration.size[0]}x{calibration.size[1]} camera "
+                         f"({spec.calib_camera}), the events of {spec.path} come from a {width}x{height} sensor")
+    camera = calibration.camera(width, height)
+    pinhole = _file_K(camera.pinhole_K, spec.path, width, height)
+    if spec.K is not None and not np.allclose(_file_K(spec.K, spec.path, width, height), pinhole, rtol=0, atol=0.01):
+        raise ValueError(f"{spec.path}: its entry gives K {np.asarray(spec.K, float).tolist()}, not the K of the frame "
+                         f"its calib {spec.calib} ({spec.calib_camera}) maps the events into ({pinhole.tolist()}): "
+                         "leave K out to use it")
+    return camera
+
+
+def _dsec_calibration_path(path: Path) -> str:
+    """DSEC's ``<sequence>/calibration/cam_to_cam.yaml`` of its events ``path`` (``<sequence>/events/left/events.h5``)
+    where it exists, else that pattern."""
+    found = Path(path).resolve().parents[2:3]
+    found = [place / "calibration" / "cam_to_cam.yaml" for place in found]
+    return str(found[0]) if found and found[0].is_file() else "<sequence>/calibration/cam_to_cam.yaml"
+
+
+def _refuse_raw_dsec(spec: FileSpec) -> None:
+    """ValueError naming ``spec.path`` when DSEC's ``rectify_map.h5`` lies beside it and its entry gives no
+    ``calib``: raw (distorted, unrectified) events paired with a K of another frame (DSEC's ``camRect0``, of its
+    disparity maps) or of none."""
+    beside = spec.path.parent / DSEC_RECTIFY_MAP
+    if spec.calib is None and beside.is_file():
+        raise ValueError(f"{spec.path}: DSEC's {beside} lies beside it, so its events are raw (distorted, not "
+                         f"rectified into camRect0's frame, whose K DSEC's disparity maps have), and its data.files "
+                         f"entry gives no calibration: add \"calib\": \"{_dsec_calibration_path(spec.path)}\" to its "
+                         "entry (calib_camera cam0, the default), which rectifies them into that frame and gives its K")
 
 
 @contextmanager
@@ -322,7 +402,9 @@ class H5WindowDataset(torch.utils.data.Dataset):
     Parameters
     ----------
     files : sequence of path, dict or FileSpec
-        ``{"path": ..., "K": [fx, fy, cx, cy] or 3x3, "use_gt": bool}`` for files without ``gt/``.
+        ``{"path": ..., "K": [fx, fy, cx, cy] or 3x3, "use_gt": bool}`` for files without ``gt/``; ``"calib"``
+        (and ``"calib_camera"``) for raw events to undistort and rectify (:class:`FileSpec`): DSEC's
+        ``events.h5``, beside its ``rectify_map.h5``, is refused without one.
     window_us : int
         Window length [µs].
     max_events : int
@@ -359,13 +441,23 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self.spans: list[tuple[int, int]] = []
         self.counts: list[int] = []
         self._readers: dict[int, H5Reader] = {}
+        self._cameras: list[Camera | None] = []
+        self._sizes: list[tuple[int, int] | None] = []
         size = None
         for i, spec in enumerate(self.specs):
-            with _training_file(spec.path, spec.polarity) as reader, _polarity_hint(spec):
+            _refuse_raw_dsec(spec)
+            calibration = _entry_calibration(spec)
+            calib_size = None if calibration is None or calibration.size is None else tuple(calibration.size)
+            with _training_file(spec.path, spec.polarity, calib_size) as reader, _polarity_hint(spec):
                 if size is None:
                     size = (reader.width, reader.height)
                 elif size != (reader.width, reader.height):
                     raise ValueError(f"{spec.path} is {reader.width}x{reader.height}, the first file {size[0]}x{size[1]}")
+                self._sizes.append(None if calibration is None else (reader.width, reader.height))
+                self._cameras.append(None if calibration is None else
+                                     _calibrated_camera(spec, calibration, reader.width, reader.height))
+                if calibration is not None:
+                    spec = self.specs[i] = replace(spec, K=self._cameras[i].pinhole_K)
                 gt = self._load_gt(reader.file, spec)
                 if gt is not None and spec.K is not None and not np.allclose(spec.K, gt["K"], rtol=1e-6, atol=1e-9):
                     raise ValueError(f"{spec.path}: its entry gives K {np.asarray(spec.K).tolist()}, but its ground "
@@ -439,7 +531,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         file_index, t0 = self.index[i]
         spec, gt = self.specs[file_index], self._gt[file_index]
         reader = self._reader(file_index)
-        events = reader.window(t0, t0 + self.window_us)
+        events, pixels = self._rectified(file_index, reader.window(t0, t0 + self.window_us))
         if gt is None:
             speed = twist = None
             if self._known_motion[file_index] is not None:
@@ -447,14 +539,25 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 middle = twists[int(np.argmin(np.abs(times - (t0 + self.window_us // 2))))]
                 speed = float(np.linalg.norm(middle[:3]))
                 twist = middle.copy() if spec.known_twist else None
-            return Sample(events, spec.K, None, twist, t0, t0 + self.window_us, speed)
+            return Sample(events, spec.K, None, twist, t0, t0 + self.window_us, speed, pixels)
         middle = t0 + self.window_us // 2
         k = int(np.argmin(np.abs(gt["depth_t"] - middle)))
         depth = reader.file["gt/depth"][k]
         twist = None
         if gt["twists"] is not None:
             twist = gt["twists"][int(np.argmin(np.abs(gt["poses_t"] - middle)))]
-        return Sample(events, gt["K"], depth, twist, t0, t0 + self.window_us)
+        return Sample(events, gt["K"], depth, twist, t0, t0 + self.window_us, pixels=pixels)
+
+    def _rectified(self, file_index: int, events: Events) -> tuple[Events, np.ndarray | None]:
+        """``(events, pixels)`` of a window of file ``file_index``: with its entry's calibration, the events at their
+        nearest undistorted (and rectified) pixels, those outside the image dropped
+        (:meth:`cmax.Camera.undistort_events`), and their exact positions (N, 2) float64 [px]; else ``(events,
+        None)``."""
+        camera = self._cameras[file_index]
+        if camera is None:
+            return events, None
+        kept = camera.undistorted_kept(events)
+        return camera.undistort_events(events), camera.undistorted_pixels(events)[kept]
 
     def _reader(self, file_index: int) -> H5Reader:
         """The open reader of file ``file_index``, opened on first use; at most :data:`MAX_OPEN_FILES` stay open
@@ -463,7 +566,9 @@ class H5WindowDataset(torch.utils.data.Dataset):
         if reader is None:
             while self._readers and len(self._readers) >= MAX_OPEN_FILES:
                 self._readers.pop(next(iter(self._readers))).close()
-            reader = H5Reader(self.specs[file_index].path, polarity=self.specs[file_index].polarity)
+            size = self._sizes[file_index]
+            reader = H5Reader(self.specs[file_index].path, polarity=self.specs[file_index].polarity,
+                              **({} if size is None else {"width": size[0], "height": size[1]}))
         self._readers[file_index] = reader
         return reader
 
@@ -471,7 +576,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         sample = self.sample(i)
         if self.augment:
             sample = augment(sample, np.random.default_rng([self.seed, self.epoch, i]))
-        return to_item(sample, max_events=self.max_events, bins=self.bins, seed=self.seed + i)
+        return to_item(sample, max_events=self.max_events, bins=self.bins, seed=self.seed + i, pixels=sample.pixels)
 
     def __getstate__(self) -> dict:   # open h5 files do not cross process boundaries
         state = dict(self.__dict__)
