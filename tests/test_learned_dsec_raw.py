@@ -1,4 +1,4 @@
-"""Training on raw DSEC events (events/left/events.h5 beside rectify_map.h5, no size attributes),
+"""Training and prediction on raw DSEC events (events/left/events.h5 beside rectify_map.h5, no size attributes),
 rectified through the sequence's cam_to_cam.yaml into camRect0's frame as DSEC's own tools do."""
 from __future__ import annotations
 
@@ -10,6 +10,7 @@ import numpy as np
 import pytest
 
 from benchmarks.real_cmax import write_dsec_original
+from cmax.cli import main as cmax_main
 from cmax.events import Events
 from cmax.representations import voxel_grid
 from learned.config import load_config
@@ -137,3 +138,14 @@ def test_config_takes_and_checks_calib(tmp_path):
     with pytest.raises(TypeError, match=r"data.val_files\[0\].calib must be a non-empty string"):
         load_config(None, ['data.val_files=[{"path": "e.h5", "calib": 3}]'])
 
+
+def test_cmax_depth_refuses_raw_dsec_events_without_calib(sequence, tmp_path, capsys):
+    """cmax depth --K on raw DSEC events beside rectify_map.h5 predicted on unrectified events; now exit 2 with
+    one line naming --calib. With --calib cam_to_cam.yaml (cam0) the events are rectified, as before."""
+    path, yaml, _ = sequence
+    status = cmax_main(["depth", str(path), "-o", str(tmp_path / "out"), "--K", "57,57,31.6,23.3", "--size",
+                        f"{W}x{H}", "--quiet"])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1, err
+    assert "rectify_map.h5 lies beside" in err and f"--calib {yaml.resolve()}" in err
+    assert not (tmp_path / "out").exists()
