@@ -204,7 +204,9 @@ class FileSpec:
     (and rectified, for DSEC's raw ``cam0``: into ``camRect0``'s frame, that of its disparity maps and
     ``rectify_map.h5``) as ``cmax depth --calib`` maps them; the volume spreads each event bilinearly from its exact
     position, and ``K`` is that frame's (an entry's ``K`` must equal it). Its resolution gives the size of a file
-    that stores none (DSEC's ``events.h5``).
+    that stores none (DSEC's ``events.h5``). ``rectify_map`` instead: DSEC's ``rectify_map.h5`` of the events, its
+    ``rectify_map`` (H, W, 2) the rectified position [px] of each raw pixel, looked up as DSEC's loaders do (the entry
+    gives the rectified frame's ``K``, ``camRect0``'s; the map's shape gives the size).
     """
 
     path: Path
@@ -215,6 +217,7 @@ class FileSpec:
     polarity: str = "01"
     calib: Path | None = None
     calib_camera: str = "cam0"
+    rectify_map: Path | None = None
 
 
 def _as_spec(entry: object) -> FileSpec:
@@ -231,7 +234,8 @@ def _as_spec(entry: object) -> FileSpec:
         calib = entry.get("calib")
         return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
                         bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")),
-                        None if calib is None else Path(calib), str(entry.get("calib_camera", "cam0")))
+                        None if calib is None else Path(calib), str(entry.get("calib_camera", "cam0")),
+                        None if entry.get("rectify_map") is None else Path(entry["rectify_map"]))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
@@ -312,13 +316,10 @@ def _training_file(path: Path, polarity: str = "01", size: tuple[int, int] | Non
                   else " (it holds no .h5 file)")
         raise ValueError(f"{path} is a folder, not an event file: data.files lists h5 files one by one{listed}")
     try:
-        try:
-            return H5Reader(path, polarity=polarity)
-        except FormatError as error:
-            if size is None or "stores no sensor size" not in str(error):
-                raise
-            return H5Reader(path, polarity=polarity, width=size[0], height=size[1])
+        return H5Reader(path, polarity=polarity)
     except FormatError as error:
+        if size is not None and "stores no sensor size" in str(error):
+            return H5Reader(path, polarity=polarity, width=size[0], height=size[1])
         dsec = ("stores no sensor size" in str(error)) * (
             "; DSEC's own events.h5: give its calibration in its entry instead, \"calib\": \"<sequence>/calibration/"
             "cam_to_cam.yaml\" (its size, and the raw events rectified into camRect0's frame)")
@@ -360,6 +361,18 @@ def _calibrated_camera(spec: FileSpec, calibration, width: int, height: int) -> 
     return camera
 
 
+def _mapped(events: Events, table: np.ndarray) -> tuple[Events, np.ndarray]:
+    """``(events, pixels)``: ``events`` moved to their positions in ``table`` (H, W, 2) [px] (DSEC's rectify map,
+    ``table[y, x]``) rounded to the nearest pixels, those outside the image or without a finite position dropped, and
+    the exact positions (M, 2) float64 [px] of those kept."""
+    exact = table[events.y, events.x].astype(np.float64)
+    solved = np.isfinite(exact).all(axis=1)
+    xy = np.rint(np.where(solved[:, None], exact, -1.0)).astype(np.int64)
+    inside = solved & (xy[:, 0] >= 0) & (xy[:, 0] < events.width) & (xy[:, 1] >= 0) & (xy[:, 1] < events.height)
+    return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], events.width,
+                  events.height), exact[inside]
+
+
 def _dsec_calibration_path(path: Path) -> str:
     """DSEC's ``<sequence>/calibration/cam_to_cam.yaml`` of its events ``path`` (``<sequence>/events/left/events.h5``)
     where it exists, else that pattern."""
@@ -369,15 +382,35 @@ def _dsec_calibration_path(path: Path) -> str:
 
 
 def _refuse_raw_dsec(spec: FileSpec) -> None:
-    """ValueError naming ``spec.path`` when DSEC's ``rectify_map.h5`` lies beside it and its entry gives no
-    ``calib``: raw (distorted, unrectified) events paired with a K of another frame (DSEC's ``camRect0``, of its
+    """ValueError naming ``spec.path`` when DSEC's ``rectify_map.h5`` lies beside it and its entry gives neither
+    ``calib`` nor ``rectify_map``: raw (distorted, unrectified) events paired with a K of another frame (DSEC's ``camRect0``, of its
     disparity maps) or of none."""
     beside = spec.path.parent / DSEC_RECTIFY_MAP
-    if spec.calib is None and beside.is_file():
+    if spec.calib is None and spec.rectify_map is None and beside.is_file():
         raise ValueError(f"{spec.path}: DSEC's {beside} lies beside it, so its events are raw (distorted, not "
                          f"rectified into camRect0's frame, whose K DSEC's disparity maps have), and its data.files "
                          f"entry gives no calibration: add \"calib\": \"{_dsec_calibration_path(spec.path)}\" to its "
-                         "entry (calib_camera cam0, the default), which rectifies them into that frame and gives its K")
+                         f"entry (calib_camera cam0, the default), which rectifies them into that frame and gives its K "
+                         f"(or \"rectify_map\": \"{beside}\" with camRect0's \"K\")")
+
+
+def _read_rectify_map(spec: FileSpec) -> np.ndarray | None:
+    """The ``rectify_map`` (H, W, 2) float32 [px of the rectified frame] of ``spec.rectify_map`` (DSEC's
+    ``rectify_map.h5``: the rectified position of each raw pixel), None without one. ValueError naming the file for
+    one that is not such a map."""
+    if spec.rectify_map is None:
+        return None
+    try:
+        with h5py.File(spec.rectify_map, "r") as file:
+            table = np.asarray(file["rectify_map"][:], np.float32) if "rectify_map" in file else None
+    except OSError as error:
+        raise ValueError(f"{spec.rectify_map} (rectify_map of {spec.path}'s entry) is not DSEC's rectify_map.h5: "
+                         f"{error}") from None
+    if table is None or table.ndim != 3 or table.shape[2] != 2 or 0 in table.shape:
+        shape = None if table is None else table.shape
+        raise ValueError(f"{spec.rectify_map} (rectify_map of {spec.path}'s entry) must hold rectify_map, (height, "
+                         f"width, 2) [px], as DSEC's rectify_map.h5 does; got {'none' if shape is None else shape}")
+    return table
 
 
 @contextmanager
@@ -403,8 +436,8 @@ class H5WindowDataset(torch.utils.data.Dataset):
     ----------
     files : sequence of path, dict or FileSpec
         ``{"path": ..., "K": [fx, fy, cx, cy] or 3x3, "use_gt": bool}`` for files without ``gt/``; ``"calib"``
-        (and ``"calib_camera"``) for raw events to undistort and rectify (:class:`FileSpec`): DSEC's
-        ``events.h5``, beside its ``rectify_map.h5``, is refused without one.
+        (and ``"calib_camera"``), or ``"rectify_map"`` with the rectified ``"K"``, for raw events to undistort and
+        rectify (:class:`FileSpec`): DSEC's ``events.h5``, beside its ``rectify_map.h5``, is refused without one.
     window_us : int
         Window length [µs].
     max_events : int
@@ -442,18 +475,24 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self.counts: list[int] = []
         self._readers: dict[int, H5Reader] = {}
         self._cameras: list[Camera | None] = []
+        self._tables: list[np.ndarray | None] = []
         self._sizes: list[tuple[int, int] | None] = []
         size = None
         for i, spec in enumerate(self.specs):
             _refuse_raw_dsec(spec)
-            calibration = _entry_calibration(spec)
+            calibration, table = _entry_calibration(spec), _read_rectify_map(spec)
             calib_size = None if calibration is None or calibration.size is None else tuple(calibration.size)
+            calib_size = (table.shape[1], table.shape[0]) if table is not None else calib_size
             with _training_file(spec.path, spec.polarity, calib_size) as reader, _polarity_hint(spec):
                 if size is None:
                     size = (reader.width, reader.height)
                 elif size != (reader.width, reader.height):
                     raise ValueError(f"{spec.path} is {reader.width}x{reader.height}, the first file {size[0]}x{size[1]}")
-                self._sizes.append(None if calibration is None else (reader.width, reader.height))
+                self._sizes.append(None if calib_size is None else (reader.width, reader.height))
+                if table is not None and table.shape[:2] != (reader.height, reader.width):
+                    raise ValueError(f"{spec.rectify_map} maps a {table.shape[1]}x{table.shape[0]} sensor, the events "
+                                     f"of {spec.path} come from a {reader.width}x{reader.height} one")
+                self._tables.append(table)
                 self._cameras.append(None if calibration is None else
                                      _calibrated_camera(spec, calibration, reader.width, reader.height))
                 if calibration is not None:
@@ -549,11 +588,13 @@ class H5WindowDataset(torch.utils.data.Dataset):
         return Sample(events, gt["K"], depth, twist, t0, t0 + self.window_us, pixels=pixels)
 
     def _rectified(self, file_index: int, events: Events) -> tuple[Events, np.ndarray | None]:
-        """``(events, pixels)`` of a window of file ``file_index``: with its entry's calibration, the events at their
-        nearest undistorted (and rectified) pixels, those outside the image dropped
+        """``(events, pixels)`` of a window of file ``file_index``: with its entry's calibration (or rectify map), the
+        events at their nearest undistorted (and rectified) pixels, those outside the image dropped
         (:meth:`cmax.Camera.undistort_events`), and their exact positions (N, 2) float64 [px]; else ``(events,
         None)``."""
-        camera = self._cameras[file_index]
+        camera, table = self._cameras[file_index], self._tables[file_index]
+        if table is not None:
+            return _mapped(events, table)
         if camera is None:
             return events, None
         kept = camera.undistorted_kept(events)

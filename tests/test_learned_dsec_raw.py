@@ -93,6 +93,39 @@ def test_raw_dsec_windows_are_rectified_as_rectify_map_says(sequence):
     np.testing.assert_array_equal(item["K"].numpy(), K_RECT.astype(np.float32))
 
 
+def test_rectify_map_entry_looks_the_positions_up_as_dsec_does(sequence):
+    """{"path", "K": camRect0's, "rectify_map": rectify_map.h5}: the positions are the map's values (float32, as
+    DSEC stores them), within 1e-4 px of those the calibration gives; the map's shape gives the size."""
+    path, yaml, events = sequence
+    table_path = path.parent / "rectify_map.h5"
+    mapped = H5WindowDataset([{"path": str(path), "K": [57.0, 57.0, 31.6, 23.3], "rectify_map": str(table_path)}],
+                             window_us=100_000, max_events=500, min_events=10)
+    calibrated = H5WindowDataset([{"path": str(path), "calib": str(yaml)}], window_us=100_000, max_events=500,
+                                 min_events=10)
+    sample = mapped.sample(2)
+    window = (events.t >= sample.t0_us) & (events.t < sample.t1_us)
+    with h5py.File(table_path, "r") as file:
+        table = file["rectify_map"][:]
+    exact = table[events.y[window], events.x[window]].astype(np.float64)
+    inside = (np.rint(exact) >= 0).all(axis=1) & (np.rint(exact[:, 0]) < W) & (np.rint(exact[:, 1]) < H)
+    np.testing.assert_array_equal(sample.pixels, exact[inside])
+    np.testing.assert_array_equal(sample.events.x, np.rint(exact[inside, 0]))
+    np.testing.assert_array_equal(sample.K, K_RECT)
+    np.testing.assert_allclose(sample.pixels, _opencv(np.column_stack([events.x, events.y])[window])[inside],
+                               atol=1e-4)
+    other = calibrated.sample(2)
+    if len(other.pixels) == len(sample.pixels):   # the same events kept, but for a rounding knife-edge at the border
+        np.testing.assert_allclose(other.pixels, sample.pixels, atol=1e-4)
+    with h5py.File(path.parent / "bad_map.h5", "w") as file:
+        file["rectify_map"] = table[:, :-1]
+    from cmax.io import write_h5
+
+    sized = write_h5(path.parent / "events_64x48.h5", events)   # a file that states its size: checked against the map
+    with pytest.raises(ValueError, match=r"bad_map.h5 maps a 63x48 sensor, the events of .* a 64x48 one"):
+        H5WindowDataset([{"path": str(sized), "K": [57.0, 57.0, 31.6, 23.3], "rectify_map": str(path.parent /
+                                                                                                "bad_map.h5")}])
+
+
 def test_augmentations_carry_the_exact_positions(sequence):
     """A mirrored window's volume is the mirror image of the window's (positions mirrored with the events); a
     reversed one pairs each event with its own position."""
@@ -137,6 +170,10 @@ def test_config_takes_and_checks_calib(tmp_path):
         load_config(None, ['data.files=[{"path": "e.h5", "calib_camera": "cam0"}]'])
     with pytest.raises(TypeError, match=r"data.val_files\[0\].calib must be a non-empty string"):
         load_config(None, ['data.val_files=[{"path": "e.h5", "calib": 3}]'])
+    for entry in ('{"path": "e.h5", "rectify_map": "m.h5"}', '{"path": "e.h5", "rectify_map": "m.h5", "calib": "c", '
+                  '"K": [1, 1, 0, 0]}'):
+        with pytest.raises(ValueError, match=r"data.files\[0\].rectify_map maps the events .* give \"K\""):
+            load_config(None, [f"data.files=[{entry}]"])
 
 
 def test_cmax_depth_refuses_raw_dsec_events_without_calib(sequence, tmp_path, capsys):
