@@ -361,6 +361,32 @@ def _calibrated_camera(spec: FileSpec, calibration, width: int, height: int) -> 
     return camera
 
 
+#: How far [px] the rectified positions of an entry's calibration may lie from those of DSEC's ``rectify_map.h5``
+#: beside its events before a warning names both (a calibration of another sequence, or of the other camera).
+MAP_DISAGREEMENT_PX = 0.5
+
+
+def _map_disagreement(spec: FileSpec, camera: "Camera") -> str | None:
+    """A warning when DSEC's ``rectify_map.h5`` lies beside ``spec.path`` and its rectified positions differ from
+    those ``camera`` (of ``spec.calib``) gives by more than :data:`MAP_DISAGREEMENT_PX` at some pixel; None when they
+    agree, or the map is not readable as one of this sensor (an empty file: nothing to compare)."""
+    beside = spec.path.parent / DSEC_RECTIFY_MAP
+    try:
+        with h5py.File(beside, "r") as file:
+            table = np.asarray(file["rectify_map"][:], np.float64)
+    except (OSError, KeyError):
+        return None
+    if table.shape != (camera.height, camera.width, 2):
+        return None
+    difference = np.abs(table - camera.undistortion_map)
+    worst = float(np.nanmax(difference)) if np.isfinite(difference).any() else 0.0
+    if worst <= MAP_DISAGREEMENT_PX:
+        return None
+    return (f"{spec.path}: its calib {spec.calib} ({spec.calib_camera}) rectifies its events up to {worst:.2f} px "
+            f"away from where {beside} beside them puts them: a calibration of another sequence or camera? The "
+            "calibration's positions are used")
+
+
 def _mapped(events: Events, table: np.ndarray) -> tuple[Events, np.ndarray]:
     """``(events, pixels)``: ``events`` moved to their positions in ``table`` (H, W, 2) [px] (DSEC's rectify map,
     ``table[y, x]``) rounded to the nearest pixels, those outside the image or without a finite position dropped, and
@@ -497,6 +523,8 @@ class H5WindowDataset(torch.utils.data.Dataset):
                                      _calibrated_camera(spec, calibration, reader.width, reader.height))
                 if calibration is not None:
                     spec = self.specs[i] = replace(spec, K=self._cameras[i].pinhole_K)
+                    if (disagreement := _map_disagreement(spec, self._cameras[i])) is not None:
+                        warnings.warn(disagreement, UserWarning, stacklevel=2)
                 gt = self._load_gt(reader.file, spec)
                 if gt is not None and spec.K is not None and not np.allclose(spec.K, gt["K"], rtol=1e-6, atol=1e-9):
                     raise ValueError(f"{spec.path}: its entry gives K {np.asarray(spec.K).tolist()}, but its ground "

@@ -126,6 +126,23 @@ def test_rectify_map_entry_looks_the_positions_up_as_dsec_does(sequence):
                                                                                                 "bad_map.h5")}])
 
 
+def test_a_calibration_that_disagrees_with_the_map_beside_is_named(sequence):
+    """The entry's calibration and DSEC's rectify_map.h5 beside the events agree (both OpenCV's): no warning. The
+    cam_to_cam.yaml of another sequence (camRect0's cx 3 px away) rectifies elsewhere: a warning names both files."""
+    import warnings
+
+    path, yaml, _ = sequence
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        H5WindowDataset([{"path": str(path), "calib": str(yaml)}], window_us=100_000, min_events=10)
+    other = yaml.with_name("other_sequence.yaml")
+    other.write_text(yaml.read_text().replace(f"{K_RECT[0, 0]}, {K_RECT[1, 1]}, {K_RECT[0, 2]}",
+                                              f"{K_RECT[0, 0]}, {K_RECT[1, 1]}, {K_RECT[0, 2] + 3}"))
+    with pytest.warns(UserWarning, match=r"other_sequence.yaml \(cam0\) rectifies its events up to 3.0\d px away "
+                                         r"from where .*rectify_map.h5 beside them"):
+        H5WindowDataset([{"path": str(path), "calib": str(other)}], window_us=100_000, min_events=10)
+
+
 def test_augmentations_carry_the_exact_positions(sequence):
     """A mirrored window's volume is the mirror image of the window's (positions mirrored with the events); a
     reversed one pairs each event with its own position."""
