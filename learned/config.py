@@ -55,16 +55,31 @@ def _require(condition: bool, section: str, name: str, rule: str, value: object)
 
 def _check_file_entry(entry: object, where: str) -> None:
     """TypeError naming ``where`` (``data.files[2]``, ``data.val_files[0]``) for an entry of a list of data files
-    that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist", "polarity"}`` of the right
-    types; ValueError for a ``polarity`` other than ``"01"`` or ``"signed"``."""
+    that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist", "polarity", "calib",
+    "calib_camera", "rectify_map"}`` of the right types; ValueError for a ``polarity`` other than ``"01"`` or
+    ``"signed"``, for a ``calib_camera`` without ``calib``, and for a ``rectify_map`` without ``K`` or with
+    ``calib``."""
     if isinstance(entry, (str, Path)):
         return
     if not isinstance(entry, dict):
         raise TypeError(f"{where} must be a path or {{\"path\", \"K\", \"use_gt\"}}, got {entry!r}")
-    unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist", "polarity"}
+    unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist", "polarity", "calib", "calib_camera",
+                            "rectify_map"}
     if unknown or not isinstance(entry.get("path"), (str, Path)):
         raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\", \"known_speed\", "
-                        f"\"known_twist\" and \"polarity\" only, got {entry!r}")
+                        f"\"known_twist\", \"polarity\", \"calib\", \"calib_camera\" and \"rectify_map\" only, got "
+                        f"{entry!r}")
+    for key in ("calib", "calib_camera", "rectify_map"):
+        if key in entry and (not isinstance(entry[key], (str, Path)) or not str(entry[key]).strip()):
+            raise TypeError(f"{where}.{key} must be a non-empty string (calib: a calibration file such as DSEC's "
+                            f"cam_to_cam.yaml; calib_camera: its camera, e.g. cam0; rectify_map: DSEC's "
+                            f"rectify_map.h5), got {entry[key]!r}")
+    if "rectify_map" in entry and ("calib" in entry or entry.get("K") is None):
+        raise ValueError(f"{where}.rectify_map maps the events into the rectified frame whose K the entry gives: give "
+                         "\"K\" (DSEC: camRect0's camera_matrix) and no \"calib\" (which rectifies them itself)")
+    if "calib_camera" in entry and "calib" not in entry:
+        raise ValueError(f"{where}.calib_camera {entry['calib_camera']!r} chooses a camera of a calibration file: "
+                         "give \"calib\" too (e.g. DSEC's cam_to_cam.yaml)")
     if entry.get("polarity", "01") not in ("01", "signed"):
         raise ValueError(f"{where}.polarity must be \"01\" (0 OFF, 1 ON) or \"signed\" (-1 OFF, +1 ON), "
                          f"got {entry['polarity']!r}")
@@ -87,7 +102,8 @@ class DataConfig:
     Attributes
     ----------
     files : list
-        Paths, or ``{"path", "K": [fx, fy, cx, cy], "use_gt": bool}`` (see :class:`learned.data.FileSpec`).
+        Paths, or ``{"path", "K": [fx, fy, cx, cy], "use_gt": bool}``, with ``"calib"`` (and ``"calib_camera"``), or
+        DSEC's ``"rectify_map"``, for raw events to undistort and rectify (see :class:`learned.data.FileSpec`).
     window_us : int
         Window length [µs] (the paper's 0.1665 s).
     max_events : int

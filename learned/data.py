@@ -31,7 +31,7 @@ from cmax.camera import sensor_pixels
 from cmax.events import Events
 from cmax.fitting.window import SensorPixels
 from cmax.io import FormatError, H5Reader, read_calibration
-from cmax.io.calibration import topic_side
+from cmax.io.calibration import DSEC_RECTIFY_MAP, topic_side
 from cmax.io.provenance import resized_note
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
@@ -67,6 +67,9 @@ class Sample:
     speed : float or None
         Known camera speed ``|v|`` [m/s] at the middle (the contrast loss's metric anchor), also where the
         twist is hidden; None: ``|v|`` of ``twist`` when it is given, else unknown.
+    pixels : ndarray (N, 2) float64 or None
+        The exact sub-pixel positions ``(x, y)`` [px of ``K``] of ``events`` (undistorted and rectified:
+        :meth:`cmax.Camera.undistorted_pixels`), row for row; None: the events' own integer pixels.
     """
 
     events: Events
@@ -76,6 +79,7 @@ class Sample:
     t0_us: int
     t1_us: int
     speed: float | None = None
+    pixels: np.ndarray | None = None
 
     @property
     def known_speed(self) -> float:
@@ -99,7 +103,9 @@ def flip_horizontal(sample: Sample) -> Sample:
     K[0, 1] = -K[0, 1]
     twist = None if sample.twist is None else sample.twist * np.r_[_MIRROR_V, _MIRROR_OMEGA]
     depth = None if sample.depth is None else np.ascontiguousarray(sample.depth[:, ::-1])
-    return replace(sample, events=events, K=K, depth=depth, twist=twist)
+    pixels = None if sample.pixels is None else np.column_stack([ev.width - 1 - sample.pixels[:, 0],
+                                                                 sample.pixels[:, 1]])
+    return replace(sample, events=events, K=K, depth=depth, twist=twist, pixels=pixels)
 
 
 def flip_polarity(sample: Sample) -> Sample:
@@ -116,7 +122,8 @@ def reverse_time(sample: Sample) -> Sample:
     ev = sample.events
     t = (sample.t0_us + sample.t1_us) - ev.t[::-1]
     events = Events(ev.x[::-1], ev.y[::-1], t, 1 - ev.p[::-1], ev.width, ev.height)
-    return replace(sample, events=events, twist=None if sample.twist is None else -sample.twist)
+    pixels = None if sample.pixels is None else np.ascontiguousarray(sample.pixels[::-1])
+    return replace(sample, events=events, twist=None if sample.twist is None else -sample.twist, pixels=pixels)
 
 
 def augment(sample: Sample, rng: np.random.Generator, *, flip: bool = True, polarity: bool = True,
@@ -207,6 +214,15 @@ class FileSpec:
     ``known_twist`` (with ``use_gt`` False; an ablation: the motion known, the depth hidden) keeps the
     whole twist of each window. ``polarity``: the encoding of the file's ``events/p``, ``"01"`` (0 OFF, 1 ON, as
     cmax writes it) or ``"signed"`` (-1 OFF, +1 ON), never guessed (:class:`cmax.io.H5Reader`).
+
+    ``calib``: a calibration file (:func:`cmax.io.read_calibration`: a DSEC ``cam_to_cam.yaml``, a Kalibr
+    camchain, ...) of the camera ``calib_camera`` that recorded the events: each window's events are undistorted
+    (and rectified, for DSEC's raw ``cam0``: into ``camRect0``'s frame, that of its disparity maps and
+    ``rectify_map.h5``) as ``cmax depth --calib`` maps them; the volume spreads each event bilinearly from its exact
+    position, and ``K`` is that frame's (an entry's ``K`` must equal it). Its resolution gives the size of a file
+    that stores none (DSEC's ``events.h5``). ``rectify_map`` instead: DSEC's ``rectify_map.h5`` of the events, its
+    ``rectify_map`` (H, W, 2) the rectified position [px] of each raw pixel, looked up as DSEC's loaders do (the entry
+    gives the rectified frame's ``K``, ``camRect0``'s; the map's shape gives the size).
     """
 
     path: Path
@@ -215,6 +231,9 @@ class FileSpec:
     known_speed: bool = False
     known_twist: bool = False
     polarity: str = "01"
+    calib: Path | None = None
+    calib_camera: str = "cam0"
+    rectify_map: Path | None = None
 
 
 def _as_spec(entry: object) -> FileSpec:
@@ -228,8 +247,11 @@ def _as_spec(entry: object) -> FileSpec:
             from cmax.camera import intrinsics_matrix
 
             K = intrinsics_matrix(K, f"{entry['path']}: K")
+        calib = entry.get("calib")
         return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
-                        bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")))
+                        bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")),
+                        None if calib is None else Path(calib), str(entry.get("calib_camera", "cam0")),
+                        None if entry.get("rectify_map") is None else Path(entry["rectify_map"]))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
@@ -299,8 +321,9 @@ def longest_centred_window_us(centre_us: int, t_start_us: int, t_end_us: int) ->
     return window
 
 
-def _training_file(path: Path, polarity: str = "01") -> H5Reader:
-    """``H5Reader(path, polarity=polarity)``; a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``,
+def _training_file(path: Path, polarity: str = "01", size: tuple[int, int] | None = None) -> H5Reader:
+    """``H5Reader(path, polarity=polarity)``, of the sensor ``size`` (width, height) [px] (a calibration's) when the
+    file stores none (DSEC's own ``events.h5``); a file it cannot read as DSEC-layout h5 (a ``.raw``, ``.aedat4``,
     ``.npy``, ...) is refused with the one-line conversion that makes it one."""
     if Path(path).is_dir():   # the reader said "no such event file" of a folder that exists
         found = sorted(Path(path).glob("*.h5"))
@@ -311,9 +334,125 @@ def _training_file(path: Path, polarity: str = "01") -> H5Reader:
     try:
         return H5Reader(path, polarity=polarity)
     except FormatError as error:
+        if size is not None and "stores no sensor size" in str(error):
+            return H5Reader(path, polarity=polarity, width=size[0], height=size[1])
+        dsec = ("stores no sensor size" in str(error)) * (
+            "; DSEC's own events.h5: give its calibration in its entry instead, \"calib\": \"<sequence>/calibration/"
+            "cam_to_cam.yaml\" (its size, and the raw events rectified into camRect0's frame)")
         raise FormatError(f"{error}; training reads DSEC-layout h5 files: convert it once with "
                           f"cmax.io.write_h5('events.h5', cmax.io.read('{path}'[, width=, height=])) and give its K "
-                          "in data.files") from None
+                          f"in data.files{dsec}") from None
+
+
+def _entry_calibration(spec: FileSpec):
+    """The :class:`cmax.io.Calibration` of ``spec.calib`` (camera ``spec.calib_camera``), None without one.
+    ValueError naming the file: a DSEC rectified camera ``camRectN`` (events taken as already rectified) for events
+    beside DSEC's ``rectify_map.h5`` (raw ones)."""
+    if spec.calib is None:
+        return None
+    calibration = read_calibration(spec.calib, spec.calib_camera)
+    camera = spec.calib_camera
+    if camera.startswith("camRect") and calibration.distortion is None and \
+            (spec.path.parent / DSEC_RECTIFY_MAP).is_file():
+        raise ValueError(f"{spec.path}: its entry's calib_camera {camera} of {spec.calib} is the rectified camera, but "
+                         f"{spec.path.parent / DSEC_RECTIFY_MAP} lies beside it: DSEC's events are raw (distorted, not "
+                         f"rectified); give \"calib_camera\": \"cam{camera[7:]}\" to undistort and rectify them "
+                         f"into {camera}'s frame")
+    return calibration
+
+
+def _calibrated_camera(spec: FileSpec, calibration, width: int, height: int) -> "Camera":
+    """The :class:`cmax.Camera` of ``calibration`` (``spec.calib``'s) on the ``width`` x ``height`` [px] sensor of
+    ``spec.path``. ValueError naming the files: a calibration of another sensor size, or an entry's ``K`` other than
+    the K of the frame the calibration maps the events into (to 0.01 px: rounded figures are taken)."""
+    if calibration.size is not None and tuple(calibration.size) != (width, height):
+        raise ValueError(f"{spec.calib} calibrates a {calibration.size[0]}x{calibration.size[1]} camera "
+                         f"({spec.calib_camera}), the events of {spec.path} come from a {width}x{height} sensor")
+    camera = calibration.camera(width, height)
+    pinhole = _file_K(camera.pinhole_K, spec.path, width, height)
+    if spec.K is not None and not np.allclose(_file_K(spec.K, spec.path, width, height), pinhole, rtol=0, atol=0.01):
+        raise ValueError(f"{spec.path}: its entry gives K {np.asarray(spec.K, float).tolist()}, not the K of the frame "
+                         f"its calib {spec.calib} ({spec.calib_camera}) maps the events into ({pinhole.tolist()}): "
+                         "leave K out to use it")
+    return camera
+
+
+#: How far [px] the rectified positions of an entry's calibration may lie from those of DSEC's ``rectify_map.h5``
+#: beside its events before a warning names both (a calibration of another sequence, or of the other camera).
+MAP_DISAGREEMENT_PX = 0.5
+
+
+def _map_disagreement(spec: FileSpec, camera: "Camera") -> str | None:
+    """A warning when DSEC's ``rectify_map.h5`` lies beside ``spec.path`` and its rectified positions differ from
+    those ``camera`` (of ``spec.calib``) gives by more than :data:`MAP_DISAGREEMENT_PX` at some pixel; None when they
+    agree, or the map is not readable as one of this sensor (an empty file: nothing to compare)."""
+    beside = spec.path.parent / DSEC_RECTIFY_MAP
+    try:
+        with h5py.File(beside, "r") as file:
+            table = np.asarray(file["rectify_map"][:], np.float64)
+    except (OSError, KeyError):
+        return None
+    if table.shape != (camera.height, camera.width, 2):
+        return None
+    difference = np.abs(table - camera.undistortion_map)
+    worst = float(np.nanmax(difference)) if np.isfinite(difference).any() else 0.0
+    if worst <= MAP_DISAGREEMENT_PX:
+        return None
+    return (f"{spec.path}: its calib {spec.calib} ({spec.calib_camera}) rectifies its events up to {worst:.2f} px "
+            f"away from where {beside} beside them puts them: a calibration of another sequence or camera? The "
+            "calibration's positions are used")
+
+
+def _mapped(events: Events, table: np.ndarray) -> tuple[Events, np.ndarray]:
+    """``(events, pixels)``: ``events`` moved to their positions in ``table`` (H, W, 2) [px] (DSEC's rectify map,
+    ``table[y, x]``) rounded to the nearest pixels, those outside the image or without a finite position dropped, and
+    the exact positions (M, 2) float64 [px] of those kept."""
+    exact = table[events.y, events.x].astype(np.float64)
+    solved = np.isfinite(exact).all(axis=1)
+    xy = np.rint(np.where(solved[:, None], exact, -1.0)).astype(np.int64)
+    inside = solved & (xy[:, 0] >= 0) & (xy[:, 0] < events.width) & (xy[:, 1] >= 0) & (xy[:, 1] < events.height)
+    return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], events.width,
+                  events.height), exact[inside]
+
+
+def _dsec_calibration_path(path: Path) -> str:
+    """DSEC's ``<sequence>/calibration/cam_to_cam.yaml`` of its events ``path`` (``<sequence>/events/left/events.h5``)
+    where it exists, else that pattern."""
+    found = Path(path).resolve().parents[2:3]
+    found = [place / "calibration" / "cam_to_cam.yaml" for place in found]
+    return str(found[0]) if found and found[0].is_file() else "<sequence>/calibration/cam_to_cam.yaml"
+
+
+def _refuse_raw_dsec(spec: FileSpec) -> None:
+    """ValueError naming ``spec.path`` when DSEC's ``rectify_map.h5`` lies beside it and its entry gives neither
+    ``calib`` nor ``rectify_map``: raw (distorted, unrectified) events paired with a K of another frame (DSEC's ``camRect0``, of its
+    disparity maps) or of none."""
+    beside = spec.path.parent / DSEC_RECTIFY_MAP
+    if spec.calib is None and spec.rectify_map is None and beside.is_file():
+        raise ValueError(f"{spec.path}: DSEC's {beside} lies beside it, so its events are raw (distorted, not "
+                         f"rectified into camRect0's frame, whose K DSEC's disparity maps have), and its data.files "
+                         f"entry gives no calibration: add \"calib\": \"{_dsec_calibration_path(spec.path)}\" to its "
+                         f"entry (calib_camera cam0, the default), which rectifies them into that frame and gives its K "
+                         f"(or \"rectify_map\": \"{beside}\" with camRect0's \"K\")")
+
+
+def _read_rectify_map(spec: FileSpec) -> np.ndarray | None:
+    """The ``rectify_map`` (H, W, 2) float32 [px of the rectified frame] of ``spec.rectify_map`` (DSEC's
+    ``rectify_map.h5``: the rectified position of each raw pixel), None without one. ValueError naming the file for
+    one that is not such a map."""
+    if spec.rectify_map is None:
+        return None
+    try:
+        with h5py.File(spec.rectify_map, "r") as file:
+            table = np.asarray(file["rectify_map"][:], np.float32) if "rectify_map" in file else None
+    except OSError as error:
+        raise ValueError(f"{spec.rectify_map} (rectify_map of {spec.path}'s entry) is not DSEC's rectify_map.h5: "
+                         f"{error}") from None
+    if table is None or table.ndim != 3 or table.shape[2] != 2 or 0 in table.shape:
+        shape = None if table is None else table.shape
+        raise ValueError(f"{spec.rectify_map} (rectify_map of {spec.path}'s entry) must hold rectify_map, (height, "
+                         f"width, 2) [px], as DSEC's rectify_map.h5 does; got {'none' if shape is None else shape}")
+    return table
 
 
 @contextmanager
@@ -338,7 +477,9 @@ class H5WindowDataset(torch.utils.data.Dataset):
     Parameters
     ----------
     files : sequence of path, dict or FileSpec
-        ``{"path": ..., "K": [fx, fy, cx, cy] or 3x3, "use_gt": bool}`` for files without ``gt/``.
+        ``{"path": ..., "K": [fx, fy, cx, cy] or 3x3, "use_gt": bool}`` for files without ``gt/``; ``"calib"``
+        (and ``"calib_camera"``), or ``"rectify_map"`` with the rectified ``"K"``, for raw events to undistort and
+        rectify (:class:`FileSpec`): DSEC's ``events.h5``, beside its ``rectify_map.h5``, is refused without one.
     window_us : int
         Window length [µs].
     max_events : int
@@ -375,13 +516,31 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self.spans: list[tuple[int, int]] = []
         self.counts: list[int] = []
         self._readers: dict[int, H5Reader] = {}
+        self._cameras: list[Camera | None] = []
+        self._tables: list[np.ndarray | None] = []
+        self._sizes: list[tuple[int, int] | None] = []
         size = None
         for i, spec in enumerate(self.specs):
-            with _training_file(spec.path, spec.polarity) as reader, _polarity_hint(spec):
+            _refuse_raw_dsec(spec)
+            calibration, table = _entry_calibration(spec), _read_rectify_map(spec)
+            calib_size = None if calibration is None or calibration.size is None else tuple(calibration.size)
+            calib_size = (table.shape[1], table.shape[0]) if table is not None else calib_size
+            with _training_file(spec.path, spec.polarity, calib_size) as reader, _polarity_hint(spec):
                 if size is None:
                     size = (reader.width, reader.height)
                 elif size != (reader.width, reader.height):
                     raise ValueError(f"{spec.path} is {reader.width}x{reader.height}, the first file {size[0]}x{size[1]}")
+                self._sizes.append(None if calib_size is None else (reader.width, reader.height))
+                if table is not None and table.shape[:2] != (reader.height, reader.width):
+                    raise ValueError(f"{spec.rectify_map} maps a {table.shape[1]}x{table.shape[0]} sensor, the events "
+                                     f"of {spec.path} come from a {reader.width}x{reader.height} one")
+                self._tables.append(table)
+                self._cameras.append(None if calibration is None else
+                                     _calibrated_camera(spec, calibration, reader.width, reader.height))
+                if calibration is not None:
+                    spec = self.specs[i] = replace(spec, K=self._cameras[i].pinhole_K)
+                    if (disagreement := _map_disagreement(spec, self._cameras[i])) is not None:
+                        warnings.warn(disagreement, UserWarning, stacklevel=2)
                 gt = self._load_gt(reader.file, spec)
                 if gt is not None and spec.K is not None and not np.allclose(spec.K, gt["K"], rtol=1e-6, atol=1e-9):
                     raise ValueError(f"{spec.path}: its entry gives K {np.asarray(spec.K).tolist()}, but its ground "
@@ -455,7 +614,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         file_index, t0 = self.index[i]
         spec, gt = self.specs[file_index], self._gt[file_index]
         reader = self._reader(file_index)
-        events = reader.window(t0, t0 + self.window_us)
+        events, pixels = self._rectified(file_index, reader.window(t0, t0 + self.window_us))
         if gt is None:
             speed = twist = None
             if self._known_motion[file_index] is not None:
@@ -463,14 +622,27 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 middle = twists[int(np.argmin(np.abs(times - (t0 + self.window_us // 2))))]
                 speed = float(np.linalg.norm(middle[:3]))
                 twist = middle.copy() if spec.known_twist else None
-            return Sample(events, spec.K, None, twist, t0, t0 + self.window_us, speed)
+            return Sample(events, spec.K, None, twist, t0, t0 + self.window_us, speed, pixels)
         middle = t0 + self.window_us // 2
         k = int(np.argmin(np.abs(gt["depth_t"] - middle)))
         depth = reader.file["gt/depth"][k]
         twist = None
         if gt["twists"] is not None:
             twist = gt["twists"][int(np.argmin(np.abs(gt["poses_t"] - middle)))]
-        return Sample(events, gt["K"], depth, twist, t0, t0 + self.window_us)
+        return Sample(events, gt["K"], depth, twist, t0, t0 + self.window_us, pixels=pixels)
+
+    def _rectified(self, file_index: int, events: Events) -> tuple[Events, np.ndarray | None]:
+        """``(events, pixels)`` of a window of file ``file_index``: with its entry's calibration (or rectify map), the
+        events at their nearest undistorted (and rectified) pixels, those outside the image dropped
+        (:meth:`cmax.Camera.undistort_events`), and their exact positions (N, 2) float64 [px]; else ``(events,
+        None)``."""
+        camera, table = self._cameras[file_index], self._tables[file_index]
+        if table is not None:
+            return _mapped(events, table)
+        if camera is None:
+            return events, None
+        kept = camera.undistorted_kept(events)
+        return camera.undistort_events(events), camera.undistorted_pixels(events)[kept]
 
     def _reader(self, file_index: int) -> H5Reader:
         """The open reader of file ``file_index``, opened on first use; at most :data:`MAX_OPEN_FILES` stay open
@@ -479,7 +651,9 @@ class H5WindowDataset(torch.utils.data.Dataset):
         if reader is None:
             while self._readers and len(self._readers) >= MAX_OPEN_FILES:
                 self._readers.pop(next(iter(self._readers))).close()
-            reader = H5Reader(self.specs[file_index].path, polarity=self.specs[file_index].polarity)
+            size = self._sizes[file_index]
+            reader = H5Reader(self.specs[file_index].path, polarity=self.specs[file_index].polarity,
+                              **({} if size is None else {"width": size[0], "height": size[1]}))
         self._readers[file_index] = reader
         return reader
 
@@ -487,7 +661,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         sample = self.sample(i)
         if self.augment:
             sample = augment(sample, np.random.default_rng([self.seed, self.epoch, i]))
-        return to_item(sample, max_events=self.max_events, bins=self.bins, seed=self.seed + i)
+        return to_item(sample, max_events=self.max_events, bins=self.bins, seed=self.seed + i, pixels=sample.pixels)
 
     def __getstate__(self) -> dict:   # open h5 files do not cross process boundaries
         state = dict(self.__dict__)

@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import (add_camera_options, add_recording_arguments, calibration_note,
+from cmax.cli.recording import (DSEC_RECTIFY_MAP, add_camera_options, add_recording_arguments, calibration_note,
                                 check_calibration_camera, check_calibration_of_frames, check_file_principal_point,
                                 given_k_note, no_intrinsics_message, tail_note, time_span_us)
 from cmax.events import window_starts
@@ -749,6 +749,13 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         check_calibration_camera(calibration, calib, calib_camera, path, camera)
         if calib_size is None:   # the calibration of the frames a conversion resized: refused, the scaled K said
             check_calibration_of_frames(calib, K, distortion, path)
+    elif (beside := Path(path).parent / DSEC_RECTIFY_MAP).is_file():   # raw DSEC events: K of no frame they lie in
+        from learned.data import _dsec_calibration_path
+
+        raise ValueError(f"DSEC's {beside} lies beside {path}, so its events are raw (distorted, not rectified into "
+                         f"camRect0's frame, whose K DSEC's disparity maps have), and no --calib was given: pass "
+                         f"--calib {_dsec_calibration_path(Path(path))} (--calib-camera cam0, the default), which "
+                         "rectifies them into that frame and gives its K")
     try:
         recording = open_recording(path, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s, t1_s=t1_s,
                                    sort=sort, camera=camera)

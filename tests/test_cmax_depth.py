@@ -637,3 +637,35 @@ def test_a_fisheye_camchain_with_a_rectification_maps_the_events_into_the_rectif
     summary = json.loads((out / "summary.json").read_text())
     assert summary["distortion_model"] == "equidistant" and summary["rectified"] is True
     np.testing.assert_array_equal(summary["K"], P)
+
+
+def test_raw_dsec_events_are_rectified_into_camrect0_as_dsec_does(checkpoint, network, events, tmp_path):
+    """DSEC's layout (events/left/events.h5 without size attributes beside rectify_map.h5, calibration/
+    cam_to_cam.yaml): --calib (cam0) maps each event through R_rect0 into camRect0's frame, as DSEC's rectify_map
+    (OpenCV's undistortPoints with R=R_rect0, P=K_rect0) does, and the network sees them bilinearly at those
+    positions with camRect0's K; --K alone is refused (test_learned_dsec_raw)."""
+    from benchmarks.real_cmax import write_dsec_original
+
+    R = cv2.Rodrigues(np.array([0.004, -0.012, 0.009]))[0]
+    K_rect = np.array([[62.0, 0, 30.8], [0, 62.0, 24.1], [0, 0, 1]])
+    rows = "\n".join(f"  - [{', '.join(repr(float(v)) for v in row)}]" for row in R)
+    left, calibration = tmp_path / "seq" / "events" / "left", tmp_path / "seq" / "calibration"
+    left.mkdir(parents=True), calibration.mkdir()
+    (calibration / "cam_to_cam.yaml").write_text(
+        f"extrinsics:\n  R_rect0:\n{rows}\nintrinsics:\n  cam0:\n    camera_matrix: [60, 58, 31.5, 23.5]\n"
+        f"    distortion_coeffs: [{', '.join(repr(float(v)) for v in DISTORTION)}]\n    distortion_model: radtan\n"
+        f"    resolution: [{W}, {H}]\n  camRect0:\n    camera_matrix: [62.0, 62.0, 30.8, 24.1]\n"
+        f"    resolution: [{W}, {H}]\n")
+    path = write_dsec_original(left / "events.h5", events)
+    (left / "rectify_map.h5").touch()
+    out = tmp_path / "out"
+    assert cmax_main(["depth", str(path), "-o", str(out), "--checkpoint", str(checkpoint), "--quiet", "--calib",
+                      str(calibration / "cam_to_cam.yaml")]) == 0
+    exact = cv2.undistortPoints(np.column_stack([events.x, events.y]).astype(np.float64).reshape(-1, 1, 2), K,
+                                DISTORTION, R=R, P=K_rect, criteria=(cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS,
+                                                                     40, 1e-9)).reshape(-1, 2)
+    xy = np.rint(exact).astype(np.int64)
+    inside = (xy[:, 0] >= 0) & (xy[:, 0] < W) & (xy[:, 1] >= 0) & (xy[:, 1] < H)
+    rectified = Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], W, H)
+    _check_outputs(out, _expected(network, rectified, start=int(events.t[0]), end=int(events.t[-1]),
+                                  pixels=exact[inside]), K_expected=K_rect)

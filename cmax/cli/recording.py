@@ -26,7 +26,7 @@ import numpy as np
 
 from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import Camera, intrinsics_matrix
-from cmax.io.calibration import Calibration, read_calibration, topic_side
+from cmax.io.calibration import DSEC_RECTIFY_MAP, Calibration, read_calibration, topic_side
 from cmax.io.provenance import CALIBRATION_NAMES, file_intrinsics, resize_note, resized_note, simulated_frames
 
 __all__ = ["add_file_options", "file_kwargs", "camera_read", "given_k_note", "add_recording_arguments",
@@ -193,10 +193,6 @@ def calibration_note(calibration: Calibration, path: str | Path, camera: str,
 def _is_dsec_rectified(camera: str, calibration: Calibration) -> bool:
     """Whether ``camera`` is a DSEC ``cam_to_cam.yaml``'s rectified camera ``camRectN`` (no distortion)."""
     return camera.startswith("camRect") and camera[7:].isdigit() and calibration.distortion is None
-
-
-#: The file DSEC ships beside its raw events (``events/left/rectify_map.h5``): the rectified pixel of each raw one.
-DSEC_RECTIFY_MAP = "rectify_map.h5"
 
 
 def calibration_of(args: argparse.Namespace) -> Calibration:

@@ -18,6 +18,9 @@ from cmax.camera import Camera, check_intrinsics, check_rotation, intrinsics_mat
 
 __all__ = ["Calibration", "read_calibration", "topic_side", "ROS_RADTAN_MODELS"]
 
+#: The file DSEC ships beside its raw events (``events/left/rectify_map.h5``): the rectified pixel of each raw one.
+DSEC_RECTIFY_MAP = "rectify_map.h5"
+
 
 class Calibration(NamedTuple):
     """A camera as a calibration file (or ``--K`` / ``--distortion``) states it; :func:`read_calibration`.
