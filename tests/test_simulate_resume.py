@@ -9,6 +9,7 @@ import os
 import random
 import subprocess
 import sys
+import warnings
 
 import numpy as np
 import pytest
@@ -358,3 +359,23 @@ def test_a_video_replaced_after_its_last_chunk_was_kept_is_not_assembled_from_th
     assert not output.exists() and len(list(folder.glob("chunk_*.json"))) == 7   # nothing thrown away unasked
     convert_video(video, output, LINEAR, chunk_frames=6, kept="resume_or_restart")
     assert same_events(read_h5(output), read_h5(tmp_path / "fresh.h5")) and not folder.exists()
+
+
+def test_chunks_of_a_moved_video_are_continued_not_simulated_again(tmp_path, monkeypatch):
+    """The video and the chunk folder moved together (``mv`` keeps bytes and times, so the SHA-256 is the same):
+    the conversion continues from the kept chunks (was: every chunk failed its check, a warning, and the video was
+    simulated again from its first frame) and ends with the uninterrupted conversion's events."""
+    settings = LINEAR
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, settings, stop_at=4)
+    kept = len(list(folder.glob("chunk_*.json")))
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    os.rename(tmp_path / "v.avi", moved / "v.avi")
+    os.rename(folder, chunk_folder(moved / "v.h5"))
+    resumed = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                      # no "simulated again"
+        result = convert_video(moved / "v.avi", moved / "v.h5", settings, chunk_frames=6,
+                               resumed=lambda frames, events: resumed.append(frames))
+    assert resumed == [6 * kept] and kept >= 2
+    assert same_events(read_h5(moved / "v.h5"), whole) and result.frames == 40
