@@ -217,7 +217,8 @@ def test_an_output_written_from_its_chunks_but_not_recorded_is_written_again_not
     argv = ["simulate", str(tmp_path / "v.avi"), "-o", str(tmp_path / "v.h5"), "--quiet", "--method", "linear",
             "--chunk-frames", "6"]
     assert main(argv) == 0, capsys.readouterr().err
-    assert "20 frame(s)" in capsys.readouterr().err
+    err = capsys.readouterr().err      # every chunk kept: no frame is read again, the video's SHA-256 is the check
+    assert "20 frame(s)" in err and "the video's bytes verified by SHA-256" in err and "as they are read again" not in err
     assert same_events(read_h5(tmp_path / "v.h5"), first) and not chunk_folder(tmp_path / "v.h5").exists()
 
 

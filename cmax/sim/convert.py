@@ -1005,8 +1005,8 @@ def _resumed_note(name: str, bar) -> Callable[[int, int], None]:
     there is one) starts at the kept frames and says so."""
     def note(frames: int, events: int) -> None:
         print(f"cmax: note: {name}: continuing an interrupted conversion: {frames} frame(s) and {events:,} events "
-              "kept (their files verified; the video's frames are checked against them as they are read again)",
-              file=sys.stderr)
+              "kept (their files and the video's bytes verified by SHA-256; the kept frames are decoded again and "
+              "compared only when the video goes on past them)", file=sys.stderr)
         if bar is not None:
             bar.update(frames)
             bar.set_postfix_str(f"{frames} kept")
