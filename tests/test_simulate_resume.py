@@ -10,6 +10,7 @@ import random
 import subprocess
 import sys
 import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -427,3 +428,31 @@ def test_chunks_of_another_video_are_not_removed_by_a_conversion_without_chunks(
     assert status == 2 and "another run" in err and "--overwrite" in err
     assert len(list(chunk_folder(tmp_path / "o" / "w.h5").glob("chunk_*.json"))) == 2
     assert not (tmp_path / "o" / "w.h5").exists()
+
+
+def test_a_removal_of_kept_chunks_cut_short_is_not_read_as_chunks(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while a recorded video's chunks are removed, after ``run.json`` went and before the chunks did (was:
+    every later run into the folder refused, ``run.json is missing or unreadable ... pass --overwrite``, which for a
+    folder skipped the video and kept the chunks); now the folder is renamed first: the rerun skips the verified
+    video and removes what is left."""
+    videos, out = tmp_path / "videos", tmp_path / "out"
+    videos.mkdir()
+    write_video(videos / "a.avi", 20)
+    real = chunks_module.shutil.rmtree
+
+    def cut_short(path, ignore_errors=False):
+        if not Path(path).exists():
+            return real(path, ignore_errors=ignore_errors)
+        for leftover in sorted(Path(path).glob("*"), key=lambda p: p.name != "run.json")[:2]:
+            leftover.unlink()                           # run.json and one chunk file gone, then Ctrl-C
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(chunks_module.shutil, "rmtree", cut_short)
+    with pytest.raises(KeyboardInterrupt):
+        convert_collection(collect_jobs(videos)[0], out, LINEAR, progress=False, chunk_frames=6)
+    monkeypatch.setattr(chunks_module.shutil, "rmtree", real)
+    assert json.loads((out / "manifest.json").read_text())["videos"]["a"]["status"] == "ok"
+    argv = ["simulate", str(videos), "-o", str(out), "--quiet", "--method", "linear", "--chunk-frames", "6"]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "already converted" in capsys.readouterr().out
+    assert sorted(os.listdir(out)) == ["a.h5", "manifest.json"]

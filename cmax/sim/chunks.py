@@ -55,7 +55,7 @@ except ImportError:  # pragma: no cover - machines without isal wheels
     _deflate = zlib
 
 __all__ = ["DEFAULT_CHUNK_FRAMES", "KEPT_MODES", "KEPT_STATES", "KeptChunks", "ChunkWriter", "chunk_folder", "frame_digest",
-           "kept_problem", "written_from_chunks"]
+           "kept_problem", "remove_chunk_folder", "written_from_chunks"]
 
 #: Video frames per kept chunk by default (10 s of a 30 frames/s video).
 DEFAULT_CHUNK_FRAMES = 300
@@ -153,6 +153,30 @@ def kept_problem(output: str | os.PathLike, run: dict) -> str | None:
         return None
     return (f"cannot resume the conversion kept in {folder}: it was another run (" + "; ".join(differences)
             + "): give the same video and options, or --overwrite (kept='resume_or_restart') to start over")
+
+
+def remove_chunk_folder(output: str | os.PathLike) -> None:
+    """Remove the chunks kept beside ``output`` (:func:`chunk_folder`): the folder is first renamed to
+    ``.<name>.h5.chunks.removed`` (one step) and then deleted, so that a removal cut short (Ctrl-C, a kill) never
+    leaves a part of it to be read as kept chunks (a folder without its ``run.json`` is refused); a ``.removed``
+    folder left by such a removal is deleted too.
+
+    Parameters
+    ----------
+    output : path
+        The conversion's output file.
+    """
+    folder = chunk_folder(output)
+    removed = folder.with_name(folder.name + ".removed")
+    shutil.rmtree(removed, ignore_errors=True)
+    try:
+        os.rename(folder, removed)
+    except FileNotFoundError:
+        pass
+    except OSError:       # cannot rename (a file system's limits): removed in place
+        removed = folder
+    shutil.rmtree(removed, ignore_errors=True)
+    fsync_folder(folder.parent)
 
 
 def written_from_chunks(output: str | os.PathLike, run: dict) -> bool:
@@ -349,9 +373,8 @@ class KeptChunks:
         return full
 
     def remove(self) -> None:
-        """Remove the folder (the output is complete, or the run starts over)."""
-        shutil.rmtree(self.folder, ignore_errors=True)
-        fsync_folder(self.folder.parent)
+        """Remove the folder (the output is complete, or the run starts over): :func:`remove_chunk_folder`."""
+        remove_chunk_folder(self.output)
 
 
 class ChunkWriter:

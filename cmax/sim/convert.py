@@ -41,7 +41,6 @@ import json
 import math
 import numbers
 import os
-import shutil
 import signal
 import sys
 import threading
@@ -1258,6 +1257,8 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
                 print(f"cmax: note: {name}: output not verified ({problem}); "
                       + ("converting it again" if name in names else "listed as failed"), file=sys.stderr)
     todo = [job for job in jobs if manifest["videos"].get(job.name, {}).get("status") != "ok"]
+    for job in (job for job in jobs if job not in todo):   # verified and skipped: chunks a stop left
+        _remove_chunks(output_dir / f"{job.name}.h5")
     manifest["totals"] = _totals(manifest["videos"])
     write_manifest(path, manifest)
     if (note := _other_chunks_note(output_dir, names)) is not None:
@@ -1319,12 +1320,13 @@ def _other_chunks_note(output_dir: Path, names: set[str]) -> str | None:
 
 
 def _remove_chunks(output: Path) -> None:
-    """Remove the chunks kept beside ``output`` (its conversion is recorded as verified)."""
-    from cmax.sim.chunks import chunk_folder
+    """Remove the chunks kept beside ``output`` (its conversion is recorded as verified), and what an earlier
+    removal cut short left (:func:`cmax.sim.chunks.remove_chunk_folder`)."""
+    from cmax.sim.chunks import chunk_folder, remove_chunk_folder
 
     folder = chunk_folder(output)
-    if folder.is_dir():
-        shutil.rmtree(folder, ignore_errors=True)
+    if folder.is_dir() or folder.with_name(folder.name + ".removed").is_dir():
+        remove_chunk_folder(output)
 
 
 # -- worker processes -------------------------------------------------------------------
