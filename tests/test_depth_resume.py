@@ -151,3 +151,25 @@ def test_resume_refuses_an_event_file_replaced_by_one_of_the_same_size_and_mtime
     err = capsys.readouterr().err.strip().splitlines()[-1]
     assert "ev.h5 holds other bytes than it did" in err and "--overwrite" in err
     assert sorted(p.name for p in (out / KEPT_FOLDER).glob("block_*.json")) == ["block_0.json"]
+
+
+def test_a_moved_event_file_and_folder_resume_their_kept_windows(recording, tiny_checkpoint, tmp_path, monkeypatch,
+                                                                  capsys):
+    """The event file and the output folder moved (the same bytes and times): ``--resume`` takes the kept blocks
+    (was: each block's record named the old path's run, so every window was predicted again without a word)."""
+    path = tmp_path / "ev.h5"
+    path.write_bytes(recording.read_bytes())
+    whole = tmp_path / "whole"
+    assert predict.main(argv(path, whole, tiny_checkpoint)) == 0
+    out = tmp_path / "o"
+    counted_calls(monkeypatch, predict, "forward", interrupt_at=3)
+    assert predict.main(argv(path, out, tiny_checkpoint)) == 130
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    os.rename(path, moved / "ev.h5")
+    os.rename(out, moved / "o")
+    calls = counted_calls(monkeypatch, predict, "forward")
+    capsys.readouterr()
+    assert predict.main(argv(moved / "ev.h5", moved / "o", tiny_checkpoint, "--resume")) == 0
+    assert len(calls) == 4 and "resumed: 4 of 12 windows taken" in capsys.readouterr().err
+    assert_same(outputs(moved / "o"), outputs(whole))

@@ -330,3 +330,25 @@ def test_a_window_file_changed_in_its_numbers_is_fitted_again(recording, tmp_pat
     assert main([*se3_argv(recording, out), "--resume"]) == status
     assert "1 unreadable window file(s) fitted again" in capsys.readouterr().err
     assert_same(results_of(out), results_of(tmp_path / "whole"))
+
+
+def test_resume_continues_a_moved_event_file_and_folder(recording, tmp_path, monkeypatch, capsys):
+    """The event file and the output folder moved (the same bytes and times: the same SHA-256): ``--resume`` takes
+    the kept windows (was: refused in one line, ``file was '.../ev.h5', now '.../moved/ev.h5'``; given by the same
+    relative path, every kept window was fitted again without a word) and the results equal an uninterrupted run's."""
+    path = tmp_path / "ev.h5"
+    path.write_bytes(recording.read_bytes())
+    whole = tmp_path / "whole"
+    status = main(se3_argv(path, whole))
+    out = tmp_path / "o"
+    counted_calls(monkeypatch, sequence_module, "fit", interrupt_at=3)
+    assert main(se3_argv(path, out)) == 130
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    os.rename(path, moved / "ev.h5")
+    os.rename(out, moved / "o")
+    calls = counted_calls(monkeypatch, sequence_module, "fit")
+    capsys.readouterr()
+    assert main([*se3_argv(moved / "ev.h5", moved / "o"), "--resume"]) == status
+    assert len(calls) == 2 and "resumed: 2 of 4 fitted windows taken" in capsys.readouterr().err
+    assert_same(results_of(moved / "o"), results_of(whole))

@@ -9,6 +9,8 @@ import os
 import random
 import subprocess
 import sys
+import warnings
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -16,7 +18,7 @@ import pytest
 import cmax.sim.chunks as chunks_module
 import cmax.sim.convert as convert_module
 from cmax.cli import main
-from cmax.io.h5 import read_h5
+from cmax.io.h5 import read_h5, write_h5
 from cmax.sim.chunks import KeptChunks, chunk_folder
 from cmax.sim.convert import ConvertSettings, collect_jobs, convert_collection, convert_video
 from cmax.sim.esim import EsimSettings, EventSimulator
@@ -216,7 +218,8 @@ def test_an_output_written_from_its_chunks_but_not_recorded_is_written_again_not
     argv = ["simulate", str(tmp_path / "v.avi"), "-o", str(tmp_path / "v.h5"), "--quiet", "--method", "linear",
             "--chunk-frames", "6"]
     assert main(argv) == 0, capsys.readouterr().err
-    assert "20 frame(s)" in capsys.readouterr().err
+    err = capsys.readouterr().err      # every chunk kept: no frame is read again, the video's SHA-256 is the check
+    assert "20 frame(s)" in err and "the video's bytes verified by SHA-256" in err and "as they are read again" not in err
     assert same_events(read_h5(tmp_path / "v.h5"), first) and not chunk_folder(tmp_path / "v.h5").exists()
 
 
@@ -358,3 +361,98 @@ def test_a_video_replaced_after_its_last_chunk_was_kept_is_not_assembled_from_th
     assert not output.exists() and len(list(folder.glob("chunk_*.json"))) == 7   # nothing thrown away unasked
     convert_video(video, output, LINEAR, chunk_frames=6, kept="resume_or_restart")
     assert same_events(read_h5(output), read_h5(tmp_path / "fresh.h5")) and not folder.exists()
+
+
+def test_chunks_of_a_moved_video_are_continued_not_simulated_again(tmp_path, monkeypatch):
+    """The video and the chunk folder moved together (``mv`` keeps bytes and times, so the SHA-256 is the same):
+    the conversion continues from the kept chunks (was: every chunk failed its check, a warning, and the video was
+    simulated again from its first frame) and ends with the uninterrupted conversion's events."""
+    settings = LINEAR
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, settings, stop_at=4)
+    kept = len(list(folder.glob("chunk_*.json")))
+    moved = tmp_path / "moved"
+    moved.mkdir()
+    os.rename(tmp_path / "v.avi", moved / "v.avi")
+    os.rename(folder, chunk_folder(moved / "v.h5"))
+    resumed = []
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")                      # no "simulated again"
+        result = convert_video(moved / "v.avi", moved / "v.h5", settings, chunk_frames=6,
+                               resumed=lambda frames, events: resumed.append(frames))
+    assert resumed == [6 * kept] and kept >= 2
+    assert same_events(read_h5(moved / "v.h5"), whole) and result.frames == 40
+
+
+def _chunks_beside(tmp_path, video, output) -> None:
+    """Leave the chunks of a finished conversion of ``video`` (final chunk included) beside ``output``, as a
+    conversion killed after writing its output from them does."""
+    convert_video(video, tmp_path / "elsewhere.h5", LINEAR, chunk_frames=6, keep_chunks=True)
+    os.rename(chunk_folder(tmp_path / "elsewhere.h5"), chunk_folder(output))
+
+
+@pytest.mark.parametrize("chunks_of", ["another video", "this video"])
+@pytest.mark.parametrize("chunk_frames", ["0", "6"])
+def test_a_file_of_the_user_beside_kept_chunks_is_never_replaced(tmp_path, capsys, chunks_of, chunk_frames):
+    """A user's own ``v.h5`` that no manifest lists, beside a chunk folder whose chunks include a final one (of
+    another video, or of this one: the file is not the one written from them) is refused in one line naming it,
+    and stays, with the chunks (was: replaced without --overwrite with --chunk-frames 0, and with the chunks of
+    this video at any --chunk-frames); --overwrite replaces it with the conversion of the video."""
+    write_video(tmp_path / "v.avi", 20)
+    write_video(tmp_path / "other.avi", 20, phase=1.0)
+    output = tmp_path / "out" / "v.h5"
+    output.parent.mkdir()
+    _chunks_beside(tmp_path, tmp_path / ("v.avi" if chunks_of == "this video" else "other.avi"), output)
+    users = write_h5(output, read_h5(tmp_path / "elsewhere.h5")).read_bytes()   # a complete h5 file, not this one's
+    kept = sorted(os.listdir(chunk_folder(output)))
+    argv = ["simulate", str(tmp_path / "v.avi"), "-o", str(output), "--quiet", "--method", "linear",
+            "--chunk-frames", chunk_frames]
+    status, err = one_line_error(lambda: main(argv), capsys)
+    assert status == 2 and "v.h5" in err and "--overwrite" in err
+    assert output.read_bytes() == users and sorted(os.listdir(chunk_folder(output))) == kept
+    assert main([*argv, "--overwrite"]) == 0
+    convert_video(tmp_path / "v.avi", tmp_path / "clean.h5", LINEAR)
+    assert same_events(read_h5(output), read_h5(tmp_path / "clean.h5"))
+
+
+def test_chunks_of_another_video_are_not_removed_by_a_conversion_without_chunks(tmp_path, monkeypatch, capsys):
+    """``--chunk-frames 0`` beside the chunks an interrupted conversion of another video kept: refused in one line
+    as with chunks (was: converted, then the other video's chunks removed without --overwrite)."""
+    _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=3)           # chunks of v.avi beside v.h5
+    folder = chunk_folder(tmp_path / "v.h5")
+    write_video(tmp_path / "w.avi", 20, phase=1.0)
+    (tmp_path / "o").mkdir()
+    os.rename(folder, chunk_folder(tmp_path / "o" / "w.h5"))
+    argv = ["simulate", str(tmp_path / "w.avi"), "-o", str(tmp_path / "o" / "w.h5"), "--quiet", "--method",
+            "linear", "--chunk-frames", "0"]
+    status, err = one_line_error(lambda: main(argv), capsys)
+    assert status == 2 and "another run" in err and "--overwrite" in err
+    assert len(list(chunk_folder(tmp_path / "o" / "w.h5").glob("chunk_*.json"))) == 2
+    assert not (tmp_path / "o" / "w.h5").exists()
+
+
+def test_a_removal_of_kept_chunks_cut_short_is_not_read_as_chunks(tmp_path, monkeypatch, capsys):
+    """Ctrl-C while a recorded video's chunks are removed, after ``run.json`` went and before the chunks did (was:
+    every later run into the folder refused, ``run.json is missing or unreadable ... pass --overwrite``, which for a
+    folder skipped the video and kept the chunks); now the folder is renamed first: the rerun skips the verified
+    video and removes what is left."""
+    videos, out = tmp_path / "videos", tmp_path / "out"
+    videos.mkdir()
+    write_video(videos / "a.avi", 20)
+    real = chunks_module.shutil.rmtree
+
+    def cut_short(path, ignore_errors=False):
+        if not Path(path).exists():
+            return real(path, ignore_errors=ignore_errors)
+        for leftover in sorted(Path(path).glob("*"), key=lambda p: p.name != "run.json")[:2]:
+            leftover.unlink()                           # run.json and one chunk file gone, then Ctrl-C
+        raise KeyboardInterrupt
+
+    monkeypatch.setattr(chunks_module.shutil, "rmtree", cut_short)
+    with pytest.raises(KeyboardInterrupt):
+        convert_collection(collect_jobs(videos)[0], out, LINEAR, progress=False, chunk_frames=6)
+    monkeypatch.setattr(chunks_module.shutil, "rmtree", real)
+    assert json.loads((out / "manifest.json").read_text())["videos"]["a"]["status"] == "ok"
+    argv = ["simulate", str(videos), "-o", str(out), "--quiet", "--method", "linear", "--chunk-frames", "6"]
+    assert main(argv) == 0, capsys.readouterr().err
+    assert "already converted" in capsys.readouterr().out
+    assert sorted(os.listdir(out)) == ["a.h5", "manifest.json"]

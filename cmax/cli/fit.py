@@ -519,12 +519,15 @@ def run_record(args: argparse.Namespace) -> dict:
     """What a run of ``cmax fit`` is, for ``--resume`` to check (:class:`cmax.io.window_store.WindowStore`): the
     signatures (size, modification time, SHA-256) of the event file and of ``--calib`` / ``--gyro``, the version of
     cmax and a digest of its code, and every option that changes a window's fit (``args``, the parsed options; ``--jobs`` only as
-    whether the windows are warm-started, ``jobs == 1``)."""
+    whether the windows are warm-started, ``jobs == 1``; the paths of those files only through their signatures, so
+    that a moved file, the same bytes, resumes)."""
     import cmax
 
-    settings = {key: value for key, value in vars(args).items() if key not in _NOT_RESULTS}
+    paths = {"file": args.file, "calib": args.calib, "gyro": args.gyro}
+    files = file_signatures(paths, progress=not args.quiet)
+    settings = {key: value for key, value in vars(args).items()
+                if key not in _NOT_RESULTS and not (key in paths and files[key] is not None)}
     settings["warm_start"] = args.jobs == 1
-    files = file_signatures({"file": args.file, "calib": args.calib, "gyro": args.gyro}, progress=not args.quiet)
     return {"cmax": cmax.__version__, "code": code_digest("cmax"), **files, "settings": settings_record(settings)}
 
 

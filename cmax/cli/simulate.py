@@ -249,15 +249,17 @@ def _image_folder(source: Path) -> Path | None:
 
 def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     """``cmax simulate SOURCE -o F.h5``: one conversion with progress and a manifest beside F.h5."""
-    from cmax.sim.chunks import holds_final_chunk
+    from cmax.sim.chunks import chunk_folder
     from cmax.sim.convert import VideoJob, convert_collection, load_manifest
 
     output = args.output
     manifest_path = output.parent / "manifest.json"
     manifest = load_manifest(manifest_path) if manifest_path.is_file() else None
     listed = manifest["videos"].get(output.stem) if manifest else None
+    # with kept chunks beside it, the file may be this conversion's, written from them and then killed: the
+    # conversion checks that under the folder's lock (refused unless it is)
     if (output.exists() and not args.overwrite and not (listed and listed.get("status") == "ok")
-            and not holds_final_chunk(output)):    # written from its kept chunks, then killed: written again
+            and not chunk_folder(output).is_dir()):
         raise FileExistsError(f"{output} exists and is not a finished conversion of {manifest_path}; "
                               "pass --overwrite to replace it")
     job = VideoJob(output.stem, source)

@@ -12,7 +12,7 @@ is read back with an unpickler that builds only the project's result classes and
 no code).
 
 A resumed run takes a window only when ``run.json`` matches the new run (the same event file by size,
-modification time and SHA-256 of its bytes, the same settings: else the run is refused, naming what differs; a
+modification time and SHA-256 of its bytes, wherever it is now, the same settings: else the run is refused, naming what differs; a
 ``run.json`` of an earlier version, which recorded no SHA-256, is refused too: what the windows were fitted on cannot
 be checked) and the window's file names
 the same run and window start; a window file that cannot be read is fitted again. The folder is removed once the
@@ -99,15 +99,24 @@ def _opened(data: bytes) -> bytes:
 
 
 def run_digest(run: dict) -> str:
-    """The SHA-256 (hex) of a run's record ``run`` (JSON-ready, keys sorted): what each kept window or block file
-    names, so that a file of another run is never taken for one of this run.
+    """The SHA-256 (hex) of a run's record ``run`` (JSON-ready, keys sorted), less the paths its file signatures
+    hold: what each kept window, block or chunk file names, so that a file of another run is never taken for one of
+    this run, while a moved input (the same bytes, :func:`run_differences`) keeps its kept files.
 
     Parameters
     ----------
     run : dict
         What the run is (``run.json``'s contents).
+
+    >>> a = {"file": {"path": "/a/ev.h5", "bytes": 5, "mtime_ns": 1, "sha256": "ab"}, "settings": {"n": 1}}
+    >>> run_digest(a) == run_digest({**a, "file": {**a["file"], "path": "/b/ev.h5"}})
+    True
+    >>> run_digest(a) == run_digest({**a, "settings": {"n": 2}})
+    False
     """
-    return hashlib.sha256(json.dumps(run, sort_keys=True).encode()).hexdigest()
+    unplaced = {key: ({name: item for name, item in value.items() if name != "path"}
+                      if isinstance(value, dict) and "mtime_ns" in value else value) for key, value in run.items()}
+    return hashlib.sha256(json.dumps(unplaced, sort_keys=True).encode()).hexdigest()
 
 
 def _differences(recorded: dict, now: dict) -> list[str]:

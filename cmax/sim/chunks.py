@@ -55,7 +55,7 @@ except ImportError:  # pragma: no cover - machines without isal wheels
     _deflate = zlib
 
 __all__ = ["DEFAULT_CHUNK_FRAMES", "KEPT_MODES", "KEPT_STATES", "KeptChunks", "ChunkWriter", "chunk_folder", "frame_digest",
-           "holds_final_chunk", "kept_problem"]
+           "kept_problem", "remove_chunk_folder", "written_from_chunks"]
 
 #: Video frames per kept chunk by default (10 s of a 30 frames/s video).
 DEFAULT_CHUNK_FRAMES = 300
@@ -155,22 +155,73 @@ def kept_problem(output: str | os.PathLike, run: dict) -> str | None:
             + "): give the same video and options, or --overwrite (kept='resume_or_restart') to start over")
 
 
-def holds_final_chunk(output: str | os.PathLike) -> bool:
-    """Whether the chunks kept beside ``output`` include the final one (the whole video was simulated; a
-    conversion killed while or after its output was written from them).
+def remove_chunk_folder(output: str | os.PathLike) -> None:
+    """Remove the chunks kept beside ``output`` (:func:`chunk_folder`): the folder is first renamed to
+    ``.<name>.h5.chunks.removed`` (one step) and then deleted, so that a removal cut short (Ctrl-C, a kill) never
+    leaves a part of it to be read as kept chunks (a folder without its ``run.json`` is refused); a ``.removed``
+    folder left by such a removal is deleted too.
 
     Parameters
     ----------
     output : path
         The conversion's output file.
     """
-    for path in chunk_folder(output).glob("chunk_*.json"):
+    folder = chunk_folder(output)
+    removed = folder.with_name(folder.name + ".removed")
+    shutil.rmtree(removed, ignore_errors=True)
+    try:
+        os.rename(folder, removed)
+    except FileNotFoundError:
+        pass
+    except OSError:       # cannot rename (a file system's limits): removed in place
+        removed = folder
+    shutil.rmtree(removed, ignore_errors=True)
+    fsync_folder(folder.parent)
+
+
+def written_from_chunks(output: str | os.PathLike, run: dict) -> bool:
+    """Whether ``output`` is the file a conversion ``run`` wrote from the chunks kept beside it and was killed
+    before recording (so it may be written again from them): the chunks are this run's (:func:`kept_problem`,
+    each record naming the run's digest), they run from the first to the final one (the source ended), and
+    ``output`` is a complete file of :class:`cmax.io.h5.H5Writer` holding as many events as they do, written by a
+    conversion (its ``simulator`` attribute) from the chunks' first frame on (its ``t_offset``). A file of
+    anyone else (a user's recording beside a stale chunk folder, another run's output) is not.
+
+    Parameters
+    ----------
+    output : path
+        The conversion's output file.
+    run : dict
+        What the conversion is (as ``run.json`` records it).
+    """
+    from cmax.io.h5 import verify_h5
+
+    folder, digest, events = chunk_folder(output), run_digest(run), 0
+    if not folder.is_dir() or kept_problem(output, run) is not None:
+        return False
+    for index in range(len(list(folder.glob("chunk_*.json")))):
         try:
-            if json.loads(path.read_text()).get("final") is True:
-                return True
-        except (OSError, ValueError, AttributeError):
-            continue
+            record = json.loads((folder / f"chunk_{index:06d}.json").read_text())
+            if record["run"] != digest or record["index"] != index:
+                return False
+            events += int(record["events"])
+            if record["final"] is True:
+                verify_h5(output, events=events)
+                return _written_by_cmax(output, int(record["first_t_us"]))
+        except (OSError, ValueError, KeyError, TypeError):
+            return False
     return False
+
+
+def _written_by_cmax(output: Path, first_t_us: int) -> bool:
+    """Whether the complete h5 file ``output`` was written by a conversion (its ``simulator`` attribute names
+    cmax) whose first frame was at ``first_t_us`` [µs] (its ``t_offset``)."""
+    import h5py
+
+    with h5py.File(output, "r") as file:
+        simulator = file.attrs.get("simulator")
+        return (isinstance(simulator, str) and simulator.startswith("cmax ") and "t_offset" in file
+                and int(file["t_offset"][()]) == first_t_us)
 
 
 class KeptChunks:
@@ -322,9 +373,8 @@ class KeptChunks:
         return full
 
     def remove(self) -> None:
-        """Remove the folder (the output is complete, or the run starts over)."""
-        shutil.rmtree(self.folder, ignore_errors=True)
-        fsync_folder(self.folder.parent)
+        """Remove the folder (the output is complete, or the run starts over): :func:`remove_chunk_folder`."""
+        remove_chunk_folder(self.output)
 
 
 class ChunkWriter:

@@ -41,7 +41,6 @@ import json
 import math
 import numbers
 import os
-import shutil
 import signal
 import sys
 import threading
@@ -59,7 +58,7 @@ from cmax._workers import die_with_parent, recorded, reissue, start_forkserver
 from cmax.io import VIDEO_SUFFIXES
 from cmax.io.atomic import OutputLockedError, PathLock, discard_leftovers, file_sha256, lock_path, write_text_atomic
 from cmax.sim.catalogue import load_catalogue, shard as take_shard
-from cmax.sim.chunks import DEFAULT_CHUNK_FRAMES, holds_final_chunk
+from cmax.sim.chunks import DEFAULT_CHUNK_FRAMES, written_from_chunks
 from cmax.sim.esim import EsimSettings, EventSimulator
 from cmax.sim.signature import signature_problem, source_signature
 from cmax.sim.video import DEFAULT_PREFETCH, VideoFileSource, open_source
@@ -1005,8 +1004,8 @@ def _resumed_note(name: str, bar) -> Callable[[int, int], None]:
     there is one) starts at the kept frames and says so."""
     def note(frames: int, events: int) -> None:
         print(f"cmax: note: {name}: continuing an interrupted conversion: {frames} frame(s) and {events:,} events "
-              "kept (their files verified; the video's frames are checked against them as they are read again)",
-              file=sys.stderr)
+              "kept (their files and the video's bytes verified by SHA-256; the kept frames are decoded again and "
+              "compared only when the video goes on past them)", file=sys.stderr)
         if bar is not None:
             bar.update(frames)
             bar.set_postfix_str(f"{frames} kept")
@@ -1095,8 +1094,9 @@ def convert_collection(
         ``FileExistsError`` naming them, under the lock and before anything is
         converted or written. Outputs the manifest lists (an ``ok`` entry, or one
         it marked failed because the output or the source changed) are the
-        conversion's own and are verified, skipped or redone as described above.
-        With ``overwrite``, chunks a killed conversion kept for a video of another source, settings or code are
+        conversion's own and are verified, skipped or redone as described above;
+        so is a file this conversion wrote from the chunks kept beside it before it was killed
+        (:func:`cmax.sim.chunks.written_from_chunks`). With ``overwrite``, chunks a killed conversion kept for a video of another source, settings or code are
         removed and that video starts over (without it they are refused, see ``chunk_frames``).
     chunk_frames : int or None
         Each video's events are kept in chunks of this many video frames (default
@@ -1105,7 +1105,8 @@ def convert_collection(
         uninterrupted conversion; the chunks are removed once its output is recorded as ``ok``. Chunks of
         another run (its source, settings or code changed since) raise ValueError naming them, under the lock
         and before anything is converted, unless ``overwrite`` (or the video is in ``redo``): then that video
-        starts over. None: no chunks, an interrupted video starts over.
+        starts over. None: no chunks, an interrupted video starts over (chunks of another run beside its output
+        are refused all the same: they are removed once it is recorded).
 
     Returns
     -------
@@ -1166,15 +1167,32 @@ def _listed_output(entry: dict | None, output: Path, folder: Path) -> bool:
         return False
 
 
-def _check_unlisted_outputs(jobs, videos: dict, output_dir: Path, path: Path, redo) -> None:
+def _kept_runs(jobs, output_dir: Path, settings: ConvertSettings, redo) -> dict[str, dict]:
+    """The conversion (``run.json`` of :mod:`cmax.sim.chunks`) of each of ``jobs`` whose output has a chunk folder
+    beside it, by name (its source hashed once here); ``redo`` names and unreadable sources (they fail their own
+    video) are left out."""
+    from cmax.sim.chunks import chunk_folder
+
+    runs = {}
+    for job in jobs:
+        if job.name in redo or not chunk_folder(output_dir / f"{job.name}.h5").is_dir():
+            continue
+        try:
+            runs[job.name] = _chunk_run(source_signature(job.source), settings.for_video(job.name))
+        except (OSError, ValueError):
+            continue
+    return runs
+
+
+def _check_unlisted_outputs(jobs, videos: dict, output_dir: Path, path: Path, redo, runs: dict[str, dict]) -> None:
     """Refuse (FileExistsError, naming them) files at the outputs of ``jobs`` that the manifest ``videos``
-    does not list as theirs (see :func:`_listed_output`), but for outputs written from the chunks still kept
-    beside them (:func:`cmax.sim.chunks.holds_final_chunk`: written again from them); ``redo`` names are being overwritten
-    on purpose."""
+    does not list as theirs (see :func:`_listed_output`), but for outputs this very conversion (``runs``:
+    :func:`_kept_runs`) wrote from the chunks still kept beside them (:func:`cmax.sim.chunks.written_from_chunks`:
+    written again from them); ``redo`` names are being overwritten on purpose."""
     foreign = [output for job in jobs if job.name not in redo
                for output in [output_dir / f"{job.name}.h5"]
                if os.path.lexists(output) and not _listed_output(videos.get(job.name), output, output_dir)
-               and not holds_final_chunk(output)]
+               and not (job.name in runs and written_from_chunks(output, runs[job.name]))]
     if foreign:
         names = ", ".join(output.name for output in foreign[:5]) + (" ..." if len(foreign) > 5 else "")
         listed = f"{path} does not list" if os.path.lexists(path) else f"there is no {MANIFEST} listing"
@@ -1183,22 +1201,13 @@ def _check_unlisted_outputs(jobs, videos: dict, output_dir: Path, path: Path, re
                               "replace them, or convert into another folder")
 
 
-def _check_kept_chunks(jobs, output_dir: Path, settings: ConvertSettings, redo) -> None:
-    """Refuse (ValueError, one line naming each video and what differs) chunks kept beside the outputs of
-    ``jobs`` by a conversion of another source, settings or code; ``redo`` names start over on purpose."""
-    from cmax.sim.chunks import chunk_folder, kept_problem
+def _check_kept_chunks(output_dir: Path, runs: dict[str, dict]) -> None:
+    """Refuse (ValueError, one line naming each video and what differs) chunks kept beside the outputs of the
+    videos ``runs`` names (:func:`_kept_runs`) by a conversion of another source, settings or code."""
+    from cmax.sim.chunks import kept_problem
 
-    problems = []
-    for job in jobs:
-        output = output_dir / f"{job.name}.h5"
-        if job.name in redo or not chunk_folder(output).is_dir():
-            continue
-        try:
-            run = _chunk_run(source_signature(job.source), settings.for_video(job.name))
-        except (OSError, ValueError):
-            continue                              # an unreadable source fails its own video
-        if (problem := kept_problem(output, run)) is not None:
-            problems.append(f"{job.name}: {problem}")
+    problems = [f"{name}: {problem}" for name, run in runs.items()
+                if (problem := kept_problem(output_dir / f"{name}.h5", run)) is not None]
     if problems:
         raise ValueError(f"{len(problems)} video(s) have chunks of an interrupted conversion that differs from this "
                          "one; nothing was converted: " + " | ".join(problems))
@@ -1218,9 +1227,11 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
         previous_videos = previous["videos"]
         manifest["videos"] = {name: entry for name, entry in previous["videos"].items() if name not in redo}
     if not overwrite:  # a file the manifest does not list is a user's or another run's: never replaced unasked
-        _check_unlisted_outputs(jobs, previous_videos, output_dir, path, redo)
-        if chunk_frames is not None:      # nor are kept chunks of another run thrown away unasked
-            _check_kept_chunks(jobs, output_dir, settings, redo)
+        runs = _kept_runs(jobs, output_dir, settings, redo)
+        _check_unlisted_outputs(jobs, previous_videos, output_dir, path, redo, runs)
+        # nor are kept chunks of another run thrown away unasked (with chunk_frames None too: a video converted
+        # without chunks removes those kept beside its output once it is recorded)
+        _check_kept_chunks(output_dir, runs)
     sources = {job.name: job.source for job in jobs}
     names = set(sources)
     for name, entry in manifest["videos"].items():  # never skip a video whose source changed
@@ -1246,6 +1257,8 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
                 print(f"cmax: note: {name}: output not verified ({problem}); "
                       + ("converting it again" if name in names else "listed as failed"), file=sys.stderr)
     todo = [job for job in jobs if manifest["videos"].get(job.name, {}).get("status") != "ok"]
+    for job in (job for job in jobs if job not in todo):   # verified and skipped: chunks a stop left
+        _remove_chunks(output_dir / f"{job.name}.h5")
     manifest["totals"] = _totals(manifest["videos"])
     write_manifest(path, manifest)
     if (note := _other_chunks_note(output_dir, names)) is not None:
@@ -1307,12 +1320,13 @@ def _other_chunks_note(output_dir: Path, names: set[str]) -> str | None:
 
 
 def _remove_chunks(output: Path) -> None:
-    """Remove the chunks kept beside ``output`` (its conversion is recorded as verified)."""
-    from cmax.sim.chunks import chunk_folder
+    """Remove the chunks kept beside ``output`` (its conversion is recorded as verified), and what an earlier
+    removal cut short left (:func:`cmax.sim.chunks.remove_chunk_folder`)."""
+    from cmax.sim.chunks import chunk_folder, remove_chunk_folder
 
     folder = chunk_folder(output)
-    if folder.is_dir():
-        shutil.rmtree(folder, ignore_errors=True)
+    if folder.is_dir() or folder.with_name(folder.name + ".removed").is_dir():
+        remove_chunk_folder(output)
 
 
 # -- worker processes -------------------------------------------------------------------
