@@ -203,3 +203,94 @@ def test_cmax_depth_refuses_raw_dsec_events_without_calib(sequence, tmp_path, ca
     assert status == 2 and err.count("\n") == 1, err
     assert "rectify_map.h5 lies beside" in err and f"--calib {yaml.resolve()}" in err
     assert not (tmp_path / "out").exists()
+
+
+def _drawn(seed: int, n: int, max_events: int) -> tuple[np.ndarray, np.ndarray]:
+    """The subset and dither WarpEvents.from_events draws for ``seed`` (drawn here independently)."""
+    keep = np.arange(n)
+    if n > max_events:
+        keep = np.sort(np.random.default_rng(seed).choice(n, max_events, replace=False))
+    return keep, np.random.default_rng([seed, 1]).uniform(-0.5, 0.5, (len(keep), 2))
+
+
+def test_the_contrast_loss_reads_the_calibrated_events_as_the_fit_does(sequence):
+    """A calib entry: the item's loss events are EventWindows.from_events(raw events, camera) (each event dithered over
+    its sensor pixel and mapped through the lens and R_rect0, unrounded), and OpenCV's undistortPoints of the
+    dithered sensor pixels. Before: the nearest rectified pixel plus a dither (up to ~1 px away)."""
+    import torch
+
+    from cmax.contrast import EventWindows
+
+    path, yaml, _ = sequence
+    dataset = H5WindowDataset([{"path": str(path), "calib": str(yaml)}], window_us=100_000, max_events=500,
+                              min_events=10)
+    sample = dataset.sample(1)
+    raw = dataset._reader(0).window(sample.t0_us, sample.t1_us)
+    item = dataset[1]
+    reference = EventWindows.from_events(raw, dataset._cameras[0], max_events=500, seed=dataset.seed + 1)
+    n = int(item["valid"].sum())
+    assert n == len(reference.x) == 500
+    torch.testing.assert_close(item["x"][:n], reference.x, rtol=0, atol=1e-5)
+    torch.testing.assert_close(item["y"][:n], reference.y, rtol=0, atol=1e-5)
+    torch.testing.assert_close(item["t"][:n], reference.t, rtol=0, atol=1e-7)
+    keep, dither = _drawn(dataset.seed + 1, len(sample.events), 500)
+    sensor = np.column_stack([raw.x, raw.y])[dataset._cameras[0].undistorted_kept(raw)][keep]
+    expected = _opencv(sensor + dither)
+    loss_xy = np.column_stack([item["x"][:n].numpy(), item["y"][:n].numpy()])
+    np.testing.assert_allclose(loss_xy, expected, atol=1e-3)
+    rounded = np.column_stack([sample.events.x, sample.events.y])[keep]
+    assert np.abs(loss_xy - rounded).max() > 0.6          # outside the old dither square around the rounded pixel
+
+
+def test_the_contrast_loss_reads_the_rectify_map_between_pixel_centres(sequence):
+    """A rectify_map entry: each loss event is its sensor pixel dithered and the map interpolated bilinearly there;
+    at a pixel centre that is the map's own value, and near OpenCV's (the map is smooth)."""
+    from scipy.ndimage import map_coordinates
+
+    path, _, _ = sequence
+    table_path = path.parent / "rectify_map.h5"
+    dataset = H5WindowDataset([{"path": str(path), "K": [57.0, 57.0, 31.6, 23.3], "rectify_map": str(table_path)}],
+                              window_us=100_000, max_events=500, min_events=10)
+    with h5py.File(table_path, "r") as file:
+        table = file["rectify_map"][:]
+    sample = dataset.sample(2)
+    ys, xs = np.mgrid[0:H, 0:W]
+    centres = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+    np.testing.assert_array_equal(sample.sensor.camera.undistort_points(centres),
+                                  table.reshape(-1, 2).astype(np.float64))
+    item = dataset[2]
+    n = int(item["valid"].sum())
+    keep, dither = _drawn(dataset.seed + 2, len(sample.events), 500)
+    dithered = sample.sensor.pixels[keep] + dither
+    loss_xy = np.column_stack([item["x"][:n].numpy(), item["y"][:n].numpy()])
+    inside = (dithered >= 0).all(axis=1) & (dithered[:, 0] <= W - 1) & (dithered[:, 1] <= H - 1)
+    bilinear = np.column_stack([map_coordinates(table[..., c].astype(np.float64), dithered[inside, ::-1].T, order=1)
+                                for c in (0, 1)])
+    np.testing.assert_allclose(loss_xy[inside], bilinear, atol=1e-4)
+    np.testing.assert_allclose(loss_xy, _opencv(dithered), atol=0.02)
+    assert np.abs(loss_xy - np.column_stack([sample.events.x, sample.events.y])[keep]).max() > 0.6
+
+
+def test_augmentations_keep_each_loss_event_on_its_own_sensor_pixel(sequence):
+    """Mirrored: each loss event is the mirror image of its sensor pixel dithered and mapped through the lens (the
+    mirrored sensor seen through the mirrored lens); time reversed: its sensor pixels reversed with the events."""
+    path, yaml, _ = sequence
+    dataset = H5WindowDataset([{"path": str(path), "calib": str(yaml)}], window_us=100_000, max_events=400,
+                              min_events=10)
+    sample = dataset.sample(0)
+    from learned.data import to_item
+
+    for augmented, mirrored in ((flip_horizontal(sample), True), (reverse_time(sample), False),
+                                (flip_horizontal(flip_horizontal(sample)), False)):
+        item = to_item(augmented, max_events=400, seed=3, pixels=augmented.pixels, sensor=augmented.sensor)
+        keep, dither = _drawn(3, len(sample.events), 400)
+        order = np.arange(len(sample.events))[::-1] if augmented.events.t[0] != sample.events.t[0] else \
+            np.arange(len(sample.events))
+        sensor = sample.sensor.pixels[order][keep]
+        if mirrored:   # dithered on the mirrored sensor: x + u there is x - u on the sensor
+            expected = _opencv(sensor + dither * [-1, 1]) * [-1, 1] + [W - 1, 0]
+        else:
+            expected = _opencv(sensor + dither)
+        n = int(item["valid"].sum())
+        np.testing.assert_allclose(np.column_stack([item["x"][:n].numpy(), item["y"][:n].numpy()]), expected,
+                                   atol=1e-3)
