@@ -73,7 +73,7 @@ THREAD_CHECK_EVERY = 25
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
            "clear_earlier_run", "RESUMABLE", "file_fingerprint", "data_fingerprints", "bytes_to_hash",
-           "HASH_PROGRESS_BYTES", "fingerprint_differences", "repeated_files",
+           "HASH_PROGRESS_BYTES", "fingerprint_differences", "repeated_files", "calibration_sha256",
            "training_card", "schedule_note", "unread_settings",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
            "check_output", "main"]
@@ -307,6 +307,14 @@ def fingerprint_differences(recorded: object, now: list[dict[str, object]], name
         if changed:
             differ.append(f"data.files[{i}] {names[i]}: {', '.join(changed)}")
     return differ
+
+
+def calibration_sha256(specs: list) -> list[dict[str, str | None]]:
+    """``[{"calib": SHA-256 (hex) or None, "rectify_map": ...}, ...]``: the contents of each data file's calibration
+    files (:class:`learned.data.FileSpec` ``specs[i]``'s ``calib`` and ``rectify_map``; None where it gives none),
+    as a checkpoint records them so that ``--resume`` compares the files' bytes, not their paths alone."""
+    return [{key: None if getattr(spec, key) is None else file_sha256(getattr(spec, key))
+             for key in ("calib", "rectify_map")} for spec in specs]
 
 
 def training_card(dataset: H5WindowDataset, window_us: int, tolerance: float = 0.05) -> dict[str, object]:
@@ -722,9 +730,11 @@ class Trainer:
         self.fingerprints = data_fingerprints([spec.path for spec in self.dataset.specs], self.dataset.counts,
                                               self.dataset.spans, recorded,
                                               progress=self.progress and self.rank == 0)
+        self.calibrations = calibration_sha256(self.dataset.specs)
         if ckpt is not None:
             self._check_data_order(ckpt.get("data_order"))
             self._check_data_files(ckpt.get("data_order"))
+            self._check_calibrations(ckpt.get("data_order"))
             self._check_teacher(ckpt.get("data_order"))
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model).to(self.device)
@@ -799,6 +809,22 @@ class Trainer:
             raise ValueError(f"--resume: {self.out / 'last.pt'} was trained on other data files than the ones at "
                              f"these paths now: {'; '.join(differ)}: the resumed steps would learn from other "
                              "events; restore the files, or start afresh with --overwrite or another train.out")
+
+    def _check_calibrations(self, order: object) -> None:
+        """Refuse to resume when a data file's ``calib`` or ``rectify_map`` holds other bytes than the checkpoint was
+        trained with (:func:`calibration_sha256` in ``data_order["calibrations"]``; checkpoints of earlier versions
+        store none): the resumed steps would rectify the events elsewhere."""
+        recorded = order.get("calibrations") if isinstance(order, dict) else None
+        if not isinstance(recorded, list) or len(recorded) != len(self.calibrations):
+            return
+        differ = [f"data.files[{i}].{key} {getattr(self.dataset.specs[i], key)}"
+                  for i, (before, now) in enumerate(zip(recorded, self.calibrations)) if isinstance(before, dict)
+                  for key in ("calib", "rectify_map") if before.get(key) != now[key]]
+        if differ:
+            raise ValueError(f"--resume: {self.out / 'last.pt'} was trained with other calibration files than the "
+                             f"ones at these paths now ({', '.join(differ)}: their contents, the SHA-256 of the "
+                             "whole file, changed): the resumed steps would rectify the events elsewhere; restore "
+                             "the files, or start afresh with --overwrite or another train.out")
 
     def _check_data_order(self, order: object) -> None:
         """Refuse to resume when the checkpoint's ``data_order`` (seed, batch size, windows in the data set) is not
@@ -956,7 +982,8 @@ class Trainer:
                    "config": self.config.to_dict(), "rng": rng_state(),
                    "data_order": {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
                                   "dataset_size": len(self.dataset), "paths": resolved_paths(self.config),
-                                  "teacher_sha256": self.teacher_sha256, "files": self.fingerprints},
+                                  "teacher_sha256": self.teacher_sha256, "files": self.fingerprints,
+                                  "calibrations": self.calibrations},
                    "card": training_card(self.dataset, self.config.data.window_us)}
         written = save_checkpoint(self.out / "last.pt", payload)
         self.saved_step = self.step

@@ -294,3 +294,44 @@ def test_augmentations_keep_each_loss_event_on_its_own_sensor_pixel(sequence):
         n = int(item["valid"].sum())
         np.testing.assert_allclose(np.column_stack([item["x"][:n].numpy(), item["y"][:n].numpy()]), expected,
                                    atol=1e-3)
+
+
+def test_resume_refuses_a_calibration_file_changed_under_the_same_path(sequence, tiny_checkpoint, tmp_path, capsys):
+    """--resume compared an entry's calib / rectify_map as typed paths: a cam_to_cam.yaml edited (camRect0's cx
+    moved 0.3 px) after the checkpoint trained on as if nothing changed (exit 0). The checkpoint records their SHA-256:
+    refused in one line naming the file; restored, the run resumes."""
+    import json
+
+    from conftest import one_line_error
+    from learned.checkpoint import load_checkpoint
+    from learned.train import main as train_main
+
+    path, yaml, _ = sequence
+    table = path.parent / "rectify_map.h5"
+    out = tmp_path / "run"
+    entry = {"path": str(path), "calib": str(yaml)}
+
+    def run(steps: int, *flags: str, entry=entry) -> list[str]:
+        return ["--mode", "finetune", "--no-progress", *flags, f"data.files=[{json.dumps(entry)}]",
+                "data.window_us=50000", "data.max_events=300", "train.batch_size=2", f"train.steps={steps}",
+                "train.checkpoint_every=2", "train.log_every=1", f"train.out={out}", f"train.teacher={tiny_checkpoint}"]
+
+    assert train_main(run(2)) == 0
+    assert load_checkpoint(out / "last.pt")["data_order"]["calibrations"][0]["rectify_map"] is None
+    original = yaml.read_text()
+    yaml.write_text(original.replace(f"{K_RECT[0, 2]}, {K_RECT[1, 2]}", f"{K_RECT[0, 2] + 0.3}, {K_RECT[1, 2]}"))
+    capsys.readouterr()
+    status, err = one_line_error(lambda: train_main(run(4, "--resume")), capsys)
+    assert status == 2 and "trained with other calibration files" in err and f"data.files[0].calib {yaml}" in err, err
+    assert load_checkpoint(out / "last.pt")["step"] == 2
+    yaml.write_text(original)                       # restored: the same bytes, resumes
+    assert train_main(run(4, "--resume")) == 0
+    assert load_checkpoint(out / "last.pt")["step"] == 4
+    out = tmp_path / "mapped"                        # a rectify_map entry: its map's bytes are checked the same way
+    mapped = {"path": str(path), "K": [57.0, 57.0, 31.6, 23.3], "rectify_map": str(table)}
+    assert train_main(run(2, entry=mapped)) == 0
+    with h5py.File(table, "a") as file:
+        file["rectify_map"][0, 0] = file["rectify_map"][0, 0] + 0.25
+    capsys.readouterr()
+    status, err = one_line_error(lambda: train_main(run(4, "--resume", entry=mapped)), capsys)
+    assert status == 2 and f"data.files[0].rectify_map {table}" in err, err
