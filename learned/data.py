@@ -27,7 +27,6 @@ import h5py
 import numpy as np
 import torch
 
-from cmax.camera import sensor_pixels
 from cmax.events import Events
 from cmax.fitting.window import SensorPixels
 from cmax.io import FormatError, H5Reader, read_calibration
@@ -837,8 +836,8 @@ class MVSECDataset(torch.utils.data.Dataset):
         events = self._read(self.data_file, t0_us=t0, t1_us=t0 + self.window_us)
         if self.camera is None:
             return events, np.column_stack([events.x, events.y]).astype(np.float64), None
-        kept = self.camera.undistorted_kept(events)
-        sensor = sensor_pixels(events, self.camera)
+        kept = self.camera.undistorted_kept(events)    # sensor_pixels(events, camera), without finding them again
+        sensor = None if self.camera.is_pinhole else np.column_stack([events.x[kept], events.y[kept]])
         return (self.camera.undistort_events(events), self.camera.undistorted_pixels(events)[kept],
                 None if sensor is None else SensorPixels(sensor, self.camera))
 
