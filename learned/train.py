@@ -177,12 +177,16 @@ def _fields(config: Config, paths: dict | None = None) -> dict[str, object]:
         flat["data.files"] = [{**entry, "path": path} if isinstance(entry, dict) else path
                               for entry, path in zip(flat["data.files"], paths["data.files"])]
         flat["train.teacher"] = paths["train.teacher"]
+        if "data.calibrations" in paths:   # checkpoints of earlier versions compare them as typed
+            flat["data.files"] = [{**entry, **{key: path for key, path in files.items() if key in entry}}
+                                  if isinstance(entry, dict) else entry
+                                  for entry, files in zip(flat["data.files"], paths["data.calibrations"])]
     return flat
 
 
 def resolved_paths(config: Config) -> dict[str, object]:
-    """``{"data.files": [absolute path, ...], "train.teacher": absolute path or ""}``: the files a run of ``config``
-    reads, as
+    """``{"data.files": [absolute path, ...], "train.teacher": absolute path or "", "data.calibrations": [{"calib":
+    absolute path, "rectify_map": ...} (the keys each entry gives), ...]}``: the files a run of ``config`` reads, as
     a checkpoint records them so that ``--resume`` compares files, not spellings (``a.h5`` and ``./a.h5`` are one
     file; ``a.h5`` typed in another folder is another)."""
     def absolute(path: object) -> str:
@@ -190,7 +194,10 @@ def resolved_paths(config: Config) -> dict[str, object]:
 
     return {"data.files": [absolute(entry["path"] if isinstance(entry, dict) else entry)
                            for entry in config.data.files],
-            "train.teacher": absolute(config.train.teacher) if config.train.teacher else ""}
+            "train.teacher": absolute(config.train.teacher) if config.train.teacher else "",
+            "data.calibrations": [{key: absolute(entry[key]) for key in ("calib", "rectify_map")
+                                   if isinstance(entry, dict) and isinstance(entry.get(key), str)}
+                                  for entry in config.data.files]}
 
 
 def config_differences(recorded: Config, now: Config, recorded_paths: dict | None = None) -> list[str]:
@@ -199,6 +206,8 @@ def config_differences(recorded: Config, now: Config, recorded_paths: dict | Non
     With ``recorded_paths`` (the checkpoint's :func:`resolved_paths`), the data files and the teacher are compared
     as the files they name; without (a checkpoint of an earlier version), as typed."""
     paths_now = None if recorded_paths is None else resolved_paths(now)
+    if paths_now is not None and not isinstance(recorded_paths.get("data.calibrations"), list):
+        paths_now.pop("data.calibrations")   # a checkpoint of an earlier version: its calibrations as typed
     before, after = _fields(recorded, recorded_paths), _fields(now, paths_now)
     return [f"{key}={json.dumps(before[key])} (now {json.dumps(after[key])})" for key in before
             if key not in RESUMABLE and before[key] != after.get(key)]
@@ -772,6 +781,11 @@ class Trainer:
         if paths is not None and not (isinstance(paths, dict) and isinstance(paths.get("train.teacher"), str)
                                       and isinstance(paths.get("data.files"), list)
                                       and len(paths["data.files"]) == len(recorded.data.files)):
+            raise CheckpointError(f"{path}: its data_order.paths is not valid: {paths!r}")
+        calibrations = None if paths is None else paths.get("data.calibrations")
+        if calibrations is not None and not (isinstance(calibrations, list)
+                                             and len(calibrations) == len(recorded.data.files)
+                                             and all(isinstance(c, dict) for c in calibrations)):
             raise CheckpointError(f"{path}: its data_order.paths is not valid: {paths!r}")
         differ = config_differences(recorded, self.config, paths)
         step = int(ckpt.get("step", 0))

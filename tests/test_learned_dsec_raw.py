@@ -335,3 +335,49 @@ def test_resume_refuses_a_calibration_file_changed_under_the_same_path(sequence,
     capsys.readouterr()
     status, err = one_line_error(lambda: train_main(run(4, "--resume", entry=mapped)), capsys)
     assert status == 2 and f"data.files[0].rectify_map {table}" in err, err
+
+
+def test_resume_compares_the_calibration_files_not_their_spelling(sequence, tiny_checkpoint, tmp_path, monkeypatch,
+                                                                  capsys):
+    """An entry's calib typed "calibration/cam_to_cam.yaml" and resumed as "./calibration/cam_to_cam.yaml" or by its
+    absolute path names the same file: it resumes (it was refused, compared as typed, as the data files' paths were
+    before). Another folder's file of that relative name: refused, naming both absolute paths."""
+    import json
+    import shutil
+
+    from conftest import one_line_error
+    from learned.checkpoint import load_checkpoint
+    from learned.train import main as train_main
+
+    path, yaml, _ = sequence
+    out = tmp_path / "run"
+    monkeypatch.chdir(yaml.parent.parent)
+
+    def run(steps: int, calib: str, *flags: str) -> list[str]:
+        entry = {"path": str(path), "calib": calib}
+        return ["--mode", "finetune", "--no-progress", *flags, f"data.files=[{json.dumps(entry)}]",
+                "data.window_us=50000", "data.max_events=300", "train.batch_size=2", f"train.steps={steps}",
+                "train.checkpoint_every=1", "train.log_every=1", f"train.out={out}", f"train.teacher={tiny_checkpoint}"]
+
+    assert train_main(run(1, "calibration/cam_to_cam.yaml")) == 0
+    for steps, spelling in ((2, "./calibration/cam_to_cam.yaml"), (3, str(yaml))):
+        assert train_main(run(steps, spelling, "--resume")) == 0, spelling
+        assert load_checkpoint(out / "last.pt")["step"] == steps
+    other = tmp_path / "elsewhere"
+    (other / "calibration").mkdir(parents=True)
+    shutil.copyfile(yaml, other / "calibration" / "cam_to_cam.yaml")
+    monkeypatch.chdir(other)
+    capsys.readouterr()
+    status, err = one_line_error(lambda: train_main(run(4, "calibration/cam_to_cam.yaml", "--resume")), capsys)
+    assert status == 2 and "was written with other settings" in err and str(yaml) in err, err
+    from learned.train import config_differences, resolved_paths
+
+    def config(calib: str):
+        entry = json.dumps({"path": str(path), "calib": calib})
+        return load_config(None, [f"data.files=[{entry}]", f"train.teacher={tiny_checkpoint}"], mode="finetune")
+
+    typed, dotted = config("calibration/cam_to_cam.yaml"), config("./calibration/cam_to_cam.yaml")
+    recorded = resolved_paths(typed)
+    assert config_differences(typed, dotted, recorded) == []
+    del recorded["data.calibrations"]                # a checkpoint of an earlier version: compared as typed
+    assert [d.split("=")[0] for d in config_differences(typed, dotted, recorded)] == ["data.files"]
