@@ -27,7 +27,6 @@ import h5py
 import numpy as np
 import torch
 
-from cmax.camera import sensor_pixels
 from cmax.events import Events
 from cmax.fitting.window import SensorPixels
 from cmax.io import FormatError, H5Reader, read_calibration
@@ -70,6 +69,10 @@ class Sample:
     pixels : ndarray (N, 2) float64 or None
         The exact sub-pixel positions ``(x, y)`` [px of ``K``] of ``events`` (undistorted and rectified:
         :meth:`cmax.Camera.undistorted_pixels`), row for row; None: the events' own integer pixels.
+    sensor : SensorPixels or None
+        Through a lens (or DSEC's rectify map): each event's sensor pixel (N, 2) [px], row for row, and what maps a
+        sensor position to the pixels of ``K`` (:class:`cmax.fitting.window.SensorPixels`, :func:`to_item`'s
+        ``sensor``); None: the events were recorded at their pixels.
     """
 
     events: Events
@@ -80,6 +83,7 @@ class Sample:
     t1_us: int
     speed: float | None = None
     pixels: np.ndarray | None = None
+    sensor: SensorPixels | None = None
 
     @property
     def known_speed(self) -> float:
@@ -94,6 +98,49 @@ _MIRROR_V = np.array([-1.0, 1.0, 1.0])
 _MIRROR_OMEGA = np.array([1.0, -1.0, -1.0])
 
 
+@dataclass(frozen=True)
+class _Mirrored:
+    """The lens ``lens`` (an object with ``undistort_points``, e.g. a :class:`cmax.Camera`) of a ``width`` [px]
+    sensor seen in a mirror: x -> width-1-x before and after it (:func:`flip_horizontal`)."""
+
+    lens: object
+    width: int
+
+    def undistort_points(self, points: np.ndarray) -> np.ndarray:
+        """The mirrored lens's pixels (M, 2) [px] of the mirrored sensor's positions ``points`` (M, 2) [px]."""
+        points = np.array(points, dtype=np.float64)
+        points[:, 0] = self.width - 1 - points[:, 0]
+        mapped = np.array(self.lens.undistort_points(points), dtype=np.float64)
+        mapped[:, 0] = self.width - 1 - mapped[:, 0]
+        return mapped
+
+
+@dataclass(frozen=True, eq=False)
+class _MapLens:
+    """DSEC's ``rectify_map`` (H, W, 2) [px] as a lens: ``undistort_points`` interpolates it bilinearly between
+    the pixel centres (linearly extrapolated from the border cells), so that a position on a sensor pixel's
+    centre gets the map's value there exactly."""
+
+    table: np.ndarray
+
+    def undistort_points(self, points: np.ndarray) -> np.ndarray:
+        """The rectified positions (M, 2) float64 [px] of sensor positions ``points`` (M, 2) [px]."""
+        points = np.asarray(points, dtype=np.float64)
+        H, W = self.table.shape[:2]
+        out = np.zeros((len(points), 2))
+        corners = []
+        for axis, size in ((0, W), (1, H)):
+            low = np.clip(np.floor(points[:, axis]), 0, max(size - 2, 0)).astype(np.int64)
+            high = np.minimum(low + 1, size - 1)
+            frac = points[:, axis] - low
+            corners.append(((low, 1.0 - frac), (high, frac)))
+        for x, wx in corners[0]:
+            for y, wy in corners[1]:
+                weight = (wx * wy)[:, None]
+                out += np.where(weight != 0, weight * self.table[y, x], 0.0)   # a centre reads its pixel alone
+        return out
+
+
 def flip_horizontal(sample: Sample) -> Sample:
     """Mirror ``sample`` left-right: ``x -> W-1-x``, ``cx -> W-1-cx``, depth flipped, twist mirrored (vx, wy, wz negated)."""
     ev = sample.events
@@ -105,7 +152,11 @@ def flip_horizontal(sample: Sample) -> Sample:
     depth = None if sample.depth is None else np.ascontiguousarray(sample.depth[:, ::-1])
     pixels = None if sample.pixels is None else np.column_stack([ev.width - 1 - sample.pixels[:, 0],
                                                                  sample.pixels[:, 1]])
-    return replace(sample, events=events, K=K, depth=depth, twist=twist, pixels=pixels)
+    sensor = sample.sensor
+    if sensor is not None:   # the mirrored sensor seen through the mirrored lens: each event keeps its position
+        lens = sensor.camera.lens if isinstance(sensor.camera, _Mirrored) else _Mirrored(sensor.camera, ev.width)
+        sensor = SensorPixels(np.column_stack([ev.width - 1 - sensor.pixels[:, 0], sensor.pixels[:, 1]]), lens)
+    return replace(sample, events=events, K=K, depth=depth, twist=twist, pixels=pixels, sensor=sensor)
 
 
 def flip_polarity(sample: Sample) -> Sample:
@@ -123,7 +174,10 @@ def reverse_time(sample: Sample) -> Sample:
     t = (sample.t0_us + sample.t1_us) - ev.t[::-1]
     events = Events(ev.x[::-1], ev.y[::-1], t, 1 - ev.p[::-1], ev.width, ev.height)
     pixels = None if sample.pixels is None else np.ascontiguousarray(sample.pixels[::-1])
-    return replace(sample, events=events, twist=None if sample.twist is None else -sample.twist, pixels=pixels)
+    sensor = None if sample.sensor is None else SensorPixels(np.ascontiguousarray(sample.sensor.pixels[::-1]),
+                                                             sample.sensor.camera)
+    return replace(sample, events=events, twist=None if sample.twist is None else -sample.twist, pixels=pixels,
+                   sensor=sensor)
 
 
 def augment(sample: Sample, rng: np.random.Generator, *, flip: bool = True, polarity: bool = True,
@@ -148,7 +202,8 @@ def to_item(sample: Sample, *, max_events: int, bins: int = 5, seed: int = 0,
     ``cmax.representations.voxel_grid(..., pixels=)``; ``sensor``, optional, for events undistorted by a lens
     (``sample.events`` at their nearest undistorted pixels, ``sample.K`` the camera's ``pinhole_K``): each
     event's sensor pixel (N, 2) [px] and the :class:`cmax.Camera` (:class:`cmax.fitting.window.SensorPixels`,
-    :func:`cmax.camera.sensor_pixels`), so that the contrast loss's events are dithered over their sensor pixels
+    :func:`cmax.camera.sensor_pixels`; or another lens with its ``undistort_points``: :class:`Sample`'s ``sensor``
+    of :class:`H5WindowDataset`, augmented), so that the contrast loss's events are dithered over their sensor pixels
     and mapped through the lens, unrounded, as :func:`cmax.fit` and ``cmax.contrast.EventWindows.from_events(
     events, camera)`` take them; without it they are dithered around the events' integer pixels).
 
@@ -403,16 +458,17 @@ def _map_disagreement(spec: FileSpec, camera: "Camera") -> str | None:
             "calibration's positions are used")
 
 
-def _mapped(events: Events, table: np.ndarray) -> tuple[Events, np.ndarray]:
-    """``(events, pixels)``: ``events`` moved to their positions in ``table`` (H, W, 2) [px] (DSEC's rectify map,
-    ``table[y, x]``) rounded to the nearest pixels, those outside the image or without a finite position dropped, and
-    the exact positions (M, 2) float64 [px] of those kept."""
+def _mapped(events: Events, table: np.ndarray) -> tuple[Events, np.ndarray, SensorPixels]:
+    """``(events, pixels, sensor)``: ``events`` moved to their positions in ``table`` (H, W, 2) [px] (DSEC's rectify
+    map, ``table[y, x]``) rounded to the nearest pixels, those outside the image or without a finite position dropped,
+    the exact positions (M, 2) float64 [px] of those kept, and their sensor pixels with the map as their lens
+    (bilinear between pixel centres, :class:`_MapLens`)."""
     exact = table[events.y, events.x].astype(np.float64)
     solved = np.isfinite(exact).all(axis=1)
     xy = np.rint(np.where(solved[:, None], exact, -1.0)).astype(np.int64)
     inside = solved & (xy[:, 0] >= 0) & (xy[:, 0] < events.width) & (xy[:, 1] >= 0) & (xy[:, 1] < events.height)
-    return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], events.width,
-                  events.height), exact[inside]
+    return (Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], events.width, events.height),
+            exact[inside], SensorPixels(np.column_stack([events.x[inside], events.y[inside]]), _MapLens(table)))
 
 
 def _dsec_calibration_path(path: Path) -> str:
@@ -614,7 +670,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         file_index, t0 = self.index[i]
         spec, gt = self.specs[file_index], self._gt[file_index]
         reader = self._reader(file_index)
-        events, pixels = self._rectified(file_index, reader.window(t0, t0 + self.window_us))
+        events, pixels, sensor = self._rectified(file_index, reader.window(t0, t0 + self.window_us))
         if gt is None:
             speed = twist = None
             if self._known_motion[file_index] is not None:
@@ -622,27 +678,30 @@ class H5WindowDataset(torch.utils.data.Dataset):
                 middle = twists[int(np.argmin(np.abs(times - (t0 + self.window_us // 2))))]
                 speed = float(np.linalg.norm(middle[:3]))
                 twist = middle.copy() if spec.known_twist else None
-            return Sample(events, spec.K, None, twist, t0, t0 + self.window_us, speed, pixels)
+            return Sample(events, spec.K, None, twist, t0, t0 + self.window_us, speed, pixels, sensor)
         middle = t0 + self.window_us // 2
         k = int(np.argmin(np.abs(gt["depth_t"] - middle)))
         depth = reader.file["gt/depth"][k]
         twist = None
         if gt["twists"] is not None:
             twist = gt["twists"][int(np.argmin(np.abs(gt["poses_t"] - middle)))]
-        return Sample(events, gt["K"], depth, twist, t0, t0 + self.window_us, pixels=pixels)
+        return Sample(events, gt["K"], depth, twist, t0, t0 + self.window_us, pixels=pixels, sensor=sensor)
 
-    def _rectified(self, file_index: int, events: Events) -> tuple[Events, np.ndarray | None]:
-        """``(events, pixels)`` of a window of file ``file_index``: with its entry's calibration (or rectify map), the
-        events at their nearest undistorted (and rectified) pixels, those outside the image dropped
-        (:meth:`cmax.Camera.undistort_events`), and their exact positions (N, 2) float64 [px]; else ``(events,
-        None)``."""
+    def _rectified(self, file_index: int, events: Events) -> tuple[Events, np.ndarray | None, SensorPixels | None]:
+        """``(events, pixels, sensor)`` of a window of file ``file_index``: with its entry's calibration (or rectify
+        map), the events at their nearest undistorted (and rectified) pixels, those outside the image dropped
+        (:meth:`cmax.Camera.undistort_events`), their exact positions (N, 2) float64 [px], and their sensor pixels
+        with the camera (or the map) that maps them (:class:`Sample`'s ``sensor``; None for a pinhole camera); else
+        ``(events, None, None)``."""
         camera, table = self._cameras[file_index], self._tables[file_index]
         if table is not None:
             return _mapped(events, table)
         if camera is None:
-            return events, None
+            return events, None, None
         kept = camera.undistorted_kept(events)
-        return camera.undistort_events(events), camera.undistorted_pixels(events)[kept]
+        sensor = None if camera.is_pinhole else SensorPixels(np.column_stack([events.x[kept], events.y[kept]]),
+                                                             camera)
+        return camera.undistort_events(events), camera.undistorted_pixels(events)[kept], sensor
 
     def _reader(self, file_index: int) -> H5Reader:
         """The open reader of file ``file_index``, opened on first use; at most :data:`MAX_OPEN_FILES` stay open
@@ -661,7 +720,8 @@ class H5WindowDataset(torch.utils.data.Dataset):
         sample = self.sample(i)
         if self.augment:
             sample = augment(sample, np.random.default_rng([self.seed, self.epoch, i]))
-        return to_item(sample, max_events=self.max_events, bins=self.bins, seed=self.seed + i, pixels=sample.pixels)
+        return to_item(sample, max_events=self.max_events, bins=self.bins, seed=self.seed + i, pixels=sample.pixels,
+                       sensor=sample.sensor)
 
     def __getstate__(self) -> dict:   # open h5 files do not cross process boundaries
         state = dict(self.__dict__)
@@ -776,8 +836,8 @@ class MVSECDataset(torch.utils.data.Dataset):
         events = self._read(self.data_file, t0_us=t0, t1_us=t0 + self.window_us)
         if self.camera is None:
             return events, np.column_stack([events.x, events.y]).astype(np.float64), None
-        kept = self.camera.undistorted_kept(events)
-        sensor = sensor_pixels(events, self.camera)
+        kept = self.camera.undistorted_kept(events)    # sensor_pixels(events, camera), without finding them again
+        sensor = None if self.camera.is_pinhole else np.column_stack([events.x[kept], events.y[kept]])
         return (self.camera.undistort_events(events), self.camera.undistorted_pixels(events)[kept],
                 None if sensor is None else SensorPixels(sensor, self.camera))
 

@@ -246,10 +246,12 @@ def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) 
 def predict_windows(model: DepthPoseNet, windows: Sequence[HeldOutWindow], batch_size: int = 8
                     ) -> tuple[np.ndarray, np.ndarray]:
     """The network's full-resolution z-depth (N, H, W) float32 [m] and twist (N, 6) ``(v m/s, omega rad/s)``
-    of ``model`` for each of ``windows`` (its event volume, :func:`learned.data.to_item`), ``batch_size`` at a time."""
+    of ``model`` for each of ``windows`` (its event volume, :func:`learned.data.to_item`: spread bilinearly from the
+    events' exact positions where the sample has them, ``Sample.pixels``), ``batch_size`` at a time."""
     depths, twists = [], []
     for start in range(0, len(windows), batch_size):
-        volume = np.stack([voxel_grid(w.sample.events, model.config.bins) for w in windows[start:start + batch_size]])
+        volume = np.stack([voxel_grid(w.sample.events, model.config.bins, pixels=w.sample.pixels)
+                           for w in windows[start:start + batch_size]])
         out = model(torch.from_numpy(volume))
         depths.append(out.depth[:, 0].numpy()), twists.append(out.twist.numpy())
     return np.concatenate(depths).astype(np.float32), np.concatenate(twists).astype(np.float64)

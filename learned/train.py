@@ -73,7 +73,7 @@ THREAD_CHECK_EVERY = 25
 __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", "twist_scale", "ddp_backend",
            "on_device", "nonfinite_terms", "global_mean", "drop_log_lines_after", "clear_tensorboard", "RUN_FILES",
            "clear_earlier_run", "RESUMABLE", "file_fingerprint", "data_fingerprints", "bytes_to_hash",
-           "HASH_PROGRESS_BYTES", "fingerprint_differences", "repeated_files",
+           "HASH_PROGRESS_BYTES", "fingerprint_differences", "repeated_files", "calibration_sha256",
            "training_card", "schedule_note", "unread_settings",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
            "check_output", "main"]
@@ -177,12 +177,16 @@ def _fields(config: Config, paths: dict | None = None) -> dict[str, object]:
         flat["data.files"] = [{**entry, "path": path} if isinstance(entry, dict) else path
                               for entry, path in zip(flat["data.files"], paths["data.files"])]
         flat["train.teacher"] = paths["train.teacher"]
+        if "data.calibrations" in paths:   # checkpoints of earlier versions compare them as typed
+            flat["data.files"] = [{**entry, **{key: path for key, path in files.items() if key in entry}}
+                                  if isinstance(entry, dict) else entry
+                                  for entry, files in zip(flat["data.files"], paths["data.calibrations"])]
     return flat
 
 
 def resolved_paths(config: Config) -> dict[str, object]:
-    """``{"data.files": [absolute path, ...], "train.teacher": absolute path or ""}``: the files a run of ``config``
-    reads, as
+    """``{"data.files": [absolute path, ...], "train.teacher": absolute path or "", "data.calibrations": [{"calib":
+    absolute path, "rectify_map": ...} (the keys each entry gives), ...]}``: the files a run of ``config`` reads, as
     a checkpoint records them so that ``--resume`` compares files, not spellings (``a.h5`` and ``./a.h5`` are one
     file; ``a.h5`` typed in another folder is another)."""
     def absolute(path: object) -> str:
@@ -190,7 +194,10 @@ def resolved_paths(config: Config) -> dict[str, object]:
 
     return {"data.files": [absolute(entry["path"] if isinstance(entry, dict) else entry)
                            for entry in config.data.files],
-            "train.teacher": absolute(config.train.teacher) if config.train.teacher else ""}
+            "train.teacher": absolute(config.train.teacher) if config.train.teacher else "",
+            "data.calibrations": [{key: absolute(entry[key]) for key in ("calib", "rectify_map")
+                                   if isinstance(entry, dict) and isinstance(entry.get(key), str)}
+                                  for entry in config.data.files]}
 
 
 def config_differences(recorded: Config, now: Config, recorded_paths: dict | None = None) -> list[str]:
@@ -199,6 +206,8 @@ def config_differences(recorded: Config, now: Config, recorded_paths: dict | Non
     With ``recorded_paths`` (the checkpoint's :func:`resolved_paths`), the data files and the teacher are compared
     as the files they name; without (a checkpoint of an earlier version), as typed."""
     paths_now = None if recorded_paths is None else resolved_paths(now)
+    if paths_now is not None and not isinstance(recorded_paths.get("data.calibrations"), list):
+        paths_now.pop("data.calibrations")   # a checkpoint of an earlier version: its calibrations as typed
     before, after = _fields(recorded, recorded_paths), _fields(now, paths_now)
     return [f"{key}={json.dumps(before[key])} (now {json.dumps(after[key])})" for key in before
             if key not in RESUMABLE and before[key] != after.get(key)]
@@ -307,6 +316,14 @@ def fingerprint_differences(recorded: object, now: list[dict[str, object]], name
         if changed:
             differ.append(f"data.files[{i}] {names[i]}: {', '.join(changed)}")
     return differ
+
+
+def calibration_sha256(specs: list) -> list[dict[str, str | None]]:
+    """``[{"calib": SHA-256 (hex) or None, "rectify_map": ...}, ...]``: the contents of each data file's calibration
+    files (:class:`learned.data.FileSpec` ``specs[i]``'s ``calib`` and ``rectify_map``; None where it gives none),
+    as a checkpoint records them so that ``--resume`` compares the files' bytes, not their paths alone."""
+    return [{key: None if getattr(spec, key) is None else file_sha256(getattr(spec, key))
+             for key in ("calib", "rectify_map")} for spec in specs]
 
 
 def training_card(dataset: H5WindowDataset, window_us: int, tolerance: float = 0.05) -> dict[str, object]:
@@ -722,9 +739,11 @@ class Trainer:
         self.fingerprints = data_fingerprints([spec.path for spec in self.dataset.specs], self.dataset.counts,
                                               self.dataset.spans, recorded,
                                               progress=self.progress and self.rank == 0)
+        self.calibrations = calibration_sha256(self.dataset.specs)
         if ckpt is not None:
             self._check_data_order(ckpt.get("data_order"))
             self._check_data_files(ckpt.get("data_order"))
+            self._check_calibrations(ckpt.get("data_order"))
             self._check_teacher(ckpt.get("data_order"))
         self.contrast = contrast_objective(tc.collapse_weight)
         self.twist_scale = twist_scale(self.dataset, config.model).to(self.device)
@@ -763,6 +782,11 @@ class Trainer:
                                       and isinstance(paths.get("data.files"), list)
                                       and len(paths["data.files"]) == len(recorded.data.files)):
             raise CheckpointError(f"{path}: its data_order.paths is not valid: {paths!r}")
+        calibrations = None if paths is None else paths.get("data.calibrations")
+        if calibrations is not None and not (isinstance(calibrations, list)
+                                             and len(calibrations) == len(recorded.data.files)
+                                             and all(isinstance(c, dict) for c in calibrations)):
+            raise CheckpointError(f"{path}: its data_order.paths is not valid: {paths!r}")
         differ = config_differences(recorded, self.config, paths)
         step = int(ckpt.get("step", 0))
         # a raised train.steps stretches a cosine schedule; a run stopped in its warm-up ran every step at the
@@ -799,6 +823,22 @@ class Trainer:
             raise ValueError(f"--resume: {self.out / 'last.pt'} was trained on other data files than the ones at "
                              f"these paths now: {'; '.join(differ)}: the resumed steps would learn from other "
                              "events; restore the files, or start afresh with --overwrite or another train.out")
+
+    def _check_calibrations(self, order: object) -> None:
+        """Refuse to resume when a data file's ``calib`` or ``rectify_map`` holds other bytes than the checkpoint was
+        trained with (:func:`calibration_sha256` in ``data_order["calibrations"]``; checkpoints of earlier versions
+        store none): the resumed steps would rectify the events elsewhere."""
+        recorded = order.get("calibrations") if isinstance(order, dict) else None
+        if not isinstance(recorded, list) or len(recorded) != len(self.calibrations):
+            return
+        differ = [f"data.files[{i}].{key} {getattr(self.dataset.specs[i], key)}"
+                  for i, (before, now) in enumerate(zip(recorded, self.calibrations)) if isinstance(before, dict)
+                  for key in ("calib", "rectify_map") if before.get(key) != now[key]]
+        if differ:
+            raise ValueError(f"--resume: {self.out / 'last.pt'} was trained with other calibration files than the "
+                             f"ones at these paths now ({', '.join(differ)}: their contents, the SHA-256 of the "
+                             "whole file, changed): the resumed steps would rectify the events elsewhere; restore "
+                             "the files, or start afresh with --overwrite or another train.out")
 
     def _check_data_order(self, order: object) -> None:
         """Refuse to resume when the checkpoint's ``data_order`` (seed, batch size, windows in the data set) is not
@@ -956,7 +996,8 @@ class Trainer:
                    "config": self.config.to_dict(), "rng": rng_state(),
                    "data_order": {"seed": self.config.train.seed, "batch_size": self.config.train.batch_size,
                                   "dataset_size": len(self.dataset), "paths": resolved_paths(self.config),
-                                  "teacher_sha256": self.teacher_sha256, "files": self.fingerprints},
+                                  "teacher_sha256": self.teacher_sha256, "files": self.fingerprints,
+                                  "calibrations": self.calibrations},
                    "card": training_card(self.dataset, self.config.data.window_us)}
         written = save_checkpoint(self.out / "last.pt", payload)
         self.saved_step = self.step

@@ -173,3 +173,32 @@ def test_a_moved_event_file_and_folder_resume_their_kept_windows(recording, tiny
     assert predict.main(argv(moved / "ev.h5", moved / "o", tiny_checkpoint, "--resume")) == 0
     assert len(calls) == 4 and "resumed: 4 of 12 windows taken" in capsys.readouterr().err
     assert_same(outputs(moved / "o"), outputs(whole))
+
+
+def test_resume_refuses_a_calibration_file_changed_under_the_same_path(recording, tiny_checkpoint, tmp_path,
+                                                                      monkeypatch, capsys):
+    """The kept blocks of learned.predict / cmax depth --calib record the calibration file by the SHA-256 of its bytes
+    (cmax.io.window_store.file_signatures), not its path: a cam_to_cam.yaml edited after the run was killed
+    (camRect0's cx moved 0.3 px, the file's size and modification time kept) is refused in one line naming it, the
+    blocks kept (coverage of existing behaviour)."""
+    from test_learned_dsec_raw import K_RECT, _cam_to_cam
+
+    yaml = tmp_path / "cam_to_cam.yaml"
+    yaml.write_text(_cam_to_cam())
+    out = tmp_path / "o"
+    run = [str(recording), "-o", str(out), "--checkpoint", str(tiny_checkpoint), "--calib", str(yaml), "--quiet",
+           "--batch", "2"]
+    counted_calls(monkeypatch, predict, "forward", interrupt_at=2)
+    assert predict.main(run) == 130
+    monkeypatch.undo()
+    before = yaml.stat()
+    yaml.write_text(_cam_to_cam().replace(f"{K_RECT[0, 2]}, {K_RECT[1, 2]}", f"31.9, {K_RECT[1, 2]}"))   # as long
+    os.utime(yaml, ns=(before.st_atime_ns, before.st_mtime_ns))     # its size and modification time as they were
+    capsys.readouterr()
+    assert predict.main([*run, "--resume"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()[-1]
+    assert "cam_to_cam.yaml holds other bytes than it did" in err and "--overwrite" in err, err
+    assert sorted(p.name for p in (out / KEPT_FOLDER).glob("block_*.json")) == ["block_0.json"]
+    yaml.write_text(_cam_to_cam())                  # restored (the same bytes and modification time): resumes
+    os.utime(yaml, ns=(before.st_atime_ns, before.st_mtime_ns))
+    assert predict.main([*run, "--resume"]) == 0

@@ -680,6 +680,28 @@ def test_mvsec_item_loss_events_are_dithered_over_the_sensor_pixel_and_mapped_th
     assert np.mean(np.abs(got - rounded).max(axis=1) > 0.5) > 0.1
 
 
+def test_mvsec_window_finds_the_kept_events_once(tmp_path, monkeypatch):
+    """MVSECDataset._window found the events the lens keeps twice (undistorted_kept, then again in sensor_pixels);
+    once now, with the same sensor pixels, bit for bit (values and dtype), and the same events and positions."""
+    from cmax.camera import Camera, sensor_pixels
+    from conftest import counted_calls
+    from learned.data import MVSECDataset
+
+    path, _, _ = _fisheye_scene(tmp_path, np.random.default_rng(8))
+    calib = tmp_path / "camchain.yaml"
+    calib.write_text(MVSEC_CAMCHAIN)
+    ds = MVSECDataset(path, calib=calib, window_us=600_000, max_events=2000)
+    ds.middles = np.array([int(round(100.25e6))])
+    calls = counted_calls(monkeypatch, Camera, "undistorted_kept")
+    events, pixels, sensor = ds._window(0)
+    assert len(calls) == 1
+    raw = ds._read(ds.data_file, t0_us=int(ds.middles[0]) - 300_000, t1_us=int(ds.middles[0]) + 300_000)
+    expected = sensor_pixels(raw, ds.camera)
+    assert sensor.pixels.dtype == expected.dtype and np.array_equal(sensor.pixels, expected)
+    assert np.array_equal(pixels, ds.camera.undistorted_pixels(raw)[ds.camera.undistorted_kept(raw)])
+    assert np.array_equal(events.x, ds.camera.undistort_events(raw).x)
+
+
 def test_to_item_checks_its_sensor_pixels():
     from cmax import Events
     from cmax.camera import Camera

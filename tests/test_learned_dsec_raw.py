@@ -203,3 +203,181 @@ def test_cmax_depth_refuses_raw_dsec_events_without_calib(sequence, tmp_path, ca
     assert status == 2 and err.count("\n") == 1, err
     assert "rectify_map.h5 lies beside" in err and f"--calib {yaml.resolve()}" in err
     assert not (tmp_path / "out").exists()
+
+
+def _drawn(seed: int, n: int, max_events: int) -> tuple[np.ndarray, np.ndarray]:
+    """The subset and dither WarpEvents.from_events draws for ``seed`` (drawn here independently)."""
+    keep = np.arange(n)
+    if n > max_events:
+        keep = np.sort(np.random.default_rng(seed).choice(n, max_events, replace=False))
+    return keep, np.random.default_rng([seed, 1]).uniform(-0.5, 0.5, (len(keep), 2))
+
+
+def test_the_contrast_loss_reads_the_calibrated_events_as_the_fit_does(sequence):
+    """A calib entry: the item's loss events are EventWindows.from_events(raw events, camera) (each event dithered over
+    its sensor pixel and mapped through the lens and R_rect0, unrounded), and OpenCV's undistortPoints of the
+    dithered sensor pixels. Before: the nearest rectified pixel plus a dither (up to ~1 px away)."""
+    import torch
+
+    from cmax.contrast import EventWindows
+
+    path, yaml, _ = sequence
+    dataset = H5WindowDataset([{"path": str(path), "calib": str(yaml)}], window_us=100_000, max_events=500,
+                              min_events=10)
+    sample = dataset.sample(1)
+    raw = dataset._reader(0).window(sample.t0_us, sample.t1_us)
+    item = dataset[1]
+    reference = EventWindows.from_events(raw, dataset._cameras[0], max_events=500, seed=dataset.seed + 1)
+    n = int(item["valid"].sum())
+    assert n == len(reference.x) == 500
+    torch.testing.assert_close(item["x"][:n], reference.x, rtol=0, atol=1e-5)
+    torch.testing.assert_close(item["y"][:n], reference.y, rtol=0, atol=1e-5)
+    torch.testing.assert_close(item["t"][:n], reference.t, rtol=0, atol=1e-7)
+    keep, dither = _drawn(dataset.seed + 1, len(sample.events), 500)
+    sensor = np.column_stack([raw.x, raw.y])[dataset._cameras[0].undistorted_kept(raw)][keep]
+    expected = _opencv(sensor + dither)
+    loss_xy = np.column_stack([item["x"][:n].numpy(), item["y"][:n].numpy()])
+    np.testing.assert_allclose(loss_xy, expected, atol=1e-3)
+    rounded = np.column_stack([sample.events.x, sample.events.y])[keep]
+    assert np.abs(loss_xy - rounded).max() > 0.6          # outside the old dither square around the rounded pixel
+
+
+def test_the_contrast_loss_reads_the_rectify_map_between_pixel_centres(sequence):
+    """A rectify_map entry: each loss event is its sensor pixel dithered and the map interpolated bilinearly there;
+    at a pixel centre that is the map's own value, and near OpenCV's (the map is smooth)."""
+    from scipy.ndimage import map_coordinates
+
+    path, _, _ = sequence
+    table_path = path.parent / "rectify_map.h5"
+    dataset = H5WindowDataset([{"path": str(path), "K": [57.0, 57.0, 31.6, 23.3], "rectify_map": str(table_path)}],
+                              window_us=100_000, max_events=500, min_events=10)
+    with h5py.File(table_path, "r") as file:
+        table = file["rectify_map"][:]
+    sample = dataset.sample(2)
+    ys, xs = np.mgrid[0:H, 0:W]
+    centres = np.column_stack([xs.ravel(), ys.ravel()]).astype(np.float64)
+    np.testing.assert_array_equal(sample.sensor.camera.undistort_points(centres),
+                                  table.reshape(-1, 2).astype(np.float64))
+    item = dataset[2]
+    n = int(item["valid"].sum())
+    keep, dither = _drawn(dataset.seed + 2, len(sample.events), 500)
+    dithered = sample.sensor.pixels[keep] + dither
+    loss_xy = np.column_stack([item["x"][:n].numpy(), item["y"][:n].numpy()])
+    inside = (dithered >= 0).all(axis=1) & (dithered[:, 0] <= W - 1) & (dithered[:, 1] <= H - 1)
+    bilinear = np.column_stack([map_coordinates(table[..., c].astype(np.float64), dithered[inside, ::-1].T, order=1)
+                                for c in (0, 1)])
+    np.testing.assert_allclose(loss_xy[inside], bilinear, atol=1e-4)
+    np.testing.assert_allclose(loss_xy, _opencv(dithered), atol=0.02)
+    assert np.abs(loss_xy - np.column_stack([sample.events.x, sample.events.y])[keep]).max() > 0.6
+
+
+def test_augmentations_keep_each_loss_event_on_its_own_sensor_pixel(sequence):
+    """Mirrored: each loss event is the mirror image of its sensor pixel dithered and mapped through the lens (the
+    mirrored sensor seen through the mirrored lens); time reversed: its sensor pixels reversed with the events."""
+    path, yaml, _ = sequence
+    dataset = H5WindowDataset([{"path": str(path), "calib": str(yaml)}], window_us=100_000, max_events=400,
+                              min_events=10)
+    sample = dataset.sample(0)
+    from learned.data import to_item
+
+    for augmented, mirrored in ((flip_horizontal(sample), True), (reverse_time(sample), False),
+                                (flip_horizontal(flip_horizontal(sample)), False)):
+        item = to_item(augmented, max_events=400, seed=3, pixels=augmented.pixels, sensor=augmented.sensor)
+        keep, dither = _drawn(3, len(sample.events), 400)
+        order = np.arange(len(sample.events))[::-1] if augmented.events.t[0] != sample.events.t[0] else \
+            np.arange(len(sample.events))
+        sensor = sample.sensor.pixels[order][keep]
+        if mirrored:   # dithered on the mirrored sensor: x + u there is x - u on the sensor
+            expected = _opencv(sensor + dither * [-1, 1]) * [-1, 1] + [W - 1, 0]
+        else:
+            expected = _opencv(sensor + dither)
+        n = int(item["valid"].sum())
+        np.testing.assert_allclose(np.column_stack([item["x"][:n].numpy(), item["y"][:n].numpy()]), expected,
+                                   atol=1e-3)
+
+
+def test_resume_refuses_a_calibration_file_changed_under_the_same_path(sequence, tiny_checkpoint, tmp_path, capsys):
+    """--resume compared an entry's calib / rectify_map as typed paths: a cam_to_cam.yaml edited (camRect0's cx
+    moved 0.3 px) after the checkpoint trained on as if nothing changed (exit 0). The checkpoint records their SHA-256:
+    refused in one line naming the file; restored, the run resumes."""
+    import json
+
+    from conftest import one_line_error
+    from learned.checkpoint import load_checkpoint
+    from learned.train import main as train_main
+
+    path, yaml, _ = sequence
+    table = path.parent / "rectify_map.h5"
+    out = tmp_path / "run"
+    entry = {"path": str(path), "calib": str(yaml)}
+
+    def run(steps: int, *flags: str, entry=entry) -> list[str]:
+        return ["--mode", "finetune", "--no-progress", *flags, f"data.files=[{json.dumps(entry)}]",
+                "data.window_us=50000", "data.max_events=300", "train.batch_size=2", f"train.steps={steps}",
+                "train.checkpoint_every=2", "train.log_every=1", f"train.out={out}", f"train.teacher={tiny_checkpoint}"]
+
+    assert train_main(run(2)) == 0
+    assert load_checkpoint(out / "last.pt")["data_order"]["calibrations"][0]["rectify_map"] is None
+    original = yaml.read_text()
+    yaml.write_text(original.replace(f"{K_RECT[0, 2]}, {K_RECT[1, 2]}", f"{K_RECT[0, 2] + 0.3}, {K_RECT[1, 2]}"))
+    capsys.readouterr()
+    status, err = one_line_error(lambda: train_main(run(4, "--resume")), capsys)
+    assert status == 2 and "trained with other calibration files" in err and f"data.files[0].calib {yaml}" in err, err
+    assert load_checkpoint(out / "last.pt")["step"] == 2
+    yaml.write_text(original)                       # restored: the same bytes, resumes
+    assert train_main(run(4, "--resume")) == 0
+    assert load_checkpoint(out / "last.pt")["step"] == 4
+    out = tmp_path / "mapped"                        # a rectify_map entry: its map's bytes are checked the same way
+    mapped = {"path": str(path), "K": [57.0, 57.0, 31.6, 23.3], "rectify_map": str(table)}
+    assert train_main(run(2, entry=mapped)) == 0
+    with h5py.File(table, "a") as file:
+        file["rectify_map"][0, 0] = file["rectify_map"][0, 0] + 0.25
+    capsys.readouterr()
+    status, err = one_line_error(lambda: train_main(run(4, "--resume", entry=mapped)), capsys)
+    assert status == 2 and f"data.files[0].rectify_map {table}" in err, err
+
+
+def test_resume_compares_the_calibration_files_not_their_spelling(sequence, tiny_checkpoint, tmp_path, monkeypatch,
+                                                                  capsys):
+    """An entry's calib typed "calibration/cam_to_cam.yaml" and resumed as "./calibration/cam_to_cam.yaml" or by its
+    absolute path names the same file: it resumes (it was refused, compared as typed, as the data files' paths were
+    before). Another folder's file of that relative name: refused, naming both absolute paths."""
+    import json
+    import shutil
+
+    from conftest import one_line_error
+    from learned.checkpoint import load_checkpoint
+    from learned.train import main as train_main
+
+    path, yaml, _ = sequence
+    out = tmp_path / "run"
+    monkeypatch.chdir(yaml.parent.parent)
+
+    def run(steps: int, calib: str, *flags: str) -> list[str]:
+        entry = {"path": str(path), "calib": calib}
+        return ["--mode", "finetune", "--no-progress", *flags, f"data.files=[{json.dumps(entry)}]",
+                "data.window_us=50000", "data.max_events=300", "train.batch_size=2", f"train.steps={steps}",
+                "train.checkpoint_every=1", "train.log_every=1", f"train.out={out}", f"train.teacher={tiny_checkpoint}"]
+
+    assert train_main(run(1, "calibration/cam_to_cam.yaml")) == 0
+    for steps, spelling in ((2, "./calibration/cam_to_cam.yaml"), (3, str(yaml))):
+        assert train_main(run(steps, spelling, "--resume")) == 0, spelling
+        assert load_checkpoint(out / "last.pt")["step"] == steps
+    other = tmp_path / "elsewhere"
+    (other / "calibration").mkdir(parents=True)
+    shutil.copyfile(yaml, other / "calibration" / "cam_to_cam.yaml")
+    monkeypatch.chdir(other)
+    capsys.readouterr()
+    status, err = one_line_error(lambda: train_main(run(4, "calibration/cam_to_cam.yaml", "--resume")), capsys)
+    assert status == 2 and "was written with other settings" in err and str(yaml) in err, err
+    from learned.train import config_differences, resolved_paths
+
+    def config(calib: str):
+        entry = json.dumps({"path": str(path), "calib": calib})
+        return load_config(None, [f"data.files=[{entry}]", f"train.teacher={tiny_checkpoint}"], mode="finetune")
+
+    typed, dotted = config("calibration/cam_to_cam.yaml"), config("./calibration/cam_to_cam.yaml")
+    recorded = resolved_paths(typed)
+    assert config_differences(typed, dotted, recorded) == []
+    del recorded["data.calibrations"]                # a checkpoint of an earlier version: compared as typed
+    assert [d.split("=")[0] for d in config_differences(typed, dotted, recorded)] == ["data.files"]

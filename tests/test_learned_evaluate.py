@@ -333,3 +333,30 @@ def test_depth_maps_no_better_than_their_own_median_constant_are_noted(tmp_path,
     assert board.depth.abs_rel == pytest.approx((1 / 3 + 1.5 / 3) / 2, rel=0.05)
     notes = [n for n in board.notes if n.startswith("one constant depth, the median of the network's own depths")]
     assert len(notes) == 1 and f"better than the network's {board.depth.abs_rel:.3f}" in notes[0], board.notes
+
+
+def test_predict_windows_builds_the_volume_the_network_trained_on():
+    """A sample with exact sub-pixel positions (Sample.pixels, a calibrated entry's): the network reads the volume
+    to_item gives it in training (each event spread bilinearly from its position); before, the volume of the
+    events' rounded pixels (another input: the outputs differ)."""
+    from learned.data import Sample, to_item
+    from learned.evaluate import HeldOutWindow, predict_windows
+    from learned.model import DepthPoseNet, ModelConfig
+
+    torch.manual_seed(0)
+    model = DepthPoseNet(ModelConfig(width=2, levels=1)).eval()
+    rng = np.random.default_rng(4)
+    n = 600
+    events = Events(rng.integers(0, W, n), rng.integers(0, H, n), np.sort(rng.integers(0, 100_000, n)),
+                    rng.integers(0, 2, n), W, H)
+    pixels = np.column_stack([events.x, events.y]) + rng.uniform(-0.5, 0.5, (n, 2))
+    sample = Sample(events, K, np.full((H, W), PLANE_M, np.float32), TRUE_TWIST, 0, 100_000, pixels=pixels)
+    window = HeldOutWindow("s", sample, np.ones((H, W), bool), np.ones((H, W), bool), FAR_M)
+    depth, twist = predict_windows(model, [window])
+    volume = to_item(sample, max_events=100, bins=model.config.bins, pixels=pixels)["volume"]
+    with torch.no_grad():
+        expected = model(volume[None])
+    np.testing.assert_allclose(depth[0], expected.depth[0, 0].numpy(), rtol=1e-6)
+    np.testing.assert_allclose(twist[0], expected.twist[0].numpy(), rtol=1e-6, atol=1e-9)
+    rounded, _ = predict_windows(model, [dataclasses.replace(window, sample=dataclasses.replace(sample, pixels=None))])
+    assert np.abs(rounded[0] - depth[0]).max() > 1e-4
