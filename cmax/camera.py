@@ -258,8 +258,9 @@ class Camera:
     @classmethod
     def from_ecd_calib(cls, path: str | os.PathLike, width: int = 240, height: int = 180) -> "Camera":
         """Camera from an ECD ``calib.txt`` at ``path`` (``fx fy cx cy k1 k2 p1 p2 k3``), of a sensor ``width`` x
-        ``height`` [px] (the file states no size; ECD's DAVIS240C: 240 x 180)."""
-        values = np.loadtxt(Path(path), dtype=np.float64).ravel()
+        ``height`` [px] (the file states no size; ECD's DAVIS240C: 240 x 180); a byte order mark is ignored, as
+        :func:`cmax.io.read_calibration` ignores it."""
+        values = np.loadtxt(Path(path), dtype=np.float64, encoding="utf-8-sig").ravel()
         if values.size not in (4, 8, 9):
             raise ValueError(f"{path}: expected 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got {values.size} numbers")
         return cls.from_intrinsics(*values[:4], width, height, values[4:] if values.size > 4 else None)

@@ -37,6 +37,20 @@ def test_project_backproject_round_trip():
     np.testing.assert_allclose(cam.backproject(pixels, points[:, 2]), points, atol=1e-12)
 
 
+def test_an_ecd_calib_txt_with_a_byte_order_mark_is_the_same_camera(tmp_path):
+    """Camera.from_ecd_calib of a calib.txt saved with a UTF-8 byte order mark and CRLF (a Windows editor) is the
+    camera of the plain file, as cmax.io.read_calibration reads both (was: ValueError, could not convert string
+    '\ufeff199.09...' to float64)."""
+    line = "199.092366542 198.82882047 132.192071378 110.712660011 -0.368436311798 0.150947243557 " \
+           "-0.000296130534385 -0.000759431726241 0.0"
+    (tmp_path / "plain.txt").write_text(line + "\n")
+    (tmp_path / "bom.txt").write_bytes(b"\xef\xbb\xbf" + line.encode() + b"\r\n")
+    plain, marked = Camera.from_ecd_calib(tmp_path / "plain.txt"), Camera.from_ecd_calib(tmp_path / "bom.txt")
+    np.testing.assert_array_equal(marked.K, plain.K)
+    np.testing.assert_array_equal(marked.distortion, plain.distortion)
+    np.testing.assert_array_equal(marked.K[[0, 1, 0, 1], [0, 1, 2, 2]], [float(v) for v in line.split()[:4]])
+
+
 def test_undistort_inverts_opencv_distortion(shared_data):
     cam = Camera.from_ecd_calib(shared_data / "ecd_slider_depth" / "calib.txt")
     assert cam.is_distorted and (cam.width, cam.height) == (240, 180)

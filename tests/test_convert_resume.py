@@ -400,3 +400,56 @@ def test_a_source_replaced_by_one_of_the_same_size_and_mtime_is_converted_again(
     np.testing.assert_array_equal(read_h5(out / "v.h5").x, read_h5(tmp_path / "fresh" / "new.h5").x)
     np.testing.assert_array_equal(read_h5(out / "v.h5").t, read_h5(tmp_path / "fresh" / "new.h5").t)
     assert manifest["videos"]["v"]["events"] == fresh["videos"]["new"]["events"]
+
+
+def test_the_rerun_s_hashing_of_sources_and_outputs_shows_a_progress_bar(tmp_path, monkeypatch):
+    """A rerun of a converted folder reads every converted video's source and output to hash them (SHA-256) before
+    any video bar appears: a bar [bytes] shows that reading (above HASH_PROGRESS_BYTES, 1 GiB; 0 here); its total
+    and what it counted are the bytes of the source and of the output (was: no bar, minutes of silence for a
+    catalogue of multi-GB videos)."""
+    import tqdm.auto
+
+    import cmax.io.window_store
+
+    write_video(tmp_path / "a.avi")
+    jobs, _ = collect_jobs(tmp_path / "a.avi")
+    out = tmp_path / "out"
+    convert_collection(jobs, out, FAST, progress=False)
+    bars = {}
+
+    class Recorded(tqdm.auto.tqdm):
+        def close(self):
+            bars[id(self)] = (self.desc, self.total, self.n)     # (tqdm may close a bar twice)
+            super().close()
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Recorded)
+    monkeypatch.setattr(cmax.io.window_store, "HASH_PROGRESS_BYTES", 0)
+    seen = []
+    convert_collection(jobs, out, FAST, progress=True, on_result=lambda r: seen.append(r.name))
+    assert seen == []                                                       # verified and skipped
+    expected = (tmp_path / "a.avi").stat().st_size + (out / "a.h5").stat().st_size
+    assert [(total, n) for desc, total, n in bars.values() if desc.startswith("verifying")] == [(expected, expected)]
+
+
+@pytest.mark.parametrize("which", ["input", "source"])
+def test_a_file_that_grows_while_it_is_hashed_is_refused(tmp_path, which):
+    """An input of cmax fit / depth (file_signature) or a video of cmax simulate (source_signature) that is still
+    being written or copied: bytes appended after the first 4 MiB block was hashed. Refused naming the file (was:
+    a signature of the size before and the SHA-256 of more bytes, bytes the file never held whole, recorded for
+    --resume and the manifest without a word)."""
+    from cmax.io.window_store import file_signature
+    from cmax.sim.signature import source_signature
+
+    path = tmp_path / ("rec.h5" if which == "input" else "clip.mp4")
+    path.write_bytes(bytes(5 << 20))                                 # two blocks of file_sha256
+
+    def grow(_bytes: int) -> None:
+        if path.stat().st_size == 5 << 20:
+            with open(path, "ab") as file:
+                file.write(b"more events")
+
+    sign = file_signature if which == "input" else source_signature
+    with pytest.raises(ValueError, match=f"{path.name} changed while it was read to hash it: it has "
+                                         f"{(5 << 20) + 11:,} bytes \\(had {5 << 20:,}\\)"):
+        sign(path, grow)
+    assert sign(path)["bytes"] == (5 << 20) + 11                      # complete now: hashed as it is

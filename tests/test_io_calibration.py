@@ -59,3 +59,56 @@ def test_the_calibration_s_camera_undistorts_as_opencv_s_fisheye_with_its_rectif
                                            R=calibration.rectification, P=calibration.rectified_K).reshape(-1, 2)
     np.testing.assert_allclose(camera.undistort_points(pixels), expected, atol=1e-3)
     np.testing.assert_array_equal(camera.pinhole_K, calibration.rectified_K)
+
+
+ROS_CAMERA_INFO = """image_width: 346
+image_height: 260
+camera_name: davis
+camera_matrix:
+  rows: 3
+  cols: 3
+  data: [226.38, 0, 173.64, 0, 226.15, 133.73, 0, 0, 1]
+distortion_model: plumb_bob
+distortion_coefficients:
+  rows: 1
+  cols: 5
+  data: [-0.048, 0.012, 0.0003, -0.0001, 0.001]
+"""
+
+ECD_CALIB = "199.092366542 198.82882047 132.192071378 110.712660011 -0.368436311798 0.150947243557 " \
+            "-0.000296130534385 -0.000759431726241 0.0"
+
+
+def test_a_byte_order_mark_changes_nothing(tmp_path: Path) -> None:
+    """A calibration file saved with a UTF-8 byte order mark (Windows editors) reads as the same file without it,
+    in each format (was: a ROS camera_info's first key, ``image_width``, read as '\\ufeffimage_width', so its size was
+    silently dropped and never checked against the events'; a camchain's first camera was not found ('cameras
+    found: cam1, \\ufeffcam0'); an ECD calib.txt was refused as malformed)."""
+    from cmax.io import read_calibration
+
+    for name, text, camera in [("camera_info.yaml", ROS_CAMERA_INFO, "cam0"), ("camchain.yaml", CAMCHAIN, "cam0"),
+                               ("calib.txt", ECD_CALIB + "\n", "cam0")]:
+        plain, marked = tmp_path / name, tmp_path / f"bom_{name}"
+        plain.write_text(text)
+        marked.write_bytes(b"\xef\xbb\xbf" + text.replace("\n", "\r\n").encode())
+        expected, got = read_calibration(plain, camera), read_calibration(marked, camera)
+        np.testing.assert_array_equal(got.K, expected.K)
+        np.testing.assert_array_equal(got.distortion, expected.distortion)
+        assert got.size == expected.size
+        assert got.model == expected.model
+    assert read_calibration(tmp_path / "bom_camera_info.yaml").size == (346, 260)     # the file's own numbers
+    np.testing.assert_array_equal(read_calibration(tmp_path / "bom_calib.txt").K[0, [0, 2]],
+                                  [199.092366542, 132.192071378])
+
+
+def test_a_comment_after_the_numbers_of_a_calib_txt_is_ignored(tmp_path: Path) -> None:
+    """``fx fy cx cy k1 k2 p1 p2 k3  # DAVIS240C`` reads as the nine numbers (was: refused, 'expected one line
+    fx fy cx cy [k1 k2 p1 p2 [k3]]', of a line that is one)."""
+    from cmax.io import read_calibration
+
+    path = tmp_path / "calib.txt"
+    path.write_text("# ECD slider_depth\n" + ECD_CALIB + "   # fx fy cx cy k1 k2 p1 p2 k3\n")
+    calibration = read_calibration(path)
+    numbers = [float(v) for v in ECD_CALIB.split()]
+    np.testing.assert_array_equal(calibration.K[[0, 1, 0, 1], [0, 1, 2, 2]], numbers[:4])
+    np.testing.assert_array_equal(calibration.distortion, numbers[4:])

@@ -381,3 +381,21 @@ def test_resume_compares_the_calibration_files_not_their_spelling(sequence, tiny
     assert config_differences(typed, dotted, recorded) == []
     del recorded["data.calibrations"]                # a checkpoint of an earlier version: compared as typed
     assert [d.split("=")[0] for d in config_differences(typed, dotted, recorded)] == ["data.files"]
+
+
+def test_cmax_fit_and_emvs_name_rectify_map_without_a_calibration_beside(sequence):
+    """cmax fit / emvs --K on raw DSEC events with rectify_map.h5 beside them but DSEC's calibration download not
+    placed in the sequence (no cam_to_cam.yaml anywhere near): the note says the events are raw and names --calib
+    (was: no note; the distorted, unrectified events fitted as a pinhole's without a word). With the cam_to_cam.yaml
+    in place, the note names it, as before."""
+    import argparse
+
+    from cmax.cli.recording import calibration_hint
+
+    path, yaml, _ = sequence
+    args = argparse.Namespace(file=str(path), calib=None, distortion=None)
+    assert f"--calib {yaml.resolve()}" in calibration_hint(args)
+    yaml.unlink()
+    hint = calibration_hint(args)
+    assert hint is not None and "rectify_map.h5 lies beside the events" in hint and "--calib" in hint
+    assert calibration_hint(argparse.Namespace(file=str(path), calib=str(yaml), distortion=None)) is None

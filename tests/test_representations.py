@@ -394,6 +394,24 @@ def test_voxel_grid_of_sub_pixel_positions_matches_the_slow_formula(bins):
     np.testing.assert_allclose(voxel_grid(ev, bins, pixels=xy, normalization="tonic"), tonic, atol=1e-5)
 
 
+@pytest.mark.parametrize("bins", [1, 2, 5])
+def test_voxel_grid_of_events_without_any_position_is_empty(bins, monkeypatch):
+    """Events none of which has a position (every one beyond a strong lens's reach: NaN, or inf) give an empty
+    volume, also when that is so only for one run of ``_CHUNK`` events (was: IndexError from the empty run)."""
+    from cmax.representations import _common
+
+    ev = random_events(300, width=9, height=7, seed=5)
+    for value in (np.nan, np.inf):
+        xy = np.full((300, 2), value)
+        np.testing.assert_array_equal(voxel_grid(ev, bins, pixels=xy), np.zeros((bins, 7, 9), np.float32))
+    rng = np.random.default_rng(5)
+    xy = np.column_stack([rng.uniform(0, 9, 300), rng.uniform(0, 7, 300)])
+    xy[100:200] = np.nan                                           # the second run of 100 has no position
+    monkeypatch.setattr(_common, "_CHUNK", 100)
+    np.testing.assert_allclose(voxel_grid(ev, bins, pixels=xy),
+                               _slow_bilinear_voxel_grid(xy, ev.t, ev.p, 9, 7, bins), atol=1e-5)
+
+
 def test_voxel_grid_of_integer_positions_is_the_voxel_grid():
     ev = random_events(5000, seed=8)
     np.testing.assert_allclose(voxel_grid(ev, 5, pixels=np.column_stack([ev.x, ev.y])), voxel_grid(ev, 5),

@@ -253,7 +253,8 @@ def calibration_hint(args: argparse.Namespace) -> str | None:
     """A note when no ``--calib`` or ``--distortion`` was given but a data set's calibration file lies beside
     ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either or two folders above, as in
     DSEC's ``<sequence>/events/left/events.h5`` and ``<sequence>/calibration/cam_to_cam.yaml``; an MVSEC camchain
-    :data:`MVSEC_CAMCHAIN_GLOB` too), or the file is MVSEC's (whose fisheye lenses a pinhole misses: the note names
+    :data:`MVSEC_CAMCHAIN_GLOB` too), or DSEC's ``rectify_map.h5`` lies beside it without a calibration file
+    (the events are raw), or the file is MVSEC's (whose fisheye lenses a pinhole misses: the note names
     the camchain to pass), or None. It is not read (never guessed): the note says how to use it."""
     if args.calib is not None or args.distortion is not None:
         return None
@@ -267,6 +268,11 @@ def calibration_hint(args: argparse.Namespace) -> str | None:
                 return (f"{place / name} lies beside the events but was not read: pass --calib {place / name}{dsec} "
                         "to use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
                         "distortion biases the fitted rotation and depth, docs/limits.md)")
+    if (folder / DSEC_RECTIFY_MAP).is_file():   # DSEC's events without its calibration download beside them
+        return (f"DSEC's {folder / DSEC_RECTIFY_MAP} lies beside the events, so they are raw (distorted, not "
+                "rectified into camRect0's frame, that of DSEC's disparity maps) and are fitted as a pinhole's: pass "
+                "--calib <sequence>/calibration/cam_to_cam.yaml (DSEC's calibration download; --calib-camera cam0, "
+                "the default), which undistorts and rectifies them")
     from cmax.io import detect_format
 
     try:

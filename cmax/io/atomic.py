@@ -38,7 +38,7 @@ import numpy as np
 __all__ = [
     "AtomicOutput", "OutputLockedError", "write_with", "write_text_atomic", "save_npz_atomic", "write_bytes_atomic",
     "ignore_file_size_signal", "PathLock", "lock_path", "temporaries", "discard_leftovers", "write_error",
-    "file_sha256", "fsync_folder",
+    "check_unchanged", "file_sha256", "fsync_folder",
 ]
 
 _TEMP_SUFFIX = ".partial"
@@ -142,6 +142,34 @@ def file_sha256(path: str | os.PathLike, read: Callable[[int], None] | None = No
             if read is not None:
                 read(len(block))
     return digest.hexdigest()
+
+
+def check_unchanged(paths: list, stats: list) -> None:
+    """ValueError naming the first of ``paths`` whose size or modification time is no longer that of its ``stat``
+    in ``stats`` (taken before it was read to hash it): a file still being written or copied, whose hash would
+    stand for bytes that were never whole (and the run would read others).
+
+    Parameters
+    ----------
+    paths : list of path
+        The files hashed.
+    stats : list of os.stat_result
+        Their ``os.stat`` before they were read, in the same order.
+    """
+    for path, before in zip(paths, stats):
+        try:
+            after = os.stat(path)
+        except OSError:
+            after = None
+        if after is None or (after.st_size, after.st_mtime_ns) != (before.st_size, before.st_mtime_ns):
+            if after is None:
+                now = "is gone"
+            elif after.st_size != before.st_size:
+                now = f"has {after.st_size:,} bytes (had {before.st_size:,})"
+            else:
+                now = "was modified"
+            raise ValueError(f"{path} changed while it was read to hash it: it {now}; is it still being written or "
+                             "copied? Run again once it is complete")
 
 
 def write_error(error: OSError, path: Path, what: str = "writing") -> OSError:

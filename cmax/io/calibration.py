@@ -107,14 +107,15 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
       ``depth_image_rect``, into which ``--calib`` undistorts the events (:class:`cmax.Camera`). A rectification
       that moves nothing (``R = I``, ``P``'s K equal to K: a monocular camera's) is dropped.
 
-    Lists may be written ``[a, b]`` or as ``- a`` lines (YAML's block style).
+    Lists may be written ``[a, b]`` or as ``- a`` lines (YAML's block style). A ``#`` comment at a line's end and a
+    byte order mark at the file's start (what Windows editors save) are ignored, in every format.
 
     Raises FileNotFoundError, or ValueError naming the file and what is missing.
     """
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no calibration file at {path}")
-    text = path.read_text("utf-8", errors="replace")
+    text = path.read_text("utf-8-sig", errors="replace")     # a byte order mark (Windows editors) is not text
     if path.suffix.lower() in (".yaml", ".yml"):
         values = _yaml_intrinsics(path, text, camera)
         try:
@@ -141,7 +142,7 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
             return _no_rectification(Calibration(K, np.asarray(distortion, float), size, model, *_rectification(
                 path, camera, rectification, projection), values.get("rostopic"), values.get("rectified_from")))
     else:
-        lines = [line for line in text.splitlines() if line.strip() and not line.lstrip().startswith("#")]
+        lines = [line for line in (raw.split("#", 1)[0] for raw in text.splitlines()) if line.strip()]
         try:
             numbers = _numbers(lines[0]) if len(lines) == 1 else []
         except ValueError:

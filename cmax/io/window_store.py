@@ -34,7 +34,7 @@ from typing import Any, Callable
 
 import numpy as np
 
-from cmax.io.atomic import file_sha256, fsync_folder, write_bytes_atomic, write_text_atomic
+from cmax.io.atomic import check_unchanged, file_sha256, fsync_folder, write_bytes_atomic, write_text_atomic
 from cmax.sim.signature import signature_problem
 
 __all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "file_signatures",
@@ -295,7 +295,8 @@ def file_signature(path: str | os.PathLike | None, read: Callable[[int], None] |
     modification time [ns], "sha256": SHA-256 (hex) of its bytes}`` (as :func:`cmax.sim.signature.source_signature`
     gives a video's), or None when ``path`` is None. The whole file is read (:func:`cmax.io.atomic.file_sha256`),
     after its ``stat``: another file of the same size given the old modification time (``cp -p``, ``rsync -t``) has
-    another signature.
+    another signature. A file whose size or modification time changed while it was hashed (still being written
+    or copied) is refused: ValueError naming it (:func:`cmax.io.atomic.check_unchanged`).
 
     Parameters
     ----------
@@ -307,8 +308,10 @@ def file_signature(path: str | os.PathLike | None, read: Callable[[int], None] |
     if path is None or not os.path.isfile(path):    # a missing file is for its reader to name
         return None
     info = os.stat(path)
+    digest = file_sha256(path, read)
+    check_unchanged([path], [info])
     return {"path": str(Path(path).resolve()), "files": 1, "bytes": info.st_size, "mtime_ns": info.st_mtime_ns,
-            "sha256": file_sha256(path, read)}
+            "sha256": digest}
 
 
 def file_signatures(paths: dict[str, str | os.PathLike | None], *, progress: bool = True) -> dict[str, dict | None]:

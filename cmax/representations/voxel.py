@@ -173,6 +173,8 @@ def _voxel_grid_bilinear(events: Events, pixels: np.ndarray, bins: int, t0: int,
         xy = pixels[run]
         keep = np.isfinite(xy).all(axis=1)
         xy, t, p = xy[keep], events.t[run][keep], events.p[run][keep]
+        if not len(t):   # every position of the run non-finite (beyond the lens's reach): nothing to spread
+            continue
         if bins == 1 or span == 0:
             low, fraction = np.zeros(len(t), np.intp), np.zeros(len(t))
         else:

@@ -935,7 +935,7 @@ def _verified(result: VideoResult) -> VideoResult:
     return replace(result, bytes=size, sha256=digest)
 
 
-def output_problem(entry: dict | None, output: Path) -> str | None:
+def output_problem(entry: dict | None, output: Path, read: Callable[[int], None] | None = None) -> str | None:
     """Why the manifest ``entry`` of ``output`` is not a finished video (None when it is).
 
     Finished: status ``ok``, and the file is a regular file of the recorded byte
@@ -943,7 +943,8 @@ def output_problem(entry: dict | None, output: Path) -> str | None:
     SHA-256 equals the recorded one (so a file damaged in place, same size, is
     redone). Cost: the file is read once, in 4 MiB blocks (about 0.5 GB/s on one
     core from the page cache, i.e. some seconds for a file of several GB), so a
-    resumed collection reads every file it skips.
+    resumed collection reads every file it skips. ``read``: called with the bytes [B] of each block hashed (a
+    progress bar's ``update``), or None.
     """
     from cmax.io.h5 import verify_h5
 
@@ -956,20 +957,21 @@ def output_problem(entry: dict | None, output: Path) -> str | None:
         if size != entry["bytes"]:
             return f"{output.name} has {size} bytes, the manifest recorded {entry['bytes']}"
         verify_h5(output, events=entry["events"])
-        if file_sha256(output) != entry["sha256"]:
+        if file_sha256(output, read) != entry["sha256"]:
             return f"{output.name} does not have the SHA-256 the manifest recorded (its bytes changed)"
     except (OSError, ValueError) as error:
         return " ".join(str(error).split())
     return None
 
 
-def source_problem(entry: dict, source: str | os.PathLike) -> str | None:
+def source_problem(entry: dict, source: str | os.PathLike, read: Callable[[int], None] | None = None) -> str | None:
     """Why ``source`` is not the source the manifest ``entry`` was converted from (None when it is).
 
     Compared: the entry's ``source_signature`` with the source's now (number of files, bytes,
     latest mtime in ns, and the SHA-256 of its bytes where the entry holds one: the source is read once;
     :mod:`cmax.sim.signature`: a moved source is the same); an entry of an older manifest,
-    without a signature, by its ``source`` path alone (as typed, or resolved from this folder).
+    without a signature, by its ``source`` path alone (as typed, or resolved from this folder). ``read``: called
+    with the bytes [B] of each block hashed (a progress bar's ``update``), or None.
     """
     recorded = entry.get("source_signature")
     if not isinstance(recorded, dict):
@@ -978,7 +980,7 @@ def source_problem(entry: dict, source: str | os.PathLike) -> str | None:
             return None
         return f"it was converted from {old}, now {source}"
     try:
-        now = source_signature(source)
+        now = source_signature(source, read)
     except (OSError, ValueError) as error:
         return " ".join(str(error).split())
     return signature_problem(recorded, now)
@@ -1213,6 +1215,26 @@ def _check_kept_chunks(output_dir: Path, runs: dict[str, dict]) -> None:
                          "one; nothing was converted: " + " | ".join(problems))
 
 
+def _verification_bar(videos: dict, sources: dict, progress: bool):
+    """A tqdm bar [bytes] on stderr over what verifying the converted ``videos`` of a manifest (name: entry) reads
+    to hash: the bytes each entry records of its source (those in ``sources``, name: path) and of its output;
+    shown when ``progress`` and they hold more than :data:`cmax.io.window_store.HASH_PROGRESS_BYTES`."""
+    from tqdm.auto import tqdm
+
+    from cmax.io.window_store import HASH_PROGRESS_BYTES
+
+    total = 0
+    for name, entry in videos.items():
+        if entry.get("status") != "ok":
+            continue
+        signature = entry.get("source_signature")
+        if name in sources and isinstance(signature, dict) and _is_count(signature.get("bytes")):
+            total += signature["bytes"]
+        total += entry["bytes"] if _is_count(entry.get("bytes")) else 0
+    return tqdm(total=total, desc="verifying converted videos (SHA-256 of sources and outputs)", unit="B",
+                unit_scale=True, unit_divisor=1024, leave=False, disable=not progress or total <= HASH_PROGRESS_BYTES)
+
+
 def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, shard, progress, on_result, redo,
                     overwrite=False, chunk_frames=None):
     path = output_dir / MANIFEST
@@ -1234,28 +1256,29 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
         _check_kept_chunks(output_dir, runs)
     sources = {job.name: job.source for job in jobs}
     names = set(sources)
-    for name, entry in manifest["videos"].items():  # never skip a video whose source changed
-        if entry["status"] == "ok" and name in sources:
-            if not os.path.lexists(sources[name]):  # deleted after its conversion (to free space): nothing to redo
-                print(f"cmax: note: {name}: its source {sources[name]} is not there (deleted or moved since it was "
-                      "converted); its output is kept as converted, once verified", file=sys.stderr)
-                continue
-            problem = source_problem(entry, sources[name])
-            if problem is not None:
-                manifest["videos"][name] = dict(entry, status="failed",
-                                                error=f"the source changed since it was converted: {problem}")
-                print(f"cmax: note: {name}: the source changed since it was converted ({problem}); "
-                      "converting it again", file=sys.stderr)
-    for name, entry in manifest["videos"].items():  # never list a file that is not there as it was
-        if entry["status"] == "ok":
-            try:
-                problem = output_problem(entry, entry_output(entry, output_dir))
-            except ValueError as error:  # an output path outside the folder
-                problem = str(error)
-            if problem is not None:
-                manifest["videos"][name] = dict(entry, status="failed", error=f"output not verified: {problem}")
-                print(f"cmax: note: {name}: output not verified ({problem}); "
-                      + ("converting it again" if name in names else "listed as failed"), file=sys.stderr)
+    with _verification_bar(manifest["videos"], sources, progress) as hashed:
+        for name, entry in manifest["videos"].items():  # never skip a video whose source changed
+            if entry["status"] == "ok" and name in sources:
+                if not os.path.lexists(sources[name]):  # deleted after its conversion (to free space): nothing to redo
+                    print(f"cmax: note: {name}: its source {sources[name]} is not there (deleted or moved since it "
+                          "was converted); its output is kept as converted, once verified", file=sys.stderr)
+                    continue
+                problem = source_problem(entry, sources[name], hashed.update)
+                if problem is not None:
+                    manifest["videos"][name] = dict(entry, status="failed",
+                                                    error=f"the source changed since it was converted: {problem}")
+                    print(f"cmax: note: {name}: the source changed since it was converted ({problem}); "
+                          "converting it again", file=sys.stderr)
+        for name, entry in manifest["videos"].items():  # never list a file that is not there as it was
+            if entry["status"] == "ok":
+                try:
+                    problem = output_problem(entry, entry_output(entry, output_dir), hashed.update)
+                except ValueError as error:  # an output path outside the folder
+                    problem = str(error)
+                if problem is not None:
+                    manifest["videos"][name] = dict(entry, status="failed", error=f"output not verified: {problem}")
+                    print(f"cmax: note: {name}: output not verified ({problem}); "
+                          + ("converting it again" if name in names else "listed as failed"), file=sys.stderr)
     todo = [job for job in jobs if manifest["videos"].get(job.name, {}).get("status") != "ok"]
     for job in (job for job in jobs if job not in todo):   # verified and skipped: chunks a stop left
         _remove_chunks(output_dir / f"{job.name}.h5")

@@ -29,7 +29,7 @@ import hashlib
 from pathlib import Path
 from typing import Any, Callable
 
-from cmax.io.atomic import file_sha256
+from cmax.io.atomic import check_unchanged, file_sha256
 
 __all__ = ["source_files", "source_signature", "signature_problem", "content_sha256"]
 
@@ -66,11 +66,14 @@ def content_sha256(files: list[Path], read: Callable[[int], None] | None = None)
 def source_signature(source: str | os.PathLike, read: Callable[[int], None] | None = None) -> dict[str, Any]:
     """``{"path": resolved path, "files": n, "bytes": total bytes, "mtime_ns": latest mtime (ns), "sha256": hex}``
     of the files :func:`source_files` lists (``sha256``: :func:`content_sha256` of them, read after their
-    ``stat``); ``read`` as there."""
+    ``stat``); ``read`` as there. ValueError naming a file whose size or modification time changed while it was
+    hashed (a video still being downloaded or copied: :func:`cmax.io.atomic.check_unchanged`)."""
     files = source_files(source)
     stats = [os.stat(file) for file in files]
+    digest = content_sha256(files, read)
+    check_unchanged(files, stats)      # a video still being downloaded or copied: refused, not half recorded
     return {"path": str(Path(source).resolve()), "files": len(files), "bytes": sum(s.st_size for s in stats),
-            "mtime_ns": max(s.st_mtime_ns for s in stats), "sha256": content_sha256(files, read)}
+            "mtime_ns": max(s.st_mtime_ns for s in stats), "sha256": digest}
 
 
 def signature_problem(recorded: dict[str, Any], now: dict[str, Any],
