@@ -130,3 +130,29 @@ def tiny_checkpoint(tmp_path_factory) -> Path:
     return save_checkpoint(tmp_path_factory.mktemp("ckpt") / "tiny.pt",
                            {"model": DepthPoseNet(config.model).state_dict(), "optimizer": {}, "step": 0,
                             "config": config.to_dict(), "rng": rng_state()})
+
+
+#: MVSEC's indoor_flying left camera (camchain-imucam-indoor_flying.yaml, cam0: a Kalibr equidistant fisheye with
+#: its rectification and projection), as public MVSEC loaders give it; the tests of calibration files share it.
+MVSEC_LEFT_CAMCHAIN = """cam0:
+  T_cam_imu:
+  - [1.0, 0.0, 0.0, 0.0]
+  - [0.0, 1.0, 0.0, 0.0]
+  - [0.0, 0.0, 1.0, 0.0]
+  - [0.0, 0.0, 0.0, 1.0]
+  cam_overlaps: [1]
+  camera_model: pinhole
+  distortion_coeffs: [-0.048031442223833355, 0.011330957517194437, -0.055378166304281135, 0.021500973881459395]
+  distortion_model: equidistant
+  intrinsics: [226.38018519795807, 226.15002947047415, 173.6470807871759, 133.73271487507847]
+  resolution: [346, 260]
+  rostopic: /davis/left/image_raw
+  projection_matrix:
+  - [199.6530123165822, 0.0, 177.43276376280926, 0.0]
+  - [0.0, 199.6530123165822, 126.81215684365904, 0.0]
+  - [0.0, 0.0, 1.0, 0.0]
+  rectification_matrix:
+  - [0.999877311526236, 0.015019439766575743, -0.004447282784398257]
+  - [-0.014996983873604017, 0.9998748347535599, 0.005040367172759556]
+  - [0.004522429630305261, -0.004973052949604937, 0.9999774079320989]
+"""

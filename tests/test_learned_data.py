@@ -514,29 +514,7 @@ def test_mvsec_dataset_refuses_a_bad_k_as_the_other_data_sets_do(tmp_path):
     assert str(raised.value) == str(shared.value)
 
 
-# MVSEC's indoor_flying left camera (camchain-imucam-indoor_flying.yaml, cam0), as public MVSEC loaders give it.
-MVSEC_CAMCHAIN = """cam0:
-  T_cam_imu:
-  - [1.0, 0.0, 0.0, 0.0]
-  - [0.0, 1.0, 0.0, 0.0]
-  - [0.0, 0.0, 1.0, 0.0]
-  - [0.0, 0.0, 0.0, 1.0]
-  cam_overlaps: [1]
-  camera_model: pinhole
-  distortion_coeffs: [-0.048031442223833355, 0.011330957517194437, -0.055378166304281135, 0.021500973881459395]
-  distortion_model: equidistant
-  intrinsics: [226.38018519795807, 226.15002947047415, 173.6470807871759, 133.73271487507847]
-  resolution: [346, 260]
-  rostopic: /davis/left/image_raw
-  projection_matrix:
-  - [199.6530123165822, 0.0, 177.43276376280926, 0.0]
-  - [0.0, 199.6530123165822, 126.81215684365904, 0.0]
-  - [0.0, 0.0, 1.0, 0.0]
-  rectification_matrix:
-  - [0.999877311526236, 0.015019439766575743, -0.004447282784398257]
-  - [-0.014996983873604017, 0.9998748347535599, 0.005040367172759556]
-  - [0.004522429630305261, -0.004973052949604937, 0.9999774079320989]
-"""
+from conftest import MVSEC_LEFT_CAMCHAIN as MVSEC_CAMCHAIN  # noqa: E402  (MVSEC's left camera)
 
 
 def _fisheye_scene(tmp_path, rng, n=3000):
