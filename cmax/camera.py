@@ -5,7 +5,6 @@ from __future__ import annotations
 import os
 from dataclasses import dataclass, field
 from functools import cached_property
-from pathlib import Path
 
 import cv2
 import numpy as np
@@ -257,13 +256,12 @@ class Camera:
 
     @classmethod
     def from_ecd_calib(cls, path: str | os.PathLike, width: int = 240, height: int = 180) -> "Camera":
-        """Camera from an ECD ``calib.txt`` at ``path`` (``fx fy cx cy k1 k2 p1 p2 k3``), of a sensor ``width`` x
-        ``height`` [px] (the file states no size; ECD's DAVIS240C: 240 x 180); a byte order mark is ignored, as
-        :func:`cmax.io.read_calibration` ignores it."""
-        values = np.loadtxt(Path(path), dtype=np.float64, encoding="utf-8-sig").ravel()
-        if values.size not in (4, 8, 9):
-            raise ValueError(f"{path}: expected 'fx fy cx cy [k1 k2 p1 p2 [k3]]', got {values.size} numbers")
-        return cls.from_intrinsics(*values[:4], width, height, values[4:] if values.size > 4 else None)
+        """Camera from an ECD ``calib.txt`` at ``path`` (one line ``fx fy cx cy k1 k2 p1 p2 k3``), of a sensor
+        ``width`` x ``height`` [px] (the file states no size; ECD's DAVIS240C: 240 x 180), read by
+        :func:`cmax.io.read_calibration`, the one reader of calibration files (the same checks and messages)."""
+        from cmax.io.calibration import read_calibration     # cmax.io.calibration imports this module
+
+        return read_calibration(path).camera(width, height)
 
     # -- properties -------------------------------------------------------------------
     @property

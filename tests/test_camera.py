@@ -51,6 +51,29 @@ def test_an_ecd_calib_txt_with_a_byte_order_mark_is_the_same_camera(tmp_path):
     np.testing.assert_array_equal(marked.K[[0, 1, 0, 1], [0, 1, 2, 2]], [float(v) for v in line.split()[:4]])
 
 
+def test_from_ecd_calib_and_read_calibration_are_one_reader(tmp_path):
+    """Camera.from_ecd_calib is cmax.io.read_calibration's camera: the same K and distortion for an ECD line, and the
+    same refusal for the numbers of one line split over two (was: from_ecd_calib read any layout with np.loadtxt,
+    read_calibration refused it, so the two readers disagreed on one file)."""
+    from cmax.io import read_calibration
+
+    line = "199.09 198.83 132.19 110.71 -0.368 0.151 -0.0003 -0.0008 0.0"
+    one = tmp_path / "calib.txt"
+    one.write_text(line + "  # ECD DAVIS240C\n")
+    camera = Camera.from_ecd_calib(one)
+    np.testing.assert_array_equal(camera.K, [[199.09, 0, 132.19], [0, 198.83, 110.71], [0, 0, 1]])
+    np.testing.assert_array_equal(camera.distortion, [-0.368, 0.151, -0.0003, -0.0008, 0.0])
+    assert (camera.width, camera.height) == (240, 180)
+    np.testing.assert_array_equal(camera.K, read_calibration(one).K)
+    split = tmp_path / "split.txt"
+    split.write_text(" ".join(line.split()[:4]) + "\n" + " ".join(line.split()[4:]) + "\n")
+    with pytest.raises(ValueError) as refused:
+        read_calibration(split)
+    with pytest.raises(ValueError, match="expected one line") as also:
+        Camera.from_ecd_calib(split)
+    assert str(also.value) == str(refused.value)
+
+
 def test_undistort_inverts_opencv_distortion(shared_data):
     cam = Camera.from_ecd_calib(shared_data / "ecd_slider_depth" / "calib.txt")
     assert cam.is_distorted and (cam.width, cam.height) == (240, 180)
