@@ -40,7 +40,7 @@ from tqdm import tqdm
 from cmax._args import ArgumentParser, run_main
 from cmax._threads import torch_threads
 from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, WeightedSum
-from cmax.io.atomic import file_sha256, write_text_atomic
+from cmax.io.atomic import check_unchanged, file_sha256, write_text_atomic
 from learned._output import locked_folder
 from learned.checkpoint import (CheckpointError, load_checkpoint, nonfinite_tensors, rng_state, save_checkpoint,
                                 set_rng_state)
@@ -271,7 +271,9 @@ def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int], *,
     and status change time equal the file's now, its ``sha256`` is taken instead of reading the file again (a file
     rewritten in place whose modification time was then set back, ``touch -d`` or ``cp -p`` onto the same inode,
     has another status change time: it is read again; so is a file whose mode or owner changed).
-    Another recording copied over the file, or any byte of it changed, changes the whole file's SHA-256.
+    Another recording copied over the file, or any byte of it changed, changes the whole file's SHA-256. A file
+    whose size or modification time changes while it is hashed (still being written or copied) is refused
+    (:func:`cmax.io.atomic.check_unchanged`, ValueError naming it).
     ``read``: called with the bytes [B] of each chunk hashed (a progress bar's ``update``), or None."""
     path = Path(path)
     stat = path.stat()
@@ -285,6 +287,7 @@ def file_fingerprint(path: str | Path, events: int, span_us: tuple[int, int], *,
             ends.update(file.read())
     if not isinstance(known, str):
         known = file_sha256(path, read)
+        check_unchanged([path], [stat])      # a file still being written or copied: its hash stands for no file
     return {"bytes": size, "events": int(events), "span_us": [int(span_us[0]), int(span_us[1])],
             "sha256": known, "ends_sha256": ends.hexdigest(), "stat": marks}
 

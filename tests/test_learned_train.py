@@ -1,6 +1,7 @@
 """Training: loss decreases, bit-for-bit resume, determinism, crash safety, torchrun (gloo) = one process."""
 from __future__ import annotations
 
+import hashlib
 import os
 import shutil
 import signal
@@ -1053,3 +1054,26 @@ def test_a_student_on_windows_of_another_length_than_its_teacher_s_is_named(scen
     with warnings.catch_warnings():
         warnings.simplefilter("error")
         Trainer(config, progress=False)
+
+
+def test_a_data_file_that_grows_while_it_is_hashed_is_refused(tmp_path):
+    """A data file still being written or copied while learned.train hashes it: its fingerprint would hold the size
+    before and the SHA-256 of more bytes, recorded as if a whole file (was: recorded without a word). Refused naming it,
+    as cmax fit's inputs are (cmax.io.atomic.check_unchanged); whole afterwards, it is fingerprinted."""
+    from learned.train import file_fingerprint
+
+    path = tmp_path / "growing.h5"
+    path.write_bytes(b"x" * 3_000_000)
+    grown = []
+
+    def still_copying(nbytes: int) -> None:          # the writer appends while the first block is hashed
+        if not grown:
+            with open(path, "ab") as file:
+                file.write(b"y" * 100)
+            grown.append(nbytes)
+
+    with pytest.raises(ValueError, match="growing.h5 changed while it was read to hash it: it has 3,000,100 bytes"):
+        file_fingerprint(path, 10, (0, 5), read=still_copying)
+    assert grown
+    whole = file_fingerprint(path, 10, (0, 5))
+    assert whole["bytes"] == 3_000_100 and whole["sha256"] == hashlib.sha256(path.read_bytes()).hexdigest()
