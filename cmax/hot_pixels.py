@@ -45,7 +45,7 @@ import numpy as np
 from cmax.events import Events, require_events
 
 __all__ = ["HotPixelFilter", "check_filter", "flicker_pixels", "hot_pixels", "hot_pixels_of_counts",
-           "lone_steady_pixels", "no_pixels", "pixel_counts", "without_pixels"]
+           "lone_steady_pixels", "no_pixels", "off_pixels", "pixel_counts", "without_pixels"]
 
 #: The Kolmogorov-Smirnov statistic ``sqrt(n) * D`` above which ``n`` event times are not those of a constant
 #: rate, at the 1% level (the asymptotic critical value; conservative for small ``n``).
@@ -304,6 +304,12 @@ def without_pixels(events: Events, pixels: np.ndarray) -> Events:
     pixels = np.asarray(pixels, dtype=np.int64).reshape(-1, 2)
     if not len(pixels):
         return events
+    return events[off_pixels(events, pixels)]
+
+
+def off_pixels(events: Events, pixels: np.ndarray) -> np.ndarray:
+    """Which of ``events`` (N,) bool lie off ``pixels`` ``(K, 2)`` ``(x, y)``: those :func:`without_pixels` keeps."""
+    pixels = np.asarray(pixels, dtype=np.int64).reshape(-1, 2)
     drop = np.zeros(events.width * events.height, bool)
     drop[pixels[:, 1] * events.width + pixels[:, 0]] = True
-    return events[~drop[events.y.astype(np.int64) * events.width + events.x]]
+    return ~drop[events.y.astype(np.int64) * events.width + events.x]

@@ -18,7 +18,7 @@ from cmax._threads import blas_threads_scope, torch_threads_scope
 from cmax.camera import check_intrinsics, check_principal_point, intrinsics_oddity, pinhole_events, sensor_pixels
 from cmax.contrast._warp_kernels import compiled_warp_applies, warp_se3_compiled
 from cmax.events import Events, require_events
-from cmax.hot_pixels import no_pixels
+from cmax.hot_pixels import no_pixels, off_pixels
 from cmax.geometry import se3_exp, se3_log
 from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages, stages_for
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
@@ -466,7 +466,7 @@ def fit(
     unfiltered = events
     events, hot = _without_hot_pixels(events, settings)
     if sensor is not None and events is not unfiltered:
-        sensor = replace(sensor, pixels=sensor.pixels[_off_pixels(unfiltered, hot)])
+        sensor = replace(sensor, pixels=sensor.pixels[off_pixels(unfiltered, hot)])
     speed = _check_speed(speed)
     if (speed is not None or pose is not None or omega is not None) and model != "se3":
         raise ValueError(f"speed, pose and omega apply to model='se3', not {model!r}")
@@ -541,13 +541,6 @@ def _sensor_pixels(events: Events, K: object) -> SensorPixels | None:
     None otherwise (the events' checks are :func:`cmax.camera.pinhole_events`'s)."""
     pixels = sensor_pixels(events, K)
     return None if pixels is None else SensorPixels(pixels, K)
-
-
-def _off_pixels(events: Events, pixels: np.ndarray) -> np.ndarray:
-    """Which of ``events`` (N,) bool lie off ``pixels`` (K, 2) ``(x, y)``: those :func:`cmax.hot_pixels.without_pixels`
-    keeps."""
-    flat = events.y.astype(np.int64) * events.width + events.x
-    return ~np.isin(flat, pixels[:, 1].astype(np.int64) * events.width + pixels[:, 0])
 
 
 def _without_hot_pixels(events: Events, settings: FitSettings) -> tuple[Events, np.ndarray]:
