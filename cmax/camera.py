@@ -12,8 +12,8 @@ import numpy as np
 from cmax.events import Events, _check_sensor_size, require_events
 
 __all__ = ["Camera", "DISTORTION_MODELS", "camera_and_intrinsics", "check_intrinsics", "check_principal_point",
-           "check_rotation", "distort_equidistant", "intrinsics_matrix", "intrinsics_oddity", "pinhole_events",
-           "sensor_pixels"]
+           "check_rotation", "distort_equidistant", "intrinsics_matrix", "intrinsics_oddity", "nearest_pixels",
+           "pinhole_events", "sensor_pixels"]
 
 _DISTORTION_LENGTHS = (4, 5, 8, 12, 14)
 
@@ -484,12 +484,24 @@ class Camera:
 
     def _nearest_pixels(self, events: Events) -> tuple[np.ndarray, np.ndarray]:
         """The nearest integer undistorted pixel (N, 2) int64 of each event (-1 where none) and whether it lies
-        inside the image (N,) bool."""
-        undistorted = self.undistortion_map[events.y, events.x]
-        solved = np.isfinite(undistorted).all(axis=1)
-        xy = np.rint(np.where(solved[:, None], undistorted, -1.0)).astype(np.int64)
-        inside = solved & (xy[:, 0] >= 0) & (xy[:, 0] < self.width) & (xy[:, 1] >= 0) & (xy[:, 1] < self.height)
-        return xy, inside
+        inside the image (N,) bool (:func:`nearest_pixels` of :attr:`undistortion_map`)."""
+        return nearest_pixels(self.undistortion_map[events.y, events.x], self.width, self.height)
+
+    def undistort_events_and_pixels(self, events: Events) -> tuple[Events, np.ndarray, np.ndarray]:
+        """``(undistorted, pixels, kept)``: the events at their nearest undistorted pixels, as
+        :meth:`undistort_events` gives them; their exact positions (M, 2) float64 [px], as
+        :meth:`undistorted_pixels` gives them; and which events those are, (M,) int64 indices into ``events``
+        (:meth:`undistorted_kept`), the nearest pixels found once for all three.
+
+        Raises ``ValueError`` when the events come from a sensor of another size than the camera's.
+        """
+        kept = self.undistorted_kept(events)
+        if self.is_pinhole:
+            return events, np.column_stack([events.x, events.y]).astype(np.float64), kept
+        x, y = events.x[kept], events.y[kept]
+        xy = np.rint(self.undistortion_map[y, x]).astype(np.int64)    # finite and inside: those kept
+        return (Events(xy[:, 0], xy[:, 1], events.t[kept], events.p[kept], self.width, self.height),
+                self._undistortion_map64[y, x], kept)
 
     def undistort_events(self, events: Events) -> Events:
         """The events at their undistorted (and rectified) pixels rounded to the nearest integer ones, for a
@@ -566,6 +578,16 @@ def pinhole_events(events: Events, K: object) -> tuple[Events, np.ndarray]:
     if isinstance(K, Camera):
         return K.undistort_events(events), K.pinhole_K
     return events, K
+
+
+def nearest_pixels(positions: np.ndarray, width: int, height: int) -> tuple[np.ndarray, np.ndarray]:
+    """The nearest integer pixel (N, 2) int64 ``(x, y)`` of each position (N, 2) [px] (-1 where it is not finite)
+    and whether it lies inside a ``width`` x ``height`` [px] image (N,) bool: where undistorted (or rectified)
+    events land when rounded (:meth:`Camera.undistort_events`, DSEC's ``rectify_map`` in ``learned.data``)."""
+    solved = np.isfinite(positions).all(axis=1)
+    xy = np.rint(np.where(solved[:, None], positions, -1.0)).astype(np.int64)
+    inside = solved & (xy[:, 0] >= 0) & (xy[:, 0] < width) & (xy[:, 1] >= 0) & (xy[:, 1] < height)
+    return xy, inside
 
 
 def sensor_pixels(events: Events, K: object) -> np.ndarray | None:

@@ -27,6 +27,7 @@ import h5py
 import numpy as np
 import torch
 
+from cmax.camera import nearest_pixels
 from cmax.events import Events
 from cmax.fitting.window import SensorPixels
 from cmax.io import FormatError, H5Reader, read_calibration
@@ -464,11 +465,19 @@ def _mapped(events: Events, table: np.ndarray) -> tuple[Events, np.ndarray, Sens
     the exact positions (M, 2) float64 [px] of those kept, and their sensor pixels with the map as their lens
     (bilinear between pixel centres, :class:`_MapLens`)."""
     exact = table[events.y, events.x].astype(np.float64)
-    solved = np.isfinite(exact).all(axis=1)
-    xy = np.rint(np.where(solved[:, None], exact, -1.0)).astype(np.int64)
-    inside = solved & (xy[:, 0] >= 0) & (xy[:, 0] < events.width) & (xy[:, 1] >= 0) & (xy[:, 1] < events.height)
+    xy, inside = nearest_pixels(exact, events.width, events.height)
     return (Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], events.width, events.height),
             exact[inside], SensorPixels(np.column_stack([events.x[inside], events.y[inside]]), _MapLens(table)))
+
+
+def _through_lens(camera: "Camera", events: Events) -> tuple[Events, np.ndarray, SensorPixels | None]:
+    """``(events, pixels, sensor)`` of ``events`` seen through ``camera``'s lens: at their nearest undistorted (and
+    rectified) pixels, those outside the image dropped; their exact positions (M, 2) float64 [px]; and their sensor
+    pixels with the camera (:class:`Sample`'s ``sensor``; None for a pinhole camera)
+    (:meth:`cmax.Camera.undistort_events_and_pixels`: the lens's pixels found once)."""
+    undistorted, pixels, kept = camera.undistort_events_and_pixels(events)
+    sensor = None if camera.is_pinhole else SensorPixels(np.column_stack([events.x[kept], events.y[kept]]), camera)
+    return undistorted, pixels, sensor
 
 
 def _dsec_calibration_path(path: Path) -> str:
@@ -696,12 +705,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
         camera, table = self._cameras[file_index], self._tables[file_index]
         if table is not None:
             return _mapped(events, table)
-        if camera is None:
-            return events, None, None
-        kept = camera.undistorted_kept(events)
-        sensor = None if camera.is_pinhole else SensorPixels(np.column_stack([events.x[kept], events.y[kept]]),
-                                                             camera)
-        return camera.undistort_events(events), camera.undistorted_pixels(events)[kept], sensor
+        return (events, None, None) if camera is None else _through_lens(camera, events)
 
     def _reader(self, file_index: int) -> H5Reader:
         """The open reader of file ``file_index``, opened on first use; at most :data:`MAX_OPEN_FILES` stay open
@@ -836,10 +840,7 @@ class MVSECDataset(torch.utils.data.Dataset):
         events = self._read(self.data_file, t0_us=t0, t1_us=t0 + self.window_us)
         if self.camera is None:
             return events, np.column_stack([events.x, events.y]).astype(np.float64), None
-        kept = self.camera.undistorted_kept(events)    # sensor_pixels(events, camera), without finding them again
-        sensor = None if self.camera.is_pinhole else np.column_stack([events.x[kept], events.y[kept]])
-        return (self.camera.undistort_events(events), self.camera.undistorted_pixels(events)[kept],
-                None if sensor is None else SensorPixels(sensor, self.camera))
+        return _through_lens(self.camera, events)
 
     def __len__(self) -> int:
         return len(self.middles)

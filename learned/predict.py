@@ -437,7 +437,7 @@ def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"
     window (read with ``window(t0, t1)``, then ``transform``) holds fewer than :data:`MIN_EVENTS` events.
     ``camera`` (a :class:`cmax.Camera` of the sensor, in place of ``transform``): the events are undistorted
     (and rectified) by it, and the volume spreads each one bilinearly from its exact position
-    (:meth:`cmax.Camera.undistorted_pixels`; :meth:`cmax.Camera.undistort_events` keeps which).
+    (:meth:`cmax.Camera.undistort_events_and_pixels`).
     ``batch`` windows go through the network at a time. ``offset``: the index of the first of ``starts`` in the
     recording (``WindowPrediction.index`` is ``offset`` plus the place in ``starts``).
 
@@ -452,8 +452,7 @@ def predict_windows(model: "DepthPoseNet", window: Callable[[int, int], "Events"
             events = events if transform is None else transform(events)
             xy = None
             if camera is not None and not camera.is_pinhole:
-                xy = camera.undistorted_pixels(events)[camera.undistorted_kept(events)]
-                events = camera.undistort_events(events)
+                events, xy, _ = camera.undistort_events_and_pixels(events)
             chunk.append((offset + index, t0, events if len(events) >= MIN_EVENTS else None))
             positions += [xy] if len(events) >= MIN_EVENTS else []
         kept = [events for _, _, events in chunk if events is not None]
