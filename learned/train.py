@@ -41,6 +41,7 @@ from cmax._args import ArgumentParser, run_main
 from cmax._threads import torch_threads
 from cmax.contrast import SHARED_OBJECTIVE, CollapseGuard, EventWindows, WeightedSum
 from cmax.io.atomic import check_unchanged, file_sha256, write_text_atomic
+from cmax.io.window_store import HASH_PROGRESS_BYTES   # the one threshold of the hashing bars
 from learned._output import locked_folder
 from learned.checkpoint import (CheckpointError, load_checkpoint, nonfinite_tensors, rng_state, save_checkpoint,
                                 set_rng_state)
@@ -218,8 +219,6 @@ def config_differences(recorded: Config, now: Config, recorded_paths: dict | Non
 FINGERPRINT_BYTES = 1 << 16
 
 
-#: Bytes of data files to hash at start above which a progress bar shows it (about 1.5 s a GB on one core).
-HASH_PROGRESS_BYTES = 1 << 30
 
 
 def _marks(stat: os.stat_result) -> list[int]:

@@ -227,10 +227,9 @@ def unmapped_pixels(camera) -> int:
     """How many of the ``camera``'s (:class:`cmax.Camera`) sensor pixels have no pixel of the undistorted (and
     rectified) image: none (NaN in :attr:`~cmax.Camera.undistortion_map`) or the nearest one outside the
     ``width`` x ``height`` image; :meth:`~cmax.Camera.undistort_events` drops their events."""
-    xy = np.rint(camera.undistortion_map)
-    with np.errstate(invalid="ignore"):
-        inside = (np.isfinite(xy).all(axis=2) & (xy[..., 0] >= 0) & (xy[..., 0] < camera.width)
-                  & (xy[..., 1] >= 0) & (xy[..., 1] < camera.height))
+    from cmax.camera import nearest_pixels
+
+    _, inside = nearest_pixels(camera.undistortion_map.reshape(-1, 2), camera.width, camera.height)
     return int(inside.size - inside.sum())
 
 
