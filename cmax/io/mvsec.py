@@ -83,10 +83,9 @@ def read_mvsec(
     try:
         with h5py.File(path, "r") as file:
             dataset = _events_dataset(file, path, camera)
-            if time_unit is None:          # a window's few rows may not show it: the file's first rows do
-                _refuse_whole_seconds(dataset[:_SAMPLE_ROWS, 2], f"{path}: davis/{camera}/events")
-            elif unit == "ms":
-                _refuse_unix_seconds_as_ms(dataset[:_SAMPLE_ROWS, 2], f"{path}: davis/{camera}/events")
+            # a window's few rows may not show it: the file's first rows do
+            _refuse_misread_times(dataset[:_SAMPLE_ROWS, 2], time_unit is not None, unit,
+                                  f"{path}: davis/{camera}/events")
             # Read with a 2 µs margin, then cut exactly on the rounded integer times.
             start, stop = 0, dataset.shape[0]
             if t0_us is not None:
@@ -157,6 +156,16 @@ def _refuse_unix_seconds_as_ms(t: np.ndarray, where: str) -> None:
     )
 
 
+def _refuse_misread_times(t: np.ndarray, unit_stated: bool, unit: str, where: str) -> None:
+    """The checks of an MVSEC time column ``t`` before it is read in ``unit``: without a stated unit
+    (``unit_stated`` False), whole numbers are refused (:func:`_refuse_whole_seconds`); stated as milliseconds,
+    MVSEC's seconds since 1970 are (:func:`_refuse_unix_seconds_as_ms`). ``where`` names the file and dataset."""
+    if not unit_stated:
+        _refuse_whole_seconds(t, where)
+    elif unit == "ms":
+        _refuse_unix_seconds_as_ms(t, where)
+
+
 def _refuse_time_going_back(t_us: np.ndarray, path: Path, camera: str) -> None:
     """Refuse times ``t_us`` (µs, of rows read from ``davis/<camera>/events`` of ``path``) that go back, with the way
     through: MVSEC files are read a time span at a time (bisection on disk), so ``sort`` / ``--sort`` do not apply
@@ -183,10 +192,7 @@ def _table_events(table: np.ndarray, path: Path, camera: str, unit: str, polarit
     where = f"{path}: davis/{camera}/events"
     if not np.isfinite(table[:, [0, 1, 3]]).all():
         raise FormatError(f"{where} contains non-finite values")
-    if not unit_stated:
-        _refuse_whole_seconds(table[:, 2], where)
-    elif unit == "ms":
-        _refuse_unix_seconds_as_ms(table[:, 2], where)
+    _refuse_misread_times(table[:, 2], unit_stated, unit, where)
     t_us = times_to_us(table[:, 2], unit, f"{where}[:, 2] (t)")
     _refuse_time_going_back(t_us, path, camera)
     p = polarity_01(table[:, 3], polarity, f"{where}[:, 3] (p)")
@@ -256,10 +262,8 @@ def mvsec_time_span(
             dataset = _events_dataset(file, path, camera)
             if not dataset.shape[0]:
                 return None
-            if time_unit is None:
-                _refuse_whole_seconds(dataset[:_SAMPLE_ROWS, 2], f"{path}: davis/{camera}/events")
-            elif unit == "ms":
-                _refuse_unix_seconds_as_ms(dataset[:_SAMPLE_ROWS, 2], f"{path}: davis/{camera}/events")
+            _refuse_misread_times(dataset[:_SAMPLE_ROWS, 2], time_unit is not None, unit,
+                                  f"{path}: davis/{camera}/events")
             ends = np.array([dataset[0, 2], dataset[-1, 2]], dtype=dataset.dtype)
     except FormatError:
         raise
