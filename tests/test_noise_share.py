@@ -67,7 +67,7 @@ def test_the_fit_sorts_its_events_once_for_the_mask_and_the_noise_share(monkeypa
         result = fit(noisy, K, pose=np.array([0.2, 0.0, 0.0, 0.0, 0.0, 0.0]), depth_range=(1.0, 10.0),
                      min_neighbours=0)          # the noise filter off: its neighbour count is a sort of its own
     assert len(calls) == 1
-    flags, share = quality._isolated_and_noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000)
+    flags, share, _ = quality._isolated_noise_share_and_sorted(noisy.x, noisy.y, noisy.t, 160, 120, 10_000)
     np.testing.assert_array_equal(flags, isolated_events(noisy.x, noisy.y, noisy.t, 160, 120, 10_000))
     assert share == noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, max_queries=None)
     assert result.quality.noise_share == noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000,

@@ -730,20 +730,12 @@ def _noise_share(events: _Sorted, t: np.ndarray, width: int, height: int, window
     return float(min(1.0, rate * width * height * duration_s / t.size))
 
 
-def _isolated_and_noise_share(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int,
-                              window_us: int) -> tuple[np.ndarray, float]:
-    """:func:`isolated_events` (N,) bool and :func:`noise_share` (radius 1) of the events ``x, y, t`` (N,) [px, px,
-    µs], the share from those flags (every event's, as ``noise_share(..., isolated=)``: no subset of queries): the
-    same two results, the events sorted once for both (the fit's depth mask and its noise verdict, when their
-    windows agree)."""
-    return _isolated_noise_share_and_sorted(x, y, t, width, height, window_us)[:2]
-
-
 def _isolated_noise_share_and_sorted(x: np.ndarray, y: np.ndarray, t: np.ndarray, width: int, height: int,
                                      window_us: int) -> tuple[np.ndarray, float, _Sorted]:
-    """:func:`_isolated_and_noise_share` of the events ``x, y, t`` (N,) [px, px, µs], and the events sorted for it
-    (:func:`_sorted_events` with this ``window_us``), which :func:`_neighbour_counts` takes: the fit's neighbour
-    filter counts on the same sort."""
+    """:func:`isolated_events` (N,) bool and :func:`noise_share` (radius 1) of the events ``x, y, t`` (N,) [px, px,
+    µs], the share from those flags (every event's, as ``noise_share(..., isolated=)``: no subset of queries), and
+    the events sorted for both (:func:`_sorted_events` with this ``window_us``), which :func:`_neighbour_counts`
+    takes: the fit's depth mask, its noise verdict and its neighbour filter, the events sorted once for all."""
     events = _sorted_events(x, y, t, width, window_us)
     isolated = _isolated(events, width, height, window_us, 1)
     t = np.asarray(t, np.int64)
