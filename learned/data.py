@@ -32,7 +32,7 @@ from cmax.events import Events
 from cmax.fitting.window import SensorPixels
 from cmax.io import FormatError, H5Reader, read_calibration
 from cmax.io.calibration import DSEC_RECTIFY_MAP, topic_side
-from cmax.io.provenance import resized_note
+from cmax.io.provenance import check_calibrated_frames, resized_note
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
 
@@ -420,10 +420,13 @@ def _entry_calibration(spec: FileSpec):
 def _calibrated_camera(spec: FileSpec, calibration, width: int, height: int) -> "Camera":
     """The :class:`cmax.Camera` of ``calibration`` (``spec.calib``'s) on the ``width`` x ``height`` [px] sensor of
     ``spec.path``. ValueError naming the files: a calibration of another sensor size, or an entry's ``K`` other than
-    the K of the frame the calibration maps the events into (to 0.01 px: rounded figures are taken)."""
+    the K of the frame the calibration maps the events into (to 0.01 px: rounded figures are taken); a calibration
+    without a size in a sequence of frames of another size (:func:`cmax.io.provenance.check_calibrated_frames`)."""
     if calibration.size is not None and tuple(calibration.size) != (width, height):
         raise ValueError(f"{spec.calib} calibrates a {calibration.size[0]}x{calibration.size[1]} camera "
                          f"({spec.calib_camera}), the events of {spec.path} come from a {width}x{height} sensor")
+    if calibration.size is None:
+        check_calibrated_frames(spec.calib, spec.path, width, height)
     camera = calibration.camera(width, height)
     pinhole = _file_K(camera.pinhole_K, spec.path, width, height)
     if spec.K is not None and not np.allclose(_file_K(spec.K, spec.path, width, height), pinhole, rtol=0, atol=0.01):

@@ -399,3 +399,27 @@ def test_cmax_fit_and_emvs_name_rectify_map_without_a_calibration_beside(sequenc
     hint = calibration_hint(args)
     assert hint is not None and "rectify_map.h5 lies beside the events" in hint and "--calib" in hint
     assert calibration_hint(argparse.Namespace(file=str(path), calib=str(yaml), distortion=None)) is None
+
+
+def test_an_ecd_calib_txt_of_another_sensor_is_refused_by_the_dataset(tmp_path):
+    """``H5WindowDataset`` takes an entry's ECD ``calib.txt`` (no size stated) as the command line does: beside
+    ECD frames of 240x180 (images.txt) for events of a 64x48 sensor it is refused naming both sizes (was: the
+    DAVIS240C's K and lens applied to them without a word); beside frames of the events' size it is read."""
+    from cmax.io import write_h5
+
+    rng = np.random.default_rng(3)
+    events = Events(rng.integers(0, 64, 4000), rng.integers(0, 48, 4000), np.sort(rng.integers(0, 400_000, 4000)),
+                    rng.integers(0, 2, 4000), 64, 48)
+    path = write_h5(tmp_path / "ev.h5", events)
+    sequence = tmp_path / "slider_depth"
+    (sequence / "images").mkdir(parents=True)
+    (sequence / "calib.txt").write_text("60 60 32 24 -0.37 0.15 0 0 0\n")
+    (sequence / "images.txt").write_text("0.000000000 images/frame_00000000.png\n")
+    entry = [{"path": str(path), "calib": str(sequence / "calib.txt")}]
+    assert cv2.imwrite(str(sequence / "images" / "frame_00000000.png"), np.zeros((180, 240), np.uint8))
+    with pytest.raises(ValueError, match=r"calib.txt states no sensor size, but the frames of its sequence .* are "
+                                         r"240x180: it calibrates a 240x180 sensor, the events of .*ev.h5 come from a "
+                                         r"64x48 one"):
+        H5WindowDataset(entry, window_us=100_000, min_events=10)
+    assert cv2.imwrite(str(sequence / "images" / "frame_00000000.png"), np.zeros((48, 64), np.uint8))
+    assert len(H5WindowDataset(entry, window_us=100_000, min_events=10)) > 0

@@ -27,7 +27,8 @@ import numpy as np
 from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import Camera, intrinsics_matrix
 from cmax.io.calibration import DSEC_RECTIFY_MAP, Calibration, read_calibration, topic_side
-from cmax.io.provenance import CALIBRATION_NAMES, file_intrinsics, resize_note, resized_note, simulated_frames
+from cmax.io.provenance import (CALIBRATION_NAMES, check_calibrated_frames, file_intrinsics, resize_note,
+                                resized_note, simulated_frames)
 
 __all__ = ["add_file_options", "file_kwargs", "camera_read", "given_k_note", "add_recording_arguments",
            "add_camera_options", "calibration_of", "calibration_note", "check_calibration_camera",
@@ -331,10 +332,14 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
 
 def _check_calibrated_size(args: argparse.Namespace, calib_size: tuple[int, int] | None, width: int,
                            height: int) -> None:
-    """ValueError when the events come from another sensor than the one ``--calib`` calibrates."""
+    """ValueError when the events come from another sensor than the one ``--calib`` calibrates: the size the
+    calibration states (``calib_size``), or for one that states none, the size of the frames of the ECD sequence
+    it lies in (:func:`cmax.io.provenance.check_calibrated_frames`)."""
     if calib_size is not None and (width, height) != tuple(calib_size):
         raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
                          f"the events come from a {width}x{height} sensor")
+    if calib_size is None and getattr(args, "calib", None) is not None:
+        check_calibrated_frames(args.calib, args.file, width, height)
 
 
 def file_span_us(path, options: dict, t0_s: float | None,
