@@ -17,7 +17,7 @@ from cmax.camera import check_intrinsics
 
 __all__ = ["CALIBRATION_NAMES", "file_intrinsics", "h5_intrinsics", "file_depth_range", "simulated_frames",
            "simulated_sizes", "source_calibration", "resized_note", "resize_note", "calibrated_frames",
-           "check_calibrated_frames"]
+           "check_calibrated_frames", "dsec_calibration_path", "check_raw_dsec"]
 
 #: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.
 CALIBRATION_NAMES = ("calib.txt", "cam_to_cam.yaml")
@@ -191,6 +191,40 @@ def check_calibrated_frames(calib: str | Path, path: str | Path, width: int, hei
     frames = calibrated_frames(calib)
     if frames is not None and frames[0] != (width, height):
         (W, H), frame = frames
-        raise ValueError(f"{calib} states no sensor size, but the frames of its sequence ({frame}, listed in images.txt "
-                         f"beside it) are {W}x{H}: it calibrates a {W}x{H} sensor, the events of {path} come from a "
-                         f"{width}x{height} one; give this sensor's calibration")
+        raise ValueError(f"{calib} states no sensor size, but the frames of its sequence ({frame}, listed in "
+                         f"images.txt beside it) are {W}x{H}: it calibrates a {W}x{H} sensor, the events of {path} "
+                         f"come from a {width}x{height} one; give this sensor's calibration")
+
+
+def dsec_calibration_path(path: str | Path) -> str:
+    """DSEC's ``<sequence>/calibration/cam_to_cam.yaml`` of its events ``path`` (``<sequence>/events/left/events.h5``)
+    where it exists, else that pattern.
+
+    >>> dsec_calibration_path("no/such/events.h5")
+    '<sequence>/calibration/cam_to_cam.yaml'
+    """
+    found = Path(path).resolve().parents[2:3]
+    found = [place / "calibration" / "cam_to_cam.yaml" for place in found]
+    return str(found[0]) if found and found[0].is_file() else "<sequence>/calibration/cam_to_cam.yaml"
+
+
+def check_raw_dsec(path: str | Path, give: str, as_recorded: str) -> None:
+    """ValueError when DSEC's ``rectify_map.h5`` lies beside the event file ``path``: its events are raw
+    (distorted, not rectified into camRect0's frame, the frame of DSEC's disparity maps), and the caller, which
+    calls this only where no calibration was given, would take them as a pinhole's. The one policy of ``cmax fit``,
+    ``cmax emvs``, ``cmax depth`` and ``learned.train``; each words how to give the calibration, ``give`` (a
+    format string whose ``{calib}`` is :func:`dsec_calibration_path` and ``{map}`` the rectify_map.h5), and how
+    to say the events are wanted as recorded, ``as_recorded``.
+
+    >>> check_raw_dsec("no/such/events.h5", "--calib {calib}", "--as-recorded")
+    """
+    from cmax.io.calibration import DSEC_RECTIFY_MAP
+
+    beside = Path(path).parent / DSEC_RECTIFY_MAP
+    if not beside.is_file():
+        return
+    how = give.format(calib=dsec_calibration_path(path), map=beside)
+    raise ValueError(f"DSEC's {beside} lies beside {path}, so its events are raw (distorted, not rectified into "
+                     f"camRect0's frame, whose K DSEC's disparity maps have), and no calibration was given: {how}, "
+                     f"which rectifies them into that frame and gives its K; or {as_recorded} to take them as "
+                     "recorded (a pinhole's, unrectified)")
