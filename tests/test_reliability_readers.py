@@ -283,6 +283,26 @@ def test_npy_float_times_need_a_unit_and_signed_polarity_a_statement(tmp_path):
     assert events.t.tolist() == [500_000, 1_000_000, 1_500_000] and events.p.tolist() == [1, 0, 1]
 
 
+def test_npy_times_that_are_not_numbers_are_named_without_a_unit_too(tmp_path, capsys):
+    """A structured .npy whose t field holds byte strings (a CSV loaded with np.genfromtxt(dtype=None)), read without a
+    unit: `cmax info: error: invalid literal for int() with base 10: b''`, neither the file nor the field named
+    (the implied-rate check cast them); now the FormatError every unit gave."""
+    from cmax.cli import main
+    from cmax.io import npy_time_span
+
+    array = np.zeros(300, [("x", "u2"), ("y", "u2"), ("t", "S8"), ("p", "u1")])
+    array["t"] = [f"{i * 1e-3:.5f}".encode() for i in range(300)]   # seconds, as the CSV wrote them
+    np.save(tmp_path / "ev.npy", array)
+    for unit in (None, "us", "s"):
+        with pytest.raises(FormatError, match=r"ev.npy: field t must hold numbers \(times\), got dtype \|S8"):
+            read(tmp_path / "ev.npy", width=W, height=H, time_unit=unit)
+        with pytest.raises(FormatError, match=r"ev.npy: field t must hold numbers \(times\)"):
+            npy_time_span(tmp_path / "ev.npy", time_unit=unit)
+    assert main(["info", str(tmp_path / "ev.npy"), "--size", f"{W}x{H}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "ev.npy: field t must hold numbers" in err, err
+
+
 def test_formats_with_integer_microseconds_refuse_another_unit(tmp_path):
     from cmax.io import write_evt3
 
