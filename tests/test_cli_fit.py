@@ -1319,7 +1319,7 @@ def test_dsec_calibration_folder_two_levels_above_the_events_is_named(tmp_path):
                            "(DSEC: --calib-camera cam0"), hint
 
 
-@pytest.mark.parametrize("command", ["fit", "emvs"])
+@pytest.mark.parametrize("command", ["fit", "emvs", "depth"])
 def test_an_ecd_calib_txt_of_another_sensor_is_refused_by_the_frames_of_its_sequence(tmp_path, capsys, command):
     """An ECD ``calib.txt`` states no sensor size, but the sequence it lies in lists its frames (``images.txt``):
     their PNG size is the sensor it calibrates. A calib.txt beside 240x180 frames (ECD's DAVIS240C) applied to
