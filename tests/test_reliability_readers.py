@@ -469,5 +469,30 @@ def test_uint32_times_of_an_h5_file_that_wrapped_are_named_as_a_wrapped_clock(tm
                                           r"a uint32 microsecond clock that wrapped"):
         read(path)
     stepped_back = _dsec(tmp_path / "back.h5", np.array([10, 20, 5, 30], np.uint32))
-    with pytest.raises(FormatError, match=r"\(5 µs comes after 20 µs, before t_offset\)$"):
+    with pytest.raises(FormatError, match=r"\(5 µs comes after 20 µs, before t_offset\); DSEC-layout files are "):
         read(stepped_back)                                              # a step back is not a wrap
+
+
+def test_a_dsec_layout_file_whose_time_goes_back_names_the_way_out(tmp_path, capsys):
+    """A DSEC-layout h5 whose time goes back (a user's conversion of unsorted events) was refused as `corrupt
+    events at row 2: t must be sorted ...` and `--sort` then as `sorting applies to ECD text, .npy and AEDAT4
+    files`: a dead end. The refusal now says --sort does not apply and how to write a sorted copy; the copy
+    written so reads, in time order, the same events."""
+    from cmax.cli import main
+
+    t = np.array([10, 20, 5, 30, 30, 25], np.int64)
+    path = _dsec(tmp_path / "back.h5", t, file_attrs={"width": W, "height": H})
+    with pytest.raises(FormatError, match=r"back.h5: events/t: corrupt events at row 2: .*--sort does not apply: "
+                                          r"write a copy whose events/x, y, t, p are each reordered by "
+                                          r"np.argsort\(t, kind='stable'\)"):
+        read(path)
+    assert main(["info", str(path)]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+    with h5py.File(path, "r") as file:
+        columns = {name: file[f"events/{name}"][:] for name in "xytp"}
+    order = np.argsort(columns["t"], kind="stable")
+    write_h5(tmp_path / "sorted.h5", Events(*(columns[name] for name in "xytp"), W, H, sort=True))
+    copy = read(tmp_path / "sorted.h5")
+    assert copy.t.tolist() == [5, 10, 20, 25, 30, 30]
+    np.testing.assert_array_equal(copy.x, columns["x"][order])
+    np.testing.assert_array_equal(copy.p, columns["p"][order])
