@@ -258,6 +258,39 @@ def test_text_files_state_their_polarity_and_unit(tmp_path):
     assert read_txt(path, width=W, height=H).t.tolist() == [1_000_000_000, 2_500_000_000]
 
 
+def test_whole_number_text_times_since_1970_name_their_own_unit(tmp_path):
+    """ECD text of integer milliseconds since 1970 (no unit) was refused as 'these look like integer microseconds.
+    State the unit: time_unit='us'', and read so: a recording 1000 times too short; nanoseconds since 1970 were
+    called microseconds too, then refused as float64 ('microseconds are already lost'). Now the unit whose
+    reading lies in 1973-2103 is named; the times read in it (ns: converted as the message says)."""
+    rng = np.random.default_rng(4)
+    n = 200
+    t_ms = 1504645177000 + np.sort(rng.choice(20_000, n, replace=False))      # 20 s of 2017, in ms
+    columns = (rng.integers(0, W, n), rng.integers(0, H, n), rng.integers(0, 2, n))
+    path = tmp_path / "events.txt"
+
+    def write(t) -> None:
+        path.write_text("".join(f"{a} {b} {c} {d}\n" for a, b, c, d in zip(t, *columns)))
+
+    write(t_ms)
+    with pytest.raises(FormatError, match=r"these are milliseconds since 1970 \(1504645177\.\d+ s\)\. State the "
+                                          r"unit: time_unit='ms'"):
+        read_txt(path, width=W, height=H)
+    assert read_txt(path, width=W, height=H, time_unit="ms").t.tolist() == (t_ms * 1000).tolist()
+    write(t_ms * 1000)
+    with pytest.raises(FormatError, match=r"these are microseconds since 1970 .* time_unit='us'"):
+        read_txt(path, width=W, height=H)
+    write(t_ms * 1_000_000 + 123)
+    with pytest.raises(FormatError, match=r"these are nanoseconds since 1970 \(1504645177\.\d+ s\), a unit no reader "
+                                          r"takes: .* integer microseconds \(t // 1000, then time_unit='us'"):
+        read_txt(path, width=W, height=H)
+    write((t_ms * 1_000_000 + 123) // 1000)
+    assert read_txt(path, width=W, height=H, time_unit="us").t.tolist() == (t_ms * 1000).tolist()
+    write(np.arange(957, 957 + n))                                      # a clock from boot: the unit is not told
+    with pytest.raises(FormatError, match=r"these look like integer microseconds"):
+        read_txt(path, width=W, height=H)
+
+
 def test_mvsec_polarity_is_minus_one_plus_one_unless_stated(tmp_path):
     path = tmp_path / "mvsec.hdf5"
     table = np.array([[1, 2, 10.0, 0], [3, 4, 10.5, 1]])  # a 0/1 file in a -1/+1 format

@@ -137,22 +137,52 @@ _UTF8_BOM = b"\xef\xbb\xbf"
 _WHOLE_TIMES = 100
 
 
+#: Seconds since 1970 of March 1973 and of 2103: a clock since 1970 lies between them (in its own unit).
+_SINCE_1970 = (1e8, 4.2e9)
+#: Units of whole-number times, by how many of them make a second.
+_WHOLE_UNITS = (("ns", 1e9), ("us", 1e6), ("ms", 1e3))
+
+
+def _since_1970_unit(value: float) -> str | None:
+    """The unit of :data:`_WHOLE_UNITS` in which the time ``value`` lies between 1973 and 2103 as a time since
+    1970, or None (a clock started elsewhere: the unit cannot be told).
+
+    >>> _since_1970_unit(1504645177000.0), _since_1970_unit(1.7e18), _since_1970_unit(957.0)
+    ('ms', 'ns', None)
+    """
+    return next((unit for unit, per_second in _WHOLE_UNITS
+                 if _SINCE_1970[0] <= abs(value) / per_second < _SINCE_1970[1]), None)
+
+
 def _refuse_whole_seconds(t: np.ndarray, path: Path) -> None:
     """Refuse a time column read as ECD's seconds (no unit stated) whose every value is a whole number.
 
     An event camera's times in seconds carry decimals; a column of at least
     :data:`_WHOLE_TIMES` distinct whole numbers is integer microseconds (or
-    ms, ns) that would read as hours or days of recording.
+    ms, ns) that would read as hours or days of recording. Where the times lie between 1973 and 2103 as a time
+    since 1970 in one unit (:func:`_since_1970_unit`), the refusal names that unit (milliseconds since 1970 were
+    called microseconds, and read so, 1000 times too short); nanoseconds, which no reader takes, are to convert.
     """
     if t.size < _WHOLE_TIMES or not np.array_equal(t, np.round(t)):
         return
     distinct = int(np.count_nonzero(np.diff(t))) + 1
-    if distinct >= _WHOLE_TIMES:
-        raise FormatError(
-            f"{path}: every time in column t is a whole number ({distinct:,} distinct, from {t[0]:.0f} to "
-            f"{t[-1]:.0f}), but ECD text states seconds with decimals: these look like integer microseconds. "
-            "State the unit: time_unit='us' (cmax: --time-unit us), or time_unit='s' if they are whole seconds"
-        )
+    if distinct < _WHOLE_TIMES:
+        return
+    start = (f"{path}: every time in column t is a whole number ({distinct:,} distinct, from {t[0]:.0f} to "
+             f"{t[-1]:.0f}), but ECD text states seconds with decimals")
+    unit = _since_1970_unit(float(t[0]))
+    if unit == "ns":
+        raise FormatError(f"{start}: these are nanoseconds since 1970 ({t[0] / 1e9:.3f} s), a unit no reader takes: "
+                          "write them as seconds (t / 1e9, with decimals) or integer microseconds (t // 1000, then "
+                          "time_unit='us', cmax: --time-unit us)")
+    if unit is not None:
+        words = {"us": "microseconds", "ms": "milliseconds"}[unit]
+        raise FormatError(f"{start}: these are {words} since 1970 ({t[0] / dict(_WHOLE_UNITS)[unit]:.3f} s). State "
+                          f"the unit: time_unit={unit!r} (cmax: --time-unit {unit})")
+    raise FormatError(
+        f"{start}: these look like integer microseconds. State the unit: time_unit='us' (cmax: --time-unit us), or "
+        "time_unit='s' if they are whole seconds"
+    )
 
 
 def write_txt(path: str | os.PathLike, events: Events, *, overwrite: bool = False) -> Path:
