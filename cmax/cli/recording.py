@@ -267,8 +267,8 @@ def calibration_hint(args: argparse.Namespace) -> str | None:
     ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either or two folders above, as in
     DSEC's ``<sequence>/events/left/events.h5`` and ``<sequence>/calibration/cam_to_cam.yaml``; an MVSEC camchain
     :data:`MVSEC_CAMCHAIN_GLOB` too), or DSEC's ``rectify_map.h5`` lies beside it without a calibration file
-    (the events are raw), or the file is MVSEC's (whose fisheye lenses a pinhole misses: the note names
-    the camchain to pass), or None. It is not read (never guessed): the note says how to use it."""
+    (the events are raw; nothing under ``--as-recorded``, which says they are wanted so), or the file is
+    MVSEC's (whose fisheye lenses a pinhole misses: the note names the camchain to pass), or None. It is not read (never guessed): the note says how to use it."""
     if args.calib is not None or args.distortion is not None:
         return None
     folder = Path(args.file).resolve().parent
