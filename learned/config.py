@@ -56,19 +56,19 @@ def _require(condition: bool, section: str, name: str, rule: str, value: object)
 def _check_file_entry(entry: object, where: str) -> None:
     """TypeError naming ``where`` (``data.files[2]``, ``data.val_files[0]``) for an entry of a list of data files
     that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist", "polarity", "calib",
-    "calib_camera", "rectify_map"}`` of the right types; ValueError for a ``polarity`` other than ``"01"`` or
-    ``"signed"``, for a ``calib_camera`` without ``calib``, and for a ``rectify_map`` without ``K`` or with
+    "calib_camera", "rectify_map", "as_recorded"}`` of the right types; ValueError for a ``polarity`` other than
+    ``"01"`` or ``"signed"``, for a ``calib_camera`` without ``calib``, and for a ``rectify_map`` without ``K`` or with
     ``calib``."""
     if isinstance(entry, (str, Path)):
         return
     if not isinstance(entry, dict):
         raise TypeError(f"{where} must be a path or {{\"path\", \"K\", \"use_gt\"}}, got {entry!r}")
     unknown = set(entry) - {"path", "K", "use_gt", "known_speed", "known_twist", "polarity", "calib", "calib_camera",
-                            "rectify_map"}
+                            "rectify_map", "as_recorded"}
     if unknown or not isinstance(entry.get("path"), (str, Path)):
         raise TypeError(f"{where} needs \"path\" (a string) and may hold \"K\", \"use_gt\", \"known_speed\", "
-                        f"\"known_twist\", \"polarity\", \"calib\", \"calib_camera\" and \"rectify_map\" only, got "
-                        f"{entry!r}")
+                        f"\"known_twist\", \"polarity\", \"calib\", \"calib_camera\", \"rectify_map\" and "
+                        f"\"as_recorded\" only, got {entry!r}")
     for key in ("calib", "calib_camera", "rectify_map"):
         if key in entry and (not isinstance(entry[key], (str, Path)) or not str(entry[key]).strip()):
             raise TypeError(f"{where}.{key} must be a non-empty string (calib: a calibration file such as DSEC's "
@@ -90,7 +90,7 @@ def _check_file_entry(entry: object, where: str) -> None:
         if (flat is None or len(flat) not in (4, 9) or
                 not all(isinstance(v, (int, float)) and not isinstance(v, bool) and math.isfinite(v) for v in flat)):
             raise TypeError(f"{where}.K must be [fx, fy, cx, cy] or a 3x3 list of finite numbers, got {K!r}")
-    for key in ("use_gt", "known_speed", "known_twist"):
+    for key in ("use_gt", "known_speed", "known_twist", "as_recorded"):
         if not isinstance(entry.get(key, True), bool):
             raise TypeError(f"{where}.{key} must be true or false, got {entry[key]!r}")
 
@@ -103,7 +103,8 @@ class DataConfig:
     ----------
     files : list
         Paths, or ``{"path", "K": [fx, fy, cx, cy], "use_gt": bool}``, with ``"calib"`` (and ``"calib_camera"``), or
-        DSEC's ``"rectify_map"``, for raw events to undistort and rectify (see :class:`learned.data.FileSpec`).
+        DSEC's ``"rectify_map"``, for raw events to undistort and rectify, or ``"as_recorded": true`` to take raw
+        events as they are (see :class:`learned.data.FileSpec`).
     window_us : int
         Window length [µs] (the paper's 0.1665 s).
     max_events : int

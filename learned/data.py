@@ -32,7 +32,7 @@ from cmax.events import Events
 from cmax.fitting.window import SensorPixels
 from cmax.io import FormatError, H5Reader, read_calibration
 from cmax.io.calibration import DSEC_RECTIFY_MAP, topic_side
-from cmax.io.provenance import resized_note
+from cmax.io.provenance import check_calibrated_frames, check_raw_dsec, resized_note
 from cmax.representations import voxel_grid
 from cmax.warp import WarpEvents
 
@@ -278,7 +278,8 @@ class FileSpec:
     position, and ``K`` is that frame's (an entry's ``K`` must equal it). Its resolution gives the size of a file
     that stores none (DSEC's ``events.h5``). ``rectify_map`` instead: DSEC's ``rectify_map.h5`` of the events, its
     ``rectify_map`` (H, W, 2) the rectified position [px] of each raw pixel, looked up as DSEC's loaders do (the entry
-    gives the rectified frame's ``K``, ``camRect0``'s; the map's shape gives the size).
+    gives the rectified frame's ``K``, ``camRect0``'s; the map's shape gives the size). Events beside DSEC's
+    ``rectify_map.h5`` (raw) without either are refused unless ``as_recorded`` says they are wanted as they are.
     """
 
     path: Path
@@ -290,6 +291,7 @@ class FileSpec:
     calib: Path | None = None
     calib_camera: str = "cam0"
     rectify_map: Path | None = None
+    as_recorded: bool = False
 
 
 def _as_spec(entry: object) -> FileSpec:
@@ -307,7 +309,8 @@ def _as_spec(entry: object) -> FileSpec:
         return FileSpec(Path(entry["path"]), K, bool(entry.get("use_gt", True)), bool(entry.get("known_speed", False)),
                         bool(entry.get("known_twist", False)), str(entry.get("polarity", "01")),
                         None if calib is None else Path(calib), str(entry.get("calib_camera", "cam0")),
-                        None if entry.get("rectify_map") is None else Path(entry["rectify_map"]))
+                        None if entry.get("rectify_map") is None else Path(entry["rectify_map"]),
+                        bool(entry.get("as_recorded", False)))
     raise TypeError(f"a data file must be a path or {{'path', 'K', 'use_gt'}}, got {entry!r}")
 
 
@@ -420,10 +423,13 @@ def _entry_calibration(spec: FileSpec):
 def _calibrated_camera(spec: FileSpec, calibration, width: int, height: int) -> "Camera":
     """The :class:`cmax.Camera` of ``calibration`` (``spec.calib``'s) on the ``width`` x ``height`` [px] sensor of
     ``spec.path``. ValueError naming the files: a calibration of another sensor size, or an entry's ``K`` other than
-    the K of the frame the calibration maps the events into (to 0.01 px: rounded figures are taken)."""
+    the K of the frame the calibration maps the events into (to 0.01 px: rounded figures are taken); a calibration
+    without a size in a sequence of frames of another size (:func:`cmax.io.provenance.check_calibrated_frames`)."""
     if calibration.size is not None and tuple(calibration.size) != (width, height):
         raise ValueError(f"{spec.calib} calibrates a {calibration.size[0]}x{calibration.size[1]} camera "
                          f"({spec.calib_camera}), the events of {spec.path} come from a {width}x{height} sensor")
+    if calibration.size is None:
+        check_calibrated_frames(spec.calib, spec.path, width, height)
     camera = calibration.camera(width, height)
     pinhole = _file_K(camera.pinhole_K, spec.path, width, height)
     if spec.K is not None and not np.allclose(_file_K(spec.K, spec.path, width, height), pinhole, rtol=0, atol=0.01):
@@ -480,25 +486,15 @@ def _through_lens(camera: "Camera", events: Events) -> tuple[Events, np.ndarray,
     return undistorted, pixels, sensor
 
 
-def _dsec_calibration_path(path: Path) -> str:
-    """DSEC's ``<sequence>/calibration/cam_to_cam.yaml`` of its events ``path`` (``<sequence>/events/left/events.h5``)
-    where it exists, else that pattern."""
-    found = Path(path).resolve().parents[2:3]
-    found = [place / "calibration" / "cam_to_cam.yaml" for place in found]
-    return str(found[0]) if found and found[0].is_file() else "<sequence>/calibration/cam_to_cam.yaml"
-
-
 def _refuse_raw_dsec(spec: FileSpec) -> None:
     """ValueError naming ``spec.path`` when DSEC's ``rectify_map.h5`` lies beside it and its entry gives neither
-    ``calib`` nor ``rectify_map``: raw (distorted, unrectified) events paired with a K of another frame (DSEC's ``camRect0``, of its
-    disparity maps) or of none."""
-    beside = spec.path.parent / DSEC_RECTIFY_MAP
-    if spec.calib is None and spec.rectify_map is None and beside.is_file():
-        raise ValueError(f"{spec.path}: DSEC's {beside} lies beside it, so its events are raw (distorted, not "
-                         f"rectified into camRect0's frame, whose K DSEC's disparity maps have), and its data.files "
-                         f"entry gives no calibration: add \"calib\": \"{_dsec_calibration_path(spec.path)}\" to its "
-                         f"entry (calib_camera cam0, the default), which rectifies them into that frame and gives its K "
-                         f"(or \"rectify_map\": \"{beside}\" with camRect0's \"K\")")
+    ``calib`` nor ``rectify_map`` nor ``as_recorded``: raw (distorted, unrectified) events paired with a K of
+    another frame (DSEC's ``camRect0``, of its disparity maps) or of none (:func:`cmax.io.provenance.check_raw_dsec`,
+    the policy of the command line too)."""
+    if spec.calib is None and spec.rectify_map is None and not spec.as_recorded:
+        check_raw_dsec(spec.path, 'add "calib": "{calib}" to its data.files entry (calib_camera cam0, the default) '
+                                  '(or "rectify_map": "{map}" with camRect0\'s "K")',
+                       '"as_recorded": true in the entry')
 
 
 def _read_rectify_map(spec: FileSpec) -> np.ndarray | None:

@@ -40,9 +40,11 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 import numpy as np
 
 from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
-from cmax.cli.recording import (DSEC_RECTIFY_MAP, add_camera_options, add_recording_arguments, calibration_note,
-                                check_calibration_camera, check_calibration_of_frames, check_file_principal_point,
-                                given_k_note, no_intrinsics_message, tail_note, time_span_us)
+from cmax.cli.recording import (RAW_DSEC_AS_RECORDED, RAW_DSEC_CALIB, add_camera_options, add_recording_arguments,
+                                calibration_note, check_calibration_camera, check_calibration_of_frames,
+                                check_file_principal_point, given_k_note, no_intrinsics_message, tail_note,
+                                time_span_us)
+from cmax.io.provenance import check_calibrated_frames, check_raw_dsec
 from cmax.events import window_starts
 from cmax.io import Calibration, read_calibration, run_folder
 from learned.kept_windows import KEPT_FOLDER, KeptBlocks
@@ -623,7 +625,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                    t0_s: float | None = None, t1_s: float | None = None, window_s: float | None = None,
                    depth_range: tuple[float, float] | None = None, batch: int | None = None, progress: bool = True,
                    note: Callable[[str], None] | None = None, overwrite: bool = False,
-                   device: str = "cpu", resume: bool = False) -> DepthRun:
+                   device: str = "cpu", resume: bool = False, as_recorded: bool = False) -> DepthRun:
     """Predict depth and twist for every window of the event file ``path`` into the folder ``out``.
 
     Parameters
@@ -633,7 +635,11 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     K : array_like (3, 3) or (4,), optional
         Intrinsics [px], the pinhole matrix or ``[fx, fy, cx, cy]`` (checked as ``--K`` is:
         :func:`cmax.camera.intrinsics_matrix`); ``calib`` (ECD calib.txt or DSEC cam_to_cam.yaml, camera ``calib_camera``)
-        instead; neither: the file's ``gt/K``.
+        instead; neither: the file's ``gt/K``. Events beside DSEC's ``rectify_map.h5`` (raw: distorted, not
+        rectified) are refused without ``calib`` (:func:`cmax.io.provenance.check_raw_dsec`) unless ``as_recorded``.
+    as_recorded : bool
+        Take events that DSEC's ``rectify_map.h5`` beside them says are raw as they are, without ``calib``
+        (``--as-recorded``).
     distortion : ndarray (4,) or (5,), optional
         OpenCV ``k1, k2, p1, p2[, k3]`` of ``K`` (with ``K`` only; a ``calib`` file brings its own): the
         events are undistorted (the volume spreads each one bilinearly from its exact undistorted position)
@@ -705,14 +711,14 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
                                   distortion=distortion, size=size, time_unit=time_unit, polarity=polarity,
                                   sort=sort, camera=camera, t0_s=t0_s, t1_s=t1_s, window_s=window_s,
                                   depth_range=depth_range, batch=batch, progress=progress, note=note, device=device,
-                                  resume=resume, overwrite=overwrite)
+                                  resume=resume, overwrite=overwrite, as_recorded=as_recorded)
     kept.remove()   # the results are in out: the finished blocks are no longer needed
     return replace(run, seconds=time.perf_counter() - started, output=out)
 
 
 def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_camera, distortion, size,
                   time_unit, polarity, sort, camera, t0_s, t1_s, window_s, depth_range, batch, progress, note,
-                  device, resume, overwrite) -> tuple[DepthRun, KeptBlocks]:
+                  device, resume, overwrite, as_recorded=False) -> tuple[DepthRun, KeptBlocks]:
     """:func:`run_prediction`'s work, every result written into the empty folder ``stage`` (each block of windows
     kept as it is done, :class:`learned.kept_windows.KeptBlocks`, returned too)."""
     from tqdm.auto import tqdm
@@ -748,13 +754,8 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         check_calibration_camera(calibration, calib, calib_camera, path, camera)
         if calib_size is None:   # the calibration of the frames a conversion resized: refused, the scaled K said
             check_calibration_of_frames(calib, K, distortion, path)
-    elif (beside := Path(path).parent / DSEC_RECTIFY_MAP).is_file():   # raw DSEC events: K of no frame they lie in
-        from learned.data import _dsec_calibration_path
-
-        raise ValueError(f"DSEC's {beside} lies beside {path}, so its events are raw (distorted, not rectified into "
-                         f"camRect0's frame, whose K DSEC's disparity maps have), and no --calib was given: pass "
-                         f"--calib {_dsec_calibration_path(Path(path))} (--calib-camera cam0, the default), which "
-                         "rectifies them into that frame and gives its K")
+    elif not as_recorded:   # raw DSEC events (rectify_map.h5 beside them): K of no frame they lie in
+        check_raw_dsec(path, RAW_DSEC_CALIB, RAW_DSEC_AS_RECORDED)
     try:
         recording = open_recording(path, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s, t1_s=t1_s,
                                    sort=sort, camera=camera)
@@ -767,6 +768,8 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         if calib_size is not None and (recording.width, recording.height) != tuple(calib_size):
             raise ValueError(f"{calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({calib_camera}), the "
                              f"events come from a {recording.width}x{recording.height} sensor")
+        if calib is not None and calib_size is None:
+            check_calibrated_frames(calib, path, recording.width, recording.height)
         stated = K is not None
         K = _resolve_intrinsics(recording, K)
         given = given_k_note(path, K) if stated else None   # a K given over the file's own gt/K: said in a note
@@ -928,7 +931,7 @@ def run(args: argparse.Namespace, label: str = "python -m learned.predict") -> i
             t0_s=args.t0, t1_s=args.t1, window_s=args.window,
             depth_range=None if args.depth_range is None else tuple(args.depth_range), batch=args.batch,
             progress=not args.quiet, note=lambda text: print(f"{label}: note: {text}", file=sys.stderr),
-            overwrite=args.overwrite, device=args.device, resume=args.resume)
+            overwrite=args.overwrite, device=args.device, resume=args.resume, as_recorded=args.as_recorded)
     except KeyboardInterrupt as stop:   # Ctrl-C, or SIGTERM (cmax._signals): say what is kept
         from cmax.io.window_store import stopped_line
         from learned.kept_windows import kept_windows

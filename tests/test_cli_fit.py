@@ -1317,3 +1317,32 @@ def test_dsec_calibration_folder_two_levels_above_the_events_is_named(tmp_path):
     hint = calibration_hint(args)
     assert hint.startswith(f"{yaml.resolve()} lies beside the events but was not read: pass --calib {yaml.resolve()} "
                            "(DSEC: --calib-camera cam0"), hint
+
+
+@pytest.mark.parametrize("command", ["fit", "emvs", "depth"])
+def test_an_ecd_calib_txt_of_another_sensor_is_refused_by_the_frames_of_its_sequence(tmp_path, capsys, command):
+    """An ECD ``calib.txt`` states no sensor size, but the sequence it lies in lists its frames (``images.txt``):
+    their PNG size is the sensor it calibrates. A calib.txt beside 240x180 frames (ECD's DAVIS240C) applied to
+    events of a 64x48 sensor is refused in one line naming both sizes (was: applied without a word); beside
+    frames of the events' size it is used."""
+    import cv2
+
+    events = noise_events(300, 50_000, seed=1)
+    path = write_h5(tmp_path / "ev.h5", events)
+    sequence = tmp_path / "slider_depth"
+    (sequence / "images").mkdir(parents=True)
+    (sequence / "calib.txt").write_text("60 60 32 24 -0.37 0.15 0 0 0\n")
+    (sequence / "images.txt").write_text("0.000000000 images/frame_00000000.png\n0.038766001 "
+                                         "images/frame_00000001.png\n")
+    for width, height, refused in ((240, 180, True), (64, 48, False)):
+        assert cv2.imwrite(str(sequence / "images" / "frame_00000000.png"), np.zeros((height, width), np.uint8))
+        status = main([command, str(path), "--calib", str(sequence / "calib.txt"), "-o", str(tmp_path / f"o{width}"),
+                       "--quiet"])
+        err = capsys.readouterr().err
+        said = (f"calib.txt states no sensor size, but the frames of its sequence ({sequence / 'images'} "
+                f"/ frame_00000000.png".replace(" / ", "/") + ", listed in images.txt beside it) are 240x180: it "
+                "calibrates a 240x180 sensor, the events of")
+        if refused:
+            assert status == 2 and said in err and "come from a 64x48 one" in err and err.count("\n") == 1, err
+        else:
+            assert "states no sensor size" not in err, err

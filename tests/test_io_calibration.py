@@ -97,3 +97,21 @@ def test_a_comment_after_the_numbers_of_a_calib_txt_is_ignored(tmp_path: Path) -
     numbers = [float(v) for v in ECD_CALIB.split()]
     np.testing.assert_array_equal(calibration.K[[0, 1, 0, 1], [0, 1, 2, 2]], numbers[:4])
     np.testing.assert_array_equal(calibration.distortion, numbers[4:])
+
+
+def test_a_hash_inside_quotes_or_a_word_is_not_a_comment(tmp_path: Path) -> None:
+    """YAML's comment starts at a ``#`` after a space and outside quotes: a camchain's ``rostopic: "/dvs #2/left/
+    image_raw"`` is that topic, ``rostopic: /dvs#2/left/image_raw`` too (were: cut at the ``#``, to ``"/dvs`` and
+    ``/dvs``: the camera's side lost); a comment after a quoted value is still dropped, and so are whole-line
+    comments."""
+    from cmax.io import read_calibration
+    from cmax.io.calibration import topic_side
+
+    for written, expected in (('"/dvs #2/left/image_raw"  # the left DAVIS', "/dvs #2/left/image_raw"),
+                              ("'/dvs #2/left/image_raw' # it's the left one", "/dvs #2/left/image_raw"),
+                              ("/dvs#2/left/image_raw   # plain", "/dvs#2/left/image_raw")):
+        path = tmp_path / "camchain.yaml"
+        path.write_text("# a camchain\n" + CAMCHAIN.replace("rostopic: /davis/left/image_raw", f"rostopic: {written}"))
+        calibration = read_calibration(path, "cam0")
+        assert calibration.topic == expected and topic_side(calibration.topic) == "left", written
+        np.testing.assert_array_equal(calibration.K[0, [0, 2]], [226.38018519795807, 173.6470807871759])

@@ -204,6 +204,45 @@ def test_a_text_file_that_holds_no_events_is_named_so_before_a_size_is_asked(tmp
     assert ("cmax simulate FOLDER" in err) == (columns <= 2)
 
 
+EVENT_LINES = "".join(f"{0.001 * i:.9f} {i % 64} {i % 48} {i % 2}\n" for i in range(1, 151))
+
+
+@pytest.mark.parametrize("text, said", [
+    ("x y t p\n" + EVENT_LINES, r"its first line reads 'x y t p': 'x' is not a number \(a header line\?"),
+    (EVENT_LINES.replace(" ", ","), r"its first line reads '0.001000000,1,1,1', its fields separated by ',' \(a CSV\)"),
+    ("t,x,y,p\n" + EVENT_LINES.replace(" ", ","), r"its fields separated by ',' \(a CSV\), .* 'x,y,p,t'"),
+    (EVENT_LINES.replace(" ", ", "), r"reads '0.001000000, 1, 1, 1', its fields separated by ','"),
+    (EVENT_LINES.replace(" ", ";"), r"its fields separated by ';' \(a CSV\)"),
+])
+def test_a_header_or_a_csv_is_refused_naming_what_its_first_line_holds(tmp_path, capsys, text, said):
+    """A header line ('x y t p') or comma-separated fields were refused with '(4 column(s) where 4 columns are
+    expected)' or '(1 column(s) ...); a list of frames ... becomes events with cmax simulate': a message that
+    contradicts itself or points elsewhere. Now the line is named for what it holds (a CSV's column order is not
+    guessed: Metavision writes x,y,p,t)."""
+    from cmax.cli import main
+
+    path = tmp_path / "events.csv"
+    path.write_text(text)
+    with pytest.raises(FormatError, match=said) as refused:
+        read(path, width=64, height=48)
+    assert "columns are expected" not in str(refused.value) and "cmax simulate" not in str(refused.value)
+    assert main(["info", str(path), "--size", "64x48"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "its first line reads" in err, err
+
+
+def test_a_byte_order_mark_before_the_events_changes_nothing(tmp_path):
+    """ECD text saved by a Windows editor starts with a UTF-8 byte order mark (was: refused, 'its first line reads
+    '\\ufeff0.001000000 1 1 1''); it reads as the same file without it, an rpg_e2vid size line too."""
+    plain, marked = tmp_path / "plain.txt", tmp_path / "marked.txt"
+    plain.write_text(EVENT_LINES)
+    marked.write_bytes(b"\xef\xbb\xbf" + EVENT_LINES.encode())
+    expected = read(plain, width=64, height=48)
+    assert read(marked, width=64, height=48) == expected and len(expected) == 150
+    marked.write_bytes(b"\xef\xbb\xbf64 48\n" + EVENT_LINES.encode())
+    assert read(marked) == expected
+
+
 def test_a_window_of_a_npy_reads_only_its_rows(tmp_path):
     """read(..., t0_us=, t1_us=) and cmax show of a structured .npy loaded every row, then cut: 584 MB and 5.1 s for
     50 ms of a 20 M-event file. The window's rows are found by a binary search of the memory-mapped times; the

@@ -435,6 +435,55 @@ def test_mvsec_seconds_of_a_slow_recording_stated_as_milliseconds_are_refused(tm
         np.testing.assert_array_equal(read(path, time_unit="ms").t, np.rint(t_ms * 1e3).astype(np.int64))
 
 
+def test_mvsec_times_in_a_unit_that_cannot_be_right_are_refused_naming_the_unit_that_fits(tmp_path: Path,
+                                                                                          capsys) -> None:
+    """Every unit an MVSEC time column cannot be in is refused, naming the one that fits: float seconds since 1970
+    of a slow recording (50 events/s) with time_unit='us' (was: read as 1,000 events within 20 µs); integer
+    milliseconds since 1970 read as seconds, stated or MVSEC's default (was: read as the year 49,649 / 'these look
+    like integer microseconds'); integer microseconds since 1970 with time_unit='ms' (was: read, the year 49,649).
+    Each reads in the unit named, to the same microseconds."""
+    from cmax.io.mvsec import iter_mvsec, mvsec_time_span, read_mvsec
+
+    rng = np.random.default_rng(11)
+    t_s = 1504645177.0 + np.sort(rng.uniform(0.0, 20.0, 1000))          # 20 s at 50 events/s, in 2017
+    expected_us = np.rint(t_s * 1e6).astype(np.int64)
+    path = tmp_path / "slow_data.hdf5"
+    cases = (  # (time column as stored, the unit stated (None: MVSEC's seconds), the unit that fits)
+        (t_s, "us", None),
+        (np.rint(t_s * 1e3).astype(np.int64), "s", "ms"),
+        (np.rint(t_s * 1e3).astype(np.int64), None, "ms"),
+        (expected_us, "ms", "us"),
+    )
+    for column, stated, fits in cases:
+        dtype = column.dtype
+        table = np.stack([rng.integers(0, 346, t_s.size), rng.integers(0, 260, t_s.size),
+                          np.zeros(t_s.size), rng.choice([-1, 1], t_s.size)], axis=1).astype(dtype)
+        table[:, 2] = column
+        with h5py.File(path, "w") as file:
+            file.create_dataset("davis/left/events", data=table)
+        if fits is None:
+            refused = (r"slow_data.hdf5: davis/left/events\[:, 2\] \(t\): time_unit='us' states microseconds, but "
+                       r"these times .* are seconds since 1970 as MVSEC records them \(2017-09-05 .*\): read as "
+                       r"microseconds, [\d,]+ events of .* Leave time_unit out")
+        else:
+            refused = (rf"slow_data.hdf5: davis/left/events\[:, 2\] \(t\): the time \d+(\.0)?, read as .*, lies in "
+                       rf"the year 49649 as seconds since 1970, past 2103, .* state time_unit='{fits}' "
+                       rf"\(cmax: --time-unit {fits}\)")
+        first_us = int(expected_us[0])
+        for reading in (lambda: read(path, time_unit=stated), lambda: read_mvsec(path, time_unit=stated),
+                        lambda: read_mvsec(path, time_unit=stated, t0_us=first_us, t1_us=first_us + 10),
+                        lambda: list(iter_mvsec(path, time_unit=stated, chunk_rows=300)),
+                        lambda: mvsec_time_span(path, time_unit=stated)):
+            with pytest.raises(FormatError, match=refused):
+                reading()
+        assert main(["info", str(path)] + ([] if stated is None else ["--time-unit", stated])) == 2
+        err = capsys.readouterr().err
+        assert err.count("\n") == 1 and (fits or "seconds since 1970") in err, err
+        per_unit_us = {None: 1_000_000, "ms": 1000, "us": 1}[fits]
+        np.testing.assert_array_equal(read(path, time_unit=fits).t,
+                                      column * per_unit_us if column.dtype.kind == "i" else expected_us)
+
+
 def _with_sensor_resolution(path: Path, events: Events, value) -> Path:
     """A DSEC-layout h5 of ``events`` whose only size is a ``sensor_resolution`` attribute ``value``."""
     with h5py.File(path, "w") as file:

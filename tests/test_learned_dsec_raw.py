@@ -169,7 +169,7 @@ def test_raw_dsec_events_without_calib_are_refused_naming_the_calibration(sequen
         with pytest.raises(ValueError) as error:
             H5WindowDataset([entry], window_us=100_000, min_events=10)
         message = str(error.value)
-        assert "rectify_map.h5 lies beside it" in message and f'"calib": "{yaml.resolve()}"' in message
+        assert "rectify_map.h5 lies beside" in message and f'"calib": "{yaml.resolve()}"' in message
         assert "\n" not in message
     with pytest.raises(ValueError, match=r'is the rectified camera.*give "calib_camera": "cam0"'):
         H5WindowDataset([{"path": str(path), "calib": str(yaml), "calib_camera": "camRect0"}])
@@ -399,3 +399,62 @@ def test_cmax_fit_and_emvs_name_rectify_map_without_a_calibration_beside(sequenc
     hint = calibration_hint(args)
     assert hint is not None and "rectify_map.h5 lies beside the events" in hint and "--calib" in hint
     assert calibration_hint(argparse.Namespace(file=str(path), calib=str(yaml), distortion=None)) is None
+
+
+def test_an_ecd_calib_txt_of_another_sensor_is_refused_by_the_dataset(tmp_path):
+    """``H5WindowDataset`` takes an entry's ECD ``calib.txt`` (no size stated) as the command line does: beside
+    ECD frames of 240x180 (images.txt) for events of a 64x48 sensor it is refused naming both sizes (was: the
+    DAVIS240C's K and lens applied to them without a word); beside frames of the events' size it is read."""
+    from cmax.io import write_h5
+
+    rng = np.random.default_rng(3)
+    events = Events(rng.integers(0, 64, 4000), rng.integers(0, 48, 4000), np.sort(rng.integers(0, 400_000, 4000)),
+                    rng.integers(0, 2, 4000), 64, 48)
+    path = write_h5(tmp_path / "ev.h5", events)
+    sequence = tmp_path / "slider_depth"
+    (sequence / "images").mkdir(parents=True)
+    (sequence / "calib.txt").write_text("60 60 32 24 -0.37 0.15 0 0 0\n")
+    (sequence / "images.txt").write_text("0.000000000 images/frame_00000000.png\n")
+    entry = [{"path": str(path), "calib": str(sequence / "calib.txt")}]
+    assert cv2.imwrite(str(sequence / "images" / "frame_00000000.png"), np.zeros((180, 240), np.uint8))
+    with pytest.raises(ValueError, match=r"calib.txt states no sensor size, but the frames of its sequence .* are "
+                                         r"240x180: it calibrates a 240x180 sensor, the events of .*ev.h5 come from a "
+                                         r"64x48 one"):
+        H5WindowDataset(entry, window_us=100_000, min_events=10)
+    assert cv2.imwrite(str(sequence / "images" / "frame_00000000.png"), np.zeros((48, 64), np.uint8))
+    assert len(H5WindowDataset(entry, window_us=100_000, min_events=10)) > 0
+
+
+def test_raw_dsec_events_are_refused_alike_by_fit_emvs_depth_and_train_unless_as_recorded(sequence, tmp_path,
+                                                                                            capsys):
+    """One policy for raw DSEC events (rectify_map.h5 beside them) without a calibration: cmax fit and cmax emvs
+    refuse them as cmax depth does, in the same words (were: a note, then the raw events fitted as a pinhole's,
+    exit 0 or 1); learned.train names its entry's keys. --as-recorded (an entry's "as_recorded": true) takes
+    them as recorded: the run goes on past the check."""
+    path, yaml, _ = sequence
+    errors = {}
+    for command in ("fit", "emvs", "depth"):
+        status = cmax_main([command, str(path), "-o", str(tmp_path / command), "--K", "57,57,31.6,23.3", "--size",
+                            f"{W}x{H}", "--quiet"])
+        err = capsys.readouterr().err
+        assert status == 2 and err.count("\n") == 1 and not (tmp_path / command).exists(), err
+        errors[command] = err.split(": error: ", 1)[1]
+    assert errors["fit"] == errors["emvs"] == errors["depth"]
+    assert errors["fit"].startswith(f"DSEC's {path.parent / 'rectify_map.h5'} lies beside {path}, so its events are "
+                                    "raw") and f"--calib {yaml.resolve()}" in errors["fit"]
+    assert "or --as-recorded to take them as recorded" in errors["fit"]
+    with pytest.raises(ValueError, match=r'rectify_map.h5 lies beside .* or "as_recorded": true in the entry'):
+        H5WindowDataset([{"path": str(path), "K": [57.0, 57.0, 31.6, 23.3]}])
+    assert len(H5WindowDataset([{"path": str(write_h5_sized(path)), "K": [57.0, 57.0, 31.6, 23.3],
+                                 "as_recorded": True}], window_us=100_000, min_events=10)) == 3
+    status = cmax_main(["fit", str(path), "-o", str(tmp_path / "fit"), "--K", "57,57,31.6,23.3", "--size", f"{W}x{H}",
+                        "--quiet", "--as-recorded", "--window-ms", "100"])
+    err = capsys.readouterr().err
+    assert status in (0, 1) and "rectify_map.h5 lies beside" not in err and (tmp_path / "fit" / "summary.json").is_file(), err
+
+
+def write_h5_sized(path: Path) -> Path:
+    """A copy of DSEC's original ``path`` with its size stored, in the same folder (beside rectify_map.h5)."""
+    from cmax.io import read, write_h5
+
+    return write_h5(path.parent / "events_sized.h5", read(path, width=W, height=H))

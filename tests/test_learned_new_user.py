@@ -45,7 +45,7 @@ def test_train_keeps_an_earlier_run_unless_told(slider_file, tmp_path, capsys):
     (["train.out=FILE"], "is a file: give a folder for last.pt"),
     # the index of a bad val_files entry (it was data.files[1], counted over files + val_files)
     (['data.val_files=[{"path": "v.h5", "K": [1, 2]}]'], "data.val_files[0].K must be [fx, fy, cx, cy]"),
-    (['data.files=[{"path": "a.h5", "k": 1}]'], 'may hold "K", "use_gt", "known_speed", "known_twist", "polarity", "calib", "calib_camera" and "rectify_map" only'),
+    (['data.files=[{"path": "a.h5", "k": 1}]'], 'may hold "K", "use_gt", "known_speed", "known_twist", "polarity", "calib", "calib_camera", "rectify_map" and "as_recorded" only'),
     (["train.out=123"], """train.out must be a string, got 123 (int); a value that reads as JSON (a number, true) is taken as one: quote it, 'train.out="123"'"""),
 ])
 def test_train_mistakes_say_what_to_do(slider_file, tmp_path, capsys, extra, message):

@@ -258,6 +258,39 @@ def test_text_files_state_their_polarity_and_unit(tmp_path):
     assert read_txt(path, width=W, height=H).t.tolist() == [1_000_000_000, 2_500_000_000]
 
 
+def test_whole_number_text_times_since_1970_name_their_own_unit(tmp_path):
+    """ECD text of integer milliseconds since 1970 (no unit) was refused as 'these look like integer microseconds.
+    State the unit: time_unit='us'', and read so: a recording 1000 times too short; nanoseconds since 1970 were
+    called microseconds too, then refused as float64 ('microseconds are already lost'). Now the unit whose
+    reading lies in 1973-2103 is named; the times read in it (ns: converted as the message says)."""
+    rng = np.random.default_rng(4)
+    n = 200
+    t_ms = 1504645177000 + np.sort(rng.choice(20_000, n, replace=False))      # 20 s of 2017, in ms
+    columns = (rng.integers(0, W, n), rng.integers(0, H, n), rng.integers(0, 2, n))
+    path = tmp_path / "events.txt"
+
+    def write(t) -> None:
+        path.write_text("".join(f"{a} {b} {c} {d}\n" for a, b, c, d in zip(t, *columns)))
+
+    write(t_ms)
+    with pytest.raises(FormatError, match=r"these are milliseconds since 1970 \(1504645177\.\d+ s\)\. State the "
+                                          r"unit: time_unit='ms'"):
+        read_txt(path, width=W, height=H)
+    assert read_txt(path, width=W, height=H, time_unit="ms").t.tolist() == (t_ms * 1000).tolist()
+    write(t_ms * 1000)
+    with pytest.raises(FormatError, match=r"these are microseconds since 1970 .* time_unit='us'"):
+        read_txt(path, width=W, height=H)
+    write(t_ms * 1_000_000 + 123)
+    with pytest.raises(FormatError, match=r"these are nanoseconds since 1970 \(1504645177\.\d+ s\), a unit no reader "
+                                          r"takes: .* integer microseconds \(t // 1000, then time_unit='us'"):
+        read_txt(path, width=W, height=H)
+    write((t_ms * 1_000_000 + 123) // 1000)
+    assert read_txt(path, width=W, height=H, time_unit="us").t.tolist() == (t_ms * 1000).tolist()
+    write(np.arange(957, 957 + n))                                      # a clock from boot: the unit is not told
+    with pytest.raises(FormatError, match=r"these look like integer microseconds"):
+        read_txt(path, width=W, height=H)
+
+
 def test_mvsec_polarity_is_minus_one_plus_one_unless_stated(tmp_path):
     path = tmp_path / "mvsec.hdf5"
     table = np.array([[1, 2, 10.0, 0], [3, 4, 10.5, 1]])  # a 0/1 file in a -1/+1 format
@@ -281,6 +314,26 @@ def test_npy_float_times_need_a_unit_and_signed_polarity_a_statement(tmp_path):
         read(tmp_path / "ev.npy", width=W, height=H, time_unit="s")
     events = read(tmp_path / "ev.npy", width=W, height=H, time_unit="s", polarity="signed")
     assert events.t.tolist() == [500_000, 1_000_000, 1_500_000] and events.p.tolist() == [1, 0, 1]
+
+
+def test_npy_times_that_are_not_numbers_are_named_without_a_unit_too(tmp_path, capsys):
+    """A structured .npy whose t field holds byte strings (a CSV loaded with np.genfromtxt(dtype=None)), read without a
+    unit: `cmax info: error: invalid literal for int() with base 10: b''`, neither the file nor the field named
+    (the implied-rate check cast them); now the FormatError every unit gave."""
+    from cmax.cli import main
+    from cmax.io import npy_time_span
+
+    array = np.zeros(300, [("x", "u2"), ("y", "u2"), ("t", "S8"), ("p", "u1")])
+    array["t"] = [f"{i * 1e-3:.5f}".encode() for i in range(300)]   # seconds, as the CSV wrote them
+    np.save(tmp_path / "ev.npy", array)
+    for unit in (None, "us", "s"):
+        with pytest.raises(FormatError, match=r"ev.npy: field t must hold numbers \(times\), got dtype \|S8"):
+            read(tmp_path / "ev.npy", width=W, height=H, time_unit=unit)
+        with pytest.raises(FormatError, match=r"ev.npy: field t must hold numbers \(times\)"):
+            npy_time_span(tmp_path / "ev.npy", time_unit=unit)
+    assert main(["info", str(tmp_path / "ev.npy"), "--size", f"{W}x{H}"]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "ev.npy: field t must hold numbers" in err, err
 
 
 def test_formats_with_integer_microseconds_refuse_another_unit(tmp_path):
@@ -449,5 +502,30 @@ def test_uint32_times_of_an_h5_file_that_wrapped_are_named_as_a_wrapped_clock(tm
                                           r"a uint32 microsecond clock that wrapped"):
         read(path)
     stepped_back = _dsec(tmp_path / "back.h5", np.array([10, 20, 5, 30], np.uint32))
-    with pytest.raises(FormatError, match=r"\(5 µs comes after 20 µs, before t_offset\)$"):
+    with pytest.raises(FormatError, match=r"\(5 µs comes after 20 µs, before t_offset\); DSEC-layout files are "):
         read(stepped_back)                                              # a step back is not a wrap
+
+
+def test_a_dsec_layout_file_whose_time_goes_back_names_the_way_out(tmp_path, capsys):
+    """A DSEC-layout h5 whose time goes back (a user's conversion of unsorted events) was refused as `corrupt
+    events at row 2: t must be sorted ...` and `--sort` then as `sorting applies to ECD text, .npy and AEDAT4
+    files`: a dead end. The refusal now says --sort does not apply and how to write a sorted copy; the copy
+    written so reads, in time order, the same events."""
+    from cmax.cli import main
+
+    t = np.array([10, 20, 5, 30, 30, 25], np.int64)
+    path = _dsec(tmp_path / "back.h5", t, file_attrs={"width": W, "height": H})
+    with pytest.raises(FormatError, match=r"back.h5: events/t: corrupt events at row 2: .*--sort does not apply: "
+                                          r"write a copy whose events/x, y, t, p are each reordered by "
+                                          r"np.argsort\(t, kind='stable'\)"):
+        read(path)
+    assert main(["info", str(path)]) == 2
+    assert capsys.readouterr().err.count("\n") == 1
+    with h5py.File(path, "r") as file:
+        columns = {name: file[f"events/{name}"][:] for name in "xytp"}
+    order = np.argsort(columns["t"], kind="stable")
+    write_h5(tmp_path / "sorted.h5", Events(*(columns[name] for name in "xytp"), W, H, sort=True))
+    copy = read(tmp_path / "sorted.h5")
+    assert copy.t.tolist() == [5, 10, 20, 25, 30, 30]
+    np.testing.assert_array_equal(copy.x, columns["x"][order])
+    np.testing.assert_array_equal(copy.p, columns["p"][order])

@@ -27,15 +27,21 @@ import numpy as np
 from cmax._args import float_list, nonnegative_float, sensor_size
 from cmax.camera import Camera, intrinsics_matrix
 from cmax.io.calibration import DSEC_RECTIFY_MAP, Calibration, read_calibration, topic_side
-from cmax.io.provenance import CALIBRATION_NAMES, file_intrinsics, resize_note, resized_note, simulated_frames
+from cmax.io.provenance import (CALIBRATION_NAMES, check_calibrated_frames, check_raw_dsec, file_intrinsics,
+                                resize_note, resized_note, simulated_frames)
 
 __all__ = ["add_file_options", "file_kwargs", "camera_read", "given_k_note", "add_recording_arguments",
            "add_camera_options", "calibration_of", "calibration_note", "check_calibration_camera",
            "read_calibrated", "intrinsics_argument", "no_intrinsics_message", "check_calibration_of_frames",
-           "check_file_principal_point",
+           "check_file_principal_point", "RAW_DSEC_CALIB", "RAW_DSEC_AS_RECORDED",
            "distortion_argument",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
            "open_streamed", "event_span"]
+
+#: How the command line gives DSEC's calibration for raw events, and says they are wanted as recorded: the words of
+#: :func:`cmax.io.provenance.check_raw_dsec`'s refusal in ``cmax fit``, ``cmax emvs`` and ``cmax depth``.
+RAW_DSEC_CALIB = "pass --calib {calib} (--calib-camera cam0, the default)"
+RAW_DSEC_AS_RECORDED = "--as-recorded"
 
 #: ``argparse`` type of ``--distortion k1,k2,p1,p2[,k3]`` (OpenCV order, dimensionless).
 distortion_argument = float_list((4, 5), "--distortion (k1,k2,p1,p2[,k3])")
@@ -138,8 +144,8 @@ def add_recording_arguments(parser: argparse.ArgumentParser) -> None:
 
 
 def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str = "") -> None:
-    """``--K`` or ``--calib`` (one of them), ``--calib-camera`` and ``--distortion``; ``distortion_help`` ends
-    the help of ``--distortion`` (what the command does with it)."""
+    """``--K`` or ``--calib`` (one of them), ``--calib-camera``, ``--distortion`` and ``--as-recorded``;
+    ``distortion_help`` ends the help of ``--distortion`` (what the command does with it)."""
     camera = parser.add_mutually_exclusive_group()
     camera.add_argument("--K", type=intrinsics_argument, default=None,
                         help="intrinsics fx,fy,cx,cy [px] (default: gt/K of an h5 file, e.g. one cmax scene wrote)")
@@ -157,6 +163,10 @@ def add_camera_options(parser: argparse.ArgumentParser, *, distortion_help: str 
                              "cam0, cam1, ... (default cam0)")
     parser.add_argument("--distortion", type=distortion_argument, default=None,
                         help=f"OpenCV k1,k2,p1,p2[,k3] of --K{distortion_help} (default: none, a pinhole camera)")
+    parser.add_argument("--as-recorded", action="store_true",
+                        help="take events beside DSEC's rectify_map.h5 (raw: distorted, not rectified) as recorded, "
+                             "a pinhole's of --K, without --calib (default: off, such events are refused without "
+                             "--calib)")
 
 
 def calibration_note(calibration: Calibration, path: str | Path, camera: str,
@@ -198,8 +208,11 @@ def _is_dsec_rectified(camera: str, calibration: Calibration) -> bool:
 def calibration_of(args: argparse.Namespace) -> Calibration:
     """The :class:`Calibration` of :func:`add_camera_options`' options: ``--K`` and ``--distortion`` (radtan)
     as given (no size), or those of the ``--calib`` file (:func:`cmax.io.read_calibration`), which refuses
-    ``--distortion`` beside it."""
+    ``--distortion`` beside it. Without ``--calib``, events beside DSEC's ``rectify_map.h5`` (raw) are refused
+    unless ``--as-recorded`` (:func:`cmax.io.provenance.check_raw_dsec`)."""
     if args.calib is None:
+        if not getattr(args, "as_recorded", False):
+            check_raw_dsec(args.file, RAW_DSEC_CALIB, RAW_DSEC_AS_RECORDED)
         if args.calib_camera != "cam0":     # else taken and ignored: the --K (or the file's gt/K) would be used
             raise ValueError(f"--calib-camera {args.calib_camera} chooses a camera of a --calib file (a DSEC "
                              "cam_to_cam.yaml or a Kalibr camchain): give --calib too")
@@ -254,8 +267,8 @@ def calibration_hint(args: argparse.Namespace) -> str | None:
     ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either or two folders above, as in
     DSEC's ``<sequence>/events/left/events.h5`` and ``<sequence>/calibration/cam_to_cam.yaml``; an MVSEC camchain
     :data:`MVSEC_CAMCHAIN_GLOB` too), or DSEC's ``rectify_map.h5`` lies beside it without a calibration file
-    (the events are raw), or the file is MVSEC's (whose fisheye lenses a pinhole misses: the note names
-    the camchain to pass), or None. It is not read (never guessed): the note says how to use it."""
+    (the events are raw; nothing under ``--as-recorded``, which says they are wanted so), or the file is
+    MVSEC's (whose fisheye lenses a pinhole misses: the note names the camchain to pass), or None. It is not read (never guessed): the note says how to use it."""
     if args.calib is not None or args.distortion is not None:
         return None
     folder = Path(args.file).resolve().parent
@@ -268,7 +281,7 @@ def calibration_hint(args: argparse.Namespace) -> str | None:
                 return (f"{place / name} lies beside the events but was not read: pass --calib {place / name}{dsec} "
                         "to use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
                         "distortion biases the fitted rotation and depth, docs/limits.md)")
-    if (folder / DSEC_RECTIFY_MAP).is_file():   # DSEC's events without its calibration download beside them
+    if (folder / DSEC_RECTIFY_MAP).is_file() and not getattr(args, "as_recorded", False):   # DSEC's, no calibration
         return (f"DSEC's {folder / DSEC_RECTIFY_MAP} lies beside the events, so they are raw (distorted, not "
                 "rectified into camRect0's frame, that of DSEC's disparity maps) and are fitted as a pinhole's: pass "
                 "--calib <sequence>/calibration/cam_to_cam.yaml (DSEC's calibration download; --calib-camera cam0, "
@@ -331,10 +344,14 @@ def read_calibrated(args: argparse.Namespace, calib_size: tuple[int, int] | None
 
 def _check_calibrated_size(args: argparse.Namespace, calib_size: tuple[int, int] | None, width: int,
                            height: int) -> None:
-    """ValueError when the events come from another sensor than the one ``--calib`` calibrates."""
+    """ValueError when the events come from another sensor than the one ``--calib`` calibrates: the size the
+    calibration states (``calib_size``), or for one that states none, the size of the frames of the ECD sequence
+    it lies in (:func:`cmax.io.provenance.check_calibrated_frames`)."""
     if calib_size is not None and (width, height) != tuple(calib_size):
         raise ValueError(f"{args.calib} calibrates a {calib_size[0]}x{calib_size[1]} camera ({args.calib_camera}), "
                          f"the events come from a {width}x{height} sensor")
+    if calib_size is None and getattr(args, "calib", None) is not None:
+        check_calibrated_frames(args.calib, args.file, width, height)
 
 
 def file_span_us(path, options: dict, t0_s: float | None,

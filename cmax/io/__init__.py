@@ -252,7 +252,7 @@ def _read_npy(
 
 def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str, str]]:
     """The memory-mapped structured array of a ``.npy`` event file and its field names (``structured_fields``),
-    checked: 1-D, fields x, y, t, p, float times only with a stated ``time_unit``."""
+    checked: 1-D, fields x, y, t, p, times that are numbers, float times only with a stated ``time_unit``."""
     try:
         array = np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as error:
@@ -263,6 +263,8 @@ def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str,
         raise FormatError(f"{path}: expected a 1-D structured array with fields x, y, t, p (or dv-processing's "
                           f"timestamp, polarity); got dtype {array.dtype}, shape {array.shape}")
     t_dtype = array.dtype[fields["t"]]
+    if t_dtype.kind not in "iuf":                      # before the unit checks, which read the times as numbers
+        raise FormatError(f"{path}: field {fields['t']} must hold numbers (times), got dtype {t_dtype}")
     if t_dtype.kind == "f" and time_unit is None:
         raise FormatError(f"{path}: field {fields['t']} holds {t_dtype} times; state their unit with time_unit='s', "
                           "'ms' or 'us' (cmax: --time-unit; times are never guessed)")

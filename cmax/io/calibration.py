@@ -257,7 +257,7 @@ def _yaml_lines(text: str) -> list[str]:
     lines: list[str] = []
     depth = 0                                         # "[" not closed yet on the lines joined so far
     for raw in text.splitlines():
-        line = raw.split("#", 1)[0].rstrip()
+        line = _without_comment(raw).rstrip()
         if not line.strip():
             continue
         if depth > 0:
@@ -266,6 +266,33 @@ def _yaml_lines(text: str) -> list[str]:
             lines.append(line)
         depth += line.count("[") - line.count("]")
     return lines
+
+
+def _without_comment(line: str) -> str:
+    """``line`` of a YAML file without its comment: from a ``#`` at the line's start or after a space or tab, and
+    outside quotes (YAML's rule: ``"cam #1"`` and ``a#b`` are values, not a value and a comment). A quote opens a
+    quoted scalar only where a value or list item starts (after ``:``, ``-``, ``[``, ``,`` and spaces, or at the
+    line's start);
+    ``\\`` escapes the next character within double quotes.
+
+    >>> _without_comment('rostopic: "/cam #1/left" # the left camera'), _without_comment("name: a#b Bob's # c")
+    ('rostopic: "/cam #1/left" ', "name: a#b Bob's ")
+    """
+    quote, i = None, 0
+    while i < len(line):
+        char = line[i]
+        before = line[i - 1] if i else " "
+        if quote is not None:
+            if char == "\\" and quote == '"':
+                i += 1                                  # an escaped character, a quote too
+            elif char == quote:
+                quote = None
+        elif char in "\"'" and (not line[:i].strip() or line[:i].rstrip()[-1] in ":[,-"):
+            quote = char
+        elif char == "#" and before in " \t":
+            return line[:i]
+        i += 1
+    return line
 
 
 def _unquoted(value: str) -> str:

@@ -1028,6 +1028,12 @@ def _checked_coordinate(
 _SORT_BLOCK = 1 << 16
 
 
+#: What a time going back in a DSEC-layout file leaves the user to do (``--sort`` is refused for it).
+_UNSORTED_WAY_OUT = ("; DSEC-layout files are read a time span at a time, so their rows must be in time order and "
+                     "--sort does not apply: write a copy whose events/x, y, t, p are each reordered by "
+                     "np.argsort(t, kind='stable') (cmax.io.write_h5 of cmax.Events(..., sort=True) writes one)")
+
+
 def _sorted_plus_offset(t: np.ndarray, offset: int, where: str, first_row: int) -> None:
     """Check that int64 ``t`` never decreases and add ``offset`` in place, block by block so that
     each block is compared and shifted while in cache. The caller has checked that the first and
@@ -1041,7 +1047,7 @@ def _sorted_plus_offset(t: np.ndarray, offset: int, where: str, first_row: int) 
         went_back = np.less(after, t[start: start + after.size], out=back[: after.size])
         if went_back.any():
             i = start + int(np.flatnonzero(went_back)[0])
-            wrapped = "" if wrap_index(t[i: i + 2]) is None else (
+            wrapped = _UNSORTED_WAY_OUT if wrap_index(t[i: i + 2]) is None else (
                 f"; a drop of {(int(t[i]) - int(t[i + 1])) / 60e6:.1f} min from near 2**32 µs: a uint32 microsecond "
                 "clock that wrapped at 2**32 µs (71.6 min), not events out of order; unwrap the times: t = "
                 "t.astype(np.int64) + 2**32 * np.cumsum(np.r_[0, np.diff(t.astype(np.int64)) < -2**31])")

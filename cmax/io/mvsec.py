@@ -68,8 +68,10 @@ def read_mvsec(
     located by binary search on the time column on disk, so only that slice is read.
     Without ``time_unit``, times that are all whole numbers (at least 100 distinct, in the rows read or the file's
     first 4096) are refused as integer microseconds stored as floats, not read as seconds (days of recording);
-    with ``time_unit='ms'``, times with decimals that all lie where MVSEC's seconds since 1970 lie (1973 to 2103,
-    :data:`_UNIX_SECONDS`) are refused as such seconds, not read as milliseconds (a recording 1000 times shorter).
+    with ``time_unit='ms'`` or ``'us'``, times with decimals that all lie where MVSEC's seconds since 1970 lie
+    (1973 to 2103, :data:`_UNIX_SECONDS`) are refused as such seconds, not read as milliseconds (a recording 1000
+    times shorter) or microseconds; in any unit, times that lie after 2103 as seconds since 1970 are refused,
+    naming the smaller unit that puts them between 1973 and 2103 (milliseconds since 1970 read as seconds).
     """
     _check_camera(camera)
     unit = check_time_unit(time_unit) or "s"
@@ -132,12 +134,18 @@ def _refuse_whole_seconds(t: np.ndarray, where: str) -> None:
 _UNIX_SECONDS = (1e8, 4.2e9)
 
 
-def _refuse_unix_seconds_as_ms(t: np.ndarray, where: str) -> None:
-    """Refuse a time column ``t`` stated to be milliseconds (``time_unit='ms'``) whose values carry decimals and
-    all lie within :data:`_UNIX_SECONDS`: MVSEC's seconds since 1970, which as milliseconds would make the
-    recording 1000 times shorter on a clock started 1 to 49 days before it. The rounding check of
-    :func:`cmax.io._checks.times_to_us` refuses such times only at high event rates (where whole µs merge them);
-    a slow recording passed it. Whole-number times (integer milliseconds stored as floats) are not refused.
+#: The names of :data:`TIME_UNITS` in words, for refusals.
+_UNIT_WORDS = {"us": "microseconds", "ms": "milliseconds", "s": "seconds"}
+#: 2103-01-01 as µs since 1970 (the end of :data:`_UNIX_SECONDS`): times read beyond it belong to no clock.
+_AFTER_2103_US = _UNIX_SECONDS[1] * 1e6
+
+
+def _refuse_unix_seconds_as(t: np.ndarray, unit: str, where: str) -> None:
+    """Refuse a time column ``t`` stated to be milliseconds or microseconds (``unit`` ``'ms'`` or ``'us'``) whose
+    values carry decimals and all lie within :data:`_UNIX_SECONDS`: MVSEC's seconds since 1970, which in ``unit``
+    would make the recording 1000 (or a million) times shorter on a clock started 100 s to 49 days before it. The
+    rounding check of :func:`cmax.io._checks.times_to_us` refuses such times only at high event rates (where whole
+    µs merge them); a slow recording passed it. Whole-number times (integers stored as floats) are not refused.
     ``where`` names the file and dataset."""
     if not t.size or not np.isfinite(t).all():
         return                          # (non-finite times: named by times_to_us)
@@ -147,23 +155,54 @@ def _refuse_unix_seconds_as_ms(t: np.ndarray, where: str) -> None:
     from datetime import datetime, timezone
 
     date = datetime.fromtimestamp(low, timezone.utc).strftime("%Y-%m-%d %H:%M:%S UTC")
+    words = _UNIT_WORDS[unit]
+    store = ("store them as microseconds (t * 1000) and pass time_unit='us'" if unit == "ms"
+             else "store them rounded to whole microseconds (np.rint(t)), which are not refused")
     raise FormatError(
-        f"{where}[:, 2] (t): time_unit='ms' states milliseconds, but these times ({low!r} to {high!r}, with "
-        f"decimals) are seconds since 1970 as MVSEC records them ({date}): read as milliseconds, {t.size:,} events of "
-        f"{high - low:.6g} s would last {high - low:.6g} ms. Leave time_unit out (MVSEC's seconds; cmax: no "
-        "--time-unit); if they really are milliseconds, store them as microseconds (t * 1000) and pass "
-        "time_unit='us'"
+        f"{where}[:, 2] (t): time_unit={unit!r} states {words}, but these times ({low!r} to {high!r}, with "
+        f"decimals) are seconds since 1970 as MVSEC records them ({date}): read as {words}, {t.size:,} events of "
+        f"{high - low:.6g} s would last {high - low:.6g} {unit}. Leave time_unit out (MVSEC's seconds; cmax: no "
+        f"--time-unit); if they really are {words}, {store}"
+    )
+
+
+def _refuse_after_2103(t: np.ndarray, unit: str, unit_stated: bool, where: str) -> None:
+    """Refuse a time column ``t`` that read in ``unit`` (stated by the caller if ``unit_stated``, else MVSEC's
+    seconds) lies after the year 2103 as seconds since 1970 (beyond :data:`_AFTER_2103_US`): no clock, neither
+    since 1970 nor since boot, reads so; the unit is another. The refusal names the smaller unit that puts the
+    times between 1973 and 2103 (milliseconds since 1970 read as seconds: the year 47,000), when one does.
+    Times too large for int64 µs are left to :func:`cmax.io._checks.times_to_us`, which names the unit the same
+    way. ``where`` names the file and dataset."""
+    finite = t[np.isfinite(t)] if t.dtype.kind == "f" else t
+    if not finite.size:
+        return
+    i = int(np.argmax(np.abs(finite)))
+    value = float(finite[i])
+    value_us = abs(value) * TIME_UNITS[unit]
+    if value_us <= _AFTER_2103_US or value_us > 2.0**62:
+        return
+    fits = [smaller for smaller in ("ms", "us") if TIME_UNITS[smaller] < TIME_UNITS[unit]
+            and _UNIX_SECONDS[0] <= abs(value) * TIME_UNITS[smaller] * 1e-6 < _UNIX_SECONDS[1]]
+    read_as = f"time_unit={unit!r}" if unit_stated else "MVSEC's seconds (no time_unit)"
+    advice = (f"these are {_UNIT_WORDS[fits[0]]} since 1970 ({abs(value) * TIME_UNITS[fits[0]] * 1e-6:.6f} s): "
+              f"state time_unit={fits[0]!r} (cmax: --time-unit {fits[0]})" if fits else
+              "no unit of 's', 'ms', 'us' puts them between 1973 and 2103: convert them to microseconds")
+    raise FormatError(
+        f"{where}[:, 2] (t): the time {value!r}, read as {read_as}, lies in the year "
+        f"{value_us * 1e-6 / 3.15576e7 + 1970:.0f} as seconds since 1970, past 2103, where no clock reads; {advice}"
     )
 
 
 def _refuse_misread_times(t: np.ndarray, unit_stated: bool, unit: str, where: str) -> None:
-    """The checks of an MVSEC time column ``t`` before it is read in ``unit``: without a stated unit
-    (``unit_stated`` False), whole numbers are refused (:func:`_refuse_whole_seconds`); stated as milliseconds,
-    MVSEC's seconds since 1970 are (:func:`_refuse_unix_seconds_as_ms`). ``where`` names the file and dataset."""
+    """The checks of an MVSEC time column ``t`` before it is read in ``unit``: times past 2103 in that unit are
+    refused (:func:`_refuse_after_2103`); without a stated unit (``unit_stated`` False), whole numbers are
+    (:func:`_refuse_whole_seconds`); stated as milliseconds or microseconds, MVSEC's seconds since 1970 are
+    (:func:`_refuse_unix_seconds_as`). ``where`` names the file and dataset."""
+    _refuse_after_2103(t, unit, unit_stated, where)
     if not unit_stated:
         _refuse_whole_seconds(t, where)
-    elif unit == "ms":
-        _refuse_unix_seconds_as_ms(t, where)
+    elif unit in ("ms", "us"):
+        _refuse_unix_seconds_as(t, unit, where)
 
 
 def _refuse_time_going_back(t_us: np.ndarray, path: Path, camera: str) -> None:

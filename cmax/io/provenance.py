@@ -16,7 +16,8 @@ import numpy as np
 from cmax.camera import check_intrinsics
 
 __all__ = ["CALIBRATION_NAMES", "file_intrinsics", "h5_intrinsics", "file_depth_range", "simulated_frames",
-           "simulated_sizes", "source_calibration", "resized_note", "resize_note"]
+           "simulated_sizes", "source_calibration", "resized_note", "resize_note", "calibrated_frames",
+           "check_calibrated_frames", "dsec_calibration_path", "check_raw_dsec"]
 
 #: Calibration files the data sets ship beside their recordings: ECD's ``calib.txt``, DSEC's ``cam_to_cam.yaml``.
 CALIBRATION_NAMES = ("calib.txt", "cam_to_cam.yaml")
@@ -145,3 +146,85 @@ def _calibration_beside(attrs: dict) -> Path | None:
             if (place / name).is_file():
                 return place / name
     return None
+
+
+#: The first bytes of a PNG file and the type of its first chunk, whose first 8 bytes are its width and height.
+_PNG_SIGNATURE, _PNG_HEADER = b"\x89PNG\r\n\x1a\n", b"IHDR"
+
+
+def calibrated_frames(calib: str | Path) -> tuple[tuple[int, int], Path] | None:
+    """``((width, height) [px], frame)``: the size of the first frame of the sequence the calibration file
+    ``calib`` lies in, where it lies in an Event Camera Dataset sequence (ECD: ``calib.txt`` beside ``images.txt``,
+    whose first line ``t images/frame_00000000.png`` names a PNG frame of the same sensor); None where there is no
+    such list or its first frame is no readable PNG. The size is the PNG's own (its IHDR chunk): the sensor that
+    ``calib``, which states none, calibrates. Only the list's first line and the frame's first 24 bytes are read.
+
+    >>> calibrated_frames("no/such/calib.txt") is None
+    True
+    """
+    folder = Path(calib).parent
+    try:
+        with open(folder / "images.txt", encoding="utf-8", errors="replace") as listing:
+            first = next((line for line in listing if line.strip() and not line.lstrip().startswith("#")), "")
+        fields = first.split()
+        if len(fields) < 2:
+            return None
+        frame = folder / fields[1]
+        with open(frame, "rb") as png:
+            head = png.read(24)
+    except OSError:
+        return None
+    if len(head) < 24 or head[:8] != _PNG_SIGNATURE or head[12:16] != _PNG_HEADER:
+        return None
+    width, height = int.from_bytes(head[16:20], "big"), int.from_bytes(head[20:24], "big")
+    return ((width, height), frame) if width > 0 and height > 0 else None
+
+
+def check_calibrated_frames(calib: str | Path, path: str | Path, width: int, height: int) -> None:
+    """ValueError when the calibration file ``calib``, which states no sensor size, lies in a sequence whose frames
+    (:func:`calibrated_frames`) are of another size than the ``width`` x ``height`` [px] sensor of the events of
+    ``path``: it calibrates another camera (ECD's DAVIS240C ``calib.txt`` for a DAVIS346's events). Nothing is
+    checked where no frames lie beside it: a calib.txt alone cannot tell its sensor.
+
+    >>> check_calibrated_frames("no/such/calib.txt", "ev.h5", 346, 260)
+    """
+    frames = calibrated_frames(calib)
+    if frames is not None and frames[0] != (width, height):
+        (W, H), frame = frames
+        raise ValueError(f"{calib} states no sensor size, but the frames of its sequence ({frame}, listed in "
+                         f"images.txt beside it) are {W}x{H}: it calibrates a {W}x{H} sensor, the events of {path} "
+                         f"come from a {width}x{height} one; give this sensor's calibration")
+
+
+def dsec_calibration_path(path: str | Path) -> str:
+    """DSEC's ``<sequence>/calibration/cam_to_cam.yaml`` of its events ``path`` (``<sequence>/events/left/events.h5``)
+    where it exists, else that pattern.
+
+    >>> dsec_calibration_path("no/such/events.h5")
+    '<sequence>/calibration/cam_to_cam.yaml'
+    """
+    found = Path(path).resolve().parents[2:3]
+    found = [place / "calibration" / "cam_to_cam.yaml" for place in found]
+    return str(found[0]) if found and found[0].is_file() else "<sequence>/calibration/cam_to_cam.yaml"
+
+
+def check_raw_dsec(path: str | Path, give: str, as_recorded: str) -> None:
+    """ValueError when DSEC's ``rectify_map.h5`` lies beside the event file ``path``: its events are raw
+    (distorted, not rectified into camRect0's frame, the frame of DSEC's disparity maps), and the caller, which
+    calls this only where no calibration was given, would take them as a pinhole's. The one policy of ``cmax fit``,
+    ``cmax emvs``, ``cmax depth`` and ``learned.train``; each words how to give the calibration, ``give`` (a
+    format string whose ``{calib}`` is :func:`dsec_calibration_path` and ``{map}`` the rectify_map.h5), and how
+    to say the events are wanted as recorded, ``as_recorded``.
+
+    >>> check_raw_dsec("no/such/events.h5", "--calib {calib}", "--as-recorded")
+    """
+    from cmax.io.calibration import DSEC_RECTIFY_MAP
+
+    beside = Path(path).parent / DSEC_RECTIFY_MAP
+    if not beside.is_file():
+        return
+    how = give.format(calib=dsec_calibration_path(path), map=beside)
+    raise ValueError(f"DSEC's {beside} lies beside {path}, so its events are raw (distorted, not rectified into "
+                     f"camRect0's frame, whose K DSEC's disparity maps have), and no calibration was given: {how}, "
+                     f"which rectifies them into that frame and gives its K; or {as_recorded} to take them as "
+                     "recorded (a pinhole's, unrectified)")

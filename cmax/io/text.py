@@ -34,7 +34,9 @@ def read_txt(
     raise :class:`FormatError`. The file stores no sensor
     size, so ``width`` and ``height`` are required (ECD's DAVIS240C: 240 x 180),
     unless its first line states it as rpg_e2vid's ``events.txt`` does (``W H``;
-    a size given too must equal it). Lines starting with ``#`` are comments.
+    a size given too must equal it). Lines starting with ``#`` are comments; a UTF-8 byte order mark at the
+    file's start is ignored. A first line of other words (a header, fields separated by commas) is refused
+    naming what it holds.
     Time must not go back unless ``sort=True`` (the events are then sorted by
     time, stable); a file whose third column is the sorted one is refused as
     ``x y t p`` columns, not ECD's order.
@@ -50,7 +52,8 @@ def read_txt(
     try:
         with warnings.catch_warnings():  # an empty file is no events, not a warning
             warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
-            table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", skiprows=skip)
+            table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", skiprows=skip,
+                               encoding="utf-8-sig")     # a byte order mark (Windows editors) is not text
     except (ValueError, UnicodeDecodeError) as error:
         text = str(error).split("; use `usecols`")[0]      # numpy's advice on selecting columns does not apply
         raise FormatError(f"{path} is not an ECD text file of 't x y p' lines ({text})") from None
@@ -80,6 +83,7 @@ def _size_header(path: Path) -> tuple[tuple[int, int] | None, int]:
     try:
         with open(path, "rb") as file:
             head = file.read(_HEAD_BYTES)          # a binary file without newlines is not read whole here
+        head = head.removeprefix(_UTF8_BOM)
     except OSError as error:
         raise FormatError(f"{path} cannot be read ({error})") from None
     for number, line in enumerate(head.split(b"\n")[:-1] if len(head) == _HEAD_BYTES else head.split(b"\n")):
@@ -108,18 +112,46 @@ def _check_event_line(path: Path, words: list[bytes]) -> None:
         return
     line = b" ".join(words).decode("utf-8", "replace")
     shown = line if len(line) <= 60 else line[:57] + "..."
+    start = f"{path} is not an ECD text file of 't x y p' lines: its first line reads {shown!r}"
+    separator = next((mark for mark in (",", ";") if mark in line), None)
+    if separator is not None:
+        raise FormatError(f"{start}, its fields separated by {separator!r} (a CSV), but ECD text separates 't x y p' "
+                          "by spaces, and a CSV does not state its column order (Metavision's metavision_file_to_csv "
+                          "writes 'x,y,p,t'): write its columns as 't x y p' lines (t in seconds) once you know them")
+    if len(words) == 4:
+        word = next(word for word in words if not number(word)).decode("utf-8", "replace")
+        raise FormatError(f"{start}: {word!r} is not a number (a header line? ECD text has none: drop it, or make it "
+                          "a comment with '#', and keep the columns in ECD's order 't x y p')")
     hint = ("; a list of frames (ECD images.txt, ESIM timestamps.txt) becomes events with "
             "`cmax simulate FOLDER -o events.h5`" if len(words) <= 2 else "")
-    raise FormatError(f"{path} is not an ECD text file of 't x y p' lines: its first line reads {shown!r} "
-                      f"({len(words)} column(s) where 4 columns are expected){hint}")
+    raise FormatError(f"{start} ({len(words)} column(s) where 4 columns are expected){hint}")
 
 
 #: Bytes of a text file's start that :func:`_size_header` reads.
 _HEAD_BYTES = 1 << 16
+#: The UTF-8 byte order mark that Windows editors put at a text file's start: not text.
+_UTF8_BOM = b"\xef\xbb\xbf"
 
 
 #: This many distinct times, every one a whole number, are not seconds of an event camera.
 _WHOLE_TIMES = 100
+
+
+#: Seconds since 1970 of March 1973 and of 2103: a clock since 1970 lies between them (in its own unit).
+_SINCE_1970 = (1e8, 4.2e9)
+#: Units of whole-number times, by how many of them make a second.
+_WHOLE_UNITS = (("ns", 1e9), ("us", 1e6), ("ms", 1e3))
+
+
+def _since_1970_unit(value: float) -> str | None:
+    """The unit of :data:`_WHOLE_UNITS` in which the time ``value`` lies between 1973 and 2103 as a time since
+    1970, or None (a clock started elsewhere: the unit cannot be told).
+
+    >>> _since_1970_unit(1504645177000.0), _since_1970_unit(1.7e18), _since_1970_unit(957.0)
+    ('ms', 'ns', None)
+    """
+    return next((unit for unit, per_second in _WHOLE_UNITS
+                 if _SINCE_1970[0] <= abs(value) / per_second < _SINCE_1970[1]), None)
 
 
 def _refuse_whole_seconds(t: np.ndarray, path: Path) -> None:
@@ -127,17 +159,30 @@ def _refuse_whole_seconds(t: np.ndarray, path: Path) -> None:
 
     An event camera's times in seconds carry decimals; a column of at least
     :data:`_WHOLE_TIMES` distinct whole numbers is integer microseconds (or
-    ms, ns) that would read as hours or days of recording.
+    ms, ns) that would read as hours or days of recording. Where the times lie between 1973 and 2103 as a time
+    since 1970 in one unit (:func:`_since_1970_unit`), the refusal names that unit (milliseconds since 1970 were
+    called microseconds, and read so, 1000 times too short); nanoseconds, which no reader takes, are to convert.
     """
     if t.size < _WHOLE_TIMES or not np.array_equal(t, np.round(t)):
         return
     distinct = int(np.count_nonzero(np.diff(t))) + 1
-    if distinct >= _WHOLE_TIMES:
-        raise FormatError(
-            f"{path}: every time in column t is a whole number ({distinct:,} distinct, from {t[0]:.0f} to "
-            f"{t[-1]:.0f}), but ECD text states seconds with decimals: these look like integer microseconds. "
-            "State the unit: time_unit='us' (cmax: --time-unit us), or time_unit='s' if they are whole seconds"
-        )
+    if distinct < _WHOLE_TIMES:
+        return
+    start = (f"{path}: every time in column t is a whole number ({distinct:,} distinct, from {t[0]:.0f} to "
+             f"{t[-1]:.0f}), but ECD text states seconds with decimals")
+    unit = _since_1970_unit(float(t[0]))
+    if unit == "ns":
+        raise FormatError(f"{start}: these are nanoseconds since 1970 ({t[0] / 1e9:.3f} s), a unit no reader takes: "
+                          "write them as seconds (t / 1e9, with decimals) or integer microseconds (t // 1000, then "
+                          "time_unit='us', cmax: --time-unit us)")
+    if unit is not None:
+        words = {"us": "microseconds", "ms": "milliseconds"}[unit]
+        raise FormatError(f"{start}: these are {words} since 1970 ({t[0] / dict(_WHOLE_UNITS)[unit]:.3f} s). State "
+                          f"the unit: time_unit={unit!r} (cmax: --time-unit {unit})")
+    raise FormatError(
+        f"{start}: these look like integer microseconds. State the unit: time_unit='us' (cmax: --time-unit us), or "
+        "time_unit='s' if they are whole seconds"
+    )
 
 
 def write_txt(path: str | os.PathLike, events: Events, *, overwrite: bool = False) -> Path:
