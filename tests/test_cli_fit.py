@@ -273,6 +273,31 @@ def test_fit_option_errors_are_one_line(tmp_path, capsys, extra, message):
     assert status == 2 and message in err and len(err.strip().splitlines()) == 1, err
 
 
+@pytest.mark.parametrize("layout", ["ecd", "dsec"])
+def test_the_no_intrinsics_error_names_the_calibration_beside_the_events(tmp_path, capsys, layout):
+    """A data set's events given without --K / --calib: the one-line error names the calibration file that lies
+    beside them, as the note of a run with --K does (was: only 'give them with --K fx,fy,cx,cy or --calib',
+    though ECD's calib.txt lay in the same folder and DSEC's cam_to_cam.yaml in <sequence>/calibration/)."""
+    events = noise_events(300, 50_000, seed=1)
+    if layout == "ecd":
+        path = write_txt(tmp_path / "events.txt", events)
+        calib = tmp_path / "calib.txt"
+        calib.write_text("60 60 32 24 0 0 0 0 0\n")
+        size = ["--size", "64x48"]
+    else:
+        (tmp_path / "events" / "left").mkdir(parents=True)
+        (tmp_path / "calibration").mkdir()
+        path = write_h5(tmp_path / "events" / "left" / "events.h5", events)
+        calib = tmp_path / "calibration" / "cam_to_cam.yaml"
+        calib.write_text(DSEC_YAML)
+        size = []
+    assert main(["fit", str(path), *size, "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert f"{calib.resolve()} lies beside the events: --calib {calib.resolve()}" in err, err
+    assert ("--calib-camera cam0" in err) == (layout == "dsec"), err
+
+
 def test_a_text_file_takes_its_size_from_the_dsec_calibration(tmp_path, capsys):
     """ECD .txt stores no sensor size: cam_to_cam.yaml's resolution (640x480) is used, so the file reads (no
     'pass width= and height=' error); its 300 events are too few to fit, which the command says (exit 1)."""
