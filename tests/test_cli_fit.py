@@ -494,6 +494,22 @@ def test_se3_takes_the_depth_range_the_file_records_for_its_scene(slider_file, t
     assert json.loads((tmp_path / "b" / "summary.json").read_text())["depth_range"] == [0.5, 9.0]
 
 
+def test_the_help_of_depth_range_says_a_scene_file_brings_its_own():
+    """``cmax fit --help`` said ``--depth-range ... (default: 0.5,60)`` alone, while a file that records its scene's
+    range (every ``cmax scene`` file) is fitted over that range (the test above): the help names both, as
+    ``cmax emvs --help`` does."""
+    import argparse
+
+    from cmax.cli import build_parser
+    from cmax.fitting.settings import FitSettings
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["fit"]
+    text = " ".join(sub.format_help().split())
+    near, far = FitSettings().depth_range
+    assert (f"the range the file records for its scene (cmax scene), else (default: {near:g},{far:g})"
+            in text), text
+
+
 def test_the_advice_names_what_helps_when_half_the_windows_are_unmeasured():
     from cmax.cli.fit import advice
 

@@ -58,7 +58,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     add_recording_arguments(parser)
     api_default(parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
                                     metavar="NEAR,FAR", help="se3: depth bounds [m] (in units of --speed x 1 s "
-                                    "without it); give the scene's own range when known"),
+                                    "without it; give the scene's own range when known): the range the file "
+                                    "records for its scene (cmax scene), else"),
                 _settings_default("depth_range"))
     api_default(parser.add_argument("--model", choices=("se3", "rotation", "flow"), default=None,
                                     help="motion model"), _sequence_default("model"))
