@@ -510,6 +510,19 @@ def test_the_help_of_depth_range_says_a_scene_file_brings_its_own():
             in text), text
 
 
+def test_the_help_of_fit_says_what_it_writes():
+    """``cmax fit --help`` opened with "The cmax fit command: fit a recording window by window ..." (its module's
+    docstring); it says what the command does and the files it writes, as the other commands' help does."""
+    import argparse
+
+    from cmax.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["fit"]
+    assert not sub.description.startswith("The ")
+    for name in ("depth_00000.npz and .png per window", "trajectory.txt", "summary.json", "verdict", "up to scale"):
+        assert name in sub.description, (name, sub.description)
+
+
 def test_the_advice_names_what_helps_when_half_the_windows_are_unmeasured():
     from cmax.cli.fit import advice
 
