@@ -273,6 +273,31 @@ def test_fit_option_errors_are_one_line(tmp_path, capsys, extra, message):
     assert status == 2 and message in err and len(err.strip().splitlines()) == 1, err
 
 
+@pytest.mark.parametrize("layout", ["ecd", "dsec"])
+def test_the_no_intrinsics_error_names_the_calibration_beside_the_events(tmp_path, capsys, layout):
+    """A data set's events given without --K / --calib: the one-line error names the calibration file that lies
+    beside them, as the note of a run with --K does (was: only 'give them with --K fx,fy,cx,cy or --calib',
+    though ECD's calib.txt lay in the same folder and DSEC's cam_to_cam.yaml in <sequence>/calibration/)."""
+    events = noise_events(300, 50_000, seed=1)
+    if layout == "ecd":
+        path = write_txt(tmp_path / "events.txt", events)
+        calib = tmp_path / "calib.txt"
+        calib.write_text("60 60 32 24 0 0 0 0 0\n")
+        size = ["--size", "64x48"]
+    else:
+        (tmp_path / "events" / "left").mkdir(parents=True)
+        (tmp_path / "calibration").mkdir()
+        path = write_h5(tmp_path / "events" / "left" / "events.h5", events)
+        calib = tmp_path / "calibration" / "cam_to_cam.yaml"
+        calib.write_text(DSEC_YAML)
+        size = []
+    assert main(["fit", str(path), *size, "-o", str(tmp_path / "o")]) == 2
+    err = capsys.readouterr().err
+    assert len(err.strip().splitlines()) == 1, err
+    assert f"{calib.resolve()} lies beside the events: --calib {calib.resolve()}" in err, err
+    assert ("--calib-camera cam0" in err) == (layout == "dsec"), err
+
+
 def test_a_text_file_takes_its_size_from_the_dsec_calibration(tmp_path, capsys):
     """ECD .txt stores no sensor size: cam_to_cam.yaml's resolution (640x480) is used, so the file reads (no
     'pass width= and height=' error); its 300 events are too few to fit, which the command says (exit 1)."""
@@ -467,6 +492,35 @@ def test_se3_takes_the_depth_range_the_file_records_for_its_scene(slider_file, t
     assert main([*argv, "-o", str(tmp_path / "b"), "--depth-range", "0.5,9"]) in (0, 1)
     assert "the file records" not in capsys.readouterr().err
     assert json.loads((tmp_path / "b" / "summary.json").read_text())["depth_range"] == [0.5, 9.0]
+
+
+def test_the_help_of_depth_range_says_a_scene_file_brings_its_own():
+    """``cmax fit --help`` said ``--depth-range ... (default: 0.5,60)`` alone, while a file that records its scene's
+    range (every ``cmax scene`` file) is fitted over that range (the test above): the help names both, as
+    ``cmax emvs --help`` does."""
+    import argparse
+
+    from cmax.cli import build_parser
+    from cmax.fitting.settings import FitSettings
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["fit"]
+    text = " ".join(sub.format_help().split())
+    near, far = FitSettings().depth_range
+    assert (f"the range the file records for its scene (cmax scene), else (default: {near:g},{far:g})"
+            in text), text
+
+
+def test_the_help_of_fit_says_what_it_writes():
+    """``cmax fit --help`` opened with "The cmax fit command: fit a recording window by window ..." (its module's
+    docstring); it says what the command does and the files it writes, as the other commands' help does."""
+    import argparse
+
+    from cmax.cli import build_parser
+
+    sub = next(a for a in build_parser()._actions if isinstance(a, argparse._SubParsersAction)).choices["fit"]
+    assert not sub.description.startswith("The ")
+    for name in ("depth_00000.npz and .png per window", "trajectory.txt", "summary.json", "verdict", "up to scale"):
+        assert name in sub.description, (name, sub.description)
 
 
 def test_the_advice_names_what_helps_when_half_the_windows_are_unmeasured():

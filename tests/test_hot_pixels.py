@@ -172,7 +172,12 @@ def test_cmax_info_names_the_hot_pixels_of_a_recording(window, tmp_path, suffix)
     np.testing.assert_array_equal(info.hot_pixels(), injected)
     line = next(text for text in info.lines() if text.startswith("hot pixels"))
     assert line.startswith(f"hot pixels  {HOT_COUNT}: (") and " events, " in line and " Hz" in line
-    assert "hot pixels  none (no pixel fires far more than the others)" in saved(window.events, "clean").lines()
+    # only the count rule runs on a whole file: the line says so, since a fit of the same file may still find steady
+    # or flickering pixels (was: "none (no pixel fires far more than the others)", on the Gen4 sample whose fit
+    # then left out 3 pixels firing at a steady 3 kHz)
+    line = next(text for text in saved(window.events, "clean").lines() if text.startswith("hot pixels"))
+    assert line.startswith("hot pixels  none by count (no pixel fires far more than the others; ") and (
+        "cmax fit and cmax emvs also look in each window" in line), line
 
 
 def _with_pixels_at_share(events: Events, share: float, count: int, seed: int) -> tuple[Events, set]:

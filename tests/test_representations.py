@@ -171,6 +171,24 @@ def test_voxel_grid_agrees_with_tonic_after_its_normalisation():
     assert not np.allclose(voxel_grid(ev, bins), theirs, atol=1e-3)  # the normalisations differ
 
 
+def test_frames_and_time_surfaces_agree_with_tonic_as_docs_formats_maps_them():
+    """The table "Event tensors, for tonic users" of docs/formats.md, row by row, against tonic itself."""
+    functional = pytest.importorskip("tonic.functional")
+    ev = random_events(3000, width=20, height=10, seed=12)
+    sensor, t0, dt = (20, 10, 2), ev.t_start, (ev.t_end - ev.t_start) // 3 + 1
+    theirs = functional.to_frame_numpy(ev.to_structured(), sensor, event_count=len(ev))
+    assert theirs.shape == (1, 2, 10, 20)
+    np.testing.assert_array_equal(event_frame(ev), theirs[0])
+    theirs = functional.to_frame_numpy(ev.to_structured(), sensor, time_window=dt, include_incomplete=True)
+    ours = np.stack([event_frame(w) for w in ev.windows(duration_us=dt)])
+    np.testing.assert_array_equal(ours, theirs)
+    theirs = functional.to_timesurface_numpy(ev.to_structured(), sensor, dt=dt, tau=2000.0)
+    for k, surface in enumerate(theirs):
+        end = t0 + (k + 1) * dt
+        np.testing.assert_allclose(time_surface(ev.slice_time(t0, end), tau_us=2000.0, t_ref_us=end), surface,
+                                   atol=1e-6)
+
+
 # -- event frame -----------------------------------------------------------------------------
 @pytest.mark.parametrize("signed_polarity", [False, True])
 def test_event_frame_counts(signed_polarity):

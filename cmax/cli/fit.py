@@ -50,15 +50,20 @@ STREAM_ABOVE_EVENTS = 1 << 25
 
 def add_command(subparsers) -> argparse.ArgumentParser:
     """Add ``fit`` to an ``argparse`` sub-parser collection; returns the new parser."""
-    parser = subparsers.add_parser("fit", help="depth and motion per window by contrast maximization",
-                                   description=__doc__.split("\n\n")[0])
+    parser = subparsers.add_parser(
+        "fit", help="depth and motion per window by contrast maximization",
+        description="Depth and motion of every window of an event file by contrast maximization (cmax.fit_sequence), "
+        "each with a verdict (ok, ambiguous, low parallax, failed, and why): depth_00000.npz and .png per window (depth "
+        "[m], up to scale without --speed), trajectory.txt (TUM, camera-to-world) and, last, summary.json in the "
+        "output folder (docs/fitting.md).")
     parser.add_argument("file", type=Path, help="event file (any format cmax.io.read reads)")
     add_camera_options(parser, distortion_help=": each event is warped from its undistorted position (unrounded)")
     parser.add_argument("-o", "--output", required=True, type=Path, help="output folder")
     add_recording_arguments(parser)
     api_default(parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
                                     metavar="NEAR,FAR", help="se3: depth bounds [m] (in units of --speed x 1 s "
-                                    "without it); give the scene's own range when known"),
+                                    "without it; give the scene's own range when known): the range the file "
+                                    "records for its scene (cmax scene), else"),
                 _settings_default("depth_range"))
     api_default(parser.add_argument("--model", choices=("se3", "rotation", "flow"), default=None,
                                     help="motion model"), _sequence_default("model"))

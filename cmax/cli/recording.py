@@ -33,6 +33,7 @@ from cmax.io.provenance import (CALIBRATION_NAMES, check_calibrated_frames, chec
 __all__ = ["add_file_options", "file_kwargs", "camera_read", "given_k_note", "add_recording_arguments",
            "add_camera_options", "calibration_of", "calibration_note", "check_calibration_camera",
            "read_calibrated", "intrinsics_argument", "no_intrinsics_message", "check_calibration_of_frames",
+           "calibration_beside",
            "check_file_principal_point", "RAW_DSEC_CALIB", "RAW_DSEC_AS_RECORDED",
            "distortion_argument",
            "time_slice", "time_span_us", "file_span_us", "tail_note", "overlap", "StreamedEvents",
@@ -262,6 +263,27 @@ def check_calibration_camera(calibration: Calibration, calib: str | Path, calib_
 MVSEC_CAMCHAIN_GLOB = "camchain-imucam-*.yaml"
 
 
+def calibration_beside(path: str | Path) -> Path | None:
+    """The first data-set calibration file that lies beside the event file ``path``: ``calib.txt`` (ECD),
+    ``cam_to_cam.yaml`` (DSEC) or an MVSEC camchain (:data:`MVSEC_CAMCHAIN_GLOB`), looked for in its folder, that
+    folder's ``calibration/``, the folder above and its ``calibration/``, and the ``calibration/`` two folders above
+    (DSEC's ``<sequence>/events/left/events.h5`` beside ``<sequence>/calibration/cam_to_cam.yaml``); None when there
+    is none. Found, never read."""
+    folder = Path(path).resolve().parent
+    for place in (folder, folder / "calibration", folder.parent, folder.parent / "calibration",
+                  folder.parent.parent / "calibration"):
+        for name in (*CALIBRATION_NAMES, *sorted(p.name for p in place.glob(MVSEC_CAMCHAIN_GLOB))):
+            if (place / name).is_file():
+                return place / name
+    return None
+
+
+def _dsec_camera_words(calib: Path) -> str:
+    """What ``--calib-camera`` a DSEC ``cam_to_cam.yaml`` takes for its raw events; empty for another file."""
+    return (" (DSEC: --calib-camera cam0, the default, for its raw events, which it rectifies into camRect0's frame)"
+            if calib.name == "cam_to_cam.yaml" else "")
+
+
 def calibration_hint(args: argparse.Namespace) -> str | None:
     """A note when no ``--calib`` or ``--distortion`` was given but a data set's calibration file lies beside
     ``args.file`` (its folder or the one above, or a ``calibration/`` folder in either or two folders above, as in
@@ -272,15 +294,10 @@ def calibration_hint(args: argparse.Namespace) -> str | None:
     if args.calib is not None or args.distortion is not None:
         return None
     folder = Path(args.file).resolve().parent
-    for place in (folder, folder / "calibration", folder.parent, folder.parent / "calibration",
-                  folder.parent.parent / "calibration"):
-        for name in (*CALIBRATION_NAMES, *sorted(p.name for p in place.glob(MVSEC_CAMCHAIN_GLOB))):
-            if (place / name).is_file():
-                dsec = (" (DSEC: --calib-camera cam0, the default, for its raw events, which it rectifies into "
-                        "camRect0's frame)" if name == "cam_to_cam.yaml" else "")
-                return (f"{place / name} lies beside the events but was not read: pass --calib {place / name}{dsec} "
-                        "to use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
-                        "distortion biases the fitted rotation and depth, docs/limits.md)")
+    if (found := calibration_beside(args.file)) is not None:
+        return (f"{found} lies beside the events but was not read: pass --calib {found}{_dsec_camera_words(found)} "
+                "to use its intrinsics and lens distortion (without it the camera is a pinhole; a lens's "
+                "distortion biases the fitted rotation and depth, docs/limits.md)")
     if (folder / DSEC_RECTIFY_MAP).is_file() and not getattr(args, "as_recorded", False):   # DSEC's, no calibration
         return (f"DSEC's {folder / DSEC_RECTIFY_MAP} lies beside the events, so they are raw (distorted, not "
                 "rectified into camRect0's frame, that of DSEC's disparity maps) and are fitted as a pinhole's: pass "
@@ -430,7 +447,9 @@ def no_intrinsics_message(path: str | Path, calib: str = "--calib FILE") -> str:
     message = f"{path} stores no intrinsics (gt/K): give them with --K fx,fy,cx,cy or {calib}"
     sizes, beside = simulated_frames(path)
     if sizes is None:
-        return message
+        found = calibration_beside(path)
+        return message if found is None else (f"{message}; {found} lies beside the events: --calib {found}"
+                                              f"{_dsec_camera_words(found)}")
     if beside is not None:
         message += f"; {beside} lies beside the frames it was simulated from"
     if sizes[0] == sizes[1]:

@@ -122,7 +122,8 @@ class EventFileInfo:
     def _hot_line(self) -> str:
         hot = self.hot_pixels()
         if not len(hot):
-            return "hot pixels  none (no pixel fires far more than the others)"
+            return ("hot pixels  none by count (no pixel fires far more than the others; cmax fit and cmax emvs also "
+                    "look in each window for pixels firing alone at a steady rate or with a lamp's flicker)")
         counts = self.pixel_counts[hot[:, 1], hot[:, 0]]
         order = np.argsort(-counts, kind="stable")
         rate = (lambda n: f", {n / self.duration_s:,.0f} Hz") if self.duration_s > 0 else (lambda n: "")
