@@ -34,8 +34,8 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 from cmax.io.provenance import file_depth_range, file_intrinsics
-from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, code_digest, file_signatures, interrupted_windows,
-                                  settings_record, stopped_line)
+from cmax.io.window_store import (WINDOWS_FOLDER, PendingSignatures, WindowStore, code_digest, file_signatures,
+                                  interrupted_windows, settings_record, stopped_line)
 
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
            "hot_pixel_note", "option_words", "run", "run_record", "tum_lines", "unscaled_range_note",
@@ -493,19 +493,28 @@ def run(args: argparse.Namespace) -> int:
     window_us = (_sequence_default("window_us")() if args.window_ms is None
                  else _microseconds(args.window_ms, "--window-ms"))
     step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
+    hashing = None
     try:
         with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
                                    what="depth_*.npz, summary.json, ...") as stage:
-            store = WindowStore(out, run_record(args), resume=args.resume, overwrite=args.overwrite)
+            # the input files are hashed while the windows are fitted: the store waits for their signatures only
+            # to compare them with kept windows (--resume) or to record them with the first window it saves
+            hashing = PendingSignatures(_input_paths(args), progress=not args.quiet)
+            store = WindowStore(out, lambda: run_record(args, hashing.result()), resume=args.resume,
+                                overwrite=args.overwrite)
             status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
                                min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
                                notes=notes, store=store)
+            store.run    # every input hashed whole and unchanged (else refused) before the results are published
     except KeyboardInterrupt as stop:   # Ctrl-C, or SIGTERM (cmax._signals): say what is kept
         if not (kept := interrupted_windows(out)):
             raise
         line, status = stopped_line("cmax fit", stop, kept, out / WINDOWS_FOLDER)
         print(line, file=sys.stderr)
         return status
+    finally:
+        if hashing is not None:    # stopped within one block, never left running
+            hashing.close()
     store.remove()   # the results are in out: the finished windows are no longer needed
     return status
 
@@ -514,16 +523,23 @@ def run(args: argparse.Namespace) -> int:
 _NOT_RESULTS = ("command", "output", "quiet", "overwrite", "resume", "run", "jobs")
 
 
-def run_record(args: argparse.Namespace) -> dict:
+def _input_paths(args: argparse.Namespace) -> dict:
+    """The input files of a run of ``cmax fit`` by the name its record gives them (None: not given)."""
+    return {"file": args.file, "calib": args.calib, "gyro": args.gyro}
+
+
+def run_record(args: argparse.Namespace, files: dict | None = None) -> dict:
     """What a run of ``cmax fit`` is, for ``--resume`` to check (:class:`cmax.io.window_store.WindowStore`): the
     signatures (size, modification time, SHA-256) of the event file and of ``--calib`` / ``--gyro``, the version of
     cmax and a digest of its code, and every option that changes a window's fit (``args``, the parsed options; ``--jobs`` only as
     whether the windows are warm-started, ``jobs == 1``; the paths of those files only through their signatures, so
-    that a moved file, the same bytes, resumes)."""
+    that a moved file, the same bytes, resumes). ``files``: those signatures when they are taken already
+    (:class:`cmax.io.window_store.PendingSignatures`), else they are taken here
+    (:func:`cmax.io.window_store.file_signatures`)."""
     import cmax
 
-    paths = {"file": args.file, "calib": args.calib, "gyro": args.gyro}
-    files = file_signatures(paths, progress=not args.quiet)
+    paths = _input_paths(args)
+    files = file_signatures(paths, progress=not args.quiet) if files is None else files
     settings = {key: value for key, value in vars(args).items()
                 if key not in _NOT_RESULTS and not (key in paths and files[key] is not None)}
     settings["warm_start"] = args.jobs == 1
