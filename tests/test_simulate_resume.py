@@ -456,3 +456,36 @@ def test_a_removal_of_kept_chunks_cut_short_is_not_read_as_chunks(tmp_path, monk
     assert main(argv) == 0, capsys.readouterr().err
     assert "already converted" in capsys.readouterr().out
     assert sorted(os.listdir(out)) == ["a.h5", "manifest.json"]
+
+
+def test_a_chunked_resume_reads_the_video_once_to_hash_it(tmp_path, monkeypatch):
+    """Continuing a video's kept chunks, cmax simulate hashed the video twice: once to compare it with the chunks
+    (before anything is converted), once more as its conversion began (a multi-GB video: seconds each). Now once:
+    the conversion takes the signature just taken while the video keeps its size and modification time; the
+    events equal an uninterrupted conversion's, and the manifest records the video's SHA-256 (hashlib of its
+    bytes). A video touched between the two is hashed again (its new signature is recorded)."""
+    import hashlib
+
+    import cmax.sim.signature as signature_module
+
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=3)
+    video = tmp_path / "v.avi"
+    real, hashed = signature_module.file_sha256, []
+
+    def counted(path, read=None):
+        if os.path.basename(path) == video.name:
+            hashed.append(path)
+        return real(path, read)
+
+    monkeypatch.setattr(signature_module, "file_sha256", counted)
+    jobs, _ = collect_jobs(video)
+    manifest = convert_collection(jobs, tmp_path, LINEAR, progress=False, chunk_frames=6)
+    assert len(hashed) == 1                                          # was 2
+    assert same_events(read_h5(output), whole) and not folder.exists()
+    entry = manifest["videos"]["v"]
+    assert entry["status"] == "ok"
+    assert entry["source_signature"]["sha256"] == hashlib.sha256(video.read_bytes()).hexdigest()
+
+    check = convert_module._still_signed(entry["source_signature"], video)
+    os.utime(video, ns=(video.stat().st_atime_ns, video.stat().st_mtime_ns + 10**9))
+    assert check and not convert_module._still_signed(entry["source_signature"], video)
