@@ -489,3 +489,35 @@ def test_a_chunked_resume_reads_the_video_once_to_hash_it(tmp_path, monkeypatch)
     check = convert_module._still_signed(entry["source_signature"], video)
     os.utime(video, ns=(video.stat().st_atime_ns, video.stat().st_mtime_ns + 10**9))
     assert check and not convert_module._still_signed(entry["source_signature"], video)
+
+
+def test_hashing_a_video_shows_a_progress_bar_on_a_first_conversion_and_a_chunked_resume(tmp_path, monkeypatch):
+    """A video is read whole to hash it (SHA-256) before its frames: as it is first converted (for the manifest),
+    and, when chunks of an interrupted conversion are kept beside its output, before anything is converted (to
+    check them). Above HASH_PROGRESS_BYTES (1 GiB; 0 here) a bar [bytes] shows each, its total and count the
+    video's bytes (was: no bar, only a frame bar standing at 0 while a multi-GB video was read)."""
+    import tqdm.auto
+
+    import cmax.io.window_store
+
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=3)
+    size = (tmp_path / "v.avi").stat().st_size
+    bars = []
+
+    class Recorded(tqdm.auto.tqdm):
+        def close(self):
+            if not self.disable and not getattr(self, "recorded", False):   # (tqdm may close a bar twice)
+                bars.append((self.desc, self.total, self.n))
+                self.recorded = True
+            super().close()
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Recorded)
+    monkeypatch.setattr(cmax.io.window_store, "HASH_PROGRESS_BYTES", 0)
+    jobs, _ = collect_jobs(tmp_path / "v.avi")
+    convert_collection(jobs, tmp_path, LINEAR, progress=True, chunk_frames=6)      # continues the kept chunks
+    assert [(total, n) for desc, total, n in bars if "hashing" in desc] == [(size, size)]
+    assert same_events(read_h5(output), whole) and not folder.exists()
+    bars.clear()
+    convert_collection(jobs, tmp_path / "fresh", LINEAR, progress=True, chunk_frames=6)    # a first conversion
+    assert [(total, n) for desc, total, n in bars if "hashing" in desc] == [(size, size)]
+    assert same_events(read_h5(tmp_path / "fresh" / "v.h5"), whole)

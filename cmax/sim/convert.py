@@ -1040,6 +1040,33 @@ def _resumed_note(name: str, bar) -> Callable[[int, int], None]:
     return note
 
 
+def _hashing_bar(total: int, desc: str, position: int | None = None, progress: bool = True):
+    """A tqdm bar [bytes] on stderr over hashing ``total`` bytes of videos (SHA-256), ``desc`` its label, at the
+    line ``position``; shown when ``progress`` and ``total`` is more than
+    :data:`cmax.io.window_store.HASH_PROGRESS_BYTES` (as cmax fit's input hashing)."""
+    from tqdm.auto import tqdm
+
+    from cmax.io.window_store import HASH_PROGRESS_BYTES
+
+    return tqdm(total=total, desc=desc, unit="B", unit_scale=True, unit_divisor=1024, position=position,
+                leave=False, disable=not progress or total <= HASH_PROGRESS_BYTES)
+
+
+def _source_bytes(source: str | os.PathLike) -> int:
+    """The bytes [B] of the files a conversion of ``source`` reads (:func:`cmax.sim.signature.source_files`)."""
+    from cmax.sim.signature import source_files
+
+    return sum(os.path.getsize(file) for file in source_files(source))
+
+
+def _signature_with_bar(job: VideoJob, position: int | None) -> dict[str, Any]:
+    """:func:`cmax.sim.signature.source_signature` of ``job``'s source, a bar [bytes] on the line ``position``
+    (None: no bar) while it is read (:func:`_hashing_bar`): a multi-GB video takes seconds."""
+    with _hashing_bar(_source_bytes(job.source), f"{job.name}: hashing the video (SHA-256, for the manifest)",
+                      position, position is not None) as bar:
+        return source_signature(job.source, bar.update)
+
+
 def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: int | None,
              chunking: _Chunking = _Chunking()) -> VideoResult:
     """Worker: convert one job and verify its file, turning an error into a failed result; the chunks it
@@ -1047,6 +1074,9 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
     started = time.perf_counter()
     bar = None
     try:
+        signature = chunking.signature
+        if signature is None and os.path.exists(job.source):    # a missing one is convert_video's to name
+            signature = _signature_with_bar(job, position)
         if position is not None:
             from tqdm.auto import tqdm
 
@@ -1057,7 +1087,7 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
         result = convert_video(job.source, output, settings.for_video(job.name), category=job.category,
                                progress=None if bar is None else bar.update, overwrite=True,
                                chunk_frames=chunking.frames, kept=chunking.kept, keep_chunks=True,
-                               resumed=_resumed_note(job.name, bar), signature=chunking.signature)
+                               resumed=_resumed_note(job.name, bar), signature=signature)
         result = _verified(replace(result, name=job.name))
     except Exception as error:  # reported in the manifest; the other videos go on
         message = " ".join(f"{type(error).__name__}: {error}".split())
@@ -1194,20 +1224,31 @@ def _listed_output(entry: dict | None, output: Path, folder: Path) -> bool:
         return False
 
 
-def _kept_runs(jobs, output_dir: Path, settings: ConvertSettings, redo) -> dict[str, dict]:
+def _kept_runs(jobs, output_dir: Path, settings: ConvertSettings, redo, progress: bool = False) -> dict[str, dict]:
     """The conversion (``run.json`` of :mod:`cmax.sim.chunks`) of each of ``jobs`` whose output has a chunk folder
-    beside it, by name (its source hashed once here); ``redo`` names and unreadable sources (they fail their own
-    video) are left out."""
+    beside it, by name (its source hashed once here, with a bar [bytes] when ``progress``: :func:`_hashing_bar`);
+    ``redo`` names and unreadable sources (they fail their own video) are left out."""
     from cmax.sim.chunks import chunk_folder
 
-    runs = {}
+    kept, sizes = [], {}
     for job in jobs:
         if job.name in redo or not chunk_folder(output_dir / f"{job.name}.h5").is_dir():
             continue
         try:
-            runs[job.name] = _chunk_run(source_signature(job.source), settings.for_video(job.name))
+            sizes[job.name] = _source_bytes(job.source)
         except (OSError, ValueError):
             continue
+        kept.append(job)
+    runs: dict[str, dict] = {}
+    if not kept:
+        return runs
+    with _hashing_bar(sum(sizes.values()), "hashing videos with kept chunks (SHA-256, checked against them)",
+                      progress=progress) as bar:
+        for job in kept:
+            try:
+                runs[job.name] = _chunk_run(source_signature(job.source, bar.update), settings.for_video(job.name))
+            except (OSError, ValueError):
+                continue
     return runs
 
 
@@ -1275,7 +1316,7 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
         manifest["videos"] = {name: entry for name, entry in previous["videos"].items() if name not in redo}
     runs: dict[str, dict] = {}     # by name: the conversion of a video with kept chunks, its source hashed once
     if not overwrite:  # a file the manifest does not list is a user's or another run's: never replaced unasked
-        runs = _kept_runs(jobs, output_dir, settings, redo)
+        runs = _kept_runs(jobs, output_dir, settings, redo, progress)
         _check_unlisted_outputs(jobs, previous_videos, output_dir, path, redo, runs)
         # nor are kept chunks of another run thrown away unasked (with chunk_frames None too: a video converted
         # without chunks removes those kept beside its output once it is recorded)
