@@ -500,8 +500,7 @@ def run(args: argparse.Namespace) -> int:
             # the input files are hashed while the windows are fitted: the store waits for their signatures only
             # to compare them with kept windows (--resume) or to record them with the first window it saves
             hashing = PendingSignatures(_input_paths(args), progress=not args.quiet)
-            store = WindowStore(out, lambda: run_record(args, hashing.result()), resume=args.resume,
-                                overwrite=args.overwrite)
+            store = WindowStore(out, _pending_record(args, hashing), resume=args.resume, overwrite=args.overwrite)
             status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
                                min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
                                notes=notes, store=store)
@@ -528,14 +527,22 @@ def _input_paths(args: argparse.Namespace) -> dict:
     return {"file": args.file, "calib": args.calib, "gyro": args.gyro}
 
 
-def run_record(args: argparse.Namespace, files: dict | None = None) -> dict:
+def _pending_record(args: argparse.Namespace, hashing: PendingSignatures):
+    """:func:`run_record` of ``args`` as they are now and of the code of cmax now, with the input files' signatures
+    ``hashing`` gives: a callable that waits for them (:class:`cmax.io.window_store.WindowStore`'s ``run``)."""
+    options, code = argparse.Namespace(**vars(args)), code_digest("cmax")
+    return lambda: run_record(options, hashing.result(), code=code)
+
+
+def run_record(args: argparse.Namespace, files: dict | None = None, *, code: str | None = None) -> dict:
     """What a run of ``cmax fit`` is, for ``--resume`` to check (:class:`cmax.io.window_store.WindowStore`): the
     signatures (size, modification time, SHA-256) of the event file and of ``--calib`` / ``--gyro``, the version of
     cmax and a digest of its code, and every option that changes a window's fit (``args``, the parsed options; ``--jobs`` only as
     whether the windows are warm-started, ``jobs == 1``; the paths of those files only through their signatures, so
     that a moved file, the same bytes, resumes). ``files``: those signatures when they are taken already
     (:class:`cmax.io.window_store.PendingSignatures`), else they are taken here
-    (:func:`cmax.io.window_store.file_signatures`)."""
+    (:func:`cmax.io.window_store.file_signatures`); ``code``: the digest of cmax's code when taken already
+    (:func:`cmax.io.window_store.code_digest`)."""
     import cmax
 
     paths = _input_paths(args)
@@ -543,7 +550,8 @@ def run_record(args: argparse.Namespace, files: dict | None = None) -> dict:
     settings = {key: value for key, value in vars(args).items()
                 if key not in _NOT_RESULTS and not (key in paths and files[key] is not None)}
     settings["warm_start"] = args.jobs == 1
-    return {"cmax": cmax.__version__, "code": code_digest("cmax"), **files, "settings": settings_record(settings)}
+    return {"cmax": cmax.__version__, "code": code_digest("cmax") if code is None else code, **files,
+            "settings": settings_record(settings)}
 
 
 def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_model: str, options: dict,
