@@ -20,6 +20,7 @@ import os
 import re
 import shutil
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -67,8 +68,10 @@ class KeptBlocks:
     ----------
     out : path
         The run's output folder (``-o``).
-    run : dict
-        What the run is, JSON-ready (:func:`cmax.io.window_store.file_signature` for its files).
+    run : dict or callable
+        What the run is, JSON-ready (:func:`cmax.io.window_store.file_signature` for its files); or a callable
+        giving it (:class:`cmax.io.window_store.PendingSignatures`), called the first time it is needed: at once
+        to compare it with kept blocks (``resume``), else with the first block saved (:attr:`run`).
     resume : bool
         Take the blocks an interrupted run with the same ``run`` left (else they are an error).
     overwrite : bool
@@ -80,13 +83,27 @@ class KeptBlocks:
         As :func:`cmax.io.window_store.open_kept`.
     """
 
-    def __init__(self, out: str | os.PathLike, run: dict, *, resume: bool, overwrite: bool) -> None:
+    def __init__(self, out: str | os.PathLike, run: dict | Callable[[], dict], *, resume: bool,
+                 overwrite: bool) -> None:
         self.folder = Path(out) / KEPT_FOLDER
-        self.run = run
-        self.digest = run_digest(run)
+        self._run, self._digest = run, None
         self.resumed = self.unverified = 0
-        open_kept(self.folder, run, found=kept_windows(out), resume=resume, overwrite=overwrite,
+        open_kept(self.folder, lambda: self.run, found=kept_windows(out), resume=resume, overwrite=overwrite,
                   command="cmax depth")
+
+    @property
+    def run(self) -> dict:
+        """What the run is (``run.json``'s contents); the callable given as ``run`` is called the first time."""
+        if callable(self._run):
+            self._run = self._run()
+        return self._run
+
+    @property
+    def digest(self) -> str:
+        """:func:`cmax.io.window_store.run_digest` of :attr:`run`: what each block record names."""
+        if self._digest is None:
+            self._digest = run_digest(self.run)
+        return self._digest
 
     def load(self, first: int) -> tuple[list[int], list[str], int] | None:
         """``(indices, lines, skipped)`` of the finished block whose first window is ``first``: the windows it

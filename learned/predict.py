@@ -725,6 +725,9 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
 
     from cmax import viz
     from cmax.io.atomic import write_text_atomic
+    import functools
+
+    from cmax.io.window_store import PendingSignatures, code_digest
     from learned.evaluate import load_network
     from learned.pretrained import card_limits, shipped_checkpoint
 
@@ -756,6 +759,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
             check_calibration_of_frames(calib, K, distortion, path)
     elif not as_recorded:   # raw DSEC events (rectify_map.h5 beside them): K of no frame they lie in
         check_raw_dsec(path, RAW_DSEC_CALIB, RAW_DSEC_AS_RECORDED)
+    hashing = None
     try:
         recording = open_recording(path, size=size, time_unit=time_unit, polarity=polarity, t0_s=t0_s, t1_s=t1_s,
                                    sort=sort, camera=camera)
@@ -793,9 +797,13 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
             notes.append(other)
         for text in notes:
             note(text)
-        kept = KeptBlocks(stage.parent, _run_record(path, checkpoint, calib, K, distortion, size, time_unit,
-                                                    polarity, sort, camera, t0_s, t1_s, window_us, len(starts), batch,
-                                                    device, progress), resume=resume, overwrite=overwrite)
+        # the input files are hashed while the windows are predicted: the kept blocks wait for their signatures
+        # only to compare them with an interrupted run's (resume) or to record them with the first block
+        hashing = PendingSignatures({"file": path, "checkpoint": checkpoint, "calib": calib}, progress=progress)
+        recorded = functools.partial(_run_record, path, checkpoint, calib, np.array(K), distortion, size, time_unit,
+                                     polarity, sort, camera, t0_s, t1_s, window_us, len(starts), batch, device,
+                                     progress, code=code_digest("cmax", "learned"))
+        kept = KeptBlocks(stage.parent, lambda: recorded(files=hashing.result()), resume=resume, overwrite=overwrite)
         lines, skipped, samples, indices = [_CSV_HEADER], 0, [], []
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
             for first in range(0, len(starts), batch):   # one forward pass each, kept once all its windows are
@@ -822,8 +830,11 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                 indices += done[0]
                 lines += done[1]
                 skipped += done[2]
+        kept.run     # every input hashed whole and unchanged (else refused) before the results are published
     finally:
         recording.close()
+        if hashing is not None:    # stopped within one block, never left running
+            hashing.close()
     if kept.resumed or kept.unverified:
         redone = f"; {kept.unverified} block(s) not verified, predicted again" if kept.unverified else ""
         note(f"resumed: {kept.resumed} of {len(indices)} windows taken from the interrupted run in "
@@ -858,16 +869,20 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
 
 
 def _run_record(path, checkpoint, calib, K, distortion, size, time_unit, polarity, sort, camera, t0_s, t1_s,
-                window_us: int, windows: int, batch: int, device, progress: bool = True) -> dict:
+                window_us: int, windows: int, batch: int, device, progress: bool = True,
+                files: dict | None = None, code: str | None = None) -> dict:
     """What a run of :func:`run_prediction` is, for ``resume`` to check: the event file's, the checkpoint's and
     the calibration's signatures (size, modification time, SHA-256: a progress bar while they are hashed when they
-    hold more than 1 GiB and ``progress``) and every option that changes a window, with the
-    resolved window length [µs], number of windows and batch (the blocks of the forward passes)."""
+    hold more than 1 GiB and ``progress``; ``files``: those signatures when they are taken already,
+    :class:`cmax.io.window_store.PendingSignatures`; ``code``: the digest of the code when taken already) and every
+    option that changes a window, with the resolved window length [µs], number of windows and batch (the blocks of
+    the forward passes)."""
     import cmax
     from cmax.io.window_store import code_digest, file_signatures, settings_record
 
-    files = file_signatures({"file": path, "checkpoint": checkpoint, "calib": calib}, progress=progress)
-    return {"cmax": cmax.__version__, "code": code_digest("cmax", "learned"), **files,
+    if files is None:
+        files = file_signatures({"file": path, "checkpoint": checkpoint, "calib": calib}, progress=progress)
+    return {"cmax": cmax.__version__, "code": code_digest("cmax", "learned") if code is None else code, **files,
             "settings": settings_record({"K": K, "distortion": distortion, "size": size, "time_unit": time_unit,
                                          "polarity": polarity, "sort": sort, "camera": camera, "t0_s": t0_s,
                                          "t1_s": t1_s, "window_us": window_us, "windows": windows, "batch": batch,

@@ -202,3 +202,39 @@ def test_resume_refuses_a_calibration_file_changed_under_the_same_path(recording
     yaml.write_text(_cam_to_cam())                  # restored (the same bytes and modification time): resumes
     os.utime(yaml, ns=(before.st_atime_ns, before.st_mtime_ns))
     assert predict.main([*run, "--resume"]) == 0
+
+
+def test_a_fresh_run_predicts_while_its_inputs_are_hashed(recording, tiny_checkpoint, tmp_path, monkeypatch):
+    """A fresh ``cmax depth`` hashes its inputs (cmax.io.window_store.PendingSignatures) while the network runs:
+    the event file's hash is held back until the first forward pass has begun, and the run ends (was: the inputs
+    were hashed whole before anything else: this hash waited 60 s for a pass that never came). The kept blocks'
+    run.json records the SHA-256 of the file's bytes (hashlib of its bytes); no hashing thread outlives the run."""
+    import hashlib
+    import json
+    import threading
+
+    import cmax.io.window_store as window_store
+
+    real, predicting, order = window_store.file_sha256, threading.Event(), []
+
+    def held_back(path, read=None):
+        if os.path.basename(path) == recording.name:
+            predicting.wait(60)
+            order.append("hashed")
+        return real(path, read)
+
+    monkeypatch.setattr(window_store, "file_sha256", held_back)
+    counted = (counted_calls(monkeypatch, predict, "forward", interrupt_at=3), predict.forward)[1]
+
+    def forward(*args, **kwargs):
+        order.append("forward")
+        predicting.set()
+        return counted(*args, **kwargs)
+
+    monkeypatch.setattr(predict, "forward", forward)
+    out = tmp_path / "o"
+    assert predict.main(argv(recording, out, tiny_checkpoint)) == 130     # two blocks kept
+    assert order[:2] == ["forward", "hashed"], order
+    record = json.loads((out / KEPT_FOLDER / "run.json").read_text())
+    assert record["file"]["sha256"] == hashlib.sha256(recording.read_bytes()).hexdigest()
+    assert not [thread for thread in threading.enumerate() if thread.name == "cmax-hash-inputs"]

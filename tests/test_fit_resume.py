@@ -352,3 +352,106 @@ def test_resume_continues_a_moved_event_file_and_folder(recording, tmp_path, mon
     assert main([*se3_argv(moved / "ev.h5", moved / "o"), "--resume"]) == status
     assert len(calls) == 2 and "resumed: 2 of 4 fitted windows taken" in capsys.readouterr().err
     assert_same(results_of(moved / "o"), results_of(whole))
+
+
+def _hashing_threads() -> list:
+    import threading
+
+    return [thread for thread in threading.enumerate() if thread.name == "cmax-hash-inputs"]
+
+
+def test_a_fresh_run_fits_its_first_window_while_its_inputs_are_hashed(recording, tmp_path, monkeypatch):
+    """A fresh ``cmax fit`` hashes its inputs (cmax.io.window_store.PendingSignatures) while it fits: the event
+    file's hash is held back until the first window's fit has begun, and the run goes on (was: every run hashed its
+    inputs whole before anything else, 13.5 s for 3 GB from disk: this hash waited for a fit that never came, 60 s).
+    The window kept with the first window records the SHA-256 of the file's bytes (hashlib of its bytes), and no
+    hashing thread outlives the run."""
+    import hashlib
+    import threading
+
+    import cmax.io.window_store as window_store
+
+    real, fitting, order = window_store.file_sha256, threading.Event(), []
+
+    def held_back(path, read=None):
+        if os.path.basename(path) == recording.name:
+            fitting.wait(60)
+            order.append("hashed")
+        return real(path, read)
+
+    monkeypatch.setattr(window_store, "file_sha256", held_back)
+    counted = (counted_calls(monkeypatch, sequence_module, "fit", interrupt_at=3), sequence_module.fit)[1]
+
+    def fit(*args, **kwargs):
+        order.append("fit")
+        fitting.set()
+        return counted(*args, **kwargs)
+
+    monkeypatch.setattr(sequence_module, "fit", fit)
+    out = tmp_path / "o"
+    assert main(se3_argv(recording, out)) == 130          # interrupted in the third window: two kept
+    assert order[:2] == ["fit", "hashed"], order
+    record = json.loads((out / WINDOWS_FOLDER / "run.json").read_text())
+    assert record["file"]["sha256"] == hashlib.sha256(recording.read_bytes()).hexdigest()
+    assert record["file"]["bytes"] == recording.stat().st_size
+    assert not _hashing_threads()
+
+
+def test_an_input_modified_while_it_is_hashed_beside_the_fit_is_refused(recording, tmp_path, monkeypatch, capsys):
+    """The event file touched while it is hashed (in the background now, beside the fit): refused in one line
+    naming it (cmax.io.atomic.check_unchanged), exit 2; no result and no kept window is left that looks like a
+    run of it."""
+    import cmax.io.window_store as window_store
+
+    path = tmp_path / "ev.h5"
+    path.write_bytes(recording.read_bytes())
+    real = window_store.file_sha256
+
+    def touched(file, read=None):
+        digest = real(file, read)
+        if os.path.basename(file) == path.name:
+            stat = os.stat(file)
+            os.utime(file, ns=(stat.st_atime_ns, stat.st_mtime_ns + 10**9))
+        return digest
+
+    monkeypatch.setattr(window_store, "file_sha256", touched)
+    out = tmp_path / "o"
+    capsys.readouterr()
+    assert main(se3_argv(path, out)) == 2
+    err = capsys.readouterr().err
+    assert f"{path} changed while it was read to hash it: it was modified" in err and len(err.strip().splitlines()) == 1
+    assert not (out / "summary.json").exists() and not (out / WINDOWS_FOLDER).exists()
+    assert not out.exists() or not any(out.iterdir())     # the run's own folder, removed with its stage
+    assert not _hashing_threads()
+
+
+def test_ctrl_c_while_the_inputs_are_hashed_stops_the_hashing_and_exits_130(recording, tmp_path, monkeypatch,
+                                                                             capsys):
+    """Ctrl-C in the first window while the event file is still being hashed (a hash that would take 60 s): exit
+    130 at once, one line, no result, and the hashing thread is stopped, not left running."""
+    import cmax.io.window_store as window_store
+
+    real, stopped = window_store.file_sha256, []
+
+    def slow(path, read=None):
+        deadline = time.monotonic() + 60
+        try:
+            while os.path.basename(path) == recording.name and time.monotonic() < deadline:
+                if read is not None:
+                    read(0)             # where the hashing is stopped: between blocks
+                time.sleep(0.01)
+        except BaseException:
+            stopped.append(path)
+            raise
+        return real(path, read)
+
+    monkeypatch.setattr(window_store, "file_sha256", slow)
+    counted_calls(monkeypatch, sequence_module, "fit", interrupt_at=1)
+    out = tmp_path / "o"
+    capsys.readouterr()
+    started = time.monotonic()
+    assert main(se3_argv(recording, out)) == 130
+    assert time.monotonic() - started < 30
+    assert capsys.readouterr().err.strip() == "cmax fit: interrupted"
+    assert stopped and not _hashing_threads()
+    assert not (out / "summary.json").exists() and not (out / WINDOWS_FOLDER).exists()

@@ -456,3 +456,68 @@ def test_a_removal_of_kept_chunks_cut_short_is_not_read_as_chunks(tmp_path, monk
     assert main(argv) == 0, capsys.readouterr().err
     assert "already converted" in capsys.readouterr().out
     assert sorted(os.listdir(out)) == ["a.h5", "manifest.json"]
+
+
+def test_a_chunked_resume_reads_the_video_once_to_hash_it(tmp_path, monkeypatch):
+    """Continuing a video's kept chunks, cmax simulate hashed the video twice: once to compare it with the chunks
+    (before anything is converted), once more as its conversion began (a multi-GB video: seconds each). Now once:
+    the conversion takes the signature just taken while the video keeps its size and modification time; the
+    events equal an uninterrupted conversion's, and the manifest records the video's SHA-256 (hashlib of its
+    bytes). A video touched between the two is hashed again (its new signature is recorded)."""
+    import hashlib
+
+    import cmax.sim.signature as signature_module
+
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=3)
+    video = tmp_path / "v.avi"
+    real, hashed = signature_module.file_sha256, []
+
+    def counted(path, read=None):
+        if os.path.basename(path) == video.name:
+            hashed.append(path)
+        return real(path, read)
+
+    monkeypatch.setattr(signature_module, "file_sha256", counted)
+    jobs, _ = collect_jobs(video)
+    manifest = convert_collection(jobs, tmp_path, LINEAR, progress=False, chunk_frames=6)
+    assert len(hashed) == 1                                          # was 2
+    assert same_events(read_h5(output), whole) and not folder.exists()
+    entry = manifest["videos"]["v"]
+    assert entry["status"] == "ok"
+    assert entry["source_signature"]["sha256"] == hashlib.sha256(video.read_bytes()).hexdigest()
+
+    check = convert_module._still_signed(entry["source_signature"], video)
+    os.utime(video, ns=(video.stat().st_atime_ns, video.stat().st_mtime_ns + 10**9))
+    assert check and not convert_module._still_signed(entry["source_signature"], video)
+
+
+def test_hashing_a_video_shows_a_progress_bar_on_a_first_conversion_and_a_chunked_resume(tmp_path, monkeypatch):
+    """A video is read whole to hash it (SHA-256) before its frames: as it is first converted (for the manifest),
+    and, when chunks of an interrupted conversion are kept beside its output, before anything is converted (to
+    check them). Above HASH_PROGRESS_BYTES (1 GiB; 0 here) a bar [bytes] shows each, its total and count the
+    video's bytes (was: no bar, only a frame bar standing at 0 while a multi-GB video was read)."""
+    import tqdm.auto
+
+    import cmax.io.window_store
+
+    output, folder, whole = _interrupted(tmp_path, monkeypatch, LINEAR, stop_at=3)
+    size = (tmp_path / "v.avi").stat().st_size
+    bars = []
+
+    class Recorded(tqdm.auto.tqdm):
+        def close(self):
+            if not self.disable and not getattr(self, "recorded", False):   # (tqdm may close a bar twice)
+                bars.append((self.desc, self.total, self.n))
+                self.recorded = True
+            super().close()
+
+    monkeypatch.setattr(tqdm.auto, "tqdm", Recorded)
+    monkeypatch.setattr(cmax.io.window_store, "HASH_PROGRESS_BYTES", 0)
+    jobs, _ = collect_jobs(tmp_path / "v.avi")
+    convert_collection(jobs, tmp_path, LINEAR, progress=True, chunk_frames=6)      # continues the kept chunks
+    assert [(total, n) for desc, total, n in bars if "hashing" in desc] == [(size, size)]
+    assert same_events(read_h5(output), whole) and not folder.exists()
+    bars.clear()
+    convert_collection(jobs, tmp_path / "fresh", LINEAR, progress=True, chunk_frames=6)    # a first conversion
+    assert [(total, n) for desc, total, n in bars if "hashing" in desc] == [(size, size)]
+    assert same_events(read_h5(tmp_path / "fresh" / "v.h5"), whole)

@@ -34,8 +34,8 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 from cmax.io.provenance import file_depth_range, file_intrinsics
-from cmax.io.window_store import (WINDOWS_FOLDER, WindowStore, code_digest, file_signatures, interrupted_windows,
-                                  settings_record, stopped_line)
+from cmax.io.window_store import (WINDOWS_FOLDER, PendingSignatures, WindowStore, code_digest, file_signatures,
+                                  interrupted_windows, settings_record, stopped_line)
 
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
            "hot_pixel_note", "option_words", "run", "run_record", "tum_lines", "unscaled_range_note",
@@ -126,8 +126,8 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                              "this run's); they stay until this run has written all of its own")
     parser.add_argument("--resume", action="store_true",
                         help="continue an interrupted run into -o: its finished windows (kept in -o/.fit.windows as "
-                             "each is done) are checked (the same event file by size and modification time, the "
-                             "same options) and taken, the others fitted (default: off; a folder holding an "
+                             "each is done) are checked (the same event, --gyro and --calib files by their SHA-256, "
+                             "the same options) and taken, the others fitted (default: off; a folder holding an "
                              "interrupted run's windows is refused without --resume or --overwrite; with "
                              "--overwrite too, an earlier complete run's results in -o are replaced at the end)")
     parser.add_argument("--keep-hot-pixels", action="store_true",
@@ -498,19 +498,27 @@ def run(args: argparse.Namespace) -> int:
     window_us = (_sequence_default("window_us")() if args.window_ms is None
                  else _microseconds(args.window_ms, "--window-ms"))
     step_us = window_us if args.step_ms is None else _microseconds(args.step_ms, "--step-ms")
+    hashing = None
     try:
         with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
                                    what="depth_*.npz, summary.json, ...") as stage:
-            store = WindowStore(out, run_record(args), resume=args.resume, overwrite=args.overwrite)
+            # the input files are hashed while the windows are fitted: the store waits for their signatures only
+            # to compare them with kept windows (--resume) or to record them with the first window it saves
+            hashing = PendingSignatures(_input_paths(args), progress=not args.quiet)
+            store = WindowStore(out, _pending_record(args, hashing), resume=args.resume, overwrite=args.overwrite)
             status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
                                min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
                                notes=notes, store=store)
+            store.run    # every input hashed whole and unchanged (else refused) before the results are published
     except KeyboardInterrupt as stop:   # Ctrl-C, or SIGTERM (cmax._signals): say what is kept
         if not (kept := interrupted_windows(out)):
             raise
         line, status = stopped_line("cmax fit", stop, kept, out / WINDOWS_FOLDER)
         print(line, file=sys.stderr)
         return status
+    finally:
+        if hashing is not None:    # stopped within one block, never left running
+            hashing.close()
     store.remove()   # the results are in out: the finished windows are no longer needed
     return status
 
@@ -519,20 +527,36 @@ def run(args: argparse.Namespace) -> int:
 _NOT_RESULTS = ("command", "output", "quiet", "overwrite", "resume", "run", "jobs")
 
 
-def run_record(args: argparse.Namespace) -> dict:
+def _input_paths(args: argparse.Namespace) -> dict:
+    """The input files of a run of ``cmax fit`` by the name its record gives them (None: not given)."""
+    return {"file": args.file, "calib": args.calib, "gyro": args.gyro}
+
+
+def _pending_record(args: argparse.Namespace, hashing: PendingSignatures):
+    """:func:`run_record` of ``args`` as they are now and of the code of cmax now, with the input files' signatures
+    ``hashing`` gives: a callable that waits for them (:class:`cmax.io.window_store.WindowStore`'s ``run``)."""
+    options, code = argparse.Namespace(**vars(args)), code_digest("cmax")
+    return lambda: run_record(options, hashing.result(), code=code)
+
+
+def run_record(args: argparse.Namespace, files: dict | None = None, *, code: str | None = None) -> dict:
     """What a run of ``cmax fit`` is, for ``--resume`` to check (:class:`cmax.io.window_store.WindowStore`): the
     signatures (size, modification time, SHA-256) of the event file and of ``--calib`` / ``--gyro``, the version of
     cmax and a digest of its code, and every option that changes a window's fit (``args``, the parsed options; ``--jobs`` only as
     whether the windows are warm-started, ``jobs == 1``; the paths of those files only through their signatures, so
-    that a moved file, the same bytes, resumes)."""
+    that a moved file, the same bytes, resumes). ``files``: those signatures when they are taken already
+    (:class:`cmax.io.window_store.PendingSignatures`), else they are taken here
+    (:func:`cmax.io.window_store.file_signatures`); ``code``: the digest of cmax's code when taken already
+    (:func:`cmax.io.window_store.code_digest`)."""
     import cmax
 
-    paths = {"file": args.file, "calib": args.calib, "gyro": args.gyro}
-    files = file_signatures(paths, progress=not args.quiet)
+    paths = _input_paths(args)
+    files = file_signatures(paths, progress=not args.quiet) if files is None else files
     settings = {key: value for key, value in vars(args).items()
                 if key not in _NOT_RESULTS and not (key in paths and files[key] is not None)}
     settings["warm_start"] = args.jobs == 1
-    return {"cmax": cmax.__version__, "code": code_digest("cmax"), **files, "settings": settings_record(settings)}
+    return {"cmax": cmax.__version__, "code": code_digest("cmax") if code is None else code, **files,
+            "settings": settings_record(settings)}
 
 
 def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_model: str, options: dict,

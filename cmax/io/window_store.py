@@ -29,6 +29,7 @@ import os
 import pickle
 import re
 import shutil
+import threading
 from pathlib import Path
 from typing import Any, Callable
 
@@ -38,7 +39,7 @@ from cmax.io.atomic import check_unchanged, file_sha256, fsync_folder, write_byt
 from cmax.sim.signature import signature_problem
 
 __all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "file_signatures",
-           "settings_record", "open_kept", "write_run_record", "stopped_line", "code_digest", "run_digest",
+           "PendingSignatures", "settings_record", "open_kept", "write_run_record", "stopped_line", "code_digest", "run_digest",
            "run_differences"]
 
 #: The folder in ``-o`` that holds the finished windows of a run of ``cmax fit`` until its results are in.
@@ -154,9 +155,11 @@ def run_differences(recorded: dict, now: dict) -> list[str]:
     return _differences(recorded, now)
 
 
-def open_kept(folder: Path, run: dict, *, found: int, resume: bool, overwrite: bool, command: str) -> None:
+def open_kept(folder: Path, run: dict | Callable[[], dict], *, found: int, resume: bool, overwrite: bool,
+              command: str) -> None:
     """Check the folder of an interrupted run's finished windows (``folder``: ``-o/.fit.windows``,
-    ``-o/.depth.windows``) against the new ``run`` (JSON-ready, as ``folder/run.json`` records it); ``found``: how
+    ``-o/.depth.windows``) against the new ``run`` (JSON-ready, as ``folder/run.json`` records it; or a callable
+    giving it, called only when there are windows to compare with it: a ``resume``); ``found``: how
     many finished windows it holds. The folder is removed when it holds none (a ``run.json`` alone) or with
     ``overwrite`` alone; kept when ``resume`` (with or without ``overwrite``, which is then about an earlier complete
     run's results) and the runs match. ``command`` names the command in messages.
@@ -182,7 +185,7 @@ def open_kept(folder: Path, run: dict, *, found: int, resume: bool, overwrite: b
         if not isinstance(recorded, dict):
             raise ValueError(f"cannot --resume: {folder / _RUN_FILE} is missing or unreadable, so the finished "
                              "windows cannot be checked: --overwrite starts over")
-        if differences := _differences(recorded, run):
+        if differences := _differences(recorded, run() if callable(run) else run):
             raise ValueError(f"cannot --resume the run in {out}: it was another run (" + "; ".join(differences)
                              + "): give the same file and options, or --overwrite to start over")
 
@@ -202,9 +205,11 @@ class WindowStore:
     ----------
     out : path
         The run's output folder (``-o``).
-    run : dict
+    run : dict or callable
         What the run is, JSON-ready: ``{"file": signature, ..., "settings": {...}}`` (a signature as
-        :func:`file_signature` gives it; compared by size, modification time and SHA-256).
+        :func:`file_signature` gives it; compared by size, modification time and SHA-256); or a callable giving it
+        (e.g. once :class:`PendingSignatures` has hashed the files), called the first time it is needed: at once
+        to compare it with kept windows (``resume``), else with the first window saved (:attr:`run`).
     resume : bool
         Take the windows an interrupted run with the same ``run`` left (else they are an error).
     overwrite : bool
@@ -219,13 +224,28 @@ class WindowStore:
         names each difference.
     """
 
-    def __init__(self, out: str | os.PathLike, run: dict, *, resume: bool, overwrite: bool) -> None:
+    def __init__(self, out: str | os.PathLike, run: dict | Callable[[], dict], *, resume: bool,
+                 overwrite: bool) -> None:
         self.folder = Path(out) / WINDOWS_FOLDER
-        self.run, self.digest = run, run_digest(run)
+        self._run, self._digest = run, None
         self.resumed = self.unreadable = 0
         self._with_maps: set[int] = set()
-        open_kept(self.folder, run, found=interrupted_windows(out), resume=resume, overwrite=overwrite,
+        open_kept(self.folder, lambda: self.run, found=interrupted_windows(out), resume=resume, overwrite=overwrite,
                   command="cmax fit")
+
+    @property
+    def run(self) -> dict:
+        """What the run is (``run.json``'s contents); the callable given as ``run`` is called the first time."""
+        if callable(self._run):
+            self._run = self._run()
+        return self._run
+
+    @property
+    def digest(self) -> str:
+        """:func:`run_digest` of :attr:`run`: what each window file names."""
+        if self._digest is None:
+            self._digest = run_digest(self.run)
+        return self._digest
 
     def _path(self, index: int) -> Path:
         return self.folder / f"window_{index:05d}.pickle"
@@ -314,7 +334,8 @@ def file_signature(path: str | os.PathLike | None, read: Callable[[int], None] |
             "sha256": digest}
 
 
-def file_signatures(paths: dict[str, str | os.PathLike | None], *, progress: bool = True) -> dict[str, dict | None]:
+def file_signatures(paths: dict[str, str | os.PathLike | None], *, progress: bool = True,
+                    read: Callable[[int], None] | None = None) -> dict[str, dict | None]:
     """:func:`file_signature` of each of ``paths`` (by name: ``{"file": events, "gyro": ..., ...}``), with a
     progress bar [bytes] on stderr while they are hashed when they hold more than :data:`HASH_PROGRESS_BYTES`.
 
@@ -324,13 +345,78 @@ def file_signatures(paths: dict[str, str | os.PathLike | None], *, progress: boo
         A run's input files by the name its record gives them.
     progress : bool
         Allow the progress bar (off for ``--quiet``).
+    read : callable, optional
+        Called with the bytes [B] of each block hashed, before the bar counts it (an exception it raises stops
+        the hashing: :class:`PendingSignatures` stops so).
     """
     from tqdm.auto import tqdm
 
     total = sum(os.path.getsize(path) for path in paths.values() if path is not None and os.path.isfile(path))
     with tqdm(total=total, desc="hashing input files (checked by --resume)", unit="B", unit_scale=True,
               unit_divisor=1024, disable=not progress or total <= HASH_PROGRESS_BYTES) as bar:
-        return {name: file_signature(path, bar.update) for name, path in paths.items()}
+        counted = bar.update if read is None else (lambda nbytes: (read(nbytes), bar.update(nbytes)))
+        return {name: file_signature(path, counted) for name, path in paths.items()}
+
+
+class _Stopped(Exception):
+    """Raised in :class:`PendingSignatures`' thread to stop its hashing."""
+
+
+class PendingSignatures:
+    """:func:`file_signatures` of a run's input files, taken in a background thread from construction, so that
+    the run's work starts at once; :meth:`result` waits for them. A run needs them only when it compares them
+    with a kept run (``--resume``) or records them (with its first kept window or block, :class:`WindowStore`):
+    hashing a 3 GB file from disk takes seconds, which a fresh run now spends fitting.
+
+    Always :meth:`close` it (``try``/``finally``): it stops the thread within one 4 MiB block and waits for it,
+    so that no thread outlives the run (a Ctrl-C, an error).
+
+    Parameters
+    ----------
+    paths : dict of str to path or None
+        A run's input files by the name its record gives them (as :func:`file_signatures`).
+    progress : bool
+        Allow :func:`file_signatures`' progress bar [bytes] on stderr (off for ``--quiet``).
+    """
+
+    def __init__(self, paths: dict[str, str | os.PathLike | None], *, progress: bool = True) -> None:
+        self._stop = threading.Event()
+        self._signatures: dict[str, dict | None] | None = None
+        self._error: BaseException | None = None
+        self._thread = threading.Thread(target=self._hash, args=(dict(paths), progress), daemon=True,
+                                        name="cmax-hash-inputs")
+        self._thread.start()
+
+    def _hash(self, paths: dict, progress: bool) -> None:
+        def read(_nbytes: int) -> None:
+            if self._stop.is_set():
+                raise _Stopped
+
+        try:
+            self._signatures = file_signatures(paths, progress=progress, read=read)
+        except BaseException as error:      # raised again by result(), in the run's thread
+            self._error = error
+
+    def result(self) -> dict[str, dict | None]:
+        """The signatures by name (:func:`file_signatures`), once every file is hashed (waits for the thread).
+
+        Raises
+        ------
+        ValueError, OSError
+            What :func:`file_signature` raised: a file whose size or modification time changed while it was
+            hashed (:func:`cmax.io.atomic.check_unchanged`), an unreadable file.
+        """
+        self._thread.join()
+        if isinstance(self._error, _Stopped):
+            raise RuntimeError("the input files' hashing was stopped (close) before it ended")
+        if self._error is not None:
+            raise self._error
+        return self._signatures
+
+    def close(self) -> None:
+        """Stop the hashing (within one block) and wait for the thread; a finished one is left as it is."""
+        self._stop.set()
+        self._thread.join()
 
 
 def settings_record(values: dict) -> dict:

@@ -394,6 +394,7 @@ def convert_video(
     kept: str = "resume",
     keep_chunks: bool = False,
     resumed: Callable[[int, int], None] | None = None,
+    signature: dict[str, Any] | None = None,
 ) -> VideoResult:
     """Convert one video to a DSEC-layout event file, streaming (constant memory).
 
@@ -438,6 +439,11 @@ def convert_video(
     resumed : callable, optional
         Called once, with the video frames and the events the kept chunks hold, when the conversion continues
         from them.
+    signature : dict, optional
+        The source's signature (:func:`cmax.sim.signature.source_signature`) when the caller has just taken it
+        (:func:`convert_collection` hashes a video with kept chunks before it converts anything): used as it is
+        while the source's files still have its number, bytes and latest modification time (a ``stat``, no read),
+        else the source is hashed again. None (the default): the source is hashed here, before it is read.
 
     Returns
     -------
@@ -462,7 +468,7 @@ def convert_video(
         raise ValueError(f"kept must be one of {', '.join(KEPT_MODES)}, got {kept!r}")
     if not overwrite and os.path.lexists(output):  # before any frame is read (the writer checks again)
         raise FileExistsError(f"{output} exists (pass overwrite=True to replace it)")
-    signature, decoded = None, frames is None
+    decoded = frames is None
     if frames is None and not source.exists():
         raise FileNotFoundError(f"video not found: {source}")
     # chunks: one conversion into output at a time, for the whole run (the output's own lock is taken only
@@ -471,8 +477,11 @@ def convert_video(
     not_continued = None
     try:
         if frames is None:
-            signature = source_signature(source)  # before reading: a source changed meanwhile is redone on resume
+            if signature is None or not _still_signed(signature, source):
+                signature = source_signature(source)  # before reading: a source changed meanwhile is redone on resume
             frames = open_frames(source, settings)
+        else:
+            signature = None
         chunks = None if guard is None else KeptChunks(output, _chunk_run(signature, settings), kept=kept)
         run = _Run(source, output, settings, chunks, frames, category, overwrite)
         if chunks is not None and chunks.redone:
@@ -502,7 +511,7 @@ def convert_video(
             raise ValueError(f"{not_continued}: pass --overwrite (kept='resume_or_restart') to start over")
         warnings.warn(f"{not_continued}: converting it from its first frame", UserWarning, stacklevel=2)
         return convert_video(source, output, settings, category=category, progress=progress, overwrite=overwrite,
-                             chunk_frames=chunk_frames, kept="restart", keep_chunks=keep_chunks)
+                             chunk_frames=chunk_frames, kept="restart", keep_chunks=keep_chunks, signature=signature)
     count, duration = run.count, (run.count.last_t - run.count.first_t) * 1e-6
     return VideoResult(
         name=output.stem, source=str(source), output=str(output), category=category, status="ok",
@@ -511,6 +520,20 @@ def convert_video(
         events_per_s=run.events / duration if duration > 0 else 0.0,
         wall_s=time.perf_counter() - started, source_signature=signature,
     )
+
+
+def _still_signed(signature: dict[str, Any], source: Path) -> bool:
+    """Whether ``source`` (its resolved path) and its files (:func:`cmax.sim.signature.source_files`) still have the
+    path, number of files, total bytes and latest modification time [ns] that ``signature`` records (a ``stat``
+    of each, nothing read); False where they cannot be listed."""
+    from cmax.sim.signature import source_files
+
+    try:
+        stats = [os.stat(file) for file in source_files(source)]
+    except (OSError, ValueError):
+        return False
+    now = (str(source.resolve()), len(stats), sum(s.st_size for s in stats), max(s.st_mtime_ns for s in stats))
+    return now == tuple(signature.get(key) for key in ("path", "files", "bytes", "mtime_ns"))
 
 
 class _Run:
@@ -995,10 +1018,12 @@ def _failed(job: VideoJob, output: Path, error: str, started: float | None = Non
 @dataclass(frozen=True)
 class _Chunking:
     """How one job keeps chunks: ``frames`` video frames a chunk (None: no chunks) and the ``kept`` mode of
-    :func:`convert_video`."""
+    :func:`convert_video`; ``signature``: its source's signature where :func:`_kept_runs` took it (to compare it
+    with kept chunks), for :func:`convert_video` not to hash the source a second time."""
 
     frames: int | None = None
     kept: str = "resume"
+    signature: dict | None = None
 
 
 def _resumed_note(name: str, bar) -> Callable[[int, int], None]:
@@ -1015,6 +1040,33 @@ def _resumed_note(name: str, bar) -> Callable[[int, int], None]:
     return note
 
 
+def _hashing_bar(total: int, desc: str, position: int | None = None, progress: bool = True):
+    """A tqdm bar [bytes] on stderr over hashing ``total`` bytes of videos (SHA-256), ``desc`` its label, at the
+    line ``position``; shown when ``progress`` and ``total`` is more than
+    :data:`cmax.io.window_store.HASH_PROGRESS_BYTES` (as cmax fit's input hashing)."""
+    from tqdm.auto import tqdm
+
+    from cmax.io.window_store import HASH_PROGRESS_BYTES
+
+    return tqdm(total=total, desc=desc, unit="B", unit_scale=True, unit_divisor=1024, position=position,
+                leave=False, disable=not progress or total <= HASH_PROGRESS_BYTES)
+
+
+def _source_bytes(source: str | os.PathLike) -> int:
+    """The bytes [B] of the files a conversion of ``source`` reads (:func:`cmax.sim.signature.source_files`)."""
+    from cmax.sim.signature import source_files
+
+    return sum(os.path.getsize(file) for file in source_files(source))
+
+
+def _signature_with_bar(job: VideoJob, position: int | None) -> dict[str, Any]:
+    """:func:`cmax.sim.signature.source_signature` of ``job``'s source, a bar [bytes] on the line ``position``
+    (None: no bar) while it is read (:func:`_hashing_bar`): a multi-GB video takes seconds."""
+    with _hashing_bar(_source_bytes(job.source), f"{job.name}: hashing the video (SHA-256, for the manifest)",
+                      position, position is not None) as bar:
+        return source_signature(job.source, bar.update)
+
+
 def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: int | None,
              chunking: _Chunking = _Chunking()) -> VideoResult:
     """Worker: convert one job and verify its file, turning an error into a failed result; the chunks it
@@ -1022,6 +1074,9 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
     started = time.perf_counter()
     bar = None
     try:
+        signature = chunking.signature
+        if signature is None and os.path.exists(job.source):    # a missing one is convert_video's to name
+            signature = _signature_with_bar(job, position)
         if position is not None:
             from tqdm.auto import tqdm
 
@@ -1032,7 +1087,7 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
         result = convert_video(job.source, output, settings.for_video(job.name), category=job.category,
                                progress=None if bar is None else bar.update, overwrite=True,
                                chunk_frames=chunking.frames, kept=chunking.kept, keep_chunks=True,
-                               resumed=_resumed_note(job.name, bar))
+                               resumed=_resumed_note(job.name, bar), signature=signature)
         result = _verified(replace(result, name=job.name))
     except Exception as error:  # reported in the manifest; the other videos go on
         message = " ".join(f"{type(error).__name__}: {error}".split())
@@ -1169,20 +1224,31 @@ def _listed_output(entry: dict | None, output: Path, folder: Path) -> bool:
         return False
 
 
-def _kept_runs(jobs, output_dir: Path, settings: ConvertSettings, redo) -> dict[str, dict]:
+def _kept_runs(jobs, output_dir: Path, settings: ConvertSettings, redo, progress: bool = False) -> dict[str, dict]:
     """The conversion (``run.json`` of :mod:`cmax.sim.chunks`) of each of ``jobs`` whose output has a chunk folder
-    beside it, by name (its source hashed once here); ``redo`` names and unreadable sources (they fail their own
-    video) are left out."""
+    beside it, by name (its source hashed once here, with a bar [bytes] when ``progress``: :func:`_hashing_bar`);
+    ``redo`` names and unreadable sources (they fail their own video) are left out."""
     from cmax.sim.chunks import chunk_folder
 
-    runs = {}
+    kept, sizes = [], {}
     for job in jobs:
         if job.name in redo or not chunk_folder(output_dir / f"{job.name}.h5").is_dir():
             continue
         try:
-            runs[job.name] = _chunk_run(source_signature(job.source), settings.for_video(job.name))
+            sizes[job.name] = _source_bytes(job.source)
         except (OSError, ValueError):
             continue
+        kept.append(job)
+    runs: dict[str, dict] = {}
+    if not kept:
+        return runs
+    with _hashing_bar(sum(sizes.values()), "hashing videos with kept chunks (SHA-256, checked against them)",
+                      progress=progress) as bar:
+        for job in kept:
+            try:
+                runs[job.name] = _chunk_run(source_signature(job.source, bar.update), settings.for_video(job.name))
+            except (OSError, ValueError):
+                continue
     return runs
 
 
@@ -1248,8 +1314,9 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
                              "convert into another folder or remove it")
         previous_videos = previous["videos"]
         manifest["videos"] = {name: entry for name, entry in previous["videos"].items() if name not in redo}
+    runs: dict[str, dict] = {}     # by name: the conversion of a video with kept chunks, its source hashed once
     if not overwrite:  # a file the manifest does not list is a user's or another run's: never replaced unasked
-        runs = _kept_runs(jobs, output_dir, settings, redo)
+        runs = _kept_runs(jobs, output_dir, settings, redo, progress)
         _check_unlisted_outputs(jobs, previous_videos, output_dir, path, redo, runs)
         # nor are kept chunks of another run thrown away unasked (with chunk_frames None too: a video converted
         # without chunks removes those kept beside its output once it is recorded)
@@ -1312,7 +1379,7 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
     def chunking(job: VideoJob) -> _Chunking:
         # redo (--overwrite of one file): chunks of the same run continue (the same events as starting over)
         kept = "resume_or_restart" if overwrite or job.name in redo else "resume"
-        return _Chunking(chunk_frames, kept)
+        return _Chunking(chunk_frames, kept, runs.get(job.name, {}).get("source"))
 
     try:
         if workers == 1 or len(todo) <= 1:
