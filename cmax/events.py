@@ -173,7 +173,8 @@ def _as_column(name: str, values: object) -> np.ndarray:
             bad = int(np.flatnonzero(array != np.round(array))[0])
             raise ValueError(
                 f"{name} must hold whole numbers, got {array[bad]} at index {bad}"
-                + (" (times are integer microseconds; from float seconds: np.rint(t * 1e6).astype(np.int64))"
+                + (" (times are integer microseconds; from float seconds: np.rint(t * 1e6).astype(np.int64), or "
+                   "state their unit: time_unit='s')"
                    if name == "t" else "")
             )
     return array
@@ -269,6 +270,41 @@ def _timestamps(values: object) -> np.ndarray:
     return array
 
 
+def _stated_times(values: object, time_unit: object) -> np.ndarray:
+    """The time column ``values`` (N,) in the stated ``time_unit`` (``'us'``, ``'ms'``, ``'s'`` or an alias) as
+    int64 µs, converted by the file readers' :func:`cmax.io._checks.times_to_us` (integers scaled exactly, floats
+    rounded to the nearest µs; overflow, NaN and a unit that rounding collapses are refused)."""
+    from cmax.io._checks import check_time_unit, times_to_us
+
+    unit = check_time_unit(time_unit)
+    if hasattr(values, "detach") and hasattr(values, "cpu"):  # a torch tensor
+        values = values.detach().cpu().numpy()
+    array = np.asarray(values)
+    if array.ndim != 1:
+        raise ValueError(f"t must be one-dimensional (N,), got shape {array.shape}")
+    if array.dtype.kind not in "iuf":
+        raise TypeError(f"t must hold numbers (times in {unit}), got dtype {array.dtype}")
+    try:
+        return times_to_us(array, unit, "t")
+    except ValueError as error:         # a FormatError names a file; these are the caller's numbers
+        raise ValueError(str(error)) from None
+
+
+def _check_assumed_microseconds(t: np.ndarray) -> None:
+    """Refuse the sorted int64 times ``t`` [µs by assumption, no unit stated] by the file readers' rule
+    (:func:`cmax.io._checks.check_not_nanoseconds`, then :func:`cmax.io._checks.check_implied_rate`), as a
+    :class:`ValueError`."""
+    if not t.size:
+        return
+    from cmax.io._checks import check_implied_rate, check_not_nanoseconds
+
+    try:
+        check_not_nanoseconds(max(int(t[0]), int(t[-1]), key=abs), "t")
+        check_implied_rate(int(t.size), int(t[0]), int(t[-1]), "t")
+    except ValueError as error:         # a FormatError names a file; these are the caller's numbers
+        raise ValueError(str(error)) from None
+
+
 def _polarities(values: object) -> np.ndarray:
     """Polarity as int8 {0,1} from {0,1}, {-1,+1} or bool input."""
     array = _as_column("p", values)
@@ -304,6 +340,16 @@ class Events:
         Sensor size in pixels.
     sort : bool, keyword-only
         Sort the events by time (stable) instead of raising on unsorted ``t``.
+    time_unit : {None, "us", "ms", "s"}, keyword-only
+        The unit of ``t``. None (default): microseconds by assumption, checked by the file readers' rule for times
+        whose unit nobody stated (:func:`cmax.io._checks.check_not_nanoseconds`,
+        :func:`cmax.io._checks.check_implied_rate`): refused when a time lies after the year 2100 as µs since 1970
+        and between 1973 and 2103 as ns (integer nanoseconds, a ROS or Metavision export), or when at least 10,000
+        events imply a mean rate above ``MAX_EVENT_RATE_HZ`` (1.1e9 events/s: milliseconds of a fast recording).
+        Not seen by that rule: nanoseconds since boot (convert them, ``t // 1000``), milliseconds of a recording
+        slower than 1.1e6 events/s (state ``time_unit='ms'``). A stated unit is converted as the readers convert it (:func:`cmax.io._checks.times_to_us`:
+        integers scaled exactly, floats such as seconds rounded to the nearest µs) and not checked further;
+        ``"us"`` accepts a simulation's burst of many events a µs.
 
     The columns are checked once and are read-only afterwards (``ev.x += 1`` raises); an input array that
     the stored column would share memory with is copied, so changing it later does not change the events.
@@ -334,6 +380,7 @@ class Events:
         height: int,
         *,
         sort: bool = False,
+        time_unit: str | None = None,
     ) -> None:
         width, height = _check_sensor_size(width, height)
         x_in, y_in, t_in, p_in = x, y, t, p
@@ -344,7 +391,7 @@ class Events:
         x = _coordinates("x", x, width, "width")
         y = _coordinates("y", y, height, "height")
         p = _polarities(p)
-        t_checked = _as_column("t", t)
+        t_checked = _as_column("t", t) if time_unit is None else _stated_times(t, time_unit)
         lengths = {"x": x.size, "y": y.size, "t": t_checked.size, "p": p.size}
         if len(set(lengths.values())) != 1:
             raise ValueError(f"x, y, t and p must have the same length, got {lengths}")
@@ -356,6 +403,8 @@ class Events:
             order = np.argsort(t_checked, kind="stable")
             x, y, p, t_checked = x[order], y[order], p[order], t_checked[order]
         t = _timestamps(t_checked)
+        if time_unit is None:
+            _check_assumed_microseconds(t)
         # A column that is still the caller's array (already of the stored dtype) is copied: the caller may change
         # its buffer later, and the checks above (coordinates inside the sensor, time sorted) must keep holding.
         x, y, t, p = (np.array(column) if isinstance(given, np.ndarray) and np.may_share_memory(column, given)
@@ -398,13 +447,15 @@ class Events:
 
     @classmethod
     def from_structured(
-        cls, array: np.ndarray, width: int, height: int, *, sort: bool = False
+        cls, array: np.ndarray, width: int, height: int, *, sort: bool = False, time_unit: str | None = None
     ) -> "Events":
         """Events from a structured array with fields ``x, y, t, p`` (any order): tonic's and
         Prophesee Metavision's layout; dv-processing's ``timestamp`` and ``polarity`` are read as ``t``
         and ``p`` where those are absent (:data:`FIELD_ALIASES`).
 
-        Fields may have any integer or bool dtype (``t`` in microseconds);
+        Fields may have any integer or bool dtype (``t`` in microseconds unless ``time_unit`` states another:
+        ``'ms'``, ``'s'``, e.g. float seconds with ``'s'``; unstated µs are checked as :class:`Events` checks them:
+        integer nanoseconds since 1970, or a mean rate above 1.1e9 events/s, refused);
         polarity may be {0, 1}, {-1, +1} or bool. Extra fields are ignored. ``width``, ``height``: the
         sensor size [px]; ``sort``: sort the events by time (stable) where it goes back, else refused.
         """
@@ -420,16 +471,18 @@ class Events:
             raise ValueError(f"array lacks the field(s) {missing}; it has {list(names)}")
         if array.ndim != 1:
             raise ValueError(f"array must be one-dimensional (N,), got shape {array.shape}")
-        return cls(*(array[fields[name]] for name in "xytp"), width, height, sort=sort)
+        return cls(*(array[fields[name]] for name in "xytp"), width, height, sort=sort, time_unit=time_unit)
 
     @classmethod
     def from_array(
-        cls, array: object, width: int, height: int, *, order: str = "xytp", sort: bool = False
+        cls, array: object, width: int, height: int, *, order: str = "xytp", sort: bool = False,
+        time_unit: str | None = None,
     ) -> "Events":
         """Events from an (N, 4) array whose columns are named by ``order``.
 
         ``order`` is a permutation of ``"xytp"``, e.g. ``"txyp"`` for the ECD
-        text layout. Time must already be in integer microseconds. A
+        text layout. Time is in integer microseconds unless ``time_unit`` states another (``'s'`` for the ECD
+        text's float seconds); unstated µs are checked as :class:`Events` checks them. A
         structured array (named fields, e.g. a tonic data set's events) is read
         by its field names (:meth:`from_structured`), not by ``order``. ``width``, ``height``: the sensor
         size [px]; ``sort``: sort the events by time (stable) where it goes back, else refused.
@@ -440,11 +493,12 @@ class Events:
             array = array.detach().cpu().numpy()
         array = np.asarray(array)
         if array.dtype.names is not None:
-            return cls.from_structured(array, width, height, sort=sort)
+            return cls.from_structured(array, width, height, sort=sort, time_unit=time_unit)
         if array.ndim != 2 or array.shape[1] != 4:
             raise ValueError(f"array must have shape (N, 4), got {array.shape}")
         columns = {name: array[:, i] for i, name in enumerate(order)}
-        return cls(columns["x"], columns["y"], columns["t"], columns["p"], width, height, sort=sort)
+        return cls(columns["x"], columns["y"], columns["t"], columns["p"], width, height, sort=sort,
+                   time_unit=time_unit)
 
     # -- conversion -------------------------------------------------------------------
     def to_structured(self) -> np.ndarray:

@@ -251,3 +251,59 @@ def test_times_of_a_uint32_clock_that_wrapped_are_named_not_sorted():
     assert np.diff(Events(np.zeros(5), np.zeros(5), unwrapped, np.ones(5), 4, 4).t).tolist() == [10, 7, 8, 7]
     with pytest.raises(ValueError, match=r"t must be sorted in non-decreasing order; t\[1\]=3 µs comes after"):
         Events([0, 0], [0, 0], [5, 3], [1, 1], 4, 4)
+
+
+TONIC_DTYPE = np.dtype([("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "<i1")])   # tonic's events
+
+
+def _tonic(t: np.ndarray, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    array = np.zeros(t.size, TONIC_DTYPE)
+    array["x"], array["y"], array["t"], array["p"] = rng.integers(0, 64, t.size), rng.integers(0, 48, t.size), t, \
+        rng.integers(0, 2, t.size)
+    return array
+
+
+def test_in_memory_times_of_no_stated_unit_are_checked_as_the_file_readers_check_them(tmp_path):
+    """The tonic route (from_structured), Events(...) and from_array refuse what cmax.io.read refuses of the same
+    array saved as .npy (was: nanoseconds since 1970 read as µs, a 2 s recording as 2000 s in the year 55,000, and
+    20,000 events in 10 µs taken at 2e9 events/s, without a word); correct µs pass unchanged."""
+    from cmax.io import read
+
+    rng = np.random.default_rng(7)
+    ns = _tonic(1_700_000_000 * 10**9 + np.sort(rng.integers(0, 2 * 10**9, 20_000)))
+    burst = _tonic(np.arange(20_000) // 2000)                       # 20,000 events in 10 "µs"
+    for name, array, refusal in (("ns", ns, r"t: the time 17000000019\d+, read as microseconds .* these look like "
+                                             r"nanoseconds \(1700000002\.000 s since 1970 if so\)"),
+                                 ("burst", burst, r"t, read as microseconds .* 2\.0e\+09 events/s")):
+        np.save(tmp_path / f"{name}.npy", array)
+        with pytest.raises(ValueError, match=refusal):               # the reader's verdict on the same numbers
+            read(tmp_path / f"{name}.npy", width=64, height=48)
+        for build in (lambda: Events.from_structured(array, 64, 48),
+                      lambda: Events(array["x"], array["y"], array["t"], array["p"], 64, 48),
+                      lambda: Events.from_array(np.stack([array[n] for n in "txyp"], 1), 64, 48, order="txyp")):
+            with pytest.raises(ValueError, match=refusal):
+                build()
+    stated = Events.from_structured(burst, 64, 48, time_unit="us")    # a simulation's burst, its unit stated
+    assert stated.t.tolist() == burst["t"].tolist()
+    us = ns.copy()
+    us["t"] //= 1000                                                 # the same recording in µs since 1970
+    np.save(tmp_path / "us.npy", us)
+    ev = Events.from_structured(us, 64, 48)
+    assert ev == read(tmp_path / "us.npy", width=64, height=48) and ev.duration_us == us["t"][-1] - us["t"][0]
+    assert np.array_equal(ev.to_structured().astype(TONIC_DTYPE), us)
+
+
+def test_a_stated_time_unit_converts_times_as_the_readers_do():
+    """Float seconds (an ECD text layout, evlib) with time_unit='s': rounded to the nearest µs, np.rint(t * 1e6)."""
+    rng = np.random.default_rng(8)
+    seconds = np.sort(rng.uniform(0, 2, 1000))
+    ecd = np.stack([seconds, rng.integers(0, 64, 1000), rng.integers(0, 48, 1000), rng.integers(0, 2, 1000)], 1)
+    ev = Events.from_array(ecd, 64, 48, order="txyp", time_unit="s")
+    assert ev.t.tolist() == np.rint(seconds * 1e6).astype(np.int64).tolist()
+    assert Events(ecd[:, 1], ecd[:, 2], torch.from_numpy(seconds * 1e3), ecd[:, 3], 64, 48, time_unit="ms") == ev
+    with pytest.raises(ValueError, match=r"whole numbers, got 0\.0\d+ at index 0 .* state their unit: time_unit='s'"):
+        Events.from_array(ecd, 64, 48, order="txyp")
+    with pytest.raises(ValueError, match=r"time_unit must be one of 'us', 'ms', 's' \(or None\), got 'ns'"):
+        Events([0], [0], [1], [1], 4, 4, time_unit="ns")
+

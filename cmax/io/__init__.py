@@ -245,7 +245,7 @@ def _read_npy(
     t_us = times_to_us(t, time_unit or "us", f"{path}: field {fields['t']}")
     p = polarity_01(np.asarray(array[fields["p"]]), polarity, f"{path}: field {fields['p']}")
     try:
-        return Events(array["x"], array["y"], t_us, p, width, height, sort=sort)
+        return Events(array["x"], array["y"], t_us, p, width, height, sort=sort, time_unit="us")
     except (TypeError, ValueError) as error:
         raise FormatError(f"{path}: {error}") from None
 
