@@ -33,7 +33,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "FIELD_ALIASES", "concatenate",
     "check_event_count", "window_starts", "uncovered_tail", "require_events", "structured_fields", "float_step",
-    "wrap_index",
+    "wrap_index", "FIELD_SPELLINGS", "field_rename_hint",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
@@ -48,6 +48,34 @@ def structured_fields(names: Sequence[str]) -> dict[str, str | None]:
     """The field that holds each of ``x, y, t, p`` in a structured array with field ``names``: the column's
     own name where present, else its :data:`FIELD_ALIASES` name (which may be absent too: check it)."""
     return {name: name if name in names else FIELD_ALIASES.get(name) for name in "xytp"}
+
+#: How other tools spell the fields (event_utils' ``xs, ys, ts, ps``, ``time``, ``pol``): not read under these names
+#: (nothing is renamed silently), but named in the refusal with the call that renames them (:func:`field_rename_hint`).
+FIELD_SPELLINGS = {"x": ("xs",), "y": ("ys",), "t": ("ts", "time", "times", "timestamps", "t_us"),
+                   "p": ("ps", "pol", "polarities")}
+
+
+def field_rename_hint(names: Sequence[str], missing: Sequence[str], source: str = "array") -> str:
+    """For a structured array with field ``names`` that lacks the columns ``missing`` (of ``x, y, t, p``): the call
+    that renames the fields spelt as other tools spell them (:data:`FIELD_SPELLINGS`, or the column's name in
+    upper case) to ``x, y, t, p``, as a clause to append to a refusal; "" where no field is. ``source``: the
+    expression the call names the array by (e.g. ``"np.load('ev.npy')"``).
+
+    >>> field_rename_hint(["x", "y", "ts", "p"], ["t"])
+    ": if 'ts' holds t, rename it: numpy.lib.recfunctions.rename_fields(array, {'ts': 't'})"
+    """
+    lower = {str(name).lower(): str(name) for name in names}
+    renames = {}
+    for column in missing:
+        found = [lower[spelling] for spelling in (column, *FIELD_SPELLINGS.get(column, ())) if spelling in lower]
+        if found:
+            renames[found[0]] = column
+    if not renames:
+        return ""
+    held = ", ".join(f"{field!r} holds {column}" for field, column in renames.items())
+    return (f": if {held}, rename {'it' if len(renames) == 1 else 'them'}: "
+            f"numpy.lib.recfunctions.rename_fields({source}, {renames!r})")
+
 
 _MAX_SENSOR_SIZE = 65535
 #: Most pixels a sensor may have (8192 x 8192): the largest event cameras hold about a million. A size read from a
@@ -451,7 +479,8 @@ class Events:
     ) -> "Events":
         """Events from a structured array with fields ``x, y, t, p`` (any order): tonic's and
         Prophesee Metavision's layout; dv-processing's ``timestamp`` and ``polarity`` are read as ``t``
-        and ``p`` where those are absent (:data:`FIELD_ALIASES`).
+        and ``p`` where those are absent (:data:`FIELD_ALIASES`); other spellings (``ts``) are refused, naming
+        the rename.
 
         Fields may have any integer or bool dtype (``t`` in microseconds unless ``time_unit`` states another:
         ``'ms'``, ``'s'``, e.g. float seconds with ``'s'``; unstated µs are checked as :class:`Events` checks them:
@@ -468,7 +497,8 @@ class Events:
         fields = structured_fields(names)
         missing = [name for name, field in fields.items() if field not in names]
         if missing:
-            raise ValueError(f"array lacks the field(s) {missing}; it has {list(names)}")
+            raise ValueError(f"array lacks the field(s) {missing}; it has {list(names)}"
+                             f"{field_rename_hint(names, missing)}")
         if array.ndim != 1:
             raise ValueError(f"array must be one-dimensional (N,), got shape {array.shape}")
         return cls(*(array[fields[name]] for name in "xytp"), width, height, sort=sort, time_unit=time_unit)

@@ -307,3 +307,23 @@ def test_a_stated_time_unit_converts_times_as_the_readers_do():
     with pytest.raises(ValueError, match=r"time_unit must be one of 'us', 'ms', 's' \(or None\), got 'ns'"):
         Events([0], [0], [1], [1], 4, 4, time_unit="ns")
 
+
+def test_a_field_spelt_as_another_tool_spells_it_is_refused_with_the_rename(tmp_path):
+    """A time field named 'ts' (event_utils): refused naming the rename, whose call then reads the events
+    (was: `array lacks the field(s) ['t']`, and for a .npy `expected ... fields x, y, t, p`, nothing more)."""
+    from numpy.lib import recfunctions
+
+    from cmax.io import FormatError, read
+
+    array = _tonic(np.arange(100) * 10)
+    renamed = recfunctions.rename_fields(array, {"t": "ts"})
+    with pytest.raises(ValueError, match=r"lacks the field\(s\) \['t'\]; it has \['x', 'y', 'ts', 'p'\]: if 'ts' "
+                                         r"holds t, rename it: numpy\.lib\.recfunctions\.rename_fields\(array, "
+                                         r"\{'ts': 't'\}\)"):
+        Events.from_structured(renamed, 64, 48)
+    np.save(tmp_path / "ts.npy", renamed)
+    with pytest.raises(FormatError, match=r"ts\.npy: expected .* if 'ts' holds t, rename it: numpy\.lib\.recfunctions"
+                                          r"\.rename_fields\(np\.load\('.*ts\.npy'\), \{'ts': 't'\}\)"):
+        read(tmp_path / "ts.npy", width=64, height=48)
+    back = Events.from_structured(recfunctions.rename_fields(np.load(tmp_path / "ts.npy"), {"ts": "t"}), 64, 48)
+    assert back == Events.from_structured(array, 64, 48)
