@@ -220,6 +220,23 @@ def _coordinates(name: str, values: object, size: int, size_name: str) -> np.nda
     return array.astype(np.uint16, copy=False)
 
 
+def _swapped_size_hint(x: object, y: object, width: int, height: int) -> str:
+    """For columns ``x``, ``y`` [px] refused on a ``width`` x ``height`` sensor: a clause saying the size looks
+    swapped where every event lies inside a ``height`` x ``width`` one (an image's shape is (height, width); tonic's
+    ``sensor_size`` is (width, height, polarities)); "" otherwise, or where the columns are not numbers."""
+    if width == height:
+        return ""
+    try:
+        x, y = _as_column("x", x), _as_column("y", y)
+    except (TypeError, ValueError):
+        return ""
+    if not x.size or x.size != y.size or min(x.min(), y.min()) < 0 or x.max() >= height or y.max() >= width:
+        return ""
+    return (f"; every event lies inside a {height}x{width} sensor: width and height swapped? (Events takes "
+            f"width={height}, height={width} for them: an image's shape is (height, width), tonic's sensor_size "
+            "(width, height, polarities))")
+
+
 def _base(values: object) -> object:
     """``values`` as the numpy array whose memory a stored column could share (a torch tensor's numpy view;
     anything else as given: only arrays can share memory)."""
@@ -416,8 +433,11 @@ class Events:
             shape = np.shape(values)  # no conversion for arrays and views
             if len(shape) == 1:
                 check_event_count(shape[0], f"the column {name}")
-        x = _coordinates("x", x, width, "width")
-        y = _coordinates("y", y, height, "height")
+        try:
+            x = _coordinates("x", x, width, "width")
+            y = _coordinates("y", y, height, "height")
+        except ValueError as error:
+            raise ValueError(f"{error}{_swapped_size_hint(x_in, y_in, width, height)}") from None
         p = _polarities(p)
         t_checked = _as_column("t", t) if time_unit is None else _stated_times(t, time_unit)
         lengths = {"x": x.size, "y": y.size, "t": t_checked.size, "p": p.size}

@@ -327,3 +327,19 @@ def test_a_field_spelt_as_another_tool_spells_it_is_refused_with_the_rename(tmp_
         read(tmp_path / "ts.npy", width=64, height=48)
     back = Events.from_structured(recfunctions.rename_fields(np.load(tmp_path / "ts.npy"), {"ts": "t"}), 64, 48)
     assert back == Events.from_structured(array, 64, 48)
+
+
+def test_a_sensor_size_given_as_height_width_is_named_as_swapped():
+    """An image's shape (H, W) passed as width, height (was: only `x must lie in [0, width=480), got 544`): the
+    refusal says the events fit the swapped size, which then holds them; a size neither order fits says nothing."""
+    rng = np.random.default_rng(9)
+    array = np.zeros(2000, TONIC_DTYPE)
+    array["x"], array["y"], array["t"] = rng.integers(0, 640, 2000), rng.integers(0, 480, 2000), np.arange(2000) * 50
+    swapped = r"every event lies inside a 640x480 sensor: width and height swapped\? \(Events takes width=640, height=480"
+    with pytest.raises(ValueError, match=r"x must lie in \[0, width=480\), got \d+ at index \d+; " + swapped):
+        Events.from_structured(array, 480, 640)
+    with pytest.raises(ValueError, match=swapped):
+        Events(array["x"], array["y"], array["t"], array["p"], 480, 640)
+    assert len(Events.from_structured(array, 640, 480)) == 2000
+    with pytest.raises(ValueError, match=r"x must lie in \[0, width=600\), got \d+ at index \d+$"):
+        Events.from_structured(array, 600, 470)
