@@ -33,7 +33,7 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "FIELD_ALIASES", "concatenate",
     "check_event_count", "window_starts", "uncovered_tail", "require_events", "structured_fields", "float_step",
-    "wrap_index", "FIELD_SPELLINGS", "field_rename_hint",
+    "wrap_index", "FIELD_SPELLINGS", "field_rename_hint", "polarity_hint",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
@@ -364,8 +364,24 @@ def _polarities(values: object) -> np.ndarray:
         return (array > 0).astype(np.int8)
     raise ValueError(
         "p must hold polarities as {0, 1}, {-1, +1} or bool; got the values "
-        f"{present[:6].tolist()}{' ...' if present.size > 6 else ''}"
+        f"{present[:6].tolist()}{' ...' if present.size > 6 else ''}{polarity_hint(present.tolist())}"
     )
+
+
+def polarity_hint(values: Sequence[float]) -> str:
+    """For the distinct polarity ``values`` refused as neither {0, 1} nor {-1, +1}: a clause naming the encoding
+    they look like and the explicit conversion ({0, 255}: an 8-bit image's; {1, 255}: -1/+1 cast to uint8, where
+    -1 wraps to 255), to append to the refusal; "" otherwise. Nothing is mapped here.
+
+    >>> polarity_hint([0, 255])
+    '; 0/255 as an 8-bit image stores them? if 255 is ON pass p > 0'
+    """
+    present = set(values)
+    if present <= {0, 255}:
+        return "; 0/255 as an 8-bit image stores them? if 255 is ON pass p > 0"
+    if present <= {1, 255}:
+        return "; -1/+1 cast to uint8 (-1 wraps to 255)? convert p to int8 (255 becomes -1)"
+    return ""
 
 
 @dataclass(frozen=True, eq=False, repr=False)

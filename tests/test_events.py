@@ -343,3 +343,25 @@ def test_a_sensor_size_given_as_height_width_is_named_as_swapped():
     assert len(Events.from_structured(array, 640, 480)) == 2000
     with pytest.raises(ValueError, match=r"x must lie in \[0, width=600\), got \d+ at index \d+$"):
         Events.from_structured(array, 600, 470)
+
+
+def test_a_polarity_of_0_255_or_of_signed_values_cast_to_uint8_is_refused_naming_the_conversion():
+    """Polarities {0, 255} (an 8-bit image's) and {1, 255} (-1/+1 cast to uint8) stay refused, numpy and torch alike
+    (was: only `got the values [0, 255]`); the conversions named give the events of the {0, 1} polarity."""
+    from cmax.representations import voxel_grid
+
+    p01 = np.array([0, 1, 1, 0, 1], np.uint8)
+    x, t = np.arange(5), np.arange(5) * 10
+    expected = Events(x, x, t, p01, 8, 8)
+    for p, hint, converted in ((p01 * 255, r"0/255 as an 8-bit image stores them\? if 255 is ON pass p > 0",
+                                p01 * 255 > 0),
+                               ((2 * p01.astype(np.int8) - 1).astype(np.uint8),
+                                r"-1/\+1 cast to uint8 \(-1 wraps to 255\)\? convert p to int8 \(255 becomes -1\)",
+                                (2 * p01.astype(np.int8) - 1).astype(np.uint8).astype(np.int8))):
+        with pytest.raises(ValueError, match=r"p must hold polarities as \{0, 1\}, \{-1, \+1\} or bool; got the "
+                                             r"values \[\d, 255\]; " + hint):
+            Events(x, x, t, p, 8, 8)
+        tensors = expected.to_torch()._replace(p=torch.from_numpy(p))
+        with pytest.raises(ValueError, match=r"events\.p must hold .* got the values \[\d, 255\]; " + hint):
+            voxel_grid(tensors, 2)
+        assert Events(x, x, t, converted, 8, 8) == expected

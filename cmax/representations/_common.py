@@ -15,7 +15,7 @@ import numpy as np
 
 from cmax._jit import kernel
 
-from cmax.events import Events, EventTensors
+from cmax.events import Events, EventTensors, polarity_hint
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -121,7 +121,8 @@ def _refuse_polarity(name: str, p: "torch.Tensor") -> None:
 
     values = torch.unique(p).tolist()
     shown = values[:10] + (["..."] if len(values) > 10 else [])
-    raise ValueError(f"{name} must hold polarities as {{0, 1}}, {{-1, +1}} or bool; got the values {shown}")
+    raise ValueError(f"{name} must hold polarities as {{0, 1}}, {{-1, +1}} or bool; got the values {shown}"
+                     f"{polarity_hint(values)}")
 
 
 def _inspect(events: object) -> tuple[str, tuple[int, int] | None]:
