@@ -191,7 +191,7 @@ def _as_column(name: str, values: object) -> np.ndarray:
     if array.ndim != 1:
         raise ValueError(f"{name} must be one-dimensional (N,), got shape {array.shape}")
     if array.dtype.kind not in "biuf":
-        raise TypeError(f"{name} must hold numbers, got dtype {array.dtype}")
+        raise TypeError(f"{name} must hold numbers, got dtype {array.dtype}{_time_dtype_hint(name, array.dtype)}")
     if array.dtype.kind == "f":
         finite = np.isfinite(array)
         if not finite.all():
@@ -206,6 +206,16 @@ def _as_column(name: str, values: object) -> np.ndarray:
                    if name == "t" else "")
             )
     return array
+
+
+def _time_dtype_hint(name: str, dtype: np.dtype) -> str:
+    """For a column ``name`` of ``dtype`` refused as not numbers: the conversion of numpy's durations and dates
+    (evlib's and polars' ``Duration``, pandas' ``Timedelta``) to integer µs where ``name`` is ``t``; else ""."""
+    if name != "t" or dtype.kind not in "mM":
+        return ""
+    kind = "timedelta64" if dtype.kind == "m" else "datetime64"
+    return (f" (numpy times carry their unit: integer µs{' since 1970' if dtype.kind == 'M' else ''} are "
+            f"t.astype('{kind}[us]').astype(np.int64), which cuts finer times to whole µs)")
 
 
 def _coordinates(name: str, values: object, size: int, size_name: str) -> np.ndarray:
@@ -328,7 +338,8 @@ def _stated_times(values: object, time_unit: object) -> np.ndarray:
     if array.ndim != 1:
         raise ValueError(f"t must be one-dimensional (N,), got shape {array.shape}")
     if array.dtype.kind not in "iuf":
-        raise TypeError(f"t must hold numbers (times in {unit}), got dtype {array.dtype}")
+        raise TypeError(f"t must hold numbers (times in {unit}), got dtype {array.dtype}"
+                        f"{_time_dtype_hint('t', array.dtype)}")
     try:
         return times_to_us(array, unit, "t")
     except ValueError as error:         # a FormatError names a file; these are the caller's numbers

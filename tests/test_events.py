@@ -365,3 +365,19 @@ def test_a_polarity_of_0_255_or_of_signed_values_cast_to_uint8_is_refused_naming
         with pytest.raises(ValueError, match=r"events\.p must hold .* got the values \[\d, 255\]; " + hint):
             voxel_grid(tensors, 2)
         assert Events(x, x, t, converted, 8, 8) == expected
+
+
+def test_times_as_numpy_durations_or_dates_are_refused_naming_the_exact_conversion():
+    """evlib's / polars' Duration[us] as numpy timedelta64, datetime64 since 1970 (was: only `t must hold numbers,
+    got dtype timedelta64[us]`): refused, naming the conversion, which gives the µs of the same times."""
+    t_us = np.array([0, 10, 25, 1_000_000])
+    x = np.zeros(4, int)
+    for t, expected in ((t_us.astype("timedelta64[us]"), t_us),
+                        (np.datetime64("2023-11-14T22:13:20", "ns") + t_us.astype("timedelta64[us]"),
+                         1_700_000_000_000_000 + t_us)):
+        kind = "timedelta64" if t.dtype.kind == "m" else "datetime64"
+        with pytest.raises(TypeError, match=rf"t must hold numbers, got dtype {kind}\[\w+\] \(numpy times carry their "
+                                            rf"unit: .* t\.astype\('{kind}\[us\]'\)\.astype\(np\.int64\)"):
+            Events(x, x, t, x, 4, 4)
+        converted = t.astype(f"{kind}[us]").astype(np.int64)
+        assert Events(x, x, converted, x, 4, 4).t.tolist() == expected.tolist()
