@@ -34,6 +34,7 @@ __all__ = [
     "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "FIELD_ALIASES", "concatenate",
     "check_event_count", "window_starts", "uncovered_tail", "require_events", "structured_fields", "float_step",
     "wrap_index", "FIELD_SPELLINGS", "field_rename_hint", "polarity_hint",
+    "conversion_hint",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
@@ -99,7 +100,13 @@ def require_events(events: object, name: str = "events") -> "Events":
     array (columns named by ``order``), :class:`EventTensors` (torch) or a path (:func:`cmax.io.read`)."""
     if isinstance(events, Events):
         return events
-    got = type(events).__name__
+    raise TypeError(f"{name} must be cmax.Events, got {type(events).__name__}{conversion_hint(events)}")
+
+
+def conversion_hint(events: object) -> str:
+    """The clause that names the conversion to :class:`Events` of ``events``, something else (a structured array
+    by its field names, an (N, 4) array by ``order``, :class:`EventTensors`, a path), for a ``TypeError``;
+    "" where none is known."""
     if isinstance(events, EventTensors):
         hint = "; these are the torch tensors of Events.to_torch(): pass the Events they came from"
     elif getattr(getattr(events, "dtype", None), "names", None):
@@ -112,7 +119,7 @@ def require_events(events: object, name: str = "events") -> "Events":
         hint = f" ({events!s}): read the file with cmax.io.read(path) first"
     else:
         hint = ""
-    raise TypeError(f"{name} must be cmax.Events, got {got}{hint}")
+    return hint
 
 
 class EventLimitError(ValueError):

@@ -15,7 +15,7 @@ import numpy as np
 
 from cmax._jit import kernel
 
-from cmax.events import Events, EventTensors, polarity_hint
+from cmax.events import Events, EventTensors, conversion_hint, polarity_hint
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -131,12 +131,9 @@ def _inspect(events: object) -> tuple[str, tuple[int, int] | None]:
         return "numpy", ((int(events.t[0]), int(events.t[-1])) if len(events) else None)
     if isinstance(events, EventTensors):
         return "torch", _stats_torch(events)
-    hint = ""
-    if getattr(getattr(events, "dtype", None), "names", None):
-        hint = " (a structured array, e.g. tonic's: cmax.Events.from_structured(array, width, height))"
     raise TypeError(
         "events must be cmax.Events (numpy) or cmax.EventTensors (torch, from "
-        f"Events.to_torch()), got {type(events).__name__}{hint}"
+        f"Events.to_torch()), got {type(events).__name__}{conversion_hint(events)}"
     )
 
 
