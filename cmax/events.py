@@ -254,6 +254,22 @@ def _swapped_size_hint(x: object, y: object, width: int, height: int) -> str:
             "(width, height, polarities))")
 
 
+def _column_order_hint(array: np.ndarray, order: str) -> str:
+    """For an (N, 4) ``array`` whose columns, named by ``order``, were refused: a clause naming the one column in
+    time order (non-decreasing and not constant) where ``order`` puts ``t`` in another, and the ``order`` that
+    reads it as ``t`` (ECD/rpg text files and v2e tables are t, x, y, p); "" otherwise. Only a hint: nothing is
+    read in another order."""
+    if array.shape[0] < 2 or array.dtype.kind not in "iuf":
+        return ""
+    ordered = [i for i in range(4) if array[-1, i] > array[0, i] and np.all(array[1:, i] >= array[:-1, i])]
+    if len(ordered) != 1 or order[ordered[0]] == "t":
+        return ""
+    others = [name for name in order if name != "t"]
+    suggested = "".join(others[:ordered[0]] + ["t"] + others[ordered[0]:])
+    return (f"; column {ordered[0]} is the one in time order, not column {order.index('t')}: are the columns "
+            f"{', '.join(suggested)}? (order={suggested!r}; ECD/rpg text files and v2e tables are t, x, y, p)")
+
+
 def _base(values: object) -> object:
     """``values`` as the numpy array whose memory a stored column could share (a torch tensor's numpy view;
     anything else as given: only arrays can share memory)."""
@@ -581,8 +597,14 @@ class Events:
         if array.ndim != 2 or array.shape[1] != 4:
             raise ValueError(f"array must have shape (N, 4), got {array.shape}")
         columns = {name: array[:, i] for i, name in enumerate(order)}
-        return cls(columns["x"], columns["y"], columns["t"], columns["p"], width, height, sort=sort,
-                   time_unit=time_unit)
+        try:
+            return cls(columns["x"], columns["y"], columns["t"], columns["p"], width, height, sort=sort,
+                       time_unit=time_unit)
+        except ValueError as error:
+            hint = _column_order_hint(array, order)
+            if not hint or isinstance(error, EventLimitError):
+                raise
+            raise ValueError(f"{error}{hint}") from None
 
     # -- conversion -------------------------------------------------------------------
     def to_structured(self) -> np.ndarray:

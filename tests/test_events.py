@@ -381,3 +381,23 @@ def test_times_as_numpy_durations_or_dates_are_refused_naming_the_exact_conversi
             Events(x, x, t, x, 4, 4)
         converted = t.astype(f"{kind}[us]").astype(np.int64)
         assert Events(x, x, converted, x, 4, 4).t.tolist() == expected.tolist()
+
+
+def test_an_n_by_4_array_in_t_x_y_p_order_read_as_x_y_t_p_names_the_column_in_time_order():
+    """ECD's events.txt loaded with np.loadtxt (t [s], x, y, p) given to from_array with its default order 'xytp'
+    (was: `x must hold whole numbers, got 0.00038...`, pointing at x): the line names column 0 as the one in time
+    order and order='txyp', which (with time_unit='s') reads the events; a refusal of another cause says nothing."""
+    rng = np.random.default_rng(10)
+    t = np.sort(rng.uniform(0, 2, 1000))
+    x, y, p = rng.integers(0, 240, 1000), rng.integers(0, 180, 1000), rng.integers(0, 2, 1000)
+    ecd = np.stack([t, x, y, p], 1)
+    hint = (r"; column 0 is the one in time order, not column 2: are the columns t, x, y, p\? \(order='txyp'; ECD/rpg "
+            r"text files and v2e tables are t, x, y, p\)$")
+    with pytest.raises(ValueError, match=r"^x must hold whole numbers, got 0\.0\d+ at index 0" + hint):
+        Events.from_array(ecd, 240, 180)
+    with pytest.raises(ValueError, match=r"^x must lie in \[0, width=240\), got \d+\.0 at index 0" + hint):
+        Events.from_array(np.stack([np.rint(t * 1e6), x, y, p], 1), 240, 180)
+    assert Events.from_array(ecd, 240, 180, order="txyp", time_unit="s") == \
+        Events(x, y, np.rint(t * 1e6).astype(np.int64), p, 240, 180)
+    with pytest.raises(ValueError, match=r"^x must lie in \[0, width=200\), got \d+(\.0)? at index \d+$"):
+        Events.from_array(np.stack([x, y, np.rint(t * 1e6), p], 1), 200, 180)
