@@ -500,7 +500,7 @@ class Camera:
             return events, np.column_stack([events.x, events.y]).astype(np.float64), kept
         x, y = events.x[kept], events.y[kept]
         xy = np.rint(self.undistortion_map[y, x]).astype(np.int64)    # finite and inside: those kept
-        return (Events(xy[:, 0], xy[:, 1], events.t[kept], events.p[kept], self.width, self.height),
+        return (Events(xy[:, 0], xy[:, 1], events.t[kept], events.p[kept], self.width, self.height, time_unit="us"),
                 self._undistortion_map64[y, x], kept)
 
     def undistort_events(self, events: Events) -> Events:
@@ -518,7 +518,8 @@ class Camera:
         if self.is_pinhole:
             return events
         xy, inside = self._nearest_pixels(events)
-        return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], self.width, self.height)
+        return Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], self.width, self.height,
+                      time_unit="us")
 
     def scaled(self, width: int, height: int) -> "Camera":
         """The same camera resampled to ``width`` x ``height`` pixels (distortion, model and rectification kept;

@@ -33,7 +33,8 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "FIELD_ALIASES", "concatenate",
     "check_event_count", "window_starts", "uncovered_tail", "require_events", "structured_fields", "float_step",
-    "wrap_index",
+    "wrap_index", "FIELD_SPELLINGS", "field_rename_hint", "polarity_hint",
+    "conversion_hint",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
@@ -48,6 +49,34 @@ def structured_fields(names: Sequence[str]) -> dict[str, str | None]:
     """The field that holds each of ``x, y, t, p`` in a structured array with field ``names``: the column's
     own name where present, else its :data:`FIELD_ALIASES` name (which may be absent too: check it)."""
     return {name: name if name in names else FIELD_ALIASES.get(name) for name in "xytp"}
+
+#: How other tools spell the fields (event_utils' ``xs, ys, ts, ps``, ``time``, ``pol``): not read under these names
+#: (nothing is renamed silently), but named in the refusal with the call that renames them (:func:`field_rename_hint`).
+FIELD_SPELLINGS = {"x": ("xs",), "y": ("ys",), "t": ("ts", "time", "times", "timestamps", "t_us"),
+                   "p": ("ps", "pol", "polarities")}
+
+
+def field_rename_hint(names: Sequence[str], missing: Sequence[str], source: str = "array") -> str:
+    """For a structured array with field ``names`` that lacks the columns ``missing`` (of ``x, y, t, p``): the call
+    that renames the fields spelt as other tools spell them (:data:`FIELD_SPELLINGS`, or the column's name in
+    upper case) to ``x, y, t, p``, as a clause to append to a refusal; "" where no field is. ``source``: the
+    expression the call names the array by (e.g. ``"np.load('ev.npy')"``).
+
+    >>> field_rename_hint(["x", "y", "ts", "p"], ["t"])
+    ": if 'ts' holds t, rename it: numpy.lib.recfunctions.rename_fields(array, {'ts': 't'})"
+    """
+    lower = {str(name).lower(): str(name) for name in names}
+    renames = {}
+    for column in missing:
+        found = [lower[spelling] for spelling in (column, *FIELD_SPELLINGS.get(column, ())) if spelling in lower]
+        if found:
+            renames[found[0]] = column
+    if not renames:
+        return ""
+    held = ", ".join(f"{field!r} holds {column}" for field, column in renames.items())
+    return (f": if {held}, rename {'it' if len(renames) == 1 else 'them'}: "
+            f"numpy.lib.recfunctions.rename_fields({source}, {renames!r})")
+
 
 _MAX_SENSOR_SIZE = 65535
 #: Most pixels a sensor may have (8192 x 8192): the largest event cameras hold about a million. A size read from a
@@ -71,7 +100,13 @@ def require_events(events: object, name: str = "events") -> "Events":
     array (columns named by ``order``), :class:`EventTensors` (torch) or a path (:func:`cmax.io.read`)."""
     if isinstance(events, Events):
         return events
-    got = type(events).__name__
+    raise TypeError(f"{name} must be cmax.Events, got {type(events).__name__}{conversion_hint(events)}")
+
+
+def conversion_hint(events: object) -> str:
+    """The clause that names the conversion to :class:`Events` of ``events``, something else (a structured array
+    by its field names, an (N, 4) array by ``order``, :class:`EventTensors`, a path), for a ``TypeError``;
+    "" where none is known."""
     if isinstance(events, EventTensors):
         hint = "; these are the torch tensors of Events.to_torch(): pass the Events they came from"
     elif getattr(getattr(events, "dtype", None), "names", None):
@@ -84,7 +119,7 @@ def require_events(events: object, name: str = "events") -> "Events":
         hint = f" ({events!s}): read the file with cmax.io.read(path) first"
     else:
         hint = ""
-    raise TypeError(f"{name} must be cmax.Events, got {got}{hint}")
+    return hint
 
 
 class EventLimitError(ValueError):
@@ -163,7 +198,7 @@ def _as_column(name: str, values: object) -> np.ndarray:
     if array.ndim != 1:
         raise ValueError(f"{name} must be one-dimensional (N,), got shape {array.shape}")
     if array.dtype.kind not in "biuf":
-        raise TypeError(f"{name} must hold numbers, got dtype {array.dtype}")
+        raise TypeError(f"{name} must hold numbers, got dtype {array.dtype}{_time_dtype_hint(name, array.dtype)}")
     if array.dtype.kind == "f":
         finite = np.isfinite(array)
         if not finite.all():
@@ -173,10 +208,21 @@ def _as_column(name: str, values: object) -> np.ndarray:
             bad = int(np.flatnonzero(array != np.round(array))[0])
             raise ValueError(
                 f"{name} must hold whole numbers, got {array[bad]} at index {bad}"
-                + (" (times are integer microseconds; from float seconds: np.rint(t * 1e6).astype(np.int64))"
+                + (" (times are integer microseconds; from float seconds: np.rint(t * 1e6).astype(np.int64), or "
+                   "state their unit: time_unit='s')"
                    if name == "t" else "")
             )
     return array
+
+
+def _time_dtype_hint(name: str, dtype: np.dtype) -> str:
+    """For a column ``name`` of ``dtype`` refused as not numbers: the conversion of numpy's durations and dates
+    (evlib's and polars' ``Duration``, pandas' ``Timedelta``) to integer µs where ``name`` is ``t``; else ""."""
+    if name != "t" or dtype.kind not in "mM":
+        return ""
+    kind = "timedelta64" if dtype.kind == "m" else "datetime64"
+    return (f" (numpy times carry their unit: integer µs{' since 1970' if dtype.kind == 'M' else ''} are "
+            f"t.astype('{kind}[us]').astype(np.int64), which cuts finer times to whole µs)")
 
 
 def _coordinates(name: str, values: object, size: int, size_name: str) -> np.ndarray:
@@ -189,6 +235,39 @@ def _coordinates(name: str, values: object, size: int, size_name: str) -> np.nda
                 f"{name} must lie in [0, {size_name}={size}), got {array[bad]} at index {bad}"
             )
     return array.astype(np.uint16, copy=False)
+
+
+def _swapped_size_hint(x: object, y: object, width: int, height: int) -> str:
+    """For columns ``x``, ``y`` [px] refused on a ``width`` x ``height`` sensor: a clause saying the size looks
+    swapped where every event lies inside a ``height`` x ``width`` one (an image's shape is (height, width); tonic's
+    ``sensor_size`` is (width, height, polarities)); "" otherwise, or where the columns are not numbers."""
+    if width == height:
+        return ""
+    try:
+        x, y = _as_column("x", x), _as_column("y", y)
+    except (TypeError, ValueError):
+        return ""
+    if not x.size or x.size != y.size or min(x.min(), y.min()) < 0 or x.max() >= height or y.max() >= width:
+        return ""
+    return (f"; every event lies inside a {height}x{width} sensor: width and height swapped? (Events takes "
+            f"width={height}, height={width} for them: an image's shape is (height, width), tonic's sensor_size "
+            "(width, height, polarities))")
+
+
+def _column_order_hint(array: np.ndarray, order: str) -> str:
+    """For an (N, 4) ``array`` whose columns, named by ``order``, were refused: a clause naming the one column in
+    time order (non-decreasing and not constant) where ``order`` puts ``t`` in another, and the ``order`` that
+    reads it as ``t`` (ECD/rpg text files and v2e tables are t, x, y, p); "" otherwise. Only a hint: nothing is
+    read in another order."""
+    if array.shape[0] < 2 or array.dtype.kind not in "iuf":
+        return ""
+    ordered = [i for i in range(4) if array[-1, i] > array[0, i] and np.all(array[1:, i] >= array[:-1, i])]
+    if len(ordered) != 1 or order[ordered[0]] == "t":
+        return ""
+    others = [name for name in order if name != "t"]
+    suggested = "".join(others[:ordered[0]] + ["t"] + others[ordered[0]:])
+    return (f"; column {ordered[0]} is the one in time order, not column {order.index('t')}: are the columns "
+            f"{', '.join(suggested)}? (order={suggested!r}; ECD/rpg text files and v2e tables are t, x, y, p)")
 
 
 def _base(values: object) -> object:
@@ -269,6 +348,42 @@ def _timestamps(values: object) -> np.ndarray:
     return array
 
 
+def _stated_times(values: object, time_unit: object) -> np.ndarray:
+    """The time column ``values`` (N,) in the stated ``time_unit`` (``'us'``, ``'ms'``, ``'s'`` or an alias) as
+    int64 µs, converted by the file readers' :func:`cmax.io._checks.times_to_us` (integers scaled exactly, floats
+    rounded to the nearest µs; overflow, NaN and a unit that rounding collapses are refused)."""
+    from cmax.io._checks import check_time_unit, times_to_us
+
+    unit = check_time_unit(time_unit)
+    if hasattr(values, "detach") and hasattr(values, "cpu"):  # a torch tensor
+        values = values.detach().cpu().numpy()
+    array = np.asarray(values)
+    if array.ndim != 1:
+        raise ValueError(f"t must be one-dimensional (N,), got shape {array.shape}")
+    if array.dtype.kind not in "iuf":
+        raise TypeError(f"t must hold numbers (times in {unit}), got dtype {array.dtype}"
+                        f"{_time_dtype_hint('t', array.dtype)}")
+    try:
+        return times_to_us(array, unit, "t")
+    except ValueError as error:         # a FormatError names a file; these are the caller's numbers
+        raise ValueError(str(error)) from None
+
+
+def _check_assumed_microseconds(t: np.ndarray) -> None:
+    """Refuse the sorted int64 times ``t`` [µs by assumption, no unit stated] by the file readers' rule
+    (:func:`cmax.io._checks.check_not_nanoseconds`, then :func:`cmax.io._checks.check_implied_rate`), as a
+    :class:`ValueError`."""
+    if not t.size:
+        return
+    from cmax.io._checks import check_implied_rate, check_not_nanoseconds
+
+    try:
+        check_not_nanoseconds(max(int(t[0]), int(t[-1]), key=abs), "t")
+        check_implied_rate(int(t.size), int(t[0]), int(t[-1]), "t")
+    except ValueError as error:         # a FormatError names a file; these are the caller's numbers
+        raise ValueError(str(error)) from None
+
+
 def _polarities(values: object) -> np.ndarray:
     """Polarity as int8 {0,1} from {0,1}, {-1,+1} or bool input."""
     array = _as_column("p", values)
@@ -283,8 +398,24 @@ def _polarities(values: object) -> np.ndarray:
         return (array > 0).astype(np.int8)
     raise ValueError(
         "p must hold polarities as {0, 1}, {-1, +1} or bool; got the values "
-        f"{present[:6].tolist()}{' ...' if present.size > 6 else ''}"
+        f"{present[:6].tolist()}{' ...' if present.size > 6 else ''}{polarity_hint(present.tolist())}"
     )
+
+
+def polarity_hint(values: Sequence[float]) -> str:
+    """For the distinct polarity ``values`` refused as neither {0, 1} nor {-1, +1}: a clause naming the encoding
+    they look like and the explicit conversion ({0, 255}: an 8-bit image's; {1, 255}: -1/+1 cast to uint8, where
+    -1 wraps to 255), to append to the refusal; "" otherwise. Nothing is mapped here.
+
+    >>> polarity_hint([0, 255])
+    '; 0/255 as an 8-bit image stores them? if 255 is ON pass p > 0'
+    """
+    present = set(values)
+    if present <= {0, 255}:
+        return "; 0/255 as an 8-bit image stores them? if 255 is ON pass p > 0"
+    if present <= {1, 255}:
+        return "; -1/+1 cast to uint8 (-1 wraps to 255)? convert p to int8 (255 becomes -1)"
+    return ""
 
 
 @dataclass(frozen=True, eq=False, repr=False)
@@ -304,6 +435,16 @@ class Events:
         Sensor size in pixels.
     sort : bool, keyword-only
         Sort the events by time (stable) instead of raising on unsorted ``t``.
+    time_unit : {None, "us", "ms", "s"}, keyword-only
+        The unit of ``t``. None (default): microseconds by assumption, checked by the file readers' rule for times
+        whose unit nobody stated (:func:`cmax.io._checks.check_not_nanoseconds`,
+        :func:`cmax.io._checks.check_implied_rate`): refused when a time lies after the year 2100 as µs since 1970
+        and between 1973 and 2103 as ns (integer nanoseconds, a ROS or Metavision export), or when at least 10,000
+        events imply a mean rate above ``MAX_EVENT_RATE_HZ`` (1.1e9 events/s: milliseconds of a fast recording).
+        Not seen by that rule: nanoseconds since boot (convert them, ``t // 1000``), milliseconds of a recording
+        slower than 1.1e6 events/s (state ``time_unit='ms'``). A stated unit is converted as the readers convert it (:func:`cmax.io._checks.times_to_us`:
+        integers scaled exactly, floats such as seconds rounded to the nearest µs) and not checked further;
+        ``"us"`` accepts a simulation's burst of many events a µs.
 
     The columns are checked once and are read-only afterwards (``ev.x += 1`` raises); an input array that
     the stored column would share memory with is copied, so changing it later does not change the events.
@@ -334,6 +475,7 @@ class Events:
         height: int,
         *,
         sort: bool = False,
+        time_unit: str | None = None,
     ) -> None:
         width, height = _check_sensor_size(width, height)
         x_in, y_in, t_in, p_in = x, y, t, p
@@ -341,10 +483,13 @@ class Events:
             shape = np.shape(values)  # no conversion for arrays and views
             if len(shape) == 1:
                 check_event_count(shape[0], f"the column {name}")
-        x = _coordinates("x", x, width, "width")
-        y = _coordinates("y", y, height, "height")
+        try:
+            x = _coordinates("x", x, width, "width")
+            y = _coordinates("y", y, height, "height")
+        except ValueError as error:
+            raise ValueError(f"{error}{_swapped_size_hint(x_in, y_in, width, height)}") from None
         p = _polarities(p)
-        t_checked = _as_column("t", t)
+        t_checked = _as_column("t", t) if time_unit is None else _stated_times(t, time_unit)
         lengths = {"x": x.size, "y": y.size, "t": t_checked.size, "p": p.size}
         if len(set(lengths.values())) != 1:
             raise ValueError(f"x, y, t and p must have the same length, got {lengths}")
@@ -356,6 +501,8 @@ class Events:
             order = np.argsort(t_checked, kind="stable")
             x, y, p, t_checked = x[order], y[order], p[order], t_checked[order]
         t = _timestamps(t_checked)
+        if time_unit is None:
+            _check_assumed_microseconds(t)
         # A column that is still the caller's array (already of the stored dtype) is copied: the caller may change
         # its buffer later, and the checks above (coordinates inside the sensor, time sorted) must keep holding.
         x, y, t, p = (np.array(column) if isinstance(given, np.ndarray) and np.may_share_memory(column, given)
@@ -398,13 +545,16 @@ class Events:
 
     @classmethod
     def from_structured(
-        cls, array: np.ndarray, width: int, height: int, *, sort: bool = False
+        cls, array: np.ndarray, width: int, height: int, *, sort: bool = False, time_unit: str | None = None
     ) -> "Events":
         """Events from a structured array with fields ``x, y, t, p`` (any order): tonic's and
         Prophesee Metavision's layout; dv-processing's ``timestamp`` and ``polarity`` are read as ``t``
-        and ``p`` where those are absent (:data:`FIELD_ALIASES`).
+        and ``p`` where those are absent (:data:`FIELD_ALIASES`); other spellings (``ts``) are refused, naming
+        the rename.
 
-        Fields may have any integer or bool dtype (``t`` in microseconds);
+        Fields may have any integer or bool dtype (``t`` in microseconds unless ``time_unit`` states another:
+        ``'ms'``, ``'s'``, e.g. float seconds with ``'s'``; unstated µs are checked as :class:`Events` checks them:
+        integer nanoseconds since 1970, or a mean rate above 1.1e9 events/s, refused);
         polarity may be {0, 1}, {-1, +1} or bool. Extra fields are ignored. ``width``, ``height``: the
         sensor size [px]; ``sort``: sort the events by time (stable) where it goes back, else refused.
         """
@@ -417,19 +567,22 @@ class Events:
         fields = structured_fields(names)
         missing = [name for name, field in fields.items() if field not in names]
         if missing:
-            raise ValueError(f"array lacks the field(s) {missing}; it has {list(names)}")
+            raise ValueError(f"array lacks the field(s) {missing}; it has {list(names)}"
+                             f"{field_rename_hint(names, missing)}")
         if array.ndim != 1:
             raise ValueError(f"array must be one-dimensional (N,), got shape {array.shape}")
-        return cls(*(array[fields[name]] for name in "xytp"), width, height, sort=sort)
+        return cls(*(array[fields[name]] for name in "xytp"), width, height, sort=sort, time_unit=time_unit)
 
     @classmethod
     def from_array(
-        cls, array: object, width: int, height: int, *, order: str = "xytp", sort: bool = False
+        cls, array: object, width: int, height: int, *, order: str = "xytp", sort: bool = False,
+        time_unit: str | None = None,
     ) -> "Events":
         """Events from an (N, 4) array whose columns are named by ``order``.
 
         ``order`` is a permutation of ``"xytp"``, e.g. ``"txyp"`` for the ECD
-        text layout. Time must already be in integer microseconds. A
+        text layout. Time is in integer microseconds unless ``time_unit`` states another (``'s'`` for the ECD
+        text's float seconds); unstated µs are checked as :class:`Events` checks them. A
         structured array (named fields, e.g. a tonic data set's events) is read
         by its field names (:meth:`from_structured`), not by ``order``. ``width``, ``height``: the sensor
         size [px]; ``sort``: sort the events by time (stable) where it goes back, else refused.
@@ -440,11 +593,18 @@ class Events:
             array = array.detach().cpu().numpy()
         array = np.asarray(array)
         if array.dtype.names is not None:
-            return cls.from_structured(array, width, height, sort=sort)
+            return cls.from_structured(array, width, height, sort=sort, time_unit=time_unit)
         if array.ndim != 2 or array.shape[1] != 4:
             raise ValueError(f"array must have shape (N, 4), got {array.shape}")
         columns = {name: array[:, i] for i, name in enumerate(order)}
-        return cls(columns["x"], columns["y"], columns["t"], columns["p"], width, height, sort=sort)
+        try:
+            return cls(columns["x"], columns["y"], columns["t"], columns["p"], width, height, sort=sort,
+                       time_unit=time_unit)
+        except ValueError as error:
+            hint = _column_order_hint(array, order)
+            if not hint or isinstance(error, EventLimitError):
+                raise
+            raise ValueError(f"{error}{hint}") from None
 
     # -- conversion -------------------------------------------------------------------
     def to_structured(self) -> np.ndarray:

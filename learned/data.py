@@ -145,7 +145,8 @@ class _MapLens:
 def flip_horizontal(sample: Sample) -> Sample:
     """Mirror ``sample`` left-right: ``x -> W-1-x``, ``cx -> W-1-cx``, depth flipped, twist mirrored (vx, wy, wz negated)."""
     ev = sample.events
-    events = Events(ev.width - 1 - ev.x.astype(np.int64), ev.y, ev.t, ev.p, ev.width, ev.height)
+    events = Events(ev.width - 1 - ev.x.astype(np.int64), ev.y, ev.t, ev.p, ev.width, ev.height,
+                    time_unit="us")
     K = sample.K.copy()
     K[0, 2] = ev.width - 1 - K[0, 2]
     K[0, 1] = -K[0, 1]
@@ -163,7 +164,7 @@ def flip_horizontal(sample: Sample) -> Sample:
 def flip_polarity(sample: Sample) -> Sample:
     """Swap ON and OFF of ``sample`` (geometry and ground truth unchanged)."""
     ev = sample.events
-    return replace(sample, events=Events(ev.x, ev.y, ev.t, 1 - ev.p, ev.width, ev.height))
+    return replace(sample, events=Events(ev.x, ev.y, ev.t, 1 - ev.p, ev.width, ev.height, time_unit="us"))
 
 
 def reverse_time(sample: Sample) -> Sample:
@@ -173,7 +174,7 @@ def reverse_time(sample: Sample) -> Sample:
     """
     ev = sample.events
     t = (sample.t0_us + sample.t1_us) - ev.t[::-1]
-    events = Events(ev.x[::-1], ev.y[::-1], t, 1 - ev.p[::-1], ev.width, ev.height)
+    events = Events(ev.x[::-1], ev.y[::-1], t, 1 - ev.p[::-1], ev.width, ev.height, time_unit="us")
     pixels = None if sample.pixels is None else np.ascontiguousarray(sample.pixels[::-1])
     sensor = None if sample.sensor is None else SensorPixels(np.ascontiguousarray(sample.sensor.pixels[::-1]),
                                                              sample.sensor.camera)
@@ -472,7 +473,8 @@ def _mapped(events: Events, table: np.ndarray) -> tuple[Events, np.ndarray, Sens
     (bilinear between pixel centres, :class:`_MapLens`)."""
     exact = table[events.y, events.x].astype(np.float64)
     xy, inside = nearest_pixels(exact, events.width, events.height)
-    return (Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], events.width, events.height),
+    return (Events(xy[inside, 0], xy[inside, 1], events.t[inside], events.p[inside], events.width, events.height,
+                   time_unit="us"),
             exact[inside], SensorPixels(np.column_stack([events.x[inside], events.y[inside]]), _MapLens(table)))
 
 

@@ -14,7 +14,7 @@ from __future__ import annotations
 import numpy as np
 
 from cmax._jit import kernel
-from cmax.events import Events
+from cmax.events import Events, require_events
 
 __all__ = ["event_volume"]
 
@@ -56,8 +56,7 @@ def event_volume(events: Events, bins: int = 5) -> np.ndarray:
     >>> event_volume(ev, bins=3)[:, 0].tolist()
     [[1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]
     """
-    if not isinstance(events, Events):
-        raise TypeError(f"events must be cmax.events.Events, got {type(events).__name__}")
+    events = require_events(events)
     if isinstance(bins, bool) or not isinstance(bins, (int, np.integer)) or bins < 1:
         raise ValueError(f"bins must be an integer >= 1, got {bins!r}")
     out = np.zeros((events.height * events.width, int(bins)), np.float32)

@@ -251,3 +251,153 @@ def test_times_of_a_uint32_clock_that_wrapped_are_named_not_sorted():
     assert np.diff(Events(np.zeros(5), np.zeros(5), unwrapped, np.ones(5), 4, 4).t).tolist() == [10, 7, 8, 7]
     with pytest.raises(ValueError, match=r"t must be sorted in non-decreasing order; t\[1\]=3 µs comes after"):
         Events([0, 0], [0, 0], [5, 3], [1, 1], 4, 4)
+
+
+TONIC_DTYPE = np.dtype([("x", "<i2"), ("y", "<i2"), ("t", "<i8"), ("p", "<i1")])   # tonic's events
+
+
+def _tonic(t: np.ndarray, seed: int = 0) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    array = np.zeros(t.size, TONIC_DTYPE)
+    array["x"], array["y"], array["t"], array["p"] = rng.integers(0, 64, t.size), rng.integers(0, 48, t.size), t, \
+        rng.integers(0, 2, t.size)
+    return array
+
+
+def test_in_memory_times_of_no_stated_unit_are_checked_as_the_file_readers_check_them(tmp_path):
+    """The tonic route (from_structured), Events(...) and from_array refuse what cmax.io.read refuses of the same
+    array saved as .npy (was: nanoseconds since 1970 read as µs, a 2 s recording as 2000 s in the year 55,000, and
+    20,000 events in 10 µs taken at 2e9 events/s, without a word); correct µs pass unchanged."""
+    from cmax.io import read
+
+    rng = np.random.default_rng(7)
+    ns = _tonic(1_700_000_000 * 10**9 + np.sort(rng.integers(0, 2 * 10**9, 20_000)))
+    burst = _tonic(np.arange(20_000) // 2000)                       # 20,000 events in 10 "µs"
+    for name, array, refusal in (("ns", ns, r"t: the time 17000000019\d+, read as microseconds .* these look like "
+                                             r"nanoseconds \(1700000002\.000 s since 1970 if so\)"),
+                                 ("burst", burst, r"t, read as microseconds .* 2\.0e\+09 events/s")):
+        np.save(tmp_path / f"{name}.npy", array)
+        with pytest.raises(ValueError, match=refusal):               # the reader's verdict on the same numbers
+            read(tmp_path / f"{name}.npy", width=64, height=48)
+        for build in (lambda: Events.from_structured(array, 64, 48),
+                      lambda: Events(array["x"], array["y"], array["t"], array["p"], 64, 48),
+                      lambda: Events.from_array(np.stack([array[n] for n in "txyp"], 1), 64, 48, order="txyp")):
+            with pytest.raises(ValueError, match=refusal):
+                build()
+    stated = Events.from_structured(burst, 64, 48, time_unit="us")    # a simulation's burst, its unit stated
+    assert stated.t.tolist() == burst["t"].tolist()
+    us = ns.copy()
+    us["t"] //= 1000                                                 # the same recording in µs since 1970
+    np.save(tmp_path / "us.npy", us)
+    ev = Events.from_structured(us, 64, 48)
+    assert ev == read(tmp_path / "us.npy", width=64, height=48) and ev.duration_us == us["t"][-1] - us["t"][0]
+    assert np.array_equal(ev.to_structured().astype(TONIC_DTYPE), us)
+
+
+def test_a_stated_time_unit_converts_times_as_the_readers_do():
+    """Float seconds (an ECD text layout, evlib) with time_unit='s': rounded to the nearest µs, np.rint(t * 1e6)."""
+    rng = np.random.default_rng(8)
+    seconds = np.sort(rng.uniform(0, 2, 1000))
+    ecd = np.stack([seconds, rng.integers(0, 64, 1000), rng.integers(0, 48, 1000), rng.integers(0, 2, 1000)], 1)
+    ev = Events.from_array(ecd, 64, 48, order="txyp", time_unit="s")
+    assert ev.t.tolist() == np.rint(seconds * 1e6).astype(np.int64).tolist()
+    assert Events(ecd[:, 1], ecd[:, 2], torch.from_numpy(seconds * 1e3), ecd[:, 3], 64, 48, time_unit="ms") == ev
+    with pytest.raises(ValueError, match=r"whole numbers, got 0\.0\d+ at index 0 .* state their unit: time_unit='s'"):
+        Events.from_array(ecd, 64, 48, order="txyp")
+    with pytest.raises(ValueError, match=r"time_unit must be one of 'us', 'ms', 's' \(or None\), got 'ns'"):
+        Events([0], [0], [1], [1], 4, 4, time_unit="ns")
+
+
+def test_a_field_spelt_as_another_tool_spells_it_is_refused_with_the_rename(tmp_path):
+    """A time field named 'ts' (event_utils): refused naming the rename, whose call then reads the events
+    (was: `array lacks the field(s) ['t']`, and for a .npy `expected ... fields x, y, t, p`, nothing more)."""
+    from numpy.lib import recfunctions
+
+    from cmax.io import FormatError, read
+
+    array = _tonic(np.arange(100) * 10)
+    renamed = recfunctions.rename_fields(array, {"t": "ts"})
+    with pytest.raises(ValueError, match=r"lacks the field\(s\) \['t'\]; it has \['x', 'y', 'ts', 'p'\]: if 'ts' "
+                                         r"holds t, rename it: numpy\.lib\.recfunctions\.rename_fields\(array, "
+                                         r"\{'ts': 't'\}\)"):
+        Events.from_structured(renamed, 64, 48)
+    np.save(tmp_path / "ts.npy", renamed)
+    with pytest.raises(FormatError, match=r"ts\.npy: expected .* if 'ts' holds t, rename it: numpy\.lib\.recfunctions"
+                                          r"\.rename_fields\(np\.load\('.*ts\.npy'\), \{'ts': 't'\}\)"):
+        read(tmp_path / "ts.npy", width=64, height=48)
+    back = Events.from_structured(recfunctions.rename_fields(np.load(tmp_path / "ts.npy"), {"ts": "t"}), 64, 48)
+    assert back == Events.from_structured(array, 64, 48)
+
+
+def test_a_sensor_size_given_as_height_width_is_named_as_swapped():
+    """An image's shape (H, W) passed as width, height (was: only `x must lie in [0, width=480), got 544`): the
+    refusal says the events fit the swapped size, which then holds them; a size neither order fits says nothing."""
+    rng = np.random.default_rng(9)
+    array = np.zeros(2000, TONIC_DTYPE)
+    array["x"], array["y"], array["t"] = rng.integers(0, 640, 2000), rng.integers(0, 480, 2000), np.arange(2000) * 50
+    swapped = r"every event lies inside a 640x480 sensor: width and height swapped\? \(Events takes width=640, height=480"
+    with pytest.raises(ValueError, match=r"x must lie in \[0, width=480\), got \d+ at index \d+; " + swapped):
+        Events.from_structured(array, 480, 640)
+    with pytest.raises(ValueError, match=swapped):
+        Events(array["x"], array["y"], array["t"], array["p"], 480, 640)
+    assert len(Events.from_structured(array, 640, 480)) == 2000
+    with pytest.raises(ValueError, match=r"x must lie in \[0, width=600\), got \d+ at index \d+$"):
+        Events.from_structured(array, 600, 470)
+
+
+def test_a_polarity_of_0_255_or_of_signed_values_cast_to_uint8_is_refused_naming_the_conversion():
+    """Polarities {0, 255} (an 8-bit image's) and {1, 255} (-1/+1 cast to uint8) stay refused, numpy and torch alike
+    (was: only `got the values [0, 255]`); the conversions named give the events of the {0, 1} polarity."""
+    from cmax.representations import voxel_grid
+
+    p01 = np.array([0, 1, 1, 0, 1], np.uint8)
+    x, t = np.arange(5), np.arange(5) * 10
+    expected = Events(x, x, t, p01, 8, 8)
+    for p, hint, converted in ((p01 * 255, r"0/255 as an 8-bit image stores them\? if 255 is ON pass p > 0",
+                                p01 * 255 > 0),
+                               ((2 * p01.astype(np.int8) - 1).astype(np.uint8),
+                                r"-1/\+1 cast to uint8 \(-1 wraps to 255\)\? convert p to int8 \(255 becomes -1\)",
+                                (2 * p01.astype(np.int8) - 1).astype(np.uint8).astype(np.int8))):
+        with pytest.raises(ValueError, match=r"p must hold polarities as \{0, 1\}, \{-1, \+1\} or bool; got the "
+                                             r"values \[\d, 255\]; " + hint):
+            Events(x, x, t, p, 8, 8)
+        tensors = expected.to_torch()._replace(p=torch.from_numpy(p))
+        with pytest.raises(ValueError, match=r"events\.p must hold .* got the values \[\d, 255\]; " + hint):
+            voxel_grid(tensors, 2)
+        assert Events(x, x, t, converted, 8, 8) == expected
+
+
+def test_times_as_numpy_durations_or_dates_are_refused_naming_the_exact_conversion():
+    """evlib's / polars' Duration[us] as numpy timedelta64, datetime64 since 1970 (was: only `t must hold numbers,
+    got dtype timedelta64[us]`): refused, naming the conversion, which gives the µs of the same times."""
+    t_us = np.array([0, 10, 25, 1_000_000])
+    x = np.zeros(4, int)
+    for t, expected in ((t_us.astype("timedelta64[us]"), t_us),
+                        (np.datetime64("2023-11-14T22:13:20", "ns") + t_us.astype("timedelta64[us]"),
+                         1_700_000_000_000_000 + t_us)):
+        kind = "timedelta64" if t.dtype.kind == "m" else "datetime64"
+        with pytest.raises(TypeError, match=rf"t must hold numbers, got dtype {kind}\[\w+\] \(numpy times carry their "
+                                            rf"unit: .* t\.astype\('{kind}\[us\]'\)\.astype\(np\.int64\)"):
+            Events(x, x, t, x, 4, 4)
+        converted = t.astype(f"{kind}[us]").astype(np.int64)
+        assert Events(x, x, converted, x, 4, 4).t.tolist() == expected.tolist()
+
+
+def test_an_n_by_4_array_in_t_x_y_p_order_read_as_x_y_t_p_names_the_column_in_time_order():
+    """ECD's events.txt loaded with np.loadtxt (t [s], x, y, p) given to from_array with its default order 'xytp'
+    (was: `x must hold whole numbers, got 0.00038...`, pointing at x): the line names column 0 as the one in time
+    order and order='txyp', which (with time_unit='s') reads the events; a refusal of another cause says nothing."""
+    rng = np.random.default_rng(10)
+    t = np.sort(rng.uniform(0, 2, 1000))
+    x, y, p = rng.integers(0, 240, 1000), rng.integers(0, 180, 1000), rng.integers(0, 2, 1000)
+    ecd = np.stack([t, x, y, p], 1)
+    hint = (r"; column 0 is the one in time order, not column 2: are the columns t, x, y, p\? \(order='txyp'; ECD/rpg "
+            r"text files and v2e tables are t, x, y, p\)$")
+    with pytest.raises(ValueError, match=r"^x must hold whole numbers, got 0\.0\d+ at index 0" + hint):
+        Events.from_array(ecd, 240, 180)
+    with pytest.raises(ValueError, match=r"^x must lie in \[0, width=240\), got \d+\.0 at index 0" + hint):
+        Events.from_array(np.stack([np.rint(t * 1e6), x, y, p], 1), 240, 180)
+    assert Events.from_array(ecd, 240, 180, order="txyp", time_unit="s") == \
+        Events(x, y, np.rint(t * 1e6).astype(np.int64), p, 240, 180)
+    with pytest.raises(ValueError, match=r"^x must lie in \[0, width=200\), got \d+(\.0)? at index \d+$"):
+        Events.from_array(np.stack([x, y, np.rint(t * 1e6), p], 1), 200, 180)

@@ -316,7 +316,7 @@ def test_integer_times_of_a_plausible_rate_and_files_of_this_writer_read_as_befo
                                                                                    events: Events) -> None:
     assert read(write_h5(tmp_path / "ev.h5", events)) == events
     dense = Events(np.zeros(20_000, int), np.zeros(20_000, int), np.arange(20_000) // 5000, np.zeros(20_000, int),
-                   8, 8)                                                 # 5000 events a µs: a simulation's burst
+                   8, 8, time_unit="us")                                 # 5000 events a µs: a simulation's burst
     path = write_h5(tmp_path / "dense.h5", dense)
     assert len(read(path)) == 20_000                                     # unit stated: not checked
     with h5py.File(path, "a") as file:                                   # an earlier H5Writer's file: µs all the same

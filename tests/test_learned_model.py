@@ -310,6 +310,9 @@ def test_event_volume_doc_example_and_bad_input():
     assert event_volume(ev, bins=3)[:, 0].tolist() == [[1.0, 0.0], [0.0, 1.0], [0.0, -1.0]]
     with pytest.raises(TypeError, match="Events"):
         event_volume(ev.to_torch())
+    with pytest.raises(TypeError, match=r"events must be cmax\.Events, got ndarray \(a structured array with fields "
+                                        r"\['x', 'y', 't', 'p'\]\): cmax\.Events\.from_structured"):
+        event_volume(ev.to_structured())            # tonic's events (was: `must be cmax.events.Events, got ndarray`)
     with pytest.raises(ValueError, match="bins"):
         event_volume(ev, bins=0)
 

@@ -33,7 +33,8 @@ def warm_events(width: int = 96, height: int = 72, count: int = 6000, seed: int 
     x = x0 - f * speed * (t * 1e-6) / depth
     keep = (x >= 0) & (x <= width - 1)
     events = Events(np.rint(x[keep]).astype(np.int64), np.rint(y0[keep]).clip(0, height - 1).astype(np.int64),
-                    t[keep], np.where(rng.random(int(keep.sum())) < 0.5, 1, -1).astype(np.int64), width, height)
+                    t[keep], np.where(rng.random(int(keep.sum())) < 0.5, 1, -1).astype(np.int64), width, height,
+                    time_unit="us")
     return events, K, speed
 
 

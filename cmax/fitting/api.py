@@ -594,7 +594,8 @@ def _without_weak_events(events: Events, share: float, settings: FitSettings,
     if kept == len(events) or len(events) - kept > settings.max_denoised_share * len(events) or \
             kept < MIN_WINDOW_EVENTS or events.t[keep][-1] == events.t[keep][0]:
         return events, None
-    return Events(events.x[keep], events.y[keep], events.t[keep], events.p[keep], events.width, events.height), keep
+    return Events(events.x[keep], events.y[keep], events.t[keep], events.p[keep], events.width, events.height,
+                  time_unit="us"), keep
 
 
 def _fitted_isolated(isolated: np.ndarray | None, keep: np.ndarray | None, ordered: _Sorted | None,

@@ -27,7 +27,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from cmax.events import Events, check_event_count, structured_fields
+from cmax.events import Events, check_event_count, field_rename_hint, structured_fields
 from cmax.io._checks import (check_implied_rate, check_not_nanoseconds, check_polarity_encoding, check_stated_size,
                              check_time_unit, polarity_01, times_to_us)
 from cmax.io.aedat4 import read_aedat4, read_aedat4_frames, read_aedat4_imu
@@ -245,7 +245,7 @@ def _read_npy(
     t_us = times_to_us(t, time_unit or "us", f"{path}: field {fields['t']}")
     p = polarity_01(np.asarray(array[fields["p"]]), polarity, f"{path}: field {fields['p']}")
     try:
-        return Events(array["x"], array["y"], t_us, p, width, height, sort=sort)
+        return Events(array["x"], array["y"], t_us, p, width, height, sort=sort, time_unit="us")
     except (TypeError, ValueError) as error:
         raise FormatError(f"{path}: {error}") from None
 
@@ -260,8 +260,10 @@ def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str,
     names = array.dtype.names or ()
     fields = structured_fields(names)
     if array.ndim != 1 or any(field not in names for field in fields.values()):
+        missing = [column for column, field in fields.items() if field not in names]
         raise FormatError(f"{path}: expected a 1-D structured array with fields x, y, t, p (or dv-processing's "
-                          f"timestamp, polarity); got dtype {array.dtype}, shape {array.shape}")
+                          f"timestamp, polarity); got dtype {array.dtype}, shape {array.shape}"
+                          f"{field_rename_hint(names, missing, f'np.load({str(path)!r})') if array.ndim == 1 else ''}")
     t_dtype = array.dtype[fields["t"]]
     if t_dtype.kind not in "iuf":                      # before the unit checks, which read the times as numbers
         raise FormatError(f"{path}: field {fields['t']} must hold numbers (times), got dtype {t_dtype}")

@@ -236,7 +236,7 @@ def _table_events(table: np.ndarray, path: Path, camera: str, unit: str, polarit
     _refuse_time_going_back(t_us, path, camera)
     p = polarity_01(table[:, 3], polarity, f"{where}[:, 3] (p)")
     try:
-        return Events(table[:, 0], table[:, 1], t_us, p, MVSEC_WIDTH, MVSEC_HEIGHT)
+        return Events(table[:, 0], table[:, 1], t_us, p, MVSEC_WIDTH, MVSEC_HEIGHT, time_unit="us")
     except ValueError as error:
         raise FormatError(f"{path}: {error}") from None
 

@@ -72,7 +72,7 @@ def read_txt(
     t_us = times_to_us(table[:, 0], unit, f"{path}: column t")
     p = polarity_01(table[:, 3], polarity, f"{path}: column p")
     try:
-        return Events(table[:, 1], table[:, 2], t_us, p, width, height, sort=sort)
+        return Events(table[:, 1], table[:, 2], t_us, p, width, height, sort=sort, time_unit="us")
     except ValueError as error:
         raise FormatError(f"{path}: {error}") from None
 

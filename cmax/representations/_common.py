@@ -15,7 +15,7 @@ import numpy as np
 
 from cmax._jit import kernel
 
-from cmax.events import Events, EventTensors
+from cmax.events import Events, EventTensors, conversion_hint, polarity_hint
 
 if TYPE_CHECKING:  # pragma: no cover
     import torch
@@ -121,7 +121,8 @@ def _refuse_polarity(name: str, p: "torch.Tensor") -> None:
 
     values = torch.unique(p).tolist()
     shown = values[:10] + (["..."] if len(values) > 10 else [])
-    raise ValueError(f"{name} must hold polarities as {{0, 1}}, {{-1, +1}} or bool; got the values {shown}")
+    raise ValueError(f"{name} must hold polarities as {{0, 1}}, {{-1, +1}} or bool; got the values {shown}"
+                     f"{polarity_hint(values)}")
 
 
 def _inspect(events: object) -> tuple[str, tuple[int, int] | None]:
@@ -130,12 +131,9 @@ def _inspect(events: object) -> tuple[str, tuple[int, int] | None]:
         return "numpy", ((int(events.t[0]), int(events.t[-1])) if len(events) else None)
     if isinstance(events, EventTensors):
         return "torch", _stats_torch(events)
-    hint = ""
-    if getattr(getattr(events, "dtype", None), "names", None):
-        hint = " (a structured array, e.g. tonic's: cmax.Events.from_structured(array, width, height))"
     raise TypeError(
         "events must be cmax.Events (numpy) or cmax.EventTensors (torch, from "
-        f"Events.to_torch()), got {type(events).__name__}{hint}"
+        f"Events.to_torch()), got {type(events).__name__}{conversion_hint(events)}"
     )
 
 
