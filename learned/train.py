@@ -77,7 +77,7 @@ __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", 
            "HASH_PROGRESS_BYTES", "fingerprint_differences", "repeated_files", "calibration_sha256",
            "training_card", "schedule_note", "unread_settings",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
-           "check_output", "main"]
+           "check_output", "earlier_curves", "main"]
 
 def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
     """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
@@ -1139,7 +1139,8 @@ def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "")
     """Refuse ``train.out`` (``out``) when it is a file, when its ``last.pt`` is ``teacher`` (the checkpoint a finetune or
     student run reads: with ``--overwrite`` the run would replace its own teacher, with ``--resume`` continue
     the teacher's run in another mode), or when it holds an earlier run's ``last.pt`` and neither ``--resume``
-    (continue it) nor ``--overwrite`` (replace it) says what to do with it.
+    (continue it) nor ``--overwrite`` (replace it) says what to do with it; likewise the learning curves of an
+    earlier run stopped before its first checkpoint (:func:`earlier_curves`), which a new run would append to.
 
     The command runs this check again, and trains, holding the folder's lock (:data:`FOLDER_LOCK`,
     :func:`learned._output.locked_folder`): a second run into the same ``train.out`` meanwhile, ``--resume``
@@ -1154,6 +1155,27 @@ def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "")
     if not resume and not overwrite and (out / "last.pt").is_file():
         raise FileExistsError(f"{out / 'last.pt'} exists (an earlier run): --resume continues it, --overwrite "
                               "starts afresh over it, or give another train.out=FOLDER")
+    if not resume and not overwrite and (curves := earlier_curves(out)):
+        raise FileExistsError(f"{out} holds the learning curves of an earlier run that wrote no checkpoint (stopped "
+                              f"before its first: {', '.join(curves)}), which this run's would be appended to: "
+                              "--overwrite starts afresh over them, or give another train.out=FOLDER")
+
+
+def earlier_curves(out: Path) -> list[str]:
+    """The learning curves an earlier run left in ``out`` (a run's ``train.out``): ``log.jsonl`` when it holds a
+    line, and TensorBoard's event files in ``tb/``, as names relative to ``out`` (none: ``[]``). A run stopped before
+    its first checkpoint leaves them without a ``last.pt``; a new run would append its steps to them (``log.jsonl``
+    holding step 1 twice, TensorBoard showing both runs).
+
+    >>> earlier_curves(Path("no/such/folder"))
+    []
+    """
+    log = out / "log.jsonl"
+    found = ["log.jsonl"] if log.is_file() and log.stat().st_size > 0 else []
+    tb = out / "tb"
+    if tb.is_dir() and not tb.is_symlink():
+        found += [f"tb/{file.name}" for file in sorted(tb.glob("events.out.tfevents.*")) if file.is_file()][:3]
+    return found
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -2,6 +2,7 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import os
 import shutil
 import signal
@@ -268,6 +269,28 @@ def test_a_stray_rank_outside_a_torchrun_job_is_refused(scene_file, tmp_path, ca
     with pytest.raises(ValueError, match="not a rank of a torchrun job"):
         Trainer(load_config(None, tiny(scene_file, out, "train.steps=2"), mode="teacher"), progress=False)
     assert not out.exists()
+
+
+def test_the_curves_of_a_run_stopped_before_its_first_checkpoint_are_not_appended_to(scene_file, tmp_path, capsys):
+    """A run killed before its first checkpoint leaves config.json, log.jsonl and tb/ without last.pt; a new run
+    into that train.out (other settings, no flag) was taken: it appended its steps to log.jsonl (step 1 twice) and
+    its events beside the old ones in tb/, exit 0. Now refused in one line, the folder untouched; --overwrite
+    starts afresh: each step logged once."""
+    from conftest import one_line_error
+
+    out = tmp_path / "run"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=3")]) == 0
+    (out / "last.pt").unlink()   # as a kill before the first checkpoint leaves the folder
+    before = {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()}
+    args = ["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=2", "train.lr=1e-3")]
+    status, err = one_line_error(lambda: main(args), capsys)
+    assert status == 2 and "holds the learning curves of an earlier run that wrote no checkpoint" in err, err
+    assert "log.jsonl" in err and "--overwrite" in err
+    assert {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()} == before
+    assert main([*args, "--overwrite"]) == 0
+    steps = [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()]
+    assert steps == [1, 2]
+    assert len(list((out / "tb").glob("events.out.tfevents.*"))) <= 1   # the new run's alone (if TensorBoard is there)
 
 
 def test_links_planted_in_the_output_folder_are_not_followed(scene_file, tmp_path):
