@@ -542,6 +542,7 @@ def check_twists(path: str | Path, poses_t: np.ndarray, twists: np.ndarray) -> N
     rad/s)`` (6,) per time of ``gt/poses_t`` (M,) µs: a NaN there made the teacher's loss NaN at the first step
     that drew its window, reported as a diverged run.
 
+    >>> import numpy as np
     >>> check_twists("a.h5", np.arange(2), np.zeros((2, 6)))
     >>> try:
     ...     check_twists("a.h5", np.arange(2), np.array([[0.0] * 6, [np.nan] * 6]))
@@ -569,6 +570,7 @@ def check_ground_truth_layout(path: str | Path, depth_shape: tuple[int, ...], de
     ``depth_t`` (D,) µs (a map missing was an IndexError when its window was read), and ``twists`` (M, 6) one
     finite twist per time of ``poses_t`` (M,) µs (:func:`check_twists`; None: the file stores no twists).
 
+    >>> import numpy as np
     >>> check_ground_truth_layout("a.h5", (3, 36, 48), np.arange(3), 48, 36)
     >>> try:
     ...     check_ground_truth_layout("a.h5", (2, 36, 48), np.arange(3), 48, 36)
