@@ -77,7 +77,7 @@ __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", 
            "HASH_PROGRESS_BYTES", "fingerprint_differences", "repeated_files", "calibration_sha256",
            "training_card", "schedule_note", "unread_settings",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
-           "check_output", "earlier_curves", "main"]
+           "check_output", "earlier_curves", "check_optimizer_state", "main"]
 
 def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
     """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
@@ -512,6 +512,39 @@ def _load_weights(model: DepthPoseNet, state: dict[str, torch.Tensor], source: s
                               f"({' '.join(str(error).split())[:300]})") from None
 
 
+def check_optimizer_state(optimizer: torch.optim.Optimizer, source: str | Path) -> None:
+    """Refuse (:class:`CheckpointError` naming ``source``) an optimizer state loaded from a checkpoint whose
+    per-parameter tensors (AdamW's ``exp_avg``, ``exp_avg_sq``: each of its parameter's shape) have another shape
+    than their parameter or hold a NaN or an infinity: ``load_state_dict`` takes them, and the first resumed step
+    failed with torch's shape error (a traceback) or made the weights non-finite, reported as a diverged run.
+
+    >>> import torch
+    >>> from learned.checkpoint import CheckpointError
+    >>> net = torch.nn.Linear(2, 1)
+    >>> adam = torch.optim.AdamW(net.parameters())
+    >>> net(torch.ones(1, 2)).sum().backward(); adam.step()
+    >>> check_optimizer_state(adam, "last.pt")
+    >>> adam.state[net.weight]["exp_avg"] = torch.zeros(7)
+    >>> try:
+    ...     check_optimizer_state(adam, "last.pt")
+    ... except CheckpointError as error:
+    ...     print(str(error)[:64])
+    last.pt: its optimizer state does not fit this run (exp_avg of p
+    """
+    for group in optimizer.param_groups:
+        for index, parameter in enumerate(group["params"]):
+            for key, value in optimizer.state.get(parameter, {}).items():
+                if not isinstance(value, torch.Tensor) or value.ndim == 0:   # AdamW's step counter
+                    continue
+                if value.shape != parameter.shape:
+                    raise CheckpointError(f"{source}: its optimizer state does not fit this run ({key} of parameter "
+                                          f"{index}: {list(value.shape)}, the parameter's {list(parameter.shape)})")
+                if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                    raise CheckpointError(f"{source}: its optimizer state holds NaN or infinite values ({key} of "
+                                          f"parameter {index}): the resumed steps would make the weights "
+                                          "non-finite; use an earlier checkpoint")
+
+
 def with_teacher_model(config: Config) -> Config:
     """``config`` with the network its teacher fixes (``--mode finetune`` / ``student``; others unchanged).
 
@@ -712,8 +745,14 @@ class Trainer:
             except (ValueError, KeyError, TypeError) as error:
                 raise CheckpointError(f"{self.out / 'last.pt'}: its optimizer state does not fit this run "
                                       f"({error})") from None
+            check_optimizer_state(self.optimizer, self.out / "last.pt")
             self.step = self.saved_step = int(ckpt["step"])
-            set_rng_state(ckpt["rng"])
+            try:
+                set_rng_state(ckpt["rng"])
+            except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as error:   # a crafted or damaged rng
+                raise CheckpointError(f"{self.out / 'last.pt'}: its random generator states (rng) cannot be "
+                                      f"restored ({type(error).__name__}: {' '.join(str(error).split())[:200]}); "
+                                      "the resumed steps would not be the ones of the run that wrote it") from None
         self.net = self.model
         if self.world > 1:
             all_scales, twist = loss_outputs(config)

@@ -173,6 +173,22 @@ def test_wrong_contents_are_refused(tmp_path):
         load_checkpoint(tmp_path / "c.pt")
 
 
+def test_a_sparse_tensor_is_refused_in_one_line(tmp_path, capsys):
+    """A checkpoint whose weight is a sparse tensor (torch.load(weights_only=True) rebuilds it) was a
+    NotImplementedError traceback ('Cannot access storage of SparseTensorImpl'), exit 1, from learned.evaluate,
+    learned.predict and --resume; now a CheckpointError naming the file and the tensor."""
+    from learned.evaluate import main
+
+    payload = {**_payload(), "format": 2}
+    payload["model"] = {**payload["model"], "stem.0.weight": payload["model"]["stem.0.weight"].to_sparse()}
+    torch.save(payload, tmp_path / "sparse.pt")
+    with pytest.raises(CheckpointError, match=r"sparse.pt was refused: 1 of its tensors are not dense "
+                                              r"\(e.g. model.stem.0.weight: torch.sparse_coo\)"):
+        load_checkpoint(tmp_path / "sparse.pt")
+    assert main(["--checkpoint", str(tmp_path / "sparse.pt"), "--data", str(tmp_path / "any.h5")]) == 2
+    assert "not dense" in _one_error_line(capsys)
+
+
 def test_an_old_format_checkpoint_is_refused_then_upgraded_only_when_trusted(tmp_path):
     old = _payload()
     old["rng"] = {"python": random.getstate(), "numpy": np.random.get_state(), "torch": torch.get_rng_state()}
