@@ -278,7 +278,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     FileNotFoundError
         No file at ``path``.
     CheckpointError (a ValueError)
-        Not a ``torch.save`` file, a pickle that needs code to load (crafted, or
+        Not a regular file (a device, a FIFO), not a ``torch.save`` file, a pickle that needs code to load (crafted, or
         of format 1: see :func:`upgrade_checkpoint`), keys of the wrong kind, or weights that hold a NaN or
         an infinity (a diverged run's).
     """
@@ -289,6 +289,9 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
             else "it holds no .pt file"
         raise FileNotFoundError(f"no checkpoint at {path}: it is a folder ({hint})")
     if not path.is_file():
+        if path.exists():   # a device (a link to /dev/zero), a FIFO, a socket: exists, holds no file
+            raise CheckpointError(f"{path} is not a regular file (a device, a pipe or a socket): give a checkpoint "
+                                  "file of learned.train (e.g. runs/teacher/last.pt)")
         raise FileNotFoundError(f"no checkpoint at {path}")
     _check_expansion(path)
     try:
