@@ -56,9 +56,13 @@ def _require(condition: bool, section: str, name: str, rule: str, value: object)
 def _check_file_entry(entry: object, where: str) -> None:
     """TypeError naming ``where`` (``data.files[2]``, ``data.val_files[0]``) for an entry of a list of data files
     that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist", "polarity", "calib",
-    "calib_camera", "rectify_map"}`` of the right types; ValueError for a ``polarity`` other than ``"01"`` or
-    ``"signed"``, for a ``calib_camera`` without ``calib``, and for a ``rectify_map`` without ``K`` or with
-    ``calib``."""
+    "calib_camera", "rectify_map"}`` of the right types; ValueError for an empty path (``""``, an unset shell
+    variable: ``Path("")`` is the current folder), for a ``polarity`` other than ``"01"`` or ``"signed"``, for a
+    ``calib_camera`` without ``calib``, and for a ``rectify_map`` without ``K`` or with ``calib``."""
+    path = entry.get("path") if isinstance(entry, dict) else entry
+    if isinstance(path, str) and not path.strip():
+        raise ValueError(f"{where} is an empty path (an unset shell variable, \"$FILE\"?): give an h5 event file, "
+                         f"e.g. data.files=[\"a.h5\"]")
     if isinstance(entry, (str, Path)):
         return
     if not isinstance(entry, dict):
