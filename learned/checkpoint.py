@@ -190,6 +190,25 @@ def _inflated_tensors(value: Any, where: str = "") -> list[tuple[str, torch.Tens
     return [found for name, item in items for found in _inflated_tensors(item, name)]
 
 
+def _unusual_tensors(value: Any, where: str = "") -> list[tuple[str, torch.Tensor]]:
+    """``(where, tensor)`` for each tensor in ``value`` (nested dicts, lists, tuples) that is not a dense (strided)
+    tensor: a sparse one, which ``torch.load(weights_only=True)`` rebuilds, has no storage to check and made the
+    checks and ``load_state_dict`` fail with a traceback (NotImplementedError).
+
+    >>> [name for name, _ in _unusual_tensors({"a": torch.ones(2), "b": [torch.eye(2).to_sparse()]})]
+    ['b[0]']
+    """
+    if isinstance(value, torch.Tensor):
+        return [] if value.layout == torch.strided else [(where, value)]
+    if isinstance(value, dict):
+        items = ((f"{where}.{key}" if where else str(key), item) for key, item in value.items())
+    elif isinstance(value, (list, tuple)):
+        items = ((f"{where}[{i}]", item) for i, item in enumerate(value))
+    else:
+        return []
+    return [found for name, item in items for found in _unusual_tensors(item, name)]
+
+
 #: A checkpoint's zip entries may expand to at most this many times the file's size (plus
 #: :data:`_EXPANSION_SLACK` bytes): ``torch.save`` stores them uncompressed, so a real checkpoint expands to about
 #: its own size, and a crafted one of compressed zeros to hundreds of times it.
@@ -225,6 +244,12 @@ def _check_payload(path: Path, payload: object) -> dict[str, Any]:
     if not (isinstance(model, dict) and all(isinstance(k, str) and isinstance(v, torch.Tensor)
                                             for k, v in model.items())):
         raise CheckpointError(f"{path}: 'model' must map parameter names to tensors")
+    unusual = _unusual_tensors(payload)
+    if unusual:
+        name, tensor = unusual[0]
+        raise CheckpointError(f"{path} was refused: {len(unusual)} of its tensors are not dense (e.g. {name}: "
+                              f"{tensor.layout}); torch.save of a checkpoint's weights, optimizer and RNG states "
+                              "writes dense tensors only")
     inflated = _inflated_tensors(payload)
     if inflated:
         name, tensor = inflated[0]
@@ -253,7 +278,7 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
     FileNotFoundError
         No file at ``path``.
     CheckpointError (a ValueError)
-        Not a ``torch.save`` file, a pickle that needs code to load (crafted, or
+        Not a regular file (a device, a FIFO), not a ``torch.save`` file, a pickle that needs code to load (crafted, or
         of format 1: see :func:`upgrade_checkpoint`), keys of the wrong kind, or weights that hold a NaN or
         an infinity (a diverged run's).
     """
@@ -264,6 +289,9 @@ def load_checkpoint(path: str | Path) -> dict[str, Any]:
             else "it holds no .pt file"
         raise FileNotFoundError(f"no checkpoint at {path}: it is a folder ({hint})")
     if not path.is_file():
+        if path.exists():   # a device (a link to /dev/zero), a FIFO, a socket: exists, holds no file
+            raise CheckpointError(f"{path} is not a regular file (a device, a pipe or a socket): give a checkpoint "
+                                  "file of learned.train (e.g. runs/teacher/last.pt)")
         raise FileNotFoundError(f"no checkpoint at {path}")
     _check_expansion(path)
     try:

@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import json
 import math
+import os
 import tomllib
 import warnings
 from dataclasses import asdict, dataclass, field, fields, replace
@@ -19,7 +20,7 @@ from learned.device import DEVICE_NAMES, is_device_name
 from learned.model import ModelConfig
 
 __all__ = ["DataConfig", "TrainConfig", "Config", "load_config", "apply_overrides", "config_from_dict", "MODES",
-           "REMOVED_KEYS"]
+           "REMOVED_KEYS", "check_paths_beside_config"]
 
 MODES = ("teacher", "finetune", "student")
 
@@ -56,9 +57,14 @@ def _require(condition: bool, section: str, name: str, rule: str, value: object)
 def _check_file_entry(entry: object, where: str) -> None:
     """TypeError naming ``where`` (``data.files[2]``, ``data.val_files[0]``) for an entry of a list of data files
     that is neither a path nor ``{"path", "K", "use_gt", "known_speed", "known_twist", "polarity", "calib",
-    "calib_camera", "rectify_map", "as_recorded"}`` of the right types; ValueError for a ``polarity`` other than
-    ``"01"`` or ``"signed"``, for a ``calib_camera`` without ``calib``, and for a ``rectify_map`` without ``K`` or with
+    "calib_camera", "rectify_map", "as_recorded"}`` of the right types; ValueError for an empty path (``""``, an
+    unset shell variable: ``Path("")`` is the current folder), for a ``polarity`` other than ``"01"`` or
+    ``"signed"``, for a ``calib_camera`` without ``calib``, and for a ``rectify_map`` without ``K`` or with
     ``calib``."""
+    path = entry.get("path") if isinstance(entry, dict) else entry
+    if isinstance(path, str) and not path.strip():
+        raise ValueError(f"{where} is an empty path (an unset shell variable, \"$FILE\"?): give an h5 event file, "
+                         f"e.g. data.files=[\"a.h5\"]")
     if isinstance(entry, (str, Path)):
         return
     if not isinstance(entry, dict):
@@ -361,7 +367,32 @@ def load_config(path: str | Path | None, overrides: list[str] = (), *, mode: str
         values["mode"] = mode
     elif require_mode and "mode" not in values:
         raise ValueError("no mode: give --mode teacher|finetune|student, or a config that states mode = ...")
-    return config_from_dict(values)
+    config = config_from_dict(values)
+    if path is not None:
+        check_paths_beside_config(config, path)
+    return config
+
+
+def check_paths_beside_config(config: Config, path: str | Path) -> None:
+    """Raise FileNotFoundError for a relative file of ``config`` (a ``data.files`` entry, a ``data.val_files`` entry
+    when ``train.val_every`` reads them, the teacher of a finetune or student) that is missing from the current
+    folder, where every relative path is read from, but lies beside the config file at ``path``: the message names
+    both places (the reader's own, ``no such event file: a.h5``, named neither). Paths found, absolute, or missing
+    from both places are left to the readers.
+    """
+    folder = Path(path).parent
+    if folder.resolve() == Path.cwd().resolve():
+        return
+    names = [entry if isinstance(entry, (str, Path)) else entry["path"] for entry in config.data.files]
+    if config.train.val_every:
+        names += [entry if isinstance(entry, (str, Path)) else entry["path"] for entry in config.data.val_files]
+    if config.mode in ("finetune", "student") and config.train.teacher:
+        names.append(config.train.teacher)
+    for name in map(Path, names):
+        if not name.is_absolute() and not os.path.lexists(name) and os.path.lexists(folder / name):
+            raise FileNotFoundError(f"no such file: {name} (relative paths of a config are read from the current "
+                                    f"folder, {Path.cwd()}); {folder / name} lies beside the config {path}: run from "
+                                    f"{folder}, or give the paths from here (e.g. {folder / name}) or absolute ones")
 
 
 def with_mode(config: Config, mode: str) -> Config:

@@ -40,7 +40,8 @@ if TYPE_CHECKING:
     from cmax.camera import Camera
 
 __all__ = ["MAX_OPEN_FILES", "Sample", "flip_horizontal", "flip_polarity", "reverse_time", "augment", "to_item", "collate",
-           "H5WindowDataset", "MVSECDataset", "FileSpec", "reaches_beyond", "longest_centred_window_us"]
+           "H5WindowDataset", "MVSECDataset", "FileSpec", "reaches_beyond", "longest_centred_window_us", "check_twists",
+           "check_ground_truth_layout"]
 
 
 #: Files an :class:`H5WindowDataset` keeps open at once, the least recently read closed first: each open file
@@ -534,6 +535,60 @@ def _polarity_hint(spec: FileSpec) -> Iterator[None]:
                           ) from None
 
 
+def check_twists(path: str | Path, poses_t: np.ndarray, twists: np.ndarray) -> None:
+    """Refuse (ValueError naming the file at ``path``) ``gt/twists`` that are not one finite ``(v m/s, omega
+    rad/s)`` (6,) per time of ``gt/poses_t`` (M,) µs: a NaN there made the teacher's loss NaN at the first step
+    that drew its window, reported as a diverged run.
+
+    >>> import numpy as np
+    >>> check_twists("a.h5", np.arange(2), np.zeros((2, 6)))
+    >>> try:
+    ...     check_twists("a.h5", np.arange(2), np.array([[0.0] * 6, [np.nan] * 6]))
+    ... except ValueError as error:
+    ...     print(str(error)[:61])
+    a.h5: gt/twists holds NaN or infinite values in 1 of its 2 ro
+    """
+    twists, poses_t = np.asarray(twists), np.asarray(poses_t)
+    if twists.ndim != 2 or twists.shape[1] != 6 or poses_t.shape != (len(twists),):
+        raise ValueError(f"{path}: gt/twists must be (M, 6), one (v m/s, omega rad/s) per time of gt/poses_t (M,), "
+                         f"got gt/twists {twists.shape} and gt/poses_t {poses_t.shape}")
+    bad = np.flatnonzero(~np.isfinite(twists).all(axis=1)) if twists.dtype.kind in "fc" else np.empty(0, int)
+    if len(bad):
+        raise ValueError(f"{path}: gt/twists holds NaN or infinite values in {len(bad)} of its {len(twists)} rows "
+                         f"(row {bad[0]}: {twists[bad[0]].tolist()}, at gt/poses_t {poses_t[bad[0]]} µs): the "
+                         "teacher's twist term and the motion metrics need a finite twist (v m/s, omega rad/s) at "
+                         "every pose time; repair those rows, or drop gt/twists and gt/poses_t (depth alone)")
+
+
+def check_ground_truth_layout(path: str | Path, depth_shape: tuple[int, ...], depth_t: np.ndarray, width: int,
+                              height: int, poses_t: np.ndarray | None = None, twists: np.ndarray | None = None
+                              ) -> None:
+    """Refuse (ValueError naming the file at ``path``) ground truth whose parts do not fit each other: ``gt/depth``
+    of shape ``depth_shape`` must be (D, ``height``, ``width``), one depth map [m] of the sensor per time of
+    ``depth_t`` (D,) µs (a map missing was an IndexError when its window was read), and ``twists`` (M, 6) one
+    finite twist per time of ``poses_t`` (M,) µs (:func:`check_twists`; None: the file stores no twists).
+
+    >>> import numpy as np
+    >>> check_ground_truth_layout("a.h5", (3, 36, 48), np.arange(3), 48, 36)
+    >>> try:
+    ...     check_ground_truth_layout("a.h5", (2, 36, 48), np.arange(3), 48, 36)
+    ... except ValueError as error:
+    ...     print(str(error)[:62])
+    a.h5: gt/depth holds 2 depth maps, gt/depth_t 3 times: each ti
+    """
+    depth_t = np.asarray(depth_t)
+    if len(depth_shape) != 3 or depth_t.shape != (depth_shape[0],):
+        count = f"{depth_shape[0]} depth maps" if len(depth_shape) == 3 else f"an array of shape {tuple(depth_shape)}"
+        raise ValueError(f"{path}: gt/depth holds {count}, gt/depth_t {depth_t.shape[0] if depth_t.ndim else 1} "
+                         "times: each time of gt/depth_t (D,) µs needs its depth map, gt/depth (D, H, W) [m]")
+    if tuple(depth_shape[1:]) != (height, width):
+        raise ValueError(f"{path}: gt/depth holds maps of {depth_shape[2]}x{depth_shape[1]} pixels, its events come "
+                         f"from a {width}x{height} sensor: the depth must be of the events' sensor, "
+                         f"gt/depth (D, {height}, {width}) [m]")
+    if twists is not None and poses_t is not None:
+        check_twists(path, poses_t, twists)
+
+
 class H5WindowDataset(torch.utils.data.Dataset):
     """Windows of DSEC-layout files (see the module docstring).
 
@@ -604,7 +659,7 @@ class H5WindowDataset(torch.utils.data.Dataset):
                     spec = self.specs[i] = replace(spec, K=self._cameras[i].pinhole_K)
                     if (disagreement := _map_disagreement(spec, self._cameras[i])) is not None:
                         warnings.warn(disagreement, UserWarning, stacklevel=2)
-                gt = self._load_gt(reader.file, spec)
+                gt = self._load_gt(reader.file, spec, reader.width, reader.height)
                 if gt is not None and spec.K is not None and not np.allclose(spec.K, gt["K"], rtol=1e-6, atol=1e-9):
                     raise ValueError(f"{spec.path}: its entry gives K {np.asarray(spec.K).tolist()}, but its ground "
                                      f"truth (gt/depth, gt/twists) was made with its gt/K {gt['K'].tolist()}: drop "
@@ -637,11 +692,12 @@ class H5WindowDataset(torch.utils.data.Dataset):
         self.width, self.height = size
 
     @staticmethod
-    def _load_gt(file: h5py.File, spec: FileSpec) -> dict | None:
+    def _load_gt(file: h5py.File, spec: FileSpec, width: int, height: int) -> dict | None:
         """The ground truth of ``gt/``: ``depth_t`` (D,) µs, ``K`` (3, 3), and ``twists`` (M, 6) with their
         ``poses_t`` (M,) µs, or None for those when the file stores no twists; None for a file without depth
         (no ``gt/depth`` or ``gt/depth_t``: a ``gt/K`` alone is the calibration). ValueError naming the file for
-        a depth without the ``gt/K`` it was made with."""
+        a depth without the ``gt/K`` it was made with, and for ground truth whose parts do not fit each other
+        (:func:`check_ground_truth_layout`: ``gt/depth`` (D, ``height``, ``width``) [m], finite twists)."""
         if "gt" not in file or not spec.use_gt:
             return None
         gt = file["gt"]
@@ -652,8 +708,11 @@ class H5WindowDataset(torch.utils.data.Dataset):
                              "add gt/K to the file, or read it with \"use_gt\": false and its K in its data.files "
                              "entry")
         timed = "twists" in gt and "poses_t" in gt
-        return {"depth_t": gt["depth_t"][:], "poses_t": gt["poses_t"][:] if timed else None,
-                "twists": gt["twists"][:] if timed else None, "K": gt["K"][:]}
+        loaded = {"depth_t": gt["depth_t"][:], "poses_t": gt["poses_t"][:] if timed else None,
+                  "twists": gt["twists"][:] if timed else None, "K": gt["K"][:]}
+        check_ground_truth_layout(spec.path, gt["depth"].shape, loaded["depth_t"], width, height,
+                                  loaded["poses_t"], loaded["twists"])
+        return loaded
 
     @staticmethod
     def _load_known_motion(file: h5py.File, spec: FileSpec) -> tuple[np.ndarray, np.ndarray] | None:
@@ -663,7 +722,9 @@ class H5WindowDataset(torch.utils.data.Dataset):
             return None
         if "gt/twists" not in file or "gt/poses_t" not in file:
             raise ValueError(f"{spec.path}: known_speed needs gt/twists and gt/poses_t in the file")
-        return file["gt/poses_t"][:], file["gt/twists"][:]
+        poses_t, twists = file["gt/poses_t"][:], file["gt/twists"][:]
+        check_twists(spec.path, poses_t, twists)
+        return poses_t, twists
 
     def set_epoch(self, epoch: int) -> None:
         """Change the augmentation draws (called by the trainer each epoch)."""

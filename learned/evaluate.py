@@ -212,6 +212,11 @@ def check_ground_truth(path: str | Path) -> None:
             raise ValueError(f"{path} is not an HDF5 file: learned.evaluate scores the network against the ground "
                              f"truth (gt/depth, gt/K) of h5 files as cmax scene writes them; to predict depth on "
                              f"this file, run cmax depth {path} -o OUT") from None
+        if path.is_dir():   # was named in training's words ("data.files lists h5 files one by one")
+            found = len(list(path.glob("*.h5")))
+            raise ValueError(f"{path} is a folder, not an event file: --data lists h5 files one by one"
+                             + (f" (--data {path / '*.h5'}: the {found} .h5 files in it)" if found else
+                                " (it holds no .h5 file)")) from None
         depth = K = True
     if not depth:
         raise ValueError(f"{path} has no {'gt/depth' if K else 'gt/K nor gt/depth'}: no ground truth to evaluate "

@@ -77,7 +77,7 @@ __all__ = ["FOLDER_LOCK", "TrainingDiverged", "batch_indices", "learning_rate", 
            "HASH_PROGRESS_BYTES", "fingerprint_differences", "repeated_files", "calibration_sha256",
            "training_card", "schedule_note", "unread_settings",
            "config_differences", "resolved_paths", "distributed_rank", "loss_outputs", "LossOutputs", "Trainer",
-           "check_output", "main"]
+           "check_output", "earlier_curves", "check_optimizer_state", "main"]
 
 def global_mean(values: dict[str, float], *, world: int, device: torch.device) -> dict[str, float]:
     """``values`` (one rank's loss terms) averaged over the ``world`` ranks of a ``torchrun`` job: with equal
@@ -512,6 +512,39 @@ def _load_weights(model: DepthPoseNet, state: dict[str, torch.Tensor], source: s
                               f"({' '.join(str(error).split())[:300]})") from None
 
 
+def check_optimizer_state(optimizer: torch.optim.Optimizer, source: str | Path) -> None:
+    """Refuse (:class:`CheckpointError` naming ``source``) an optimizer state loaded from a checkpoint whose
+    per-parameter tensors (AdamW's ``exp_avg``, ``exp_avg_sq``: each of its parameter's shape) have another shape
+    than their parameter or hold a NaN or an infinity: ``load_state_dict`` takes them, and the first resumed step
+    failed with torch's shape error (a traceback) or made the weights non-finite, reported as a diverged run.
+
+    >>> import torch
+    >>> from learned.checkpoint import CheckpointError
+    >>> net = torch.nn.Linear(2, 1)
+    >>> adam = torch.optim.AdamW(net.parameters())
+    >>> net(torch.ones(1, 2)).sum().backward(); adam.step()
+    >>> check_optimizer_state(adam, "last.pt")
+    >>> adam.state[net.weight]["exp_avg"] = torch.zeros(7)
+    >>> try:
+    ...     check_optimizer_state(adam, "last.pt")
+    ... except CheckpointError as error:
+    ...     print(str(error)[:64])
+    last.pt: its optimizer state does not fit this run (exp_avg of p
+    """
+    for group in optimizer.param_groups:
+        for index, parameter in enumerate(group["params"]):
+            for key, value in optimizer.state.get(parameter, {}).items():
+                if not isinstance(value, torch.Tensor) or value.ndim == 0:   # AdamW's step counter
+                    continue
+                if value.shape != parameter.shape:
+                    raise CheckpointError(f"{source}: its optimizer state does not fit this run ({key} of parameter "
+                                          f"{index}: {list(value.shape)}, the parameter's {list(parameter.shape)})")
+                if value.is_floating_point() and not bool(torch.isfinite(value).all()):
+                    raise CheckpointError(f"{source}: its optimizer state holds NaN or infinite values ({key} of "
+                                          f"parameter {index}): the resumed steps would make the weights "
+                                          "non-finite; use an earlier checkpoint")
+
+
 def with_teacher_model(config: Config) -> Config:
     """``config`` with the network its teacher fixes (``--mode finetune`` / ``student``; others unchanged).
 
@@ -712,8 +745,14 @@ class Trainer:
             except (ValueError, KeyError, TypeError) as error:
                 raise CheckpointError(f"{self.out / 'last.pt'}: its optimizer state does not fit this run "
                                       f"({error})") from None
+            check_optimizer_state(self.optimizer, self.out / "last.pt")
             self.step = self.saved_step = int(ckpt["step"])
-            set_rng_state(ckpt["rng"])
+            try:
+                set_rng_state(ckpt["rng"])
+            except (KeyError, TypeError, ValueError, IndexError, RuntimeError) as error:   # a crafted or damaged rng
+                raise CheckpointError(f"{self.out / 'last.pt'}: its random generator states (rng) cannot be "
+                                      f"restored ({type(error).__name__}: {' '.join(str(error).split())[:200]}); "
+                                      "the resumed steps would not be the ones of the run that wrote it") from None
         self.net = self.model
         if self.world > 1:
             all_scales, twist = loss_outputs(config)
@@ -1139,7 +1178,8 @@ def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "")
     """Refuse ``train.out`` (``out``) when it is a file, when its ``last.pt`` is ``teacher`` (the checkpoint a finetune or
     student run reads: with ``--overwrite`` the run would replace its own teacher, with ``--resume`` continue
     the teacher's run in another mode), or when it holds an earlier run's ``last.pt`` and neither ``--resume``
-    (continue it) nor ``--overwrite`` (replace it) says what to do with it.
+    (continue it) nor ``--overwrite`` (replace it) says what to do with it; likewise the learning curves of an
+    earlier run stopped before its first checkpoint (:func:`earlier_curves`), which a new run would append to.
 
     The command runs this check again, and trains, holding the folder's lock (:data:`FOLDER_LOCK`,
     :func:`learned._output.locked_folder`): a second run into the same ``train.out`` meanwhile, ``--resume``
@@ -1154,6 +1194,27 @@ def check_output(out: Path, *, resume: bool, overwrite: bool, teacher: str = "")
     if not resume and not overwrite and (out / "last.pt").is_file():
         raise FileExistsError(f"{out / 'last.pt'} exists (an earlier run): --resume continues it, --overwrite "
                               "starts afresh over it, or give another train.out=FOLDER")
+    if not resume and not overwrite and (curves := earlier_curves(out)):
+        raise FileExistsError(f"{out} holds the learning curves of an earlier run that wrote no checkpoint (stopped "
+                              f"before its first: {', '.join(curves)}), which this run's would be appended to: "
+                              "--overwrite starts afresh over them, or give another train.out=FOLDER")
+
+
+def earlier_curves(out: Path) -> list[str]:
+    """The learning curves an earlier run left in ``out`` (a run's ``train.out``): ``log.jsonl`` when it holds a
+    line, and TensorBoard's event files in ``tb/``, as names relative to ``out`` (none: ``[]``). A run stopped before
+    its first checkpoint leaves them without a ``last.pt``; a new run would append its steps to them (``log.jsonl``
+    holding step 1 twice, TensorBoard showing both runs).
+
+    >>> earlier_curves(Path("no/such/folder"))
+    []
+    """
+    log = out / "log.jsonl"
+    found = ["log.jsonl"] if log.is_file() and log.stat().st_size > 0 else []
+    tb = out / "tb"
+    if tb.is_dir() and not tb.is_symlink():
+        found += [f"tb/{file.name}" for file in sorted(tb.glob("events.out.tfevents.*")) if file.is_file()][:3]
+    return found
 
 
 def _run(args: argparse.Namespace) -> int:

@@ -160,6 +160,28 @@ def test_non_checkpoint_files_are_refused(tmp_path, content, message):
         load_checkpoint(path)
 
 
+@pytest.mark.skipif(sys.platform == "win32", reason="FIFOs and /dev/zero are POSIX")
+def test_a_device_or_a_pipe_is_named_as_such_not_as_missing(tmp_path, capsys):
+    """A checkpoint path that is a link to /dev/zero or a FIFO was `no checkpoint at ...` (FileNotFoundError), about
+    a path that exists; an event file of data.files that is one was `no such event file: ...`. Now each is named as
+    not a regular file, and nothing is read from it (a FIFO would block, /dev/zero never ends)."""
+    from cmax.io import FormatError
+    from learned.data import H5WindowDataset
+    from learned.evaluate import main
+
+    (tmp_path / "zero.pt").symlink_to("/dev/zero")
+    os.mkfifo(tmp_path / "pipe.pt")
+    for name in ("zero.pt", "pipe.pt"):
+        with pytest.raises(CheckpointError, match=f"{name} is not a regular file \\(a device, a pipe or a socket\\)"):
+            load_checkpoint(tmp_path / name)
+        assert main(["--checkpoint", str(tmp_path / name), "--data", str(tmp_path / "any.h5")]) == 2
+        assert "is not a regular file" in _one_error_line(capsys)
+        with pytest.raises(FormatError, match=f"{name} is not a regular file"):
+            H5WindowDataset([str(tmp_path / name)], window_us=100_000)
+    with pytest.raises(FileNotFoundError, match="no checkpoint at"):
+        load_checkpoint(tmp_path / "missing.pt")
+
+
 def test_wrong_contents_are_refused(tmp_path):
     torch.save({"weights": torch.zeros(3)}, tmp_path / "a.pt")
     with pytest.raises(CheckpointError, match=r"missing \['config', 'model', 'optimizer', 'rng', 'step'\]"):
@@ -171,6 +193,22 @@ def test_wrong_contents_are_refused(tmp_path):
     torch.save(payload, tmp_path / "c.pt")
     with pytest.raises(CheckpointError, match="'step' must be an integer >= 0"):
         load_checkpoint(tmp_path / "c.pt")
+
+
+def test_a_sparse_tensor_is_refused_in_one_line(tmp_path, capsys):
+    """A checkpoint whose weight is a sparse tensor (torch.load(weights_only=True) rebuilds it) was a
+    NotImplementedError traceback ('Cannot access storage of SparseTensorImpl'), exit 1, from learned.evaluate,
+    learned.predict and --resume; now a CheckpointError naming the file and the tensor."""
+    from learned.evaluate import main
+
+    payload = {**_payload(), "format": 2}
+    payload["model"] = {**payload["model"], "stem.0.weight": payload["model"]["stem.0.weight"].to_sparse()}
+    torch.save(payload, tmp_path / "sparse.pt")
+    with pytest.raises(CheckpointError, match=r"sparse.pt was refused: 1 of its tensors are not dense "
+                                              r"\(e.g. model.stem.0.weight: torch.sparse_coo\)"):
+        load_checkpoint(tmp_path / "sparse.pt")
+    assert main(["--checkpoint", str(tmp_path / "sparse.pt"), "--data", str(tmp_path / "any.h5")]) == 2
+    assert "not dense" in _one_error_line(capsys)
 
 
 def test_an_old_format_checkpoint_is_refused_then_upgraded_only_when_trusted(tmp_path):

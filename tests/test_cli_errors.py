@@ -161,6 +161,10 @@ LEARNED_CASES = [
     ("train", ["--mode", "teacher", 'data.files=[{"K": [1, 2, 3, 4]}]'], 'data.files[0] needs "path"'),
     ("train", ["--mode", "teacher", 'data.files=[{"path": "a.h5", "K": [1, 2]}]'], "data.files[0].K must be"),
     ("train", ["--mode", "teacher", "data.files=3"], "data.files must be a list"),
+    ("train", ["--mode", "teacher", 'data.files=[""]', "train.out=OUT"],   # "$FILE" unset (was: read the cwd)
+     'data.files[0] is an empty path (an unset shell variable, "$FILE"?)'),
+    ("train", ["--mode", "teacher", 'data.files=["FILE"]', 'data.val_files=[{"path": " "}]', "train.out=OUT"],
+     "data.val_files[0] is an empty path"),
     ("train", ["--mode", "teacher", "train.steps.x=1"], "train.steps must be a whole number, got {"),
     ("train", ["--mode", "teacher", "train.steps=3", "train.steps.x=1"], "train.steps is a value, not a section"),
     ("train", ["--mode", "teacher", "model=3"], "[model] must be a table of keys"),

@@ -180,6 +180,67 @@ def test_a_gt_group_with_part_of_the_ground_truth_is_read_as_far_as_it_goes(scen
         H5WindowDataset([no_K], window_us=100_000)
 
 
+def _rewritten(path, tmp_path, name: str, key: str, change):
+    """A copy of ``path`` named ``name`` whose dataset ``key`` is ``change(its values)``."""
+    import shutil
+
+    import h5py
+
+    copy = shutil.copy(path, tmp_path / name)
+    with h5py.File(copy, "a") as file:
+        values = change(file[key][:])
+        del file[key]
+        file[key] = values
+    return copy
+
+
+def _with_nan_row(values, row: int = 5):
+    values = values.astype(np.float64)
+    values[row] = np.nan
+    return values
+
+
+@pytest.mark.parametrize("name, key, change, message", [
+    ("few_maps.h5", "gt/depth", lambda d: d[:-3], r"few_maps.h5: gt/depth holds (\d+) depth maps, gt/depth_t (\d+) "),
+    ("small_maps.h5", "gt/depth", lambda d: d[:, :30, :40],
+     "small_maps.h5: gt/depth holds maps of 40x30 pixels, its events come from a 48x36 sensor"),
+    ("nan_twist.h5", "gt/twists", _with_nan_row, "nan_twist.h5: gt/twists holds NaN or infinite values in 1 of its"),
+    ("short_poses.h5", "gt/poses_t", lambda t: t[:-1], r"short_poses.h5: gt/twists must be \(M, 6\)"),
+], ids=["fewer_maps_than_times", "maps_of_another_size", "nan_twist", "fewer_times_than_twists"])
+def test_ground_truth_whose_parts_do_not_fit_is_refused_naming_the_file(scene_file, tmp_path, capsys, name, key,
+                                                                          change, message):
+    """A user's labelled h5 with fewer depth maps than gt/depth_t times was an IndexError traceback (learned.train
+    and learned.evaluate); maps of another size than the sensor failed at the first step in the loss's words
+    (`pred, gt and mask must share one shape`), naming no file; a NaN twist stopped training at step 1 as a
+    diverged run (`a lower train.lr or gradient clipping may keep the run stable`) and learned.evaluate with
+    `v_gt must be finite`. Each is now refused when the file is opened, one line naming it, in training
+    (a labelled file, or a file of known speed) and in evaluation."""
+    import re
+
+    from conftest import one_line_error
+
+    from learned.evaluate import evaluate_files
+    from learned.train import main
+
+    path, sequence, _ = scene_file
+    bad = _rewritten(path, tmp_path, name, key, change)
+    with pytest.raises(ValueError, match=message) as refused:
+        H5WindowDataset([bad], window_us=100_000)
+    if name == "few_maps.h5":
+        maps, times = map(int, re.search(message, str(refused.value)).groups())
+        assert (maps, times) == (len(sequence.depth_t_us) - 3, len(sequence.depth_t_us))
+    with pytest.raises(ValueError, match=message):
+        evaluate_files(_tiny_checkpoint(tmp_path), [bad])
+    status, err = one_line_error(lambda: main(["--mode", "teacher", "--no-progress", f'data.files=["{bad}"]',
+                                               "model.width=4", "model.levels=2", "train.steps=1",
+                                               f"train.out={tmp_path / 'run'}"]), capsys)
+    assert status == 2 and re.search(message, err), err
+    assert not (tmp_path / "run").exists()
+    if key == "gt/twists":   # the speed of an unlabelled file comes from its twists too
+        with pytest.raises(ValueError, match=message):
+            H5WindowDataset([{"path": str(bad), "use_gt": False, "known_speed": True}], window_us=100_000)
+
+
 def _tiny_checkpoint(tmp_path):
     from learned.checkpoint import rng_state, save_checkpoint
     from learned.config import Config, DataConfig

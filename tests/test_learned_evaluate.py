@@ -306,6 +306,12 @@ def test_every_file_is_checked_before_the_network_runs(tmp_path, monkeypatch, ca
     assert ran == []                                        # refused before the network ran on plane.h5
     status = evaluate.main(["--checkpoint", str(ckpt), "--data", str(path), str(tmp_path / "gone.h5")])
     assert status == 2 and f"no such event file: {tmp_path / 'gone.h5'}" in capsys.readouterr().err and ran == []
+    # a folder (was named in training's words: "data.files lists h5 files one by one")
+    status = evaluate.main(["--checkpoint", str(ckpt), "--data", str(tmp_path)])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1 and "data.files" not in err and ran == [], err
+    assert f"{tmp_path} is a folder, not an event file: --data lists h5 files one by one (--data " \
+        f"{tmp_path / '*.h5'}: the 2 .h5 files in it)" in err, err
     assert evaluate.main(["--checkpoint", str(ckpt), "--data", str(path), "--window", str(WINDOW_S)]) == 0
     assert ran == [1] and capsys.readouterr().out.startswith("plane: 2 windows")
 

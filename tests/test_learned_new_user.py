@@ -57,6 +57,32 @@ def test_train_mistakes_say_what_to_do(slider_file, tmp_path, capsys, extra, mes
     assert not (tmp_path / "run" / "last.pt").exists()
 
 
+def test_a_config_s_relative_files_missing_here_but_beside_it_are_named_in_both_places(slider_file, tmp_path,
+                                                                                      capsys, monkeypatch):
+    """A config in its own folder, listing data.files relative to it, run from another folder: was `error: no
+    such event file: slider.h5`, which said neither where it was looked for nor where it is. Relative paths are
+    read from the current folder (as they were: the run from the config's folder trains); the message now names
+    the current folder and the file beside the config."""
+    import shutil
+
+    from learned.config import load_config
+    from learned.train import main
+
+    folder = tmp_path / "experiment"
+    folder.mkdir()
+    shutil.copy(slider_file, folder / "slider.h5")
+    (folder / "c.toml").write_text('mode = "teacher"\n[data]\nfiles = ["slider.h5"]\n')
+    monkeypatch.chdir(tmp_path)
+    args = ["--config", "experiment/c.toml", *_train(slider_file, tmp_path / "run")[3:]]
+    args = [a for a in args if not a.startswith("data.files=")]
+    status, err = one_line_error(lambda: main(args), capsys)
+    assert status == 2 and "no such file: slider.h5 (relative paths of a config are read from the current folder, " \
+        f"{tmp_path})" in err and "experiment/slider.h5 lies beside the config experiment/c.toml" in err, err
+    assert not (tmp_path / "run").exists()
+    monkeypatch.chdir(folder)   # from the config's folder the same paths are found
+    assert list(load_config(Path("c.toml"), ["train.steps=1"]).data.files) == ["slider.h5"]
+
+
 # -- python -m learned.predict ----------------------------------------------------------------------------------
 def test_predict_refuses_a_file_as_output_before_loading_a_model(slider_file, tmp_path, capsys, monkeypatch):
     import learned.evaluate

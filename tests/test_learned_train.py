@@ -2,7 +2,9 @@
 from __future__ import annotations
 
 import hashlib
+import json
 import os
+import re
 import shutil
 import signal
 import subprocess
@@ -268,6 +270,66 @@ def test_a_stray_rank_outside_a_torchrun_job_is_refused(scene_file, tmp_path, ca
     with pytest.raises(ValueError, match="not a rank of a torchrun job"):
         Trainer(load_config(None, tiny(scene_file, out, "train.steps=2"), mode="teacher"), progress=False)
     assert not out.exists()
+
+
+def test_the_curves_of_a_run_stopped_before_its_first_checkpoint_are_not_appended_to(scene_file, tmp_path, capsys):
+    """A run killed before its first checkpoint leaves config.json, log.jsonl and tb/ without last.pt; a new run
+    into that train.out (other settings, no flag) was taken: it appended its steps to log.jsonl (step 1 twice) and
+    its events beside the old ones in tb/, exit 0. Now refused in one line, the folder untouched; --overwrite
+    starts afresh: each step logged once."""
+    from conftest import one_line_error
+
+    out = tmp_path / "run"
+    assert main(["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=3")]) == 0
+    (out / "last.pt").unlink()   # as a kill before the first checkpoint leaves the folder
+    before = {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()}
+    args = ["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=2", "train.lr=1e-3")]
+    status, err = one_line_error(lambda: main(args), capsys)
+    assert status == 2 and "holds the learning curves of an earlier run that wrote no checkpoint" in err, err
+    assert "log.jsonl" in err and "--overwrite" in err
+    assert {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()} == before
+    assert main([*args, "--overwrite"]) == 0
+    steps = [json.loads(line)["step"] for line in (out / "log.jsonl").read_text().splitlines()]
+    assert steps == [1, 2]
+    assert len(list((out / "tb").glob("events.out.tfevents.*"))) <= 1   # the new run's alone (if TensorBoard is there)
+
+
+def _damaged(state: dict, part: str) -> None:
+    """Damage ``part`` of the checkpoint ``state`` in place, as a crafted or corrupted file would hold it."""
+    if part == "rng":
+        state["rng"] = {**state["rng"], "torch": torch.zeros(3, dtype=torch.uint8)}
+    elif part == "rng_missing":
+        state["rng"] = {}
+    else:
+        first = state["optimizer"]["state"][0]
+        first["exp_avg"] = torch.zeros(7) if part == "optimizer_shape" else first["exp_avg"] * float("nan")
+
+
+@pytest.mark.parametrize("part, message", [
+    ("rng", r"its random generator states \(rng\) cannot be restored \(RuntimeError: "),
+    ("rng_missing", r"its random generator states \(rng\) cannot be restored \(KeyError: 'python'\)"),
+    ("optimizer_shape", r"its optimizer state does not fit this run \(exp_avg of parameter 0: \[7\], the "
+                        r"parameter's \[4, 5, 3, 3\]\)"),
+    ("optimizer_nan", r"its optimizer state holds NaN or infinite values \(exp_avg of parameter 0\)"),
+], ids=["rng_of_another_size", "rng_missing", "optimizer_of_another_shape", "optimizer_nan"])
+def test_resume_refuses_a_damaged_optimizer_or_rng_state_in_one_line(scene_file, tmp_path, capsys, part, message):
+    """--resume of a last.pt whose RNG states or optimizer state were damaged: was a traceback (torch's
+    `Expected a CPUGeneratorImplState of size 5056`, `KeyError: 'python'`, or at the first step `The size of
+    tensor a (7) must match ...`), exit 1; a NaN in AdamW's moments stopped the run at its first step as a
+    diverged run ('a lower train.lr ... may keep the run stable'). Now one line naming last.pt, exit 2, the
+    checkpoint and the learning curves as they were."""
+    from conftest import one_line_error
+
+    out = tmp_path / "run"
+    args = ["--mode", "teacher", "--no-progress", *tiny(scene_file, out, "train.steps=2")]
+    assert main(args) == 0
+    state = torch.load(out / "last.pt", weights_only=True)
+    _damaged(state, part)
+    torch.save(state, out / "last.pt")
+    before = {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()}
+    status, err = one_line_error(lambda: main([*args[:-1], "train.steps=4", "--resume"]), capsys)
+    assert status == 2 and re.search(f"{re.escape(str(out / 'last.pt'))}: {message}", err), err
+    assert {path.name: path.read_bytes() for path in out.iterdir() if path.is_file()} == before
 
 
 def test_links_planted_in_the_output_folder_are_not_followed(scene_file, tmp_path):

@@ -641,6 +641,9 @@ class H5Reader:
         if width is not None and height is not None:  # the caller's own values: errors stay theirs
             _check_sensor_size(width, height)
         if not self.path.is_file():
+            if self.path.exists() and not self.path.is_dir():   # a device, a FIFO, a socket: exists, holds no file
+                raise FormatError(f"{self.path} is not a regular file (a device, a pipe or a socket): give an "
+                                  "event file")
             raise FileNotFoundError(f"no such event file: {self.path}")
         try:
             self._file = h5py.File(self.path, "r")
