@@ -1061,7 +1061,11 @@ def _source_bytes(source: str | os.PathLike) -> int:
 
 def _signature_with_bar(job: VideoJob, position: int | None) -> dict[str, Any]:
     """:func:`cmax.sim.signature.source_signature` of ``job``'s source, a bar [bytes] on the line ``position``
-    (None: no bar) while it is read (:func:`_hashing_bar`): a multi-GB video takes seconds."""
+    (None: no bar, and no tqdm at all: a worker's first tqdm makes multiprocessing locks, which a worker killed
+    with its process group leaves to the resource tracker's warnings) while it is read (:func:`_hashing_bar`): a
+    multi-GB video takes seconds."""
+    if position is None:
+        return source_signature(job.source)
     with _hashing_bar(_source_bytes(job.source), f"{job.name}: hashing the video (SHA-256, for the manifest)",
                       position, position is not None) as bar:
         return source_signature(job.source, bar.update)
