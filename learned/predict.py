@@ -969,7 +969,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                              "(kept in .depth.windows as each is done) are checked (the same event file, checkpoint "
                              "and options) and taken, the others predicted (default: off; a folder holding an "
                              "interrupted run's windows is refused without --resume or --overwrite; with "
-                             "--overwrite too, an earlier complete run's results are replaced at the end)")
+                             "--overwrite too, an earlier complete run's results are replaced at the end; without "
+                             "it, a complete run of the same file, checkpoint and options is left as it is: nothing "
+                             "to do)")
     return parser
 
 
