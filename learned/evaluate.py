@@ -22,6 +22,7 @@ import argparse
 import csv
 import io
 import json
+import os
 import sys
 from dataclasses import dataclass
 from pathlib import Path
@@ -43,7 +44,7 @@ from learned.data import H5WindowDataset, Sample, collate
 from learned.model import DepthPoseNet
 
 __all__ = ["FileReport", "HeldOutWindow", "WindowPreference", "ObjectivePreferences", "load_model", "load_network",
-           "predict_batches", "far_limit", "depth_range", "event_mask", "window_masks", "check_ground_truth",
+           "repeated_files", "predict_batches", "far_limit", "depth_range", "event_mask", "window_masks", "check_ground_truth",
            "held_out_windows", "predict_windows",
            "no_pixels", "score_depth", "true_twists", "score_motion", "flat_depth_note", "evaluate_files",
            "candidate_parameters",
@@ -205,6 +206,7 @@ def check_ground_truth(path: str | Path) -> None:
     try:
         with h5py.File(path, "r") as file:
             depth, K = "gt/depth" in file, "gt/K" in file
+            values = np.asarray(file["gt/K"][()], float) if K and isinstance(file["gt/K"], h5py.Dataset) else None
     except OSError:   # missing, or not an h5 file (a folder: H5WindowDataset names it)
         if not path.exists():
             raise FileNotFoundError(f"no such event file: {path}") from None
@@ -225,6 +227,30 @@ def check_ground_truth(path: str | Path) -> None:
     if not K:
         raise ValueError(f"{path} holds gt/depth but no gt/K, the intrinsics that depth was made with: add gt/K "
                          "(3x3, as cmax scene writes it) to evaluate against that depth")
+    if values is not None and not np.isfinite(values).all():
+        raise ValueError(f"{path}: gt/K holds NaN or infinite values ({values.tolist()}): the intrinsics its "
+                         "gt/depth was made with are unknown, so the network's depth cannot be scored against it")
+
+
+def repeated_files(files: Sequence[str | Path]) -> None:
+    """Raise a ValueError naming the first file of ``files`` (paths, as ``--data`` gives them) that is listed twice,
+    with both positions (1-based): its windows would be scored twice. Files are compared as files (``a.h5`` and
+    ``./a.h5``, or a link to it, are one); paths that do not exist are left to :func:`check_ground_truth`.
+
+    >>> repeated_files(["a.h5", "b.h5"])
+    """
+    first_of: dict[tuple[int, int], int] = {}
+    for j, path in enumerate(files):
+        try:
+            status = os.stat(path)
+        except OSError:
+            continue
+        key = (status.st_dev, status.st_ino)
+        if key in first_of:
+            raise ValueError(f"{path} is listed twice in --data (files {first_of[key] + 1} and {j + 1}: "
+                             f"{files[first_of[key]]} and {path}): its windows would be scored twice; give each "
+                             "file once")
+        first_of[key] = j
 
 
 def held_out_windows(path: str | Path, window_us: int, *, min_events: int = 10) -> list[HeldOutWindow]:
@@ -350,6 +376,7 @@ def evaluate_files(checkpoint: str | Path, files: Sequence[str | Path], *, windo
     model, config, card = load_network(checkpoint)   # first: a refused checkpoint is named before any file
     for path in files:   # every file checked before the network runs on any
         check_ground_truth(path)
+    repeated_files(files)
     window_us = int(round(window_s * 1e6)) if window_s is not None else int(config["data"]["window_us"])
     if window_us < 1:
         raise ValueError(f"the window must be at least 1 µs long, got {window_s} s")

@@ -58,7 +58,7 @@ __all__ = ["MIN_EVENTS", "Recording", "DepthRun", "open_recording", "time_bounds
            "window_note",
            "event_volumes", "forward", "WindowPrediction", "predict_windows",
            "window_picture", "write_window", "earlier_results", "FOLDER_LOCK", "DEFAULT_BATCH", "MAX_BATCH_BYTES",
-           "batch_bytes", "batch_that_fits", "SUMMARY_UNITS",
+           "batch_bytes", "batch_that_fits", "SUMMARY_UNITS", "completed_record",
            "run_prediction", "predict_file", "add_arguments",
            "run", "main"]
 
@@ -554,7 +554,8 @@ def draw_window(out: Path, index: int, scale) -> None:
 @dataclass(frozen=True)
 class DepthRun:
     """What :func:`run_prediction` did: ``windows`` written and ``skipped``, the window length ``window_us`` [µs],
-    ``notes``, wall ``seconds`` and the ``output`` folder."""
+    ``notes``, wall ``seconds`` and the ``output`` folder; ``complete``: the line saying that a ``resume`` found
+    the same run's results complete in ``output`` (then the other fields are that run's, and nothing was done)."""
 
     windows: int
     skipped: int
@@ -562,9 +563,12 @@ class DepthRun:
     notes: tuple[str, ...]
     seconds: float
     output: Path
+    complete: str | None = None
 
     def summary_line(self) -> str:
         """The command's final line."""
+        if self.complete is not None:
+            return self.complete
         skipped = f", {self.skipped} skipped (fewer than {MIN_EVENTS} events)" if self.skipped else ""
         rate = self.windows / self.seconds if self.seconds > 0 else float("inf")
         noun = "window" if self.windows == 1 else "windows"
@@ -705,20 +709,29 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     if out.exists() and not out.is_dir():
         raise FileExistsError(f"the output {out} is a file: give a folder (for window_*.npz, window_*.png, "
                               "twists.csv, summary.json)")
-    with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=overwrite,
-                               what="window_*.npz, twists.csv, ...") as stage:
-        run, kept = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
-                                  distortion=distortion, size=size, time_unit=time_unit, polarity=polarity,
-                                  sort=sort, camera=camera, t0_s=t0_s, t1_s=t1_s, window_s=window_s,
-                                  depth_range=depth_range, batch=batch, progress=progress, note=note, device=device,
-                                  resume=resume, overwrite=overwrite, as_recorded=as_recorded)
+    try:
+        with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=overwrite,
+                                   what="window_*.npz, twists.csv, ...", resume=resume) as stage:
+            finished = (run_folder.complete_run(out) or {}) if (resume and not overwrite and
+                                                                (out / run_folder.COMPLETION_MARKER).is_file()) else None
+            run, kept = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
+                                      distortion=distortion, size=size, time_unit=time_unit, polarity=polarity,
+                                      sort=sort, camera=camera, t0_s=t0_s, t1_s=t1_s, window_s=window_s,
+                                      depth_range=depth_range, batch=batch, progress=progress, note=note,
+                                      device=device, resume=resume, overwrite=overwrite, as_recorded=as_recorded,
+                                      finished=finished)
+    except run_folder.ResultsComplete as complete:   # --resume of a run whose results are all in out
+        summary = complete.summary
+        return DepthRun(int(summary.get("windows", 0)), int(summary.get("skipped", 0)),
+                        int(summary.get("window_us", 0)), (), time.perf_counter() - started, out, str(complete))
     kept.remove()   # the results are in out: the finished blocks are no longer needed
     return replace(run, seconds=time.perf_counter() - started, output=out)
 
 
 def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_camera, distortion, size,
                   time_unit, polarity, sort, camera, t0_s, t1_s, window_s, depth_range, batch, progress, note,
-                  device, resume, overwrite, as_recorded=False) -> tuple[DepthRun, KeptBlocks]:
+                  device, resume, overwrite, as_recorded=False, finished: dict | None = None
+                  ) -> tuple[DepthRun, KeptBlocks]:
     """:func:`run_prediction`'s work, every result written into the empty folder ``stage`` (each block of windows
     kept as it is done, :class:`learned.kept_windows.KeptBlocks`, returned too)."""
     from tqdm.auto import tqdm
@@ -795,14 +808,17 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         notes += [short] if short else []
         if (other := window_note(int(config["data"]["window_us"]), window_us)) is not None:
             notes.append(other)
-        for text in notes:
-            note(text)
         # the input files are hashed while the windows are predicted: the kept blocks wait for their signatures
         # only to compare them with an interrupted run's (resume) or to record them with the first block
         hashing = PendingSignatures({"file": path, "checkpoint": checkpoint, "calib": calib}, progress=progress)
         recorded = functools.partial(_run_record, path, checkpoint, calib, np.array(K), distortion, size, time_unit,
                                      polarity, sort, camera, t0_s, t1_s, window_us, len(starts), batch, device,
                                      progress, code=code_digest("cmax", "learned"))
+        if finished is not None:   # --resume into complete results: the same run (nothing to do), or refused
+            run_folder.check_complete(stage.parent, finished, completed_record(recorded(files=hashing.result()),
+                                                                               depth_range), command="cmax depth")
+        for text in notes:
+            note(text)
         kept = KeptBlocks(stage.parent, lambda: recorded(files=hashing.result()), resume=resume, overwrite=overwrite)
         lines, skipped, samples, indices = [_CSV_HEADER], 0, [], []
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
@@ -863,9 +879,31 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                "rectified": lens.rectification is not None or lens.rectified_K is not None, "window_us": window_us,
                "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],
                "windows_total": len(starts), "windows": written, "skipped": skipped, "min_events": MIN_EVENTS,
-               "notes": list(notes), "device": str(device), "seconds": run.seconds, "units": SUMMARY_UNITS}
+               "notes": list(notes), "device": str(device), "seconds": run.seconds, "units": SUMMARY_UNITS,
+               "run": completed_record(kept.run, depth_range)}
     write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2) + "\n")
     return run, kept
+
+
+def completed_record(run: dict, depth_range: tuple[float, float] | None) -> dict:
+    """What ``summary.json`` records of a complete run (``"run"``, compared by ``--resume``:
+    :func:`cmax.io.run_folder.check_complete`): the run's record ``run`` (the kept blocks' ``run.json``: input
+    files' signatures, options, code) with the pictures' colour scale ``depth_range`` [m] (None: the run's own
+    percentiles) among its settings.
+
+    Parameters
+    ----------
+    run : dict
+        The run's record (:class:`learned.kept_windows.KeptBlocks`' ``run``).
+    depth_range : (near, far) [m] or None
+        The run's ``depth_range``.
+
+    >>> completed_record({"settings": {"batch": 8}}, (1, 5))
+    {'settings': {'batch': 8, 'depth_range': [1, 5]}}
+    """
+    from cmax.io.window_store import settings_record
+
+    return {**run, "settings": {**run.get("settings", {}), **settings_record({"depth_range": depth_range})}}
 
 
 def _run_record(path, checkpoint, calib, K, distortion, size, time_unit, polarity, sort, camera, t0_s, t1_s,
@@ -931,7 +969,9 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                              "(kept in .depth.windows as each is done) are checked (the same event file, checkpoint "
                              "and options) and taken, the others predicted (default: off; a folder holding an "
                              "interrupted run's windows is refused without --resume or --overwrite; with "
-                             "--overwrite too, an earlier complete run's results are replaced at the end)")
+                             "--overwrite too, an earlier complete run's results are replaced at the end; without "
+                             "it, a complete run of the same file, checkpoint and options is left as it is: nothing "
+                             "to do)")
     return parser
 
 

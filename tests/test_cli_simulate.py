@@ -79,7 +79,8 @@ def test_a_video_without_events_says_so_and_exits_1(tmp_path, capsys):
     assert main(["simulate", str(tmp_path / "still.avi"), "-o", str(tmp_path / "still.h5"), *FAST, "--quiet"]) == 1
     captured = capsys.readouterr()
     assert "no events from still: 1 frame(s)" in captured.err
-    assert "1 video ok (1 of them with no events)" in captured.out
+    assert "this run: converted 1 video (0 events), 0 skipped (done before, verified), 0 failed, 1 with no events; " \
+        f"{tmp_path / 'manifest.json'} holds 1 video ok" in captured.out
     assert load_manifest(tmp_path / "manifest.json")["videos"]["still"]["events"] == 0
 
 
@@ -360,6 +361,27 @@ def test_a_rerun_says_the_video_was_already_converted_and_redoes_a_replaced_one(
     assert "the source changed since it was converted" in captured.err
     assert "already converted" not in captured.out and "events from 12 frames" in captured.out
     assert load_manifest(out.parent / "manifest.json")["videos"]["in"]["frames"] == 12
+
+
+def test_the_summary_line_says_what_this_run_did_apart_from_what_the_folder_holds(tmp_path, capsys):
+    """A second single-video conversion into a folder holding another printed "manifest.json: 2 videos ok, 0
+    failed, <both videos' events> events" after converting one (was): the manifest's totals read as this run's.
+    The line now says what this run did (converted, skipped, failed, its events), then what the folder holds."""
+    write_video(tmp_path / "a.avi", n_frames=8)
+    write_video(tmp_path / "b.avi", n_frames=10, shift=3)
+    out = tmp_path / "out"
+    assert main(["simulate", str(tmp_path / "a.avi"), "-o", str(out / "a.h5"), *FAST, "--quiet"]) == 0
+    capsys.readouterr()
+    args = ["simulate", str(tmp_path / "b.avi"), "-o", str(out / "b.h5"), *FAST, "--quiet"]
+    assert main(args) == 0
+    line = capsys.readouterr().out.splitlines()[0]
+    n_a, n_b = len(read(out / "a.h5")), len(read(out / "b.h5"))
+    assert line == (f"this run: converted 1 video ({n_b:,} events), 0 skipped (done before, verified), 0 failed; "
+                    f"{out / 'manifest.json'} holds 2 videos ok, 0 failed, {n_a + n_b:,} events"), line
+    assert main(args) == 0     # again: nothing converted, one skipped
+    line = capsys.readouterr().out.splitlines()[0]
+    assert line.startswith("this run: converted 0 videos (0 events), 1 skipped (done before, verified), 0 failed; ")
+    assert line.endswith(f"holds 2 videos ok, 0 failed, {n_a + n_b:,} events"), line
 
 
 def test_a_catalogue_conversion_that_finds_no_video_exits_1(tmp_path, capsys):

@@ -238,3 +238,61 @@ def test_a_fresh_run_predicts_while_its_inputs_are_hashed(recording, tiny_checkp
     record = json.loads((out / KEPT_FOLDER / "run.json").read_text())
     assert record["file"]["sha256"] == hashlib.sha256(recording.read_bytes()).hexdigest()
     assert not [thread for thread in threading.enumerate() if thread.name == "cmax-hash-inputs"]
+
+
+def test_resume_of_a_finished_run_says_it_is_complete_and_touches_nothing(tiny_checkpoint, tmp_path, monkeypatch,
+                                                                         capsys):
+    """A requeued job that always passes --resume, after its run had finished: exit 2, "holds the results of an
+    earlier run" (was), while learned.train --resume of a finished run exits 0. summary.json now records the run
+    (input files' signatures, options, code): the same run exits 0 with one line and rewrites nothing, no forward
+    pass; other bytes under the same size and mtime, another option, or a summary.json that records no run (an
+    earlier version) are refused in one line, the results kept."""
+    import json
+
+    rng = np.random.default_rng(3)
+    events = Events(rng.integers(0, 64, 6000), rng.integers(0, 48, 6000), np.sort(rng.integers(0, 300_000, 6000)),
+                    rng.integers(0, 2, 6000), 64, 48)
+    path = write_h5(tmp_path / "ev.h5", events, compression="none")
+    out = tmp_path / "o"
+    assert predict.main(argv(path, out, tiny_checkpoint, "--resume")) == 0   # a first run may pass --resume too
+    files = sorted(p for p in out.iterdir() if p.is_file())
+    assert len([p for p in files if p.suffix == ".npz"]) == 6
+
+    def stamps() -> dict:
+        return {p.name: (p.stat().st_mtime_ns, p.stat().st_ino, p.read_bytes()) for p in sorted(out.iterdir())}
+
+    before = stamps()
+    capsys.readouterr()
+    calls = counted_calls(monkeypatch, predict, "forward")
+    assert predict.main(argv(path, out, tiny_checkpoint, "--resume")) == 0
+    captured = capsys.readouterr()
+    assert captured.out.strip().splitlines() == [f"the results in {out} are already complete: cmax depth --resume of "
+                                                 "the same input files and options has nothing to do (nothing "
+                                                 "changed)"], captured
+    assert calls == [] and stamps() == before
+    # another option: refused, naming it
+    assert predict.main(argv(path, out, tiny_checkpoint, "--resume", "--depth-range", "1,5")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds the complete results of another run" in err[0], err
+    assert "depth_range was None, now [1.0, 5.0]" in err[0] and stamps() == before
+    # other events of the same count, with the old size and modification time
+    stat = path.stat()
+    rng = np.random.default_rng(4)
+    write_h5(path, Events(rng.integers(0, 64, 6000), rng.integers(0, 48, 6000),
+                          np.sort(rng.integers(0, 300_000, 6000)), rng.integers(0, 2, 6000), 64, 48),
+             compression="none", overwrite=True)
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert (path.stat().st_size, path.stat().st_mtime_ns) == (stat.st_size, stat.st_mtime_ns)
+    assert predict.main(argv(path, out, tiny_checkpoint, "--resume")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "ev.h5 holds other bytes than it did" in err[0] and stamps() == before, err
+    assert calls == []
+    # results of an earlier version: no run recorded, so not verifiable
+    summary = json.loads((out / "summary.json").read_text())
+    del summary["run"]
+    (out / "summary.json").write_text(json.dumps(summary))
+    before = stamps()
+    assert predict.main(argv(path, out, tiny_checkpoint, "--resume")) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "records no run identity" in err[0] and "cannot be checked" in err[0], err
+    assert stamps() == before and calls == []

@@ -245,8 +245,9 @@ def test_an_interrupted_overwrite_resumes_over_the_earlier_complete_run(tmp_path
     assert main([*argv, "--window-ms", "5", "--overwrite"]) == 130
     assert (out / "summary.json").read_bytes() == earlier and len(list((out / WINDOWS_FOLDER).glob("*.pickle"))) == 2
     capsys.readouterr()
-    assert main([*argv, "--window-ms", "5", "--resume"]) == 2
-    assert "holds the results of an earlier run" in capsys.readouterr().err
+    assert main([*argv, "--window-ms", "5", "--resume"]) == 2    # the complete run's options are another run's
+    err = capsys.readouterr().err
+    assert "holds the complete results of another run" in err and "window_ms was 10.0, now 5.0" in err, err
     calls = counted_calls(monkeypatch, sequence_module, "fit")
     assert main([*argv, "--window-ms", "5", "--resume", "--overwrite"]) in (0, 1)
     summary = json.loads((out / "summary.json").read_text())
@@ -455,3 +456,41 @@ def test_ctrl_c_while_the_inputs_are_hashed_stops_the_hashing_and_exits_130(reco
     assert capsys.readouterr().err.strip() == "cmax fit: interrupted"
     assert stopped and not _hashing_threads()
     assert not (out / "summary.json").exists() and not (out / WINDOWS_FOLDER).exists()
+
+
+def test_resume_of_a_finished_fit_says_it_is_complete_and_touches_nothing(tmp_path, monkeypatch, capsys):
+    """A requeued job that always passes --resume, after its run had finished: exit 2, "holds the results of an
+    earlier run" (was). summary.json now records the run: the same run exits with the finished run's status and
+    one line, fits nothing and rewrites nothing; other bytes under the same size and mtime, or another option,
+    are refused in one line, the results kept."""
+    path = write_h5(tmp_path / "ev.h5", noise_events(3000, 50_000, seed=3), compression="none")
+    out = tmp_path / "o"
+    argv = ["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--model", "flow", "--min-events", "300",
+            "--window-ms", "12.5"]
+    status = main(argv)
+    assert status in (0, 1) and len(json.loads((out / "summary.json").read_text())["windows"]) == 4
+
+    def stamps() -> dict:
+        return {p.name: (p.stat().st_mtime_ns, p.stat().st_ino, p.read_bytes()) for p in sorted(out.iterdir())}
+
+    before = stamps()
+    capsys.readouterr()
+    calls = counted_calls(monkeypatch, sequence_module, "fit")
+    assert main([*argv, "--resume"]) == status
+    captured = capsys.readouterr()
+    assert captured.out.strip().splitlines() == [f"the results in {out} are already complete: cmax fit --resume of "
+                                                 "the same input files and options has nothing to do (nothing "
+                                                 "changed)"], captured
+    assert calls == [] and stamps() == before
+    assert main([*argv, "--resume", "--min-events", "400"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "holds the complete results of another run" in err[0], err
+    assert "min_events was 300, now 400" in err[0] and stamps() == before and calls == []
+    stat = path.stat()
+    write_h5(path, noise_events(3000, 50_000, seed=4), compression="none", overwrite=True)
+    os.utime(path, ns=(stat.st_atime_ns, stat.st_mtime_ns))
+    assert (path.stat().st_size, path.stat().st_mtime_ns) == (stat.st_size, stat.st_mtime_ns)
+    assert main([*argv, "--resume"]) == 2
+    err = capsys.readouterr().err.strip().splitlines()
+    assert len(err) == 1 and "ev.h5 holds other bytes than it did" in err[0] and stamps() == before, err
+    assert calls == []

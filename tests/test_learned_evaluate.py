@@ -316,6 +316,40 @@ def test_every_file_is_checked_before_the_network_runs(tmp_path, monkeypatch, ca
     assert ran == [1] and capsys.readouterr().out.startswith("plane: 2 windows")
 
 
+def test_a_file_listed_twice_or_a_nan_gt_k_is_refused_before_the_network_runs(tmp_path, monkeypatch, capsys):
+    """--data a.h5 ./a.h5 scored a.h5 twice without a word (two result lines, its windows counted twice in any
+    mean over files); a gt/K holding NaN gave a note that the K is "unlike a camera's" and scored on. Both are
+    now refused in one line before the network runs, naming the file (and both positions, or the key)."""
+    import shutil
+
+    import h5py
+
+    import learned.evaluate as evaluate
+
+    path, _ = plane_file(tmp_path / "plane.h5")
+    other = shutil.copy(path, tmp_path / "other.h5")     # the same bytes, another file: scored once each
+    ckpt = constant_checkpoint(tmp_path / "c.pt", PLANE_M, TRUE_TWIST)
+    ran = []
+    real = evaluate.predict_windows
+    monkeypatch.setattr(evaluate, "predict_windows", lambda *a, **k: ran.append(1) or real(*a, **k))
+    again = tmp_path / "." / "plane.h5"
+    status = evaluate.main(["--checkpoint", str(ckpt), "--data", str(path), str(other), str(again),
+                            "--window", str(WINDOW_S)])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1 and ran == [], err
+    assert f"{again} is listed twice in --data (files 1 and 3: {path} and {again})" in err, err
+    assert evaluate.main(["--checkpoint", str(ckpt), "--data", str(path), str(other), "--window",
+                          str(WINDOW_S)]) == 0
+    assert len(ran) == 2 and capsys.readouterr().out.count("2 windows") == 2
+    with h5py.File(other, "r+") as file:
+        file["gt/K"][0, 0] = np.nan
+    ran.clear()
+    status = evaluate.main(["--checkpoint", str(ckpt), "--data", str(path), str(other), "--window", str(WINDOW_S)])
+    err = capsys.readouterr().err
+    assert status == 2 and err.count("\n") == 1 and ran == [], err
+    assert f"{other}: gt/K holds NaN or infinite values" in err, err
+
+
 def test_depth_maps_no_better_than_their_own_median_constant_are_noted(tmp_path, monkeypatch):
     """A network whose depth maps score worse than one constant depth printed its metrics without a word (the
     shipped student on a slider scene: abs_rel 2.93, the constant at its own median 1.86): nothing told a trained

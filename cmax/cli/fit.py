@@ -37,7 +37,7 @@ from cmax.io.provenance import file_depth_range, file_intrinsics
 from cmax.io.window_store import (WINDOWS_FOLDER, PendingSignatures, WindowStore, code_digest, file_signatures,
                                   interrupted_windows, settings_record, stopped_line)
 
-__all__ = ["OPTION_OF_SETTING", "add_command", "advice", "earlier_results", "grouped_warnings",
+__all__ = ["OPTION_OF_SETTING", "add_command", "advice", "completed_status", "earlier_results", "grouped_warnings",
            "hot_pixel_note", "option_words", "run", "run_record", "tum_lines", "unscaled_range_note",
            "unmapped_pixels", "verdict_counts", "window_line"]
 
@@ -129,7 +129,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                              "each is done) are checked (the same event, --gyro and --calib files by their SHA-256, "
                              "the same options) and taken, the others fitted (default: off; a folder holding an "
                              "interrupted run's windows is refused without --resume or --overwrite; with "
-                             "--overwrite too, an earlier complete run's results in -o are replaced at the end)")
+                             "--overwrite too, an earlier complete run's results in -o are replaced at the end; "
+                             "without it, a complete run of the same files and options in -o is left as it is: "
+                             "nothing to do)")
     parser.add_argument("--keep-hot-pixels", action="store_true",
                         help="fit every event; by default the events of hot pixels (far more events than the scene's "
                              "edges give any pixel, or firing alone at a steady rate: a defect; or locked to a 100/120 "
@@ -501,15 +503,22 @@ def run(args: argparse.Namespace) -> int:
     hashing = None
     try:
         with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=args.overwrite,
-                                   what="depth_*.npz, summary.json, ...") as stage:
+                                   what="depth_*.npz, summary.json, ...", resume=args.resume) as stage:
             # the input files are hashed while the windows are fitted: the store waits for their signatures only
             # to compare them with kept windows (--resume) or to record them with the first window it saves
             hashing = PendingSignatures(_input_paths(args), progress=not args.quiet)
-            store = WindowStore(out, _pending_record(args, hashing), resume=args.resume, overwrite=args.overwrite)
+            record = _pending_record(args, hashing)
+            if args.resume and not args.overwrite and (out / run_folder.COMPLETION_MARKER).is_file():
+                # a complete run's results: the same run has nothing to do, another is refused
+                run_folder.check_complete(out, run_folder.complete_run(out) or {}, record(), command="cmax fit")
+            store = WindowStore(out, record, resume=args.resume, overwrite=args.overwrite)
             status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
                                min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
                                notes=notes, store=store)
             store.run    # every input hashed whole and unchanged (else refused) before the results are published
+    except run_folder.ResultsComplete as complete:   # --resume of a run whose results are all in out
+        print(complete)
+        return completed_status(complete.summary)
     except KeyboardInterrupt as stop:   # Ctrl-C, or SIGTERM (cmax._signals): say what is kept
         if not (kept := interrupted_windows(out)):
             raise
@@ -521,6 +530,22 @@ def run(args: argparse.Namespace) -> int:
             hashing.close()
     store.remove()   # the results are in out: the finished windows are no longer needed
     return status
+
+
+def completed_status(summary: dict) -> int:
+    """The exit status a complete run of ``cmax fit`` had, from its ``summary.json`` (``summary``): 1 when it
+    fitted no window or every fitted one failed, else 0 (what ``--resume`` of that run returns again).
+
+    Parameters
+    ----------
+    summary : dict
+        The run's ``summary.json``.
+
+    >>> completed_status({"windows": [{"verdict": "failed"}]}), completed_status({"windows": [{"verdict": "ok"}]})
+    (1, 0)
+    """
+    windows = summary.get("windows") or []
+    return 1 if not windows or all(w.get("verdict") == "failed" for w in windows if isinstance(w, dict)) else 0
 
 
 #: The options of ``cmax fit`` that change no result: left out of :func:`run_record`.
@@ -767,7 +792,8 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
                             for line in warned],
                "windows_total": n_windows, "skipped_us": sequence.skipped_us.tolist(),
                "uncovered_us": None if sequence.uncovered_us is None else list(sequence.uncovered_us),
-               "verdicts": sequence.counts(), "units": summary_units(scale_known), "windows": windows}
+               "verdicts": sequence.counts(), "units": summary_units(scale_known), "windows": windows,
+               "run": store.run}
     write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2))
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""

@@ -273,26 +273,31 @@ def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
 
 
 def _report_manifest(path: Path, manifest: dict, names: Sequence[str], converted: Collection[str]) -> int:
-    """Print the outcome of a conversion (outputs as paths in the folder of ``path``, the manifest);
-    1 when a video of this run (``names``) failed or yielded no events, else 0. Videos of ``names`` not
-    in ``converted`` were skipped (an earlier run converted them; output and source verified) and are
-    said to be. Failures the manifest holds from other runs into the same folder are counted in one line,
-    not in the status."""
+    """Print the outcome of a conversion (outputs as paths in the folder of ``path``, the manifest): first one
+    line saying what this run did (videos of ``names`` converted, skipped as already converted, failed), then
+    what the folder's manifest holds (other runs' videos too); 1 when a video of this run (``names``) failed or
+    yielded no events, else 0. Videos of ``names`` not in ``converted`` were skipped (an earlier run converted
+    them; output and source verified) and are said to be. Failures the manifest holds from other runs into the
+    same folder are counted in one line, not in the status."""
     from cmax.sim.convert import entry_output
 
     totals, videos = manifest["totals"], manifest["videos"]
-    empty = [name for name in names if videos.get(name, {}).get("status") == "ok"
-             and videos[name].get("events", 0) == 0]
-    note = f" ({len(empty)} of them with no events)" if empty else ""
+    done = [name for name in names if videos.get(name, {}).get("status") == "ok"]
+    made = [name for name in done if name in converted]
+    empty = [name for name in done if videos[name].get("events", 0) == 0]
+    failed = [name for name in names if videos.get(name, {}).get("status", "ok") != "ok"]
+    made_events = sum(int(videos[name].get("events", 0)) for name in made)
+    note = f", {len(empty)} with no events" if empty else ""
     videos_ok = f"{totals['ok']} video{'' if totals['ok'] == 1 else 's'} ok"
-    print(f"{path}: {videos_ok}{note}, {totals['failed']} failed, {totals['events']:,} events")
+    print(f"this run: converted {len(made)} video{'' if len(made) == 1 else 's'} ({made_events:,} events), "
+          f"{len(done) - len(made)} skipped (done before, verified), {len(failed)} failed{note}; {path} holds "
+          f"{videos_ok}, {totals['failed']} failed, {totals['events']:,} events")
     for name in names:
         entry = videos.get(name, {})
         if entry.get("status") == "ok" and name not in empty:
             done = "" if name in converted else f"already converted from {entry['source']} (verified), "
             print(f"  {entry_output(entry, path.parent)}: {done}{entry['events']:,} events from {entry['frames']} "
                   f"frames ({entry['samples']} samples), {entry['duration_s']:.2f} s of video")
-    failed = [name for name in names if videos.get(name, {}).get("status", "ok") != "ok"]
     for name in failed:
         print(f"  failed {name}: {videos[name]['error']}", file=sys.stderr)
     others = sorted(name for name, entry in videos.items() if entry["status"] != "ok" and name not in failed)

@@ -16,9 +16,14 @@ The rules of :func:`staged_run` (``cmax fit``, ``cmax emvs``, ``cmax depth`` / `
   :func:`publish` leaves the folder as it was; one interrupted during it leaves a folder without
   ``summary.json``: **a folder without summary.json holds no complete run** (and the next run into it is refused
   without ``--overwrite``).
+* a run's ``summary.json`` records what the run was (``"run"``: its input files' signatures and its options, as
+  its kept windows' ``run.json``), so that ``--resume`` of the same run into a folder whose run completed is told
+  so, and touches nothing (:class:`ResultsComplete`, :func:`check_complete`), as a requeued job needs; another
+  run's results, or results whose ``summary.json`` records no run (an earlier version), are still refused.
 """
 from __future__ import annotations
 
+import json
 import os
 import re
 import secrets
@@ -30,7 +35,7 @@ from typing import Callable, Iterator, Sequence
 from cmax.io.atomic import PathLock, fsync_folder
 
 __all__ = ["FOLDER_LOCK", "COMPLETION_MARKER", "RESULT_NAMES", "run_results", "locked_folder", "staged_run",
-           "new_stage", "discard_stages", "publish"]
+           "new_stage", "discard_stages", "publish", "ResultsComplete", "complete_run", "check_complete"]
 
 _STAGE_SUFFIX = ".partial"
 #: The lock of an output folder that :func:`staged_run` holds, the same for every command that writes through it.
@@ -131,10 +136,72 @@ def publish(stage: Path, out: Path, earlier: Sequence[Path], *,
     return [out / file.name for file in new]
 
 
+class ResultsComplete(Exception):
+    """Raised (by :func:`check_complete`) in the block of :func:`staged_run` when ``--resume`` finds the results
+    of the same run complete in its folder: nothing is to be done, and nothing was changed. ``args[0]`` is the
+    line to print; ``summary`` the complete run's ``summary.json`` (a dict)."""
+
+    def __init__(self, line: str, summary: dict) -> None:
+        super().__init__(line)
+        self.summary = summary
+
+
+def complete_run(out: str | os.PathLike) -> dict | None:
+    """The ``summary.json`` (:data:`COMPLETION_MARKER`) of the complete run in the folder ``out``, as a dict;
+    None when ``out`` holds none (no complete run) or one that is not a JSON object.
+
+    Parameters
+    ----------
+    out : path
+        An output folder (``-o``).
+    """
+    try:
+        summary = json.loads((Path(out) / COMPLETION_MARKER).read_text())
+    except (OSError, ValueError):
+        return None
+    return summary if isinstance(summary, dict) else None
+
+
+def check_complete(out: str | os.PathLike, summary: dict, now: dict, *, command: str) -> None:
+    """Compare the run ``now`` (JSON-ready, as the command records it in ``summary.json``'s ``"run"``) with the
+    one whose results are complete in ``out`` (``summary``: its ``summary.json``, :func:`complete_run`), for
+    ``--resume``. Raises :class:`ResultsComplete` (one line to print) when they are the same run (the same input
+    files by size, modification time and SHA-256, wherever they are now; the same options and code:
+    :func:`cmax.io.window_store.run_differences`); FileExistsError when ``summary`` records no run (written by an
+    earlier version: whether it is this run cannot be checked); ValueError naming each difference otherwise.
+
+    Parameters
+    ----------
+    out : path
+        The output folder (``-o``).
+    summary : dict
+        Its ``summary.json``.
+    now : dict
+        What the new run is.
+    command : str
+        The command's name, for the messages.
+    """
+    from cmax.io.window_store import run_differences
+
+    recorded = summary.get("run")
+    if not isinstance(recorded, dict):
+        raise FileExistsError(f"cannot --resume into {out}: it holds the complete results of an earlier run whose "
+                              f"{COMPLETION_MARKER} records no run identity (written by an earlier version, or by "
+                              "cmax emvs, which records none), so "
+                              "whether they are this run's cannot be checked: --overwrite replaces them, or give "
+                              "another -o")
+    now = json.loads(json.dumps(now))
+    if differences := run_differences(recorded, now):
+        raise ValueError(f"cannot --resume into {out}: it holds the complete results of another run ("
+                         + "; ".join(differences) + "): --overwrite replaces them, or give another -o")
+    raise ResultsComplete(f"the results in {out} are already complete: {command} --resume of the same input files "
+                          "and options has nothing to do (nothing changed)", summary)
+
+
 @contextmanager
 def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[Path], list[Path]], *,
                overwrite: bool, what: str, why: str = "that would mix with this run's",
-               option: str = "--overwrite") -> Iterator[Path]:
+               option: str = "--overwrite", resume: bool = False) -> Iterator[Path]:
     """Hold ``out`` for one run (the lock ``out/``:data:`FOLDER_LOCK`, :func:`locked_folder`, shared by every
     command that writes through this function) and yield an empty private folder ``out/.<prefix>.<hex>.partial``
     for its results; when the block ends without an error, move them into ``out`` (:func:`publish`: the new
@@ -145,14 +212,18 @@ def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[P
     Raises FileExistsError, before any work, when ``out`` holds an earlier run's results, of this command or
     another, and ``overwrite`` is False (``what`` names the command's own results for the message, ``why`` says
     what this run would do to them, ``option`` is the flag that allows it), and
-    :class:`cmax.io.atomic.OutputLockedError` when another run, of any of these commands, holds ``out``.
+    :class:`cmax.io.atomic.OutputLockedError` when another run, of any of these commands, holds ``out``. With
+    ``resume``, a folder whose run completed (it holds ``summary.json``) is not refused here: the block must call
+    :func:`check_complete` before any work, which ends it (:class:`ResultsComplete` when it is the same run, raised
+    on with ``out`` untouched; another run is refused).
     """
     out = Path(out)
     with locked_folder(out, FOLDER_LOCK):   # from the look at earlier results to the last file moved in
         discard_stages(out, prefix)
         own = set(earlier_results(out))
         earlier = sorted(own | set(run_results(out)))
-        if earlier and not overwrite:
+        unchecked = resume and not overwrite and out / COMPLETION_MARKER in earlier   # for check_complete
+        if earlier and not overwrite and not unchecked:
             if not own.issuperset(earlier):   # another command's results: name them as they are
                 what = ", ".join(path.name for path in earlier[:3]) + (", ..." if len(earlier) > 3 else "")
             raise FileExistsError(f"{out} holds the results of an earlier run ({len(earlier)} files: {what}) {why}: "
@@ -163,6 +234,9 @@ def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[P
                 yield stage
             except OSError as error:   # before publish: out is untouched
                 raise _named_in_out(error, stage, out) from None
+            if unchecked:   # a block that did not call check_complete: the complete results are kept
+                raise RuntimeError(f"{out}: the complete results of an earlier run were not checked against this "
+                                   "run (check_complete): they are kept, nothing was written")
             publish(stage, out, earlier)
         finally:
             shutil.rmtree(stage, ignore_errors=True)
