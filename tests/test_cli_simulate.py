@@ -524,6 +524,29 @@ def test_an_existing_file_as_the_output_folder_is_named_as_such(tmp_path, capsys
     assert not (tmp_path / "manifest.json").exists()
 
 
+def test_a_folder_at_a_video_s_output_name_is_refused_before_converting_with_or_without_overwrite(tmp_path, capsys):
+    """A folder at -o clip.h5 (or at out/a.h5 of a folder run) (was: `exists and is not a finished conversion ...;
+    pass --overwrite to replace it`, then with --overwrite the whole video converted, `failed: IsADirectoryError:
+    output is a folder`, exit 1, the chunk folder and a failed manifest entry left): refused in one line before
+    anything is converted or written, with or without --overwrite; the folder and its content untouched."""
+    write_video(tmp_path / "clip.avi")
+    videos = tmp_path / "videos"
+    videos.mkdir()
+    write_video(videos / "a.avi")
+    write_video(videos / "b.avi")
+    for source, out, folder in ((tmp_path / "clip.avi", tmp_path / "o" / "clip.h5", tmp_path / "o" / "clip.h5"),
+                                (videos, tmp_path / "out", tmp_path / "out" / "a.h5")):
+        folder.mkdir(parents=True)
+        (folder / "mine.txt").write_text("kept\n")
+        for extra in ([], ["--overwrite"]):
+            assert main(["simulate", str(source), "-o", str(out), *FAST, "--quiet", *extra]) == 2
+            err = capsys.readouterr().err
+            assert err.startswith("cmax simulate: error: 1 output(s) of this conversion are folders in ")
+            assert f": {folder.name}; nothing was converted" in err and err.count("\n") == 1, err
+            assert sorted(p.name for p in folder.parent.iterdir()) == [folder.name]   # no manifest, chunks, lock
+            assert [p.name for p in folder.iterdir()] == ["mine.txt"]
+
+
 def test_flow_on_frames_under_32_pixels_is_explained_in_the_commands_words(tmp_path, capsys):
     """'needs frames of at least 32x32 pixels, got (16, 24); use method='linear'' gave (H, W) and the API's
     words, once per video; with --size it is refused before any video is decoded."""

@@ -259,7 +259,7 @@ def _simulate_one(args: argparse.Namespace, source: Path, settings) -> int:
     # with kept chunks beside it, the file may be this conversion's, written from them and then killed: the
     # conversion checks that under the folder's lock (refused unless it is)
     if (output.exists() and not args.overwrite and not (listed and listed.get("status") == "ok")
-            and not chunk_folder(output).is_dir()):
+            and not chunk_folder(output).is_dir() and not output.is_dir()):   # a folder: refused for what it is below
         raise FileExistsError(f"{output} exists and is not a finished conversion of {manifest_path}; "
                               "pass --overwrite to replace it")
     job = VideoJob(output.stem, source)

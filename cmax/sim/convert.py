@@ -1158,7 +1158,8 @@ def convert_collection(
         conversion's own and are verified, skipped or redone as described above;
         so is a file this conversion wrote from the chunks kept beside it before it was killed
         (:func:`cmax.sim.chunks.written_from_chunks`). With ``overwrite``, chunks a killed conversion kept for a video of another source, settings or code are
-        removed and that video starts over (without it they are refused, see ``chunk_frames``).
+        removed and that video starts over (without it they are refused, see ``chunk_frames``). A folder at an
+        output raises ``IsADirectoryError`` naming it, with or without ``overwrite``, before anything is converted.
     chunk_frames : int or None
         Each video's events are kept in chunks of this many video frames (default
         :data:`cmax.sim.chunks.DEFAULT_CHUNK_FRAMES`; :func:`convert_video`), so that a video whose conversion
@@ -1273,6 +1274,20 @@ def _check_unlisted_outputs(jobs, videos: dict, output_dir: Path, path: Path, re
                               "replace them, or convert into another folder")
 
 
+def _check_folder_outputs(jobs, output_dir: Path) -> None:
+    """Refuse (IsADirectoryError, naming them) folders at the outputs ``output_dir/<name>.h5`` of ``jobs``, with or
+    without ``overwrite``, before anything is converted: a video's events are written to a file there, which
+    ``overwrite`` may replace but never a folder (a link to a folder is a link, replaced as a file is)."""
+    folders = [output for job in jobs for output in [output_dir / f"{job.name}.h5"]
+               if output.is_dir() and not output.is_symlink()]
+    if folders:
+        names = ", ".join(output.name for output in folders[:5]) + (" ..." if len(folders) > 5 else "")
+        raise IsADirectoryError(f"{len(folders)} output(s) of this conversion are folders in {output_dir}: {names}; "
+                                "nothing was converted: each video is written to a file of that name, and "
+                                "--overwrite (overwrite=True) replaces files, never folders: move or rename them, "
+                                "or convert into another folder")
+
+
 def _check_kept_chunks(output_dir: Path, runs: dict[str, dict]) -> None:
     """Refuse (ValueError, one line naming each video and what differs) chunks kept beside the outputs of the
     videos ``runs`` names (:func:`_kept_runs`) by a conversion of another source, settings or code."""
@@ -1318,6 +1333,7 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
                              "convert into another folder or remove it")
         previous_videos = previous["videos"]
         manifest["videos"] = {name: entry for name, entry in previous["videos"].items() if name not in redo}
+    _check_folder_outputs(jobs, output_dir)
     runs: dict[str, dict] = {}     # by name: the conversion of a video with kept chunks, its source hashed once
     if not overwrite:  # a file the manifest does not list is a user's or another run's: never replaced unasked
         runs = _kept_runs(jobs, output_dir, settings, redo, progress)
