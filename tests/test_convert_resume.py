@@ -453,3 +453,31 @@ def test_a_file_that_grows_while_it_is_hashed_is_refused(tmp_path, which):
                                          f"{(5 << 20) + 11:,} bytes \\(had {5 << 20:,}\\)"):
         sign(path, grow)
     assert sign(path)["bytes"] == (5 << 20) + 11                      # complete now: hashed as it is
+
+
+@pytest.mark.parametrize("chunk_frames", [None, 4])
+def test_a_file_put_at_a_pending_video_s_output_during_the_run_is_not_replaced(tmp_path, chunk_frames):
+    """A file that appears at ``out/b.h5`` after the conversion checked its outputs (a user's copy, another
+    program's output, written while ``a`` converts) (was: replaced by b's events without ``overwrite``, the run
+    reporting ``ok``): b fails naming the file, which keeps its bytes; the rerun refuses it as any unlisted file;
+    with ``overwrite`` it is replaced."""
+    videos, out = tmp_path / "videos", tmp_path / "out"
+    videos.mkdir()
+    write_video(videos / "a.avi")
+    write_video(videos / "b.avi", shift=5)
+    jobs, _ = collect_jobs(videos)
+
+    def plant(result) -> None:
+        if result.name == "a":
+            (out / "b.h5").write_bytes(b"the user's own file\n")
+
+    manifest = convert_collection(jobs, out, FAST, progress=False, on_result=plant, chunk_frames=chunk_frames)
+    assert manifest["videos"]["a"]["status"] == "ok" and manifest["videos"]["b"]["status"] == "failed"
+    assert "out/b.h5 appeared after this conversion checked its outputs" in manifest["videos"]["b"]["error"]
+    assert (out / "b.h5").read_bytes() == b"the user's own file\n"
+    assert not [p.name for p in out.iterdir() if p.name.endswith((".partial", ".lock"))]
+    with pytest.raises(FileExistsError, match="1 output file.s. already exist in .* b.h5"):
+        convert_collection(jobs, out, FAST, progress=False, chunk_frames=chunk_frames)
+    manifest = convert_collection(jobs, out, FAST, progress=False, overwrite=True, chunk_frames=chunk_frames)
+    entry = manifest["videos"]["b"]
+    assert entry["status"] == "ok" and len(read_h5(out / "b.h5")) == entry["events"] > 0

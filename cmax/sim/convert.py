@@ -1019,11 +1019,14 @@ def _failed(job: VideoJob, output: Path, error: str, started: float | None = Non
 class _Chunking:
     """How one job keeps chunks: ``frames`` video frames a chunk (None: no chunks) and the ``kept`` mode of
     :func:`convert_video`; ``signature``: its source's signature where :func:`_kept_runs` took it (to compare it
-    with kept chunks), for :func:`convert_video` not to hash the source a second time."""
+    with kept chunks), for :func:`convert_video` not to hash the source a second time; ``replace``: whether a file
+    at its output may be replaced (it was there when the conversion checked its outputs, or ``overwrite``), else a
+    file that appeared since fails the video."""
 
     frames: int | None = None
     kept: str = "resume"
     signature: dict | None = None
+    replace: bool = True
 
 
 def _resumed_note(name: str, bar) -> Callable[[int, int], None]:
@@ -1087,9 +1090,14 @@ def _run_job(job: VideoJob, output: Path, settings: ConvertSettings, position: i
             bar = tqdm(desc=job.name, unit="frame", position=position, leave=False, mininterval=1.0)
         # overwrite: under the folder's lock, an output the manifest does not list as verified is redone
         # (replaced atomically when the new file is complete); a file it does not list at all was refused
-        # before the conversion started, unless the caller asked to overwrite (convert_collection)
+        # before the conversion started, unless the caller asked to overwrite (convert_collection); one that
+        # appeared since (a user's, another program's) is not replaced: chunking.replace is False
+        if not chunking.replace and os.path.lexists(output):
+            raise FileExistsError(f"{output} appeared after this conversion checked its outputs (a file of yours or "
+                                  "of another program?) and is not replaced: move it and run again, or pass "
+                                  "--overwrite (overwrite=True)")
         result = convert_video(job.source, output, settings.for_video(job.name), category=job.category,
-                               progress=None if bar is None else bar.update, overwrite=True,
+                               progress=None if bar is None else bar.update, overwrite=chunking.replace,
                                chunk_frames=chunking.frames, kept=chunking.kept, keep_chunks=True,
                                resumed=_resumed_note(job.name, bar), signature=signature)
         result = _verified(replace(result, name=job.name))
@@ -1335,6 +1343,8 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
         manifest["videos"] = {name: entry for name, entry in previous["videos"].items() if name not in redo}
     _check_folder_outputs(jobs, output_dir)
     runs: dict[str, dict] = {}     # by name: the conversion of a video with kept chunks, its source hashed once
+    # the outputs there now are checked below (listed, or refused unless overwrite); one that appears later is not
+    present = {job.name for job in jobs if os.path.lexists(output_dir / f"{job.name}.h5")}
     if not overwrite:  # a file the manifest does not list is a user's or another run's: never replaced unasked
         runs = _kept_runs(jobs, output_dir, settings, redo, progress)
         _check_unlisted_outputs(jobs, previous_videos, output_dir, path, redo, runs)
@@ -1399,7 +1409,8 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
     def chunking(job: VideoJob) -> _Chunking:
         # redo (--overwrite of one file): chunks of the same run continue (the same events as starting over)
         kept = "resume_or_restart" if overwrite or job.name in redo else "resume"
-        return _Chunking(chunk_frames, kept, runs.get(job.name, {}).get("source"))
+        return _Chunking(chunk_frames, kept, runs.get(job.name, {}).get("source"),
+                         replace=overwrite or job.name in present)
 
     try:
         if workers == 1 or len(todo) <= 1:
