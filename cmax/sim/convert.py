@@ -1161,7 +1161,8 @@ def convert_collection(
         not list as this video's output. Default False: such files (a user's own
         ``a.h5`` beside ``a.mp4``, a file of another run) raise
         ``FileExistsError`` naming them, under the lock and before anything is
-        converted or written. Outputs the manifest lists (an ``ok`` entry, or one
+        converted or written; a file that appears at an output after that check fails its video and is
+        kept (never replaced without ``overwrite``). Outputs the manifest lists (an ``ok`` entry, or one
         it marked failed because the output or the source changed) are the
         conversion's own and are verified, skipped or redone as described above;
         so is a file this conversion wrote from the chunks kept beside it before it was killed
