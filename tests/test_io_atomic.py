@@ -63,6 +63,33 @@ def test_abort_keeps_the_old_file_and_a_target_made_meanwhile_is_not_replaced(tm
     assert sorted(p.name for p in tmp_path.iterdir()) == ["a.bin", "b.bin"]
 
 
+def test_a_target_made_while_h5_writer_or_write_with_writes_is_a_file_exists_error_and_kept(tmp_path):
+    """The writers that name the target in their errors (``H5Writer.close``, ``write_with``), when a file appears
+    at the target while they write (was: ``OSError: [Errno None] ... exists ...``, not a FileExistsError, so a
+    caller catching that missed it): ``FileExistsError`` in the refusal's own words; the file kept, no temporary
+    or lock left."""
+    from cmax.events import Events
+    from cmax.io import H5Writer
+    from cmax.io.atomic import write_with
+
+    writer = H5Writer(tmp_path / "a.h5", 10, 10)
+    writer.append(Events(np.array([1]), np.array([2]), np.array([5]), np.array([1]), 10, 10))
+    (tmp_path / "a.h5").write_bytes(b"mine")                  # appeared while writing
+    with pytest.raises(FileExistsError, match=r"a.h5 exists .*nothing was written under this name") as caught:
+        writer.close()
+    assert "Errno" not in str(caught.value)
+
+    def fill(output) -> None:
+        output.write(b"new")
+        (tmp_path / "b.bin").write_bytes(b"someone else's")
+
+    with pytest.raises(FileExistsError, match="b.bin exists") as caught:
+        write_with(tmp_path / "b.bin", fill, overwrite=False)
+    assert "Errno" not in str(caught.value)
+    assert (tmp_path / "a.h5").read_bytes() == b"mine" and (tmp_path / "b.bin").read_bytes() == b"someone else's"
+    assert sorted(p.name for p in tmp_path.iterdir()) == ["a.h5", "b.bin"]
+
+
 def test_temporaries_of_a_killed_writer_are_removed_by_the_next_one_only(tmp_path):
     from cmax.io.atomic import temporaries
 

@@ -173,8 +173,11 @@ def check_unchanged(paths: list, stats: list) -> None:
 
 
 def write_error(error: OSError, path: Path, what: str = "writing") -> OSError:
-    """``error`` as an :class:`OSError` of the same errno whose message names ``path``."""
+    """``error`` as an :class:`OSError` of the same errno whose message names ``path``; one without an errno (the
+    ``FileExistsError`` of a target that appeared before the rename) keeps its type and words."""
     code = error.errno
+    if code is None:   # was: OSError('[Errno None] ...'), which a caller catching FileExistsError missed
+        return type(error)(f"{error}; nothing was written under this name (the temporary file was removed)")
     reason = os.strerror(code) if code else str(error)
     return OSError(code, f"{reason} while {what}; nothing was written under this name "
                          "(the temporary file was removed)", str(path))
