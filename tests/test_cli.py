@@ -198,6 +198,30 @@ def test_scene_command_writes_events_and_ground_truth(tmp_path, capsys):
     assert main(argv) == 2 and "overwrite" in capsys.readouterr().err
 
 
+def test_scene_output_written_by_another_run_meanwhile_is_kept_and_named_in_the_command_s_words(tmp_path, capsys,
+                                                                                                  monkeypatch):
+    """Two `cmax scene -o S.h5` at once, or a file put at S.h5 while the scene is simulated (was: `S.h5 exists
+    (pass overwrite=True to replace it)`, the API's words): one line naming --overwrite; the file kept."""
+    import cmax.sim.synthetic as synthetic
+
+    out = tmp_path / "s.h5"
+    simulate = synthetic.simulate_scene
+
+    def simulate_then_plant(*args, **kwargs):
+        sequence = simulate(*args, **kwargs)
+        out.write_bytes(b"the other run's file")
+        return sequence
+
+    monkeypatch.setattr(synthetic, "simulate_scene", simulate_then_plant)
+    argv = ["scene", "slider", "-o", str(out), "--duration", "0.02", "--size", "32x24", "--depth-rate", "50"]
+    assert main(argv) == 2
+    err = capsys.readouterr().err
+    line = err.rstrip("\n").split("\n")[-1].split("\r")[-1]     # after the progress bar
+    assert line.startswith(f"cmax scene: error: {out} was written by another program while this scene was simulated")
+    assert "pass --overwrite to replace it" in line and "overwrite=True" not in err and err.count("error") == 1, err
+    assert out.read_bytes() == b"the other run's file" and sorted(p.name for p in tmp_path.iterdir()) == ["s.h5"]
+
+
 def test_fit_writes_depth_trajectory_and_summary(tmp_path):
     """`cmax fit` on two windows of a sliding camera (known speed): per-window depth npz + PNG, a TUM
     trajectory whose path length is speed x time (whatever the fitted directions), and a summary with

@@ -117,7 +117,14 @@ def run(args: argparse.Namespace) -> int:
             settings[name] = getattr(args, name)
     sequence = simulate_scene(scene, args.duration, EventSimulator(**settings), progress=True,
                               depth_rate_hz=depth_rate)
-    path = sequence.save(args.output, overwrite=args.overwrite)
+    try:
+        path = sequence.save(args.output, overwrite=args.overwrite)
+    except FileExistsError:   # not there at check_output: another run or program wrote it meanwhile
+        if args.overwrite or not os.path.lexists(args.output):
+            raise
+        raise FileExistsError(f"{args.output} was written by another program while this scene was simulated (it "
+                              "was not there at the start) and is kept: pass --overwrite to replace it, or give "
+                              "another -o") from None
     K = sequence.K
     near, far = scene.info.depth_range_m
     print(f"wrote {path}: {len(sequence.events):,} events, {len(sequence.depth_t_us)} depth map(s), "
