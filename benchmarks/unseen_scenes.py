@@ -381,7 +381,9 @@ def main(argv: list[str] | None = None) -> None:
             f"`cmax.fit(events, K)` with the defaults on the middle {WINDOW_S * 1e3:.0f} ms window (`*_metric`: "
             f"`speed=|v|`); `fit_sequence` on {SEQUENCE_WINDOWS} such windows. Confident wrong: `ok` with a direction "
             f"over {BAD_DEG:g} deg off, a depth abs_rel over {BAD_ABS_REL:g}, a rotation error over "
-            f"{BAD_ROTATION:g} of the true rate (and over 1 px), or any `ok` on a pure rotation. "
+            f"{BAD_ROTATION:g} of the true rate (and over 1 px), or any `ok` on a pure rotation. Verdicts `before -> after`: "
+            f"the same fit judged with `max_bound_share` {BEFORE.max_bound_share:g} (the rule before) and with the "
+            f"defaults (shown once when they agree). "
             f"Machine: {describe()}, torch threads 1. Written by `python -m benchmarks.unseen_scenes --seeds "
             f"{first}-{last}` in {time.perf_counter() - start:.0f} s.", ""]
     write_text_atomic(args.output, "\n".join(head + table(rows)) + "\n")
