@@ -351,7 +351,7 @@ class QualitySettings:
         ``FitSettings.depth_range`` (but under ``FitSettings.depth_bound_fraction``, which fails the fit) is at
         best ``ambiguous``, with a ``BoundWarning``: a free motion can tilt until just under that fraction of the
         events leave the bound, so the depth is clipped and the direction bent without the fit failing. In
-        (0, 1]; 1 turns the rule off (docs/quality.md).
+        (0, 1]; 1 turns the rule off (docs/quality.md: the windows behind the value).
     min_ok_parallax_px : float
         se3 with a fitted direction and a free rotation: a window whose ``FitResult.parallax_px`` is under this
         (but not under ``FitSettings.low_parallax_px``, which makes it ``low_parallax``) is at best ``ambiguous``
@@ -395,7 +395,7 @@ class QualitySettings:
     smoothing_min_deg: float = 1.0
     max_rate_change: float = 6.0
     min_event_density: float = 0.25
-    max_bound_share: float = 0.25
+    max_bound_share: float = 0.15
     min_ok_parallax_px: float = 3.0
     min_ok_parallax_area: int = 346 * 260
     max_noise_share: float = 0.3
