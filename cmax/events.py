@@ -190,13 +190,19 @@ def _check_sensor_size(width: object, height: object) -> tuple[int, int]:
     return int(width), int(height)
 
 
-def _as_column(name: str, values: object) -> np.ndarray:
-    """A 1-D numpy array from ``values``, with NaN/inf and shape checks."""
+def _one_dimensional(name: str, values: object) -> np.ndarray:
+    """``values`` (a sequence, numpy array or torch tensor) as a numpy array, refused unless it is (N,)."""
     if hasattr(values, "detach") and hasattr(values, "cpu"):  # a torch tensor
         values = values.detach().cpu().numpy()
     array = np.asarray(values)
     if array.ndim != 1:
         raise ValueError(f"{name} must be one-dimensional (N,), got shape {array.shape}")
+    return array
+
+
+def _as_column(name: str, values: object) -> np.ndarray:
+    """A 1-D numpy array from ``values``, with NaN/inf and shape checks."""
+    array = _one_dimensional(name, values)
     if array.dtype.kind not in "biuf":
         raise TypeError(f"{name} must hold numbers, got dtype {array.dtype}{_time_dtype_hint(name, array.dtype)}")
     if array.dtype.kind == "f":
@@ -355,11 +361,7 @@ def _stated_times(values: object, time_unit: object) -> np.ndarray:
     from cmax.io._checks import check_time_unit, times_to_us
 
     unit = check_time_unit(time_unit)
-    if hasattr(values, "detach") and hasattr(values, "cpu"):  # a torch tensor
-        values = values.detach().cpu().numpy()
-    array = np.asarray(values)
-    if array.ndim != 1:
-        raise ValueError(f"t must be one-dimensional (N,), got shape {array.shape}")
+    array = _one_dimensional("t", values)
     if array.dtype.kind not in "iuf":
         raise TypeError(f"t must hold numbers (times in {unit}), got dtype {array.dtype}"
                         f"{_time_dtype_hint('t', array.dtype)}")

@@ -28,7 +28,7 @@ import sys
 import warnings
 import zipfile
 from pathlib import Path
-from typing import Any, Sequence
+from typing import Any, Callable, Sequence
 
 import numpy as np
 import torch
@@ -170,7 +170,26 @@ def _refused(path: Path, error: BaseException) -> CheckpointError:
     return CheckpointError(f"{path} is not a learned checkpoint (torch.load: {type(error).__name__}: {detail[:200]})")
 
 
-def _inflated_tensors(value: Any, where: str = "") -> list[tuple[str, torch.Tensor]]:
+def _tensors_where(value: Any, test: Callable[[torch.Tensor], bool],
+                   where: str = "") -> list[tuple[str, torch.Tensor]]:
+    """``(where, tensor)`` for each tensor in ``value`` (nested dicts, lists, tuples) for which ``test`` is true,
+    ``where`` its path (``b[1]``, ``state.0.exp_avg``).
+
+    >>> [name for name, _ in _tensors_where({"a": torch.ones(2), "b": [torch.zeros(1)]}, lambda t: not t.any())]
+    ['b[0]']
+    """
+    if isinstance(value, torch.Tensor):
+        return [(where, value)] if test(value) else []
+    if isinstance(value, dict):
+        items = ((f"{where}.{key}" if where else str(key), item) for key, item in value.items())
+    elif isinstance(value, (list, tuple)):
+        items = ((f"{where}[{i}]", item) for i, item in enumerate(value))
+    else:
+        return []
+    return [found for name, item in items for found in _tensors_where(item, test, name)]
+
+
+def _inflated_tensors(value: Any) -> list[tuple[str, torch.Tensor]]:
     """``(where, tensor)`` for each tensor in ``value`` (nested dicts, lists, tuples) whose numbers do not fit in its
     own storage: a view with zero or overlapping strides, which a file of a few kB can make claim 10^12 numbers
     that any elementwise check (``torch.isfinite``) or copy would then allocate. ``torch.save`` of a checkpoint's
@@ -179,18 +198,10 @@ def _inflated_tensors(value: Any, where: str = "") -> list[tuple[str, torch.Tens
     >>> [name for name, _ in _inflated_tensors({"a": torch.ones(3), "b": [torch.ones(4)[:2], torch.zeros(1).expand(9)]})]
     ['b[1]']
     """
-    if isinstance(value, torch.Tensor):
-        return [] if value.numel() * value.element_size() <= value.untyped_storage().nbytes() else [(where, value)]
-    if isinstance(value, dict):
-        items = ((f"{where}.{key}" if where else str(key), item) for key, item in value.items())
-    elif isinstance(value, (list, tuple)):
-        items = ((f"{where}[{i}]", item) for i, item in enumerate(value))
-    else:
-        return []
-    return [found for name, item in items for found in _inflated_tensors(item, name)]
+    return _tensors_where(value, lambda t: t.numel() * t.element_size() > t.untyped_storage().nbytes())
 
 
-def _unusual_tensors(value: Any, where: str = "") -> list[tuple[str, torch.Tensor]]:
+def _unusual_tensors(value: Any) -> list[tuple[str, torch.Tensor]]:
     """``(where, tensor)`` for each tensor in ``value`` (nested dicts, lists, tuples) that is not a dense (strided)
     tensor: a sparse one, which ``torch.load(weights_only=True)`` rebuilds, has no storage to check and made the
     checks and ``load_state_dict`` fail with a traceback (NotImplementedError).
@@ -198,15 +209,7 @@ def _unusual_tensors(value: Any, where: str = "") -> list[tuple[str, torch.Tenso
     >>> [name for name, _ in _unusual_tensors({"a": torch.ones(2), "b": [torch.eye(2).to_sparse()]})]
     ['b[0]']
     """
-    if isinstance(value, torch.Tensor):
-        return [] if value.layout == torch.strided else [(where, value)]
-    if isinstance(value, dict):
-        items = ((f"{where}.{key}" if where else str(key), item) for key, item in value.items())
-    elif isinstance(value, (list, tuple)):
-        items = ((f"{where}[{i}]", item) for i, item in enumerate(value))
-    else:
-        return []
-    return [found for name, item in items for found in _unusual_tensors(item, name)]
+    return _tensors_where(value, lambda t: t.layout != torch.strided)
 
 
 #: A checkpoint's zip entries may expand to at most this many times the file's size (plus

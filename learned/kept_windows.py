@@ -25,7 +25,7 @@ from typing import Callable
 import numpy as np
 
 from cmax.io.atomic import file_sha256, fsync_folder, write_text_atomic
-from cmax.io.window_store import open_kept, run_digest, write_run_record
+from cmax.io.window_store import KeptRun, open_kept, write_run_record
 
 __all__ = ["KEPT_FOLDER", "KeptBlocks", "kept_windows"]
 
@@ -60,7 +60,7 @@ def _records(folder: Path) -> list[dict]:
     return records
 
 
-class KeptBlocks:
+class KeptBlocks(KeptRun):
     """The finished blocks of windows of one ``cmax depth`` run in ``out/.depth.windows``. Open it holding
     ``out``'s lock (:func:`cmax.io.run_folder.staged_run`).
 
@@ -85,25 +85,11 @@ class KeptBlocks:
 
     def __init__(self, out: str | os.PathLike, run: dict | Callable[[], dict], *, resume: bool,
                  overwrite: bool) -> None:
+        super().__init__(run)
         self.folder = Path(out) / KEPT_FOLDER
-        self._run, self._digest = run, None
         self.resumed = self.unverified = 0
         open_kept(self.folder, lambda: self.run, found=kept_windows(out), resume=resume, overwrite=overwrite,
                   command="cmax depth")
-
-    @property
-    def run(self) -> dict:
-        """What the run is (``run.json``'s contents); the callable given as ``run`` is called the first time."""
-        if callable(self._run):
-            self._run = self._run()
-        return self._run
-
-    @property
-    def digest(self) -> str:
-        """:func:`cmax.io.window_store.run_digest` of :attr:`run`: what each block record names."""
-        if self._digest is None:
-            self._digest = run_digest(self.run)
-        return self._digest
 
     def load(self, first: int) -> tuple[list[int], list[str], int] | None:
         """``(indices, lines, skipped)`` of the finished block whose first window is ``first``: the windows it

@@ -38,9 +38,9 @@ import numpy as np
 from cmax.io.atomic import check_unchanged, file_sha256, fsync_folder, write_bytes_atomic, write_text_atomic
 from cmax.sim.signature import signature_problem
 
-__all__ = ["WINDOWS_FOLDER", "WindowStore", "interrupted_windows", "file_signature", "file_signatures",
-           "PendingSignatures", "settings_record", "open_kept", "write_run_record", "stopped_line", "code_digest", "run_digest",
-           "run_differences"]
+__all__ = ["WINDOWS_FOLDER", "WindowStore", "KeptRun", "interrupted_windows", "file_signature", "file_signatures",
+           "PendingSignatures", "settings_record", "open_kept", "write_run_record", "stopped_line", "code_digest",
+           "run_digest", "run_differences"]
 
 #: The folder in ``-o`` that holds the finished windows of a run of ``cmax fit`` until its results are in.
 WINDOWS_FOLDER = ".fit.windows"
@@ -197,7 +197,30 @@ def write_run_record(folder: Path, run: dict) -> None:
         write_text_atomic(folder / _RUN_FILE, json.dumps(run, indent=2, sort_keys=True))
 
 
-class WindowStore:
+class KeptRun:
+    """What an interrupted run's kept work is checked against: the run record ``run`` (JSON-ready; or a callable
+    giving it, e.g. once :class:`PendingSignatures` has hashed the files), taken the first time :attr:`run` or
+    :attr:`digest` is read. The base of :class:`WindowStore` and ``learned.kept_windows.KeptBlocks``."""
+
+    def __init__(self, run: dict | Callable[[], dict]) -> None:
+        self._run, self._digest = run, None
+
+    @property
+    def run(self) -> dict:
+        """What the run is (``run.json``'s contents); the callable given as ``run`` is called the first time."""
+        if callable(self._run):
+            self._run = self._run()
+        return self._run
+
+    @property
+    def digest(self) -> str:
+        """:func:`run_digest` of :attr:`run`: what each kept window or block names."""
+        if self._digest is None:
+            self._digest = run_digest(self.run)
+        return self._digest
+
+
+class WindowStore(KeptRun):
     """The finished windows of one ``cmax fit`` run in ``out/.fit.windows`` (the ``store`` of
     :func:`cmax.fit_sequence`). Open it holding ``out``'s lock (:func:`cmax.io.run_folder.staged_run`).
 
@@ -226,26 +249,12 @@ class WindowStore:
 
     def __init__(self, out: str | os.PathLike, run: dict | Callable[[], dict], *, resume: bool,
                  overwrite: bool) -> None:
+        super().__init__(run)
         self.folder = Path(out) / WINDOWS_FOLDER
-        self._run, self._digest = run, None
         self.resumed = self.unreadable = 0
         self._with_maps: set[int] = set()
         open_kept(self.folder, lambda: self.run, found=interrupted_windows(out), resume=resume, overwrite=overwrite,
                   command="cmax fit")
-
-    @property
-    def run(self) -> dict:
-        """What the run is (``run.json``'s contents); the callable given as ``run`` is called the first time."""
-        if callable(self._run):
-            self._run = self._run()
-        return self._run
-
-    @property
-    def digest(self) -> str:
-        """:func:`run_digest` of :attr:`run`: what each window file names."""
-        if self._digest is None:
-            self._digest = run_digest(self.run)
-        return self._digest
 
     def _path(self, index: int) -> Path:
         return self.folder / f"window_{index:05d}.pickle"
