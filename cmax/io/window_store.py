@@ -375,7 +375,7 @@ class PendingSignatures:
     """:func:`file_signatures` of a run's input files, taken in a background thread from construction, so that
     the run's work starts at once; :meth:`result` waits for them. A run needs them only when it compares them
     with a kept run (``--resume``) or records them (with its first kept window or block, :class:`WindowStore`):
-    hashing a 3 GB file from disk takes seconds, which a fresh run now spends fitting.
+    a fresh run spends the hashing of multi-GB inputs fitting instead of waiting.
 
     Always :meth:`close` it (``try``/``finally``): it stops the thread within one 4 MiB block and waits for it,
     so that no thread outlives the run (a Ctrl-C, an error).
