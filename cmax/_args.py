@@ -206,8 +206,13 @@ class ArgumentParser(argparse.ArgumentParser):
     """An ``argparse`` parser whose errors are one line (``PROG: error: MESSAGE (see PROG --help)``), exit 2.
 
     Shows the defaults in the help (:class:`HelpFormatter`) and accepts ``--debug`` (show tracebacks)
-    wherever it stands on the command line; sub-parsers are of the same class.
+    wherever it stands on the command line; sub-parsers are of the same class. A parser's ``unknown_hints``
+    (option -> sentence) add to the refusal of an option it does not take what to do instead (``cmax simulate
+    --resume``: it resumes by itself).
     """
+
+    #: What to do instead of an option this parser does not take, by option (added to its refusal).
+    unknown_hints: dict[str, str] = {}
 
     def __init__(self, *args: Any, **kwargs: Any) -> None:
         kwargs.setdefault("formatter_class", HelpFormatter)
@@ -225,7 +230,9 @@ class ArgumentParser(argparse.ArgumentParser):
         if extras:   # named by the sub-command they were given to (argparse named the top-level command)
             owner = next((action.choices.get(getattr(parsed, action.dest, None)) for action in self._actions
                           if isinstance(action, argparse._SubParsersAction)), None)
-            (owner or self).error(f"unrecognized arguments: {' '.join(extras)}")
+            parser = owner or self
+            hints = [parser.unknown_hints[extra] for extra in dict.fromkeys(extras) if extra in parser.unknown_hints]
+            parser.error(f"unrecognized arguments: {' '.join(extras)}" + "".join(f"; {hint}" for hint in hints))
         return parsed
 
     def error(self, message: str):  # noqa: D102 (argparse API)

@@ -862,3 +862,19 @@ def test_a_fisheye_or_rectified_calibration_is_refused_for_the_output_s_pinhole_
     with pytest.raises(ValueError, match=r"\(cam0\) states an equidistant \(fisheye\) lens and a rectification, which "
                                          r"the output's gt/K"):
         _frames_intrinsics(argparse.Namespace(calib=calib, calib_camera="cam0"))
+
+
+def test_resume_is_refused_naming_that_simulate_resumes_by_itself(tmp_path, capsys):
+    """``cmax simulate ... --resume`` (the flag of cmax fit / depth and learned.*): was `unrecognized arguments:
+    --resume` alone, leaving the user to guess that a rerun continues; now the same exit 2 and one line that says
+    so. Another unknown option is refused as before, without the hint."""
+    with pytest.raises(SystemExit) as stop:
+        main(["simulate", str(tmp_path / "a.avi"), "-o", str(tmp_path / "out"), "--resume"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and err.count("\n") == 1
+    assert "unrecognized arguments: --resume; cmax simulate resumes by itself: run the same command again" in err
+    with pytest.raises(SystemExit) as stop:
+        main(["simulate", str(tmp_path / "a.avi"), "-o", str(tmp_path / "out"), "--bogus"])
+    err = capsys.readouterr().err
+    assert stop.value.code == 2 and "--bogus (see cmax simulate --help)" in err and "by itself" not in err
+    assert not (tmp_path / "out").exists()

@@ -325,6 +325,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
         "kept chunk, see --chunk-frames), in --workers processes. Exit status 1 when a video fails or yields no events, or when "
         "none of a catalogue's videos (of its shard) is found.",
     )
+    parser.unknown_hints = {"--resume": "cmax simulate resumes by itself: run the same command again (the finished "
+                                        "videos are verified and skipped, a video stopped part-way continues from "
+                                        "its kept chunks)"}
     parser.add_argument("input", type=Path,
                         help="video file, image folder, timestamp file, folder of videos, or list file")
     parser.add_argument("-o", "--output", type=Path, required=True, help="output .h5 file or folder")
