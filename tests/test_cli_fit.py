@@ -12,6 +12,7 @@ from cmax.cli.recording import calibration_note
 from cmax.io import read_calibration
 from cmax.events import Events
 from cmax.io import write_h5, write_txt
+from conftest import MVSEC_LEFT_CAMCHAIN as MVSEC_CAMCHAIN  # MVSEC's left camera, shared with the other tests
 
 cv2 = pytest.importorskip("cv2")
 
@@ -1037,21 +1038,6 @@ def test_fit_notes_events_that_repeat_an_earlier_one_exactly(tmp_path, capsys):
     assert "repeat an earlier event" not in capsys.readouterr().err
 
 
-MVSEC_CAMCHAIN = """cam0:
-  camera_model: pinhole
-  distortion_coeffs: [-0.048031442223833355, 0.011330957517194437, -0.055378166304281135, 0.021500973881459395]
-  distortion_model: equidistant
-  intrinsics: [226.38018519795807, 226.15002947047415, 173.6470807871759, 133.73271487507847]
-  resolution: [346, 260]
-  projection_matrix:
-  - [199.6530123165822, 0.0, 177.43276376280926, 0.0]
-  - [0.0, 199.6530123165822, 126.81215684365904, 0.0]
-  - [0.0, 0.0, 1.0, 0.0]
-  rectification_matrix:
-  - [0.999877311526236, 0.015019439766575743, -0.004447282784398257]
-  - [-0.014996983873604017, 0.9998748347535599, 0.005040367172759556]
-  - [0.004522429630305261, -0.004973052949604937, 0.9999774079320989]
-"""
 
 
 def test_fit_with_mvsec_s_fisheye_camchain_fits_in_the_rectified_frame(tmp_path, capsys):
@@ -1112,8 +1098,7 @@ def test_the_camchain_camera_must_be_the_mvsec_camera_read(tmp_path, capsys):
         for side in ("left", "right"):
             f[f"davis/{side}/events"] = np.column_stack([rng.integers(0, 346, 500), rng.integers(0, 260, 500), t,
                                                          rng.choice([-1.0, 1.0], 500)])
-    chain = MVSEC_CAMCHAIN + "  rostopic: /davis/left/image_raw\n" + MVSEC_CAMCHAIN.replace("cam0:", "cam1:") + (
-        "  rostopic: /davis/right/image_raw\n")
+    chain = MVSEC_CAMCHAIN + MVSEC_CAMCHAIN.replace("cam0:", "cam1:").replace("/davis/left/", "/davis/right/")
     calib = _write(tmp_path / "camchain.yaml", chain)
     rig = tmp_path / "rig_data.hdf5"
     for options, message in (
