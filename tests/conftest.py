@@ -70,6 +70,43 @@ def counted_calls(monkeypatch, owner, name: str, interrupt_at: int | None = None
     return calls
 
 
+def hash_held_back(monkeypatch, name: str, owner, attribute: str, interrupt_at: int) -> list[str]:
+    """Hold back the SHA-256 of the input file called ``name`` (``cmax.io.window_store.file_sha256``, through
+    ``monkeypatch``) until ``owner.attribute`` (the run's own work: a window's fit, a forward pass) has been called,
+    waiting at most 60 s; that call is counted by :func:`counted_calls`, a Ctrl-C at call ``interrupt_at``. Returns
+    the order of what happened: ``attribute`` at each call, ``"hashed"`` when the held-back hash is done."""
+    import threading
+
+    import cmax.io.window_store as window_store
+
+    real, working, order = window_store.file_sha256, threading.Event(), []
+
+    def held_back(path, read=None):
+        if os.path.basename(path) == name:
+            working.wait(60)
+            order.append("hashed")
+        return real(path, read)
+
+    monkeypatch.setattr(window_store, "file_sha256", held_back)
+    counted_calls(monkeypatch, owner, attribute, interrupt_at=interrupt_at)
+    counted = getattr(owner, attribute)
+
+    def called(*args, **kwargs):
+        order.append(attribute)
+        working.set()
+        return counted(*args, **kwargs)
+
+    monkeypatch.setattr(owner, attribute, called)
+    return order
+
+
+def hashing_threads() -> list:
+    """The threads hashing a run's inputs (``cmax.io.window_store.PendingSignatures``) that are still alive."""
+    import threading
+
+    return [thread for thread in threading.enumerate() if thread.name == "cmax-hash-inputs"]
+
+
 def sigterm_once(argv: list[str], folder: Path, pattern: str, what: str) -> tuple[int, str]:
     """Run ``argv`` in a subprocess, send it SIGTERM as soon as ``folder`` holds a file matching ``pattern`` (its
     private temporary or stage), and return its exit status and stderr. Fails when the run ends first (``what``:

@@ -211,33 +211,16 @@ def test_a_fresh_run_predicts_while_its_inputs_are_hashed(recording, tiny_checkp
     run.json records the SHA-256 of the file's bytes (hashlib of its bytes); no hashing thread outlives the run."""
     import hashlib
     import json
-    import threading
 
-    import cmax.io.window_store as window_store
+    from conftest import hash_held_back, hashing_threads
 
-    real, predicting, order = window_store.file_sha256, threading.Event(), []
-
-    def held_back(path, read=None):
-        if os.path.basename(path) == recording.name:
-            predicting.wait(60)
-            order.append("hashed")
-        return real(path, read)
-
-    monkeypatch.setattr(window_store, "file_sha256", held_back)
-    counted = (counted_calls(monkeypatch, predict, "forward", interrupt_at=3), predict.forward)[1]
-
-    def forward(*args, **kwargs):
-        order.append("forward")
-        predicting.set()
-        return counted(*args, **kwargs)
-
-    monkeypatch.setattr(predict, "forward", forward)
+    order = hash_held_back(monkeypatch, recording.name, predict, "forward", interrupt_at=3)
     out = tmp_path / "o"
     assert predict.main(argv(recording, out, tiny_checkpoint)) == 130     # two blocks kept
     assert order[:2] == ["forward", "hashed"], order
     record = json.loads((out / KEPT_FOLDER / "run.json").read_text())
     assert record["file"]["sha256"] == hashlib.sha256(recording.read_bytes()).hexdigest()
-    assert not [thread for thread in threading.enumerate() if thread.name == "cmax-hash-inputs"]
+    assert not hashing_threads()
 
 
 def test_resume_of_a_finished_run_says_it_is_complete_and_touches_nothing(tiny_checkpoint, tmp_path, monkeypatch,

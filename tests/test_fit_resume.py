@@ -15,7 +15,7 @@ import numpy as np
 import pytest
 
 import cmax.fitting.sequence as sequence_module
-from conftest import counted_calls, sigkill_after
+from conftest import counted_calls, hash_held_back, hashing_threads, sigkill_after
 from cmax.cli import main
 from cmax.events import Events
 from cmax.io import write_h5
@@ -355,12 +355,6 @@ def test_resume_continues_a_moved_event_file_and_folder(recording, tmp_path, mon
     assert_same(results_of(moved / "o"), results_of(whole))
 
 
-def _hashing_threads() -> list:
-    import threading
-
-    return [thread for thread in threading.enumerate() if thread.name == "cmax-hash-inputs"]
-
-
 def test_a_fresh_run_fits_its_first_window_while_its_inputs_are_hashed(recording, tmp_path, monkeypatch):
     """A fresh ``cmax fit`` hashes its inputs (cmax.io.window_store.PendingSignatures) while it fits: the event
     file's hash is held back until the first window's fit has begun, and the run goes on (was: every run hashed its
@@ -368,34 +362,15 @@ def test_a_fresh_run_fits_its_first_window_while_its_inputs_are_hashed(recording
     The window kept with the first window records the SHA-256 of the file's bytes (hashlib of its bytes), and no
     hashing thread outlives the run."""
     import hashlib
-    import threading
 
-    import cmax.io.window_store as window_store
-
-    real, fitting, order = window_store.file_sha256, threading.Event(), []
-
-    def held_back(path, read=None):
-        if os.path.basename(path) == recording.name:
-            fitting.wait(60)
-            order.append("hashed")
-        return real(path, read)
-
-    monkeypatch.setattr(window_store, "file_sha256", held_back)
-    counted = (counted_calls(monkeypatch, sequence_module, "fit", interrupt_at=3), sequence_module.fit)[1]
-
-    def fit(*args, **kwargs):
-        order.append("fit")
-        fitting.set()
-        return counted(*args, **kwargs)
-
-    monkeypatch.setattr(sequence_module, "fit", fit)
+    order = hash_held_back(monkeypatch, recording.name, sequence_module, "fit", interrupt_at=3)
     out = tmp_path / "o"
     assert main(se3_argv(recording, out)) == 130          # interrupted in the third window: two kept
     assert order[:2] == ["fit", "hashed"], order
     record = json.loads((out / WINDOWS_FOLDER / "run.json").read_text())
     assert record["file"]["sha256"] == hashlib.sha256(recording.read_bytes()).hexdigest()
     assert record["file"]["bytes"] == recording.stat().st_size
-    assert not _hashing_threads()
+    assert not hashing_threads()
 
 
 def test_an_input_modified_while_it_is_hashed_beside_the_fit_is_refused(recording, tmp_path, monkeypatch, capsys):
@@ -423,7 +398,7 @@ def test_an_input_modified_while_it_is_hashed_beside_the_fit_is_refused(recordin
     assert f"{path} changed while it was read to hash it: it was modified" in err and len(err.strip().splitlines()) == 1
     assert not (out / "summary.json").exists() and not (out / WINDOWS_FOLDER).exists()
     assert not out.exists() or not any(out.iterdir())     # the run's own folder, removed with its stage
-    assert not _hashing_threads()
+    assert not hashing_threads()
 
 
 def test_ctrl_c_while_the_inputs_are_hashed_stops_the_hashing_and_exits_130(recording, tmp_path, monkeypatch,
@@ -454,7 +429,7 @@ def test_ctrl_c_while_the_inputs_are_hashed_stops_the_hashing_and_exits_130(reco
     assert main(se3_argv(recording, out)) == 130
     assert time.monotonic() - started < 30
     assert capsys.readouterr().err.strip() == "cmax fit: interrupted"
-    assert stopped and not _hashing_threads()
+    assert stopped and not hashing_threads()
     assert not (out / "summary.json").exists() and not (out / WINDOWS_FOLDER).exists()
 
 
