@@ -712,8 +712,7 @@ def run_prediction(path: str | Path, out: str | Path, *, checkpoint: str | Path 
     try:
         with run_folder.staged_run(out, _STAGE_PREFIX, earlier_results, overwrite=overwrite,
                                    what="window_*.npz, twists.csv, ...", resume=resume) as stage:
-            finished = (run_folder.complete_run(out) or {}) if (resume and not overwrite and
-                                                                (out / run_folder.COMPLETION_MARKER).is_file()) else None
+            finished = run_folder.resumed_into_complete(out, resume=resume, overwrite=overwrite)
             run, kept = _predict_into(stage, path, checkpoint=checkpoint, K=K, calib=calib, calib_camera=calib_camera,
                                       distortion=distortion, size=size, time_unit=time_unit, polarity=polarity,
                                       sort=sort, camera=camera, t0_s=t0_s, t1_s=t1_s, window_s=window_s,

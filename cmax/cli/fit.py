@@ -508,9 +508,9 @@ def run(args: argparse.Namespace) -> int:
             # to compare them with kept windows (--resume) or to record them with the first window it saves
             hashing = PendingSignatures(_input_paths(args), progress=not args.quiet)
             record = _pending_record(args, hashing)
-            if args.resume and not args.overwrite and (out / run_folder.COMPLETION_MARKER).is_file():
-                # a complete run's results: the same run has nothing to do, another is refused
-                run_folder.check_complete(out, run_folder.complete_run(out) or {}, record(), command="cmax fit")
+            complete = run_folder.resumed_into_complete(out, resume=args.resume, overwrite=args.overwrite)
+            if complete is not None:   # a complete run's results: the same run has nothing to do, another is refused
+                run_folder.check_complete(out, complete, record(), command="cmax fit")
             store = WindowStore(out, record, resume=args.resume, overwrite=args.overwrite)
             status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
                                min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,

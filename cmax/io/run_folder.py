@@ -35,7 +35,8 @@ from typing import Callable, Iterator, Sequence
 from cmax.io.atomic import PathLock, fsync_folder
 
 __all__ = ["FOLDER_LOCK", "COMPLETION_MARKER", "RESULT_NAMES", "run_results", "locked_folder", "staged_run",
-           "new_stage", "discard_stages", "publish", "ResultsComplete", "complete_run", "check_complete"]
+           "new_stage", "discard_stages", "publish", "ResultsComplete", "complete_run", "resumed_into_complete",
+           "check_complete"]
 
 _STAGE_SUFFIX = ".partial"
 #: The lock of an output folder that :func:`staged_run` holds, the same for every command that writes through it.
@@ -160,6 +161,23 @@ def complete_run(out: str | os.PathLike) -> dict | None:
     except (OSError, ValueError):
         return None
     return summary if isinstance(summary, dict) else None
+
+
+def resumed_into_complete(out: str | os.PathLike, *, resume: bool, overwrite: bool) -> dict | None:
+    """The ``summary.json`` of the complete run in ``out`` (a dict; ``{}`` when it cannot be read as one) when a
+    ``resume`` without ``overwrite`` goes into it: what :func:`check_complete` must compare this run with, before
+    any work, in the block of :func:`staged_run`; None otherwise (no complete run there, or no ``--resume``).
+
+    Parameters
+    ----------
+    out : path
+        The output folder (``-o``).
+    resume, overwrite : bool
+        The command's ``--resume`` and ``--overwrite``.
+    """
+    if not resume or overwrite or not (Path(out) / COMPLETION_MARKER).is_file():
+        return None
+    return complete_run(out) or {}
 
 
 def check_complete(out: str | os.PathLike, summary: dict, now: dict, *, command: str) -> None:
