@@ -182,6 +182,24 @@ def test_rpg_e2vid_text_states_its_size_on_its_first_line(tmp_path):
         read(tmp_path / "ragged.txt")
 
 
+@pytest.mark.parametrize("ends", [["\r"], ["\r\n"], ["\n", "\r"], ["\r\n", "\n", "\r"]],
+                         ids=["cr", "crlf", "lf-then-cr", "mixed"])
+@pytest.mark.parametrize("header", ["", "64 48", "# t x y p"])
+def test_text_lines_ending_in_cr_alone_crlf_or_a_mix_read_as_the_events_written(tmp_path, ends, header):
+    """ECD text saved by an old Mac editor ends its lines in CR alone (was: refused, "its first line reads '0.000000 0
+    0 0 0.001000 1 ...' (800 column(s) where 4 columns are expected)", although np.loadtxt reads such lines; with
+    rpg_e2vid's 'W H' line first, the size line was not found either). Each line end, and a mix of them, reads as
+    the events written."""
+    events = random_events(300, width=64, height=48)
+    lines = [f"{t * 1e-6:.6f} {x} {y} {p}" for t, x, y, p in zip(events.t, events.x, events.y, events.p)]
+    lines = ([header] if header else []) + lines
+    text = "".join(line + ends[i * len(ends) // len(lines)] for i, line in enumerate(lines))
+    path = tmp_path / "events.txt"
+    path.write_bytes(text.encode())
+    size = {} if header == "64 48" else {"width": 64, "height": 48}
+    assert read(path, **size) == events
+
+
 @pytest.mark.parametrize("text, columns", [
     ("0.000000000 images/frame_00000000.png\n0.038766001 images/frame_00000001.png\n", 2),   # ECD images.txt
     ("# timestamps\n0.000000000\n0.001866000\n", 1),                                       # ESIM timestamps.txt

@@ -35,8 +35,8 @@ def read_txt(
     size, so ``width`` and ``height`` are required (ECD's DAVIS240C: 240 x 180),
     unless its first line states it as rpg_e2vid's ``events.txt`` does (``W H``;
     a size given too must equal it). Lines starting with ``#`` are comments; a UTF-8 byte order mark at the
-    file's start is ignored. A first line of other words (a header, fields separated by commas) is refused
-    naming what it holds.
+    file's start is ignored; lines may end in LF, CRLF or CR alone (an old Mac's), also mixed. A first line of
+    other words (a header, fields separated by commas) is refused naming what it holds.
     Time must not go back unless ``sort=True`` (the events are then sorted by
     time, stable); a file whose third column is the sorted one is refused as
     ``x y t p`` columns, not ECD's order.
@@ -86,7 +86,8 @@ def _size_header(path: Path) -> tuple[tuple[int, int] | None, int]:
         head = head.removeprefix(_UTF8_BOM)
     except OSError as error:
         raise FormatError(f"{path} cannot be read ({error})") from None
-    for number, line in enumerate(head.split(b"\n")[:-1] if len(head) == _HEAD_BYTES else head.split(b"\n")):
+    lines = head.splitlines()      # LF, CRLF or CR-only (old Mac) line ends, as np.loadtxt reads them
+    for number, line in enumerate(lines[:-1] if len(head) == _HEAD_BYTES else lines):
         words = line.split()
         if not words or words[0].startswith(b"#"):
             continue
