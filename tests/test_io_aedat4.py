@@ -470,3 +470,26 @@ def test_a_file_of_two_event_streams_says_which_one_it_read(tmp_path: Path) -> N
         single = tmp_path / "single.aedat4"
         single.write_bytes(_aedat4(streams[:1], packets[:1]))
         assert len(read(single)) == 2
+
+
+def test_times_beyond_the_year_2100_as_microseconds_are_refused_naming_nanoseconds(tmp_path: Path) -> None:
+    """AEDAT 4.0 stores µs since the Unix epoch; a file whose tool wrote nanoseconds (1.7e18) was read as µs without a
+    word: a recording in the year 55,000 whose every interval was 1000 times too long (the DSEC, .npy and text
+    readers refuse such times). Events and IMU samples are refused naming the time, its index and the conversion; a
+    time of a real DV recording (1.6e15 µs, 2020) reads as it is."""
+    from cmax.io import read
+
+    ns = [1_700_000_000_000_000_000 + k * 1000 for k in range(3)]
+    path = tmp_path / "ns.aedat4"
+    stream = [(0, "EVTS", "events", (5, 4))]
+    path.write_bytes(_aedat4(stream, [(0, _event_packet(ns, [0, 1, 2], [0, 1, 2], [1, 1, 0]))]))
+    with pytest.raises(FormatError, match=r"ns.aedat4: event time 1700000000000002000 µs at index 2 lies beyond the "
+                                          r"year 2100 as µs since the Unix epoch.*look like nanoseconds.*t // 1000"):
+        read(path)
+    imu = tmp_path / "imu.aedat4"
+    imu.write_bytes(_aedat4([(0, "IMUS", "imu", None)], [(0, _imu_packet([{0: ns[0], 5: 1.0}]))]))
+    with pytest.raises(FormatError, match=r"imu.aedat4: IMU time 1700000000000000000 µs at index 0 .*nanoseconds"):
+        read_aedat4_imu(imu)
+    real = [1_600_000_000_000_000 + k for k in range(3)]
+    path.write_bytes(_aedat4(stream, [(0, _event_packet(real, [0, 1, 2], [0, 1, 2], [1, 1, 0]))]))
+    assert read(path).t.tolist() == real
