@@ -200,6 +200,25 @@ def test_text_lines_ending_in_cr_alone_crlf_or_a_mix_read_as_the_events_written(
     assert read(path, **size) == events
 
 
+@pytest.mark.parametrize("codec, bom", [("utf-16-le", b"\xff\xfe"), ("utf-16-be", b"\xfe\xff")])
+def test_utf16_text_with_its_byte_order_mark_reads_as_the_events_written(tmp_path, codec, bom):
+    """Windows PowerShell's ``>`` writes UTF-16 with a byte order mark (was: refused, "its first line reads
+    '\ufffd\ufffd0\\x00.\\x000...': ... is not a number (a header line? ...)"). Read as the same text, also past the
+    64 KiB the first-line check reads and with rpg_e2vid's size line; without the mark it is refused naming the NUL
+    bytes."""
+    events = random_events(3000, width=64, height=48)
+    text = "64 48\r\n" + "".join(f"{t * 1e-6:.6f} {x} {y} {p}\r\n"
+                                   for t, x, y, p in zip(events.t, events.x, events.y, events.p))
+    path = tmp_path / "events.txt"
+    path.write_bytes(bom + text.encode(codec))
+    assert path.stat().st_size > 1 << 16
+    assert read(path) == events
+    path.write_bytes(text.encode(codec))
+    with pytest.raises(FormatError, match=r"events.txt is not an ECD text file .*which holds NUL bytes: UTF-16 text "
+                                          r"without a byte order mark"):
+        read(path, width=64, height=48)
+
+
 @pytest.mark.parametrize("text, columns", [
     ("0.000000000 images/frame_00000000.png\n0.038766001 images/frame_00000001.png\n", 2),   # ECD images.txt
     ("# timestamps\n0.000000000\n0.001866000\n", 1),                                       # ESIM timestamps.txt
