@@ -219,6 +219,21 @@ def test_utf16_text_with_its_byte_order_mark_reads_as_the_events_written(tmp_pat
         read(path, width=64, height=48)
 
 
+def test_a_comment_in_latin_1_is_a_comment_and_a_byte_in_a_number_is_refused_naming_its_row(tmp_path):
+    """A comment line saved in Latin-1 (``# caméra``: byte 0xe9, not UTF-8) made the whole file unreadable (was:
+    "('utf-8' codec can't decode byte 0xe9 in position 5: invalid continuation byte)", no line named). The comment
+    is skipped; such a byte inside a number is still refused, naming the row."""
+    events = random_events(100, width=64, height=48)
+    lines = [f"{t * 1e-6:.6f} {x} {y} {p}\n" for t, x, y, p in zip(events.t, events.x, events.y, events.p)]
+    path = tmp_path / "events.txt"
+    path.write_bytes("# caméra DAVIS240\n".encode("latin-1") + "".join(lines).encode())
+    assert read(path, width=64, height=48) == events
+    path.write_bytes("".join(lines[:10]).encode() + lines[10].replace(" ", "\xe9 ", 1).encode("latin-1")
+                     + "".join(lines[11:]).encode())
+    with pytest.raises(FormatError, match=r"events.txt is not an ECD text file .*at row 10, column 1"):
+        read(path, width=64, height=48)
+
+
 @pytest.mark.parametrize("text, columns", [
     ("0.000000000 images/frame_00000000.png\n0.038766001 images/frame_00000001.png\n", 2),   # ECD images.txt
     ("# timestamps\n0.000000000\n0.001866000\n", 1),                                       # ESIM timestamps.txt

@@ -51,10 +51,11 @@ def read_txt(
     elif width is None or height is None:
         raise ValueError(f"{path} (txt) stores no sensor size: pass width= and height= (cmax: --size WxH)")
     try:
-        with warnings.catch_warnings():  # an empty file is no events, not a warning
-            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
-            table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", skiprows=skip,
-                               encoding=_encoding(path))     # a byte order mark (Windows editors) is not text
+        # a byte order mark (Windows editors) is not text; a byte that is not UTF-8 (a Latin-1 comment) is read as
+        # U+FFFD, which no number holds: harmless in a comment, refused naming its row elsewhere
+        with warnings.catch_warnings(), open(path, encoding=_encoding(path), errors="replace") as handle:
+            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)   # no events
+            table = np.loadtxt(handle, dtype=np.float64, ndmin=2, comments="#", skiprows=skip)
     except (ValueError, UnicodeDecodeError) as error:
         text = str(error).split("; use `usecols`")[0]      # numpy's advice on selecting columns does not apply
         raise FormatError(f"{path} is not an ECD text file of 't x y p' lines ({text})") from None
