@@ -359,6 +359,23 @@ def test_torch_times_in_nanoseconds_since_1970_are_refused_as_numpy_refuses_them
     np.testing.assert_allclose(voxel_grid(in_us, 3).numpy(), voxel_grid(expected, 3), atol=1e-6)
 
 
+def test_torch_events_of_a_sensor_given_as_height_width_are_named_as_swapped():
+    """``EventTensors(..., 480, 640)`` of a 640x480 sensor's events (an image's shape passed as width, height) was
+    refused as "events.x must lie in [0, 480), got values in [0, 639]" only, where ``Events`` names the swap; events
+    outside both orders get no such hint."""
+    x, y = torch.tensor([0, 639, 300]), torch.tensor([0, 479, 200])
+    p, t = torch.tensor([1, 0, 1], dtype=torch.int8), torch.tensor([0, 10, 20])
+    with pytest.raises(ValueError, match=r"width and height swapped\? \(Events takes width=640, height=480"):
+        Events(x.numpy(), y.numpy(), t.numpy(), p.numpy(), 480, 640)
+    with pytest.raises(ValueError, match=r"^events\.x must lie in \[0, 480\), got values in \[0, 639\]; every event "
+                                         r"lies inside a 640x480 sensor: width and height swapped\? \(EventTensors "
+                                         r"takes width=640, height=480"):
+        event_frame(EventTensors(x, y, t, p, 480, 640))
+    assert event_frame(EventTensors(x, y, t, p, 640, 480)).shape == (2, 480, 640)
+    with pytest.raises(ValueError, match=r"^events\.x must lie in \[0, 480\), got values in \[0, 700\]$"):
+        event_frame(EventTensors(torch.tensor([0, 700, 300]), y, t, p, 480, 640))
+
+
 def test_voxel_grid_batch_reads_each_samples_own_polarity_encoding():
     """A bool sample first made a signed sample's -1.0 True (ON) once cast to its dtype: the batch's second grid
     held only ON weights where voxel_grid of that sample has OFF ones."""

@@ -94,9 +94,14 @@ def _stats_torch(events: EventTensors) -> tuple[int, int] | None:
         return None
     bounds = [b.to(torch.int64) for name in "xyt" for b in torch.aminmax(getattr(events, name))]
     x_lo, x_hi, y_lo, y_hi, t_lo, t_hi, p_ok = torch.stack([*bounds, _polarity_ok(events.p)]).tolist()
-    for name, low, high, size in (("x", x_lo, x_hi, events.width), ("y", y_lo, y_hi, events.height)):
+    width, height = events.width, events.height
+    swapped = (width != height and min(x_lo, y_lo) >= 0 and x_hi < height and y_hi < width)
+    for name, low, high, size in (("x", x_lo, x_hi, width), ("y", y_lo, y_hi, height)):
         if low < 0 or high >= size:
-            raise ValueError(f"events.{name} must lie in [0, {size}), got values in [{low}, {high}]")
+            raise ValueError(f"events.{name} must lie in [0, {size}), got values in [{low}, {high}]" + (
+                f"; every event lies inside a {height}x{width} sensor: width and height swapped? (EventTensors "
+                f"takes width={height}, height={width} for them: an image's shape is (height, width), tonic's "
+                "sensor_size (width, height, polarities))" if swapped else ""))
     if not p_ok:
         _refuse_polarity("events.p", events.p)
     _check_not_nanoseconds(t_lo, t_hi)
