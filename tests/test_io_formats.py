@@ -392,3 +392,27 @@ def test_an_mvsec_file_whose_time_goes_back_has_a_way_out(tmp_path, capsys, monk
     copy = read(tmp_path / "sorted.hdf5")
     assert len(copy) == 300 and np.all(np.diff(copy.t) >= 0)
     assert sorted(zip(copy.x.tolist(), copy.y.tolist())) == sorted(zip(table[:, 0].tolist(), table[:, 1].tolist()))
+
+
+def test_an_npz_archive_or_an_n_by_4_npy_is_refused_naming_the_call_that_reads_it(tmp_path):
+    """tonic events saved with np.savez (an .npz archive) were refused as "cannot tell the event format ...", an
+    (N, 4) .npy table as "expected a 1-D structured array ..." only. Both now name the call that reads them, and that
+    call reads the events written."""
+    events = random_events(300, width=64, height=48)
+    archive = tmp_path / "ev.npz"
+    np.savez(archive, events=events.to_structured())
+    with pytest.raises(FormatError, match=r"ev.npz is a NumPy .npz archive of the arrays \['events'\], not one event "
+                                          r"array: .*cmax.Events.from_structured\(np.load\('.*ev.npz'\)\['events'\], "
+                                          r"width, height\)"):
+        read(archive, width=64, height=48)
+    assert Events.from_structured(np.load(archive)["events"], 64, 48) == events
+    table = tmp_path / "table.npy"
+    np.save(table, np.column_stack([events.x, events.y, events.t, events.p]).astype(np.int64))
+    with pytest.raises(FormatError, match=r"table.npy: expected a 1-D structured array .* shape \(300, 4\): an "
+                                          r"\(N, 4\) table, .*cmax.Events.from_array\(np.load\('.*table.npy'\), "
+                                          r"width, height, order='xytp'\)"):
+        read(table, width=64, height=48)
+    assert Events.from_array(np.load(table), 64, 48, order="xytp") == events
+    (tmp_path / "bad.npz").write_bytes(b"PK\x03\x04 cut")
+    with pytest.raises(FormatError, match=r"bad.npz is not a readable .npz archive \(BadZipFile"):
+        read(tmp_path / "bad.npz")
