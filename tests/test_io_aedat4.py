@@ -493,3 +493,21 @@ def test_times_beyond_the_year_2100_as_microseconds_are_refused_naming_nanosecon
     real = [1_600_000_000_000_000 + k for k in range(3)]
     path.write_bytes(_aedat4(stream, [(0, _event_packet(real, [0, 1, 2], [0, 1, 2], [1, 1, 0]))]))
     assert read(path).t.tolist() == real
+
+
+@pytest.mark.parametrize("size, said", [((0, 0), r"width must be in \[1, 65535\] pixels, got 0"),
+                                        ((-5, 4), r"width must be in \[1, 65535\] pixels, got -5"),
+                                        ((70000, 4), r"width must be in \[1, 65535\] pixels, got 70000"),
+                                        ((60000, 60000), r"a 60000x60000 sensor .* larger than any event camera")])
+def test_an_event_stream_of_a_bad_sensor_size_is_refused_as_the_other_readers_refuse_it(tmp_path: Path, size,
+                                                                                          said) -> None:
+    """An EVTS stream whose sizeX/sizeY declare 0x0, a negative, a > 65535 or a 3.6-gigapixel sensor gave Events of
+    that size (an empty file: ``Events(n=0, width=-5, ...)``; with events: "event 0 has x=0, outside the 0x0
+    sensor"), where the DSEC and Prophesee readers refuse such a size naming it (cmax.events' limits)."""
+    from cmax.io import read
+
+    path = tmp_path / "size.aedat4"
+    path.write_bytes(_aedat4([(0, "EVTS", "events", size)], []))
+    with pytest.raises(FormatError, match=rf"size.aedat4: event stream 0 declares a bad sensor size \(sizeX/sizeY\): "
+                                          rf"{said}"):
+        read(path)

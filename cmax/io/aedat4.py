@@ -51,7 +51,7 @@ from typing import Iterator
 
 import numpy as np
 
-from cmax.events import Events, check_event_count
+from cmax.events import Events, _check_sensor_size, check_event_count
 from cmax.io._flatbuffers import _Flatbuffer, _table_vector
 from cmax.io.errors import FormatError
 
@@ -489,6 +489,11 @@ def read_aedat4(
     chosen = _select(file, stream, "EVTS")
     if chosen.width is None or chosen.height is None:
         raise FormatError(f"{file.where}: event stream {chosen.id} has no sizeX/sizeY in its info")
+    try:
+        _check_sensor_size(chosen.width, chosen.height)
+    except (TypeError, ValueError) as error:
+        raise FormatError(f"{file.where}: event stream {chosen.id} declares a bad sensor size (sizeX/sizeY): "
+                          f"{error}") from None
     parts, total = [], 0
     for _, fb in _bodies(file, chosen):
         start, length = fb.vector(fb.root, 0)
