@@ -51,11 +51,7 @@ def read_txt(
     elif width is None or height is None:
         raise ValueError(f"{path} (txt) stores no sensor size: pass width= and height= (cmax: --size WxH)")
     try:
-        # a byte order mark (Windows editors) is not text; a byte that is not UTF-8 (a Latin-1 comment) is read as
-        # U+FFFD, which no number holds: harmless in a comment, refused naming its row elsewhere
-        with warnings.catch_warnings(), open(path, encoding=_encoding(path), errors="replace") as handle:
-            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)   # no events
-            table = np.loadtxt(handle, dtype=np.float64, ndmin=2, comments="#", skiprows=skip)
+        table = _load_table(path, skip)
     except (ValueError, UnicodeDecodeError) as error:
         text = str(error).split("; use `usecols`")[0]      # numpy's advice on selecting columns does not apply
         raise FormatError(f"{path} is not an ECD text file of 't x y p' lines ({text})") from None
@@ -77,6 +73,21 @@ def read_txt(
         return Events(table[:, 1], table[:, 2], t_us, p, width, height, sort=sort, time_unit="us")
     except ValueError as error:
         raise FormatError(f"{path}: {error}") from None
+
+
+def _load_table(path: Path, skip: int) -> np.ndarray:
+    """The numbers of the text file ``path`` after its first ``skip`` lines, (N, columns) float64 (``#`` comments
+    dropped). A byte order mark (Windows editors) is not text. A byte that is not UTF-8 (a Latin-1 comment) makes
+    it read again with such bytes as U+FFFD, which no number holds: harmless in a comment, refused naming its row
+    elsewhere (the second read goes line by line, slower; the first lets numpy read the file in blocks)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)   # no events
+        encoding = _encoding(path)
+        try:
+            return np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", skiprows=skip, encoding=encoding)
+        except UnicodeDecodeError:
+            with open(path, encoding=encoding, errors="replace") as handle:
+                return np.loadtxt(handle, dtype=np.float64, ndmin=2, comments="#", skiprows=skip)
 
 
 def _size_header(path: Path) -> tuple[tuple[int, int] | None, int]:
