@@ -511,3 +511,16 @@ def test_an_event_stream_of_a_bad_sensor_size_is_refused_as_the_other_readers_re
     with pytest.raises(FormatError, match=rf"size.aedat4: event stream 0 declares a bad sensor size \(sizeX/sizeY\): "
                                           rf"{said}"):
         read(path)
+
+
+@pytest.mark.parametrize("version", ["2.0", "3.1"])
+def test_an_older_aedat_file_is_named_by_its_version(tmp_path: Path, version: str) -> None:
+    """``read`` / ``cmax info`` of an AEDAT 2.0 or 3.1 file (jAER, cAER; DVS Gesture's recordings) was refused as
+    "cannot tell the event format of ...: expected DSEC/MVSEC HDF5, AEDAT4, ...", although its first bytes name it."""
+    from cmax.io import read
+
+    path = tmp_path / "user01_fluorescent.aedat"
+    path.write_bytes(f"#!AER-DAT{version}\r\n#!END-HEADER\r\n".encode() + bytes(28))
+    with pytest.raises(FormatError, match=rf"user01_fluorescent.aedat is an AEDAT {version} file \(jAER / cAER; .*"
+                                          r"not read \(AEDAT 4.0 is\)"):
+        read(path)

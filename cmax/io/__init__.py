@@ -124,6 +124,11 @@ def detect_format(path: str | os.PathLike) -> str:
         raise FormatError(f"{path} is HDF5 but neither DSEC (events/x..p) nor MVSEC (davis/...){layout}")
     if head.startswith(b"#!AER-DAT4"):
         return "aedat4"
+    if head.startswith(b"#!AER-DAT"):
+        version = head[len(b"#!AER-DAT"):].split(b"\r")[0].split(b"\n")[0].decode("ascii", "replace")
+        raise FormatError(f"{path} is an AEDAT {version} file (jAER / cAER; DVS Gesture ships AEDAT 3.1), which is "
+                          "not read (AEDAT 4.0 is): decode it with a reader of that version and build "
+                          "cmax.Events(x, y, t, p, width, height) from its columns (t in µs)")
     if head.startswith(b"\x93NUMPY"):
         return "npy"
     if head.startswith(b"% ") or path.suffix.lower() == ".raw":
