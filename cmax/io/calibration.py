@@ -416,7 +416,11 @@ def _scan(line: str) -> tuple[str, str]:
     ``#`` at the line's start or after a space or tab, outside quotes (YAML's rule: ``"cam #1"`` and ``a#b`` are
     values, not a value and a comment). A quote opens a quoted scalar only where a value, key or list item
     starts (after ``:``, ``-``, ``[``, ``,``, ``{`` and spaces, or at the line's start); ``\\`` escapes the next
-    character within double quotes, ``''`` is a quote within single quotes."""
+    character within double quotes, ``''`` is a quote within single quotes.
+
+    >>> _scan('rostopic: "/cam #1/[left" # the left camera'), _scan("name: a#b Bob's # c")[0]
+    (('rostopic: "/cam #1/[left" ', 'rostopic: "               '), "name: a#b Bob's ")
+    """
     quote, i, code = None, 0, list(line)
     while i < len(line):
         char = line[i]
@@ -434,15 +438,6 @@ def _scan(line: str) -> tuple[str, str]:
             return line[:i], "".join(code[:i])
         i += 1
     return line, "".join(code)
-
-
-def _without_comment(line: str) -> str:
-    """``line`` of a YAML file without its comment (:func:`_scan`).
-
-    >>> _without_comment('rostopic: "/cam #1/left" # the left camera'), _without_comment("name: a#b Bob's # c")
-    ('rostopic: "/cam #1/left" ', "name: a#b Bob's ")
-    """
-    return _scan(line)[0]
 
 
 #: ROS camera_info's names of OpenCV's radtan model (sensor_msgs/distortion_models.h): ``plumb_bob`` (k1 k2 p1 p2
