@@ -470,3 +470,57 @@ def test_a_file_of_two_event_streams_says_which_one_it_read(tmp_path: Path) -> N
         single = tmp_path / "single.aedat4"
         single.write_bytes(_aedat4(streams[:1], packets[:1]))
         assert len(read(single)) == 2
+
+
+def test_times_beyond_the_year_2100_as_microseconds_are_refused_naming_nanoseconds(tmp_path: Path) -> None:
+    """AEDAT 4.0 stores µs since the Unix epoch; a file whose tool wrote nanoseconds (1.7e18) was read as µs without a
+    word: a recording in the year 55,000 whose every interval was 1000 times too long (the DSEC, .npy and text
+    readers refuse such times). Events and IMU samples are refused naming the time, its index and the conversion; a
+    time of a real DV recording (1.6e15 µs, 2020) reads as it is."""
+    from cmax.io import read
+
+    ns = [1_700_000_000_000_000_000 + k * 1000 for k in range(3)]
+    path = tmp_path / "ns.aedat4"
+    stream = [(0, "EVTS", "events", (5, 4))]
+    path.write_bytes(_aedat4(stream, [(0, _event_packet(ns, [0, 1, 2], [0, 1, 2], [1, 1, 0]))]))
+    with pytest.raises(FormatError, match=r"ns.aedat4: event time 1700000000000002000 µs at index 2 lies beyond the "
+                                          r"year 2100 as µs since the Unix epoch.*look like nanoseconds.*t // 1000"):
+        read(path)
+    imu = tmp_path / "imu.aedat4"
+    imu.write_bytes(_aedat4([(0, "IMUS", "imu", None)], [(0, _imu_packet([{0: ns[0], 5: 1.0}]))]))
+    with pytest.raises(FormatError, match=r"imu.aedat4: IMU time 1700000000000000000 µs at index 0 .*nanoseconds"):
+        read_aedat4_imu(imu)
+    real = [1_600_000_000_000_000 + k for k in range(3)]
+    path.write_bytes(_aedat4(stream, [(0, _event_packet(real, [0, 1, 2], [0, 1, 2], [1, 1, 0]))]))
+    assert read(path).t.tolist() == real
+
+
+@pytest.mark.parametrize("size, said", [((0, 0), r"width must be in \[1, 65535\] pixels, got 0"),
+                                        ((-5, 4), r"width must be in \[1, 65535\] pixels, got -5"),
+                                        ((70000, 4), r"width must be in \[1, 65535\] pixels, got 70000"),
+                                        ((60000, 60000), r"a 60000x60000 sensor .* larger than any event camera")])
+def test_an_event_stream_of_a_bad_sensor_size_is_refused_as_the_other_readers_refuse_it(tmp_path: Path, size,
+                                                                                          said) -> None:
+    """An EVTS stream whose sizeX/sizeY declare 0x0, a negative, a > 65535 or a 3.6-gigapixel sensor gave Events of
+    that size (an empty file: ``Events(n=0, width=-5, ...)``; with events: "event 0 has x=0, outside the 0x0
+    sensor"), where the DSEC and Prophesee readers refuse such a size naming it (cmax.events' limits)."""
+    from cmax.io import read
+
+    path = tmp_path / "size.aedat4"
+    path.write_bytes(_aedat4([(0, "EVTS", "events", size)], []))
+    with pytest.raises(FormatError, match=rf"size.aedat4: event stream 0 declares a bad sensor size \(sizeX/sizeY\): "
+                                          rf"{said}"):
+        read(path)
+
+
+@pytest.mark.parametrize("version", ["2.0", "3.1"])
+def test_an_older_aedat_file_is_named_by_its_version(tmp_path: Path, version: str) -> None:
+    """``read`` / ``cmax info`` of an AEDAT 2.0 or 3.1 file (jAER, cAER; DVS Gesture's recordings) was refused as
+    "cannot tell the event format of ...: expected DSEC/MVSEC HDF5, AEDAT4, ...", although its first bytes name it."""
+    from cmax.io import read
+
+    path = tmp_path / "user01_fluorescent.aedat"
+    path.write_bytes(f"#!AER-DAT{version}\r\n#!END-HEADER\r\n".encode() + bytes(28))
+    with pytest.raises(FormatError, match=rf"user01_fluorescent.aedat is an AEDAT {version} file \(jAER / cAER; .*"
+                                          r"not read \(AEDAT 4.0 is\)"):
+        read(path)

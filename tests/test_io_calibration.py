@@ -1,6 +1,7 @@
 """Calibration files are read by the library (:mod:`cmax.io.calibration`), not by the command line."""
 from __future__ import annotations
 
+import re
 import subprocess
 import sys
 import textwrap
@@ -8,6 +9,7 @@ from pathlib import Path
 
 import cv2
 import numpy as np
+import pytest
 
 from conftest import MVSEC_LEFT_CAMCHAIN as CAMCHAIN  # noqa: E402
 
@@ -115,3 +117,79 @@ def test_a_hash_inside_quotes_or_a_word_is_not_a_comment(tmp_path: Path) -> None
         calibration = read_calibration(path, "cam0")
         assert calibration.topic == expected and topic_side(calibration.topic) == "left", written
         np.testing.assert_array_equal(calibration.K[0, [0, 2]], [226.38018519795807, 173.6470807871759])
+
+
+def test_yaml_quoting_and_escapes_are_read_as_yaml_reads_them(tmp_path: Path) -> None:
+    """Quoted keys and escapes in double-quoted values are YAML's own: ``'distortion_model': equidistant`` was read as
+    a key with its quotes, so the camera fell back to radtan and its fisheye coefficients were applied as radtan ones
+    without a word; ``rostopic: "/davis/\\x6ceft/image_raw"`` kept its escape (no side: the check of which camera of
+    the rig it is was skipped); ``'it''s'`` kept both quotes; a ``[`` inside a quoted topic swallowed the lines after
+    it (the rectification and projection lost). Each reads as the plain file does."""
+    from cmax.io import read_calibration
+
+    plain = tmp_path / "plain.yaml"
+    plain.write_text(CAMCHAIN)
+    expected = read_calibration(plain, "cam0")
+    topic = "rostopic: /davis/left/image_raw"
+    for name, text, topic_read in [
+        ("quoted_keys", CAMCHAIN.replace("cam0:", '"cam0":').replace("distortion_model:", "'distortion_model':"),
+         "/davis/left/image_raw"),
+        ("escaped", CAMCHAIN.replace(topic, 'rostopic: "/davis/\\x6ceft/image_raw"').replace(
+            "distortion_model: equidistant", 'distortion_model: "equi\\u0064istant"'), "/davis/left/image_raw"),
+        ("doubled_quote", CAMCHAIN.replace(topic, "rostopic: '/davis/left/it''s'"), "/davis/left/it's"),
+        ("bracket_quoted", CAMCHAIN.replace(topic, 'rostopic: "/davis[0]/left/image_raw["'),
+         "/davis[0]/left/image_raw["),
+    ]:
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(text)
+        got = read_calibration(path, "cam0")
+        assert got.model == "equidistant" and got.topic == topic_read, name
+        for field in ("K", "distortion", "rectification", "rectified_K"):
+            np.testing.assert_array_equal(getattr(got, field), getattr(expected, field), err_msg=f"{name}: {field}")
+
+
+def test_yaml_this_reader_does_not_read_is_refused_naming_the_file_and_line(tmp_path: Path) -> None:
+    """What the YAML reader cannot read is refused naming the file and line (were: a merge key ``<<: *cam0`` gave
+    cam1 without cam0's fisheye distortion (radtan, no distortion, no size); a second document's numbers overrode the
+    first's; a block scalar ``rostopic: >`` read as the topic '>'; a value going on over lines cut; a key given twice
+    read as the last; an anchor or alias, a flow mapping or tabs: refused as 'no intrinsics/cam0 (cameras found:
+    none)' or misread by the count of a tab as one space). A trailing ``---`` (as ``rostopic echo`` ends a message)
+    and a leading ``%YAML`` / ``---`` are read."""
+    from cmax.io import read_calibration
+
+    cam1 = ("cam1:\n  <<: *c0\n  intrinsics: [200.0, 200.0, 170.0, 130.0]\n"
+            "  rostopic: /davis/right/image_raw\n")
+    topic = "rostopic: /davis/left/image_raw"
+    cases = [
+        ("merge", CAMCHAIN + cam1, "cam1", r"line 23: merge keys \('<<: \*c0'\) are not read"),
+        ("anchor", CAMCHAIN.replace("cam0:", "cam0: &c0"), "cam0", r"line 1: '&c0': anchors \(&name\) are not read"),
+        ("alias", CAMCHAIN.replace("distortion_model: equidistant", "distortion_model: *m"), "cam0",
+         r"line 10: '\*m': aliases"),
+        ("two_documents", "---\n" + CAMCHAIN + "---\n" + CAMCHAIN.replace("226.38018519795807", "100.0"), "cam0",
+         r"line 24: a second YAML document begins after line 23"),
+        ("block_scalar", CAMCHAIN.replace(topic, "rostopic: >\n    /davis/left/image_raw"), "cam0",
+         r"line 13: '>': block scalars"),
+        ("over_lines", CAMCHAIN.replace(topic, 'rostopic: "/davis/left/\n    image_raw"'), "cam0",
+         r"line 13: the quoted value '\"/davis/left/' goes on over lines"),
+        ("plain_over_lines", CAMCHAIN.replace(topic, "rostopic: /davis/left/\n    image_raw"), "cam0",
+         r"line 14: 'image_raw' is neither 'key: value' nor '- item'"),
+        ("twice", CAMCHAIN.replace("distortion_model: equidistant", "distortion_model: equidistant\n"
+                                   "  distortion_model: radtan"), "cam0",
+         r"line 11: the key 'distortion_model' is given a second time"),
+        ("flow_mapping", "cam0: {camera_model: pinhole, intrinsics: [226.4, 226.2, 173.6, 133.7]}\n", "cam0",
+         r"line 1: .*flow mappings \{key: value, \.\.\.\} are not read"),
+        ("tabs", CAMCHAIN.replace("\n  distortion_model", "\n\tdistortion_model"), "cam0",
+         r"line 10 is indented with a tab"),
+        ("unclosed", CAMCHAIN.replace("intrinsics: [226.38018519795807,", "intrinsics: [[226.38018519795807,"), "cam0",
+         r"line 11: a '\[' is never closed"),
+    ]
+    for name, text, camera, message in cases:
+        path = tmp_path / f"{name}.yaml"
+        path.write_text(text)
+        with pytest.raises(ValueError, match=rf"^{re.escape(str(path))}: {message}"):
+            read_calibration(path, camera)
+    framed = tmp_path / "framed.yaml"
+    framed.write_text("%YAML 1.2\n---\n" + CAMCHAIN + "---\n")
+    np.testing.assert_array_equal(read_calibration(framed, "cam0").distortion,
+                                  [-0.048031442223833355, 0.011330957517194437, -0.055378166304281135,
+                                   0.021500973881459395])

@@ -182,6 +182,58 @@ def test_rpg_e2vid_text_states_its_size_on_its_first_line(tmp_path):
         read(tmp_path / "ragged.txt")
 
 
+@pytest.mark.parametrize("ends", [["\r"], ["\r\n"], ["\n", "\r"], ["\r\n", "\n", "\r"]],
+                         ids=["cr", "crlf", "lf-then-cr", "mixed"])
+@pytest.mark.parametrize("header", ["", "64 48", "# t x y p"])
+def test_text_lines_ending_in_cr_alone_crlf_or_a_mix_read_as_the_events_written(tmp_path, ends, header):
+    """ECD text saved by an old Mac editor ends its lines in CR alone (was: refused, "its first line reads '0.000000 0
+    0 0 0.001000 1 ...' (800 column(s) where 4 columns are expected)", although np.loadtxt reads such lines; with
+    rpg_e2vid's 'W H' line first, the size line was not found either). Each line end, and a mix of them, reads as
+    the events written."""
+    events = random_events(300, width=64, height=48)
+    lines = [f"{t * 1e-6:.6f} {x} {y} {p}" for t, x, y, p in zip(events.t, events.x, events.y, events.p)]
+    lines = ([header] if header else []) + lines
+    text = "".join(line + ends[i * len(ends) // len(lines)] for i, line in enumerate(lines))
+    path = tmp_path / "events.txt"
+    path.write_bytes(text.encode())
+    size = {} if header == "64 48" else {"width": 64, "height": 48}
+    assert read(path, **size) == events
+
+
+@pytest.mark.parametrize("codec, bom", [("utf-16-le", b"\xff\xfe"), ("utf-16-be", b"\xfe\xff")])
+def test_utf16_text_with_its_byte_order_mark_reads_as_the_events_written(tmp_path, codec, bom):
+    """Windows PowerShell's ``>`` writes UTF-16 with a byte order mark (was: refused, "its first line reads
+    '\ufffd\ufffd0\\x00.\\x000...': ... is not a number (a header line? ...)"). Read as the same text, also past the
+    64 KiB the first-line check reads and with rpg_e2vid's size line; without the mark it is refused naming the NUL
+    bytes."""
+    events = random_events(3000, width=64, height=48)
+    text = "64 48\r\n" + "".join(f"{t * 1e-6:.6f} {x} {y} {p}\r\n"
+                                   for t, x, y, p in zip(events.t, events.x, events.y, events.p))
+    path = tmp_path / "events.txt"
+    path.write_bytes(bom + text.encode(codec))
+    assert path.stat().st_size > 1 << 16
+    assert read(path) == events
+    path.write_bytes(text.encode(codec))
+    with pytest.raises(FormatError, match=r"events.txt is not an ECD text file .*which holds NUL bytes: UTF-16 text "
+                                          r"without a byte order mark"):
+        read(path, width=64, height=48)
+
+
+def test_a_comment_in_latin_1_is_a_comment_and_a_byte_in_a_number_is_refused_naming_its_row(tmp_path):
+    """A comment line saved in Latin-1 (``# caméra``: byte 0xe9, not UTF-8) made the whole file unreadable (was:
+    "('utf-8' codec can't decode byte 0xe9 in position 5: invalid continuation byte)", no line named). The comment
+    is skipped; such a byte inside a number is still refused, naming the row."""
+    events = random_events(100, width=64, height=48)
+    lines = [f"{t * 1e-6:.6f} {x} {y} {p}\n" for t, x, y, p in zip(events.t, events.x, events.y, events.p)]
+    path = tmp_path / "events.txt"
+    path.write_bytes("# caméra DAVIS240\n".encode("latin-1") + "".join(lines).encode())
+    assert read(path, width=64, height=48) == events
+    path.write_bytes("".join(lines[:10]).encode() + lines[10].replace(" ", "\xe9 ", 1).encode("latin-1")
+                     + "".join(lines[11:]).encode())
+    with pytest.raises(FormatError, match=r"events.txt is not an ECD text file .*at row 10, column 1"):
+        read(path, width=64, height=48)
+
+
 @pytest.mark.parametrize("text, columns", [
     ("0.000000000 images/frame_00000000.png\n0.038766001 images/frame_00000001.png\n", 2),   # ECD images.txt
     ("# timestamps\n0.000000000\n0.001866000\n", 1),                                       # ESIM timestamps.txt
@@ -340,3 +392,27 @@ def test_an_mvsec_file_whose_time_goes_back_has_a_way_out(tmp_path, capsys, monk
     copy = read(tmp_path / "sorted.hdf5")
     assert len(copy) == 300 and np.all(np.diff(copy.t) >= 0)
     assert sorted(zip(copy.x.tolist(), copy.y.tolist())) == sorted(zip(table[:, 0].tolist(), table[:, 1].tolist()))
+
+
+def test_an_npz_archive_or_an_n_by_4_npy_is_refused_naming_the_call_that_reads_it(tmp_path):
+    """tonic events saved with np.savez (an .npz archive) were refused as "cannot tell the event format ...", an
+    (N, 4) .npy table as "expected a 1-D structured array ..." only. Both now name the call that reads them, and that
+    call reads the events written."""
+    events = random_events(300, width=64, height=48)
+    archive = tmp_path / "ev.npz"
+    np.savez(archive, events=events.to_structured())
+    with pytest.raises(FormatError, match=r"ev.npz is a NumPy .npz archive of the arrays \['events'\], not one event "
+                                          r"array: .*cmax.Events.from_structured\(np.load\('.*ev.npz'\)\['events'\], "
+                                          r"width, height\)"):
+        read(archive, width=64, height=48)
+    assert Events.from_structured(np.load(archive)["events"], 64, 48) == events
+    table = tmp_path / "table.npy"
+    np.save(table, np.column_stack([events.x, events.y, events.t, events.p]).astype(np.int64))
+    with pytest.raises(FormatError, match=r"table.npy: expected a 1-D structured array .* shape \(300, 4\): an "
+                                          r"\(N, 4\) table, .*cmax.Events.from_array\(np.load\('.*table.npy'\), "
+                                          r"width, height, order='xytp'\)"):
+        read(table, width=64, height=48)
+    assert Events.from_array(np.load(table), 64, 48, order="xytp") == events
+    (tmp_path / "bad.npz").write_bytes(b"PK\x03\x04 cut")
+    with pytest.raises(FormatError, match=r"bad.npz is not a readable .npz archive \(BadZipFile"):
+        read(tmp_path / "bad.npz")

@@ -525,3 +525,25 @@ def test_a_header_that_contradicts_itself_is_refused(tmp_path: Path, lines: byte
     agreeing = tmp_path / "agreeing.raw"
     agreeing.write_bytes(b"% evt 3.0\n% format EVT3;height=480;width=640\n% geometry 640x480\n% end\n" + data)
     assert read_raw(agreeing) == events
+
+
+def test_a_prophesee_dat_file_is_refused_naming_the_dat_format_not_sent_to_the_evt_decoders(tmp_path: Path) -> None:
+    """A Gen1 / 1 Mpx automotive ``*_td.dat`` (``% Data file containing CD events.``, ``% Height 240``, ``% Width
+    304``, then a type byte, a size byte and 8-byte events) was refused by ``read`` with "the header declares no
+    event format ...; call read_evt3 or read_evt2 directly", advice that sends its 8-byte events to the EVT decoders
+    (which then fail on word alignment or reserved types, as if the file were corrupt). Every reader now names the DAT
+    format and its loaders."""
+    from cmax.io import read
+
+    n = 100
+    ts = np.arange(n, dtype=np.uint32) * 10
+    address = (np.arange(n) % 304 | (np.arange(n) % 240) << 14 | (np.arange(n) % 2) << 28).astype(np.uint32)
+    body = np.column_stack([ts, address]).astype(np.uint32).tobytes()
+    path = tmp_path / "gen1_td.dat"
+    path.write_bytes(b"% Data file containing CD events.\n% Version 2\n% Date 2019-01-01 00:00:00\n% Height 240\n"
+                     b"% Width 304\n" + bytes([0, 8]) + body)
+    said = r"gen1_td.dat: the header's line '% Data file containing CD events.' marks a Prophesee DAT file"
+    for call in (lambda: read(path), lambda: read_evt2(path, width=304, height=240),
+                 lambda: read_evt3(path, width=304, height=240), lambda: list(iter_evt3(path, width=304, height=240))):
+        with pytest.raises(FormatError, match=said + r" .*not EVT 2.0 or 3.0 words.*PSEELoader"):
+            call()

@@ -569,3 +569,23 @@ def test_a_burst_at_the_fastest_sensors_rated_peak_is_read_as_microseconds(tmp_p
     np.save(tmp_path / "faster.npy", array)
     with pytest.raises(FormatError, match=r"faster.npy: field t, read as microseconds .* events/s"):
         read(tmp_path / "faster.npy", width=1280, height=720)
+
+
+def test_an_index_that_ends_one_ms_early_is_called_corrupt_without_a_nanosecond_hint(tmp_path: Path) -> None:
+    # an ms_to_idx corrupted near its end (its last entry already holds every row, though the last event lies 0.996 ms
+    # after that entry's ms) was refused with "in nanoseconds, 1000 times the index's span?": the times span the
+    # index's 199 ms, not 1000 times that; the nanosecond hint stays for times far past the index
+    t = np.sort(np.random.default_rng(0).integers(0, 200_000, 20_000)).astype(np.uint32)
+    index = np.searchsorted(t, 1000 * np.arange(200)).astype(np.uint64)
+    index[150:] = len(t)
+    path = tmp_path / "shifted.h5"
+    with h5py.File(path, "w") as file:
+        for name, values in (("x", np.zeros_like(t, np.uint16)), ("y", np.zeros_like(t, np.uint16)), ("t", t),
+                             ("p", np.ones_like(t, np.uint8))):
+            file.create_dataset(f"events/{name}", data=values)
+        file.create_dataset("ms_to_idx", data=index)
+        file.create_dataset("t_offset", data=np.int64(0))
+    with pytest.raises(FormatError, match=r"shifted.h5: ms_to_idx ends at 199 ms with every row before it, but the "
+                                          r"last event of events/t lies 199.9\d\d ms after t_offset; else the "
+                                          r"index is corrupt$"):
+        read(path, width=640, height=480)

@@ -340,6 +340,42 @@ def test_torch_polarity_outside_both_encodings_is_refused_as_numpy_refuses_it(p)
         event_frame(cast)
 
 
+def test_torch_times_in_nanoseconds_since_1970_are_refused_as_numpy_refuses_them():
+    """tonic's int64 times in ns since 1970 (1.7e18) handed over as torch tensors were read as µs: the voxel grid of a
+    2 ms recording was built over 2 s of made-up time without a word, where ``Events`` refuses the same numbers. The
+    same times in µs (t // 1000) give the grid of ``Events``."""
+    x, y = torch.tensor([0, 1, 2, 1]), torch.tensor([0, 0, 1, 1])
+    t_ns = torch.tensor([1_700_000_000_000_000_000 + k * 500_000 for k in range(4)])    # 0, 0.5, 1, 1.5 ms
+    p = torch.tensor([1, 0, 1, 1], dtype=torch.int8)
+    with pytest.raises(ValueError, match="look like nanoseconds"):
+        Events(x.numpy(), y.numpy(), t_ns.numpy(), p.numpy(), 3, 2)
+    tensors = EventTensors(x, y, t_ns, p, 3, 2)
+    for call in (lambda: voxel_grid(tensors, 2), lambda: event_frame(tensors), lambda: time_surface(tensors),
+                 lambda: voxel_grid_batch([tensors])):
+        with pytest.raises(ValueError, match=r"^events\.t: the time 1700000000001500000, .*look like nanoseconds"):
+            call()
+    in_us = tensors._replace(t=t_ns // 1000)
+    expected = Events(x.numpy(), y.numpy(), (t_ns // 1000).numpy(), p.numpy(), 3, 2)
+    np.testing.assert_allclose(voxel_grid(in_us, 3).numpy(), voxel_grid(expected, 3), atol=1e-6)
+
+
+def test_torch_events_of_a_sensor_given_as_height_width_are_named_as_swapped():
+    """``EventTensors(..., 480, 640)`` of a 640x480 sensor's events (an image's shape passed as width, height) was
+    refused as "events.x must lie in [0, 480), got values in [0, 639]" only, where ``Events`` names the swap; events
+    outside both orders get no such hint."""
+    x, y = torch.tensor([0, 639, 300]), torch.tensor([0, 479, 200])
+    p, t = torch.tensor([1, 0, 1], dtype=torch.int8), torch.tensor([0, 10, 20])
+    with pytest.raises(ValueError, match=r"width and height swapped\? \(Events takes width=640, height=480"):
+        Events(x.numpy(), y.numpy(), t.numpy(), p.numpy(), 480, 640)
+    with pytest.raises(ValueError, match=r"^events\.x must lie in \[0, 480\), got values in \[0, 639\]; every event "
+                                         r"lies inside a 640x480 sensor: width and height swapped\? \(EventTensors "
+                                         r"takes width=640, height=480"):
+        event_frame(EventTensors(x, y, t, p, 480, 640))
+    assert event_frame(EventTensors(x, y, t, p, 640, 480)).shape == (2, 480, 640)
+    with pytest.raises(ValueError, match=r"^events\.x must lie in \[0, 480\), got values in \[0, 700\]$"):
+        event_frame(EventTensors(torch.tensor([0, 700, 300]), y, t, p, 480, 640))
+
+
 def test_voxel_grid_batch_reads_each_samples_own_polarity_encoding():
     """A bool sample first made a signed sample's -1.0 True (ON) once cast to its dtype: the batch's second grid
     held only ON weights where voxel_grid of that sample has OFF ones."""

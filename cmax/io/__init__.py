@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import bisect
 import os
+import zipfile
 from pathlib import Path
 from typing import Any
 
@@ -76,6 +77,20 @@ def _other_h5_layout(file: h5py.File) -> str:
     return f"; its top-level names: {', '.join(names[:8]) or 'none'}{', ...' if len(names) > 8 else ''}"
 
 
+def _npz_message(path: Path) -> str:
+    """Why the NumPy archive ``path`` (``np.savez``) is not read as events, naming the arrays it holds and the call
+    that reads one of them."""
+    try:
+        with np.load(path, allow_pickle=False) as archive:
+            names = list(archive.files)
+    except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
+        return f"{path} is not a readable .npz archive ({type(error).__name__}: {error})"
+    first = names[0] if names else "events"
+    return (f"{path} is a NumPy .npz archive of the arrays {names[:8]}{' ...' if len(names) > 8 else ''}, not one "
+            f"event array: save the events with np.save (a structured .npy), or read one array, e.g. "
+            f"cmax.Events.from_structured(np.load({str(path)!r})[{first!r}], width, height)")
+
+
 def detect_format(path: str | os.PathLike) -> str:
     """Name of the event format of ``path`` (one of :data:`FORMATS`), from its bytes.
 
@@ -109,12 +124,19 @@ def detect_format(path: str | os.PathLike) -> str:
         raise FormatError(f"{path} is HDF5 but neither DSEC (events/x..p) nor MVSEC (davis/...){layout}")
     if head.startswith(b"#!AER-DAT4"):
         return "aedat4"
+    if head.startswith(b"#!AER-DAT"):
+        version = head[len(b"#!AER-DAT"):].split(b"\r")[0].split(b"\n")[0].decode("ascii", "replace")
+        raise FormatError(f"{path} is an AEDAT {version} file (jAER / cAER; DVS Gesture ships AEDAT 3.1), which is "
+                          "not read (AEDAT 4.0 is): decode it with a reader of that version and build "
+                          "cmax.Events(x, y, t, p, width, height) from its columns (t in µs)")
     if head.startswith(b"\x93NUMPY"):
         return "npy"
     if head.startswith(b"% ") or path.suffix.lower() == ".raw":
         return "raw"
     if path.suffix.lower() in (".txt", ".csv"):
         return "txt"
+    if head.startswith(b"PK\x03\x04") and path.suffix.lower() == ".npz":
+        raise FormatError(_npz_message(path))
     video = path.suffix.lower() in VIDEO_SUFFIXES
     raise FormatError(
         f"cannot tell the event format of {path}: expected DSEC/MVSEC HDF5, AEDAT4, "
@@ -261,9 +283,13 @@ def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str,
     fields = structured_fields(names)
     if array.ndim != 1 or any(field not in names for field in fields.values()):
         missing = [column for column, field in fields.items() if field not in names]
+        table = (not names and array.ndim == 2 and array.shape[1] == 4)
         raise FormatError(f"{path}: expected a 1-D structured array with fields x, y, t, p (or dv-processing's "
                           f"timestamp, polarity); got dtype {array.dtype}, shape {array.shape}"
-                          f"{field_rename_hint(names, missing, f'np.load({str(path)!r})') if array.ndim == 1 else ''}")
+                          f"{field_rename_hint(names, missing, f'np.load({str(path)!r})') if array.ndim == 1 else ''}"
+                          + (f": an (N, 4) table, whose column order and time unit the file does not state; once you "
+                             f"know them, cmax.Events.from_array(np.load({str(path)!r}), width, height, "
+                             "order='xytp') reads it (times in integer µs, or time_unit=)" if table else ""))
     t_dtype = array.dtype[fields["t"]]
     if t_dtype.kind not in "iuf":                      # before the unit checks, which read the times as numbers
         raise FormatError(f"{path}: field {fields['t']} must hold numbers (times), got dtype {t_dtype}")

@@ -51,7 +51,7 @@ from typing import Iterator
 
 import numpy as np
 
-from cmax.events import Events, check_event_count
+from cmax.events import Events, _check_sensor_size, check_event_count
 from cmax.io._flatbuffers import _Flatbuffer, _table_vector
 from cmax.io.errors import FormatError
 
@@ -392,6 +392,29 @@ def _check_order(t: np.ndarray, where: str, what: str, sort: bool) -> np.ndarray
                       f"{i + 1}); pass sort=True to sort by time (cmax: --sort)")
 
 
+def _check_epoch_times(t: np.ndarray, where: str, what: str) -> None:
+    """Refuse times ``t`` (N,) int64 [µs since the Unix epoch, the unit AEDAT 4.0 states] that lie after the year
+    2100 or before 1970 by as much: no DV recording holds them; integer nanoseconds since 1970 (about 1.7e18)
+    written by another tool would read as the year 55,000, each interval 1000 times too long. ``what`` names the
+    stream ("event", "IMU")."""
+    if not t.size:
+        return
+    from cmax.io._checks import _YEAR_2100_US
+
+    low, high = int(t.min()), int(t.max())
+    worst = high if abs(high) >= abs(low) else low
+    if abs(worst) < _YEAR_2100_US:
+        return
+    index = int(np.flatnonzero(t == worst)[0])
+    seconds = worst / 1e9
+    nanoseconds = (f"; these look like nanoseconds ({seconds:.3f} s since 1970 if so), which the tool that wrote "
+                   "the file stored in place of µs: decode the file with that tool (or dv-processing) and convert "
+                   "the times to integer µs (t // 1000)" if 1e8 <= seconds < 4.2e9 else
+                   " (a corrupt packet?)")
+    raise FormatError(f"{where}: {what} time {worst} µs at index {index} lies beyond the year 2100 as µs since the "
+                      f"Unix epoch, the unit AEDAT 4.0 stores (DV writes no such time){nanoseconds}")
+
+
 # -- public API ------------------------------------------------------------------------
 def aedat4_streams(path: str | os.PathLike) -> list[Aedat4Stream]:
     """The streams of an AEDAT4 file, from its header (packets are not read).
@@ -448,8 +471,9 @@ def read_aedat4(
     Raises
     ------
     FormatError
-        If the file is not AEDAT 4.0, is truncated or corrupt, or an event
-        lies outside the sensor.
+        If the file is not AEDAT 4.0, is truncated or corrupt, an event
+        lies outside the sensor, or a time lies beyond the year 2100 as µs
+        since the epoch (nanoseconds written by another tool, named so).
     ValueError
         If the file has no such event stream.
 
@@ -465,6 +489,11 @@ def read_aedat4(
     chosen = _select(file, stream, "EVTS")
     if chosen.width is None or chosen.height is None:
         raise FormatError(f"{file.where}: event stream {chosen.id} has no sizeX/sizeY in its info")
+    try:
+        _check_sensor_size(chosen.width, chosen.height)
+    except (TypeError, ValueError) as error:
+        raise FormatError(f"{file.where}: event stream {chosen.id} declares a bad sensor size (sizeX/sizeY): "
+                          f"{error}") from None
     parts, total = [], 0
     for _, fb in _bodies(file, chosen):
         start, length = fb.vector(fb.root, 0)
@@ -482,6 +511,7 @@ def read_aedat4(
                 )
         if p.max() > 1:
             raise FormatError(f"{file.where}: event polarity byte {p.max()} is not a bool")
+    _check_epoch_times(t, file.where, "event")
     order = _check_order(t, file.where, "event", sort)
     if order is not None:
         x, y, t, p = x[order], y[order], t[order], p[order]
@@ -532,6 +562,7 @@ def read_aedat4_imu(
         parts = [{key: np.empty(0, kind) for name, dtype in _IMU_FIELDS
                   for key, kind in ((name, dtype), (name + "?", bool))}]
     columns = {key: np.concatenate([part[key] for part in parts]) for key in parts[0]}
+    _check_epoch_times(columns["t"], file.where, "IMU")
     order = _check_order(columns["t"], file.where, "IMU", sort)
     if order is not None:
         columns = {name: values[order] for name, values in columns.items()}

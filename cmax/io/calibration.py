@@ -108,7 +108,10 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
       that moves nothing (``R = I``, ``P``'s K equal to K: a monocular camera's) is dropped.
 
     Lists may be written ``[a, b]`` or as ``- a`` lines (YAML's block style). A ``#`` comment at a line's end and a
-    byte order mark at the file's start (what Windows editors save) are ignored, in every format.
+    byte order mark at the file's start (what Windows editors save) are ignored, in every format. Quoted keys and
+    values are read as YAML reads them (escapes decoded); what this reader does not read (anchors, aliases, merge
+    keys, flow mappings ``{...}``, block scalars, tabs in the indentation, a second document) is refused naming
+    the file and line, not misread.
 
     Raises FileNotFoundError, or ValueError naming the file and what is missing.
     """
@@ -219,13 +222,18 @@ def _yaml_tree(text: str) -> dict:
     """The nested mappings of a small YAML file as dicts of strings (no YAML library): ``key: value`` lines by
     their indentation; a key without a value opens a mapping, or a list when ``- item`` lines follow it (block
     style, as PyYAML writes by default), held as the list of its items' text (a flow list ``[a, b]`` stays one
-    string, also when it goes on over several lines: :func:`_yaml_lines`); quoted scalars without their quotes; a
-    key whose value is a tag (OpenCV FileStorage's ``camera_matrix: !!opencv-matrix``) opens a mapping;
-    :func:`_yaml_intrinsics` writes a block list back as ``[a, b, ...]``."""
+    string, also when it goes on over several lines: :func:`_yaml_lines`); quoted keys and scalars as YAML reads
+    them (:func:`_scalar`); a key whose value is a tag (OpenCV FileStorage's ``camera_matrix: !!opencv-matrix``)
+    opens a mapping; :func:`_yaml_intrinsics` writes a block list back as ``[a, b, ...]``.
+
+    What this reader does not read is refused (ValueError naming the line) rather than misread: anchors, aliases
+    and merge keys (``&a``, ``*a``, ``<<``), flow mappings ``{...}``, block scalars (``|``, ``>``), a quoted value
+    going on over lines, a line that is neither ``key: value`` nor ``- item``, a key given twice in one mapping,
+    and what :func:`_yaml_lines` refuses (tabs in the indentation, several documents)."""
     root: dict = {}
     stack: list[tuple[int, dict]] = [(-1, root)]      # (indentation of the key that opened it, mapping)
     opened: tuple[dict, str, int] | None = None       # the last key without a value: (its mapping, key, indentation)
-    for line in _yaml_lines(text):
+    for number, line in _yaml_lines(text):
         indent = len(line) - len(line.lstrip())
         item = line.strip()
         if item.startswith("-"):
@@ -235,71 +243,201 @@ def _yaml_tree(text: str) -> dict:
                     stack = [entry for entry in stack if entry[1] is not parent[key]]
                     parent[key] = []
                 if isinstance(parent[key], list):
-                    parent[key].append(_unquoted(item[1:].strip()))
+                    parent[key].append(_scalar(item[1:].strip(), number))
             continue
         while stack[-1][0] >= indent:
             stack.pop()
-        key, _, value = item.partition(":")
+        key, value = _key_value(item, number)
         mapping = stack[-1][1]
-        if value.strip() and not value.strip().startswith("!!"):   # a tag ("!!opencv-matrix"): a mapping follows
-            mapping[key.strip()] = _unquoted(value.strip())          # '' too is a value (an empty one)
+        if key in mapping:
+            raise ValueError(f"line {number}: the key {key!r} is given a second time in the same mapping (which one "
+                             "holds? YAML readers differ: keep one)")
+        if value and not (value.startswith("!") and len(value.split()) == 1):   # a tag alone: a mapping follows
+            mapping[key] = _scalar(value, number)          # '' too is a value (an empty one)
             opened = None
         else:
-            mapping[key.strip()] = {}
-            stack.append((indent, mapping[key.strip()]))
-            opened = (mapping, key.strip(), indent)
+            mapping[key] = {}
+            stack.append((indent, mapping[key]))
+            opened = (mapping, key, indent)
     return root
 
 
-def _yaml_lines(text: str) -> list[str]:
-    """The lines of a small YAML file without comments and blank lines, a flow list ``[...]`` that goes on over
-    several lines (PyYAML wraps them at 80 columns, OpenCV's FileStorage too) joined into its first line."""
-    lines: list[str] = []
-    depth = 0                                         # "[" not closed yet on the lines joined so far
-    for raw in text.splitlines():
-        line = _without_comment(raw).rstrip()
+def _key_value(item: str, number: int) -> tuple[str, str]:
+    """``(key, value text)`` of the YAML line ``item`` (stripped, without comment) on line ``number``: the key plain
+    or quoted (read by :func:`_scalar`); ValueError for a line without ``key:`` and for a merge key ``<<``."""
+    if item[:1] == "{":
+        _scalar(item, number)                           # a flow mapping: refused, named
+    if item[:1] in "\"'":
+        end = _closing_quote(item)
+        rest = item[end + 1:].lstrip() if end is not None else ""
+        if not rest.startswith(":"):
+            raise ValueError(f"line {number}: {_shown(item)} is neither 'key: value' nor '- item' (a quoted value that "
+                             "goes on over lines is not read: write it on one line)")
+        key, value = _scalar(item[:end + 1], number), rest[1:].strip()
+    else:
+        key, colon, value = item.partition(":")
+        if not colon:
+            raise ValueError(f"line {number}: {_shown(item)} is neither 'key: value' nor '- item' (a value that "
+                             "goes on over lines is not read: write it on one line)")
+        key, value = key.strip(), value.strip()
+    if key == "<<":
+        raise ValueError(f"line {number}: merge keys ('<<: *{value.lstrip('*')}') are not read: write the "
+                         "camera's values out in full")
+    return key, value
+
+
+def _shown(text: str) -> str:
+    """``text`` quoted for a message, cut to its first 40 characters."""
+    return repr(text if len(text) <= 40 else text[:37] + "...")
+
+
+def _closing_quote(text: str) -> int | None:
+    """Index of the quote that closes the quoted scalar at the start of ``text`` (``"`` with ``\\`` escapes, or
+    ``'`` with ``''`` for a quote), None when the line ends inside it."""
+    quote, i = text[0], 1
+    while i < len(text):
+        if quote == '"' and text[i] == "\\":
+            i += 2
+            continue
+        if text[i] == quote:
+            if quote == "'" and text[i + 1:i + 2] == "'":
+                i += 2
+                continue
+            return i
+        i += 1
+    return None
+
+
+#: YAML's escapes of a double-quoted scalar (YAML 1.2, 5.7) other than ``\\x``, ``\\u`` and ``\\U``.
+_ESCAPES = {"0": "\0", "a": "\a", "b": "\b", "t": "\t", "\t": "\t", "n": "\n", "v": "\v", "f": "\f", "r": "\r",
+            "e": "\x1b", " ": " ", '"': '"', "/": "/", "\\": "\\", "N": "\x85", "_": "\xa0", "L": "\u2028",
+            "P": "\u2029"}
+#: Hex digits of YAML's ``\\x``, ``\\u`` and ``\\U`` escapes.
+_HEX_ESCAPES = {"x": 2, "u": 4, "U": 8}
+
+
+def _scalar(value: str, number: int) -> str:
+    """The YAML scalar ``value`` (stripped, without comment) on line ``number`` as YAML reads it: a double-quoted
+    one with its escapes decoded (``"\\x6c"`` is ``l``), a single-quoted one with ``''`` as ``'``, a plain one as
+    it is (a flow list ``[...]`` stays text). ValueError naming the line for what is not read rather than
+    misread: an anchor or alias (``&a``, ``*a``), a flow mapping ``{...}``, a block scalar (``|``, ``>``), a tag
+    before a value (``!!str x``), a quoted value that goes on over lines, an unknown escape.
+
+    >>> _scalar('"/davis/\\\\x6ceft"', 1), _scalar("'it''s'", 1), _scalar("[1, 2]", 1)
+    ('/davis/left', "it's", '[1, 2]')
+    """
+    first = value[:1]
+    if first in "\"'":
+        end = _closing_quote(value)
+        if end is None:
+            raise ValueError(f"line {number}: the quoted value {_shown(value)} goes on over lines, which is not read: "
+                             "write it on one line")
+        if value[end + 1:].strip():
+            raise ValueError(f"line {number}: {_shown(value)} goes on after its closing quote")
+        body = value[1:end]
+        return body.replace("''", "'") if first == "'" else _unescaped(body, number)
+    refusals = {"&": "anchors (&name) are not read: write the values out in full",
+                "*": "aliases (*name) are not read: write the values out in full",
+                "{": "flow mappings {key: value, ...} are not read: write one 'key: value' a line (block style)",
+                "|": "block scalars (| or >) are not read: write the value on the key's line",
+                ">": "block scalars (| or >) are not read: write the value on the key's line",
+                "!": "tags before a value (!!str, !!float) are not read: write the value alone"}
+    if first in refusals:
+        raise ValueError(f"line {number}: {_shown(value)}: {refusals[first]}")
+    return value
+
+
+def _unescaped(body: str, number: int) -> str:
+    """The text of a double-quoted YAML scalar's ``body`` (between its quotes) with its escapes decoded;
+    ValueError naming line ``number`` for an unknown or cut escape."""
+    out, i = [], 0
+    while i < len(body):
+        char = body[i]
+        if char != "\\":
+            out.append(char)
+            i += 1
+            continue
+        code = body[i + 1:i + 2]
+        digits = _HEX_ESCAPES.get(code)
+        if digits is not None:
+            hex_digits = body[i + 2:i + 2 + digits]
+            if len(hex_digits) != digits or any(c not in "0123456789abcdefABCDEF" for c in hex_digits):
+                raise ValueError(f"line {number}: the escape {body[i:i + 2 + digits]!r} needs {digits} hex digits")
+            out.append(chr(int(hex_digits, 16)))
+            i += 2 + digits
+        elif code in _ESCAPES:
+            out.append(_ESCAPES[code])
+            i += 2
+        else:
+            raise ValueError(f"line {number}: {body[i:i + 2]!r} is no YAML escape (a '\\' in a double-quoted "
+                             "value starts one: write '\\\\' for a backslash, or use single quotes)")
+    return "".join(out)
+
+
+def _yaml_lines(text: str) -> list[tuple[int, str]]:
+    """``(line number, line)`` of a small YAML file without comments and blank lines, a flow list ``[...]`` that
+    goes on over several lines (PyYAML wraps them at 80 columns, OpenCV's FileStorage too) joined into its first
+    line (brackets inside quotes do not count). Directives (``%YAML``) before the document and the markers
+    ``---`` / ``...`` around it are skipped. ValueError naming the line for a tab in the indentation (YAML
+    forbids it), a second document after ``---`` / ``...`` (its keys would override the first's), and a ``[``
+    never closed."""
+    lines: list[tuple[int, str]] = []
+    depth, opened_at, ended_at = 0, 0, None           # "[" not closed yet; its line; where a document ended
+    for number, raw in enumerate(text.splitlines(), 1):
+        line, code = _scan(raw)
+        line = line.rstrip()
         if not line.strip():
             continue
-        if depth > 0:
-            lines[-1] += " " + line.strip()
+        if depth == 0:
+            if "\t" in line[:len(line) - len(line.lstrip(" \t"))]:
+                raise ValueError(f"line {number} is indented with a tab, which YAML does not allow (a YAML reader "
+                                 "refuses it too): indent with spaces")
+            if line.startswith("%") and not lines:
+                continue
+            if line in ("---", "...") or line.startswith("--- "):
+                ended_at = number if lines else ended_at
+                continue
+            if ended_at is not None:
+                raise ValueError(f"line {number}: a second YAML document begins after line {ended_at} ('---' or "
+                                 "'...'), which is not read (its keys would override the first's): keep one "
+                                 "calibration a file (rostopic echo -n 1 prints one message)")
+            lines.append((number, line))
+            opened_at = number
         else:
-            lines.append(line)
-        depth += line.count("[") - line.count("]")
+            lines[-1] = (lines[-1][0], lines[-1][1] + " " + line.strip())
+        depth += code.count("[") - code.count("]")
+    if depth > 0:
+        raise ValueError(f"line {opened_at}: a '[' is never closed")
     return lines
 
 
-def _without_comment(line: str) -> str:
-    """``line`` of a YAML file without its comment: from a ``#`` at the line's start or after a space or tab, and
-    outside quotes (YAML's rule: ``"cam #1"`` and ``a#b`` are values, not a value and a comment). A quote opens a
-    quoted scalar only where a value or list item starts (after ``:``, ``-``, ``[``, ``,`` and spaces, or at the
-    line's start);
-    ``\\`` escapes the next character within double quotes.
+def _scan(line: str) -> tuple[str, str]:
+    """``(line without its comment, the same with quoted text blanked)`` of a YAML line. A comment runs from a
+    ``#`` at the line's start or after a space or tab, outside quotes (YAML's rule: ``"cam #1"`` and ``a#b`` are
+    values, not a value and a comment). A quote opens a quoted scalar only where a value, key or list item
+    starts (after ``:``, ``-``, ``[``, ``,``, ``{`` and spaces, or at the line's start); ``\\`` escapes the next
+    character within double quotes, ``''`` is a quote within single quotes.
 
-    >>> _without_comment('rostopic: "/cam #1/left" # the left camera'), _without_comment("name: a#b Bob's # c")
-    ('rostopic: "/cam #1/left" ', "name: a#b Bob's ")
+    >>> _scan('rostopic: "/cam #1/[left" # the left camera'), _scan("name: a#b Bob's # c")[0]
+    (('rostopic: "/cam #1/[left" ', 'rostopic: "               '), "name: a#b Bob's ")
     """
-    quote, i = None, 0
+    quote, i, code = None, 0, list(line)
     while i < len(line):
         char = line[i]
         before = line[i - 1] if i else " "
         if quote is not None:
-            if char == "\\" and quote == '"':
+            code[i] = " "
+            if char == "\\" and quote == '"' or char == "'" == quote and line[i + 1:i + 2] == "'":
                 i += 1                                  # an escaped character, a quote too
+                code[i:i + 1] = [" "] * len(code[i:i + 1])
             elif char == quote:
                 quote = None
-        elif char in "\"'" and (not line[:i].strip() or line[:i].rstrip()[-1] in ":[,-"):
+        elif char in "\"'" and (not line[:i].strip() or line[:i].rstrip()[-1] in ":[,-{"):
             quote = char
         elif char == "#" and before in " \t":
-            return line[:i]
+            return line[:i], "".join(code[:i])
         i += 1
-    return line
-
-
-def _unquoted(value: str) -> str:
-    """A YAML scalar ``value`` without the quotes around it (``"plumb_bob"``, ``'pinhole'``)."""
-    if len(value) >= 2 and value[0] == value[-1] and value[0] in "\"'":
-        return value[1:-1]
-    return value
+    return line, "".join(code)
 
 
 #: ROS camera_info's names of OpenCV's radtan model (sensor_msgs/distortion_models.h): ``plumb_bob`` (k1 k2 p1 p2
@@ -396,8 +534,11 @@ def _yaml_intrinsics(path: Path, text: str, camera: str) -> dict[str, str]:
     """The intrinsics of ``camera`` in a DSEC ``cam_to_cam.yaml`` (``intrinsics/<camera>``, with
     ``camera_matrix``), a Kalibr camchain (``<camera>`` with ``intrinsics: [fx, fy, cx, cy]``, given back as
     ``camera_matrix``) or a ROS ``camera_info`` YAML (:func:`_ros_camera_info`), as ``key: text``; lists in flow
-    or block style."""
-    tree = _yaml_tree(text)
+    or block style; ValueError naming the file and line for what :func:`_yaml_tree` does not read."""
+    try:
+        tree = _yaml_tree(text)
+    except ValueError as error:
+        raise ValueError(f"{path}: {error}") from None
 
     def flat(values: dict) -> dict[str, str]:
         return {key: "[" + ", ".join(value) + "]" if isinstance(value, list) else value

@@ -754,7 +754,8 @@ class H5Reader:
             return
         if index is not None and len(index) and int(index[-1]) == n and last_us >= 1000 * (len(index) - 1):
             # events past the index's end: as µs the times are too LONG, so milliseconds cannot be the way out
-            finer = ("" if not self.time_unit_assumed else
+            nanoseconds = last_us >= 100_000 * max(len(index) - 1, 1)      # far past the index, not just beyond
+            finer = ("" if not self.time_unit_assumed or not nanoseconds else
                      " (read as microseconds, the layout's unit, which neither the file nor the caller states: in "
                      "nanoseconds, 1000 times the index's span? convert events/t to integer µs, t // 1000, and "
                      "read it again)")

@@ -35,8 +35,9 @@ def read_txt(
     size, so ``width`` and ``height`` are required (ECD's DAVIS240C: 240 x 180),
     unless its first line states it as rpg_e2vid's ``events.txt`` does (``W H``;
     a size given too must equal it). Lines starting with ``#`` are comments; a UTF-8 byte order mark at the
-    file's start is ignored. A first line of other words (a header, fields separated by commas) is refused
-    naming what it holds.
+    file's start is ignored; lines may end in LF, CRLF or CR alone (an old Mac's), also mixed; UTF-16 text that
+    starts with its byte order mark (Windows PowerShell's ``>``) is read as the same text. A first line of other
+    words (a header, fields separated by commas, NUL bytes) is refused naming what it holds.
     Time must not go back unless ``sort=True`` (the events are then sorted by
     time, stable); a file whose third column is the sorted one is refused as
     ``x y t p`` columns, not ECD's order.
@@ -50,10 +51,7 @@ def read_txt(
     elif width is None or height is None:
         raise ValueError(f"{path} (txt) stores no sensor size: pass width= and height= (cmax: --size WxH)")
     try:
-        with warnings.catch_warnings():  # an empty file is no events, not a warning
-            warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)
-            table = np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", skiprows=skip,
-                               encoding="utf-8-sig")     # a byte order mark (Windows editors) is not text
+        table = _load_table(path, skip)
     except (ValueError, UnicodeDecodeError) as error:
         text = str(error).split("; use `usecols`")[0]      # numpy's advice on selecting columns does not apply
         raise FormatError(f"{path} is not an ECD text file of 't x y p' lines ({text})") from None
@@ -77,6 +75,21 @@ def read_txt(
         raise FormatError(f"{path}: {error}") from None
 
 
+def _load_table(path: Path, skip: int) -> np.ndarray:
+    """The numbers of the text file ``path`` after its first ``skip`` lines, (N, columns) float64 (``#`` comments
+    dropped). A byte order mark (Windows editors) is not text. A byte that is not UTF-8 (a Latin-1 comment) makes
+    it read again with such bytes as U+FFFD, which no number holds: harmless in a comment, refused naming its row
+    elsewhere (the second read goes line by line, slower; the first lets numpy read the file in blocks)."""
+    with warnings.catch_warnings():
+        warnings.filterwarnings("ignore", "loadtxt: input contained no data", UserWarning)   # no events
+        encoding = _encoding(path)
+        try:
+            return np.loadtxt(path, dtype=np.float64, ndmin=2, comments="#", skiprows=skip, encoding=encoding)
+        except UnicodeDecodeError:
+            with open(path, encoding=encoding, errors="replace") as handle:
+                return np.loadtxt(handle, dtype=np.float64, ndmin=2, comments="#", skiprows=skip)
+
+
 def _size_header(path: Path) -> tuple[tuple[int, int] | None, int]:
     """``((width, height), lines to skip)`` when the first line that is not a comment holds exactly two positive
     integers (rpg_e2vid's ``events.txt`` header), else ``(None, 0)``."""
@@ -86,7 +99,11 @@ def _size_header(path: Path) -> tuple[tuple[int, int] | None, int]:
         head = head.removeprefix(_UTF8_BOM)
     except OSError as error:
         raise FormatError(f"{path} cannot be read ({error})") from None
-    for number, line in enumerate(head.split(b"\n")[:-1] if len(head) == _HEAD_BYTES else head.split(b"\n")):
+    full = len(head) == _HEAD_BYTES
+    if head[:2] in _UTF16_BOMS:                    # as UTF-8 for the checks below (errors: a unit cut at the end)
+        head = head.decode("utf-16", errors="replace").encode("utf-8")
+    lines = head.splitlines()      # LF, CRLF or CR-only (old Mac) line ends, as np.loadtxt reads them
+    for number, line in enumerate(lines[:-1] if full else lines):
         words = line.split()
         if not words or words[0].startswith(b"#"):
             continue
@@ -113,6 +130,10 @@ def _check_event_line(path: Path, words: list[bytes]) -> None:
     line = b" ".join(words).decode("utf-8", "replace")
     shown = line if len(line) <= 60 else line[:57] + "..."
     start = f"{path} is not an ECD text file of 't x y p' lines: its first line reads {shown!r}"
+    if any(b"\0" in word for word in words):
+        raise FormatError(f"{start}, which holds NUL bytes: UTF-16 text without a byte order mark, or binary data? "
+                          "ECD text is ASCII or UTF-8 (UTF-16 is read when it starts with its byte order mark): "
+                          "save it as UTF-8")
     separator = next((mark for mark in (",", ";") if mark in line), None)
     if separator is not None:
         raise FormatError(f"{start}, its fields separated by {separator!r} (a CSV), but ECD text separates 't x y p' "
@@ -131,6 +152,15 @@ def _check_event_line(path: Path, words: list[bytes]) -> None:
 _HEAD_BYTES = 1 << 16
 #: The UTF-8 byte order mark that Windows editors put at a text file's start: not text.
 _UTF8_BOM = b"\xef\xbb\xbf"
+#: The byte order marks of UTF-16 (little, big endian), which Windows PowerShell's ``>`` and ``Out-File`` write.
+_UTF16_BOMS = (b"\xff\xfe", b"\xfe\xff")
+
+
+def _encoding(path: Path) -> str:
+    """The text encoding of the file ``path``: ``"utf-16"`` when it starts with a UTF-16 byte order mark, else
+    ``"utf-8-sig"`` (UTF-8 or ASCII, a UTF-8 byte order mark dropped)."""
+    with open(path, "rb") as file:
+        return "utf-16" if file.read(2) in _UTF16_BOMS else "utf-8-sig"
 
 
 #: This many distinct times, every one a whole number, are not seconds of an event camera.

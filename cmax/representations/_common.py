@@ -94,12 +94,33 @@ def _stats_torch(events: EventTensors) -> tuple[int, int] | None:
         return None
     bounds = [b.to(torch.int64) for name in "xyt" for b in torch.aminmax(getattr(events, name))]
     x_lo, x_hi, y_lo, y_hi, t_lo, t_hi, p_ok = torch.stack([*bounds, _polarity_ok(events.p)]).tolist()
-    for name, low, high, size in (("x", x_lo, x_hi, events.width), ("y", y_lo, y_hi, events.height)):
+    width, height = events.width, events.height
+    swapped = (width != height and min(x_lo, y_lo) >= 0 and x_hi < height and y_hi < width)
+    for name, low, high, size in (("x", x_lo, x_hi, width), ("y", y_lo, y_hi, height)):
         if low < 0 or high >= size:
-            raise ValueError(f"events.{name} must lie in [0, {size}), got values in [{low}, {high}]")
+            raise ValueError(f"events.{name} must lie in [0, {size}), got values in [{low}, {high}]" + (
+                f"; every event lies inside a {height}x{width} sensor: width and height swapped? (EventTensors "
+                f"takes width={height}, height={width} for them: an image's shape is (height, width), tonic's "
+                "sensor_size (width, height, polarities))" if swapped else ""))
     if not p_ok:
         _refuse_polarity("events.p", events.p)
+    _check_not_nanoseconds(t_lo, t_hi)
     return t_lo, t_hi
+
+
+def _check_not_nanoseconds(t_lo: int, t_hi: int) -> None:
+    """Refuse torch times from ``t_lo`` to ``t_hi`` (int, µs, as :class:`~cmax.events.EventTensors` states) that
+    lie after the year 2100 as µs since 1970 and are nanoseconds since 1970 if anything (tonic's or a ROS export's
+    int64 ns), as :class:`~cmax.events.Events` refuses them (:func:`cmax.io._checks.check_not_nanoseconds`), with
+    a :class:`ValueError` naming ``events.t``. The implied-rate check of ``Events`` is not applied: tensors have
+    no ``time_unit=`` through which a simulation's burst, accepted by ``Events(..., time_unit='us')``, could pass.
+    """
+    from cmax.io._checks import check_not_nanoseconds
+
+    try:
+        check_not_nanoseconds(max(t_lo, t_hi, key=abs), "events.t")
+    except ValueError as error:         # a FormatError names a file; these are the caller's tensors
+        raise ValueError(str(error)) from None
 
 
 def _polarity_ok(p: "torch.Tensor") -> "torch.Tensor":

@@ -170,6 +170,13 @@ def _read_header(path: Path) -> _Header:
         if pos > _MAX_HEADER_BYTES:
             raise FormatError(f"{path}: header longer than {_MAX_HEADER_BYTES} bytes")
     header = _Header(fields, pos)
+    if header.event_format() is None and fields.get("data", "").lower().startswith("file containing"):
+        raise FormatError(
+            f"{path}: the header's line '% Data {fields['data']}' marks a Prophesee DAT file (the Gen1 and 1 Mpx "
+            "automotive datasets' *_td.dat: 8-byte events of a 32-bit time stamp and a 32-bit address), not EVT 2.0 "
+            "or 3.0 words, which are the RAW formats read here: decode it with the automotive dataset toolbox's "
+            "PSEELoader (or expelliarmus) and build cmax.Events(x, y, t, p, width, height) from its columns (t in µs)"
+        )
     contradiction = header.contradiction()
     if contradiction is not None:
         raise FormatError(f"{path}: the header contradicts itself: {contradiction} (a corrupt or hand-edited "
