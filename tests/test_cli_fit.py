@@ -900,6 +900,12 @@ def test_an_up_to_scale_trajectory_says_so_and_emvs_does_not_call_its_depths_met
     times, poses = read_tum_trajectory(out / "trajectory.txt")          # the header is skipped, as evo skips it
     assert len(times) == 4 and np.allclose(poses[0], np.eye(4))
     capsys.readouterr()
+    from cmax import viz
+
+    bars, titles, titled = [], [], viz.titled
+    monkeypatch.setattr(viz, "depth_colour_bar", lambda *a, unit="m", **k: bars.append(unit) or np.zeros((40, 8, 3),
+                                                                                                        np.uint8))
+    monkeypatch.setattr(viz, "titled", lambda image, title, **k: titles.append(title) or titled(image, title, **k))
     assert main(["emvs", str(path), "--K", K, "-o", str(tmp_path / "emvs"), "--poses", str(out / "trajectory.txt"),
                  "--depth-range", "1,20", "--planes", "20"]) == 0
     captured = capsys.readouterr()
@@ -907,6 +913,10 @@ def test_an_up_to_scale_trajectory_says_so_and_emvs_does_not_call_its_depths_met
     assert summary["scale_known"] == (speed is not None)
     assert ("are up to scale (its header says so" in captured.err) == (speed is None)
     assert ("(up to scale)" in captured.out) == (speed is None)
+    # depth.png: was a colour bar in m over depths the note calls 'not metres'; now bare, titled up to scale
+    assert bars == (["m"] if speed is not None else [""])
+    assert any("semi-dense depth" in t for t in titles)
+    assert any("up to scale" in t for t in titles) == (speed is None)
 
 
 def test_calibration_yaml_in_block_style_and_kalibr_camchains_are_read(tmp_path):

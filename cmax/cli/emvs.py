@@ -4,7 +4,8 @@ Registered by :func:`cmax.cli.build_parser` through :func:`add_command`; :func:`
 
 Outputs in ``-o outdir/``: ``depth.npz`` (``depth``, ``confidence``, ``mask``,
 ``t_ref_us``, ``T_w_ref``, ``K``, ``depth_range``), ``depth.png`` (confidence
-and coloured depth with a scale bar in metres), ``points.ply`` (the
+and coloured depth with a scale bar in metres; titled ``up to scale``, the bar without a unit, for poses up
+to scale), ``points.ply`` (the
 semi-dense point cloud in the world frame) and, moved in last, ``summary.json`` (the run's record of
 completion: its input, settings and files; a folder without it holds no complete run,
 :mod:`cmax.io.run_folder`); one summary line on stdout. The poses come from
@@ -200,7 +201,7 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     save_npz_atomic(stage / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
               t_ref_us=np.int64(result.t_ref_us), T_w_ref=result.T_w_ref, K=result.K,
               depth_range=np.array(result.depth_range))
-    result.plot(stage / "depth.png", zoom=viz.readable_zoom(events.width))   # small sensors enlarged
+    result.plot(stage / "depth.png", zoom=viz.readable_zoom(events.width), metric=metric)   # small sensors enlarged
     result.save_ply(stage / "points.ply")
     depths = result.depth[result.mask]
     median_m = float(np.median(depths)) if depths.size else None
