@@ -179,19 +179,24 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     if (odd := intrinsics_oddity(camera.K, camera.width, camera.height)) is not None:   # as cmax fit warns
         resized = resized_note(args.file)
         print(f"cmax emvs: note: {odd}" + (f"; {resized}" if resized else ""), file=sys.stderr)
+    metric = args.poses is None or not trajectory_up_to_scale(args.poses)
     depth_range = args.depth_range
     if depth_range is None:
         depth_range = file_depth_range(args.file)
         if depth_range is not None:
             print(f"cmax emvs: note: planes over {depth_range[0]:g}-{depth_range[1]:g} m, the depth range the file "
                   "records for its scene (--depth-range to change it)", file=sys.stderr)
+        else:   # said: cmax fit searched its own, wider default; the planes should span the scene's depths
+            near, far = EMVS.depth_range
+            print(f"cmax emvs: note: planes over {near:g}-{far:g} {'m' if metric else '(up to scale)'}, EMVS's "
+                  "default depth range: --depth-range NEAR,FAR gives the scene's (after cmax fit, the range it "
+                  "searched: its summary.json's depth_range)", file=sys.stderr)
     options = {key: value for key, value in (("depth_range", depth_range), ("n_planes", args.planes))
                if value is not None}   # None: EMVS's own default
     if args.keep_hot_pixels:
         options["hot_pixels"] = None
     if hint := calibration_hint(args):
         print(f"cmax emvs: note: {hint}", file=sys.stderr)
-    metric = args.poses is None or not trajectory_up_to_scale(args.poses)
     if not metric:
         print(f"cmax emvs: note: the poses of {args.poses} are up to scale (its header says so: cmax fit without "
               "--speed moves each window at 1 m/s): the depths, the planes' range and points.ply are in the "
