@@ -1395,3 +1395,40 @@ def test_an_ecd_calib_txt_of_another_sensor_is_refused_by_the_frames_of_its_sequ
             assert status == 2 and said in err and "come from a 64x48 one" in err and err.count("\n") == 1, err
         else:
             assert "states no sensor size" not in err, err
+
+
+def test_the_sparse_advice_does_not_ask_for_more_events_than_the_window_holds(tmp_path, monkeypatch):
+    """The Prophesee Gen4 sample (1280x720, one window of 219,517 events after its hot pixels) was told 'a larger
+    --max-events (at least 230,400 on this sensor ...) gives them more': no --max-events reaches 0.25 events per
+    pixel there. The advice now compares the density's need with the most events a window holds, which the command
+    counts (here against a count window by window)."""
+    from dataclasses import replace
+
+    from benchmarks.synthetic_windows import make_window
+    from cmax.cli import fit as fit_cli
+    from cmax.fitting import QualitySettings, fit
+    from cmax.fitting import sequence as sequence_module
+
+    counts = {"ok": 0, "ambiguous": 1, "resolved": 0, "low_parallax": 0, "failed": 0}
+    short = fit_cli.advice(counts, "se3", sparse=1, sparse_needs=230_400, densest=219_517, single_window=True)
+    assert "--max-events (at least" not in short[0] and "219,517 events, fewer than the 230,400" in short[0]
+    many = fit_cli.advice(counts, "se3", sparse=1, sparse_needs=230_400, densest=400_000)
+    assert "a larger --max-events (at least 230,400 on this sensor" in many[0]   # reachable: as before
+    sparse_windows = fit_cli.advice(counts, "se3", sparse=1, sparse_needs=230_400, densest=100_000)
+    assert "a longer --window-ms with --max-events of at least 230,400 gives more" in sparse_windows[0]
+    # the command passes the most events a window holds
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    base = fit(w.events, w.K, speed=8.0, depth_range=(1.0, 20.0), max_events=1000,
+               quality=QualitySettings(ambiguity_test=False))
+    monkeypatch.setattr(sequence_module, "fit", lambda events, K, model="se3", **options: replace(
+        base, t0_us=int(events.t[0]), t1_us=int(events.t[-1])))
+    seen = []
+    original = fit_cli.advice
+    monkeypatch.setattr(fit_cli, "advice", lambda *a, **k: seen.append(k.get("densest")) or original(*a, **k))
+    path = write_h5(tmp_path / "drive.h5", w.events)
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    assert main(["fit", str(path), "--K", K, "-o", str(tmp_path / "out"), "--window-ms", "25", "--min-events", "10",
+                 "--quiet", "--speed", "8"]) == 0
+    t = w.events.t
+    starts = range(int(t[0]), int(t[-1]) + 1 - 25_000 + 1, 25_000)
+    assert seen == [max(int(np.sum((t >= s) & (t < s + 25_000))) for s in starts)]
