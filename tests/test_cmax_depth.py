@@ -581,8 +581,12 @@ def test_the_limits_on_a_checkpoints_card_are_said_and_recorded(checkpoint, even
 
     from learned import pretrained
 
-    assert any("translation direction is not usable" in text
-               for text in pretrained.card_limits(pretrained.checkpoint_card(pretrained.CARD)))
+    shipped = pretrained.card_limits(pretrained.checkpoint_card(pretrained.CARD))
+    assert any("translation direction is not usable" in text for text in shipped)
+    # each is printed alone as a note: it cannot point at the card's other fields as 'above' (was: 'test_scores_dense
+    # above'), it names the file they are in
+    assert not any(" above" in text for text in shipped) and all(
+        "student.json" in text for text in shipped if "test_scores_dense" in text)
     card_ckpt = tmp_path / "model.pt"
     shutil.copy(checkpoint, card_ckpt)
     card_ckpt.with_suffix(".json").write_text(json.dumps({"limits": ["its twist points backwards"]}))
