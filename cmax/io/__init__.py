@@ -116,10 +116,13 @@ def detect_format(path: str | os.PathLike) -> str:
     if path.suffix.lower() in (".txt", ".csv"):
         return "txt"
     video = path.suffix.lower() in VIDEO_SUFFIXES
+    npz = head.startswith(b"PK\x03\x04") and path.suffix.lower() == ".npz"   # np.savez: a zip of .npy arrays
     raise FormatError(
         f"cannot tell the event format of {path}: expected DSEC/MVSEC HDF5, AEDAT4, "
         "Prophesee .raw, ECD .txt or a structured .npy"
         + ("; a video becomes events with `cmax simulate VIDEO -o events.h5`" if video else "")
+        + ("; an .npz of separate arrays is not read: build cmax.Events(x, y, t, p, width, height) from them "
+           "(time_unit='s' for float seconds) and np.save('events.npy', events.to_structured())" if npz else "")
     )
 
 
