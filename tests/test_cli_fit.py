@@ -911,6 +911,9 @@ def test_an_up_to_scale_trajectory_says_so_and_emvs_does_not_call_its_depths_met
     captured = capsys.readouterr()
     summary = json.loads((tmp_path / "emvs" / "summary.json").read_text())
     assert summary["scale_known"] == (speed is not None)
+    # its units, as cmax fit's summary names them (was: none): metres only with a speed
+    assert (summary["units"]["depth_range, median_depth_m"] == "m") == (speed is not None)
+    assert summary["units"]["t_ref_us"].startswith("µs on the file's clock")
     assert ("are up to scale (its header says so" in captured.err) == (speed is None)
     assert ("(up to scale)" in captured.out) == (speed is None)
     # depth.png: was a colour bar in m over depths the note calls 'not metres'; now bare, titled up to scale

@@ -147,6 +147,28 @@ def run(args: argparse.Namespace) -> int:
         return _emvs_into(stage, out, args, trajectory)
 
 
+def summary_units(scale_known: bool) -> dict[str, str]:
+    """The units and frames of what ``cmax emvs`` writes, keyed by field (``summary.json``'s ``units``, as
+    ``cmax fit`` and ``cmax depth`` write their own). Lengths are metres when ``scale_known`` (ground-truth
+    poses, or a trajectory of ``cmax fit`` with ``--speed``), else the poses' own unit.
+
+    >>> summary_units(False)["depth_range, median_depth_m"][:40]
+    "the poses' unit, not metres (up to scale"
+    """
+    length = "m" if scale_known else ("the poses' unit, not metres (up to scale: a cmax fit trajectory without "
+                                      "--speed, metres at a speed of 1 m/s)")
+    return {
+        "t_ref_us": "µs on the file's clock: the reference view's time, the middle of the events' span",
+        "depth_range, median_depth_m": length,
+        "mask_pixels": "px: the pixels of depth.npz's mask",
+        "depth.npz": f"depth (H, W) [{length}]: z-depth seen from the reference view, valid where mask; confidence "
+                     "(H, W): the DSI's maximum per pixel [votes]; T_w_ref (4, 4): the reference camera to the "
+                     f"poses' world, translation [{length}]; t_ref_us [µs]; K [px]: the DSI's pinhole (with a "
+                     f"rectifying --calib: the rectified frame's); depth_range [{length}]",
+        "points.ply": f"x y z [{length}], the world frame of the poses",
+    }
+
+
 def earlier_results(out: Path) -> list[Path]:
     """The files of an earlier ``cmax emvs`` in the folder ``out`` (:data:`RESULTS`); empty when none (or no folder)."""
     return run_folder.run_results(out, ("emvs",))
@@ -217,7 +239,8 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
               "camera": camera_read(detect_format(args.file), getattr(args, "camera", None)), "poses": str(args.poses or f"{args.file}: gt/poses"),
               "events": len(events), "t_ref_us": int(result.t_ref_us), "n_planes": int(result.n_planes),
               "depth_range": [float(v) for v in result.depth_range], "mask_pixels": int(result.mask.sum()),
-              "median_depth_m": median_m, "scale_known": metric, "files": list(RESULTS)}
+              "median_depth_m": median_m, "scale_known": metric, "files": list(RESULTS),
+              "units": summary_units(metric)}
     write_text_atomic(stage / "summary.json", json.dumps(record, indent=2) + "\n")   # moved in last (publish)
     if len(result.hot_pixels):
         print(f"cmax emvs: note: {len(result.hot_pixels)} hot pixel(s) fire without motion (far more than the "
