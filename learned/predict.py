@@ -80,7 +80,8 @@ SUMMARY_UNITS = {
     "window_us": "µs",
     "t0_s, t1_s": "s after the first event (--t0, --t1)",
     "depth_range_m": "m: the colour scale of window_*.png (the depth itself is not bounded by it)",
-    "K": "px: the pinhole of the pixels the network saw (with --calib of a rectified camera: the rectified frame's)",
+    "K": "px: the pinhole of the pixels the network saw (with --calib of a rectified camera: the rectified frame's, "
+         "in which the twists and depth maps are too, as in cmax fit's summary)",
     "window_NNNNN.npz": "depth (H, W) [m], inverse_depth (H, W) [1/m], twist (6,) (v [m/s], omega [rad/s], camera "
                         "frame), t0_us, t1_us [µs], K [px]",
 }

@@ -645,6 +645,8 @@ def test_a_fisheye_camchain_with_a_rectification_maps_the_events_into_the_rectif
     summary = json.loads((out / "summary.json").read_text())
     assert summary["distortion_model"] == "equidistant" and summary["rectified"] is True
     np.testing.assert_array_equal(summary["K"], P)
+    # the twists are the rectified camera's too (the network saw its pixels), as cmax fit's units say of v, omega
+    assert "in which the twists and depth maps are too" in summary["units"]["K"]
 
 
 def test_raw_dsec_events_are_rectified_into_camrect0_as_dsec_does(checkpoint, network, events, tmp_path):
