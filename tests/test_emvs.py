@@ -512,6 +512,24 @@ def test_emvs_default_depth_range_is_said_and_is_the_range_it_used(plane, tmp_pa
     assert "planes over" not in capsys.readouterr().err   # a range given is not noted
 
 
+def test_the_pile_up_on_an_end_plane_of_poses_up_to_scale_is_not_called_metres(plane, tmp_path, capsys):
+    """Poses up to scale (cmax fit without --speed): the planes are not metres, nor is the pile-up on the far one
+    (the plane at 2 beyond a range ending at 0.8; was: 'on the far plane (0.8 m)' beside a note saying the
+    depths are not metres)."""
+    from cmax.cli import main
+    from cmax.cli.fit import tum_lines
+    from cmax.emvs.poses import tum_header
+    from cmax.io import write_h5
+
+    events, camera, (times, poses) = plane
+    path = write_h5(tmp_path / "plane.h5", events, source="test_emvs")
+    (tmp_path / "scaled.txt").write_text("\n".join(tum_header(False) + tum_lines(times, poses)) + "\n")
+    assert main(["emvs", str(path), "--poses", str(tmp_path / "scaled.txt"), "-o", str(tmp_path / "scaled"), "--K",
+                 f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}", "--planes", "20", "--depth-range", "0.3,0.8"]) == 0
+    err = capsys.readouterr().err
+    assert "of the depth map lies on the far plane (0.8 up to scale)" in err and " m)" not in err, err
+
+
 def test_cli_errors_exit_2(plane, tmp_path, capsys):
     from cmax.cli import main
     from cmax.io import write_h5

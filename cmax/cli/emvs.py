@@ -250,7 +250,8 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     for end, share in result.on_bounds().items():
         if share >= EMVS_BOUND_NOTE:
             plane = result.depth_range[0 if end == "near" else 1]
-            print(f"cmax emvs: note: {share:.1%} of the depth map lies on the {end} plane ({plane:g} m): the range's "
+            print(f"cmax emvs: note: {share:.1%} of the depth map lies on the {end} plane ({plane:g} "
+                  f"{'m' if metric else 'up to scale'}): the range's "
                   f"end rather than a measurement (the scene {'nearer' if end == 'near' else 'farther'} than the "
                   f"range, or too little parallax to tell); --depth-range widens it", file=sys.stderr)
     median = "n/a" if median_m is None else f"{median_m:.3f} {'m' if metric else '(up to scale)'}"
