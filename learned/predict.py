@@ -11,7 +11,8 @@ as in training, by the compiled :func:`learned.volume.event_volume`) and runs th
   :data:`MIN_EVENTS` events are skipped): ``depth`` (H, W) float32 [m], ``inverse_depth``
   (H, W) float32 [1/m], ``twist`` (6,) float32 ``(v [m/s], omega [rad/s])`` in the camera
   frame, ``t0_us``, ``t1_us`` [µs] and ``K`` (3, 3) [px];
-* ``window_<k>.png``: the depth with a colour bar in metres and the window's time in its title,
+* ``window_<k>.png``: the depth with a colour bar in metres and the window's time in its title (s after the
+  recording's first event, as ``--t0``/``--t1``),
   one colour scale for the whole run (``--depth-range``, default the 1st-99th percentiles of the depths
   of all its windows, drawn once every window is predicted);
 * ``twists.csv`` (one line per window) and ``summary.json`` (inputs, settings, notes, counts).
@@ -79,7 +80,8 @@ SUMMARY_UNITS = {
     "window_us": "µs",
     "t0_s, t1_s": "s after the first event (--t0, --t1)",
     "depth_range_m": "m: the colour scale of window_*.png (the depth itself is not bounded by it)",
-    "K": "px: the pinhole of the pixels the network saw (with --calib of a rectified camera: the rectified frame's)",
+    "K": "px: the pinhole of the pixels the network saw (with --calib of a rectified camera: the rectified frame's, "
+         "in which the twists and depth maps are too, as in cmax fit's summary)",
     "window_NNNNN.npz": "depth (H, W) [m], inverse_depth (H, W) [1/m], twist (6,) (v [m/s], omega [rad/s], camera "
                         "frame), t0_us, t1_us [µs], K [px]",
 }
@@ -539,15 +541,17 @@ def run_scale(samples: list[np.ndarray], depth_range: tuple[float, float] | None
     return viz.DepthScale.from_depths(samples)
 
 
-def draw_window(out: Path, index: int, scale) -> None:
+def draw_window(out: Path, index: int, scale, origin_us: int = 0) -> None:
     """``window_<index>.png`` (atomically) from its ``.npz`` in ``out``: the depth on ``scale`` (the run's
-    :class:`cmax.viz.DepthScale`), the window's time in the title."""
+    :class:`cmax.viz.DepthScale`), the window's time in the title in s after ``origin_us`` [µs] (the recording's
+    first event, the origin of ``--t0``/``--t1`` and of the titles of ``cmax fit`` and ``cmax show``; the
+    ``.npz`` keeps the file's clock)."""
     from cmax import viz
 
     name = f"window_{index:05d}"
     with np.load(out / f"{name}.npz") as saved:
         depth, t0_us, t1_us = saved["depth"], int(saved["t0_us"]), int(saved["t1_us"])
-    title = f"window {index}, {t0_us * 1e-6:.3f}-{t1_us * 1e-6:.3f} s, depth [m]"
+    title = f"window {index}, {(t0_us - origin_us) * 1e-6:.3f}-{(t1_us - origin_us) * 1e-6:.3f} s, depth [m]"
     viz.save_png(out / f"{name}.png", window_picture(depth, scale, title))
 
 
@@ -865,7 +869,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         notes.append(tail)
     scale = run_scale(samples, depth_range)
     for index in tqdm(indices, desc="pictures", unit="picture", disable=not progress):   # ~0.1 s each at 640x480
-        draw_window(stage, index, scale)
+        draw_window(stage, index, scale, recording.first_us)
     write_text_atomic(stage / "twists.csv", "\n".join(lines) + "\n")
     run = DepthRun(written, skipped, window_us, tuple(notes), time.perf_counter() - started, stage)
     from cmax.cli.recording import camera_read

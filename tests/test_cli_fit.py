@@ -900,13 +900,26 @@ def test_an_up_to_scale_trajectory_says_so_and_emvs_does_not_call_its_depths_met
     times, poses = read_tum_trajectory(out / "trajectory.txt")          # the header is skipped, as evo skips it
     assert len(times) == 4 and np.allclose(poses[0], np.eye(4))
     capsys.readouterr()
+    from cmax import viz
+
+    bars, titles, titled = [], [], viz.titled
+    monkeypatch.setattr(viz, "depth_colour_bar", lambda *a, unit="m", **k: bars.append(unit) or np.zeros((40, 8, 3),
+                                                                                                        np.uint8))
+    monkeypatch.setattr(viz, "titled", lambda image, title, **k: titles.append(title) or titled(image, title, **k))
     assert main(["emvs", str(path), "--K", K, "-o", str(tmp_path / "emvs"), "--poses", str(out / "trajectory.txt"),
                  "--depth-range", "1,20", "--planes", "20"]) == 0
     captured = capsys.readouterr()
     summary = json.loads((tmp_path / "emvs" / "summary.json").read_text())
     assert summary["scale_known"] == (speed is not None)
+    # its units, as cmax fit's summary names them (was: none): metres only with a speed
+    assert (summary["units"]["depth_range, median_depth_m"] == "m") == (speed is not None)
+    assert summary["units"]["t_ref_us"].startswith("µs on the file's clock")
     assert ("are up to scale (its header says so" in captured.err) == (speed is None)
     assert ("(up to scale)" in captured.out) == (speed is None)
+    # depth.png: was a colour bar in m over depths the note calls 'not metres'; now bare, titled up to scale
+    assert bars == (["m"] if speed is not None else [""])
+    assert any("semi-dense depth" in t for t in titles)
+    assert any("up to scale" in t for t in titles) == (speed is None)
 
 
 def test_calibration_yaml_in_block_style_and_kalibr_camchains_are_read(tmp_path):
@@ -1385,3 +1398,40 @@ def test_an_ecd_calib_txt_of_another_sensor_is_refused_by_the_frames_of_its_sequ
             assert status == 2 and said in err and "come from a 64x48 one" in err and err.count("\n") == 1, err
         else:
             assert "states no sensor size" not in err, err
+
+
+def test_the_sparse_advice_does_not_ask_for_more_events_than_the_window_holds(tmp_path, monkeypatch):
+    """The Prophesee Gen4 sample (1280x720, one window of 219,517 events after its hot pixels) was told 'a larger
+    --max-events (at least 230,400 on this sensor ...) gives them more': no --max-events reaches 0.25 events per
+    pixel there. The advice now compares the density's need with the most events a window holds, which the command
+    counts (here against a count window by window)."""
+    from dataclasses import replace
+
+    from benchmarks.synthetic_windows import make_window
+    from cmax.cli import fit as fit_cli
+    from cmax.fitting import QualitySettings, fit
+    from cmax.fitting import sequence as sequence_module
+
+    counts = {"ok": 0, "ambiguous": 1, "resolved": 0, "low_parallax": 0, "failed": 0}
+    short = fit_cli.advice(counts, "se3", sparse=1, sparse_needs=230_400, densest=219_517, single_window=True)
+    assert "--max-events (at least" not in short[0] and "219,517 events, fewer than the 230,400" in short[0]
+    many = fit_cli.advice(counts, "se3", sparse=1, sparse_needs=230_400, densest=400_000)
+    assert "a larger --max-events (at least 230,400 on this sensor" in many[0]   # reachable: as before
+    sparse_windows = fit_cli.advice(counts, "se3", sparse=1, sparse_needs=230_400, densest=100_000)
+    assert "a longer --window-ms with --max-events of at least 230,400 gives more" in sparse_windows[0]
+    # the command passes the most events a window holds
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    base = fit(w.events, w.K, speed=8.0, depth_range=(1.0, 20.0), max_events=1000,
+               quality=QualitySettings(ambiguity_test=False))
+    monkeypatch.setattr(sequence_module, "fit", lambda events, K, model="se3", **options: replace(
+        base, t0_us=int(events.t[0]), t1_us=int(events.t[-1])))
+    seen = []
+    original = fit_cli.advice
+    monkeypatch.setattr(fit_cli, "advice", lambda *a, **k: seen.append(k.get("densest")) or original(*a, **k))
+    path = write_h5(tmp_path / "drive.h5", w.events)
+    K = ",".join(f"{v:g}" for v in (w.K[0, 0], w.K[1, 1], w.K[0, 2], w.K[1, 2]))
+    assert main(["fit", str(path), "--K", K, "-o", str(tmp_path / "out"), "--window-ms", "25", "--min-events", "10",
+                 "--quiet", "--speed", "8"]) == 0
+    t = w.events.t
+    starts = range(int(t[0]), int(t[-1]) + 1 - 25_000 + 1, 25_000)
+    assert seen == [max(int(np.sum((t >= s) & (t < s + 25_000))) for s in starts)]

@@ -97,7 +97,9 @@ def _expected(model: DepthPoseNet, events: Events, window_us: int = WINDOW_US, s
 
 
 def _check_outputs(out: Path, expected: list[tuple[int, np.ndarray, np.ndarray]], window_us: int = WINDOW_US,
-                   K_expected: np.ndarray = K) -> None:
+                   K_expected: np.ndarray = K, origin_us: int | None = None) -> None:
+    """``origin_us``: the file's first event [µs], the origin of the pictures' times (default: the first window's
+    start, which is that event without --t0)."""
     assert len(expected) >= 3
     assert not np.allclose(expected[0][1], expected[1][1]) and np.abs(expected[0][2]).min() > 0   # not trivial
     assert sorted(p.name for p in out.glob("window_*.npz")) == [f"window_{k:05d}.npz" for k in range(len(expected))]
@@ -119,9 +121,11 @@ def _check_outputs(out: Path, expected: list[tuple[int, np.ndarray, np.ndarray]]
     exact = viz.DepthScale.from_depths([np.load(out / f"window_{k:05d}.npz")["depth"] for k in range(len(expected))])
     scale = viz.DepthScale(*json.loads((out / "summary.json").read_text())["depth_range_m"])
     np.testing.assert_allclose([scale.near, scale.far], [exact.near, exact.far], rtol=0.02)
+    first = expected[0][0] if origin_us is None else origin_us   # the titles' origin, as cmax fit's and --t0's
     for k, (t0, _, _) in enumerate(expected):
         panel = window_picture(np.load(out / f"window_{k:05d}.npz")["depth"], scale,
-                               f"window {k}, {t0 * 1e-6:.3f}-{(t0 + window_us) * 1e-6:.3f} s, depth [m]")
+                               f"window {k}, {(t0 - first) * 1e-6:.3f}-{(t0 - first + window_us) * 1e-6:.3f} s, "
+                               "depth [m]")
         assert np.array_equal(cv2.imread(str(out / f"window_{k:05d}.png")), panel)
     summary = json.loads((out / "summary.json").read_text())
     assert summary["windows"] == len(expected) and summary["size"][0] in (W, 346)
@@ -320,8 +324,8 @@ def test_t0_t1_window_and_depth_range(checkpoint, network, events, tmp_path, cap
         saved = np.load(out / f"window_{k:05d}.npz")
         assert int(saved["t0_us"]) == t0
         np.testing.assert_allclose(saved["depth"], depth, rtol=FORWARD_RTOL)
-    panel = window_picture(depth, viz.DepthScale(1.0, 10.0),
-                           f"window 3, {t0 * 1e-6:.3f}-{(t0 + 40_000) * 1e-6:.3f} s, depth [m]")
+    panel = window_picture(depth, viz.DepthScale(1.0, 10.0),   # s after the file's first event, as --t0
+                           f"window 3, {(t0 - first) * 1e-6:.3f}-{(t0 - first + 40_000) * 1e-6:.3f} s, depth [m]")
     assert np.array_equal(cv2.imread(str(out / "window_00003.png")), panel)
 
 
@@ -538,7 +542,7 @@ def test_t0_t1_of_a_raw_file_too_long_to_hold_read_only_that_span(checkpoint, ne
     assert cmax_main([*base, "-o", str(out), "--t0", "0.2", "--t1", "0.4"]) == 0
     first = int(events.t[0])
     expected = _expected(network, events, start=first + 200_000, end=first + 400_000 - 1)
-    _check_outputs(out, expected)
+    _check_outputs(out, expected, origin_us=first)
 
 
 def test_a_whole_raw_file_too_long_to_hold_is_predicted_window_after_window(checkpoint, network, tmp_path,
@@ -577,8 +581,12 @@ def test_the_limits_on_a_checkpoints_card_are_said_and_recorded(checkpoint, even
 
     from learned import pretrained
 
-    assert any("translation direction is not usable" in text
-               for text in pretrained.card_limits(pretrained.checkpoint_card(pretrained.CARD)))
+    shipped = pretrained.card_limits(pretrained.checkpoint_card(pretrained.CARD))
+    assert any("translation direction is not usable" in text for text in shipped)
+    # each is printed alone as a note: it cannot point at the card's other fields as 'above' (was: 'test_scores_dense
+    # above'), it names the file they are in
+    assert not any(" above" in text for text in shipped) and all(
+        "student.json" in text for text in shipped if "test_scores_dense" in text)
     card_ckpt = tmp_path / "model.pt"
     shutil.copy(checkpoint, card_ckpt)
     card_ckpt.with_suffix(".json").write_text(json.dumps({"limits": ["its twist points backwards"]}))
@@ -637,6 +645,8 @@ def test_a_fisheye_camchain_with_a_rectification_maps_the_events_into_the_rectif
     summary = json.loads((out / "summary.json").read_text())
     assert summary["distortion_model"] == "equidistant" and summary["rectified"] is True
     np.testing.assert_array_equal(summary["K"], P)
+    # the twists are the rectified camera's too (the network saw its pixels), as cmax fit's units say of v, omega
+    assert "in which the twists and depth maps are too" in summary["units"]["K"]
 
 
 def test_raw_dsec_events_are_rectified_into_camrect0_as_dsec_does(checkpoint, network, events, tmp_path):

@@ -1,6 +1,7 @@
 """EMVS: geometry of the transfer, voting paths, depth of a known plane, pose inputs, bad input, CLI."""
 from __future__ import annotations
 
+import json
 import types
 
 import cv2
@@ -487,6 +488,46 @@ def test_cli_round_trip(plane, tmp_path, capsys):
     saved = np.load(out / "depth.npz")
     assert int(saved["t_ref_us"]) == (int(events.t[0]) + int(events.t[events.t <= last][-1])) // 2
     assert abs(np.nanmedian(saved["depth"]) / PLANE_DEPTH - 1) < 0.02
+
+
+def test_emvs_default_depth_range_is_said_and_is_the_range_it_used(plane, tmp_path, capsys):
+    """Without --depth-range on a file that records no scene range (any real recording), the planes span EMVS's
+    default 0.5-5 (was: without a word, while cmax fit, whose trajectory it is run on, searched its own 0.5-60):
+    a note names the range, which is the one summary.json records."""
+    from cmax.cli import main
+    from cmax.cli.fit import tum_lines
+    from cmax.io import write_h5
+
+    events, camera, (times, poses) = plane
+    path = write_h5(tmp_path / "plane.h5", events, source="test_emvs")
+    (tmp_path / "traj.txt").write_text("\n".join(tum_lines(times, poses)) + "\n")
+    assert main(["emvs", str(path), "--poses", str(tmp_path / "traj.txt"), "-o", str(tmp_path / "out"), "--K",
+                 f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}", "--planes", "20"]) == 0
+    err = capsys.readouterr().err
+    near, far = json.loads((tmp_path / "out" / "summary.json").read_text())["depth_range"]
+    assert f"note: planes over {near:g}-{far:g} m, EMVS's default depth range: --depth-range" in err, err
+    assert "summary.json's depth_range" in err
+    assert main(["emvs", str(path), "--poses", str(tmp_path / "traj.txt"), "-o", str(tmp_path / "given"), "--K",
+                 f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}", "--planes", "20", "--depth-range", "1,4"]) == 0
+    assert "planes over" not in capsys.readouterr().err   # a range given is not noted
+
+
+def test_the_pile_up_on_an_end_plane_of_poses_up_to_scale_is_not_called_metres(plane, tmp_path, capsys):
+    """Poses up to scale (cmax fit without --speed): the planes are not metres, nor is the pile-up on the far one
+    (the plane at 2 beyond a range ending at 0.8; was: 'on the far plane (0.8 m)' beside a note saying the
+    depths are not metres)."""
+    from cmax.cli import main
+    from cmax.cli.fit import tum_lines
+    from cmax.emvs.poses import tum_header
+    from cmax.io import write_h5
+
+    events, camera, (times, poses) = plane
+    path = write_h5(tmp_path / "plane.h5", events, source="test_emvs")
+    (tmp_path / "scaled.txt").write_text("\n".join(tum_header(False) + tum_lines(times, poses)) + "\n")
+    assert main(["emvs", str(path), "--poses", str(tmp_path / "scaled.txt"), "-o", str(tmp_path / "scaled"), "--K",
+                 f"{camera.fx},{camera.fy},{camera.cx},{camera.cy}", "--planes", "20", "--depth-range", "0.3,0.8"]) == 0
+    err = capsys.readouterr().err
+    assert "of the depth map lies on the far plane (0.8 up to scale)" in err and " m)" not in err, err
 
 
 def test_cli_errors_exit_2(plane, tmp_path, capsys):

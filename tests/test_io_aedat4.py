@@ -172,6 +172,21 @@ def synthetic(tmp_path: Path, request) -> Path:
     return path
 
 
+def test_cmax_info_names_the_imu_and_frame_streams_and_what_reads_them(synthetic: Path, capsys) -> None:
+    """A DAVIS recording's IMU is what formats.md's AEDAT4 recipe passes as --gyro, yet cmax info summarised its
+    events only: a DAVIS user learnt of the IMU from the docs. It now lists the file's other streams (those of its
+    header, here IMUS and FRME) and what reads each; the IMU named is the one read_aedat4_imu reads."""
+    from cmax.cli import main
+
+    assert main(["info", str(synthetic)]) == 0
+    lines = capsys.readouterr().out.splitlines()
+    (streams,) = [line for line in lines if line.startswith("streams ")]
+    assert "'imu' (IMUS): IMU samples: cmax fit --gyro FILE" in streams
+    assert "'frames' (FRME): APS frames (cmax.io.read_aedat4_frames)" in streams
+    assert "'events'" not in streams                    # the events are the block itself
+    assert len(read_aedat4_imu(synthetic).t) == 2        # the stream named holds the samples --gyro reads
+
+
 # -- synthetic files: exact decoding ----------------------------------------------------
 def test_synthetic_events_decode_exactly(synthetic: Path) -> None:
     events = read_aedat4(synthetic)

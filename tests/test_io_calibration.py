@@ -193,3 +193,44 @@ def test_yaml_this_reader_does_not_read_is_refused_naming_the_file_and_line(tmp_
     np.testing.assert_array_equal(read_calibration(framed, "cam0").distortion,
                                   [-0.048031442223833355, 0.011330957517194437, -0.055378166304281135,
                                    0.021500973881459395])
+
+
+def test_dsec_s_rectify_map_or_an_event_file_given_as_calibration_names_the_file_to_give(tmp_path: Path,
+                                                                                         capsys) -> None:
+    """``--calib SEQ/events/left/rectify_map.h5`` (DSEC's rectify map, the file a DSEC user knows) was parsed as
+    text and refused with "expected one line 'fx fy cx cy [k1 k2 p1 p2 [k3]]' (ECD calib.txt)", which points the
+    wrong way: it now names the sequence's cam_to_cam.yaml; any other HDF5 or binary file is called what it is."""
+    import h5py
+    import pytest
+
+    from cmax.cli import main
+    from cmax.events import Events
+    from cmax.io import read_calibration, write_h5
+
+    left = tmp_path / "zurich_city_00_a" / "events" / "left"
+    left.mkdir(parents=True)
+    (tmp_path / "zurich_city_00_a" / "calibration").mkdir()
+    yaml = tmp_path / "zurich_city_00_a" / "calibration" / "cam_to_cam.yaml"
+    yaml.write_text("intrinsics:\n  camRect0:\n    camera_matrix: [60.0, 60.0, 32.0, 24.0]\n    resolution: [64, 48]\n")
+    with h5py.File(left / "rectify_map.h5", "w") as file:
+        file["rectify_map"] = np.zeros((48, 64, 2), np.float32)
+    with pytest.raises(ValueError, match="rectify map") as error:
+        read_calibration(left / "rectify_map.h5")
+    assert f"cam_to_cam.yaml ({yaml.resolve()})" in str(error.value)
+    assert "ECD calib.txt)" not in str(error.value).split(":")[0]
+    rng = np.random.default_rng(0)
+    events = Events(rng.integers(0, 64, 200), rng.integers(0, 48, 200), np.sort(rng.integers(0, 10_000, 200)),
+                    rng.integers(0, 2, 200), 64, 48)
+    write_h5(tmp_path / "events.h5", events)
+    with pytest.raises(ValueError, match=r"events\.h5 is an HDF5 file, not a calibration file: expected ECD"):
+        read_calibration(tmp_path / "events.h5")
+    (tmp_path / "blob.bin").write_bytes(b"% header\n" + bytes(16))
+    with pytest.raises(ValueError, match=r"blob\.bin is a binary file, not a calibration file"):
+        read_calibration(tmp_path / "blob.bin")
+    # the command line: exit 2, one line naming the yaml to pass
+    assert main(["fit", str(tmp_path / "events.h5"), "--calib", str(left / "rectify_map.h5"), "-o",
+                 str(tmp_path / "out")]) == 2
+    err = capsys.readouterr().err
+    assert err.count("\n") == 1 and "pass the sequence's cam_to_cam.yaml" in err and str(yaml.resolve()) in err
+    # a calibration that is text is still read as before
+    assert read_calibration(yaml, "camRect0").K[0, 0] == 60.0

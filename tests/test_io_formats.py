@@ -115,6 +115,26 @@ def test_unknown_format(tmp_path):
         read(tmp_path / "missing.h5")
 
 
+def test_an_npz_of_separate_arrays_is_refused_with_the_conversion_that_reads_it(tmp_path):
+    """An ``np.savez`` of x, y, t, p arrays (the ESIM reference of rpg_vid2e, many tonic and numpy dumps) was
+    refused as an unknown format with no way on; the refusal now gives the conversion, and following it reads the
+    same events (float seconds stated as such)."""
+    events = random_events(500, 64, 48, seed=1)
+    np.savez(tmp_path / "dump.npz", x=events.x, y=events.y, t=events.t * 1e-6, p=events.signed_polarity())
+    with pytest.raises(FormatError, match=r"an \.npz of separate arrays is not read: build cmax\.Events\(x, y, t, p, "
+                                          r"width, height\) from them \(time_unit='s' for float seconds\) and "
+                                          r"np\.save\('events\.npy', events\.to_structured\(\)\)"):
+        read(tmp_path / "dump.npz")
+    arrays = np.load(tmp_path / "dump.npz")
+    converted = Events(arrays["x"], arrays["y"], arrays["t"], arrays["p"], 64, 48, time_unit="s")
+    np.save(tmp_path / "events.npy", converted.to_structured())
+    assert read(tmp_path / "events.npy", width=64, height=48) == events
+    (tmp_path / "other.bin").write_bytes(b"PK\x03\x04" + bytes(12))    # a zip not named .npz: no such advice
+    with pytest.raises(FormatError) as error:
+        read(tmp_path / "other.bin")
+    assert ".npz" not in str(error.value)
+
+
 def test_time_window_on_formats_without_index(tmp_path):
     ev = random_events(800, width=240, height=180)
     write_txt(tmp_path / "e.txt", ev)

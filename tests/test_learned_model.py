@@ -280,8 +280,9 @@ def test_evaluate_and_predict_on_a_trained_checkpoint(tmp_path):
     scale = viz.DepthScale.from_depths(depths)
     assert json.loads((tmp_path / "pred" / "summary.json").read_text())["depth_range_m"] == [scale.near, scale.far]
     picture = cv2.imread(str(tmp_path / "pred" / "window_00000.png"))
-    panel = window_picture(saved["depth"], scale, f"window 0, {int(saved['t0_us']) * 1e-6:.3f}-"
-                           f"{int(saved['t1_us']) * 1e-6:.3f} s, depth [m]")
+    origin = int(saved["t0_us"])   # the first window starts at the first event, the title's origin
+    panel = window_picture(saved["depth"], scale, f"window 0, {(int(saved['t0_us']) - origin) * 1e-6:.3f}-"
+                           f"{(int(saved['t1_us']) - origin) * 1e-6:.3f} s, depth [m]")
     assert np.array_equal(picture, panel)
 
 

@@ -4,7 +4,8 @@ Registered by :func:`cmax.cli.build_parser` through :func:`add_command`; :func:`
 
 Outputs in ``-o outdir/``: ``depth.npz`` (``depth``, ``confidence``, ``mask``,
 ``t_ref_us``, ``T_w_ref``, ``K``, ``depth_range``), ``depth.png`` (confidence
-and coloured depth with a scale bar in metres), ``points.ply`` (the
+and coloured depth with a scale bar in metres; titled ``up to scale``, the bar without a unit, for poses up
+to scale), ``points.ply`` (the
 semi-dense point cloud in the world frame) and, moved in last, ``summary.json`` (the run's record of
 completion: its input, settings and files; a folder without it holds no complete run,
 :mod:`cmax.io.run_folder`); one summary line on stdout. The poses come from
@@ -146,6 +147,28 @@ def run(args: argparse.Namespace) -> int:
         return _emvs_into(stage, out, args, trajectory)
 
 
+def summary_units(scale_known: bool) -> dict[str, str]:
+    """The units and frames of what ``cmax emvs`` writes, keyed by field (``summary.json``'s ``units``, as
+    ``cmax fit`` and ``cmax depth`` write their own). Lengths are metres when ``scale_known`` (ground-truth
+    poses, or a trajectory of ``cmax fit`` with ``--speed``), else the poses' own unit.
+
+    >>> summary_units(False)["depth_range, median_depth_m"][:40]
+    "the poses' unit, not metres (up to scale"
+    """
+    length = "m" if scale_known else ("the poses' unit, not metres (up to scale: a cmax fit trajectory without "
+                                      "--speed, metres at a speed of 1 m/s)")
+    return {
+        "t_ref_us": "µs on the file's clock: the reference view's time, the middle of the events' span",
+        "depth_range, median_depth_m": length,
+        "mask_pixels": "px: the pixels of depth.npz's mask",
+        "depth.npz": f"depth (H, W) [{length}]: z-depth seen from the reference view, valid where mask; confidence "
+                     "(H, W): the DSI's maximum per pixel [votes]; T_w_ref (4, 4): the reference camera to the "
+                     f"poses' world, translation [{length}]; t_ref_us [µs]; K [px]: the DSI's pinhole (with a "
+                     f"rectifying --calib: the rectified frame's); depth_range [{length}]",
+        "points.ply": f"x y z [{length}], the world frame of the poses",
+    }
+
+
 def earlier_results(out: Path) -> list[Path]:
     """The files of an earlier ``cmax emvs`` in the folder ``out`` (:data:`RESULTS`); empty when none (or no folder)."""
     return run_folder.run_results(out, ("emvs",))
@@ -178,19 +201,24 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     if (odd := intrinsics_oddity(camera.K, camera.width, camera.height)) is not None:   # as cmax fit warns
         resized = resized_note(args.file)
         print(f"cmax emvs: note: {odd}" + (f"; {resized}" if resized else ""), file=sys.stderr)
+    metric = args.poses is None or not trajectory_up_to_scale(args.poses)
     depth_range = args.depth_range
     if depth_range is None:
         depth_range = file_depth_range(args.file)
         if depth_range is not None:
             print(f"cmax emvs: note: planes over {depth_range[0]:g}-{depth_range[1]:g} m, the depth range the file "
                   "records for its scene (--depth-range to change it)", file=sys.stderr)
+        else:   # said: cmax fit searched its own, wider default; the planes should span the scene's depths
+            near, far = EMVS.depth_range
+            print(f"cmax emvs: note: planes over {near:g}-{far:g} {'m' if metric else '(up to scale)'}, EMVS's "
+                  "default depth range: --depth-range NEAR,FAR gives the scene's (after cmax fit, the range it "
+                  "searched: its summary.json's depth_range)", file=sys.stderr)
     options = {key: value for key, value in (("depth_range", depth_range), ("n_planes", args.planes))
                if value is not None}   # None: EMVS's own default
     if args.keep_hot_pixels:
         options["hot_pixels"] = None
     if hint := calibration_hint(args):
         print(f"cmax emvs: note: {hint}", file=sys.stderr)
-    metric = args.poses is None or not trajectory_up_to_scale(args.poses)
     if not metric:
         print(f"cmax emvs: note: the poses of {args.poses} are up to scale (its header says so: cmax fit without "
               "--speed moves each window at 1 m/s): the depths, the planes' range and points.ply are in the "
@@ -200,7 +228,7 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     save_npz_atomic(stage / "depth.npz", depth=result.depth, confidence=result.confidence, mask=result.mask,
               t_ref_us=np.int64(result.t_ref_us), T_w_ref=result.T_w_ref, K=result.K,
               depth_range=np.array(result.depth_range))
-    result.plot(stage / "depth.png", zoom=viz.readable_zoom(events.width))   # small sensors enlarged
+    result.plot(stage / "depth.png", zoom=viz.readable_zoom(events.width), metric=metric)   # small sensors enlarged
     result.save_ply(stage / "points.ply")
     depths = result.depth[result.mask]
     median_m = float(np.median(depths)) if depths.size else None
@@ -211,7 +239,8 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
               "camera": camera_read(detect_format(args.file), getattr(args, "camera", None)), "poses": str(args.poses or f"{args.file}: gt/poses"),
               "events": len(events), "t_ref_us": int(result.t_ref_us), "n_planes": int(result.n_planes),
               "depth_range": [float(v) for v in result.depth_range], "mask_pixels": int(result.mask.sum()),
-              "median_depth_m": median_m, "scale_known": metric, "files": list(RESULTS)}
+              "median_depth_m": median_m, "scale_known": metric, "files": list(RESULTS),
+              "units": summary_units(metric)}
     write_text_atomic(stage / "summary.json", json.dumps(record, indent=2) + "\n")   # moved in last (publish)
     if len(result.hot_pixels):
         print(f"cmax emvs: note: {len(result.hot_pixels)} hot pixel(s) fire without motion (far more than the "
@@ -221,7 +250,8 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
     for end, share in result.on_bounds().items():
         if share >= EMVS_BOUND_NOTE:
             plane = result.depth_range[0 if end == "near" else 1]
-            print(f"cmax emvs: note: {share:.1%} of the depth map lies on the {end} plane ({plane:g} m): the range's "
+            print(f"cmax emvs: note: {share:.1%} of the depth map lies on the {end} plane ({plane:g} "
+                  f"{'m' if metric else 'up to scale'}): the range's "
                   f"end rather than a measurement (the scene {'nearer' if end == 'near' else 'farther'} than the "
                   f"range, or too little parallax to tell); --depth-range widens it", file=sys.stderr)
     median = "n/a" if median_m is None else f"{median_m:.3f} {'m' if metric else '(up to scale)'}"

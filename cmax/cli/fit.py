@@ -298,7 +298,8 @@ def verdict_counts(counts: dict[str, int]) -> str:
 
 def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_motion: int = 0,
            cell_noise: int = 0, unsteady: int = 0, sparse: int = 0, *, single_window: bool = False,
-           sparse_needs: int | None = None, small_parallax: int = 0, noisy: int = 0) -> list[str]:
+           sparse_needs: int | None = None, small_parallax: int = 0, noisy: int = 0,
+           densest: int | None = None) -> list[str]:
     """What to try when at least half of the fitted windows are low parallax or ambiguous and unresolved (one
     line each; none otherwise); ``rotation_known``: the run held the rotation (``--gyro``, ``--omega``);
     ``no_motion``: how many of the low-parallax windows show no motion at all (the permutation test,
@@ -312,6 +313,8 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     cure. ``single_window``: one window spans the whole recording (a longer ``--window-ms`` cannot give more);
     ``sparse_needs``: the events a window must be fitted on to reach the density the verdict asks, when that is
     more than ``--max-events`` lets through (then only a larger ``--max-events`` helps a sparse window);
+    ``densest``: the most events any window of the run holds (None: not counted); under ``sparse_needs`` no
+    ``--max-events`` reaches the density, and the advice says so (longer windows, or a longer recording, do);
     ``small_parallax`` (se3): how many of the other unresolved ambiguous windows are so because their parallax is
     under ``QualitySettings.min_ok_parallax_px`` (``Quality.small_parallax``), for which more parallax or a known
     rotation is the cure; ``noisy`` (se3): how many of the other unresolved ambiguous windows are so because too many
@@ -322,6 +325,9 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     >>> advice({"ok": 0, "ambiguous": 2, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", sparse=2,
     ...        sparse_needs=230_400)[0]
     '2 of 2 windows stay ambiguous because they were fitted on too few events per pixel to vouch for their direction (QualitySettings.min_event_density): a larger --max-events (at least 230,400 on this sensor; the fit takes longer in proportion) gives them more; a longer --window-ms alone does not (a window is subsampled to --max-events)'
+    >>> advice({"ok": 0, "ambiguous": 1, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", sparse=1,
+    ...        sparse_needs=230_400, densest=219_517, single_window=True)[0].split(": ", 1)[1]
+    'no --max-events reaches that density: the window holds 219,517 events, fewer than the 230,400 this sensor needs; a longer span of events (the run is one window over all of them) gives more'
 
     >>> advice({"ok": 1, "ambiguous": 0, "resolved": 0, "low_parallax": 3, "failed": 0}, "se3")[0][:40]
     '3 of 4 windows have too little parallax:'
@@ -366,6 +372,11 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
             cure = (f"a larger --max-events (at least {sparse_needs:,} on this sensor; the fit takes longer in "
                     "proportion) gives them more; a longer --window-ms alone does not (a window is subsampled to "
                     "--max-events)" if sparse_needs else f"{longer} gives them more")
+            if sparse_needs and densest is not None and densest < sparse_needs:   # no --max-events can help
+                cure = (f"no --max-events reaches that density: the {'window' if single_window else 'densest window'}"
+                        f" holds {densest:,} events, fewer than the {sparse_needs:,} this sensor needs; "
+                        + (f"{longer} gives more" if single_window else
+                           f"{longer} with --max-events of at least {sparse_needs:,} gives more"))
             lines.append(f"{sparse} of {total} windows stay ambiguous because they were fitted on too few events per "
                          f"pixel to vouch for their direction (QualitySettings.min_event_density): {cure}")
         if unsteady:
@@ -373,6 +384,27 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
                          "them (their event rate changes beyond QualitySettings.max_rate_change between their "
                          "halves): a shorter --window-ms keeps the motion steady within each window")
     return lines
+
+
+def densest_window(events, first_us: int, last_us: int, window_us: int, step_us: int) -> int | None:
+    """The most events any window ``[start, start + window_us)`` of the run holds (its starts from
+    :func:`cmax.events.window_starts` over ``[first_us, last_us]`` [µs], ``step_us`` apart), counted by a binary
+    search of the times of ``events`` (:class:`cmax.Events`); None for events streamed from a file (not held).
+
+    >>> import cmax
+    >>> events = cmax.Events([0] * 5, [0] * 5, [0, 1, 2, 10, 11], [1] * 5, 2, 2)
+    >>> densest_window(events, 0, 11, 10, 10)
+    3
+    """
+    from cmax.events import Events, window_starts
+
+    if not isinstance(events, Events):
+        return None
+    starts = window_starts(first_us, last_us, window_us, step_us)
+    if not len(starts):
+        return None
+    bounds = np.searchsorted(events.t, np.stack([starts, starts + window_us]))
+    return int((bounds[1] - bounds[0]).max())
 
 
 def grouped_warnings(caught: list) -> list[dict]:
@@ -760,7 +792,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     late_notes += advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None,
                          no_motion, cell_noise, unsteady, sparse, single_window=single_window,
                          sparse_needs=needs if needs > settings.max_events else None, small_parallax=small,
-                         noisy=noisy)
+                         noisy=noisy, densest=densest_window(fitted, first_us, last_us, window_us, step_us))
     failed = sum(r.verdict is Verdict.FAILED for r in sequence.results)
     if not windows:
         late_notes.append(f"no window was fitted: each has fewer than {min_events:,} events (over more than one "

@@ -121,9 +121,11 @@ class SemiDenseDepth:
     hot_pixels: np.ndarray = field(default_factory=no_pixels)
 
     def image(self, scale: "viz.DepthScale | tuple[float, float] | None" = None, *,
-              zoom: int | None = None) -> np.ndarray:
+              zoom: int | None = None, metric: bool = True) -> np.ndarray:
         """Picture (BGR uint8): the confidence map (the DSI's maximum per pixel; its grey scale in the title:
-        white no vote, black the 99th percentile of the votes and above) beside the depth with its colour bar [m].
+        white no vote, black the 99th percentile of the votes and above) beside the depth with its colour bar [m];
+        ``metric=False`` (poses up to scale, e.g. a trajectory of ``cmax fit`` without ``--speed``): the depth
+        titled ``up to scale`` and its colour bar without a unit.
 
         ``scale`` (a :class:`cmax.viz.DepthScale`, or ``(near, far)`` metres) gives several maps one
         colour scale; default: the 1st-99th percentiles of the map's own depths (the DSI's depth range when
@@ -143,7 +145,8 @@ class SemiDenseDepth:
         return viz.hstack([
             viz.titled(cv2.cvtColor(grey, cv2.COLOR_GRAY2BGR), confidence_title(top)),
             viz.depth_panel(depth, self._own_scale() if scale is None else scale,
-                            f"semi-dense depth, {int(self.mask.sum())} px"),
+                            f"semi-dense depth{'' if metric else ' [up to scale]'}, {int(self.mask.sum())} px",
+                            unit="m" if metric else ""),
         ])
 
     def on_bounds(self) -> dict[str, float]:
@@ -168,11 +171,11 @@ class SemiDenseDepth:
             return viz.DepthScale(*self.depth_range)
         return viz.DepthScale.from_depths(self.depth[self.mask])
 
-    def plot(self, path: str | os.PathLike, *, zoom: int | None = None) -> Path:
-        """Write :meth:`image` (``zoom`` as there) as a PNG (atomically); returns the path."""
+    def plot(self, path: str | os.PathLike, *, zoom: int | None = None, metric: bool = True) -> Path:
+        """Write :meth:`image` (``zoom``, ``metric`` as there) as a PNG (atomically); returns the path."""
         from cmax import viz
 
-        return viz.save_png(path, self.image(zoom=zoom))
+        return viz.save_png(path, self.image(zoom=zoom, metric=metric))
 
     def save_ply(self, path: str | os.PathLike, *, binary: bool = True) -> Path:
         """Write :attr:`points` (world frame, metres) as a PLY point cloud at ``path`` (atomically; ``binary``:

@@ -85,6 +85,10 @@ def _npz_message(path: Path) -> str:
             names = list(archive.files)
     except (OSError, ValueError, EOFError, zipfile.BadZipFile) as error:
         return f"{path} is not a readable .npz archive ({type(error).__name__}: {error})"
+    if {"x", "y", "t", "p"} <= set(names):             # np.savez(x=, y=, t=, p=): rpg_vid2e's ESIM, numpy dumps
+        return (f"{path} is a NumPy .npz archive of the arrays {names[:8]}{' ...' if len(names) > 8 else ''}: an .npz "
+                "of separate arrays is not read: build cmax.Events(x, y, t, p, width, height) from them "
+                "(time_unit='s' for float seconds) and np.save('events.npy', events.to_structured())")
     first = names[0] if names else "events"
     return (f"{path} is a NumPy .npz archive of the arrays {names[:8]}{' ...' if len(names) > 8 else ''}, not one "
             f"event array: save the events with np.save (a structured .npy), or read one array, e.g. "

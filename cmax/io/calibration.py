@@ -118,6 +118,7 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
     path = Path(path)
     if not path.is_file():
         raise FileNotFoundError(f"no calibration file at {path}")
+    _check_not_binary(path)
     text = path.read_text("utf-8-sig", errors="replace")     # a byte order mark (Windows editors) is not text
     if path.suffix.lower() in (".yaml", ".yml"):
         values = _yaml_intrinsics(path, text, camera)
@@ -169,6 +170,40 @@ def read_calibration(path: str | Path, camera: str = "cam0") -> Calibration:
                                          "radtan", *_rectification(path, camera, rectification, projection),
                                          None if values is None else values.get("rostopic"),
                                          None if values is None else values.get("rectified_from")))
+
+
+#: The formats :func:`read_calibration` reads, as a refusal names them.
+CALIBRATION_FORMATS = ("ECD calib.txt, DSEC cam_to_cam.yaml, a Kalibr camchain .yaml, a ROS camera_info .yaml or "
+                       "OpenCV FileStorage .yaml")
+
+
+def _check_not_binary(path: Path) -> None:
+    """Refuse a binary file given as a calibration file (its bytes were parsed as text and refused as a malformed
+    ``calib.txt``): ValueError naming ``path``, what it is and the file to give instead. DSEC's
+    :data:`DSEC_RECTIFY_MAP` (an HDF5 table of rectified pixel positions, ``SEQ/events/left/``) names the
+    sequence's ``SEQ/calibration/cam_to_cam.yaml``, which holds the same undistortion and rectification.
+
+    >>> import tempfile
+    >>> with tempfile.TemporaryDirectory() as folder:
+    ...     table = Path(folder) / "rectify_map.h5"
+    ...     _ = table.write_bytes(b"\\x89HDF\\r\\n\\x1a\\n" + bytes(8))
+    ...     try:
+    ...         _check_not_binary(table)
+    ...     except ValueError as error:
+    ...         print(str(error)[len(str(table)):].split(":")[0])
+     is DSEC's rectify map (an HDF5 table of rectified pixel positions), not a calibration file
+    """
+    with open(path, "rb") as file:
+        head = file.read(4096)
+    if head.startswith(b"\x89HDF\r\n\x1a\n") and path.name == DSEC_RECTIFY_MAP:
+        yaml = path.resolve().parent.parent.parent / "calibration" / "cam_to_cam.yaml"
+        where = f" ({yaml})" if yaml.is_file() else " (SEQ/calibration/cam_to_cam.yaml of the sequence)"
+        raise ValueError(f"{path} is DSEC's rectify map (an HDF5 table of rectified pixel positions), not a "
+                         f"calibration file: pass the sequence's cam_to_cam.yaml{where}, which holds the same "
+                         "undistortion and rectification (cam0 into camRect0's frame)")
+    if head.startswith(b"\x89HDF\r\n\x1a\n") or b"\x00" in head:
+        what = "an HDF5 file" if head.startswith(b"\x89HDF") else "a binary file"
+        raise ValueError(f"{path} is {what}, not a calibration file: expected {CALIBRATION_FORMATS} (text)")
 
 
 def _yaml_matrix(path: Path, camera: str, values: dict[str, str], key: str,

@@ -80,7 +80,9 @@ class EventFileInfo:
     ``size_inferred_from``: the header line of a RAW file that does not state its sensor size from which the size
     was inferred (a camera's name: a guess, said on the sensor line), None for a stated or given size;
     ``time_unit_assumed``: the file's integer times were read as µs, its format's default, with neither the file nor
-    the caller stating a unit (said on the time line: the readers refuse only the units they can tell apart).
+    the caller stating a unit (said on the time line: the readers refuse only the units they can tell apart);
+    ``streams``: the other streams of an AEDAT4 file beside its events, each with what reads it
+    (:func:`aedat4_stream_notes`; empty for other files).
     """
 
     path: str
@@ -98,6 +100,7 @@ class EventFileInfo:
     duplicates: int | None = None
     size_inferred_from: str | None = None
     time_unit_assumed: bool = False
+    streams: tuple[str, ...] = ()
 
     @property
     def duration_s(self) -> float:
@@ -205,10 +208,33 @@ class EventFileInfo:
                 out.append(self._hot_line())
             if self.duplicates:
                 out.append(self._duplicates_line())
+        if self.streams:
+            out.append(f"streams     {'; '.join(self.streams)}")
         for key, value in sorted(self.attrs.items()):
             if key not in ("width", "height"):
                 out.append(f"attr        {key} = {value}")
         return out
+
+
+#: What reads each kind of AEDAT4 stream other than events (:func:`aedat4_stream_notes`).
+_AEDAT4_READERS = {"IMUS": "IMU samples: cmax fit --gyro FILE holds each window's rotation at their mean "
+                           "(cmax.io.read_aedat4_imu)",
+                   "FRME": "APS frames (cmax.io.read_aedat4_frames)"}
+
+
+def aedat4_stream_notes(streams) -> tuple[str, ...]:
+    """One note per stream of an AEDAT4 file that is not its events (``streams``: the file's
+    :class:`cmax.io.aedat4.Aedat4Stream` list, :func:`cmax.io.aedat4.aedat4_streams`): its name, kind and what
+    reads it, so that ``cmax info`` tells a DAVIS user that the file's own IMU can be ``--gyro``.
+
+    >>> from cmax.io.aedat4 import Aedat4Stream
+    >>> aedat4_stream_notes([Aedat4Stream(0, "EVTS", "events", 346, 260, "lz4"),
+    ...                      Aedat4Stream(1, "IMUS", "imu", None, None, "lz4")])[0][:40]
+    "'imu' (IMUS): IMU samples: cmax fit --gy"
+    """
+    return tuple(f"{stream.name!r} ({stream.type_identifier}): "
+                 f"{_AEDAT4_READERS.get(stream.type_identifier, 'not read by cmax')}"
+                 for stream in streams if stream.type_identifier != "EVTS")
 
 
 def events_info(events: Events, *, path: str = "", format: str = "") -> EventFileInfo:
@@ -246,6 +272,10 @@ def file_info(
     if kind != "dsec":
         events = read(path, width=width, height=height, time_unit=time_unit, **options)
         info = events_info(events, path=str(path), format=kind)
+        if kind == "aedat4":
+            from cmax.io.aedat4 import aedat4_streams
+
+            info = replace(info, streams=aedat4_stream_notes(aedat4_streams(path)))
         # a .npy's float times need a stated unit; its integer ones are µs when none is stated
         return replace(info, time_unit_assumed=kind == "npy" and time_unit is None)
     with H5Reader(path, width=width, height=height, time_unit=time_unit, **options) as reader:
