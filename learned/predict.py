@@ -814,8 +814,9 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                                      polarity, sort, camera, t0_s, t1_s, window_us, len(starts), batch, device,
                                      progress, code=code_digest("cmax", "learned"))
         if finished is not None:   # --resume into complete results: the same run (nothing to do), or refused
-            run_folder.check_complete(stage.parent, finished, completed_record(recorded(files=hashing.result()),
-                                                                               depth_range), command="cmax depth")
+            notes.append(run_folder.check_complete(   # the same run with files missing or changed: run again
+                stage.parent, finished, completed_record(recorded(files=hashing.result()), depth_range),
+                command="cmax depth"))
         for text in notes:
             note(text)
         kept = KeptBlocks(stage.parent, lambda: recorded(files=hashing.result()), resume=resume, overwrite=overwrite)
@@ -879,7 +880,8 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],
                "windows_total": len(starts), "windows": written, "skipped": skipped, "min_events": MIN_EVENTS,
                "notes": list(notes), "device": str(device), "seconds": run.seconds, "units": SUMMARY_UNITS,
-               "run": completed_record(kept.run, depth_range)}
+               "run": completed_record(kept.run, depth_range),
+               run_folder.OUTPUTS_KEY: run_folder.output_records(stage)}
     write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2) + "\n")
     return run, kept
 

@@ -279,3 +279,28 @@ def test_resume_of_a_finished_run_says_it_is_complete_and_touches_nothing(tiny_c
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "records no run identity" in err[0] and "cannot be checked" in err[0], err
     assert stamps() == before and calls == []
+
+
+def test_resume_of_a_finished_run_with_a_file_deleted_or_changed_predicts_again(recording, tiny_checkpoint, tmp_path,
+                                                                               monkeypatch, capsys):
+    """Was: a finished run whose ``window_00003.npz`` was deleted and ``twists.csv`` changed in place was "already
+    complete" for ``--resume`` (only summary.json was looked at). Its recorded sizes and SHA-256 now tell: the run
+    is predicted again, and the folder ends as the first run left it."""
+    import json
+
+    out = tmp_path / "o"
+    assert predict.main(argv(recording, out, tiny_checkpoint)) == 0
+    expected = outputs(out)
+    (out / "window_00003.npz").unlink()
+    twists = (out / "twists.csv").read_bytes()
+    (out / "twists.csv").write_bytes(twists[:-2] + (b"0" if twists[-2:-1] != b"0" else b"1") + twists[-1:])
+    capsys.readouterr()
+    calls = counted_calls(monkeypatch, predict, "forward")
+    assert predict.main(argv(recording, out, tiny_checkpoint, "--resume")) == 0
+    captured = capsys.readouterr()
+    assert "already complete" not in captured.out and calls, captured
+    assert "window_00003.npz is missing" in captured.err and "twists.csv holds other bytes" in captured.err
+    assert_same(outputs(out), expected)
+    recorded = json.loads((out / "summary.json").read_text())["outputs"]
+    assert sorted(recorded) == sorted(p.name for p in out.iterdir() if p.name != "summary.json")
+
