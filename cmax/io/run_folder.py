@@ -213,8 +213,7 @@ def check_complete(out: str | os.PathLike, summary: dict, now: dict, *, command:
     recorded = summary.get("run")
     if not isinstance(recorded, dict):
         raise FileExistsError(f"cannot --resume into {out}: it holds the complete results of an earlier run whose "
-                              f"{COMPLETION_MARKER} records no run identity (written by an earlier version, or "
-                              "by cmax emvs, which records none), so "
+                              f"{COMPLETION_MARKER} records no run identity (written by an earlier version), so "
                               "whether they are this run's cannot be checked: --overwrite replaces them, or give "
                               "another -o")
     now = json.loads(json.dumps(now))
