@@ -820,7 +820,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         for text in notes:
             note(text)
         kept = KeptBlocks(stage.parent, lambda: recorded(files=hashing.result()), resume=resume, overwrite=overwrite)
-        lines, skipped, samples, indices = [_CSV_HEADER], 0, [], []
+        lines, skipped, samples, indices, blocks = [_CSV_HEADER], 0, [], [], []
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
             for first in range(0, len(starts), batch):   # one forward pass each, kept once all its windows are
                 block = starts[first:first + batch]
@@ -844,6 +844,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                         kept.place(index, stage)
                         samples.append(depth_sample(kept.sample_of(index)))
                 indices += done[0]
+                blocks.append((first, done[0]))
                 lines += done[1]
                 skipped += done[2]
         kept.run     # every input hashed whole and unchanged (else refused) before the results are published
@@ -865,8 +866,15 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         note(tail)                           # after the run: a mistake found during it stays one line
         notes.append(tail)
     scale = run_scale(samples, depth_range)
-    for index in tqdm(indices, desc="pictures", unit="picture", disable=not progress):   # ~0.1 s each at 640x480
-        draw_window(stage, index, scale)
+    with tqdm(total=len(indices), desc="pictures", unit="picture", disable=not progress) as bar:
+        for first, block in blocks:   # kept block by block as they are drawn (~0.1 s each at 640x480)
+            if block and not kept.load_pictures(first, block, scale, stage):
+                for index in block:
+                    draw_window(stage, index, scale)
+                    bar.update(1)
+                kept.save_pictures(first, block, scale, stage)
+            else:
+                bar.update(len(block))
     write_text_atomic(stage / "twists.csv", "\n".join(lines) + "\n")
     run = DepthRun(written, skipped, window_us, tuple(notes), time.perf_counter() - started, stage)
     from cmax.cli.recording import camera_read
