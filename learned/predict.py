@@ -980,7 +980,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                              "interrupted run's windows is refused without --resume or --overwrite; with "
                              "--overwrite too, an earlier complete run's results are replaced at the end; without "
                              "it, a complete run of the same file, checkpoint and options is left as it is: nothing "
-                             "to do)")
+                             "to do, unless a result it lists is missing or changed: then it runs again)")
     return parser
 
 

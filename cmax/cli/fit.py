@@ -131,7 +131,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                              "interrupted run's windows is refused without --resume or --overwrite; with "
                              "--overwrite too, an earlier complete run's results in -o are replaced at the end; "
                              "without it, a complete run of the same files and options in -o is left as it is: "
-                             "nothing to do)")
+                             "nothing to do, unless a result it lists is missing or changed: then it runs again)")
     parser.add_argument("--keep-hot-pixels", action="store_true",
                         help="fit every event; by default the events of hot pixels (far more events than the scene's "
                              "edges give any pixel, or firing alone at a steady rate: a defect; or locked to a 100/120 "
