@@ -90,3 +90,26 @@ def test_a_signal_while_the_process_exits_leaves_the_commands_status(tmp_path, s
     _, err = process.communicate(timeout=60)
     assert process.returncode == 3, (process.returncode, err)
     assert "Traceback" not in err, err
+
+
+def test_sighup_to_the_process_group_of_fit_with_workers_is_one_line(slider_file, tmp_path):
+    """A closed ssh session signals the whole job: with ``--jobs 2`` multiprocessing's resource tracker, which ignores
+    SIGINT and SIGTERM but not SIGHUP, died and was relaunched (``warning: resource_tracker: process died
+    unexpectedly, relaunching``, then ``KeyError`` tracebacks of the new tracker). The forkserver, its workers and
+    the tracker now start with SIGHUP ignored (as SIGINT): the calling process stops them, one line, exit 129."""
+    out = tmp_path / "F"
+    process = subprocess.Popen([sys.executable, "-m", "cmax.cli", "fit", str(slider_file), "-o", str(out), "--quiet",
+                                "--window-ms", "30", "--min-events", "100", "--depth-grid", "6,8", "--jobs", "2"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not list(out.glob(".fit.windows/window_*")) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert process.poll() is None, "the run ended before its workers fitted a window"
+    os.killpg(process.pid, signal.SIGHUP)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 129, err
+    assert "Traceback" not in err and "resource_tracker" not in err, err
+    assert [line for line in err.splitlines() if "terminated" in line] == [err.splitlines()[-1]], err
+    assert err.splitlines()[-1].startswith("cmax fit: terminated (SIGHUP)"), err
+    left = [path.name for path in out.iterdir()] if out.exists() else []
+    assert not [name for name in left if name.endswith((".partial", ".lock"))], left
