@@ -27,7 +27,7 @@ import sys
 import warnings
 from typing import Any, Callable, Sequence
 
-from cmax._signals import TERMINATED_STATUS, Terminated, sigterm_as_interrupt, stop_if_terminated
+from cmax._signals import Terminated, ignore_while_exiting, sigterm_as_interrupt, terminated_by
 
 __all__ = [
     "ArgumentParser", "HelpFormatter", "USER_ERRORS", "DEBUG_ENV", "api_default", "run_main", "one_line",
@@ -261,10 +261,22 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
     on one line and returns 2; with ``--debug`` or ``CMAX_DEBUG=1`` it is
     raised instead (the full traceback). A warning of the library prints as
     ``PROG: warning: MESSAGE`` on one line (Python's format with ``--debug``). ``KeyboardInterrupt`` returns 130
-    with one line. A closed stdout (``| head``) ends quietly with status 1. Any other exception is a
-    bug and keeps its traceback.
+    with one line; SIGTERM and SIGHUP run the same clean-up and return 143 / 129 with one line
+    (:mod:`cmax._signals`). A closed stdout (``| head``) ends quietly with status 1. Any other exception is a
+    bug and keeps its traceback. With ``argv`` None (the process's own command line: the console script,
+    ``python -m``), Ctrl-C, SIGTERM and SIGHUP are ignored once the command has ended, so that the process exits
+    with the status returned here (:func:`cmax._signals.ignore_while_exiting`), not killed by a signal.
     """
     args = parser.parse_args(None if argv is None else [str(a) for a in argv])
+    status = _run_command(parser, run, args, prog=prog)
+    if argv is None:
+        ignore_while_exiting()
+    return status
+
+
+def _run_command(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace], int | None] | None,
+                 args: argparse.Namespace, *, prog: Callable[[argparse.Namespace], str] | None = None) -> int:
+    """:func:`run_main`'s run of the parsed ``args``; returns the exit status."""
     command = run if run is not None else getattr(args, "run", None)
     label = prog(args) if prog is not None else parser.prog
     if command is None:
@@ -278,8 +290,8 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
                     f"{label}: warning: {one_line(str(message))}", file=sys.stderr)
             with sigterm_as_interrupt():
                 status = int(command(args) or 0)
-            if status != TERMINATED_STATUS:   # 143: the command stopped on SIGTERM and said so itself
-                stop_if_terminated()   # a SIGTERM whose exception Python dropped (in a finalizer) still ends the run
+            if (signum := terminated_by()) is not None and status != 128 + signum:   # 143 / 129: said so itself
+                raise Terminated(signum)   # one whose exception Python dropped (in a finalizer) still ends the run
             return status
     except BrokenPipeError:  # the reader of stdout left (cmax info ... | head): not an error of the input
         if debug:
@@ -291,11 +303,11 @@ def run_main(parser: argparse.ArgumentParser, run: Callable[[argparse.Namespace]
             raise
         print(f"{label}: error: {one_line(error)}", file=sys.stderr)
         return 2
-    except Terminated:
+    except Terminated as stop:
         if debug:
             raise
-        print(f"{label}: terminated (SIGTERM)", file=sys.stderr)
-        return TERMINATED_STATUS
+        print(f"{label}: terminated ({stop.name})", file=sys.stderr)
+        return stop.status
     except KeyboardInterrupt:
         if debug:
             raise

@@ -1,10 +1,14 @@
-"""SIGTERM handled as Ctrl-C is: ``timeout``, ``kill``, a SLURM time limit or torchrun stopping a run raise
-:class:`Terminated` (a ``KeyboardInterrupt``) in the main thread, so that every ``finally`` and ``with`` block of the
-run does its clean-up (locks released and their files removed, private stage folders and temporary files deleted,
-workers stopped) instead of the process dying where it stands.
+"""SIGTERM and SIGHUP handled as Ctrl-C is: ``timeout``, ``kill``, a SLURM time limit or torchrun stopping a run
+(SIGTERM), a closed ssh session or terminal, a batch system's hangup (SIGHUP) raise :class:`Terminated` (a
+``KeyboardInterrupt``) in the main thread, so that every ``finally`` and ``with`` block of the run does its clean-up
+(locks released and their files removed, private stage folders and temporary files deleted, workers stopped)
+instead of the process dying where it stands.
 
 :func:`cmax._args.run_main` runs every command of ``cmax`` and ``python -m learned.*`` inside
-:func:`sigterm_as_interrupt` and exits with status 143 (128 + SIGTERM) after the clean-up.
+:func:`sigterm_as_interrupt` and exits with status 128 + the signal's number after the clean-up (143 for SIGTERM, 129
+for SIGHUP); a process started with SIGHUP ignored (``nohup``) keeps ignoring it. Once the command has ended, a
+signal during the interpreter's exit is ignored, so that the process exits with the command's status
+(:func:`ignore_while_exiting`).
 """
 from __future__ import annotations
 
@@ -15,27 +19,52 @@ from contextlib import contextmanager
 from typing import Iterator
 
 __all__ = ["Terminated", "sigterm_as_interrupt", "sigterm_deferred", "sigint_deferred", "stop_if_terminated",
-           "TERMINATED_STATUS"]
+           "terminated_by", "ignore_while_exiting", "STOP_SIGNALS", "TERMINATED_STATUS"]
 
 #: The exit status of a run stopped by SIGTERM, as a shell reports a process killed by it.
 TERMINATED_STATUS = 128 + int(signal.SIGTERM)
+#: The signals that stop a run as Ctrl-C does (:func:`sigterm_as_interrupt`): SIGTERM, and SIGHUP where there is one.
+STOP_SIGNALS: tuple[int, ...] = (signal.SIGTERM,) + ((signal.SIGHUP,) if hasattr(signal, "SIGHUP") else ())
 
 
 class Terminated(KeyboardInterrupt):
-    """SIGTERM, raised where Ctrl-C's ``KeyboardInterrupt`` would be, so that the same clean-up runs."""
+    """SIGTERM (or SIGHUP: ``signum``), raised where Ctrl-C's ``KeyboardInterrupt`` would be, so that the same
+    clean-up runs.
+
+    Parameters
+    ----------
+    signum : int
+        The signal's number (default SIGTERM).
+    """
+
+    def __init__(self, signum: int = signal.SIGTERM) -> None:
+        super().__init__()
+        self.signum = int(signum)
+
+    @property
+    def name(self) -> str:
+        """The signal's name, e.g. ``"SIGTERM"``, ``"SIGHUP"``."""
+        return signal.Signals(self.signum).name
+
+    @property
+    def status(self) -> int:
+        """The exit status of a run it stopped: 128 + the signal's number (143 for SIGTERM, 129 for SIGHUP)."""
+        return 128 + self.signum
 
 
-#: Set by the SIGTERM handler of :func:`sigterm_as_interrupt`: the run was told to stop.
-_SIGTERM_RECEIVED = threading.Event()
-#: Open :func:`sigterm_deferred` blocks (main thread), and whether a SIGTERM came inside one.
+#: The stop signal the handler of :func:`sigterm_as_interrupt` received (its number; None: none): the run was told to
+#: stop.
+_RECEIVED: dict[str, int | None] = {"signum": None}
+#: Open :func:`sigterm_deferred` blocks (main thread), and whether a stop signal came inside one.
 _DEFERRAL = {"depth": 0, "pending": False}
 
 
 @contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
-    """Within the block, SIGTERM raises :class:`Terminated` in the main thread (once: a second one is ignored, so
-    it cannot cut the clean-up short); the previous handler is restored afterwards. Outside the main thread (where
-    Python cannot install a handler) the block runs unchanged.
+    """Within the block, SIGTERM and SIGHUP (:data:`STOP_SIGNALS`) raise :class:`Terminated` in the main thread
+    (once: a second one of either is ignored, so it cannot cut the clean-up short); the previous handlers are
+    restored afterwards. A signal ignored when the block starts (SIGHUP under ``nohup``) stays ignored. Outside the
+    main thread (where Python cannot install a handler) the block runs unchanged.
 
     A signal handler runs between any two bytecodes, also inside a finalizer or a weakref callback, where Python
     drops the exception it raises ("Exception ignored in ..."). The signal is remembered as well: such a dropped
@@ -44,34 +73,38 @@ def sigterm_as_interrupt() -> Iterator[None]:
     if threading.current_thread() is not threading.main_thread():
         yield
         return
-    _SIGTERM_RECEIVED.clear()
+    _RECEIVED["signum"] = None
     _DEFERRAL["pending"] = False
+    handled = [signum for signum in STOP_SIGNALS if signal.getsignal(signum) != signal.SIG_IGN]
 
     def terminate(signum, frame) -> None:
-        signal.signal(signal.SIGTERM, signal.SIG_IGN)
-        _SIGTERM_RECEIVED.set()
+        for each in handled:
+            signal.signal(each, signal.SIG_IGN)
+        _RECEIVED["signum"] = signum
         if _DEFERRAL["depth"]:            # inside sigterm_deferred: raised when the block ends
             _DEFERRAL["pending"] = True
             return
-        raise Terminated()
+        raise Terminated(signum)
 
     def unraisable(info) -> None:
         if not isinstance(info.exc_value, Terminated):   # a dropped Terminated is remembered, not printed
             hook(info)
 
-    previous, hook = signal.signal(signal.SIGTERM, terminate), sys.unraisablehook
+    previous = {signum: signal.signal(signum, terminate) for signum in handled}
+    hook = sys.unraisablehook
     sys.unraisablehook = unraisable
     try:
         yield
     finally:
-        signal.signal(signal.SIGTERM, previous if previous is not None else signal.SIG_DFL)
+        for signum, handler in previous.items():
+            signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
         sys.unraisablehook = hook
 
 
 @contextmanager
 def sigterm_deferred() -> Iterator[None]:
-    """Within the block, a SIGTERM that :func:`sigterm_as_interrupt` turns into :class:`Terminated` is held back
-    and raised when the block ends, so that a step the clean-up relies on is not cut in two: a worker process
+    """Within the block, a SIGTERM (or SIGHUP) that :func:`sigterm_as_interrupt` turns into :class:`Terminated` is
+    held back and raised when the block ends, so that a step the clean-up relies on is not cut in two: a worker process
     started AND recorded as running (one started but not yet recorded would be neither stopped nor cleaned up
     after). A block left by an exception while a SIGTERM is held back raises :class:`Terminated` instead: the
     failure is the signal's doing (the ``forkserver``, signalled with the process group by ``timeout`` or a batch
@@ -86,13 +119,13 @@ def sigterm_deferred() -> Iterator[None]:
     except BaseException:
         if _DEFERRAL["depth"] == 1 and _DEFERRAL["pending"]:
             _DEFERRAL["pending"] = False
-            raise Terminated() from None
+            raise Terminated(_RECEIVED["signum"] or signal.SIGTERM) from None
         raise
     finally:
         _DEFERRAL["depth"] -= 1
     if not _DEFERRAL["depth"] and _DEFERRAL["pending"]:
         _DEFERRAL["pending"] = False
-        raise Terminated()
+        raise Terminated(_RECEIVED["signum"] or signal.SIGTERM)
 
 
 @contextmanager
@@ -125,6 +158,27 @@ def sigint_deferred() -> Iterator[None]:
 
 
 def stop_if_terminated() -> None:
-    """Raise :class:`Terminated` when SIGTERM came but its exception was dropped (see :func:`sigterm_as_interrupt`)."""
-    if _SIGTERM_RECEIVED.is_set():
-        raise Terminated()
+    """Raise :class:`Terminated` when SIGTERM or SIGHUP came but its exception was dropped (see
+    :func:`sigterm_as_interrupt`)."""
+    if _RECEIVED["signum"] is not None:
+        raise Terminated(_RECEIVED["signum"])
+
+
+def terminated_by() -> int | None:
+    """The number of the stop signal (SIGTERM, SIGHUP) the last :func:`sigterm_as_interrupt` block received; None when
+    none came."""
+    return _RECEIVED["signum"]
+
+
+def ignore_while_exiting() -> None:
+    """From now on, Ctrl-C, SIGTERM and SIGHUP are ignored: for a command that has ended (its clean-up done, its line
+    printed, its status returned) and whose process only exits. Python restores the default handlers early in its
+    exit, before the modules and torch's libraries are torn down (a second or more), so that a signal then killed
+    the process (exit -2 / -15, sometimes a traceback from a finalizer) instead of letting it exit with the
+    command's status; an ignored signal stays ignored through it. Only for the process's own command line: Python
+    code calling a command's ``main`` keeps its handlers. SIGKILL and SIGQUIT (Ctrl-\\) still end an exit that
+    hangs. Outside the main thread nothing changes."""
+    if threading.current_thread() is not threading.main_thread():
+        return
+    for signum in (signal.SIGINT, *STOP_SIGNALS):
+        signal.signal(signum, signal.SIG_IGN)

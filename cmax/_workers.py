@@ -67,8 +67,12 @@ def start_forkserver(context: Any) -> None:
     importing its preloaded modules for seconds, printed the traceback of a ``KeyboardInterrupt`` in the middle of
     that import, dozens of lines under the caller's one line. Started with SIGINT ignored (a disposition that
     survives ``exec``), the server and the workers it forks never see Ctrl-C: the calling process stops its workers
-    itself. The caller's own SIGINT is blocked meanwhile (on Linux a blocked signal stays pending even while
-    ignored), its handler restored, then unblocked: a Ctrl-C that came meanwhile reaches it when this returns.
+    itself. SIGHUP likewise (a closed ssh session signals the whole job): the server, its workers and
+    multiprocessing's resource tracker (started with the server) ignore it, and the calling process, which stops on
+    it (:mod:`cmax._signals`), stops its workers; the tracker, killed by it, was relaunched with a warning and
+    tracebacks. The caller's own SIGINT and SIGHUP are blocked meanwhile (on Linux a blocked signal stays pending
+    even while ignored), their handlers restored, then unblocked: a signal that came meanwhile reaches it when this
+    returns.
     Outside the main thread (where no handler can be set) the server is started as it is."""
     if context.get_start_method() != "forkserver":
         return
@@ -77,13 +81,15 @@ def start_forkserver(context: Any) -> None:
     if threading.current_thread() is not threading.main_thread():
         forkserver.ensure_running()
         return
-    mask = signal.pthread_sigmask(signal.SIG_BLOCK, {signal.SIGINT})
+    ignored = {signal.SIGINT} | ({signal.SIGHUP} if hasattr(signal, "SIGHUP") else set())
+    mask = signal.pthread_sigmask(signal.SIG_BLOCK, ignored)
     try:
-        handler = signal.signal(signal.SIGINT, signal.SIG_IGN)
+        handlers = {signum: signal.signal(signum, signal.SIG_IGN) for signum in ignored}
         try:
             forkserver.ensure_running()
         finally:
-            signal.signal(signal.SIGINT, handler if handler is not None else signal.SIG_DFL)
+            for signum, handler in handlers.items():
+                signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
     finally:
         signal.pthread_sigmask(signal.SIG_SETMASK, mask)
 

@@ -5,13 +5,17 @@ The folder ``-o/.depth.windows/`` holds ``run.json`` (what the run is: the event
 modification time and SHA-256, every option that changes a window, the batch; written with the first block) and, per
 finished block of windows (one forward pass of the network, ``batch`` windows) that wrote any, their
 ``window_<k>.npz`` (as the results name them, linked from the run's private stage) and then ``block_<first>.json``: the run's digest, the block's windows with their
-``twists.csv`` lines and each file's SHA-256, and how many of its windows were skipped. Every file is written
-atomically (:mod:`cmax.io.atomic`), the block record last, so a block with a record is complete.
+``twists.csv`` lines and each file's SHA-256, and how many of its windows were skipped. Once every window is
+predicted, the pictures are drawn block by block on the run's colour scale: each block's ``window_<k>.png`` linked in
+as well, then ``pictures_<first>.json`` (the run's digest, the scale, each picture's SHA-256). Every file is written
+atomically (:mod:`cmax.io.atomic`), the record last, so a block with a record is complete.
 
 A resumed run takes a block only when ``run.json`` matches the new run (else refused, naming what differs:
 :func:`cmax.io.window_store.open_kept`) and the block's record names the same run and each of its files has the
 recorded SHA-256; any other block is predicted again, in the same blocks as before, so that every forward pass
-sees the windows an uninterrupted run gives it and the results are the same bit for bit.
+sees the windows an uninterrupted run gives it and the results are the same bit for bit. A block's pictures are
+taken likewise when their record names the same run, the same colour scale and windows, and each picture has its
+recorded SHA-256 (a run killed while drawing them draws only the others again).
 """
 from __future__ import annotations
 
@@ -128,6 +132,7 @@ class KeptBlocks(KeptRun):
         if not indices:
             return
         write_run_record(self.folder, self.run)      # with the first block: what the run is
+        (self.folder / f"pictures_{first}.json").unlink(missing_ok=True)   # pictures of an unverified block
         windows = []
         for index, line in zip(indices, lines):
             kept = self.window_file(index)
@@ -137,6 +142,41 @@ class KeptBlocks(KeptRun):
         fsync_folder(self.folder)
         write_text_atomic(self.folder / f"block_{first}.json",
                           json.dumps({"run": self.digest, "first": first, "windows": windows, "skipped": skipped}))
+
+    def load_pictures(self, first: int, indices: list[int], scale, stage: Path) -> bool:
+        """Put the kept pictures of the block whose first window is ``first`` into ``stage`` and return True when
+        they are verified: their record names this run, the colour ``scale`` (a :class:`cmax.viz.DepthScale`) and the
+        windows ``indices``, and each ``window_<k>.png`` has its recorded SHA-256; else False (draw them)."""
+        try:
+            record = json.loads((self.folder / f"pictures_{first}.json").read_text())
+            if (record["run"] != self.digest or record["scale"] != [scale.near, scale.far]
+                    or [int(w["index"]) for w in record["windows"]] != list(indices)):
+                return False
+            for w in record["windows"]:
+                if file_sha256(self.picture_file(int(w["index"]))) != w["sha256"]:
+                    return False
+        except (OSError, ValueError, KeyError, TypeError):
+            return False
+        for index in indices:
+            _link(self.picture_file(index), stage / self.picture_file(index).name)
+        return True
+
+    def save_pictures(self, first: int, indices: list[int], scale, stage: Path) -> None:
+        """Keep the pictures of the block whose first window is ``first`` (windows ``indices``), drawn in ``stage``
+        on the colour ``scale``: linked (or copied) into the folder, then recorded with their SHA-256."""
+        windows = []
+        for index in indices:
+            kept = self.picture_file(index)
+            kept.unlink(missing_ok=True)             # an unverified one of an earlier run
+            _link(stage / kept.name, kept)
+            windows.append({"index": index, "sha256": file_sha256(kept)})
+        fsync_folder(self.folder)
+        write_text_atomic(self.folder / f"pictures_{first}.json",
+                          json.dumps({"run": self.digest, "scale": [scale.near, scale.far], "windows": windows}))
+
+    def picture_file(self, index: int) -> Path:
+        """Where window ``index``'s ``window_<k>.png`` is kept."""
+        return self.folder / f"window_{index:05d}.png"
 
     def sample_of(self, index: int) -> np.ndarray:
         """The ``depth`` (H, W) [m] of the kept window ``index``."""

@@ -818,12 +818,13 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                                      polarity, sort, camera, t0_s, t1_s, window_us, len(starts), batch, device,
                                      progress, code=code_digest("cmax", "learned"))
         if finished is not None:   # --resume into complete results: the same run (nothing to do), or refused
-            run_folder.check_complete(stage.parent, finished, completed_record(recorded(files=hashing.result()),
-                                                                               depth_range), command="cmax depth")
+            notes.append(run_folder.check_complete(   # the same run with files missing or changed: run again
+                stage.parent, finished, completed_record(recorded(files=hashing.result()), depth_range),
+                command="cmax depth"))
         for text in notes:
             note(text)
         kept = KeptBlocks(stage.parent, lambda: recorded(files=hashing.result()), resume=resume, overwrite=overwrite)
-        lines, skipped, samples, indices = [_CSV_HEADER], 0, [], []
+        lines, skipped, samples, indices, blocks = [_CSV_HEADER], 0, [], [], []
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
             for first in range(0, len(starts), batch):   # one forward pass each, kept once all its windows are
                 block = starts[first:first + batch]
@@ -847,6 +848,7 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                         kept.place(index, stage)
                         samples.append(depth_sample(kept.sample_of(index)))
                 indices += done[0]
+                blocks.append((first, done[0]))
                 lines += done[1]
                 skipped += done[2]
         kept.run     # every input hashed whole and unchanged (else refused) before the results are published
@@ -868,8 +870,15 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         note(tail)                           # after the run: a mistake found during it stays one line
         notes.append(tail)
     scale = run_scale(samples, depth_range)
-    for index in tqdm(indices, desc="pictures", unit="picture", disable=not progress):   # ~0.1 s each at 640x480
-        draw_window(stage, index, scale, recording.first_us)
+    with tqdm(total=len(indices), desc="pictures", unit="picture", disable=not progress) as bar:
+        for first, block in blocks:   # kept block by block as they are drawn (~0.1 s each at 640x480)
+            if block and not kept.load_pictures(first, block, scale, stage):
+                for index in block:
+                    draw_window(stage, index, scale, recording.first_us)
+                    bar.update(1)
+                kept.save_pictures(first, block, scale, stage)
+            else:
+                bar.update(len(block))
     write_text_atomic(stage / "twists.csv", "\n".join(lines) + "\n")
     run = DepthRun(written, skipped, window_us, tuple(notes), time.perf_counter() - started, stage)
     from cmax.cli.recording import camera_read
@@ -883,7 +892,8 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
                "t0_s": t0_s, "t1_s": t1_s, "start_us": start, "end_us": end, "depth_range_m": [scale.near, scale.far],
                "windows_total": len(starts), "windows": written, "skipped": skipped, "min_events": MIN_EVENTS,
                "notes": list(notes), "device": str(device), "seconds": run.seconds, "units": SUMMARY_UNITS,
-               "run": completed_record(kept.run, depth_range)}
+               "run": completed_record(kept.run, depth_range),
+               run_folder.OUTPUTS_KEY: run_folder.output_records(stage)}
     write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2) + "\n")
     return run, kept
 
@@ -974,7 +984,7 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
                              "interrupted run's windows is refused without --resume or --overwrite; with "
                              "--overwrite too, an earlier complete run's results are replaced at the end; without "
                              "it, a complete run of the same file, checkpoint and options is left as it is: nothing "
-                             "to do)")
+                             "to do, unless a result it lists is missing or changed: then it runs again)")
     return parser
 
 

@@ -107,20 +107,22 @@ def hashing_threads() -> list:
     return [thread for thread in threading.enumerate() if thread.name == "cmax-hash-inputs"]
 
 
-def sigterm_once(argv: list[str], folder: Path, pattern: str, what: str) -> tuple[int, str]:
-    """Run ``argv`` in a subprocess, send it SIGTERM as soon as ``folder`` holds a file matching ``pattern`` (its
-    private temporary or stage), and return its exit status and stderr. Fails when the run ends first (``what``:
-    what it should have been doing)."""
+def sigterm_once(argv: list[str], folder: Path, pattern: str, what: str, *, signum: int | None = None,
+                 preexec_fn=None) -> tuple[int, str]:
+    """Run ``argv`` in a subprocess, send it SIGTERM (or ``signum``) as soon as ``folder`` holds a file matching
+    ``pattern`` (its private temporary or stage), and return its exit status and stderr. Fails when the run ends
+    first (``what``: what it should have been doing). ``preexec_fn``: as :class:`subprocess.Popen`'s."""
     import signal
     import subprocess
     import time
 
-    process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True)
+    process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
+                               preexec_fn=preexec_fn)
     deadline = time.monotonic() + 120
     while not list(folder.glob(pattern)) and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.002)
     assert process.poll() is None, f"the run ended before {what}"
-    process.send_signal(signal.SIGTERM)
+    process.send_signal(signal.SIGTERM if signum is None else signum)
     _, err = process.communicate(timeout=60)
     return process.returncode, err
 

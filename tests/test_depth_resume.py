@@ -279,3 +279,49 @@ def test_resume_of_a_finished_run_says_it_is_complete_and_touches_nothing(tiny_c
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "records no run identity" in err[0] and "cannot be checked" in err[0], err
     assert stamps() == before and calls == []
+
+
+def test_resume_of_a_finished_run_with_a_file_deleted_or_changed_predicts_again(recording, tiny_checkpoint, tmp_path,
+                                                                               monkeypatch, capsys):
+    """Was: a finished run whose ``window_00003.npz`` was deleted and ``twists.csv`` changed in place was "already
+    complete" for ``--resume`` (only summary.json was looked at). Its recorded sizes and SHA-256 now tell: the run
+    is predicted again, and the folder ends as the first run left it."""
+    import json
+
+    out = tmp_path / "o"
+    assert predict.main(argv(recording, out, tiny_checkpoint)) == 0
+    expected = outputs(out)
+    (out / "window_00003.npz").unlink()
+    twists = (out / "twists.csv").read_bytes()
+    (out / "twists.csv").write_bytes(twists[:-2] + (b"0" if twists[-2:-1] != b"0" else b"1") + twists[-1:])
+    capsys.readouterr()
+    calls = counted_calls(monkeypatch, predict, "forward")
+    assert predict.main(argv(recording, out, tiny_checkpoint, "--resume")) == 0
+    captured = capsys.readouterr()
+    assert "already complete" not in captured.out and calls, captured
+    assert "window_00003.npz is missing" in captured.err and "twists.csv holds other bytes" in captured.err
+    assert_same(outputs(out), expected)
+    recorded = json.loads((out / "summary.json").read_text())["outputs"]
+    assert sorted(recorded) == sorted(p.name for p in out.iterdir() if p.name != "summary.json")
+
+
+def test_a_run_killed_while_drawing_its_pictures_draws_only_the_others_on_resume(recording, tiny_checkpoint, tmp_path,
+                                                                                monkeypatch, capsys):
+    """Was: the pictures were drawn into the private stage only after every window, and not kept: a run killed
+    while drawing them (0.1 s each at 640x480: minutes on a long recording) drew every one of them again on
+    ``--resume``. Each block's pictures are now kept with their record as they are drawn: stopped at the 4th
+    picture (batch 2: the first block's two kept), the resume draws 13 of the 15 and every picture equals an
+    uninterrupted run's."""
+    whole = tmp_path / "whole"
+    assert predict.main(argv(recording, whole, tiny_checkpoint, "--window", "0.04")) == 0
+    pictures = {p.name: p.read_bytes() for p in whole.glob("window_*.png")}
+    assert len(pictures) == 15
+    out = tmp_path / "o"
+    counted_calls(monkeypatch, predict, "draw_window", interrupt_at=4)
+    assert predict.main(argv(recording, out, tiny_checkpoint, "--window", "0.04")) == 130
+    calls = counted_calls(monkeypatch, predict, "draw_window")
+    assert predict.main(argv(recording, out, tiny_checkpoint, "--window", "0.04", "--resume")) == 0
+    assert len(calls) == 13
+    assert {p.name: p.read_bytes() for p in out.glob("window_*.png")} == pictures
+    assert_same(outputs(out), outputs(whole))
+    assert not (out / KEPT_FOLDER).exists()

@@ -469,3 +469,32 @@ def test_resume_of_a_finished_fit_says_it_is_complete_and_touches_nothing(tmp_pa
     err = capsys.readouterr().err.strip().splitlines()
     assert len(err) == 1 and "ev.h5 holds other bytes than it did" in err[0] and stamps() == before, err
     assert calls == []
+
+
+def test_resume_of_a_finished_fit_with_a_result_emptied_fits_again(tmp_path, monkeypatch, capsys):
+    """Was: ``--resume`` judged the run complete by its summary.json alone: with ``trajectory.txt`` emptied (or a
+    depth file deleted), "the results in o are already complete", the folder left damaged. summary.json now
+    records each result's size and SHA-256 ("outputs"): the same run fits again, says why on one note line, and
+    ends with the first run's results (tests/test_depth_resume.py and tests/test_run_folder.py: deleted and
+    changed files)."""
+    path = write_h5(tmp_path / "ev.h5", noise_events(3000, 50_000, seed=3), compression="none")
+    out = tmp_path / "o"
+    argv = ["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--model", "flow", "--min-events", "300",
+            "--window-ms", "12.5"]
+    status = main(argv)
+    first = results_of(out)
+    outputs = json.loads((out / "summary.json").read_text())["outputs"]
+    assert sorted(outputs) == ["trajectory.txt"] and outputs["trajectory.txt"]["bytes"] > 0
+    (out / "trajectory.txt").write_text("")
+    capsys.readouterr()
+    calls = counted_calls(monkeypatch, sequence_module, "fit")
+    assert main([*argv, "--resume"]) == status
+    captured = capsys.readouterr()
+    assert "already complete" not in captured.out and len(calls) == 4, captured
+    note = [line for line in captured.err.splitlines() if "not complete" in line]
+    assert len(note) == 1 and "trajectory.txt has 0 bytes" in note[0], captured.err
+    assert_same(results_of(out), first)
+    assert json.loads((out / "summary.json").read_text())["outputs"] == outputs
+    calls.clear()
+    assert main([*argv, "--resume"]) == status and calls == []      # now complete: nothing to do
+    assert "already complete" in capsys.readouterr().out

@@ -409,6 +409,32 @@ def test_simulate_under_a_file_size_limit_records_the_failure_and_goes_on(tmp_pa
     assert _listing(out) == ["a.h5", "c.h5", "manifest.json"]
 
 
+TINY_LIMIT_SIMULATE = """
+    import resource, sys
+    resource.setrlimit(resource.RLIMIT_FSIZE, (1024, 1024))   # the first manifest (no video yet) fits, no more
+    from cmax.cli import main
+    sys.exit(main())
+"""
+
+
+@POSIX
+def test_simulate_whose_manifest_cannot_be_written_says_so_in_one_line(tmp_path):
+    """Was: one ``cmax: warning: could not write .../manifest.json: [Errno 27] File too large ...`` per video whose
+    record could not be saved, then the same error again: 3 lines for two videos where every other command prints
+    one. Now the one error of the last try (exit 2)."""
+    videos, out = tmp_path / "videos", tmp_path / "out"
+    videos.mkdir()
+    _write_video(videos / "a.avi", 40, 0)
+    _write_video(videos / "b.avi", 40, 1)
+    done = _python(TINY_LIMIT_SIMULATE, "simulate", str(videos), "-o", str(out), "--quiet", "--method", "linear",
+                   timeout=300)
+    assert done.returncode == 2, (done.returncode, done.stderr[-2000:])
+    lines = done.stderr.strip().splitlines()
+    assert len(lines) == 1 and lines[0].startswith("cmax simulate: error: File too large"), done.stderr
+    assert lines[0].endswith(str(out / "manifest.json")), lines
+    assert not [name for name in _listing(out) if name.endswith((".partial", ".lock"))], _listing(out)
+
+
 # -- worker processes ---------------------------------------------------------------------
 def _children(pid: int) -> list[int]:
     found = []

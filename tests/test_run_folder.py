@@ -139,6 +139,35 @@ def test_emvs_writes_a_summary_as_its_record_of_completion(slider_file, tmp_path
     assert sorted(p.name for p in out.iterdir()) == sorted(summary["files"])
 
 
+def test_emvs_resume_leaves_a_complete_run_and_makes_a_missing_file_again(slider_file, tmp_path, capsys):
+    """Was: ``cmax emvs --resume``: ``unrecognized arguments: --resume``, exit 2 (a requeued EMVS job over a long
+    recording could only redo everything with --overwrite). Now as its siblings: the same run's complete results
+    are left as they are (one line, exit 0); with ``points.ply`` deleted and ``depth.png`` truncated the run is
+    made again (a note names them) and the folder ends as the first run left it; another option is refused."""
+    import numpy as np
+
+    out = tmp_path / "e"
+    assert cmax_main([*_emvs(slider_file, out), "--resume"]) == 0     # a first run may pass --resume too
+    stamps = {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in out.iterdir()}
+    ply, depth = (out / "points.ply").read_bytes(), dict(np.load(out / "depth.npz"))
+    capsys.readouterr()
+    assert cmax_main([*_emvs(slider_file, out), "--resume"]) == 0
+    assert capsys.readouterr().out.strip().splitlines() == [
+        f"the results in {out} are already complete: cmax emvs --resume of the same input files and options has "
+        "nothing to do (nothing changed)"]
+    assert {p.name: (p.stat().st_mtime_ns, p.read_bytes()) for p in out.iterdir()} == stamps
+    (out / "points.ply").unlink()
+    (out / "depth.png").write_bytes((out / "depth.png").read_bytes()[:100])
+    assert cmax_main([*_emvs(slider_file, out), "--resume"]) == 0
+    captured = capsys.readouterr()
+    assert "points.ply is missing" in captured.err and "depth.png has 100 bytes" in captured.err, captured
+    assert (out / "points.ply").read_bytes() == ply and (out / "depth.png").stat().st_size > 100
+    for key, value in np.load(out / "depth.npz").items():
+        np.testing.assert_array_equal(value, depth[key], err_msg=key)
+    status, err = one_line_error(lambda: cmax_main([*_emvs(slider_file, out), "--resume", "--planes", "21"]), capsys)
+    assert status == 2 and "holds the complete results of another run (planes was 20, now 21)" in err, err
+
+
 # -- 4. one lock per folder for fit, emvs and depth; another command's results are an earlier run's ------------------
 def test_emvs_and_depth_into_a_folder_fit_is_writing_are_refused(slider_file, tiny_checkpoint, tmp_path, capsys,
                                                                  monkeypatch):

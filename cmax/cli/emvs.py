@@ -7,8 +7,9 @@ Outputs in ``-o outdir/``: ``depth.npz`` (``depth``, ``confidence``, ``mask``,
 and coloured depth with a scale bar in metres; titled ``up to scale``, the bar without a unit, for poses up
 to scale), ``points.ply`` (the
 semi-dense point cloud in the world frame) and, moved in last, ``summary.json`` (the run's record of
-completion: its input, settings and files; a folder without it holds no complete run,
-:mod:`cmax.io.run_folder`); one summary line on stdout. The poses come from
+completion: its input, settings and files, with what the run was -- its input files' signatures, options and code
+-- and each result's size and SHA-256, so that ``--resume`` of the same run finds it complete; a folder without it
+holds no complete run, :mod:`cmax.io.run_folder`); one summary line on stdout. The poses come from
 ``--poses`` (a TUM file) or, without it, from the ground truth an h5 file stores (``gt/poses``,
 ``gt/poses_t``: what ``cmax scene`` writes).
 """
@@ -36,7 +37,7 @@ EMVS_BOUND_NOTE = 0.05
 #: The files a run writes into ``-o`` (``summary.json``, its record of completion, last).
 RESULTS = ("depth.npz", "depth.png", "points.ply", "summary.json")
 
-__all__ = ["RESULTS", "add_command", "run", "camera_for", "earlier_results", "file_trajectory"]
+__all__ = ["RESULTS", "add_command", "run", "camera_for", "earlier_results", "file_trajectory", "run_record"]
 
 _range_numbers = float_list((2,), "--depth-range (near,far)")
 
@@ -92,6 +93,12 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the results of an earlier run in -o (else refused); they stay until this run "
                              "has written all of its own")
+    parser.add_argument("--resume", action="store_true",
+                        help="for a requeued job: when -o holds the complete results of the same run (the same "
+                             "event, --poses and --calib files by their SHA-256, the same options and code), with "
+                             "every result file as it was written, do nothing and exit 0; when some of them are "
+                             "missing or changed, run again and replace them; else run as without it (default: "
+                             "off; complete results of another run are refused, as without it)")
     parser.add_argument("--quiet", action="store_true",
                         help="no progress bar (shown only when stderr is a terminal)")
     add_file_options(parser)   # --size, --time-unit, --polarity
@@ -137,14 +144,70 @@ def run(args: argparse.Namespace) -> int:
     (:func:`cmax.io.run_folder.staged_run`): a folder with an earlier run's results (of ``cmax emvs``, ``cmax fit``
     or ``cmax depth``) is refused without ``--overwrite``, a second run into the same folder meanwhile (of any of
     them) is refused, a failed run changes nothing, and one interrupted while its files move in leaves no
-    summary.json."""
+    summary.json. With ``--resume``, complete results of the same run in the folder are left as they are (one line,
+    exit 0: :func:`cmax.io.run_folder.check_complete`); the same run's results with a file missing or changed are
+    made again."""
     from cmax.emvs import read_tum_trajectory
+    from cmax.io.window_store import PendingSignatures, code_digest
 
     out = output_folder(args.output, "depth.npz, depth.png and points.ply")
     trajectory = None if args.poses is None else read_tum_trajectory(args.poses)   # a bad file: before the events
-    with run_folder.staged_run(out, "emvs", earlier_results, overwrite=args.overwrite, what=", ".join(RESULTS),
-                               why="that this run would replace") as stage:
-        return _emvs_into(stage, out, args, trajectory)
+    hashing = None
+    try:
+        with run_folder.staged_run(out, "emvs", earlier_results, overwrite=args.overwrite, what=", ".join(RESULTS),
+                                   why="that this run would replace", resume=args.resume) as stage:
+            # the input files are hashed while EMVS runs; a --resume into complete results waits for them first
+            hashing = PendingSignatures(_input_paths(args), progress=not args.quiet)
+            options, code = argparse.Namespace(**vars(args)), code_digest("cmax")
+
+            def record() -> dict:   # waits for the input files' signatures
+                return run_record(options, hashing.result(), code=code)
+
+            complete = run_folder.resumed_into_complete(out, resume=args.resume, overwrite=args.overwrite)
+            if complete is not None:   # the same run has nothing to do (or its damaged files are made again)
+                damaged = run_folder.check_complete(out, complete, record(), command="cmax emvs")
+                print(f"cmax emvs: note: {damaged}", file=sys.stderr)
+            return _emvs_into(stage, out, args, trajectory, record)
+    except run_folder.ResultsComplete as complete:   # --resume of a run whose results are all in out
+        print(complete)
+        return 0
+    finally:
+        if hashing is not None:    # stopped within one block, never left running
+            hashing.close()
+
+
+#: The options of ``cmax emvs`` that change no result: left out of :func:`run_record`.
+_NOT_RESULTS = ("command", "output", "quiet", "overwrite", "resume", "run", "debug")
+
+
+def _input_paths(args: argparse.Namespace) -> dict:
+    """The input files of a run of ``cmax emvs`` by the name its record gives them (None: not given)."""
+    return {"file": args.file, "poses": args.poses, "calib": args.calib}
+
+
+def run_record(args: argparse.Namespace, files: dict, *, code: str) -> dict:
+    """What a run of ``cmax emvs`` is, recorded in its ``summary.json`` (``"run"``) for ``--resume`` to compare
+    (:func:`cmax.io.run_folder.check_complete`): the version of cmax and ``code``, the digest of its code
+    (:func:`cmax.io.window_store.code_digest`), the signatures ``files`` (size, modification time, SHA-256:
+    :func:`cmax.io.window_store.file_signatures`) of the event file, ``--poses`` and ``--calib``, and every other
+    option of ``args`` (the parsed options; the paths of those files only through their signatures, so that a
+    moved file, the same bytes, is the same run).
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The parsed options.
+    files : dict
+        The input files' signatures by name (``file``, ``poses``, ``calib``; None: not given).
+    code : str
+        The digest of cmax's code.
+    """
+    import cmax
+    from cmax.io.window_store import settings_record
+
+    settings = {key: value for key, value in vars(args).items()
+                if key not in _NOT_RESULTS and not (key in files and files[key] is not None)}
+    return {"cmax": cmax.__version__, "code": code, **files, "settings": settings_record(settings)}
 
 
 def summary_units(scale_known: bool) -> dict[str, str]:
@@ -174,9 +237,10 @@ def earlier_results(out: Path) -> list[Path]:
     return run_folder.run_results(out, ("emvs",))
 
 
-def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> int:
+def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory, record) -> int:
     """:func:`run`'s work once ``out`` is held: read the events, run EMVS, write :data:`RESULTS` into the empty
-    folder ``stage`` (moved into ``out`` by :func:`run`); returns the exit status."""
+    folder ``stage`` (moved into ``out`` by :func:`run`), ``summary.json`` with the run's ``record()``
+    (:func:`run_record`); returns the exit status."""
     from cmax import viz
     from cmax.emvs import EMVS
     from cmax.emvs.poses import trajectory_up_to_scale
@@ -240,7 +304,8 @@ def _emvs_into(stage: Path, out: Path, args: argparse.Namespace, trajectory) -> 
               "events": len(events), "t_ref_us": int(result.t_ref_us), "n_planes": int(result.n_planes),
               "depth_range": [float(v) for v in result.depth_range], "mask_pixels": int(result.mask.sum()),
               "median_depth_m": median_m, "scale_known": metric, "files": list(RESULTS),
-              "units": summary_units(metric)}
+              "units": summary_units(metric), "run": record(),
+              run_folder.OUTPUTS_KEY: run_folder.output_records(stage)}
     write_text_atomic(stage / "summary.json", json.dumps(record, indent=2) + "\n")   # moved in last (publish)
     if len(result.hot_pixels):
         print(f"cmax emvs: note: {len(result.hot_pixels)} hot pixel(s) fire without motion (far more than the "

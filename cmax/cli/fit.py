@@ -131,7 +131,7 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                              "interrupted run's windows is refused without --resume or --overwrite; with "
                              "--overwrite too, an earlier complete run's results in -o are replaced at the end; "
                              "without it, a complete run of the same files and options in -o is left as it is: "
-                             "nothing to do)")
+                             "nothing to do, unless a result it lists is missing or changed: then it runs again)")
     parser.add_argument("--keep-hot-pixels", action="store_true",
                         help="fit every event; by default the events of hot pixels (far more events than the scene's "
                              "edges give any pixel, or firing alone at a steady rate: a defect; or locked to a 100/120 "
@@ -542,7 +542,8 @@ def run(args: argparse.Namespace) -> int:
             record = _pending_record(args, hashing)
             complete = run_folder.resumed_into_complete(out, resume=args.resume, overwrite=args.overwrite)
             if complete is not None:   # a complete run's results: the same run has nothing to do, another is refused
-                run_folder.check_complete(out, complete, record(), command="cmax fit")
+                damaged = run_folder.check_complete(out, complete, record(), command="cmax fit")
+                print(f"cmax fit: note: {damaged}", file=sys.stderr)   # the same run, files missing: run again
             store = WindowStore(out, record, resume=args.resume, overwrite=args.overwrite)
             status = _fit_into(stage, out, args, sequence_model=sequence_model, options=options, settings=settings,
                                min_events=min_events, depth_grid=depth_grid, window_us=window_us, step_us=step_us,
@@ -825,7 +826,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
                "windows_total": n_windows, "skipped_us": sequence.skipped_us.tolist(),
                "uncovered_us": None if sequence.uncovered_us is None else list(sequence.uncovered_us),
                "verdicts": sequence.counts(), "units": summary_units(scale_known), "windows": windows,
-               "run": store.run}
+               "run": store.run, run_folder.OUTPUTS_KEY: run_folder.output_records(stage)}
     write_text_atomic(stage / "summary.json", json.dumps(summary, indent=2))
     skipped = n_windows - len(windows)
     skip = f", {skipped} skipped (fewer than {min_events:,} events)" if skipped else ""

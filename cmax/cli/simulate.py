@@ -12,7 +12,7 @@ from pathlib import Path
 from typing import Collection, Sequence
 
 from cmax._args import api_default, library_default, nonnegative_int, positive_float, positive_int, sensor_size
-from cmax._signals import TERMINATED_STATUS, Terminated, sigterm_as_interrupt, stop_if_terminated
+from cmax._signals import Terminated, sigterm_as_interrupt, stop_if_terminated
 from cmax.cli._common import given
 
 __all__ = ["add_command", "run"]
@@ -28,20 +28,21 @@ _CONVERT_OPTIONS = {"size": "size", "adaptive": "adaptive", "lam": "lam", "metho
 
 def run(args: argparse.Namespace) -> int:
     """Convert the input; returns the exit status (1 when a video failed or yielded no events, or a catalogue's
-    folder holds none of its videos; 143 after SIGTERM, once the clean-up is done)."""
+    folder holds none of its videos; 143 after SIGTERM, 129 after SIGHUP, once the clean-up is done)."""
     try:
         with sigterm_as_interrupt():
             status = _run(args)
         stop_if_terminated()     # a SIGTERM whose exception was dropped while the last video was converted
         return status
-    except Terminated:
-        print("cmax simulate: terminated (SIGTERM): the finished videos are kept and listed in the manifest; "
+    except Terminated as stop:
+        print(f"cmax simulate: terminated ({stop.name}): the finished videos are kept and listed in the manifest; "
               "a rerun converts the others", file=sys.stderr)
-        return TERMINATED_STATUS
+        return stop.status
 
 
 def _converted(names: set[str]):
-    """The ``on_result`` of a conversion: note each finished video in ``names``, then stop if SIGTERM came."""
+    """The ``on_result`` of a conversion: note each finished video in ``names``, then stop if SIGTERM (or SIGHUP)
+    came."""
     def record(result) -> None:
         names.add(result.name)
         stop_if_terminated()

@@ -20,6 +20,10 @@ The rules of :func:`staged_run` (``cmax fit``, ``cmax emvs``, ``cmax depth`` / `
   its kept windows' ``run.json``), so that ``--resume`` of the same run into a folder whose run completed is told
   so, and touches nothing (:class:`ResultsComplete`, :func:`check_complete`), as a requeued job needs; another
   run's results, or results whose ``summary.json`` records no run (an earlier version), are still refused.
+* a run's ``summary.json`` also records the size and SHA-256 of each file the run published
+  (``"outputs"``, :func:`output_records`): ``--resume`` of the same run calls its results complete only when each
+  is there with those bytes (:func:`damaged_outputs`); a file deleted, truncated or changed since makes the run
+  run again, and its results replace the damaged ones.
 """
 from __future__ import annotations
 
@@ -36,13 +40,15 @@ from cmax.io.atomic import PathLock, fsync_folder
 
 __all__ = ["FOLDER_LOCK", "COMPLETION_MARKER", "RESULT_NAMES", "run_results", "locked_folder", "staged_run",
            "new_stage", "discard_stages", "publish", "ResultsComplete", "complete_run", "resumed_into_complete",
-           "check_complete"]
+           "check_complete", "output_records", "damaged_outputs", "OUTPUTS_KEY"]
 
 _STAGE_SUFFIX = ".partial"
 #: The lock of an output folder that :func:`staged_run` holds, the same for every command that writes through it.
 FOLDER_LOCK = ".results.lock"
 #: The file a run of :func:`staged_run` writes last (:func:`publish`): a folder without it holds no complete run.
 COMPLETION_MARKER = "summary.json"
+#: The entry of ``summary.json`` that records each published file's size and SHA-256 (:func:`output_records`).
+OUTPUTS_KEY = "outputs"
 #: The names (whole names, :func:`re.fullmatch`) of the files each command writes into its output folder.
 RESULT_NAMES: dict[str, re.Pattern] = {
     "fit": re.compile(r"depth_\d{5,}\.(?:npz|png)|trajectory\.txt|summary\.json"),
@@ -180,13 +186,16 @@ def resumed_into_complete(out: str | os.PathLike, *, resume: bool, overwrite: bo
     return complete_run(out) or {}
 
 
-def check_complete(out: str | os.PathLike, summary: dict, now: dict, *, command: str) -> None:
+def check_complete(out: str | os.PathLike, summary: dict, now: dict, *, command: str) -> str:
     """Compare the run ``now`` (JSON-ready, as the command records it in ``summary.json``'s ``"run"``) with the
     one whose results are complete in ``out`` (``summary``: its ``summary.json``, :func:`complete_run`), for
     ``--resume``. Raises :class:`ResultsComplete` (one line to print) when they are the same run (the same input
     files by size, modification time and SHA-256, wherever they are now; the same options and code:
-    :func:`cmax.io.window_store.run_differences`); FileExistsError when ``summary`` records no run (written by an
-    earlier version: whether it is this run cannot be checked); ValueError naming each difference otherwise.
+    :func:`cmax.io.window_store.run_differences`) and every file ``summary`` records (``"outputs"``) is in ``out``
+    with its recorded size and SHA-256 (:func:`damaged_outputs`); FileExistsError when ``summary`` records no run
+    (written by an earlier version: whether it is this run cannot be checked); ValueError naming each difference
+    otherwise. Returns a note (one line) when it is the same run but a recorded file is missing or changed: the
+    run is to run again, and :func:`staged_run` then replaces the damaged results with its own.
 
     Parameters
     ----------
@@ -204,16 +213,67 @@ def check_complete(out: str | os.PathLike, summary: dict, now: dict, *, command:
     recorded = summary.get("run")
     if not isinstance(recorded, dict):
         raise FileExistsError(f"cannot --resume into {out}: it holds the complete results of an earlier run whose "
-                              f"{COMPLETION_MARKER} records no run identity (written by an earlier version, or by "
-                              "cmax emvs, which records none), so "
+                              f"{COMPLETION_MARKER} records no run identity (written by an earlier version), so "
                               "whether they are this run's cannot be checked: --overwrite replaces them, or give "
                               "another -o")
     now = json.loads(json.dumps(now))
     if differences := run_differences(recorded, now):
         raise ValueError(f"cannot --resume into {out}: it holds the complete results of another run ("
                          + "; ".join(differences) + "): --overwrite replaces them, or give another -o")
+    if damaged := damaged_outputs(out, summary):
+        listed = "; ".join(damaged[:3]) + (f"; and {len(damaged) - 3} more" if len(damaged) > 3 else "")
+        return (f"the results of this run in {out} are not complete ({listed}): running it again (they are "
+                "replaced once it is done)")
     raise ResultsComplete(f"the results in {out} are already complete: {command} --resume of the same input files "
                           "and options has nothing to do (nothing changed)", summary)
+
+
+def output_records(stage: str | os.PathLike) -> dict[str, dict]:
+    """What ``summary.json`` records of the files a run is about to publish (``"outputs"``): the size [bytes] and
+    SHA-256 (hex) of each regular file in the folder ``stage`` but ``summary.json``, by name.
+
+    Parameters
+    ----------
+    stage : path
+        The run's private folder of results (:func:`staged_run`), every file but ``summary.json`` written.
+    """
+    from cmax.io.atomic import file_sha256
+
+    return {path.name: {"bytes": path.stat().st_size, "sha256": file_sha256(path)}
+            for path in sorted(Path(stage).iterdir())
+            if path.name != COMPLETION_MARKER and path.is_file() and not path.is_symlink()}
+
+
+def damaged_outputs(out: str | os.PathLike, summary: dict) -> list[str]:
+    """The files ``summary`` (a ``summary.json``) records (``"outputs"``, :func:`output_records`) that are not in the
+    folder ``out`` as they were published, one phrase each (``depth_00001.npz is missing``, ``trajectory.txt has 0
+    bytes, it had 912``, ``depth.png holds other bytes (another SHA-256)``); empty when all are, or when ``summary``
+    records none (an earlier version: not checked). Each file of the recorded size is read once.
+
+    Parameters
+    ----------
+    out : path
+        The output folder (``-o``).
+    summary : dict
+        Its ``summary.json``.
+    """
+    from cmax.io.atomic import file_sha256
+
+    recorded = summary.get(OUTPUTS_KEY)
+    if not isinstance(recorded, dict):
+        return []
+    damaged = []
+    for name, record in recorded.items():
+        path = Path(out) / str(name)
+        if Path(str(name)).name != name or not isinstance(record, dict):
+            damaged.append(f"{COMPLETION_MARKER} records {name!r} unreadably")
+        elif not path.is_file() or path.is_symlink():
+            damaged.append(f"{name} is missing")
+        elif path.stat().st_size != record.get("bytes"):
+            damaged.append(f"{name} has {path.stat().st_size:,} bytes, it had {record.get('bytes')}")
+        elif file_sha256(path) != record.get("sha256"):
+            damaged.append(f"{name} holds other bytes than it did (another SHA-256)")
+    return damaged
 
 
 @contextmanager
@@ -232,8 +292,10 @@ def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[P
     what this run would do to them, ``option`` is the flag that allows it), and
     :class:`cmax.io.atomic.OutputLockedError` when another run, of any of these commands, holds ``out``. With
     ``resume``, a folder whose run completed (it holds ``summary.json``) is not refused here: the block must call
-    :func:`check_complete` before any work, which ends it (:class:`ResultsComplete` when it is the same run, raised
-    on with ``out`` untouched; another run is refused).
+    :func:`check_complete` before any work, which ends it (:class:`ResultsComplete` when it is the same run with
+    its results intact, raised on with ``out`` untouched; another run is refused) or, when files of the same run
+    are missing or changed, lets it run again: its results replace the damaged ones only when the
+    ``summary.json`` it wrote records the same run as the one in ``out``.
     """
     out = Path(out)
     with locked_folder(out, FOLDER_LOCK):   # from the look at earlier results to the last file moved in
@@ -252,12 +314,22 @@ def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[P
                 yield stage
             except OSError as error:   # before publish: out is untouched
                 raise _named_in_out(error, stage, out) from None
-            if unchecked:   # a block that did not call check_complete: the complete results are kept
+            if unchecked and not _same_run(out, stage):   # check_complete not called: the complete results kept
                 raise RuntimeError(f"{out}: the complete results of an earlier run were not checked against this "
                                    "run (check_complete): they are kept, nothing was written")
             publish(stage, out, earlier)
         finally:
             shutil.rmtree(stage, ignore_errors=True)
+
+
+def _same_run(out: Path, stage: Path) -> bool:
+    """Whether the complete run in ``out`` and the one whose results are in ``stage`` are the same run (both
+    ``summary.json`` record a ``"run"``, with no difference: :func:`cmax.io.window_store.run_differences`)."""
+    from cmax.io.window_store import run_differences
+
+    earlier, now = complete_run(out), complete_run(stage)
+    return (earlier is not None and now is not None and isinstance(earlier.get("run"), dict)
+            and isinstance(now.get("run"), dict) and not run_differences(earlier["run"], now["run"]))
 
 
 def _named_in_out(error: OSError, stage: Path, out: Path) -> OSError:

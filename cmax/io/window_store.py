@@ -451,16 +451,17 @@ def settings_record(values: dict) -> dict:
 
 
 def stopped_line(label: str, stop: KeyboardInterrupt, kept: int, folder: Path) -> tuple[str, int]:
-    """The one line and the exit status of a run stopped by Ctrl-C or SIGTERM (``stop``, a
-    :class:`cmax._signals.Terminated` for SIGTERM) that kept ``kept`` finished windows in ``folder``; ``label``:
+    """The one line and the exit status of a run stopped by Ctrl-C, SIGTERM or SIGHUP (``stop``, a
+    :class:`cmax._signals.Terminated` for the last two) that kept ``kept`` finished windows in ``folder``; ``label``:
     the command's name.
 
     >>> stopped_line("cmax fit", KeyboardInterrupt(), 3, Path("o/.fit.windows"))
     ('cmax fit: interrupted: 3 finished window(s) kept in o/.fit.windows: the same command with --resume continues the run', 130)
     """
-    from cmax._signals import TERMINATED_STATUS, Terminated
+    from cmax._signals import Terminated
 
-    what, status = ("terminated (SIGTERM)", TERMINATED_STATUS) if isinstance(stop, Terminated) else ("interrupted", 130)
+    what, status = ((f"terminated ({stop.name})", stop.status) if isinstance(stop, Terminated)
+                    else ("interrupted", 130))
     return (f"{label}: {what}: {kept} finished window(s) kept in {folder}: the same command with --resume continues "
             "the run", status)
 

@@ -1399,9 +1399,8 @@ def _convert_locked(jobs, output_dir, settings, workers, missing, catalogue, sha
             unsaved.clear()
             if result.status == "ok":     # recorded as verified: its kept chunks are done with
                 _remove_chunks(output_dir / f"{result.name}.h5")
-        except OSError as error:  # a full disk: go on, the next record retries
+        except OSError as error:  # a full disk: go on, the next record retries; the last try below says it once
             unsaved[:] = [error]
-            print(f"cmax: warning: could not write {path}: {error}", file=sys.stderr)
         bar.update(1)
         bar.set_postfix_str(f"{result.name} {result.status}")
         if on_result is not None:

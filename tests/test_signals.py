@@ -1,0 +1,115 @@
+"""SIGHUP (a closed ssh session or terminal, a batch system's hangup) stops every command as SIGTERM and Ctrl-C do,
+with their clean-up, and a signal while a command's process exits leaves its exit status as the command gave it
+(:mod:`cmax._signals`)."""
+from __future__ import annotations
+
+import os
+import signal
+import subprocess
+import sys
+import textwrap
+import time
+
+import pytest
+
+from conftest import sigterm_once
+
+pytestmark = pytest.mark.skipif(not hasattr(signal, "SIGHUP"), reason="needs POSIX signals")
+
+
+def _depth(slider_file, out, checkpoint) -> list[str]:
+    return [sys.executable, "-m", "cmax.cli", "depth", str(slider_file), "-o", str(out), "--checkpoint",
+            str(checkpoint), "--quiet", "--window", "0.005"]
+
+
+def test_sighup_cleans_up_as_sigterm_does(slider_file, tiny_checkpoint, tmp_path):
+    """Was: SIGHUP killed ``cmax depth -o D`` where it stood: exit -1, nothing on stderr, ``D/.results.lock`` and the
+    private ``D/.depth.<hex>.partial`` left. Now the clean-up of SIGTERM: exit 129 (128 + SIGHUP), one line, no
+    lock or stage left."""
+    out = tmp_path / "D"
+    status, err = sigterm_once(_depth(slider_file, out, tiny_checkpoint), out, ".depth.*.partial",
+                               "its stage folder was seen", signum=signal.SIGHUP)
+    assert status == 128 + signal.SIGHUP, err
+    assert err == "cmax depth: terminated (SIGHUP)\n", err
+    left = [path.name for path in out.iterdir()] if out.exists() else []
+    assert not [name for name in left if name.endswith((".partial", ".lock"))], left
+
+
+def test_a_command_started_under_nohup_keeps_ignoring_sighup(slider_file, tiny_checkpoint, tmp_path):
+    """``nohup cmax ...`` starts the process with SIGHUP ignored: the handler that stops a run on SIGHUP must not
+    replace that disposition (the run would stop when the terminal closes, what nohup is for)."""
+    out = tmp_path / "D"
+    status, err = sigterm_once(_depth(slider_file, out, tiny_checkpoint), out, ".depth.*.partial",
+                               "its stage folder was seen", signum=signal.SIGHUP,
+                               preexec_fn=lambda: signal.signal(signal.SIGHUP, signal.SIG_IGN))
+    assert status == 0, err
+    assert (out / "summary.json").is_file() and "terminated" not in err
+
+
+def test_the_stopped_line_names_the_signal():
+    """``cmax fit`` / ``cmax depth`` stopped with windows kept: the line and status name the signal that came."""
+    from pathlib import Path
+
+    from cmax._signals import Terminated
+    from cmax.io.window_store import stopped_line
+
+    line, status = stopped_line("cmax fit", Terminated(signal.SIGHUP), 2, Path("F/.fit.windows"))
+    assert line.startswith("cmax fit: terminated (SIGHUP): 2 finished window(s) kept in") and status == 129
+    assert stopped_line("cmax fit", Terminated(), 2, Path("F"))[1] == 143
+
+
+#: A command whose process takes seconds to exit after it returned: an object torn down with ``__main__`` (as
+#: torch's libraries are, after Python has restored the default signal handlers) writes ``EXITING`` and waits.
+_SLOW_EXIT = textwrap.dedent("""
+    import os, sys, time
+    from cmax._args import ArgumentParser, run_main
+
+    class SlowTeardown:
+        def __del__(self, open=open, sleep=time.sleep, path=os.environ["EXITING"]):   # builtins are gone by then
+            open(path, "w").close()
+            sleep(3)
+
+    slow = SlowTeardown()
+    sys.exit(run_main(ArgumentParser(prog="demo"), lambda args: 3))
+""")
+
+
+@pytest.mark.parametrize("signum", [signal.SIGINT, signal.SIGTERM, signal.SIGHUP])
+def test_a_signal_while_the_process_exits_leaves_the_commands_status(tmp_path, signum):
+    """Was: a Ctrl-C or SIGTERM after the command had ended (its clean-up done, its line printed), while the
+    interpreter exits, killed the process: exit -2 / -15 instead of the command's status (a second Ctrl-C or
+    SIGTERM during the second or more that torch's teardown takes). Now ignored: the status is the command's."""
+    exiting = tmp_path / "exiting"
+    process = subprocess.Popen([sys.executable, "-c", _SLOW_EXIT], stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "EXITING": str(exiting)})
+    deadline = time.monotonic() + 60
+    while not exiting.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert exiting.exists(), process.communicate(timeout=60)
+    process.send_signal(signum)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 3, (process.returncode, err)
+    assert "Traceback" not in err, err
+
+
+def test_sighup_to_the_process_group_of_fit_with_workers_is_one_line(slider_file, tmp_path):
+    """A closed ssh session signals the whole job: with ``--jobs 2`` multiprocessing's resource tracker, which ignores
+    SIGINT and SIGTERM but not SIGHUP, died and was relaunched (``warning: resource_tracker: process died
+    unexpectedly, relaunching``, then ``KeyError`` tracebacks of the new tracker). The forkserver, its workers and
+    the tracker now start with SIGHUP ignored (as SIGINT): the calling process stops them, one line, exit 129."""
+    out = tmp_path / "F"
+    process = subprocess.Popen([sys.executable, "-m", "cmax.cli", "fit", str(slider_file), "-o", str(out), "--quiet",
+                                "--window-ms", "30", "--min-events", "100", "--depth-grid", "6,8", "--jobs", "2"],
+                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
+    deadline = time.monotonic() + 120
+    while not list(out.glob(".fit.windows/window_*")) and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.005)
+    assert process.poll() is None, "the run ended before its workers fitted a window"
+    os.killpg(process.pid, signal.SIGHUP)
+    _, err = process.communicate(timeout=120)
+    assert process.returncode == 129, err
+    assert "Traceback" not in err and "resource_tracker" not in err, err
+    assert [line for line in err.splitlines() if "terminated" in line] == [err.splitlines()[-1]], err
+    assert err.splitlines()[-1].startswith("cmax fit: terminated (SIGHUP)"), err
+    left = [path.name for path in out.iterdir()] if out.exists() else []
+    assert not [name for name in left if name.endswith((".partial", ".lock"))], left
