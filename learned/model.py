@@ -10,8 +10,9 @@ at every decoder scale, bounded to the configured depth range:
 
 The pose head on the bottleneck (conv, mean over a grid of cells, linear) gives the twist
 ``(v [m/s], omega [rad/s])`` of the window, each scaled by a configured
-typical magnitude (``tanh`` bounded). Inputs whose sides are not multiples of
-``2**levels`` are zero-padded and the outputs cropped back.
+typical magnitude (``tanh`` bounded). With ``odd_twist`` the twist is half the difference of
+the window's and its time reversal's (a window played backwards gets exactly the negated twist).
+Inputs whose sides are not multiples of ``2**levels`` are zero-padded and the outputs cropped back.
 
 :class:`ModelConfig` also shapes the network for speed: ``block`` (dense 3x3 or
 depthwise-separable convolutions), ``norm`` (GroupNorm or none) and
@@ -69,6 +70,12 @@ class ModelConfig:
         before its linear layer. 1 (the original network) is a global mean, which discards where in
         the image a feature is: expansion and contraction (forward and backward motion), or a pan left
         and right at the two sides, average alike. 3 keeps the layout the motion field needs.
+    odd_twist : bool
+        ``True``: the twist is odd under time reversal by construction, ``twist(V) = (h(V) - h(R V)) / 2`` with
+        ``h`` the pose head and ``R V = -V[::-1]`` (bins reversed, signs flipped: the volume of the window played
+        backwards, :func:`learned.data.reverse_time`), so that a window played backwards gets exactly ``-twist``
+        (the encoder runs on both volumes; the depth is the window's own). ``False`` (the original network): the
+        pose head alone.
     """
 
     bins: int = 5
@@ -82,6 +89,7 @@ class ModelConfig:
     norm: str = "group"
     space_to_depth: bool = False
     pose_cells: int = 1
+    odd_twist: bool = False
 
     def __post_init__(self) -> None:
         for name in ("bins", "width", "levels", "pose_cells"):
@@ -91,8 +99,9 @@ class ModelConfig:
             raise ValueError(f"model.block must be one of {BLOCKS}, got {self.block!r}")
         if self.norm not in NORMS:
             raise ValueError(f"model.norm must be one of {NORMS}, got {self.norm!r}")
-        if not isinstance(self.space_to_depth, bool):
-            raise ValueError(f"model.space_to_depth must be true or false, got {self.space_to_depth!r}")
+        for name in ("space_to_depth", "odd_twist"):
+            if not isinstance(getattr(self, name), bool):
+                raise ValueError(f"model.{name} must be true or false, got {getattr(self, name)!r}")
         if self.norm == "group":
             for k in range(self.inner_levels + 1):
                 c = self.width * 2 ** k
@@ -215,6 +224,9 @@ class DepthPoseNet(nn.Module):
         if volume.dim() != 4 or volume.shape[1] != self.config.bins:
             raise ValueError(f"volume must have shape (B, {self.config.bins}, H, W), got {tuple(volume.shape)}")
         H, W = volume.shape[-2:]
+        n = volume.shape[0]
+        if self.config.odd_twist:   # the window and the window played backwards, through one encoder pass
+            volume = torch.cat([volume, -volume.flip(1)])
         m = 2 ** self.config.levels
         x = F.pad(volume, (0, (-W) % m, 0, (-H) % m))
         inner = F.pixel_unshuffle(x, 2) if self.config.space_to_depth else x
@@ -226,6 +238,9 @@ class DepthPoseNet(nn.Module):
         scale = torch.tensor([self.config.max_speed] * 3 + [self.config.max_angular_speed] * 3,
                              dtype=pooled.dtype, device=pooled.device)
         twist = torch.tanh(self.pose_out(pooled)) * scale
+        if self.config.odd_twist:
+            twist = (twist[:n] - twist[n:]) / 2
+            feature, skips = feature[:n], [skip[:n] for skip in skips]
         outputs = []
         for up, head in zip(self.up, self.heads):
             skip = skips.pop()

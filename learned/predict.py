@@ -333,12 +333,13 @@ def event_volumes(windows: Sequence["Events"], bins: int,
 
 def batch_bytes(config: "ModelConfig", width: int, height: int, batch: int) -> int:
     """An upper estimate of the memory [bytes] of one forward pass of ``batch`` windows of ``width x height`` px
-    through a network of ``config`` (its ``bins``, ``width`` and ``space_to_depth``).
+    through a network of ``config`` (its ``bins``, ``width``, ``space_to_depth`` and ``odd_twist``).
 
     Per pixel and window, in 4-byte numbers: ``2 * bins`` for the event volume and its copy on the way in,
     8 for the full-resolution outputs, and ``16 * width`` for the U-Net's feature maps per pixel of its finest
     level (a quarter of the pixels with ``space_to_depth``): the feature maps of the levels below halve, and a
-    level holds its skip, its block's two convolutions and the decoder's concatenation.
+    level holds its skip, its block's two convolutions and the decoder's concatenation. With ``odd_twist`` the
+    volume and the feature maps count twice (the window played backwards goes through the encoder too).
 
     >>> from learned.model import ModelConfig
     >>> round(batch_bytes(ModelConfig(width=16, space_to_depth=True), 640, 480, 8) / 2**30, 2)   # 82 numbers a pixel
@@ -347,7 +348,8 @@ def batch_bytes(config: "ModelConfig", width: int, height: int, batch: int) -> i
     True
     """
     finest = 0.25 if config.space_to_depth else 1.0
-    numbers = 2 * config.bins + 8 + 16 * config.width * finest
+    encoded = 2 if config.odd_twist else 1   # odd_twist: the encoder also runs on each window played backwards
+    numbers = encoded * (2 * config.bins + 16 * config.width * finest) + 8
     return int(round(int(batch) * int(width) * int(height) * numbers * 4))
 
 

@@ -1,7 +1,9 @@
 """learned.model and learned.losses: shapes, bounds, closed-form loss values, gradients; evaluate and predict."""
 from __future__ import annotations
 
+import dataclasses
 import math
+from pathlib import Path
 
 import numpy as np
 import pytest
@@ -136,19 +138,54 @@ def test_old_config_checkpoints_load_and_compute_what_they_did(tmp_path):
                              .reshape(shape).float() * 0.5)
     weights = {name: fill(shape, k) for k, (name, shape) in enumerate(_OLD_KEYS)}
     config = Config(model=ModelConfig(width=2, levels=1)).to_dict()
-    for key in ("block", "norm", "space_to_depth", "pose_cells"):   # as written before these fields existed
+    for key in ("block", "norm", "space_to_depth", "pose_cells", "odd_twist"):   # as written before these fields existed
         del config["model"][key]
     save_checkpoint(tmp_path / "old.pt", {"model": weights, "optimizer": {}, "step": 0, "config": config,
                                           "rng": rng_state()})
     model, loaded = load_model(tmp_path / "old.pt")
-    assert (loaded["model"]["block"], loaded["model"]["norm"], loaded["model"]["space_to_depth"]) == (
-        "dense", "group", False)
+    assert (loaded["model"]["block"], loaded["model"]["norm"], loaded["model"]["space_to_depth"],
+            loaded["model"]["odd_twist"]) == ("dense", "group", False, False)
     x = (torch.cos(torch.arange(5 * 7 * 9, dtype=torch.float64) * 0.3).reshape(1, 5, 7, 9).float() * 3)
     with torch.no_grad():
         out = model(x)
     np.testing.assert_allclose(out.inverse_depth[0, 0, :2, :4].numpy(), _OLD_INVERSE_DEPTH_ROWS, rtol=1e-5)
     assert float(out.inverse_depth.sum()) == pytest.approx(_OLD_INVERSE_DEPTH_SUM, rel=1e-5)
     np.testing.assert_allclose(out.twist[0].numpy(), _OLD_TWIST, rtol=1e-4, atol=1e-5)
+
+
+def test_the_shipped_networks_give_a_window_played_backwards_the_negated_twist():
+    """A window played backwards (learned.data.reverse_time: the physics of time reversal, the twist negated) must
+    get -twist: the student trained with reverse_time on the plain pose head gave one v for a window and its
+    reverse (its drives' translation 177 deg off on one run). The recipe's network (odd_twist) gives exactly
+    -twist for any weights; the plain pose head does not; the depth is left as it is."""
+    from benchmarks.synthetic_windows import make_window
+    from learned.config import load_config
+    from learned.data import Sample, reverse_time, to_item
+
+    root = Path(__file__).resolve().parents[1] / "learned" / "configs"
+    models = {mode: load_config(root / f"{mode}.toml", ["train.val_every=0", "train.teacher=t.pt"]).model
+              for mode in ("teacher", "finetune", "student")}
+    assert all(model.odd_twist for model in models.values())
+    w = make_window("slider", 2, width=64, height=48, focal=48.0, duration_s=0.1, max_frames=30)
+    sample = Sample(w.events, w.K, w.depth, w.twist, int(w.events.t[0]), int(w.events.t[-1]))
+    volumes = torch.stack([to_item(s, max_events=1000)["volume"] for s in (sample, reverse_time(sample))])
+    twists, depths = {}, {}
+    for odd in (True, False):
+        torch.manual_seed(0)
+        net = DepthPoseNet(dataclasses.replace(models["student"], width=4, levels=2, odd_twist=odd)).eval()
+        net.pose_out.weight.data.normal_(0, 0.3)   # the zero-initialised head would give 0 for both
+        with torch.no_grad():
+            out = net(volumes)
+        twists[odd], depths[odd] = out.twist, out.inverse_depth
+    assert float(twists[True][0].abs().max()) > 0.05
+    torch.testing.assert_close(twists[True][1], -twists[True][0], rtol=0, atol=1e-6)
+    assert float((twists[False][1] + twists[False][0]).abs().max()) > 0.01   # the plain head: no such symmetry
+    torch.testing.assert_close(depths[True], depths[False], rtol=0, atol=0)   # same weights, same depth
+
+
+def test_odd_twist_must_be_a_bool():
+    with pytest.raises(ValueError, match=r"model\.odd_twist must be true or false, got 'yes'"):
+        ModelConfig(odd_twist="yes")
 
 
 @pytest.mark.parametrize("config, factor", [(ModelConfig.fast(levels=2), 5),
