@@ -26,7 +26,8 @@ from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality,
                                   isolated_events, neighbour_counts, noise_reason, noise_share, sparse_reason,
                                   verdict_of, _isolated, _isolated_noise_share_and_sorted, _neighbour_counts,
                                   _Sorted, _sorted_subset)
-from cmax.fitting.rotation_only import fit_rotation_only, rotation_only_reason, rotation_only_test
+from cmax.fitting.rotation_only import (fit_rotation_only, reports_rotation_only, rotation_only_reason,
+                                        rotation_only_test)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import SensorPixels, Window
@@ -43,7 +44,8 @@ class LowParallaxWarning(UserWarning):
     constrained; or the fitted motion gains as much contrast on the events with their timestamps shuffled
     (``QualitySettings.shuffle_test``): nothing is measured; or (se3 with a free rotation) a rotation alone
     explains the events within noise (``QualitySettings.rotation_test``): the translation and depth are not
-    measured, whatever ``parallax_px`` says, and ``omega`` is the rotation-only fit's. Filter it with
+    measured, whatever ``parallax_px`` says (``omega`` is the rotation-only fit's when that scores at least as
+    well as the se3 fit). Filter it with
     ``warnings.simplefilter("ignore", LowParallaxWarning)``."""
 
 
@@ -429,7 +431,8 @@ def fit(
         (``QualitySettings.shuffle_test``, :func:`cmax.fitting.quality.shuffled_gain_test`: noise), or, with the
         rotation free, a rotation alone explains the events within noise (``QualitySettings.rotation_test``,
         :func:`cmax.fitting.rotation_only.rotation_only_test`: a camera that only turns or hovers); ``omega`` is
-        then the rotation-only fit's, and the se3 fit's own motion is in ``quality.replaced``.
+        then the rotation-only fit's when that scores at least as well as the se3 fit (the se3 fit's own motion
+        in ``quality.replaced``), else the se3 fit's.
     LowMotionWarning
         flow, rotation: the motion moves the events by under ``low_motion_px``, its contrast gain is
         within noise (``QualitySettings.motion_test``, :func:`cmax.fitting.quality.motion_within_noise`)
@@ -683,9 +686,10 @@ def _rotation_only(w: Window, result: FitResult, motion: Motion, solver: Solver
                    ) -> tuple[FitResult, LowMotion | None, tuple[np.ndarray, np.ndarray] | None]:
     """The model-selection test of a se3 fit with a free rotation
     (:func:`cmax.fitting.rotation_only.rotation_only_test`): when a rotation alone explains the window's events
-    within noise, the result with the rotation-only fit's ``omega`` (and ``T``), the ``low_parallax`` rule
-    (:attr:`~cmax.fitting.quality.LowMotionCause.ROTATION_ONLY`) and the se3 fit's own ``(v, omega)``; else the
-    result as it is, None and None."""
+    within noise, the ``low_parallax`` rule (:attr:`~cmax.fitting.quality.LowMotionCause.ROTATION_ONLY`), and, when
+    the rotation-only fit scores at least as well (:func:`cmax.fitting.rotation_only.reports_rotation_only`), the
+    result with its ``omega`` (and ``T``) and the se3 fit's own ``(v, omega)``, else the result as it is and None;
+    when not, the result as it is, None and None."""
     quality = w.settings.quality
     x, y = _warped(w, motion, w.dt)
     omega = fit_rotation_only(w, result.v, result.omega, _events_rho(w, motion.inverse_depth), solver,
@@ -694,6 +698,8 @@ def _rotation_only(w: Window, result: FitResult, motion: Motion, solver: Solver
     if not test.within_noise:
         return result, None, None
     low = LowMotion(LowMotionCause.ROTATION_ONLY, rotation_only_reason(test, result.parallax_px))
+    if not reports_rotation_only(test):
+        return result, low, None
     own = (result.v.copy(), result.omega.copy())
     return replace(result, omega=test.omega, T=se3_exp(np.r_[result.v, test.omega] * w.ev.duration_s)), low, own
 

@@ -160,8 +160,8 @@ class Quality:
         Whether ``fit_sequence`` resolved it (kept the fit or took an alternative).
     replaced : (v, omega) or None
         The window's own fit ``(v (3,), omega (3,))`` when ``fit_sequence`` replaced it by an alternative, or when
-        a rotation alone explains the window (``cause`` ``rotation_only``: ``FitResult.omega`` is the rotation-only
-        fit's).
+        a rotation alone explains the window and scores at least as well (``cause`` ``rotation_only``:
+        ``FitResult.omega`` is the rotation-only fit's).
     cause : LowMotionCause or None
         The rule behind a ``low_parallax`` verdict (None for the other verdicts).
     rate_change : float or None

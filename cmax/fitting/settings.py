@@ -321,10 +321,10 @@ class QualitySettings:
     rotation_test : bool
         se3 with a free rotation (no ``pose``, no ``omega``): fit the best rotation-only explanation of the same
         events and compare the se3 fit with it on the window's contrast, cell by cell over ``motion_cells`` with
-        ``motion_noise_sigmas`` (:func:`cmax.fitting.rotation_only.rotation_only_test`); when the se3 fit's gain
+        ``noise_sigmas`` (:func:`cmax.fitting.rotation_only.rotation_only_test`); when the se3 fit's gain
         over it is within noise, the translation and depth are not measured: the verdict is ``low_parallax``
-        (``LowMotionCause.ROTATION_ONLY``), the fit warns :class:`cmax.fitting.LowParallaxWarning` and reports the
-        rotation-only rotation (docs/quality.md).
+        (``LowMotionCause.ROTATION_ONLY``), the fit warns :class:`cmax.fitting.LowParallaxWarning`, and reports the
+        rotation-only rotation when it scores at least as well as the se3 fit (docs/quality.md).
     smoothing : bool
         ``fit_sequence``: the motion prior across windows. After the resolution, every se3 window whose
         data cannot tell its own motion from the consensus of its confident neighbours (the median
