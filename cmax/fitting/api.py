@@ -26,6 +26,8 @@ from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality,
                                   isolated_events, neighbour_counts, noise_reason, noise_share, sparse_reason,
                                   verdict_of, _isolated, _isolated_noise_share_and_sorted, _neighbour_counts,
                                   _Sorted, _sorted_subset)
+from cmax.fitting.rotation_only import (fit_rotation_only, reports_rotation_only, rotation_only_reason,
+                                        rotation_only_test)
 from cmax.fitting.settings import FitSettings, QualitySettings
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import SensorPixels, Window
@@ -40,7 +42,10 @@ class LowParallaxWarning(UserWarning):
     """The fitted translation barely moves the events over the window (``FitResult.parallax_px`` below
     ``FitSettings.low_parallax_px``): the depth, and without ``pose`` the translation direction, are poorly
     constrained; or the fitted motion gains as much contrast on the events with their timestamps shuffled
-    (``QualitySettings.shuffle_test``): nothing is measured. Filter it with
+    (``QualitySettings.shuffle_test``): nothing is measured; or (se3 with a free rotation) a rotation alone
+    explains the events within noise (``QualitySettings.rotation_test``): the translation and depth are not
+    measured, whatever ``parallax_px`` says (``omega`` is the rotation-only fit's when that scores at least as
+    well as the se3 fit). Filter it with
     ``warnings.simplefilter("ignore", LowParallaxWarning)``."""
 
 
@@ -133,8 +138,10 @@ class FitResult:
         moves each event over the whole window at its fitted depth [px]. The
         translation direction and the depth rest on this displacement
         (``docs/fitting.md``). A wrong motion can also claim a large
-        parallax: a small value is a warning, a large one no guarantee. None
-        for ``flow`` and ``rotation``.
+        parallax: a small value is a warning, a large one no guarantee (a
+        rotation alone explaining the events, ``quality.cause``
+        ``rotation_only``, says it is the fit's own). None for ``flow`` and
+        ``rotation``.
     depth_spread : ndarray (H, W) float32 or None
         se3: the range of log inverse depth over the 3 x 3 grid nodes around
         each pixel (:func:`depth_spread`): large at depth edges, where the
@@ -421,7 +428,11 @@ def fit(
     LowParallaxWarning
         se3: the translation moves the events by under ``FitSettings.low_parallax_px``, or the fitted (or
         given) motion gains as much contrast on the events with their timestamps shuffled
-        (``QualitySettings.shuffle_test``, :func:`cmax.fitting.quality.shuffled_gain_test`: noise).
+        (``QualitySettings.shuffle_test``, :func:`cmax.fitting.quality.shuffled_gain_test`: noise), or, with the
+        rotation free, a rotation alone explains the events within noise (``QualitySettings.rotation_test``,
+        :func:`cmax.fitting.rotation_only.rotation_only_test`: a camera that only turns or hovers); ``omega`` is
+        then the rotation-only fit's when that scores at least as well as the se3 fit (the se3 fit's own motion
+        in ``quality.replaced``), else the se3 fit's.
     LowMotionWarning
         flow, rotation: the motion moves the events by under ``low_motion_px``, its contrast gain is
         within noise (``QualitySettings.motion_test``, :func:`cmax.fitting.quality.motion_within_noise`)
@@ -505,12 +516,15 @@ def fit(
                          isolated=_fitted_isolated(isolated, keep, ordered, events, settings),
                          seconds=time.perf_counter() - start)
         low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
+        own = None
+        if low is None and model == "se3" and pose_xi is None and known_omega is None and result.success and \
+                settings.quality.rotation_test:
+            result, low, own = _rotation_only(w, result, motion, backend)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         on_bound = _on_bound(w, result, low, pose_known=pose is not None)
-        result = replace(result, quality=_quality(w, result, low, backend, pose_known=pose is not None,
-                                                  hold_omega=known_omega is not None, speed=scale,
-                                                  given=len(fitted), rate=rate, on_bound=on_bound,
-                                                  noise=noise),
+        quality = _quality(w, result, low, backend, pose_known=pose is not None, hold_omega=known_omega is not None,
+                           speed=scale, given=len(fitted), rate=rate, on_bound=on_bound, noise=noise)
+        result = replace(result, quality=quality if own is None else replace(quality, replaced=own),
                          hot_pixels=hot, seconds=time.perf_counter() - start)
     _warn(result, settings, low, pose is not None, on_bound)
     return result
@@ -666,6 +680,28 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
                              f"shuffled ({shuffled:.3g}, >= {quality.shuffle_fraction:g} of it): it comes from the "
                              f"image's border, not from aligning events; {NO_MOTION}")
     return None
+
+
+def _rotation_only(w: Window, result: FitResult, motion: Motion, solver: Solver
+                   ) -> tuple[FitResult, LowMotion | None, tuple[np.ndarray, np.ndarray] | None]:
+    """The model-selection test of a se3 fit with a free rotation
+    (:func:`cmax.fitting.rotation_only.rotation_only_test`): when a rotation alone explains the window's events
+    within noise, the ``low_parallax`` rule (:attr:`~cmax.fitting.quality.LowMotionCause.ROTATION_ONLY`), and, when
+    the rotation-only fit scores at least as well (:func:`cmax.fitting.rotation_only.reports_rotation_only`), the
+    result with its ``omega`` (and ``T``) and the se3 fit's own ``(v, omega)``, else the result as it is and None;
+    when not, the result as it is, None and None."""
+    quality = w.settings.quality
+    x, y = _warped(w, motion, w.dt)
+    omega = fit_rotation_only(w, result.v, result.omega, _events_rho(w, motion.inverse_depth), solver,
+                              quality.shuffle_events)
+    test = rotation_only_test(w, x, y, omega, quality)
+    if not test.within_noise:
+        return result, None, None
+    low = LowMotion(LowMotionCause.ROTATION_ONLY, rotation_only_reason(test, result.parallax_px))
+    if not reports_rotation_only(test):
+        return result, low, None
+    own = (result.v.copy(), result.omega.copy())
+    return replace(result, omega=test.omega, T=se3_exp(np.r_[result.v, test.omega] * w.ev.duration_s)), low, own
 
 
 def _on_bound(w: Window, result: FitResult, low: LowMotion | None, pose_known: bool) -> str:

@@ -88,7 +88,8 @@ class Verdict(str, enum.Enum):
     """The quality of one window's fit, worst first: ``failed`` (a stage failed, ``success`` False),
     ``low_parallax`` (se3: ``parallax_px`` under ``FitSettings.low_parallax_px``; flow/rotation:
     ``motion_px`` under ``low_motion_px``, or a motion within noise, :func:`motion_within_noise`; every
-    model: a gain that time-shuffled events share, :func:`shuffled_gain_test`),
+    model: a gain that time-shuffled events share, :func:`shuffled_gain_test`; se3 with a free rotation: a rotation
+    alone explains the events, :func:`cmax.fitting.rotation_only.rotation_only_test`),
     ``ambiguous`` (se3: an alternative motion scores within noise, or the motion is not steady over the
     window, :func:`rate_change`), ``ok``."""
 
@@ -107,13 +108,17 @@ class LowMotionCause(str, enum.Enum):
       (:func:`motion_within_noise`);
     * ``no_motion``: the time-shuffled events gain as much, or the fit gains nothing
       (:func:`shuffled_gain_test`): the events' times and places are unrelated (noise, flicker, a static
-      scene), so a longer window is no cure.
+      scene), so a longer window is no cure;
+    * ``rotation_only``: se3 with a free rotation: a rotation alone explains the events within noise
+      (:func:`cmax.fitting.rotation_only.rotation_only_test`): the translation and the depth are not measured,
+      whatever parallax the fit reports (a camera that only turns, or hovers).
     """
 
     PARALLAX = "parallax"
     MOTION = "motion"
     CELL_NOISE = "cell_noise"
     NO_MOTION = "no_motion"
+    ROTATION_ONLY = "rotation_only"
 
 
 @dataclass(frozen=True)
@@ -154,7 +159,9 @@ class Quality:
     resolved : bool
         Whether ``fit_sequence`` resolved it (kept the fit or took an alternative).
     replaced : (v, omega) or None
-        The window's own fit ``(v (3,), omega (3,))`` when ``fit_sequence`` replaced it by an alternative.
+        The window's own fit ``(v (3,), omega (3,))`` when ``fit_sequence`` replaced it by an alternative, or when
+        a rotation alone explains the window and scores at least as well (``cause`` ``rotation_only``:
+        ``FitResult.omega`` is the rotation-only fit's).
     cause : LowMotionCause or None
         The rule behind a ``low_parallax`` verdict (None for the other verdicts).
     rate_change : float or None

@@ -316,7 +316,15 @@ class QualitySettings:
     shuffle_fraction : float
         The fraction of that test, in (0, 1].
     shuffle_events : int
-        At most this many events (every k-th) enter that test's images.
+        At most this many events (every k-th) enter that test's images; the rotation-only fit of
+        ``rotation_test`` is drawn from at most this many too.
+    rotation_test : bool
+        se3 with a free rotation (no ``pose``, no ``omega``): fit the best rotation-only explanation of the same
+        events and compare the se3 fit with it on the window's contrast, cell by cell over ``motion_cells`` with
+        ``noise_sigmas`` (:func:`cmax.fitting.rotation_only.rotation_only_test`); when the se3 fit's gain
+        over it is within noise, the translation and depth are not measured: the verdict is ``low_parallax``
+        (``LowMotionCause.ROTATION_ONLY``), the fit warns :class:`cmax.fitting.LowParallaxWarning`, and reports the
+        rotation-only rotation when it scores at least as well as the se3 fit (docs/quality.md).
     smoothing : bool
         ``fit_sequence``: the motion prior across windows. After the resolution, every se3 window whose
         data cannot tell its own motion from the consensus of its confident neighbours (the median
@@ -389,6 +397,7 @@ class QualitySettings:
     shuffle_test: bool = True
     shuffle_fraction: float = 0.5
     shuffle_events: int = 20_000
+    rotation_test: bool = True
     smoothing: bool = True
     min_consensus: int = 2
     smoothing_span_s: float = 1.7
@@ -402,7 +411,7 @@ class QualitySettings:
     noise_window_us: int = 10_000
 
     def __post_init__(self) -> None:
-        for name in ("ambiguity_test", "motion_test", "shuffle_test", "smoothing"):
+        for name in ("ambiguity_test", "motion_test", "shuffle_test", "rotation_test", "smoothing"):
             if not isinstance(getattr(self, name), bool):
                 raise TypeError(f"{name} must be a bool, got {getattr(self, name)!r}")
         object.__setattr__(self, "motion_cells", _grid("motion_cells", self.motion_cells))
