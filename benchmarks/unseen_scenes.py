@@ -53,8 +53,8 @@ BAD_DEG = 30.0
 BAD_ABS_REL = 0.5
 #: ... or a rotation error over this share of the true rate (and over 1 px of image motion over the window).
 BAD_ROTATION = 0.3
-#: The verdict's settings before ``max_bound_share`` went from a quarter to 0.15 (the ``before`` columns).
-BEFORE = QualitySettings(max_bound_share=0.25)
+#: The verdict's settings before the bas-relief turn test (``bas_relief_turn_deg``; the ``before`` columns).
+BEFORE = QualitySettings(bas_relief_turn_deg=0.0)
 
 CASES = ("general", "pure_rotation", "forward", "forward_rotation", "slow", "fast", "plane", "few_edges", "noise",
          "near", "near_metric", "far", "far_metric", "vga", "hd", "half_texture", "one_polarity")
@@ -293,7 +293,7 @@ def run_case(case_name: str, seed: int, *, sequence: bool = True) -> dict:
            "on_bound": bound_share(r, window, case.K), "v": r.v, "omega": r.omega, "truth": case.twist,
            **score(r, case, metric)}
     row["verdict_before"] = row["verdict"]
-    if r.quality.on_bound:        # the same fit (the rule changes the verdict only) judged by the rule before
+    if r.quality.turned:          # the same fit (the rule changes the verdict only) judged by the rule before
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
             row["verdict_before"] = fit(window, case.K, speed=speed, quality=BEFORE).verdict
@@ -305,7 +305,7 @@ def run_case(case_name: str, seed: int, *, sequence: bool = True) -> dict:
             seq = fit_sequence(case.events, case.K, window_us=w_us, speed=speed)
             row["sequence_seconds"] = time.perf_counter() - start
             before = seq
-            if any(res.quality.on_bound for res in seq.results):
+            if any(res.quality is not None and res.quality.turned for res in seq.results):
                 before = fit_sequence(case.events, case.K, window_us=w_us, speed=speed, quality=BEFORE)
         scores = [score(res, case, metric) for res in seq.results]
         row["sequence"] = [(res.verdict.value, s) for res, s in zip(seq.results, scores)]
@@ -329,8 +329,8 @@ def table(rows: list[dict]) -> list[str]:
     changed = [r for r in rows if r["verdict"] is not r["verdict_before"]]
     seq_changed = sum(a != b for r in rows for (a, _), b in zip(r.get("sequence", []), r.get("sequence_before", [])))
     lines = [f"Confident wrong answers (`ok` and wrong): {len(wrong)} of {len(rows)} fits "
-             f"({len(wrong_before)} with `max_bound_share` 0.25 before); `fit_sequence` {seq_wrong} of {seq_total} "
-             f"windows ({seq_wrong_before} before). Verdicts changed by the lower `max_bound_share`: {len(changed)} "
+             f"({len(wrong_before)} without the bas-relief turn test before); `fit_sequence` {seq_wrong} of "
+             f"{seq_total} windows ({seq_wrong_before} before). Verdicts changed by the test: {len(changed)} "
              f"fits, {seq_changed} `fit_sequence` windows.", "",
              "| case | seed | events | truth: speed / rotation [deg/s] / image motion [px] / median depth | "
              "direction error [deg] | rotation error (rel / px) | depth abs_rel | parallax [px] | depth on a bound [%] | "
@@ -382,7 +382,7 @@ def main(argv: list[str] | None = None) -> None:
             f"`speed=|v|`); `fit_sequence` on {SEQUENCE_WINDOWS} such windows. Confident wrong: `ok` with a direction "
             f"over {BAD_DEG:g} deg off, a depth abs_rel over {BAD_ABS_REL:g}, a rotation error over "
             f"{BAD_ROTATION:g} of the true rate (and over 1 px), or any `ok` on a pure rotation. Verdicts `before -> after`: "
-            f"the same fit judged with `max_bound_share` {BEFORE.max_bound_share:g} (the rule before) and with the "
+            f"the same fit judged with `bas_relief_turn_deg` {BEFORE.bas_relief_turn_deg:g} (the rule before) and with the "
             f"defaults (shown once when they agree). "
             f"Machine: {describe()}, torch threads 1. Written by `python -m benchmarks.unseen_scenes --seeds "
             f"{first}-{last}` in {time.perf_counter() - start:.0f} s.", ""]

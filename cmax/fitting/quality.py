@@ -76,7 +76,7 @@ __all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alterna
            "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change", "sparse_reason",
            "small_parallax_reason", "min_ok_parallax", "isolated_events", "neighbour_counts", "noise_share",
-           "noise_reason"]
+           "noise_reason", "turned_motions", "best_turned", "turned_reason"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
@@ -185,6 +185,10 @@ class Quality:
         (:func:`noise_reason`): ambiguous, since noise pixels enter the depth map and pull the depth sweep.
     noise_share : float or None
         The window's :func:`noise_share` (se3, with a given pose too; None when not measured).
+    turned : bool
+        se3 with a free rotation: a motion ``QualitySettings.bas_relief_turn_deg`` along the bas-relief trade
+        scores better than the fit (:func:`best_turned`, :func:`turned_reason`): ambiguous, since the fit is not the
+        optimum of its own objective along the trade, and its direction may be off by that much or more.
     """
 
     verdict: Verdict
@@ -201,6 +205,7 @@ class Quality:
     small_parallax: bool = False
     noisy: bool = False
     noise_share: float | None = None
+    turned: bool = False
 
     def summary(self) -> dict:
         """A JSON-ready dict (an infinite ``rate_change``, one half of the window without events, as None with
@@ -209,7 +214,7 @@ class Quality:
         return {"verdict": self.verdict.value, "reason": self.reason,
                 "cause": None if self.cause is None else self.cause.value,
                 "rate_change": rate, "unsteady": self.unsteady, "sparse": self.sparse, "on_bound": self.on_bound,
-                "small_parallax": self.small_parallax, "noisy": self.noisy, "noise_share": self.noise_share,
+                "small_parallax": self.small_parallax, "noisy": self.noisy, "noise_share": self.noise_share, "turned": self.turned,
                 "alternatives": [{"name": a.name, "v": a.v.tolist(), "omega": a.omega.tolist(), "gain": a.gain,
                                   "noise": a.noise, "within_noise": a.within_noise} for a in self.alternatives],
                 "resolution": self.resolution, "resolved": self.resolved,
@@ -381,6 +386,69 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
         alternatives.append(scorer.score(name, v_alt, omega_alt))
     note = f"the {', '.join(merged)} alternative(s) polished back onto the fit" if merged else ""
     return tuple(alternatives), note, True
+
+
+# ----------------------------------------------------------------------------------------------
+# Is the fit the optimum of its own objective along the bas-relief trade? (se3, rotation free)
+# ----------------------------------------------------------------------------------------------
+def turned_motions(objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray, rho: np.ndarray,
+                   degrees: float) -> list[tuple[str, np.ndarray, np.ndarray]]:
+    """The fit ``(v (3,) [m/s], omega (3,) [rad/s])`` moved ``degrees`` along the bas-relief trade, four ways: ``v``
+    turned by ``degrees`` towards ``+a``, ``-a``, ``+b`` and ``-b`` (``a``, ``b``: unit vectors perpendicular to
+    ``v`` and to each other), its speed kept, each with the rotation ``omega + d``, ``d`` the rotation whose flow
+    best makes up (least squares over the patches' events, at the patch inverse depths ``rho`` (P,) [1/m]) the
+    change of the translation's flow, so that the turned motion moves the events nearly as the fit does. Named
+    ``turned_+a`` ... ``turned_-b``."""
+    v, omega = np.asarray(v, float), np.asarray(omega, float)
+    speed = float(np.linalg.norm(v))
+    u = v / speed
+    a = np.cross(u, [1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.cross(u, [0.0, 1.0, 0.0])
+    a /= np.linalg.norm(a)
+    b = np.cross(u, a)
+    patches = objective.patches
+    step = max(1, len(patches.x) // 2000)
+    rays, rho_events = objective.rays[::step], torch.as_tensor(rho, dtype=objective.rays.dtype)[patches.patch[::step]]
+    dt, angle = 1e-3, math.radians(degrees)
+    translation, rotation = _unit_flows(rays, objective.K, rho_events, v, dt)
+    out = []
+    for name, e in (("+a", a), ("-a", -a), ("+b", b), ("-b", -b)):
+        v_turned = speed * (math.cos(angle) * u + math.sin(angle) * e)
+        moved, _ = _unit_flows(rays, objective.K, rho_events, v_turned, dt)
+        d, *_ = np.linalg.lstsq(rotation, translation - moved, rcond=None)
+        out.append((f"turned_{name}", v_turned, omega + d))
+    return out
+
+
+def best_turned(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualitySettings) -> Alternative | None:
+    """The best-scoring of the fit's :func:`turned_motions` by ``settings.bas_relief_turn_deg``, scored as an
+    :class:`Alternative` of the fit ``(v (3,) [m/s], omega (3,) [rad/s])`` of window ``w`` (a
+    :class:`cmax.fitting.window.Window`, ``|v| = speed``) by :class:`MotionScorer`; None when the window has too
+    few patches to score on, or the test is off (``bas_relief_turn_deg`` 0) or the speed is 0."""
+    if not settings.bas_relief_turn_deg > 0 or not np.linalg.norm(v) > 0:
+        return None
+    scorer = MotionScorer.build(w, v, omega, speed, settings)
+    if scorer is None:
+        return None
+    scored = [scorer.score(name, v_turned, omega_turned) for name, v_turned, omega_turned
+              in turned_motions(scorer.objective, v, omega, scorer.rho, settings.bas_relief_turn_deg)]
+    return min(scored, key=lambda a: a.gain)
+
+
+def turned_reason(turned: Alternative | None, degrees: float) -> str:
+    """The reason of a window whose fit a motion ``degrees`` along the bas-relief trade (:func:`best_turned`:
+    ``turned``, None when not scored) scores better than (its gain under 0), "" otherwise.
+
+    >>> turned_reason(Alternative("turned_+a", np.ones(3), np.zeros(3), -0.2, 0.5, True), 10.0)[:71]
+    'a motion turned 10 deg along the bas-relief trade (turned_+a) scores be'
+    >>> turned_reason(Alternative("turned_+a", np.ones(3), np.zeros(3), 0.1, 0.5, True), 10.0)
+    ''
+    """
+    if turned is None or not turned.gain < 0:
+        return ""
+    return (f"a motion turned {degrees:g} deg along the bas-relief trade ({turned.name}) scores better than the fit "
+            f"(gain {turned.gain:.3g} < 0; bas_relief_turn_deg={degrees:g}): the fit is not the optimum of its own "
+            "objective along the trade of the translation for a rotation, so its direction and its rotation's size, "
+            "and with them the depth, may be off by that much or more")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -855,7 +923,7 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
                alternatives: Sequence[Alternative], note: str = "", untestable: bool = False,
                rate: float | None = None, max_rate_change: float = math.inf, sparse: str = "",
                on_bound: str = "", small_parallax: str = "", noisy: str = "",
-               noise_share: float | None = None) -> Quality:
+               noise_share: float | None = None, turned: str = "") -> Quality:
     """The verdict from the fit's ``success`` (and the names of its failed stages), why its motion is too
     small to trust (None when it is not), the ambiguity test's ``alternatives`` and the window's
     :func:`rate_change` ``rate`` (None: not measured); the worst one wins (failed, low parallax, ambiguous,
@@ -867,7 +935,9 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
     does not): an ``ok`` or ambiguous window is ambiguous and ``on_bound``. ``small_parallax``: the
     :func:`small_parallax_reason` of the window ("" when it has parallax enough): an ``ok`` becomes ambiguous and
     ``small_parallax``. ``noisy``: the :func:`noise_reason` of the window ("" when its estimated noise share,
-    ``noise_share`` (None: not measured), is not too high): an ``ok`` becomes ambiguous and ``noisy``."""
+    ``noise_share`` (None: not measured), is not too high): an ``ok`` becomes ambiguous and ``noisy``. ``turned``: the
+    :func:`turned_reason` of the window ("" when no motion along the bas-relief trade scores better than the fit):
+    an ``ok`` becomes ambiguous and ``turned``."""
     unsteady = "" if rate is None else _unsteady_reason(rate, max_rate_change)
     measured = dict(rate_change=rate, unsteady=bool(unsteady), noise_share=noise_share)
     if not success:
@@ -904,6 +974,8 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
                        **measured)
     if noisy and verdict is Verdict.OK:
         return Quality(Verdict.AMBIGUOUS, f"{noisy}; {reason}", tuple(alternatives), noisy=True, **measured)
+    if turned and verdict is Verdict.OK:
+        return Quality(Verdict.AMBIGUOUS, f"{turned}; {reason}", tuple(alternatives), turned=True, **measured)
     return Quality(verdict, reason, tuple(alternatives), **measured)
 
 

@@ -381,6 +381,14 @@ class QualitySettings:
         (docs/quality.md: the measurement behind the value).
     noise_window_us : int
         Half the time span [µs] of that test's neighbourhood (the background-activity filter's window).
+    bas_relief_turn_deg : float
+        se3 with a fitted direction and a free rotation, when the verdict would be ``ok``: the fit's translation
+        turned by this many degrees four ways (two perpendicular axes, both signs), each with the rotation that makes
+        up the change of its flow (:func:`cmax.fitting.quality.turned_motions`), is scored as an alternative; when
+        one scores better than the fit (its gain under 0) the window is at best ``ambiguous`` and ``turned``: the fit
+        is not the optimum of its own objective along the bas-relief trade, where a rotation of the wrong size
+        explains part of the translation's flow at the price of a depth offset (docs/quality.md: the windows behind
+        the value). 0 turns the test off.
     """
 
     ambiguity_test: bool = True
@@ -409,6 +417,7 @@ class QualitySettings:
     min_ok_parallax_area: int = 346 * 260
     max_noise_share: float = 0.3
     noise_window_us: int = 10_000
+    bas_relief_turn_deg: float = 10.0
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "rotation_test", "smoothing"):
@@ -417,7 +426,7 @@ class QualitySettings:
         object.__setattr__(self, "motion_cells", _grid("motion_cells", self.motion_cells))
         for name in ("margin", "noise_sigmas", "distinct_deg", "recheck_deg", "max_resolve_deg",
                      "motion_noise_sigmas", "smoothing_min_deg", "smoothing_span_s", "min_event_density",
-                     "min_ok_parallax_px"):
+                     "min_ok_parallax_px", "bas_relief_turn_deg"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
