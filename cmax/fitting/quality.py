@@ -163,8 +163,9 @@ class Quality:
         ``rate_change`` is over ``QualitySettings.max_rate_change``: the motion is not steady over the window
         (ambiguous: no single motion explains its events; ``fit_sequence`` gives it its neighbours' motion).
     sparse : bool
-        The window was fitted on fewer events per pixel than ``QualitySettings.min_event_density``
-        (:func:`sparse_reason`): ambiguous, since the ambiguity test cannot vouch for its direction.
+        The window was fitted on fewer events per pixel than ``QualitySettings.min_event_density`` (per pixel of
+        at most ``min_event_density_area`` pixels, :func:`sparse_reason`): ambiguous, since the ambiguity test
+        cannot vouch for its direction.
     on_bound : bool
         At least ``QualitySettings.max_bound_share`` of the events' depth lies on one end of the depth range
         (:func:`bound_reason`): ambiguous, since the depth is clipped and the motion may be bent to keep the
@@ -472,23 +473,33 @@ def _unsteady_reason(rate: float, max_rate_change: float) -> str:
             "a stop, something entering the view), so no single motion explains its events")
 
 
-def sparse_reason(fitted: int, given: int, width: int, height: int, min_event_density: float) -> str:
+def sparse_reason(fitted: int, given: int, width: int, height: int, min_event_density: float,
+                  density_area: int = 346 * 260) -> str:
     """The reason of a window too sparse to vouch for its direction, "" otherwise: ``fitted`` events (of ``given``;
     fewer when ``FitSettings.max_events`` subsampled them) on a ``width`` x ``height`` image, under
-    ``min_event_density`` events per pixel. Nearly every event then lies alone in its pixel, and the contrast
-    of a wrong direction can beat its mirrored and rotation-swapped alternatives by more than their noise.
+    ``min_event_density`` events per pixel of the image or of ``density_area`` pixels, whichever is smaller
+    (``QualitySettings.min_event_density_area``: the fit cuts any image into the same grids of patches, so a
+    larger image asks for as many events as one of ``density_area`` pixels). Nearly every event then lies alone
+    in its patch's pixels, and the contrast of a wrong direction can beat its mirrored and rotation-swapped
+    alternatives by more than their noise.
 
     >>> sparse_reason(3000, 3000, 346, 260, 0.25)[:60]
     '3,000 events on 346x260 pixels (0.033 per pixel, under min_e'
     >>> sparse_reason(60_000, 60_000, 346, 260, 0.25)
     ''
+    >>> sparse_reason(60_000, 219_596, 1280, 720, 0.25)
+    ''
+    >>> sparse_reason(20_000, 20_000, 1280, 720, 0.25)[:94]
+    '20,000 events on 1280x720 pixels (0.222 per pixel over min_event_density_area=89,960 px, under'
     """
-    density = fitted / (width * height)
+    area = min(width * height, density_area)
+    density = fitted / area
     if not density < min_event_density:
         return ""
     more = (f"; {given:,} were given: a larger FitSettings.max_events (cmax fit: --max-events) fits more of them"
             if given > fitted else "; a longer window gives more events")
-    return (f"{fitted:,} events on {width}x{height} pixels ({density:.3f} per pixel, under min_event_density="
+    per = "per pixel" if area == width * height else f"per pixel over min_event_density_area={density_area:,} px"
+    return (f"{fitted:,} events on {width}x{height} pixels ({density:.3f} {per}, under min_event_density="
             f"{min_event_density:g}): too sparse for the contrast to vouch for the direction{more}")
 
 
