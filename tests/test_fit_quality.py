@@ -4,6 +4,7 @@ windows from their neighbours in ``fit_sequence``."""
 from __future__ import annotations
 
 import functools
+import math
 import warnings
 from dataclasses import replace
 
@@ -490,26 +491,30 @@ def test_a_fit_on_few_events_per_pixel_is_flagged_sparse_with_its_motion_unchang
 
 
 def test_a_large_sensor_window_with_ample_events_is_not_sparse_but_a_thin_one_is(monkeypatch):
-    """QualitySettings.min_event_density counts over at most min_event_density_area pixels (346x260): a 640x480
-    window of about 39,000 events (0.13 per pixel of its image, 1.7 times 0.25 x 346 x 260) is not sparse (it was,
-    as was every 640x480 window fitted on the default 60,000 events or fewer); one of 8,000 events still is, and
-    says over which area it counted. The ambiguity test is made to pass both, so that only the rule decides."""
-    from cmax.fitting.quality import sparse_reason
+    """QualitySettings.min_event_density counts a sensor larger than min_event_density_area (346x260) over the
+    geometric mean of the two areas (the events lie along edges, whose pixels grow with the image's side): a
+    640x480 window fitted on the default 60,000 events needs 0.25 sqrt(640 480 346 260) = 41,560 and is not sparse
+    (it was: 0.195 per pixel of its whole image, so no 640x480 window could be ok with the defaults); one of
+    8,000 events still is, and says over which pixels it counted; 1280x720 needs 71,984. The ambiguity test is made
+    to pass both windows, so that only the rule decides."""
+    from cmax.fitting.quality import density_pixels, sparse_reason
 
     monkeypatch.setattr("cmax.fitting.api.assess", lambda *args, **kwargs: ((_alt("mirrored", 1.0),), "", True))
-    needed = 0.25 * 346 * 260                                  # 22,490 events on any larger sensor
-    assert sparse_reason(22_490, 22_490, 640, 480, 0.25) == "" and sparse_reason(22_489, 22_489, 640, 480, 0.25)
+    assert density_pixels(640, 480) == pytest.approx(math.sqrt(640 * 480 * 346 * 260))
+    assert density_pixels(346, 260) == 346 * 260 and density_pixels(160, 120) == 160 * 120     # as before
+    assert sparse_reason(41_000, 41_000, 640, 480, 0.25) and not sparse_reason(42_000, 42_000, 640, 480, 0.25)
+    assert sparse_reason(71_000, 71_000, 1280, 720, 0.25) and not sparse_reason(73_000, 73_000, 1280, 720, 0.25)
     assert sparse_reason(60_000, 60_000, 640, 480, 0.25, 640 * 480)     # the whole image's density: as before
-    ample, K = _dots_on_a_plane(3.0, (0.5, 0.0, 0.0), seed=6, width=640, height=480, focal=400.0, events=100_000)
+    ample, K = _dots_on_a_plane(3.0, (0.5, 0.0, 0.0), seed=6, width=640, height=480, focal=400.0, events=160_000)
     r = fit(ample, K, speed=0.5)
-    assert needed < r.events_used < 0.25 * 640 * 480
+    assert r.events_used == 60_000 and len(ample) > 60_000
     assert r.success and r.quality.rate_change is not None and not r.quality.on_bound
     assert not r.quality.sparse and "events on 640x480 pixels" not in r.quality.reason
     thin = fit(ample[np.sort(np.random.default_rng(1).choice(len(ample), 8_000, replace=False))], K, speed=0.5)
-    assert thin.events_used == 8_000 < needed
+    assert thin.events_used == 8_000
     assert thin.verdict is Verdict.AMBIGUOUS and thin.quality.sparse
-    assert thin.quality.reason.startswith("8,000 events on 640x480 pixels (0.089 per pixel over "
-                                          "min_event_density_area=89,960 px, under min_event_density=0.25)")
+    assert thin.quality.reason.startswith("8,000 events on 640x480 pixels (0.048 per pixel of sqrt(640 x 480 x "
+                                          "min_event_density_area=89,960) = 166,240 px, under min_event_density=0.25)")
     with pytest.raises(ValueError, match="min_event_density_area must be an int >= 1"):
         QualitySettings(min_event_density_area=0)
 

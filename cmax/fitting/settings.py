@@ -343,16 +343,16 @@ class QualitySettings:
         chosen).
     min_event_density : float
         se3 with a fitted direction: a window fitted on fewer events than this per pixel of the image (after
-        ``FitSettings.max_events``; on an image larger than ``min_event_density_area``, per pixel of that area)
-        is at best ``ambiguous`` and ``sparse``: its image of warped events holds too few coincidences for the
-        ambiguity test to vouch for the direction (docs/quality.md: the measurement behind the value). 0 turns
-        the rule off.
+        ``FitSettings.max_events``; on an image larger than ``min_event_density_area``, per pixel of fewer pixels:
+        :func:`cmax.fitting.quality.density_pixels`) is at best ``ambiguous`` and ``sparse``: its image of warped
+        events holds too few coincidences for the ambiguity test to vouch for the direction (docs/quality.md: the
+        measurement behind the value). 0 turns the rule off.
     min_event_density_area : int
-        The most pixels [px] (346x260) over which ``min_event_density`` is counted: a larger image needs
-        ``min_event_density * min_event_density_area`` events (22,490 by default), not that density over all of
-        its pixels: the fit cuts every image into the same grids of patches, so such a window gives each patch as
-        many events as a 346x260 window of that density (docs/quality.md: the measurement on 640x480 and 1280x720
-        windows). ``width * height`` or more: the density over the whole image.
+        The image area [px] (346x260) up to which ``min_event_density`` is counted over every pixel of the image;
+        a larger image counts over ``sqrt(width * height * min_event_density_area)`` pixels (the events lie along
+        edges, whose pixels grow with the image's side, not its area): 41,560 events at 640x480, 71,984 at
+        1280x720 by default, not 76,800 and 230,400 (docs/quality.md: the measurement on such windows). The
+        sensor's own ``width * height`` or more: the density over the whole image.
     max_bound_share : float
         se3 with a fitted motion: a window with at least this share of its events' depth on one end of
         ``FitSettings.depth_range`` (but under ``FitSettings.depth_bound_fraction``, which fails the fit) is at
