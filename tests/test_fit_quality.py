@@ -4,6 +4,7 @@ windows from their neighbours in ``fit_sequence``."""
 from __future__ import annotations
 
 import functools
+import math
 import warnings
 from dataclasses import replace
 
@@ -447,7 +448,7 @@ def test_a_sparse_window_is_never_ok():
     reason = sparse_reason(3000, 3000, 346, 260, 0.25)
     assert reason.startswith("3,000 events on 346x260 pixels (0.033 per pixel, under min_event_density=0.25)")
     assert "a longer window gives more events" in reason
-    assert "219,551 were given: a larger FitSettings.max_events" in sparse_reason(60_000, 219_551, 1280, 720, 0.25)
+    assert "219,551 were given: a larger FitSettings.max_events" in sparse_reason(20_000, 219_551, 1280, 720, 0.25)
     assert sparse_reason(23_000, 23_000, 346, 260, 0.25) == "" and sparse_reason(10, 10, 346, 260, 0.0) == ""
     ok = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 1.0)],
                     sparse=reason)
@@ -488,6 +489,35 @@ def test_a_fit_on_few_events_per_pixel_is_flagged_sparse_with_its_motion_unchang
         on = fit(events, w.K, speed=speed, quality=QualitySettings(min_ok_parallax_px=0.0))
         assert on.verdict is Verdict.AMBIGUOUS and on.quality.sparse
         assert "3,000 events on 346x260 pixels (0.033 per pixel" in on.quality.reason
+
+
+def test_a_large_sensor_window_with_ample_events_is_not_sparse_but_a_thin_one_is(monkeypatch):
+    """QualitySettings.min_event_density counts a sensor larger than min_event_density_area (346x260) over the
+    geometric mean of the two areas (the events lie along edges, whose pixels grow with the image's side): a
+    640x480 window fitted on the default 60,000 events needs 0.25 sqrt(640 480 346 260) = 41,560 and is not sparse
+    (it was: 0.195 per pixel of its whole image, so no 640x480 window could be ok with the defaults); one of
+    8,000 events still is, and says over which pixels it counted; 1280x720 needs 71,984. The ambiguity test is made
+    to pass both windows, so that only the rule decides."""
+    from cmax.fitting.quality import density_pixels, sparse_reason
+
+    monkeypatch.setattr("cmax.fitting.api.assess", lambda *args, **kwargs: ((_alt("mirrored", 1.0),), "", True))
+    assert density_pixels(640, 480) == pytest.approx(math.sqrt(640 * 480 * 346 * 260))
+    assert density_pixels(346, 260) == 346 * 260 and density_pixels(160, 120) == 160 * 120     # as before
+    assert sparse_reason(41_000, 41_000, 640, 480, 0.25) and not sparse_reason(42_000, 42_000, 640, 480, 0.25)
+    assert sparse_reason(71_000, 71_000, 1280, 720, 0.25) and not sparse_reason(73_000, 73_000, 1280, 720, 0.25)
+    assert sparse_reason(60_000, 60_000, 640, 480, 0.25, 640 * 480)     # the whole image's density: as before
+    ample, K = _dots_on_a_plane(3.0, (0.5, 0.0, 0.0), seed=6, width=640, height=480, focal=400.0, events=160_000)
+    r = fit(ample, K, speed=0.5)
+    assert r.events_used == 60_000 and len(ample) > 60_000
+    assert r.success and r.quality.rate_change is not None and not r.quality.on_bound
+    assert not r.quality.sparse and "events on 640x480 pixels" not in r.quality.reason
+    thin = fit(ample[np.sort(np.random.default_rng(1).choice(len(ample), 8_000, replace=False))], K, speed=0.5)
+    assert thin.events_used == 8_000
+    assert thin.verdict is Verdict.AMBIGUOUS and thin.quality.sparse
+    assert thin.quality.reason.startswith("8,000 events on 640x480 pixels (0.048 per pixel of sqrt(640 x 480 x "
+                                          "min_event_density_area=89,960) = 166,240 px, under min_event_density=0.25)")
+    with pytest.raises(ValueError, match="min_event_density_area must be an int >= 1"):
+        QualitySettings(min_event_density_area=0)
 
 
 def _dots_on_a_plane(depth_m: float, v: tuple[float, float, float], seed: int, width: int = 240, height: int = 180,

@@ -115,8 +115,12 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                                          "the motion stages' time times N (cmax.FitSettings.motion_members)"),
                 _settings_default("motion_members"))
     api_default(parser.add_argument("--max-events", type=positive_int, default=None,
-                                    help="windows with more events are subsampled to this many "
-                                         "(cmax.FitSettings.max_events)"), _settings_default("max_events"))
+                                    help="windows with more events are subsampled to this many, on any sensor "
+                                         "(cmax.FitSettings.max_events); se3: a window fitted on fewer than 0.25 "
+                                         "events per pixel is at best ambiguous, counted on a sensor larger than "
+                                         "346x260 over sqrt(width height 346 260) pixels: 41,560 events at "
+                                         "640x480, 71,984 at 1280x720 (cmax.fitting.QualitySettings."
+                                         "min_event_density, min_event_density_area)"), _settings_default("max_events"))
     api_default(parser.add_argument("--max-omega", type=positive_float, default=None,
                                     help="se3 and rotation: bound of each fitted angular-velocity component [rad/s]; a "
                                          "window that ends on it is reported, never clipped (cmax.FitSettings."
@@ -323,8 +327,8 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
     >>> advice({"ok": 0, "ambiguous": 0, "resolved": 0, "low_parallax": 1, "failed": 0}, "se3", True, single_window=True)
     ['1 of 1 windows have too little parallax: their translation and depth are not measured; a longer span of events (the run is one window over all of them) gives more parallax']
     >>> advice({"ok": 0, "ambiguous": 2, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", sparse=2,
-    ...        sparse_needs=230_400)[0]
-    '2 of 2 windows stay ambiguous because they were fitted on too few events per pixel to vouch for their direction (QualitySettings.min_event_density): a larger --max-events (at least 230,400 on this sensor; the fit takes longer in proportion) gives them more; a longer --window-ms alone does not (a window is subsampled to --max-events)'
+    ...        sparse_needs=71_984)[0]
+    '2 of 2 windows stay ambiguous because they were fitted on too few events per pixel to vouch for their direction (QualitySettings.min_event_density): a larger --max-events (at least 71,984 on this sensor) gives them more; a longer --window-ms alone does not (a window is subsampled to --max-events)'
     >>> advice({"ok": 0, "ambiguous": 1, "resolved": 0, "low_parallax": 0, "failed": 0}, "se3", sparse=1,
     ...        sparse_needs=230_400, densest=219_517, single_window=True)[0].split(": ", 1)[1]
     'no --max-events reaches that density: the window holds 219,517 events, fewer than the 230,400 this sensor needs; a longer span of events (the run is one window over all of them) gives more'
@@ -369,9 +373,8 @@ def advice(counts: dict[str, int], model: str, rotation_known: bool = False, no_
                          "tell the translation direction from a rotation (QualitySettings.min_ok_parallax_px): "
                          f"{known}{longer} gives more parallax")
         if sparse:
-            cure = (f"a larger --max-events (at least {sparse_needs:,} on this sensor; the fit takes longer in "
-                    "proportion) gives them more; a longer --window-ms alone does not (a window is subsampled to "
-                    "--max-events)" if sparse_needs else f"{longer} gives them more")
+            cure = (f"a larger --max-events (at least {sparse_needs:,} on this sensor) gives them more; a longer "
+                    "--window-ms alone does not (a window is subsampled to --max-events)" if sparse_needs else f"{longer} gives them more")
             if sparse_needs and densest is not None and densest < sparse_needs:   # no --max-events can help
                 cure = (f"no --max-events reaches that density: the {'window' if single_window else 'densest window'}"
                         f" holds {densest:,} events, fewer than the {sparse_needs:,} this sensor needs; "
@@ -633,7 +636,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     from cmax.emvs.poses import tum_header
     from cmax.fitting import fit_sequence
     from cmax.fitting.api import MIN_WINDOW_EVENTS
-    from cmax.fitting.quality import LowMotionCause, Verdict
+    from cmax.fitting.quality import LowMotionCause, Verdict, density_pixels
     from cmax.fitting.sequence import check_gyro, constant_gyro
     from cmax.io import read_gyro
     from cmax.warp import DepthGrid
@@ -789,7 +792,8 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     sparse = sum(q.sparse for q in unresolved)     # never unsteady too: verdict_of marks only an ok one sparse
     small = sum(q.small_parallax for q in unresolved)   # nor sparse: an ok one, once
     noisy = sum(q.noisy for q in unresolved)            # nor small parallax: an ok one, once
-    needs = math.ceil(settings.quality.min_event_density * events.width * events.height)
+    needs = math.ceil(settings.quality.min_event_density
+                      * density_pixels(events.width, events.height, settings.quality.min_event_density_area))
     late_notes += advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None,
                          no_motion, cell_noise, unsteady, sparse, single_window=single_window,
                          sparse_needs=needs if needs > settings.max_events else None, small_parallax=small,

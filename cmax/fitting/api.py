@@ -736,7 +736,8 @@ def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver
     tested, sparse, small, turned = True, "", "", ""
     if result.model == "se3" and not pose_known and quality.ambiguity_test and result.success and low is None:
         alternatives, note, tested = assess(w, result.v, result.omega, speed, quality, solver, hold_omega=hold_omega)
-        sparse = sparse_reason(result.events_used, given, w.ev.width, w.ev.height, quality.min_event_density)
+        sparse = sparse_reason(result.events_used, given, w.ev.width, w.ev.height, quality.min_event_density,
+                               quality.min_event_density_area)
         small = "" if hold_omega else small_parallax_reason(result.parallax_px, quality.min_ok_parallax_px,
                                                             (w.ev.width, w.ev.height), quality.min_ok_parallax_area)
         turned = _turned(w, result, speed, quality, alternatives, tested and not hold_omega)

@@ -76,7 +76,7 @@ __all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alterna
            "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change", "sparse_reason",
            "small_parallax_reason", "min_ok_parallax", "isolated_events", "neighbour_counts", "noise_share",
-           "noise_reason", "turned_motions", "best_turned", "turned_reason"]
+           "noise_reason", "turned_motions", "best_turned", "turned_reason", "density_pixels"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
@@ -170,8 +170,9 @@ class Quality:
         ``rate_change`` is over ``QualitySettings.max_rate_change``: the motion is not steady over the window
         (ambiguous: no single motion explains its events; ``fit_sequence`` gives it its neighbours' motion).
     sparse : bool
-        The window was fitted on fewer events per pixel than ``QualitySettings.min_event_density``
-        (:func:`sparse_reason`): ambiguous, since the ambiguity test cannot vouch for its direction.
+        The window was fitted on fewer events per pixel than ``QualitySettings.min_event_density`` (per pixel of
+        :func:`density_pixels`, :func:`sparse_reason`): ambiguous, since the ambiguity test cannot vouch for its
+        direction.
     on_bound : bool
         At least ``QualitySettings.max_bound_share`` of the events' depth lies on one end of the depth range
         (:func:`bound_reason`): ambiguous, since the depth is clipped and the motion may be bent to keep the
@@ -547,23 +548,47 @@ def _unsteady_reason(rate: float, max_rate_change: float) -> str:
             "a stop, something entering the view), so no single motion explains its events")
 
 
-def sparse_reason(fitted: int, given: int, width: int, height: int, min_event_density: float) -> str:
+def density_pixels(width: int, height: int, density_area: int = 346 * 260) -> float:
+    """The pixels [px] over which :func:`sparse_reason` counts the events of a ``width`` x ``height`` window: the
+    image's own up to ``density_area`` (``QualitySettings.min_event_density_area``), beyond it the geometric mean
+    ``sqrt(width * height * density_area)``. A scene's events lie along its edges, whose length in pixels grows
+    with the image's side, not with its area, so a larger image of the same view spreads as many events over
+    its edges' pixels as the square root of its area says (docs/quality.md: the measurement).
+
+    >>> density_pixels(346, 260), density_pixels(160, 120), round(density_pixels(1280, 720))
+    (89960.0, 19200.0, 287936)
+    """
+    area = width * height
+    return float(area) if area <= density_area else math.sqrt(area * density_area)
+
+
+def sparse_reason(fitted: int, given: int, width: int, height: int, min_event_density: float,
+                  density_area: int = 346 * 260) -> str:
     """The reason of a window too sparse to vouch for its direction, "" otherwise: ``fitted`` events (of ``given``;
     fewer when ``FitSettings.max_events`` subsampled them) on a ``width`` x ``height`` image, under
-    ``min_event_density`` events per pixel. Nearly every event then lies alone in its pixel, and the contrast
-    of a wrong direction can beat its mirrored and rotation-swapped alternatives by more than their noise.
+    ``min_event_density`` events per pixel of :func:`density_pixels` (the image's pixels up to ``density_area``,
+    ``QualitySettings.min_event_density_area``; beyond it fewer). Nearly every event then lies alone in its
+    pixel, and the contrast of a wrong direction can beat its mirrored and rotation-swapped alternatives by
+    more than their noise.
 
     >>> sparse_reason(3000, 3000, 346, 260, 0.25)[:60]
     '3,000 events on 346x260 pixels (0.033 per pixel, under min_e'
     >>> sparse_reason(60_000, 60_000, 346, 260, 0.25)
     ''
+    >>> sparse_reason(60_000, 60_000, 640, 480, 0.25)
+    ''
+    >>> sparse_reason(60_000, 219_596, 1280, 720, 0.25)[:74]
+    '60,000 events on 1280x720 pixels (0.208 per pixel of sqrt(1280 x 720 x min'
     """
-    density = fitted / (width * height)
+    pixels = density_pixels(width, height, density_area)
+    density = fitted / pixels
     if not density < min_event_density:
         return ""
     more = (f"; {given:,} were given: a larger FitSettings.max_events (cmax fit: --max-events) fits more of them"
             if given > fitted else "; a longer window gives more events")
-    return (f"{fitted:,} events on {width}x{height} pixels ({density:.3f} per pixel, under min_event_density="
+    per = ("per pixel" if width * height <= density_area else
+           f"per pixel of sqrt({width} x {height} x min_event_density_area={density_area:,}) = {pixels:,.0f} px")
+    return (f"{fitted:,} events on {width}x{height} pixels ({density:.3f} {per}, under min_event_density="
             f"{min_event_density:g}): too sparse for the contrast to vouch for the direction{more}")
 
 

@@ -351,9 +351,16 @@ class QualitySettings:
         chosen).
     min_event_density : float
         se3 with a fitted direction: a window fitted on fewer events than this per pixel of the image (after
-        ``FitSettings.max_events``) is at best ``ambiguous`` and ``sparse``: its image of warped events holds
-        too few coincidences for the ambiguity test to vouch for the direction (docs/quality.md: the
+        ``FitSettings.max_events``; on an image larger than ``min_event_density_area``, per pixel of fewer pixels:
+        :func:`cmax.fitting.quality.density_pixels`) is at best ``ambiguous`` and ``sparse``: its image of warped
+        events holds too few coincidences for the ambiguity test to vouch for the direction (docs/quality.md: the
         measurement behind the value). 0 turns the rule off.
+    min_event_density_area : int
+        The image area [px] (346x260) up to which ``min_event_density`` is counted over every pixel of the image;
+        a larger image counts over ``sqrt(width * height * min_event_density_area)`` pixels (the events lie along
+        edges, whose pixels grow with the image's side, not its area): 41,560 events at 640x480, 71,984 at
+        1280x720 by default, not 76,800 and 230,400 (docs/quality.md: the measurement on such windows). The
+        sensor's own ``width * height`` or more: the density over the whole image.
     max_bound_share : float
         se3 with a fitted motion: a window with at least this share of its events' depth on one end of
         ``FitSettings.depth_range`` (but under ``FitSettings.depth_bound_fraction``, which fails the fit) is at
@@ -412,6 +419,7 @@ class QualitySettings:
     smoothing_min_deg: float = 1.0
     max_rate_change: float = 6.0
     min_event_density: float = 0.25
+    min_event_density_area: int = 346 * 260
     max_bound_share: float = 0.15
     min_ok_parallax_px: float = 3.0
     min_ok_parallax_area: int = 346 * 260
@@ -433,6 +441,10 @@ class QualitySettings:
         if isinstance(self.min_ok_parallax_area, bool) or not (isinstance(self.min_ok_parallax_area, int)
                                                                and self.min_ok_parallax_area >= 1):
             raise ValueError(f"min_ok_parallax_area must be an int >= 1 (pixels), got {self.min_ok_parallax_area!r}")
+        if isinstance(self.min_event_density_area, bool) or not (isinstance(self.min_event_density_area, int)
+                                                                 and self.min_event_density_area >= 1):
+            raise ValueError("min_event_density_area must be an int >= 1 (pixels), "
+                             f"got {self.min_event_density_area!r}")
         if isinstance(self.max_rate_change, bool) or not (isinstance(self.max_rate_change, (int, float))
                                                           and self.max_rate_change > 1):
             raise ValueError(f"max_rate_change must be a number > 1 (math.inf: no test), got {self.max_rate_change!r}")
