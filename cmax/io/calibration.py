@@ -352,13 +352,13 @@ _HEX_ESCAPES = {"x": 2, "u": 4, "U": 8}
 
 
 def _scalar(value: str, number: int) -> str:
-    """The YAML scalar ``value`` (stripped, without comment) on line ``number`` as YAML reads it: a double-quoted
-    one with its escapes decoded (``"\\x6c"`` is ``l``), a single-quoted one with ``''`` as ``'``, a plain one as
+    r"""The YAML scalar ``value`` (stripped, without comment) on line ``number`` as YAML reads it: a double-quoted
+    one with its escapes decoded (``"\x6c"`` is ``l``), a single-quoted one with ``''`` as ``'``, a plain one as
     it is (a flow list ``[...]`` stays text). ValueError naming the line for what is not read rather than
     misread: an anchor or alias (``&a``, ``*a``), a flow mapping ``{...}``, a block scalar (``|``, ``>``), a tag
     before a value (``!!str x``), a quoted value that goes on over lines, an unknown escape.
 
-    >>> _scalar('"/davis/\\\\x6ceft"', 1), _scalar("'it''s'", 1), _scalar("[1, 2]", 1)
+    >>> _scalar('"/davis/\\x6ceft"', 1), _scalar("'it''s'", 1), _scalar("[1, 2]", 1)
     ('/davis/left', "it's", '[1, 2]')
     """
     first = value[:1]
