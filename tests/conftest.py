@@ -108,22 +108,25 @@ def hashing_threads() -> list:
 
 
 def sigterm_once(argv: list[str], folder: Path, pattern: str, what: str, *, signum: int | None = None,
-                 preexec_fn=None) -> tuple[int, str]:
+                 preexec_fn=None, group: bool = False) -> tuple[int, str]:
     """Run ``argv`` in a subprocess, send it SIGTERM (or ``signum``) as soon as ``folder`` holds a file matching
     ``pattern`` (its private temporary or stage), and return its exit status and stderr. Fails when the run ends
-    first (``what``: what it should have been doing). ``preexec_fn``: as :class:`subprocess.Popen`'s."""
+    first (``what``: what it should have been doing). ``preexec_fn``: as :class:`subprocess.Popen`'s. ``group``:
+    the run starts a session of its own and the signal goes to its whole process group (its workers too), as a
+    batch system or a closed terminal sends it."""
     import signal
     import subprocess
     import time
 
     process = subprocess.Popen(argv, stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True,
-                               preexec_fn=preexec_fn)
+                               preexec_fn=preexec_fn, start_new_session=group)
     deadline = time.monotonic() + 120
     while not list(folder.glob(pattern)) and process.poll() is None and time.monotonic() < deadline:
         time.sleep(0.002)
     assert process.poll() is None, f"the run ended before {what}"
-    process.send_signal(signal.SIGTERM if signum is None else signum)
-    _, err = process.communicate(timeout=60)
+    signum = signal.SIGTERM if signum is None else signum
+    os.killpg(process.pid, signum) if group else process.send_signal(signum)
+    _, err = process.communicate(timeout=120)
     return process.returncode, err
 
 

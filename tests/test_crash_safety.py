@@ -176,22 +176,14 @@ def test_sigterm_to_the_process_group_leaves_no_temporaries_and_one_line(tmp_pat
     Was: the forkserver's death made `join` return while the killed workers still held their output's lock, so
     the clean-up left `b.h5.<hex>.partial` and `b.h5.lock`; and stderr had two lines (the command's own and
     `cmax simulate: terminated (SIGTERM)` again from `run_main`)."""
-    import os
-
     videos = tmp_path / "videos"
     videos.mkdir()
     for seed, name in enumerate(NAMES):
         _write_video(videos / f"{name}.avi", 600, seed)
     output = tmp_path / "events"
-    process = subprocess.Popen([*_command(videos, output), "--workers", "2"], stdout=subprocess.DEVNULL,
-                               stderr=subprocess.PIPE, text=True, start_new_session=True)
-    deadline = time.monotonic() + 120
-    while not list(output.glob("*.h5.*.partial")) and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.002)
-    assert process.poll() is None, "the run ended before a video was being written"
-    os.killpg(process.pid, signal.SIGTERM)
-    _, err = process.communicate(timeout=60)
-    assert process.returncode == 143, err
+    status, err = sigterm_once([*_command(videos, output), "--workers", "2"], output, "*.h5.*.partial",
+                               "a video was being written", group=True)
+    assert status == 143, err
     assert err.count("\n") == 1 and err.startswith("cmax simulate: terminated (SIGTERM)"), err
     left = sorted(path.name for path in output.iterdir())
     assert not [name for name in left if name.endswith((".partial", ".lock"))], left

@@ -98,16 +98,11 @@ def test_sighup_to_the_process_group_of_fit_with_workers_is_one_line(slider_file
     unexpectedly, relaunching``, then ``KeyError`` tracebacks of the new tracker). The forkserver, its workers and
     the tracker now start with SIGHUP ignored (as SIGINT): the calling process stops them, one line, exit 129."""
     out = tmp_path / "F"
-    process = subprocess.Popen([sys.executable, "-m", "cmax.cli", "fit", str(slider_file), "-o", str(out), "--quiet",
+    status, err = sigterm_once([sys.executable, "-m", "cmax.cli", "fit", str(slider_file), "-o", str(out), "--quiet",
                                 "--window-ms", "30", "--min-events", "100", "--depth-grid", "6,8", "--jobs", "2"],
-                               stdout=subprocess.DEVNULL, stderr=subprocess.PIPE, text=True, start_new_session=True)
-    deadline = time.monotonic() + 120
-    while not list(out.glob(".fit.windows/window_*")) and process.poll() is None and time.monotonic() < deadline:
-        time.sleep(0.005)
-    assert process.poll() is None, "the run ended before its workers fitted a window"
-    os.killpg(process.pid, signal.SIGHUP)
-    _, err = process.communicate(timeout=120)
-    assert process.returncode == 129, err
+                               tmp_path, "F/.fit.windows/window_*", "its workers fitted a window", signum=signal.SIGHUP,
+                               group=True)
+    assert status == 129, err
     assert "Traceback" not in err and "resource_tracker" not in err, err
     assert [line for line in err.splitlines() if "terminated" in line] == [err.splitlines()[-1]], err
     assert err.splitlines()[-1].startswith("cmax fit: terminated (SIGHUP)"), err
