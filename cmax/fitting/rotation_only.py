@@ -68,8 +68,8 @@ def fit_rotation_only(w, v: np.ndarray, omega: np.ndarray, rho: torch.Tensor, so
     from :func:`_rotation_start` of the se3 fit ``(v (3,) [m/s], omega (3,) [rad/s])`` with the events' inverse
     depths ``rho`` (N,) [1/m], through ``solver`` (a :class:`cmax.fitting.solvers.Solver`). Solved at full
     resolution only (``image_scales=(1,)``): that start lies near the optimum, where the coarse scales of the
-    rotation fit's schedule, whose job is to reach it from afar, change the test's gain by under 1e-4 and cost a
-    third of its time (measured on held-out windows: docs/quality.md)."""
+    rotation fit's schedule, whose job is to reach it from afar, barely change the test's gain and cost a third
+    of its time (measured on held-out windows: docs/quality.md)."""
     small = w
     if w.source is not None and len(w.ev.x) > max_events:
         small = Window.from_events(w.source, w.ev.K.double().numpy(), replace(w.settings, max_events=max_events),
