@@ -202,12 +202,9 @@ def run_record(args: argparse.Namespace, files: dict, *, code: str) -> dict:
     code : str
         The digest of cmax's code.
     """
-    import cmax
-    from cmax.io.window_store import settings_record
+    from cmax.io.window_store import command_record
 
-    settings = {key: value for key, value in vars(args).items()
-                if key not in _NOT_RESULTS and not (key in files and files[key] is not None)}
-    return {"cmax": cmax.__version__, "code": code, **files, "settings": settings_record(settings)}
+    return command_record(args, files, code=code, ignored=_NOT_RESULTS)
 
 
 def summary_units(scale_known: bool) -> dict[str, str]:

@@ -34,8 +34,8 @@ from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recordin
 from cmax.io import run_folder
 from cmax.io.atomic import save_npz_atomic, write_text_atomic
 from cmax.io.provenance import file_depth_range, file_intrinsics
-from cmax.io.window_store import (WINDOWS_FOLDER, PendingSignatures, WindowStore, code_digest, file_signatures,
-                                  interrupted_windows, settings_record, stopped_line)
+from cmax.io.window_store import (WINDOWS_FOLDER, PendingSignatures, WindowStore, code_digest, command_record,
+                                  file_signatures, interrupted_windows, stopped_line)
 
 __all__ = ["OPTION_OF_SETTING", "add_command", "advice", "completed_status", "earlier_results", "grouped_warnings",
            "hot_pixel_note", "option_words", "run", "run_record", "tum_lines", "unscaled_range_note",
@@ -609,15 +609,9 @@ def run_record(args: argparse.Namespace, files: dict | None = None, *, code: str
     (:class:`cmax.io.window_store.PendingSignatures`), else they are taken here
     (:func:`cmax.io.window_store.file_signatures`); ``code``: the digest of cmax's code when taken already
     (:func:`cmax.io.window_store.code_digest`)."""
-    import cmax
-
-    paths = _input_paths(args)
-    files = file_signatures(paths, progress=not args.quiet) if files is None else files
-    settings = {key: value for key, value in vars(args).items()
-                if key not in _NOT_RESULTS and not (key in paths and files[key] is not None)}
-    settings["warm_start"] = args.jobs == 1
-    return {"cmax": cmax.__version__, "code": code_digest("cmax") if code is None else code, **files,
-            "settings": settings_record(settings)}
+    files = file_signatures(_input_paths(args), progress=not args.quiet) if files is None else files
+    return command_record(args, files, code=code_digest("cmax") if code is None else code, ignored=_NOT_RESULTS,
+                          extra={"warm_start": args.jobs == 1})
 
 
 def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_model: str, options: dict,

@@ -20,6 +20,7 @@ run's results are in ``-o`` (``summary.json`` is the record of completion, :mod:
 """
 from __future__ import annotations
 
+import argparse
 import dataclasses
 import enum
 import hashlib
@@ -40,7 +41,7 @@ from cmax.sim.signature import signature_problem
 
 __all__ = ["WINDOWS_FOLDER", "WindowStore", "KeptRun", "interrupted_windows", "file_signature", "file_signatures",
            "PendingSignatures", "settings_record", "open_kept", "write_run_record", "stopped_line", "code_digest",
-           "run_digest", "run_differences"]
+           "run_digest", "run_differences", "command_record"]
 
 #: The folder in ``-o`` that holds the finished windows of a run of ``cmax fit`` until its results are in.
 WINDOWS_FOLDER = ".fit.windows"
@@ -448,6 +449,34 @@ def settings_record(values: dict) -> dict:
         return value
 
     return json.loads(json.dumps({key: plain(value) for key, value in values.items()}))
+
+
+def command_record(args: argparse.Namespace, files: dict, *, code: str, ignored: tuple[str, ...],
+                   extra: dict | None = None) -> dict:
+    """What a run of a command is, for ``--resume`` to compare (:func:`run_differences`): the version of cmax, the
+    digest ``code`` of its code (:func:`code_digest`), the signatures ``files`` of its input files by name
+    (:func:`file_signatures`; None: not given) and every other option of ``args`` but the ``ignored`` ones (those
+    that change no result), then ``extra``, as :func:`settings_record` writes them; an input file's path counts only
+    through its signature, so that a moved file, the same bytes, is the same run.
+
+    Parameters
+    ----------
+    args : argparse.Namespace
+        The command's parsed options.
+    files : dict
+        The input files' signatures by the names their options have in ``args``.
+    code : str
+        The digest of cmax's code.
+    ignored : tuple of str
+        The options that change no result.
+    extra : dict, optional
+        Further settings derived from the options (e.g. whether windows are warm-started).
+    """
+    import cmax
+
+    settings = {key: value for key, value in vars(args).items()
+                if key not in ignored and not (key in files and files[key] is not None)}
+    return {"cmax": cmax.__version__, "code": code, **files, "settings": settings_record({**settings, **(extra or {})})}
 
 
 def stopped_line(label: str, stop: KeyboardInterrupt, kept: int, folder: Path) -> tuple[str, int]:
