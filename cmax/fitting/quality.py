@@ -243,6 +243,15 @@ def _unit_flows(rays: torch.Tensor, K: torch.Tensor, rho: torch.Tensor, v: np.nd
     return flow(v, zero), rotation
 
 
+def _patch_samples(objective: LocalMotionObjective, rho: np.ndarray,
+                   samples: int = 2000) -> tuple[torch.Tensor, torch.Tensor]:
+    """About ``samples`` of the patches' events, evenly through them: their rays (M, 3) and the inverse depth
+    (M,) [1/m] of each one's patch (``rho`` (P,) [1/m]), on which the alternatives' least squares run."""
+    step = max(1, len(objective.patches.x) // samples)
+    return (objective.rays[::step],
+            torch.as_tensor(rho, dtype=objective.rays.dtype)[objective.patches.patch[::step]])
+
+
 def alternative_motions(objective: LocalMotionObjective, v: np.ndarray, omega: np.ndarray, rho: np.ndarray,
                         *, hold_omega: bool) -> list[tuple[str, np.ndarray, np.ndarray]]:
     """The alternatives of the fit ``(v, omega)`` with patch inverse depths ``rho`` (P,) [1/m]:
@@ -256,9 +265,7 @@ def alternative_motions(objective: LocalMotionObjective, v: np.ndarray, omega: n
         return out
     if np.linalg.norm(omega) > 0:
         out.append(("rotation_flipped", v.copy(), -omega))
-    patches = objective.patches
-    step = max(1, len(patches.x) // 2000)
-    rays, rho_events = objective.rays[::step], torch.as_tensor(rho, dtype=objective.rays.dtype)[patches.patch[::step]]
+    rays, rho_events = _patch_samples(objective, rho)
     dt = 1e-3
     translation, rotation = _unit_flows(rays, objective.K, rho_events, v, dt)
     d, *_ = np.linalg.lstsq(rotation, 2.0 * translation, rcond=None)
@@ -406,9 +413,7 @@ def turned_motions(objective: LocalMotionObjective, v: np.ndarray, omega: np.nda
     a = np.cross(u, [1.0, 0.0, 0.0]) if abs(u[0]) < 0.9 else np.cross(u, [0.0, 1.0, 0.0])
     a /= np.linalg.norm(a)
     b = np.cross(u, a)
-    patches = objective.patches
-    step = max(1, len(patches.x) // 2000)
-    rays, rho_events = objective.rays[::step], torch.as_tensor(rho, dtype=objective.rays.dtype)[patches.patch[::step]]
+    rays, rho_events = _patch_samples(objective, rho)
     dt, angle = 1e-3, math.radians(degrees)
     translation, rotation = _unit_flows(rays, objective.K, rho_events, v, dt)
     out = []
