@@ -1,6 +1,8 @@
 """ECD text, MVSEC HDF5, NumPy files and format detection."""
 from __future__ import annotations
 
+import warnings
+
 import h5py
 import numpy as np
 import pytest
@@ -436,3 +438,34 @@ def test_an_npz_archive_or_an_n_by_4_npy_is_refused_naming_the_call_that_reads_i
     (tmp_path / "bad.npz").write_bytes(b"PK\x03\x04 cut")
     with pytest.raises(FormatError, match=r"bad.npz is not a readable .npz archive \(BadZipFile"):
         read(tmp_path / "bad.npz")
+
+
+def test_an_h5_holding_events_in_two_layouts_says_which_it_read(tmp_path, capsys):
+    """A DSEC-layout file that also holds MVSEC's davis/left/events (or Metavision's CD/events, event_utils'
+    events/xs, ys, ts, ps) was read as DSEC without a word about the other events, as an AEDAT4 file of two
+    event streams was before it warned. The DSEC events are read, and the other layout is named."""
+    from cmax.cli import main
+    from cmax.io import write_h5
+
+    events = Events([1, 2, 3], [1, 2, 3], [10, 20, 30], [0, 1, 1], 346, 260)
+    mvsec_rows = np.array([[5.0, 6.0, 1.5e9 + 1e-4 * k, 1.0] for k in range(7)])
+    path = write_h5(tmp_path / "both.h5", events)
+    with h5py.File(path, "r+") as file:
+        file.create_group("davis/left")["events"] = mvsec_rows
+    with pytest.warns(UserWarning, match=r"both.h5 holds events in another layout too: davis/left/events \(MVSEC, "
+                                         r"7 rows\), which is not read: .*cmax.io.read_mvsec"):
+        got = read(path)
+    assert got == events                                            # the DSEC events, as before
+    assert len(read_mvsec(path)) == 7                               # the way to the others
+    assert main(["info", str(path)]) == 0
+    assert "davis/left/events (MVSEC, 7 rows)" in capsys.readouterr().err
+    alone = write_h5(tmp_path / "alone.h5", events)                 # one layout: silent
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read(alone) == events
+    with h5py.File(alone, "r+") as file:
+        file.create_group("CD")["events"] = np.zeros(3)
+        for name in ("xs", "ys", "ts", "ps"):
+            file["events"][name] = np.zeros(3)
+    with pytest.warns(UserWarning, match=r"CD/events \(Metavision\).* events/xs, ys, ts, ps \(event_utils / E2VID"):
+        read(alone)

@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import bisect
 import os
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -36,7 +37,7 @@ from cmax.io.calibration import Calibration, read_calibration
 from cmax.io.errors import FormatError
 from cmax.io.gyro import read_gyro
 from cmax.io.h5 import H5_ERRORS, H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
-from cmax.io.mvsec import MVSEC_HEIGHT, MVSEC_WIDTH, read_mvsec
+from cmax.io.mvsec import MVSEC_CAMERAS, MVSEC_HEIGHT, MVSEC_WIDTH, read_mvsec
 from cmax.io.prophesee import read_evt2, read_evt3, read_raw, write_evt2, write_evt3
 from cmax.io.prophesee.reader import sorted_copy_line
 from cmax.io.text import read_txt, write_txt
@@ -75,6 +76,38 @@ def _other_h5_layout(file: h5py.File) -> str:
         return ("; it holds CD/events (Metavision's HDF5 event file, compressed with its ECF codec): read it with "
                 "Metavision's SDK and build cmax.Events(x, y, t, p, width, height) from its columns (t in µs)")
     return f"; its top-level names: {', '.join(names[:8]) or 'none'}{', ...' if len(names) > 8 else ''}"
+
+
+def _other_event_layouts(file: h5py.File) -> list[str]:
+    """Event data of other layouts than DSEC's that a DSEC-layout HDF5 ``file`` holds too, each named by its path
+    and layout: MVSEC's ``davis/<camera>/events`` (with its rows), Metavision's ``CD/events``, event_utils'
+    ``events/xs, ys, ts, ps``."""
+    found = []
+    for camera in MVSEC_CAMERAS:
+        table = file.get(f"davis/{camera}/events")
+        if isinstance(table, h5py.Dataset):
+            rows = f", {table.shape[0]:,} rows" if table.ndim == 2 else ""
+            found.append(f"davis/{camera}/events (MVSEC{rows})")
+    if isinstance(file.get("CD"), h5py.Group) and "events" in file["CD"]:
+        found.append("CD/events (Metavision)")
+    if all(name in file["events"] for name in ("xs", "ys", "ts", "ps")):
+        found.append("events/xs, ys, ts, ps (event_utils / E2VID)")
+    return found
+
+
+def _warn_other_layouts(file: h5py.File, path: Path) -> None:
+    """Warn that the DSEC-layout ``file`` at ``path``, read as DSEC, holds events of other layouts too
+    (:func:`_other_event_layouts`), naming them and what reads MVSEC's; silent where it holds none."""
+    others = _other_event_layouts(file)
+    if not others:
+        return
+    mvsec = any(other.startswith("davis/") for other in others)
+    warnings.warn(
+        f"{path} holds events in another layout too: {'; '.join(others)}, which is not read: its DSEC-layout "
+        "events/x, y, t, p are (detected first)"
+        + ("; cmax.io.read_mvsec(path, camera=...) reads the MVSEC events" if mvsec else ""),
+        UserWarning, stacklevel=3,
+    )
 
 
 def _npz_message(path: Path) -> str:
@@ -119,6 +152,7 @@ def detect_format(path: str | os.PathLike) -> str:
         try:
             with h5py.File(path, "r") as file:
                 if is_dsec_h5(file):
+                    _warn_other_layouts(file, path)
                     return "dsec"
                 if "davis" in file:
                     return "mvsec"
