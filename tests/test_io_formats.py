@@ -469,3 +469,36 @@ def test_an_h5_holding_events_in_two_layouts_says_which_it_read(tmp_path, capsys
             file["events"][name] = np.zeros(3)
     with pytest.warns(UserWarning, match=r"CD/events \(Metavision\).* events/xs, ys, ts, ps \(event_utils / E2VID"):
         read(alone)
+
+
+def test_a_npy_holding_bytes_after_its_declared_rows_is_refused(tmp_path):
+    """A .npy whose events were appended after np.save without its header's shape being updated (an interrupted
+    npy-append-array, a logger writing records after the header) was read as the header's rows, the rest dropped
+    without a word (np.load ignores trailing bytes). np.save writes none."""
+    from cmax.cli import main
+
+    events = random_events(100, 64, 48, seed=3)
+    array = events.to_structured()
+    path = tmp_path / "appended.npy"
+    np.save(path, array[:60])
+    with open(path, "ab") as file:                              # 40 more rows, the header still says 60
+        file.write(array[60:].tobytes())
+    with pytest.raises(FormatError, match=r"appended.npy: 40 rows \([0-9,]+ bytes\) follow the 60 rows its header "
+                                          r"declares: .*np.fromfile"):
+        read(path, width=64, height=48)
+    assert main(["info", str(path), "--size", "64x48"]) == 2
+    # the way out the message gives reads every row
+    header = path.stat().st_size - 100 * array.dtype.itemsize
+    whole = np.fromfile(path, dtype=array.dtype, offset=header)
+    np.save(tmp_path / "fixed.npy", whole)
+    assert read(tmp_path / "fixed.npy", width=64, height=48) == events
+    with open(path, "ab") as file:                              # and part of a row: not whole rows
+        file.write(b"\0" * 3)
+    with pytest.raises(FormatError, match=r"[0-9,]+ bytes follow the 60 rows its header declares \(rows of "):
+        read(path, width=64, height=48)
+    empty = tmp_path / "empty.npy"
+    np.save(empty, array[:0])
+    with open(empty, "ab") as file:
+        file.write(array[:5].tobytes())
+    with pytest.raises(FormatError, match=r"empty.npy: 5 rows .* follow the 0 rows its header declares"):
+        read(empty, width=64, height=48)

@@ -317,6 +317,7 @@ def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str,
         array = np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as error:
         raise FormatError(f"{path} is not a readable .npy file ({error})") from None
+    _check_no_trailing_bytes(path, array)
     names = array.dtype.names or ()
     fields = structured_fields(names)
     if array.ndim != 1 or any(field not in names for field in fields.values()):
@@ -335,6 +336,35 @@ def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str,
         raise FormatError(f"{path}: field {fields['t']} holds {t_dtype} times; state their unit with time_unit='s', "
                           "'ms' or 'us' (cmax: --time-unit; times are never guessed)")
     return array, fields
+
+
+def _check_no_trailing_bytes(path: Path, array: np.ndarray) -> None:
+    """Refuse the ``.npy`` file at ``path`` (its ``array`` loaded) where bytes follow the rows its header declares:
+    np.save writes none, and np.load ignores them, so rows appended without the header's shape being updated (an
+    interrupted npy-append-array, a logger writing records after the header) would be dropped without a word."""
+    try:
+        with open(path, "rb") as handle:
+            version = np.lib.format.read_magic(handle)
+            if version == (1, 0):
+                np.lib.format.read_array_header_1_0(handle)
+            else:
+                np.lib.format.read_array_header_2_0(handle)
+            data_offset = handle.tell()
+    except (OSError, ValueError) as error:
+        raise FormatError(f"{path} is not a readable .npy file ({error})") from None
+    extra = path.stat().st_size - data_offset - array.nbytes
+    if extra <= 0:
+        return
+    row = array.dtype.itemsize
+    declared = f"the {array.shape[0] if array.ndim else 1:,} rows its header declares"
+    what = (f"{extra // row:,} rows ({extra:,} bytes) follow {declared}" if row and extra % row == 0 else
+            f"{extra:,} bytes follow {declared} (rows of {row} bytes: not a whole number of them)")
+    raise FormatError(
+        f"{path}: {what}: rows appended without the header's shape being updated, or another file's bytes? (np.save "
+        "writes none, np.load would drop them without a word); if they are rows of the same dtype, "
+        f"np.save('fixed.npy', np.fromfile({str(path)!r}, dtype=np.load({str(path)!r}, mmap_mode='r').dtype, "
+        f"offset={data_offset})) reads every row"
+    )
 
 
 def npy_time_span(path: str | os.PathLike, *, time_unit: str | None = None) -> tuple[int, int] | None:
