@@ -502,3 +502,11 @@ def test_a_npy_holding_bytes_after_its_declared_rows_is_refused(tmp_path):
         file.write(array[:5].tobytes())
     with pytest.raises(FormatError, match=r"empty.npy: 5 rows .* follow the 0 rows its header declares"):
         read(empty, width=64, height=48)
+    # cut short mid-row (was: "is not a readable .npy file (mmap length is greater than file size)")
+    cut = tmp_path / "cut.npy"
+    np.save(cut, array)
+    cut.write_bytes(cut.read_bytes()[:-7])
+    with pytest.raises(FormatError, match=rf"cut.npy: its header declares 100 rows of {array.dtype.itemsize} bytes "
+                                          r"\([0-9,]+ bytes of data\), but the file holds [0-9,]+, 99 whole rows: cut "
+                                          "short"):
+        read(cut, width=64, height=48)

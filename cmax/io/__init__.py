@@ -313,11 +313,11 @@ def _read_npy(
 def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str, str]]:
     """The memory-mapped structured array of a ``.npy`` event file and its field names (``structured_fields``),
     checked: 1-D, fields x, y, t, p, times that are numbers, float times only with a stated ``time_unit``."""
+    _check_data_length(path)
     try:
         array = np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as error:
         raise FormatError(f"{path} is not a readable .npy file ({error})") from None
-    _check_no_trailing_bytes(path, array)
     names = array.dtype.names or ()
     fields = structured_fields(names)
     if array.ndim != 1 or any(field not in names for field in fields.values()):
@@ -338,27 +338,35 @@ def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str,
     return array, fields
 
 
-def _check_no_trailing_bytes(path: Path, array: np.ndarray) -> None:
-    """Refuse the ``.npy`` file at ``path`` (its ``array`` loaded) where bytes follow the rows its header declares:
-    np.save writes none, and np.load ignores them, so rows appended without the header's shape being updated (an
-    interrupted npy-append-array, a logger writing records after the header) would be dropped without a word."""
+def _check_data_length(path: Path) -> None:
+    """Refuse the ``.npy`` file at ``path`` whose data are not as long as its header declares: cut short (a copy
+    stopped mid-write), or followed by more bytes (np.save writes none, and np.load ignores them, so rows appended
+    without the header's shape being updated, e.g. by an interrupted npy-append-array or a logger writing records
+    after the header, would be dropped without a word). Reads only the header."""
     try:
         with open(path, "rb") as handle:
             version = np.lib.format.read_magic(handle)
-            if version == (1, 0):
-                np.lib.format.read_array_header_1_0(handle)
-            else:
-                np.lib.format.read_array_header_2_0(handle)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0) else
+                           np.lib.format.read_array_header_2_0)
+            shape, _, dtype = read_header(handle)
             data_offset = handle.tell()
     except (OSError, ValueError) as error:
         raise FormatError(f"{path} is not a readable .npy file ({error})") from None
-    extra = path.stat().st_size - data_offset - array.nbytes
-    if extra <= 0:
+    if dtype.hasobject:                                  # pickled objects: np.load refuses them (allow_pickle=False)
         return
-    row = array.dtype.itemsize
-    declared = f"the {array.shape[0] if array.ndim else 1:,} rows its header declares"
-    what = (f"{extra // row:,} rows ({extra:,} bytes) follow {declared}" if row and extra % row == 0 else
-            f"{extra:,} bytes follow {declared} (rows of {row} bytes: not a whole number of them)")
+    rows, row = (shape[0] if shape else 1), dtype.itemsize
+    declared = int(np.prod(shape, dtype=np.int64)) * row
+    held = path.stat().st_size - data_offset
+    if held == declared:
+        return
+    if held < declared:
+        whole = f", {held // row:,} whole rows" if len(shape) == 1 and row else ""
+        raise FormatError(f"{path}: its header declares {rows:,} rows of {row} bytes ({declared:,} bytes of data), "
+                          f"but the file holds {held:,}{whole}: cut short (a truncated copy or an interrupted write)")
+    extra = held - declared
+    what = (f"{extra // row:,} rows ({extra:,} bytes) follow the {rows:,} rows its header declares" if row and
+            extra % row == 0 else f"{extra:,} bytes follow the {rows:,} rows its header declares (rows of {row} bytes: "
+            "not a whole number of them)")
     raise FormatError(
         f"{path}: {what}: rows appended without the header's shape being updated, or another file's bytes? (np.save "
         "writes none, np.load would drop them without a word); if they are rows of the same dtype, "
