@@ -236,7 +236,9 @@ def read_evt3(
     ------
     FormatError
         Truncated or corrupt data, reserved word types, events outside the
-        sensor, an unknown sensor size, or a header declaring another format.
+        sensor, an unknown sensor size, or a header declaring another format;
+        words that decode but are no Prophesee stream (no TIME_HIGH word, or
+        more events before the first time and row than after: zeros, text).
 
     Examples
     --------
@@ -274,7 +276,8 @@ def iter_evt3(
     with the decoder state carried over, so the concatenated chunks equal
     :func:`read_evt3`; chunks without events are not yielded. Header, sensor
     size and file length are checked when called; corrupt words raise
-    :class:`FormatError` when reached. With ``sort=True`` each chunk is sorted
+    :class:`FormatError` when reached, words that are no Prophesee stream at
+    all (no TIME_HIGH word: zeros, text) after the last chunk. With ``sort=True`` each chunk is sorted
     stably, and disorder spanning two chunks raises :class:`FormatError`.
     """
     return _iter(path, _EVT3, width, height, chunk_bytes, sort)
