@@ -609,8 +609,10 @@ class H5Reader:
     Nothing is guessed: integer ``events/t`` is µs (the layout's unit) unless
     the file or the caller states another; float times are refused unless a
     unit is stated, and then rounded to the nearest µs (half to even). NaN or
-    infinite times, coordinates outside the sensor, time going back and
-    polarities outside the stated encoding raise :class:`FormatError`. The
+    infinite times, coordinates outside the sensor, time going back,
+    polarities outside the stated encoding and a ``t_offset`` of no stated
+    unit that is negative or a float another unit could mean (1600000000.0)
+    raise :class:`FormatError`. The
     checks are min/max and order passes over the columns read (no sort).
 
     Parameters
