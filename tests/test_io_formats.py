@@ -1,6 +1,8 @@
 """ECD text, MVSEC HDF5, NumPy files and format detection."""
 from __future__ import annotations
 
+import warnings
+
 import h5py
 import numpy as np
 import pytest
@@ -436,3 +438,75 @@ def test_an_npz_archive_or_an_n_by_4_npy_is_refused_naming_the_call_that_reads_i
     (tmp_path / "bad.npz").write_bytes(b"PK\x03\x04 cut")
     with pytest.raises(FormatError, match=r"bad.npz is not a readable .npz archive \(BadZipFile"):
         read(tmp_path / "bad.npz")
+
+
+def test_an_h5_holding_events_in_two_layouts_says_which_it_read(tmp_path, capsys):
+    """A DSEC-layout file that also holds MVSEC's davis/left/events (or Metavision's CD/events, event_utils'
+    events/xs, ys, ts, ps) was read as DSEC without a word about the other events, as an AEDAT4 file of two
+    event streams was before it warned. The DSEC events are read, and the other layout is named."""
+    from cmax.cli import main
+    from cmax.io import write_h5
+
+    events = Events([1, 2, 3], [1, 2, 3], [10, 20, 30], [0, 1, 1], 346, 260)
+    mvsec_rows = np.array([[5.0, 6.0, 1.5e9 + 1e-4 * k, 1.0] for k in range(7)])
+    path = write_h5(tmp_path / "both.h5", events)
+    with h5py.File(path, "r+") as file:
+        file.create_group("davis/left")["events"] = mvsec_rows
+    with pytest.warns(UserWarning, match=r"both.h5 holds events in another layout too: davis/left/events \(MVSEC, "
+                                         r"7 rows\), which is not read: .*cmax.io.read_mvsec"):
+        got = read(path)
+    assert got == events                                            # the DSEC events, as before
+    assert len(read_mvsec(path)) == 7                               # the way to the others
+    assert main(["info", str(path)]) == 0
+    assert "davis/left/events (MVSEC, 7 rows)" in capsys.readouterr().err
+    alone = write_h5(tmp_path / "alone.h5", events)                 # one layout: silent
+    with warnings.catch_warnings():
+        warnings.simplefilter("error")
+        assert read(alone) == events
+    with h5py.File(alone, "r+") as file:
+        file.create_group("CD")["events"] = np.zeros(3)
+        for name in ("xs", "ys", "ts", "ps"):
+            file["events"][name] = np.zeros(3)
+    with pytest.warns(UserWarning, match=r"CD/events \(Metavision\).* events/xs, ys, ts, ps \(event_utils / E2VID"):
+        read(alone)
+
+
+def test_a_npy_holding_bytes_after_its_declared_rows_is_refused(tmp_path):
+    """A .npy whose events were appended after np.save without its header's shape being updated (an interrupted
+    npy-append-array, a logger writing records after the header) was read as the header's rows, the rest dropped
+    without a word (np.load ignores trailing bytes). np.save writes none."""
+    from cmax.cli import main
+
+    events = random_events(100, 64, 48, seed=3)
+    array = events.to_structured()
+    path = tmp_path / "appended.npy"
+    np.save(path, array[:60])
+    with open(path, "ab") as file:                              # 40 more rows, the header still says 60
+        file.write(array[60:].tobytes())
+    with pytest.raises(FormatError, match=r"appended.npy: 40 rows \([0-9,]+ bytes\) follow the 60 rows its header "
+                                          r"declares: .*np.fromfile"):
+        read(path, width=64, height=48)
+    assert main(["info", str(path), "--size", "64x48"]) == 2
+    # the way out the message gives reads every row
+    header = path.stat().st_size - 100 * array.dtype.itemsize
+    whole = np.fromfile(path, dtype=array.dtype, offset=header)
+    np.save(tmp_path / "fixed.npy", whole)
+    assert read(tmp_path / "fixed.npy", width=64, height=48) == events
+    with open(path, "ab") as file:                              # and part of a row: not whole rows
+        file.write(b"\0" * 3)
+    with pytest.raises(FormatError, match=r"[0-9,]+ bytes follow the 60 rows its header declares \(rows of "):
+        read(path, width=64, height=48)
+    empty = tmp_path / "empty.npy"
+    np.save(empty, array[:0])
+    with open(empty, "ab") as file:
+        file.write(array[:5].tobytes())
+    with pytest.raises(FormatError, match=r"empty.npy: 5 rows .* follow the 0 rows its header declares"):
+        read(empty, width=64, height=48)
+    # cut short mid-row (was: "is not a readable .npy file (mmap length is greater than file size)")
+    cut = tmp_path / "cut.npy"
+    np.save(cut, array)
+    cut.write_bytes(cut.read_bytes()[:-7])
+    with pytest.raises(FormatError, match=rf"cut.npy: its header declares 100 rows of {array.dtype.itemsize} bytes "
+                                          r"\([0-9,]+ bytes of data\), but the file holds [0-9,]+, 99 whole rows: cut "
+                                          "short"):
+        read(cut, width=64, height=48)

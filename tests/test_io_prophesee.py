@@ -437,6 +437,36 @@ def test_garbage(tmp_path: Path) -> None:
         read_raw(path3)
 
 
+@pytest.mark.parametrize("codec", ["evt3", "evt2"])
+def test_words_that_decode_but_are_not_event_data_are_refused(tmp_path: Path, codec: str) -> None:
+    """Bytes under a RAW header that hold no reserved word type but no Prophesee stream either (zeros of a file
+    never written, 0xFF of erased flash, ECD text) decoded into 0 events without a word: every event word came
+    before any TIME_HIGH. Real streams set their clock first (the Gen4 sample skips none of its words)."""
+    header, dtype, read = ((EVT3_HEADER, "<u2", read_evt3) if codec == "evt3" else (EVT2_HEADER, "<u4", read_evt2))
+    text = b"".join(b"%.6f %d %d %d\n" % (i * 1e-4, i % 32, i % 16, i % 2) for i in range(64))
+    cases = {"zeros": bytes(4000), "ones": b"\xff" * 4000}
+    if codec == "evt3":                 # as EVT 2.0 words, text holds reserved types (0x3: the digits), refused
+        cases["text"] = text
+    for name, data in cases.items():
+        path = tmp_path / f"{name}.raw"
+        path.write_bytes(header + data)
+        for call in (lambda: read(path), lambda: read_raw(path), lambda: list(iter_raw(path, chunk_bytes=64)),
+                     lambda: read_raw(path, t0_us=0, t1_us=10)):
+            with pytest.raises(FormatError, match=rf"{name}.raw: its [0-9,]+ words of EVT {codec[-1]}.0 data hold "
+                                                  r"no TIME_HIGH word .* not EVT .* event data"):
+                call()
+    # a TIME_HIGH word after text (a byte 0x80 of cp1252's euro sign): 0 events decoded, every other one skipped
+    words = [0x2031, 0x3032, 0x0A31] * 20 + [0x8001] if codec == "evt3" else [0x00012345] * 60 + [0x80000001]
+    path = _write(tmp_path / "late.raw", header, words, dtype)
+    with pytest.raises(FormatError, match=r"late.raw: [0-9,]+ of the [0-9,]+ events its words hold come before a "
+                                          r"time.* and only 0 after"):
+        read_raw(path)
+    # a stream of time words only (a dark scene) and a header alone hold no events: read, no error
+    dark = [0x8001, 0x6005, 0x8002] if codec == "evt3" else [0x80000001, 0x80000002]
+    assert len(read_raw(_write(tmp_path / "dark.raw", header, dark, dtype))) == 0
+    assert len(read_raw(_write(tmp_path / "empty.raw", header, [], dtype))) == 0
+
+
 def test_reserved_word_offset(tmp_path: Path) -> None:
     path = _write(tmp_path / "r.raw", EVT3_HEADER, [0x8000, 0x6000, 0x9000], "<u2")
     with pytest.raises(FormatError, match=rf"0x9, at byte offset {len(EVT3_HEADER) + 4}"):

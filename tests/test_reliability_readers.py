@@ -529,3 +529,33 @@ def test_a_dsec_layout_file_whose_time_goes_back_names_the_way_out(tmp_path, cap
     assert copy.t.tolist() == [5, 10, 20, 25, 30, 30]
     np.testing.assert_array_equal(copy.x, columns["x"][order])
     np.testing.assert_array_equal(copy.p, columns["p"][order])
+
+
+def test_a_negative_or_whole_float_t_offset_of_no_stated_unit_is_refused(tmp_path):
+    """DSEC ships t_offset as an int64 of µs, never negative. A negative one (an offset meant to be subtracted) and
+    a whole float that seconds or milliseconds could equally mean (1600000000.0: 2020 as s since 1970, 26.7 min as
+    µs) were read as µs without a word; a stated unit reads them, and µs-only values (0.0, 1.6e15) read as before."""
+    t = np.array([0, 5, 9], np.uint32)
+    negative = _dsec(tmp_path / "negative.h5", t, t_offset=np.int64(-5))
+    with pytest.raises(FormatError, match=r"t_offset is -5, negative, and neither t_offset, the file nor the caller "
+                                          r"states its unit: .* 'unit' attribute on t_offset"):
+        read(negative)
+    with h5py.File(negative, "r+") as file:
+        file["t_offset"].attrs["unit"] = "us"
+    assert read(negative).t.tolist() == [-5, 0, 4]                      # events/t + t_offset, as stated
+    seconds = _dsec(tmp_path / "seconds.h5", t, t_offset=np.float64(1600000000.0))
+    with pytest.raises(FormatError, match=r"t_offset holds the float 1600000000.0 .* read as µs it is "
+                                          r"1,600.000000 s, read as seconds"):
+        read(seconds)
+    with pytest.raises(FormatError, match="t_offset holds the float"):
+        file_info(seconds)
+    assert read(seconds, time_unit="us").t.tolist() == [1600000000, 1600000005, 1600000009]   # the caller's unit
+    with h5py.File(seconds, "r+") as file:
+        file["t_offset"].attrs["unit"] = "s"
+    assert read(seconds).t.tolist() == [1600000000000000, 1600000000000005, 1600000000000009]
+    for whole in (0.0, 1600000000123456.0):                             # no other unit fits: µs as before
+        path = _dsec(tmp_path / f"whole_{whole:.0f}.h5", t, t_offset=np.float64(whole))
+        assert read(path).t.tolist() == (t.astype(np.int64) + int(whole)).tolist()
+    # write_h5 states the unit of t_offset: events before the clock's zero round-trip
+    events = Events([1, 2], [3, 4], [-20, -10], [0, 1], W, H)
+    assert read(write_h5(tmp_path / "written.h5", events)) == events

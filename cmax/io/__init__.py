@@ -21,6 +21,7 @@ from __future__ import annotations
 
 import bisect
 import os
+import warnings
 import zipfile
 from pathlib import Path
 from typing import Any
@@ -36,7 +37,7 @@ from cmax.io.calibration import Calibration, read_calibration
 from cmax.io.errors import FormatError
 from cmax.io.gyro import read_gyro
 from cmax.io.h5 import H5_ERRORS, H5Reader, H5Writer, is_dsec_h5, read_h5, write_h5
-from cmax.io.mvsec import MVSEC_HEIGHT, MVSEC_WIDTH, read_mvsec
+from cmax.io.mvsec import MVSEC_CAMERAS, MVSEC_HEIGHT, MVSEC_WIDTH, read_mvsec
 from cmax.io.prophesee import read_evt2, read_evt3, read_raw, write_evt2, write_evt3
 from cmax.io.prophesee.reader import sorted_copy_line
 from cmax.io.text import read_txt, write_txt
@@ -75,6 +76,38 @@ def _other_h5_layout(file: h5py.File) -> str:
         return ("; it holds CD/events (Metavision's HDF5 event file, compressed with its ECF codec): read it with "
                 "Metavision's SDK and build cmax.Events(x, y, t, p, width, height) from its columns (t in µs)")
     return f"; its top-level names: {', '.join(names[:8]) or 'none'}{', ...' if len(names) > 8 else ''}"
+
+
+def _other_event_layouts(file: h5py.File) -> list[str]:
+    """Event data of other layouts than DSEC's that a DSEC-layout HDF5 ``file`` holds too, each named by its path
+    and layout: MVSEC's ``davis/<camera>/events`` (with its rows), Metavision's ``CD/events``, event_utils'
+    ``events/xs, ys, ts, ps``."""
+    found = []
+    for camera in MVSEC_CAMERAS:
+        table = file.get(f"davis/{camera}/events")
+        if isinstance(table, h5py.Dataset):
+            rows = f", {table.shape[0]:,} rows" if table.ndim == 2 else ""
+            found.append(f"davis/{camera}/events (MVSEC{rows})")
+    if isinstance(file.get("CD"), h5py.Group) and "events" in file["CD"]:
+        found.append("CD/events (Metavision)")
+    if all(name in file["events"] for name in ("xs", "ys", "ts", "ps")):
+        found.append("events/xs, ys, ts, ps (event_utils / E2VID)")
+    return found
+
+
+def _warn_other_layouts(file: h5py.File, path: Path) -> None:
+    """Warn that the DSEC-layout ``file`` at ``path``, read as DSEC, holds events of other layouts too
+    (:func:`_other_event_layouts`), naming them and what reads MVSEC's; silent where it holds none."""
+    others = _other_event_layouts(file)
+    if not others:
+        return
+    mvsec = any(other.startswith("davis/") for other in others)
+    warnings.warn(
+        f"{path} holds events in another layout too: {'; '.join(others)}, which is not read: its DSEC-layout "
+        "events/x, y, t, p are (detected first)"
+        + ("; cmax.io.read_mvsec(path, camera=...) reads the MVSEC events" if mvsec else ""),
+        UserWarning, stacklevel=3,
+    )
 
 
 def _npz_message(path: Path) -> str:
@@ -119,6 +152,7 @@ def detect_format(path: str | os.PathLike) -> str:
         try:
             with h5py.File(path, "r") as file:
                 if is_dsec_h5(file):
+                    _warn_other_layouts(file, path)
                     return "dsec"
                 if "davis" in file:
                     return "mvsec"
@@ -279,6 +313,7 @@ def _read_npy(
 def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str, str]]:
     """The memory-mapped structured array of a ``.npy`` event file and its field names (``structured_fields``),
     checked: 1-D, fields x, y, t, p, times that are numbers, float times only with a stated ``time_unit``."""
+    _check_data_length(path)
     try:
         array = np.load(path, mmap_mode="r", allow_pickle=False)
     except ValueError as error:
@@ -301,6 +336,43 @@ def _npy_table(path: Path, time_unit: str | None) -> tuple[np.ndarray, dict[str,
         raise FormatError(f"{path}: field {fields['t']} holds {t_dtype} times; state their unit with time_unit='s', "
                           "'ms' or 'us' (cmax: --time-unit; times are never guessed)")
     return array, fields
+
+
+def _check_data_length(path: Path) -> None:
+    """Refuse the ``.npy`` file at ``path`` whose data are not as long as its header declares: cut short (a copy
+    stopped mid-write), or followed by more bytes (np.save writes none, and np.load ignores them, so rows appended
+    without the header's shape being updated, e.g. by an interrupted npy-append-array or a logger writing records
+    after the header, would be dropped without a word). Reads only the header."""
+    try:
+        with open(path, "rb") as handle:
+            version = np.lib.format.read_magic(handle)
+            read_header = (np.lib.format.read_array_header_1_0 if version == (1, 0) else
+                           np.lib.format.read_array_header_2_0)
+            shape, _, dtype = read_header(handle)
+            data_offset = handle.tell()
+    except (OSError, ValueError) as error:
+        raise FormatError(f"{path} is not a readable .npy file ({error})") from None
+    if dtype.hasobject:                                  # pickled objects: np.load refuses them (allow_pickle=False)
+        return
+    rows, row = (shape[0] if shape else 1), dtype.itemsize
+    declared = int(np.prod(shape, dtype=np.int64)) * row
+    held = path.stat().st_size - data_offset
+    if held == declared:
+        return
+    if held < declared:
+        whole = f", {held // row:,} whole rows" if len(shape) == 1 and row else ""
+        raise FormatError(f"{path}: its header declares {rows:,} rows of {row} bytes ({declared:,} bytes of data), "
+                          f"but the file holds {held:,}{whole}: cut short (a truncated copy or an interrupted write)")
+    extra = held - declared
+    what = (f"{extra // row:,} rows ({extra:,} bytes) follow the {rows:,} rows its header declares" if row and
+            extra % row == 0 else f"{extra:,} bytes follow the {rows:,} rows its header declares (rows of {row} bytes: "
+            "not a whole number of them)")
+    raise FormatError(
+        f"{path}: {what}: rows appended without the header's shape being updated, or another file's bytes? (np.save "
+        "writes none, np.load would drop them without a word); if they are rows of the same dtype, "
+        f"np.save('fixed.npy', np.fromfile({str(path)!r}, dtype=np.load({str(path)!r}, mmap_mode='r').dtype, "
+        f"offset={data_offset})) reads every row"
+    )
 
 
 def npy_time_span(path: str | os.PathLike, *, time_unit: str | None = None) -> tuple[int, int] | None:

@@ -609,8 +609,10 @@ class H5Reader:
     Nothing is guessed: integer ``events/t`` is µs (the layout's unit) unless
     the file or the caller states another; float times are refused unless a
     unit is stated, and then rounded to the nearest µs (half to even). NaN or
-    infinite times, coordinates outside the sensor, time going back and
-    polarities outside the stated encoding raise :class:`FormatError`. The
+    infinite times, coordinates outside the sensor, time going back,
+    polarities outside the stated encoding and a ``t_offset`` of no stated
+    unit that is negative or a float another unit could mean (1600000000.0)
+    raise :class:`FormatError`. The
     checks are min/max and order passes over the columns read (no sort).
 
     Parameters
@@ -703,7 +705,7 @@ class H5Reader:
         self.width, self.height = _check_sensor_size(width, height)
         self.time_unit = self._time_unit(time_unit)
         self._ms_to_idx = None
-        self.t_offset_us = 0
+        self.t_offset_us, unstated, value = 0, False, None
         try:
             if "t_offset" in self._file:
                 offset = self._dataset("t_offset")
@@ -711,6 +713,7 @@ class H5Reader:
                 value = offset[()]
                 if own_unit is None and not self._unit_stated and _fractional_float(value):
                     raise _FractionalOffset(value)
+                unstated = own_unit is None and not self._unit_stated and not self._written_here()
                 self.t_offset_us = scalar_to_us(value, own_unit or self.time_unit, f"{self.path}: t_offset")
             if "ms_to_idx" in self._file:
                 index = self._dataset("ms_to_idx")
@@ -725,6 +728,8 @@ class H5Reader:
             ) from None
         except H5_ERRORS as error:
             raise FormatError(f"{self.path}: unreadable t_offset or ms_to_idx ({error})") from None
+        if unstated:
+            _check_unstated_offset(value, self.path)
         if isinstance(self._ms_to_idx, np.ndarray):
             self._ms_to_idx = _checked_ms_to_idx(self._ms_to_idx, len(self), self.path)
         self._check_times_against_index()
@@ -1081,6 +1086,39 @@ def _fractional_float(value: Any) -> bool:
         return False
     number = float(array.reshape(()))
     return bool(np.isfinite(number)) and not number.is_integer()
+
+
+#: A whole float ``t_offset`` at least this large (in magnitude) lies past the year 2103 as milliseconds (and
+#: seconds) since 1970, so of the units a file may state only µs can be meant (1.6e15: 2020 as µs since 1970).
+_ONLY_MICROSECONDS = 4.2e12
+
+
+def _check_unstated_offset(value: Any, path: Path) -> None:
+    """Refuse a ``t_offset`` whose unit neither it, the file nor the caller states where µs (DSEC's int64 scalar,
+    the layout's unit) is not the only reading: a negative one (DSEC's is never: the events would lie before the
+    clock's zero; an offset meant to be subtracted?), or a whole float other than 0 below
+    :data:`_ONLY_MICROSECONDS` (1600000000.0 is 2020 as seconds since 1970 and 26.7 min as µs). ``value``: the
+    stored scalar; ``path`` names the file. Fractional floats are refused before (:class:`_FractionalOffset`);
+    integers of 0 and above, 0.0 and whole floats from 4.2e12 on are read as µs."""
+    array = np.asarray(value)
+    if array.size != 1 or array.dtype.kind not in "iuf":
+        return                                            # other shapes and kinds: scalar_to_us refuses them
+    number = array.reshape(()).item()
+    if array.dtype.kind == "f" and not np.isfinite(number):
+        return                                            # NaN / inf: times_to_us names them
+    way = ("state it with a 'unit' attribute on t_offset ('us', 's' or 'ms'; cmax.io.write_h5 writes 'us'), or "
+           "time_unit= (cmax: --time-unit) when events/t has the same unit")
+    if number < 0:
+        raise FormatError(
+            f"{path}: t_offset is {number!r}, negative, and neither t_offset, the file nor the caller states its "
+            "unit: DSEC's t_offset is the int64 µs added to events/t for absolute times, never negative (the "
+            "events would lie before the clock's zero: an offset meant to be subtracted?); if the absolute times "
+            f"really are events/t plus {number!r} µs, {way}")
+    if array.dtype.kind == "f" and number != 0 and abs(number) < _ONLY_MICROSECONDS:
+        raise FormatError(
+            f"{path}: t_offset holds the float {number!r} and neither t_offset, the file nor the caller states its "
+            f"unit, which a float leaves open (DSEC stores t_offset as an int64 of µs): read as µs it is "
+            f"{number / 1e6:,.6f} s, read as seconds {number!r} s; {way}")
 
 
 class _IndexOnDisk:

@@ -30,8 +30,9 @@ _EVT3_RESERVED = 0x3A02
 _EVT2_RESERVED = 0x3AFC
 
 # State registers, int64 each: raw TIME_HIGH (-1: none yet), wraparounds so far,
-# unwrapped time high, time base (µs), y, base x, polarity, time of the last event.
-_TH_RAW, _LOOPS, _HIGH, _TIME, _Y, _BASE_X, _POL, _LAST_T = range(8)
+# unwrapped time high, time base (µs), y, base x, polarity, time of the last event,
+# events of words skipped for want of a time, a row or a base x (before the word that sets it).
+_TH_RAW, _LOOPS, _HIGH, _TIME, _Y, _BASE_X, _POL, _LAST_T, _SKIPPED = range(9)
 
 # Error codes of the kernels.
 _OK, _X_OUTSIDE, _Y_OUTSIDE, _TIME_BACK = 0, 2, 3, 4
@@ -61,8 +62,8 @@ class _Limits:
 
 
 def _new_state() -> np.ndarray:
-    """Registers before the first word: (8,) int64 (see ``_TH_RAW`` ... ``_LAST_T``)."""
-    return np.array([-1, 0, _UNKNOWN, _UNKNOWN, -1, _UNKNOWN, 0, -1], np.int64)
+    """Registers before the first word: (9,) int64 (see ``_TH_RAW`` ... ``_SKIPPED``)."""
+    return np.array([-1, 0, _UNKNOWN, _UNKNOWN, -1, _UNKNOWN, 0, -1, 0], np.int64)
 
 
 def _evt3_word_events() -> np.ndarray:
@@ -130,7 +131,7 @@ def _decode_evt3_words(words, state, width, height, check_order, x, y, t, p, sta
     Returns (end index, error code, word index, two error values).
     """
     th_raw, loops, high, time = state[0], state[1], state[2], state[3]
-    row, base_x, pol, last_t = state[4], state[5], state[6], state[7]
+    row, base_x, pol, last_t, skipped = state[4], state[5], state[6], state[7], state[8]
     n, code, at, a, b = start, _OK, -1, np.int64(0), np.int64(0)
     for i in range(words.size):
         w = np.int64(words[i])
@@ -151,6 +152,7 @@ def _decode_evt3_words(words, state, width, height, check_order, x, y, t, p, sta
             pol = payload >> 11
         elif kind == 0x2:
             if time < 0 or row < 0:
+                skipped += 1
                 continue
             column = payload & 0x7FF
             code, a, b = _event_error(column, row, time, last_t, width, height, check_order)
@@ -167,7 +169,10 @@ def _decode_evt3_words(words, state, width, height, check_order, x, y, t, p, sta
             x0 = base_x
             mask = payload if kind == 0x4 else payload & 0xFF
             base_x += 12 if kind == 0x4 else 8
-            if time < 0 or row < 0 or x0 < 0 or mask == 0:
+            if mask == 0:
+                continue
+            if time < 0 or row < 0 or x0 < 0:
+                skipped += _EVT3_WORD_EVENTS[w]
                 continue
             top = _HIGHEST_BIT[mask]
             code, a, b = _event_error(x0 + top, row, time, last_t, width, height, check_order)
@@ -183,14 +188,14 @@ def _decode_evt3_words(words, state, width, height, check_order, x, y, t, p, sta
                     p[n] = pol
                     n += 1
     state[0], state[1], state[2], state[3] = th_raw, loops, high, time
-    state[4], state[5], state[6], state[7] = row, base_x, pol, last_t
+    state[4], state[5], state[6], state[7], state[8] = row, base_x, pol, last_t, skipped
     return n, code, at, a, b
 
 
 @kernel
 def _decode_evt2_words(words, state, width, height, check_order, x, y, t, p, start):
     """Decode EVT 2.0 ``words`` as :func:`_decode_evt3_words` (only TIME_HIGH and CD words matter)."""
-    th_raw, loops, high, last_t = state[0], state[1], state[2], state[7]
+    th_raw, loops, high, last_t, skipped = state[0], state[1], state[2], state[7], state[8]
     n, code, at, a, b = start, _OK, -1, np.int64(0), np.int64(0)
     for i in range(words.size):
         w = np.int64(words[i])
@@ -204,6 +209,7 @@ def _decode_evt2_words(words, state, width, height, check_order, x, y, t, p, sta
         elif kind <= 0x1:
             time = high * 64 + ((w >> 22) & 0x3F)
             if time < 0:
+                skipped += 1
                 continue
             column, row = (w >> 11) & 0x7FF, w & 0x7FF
             code, a, b = _event_error(column, row, time, last_t, width, height, check_order)
@@ -216,7 +222,7 @@ def _decode_evt2_words(words, state, width, height, check_order, x, y, t, p, sta
             t[n] = time
             p[n] = kind
             n += 1
-    state[0], state[1], state[2], state[7] = th_raw, loops, high, last_t
+    state[0], state[1], state[2], state[7], state[8] = th_raw, loops, high, last_t, skipped
     return n, code, at, a, b
 
 
@@ -261,6 +267,28 @@ def _decode(
         raise _WordError(index, f"time goes back from {a} µs to {b} µs "
                          "(pass sort=True to sort the events by time)")
     return int(end)
+
+
+def _stream_error(codec: _Codec, state: np.ndarray, n_words: int, decoded: int) -> str | None:
+    """Why ``n_words`` words (a whole stream, decoded into ``decoded`` events, leaving ``state``) that decode
+    without an error are not event data of ``codec``'s format, or None: no TIME_HIGH word at all (every Prophesee
+    stream sets its clock with one; zeros, 0xFF bytes, ASCII text under a RAW header hold none), or more events in
+    words skipped for want of a time, row or base x than events decoded (a stray TIME_HIGH in such bytes). Valid
+    streams skip only the few event words before their first TIME_HIGH / ADDR_Y."""
+    if not n_words:
+        return None
+    what = (f"not {codec.title} event data (zeros, 0xFF bytes, text, or another format under a RAW header?): check "
+            "that the file is a Prophesee recording and that its header states its format")
+    if state[_TH_RAW] < 0:
+        return (f"its {n_words:,} words of {codec.title} data hold no TIME_HIGH word (type 0x8), which every "
+                f"Prophesee stream sets its clock with, so no event has a time: {what}")
+    skipped = int(state[_SKIPPED])
+    if skipped > decoded:
+        needed = ("a time (TIME_HIGH)" if codec.name == "evt2" else
+                  "a time, row or base x (TIME_HIGH, ADDR_Y, VECT_BASE_X)")
+        return (f"{skipped:,} of the {skipped + decoded:,} events its words hold come before {needed} and only "
+                f"{decoded:,} after: {what}")
+    return None
 
 
 def _inferred_note(limits: _Limits) -> str:

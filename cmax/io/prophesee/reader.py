@@ -22,7 +22,7 @@ from cmax.events import Events, check_event_count, concatenate
 from cmax.hot_pixels import pixel_counts
 from cmax.io.errors import FormatError
 from cmax.io.prophesee._decode import (
-    _EVT2, _EVT3, _Codec, _count, _decode, _empty_columns, _Limits, _WordError,
+    _EVT2, _EVT3, _Codec, _count, _decode, _empty_columns, _Limits, _stream_error, _WordError,
 )
 from cmax.io.prophesee._header import PathLike, _read_header, _sensor_size
 
@@ -103,7 +103,7 @@ def _chunks(
     word = codec.dtype.itemsize
     step = max(word, chunk_bytes - chunk_bytes % word)
     state = codec.new_state()
-    offset = data_offset
+    offset, decoded = data_offset, 0
     with open(path, "rb") as f:
         f.seek(data_offset)
         while data := f.read(step):
@@ -112,8 +112,18 @@ def _chunks(
             columns = _decode_words(path, codec, np.frombuffer(data, codec.dtype), state,
                                     limits, offset)
             offset += len(data)
+            decoded += columns[0].size
             if columns[0].size:
                 yield columns
+    _check_stream(path, codec, state, (offset - data_offset) // word, decoded)
+
+
+def _check_stream(path: Path, codec: _Codec, state: np.ndarray, n_words: int, decoded: int) -> None:
+    """Refuse the ``n_words`` words of ``path``'s data, decoded into ``decoded`` events leaving ``state``, where
+    they are not ``codec``'s event data although every word decoded (:func:`_stream_error`)."""
+    reason = _stream_error(codec, state, n_words, decoded)
+    if reason is not None:
+        raise FormatError(f"{path}: {reason}")
 
 
 def _iter(path, codec, width, height, chunk_bytes, sort) -> Iterator[Events]:
@@ -145,7 +155,9 @@ def _read(path, codec, width, height, chunk_bytes, sort) -> Events:
     words = np.fromfile(path, codec.dtype, count=n_words, offset=data_offset)
     if words.size != n_words:
         raise FormatError(f"{path}: the file changed while it was read")
-    columns = _decode_words(path, codec, words, codec.new_state(), limits, data_offset)
+    state = codec.new_state()
+    columns = _decode_words(path, codec, words, state, limits, data_offset)
+    _check_stream(path, codec, state, n_words, columns[0].size)
     if sort:
         t = columns[2]
         if t.size > 1 and np.any(t[1:] < t[:-1]):
@@ -224,7 +236,9 @@ def read_evt3(
     ------
     FormatError
         Truncated or corrupt data, reserved word types, events outside the
-        sensor, an unknown sensor size, or a header declaring another format.
+        sensor, an unknown sensor size, or a header declaring another format;
+        words that decode but are no Prophesee stream (no TIME_HIGH word, or
+        more events before the first time and row than after: zeros, text).
 
     Examples
     --------
@@ -262,7 +276,8 @@ def iter_evt3(
     with the decoder state carried over, so the concatenated chunks equal
     :func:`read_evt3`; chunks without events are not yielded. Header, sensor
     size and file length are checked when called; corrupt words raise
-    :class:`FormatError` when reached. With ``sort=True`` each chunk is sorted
+    :class:`FormatError` when reached, words that are no Prophesee stream at
+    all (no TIME_HIGH word: zeros, text) after the last chunk. With ``sort=True`` each chunk is sorted
     stably, and disorder spanning two chunks raises :class:`FormatError`.
     """
     return _iter(path, _EVT3, width, height, chunk_bytes, sort)
