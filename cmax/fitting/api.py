@@ -513,14 +513,15 @@ def fit(
         motion, logs = run_stages(stages, w, motion, backend)
         if known_omega is not None:
             motion = replace(motion, omega=known_omega)
+        warped = _warped(w, motion, w.dt)     # the objective's, the cell tests' and the rotation-only test's
         result = _result(w, fitted, K, model, motion, logs, scale_known=pose is not None or speed is not None,
                          isolated=_fitted_isolated(isolated, keep, ordered, events, settings),
-                         seconds=time.perf_counter() - start)
-        low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
+                         seconds=time.perf_counter() - start, warped=warped)
+        low = _low_motion(w, result, motion, pose_known=pose_xi is not None, warped=warped)
         own = None
         if low is None and model == "se3" and pose_xi is None and known_omega is None and result.success and \
                 settings.quality.rotation_test:
-            result, low, own = _rotation_only(w, result, motion, backend)
+            result, low, own = _rotation_only(w, result, motion, backend, warped)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         on_bound = _on_bound(w, result, low, pose_known=pose is not None)
         quality = _quality(w, result, low, backend, pose_known=pose is not None, hold_omega=known_omega is not None,
@@ -640,14 +641,17 @@ def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, kno
                   speed=scale)
 
 
-def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: bool = False) -> LowMotion | None:
+def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: bool = False,
+                warped: tuple[torch.Tensor, torch.Tensor] | None = None) -> LowMotion | None:
     """Why the fit moved the events too little to trust (the rule of the low-parallax and low-motion
     warnings and of the ``low_parallax`` verdict; :class:`~cmax.fitting.quality.LowMotionCause` names it), or
     None: se3 parallax under ``low_parallax_px``; flow/rotation motion under ``low_motion_px``, or
     (``quality.motion_test``) a contrast gain within the noise of its spread over the image's cells
     (:func:`cmax.fitting.quality.motion_within_noise`); every model, with a given pose too
     (``quality.shuffle_test``): a gain that the time-shuffled events share
-    (:func:`cmax.fitting.quality.shuffled_gain_test`); ``pose_known`` words the reason for it."""
+    (:func:`cmax.fitting.quality.shuffled_gain_test`); ``pose_known`` words the reason for it. ``warped``: the
+    events warped by ``motion`` to the reference times of ``w.dt``, ``x, y`` (B, N) [px], when the caller has them
+    (:func:`_warped`; None: warped here)."""
     settings = w.settings
     if result.parallax_px is not None and result.parallax_px < settings.low_parallax_px:
         return LowMotion(LowMotionCause.PARALLAX,
@@ -658,7 +662,7 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
     quality = settings.quality
     if not (quality.motion_test and result.motion_px is not None) and not quality.shuffle_test:
         return None
-    x, y = _warped(w, motion, w.dt)
+    x, y = _warped(w, motion, w.dt) if warped is None else warped
     if quality.motion_test and result.motion_px is not None:
         gain, noise, within = motion_within_noise(w, x, y, quality)
         if within:
@@ -683,16 +687,18 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
     return None
 
 
-def _rotation_only(w: Window, result: FitResult, motion: Motion, solver: Solver
+def _rotation_only(w: Window, result: FitResult, motion: Motion, solver: Solver,
+                   warped: tuple[torch.Tensor, torch.Tensor] | None = None
                    ) -> tuple[FitResult, LowMotion | None, tuple[np.ndarray, np.ndarray] | None]:
     """The model-selection test of a se3 fit with a free rotation
     (:func:`cmax.fitting.rotation_only.rotation_only_test`): when a rotation alone explains the window's events
     within noise, the ``low_parallax`` rule (:attr:`~cmax.fitting.quality.LowMotionCause.ROTATION_ONLY`), and, when
     the rotation-only fit scores at least as well (:func:`cmax.fitting.rotation_only.reports_rotation_only`), the
     result with its ``omega`` (and ``T``) and the se3 fit's own ``(v, omega)``, else the result as it is and None;
-    when not, the result as it is, None and None."""
+    when not, the result as it is, None and None. ``warped``: the events warped by ``motion`` to the reference times
+    of ``w.dt``, ``x, y`` (B, N) [px], when the caller has them (:func:`_warped`; None: warped here)."""
     quality = w.settings.quality
-    x, y = _warped(w, motion, w.dt)
+    x, y = _warped(w, motion, w.dt) if warped is None else warped
     omega = fit_rotation_only(w, result.v, result.omega, _events_rho(w, motion.inverse_depth), solver,
                               quality.shuffle_events)
     test = rotation_only_test(w, x, y, omega, quality)
@@ -871,7 +877,12 @@ def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega,
 
 
 def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion, logs: tuple[StageLog, ...], *,
-            scale_known: bool, seconds: float, isolated: np.ndarray | None = None) -> FitResult:
+            scale_known: bool, seconds: float, isolated: np.ndarray | None = None,
+            warped: tuple[torch.Tensor, torch.Tensor] | None = None) -> FitResult:
+    """The :class:`FitResult` of the fitted ``motion`` of window ``w`` (made from ``events`` with intrinsics ``K``
+    (3, 3)) after the stages whose ``logs`` are given, in ``seconds``; ``isolated`` (N,) bool: the isolation test of
+    ``events`` when at hand; ``warped``: the events warped by ``motion`` to the reference times of ``w.dt``,
+    ``x, y`` (B, N) [px], when the caller has them (:func:`_warped`; None: warped here)."""
     ev, s = w.ev, w.settings
     H, W = ev.height, ev.width
     flow, grid = motion.flow, motion.inverse_depth
@@ -882,7 +893,7 @@ def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion
         before = blur(accumulate_bilinear(ev.x, ev.y, None, H, W), s.sigma).numpy()
         x, y = _warped(w, motion, w.dt_mid)
         after = blur(accumulate_bilinear(x[0], y[0], None, H, W), s.sigma).numpy()
-        x_obj, y_obj = _warped(w, motion, w.dt)
+        x_obj, y_obj = _warped(w, motion, w.dt) if warped is None else warped
         objective = float(w.contrast(x_obj, y_obj, 1))
     depth = mask = None
     if grid is not None:

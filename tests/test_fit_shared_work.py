@@ -1,0 +1,52 @@
+"""Work the default se3 fit shares between its result and its verdict instead of doing it twice: each shortcut
+gives exactly what the fresh computation gives (the fresh computation is the expectation)."""
+from __future__ import annotations
+
+import functools
+import warnings
+
+import numpy as np
+import torch
+
+from benchmarks.synthetic_windows import make_window
+from cmax.fitting import FitSettings, fit
+from cmax.fitting.api import DEFAULT_CONTRAST, DEFAULT_POLARITY_SPLIT, _low_motion, _result, _rotation_only, _warped
+from cmax.fitting.pipeline import Motion
+from cmax.fitting.solvers import make_solver
+from cmax.fitting.window import Window
+
+
+@functools.lru_cache(maxsize=None)
+def driving():
+    """A street seen driving forward at 120x90, its default se3 fit, the window as the fit builds it and the fit's
+    motion."""
+    w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
+    speed = float(np.linalg.norm(w.twist[:3]))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        r = fit(w.events, w.K, speed=speed, depth_range=(1.0, 20.0))
+    settings = FitSettings(depth_range=(1.0, 20.0), contrast=DEFAULT_CONTRAST["se3"],
+                           polarity_split=DEFAULT_POLARITY_SPLIT["se3"])
+    window = Window.from_events(w.events, w.K, settings, r.inverse_depth_grid.shape)
+    motion = Motion(v=r.v, omega=r.omega, inverse_depth=r.inverse_depth_grid, speed=speed)
+    return w, r, speed, window, motion
+
+
+def test_the_fits_warped_events_shared_by_its_result_and_tests_give_what_warping_again_gives():
+    """The fit warps its events by its motion to the reference times once (``_warped``) and hands them to the result
+    (its objective), the cell and permutation tests and the rotation-only test: each gives what it gives when it
+    warps them itself, and the result's objective is the contrast of a fresh warp to 1e-12."""
+    w, r, _, window, motion = driving()
+    warped = _warped(window, motion, window.dt)
+    fresh = _result(window, w.events, w.K, "se3", motion, r.stages, scale_known=True, seconds=0.0)
+    shared = _result(window, w.events, w.K, "se3", motion, r.stages, scale_known=True, seconds=0.0, warped=warped)
+    x, y = _warped(window, motion, window.dt)
+    with torch.no_grad():
+        expected = float(window.contrast(x, y, 1))
+    assert abs(shared.objective_after - expected) <= 1e-12 * abs(expected)
+    assert shared.objective_after == fresh.objective_after and shared.parallax_px == fresh.parallax_px
+    assert _low_motion(window, fresh, motion) == _low_motion(window, fresh, motion, warped=warped)
+    solver = make_solver("scipy")
+    (a, low_a, own_a), (b, low_b, own_b) = (_rotation_only(window, fresh, motion, solver),
+                                            _rotation_only(window, fresh, motion, solver, warped))
+    assert np.array_equal(a.omega, b.omega) and low_a == low_b and (own_a is None) == (own_b is None)
