@@ -6,12 +6,14 @@ import functools
 import warnings
 
 import numpy as np
+import pytest
 import torch
 
 from benchmarks.synthetic_windows import make_window
-from cmax.fitting import FitSettings, fit
+from cmax.fitting import FitSettings, QualitySettings, Verdict, fit
 from cmax.fitting.api import DEFAULT_CONTRAST, DEFAULT_POLARITY_SPLIT, _low_motion, _result, _rotation_only, _warped
 from cmax.fitting.pipeline import Motion
+from cmax.fitting.quality import MotionScorer, assess, best_turned
 from cmax.fitting.solvers import make_solver
 from cmax.fitting.window import Window
 
@@ -50,3 +52,36 @@ def test_the_fits_warped_events_shared_by_its_result_and_tests_give_what_warping
     (a, low_a, own_a), (b, low_b, own_b) = (_rotation_only(window, fresh, motion, solver),
                                             _rotation_only(window, fresh, motion, solver, warped))
     assert np.array_equal(a.omega, b.omega) and low_a == low_b and (own_a is None) == (own_b is None)
+
+
+def test_the_bas_relief_turn_scores_on_the_ambiguity_tests_scorer():
+    """The turn scores on the scorer the ambiguity test built for the fit (built once per verdict, was twice): its
+    best turned motion is the one a scorer built anew gives, to the bit."""
+    import cmax.fitting.quality as quality
+
+    w, r, speed, window, _ = driving()
+    settings = QualitySettings()
+    scorer = MotionScorer.build(window, r.v, r.omega, speed, settings)
+    fresh, shared = (best_turned(window, r.v, r.omega, speed, settings),
+                     best_turned(window, r.v, r.omega, speed, settings, scorer))
+    assert (fresh.name, fresh.gain, fresh.noise) == (shared.name, shared.gain, shared.noise)
+    assert np.array_equal(fresh.v, shared.v) and np.array_equal(fresh.omega, shared.omega)
+    solver = make_solver("scipy")
+    alone, given = (assess(window, r.v, r.omega, speed, settings, solver, hold_omega=False),
+                    assess(window, r.v, r.omega, speed, settings, solver, hold_omega=False, scorer=scorer))
+    assert [(a.name, a.gain, a.noise) for a in alone[0]] == [(a.name, a.gain, a.noise) for a in given[0]]
+    assert alone[1:] == given[1:]
+    builds = []
+    build = quality.MotionScorer.build.__func__
+
+    def counted(cls, *args, **kwargs):
+        builds.append(1)
+        return build(cls, *args, **kwargs)
+
+    with pytest.MonkeyPatch.context() as patch:
+        patch.setattr(quality.MotionScorer, "build", classmethod(counted))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            ok = fit(w.events, w.K, speed=speed, depth_range=(1.0, 20.0), quality=QualitySettings(min_ok_parallax_area=1))
+    assert ok.verdict is Verdict.OK and len(builds) == 1, ok.quality.reason     # the ambiguity test's and the turn's
+
