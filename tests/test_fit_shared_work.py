@@ -13,7 +13,7 @@ from benchmarks.synthetic_windows import make_window
 from cmax.fitting import FitSettings, QualitySettings, Verdict, fit
 from cmax.fitting.api import DEFAULT_CONTRAST, DEFAULT_POLARITY_SPLIT, _low_motion, _result, _rotation_only, _warped
 from cmax.fitting.pipeline import Motion
-from cmax.fitting.quality import MotionScorer, assess, best_turned
+from cmax.fitting.quality import Alternative, MotionScorer, assess, best_turned
 from cmax.fitting.solvers import make_solver
 from cmax.fitting.window import Window
 
@@ -85,3 +85,32 @@ def test_the_bas_relief_turn_scores_on_the_ambiguity_tests_scorer():
             ok = fit(w.events, w.K, speed=speed, depth_range=(1.0, 20.0), quality=QualitySettings(min_ok_parallax_area=1))
     assert ok.verdict is Verdict.OK and len(builds) == 1, ok.quality.reason     # the ambiguity test's and the turn's
 
+
+def test_the_turn_is_not_scored_where_another_rule_already_keeps_the_window_from_ok(monkeypatch):
+    """The bas-relief turn can only make an ``ok`` ambiguous: on a window too sparse to be ``ok`` (``min_event_density``
+    far above its events) it is not scored, and the verdict is the one the window gets with the turn off
+    (``bas_relief_turn_deg`` 0), though a turned motion here always beats the fit; with the sparse rule off the same
+    window's turn is scored and turns its ``ok`` into ``ambiguous``."""
+    import cmax.fitting.api as api
+
+    w, r, speed, _, _ = driving()
+    calls = []
+
+    def better(*args, **kwargs):                 # a turned motion that beats the fit: the turn's verdict if scored
+        calls.append(1)
+        return Alternative("turned_+a", r.v, r.omega, -1.0, 0.1, True)
+
+    monkeypatch.setattr(api, "best_turned", better)
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        sparse, scored = (fit(w.events, w.K, speed=speed, depth_range=(1.0, 20.0),
+                              quality=QualitySettings(min_ok_parallax_area=1, min_event_density=density))
+                          for density in (1e9, 0.0))
+    assert len(calls) == 1                                              # the second fit's only
+    assert scored.verdict is Verdict.AMBIGUOUS and scored.quality.turned
+    assert sparse.verdict is Verdict.AMBIGUOUS and sparse.quality.sparse and not sparse.quality.turned
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        unturned = fit(w.events, w.K, speed=speed, depth_range=(1.0, 20.0),
+                       quality=QualitySettings(min_ok_parallax_area=1, min_event_density=1e9, bas_relief_turn_deg=0.0))
+    assert len(calls) == 1 and unturned.quality.summary() == sparse.quality.summary()   # as without the turn at all

@@ -24,7 +24,7 @@ from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages,
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
                                   motion_within_noise, rate_change, shuffled_gain_test, small_parallax_reason,
                                   isolated_events, neighbour_counts, noise_reason, noise_share, sparse_reason,
-                                  best_turned, turned_reason, MotionScorer,
+                                  best_turned, turned_reason, MotionScorer, _unsteady_reason,
                                   verdict_of, _isolated, _isolated_noise_share_and_sorted, _neighbour_counts,
                                   _Sorted, _sorted_subset)
 from cmax.fitting.rotation_only import (fit_rotation_only, reports_rotation_only, rotation_only_reason,
@@ -749,7 +749,10 @@ def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver
                                quality.min_event_density_area)
         small = "" if hold_omega else small_parallax_reason(result.parallax_px, quality.min_ok_parallax_px,
                                                             (w.ev.width, w.ev.height), quality.min_ok_parallax_area)
-        turned = _turned(w, result, speed, quality, alternatives, tested and not hold_omega, scorer)
+        # the turn can only make an ok ambiguous: not run where another rule already keeps the window from ok
+        decided = on_bound or sparse or small or noisy or (rate is not None and
+                                                            _unsteady_reason(rate, quality.max_rate_change))
+        turned = _turned(w, result, speed, quality, alternatives, tested and not hold_omega and not decided, scorer)
     return verdict_of(success=result.success, failed_stages=failed, low_motion=low, alternatives=alternatives,
                       note=note, untestable=not tested, rate=rate, max_rate_change=quality.max_rate_change,
                       sparse=sparse, on_bound=on_bound, small_parallax=small, noise_share=noise, noisy=noisy,
@@ -759,8 +762,8 @@ def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver
 def _turned(w: Window, result: FitResult, speed: float, quality: QualitySettings, alternatives: tuple,
             due: bool, scorer: MotionScorer | None = None) -> str:
     """:func:`cmax.fitting.quality.turned_reason` of a se3 fit whose ambiguity test found every alternative worse
-    beyond noise (``alternatives``; ``due``: tested, with the rotation free), "" otherwise: the test is only run
-    where it can change the verdict, an ``ok`` into ``ambiguous``.
+    beyond noise (``alternatives``; ``due``: tested, with the rotation free, and no other rule keeps the window from
+    ``ok``), "" otherwise: the test is only run where it can change the verdict, an ``ok`` into ``ambiguous``.
     ``scorer``: the ambiguity test's :class:`cmax.fitting.quality.MotionScorer` of the fit, scored on again (None:
     built anew)."""
     if not due or not alternatives or any(a.within_noise for a in alternatives):
