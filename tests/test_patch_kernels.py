@@ -129,6 +129,33 @@ def test_gradients_equal_the_reference_autograd(dtype):
         np.testing.assert_allclose(got.numpy(), want.numpy(), atol=RTOL[dtype] * float(want.abs().max()) * 10, rtol=0)
 
 
+
+@pytest.mark.parametrize("sigma", [1.0, 3.0])
+def test_gradients_of_events_gathered_in_part_of_their_frames_equal_the_reference_autograd(sigma):
+    """The backward blurs ``g * B`` only over the box of the events' votes (the pixels they read), not the whole
+    frame: events gathered in a small part of large frames, some on and past the frames' borders, one patch whose
+    events all lie off its frame (no votes, zero gradients), against torch's autograd of the whole images (float64,
+    to 1e-12 of the largest gradient)."""
+    rng = np.random.default_rng(7)
+    size, P, n = (40, 50), 4, 3000
+    offset = torch.tensor([[0.0, 0.0], [30.0, 5.0], [-4.0, 60.0], [100.0, 100.0]], dtype=torch.float64)
+    patch = torch.from_numpy(rng.integers(0, P, n))
+    core = {0: ((15, 22), (20, 30)), 1: ((-2, 6), (44, 52)), 2: ((30, 41), (-2, 4)), 3: ((-9, -3), (-9, -3))}
+    rows = np.array([rng.uniform(*core[int(p)][0]) for p in patch])
+    cols = np.array([rng.uniform(*core[int(p)][1]) for p in patch])
+    x = offset[patch, 0] + torch.from_numpy(cols)
+    y = offset[patch, 1] + torch.from_numpy(rows)
+    weights = torch.tensor([1.0, -0.5, 2.0, 1.0], dtype=torch.float64)
+    grads = []
+    for function in (patch_variances, reference):
+        a, b = x.clone().requires_grad_(), y.clone().requires_grad_()
+        (function(a, b, patch, offset, size, sigma) * weights).sum().backward()
+        grads.append((a.grad, b.grad))
+    for got, want in zip(*grads):
+        assert float(want.abs().max()) > 0
+        np.testing.assert_allclose(got.numpy(), want.numpy(), atol=1e-12 * float(want.abs().max()), rtol=0)
+    assert not grads[0][0][patch == 3].any() and not grads[0][1][patch == 3].any()
+
 def test_only_the_coordinates_that_need_a_gradient_get_one():
     x, y, patch, offset = random_events(n=50)
     a = x.clone().requires_grad_()

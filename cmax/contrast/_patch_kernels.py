@@ -29,7 +29,8 @@ gradient, which treats ``floor`` and the validity test as constants).
 The images and the blur run in the events' dtype (float32 or float64); the sums of the mean and of
 the variance in float64. The events are grouped by patch (a counting sort) so that each patch's
 images stay in small scratch buffers, and each blur runs only on the box that the patch's votes
-touch, grown by the kernel's radius (a patch's events fill its core, not the margin of its frame).
+touch, grown by the kernel's radius (a patch's events fill its core, not the margin of its frame); the
+gradient's ``G`` is computed only on the pixels the votes touch, the only ones the events read.
 
 References
 ----------
@@ -106,14 +107,53 @@ def _blur_box(padded, taps, rows, out, r_lo, r_hi, c_lo, c_hi):  # pragma: no co
             target[c] = 0
 
 
+@kernel(fastmath={"contract"})
+def _blur_within(padded, taps, rows, out, r_lo, r_hi, o_r0, o_r1, o_c0, o_c1):  # pragma: no cover - compiled
+    """:func:`_blur_box` of an image that is zero outside rows ``r_lo..r_hi``, written to ``out`` (H, W) only on
+    rows ``o_r0..o_r1`` and columns ``o_c0..o_c1`` (inclusive, inside the frame): each of those pixels is the value
+    :func:`_blur_box` gives it, bit for bit (the same taps summed in the same order ``k = 0 .. 2R``), the passes
+    running only over the rows and columns it reads. ``padded``, ``rows``: as :func:`_blur_box` (left zero).
+    """
+    H, W = out.shape
+    R = (taps.shape[0] - 1) // 2
+    m = o_c1 + 1 - o_c0
+    line = np.empty(m, out.dtype)
+    first, last = max(o_r0 - R, r_lo), min(o_r1 + R, r_hi)
+    for r in range(first, last + 1):
+        line[:] = 0
+        for k in range(2 * R + 1):
+            t = taps[k]
+            source = padded[r, o_c0 + k:o_c1 + 1 + k]
+            for c in range(m):
+                line[c] += t * source[c]
+        target = rows[R + r, o_c0:o_c1 + 1]
+        for c in range(m):
+            target[c] = line[c]
+    for r in range(o_r0, o_r1 + 1):
+        line[:] = 0
+        for k in range(2 * R + 1):
+            t = taps[k]
+            source = rows[r + k, o_c0:o_c1 + 1]
+            for c in range(m):
+                line[c] += t * source[c]
+        target = out[r, o_c0:o_c1 + 1]
+        for c in range(m):
+            target[c] = line[c]
+    for r in range(first, last + 1):
+        target = rows[R + r, o_c0:o_c1 + 1]
+        for c in range(m):
+            target[c] = 0
+
+
 @kernel
 def _forward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, padded, rows,
-             column_sums):  # pragma: no cover - compiled
+             column_sums, votes):  # pragma: no cover - compiled
     """Blurred images ``blurred`` (P, H, W), ``stats`` (P, 2) float64 = (mean, variance) of each patch.
 
     ``boxes`` (P, 4) int64 receives ``(r0, r1, c0, c1)``: rows ``r0..r1`` and columns ``c0..c1``
     (inclusive) of ``blurred[p]`` hold the blurred image, zero outside (not written; ``r1 < r0`` when
-    the patch has no votes). ``one`` is 1 in the images' dtype (the bilinear weights are computed in
+    the patch has no votes); ``votes`` (P, 4) int64 the same of the pixels the votes fell on (the box before
+    the blur grew it). ``one`` is 1 in the images' dtype (the bilinear weights are computed in
     it, as the torch path does); ``padded`` (H, W + 2R) and ``rows`` (H + 2R, W) are zero scratch of
     that dtype (left zero); ``column_sums`` (2, W) float64 scratch.
     """
@@ -154,8 +194,10 @@ def _forward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, padd
             c_lo, c_hi = min(c_lo, max(ix, 0)), max(c_hi, min(ix + 1, W - 1))
         if r_hi < r_lo:
             boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3] = 0, -1, 0, -1
+            votes[p, 0], votes[p, 1], votes[p, 2], votes[p, 3] = 0, -1, 0, -1
             stats[p, 0] = stats[p, 1] = 0.0
             continue
+        votes[p, 0], votes[p, 1], votes[p, 2], votes[p, 3] = r_lo, r_hi, c_lo, c_hi
         image = blurred[p]
         _blur_box(padded, taps, rows, image, r_lo, r_hi, c_lo, c_hi)
         for r in range(r_lo, r_hi + 1):
@@ -177,13 +219,14 @@ def _forward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, padd
 
 @kernel
 def _backward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, scale, grad_x, grad_y, padded, rows,
-              field, ones_y, ones_x):  # pragma: no cover - compiled
+              field, ones_y, ones_x, votes):  # pragma: no cover - compiled
     """``grad_x, grad_y`` (M,) = ``sum_p scale[p] dVar_p / d(x, y)`` (see the module docstring).
 
     ``G = g * (B - mean)`` is ``g * B`` (non-zero on the box of :func:`_forward` grown by R) minus
     ``mean ones_y[r] ones_x[c]``, the blur of the frame's ones (separable), computed into ``field``
-    (H, W) scratch. ``scale`` (P,) float64 is the upstream gradient; ``padded``, ``rows`` as
-    :func:`_forward`; ``ones_y`` (H,), ``ones_x`` (W,) of the images' dtype.
+    (H, W) scratch only on the pixels the events read: the box of their votes (``votes`` (P, 4) of
+    :func:`_forward`; the rest of ``field`` is left as it was, unread). ``scale`` (P,) float64 is the upstream
+    gradient; ``padded``, ``rows`` as :func:`_forward`; ``ones_y`` (H,), ``ones_x`` (W,) of the images' dtype.
     """
     P, H, W = blurred.shape
     R = (taps.shape[0] - 1) // 2
@@ -192,20 +235,20 @@ def _backward(x, y, offset, order, starts, taps, one, blurred, stats, boxes, sca
         if starts[p] == starts[p + 1]:
             continue
         r0, r1, c0, c1 = boxes[p, 0], boxes[p, 1], boxes[p, 2], boxes[p, 3]
-        field[:, :] = 0
-        if r1 >= r0:
+        if r1 >= r0:    # else no event votes: each one's gradient is 0 below, and G is not read
             for r in range(r0, r1 + 1):
                 target, source = padded[r, R + c0:R + c1 + 1], blurred[p, r, c0:c1 + 1]
                 for c in range(c1 + 1 - c0):
                     target[c] = source[c]
-            _blur_box(padded, taps, rows, field, r0, r1, c0, c1)
+            v0, v1, u0, u1 = votes[p, 0], votes[p, 1], votes[p, 2], votes[p, 3]
+            _blur_within(padded, taps, rows, field, r0, r1, v0, v1, u0, u1)
             for r in range(r0, r1 + 1):
                 padded[r, R + c0:R + c1 + 1] = 0
-        mean = stats[p, 0]
-        for r in range(H):
-            row, level = field[r], mean * ones_y[r]
-            for c in range(W):
-                row[c] -= level * ones_x[c]
+            mean = stats[p, 0]
+            for r in range(v0, v1 + 1):
+                row, level = field[r], mean * ones_y[r]
+                for c in range(u0, u1 + 1):
+                    row[c] -= level * ones_x[c]
         s = 2.0 * scale[p] / n
         ox, oy = offset[p, 0], offset[p, 1]
         for j in range(starts[p], starts[p + 1]):
@@ -312,13 +355,14 @@ class _Workspace:
         self.blurred = np.empty((P, H, W), x.dtype)
         self.stats = np.empty((P, 2))
         self.boxes = np.empty((P, 4), np.int64)
+        self.votes = np.empty((P, 4), np.int64)
         self.padded = np.zeros((H, W + 2 * R), x.dtype)
         self.rows = np.zeros((H + 2 * R, W), x.dtype)
 
     def forward(self) -> np.ndarray:
         """Fill the images and statistics; the variances (P,) float64."""
         _forward(self.x, self.y, self.offset, self.order, self.starts, self.taps, self.one, self.blurred, self.stats,
-                 self.boxes, self.padded, self.rows, np.empty((2, self.blurred.shape[2])))
+                 self.boxes, self.padded, self.rows, np.empty((2, self.blurred.shape[2])), self.votes)
         return self.stats[:, 1]
 
     def backward(self, scale: np.ndarray) -> tuple[np.ndarray, np.ndarray]:
@@ -328,7 +372,7 @@ class _Workspace:
         _backward(self.x, self.y, self.offset, self.order, self.starts, self.taps, self.one, self.blurred, self.stats,
                   self.boxes, np.ascontiguousarray(scale, dtype=np.float64), grad_x, grad_y, self.padded, self.rows,
                   np.empty((H, W), self.x.dtype), _blurred_ones(self.taps, H).astype(self.x.dtype),
-                  _blurred_ones(self.taps, W).astype(self.x.dtype))
+                  _blurred_ones(self.taps, W).astype(self.x.dtype), self.votes)
         return grad_x, grad_y
 
 

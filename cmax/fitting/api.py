@@ -24,7 +24,7 @@ from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages,
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
                                   motion_within_noise, rate_change, shuffled_gain_test, small_parallax_reason,
                                   isolated_events, neighbour_counts, noise_reason, noise_share, sparse_reason,
-                                  best_turned, turned_reason,
+                                  best_turned, turned_reason, MotionScorer, _unsteady_reason,
                                   verdict_of, _isolated, _isolated_noise_share_and_sorted, _neighbour_counts,
                                   _Sorted, _sorted_subset)
 from cmax.fitting.rotation_only import (fit_rotation_only, reports_rotation_only, rotation_only_reason,
@@ -513,14 +513,15 @@ def fit(
         motion, logs = run_stages(stages, w, motion, backend)
         if known_omega is not None:
             motion = replace(motion, omega=known_omega)
+        warped = _warped(w, motion, w.dt)     # the objective's, the cell tests' and the rotation-only test's
         result = _result(w, fitted, K, model, motion, logs, scale_known=pose is not None or speed is not None,
                          isolated=_fitted_isolated(isolated, keep, ordered, events, settings),
-                         seconds=time.perf_counter() - start)
-        low = _low_motion(w, result, motion, pose_known=pose_xi is not None)
+                         seconds=time.perf_counter() - start, warped=warped)
+        low = _low_motion(w, result, motion, pose_known=pose_xi is not None, warped=warped)
         own = None
         if low is None and model == "se3" and pose_xi is None and known_omega is None and result.success and \
                 settings.quality.rotation_test:
-            result, low, own = _rotation_only(w, result, motion, backend)
+            result, low, own = _rotation_only(w, result, motion, backend, warped)
         rate = rate_change(events.t) if model == "se3" and pose_xi is None else None
         on_bound = _on_bound(w, result, low, pose_known=pose is not None)
         quality = _quality(w, result, low, backend, pose_known=pose is not None, hold_omega=known_omega is not None,
@@ -640,14 +641,17 @@ def _start(model: str, init: "FitResult | None", pose_xi: np.ndarray | None, kno
                   speed=scale)
 
 
-def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: bool = False) -> LowMotion | None:
+def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: bool = False,
+                warped: tuple[torch.Tensor, torch.Tensor] | None = None) -> LowMotion | None:
     """Why the fit moved the events too little to trust (the rule of the low-parallax and low-motion
     warnings and of the ``low_parallax`` verdict; :class:`~cmax.fitting.quality.LowMotionCause` names it), or
     None: se3 parallax under ``low_parallax_px``; flow/rotation motion under ``low_motion_px``, or
     (``quality.motion_test``) a contrast gain within the noise of its spread over the image's cells
     (:func:`cmax.fitting.quality.motion_within_noise`); every model, with a given pose too
     (``quality.shuffle_test``): a gain that the time-shuffled events share
-    (:func:`cmax.fitting.quality.shuffled_gain_test`); ``pose_known`` words the reason for it."""
+    (:func:`cmax.fitting.quality.shuffled_gain_test`); ``pose_known`` words the reason for it. ``warped``: the
+    events warped by ``motion`` to the reference times of ``w.dt``, ``x, y`` (B, N) [px], when the caller has them
+    (:func:`_warped`; None: warped here)."""
     settings = w.settings
     if result.parallax_px is not None and result.parallax_px < settings.low_parallax_px:
         return LowMotion(LowMotionCause.PARALLAX,
@@ -658,7 +662,7 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
     quality = settings.quality
     if not (quality.motion_test and result.motion_px is not None) and not quality.shuffle_test:
         return None
-    x, y = _warped(w, motion, w.dt)
+    x, y = _warped(w, motion, w.dt) if warped is None else warped
     if quality.motion_test and result.motion_px is not None:
         gain, noise, within = motion_within_noise(w, x, y, quality)
         if within:
@@ -683,16 +687,18 @@ def _low_motion(w: Window, result: FitResult, motion: Motion, *, pose_known: boo
     return None
 
 
-def _rotation_only(w: Window, result: FitResult, motion: Motion, solver: Solver
+def _rotation_only(w: Window, result: FitResult, motion: Motion, solver: Solver,
+                   warped: tuple[torch.Tensor, torch.Tensor] | None = None
                    ) -> tuple[FitResult, LowMotion | None, tuple[np.ndarray, np.ndarray] | None]:
     """The model-selection test of a se3 fit with a free rotation
     (:func:`cmax.fitting.rotation_only.rotation_only_test`): when a rotation alone explains the window's events
     within noise, the ``low_parallax`` rule (:attr:`~cmax.fitting.quality.LowMotionCause.ROTATION_ONLY`), and, when
     the rotation-only fit scores at least as well (:func:`cmax.fitting.rotation_only.reports_rotation_only`), the
     result with its ``omega`` (and ``T``) and the se3 fit's own ``(v, omega)``, else the result as it is and None;
-    when not, the result as it is, None and None."""
+    when not, the result as it is, None and None. ``warped``: the events warped by ``motion`` to the reference times
+    of ``w.dt``, ``x, y`` (B, N) [px], when the caller has them (:func:`_warped`; None: warped here)."""
     quality = w.settings.quality
-    x, y = _warped(w, motion, w.dt)
+    x, y = _warped(w, motion, w.dt) if warped is None else warped
     omega = fit_rotation_only(w, result.v, result.omega, _events_rho(w, motion.inverse_depth), solver,
                               quality.shuffle_events)
     test = rotation_only_test(w, x, y, omega, quality)
@@ -734,28 +740,35 @@ def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver
                               "ambiguity not tested: a model without translation" if result.model != "se3" else
                               "ambiguity not tested (QualitySettings.ambiguity_test False)")
     tested, sparse, small, turned = True, "", "", ""
+    noisy = "" if noise is None else noise_reason(noise, quality.max_noise_share, quality.noise_window_us)
     if result.model == "se3" and not pose_known and quality.ambiguity_test and result.success and low is None:
-        alternatives, note, tested = assess(w, result.v, result.omega, speed, quality, solver, hold_omega=hold_omega)
+        scorer = MotionScorer.build(w, result.v, result.omega, speed, quality)
+        alternatives, note, tested = assess(w, result.v, result.omega, speed, quality, solver, hold_omega=hold_omega,
+                                            scorer=scorer)
         sparse = sparse_reason(result.events_used, given, w.ev.width, w.ev.height, quality.min_event_density,
                                quality.min_event_density_area)
         small = "" if hold_omega else small_parallax_reason(result.parallax_px, quality.min_ok_parallax_px,
                                                             (w.ev.width, w.ev.height), quality.min_ok_parallax_area)
-        turned = _turned(w, result, speed, quality, alternatives, tested and not hold_omega)
+        # the turn can only make an ok ambiguous: not run where another rule already keeps the window from ok
+        decided = on_bound or sparse or small or noisy or (rate is not None and
+                                                            _unsteady_reason(rate, quality.max_rate_change))
+        turned = _turned(w, result, speed, quality, alternatives, tested and not hold_omega and not decided, scorer)
     return verdict_of(success=result.success, failed_stages=failed, low_motion=low, alternatives=alternatives,
                       note=note, untestable=not tested, rate=rate, max_rate_change=quality.max_rate_change,
-                      sparse=sparse, on_bound=on_bound, small_parallax=small, noise_share=noise,
-                      noisy="" if noise is None else noise_reason(noise, quality.max_noise_share,
-                                                                  quality.noise_window_us), turned=turned)
+                      sparse=sparse, on_bound=on_bound, small_parallax=small, noise_share=noise, noisy=noisy,
+                      turned=turned)
 
 
 def _turned(w: Window, result: FitResult, speed: float, quality: QualitySettings, alternatives: tuple,
-            due: bool) -> str:
+            due: bool, scorer: MotionScorer | None = None) -> str:
     """:func:`cmax.fitting.quality.turned_reason` of a se3 fit whose ambiguity test found every alternative worse
-    beyond noise (``alternatives``; ``due``: tested, with the rotation free), "" otherwise: the test is only run
-    where it can change the verdict, an ``ok`` into ``ambiguous``."""
+    beyond noise (``alternatives``; ``due``: tested, with the rotation free, and no other rule keeps the window from
+    ``ok``), "" otherwise: the test is only run where it can change the verdict, an ``ok`` into ``ambiguous``.
+    ``scorer``: the ambiguity test's :class:`cmax.fitting.quality.MotionScorer` of the fit, scored on again (None:
+    built anew)."""
     if not due or not alternatives or any(a.within_noise for a in alternatives):
         return ""
-    turned = best_turned(w, result.v, result.omega, speed, quality)
+    turned = best_turned(w, result.v, result.omega, speed, quality, scorer)
     return turned_reason(turned, quality.bas_relief_turn_deg)
 
 
@@ -871,7 +884,12 @@ def _all_events_at_reference(events: Events, K: np.ndarray, w: Window, v, omega,
 
 
 def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion, logs: tuple[StageLog, ...], *,
-            scale_known: bool, seconds: float, isolated: np.ndarray | None = None) -> FitResult:
+            scale_known: bool, seconds: float, isolated: np.ndarray | None = None,
+            warped: tuple[torch.Tensor, torch.Tensor] | None = None) -> FitResult:
+    """The :class:`FitResult` of the fitted ``motion`` of window ``w`` (made from ``events`` with intrinsics ``K``
+    (3, 3)) after the stages whose ``logs`` are given, in ``seconds``; ``isolated`` (N,) bool: the isolation test of
+    ``events`` when at hand; ``warped``: the events warped by ``motion`` to the reference times of ``w.dt``,
+    ``x, y`` (B, N) [px], when the caller has them (:func:`_warped`; None: warped here)."""
     ev, s = w.ev, w.settings
     H, W = ev.height, ev.width
     flow, grid = motion.flow, motion.inverse_depth
@@ -882,7 +900,7 @@ def _result(w: Window, events: Events, K: np.ndarray, model: str, motion: Motion
         before = blur(accumulate_bilinear(ev.x, ev.y, None, H, W), s.sigma).numpy()
         x, y = _warped(w, motion, w.dt_mid)
         after = blur(accumulate_bilinear(x[0], y[0], None, H, W), s.sigma).numpy()
-        x_obj, y_obj = _warped(w, motion, w.dt)
+        x_obj, y_obj = _warped(w, motion, w.dt) if warped is None else warped
         objective = float(w.contrast(x_obj, y_obj, 1))
     depth = mask = None
     if grid is not None:

@@ -359,9 +359,11 @@ class MotionScorer:
 
 
 def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualitySettings, solver, *,
-           hold_omega: bool) -> tuple[tuple[Alternative, ...], str, bool]:
+           hold_omega: bool, scorer: MotionScorer | None = None) -> tuple[tuple[Alternative, ...], str, bool]:
     """The ambiguity test of a se3 fit ``(v, omega)`` of window ``w`` (a :class:`cmax.fitting.window.Window`),
-    polishing the alternatives with ``solver`` (a :class:`cmax.fitting.solvers.Solver`).
+    polishing the alternatives with ``solver`` (a :class:`cmax.fitting.solvers.Solver`); ``scorer``: the fit's
+    :meth:`MotionScorer.build` of these arguments when the caller holds it (the bas-relief turn scores on the same
+    one, :func:`best_turned`), None: built here.
 
     Returns ``(alternatives, note, tested)``: ``tested`` False, no alternatives and ``note`` saying why when
     the window has fewer than ``w.settings.refine.min_patches`` patches with events (nothing to test on: the
@@ -370,7 +372,7 @@ def assess(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualityS
     and score better than the fit by more than ``settings.margin`` times its own gain (more than a tie): they are
     kept (the fit is then not the optimum of its own objective).
     """
-    scorer = MotionScorer.build(w, v, omega, speed, settings)
+    scorer = MotionScorer.build(w, v, omega, speed, settings) if scorer is None else scorer
     if scorer is None:
         return (), (f"ambiguity not tested: fewer than {max(w.settings.refine.min_patches, 2)} patches hold "
                     "events"), False
@@ -425,14 +427,17 @@ def turned_motions(objective: LocalMotionObjective, v: np.ndarray, omega: np.nda
     return out
 
 
-def best_turned(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualitySettings) -> Alternative | None:
+def best_turned(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualitySettings,
+                scorer: MotionScorer | None = None) -> Alternative | None:
     """The best-scoring of the fit's :func:`turned_motions` by ``settings.bas_relief_turn_deg``, scored as an
     :class:`Alternative` of the fit ``(v (3,) [m/s], omega (3,) [rad/s])`` of window ``w`` (a
-    :class:`cmax.fitting.window.Window`, ``|v| = speed``) by :class:`MotionScorer`; None when the window has too
-    few patches to score on, or the test is off (``bas_relief_turn_deg`` 0) or the speed is 0."""
+    :class:`cmax.fitting.window.Window`, ``|v| = speed``) by :class:`MotionScorer`: ``scorer``, the fit's
+    :meth:`MotionScorer.build` of these arguments when the caller holds it (the ambiguity test's, :func:`assess`),
+    None: built here. None when the window has too few patches to score on, or the test is off
+    (``bas_relief_turn_deg`` 0) or the speed is 0."""
     if not settings.bas_relief_turn_deg > 0 or not np.linalg.norm(v) > 0:
         return None
-    scorer = MotionScorer.build(w, v, omega, speed, settings)
+    scorer = MotionScorer.build(w, v, omega, speed, settings) if scorer is None else scorer
     if scorer is None:
         return None
     scored = [scorer.score(name, v_turned, omega_turned) for name, v_turned, omega_turned
