@@ -247,8 +247,10 @@ def output_records(stage: str | os.PathLike) -> dict[str, dict]:
 def damaged_outputs(out: str | os.PathLike, summary: dict) -> list[str]:
     """The files ``summary`` (a ``summary.json``) records (``"outputs"``, :func:`output_records`) that are not in the
     folder ``out`` as they were published, one phrase each (``depth_00001.npz is missing``, ``trajectory.txt has 0
-    bytes, it had 912``, ``depth.png holds other bytes (another SHA-256)``); empty when all are, or when ``summary``
-    records none (an earlier version: not checked). Each file of the recorded size is read once.
+    bytes, it had 912``, ``depth.png holds other bytes (another SHA-256)``); empty when all are. A ``summary`` that
+    records none (``"outputs"`` missing or not a mapping: an earlier version's, or an edited one) gives one phrase
+    saying that its results cannot be verified: they are never taken as intact on trust. Each file of the recorded
+    size is read once.
 
     Parameters
     ----------
@@ -261,7 +263,8 @@ def damaged_outputs(out: str | os.PathLike, summary: dict) -> list[str]:
 
     recorded = summary.get(OUTPUTS_KEY)
     if not isinstance(recorded, dict):
-        return []
+        return [f"{COMPLETION_MARKER} records no size and SHA-256 of its results (\"{OUTPUTS_KEY}\": written by an "
+                "earlier version, or edited), so they cannot be verified"]
     damaged = []
     for name, record in recorded.items():
         path = Path(out) / str(name)
