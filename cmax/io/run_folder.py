@@ -40,7 +40,7 @@ from cmax.io.atomic import PathLock, fsync_folder
 
 __all__ = ["FOLDER_LOCK", "COMPLETION_MARKER", "RESULT_NAMES", "run_results", "locked_folder", "staged_run",
            "new_stage", "discard_stages", "publish", "ResultsComplete", "complete_run", "resumed_into_complete",
-           "check_complete", "output_records", "damaged_outputs", "OUTPUTS_KEY"]
+           "check_complete", "output_records", "damaged_outputs", "named_in_out", "OUTPUTS_KEY"]
 
 _STAGE_SUFFIX = ".partial"
 #: The lock of an output folder that :func:`staged_run` holds, the same for every command that writes through it.
@@ -316,7 +316,7 @@ def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[P
             try:
                 yield stage
             except OSError as error:   # before publish: out is untouched
-                raise _named_in_out(error, stage, out) from None
+                raise named_in_out(error, stage, out) from None
             if unchecked and not _same_run(out, stage):   # check_complete not called: the complete results kept
                 raise RuntimeError(f"{out}: the complete results of an earlier run were not checked against this "
                                    "run (check_complete): they are kept, nothing was written")
@@ -335,9 +335,17 @@ def _same_run(out: Path, stage: Path) -> bool:
             and isinstance(now.get("run"), dict) and not run_differences(earlier["run"], now["run"]))
 
 
-def _named_in_out(error: OSError, stage: Path, out: Path) -> OSError:
+def named_in_out(error: OSError, stage: Path, out: Path) -> OSError:
     """``error`` of a file in the private ``stage`` (a full disk, a file-size limit) as the same error naming the
-    file it would have become in ``out``, and saying that ``out`` is as it was; other errors unchanged."""
+    file it would have become in ``out``, and saying that ``out`` is as it was; other errors unchanged.
+
+    Parameters
+    ----------
+    error : OSError
+        The error of writing a file in ``stage``.
+    stage, out : Path
+        A run's private folder (:func:`new_stage`) and its output folder.
+    """
     name = getattr(error, "filename", None)
     if not name or Path(name).parent != stage:
         return error
