@@ -62,8 +62,8 @@ _DEFERRAL = {"depth": 0, "pending": False}
 @contextmanager
 def sigterm_as_interrupt() -> Iterator[None]:
     """Within the block, SIGTERM and SIGHUP (:data:`STOP_SIGNALS`) raise :class:`Terminated` in the main thread
-    (once: a second one of either is ignored, so it cannot cut the clean-up short); the previous handlers are
-    restored afterwards. A signal ignored when the block starts (SIGHUP under ``nohup``) stays ignored. Outside the
+    (once: a second one of either, or a Ctrl-C, is ignored from then on, so it cannot cut the clean-up short nor
+    turn the run's status into Ctrl-C's 130); the previous handlers are restored afterwards. A signal ignored when the block starts (SIGHUP under ``nohup``) stays ignored. Outside the
     main thread (where Python cannot install a handler) the block runs unchanged.
 
     A signal handler runs between any two bytecodes, also inside a finalizer or a weakref callback, where Python
@@ -76,9 +76,10 @@ def sigterm_as_interrupt() -> Iterator[None]:
     _RECEIVED["signum"] = None
     _DEFERRAL["pending"] = False
     handled = [signum for signum in STOP_SIGNALS if signal.getsignal(signum) != signal.SIG_IGN]
+    interrupt = signal.getsignal(signal.SIGINT)
 
     def terminate(signum, frame) -> None:
-        for each in handled:
+        for each in (*handled, signal.SIGINT):   # the clean-up runs to its end, and the status stays the signal's
             signal.signal(each, signal.SIG_IGN)
         _RECEIVED["signum"] = signum
         if _DEFERRAL["depth"]:            # inside sigterm_deferred: raised when the block ends
@@ -98,6 +99,8 @@ def sigterm_as_interrupt() -> Iterator[None]:
     finally:
         for signum, handler in previous.items():
             signal.signal(signum, handler if handler is not None else signal.SIG_DFL)
+        if _RECEIVED["signum"] is not None:
+            signal.signal(signal.SIGINT, interrupt if interrupt is not None else signal.SIG_DFL)
         sys.unraisablehook = hook
 
 
@@ -141,7 +144,11 @@ def sigint_deferred() -> Iterator[None]:
         yield
         return
     held: list[int] = []
-    previous = signal.signal(signal.SIGINT, lambda signum, frame: held.append(signum))
+
+    def hold(signum, frame) -> None:
+        held.append(signum)
+
+    previous = signal.signal(signal.SIGINT, hold)
     try:
         yield
     except BaseException:
@@ -149,7 +156,8 @@ def sigint_deferred() -> Iterator[None]:
             raise KeyboardInterrupt() from None
         raise
     finally:
-        signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
+        if signal.getsignal(signal.SIGINT) is hold:   # else a stop signal came and ignores Ctrl-C for its clean-up
+            signal.signal(signal.SIGINT, previous if previous is not None else signal.SIG_DFL)
     if held:
         if callable(previous) and previous is not signal.default_int_handler:
             previous(signal.SIGINT, None)

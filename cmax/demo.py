@@ -19,8 +19,9 @@ Steps (each prints a line; the whole run takes well under 3 minutes on 2 cores):
 from __future__ import annotations
 
 import os
+import shutil
 import time
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from pathlib import Path
 from typing import Callable
 
@@ -160,7 +161,10 @@ def run_demo(
         ``report.md``); without it such a folder is refused, before any work, with a FileExistsError naming
         them (``cmax demo --overwrite``). Other files in ``output_dir`` are never touched. The run holds
         ``output_dir`` (the lock :data:`DEMO_LOCK` in it): a second demo into it meanwhile is refused at once
-        with :class:`cmax.io.atomic.OutputLockedError`.
+        with :class:`cmax.io.atomic.OutputLockedError`. The four files are written into a private folder
+        ``output_dir/.demo.<16 hex>.partial`` and moved in together at the end (``report.md`` last,
+        :func:`cmax.io.run_folder.publish`): a demo that fails or is stopped leaves ``output_dir`` as it was,
+        never its new scene file beside an earlier demo's report.
     settings : DemoSettings, optional
         Defaults: indoor_flying, 240x180, 0.5 s, a 0.1665 s window.
     log : callable
@@ -172,21 +176,35 @@ def run_demo(
     -------
     DemoReport
     """
-    from dataclasses import replace
-
     settings = replace(settings or DemoSettings(), **overrides)
     from cmax._threads import torch_threads_scope
-    from cmax.io.run_folder import locked_folder
+    from cmax.io.run_folder import discard_stages, locked_folder, named_in_out, new_stage, publish
 
     with locked_folder(Path(output_dir), DEMO_LOCK) as output_dir:   # a second demo into it meanwhile: refused
+        discard_stages(output_dir, _STAGE_PREFIX)   # those of killed demos
         if (existing := demo_outputs(output_dir, settings.scene_name)) and not overwrite:
             raise FileExistsError(f"{output_dir} already holds {', '.join(path.name for path in existing)}: the "
                                   "demo would replace them; --overwrite replaces them, or give another -o")
-        with torch_threads_scope(threads=1):  # one thread: fastest on a busy 2-core machine
-            return _run(output_dir, settings, log)
+        stage = new_stage(output_dir, _STAGE_PREFIX)
+        try:
+            try:
+                with torch_threads_scope(threads=1):  # one thread: fastest on a busy 2-core machine
+                    report = _run(output_dir, settings, log, stage)
+            except OSError as error:   # a full disk: named as the file in output_dir, which is as it was
+                raise named_in_out(error, stage, output_dir) from None
+            publish(stage, output_dir, existing, last=("report.md",))
+        finally:
+            shutil.rmtree(stage, ignore_errors=True)
+        return report
 
 
-def _run(output_dir: Path, s: DemoSettings, log: Callable[[str], None]) -> DemoReport:
+#: The prefix of a demo's private folder of files (``.demo.<16 hex>.partial``, :func:`cmax.io.run_folder.new_stage`).
+_STAGE_PREFIX = "demo"
+
+
+def _run(output_dir: Path, s: DemoSettings, log: Callable[[str], None], stage: Path) -> DemoReport:
+    """The demo's work: its files written into ``stage``, named (in the log and the report) as they will be in
+    ``output_dir`` once moved there."""
     from cmax.emvs import EMVS
     from cmax.io.info import file_info
     from cmax.metrics import depth_metrics, motion_metrics
@@ -210,8 +228,9 @@ def _run(output_dir: Path, s: DemoSettings, log: Callable[[str], None]) -> DemoR
     sequence = simulate_scene(scene, s.duration_s, simulator, t0_s=s.start_s, depth_times_s=np.array([middle_s]))
     log(f"      {len(sequence.events):,} events in {lap('simulation'):.1f} s")
 
-    path = sequence.save(output_dir / f"{s.scene_name}.h5", overwrite=True)
-    info_lines = file_info(path).lines()
+    staged = sequence.save(stage / f"{s.scene_name}.h5", overwrite=True)
+    path = output_dir / staged.name
+    info_lines = replace(file_info(staged), path=str(path)).lines()
     log(f"[2/5] wrote {path} ({lap('write'):.1f} s)")
 
     near, far = scene.info.depth_range_m
@@ -240,12 +259,13 @@ def _run(output_dir: Path, s: DemoSettings, log: Callable[[str], None]) -> DemoR
                 "iwe_before": fitted.iwe_before, "iwe_after": fitted.iwe_after}
     lines = _summary_lines(s, fit_metrics.as_dict(), emvs_metrics.as_dict(), motion.as_dict(), speed,
                            true_twist, windows, chosen)
-    png = _save_report_png(output_dir / "report.png", pictures, lines, windows, chosen)
+    png = output_dir / _save_report_png(stage / "report.png", pictures, lines, windows, chosen).name
     lap("report")
     seconds["total"] = time.perf_counter() - start
-    summary = write_text_atomic(output_dir / "summary.txt", "\n".join(info_lines + [""] + lines + [
-        "", "seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in seconds.items())]) + "\n")
-    report_md = write_text_atomic(output_dir / "report.md", _markdown(s, lines, seconds, len(sequence.events)))
+    summary = output_dir / write_text_atomic(stage / "summary.txt", "\n".join(info_lines + [""] + lines + [
+        "", "seconds: " + ", ".join(f"{k} {v:.1f}" for k, v in seconds.items())]) + "\n").name
+    report_md = output_dir / write_text_atomic(stage / "report.md",
+                                               _markdown(s, lines, seconds, len(sequence.events))).name
     log(f"done in {seconds['total']:.1f} s: {png}, {report_md}, {summary}")
     for line in lines:
         log("      " + line)

@@ -167,7 +167,28 @@ def _refused(path: Path, error: BaseException) -> CheckpointError:
     if isinstance(error, pickle.UnpicklingError) and "WeightsUnpickler error:" in detail:
         reason = detail.split("WeightsUnpickler error:", 1)[1].split(" Check the documentation")[0].strip()
         return CheckpointError(f"{path} is not a learned checkpoint (refused by the safe loader: {reason[:200]})")
-    return CheckpointError(f"{path} is not a learned checkpoint (torch.load: {type(error).__name__}: {detail[:200]})")
+    short = _cut_short(path)
+    return CheckpointError(f"{path} is not a learned checkpoint{': ' + short if short else ''} "
+                           f"(torch.load: {type(error).__name__}: {detail[:200]})")
+
+
+def _cut_short(path: Path) -> str | None:
+    """Why the file at ``path`` is not whole, when it is plainly cut short: empty, or the start of a zip archive
+    (``torch.save``'s format) without the directory a zip ends with (a copy, download or save that stopped part-way:
+    a full disk, a killed ``cp``); None otherwise."""
+    try:
+        size = path.stat().st_size
+        with open(path, "rb") as file:
+            head = file.read(4)
+        whole = zipfile.is_zipfile(path)
+    except OSError:
+        return None
+    if size == 0:
+        return "the file is empty (0 bytes)"
+    if head == b"PK\x03\x04" and not whole:
+        return (f"it is cut short: its {size:,} bytes begin as torch.save's zip archive but end before the "
+                "archive's directory (a copy, download or save that did not finish?)")
+    return None
 
 
 def _tensors_where(value: Any, test: Callable[[torch.Tensor], bool],

@@ -84,7 +84,8 @@ def load_network(checkpoint: str | Path) -> tuple[DepthPoseNet, dict, dict | Non
     (:func:`learned.pretrained.checkpoint_card`, ``student.json`` of the shipped ``student.pt``), else the record
     of its training data that ``learned.train`` stores in the checkpoint (``"card"``: ``"size": [W, H]`` [px], ``"K":
     [fx, fy, cx, cy]`` [px] when the training files share one focal length, ``"window_s"`` [s]), else None (a
-    checkpoint of an earlier version). Raises as :func:`load_model`."""
+    checkpoint of an earlier version). Where both are there, the checkpoint's record of its camera and window wins
+    over the card's (a warning names the difference). Raises as :func:`load_model`."""
     from learned.pretrained import checkpoint_card
 
     ckpt = load_checkpoint(checkpoint)
@@ -105,9 +106,41 @@ def load_network(checkpoint: str | Path) -> tuple[DepthPoseNet, dict, dict | Non
         raise CheckpointError(f"{checkpoint}: the weights do not match its model config "
                               f"({' '.join(str(error).split())[:300]})") from None
     card = checkpoint_card(checkpoint)
-    if card is None and isinstance(ckpt.get("card"), dict):
-        card = ckpt["card"]
+    if isinstance(ckpt.get("card"), dict):
+        card = ckpt["card"] if card is None else _card_with_recorded_camera(card, ckpt["card"], checkpoint)
     return model.eval(), config.to_dict(), card
+
+
+#: The entries of a card that ``learned.train`` measures from its training data and stores in the checkpoint.
+_RECORDED_CAMERA = ("size", "K", "window_s")
+
+
+def _card_with_recorded_camera(card: dict, recorded: dict, checkpoint: str | Path) -> dict:
+    """The card beside ``checkpoint`` (``card``, :func:`learned.pretrained.checkpoint_card`) with the camera and
+    window the checkpoint records of its own training data (``recorded``: ``"size": [W, H]`` [px], ``"K": [fx, fy,
+    cx, cy]`` [px], ``"window_s"`` [s], as :func:`learned.train.training_card` measures them) in place of its own:
+    a card that states another camera (copied from another model, edited) would silence the notes on a camera
+    unlike the trained one. Warns (one line naming both) where they differ beyond 0.1%; the card's other entries
+    (limits, scores) are kept."""
+    import warnings
+
+    differences = []
+    for key in _RECORDED_CAMERA:
+        if key not in recorded or key not in card:
+            continue
+        stated, measured = card[key], recorded[key]
+        try:
+            same = np.allclose(np.asarray(stated, float), np.asarray(measured, float), rtol=1e-3, atol=0.0)
+        except (TypeError, ValueError):   # not numbers, or another count of them
+            same = False
+        if not same:
+            differences.append(f"{key} {stated!r} (the checkpoint: {measured!r})")
+    if differences:
+        beside = Path(checkpoint).with_suffix(".json")
+        warnings.warn(f"{beside}, the card beside {checkpoint}, states another camera or window than the checkpoint "
+                      f"records of its training data: {'; '.join(differences)}; the checkpoint's record is used for "
+                      "the notes on this camera", UserWarning, stacklevel=3)
+    return {**card, **{key: recorded[key] for key in _RECORDED_CAMERA if key in recorded}}
 
 
 @torch.no_grad()

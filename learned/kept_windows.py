@@ -121,6 +121,50 @@ class KeptBlocks(KeptRun):
         self.resumed += len(indices)
         return indices, lines, skipped
 
+    def adopt(self, out: str | os.PathLike, summary: dict, count: int, batch: int) -> int:
+        """Keep, as finished blocks of this run, the blocks of windows whose results the same run published
+        complete in ``out`` and that are there as they were published, so that a complete run with a file deleted or
+        changed predicts only the blocks that lost one (``--resume``, after
+        :func:`cmax.io.run_folder.check_complete` found it to be the same run). ``summary``: ``out``'s
+        ``summary.json``; ``count``: the run's windows; ``batch``: windows per block. A block is kept when
+        ``twists.csv`` and each ``window_<k>.npz`` of the block have the size and SHA-256 ``summary`` records
+        (``"outputs"``): its windows are linked into the folder and recorded with their ``twists.csv`` lines, as
+        :meth:`save` does. Returns how many windows were kept (0 when ``summary`` records no outputs or
+        ``twists.csv`` is not intact)."""
+        from cmax.io.run_folder import OUTPUTS_KEY
+
+        out, outputs = Path(out), summary.get(OUTPUTS_KEY)
+
+        def intact(name: str) -> bool:
+            record, path = outputs.get(name), out / name
+            return (isinstance(record, dict) and path.is_file() and not path.is_symlink()
+                    and path.stat().st_size == record.get("bytes") and file_sha256(path) == record.get("sha256"))
+
+        if not isinstance(outputs, dict) or not intact("twists.csv"):
+            return 0
+        lines = {}
+        for line in (out / "twists.csv").read_text().splitlines()[1:]:
+            lines[int(line.split(",", 1)[0])] = line
+        adopted = 0
+        for first in range(0, count, batch):
+            indices = [index for index in range(first, min(first + batch, count)) if index in lines]
+            names = [self.window_file(index).name for index in indices]
+            if (not indices or (self.folder / f"block_{first}.json").exists()
+                    or not all(intact(name) for name in names)):
+                continue
+            write_run_record(self.folder, self.run)
+            windows = []
+            for index, name in zip(indices, names):
+                self.window_file(index).unlink(missing_ok=True)
+                _link(out / name, self.window_file(index))
+                windows.append({"index": index, "line": lines[index], "sha256": outputs[name]["sha256"]})
+            fsync_folder(self.folder)
+            write_text_atomic(self.folder / f"block_{first}.json",
+                              json.dumps({"run": self.digest, "first": first, "windows": windows,
+                                          "skipped": min(first + batch, count) - first - len(indices)}))
+            adopted += len(indices)
+        return adopted
+
     def window_file(self, index: int) -> Path:
         """Where window ``index``'s ``window_<k>.npz`` is kept."""
         return self.folder / f"window_{index:05d}.npz"

@@ -826,6 +826,8 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         for text in notes:
             note(text)
         kept = KeptBlocks(stage.parent, lambda: recorded(files=hashing.result()), resume=resume, overwrite=overwrite)
+        # the same run's complete results with a file missing or changed: only the blocks that lost one run again
+        adopted = kept.adopt(stage.parent, finished, len(starts), batch) if finished is not None else 0
         lines, skipped, samples, indices, blocks = [_CSV_HEADER], 0, [], [], []
         with tqdm(total=len(starts), desc="windows", unit="window", disable=not progress) as bar:
             for first in range(0, len(starts), batch):   # one forward pass each, kept once all its windows are
@@ -858,11 +860,15 @@ def _predict_into(stage: Path, path: str | Path, *, checkpoint, K, calib, calib_
         recording.close()
         if hashing is not None:    # stopped within one block, never left running
             hashing.close()
-    if kept.resumed or kept.unverified:
+    if adopted:
+        note(f"resumed: {adopted} of {len(indices)} windows taken from the complete results in {stage.parent} "
+             "(each file as this run published it: summary.json's SHA-256); the others predicted again")
+        notes.append(f"resumed: {adopted} windows taken from the complete results")
+    if kept.resumed - adopted or kept.unverified:
         redone = f"; {kept.unverified} block(s) not verified, predicted again" if kept.unverified else ""
-        note(f"resumed: {kept.resumed} of {len(indices)} windows taken from the interrupted run in "
+        note(f"resumed: {kept.resumed - adopted} of {len(indices)} windows taken from the interrupted run in "
              f"{stage.parent} (same file, checkpoint and options){redone}")
-        notes.append(f"resumed: {kept.resumed} windows taken from the interrupted run{redone}")
+        notes.append(f"resumed: {kept.resumed - adopted} windows taken from the interrupted run{redone}")
     written = len(lines) - 1
     if not written:
         raise ValueError(f"{path}: none of its {len(starts)} windows of {window_us * 1e-3:g} ms holds "

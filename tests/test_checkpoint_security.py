@@ -253,6 +253,26 @@ def test_upgrade_of_a_truncated_or_empty_file_is_one_line(tmp_path, capsys):
             load_checkpoint(tmp_path / name)
 
 
+def test_a_checkpoint_cut_short_is_named_as_cut_short(tmp_path):
+    """Was: a checkpoint cut short (a copy or download stopped, a full disk while it was saved) anywhere past its
+    first bytes gave ``is not a learned checkpoint (torch.load: OSError: [Errno 22] Invalid argument)``, as for a
+    foreign file. Now the line says the file is cut short (or empty); a foreign file is named as before."""
+    torch.save(_payload(), tmp_path / "whole.pt")
+    whole = (tmp_path / "whole.pt").read_bytes()
+    for cut in (len(whole) // 2, len(whole) - 30, 100):
+        (tmp_path / "cut.pt").write_bytes(whole[:cut])
+        with pytest.raises(CheckpointError, match=rf"cut\.pt is not a learned checkpoint: it is cut short: its "
+                                                  rf"{cut:,} bytes begin as torch.save's zip archive"):
+            load_checkpoint(tmp_path / "cut.pt")
+    (tmp_path / "empty.pt").write_bytes(b"")
+    with pytest.raises(CheckpointError, match=r"is not a learned checkpoint: the file is empty \(0 bytes\)"):
+        load_checkpoint(tmp_path / "empty.pt")
+    (tmp_path / "foreign.pt").write_bytes(b"not a checkpoint at all")
+    with pytest.raises(CheckpointError) as refused:
+        load_checkpoint(tmp_path / "foreign.pt")
+    assert "cut short" not in str(refused.value) and "foreign.pt is not a learned checkpoint (" in str(refused.value)
+
+
 def test_save_checkpoint_never_follows_a_link_planted_at_a_temporary_name(tmp_path):
     """The old fixed name ``<path>.<pid>.partial`` followed a planted link and overwrote its target."""
     import os

@@ -235,3 +235,33 @@ def test_a_second_demo_into_a_folder_a_demo_is_writing_is_refused(tmp_path: Path
         assert "cmax demo: error:" in captured.err and str(tmp_path) in captured.err
         assert sorted(path.name for path in tmp_path.iterdir()) == [DEMO_LOCK]
     assert list(tmp_path.iterdir()) == []
+
+
+def test_a_demo_that_fails_after_writing_its_scene_leaves_the_earlier_demo_as_it_was(
+        tmp_path: Path, capsys: pytest.CaptureFixture[str], monkeypatch: pytest.MonkeyPatch) -> None:
+    """Was: ``cmax demo -o DIR --seed 4 --overwrite`` over a complete demo of seed 3, stopped after its scene file
+    was written (a full disk at report.png, Ctrl-C, SIGTERM while fitting), left the new seed's indoor_flying.h5
+    beside the earlier demo's report.png, report.md and summary.txt: a folder that looked complete, its report
+    describing another file. The files are now written into a private folder and moved in together at the end: DIR
+    keeps the earlier demo's bytes, and no private folder is left."""
+    import errno
+
+    import cmax.demo
+    from cmax.cli import main
+
+    argv = ["demo", "-o", str(tmp_path), "--size", "96x72", "--duration", "0.25", "--window", "0.1", "--seed", "3"]
+    assert main(argv) == 0
+    before = {path.name: path.read_bytes() for path in tmp_path.iterdir()}
+    assert sorted(before) == ["indoor_flying.h5", "report.md", "report.png", "summary.txt"]
+
+    def full_disk(path, *args, **kwargs):
+        raise OSError(errno.ENOSPC, "No space left on device", str(path))
+
+    monkeypatch.setattr(cmax.demo, "_save_report_png", full_disk)
+    capsys.readouterr()
+    assert main([*argv[:-1], "4", "--overwrite"]) == 2
+    captured = capsys.readouterr()
+    errors = [line for line in captured.err.splitlines() if line.startswith("cmax demo: error:")]
+    assert "[2/5] wrote" in captured.out and len(errors) == 1, captured.err
+    assert "No space left on device" in errors[0] and errors[0].endswith(str(tmp_path / "report.png")), errors
+    assert {path.name: path.read_bytes() for path in tmp_path.iterdir()} == before   # no stage or lock left either

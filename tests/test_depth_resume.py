@@ -305,6 +305,36 @@ def test_resume_of_a_finished_run_with_a_file_deleted_or_changed_predicts_again(
     assert sorted(recorded) == sorted(p.name for p in out.iterdir() if p.name != "summary.json")
 
 
+def test_resume_of_a_finished_run_with_one_window_file_damaged_predicts_only_its_block(recording, tiny_checkpoint,
+                                                                                      tmp_path, monkeypatch, capsys):
+    """Was: a finished run (12 windows, blocks of 2) whose ``window_00003.npz`` was deleted, or changed in one
+    byte, was predicted again in full on ``--resume``: 6 forward passes for one lost file (hours on a long
+    recording). The windows whose files summary.json's SHA-256 still verify are now taken as they are: one
+    forward pass (the block of windows 2-3), and the folder ends as the first run left it."""
+    out = tmp_path / "o"
+    assert predict.main(argv(recording, out, tiny_checkpoint)) == 0
+    expected = outputs(out)
+    calls = counted_calls(monkeypatch, predict, "forward")
+    for damage in ("delete", "change"):
+        target = out / "window_00003.npz"
+        if damage == "delete":
+            target.unlink()
+        else:
+            data = bytearray(target.read_bytes())
+            data[len(data) // 2] ^= 1
+            target.write_bytes(bytes(data))
+        capsys.readouterr()
+        calls.clear()
+        assert predict.main(argv(recording, out, tiny_checkpoint, "--resume")) == 0
+        err = capsys.readouterr().err
+        assert len(calls) == 1, (damage, len(calls), err)                 # the block of windows 2 and 3 alone
+        assert "resumed: 10 of 12 windows taken from the complete results" in err, err   # not 2 and 3
+        assert_same(outputs(out), expected)
+        assert not (out / KEPT_FOLDER).exists()
+    calls.clear()
+    assert predict.main(argv(recording, out, tiny_checkpoint, "--resume")) == 0 and calls == []   # complete now
+
+
 def test_a_run_killed_while_drawing_its_pictures_draws_only_the_others_on_resume(recording, tiny_checkpoint, tmp_path,
                                                                                 monkeypatch, capsys):
     """Was: the pictures were drawn into the private stage only after every window, and not kept: a run killed

@@ -498,3 +498,36 @@ def test_resume_of_a_finished_fit_with_a_result_emptied_fits_again(tmp_path, mon
     calls.clear()
     assert main([*argv, "--resume"]) == status and calls == []      # now complete: nothing to do
     assert "already complete" in capsys.readouterr().out
+
+
+def test_resume_of_a_finished_fit_whose_summary_lists_no_outputs_is_not_taken_on_trust(tmp_path, monkeypatch,
+                                                                                          capsys):
+    """Was: a ``summary.json`` without ``"outputs"`` (as summaries written before they were recorded) was "not
+    checked": ``--resume`` of the same run said "already complete" with ``trajectory.txt`` emptied, the damaged
+    folder kept. Now results that cannot be verified are not taken on trust: the same run fits again (one note
+    naming why) and ends with the first run's results; a summary of another version of the code is refused as
+    another run."""
+    path = write_h5(tmp_path / "ev.h5", noise_events(3000, 50_000, seed=3), compression="none")
+    out = tmp_path / "o"
+    argv = ["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--model", "flow", "--min-events", "300",
+            "--window-ms", "12.5"]
+    status = main(argv)
+    first = results_of(out)
+    summary = json.loads((out / "summary.json").read_text())
+    (out / "summary.json").write_text(json.dumps({key: value for key, value in summary.items() if key != "outputs"}))
+    (out / "trajectory.txt").write_text("")
+    capsys.readouterr()
+    calls = counted_calls(monkeypatch, sequence_module, "fit")
+    assert main([*argv, "--resume"]) == status
+    captured = capsys.readouterr()
+    assert "already complete" not in captured.out and len(calls) == 4, captured
+    note = [line for line in captured.err.splitlines() if "not complete" in line]
+    assert len(note) == 1 and "cannot be verified" in note[0], captured.err
+    assert_same(results_of(out), first)
+    assert json.loads((out / "summary.json").read_text())["outputs"] == summary["outputs"]
+    old = json.loads((out / "summary.json").read_text())         # another version's summary: refused, kept as it is
+    old.pop("outputs")
+    old["run"]["code"] = "0" * 64
+    (out / "summary.json").write_text(json.dumps(old))
+    assert main([*argv, "--resume"]) == 2
+    assert "the code of cmax (or learned) changed" in capsys.readouterr().err

@@ -306,6 +306,38 @@ def test_weights_that_overflow_write_no_depth_map(tiny_checkpoint, slider_file, 
         assert not out.exists() or not any(out.glob("*.npz")), sorted(out.iterdir())
 
 
+def test_a_card_beside_a_trained_checkpoint_cannot_hide_the_camera_it_was_trained_with(tiny_checkpoint, slider_file,
+                                                                                         tmp_path, capsys):
+    """A checkpoint of ``learned.train`` records the camera of its training data (``"card"``). Was: a JSON card
+    beside it (copied from another model, edited) replaced that record without a word: a card stating the file's
+    own 64x48 camera silenced the notes that the network was trained on a 160x120 sensor at another focal length.
+    Now the checkpoint's record wins, and a warning names the card's other camera."""
+    import warnings
+
+    import torch
+
+    from learned.evaluate import load_network
+    from learned.predict import main
+
+    ckpt = torch.load(tiny_checkpoint, weights_only=True)
+    recorded = {"size": [160, 120], "K": [300.0, 300.0, 80.0, 60.0], "window_s": 0.05}
+    torch.save({**ckpt, "card": recorded}, tmp_path / "net.pt")
+    (tmp_path / "net.json").write_text(json.dumps({"size": [64, 48], "K": [41.87, 41.75, 31.71, 24.28],
+                                                   "window_s": 0.05, "limits": ["a limit the card states"]}))
+    with pytest.warns(UserWarning, match=r"net.json, the card beside .*size \[64, 48\] \(the checkpoint: \[160, 120\]"):
+        card = load_network(tmp_path / "net.pt")[2]
+    assert {key: card[key] for key in recorded} == recorded and card["limits"] == ["a limit the card states"]
+    assert main([str(slider_file), "-o", str(tmp_path / "D"), "--checkpoint", str(tmp_path / "net.pt"),
+                 "--quiet"]) == 0
+    err = capsys.readouterr().err
+    assert "the network was trained on a 160x120 sensor, this file is 64x48" in err, err
+    assert "the network was trained at 300.0 px" in err and "states another camera" in err, err
+    (tmp_path / "net.json").write_text(json.dumps({**recorded, "K": [300.01, 300.0, 80.0, 60.0]}))
+    with warnings.catch_warnings():   # the same camera (to 0.1%): no warning
+        warnings.simplefilter("error")
+        load_network(tmp_path / "net.pt")
+
+
 # -- 5. memory of one forward pass (--batch) ---------------------------------------------------------------------
 def _tiny_config(checkpoint: Path):
     from learned.evaluate import load_model

@@ -92,6 +92,64 @@ def test_a_signal_while_the_process_exits_leaves_the_commands_status(tmp_path, s
     assert "Traceback" not in err, err
 
 
+#: A command whose clean-up (a ``finally`` block, as a lock's release or a stage's removal) takes a while: it writes
+#: ``STARTED`` when it runs, ``CLEANING`` when its clean-up starts and ``CLEANED`` when that ends.
+_SLOW_CLEAN_UP = textwrap.dedent("""
+    import os, sys, time
+    from pathlib import Path
+    from cmax._args import ArgumentParser, run_main
+
+    def command(args):
+        folder = Path(os.environ["MARKS"])
+        try:
+            (folder / "STARTED").touch()
+            time.sleep(60)
+        finally:
+            (folder / "CLEANING").touch()
+            time.sleep(1.5)
+            (folder / "CLEANED").touch()
+        return 0
+
+    sys.exit(run_main(ArgumentParser(prog="demo"), command))
+""")
+
+
+def _wait_for(path, process) -> None:
+    deadline = time.monotonic() + 60
+    while not path.exists() and process.poll() is None and time.monotonic() < deadline:
+        time.sleep(0.01)
+    assert path.exists(), process.communicate(timeout=60)
+
+
+@pytest.mark.parametrize("signum", [signal.SIGTERM, signal.SIGHUP])
+def test_ctrl_c_during_the_clean_up_of_a_stop_signal_neither_cuts_it_short_nor_changes_the_status(tmp_path, signum):
+    """Was: a Ctrl-C while the clean-up of a SIGTERM ran (an impatient user, a terminal's Ctrl-C after ``timeout``)
+    raised ``KeyboardInterrupt`` inside it: the rest of the clean-up skipped (locks, stages left) and the run
+    reported ``interrupted``, exit 130. Now ignored from the stop signal on, as a second SIGTERM is: the clean-up
+    ends, the line and status are the stop signal's (128 + its number)."""
+    process = subprocess.Popen([sys.executable, "-c", _SLOW_CLEAN_UP], stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "MARKS": str(tmp_path)})
+    _wait_for(tmp_path / "STARTED", process)
+    process.send_signal(signum)
+    _wait_for(tmp_path / "CLEANING", process)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=60)
+    assert (tmp_path / "CLEANED").exists(), err
+    assert process.returncode == 128 + signum, (process.returncode, err)
+    assert err == f"demo: terminated ({signal.Signals(signum).name})\n", err
+
+
+def test_ctrl_c_alone_still_interrupts(tmp_path):
+    """Control: a Ctrl-C with no stop signal before it interrupts the run as before (exit 130, its clean-up run)."""
+    process = subprocess.Popen([sys.executable, "-c", _SLOW_CLEAN_UP], stderr=subprocess.PIPE, text=True,
+                               env={**os.environ, "MARKS": str(tmp_path)})
+    _wait_for(tmp_path / "STARTED", process)
+    process.send_signal(signal.SIGINT)
+    _, err = process.communicate(timeout=60)
+    assert process.returncode == 130 and err == "demo: interrupted\n", (process.returncode, err)
+    assert (tmp_path / "CLEANED").exists()
+
+
 def test_sighup_to_the_process_group_of_fit_with_workers_is_one_line(slider_file, tmp_path):
     """A closed ssh session signals the whole job: with ``--jobs 2`` multiprocessing's resource tracker, which ignores
     SIGINT and SIGTERM but not SIGHUP, died and was relaunched (``warning: resource_tracker: process died

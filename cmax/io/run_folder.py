@@ -40,7 +40,7 @@ from cmax.io.atomic import PathLock, fsync_folder
 
 __all__ = ["FOLDER_LOCK", "COMPLETION_MARKER", "RESULT_NAMES", "run_results", "locked_folder", "staged_run",
            "new_stage", "discard_stages", "publish", "ResultsComplete", "complete_run", "resumed_into_complete",
-           "check_complete", "output_records", "damaged_outputs", "OUTPUTS_KEY"]
+           "check_complete", "output_records", "damaged_outputs", "named_in_out", "OUTPUTS_KEY"]
 
 _STAGE_SUFFIX = ".partial"
 #: The lock of an output folder that :func:`staged_run` holds, the same for every command that writes through it.
@@ -247,8 +247,10 @@ def output_records(stage: str | os.PathLike) -> dict[str, dict]:
 def damaged_outputs(out: str | os.PathLike, summary: dict) -> list[str]:
     """The files ``summary`` (a ``summary.json``) records (``"outputs"``, :func:`output_records`) that are not in the
     folder ``out`` as they were published, one phrase each (``depth_00001.npz is missing``, ``trajectory.txt has 0
-    bytes, it had 912``, ``depth.png holds other bytes (another SHA-256)``); empty when all are, or when ``summary``
-    records none (an earlier version: not checked). Each file of the recorded size is read once.
+    bytes, it had 912``, ``depth.png holds other bytes (another SHA-256)``); empty when all are. A ``summary`` that
+    records none (``"outputs"`` missing or not a mapping: an earlier version's, or an edited one) gives one phrase
+    saying that its results cannot be verified: they are never taken as intact on trust. Each file of the recorded
+    size is read once.
 
     Parameters
     ----------
@@ -261,7 +263,8 @@ def damaged_outputs(out: str | os.PathLike, summary: dict) -> list[str]:
 
     recorded = summary.get(OUTPUTS_KEY)
     if not isinstance(recorded, dict):
-        return []
+        return [f"{COMPLETION_MARKER} records no size and SHA-256 of its results (\"{OUTPUTS_KEY}\": written by an "
+                "earlier version, or edited), so they cannot be verified"]
     damaged = []
     for name, record in recorded.items():
         path = Path(out) / str(name)
@@ -313,7 +316,7 @@ def staged_run(out: str | os.PathLike, prefix: str, earlier_results: Callable[[P
             try:
                 yield stage
             except OSError as error:   # before publish: out is untouched
-                raise _named_in_out(error, stage, out) from None
+                raise named_in_out(error, stage, out) from None
             if unchecked and not _same_run(out, stage):   # check_complete not called: the complete results kept
                 raise RuntimeError(f"{out}: the complete results of an earlier run were not checked against this "
                                    "run (check_complete): they are kept, nothing was written")
@@ -332,9 +335,17 @@ def _same_run(out: Path, stage: Path) -> bool:
             and isinstance(now.get("run"), dict) and not run_differences(earlier["run"], now["run"]))
 
 
-def _named_in_out(error: OSError, stage: Path, out: Path) -> OSError:
+def named_in_out(error: OSError, stage: Path, out: Path) -> OSError:
     """``error`` of a file in the private ``stage`` (a full disk, a file-size limit) as the same error naming the
-    file it would have become in ``out``, and saying that ``out`` is as it was; other errors unchanged."""
+    file it would have become in ``out``, and saying that ``out`` is as it was; other errors unchanged.
+
+    Parameters
+    ----------
+    error : OSError
+        The error of writing a file in ``stage``.
+    stage, out : Path
+        A run's private folder (:func:`new_stage`) and its output folder.
+    """
     name = getattr(error, "filename", None)
     if not name or Path(name).parent != stage:
         return error
