@@ -30,7 +30,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from cmax.events import Events, check_event_count, field_rename_hint, structured_fields
+from cmax.events import Events, check_duplicate_fields, check_event_count, field_rename_hint, structured_fields
 from cmax.io._checks import (check_implied_rate, check_not_nanoseconds, check_polarity_encoding, check_stated_size,
                              check_time_unit, polarity_01, times_to_us)
 from cmax.io.aedat4 import read_aedat4, read_aedat4_frames, read_aedat4_imu
@@ -328,6 +328,7 @@ def _read_npy(
     if (t0_us is not None or t1_us is not None) and not sort:
         array = array[_npy_rows(array[fields["t"]], time_unit or "us", t0_us, t1_us, f"{path}: field {fields['t']}")]
     check_event_count(array.shape[0], f"{path}")
+    check_duplicate_fields(array, fields, str(path))
     t = np.asarray(array[fields["t"]])
     t_us = times_to_us(t, time_unit or "us", f"{path}: field {fields['t']}")
     p = polarity_01(np.asarray(array[fields["p"]]), polarity, f"{path}: field {fields['p']}")
