@@ -317,3 +317,48 @@ def test_fit_refuses_a_window_without_its_unit_naming_both_spellings(capsys, arg
     stem = argv[0].lstrip("-").split("-")[0]
     assert f"--{stem}-ms" in err and f"--{stem}-s" in err, err
 
+
+# -- --quiet on every long-running command ----------------------------------------------------------------
+def test_scene_quiet_writes_no_progress_bar(tmp_path, capsys):
+    """``cmax scene`` drew its progress bar on stderr with no way to turn it off (fit, depth, emvs and simulate
+    took ``--quiet``); with ``--quiet`` stderr stays empty and the result line is printed."""
+    assert cmax_main(["scene", "slider", "-o", str(tmp_path / "s.h5"), "--duration", "0.1", "--size", "64x48",
+                      "--quiet"]) == 0
+    out, err = capsys.readouterr()
+    assert err == "" and out.startswith(f"wrote {tmp_path / 's.h5'}: "), (out, err)
+
+
+def test_demo_quiet_prints_only_where_its_report_is(tmp_path, capsys, monkeypatch):
+    """``cmax demo`` printed its progress lines with no ``--quiet``; with it only the report's path is printed."""
+    import types
+
+    import cmax.demo
+
+    def run_demo(output_dir, *, settings=None, overwrite=False, log=print):
+        log("[1/5] rendering ...")
+        return types.SimpleNamespace(report_png=output_dir / "report.png")
+
+    monkeypatch.setattr(cmax.demo, "run_demo", run_demo)
+    assert cmax_main(["demo", "-o", str(tmp_path)]) == 0
+    assert capsys.readouterr().out == f"[1/5] rendering ...\ndemo report: {tmp_path / 'report.png'}\n"
+    assert cmax_main(["demo", "-o", str(tmp_path), "--quiet"]) == 0
+    assert capsys.readouterr().out == f"demo report: {tmp_path / 'report.png'}\n"
+
+
+def test_learned_train_takes_quiet_as_the_other_commands_do(monkeypatch):
+    """``python -m learned.train`` said ``--no-progress`` where every other command says ``--quiet``: both work."""
+    import argparse
+
+    import learned.train
+
+    parsed = []
+
+    def parse_args(self, args=None, namespace=None):
+        parsed.append(argparse.ArgumentParser.parse_known_args(self, args, namespace)[0])
+        raise SystemExit(0)
+
+    monkeypatch.setattr(learned.train._IntermixedParser, "parse_args", parse_args)
+    for option in ("--quiet", "--no-progress"):
+        with pytest.raises(SystemExit):
+            learned.train.main([option])
+    assert [args.no_progress for args in parsed] == [True, True]

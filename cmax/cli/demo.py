@@ -42,14 +42,15 @@ def settings_of(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the demo and print where its report is; returns the exit status (0). A folder that already holds any
+    """Run the demo, printing its progress lines (none with ``--quiet``) and where its report is; returns the exit
+    status (0). A folder that already holds any
     of the demo's files (``<scene>.h5``, ``report.png``, ``report.md``, ``summary.txt``: an earlier demo's or a
     user's own) is refused before any work (exit 2, one line naming them) unless ``--overwrite``."""
     from cmax.demo import run_demo
 
     settings = settings_of(args)
     report = run_demo(output_folder(args.output, "the demo's h5 file and report"), settings=settings,
-                      overwrite=args.overwrite)
+                      overwrite=args.overwrite, log=(lambda line: None) if args.quiet else print)
     print(f"demo report: {report.report_png}")
     return 0
 
@@ -81,5 +82,6 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the demo's files (indoor_flying.h5, report.png, report.md, summary.txt) when "
                              "-o holds them already, from an earlier demo or not (else refused)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines: only where the report is")
     parser.set_defaults(run=run)
     return parser
