@@ -139,14 +139,16 @@ _UNIT_MS = {"ms": 1, "s": 1000}
 
 
 class _InUnit(argparse.Action):
-    """Stores its value converted into the unit of its ``dest``: ``value * multiply / divide``."""
+    """Stores its value converted into the unit of its ``dest``: ``value * multiply / divide`` to 15 significant
+    digits, so that ``--window-s 0.0333`` stores what ``--window-ms 33.3`` does (not 33.300000000000004): one
+    window, one record for ``--resume`` to compare, whichever spelling gave it."""
 
     def __init__(self, *args: Any, multiply: int = 1, divide: int = 1, **kwargs: Any) -> None:
         super().__init__(*args, **kwargs)
         self.multiply, self.divide = multiply, divide
 
     def __call__(self, parser, namespace, values, option_string=None):  # noqa: D102 (argparse API)
-        setattr(namespace, self.dest, values * self.multiply / self.divide)
+        setattr(namespace, self.dest, float(f"{values * self.multiply / self.divide:.15g}"))
 
 
 def add_duration_options(parser: argparse.ArgumentParser, name: str, *, dest: str, unit: str, help: str,

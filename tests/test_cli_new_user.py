@@ -305,6 +305,9 @@ def test_every_command_with_a_window_takes_it_in_ms_or_in_s_and_keeps_its_old_sp
     assert window_s(*old) == pytest.approx(0.15, rel=1e-12)
     assert window_s("--window-ms", "150") == pytest.approx(0.15, rel=1e-12)
     assert window_s("--window-s", "0.15") == pytest.approx(0.15, rel=1e-12)
+    # the same value, not one float's rounding apart: --resume compares the options it records
+    assert getattr(parser.parse_args([*before, "--window-ms", "33.3"]), attribute) == \
+        getattr(parser.parse_args([*before, "--window-s", "0.0333"]), attribute)
 
 
 @pytest.mark.parametrize("argv", [["--window", "150"], ["--window-s", "0.1", "--window-ms", "100"],
