@@ -32,7 +32,7 @@ from cmax._signals import Terminated, ignore_while_exiting, sigterm_as_interrupt
 __all__ = [
     "ArgumentParser", "HelpFormatter", "USER_ERRORS", "DEBUG_ENV", "api_default", "run_main", "one_line",
     "finite_float", "positive_float", "nonnegative_float", "positive_int", "nonnegative_int", "sensor_size",
-    "float_list",
+    "float_list", "add_duration_options",
 ]
 
 #: Exceptions that mean "the user gave something wrong" at the library's public boundaries.
@@ -131,6 +131,79 @@ def float_list(counts: tuple[int, ...], what: str) -> Callable[[str], tuple[floa
 
     parse.__name__ = what
     return parse
+
+
+# -- lengths of time with their unit in the option's name -------------------------------------
+#: Units of :func:`add_duration_options`, in milliseconds (whole numbers: conversions multiply or divide by them).
+_UNIT_MS = {"ms": 1, "s": 1000}
+
+
+class _InUnit(argparse.Action):
+    """Stores its value converted into the unit of its ``dest``: ``value * multiply / divide`` to 15 significant
+    digits, so that ``--window-s 0.0333`` stores what ``--window-ms 33.3`` does (not 33.300000000000004): one
+    window, one record for ``--resume`` to compare, whichever spelling gave it."""
+
+    def __init__(self, *args: Any, multiply: int = 1, divide: int = 1, **kwargs: Any) -> None:
+        super().__init__(*args, **kwargs)
+        self.multiply, self.divide = multiply, divide
+
+    def __call__(self, parser, namespace, values, option_string=None):  # noqa: D102 (argparse API)
+        setattr(namespace, self.dest, float(f"{values * self.multiply / self.divide:.15g}"))
+
+
+def add_duration_options(parser: argparse.ArgumentParser, name: str, *, dest: str, unit: str, help: str,
+                         default: Callable[[], float] | str | None = None, aliases: Sequence[str] = (),
+                         kind: Callable[[str], float] | None = None) -> tuple[argparse.Action, argparse.Action]:
+    """Add ``--NAME-ms`` [ms] and ``--NAME-s`` [s], one length of time in either unit (mutually exclusive), stored
+    in ``args.DEST`` in ``unit`` whichever is given: every command names a window the same two ways, so that
+    neither spelling learned on one command is refused (or, abbreviated, misread) on another.
+
+    Parameters
+    ----------
+    parser : argparse.ArgumentParser
+        The (sub-)command's parser.
+    name : str
+        The option's stem: ``"window"`` adds ``--window-ms`` and ``--window-s``.
+    dest : str
+        The attribute of the parsed arguments that holds the length (None when neither option is given).
+    unit : {'ms', 's'}
+        The unit of ``args.DEST``: the value of the option in the other unit is converted (times or over 1000).
+    help : str
+        What the length is, without its unit (the help appends ``[ms]`` / ``[s]`` and the default).
+    default : callable or str, optional
+        The default: a callable giving it in ``unit`` (the library's, shown in ``--help`` in each option's unit), or
+        a sentence saying what it is (``"the checkpoint config's data.window_us"``).
+    aliases : sequence of str
+        Earlier spellings of the option in seconds, kept working as the same option (``("--window",)``).
+    kind : callable, optional
+        The ``argparse`` type of the value (default :func:`positive_float`).
+
+    Returns
+    -------
+    (argparse.Action, argparse.Action)
+        The actions of ``--NAME-ms`` and ``--NAME-s``.
+
+    >>> parser = ArgumentParser(prog="p")
+    >>> _ = add_duration_options(parser, "window", dest="window_ms", unit="ms", help="window length")
+    >>> parser.parse_args(["--window-s", "0.15"]).window_ms, parser.parse_args(["--window-ms", "150"]).window_ms
+    (150.0, 150.0)
+    """
+    if unit not in _UNIT_MS:
+        raise ValueError(f"unit must be one of {sorted(_UNIT_MS)}, got {unit!r}")
+    group = parser.add_mutually_exclusive_group()
+    actions = []
+    for option_unit in ("ms", "s"):
+        words = f"{help} [{option_unit}]"
+        if isinstance(default, str):
+            words += f" (default: {default})"
+        action = group.add_argument(
+            f"--{name}-{option_unit}", *(aliases if option_unit == "s" else ()), dest=dest, default=None,
+            type=kind or positive_float, metavar=option_unit.upper(), action=_InUnit, help=words,
+            multiply=_UNIT_MS[option_unit], divide=_UNIT_MS[unit])
+        if callable(default):
+            api_default(action, lambda factor=_UNIT_MS[unit] / _UNIT_MS[option_unit]: default() * factor)
+        actions.append(action)
+    return actions[0], actions[1]
 
 
 # -- defaults owned by the library ----------------------------------------------------------

@@ -33,8 +33,8 @@ if TYPE_CHECKING:  # pragma: no cover
 __all__ = [
     "Events", "EventTensors", "EventLimitError", "MAX_EVENTS", "STRUCTURED_DTYPE", "FIELD_ALIASES", "concatenate",
     "check_event_count", "window_starts", "uncovered_tail", "require_events", "structured_fields", "float_step",
-    "wrap_index", "FIELD_SPELLINGS", "field_rename_hint", "polarity_hint",
-    "conversion_hint",
+    "wrap_index", "FIELD_SPELLINGS", "field_rename_hint", "DUPLICATE_SPELLINGS", "check_duplicate_fields",
+    "polarity_hint", "conversion_hint",
 ]
 
 #: dtype of :meth:`Events.to_structured` (tonic / Prophesee field names).
@@ -49,6 +49,40 @@ def structured_fields(names: Sequence[str]) -> dict[str, str | None]:
     """The field that holds each of ``x, y, t, p`` in a structured array with field ``names``: the column's
     own name where present, else its :data:`FIELD_ALIASES` name (which may be absent too: check it)."""
     return {name: name if name in names else FIELD_ALIASES.get(name) for name in "xytp"}
+
+#: Other names under which a structured array may hold one of ``x, y, t, p`` a second time (dv-processing's
+#: ``timestamp``, ``polarity``; event_utils' ``xs, ys, ps``; ``pol``): :func:`check_duplicate_fields` reads the pair
+#: where the two agree and refuses it where they differ. Other time spellings (``ts``, ``time``, ``t_us``) are not
+#: compared: they may hold the times in another unit.
+DUPLICATE_SPELLINGS = {"x": ("xs",), "y": ("ys",), "t": ("timestamp",), "p": ("polarity", "ps", "pol", "polarities")}
+
+
+def check_duplicate_fields(array: np.ndarray, fields: dict[str, str], source: str = "array") -> None:
+    """Refuse the structured ``array`` (N,) that holds a column twice, the field read (``fields``: column ->
+    field, :func:`structured_fields`) and another of its names (:data:`DUPLICATE_SPELLINGS`), with values that
+    differ: which one is right is not guessed. The error names both fields and the first differing row;
+    polarities are compared as ON / OFF (``> 0``), so 0/1 and -1/+1 of the same events agree. ``source`` names
+    the array in the message (a file path). Equal columns pass silently.
+
+    >>> pair = np.array([(1, 10, 10), (2, 20, 21)], dtype=[("x", "u2"), ("t", "i8"), ("timestamp", "i8")])
+    >>> check_duplicate_fields(pair, {"x": "x", "t": "t"})
+    Traceback (most recent call last):
+    ...
+    ValueError: array holds fields 't' and 'timestamp', which differ from row 1 on (20 vs 21): say which one holds t by dropping the other: numpy.lib.recfunctions.drop_fields(array, 'timestamp') (or rename_fields)
+    """
+    names = array.dtype.names or ()
+    for column, field in fields.items():
+        for other in DUPLICATE_SPELLINGS.get(column, ()) + (column,):
+            if other == field or other not in names or field not in names:
+                continue
+            read, second = np.asarray(array[field]), np.asarray(array[other])
+            differ = (read > 0) != (second > 0) if column == "p" else read != second
+            if differ.any():
+                row = int(differ.argmax())
+                raise ValueError(f"{source} holds fields {field!r} and {other!r}, which differ from row {row:,} on "
+                                 f"({read[row]} vs {second[row]}): say which one holds {column} by dropping the "
+                                 f"other: numpy.lib.recfunctions.drop_fields(array, {other!r}) (or rename_fields)")
+
 
 #: How other tools spell the fields (event_utils' ``xs, ys, ts, ps``, ``time``, ``pol``): not read under these names
 #: (nothing is renamed silently), but named in the refusal with the call that renames them (:func:`field_rename_hint`).
@@ -552,7 +586,9 @@ class Events:
         """Events from a structured array with fields ``x, y, t, p`` (any order): tonic's and
         Prophesee Metavision's layout; dv-processing's ``timestamp`` and ``polarity`` are read as ``t``
         and ``p`` where those are absent (:data:`FIELD_ALIASES`); other spellings (``ts``) are refused, naming
-        the rename.
+        the rename. A column held twice (``t`` and ``timestamp``, ``x`` and ``xs``, ``p`` and ``polarity``:
+        :data:`DUPLICATE_SPELLINGS`) is read where the two agree, refused where they differ
+        (:func:`check_duplicate_fields`).
 
         Fields may have any integer or bool dtype (``t`` in microseconds unless ``time_unit`` states another:
         ``'ms'``, ``'s'``, e.g. float seconds with ``'s'``; unstated µs are checked as :class:`Events` checks them:
@@ -573,6 +609,7 @@ class Events:
                              f"{field_rename_hint(names, missing)}")
         if array.ndim != 1:
             raise ValueError(f"array must be one-dimensional (N,), got shape {array.shape}")
+        check_duplicate_fields(array, fields)
         return cls(*(array[fields[name]] for name in "xytp"), width, height, sort=sort, time_unit=time_unit)
 
     @classmethod

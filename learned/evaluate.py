@@ -32,7 +32,7 @@ import h5py
 import numpy as np
 import torch
 
-from cmax._args import ArgumentParser, positive_float, run_main
+from cmax._args import ArgumentParser, add_duration_options, run_main
 from cmax.contrast import SHARED_OBJECTIVE, DepthMotion, EventWindows
 from cmax.events import Events
 from cmax.io.atomic import write_text_atomic
@@ -553,8 +553,8 @@ def main(argv: list[str] | None = None) -> int:
     parser = ArgumentParser(prog="python -m learned.evaluate", description=__doc__.splitlines()[0])
     parser.add_argument("--checkpoint", type=Path, required=True, help="checkpoint of learned.train (last.pt)")
     parser.add_argument("--data", type=Path, nargs="+", required=True, help="h5 files with gt/")
-    parser.add_argument("--window", type=positive_float, default=None,
-                        help="window length [s] (default: the checkpoint config's data.window_us)")
+    add_duration_options(parser, "window", dest="window", unit="s", help="window length",
+                         default="the checkpoint config's data.window_us", aliases=("--window",))
     return run_main(parser, _run, argv)
 
 

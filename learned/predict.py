@@ -40,7 +40,7 @@ from typing import TYPE_CHECKING, Any, Callable, Iterator, Sequence
 
 import numpy as np
 
-from cmax._args import ArgumentParser, float_list, positive_float, positive_int, run_main
+from cmax._args import ArgumentParser, add_duration_options, float_list, positive_int, run_main
 from cmax.cli.recording import (RAW_DSEC_AS_RECORDED, RAW_DSEC_CALIB, add_camera_options, add_recording_arguments,
                                 calibration_note, check_calibration_camera, check_calibration_of_frames,
                                 check_file_principal_point, given_k_note, no_intrinsics_message, tail_note,
@@ -969,8 +969,8 @@ def add_arguments(parser: argparse.ArgumentParser) -> argparse.ArgumentParser:
     add_camera_options(parser, distortion_help=": events are undistorted first (the volume spreads each "
                                                "bilinearly from its exact undistorted position)")
     add_recording_arguments(parser)      # --size, --time-unit, --polarity, --t0, --t1, --sort, --camera
-    parser.add_argument("--window", type=positive_float, default=None,
-                        help="window length [s] (default: the checkpoint config's data.window_us)")
+    add_duration_options(parser, "window", dest="window", unit="s", help="window length",
+                         default="the checkpoint config's data.window_us", aliases=("--window",))
     parser.add_argument("--depth-range", type=float_list((2,), "--depth-range (near,far)"), default=None,
                         metavar="NEAR,FAR", help="colour scale of the depth pictures (window_*.png) [m], one for "
                         "the whole run, and nothing else: the predicted depth (window_*.npz) is neither clamped nor "

@@ -1161,7 +1161,7 @@ def main(argv: list[str] | None = None) -> int:
                         help="start afresh over an earlier run in train.out: its last.pt, config.json, log.jsonl "
                         "and TensorBoard events are removed before the first step (once this run's config and data "
                         "are checked), so a new run that fails early leaves no checkpoint of the old one")
-    parser.add_argument("--no-progress", action="store_true", help="no progress bar")
+    parser.add_argument("--quiet", "--no-progress", dest="no_progress", action="store_true", help="no progress bar")
     parser.add_argument("overrides", nargs="*", help="section.key=value (e.g. train.steps=100)")
     return run_main(parser, _run, argv)
 

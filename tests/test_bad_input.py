@@ -688,7 +688,7 @@ CLI_CASES = [
     ("show-dt-inf", ["show", "{file}", "--dt", "inf"], r"cmax show: error: dt must be a finite number"),
     ("show-dt-negative", ["show", "{file}", "--dt", "-1"], r"dt must be positive"),
     ("show-t0-negative", ["show", "{file}", "--t0", "-1"], r"t0 must be >= 0"),
-    ("show-dt-text", ["show", "{file}", "--dt", "soon"], r"argument --dt: invalid float value"),
+    ("show-dt-text", ["show", "{file}", "--dt", "soon"], r"argument --window-s/--dt: invalid float value"),
     ("show-bins-zero", ["show", "{file}", "--bins", "0"], r"bins must be >= 1"),
     ("show-bins-absurd", ["show", "{file}", "--bins", "1000000000"], r"bins=1000000000 on a 64x48 sensor"),
     ("show-mode", ["show", "{file}", "--mode", "movie"], r"argument --mode: invalid choice"),

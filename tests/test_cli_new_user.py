@@ -147,8 +147,9 @@ def test_a_library_warning_is_one_line_and_debug_shows_pythons_format(capsys):
 
 # -- cmax demo -----------------------------------------------------------------------------------------
 @pytest.mark.parametrize("argv, message", [
-    (["--window", "2"], "--window must be in (0, --duration=0.5], got 2.0"),
-    (["--duration", "0.05"], "--window must be in (0, --duration=0.05], got 0.1665"),
+    (["--window", "2"], "--window-s must be in (0, --duration=0.5], got 2.0"),
+    (["--window-ms", "2000"], "--window-s must be in (0, --duration=0.5], got 2.0"),
+    (["--duration", "0.05"], "--window-s must be in (0, --duration=0.05], got 0.1665"),
     (["--size", "8x8"], "--size width must be an integer >= 32 (cmax.fit's default depth grid of 24x32 nodes needs a sensor of 32x24 px), got 8"),
     (["-o", "FILE"], "is a file, not a folder: give a folder for the demo's h5 file and report"),
 ])
@@ -276,3 +277,91 @@ def test_an_unknown_option_is_named_by_its_sub_command(capsys):
     assert status == 2 and err == "cmax emvs: error: unrecognized arguments: --bogus x (see cmax emvs --help)\n"
     status, err = one_line_error(lambda: cmax_main(["--bogus"]), capsys)
     assert status == 2 and err.startswith("cmax: error: unrecognized arguments: --bogus")
+
+
+# -- one window option, two units, on every command -------------------------------------------------------
+_WINDOW_COMMANDS = {   # command line before the window option; the attribute holding the window; its unit
+    "fit": (["fit", "f.h5", "--K", "1,1,1,1", "-o", "out"], "window_ms", 1e-3),
+    "depth": (["depth", "f.h5", "-o", "out"], "window", 1.0),
+    "demo": (["demo"], "window", 1.0),
+    "show": (["show", "f.h5"], "dt", 1.0),
+}
+
+
+@pytest.mark.parametrize("command", sorted(_WINDOW_COMMANDS))
+def test_every_command_with_a_window_takes_it_in_ms_or_in_s_and_keeps_its_old_spelling(command):
+    """``cmax fit`` took ``--window-ms``, ``cmax depth`` and ``cmax demo`` ``--window`` [s], ``cmax show`` ``--dt``
+    [s]: the spelling learned on one command was refused on another. Now each takes ``--window-ms`` and
+    ``--window-s``: 150 ms and 0.15 s are the same window, as the old spelling gave it."""
+    from cmax.cli import build_parser
+
+    before, attribute, seconds_per_unit = _WINDOW_COMMANDS[command]
+    parser = build_parser()
+
+    def window_s(*option: str) -> float:
+        return getattr(parser.parse_args([*before, *option]), attribute) * seconds_per_unit
+
+    old = {"fit": ("--window-ms", "150"), "show": ("--dt", "0.15")}.get(command, ("--window", "0.15"))
+    assert window_s(*old) == pytest.approx(0.15, rel=1e-12)
+    assert window_s("--window-ms", "150") == pytest.approx(0.15, rel=1e-12)
+    assert window_s("--window-s", "0.15") == pytest.approx(0.15, rel=1e-12)
+    # the same value, not one float's rounding apart: --resume compares the options it records
+    assert getattr(parser.parse_args([*before, "--window-ms", "33.3"]), attribute) == \
+        getattr(parser.parse_args([*before, "--window-s", "0.0333"]), attribute)
+
+
+@pytest.mark.parametrize("argv", [["--window", "150"], ["--window-s", "0.1", "--window-ms", "100"],
+                                  ["--step", "50"]])
+def test_fit_refuses_a_window_without_its_unit_naming_both_spellings(capsys, argv):
+    """``cmax fit --window 150`` was read as ``--window-ms 150`` (argparse's abbreviation), ``--window 0.15`` (the
+    seconds of ``cmax depth``) as a window of 150 µs, without a word: now refused, naming the options with units."""
+    status, err = one_line_error(lambda: cmax_main(["fit", "f.h5", "--K", "1,1,1,1", "-o", "out", *argv]), capsys)
+    assert status == 2, err
+    stem = argv[0].lstrip("-").split("-")[0]
+    assert f"--{stem}-ms" in err and f"--{stem}-s" in err, err
+
+
+# -- --quiet on every long-running command ----------------------------------------------------------------
+def test_scene_quiet_writes_no_progress_bar(tmp_path, capsys):
+    """``cmax scene`` drew its progress bar on stderr with no way to turn it off (fit, depth, emvs and simulate
+    took ``--quiet``); with ``--quiet`` stderr stays empty and the result line is printed."""
+    assert cmax_main(["scene", "slider", "-o", str(tmp_path / "s.h5"), "--duration", "0.1", "--size", "64x48",
+                      "--quiet"]) == 0
+    out, err = capsys.readouterr()
+    assert err == "" and out.startswith(f"wrote {tmp_path / 's.h5'}: "), (out, err)
+
+
+def test_demo_quiet_prints_only_where_its_report_is(tmp_path, capsys, monkeypatch):
+    """``cmax demo`` printed its progress lines with no ``--quiet``; with it only the report's path is printed."""
+    import types
+
+    import cmax.demo
+
+    def run_demo(output_dir, *, settings=None, overwrite=False, log=print):
+        log("[1/5] rendering ...")
+        return types.SimpleNamespace(report_png=output_dir / "report.png")
+
+    monkeypatch.setattr(cmax.demo, "run_demo", run_demo)
+    assert cmax_main(["demo", "-o", str(tmp_path)]) == 0
+    assert capsys.readouterr().out == f"[1/5] rendering ...\ndemo report: {tmp_path / 'report.png'}\n"
+    assert cmax_main(["demo", "-o", str(tmp_path), "--quiet"]) == 0
+    assert capsys.readouterr().out == f"demo report: {tmp_path / 'report.png'}\n"
+
+
+def test_learned_train_takes_quiet_as_the_other_commands_do(monkeypatch):
+    """``python -m learned.train`` said ``--no-progress`` where every other command says ``--quiet``: both work."""
+    import argparse
+
+    import learned.train
+
+    parsed = []
+
+    def parse_args(self, args=None, namespace=None):
+        parsed.append(argparse.ArgumentParser.parse_known_args(self, args, namespace)[0])
+        raise SystemExit(0)
+
+    monkeypatch.setattr(learned.train._IntermixedParser, "parse_args", parse_args)
+    for option in ("--quiet", "--no-progress"):
+        with pytest.raises(SystemExit):
+            learned.train.main([option])
+    assert [args.no_progress for args in parsed] == [True, True]

@@ -67,11 +67,15 @@ def test_structured_arrays_of_other_tools_by_field_name(layout, tmp_path):
     assert read(tmp_path / "events.npy", width=ev.width, height=ev.height) == ev
 
 
-def test_a_field_name_wins_over_its_alias():
-    """Where both ``t`` and dv-processing's ``timestamp`` exist, ``t`` is read."""
+def test_a_field_name_and_its_alias_are_read_where_they_agree_and_refused_where_not():
+    """Where both ``t`` and dv-processing's ``timestamp`` exist, ``t`` is read when the two are equal; when they
+    differ neither is guessed right (it read ``t`` without a word)."""
     array = np.zeros(3, dtype=[("x", "u2"), ("y", "u2"), ("t", "i8"), ("timestamp", "i8"), ("p", "i1")])
-    array["t"], array["timestamp"] = [1, 2, 3], [30, 20, 10]
+    array["t"], array["timestamp"] = [1, 2, 3], [1, 2, 3]
     assert Events.from_structured(array, 4, 4).t.tolist() == [1, 2, 3]
+    array["timestamp"] = [30, 20, 10]
+    with pytest.raises(ValueError, match=r"fields 't' and 'timestamp', which differ from row 0 on \(1 vs 30\)"):
+        Events.from_structured(array, 4, 4)
 
 
 def test_array_round_trip_with_column_order():
@@ -401,3 +405,41 @@ def test_an_n_by_4_array_in_t_x_y_p_order_read_as_x_y_t_p_names_the_column_in_ti
         Events(x, y, np.rint(t * 1e6).astype(np.int64), p, 240, 180)
     with pytest.raises(ValueError, match=r"^x must lie in \[0, width=200\), got \d+(\.0)? at index \d+$"):
         Events.from_array(np.stack([x, y, np.rint(t * 1e6), p], 1), 200, 180)
+
+
+def _with_second_column(ev: Events, column: str, name: str, values) -> np.ndarray:
+    """``ev.to_structured()`` with one more field ``name`` holding ``values`` (a second spelling of ``column``)."""
+    base = ev.to_structured()
+    array = np.empty(len(ev), dtype=base.dtype.descr + [(name, np.asarray(values).dtype.str)])
+    for field in base.dtype.names:
+        array[field] = base[field]
+    array[name] = values
+    return array
+
+
+@pytest.mark.parametrize("column, name, same", [
+    ("t", "timestamp", lambda ev: ev.t), ("x", "xs", lambda ev: ev.x.astype(np.int32)),
+    ("p", "polarity", lambda ev: ev.signed_polarity(np.int8))])    # -1/+1 of the same events: they agree
+def test_a_column_held_twice_reads_when_both_agree_and_is_refused_naming_both_and_the_row_where_they_differ(
+        tmp_path, column, name, same):
+    """An array or .npy with ``t`` and ``timestamp`` (``x`` and ``xs``, ``p`` and ``polarity``) read ``t`` and
+    ignored the other without a word, even where they disagreed."""
+    from cmax.io import read
+    from conftest import random_events
+
+    ev = random_events(200)
+    agree = _with_second_column(ev, column, name, same(ev))
+    assert Events.from_structured(agree, ev.width, ev.height) == ev
+    np.save(tmp_path / "agree.npy", agree)
+    assert read(tmp_path / "agree.npy", width=ev.width, height=ev.height) == ev
+    second = np.array(same(ev))
+    second[137] = (1 - ev.p[137]) if column == "p" else second[137] + 1     # row 137 differs (polarity flipped)
+    differ = _with_second_column(ev, column, name, second)
+    np.save(tmp_path / "differ.npy", differ)
+    for build, source in ((lambda: Events.from_structured(differ, ev.width, ev.height), "array"),
+                          (lambda: read(tmp_path / "differ.npy", width=ev.width, height=ev.height),
+                           str(tmp_path / "differ.npy"))):
+        with pytest.raises(ValueError) as refused:
+            build()
+        message = str(refused.value)
+        assert message.startswith(f"{source} holds fields {column!r} and {name!r}, which differ from row 137 "), message

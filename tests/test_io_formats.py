@@ -510,3 +510,31 @@ def test_a_npy_holding_bytes_after_its_declared_rows_is_refused(tmp_path):
                                           r"\([0-9,]+ bytes of data\), but the file holds [0-9,]+, 99 whole rows: cut "
                                           "short"):
         read(cut, width=64, height=48)
+
+
+@pytest.mark.parametrize("suffix", [".h5", ".npy", ".txt"])
+def test_an_option_the_format_does_not_take_is_refused_naming_file_format_and_its_options(tmp_path, suffix):
+    """``read(dsec.h5, camera='left')`` raised Python's ``read_h5() got an unexpected keyword argument 'camera'``:
+    neither the file nor the format. Now one line naming both and the options that format does take."""
+    from cmax.io import write_h5
+
+    ev = random_events(300)
+    path = tmp_path / f"ev{suffix}"
+    {".h5": lambda: write_h5(path, ev), ".npy": lambda: np.save(path, ev.to_structured()),
+     ".txt": lambda: write_txt(path, ev)}[suffix]()
+    named = {".h5": "DSEC HDF5", ".npy": "NumPy .npy", ".txt": "ECD text"}[suffix]
+    with pytest.raises(TypeError) as refused:
+        read(path, width=ev.width, height=ev.height, camera="left", stream=0)
+    message = str(refused.value)
+    assert "\n" not in message and str(path) in message and named in message, message
+    assert "camera=, stream=" in message and "takes polarity=" in message, message   # what the format does take
+    assert read(path, width=ev.width, height=ev.height, polarity="01") == ev           # an option it takes: read
+
+
+def test_mvsec_takes_its_camera_and_refuses_what_it_does_not_take(tmp_path):
+    ev = random_events(300, width=346, height=260)
+    _write_mvsec(tmp_path / "m.hdf5", np.column_stack([ev.x, ev.y, ev.t / 1e6, ev.signed_polarity(np.float64)]))
+    assert len(read(tmp_path / "m.hdf5", camera="left")) == len(ev)
+    with pytest.raises(TypeError, match=r"m\.hdf5 is MVSEC HDF5, whose reader takes no stream=: it takes camera=, "
+                                        r"polarity="):
+        read(tmp_path / "m.hdf5", stream=0)

@@ -5,7 +5,7 @@ import argparse
 from pathlib import Path
 from typing import Any, Callable
 
-from cmax._args import api_default, library_default, nonnegative_int, positive_float, sensor_size
+from cmax._args import add_duration_options, api_default, library_default, nonnegative_int, positive_float, sensor_size
 from cmax.cli._common import given, output_folder
 
 __all__ = ["add_command", "run", "settings_of"]
@@ -15,17 +15,17 @@ _DEMO_OPTIONS = {"seed": "seed", "duration": "duration_s", "window": "window_s"}
 
 
 #: DemoSettings fields -> the options that set them, for the messages of refused settings.
-_OPTION_OF = {"window_s": "--window", "duration_s": "--duration", "width": "--size width", "height": "--size height"}
+_OPTION_OF = {"window_s": "--window-s", "duration_s": "--duration", "width": "--size width", "height": "--size height"}
 
 
 def settings_of(args: argparse.Namespace):
     """The :class:`cmax.demo.DemoSettings` of the options given (the library's defaults for the others); a
-    refused combination is a ValueError naming the options (``--window``), not the fields (``window_s``).
+    refused combination is a ValueError naming the options (``--window-s``), not the fields (``window_s``).
 
     >>> settings_of(argparse.Namespace(seed=None, duration=0.3, window=0.5, size=None))
     Traceback (most recent call last):
     ...
-    ValueError: --window must be in (0, --duration=0.3], got 0.5
+    ValueError: --window-s must be in (0, --duration=0.3], got 0.5
     """
     import re
 
@@ -42,14 +42,15 @@ def settings_of(args: argparse.Namespace):
 
 
 def run(args: argparse.Namespace) -> int:
-    """Run the demo and print where its report is; returns the exit status (0). A folder that already holds any
+    """Run the demo, printing its progress lines (none with ``--quiet``) and where its report is; returns the exit
+    status (0). A folder that already holds any
     of the demo's files (``<scene>.h5``, ``report.png``, ``report.md``, ``summary.txt``: an earlier demo's or a
     user's own) is refused before any work (exit 2, one line naming them) unless ``--overwrite``."""
     from cmax.demo import run_demo
 
     settings = settings_of(args)
     report = run_demo(output_folder(args.output, "the demo's h5 file and report"), settings=settings,
-                      overwrite=args.overwrite)
+                      overwrite=args.overwrite, log=(lambda line: None) if args.quiet else print)
     print(f"demo report: {report.report_png}")
     return 0
 
@@ -74,12 +75,13 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                 _demo_default("seed"))
     api_default(parser.add_argument("--duration", type=positive_float, default=None,
                                     help="seconds of scene to simulate"), _demo_default("duration_s"))
-    api_default(parser.add_argument("--window", type=positive_float, default=None,
-                                    help="seconds of the window cmax.fit fits"), _demo_default("window_s"))
+    add_duration_options(parser, "window", dest="window", unit="s", help="length of the windows cmax.fit fits",
+                         default=_demo_default("window_s"), aliases=("--window",))
     api_default(parser.add_argument("--size", type=sensor_size, default=None, metavar="WxH",
                                     help="sensor WIDTHxHEIGHT"), _demo_default("size"))
     parser.add_argument("--overwrite", action="store_true",
                         help="replace the demo's files (indoor_flying.h5, report.png, report.md, summary.txt) when "
                              "-o holds them already, from an earlier demo or not (else refused)")
+    parser.add_argument("--quiet", action="store_true", help="no progress lines: only where the report is")
     parser.set_defaults(run=run)
     return parser

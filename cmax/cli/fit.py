@@ -25,7 +25,8 @@ from pathlib import Path
 
 import numpy as np
 
-from cmax._args import api_default, float_list, grid_shape, library_default, positive_float, positive_int
+from cmax._args import (add_duration_options, api_default, float_list, grid_shape, library_default, positive_float,
+                        positive_int)
 from cmax.cli._common import named_pixels, output_folder
 from cmax.cli.recording import (StreamedEvents, add_camera_options, add_recording_arguments, calibration_hint,
                                 calibration_note, calibration_of, camera_read, check_file_principal_point, event_span,
@@ -67,14 +68,14 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                 _settings_default("depth_range"))
     api_default(parser.add_argument("--model", choices=("se3", "rotation", "flow"), default=None,
                                     help="motion model"), _sequence_default("model"))
-    api_default(parser.add_argument("--window-ms", type=positive_float, default=None, help="window length [ms]"),
-                lambda: _sequence_default("window_us")() / 1000)
+    add_duration_options(parser, "window", dest="window_ms", unit="ms", help="window length",
+                         default=lambda: _sequence_default("window_us")() / 1000)
     api_default(parser.add_argument("--min-events", type=positive_int, default=None,
                                     help="windows with fewer events are skipped, not fitted (at least 10; a sparse "
                                          "recording: a lower value or a longer --window-ms)"),
                 _sequence_default("min_events"))
-    parser.add_argument("--step-ms", type=positive_float, default=None,
-                        help="step between window starts [ms] (default: the window length)")
+    add_duration_options(parser, "step", dest="step_ms", unit="ms", help="step between window starts",
+                         default="the window length")
     parser.add_argument("--speed", type=positive_float, default=None,
                         help="known speed [m/s] (metric depth; default: unknown, depth up to scale)")
     parser.add_argument("--gyro", type=Path, default=None,

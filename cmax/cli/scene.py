@@ -115,7 +115,7 @@ def run(args: argparse.Namespace) -> int:
     for name in ("cp", "cn"):
         if getattr(args, name) is not None:
             settings[name] = getattr(args, name)
-    sequence = simulate_scene(scene, args.duration, EventSimulator(**settings), progress=True,
+    sequence = simulate_scene(scene, args.duration, EventSimulator(**settings), progress=not args.quiet,
                               depth_rate_hz=depth_rate)
     try:
         path = sequence.save(args.output, overwrite=args.overwrite)
@@ -160,5 +160,6 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                                     help="ground-truth depth maps per second (held in memory: 4 GiB of them at most)"),
                 depth_rate)
     parser.add_argument("--overwrite", action="store_true", help="replace an existing output file")
+    parser.add_argument("--quiet", action="store_true", help="no progress bar")
     parser.set_defaults(run=run)
     return parser

@@ -5,7 +5,7 @@ import argparse
 import os
 from pathlib import Path
 
-from cmax._args import api_default, library_default
+from cmax._args import add_duration_options, api_default, library_default
 from cmax.cli.recording import add_file_options, file_kwargs
 
 __all__ = ["add_command", "run"]
@@ -55,7 +55,9 @@ def add_command(subparsers) -> argparse.ArgumentParser:
     parser.add_argument("file", type=Path, help="event file (any supported format)")
     # t0, dt, bins: validated by cmax.show.render_window (one-line errors naming the value)
     parser.add_argument("--t0", type=float, default=0.0, help="window start in seconds after the first event")
-    parser.add_argument("--dt", type=float, default=0.05, help="window length in seconds")
+    add_duration_options(parser, "window", dest="dt", unit="s", help="window length", default=lambda: 0.05,
+                         aliases=("--dt",), kind=float)
+    parser.set_defaults(dt=0.05)
     parser.add_argument("--mode", choices=("frame", "voxel", "both"), default="both",
                         help="event frame, event-volume bins, or both")
     api_default(parser.add_argument("--bins", type=int, default=None,

@@ -20,6 +20,7 @@ Kalibr camchains, ROS ``camera_info``) are read by :func:`read_calibration` into
 from __future__ import annotations
 
 import bisect
+import inspect
 import os
 import warnings
 import zipfile
@@ -29,7 +30,7 @@ from typing import Any
 import h5py
 import numpy as np
 
-from cmax.events import Events, check_event_count, field_rename_hint, structured_fields
+from cmax.events import Events, check_duplicate_fields, check_event_count, field_rename_hint, structured_fields
 from cmax.io._checks import (check_implied_rate, check_not_nanoseconds, check_polarity_encoding, check_stated_size,
                              check_time_unit, polarity_01, times_to_us)
 from cmax.io.aedat4 import read_aedat4, read_aedat4_frames, read_aedat4_imu
@@ -235,7 +236,9 @@ def read(
         ECD text, NumPy, AEDAT4), refused for the others.
     **options
         Passed to the format's reader (e.g. ``camera='right'`` for MVSEC,
-        ``polarity='signed'`` for a DSEC, text or NumPy file storing -1/+1).
+        ``polarity='signed'`` for a DSEC, text or NumPy file storing -1/+1); one
+        the format's reader does not take is a :class:`TypeError` naming the
+        file, the format detected and the options that format takes.
 
     Returns
     -------
@@ -245,15 +248,16 @@ def read(
     kind = detect_format(path)
     time_unit = check_time_unit(time_unit)
     check_sortable(path, kind, sort)
+    if kind in ("aedat4", "raw") and time_unit not in (None, "us"):
+        raise ValueError(f"{path} ({kind}) stores integer microseconds; time_unit={time_unit!r} does not apply")
+    if kind in ("aedat4", "raw") and "polarity" in options:
+        raise ValueError(f"{path} ({kind}) states its polarities itself; polarity={options['polarity']!r} does not apply")
+    _check_options(path, kind, options)
     if kind == "dsec":
         return read_h5(path, width=width, height=height, t0_us=t0_us, t1_us=t1_us, time_unit=time_unit, **options)
     if kind == "mvsec":
         check_stated_size(width, height, (MVSEC_WIDTH, MVSEC_HEIGHT), f"{path} (MVSEC, a DAVIS346)")
         return read_mvsec(path, t0_us=t0_us, t1_us=t1_us, time_unit=time_unit, **options)
-    if kind in ("aedat4", "raw") and time_unit not in (None, "us"):
-        raise ValueError(f"{path} ({kind}) stores integer microseconds; time_unit={time_unit!r} does not apply")
-    if kind in ("aedat4", "raw") and "polarity" in options:
-        raise ValueError(f"{path} ({kind}) states its polarities itself; polarity={options['polarity']!r} does not apply")
     if kind == "aedat4":
         events = read_aedat4(path, sort=sort, **options)
         check_stated_size(width, height, events.sensor_size, path)
@@ -270,6 +274,29 @@ def read(
     return events.slice_time(
         -(2**62) if t0_us is None else t0_us, 2**62 if t1_us is None else t1_us
     )
+
+
+#: The keyword arguments of :func:`read` itself, taken for every format.
+_READ_OWN = ("width", "height", "t0_us", "t1_us", "time_unit", "sort")
+#: How the messages name each format.
+_FORMAT_NAMES = {"dsec": "DSEC HDF5", "mvsec": "MVSEC HDF5", "txt": "ECD text", "aedat4": "AEDAT4",
+                 "raw": "Prophesee RAW", "npy": "NumPy .npy"}
+
+
+def _check_options(path: Path, kind: str, options: dict[str, Any]) -> None:
+    """Refuse the ``options`` (``**options`` of :func:`read`) that the reader of format ``kind`` does not take, with
+    a TypeError naming the file ``path``, the format detected and the keyword arguments that format takes (Python's
+    own message named neither the file nor the format)."""
+    reader = {"dsec": read_h5, "mvsec": read_mvsec, "txt": read_txt, "aedat4": read_aedat4, "raw": read_raw,
+              "npy": _read_npy}[kind]   # the reader read() hands the format to
+    takes = [name for name, parameter in inspect.signature(reader).parameters.items()
+             if parameter.kind is inspect.Parameter.KEYWORD_ONLY and name not in _READ_OWN]
+    unknown = [name for name in options if name not in takes]
+    if unknown:
+        own = ", ".join(f"{name}=" for name in _READ_OWN)
+        given = ", ".join(f"{name}=" for name in unknown)
+        raise TypeError(f"{path} is {_FORMAT_NAMES[kind]}, whose reader takes no {given}: it takes "
+                        f"{', '.join(f'{name}=' for name in takes) or 'no option'} besides read()'s own {own}")
 
 
 def check_sortable(path: str | os.PathLike, kind: str, sort: object) -> None:
@@ -301,6 +328,7 @@ def _read_npy(
     if (t0_us is not None or t1_us is not None) and not sort:
         array = array[_npy_rows(array[fields["t"]], time_unit or "us", t0_us, t1_us, f"{path}: field {fields['t']}")]
     check_event_count(array.shape[0], f"{path}")
+    check_duplicate_fields(array, fields, str(path))
     t = np.asarray(array[fields["t"]])
     t_us = times_to_us(t, time_unit or "us", f"{path}: field {fields['t']}")
     p = polarity_01(np.asarray(array[fields["p"]]), polarity, f"{path}: field {fields['p']}")
