@@ -56,6 +56,7 @@ from benchmarks.accuracy_cmax import cached, parse_seeds, preset_depth_range, wi
 from cmax.contrast import (AverageTimestamp, CollapseGuard, CrossFit, DepthMotion, EventWindows, GlobalContrast,
                            LocalContrast, PlaneVote, SweepVote, WeightedSum)
 from cmax.fitting import FitSettings, fit
+from cmax.fitting.settings import max_events_for
 from cmax.fitting.api import event_pixels
 from cmax.io.atomic import write_text_atomic
 from cmax.metrics import depth_metrics
@@ -73,7 +74,7 @@ PIXEL_STEPS = 80
 MOTION_GRID = (6, 8)
 MOTION_STEPS = 40
 #: Events per window the objectives read: the fit's own subsample size (the sweep's), not fewer.
-MAX_EVENTS = FitSettings().max_events
+MAX_EVENTS = max_events_for(FitSettings().max_events, 346, 260)
 LR = 0.05
 #: abs_rel by which a descent's depth must be worse than the truth's to count as "below truth with worse depth".
 WORSE_BY = 0.05

@@ -301,6 +301,7 @@ def driving(data: Path) -> tuple[list[str], np.ndarray]:
     """se3 direction of the Prophesee drive at full resolution, as ``cmax fit`` runs it, at each of
     :data:`DRIVE_FIT_SEEDS`; returns markdown lines and a picture."""
     from cmax.fitting import FitSettings
+    from cmax.fitting.settings import max_events_for
     from cmax.io import read
 
     events = read(data / "prophesee_gen4_driving" / "evt3_sample.raw")
@@ -318,9 +319,11 @@ def driving(data: Path) -> tuple[list[str], np.ndarray]:
             fits[label, seed] = (result, time.perf_counter() - start)
     forward = fit(events, K, model="se3", pose=np.r_[0.0, 0.0, 1.0, 0.0, 0.0, 0.0], depth_range=depth_range)
     seeds = ", ".join(str(seed) for seed in DRIVE_FIT_SEEDS)
+    kept = min(len(events), max_events_for(FitSettings().max_events, events.width, events.height))
     lines = ["## Prophesee Gen4 drive (se3, scale unknown)", "",
              f"{len(events)} events, {(events.t[-1] - events.t[0]) / 1e3:.1f} ms, 1280x720, fitted at full "
-             "resolution as `cmax fit` does (the default subsample of 60k events). Assumed K: f = 1000 px, principal "
+             f"resolution as `cmax fit` does (the default subsample of this sensor, {kept:,} events: "
+             "`cmax.fitting.settings.max_events_for`). Assumed K: f = 1000 px, principal "
              "point at the centre (no calibration in the file). fit(model='se3') with depth range 0.05-50 (in units "
              "of |v| x 1 s: a 10 m/s car sees 0.5-500 m). Fits: the default; with the second start of the motion "
              "refinement at zero rotation (`FitSettings.zero_rotation_start`, `--zero-rotation-start`, the flag "

@@ -285,14 +285,15 @@ def test_every_option_has_help_and_shows_its_default():
 def test_help_shows_the_librarys_defaults(capsys):
     """One source of defaults: the numbers in --help are those of the API objects."""
     from cmax.cli import main
-    from cmax.fitting import FitSettings
+    from cmax.fitting.settings import BASE_MAX_EVENTS, max_events_for
     from cmax.sim.convert import ConvertSettings
     from cmax.sim.esim_settings import EsimSettings
 
     with pytest.raises(SystemExit):
         main(["fit", "--help"])
     fit_help = " ".join(capsys.readouterr().out.split())
-    assert f"(default: {FitSettings().max_events:,})" in fit_help      # 60,000 (the CLI said 40,000 before)
+    assert f"default: by the sensor, {BASE_MAX_EVENTS:,} events up to 346x260 pixels" in fit_help   # 40,000 before
+    assert f"{max_events_for(None, 640, 480):,} at 640x480, {max_events_for(None, 1280, 720):,} at 1280x720" in fit_help
     with pytest.raises(SystemExit):
         main(["simulate", "--help"])
     sim_help = " ".join(capsys.readouterr().out.split())

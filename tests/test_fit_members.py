@@ -10,6 +10,7 @@ import pytest
 
 from benchmarks.synthetic_windows import make_window
 from cmax.fitting import FitSettings, fit
+from cmax.fitting.settings import BASE_MAX_EVENTS
 from cmax.fitting.pipeline import Motion, MotionMembersStage, consensus, member_seed
 from cmax.fitting.window import Window
 from cmax.warp import WarpEvents
@@ -67,7 +68,7 @@ def test_a_window_drawn_again_keeps_its_events_and_changes_only_the_dither():
     np.testing.assert_array_equal(again.ev.t.numpy(), window.ev.t.numpy())
     shift = (again.ev.x - window.ev.x).numpy()
     assert np.abs(shift).max() < 1.0 and np.abs(shift).max() > 0.1      # both within their pixel, drawn apart
-    assert len(w.events) <= FitSettings().max_events                  # no subsample: event k is event k
+    assert len(w.events) <= BASE_MAX_EVENTS                           # no subsample: event k is event k
     assert np.abs(again.ev.x.numpy() - w.events.x).max() <= 0.5
     assert np.abs(again.ev.y.numpy() - w.events.y).max() <= 0.5
     prepared = Window(WarpEvents.from_events(w.events, w.K), FitSettings(), window.grid)

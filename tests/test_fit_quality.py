@@ -494,7 +494,7 @@ def test_a_fit_on_few_events_per_pixel_is_flagged_sparse_with_its_motion_unchang
 def test_a_large_sensor_window_with_ample_events_is_not_sparse_but_a_thin_one_is(monkeypatch):
     """QualitySettings.min_event_density counts a sensor larger than min_event_density_area (346x260) over the
     geometric mean of the two areas (the events lie along edges, whose pixels grow with the image's side): a
-    640x480 window fitted on the default 60,000 events needs 0.25 sqrt(640 480 346 260) = 41,560 and is not sparse
+    640x480 window fitted on 60,000 events (the default before it grew with the sensor) needs 0.25 sqrt(640 480 346 260) = 41,560 and is not sparse
     (it was: 0.195 per pixel of its whole image, so no 640x480 window could be ok with the defaults); one of
     8,000 events still is, and says over which pixels it counted; 1280x720 needs 71,984. The ambiguity test is made
     to pass both windows, so that only the rule decides."""
@@ -507,7 +507,7 @@ def test_a_large_sensor_window_with_ample_events_is_not_sparse_but_a_thin_one_is
     assert sparse_reason(71_000, 71_000, 1280, 720, 0.25) and not sparse_reason(73_000, 73_000, 1280, 720, 0.25)
     assert sparse_reason(60_000, 60_000, 640, 480, 0.25, 640 * 480)     # the whole image's density: as before
     ample, K = _dots_on_a_plane(3.0, (0.5, 0.0, 0.0), seed=6, width=640, height=480, focal=400.0, events=160_000)
-    r = fit(ample, K, speed=0.5)
+    r = fit(ample, K, speed=0.5, max_events=60_000)
     assert r.events_used == 60_000 and len(ample) > 60_000
     assert r.success and r.quality.rate_change is not None and not r.quality.on_bound
     assert not r.quality.sparse and "events on 640x480 pixels" not in r.quality.reason
@@ -518,6 +518,46 @@ def test_a_large_sensor_window_with_ample_events_is_not_sparse_but_a_thin_one_is
                                           "min_event_density_area=89,960) = 166,240 px, under min_event_density=0.25)")
     with pytest.raises(ValueError, match="min_event_density_area must be an int >= 1"):
         QualitySettings(min_event_density_area=0)
+
+
+def test_the_default_subsample_grows_with_a_larger_sensor(monkeypatch):
+    """Was: ``FitSettings.max_events`` 60,000 on every sensor, under the 71,984 events the sparse-window rule asks of a
+    1280x720 window, so that no Gen4 window could be ``ok`` with the defaults. Now the default (None) keeps 60,000
+    up to 346x260 pixels and 60,000 sqrt(width height / (346 260)) on a larger image (the scale of the rule's
+    pixels); a given count is kept on every sensor, the old 60,000 too. A 1280x720 window of about 87,000 events,
+    the ambiguity test made to pass so that only the rules decide, is fitted on all of them and is not sparse (it
+    was: fitted on 60,000, 0.208 per pixel of the rule's 287,936, under 0.25)."""
+    from cmax.fitting.quality import density_pixels
+    from cmax.fitting.settings import max_events_for
+    from cmax.fitting.window import Window
+
+    grows = {(640, 480): round(60_000 * math.sqrt(640 * 480 / 89_960)),       # 110,876 (worked out by hand)
+             (1280, 720): round(60_000 * math.sqrt(1280 * 720 / 89_960))}     # 192,043
+    assert grows == {(640, 480): 110_876, (1280, 720): 192_043}
+    for (width, height), count in grows.items():
+        assert max_events_for(FitSettings().max_events, width, height) == count
+        assert count > 0.25 * density_pixels(width, height)       # clears the sparse rule: 41,560 and 71,984
+        assert max_events_for(60_000, width, height) == 60_000     # the old value, given
+    for width, height in ((346, 260), (240, 180), (160, 120), (96, 72)):
+        assert max_events_for(None, width, height) == 60_000       # unchanged at 346x260 and below
+    rng = np.random.default_rng(3)
+    n = 130_000
+    events = Events(rng.integers(0, 640, n), rng.integers(0, 480, n), np.sort(rng.integers(0, 100_000, n)),
+                    rng.integers(0, 2, n), 640, 480)
+    K = np.array([[500.0, 0, 319.5], [0, 500.0, 239.5], [0, 0, 1]])
+    assert len(Window.from_events(events, K, FitSettings(), (6, 8)).ev) == 110_876
+    assert len(Window.from_events(events, K, FitSettings(max_events=60_000), (6, 8)).ev) == 60_000
+    small = Events(events.x // 2, events.y // 2, events.t, events.p, 320, 240)
+    assert len(Window.from_events(small, K / np.array([[2], [2], [1]]), FitSettings(), (6, 8)).ev) == 60_000
+    with pytest.raises(ValueError, match=r"max_events must be >= 10 \(an int\) or None \(by the sensor\), got 5"):
+        FitSettings(max_events=5)
+
+    monkeypatch.setattr("cmax.fitting.api.assess", lambda *args, **kwargs: ((_alt("mirrored", 1.0),), "", True))
+    hd, K = _dots_on_a_plane(3.0, (0.5, 0.0, 0.0), seed=6, width=1280, height=720, focal=800.0, events=220_000)
+    assert 0.25 * density_pixels(1280, 720) < len(hd) < 192_043
+    r = fit(hd, K, speed=0.5)
+    assert r.events_used == len(hd) and not r.quality.sparse, r.quality
+    assert "events on 1280x720 pixels" not in r.quality.reason
 
 
 def _dots_on_a_plane(depth_m: float, v: tuple[float, float, float], seed: int, width: int = 240, height: int = 180,

@@ -9,6 +9,7 @@ import pytest
 from benchmarks.synthetic_windows import make_window
 from cmax import Events
 from cmax.fitting import FitSettings, QualitySettings, Verdict, fit
+from cmax.fitting.settings import BASE_MAX_EVENTS
 from cmax.fitting.quality import isolated_events, neighbour_counts, noise_share
 
 
@@ -71,7 +72,7 @@ def test_the_fit_sorts_its_events_once_for_the_mask_and_the_noise_share(monkeypa
     np.testing.assert_array_equal(flags, isolated_events(noisy.x, noisy.y, noisy.t, 160, 120, 10_000))
     assert share == noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000, max_queries=None)
     assert result.quality.noise_share == noise_share(noisy.x, noisy.y, noisy.t, 160, 120, 10_000,
-                                                     max_queries=FitSettings().max_events)
+                                                     max_queries=BASE_MAX_EVENTS)
 
 
 def test_a_noisy_window_is_sorted_once_and_filtered_as_before(monkeypatch):

@@ -116,12 +116,15 @@ def add_command(subparsers) -> argparse.ArgumentParser:
                                          "the motion stages' time times N (cmax.FitSettings.motion_members)"),
                 _settings_default("motion_members"))
     api_default(parser.add_argument("--max-events", type=positive_int, default=None,
-                                    help="windows with more events are subsampled to this many, on any sensor "
-                                         "(cmax.FitSettings.max_events); se3: a window fitted on fewer than 0.25 "
-                                         "events per pixel is at best ambiguous, counted on a sensor larger than "
-                                         "346x260 over sqrt(width height 346 260) pixels: 41,560 events at "
-                                         "640x480, 71,984 at 1280x720 (cmax.fitting.QualitySettings."
-                                         "min_event_density, min_event_density_area)"), _settings_default("max_events"))
+                                    help="windows with more events are subsampled to this many (cmax.FitSettings."
+                                         "max_events); default: by the sensor, 60,000 events up to 346x260 pixels, "
+                                         "on a larger sensor that many times sqrt(width height / (346 260)): "
+                                         "110,876 at 640x480, 192,043 at 1280x720 (cmax.fitting.settings."
+                                         "max_events_for); se3: a window fitted on fewer than 0.25 events per pixel "
+                                         "is at best ambiguous, counted on a sensor larger than 346x260 over "
+                                         "sqrt(width height 346 260) pixels: 41,560 events at 640x480, 71,984 at "
+                                         "1280x720 (cmax.fitting.QualitySettings.min_event_density, "
+                                         "min_event_density_area)"), _settings_default("max_events"))
     api_default(parser.add_argument("--max-omega", type=positive_float, default=None,
                                     help="se3 and rotation: bound of each fitted angular-velocity component [rad/s]; a "
                                          "window that ends on it is reported, never clipped (cmax.FitSettings."
@@ -633,6 +636,7 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     from cmax.fitting.api import MIN_WINDOW_EVENTS
     from cmax.fitting.quality import LowMotionCause, Verdict, density_pixels
     from cmax.fitting.sequence import check_gyro, constant_gyro
+    from cmax.fitting.settings import max_events_for
     from cmax.io import read_gyro
     from cmax.warp import DepthGrid
 
@@ -789,9 +793,10 @@ def _fit_into(stage: Path, out: Path, args: argparse.Namespace, *, sequence_mode
     noisy = sum(q.noisy for q in unresolved)            # nor small parallax: an ok one, once
     needs = math.ceil(settings.quality.min_event_density
                       * density_pixels(events.width, events.height, settings.quality.min_event_density_area))
+    kept = max_events_for(settings.max_events, events.width, events.height)
     late_notes += advice(sequence.counts(), sequence_model, args.gyro is not None or args.omega is not None,
                          no_motion, cell_noise, unsteady, sparse, single_window=single_window,
-                         sparse_needs=needs if needs > settings.max_events else None, small_parallax=small,
+                         sparse_needs=needs if needs > kept else None, small_parallax=small,
                          noisy=noisy, densest=densest_window(fitted, first_us, last_us, window_us, step_us))
     failed = sum(r.verdict is Verdict.FAILED for r in sequence.results)
     if not windows:

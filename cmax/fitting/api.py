@@ -29,7 +29,7 @@ from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality,
                                   _Sorted, _sorted_subset)
 from cmax.fitting.rotation_only import (fit_rotation_only, reports_rotation_only, rotation_only_reason,
                                         rotation_only_test)
-from cmax.fitting.settings import FitSettings, QualitySettings
+from cmax.fitting.settings import FitSettings, QualitySettings, max_events_for
 from cmax.fitting.solvers import Solver, make_solver
 from cmax.fitting.window import SensorPixels, Window
 from cmax.iwe import accumulate_bilinear, blur
@@ -475,6 +475,7 @@ def fit(
     K = _check_inputs(events, K, model)
     _warn_odd_intrinsics(K, events.width, events.height)
     settings = _settings(settings, options, model)
+    settings = replace(settings, max_events=max_events_for(settings.max_events, events.width, events.height))
     unfiltered = events
     events, hot = _without_hot_pixels(events, settings)
     if sensor is not None and events is not unfiltered:

@@ -881,7 +881,10 @@ def min_ok_parallax(min_ok_parallax_px: float, width: int, height: int, referenc
     On a smaller image the contrast's optimum itself lies off the truth more often: the same scenes at 160x120
     and 96x72 score the true motion worse than the fit beyond the test's noise on about half and four fifths of
     their windows, at 346x260 on none (docs/quality.md), so a few pixels of parallax that vouch for the
-    direction at 346x260 do not on a quarter of the pixels.
+    direction at 346x260 do not on a quarter of the pixels. On a larger image it stays ``min_ok_parallax_px``: with
+    the default subsample grown with the sensor (:func:`cmax.fitting.settings.max_events_for`) no ``ok`` window at
+    640x480 or 1280x720 was far off, and a threshold grown with the sensor's side flagged right ones
+    (docs/quality.md).
 
     >>> min_ok_parallax(3.0, 346, 260, 346 * 260)
     3.0

@@ -21,11 +21,40 @@ from cmax.fitting.solvers import RELAXED_TOLERANCES, SCIPY_DEFAULT_TOLERANCES, T
 from cmax.hot_pixels import HotPixelFilter, check_filter
 
 __all__ = ["FitSettings", "MotionInit", "Refinement", "Polish", "PatchFlowSettings", "RefineSettings",
-           "SweepSettings", "QualitySettings", "LOW_PARALLAX_PX", "PROBE_TIMES"]
+           "SweepSettings", "QualitySettings", "LOW_PARALLAX_PX", "PROBE_TIMES", "BASE_MAX_EVENTS",
+           "max_events_for"]
 
 LOW_PARALLAX_PX = 1.0
 """Default of :attr:`FitSettings.low_parallax_px`: below this median displacement [px] of the events by the
 translation over the window, :func:`cmax.fit` warns (:class:`cmax.fitting.LowParallaxWarning`)."""
+
+BASE_MAX_EVENTS = 60_000
+"""The events :func:`cmax.fit` keeps of a window on an image of at most 346x260 pixels when
+:attr:`FitSettings.max_events` is None (its default); a larger image keeps more (:func:`max_events_for`)."""
+
+#: The image area [px] (a DAVIS346's) up to which the default subsample is :data:`BASE_MAX_EVENTS`.
+MAX_EVENTS_AREA = 346 * 260
+
+
+def max_events_for(max_events: int | None, width: int, height: int) -> int:
+    """The events kept of a window on a ``width`` x ``height`` image [px]: ``max_events`` when it is given;
+    None (``FitSettings.max_events``' default): :data:`BASE_MAX_EVENTS` on an image of at most 346x260 pixels,
+    on a larger one that many times ``sqrt(width height / (346 260))``, the sensor's side over a DAVIS346's:
+    the scale by which :func:`cmax.fitting.quality.density_pixels` counts the pixels of the sparse-window rule,
+    so the default keeps the same margin over that rule's need on every sensor (docs/quality.md).
+
+    >>> max_events_for(None, 346, 260), max_events_for(None, 160, 120), max_events_for(30_000, 1280, 720)
+    (60000, 60000, 30000)
+    >>> max_events_for(None, 640, 480), max_events_for(None, 1280, 720)
+    (110876, 192043)
+    """
+    if max_events is not None:
+        return int(max_events)
+    area = int(width) * int(height)
+    if area <= 0:
+        raise ValueError(f"the image must have pixels, got {width}x{height}")
+    return BASE_MAX_EVENTS if area <= MAX_EVENTS_AREA else round(BASE_MAX_EVENTS * math.sqrt(area / MAX_EVENTS_AREA))
+
 
 PROBE_TIMES = (-1.0, -0.5, 0.5, 1.0)
 """Default of :attr:`FitSettings.collapse_times`: the time offsets the deformation guard warps its probes
@@ -105,9 +134,9 @@ class PatchFlowSettings:
     min_events : int
         Patches with fewer (subsampled) events are left out.
     max_events : int
-        Uniform subsample of the window's events (the default, equal to ``FitSettings.max_events``, takes
-        them all: each patch's flow is then sharper, and the motion-field fit that starts the refinement
-        steadier; docs/fitting.md).
+        Uniform subsample of the window's events (the default, equal to ``FitSettings.max_events`` up to 346x260
+        pixels, takes them all there: each patch's flow is then sharper, and the motion-field fit that starts the
+        refinement steadier; docs/fitting.md; on a larger image it takes 60,000 of the window's more).
     margin : float
         Largest displacement over the window, as a fraction of the patch side (at least 8 px).
     sigmas : tuple of (float or None)
@@ -478,8 +507,12 @@ class FitSettings:
         Reference times of the multi-reference motion objective, as fractions of the window.
     sigma : float
         IWE blur [px].
-    max_events : int
-        Windows with more events are subsampled uniformly (seeded) to this many.
+    max_events : int or None
+        Windows with more events are subsampled uniformly (seeded) to this many. None (the default): by the
+        sensor, :func:`max_events_for`: 60,000 (:data:`BASE_MAX_EVENTS`) on an image of at most 346x260 pixels,
+        more on a larger one in proportion to its side (110,876 at 640x480, 192,043 at 1280x720), so that the
+        sparse-window rule (``QualitySettings.min_event_density``) is cleared with the same margin on any sensor.
+        ``60_000``: that many on every sensor (before the scaling).
     depth_range : (float, float)
         Bounds of the depth [m] (in units of ``speed * 1 s`` when the scale is unknown); give the
         scene's own range when it is known.
@@ -609,7 +642,7 @@ class FitSettings:
     polarity_split: bool | None = None
     references: tuple[float, ...] = (0.0, 0.5, 1.0)
     sigma: float = 1.0
-    max_events: int = 60_000
+    max_events: int | None = None
     depth_range: tuple[float, float] = (0.5, 60.0)
     depth_candidates: int = 36
     depth_smoothness: tuple[float, float] = (0.1, 1.0)
@@ -676,8 +709,9 @@ class FitSettings:
             raise ValueError(f"depth_range must satisfy 0 < near < far (metres), got {self.depth_range}")
         object.__setattr__(self, "depth_range", (near, far))   # a list or an array compares equal to its tuple
         _positive_int("seed", self.seed, 0)
-        if not (isinstance(self.max_events, (int, np.integer)) and self.max_events >= 10):
-            raise ValueError(f"max_events must be >= 10, got {self.max_events}")
+        if self.max_events is not None and not (isinstance(self.max_events, (int, np.integer))
+                                                and not isinstance(self.max_events, bool) and self.max_events >= 10):
+            raise ValueError(f"max_events must be >= 10 (an int) or None (by the sensor), got {self.max_events!r}")
         if not (isinstance(self.depth_coarsening, (int, np.integer)) and self.depth_coarsening >= 1):
             raise ValueError(f"depth_coarsening must be an integer >= 1, got {self.depth_coarsening!r}")
         smoothness = np.asarray(self.depth_smoothness, dtype=float).ravel()

@@ -14,6 +14,7 @@ import numpy as np
 import torch
 
 from cmax.fitting.settings import LOW_PARALLAX_PX  # noqa: F401  (re-exported: the default of low_parallax_px)
+from cmax.fitting.settings import max_events_for
 from cmax.objectives import deformation, multi_reference_contrast
 from cmax.warp import DepthGrid, WarpEvents, warp_se3
 
@@ -97,7 +98,10 @@ class Window:
                     depth_grid: tuple[int, int] = (24, 32), sensor: SensorPixels | None = None) -> "Window":
         """The window of ``events`` with intrinsics ``K`` (3, 3), subsampled and dithered as ``settings`` say;
         with ``sensor`` (the events' sensor pixels and lens), each event is dithered over its sensor pixel and
-        mapped through the lens to ``K``'s pixels, unrounded."""
+        mapped through the lens to ``K``'s pixels, unrounded. ``settings.max_events`` None: by the sensor
+        (:func:`cmax.fitting.settings.max_events_for`)."""
+        if settings.max_events is None:
+            settings = replace(settings, max_events=max_events_for(None, events.width, events.height))
         if sensor is None:
             ev = WarpEvents.from_events(events, K, max_events=settings.max_events, seed=settings.seed)
         else:
