@@ -31,10 +31,12 @@ def clear_window():
     (17.5-20.0 deg over the fit seeds 0-5; float rounding alone moves it by 2 deg). Fitted with the small-parallax
     threshold unscaled (``min_ok_parallax_area=1``): at 120x90 the scaled one (8.7 px,
     :func:`cmax.fitting.quality.min_ok_parallax`) calls these 3 px ambiguous, and the tests that use this window
-    are about the other rules."""
+    are about the other rules. So is the flat-valley rule off (``bas_relief_valley_deg=0``): a motion 20 deg along
+    the bas-relief trade scores at the edge of its noise on this fit (0.97 of it on an Intel Xeon host), a verdict
+    that float rounding can flip."""
     w = make_window("driving", 2, width=120, height=90, focal=90.0, duration_s=0.1, max_frames=60)
     return w, fit(w.events, w.K, speed=float(np.linalg.norm(w.twist[:3])), depth_range=(1.0, 20.0),
-                  quality=QualitySettings(min_ok_parallax_area=1))
+                  quality=QualitySettings(min_ok_parallax_area=1, bas_relief_valley_deg=0.0))
 
 
 # ----------------------------------------------------------------------------------------------
@@ -731,7 +733,8 @@ def test_a_small_image_needs_more_parallax_for_ok(monkeypatch):
     """A plane slid past at 160x120 with about 4 px of fitted parallax: over the 3 px of ``min_ok_parallax_px`` but
     under its scaled 6.49 px (:func:`cmax.fitting.quality.min_ok_parallax`), so ``ambiguous`` and
     ``small_parallax`` even when every alternative scores worse beyond noise (the ambiguity test is made to say
-    so, to test this rule alone); unscaled (``min_ok_parallax_area=1``) the same fit is ``ok``."""
+    so, to test this rule alone); unscaled (``min_ok_parallax_area=1``, the flat-valley rule off) the same fit is
+    ``ok``."""
     monkeypatch.setattr("cmax.fitting.api.assess", lambda *args, **kwargs: ((_alt("mirrored", 1.0),), "", True))
     v = 3.0 * np.array([0.27, 0.081, 0.0])
     events, K = _sliding_plane(v, 2001)
@@ -739,7 +742,7 @@ def test_a_small_image_needs_more_parallax_for_ok(monkeypatch):
         warnings.simplefilter("ignore")
         scaled = fit(events, K, speed=float(np.linalg.norm(v)), depth_range=(0.5, 10.0))
         unscaled = fit(events, K, speed=float(np.linalg.norm(v)), depth_range=(0.5, 10.0),
-                       quality=QualitySettings(min_ok_parallax_area=1))
+                       quality=QualitySettings(min_ok_parallax_area=1, bas_relief_valley_deg=0.0))
     assert 3.0 <= scaled.parallax_px < 6.4      # measured 4.0 px: the band the scaling adds at 160x120
     np.testing.assert_allclose(scaled.v, unscaled.v, rtol=1e-9)          # the rule changes the verdict alone
     assert unscaled.verdict is Verdict.OK and not unscaled.quality.small_parallax
@@ -840,7 +843,7 @@ def test_a_fit_off_the_optimum_along_the_bas_relief_trade_is_not_ok(monkeypatch)
     rotation-flipped alternatives all scored worse beyond noise, as on the README's ``cmax fit room.h5`` example
     (docs/quality.md). Here the fit handed to the verdict is the window's own fit moved 20 deg along that trade, and
     the ambiguity test is made to find every alternative worse beyond noise: with ``bas_relief_turn_deg`` 0 (the old
-    rule) the verdict is ``ok``; by default a motion 10 deg back along the trade scores better than it beyond its
+    rule; the flat-valley rule off too) the verdict is ``ok``; by default a motion 10 deg back along the trade scores better than it beyond its
     noise, so the verdict is ``ambiguous`` and ``turned``, the motion unchanged. The fit itself, at its optimum, stays
     ``ok`` (:func:`test_a_clear_window_is_ok_and_its_fit_is_right`)."""
     import cmax.fitting.api as api
@@ -858,7 +861,7 @@ def test_a_fit_off_the_optimum_along_the_bas_relief_trade_is_not_ok(monkeypatch)
 
     monkeypatch.setattr(api, "run_stages", moved_stages)
     monkeypatch.setattr(api, "assess", lambda *args, **kwargs: ((_alt("mirrored", 1.0),), "", True))
-    old, new = (QualitySettings(min_ok_parallax_area=1, bas_relief_turn_deg=0.0),
+    old, new = (QualitySettings(min_ok_parallax_area=1, bas_relief_turn_deg=0.0, bas_relief_valley_deg=0.0),
                 QualitySettings(min_ok_parallax_area=1))
     with warnings.catch_warnings():
         warnings.simplefilter("ignore")
@@ -890,3 +893,70 @@ def test_turned_reason_and_its_place_among_the_verdicts():
     assert failed.verdict is Verdict.FAILED and not failed.turned
     with pytest.raises(ValueError, match="bas_relief_turn_deg"):
         QualitySettings(bas_relief_turn_deg=-1.0)
+
+
+def test_a_direction_the_bas_relief_valley_does_not_fix_is_not_ok(monkeypatch):
+    """Was: ``ok`` when every alternative of the ambiguity test scored worse beyond noise and no motion 10 deg along
+    the bas-relief trade scored better than the fit, while motions 20 deg along it scored within noise of the fit: the
+    README's ``cmax fit room.h5`` example (window 1: 15 deg off, depth abs_rel 0.39, docs/quality.md), and this plane
+    slid past sideways at 160x120 with 8.6 px of fitted parallax (``ok`` 42 deg off on an Intel Xeon host). Now such a
+    window is ``ambiguous`` and ``flat_valley``, its motion unchanged; ``bas_relief_valley_deg=0`` turns the rule off;
+    with the rotation held (``omega=``) the trade does not exist and the rule does not apply."""
+    from cmax.fitting.quality import valley_reason, valley_turned
+
+    v = 5.0 * np.array([0.27, 0.081, 0.0])
+    events, K = _sliding_plane(v, 2002)
+    speed = float(np.linalg.norm(v))
+    with warnings.catch_warnings():
+        warnings.simplefilter("ignore")
+        without = fit(events, K, speed=speed, depth_range=(0.5, 10.0), quality=QualitySettings(bas_relief_valley_deg=0.0))
+        default = fit(events, K, speed=speed, depth_range=(0.5, 10.0))
+        held = fit(events, K, speed=speed, depth_range=(0.5, 10.0), omega=np.zeros(3))
+    np.testing.assert_allclose(default.v, without.v, rtol=1e-9)             # the rule changes the verdict alone
+    assert _angle_deg(without.v, v) > 10.0         # the ground truth: this direction must not be called ok
+    assert not held.quality.flat_valley
+    if without.verdict is Verdict.OK:   # (on the host measured: ok at 42 deg) now ambiguous
+        assert default.verdict is Verdict.AMBIGUOUS and default.quality.flat_valley
+        assert default.quality.reason.startswith("a motion turned 20 deg along the bas-relief trade (turned_")
+        assert default.quality.reason.endswith(without.quality.reason)
+        assert default.quality.summary()["flat_valley"] is True
+    else:               # another host's rounding let another rule flag it: make the others pass it, as measured
+        monkeypatch.setattr("cmax.fitting.api.assess", lambda *args, **kwargs: ((_alt("mirrored", 1.0),), "", True))
+        with warnings.catch_warnings():
+            warnings.simplefilter("ignore")
+            forced = fit(events, K, speed=speed, depth_range=(0.5, 10.0),
+                         quality=QualitySettings(bas_relief_turn_deg=0.0, min_ok_parallax_area=1))
+        assert forced.verdict is Verdict.AMBIGUOUS and forced.quality.flat_valley
+    # the motion the rule found: 20 deg from the fit, its speed kept, within noise
+    from cmax.fitting.api import DEFAULT_CONTRAST, DEFAULT_POLARITY_SPLIT
+    from cmax.fitting.window import Window
+
+    settings = FitSettings(depth_range=(0.5, 10.0), contrast=DEFAULT_CONTRAST["se3"],
+                           polarity_split=DEFAULT_POLARITY_SPLIT["se3"])
+    window = Window.from_events(events, K, settings, without.inverse_depth_grid.shape)
+    valley = valley_turned(window, without.v, without.omega, speed, QualitySettings())
+    assert abs(_angle_deg(valley.v, without.v) - 20.0) < 1e-6
+    assert abs(np.linalg.norm(valley.v) - speed) < 1e-9 * speed
+    assert valley.gain <= valley.noise and valley_reason(valley, 20.0)
+
+
+def test_valley_reason_and_its_place_among_the_verdicts():
+    """``valley_reason`` is empty unless the motion along the trade scores within noise of the fit (gain at most its
+    noise), and the rule only turns an ``ok`` into ``ambiguous``: a worse verdict keeps its own reason; the setting
+    is checked."""
+    from cmax.fitting.quality import valley_reason
+
+    within, beyond = _alt("turned_+a", 0.2, 0.5), _alt("turned_+a", 0.6, 0.5)
+    assert valley_reason(beyond, 20.0) == valley_reason(None, 20.0) == ""
+    reason = valley_reason(within, 20.0)
+    assert "within noise" in reason and "bas_relief_valley_deg=20" in reason
+    ok = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 1.0)],
+                    flat_valley=reason)
+    assert ok.verdict is Verdict.AMBIGUOUS and ok.flat_valley and ok.reason.startswith(reason + "; every alternative")
+    ambiguous = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 0.01)],
+                           flat_valley=reason)
+    assert ambiguous.verdict is Verdict.AMBIGUOUS and not ambiguous.flat_valley
+    failed = verdict_of(success=False, failed_stages=["refine"], low_motion=None, alternatives=[], flat_valley=reason)
+    assert failed.verdict is Verdict.FAILED and not failed.flat_valley
+    with pytest.raises(ValueError, match="bas_relief_valley_deg"):
+        QualitySettings(bas_relief_valley_deg=-1.0)

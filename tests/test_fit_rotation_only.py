@@ -121,7 +121,10 @@ def driving_window():
 
 def test_a_translating_window_keeps_its_verdict_and_motion():
     w, options = driving_window()
-    quality = QualitySettings(min_ok_parallax_area=1)
+    # the flat-valley rule off: a motion 20 deg along the bas-relief trade scores at the edge of its noise on this
+    # fit (19 deg off the truth; 0.97 of the noise on an Intel Xeon host), a verdict float rounding can flip; this test
+    # is about the rotation-only test
+    quality = QualitySettings(min_ok_parallax_area=1, bas_relief_valley_deg=0.0)
     r = fit(w.events, w.K, quality=quality, **options)
     assert r.verdict is Verdict.OK and r.quality.cause is None and r.quality.replaced is None, r.quality.reason
     off = fit(w.events, w.K, quality=replace(quality, rotation_test=False), **options)

@@ -82,8 +82,9 @@ def test_the_bas_relief_turn_scores_on_the_ambiguity_tests_scorer():
         patch.setattr(quality.MotionScorer, "build", classmethod(counted))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            ok = fit(w.events, w.K, speed=speed, depth_range=(1.0, 20.0), quality=QualitySettings(min_ok_parallax_area=1))
-    assert ok.verdict is Verdict.OK and len(builds) == 1, ok.quality.reason     # the ambiguity test's and the turn's
+            flat = fit(w.events, w.K, speed=speed, depth_range=(1.0, 20.0), quality=QualitySettings(min_ok_parallax_area=1))
+    # the ambiguity test's, shared by the turn (scored: it did not fire) and the valley (scored: it fired)
+    assert flat.verdict is Verdict.AMBIGUOUS and flat.quality.flat_valley and len(builds) == 1, flat.quality.reason
 
 
 def test_the_turn_is_not_scored_where_another_rule_already_keeps_the_window_from_ok(monkeypatch):

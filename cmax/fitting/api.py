@@ -24,7 +24,8 @@ from cmax.fitting.pipeline import Motion, StageLog, depth_on_bounds, run_stages,
 from cmax.fitting.quality import (NO_MOTION, LowMotion, LowMotionCause, Quality, Verdict, assess, bound_reason,
                                   motion_within_noise, rate_change, shuffled_gain_test, small_parallax_reason,
                                   isolated_events, neighbour_counts, noise_reason, noise_share, sparse_reason,
-                                  best_turned, turned_reason, MotionScorer, _unsteady_reason,
+                                  best_turned, turned_reason, valley_reason, valley_turned, MotionScorer,
+                                  _unsteady_reason,
                                   verdict_of, _isolated, _isolated_noise_share_and_sorted, _neighbour_counts,
                                   _Sorted, _sorted_subset)
 from cmax.fitting.rotation_only import (fit_rotation_only, reports_rotation_only, rotation_only_reason,
@@ -740,7 +741,7 @@ def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver
     alternatives, note = (), ("ambiguity not tested: the pose is given" if pose_known else
                               "ambiguity not tested: a model without translation" if result.model != "se3" else
                               "ambiguity not tested (QualitySettings.ambiguity_test False)")
-    tested, sparse, small, turned = True, "", "", ""
+    tested, sparse, small, turned, flat = True, "", "", "", ""
     noisy = "" if noise is None else noise_reason(noise, quality.max_noise_share, quality.noise_window_us)
     if result.model == "se3" and not pose_known and quality.ambiguity_test and result.success and low is None:
         scorer = MotionScorer.build(w, result.v, result.omega, speed, quality)
@@ -754,10 +755,12 @@ def _quality(w: Window, result: FitResult, low: LowMotion | None, solver: Solver
         decided = on_bound or sparse or small or noisy or (rate is not None and
                                                             _unsteady_reason(rate, quality.max_rate_change))
         turned = _turned(w, result, speed, quality, alternatives, tested and not hold_omega and not decided, scorer)
+        flat = _flat_valley(w, result, speed, quality, alternatives,
+                            tested and not hold_omega and not (turned or decided), scorer)
     return verdict_of(success=result.success, failed_stages=failed, low_motion=low, alternatives=alternatives,
                       note=note, untestable=not tested, rate=rate, max_rate_change=quality.max_rate_change,
                       sparse=sparse, on_bound=on_bound, small_parallax=small, noise_share=noise, noisy=noisy,
-                      turned=turned)
+                      turned=turned, flat_valley=flat)
 
 
 def _turned(w: Window, result: FitResult, speed: float, quality: QualitySettings, alternatives: tuple,
@@ -771,6 +774,18 @@ def _turned(w: Window, result: FitResult, speed: float, quality: QualitySettings
         return ""
     turned = best_turned(w, result.v, result.omega, speed, quality, scorer)
     return turned_reason(turned, quality.bas_relief_turn_deg)
+
+
+def _flat_valley(w: Window, result: FitResult, speed: float, quality: QualitySettings, alternatives: tuple,
+                 due: bool, scorer: MotionScorer | None = None) -> str:
+    """:func:`cmax.fitting.quality.valley_reason` of a se3 fit whose ambiguity test found every alternative worse
+    beyond noise (``alternatives``; ``due``: tested, with the rotation free, and no other rule already keeping the
+    window from ``ok``), "" otherwise: the test is only run where it can change the verdict. ``scorer``: the
+    ambiguity test's :class:`cmax.fitting.quality.MotionScorer` of the fit (None: built anew)."""
+    if not due or not alternatives or any(a.within_noise for a in alternatives):
+        return ""
+    turned = valley_turned(w, result.v, result.omega, speed, quality, scorer)
+    return valley_reason(turned, quality.bas_relief_valley_deg)
 
 
 def _warn(result: FitResult, settings: FitSettings, low: LowMotion | None, pose_known: bool,

@@ -76,7 +76,8 @@ __all__ = ["Verdict", "LowMotionCause", "LowMotion", "QualitySettings", "Alterna
            "assess", "motion_within_noise", "shuffled_gain_test", "NO_MOTION", "verdict_of",
            "choose_from_neighbours", "choose_from_run", "alternative_motions", "rate_change", "sparse_reason",
            "small_parallax_reason", "min_ok_parallax", "isolated_events", "neighbour_counts", "noise_share",
-           "noise_reason", "turned_motions", "best_turned", "turned_reason", "density_pixels"]
+           "noise_reason", "turned_motions", "best_turned", "turned_reason", "valley_turned", "valley_reason",
+           "density_pixels"]
 
 
 #: How a ``low_parallax`` reason ends when the permutation test (:func:`shuffled_gain_test`) found no motion at
@@ -190,6 +191,11 @@ class Quality:
         se3 with a free rotation: a motion ``QualitySettings.bas_relief_turn_deg`` along the bas-relief trade
         scores better than the fit (:func:`best_turned`, :func:`turned_reason`): ambiguous, since the fit is not the
         optimum of its own objective along the trade, and its direction may be off by that much or more.
+    flat_valley : bool
+        se3 with a free rotation: a motion ``QualitySettings.bas_relief_valley_deg`` along the bas-relief trade
+        scores within noise of the fit (:func:`valley_turned`, :func:`valley_reason`): ambiguous, since the events
+        do not fix the translation direction (nor the size of the rotation and the depth's scale) to within that
+        angle.
     """
 
     verdict: Verdict
@@ -207,6 +213,7 @@ class Quality:
     noisy: bool = False
     noise_share: float | None = None
     turned: bool = False
+    flat_valley: bool = False
 
     def summary(self) -> dict:
         """A JSON-ready dict (an infinite ``rate_change``, one half of the window without events, as None with
@@ -216,6 +223,7 @@ class Quality:
                 "cause": None if self.cause is None else self.cause.value,
                 "rate_change": rate, "unsteady": self.unsteady, "sparse": self.sparse, "on_bound": self.on_bound,
                 "small_parallax": self.small_parallax, "noisy": self.noisy, "noise_share": self.noise_share, "turned": self.turned,
+                "flat_valley": self.flat_valley,
                 "alternatives": [{"name": a.name, "v": a.v.tolist(), "omega": a.omega.tolist(), "gain": a.gain,
                                   "noise": a.noise, "within_noise": a.within_noise} for a in self.alternatives],
                 "resolution": self.resolution, "resolved": self.resolved,
@@ -460,6 +468,41 @@ def turned_reason(turned: Alternative | None, degrees: float) -> str:
             f"(gain {turned.gain:.3g} < 0; bas_relief_turn_deg={degrees:g}): the fit is not the optimum of its own "
             "objective along the trade of the translation for a rotation, so its direction and its rotation's size, "
             "and with them the depth, may be off by that much or more")
+
+
+def valley_turned(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualitySettings,
+                  scorer: MotionScorer | None = None) -> Alternative | None:
+    """The fit's :func:`turned_motions` by ``settings.bas_relief_valley_deg``, scored as :class:`Alternative` s of the
+    fit ``(v (3,) [m/s], omega (3,) [rad/s])`` of window ``w`` (a :class:`cmax.fitting.window.Window`, ``|v| =
+    speed``) by :class:`MotionScorer`: the one that scores nearest the fit, or beyond it, relative to its noise
+    (the least ``gain - noise``); ``scorer``: the fit's :meth:`MotionScorer.build` of these arguments when the
+    caller holds it (the ambiguity test's), None: built here. None when the window has too few patches to score on,
+    the test is off (``bas_relief_valley_deg`` 0) or the speed is 0."""
+    if not settings.bas_relief_valley_deg > 0 or not np.linalg.norm(v) > 0:
+        return None
+    scorer = MotionScorer.build(w, v, omega, speed, settings) if scorer is None else scorer
+    if scorer is None:
+        return None
+    scored = [scorer.score(name, v_turned, omega_turned) for name, v_turned, omega_turned
+              in turned_motions(scorer.objective, v, omega, scorer.rho, settings.bas_relief_valley_deg)]
+    return min(scored, key=lambda a: a.gain - a.noise)
+
+
+def valley_reason(turned: Alternative | None, degrees: float) -> str:
+    """The reason of a window whose fit a motion ``degrees`` along the bas-relief trade (:func:`valley_turned`:
+    ``turned``, None when not scored) scores within noise of (its gain at most its noise), "" otherwise.
+
+    >>> valley_reason(Alternative("turned_+a", np.ones(3), np.zeros(3), 0.08, 0.43, True), 20.0)[:72]
+    'a motion turned 20 deg along the bas-relief trade (turned_+a) scores wit'
+    >>> valley_reason(Alternative("turned_+a", np.ones(3), np.zeros(3), 0.6, 0.43, False), 20.0)
+    ''
+    """
+    if turned is None or not turned.gain <= turned.noise:
+        return ""
+    return (f"a motion turned {degrees:g} deg along the bas-relief trade ({turned.name}) scores within noise of the "
+            f"fit (gain {turned.gain:.3g} <= noise {turned.noise:.3g}; bas_relief_valley_deg={degrees:g}): the events "
+            f"do not fix the translation direction to within {degrees:g} deg, where a rotation of another size makes "
+            "up the difference, nor with it the rotation and the depth's scale")
 
 
 # ----------------------------------------------------------------------------------------------
@@ -961,7 +1004,7 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
                alternatives: Sequence[Alternative], note: str = "", untestable: bool = False,
                rate: float | None = None, max_rate_change: float = math.inf, sparse: str = "",
                on_bound: str = "", small_parallax: str = "", noisy: str = "",
-               noise_share: float | None = None, turned: str = "") -> Quality:
+               noise_share: float | None = None, turned: str = "", flat_valley: str = "") -> Quality:
     """The verdict from the fit's ``success`` (and the names of its failed stages), why its motion is too
     small to trust (None when it is not), the ambiguity test's ``alternatives`` and the window's
     :func:`rate_change` ``rate`` (None: not measured); the worst one wins (failed, low parallax, ambiguous,
@@ -975,7 +1018,9 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
     ``small_parallax``. ``noisy``: the :func:`noise_reason` of the window ("" when its estimated noise share,
     ``noise_share`` (None: not measured), is not too high): an ``ok`` becomes ambiguous and ``noisy``. ``turned``: the
     :func:`turned_reason` of the window ("" when no motion along the bas-relief trade scores better than the fit):
-    an ``ok`` becomes ambiguous and ``turned``."""
+    an ``ok`` becomes ambiguous and ``turned``. ``flat_valley``: the :func:`valley_reason` of the window ("" when every
+    motion ``bas_relief_valley_deg`` along the trade scores worse than the fit beyond noise): an ``ok`` becomes
+    ambiguous and ``flat_valley``."""
     unsteady = "" if rate is None else _unsteady_reason(rate, max_rate_change)
     measured = dict(rate_change=rate, unsteady=bool(unsteady), noise_share=noise_share)
     if not success:
@@ -1014,6 +1059,9 @@ def verdict_of(*, success: bool, failed_stages: Sequence[str], low_motion: LowMo
         return Quality(Verdict.AMBIGUOUS, f"{noisy}; {reason}", tuple(alternatives), noisy=True, **measured)
     if turned and verdict is Verdict.OK:
         return Quality(Verdict.AMBIGUOUS, f"{turned}; {reason}", tuple(alternatives), turned=True, **measured)
+    if flat_valley and verdict is Verdict.OK:
+        return Quality(Verdict.AMBIGUOUS, f"{flat_valley}; {reason}", tuple(alternatives), flat_valley=True,
+                       **measured)
     return Quality(verdict, reason, tuple(alternatives), **measured)
 
 

@@ -425,6 +425,13 @@ class QualitySettings:
         is not the optimum of its own objective along the bas-relief trade, where a rotation of the wrong size
         explains part of the translation's flow at the price of a depth offset (docs/quality.md: the windows behind
         the value). 0 turns the test off.
+    bas_relief_valley_deg : float
+        se3 with a fitted direction and a free rotation, when the verdict would still be ``ok``: the fit's translation
+        turned by this many degrees the same four ways along the trade, each with the rotation that makes up the
+        change of its flow, is scored as an alternative (:func:`cmax.fitting.quality.valley_turned`); when one scores
+        within noise of the fit (its gain at most its noise) the window is at best ``ambiguous`` and ``flat_valley``:
+        the events do not fix the direction to within this angle, nor the rotation's size and the depth's scale with
+        it (docs/quality.md: the windows behind the value). 0 turns the test off.
     """
 
     ambiguity_test: bool = True
@@ -455,6 +462,7 @@ class QualitySettings:
     max_noise_share: float = 0.3
     noise_window_us: int = 10_000
     bas_relief_turn_deg: float = 10.0
+    bas_relief_valley_deg: float = 20.0
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "rotation_test", "smoothing"):
@@ -463,7 +471,7 @@ class QualitySettings:
         object.__setattr__(self, "motion_cells", _grid("motion_cells", self.motion_cells))
         for name in ("margin", "noise_sigmas", "distinct_deg", "recheck_deg", "max_resolve_deg",
                      "motion_noise_sigmas", "smoothing_min_deg", "smoothing_span_s", "min_event_density",
-                     "min_ok_parallax_px", "bas_relief_turn_deg"):
+                     "min_ok_parallax_px", "bas_relief_turn_deg", "bas_relief_valley_deg"):
             value = getattr(self, name)
             if not (isinstance(value, (int, float)) and math.isfinite(value) and value >= 0):
                 raise ValueError(f"{name} must be a finite number >= 0, got {value!r}")
