@@ -10,8 +10,9 @@ at every decoder scale, bounded to the configured depth range:
 
 The pose head on the bottleneck (conv, mean over a grid of cells, linear) gives the twist
 ``(v [m/s], omega [rad/s])`` of the window, each scaled by a configured
-typical magnitude (``tanh`` bounded). With ``odd_twist`` the twist is half the difference of
-the window's and its time reversal's (a window played backwards gets exactly the negated twist).
+typical magnitude (``tanh`` bounded). With ``odd_twist`` the ``tanh`` reads half the difference of
+the head's linear outputs for the window and for its time reversal (a window played backwards gets exactly
+the negated twist).
 Inputs whose sides are not multiples of ``2**levels`` are zero-padded and the outputs cropped back.
 
 :class:`ModelConfig` also shapes the network for speed: ``block`` (dense 3x3 or
@@ -71,11 +72,13 @@ class ModelConfig:
         the image a feature is: expansion and contraction (forward and backward motion), or a pan left
         and right at the two sides, average alike. 3 keeps the layout the motion field needs.
     odd_twist : bool
-        ``True``: the twist is odd under time reversal by construction, ``twist(V) = (h(V) - h(R V)) / 2`` with
-        ``h`` the pose head and ``R V = -V[::-1]`` (bins reversed, signs flipped: the volume of the window played
-        backwards, :func:`learned.data.reverse_time`), so that a window played backwards gets exactly ``-twist``
-        (the encoder runs on both volumes; the depth is the window's own). ``False`` (the original network): the
-        pose head alone.
+        ``True``: the twist is odd under time reversal by construction, ``twist(V) = s * tanh((h(V) - h(R V)) / 2)``
+        with ``h`` the pose head's linear output, ``s`` the typical magnitudes and ``R V = -V[::-1]`` (bins reversed,
+        signs flipped: the volume of the window played backwards, :func:`learned.data.reverse_time`), so that a
+        window played backwards gets exactly ``-twist`` (the encoder runs on both volumes; the depth is the
+        window's own). The difference is taken before the ``tanh``: the part of ``h`` the two volumes share, which
+        no loss sees, cancels instead of saturating the ``tanh`` (a twist of exactly 0 with no gradient).
+        ``False`` (the original network): ``s * tanh(h(V))``.
     """
 
     bins: int = 5
@@ -237,10 +240,11 @@ class DepthPoseNet(nn.Module):
         pooled = self.pose_pool(self.pose(feature)).flatten(1)
         scale = torch.tensor([self.config.max_speed] * 3 + [self.config.max_angular_speed] * 3,
                              dtype=pooled.dtype, device=pooled.device)
-        twist = torch.tanh(self.pose_out(pooled)) * scale
-        if self.config.odd_twist:
-            twist = (twist[:n] - twist[n:]) / 2
+        logit = self.pose_out(pooled)
+        if self.config.odd_twist:   # odd before the (odd) tanh: the part both passes share cancels, never saturates it
+            logit = (logit[:n] - logit[n:]) / 2
             feature, skips = feature[:n], [skip[:n] for skip in skips]
+        twist = torch.tanh(logit) * scale
         outputs = []
         for up, head in zip(self.up, self.heads):
             skip = skips.pop()

@@ -183,6 +183,25 @@ def test_the_shipped_networks_give_a_window_played_backwards_the_negated_twist()
     torch.testing.assert_close(depths[True], depths[False], rtol=0, atol=0)   # same weights, same depth
 
 
+def test_the_odd_twist_is_taken_before_the_tanh_so_a_shared_offset_cannot_saturate_it():
+    """The odd head's twist is ``s * tanh((h(V) - h(R V)) / 2)``: whatever the two passes share (here the linear
+    layer's bias, set to 30, as a drifting common mode would) cancels before the tanh, so the twist and its gradient
+    equal those with no bias. Taken after the tanh (the first odd head), tanh(30 + d) - tanh(30 - d) is 0 to float
+    precision: a twist of exactly 0 with no gradient, what 2 of 3 recipe runs at 160x120 ended in."""
+    torch.manual_seed(0)
+    net = DepthPoseNet(ModelConfig(width=4, levels=2, odd_twist=True)).eval()
+    net.pose_out.weight.data.normal_(0, 0.3)
+    volume = torch.randn(2, 5, 32, 48)
+    net.pose_out.bias.data.zero_()
+    plain = net(volume).twist
+    net.pose_out.bias.data.fill_(30.0)
+    shifted = net(volume).twist
+    assert float(plain.abs().max()) > 0.05
+    torch.testing.assert_close(shifted, plain, rtol=1e-3, atol=1e-4)   # float32: 30 + h loses ~1e-6 of h
+    (grad,) = torch.autograd.grad(shifted.square().sum(), net.pose_out.weight)
+    assert float(grad.abs().max()) > 1e-3
+
+
 def test_odd_twist_must_be_a_bool():
     with pytest.raises(ValueError, match=r"model\.odd_twist must be true or false, got 'yes'"):
         ModelConfig(odd_twist="yes")
