@@ -574,15 +574,16 @@ def test_raw_windows_equal_the_whole_file_cut_and_read_forward(tmp_path):
 
 
 def test_the_limits_on_a_checkpoints_card_are_said_and_recorded(checkpoint, events, tmp_path, capsys):
-    """Was: ``cmax depth`` wrote the shipped student's twists without a word, though its translation points
-    130-155 deg off on held-out scenes. A card's ``limits`` are printed as notes and kept in summary.json; the
-    shipped card states that limit; a malformed ``limits`` is one line."""
+    """Was: ``cmax depth`` wrote the shipped student's twists without a word, though its translation pointed
+    130-155 deg off on held-out scenes (the model before the odd twist). A card's ``limits`` are printed as notes
+    and kept in summary.json; the shipped card states where its translation can be used; a malformed ``limits``
+    is one line."""
     import shutil
 
     from learned import pretrained
 
     shipped = pretrained.card_limits(pretrained.checkpoint_card(pretrained.CARD))
-    assert any("translation direction is not usable" in text for text in shipped)
+    assert any("translation direction is usable on drives only" in text for text in shipped)
     # each is printed alone as a note: it cannot point at the card's other fields as 'above' (was: 'test_scores_dense
     # above'), it names the file they are in
     assert not any(" above" in text for text in shipped) and all(
