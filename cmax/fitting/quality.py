@@ -443,14 +443,21 @@ def best_turned(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: Qua
     :meth:`MotionScorer.build` of these arguments when the caller holds it (the ambiguity test's, :func:`assess`),
     None: built here. None when the window has too few patches to score on, or the test is off
     (``bas_relief_turn_deg`` 0) or the speed is 0."""
-    if not settings.bas_relief_turn_deg > 0 or not np.linalg.norm(v) > 0:
+    scored = _scored_turns(w, v, omega, speed, settings, settings.bas_relief_turn_deg, scorer)
+    return None if scored is None else min(scored, key=lambda a: a.gain)
+
+
+def _scored_turns(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: QualitySettings, degrees: float,
+                  scorer: MotionScorer | None) -> list[Alternative] | None:
+    """The fit's four :func:`turned_motions` by ``degrees`` scored by ``scorer`` (built here when None) as
+    :class:`Alternative` s; None when ``degrees`` is 0, the speed is 0 or the window has too few patches."""
+    if not degrees > 0 or not np.linalg.norm(v) > 0:
         return None
     scorer = MotionScorer.build(w, v, omega, speed, settings) if scorer is None else scorer
     if scorer is None:
         return None
-    scored = [scorer.score(name, v_turned, omega_turned) for name, v_turned, omega_turned
-              in turned_motions(scorer.objective, v, omega, scorer.rho, settings.bas_relief_turn_deg)]
-    return min(scored, key=lambda a: a.gain)
+    return [scorer.score(name, v_turned, omega_turned) for name, v_turned, omega_turned
+            in turned_motions(scorer.objective, v, omega, scorer.rho, degrees)]
 
 
 def turned_reason(turned: Alternative | None, degrees: float) -> str:
@@ -478,14 +485,8 @@ def valley_turned(w, v: np.ndarray, omega: np.ndarray, speed: float, settings: Q
     (the least ``gain - noise``); ``scorer``: the fit's :meth:`MotionScorer.build` of these arguments when the
     caller holds it (the ambiguity test's), None: built here. None when the window has too few patches to score on,
     the test is off (``bas_relief_valley_deg`` 0) or the speed is 0."""
-    if not settings.bas_relief_valley_deg > 0 or not np.linalg.norm(v) > 0:
-        return None
-    scorer = MotionScorer.build(w, v, omega, speed, settings) if scorer is None else scorer
-    if scorer is None:
-        return None
-    scored = [scorer.score(name, v_turned, omega_turned) for name, v_turned, omega_turned
-              in turned_motions(scorer.objective, v, omega, scorer.rho, settings.bas_relief_valley_deg)]
-    return min(scored, key=lambda a: a.gain - a.noise)
+    scored = _scored_turns(w, v, omega, speed, settings, settings.bas_relief_valley_deg, scorer)
+    return None if scored is None else min(scored, key=lambda a: a.gain - a.noise)
 
 
 def valley_reason(turned: Alternative | None, degrees: float) -> str:
