@@ -786,7 +786,7 @@ def test_fit_through_a_lens_warps_each_event_from_its_sub_pixel_position(tmp_pat
     (["--model", "flow", "--max-omega", "1"], "--max-omega applies to --model se3 and rotation, not flow"),
     (["--omega", "0,0,0", "--gyro", "g.txt"], "--omega is a constant rotation, --gyro a measured one"),
     (["--depth-range", "3,1"], "--depth-range must satisfy 0 < near < far (metres), got (3.0, 1.0)"),
-    (["--max-events", "5"], "--max-events must be >= 10, got 5"),
+    (["--max-events", "5"], "--max-events must be >= 10 (an int) or None (by the sensor), got 5"),
     (["--gyro-axes=-x,y,-z"], "--gyro-axes turns the readings of --gyro: pass --gyro too"),
     (["--gyro", "g.txt", "--gyro-axes", "x,x,z"], "--gyro-axes: gyro axes must name each IMU axis once"),
 ])
