@@ -592,8 +592,10 @@ def test_the_patch_flows_read_every_event_of_the_window_by_default():
     n = 50_000
     events = Events(rng.integers(0, 160, n), rng.integers(0, 120, n), np.sort(rng.integers(0, 100_000, n)),
                     rng.integers(0, 2, n), width=160, height=120)
+    from cmax.fitting.settings import max_events_for
+
     settings = FitSettings()
-    assert n <= settings.max_events
+    assert n <= max_events_for(settings.max_events, 160, 120)
     w = Window.from_events(events, np.array([[120.0, 0, 80], [0, 120.0, 60], [0, 0, 1]]), settings)
     pf = settings.patch_flow
 
