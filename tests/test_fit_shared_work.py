@@ -82,7 +82,8 @@ def test_the_bas_relief_turn_scores_on_the_ambiguity_tests_scorer():
         patch.setattr(quality.MotionScorer, "build", classmethod(counted))
         with warnings.catch_warnings():
             warnings.simplefilter("ignore")
-            flat = fit(w.events, w.K, speed=speed, depth_range=(1.0, 20.0), quality=QualitySettings(min_ok_parallax_area=1))
+            flat = fit(w.events, w.K, speed=speed, depth_range=(1.0, 20.0),
+                       quality=QualitySettings(min_ok_parallax_area=1, bas_relief_valley_deg=20.0))
     # the ambiguity test's, shared by the turn (scored: it did not fire) and the valley (scored: it fired)
     assert flat.verdict is Verdict.AMBIGUOUS and flat.quality.flat_valley and len(builds) == 1, flat.quality.reason
 

@@ -431,7 +431,9 @@ class QualitySettings:
         change of its flow, is scored as an alternative (:func:`cmax.fitting.quality.valley_turned`); when one scores
         within noise of the fit (its gain at most its noise) the window is at best ``ambiguous`` and ``flat_valley``:
         the events do not fix the direction to within this angle, nor the rotation's size and the depth's scale with
-        it (docs/quality.md: the windows behind the value). 0 turns the test off.
+        it (docs/quality.md: the windows behind the value, 20 deg). 0, the default, turns the test off: on, it
+        made every window of a sliding camera ambiguous, and ``fit_sequence``'s resolution from neighbours then
+        left windows of the ECD slider reversed.
     """
 
     ambiguity_test: bool = True
@@ -462,7 +464,7 @@ class QualitySettings:
     max_noise_share: float = 0.3
     noise_window_us: int = 10_000
     bas_relief_turn_deg: float = 10.0
-    bas_relief_valley_deg: float = 20.0
+    bas_relief_valley_deg: float = 0.0
 
     def __post_init__(self) -> None:
         for name in ("ambiguity_test", "motion_test", "shuffle_test", "rotation_test", "smoothing"):
