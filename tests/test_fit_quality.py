@@ -875,6 +875,20 @@ def test_a_fit_off_the_optimum_along_the_bas_relief_trade_is_not_ok(monkeypatch)
     assert turned_reason(back, 10.0) and after.quality.reason.endswith(before.quality.reason)
 
 
+def _assert_it_only_turns_an_ok_ambiguous(field: str, reason: str) -> None:
+    """A verdict rule given to :func:`verdict_of` as ``field`` with a ``reason`` turns an ``ok`` into ``ambiguous``
+    (its reason first) and leaves a worse verdict with its own reason."""
+    ok = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 1.0)],
+                    **{field: reason})
+    assert ok.verdict is Verdict.AMBIGUOUS and getattr(ok, field)
+    assert ok.reason.startswith(reason + "; every alternative")
+    ambiguous = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 0.01)],
+                           **{field: reason})
+    assert ambiguous.verdict is Verdict.AMBIGUOUS and not getattr(ambiguous, field)
+    failed = verdict_of(success=False, failed_stages=["refine"], low_motion=None, alternatives=[], **{field: reason})
+    assert failed.verdict is Verdict.FAILED and not getattr(failed, field)
+
+
 def test_turned_reason_and_its_place_among_the_verdicts():
     """``turned_reason`` is empty unless the turned motion scores better than the fit (gain < 0), and the rule only
     turns an ``ok`` into ``ambiguous``: a worse verdict keeps its own reason; the setting is checked."""
@@ -883,14 +897,7 @@ def test_turned_reason_and_its_place_among_the_verdicts():
     better, worse = _alt("turned_+a", -0.01, 0.5), _alt("turned_+a", 0.01, 0.5)
     assert turned_reason(worse, 10.0) == turned_reason(None, 10.0) == ""
     reason = turned_reason(better, 10.0)
-    ok = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 1.0)],
-                    turned=reason)
-    assert ok.verdict is Verdict.AMBIGUOUS and ok.turned and ok.reason.startswith(reason + "; every alternative")
-    ambiguous = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 0.01)],
-                           turned=reason)
-    assert ambiguous.verdict is Verdict.AMBIGUOUS and not ambiguous.turned
-    failed = verdict_of(success=False, failed_stages=["refine"], low_motion=None, alternatives=[], turned=reason)
-    assert failed.verdict is Verdict.FAILED and not failed.turned
+    _assert_it_only_turns_an_ok_ambiguous("turned", reason)
     with pytest.raises(ValueError, match="bas_relief_turn_deg"):
         QualitySettings(bas_relief_turn_deg=-1.0)
 
@@ -963,13 +970,6 @@ def test_valley_reason_and_its_place_among_the_verdicts():
     assert valley_reason(beyond, 20.0) == valley_reason(None, 20.0) == ""
     reason = valley_reason(within, 20.0)
     assert "within noise" in reason and "bas_relief_valley_deg=20" in reason
-    ok = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 1.0)],
-                    flat_valley=reason)
-    assert ok.verdict is Verdict.AMBIGUOUS and ok.flat_valley and ok.reason.startswith(reason + "; every alternative")
-    ambiguous = verdict_of(success=True, failed_stages=[], low_motion=None, alternatives=[_alt("mirrored", 0.01)],
-                           flat_valley=reason)
-    assert ambiguous.verdict is Verdict.AMBIGUOUS and not ambiguous.flat_valley
-    failed = verdict_of(success=False, failed_stages=["refine"], low_motion=None, alternatives=[], flat_valley=reason)
-    assert failed.verdict is Verdict.FAILED and not failed.flat_valley
+    _assert_it_only_turns_an_ok_ambiguous("flat_valley", reason)
     with pytest.raises(ValueError, match="bas_relief_valley_deg"):
         QualitySettings(bas_relief_valley_deg=-1.0)

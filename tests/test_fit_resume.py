@@ -471,29 +471,42 @@ def test_resume_of_a_finished_fit_says_it_is_complete_and_touches_nothing(tmp_pa
     assert calls == []
 
 
-def test_resume_of_a_finished_fit_with_a_result_emptied_fits_again(tmp_path, monkeypatch, capsys):
-    """Was: ``--resume`` judged the run complete by its summary.json alone: with ``trajectory.txt`` emptied (or a
-    depth file deleted), "the results in o are already complete", the folder left damaged. summary.json now
-    records each result's size and SHA-256 ("outputs"): the same run fits again, says why on one note line, and
-    ends with the first run's results (tests/test_depth_resume.py and tests/test_run_folder.py: deleted and
-    changed files)."""
+def _finished_flow_fit(tmp_path):
+    """A finished ``cmax fit`` (flow, 4 windows of noise) into ``tmp_path/o``: its argv, folder, exit status and
+    results."""
     path = write_h5(tmp_path / "ev.h5", noise_events(3000, 50_000, seed=3), compression="none")
     out = tmp_path / "o"
     argv = ["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--model", "flow", "--min-events", "300",
             "--window-ms", "12.5"]
     status = main(argv)
-    first = results_of(out)
-    outputs = json.loads((out / "summary.json").read_text())["outputs"]
-    assert sorted(outputs) == ["trajectory.txt"] and outputs["trajectory.txt"]["bytes"] > 0
-    (out / "trajectory.txt").write_text("")
+    return argv, out, status, results_of(out)
+
+
+def _resume_fits_again(argv, out, status, first, monkeypatch, capsys, why):
+    """``--resume`` of that run fits its 4 windows again with one "not complete" note saying ``why`` and ends with
+    the ``first`` results; returns the recorded fit calls."""
     capsys.readouterr()
     calls = counted_calls(monkeypatch, sequence_module, "fit")
     assert main([*argv, "--resume"]) == status
     captured = capsys.readouterr()
     assert "already complete" not in captured.out and len(calls) == 4, captured
     note = [line for line in captured.err.splitlines() if "not complete" in line]
-    assert len(note) == 1 and "trajectory.txt has 0 bytes" in note[0], captured.err
+    assert len(note) == 1 and why in note[0], captured.err
     assert_same(results_of(out), first)
+    return calls
+
+
+def test_resume_of_a_finished_fit_with_a_result_emptied_fits_again(tmp_path, monkeypatch, capsys):
+    """Was: ``--resume`` judged the run complete by its summary.json alone: with ``trajectory.txt`` emptied (or a
+    depth file deleted), "the results in o are already complete", the folder left damaged. summary.json now
+    records each result's size and SHA-256 ("outputs"): the same run fits again, says why on one note line, and
+    ends with the first run's results (tests/test_depth_resume.py and tests/test_run_folder.py: deleted and
+    changed files)."""
+    argv, out, status, first = _finished_flow_fit(tmp_path)
+    outputs = json.loads((out / "summary.json").read_text())["outputs"]
+    assert sorted(outputs) == ["trajectory.txt"] and outputs["trajectory.txt"]["bytes"] > 0
+    (out / "trajectory.txt").write_text("")
+    calls = _resume_fits_again(argv, out, status, first, monkeypatch, capsys, "trajectory.txt has 0 bytes")
     assert json.loads((out / "summary.json").read_text())["outputs"] == outputs
     calls.clear()
     assert main([*argv, "--resume"]) == status and calls == []      # now complete: nothing to do
@@ -507,23 +520,11 @@ def test_resume_of_a_finished_fit_whose_summary_lists_no_outputs_is_not_taken_on
     folder kept. Now results that cannot be verified are not taken on trust: the same run fits again (one note
     naming why) and ends with the first run's results; a summary of another version of the code is refused as
     another run."""
-    path = write_h5(tmp_path / "ev.h5", noise_events(3000, 50_000, seed=3), compression="none")
-    out = tmp_path / "o"
-    argv = ["fit", str(path), "--K", K_OPTION, "-o", str(out), "--quiet", "--model", "flow", "--min-events", "300",
-            "--window-ms", "12.5"]
-    status = main(argv)
-    first = results_of(out)
+    argv, out, status, first = _finished_flow_fit(tmp_path)
     summary = json.loads((out / "summary.json").read_text())
     (out / "summary.json").write_text(json.dumps({key: value for key, value in summary.items() if key != "outputs"}))
     (out / "trajectory.txt").write_text("")
-    capsys.readouterr()
-    calls = counted_calls(monkeypatch, sequence_module, "fit")
-    assert main([*argv, "--resume"]) == status
-    captured = capsys.readouterr()
-    assert "already complete" not in captured.out and len(calls) == 4, captured
-    note = [line for line in captured.err.splitlines() if "not complete" in line]
-    assert len(note) == 1 and "cannot be verified" in note[0], captured.err
-    assert_same(results_of(out), first)
+    _resume_fits_again(argv, out, status, first, monkeypatch, capsys, "cannot be verified")
     assert json.loads((out / "summary.json").read_text())["outputs"] == summary["outputs"]
     old = json.loads((out / "summary.json").read_text())         # another version's summary: refused, kept as it is
     old.pop("outputs")
